@@ -1,0 +1,168 @@
+"""The ``canergy`` command line."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from canergy import __version__
+from canergy.cli_args import bounded_int, energy, node_ids, positive_float, probability
+from canergy.core.variants import VARIANTS
+from canergy.messages import MAX_NODE
+from canergy.units import UJ_PER_J
+
+
+def _demo_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "demo",
+        help="supervisor and clients on python-can's virtual bus under injected faults",
+        description=(
+            "Run a supervisor and several clients on python-can's virtual bus, in virtual time, "
+            "through a seeded fault injector; print the per-node and total ledger and a verdict. "
+            "Exit status 0 when passive, 1 when energy was generated."
+        ),
+    )
+    nodes = p.add_mutually_exclusive_group()
+    nodes.add_argument(
+        "--nodes",
+        type=bounded_int(1, MAX_NODE),
+        default=5,
+        help="number of client nodes, ids 1..N (default 5)",
+    )
+    nodes.add_argument("--node-ids", type=node_ids, help="explicit node ids, e.g. 1-5,9")
+    p.add_argument(
+        "--transactions",
+        type=bounded_int(1),
+        default=200,
+        help="transactions to start in total (default 200)",
+    )
+    p.add_argument(
+        "--duration",
+        type=positive_float,
+        default=300.0,
+        help="virtual-time limit in seconds (default 300)",
+    )
+    p.add_argument(
+        "--initial",
+        type=energy,
+        default=10 * UJ_PER_J,
+        help="supervisor's initial usable budget (default 10J)",
+    )
+    p.add_argument("--variant", choices=sorted(VARIANTS), default="hardened")
+    p.add_argument("--loss", type=probability, default=0.1, help="frame loss probability")
+    p.add_argument(
+        "--duplicate", type=probability, default=0.05, help="frame duplication probability"
+    )
+    p.add_argument(
+        "--reorder",
+        type=probability,
+        default=0.05,
+        help="probability a frame is held back behind later ones",
+    )
+    p.add_argument(
+        "--corrupt",
+        type=probability,
+        default=0.01,
+        help="probability one data bit flips in a frame",
+    )
+    p.add_argument(
+        "--resets",
+        type=bounded_int(0, 100),
+        default=2,
+        help="power losses of random nodes (or the supervisor) during the run",
+    )
+    p.add_argument(
+        "--commit-ratio",
+        type=probability,
+        default=0.8,
+        help="probability the supervisor commits an acknowledged intention",
+    )
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--log",
+        type=Path,
+        help="capture every frame on the bus (.log is candump -l; .asc, .blf, .csv, "
+        ".trc as python-can writes them)",
+    )
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+
+
+def _run_demo(args: argparse.Namespace) -> int:
+    from canergy.demo import DemoConfig, run_demo
+    from canergy.demo_report import format_report
+    from canergy.faults import FaultProfile
+
+    cfg = DemoConfig(
+        nodes=args.node_ids or tuple(range(1, args.nodes + 1)),
+        transactions=args.transactions,
+        duration_s=args.duration,
+        initial=args.initial,
+        variant=args.variant,
+        faults=FaultProfile(
+            loss=args.loss, duplicate=args.duplicate, reorder=args.reorder, corrupt=args.corrupt
+        ),
+        seed=args.seed,
+        resets=args.resets,
+        commit_ratio=args.commit_ratio,
+        log=args.log,
+    )
+    result = run_demo(cfg)
+    if args.json:
+        print(json.dumps(result.as_json(), indent=2))
+    else:
+        print(format_report(result))
+    return 0 if result.passive else 1
+
+
+def _dbc_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser("dbc", help="write the DBC describing canergy's frames")
+    p.add_argument("-o", "--output", type=Path, help="file to write (default: stdout)")
+    p.add_argument(
+        "--id-base",
+        type=lambda s: int(s, 0),
+        default=None,
+        help="29-bit identifier base, low 12 bits clear (default 0x0CE00000)",
+    )
+
+
+def _run_dbc(args: argparse.Namespace) -> int:
+    from canergy.codec import DEFAULT_ID_BASE
+    from canergy.dbc import dbc_text
+
+    text = dbc_text(DEFAULT_ID_BASE if args.id_base is None else args.id_base)
+    if args.output:
+        args.output.write_text(text)
+    else:
+        sys.stdout.write(text)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="canergy",
+        description="Passive energy budget transactions over CAN (Groothuis & Stramigioli).",
+    )
+    parser.add_argument("--version", action="version", version=f"canergy {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _demo_parser(sub)
+    _dbc_parser(sub)
+    return parser
+
+
+_COMMANDS = {"demo": _run_demo, "dbc": _run_dbc}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return _COMMANDS[args.command](args)
+    except ValueError as exc:
+        print(f"canergy {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

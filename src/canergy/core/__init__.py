@@ -1,0 +1,50 @@
+"""The sans-IO protocol core: frozen states, pure transition rules, thin stateful wrappers.
+
+No clock, no sockets, no ``can`` import. Callers pass ``now`` (integer µs), feed messages and
+timer expiries in, and carry out the returned actions.
+"""
+
+from canergy.core.actions import (
+    Aborted,
+    Acknowledged,
+    Action,
+    ClientCommitted,
+    Credited,
+    Persist,
+    Resolved,
+    ReturnAcknowledged,
+    ReturnCredited,
+    RolledBack,
+    Send,
+)
+from canergy.core.client import Client
+from canergy.core.errors import LocalProtocolError
+from canergy.core.state import ClientState, Decision, Outcome, Phase, Session, SupervisorState
+from canergy.core.supervisor import Supervisor
+from canergy.core.timing import Timing
+from canergy.core.variants import VARIANTS
+
+__all__ = [
+    "VARIANTS",
+    "Aborted",
+    "Acknowledged",
+    "Action",
+    "Client",
+    "ClientCommitted",
+    "ClientState",
+    "Credited",
+    "Decision",
+    "LocalProtocolError",
+    "Outcome",
+    "Persist",
+    "Phase",
+    "Resolved",
+    "ReturnAcknowledged",
+    "ReturnCredited",
+    "RolledBack",
+    "Send",
+    "Session",
+    "Supervisor",
+    "SupervisorState",
+    "Timing",
+]

@@ -1,0 +1,104 @@
+"""What the core asks its caller to do, and what it reports. All frozen dataclasses."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from canergy.core.state import Outcome
+from canergy.messages import Message
+
+
+@dataclass(frozen=True, slots=True)
+class Send:
+    """Put this message on the bus."""
+
+    message: Message
+
+
+@dataclass(frozen=True, slots=True)
+class Persist:
+    """Write the non-volatile record now, before any following ``Send`` leaves."""
+
+
+@dataclass(frozen=True, slots=True)
+class Acknowledged:
+    """Supervisor: the node holds the intention; call ``commit`` or ``abort``."""
+
+    node: int
+    tx: int
+
+
+@dataclass(frozen=True, slots=True)
+class Resolved:
+    """Supervisor: transaction ``tx`` ended with ``outcome`` for ``amount`` µJ."""
+
+    node: int
+    tx: int
+    outcome: Outcome
+    amount: int
+
+
+@dataclass(frozen=True, slots=True)
+class ReturnCredited:
+    """Supervisor: credited return ``seq`` of ``amount`` µJ to the usable budget."""
+
+    node: int
+    seq: int
+    amount: int
+
+
+@dataclass(frozen=True, slots=True)
+class ClientCommitted:
+    """Client: committed ``tx``, ``amount`` µJ now usable; ``by_timeout`` if no command came."""
+
+    node: int
+    tx: int
+    amount: int
+    by_timeout: bool
+
+
+@dataclass(frozen=True, slots=True)
+class Aborted:
+    """Client: aborted ``tx``."""
+
+    node: int
+    tx: int
+
+
+@dataclass(frozen=True, slots=True)
+class Credited:
+    """Client: the supervisor's delivered count paid back ``amount`` µJ written off earlier."""
+
+    node: int
+    amount: int
+
+
+@dataclass(frozen=True, slots=True)
+class RolledBack:
+    """Client (paper variant): undid a timeout-commit of ``tx``, removing ``amount`` µJ."""
+
+    node: int
+    tx: int
+    amount: int
+
+
+@dataclass(frozen=True, slots=True)
+class ReturnAcknowledged:
+    """Client: the supervisor confirmed return ``seq``."""
+
+    node: int
+    seq: int
+
+
+Action = (
+    Send
+    | Persist
+    | Acknowledged
+    | Resolved
+    | ReturnCredited
+    | ClientCommitted
+    | Aborted
+    | Credited
+    | RolledBack
+    | ReturnAcknowledged
+)

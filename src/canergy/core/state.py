@@ -1,0 +1,91 @@
+"""Small frozen, hashable protocol states (a model checker stores millions of them)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+
+class Phase(IntEnum):
+    """Where a transaction stands, on either side."""
+
+    IDLE = 0
+    WAIT_ACK = 1  # supervisor: intention sent
+    ACKED = 2  # supervisor: intention acknowledged, awaiting the local decision
+    WAIT_CONFIRM = 3  # supervisor: commit/abort sent
+    WAIT_STATUS = 4  # supervisor (paper): status request sent
+    AWAIT_COMMAND = 5  # client (paper): intention acknowledged
+    AWAIT_SUPERVISOR = 6  # client (paper): committed or aborted, awaiting the final ACK
+
+
+class Decision(IntEnum):
+    NONE = 0
+    COMMIT = 1
+    ABORT = 2
+
+
+class Outcome(IntEnum):
+    """How a transaction ended (client's record, or the supervisor's resolution)."""
+
+    NONE = 0
+    COMMITTED = 1
+    ABORTED = 2
+    SETTLED = 3  # client: skipped over, settled by the supervisor's delivered count
+    WRITTEN_OFF = 4  # supervisor: gave up, counted as delivered
+
+
+@dataclass(frozen=True, slots=True)
+class Session:
+    """The supervisor's record for one node. Energies in µJ.
+
+    ``reserved`` is Ts; ``delivered`` is Gs, all energy that left the supervisor's books for this
+    node (committed, written off, or in the paper variant lost with a reset).
+    ``returns_credited`` is the number of the last RETURN credited. ``tries`` and ``deadline``
+    are volatile.
+    """
+
+    node: int
+    phase: Phase = Phase.IDLE
+    tx: int = 0
+    reserved: int = 0
+    delivered: int = 0
+    decision: Decision = Decision.NONE
+    returns_credited: int = 0
+    returned: int = 0
+    tries: int = 0
+    deadline: int | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class SupervisorState:
+    """Usable budget Us, energy injected since start, and one session per node."""
+
+    initial: int
+    usable: int
+    injected: int = 0
+    sessions: tuple[Session, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class ClientState:
+    """A client's record. Energies in µJ.
+
+    ``credited`` is Rc, all energy ever added to ``usable`` by the protocol (commits, write-off
+    paybacks; paper: minus roll-backs). ``last_tx``/``outcome`` is the last transaction resolved
+    or settled. ``held_*``, ``phase``, ``timeout_commit`` and the deadlines are volatile.
+    """
+
+    node: int
+    usable: int = 0
+    credited: int = 0
+    spent: int = 0
+    last_tx: int = 0
+    outcome: Outcome = Outcome.NONE
+    return_seq: int = 0
+    return_pending: int = 0
+    held_tx: int = 0
+    held_amount: int = 0
+    phase: Phase = Phase.IDLE
+    timeout_commit: bool = False
+    deadline: int | None = None
+    return_deadline: int | None = None

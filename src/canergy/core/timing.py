@@ -1,0 +1,31 @@
+"""Protocol timeouts and retry bounds (all durations in integer microseconds)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True, slots=True)
+class Timing:
+    """Timeouts shared by supervisor and clients.
+
+    ``retries`` is N: how many times the supervisor re-sends an unanswered intention or command
+    (hardened) or status request (paper) before it gives up with a write-off.
+    """
+
+    response_timeout_us: int = 50_000
+    retries: int = 3
+    command_timeout_us: int = 100_000
+    return_retry_us: int = 100_000
+
+    def __post_init__(self) -> None:
+        for name in ("response_timeout_us", "command_timeout_us", "return_retry_us"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be positive")
+        if self.retries < 0:
+            raise ValueError("retries must be >= 0")
+
+    @property
+    def quiet_timeout_us(self) -> int:
+        """Paper client's TimeoutN: the time of N supervisor timeouts plus one."""
+        return (self.retries + 1) * self.response_timeout_us

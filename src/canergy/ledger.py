@@ -1,0 +1,80 @@
+"""The observer's conservation ledger over one supervisor and its clients.
+
+    initial + injected = Us + ΣTs + Σ(Uc + spent) + returns in flight − overlap + dissipated
+
+``overlap`` counts the travelling energy once: per node, the part of the client's credited
+count Rc beyond the supervisor's delivered count Gs, capped at Ts (what the client has committed
+while the supervisor still holds it reserved). The system is passive while ``dissipated >= 0``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass
+
+from canergy.core.state import ClientState, Session, SupervisorState
+
+
+@dataclass(frozen=True, slots=True)
+class Ledger:
+    initial: int
+    injected: int
+    supervisor_usable: int
+    supervisor_reserved: int
+    clients_usable: int
+    spent: int
+    returns_in_flight: int
+    overlap: int
+
+    @property
+    def held(self) -> int:
+        """Energy the system holds, travelling energy counted once."""
+        return (
+            self.supervisor_usable
+            + self.supervisor_reserved
+            + self.clients_usable
+            + self.spent
+            + self.returns_in_flight
+            - self.overlap
+        )
+
+    @property
+    def dissipated(self) -> int:
+        """Energy lost so far; negative means energy was generated."""
+        return self.initial + self.injected - self.held
+
+    @property
+    def passive(self) -> bool:
+        return self.dissipated >= 0
+
+    def as_json(self) -> dict[str, int]:
+        """Integer microjoule terms under the ``*_uj`` keys the CLI prints."""
+        terms = {f"{k}_uj": v for k, v in asdict(self).items()}
+        terms["dissipated_uj"] = self.dissipated
+        return terms
+
+
+def node_overlap(s: Session, c: ClientState) -> int:
+    return min(s.reserved, max(0, c.credited - s.delivered))
+
+
+def node_return_in_flight(s: Session, c: ClientState) -> int:
+    return c.return_pending if c.return_seq > s.returns_credited else 0
+
+
+def ledger(sup: SupervisorState, clients: Iterable[ClientState]) -> Ledger:
+    """Compute the ledger; ``clients`` must hold one state per supervised node."""
+    by_node = {c.node: c for c in clients}
+    if set(by_node) != {s.node for s in sup.sessions}:
+        raise ValueError("the ledger needs exactly one client state per supervised node")
+    pairs = [(s, by_node[s.node]) for s in sup.sessions]
+    return Ledger(
+        initial=sup.initial,
+        injected=sup.injected,
+        supervisor_usable=sup.usable,
+        supervisor_reserved=sum(s.reserved for s, _ in pairs),
+        clients_usable=sum(c.usable for _, c in pairs),
+        spent=sum(c.spent for _, c in pairs),
+        returns_in_flight=sum(node_return_in_flight(s, c) for s, c in pairs),
+        overlap=sum(node_overlap(s, c) for s, c in pairs),
+    )

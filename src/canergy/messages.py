@@ -1,0 +1,166 @@
+"""The protocol's messages as frozen dataclasses holding exactly what travels on the wire.
+
+Counters are the wire's narrow wrapping values (``tx`` and ``seq`` 16 bits, ``delivered_mj``
+24 bits); the receiving core widens them with serial-number arithmetic (``canergy.serial``).
+Amounts travel in whole millijoules (the wire quantum, ``QUANTUM_UJ``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+from typing import ClassVar
+
+QUANTUM_UJ = 1000
+"""One wire energy unit: amounts and the delivered count travel in millijoules."""
+
+TX_BITS = 16
+SEQ_BITS = 16
+DELIVERED_BITS = 24
+AMOUNT_MAX_MJ = 0xFFFF
+"""Largest amount in one frame: 65.535 J."""
+
+MIN_NODE = 1
+MAX_NODE = 127
+
+
+class Direction(IntEnum):
+    """Who sends a message; bit 3 of the type code."""
+
+    TO_CLIENT = 0
+    TO_SUPERVISOR = 1
+
+
+class MsgType(IntEnum):
+    """4-bit message type code carried in the CAN identifier (bit 3 = from client)."""
+
+    INTENTION = 0x1
+    COMMIT = 0x2
+    ABORT = 0x3
+    RETURN_ACK = 0x4
+    STATUS_REQUEST = 0x5  # paper variant only
+    FINAL_ACK = 0x6  # paper variant only
+    ACK = 0x9
+    COMMITTED = 0xA
+    ABORTED = 0xB
+    RETURN = 0xC
+
+    @property
+    def direction(self) -> Direction:
+        return Direction.TO_SUPERVISOR if self & 0x8 else Direction.TO_CLIENT
+
+
+@dataclass(frozen=True, slots=True)
+class Intention:
+    """INT: the supervisor reserved ``amount_mj`` for transaction ``tx``; ``delivered_mj`` is Gs."""
+
+    TYPE: ClassVar[MsgType] = MsgType.INTENTION
+    node: int
+    tx: int
+    amount_mj: int
+    delivered_mj: int
+
+
+@dataclass(frozen=True, slots=True)
+class Commit:
+    """COMMIT: move the reserved amount into the client's usable budget."""
+
+    TYPE: ClassVar[MsgType] = MsgType.COMMIT
+    node: int
+    tx: int
+    amount_mj: int
+
+
+@dataclass(frozen=True, slots=True)
+class Abort:
+    """ABORT: discard the intention; the supervisor takes its reservation back."""
+
+    TYPE: ClassVar[MsgType] = MsgType.ABORT
+    node: int
+    tx: int
+    amount_mj: int
+
+
+@dataclass(frozen=True, slots=True)
+class ReturnAck:
+    """RETACK: the supervisor has credited return number ``seq``."""
+
+    TYPE: ClassVar[MsgType] = MsgType.RETURN_ACK
+    node: int
+    seq: int
+
+
+@dataclass(frozen=True, slots=True)
+class StatusRequest:
+    """Paper variant: the supervisor asks what the client did with ``tx``."""
+
+    TYPE: ClassVar[MsgType] = MsgType.STATUS_REQUEST
+    node: int
+    tx: int
+
+
+@dataclass(frozen=True, slots=True)
+class FinalAck:
+    """Paper variant: the supervisor closes transaction ``tx``."""
+
+    TYPE: ClassVar[MsgType] = MsgType.FINAL_ACK
+    node: int
+    tx: int
+
+
+@dataclass(frozen=True, slots=True)
+class Ack:
+    """ACK: the client holds intention ``tx``."""
+
+    TYPE: ClassVar[MsgType] = MsgType.ACK
+    node: int
+    tx: int
+
+
+@dataclass(frozen=True, slots=True)
+class Committed:
+    """COMMITTED: the client committed ``tx`` (on command or by timeout)."""
+
+    TYPE: ClassVar[MsgType] = MsgType.COMMITTED
+    node: int
+    tx: int
+
+
+@dataclass(frozen=True, slots=True)
+class Aborted:
+    """ABORTED: the client aborted ``tx``."""
+
+    TYPE: ClassVar[MsgType] = MsgType.ABORTED
+    node: int
+    tx: int
+
+
+@dataclass(frozen=True, slots=True)
+class Return:
+    """RETURN: the client gave back ``amount_mj`` as return number ``seq``."""
+
+    TYPE: ClassVar[MsgType] = MsgType.RETURN
+    node: int
+    seq: int
+    amount_mj: int
+
+
+ToClient = Intention | Commit | Abort | ReturnAck | StatusRequest | FinalAck
+ToSupervisor = Ack | Committed | Aborted | Return
+Message = ToClient | ToSupervisor
+
+MESSAGE_CLASSES: dict[MsgType, type[Message]] = {
+    cls.TYPE: cls
+    for cls in (
+        Intention,
+        Commit,
+        Abort,
+        ReturnAck,
+        StatusRequest,
+        FinalAck,
+        Ack,
+        Committed,
+        Aborted,
+        Return,
+    )
+}

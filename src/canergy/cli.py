@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -134,7 +135,7 @@ def _run_dbc(args: argparse.Namespace) -> int:
 
     text = dbc_text(DEFAULT_ID_BASE if args.id_base is None else args.id_base)
     if args.output:
-        args.output.write_text(text)
+        args.output.write_bytes(text.encode())
     else:
         sys.stdout.write(text)
     return 0
@@ -162,6 +163,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         print(f"canergy {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # e.g. `canergy demo | head`: stop quietly like other CLI tools
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

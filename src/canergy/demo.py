@@ -151,7 +151,9 @@ class _Demo:
         self.first_violation: int | None = None
         # grants average half the initial budget spread over all transactions
         self.grant_uj = max(2 * QUANTUM_UJ, cfg.initial // (2 * max(cfg.transactions, 1)))
-        self.reset_ticks = sorted(self.rng.sample(range(5, 400), min(cfg.resets, 395)))
+        # power losses strike after randomly chosen transaction starts
+        points = range(1, max(cfg.transactions, 2))
+        self.reset_points = sorted(self.rng.choices(points, k=cfg.resets))
 
     # -- observer ------------------------------------------------------------------------
     def ledger(self) -> Ledger:
@@ -236,9 +238,9 @@ class _Demo:
                 self.started += 1
                 self.carry_out(self.sup_ep, None, self.sup.begin(n, amount, self.now))
 
-    def maybe_reset(self, tick: int) -> None:
-        while self.reset_ticks and self.reset_ticks[0] <= tick:
-            self.reset_ticks.pop(0)
+    def maybe_reset(self) -> None:
+        while self.reset_points and self.reset_points[0] <= self.started:
+            self.reset_points.pop(0)
             victim = self.rng.choice([0, *self.cfg.nodes])
             if victim == 0:
                 self.sup_resets += 1
@@ -257,7 +259,7 @@ class _Demo:
     # -- main loop -----------------------------------------------------------------------
     def run(self) -> DemoResult:
         limit = int(self.cfg.duration_s * 1e6)
-        next_tick, tick_no, final, finished = 0, 0, False, False
+        next_tick, final, finished = 0, False, False
         try:
             while self.now <= limit:
                 if next_tick <= self.now:
@@ -268,11 +270,10 @@ class _Demo:
                         self.started >= self.cfg.transactions or exhausted
                     ) and self.sup.is_quiescent()
                     final = final or (work_done and self.net.in_flight() == 0)
-                    self.maybe_reset(tick_no)
+                    self.maybe_reset()
                     self.tick(final)
                     self.observe()
                     next_tick += TICK_US
-                    tick_no += 1
                     if final and self.settled(final):
                         finished = True
                         break

@@ -1,0 +1,30 @@
+# Sourced by scripts/demo and scripts/test: make ./.venv exist and hold the project.
+# Works on a fresh Debian machine with only python3: installs python3-venv when missing.
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+VENV="${CANERGY_VENV:-$ROOT/.venv}"
+EXTRAS="${1:-}"
+
+apt_install() {
+    local sudo=""
+    [ "$(id -u)" -eq 0 ] || sudo="sudo"
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq "$@" >/dev/null
+}
+
+if ! command -v python3 >/dev/null; then
+    apt_install python3
+fi
+if [ ! -x "$VENV/bin/python" ]; then
+    if ! python3 -m venv "$VENV" 2>/dev/null; then
+        rm -rf "$VENV"
+        apt_install python3-venv
+        python3 -m venv "$VENV"
+    fi
+fi
+stamp="$VENV/.canergy-installed$EXTRAS"
+if [ ! -f "$stamp" ] || [ "$ROOT/pyproject.toml" -nt "$stamp" ]; then
+    "$VENV/bin/python" -m pip install -q --upgrade pip
+    "$VENV/bin/python" -m pip install -q -e "$ROOT$EXTRAS"
+    touch "$stamp"
+fi

@@ -1,0 +1,64 @@
+"""The published DBC agrees with the codec, checked through cantools in both directions."""
+
+from pathlib import Path
+
+import cantools
+import pytest
+from hypothesis import given
+from strategies import messages
+
+from canergy.codec import XOR_OUT, Codec, _prefix_register
+from canergy.crc import crc8_update
+from canergy.dbc import dbc_text
+from canergy.messages import Message
+
+DBC_PATH = Path(__file__).parent.parent / "dbc" / "canergy.dbc"
+CODEC = Codec()
+
+
+_db_cache: list[cantools.database.can.Database] = []
+
+
+def _db() -> cantools.database.can.Database:
+    if not _db_cache:
+        _db_cache.append(cantools.database.load_file(str(DBC_PATH)))
+    return _db_cache[0]
+
+
+def _raw_signals(msg: Message) -> dict[str, int]:
+    names = {"tx": "TX", "seq": "SEQ", "amount_mj": "AMOUNT", "delivered_mj": "DELIVERED"}
+    return {sig: getattr(msg, field) for field, sig in names.items() if hasattr(msg, field)}
+
+
+def test_committed_dbc_is_what_the_codec_generates() -> None:
+    expected = dbc_text(CODEC.id_base).encode()
+    assert DBC_PATH.read_bytes() == expected, "regenerate: canergy dbc -o dbc/canergy.dbc"
+
+
+@given(messages)
+def test_cantools_decodes_our_frames(msg: Message) -> None:
+    arbitration_id, data = CODEC.encode(msg)
+    decoded = _db().decode_message(arbitration_id, data, scaling=False)
+    assert decoded == {"CRC": data[0], **_raw_signals(msg)}
+
+
+@given(messages)
+def test_we_decode_frames_cantools_encodes(msg: Message) -> None:
+    arbitration_id = CODEC.arbitration_id(msg.TYPE, msg.node)
+    frame = _db().get_message_by_frame_id(arbitration_id)
+    assert frame.is_extended_frame
+    unsigned = frame.encode({"CRC": 0, **_raw_signals(msg)}, scaling=False)
+    crc = crc8_update(_prefix_register(msg.TYPE, msg.node), unsigned[1:]) ^ XOR_OUT
+    signed = frame.encode({"CRC": crc, **_raw_signals(msg)}, scaling=False)
+    assert CODEC.decode(arbitration_id, signed) == msg
+
+
+def test_amounts_decode_in_joules() -> None:
+    from canergy.messages import Intention
+
+    db = _db()
+    arbitration_id, data = CODEC.encode(Intention(7, 3, 2500, 1234))
+    decoded = db.decode_message(arbitration_id, data)
+    assert decoded["AMOUNT"] == pytest.approx(2.5)
+    assert decoded["DELIVERED"] == pytest.approx(1.234)
+    assert db.get_message_by_frame_id(arbitration_id).name == "INTENTION_N7"

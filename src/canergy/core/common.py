@@ -77,6 +77,19 @@ def send_decision(t: Timing, s: Session, decision: Decision, now: int) -> tuple[
     return s, (Send(command_of(s)),)
 
 
+class SupervisorBase:
+    """Starting a transaction and sending the decision are the same in every variant."""
+
+    @staticmethod
+    def begin(t: Timing, s: Session, amount: int, now: int) -> tuple[Session, Actions]:
+        return start_intention(t, s, s.tx + 1, amount, now)
+
+    @staticmethod
+    def decide(t: Timing, s: Session, decision: Decision, now: int) -> SessionStep:
+        s, actions = send_decision(t, s, decision, now)
+        return s, actions, 0
+
+
 def resolve(s: Session, outcome: Outcome, extra: Actions = NO_ACTIONS) -> SessionStep:
     """Close the open transaction: an abort credits Ts back to Us, anything else delivers it."""
     amount = s.reserved

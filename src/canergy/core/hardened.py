@@ -16,14 +16,13 @@ from canergy.core.common import (
     NO_ACTIONS,
     ClientStep,
     SessionStep,
+    SupervisorBase,
     command_of,
     commit_into,
     intention_of,
     reply_for,
     resolve,
     return_of,
-    send_decision,
-    start_intention,
     start_return,
     wire_tx,
 )
@@ -50,17 +49,8 @@ from canergy.serial import unwrap, wrap
 _OPEN = (Phase.WAIT_ACK, Phase.WAIT_CONFIRM)
 
 
-class HardenedSupervisor:
+class HardenedSupervisor(SupervisorBase):
     """Supervisor rules for one node's session."""
-
-    @staticmethod
-    def begin(t: Timing, s: Session, amount: int, now: int) -> tuple[Session, tuple[SendAction]]:
-        return start_intention(t, s, s.tx + 1, amount, now)  # type: ignore[return-value]
-
-    @staticmethod
-    def decide(t: Timing, s: Session, decision: Decision, now: int) -> SessionStep:
-        s, actions = send_decision(t, s, decision, now)
-        return s, actions, 0
 
     @staticmethod
     def receive(t: Timing, s: Session, msg: ToSupervisor, now: int) -> SessionStep:

@@ -14,14 +14,13 @@ from dataclasses import replace
 from canergy.core.actions import Aborted, Acknowledged, ReturnCredited, RolledBack, Send
 from canergy.core.common import (
     NO_ACTIONS,
-    Actions,
     ClientStep,
     SessionStep,
+    SupervisorBase,
     commit_into,
     intention_of,
     reply_for,
     resolve,
-    send_decision,
     start_intention,
     start_return,
     wire_tx,
@@ -48,17 +47,8 @@ from canergy.serial import unwrap
 _AWAITING_REPLY = (Phase.WAIT_CONFIRM, Phase.WAIT_STATUS)
 
 
-class PaperSupervisor:
+class PaperSupervisor(SupervisorBase):
     """Fig. 3, per node."""
-
-    @staticmethod
-    def begin(t: Timing, s: Session, amount: int, now: int) -> tuple[Session, Actions]:
-        return start_intention(t, s, s.tx + 1, amount, now)
-
-    @staticmethod
-    def decide(t: Timing, s: Session, decision: Decision, now: int) -> SessionStep:
-        s, actions = send_decision(t, s, decision, now)
-        return s, actions, 0
 
     @staticmethod
     def receive(t: Timing, s: Session, msg: ToSupervisor, now: int) -> SessionStep:

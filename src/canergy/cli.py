@@ -118,6 +118,106 @@ def _run_demo(args: argparse.Namespace) -> int:
     return 0 if result.passive else 1
 
 
+def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    from canergy.check.model import Bounds
+
+    d = Bounds()
+    p = sub.add_parser(
+        "check",
+        help="exhaustively model-check the protocol core within bounds",
+        description=(
+            "Breadth-first exploration of one supervisor, K clients and the frames in flight "
+            "under every interleaving of deliveries, losses, duplicates, timer expiries and "
+            "power losses, checking the conservation ledger in every state. Exit status 1 when "
+            "energy can be generated, 0 otherwise."
+        ),
+    )
+    count = bounded_int(0)
+    p.add_argument("--variant", choices=sorted(VARIANTS), default="hardened")
+    p.add_argument("--clients", type=bounded_int(1, 8), default=d.clients)
+    p.add_argument(
+        "--transactions",
+        type=count,
+        default=d.transactions,
+        help="transactions the supervisor may begin",
+    )
+    p.add_argument("--losses", type=count, default=d.losses, help="frames that may be lost")
+    p.add_argument(
+        "--duplicates", type=count, default=d.duplicates, help="frames that may be duplicated"
+    )
+    p.add_argument(
+        "--power-losses",
+        type=count,
+        default=d.power_losses,
+        help="power losses of any node or the supervisor",
+    )
+    p.add_argument(
+        "--in-flight",
+        type=bounded_int(1),
+        default=d.in_flight,
+        help="most frames in flight at once",
+    )
+    p.add_argument(
+        "--units",
+        type=bounded_int(1),
+        default=d.units,
+        help="initial budget in units (1 unit = 1 mJ); grants are 1..units",
+    )
+    p.add_argument("--retries", type=count, default=d.retries, help="N: re-sends before giving up")
+    p.add_argument(
+        "--timeouts",
+        type=count,
+        default=None,
+        help="timer expiries allowed in one run (default: unbounded)",
+    )
+    p.add_argument("--no-returns", action="store_true", help="clients never return energy")
+    p.add_argument("--no-spending", action="store_true", help="actuators never spend")
+    p.add_argument(
+        "--max-states",
+        type=bounded_int(1),
+        default=None,
+        help="stop after this many states (the result is then incomplete)",
+    )
+    p.add_argument(
+        "--continue",
+        dest="keep_going",
+        action="store_true",
+        help="keep exploring after the first violation and count every violating "
+        "state (default: stop at the first, which is a shortest one)",
+    )
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument("--trace", action="store_true", help="print the counterexample step by step")
+
+
+def _run_check(args: argparse.Namespace) -> int:
+    from canergy.check import Bounds, check
+    from canergy.check.report import format_summary, format_trace
+
+    bounds = Bounds(
+        clients=args.clients,
+        transactions=args.transactions,
+        losses=args.losses,
+        duplicates=args.duplicates,
+        power_losses=args.power_losses,
+        in_flight=args.in_flight,
+        units=args.units,
+        retries=args.retries,
+        timeouts=args.timeouts,
+        returns=not args.no_returns,
+        spending=not args.no_spending,
+    )
+    result = check(
+        args.variant, bounds, max_states=args.max_states, stop_at_first=not args.keep_going
+    )
+    if args.json:
+        print(json.dumps(result.as_json(), indent=2))
+    else:
+        print(format_summary(result))
+        if args.trace:
+            print(format_trace(result))
+    return 1 if result.violations else 0
+
+
 def _dbc_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser("dbc", help="write the DBC describing canergy's frames")
     p.add_argument("-o", "--output", type=Path, help="file to write (default: stdout)")
@@ -149,11 +249,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"canergy {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _demo_parser(sub)
+    _check_parser(sub)
     _dbc_parser(sub)
     return parser
 
 
-_COMMANDS = {"demo": _run_demo, "dbc": _run_dbc}
+_COMMANDS = {"demo": _run_demo, "check": _run_check, "dbc": _run_dbc}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 from canergy.core.actions import Action, ClientCommitted, Resolved, Send
+from canergy.core.frozen import evolve
 from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
 from canergy.core.timing import Timing
 from canergy.messages import (
@@ -54,7 +53,7 @@ def start_intention(
     t: Timing, s: Session, tx: int, amount: int, now: int
 ) -> tuple[Session, Actions]:
     """Reserve ``amount`` as transaction ``tx`` and send its intention."""
-    s = replace(
+    s = evolve(
         s,
         phase=Phase.WAIT_ACK,
         tx=tx,
@@ -67,7 +66,7 @@ def start_intention(
 
 
 def send_decision(t: Timing, s: Session, decision: Decision, now: int) -> tuple[Session, Actions]:
-    s = replace(
+    s = evolve(
         s,
         phase=Phase.WAIT_CONFIRM,
         decision=decision,
@@ -95,7 +94,7 @@ def resolve(s: Session, outcome: Outcome, extra: Actions = NO_ACTIONS) -> Sessio
     amount = s.reserved
     credit = amount if outcome is Outcome.ABORTED else 0
     delivered = s.delivered if outcome is Outcome.ABORTED else s.delivered + amount
-    done = replace(
+    done = evolve(
         s,
         phase=Phase.IDLE,
         reserved=0,
@@ -111,7 +110,7 @@ def commit_into(
     c: ClientState, tx: int, amount: int, by_timeout: bool
 ) -> tuple[ClientState, Action]:
     """Add a committed amount to the usable budget and to the credited count Rc."""
-    c = replace(c, usable=c.usable + amount, credited=c.credited + amount)
+    c = evolve(c, usable=c.usable + amount, credited=c.credited + amount)
     return c, ClientCommitted(c.node, tx, amount, by_timeout)
 
 
@@ -126,12 +125,12 @@ def reply_for(c: ClientState, tx: int, outcome: Outcome) -> Actions:
 
 def spend(c: ClientState, amount: int) -> ClientState:
     """The actuator used ``amount`` µJ of the usable budget (same in every variant)."""
-    return replace(c, usable=c.usable - amount, spent=c.spent + amount)
+    return evolve(c, usable=c.usable - amount, spent=c.spent + amount)
 
 
 def start_return(t: Timing, c: ClientState, amount: int, now: int) -> ClientStep:
     """Debit the usable budget and send RETURN with the next sequence number."""
-    c = replace(
+    c = evolve(
         c,
         usable=c.usable - amount,
         return_seq=c.return_seq + 1,

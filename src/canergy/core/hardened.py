@@ -8,8 +8,6 @@ Gs, and both sides ignoring any response for another transaction.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 from canergy.core.actions import Aborted, Acknowledged, Credited, ReturnAcknowledged, ReturnCredited
 from canergy.core.actions import Send as SendAction
 from canergy.core.common import (
@@ -26,6 +24,7 @@ from canergy.core.common import (
     start_return,
     wire_tx,
 )
+from canergy.core.frozen import evolve
 from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
 from canergy.core.timing import Timing
 from canergy.messages import (
@@ -61,7 +60,7 @@ class HardenedSupervisor(SupervisorBase):
         if isinstance(msg, Ack):
             if s.phase is not Phase.WAIT_ACK:
                 return s, NO_ACTIONS, 0
-            return replace(s, phase=Phase.ACKED, deadline=None), (Acknowledged(s.node, s.tx),), 0
+            return evolve(s, phase=Phase.ACKED, deadline=None), (Acknowledged(s.node, s.tx),), 0
         if isinstance(msg, Committed):
             return resolve(s, Outcome.COMMITTED)
         if isinstance(msg, AbortedMsg) and s.decision is Decision.ABORT:
@@ -75,7 +74,7 @@ class HardenedSupervisor(SupervisorBase):
         if s.tries > t.retries:
             return resolve(s, Outcome.WRITTEN_OFF)  # passivity timeout: Gs += Ts
         msg = intention_of(s) if s.phase is Phase.WAIT_ACK else command_of(s)
-        s = replace(s, tries=s.tries + 1, deadline=now + t.response_timeout_us)
+        s = evolve(s, tries=s.tries + 1, deadline=now + t.response_timeout_us)
         return s, (SendAction(msg),), 0
 
     @staticmethod
@@ -85,7 +84,7 @@ class HardenedSupervisor(SupervisorBase):
         ``ACKED`` is not persisted (the intention is simply re-sent and re-acknowledged).
         """
         phase = Phase.WAIT_ACK if s.phase is Phase.ACKED else s.phase
-        return replace(s, phase=phase, tries=0, deadline=now if phase in _OPEN else None)
+        return evolve(s, phase=phase, tries=0, deadline=now if phase in _OPEN else None)
 
     @staticmethod
     def persistent(s: Session) -> tuple[object, ...]:
@@ -99,7 +98,7 @@ def _credit_return(s: Session, msg: Return) -> SessionStep:
     ack = (SendAction(ReturnAck(s.node, msg.seq)),)
     if seq == s.returns_credited + 1:
         amount = msg.amount_mj * QUANTUM_UJ
-        s = replace(s, returns_credited=seq, returned=s.returned + amount)
+        s = evolve(s, returns_credited=seq, returned=s.returned + amount)
         return s, (ReturnCredited(s.node, seq, amount), *ack), amount
     if seq <= s.returns_credited:
         return s, ack, 0
@@ -118,7 +117,7 @@ class HardenedClient:
         if isinstance(msg, ReturnAck):
             seq = unwrap(msg.seq, c.return_seq, SEQ_BITS)
             if seq == c.return_seq and c.return_pending:
-                c = replace(c, return_pending=0, return_deadline=None)
+                c = evolve(c, return_pending=0, return_deadline=None)
                 return c, (ReturnAcknowledged(c.node, seq),)
         return c, NO_ACTIONS
 
@@ -136,7 +135,7 @@ class HardenedClient:
     def return_timer(t: Timing, c: ClientState, now: int) -> ClientStep:
         if not c.return_pending or c.return_deadline is None or c.return_deadline > now:
             return c, NO_ACTIONS
-        c = replace(c, return_deadline=now + t.return_retry_us)
+        c = evolve(c, return_deadline=now + t.return_retry_us)
         return c, (SendAction(return_of(c)),)
 
     @staticmethod
@@ -150,7 +149,7 @@ class HardenedClient:
     @staticmethod
     def power_loss(c: ClientState, now: int) -> ClientState:
         """Volatile hold lost; a pending return is re-sent at once."""
-        return replace(
+        return evolve(
             c,
             held_tx=0,
             held_amount=0,
@@ -172,7 +171,7 @@ class HardenedClient:
 
 
 def _resolved(c: ClientState, tx: int, outcome: Outcome) -> ClientState:
-    return replace(c, last_tx=tx, outcome=outcome, held_tx=0, held_amount=0, deadline=None)
+    return evolve(c, last_tx=tx, outcome=outcome, held_tx=0, held_amount=0, deadline=None)
 
 
 def _on_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientStep:
@@ -180,16 +179,16 @@ def _on_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> Client
     delivered = unwrap(msg.delivered_mj, c.credited // QUANTUM_UJ, DELIVERED_BITS) * QUANTUM_UJ
     if delivered > c.credited:  # pay back what the supervisor wrote off but we never got
         gain = delivered - c.credited
-        c = replace(c, usable=c.usable + gain, credited=delivered)
+        c = evolve(c, usable=c.usable + gain, credited=delivered)
         notes = (Credited(c.node, gain),)
     tx = unwrap(msg.tx, c.last_tx, TX_BITS)
     if tx - 1 > c.last_tx:  # everything below tx is settled by the supervisor
-        c = replace(c, last_tx=tx - 1, outcome=Outcome.SETTLED)
+        c = evolve(c, last_tx=tx - 1, outcome=Outcome.SETTLED)
         if c.held_tx and c.held_tx < tx:
-            c = replace(c, held_tx=0, held_amount=0, deadline=None)
+            c = evolve(c, held_tx=0, held_amount=0, deadline=None)
     if tx > c.last_tx:
         if c.held_tx != tx:
-            c = replace(
+            c = evolve(
                 c,
                 held_tx=tx,
                 held_amount=msg.amount_mj * QUANTUM_UJ,

@@ -9,8 +9,6 @@ arrival. ``credited``, ``return_seq`` and ``returns_credited`` are kept for the 
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 from canergy.core.actions import Aborted, Acknowledged, ReturnCredited, RolledBack, Send
 from canergy.core.common import (
     NO_ACTIONS,
@@ -25,6 +23,7 @@ from canergy.core.common import (
     start_return,
     wire_tx,
 )
+from canergy.core.frozen import evolve
 from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
 from canergy.core.timing import Timing
 from canergy.messages import (
@@ -55,13 +54,13 @@ class PaperSupervisor(SupervisorBase):
         if isinstance(msg, Return):  # not part of the protocol: credit whatever arrives
             amount = msg.amount_mj * QUANTUM_UJ
             seq = max(s.returns_credited, unwrap(msg.seq, s.returns_credited, SEQ_BITS))
-            s = replace(s, returns_credited=seq, returned=s.returned + amount)
+            s = evolve(s, returns_credited=seq, returned=s.returned + amount)
             return s, (ReturnCredited(s.node, seq, amount),), amount
         same_tx = msg.tx == wire_tx(s.tx)
         if isinstance(msg, Ack) and s.phase is Phase.WAIT_ACK:
             if same_tx:
                 return (
-                    replace(s, phase=Phase.ACKED, deadline=None),
+                    evolve(s, phase=Phase.ACKED, deadline=None),
                     (Acknowledged(s.node, s.tx),),
                     0,
                 )
@@ -86,7 +85,7 @@ class PaperSupervisor(SupervisorBase):
             asked = s.tries if s.phase is Phase.WAIT_STATUS else 0
             if asked >= max(t.retries, 1):  # passivity timeout: assume committed
                 return resolve(s, Outcome.WRITTEN_OFF, (Send(FinalAck(s.node, wire_tx(s.tx))),))
-            s = replace(
+            s = evolve(
                 s, phase=Phase.WAIT_STATUS, tries=asked + 1, deadline=now + t.response_timeout_us
             )
             return s, (Send(StatusRequest(s.node, wire_tx(s.tx))),), 0
@@ -95,7 +94,7 @@ class PaperSupervisor(SupervisorBase):
     @staticmethod
     def power_loss(s: Session, now: int) -> Session:
         """Only Us survives: the transaction budget and the ids are volatile."""
-        return replace(
+        return evolve(
             s,
             phase=Phase.IDLE,
             tx=0,
@@ -128,7 +127,7 @@ class PaperClient:
             c = _await_supervisor(t, c, Outcome.ABORTED, False, now)
             return c, (Aborted(c.node, c.held_tx), *reply_for(c, c.held_tx, Outcome.ABORTED))
         if c.phase is Phase.AWAIT_SUPERVISOR and isinstance(msg, StatusRequest):
-            c = replace(c, deadline=now + t.quiet_timeout_us)
+            c = evolve(c, deadline=now + t.quiet_timeout_us)
             return c, reply_for(c, c.held_tx, c.outcome)
         if c.phase is Phase.AWAIT_SUPERVISOR and isinstance(msg, FinalAck):
             return _forget(c), NO_ACTIONS
@@ -151,7 +150,7 @@ class PaperClient:
     @staticmethod
     def give_back(t: Timing, c: ClientState, amount: int, now: int) -> ClientStep:
         c, actions = start_return(t, c, amount, now)
-        return replace(c, return_deadline=None), actions
+        return evolve(c, return_deadline=None), actions
 
     @staticmethod
     def can_give_back(c: ClientState) -> bool:
@@ -160,7 +159,7 @@ class PaperClient:
     @staticmethod
     def power_loss(c: ClientState, now: int) -> ClientState:
         """Only the usable budget (and the observer's counters) survive."""
-        return replace(
+        return evolve(
             c,
             last_tx=0,
             outcome=Outcome.NONE,
@@ -184,7 +183,7 @@ def msg_tx(msg: ToClient) -> int:
 def _await_supervisor(
     t: Timing, c: ClientState, outcome: Outcome, by_timeout: bool, now: int
 ) -> ClientState:
-    return replace(
+    return evolve(
         c,
         phase=Phase.AWAIT_SUPERVISOR,
         outcome=outcome,
@@ -194,7 +193,7 @@ def _await_supervisor(
 
 
 def _forget(c: ClientState) -> ClientState:
-    return replace(
+    return evolve(
         c,
         phase=Phase.IDLE,
         held_tx=0,
@@ -214,8 +213,8 @@ def _on_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> Client
     if c.phase is Phase.AWAIT_SUPERVISOR and c.timeout_commit:  # "Roll back?"
         removed = min(c.held_amount, c.usable)
         notes = (RolledBack(c.node, c.held_tx, removed),)
-        c = replace(c, usable=c.usable - removed, credited=c.credited - removed)
-    c = replace(
+        c = evolve(c, usable=c.usable - removed, credited=c.credited - removed)
+    c = evolve(
         c,
         phase=Phase.AWAIT_COMMAND,
         held_tx=msg.tx,

@@ -7,11 +7,11 @@ carry out, ``Persist`` first when the persistent record changed.
 from __future__ import annotations
 
 from collections.abc import Iterable
-from dataclasses import replace
 
 from canergy.core.actions import Action, Persist
 from canergy.core.common import Actions
 from canergy.core.errors import LocalProtocolError
+from canergy.core.frozen import evolve
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
@@ -25,6 +25,12 @@ def check_amount(amount: int) -> None:
             f"amount {amount} µJ must be a positive multiple of {QUANTUM_UJ} µJ "
             f"and at most {AMOUNT_MAX_MJ * QUANTUM_UJ} µJ"
         )
+
+
+def apply_session(st: SupervisorState, i: int, new: Session, credit: int) -> SupervisorState:
+    """Put session ``i`` back into the state and credit ``credit`` µJ to Us (pure)."""
+    sessions = (*st.sessions[:i], new, *st.sessions[i + 1 :])
+    return evolve(st, usable=st.usable + credit, sessions=sessions)
 
 
 class Supervisor:
@@ -105,12 +111,12 @@ class Supervisor:
         if amount <= 0:
             raise LocalProtocolError("injected energy must be positive")
         st = self.state
-        self.state = replace(st, usable=st.usable + amount, injected=st.injected + amount)
+        self.state = evolve(st, usable=st.usable + amount, injected=st.injected + amount)
 
     def power_loss(self, now: int) -> None:
         """Lose volatile state and restart from the persistent record."""
         sessions = tuple(self.rules.power_loss(s, now) for s in self.state.sessions)
-        self.state = replace(self.state, sessions=sessions)
+        self.state = evolve(self.state, sessions=sessions)
 
     def is_quiescent(self) -> bool:
         return all(s.phase is Phase.IDLE for s in self.state.sessions)
@@ -127,11 +133,9 @@ class Supervisor:
         return self.session(node)
 
     def _apply(self, new: Session, actions: Actions, credit: int) -> list[Action]:
-        st = self.state
         i = self._index[new.node]
-        old = st.sessions[i]
-        sessions = (*st.sessions[:i], new, *st.sessions[i + 1 :])
-        self.state = replace(st, usable=st.usable + credit, sessions=sessions)
+        old = self.state.sessions[i]
+        self.state = apply_session(self.state, i, new, credit)
         if credit or self.rules.persistent(old) != self.rules.persistent(new):
             return [Persist(), *actions]
         return list(actions)

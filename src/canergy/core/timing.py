@@ -10,7 +10,8 @@ class Timing:
     """Timeouts shared by supervisor and clients.
 
     ``retries`` is N: how many times the supervisor re-sends an unanswered intention or command
-    (hardened) or status request (paper) before it gives up with a write-off.
+    (hardened) or status request (paper) before it gives up with a write-off. Zero durations give
+    abstract time: every armed deadline is 0 and a timer fires only when told to (model checking).
     """
 
     response_timeout_us: int = 50_000
@@ -20,8 +21,8 @@ class Timing:
 
     def __post_init__(self) -> None:
         for name in ("response_timeout_us", "command_timeout_us", "return_retry_us"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"{name} must be positive")
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0")
         if self.retries < 0:
             raise ValueError("retries must be >= 0")
 

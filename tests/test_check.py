@@ -1,0 +1,190 @@
+"""The model checker over the real core: paper hazards as shortest traces, hardened clean."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from canergy.check import Bounds, check, replay
+from canergy.check.explore import step_from_json
+from canergy.check.model import Model
+from canergy.cli import main
+from canergy.core.common import NO_ACTIONS
+from canergy.core.frozen import evolve
+from canergy.core.hardened import HardenedClient, HardenedSupervisor
+from canergy.core.state import ClientState, Session
+from canergy.core.variants import VARIANTS, Variant
+from canergy.messages import QUANTUM_UJ, Return
+
+HAZARD_BOUNDS = {
+    # (a) the reservation re-sent under a new id is paid twice
+    "a": Bounds(losses=1, duplicates=0, power_losses=0, timeouts=2, returns=False),
+    # (b) TimeoutN forgets a timeout-commit; the re-sent intention is taken as new
+    "b": Bounds(losses=0, duplicates=1, power_losses=0, returns=False),
+    # (c) a duplicated RETURN is credited twice
+    "c": Bounds(losses=0, duplicates=1, power_losses=0, timeouts=0, spending=False),
+    # (d) after a client reset a late duplicate of an old intention is accepted
+    "d": Bounds(losses=0, duplicates=1, power_losses=1, timeouts=1, returns=False, spending=False),
+    # (e) a reset right after a timeout-commit forgets it
+    "e": Bounds(losses=0, duplicates=0, power_losses=1, timeouts=3, returns=False, spending=False),
+}
+SHAPES = {
+    "a": [
+        "begin",
+        "supervisor_timer",
+        "deliver",
+        "deliver",
+        "decide",
+        "deliver",
+        "deliver",
+        "command_timer",
+    ],
+    "b": [
+        "begin",
+        "supervisor_timer",
+        "deliver",
+        "command_timer",
+        "deliver",
+        "command_timer",
+        "deliver",
+        "command_timer",
+    ],
+    "c": [
+        "begin",
+        "deliver",
+        "deliver",
+        "decide",
+        "deliver",
+        "give_back",
+        "duplicate",
+        "deliver",
+        "deliver",
+    ],
+    "d": [
+        "begin",
+        "duplicate",
+        "deliver",
+        "deliver",
+        "decide",
+        "deliver",
+        "client_power_loss",
+        "deliver",
+        "command_timer",
+    ],
+    "e": [
+        "begin",
+        "supervisor_timer",
+        "deliver",
+        "command_timer",
+        "deliver",
+        "client_power_loss",
+        "deliver",
+        "command_timer",
+    ],
+}
+
+
+@pytest.mark.parametrize("hazard", sorted(HAZARD_BOUNDS))
+def test_paper_hazard_is_a_shortest_counterexample(hazard: str) -> None:
+    result = check("paper", HAZARD_BOUNDS[hazard], stop_at_first=True)
+    assert result.violations > 0 and result.counterexample is not None
+    assert [step.kind for step, _ in result.counterexample] == SHAPES[hazard]
+    assert result.counterexample[-1][1].ledger().dissipated == -QUANTUM_UJ
+    assert all(w.ledger().dissipated >= 0 for _, w in result.counterexample[:-1])
+
+
+@pytest.mark.parametrize("hazard", sorted(HAZARD_BOUNDS))
+def test_hardened_has_no_violation_within_the_same_bounds(hazard: str) -> None:
+    result = check("hardened", HAZARD_BOUNDS[hazard])
+    assert result.complete and result.violations == 0 and result.counterexample is None
+    assert result.states > 50
+
+
+def test_hardened_two_clients_sharing_the_budget_with_supervisor_resets() -> None:
+    """The CI bound: two clients, every fault kind, supervisor and client power losses."""
+    bounds = Bounds(
+        clients=2,
+        transactions=2,
+        losses=1,
+        duplicates=1,
+        power_losses=1,
+        in_flight=2,
+        units=1,
+        retries=0,
+    )
+    result = check("hardened", bounds)
+    assert result.complete and result.violations == 0
+    assert result.states > 50_000, result.states
+
+
+class CreditsDuplicateReturns(HardenedSupervisor):
+    """Broken on purpose: credits a RETURN again instead of only re-acknowledging it."""
+
+    @staticmethod
+    def receive(t, s: Session, msg, now):  # type: ignore[no-untyped-def]
+        if isinstance(msg, Return):
+            amount = msg.amount_mj * QUANTUM_UJ
+            s = evolve(s, returns_credited=max(s.returns_credited, msg.seq))
+            return s, (), amount
+        return HardenedSupervisor.receive(t, s, msg, now)
+
+
+class ForgetsLastTxOnReset(HardenedClient):
+    """Broken on purpose: keeps the last resolved transaction in volatile memory."""
+
+    @staticmethod
+    def power_loss(c: ClientState, now: int) -> ClientState:
+        return evolve(HardenedClient.power_loss(c, now), last_tx=0)
+
+
+class RenumbersResentReturns(HardenedClient):
+    """Broken on purpose: re-sends an unacknowledged return under a fresh number."""
+
+    @staticmethod
+    def return_timer(t, c: ClientState, now: int):  # type: ignore[no-untyped-def]
+        if not c.return_pending:
+            return c, NO_ACTIONS
+        return HardenedClient.return_timer(t, evolve(c, return_seq=c.return_seq + 1), now)
+
+
+@pytest.mark.parametrize(
+    "broken",
+    [
+        Variant("credits-duplicates", CreditsDuplicateReturns(), HardenedClient()),
+        Variant("volatile-ltx", HardenedSupervisor(), ForgetsLastTxOnReset()),
+        Variant("renumbered-returns", HardenedSupervisor(), RenumbersResentReturns()),
+    ],
+    ids=lambda v: v.name,
+)
+def test_the_checker_finds_a_deliberately_broken_rule(broken: Variant) -> None:
+    result = check(broken, Bounds(units=2), stop_at_first=True)
+    assert result.violations >= 1 and result.counterexample is not None
+    assert check(VARIANTS["hardened"], Bounds(units=2), max_states=5000).violations == 0
+
+
+def test_cli_paper_counterexample_replays_through_the_core(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["check", "--variant", "paper", "--json"]) == 1  # stops at the first (shortest)
+    report = json.loads(capsys.readouterr().out)
+    assert {"states", "transitions", "depth", "seconds", "violations", "counterexample"} <= set(
+        report
+    )
+    assert report["violations"] >= 1 and report["states"] > 0
+    steps = [step_from_json(s["step"]) for s in report["counterexample"]]
+    worlds = replay(Model(VARIANTS["paper"], Bounds()), steps)
+    assert worlds[-1].ledger().dissipated < 0
+    assert worlds[-1].ledger().as_json() == report["counterexample"][-1]["ledger"]
+
+
+def test_cli_hardened_summary(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["check", "--transactions", "1", "--trace"]) == 0
+    out = capsys.readouterr().out
+    assert "violations: 0" in out and "states/s" in out and "no counterexample" in out
+
+
+def test_cli_rejects_bad_bounds(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["check", "--clients", "0"])
+    assert "outside" in capsys.readouterr().err

@@ -31,7 +31,7 @@ from canergy.core import (
 from canergy.core.state import Outcome
 from canergy.faults import FaultInjector, FaultProfile
 from canergy.ledger import Ledger, ledger
-from canergy.messages import QUANTUM_UJ, Direction, ToClient, ToSupervisor
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Direction, ToClient, ToSupervisor
 from canergy.units import UJ_PER_J
 from canergy.virtual_net import Endpoint, VirtualNetwork
 
@@ -167,7 +167,7 @@ class _Demo:
             self.first_violation = self.now
 
     # -- actions -------------------------------------------------------------------------
-    def carry_out(self, ep: Endpoint, node: int | None, actions: Iterable[Action]) -> None:
+    def carry_out(self, ep: Endpoint, actions: Iterable[Action]) -> None:
         for a in actions:
             if isinstance(a, Send):
                 self.net.send(ep, a.message, self.now)
@@ -175,7 +175,7 @@ class _Demo:
                 decide = (
                     self.sup.commit if self.rng.random() < self.cfg.commit_ratio else self.sup.abort
                 )
-                self.carry_out(ep, None, decide(a.node, self.now))
+                self.carry_out(ep, decide(a.node, self.now))
             elif isinstance(a, Resolved):
                 self.outcomes[a.outcome.name.lower()] += 1
             elif isinstance(a, ClientCommitted):
@@ -206,10 +206,10 @@ class _Demo:
             return
         if node is not None:
             assert isinstance(msg, ToClient)
-            self.carry_out(ep, node, self.clients[node].receive(msg, self.now))
+            self.carry_out(ep, self.clients[node].receive(msg, self.now))
         else:
             assert isinstance(msg, ToSupervisor)
-            self.carry_out(ep, None, self.sup.receive(msg, self.now))
+            self.carry_out(ep, self.sup.receive(msg, self.now))
 
     # -- workload ------------------------------------------------------------------------
     def tick(self, final: bool) -> None:
@@ -217,15 +217,15 @@ class _Demo:
             usable = client.state.usable
             if not final and usable:
                 self.carry_out(
-                    self.client_eps[n], n, client.spend(min(usable, self.power_uj_per_tick[n]))
+                    self.client_eps[n], client.spend(min(usable, self.power_uj_per_tick[n]))
                 )
             usable = client.state.usable
             back = usable if final else (usable // 2 if self.rng.random() < 0.03 else 0)
             back -= back % QUANTUM_UJ
-            back = min(back, 65_535 * QUANTUM_UJ)
+            back = min(back, AMOUNT_MAX_MJ * QUANTUM_UJ)
             if back > 0 and client.can_give_back():
                 self.stats[n].returns += 1
-                self.carry_out(self.client_eps[n], n, client.give_back(back, self.now))
+                self.carry_out(self.client_eps[n], client.give_back(back, self.now))
         if final:
             return
         for n in self.rng.sample(self.cfg.nodes, len(self.cfg.nodes)):
@@ -236,7 +236,7 @@ class _Demo:
                 amount = min(usable, self.rng.randint(self.grant_uj // 2, self.grant_uj * 3 // 2))
                 amount -= amount % QUANTUM_UJ
                 self.started += 1
-                self.carry_out(self.sup_ep, None, self.sup.begin(n, amount, self.now))
+                self.carry_out(self.sup_ep, self.sup.begin(n, amount, self.now))
 
     def maybe_reset(self) -> None:
         while self.reset_points and self.reset_points[0] <= self.started:
@@ -296,12 +296,12 @@ class _Demo:
                 self.observe()
         timer = self.sup.get_timer()
         if timer is not None and timer <= self.now:
-            self.carry_out(self.sup_ep, None, self.sup.handle_timer(self.now))
+            self.carry_out(self.sup_ep, self.sup.handle_timer(self.now))
             self.observe()
         for n, c in self.clients.items():
             timer = c.get_timer()
             if timer is not None and timer <= self.now:
-                self.carry_out(self.client_eps[n], n, c.handle_timer(self.now))
+                self.carry_out(self.client_eps[n], c.handle_timer(self.now))
                 self.observe()
 
     def result(self, finished: bool) -> DemoResult:

@@ -22,7 +22,6 @@ from canergy.core.common import (
     resolve,
     return_of,
     start_return,
-    wire_tx,
 )
 from canergy.core.frozen import evolve
 from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
@@ -43,7 +42,7 @@ from canergy.messages import (
     ToSupervisor,
 )
 from canergy.messages import Aborted as AbortedMsg
-from canergy.serial import unwrap, wrap
+from canergy.serial import unwrap
 
 _OPEN = (Phase.WAIT_ACK, Phase.WAIT_CONFIRM)
 
@@ -214,4 +213,4 @@ def _on_command(c: ClientState, msg: Commit | Abort) -> ClientStep:
     return c, (Aborted(c.node, tx), *reply_for(c, tx, Outcome.ABORTED))
 
 
-__all__ = ["HardenedClient", "HardenedSupervisor", "wire_tx", "wrap"]
+__all__ = ["HardenedClient", "HardenedSupervisor"]

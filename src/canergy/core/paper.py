@@ -16,7 +16,6 @@ from canergy.core.common import (
     SessionStep,
     SupervisorBase,
     commit_into,
-    intention_of,
     reply_for,
     resolve,
     start_intention,
@@ -226,4 +225,4 @@ def _on_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> Client
     return c, (*notes, Send(Ack(c.node, msg.tx)))
 
 
-__all__ = ["PaperClient", "PaperSupervisor", "intention_of"]
+__all__ = ["PaperClient", "PaperSupervisor"]

@@ -62,3 +62,26 @@ def test_amounts_decode_in_joules() -> None:
     assert decoded["AMOUNT"] == pytest.approx(2.5)
     assert decoded["DELIVERED"] == pytest.approx(1.234)
     assert db.get_message_by_frame_id(arbitration_id).name == "INTENTION_N7"
+
+
+def test_cantools_cli_decodes_candump_output() -> None:
+    """`candump vcan0 | cantools decode dbc/canergy.dbc`, with candump's default line format."""
+    import subprocess
+    import sys
+
+    from canergy.messages import Ack, Intention
+
+    lines = []
+    for msg in (Intention(5, 1, 500, 0), Ack(5, 1)):
+        arbitration_id, data = CODEC.encode(msg)
+        hex_bytes = " ".join(f"{b:02X}" for b in data)
+        lines.append(f"  vcan0  {arbitration_id:08X}   [{len(data)}]  {hex_bytes}")
+    out = subprocess.run(
+        [sys.executable, "-m", "cantools", "decode", "--single-line", str(DBC_PATH)],
+        input="\n".join(lines) + "\n",
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    assert "INTENTION_N5(CRC: 41, TX: 1, AMOUNT: 0.5 J, DELIVERED: 0.0 J)" in out
+    assert "ACK_N5(CRC: 69, TX: 1)" in out

@@ -26,14 +26,19 @@ def hazard_a(h: Harness) -> None:
     h.settle()  # second intention arrives, is acknowledged and committed
 
 
-def hazard_b(h: Harness) -> None:
-    """TimeoutN forgets a timeout-commit; a duplicated intention is then taken as new."""
+def timeout_commit_with_a_copy_in_flight(h: Harness) -> None:
+    """The client timeout-commits an intention whose duplicate is still travelling."""
     h.begin(A)
     h.duplicate_to_client(0)
     h.deliver_to_client(0)
-    h.drop_to_sup()
+    h.drop_to_sup()  # ACK lost
     assert h.client_timer()  # timeout-commit
-    h.drop_to_sup()
+    h.drop_to_sup()  # COMMITTED lost
+
+
+def hazard_b(h: Harness) -> None:
+    """TimeoutN forgets a timeout-commit; a duplicated intention is then taken as new."""
+    timeout_commit_with_a_copy_in_flight(h)
     h.client_timer()  # paper: TimeoutN; hardened: nothing armed
     h.spend()
     h.settle()
@@ -67,12 +72,7 @@ def hazard_d(h: Harness) -> None:
 
 def hazard_e(h: Harness) -> None:
     """A reset right after a timeout-commit; the re-sent intention comes back."""
-    h.begin(A)
-    h.duplicate_to_client(0)
-    h.deliver_to_client(0)
-    h.drop_to_sup()
-    assert h.client_timer()  # timeout-commit
-    h.drop_to_sup()
+    timeout_commit_with_a_copy_in_flight(h)
     h.spend()
     h.client_reset()
     h.settle()

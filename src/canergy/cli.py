@@ -185,8 +185,18 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         help="keep exploring after the first violation and count every violating "
         "state (default: stop at the first, which is a shortest one)",
     )
+    p.add_argument(
+        "--progress",
+        action="store_true",
+        help="report states, depth and rate on stderr every 100,000 states",
+    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--trace", action="store_true", help="print the counterexample step by step")
+
+
+def _report_progress(states: int, depth: int, seconds: float) -> None:
+    rate = states / seconds if seconds else 0.0
+    print(f"  {states:,} states, depth {depth}, {seconds:.0f} s ({rate:,.0f}/s)", file=sys.stderr)
 
 
 def _run_check(args: argparse.Namespace) -> int:
@@ -207,7 +217,11 @@ def _run_check(args: argparse.Namespace) -> int:
         spending=not args.no_spending,
     )
     result = check(
-        args.variant, bounds, max_states=args.max_states, stop_at_first=not args.keep_going
+        args.variant,
+        bounds,
+        max_states=args.max_states,
+        stop_at_first=not args.keep_going,
+        progress=_report_progress if args.progress else None,
     )
     if args.json:
         print(json.dumps(result.as_json(), indent=2))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -89,8 +90,12 @@ def check(
     *,
     max_states: int | None = None,
     stop_at_first: bool = False,
+    progress: Callable[[int, int, float], None] | None = None,
 ) -> CheckResult:
-    """Explore every reachable world within ``bounds``; count the ones that generate energy."""
+    """Explore every reachable world within ``bounds``; count the ones that generate energy.
+
+    ``progress(states, depth, seconds)`` is called every 100,000 new states.
+    """
     v = get_variant(variant) if isinstance(variant, str) else variant
     b = bounds or Bounds()
     model = Model(v, b)
@@ -110,6 +115,8 @@ def check(
             if nxt in parent:
                 continue
             parent[nxt] = (world, step)
+            if progress is not None and len(parent) % 100_000 == 0:
+                progress(len(parent), depth + 1, time.perf_counter() - start)
             dissipated = nxt.ledger().dissipated
             if dissipated < 0:
                 result.violations += 1

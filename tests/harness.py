@@ -39,9 +39,6 @@ class Harness:
                     self.acked.append(a)
         return actions
 
-    def tick(self, us: int = 1) -> None:
-        self.now += us
-
     @property
     def ledger(self) -> Ledger:
         return ledger(self.sup.state, [c.state for c in self.clients.values()])
@@ -77,12 +74,6 @@ class Harness:
         self.now = max(self.now, deadline)
         self._take(self.clients[node].fire_command_timer(self.now))
         return True
-
-    def return_timer(self, node: int = 1) -> None:
-        deadline = self.clients[node].state.return_deadline
-        assert deadline is not None
-        self.now = max(self.now, deadline)
-        self._take(self.clients[node].fire_return_timer(self.now))
 
     def spend(self, amount: int | None = None, node: int = 1) -> None:
         c = self.clients[node]

@@ -190,6 +190,16 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         action="store_true",
         help="report states, depth and rate on stderr every 100,000 states",
     )
+    p.add_argument(
+        "--no-symmetry",
+        action="store_true",
+        help="store every node labeling separately (default: clients are interchangeable)",
+    )
+    p.add_argument(
+        "--no-subsumption",
+        action="store_true",
+        help="also store states already reached with smaller run counters",
+    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--trace", action="store_true", help="print the counterexample step by step")
 
@@ -222,6 +232,8 @@ def _run_check(args: argparse.Namespace) -> int:
         max_states=args.max_states,
         stop_at_first=not args.keep_going,
         progress=_report_progress if args.progress else None,
+        symmetry=not args.no_symmetry,
+        subsumption=not args.no_subsumption,
     )
     if args.json:
         print(json.dumps(result.as_json(), indent=2))

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from canergy.check.model import Bounds, Model, Step, World, initial_world
+from canergy.check.reduce import Reducer, inverse, relabel_step
 from canergy.core.variants import Variant, get_variant
 from canergy.messages import MESSAGE_CLASSES, MsgType
 
@@ -25,6 +26,8 @@ class CheckResult:
     counterexample: list[tuple[Step, World]] | None = None
     worst_quiescent_dissipation: int = 0
     quiescent_states: int = 0
+    subsumed: int = 0
+    symmetry: bool = True
     complete: bool = True
     notes: list[str] = field(default_factory=list)
 
@@ -48,6 +51,8 @@ class CheckResult:
             "seconds": round(self.seconds, 3),
             "states_per_second": round(self.states_per_second),
             "violations": self.violations,
+            "subsumed": self.subsumed,
+            "symmetry": self.symmetry,
             "complete": self.complete,
             "worst_quiescent_dissipated_uj": self.worst_quiescent_dissipation,
             "quiescent_states": self.quiescent_states,
@@ -91,17 +96,22 @@ def check(
     max_states: int | None = None,
     stop_at_first: bool = False,
     progress: Callable[[int, int, float], None] | None = None,
+    symmetry: bool = True,
+    subsumption: bool = True,
 ) -> CheckResult:
     """Explore every reachable world within ``bounds``; count the ones that generate energy.
 
-    ``progress(states, depth, seconds)`` is called every 100,000 new states.
+    Worlds are stored up to client symmetry and counter subsumption (see ``reduce``), which the
+    flags can turn off. ``progress(states, depth, seconds)`` is called every 100,000 new states.
     """
     v = get_variant(variant) if isinstance(variant, str) else variant
     b = bounds or Bounds()
     model = Model(v, b)
-    result = CheckResult(v.name, b)
+    reducer = Reducer(b.clients, symmetry=symmetry, subsumption=subsumption)
+    result = CheckResult(v.name, b, symmetry=reducer.symmetry)
     start = time.perf_counter()
-    root = initial_world(b)
+    root = reducer.canonical(initial_world(b))
+    reducer.admit(root)
     parent: dict[World, tuple[World, Step] | None] = {root: None}
     frontier: deque[tuple[World, int]] = deque([(root, 0)])
     while frontier:
@@ -112,7 +122,8 @@ def check(
             if nxt is None:
                 continue
             result.transitions += 1
-            if nxt in parent:
+            nxt = reducer.canonical(nxt)
+            if nxt in parent or not reducer.admit(nxt):
                 continue
             parent[nxt] = (world, step)
             if progress is not None and len(parent) % 100_000 == 0:
@@ -121,7 +132,7 @@ def check(
             if dissipated < 0:
                 result.violations += 1
                 if result.counterexample is None:
-                    result.counterexample = _trace(parent, nxt)
+                    result.counterexample = _trace(model, reducer, parent, nxt)
                     if stop_at_first:
                         frontier.clear()
                         break
@@ -137,15 +148,28 @@ def check(
             result.notes.append(f"stopped at --max-states {max_states}")
             break
     result.states = len(parent)
+    result.subsumed = reducer.subsumed
     result.seconds = time.perf_counter() - start
     return result
 
 
-def _trace(parent: dict[World, tuple[World, Step] | None], end: World) -> list[tuple[Step, World]]:
-    trace: list[tuple[Step, World]] = []
+def _trace(
+    model: Model, reducer: Reducer, parent: dict[World, tuple[World, Step] | None], end: World
+) -> list[tuple[Step, World]]:
+    """The path to ``end`` as steps that replay from the initial world (symmetry undone)."""
+    links: list[tuple[Step, World]] = []
     node = end
     while (link := parent[node]) is not None:
         prev, step = link
-        trace.append((step, node))
+        links.append((step, node))
         node = prev
-    return trace[::-1]
+    trace: list[tuple[Step, World]] = []
+    actual = initial_world(model.bounds)
+    for step, stored in reversed(links):
+        # ``step`` was taken from the canonical form of ``actual``: undo that relabeling.
+        step = relabel_step(step, inverse(reducer.perm(actual)))
+        actual_next = model.apply(actual, step)
+        assert actual_next is not None and reducer.canonical(actual_next) == stored
+        trace.append((step, actual_next))
+        actual = actual_next
+    return trace

@@ -19,6 +19,8 @@ def format_summary(r: CheckResult) -> str:
         f"states {r.states:,}  transitions {r.transitions:,}  depth {r.depth}  "
         f"time {r.seconds:.2f} s  ({r.states_per_second:,.0f} states/s)"
         + ("" if r.complete else "  INCOMPLETE: " + "; ".join(r.notes)),
+        f"reductions: symmetry {'on' if r.symmetry else 'off'}, "
+        f"{r.subsumed:,} states subsumed by cheaper ones",
         f"worst dissipation in a quiescent state: {format_energy(r.worst_quiescent_dissipation)} "
         f"over {r.quiescent_states:,} quiescent states",
         f"violations: {r.violations:,} state(s) with energy generated",

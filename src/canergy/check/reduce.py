@@ -1,0 +1,135 @@
+"""Two sound reductions of the explored state space; neither hides a violation or lengthens one.
+
+**Symmetry.** Clients run the same rules and differ only in their node id, so a world and the
+same world with node ids permuted (sessions, clients and frames alike) have mirror-image futures.
+Only one representative of each class is stored: the one with nodes sorted by what they hold.
+
+**Subsumption.** The run counters (transactions started, frames lost and duplicated, power
+losses, timer expiries) are budgets: a world that has used less of every budget can do everything
+the same world with more used can do. A world is skipped when the same protocol state has been
+stored with every counter lower or equal. Breadth-first order stores the cheaper one no later than
+at the same depth, so counterexamples stay shortest.
+"""
+
+from __future__ import annotations
+
+from typing import Any, TypeVar, cast
+
+from canergy.check.model import Flight, Step, World
+from canergy.core.frozen import evolve
+
+T = TypeVar("T")
+Counters = tuple[int, int, int, int, int]
+Perm = tuple[int, ...]
+
+
+def counters(w: World) -> Counters:
+    return (w.started, w.lost, w.duplicated, w.power_lost, w.timed_out)
+
+
+_RENAMED: dict[tuple[object, int], Any] = {}
+
+
+def _renamed(obj: T, node: int) -> T:
+    """``obj`` with its node id replaced; memoized (worlds share few distinct records)."""
+    key = (obj, node)
+    out = _RENAMED.get(key)
+    if out is None:
+        out = _RENAMED[key] = evolve(obj, node=node)
+    return cast(T, out)
+
+
+def relabel(w: World, perm: Perm) -> World:
+    """``w`` with node ``i + 1`` renamed ``perm[i] + 1`` everywhere."""
+    k = len(perm)
+    sessions = [w.sup.sessions[0]] * k
+    clients = [w.clients[0]] * k
+    for i, j in enumerate(perm):
+        sessions[j] = _renamed(w.sup.sessions[i], j + 1)
+        clients[j] = _renamed(w.clients[i], j + 1)
+    flight: Flight = frozenset((_renamed(msg, perm[msg.node - 1] + 1), n) for msg, n in w.flight)
+    return evolve(
+        w, sup=evolve(w.sup, sessions=tuple(sessions)), clients=tuple(clients), flight=flight
+    )
+
+
+def relabel_step(step: Step, perm: Perm) -> Step:
+    node = perm[step.node - 1] + 1 if step.node else 0
+    msg = step.message
+    if msg is not None:
+        msg = evolve(msg, node=perm[msg.node - 1] + 1)
+    return evolve(step, node=node, message=msg)
+
+
+def _plain(value: object) -> object:
+    return -1 if value is None else value
+
+
+_SIGNATURES: dict[object, tuple[object, ...]] = {}
+
+
+def _signature(obj: object) -> tuple[object, ...]:
+    """Everything in a record but its node id, as a comparable tuple; memoized."""
+    sig = _SIGNATURES.get(obj)
+    if sig is None:
+        names = obj.__slots__  # type: ignore[attr-defined]
+        values = (_plain(getattr(obj, n)) for n in names if n != "node")
+        sig = _SIGNATURES[obj] = (type(obj).__name__, *values)
+    return sig
+
+
+def sorting_perm(w: World) -> Perm:
+    """The relabeling that orders nodes by what they hold (session, client, frames to or from
+    them). Nodes with equal contents are interchangeable, so the result is canonical."""
+    keys = []
+    for session, client in zip(w.sup.sessions, w.clients, strict=True):
+        frames = sorted((_signature(msg), n) for msg, n in w.flight if msg.node == client.node)
+        keys.append((_signature(session), _signature(client), frames))
+    order = sorted(range(len(keys)), key=keys.__getitem__)
+    perm = [0] * len(order)
+    for new, old in enumerate(order):
+        perm[old] = new
+    return tuple(perm)
+
+
+def inverse(perm: Perm) -> Perm:
+    out = [0] * len(perm)
+    for i, j in enumerate(perm):
+        out[j] = i
+    return tuple(out)
+
+
+class Reducer:
+    """Decides which generated worlds to store, and in which canonical form."""
+
+    def __init__(self, clients: int, *, symmetry: bool = True, subsumption: bool = True) -> None:
+        self.symmetry = symmetry and clients > 1
+        self.subsumption = subsumption
+        self._stored: dict[World, list[Counters]] = {}
+        self.subsumed = 0
+
+    def perm(self, w: World) -> Perm:
+        """The relabeling that makes ``w`` canonical (identity without symmetry)."""
+        return sorting_perm(w) if self.symmetry else tuple(range(len(w.clients)))
+
+    def canonical(self, w: World) -> World:
+        perm = self.perm(w)
+        return w if perm == tuple(range(len(perm))) else relabel(w, perm)
+
+    def admit(self, w: World) -> bool:
+        """Store ``w`` (canonical) unless its protocol state is stored with cheaper counters."""
+        if not self.subsumption:
+            return True
+        core = evolve(w, started=0, lost=0, duplicated=0, power_lost=0, timed_out=0)
+        mine = counters(w)
+        stored = self._stored.get(core)
+        if stored is None:
+            self._stored[core] = [mine]
+            return True
+        for other in stored:
+            if all(a <= b for a, b in zip(other, mine, strict=True)):
+                self.subsumed += 1
+                return False
+        stored[:] = [o for o in stored if not all(a <= b for a, b in zip(mine, o, strict=True))]
+        stored.append(mine)
+        return True

@@ -19,6 +19,7 @@ from canergy.messages import (
     Return,
     ReturnAck,
     StatusRequest,
+    Telemetry,
 )
 
 nodes = st.integers(MIN_NODE, MAX_NODE)
@@ -36,4 +37,5 @@ messages: st.SearchStrategy[Message] = st.one_of(
     st.builds(Committed, nodes, u16),
     st.builds(Aborted, nodes, u16),
     st.builds(Return, nodes, u16, amounts),
+    st.builds(Telemetry, nodes, st.integers(0, 0xFFFFFF), st.integers(0, 0xFF)),
 )

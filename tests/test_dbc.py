@@ -26,7 +26,14 @@ def _db() -> cantools.database.can.Database:
 
 
 def _raw_signals(msg: Message) -> dict[str, int]:
-    names = {"tx": "TX", "seq": "SEQ", "amount_mj": "AMOUNT", "delivered_mj": "DELIVERED"}
+    names = {
+        "tx": "TX",
+        "seq": "SEQ",
+        "amount_mj": "AMOUNT",
+        "delivered_mj": "DELIVERED",
+        "level_mj": "LEVEL",
+        "flags": "FLAGS",
+    }
     return {sig: getattr(msg, field) for field, sig in names.items() if hasattr(msg, field)}
 
 

@@ -31,6 +31,7 @@ from canergy.messages import (
     Return,
     ReturnAck,
     StatusRequest,
+    Telemetry,
 )
 
 DEFAULT_ID_BASE = 0x0CE00000
@@ -105,6 +106,11 @@ def _retack_fields(m: Message) -> tuple[int, ...]:
     return (m.seq,)
 
 
+def _telemetry_fields(m: Message) -> tuple[int, ...]:
+    assert isinstance(m, Telemetry)
+    return (m.level_mj & 0xFFFF, m.level_mj >> 16, m.flags)
+
+
 def _return_fields(m: Message) -> tuple[int, ...]:
     assert isinstance(m, Return)
     return (m.seq, m.amount_mj)
@@ -124,6 +130,12 @@ LAYOUTS: dict[MsgType, _Layout] = {
     MsgType.ABORTED: _tx_only(Aborted),
     MsgType.RETURN: _Layout(
         struct.Struct("<HH"), _return_fields, lambda n, f: Return(n, f[0], f[1]), True
+    ),
+    MsgType.TELEMETRY: _Layout(
+        struct.Struct("<HBB"),
+        _telemetry_fields,
+        lambda n, f: Telemetry(n, f[0] | f[1] << 16, f[2]),
+        False,
     ),
 }
 assert set(LAYOUTS) == set(MESSAGE_CLASSES)

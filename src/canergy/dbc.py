@@ -27,6 +27,7 @@ _SIGNALS: dict[MsgType, list[tuple[str, int, int, float, str]]] = {
     MsgType.COMMITTED: [("TX", 8, 16, 1, "")],
     MsgType.ABORTED: [("TX", 8, 16, 1, "")],
     MsgType.RETURN: [("SEQ", 8, 16, 1, ""), ("AMOUNT", 24, 16, 0.001, "J")],
+    MsgType.TELEMETRY: [("LEVEL", 8, 24, 0.001, "J"), ("FLAGS", 32, 8, 1, "")],
 }
 assert QUANTUM_UJ == 1000  # the 0.001 J scale above is one wire quantum
 
@@ -36,6 +37,8 @@ _COMMENTS = {
     "SEQ": "return number, 16-bit wrapping",
     "AMOUNT": "energy in whole millijoules",
     "DELIVERED": "Gs: energy counted as delivered to this node, 24-bit wrapping mJ",
+    "LEVEL": "client's usable energy in mJ, saturating at 16777.215 J (information only)",
+    "FLAGS": "bit 0: level low; bit 1: actuator halted",
 }
 
 

@@ -207,8 +207,7 @@ class _Demo:
         if node is not None:
             assert isinstance(msg, ToClient)
             self.carry_out(ep, self.clients[node].receive(msg, self.now))
-        else:
-            assert isinstance(msg, ToSupervisor)
+        elif isinstance(msg, ToSupervisor):  # demo clients send no telemetry
             self.carry_out(ep, self.sup.receive(msg, self.now))
 
     # -- workload ------------------------------------------------------------------------

@@ -44,6 +44,7 @@ class MsgType(IntEnum):
     COMMITTED = 0xA
     ABORTED = 0xB
     RETURN = 0xC
+    TELEMETRY = 0xD  # moves no energy; the protocol's safety never depends on it
 
     @property
     def direction(self) -> Direction:
@@ -145,9 +146,29 @@ class Return:
     amount_mj: int
 
 
+@dataclass(frozen=True, slots=True)
+class Telemetry:
+    """TELEMETRY: the client's usable level (24-bit mJ, saturating) and status flags.
+
+    Information for grant policies only: it moves no energy and the core never sees it.
+    """
+
+    TYPE: ClassVar[MsgType] = MsgType.TELEMETRY
+    node: int
+    level_mj: int
+    flags: int = 0
+
+    LOW: ClassVar[int] = 0x01
+    """Flag: the level fell below the client's low-water mark."""
+    HALTED: ClassVar[int] = 0x02
+    """Flag: the actuator is halted (budget exhausted or not operational)."""
+
+
+LEVEL_MAX_MJ = (1 << 24) - 1
+
 ToClient = Intention | Commit | Abort | ReturnAck | StatusRequest | FinalAck
 ToSupervisor = Ack | Committed | Aborted | Return
-Message = ToClient | ToSupervisor
+Message = ToClient | ToSupervisor | Telemetry
 
 MESSAGE_CLASSES: dict[MsgType, type[Message]] = {
     cls.TYPE: cls
@@ -162,5 +183,6 @@ MESSAGE_CLASSES: dict[MsgType, type[Message]] = {
         Committed,
         Aborted,
         Return,
+        Telemetry,
     )
 }

@@ -9,7 +9,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from canergy import __version__
+from canergy import __version__, cli_live
 from canergy.cli_args import bounded_int, energy, node_ids, positive_float, probability
 from canergy.core.variants import VARIANTS
 from canergy.messages import MAX_NODE
@@ -277,17 +277,18 @@ def build_parser() -> argparse.ArgumentParser:
     _demo_parser(sub)
     _check_parser(sub)
     _dbc_parser(sub)
+    cli_live.add_parsers(sub)
     return parser
 
 
-_COMMANDS = {"demo": _run_demo, "check": _run_check, "dbc": _run_dbc}
+_COMMANDS = {"demo": _run_demo, "check": _run_check, "dbc": _run_dbc, **cli_live.COMMANDS}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return _COMMANDS[args.command](args)
-    except ValueError as exc:
+    except (ValueError, cli_live.BusOpenError) as exc:
         print(f"canergy {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except BrokenPipeError:  # e.g. `canergy demo | head`: stop quietly like other CLI tools

@@ -6,13 +6,21 @@ import argparse
 from collections.abc import Callable
 
 from canergy.messages import MAX_NODE, MIN_NODE
-from canergy.units import parse_energy
+from canergy.units import parse_energy, parse_power
 
 
 def energy(text: str) -> int:
     """``10J``, ``250mJ``, ``1500uJ`` or plain joules, as µJ."""
     try:
         return parse_energy(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def power(text: str) -> int:
+    """``0.5W``, ``200mW`` or plain watts, as µW."""
+    try:
+        return parse_power(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
 

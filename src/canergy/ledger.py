@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
+from typing import Any
 
 from canergy.core.state import ClientState, Session, SupervisorState
 
@@ -78,3 +79,32 @@ def ledger(sup: SupervisorState, clients: Iterable[ClientState]) -> Ledger:
         returns_in_flight=sum(node_return_in_flight(s, c) for s, c in pairs),
         overlap=sum(node_overlap(s, c) for s, c in pairs),
     )
+
+
+def ledger_from_status(supervisor: dict[str, Any], clients: Iterable[dict[str, Any]]) -> Ledger:
+    """The ledger from the JSON status files of a supervisor and its client emulators (or real
+    nodes reporting the same keys), as the processes last wrote them."""
+    sessions = tuple(
+        Session(
+            int(node),
+            reserved=v["reserved_uj"],
+            delivered=v["delivered_uj"],
+            returns_credited=v["returns_credited"],
+        )
+        for node, v in supervisor["nodes"].items()
+    )
+    sup = SupervisorState(
+        supervisor["initial_uj"], supervisor["usable_uj"], supervisor["injected_uj"], sessions
+    )
+    states = [
+        ClientState(
+            c["node"],
+            usable=c["usable_uj"],
+            credited=c["credited_uj"],
+            spent=c["spent_uj"],
+            return_seq=c["return_seq"],
+            return_pending=c["return_pending_uj"],
+        )
+        for c in clients
+    ]
+    return ledger(sup, states)

@@ -1,0 +1,168 @@
+"""``python -m firmware_model``: emulated actuator nodes on any python-can bus.
+
+Exit status: 0 after SIGINT/SIGTERM (final status written), 2 for bad arguments or a bus that
+cannot be opened, 3 after a simulated power loss (``--crash-after`` or SIGUSR1).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from canergy.cli_args import bounded_int, energy, node_ids, positive_float, power
+from canergy.codec import Codec
+from canergy.core import Timing
+from canergy.live.atomic import write_json_atomic
+from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
+from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.messages import Direction
+from firmware_model.actuator import PowerProfile
+from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
+from firmware_model.nvstore import NvError, NvStore, SimulatedPowerLoss
+
+EXIT_POWER_LOSS = 3
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m firmware_model",
+        description="Emulate canergy client nodes (actuators with an energy budget) on a CAN bus.",
+    )
+    which = p.add_mutually_exclusive_group(required=True)
+    which.add_argument("--node", type=bounded_int(1, 127), help="one node id")
+    which.add_argument("--nodes", type=node_ids, help="several node ids in one process: 1-20,33")
+    add_bus_flags(p)
+    p.add_argument(
+        "--nv",
+        type=Path,
+        required=True,
+        help="NV store: a file for --node, a directory (node-<id>.nv inside) for --nodes",
+    )
+    p.add_argument("--no-fsync", action="store_true", help="skip fsync of NV writes (tests)")
+    drive = p.add_mutually_exclusive_group()
+    drive.add_argument("--power", type=power, default=0, help="constant draw, e.g. 0.5W")
+    drive.add_argument("--power-profile", type=Path, help="CSV of time_s,watts rows, repeated")
+    p.add_argument("--tick", type=positive_float, default=0.1, help="actuator period, s")
+    p.add_argument("--telemetry-period", type=positive_float, default=1.0, help="s")
+    p.add_argument("--low-water", type=energy, default=0, help="report at once below this")
+    p.add_argument("--return-above", type=energy, help="give back energy above this level")
+    p.add_argument("--response-timeout", type=positive_float, default=0.1, help="s")
+    p.add_argument(
+        "--crash-after",
+        type=bounded_int(1),
+        help="lose power during the N-th NV write of a node (torn slot), exit 3",
+    )
+    p.add_argument("--status-file", type=Path, help="JSON status, rewritten atomically")
+    p.add_argument("--status-period", type=positive_float, default=1.0, help="s")
+    return p
+
+
+def _nv_path(args: argparse.Namespace, node: int, several: bool) -> Path:
+    if not several:
+        return Path(args.nv)
+    Path(args.nv).mkdir(parents=True, exist_ok=True)
+    return Path(args.nv) / f"node-{node:03d}.nv"
+
+
+def _config(args: argparse.Namespace) -> NodeConfig:
+    profile = (
+        PowerProfile.from_csv(args.power_profile)
+        if args.power_profile is not None
+        else PowerProfile.constant(args.power / 1e6)
+    )
+    timeout = round(args.response_timeout * 1e6)
+    return NodeConfig(
+        power=profile,
+        tick_us=round(args.tick * 1e6),
+        telemetry_period_us=round(args.telemetry_period * 1e6),
+        low_water=args.low_water,
+        return_above=args.return_above,
+        timing=Timing(
+            response_timeout_us=timeout,
+            command_timeout_us=2 * timeout,
+            return_retry_us=2 * timeout,
+        ),
+    )
+
+
+def status(host: NodeHost, runtime: BusRuntime) -> dict[str, Any]:
+    nodes = [n.status() for n in host.nodes.values()]
+    bus = runtime.counters.as_json()
+    if len(nodes) == 1:
+        return {**nodes[0], **bus, "decode_errors": bus["decode_errors"]}
+    return {"nodes": {str(n["node"]): n for n in nodes}, **bus}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    ids = (args.node,) if args.node is not None else args.nodes
+    try:
+        config = _config(args)
+        now = monotonic_us()
+        host = NodeHost(
+            [
+                FirmwareNode(
+                    n,
+                    NvStore(
+                        _nv_path(args, n, len(ids) > 1 or args.nodes is not None),
+                        n,
+                        fsync=not args.no_fsync,
+                        crash_after=args.crash_after,
+                    ),
+                    config,
+                    now,
+                )
+                for n in ids
+            ]
+        )
+        codec = Codec(args.id_base)
+        filters = [f for n in ids for f in codec.client_filters(n)]
+        bus = open_bus(args, filters)
+    except (ValueError, OSError, BusOpenError) as exc:  # NvError is a ValueError
+        parser.exit(2, f"{parser.prog}: error: {exc}\n")
+    runtime = BusRuntime(bus, host, codec=codec, receives=Direction.TO_CLIENT)
+    stop = False
+
+    def request_stop(signum: int, frame: object) -> None:
+        nonlocal stop
+        stop = True
+
+    def lose_power(signum: int, frame: object) -> None:
+        raise SimulatedPowerLoss("SIGUSR1")
+
+    signal.signal(signal.SIGINT, request_stop)
+    signal.signal(signal.SIGTERM, request_stop)
+    signal.signal(signal.SIGUSR1, lose_power)
+    next_status = 0
+    try:
+        while not stop:
+            runtime.poll(0.05)
+            now = monotonic_us()
+            if args.status_file is not None and now >= next_status:
+                write_json_atomic(args.status_file, status(host, runtime), fsync=False)
+                next_status = now + round(args.status_period * 1e6)
+    except SimulatedPowerLoss as exc:
+        print(f"firmware_model: simulated power loss: {exc}", file=sys.stderr)
+        os._exit(EXIT_POWER_LOSS)  # no clean-up: the NV file is all that survives
+    except NvError as exc:
+        print(f"firmware_model: NV store: {exc}", file=sys.stderr)
+        return 1
+    finally:
+        bus.shutdown()
+    final = status(host, runtime)
+    if args.status_file is not None:
+        write_json_atomic(args.status_file, final, fsync=False)
+    else:
+        print(json.dumps(final, sort_keys=True))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

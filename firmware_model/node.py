@@ -1,0 +1,161 @@
+"""One emulated actuator node, and a host running many of them on one bus.
+
+The protocol rules are the shared core's ``Client``; this file only adds what firmware adds
+around them: the NV record written before anything is sent or drawn, the actuator, telemetry,
+and a return policy. A loop step never waits and keeps no history.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import can
+
+from canergy.codec import DecodeError
+from canergy.core import Action, Client, ClientCommitted, Credited, Persist, Send, Timing
+from canergy.live.policy import quantize
+from canergy.messages import LEVEL_MAX_MJ, QUANTUM_UJ, Message, Telemetry, ToClient
+from firmware_model.actuator import Actuator, PowerProfile
+from firmware_model.nvstore import NvStore
+
+
+@dataclass(frozen=True, slots=True)
+class NodeConfig:
+    """Per-node behaviour; energies in µJ, times in µs."""
+
+    power: PowerProfile = field(default_factory=lambda: PowerProfile.constant(0.0))
+    tick_us: int = 100_000
+    telemetry_period_us: int = 1_000_000
+    low_water: int = 0
+    """Telemetry is also sent at once when the level falls below this."""
+    return_above: int | None = None
+    """Give back whatever exceeds this level (None: keep everything)."""
+    timing: Timing = field(default_factory=Timing)
+
+
+class FirmwareNode:
+    """State: the core client's record, the actuator, two timers. Nothing else."""
+
+    def __init__(self, node: int, nv: NvStore, config: NodeConfig, now: int) -> None:
+        self.config = config
+        self.nv = nv
+        self.client = Client(node, timing=config.timing, state=nv.load())
+        self.client.power_loss(now)  # every start is a restart from the NV record
+        self.actuator = Actuator(config.power, now, now)
+        self.next_tick = now + config.tick_us
+        self.next_telemetry = now  # announce the level at boot
+        self.decode_errors = 0
+        self.was_low = False
+
+    @property
+    def node(self) -> int:
+        return self.client.node
+
+    def on_message(self, msg: ToClient, now: int) -> list[Message]:
+        return self._carry_out(self.client.receive(msg, now), now)
+
+    def next_wakeup(self) -> int:
+        times = [self.next_tick, self.next_telemetry]
+        if (timer := self.client.get_timer()) is not None:
+            times.append(timer)
+        return min(times)
+
+    def on_wakeup(self, now: int) -> list[Message]:
+        out: list[Message] = []
+        if (timer := self.client.get_timer()) is not None and timer <= now:
+            out += self._carry_out(self.client.handle_timer(now), now)
+        if now >= self.next_tick:
+            self.next_tick = now + self.config.tick_us
+            out += self._actuate(now)
+            out += self._maybe_return(now)
+        low = self.client.state.usable < self.config.low_water
+        if now >= self.next_telemetry or (low and not self.was_low):
+            out.append(self.telemetry(now))
+        self.was_low = low
+        return out
+
+    def telemetry(self, now: int) -> Telemetry:
+        self.next_telemetry = now + self.config.telemetry_period_us
+        usable = self.client.state.usable
+        flags = (Telemetry.LOW if usable < self.config.low_water else 0) | (
+            Telemetry.HALTED if self.actuator.halted else 0
+        )
+        return Telemetry(self.node, min(usable // QUANTUM_UJ, LEVEL_MAX_MJ), flags)
+
+    def _actuate(self, now: int) -> list[Message]:
+        wanted = self.actuator.need(now)
+        take = min(wanted, self.client.state.usable)
+        out = self._carry_out(self.client.spend(take), now) if take else []
+        self.actuator.run(take, wanted)  # only after the spend is in NV
+        return out
+
+    def _maybe_return(self, now: int) -> list[Message]:
+        keep = self.config.return_above
+        if keep is None or not self.client.can_give_back():
+            return []
+        excess = quantize(self.client.state.usable - keep)
+        if excess <= 0:
+            return []
+        return self._carry_out(self.client.give_back(min(excess, 65_535 * QUANTUM_UJ), now), now)
+
+    def _carry_out(self, actions: list[Action], now: int) -> list[Message]:
+        out: list[Message] = []
+        for action in actions:
+            if isinstance(action, Persist):
+                self.nv.save(self.client.state)
+            elif isinstance(action, Send):
+                out.append(action.message)
+            elif isinstance(action, ClientCommitted | Credited):
+                self.next_telemetry = now  # report the new level right away
+        return out
+
+    def status(self) -> dict[str, Any]:
+        c = self.client.state
+        return {
+            "node": self.node,
+            "usable_uj": c.usable,
+            "spent_uj": c.spent,
+            "credited_uj": c.credited,
+            "returned_uj": c.credited - c.spent - c.usable,
+            "return_pending_uj": c.return_pending,
+            "return_seq": c.return_seq,
+            "last_tx": c.last_tx,
+            "halted": self.actuator.halted,
+            "drawn_uj": self.actuator.drawn_uj,
+            "nv_writes": self.nv.stats.writes,
+            "nv_fallbacks": self.nv.stats.fallbacks,
+            "decode_errors": self.decode_errors,
+        }
+
+
+class NodeHost:
+    """Many nodes behind one bus connection; implements the bus loop's ``Handler``."""
+
+    def __init__(self, nodes: Sequence[FirmwareNode]) -> None:
+        self.nodes = {n.node: n for n in nodes}
+        self.foreign_node_frames = 0
+
+    def on_message(self, msg: Message, now: int) -> Sequence[Message]:
+        node = self.nodes.get(msg.node)
+        if node is None or isinstance(msg, Telemetry):
+            self.foreign_node_frames += 1  # for a node hosted elsewhere
+            return ()
+        assert isinstance(msg, ToClient)  # the loop decodes the supervisor's direction only
+        return node.on_message(msg, now)
+
+    def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
+        node = self.nodes.get(frame.arbitration_id & 0xFF)
+        if node is not None:
+            node.decode_errors += 1
+
+    def next_wakeup(self) -> int | None:
+        return min((n.next_wakeup() for n in self.nodes.values()), default=None)
+
+    def on_wakeup(self, now: int) -> Sequence[Message]:
+        out: list[Message] = []
+        for node in self.nodes.values():
+            if node.next_wakeup() <= now:
+                out += node.on_wakeup(now)
+        return out

@@ -1,0 +1,160 @@
+"""The client's non-volatile record and its A/B store, laid out as firmware would in flash/EEPROM.
+
+Record (29 bytes, little-endian, packed)::
+
+    u32 usable_uj        energy the actuator may still draw
+    u32 credited_mj      Rc: all energy ever credited (always whole wire quanta)
+    u64 spent_uj         energy taken by the actuator
+    u32 last_tx          last transaction resolved (widened transaction number)
+    u32 return_seq       number of the last return sent
+    u32 return_pending_uj  amount of that return until acknowledged
+    u8  outcome          how ``last_tx`` ended
+
+Slot (40 bytes): ``u16 magic, u32 counter, record padded to 30 bytes, u32 crc32`` over magic to
+padding. The store has two slots; a write goes to the slot *not* holding the newest valid record,
+so a power loss mid-write (torn or corrupted slot) leaves the previous record readable. Loading
+picks the valid slot with the higher counter. Nothing is acted on before its write completes, so
+the fallback record never holds more energy than was committed.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+from canergy.core.state import ClientState, Outcome
+from canergy.messages import QUANTUM_UJ
+
+RECORD = struct.Struct("<IIQIIIB")
+RECORD_SIZE = RECORD.size
+assert RECORD_SIZE <= 32
+_MAGIC = 0xCE57
+_HEAD = struct.Struct("<HI")
+_PAD = 30
+_CRC = struct.Struct("<I")
+SLOT_SIZE = _HEAD.size + _PAD + _CRC.size
+U32 = 0xFFFFFFFF
+
+
+class NvError(ValueError):
+    """A value does not fit the record, or the store cannot be read at all."""
+
+
+class SimulatedPowerLoss(Exception):
+    """Raised by a store told to lose power during a write (the slot is left torn)."""
+
+
+def pack_record(c: ClientState) -> bytes:
+    if c.credited % QUANTUM_UJ:
+        raise NvError(f"credited {c.credited} µJ is not whole quanta")
+    fields = (
+        c.usable,
+        c.credited // QUANTUM_UJ,
+        c.spent,
+        c.last_tx,
+        c.return_seq,
+        c.return_pending,
+        int(c.outcome),
+    )
+    try:
+        return RECORD.pack(*fields)
+    except struct.error as exc:
+        raise NvError(f"client record does not fit the NV layout: {exc}") from exc
+
+
+def unpack_record(node: int, data: bytes) -> ClientState:
+    usable, credited_mj, spent, last_tx, return_seq, pending, outcome = RECORD.unpack(data)
+    return ClientState(
+        node,
+        usable=usable,
+        credited=credited_mj * QUANTUM_UJ,
+        spent=spent,
+        last_tx=last_tx,
+        outcome=Outcome(outcome),
+        return_seq=return_seq,
+        return_pending=pending,
+    )
+
+
+def encode_slot(counter: int, record: bytes) -> bytes:
+    body = _HEAD.pack(_MAGIC, counter) + record.ljust(_PAD, b"\0")
+    return body + _CRC.pack(zlib.crc32(body))
+
+
+def decode_slot(raw: bytes) -> tuple[int, bytes] | None:
+    """``(counter, record)`` of a valid slot, else None."""
+    if len(raw) != SLOT_SIZE:
+        return None
+    body, (crc,) = raw[: -_CRC.size], _CRC.unpack(raw[-_CRC.size :])
+    magic, counter = _HEAD.unpack(body[: _HEAD.size])
+    if magic != _MAGIC or zlib.crc32(body) != crc:
+        return None
+    return counter, body[_HEAD.size : _HEAD.size + RECORD_SIZE]
+
+
+@dataclass(slots=True)
+class NvStats:
+    writes: int = 0
+    fallbacks: int = 0
+    """Loads that found the newest slot invalid and used the older one."""
+
+
+class NvStore:
+    """Two slots in one file; ``crash_after=N`` tears the N-th write and raises."""
+
+    def __init__(
+        self, path: Path, node: int, *, fsync: bool = True, crash_after: int | None = None
+    ) -> None:
+        self.path = path
+        self.node = node
+        self.fsync = fsync
+        self.crash_after = crash_after
+        self.stats = NvStats()
+        self._counter = 0
+        self._newest_slot = 1  # so the first write goes to slot 0
+
+    def load(self) -> ClientState:
+        """The newest valid record, or a fresh state when the file is new or blank."""
+        try:
+            raw = self.path.read_bytes()
+        except FileNotFoundError:
+            return ClientState(self.node)
+        except OSError as exc:
+            raise NvError(f"{self.path}: {exc}") from exc
+        chunks = [raw[i * SLOT_SIZE : (i + 1) * SLOT_SIZE] for i in (0, 1)]
+        slots = [decode_slot(chunk) for chunk in chunks]
+        valid = [(s[0], i, s[1]) for i, s in enumerate(slots) if s is not None]
+        if any(s is None and chunk.strip(b"\0") for s, chunk in zip(slots, chunks, strict=True)):
+            self.stats.fallbacks += 1  # a torn or corrupted slot: its write never completed
+        if not valid:
+            return ClientState(self.node)
+        counter, index, record = max(valid)
+        self._counter, self._newest_slot = counter, index
+        return unpack_record(self.node, record)
+
+    def save(self, c: ClientState) -> None:
+        record = pack_record(c)
+        slot = 1 - self._newest_slot
+        data = encode_slot((self._counter + 1) & U32, record)
+        self.stats.writes += 1
+        if self.crash_after is not None and self.stats.writes >= self.crash_after:
+            self._write(slot, data[: len(data) // 2])  # the power fails mid-write
+            raise SimulatedPowerLoss(
+                f"node {self.node}: power lost during NV write {self.stats.writes}"
+            )
+        self._write(slot, data)
+        self._counter, self._newest_slot = (self._counter + 1) & U32, slot
+
+    def _write(self, slot: int, data: bytes) -> None:
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            if os.fstat(fd).st_size < 2 * SLOT_SIZE:
+                os.ftruncate(fd, 2 * SLOT_SIZE)
+            os.pwrite(fd, data, slot * SLOT_SIZE)
+            if self.fsync:
+                os.fsync(fd)
+        finally:
+            os.close(fd)

@@ -1,0 +1,227 @@
+"""``canergy supervisor`` and ``canergy grant``: the supervisor on a real (or virtual) bus."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from canergy.cli_args import bounded_int, energy, node_ids, positive_float, power
+from canergy.codec import Codec
+from canergy.core import Supervisor, Timing
+from canergy.core.variants import VARIANTS
+from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
+
+__all__ = ["COMMANDS", "BusOpenError", "add_parsers"]
+from canergy.live.control import ControlServer, request
+from canergy.live.policy import Limits, TopUp
+from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.state_file import load_state
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Direction
+from canergy.units import UJ_PER_J
+
+
+def _supervisor_flags(p: argparse.ArgumentParser) -> None:
+    add_bus_flags(p)
+    p.add_argument("--variant", choices=sorted(VARIANTS), default="hardened")
+    p.add_argument("--initial", type=energy, default=10 * UJ_PER_J, help="budget of a new state")
+    p.add_argument("--state", type=Path, help="non-volatile state file (created if missing)")
+    p.add_argument("--no-fsync", action="store_true", help="skip fsync of the state file (tests)")
+    p.add_argument("--response-timeout", type=positive_float, default=0.05, help="s")
+    p.add_argument("--retries", type=bounded_int(0, 100), default=3)
+    p.add_argument("--max-grant", type=energy, default=AMOUNT_MAX_MJ * QUANTUM_UJ)
+    p.add_argument("--max-node-level", type=energy, help="never lift a node's level above this")
+    p.add_argument("--max-total", type=energy, help="energy granted in this run, all nodes")
+    p.add_argument("--rate", type=power, help="sustained grant rate over all nodes, e.g. 2W")
+    p.add_argument("--stop-timeout", type=positive_float, default=5.0, help="s to settle on exit")
+
+
+def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "supervisor",
+        help="grant energy to client nodes on a CAN bus",
+        description="Run the supervisor: keep nodes topped up and/or serve one-shot grants. "
+        "SIGINT/SIGTERM stop it cleanly (open transactions settle or are written off).",
+    )
+    p.add_argument("--nodes", type=node_ids, required=True, help="node ids, e.g. 1-5,9")
+    _supervisor_flags(p)
+    p.add_argument("--target", type=energy, help="top each node up to this reported level")
+    p.add_argument("--min-grant", type=energy, default=QUANTUM_UJ, help="smallest top-up")
+    p.add_argument("--lost-after", type=positive_float, default=3.0, help="s without a frame")
+    p.add_argument("--status-file", type=Path, help="JSON status (default: JSON lines on stdout)")
+    p.add_argument("--status-period", type=positive_float, default=1.0, help="s")
+    p.add_argument("--control", type=Path, help="UNIX socket for `canergy grant --control`")
+    p.add_argument("--listen-only", action="store_true", help="watch and report, never send")
+
+    g = sub.add_parser(
+        "grant",
+        help="one grant: through a running supervisor (--control) or as a single run",
+        description="Grant energy to one node. With --control, ask a running supervisor; "
+        "otherwise run a supervisor on the bus for this one transaction. Exit 0 when committed.",
+    )
+    g.add_argument("--node", type=bounded_int(1, 127), required=True)
+    g.add_argument("--amount", type=energy, required=True, help="e.g. 2J")
+    g.add_argument("--control", type=Path, help="socket of a running supervisor")
+    g.add_argument("--timeout", type=positive_float, default=10.0, help="s to wait for the end")
+    _supervisor_flags(g)
+
+
+def _build(args: argparse.Namespace, nodes: tuple[int, ...]) -> Supervisor:
+    timeout = round(args.response_timeout * 1e6)
+    timing = Timing(
+        response_timeout_us=timeout,
+        retries=args.retries,
+        command_timeout_us=2 * timeout,
+        return_retry_us=2 * timeout,
+    )
+    state = None
+    if args.state is not None and args.state.exists():
+        state = load_state(args.state, args.variant, nodes)
+    core = Supervisor(nodes, args.initial, variant=args.variant, timing=timing, state=state)
+    if state is not None:
+        core.power_loss(monotonic_us())  # a start is a restart from the persistent record
+    return core
+
+
+def _limits(args: argparse.Namespace) -> Limits:
+    return Limits(
+        max_grant=args.max_grant,
+        max_node_level=args.max_node_level,
+        max_total=args.max_total,
+        rate_uj_per_s=args.rate,
+    )
+
+
+def _serve(
+    runtime: BusRuntime,
+    service: SupervisorService,
+    control: ControlServer | None,
+    until: Any = None,
+) -> None:
+    """Loop until a signal (or ``until()``) and the service has settled."""
+
+    def request_stop(signum: int, frame: object) -> None:
+        service.stop(monotonic_us())
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, request_stop)
+        signal.signal(signal.SIGTERM, request_stop)
+    while not service.finished(monotonic_us()):
+        runtime.poll(0.05)
+        if control is not None:
+            for req, reply in control.pending():
+                _control_request(service, req, reply)
+        if until is not None and until():
+            service.stop(monotonic_us())
+    service.write_status()
+
+
+def _control_request(service: SupervisorService, req: dict[str, Any], reply: Any) -> None:
+    if req.get("status") is True:
+        reply(service.status())
+        return
+    if req.get("stop") is True:
+        service.stop(monotonic_us())
+        reply({"stopping": True})
+        return
+    grant = req.get("grant")
+    if not isinstance(grant, dict):
+        reply(
+            {
+                "error": 'expected {"grant": {"node": N, "amount_uj": A}}, {"status": true} or '
+                '{"stop": true}'
+            }
+        )
+        return
+    node, amount = grant.get("node"), grant.get("amount_uj")
+    if not isinstance(node, int) or not isinstance(amount, int) or amount <= 0:
+        reply({"error": "node and amount_uj must be positive integers"})
+        return
+    service.request_grant(node, amount, reply)
+
+
+def run_supervisor(args: argparse.Namespace) -> int:
+    if args.target is not None and args.target < QUANTUM_UJ:
+        raise ValueError("--target must be at least 1 mJ")
+    core = _build(args, args.nodes)
+    config = ServiceConfig(
+        policy=TopUp(args.target, args.min_grant) if args.target is not None else None,
+        limits=_limits(args),
+        state_path=args.state,
+        status_path=args.status_file,
+        status_stream=sys.stdout if args.status_file is None else None,
+        status_period_us=round(args.status_period * 1e6),
+        lost_after_us=round(args.lost_after * 1e6),
+        stop_timeout_us=round(args.stop_timeout * 1e6),
+        listen_only=args.listen_only,
+        fsync=not args.no_fsync,
+    )
+    codec = Codec(args.id_base)
+    bus = open_bus(args, codec.supervisor_filters())
+    control = None
+    try:
+        service = SupervisorService(core, config, monotonic_us())
+        runtime = BusRuntime(
+            bus,
+            service,
+            codec=codec,
+            receives=Direction.TO_SUPERVISOR,
+            listen_only=args.listen_only,
+        )
+        service.bus_counters = runtime.counters
+        control = ControlServer(args.control) if args.control is not None else None
+        _serve(runtime, service, control)
+    finally:
+        if control is not None:
+            control.close()
+        bus.shutdown()
+    return 0
+
+
+def run_grant(args: argparse.Namespace) -> int:
+    if args.control is not None:
+        payload = {"grant": {"node": args.node, "amount_uj": args.amount}}
+        try:
+            answer = request(args.control, payload, args.timeout)
+        except (OSError, ValueError) as exc:
+            print(
+                f"canergy grant: cannot reach the supervisor at {args.control}: {exc}",
+                file=sys.stderr,
+            )
+            return 2
+        return _report_grant(answer)
+    core = _build(args, (args.node,))
+    config = ServiceConfig(
+        limits=_limits(args),
+        state_path=args.state,
+        stop_timeout_us=round(args.stop_timeout * 1e6),
+        status_period_us=10**12,
+        fsync=not args.no_fsync,
+    )
+    codec = Codec(args.id_base)
+    bus = open_bus(args, codec.supervisor_filters())
+    answers: list[dict[str, Any]] = []
+    deadline = monotonic_us() + round(args.timeout * 1e6)
+    try:
+        service = SupervisorService(core, config, monotonic_us())
+        runtime = BusRuntime(bus, service, codec=codec, receives=Direction.TO_SUPERVISOR)
+        service.request_grant(args.node, args.amount, answers.append)
+        _serve(runtime, service, None, until=lambda: bool(answers) or monotonic_us() > deadline)
+    finally:
+        bus.shutdown()
+    if not answers:
+        answers.append({"node": args.node, "error": "no answer before --timeout"})
+    return _report_grant(answers[0])
+
+
+def _report_grant(answer: dict[str, Any]) -> int:
+    print(json.dumps(answer, sort_keys=True))
+    return 0 if answer.get("outcome") == "COMMITTED" else 1
+
+
+COMMANDS = {"supervisor": run_supervisor, "grant": run_grant}

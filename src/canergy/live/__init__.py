@@ -1,0 +1,1 @@
+"""Live CAN: the bus loop, the supervisor service and its files, grant policies and limits."""

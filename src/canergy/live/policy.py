@@ -1,0 +1,95 @@
+"""Grant policy (how much a node should get now) and safety limits (how much it may get).
+
+The policy reads the nodes' telemetry, which is information only: a wrong level can make the
+supervisor grant less or more, but never more than the limits and its own usable budget allow,
+and the protocol stays passive whatever telemetry says.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ
+
+
+@dataclass(frozen=True, slots=True)
+class Limits:
+    """Safety limits; energies in µJ, ``rate_uj_per_s`` sustained over all nodes."""
+
+    max_grant: int = AMOUNT_MAX_MJ * QUANTUM_UJ
+    max_node_level: int | None = None
+    """A grant may not lift a node's last reported level above this."""
+    max_total: int | None = None
+    """Energy granted (committed) over this run, all nodes together."""
+    rate_uj_per_s: int | None = None
+    """Token bucket refilled at this rate, holding at most one second's worth or one grant."""
+
+    def __post_init__(self) -> None:
+        if not QUANTUM_UJ <= self.max_grant <= AMOUNT_MAX_MJ * QUANTUM_UJ:
+            raise ValueError(
+                f"max grant must be {QUANTUM_UJ} µJ to {AMOUNT_MAX_MJ * QUANTUM_UJ} µJ"
+            )
+        for name in ("max_node_level", "max_total", "rate_uj_per_s"):
+            value = getattr(self, name)
+            if value is not None and value < 0:
+                raise ValueError(f"{name} must be >= 0")
+
+
+class RateLimiter:
+    """Token bucket in µJ over monotonic µs."""
+
+    def __init__(self, rate_uj_per_s: int | None, burst: int) -> None:
+        self.rate = rate_uj_per_s
+        self.burst = max(burst, rate_uj_per_s or 0)
+        self.tokens = self.burst
+        self.stamp: int | None = None
+
+    def available(self, now: int) -> int | None:
+        if self.rate is None:
+            return None
+        if self.stamp is not None:
+            self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate // 1_000_000)
+        self.stamp = now
+        return self.tokens
+
+    def take(self, amount: int) -> None:
+        if self.rate is not None:
+            self.tokens -= amount
+
+
+def quantize(amount: int) -> int:
+    """Round down to whole wire quanta."""
+    return amount - amount % QUANTUM_UJ
+
+
+def capped_grant(
+    wanted: int,
+    *,
+    limits: Limits,
+    level: int | None,
+    usable: int,
+    granted_total: int,
+    rate_tokens: int | None,
+) -> int:
+    """The largest grant ≤ ``wanted`` every limit allows (0: none), in whole quanta."""
+    caps = [wanted, limits.max_grant, usable, AMOUNT_MAX_MJ * QUANTUM_UJ]
+    if limits.max_node_level is not None:
+        caps.append(limits.max_node_level - (level or 0))
+    if limits.max_total is not None:
+        caps.append(limits.max_total - granted_total)
+    if rate_tokens is not None:
+        caps.append(rate_tokens)
+    return max(0, quantize(min(caps)))
+
+
+@dataclass(frozen=True, slots=True)
+class TopUp:
+    """Keep each node's reported level at ``target``: grant the shortfall, at least ``minimum``
+    (small top-ups cost frames and write cycles for little energy)."""
+
+    target: int
+    minimum: int = QUANTUM_UJ
+
+    def wanted(self, level: int) -> int:
+        short = self.target - level
+        return short if short >= self.minimum else 0

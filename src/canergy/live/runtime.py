@@ -1,0 +1,199 @@
+"""One receive loop over any python-can bus, driving a sans-IO handler on the monotonic clock.
+
+The loop waits for a frame no longer than the handler's next deadline, decodes it strictly, hands
+it over, and sends what comes back. Sending survives a full transmit queue (retried with
+backoff); a send that still fails is counted and dropped: for the protocol it is a lost frame.
+Error frames and bus-state changes are counted, never fatal.
+"""
+
+from __future__ import annotations
+
+import errno
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import can
+
+from canergy.codec import Codec, DecodeError, DecodeErrorReason
+from canergy.messages import Direction, Message
+
+Filters = list[dict[str, int | bool]]
+
+
+class Handler(Protocol):
+    """What the loop drives: the supervisor service or a host of firmware nodes."""
+
+    def on_message(self, msg: Message, now: int) -> Sequence[Message]:
+        """A decoded frame arrived; return the frames to send."""
+        ...
+
+    def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
+        """A frame in canergy's identifier block failed to decode (it is dropped)."""
+        ...
+
+    def next_wakeup(self) -> int | None:
+        """The earliest monotonic time (µs) at which ``on_wakeup`` must run, or None."""
+        ...
+
+    def on_wakeup(self, now: int) -> Sequence[Message]:
+        """Deadlines due at ``now`` (and any periodic work); return the frames to send."""
+        ...
+
+
+@dataclass(slots=True)
+class BusCounters:
+    frames_sent: int = 0
+    frames_received: int = 0
+    decode_errors: int = 0
+    foreign_frames: int = 0
+    send_retries: int = 0
+    send_failures: int = 0
+    error_frames: int = 0
+    bus_state: str = "unknown"
+    decode_reasons: dict[str, int] = field(default_factory=dict)
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "frames_sent": self.frames_sent,
+            "frames_received": self.frames_received,
+            "decode_errors": self.decode_errors,
+            "decode_error_reasons": dict(self.decode_reasons),
+            "foreign_frames": self.foreign_frames,
+            "send_retries": self.send_retries,
+            "send_failures": self.send_failures,
+            "error_frames": self.error_frames,
+            "bus_state": self.bus_state,
+        }
+
+
+def monotonic_us() -> int:
+    return time.monotonic_ns() // 1000
+
+
+@dataclass(frozen=True, slots=True)
+class SendPolicy:
+    """How hard to push a frame into a full transmit queue before calling it lost."""
+
+    attempts: int = 6
+    first_backoff_s: float = 0.001
+    max_backoff_s: float = 0.05
+
+
+class BusRuntime:
+    """Receive, decode, dispatch, send: one handler on one bus."""
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        handler: Handler,
+        *,
+        codec: Codec | None = None,
+        receives: Direction,
+        listen_only: bool = False,
+        send_policy: SendPolicy | None = None,
+        clock: Callable[[], int] = monotonic_us,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
+        self.bus = bus
+        self.handler = handler
+        self.codec = codec or Codec()
+        self.receives = receives
+        self.listen_only = listen_only
+        self.send_policy = send_policy or SendPolicy()
+        self.clock = clock
+        self.sleep = sleep
+        self.counters = BusCounters()
+        self.max_batch = 512
+
+    def poll(self, max_wait_s: float = 0.1) -> None:
+        """Wait for one frame (at most until the next deadline or ``max_wait_s``) and run
+        whatever is due."""
+        now = self.clock()
+        wakeup = self.handler.next_wakeup()
+        wait = max_wait_s if wakeup is None else min(max_wait_s, max(0, wakeup - now) / 1e6)
+        frame = self.bus.recv(timeout=wait)
+        batch = 0
+        while frame is not None:  # drain what is queued before judging any timeout
+            self._received(frame)
+            batch += 1
+            frame = self.bus.recv(timeout=0) if batch < self.max_batch else None
+        self._update_bus_state()
+        wakeup = self.handler.next_wakeup()
+        now = self.clock()
+        if wakeup is not None and wakeup <= now:
+            self._send_all(self.handler.on_wakeup(now))
+
+    def run(self, until: Callable[[], bool], max_wait_s: float = 0.1) -> None:
+        while not until():
+            self.poll(max_wait_s)
+
+    def send_messages(self, messages: Sequence[Message]) -> None:
+        self._send_all(messages)
+
+    def _received(self, frame: can.Message) -> None:
+        if frame.is_error_frame:
+            self.counters.error_frames += 1
+            return
+        self.counters.frames_received += 1
+        try:
+            msg = self.codec.decode(
+                frame.arbitration_id,
+                frame.data,
+                extended=frame.is_extended_id,
+                remote=frame.is_remote_frame,
+                direction=self.receives,
+            )
+        except DecodeError as err:
+            if err.reason is DecodeErrorReason.FOREIGN:
+                self.counters.foreign_frames += 1
+                return
+            if err.reason is DecodeErrorReason.WRONG_DIRECTION:
+                return  # another node's traffic (only seen without hardware filters)
+            self.counters.decode_errors += 1
+            reasons = self.counters.decode_reasons
+            reasons[err.reason.value] = reasons.get(err.reason.value, 0) + 1
+            self.handler.on_decode_error(err, frame)
+            return
+        self._send_all(self.handler.on_message(msg, self.clock()))
+
+    def _send_all(self, messages: Sequence[Message]) -> None:
+        if self.listen_only:
+            return
+        for msg in messages:
+            self._send(msg)
+
+    def _send(self, msg: Message) -> None:
+        arbitration_id, data = self.codec.encode(msg)
+        frame = can.Message(arbitration_id=arbitration_id, is_extended_id=True, data=data)
+        policy = self.send_policy
+        backoff = policy.first_backoff_s
+        for attempt in range(policy.attempts):
+            try:
+                self.bus.send(frame, timeout=backoff)
+            except can.CanError as exc:
+                if attempt + 1 == policy.attempts or not _retryable(exc):
+                    self.counters.send_failures += 1  # lost, as far as the protocol goes
+                    return
+                self.counters.send_retries += 1
+                self.sleep(backoff)
+                backoff = min(backoff * 2, policy.max_backoff_s)
+            else:
+                self.counters.frames_sent += 1
+                return
+
+    def _update_bus_state(self) -> None:
+        try:
+            state = self.bus.state
+        except (NotImplementedError, can.CanError):
+            return
+        self.counters.bus_state = state.name.lower()
+
+
+def _retryable(exc: can.CanError) -> bool:
+    """A full transmit queue (ENOBUFS, timeouts of a busy controller) is worth another try."""
+    code = getattr(exc, "error_code", None)
+    if code in (errno.ENOBUFS, errno.EAGAIN, errno.EBUSY):
+        return True
+    return isinstance(exc, can.CanOperationError | can.CanTimeoutError) and code is None

@@ -1,0 +1,352 @@
+"""The supervisor service: the sans-IO core plus grant policy, safety limits, files and status.
+
+It implements the bus loop's ``Handler``: frames and deadlines in, frames out. Every change of
+the core's persistent record is written to the state file *before* the frames it causes are
+sent, so a ``kill -9`` at any point restarts from books that never owe energy.
+"""
+
+from __future__ import annotations
+
+import json
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+import can
+
+from canergy.codec import DecodeError
+from canergy.core import (
+    Acknowledged,
+    Action,
+    Persist,
+    Resolved,
+    ReturnCredited,
+    Send,
+    Supervisor,
+)
+from canergy.core.errors import LocalProtocolError
+from canergy.core.state import Outcome, Phase
+from canergy.live.atomic import write_json_atomic
+from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant
+from canergy.live.runtime import BusCounters
+from canergy.live.state_file import save_state
+from canergy.messages import Message, Telemetry, ToSupervisor
+
+GrantCallback = Callable[[dict[str, Any]], None]
+
+
+@dataclass(slots=True)
+class GrantRequest:
+    node: int
+    amount: int
+    reply: GrantCallback
+    tx: int | None = None
+
+
+@dataclass(slots=True)
+class NodeInfo:
+    """What the service knows about a node besides the core's session."""
+
+    level: int | None = None
+    level_at: int | None = None
+    flags: int = 0
+    heard_at: int | None = None
+    ended_at: int = -1
+    committed: int = 0
+    aborted: int = 0
+    written_off: int = 0
+    returns: int = 0
+    decode_errors: int = 0
+    requests: deque[GrantRequest] = field(default_factory=deque)
+    active_request: GrantRequest | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class ServiceConfig:
+    policy: TopUp | None = None
+    limits: Limits = field(default_factory=Limits)
+    state_path: Path | None = None
+    status_path: Path | None = None
+    status_stream: TextIO | None = None
+    status_period_us: int = 1_000_000
+    lost_after_us: int = 3_000_000
+    tick_us: int = 50_000
+    stop_timeout_us: int = 5_000_000
+    listen_only: bool = False
+    fsync: bool = True
+
+
+class SupervisorService:
+    """Grants energy to nodes on one bus; implements ``canergy.live.runtime.Handler``."""
+
+    def __init__(self, core: Supervisor, config: ServiceConfig, now: int) -> None:
+        self.core = core
+        self.config = config
+        self.nodes = {n: NodeInfo() for n in core.nodes}
+        self.rate = RateLimiter(config.limits.rate_uj_per_s, config.limits.max_grant)
+        self.delivered_at_start = sum(s.delivered for s in core.state.sessions)
+        self.started_at = now
+        self.now = now
+        self.next_status = now
+        self.next_tick = now
+        self.stopping = False
+        self._dirty = False
+        self.stop_deadline: int | None = None
+        self.status_stream = config.status_stream
+        self.bus_counters = BusCounters()
+        """Replaced by the bus loop's own counters when one drives this service."""
+        if not config.listen_only:
+            self._persist()
+
+    # -- Handler ---------------------------------------------------------------------------
+    def on_message(self, msg: Message, now: int) -> Sequence[Message]:
+        self.now = now
+        info = self.nodes.get(msg.node)
+        if info is None:
+            return ()
+        info.heard_at = now
+        if isinstance(msg, Telemetry):
+            info.level, info.level_at, info.flags = msg.level_mj * 1000, now, msg.flags
+            return self._flush(self._start_grants(now))
+        if self.config.listen_only or not isinstance(msg, ToSupervisor):
+            return ()
+        return self._flush(self._carry_out(self.core.receive(msg, now), now))
+
+    def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
+        node = frame.arbitration_id & 0xFF
+        if node in self.nodes:
+            self.nodes[node].decode_errors += 1
+
+    def next_wakeup(self) -> int | None:
+        times = [self.next_status, self.next_tick]
+        if (timer := self.core.get_timer()) is not None:
+            times.append(timer)
+        return min(times)
+
+    def on_wakeup(self, now: int) -> Sequence[Message]:
+        self.now = now
+        out: list[Message] = []
+        if not self.config.listen_only:
+            timer = self.core.get_timer()
+            if timer is not None and timer <= now:
+                out += self._carry_out(self.core.handle_timer(now), now)
+            out += self._start_grants(now)
+        if now >= self.next_tick:
+            self.next_tick = now + self.config.tick_us
+        if now >= self.next_status:
+            self.write_status()
+            self.next_status = now + self.config.status_period_us
+        return self._flush(out)
+
+    # -- control ---------------------------------------------------------------------------
+    def request_grant(self, node: int, amount: int, reply: GrantCallback) -> None:
+        """Queue a one-shot grant; ``reply`` gets the outcome as a JSON-able dict."""
+        info = self.nodes.get(node)
+        if info is None:
+            reply({"node": node, "error": f"node {node} is not managed by this supervisor"})
+        elif self.config.listen_only or self.stopping:
+            reply({"node": node, "error": "supervisor is listen-only or stopping"})
+        else:
+            info.requests.append(GrantRequest(node, amount, reply))
+
+    def stop(self, now: int) -> None:
+        """Start no more transactions; open ones settle or are written off by the rules."""
+        if not self.stopping:
+            self.stopping = True
+            self.stop_deadline = now + self.config.stop_timeout_us
+            for info in self.nodes.values():
+                for req in [*info.requests]:
+                    req.reply({"node": req.node, "error": "supervisor stopping"})
+                info.requests.clear()
+
+    def finished(self, now: int) -> bool:
+        if not self.stopping:
+            return False
+        assert self.stop_deadline is not None
+        return self.core.is_quiescent() or now >= self.stop_deadline
+
+    # -- internals -------------------------------------------------------------------------
+    def granted_total(self) -> int:
+        """Energy committed, written off or reserved since start (the books, not telemetry)."""
+        st = self.core.state
+        return sum(s.delivered + s.reserved for s in st.sessions) - self.delivered_at_start
+
+    def is_lost(self, node: int, now: int) -> bool:
+        heard = self.nodes[node].heard_at
+        return heard is None or now - heard > self.config.lost_after_us
+
+    def _start_grants(self, now: int) -> list[Message]:
+        if self.stopping or self.config.listen_only:
+            return []
+        out: list[Message] = []
+        for node, info in self.nodes.items():
+            if self.core.session(node).phase is not Phase.IDLE:
+                continue
+            if info.requests:
+                out += self._one_shot(node, info, now)
+            elif self.config.policy is not None:
+                out += self._top_up(node, info, now)
+        return out
+
+    def _one_shot(self, node: int, info: NodeInfo, now: int) -> list[Message]:
+        req = info.requests.popleft()
+        amount = self._cap(req.amount, info, now)
+        if amount != req.amount:
+            allowed = f"{amount} µJ allowed" if amount else "nothing allowed"
+            req.reply({"node": node, "error": f"refused by limits or budget ({allowed})"})
+            return []
+        info.active_request = req
+        return self._begin(node, amount, now)
+
+    def _top_up(self, node: int, info: NodeInfo, now: int) -> list[Message]:
+        policy = self.config.policy
+        assert policy is not None
+        if info.level is None or info.level_at is None or info.level_at <= info.ended_at:
+            return []  # no report since the last transaction ended: the level is stale
+        if self.is_lost(node, now):
+            return []
+        amount = self._cap(policy.wanted(info.level), info, now)
+        return self._begin(node, amount, now) if amount else []
+
+    def _cap(self, wanted: int, info: NodeInfo, now: int) -> int:
+        return capped_grant(
+            wanted,
+            limits=self.config.limits,
+            level=info.level,
+            usable=self.core.state.usable,
+            granted_total=self.granted_total(),
+            rate_tokens=self.rate.available(now),
+        )
+
+    def _begin(self, node: int, amount: int, now: int) -> list[Message]:
+        try:
+            actions = self.core.begin(node, amount, now)
+        except LocalProtocolError as exc:  # budget changed under us: report, do not crash
+            self._finish_request(node, {"node": node, "error": str(exc)})
+            return []
+        self.rate.take(amount)
+        req = self.nodes[node].active_request
+        if req is not None:
+            req.tx = self.core.session(node).tx
+        return self._carry_out(actions, now)
+
+    def _carry_out(self, actions: list[Action], now: int) -> list[Message]:
+        out: list[Message] = []
+        queue = deque(actions)
+        while queue:
+            action = queue.popleft()
+            if isinstance(action, Persist):
+                self._dirty = True
+            elif isinstance(action, Send):
+                out.append(action.message)
+            elif isinstance(action, Acknowledged):
+                decide = self.core.abort if self.stopping else self.core.commit
+                queue.extend(decide(action.node, now))
+            elif isinstance(action, Resolved):
+                self._resolved(action, now)
+            elif isinstance(action, ReturnCredited):
+                self.nodes[action.node].returns += 1
+        return out
+
+    def _resolved(self, action: Resolved, now: int) -> None:
+        info = self.nodes[action.node]
+        info.ended_at = now
+        if action.outcome is Outcome.COMMITTED:
+            info.committed += 1
+        elif action.outcome is Outcome.ABORTED:
+            info.aborted += 1
+        else:
+            info.written_off += 1
+        self._finish_request(
+            action.node,
+            {
+                "node": action.node,
+                "tx": action.tx,
+                "outcome": action.outcome.name,
+                "amount_uj": action.amount,
+            },
+        )
+
+    def _finish_request(self, node: int, result: dict[str, Any]) -> None:
+        info = self.nodes[node]
+        if info.active_request is not None:
+            info.active_request.reply(result)
+            info.active_request = None
+
+    def _flush(self, out: list[Message]) -> list[Message]:
+        """Write the state file once for everything decided in this step, before any of the
+        step's frames leave (the caller sends ``out`` only after this returns)."""
+        if self._dirty:
+            self._persist()
+            self._dirty = False
+        return out
+
+    def _persist(self) -> None:
+        if self.config.state_path is not None:
+            save_state(
+                self.config.state_path,
+                self.core.state,
+                self.core.variant.name,
+                fsync=self.config.fsync,
+            )
+
+    # -- status ----------------------------------------------------------------------------
+    def status(self) -> dict[str, Any]:
+        st = self.core.state
+        nodes: dict[str, Any] = {}
+        for s in st.sessions:
+            info = self.nodes[s.node]
+            nodes[str(s.node)] = {
+                "state": s.phase.name,
+                "open_tx": s.tx if s.phase is not Phase.IDLE else None,
+                "reserved_uj": s.reserved,
+                "delivered_uj": s.delivered,
+                "returns_credited_uj": s.returned,
+                "returns_credited": s.returns_credited,
+                "level_uj": info.level,
+                "lost": self.is_lost(s.node, self.now),
+                "committed": info.committed,
+                "aborted": info.aborted,
+                "written_off": info.written_off,
+                "returns": info.returns,
+                "decode_errors": info.decode_errors,
+            }
+        reserved = sum(s.reserved for s in st.sessions)
+        delivered = sum(s.delivered for s in st.sessions)
+        returned = sum(s.returned for s in st.sessions)
+        return {
+            "role": "supervisor",
+            "variant": self.core.variant.name,
+            "uptime_s": round((self.now - self.started_at) / 1e6, 3),
+            "stopping": self.stopping,
+            "listen_only": self.config.listen_only,
+            "initial_uj": st.initial,
+            "injected_uj": st.injected,
+            "usable_uj": st.usable,
+            "reserved_uj": reserved,
+            "delivered_uj": delivered,
+            "returns_credited_uj": returned,
+            "granted_this_run_uj": self.granted_total(),
+            "conservation": {
+                "supervisor_side_uj": st.usable + reserved,
+                "out_net_uj": delivered - returned,
+                "in_uj": st.initial + st.injected,
+                "identity": "usable + reserved + (delivered - returned) = initial + injected",
+                "holds": st.usable + reserved + delivered - returned == st.initial + st.injected,
+            },
+            **self.bus_counters.as_json(),
+            "nodes": nodes,
+        }
+
+    def write_status(self) -> None:
+        status = self.status()
+        if self.config.status_path is not None:
+            write_json_atomic(self.config.status_path, status, fsync=False)
+        if self.status_stream is not None:
+            try:
+                self.status_stream.write(json.dumps(status, sort_keys=True) + "\n")
+                self.status_stream.flush()
+            except BrokenPipeError:  # the reader went away (``| head``): keep supervising
+                self.status_stream = None

@@ -1,0 +1,194 @@
+"""An in-process bench: a supervisor service and firmware node hosts, each on its own python-can
+``virtual`` bus connection and its own loop thread, on the wall clock (timeouts are generous)."""
+
+from __future__ import annotations
+
+import random
+import threading
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import can
+
+from canergy.codec import Codec
+from canergy.core import Supervisor, Timing
+from canergy.faults import FaultInjector, FaultProfile
+from canergy.ledger import Ledger, ledger
+from canergy.live.faulty_bus import FaultyBus
+from canergy.live.policy import Limits, TopUp
+from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.state_file import load_state
+from canergy.messages import Direction
+from canergy.units import UJ_PER_J
+from firmware_model.actuator import PowerProfile
+from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
+from firmware_model.nvstore import NvStore
+
+TIMING = Timing(response_timeout_us=100_000, retries=3, command_timeout_us=200_000)
+
+
+class Loop:
+    """One runtime in a thread; ``error`` keeps whatever ended it abnormally."""
+
+    def __init__(self, runtime: BusRuntime) -> None:
+        self.runtime = runtime
+        self.stop = threading.Event()
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        try:
+            self.runtime.run(self.stop.is_set, max_wait_s=0.02)
+        except BaseException as exc:  # kept for the test to inspect
+            self.error = exc
+
+    def halt(self) -> None:
+        """Stop between two steps (a power loss after the last completed write)."""
+        self.stop.set()
+        self.thread.join(timeout=30)
+        self.runtime.bus.shutdown()
+
+
+class Rig:
+    def __init__(
+        self,
+        tmp: Path,
+        nodes: Sequence[int],
+        *,
+        initial: int = 1000 * UJ_PER_J,
+        target: int = UJ_PER_J,
+        max_grant: int = UJ_PER_J // 2,
+        power_w: float = 0.0,
+        faults: FaultProfile | None = None,
+        seed: int = 0,
+    ) -> None:
+        self.tmp, self.nodes, self.initial = tmp, tuple(nodes), initial
+        self.target, self.max_grant, self.power_w = target, max_grant, power_w
+        self.faults, self.rng = faults, random.Random(seed)
+        self.channel = f"rig-{uuid.uuid4().hex}"
+        self.codec = Codec()
+        self.service: SupervisorService | None = None
+        self.sup_loop: Loop | None = None
+        self.hosts: list[tuple[NodeHost, Loop]] = []
+        self.retired: dict[int, FirmwareNode] = {}
+
+    # -- parts -------------------------------------------------------------------------------
+    def _bus(self, filters: list[dict[str, int | bool]]) -> can.BusABC:
+        bus = can.Bus(interface="virtual", channel=self.channel, can_filters=filters)
+        if self.faults is None:
+            return bus
+        injector = FaultInjector(self.faults, random.Random(self.rng.random()))
+        return FaultyBus(bus, injector)
+
+    def start_supervisor(self) -> SupervisorService:
+        state_path = self.tmp / "supervisor.json"
+        state = load_state(state_path, "hardened", self.nodes) if state_path.exists() else None
+        core = Supervisor(self.nodes, self.initial, timing=TIMING, state=state)
+        now = monotonic_us()
+        if state is not None:
+            core.power_loss(now)
+        config = ServiceConfig(
+            policy=TopUp(self.target),
+            limits=Limits(max_grant=self.max_grant),
+            state_path=state_path,
+            status_path=self.tmp / "supervisor-status.json",
+            lost_after_us=10_000_000,
+            fsync=False,
+        )
+        self.service = SupervisorService(core, config, now)
+        runtime = BusRuntime(
+            self._bus(self.codec.supervisor_filters()),
+            self.service,
+            codec=self.codec,
+            receives=Direction.TO_SUPERVISOR,
+        )
+        self.service.bus_counters = runtime.counters
+        self.sup_loop = Loop(runtime)
+        return self.service
+
+    def start_clients(self, nodes: Sequence[int] | None = None, **nv: int) -> NodeHost:
+        ids = tuple(nodes or self.nodes)
+        now = monotonic_us()
+        config = NodeConfig(
+            power=PowerProfile.constant(self.power_w), timing=TIMING, telemetry_period_us=300_000
+        )
+        host = NodeHost(
+            [
+                FirmwareNode(
+                    n, NvStore(self.tmp / f"node-{n}.nv", n, fsync=False, **nv), config, now
+                )
+                for n in ids
+            ]
+        )
+        filters = [f for n in ids for f in self.codec.client_filters(n)]
+        runtime = BusRuntime(
+            self._bus(filters), host, codec=self.codec, receives=Direction.TO_CLIENT
+        )
+        self.hosts.append((host, Loop(runtime)))
+        return host
+
+    # -- control -----------------------------------------------------------------------------
+    def wait(self, condition: Callable[[], bool], timeout_s: float = 60.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not condition():
+            self.raise_loop_errors()
+            if time.monotonic() > deadline:
+                raise AssertionError(f"condition not met within {timeout_s} s")
+            time.sleep(0.02)
+
+    def raise_loop_errors(self) -> None:
+        loops = [loop for _, loop in self.hosts] + ([self.sup_loop] if self.sup_loop else [])
+        for loop in loops:
+            if loop.error is not None:
+                raise AssertionError(f"a loop died: {loop.error!r}") from loop.error
+
+    def power_loss_supervisor(self) -> None:
+        assert self.sup_loop is not None
+        self.sup_loop.halt()
+        self.sup_loop = None
+
+    def power_loss_clients(self, host: NodeHost) -> None:
+        for h, loop in list(self.hosts):
+            if h is host:
+                loop.halt()
+                self.hosts.remove((h, loop))
+                for n in h.nodes.values():  # what survives a power loss is the NV record
+                    n.client.state = n.nv.load()
+                self.retired.update(h.nodes)
+
+    def settle(self, timeout_s: float = 60.0) -> None:
+        """Stop the supervisor as SIGTERM does and wait until its books are closed."""
+        service, loop = self.service, self.sup_loop
+        assert service is not None and loop is not None
+        service.stop(monotonic_us())
+        self.wait(lambda: service.finished(monotonic_us()), timeout_s)
+        loop.halt()
+        self.sup_loop = None
+
+    def close(self) -> None:
+        if self.sup_loop is not None:
+            self.sup_loop.halt()
+        for _, loop in self.hosts:
+            loop.halt()
+        self.hosts.clear()
+
+    # -- books -------------------------------------------------------------------------------
+    def client_nodes(self) -> dict[int, FirmwareNode]:
+        nodes = dict(self.retired)
+        for host, _ in self.hosts:
+            nodes.update(host.nodes)
+        return nodes
+
+    def ledger(self) -> Ledger:
+        assert self.service is not None
+        return ledger(
+            self.service.core.state, [n.client.state for n in self.client_nodes().values()]
+        )
+
+    def committed(self, node: int) -> int:
+        assert self.service is not None
+        return self.service.nodes[node].committed

@@ -1,0 +1,132 @@
+"""`canergy supervisor`, `canergy grant` and `python -m firmware_model` as users call them."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import can
+import pytest
+from live_rig import Loop
+
+from canergy.cli import main
+from canergy.codec import Codec
+from canergy.live.control import request
+from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.messages import Direction
+from firmware_model.__main__ import main as firmware_main
+from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
+from firmware_model.nvstore import NvStore
+
+
+def _emulator(tmp: Path, channel: str, nodes: list[int]) -> tuple[NodeHost, Loop]:
+    codec = Codec()
+    now = monotonic_us()
+    host = NodeHost(
+        [
+            FirmwareNode(n, NvStore(tmp / f"{n}.nv", n, fsync=False), NodeConfig(), now)
+            for n in nodes
+        ]
+    )
+    bus = can.Bus(interface="virtual", channel=channel)
+    return host, Loop(BusRuntime(bus, host, codec=codec, receives=Direction.TO_CLIENT))
+
+
+def test_grant_as_a_single_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    channel = f"cli-{uuid.uuid4().hex}"
+    host, loop = _emulator(tmp_path, channel, [4])
+    try:
+        args = ["grant", "-i", "virtual", "-c", channel, "--node", "4", "--amount", "2J"]
+        assert main([*args, "--state", str(tmp_path / "s.json"), "--initial", "5J"]) == 0
+        answer = json.loads(capsys.readouterr().out)
+        assert answer["outcome"] == "COMMITTED" and answer["amount_uj"] == 2_000_000
+        state = json.loads((tmp_path / "s.json").read_text())
+        assert state["usable_uj"] == 3_000_000
+        # a second run continues from the state file; asking for more than is left is refused
+        assert main([*args, "--state", str(tmp_path / "s.json"), "--amount", "4J"]) == 1
+        assert "refused" in capsys.readouterr().out
+    finally:
+        loop.halt()
+    assert host.nodes[4].client.state.usable == 2_000_000
+
+
+def test_supervisor_serves_grants_over_its_control_socket(tmp_path: Path) -> None:
+    channel = f"cli-{uuid.uuid4().hex}"
+    host, loop = _emulator(tmp_path, channel, [1, 2])
+    control = tmp_path / "ctl.sock"
+    status = tmp_path / "status.json"
+    argv = [
+        "supervisor",
+        "-i",
+        "virtual",
+        "-c",
+        channel,
+        "--nodes",
+        "1-2",
+        "--initial",
+        "10J",
+        "--state",
+        str(tmp_path / "s.json"),
+        "--status-file",
+        str(status),
+        "--control",
+        str(control),
+        "--max-grant",
+        "3J",
+        "--no-fsync",
+    ]
+    result: list[int] = []
+    thread = threading.Thread(target=lambda: result.append(main(argv)))
+    thread.start()
+    try:
+        deadline = time.monotonic() + 30
+        while not control.exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        answer = request(control, {"grant": {"node": 2, "amount_uj": 2_500_000}}, 30)
+        assert answer["outcome"] == "COMMITTED", answer
+        too_much = request(control, {"grant": {"node": 1, "amount_uj": 3_500_000}}, 30)
+        assert "refused" in too_much["error"]  # above --max-grant
+        assert "error" in request(control, {"grant": {"node": 9, "amount_uj": 1000}}, 30)
+        assert request(control, {"stop": True}, 30) == {"stopping": True}
+        thread.join(timeout=60)
+    finally:
+        loop.halt()
+    assert result == [0]
+    final = json.loads(status.read_text())
+    assert final["usable_uj"] == 7_500_000 and final["nodes"]["2"]["delivered_uj"] == 2_500_000
+    assert final["conservation"]["holds"] and final["frames_sent"] == 2  # INTENTION, COMMIT
+    assert host.nodes[2].client.state.usable == 2_500_000
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["supervisor", "--nodes", "0-3"], "ids are 1-127"),
+        (["supervisor", "--nodes", "1", "--initial", "lots"], "not an energy"),
+        (["supervisor", "--nodes", "1", "--rate", "2J"], "unknown power unit"),
+        (["grant", "--node", "1", "--amount", "1J", "-i", "nosuchbus"], "invalid choice"),
+        (
+            ["grant", "--node", "1", "--amount", "1J", "-i", "slcan", "-c", "/nonexistent"],
+            "cannot open",
+        ),
+        (["grant", "--node", "1", "--amount", "1J"], "give -i/--interface"),
+    ],
+)
+def test_bad_values_get_clear_errors(
+    argv: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = int(exc.code or 0)
+    assert code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_firmware_model_rejects_bad_values(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        firmware_main(["--node", "200", "--nv", "x.nv"])
+    assert exc.value.code == 2 and "outside 1..127" in capsys.readouterr().err

@@ -1,0 +1,106 @@
+"""The client's NV record and A/B store: layout, round trip, torn and corrupted writes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from canergy.core.state import ClientState, Outcome
+from firmware_model.nvstore import (
+    RECORD_SIZE,
+    SLOT_SIZE,
+    NvError,
+    NvStore,
+    SimulatedPowerLoss,
+    pack_record,
+    unpack_record,
+)
+
+u32 = st.integers(0, 0xFFFFFFFF)
+records = st.builds(
+    ClientState,
+    st.just(5),
+    usable=u32,
+    credited=u32.map(lambda mj: mj * 1000),
+    spent=st.integers(0, 2**64 - 1),
+    last_tx=u32,
+    outcome=st.sampled_from(list(Outcome)),
+    return_seq=u32,
+    return_pending=u32,
+)
+
+
+def test_the_record_fits_32_bytes() -> None:
+    assert RECORD_SIZE <= 32 and len(pack_record(ClientState(1))) == RECORD_SIZE
+
+
+@given(records)
+def test_persistent_fields_round_trip(c: ClientState) -> None:
+    assert unpack_record(5, pack_record(c)) == c
+
+
+def test_values_that_do_not_fit_are_refused() -> None:
+    with pytest.raises(NvError):
+        pack_record(ClientState(1, usable=2**32))
+    with pytest.raises(NvError):
+        pack_record(ClientState(1, credited=1500))  # not whole quanta
+
+
+def _states(n: int) -> list[ClientState]:
+    return [
+        ClientState(3, usable=1000 * (10 - i), credited=10_000, spent=1000 * i) for i in range(n)
+    ]
+
+
+def test_the_newest_complete_write_wins(tmp_path: Path) -> None:
+    store = NvStore(tmp_path / "n.nv", 3, fsync=False)
+    assert store.load() == ClientState(3)  # no file: a fresh node
+    for s in _states(5):
+        store.save(s)
+    reopened = NvStore(tmp_path / "n.nv", 3, fsync=False)
+    assert reopened.load() == _states(5)[-1]
+    reopened.save(_states(6)[-1])  # continues the counter, alternating slots
+    assert NvStore(tmp_path / "n.nv", 3).load() == _states(6)[-1]
+
+
+@pytest.mark.parametrize("writes", [1, 2, 3, 6])
+def test_a_torn_write_falls_back_to_the_previous_record(tmp_path: Path, writes: int) -> None:
+    store = NvStore(tmp_path / "n.nv", 3, fsync=False, crash_after=writes)
+    states = _states(writes)
+    with pytest.raises(SimulatedPowerLoss):
+        for s in states:
+            store.save(s)
+    after = NvStore(tmp_path / "n.nv", 3)
+    expected = states[-2] if writes > 1 else ClientState(3)
+    assert after.load() == expected
+    assert after.stats.fallbacks == 1
+
+
+@pytest.mark.parametrize("damage", ["flip", "truncate", "zero"])
+def test_damage_to_the_newest_slot_never_yields_more_than_the_older_record(
+    tmp_path: Path, damage: str
+) -> None:
+    path = tmp_path / "n.nv"
+    store = NvStore(path, 3, fsync=False)
+    older, newer = _states(2)
+    store.save(older)
+    store.save(newer)  # slot 1
+    raw = bytearray(path.read_bytes())
+    if damage == "flip":
+        raw[SLOT_SIZE + 10] ^= 0x40
+    elif damage == "zero":
+        raw[SLOT_SIZE:] = bytes(SLOT_SIZE)
+    else:
+        raw = raw[: SLOT_SIZE + 7]
+    path.write_bytes(bytes(raw))
+    assert NvStore(path, 3).load() == older
+
+
+def test_garbage_in_both_slots_is_a_fresh_node(tmp_path: Path) -> None:
+    path = tmp_path / "n.nv"
+    path.write_bytes(b"\xa5" * (2 * SLOT_SIZE))
+    store = NvStore(path, 3)
+    assert store.load() == ClientState(3) and store.stats.fallbacks == 1

@@ -103,6 +103,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     ids = (args.node,) if args.node is not None else args.nodes
+    stop = False
+
+    def request_stop(signum: int, frame: object) -> None:
+        nonlocal stop
+        stop = True
+
+    def lose_power(signum: int, frame: object) -> None:
+        raise SimulatedPowerLoss("SIGUSR1")
+
+    # first thing: a stop request during start-up must still end cleanly
+    signal.signal(signal.SIGINT, request_stop)
+    signal.signal(signal.SIGTERM, request_stop)
+    signal.signal(signal.SIGUSR1, lose_power)
     try:
         config = _config(args)
         now = monotonic_us()
@@ -128,18 +141,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, OSError, BusOpenError) as exc:  # NvError is a ValueError
         parser.exit(2, f"{parser.prog}: error: {exc}\n")
     runtime = BusRuntime(bus, host, codec=codec, receives=Direction.TO_CLIENT)
-    stop = False
-
-    def request_stop(signum: int, frame: object) -> None:
-        nonlocal stop
-        stop = True
-
-    def lose_power(signum: int, frame: object) -> None:
-        raise SimulatedPowerLoss("SIGUSR1")
-
-    signal.signal(signal.SIGINT, request_stop)
-    signal.signal(signal.SIGTERM, request_stop)
-    signal.signal(signal.SIGUSR1, lose_power)
     next_status = 0
     try:
         while not stop:

@@ -165,3 +165,19 @@ def test_faulty_bus_loses_duplicates_and_delays_on_the_wall_clock() -> None:
     c = injector.counters
     assert len(got) == 200 - c.lost + c.duplicated and c.lost > 30 and c.duplicated > 10
     assert got != sorted(got)  # reordered
+
+
+class _FlakyReceiveBus(_FullQueueBus):
+    """Every receive fails, as a socket on an interface that went down does."""
+
+    def _recv_internal(self, timeout: float | None) -> tuple[None, bool]:
+        raise can.CanOperationError("Network is down", error_code=errno.ENETDOWN)
+
+
+def test_receive_errors_are_counted_not_fatal() -> None:
+    bus = _FlakyReceiveBus(0)
+    runtime = BusRuntime(bus, _Quiet(), receives=Direction.TO_SUPERVISOR, sleep=lambda s: None)
+    for _ in range(3):
+        runtime.poll(0.01)
+    bus.shutdown()
+    assert runtime.counters.receive_errors == 3

@@ -122,8 +122,7 @@ def _cansend(frame: str) -> None:
 
 def test_processes_on_vcan0_stay_passive_through_garbage_and_kill_9(procs: Procs) -> None:
     tmp = procs.tmp
-    capture = open(tmp / "capture.log", "wb")  # noqa: SIM115 - closed below
-    candump = subprocess.Popen(["candump", "-L", IFACE], stdout=capture)
+    candump = subprocess.Popen(["candump", "-l", IFACE], cwd=tmp)  # candump-<date>.log in tmp
     sup_status = tmp / "sup.json"
     procs.start(
         "supervisor",
@@ -188,7 +187,7 @@ def test_processes_on_vcan0_stay_passive_through_garbage_and_kill_9(procs: Procs
         assert procs.stop(f"client{node}") == 0, procs.stderr(f"client{node}")
     candump.send_signal(signal.SIGINT)
     candump.wait(30)
-    capture.close()
+    (capture,) = tmp.glob("candump-*.log")
 
     final = _status(sup_status)
     clients = [_status(tmp / f"n{n}.json") for n in (1, 2, 3)]
@@ -201,7 +200,7 @@ def test_processes_on_vcan0_stay_passive_through_garbage_and_kill_9(procs: Procs
     db = cantools.database.load_file(str(DBC))
     commits: dict[int, set[int]] = {1: set(), 2: set(), 3: set()}
     decoded = 0
-    for line in (tmp / "capture.log").read_text().splitlines():
+    for line in capture.read_text().splitlines():
         _, _, frame = line.split()
         ident, _, data = frame.partition("#")
         if len(ident) != 8 or data.startswith("R"):

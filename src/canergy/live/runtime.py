@@ -50,6 +50,7 @@ class BusCounters:
     foreign_frames: int = 0
     send_retries: int = 0
     send_failures: int = 0
+    receive_errors: int = 0
     error_frames: int = 0
     bus_state: str = "unknown"
     decode_reasons: dict[str, int] = field(default_factory=dict)
@@ -63,6 +64,7 @@ class BusCounters:
             "foreign_frames": self.foreign_frames,
             "send_retries": self.send_retries,
             "send_failures": self.send_failures,
+            "receive_errors": self.receive_errors,
             "error_frames": self.error_frames,
             "bus_state": self.bus_state,
         }
@@ -113,17 +115,29 @@ class BusRuntime:
         now = self.clock()
         wakeup = self.handler.next_wakeup()
         wait = max_wait_s if wakeup is None else min(max_wait_s, max(0, wakeup - now) / 1e6)
-        frame = self.bus.recv(timeout=wait)
+        try:
+            frame = self.bus.recv(timeout=wait)
+        except can.CanError:  # e.g. the interface went down: count, back off, keep going
+            self.counters.receive_errors += 1
+            self.sleep(min(wait, 0.1))
+            frame = None
         batch = 0
         while frame is not None:  # drain what is queued before judging any timeout
             self._received(frame)
             batch += 1
-            frame = self.bus.recv(timeout=0) if batch < self.max_batch else None
+            frame = self._recv_now() if batch < self.max_batch else None
         self._update_bus_state()
         wakeup = self.handler.next_wakeup()
         now = self.clock()
         if wakeup is not None and wakeup <= now:
             self._send_all(self.handler.on_wakeup(now))
+
+    def _recv_now(self) -> can.Message | None:
+        try:
+            return self.bus.recv(timeout=0)
+        except can.CanError:
+            self.counters.receive_errors += 1
+            return None
 
     def run(self, until: Callable[[], bool], max_wait_s: float = 0.1) -> None:
         while not until():

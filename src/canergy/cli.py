@@ -9,7 +9,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from canergy import __version__, cli_live
+from canergy import __version__, cli_live, cli_sim
 from canergy.cli_args import bounded_int, energy, node_ids, positive_float, probability
 from canergy.core.variants import VARIANTS
 from canergy.messages import MAX_NODE
@@ -278,10 +278,17 @@ def build_parser() -> argparse.ArgumentParser:
     _check_parser(sub)
     _dbc_parser(sub)
     cli_live.add_parsers(sub)
+    cli_sim.add_parsers(sub)
     return parser
 
 
-_COMMANDS = {"demo": _run_demo, "check": _run_check, "dbc": _run_dbc, **cli_live.COMMANDS}
+_COMMANDS = {
+    "demo": _run_demo,
+    "check": _run_check,
+    "dbc": _run_dbc,
+    **cli_live.COMMANDS,
+    **cli_sim.COMMANDS,
+}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

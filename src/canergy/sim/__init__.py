@@ -1,0 +1,1 @@
+"""The paper's case study and beyond: discrete-event simulation of strategies over channels."""

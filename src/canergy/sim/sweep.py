@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import csv
+import multiprocessing
 import os
 import sys
 import time
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
-from multiprocessing import Pool
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -116,7 +116,9 @@ def sweep(
     bar = Progress(len(runs)) if progress else None
     tasks = [(base, run) for run in runs]
     workers = processes or os.cpu_count() or 1
-    with Pool(workers) as pool:
+    # spawn, not fork: a forked child of a process with threads (a GUI, a bus notifier, a test
+    # runner) can inherit a held lock and hang
+    with multiprocessing.get_context("spawn").Pool(workers) as pool:
         for run, summary in pool.imap_unordered(_one, tasks, chunksize=max(1, len(tasks) // 200)):
             points[(run.strategy, run.loss)].add(run.seed, summary)
             if bar is not None:

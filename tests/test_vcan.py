@@ -218,3 +218,28 @@ def test_processes_on_vcan0_stay_passive_through_garbage_and_kill_9(procs: Procs
     assert decoded > 20
     for node in (1, 2, 3):
         assert len(commits[node]) >= final["nodes"][str(node)]["committed"]
+
+    # canergy's own decoder and auditor agree with the supervisor's books
+    audit = subprocess.run(
+        _python("-m", "canergy", "audit", str(capture), "--initial", "10J", "--json"),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert audit.returncode == 0, audit.stdout + audit.stderr
+    report = json.loads(audit.stdout)
+    assert report["damaged_frames"] >= 4 and report["foreign_frames"] >= 2
+    for node in (1, 3):  # node 2 was killed mid-run: the bus may show a commit the books wrote off
+        books, seen = final["nodes"][str(node)], report["nodes"][str(node)]
+        assert (seen["committed"], seen["granted_uj"]) == (
+            books["committed"],
+            books["committed_uj"],
+        )
+    decode = subprocess.run(
+        _python("-m", "canergy", "decode", "-", "--color", "never"),
+        input=capture.read_text(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert decode.returncode == 0 and decode.stdout.count("COMMITTED") >= len(commits[1])

@@ -9,7 +9,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from canergy import __version__, cli_live, cli_sim
+from canergy import __version__, cli_inspect, cli_live, cli_sim
 from canergy.cli_args import bounded_int, energy, node_ids, positive_float, probability
 from canergy.core.variants import VARIANTS
 from canergy.messages import MAX_NODE
@@ -279,6 +279,7 @@ def build_parser() -> argparse.ArgumentParser:
     _dbc_parser(sub)
     cli_live.add_parsers(sub)
     cli_sim.add_parsers(sub)
+    cli_inspect.add_parsers(sub)
     return parser
 
 
@@ -288,6 +289,7 @@ _COMMANDS = {
     "dbc": _run_dbc,
     **cli_live.COMMANDS,
     **cli_sim.COMMANDS,
+    **cli_inspect.COMMANDS,
 }
 
 

@@ -55,6 +55,7 @@ class NodeInfo:
     heard_at: int | None = None
     ended_at: int = -1
     committed: int = 0
+    committed_uj: int = 0
     aborted: int = 0
     written_off: int = 0
     returns: int = 0
@@ -255,6 +256,7 @@ class SupervisorService:
         info.ended_at = now
         if action.outcome is Outcome.COMMITTED:
             info.committed += 1
+            info.committed_uj += action.amount
         elif action.outcome is Outcome.ABORTED:
             info.aborted += 1
         else:
@@ -308,6 +310,7 @@ class SupervisorService:
                 "level_uj": info.level,
                 "lost": self.is_lost(s.node, self.now),
                 "committed": info.committed,
+                "committed_uj": info.committed_uj,
                 "aborted": info.aborted,
                 "written_off": info.written_off,
                 "returns": info.returns,

@@ -1,0 +1,1 @@
+"""Inspection: describe frames, read captures, render candump-style lines, audit passivity."""

@@ -1,0 +1,117 @@
+"""Reading captures: candump text (default, ``-ta`` and ``-L``/``-l`` log lines) from a file or
+stdin, and every file format python-can's ``LogReader`` knows (.asc, .blf, .csv, .trc, .mf4...).
+
+Text input is read line by line; a line that is not a frame is reported with its number and
+skipped. Binary formats are read by python-can; a damaged file is one clear error.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+
+import can
+
+_HEX = re.compile(r"^[0-9A-Fa-f]*$")
+# (1699999999.123456) vcan0 0CE00105#FF0100... [R|T]   -- candump -L / -l, python-can
+_LOG = re.compile(
+    r"^\((?P<ts>\d+\.\d+)\)\s+(?P<ch>\S+)\s+(?P<id>[0-9A-Fa-f]+)#(?P<rest>\S*)(?:\s+[RT])?\s*$"
+)
+# [(1699999999.123456)]  vcan0  0CE00105   [8]  FF 01 ...   -- candump default / -ta
+_DUMP = re.compile(
+    r"^(?:\((?P<ts>\d+\.\d+)\)\s+)?(?P<ch>\S+)\s+(?P<id>[0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})\s+"
+    r"\[(?P<dlc>\d)\]\s*(?P<rest>.*?)\s*$"
+)
+TEXT_SUFFIXES = {".log", ".txt", ".candump", ""}
+
+
+class CaptureError(ValueError):
+    """A capture file that cannot be read at all."""
+
+
+def parse_line(line: str) -> can.Message:
+    """One candump line as a ``can.Message``; ``ValueError`` says why it is not one."""
+    text = line.strip()
+    if m := _LOG.match(text):
+        return _from_log(m)
+    if m := _DUMP.match(text):
+        return _from_dump(m)
+    raise ValueError("not a candump line")
+
+
+def _ident(text: str) -> tuple[int, bool]:
+    if len(text) == 3:
+        return int(text, 16), False
+    if len(text) == 8:
+        value = int(text, 16)
+        if value > 0x1FFFFFFF:
+            raise ValueError(f"identifier {text} beyond 29 bits")
+        return value, True
+    raise ValueError(f"identifier {text!r} must have 3 or 8 hex digits")
+
+
+def _from_log(m: re.Match[str]) -> can.Message:
+    ident, extended = _ident(m["id"])
+    rest = m["rest"]
+    common = dict(
+        timestamp=float(m["ts"]), channel=m["ch"], arbitration_id=ident, is_extended_id=extended
+    )
+    if rest.startswith("#"):
+        raise ValueError("CAN FD frames are not canergy frames")  # vcan carries them; we don't
+    if rest.upper().startswith("R"):
+        dlc = int(rest[1:]) if rest[1:].isdigit() else 0
+        return can.Message(**common, is_remote_frame=True, dlc=dlc)  # type: ignore[arg-type]
+    if not _HEX.match(rest) or len(rest) % 2 or len(rest) > 16:
+        raise ValueError(f"bad data {rest!r}")
+    return can.Message(**common, data=bytes.fromhex(rest))  # type: ignore[arg-type]
+
+
+def _from_dump(m: re.Match[str]) -> can.Message:
+    ident, extended = _ident(m["id"])
+    dlc, rest = int(m["dlc"]), m["rest"]
+    common = dict(
+        timestamp=float(m["ts"]) if m["ts"] else 0.0,
+        channel=m["ch"],
+        arbitration_id=ident,
+        is_extended_id=extended,
+    )
+    if rest.startswith("remote request"):
+        return can.Message(**common, is_remote_frame=True, dlc=dlc)  # type: ignore[arg-type]
+    parts = rest.split()
+    if len(parts) != dlc or not all(len(p) == 2 and _HEX.match(p) for p in parts):
+        raise ValueError(f"expected {dlc} data bytes, got {rest!r}")
+    return can.Message(**common, data=bytes.fromhex("".join(parts)))  # type: ignore[arg-type]
+
+
+def read_text(
+    lines: Iterable[str], on_garbage: Callable[[int, str, str], None]
+) -> Iterator[can.Message]:
+    """Frames from candump text; ``on_garbage(line_number, line, reason)`` for the rest."""
+    for number, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            yield parse_line(line)
+        except ValueError as exc:
+            on_garbage(number, line.rstrip("\n"), str(exc))
+
+
+def read_file(path: Path, on_garbage: Callable[[int, str, str], None]) -> Iterator[can.Message]:
+    """Any capture: candump text by line, other formats through python-can."""
+    if path.suffix.lower() in TEXT_SUFFIXES:
+        try:
+            with open(path, errors="replace") as f:
+                yield from read_text(f, on_garbage)
+        except OSError as exc:
+            raise CaptureError(f"{path}: {exc}") from exc
+        return
+    if path.suffix.lower() not in can.io.MESSAGE_READERS:
+        known = ", ".join(sorted({*TEXT_SUFFIXES - {""}, *can.io.MESSAGE_READERS}))
+        raise CaptureError(f"{path}: unknown capture format (known: {known})")
+    try:
+        yield from can.LogReader(str(path))
+    except Exception as exc:  # readers raise struct.error, zlib.error, KeyError...: one message
+        if isinstance(exc, CaptureError):
+            raise
+        raise CaptureError(f"{path}: cannot read as {path.suffix} ({exc})") from exc

@@ -144,3 +144,33 @@ def test_the_paper_variant_creating_energy_is_flagged(tmp_path: Path) -> None:
     assert main(["demo", "--variant", "paper", "--seed", "2", "--log", str(log)]) == 1
     argv = ["audit", str(log), "--variant", "paper", "--reordered", "--json"]
     assert main(argv) == 1
+
+
+def test_dump_shows_live_frames_like_candump(capsys: pytest.CaptureFixture[str]) -> None:
+    import threading
+    import uuid
+
+    channel = f"dump-{uuid.uuid4().hex}"
+    frames = list(read_file(CLEAN, lambda *a: None))[:3]
+    result: list[int] = []
+    argv = ["dump", "-i", "virtual", "-c", channel, "-n", "4", "--json", "--nodes", "1-2"]
+    thread = threading.Thread(target=lambda: result.append(main(argv)))
+    thread.start()
+    with can.Bus(interface="virtual", channel=channel) as bus:
+        import time
+
+        from can.interfaces.virtual import channels
+
+        deadline = time.monotonic() + 30
+        while len(channels.get(channel, [])) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)  # until dump has opened its end of the channel
+        for frame in [
+            *frames,
+            can.Message(arbitration_id=0x701, is_extended_id=False, data=b"\x05"),
+        ]:
+            bus.send(frame)
+        thread.join(timeout=30)
+    assert result == [0]
+    lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
+    assert [x["type"] for x in lines] == ["INTENTION", "INTENTION", "ACK"]  # 0x701 filtered out
+    assert all(x["crc_ok"] for x in lines)

@@ -6,13 +6,14 @@ import argparse
 import json
 import signal
 import sys
+import threading
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, TextIO
 
 import can
 
-from canergy.cli_args import energy, node_ids
+from canergy.cli_args import bounded_int, energy, node_ids
 from canergy.codec import Codec
 from canergy.inspect.audit import Auditor
 from canergy.inspect.captures import CaptureError, read_file, read_text
@@ -42,6 +43,7 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     )
     add_bus_flags(d)
     _view_flags(d)
+    d.add_argument("-n", "--count", type=bounded_int(1), help="exit after this many frames")
     c = sub.add_parser(
         "decode",
         help="decode a capture: candump text from stdin or any python-can log file",
@@ -113,13 +115,16 @@ def run_dump(args: argparse.Namespace) -> int:
         nonlocal stop
         stop = True
 
-    signal.signal(signal.SIGINT, request_stop)
-    signal.signal(signal.SIGTERM, request_stop)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, request_stop)
+        signal.signal(signal.SIGTERM, request_stop)
 
     def frames() -> Iterator[Described]:
-        while not stop:
+        received = 0
+        while not stop and (args.count is None or received < args.count):
             frame = bus.recv(timeout=0.2)
             if frame is not None:
+                received += 1
                 yield describe(codec, frame)
 
     try:

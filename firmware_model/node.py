@@ -47,6 +47,7 @@ class FirmwareNode:
         self.next_tick = now + config.tick_us
         self.next_telemetry = now  # announce the level at boot
         self.decode_errors = 0
+        self.telemetry_sent = 0
         self.was_low = False
 
     @property
@@ -78,6 +79,7 @@ class FirmwareNode:
 
     def telemetry(self, now: int) -> Telemetry:
         self.next_telemetry = now + self.config.telemetry_period_us
+        self.telemetry_sent += 1
         usable = self.client.state.usable
         flags = (Telemetry.LOW if usable < self.config.low_water else 0) | (
             Telemetry.HALTED if self.actuator.halted else 0

@@ -267,6 +267,16 @@ def _run_dbc(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_bench(args: argparse.Namespace) -> int:
+    from canergy.bench.run import run, table
+
+    results = run(quick=args.quick)
+    print(table(results))
+    if args.json is not None:
+        args.json.write_text(json.dumps(results, indent=2) + "\n")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="canergy",
@@ -280,6 +290,12 @@ def build_parser() -> argparse.ArgumentParser:
     cli_live.add_parsers(sub)
     cli_sim.add_parsers(sub)
     cli_inspect.add_parsers(sub)
+    b = sub.add_parser(
+        "bench",
+        help="benchmarks: codec vs cantools, core, live stack vs CANopen SDO, wire, memory",
+    )
+    b.add_argument("--quick", action="store_true", help="smoke run: seconds, figures meaningless")
+    b.add_argument("--json", type=Path, help="also write the results here")
     return parser
 
 
@@ -290,6 +306,7 @@ _COMMANDS = {
     **cli_live.COMMANDS,
     **cli_sim.COMMANDS,
     **cli_inspect.COMMANDS,
+    "bench": _run_bench,
 }
 
 

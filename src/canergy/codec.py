@@ -217,8 +217,9 @@ class Codec:
             body = layout.body.pack(*fields)
         except struct.error as exc:
             raise ValueError(f"field out of range in {msg}: {exc}") from exc
-        crc = crc8_update(_prefix_register(msg_type, node), body) ^ XOR_OUT
-        return self.arbitration_id(msg_type, node), bytes((crc,)) + body
+        arbitration_id = self.id_base | int(msg_type) << 8 | node
+        crc = crc8_update(self._by_id[arbitration_id].crc_start, body) ^ XOR_OUT
+        return arbitration_id, bytes((crc,)) + body
 
     def decode(
         self,

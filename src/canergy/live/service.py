@@ -151,6 +151,7 @@ class SupervisorService:
             reply({"node": node, "error": "supervisor is listen-only or stopping"})
         else:
             info.requests.append(GrantRequest(node, amount, reply))
+            self.next_tick = self.now  # start it at the loop's next turn, not a tick later
 
     def stop(self, now: int) -> None:
         """Start no more transactions; open ones settle or are written off by the rules."""

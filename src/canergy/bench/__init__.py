@@ -1,0 +1,1 @@
+"""Benchmarks: measured on this machine, reported as ratios against baselines run alongside."""

@@ -1,0 +1,114 @@
+"""``canergy bench``: every comparison in one run, a table on stdout and JSON for the record."""
+
+from __future__ import annotations
+
+import platform
+import tempfile
+import tracemalloc
+from pathlib import Path
+from typing import Any
+
+from canergy.bench import codec, core, live, wire
+
+
+def memory_per_node(nodes: int = 127) -> dict[str, Any]:
+    from canergy.core import Supervisor
+    from canergy.live.service import ServiceConfig, SupervisorService
+    from firmware_model.nvstore import RECORD_SIZE, SLOT_SIZE
+
+    tracemalloc.start()
+    before = tracemalloc.take_snapshot()
+    service = SupervisorService(Supervisor(range(1, nodes + 1), 10**9), ServiceConfig(), 0)
+    after = tracemalloc.take_snapshot()
+    tracemalloc.stop()
+    used = sum(s.size_diff for s in after.compare_to(before, "filename"))
+    assert service.core.nodes  # keep it alive until measured
+    return {
+        "nodes": nodes,
+        "supervisor_bytes_per_node": used / nodes,
+        "client_nv_record_bytes": RECORD_SIZE,
+        "client_nv_file_bytes": 2 * SLOT_SIZE,
+    }
+
+
+def run(quick: bool = False) -> dict[str, Any]:
+    seconds = 0.3 if quick else 3.0
+    with tempfile.TemporaryDirectory() as tmp:
+        nv = Path(tmp)
+        live_rows = [live.canergy_grants(n, seconds, nv) for n in (1, 16, 127)]
+    sdo = live.sdo_writes(50 if quick else 2000)
+    one = live_rows[0]
+    return {
+        "machine": f"{platform.node()} {platform.machine()} {platform.python_implementation()} "
+        f"{platform.python_version()}, {__import__('os').cpu_count()} cores",
+        "quick": quick,
+        "codec": codec.compare(loops=100 if quick else 2000, repeats=3 if quick else 9),
+        "core": [
+            core.transactions_per_second(n, loss, 0.2 if quick else 3.0)
+            for n in (1, 127)
+            for loss in (0.0, 0.3)
+        ],
+        "live": live_rows,
+        "sdo": sdo,
+        "latency_ratio_vs_sdo": one["latency_p50_ms"] / sdo["latency_p50_ms"],
+        "wire": wire.model(),
+        "headroom": wire.headroom(one["cpu_us_per_frame"]),
+        "memory": memory_per_node(),
+    }
+
+
+def table(r: dict[str, Any]) -> str:
+    c = r["codec"]
+    lines = [
+        f"machine: {r['machine']}"
+        + ("  (quick smoke run: figures meaningless)" if r["quick"] else ""),
+        "",
+        "codec, encode+decode per frame (median per type)       target  measured",
+        f"  canergy {c['canergy_us_per_frame']:.2f} us; speed-up vs cantools (median/min)"
+        f"   >= 30x  {c['median_speedup']:.1f}x / {c['min_speedup']:.1f}x",
+        "",
+        "core, transactions/s in memory (no bus)",
+    ]
+    for row in r["core"]:
+        target = ">= 50,000" if row["nodes"] == 1 and row["loss"] == 0 else ""
+        lines.append(
+            f"  {row['nodes']:>3} nodes, loss {row['loss']:.0%}: {row['tx_per_s']:>9,.0f} tx/s "
+            f"({row['frames_per_tx']:.2f} frames/tx) {target}"
+        )
+    lines += ["", "live stack on python-can virtual (supervisor + emulator threads)"]
+    for row in r["live"]:
+        lines.append(
+            f"  {row['nodes']:>3} nodes: {row['tx_per_s']:>7,.0f} tx/s, latency p50 "
+            f"{row['latency_p50_ms']:.2f} ms p99 {row['latency_p99_ms']:.2f} ms, "
+            f"{row['frames_per_tx']:.2f} protocol frames/tx "
+            f"(+{row['telemetry_per_tx']:.2f} telemetry)"
+        )
+    s = r["sdo"]
+    lines += [
+        f"  python-canopen SDO expedited 4-byte write: {s['writes_per_s']:,.0f}/s, p50 "
+        f"{s['latency_p50_ms']:.3f} ms p99 {s['latency_p99_ms']:.3f} ms",
+        f"  transaction latency / SDO write latency (1 node, p50): target <= 2: "
+        f"{r['latency_ratio_vs_sdo']:.2f}",
+        "",
+        "wire model, nominal transaction (frames of "
+        + "+".join(map(str, r["wire"]["frame_bytes"]))
+        + " bytes)",
+    ]
+    for row in r["wire"]["rows"]:
+        rates = ", ".join(f"{int(b) // 1000}k: {v}" for b, v in row["max_tx_per_s"].items())
+        lines.append(
+            f"  {row['ids']} {row['stuffing']:>5} stuffing: {row['bits_per_tx']} bits/tx; "
+            f"max tx/s {rates}"
+        )
+    h = r["headroom"]
+    m = r["memory"]
+    lines += [
+        f"  CPU per frame {h['cpu_us_per_frame']:.1f} us vs wire "
+        f"{h['wire_us_per_frame_1mbit']:.0f} us at 1 Mbit/s: headroom {h['headroom']:.2f} "
+        "(target >= 1)",
+        "",
+        f"memory: supervisor {m['supervisor_bytes_per_node']:.0f} bytes/node at {m['nodes']} "
+        f"nodes; client NV record {m['client_nv_record_bytes']} bytes "
+        f"({m['client_nv_file_bytes']} with A/B slots)",
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,31 @@
+"""`canergy bench --quick`: a smoke run that checks the report's shape, never a speed."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from canergy.bench.wire import frame_bits
+from canergy.cli import main
+
+
+def test_frame_bits_match_the_textbook_figures() -> None:
+    assert frame_bits(8, extended=False, worst_stuffing=False) == 111
+    assert frame_bits(8, extended=False, worst_stuffing=True) == 135
+    assert frame_bits(0, extended=True, worst_stuffing=False) == 67
+
+
+def test_quick_bench_runs_every_comparison(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--quick", "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert {"codec", "core", "live", "sdo", "wire", "headroom", "memory"} <= set(report)
+    assert len(report["codec"]["rows"]) == 11 and len(report["core"]) == 4
+    assert [row["nodes"] for row in report["live"]] == [1, 16, 127]
+    assert sum(row["transactions"] for row in report["live"]) > 0
+    assert report["memory"]["client_nv_record_bytes"] <= 32
+    assert "quick smoke run" in capsys.readouterr().out

@@ -23,6 +23,7 @@ from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.messages import Direction
 from firmware_model.actuator import PowerProfile
+from firmware_model.canopen_node import STANDARD_FRAMES, CanopenFace, shared_network
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
 from firmware_model.nvstore import NvError, NvStore, SimulatedPowerLoss
 
@@ -60,6 +61,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--status-file", type=Path, help="JSON status, rewritten atomically")
     p.add_argument("--status-period", type=positive_float, default=1.0, help="s")
+    p.add_argument(
+        "--canopen",
+        action="store_true",
+        help="also be CANopen slaves (canergy_node.eds): boot-up, heartbeat, NMT, SDO objects",
+    )
     return p
 
 
@@ -137,10 +143,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         codec = Codec(args.id_base)
         filters = [f for n in ids for f in codec.client_filters(n)]
+        if args.canopen:
+            filters.append(STANDARD_FRAMES)
         bus = open_bus(args, filters)
     except (ValueError, OSError, BusOpenError) as exc:  # NvError is a ValueError
         parser.exit(2, f"{parser.prog}: error: {exc}\n")
-    runtime = BusRuntime(bus, host, codec=codec, receives=Direction.TO_CLIENT)
+    reader = None
+    if args.canopen:
+        network, reader = shared_network(bus)
+        for fw in host.nodes.values():
+            CanopenFace(fw, network).boot()
+    runtime = BusRuntime(bus, host, codec=codec, receives=Direction.TO_CLIENT, source=reader)
     next_status = 0
     try:
         while not stop:
@@ -156,6 +169,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"firmware_model: NV store: {exc}", file=sys.stderr)
         return 1
     finally:
+        if args.canopen:
+            bus.stop_all_periodic_tasks()  # heartbeats
         bus.shutdown()
     final = status(host, runtime)
     if args.status_file is not None:

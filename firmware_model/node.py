@@ -7,8 +7,8 @@ and a return policy. A loop step never waits and keeps no history.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import can
@@ -16,7 +16,7 @@ import can
 from canergy.codec import DecodeError
 from canergy.core import Action, Client, ClientCommitted, Credited, Persist, Send, Timing
 from canergy.live.policy import quantize
-from canergy.messages import LEVEL_MAX_MJ, QUANTUM_UJ, Message, Telemetry, ToClient
+from canergy.messages import LEVEL_MAX_MJ, QUANTUM_UJ, Intention, Message, Telemetry, ToClient
 from firmware_model.actuator import Actuator, PowerProfile
 from firmware_model.nvstore import NvStore
 
@@ -49,13 +49,38 @@ class FirmwareNode:
         self.decode_errors = 0
         self.telemetry_sent = 0
         self.was_low = False
+        self.gate: Callable[[], str] = lambda: "OPERATIONAL"
+        """NMT state when the node is also a CANopen slave (``canopen_node``)."""
+        self.refused = 0
 
     @property
     def node(self) -> int:
         return self.client.node
 
     def on_message(self, msg: ToClient, now: int) -> list[Message]:
+        if isinstance(msg, Intention) and self.gate() != "OPERATIONAL":
+            self.refused += 1  # no grants outside OPERATIONAL: left unanswered
+            return []
         return self._carry_out(self.client.receive(msg, now), now)
+
+    def set_parameter(self, index: int, value: int) -> None:
+        """A CANopen write of 0x2100 (response timeout ms), 0x2101 (power mW) or 0x2102
+        (telemetry period ms)."""
+        if index == 0x2100 and value > 0:
+            t = self.config.timing
+            timing = replace(
+                t,
+                response_timeout_us=value * 1000,
+                command_timeout_us=2 * value * 1000,
+                return_retry_us=2 * value * 1000,
+            )
+            self.config = replace(self.config, timing=timing)
+            self.client.timing = timing
+        elif index == 0x2101:
+            self.config = replace(self.config, power=PowerProfile.constant(value / 1000))
+            self.actuator.profile = self.config.power
+        elif index == 0x2102 and value > 0:
+            self.config = replace(self.config, telemetry_period_us=value * 1000)
 
     def next_wakeup(self) -> int:
         times = [self.next_tick, self.next_telemetry]
@@ -88,6 +113,9 @@ class FirmwareNode:
 
     def _actuate(self, now: int) -> list[Message]:
         wanted = self.actuator.need(now)
+        if self.gate() == "STOPPED":
+            self.actuator.run(0, wanted)  # NMT STOPPED: the actuator halts
+            return []
         take = min(wanted, self.client.state.usable)
         out = self._carry_out(self.client.spend(take), now) if take else []
         self.actuator.run(take, wanted)  # only after the spend is in NV
@@ -129,6 +157,8 @@ class FirmwareNode:
             "nv_writes": self.nv.stats.writes,
             "nv_fallbacks": self.nv.stats.fallbacks,
             "decode_errors": self.decode_errors,
+            "nmt_state": self.gate(),
+            "intentions_refused": self.refused,
         }
 
 

@@ -57,6 +57,13 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     p.add_argument("--status-period", type=positive_float, default=1.0, help="s")
     p.add_argument("--control", type=Path, help="UNIX socket for `canergy grant --control`")
     p.add_argument("--listen-only", action="store_true", help="watch and report, never send")
+    p.add_argument(
+        "--canopen",
+        action="store_true",
+        help="use CANopen on the same bus: NMT start, heartbeat watchdog, boot-up, SDO audit",
+    )
+    p.add_argument("--heartbeat-timeout", type=positive_float, default=3.0, help="s (--canopen)")
+    p.add_argument("--eds", type=Path, help="the nodes' EDS (default: the emulator's)")
 
     g = sub.add_parser(
         "grant",
@@ -97,11 +104,26 @@ def _limits(args: argparse.Namespace) -> Limits:
     )
 
 
+def _canopen(args: argparse.Namespace, bus: Any, service: SupervisorService) -> tuple[Any, Any]:
+    from canergy.live.canopen_manager import CanopenManager
+    from firmware_model.canopen_node import EDS, shared_network
+
+    network, reader = shared_network(bus)
+    manager = CanopenManager(
+        network, args.nodes, args.eds or EDS, round(args.heartbeat_timeout * 1e6), monotonic_us
+    )
+    service.liveness = manager.alive
+    if not args.listen_only:
+        manager.start_all()
+    return manager, reader
+
+
 def _serve(
     runtime: BusRuntime,
     service: SupervisorService,
     control: ControlServer | None,
     until: Any = None,
+    manager: Any = None,
 ) -> None:
     """Loop until a signal (or ``until()``) and the service has settled."""
 
@@ -113,15 +135,34 @@ def _serve(
         signal.signal(signal.SIGTERM, request_stop)
     while not service.finished(monotonic_us()):
         runtime.poll(0.05)
+        if manager is not None:
+            for node in manager.rebooted():
+                service.node_rebooted(node, monotonic_us())
         if control is not None:
             for req, reply in control.pending():
-                _control_request(service, req, reply)
+                _control_request(service, req, reply, manager)
         if until is not None and until():
             service.stop(monotonic_us())
     service.write_status()
 
 
-def _control_request(service: SupervisorService, req: dict[str, Any], reply: Any) -> None:
+def _control_request(
+    service: SupervisorService, req: dict[str, Any], reply: Any, manager: Any = None
+) -> None:
+    if req.get("audit") is True:
+        if manager is None:
+            reply({"error": "the SDO audit needs --canopen"})
+            return
+        books = {
+            s.node: {
+                "delivered_uj": s.delivered,
+                "reserved_uj": s.reserved,
+                "returned_uj": s.returned,
+            }
+            for s in service.core.state.sessions
+        }  # SDO reads block: answer from a thread, the loop keeps running
+        threading.Thread(target=lambda: reply(manager.audit(books)), daemon=True).start()
+        return
     if req.get("status") is True:
         reply(service.status())
         return
@@ -162,20 +203,25 @@ def run_supervisor(args: argparse.Namespace) -> int:
         fsync=not args.no_fsync,
     )
     codec = Codec(args.id_base)
-    bus = open_bus(args, codec.supervisor_filters())
+    filters = codec.supervisor_filters()
+    if args.canopen:
+        filters.append({"can_id": 0, "can_mask": 0, "extended": False})  # CANopen's 11-bit ids
+    bus = open_bus(args, filters)
     control = None
     try:
         service = SupervisorService(core, config, monotonic_us())
+        manager, reader = _canopen(args, bus, service) if args.canopen else (None, None)
         runtime = BusRuntime(
             bus,
             service,
             codec=codec,
             receives=Direction.TO_SUPERVISOR,
             listen_only=args.listen_only,
+            source=reader,
         )
         service.bus_counters = runtime.counters
         control = ControlServer(args.control) if args.control is not None else None
-        _serve(runtime, service, control)
+        _serve(runtime, service, control, manager=manager)
     finally:
         if control is not None:
             control.close()

@@ -97,8 +97,12 @@ class BusRuntime:
         send_policy: SendPolicy | None = None,
         clock: Callable[[], int] = monotonic_us,
         sleep: Callable[[float], None] = time.sleep,
+        source: can.BufferedReader | None = None,
     ) -> None:
+        """``source``: read from this listener instead of ``bus.recv`` when a ``can.Notifier``
+        owns the bus (shared with python-canopen: one Notifier per bus)."""
         self.bus = bus
+        self.source = source
         self.handler = handler
         self.codec = codec or Codec()
         self.receives = receives
@@ -116,7 +120,7 @@ class BusRuntime:
         wakeup = self.handler.next_wakeup()
         wait = max_wait_s if wakeup is None else min(max_wait_s, max(0, wakeup - now) / 1e6)
         try:
-            frame = self.bus.recv(timeout=wait)
+            frame = self._recv(wait)
         except can.CanError:  # e.g. the interface went down: count, back off, keep going
             self.counters.receive_errors += 1
             self.sleep(min(wait, 0.1))
@@ -132,9 +136,14 @@ class BusRuntime:
         if wakeup is not None and wakeup <= now:
             self._send_all(self.handler.on_wakeup(now))
 
+    def _recv(self, timeout: float) -> can.Message | None:
+        if self.source is not None:
+            return self.source.get_message(timeout)
+        return self.bus.recv(timeout=timeout)
+
     def _recv_now(self) -> can.Message | None:
         try:
-            return self.bus.recv(timeout=0)
+            return self._recv(0)
         except can.CanError:
             self.counters.receive_errors += 1
             return None

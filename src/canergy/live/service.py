@@ -96,6 +96,8 @@ class SupervisorService:
         self._dirty = False
         self.stop_deadline: int | None = None
         self.status_stream = config.status_stream
+        self.liveness: Callable[[int, int], bool] | None = None
+        """Extra liveness test (the CANopen heartbeat watchdog); False: no grants."""
         self.bus_counters = BusCounters()
         """Replaced by the bus loop's own counters when one drives this service."""
         if not config.listen_only:
@@ -177,7 +179,18 @@ class SupervisorService:
 
     def is_lost(self, node: int, now: int) -> bool:
         heard = self.nodes[node].heard_at
+        if self.liveness is not None and not self.liveness(node, now):
+            return True
         return heard is None or now - heard > self.config.lost_after_us
+
+    def node_rebooted(self, node: int, now: int) -> None:
+        """The node restarted (CANopen boot-up): no grant until it reports its level again.
+        An open transaction needs nothing special: the node restarts from its NV record and the
+        supervisor's next re-send settles it (the rules were model-checked with power losses)."""
+        info = self.nodes.get(node)
+        if info is not None:
+            info.level = None
+            info.ended_at = now
 
     def _start_grants(self, now: int) -> list[Message]:
         if self.stopping or self.config.listen_only:
@@ -186,6 +199,8 @@ class SupervisorService:
         for node, info in self.nodes.items():
             if self.core.session(node).phase is not Phase.IDLE:
                 continue
+            if self.liveness is not None and not self.liveness(node, now):
+                continue  # heartbeat lost or not OPERATIONAL: nothing for it, not even one-shots
             if info.requests:
                 out += self._one_shot(node, info, now)
             elif self.config.policy is not None:

@@ -1,0 +1,73 @@
+"""The emulated nodes as CANopen slaves (python-canopen ``LocalNode``s) on the same bus.
+
+Each node boots (boot-up message, PRE-OPERATIONAL), produces a heartbeat (0x1017) and serves SDO
+reads of its energy objects (``canergy_node.eds``, 0x2000-0x2007, read-only, live values) and
+writes of its parameters (0x2100-0x2102). NMT gates the protocol: only OPERATIONAL accepts an
+INTENTION; PRE-OPERATIONAL and STOPPED leave it unanswered (the supervisor does not grant to such
+a node, and one already on its way ends as a write-off that the next intention pays back), and
+STOPPED halts the actuator.
+
+canopen and canergy share one bus and one ``can.Notifier``: canopen's listeners plus a
+``can.BufferedReader`` the canergy loop reads from.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+
+from firmware_model.node import FirmwareNode
+
+EDS = Path(__file__).with_name("canergy_node.eds")
+STANDARD_FRAMES = {"can_id": 0, "can_mask": 0, "extended": False}
+"""Acceptance filter passing every 11-bit frame (NMT, SDO, heartbeat, ...)."""
+
+
+def shared_network(bus: can.BusABC) -> tuple[canopen.Network, can.BufferedReader]:
+    """A canopen ``Network`` on ``bus`` and a reader for canergy, behind one Notifier
+    (python-canopen's "re-using a bus": assign the bus and the notifier yourself)."""
+    network = canopen.Network(bus)
+    reader = can.BufferedReader()
+    network.notifier = can.Notifier(bus, [*network.listeners, reader], 0.1)
+    return network, reader
+
+
+class CanopenFace:
+    """One firmware node's CANopen side."""
+
+    def __init__(self, node: FirmwareNode, network: canopen.Network) -> None:
+        self.node = node
+        self.local = canopen.LocalNode(node.node, str(EDS))
+        self.local.add_read_callback(self._read)
+        self.local.add_write_callback(self._write)
+        network.add_node(self.local)
+        node.gate = lambda: self.local.nmt.state
+
+    def boot(self) -> None:
+        """Boot-up message, then PRE-OPERATIONAL with the heartbeat running."""
+        self.local.nmt.send_command(0x81)  # reset node: INITIALISING, boot-up message
+        self.local.nmt.send_command(0x80)  # enter PRE-OPERATIONAL, heartbeat from 0x1017
+
+    def _read(self, index: int, subindex: int, od: Any) -> int | None:
+        c, n = self.node.client.state, self.node
+        values = {
+            0x2000: c.usable,
+            0x2001: c.spent,
+            0x2002: c.credited,
+            0x2003: c.last_tx,
+            0x2004: c.return_seq,
+            0x2005: c.return_pending,
+            0x2006: int(n.actuator.halted),
+            0x2007: n.decode_errors,
+            0x2100: n.config.timing.response_timeout_us // 1000,
+            0x2101: n.config.power.power_uw(0) // 1000,
+            0x2102: n.config.telemetry_period_us // 1000,
+        }
+        return values.get(index)
+
+    def _write(self, index: int, subindex: int, od: Any, data: bytes) -> None:
+        value = int.from_bytes(data, "little")
+        self.node.set_parameter(index, value)

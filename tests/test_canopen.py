@@ -180,3 +180,17 @@ def test_canergy_ids_never_collide_with_the_cia_301_predefined_set() -> None:
     assert max(predefined) <= 0x7FF and not ours & predefined
     assert all(i & ID_MASK == codec.id_base and i > 0x7FF for i in ours)
     assert all(not codec.is_canergy_id(i, extended=False) for i in predefined)
+
+
+def test_a_rebooted_node_is_started_again_and_resumes(bench: Bench) -> None:
+    bench.manager.start_all()
+    node2 = bench.host.nodes[2]
+    bench.wait(lambda: node2.client.state.credited >= UJ_PER_J)
+    bench.faces[2].boot()  # boot-up message, PRE-OPERATIONAL: no grants
+    bench.faces[2].local.nmt.start_heartbeat(100)
+    bench.wait(lambda: bench.manager.state_name(2) == "PRE-OPERATIONAL")
+    assert bench.manager.rebooted() == [2]  # and NMT start went out to node 2
+    bench.wait(lambda: bench.faces[2].local.nmt.state == "OPERATIONAL")
+    bench.service.node_rebooted(2, monotonic_us())
+    granted = node2.client.state.credited
+    bench.wait(lambda: node2.client.state.credited > granted, timeout_s=15)

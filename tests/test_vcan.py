@@ -243,3 +243,73 @@ def test_processes_on_vcan0_stay_passive_through_garbage_and_kill_9(procs: Procs
         timeout=120,
     )
     assert decode.returncode == 0 and decode.stdout.count("COMMITTED") >= len(commits[1])
+
+
+def test_canopen_on_vcan0_eds_master_heartbeat_loss_and_restart(procs: Procs) -> None:
+    import canopen
+
+    tmp = procs.tmp
+    sup_status = tmp / "sup.json"
+    procs.start(
+        "supervisor",
+        _python(
+            "-m",
+            "canergy",
+            "supervisor",
+            *BUS,
+            "--nodes",
+            "7-8",
+            "--initial",
+            "10J",
+            "--target",
+            "1J",
+            "--max-grant",
+            "0.5J",
+            "--state",
+            str(tmp / "state.json"),
+            "--status-file",
+            str(sup_status),
+            "--canopen",
+            "--heartbeat-timeout",
+            "3",
+            "--status-period",
+            "0.3",
+            *TIMEOUT,
+        ),
+    )
+    for node in (7, 8):
+        _client(procs, node, "--canopen")
+
+    def node_status(node: int) -> dict[str, Any]:
+        return _status(sup_status)["nodes"][str(node)] if sup_status.exists() else {}
+
+    _wait(lambda: all(node_status(n).get("committed", 0) >= 1 for n in (7, 8)), "grants")
+
+    # a master that knows only the EDS reads every energy object of a running emulator
+    master = canopen.Network()
+    master.connect(interface="socketcan", channel=IFACE)
+    try:
+        eds = str(ROOT / "firmware_model" / "canergy_node.eds")
+        remote = master.add_node(canopen.RemoteNode(7, eds))
+        remote.sdo.RESPONSE_TIMEOUT = 5
+        names = [o.name for o in remote.object_dictionary.values() if 0x2000 <= o.index < 0x6000]
+        values = {name: remote.sdo[name].raw for name in names}
+    finally:
+        master.disconnect()
+    assert len(values) == 11 and values["Credited uJ"] >= 1_000_000
+
+    # node 8 freezes (no telemetry; its heartbeat may go on from the kernel's CAN_BCM): the
+    # supervisor marks it lost and stops granting to it
+    procs.procs["client8"].send_signal(signal.SIGSTOP)
+    _wait(lambda: node_status(8).get("lost") is True, "node 8 marked lost", timeout_s=30)
+    granted = node_status(8)["delivered_uj"]
+    time.sleep(2)
+    assert node_status(8)["delivered_uj"] == granted
+    procs.procs["client8"].send_signal(signal.SIGCONT)
+    _wait(lambda: node_status(8).get("lost") is False, "node 8 back", timeout_s=60)
+
+    assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
+    for node in (7, 8):
+        assert procs.stop(f"client{node}") == 0, procs.stderr(f"client{node}")
+    books = ledger_from_status(_status(sup_status), [_status(tmp / f"n{n}.json") for n in (7, 8)])
+    assert books.dissipated >= 0, books

@@ -307,6 +307,11 @@ def test_canopen_on_vcan0_eds_master_heartbeat_loss_and_restart(procs: Procs) ->
     assert node_status(8)["delivered_uj"] == granted
     procs.procs["client8"].send_signal(signal.SIGCONT)
     _wait(lambda: node_status(8).get("lost") is False, "node 8 back", timeout_s=60)
+    # it dies and comes back from its NV file: boot-up, NMT start, grants resume
+    procs.stop("client8", signal.SIGKILL)
+    done = node_status(8)["committed"]
+    _client(procs, 8, "--canopen")
+    _wait(lambda: node_status(8)["committed"] > done, "grants to node 8 after its reboot")
 
     assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
     for node in (7, 8):

@@ -130,3 +130,42 @@ def test_firmware_model_rejects_bad_values(capsys: pytest.CaptureFixture[str]) -
     with pytest.raises(SystemExit) as exc:
         firmware_main(["--node", "200", "--nv", "x.nv"])
     assert exc.value.code == 2 and "outside 1..127" in capsys.readouterr().err
+
+
+def test_listen_only_never_sends(tmp_path: Path) -> None:
+    channel = f"cli-{uuid.uuid4().hex}"
+    host, loop = _emulator(tmp_path, channel, [3])
+    control = tmp_path / "ctl.sock"
+    argv = [
+        "supervisor",
+        "-i",
+        "virtual",
+        "-c",
+        channel,
+        "--nodes",
+        "3",
+        "--target",
+        "1J",
+        "--listen-only",
+        "--control",
+        str(control),
+        "--status-file",
+        str(tmp_path / "s.json"),
+    ]
+    result: list[int] = []
+    thread = threading.Thread(target=lambda: result.append(main(argv)))
+    thread.start()
+    try:
+        deadline = time.monotonic() + 30
+        while not control.exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        time.sleep(1.5)  # telemetry arrives; a supervisor that sends would grant now
+        status = request(control, {"status": True}, 30)
+        refused = request(control, {"grant": {"node": 3, "amount_uj": 1000}}, 30)
+        assert "listen-only" in refused["error"]
+        request(control, {"stop": True}, 30)
+        thread.join(timeout=60)
+    finally:
+        loop.halt()
+    assert result == [0] and status["listen_only"] and status["frames_sent"] == 0
+    assert status["frames_received"] >= 1 and host.nodes[3].client.state.credited == 0

@@ -150,3 +150,24 @@ def test_sweep_cli_writes_csv_and_plot(tmp_path: Path) -> None:
     with open(tmp_path / "sweep.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 4 and (tmp_path / "sweep.png").stat().st_size > 1000
+
+
+def test_exponential_delays_reorder_frames_without_creating_energy(tmp_path: Path) -> None:
+    argv = [
+        "simulate",
+        "--channel",
+        "ideal",
+        "--delay-dist",
+        "exp",
+        "--delay-ms",
+        "2",
+        "--duration",
+        "3",
+        "--return-every",
+        "0.05",
+        "--out",
+        str(tmp_path),
+    ]
+    assert main(argv) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())["hardened"]
+    assert summary["passivity_violations"] == 0 and summary["committed"] > 100

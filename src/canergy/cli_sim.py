@@ -49,6 +49,11 @@ def _common(p: argparse.ArgumentParser, default_channel: str) -> None:
     p.add_argument("--burst", type=probability, help="Gilbert-Elliott: P(good -> bad) per frame")
     p.add_argument("--delay-ms", type=_ms, help="mean one-way delay, ms")
     p.add_argument("--jitter-ms", type=_ms, help="uniform +- jitter, ms")
+    p.add_argument(
+        "--delay-dist",
+        choices=["uniform", "exp"],
+        help="per-frame delay: uniform in delay +- jitter, or exponential with mean delay",
+    )
     p.add_argument("--timeout-ms", type=_ms, help="response timeout (default: the channel's)")
     p.add_argument("--retries", type=bounded_int(0, 20), default=1, help="N (the paper: 1)")
     p.add_argument("--commit-ratio", type=probability, default=0.5)
@@ -92,6 +97,7 @@ def _config(args: argparse.Namespace, loss: float | None = None) -> SimConfig:
         burst_enter=args.burst,
         delay_us=args.delay_ms,
         jitter_us=args.jitter_ms,
+        delay=args.delay_dist,
     )
     return SimConfig(
         channel=model,

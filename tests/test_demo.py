@@ -60,10 +60,10 @@ def test_acceptance_run(capsys: pytest.CaptureFixture[str], tmp_path: Path) -> N
 def test_paper_variant_generates_energy_on_the_documented_seed(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    code, r = run_json(capsys, "--variant", "paper", "--seed", "2")
+    code, r = run_json(capsys, "--variant", "paper", "--seed", "5")
     assert code == 1 and r["passive"] is False and r["dissipated_uj"] < 0
     assert_identity(r)
-    code, hardened = run_json(capsys, "--seed", "2")
+    code, hardened = run_json(capsys, "--seed", "5")
     assert code == 0 and hardened["passive"] is True
 
 
@@ -112,7 +112,7 @@ def test_human_report(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["demo", "--transactions", "30", "--nodes", "3"]) == 0
     out = capsys.readouterr().out
     assert "verdict: PASSIVE" in out and "dissipated" in out
-    assert main(["demo", "--variant", "paper", "--seed", "2"]) == 1
+    assert main(["demo", "--variant", "paper", "--seed", "5"]) == 1
     assert "verdict: NOT PASSIVE" in capsys.readouterr().out
 
 

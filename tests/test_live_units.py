@@ -149,7 +149,7 @@ def test_a_state_file_of_another_variant_is_refused(tmp_path: Path) -> None:
 
 def test_faulty_bus_loses_duplicates_and_delays_on_the_wall_clock() -> None:
     channel = f"faulty-{uuid.uuid4().hex}"
-    profile = FaultProfile(loss=0.3, duplicate=0.2, reorder=0.2, delay_us=0, jitter_us=1000)
+    profile = FaultProfile(loss=0.3, duplicate=0.2, reorder=0.2, delay_us=1000, jitter_us=1000)
     injector = FaultInjector(profile, random.Random(1))
     sender = FaultyBus(can.Bus(interface="virtual", channel=channel), injector)
     with can.Bus(interface="virtual", channel=channel) as receiver:

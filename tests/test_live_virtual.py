@@ -36,7 +36,7 @@ def test_a_supervisor_tops_up_127_emulated_nodes(tmp_path: Path) -> None:
 
 def test_faults_and_power_losses_never_generate_energy(tmp_path: Path) -> None:
     nodes = range(1, 6)
-    faults = FaultProfile(loss=0.3, duplicate=0.1, reorder=0.1, delay_us=500, jitter_us=2000)
+    faults = FaultProfile(loss=0.3, duplicate=0.1, reorder=0.1, delay_us=2000, jitter_us=1500)
     rig = Rig(tmp_path, nodes, power_w=0.5, faults=faults, seed=3, initial=50 * UJ_PER_J)
     try:
         rig.start_supervisor()

@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 
 from canergy.cli import main
-from canergy.sim.channel import PRESETS, ChannelCounters, ChannelModel, Link, channel
+from canergy.faults import FaultCounters, FaultInjector
+from canergy.sim.channel import PRESETS, ChannelModel, channel
 from canergy.sim.engine import SimConfig, simulate
 from canergy.sim.sweep import sweep
 
@@ -63,15 +64,15 @@ def test_corrupted_frames_are_rejected_by_the_real_codec() -> None:
 
 
 def test_channel_streams_are_shared_across_strategies() -> None:
-    a = Link(PRESETS["lossy"], random.Random("x"), ChannelCounters())
-    b = Link(PRESETS["lossy"], random.Random("x"), ChannelCounters())
+    a = FaultInjector(PRESETS["lossy"], random.Random("x"), FaultCounters())
+    b = FaultInjector(PRESETS["lossy"], random.Random("x"), FaultCounters())
     fates_a = [a.fate(bytes([i])) for i in range(200)]
     assert fates_a == [b.fate(bytes([i])) for i in range(200)]
 
 
 def test_gilbert_elliott_loses_in_bursts() -> None:
     def longest_run(model: ChannelModel) -> tuple[float, int]:
-        link = Link(model, random.Random(5), ChannelCounters())
+        link = FaultInjector(model, random.Random(5), FaultCounters())
         lost = [not link.fate(b"x") for _ in range(20_000)]
         run = best = 0
         for x in lost:

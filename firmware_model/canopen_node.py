@@ -47,9 +47,15 @@ class CanopenFace:
         node.gate = lambda: self.local.nmt.state
 
     def boot(self) -> None:
-        """Boot-up message, then PRE-OPERATIONAL with the heartbeat running."""
+        """Boot-up message, then PRE-OPERATIONAL with the heartbeat running.
+
+        A master may answer the boot-up with NMT start before the second step runs; python-canopen
+        then skips starting the heartbeat, so it is started here in any case (and a master that
+        sees PRE-OPERATIONAL starts the node again).
+        """
         self.local.nmt.send_command(0x81)  # reset node: INITIALISING, boot-up message
-        self.local.nmt.send_command(0x80)  # enter PRE-OPERATIONAL, heartbeat from 0x1017
+        self.local.nmt.send_command(0x80)  # enter PRE-OPERATIONAL
+        self.local.nmt.start_heartbeat(int(self.local.sdo[0x1017].raw))
 
     def _read(self, index: int, subindex: int, od: Any) -> int | None:
         c, n = self.node.client.state, self.node

@@ -35,6 +35,12 @@ def _emulator(tmp: Path, channel: str, nodes: list[int]) -> tuple[NodeHost, Loop
     return host, Loop(BusRuntime(bus, host, codec=codec, receives=Direction.TO_CLIENT))
 
 
+def _wait_for(path: Path) -> None:
+    deadline = time.monotonic() + 30
+    while not path.exists() and time.monotonic() < deadline:
+        time.sleep(0.02)
+
+
 def test_grant_as_a_single_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     channel = f"cli-{uuid.uuid4().hex}"
     host, loop = _emulator(tmp_path, channel, [4])
@@ -82,9 +88,7 @@ def test_supervisor_serves_grants_over_its_control_socket(tmp_path: Path) -> Non
     thread = threading.Thread(target=lambda: result.append(main(argv)))
     thread.start()
     try:
-        deadline = time.monotonic() + 30
-        while not control.exists() and time.monotonic() < deadline:
-            time.sleep(0.02)
+        _wait_for(control)
         answer = request(control, {"grant": {"node": 2, "amount_uj": 2_500_000}}, 30)
         assert answer["outcome"] == "COMMITTED", answer
         too_much = request(control, {"grant": {"node": 1, "amount_uj": 3_500_000}}, 30)
@@ -156,9 +160,7 @@ def test_listen_only_never_sends(tmp_path: Path) -> None:
     thread = threading.Thread(target=lambda: result.append(main(argv)))
     thread.start()
     try:
-        deadline = time.monotonic() + 30
-        while not control.exists() and time.monotonic() < deadline:
-            time.sleep(0.02)
+        _wait_for(control)
         time.sleep(1.5)  # telemetry arrives; a supervisor that sends would grant now
         status = request(control, {"status": True}, 30)
         refused = request(control, {"grant": {"node": 3, "amount_uj": 1000}}, 30)

@@ -98,6 +98,31 @@ def _client(procs: Procs, node: int, *extra: str) -> subprocess.Popen[bytes]:
     return procs.start(f"client{node}", argv)
 
 
+def _supervisor(procs: Procs, nodes: str, *extra: str) -> subprocess.Popen[bytes]:
+    tmp = procs.tmp
+    argv = _python(
+        "-m",
+        "canergy",
+        "supervisor",
+        *BUS,
+        "--nodes",
+        nodes,
+        "--initial",
+        "10J",
+        "--target",
+        "1J",
+        "--max-grant",
+        "0.5J",
+        "--state",
+        str(tmp / "state.json"),
+        "--status-file",
+        str(tmp / "sup.json"),
+        *TIMEOUT,
+        *extra,
+    )
+    return procs.start("supervisor", argv)
+
+
 def _status(path: Path) -> dict[str, Any]:
     for _ in range(50):  # the writer replaces the file atomically; it may not exist yet
         try:
@@ -124,30 +149,7 @@ def test_processes_on_vcan0_stay_passive_through_garbage_and_kill_9(procs: Procs
     tmp = procs.tmp
     candump = subprocess.Popen(["candump", "-l", IFACE], cwd=tmp)  # candump-<date>.log in tmp
     sup_status = tmp / "sup.json"
-    procs.start(
-        "supervisor",
-        _python(
-            "-m",
-            "canergy",
-            "supervisor",
-            *BUS,
-            "--nodes",
-            "1-3",
-            "--initial",
-            "10J",
-            "--target",
-            "1J",
-            "--max-grant",
-            "0.5J",
-            "--state",
-            str(tmp / "state.json"),
-            "--status-file",
-            str(sup_status),
-            "--lost-after",
-            "10",
-            *TIMEOUT,
-        ),
-    )
+    _supervisor(procs, "1-3", "--lost-after", "10")
     for node in (1, 2, 3):
         _client(procs, node)
 
@@ -250,33 +252,7 @@ def test_canopen_on_vcan0_eds_master_heartbeat_loss_and_restart(procs: Procs) ->
 
     tmp = procs.tmp
     sup_status = tmp / "sup.json"
-    procs.start(
-        "supervisor",
-        _python(
-            "-m",
-            "canergy",
-            "supervisor",
-            *BUS,
-            "--nodes",
-            "7-8",
-            "--initial",
-            "10J",
-            "--target",
-            "1J",
-            "--max-grant",
-            "0.5J",
-            "--state",
-            str(tmp / "state.json"),
-            "--status-file",
-            str(sup_status),
-            "--canopen",
-            "--heartbeat-timeout",
-            "3",
-            "--status-period",
-            "0.3",
-            *TIMEOUT,
-        ),
-    )
+    _supervisor(procs, "7-8", "--canopen", "--heartbeat-timeout", "3", "--status-period", "0.3")
     for node in (7, 8):
         _client(procs, node, "--canopen")
 

@@ -18,7 +18,9 @@ from typing import Any
 import canopen
 
 OPERATIONAL = 0x05
+PRE_OPERATIONAL = 0x7F
 BOOTUP = 0x00
+RESTART_EVERY_US = 1_000_000
 STATES = {0x00: "BOOTUP", 0x04: "STOPPED", 0x05: "OPERATIONAL", 0x7F: "PRE-OPERATIONAL"}
 
 
@@ -38,6 +40,8 @@ class CanopenManager:
         self.last_beat: dict[int, int] = {}
         self.last_state: dict[int, int] = {}
         self._bootups: set[int] = set()
+        self._waiting: set[int] = set()
+        self._started_at: dict[int, int] = {}
         self._lock = threading.Lock()
         for n in nodes:
             remote = canopen.RemoteNode(n, str(eds))
@@ -51,6 +55,8 @@ class CanopenManager:
             self.last_state[node] = state
             if state == BOOTUP:
                 self._bootups.add(node)
+            if state in (BOOTUP, PRE_OPERATIONAL):
+                self._waiting.add(node)
 
     def start_all(self) -> None:
         """NMT start to every node (broadcast)."""
@@ -66,10 +72,20 @@ class CanopenManager:
             )
 
     def rebooted(self) -> list[int]:
-        """Nodes that sent a boot-up message since the last call; each is started again."""
+        """Nodes that sent a boot-up message since the last call. Every node seen booting or
+        PRE-OPERATIONAL is (re)started, at most once a second each: a start that crossed the
+        node's own boot sequence is simply repeated."""
+        now = self.clock()
         with self._lock:
             nodes, self._bootups = sorted(self._bootups), set()
-        for n in nodes:
+            due = [
+                n
+                for n in self._waiting
+                if now - self._started_at.get(n, -RESTART_EVERY_US) >= RESTART_EVERY_US
+            ]
+            self._waiting -= set(due)
+        for n in due:
+            self._started_at[n] = now
             self.remotes[n].nmt.state = "OPERATIONAL"
         return nodes
 

@@ -55,7 +55,9 @@ class CanopenFace:
         """
         self.local.nmt.send_command(0x81)  # reset node: INITIALISING, boot-up message
         self.local.nmt.send_command(0x80)  # enter PRE-OPERATIONAL
-        self.local.nmt.start_heartbeat(int(self.local.sdo[0x1017].raw))
+        period = self.local.sdo[0x1017]
+        assert isinstance(period, canopen.sdo.base.SdoVariable)
+        self.local.nmt.start_heartbeat(int(period.raw))
 
     def _read(self, index: int, subindex: int, od: Any) -> int | None:
         c, n = self.node.client.state, self.node

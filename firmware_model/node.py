@@ -35,6 +35,9 @@ class NodeConfig:
     timing: Timing = field(default_factory=Timing)
 
 
+PARAM_INDEXES = (0x2100, 0x2101, 0x2102)
+
+
 class FirmwareNode:
     """State: the core client's record, the actuator, two timers. Nothing else."""
 
@@ -49,6 +52,11 @@ class FirmwareNode:
         self.decode_errors = 0
         self.telemetry_sent = 0
         self.was_low = False
+        self.written = 0
+        saved = nv.load_params()  # parameters written over CANopen before a restart
+        for bit, index in enumerate(PARAM_INDEXES):
+            if saved is not None and saved[3] >> bit & 1:
+                self.set_parameter(index, saved[bit], persist=False)
         self.gate: Callable[[], str] = lambda: "OPERATIONAL"
         """NMT state when the node is also a CANopen slave (``canopen_node``)."""
         self.refused = 0
@@ -63,9 +71,16 @@ class FirmwareNode:
             return []
         return self._carry_out(self.client.receive(msg, now), now)
 
-    def set_parameter(self, index: int, value: int) -> None:
+    def parameters(self) -> tuple[int, int, int]:
+        return (
+            self.config.timing.response_timeout_us // 1000,
+            self.config.power.power_uw(0) // 1000,
+            self.config.telemetry_period_us // 1000,
+        )
+
+    def set_parameter(self, index: int, value: int, *, persist: bool = True) -> None:
         """A CANopen write of 0x2100 (response timeout ms), 0x2101 (power mW) or 0x2102
-        (telemetry period ms)."""
+        (telemetry period ms); kept in the NV file unless ``persist`` is False."""
         if index == 0x2100 and value > 0:
             t = self.config.timing
             timing = replace(
@@ -81,6 +96,11 @@ class FirmwareNode:
             self.actuator.profile = self.config.power
         elif index == 0x2102 and value > 0:
             self.config = replace(self.config, telemetry_period_us=value * 1000)
+        else:
+            return
+        self.written |= 1 << PARAM_INDEXES.index(index)
+        if persist:
+            self.nv.save_params((*self.parameters(), self.written))
 
     def next_wakeup(self) -> int:
         times = [self.next_tick, self.next_telemetry]

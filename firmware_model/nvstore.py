@@ -37,6 +37,10 @@ _PAD = 30
 _CRC = struct.Struct("<I")
 SLOT_SIZE = _HEAD.size + _PAD + _CRC.size
 U32 = 0xFFFFFFFF
+PARAM_SLOT = 2
+PARAMS = struct.Struct("<IIIB")
+"""Response timeout (ms), power (mW), telemetry period (ms) as CANopen 0x2100-0x2102, and a
+mask of which of the three were written."""
 
 
 class NvError(ValueError):
@@ -148,11 +152,24 @@ class NvStore:
         self._write(slot, data)
         self._counter, self._newest_slot = (self._counter + 1) & U32, slot
 
+    def save_params(self, params: tuple[int, ...]) -> None:
+        """Parameters written over CANopen, in a third CRC-protected slot (configuration, not
+        energy: a torn write only loses them, and the command line applies again)."""
+        self._write(PARAM_SLOT, encode_slot(0, PARAMS.pack(*params)))
+
+    def load_params(self) -> tuple[int, ...] | None:
+        try:
+            raw = self.path.read_bytes()[PARAM_SLOT * SLOT_SIZE : (PARAM_SLOT + 1) * SLOT_SIZE]
+        except OSError:
+            return None
+        slot = decode_slot(raw)
+        return None if slot is None else PARAMS.unpack(slot[1][: PARAMS.size])
+
     def _write(self, slot: int, data: bytes) -> None:
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
-            if os.fstat(fd).st_size < 2 * SLOT_SIZE:
-                os.ftruncate(fd, 2 * SLOT_SIZE)
+            if os.fstat(fd).st_size < max(2, slot + 1) * SLOT_SIZE:
+                os.ftruncate(fd, max(2, slot + 1) * SLOT_SIZE)
             os.pwrite(fd, data, slot * SLOT_SIZE)
             if self.fsync:
                 os.fsync(fd)

@@ -68,3 +68,15 @@ def test_energy_above_the_keep_level_is_given_back(tmp_path: Path) -> None:
     returns = [m for m in node.on_wakeup(100_000) if isinstance(m, Return)]
     assert returns == [Return(2, 1, 2000)]  # whole millijoules only
     assert node.client.state.usable == 1_000_500
+
+
+def test_parameters_written_over_canopen_survive_a_restart(tmp_path: Path) -> None:
+    node = _node(tmp_path, 1_000_000, power=PowerProfile.constant(0.1), tick_us=100_000)
+    node.set_parameter(0x2100, 250)  # response timeout, ms
+    node.set_parameter(0x2102, 400)  # telemetry period, ms
+    restarted = FirmwareNode(2, NvStore(tmp_path / "n.nv", 2), NodeConfig(), now=0)
+    assert restarted.config.timing.response_timeout_us == 250_000
+    assert restarted.client.timing.response_timeout_us == 250_000
+    assert restarted.config.telemetry_period_us == 400_000
+    assert restarted.config.power.power_uw(0) == 0  # never written: the command line's stays
+    assert restarted.client.state.usable == 1_000_000  # the energy record is untouched

@@ -101,7 +101,7 @@ def status(host: NodeHost, runtime: BusRuntime) -> dict[str, Any]:
     nodes = [n.status() for n in host.nodes.values()]
     bus = runtime.counters.as_json()
     if len(nodes) == 1:
-        return {**nodes[0], **bus, "decode_errors": bus["decode_errors"]}
+        return {**nodes[0], **bus}  # the bus's decode errors cover the node's and foreign ids
     return {"nodes": {str(n["node"]): n for n in nodes}, **bus}
 
 
@@ -148,9 +148,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         bus = open_bus(args, filters)
     except (ValueError, OSError, BusOpenError) as exc:  # NvError is a ValueError
         parser.exit(2, f"{parser.prog}: error: {exc}\n")
-    reader = None
+    reader = notifier = None
     if args.canopen:
         network, reader = shared_network(bus)
+        notifier = network.notifier
         for fw in host.nodes.values():
             CanopenFace(fw, network).boot()
     runtime = BusRuntime(bus, host, codec=codec, receives=Direction.TO_CLIENT, source=reader)
@@ -169,8 +170,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"firmware_model: NV store: {exc}", file=sys.stderr)
         return 1
     finally:
-        if args.canopen:
+        if notifier is not None:
             bus.stop_all_periodic_tasks()  # heartbeats
+            notifier.stop()
         bus.shutdown()
     final = status(host, runtime)
     if args.status_file is not None:

@@ -19,18 +19,31 @@ from typing import Any
 import can
 import canopen
 
-from firmware_model.node import FirmwareNode
+from firmware_model.node import PARAM_INDEXES, FirmwareNode
 
 EDS = Path(__file__).with_name("canergy_node.eds")
 STANDARD_FRAMES = {"can_id": 0, "can_mask": 0, "extended": False}
 """Acceptance filter passing every 11-bit frame (NMT, SDO, heartbeat, ...)."""
 
 
-def shared_network(bus: can.BusABC) -> tuple[canopen.Network, can.BufferedReader]:
+class SharedReader(can.BufferedReader):
+    """canergy's end of a shared Notifier; a receive error is counted, not fatal (without a
+    listener that handles it the Notifier's thread would stop and every node look lost)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.errors = 0
+
+    def on_error(self, exc: Exception) -> None:
+        self.errors += 1
+
+
+def shared_network(bus: can.BusABC) -> tuple[canopen.Network, SharedReader]:
     """A canopen ``Network`` on ``bus`` and a reader for canergy, behind one Notifier
-    (python-canopen's "re-using a bus": assign the bus and the notifier yourself)."""
+    (python-canopen's "re-using a bus": assign the bus and the notifier yourself). Stop it with
+    ``network.notifier.stop()`` before shutting the bus down."""
     network = canopen.Network(bus)
-    reader = can.BufferedReader()
+    reader = SharedReader()
     network.notifier = can.Notifier(bus, [*network.listeners, reader], 0.1)
     return network, reader
 
@@ -70,9 +83,7 @@ class CanopenFace:
             0x2005: c.return_pending,
             0x2006: int(n.actuator.halted),
             0x2007: n.decode_errors,
-            0x2100: n.config.timing.response_timeout_us // 1000,
-            0x2101: n.config.power.power_uw(0) // 1000,
-            0x2102: n.config.telemetry_period_us // 1000,
+            **dict(zip(PARAM_INDEXES, n.parameters(), strict=True)),
         }
         return values.get(index)
 

@@ -16,7 +16,15 @@ import can
 from canergy.codec import DecodeError
 from canergy.core import Action, Client, ClientCommitted, Credited, Persist, Send, Timing
 from canergy.live.policy import quantize
-from canergy.messages import LEVEL_MAX_MJ, QUANTUM_UJ, Intention, Message, Telemetry, ToClient
+from canergy.messages import (
+    AMOUNT_MAX_MJ,
+    LEVEL_MAX_MJ,
+    QUANTUM_UJ,
+    Intention,
+    Message,
+    Telemetry,
+    ToClient,
+)
 from firmware_model.actuator import Actuator, PowerProfile
 from firmware_model.nvstore import NvStore
 
@@ -148,7 +156,9 @@ class FirmwareNode:
         excess = quantize(self.client.state.usable - keep)
         if excess <= 0:
             return []
-        return self._carry_out(self.client.give_back(min(excess, 65_535 * QUANTUM_UJ), now), now)
+        return self._carry_out(
+            self.client.give_back(min(excess, AMOUNT_MAX_MJ * QUANTUM_UJ), now), now
+        )
 
     def _carry_out(self, actions: list[Action], now: int) -> list[Message]:
         out: list[Message] = []

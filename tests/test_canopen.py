@@ -157,11 +157,7 @@ def test_nmt_stop_halts_the_actuator_and_refuses_grants(bench: Bench) -> None:
 def test_the_sdo_audit_matches_the_books(bench: Bench) -> None:
     bench.manager.start_all()
     bench.wait(lambda: all(n.client.state.credited >= UJ_PER_J for n in bench.host.nodes.values()))
-    books = {
-        s.node: {"delivered_uj": s.delivered, "reserved_uj": s.reserved, "returned_uj": s.returned}
-        for s in bench.service.core.state.sessions
-    }
-    report = bench.manager.audit(books)
+    report = bench.manager.audit(bench.service.books)
     assert report["consistent"], report
     assert all(report["nodes"][str(n)]["credited_uj"] > 0 for n in NODES)
 

@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from canergy.cli import main
-from canergy.codec import Codec
+from canergy.codec import Codec, DecodeErrorReason
 from canergy.demo import DemoConfig, run_demo
 from canergy.faults import FaultProfile
 from canergy.inspect.audit import Auditor
@@ -142,7 +142,7 @@ def test_a_forged_commit_or_replayed_intention_fails_the_audit(
 def test_the_paper_variant_creating_energy_is_flagged(tmp_path: Path) -> None:
     log = tmp_path / "paper.log"
     assert main(["demo", "--variant", "paper", "--seed", "5", "--log", str(log)]) == 1
-    argv = ["audit", str(log), "--variant", "paper", "--reordered", "--json"]
+    argv = ["audit", str(log), "--reordered", "--json"]
     assert main(argv) == 1
 
 
@@ -174,3 +174,19 @@ def test_dump_shows_live_frames_like_candump(capsys: pytest.CaptureFixture[str])
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     assert [x["type"] for x in lines] == ["INTENTION", "INTENTION", "ACK"]  # 0x701 filtered out
     assert all(x["crc_ok"] for x in lines)
+
+
+def test_a_damaged_frame_that_claims_nothing_valid_is_shown_not_fatal() -> None:
+    ident = CODEC.arbitration_id(Commit.TYPE, 1)
+    frame = can.Message(arbitration_id=ident, data=bytes(5))  # zero amount and a wrong CRC
+    d = describe(CODEC, frame)
+    assert d.message is None and d.crc_ok is False and d.problem == DecodeErrorReason.BAD_CRC.value
+
+
+def test_a_capture_starting_mid_transaction_is_not_flagged() -> None:
+    frames = list(read_file(CLEAN, lambda *a: None))
+    auditor = Auditor()
+    for frame in frames[5:]:  # the first intentions and ACKs happened before the capture
+        auditor.feed(describe(CODEC, frame))
+    auditor.finish()
+    assert auditor.report()["passive"], auditor.report()["violations"]

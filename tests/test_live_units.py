@@ -84,6 +84,8 @@ def test_limits_cap_every_grant() -> None:
     assert capped_grant(400_400, level=0, **grant) == 400_000  # type: ignore[arg-type]
     spent = {**grant, "granted_total": 1_900_000}
     assert capped_grant(2_000_000, level=0, **spent) == 100_000  # type: ignore[arg-type]
+    unknown = {**grant, "level": None}
+    assert capped_grant(2_000_000, **unknown) == 0  # type: ignore[arg-type]  # fails closed
     poor = {**grant, "usable": 999}
     assert capped_grant(2_000_000, level=0, **poor) == 0  # type: ignore[arg-type]
     with pytest.raises(ValueError):

@@ -61,7 +61,6 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     )
     a.add_argument("file", help="capture file, or - for stdin")
     a.add_argument("--initial", type=energy, help="the supervisor's initial budget, e.g. 10J")
-    a.add_argument("--variant", choices=["hardened", "paper"], default="hardened")
     a.add_argument(
         "--reordered",
         action="store_true",
@@ -136,7 +135,7 @@ def run_dump(args: argparse.Namespace) -> int:
 
 def run_audit(args: argparse.Namespace) -> int:
     codec = Codec(args.id_base)
-    auditor = Auditor(variant=args.variant, initial=args.initial, reordered=args.reordered)
+    auditor = Auditor(initial=args.initial, reordered=args.reordered)
     try:
         for frame in _frames(args.file):
             auditor.feed(describe(codec, frame))
@@ -154,7 +153,7 @@ def run_audit(args: argparse.Namespace) -> int:
 
 def _print_audit(report: dict[str, Any]) -> None:
     print(
-        f"canergy audit ({report['variant']} rules): {report['frames']} frames, "
+        f"canergy audit: {report['frames']} frames, "
         f"{report['foreign_frames']} foreign, {report['damaged_frames']} damaged, "
         f"{report['stale_frames']} stale"
     )

@@ -135,7 +135,7 @@ def _serve(
         signal.signal(signal.SIGTERM, request_stop)
     while not service.finished(monotonic_us()):
         runtime.poll(0.05)
-        if manager is not None:
+        if manager is not None and not service.config.listen_only:
             for node in manager.rebooted():
                 service.node_rebooted(node, monotonic_us())
         if control is not None:
@@ -153,15 +153,9 @@ def _control_request(
         if manager is None:
             reply({"error": "the SDO audit needs --canopen"})
             return
-        books = {
-            s.node: {
-                "delivered_uj": s.delivered,
-                "reserved_uj": s.reserved,
-                "returned_uj": s.returned,
-            }
-            for s in service.core.state.sessions
-        }  # SDO reads block: answer from a thread, the loop keeps running
-        threading.Thread(target=lambda: reply(manager.audit(books)), daemon=True).start()
+        # SDO reads block: answer from a thread while the loop keeps running
+        audit = manager.audit
+        threading.Thread(target=lambda: reply(audit(service.books)), daemon=True).start()
         return
     if req.get("status") is True:
         reply(service.status())
@@ -186,7 +180,17 @@ def _control_request(
     service.request_grant(node, amount, reply)
 
 
+def _need_state(args: argparse.Namespace) -> None:
+    if args.state is None:
+        raise ValueError(
+            "--state PATH is required: without its non-volatile record a restarted supervisor "
+            "would reuse transaction numbers and grant its budget again"
+        )
+
+
 def run_supervisor(args: argparse.Namespace) -> int:
+    if not args.listen_only:
+        _need_state(args)
     if args.target is not None and args.target < QUANTUM_UJ:
         raise ValueError("--target must be at least 1 mJ")
     core = _build(args, args.nodes)
@@ -208,6 +212,7 @@ def run_supervisor(args: argparse.Namespace) -> int:
         filters.append({"can_id": 0, "can_mask": 0, "extended": False})  # CANopen's 11-bit ids
     bus = open_bus(args, filters)
     control = None
+    manager = None
     try:
         service = SupervisorService(core, config, monotonic_us())
         manager, reader = _canopen(args, bus, service) if args.canopen else (None, None)
@@ -225,6 +230,8 @@ def run_supervisor(args: argparse.Namespace) -> int:
     finally:
         if control is not None:
             control.close()
+        if manager is not None:
+            manager.network.notifier.stop()
         bus.shutdown()
     return 0
 
@@ -241,6 +248,7 @@ def run_grant(args: argparse.Namespace) -> int:
             )
             return 2
         return _report_grant(answer)
+    _need_state(args)
     core = _build(args, (args.node,))
     config = ServiceConfig(
         limits=_limits(args),

@@ -217,7 +217,7 @@ class Codec:
             body = layout.body.pack(*fields)
         except struct.error as exc:
             raise ValueError(f"field out of range in {msg}: {exc}") from exc
-        arbitration_id = self.id_base | int(msg_type) << 8 | node
+        arbitration_id = self.arbitration_id(msg_type, node)
         crc = crc8_update(self._by_id[arbitration_id].crc_start, body) ^ XOR_OUT
         return arbitration_id, bytes((crc,)) + body
 

@@ -3,9 +3,9 @@ late frames and bit corruption. One model for the demo, the fault-injecting bus 
 simulator.
 
 The injector decides the fate of each frame (``fate``) and leaves time to its caller, so a
-virtual-time run and a wall-clock run draw the same faults from the same seed. Every frame takes
-the same number of random draws whatever happens to it, so two runs that send the k-th frame of a
-stream meet the same fate for it.
+virtual-time run and a wall-clock run draw the same faults from the same seed. A frame's draws
+depend only on the frame's own fate (3 when lost, 8 per arriving copy otherwise), never on the
+data or the caller, so two runs that send the same frames in a stream meet the same fates.
 """
 
 from __future__ import annotations

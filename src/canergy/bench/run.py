@@ -50,11 +50,18 @@ def run(quick: bool = False) -> dict[str, Any]:
         ],
         "live": live_rows,
         "sdo": sdo,
-        "latency_ratio_vs_sdo": one["latency_p50_ms"] / sdo["latency_p50_ms"],
+        "latency_ratio_vs_sdo": (
+            one["latency_p50_ms"] / sdo["latency_p50_ms"] if one["latency_p50_ms"] else None
+        ),
         "wire": wire.model(),
-        "headroom": wire.headroom(one["cpu_us_per_frame"]),
+        "headroom": wire.headroom(one["cpu_us_per_frame"]) if one["cpu_us_per_frame"] else None,
         "memory": memory_per_node(),
     }
+
+
+def _n(value: float | None, spec: str) -> str:
+    """A figure, or n/a when the run measured nothing (a quick run on a busy machine)."""
+    return "n/a" if value is None else format(value, spec)
 
 
 def table(r: dict[str, Any]) -> str:
@@ -79,16 +86,16 @@ def table(r: dict[str, Any]) -> str:
     for row in r["live"]:
         lines.append(
             f"  {row['nodes']:>3} nodes: {row['tx_per_s']:>7,.0f} tx/s, latency p50 "
-            f"{row['latency_p50_ms']:.2f} ms p99 {row['latency_p99_ms']:.2f} ms, "
-            f"{row['frames_per_tx']:.2f} protocol frames/tx "
-            f"(+{row['telemetry_per_tx']:.2f} telemetry)"
+            f"{_n(row['latency_p50_ms'], '.2f')} ms p99 {_n(row['latency_p99_ms'], '.2f')} ms, "
+            f"{_n(row['frames_per_tx'], '.2f')} protocol frames/tx "
+            f"(+{_n(row['telemetry_per_tx'], '.2f')} telemetry)"
         )
     s = r["sdo"]
     lines += [
         f"  python-canopen SDO expedited 4-byte write: {s['writes_per_s']:,.0f}/s, p50 "
         f"{s['latency_p50_ms']:.3f} ms p99 {s['latency_p99_ms']:.3f} ms",
         f"  transaction latency / SDO write latency (1 node, p50): target <= 2: "
-        f"{r['latency_ratio_vs_sdo']:.2f}",
+        f"{_n(r['latency_ratio_vs_sdo'], '.2f')}",
         "",
         "wire model, nominal transaction (frames of "
         + "+".join(map(str, r["wire"]["frame_bytes"]))
@@ -100,11 +107,16 @@ def table(r: dict[str, Any]) -> str:
             f"  {row['ids']} {row['stuffing']:>5} stuffing: {row['bits_per_tx']} bits/tx; "
             f"max tx/s {rates}"
         )
-    h = r["headroom"]
+    h = r["headroom"] or {
+        "cpu_us_per_frame": None,
+        "wire_us_per_frame_1mbit": None,
+        "headroom": None,
+    }
     m = r["memory"]
     lines += [
-        f"  CPU per frame {h['cpu_us_per_frame']:.1f} us vs wire "
-        f"{h['wire_us_per_frame_1mbit']:.0f} us at 1 Mbit/s: headroom {h['headroom']:.2f} "
+        f"  CPU per frame {_n(h['cpu_us_per_frame'], '.1f')} us vs wire "
+        f"{_n(h['wire_us_per_frame_1mbit'], '.0f')} us at 1 Mbit/s: headroom "
+        f"{_n(h['headroom'], '.2f')} "
         "(target >= 1)",
         "",
         f"memory: supervisor {m['supervisor_bytes_per_node']:.0f} bytes/node at {m['nodes']} "

@@ -103,6 +103,8 @@ class Reducer:
     """Decides which generated worlds to store, and in which canonical form."""
 
     def __init__(self, clients: int, *, symmetry: bool = True, subsumption: bool = True) -> None:
+        _RENAMED.clear()  # memo tables live as long as one exploration
+        _SIGNATURES.clear()
         self.symmetry = symmetry and clients > 1
         self.subsumption = subsumption
         self._stored: dict[World, list[Counters]] = {}

@@ -82,8 +82,11 @@ class NodeBooks:
     newest_return: int | None = None
     resends: int = 0
 
+    booked_uj: int = 0
+    """Amounts of committed transactions whose intention the capture saw."""
+
     def booked(self) -> int:
-        return sum(self.intentions.get(tx, self.commits.get(tx, 0)) for tx in self.committed)
+        return self.booked_uj
 
     def returned(self) -> int:
         return sum(self.returns[q] for q in self.returns_acked if q in self.returns)
@@ -111,10 +114,7 @@ class NodeBooks:
 
 
 class Auditor:
-    def __init__(
-        self, *, variant: str = "hardened", initial: int | None = None, reordered: bool = False
-    ) -> None:
-        self.variant = variant
+    def __init__(self, *, initial: int | None = None, reordered: bool = False) -> None:
         self.initial = initial
         self.reordered = reordered
         self.stale = 0
@@ -169,7 +169,9 @@ class Auditor:
     def _intention(self, books: NodeBooks, m: Intention, flag: Any) -> None:
         tx, amount = self._tx(books, m.tx), m.amount_mj * QUANTUM_UJ
         ref = books.last_gs // QUANTUM_UJ if books.last_gs is not None else None
-        gs = (m.delivered_mj if ref is None else unwrap(m.delivered_mj, ref, DELIVERED_BITS)) * 1000
+        gs = (
+            m.delivered_mj if ref is None else unwrap(m.delivered_mj, ref, DELIVERED_BITS)
+        ) * QUANTUM_UJ
         if books.newest_tx is not None and tx < books.newest_tx:
             self._stale(
                 flag, f"replayed old INTENTION tx {tx} (tx {books.newest_tx} already began)"
@@ -218,6 +220,8 @@ class Auditor:
         if isinstance(m, Committed):
             if tx in books.aborted:
                 flag(f"COMMITTED tx {tx} after ABORTED")
+            if tx not in books.committed and tx in books.intentions:
+                books.booked_uj += books.intentions[tx]
             books.committed.add(tx)
             released = books.released_max()
             if released is not None and books.booked() > released:
@@ -249,7 +253,6 @@ class Auditor:
 
     def report(self) -> dict[str, Any]:
         return {
-            "variant": self.variant,
             "frames": self.frames,
             "foreign_frames": self.foreign,
             "damaged_frames": self.damaged,

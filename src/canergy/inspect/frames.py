@@ -100,9 +100,12 @@ def describe(codec: Codec, frame: can.Message) -> Described:
         msg = codec.decode(frame.arbitration_id, data, extended=ext, remote=remote)
     except DecodeError as err:
         if err.reason is DecodeErrorReason.BAD_CRC:
-            claimed = codec.decode(
-                frame.arbitration_id, data, extended=ext, remote=remote, check_crc=False
-            )
+            try:
+                claimed = codec.decode(
+                    frame.arbitration_id, data, extended=ext, remote=remote, check_crc=False
+                )
+            except DecodeError:  # damaged beyond what it claims (e.g. a zero amount)
+                claimed = None
             return make(claimed, False, err.reason.value)
         return make(None, None, err.reason.value)
     return make(msg, True, None)

@@ -94,22 +94,26 @@ class CanopenManager:
             state = self.last_state.get(node)
         return None if state is None else STATES.get(state & 0x7F, hex(state))
 
-    def audit(self, books: dict[int, dict[str, int]], timeout_s: float = 2.0) -> dict[str, Any]:
+    def audit(
+        self, books: Callable[[], dict[int, dict[str, int]]], timeout_s: float = 2.0
+    ) -> dict[str, Any]:
         """Read each node's energy objects by SDO and compare with the supervisor's books: a
-        node can hold at most what the books released to it, less what it returned."""
+        node can hold at most what the books released to it (delivered or still reserved), less
+        what it returned. The reads are not atomic: spent is read before usable (spending moves
+        energy from usable to spent) and the books after both (they only grow meanwhile)."""
         nodes: dict[str, Any] = {}
         ok = True
         for n, remote in self.remotes.items():
             remote.sdo.RESPONSE_TIMEOUT = timeout_s
             try:
-                usable = int(remote.sdo["Usable budget uJ"].raw)
                 credited = int(remote.sdo["Credited uJ"].raw)
                 spent = int(remote.sdo["Spent uJ"].raw)
+                usable = int(remote.sdo["Usable budget uJ"].raw)
             except (canopen.SdoCommunicationError, canopen.SdoAbortedError) as exc:
                 nodes[str(n)] = {"error": str(exc)}
                 ok = False
                 continue
-            b = books[n]
+            b = books()[n]
             allowed = b["delivered_uj"] + b["reserved_uj"] - b["returned_uj"]
             node_ok = usable + spent <= allowed
             nodes[str(n)] = {

@@ -39,16 +39,20 @@ class ControlServer:
                 conn, _ = self._sock.accept()
             except OSError:
                 return  # closed
-            conn.settimeout(5)
-            try:
-                line = conn.makefile("rb").readline(MAX_REQUEST)
-                request = json.loads(line)
-                if not isinstance(request, dict):
-                    raise ValueError("request must be a JSON object")
-            except (OSError, ValueError) as exc:
-                _answer(conn, {"error": f"bad request: {exc}"})
-                continue
-            self.requests.put((request, _replier(conn)))
+            threading.Thread(target=self._read, args=(conn,), daemon=True).start()
+
+    def _read(self, conn: socket.socket) -> None:
+        """One client's request, in its own thread: a slow client delays no one else."""
+        conn.settimeout(5)
+        try:
+            line = conn.makefile("rb").readline(MAX_REQUEST)
+            request = json.loads(line)
+            if not isinstance(request, dict):
+                raise ValueError("request must be a JSON object")
+        except (OSError, ValueError) as exc:
+            _answer(conn, {"error": f"bad request: {exc}"})
+            return
+        self.requests.put((request, _replier(conn)))
 
     def pending(self) -> list[tuple[dict[str, Any], Reply]]:
         out = []
@@ -59,7 +63,10 @@ class ControlServer:
                 return out
 
     def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self._sock.shutdown(socket.SHUT_RDWR)  # wakes the blocked accept()
         self._sock.close()
+        self._thread.join(timeout=5)
         with contextlib.suppress(FileNotFoundError):
             self.path.unlink()
 

@@ -73,8 +73,8 @@ def capped_grant(
 ) -> int:
     """The largest grant ≤ ``wanted`` every limit allows (0: none), in whole quanta."""
     caps = [wanted, limits.max_grant, usable, AMOUNT_MAX_MJ * QUANTUM_UJ]
-    if limits.max_node_level is not None:
-        caps.append(limits.max_node_level - (level or 0))
+    if limits.max_node_level is not None:  # an unknown level fails closed
+        caps.append(0 if level is None else limits.max_node_level - level)
     if limits.max_total is not None:
         caps.append(limits.max_total - granted_total)
     if rate_tokens is not None:

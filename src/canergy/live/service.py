@@ -32,7 +32,7 @@ from canergy.live.atomic import write_json_atomic
 from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant
 from canergy.live.runtime import BusCounters
 from canergy.live.state_file import save_state
-from canergy.messages import Message, Telemetry, ToSupervisor
+from canergy.messages import QUANTUM_UJ, Message, Telemetry, ToSupervisor
 
 GrantCallback = Callable[[dict[str, Any]], None]
 
@@ -111,7 +111,7 @@ class SupervisorService:
             return ()
         info.heard_at = now
         if isinstance(msg, Telemetry):
-            info.level, info.level_at, info.flags = msg.level_mj * 1000, now, msg.flags
+            info.level, info.level_at, info.flags = msg.level_mj * QUANTUM_UJ, now, msg.flags
             return self._flush(self._start_grants(now))
         if self.config.listen_only or not isinstance(msg, ToSupervisor):
             return ()
@@ -176,6 +176,17 @@ class SupervisorService:
         """Energy committed, written off or reserved since start (the books, not telemetry)."""
         st = self.core.state
         return sum(s.delivered + s.reserved for s in st.sessions) - self.delivered_at_start
+
+    def books(self) -> dict[int, dict[str, int]]:
+        """Per node what the books released and got back (a consistent snapshot)."""
+        return {
+            s.node: {
+                "delivered_uj": s.delivered,
+                "reserved_uj": s.reserved,
+                "returned_uj": s.returned,
+            }
+            for s in self.core.state.sessions
+        }
 
     def is_lost(self, node: int, now: int) -> bool:
         heard = self.nodes[node].heard_at

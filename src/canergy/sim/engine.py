@@ -19,7 +19,7 @@ from canergy.core import Acknowledged, Action, Client, Resolved, Send, Superviso
 from canergy.core.state import Outcome, Phase
 from canergy.core.variants import VARIANTS, Variant
 from canergy.ledger import ledger
-from canergy.messages import QUANTUM_UJ, Direction, Message, ToClient, ToSupervisor
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Direction, Message, ToClient, ToSupervisor
 from canergy.sim.channel import PRESETS, Channel, ChannelModel
 from canergy.sim.naive import NAIVE
 from canergy.units import UJ_PER_J
@@ -206,7 +206,9 @@ class Simulation:
         fraction = self.return_rng[node].uniform(0.2, 0.8)
         amount = int(usable * fraction) // QUANTUM_UJ * QUANTUM_UJ
         if amount >= QUANTUM_UJ and client.can_give_back():
-            self._carry_out(node, client.give_back(min(amount, 65_535_000), self.now))
+            self._carry_out(
+                node, client.give_back(min(amount, AMOUNT_MAX_MJ * QUANTUM_UJ), self.now)
+            )
         self._next_return(node)
 
     # -- plumbing --------------------------------------------------------------------------

@@ -12,7 +12,7 @@ import pytest
 
 from canergy.cli import main
 from canergy.faults import FaultCounters, FaultInjector
-from canergy.sim.channel import PRESETS, ChannelModel, channel
+from canergy.sim.channel import PRESETS, Channel, ChannelModel, channel
 from canergy.sim.engine import SimConfig, simulate
 from canergy.sim.sweep import sweep
 
@@ -64,10 +64,16 @@ def test_corrupted_frames_are_rejected_by_the_real_codec() -> None:
 
 
 def test_channel_streams_are_shared_across_strategies() -> None:
-    a = FaultInjector(PRESETS["lossy"], random.Random("x"), FaultCounters())
-    b = FaultInjector(PRESETS["lossy"], random.Random("x"), FaultCounters())
-    fates_a = [a.fate(bytes([i])) for i in range(200)]
-    assert fates_a == [b.fate(bytes([i])) for i in range(200)]
+    config = replace(PAPER, channel=channel("lossy", loss=0.5), clients=3, seed=9, trace=True)
+    firsts = []
+    for name in ("hardened", "optimistic", "pessimistic"):
+        frames = simulate(replace(config, strategy=name)).frames
+        firsts.append([f["arrivals"] for f in frames if f["t"] == 0.0])  # the first intentions
+    assert firsts[0] == firsts[1] == firsts[2] and len(firsts[0]) == 3
+    assert len({len(a) for a in firsts[0]}) == 2  # one per node's own stream: some lost, some not
+    fates = Channel(PRESETS["lossy"], 9)
+    link = fates.link(1, to_client=True)
+    assert link is fates.link(1, to_client=True) and link is not fates.link(1, to_client=False)
 
 
 def test_gilbert_elliott_loses_in_bursts() -> None:

@@ -6,9 +6,9 @@ them by index, fires timers, spends, returns and resets, then reads the ledger.
 
 from __future__ import annotations
 
-from canergy.core import Acknowledged, Action, Client, Send, Supervisor, Timing
+from canergy.core import Acknowledged, Action, Client, Phase, Send, Supervisor, Timing
 from canergy.ledger import Ledger, ledger
-from canergy.messages import Message, ToClient, ToSupervisor
+from canergy.messages import Direction, Message, ToClient, ToSupervisor
 
 J = 1_000_000
 
@@ -29,7 +29,7 @@ class Harness:
         for a in actions:
             if isinstance(a, Send):
                 msg: Message = a.message
-                if msg.TYPE.direction.name == "TO_CLIENT":
+                if msg.TYPE.direction is Direction.TO_CLIENT:
                     self.to_client.append(msg)  # type: ignore[arg-type]
                 else:
                     self.to_sup.append(msg)  # type: ignore[arg-type]
@@ -110,7 +110,7 @@ class Harness:
         for _ in range(limit):
             if self.acked:
                 a = self.acked.pop(0)
-                if self.sup.session(a.node).phase.name == "ACKED":
+                if self.sup.session(a.node).phase is Phase.ACKED:
                     (self.commit if commit else self.abort)(a.node)
             elif self.to_sup:
                 self.deliver_to_sup()

@@ -6,11 +6,10 @@ from dataclasses import replace
 
 import pytest
 
-from canergy.core import Aborted, ClientCommitted, Credited, ReturnAcknowledged, Send, Timing
+from canergy.core import ClientAborted, ClientCommitted, Credited, ReturnAcknowledged, Send, Timing
 from canergy.core.hardened import HardenedClient as R
 from canergy.core.state import ClientState, Outcome
-from canergy.messages import Abort, Ack, Commit, Committed, Intention, Return, ReturnAck
-from canergy.messages import Aborted as AbortedMsg
+from canergy.messages import Abort, Aborted, Ack, Commit, Committed, Intention, Return, ReturnAck
 
 T = Timing(command_timeout_us=1000, return_retry_us=300)
 A = 4000  # 4 mJ
@@ -50,7 +49,7 @@ def intention(tx: int, delivered_mj: int = 50) -> Intention:
             ABORTED_6,
             intention(6),
             ABORTED_6,
-            (Send(AbortedMsg(2, 6)),),
+            (Send(Aborted(2, 6)),),
         ),
         ("stale intention ignored", COMMITTED_6, intention(5), COMMITTED_6, ()),
         (
@@ -111,13 +110,13 @@ def intention(tx: int, delivered_mj: int = 50) -> Intention:
             COMMITTED_6,
             (Send(Committed(2, 6)),),
         ),
-        ("abort", HOLDING, Abort(2, 6, 4), ABORTED_6, (Aborted(2, 6), Send(AbortedMsg(2, 6)))),
+        ("abort", HOLDING, Abort(2, 6, 4), ABORTED_6, (ClientAborted(2, 6), Send(Aborted(2, 6)))),
         (
             "late commit after an abort is answered aborted",
             ABORTED_6,
             Commit(2, 6, 4),
             ABORTED_6,
-            (Send(AbortedMsg(2, 6)),),
+            (Send(Aborted(2, 6)),),
         ),
         ("stale commit ignored", COMMITTED_6, Commit(2, 5, 4), COMMITTED_6, ()),
         (

@@ -10,8 +10,7 @@ from canergy.core import Acknowledged, Resolved, ReturnCredited, Send, Timing
 from canergy.core.hardened import HardenedSupervisor as R
 from canergy.core.state import Decision, Outcome, Phase, Session
 from canergy.messages import Abort as AbortMsg
-from canergy.messages import Aborted as AbortedMsg
-from canergy.messages import Ack, Commit, Committed, Intention, Return, ReturnAck
+from canergy.messages import Aborted, Ack, Commit, Committed, Intention, Return, ReturnAck
 
 T = Timing(response_timeout_us=100, retries=2)
 TS = 5000  # reserved µJ (5 mJ)
@@ -68,15 +67,15 @@ DELIVERED = replace(
         (
             "aborted returns Ts to Us",
             ABORTING,
-            AbortedMsg(3, 7),
+            Aborted(3, 7),
             replace(DELIVERED, delivered=2000),
             (Resolved(3, 7, Outcome.ABORTED, TS),),
             TS,
         ),
-        ("aborted without an abort decision", COMMITTING, AbortedMsg(3, 7), COMMITTING, (), 0),
-        ("aborted while only acked", ACKED, AbortedMsg(3, 7), ACKED, (), 0),
+        ("aborted without an abort decision", COMMITTING, Aborted(3, 7), COMMITTING, (), 0),
+        ("aborted while only acked", ACKED, Aborted(3, 7), ACKED, (), 0),
         ("stale committed", COMMITTING, Committed(3, 6), COMMITTING, (), 0),
-        ("stale aborted", ABORTING, AbortedMsg(3, 6), ABORTING, (), 0),
+        ("stale aborted", ABORTING, Aborted(3, 6), ABORTING, (), 0),
         (
             "return next",
             IDLE,

@@ -17,10 +17,10 @@ import can
 
 from canergy.codec import Codec, DecodeError
 from canergy.core import (
-    Aborted,
     Acknowledged,
     Action,
     Client,
+    ClientAborted,
     ClientCommitted,
     Credited,
     Resolved,
@@ -28,7 +28,7 @@ from canergy.core import (
     Supervisor,
     Timing,
 )
-from canergy.core.state import Outcome
+from canergy.core.state import Outcome, Phase
 from canergy.faults import FaultInjector, FaultProfile
 from canergy.ledger import Ledger, ledger
 from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Direction, ToClient, ToSupervisor
@@ -182,7 +182,7 @@ class _Demo:
                 st = self.stats[a.node]
                 st.committed += 1
                 st.timeout_committed += a.by_timeout
-            elif isinstance(a, Aborted):
+            elif isinstance(a, ClientAborted):
                 self.stats[a.node].aborted += 1
             elif isinstance(a, Credited):
                 self.stats[a.node].credited_back += 1
@@ -231,7 +231,7 @@ class _Demo:
             usable = self.sup.state.usable
             if self.started >= self.cfg.transactions or usable < QUANTUM_UJ:
                 break
-            if self.sup.session(n).phase.name == "IDLE":
+            if self.sup.session(n).phase is Phase.IDLE:
                 amount = min(usable, self.rng.randint(self.grant_uj // 2, self.grant_uj * 3 // 2))
                 amount -= amount % QUANTUM_UJ
                 self.started += 1

@@ -1,7 +1,7 @@
 """The protocol's messages as frozen dataclasses holding exactly what travels on the wire.
 
 Counters are the wire's narrow wrapping values (``tx`` and ``seq`` 16 bits, ``delivered_mj``
-24 bits); the receiving core widens them with serial-number arithmetic (``canergy.serial``).
+24 bits); the receiving core widens them with serial-number arithmetic (``canergy.seqnum``).
 Amounts travel in whole millijoules (the wire quantum, ``QUANTUM_UJ``).
 """
 

@@ -6,7 +6,7 @@ import random
 import time
 from collections import deque
 
-from canergy.core import Acknowledged, Client, Send, Supervisor, Timing
+from canergy.core import Acknowledged, Client, Phase, Send, Supervisor, Timing
 from canergy.messages import Direction, ToClient, ToSupervisor
 
 AMOUNT = 1_000
@@ -47,7 +47,7 @@ def transactions_per_second(
                         else:
                             assert isinstance(msg, ToSupervisor)
                             queue.extend(sup.receive(msg, now))
-                if sup.session(n).phase.name == "IDLE" and clients[n].get_timer() is None:
+                if sup.session(n).phase is Phase.IDLE and clients[n].get_timer() is None:
                     break
                 now += 10_000  # nothing in flight: let the timers fire
                 queue.extend(sup.handle_timer(now))

@@ -5,9 +5,9 @@ timer expiries in, and carry out the returned actions.
 """
 
 from canergy.core.actions import (
-    Aborted,
     Acknowledged,
     Action,
+    ClientAborted,
     ClientCommitted,
     Credited,
     Persist,
@@ -26,10 +26,10 @@ from canergy.core.variants import VARIANTS
 
 __all__ = [
     "VARIANTS",
-    "Aborted",
     "Acknowledged",
     "Action",
     "Client",
+    "ClientAborted",
     "ClientCommitted",
     "ClientState",
     "Credited",

@@ -58,7 +58,7 @@ class ClientCommitted:
 
 
 @dataclass(frozen=True, slots=True)
-class Aborted:
+class ClientAborted:
     """Client: aborted ``tx``."""
 
     node: int
@@ -97,7 +97,7 @@ Action = (
     | Resolved
     | ReturnCredited
     | ClientCommitted
-    | Aborted
+    | ClientAborted
     | Credited
     | RolledBack
     | ReturnAcknowledged

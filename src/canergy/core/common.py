@@ -12,13 +12,13 @@ from canergy.messages import (
     SEQ_BITS,
     TX_BITS,
     Abort,
+    Aborted,
     Commit,
     Committed,
     Intention,
     Return,
 )
-from canergy.messages import Aborted as AbortedMsg
-from canergy.serial import wrap
+from canergy.seqnum import wrap
 
 Actions = tuple[Action, ...]
 SessionStep = tuple[Session, Actions, int]
@@ -119,7 +119,7 @@ def reply_for(c: ClientState, tx: int, outcome: Outcome) -> Actions:
     if outcome is Outcome.COMMITTED:
         return (Send(Committed(c.node, wire_tx(tx))),)
     if outcome is Outcome.ABORTED:
-        return (Send(AbortedMsg(c.node, wire_tx(tx))),)
+        return (Send(Aborted(c.node, wire_tx(tx))),)
     return NO_ACTIONS
 
 

@@ -8,7 +8,13 @@ Gs, and both sides ignoring any response for another transaction.
 
 from __future__ import annotations
 
-from canergy.core.actions import Aborted, Acknowledged, Credited, ReturnAcknowledged, ReturnCredited
+from canergy.core.actions import (
+    Acknowledged,
+    ClientAborted,
+    Credited,
+    ReturnAcknowledged,
+    ReturnCredited,
+)
 from canergy.core.actions import Send as SendAction
 from canergy.core.common import (
     NO_ACTIONS,
@@ -32,6 +38,7 @@ from canergy.messages import (
     SEQ_BITS,
     TX_BITS,
     Abort,
+    Aborted,
     Ack,
     Commit,
     Committed,
@@ -41,8 +48,7 @@ from canergy.messages import (
     ToClient,
     ToSupervisor,
 )
-from canergy.messages import Aborted as AbortedMsg
-from canergy.serial import unwrap
+from canergy.seqnum import unwrap
 
 _OPEN = (Phase.WAIT_ACK, Phase.WAIT_CONFIRM)
 
@@ -62,7 +68,7 @@ class HardenedSupervisor(SupervisorBase):
             return evolve(s, phase=Phase.ACKED, deadline=None), (Acknowledged(s.node, s.tx),), 0
         if isinstance(msg, Committed):
             return resolve(s, Outcome.COMMITTED)
-        if isinstance(msg, AbortedMsg) and s.decision is Decision.ABORT:
+        if isinstance(msg, Aborted) and s.decision is Decision.ABORT:
             return resolve(s, Outcome.ABORTED)  # the only way from Ts back to Us
         return s, NO_ACTIONS, 0
 
@@ -210,7 +216,7 @@ def _on_command(c: ClientState, msg: Commit | Abort) -> ClientStep:
         c = _resolved(c, tx, Outcome.COMMITTED)
         return c, (note, *reply_for(c, tx, Outcome.COMMITTED))
     c = _resolved(c, tx, Outcome.ABORTED)
-    return c, (Aborted(c.node, tx), *reply_for(c, tx, Outcome.ABORTED))
+    return c, (ClientAborted(c.node, tx), *reply_for(c, tx, Outcome.ABORTED))
 
 
 __all__ = ["HardenedClient", "HardenedSupervisor"]

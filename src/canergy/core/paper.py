@@ -9,7 +9,7 @@ arrival. ``credited``, ``return_seq`` and ``returns_credited`` are kept for the 
 
 from __future__ import annotations
 
-from canergy.core.actions import Aborted, Acknowledged, ReturnCredited, RolledBack, Send
+from canergy.core.actions import Acknowledged, ClientAborted, ReturnCredited, RolledBack, Send
 from canergy.core.common import (
     NO_ACTIONS,
     ClientStep,
@@ -29,6 +29,7 @@ from canergy.messages import (
     QUANTUM_UJ,
     SEQ_BITS,
     Abort,
+    Aborted,
     Ack,
     Commit,
     Committed,
@@ -39,8 +40,7 @@ from canergy.messages import (
     ToClient,
     ToSupervisor,
 )
-from canergy.messages import Aborted as AbortedMsg
-from canergy.serial import unwrap
+from canergy.seqnum import unwrap
 
 _AWAITING_REPLY = (Phase.WAIT_CONFIRM, Phase.WAIT_STATUS)
 
@@ -69,7 +69,7 @@ class PaperSupervisor(SupervisorBase):
             final = (Send(FinalAck(s.node, wire_tx(s.tx))),)
             if isinstance(msg, Committed):
                 return resolve(s, Outcome.COMMITTED, final)
-            if isinstance(msg, AbortedMsg):
+            if isinstance(msg, Aborted):
                 return resolve(s, Outcome.ABORTED, final)
         return s, NO_ACTIONS, 0
 
@@ -124,7 +124,7 @@ class PaperClient:
             return c, (note, *reply_for(c, c.held_tx, Outcome.COMMITTED))
         if c.phase is Phase.AWAIT_COMMAND and isinstance(msg, Abort):
             c = _await_supervisor(t, c, Outcome.ABORTED, False, now)
-            return c, (Aborted(c.node, c.held_tx), *reply_for(c, c.held_tx, Outcome.ABORTED))
+            return c, (ClientAborted(c.node, c.held_tx), *reply_for(c, c.held_tx, Outcome.ABORTED))
         if c.phase is Phase.AWAIT_SUPERVISOR and isinstance(msg, StatusRequest):
             c = evolve(c, deadline=now + t.quiet_timeout_us)
             return c, reply_for(c, c.held_tx, c.outcome)

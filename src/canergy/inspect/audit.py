@@ -43,7 +43,7 @@ from canergy.messages import (
     Return,
     ReturnAck,
 )
-from canergy.serial import unwrap
+from canergy.seqnum import unwrap
 
 
 @dataclass(frozen=True, slots=True)

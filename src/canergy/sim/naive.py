@@ -20,7 +20,7 @@ from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant
 from canergy.messages import QUANTUM_UJ, Ack, Intention, Return, ToClient, ToSupervisor
-from canergy.serial import unwrap
+from canergy.seqnum import unwrap
 
 
 class _NaiveSupervisor:

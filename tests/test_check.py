@@ -10,10 +10,11 @@ from canergy.check import Bounds, check, replay
 from canergy.check.explore import step_from_json
 from canergy.check.model import Model
 from canergy.cli import main
-from canergy.core.common import NO_ACTIONS
+from canergy.core import ClientState, ClientStep, Session, SessionStep, Timing
+from canergy.core import hardened as H
 from canergy.core.frozen import evolve
-from canergy.core.hardened import HardenedClient, HardenedSupervisor
-from canergy.core.state import ClientState, Session
+from canergy.core.inputs import PowerLoss, ReturnTimeout
+from canergy.core.table import ANY, cell
 from canergy.core.variants import VARIANTS, Variant
 from canergy.messages import QUANTUM_UJ, Return
 
@@ -89,7 +90,7 @@ SHAPES = {
 def test_paper_hazard_is_a_shortest_counterexample(hazard: str) -> None:
     result = check("paper", HAZARD_BOUNDS[hazard], stop_at_first=True)
     assert result.violations > 0 and result.counterexample is not None
-    assert [step.kind for step, _ in result.counterexample] == SHAPES[hazard]
+    assert [step.kind.value for step, _ in result.counterexample] == SHAPES[hazard]
     assert result.counterexample[-1][1].ledger().dissipated == -QUANTUM_UJ
     assert all(w.ledger().dissipated >= 0 for _, w in result.counterexample[:-1])
 
@@ -118,42 +119,39 @@ def test_hardened_two_clients_sharing_the_budget_with_supervisor_resets() -> Non
     assert result.states > 10_000, result.states
 
 
-class CreditsDuplicateReturns(HardenedSupervisor):
+def credit_every_copy(t: Timing, s: Session, msg: Return, now: int) -> SessionStep:
     """Broken on purpose: credits a RETURN again instead of only re-acknowledging it."""
-
-    @staticmethod
-    def receive(t, s: Session, msg, now):  # type: ignore[no-untyped-def]
-        if isinstance(msg, Return):
-            amount = msg.amount_mj * QUANTUM_UJ
-            s = evolve(s, returns_credited=max(s.returns_credited, msg.seq))
-            return s, (), amount
-        return HardenedSupervisor.receive(t, s, msg, now)
+    s = evolve(s, returns_credited=max(s.returns_credited, msg.seq))
+    return SessionStep(s, (), msg.amount_mj * QUANTUM_UJ)
 
 
-class ForgetsLastTxOnReset(HardenedClient):
+def forget_last_tx(t: Timing, c: ClientState, event: PowerLoss, now: int) -> ClientStep:
     """Broken on purpose: keeps the last resolved transaction in volatile memory."""
-
-    @staticmethod
-    def power_loss(c: ClientState, now: int) -> ClientState:
-        return evolve(HardenedClient.power_loss(c, now), last_tx=0)
+    return ClientStep(evolve(H.restart_client(t, c, event, now).client, last_tx=0))
 
 
-class RenumbersResentReturns(HardenedClient):
+def renumber_resent_return(t: Timing, c: ClientState, event: ReturnTimeout, now: int) -> ClientStep:
     """Broken on purpose: re-sends an unacknowledged return under a fresh number."""
+    if not c.return_pending:
+        return ClientStep(c)
+    return H.resend_return(t, evolve(c, return_seq=c.return_seq + 1), event, now)
 
-    @staticmethod
-    def return_timer(t, c: ClientState, now: int):  # type: ignore[no-untyped-def]
-        if not c.return_pending:
-            return c, NO_ACTIONS
-        return HardenedClient.return_timer(t, evolve(c, return_seq=c.return_seq + 1), now)
+
+SUP, CLIENT = H.SUPERVISOR, H.CLIENT
 
 
 @pytest.mark.parametrize(
     "broken",
     [
-        Variant("credits-duplicates", CreditsDuplicateReturns(), HardenedClient()),
-        Variant("volatile-ltx", HardenedSupervisor(), ForgetsLastTxOnReset()),
-        Variant("renumbered-returns", HardenedSupervisor(), RenumbersResentReturns()),
+        Variant("credits-duplicates", SUP.with_cells(cell(ANY, Return, credit_every_copy)), CLIENT),
+        Variant(
+            "volatile-ltx", SUP, CLIENT.with_cells(cell(ANY, PowerLoss, forget_last_tx, to=H.IDLE))
+        ),
+        Variant(
+            "renumbered-returns",
+            SUP,
+            CLIENT.with_cells(cell(ANY, ReturnTimeout, renumber_resent_return)),
+        ),
     ],
     ids=lambda v: v.name,
 )

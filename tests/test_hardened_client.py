@@ -1,165 +1,269 @@
-"""Table-driven transitions of the hardened client rules."""
+"""Every cell of the hardened client's transition table."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 
+import cells
 import pytest
+from cells import Case, params, run_case, run_ignored
 
-from canergy.core import ClientAborted, ClientCommitted, Credited, ReturnAcknowledged, Send, Timing
-from canergy.core.hardened import HardenedClient as R
-from canergy.core.state import ClientState, Outcome
-from canergy.messages import Abort, Aborted, Ack, Commit, Committed, Intention, Return, ReturnAck
+from canergy.core import (
+    ClientAborted,
+    ClientCommitted,
+    Credited,
+    LocalProtocolError,
+    ReturnAcknowledged,
+    Send,
+    Timing,
+)
+from canergy.core.hardened import CLIENT as TABLE
+from canergy.core.inputs import (
+    COMMAND_TIMEOUT,
+    POWER_LOSS,
+    RETURN_TIMEOUT,
+    CommandTimeout,
+    GiveBack,
+    Spend,
+)
+from canergy.core.state import ClientState, Outcome, Phase
+from canergy.messages import (
+    Abort,
+    Aborted,
+    Ack,
+    Commit,
+    Committed,
+    FinalAck,
+    Intention,
+    Return,
+    ReturnAck,
+    StatusRequest,
+)
 
 T = Timing(command_timeout_us=1000, return_retry_us=300)
 A = 4000  # 4 mJ
+ID, HO = Phase.IDLE, Phase.AWAIT_COMMAND
 FRESH = ClientState(
     node=2, usable=10_000, credited=50_000, spent=40_000, last_tx=5, outcome=Outcome.COMMITTED
 )
-HOLDING = replace(FRESH, held_tx=6, held_amount=A, deadline=1000)
+HOLDING = replace(FRESH, phase=HO, held_tx=6, held_amount=A, deadline=1000)
 COMMITTED_6 = replace(FRESH, usable=14_000, credited=54_000, last_tx=6)
 ABORTED_6 = replace(FRESH, last_tx=6, outcome=Outcome.ABORTED)
 RETURNING = replace(FRESH, return_seq=3, return_pending=2000, return_deadline=300)
+COMMITS_6 = (ClientCommitted(2, 6, A, False), Send(Committed(2, 6)))
 
 
 def intention(tx: int, delivered_mj: int = 50) -> Intention:
     return Intention(2, tx, A // 1000, delivered_mj)
 
 
+CASES = [
+    Case(
+        "new intention is held and acked", FRESH, intention(6), HOLDING, (Send(Ack(2, 6)),), now=0
+    ),
+    Case(
+        "duplicate intention re-acked, timer kept",
+        HOLDING,
+        intention(6),
+        HOLDING,
+        (Send(Ack(2, 6)),),
+    ),
+    Case(
+        "intention already committed gets the recorded reply",
+        COMMITTED_6,
+        intention(6),
+        COMMITTED_6,
+        (Send(Committed(2, 6)),),
+    ),
+    Case(
+        "intention already aborted gets the recorded reply",
+        ABORTED_6,
+        intention(6),
+        ABORTED_6,
+        (Send(Aborted(2, 6)),),
+    ),
+    Case("stale intention ignored", COMMITTED_6, intention(5), COMMITTED_6),
+    Case(
+        "skipped transactions are settled",
+        FRESH,
+        intention(8),
+        replace(HOLDING, last_tx=7, outcome=Outcome.SETTLED, held_tx=8),
+        (Send(Ack(2, 8)),),
+        now=0,
+    ),
+    Case(
+        "a newer intention drops a stale hold",
+        HOLDING,
+        intention(9),
+        replace(HOLDING, last_tx=8, outcome=Outcome.SETTLED, held_tx=9),
+        (Send(Ack(2, 9)),),
+        now=0,
+    ),
+    Case(
+        "write-off paid back through Gs",
+        FRESH,
+        intention(6, delivered_mj=53),
+        replace(HOLDING, usable=13_000, credited=53_000),
+        (Credited(2, 3000), Send(Ack(2, 6))),
+        now=0,
+    ),
+    Case(
+        "older Gs pays nothing",
+        FRESH,
+        intention(6, delivered_mj=40),
+        HOLDING,
+        (Send(Ack(2, 6)),),
+        now=0,
+    ),
+    Case("commit", HOLDING, Commit(2, 6, 4), COMMITTED_6, COMMITS_6),
+    Case(
+        "commit after a reset lost the hold uses the message amount",
+        FRESH,
+        Commit(2, 6, 4),
+        COMMITTED_6,
+        COMMITS_6,
+    ),
+    Case(
+        "duplicate commit is answered, not applied",
+        COMMITTED_6,
+        Commit(2, 6, 4),
+        COMMITTED_6,
+        (Send(Committed(2, 6)),),
+    ),
+    Case("stale commit ignored while holding", HOLDING, Commit(2, 4, 4), HOLDING),
+    Case("abort", HOLDING, Abort(2, 6, 4), ABORTED_6, (ClientAborted(2, 6), Send(Aborted(2, 6)))),
+    Case(
+        "late abort after a commit is answered committed",
+        COMMITTED_6,
+        Abort(2, 6, 4),
+        COMMITTED_6,
+        (Send(Committed(2, 6)),),
+    ),
+    Case(
+        "late commit after an abort is answered aborted",
+        ABORTED_6,
+        Commit(2, 6, 4),
+        ABORTED_6,
+        (Send(Aborted(2, 6)),),
+    ),
+    Case("stale abort ignored", COMMITTED_6, Abort(2, 5, 4), COMMITTED_6),
+    Case(
+        "return acknowledged",
+        RETURNING,
+        ReturnAck(2, 3),
+        replace(RETURNING, return_pending=0, return_deadline=None),
+        (ReturnAcknowledged(2, 3),),
+    ),
+    Case("other return ack ignored", RETURNING, ReturnAck(2, 2), RETURNING),
+    Case(
+        "return acknowledged while holding",
+        replace(RETURNING, phase=HO, held_tx=6, held_amount=A, deadline=1000),
+        ReturnAck(2, 3),
+        replace(HOLDING, return_seq=3),
+        (ReturnAcknowledged(2, 3),),
+    ),
+    Case(
+        "command timer commits the held intention",
+        HOLDING,
+        COMMAND_TIMEOUT,
+        COMMITTED_6,
+        (ClientCommitted(2, 6, A, True), Send(Committed(2, 6))),
+        now=1000,
+    ),
+    Case("command timer not due yet", HOLDING, COMMAND_TIMEOUT, HOLDING, now=999),
+    Case(
+        "return re-sent under the same number",
+        RETURNING,
+        RETURN_TIMEOUT,
+        replace(RETURNING, return_deadline=600),
+        (Send(Return(2, 3, 2)),),
+        now=300,
+    ),
+    Case(
+        "return timer while holding, not due",
+        replace(HOLDING, return_seq=3, return_pending=2000, return_deadline=300),
+        RETURN_TIMEOUT,
+        replace(HOLDING, return_seq=3, return_pending=2000, return_deadline=300),
+        now=299,
+    ),
+    Case("spend", FRESH, Spend(2500), replace(FRESH, usable=7500, spent=42_500)),
+    Case("spend while holding", HOLDING, Spend(10_000), replace(HOLDING, usable=0, spent=50_000)),
+    Case(
+        "give back: debited first, numbered, re-sent until acked",
+        FRESH,
+        GiveBack(2000),
+        replace(FRESH, usable=8000, return_seq=1, return_pending=2000, return_deadline=310),
+        (Send(Return(2, 1, 2)),),
+        now=10,
+    ),
+    Case(
+        "give back while holding",
+        HOLDING,
+        GiveBack(1000),
+        replace(HOLDING, usable=9000, return_seq=1, return_pending=1000, return_deadline=310),
+        (Send(Return(2, 1, 1)),),
+        now=10,
+    ),
+    Case(
+        "power loss keeps the record, re-sends a pending return at once",
+        replace(RETURNING, return_deadline=5),
+        POWER_LOSS,
+        replace(RETURNING, return_deadline=77),
+        now=77,
+    ),
+    Case("power loss drops the hold", HOLDING, POWER_LOSS, FRESH, now=77),
+]
+IGNORED = {
+    (ID, StatusRequest),
+    (HO, StatusRequest),
+    (ID, FinalAck),
+    (HO, FinalAck),
+    (ID, CommandTimeout),
+}
+REFUSED: set[cells.CellKey] = set()
+STATES = {ID: FRESH, HO: HOLDING}
+EVENTS = {
+    StatusRequest: StatusRequest(2, 6),
+    FinalAck: FinalAck(2, 6),
+    CommandTimeout: COMMAND_TIMEOUT,
+}
+
+
+@pytest.mark.parametrize("case", params(CASES))
+def test_cell(case: Case) -> None:
+    run_case(TABLE, T, case)
+
+
+@pytest.mark.parametrize("cell", sorted(IGNORED, key=str), ids=str)
+def test_ignored(cell: cells.CellKey) -> None:
+    run_ignored(TABLE, T, cell, STATES, EVENTS)
+
+
+def test_every_cell_has_a_test() -> None:
+    assert not REFUSED  # the client's local requests are guarded by energy, not by phase
+    cells.check_coverage(TABLE, CASES, IGNORED, REFUSED)
+
+
 @pytest.mark.parametrize(
-    ("name", "start", "msg", "end", "actions"),
-    [
-        ("new intention is held and acked", FRESH, intention(6), HOLDING, (Send(Ack(2, 6)),)),
-        (
-            "duplicate intention re-acked, timer kept",
-            HOLDING,
-            intention(6),
-            HOLDING,
-            (Send(Ack(2, 6)),),
-        ),
-        (
-            "intention already committed gets the recorded reply",
-            COMMITTED_6,
-            intention(6),
-            COMMITTED_6,
-            (Send(Committed(2, 6)),),
-        ),
-        (
-            "intention already aborted gets the recorded reply",
-            ABORTED_6,
-            intention(6),
-            ABORTED_6,
-            (Send(Aborted(2, 6)),),
-        ),
-        ("stale intention ignored", COMMITTED_6, intention(5), COMMITTED_6, ()),
-        (
-            "skipped transactions are settled",
-            FRESH,
-            intention(8),
-            replace(
-                FRESH, last_tx=7, outcome=Outcome.SETTLED, held_tx=8, held_amount=A, deadline=1000
-            ),
-            (Send(Ack(2, 8)),),
-        ),
-        (
-            "a newer intention drops a stale hold",
-            HOLDING,
-            intention(9),
-            replace(HOLDING, last_tx=8, outcome=Outcome.SETTLED, held_tx=9),
-            (Send(Ack(2, 9)),),
-        ),
-        (
-            "write-off paid back through Gs",
-            FRESH,
-            intention(6, delivered_mj=53),
-            replace(HOLDING, usable=13_000, credited=53_000),
-            (Credited(2, 3000), Send(Ack(2, 6))),
-        ),
-        (
-            "older Gs pays nothing",
-            FRESH,
-            intention(6, delivered_mj=40),
-            HOLDING,
-            (Send(Ack(2, 6)),),
-        ),
-        (
-            "commit",
-            HOLDING,
-            Commit(2, 6, 4),
-            COMMITTED_6,
-            (ClientCommitted(2, 6, A, False), Send(Committed(2, 6))),
-        ),
-        (
-            "commit after a reset lost the hold uses the message amount",
-            FRESH,
-            Commit(2, 6, 4),
-            COMMITTED_6,
-            (ClientCommitted(2, 6, A, False), Send(Committed(2, 6))),
-        ),
-        (
-            "duplicate commit is answered, not applied",
-            COMMITTED_6,
-            Commit(2, 6, 4),
-            COMMITTED_6,
-            (Send(Committed(2, 6)),),
-        ),
-        (
-            "late abort after a commit is answered committed",
-            COMMITTED_6,
-            Abort(2, 6, 4),
-            COMMITTED_6,
-            (Send(Committed(2, 6)),),
-        ),
-        ("abort", HOLDING, Abort(2, 6, 4), ABORTED_6, (ClientAborted(2, 6), Send(Aborted(2, 6)))),
-        (
-            "late commit after an abort is answered aborted",
-            ABORTED_6,
-            Commit(2, 6, 4),
-            ABORTED_6,
-            (Send(Aborted(2, 6)),),
-        ),
-        ("stale commit ignored", COMMITTED_6, Commit(2, 5, 4), COMMITTED_6, ()),
-        (
-            "return acknowledged",
-            RETURNING,
-            ReturnAck(2, 3),
-            replace(RETURNING, return_pending=0, return_deadline=None),
-            (ReturnAcknowledged(2, 3),),
-        ),
-        ("other return ack ignored", RETURNING, ReturnAck(2, 2), RETURNING, ()),
-    ],
+    "event", [Spend(0), Spend(10_001), GiveBack(1500), GiveBack(11_000), GiveBack(0)], ids=str
 )
-def test_receive(name: str, start: ClientState, msg, end: ClientState, actions: tuple) -> None:
-    assert R.receive(T, start, msg, 0) == (end, actions)
+def test_local_requests_guarded_by_energy(event: object) -> None:
+    with pytest.raises(LocalProtocolError):
+        TABLE.step(T, FRESH, event, 0)
+
+
+def test_one_return_at_a_time() -> None:
+    assert TABLE.can_give_back(FRESH) and not TABLE.can_give_back(RETURNING)
+    with pytest.raises(LocalProtocolError):
+        TABLE.step(T, RETURNING, GiveBack(1000), 0)
 
 
 def test_tx_wraps_on_the_wire() -> None:
     start = replace(FRESH, last_tx=0xFFFF)
-    held, actions = R.receive(T, start, intention(0), 0)
+    held, actions = TABLE.step(T, start, intention(0), 0)
     assert held.held_tx == 0x10000 and actions == (Send(Ack(2, 0)),)
 
 
-def test_command_timer_commits_the_held_intention() -> None:
-    c, actions = R.command_timer(T, HOLDING, 1000)
-    assert c == COMMITTED_6
-    assert actions == (ClientCommitted(2, 6, A, True), Send(Committed(2, 6)))
-
-
-@pytest.mark.parametrize("start", [FRESH, replace(HOLDING, deadline=1001)])
-def test_command_timer_idle_or_early(start: ClientState) -> None:
-    assert R.command_timer(T, start, 1000) == (start, ())
-
-
-def test_return_is_debited_first_and_resent_until_acked() -> None:
-    c, actions = R.give_back(T, FRESH, 2000, 10)
-    assert (c.usable, c.return_seq, c.return_pending, c.return_deadline) == (8000, 1, 2000, 310)
-    assert actions == (Send(Return(2, 1, 2)),)
-    again, resent = R.return_timer(T, c, 310)
-    assert resent == (Send(Return(2, 1, 2)),) and again.return_deadline == 610
-    assert not R.can_give_back(c)
-
-
-def test_power_loss_keeps_the_record() -> None:
-    c = R.power_loss(replace(HOLDING, return_seq=3, return_pending=2000, return_deadline=5), 77)
-    assert (c.held_tx, c.held_amount, c.deadline, c.return_deadline) == (0, 0, None, 77)
-    assert R.persistent(c) == (*R.persistent(HOLDING)[:5], 3, 2000)
+def test_what_persists() -> None:
+    assert TABLE.persistent(HOLDING) == TABLE.persistent(FRESH)
+    assert TABLE.persistent(RETURNING) != TABLE.persistent(FRESH)

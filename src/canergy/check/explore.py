@@ -8,7 +8,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from canergy.check.model import Bounds, Model, Step, World, initial_world
+from canergy.check.model import Bounds, Model, Step, StepKind, World, initial_world
 from canergy.check.reduce import Reducer, inverse, relabel_step
 from canergy.core.variants import Variant, get_variant
 from canergy.messages import MESSAGE_CLASSES, MsgType
@@ -61,12 +61,12 @@ class CheckResult:
 
 
 def step_json(step: Step) -> dict[str, Any]:
-    out: dict[str, Any] = {"kind": step.kind}
+    out: dict[str, Any] = {"kind": step.kind.value}
     if step.node:
         out["node"] = step.node
-    if step.kind == "begin":
+    if step.kind is StepKind.BEGIN:
         out["units"] = step.units
-    if step.kind == "decide":
+    if step.kind is StepKind.DECIDE:
         out["commit"] = step.commit
     if step.message is not None:
         out["message"] = {"type": step.message.TYPE.name, **_fields(step.message)}
@@ -81,7 +81,11 @@ def step_from_json(data: dict[str, Any]) -> Step:
         cls = MESSAGE_CLASSES[MsgType[fields.pop("type")]]
         message = cls(**fields)
     return Step(
-        data["kind"], data.get("node", 0), data.get("units", 0), data.get("commit", False), message
+        StepKind(data["kind"]),
+        data.get("node", 0),
+        data.get("units", 0),
+        data.get("commit", False),
+        message,
     )
 
 

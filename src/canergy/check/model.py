@@ -8,12 +8,22 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Literal
+from enum import Enum
 
 from canergy.core.actions import Send
-from canergy.core.common import Actions
 from canergy.core.frozen import evolve
+from canergy.core.inputs import (
+    COMMAND_TIMEOUT,
+    POWER_LOSS,
+    RESPONSE_TIMEOUT,
+    RETURN_TIMEOUT,
+    Begin,
+    Decide,
+    GiveBack,
+    Spend,
+)
 from canergy.core.state import ClientState, Decision, Phase, Session, SupervisorState
+from canergy.core.steps import Actions
 from canergy.core.supervisor import apply_session
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant
@@ -79,20 +89,28 @@ class World:
         )
 
 
-StepKind = Literal[
-    "begin",
-    "decide",
-    "deliver",
-    "lose",
-    "duplicate",
-    "supervisor_timer",
-    "command_timer",
-    "return_timer",
-    "spend",
-    "give_back",
-    "client_power_loss",
-    "supervisor_power_loss",
-]
+class StepKind(Enum):
+    """The kinds of nondeterministic choice (values are the names used in JSON traces)."""
+
+    BEGIN = "begin"
+    DECIDE = "decide"
+    DELIVER = "deliver"
+    LOSE = "lose"
+    DUPLICATE = "duplicate"
+    SUPERVISOR_TIMER = "supervisor_timer"
+    COMMAND_TIMER = "command_timer"
+    RETURN_TIMER = "return_timer"
+    SPEND = "spend"
+    GIVE_BACK = "give_back"
+    CLIENT_POWER_LOSS = "client_power_loss"
+    SUPERVISOR_POWER_LOSS = "supervisor_power_loss"
+
+
+K = StepKind
+CHANNEL_KINDS = frozenset({K.DELIVER, K.LOSE, K.DUPLICATE})
+TIMER_KINDS = frozenset({K.SUPERVISOR_TIMER, K.COMMAND_TIMER, K.RETURN_TIMER})
+SUPERVISOR_KINDS = frozenset({K.BEGIN, K.DECIDE, K.SUPERVISOR_TIMER})
+POWER_LOSS_KINDS = frozenset({K.CLIENT_POWER_LOSS, K.SUPERVISOR_POWER_LOSS})
 
 
 @dataclass(frozen=True, slots=True)
@@ -106,14 +124,15 @@ class Step:
     message: Message | None = None
 
     def describe(self) -> str:
+        kind = self.kind.value
         if self.message is not None:
-            return f"{self.kind} {self.message}"
+            return f"{kind} {self.message}"
         extra = {
-            "begin": f" {self.units} unit(s)",
-            "decide": " commit" if self.commit else " abort",
+            K.BEGIN: f" {self.units} unit(s)",
+            K.DECIDE: " commit" if self.commit else " abort",
         }
         where = f" node {self.node}" if self.node else ""
-        return f"{self.kind}{where}{extra.get(self.kind, '')}"
+        return f"{kind}{where}{extra.get(self.kind, '')}"
 
 
 def initial_world(bounds: Bounds) -> World:
@@ -130,45 +149,45 @@ class Model:
         self.variant = variant
         self.bounds = bounds
         self.timing = bounds.timing()
-        self.sup_rules = variant.supervisor
-        self.client_rules = variant.client
 
     # -- enumeration -----------------------------------------------------------------
     def steps(self, w: World) -> Iterator[Step]:
         b = self.bounds
+        may_time_out = b.timeouts is None or w.timed_out < b.timeouts
+        may_lose_power = w.power_lost < b.power_losses
         for s in w.sup.sessions:
             if s.phase is Phase.IDLE and w.started < b.transactions:
                 for units in range(1, min(w.sup.usable // UNIT, b.units) + 1):
-                    yield Step("begin", s.node, units=units)
+                    yield Step(K.BEGIN, s.node, units=units)
             if s.phase is Phase.ACKED:
-                yield Step("decide", s.node, commit=True)
-                yield Step("decide", s.node, commit=False)
-            if s.deadline is not None and (b.timeouts is None or w.timed_out < b.timeouts):
-                yield Step("supervisor_timer", s.node)
+                yield Step(K.DECIDE, s.node, commit=True)
+                yield Step(K.DECIDE, s.node, commit=False)
+            if s.deadline is not None and may_time_out:
+                yield Step(K.SUPERVISOR_TIMER, s.node)
         for msg, _ in sorted(w.flight, key=_flight_key):
-            yield Step("deliver", message=msg)
+            yield Step(K.DELIVER, message=msg)
             if w.lost < b.losses:
-                yield Step("lose", message=msg)
+                yield Step(K.LOSE, message=msg)
             if w.duplicated < b.duplicates and w.frames() < b.in_flight:
-                yield Step("duplicate", message=msg)
+                yield Step(K.DUPLICATE, message=msg)
         for c in w.clients:
-            if c.deadline is not None and (b.timeouts is None or w.timed_out < b.timeouts):
-                yield Step("command_timer", c.node)
-            if c.return_deadline is not None and (b.timeouts is None or w.timed_out < b.timeouts):
-                yield Step("return_timer", c.node)
+            if c.deadline is not None and may_time_out:
+                yield Step(K.COMMAND_TIMER, c.node)
+            if c.return_deadline is not None and may_time_out:
+                yield Step(K.RETURN_TIMER, c.node)
             if b.spending and c.usable >= UNIT:
-                yield Step("spend", c.node)
-            if b.returns and c.usable >= UNIT and self.client_rules.can_give_back(c):
-                yield Step("give_back", c.node)
-            if w.power_lost < b.power_losses:
-                yield Step("client_power_loss", c.node)
-        if w.power_lost < b.power_losses:
-            yield Step("supervisor_power_loss")
+                yield Step(K.SPEND, c.node)
+            if b.returns and c.usable >= UNIT and self.variant.client.can_give_back(c):
+                yield Step(K.GIVE_BACK, c.node)
+            if may_lose_power:
+                yield Step(K.CLIENT_POWER_LOSS, c.node)
+        if may_lose_power:
+            yield Step(K.SUPERVISOR_POWER_LOSS)
 
     # -- application -----------------------------------------------------------------
     def apply(self, w: World, step: Step) -> World | None:
         """The world after ``step``, or None when it leaves the bounds."""
-        new = self._apply(w, step)
+        new = self._apply(self._count(w, step.kind), step)
         if new is None or new.frames() > self.bounds.in_flight:
             return None
         limit = self.bounds.transactions + self.bounds.extra_ids
@@ -176,38 +195,46 @@ class Model:
             return None
         return new
 
+    def _count(self, w: World, kind: StepKind) -> World:
+        """Charge the step to the bounds it uses."""
+        if kind in TIMER_KINDS and self.bounds.timeouts is not None:
+            return evolve(w, timed_out=w.timed_out + 1)
+        if kind in POWER_LOSS_KINDS:
+            return evolve(w, power_lost=w.power_lost + 1)
+        if kind is K.BEGIN:
+            return evolve(w, started=w.started + 1)
+        return w
+
     def _apply(self, w: World, step: Step) -> World | None:
-        t, kind, i = self.timing, step.kind, step.node - 1
-        if kind.endswith("_timer") and self.bounds.timeouts is not None:
-            w = evolve(w, timed_out=w.timed_out + 1)
-        if kind == "begin":
-            s, actions = self.sup_rules.begin(t, w.sup.sessions[i], step.units * UNIT, 0)
-            sup = apply_session(w.sup, i, s, -step.units * UNIT)
-            return self._out(evolve(w, sup=sup, started=w.started + 1), actions)
-        if kind == "decide":
-            decision = Decision.COMMIT if step.commit else Decision.ABORT
-            return self._session(w, i, self.sup_rules.decide(t, w.sup.sessions[i], decision, 0))
-        if kind == "supervisor_timer":
-            return self._session(w, i, self.sup_rules.timer(t, w.sup.sessions[i], 0))
-        if kind in ("deliver", "lose", "duplicate"):
+        """Every step but the channel's is one event fed to one table: the rules the demo runs."""
+        if step.kind in CHANNEL_KINDS:
             return self._channel(w, step)
-        if kind == "supervisor_power_loss":
-            sessions = tuple(self.sup_rules.power_loss(s, 0) for s in w.sup.sessions)
-            return evolve(w, sup=evolve(w.sup, sessions=sessions), power_lost=w.power_lost + 1)
-        c = w.clients[i]
-        if kind == "command_timer":
-            return self._client(w, i, *self.client_rules.command_timer(t, c, 0))
-        if kind == "return_timer":
-            return self._client(w, i, *self.client_rules.return_timer(t, c, 0))
-        if kind == "spend":
-            spent = evolve(c, usable=c.usable - UNIT, spent=c.spent + UNIT)
-            return self._client(w, i, spent, ())
-        if kind == "give_back":
-            return self._client(w, i, *self.client_rules.give_back(t, c, UNIT, 0))
-        if kind == "client_power_loss":
-            w = evolve(w, power_lost=w.power_lost + 1)
-            return self._client(w, i, self.client_rules.power_loss(c, 0), ())
-        raise ValueError(f"unknown step {step}")
+        if step.kind is K.SUPERVISOR_POWER_LOSS:
+            for i in range(len(w.sup.sessions)):
+                w = self._to_session(w, i, POWER_LOSS)
+            return w
+        i = step.node - 1
+        if step.kind in SUPERVISOR_KINDS:
+            return self._to_session(w, i, self._event(step))
+        return self._to_client(w, i, self._event(step))
+
+    @staticmethod
+    def _event(step: Step) -> object:
+        kind = step.kind
+        if kind is K.BEGIN:
+            return Begin(step.units * UNIT)
+        if kind is K.DECIDE:
+            return Decide(Decision.COMMIT if step.commit else Decision.ABORT)
+        if kind is K.SPEND:
+            return Spend(UNIT)
+        if kind is K.GIVE_BACK:
+            return GiveBack(UNIT)
+        return {
+            K.SUPERVISOR_TIMER: RESPONSE_TIMEOUT,
+            K.COMMAND_TIMER: COMMAND_TIMEOUT,
+            K.RETURN_TIMER: RETURN_TIMEOUT,
+            K.CLIENT_POWER_LOSS: POWER_LOSS,
+        }[kind]
 
     def _channel(self, w: World, step: Step) -> World | None:
         msg = step.message
@@ -215,27 +242,28 @@ class Model:
         counts = dict(w.flight)
         if msg not in counts:
             return None
-        if step.kind == "duplicate":
+        if step.kind is K.DUPLICATE:
             counts[msg] += 1
             return evolve(w, flight=frozenset(counts.items()), duplicated=w.duplicated + 1)
         counts[msg] -= 1
         if not counts[msg]:
             del counts[msg]
         w = evolve(w, flight=frozenset(counts.items()))
-        if step.kind == "lose":
+        if step.kind is K.LOSE:
             return evolve(w, lost=w.lost + 1)
         i = msg.node - 1
         if msg.TYPE.direction is Direction.TO_CLIENT:
             assert isinstance(msg, ToClient)
-            return self._client(w, i, *self.client_rules.receive(self.timing, w.clients[i], msg, 0))
+            return self._to_client(w, i, msg)
         assert isinstance(msg, ToSupervisor)
-        return self._session(w, i, self.sup_rules.receive(self.timing, w.sup.sessions[i], msg, 0))
+        return self._to_session(w, i, msg)
 
-    def _session(self, w: World, i: int, step: tuple[Session, Actions, int]) -> World:
-        s, actions, credit = step
-        return self._out(evolve(w, sup=apply_session(w.sup, i, s, credit)), actions)
+    def _to_session(self, w: World, i: int, event: object) -> World:
+        step = self.variant.supervisor.step(self.timing, w.sup.sessions[i], event, 0)
+        return self._out(evolve(w, sup=apply_session(w.sup, i, step)), step.actions)
 
-    def _client(self, w: World, i: int, c: ClientState, actions: Actions) -> World:
+    def _to_client(self, w: World, i: int, event: object) -> World:
+        c, actions = self.variant.client.step(self.timing, w.clients[i], event, 0)
         clients = (*w.clients[:i], c, *w.clients[i + 1 :])
         return self._out(evolve(w, clients=clients), actions)
 

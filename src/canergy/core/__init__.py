@@ -20,7 +20,9 @@ from canergy.core.actions import (
 from canergy.core.client import Client
 from canergy.core.errors import LocalProtocolError
 from canergy.core.state import ClientState, Decision, Outcome, Phase, Session, SupervisorState
+from canergy.core.steps import ClientStep, SessionStep
 from canergy.core.supervisor import Supervisor
+from canergy.core.table import ClientTable, SupervisorTable
 from canergy.core.timing import Timing
 from canergy.core.variants import VARIANTS
 
@@ -32,6 +34,8 @@ __all__ = [
     "ClientAborted",
     "ClientCommitted",
     "ClientState",
+    "ClientStep",
+    "ClientTable",
     "Credited",
     "Decision",
     "LocalProtocolError",
@@ -44,7 +48,9 @@ __all__ = [
     "RolledBack",
     "Send",
     "Session",
+    "SessionStep",
     "Supervisor",
     "SupervisorState",
+    "SupervisorTable",
     "Timing",
 ]

@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 from canergy.core.actions import Action, Persist
-from canergy.core.common import ClientStep, spend
-from canergy.core.errors import LocalProtocolError
+from canergy.core.inputs import COMMAND_TIMEOUT, POWER_LOSS, RETURN_TIMEOUT, GiveBack, Spend
 from canergy.core.state import ClientState
-from canergy.core.supervisor import check_amount
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
 from canergy.messages import MAX_NODE, MIN_NODE, ToClient
@@ -35,7 +33,7 @@ class Client:
         """Feed a decoded supervisor message; messages for other nodes are ignored."""
         if msg.node != self.node:
             return []
-        return self._apply(self.rules.receive(self.timing, self.state, msg, now))
+        return self._step(msg, now)
 
     def get_timer(self) -> int | None:
         deadlines = [d for d in (self.state.deadline, self.state.return_deadline) if d is not None]
@@ -45,37 +43,30 @@ class Client:
         return self.fire_command_timer(now) + self.fire_return_timer(now)
 
     def fire_command_timer(self, now: int) -> list[Action]:
-        return self._apply(self.rules.command_timer(self.timing, self.state, now))
+        return self._step(COMMAND_TIMEOUT, now)
 
     def fire_return_timer(self, now: int) -> list[Action]:
-        return self._apply(self.rules.return_timer(self.timing, self.state, now))
+        return self._step(RETURN_TIMEOUT, now)
 
     def spend(self, amount: int) -> list[Action]:
         """The actuator used ``amount`` µJ; refused beyond the usable budget."""
-        if amount <= 0 or amount > self.state.usable:
-            raise LocalProtocolError(f"cannot spend {amount} µJ of {self.state.usable} µJ")
-        return self._apply((spend(self.state, amount), ()))
+        return self._step(Spend(amount), 0)
 
     def give_back(self, amount: int, now: int) -> list[Action]:
         """Return ``amount`` µJ of unused energy to the supervisor."""
-        check_amount(amount)
-        if amount > self.state.usable:
-            raise LocalProtocolError(f"cannot return {amount} µJ of {self.state.usable} µJ")
-        if not self.rules.can_give_back(self.state):
-            raise LocalProtocolError("a return is still waiting for its acknowledgement")
-        return self._apply(self.rules.give_back(self.timing, self.state, amount, now))
+        return self._step(GiveBack(amount), now)
 
     def can_give_back(self) -> bool:
         return self.rules.can_give_back(self.state)
 
     def power_loss(self, now: int) -> None:
         """Lose volatile state and restart from the non-volatile record."""
-        self.state = self.rules.power_loss(self.state, now)
+        self._step(POWER_LOSS, now)
 
-    def _apply(self, step: ClientStep) -> list[Action]:
-        new, actions = step
-        old, self.state = self.state, new
-        if self.rules.persistent(old) != self.rules.persistent(new):
+    def _step(self, event: object, now: int) -> list[Action]:
+        old = self.state
+        self.state, actions = self.rules.step(self.timing, old, event, now)
+        if self.rules.persistent(old) != self.rules.persistent(self.state):
             return [Persist(), *actions]
         return list(actions)
 

@@ -1,12 +1,17 @@
-"""Pieces both variants share: building wire messages from states, resolving, committing."""
+"""Pieces every variant shares: wire messages from states, amounts, resolving, committing, and the
+handlers for beginning, deciding and spending that are the same in every rule set."""
 
 from __future__ import annotations
 
 from canergy.core.actions import Action, ClientCommitted, Resolved, Send
+from canergy.core.errors import LocalProtocolError
 from canergy.core.frozen import evolve
+from canergy.core.inputs import Begin, Decide, Spend
 from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
+from canergy.core.steps import NO_ACTIONS, Actions, ClientStep, SessionStep
 from canergy.core.timing import Timing
 from canergy.messages import (
+    AMOUNT_MAX_MJ,
     DELIVERED_BITS,
     QUANTUM_UJ,
     SEQ_BITS,
@@ -20,11 +25,14 @@ from canergy.messages import (
 )
 from canergy.seqnum import wrap
 
-Actions = tuple[Action, ...]
-SessionStep = tuple[Session, Actions, int]
-"""New session, actions, and energy (µJ) to credit to the supervisor's usable budget."""
-ClientStep = tuple[ClientState, Actions]
-NO_ACTIONS: Actions = ()
+
+def check_amount(amount: int) -> None:
+    """A transferable amount: a positive whole number of wire quanta that fits one frame."""
+    if amount <= 0 or amount % QUANTUM_UJ or amount > AMOUNT_MAX_MJ * QUANTUM_UJ:
+        raise LocalProtocolError(
+            f"amount {amount} µJ must be a positive multiple of {QUANTUM_UJ} µJ "
+            f"and at most {AMOUNT_MAX_MJ * QUANTUM_UJ} µJ"
+        )
 
 
 def wire_tx(tx: int) -> int:
@@ -76,17 +84,16 @@ def send_decision(t: Timing, s: Session, decision: Decision, now: int) -> tuple[
     return s, (Send(command_of(s)),)
 
 
-class SupervisorBase:
-    """Starting a transaction and sending the decision are the same in every variant."""
+def begin(t: Timing, s: Session, event: Begin, now: int) -> SessionStep:
+    """Us -= a, Ts = a, tx += 1; send INTENTION(tx, a, Gs)."""
+    check_amount(event.amount)
+    s, actions = start_intention(t, s, s.tx + 1, event.amount, now)
+    return SessionStep(s, actions, -event.amount)
 
-    @staticmethod
-    def begin(t: Timing, s: Session, amount: int, now: int) -> tuple[Session, Actions]:
-        return start_intention(t, s, s.tx + 1, amount, now)
 
-    @staticmethod
-    def decide(t: Timing, s: Session, decision: Decision, now: int) -> SessionStep:
-        s, actions = send_decision(t, s, decision, now)
-        return s, actions, 0
+def decide(t: Timing, s: Session, event: Decide, now: int) -> SessionStep:
+    """Remember the decision; send COMMIT or ABORT(tx, a)."""
+    return SessionStep(*send_decision(t, s, event.decision, now))
 
 
 def resolve(s: Session, outcome: Outcome, extra: Actions = NO_ACTIONS) -> SessionStep:
@@ -103,7 +110,7 @@ def resolve(s: Session, outcome: Outcome, extra: Actions = NO_ACTIONS) -> Sessio
         tries=0,
         deadline=None,
     )
-    return done, (Resolved(s.node, s.tx, outcome, amount), *extra), credit
+    return SessionStep(done, (Resolved(s.node, s.tx, outcome, amount), *extra), credit)
 
 
 def commit_into(
@@ -123,13 +130,18 @@ def reply_for(c: ClientState, tx: int, outcome: Outcome) -> Actions:
     return NO_ACTIONS
 
 
-def spend(c: ClientState, amount: int) -> ClientState:
-    """The actuator used ``amount`` µJ of the usable budget (same in every variant)."""
-    return evolve(c, usable=c.usable - amount, spent=c.spent + amount)
+def spend(t: Timing, c: ClientState, event: Spend, now: int) -> ClientStep:
+    """Uc -= x, spent += x (the actuator used x; never more than Uc)."""
+    if event.amount <= 0 or event.amount > c.usable:
+        raise LocalProtocolError(f"cannot spend {event.amount} µJ of {c.usable} µJ")
+    return ClientStep(evolve(c, usable=c.usable - event.amount, spent=c.spent + event.amount))
 
 
 def start_return(t: Timing, c: ClientState, amount: int, now: int) -> ClientStep:
     """Debit the usable budget and send RETURN with the next sequence number."""
+    check_amount(amount)
+    if amount > c.usable:
+        raise LocalProtocolError(f"cannot return {amount} µJ of {c.usable} µJ")
     c = evolve(
         c,
         usable=c.usable - amount,
@@ -137,4 +149,4 @@ def start_return(t: Timing, c: ClientState, amount: int, now: int) -> ClientStep
         return_pending=amount,
         return_deadline=now + t.return_retry_us,
     )
-    return c, (Send(return_of(c)),)
+    return ClientStep(c, (Send(return_of(c)),))

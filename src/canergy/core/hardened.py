@@ -14,23 +14,35 @@ from canergy.core.actions import (
     Credited,
     ReturnAcknowledged,
     ReturnCredited,
+    Send,
 )
-from canergy.core.actions import Send as SendAction
 from canergy.core.common import (
-    NO_ACTIONS,
-    ClientStep,
-    SessionStep,
-    SupervisorBase,
+    begin,
     command_of,
     commit_into,
+    decide,
     intention_of,
     reply_for,
     resolve,
     return_of,
+    spend,
     start_return,
 )
+from canergy.core.errors import LocalProtocolError
 from canergy.core.frozen import evolve
+from canergy.core.inputs import (
+    Begin,
+    CommandTimeout,
+    Decide,
+    GiveBack,
+    PowerLoss,
+    ResponseTimeout,
+    ReturnTimeout,
+    Spend,
+)
 from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
+from canergy.core.steps import ClientStep, SessionStep
+from canergy.core.table import ANY, STAY, ClientTable, SupervisorTable, cell
 from canergy.core.timing import Timing
 from canergy.messages import (
     DELIVERED_BITS,
@@ -45,141 +57,113 @@ from canergy.messages import (
     Intention,
     Return,
     ReturnAck,
-    ToClient,
-    ToSupervisor,
 )
 from canergy.seqnum import unwrap
 
-_OPEN = (Phase.WAIT_ACK, Phase.WAIT_CONFIRM)
+IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM = Phase.IDLE, Phase.WAIT_ACK, Phase.ACKED, Phase.WAIT_CONFIRM
+HOLDING = Phase.AWAIT_COMMAND
+
+# -- supervisor, per node --------------------------------------------------------------------
 
 
-class HardenedSupervisor(SupervisorBase):
-    """Supervisor rules for one node's session."""
-
-    @staticmethod
-    def receive(t: Timing, s: Session, msg: ToSupervisor, now: int) -> SessionStep:
-        if isinstance(msg, Return):
-            return _credit_return(s, msg)
-        if s.phase is Phase.IDLE or unwrap(msg.tx, s.tx, TX_BITS) != s.tx:
-            return s, NO_ACTIONS, 0  # a response for another transaction: ignore
-        if isinstance(msg, Ack):
-            if s.phase is not Phase.WAIT_ACK:
-                return s, NO_ACTIONS, 0
-            return evolve(s, phase=Phase.ACKED, deadline=None), (Acknowledged(s.node, s.tx),), 0
-        if isinstance(msg, Committed):
-            return resolve(s, Outcome.COMMITTED)
-        if isinstance(msg, Aborted) and s.decision is Decision.ABORT:
-            return resolve(s, Outcome.ABORTED)  # the only way from Ts back to Us
-        return s, NO_ACTIONS, 0
-
-    @staticmethod
-    def timer(t: Timing, s: Session, now: int) -> SessionStep:
-        if s.deadline is None or s.deadline > now or s.phase not in _OPEN:
-            return s, NO_ACTIONS, 0
-        if s.tries > t.retries:
-            return resolve(s, Outcome.WRITTEN_OFF)  # passivity timeout: Gs += Ts
-        msg = intention_of(s) if s.phase is Phase.WAIT_ACK else command_of(s)
-        s = evolve(s, tries=s.tries + 1, deadline=now + t.response_timeout_us)
-        return s, (SendAction(msg),), 0
-
-    @staticmethod
-    def power_loss(s: Session, now: int) -> Session:
-        """Restart from the persistent record; open transactions re-send at once.
-
-        ``ACKED`` is not persisted (the intention is simply re-sent and re-acknowledged).
-        """
-        phase = Phase.WAIT_ACK if s.phase is Phase.ACKED else s.phase
-        return evolve(s, phase=phase, tries=0, deadline=now if phase in _OPEN else None)
-
-    @staticmethod
-    def persistent(s: Session) -> tuple[object, ...]:
-        phase = Phase.WAIT_ACK if s.phase is Phase.ACKED else s.phase
-        return (phase, s.tx, s.reserved, s.delivered, s.decision, s.returns_credited)
+def _other_tx(s: Session, tx: int) -> bool:
+    return unwrap(tx, s.tx, TX_BITS) != s.tx
 
 
-def _credit_return(s: Session, msg: Return) -> SessionStep:
-    """Credit only the next return number; re-acknowledge old ones; ignore the rest."""
+def on_ack(t: Timing, s: Session, msg: Ack, now: int) -> SessionStep:
+    """ACK(tx): report ``Acknowledged`` (another tx: ignore)."""
+    if _other_tx(s, msg.tx):
+        return SessionStep(s)
+    return SessionStep(evolve(s, phase=ACKED, deadline=None), (Acknowledged(s.node, s.tx),))
+
+
+def on_committed(t: Timing, s: Session, msg: Committed, now: int) -> SessionStep:
+    """COMMITTED(tx): Gs += Ts, Ts = 0 (another tx: ignore)."""
+    if _other_tx(s, msg.tx):
+        return SessionStep(s)
+    return resolve(s, Outcome.COMMITTED)
+
+
+def on_aborted(t: Timing, s: Session, msg: Aborted, now: int) -> SessionStep:
+    """ABORTED(tx) after an abort decision: Us += Ts, Ts = 0 (the only way back to Us)."""
+    if _other_tx(s, msg.tx) or s.decision is not Decision.ABORT:
+        return SessionStep(s)
+    return resolve(s, Outcome.ABORTED)
+
+
+def credit_return(t: Timing, s: Session, msg: Return, now: int) -> SessionStep:
+    """RETURN(q, x): credit x and ack if q is the next number; re-ack an old q; ignore beyond."""
     seq = unwrap(msg.seq, s.returns_credited, SEQ_BITS)
-    ack = (SendAction(ReturnAck(s.node, msg.seq)),)
+    ack = (Send(ReturnAck(s.node, msg.seq)),)
     if seq == s.returns_credited + 1:
         amount = msg.amount_mj * QUANTUM_UJ
         s = evolve(s, returns_credited=seq, returned=s.returned + amount)
-        return s, (ReturnCredited(s.node, seq, amount), *ack), amount
+        return SessionStep(s, (ReturnCredited(s.node, seq, amount), *ack), amount)
     if seq <= s.returns_credited:
-        return s, ack, 0
-    return s, NO_ACTIONS, 0
+        return SessionStep(s, ack)
+    return SessionStep(s)
 
 
-class HardenedClient:
-    """Client rules; every change to the persistent fields is persisted before the reply."""
+def resend_or_write_off(t: Timing, s: Session, event: ResponseTimeout, now: int) -> SessionStep:
+    """Re-send the identical frame; after N re-sends write off: Gs += Ts, Ts = 0."""
+    if s.deadline is None or s.deadline > now:
+        return SessionStep(s)
+    if s.tries > t.retries:
+        return resolve(s, Outcome.WRITTEN_OFF)  # passivity timeout
+    msg = intention_of(s) if s.phase is WAIT_ACK else command_of(s)
+    s = evolve(s, tries=s.tries + 1, deadline=now + t.response_timeout_us)
+    return SessionStep(s, (Send(msg),))
 
-    @staticmethod
-    def receive(t: Timing, c: ClientState, msg: ToClient, now: int) -> ClientStep:
-        if isinstance(msg, Intention):
-            return _on_intention(t, c, msg, now)
-        if isinstance(msg, Commit | Abort):
-            return _on_command(c, msg)
-        if isinstance(msg, ReturnAck):
-            seq = unwrap(msg.seq, c.return_seq, SEQ_BITS)
-            if seq == c.return_seq and c.return_pending:
-                c = evolve(c, return_pending=0, return_deadline=None)
-                return c, (ReturnAcknowledged(c.node, seq),)
-        return c, NO_ACTIONS
 
-    @staticmethod
-    def command_timer(t: Timing, c: ClientState, now: int) -> ClientStep:
-        """No command for the held intention: commit it (safe: its id never changes)."""
-        if not c.held_tx or c.deadline is None or c.deadline > now:
-            return c, NO_ACTIONS
-        tx, amount = c.held_tx, c.held_amount
-        c, note = commit_into(c, tx, amount, by_timeout=True)
-        c = _resolved(c, tx, Outcome.COMMITTED)
-        return c, (note, *reply_for(c, tx, Outcome.COMMITTED))
+def restart_session(t: Timing, s: Session, event: PowerLoss, now: int) -> SessionStep:
+    """Keep the record; ACKED (not persisted) falls back to WAIT_ACK; open ones re-send at once."""
+    phase = WAIT_ACK if s.phase is ACKED else s.phase
+    open_ = phase in (WAIT_ACK, WAIT_CONFIRM)
+    return SessionStep(evolve(s, phase=phase, tries=0, deadline=now if open_ else None))
 
-    @staticmethod
-    def return_timer(t: Timing, c: ClientState, now: int) -> ClientStep:
-        if not c.return_pending or c.return_deadline is None or c.return_deadline > now:
-            return c, NO_ACTIONS
-        c = evolve(c, return_deadline=now + t.return_retry_us)
-        return c, (SendAction(return_of(c)),)
 
-    @staticmethod
-    def give_back(t: Timing, c: ClientState, amount: int, now: int) -> ClientStep:
-        return start_return(t, c, amount, now)
+def supervisor_record(s: Session) -> tuple[object, ...]:
+    """What the supervisor persists for a node (ACKED is stored as WAIT_ACK)."""
+    phase = WAIT_ACK if s.phase is ACKED else s.phase
+    return (phase, s.tx, s.reserved, s.delivered, s.decision, s.returns_credited)
 
-    @staticmethod
-    def can_give_back(c: ClientState) -> bool:
-        return c.return_pending == 0
 
-    @staticmethod
-    def power_loss(c: ClientState, now: int) -> ClientState:
-        """Volatile hold lost; a pending return is re-sent at once."""
-        return evolve(
-            c,
-            held_tx=0,
-            held_amount=0,
-            deadline=None,
-            return_deadline=now if c.return_pending else None,
-        )
+SUPERVISOR = SupervisorTable(
+    "hardened",
+    (IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM),
+    [
+        cell(IDLE, Begin, begin, to=WAIT_ACK),
+        cell(ACKED, Decide, decide, to=WAIT_CONFIRM),
+        cell(WAIT_ACK, Ack, on_ack, to=(ACKED, STAY)),
+        cell((WAIT_ACK, ACKED, WAIT_CONFIRM), Committed, on_committed, to=(IDLE, STAY)),
+        cell(WAIT_CONFIRM, Aborted, on_aborted, to=(IDLE, STAY)),
+        cell(ANY, Return, credit_return),
+        cell((WAIT_ACK, WAIT_CONFIRM), ResponseTimeout, resend_or_write_off, to=(IDLE, STAY)),
+        cell(ACKED, PowerLoss, restart_session, to=WAIT_ACK),
+        cell((IDLE, WAIT_ACK, WAIT_CONFIRM), PowerLoss, restart_session),
+    ],
+    supervisor_record,
+)
 
-    @staticmethod
-    def persistent(c: ClientState) -> tuple[object, ...]:
-        return (
-            c.usable,
-            c.credited,
-            c.spent,
-            c.last_tx,
-            c.outcome,
-            c.return_seq,
-            c.return_pending,
-        )
+# -- client ----------------------------------------------------------------------------------
+
+
+def _hold(t: Timing, c: ClientState, tx: int, amount: int, now: int) -> ClientState:
+    return evolve(
+        c, phase=HOLDING, held_tx=tx, held_amount=amount, deadline=now + t.command_timeout_us
+    )
+
+
+def _drop_hold(c: ClientState) -> ClientState:
+    return evolve(c, phase=IDLE, held_tx=0, held_amount=0, deadline=None)
 
 
 def _resolved(c: ClientState, tx: int, outcome: Outcome) -> ClientState:
-    return evolve(c, last_tx=tx, outcome=outcome, held_tx=0, held_amount=0, deadline=None)
+    return _drop_hold(evolve(c, last_tx=tx, outcome=outcome))
 
 
-def _on_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientStep:
+def on_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientStep:
+    """INTENTION(k, a, Gs): pay back Gs > Rc; settle below k; hold and ACK a new k; re-reply."""
     notes: tuple[Credited, ...] = ()
     delivered = unwrap(msg.delivered_mj, c.credited // QUANTUM_UJ, DELIVERED_BITS) * QUANTUM_UJ
     if delivered > c.credited:  # pay back what the supervisor wrote off but we never got
@@ -190,33 +174,98 @@ def _on_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> Client
     if tx - 1 > c.last_tx:  # everything below tx is settled by the supervisor
         c = evolve(c, last_tx=tx - 1, outcome=Outcome.SETTLED)
         if c.held_tx and c.held_tx < tx:
-            c = evolve(c, held_tx=0, held_amount=0, deadline=None)
+            c = _drop_hold(c)
     if tx > c.last_tx:
         if c.held_tx != tx:
-            c = evolve(
-                c,
-                held_tx=tx,
-                held_amount=msg.amount_mj * QUANTUM_UJ,
-                deadline=now + t.command_timeout_us,
-            )
-        return c, (*notes, SendAction(Ack(c.node, msg.tx)))
+            c = _hold(t, c, tx, msg.amount_mj * QUANTUM_UJ, now)
+        return ClientStep(c, (*notes, Send(Ack(c.node, msg.tx))))
     if tx == c.last_tx:
-        return c, (*notes, *reply_for(c, tx, c.outcome))
-    return c, notes
+        return ClientStep(c, (*notes, *reply_for(c, tx, c.outcome)))
+    return ClientStep(c, notes)
 
 
-def _on_command(c: ClientState, msg: Commit | Abort) -> ClientStep:
+def on_command(t: Timing, c: ClientState, msg: Commit | Abort, now: int) -> ClientStep:
+    """COMMIT/ABORT(k, a): resolve a new k (commit: Uc += a, Rc += a); re-reply for ltx."""
     tx = unwrap(msg.tx, c.last_tx, TX_BITS)
     if tx == c.last_tx:
-        return c, reply_for(c, tx, c.outcome)  # a late ABORT after a commit is answered COMMITTED
+        return ClientStep(c, reply_for(c, tx, c.outcome))  # a late ABORT after a commit: COMMITTED
     if tx < c.last_tx:
-        return c, NO_ACTIONS
+        return ClientStep(c)
     if isinstance(msg, Commit):
         c, note = commit_into(c, tx, msg.amount_mj * QUANTUM_UJ, by_timeout=False)
         c = _resolved(c, tx, Outcome.COMMITTED)
-        return c, (note, *reply_for(c, tx, Outcome.COMMITTED))
+        return ClientStep(c, (note, *reply_for(c, tx, Outcome.COMMITTED)))
     c = _resolved(c, tx, Outcome.ABORTED)
-    return c, (ClientAborted(c.node, tx), *reply_for(c, tx, Outcome.ABORTED))
+    return ClientStep(c, (ClientAborted(c.node, tx), *reply_for(c, tx, Outcome.ABORTED)))
 
 
-__all__ = ["HardenedClient", "HardenedSupervisor"]
+def on_return_ack(t: Timing, c: ClientState, msg: ReturnAck, now: int) -> ClientStep:
+    """RETURN_ACK(q) for the pending return: it is done (any other q: ignore)."""
+    seq = unwrap(msg.seq, c.return_seq, SEQ_BITS)
+    if seq != c.return_seq or not c.return_pending:
+        return ClientStep(c)
+    c = evolve(c, return_pending=0, return_deadline=None)
+    return ClientStep(c, (ReturnAcknowledged(c.node, seq),))
+
+
+def timeout_commit(t: Timing, c: ClientState, event: CommandTimeout, now: int) -> ClientStep:
+    """No command for the held intention: commit it (safe: its id never changes)."""
+    if c.deadline is None or c.deadline > now:
+        return ClientStep(c)
+    tx, amount = c.held_tx, c.held_amount
+    c, note = commit_into(c, tx, amount, by_timeout=True)
+    c = _resolved(c, tx, Outcome.COMMITTED)
+    return ClientStep(c, (note, *reply_for(c, tx, Outcome.COMMITTED)))
+
+
+def resend_return(t: Timing, c: ClientState, event: ReturnTimeout, now: int) -> ClientStep:
+    """Re-send the pending RETURN under the same number."""
+    if not c.return_pending or c.return_deadline is None or c.return_deadline > now:
+        return ClientStep(c)
+    c = evolve(c, return_deadline=now + t.return_retry_us)
+    return ClientStep(c, (Send(return_of(c)),))
+
+
+def can_give_back(c: ClientState) -> bool:
+    """One numbered return at a time."""
+    return c.return_pending == 0
+
+
+def give_back(t: Timing, c: ClientState, event: GiveBack, now: int) -> ClientStep:
+    """Uc -= x, q += 1, persist, send RETURN(q, x); re-sent until RETURN_ACK(q)."""
+    if not can_give_back(c):
+        raise LocalProtocolError("a return is still waiting for its acknowledgement")
+    return start_return(t, c, event.amount, now)
+
+
+def restart_client(t: Timing, c: ClientState, event: PowerLoss, now: int) -> ClientStep:
+    """Keep the record, lose the held intention; a pending return is re-sent at once."""
+    c = evolve(_drop_hold(c), return_deadline=now if c.return_pending else None)
+    return ClientStep(c)
+
+
+def client_record(c: ClientState) -> tuple[object, ...]:
+    """What the client persists (one record, written before the reply that reports it)."""
+    return (c.usable, c.credited, c.spent, c.last_tx, c.outcome, c.return_seq, c.return_pending)
+
+
+CLIENT = ClientTable(
+    "hardened",
+    (IDLE, HOLDING),
+    [
+        cell(IDLE, Intention, on_intention, to=(HOLDING, STAY)),
+        cell(HOLDING, Intention, on_intention),
+        cell(ANY, Commit, on_command, to=(IDLE, STAY)),
+        cell(ANY, Abort, on_command, to=(IDLE, STAY)),
+        cell(ANY, ReturnAck, on_return_ack),
+        cell(HOLDING, CommandTimeout, timeout_commit, to=(IDLE, STAY)),
+        cell(ANY, ReturnTimeout, resend_return),
+        cell(ANY, Spend, spend),
+        cell(ANY, GiveBack, give_back),
+        cell(ANY, PowerLoss, restart_client, to=IDLE),
+    ],
+    client_record,
+    can_give_back,
+)
+
+__all__ = ["CLIENT", "SUPERVISOR"]

@@ -17,7 +17,7 @@ from typing import Any
 from canergy.codec import Codec, DecodeError
 from canergy.core import Acknowledged, Action, Client, Resolved, Send, Supervisor, Timing
 from canergy.core.state import Outcome, Phase
-from canergy.core.variants import VARIANTS, Variant
+from canergy.core.variants import VARIANTS, Variant, get_variant
 from canergy.ledger import ledger
 from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Direction, Message, ToClient, ToSupervisor
 from canergy.sim.channel import PRESETS, Channel, ChannelModel
@@ -29,10 +29,7 @@ SUP = 0
 
 
 def strategy(name: str) -> Variant:
-    try:
-        return STRATEGIES[name]
-    except KeyError:
-        raise ValueError(f"unknown strategy {name!r} (one of {', '.join(STRATEGIES)})") from None
+    return get_variant(name, STRATEGIES, "strategy")
 
 
 @dataclass(frozen=True, slots=True)

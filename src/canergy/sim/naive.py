@@ -14,104 +14,130 @@ protocols anyone should use; they exist to be compared against.
 from __future__ import annotations
 
 from canergy.core.actions import Resolved, Send
-from canergy.core.common import NO_ACTIONS, Actions, ClientStep, SessionStep, wire_tx
+from canergy.core.common import check_amount, spend, wire_tx
+from canergy.core.errors import LocalProtocolError
 from canergy.core.frozen import evolve
-from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
+from canergy.core.inputs import Begin, GiveBack, PowerLoss, ResponseTimeout, Spend
+from canergy.core.state import ClientState, Outcome, Phase, Session
+from canergy.core.steps import ClientStep, SessionStep
+from canergy.core.table import ANY, STAY, ClientTable, SupervisorTable, cell
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant
-from canergy.messages import QUANTUM_UJ, Ack, Intention, Return, ToClient, ToSupervisor
-from canergy.seqnum import unwrap
+from canergy.messages import QUANTUM_UJ, SEQ_BITS, Ack, Intention, Return
+from canergy.seqnum import unwrap, wrap
+
+IDLE, WAIT_ACK = Phase.IDLE, Phase.WAIT_ACK
 
 
-class _NaiveSupervisor:
-    """Sends one intention per transaction, never re-sends, never decides."""
+def credit_every_return(t: Timing, s: Session, msg: Return, now: int) -> SessionStep:
+    """RETURN(q, x): Us += x for every copy."""
+    amount = msg.amount_mj * QUANTUM_UJ
+    seq = max(s.returns_credited, unwrap(msg.seq, s.returns_credited, SEQ_BITS))
+    return SessionStep(evolve(s, returns_credited=seq, returned=s.returned + amount), (), amount)
 
-    pessimistic = False
 
-    def begin(self, t: Timing, s: Session, amount: int, now: int) -> tuple[Session, Actions]:
-        tx = s.tx + 1
+def reset_session(t: Timing, s: Session, event: PowerLoss, now: int) -> SessionStep:
+    """Forget the open intention."""
+    return SessionStep(evolve(s, phase=IDLE, reserved=0, deadline=None))
+
+
+def naive_record(s: Session) -> tuple[object, ...]:
+    """Ids, the delivered count and the returns credited persist."""
+    return (s.tx, s.delivered, s.returns_credited)
+
+
+def naive_supervisor(pessimistic: bool) -> SupervisorTable:
+    """One intention per transaction, never re-sent, never decided on."""
+
+    def send_intention(t: Timing, s: Session, event: Begin, now: int) -> SessionStep:
+        """Us -= a; send one INTENTION (optimistic: a counts as delivered at once)."""
+        check_amount(event.amount)
+        tx, amount = s.tx + 1, event.amount
         msg = Intention(s.node, wire_tx(tx), amount // QUANTUM_UJ, 0)
-        if self.pessimistic:
-            s = evolve(s, tx=tx, phase=Phase.WAIT_ACK, reserved=amount)
+        if pessimistic:
+            s = evolve(s, tx=tx, phase=WAIT_ACK, reserved=amount)
         else:  # gone for good the moment it is sent
-            s = evolve(s, tx=tx, phase=Phase.WAIT_ACK, delivered=s.delivered + amount)
-        return evolve(s, deadline=now + t.response_timeout_us, tries=1), (Send(msg),)
+            s = evolve(s, tx=tx, phase=WAIT_ACK, delivered=s.delivered + amount)
+        s = evolve(s, deadline=now + t.response_timeout_us, tries=1)
+        return SessionStep(s, (Send(msg),), -amount)
 
-    def decide(self, t: Timing, s: Session, decision: Decision, now: int) -> SessionStep:
-        return s, NO_ACTIONS, 0
+    def on_ack(t: Timing, s: Session, msg: Ack, now: int) -> SessionStep:
+        """ACK(tx): the transaction counts as committed."""
+        if msg.tx != wire_tx(s.tx):
+            return SessionStep(s)
+        amount = s.reserved  # 0 when optimistic: it counted as delivered on sending
+        done = evolve(
+            s,
+            phase=IDLE,
+            reserved=0,
+            delivered=s.delivered + (s.reserved if pessimistic else 0),
+            deadline=None,
+        )
+        return SessionStep(done, (Resolved(s.node, s.tx, Outcome.COMMITTED, amount),))
 
-    def receive(self, t: Timing, s: Session, msg: ToSupervisor, now: int) -> SessionStep:
-        if isinstance(msg, Return):  # naive: every copy is credited
-            amount = msg.amount_mj * QUANTUM_UJ
-            seq = max(s.returns_credited, unwrap(msg.seq, s.returns_credited, 16))
-            return evolve(s, returns_credited=seq, returned=s.returned + amount), NO_ACTIONS, amount
-        if isinstance(msg, Ack) and s.phase is Phase.WAIT_ACK and msg.tx == wire_tx(s.tx):
-            amount = s.reserved  # 0 when optimistic: it counted as delivered on sending
-            done = evolve(
-                s,
-                phase=Phase.IDLE,
-                reserved=0,
-                delivered=s.delivered + (s.reserved if self.pessimistic else 0),
-                deadline=None,
+    def give_up(t: Timing, s: Session, event: ResponseTimeout, now: int) -> SessionStep:
+        """No ACK: pessimistic puts Ts back into Us ("it did not arrive"); optimistic gives up."""
+        done = evolve(s, phase=IDLE, reserved=0, deadline=None)
+        if pessimistic:
+            return SessionStep(
+                done, (Resolved(s.node, s.tx, Outcome.ABORTED, s.reserved),), s.reserved
             )
-            return done, (Resolved(s.node, s.tx, Outcome.COMMITTED, amount),), 0
-        return s, NO_ACTIONS, 0
+        return SessionStep(done, (Resolved(s.node, s.tx, Outcome.WRITTEN_OFF, 0),))
 
-    def timer(self, t: Timing, s: Session, now: int) -> SessionStep:
-        if s.phase is not Phase.WAIT_ACK:
-            return evolve(s, deadline=None), NO_ACTIONS, 0
-        done = evolve(s, phase=Phase.IDLE, reserved=0, deadline=None)
-        if self.pessimistic:  # "it did not arrive": back into the usable budget
-            return done, (Resolved(s.node, s.tx, Outcome.ABORTED, s.reserved),), s.reserved
-        return done, (Resolved(s.node, s.tx, Outcome.WRITTEN_OFF, 0),), 0
-
-    def power_loss(self, s: Session, now: int) -> Session:
-        return evolve(s, phase=Phase.IDLE, reserved=0, deadline=None)
-
-    def persistent(self, s: Session) -> tuple[object, ...]:
-        return (s.tx, s.delivered, s.returns_credited)
+    return SupervisorTable(
+        "pessimistic" if pessimistic else "optimistic",
+        (IDLE, WAIT_ACK),
+        [
+            cell(IDLE, Begin, send_intention, to=WAIT_ACK),
+            cell(WAIT_ACK, Ack, on_ack, to=(IDLE, STAY)),
+            cell(ANY, Return, credit_every_return),
+            cell(WAIT_ACK, ResponseTimeout, give_up, to=IDLE),
+            cell(ANY, PowerLoss, reset_session, to=IDLE),
+        ],
+        naive_record,
+    )
 
 
-class OptimisticSupervisor(_NaiveSupervisor):
-    pessimistic = False
+def book_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientStep:
+    """INTENTION(k, a): Uc += a for every copy; send ACK(k)."""
+    amount = msg.amount_mj * QUANTUM_UJ
+    c = evolve(c, usable=c.usable + amount, credited=c.credited + amount, last_tx=msg.tx)
+    return ClientStep(c, (Send(Ack(c.node, msg.tx)),))
 
 
-class PessimisticSupervisor(_NaiveSupervisor):
-    pessimistic = True
+def send_return(t: Timing, c: ClientState, event: GiveBack, now: int) -> ClientStep:
+    """Uc -= x; send RETURN(q, x) once."""
+    check_amount(event.amount)
+    if event.amount > c.usable:
+        raise LocalProtocolError(f"cannot return {event.amount} µJ of {c.usable} µJ")
+    seq = c.return_seq + 1
+    c = evolve(c, usable=c.usable - event.amount, return_seq=seq, return_pending=event.amount)
+    return ClientStep(c, (Send(Return(c.node, wrap(seq, SEQ_BITS), event.amount // QUANTUM_UJ)),))
 
 
-class NaiveClient:
-    """Books every intention copy at once and acknowledges it; returns are fire-and-forget."""
+def naive_client_record(c: ClientState) -> tuple[object, ...]:
+    """Everything the naive client books persists."""
+    return (c.usable, c.credited, c.spent, c.return_seq)
 
-    def receive(self, t: Timing, c: ClientState, msg: ToClient, now: int) -> ClientStep:
-        if not isinstance(msg, Intention):
-            return c, NO_ACTIONS
-        amount = msg.amount_mj * QUANTUM_UJ
-        c = evolve(c, usable=c.usable + amount, credited=c.credited + amount, last_tx=msg.tx)
-        return c, (Send(Ack(c.node, msg.tx)),)
 
-    def command_timer(self, t: Timing, c: ClientState, now: int) -> ClientStep:
-        return evolve(c, deadline=None), NO_ACTIONS
+def always(c: ClientState) -> bool:
+    """Returns are fire-and-forget: always."""
+    return True
 
-    def return_timer(self, t: Timing, c: ClientState, now: int) -> ClientStep:
-        return evolve(c, return_deadline=None), NO_ACTIONS
 
-    def give_back(self, t: Timing, c: ClientState, amount: int, now: int) -> ClientStep:
-        seq = c.return_seq + 1
-        c = evolve(c, usable=c.usable - amount, return_seq=seq, return_pending=amount)
-        return c, (Send(Return(c.node, seq & 0xFFFF, amount // QUANTUM_UJ)),)
-
-    def can_give_back(self, c: ClientState) -> bool:
-        return True
-
-    def power_loss(self, c: ClientState, now: int) -> ClientState:
-        return c
-
-    def persistent(self, c: ClientState) -> tuple[object, ...]:
-        return (c.usable, c.credited, c.spent, c.return_seq)
-
+NAIVE_CLIENT = ClientTable(
+    "naive",
+    (IDLE,),
+    [
+        cell(IDLE, Intention, book_intention),
+        cell(IDLE, Spend, spend),
+        cell(IDLE, GiveBack, send_return),
+    ],
+    naive_client_record,
+    always,
+)
 
 NAIVE: dict[str, Variant] = {
-    "optimistic": Variant("optimistic", OptimisticSupervisor(), NaiveClient()),
-    "pessimistic": Variant("pessimistic", PessimisticSupervisor(), NaiveClient()),
+    "optimistic": Variant("optimistic", naive_supervisor(False), NAIVE_CLIENT),
+    "pessimistic": Variant("pessimistic", naive_supervisor(True), NAIVE_CLIENT),
 }

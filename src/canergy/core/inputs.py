@@ -1,0 +1,83 @@
+"""Inputs that are not messages: local requests and timer expiries, as frozen dataclasses.
+
+Together with the wire messages of ``canergy.messages`` they are the events the rule tables
+dispatch on. Timers carry no data: the rules compare ``now`` with the deadline they armed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+from canergy.core.state import Decision
+
+
+@dataclass(frozen=True, slots=True)
+class Begin:
+    """Supervisor: reserve ``amount`` µJ for a new transaction and send its intention."""
+
+    NAME: ClassVar[str] = "begin"
+    amount: int
+
+
+@dataclass(frozen=True, slots=True)
+class Decide:
+    """Supervisor: commit or abort the acknowledged intention."""
+
+    NAME: ClassVar[str] = "decide"
+    decision: Decision
+
+
+@dataclass(frozen=True, slots=True)
+class ResponseTimeout:
+    """Supervisor: the response timer of a session expired."""
+
+    NAME: ClassVar[str] = "response timeout"
+
+
+@dataclass(frozen=True, slots=True)
+class CommandTimeout:
+    """Client: no command came for the held intention in time."""
+
+    NAME: ClassVar[str] = "command timeout"
+
+
+@dataclass(frozen=True, slots=True)
+class ReturnTimeout:
+    """Client: the pending return was not acknowledged in time."""
+
+    NAME: ClassVar[str] = "return timeout"
+
+
+@dataclass(frozen=True, slots=True)
+class Spend:
+    """Client: the actuator used ``amount`` µJ."""
+
+    NAME: ClassVar[str] = "spend"
+    amount: int
+
+
+@dataclass(frozen=True, slots=True)
+class GiveBack:
+    """Client: return ``amount`` µJ of unused energy to the supervisor."""
+
+    NAME: ClassVar[str] = "give back"
+    amount: int
+
+
+@dataclass(frozen=True, slots=True)
+class PowerLoss:
+    """Either side: volatile memory is lost; restart from the persistent record."""
+
+    NAME: ClassVar[str] = "power loss"
+
+
+RESPONSE_TIMEOUT = ResponseTimeout()
+COMMAND_TIMEOUT = CommandTimeout()
+RETURN_TIMEOUT = ReturnTimeout()
+POWER_LOSS = PowerLoss()
+
+LocalInput = Begin | Decide | Spend | GiveBack
+"""Requests of the local application: refused (``LocalProtocolError``) where the table says so."""
+TimerInput = ResponseTimeout | CommandTimeout | ReturnTimeout
+Input = LocalInput | TimerInput | PowerLoss

@@ -1,51 +1,27 @@
 """The emulated nodes as CANopen slaves (python-canopen ``LocalNode``s) on the same bus.
 
 Each node boots (boot-up message, PRE-OPERATIONAL), produces a heartbeat (0x1017) and serves SDO
-reads of its energy objects (``canergy_node.eds``, 0x2000-0x2007, read-only, live values) and
-writes of its parameters (0x2100-0x2102). NMT gates the protocol: only OPERATIONAL accepts an
-INTENTION; PRE-OPERATIONAL and STOPPED leave it unanswered (the supervisor does not grant to such
-a node, and one already on its way ends as a write-off that the next intention pays back), and
-STOPPED halts the actuator.
+reads of its energy objects (canergy's ``canergy_node.eds``, 0x2000-0x2007, read-only, live
+values) and writes of its parameters (0x2100-0x2102). NMT gates the protocol: only OPERATIONAL
+accepts an INTENTION; PRE-OPERATIONAL and STOPPED leave it unanswered (the supervisor does not
+grant to such a node, and one already on its way ends as a write-off that the next intention pays
+back), and STOPPED halts the actuator.
 
 canopen and canergy share one bus and one ``can.Notifier``: canopen's listeners plus a
-``can.BufferedReader`` the canergy loop reads from.
+``can.BufferedReader`` the canergy loop reads from. Those pieces and the EDS belong to
+``canergy.live.shared_bus`` (the supervisor uses them too).
 """
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
-import can
 import canopen
 
+from canergy.live.shared_bus import EDS
 from firmware_model.node import PARAM_INDEXES, FirmwareNode
 
-EDS = Path(__file__).with_name("canergy_node.eds")
-STANDARD_FRAMES = {"can_id": 0, "can_mask": 0, "extended": False}
-"""Acceptance filter passing every 11-bit frame (NMT, SDO, heartbeat, ...)."""
-
-
-class SharedReader(can.BufferedReader):
-    """canergy's end of a shared Notifier; a receive error is counted, not fatal (without a
-    listener that handles it the Notifier's thread would stop and every node look lost)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.errors = 0
-
-    def on_error(self, exc: Exception) -> None:
-        self.errors += 1
-
-
-def shared_network(bus: can.BusABC) -> tuple[canopen.Network, SharedReader]:
-    """A canopen ``Network`` on ``bus`` and a reader for canergy, behind one Notifier
-    (python-canopen's "re-using a bus": assign the bus and the notifier yourself). Stop it with
-    ``network.notifier.stop()`` before shutting the bus down."""
-    network = canopen.Network(bus)
-    reader = SharedReader()
-    network.notifier = can.Notifier(bus, [*network.listeners, reader], 0.1)
-    return network, reader
+__all__ = ["CanopenFace"]
 
 
 class CanopenFace:

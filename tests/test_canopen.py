@@ -19,10 +19,11 @@ from canergy.live.canopen_manager import CanopenManager
 from canergy.live.policy import Limits, TopUp
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.shared_bus import EDS, STANDARD_FRAMES, shared_network
 from canergy.messages import MAX_NODE, MIN_NODE, Direction, MsgType
 from canergy.units import UJ_PER_J
 from firmware_model.actuator import PowerProfile
-from firmware_model.canopen_node import EDS, STANDARD_FRAMES, CanopenFace, shared_network
+from firmware_model.canopen_node import CanopenFace
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
 from firmware_model.nvstore import NvStore
 

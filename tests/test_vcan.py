@@ -21,6 +21,7 @@ import cantools
 import pytest
 
 from canergy.ledger import ledger_from_status
+from canergy.live.shared_bus import EDS
 
 pytestmark = pytest.mark.vcan
 
@@ -265,8 +266,7 @@ def test_canopen_on_vcan0_eds_master_heartbeat_loss_and_restart(procs: Procs) ->
     master = canopen.Network()
     master.connect(interface="socketcan", channel=IFACE)
     try:
-        eds = str(ROOT / "firmware_model" / "canergy_node.eds")
-        remote = master.add_node(canopen.RemoteNode(7, eds))
+        remote = master.add_node(canopen.RemoteNode(7, str(EDS)))
         remote.sdo.RESPONSE_TIMEOUT = 5
         names = [o.name for o in remote.object_dictionary.values() if 0x2000 <= o.index < 0x6000]
         values = {name: remote.sdo[name].raw for name in names}

@@ -1,0 +1,40 @@
+"""What canergy and CANopen share on one bus: the node EDS, an 11-bit filter, one Notifier.
+
+Both ends use these: the supervisor (``canergy supervisor --canopen``) and the emulated nodes of
+``firmware_model``. ``canergy_node.eds`` ships inside this package, so an installed canergy has it.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import can
+import canopen
+
+EDS = Path(__file__).with_name("canergy_node.eds")
+"""The canergy node's electronic data sheet (energy 0x2000-0x2007, parameters 0x2100-0x2102)."""
+
+STANDARD_FRAMES: dict[str, int | bool] = {"can_id": 0, "can_mask": 0, "extended": False}
+"""Acceptance filter passing every 11-bit frame (NMT, SDO, heartbeat, ...)."""
+
+
+class SharedReader(can.BufferedReader):
+    """canergy's end of a shared Notifier; a receive error is counted, not fatal (without a
+    listener that handles it the Notifier's thread would stop and every node look lost)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.errors = 0
+
+    def on_error(self, exc: Exception) -> None:
+        self.errors += 1
+
+
+def shared_network(bus: can.BusABC) -> tuple[canopen.Network, SharedReader]:
+    """A canopen ``Network`` on ``bus`` and a reader for canergy, behind one Notifier
+    (python-canopen's "re-using a bus": assign the bus and the notifier yourself). Stop it with
+    ``network.notifier.stop()`` before shutting the bus down."""
+    network = canopen.Network(bus)
+    reader = SharedReader()
+    network.notifier = can.Notifier(bus, [*network.listeners, reader], 0.1)
+    return network, reader

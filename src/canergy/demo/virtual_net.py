@@ -2,8 +2,9 @@
 
 Each node owns one endpoint of the same virtual channel. A frame sent by a node is handed to the
 ``FaultInjector``, which decides its copies and delays; at its delivery time the frame is put on
-the bus from the sender's endpoint, so every other endpoint (and the capture log) sees it, and
-receivers apply their acceptance filters. Nothing sleeps: the caller advances the clock.
+the bus from the sender's endpoint, so every other endpoint (and the ``on_frame`` callback, if any)
+sees it, and receivers apply their acceptance filters. Nothing sleeps: the caller advances the
+clock. Use the network as a context manager: every bus it opened is shut down on the way out.
 """
 
 from __future__ import annotations
@@ -11,9 +12,9 @@ from __future__ import annotations
 import heapq
 import itertools
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
+from types import TracebackType
 
 import can
 
@@ -44,27 +45,39 @@ class _InFlight:
 
 
 class VirtualNetwork:
-    """Endpoints on one private virtual channel, frames in flight, and an optional capture."""
+    """Endpoints on one private virtual channel and the frames in flight.
+
+    ``on_frame`` is called with every frame put on the bus, as a monitoring bus received it.
+    """
 
     def __init__(
         self,
         codec: Codec,
         injector: FaultInjector,
         *,
-        log: Path | None = None,
+        on_frame: Callable[[can.Message], None] | None = None,
         epoch: float = 0.0,
-        log_channel: str = "virtual0",
     ) -> None:
         self.codec = codec
         self.injector = injector
         self.epoch = epoch
-        self.log_channel = log_channel
         self._channel = f"canergy-{uuid.uuid4().hex}"
         self._endpoints: list[Endpoint] = []
+        self._on_frame = on_frame
         self._monitor = self._bus()
-        self._logger = can.Logger(str(log)) if log is not None else None
         self._in_flight: list[_InFlight] = []
         self._seq = itertools.count()
+
+    def __enter__(self) -> VirtualNetwork:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
 
     def _bus(self) -> can.BusABC:
         return can.Bus(interface="virtual", channel=self._channel, preserve_timestamps=True)
@@ -112,12 +125,10 @@ class VirtualNetwork:
 
     def _drain_monitor(self) -> None:
         while (frame := self._monitor.recv(timeout=0)) is not None:
-            if self._logger is not None:
-                frame.channel = self.log_channel
-                self._logger.on_message_received(frame)
+            if self._on_frame is not None:
+                self._on_frame(frame)
 
     def close(self) -> None:
-        if self._logger is not None:
-            self._logger.stop()
+        """Shut down every bus this network opened."""
         for bus in [self._monitor, *(ep.bus for ep in self._endpoints)]:
             bus.shutdown()

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from canergy.demo import DemoResult
+from canergy.demo.result import DemoResult
 from canergy.units import format_energy
 
 

@@ -1,17 +1,20 @@
-"""``canergy demo``: a supervisor and several clients on python-can's virtual bus, under faults.
+"""The ``canergy demo`` run: a supervisor and several clients on a virtual bus, under faults.
 
-Runs in virtual time (no sleeping), so a seed reproduces the run exactly. The observer checks the
-conservation ledger after every event and remembers the lowest dissipation seen.
+Runs in virtual time (no sleeping), so a seed reproduces the run exactly. A run has two phases:
+*work* (actuators spend, clients now and then return energy, the supervisor begins transactions)
+until no transaction will begin any more and every begun one has ended, then *drain* (clients
+return everything they hold) until the network has settled. Both stop at the duration limit.
+The observer checks the conservation ledger after every event and remembers the lowest
+dissipation seen.
 """
 
 from __future__ import annotations
 
+import itertools
 import random
 import time
-from collections.abc import Iterable
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import ExitStack
 
 import can
 
@@ -26,119 +29,31 @@ from canergy.core import (
     Resolved,
     Send,
     Supervisor,
-    Timing,
 )
 from canergy.core.state import Outcome, Phase
-from canergy.faults import FaultInjector, FaultProfile
+from canergy.demo.capture import Capture
+from canergy.demo.config import MAX_AMOUNT_UJ, DemoConfig
+from canergy.demo.result import DemoResult, NodeStats
+from canergy.demo.virtual_net import Endpoint, VirtualNetwork
+from canergy.faults import FaultInjector
 from canergy.ledger import Ledger, ledger
-from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Direction, ToClient, ToSupervisor
-from canergy.units import UJ_PER_J
-from canergy.virtual_net import Endpoint, VirtualNetwork
+from canergy.messages import QUANTUM_UJ, Direction, ToClient, ToSupervisor
 
 TICK_US = 10_000
 
 
-@dataclass(frozen=True, slots=True)
-class DemoConfig:
-    nodes: tuple[int, ...] = (1, 2, 3, 4, 5)
-    transactions: int = 200
-    duration_s: float = 300.0
-    initial: int = 10 * UJ_PER_J
-    variant: str = "hardened"
-    faults: FaultProfile = field(default_factory=FaultProfile)
-    seed: int = 0
-    resets: int = 2
-    commit_ratio: float = 0.8
-    log: Path | None = None
-    timing: Timing = field(default_factory=Timing)
-
-
-@dataclass(slots=True)
-class NodeStats:
-    committed: int = 0
-    aborted: int = 0
-    timeout_committed: int = 0
-    credited_back: int = 0
-    returns: int = 0
-    resets: int = 0
-    decode_errors: int = 0
-
-
-@dataclass(slots=True)
-class DemoResult:
-    config: DemoConfig
-    ledger: Ledger
-    min_dissipated: int
-    first_violation_us: int | None
-    nodes: dict[int, NodeStats]
-    client_usable: dict[int, int]
-    client_spent: dict[int, int]
-    outcomes: dict[str, int]
-    transactions_started: int
-    frames_sent: int
-    decode_errors: int
-    supervisor_resets: int
-    virtual_us: int
-    finished: bool
-    injector: FaultInjector
-
-    @property
-    def passive(self) -> bool:
-        return self.min_dissipated >= 0
-
-    def as_json(self) -> dict[str, Any]:
-        c = self.injector.counters
-        return {
-            **self.ledger.as_json(),
-            "passive": self.passive,
-            "min_dissipated_uj": self.min_dissipated,
-            "first_violation_s": (
-                None if self.first_violation_us is None else self.first_violation_us / 1e6
-            ),
-            "variant": self.config.variant,
-            "seed": self.config.seed,
-            "nodes": {
-                str(n): {
-                    "usable_uj": self.client_usable[n],
-                    "spent_uj": self.client_spent[n],
-                    "committed": s.committed,
-                    "aborted": s.aborted,
-                    "timeout_committed": s.timeout_committed,
-                    "credited_back": s.credited_back,
-                    "returns": s.returns,
-                    "resets": s.resets,
-                    "decode_errors": s.decode_errors,
-                }
-                for n, s in self.nodes.items()
-            },
-            "transactions_started": self.transactions_started,
-            "supervisor_outcomes": self.outcomes,
-            "supervisor_resets": self.supervisor_resets,
-            "frames_sent": self.frames_sent,
-            "frames_lost": c.lost,
-            "frames_duplicated": c.duplicated,
-            "frames_reordered": c.reordered,
-            "frames_corrupted": c.corrupted,
-            "decode_errors": self.decode_errors,
-            "virtual_seconds": self.virtual_us / 1e6,
-            "finished": self.finished,
-        }
-
-
-class _Demo:
+class DemoRun:
     """One run: the nodes, the network, the workload and the observer."""
 
-    def __init__(self, cfg: DemoConfig) -> None:
+    def __init__(self, cfg: DemoConfig, net: VirtualNetwork) -> None:
         self.cfg = cfg
         self.rng = random.Random(cfg.seed)
-        self.codec = Codec()
-        injector = FaultInjector(cfg.faults, random.Random(f"faults-{cfg.seed}"))
-        self.net = VirtualNetwork(self.codec, injector, log=cfg.log, epoch=time.time())
+        self.net = net
         self.sup = Supervisor(cfg.nodes, cfg.initial, variant=cfg.variant, timing=cfg.timing)
-        self.sup_ep = self.net.endpoint("supervisor", self.codec.supervisor_filters())
+        self.sup_ep = net.endpoint("supervisor", net.codec.supervisor_filters())
         self.clients = {n: Client(n, variant=cfg.variant, timing=cfg.timing) for n in cfg.nodes}
         self.client_eps = {
-            n: self.net.endpoint(f"node {n}", self.codec.client_filters(n)) for n in cfg.nodes
+            n: net.endpoint(f"node {n}", net.codec.client_filters(n)) for n in cfg.nodes
         }
         self.power_uj_per_tick = {n: self.rng.randint(1, 5) * 1000 for n in cfg.nodes}
         self.stats = {n: NodeStats() for n in cfg.nodes}
@@ -149,8 +64,6 @@ class _Demo:
         self.now = 0
         self.min_dissipated = cfg.initial
         self.first_violation: int | None = None
-        # grants average half the initial budget spread over all transactions
-        self.grant_uj = max(2 * QUANTUM_UJ, cfg.initial // (2 * max(cfg.transactions, 1)))
         # power losses strike after randomly chosen transaction starts
         points = range(1, max(cfg.transactions, 2))
         self.reset_points = sorted(self.rng.choices(points, k=cfg.resets))
@@ -192,7 +105,7 @@ class _Demo:
         direction = Direction.TO_CLIENT if to_client else Direction.TO_SUPERVISOR
         node = int(ep.name.split()[-1]) if to_client else None
         try:
-            msg = self.codec.decode(
+            msg = self.net.codec.decode(
                 frame.arbitration_id,
                 frame.data,
                 extended=frame.is_extended_id,
@@ -211,28 +124,35 @@ class _Demo:
             self.carry_out(ep, self.sup.receive(msg, self.now))
 
     # -- workload ------------------------------------------------------------------------
-    def tick(self, final: bool) -> None:
+    def work_tick(self) -> None:
+        """Actuators spend, clients now and then return half their budget, grants begin."""
         for n, client in self.clients.items():
-            usable = client.state.usable
-            if not final and usable:
-                self.carry_out(
-                    self.client_eps[n], client.spend(min(usable, self.power_uj_per_tick[n]))
-                )
-            usable = client.state.usable
-            back = usable if final else (usable // 2 if self.rng.random() < 0.03 else 0)
-            back -= back % QUANTUM_UJ
-            back = min(back, AMOUNT_MAX_MJ * QUANTUM_UJ)
-            if back > 0 and client.can_give_back():
-                self.stats[n].returns += 1
-                self.carry_out(self.client_eps[n], client.give_back(back, self.now))
-        if final:
-            return
+            if client.state.usable:
+                spend = min(client.state.usable, self.power_uj_per_tick[n])
+                self.carry_out(self.client_eps[n], client.spend(spend))
+            self.give_back(n, client.state.usable // 2 if self.rng.random() < 0.03 else 0)
+        self.begin_transactions()
+
+    def drain_tick(self) -> None:
+        """Every client returns what it holds; nothing is spent and nothing begins."""
+        for n, client in self.clients.items():
+            self.give_back(n, client.state.usable)
+
+    def give_back(self, n: int, amount: int) -> None:
+        """Node ``n`` returns ``amount`` in whole mJ, at most one frame's worth, if it may."""
+        amount = min(amount - amount % QUANTUM_UJ, MAX_AMOUNT_UJ)
+        if amount > 0 and self.clients[n].can_give_back():
+            self.stats[n].returns += 1
+            self.carry_out(self.client_eps[n], self.clients[n].give_back(amount, self.now))
+
+    def begin_transactions(self) -> None:
+        """Offer idle nodes, in random order, a grant while transactions and budget remain."""
         for n in self.rng.sample(self.cfg.nodes, len(self.cfg.nodes)):
             usable = self.sup.state.usable
-            if self.started >= self.cfg.transactions or usable < QUANTUM_UJ:
+            if self.all_started() or usable < QUANTUM_UJ:
                 break
             if self.sup.session(n).phase is Phase.IDLE:
-                amount = min(usable, self.rng.randint(self.grant_uj // 2, self.grant_uj * 3 // 2))
+                amount = min(usable, self.rng.randint(*self.cfg.grant_range_uj))
                 amount -= amount % QUANTUM_UJ
                 self.started += 1
                 self.carry_out(self.sup_ep, self.sup.begin(n, amount, self.now))
@@ -248,41 +168,75 @@ class _Demo:
                 self.stats[victim].resets += 1
                 self.clients[victim].power_loss(self.now)
 
-    def settled(self, final: bool) -> bool:
-        returns_open = any(
-            not c.can_give_back() or (final and c.state.usable >= QUANTUM_UJ)
-            for c in self.clients.values()
-        )
-        return self.sup.is_quiescent() and self.net.in_flight() == 0 and not returns_open
+    # -- conditions ----------------------------------------------------------------------
+    def all_started(self) -> bool:
+        return self.started >= self.cfg.transactions
+
+    def returns_pending(self) -> bool:
+        """Some client's return still waits for its acknowledgement."""
+        return not all(c.can_give_back() for c in self.clients.values())
+
+    def budget_exhausted(self) -> bool:
+        """The supervisor cannot grant a whole mJ and no pending return will refill it."""
+        return self.sup.state.usable < QUANTUM_UJ and not self.returns_pending()
+
+    def clients_hold_energy(self) -> bool:
+        """Some client holds at least a whole mJ it could return."""
+        return any(c.state.usable >= QUANTUM_UJ for c in self.clients.values())
+
+    def quiet(self) -> bool:
+        """No transaction is open at the supervisor and no frame is in flight."""
+        return self.sup.is_quiescent() and self.net.in_flight() == 0
+
+    def work_done(self) -> bool:
+        """No transaction will begin any more and every begun one has ended."""
+        return (self.all_started() or self.budget_exhausted()) and self.quiet()
+
+    def settled(self) -> bool:
+        """Quiet, no return pending and nothing left for a client to return."""
+        return self.quiet() and not self.returns_pending() and not self.clients_hold_energy()
 
     # -- main loop -----------------------------------------------------------------------
     def run(self) -> DemoResult:
-        limit = int(self.cfg.duration_s * 1e6)
-        next_tick, final, finished = 0, False, False
-        try:
-            while self.now <= limit:
-                if next_tick <= self.now:
-                    exhausted = self.sup.state.usable < QUANTUM_UJ and all(
-                        c.can_give_back() for c in self.clients.values()
-                    )
-                    work_done = (
-                        self.started >= self.cfg.transactions or exhausted
-                    ) and self.sup.is_quiescent()
-                    final = final or (work_done and self.net.in_flight() == 0)
-                    self.maybe_reset()
-                    self.tick(final)
-                    self.observe()
-                    next_tick += TICK_US
-                    if final and self.settled(final):
-                        finished = True
-                        break
-                self.step_events()
-                self.now = min(
-                    t for t in (next_tick, self.net.next_due(), *self.timers()) if t is not None
-                )
-        finally:
-            self.net.close()
+        """Work, then drain, sharing one clock that stops at the duration limit."""
+        ticks = self.ticks(int(self.cfg.duration_s * 1e6))
+        finished = self.work(ticks) and self.drain(ticks)
         return self.result(finished)
+
+    def ticks(self, limit: int) -> Iterator[int]:
+        """Yield the time of every tick up to ``limit``; frames and timers due in between are
+        handled when the caller asks for the next tick."""
+        next_tick = 0
+        while self.now <= limit:
+            if next_tick <= self.now:
+                yield self.now
+                next_tick += TICK_US
+            self.step_events()
+            self.now = min(
+                t for t in (next_tick, self.net.next_due(), *self.timers()) if t is not None
+            )
+
+    def tick(self, workload: Callable[[], None]) -> None:
+        """Power losses now due, this phase's workload, then the observer."""
+        self.maybe_reset()
+        workload()
+        self.observe()
+
+    def work(self, ticks: Iterator[int]) -> bool:
+        """Work ticks until the work is done (``True``, leaving that tick to ``drain``)."""
+        for _ in ticks:
+            if self.work_done():
+                return True
+            self.tick(self.work_tick)
+        return False
+
+    def drain(self, ticks: Iterator[int]) -> bool:
+        """Drain ticks, from the one ``work`` left on, until the network settled (``True``)."""
+        for _ in itertools.chain([self.now], ticks):
+            self.tick(self.drain_tick)
+            if self.settled():
+                return True
+        return False
 
     def timers(self) -> list[int | None]:
         return [self.sup.get_timer(), *(c.get_timer() for c in self.clients.values())]
@@ -325,5 +279,13 @@ class _Demo:
 
 
 def run_demo(cfg: DemoConfig) -> DemoResult:
-    """Run one seeded demo and return its ledger, counters and verdict."""
-    return _Demo(cfg).run()
+    """Run one seeded demo and return its ledger, counters and verdict.
+
+    The capture (``cfg.log``) is opened before any bus, and every bus is shut down on every path.
+    """
+    injector = FaultInjector(cfg.faults, random.Random(f"faults-{cfg.seed}"))
+    with ExitStack() as stack:
+        capture = stack.enter_context(Capture(cfg.log)) if cfg.log is not None else None
+        on_frame = None if capture is None else capture.write
+        net = VirtualNetwork(Codec(), injector, on_frame=on_frame, epoch=time.time())
+        return DemoRun(cfg, stack.enter_context(net)).run()

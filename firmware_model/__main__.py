@@ -15,15 +15,18 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from canergy.cli_args import bounded_int, energy, node_ids, positive_float, power
+import can
+
+from canergy.cli_args import add_duration, bounded_int, energy, node_ids, power
 from canergy.codec import Codec
 from canergy.core import Timing
-from canergy.live.atomic import write_json_atomic
+from canergy.live.atomic import check_writable_dir, write_json_atomic
 from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
 from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.shared_bus import STANDARD_FRAMES, SharedReader, shared_network
 from canergy.messages import Direction
 from firmware_model.actuator import PowerProfile
-from firmware_model.canopen_node import STANDARD_FRAMES, CanopenFace, shared_network
+from firmware_model.canopen_node import CanopenFace
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
 from firmware_model.nvstore import NvError, NvStore, SimulatedPowerLoss
 
@@ -49,18 +52,18 @@ def build_parser() -> argparse.ArgumentParser:
     drive = p.add_mutually_exclusive_group()
     drive.add_argument("--power", type=power, default=0, help="constant draw, e.g. 0.5W")
     drive.add_argument("--power-profile", type=Path, help="CSV of time_s,watts rows, repeated")
-    p.add_argument("--tick", type=positive_float, default=0.1, help="actuator period, s")
-    p.add_argument("--telemetry-period", type=positive_float, default=1.0, help="s")
+    add_duration(p, "--tick", 100_000, "actuator period")
+    add_duration(p, "--telemetry-period", 1_000_000, "time between TELEMETRY frames")
     p.add_argument("--low-water", type=energy, default=0, help="report at once below this")
     p.add_argument("--return-above", type=energy, help="give back energy above this level")
-    p.add_argument("--response-timeout", type=positive_float, default=0.1, help="s")
+    add_duration(p, "--response-timeout", 100_000, "wait this long for a reply")
     p.add_argument(
         "--crash-after",
         type=bounded_int(1),
         help="lose power during the N-th NV write of a node (torn slot), exit 3",
     )
     p.add_argument("--status-file", type=Path, help="JSON status, rewritten atomically")
-    p.add_argument("--status-period", type=positive_float, default=1.0, help="s")
+    add_duration(p, "--status-period", 1_000_000, "time between status file writes")
     p.add_argument(
         "--canopen",
         action="store_true",
@@ -82,11 +85,11 @@ def _config(args: argparse.Namespace) -> NodeConfig:
         if args.power_profile is not None
         else PowerProfile.constant(args.power / 1e6)
     )
-    timeout = round(args.response_timeout * 1e6)
+    timeout = args.response_timeout
     return NodeConfig(
         power=profile,
-        tick_us=round(args.tick * 1e6),
-        telemetry_period_us=round(args.telemetry_period * 1e6),
+        tick_us=args.tick,
+        telemetry_period_us=args.telemetry_period,
         low_water=args.low_water,
         return_above=args.return_above,
         timing=Timing(
@@ -105,64 +108,102 @@ def status(host: NodeHost, runtime: BusRuntime) -> dict[str, Any]:
     return {"nodes": {str(n["node"]): n for n in nodes}, **bus}
 
 
+class _Signals:
+    """SIGINT and SIGTERM ask for a clean stop; SIGUSR1 simulates a power loss."""
+
+    def __init__(self) -> None:
+        self.stop = False
+        signal.signal(signal.SIGINT, self._request_stop)
+        signal.signal(signal.SIGTERM, self._request_stop)
+        signal.signal(signal.SIGUSR1, self._lose_power)
+
+    def _request_stop(self, signum: int, frame: object) -> None:
+        self.stop = True
+
+    @staticmethod
+    def _lose_power(signum: int, frame: object) -> None:
+        raise SimulatedPowerLoss("SIGUSR1")
+
+
+def _host(args: argparse.Namespace, ids: tuple[int, ...]) -> NodeHost:
+    """The nodes, each restored from its NV store."""
+    config = _config(args)
+    now = monotonic_us()
+    several = len(ids) > 1 or args.nodes is not None
+    return NodeHost([FirmwareNode(n, _nv_store(args, n, several), config, now) for n in ids])
+
+
+def _nv_store(args: argparse.Namespace, node: int, several: bool) -> NvStore:
+    path = _nv_path(args, node, several)
+    return NvStore(path, node, fsync=not args.no_fsync, crash_after=args.crash_after)
+
+
+def _start(args: argparse.Namespace, ids: tuple[int, ...]) -> tuple[NodeHost, Codec, can.BusABC]:
+    """Check --status-file's directory, restore the nodes, open the bus (errors: exit 2)."""
+    if args.status_file is not None:
+        check_writable_dir(args.status_file, "--status-file")
+    host = _host(args, ids)
+    codec = Codec(args.id_base)
+    return host, codec, _open(args, ids, codec)
+
+
+def _open(args: argparse.Namespace, ids: tuple[int, ...], codec: Codec) -> can.BusABC:
+    """The bus, filtered to the nodes' frames (and CANopen's 11-bit ones with ``--canopen``)."""
+    filters: list[dict[str, Any]] = [f for n in ids for f in codec.client_filters(n)]
+    if args.canopen:
+        filters.append(STANDARD_FRAMES)
+    return open_bus(args, filters)
+
+
+def _canopen(bus: can.BusABC, host: NodeHost) -> tuple[SharedReader, can.Notifier | None]:
+    """Boot every node as a CANopen slave; return canergy's reader and the shared Notifier."""
+    network, reader = shared_network(bus)
+    for fw in host.nodes.values():
+        CanopenFace(fw, network).boot()
+    return reader, network.notifier
+
+
+def _serve(
+    args: argparse.Namespace, host: NodeHost, runtime: BusRuntime, signals: _Signals
+) -> None:
+    """Run the bus loop until a stop is asked for, rewriting ``--status-file`` periodically."""
+    next_status = 0
+    while not signals.stop:
+        runtime.poll(0.05)
+        now = monotonic_us()
+        if args.status_file is not None and now >= next_status:
+            write_json_atomic(args.status_file, status(host, runtime), fsync=False)
+            next_status = now + args.status_period
+
+
+def _close(bus: can.BusABC, notifier: can.Notifier | None) -> None:
+    if notifier is not None:
+        bus.stop_all_periodic_tasks()  # heartbeats
+        notifier.stop()
+    bus.shutdown()
+
+
+def _report(args: argparse.Namespace, host: NodeHost, runtime: BusRuntime) -> None:
+    final = status(host, runtime)
+    if args.status_file is not None:
+        write_json_atomic(args.status_file, final, fsync=False)
+    else:
+        print(json.dumps(final, sort_keys=True))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     ids = (args.node,) if args.node is not None else args.nodes
-    stop = False
-
-    def request_stop(signum: int, frame: object) -> None:
-        nonlocal stop
-        stop = True
-
-    def lose_power(signum: int, frame: object) -> None:
-        raise SimulatedPowerLoss("SIGUSR1")
-
-    # first thing: a stop request during start-up must still end cleanly
-    signal.signal(signal.SIGINT, request_stop)
-    signal.signal(signal.SIGTERM, request_stop)
-    signal.signal(signal.SIGUSR1, lose_power)
+    signals = _Signals()  # first thing: a stop request during start-up must still end cleanly
     try:
-        config = _config(args)
-        now = monotonic_us()
-        host = NodeHost(
-            [
-                FirmwareNode(
-                    n,
-                    NvStore(
-                        _nv_path(args, n, len(ids) > 1 or args.nodes is not None),
-                        n,
-                        fsync=not args.no_fsync,
-                        crash_after=args.crash_after,
-                    ),
-                    config,
-                    now,
-                )
-                for n in ids
-            ]
-        )
-        codec = Codec(args.id_base)
-        filters = [f for n in ids for f in codec.client_filters(n)]
-        if args.canopen:
-            filters.append(STANDARD_FRAMES)
-        bus = open_bus(args, filters)
+        host, codec, bus = _start(args, ids)
     except (ValueError, OSError, BusOpenError) as exc:  # NvError is a ValueError
         parser.exit(2, f"{parser.prog}: error: {exc}\n")
-    reader = notifier = None
-    if args.canopen:
-        network, reader = shared_network(bus)
-        notifier = network.notifier
-        for fw in host.nodes.values():
-            CanopenFace(fw, network).boot()
+    reader, notifier = _canopen(bus, host) if args.canopen else (None, None)
     runtime = BusRuntime(bus, host, codec=codec, receives=Direction.TO_CLIENT, source=reader)
-    next_status = 0
     try:
-        while not stop:
-            runtime.poll(0.05)
-            now = monotonic_us()
-            if args.status_file is not None and now >= next_status:
-                write_json_atomic(args.status_file, status(host, runtime), fsync=False)
-                next_status = now + round(args.status_period * 1e6)
+        _serve(args, host, runtime, signals)
     except SimulatedPowerLoss as exc:
         print(f"firmware_model: simulated power loss: {exc}", file=sys.stderr)
         os._exit(EXIT_POWER_LOSS)  # no clean-up: the NV file is all that survives
@@ -170,15 +211,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"firmware_model: NV store: {exc}", file=sys.stderr)
         return 1
     finally:
-        if notifier is not None:
-            bus.stop_all_periodic_tasks()  # heartbeats
-            notifier.stop()
-        bus.shutdown()
-    final = status(host, runtime)
-    if args.status_file is not None:
-        write_json_atomic(args.status_file, final, fsync=False)
-    else:
-        print(json.dumps(final, sort_keys=True))
+        _close(bus, notifier)
+    _report(args, host, runtime)
     return 0
 
 

@@ -186,3 +186,44 @@ def test_listen_only_never_sends(tmp_path: Path) -> None:
         loop.halt()
     assert result == [0] and status["listen_only"] and status["frames_sent"] == 0
     assert status["frames_received"] >= 1 and host.nodes[3].client.state.credited == 0
+
+
+@pytest.mark.parametrize(
+    ("command", "option"),
+    [
+        (["supervisor", "--nodes", "1"], "--state"),
+        (["supervisor", "--nodes", "1", "--state", "s.json"], "--status-file"),
+        (["grant", "--node", "1", "--amount", "1J"], "--state"),
+    ],
+)
+def test_file_in_a_missing_directory_is_named_at_start(
+    command: list[str], option: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    missing = tmp_path / "no" / "such"
+    argv = [*command, "-i", "virtual", "-c", uuid.uuid4().hex, option, str(missing / "f.json")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1, err
+    assert f"cannot write {option} {missing / 'f.json'}: no directory {missing}" in err, err
+    assert not (tmp_path / "no").exists()
+
+
+def test_firmware_status_file_in_a_missing_directory_is_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    missing = tmp_path / "no"
+    argv = ["--node", "1", "--nv", str(tmp_path / "1.nv"), "--status-file", str(missing / "s")]
+    with pytest.raises(SystemExit) as exc:
+        firmware_main([*argv, "-i", "virtual", "-c", uuid.uuid4().hex])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and f"no directory {missing}" in err and "Traceback" not in err
+
+
+def test_read_only_directory_is_named(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from canergy.live import atomic
+
+    monkeypatch.setattr(atomic.os, "access", lambda path, mode: False)  # root may write anyway
+    with pytest.raises(PermissionError, match=f"--state .*: directory {tmp_path} is not writable"):
+        atomic.check_writable_dir(tmp_path / "s.json", "--state")
+    monkeypatch.undo()
+    atomic.check_writable_dir(tmp_path / "s.json", "--state")

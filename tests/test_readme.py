@@ -35,3 +35,18 @@ def test_readme_bench_commands_parse() -> None:
         build_parser().parse_args(argv)  # exits 2 on a flag that does not exist
     for argv in firmware:
         firmware_parser().parse_args(argv)
+
+
+def test_readme_grants_ask_what_their_supervisor_allows() -> None:
+    """Each README grant fits the limits of the supervisor that serves it (a `grant --control`
+    goes to the README's supervisor with that socket; a single-run grant is its own)."""
+    from canergy.cli import build_parser
+
+    parsed = [build_parser().parse_args(argv) for argv in _shell_commands("canergy ")]
+    served_by = {a.control: a for a in parsed if a.command == "supervisor" and a.control}
+    grants = [a for a in parsed if a.command == "grant"]
+    assert any(g.control for g in grants) and any(not g.control for g in grants)
+    for grant in grants:
+        sup = served_by[grant.control] if grant.control else grant
+        caps = [sup.max_grant, sup.initial] + ([sup.max_total] if sup.max_total else [])
+        assert grant.amount <= min(caps), f"--amount {grant.amount} µJ is above {min(caps)} µJ"

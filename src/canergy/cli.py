@@ -10,10 +10,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from canergy import __version__, cli_inspect, cli_live, cli_sim
-from canergy.cli_args import bounded_int, energy, node_ids, positive_float, probability
+from canergy.cli_args import add_duration, bounded_int, energy, node_ids, probability
 from canergy.core.variants import VARIANTS
 from canergy.messages import MAX_NODE
-from canergy.units import UJ_PER_J
+from canergy.units import UJ_PER_J, US_PER_S
 
 
 def _demo_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -40,12 +40,7 @@ def _demo_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         default=200,
         help="transactions to start in total (default 200)",
     )
-    p.add_argument(
-        "--duration",
-        type=positive_float,
-        default=300.0,
-        help="virtual-time limit in seconds (default 300)",
-    )
+    add_duration(p, "--duration", 300 * US_PER_S, "virtual-time limit")
     p.add_argument(
         "--initial",
         type=energy,
@@ -92,14 +87,13 @@ def _demo_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from canergy.demo import DemoConfig, run_demo
-    from canergy.demo_report import format_report
+    from canergy.demo import DemoConfig, format_report, run_demo
     from canergy.faults import FaultProfile
 
     cfg = DemoConfig(
         nodes=args.node_ids or tuple(range(1, args.nodes + 1)),
         transactions=args.transactions,
-        duration_s=args.duration,
+        duration_s=args.duration / US_PER_S,
         initial=args.initial,
         variant=args.variant,
         faults=FaultProfile(
@@ -271,6 +265,8 @@ def _run_bench(args: argparse.Namespace) -> int:
     from canergy.bench.run import run, table
 
     results = run(quick=args.quick)
+    for reason in results["skipped"]:
+        print(f"canergy bench: {reason}", file=sys.stderr)
     print(table(results))
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=2) + "\n")

@@ -10,20 +10,21 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from canergy.cli_args import bounded_int, energy, node_ids, positive_float, power
+from canergy.cli_args import add_duration, bounded_int, energy, node_ids, power
 from canergy.codec import Codec
 from canergy.core import Supervisor, Timing
 from canergy.core.variants import VARIANTS
 from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
 
 __all__ = ["COMMANDS", "BusOpenError", "add_parsers"]
+from canergy.live.atomic import check_writable_dir
 from canergy.live.control import ControlServer, request
 from canergy.live.policy import Limits, TopUp
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.state_file import load_state
 from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Direction
-from canergy.units import UJ_PER_J
+from canergy.units import UJ_PER_J, US_PER_S
 
 
 def _supervisor_flags(p: argparse.ArgumentParser) -> None:
@@ -32,13 +33,13 @@ def _supervisor_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--initial", type=energy, default=10 * UJ_PER_J, help="budget of a new state")
     p.add_argument("--state", type=Path, help="non-volatile state file (created if missing)")
     p.add_argument("--no-fsync", action="store_true", help="skip fsync of the state file (tests)")
-    p.add_argument("--response-timeout", type=positive_float, default=0.05, help="s")
+    add_duration(p, "--response-timeout", 50_000, "wait this long for a reply")
     p.add_argument("--retries", type=bounded_int(0, 100), default=3)
     p.add_argument("--max-grant", type=energy, default=AMOUNT_MAX_MJ * QUANTUM_UJ)
     p.add_argument("--max-node-level", type=energy, help="never lift a node's level above this")
     p.add_argument("--max-total", type=energy, help="energy granted in this run, all nodes")
     p.add_argument("--rate", type=power, help="sustained grant rate over all nodes, e.g. 2W")
-    p.add_argument("--stop-timeout", type=positive_float, default=5.0, help="s to settle on exit")
+    add_duration(p, "--stop-timeout", 5_000_000, "time to settle on exit")
 
 
 def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -52,9 +53,9 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     _supervisor_flags(p)
     p.add_argument("--target", type=energy, help="top each node up to this reported level")
     p.add_argument("--min-grant", type=energy, default=QUANTUM_UJ, help="smallest top-up")
-    p.add_argument("--lost-after", type=positive_float, default=3.0, help="s without a frame")
+    add_duration(p, "--lost-after", 3_000_000, "a node is lost after this long without a frame")
     p.add_argument("--status-file", type=Path, help="JSON status (default: JSON lines on stdout)")
-    p.add_argument("--status-period", type=positive_float, default=1.0, help="s")
+    add_duration(p, "--status-period", 1_000_000, "time between status reports")
     p.add_argument("--control", type=Path, help="UNIX socket for `canergy grant --control`")
     p.add_argument("--listen-only", action="store_true", help="watch and report, never send")
     p.add_argument(
@@ -62,8 +63,13 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         action="store_true",
         help="use CANopen on the same bus: NMT start, heartbeat watchdog, boot-up, SDO audit",
     )
-    p.add_argument("--heartbeat-timeout", type=positive_float, default=3.0, help="s (--canopen)")
-    p.add_argument("--eds", type=Path, help="the nodes' EDS (default: the emulator's)")
+    add_duration(
+        p,
+        "--heartbeat-timeout",
+        3_000_000,
+        "--canopen: a node is lost after this long without a heartbeat",
+    )
+    p.add_argument("--eds", type=Path, help="the nodes' EDS (default: canergy's node EDS)")
 
     g = sub.add_parser(
         "grant",
@@ -74,12 +80,12 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     g.add_argument("--node", type=bounded_int(1, 127), required=True)
     g.add_argument("--amount", type=energy, required=True, help="e.g. 2J")
     g.add_argument("--control", type=Path, help="socket of a running supervisor")
-    g.add_argument("--timeout", type=positive_float, default=10.0, help="s to wait for the end")
+    add_duration(g, "--timeout", 10_000_000, "wait this long for the end")
     _supervisor_flags(g)
 
 
 def _build(args: argparse.Namespace, nodes: tuple[int, ...]) -> Supervisor:
-    timeout = round(args.response_timeout * 1e6)
+    timeout = args.response_timeout
     timing = Timing(
         response_timeout_us=timeout,
         retries=args.retries,
@@ -106,11 +112,11 @@ def _limits(args: argparse.Namespace) -> Limits:
 
 def _canopen(args: argparse.Namespace, bus: Any, service: SupervisorService) -> tuple[Any, Any]:
     from canergy.live.canopen_manager import CanopenManager
-    from firmware_model.canopen_node import EDS, shared_network
+    from canergy.live.shared_bus import EDS, shared_network
 
     network, reader = shared_network(bus)
     manager = CanopenManager(
-        network, args.nodes, args.eds or EDS, round(args.heartbeat_timeout * 1e6), monotonic_us
+        network, args.nodes, args.eds or EDS, args.heartbeat_timeout, monotonic_us
     )
     service.liveness = manager.alive
     if not args.listen_only:
@@ -180,8 +186,11 @@ def _control_request(
     service.request_grant(node, amount, reply)
 
 
-def _need_state(args: argparse.Namespace) -> None:
-    if args.state is None:
+def _check_state(args: argparse.Namespace, *, required: bool = True) -> None:
+    """``--state`` is given (when ``required``) and can be written."""
+    if args.state is not None:
+        check_writable_dir(args.state, "--state")
+    elif required:
         raise ValueError(
             "--state PATH is required: without its non-volatile record a restarted supervisor "
             "would reuse transaction numbers and grant its budget again"
@@ -189,8 +198,9 @@ def _need_state(args: argparse.Namespace) -> None:
 
 
 def run_supervisor(args: argparse.Namespace) -> int:
-    if not args.listen_only:
-        _need_state(args)
+    _check_state(args, required=not args.listen_only)
+    if args.status_file is not None:
+        check_writable_dir(args.status_file, "--status-file")
     if args.target is not None and args.target < QUANTUM_UJ:
         raise ValueError("--target must be at least 1 mJ")
     core = _build(args, args.nodes)
@@ -200,16 +210,18 @@ def run_supervisor(args: argparse.Namespace) -> int:
         state_path=args.state,
         status_path=args.status_file,
         status_stream=sys.stdout if args.status_file is None else None,
-        status_period_us=round(args.status_period * 1e6),
-        lost_after_us=round(args.lost_after * 1e6),
-        stop_timeout_us=round(args.stop_timeout * 1e6),
+        status_period_us=args.status_period,
+        lost_after_us=args.lost_after,
+        stop_timeout_us=args.stop_timeout,
         listen_only=args.listen_only,
         fsync=not args.no_fsync,
     )
     codec = Codec(args.id_base)
     filters = codec.supervisor_filters()
     if args.canopen:
-        filters.append({"can_id": 0, "can_mask": 0, "extended": False})  # CANopen's 11-bit ids
+        from canergy.live.shared_bus import STANDARD_FRAMES
+
+        filters.append(STANDARD_FRAMES)  # CANopen's 11-bit ids
     bus = open_bus(args, filters)
     control = None
     manager = None
@@ -240,7 +252,7 @@ def run_grant(args: argparse.Namespace) -> int:
     if args.control is not None:
         payload = {"grant": {"node": args.node, "amount_uj": args.amount}}
         try:
-            answer = request(args.control, payload, args.timeout)
+            answer = request(args.control, payload, args.timeout / US_PER_S)
         except (OSError, ValueError) as exc:
             print(
                 f"canergy grant: cannot reach the supervisor at {args.control}: {exc}",
@@ -248,19 +260,19 @@ def run_grant(args: argparse.Namespace) -> int:
             )
             return 2
         return _report_grant(answer)
-    _need_state(args)
+    _check_state(args)
     core = _build(args, (args.node,))
     config = ServiceConfig(
         limits=_limits(args),
         state_path=args.state,
-        stop_timeout_us=round(args.stop_timeout * 1e6),
+        stop_timeout_us=args.stop_timeout,
         status_period_us=10**12,
         fsync=not args.no_fsync,
     )
     codec = Codec(args.id_base)
     bus = open_bus(args, codec.supervisor_filters())
     answers: list[dict[str, Any]] = []
-    deadline = monotonic_us() + round(args.timeout * 1e6)
+    deadline = monotonic_us() + args.timeout
     try:
         service = SupervisorService(core, config, monotonic_us())
         runtime = BusRuntime(bus, service, codec=codec, receives=Direction.TO_SUPERVISOR)

@@ -7,10 +7,17 @@ import json
 import sys
 from pathlib import Path
 
-from canergy.cli_args import bounded_int, energy, positive_float, probability
+from canergy.cli_args import (
+    add_duration,
+    bounded_int,
+    duration_or_zero,
+    energy,
+    milliseconds,
+    probability,
+)
 from canergy.sim.channel import PRESETS, channel
 from canergy.sim.engine import STRATEGIES, SimConfig, simulate
-from canergy.units import UJ_PER_J
+from canergy.units import UJ_PER_J, US_PER_S
 
 ALL = list(STRATEGIES)
 
@@ -33,31 +40,34 @@ def _floats(text: str) -> list[float]:
     return values
 
 
-def _ms(text: str) -> int:
-    value = positive_float(text)
-    return round(value * 1000)
-
-
 def _common(p: argparse.ArgumentParser, default_channel: str) -> None:
     p.add_argument("--channel", choices=sorted(PRESETS), default=default_channel)
     p.add_argument("--clients", type=bounded_int(1, 127), default=1)
-    p.add_argument("--duration", type=positive_float, default=60.0, help="virtual seconds")
+    add_duration(p, "--duration", 60 * US_PER_S, "virtual time to simulate")
     p.add_argument("--initial", type=energy, default=10 * UJ_PER_J)
     p.add_argument("--duplicate", type=probability, help="override the channel's duplication")
     p.add_argument("--reorder", type=probability, help="override the channel's reordering")
     p.add_argument("--corrupt", type=probability, help="override the channel's bit flips")
     p.add_argument("--burst", type=probability, help="Gilbert-Elliott: P(good -> bad) per frame")
-    p.add_argument("--delay-ms", type=_ms, help="mean one-way delay, ms")
-    p.add_argument("--jitter-ms", type=_ms, help="uniform +- jitter, ms")
+    p.add_argument("--delay-ms", type=milliseconds, help="mean one-way delay (plain: ms)")
+    p.add_argument("--jitter-ms", type=milliseconds, help="uniform +- jitter (plain: ms)")
     p.add_argument(
         "--delay-dist",
         choices=["uniform", "exp"],
         help="per-frame delay: uniform in delay +- jitter, or exponential with mean delay",
     )
-    p.add_argument("--timeout-ms", type=_ms, help="response timeout (default: the channel's)")
+    p.add_argument(
+        "--timeout-ms", type=milliseconds, help="response timeout (plain: ms; default: channel's)"
+    )
     p.add_argument("--retries", type=bounded_int(0, 20), default=1, help="N (the paper: 1)")
     p.add_argument("--commit-ratio", type=probability, default=0.5)
-    p.add_argument("--return-every", type=float, default=5.0, help="mean s between returns; 0 off")
+    p.add_argument(
+        "--return-every",
+        type=duration_or_zero,
+        default=5 * US_PER_S,
+        metavar="TIME",
+        help="mean time between returns, 0 off (default 5s; plain numbers are seconds)",
+    )
     p.add_argument("--out", type=Path, required=True, help="output directory")
 
 
@@ -102,10 +112,10 @@ def _config(args: argparse.Namespace, loss: float | None = None) -> SimConfig:
     return SimConfig(
         channel=model,
         clients=args.clients,
-        duration_s=args.duration,
+        duration_s=args.duration / US_PER_S,
         initial=args.initial,
         commit_ratio=args.commit_ratio,
-        return_every_s=args.return_every,
+        return_every_s=args.return_every / US_PER_S,
         timeout_us=args.timeout_ms,
         retries=args.retries,
     )

@@ -9,6 +9,16 @@ from pathlib import Path
 from typing import Any
 
 
+def check_writable_dir(path: Path, what: str) -> None:
+    """Fail now, naming ``what`` and the directory, if ``path`` could not be written atomically
+    later (each write creates a temporary file beside it)."""
+    folder = path.parent
+    if not folder.is_dir():
+        raise FileNotFoundError(f"cannot write {what} {path}: no directory {folder}")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise PermissionError(f"cannot write {what} {path}: directory {folder} is not writable")
+
+
 def write_atomic(path: Path, data: bytes, *, fsync: bool = True) -> None:
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     with open(tmp, "wb") as f:

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ
+from canergy.units import format_energy
 
 
 @dataclass(frozen=True, slots=True)
@@ -26,8 +27,9 @@ class Limits:
 
     def __post_init__(self) -> None:
         if not QUANTUM_UJ <= self.max_grant <= AMOUNT_MAX_MJ * QUANTUM_UJ:
+            largest = AMOUNT_MAX_MJ * QUANTUM_UJ
             raise ValueError(
-                f"max grant must be {QUANTUM_UJ} µJ to {AMOUNT_MAX_MJ * QUANTUM_UJ} µJ"
+                f"max grant must be {format_energy(QUANTUM_UJ)} to {format_energy(largest)}"
             )
         for name in ("max_node_level", "max_total", "rate_uj_per_s"):
             value = getattr(self, name)

@@ -33,6 +33,7 @@ from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant
 from canergy.live.runtime import BusCounters
 from canergy.live.state_file import save_state
 from canergy.messages import QUANTUM_UJ, Message, Telemetry, ToSupervisor
+from canergy.units import format_energy
 
 GrantCallback = Callable[[dict[str, Any]], None]
 
@@ -222,7 +223,7 @@ class SupervisorService:
         req = info.requests.popleft()
         amount = self._cap(req.amount, info, now)
         if amount != req.amount:
-            allowed = f"{amount} µJ allowed" if amount else "nothing allowed"
+            allowed = f"{format_energy(amount)} allowed" if amount else "nothing allowed"
             req.reply({"node": node, "error": f"refused by limits or budget ({allowed})"})
             return []
         info.active_request = req

@@ -261,6 +261,32 @@ def _run_dbc(args: argparse.Namespace) -> int:
     return 0
 
 
+def _rules_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "rules",
+        help="print the transition tables; --docs DIR also writes the reference and diagrams",
+    )
+    p.add_argument(
+        "--docs",
+        type=Path,
+        metavar="DIR",
+        help="write DIR/transitions.md and DIR/figures/states-*.png (the repo's: docs)",
+    )
+
+
+def _run_rules(args: argparse.Namespace) -> int:
+    from canergy.rules_doc import markdown, write_docs
+
+    if args.docs is None:
+        sys.stdout.write(markdown())
+        return 0
+    if not args.docs.is_dir():
+        raise ValueError(f"--docs {args.docs}: not a directory")
+    for path in write_docs(args.docs):
+        print(f"wrote {path}")
+    return 0
+
+
 def _run_bench(args: argparse.Namespace) -> int:
     from canergy.bench.run import run, table
 
@@ -283,6 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
     _demo_parser(sub)
     _check_parser(sub)
     _dbc_parser(sub)
+    _rules_parser(sub)
     cli_live.add_parsers(sub)
     cli_sim.add_parsers(sub)
     cli_inspect.add_parsers(sub)
@@ -299,6 +326,7 @@ _COMMANDS = {
     "demo": _run_demo,
     "check": _run_check,
     "dbc": _run_dbc,
+    "rules": _run_rules,
     **cli_live.COMMANDS,
     **cli_sim.COMMANDS,
     **cli_inspect.COMMANDS,

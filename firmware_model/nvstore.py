@@ -13,8 +13,9 @@ Record (29 bytes, little-endian, packed)::
 Slot (40 bytes): ``u16 magic, u32 counter, record padded to 30 bytes, u32 crc32`` over magic to
 padding. The store has two slots; a write goes to the slot *not* holding the newest valid record,
 so a power loss mid-write (torn or corrupted slot) leaves the previous record readable. Loading
-picks the valid slot with the higher counter. Nothing is acted on before its write completes, so
-the fallback record never holds more energy than was committed.
+picks the valid slot written last (counters compare as 32-bit serial numbers, so the choice
+survives the wrap). Nothing is acted on before its write completes, so the fallback record never
+holds more energy than was committed.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from pathlib import Path
 
 from canergy.core.state import ClientState, Outcome
 from canergy.messages import QUANTUM_UJ
+from canergy.seqnum import unwrap
 
 RECORD = struct.Struct("<IIQIIIB")
 RECORD_SIZE = RECORD.size
@@ -88,6 +90,15 @@ def encode_slot(counter: int, record: bytes) -> bytes:
     return body + _CRC.pack(zlib.crc32(body))
 
 
+def newest(valid: list[tuple[int, int, bytes]]) -> tuple[int, int, bytes]:
+    """Of the valid ``(counter, slot, record)``s, the one written last: counters compare as
+    32-bit serial numbers, so slot order survives the counter's wrap (equal: the later slot)."""
+    if len(valid) == 1:
+        return valid[0]
+    first, second = valid
+    return second if unwrap(second[0], first[0], 32) >= first[0] else first
+
+
 def decode_slot(raw: bytes) -> tuple[int, bytes] | None:
     """``(counter, record)`` of a valid slot, else None."""
     if len(raw) != SLOT_SIZE:
@@ -135,7 +146,7 @@ class NvStore:
             self.stats.fallbacks += 1  # a torn or corrupted slot: its write never completed
         if not valid:
             return ClientState(self.node)
-        counter, index, record = max(valid)
+        counter, index, record = newest(valid)
         self._counter, self._newest_slot = counter, index
         return unpack_record(self.node, record)
 

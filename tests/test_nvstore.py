@@ -104,3 +104,18 @@ def test_garbage_in_both_slots_is_a_fresh_node(tmp_path: Path) -> None:
     path.write_bytes(b"\xa5" * (2 * SLOT_SIZE))
     store = NvStore(path, 3)
     assert store.load() == ClientState(3) and store.stats.fallbacks == 1
+
+
+@pytest.mark.parametrize("start", [0xFFFF_FFFD, 0xFFFF_FFFE, 0xFFFF_FFFF, 0x7FFF_FFFF])
+def test_slot_counters_compare_across_the_32_bit_wrap(tmp_path: Path, start: int) -> None:
+    """Regression: after 2**32 writes the older slot won (usable 1 J became 5 J)."""
+    store = NvStore(tmp_path / "n.nv", 3, fsync=False)
+    store._counter = start  # as if this many writes had happened
+    states = _states(4)
+    for written, s in enumerate(states, 1):
+        store.save(s)
+        assert NvStore(tmp_path / "n.nv", 3, fsync=False).load() == s, written
+    reopened = NvStore(tmp_path / "n.nv", 3, fsync=False)
+    reopened.load()
+    reopened.save(states[0])
+    assert NvStore(tmp_path / "n.nv", 3, fsync=False).load() == states[0]

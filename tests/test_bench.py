@@ -7,8 +7,10 @@ from pathlib import Path
 
 import pytest
 
+from canergy.bench import live
 from canergy.bench.wire import frame_bits
 from canergy.cli import main
+from firmware_model.nvstore import RECORD_SIZE, SLOT_SIZE
 
 
 def test_frame_bits_match_the_textbook_figures() -> None:
@@ -30,3 +32,11 @@ def test_quick_bench_runs_every_comparison(
     assert report["skipped"] == []  # the emulator is importable here
     assert report["memory"]["client_nv_record_bytes"] <= 32
     assert "quick smoke run" in capsys.readouterr().out
+
+
+def test_the_emulator_is_found_through_its_entry_point(monkeypatch: pytest.MonkeyPatch) -> None:
+    emulator = live.load_emulator()  # this checkout registers firmware_model's
+    assert emulator.nv_file_bytes == 2 * SLOT_SIZE and emulator.nv_record_bytes == RECORD_SIZE
+    monkeypatch.setattr(live, "entry_points", lambda group: [])
+    with pytest.raises(live.EmulatorMissing, match=r"none registered under the canergy\.emulators"):
+        live.load_emulator()

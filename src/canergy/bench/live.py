@@ -5,8 +5,9 @@ canergy: a supervisor service and a firmware node host, each with its own bus en
 latency from request to resolution. Baseline: a ``canopen.LocalNode`` serving expedited SDO
 downloads of 4 bytes to a ``RemoteNode`` client, one at a time, in the same process.
 
-The nodes are ``firmware_model``'s, imported only when measured: canergy never depends on the
-emulator, which a host-only install lacks (see ``emulator_missing``).
+The nodes come from a client emulator registered under the ``canergy.emulators`` entry-point
+group (the way python-can finds its interfaces): canergy names none and depends on none, and a
+host-only install without one skips this part (see ``load_emulator``).
 """
 
 from __future__ import annotations
@@ -15,14 +16,17 @@ import statistics
 import threading
 import time
 import uuid
-from typing import Any
+from collections.abc import Sequence
+from importlib.metadata import entry_points
+from pathlib import Path
+from typing import Any, Protocol
 
 import can
 import canopen
 
 from canergy.codec import Codec
 from canergy.core import Supervisor, Timing
-from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.runtime import BusRuntime, Handler, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.messages import Direction
 
@@ -34,36 +38,54 @@ def _percentile(values: list[float], q: float) -> float:
     return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
 
 
-def emulator_missing() -> str | None:
-    """Why the emulated nodes cannot run here, or None when ``firmware_model`` imports."""
-    try:
-        import firmware_model  # noqa: F401
-    except ImportError:
-        return (
-            "skipped the live stack and the client NV figures: they run the firmware_model "
-            "emulator (canergy's source tree has it), which is not importable here"
-        )
-    return None
+EMULATORS = "canergy.emulators"
 
 
-def canergy_grants(nodes: int, duration_s: float, nv_dir: Any) -> dict[str, Any]:
-    from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
-    from firmware_model.nvstore import NvStore
+class Emulator(Protocol):
+    """What a client emulator offers the benchmark: a host of nodes and its NV record size."""
 
+    nv_record_bytes: int
+    nv_file_bytes: int
+
+    def node_host(self, nodes: Sequence[int], nv_dir: Path, timing: Timing, now: int) -> Handler:
+        """Nodes with NV files under ``nv_dir``, behind one bus handler."""
+        ...
+
+    def telemetry_sent(self, host: Handler) -> int:
+        """TELEMETRY frames the host's nodes sent (information, not protocol frames)."""
+        ...
+
+
+class EmulatorMissing(Exception):
+    """No registered client emulator loads here; the message says why."""
+
+
+def load_emulator() -> Emulator:
+    """The first client emulator of the ``canergy.emulators`` group that loads."""
+    reasons = []
+    for point in entry_points(group=EMULATORS):
+        try:
+            emulator: Emulator = point.load()
+        except ImportError as exc:
+            reasons.append(f"{point.value}: {exc}")
+            continue
+        return emulator
+    why = "; ".join(reasons) or f"none registered under the {EMULATORS} entry points"
+    raise EmulatorMissing(
+        f"skipped the live stack and the client NV figures: they need a client emulator ({why})"
+    )
+
+
+def canergy_grants(
+    emulator: Emulator, nodes: int, duration_s: float, nv_dir: Path
+) -> dict[str, Any]:
     channel = f"bench-{uuid.uuid4().hex}"
     codec = Codec()
     ids = list(range(1, nodes + 1))
     now = monotonic_us()
     core = Supervisor(ids, 10**15, timing=TIMING)
     service = SupervisorService(core, ServiceConfig(status_period_us=10**12, fsync=False), now)
-    host = NodeHost(
-        [
-            FirmwareNode(
-                n, NvStore(nv_dir / f"{n}.nv", n, fsync=False), NodeConfig(timing=TIMING), now
-            )
-            for n in ids
-        ]
-    )
+    host = emulator.node_host(ids, nv_dir, TIMING, now)
     sup_bus = can.Bus(interface="virtual", channel=channel, can_filters=codec.supervisor_filters())
     node_bus = can.Bus(interface="virtual", channel=channel)
     runtimes = [
@@ -98,7 +120,7 @@ def canergy_grants(nodes: int, duration_s: float, nv_dir: Any) -> dict[str, Any]
         t.join(timeout=10)
     elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu_start
     frames = sum(r.counters.frames_sent for r in runtimes)
-    telemetry = sum(n.telemetry_sent for n in host.nodes.values())  # not protocol frames
+    telemetry = emulator.telemetry_sent(host)  # not protocol frames
     for r in runtimes:
         r.bus.shutdown()
     done = len(latencies)

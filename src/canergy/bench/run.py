@@ -1,7 +1,7 @@
 """``canergy bench``: every comparison in one run, a table on stdout and JSON for the record.
 
-The parts that run ``firmware_model``'s emulated nodes are skipped, and named under ``skipped``,
-where the emulator is not importable (a host-only install)."""
+The parts that run emulated client nodes are skipped, and named under ``skipped``, where no
+client emulator is registered and importable (a host-only install; see ``live.load_emulator``)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from typing import Any
 from canergy.bench import codec, core, live, wire
 
 
-def memory_per_node(nodes: int = 127, client: bool = True) -> dict[str, Any]:
+def memory_per_node(nodes: int = 127, emulator: live.Emulator | None = None) -> dict[str, Any]:
     from canergy.core import Supervisor
     from canergy.live.service import ServiceConfig, SupervisorService
 
@@ -26,21 +26,27 @@ def memory_per_node(nodes: int = 127, client: bool = True) -> dict[str, Any]:
     used = sum(s.size_diff for s in after.compare_to(before, "filename"))
     assert service.core.nodes  # keep it alive until measured
     result: dict[str, Any] = {"nodes": nodes, "supervisor_bytes_per_node": used / nodes}
-    if client:
-        from firmware_model.nvstore import RECORD_SIZE, SLOT_SIZE
-
-        result |= {"client_nv_record_bytes": RECORD_SIZE, "client_nv_file_bytes": 2 * SLOT_SIZE}
+    if emulator is not None:
+        result |= {
+            "client_nv_record_bytes": emulator.nv_record_bytes,
+            "client_nv_file_bytes": emulator.nv_file_bytes,
+        }
     return result
 
 
 def run(quick: bool = False) -> dict[str, Any]:
     seconds = 0.3 if quick else 3.0
-    missing = live.emulator_missing()
+    emulator: live.Emulator | None = None
+    skipped: list[str] = []
+    try:
+        emulator = live.load_emulator()
+    except live.EmulatorMissing as exc:
+        skipped.append(str(exc))
     live_rows = []
-    if missing is None:
+    if emulator is not None:
         with tempfile.TemporaryDirectory() as tmp:
             nv = Path(tmp)
-            live_rows = [live.canergy_grants(n, seconds, nv) for n in (1, 16, 127)]
+            live_rows = [live.canergy_grants(emulator, n, seconds, nv) for n in (1, 16, 127)]
     sdo = live.sdo_writes(50 if quick else 2000)
     one = live_rows[0] if live_rows else {"latency_p50_ms": None, "cpu_us_per_frame": None}
     return {
@@ -60,8 +66,8 @@ def run(quick: bool = False) -> dict[str, Any]:
         ),
         "wire": wire.model(),
         "headroom": wire.headroom(one["cpu_us_per_frame"]) if one["cpu_us_per_frame"] else None,
-        "memory": memory_per_node(client=missing is None),
-        "skipped": [] if missing is None else [missing],
+        "memory": memory_per_node(emulator=emulator),
+        "skipped": skipped,
     }
 
 

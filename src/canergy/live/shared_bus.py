@@ -1,7 +1,7 @@
 """What canergy and CANopen share on one bus: the node EDS, an 11-bit filter, one Notifier.
 
-Both ends use these: the supervisor (``canergy supervisor --canopen``) and the emulated nodes of
-``firmware_model``. ``canergy_node.eds`` ships inside this package, so an installed canergy has it.
+Both ends use these: the supervisor (``canergy supervisor --canopen``) and emulated client nodes.
+``canergy_node.eds`` ships inside this package, so an installed canergy has it.
 """
 
 from __future__ import annotations

@@ -129,7 +129,7 @@ def test_a_finished_run_did_all_its_work_and_settled(
 ) -> None:
     cfg = DemoConfig(variant=variant, seed=seed, faults=faults, transactions=80)
     r = run_demo(cfg)
-    assert r.finished and r.virtual_us <= cfg.duration_s * 1e6
+    assert r.finished and r.virtual_us <= cfg.duration_us
     assert r.transactions_started == cfg.transactions  # the budget lasts for all of them
     assert r.ledger.supervisor_reserved == 0, "a transaction was still open"
     assert all(u < QUANTUM_UJ for u in r.client_usable.values()), "a client kept energy"
@@ -148,17 +148,17 @@ def test_a_run_stops_at_the_first_settled_tick_within_its_duration(seed: int) ->
     cfg = DemoConfig(seed=seed, transactions=40)
     r = run_demo(cfg)
     assert r.finished and r.virtual_us % TICK_US == 0, "a run stops on a tick"
-    exact = run_demo(replace(cfg, duration_s=(r.virtual_us + 0.5) / 1e6))
+    exact = run_demo(replace(cfg, duration_us=r.virtual_us))
     assert exact.finished and exact.as_json() == r.as_json()
-    cut = run_demo(replace(cfg, duration_s=(r.virtual_us - 0.5) / 1e6))
+    cut = run_demo(replace(cfg, duration_us=r.virtual_us - 1))
     assert not cut.finished
     assert r.virtual_us - 1 < cut.virtual_us <= r.virtual_us - 1 + TICK_US
 
 
 def test_a_run_that_never_settles_stops_at_its_duration_limit() -> None:
-    cfg = DemoConfig(seed=1, duration_s=2.0, faults=FaultProfile(loss=0.9))
+    cfg = DemoConfig(seed=1, duration_us=2_000_000, faults=FaultProfile(loss=0.9))
     r = run_demo(cfg)
-    limit = int(cfg.duration_s * 1e6)
+    limit = cfg.duration_us
     assert not r.finished and limit < r.virtual_us <= limit + TICK_US
     assert "stopped at the duration limit" in format_report(r)
 

@@ -93,7 +93,7 @@ def _run_demo(args: argparse.Namespace) -> int:
     cfg = DemoConfig(
         nodes=args.node_ids or tuple(range(1, args.nodes + 1)),
         transactions=args.transactions,
-        duration_s=args.duration / US_PER_S,
+        duration_us=args.duration,
         initial=args.initial,
         variant=args.variant,
         faults=FaultProfile(

@@ -14,10 +14,8 @@ from canergy.cli_args import add_duration, bounded_int, energy, node_ids, power
 from canergy.codec import Codec
 from canergy.core import Supervisor, Timing
 from canergy.core.variants import VARIANTS
-from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
-
-__all__ = ["COMMANDS", "BusOpenError", "add_parsers"]
 from canergy.live.atomic import check_writable_dir
+from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
 from canergy.live.control import ControlServer, request
 from canergy.live.policy import Limits, TopUp
 from canergy.live.runtime import BusRuntime, monotonic_us
@@ -25,6 +23,8 @@ from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.state_file import load_state
 from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Direction
 from canergy.units import UJ_PER_J, US_PER_S
+
+__all__ = ["COMMANDS", "BusOpenError", "add_parsers"]
 
 
 def _supervisor_flags(p: argparse.ArgumentParser) -> None:

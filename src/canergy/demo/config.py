@@ -8,7 +8,7 @@ from pathlib import Path
 from canergy.core import Timing
 from canergy.faults import FaultProfile
 from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ
-from canergy.units import UJ_PER_J, format_energy
+from canergy.units import UJ_PER_J, US_PER_S, format_energy
 
 MAX_AMOUNT_UJ = AMOUNT_MAX_MJ * QUANTUM_UJ
 
@@ -19,7 +19,8 @@ class DemoConfig:
 
     nodes: tuple[int, ...] = (1, 2, 3, 4, 5)
     transactions: int = 200
-    duration_s: float = 300.0
+    duration_us: int = 300 * US_PER_S
+    """Virtual-time limit."""
     initial: int = 10 * UJ_PER_J
     variant: str = "hardened"
     faults: FaultProfile = field(default_factory=FaultProfile)

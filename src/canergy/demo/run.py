@@ -199,7 +199,7 @@ class DemoRun:
     # -- main loop -----------------------------------------------------------------------
     def run(self) -> DemoResult:
         """Work, then drain, sharing one clock that stops at the duration limit."""
-        ticks = self.ticks(int(self.cfg.duration_s * 1e6))
+        ticks = self.ticks(self.cfg.duration_us)
         finished = self.work(ticks) and self.drain(ticks)
         return self.result(finished)
 

@@ -8,7 +8,7 @@ name (a new rule without a test) or a test names a cell the table lacks.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import pytest
@@ -28,7 +28,6 @@ class Case:
     actions: tuple[Any, ...] = ()
     credit: int = 0
     now: int = 50
-    timing: Timing | None = field(default=None, compare=False)
 
     @property
     def cell(self) -> CellKey:
@@ -40,7 +39,7 @@ def params(cases: Iterable[Case]) -> list[Any]:
 
 
 def run_case(table: RuleTable[Any, Any], t: Timing, case: Case) -> None:
-    step = table.step(case.timing or t, case.start, case.event, case.now)
+    step = table.step(t, case.start, case.event, case.now)
     expected = (case.end, case.actions)
     if isinstance(case.start, Session):
         expected = (*expected, case.credit)

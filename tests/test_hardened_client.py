@@ -220,7 +220,7 @@ IGNORED = {
     (HO, FinalAck),
     (ID, CommandTimeout),
 }
-REFUSED: set[cells.CellKey] = set()
+REFUSED: set[cells.CellKey] = set()  # local requests are guarded by energy, not by phase
 STATES = {ID: FRESH, HO: HOLDING}
 EVENTS = {
     StatusRequest: StatusRequest(2, 6),
@@ -240,7 +240,6 @@ def test_ignored(cell: cells.CellKey) -> None:
 
 
 def test_every_cell_has_a_test() -> None:
-    assert not REFUSED  # the client's local requests are guarded by energy, not by phase
     cells.check_coverage(TABLE, CASES, IGNORED, REFUSED)
 
 

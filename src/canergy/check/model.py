@@ -25,6 +25,7 @@ from canergy.core.inputs import (
 from canergy.core.state import ClientState, Decision, Phase, Session, SupervisorState
 from canergy.core.steps import Actions
 from canergy.core.supervisor import apply_session
+from canergy.core.table import Event
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant
 from canergy.ledger import Ledger, ledger
@@ -219,7 +220,7 @@ class Model:
         return self._to_client(w, i, self._event(step))
 
     @staticmethod
-    def _event(step: Step) -> object:
+    def _event(step: Step) -> Event:
         kind = step.kind
         if kind is K.BEGIN:
             return Begin(step.units * UNIT)
@@ -229,12 +230,7 @@ class Model:
             return Spend(UNIT)
         if kind is K.GIVE_BACK:
             return GiveBack(UNIT)
-        return {
-            K.SUPERVISOR_TIMER: RESPONSE_TIMEOUT,
-            K.COMMAND_TIMER: COMMAND_TIMEOUT,
-            K.RETURN_TIMER: RETURN_TIMEOUT,
-            K.CLIENT_POWER_LOSS: POWER_LOSS,
-        }[kind]
+        return _DATALESS[kind]
 
     def _channel(self, w: World, step: Step) -> World | None:
         msg = step.message
@@ -258,11 +254,11 @@ class Model:
         assert isinstance(msg, ToSupervisor)
         return self._to_session(w, i, msg)
 
-    def _to_session(self, w: World, i: int, event: object) -> World:
+    def _to_session(self, w: World, i: int, event: Event) -> World:
         step = self.variant.supervisor.step(self.timing, w.sup.sessions[i], event, 0)
         return self._out(evolve(w, sup=apply_session(w.sup, i, step)), step.actions)
 
-    def _to_client(self, w: World, i: int, event: object) -> World:
+    def _to_client(self, w: World, i: int, event: Event) -> World:
         c, actions = self.variant.client.step(self.timing, w.clients[i], event, 0)
         clients = (*w.clients[:i], c, *w.clients[i + 1 :])
         return self._out(evolve(w, clients=clients), actions)
@@ -276,6 +272,15 @@ class Model:
         for msg in sends:
             counts[msg] = counts.get(msg, 0) + 1
         return evolve(w, flight=frozenset(counts.items()))
+
+
+_DATALESS: dict[StepKind, Event] = {
+    K.SUPERVISOR_TIMER: RESPONSE_TIMEOUT,
+    K.COMMAND_TIMER: COMMAND_TIMEOUT,
+    K.RETURN_TIMER: RETURN_TIMEOUT,
+    K.CLIENT_POWER_LOSS: POWER_LOSS,
+}
+"""The events of steps that carry no data."""
 
 
 def _flight_key(item: tuple[Message, int]) -> tuple[int, str]:

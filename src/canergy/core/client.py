@@ -5,6 +5,7 @@ from __future__ import annotations
 from canergy.core.actions import Action, Persist
 from canergy.core.inputs import COMMAND_TIMEOUT, POWER_LOSS, RETURN_TIMEOUT, GiveBack, Spend
 from canergy.core.state import ClientState
+from canergy.core.table import Event
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
 from canergy.messages import MAX_NODE, MIN_NODE, ToClient
@@ -63,7 +64,7 @@ class Client:
         """Lose volatile state and restart from the non-volatile record."""
         self._step(POWER_LOSS, now)
 
-    def _step(self, event: object, now: int) -> list[Action]:
+    def _step(self, event: Event, now: int) -> list[Action]:
         old = self.state
         self.state, actions = self.rules.step(self.timing, old, event, now)
         if self.rules.persistent(old) != self.rules.persistent(self.state):

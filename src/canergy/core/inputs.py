@@ -79,5 +79,4 @@ POWER_LOSS = PowerLoss()
 
 LocalInput = Begin | Decide | Spend | GiveBack
 """Requests of the local application: refused (``LocalProtocolError``) where the table says so."""
-TimerInput = ResponseTimeout | CommandTimeout | ReturnTimeout
-Input = LocalInput | TimerInput | PowerLoss
+Input = LocalInput | ResponseTimeout | CommandTimeout | ReturnTimeout | PowerLoss

@@ -15,6 +15,7 @@ from canergy.core.frozen import evolve
 from canergy.core.inputs import POWER_LOSS, RESPONSE_TIMEOUT, Begin, Decide
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.core.steps import SessionStep
+from canergy.core.table import Event
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
 from canergy.messages import MAX_NODE, MIN_NODE, ToSupervisor
@@ -68,9 +69,10 @@ class Supervisor:
     def begin(self, node: int, amount: int, now: int) -> list[Action]:
         """Reserve ``amount`` µJ from Us and send node ``node`` an intention."""
         s = self._session_or_error(node)
-        if amount > self.state.usable and s.phase is Phase.IDLE:
+        step = self.rules.step(self.timing, s, Begin(amount), now)
+        if -step.credit > self.state.usable:  # the one guard a session's rule cannot see
             raise LocalProtocolError(f"amount {amount} µJ exceeds usable {self.state.usable} µJ")
-        return self._step(s, Begin(amount), now)
+        return self._apply(s, step)
 
     def commit(self, node: int, now: int) -> list[Action]:
         return self._step(self._session_or_error(node), Decide(Decision.COMMIT), now)
@@ -119,8 +121,10 @@ class Supervisor:
             raise LocalProtocolError(f"node {node} is not managed by this supervisor")
         return self.session(node)
 
-    def _step(self, s: Session, event: object, now: int) -> list[Action]:
-        step = self.rules.step(self.timing, s, event, now)
+    def _step(self, s: Session, event: Event, now: int) -> list[Action]:
+        return self._apply(s, self.rules.step(self.timing, s, event, now))
+
+    def _apply(self, s: Session, step: SessionStep) -> list[Action]:
         i = self._index[s.node]
         self.state = apply_session(self.state, i, step)
         if step.credit or self.rules.persistent(s) != self.rules.persistent(step.session):

@@ -12,7 +12,7 @@ import copy
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from enum import Enum
-from typing import Any, ClassVar, Generic, Self, TypeVar
+from typing import Any, ClassVar, Generic, Self, TypeVar, get_args
 
 from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import (
@@ -20,6 +20,8 @@ from canergy.core.inputs import (
     CommandTimeout,
     Decide,
     GiveBack,
+    Input,
+    LocalInput,
     PowerLoss,
     ResponseTimeout,
     ReturnTimeout,
@@ -39,6 +41,8 @@ from canergy.messages import (
     Return,
     ReturnAck,
     StatusRequest,
+    ToClient,
+    ToSupervisor,
 )
 
 S = TypeVar("S", Session, ClientState)
@@ -52,7 +56,9 @@ class Role(Enum):
     CLIENT = "client"
 
 
-LOCAL_EVENTS: tuple[type, ...] = (Begin, Decide, Spend, GiveBack)
+Event = Input | ToClient | ToSupervisor
+"""What a table dispatches on: a wire message or another input."""
+LOCAL_EVENTS: tuple[type, ...] = get_args(LocalInput)
 EVENTS: dict[Role, tuple[type, ...]] = {
     Role.SUPERVISOR: (Begin, Decide, Ack, Committed, Aborted, Return, ResponseTimeout, PowerLoss),
     Role.CLIENT: (
@@ -177,7 +183,7 @@ class RuleTable(Generic[S, R]):
             for e in self.events
         }
 
-    def step(self, t: Timing, state: S, event: object, now: int) -> R:
+    def step(self, t: Timing, state: S, event: Event, now: int) -> R:
         """Run the cell of ``state.phase`` and ``type(event)``."""
         transition = self.cells.get((state.phase, type(event)))
         if transition is None:

@@ -7,6 +7,7 @@ and a return policy. A loop step never waits and keeps no history.
 
 from __future__ import annotations
 
+import secrets
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -14,7 +15,18 @@ from typing import Any
 import can
 
 from canergy.codec import DecodeError
-from canergy.core import Action, Client, ClientCommitted, Credited, Persist, Send, Timing
+from canergy.core import (
+    Action,
+    Client,
+    ClientCommitted,
+    ClientState,
+    Credited,
+    IntentionRefused,
+    Persist,
+    Send,
+    Timing,
+)
+from canergy.core.state import Phase
 from canergy.live.policy import quantize
 from canergy.messages import (
     AMOUNT_MAX_MJ,
@@ -52,8 +64,15 @@ class FirmwareNode:
     def __init__(self, node: int, nv: NvStore, config: NodeConfig, now: int) -> None:
         self.config = config
         self.nv = nv
-        self.client = Client(node, timing=config.timing, state=nv.load())
+        record = nv.load()
+        self.client = Client(node, timing=config.timing, state=record or ClientState(node))
         self.client.power_loss(now)  # every start is a restart from the NV record
+        self.outbox: list[Message] = []
+        self.overflow_refused = 0
+        self.joins = 0
+        if record is None:  # new, wiped or corrupted: no books, so no pay-back is trusted
+            self.joins += 1
+            self.outbox = self._carry_out(self.client.books_lost(secrets.randbits(16), now), now)
         self.actuator = Actuator(config.power, now, now)
         self.next_tick = now + config.tick_us
         self.next_telemetry = now  # announce the level at boot
@@ -77,7 +96,11 @@ class FirmwareNode:
         if isinstance(msg, Intention) and self.gate() != "OPERATIONAL":
             self.refused += 1  # no grants outside OPERATIONAL: left unanswered
             return []
-        return self._carry_out(self.client.receive(msg, now), now)
+        joining = self.joining
+        out = self._carry_out(self.client.receive(msg, now), now)
+        if joining and not self.joining:
+            self.next_telemetry = now  # admitted: tell the supervisor at once
+        return out
 
     def parameters(self) -> tuple[int, int, int]:
         return (
@@ -111,13 +134,15 @@ class FirmwareNode:
             self.nv.save_params((*self.parameters(), self.written))
 
     def next_wakeup(self) -> int:
+        if self.outbox:
+            return 0
         times = [self.next_tick, self.next_telemetry]
         if (timer := self.client.get_timer()) is not None:
             times.append(timer)
         return min(times)
 
     def on_wakeup(self, now: int) -> list[Message]:
-        out: list[Message] = []
+        out, self.outbox = self.outbox, []
         if (timer := self.client.get_timer()) is not None and timer <= now:
             out += self._carry_out(self.client.handle_timer(now), now)
         if now >= self.next_tick:
@@ -134,8 +159,10 @@ class FirmwareNode:
         self.next_telemetry = now + self.config.telemetry_period_us
         self.telemetry_sent += 1
         usable = self.client.state.usable
-        flags = (Telemetry.LOW if usable < self.config.low_water else 0) | (
-            Telemetry.HALTED if self.actuator.halted else 0
+        flags = (
+            (Telemetry.LOW if usable < self.config.low_water else 0)
+            | (Telemetry.HALTED if self.actuator.halted else 0)
+            | (Telemetry.JOINING if self.joining else 0)
         )
         return Telemetry(self.node, min(usable // QUANTUM_UJ, LEVEL_MAX_MJ), flags)
 
@@ -160,6 +187,11 @@ class FirmwareNode:
             self.client.give_back(min(excess, AMOUNT_MAX_MJ * QUANTUM_UJ), now), now
         )
 
+    @property
+    def joining(self) -> bool:
+        """No books yet: JOIN sent, waiting for the supervisor's ADMIT."""
+        return self.client.state.phase is Phase.JOINING
+
     def _carry_out(self, actions: list[Action], now: int) -> list[Message]:
         out: list[Message] = []
         for action in actions:
@@ -169,6 +201,8 @@ class FirmwareNode:
                 out.append(action.message)
             elif isinstance(action, ClientCommitted | Credited):
                 self.next_telemetry = now  # report the new level right away
+            elif isinstance(action, IntentionRefused):
+                self.overflow_refused += 1
         return out
 
     def status(self) -> dict[str, Any]:
@@ -189,6 +223,9 @@ class FirmwareNode:
             "decode_errors": self.decode_errors,
             "nmt_state": self.gate(),
             "intentions_refused": self.refused,
+            "overflow_refused": self.overflow_refused,
+            "joining": self.joining,
+            "joins": self.joins,
         }
 
 

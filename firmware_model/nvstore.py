@@ -1,14 +1,19 @@
 """The client's non-volatile record and its A/B store, laid out as firmware would in flash/EEPROM.
 
-Record (29 bytes, little-endian, packed)::
+Record (30 bytes, little-endian, packed)::
 
-    u32 usable_uj        energy the actuator may still draw
-    u32 credited_mj      Rc: all energy ever credited (always whole wire quanta)
+    u32 usable_uj        energy the actuator may still draw (at most USABLE_MAX_UJ)
+    u32 credited_mj      Rc: all energy ever credited (whole wire quanta), modulo 2**32
     u64 spent_uj         energy taken by the actuator
-    u32 last_tx          last transaction resolved (widened transaction number)
-    u32 return_seq       number of the last return sent
+    u32 last_tx          last transaction resolved, modulo 2**32
+    u32 return_seq       number of the last return sent, modulo 2**32
     u32 return_pending_uj  amount of that return until acknowledged
     u8  outcome          how ``last_tx`` ended
+    u8  flags            bit 0: admitted without books, Rc comes with the next intention
+
+The three counters are only ever compared with the wire's 24- and 16-bit values through
+serial-number arithmetic, so keeping them modulo 2**32 (a multiple of both wire ranges) changes
+no comparison. A file with no valid slot holds no books: the node must JOIN (``load`` is None).
 
 Slot (40 bytes): ``u16 magic, u32 counter, record padded to 30 bytes, u32 crc32`` over magic to
 padding. The store has two slots; a write goes to the slot *not* holding the newest valid record,
@@ -27,15 +32,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from canergy.core.state import ClientState, Outcome
-from canergy.messages import QUANTUM_UJ
+from canergy.messages import QUANTUM_UJ, USABLE_MAX_UJ
 from canergy.seqnum import unwrap
 
-RECORD = struct.Struct("<IIQIIIB")
+RECORD = struct.Struct("<IIQIIIBB")
 RECORD_SIZE = RECORD.size
 assert RECORD_SIZE <= 32
 _MAGIC = 0xCE57
 _HEAD = struct.Struct("<HI")
 _PAD = 30
+_CREDITED_UNKNOWN = 0x01
 _CRC = struct.Struct("<I")
 SLOT_SIZE = _HEAD.size + _PAD + _CRC.size
 U32 = 0xFFFFFFFF
@@ -58,12 +64,13 @@ def pack_record(c: ClientState) -> bytes:
         raise NvError(f"credited {c.credited} µJ is not whole quanta")
     fields = (
         c.usable,
-        c.credited // QUANTUM_UJ,
+        c.credited // QUANTUM_UJ & U32,
         c.spent,
-        c.last_tx,
-        c.return_seq,
+        c.last_tx & U32,
+        c.return_seq & U32,
         c.return_pending,
         int(c.outcome),
+        _CREDITED_UNKNOWN if c.credited_unknown else 0,
     )
     try:
         return RECORD.pack(*fields)
@@ -72,7 +79,9 @@ def pack_record(c: ClientState) -> bytes:
 
 
 def unpack_record(node: int, data: bytes) -> ClientState:
-    usable, credited_mj, spent, last_tx, return_seq, pending, outcome = RECORD.unpack(data)
+    usable, credited_mj, spent, last_tx, return_seq, pending, outcome, flags = RECORD.unpack(data)
+    if outcome not in Outcome._value2member_map_ or usable > USABLE_MAX_UJ:
+        raise NvError(f"node {node}: the record holds values no client writes")
     return ClientState(
         node,
         usable=usable,
@@ -82,6 +91,7 @@ def unpack_record(node: int, data: bytes) -> ClientState:
         outcome=Outcome(outcome),
         return_seq=return_seq,
         return_pending=pending,
+        credited_unknown=bool(flags & _CREDITED_UNKNOWN),
     )
 
 
@@ -131,12 +141,13 @@ class NvStore:
         self._counter = 0
         self._newest_slot = 1  # so the first write goes to slot 0
 
-    def load(self) -> ClientState:
-        """The newest valid record, or a fresh state when the file is new or blank."""
+    def load(self) -> ClientState | None:
+        """The newest valid record; None when there is none (a new, wiped or corrupted file):
+        the node then has no books and must JOIN."""
         try:
             raw = self.path.read_bytes()
         except FileNotFoundError:
-            return ClientState(self.node)
+            return None
         except OSError as exc:
             raise NvError(f"{self.path}: {exc}") from exc
         chunks = [raw[i * SLOT_SIZE : (i + 1) * SLOT_SIZE] for i in (0, 1)]
@@ -145,10 +156,14 @@ class NvStore:
         if any(s is None and chunk.strip(b"\0") for s, chunk in zip(slots, chunks, strict=True)):
             self.stats.fallbacks += 1  # a torn or corrupted slot: its write never completed
         if not valid:
-            return ClientState(self.node)
+            return None
         counter, index, record = newest(valid)
         self._counter, self._newest_slot = counter, index
-        return unpack_record(self.node, record)
+        try:
+            return unpack_record(self.node, record)
+        except NvError:
+            self.stats.fallbacks += 1
+            return None  # a checksum collision over garbage: no books, not a crash
 
     def save(self, c: ClientState) -> None:
         record = pack_record(c)

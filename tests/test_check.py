@@ -8,15 +8,25 @@ import pytest
 
 from canergy.check import Bounds, check, replay
 from canergy.check.explore import step_from_json
-from canergy.check.model import Model
+from canergy.check.model import Model, Step, StepKind
 from canergy.cli import main
 from canergy.core import ClientState, ClientStep, Session, SessionStep, Timing
 from canergy.core import hardened as H
+from canergy.core.common import start_blank
 from canergy.core.frozen import evolve
-from canergy.core.inputs import PowerLoss, ReturnTimeout
+from canergy.core.inputs import BooksLost, PowerLoss, ReturnTimeout
 from canergy.core.table import ANY, cell
 from canergy.core.variants import VARIANTS, Variant
-from canergy.messages import QUANTUM_UJ, Return
+from canergy.messages import (
+    QUANTUM_UJ,
+    Ack,
+    Admit,
+    Commit,
+    Committed,
+    Intention,
+    Join,
+    Return,
+)
 
 HAZARD_BOUNDS = {
     # (a) the reservation re-sent under a new id is paid twice
@@ -186,3 +196,81 @@ def test_cli_rejects_bad_bounds(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         main(["check", "--clients", "0"])
     assert "outside" in capsys.readouterr().err
+
+
+# -- NV loss and an old copy of the record ----------------------------------------------------
+NV_BOUNDS = Bounds(
+    nv_losses=1, power_losses=1, losses=1, duplicates=0, in_flight=2, retries=0, timeouts=3
+)
+TRUSTING = Variant(
+    "trusting-blank-record", SUP, CLIENT.with_cells(cell(ANY, BooksLost, start_blank, to=H.IDLE))
+)
+"""The behaviour before issue 13: a node without a record started from zero and trusted Gs."""
+
+
+def test_a_lost_record_never_creates_energy() -> None:
+    result = check("hardened", NV_BOUNDS)
+    assert result.complete and result.violations == 0
+    kinds = {"client_nv_lost"}
+    assert result.states > 5_000 and kinds <= {k.value for k in StepKind}
+
+
+def test_the_old_behaviour_pays_a_lost_node_back_or_replays_into_it() -> None:
+    result = check(TRUSTING, NV_BOUNDS, stop_at_first=True)
+    assert result.counterexample is not None
+    kinds = [step.kind.value for step, _ in result.counterexample]
+    assert "client_nv_lost" in kinds and kinds.index("client_nv_lost") < len(kinds) - 1
+    assert result.counterexample[-1][1].ledger().dissipated < 0
+
+
+def test_a_replayed_intention_after_admission_moves_nothing() -> None:
+    """NV lost after a transaction closed, then a late copy of its intention arrives: the
+    trusting node commits it again; the hardened node is admitted above it and ignores it."""
+    steps = [
+        Step(StepKind.BEGIN, 1, units=1),
+        Step(StepKind.DUPLICATE, message=Intention(1, 1, 1, 0)),
+        Step(StepKind.DELIVER, message=Intention(1, 1, 1, 0)),
+        Step(StepKind.DELIVER, message=Ack(1, 1)),
+        Step(StepKind.DECIDE, 1, commit=True),
+        Step(StepKind.DELIVER, message=Commit(1, 1, 1)),
+        Step(StepKind.DELIVER, message=Committed(1, 1)),
+        Step(StepKind.SPEND, 1),
+        Step(StepKind.NV_LOST, 1, nonce=1),
+    ]
+    bounds = evolve(NV_BOUNDS, duplicates=1, in_flight=3)
+    trusting = replay(Model(TRUSTING, bounds), [*steps, *_late_copy()])
+    assert trusting[-1].ledger().dissipated < 0
+    hardened = replay(
+        Model(VARIANTS["hardened"], bounds),
+        [
+            *steps,
+            Step(StepKind.DELIVER, message=Join(1, 1)),
+            Step(StepKind.DELIVER, message=Admit(1, 1, 1, 0)),
+            *_late_copy()[:1],
+        ],
+    )
+    assert hardened[-1].clients[0].usable == 0 and hardened[-1].ledger().dissipated >= 0
+    assert hardened[-1].flight == frozenset()  # the late copy got no ACK
+
+
+def _late_copy() -> list[Step]:
+    return [
+        Step(StepKind.DELIVER, message=Intention(1, 1, 1, 0)),
+        Step(StepKind.COMMAND_TIMER, 1),
+    ]
+
+
+def test_an_old_copy_of_the_record_is_caught_as_the_residual_risk() -> None:
+    """No message can reveal a record rolled back to an earlier valid copy (docs/protocol.md,
+    NV): the checker shows what it costs, e.g. a return given back twice."""
+    bounds = Bounds(old_copies=1, power_losses=0, losses=0, duplicates=0)
+    result = check("hardened", bounds, stop_at_first=True)
+    assert result.counterexample is not None
+    assert result.counterexample[-1][0].kind is StepKind.NV_OLD_COPY
+
+
+def test_cli_takes_nv_fault_bounds(capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["check", "--transactions", "1", "--nv-losses", "1", "--power-losses", "0"]
+    assert main([*argv, "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["bounds"]["nv_losses"] == 1 and report["violations"] == 0

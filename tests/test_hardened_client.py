@@ -12,6 +12,7 @@ from canergy.core import (
     ClientAborted,
     ClientCommitted,
     Credited,
+    IntentionRefused,
     LocalProtocolError,
     ReturnAcknowledged,
     Send,
@@ -22,19 +23,23 @@ from canergy.core.inputs import (
     COMMAND_TIMEOUT,
     POWER_LOSS,
     RETURN_TIMEOUT,
+    BooksLost,
     CommandTimeout,
     GiveBack,
     Spend,
 )
 from canergy.core.state import ClientState, Outcome, Phase
 from canergy.messages import (
+    USABLE_MAX_UJ,
     Abort,
     Aborted,
     Ack,
+    Admit,
     Commit,
     Committed,
     FinalAck,
     Intention,
+    Join,
     Return,
     ReturnAck,
     StatusRequest,
@@ -42,7 +47,7 @@ from canergy.messages import (
 
 T = Timing(command_timeout_us=1000, return_retry_us=300)
 A = 4000  # 4 mJ
-ID, HO = Phase.IDLE, Phase.AWAIT_COMMAND
+ID, HO, JO = Phase.IDLE, Phase.AWAIT_COMMAND, Phase.JOINING
 FRESH = ClientState(
     node=2, usable=10_000, credited=50_000, spent=40_000, last_tx=5, outcome=Outcome.COMMITTED
 )
@@ -51,6 +56,11 @@ COMMITTED_6 = replace(FRESH, usable=14_000, credited=54_000, last_tx=6)
 ABORTED_6 = replace(FRESH, last_tx=6, outcome=Outcome.ABORTED)
 RETURNING = replace(FRESH, return_seq=3, return_pending=2000, return_deadline=300)
 COMMITS_6 = (ClientCommitted(2, 6, A, False), Send(Committed(2, 6)))
+JOINING = ClientState(node=2, phase=JO, nonce=0xBEEF, return_deadline=300)
+ADMITTED = ClientState(
+    node=2, last_tx=40, outcome=Outcome.SETTLED, return_seq=7, credited_unknown=True
+)
+FULL = replace(FRESH, usable=USABLE_MAX_UJ - A + 1)  # one µJ short of room for A
 
 
 def intention(tx: int, delivered_mj: int = 50) -> Intention:
@@ -212,6 +222,84 @@ CASES = [
         now=77,
     ),
     Case("power loss drops the hold", HOLDING, POWER_LOSS, FRESH, now=77),
+    *[
+        Case(
+            f"books lost while {start.phase.name}: start blank and send JOIN",
+            start,
+            BooksLost(0xBEEF),
+            JOINING,
+            (Send(Join(2, 0xBEEF)),),
+            now=0,
+        )
+        for start in (FRESH, HOLDING, replace(JOINING, nonce=1))
+    ],
+    Case(
+        "join re-sent with the same nonce",
+        JOINING,
+        RETURN_TIMEOUT,
+        replace(JOINING, return_deadline=600),
+        (Send(Join(2, 0xBEEF)),),
+        now=300,
+    ),
+    Case("join timer not due yet", JOINING, RETURN_TIMEOUT, JOINING, now=299),
+    Case(
+        "power loss before admission joins again at once",
+        JOINING,
+        POWER_LOSS,
+        replace(JOINING, return_deadline=77),
+        now=77,
+    ),
+    Case(
+        "admit answering our join: start from its counters",
+        JOINING,
+        Admit(2, 0xBEEF, 40, 7),
+        ADMITTED,
+    ),
+    Case(
+        "an intention before admission moves nothing and gets a JOIN",
+        JOINING,
+        intention(6, 9999),
+        JOINING,
+        (Send(Join(2, 0xBEEF)),),
+    ),
+    Case("admit for another nonce ignored", JOINING, Admit(2, 0xBEEE, 40, 7), JOINING),
+    Case("after admission an old intention moves nothing", ADMITTED, intention(40, 9999), ADMITTED),
+    Case(
+        "after admission the first fresh intention sets Rc = Gs, no pay-back",
+        ADMITTED,
+        intention(41, 9999),
+        replace(
+            ADMITTED,
+            credited=9_999_000,
+            credited_unknown=False,
+            phase=HO,
+            held_tx=41,
+            held_amount=A,
+            deadline=1050,
+        ),
+        (Send(Ack(2, 41)),),
+    ),
+    Case(
+        "intention that would overflow the record is refused",
+        FULL,
+        intention(6, 50),
+        FULL,
+        (IntentionRefused(2, 6),),
+    ),
+    Case(
+        "pay-back that would overflow the record is refused",
+        replace(FULL, usable=USABLE_MAX_UJ - 999),
+        intention(5, 51),
+        replace(FULL, usable=USABLE_MAX_UJ - 999),
+        (IntentionRefused(2, 5),),
+    ),
+    Case(
+        "commit that would overflow the record is refused",
+        replace(FULL, usable=USABLE_MAX_UJ, phase=HO, held_tx=6, held_amount=A, deadline=9),
+        Commit(2, 6, 4),
+        replace(FULL, usable=USABLE_MAX_UJ, phase=HO, held_tx=6, held_amount=A, deadline=9),
+        (IntentionRefused(2, 6),),
+    ),
 ]
 IGNORED = {
     (ID, StatusRequest),
@@ -219,13 +307,24 @@ IGNORED = {
     (ID, FinalAck),
     (HO, FinalAck),
     (ID, CommandTimeout),
+    (ID, Admit),
+    (HO, Admit),
+    *((JO, e) for e in (Commit, Abort, ReturnAck, StatusRequest, FinalAck)),
+    (JO, CommandTimeout),
 }
-REFUSED: set[cells.CellKey] = set()  # local requests are guarded by energy, not by phase
-STATES = {ID: FRESH, HO: HOLDING}
+REFUSED = {(JO, Spend), (JO, GiveBack)}  # otherwise guarded by energy, not by phase
+STATES = {ID: FRESH, HO: HOLDING, JO: JOINING}
 EVENTS = {
     StatusRequest: StatusRequest(2, 6),
     FinalAck: FinalAck(2, 6),
     CommandTimeout: COMMAND_TIMEOUT,
+    Admit: Admit(2, 0xBEEF, 40, 7),
+    Intention: intention(6),
+    Commit: Commit(2, 6, 4),
+    Abort: Abort(2, 6, 4),
+    ReturnAck: ReturnAck(2, 0),
+    Spend: Spend(1000),
+    GiveBack: GiveBack(1000),
 }
 
 

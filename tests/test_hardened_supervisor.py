@@ -8,12 +8,23 @@ import cells
 import pytest
 from cells import Case, params, run_case, run_ignored, run_refused
 
-from canergy.core import Acknowledged, Resolved, ReturnCredited, Send, Timing
+from canergy.core import Acknowledged, Admitted, Resolved, ReturnCredited, Send, Timing
 from canergy.core.hardened import SUPERVISOR as TABLE
 from canergy.core.inputs import POWER_LOSS, RESPONSE_TIMEOUT, Begin, Decide, PowerLoss
 from canergy.core.inputs import ResponseTimeout as Timeout
 from canergy.core.state import Decision, Outcome, Phase, Session
-from canergy.messages import Abort, Aborted, Ack, Commit, Committed, Intention, Return, ReturnAck
+from canergy.messages import (
+    Abort,
+    Aborted,
+    Ack,
+    Admit,
+    Commit,
+    Committed,
+    Intention,
+    Join,
+    Return,
+    ReturnAck,
+)
 
 T = Timing(response_timeout_us=100, retries=2)
 TS = 5000  # reserved µJ (5 mJ)
@@ -193,6 +204,23 @@ CASES = [
         replace(COMMITTING, tries=0, deadline=900),
         now=900,
     ),
+    Case(
+        "join while idle: admit at the current counters",
+        IDLE,
+        Join(3, 0xBEEF),
+        IDLE,
+        (Admitted(3, 7, 4), Send(Admit(3, 0xBEEF, 7, 4))),
+    ),
+    *[
+        Case(
+            f"join while {s.phase.name}: write off, then admit",
+            s,
+            Join(3, 0xBEEF),
+            replace(DELIVERED, delivered=2000 + TS, returns_credited=9),
+            (*WRITTEN_OFF, Admitted(3, 7, 9), Send(Admit(3, 0xBEEF, 7, 9))),
+        )
+        for s in (replace(x, returns_credited=9) for x in (OPEN, ACKED, COMMITTING))
+    ],
 ]
 IGNORED = {
     (ID, Ack),

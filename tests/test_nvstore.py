@@ -9,12 +9,15 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from canergy.core.state import ClientState, Outcome
+from canergy.messages import USABLE_MAX_UJ
+from canergy.seqnum import unwrap
 from firmware_model.nvstore import (
     RECORD_SIZE,
     SLOT_SIZE,
     NvError,
     NvStore,
     SimulatedPowerLoss,
+    encode_slot,
     pack_record,
     unpack_record,
 )
@@ -57,7 +60,7 @@ def _states(n: int) -> list[ClientState]:
 
 def test_the_newest_complete_write_wins(tmp_path: Path) -> None:
     store = NvStore(tmp_path / "n.nv", 3, fsync=False)
-    assert store.load() == ClientState(3)  # no file: a fresh node
+    assert store.load() is None  # no file: no books (the node must JOIN)
     for s in _states(5):
         store.save(s)
     reopened = NvStore(tmp_path / "n.nv", 3, fsync=False)
@@ -74,7 +77,7 @@ def test_a_torn_write_falls_back_to_the_previous_record(tmp_path: Path, writes: 
         for s in states:
             store.save(s)
     after = NvStore(tmp_path / "n.nv", 3)
-    expected = states[-2] if writes > 1 else ClientState(3)
+    expected = states[-2] if writes > 1 else None  # the first write torn: still no books
     assert after.load() == expected
     assert after.stats.fallbacks == 1
 
@@ -99,11 +102,52 @@ def test_damage_to_the_newest_slot_never_yields_more_than_the_older_record(
     assert NvStore(path, 3).load() == older
 
 
-def test_garbage_in_both_slots_is_a_fresh_node(tmp_path: Path) -> None:
+def test_garbage_in_both_slots_is_no_books(tmp_path: Path) -> None:
     path = tmp_path / "n.nv"
     path.write_bytes(b"\xa5" * (2 * SLOT_SIZE))
     store = NvStore(path, 3)
-    assert store.load() == ClientState(3) and store.stats.fallbacks == 1
+    assert store.load() is None and store.stats.fallbacks == 1
+
+
+def test_a_valid_slot_with_impossible_values_is_no_books(tmp_path: Path) -> None:
+    """A CRC collision over garbage must not crash the node at start (NvError) nor be trusted."""
+    path = tmp_path / "n.nv"
+    record = bytearray(pack_record(ClientState(3, usable=5000)))
+    record[-2] = 9  # no such outcome
+    path.write_bytes(encode_slot(1, bytes(record)) + bytes(SLOT_SIZE))
+    store = NvStore(path, 3)
+    assert store.load() is None and store.stats.fallbacks == 1
+
+
+def test_counters_are_kept_modulo_2_32_and_compare_the_same(tmp_path: Path) -> None:
+    """Rc, ltx and the return number grow without bound; the record keeps them modulo 2**32,
+    which the wire's 24- and 16-bit serial comparisons cannot tell apart."""
+    big = ClientState(
+        3,
+        usable=USABLE_MAX_UJ,
+        credited=(2**32 + 7) * 1000,
+        last_tx=2**32 + 5,
+        return_seq=2**33 + 2,
+        outcome=Outcome.COMMITTED,
+    )
+    store = NvStore(tmp_path / "n.nv", 3, fsync=False)
+    store.save(big)
+    back = store.load()
+    assert back is not None
+    assert (back.credited, back.last_tx, back.return_seq) == (7000, 5, 2)
+    assert back.usable == USABLE_MAX_UJ
+    for wire in (0, 5, 6, 0x8000, 0xFFFF):  # every tx comparison comes out the same
+        assert (
+            unwrap(wire, back.last_tx, 16) - back.last_tx
+            == unwrap(wire, big.last_tx, 16) - big.last_tx
+        )
+
+
+def test_admitted_without_books_survives_a_restart(tmp_path: Path) -> None:
+    state = ClientState(3, last_tx=40, outcome=Outcome.SETTLED, credited_unknown=True)
+    store = NvStore(tmp_path / "n.nv", 3, fsync=False)
+    store.save(state)
+    assert NvStore(tmp_path / "n.nv", 3).load() == state
 
 
 @pytest.mark.parametrize("start", [0xFFFF_FFFD, 0xFFFF_FFFE, 0xFFFF_FFFF, 0x7FFF_FFFF])

@@ -24,6 +24,7 @@ from canergy.core.inputs import (
     RESPONSE_TIMEOUT,
     RETURN_TIMEOUT,
     Begin,
+    BooksLost,
     CommandTimeout,
     Decide,
     GiveBack,
@@ -37,10 +38,12 @@ from canergy.messages import (
     Abort,
     Aborted,
     Ack,
+    Admit,
     Commit,
     Committed,
     FinalAck,
     Intention,
+    Join,
     Return,
     ReturnAck,
     StatusRequest,
@@ -180,6 +183,7 @@ SUP_IGNORED = {
     (AC, Aborted),
     (ID, ResponseTimeout),
     (AC, ResponseTimeout),
+    *((p, Join) for p in (ID, WA, AC, WC, WS)),  # the paper has no re-provisioning
 }
 SUP_REFUSED = {(p, Begin) for p in (WA, AC, WC, WS)} | {(p, Decide) for p in (ID, WA, WC, WS)}
 SUP_STATES = {ID: IDLE, WA: OPEN, AC: ACKED, WC: WAITING, WS: ASKED}
@@ -190,6 +194,7 @@ SUP_EVENTS = {
     ResponseTimeout: RESPONSE_TIMEOUT,
     Begin: Begin(1000),
     Decide: Decide(Decision.ABORT),
+    Join: Join(1, 7),
 }
 
 # -- client ----------------------------------------------------------------------------------
@@ -283,6 +288,10 @@ CLIENT_CASES = [
         POWER_LOSS,
         replace(FRESH, usable=3000, credited=3000, outcome=Outcome.NONE),
     ),
+    *[
+        Case(f"lost books while {c.phase.name}: a blank record", c, BooksLost(7), ClientState(1))
+        for c in (FRESH, HELD, DONE)
+    ],
 ]
 CLIENT_IGNORED = (
     {(ID, Commit), (SUP, Commit), (ID, Abort), (SUP, Abort)}
@@ -290,6 +299,7 @@ CLIENT_IGNORED = (
     | {(ID, StatusRequest), (CMD, StatusRequest), (ID, FinalAck), (CMD, FinalAck)}
     | {(ID, CommandTimeout)}
     | {(p, ReturnTimeout) for p in (ID, CMD, SUP)}
+    | {(p, Admit) for p in (ID, CMD, SUP)}
 )
 CLIENT_STATES = {ID: FRESH, CMD: HELD, SUP: DONE}
 CLIENT_EVENTS = {
@@ -300,6 +310,7 @@ CLIENT_EVENTS = {
     FinalAck: FinalAck(1, 4),
     CommandTimeout: COMMAND_TIMEOUT,
     ReturnTimeout: RETURN_TIMEOUT,
+    Admit: Admit(1, 7, 4, 0),
 }
 
 

@@ -146,6 +146,19 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         help="power losses of any node or the supervisor",
     )
     p.add_argument(
+        "--nv-losses",
+        type=count,
+        default=d.nv_losses,
+        help="node starts with its NV record unreadable (both slots lost; default 0)",
+    )
+    p.add_argument(
+        "--old-copies",
+        type=count,
+        default=d.old_copies,
+        help="node starts from the record before its last write (NV replaced by an old copy; "
+        "default 0)",
+    )
+    p.add_argument(
         "--in-flight",
         type=bounded_int(1),
         default=d.in_flight,
@@ -213,6 +226,8 @@ def _run_check(args: argparse.Namespace) -> int:
         losses=args.losses,
         duplicates=args.duplicates,
         power_losses=args.power_losses,
+        nv_losses=args.nv_losses,
+        old_copies=args.old_copies,
         in_flight=args.in_flight,
         units=args.units,
         retries=args.retries,

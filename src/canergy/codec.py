@@ -21,11 +21,13 @@ from canergy.messages import (
     Abort,
     Aborted,
     Ack,
+    Admit,
     Commit,
     Committed,
     Direction,
     FinalAck,
     Intention,
+    Join,
     Message,
     MsgType,
     Return,
@@ -111,6 +113,16 @@ def _telemetry_fields(m: Message) -> tuple[int, ...]:
     return (m.level_mj & 0xFFFF, m.level_mj >> 16, m.flags)
 
 
+def _join_fields(m: Message) -> tuple[int, ...]:
+    assert isinstance(m, Join)
+    return (m.nonce,)
+
+
+def _admit_fields(m: Message) -> tuple[int, ...]:
+    assert isinstance(m, Admit)
+    return (m.nonce, m.tx, m.seq)
+
+
 def _return_fields(m: Message) -> tuple[int, ...]:
     assert isinstance(m, Return)
     return (m.seq, m.amount_mj)
@@ -131,6 +143,10 @@ LAYOUTS: dict[MsgType, _Layout] = {
     MsgType.RETURN: _Layout(
         struct.Struct("<HH"), _return_fields, lambda n, f: Return(n, f[0], f[1]), True
     ),
+    MsgType.ADMIT: _Layout(
+        struct.Struct("<HHH"), _admit_fields, lambda n, f: Admit(n, f[0], f[1], f[2]), False
+    ),
+    MsgType.JOIN: _Layout(struct.Struct("<H"), _join_fields, lambda n, f: Join(n, f[0]), False),
     MsgType.TELEMETRY: _Layout(
         struct.Struct("<HBB"),
         _telemetry_fields,

@@ -28,6 +28,8 @@ _SIGNALS: dict[MsgType, list[tuple[str, int, int, float, str]]] = {
     MsgType.ABORTED: [("TX", 8, 16, 1, "")],
     MsgType.RETURN: [("SEQ", 8, 16, 1, ""), ("AMOUNT", 24, 16, 0.001, "J")],
     MsgType.TELEMETRY: [("LEVEL", 8, 24, 0.001, "J"), ("FLAGS", 32, 8, 1, "")],
+    MsgType.JOIN: [("NONCE", 8, 16, 1, "")],
+    MsgType.ADMIT: [("NONCE", 8, 16, 1, ""), ("TX", 24, 16, 1, ""), ("SEQ", 40, 16, 1, "")],
 }
 assert QUANTUM_UJ == 1000  # the 0.001 J scale above is one wire quantum
 
@@ -38,7 +40,8 @@ _COMMENTS = {
     "AMOUNT": "energy in whole millijoules",
     "DELIVERED": "Gs: energy counted as delivered to this node, 24-bit wrapping mJ",
     "LEVEL": "client's usable energy in mJ, saturating at 16777.215 J (information only)",
-    "FLAGS": "bit 0: level low; bit 1: actuator halted",
+    "FLAGS": "bit 0: level low; bit 1: actuator halted; bit 2: no books, joining",
+    "NONCE": "random number drawn by a node that starts without books; ADMIT echoes it",
 }
 
 

@@ -5,13 +5,18 @@
 ``overlap`` counts the travelling energy once: per node, the part of the client's credited
 count Rc beyond the supervisor's delivered count Gs, capped at Ts (what the client has committed
 while the supervisor still holds it reserved). The system is passive while ``dissipated >= 0``.
+
+A node that lost its NV record no longer knows its Rc nor what its actuator spent. An observer
+that saw the loss passes what the record held (``lost``): the energy spent stays spent, and
+energy the node received before the loss is still counted once until the supervisor writes the
+open reservation off. What the node still held is what the loss dissipated.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 from canergy.core.state import ClientState, Session, SupervisorState
 
@@ -55,16 +60,29 @@ class Ledger:
         return terms
 
 
-def node_overlap(s: Session, c: ClientState) -> int:
-    return min(s.reserved, max(0, c.credited - s.delivered))
+class LostRecord(NamedTuple):
+    """What an observer saw in a node's records before they were lost (spent: all of them)."""
+
+    credited: int
+    spent: int
+
+
+NOT_LOST = LostRecord(0, 0)
+
+
+def node_overlap(s: Session, c: ClientState, lost: LostRecord = NOT_LOST) -> int:
+    return min(s.reserved, max(0, max(c.credited, lost.credited) - s.delivered))
 
 
 def node_return_in_flight(s: Session, c: ClientState) -> int:
     return c.return_pending if c.return_seq > s.returns_credited else 0
 
 
-def ledger(sup: SupervisorState, clients: Iterable[ClientState]) -> Ledger:
-    """Compute the ledger; ``clients`` must hold one state per supervised node."""
+def ledger(
+    sup: SupervisorState, clients: Iterable[ClientState], lost: Mapping[int, LostRecord] = {}
+) -> Ledger:
+    """Compute the ledger; ``clients`` must hold one state per supervised node; ``lost`` maps a
+    node that lost its record to what the record held."""
     by_node = {c.node: c for c in clients}
     if set(by_node) != {s.node for s in sup.sessions}:
         raise ValueError("the ledger needs exactly one client state per supervised node")
@@ -75,9 +93,9 @@ def ledger(sup: SupervisorState, clients: Iterable[ClientState]) -> Ledger:
         supervisor_usable=sup.usable,
         supervisor_reserved=sum(s.reserved for s, _ in pairs),
         clients_usable=sum(c.usable for _, c in pairs),
-        spent=sum(c.spent for _, c in pairs),
+        spent=sum(c.spent for _, c in pairs) + sum(r.spent for r in lost.values()),
         returns_in_flight=sum(node_return_in_flight(s, c) for s, c in pairs),
-        overlap=sum(node_overlap(s, c) for s, c in pairs),
+        overlap=sum(node_overlap(s, c, lost.get(s.node, NOT_LOST)) for s, c in pairs),
     )
 
 

@@ -20,6 +20,11 @@ DELIVERED_BITS = 24
 AMOUNT_MAX_MJ = 0xFFFF
 """Largest amount in one frame: 65.535 J."""
 
+USABLE_MAX_UJ = 0xFFFF_FFFF
+"""Most a client's record holds in its usable budget (the NV record's u32 µJ field): 4294.967295 J.
+A supervisor never plans a node above it; a client refuses (does not acknowledge) an intention
+that would take it there."""
+
 MIN_NODE = 1
 MAX_NODE = 127
 
@@ -40,11 +45,13 @@ class MsgType(IntEnum):
     RETURN_ACK = 0x4
     STATUS_REQUEST = 0x5  # paper variant only
     FINAL_ACK = 0x6  # paper variant only
+    ADMIT = 0x7  # hardened: a node without books joins at the supervisor's counters
     ACK = 0x9
     COMMITTED = 0xA
     ABORTED = 0xB
     RETURN = 0xC
     TELEMETRY = 0xD  # moves no energy; the protocol's safety never depends on it
+    JOIN = 0xE  # hardened: a node without a valid NV record asks to be admitted
 
     @property
     def direction(self) -> Direction:
@@ -110,6 +117,21 @@ class FinalAck:
 
 
 @dataclass(frozen=True, slots=True)
+class Admit:
+    """ADMIT: answer to JOIN(``nonce``): the supervisor's transaction and return counters.
+
+    The node starts afresh from them, so every frame of its earlier life is below its counters
+    and moves nothing; the supervisor has written off what was open.
+    """
+
+    TYPE: ClassVar[MsgType] = MsgType.ADMIT
+    node: int
+    nonce: int
+    tx: int
+    seq: int
+
+
+@dataclass(frozen=True, slots=True)
 class Ack:
     """ACK: the client holds intention ``tx``."""
 
@@ -147,6 +169,16 @@ class Return:
 
 
 @dataclass(frozen=True, slots=True)
+class Join:
+    """JOIN: the node has no valid record (new, wiped or corrupted); ``nonce`` is drawn at random
+    at start so that only an ADMIT answering this very request is taken."""
+
+    TYPE: ClassVar[MsgType] = MsgType.JOIN
+    node: int
+    nonce: int
+
+
+@dataclass(frozen=True, slots=True)
 class Telemetry:
     """TELEMETRY: the client's usable level (24-bit mJ, saturating) and status flags.
 
@@ -162,12 +194,16 @@ class Telemetry:
     """Flag: the level fell below the client's low-water mark."""
     HALTED: ClassVar[int] = 0x02
     """Flag: the actuator is halted (budget exhausted or not operational)."""
+    JOINING: ClassVar[int] = 0x04
+    """Flag: the node has no books yet and waits to be admitted."""
 
 
 LEVEL_MAX_MJ = (1 << 24) - 1
 
-ToClient = Intention | Commit | Abort | ReturnAck | StatusRequest | FinalAck
-ToSupervisor = Ack | Committed | Aborted | Return
+NONCE_BITS = 16
+
+ToClient = Intention | Commit | Abort | ReturnAck | StatusRequest | FinalAck | Admit
+ToSupervisor = Ack | Committed | Aborted | Return | Join
 Message = ToClient | ToSupervisor | Telemetry
 
 MESSAGE_CLASSES: dict[MsgType, type[Message]] = {
@@ -179,10 +215,12 @@ MESSAGE_CLASSES: dict[MsgType, type[Message]] = {
         ReturnAck,
         StatusRequest,
         FinalAck,
+        Admit,
         Ack,
         Committed,
         Aborted,
         Return,
+        Join,
         Telemetry,
     )
 }

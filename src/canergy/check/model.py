@@ -18,6 +18,7 @@ from canergy.core.inputs import (
     RESPONSE_TIMEOUT,
     RETURN_TIMEOUT,
     Begin,
+    BooksLost,
     Decide,
     GiveBack,
     Spend,
@@ -28,7 +29,7 @@ from canergy.core.supervisor import apply_session
 from canergy.core.table import Event
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant
-from canergy.ledger import Ledger, ledger
+from canergy.ledger import NOT_LOST, Ledger, LostRecord, ledger
 from canergy.messages import QUANTUM_UJ, Direction, Message, ToClient, ToSupervisor
 
 UNIT = QUANTUM_UJ
@@ -50,6 +51,10 @@ class Bounds:
     retries: int = 1
     timeouts: int | None = None
     """Timer expiries (either side) in one run; None: unbounded (and not counted)."""
+    nv_losses: int = 0
+    """Client starts with both NV slots unreadable (new, wiped or corrupted record)."""
+    old_copies: int = 0
+    """Client starts with its record replaced by the one before its last write."""
     returns: bool = True
     spending: bool = True
     extra_ids: int = 2
@@ -71,12 +76,18 @@ class World:
     duplicated: int = 0
     power_lost: int = 0
     timed_out: int = 0
+    nv_lost: int = 0
+    old_copied: int = 0
+    older: tuple[ClientState, ...] = ()
+    """Each client's state before its last record write (kept only when old copies are on)."""
+    lost_records: tuple[tuple[int, LostRecord], ...] = ()
+    """Nodes that lost their record, and what the observer saw it hold (for the ledger)."""
 
     def frames(self) -> int:
         return sum(n for _, n in self.flight)
 
     def ledger(self) -> Ledger:
-        return ledger(self.sup, self.clients)
+        return ledger(self.sup, self.clients, dict(self.lost_records))
 
     def quiescent(self) -> bool:
         """No transaction open, nothing in flight, no return waiting."""
@@ -105,6 +116,8 @@ class StepKind(Enum):
     GIVE_BACK = "give_back"
     CLIENT_POWER_LOSS = "client_power_loss"
     SUPERVISOR_POWER_LOSS = "supervisor_power_loss"
+    NV_LOST = "client_nv_lost"
+    NV_OLD_COPY = "client_nv_old_copy"
 
 
 K = StepKind
@@ -123,6 +136,7 @@ class Step:
     units: int = 0
     commit: bool = False
     message: Message | None = None
+    nonce: int = 0
 
     def describe(self) -> str:
         kind = self.kind.value
@@ -131,6 +145,7 @@ class Step:
         extra = {
             K.BEGIN: f" {self.units} unit(s)",
             K.DECIDE: " commit" if self.commit else " abort",
+            K.NV_LOST: f" (nonce {self.nonce})",
         }
         where = f" node {self.node}" if self.node else ""
         return f"{kind}{where}{extra.get(self.kind, '')}"
@@ -140,7 +155,8 @@ def initial_world(bounds: Bounds) -> World:
     nodes = range(1, bounds.clients + 1)
     total = bounds.units * UNIT
     sup = SupervisorState(total, total, 0, tuple(Session(n) for n in nodes))
-    return World(sup, tuple(ClientState(n) for n in nodes), frozenset())
+    clients = tuple(ClientState(n) for n in nodes)
+    return World(sup, clients, frozenset(), older=clients if bounds.old_copies else ())
 
 
 class Model:
@@ -182,6 +198,10 @@ class Model:
                 yield Step(K.GIVE_BACK, c.node)
             if may_lose_power:
                 yield Step(K.CLIENT_POWER_LOSS, c.node)
+            if w.nv_lost < b.nv_losses:
+                yield Step(K.NV_LOST, c.node, nonce=w.nv_lost + 1)
+            if w.old_copied < b.old_copies and w.older[c.node - 1] != c:
+                yield Step(K.NV_OLD_COPY, c.node)
         if may_lose_power:
             yield Step(K.SUPERVISOR_POWER_LOSS)
 
@@ -204,6 +224,10 @@ class Model:
             return evolve(w, power_lost=w.power_lost + 1)
         if kind is K.BEGIN:
             return evolve(w, started=w.started + 1)
+        if kind is K.NV_LOST:
+            return evolve(w, nv_lost=w.nv_lost + 1)  # the ghost Rc is kept in _apply
+        if kind is K.NV_OLD_COPY:
+            return evolve(w, old_copied=w.old_copied + 1)
         return w
 
     def _apply(self, w: World, step: Step) -> World | None:
@@ -215,6 +239,14 @@ class Model:
                 w = self._to_session(w, i, POWER_LOSS)
             return w
         i = step.node - 1
+        if step.kind is K.NV_LOST:
+            c, lost = w.clients[i], dict(w.lost_records)
+            before = lost.get(step.node, NOT_LOST)
+            lost[step.node] = LostRecord(max(c.credited, before.credited), c.spent + before.spent)
+            w = evolve(w, lost_records=tuple(sorted(lost.items())))
+        if step.kind is K.NV_OLD_COPY:  # the old record comes back; the node restarts from it
+            clients = (*w.clients[:i], w.older[i], *w.clients[i + 1 :])
+            return self._to_client(evolve(w, clients=clients), i, POWER_LOSS)
         if step.kind in SUPERVISOR_KINDS:
             return self._to_session(w, i, self._event(step))
         return self._to_client(w, i, self._event(step))
@@ -230,6 +262,8 @@ class Model:
             return Spend(UNIT)
         if kind is K.GIVE_BACK:
             return GiveBack(UNIT)
+        if kind is K.NV_LOST:
+            return BooksLost(step.nonce)
         return _DATALESS[kind]
 
     def _channel(self, w: World, step: Step) -> World | None:
@@ -259,8 +293,12 @@ class Model:
         return self._out(evolve(w, sup=apply_session(w.sup, i, step)), step.actions)
 
     def _to_client(self, w: World, i: int, event: Event) -> World:
-        c, actions = self.variant.client.step(self.timing, w.clients[i], event, 0)
+        rules = self.variant.client
+        old = w.clients[i]
+        c, actions = rules.step(self.timing, old, event, 0)
         clients = (*w.clients[:i], c, *w.clients[i + 1 :])
+        if w.older and rules.persistent(old) != rules.persistent(c):
+            w = evolve(w, older=(*w.older[:i], old, *w.older[i + 1 :]))
         return self._out(evolve(w, clients=clients), actions)
 
     @staticmethod

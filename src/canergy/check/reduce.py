@@ -19,12 +19,12 @@ from canergy.check.model import Flight, Step, World
 from canergy.core.frozen import evolve
 
 T = TypeVar("T")
-Counters = tuple[int, int, int, int, int]
+Counters = tuple[int, int, int, int, int, int, int]
 Perm = tuple[int, ...]
 
 
 def counters(w: World) -> Counters:
-    return (w.started, w.lost, w.duplicated, w.power_lost, w.timed_out)
+    return (w.started, w.lost, w.duplicated, w.power_lost, w.timed_out, w.nv_lost, w.old_copied)
 
 
 _RENAMED: dict[tuple[object, int], Any] = {}
@@ -47,9 +47,17 @@ def relabel(w: World, perm: Perm) -> World:
     for i, j in enumerate(perm):
         sessions[j] = _renamed(w.sup.sessions[i], j + 1)
         clients[j] = _renamed(w.clients[i], j + 1)
+    older = list(w.older)
+    for i, j in enumerate(perm if w.older else ()):
+        older[j] = _renamed(w.older[i], j + 1)
     flight: Flight = frozenset((_renamed(msg, perm[msg.node - 1] + 1), n) for msg, n in w.flight)
     return evolve(
-        w, sup=evolve(w.sup, sessions=tuple(sessions)), clients=tuple(clients), flight=flight
+        w,
+        sup=evolve(w.sup, sessions=tuple(sessions)),
+        clients=tuple(clients),
+        flight=flight,
+        older=tuple(older),
+        lost_records=tuple(sorted((perm[n - 1] + 1, r) for n, r in w.lost_records)),
     )
 
 
@@ -84,7 +92,9 @@ def sorting_perm(w: World) -> Perm:
     keys = []
     for session, client in zip(w.sup.sessions, w.clients, strict=True):
         frames = sorted((_signature(msg), n) for msg, n in w.flight if msg.node == client.node)
-        keys.append((_signature(session), _signature(client), frames))
+        older = _signature(w.older[client.node - 1]) if w.older else ()
+        ghost = dict(w.lost_records).get(client.node, ())
+        keys.append((_signature(session), _signature(client), frames, older, ghost))
     order = sorted(range(len(keys)), key=keys.__getitem__)
     perm = [0] * len(order)
     for new, old in enumerate(order):
@@ -122,7 +132,9 @@ class Reducer:
         """Store ``w`` (canonical) unless its protocol state is stored with cheaper counters."""
         if not self.subsumption:
             return True
-        core = evolve(w, started=0, lost=0, duplicated=0, power_lost=0, timed_out=0)
+        core = evolve(
+            w, started=0, lost=0, duplicated=0, power_lost=0, timed_out=0, nv_lost=0, old_copied=0
+        )
         mine = counters(w)
         stored = self._stored.get(core)
         if stored is None:

@@ -13,6 +13,8 @@ def format_summary(r: CheckResult) -> str:
         f"duplicates {b.duplicates}, power losses {b.power_losses}, in flight {b.in_flight}, "
         f"units {b.units}, retries {b.retries}"
         + ("" if b.timeouts is None else f", timeouts {b.timeouts}")
+        + (f", NV losses {b.nv_losses}" if b.nv_losses else "")
+        + (f", old copies {b.old_copies}" if b.old_copies else "")
     )
     lines = [
         f"canergy check: variant {r.variant}; {bounds}",

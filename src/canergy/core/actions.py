@@ -48,6 +48,25 @@ class ReturnCredited:
 
 
 @dataclass(frozen=True, slots=True)
+class Admitted:
+    """Supervisor: a node without books asked to join and was sent the counters ``tx``/``seq``
+    (anything open was written off first)."""
+
+    node: int
+    tx: int
+    seq: int
+
+
+@dataclass(frozen=True, slots=True)
+class IntentionRefused:
+    """Client: did not acknowledge intention ``tx``: it would take the usable budget past what
+    the record holds (``USABLE_MAX_UJ``)."""
+
+    node: int
+    tx: int
+
+
+@dataclass(frozen=True, slots=True)
 class ClientCommitted:
     """Client: committed ``tx``, ``amount`` µJ now usable; ``by_timeout`` if no command came."""
 
@@ -94,6 +113,7 @@ Action = (
     Send
     | Persist
     | Acknowledged
+    | Admitted
     | Resolved
     | ReturnCredited
     | ClientCommitted
@@ -101,4 +121,5 @@ Action = (
     | Credited
     | RolledBack
     | ReturnAcknowledged
+    | IntentionRefused
 )

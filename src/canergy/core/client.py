@@ -3,7 +3,14 @@
 from __future__ import annotations
 
 from canergy.core.actions import Action, Persist
-from canergy.core.inputs import COMMAND_TIMEOUT, POWER_LOSS, RETURN_TIMEOUT, GiveBack, Spend
+from canergy.core.inputs import (
+    COMMAND_TIMEOUT,
+    POWER_LOSS,
+    RETURN_TIMEOUT,
+    BooksLost,
+    GiveBack,
+    Spend,
+)
 from canergy.core.state import ClientState
 from canergy.core.table import Event
 from canergy.core.timing import Timing
@@ -63,6 +70,11 @@ class Client:
     def power_loss(self, now: int) -> None:
         """Lose volatile state and restart from the non-volatile record."""
         self._step(POWER_LOSS, now)
+
+    def books_lost(self, nonce: int, now: int) -> list[Action]:
+        """Started without a valid NV record; ``nonce``: a fresh random 16-bit number. The
+        hardened rules JOIN and wait to be admitted; they never trust an old pay-back."""
+        return self._step(BooksLost(nonce & 0xFFFF), now)
 
     def _step(self, event: Event, now: int) -> list[Action]:
         old = self.state

@@ -6,7 +6,7 @@ from __future__ import annotations
 from canergy.core.actions import Action, ClientCommitted, Resolved, Send
 from canergy.core.errors import LocalProtocolError
 from canergy.core.frozen import evolve
-from canergy.core.inputs import Begin, Decide, Spend
+from canergy.core.inputs import Begin, BooksLost, Decide, Spend
 from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
 from canergy.core.steps import NO_ACTIONS, Actions, ClientStep, SessionStep
 from canergy.core.timing import Timing
@@ -128,6 +128,11 @@ def reply_for(c: ClientState, tx: int, outcome: Outcome) -> Actions:
     if outcome is Outcome.ABORTED:
         return (Send(Aborted(c.node, wire_tx(tx))),)
     return NO_ACTIONS
+
+
+def start_blank(t: Timing, c: ClientState, event: BooksLost, now: int) -> ClientStep:
+    """No valid record: start from zero as a new node would (trusts the next Gs in full)."""
+    return ClientStep(ClientState(c.node))
 
 
 def spend(t: Timing, c: ClientState, event: Spend, now: int) -> ClientStep:

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 from canergy.core.actions import (
     Acknowledged,
+    Admitted,
     ClientAborted,
     Credited,
+    IntentionRefused,
     ReturnAcknowledged,
     ReturnCredited,
     Send,
@@ -27,11 +29,14 @@ from canergy.core.common import (
     return_of,
     spend,
     start_return,
+    wire_tx,
 )
 from canergy.core.errors import LocalProtocolError
 from canergy.core.frozen import evolve
 from canergy.core.inputs import (
+    RETURN_TIMEOUT,
     Begin,
+    BooksLost,
     CommandTimeout,
     Decide,
     GiveBack,
@@ -49,19 +54,22 @@ from canergy.messages import (
     QUANTUM_UJ,
     SEQ_BITS,
     TX_BITS,
+    USABLE_MAX_UJ,
     Abort,
     Aborted,
     Ack,
+    Admit,
     Commit,
     Committed,
     Intention,
+    Join,
     Return,
     ReturnAck,
 )
-from canergy.seqnum import unwrap
+from canergy.seqnum import unwrap, wrap
 
 IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM = Phase.IDLE, Phase.WAIT_ACK, Phase.ACKED, Phase.WAIT_CONFIRM
-HOLDING = Phase.AWAIT_COMMAND
+HOLDING, JOINING = Phase.AWAIT_COMMAND, Phase.JOINING
 
 # -- supervisor, per node --------------------------------------------------------------------
 
@@ -115,6 +123,17 @@ def resend_or_write_off(t: Timing, s: Session, event: ResponseTimeout, now: int)
     return SessionStep(s, (Send(msg),))
 
 
+def admit(t: Timing, s: Session, msg: Join, now: int) -> SessionStep:
+    """JOIN(n) from a node without books: write off what is open; send ADMIT(n, tx, q)."""
+    step = SessionStep(s)
+    if s.phase is not IDLE:  # the node may have committed it before it lost its books
+        step = resolve(s, Outcome.WRITTEN_OFF)
+    s = step.session
+    answer = Admit(s.node, msg.nonce, wire_tx(s.tx), wrap(s.returns_credited, SEQ_BITS))
+    admitted = Admitted(s.node, s.tx, s.returns_credited)
+    return step._replace(actions=(*step.actions, admitted, Send(answer)))
+
+
 def restart_session(t: Timing, s: Session, event: PowerLoss, now: int) -> SessionStep:
     """Keep the record; ACKED (not persisted) falls back to WAIT_ACK; open ones re-send at once."""
     phase = WAIT_ACK if s.phase is ACKED else s.phase
@@ -138,6 +157,7 @@ SUPERVISOR = SupervisorTable(
         cell((WAIT_ACK, ACKED, WAIT_CONFIRM), Committed, on_committed, to=(IDLE, STAY)),
         cell(WAIT_CONFIRM, Aborted, on_aborted, to=(IDLE, STAY)),
         cell(ANY, Return, credit_return),
+        cell(ANY, Join, admit, to=(IDLE, STAY)),
         cell((WAIT_ACK, WAIT_CONFIRM), ResponseTimeout, resend_or_write_off, to=(IDLE, STAY)),
         cell(ACKED, PowerLoss, restart_session, to=WAIT_ACK),
         cell((IDLE, WAIT_ACK, WAIT_CONFIRM), PowerLoss, restart_session),
@@ -163,7 +183,22 @@ def _resolved(c: ClientState, tx: int, outcome: Outcome) -> ClientState:
 
 
 def on_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientStep:
-    """INTENTION(k, a, Gs): pay back Gs > Rc; settle below k; hold and ACK a new k; re-reply."""
+    """INTENTION(k, a, Gs): pay back Gs > Rc; settle below k; hold and ACK a new k; re-reply.
+
+    Admitted without books: a k below the admission moves nothing, a fresh one sets Rc = Gs.
+    Refused (no ACK, nothing changes) when the pay-back and the amount would overflow Uc.
+    """
+    if c.credited_unknown:
+        if unwrap(msg.tx, c.last_tx, TX_BITS) <= c.last_tx:
+            return ClientStep(c)  # a frame of the node's earlier life
+        c = evolve(c, credited=msg.delivered_mj * QUANTUM_UJ, credited_unknown=False)
+    step = _take_intention(t, c, msg, now)
+    if step.client.usable + step.client.held_amount > USABLE_MAX_UJ:
+        return ClientStep(c, (IntentionRefused(c.node, unwrap(msg.tx, c.last_tx, TX_BITS)),))
+    return step
+
+
+def _take_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientStep:
     notes: tuple[Credited, ...] = ()
     delivered = unwrap(msg.delivered_mj, c.credited // QUANTUM_UJ, DELIVERED_BITS) * QUANTUM_UJ
     if delivered > c.credited:  # pay back what the supervisor wrote off but we never got
@@ -192,6 +227,8 @@ def on_command(t: Timing, c: ClientState, msg: Commit | Abort, now: int) -> Clie
     if tx < c.last_tx:
         return ClientStep(c)
     if isinstance(msg, Commit):
+        if c.usable + msg.amount_mj * QUANTUM_UJ > USABLE_MAX_UJ:  # never acknowledged so
+            return ClientStep(c, (IntentionRefused(c.node, tx),))
         c, note = commit_into(c, tx, msg.amount_mj * QUANTUM_UJ, by_timeout=False)
         c = _resolved(c, tx, Outcome.COMMITTED)
         return ClientStep(c, (note, *reply_for(c, tx, Outcome.COMMITTED)))
@@ -227,8 +264,8 @@ def resend_return(t: Timing, c: ClientState, event: ReturnTimeout, now: int) -> 
 
 
 def can_give_back(c: ClientState) -> bool:
-    """One numbered return at a time."""
-    return c.return_pending == 0
+    """One numbered return at a time, and none before the node is admitted."""
+    return c.return_pending == 0 and c.phase is not JOINING
 
 
 def give_back(t: Timing, c: ClientState, event: GiveBack, now: int) -> ClientStep:
@@ -244,25 +281,82 @@ def restart_client(t: Timing, c: ClientState, event: PowerLoss, now: int) -> Cli
     return ClientStep(c)
 
 
+def join(t: Timing, c: ClientState, event: BooksLost, now: int) -> ClientStep:
+    """No valid record: start blank, send JOIN(n) and re-send it until ADMIT(n) answers."""
+    c = evolve(ClientState(c.node), phase=JOINING, nonce=event.nonce, return_deadline=now)
+    return resend_join(t, c, RETURN_TIMEOUT, now)
+
+
+def resend_join(t: Timing, c: ClientState, event: ReturnTimeout, now: int) -> ClientStep:
+    """Re-send JOIN(n) with the same nonce."""
+    if c.return_deadline is None or c.return_deadline > now:
+        return ClientStep(c)
+    c = evolve(c, return_deadline=now + t.return_retry_us)
+    return ClientStep(c, (Send(Join(c.node, c.nonce)),))
+
+
+def join_again(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientStep:
+    """An intention before admission: it moves nothing, but JOIN(n) is re-sent at once."""
+    return ClientStep(c, (Send(Join(c.node, c.nonce)),))
+
+
+def rejoin(t: Timing, c: ClientState, event: PowerLoss, now: int) -> ClientStep:
+    """Still no record: JOIN again at once (firmware draws a new nonce; keeping it, as here,
+    lets more stale ADMITs match, so the model checks the harder case)."""
+    return ClientStep(evolve(c, return_deadline=now))
+
+
+def on_admit(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
+    """ADMIT(n, k, q) for our nonce: ltx = k, returns from q, Uc = 0, Rc from the next intention
+    (every frame of the node's earlier life is now at or below its counters)."""
+    if msg.nonce != c.nonce:
+        return ClientStep(c)  # an answer to another start
+    return ClientStep(
+        ClientState(
+            c.node,
+            last_tx=msg.tx,
+            outcome=Outcome.SETTLED,
+            return_seq=msg.seq,
+            credited_unknown=True,
+        )
+    )
+
+
 def client_record(c: ClientState) -> tuple[object, ...]:
     """What the client persists (one record, written before the reply that reports it)."""
-    return (c.usable, c.credited, c.spent, c.last_tx, c.outcome, c.return_seq, c.return_pending)
+    return (
+        c.usable,
+        c.credited,
+        c.spent,
+        c.last_tx,
+        c.outcome,
+        c.return_seq,
+        c.return_pending,
+        c.credited_unknown,
+    )
 
+
+BOOKED = (IDLE, HOLDING)
 
 CLIENT = ClientTable(
     "hardened",
-    (IDLE, HOLDING),
+    (IDLE, HOLDING, JOINING),
     [
         cell(IDLE, Intention, on_intention, to=(HOLDING, STAY)),
         cell(HOLDING, Intention, on_intention),
-        cell(ANY, Commit, on_command, to=(IDLE, STAY)),
-        cell(ANY, Abort, on_command, to=(IDLE, STAY)),
-        cell(ANY, ReturnAck, on_return_ack),
+        cell(BOOKED, Commit, on_command, to=(IDLE, STAY)),
+        cell(BOOKED, Abort, on_command, to=(IDLE, STAY)),
+        cell(BOOKED, ReturnAck, on_return_ack),
         cell(HOLDING, CommandTimeout, timeout_commit, to=(IDLE, STAY)),
-        cell(ANY, ReturnTimeout, resend_return),
-        cell(ANY, Spend, spend),
-        cell(ANY, GiveBack, give_back),
-        cell(ANY, PowerLoss, restart_client, to=IDLE),
+        cell(BOOKED, ReturnTimeout, resend_return),
+        cell(BOOKED, Spend, spend),
+        cell(BOOKED, GiveBack, give_back),
+        cell(BOOKED, PowerLoss, restart_client, to=IDLE),
+        cell(ANY, BooksLost, join, to=JOINING),
+        cell(JOINING, ReturnTimeout, resend_join),
+        cell(JOINING, Intention, join_again),
+        cell(JOINING, PowerLoss, rejoin),
+        cell(JOINING, Admit, on_admit, to=(IDLE, STAY)),
     ],
     client_record,
     can_give_back,

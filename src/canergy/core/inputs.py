@@ -72,6 +72,15 @@ class PowerLoss:
     NAME: ClassVar[str] = "power loss"
 
 
+@dataclass(frozen=True, slots=True)
+class BooksLost:
+    """Client: started without a valid NV record (new, wiped or corrupted); ``nonce`` is a fresh
+    random number that ties the supervisor's answer to this start."""
+
+    NAME: ClassVar[str] = "books lost"
+    nonce: int
+
+
 RESPONSE_TIMEOUT = ResponseTimeout()
 COMMAND_TIMEOUT = CommandTimeout()
 RETURN_TIMEOUT = ReturnTimeout()
@@ -79,4 +88,4 @@ POWER_LOSS = PowerLoss()
 
 LocalInput = Begin | Decide | Spend | GiveBack
 """Requests of the local application: refused (``LocalProtocolError``) where the table says so."""
-Input = LocalInput | ResponseTimeout | CommandTimeout | ReturnTimeout | PowerLoss
+Input = LocalInput | ResponseTimeout | CommandTimeout | ReturnTimeout | PowerLoss | BooksLost

@@ -17,6 +17,7 @@ from canergy.core.common import (
     reply_for,
     resolve,
     spend,
+    start_blank,
     start_intention,
     start_return,
     wire_tx,
@@ -24,6 +25,7 @@ from canergy.core.common import (
 from canergy.core.frozen import evolve
 from canergy.core.inputs import (
     Begin,
+    BooksLost,
     CommandTimeout,
     Decide,
     GiveBack,
@@ -287,6 +289,7 @@ CLIENT = ClientTable(
         cell(ANY, Spend, spend),
         cell(ANY, GiveBack, give_back),
         cell(ANY, PowerLoss, reset_client, to=IDLE),
+        cell(ANY, BooksLost, start_blank, to=IDLE),
     ],
     usable_only,
     can_give_back,

@@ -16,6 +16,7 @@ class Phase(IntEnum):
     WAIT_STATUS = 4  # supervisor (paper): status request sent
     AWAIT_COMMAND = 5  # client (paper): intention acknowledged
     AWAIT_SUPERVISOR = 6  # client (paper): committed or aborted, awaiting the final ACK
+    JOINING = 7  # client (hardened): no valid record; JOIN sent, awaiting ADMIT
 
 
 class Decision(IntEnum):
@@ -72,7 +73,9 @@ class ClientState:
 
     ``credited`` is Rc, all energy ever added to ``usable`` by the protocol (commits, write-off
     paybacks; paper: minus roll-backs). ``last_tx``/``outcome`` is the last transaction resolved
-    or settled. ``held_*``, ``phase``, ``timeout_commit`` and the deadlines are volatile.
+    or settled. ``credited_unknown``: admitted without books, Rc is taken from the next fresh
+    intention. ``held_*``, ``phase``, ``nonce`` (of the pending JOIN), ``timeout_commit`` and the
+    deadlines are volatile.
     """
 
     node: int
@@ -83,9 +86,11 @@ class ClientState:
     outcome: Outcome = Outcome.NONE
     return_seq: int = 0
     return_pending: int = 0
+    credited_unknown: bool = False
     held_tx: int = 0
     held_amount: int = 0
     phase: Phase = Phase.IDLE
     timeout_commit: bool = False
+    nonce: int = 0
     deadline: int | None = None
     return_deadline: int | None = None

@@ -17,6 +17,7 @@ from typing import Any, ClassVar, Generic, Self, TypeVar, get_args
 from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import (
     Begin,
+    BooksLost,
     CommandTimeout,
     Decide,
     GiveBack,
@@ -34,10 +35,12 @@ from canergy.messages import (
     Abort,
     Aborted,
     Ack,
+    Admit,
     Commit,
     Committed,
     FinalAck,
     Intention,
+    Join,
     Return,
     ReturnAck,
     StatusRequest,
@@ -60,7 +63,17 @@ Event = Input | ToClient | ToSupervisor
 """What a table dispatches on: a wire message or another input."""
 LOCAL_EVENTS: tuple[type, ...] = get_args(LocalInput)
 EVENTS: dict[Role, tuple[type, ...]] = {
-    Role.SUPERVISOR: (Begin, Decide, Ack, Committed, Aborted, Return, ResponseTimeout, PowerLoss),
+    Role.SUPERVISOR: (
+        Begin,
+        Decide,
+        Ack,
+        Committed,
+        Aborted,
+        Return,
+        Join,
+        ResponseTimeout,
+        PowerLoss,
+    ),
     Role.CLIENT: (
         Intention,
         Commit,
@@ -68,11 +81,13 @@ EVENTS: dict[Role, tuple[type, ...]] = {
         ReturnAck,
         StatusRequest,
         FinalAck,
+        Admit,
         CommandTimeout,
         ReturnTimeout,
         Spend,
         GiveBack,
         PowerLoss,
+        BooksLost,
     ),
 }
 

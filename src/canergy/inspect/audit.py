@@ -12,6 +12,7 @@ energy, and flags what a correct supervisor and client never put on the bus (har
 - a client reporting both COMMITTED and ABORTED for one transaction (a timeout-commit may
   answer an ABORT with COMMITTED: both rule sets allow that);
 - a RETURN re-used with another amount, a RETURN_ACK for a return never sent;
+- an ADMIT (answer to a node's JOIN after it lost its books) behind a transaction already begun;
 - passivity: the clients booking (COMMITTED) more than the supervisor can have released since the
   capture began (the growth of Gs plus the last open reservation), or, with ``initial``, the net
   energy granted on the bus exceeding the initial budget.
@@ -37,9 +38,11 @@ from canergy.messages import (
     Abort,
     Aborted,
     Ack,
+    Admit,
     Commit,
     Committed,
     Intention,
+    Join,
     Return,
     ReturnAck,
 )
@@ -81,6 +84,8 @@ class NodeBooks:
     returns_acked: set[int] = field(default_factory=set)
     newest_return: int | None = None
     resends: int = 0
+    joins: int = 0
+    admits: int = 0
 
     booked_uj: int = 0
     """Amounts of committed transactions whose intention the capture saw."""
@@ -106,6 +111,8 @@ class NodeBooks:
             "aborted": len(self.aborted),
             "unresolved": len(seen - self.committed - self.aborted),
             "resent_intentions": self.resends,
+            "joins": self.joins,
+            "admits": self.admits,
             "granted_uj": self.booked(),
             "returned_uj": self.returned(),
             "released_max_uj": released,
@@ -157,6 +164,10 @@ class Auditor:
             if books.newest_return is not None and seq > books.newest_return:
                 flag(f"RETURN_ACK {seq} for a return never sent")
             books.returns_acked.add(seq)
+        elif isinstance(m, Join):
+            books.joins += 1
+        elif isinstance(m, Admit):
+            self._admit(books, m, flag)
 
     # -- per message ------------------------------------------------------------------------
     def _tx(self, books: NodeBooks, wire: int) -> int:
@@ -188,6 +199,16 @@ class Auditor:
         books.last_gs = gs
         if books.first_gs is None:
             books.first_gs = gs
+
+    def _admit(self, books: NodeBooks, m: Admit, flag: Any) -> None:
+        """The node starts afresh at the supervisor's counters: older frames move nothing."""
+        books.admits += 1
+        tx = self._tx(books, m.tx)
+        if books.newest_tx is not None and tx < books.newest_tx:
+            flag(f"ADMIT at tx {tx}, behind tx {books.newest_tx} already begun")
+            return
+        books.newest_tx = tx
+        books.newest_return = self._seq(books, m.seq)
 
     def _stale(self, flag: Any, what: str) -> None:
         """A frame of an older transaction: impossible in bus order from a correct supervisor,

@@ -8,7 +8,16 @@ from typing import Any
 import can
 
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
-from canergy.messages import QUANTUM_UJ, Direction, Message, Return, ReturnAck, Telemetry
+from canergy.messages import (
+    QUANTUM_UJ,
+    Admit,
+    Direction,
+    Join,
+    Message,
+    Return,
+    ReturnAck,
+    Telemetry,
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -32,12 +41,14 @@ class Described:
 
     @property
     def transaction(self) -> tuple[int, str, int] | None:
-        """(node, "tx" or "return", number) that groups this frame with its transaction."""
+        """(node, "tx", "return" or "join", number) that groups this frame with its exchange."""
         m = self.message
         if m is None or isinstance(m, Telemetry):
             return None
         if isinstance(m, Return | ReturnAck):
             return (m.node, "return", m.seq)
+        if isinstance(m, Join | Admit):
+            return (m.node, "join", m.nonce)
         return (m.node, "tx", m.tx)
 
     def fields(self) -> dict[str, Any]:

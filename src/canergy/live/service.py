@@ -8,6 +8,7 @@ sent, so a ``kill -9`` at any point restarts from books that never owe energy.
 from __future__ import annotations
 
 import json
+import logging
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -20,6 +21,7 @@ from canergy.codec import DecodeError
 from canergy.core import (
     Acknowledged,
     Action,
+    Admitted,
     Persist,
     Resolved,
     ReturnCredited,
@@ -34,6 +36,8 @@ from canergy.live.runtime import BusCounters
 from canergy.live.state_file import save_state
 from canergy.messages import QUANTUM_UJ, Message, Telemetry, ToSupervisor
 from canergy.units import format_energy
+
+log = logging.getLogger(__name__)
 
 GrantCallback = Callable[[dict[str, Any]], None]
 
@@ -59,6 +63,8 @@ class NodeInfo:
     committed_uj: int = 0
     aborted: int = 0
     written_off: int = 0
+    admitted: int = 0
+    """JOINs answered: the node started without books (new, wiped or corrupted NV)."""
     returns: int = 0
     decode_errors: int = 0
     requests: deque[GrantRequest] = field(default_factory=deque)
@@ -213,6 +219,8 @@ class SupervisorService:
                 continue
             if self.liveness is not None and not self.liveness(node, now):
                 continue  # heartbeat lost or not OPERATIONAL: nothing for it, not even one-shots
+            if info.heard_at is None or info.flags & Telemetry.JOINING:
+                continue  # not heard yet, or no books until admitted: a grant would be lost
             if info.requests:
                 out += self._one_shot(node, info, now)
             elif self.config.policy is not None:
@@ -277,7 +285,21 @@ class SupervisorService:
                 self._resolved(action, now)
             elif isinstance(action, ReturnCredited):
                 self.nodes[action.node].returns += 1
+            elif isinstance(action, Admitted):
+                self._admitted(action)
         return out
+
+    def _admitted(self, action: Admitted) -> None:
+        info = self.nodes[action.node]
+        info.admitted += 1
+        if action.tx or action.seq:  # books existed: what it held is gone with its record
+            log.warning(
+                "node %d has no books (NV lost or replaced): admitted at tx %d, return %d; "
+                "anything it held is written off",
+                action.node,
+                action.tx,
+                action.seq,
+            )
 
     def _resolved(self, action: Resolved, now: int) -> None:
         info = self.nodes[action.node]
@@ -341,6 +363,7 @@ class SupervisorService:
                 "committed_uj": info.committed_uj,
                 "aborted": info.aborted,
                 "written_off": info.written_off,
+                "admitted": info.admitted,
                 "returns": info.returns,
                 "decode_errors": info.decode_errors,
             }

@@ -13,7 +13,7 @@ from pathlib import Path
 import can
 
 from canergy.codec import Codec
-from canergy.core import Supervisor, Timing
+from canergy.core import ClientState, Supervisor, Timing
 from canergy.faults import FaultInjector, FaultProfile
 from canergy.ledger import Ledger, ledger
 from canergy.live.faulty_bus import FaultyBus
@@ -157,7 +157,7 @@ class Rig:
                 loop.halt()
                 self.hosts.remove((h, loop))
                 for n in h.nodes.values():  # what survives a power loss is the NV record
-                    n.client.state = n.nv.load()
+                    n.client.state = n.nv.load() or ClientState(n.node)
                 self.retired.update(h.nodes)
 
     def settle(self, timeout_s: float = 60.0) -> None:

@@ -294,3 +294,34 @@ def test_canopen_on_vcan0_eds_master_heartbeat_loss_and_restart(procs: Procs) ->
         assert procs.stop(f"client{node}") == 0, procs.stderr(f"client{node}")
     books = ledger_from_status(_status(sup_status), [_status(tmp / f"n{n}.json") for n in (7, 8)])
     assert books.dissipated >= 0, books
+
+
+def test_a_node_whose_nv_file_is_deleted_rejoins_without_creating_energy(procs: Procs) -> None:
+    """Issue 13: a node started without its record used to be paid back all of Gs."""
+    tmp = procs.tmp
+    sup_status, node_status = tmp / "sup.json", tmp / "n1.json"
+    _supervisor(procs, "1", "--lost-after", "10")
+    _client(procs, 1)
+
+    def node_books() -> dict[str, Any]:
+        return dict(_status(sup_status)["nodes"]["1"]) if sup_status.exists() else {}
+
+    _wait(lambda: node_books().get("committed", 0) >= 2, "two grants")
+    procs.stop("client1", signal.SIGKILL)
+    before = _status(node_status)
+    (tmp / "n1.nv").unlink()
+    node_status.unlink()
+    _client(procs, 1)
+    _wait(lambda: node_books().get("admitted", 0) >= 1, "node 1 admitted")
+    done = node_books()["committed"]
+    _wait(lambda: node_books()["committed"] >= done + 1, "a grant after admission")
+
+    assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
+    assert procs.stop("client1") == 0, procs.stderr("client1")
+    final, after = _status(sup_status), _status(node_status)
+    assert after["joins"] == 1 and not after["joining"]
+    books = final["nodes"]["1"]
+    released = books["delivered_uj"] - books["returns_credited_uj"]
+    lives = before["usable_uj"] + before["drawn_uj"] + after["usable_uj"] + after["drawn_uj"]
+    assert lives <= released, (lives, released)
+    assert ledger_from_status(final, [after]).dissipated >= 0

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from canergy.core.state import ClientState
-from canergy.messages import Return, Telemetry
+from canergy.messages import USABLE_MAX_UJ, Ack, Admit, Intention, Join, Return, Telemetry
 from firmware_model.actuator import Actuator, PowerProfile
 from firmware_model.node import FirmwareNode, NodeConfig
 from firmware_model.nvstore import NvStore
@@ -80,3 +80,39 @@ def test_parameters_written_over_canopen_survive_a_restart(tmp_path: Path) -> No
     assert restarted.config.telemetry_period_us == 400_000
     assert restarted.config.power.power_uw(0) == 0  # never written: the command line's stays
     assert restarted.client.state.usable == 1_000_000  # the energy record is untouched
+
+
+@pytest.mark.parametrize(
+    ("usable", "gs_ahead_mj", "amount_mj"),
+    [
+        (1000, 8_000_000, 500),  # issue 13: a Gs 8,000 J ahead ended the whole process
+        (USABLE_MAX_UJ - 499_000, 0, 500),  # the amount alone does not fit the u32 µJ field
+        (4_000_000_000, 300_000, 1),  # the pay-back alone does not fit
+    ],
+)
+def test_an_intention_that_would_overflow_the_record_is_refused_not_fatal(
+    tmp_path: Path, usable: int, gs_ahead_mj: int, amount_mj: int
+) -> None:
+    node = _node(tmp_path, usable)
+    before = node.client.state
+    writes = node.nv.stats.writes
+    rc_mj = before.credited // 1000
+    out = node.on_message(Intention(2, before.last_tx + 1, amount_mj, rc_mj + gs_ahead_mj), 10)
+    assert out == [] and node.client.state == before and node.nv.stats.writes == writes
+    assert node.status()["overflow_refused"] == 1
+    fits = Intention(2, before.last_tx + 1, 1, rc_mj)  # one that fits is still taken
+    if usable + 1000 <= USABLE_MAX_UJ:
+        assert node.on_message(fits, 20) == [Ack(2, before.last_tx + 1)]
+
+
+def test_a_node_without_a_record_joins_and_reports_it(tmp_path: Path) -> None:
+    node = FirmwareNode(2, NvStore(tmp_path / "none.nv", 2, fsync=False), NodeConfig(), now=0)
+    (join,) = node.on_wakeup(0)[:1]
+    assert isinstance(join, Join) and node.joining
+    assert node.telemetry(0).flags & Telemetry.JOINING
+    assert not (tmp_path / "none.nv").exists()  # nothing written before admission
+    assert node.on_message(Admit(2, join.nonce ^ 1, 9, 0), 1) == []  # another start's answer
+    assert node.joining
+    node.on_message(Admit(2, join.nonce, 9, 3), 2)
+    assert not node.joining and node.client.state.last_tx == 9
+    assert NvStore(tmp_path / "none.nv", 2).load() == node.client.state  # written at once

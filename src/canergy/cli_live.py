@@ -14,17 +14,26 @@ from canergy.cli_args import add_duration, bounded_int, energy, node_ids, power
 from canergy.codec import Codec
 from canergy.core import Supervisor, Timing
 from canergy.core.variants import VARIANTS
-from canergy.live.atomic import check_writable_dir
+from canergy.live.atomic import check_writable_dir, same_file
 from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
-from canergy.live.control import ControlServer, request
-from canergy.live.policy import Limits, TopUp
+from canergy.live.control import ControlServer, check_control_path, request
+from canergy.live.policy import Limits, TopUp, level_room
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.state_file import load_state
-from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Direction
-from canergy.units import UJ_PER_J, US_PER_S
+from canergy.live.state_file import ACCEPT_EDITED, load_state
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ, Direction
+from canergy.units import UJ_PER_J, US_PER_S, format_energy
 
 __all__ = ["COMMANDS", "BusOpenError", "add_parsers"]
+
+_LARGEST_GRANT = AMOUNT_MAX_MJ * QUANTUM_UJ
+
+
+def _joules(uj: int) -> str:
+    return format_energy(uj).replace(" ", "")
+
+
+_ROOM = f"{_joules(USABLE_MAX_UJ)} (what a node's record holds) minus --max-grant"
 
 
 def _supervisor_flags(p: argparse.ArgumentParser) -> None:
@@ -32,11 +41,29 @@ def _supervisor_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--variant", choices=sorted(VARIANTS), default="hardened")
     p.add_argument("--initial", type=energy, default=10 * UJ_PER_J, help="budget of a new state")
     p.add_argument("--state", type=Path, help="non-volatile state file (created if missing)")
+    p.add_argument(
+        ACCEPT_EDITED,
+        action="store_true",
+        help="take a --state file whose checksum is missing or wrong (edited by hand, or "
+        "written by an older canergy) if it passes every other check; the next save writes a "
+        "fresh checksum",
+    )
     p.add_argument("--no-fsync", action="store_true", help="skip fsync of the state file (tests)")
     add_duration(p, "--response-timeout", 50_000, "wait this long for a reply")
     p.add_argument("--retries", type=bounded_int(0, 100), default=3)
-    p.add_argument("--max-grant", type=energy, default=AMOUNT_MAX_MJ * QUANTUM_UJ)
-    p.add_argument("--max-node-level", type=energy, help="never lift a node's level above this")
+    p.add_argument(
+        "--max-grant",
+        type=energy,
+        default=_LARGEST_GRANT,
+        help=f"largest grant per transaction (default and at most {_joules(_LARGEST_GRANT)}, what "
+        "one frame carries)",
+    )
+    p.add_argument(
+        "--max-node-level",
+        type=energy,
+        help=f"never lift a node's level above this; at most {_ROOM}, room for a written-off "
+        "grant paid back on top",
+    )
     p.add_argument("--max-total", type=energy, help="energy granted in this run, all nodes")
     p.add_argument("--rate", type=power, help="sustained grant rate over all nodes, e.g. 2W")
     add_duration(p, "--stop-timeout", 5_000_000, "time to settle on exit")
@@ -51,12 +78,28 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     )
     p.add_argument("--nodes", type=node_ids, required=True, help="node ids, e.g. 1-5,9")
     _supervisor_flags(p)
-    p.add_argument("--target", type=energy, help="top each node up to this reported level")
+    p.add_argument(
+        "--target",
+        type=energy,
+        help=f"top each node up to this reported level; at most {_ROOM} (see --max-node-level)",
+    )
+    p.add_argument(
+        "--inject",
+        type=energy,
+        metavar="ENERGY",
+        help="add this energy to the usable budget, counted as injected, once at start: it is "
+        "saved in --state before anything is granted (e.g. 5J; not with --listen-only)",
+    )
     p.add_argument("--min-grant", type=energy, default=QUANTUM_UJ, help="smallest top-up")
     add_duration(p, "--lost-after", 3_000_000, "a node is lost after this long without a frame")
     p.add_argument("--status-file", type=Path, help="JSON status (default: JSON lines on stdout)")
     add_duration(p, "--status-period", 1_000_000, "time between status reports")
-    p.add_argument("--control", type=Path, help="UNIX socket for `canergy grant --control`")
+    p.add_argument(
+        "--control",
+        type=Path,
+        help="UNIX socket for `canergy grant --control`; replaces only a stale socket, removed "
+        "at exit",
+    )
     p.add_argument("--listen-only", action="store_true", help="watch and report, never send")
     p.add_argument(
         "--canopen",
@@ -94,7 +137,13 @@ def _build(args: argparse.Namespace, nodes: tuple[int, ...]) -> Supervisor:
     )
     state = None
     if args.state is not None and args.state.exists():
-        state = load_state(args.state, args.variant, nodes)
+
+        def warn(message: str) -> None:
+            print(f"canergy {args.command}: warning: {message}", file=sys.stderr)
+
+        state = load_state(
+            args.state, args.variant, nodes, accept_edited=args.accept_edited_state, on_edited=warn
+        )
     core = Supervisor(nodes, args.initial, variant=args.variant, timing=timing, state=state)
     if state is not None:
         core.power_loss(monotonic_us())  # a start is a restart from the persistent record
@@ -187,22 +236,66 @@ def _control_request(
 
 
 def _check_state(args: argparse.Namespace, *, required: bool = True) -> None:
-    """``--state`` is given (when ``required``) and can be written."""
-    if args.state is not None:
-        check_writable_dir(args.state, "--state")
-    elif required:
+    """``--state`` is given (when ``required``); every file the run writes can be written, none
+    is another under a second name, and ``--control`` replaces nothing but a stale socket.
+    Reads and writes nothing."""
+    if args.state is None and required:
         raise ValueError(
             "--state PATH is required: without its non-volatile record a restarted supervisor "
             "would reuse transaction numbers and grant its budget again"
         )
+    outputs = [
+        (option, path)
+        for option, path in (
+            ("--state", args.state),
+            ("--status-file", getattr(args, "status_file", None)),
+            ("--control", args.control if args.command == "supervisor" else None),
+        )
+        if path is not None
+    ]
+    for i, (option, path) in enumerate(outputs):
+        for other, other_path in outputs[:i]:
+            if same_file(path, other_path):
+                raise ValueError(
+                    f"{option} {path} and {other} {other_path} name the same file; "
+                    "give each its own path"
+                )
+    for option, path in outputs:
+        check_writable_dir(path, option)
+        if option == "--control":
+            check_control_path(path, option)
+
+
+def _check_widths(args: argparse.Namespace) -> None:
+    """No configuration may plan a node above what its record holds (``USABLE_MAX_UJ``)."""
+    if not QUANTUM_UJ <= args.max_grant <= _LARGEST_GRANT:
+        raise ValueError(
+            f"--max-grant {_joules(args.max_grant)} must be {_joules(QUANTUM_UJ)} to "
+            f"{_joules(_LARGEST_GRANT)}, what one frame carries"
+        )
+    room = level_room(args.max_grant)
+    for option, value in (
+        ("--target", getattr(args, "target", None)),
+        ("--max-node-level", args.max_node_level),
+    ):
+        if value is not None and value > room:
+            raise ValueError(
+                f"{option} {_joules(value)} is above {_joules(room)}: a node's record holds at "
+                f"most {_joules(USABLE_MAX_UJ)}, and a written-off grant (--max-grant "
+                f"{_joules(args.max_grant)}) may be paid back on top"
+            )
 
 
 def run_supervisor(args: argparse.Namespace) -> int:
-    _check_state(args, required=not args.listen_only)
-    if args.status_file is not None:
-        check_writable_dir(args.status_file, "--status-file")
     if args.target is not None and args.target < QUANTUM_UJ:
         raise ValueError("--target must be at least 1 mJ")
+    _check_widths(args)
+    if args.inject is not None and (args.listen_only or args.inject <= 0):
+        raise ValueError(
+            "--inject needs an energy above 0 and a supervisor that sends and keeps "
+            "its --state (not --listen-only)"
+        )
+    _check_state(args, required=not args.listen_only)
     core = _build(args, args.nodes)
     config = ServiceConfig(
         policy=TopUp(args.target, args.min_grant) if args.target is not None else None,
@@ -215,6 +308,7 @@ def run_supervisor(args: argparse.Namespace) -> int:
         stop_timeout_us=args.stop_timeout,
         listen_only=args.listen_only,
         fsync=not args.no_fsync,
+        inject_uj=args.inject or 0,
     )
     codec = Codec(args.id_base)
     filters = codec.supervisor_filters()
@@ -226,7 +320,16 @@ def run_supervisor(args: argparse.Namespace) -> int:
     control = None
     manager = None
     try:
+        # the socket first: a run that cannot bind it stops before the state file is written
+        control = ControlServer(args.control) if args.control is not None else None
         service = SupervisorService(core, config, monotonic_us())
+        if service.injected_this_run:
+            st, added = core.state, _joules(service.injected_this_run)
+            print(
+                f"canergy supervisor: injected {added} into the budget, saved in {args.state}: "
+                f"usable {_joules(st.usable)}, injected in all {_joules(st.injected)}",
+                file=sys.stderr,
+            )
         manager, reader = _canopen(args, bus, service) if args.canopen else (None, None)
         runtime = BusRuntime(
             bus,
@@ -237,7 +340,6 @@ def run_supervisor(args: argparse.Namespace) -> int:
             source=reader,
         )
         service.bus_counters = runtime.counters
-        control = ControlServer(args.control) if args.control is not None else None
         _serve(runtime, service, control, manager=manager)
     finally:
         if control is not None:
@@ -260,6 +362,7 @@ def run_grant(args: argparse.Namespace) -> int:
             )
             return 2
         return _report_grant(answer)
+    _check_widths(args)
     _check_state(args)
     core = _build(args, (args.node,))
     config = ServiceConfig(

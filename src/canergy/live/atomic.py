@@ -17,6 +17,19 @@ def check_writable_dir(path: Path, what: str) -> None:
         raise FileNotFoundError(f"cannot write {what} {path}: no directory {folder}")
     if not os.access(folder, os.W_OK | os.X_OK):
         raise PermissionError(f"cannot write {what} {path}: directory {folder} is not writable")
+    if path.is_dir():
+        raise IsADirectoryError(f"cannot write {what} {path}: it is a directory")
+
+
+def same_file(a: Path, b: Path) -> bool:
+    """``a`` and ``b`` name one file: the same path once relative parts and symlinks are
+    resolved, or (both existing) the same inode, as hard links are."""
+    if a.resolve() == b.resolve():
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist (yet)
+        return False
 
 
 def write_atomic(path: Path, data: bytes, *, fsync: bool = True) -> None:

@@ -4,14 +4,19 @@ Request ``{"grant": {"node": 5, "amount_uj": 2000000}}`` → reply once the tran
 ``{"node": 5, "tx": 12, "outcome": "COMMITTED", "amount_uj": 2000000}`` or ``{"error": ...}``.
 ``{"status": true}`` answers the status object; ``{"stop": true}`` stops as SIGTERM does.
 Requests are queued for the supervisor's own loop; nothing here touches its state.
+
+The server never removes anything but a socket: a stale one left at its path by a supervisor that
+died (nobody answers there), and at close the one it created itself.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import os
 import queue
 import socket
+import stat
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -19,16 +24,55 @@ from typing import Any
 
 Reply = Callable[[dict[str, Any]], None]
 MAX_REQUEST = 4096
+MAX_SOCKET_PATH = 107
+"""Longest UNIX socket path in bytes (Linux ``sun_path`` holds 108 with the final NUL)."""
+
+
+def check_control_path(path: Path, option: str = "--control") -> bool:
+    """Refuse (``ValueError`` naming ``option``) a path that may not become the control socket:
+    too long, something other than a socket is there, or a supervisor answers on it. True when
+    a stale socket is there, which the server may replace."""
+    size = len(os.fsencode(path))
+    if size > MAX_SOCKET_PATH:
+        raise ValueError(
+            f"{option} {path}: too long for a UNIX socket ({size} bytes, at most "
+            f"{MAX_SOCKET_PATH}); choose a shorter path"
+        )
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return False
+    if not stat.S_ISSOCK(st.st_mode):
+        raise ValueError(
+            f"{option} {path} exists and is not a socket; refusing to replace it "
+            "(choose another path)"
+        )
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        probe.settimeout(1)
+        try:
+            probe.connect(str(path))
+        except (ConnectionRefusedError, FileNotFoundError):
+            return True  # nobody listens: left behind by a supervisor that died
+        except OSError as exc:
+            raise ValueError(f"{option} {path}: cannot tell who listens there ({exc})") from exc
+    raise ValueError(f"{option} {path}: a supervisor is already listening there")
 
 
 class ControlServer:
     def __init__(self, path: Path) -> None:
         self.path = path
         self.requests: queue.Queue[tuple[dict[str, Any], Reply]] = queue.Queue()
-        with contextlib.suppress(FileNotFoundError):
-            path.unlink()
+        if check_control_path(path):
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        self._sock.bind(str(path))
+        try:
+            self._sock.bind(str(path))
+        except OSError:
+            self._sock.close()
+            raise
+        st = os.lstat(path)
+        self._made = (st.st_dev, st.st_ino)
         self._sock.listen(8)
         self._thread = threading.Thread(target=self._serve, name="canergy-control", daemon=True)
         self._thread.start()
@@ -67,8 +111,13 @@ class ControlServer:
             self._sock.shutdown(socket.SHUT_RDWR)  # wakes the blocked accept()
         self._sock.close()
         self._thread.join(timeout=5)
-        with contextlib.suppress(FileNotFoundError):
-            self.path.unlink()
+        try:
+            st = os.lstat(self.path)
+        except FileNotFoundError:
+            return
+        if stat.S_ISSOCK(st.st_mode) and (st.st_dev, st.st_ino) == self._made:
+            with contextlib.suppress(FileNotFoundError):
+                self.path.unlink()  # ours; anything that replaced it stays
 
 
 def _replier(conn: socket.socket) -> Reply:

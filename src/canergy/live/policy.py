@@ -9,8 +9,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ
 from canergy.units import format_energy
+
+
+def level_room(max_grant: int) -> int:
+    """The highest level a node may be planned to: what its record holds (``USABLE_MAX_UJ``)
+    less one grant of ``max_grant`` that a write-off could pay back on top of it."""
+    return USABLE_MAX_UJ - max_grant
 
 
 @dataclass(frozen=True, slots=True)
@@ -35,6 +41,12 @@ class Limits:
             value = getattr(self, name)
             if value is not None and value < 0:
                 raise ValueError(f"{name} must be >= 0")
+        room = level_room(self.max_grant)
+        if self.max_node_level is not None and self.max_node_level > room:
+            raise ValueError(
+                f"max node level must be at most {format_energy(room)} "
+                f"({format_energy(USABLE_MAX_UJ)}, what a node's record holds, less a max grant)"
+            )
 
 
 class RateLimiter:
@@ -73,8 +85,11 @@ def capped_grant(
     granted_total: int,
     rate_tokens: int | None,
 ) -> int:
-    """The largest grant ≤ ``wanted`` every limit allows (0: none), in whole quanta."""
+    """The largest grant ≤ ``wanted`` every limit allows (0: none), in whole quanta. A node is
+    never lifted above what its record holds (``USABLE_MAX_UJ``) from a level it reported."""
     caps = [wanted, limits.max_grant, usable, AMOUNT_MAX_MJ * QUANTUM_UJ]
+    if level is not None:
+        caps.append(USABLE_MAX_UJ - level)
     if limits.max_node_level is not None:  # an unknown level fails closed
         caps.append(0 if level is None else limits.max_node_level - level)
     if limits.max_total is not None:

@@ -33,8 +33,8 @@ from canergy.core.state import Outcome, Phase
 from canergy.live.atomic import write_json_atomic
 from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant
 from canergy.live.runtime import BusCounters
-from canergy.live.state_file import save_state
-from canergy.messages import QUANTUM_UJ, Message, Telemetry, ToSupervisor
+from canergy.live.state_file import ENERGY_MAX_UJ, save_state
+from canergy.messages import QUANTUM_UJ, USABLE_MAX_UJ, Message, Telemetry, ToSupervisor
 from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
@@ -84,6 +84,8 @@ class ServiceConfig:
     stop_timeout_us: int = 5_000_000
     listen_only: bool = False
     fsync: bool = True
+    inject_uj: int = 0
+    """Energy added to Us (counted as injected) once, at start, and saved before any grant."""
 
 
 class SupervisorService:
@@ -107,8 +109,11 @@ class SupervisorService:
         """Extra liveness test (the CANopen heartbeat watchdog); False: no grants."""
         self.bus_counters = BusCounters()
         """Replaced by the bus loop's own counters when one drives this service."""
+        self.injected_this_run = 0
+        if config.inject_uj:
+            self._inject(config.inject_uj)
         if not config.listen_only:
-            self._persist()
+            self._persist()  # an injection is on disk before anything is granted
 
     # -- Handler ---------------------------------------------------------------------------
     def on_message(self, msg: Message, now: int) -> Sequence[Message]:
@@ -179,6 +184,18 @@ class SupervisorService:
         return self.core.is_quiescent() or now >= self.stop_deadline
 
     # -- internals -------------------------------------------------------------------------
+    def _inject(self, amount: int) -> None:
+        if self.config.listen_only:
+            raise ValueError("--inject needs a supervisor that writes its state: not --listen-only")
+        st = self.core.state
+        if amount <= 0 or st.initial + st.injected + amount > ENERGY_MAX_UJ:
+            raise ValueError(
+                f"--inject {format_energy(amount)}: must be more than 0 and keep initial + "
+                f"injected at most {ENERGY_MAX_UJ} µJ"
+            )
+        self.core.inject(amount)
+        self.injected_this_run = amount
+
     def granted_total(self) -> int:
         """Energy committed, written off or reserved since start (the books, not telemetry)."""
         st = self.core.state
@@ -229,6 +246,16 @@ class SupervisorService:
 
     def _one_shot(self, node: int, info: NodeInfo, now: int) -> list[Message]:
         req = info.requests.popleft()
+        if info.level is not None and info.level + req.amount > USABLE_MAX_UJ:
+            req.reply(
+                {
+                    "node": node,
+                    "error": f"refused: node {node} reports {format_energy(info.level)}; "
+                    f"{format_energy(req.amount)} more would lift it above "
+                    f"{format_energy(USABLE_MAX_UJ)}, the most its record holds",
+                }
+            )
+            return []
         amount = self._cap(req.amount, info, now)
         if amount != req.amount:
             allowed = f"{format_energy(amount)} allowed" if amount else "nothing allowed"
@@ -378,6 +405,7 @@ class SupervisorService:
             "listen_only": self.config.listen_only,
             "initial_uj": st.initial,
             "injected_uj": st.injected,
+            "injected_this_run_uj": self.injected_this_run,
             "usable_uj": st.usable,
             "reserved_uj": reserved,
             "delivered_uj": delivered,

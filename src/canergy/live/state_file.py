@@ -3,26 +3,86 @@
 Only what the core marks persistent is kept: budgets, and per node the transaction number,
 phase, reservation, decision, delivered count and return counters. Retry counts and deadlines
 are volatile; on load every session restarts through the rules' ``power_loss``.
+
+Version 2 adds ``checksum``, ``sha256:<hex>`` over the canonical JSON (sorted keys, no spaces) of
+every other field. Loading checks every field: JSON integers only (no booleans, strings,
+fractions, exponents or ``Infinity``), ranges, the phases the variant's table stores, the
+invariants of a session, and the supervisor-side identity ``usable + Σreserved +
+Σ(delivered − returned) = initial + injected``. A file that fails is refused naming the field; a
+file whose checksum is missing or wrong (edited by hand, or version 1, which has none) only with
+``accept_edited``, and the next save writes a fresh checksum.
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from canergy.core.state import Decision, Phase, Session, SupervisorState
+from canergy.core.table import SupervisorTable
+from canergy.core.variants import VARIANTS
 from canergy.live.atomic import write_atomic
+from canergy.messages import AMOUNT_MAX_MJ, MAX_NODE, MIN_NODE, QUANTUM_UJ
 
 FORMAT = "canergy-supervisor-state"
-VERSION = 1
+VERSION = 2
+"""2: with ``checksum``. Version 1 files (no checksum) load only with ``accept_edited``."""
+READABLE_VERSIONS = (1, VERSION)
+ENERGY_MAX_UJ = 2**63 - 1
+"""Largest energy (and count) a field may hold: a signed 64-bit number of µJ."""
+RESERVED_MAX_UJ = AMOUNT_MAX_MJ * QUANTUM_UJ
+"""A reservation is one transaction's amount: at most what one frame carries."""
+MAX_FILE_BYTES = 1 << 20
+"""Far above any real state file (127 nodes take about 25 kB)."""
+ACCEPT_EDITED = "--accept-edited-state"
+
+_TOP = ("format", "version", "variant", "initial_uj", "usable_uj", "injected_uj", "sessions")
+_SESSION = (
+    "phase",
+    "tx",
+    "reserved_uj",
+    "delivered_uj",
+    "decision",
+    "returns_credited",
+    "returned_uj",
+)
+_DECIDED = (Phase.WAIT_CONFIRM, Phase.WAIT_STATUS)
+"""Phases a session reaches only after sending its decision (COMMIT or ABORT)."""
 
 
 class StateFileError(ValueError):
-    """The state file is unreadable or does not match the command line."""
+    """The state file is unreadable, fails its checks, or does not match the command line."""
+
+
+@functools.cache
+def stored_phase(table: SupervisorTable, phase: Phase) -> Phase:
+    """``phase`` as the table's persistent record keeps it (hardened: ACKED as WAIT_ACK)."""
+    record = table.persistent(Session(MIN_NODE, phase=phase))
+    kept = record[0] if record else phase
+    return kept if isinstance(kept, Phase) else phase
+
+
+def stored_phases(table: SupervisorTable) -> tuple[Phase, ...]:
+    """The phases a state file of this table may hold."""
+    return tuple(dict.fromkeys(stored_phase(table, p) for p in table.phases))
+
+
+def books_checksum(books: dict[str, Any]) -> str:
+    """``sha256:<hex>`` over the canonical JSON of every field but ``checksum``."""
+    body = {k: v for k, v in books.items() if k != "checksum"}
+    canonical = json.dumps(body, sort_keys=True, separators=(",", ":"))
+    return "sha256:" + hashlib.sha256(canonical.encode()).hexdigest()
 
 
 def state_json(state: SupervisorState, variant: str) -> dict[str, Any]:
+    """The books as saved, without the checksum."""
+    known = VARIANTS.get(variant)
+    table = known.supervisor if known is not None else None
     return {
         "format": FORMAT,
         "version": VERSION,
@@ -32,7 +92,7 @@ def state_json(state: SupervisorState, variant: str) -> dict[str, Any]:
         "injected_uj": state.injected,
         "sessions": {
             str(s.node): {
-                "phase": s.phase.name,
+                "phase": (s.phase if table is None else stored_phase(table, s.phase)).name,
                 "tx": s.tx,
                 "reserved_uj": s.reserved,
                 "delivered_uj": s.delivered,
@@ -46,26 +106,27 @@ def state_json(state: SupervisorState, variant: str) -> dict[str, Any]:
 
 
 def save_state(path: Path, state: SupervisorState, variant: str, *, fsync: bool = True) -> None:
-    text = json.dumps(state_json(state, variant), separators=(",", ":"))  # C encoder: fast
+    books = state_json(state, variant)
+    books["checksum"] = books_checksum(books)
+    text = json.dumps(books, separators=(",", ":"))  # C encoder: fast
     write_atomic(path, text.encode() + b"\n", fsync=fsync)
 
 
-def load_state(path: Path, variant: str, nodes: tuple[int, ...]) -> SupervisorState:
-    """Read ``path``; the file's nodes must all be in ``nodes`` (new nodes get fresh sessions)."""
-    try:
-        data = json.loads(path.read_text())
-        if data.get("format") != FORMAT or data.get("version") != VERSION:
-            raise StateFileError(f"{path}: not a {FORMAT} v{VERSION} file")
-        if data["variant"] != variant:
-            raise StateFileError(f"{path}: written by variant {data['variant']!r}, not {variant!r}")
-        sessions = {int(k): _session(int(k), v) for k, v in data["sessions"].items()}
-        state = SupervisorState(
-            int(data["initial_uj"]), int(data["usable_uj"]), int(data["injected_uj"])
-        )
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
-        if isinstance(exc, StateFileError):
-            raise
-        raise StateFileError(f"{path}: unreadable state file ({exc})") from exc
+def load_state(
+    path: Path,
+    variant: str,
+    nodes: tuple[int, ...],
+    *,
+    accept_edited: bool = False,
+    on_edited: Callable[[str], None] | None = None,
+) -> SupervisorState:
+    """Read and check ``path``; the file's nodes must all be in ``nodes`` (new nodes get fresh
+    sessions). A missing or wrong checksum is refused unless ``accept_edited``; then the file is
+    taken when it passes every other check and ``on_edited`` hears why it needed the flag."""
+    data = _read(path)
+    state = _Checker(path).books(data, variant)
+    _check_sum(path, data, accept_edited, on_edited)
+    sessions = {s.node: s for s in state.sessions}
     extra = sorted(set(sessions) - set(nodes))
     if extra:
         raise StateFileError(
@@ -75,14 +136,214 @@ def load_state(path: Path, variant: str, nodes: tuple[int, ...]) -> SupervisorSt
     return SupervisorState(state.initial, state.usable, state.injected, merged)
 
 
-def _session(node: int, v: dict[str, Any]) -> Session:
-    return Session(
-        node,
-        phase=Phase[v["phase"]],
-        tx=int(v["tx"]),
-        reserved=int(v["reserved_uj"]),
-        delivered=int(v["delivered_uj"]),
-        decision=Decision[v["decision"]],
-        returns_credited=int(v["returns_credited"]),
-        returned=int(v["returned_uj"]),
-    )
+@dataclass(frozen=True, slots=True)
+class _Number:
+    """A JSON number that is no acceptable integer (``1e30``, ``0.5``, ``Infinity``, 5000
+    digits), kept so that the check of its field can name the field."""
+
+    text: str
+    why: str
+
+
+def _fraction(text: str) -> _Number:
+    return _Number(text, "is not an integer")
+
+
+def _constant(text: str) -> _Number:
+    return _Number(text, "is not a number")
+
+
+def _integer(text: str) -> int | _Number:
+    if len(text) > 20:  # beyond any 64-bit value; int() would refuse 4300 digits anyway
+        return _Number(f"{text[:12]}...", f"has {len(text.lstrip('-'))} digits: out of range")
+    return int(text)
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    obj: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in obj:
+            raise ValueError(f"duplicate key {key[:40]!r}")
+        obj[key] = value
+    return obj
+
+
+def _read(path: Path) -> Any:
+    try:
+        with open(path, "rb") as f:
+            raw = f.read(MAX_FILE_BYTES + 1)
+    except OSError as exc:
+        raise StateFileError(f"{path}: unreadable state file ({exc})") from exc
+    if len(raw) > MAX_FILE_BYTES:
+        raise StateFileError(f"{path}: unreadable state file (over {MAX_FILE_BYTES} bytes)")
+    try:
+        return json.loads(
+            raw.decode("utf-8"),
+            parse_float=_fraction,
+            parse_constant=_constant,
+            parse_int=_integer,
+            object_pairs_hook=_no_duplicates,
+        )
+    except RecursionError:
+        raise StateFileError(f"{path}: unreadable state file (nested too deeply)") from None
+    except ValueError as exc:  # bad JSON or UTF-8, a duplicate key
+        raise StateFileError(f"{path}: unreadable state file ({exc})") from exc
+
+
+def _text(value: object) -> str:
+    """A scalar JSON value as a short one-line text."""
+    if isinstance(value, _Number):
+        return value.text
+    if isinstance(value, str | int | float | bool) or value is None:
+        return json.dumps(value[:40] if isinstance(value, str) else value)
+    return "an object" if isinstance(value, dict) else "a list"
+
+
+def _shown(value: object) -> str:
+    """A JSON value as a short one-line text, with what kind of value it is."""
+    if isinstance(value, _Number):
+        return f"{value.text} {value.why}"
+    if isinstance(value, bool) or value is None:
+        return f"{json.dumps(value)} is not an integer"
+    if isinstance(value, str):
+        text = json.dumps(value[:40] + ("..." if len(value) > 40 else ""))
+        return f"{text} is a string, not an integer"
+    return f"{'an object' if isinstance(value, dict) else 'a list'} is not an integer"
+
+
+def _check_sum(
+    path: Path, data: dict[str, Any], accept_edited: bool, on_edited: Callable[[str], None] | None
+) -> None:
+    found = data.get("checksum")
+    if data["version"] != VERSION:
+        problem = f"a version {data['version']} file carries no checksum"
+    elif found is None:
+        problem = "no checksum"
+    elif not isinstance(found, str) or found != books_checksum(data):
+        problem = "the checksum does not match the books"
+    else:
+        return
+    if not accept_edited:
+        raise StateFileError(
+            f"{path}: checksum: {problem} (edited by hand?); check the books, then pass "
+            f"{ACCEPT_EDITED} to take it as it is"
+        )
+    if on_edited is not None:
+        on_edited(
+            f"{path}: {problem}; taken as it is ({ACCEPT_EDITED}), the next save writes "
+            "a fresh checksum"
+        )
+
+
+def _at(where: str, key: str) -> str:
+    return f"{where}.{key}" if where else key
+
+
+class _Checker:
+    """Checks the parsed file field by field; the first failure is refused, naming the field."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    def refuse(self, field: str, why: str) -> NoReturn:
+        raise StateFileError(f"{self.path}: {field}: {why}")
+
+    def fields(
+        self, obj: object, where: str, names: Iterable[str], optional: str = ""
+    ) -> dict[str, Any]:
+        if not isinstance(obj, dict):
+            self.refuse(where or "file", "not a JSON object")
+        names = tuple(names)
+        for key in obj:
+            if key not in names and key != optional:
+                self.refuse(_at(where, key[:40]), "unknown field")
+        for name in names:
+            if name not in obj:
+                self.refuse(_at(where, name), "missing")
+        return obj
+
+    def integer(self, obj: dict[str, Any], where: str, name: str, high: int = ENERGY_MAX_UJ) -> int:
+        value, field = obj[name], _at(where, name)
+        if type(value) is not int:
+            self.refuse(field, _shown(value))
+        if value < 0:
+            self.refuse(field, f"{value} is negative")
+        if value > high:
+            self.refuse(field, f"{value} is above {high}, the most this field may hold")
+        return value
+
+    def name(self, obj: dict[str, Any], where: str, name: str, choices: Iterable[str]) -> str:
+        value, allowed = obj[name], tuple(choices)
+        if value not in allowed:  # also every non-string
+            self.refuse(_at(where, name), f"{_text(value)} is not one of {', '.join(allowed)}")
+        assert isinstance(value, str)
+        return value
+
+    def books(self, data: object, variant: str) -> SupervisorState:
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
+            raise StateFileError(f"{self.path}: not a {FORMAT} file")
+        version = data.get("version")
+        if type(version) is not int or version not in READABLE_VERSIONS:
+            readable = " or ".join(map(str, READABLE_VERSIONS))
+            self.refuse(
+                "version", f"{_text(version)} is not a version this canergy reads ({readable})"
+            )
+        if data.get("variant") != variant:
+            raise StateFileError(
+                f"{self.path}: written by variant {_text(data.get('variant'))}, not {variant!r}"
+            )
+        if variant not in VARIANTS:
+            self.refuse("variant", f"unknown variant {variant!r}")
+        table = VARIANTS[variant].supervisor
+        self.fields(data, "", _TOP, optional="checksum")
+        initial = self.integer(data, "", "initial_uj")
+        usable = self.integer(data, "", "usable_uj")
+        injected = self.integer(data, "", "injected_uj")
+        raw_sessions = data["sessions"]  # its keys are node ids, checked one by one
+        if not isinstance(raw_sessions, dict):
+            self.refuse("sessions", "not a JSON object")
+        sessions = tuple(
+            self.session(self.node(key), value, table)
+            for key, value in sorted(raw_sessions.items(), key=lambda kv: self.node(kv[0]))
+        )
+        reserved = sum(s.reserved for s in sessions)
+        out_net = sum(s.delivered - s.returned for s in sessions)
+        if usable + reserved + out_net != initial + injected:
+            self.refuse(
+                "usable_uj",
+                f"the books do not balance: usable + reserved + (delivered - returned) = "
+                f"{usable + reserved + out_net} µJ, initial + injected = {initial + injected} µJ",
+            )
+        return SupervisorState(initial, usable, injected, sessions)
+
+    def node(self, key: str) -> int:
+        if not (key.isascii() and key.isdigit() and str(int(key)) == key):
+            self.refuse(f"sessions.{key[:40]}", f"not a node id ({MIN_NODE}-{MAX_NODE})")
+        node = int(key)
+        if not MIN_NODE <= node <= MAX_NODE:
+            self.refuse(f"sessions.{key}", f"not a node id ({MIN_NODE}-{MAX_NODE})")
+        return node
+
+    def session(self, node: int, raw: object, table: SupervisorTable) -> Session:
+        where = f"sessions.{node}"
+        v = self.fields(raw, where, _SESSION)
+        phase = Phase[self.name(v, where, "phase", (p.name for p in stored_phases(table)))]
+        tx = self.integer(v, where, "tx")
+        reserved = self.integer(v, where, "reserved_uj", RESERVED_MAX_UJ)
+        delivered = self.integer(v, where, "delivered_uj")
+        decision = Decision[self.name(v, where, "decision", (d.name for d in Decision))]
+        returns_credited = self.integer(v, where, "returns_credited")
+        returned = self.integer(v, where, "returned_uj")
+        if phase is Phase.IDLE and reserved:
+            self.refuse(f"{where}.reserved_uj", f"{reserved} µJ reserved while IDLE")
+        if phase is not Phase.IDLE and not reserved:
+            self.refuse(f"{where}.reserved_uj", f"nothing reserved in {phase.name}")
+        if reserved % QUANTUM_UJ:
+            self.refuse(f"{where}.reserved_uj", f"{reserved} µJ is not a whole number of mJ")
+        if phase is not Phase.IDLE and tx == 0:
+            self.refuse(f"{where}.tx", f"0 in {phase.name}: an open transaction is numbered")
+        decided = phase in _DECIDED
+        if decided == (decision is Decision.NONE):
+            why = "no decision" if decided else f"decision {decision.name}"
+            self.refuse(f"{where}.decision", f"{why} in {phase.name}")
+        return Session(node, phase, tx, reserved, delivered, decision, returns_credited, returned)

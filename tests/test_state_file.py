@@ -1,0 +1,349 @@
+"""The supervisor's state file is checked on load (issue 13): types, ranges, the variant's
+phases, session invariants, the books' identity and a checksum against silent edits."""
+
+from __future__ import annotations
+
+import json
+import re
+import uuid
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from canergy import cli_live
+from canergy.cli import main
+from canergy.core.state import Decision, Phase, Session, SupervisorState
+from canergy.live.state_file import (
+    StateFileError,
+    books_checksum,
+    load_state,
+    save_state,
+)
+
+J = 1_000_000
+RAW = "@@raw@@"
+"""Stands for a JSON token that ``json.dumps`` would never write (``1e30``, ``Infinity``)."""
+
+
+def _state() -> SupervisorState:
+    """Node 1 idle with history, node 3 waiting for its confirmation: the books balance."""
+    sessions = (
+        Session(1, Phase.IDLE, 4, 0, 3 * J, Decision.NONE, 2, 200_000),
+        Session(3, Phase.WAIT_CONFIRM, 9, 500_000, J, Decision.COMMIT, 0, 0),
+    )
+    return SupervisorState(10 * J, 10 * J - 3 * J + 200_000 - 500_000 - J, 0, sessions)
+
+
+def _books(tmp_path: Path, variant: str = "hardened") -> dict[str, Any]:
+    path = tmp_path / "saved.json"
+    save_state(path, _state(), variant, fsync=False)
+    books: dict[str, Any] = json.loads(path.read_text())
+    return books
+
+
+def _write(path: Path, books: dict[str, Any], raw: str | None = None, *, seal: bool = True) -> None:
+    """Write ``books`` with a checksum that matches them (``seal``), so only the field under
+    test is wrong; ``raw`` replaces the value ``RAW`` as it stands in the text."""
+    books = dict(books)
+    books.pop("checksum", None)
+    if seal:
+        books["checksum"] = books_checksum(books)
+    text = json.dumps(books)
+    if raw is not None:
+        text = text.replace(json.dumps(RAW), raw)
+    path.write_text(text)
+
+
+def _set(books: dict[str, Any], field: str, value: object) -> dict[str, Any]:
+    """A deep copy of ``books`` with ``field`` (dotted, as in the error messages) set."""
+    books = json.loads(json.dumps(books))
+    *parents, last = field.split(".")
+    target = books
+    for part in parents:
+        target = target[part]
+    target[last] = value
+    return books
+
+
+def _load(path: Path, variant: str = "hardened", **kw: Any) -> SupervisorState:
+    return load_state(path, variant, (1, 3), **kw)
+
+
+def test_a_saved_file_loads_as_it_was_saved(tmp_path: Path) -> None:
+    path = tmp_path / "s.json"
+    save_state(path, _state(), "hardened", fsync=False)
+    assert json.loads(path.read_text())["checksum"].startswith("sha256:")
+    assert _load(path) == _state()
+
+
+def test_the_checksum_covers_the_books_not_the_layout(tmp_path: Path) -> None:
+    """Pretty-printing the file changes no value and keeps it loadable without the flag."""
+    path = tmp_path / "s.json"
+    save_state(path, _state(), "paper", fsync=False)
+    path.write_text(json.dumps(json.loads(path.read_text()), indent=4))
+    assert _load(path, "paper") == _state()
+
+
+# A wrong value in each place the issue names, as (field, value, expected words).
+REFUSED_VALUES = [
+    ("usable_uj", 8_000_000, "the books do not balance"),  # hand-raised
+    ("usable_uj", -1, "-1 is negative"),
+    ("usable_uj", "7000000", '"7000000" is a string'),
+    ("usable_uj", True, "true is not an integer"),
+    ("usable_uj", None, "null is not an integer"),
+    ("initial_uj", [1], "a list is not an integer"),
+    ("injected_uj", 2**63, f"{2**63} is above {2**63 - 1}"),
+    ("sessions.1.tx", -3, "-3 is negative"),
+    ("sessions.1.returns_credited", -1, "-1 is negative"),
+    ("sessions.1.delivered_uj", 2**64, "is above"),
+    ("sessions.3.phase", "WAIT_STATUS", '"WAIT_STATUS" is not one of IDLE, WAIT_ACK, WAIT_CONFIRM'),
+    ("sessions.3.phase", "ACKED", "is not one of"),  # the hardened record keeps it as WAIT_ACK
+    ("sessions.3.phase", "AWAIT_COMMAND", "is not one of"),  # a client's phase
+    ("sessions.3.phase", 3, "3 is not one of"),
+    ("sessions.3.decision", "MAYBE", "is not one of NONE, COMMIT, ABORT"),
+    ("sessions.3.reserved_uj", 100_000 * J, "is above 65535000"),  # 100 kJ
+    ("sessions.3.reserved_uj", 500_500, "not a whole number of mJ"),
+    ("sessions.3.reserved_uj", 0, "nothing reserved in WAIT_CONFIRM"),
+    ("sessions.1.reserved_uj", 500_000, "500000 µJ reserved while IDLE"),
+    ("sessions.3.decision", "NONE", "no decision in WAIT_CONFIRM"),
+    ("sessions.1.decision", "COMMIT", "decision COMMIT in IDLE"),
+    ("sessions.3.tx", 0, "0 in WAIT_CONFIRM"),
+    ("sessions.1.colour", "red", "unknown field"),
+    ("extra", 1, "unknown field"),
+    ("sessions.3", [], "not a JSON object"),
+    ("sessions", [], "not a JSON object"),
+]
+
+
+@pytest.mark.parametrize(("field", "value", "why"), REFUSED_VALUES)
+def test_a_wrong_field_is_refused_by_name(
+    tmp_path: Path, field: str, value: object, why: str
+) -> None:
+    books = _books(tmp_path)
+    if field == "sessions.1.reserved_uj":  # keep the books balanced: only the invariant fails
+        books = _set(books, "usable_uj", books["usable_uj"] - 500_000)
+    path = tmp_path / "s.json"
+    _write(path, _set(books, field, value))
+    with pytest.raises(StateFileError) as exc:
+        _load(path)
+    message = str(exc.value)
+    assert message.startswith(f"{path}: "), message
+    named = "usable_uj" if why == "the books do not balance" else field
+    assert f": {named}:" in message or f": {named} " in message, message
+    assert why in message, message
+    assert "\n" not in message
+
+
+@pytest.mark.parametrize(
+    ("token", "why"),
+    [
+        ("1e30", "1e30 is not an integer"),
+        ("7000000.0", "7000000.0 is not an integer"),
+        ("1e400", "1e400 is not an integer"),
+        ("Infinity", "Infinity is not a number"),
+        ("-Infinity", "-Infinity is not a number"),
+        ("NaN", "NaN is not a number"),
+        ("1" + "0" * 5000, "has 5001 digits: out of range"),
+    ],
+)
+def test_json_numbers_that_are_no_integers_are_refused(
+    tmp_path: Path, token: str, why: str
+) -> None:
+    path = tmp_path / "s.json"
+    _write(path, _set(_books(tmp_path), "sessions.3.reserved_uj", RAW), raw=token)
+    with pytest.raises(StateFileError, match=f"sessions.3.reserved_uj: .*{why}"):
+        _load(path)
+
+
+@pytest.mark.parametrize(
+    ("text", "why"),
+    [
+        ('{"format": "canergy-supervisor-state", "sessions": ' + "[" * 200_000, "nested too deep"),
+        ('{"format": "canergy-supervisor-state", "format": "x"}', "duplicate key 'format'"),
+        (b"\xff\xfe{}", "unreadable"),
+        ("[]", "not a canergy-supervisor-state file"),
+    ],
+)
+def test_a_file_that_is_no_state_file_is_refused(
+    tmp_path: Path, text: str | bytes, why: str
+) -> None:
+    path = tmp_path / "s.json"
+    if isinstance(text, bytes):
+        path.write_bytes(text)
+    else:
+        path.write_text(text)
+    with pytest.raises(StateFileError, match=why):
+        _load(path)
+
+
+@pytest.mark.parametrize(
+    ("key", "why"),
+    [
+        ("01", "not a node id"),
+        ("0", "not a node id"),
+        ("200", "not a node id"),
+        ("x", "not a node id"),
+    ],
+)
+def test_session_keys_are_node_ids(tmp_path: Path, key: str, why: str) -> None:
+    books = _books(tmp_path)
+    books["sessions"][key] = books["sessions"].pop("1")
+    path = tmp_path / "s.json"
+    _write(path, books)
+    with pytest.raises(StateFileError, match=f"sessions.{key}: {why}"):
+        _load(path)
+
+
+def test_a_missing_field_is_named(tmp_path: Path) -> None:
+    books = _books(tmp_path)
+    del books["sessions"]["3"]["returned_uj"]
+    path = tmp_path / "s.json"
+    _write(path, books)
+    with pytest.raises(StateFileError, match=re.escape("sessions.3.returned_uj: missing")):
+        _load(path)
+
+
+def test_the_paper_variant_keeps_its_own_phases(tmp_path: Path) -> None:
+    books = _set(_books(tmp_path, "paper"), "sessions.3.phase", "WAIT_STATUS")
+    path = tmp_path / "s.json"
+    _write(path, books)
+    assert _load(path, "paper").sessions[1].phase is Phase.WAIT_STATUS
+    _write(path, _set(books, "sessions.3.phase", "AWAIT_SUPERVISOR"))
+    with pytest.raises(StateFileError, match=r"sessions\.3\.phase: .* is not one of"):
+        _load(path, "paper")
+
+
+# -- the checksum ----------------------------------------------------------------------------
+
+
+def _balanced_edit(tmp_path: Path) -> tuple[Path, dict[str, Any]]:
+    """A hand edit that keeps every check but the checksum: 1 J more, initial and usable."""
+    books = _books(tmp_path)
+    edited = _set(
+        _set(books, "initial_uj", books["initial_uj"] + J), "usable_uj", books["usable_uj"] + J
+    )
+    edited["checksum"] = books["checksum"]
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps(edited))
+    return path, edited
+
+
+@pytest.mark.parametrize(
+    ("change", "why"),
+    [
+        ("edit", "the checksum does not match the books"),
+        ("drop", "no checksum"),
+        ("number", "the checksum does not match the books"),
+        ("v1", "a version 1 file carries no checksum"),
+    ],
+)
+def test_an_edited_file_needs_the_flag(tmp_path: Path, change: str, why: str) -> None:
+    path, books = _balanced_edit(tmp_path)
+    if change == "drop":
+        del books["checksum"]
+    elif change == "number":
+        books["checksum"] = 12
+    elif change == "v1":
+        books = {k: v for k, v in _books(tmp_path).items() if k != "checksum"}
+        books["version"] = 1
+    path.write_text(json.dumps(books))
+    with pytest.raises(StateFileError) as exc:
+        _load(path)
+    message = str(exc.value)
+    assert f"{path}: checksum: {why}" in message
+    assert "edited by hand?" in message and "--accept-edited-state" in message
+    heard: list[str] = []
+    state = _load(path, accept_edited=True, on_edited=heard.append)
+    assert state.initial == books["initial_uj"] and state.usable == books["usable_uj"]
+    assert len(heard) == 1 and why in heard[0]
+    save_state(path, state, "hardened", fsync=False)  # the next save seals it again
+    assert _load(path) == state
+
+
+def test_the_flag_does_not_take_books_that_fail_a_check(tmp_path: Path) -> None:
+    books = _set(_books(tmp_path), "usable_uj", 99 * J)
+    path = tmp_path / "s.json"
+    _write(path, books, seal=False)
+    with pytest.raises(StateFileError, match="usable_uj: the books do not balance"):
+        _load(path, accept_edited=True)
+
+
+def test_an_unknown_version_is_refused_even_with_the_flag(tmp_path: Path) -> None:
+    path = tmp_path / "s.json"
+    _write(path, _set(_books(tmp_path), "version", 3))
+    with pytest.raises(StateFileError, match="version: 3 is not a version this canergy reads"):
+        _load(path, accept_edited=True)
+
+
+# -- through the command line ----------------------------------------------------------------
+
+
+@pytest.fixture
+def started(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[dict[str, Any]]]:
+    """Replace the supervisor's loop: each run starts, reports its status once and ends."""
+    seen: list[dict[str, Any]] = []
+
+    def serve(runtime: Any, service: Any, control: Any, **kw: Any) -> None:
+        seen.append(service.status())
+
+    monkeypatch.setattr(cli_live, "_serve", serve)
+    yield seen
+
+
+def _supervisor(state: Path, *extra: str) -> list[str]:
+    bus = ["-i", "virtual", "-c", f"state-{uuid.uuid4().hex}"]
+    return ["supervisor", *bus, "--nodes", "1-3", "--state", str(state), "--no-fsync", *extra]
+
+
+RunMain = Callable[[list[str]], tuple[int, str]]
+
+
+@pytest.fixture
+def run(capsys: pytest.CaptureFixture[str]) -> RunMain:
+    def run_main(argv: list[str]) -> tuple[int, str]:
+        code = main(argv)
+        return code, capsys.readouterr().err
+
+    return run_main
+
+
+def test_the_supervisor_refuses_an_edited_file_in_one_line(
+    tmp_path: Path, run: RunMain, started: list[dict[str, Any]]
+) -> None:
+    path, _ = _balanced_edit(tmp_path)
+    before = path.read_bytes()
+    code, err = run(_supervisor(path))
+    assert code == 2 and not started
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert str(path) in err and "edited by hand?" in err and "--accept-edited-state" in err
+    assert path.read_bytes() == before  # refused before anything was written
+
+    code, err = run(_supervisor(path, "--accept-edited-state"))
+    assert code == 0 and "warning" in err and "taken as it is" in err, err
+    assert started[0]["initial_uj"] == 11 * J and started[0]["conservation"]["holds"]
+    assert load_state(path, "hardened", (1, 2, 3)).initial == 11 * J  # sealed at start
+
+
+@pytest.mark.parametrize(
+    ("field", "raw", "words"),
+    [
+        (
+            "sessions.3.reserved_uj",
+            str(100_000 * J),
+            "sessions.3.reserved_uj: 100000000000 is above",
+        ),
+        ("usable_uj", "Infinity", "usable_uj: Infinity is not a number"),
+        ("usable_uj", "1e400", "usable_uj: 1e400 is not an integer"),
+    ],
+)
+def test_the_supervisor_names_the_field_in_one_line(
+    tmp_path: Path, run: RunMain, started: list[dict[str, Any]], field: str, raw: str, words: str
+) -> None:
+    path = tmp_path / "s.json"
+    _write(path, _set(_books(tmp_path), field, RAW), raw=raw)
+    code, err = run(_supervisor(path, "--accept-edited-state"))
+    assert code == 2 and not started
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert f"{path}: {words}" in err, err

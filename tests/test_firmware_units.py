@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from canergy.core import Persist
 from canergy.core.state import ClientState
 from canergy.messages import USABLE_MAX_UJ, Ack, Admit, Intention, Join, Return, Telemetry
 from firmware_model.actuator import Actuator, PowerProfile
@@ -116,3 +117,12 @@ def test_a_node_without_a_record_joins_and_reports_it(tmp_path: Path) -> None:
     node.on_message(Admit(2, join.nonce, 9, 3), 2)
     assert not node.joining and node.client.state.last_tx == 9
     assert NvStore(tmp_path / "none.nv", 2).load() == node.client.state  # written at once
+
+
+def test_losing_books_while_booked_writes_no_blank_record(tmp_path: Path) -> None:
+    """A blank record on disk would be trusted at the next start: joining never persists."""
+    node = _node(tmp_path, 7000)
+    before = NvStore(tmp_path / "n.nv", 2).load()
+    actions = node.client.books_lost(0x1234, 0)
+    assert not any(isinstance(a, Persist) for a in actions)
+    assert NvStore(tmp_path / "n.nv", 2).load() == before

@@ -1,0 +1,144 @@
+/*
+ * The hardened canergy client (docs/protocol.md, "The hardened rules", "A node without books"),
+ * sans-IO: the port passes time and frames in and carries out what comes back in a
+ * struct canergy_out. The rules are those of src/canergy/core/hardened.py (CLIENT), cell for
+ * cell; tests/test_c_*.py run both side by side.
+ *
+ * Contract of every call that takes a struct canergy_out *out:
+ *   - *out is overwritten (the call starts it empty);
+ *   - if out->persist is set, write out->nv_image (CANERGY_NV_SLOT_SIZE bytes) to slot
+ *     out->nv_slot (byte offset out->nv_slot * CANERGY_NV_SLOT_SIZE) and let the write complete
+ *     BEFORE any of out->frames is handed to the CAN controller and before the actuator uses
+ *     energy the call granted. If the write cannot complete, reset the node: never send.
+ *   - then send out->frames[0 .. out->frame_count - 1] in order;
+ *   - out->events tells what happened (CANERGY_EV_*), e.g. to report telemetry at once.
+ *
+ * Time: uint64_t microseconds from any monotonic clock, never going backwards, below 2^63
+ * (so now + a timeout never reaches CANERGY_NEVER). 2^63 us is 292,000 years: the library
+ * never wraps; a port with a 32-bit hardware timer extends it (README.md, "Time").
+ *
+ * All state lives in struct canergy_client, owned by the caller; nothing is global. Calls are
+ * not reentrant on one client: call them from one context (README.md, "ISR or main loop").
+ */
+#ifndef CANERGY_CLIENT_H
+#define CANERGY_CLIENT_H
+
+#include "canergy/codec.h"
+#include "canergy/nv.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define CANERGY_NEVER UINT64_MAX /* a deadline that is not armed */
+#define CANERGY_OUT_FRAMES 4U    /* most frames one call produces (node layer included) */
+
+enum canergy_phase {
+    CANERGY_IDLE = 0,    /* books, no intention held */
+    CANERGY_HOLDING = 1, /* an acknowledged intention awaits COMMIT/ABORT or the command timer */
+    CANERGY_JOINING = 2  /* no books: JOIN sent, waiting for the ADMIT that echoes the nonce */
+};
+
+/* out->events bits: the notes of the Python rules (ClientCommitted, ...), one bit each. */
+#define CANERGY_EV_COMMITTED 0x01U       /* a COMMIT added its amount to usable */
+#define CANERGY_EV_TIMEOUT_COMMIT 0x02U  /* the command timer committed the held intention */
+#define CANERGY_EV_ABORTED 0x04U         /* an ABORT resolved a transaction */
+#define CANERGY_EV_CREDITED 0x08U        /* Gs paid back a write-off into usable */
+#define CANERGY_EV_RETURN_ACKED 0x10U    /* the pending return is acknowledged */
+#define CANERGY_EV_REFUSED 0x20U         /* an intention or commit would overflow usable */
+#define CANERGY_EV_ADMITTED 0x40U        /* the ADMIT for our JOIN came: books from now on */
+
+/* canergy_client_on_frame: a valid frame for another node (nothing happens, not an error). */
+#define CANERGY_RX_OTHER_NODE 16
+
+struct canergy_client_config {
+    uint32_t id_base;            /* CANERGY_DEFAULT_ID_BASE unless the bus uses another block */
+    uint32_t command_timeout_us; /* hold an intention this long, then commit it (Python 100 ms) */
+    uint32_t return_retry_us;    /* re-send RETURN / JOIN this often (Python 100 ms) */
+    uint8_t node;                /* 1..127 */
+};
+
+/* Opaque in spirit: read it through the accessors below; tests reach in. 80 bytes. */
+struct canergy_client {
+    struct canergy_record rec;   /* the books, exactly what the NV slot holds */
+    uint64_t deadline;           /* command timer (HOLDING), CANERGY_NEVER when not armed */
+    uint64_t return_deadline;    /* return re-send (or JOIN re-send), CANERGY_NEVER if none */
+    uint32_t id_base;
+    uint32_t command_timeout_us;
+    uint32_t return_retry_us;
+    uint32_t held_tx;            /* widened tx of the held intention, modulo 2^32 */
+    uint32_t nv_counter;         /* counter of the newest slot written or loaded */
+    uint16_t held_amount_mj;
+    uint16_t nonce;              /* of the pending JOIN */
+    uint8_t node;
+    uint8_t phase;               /* enum canergy_phase */
+    uint8_t nv_slot;             /* slot holding the newest record: the next write goes to the other */
+};
+
+struct canergy_out {
+    struct canergy_frame frames[CANERGY_OUT_FRAMES];
+    uint8_t nv_image[CANERGY_NV_SLOT_SIZE];
+    uint32_t nv_counter;   /* the counter inside nv_image */
+    uint16_t events;       /* CANERGY_EV_* */
+    uint8_t frame_count;
+    uint8_t persist;       /* 1: write nv_image to nv_slot before anything else */
+    uint8_t nv_slot;       /* 0 or 1 */
+};
+
+/*
+ * Start (every boot): check cfg, read the NV image (len bytes from offset 0; NULL/0 when the
+ * storage is blank) and either restart from its record or, with no valid record, JOIN with
+ * nonce (draw it from a hardware entropy source: a fresh random 16-bit number each start).
+ * Returns the number of fallbacks seen (0..2, see nv.h) or CANERGY_ERR_ARGUMENT (bad cfg).
+ * The JOIN leaves in *out; a restart with a pending return re-sends it at the first timer call.
+ */
+int canergy_client_start(struct canergy_client *c, const struct canergy_client_config *cfg,
+                         const uint8_t *nv_image, size_t nv_len, uint16_t nonce, uint64_t now,
+                         struct canergy_out *out);
+
+/* A received frame: decoded strictly (supervisor -> client only), then the rules. Returns
+ * CANERGY_DECODE_OK, a decode status (count it, nothing else happens) or
+ * CANERGY_RX_OTHER_NODE. */
+int canergy_client_on_frame(struct canergy_client *c, const struct canergy_rx_frame *frame,
+                            uint64_t now, struct canergy_out *out);
+
+/* Fire whatever timer is due at now: the command timer, then the return/JOIN re-send. Calling
+ * it early or often is harmless. */
+void canergy_client_on_timer(struct canergy_client *c, uint64_t now, struct canergy_out *out);
+
+/* The earliest armed deadline, CANERGY_NEVER when none: call on_timer then. */
+uint64_t canergy_client_deadline(const struct canergy_client *c);
+
+/* The actuator used uj microjoules: refused (CANERGY_ERR_AMOUNT) for 0 or more than usable,
+ * CANERGY_ERR_PHASE while joining. Persist before the actuator runs on it. */
+int canergy_client_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out);
+
+/* Give uj back to the supervisor as the next numbered RETURN (whole mJ, 1..65535 mJ, at most
+ * usable); CANERGY_ERR_PHASE while joining or while a return awaits its acknowledgement. */
+int canergy_client_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,
+                             struct canergy_out *out);
+
+bool canergy_client_can_give_back(const struct canergy_client *c);
+bool canergy_client_joining(const struct canergy_client *c);
+uint32_t canergy_client_usable(const struct canergy_client *c);
+
+/*
+ * Single cells of the rule table, for tests and model checking (a port needs none of them):
+ * command_timer / return_timer fire one timer; restart is
+ * the power-loss cell (volatile state dropped, books kept; start() runs it after loading);
+ * join is the books-lost cell (start() runs it when there is no record). join never asks to
+ * persist: a blank record is not books, and writing one would make the next start trust it.
+ */
+void canergy_client_command_timer(struct canergy_client *c, uint64_t now,
+                                  struct canergy_out *out);
+void canergy_client_return_timer(struct canergy_client *c, uint64_t now,
+                                 struct canergy_out *out);
+void canergy_client_restart(struct canergy_client *c, uint64_t now, struct canergy_out *out);
+void canergy_client_join(struct canergy_client *c, uint16_t nonce, uint64_t now,
+                         struct canergy_out *out);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* CANERGY_CLIENT_H */

@@ -1,0 +1,141 @@
+/*
+ * canergy wire format: one classic CAN data frame per message, 29-bit identifier
+ * id_base | type << 8 | node, byte 0 an E2E CRC-8 (SAE J1850) over the 16-bit Data ID
+ * (type << 8 | node, low byte first) and data bytes 1..n; fields little-endian.
+ * See docs/protocol.md, "Frames". This mirrors src/canergy/codec.py exactly, including the
+ * order in which a bad frame's reason is chosen.
+ *
+ * Every function here is total: any identifier, length and bytes give either a message or a
+ * decode status naming the first check that failed. No heap, no globals that change.
+ */
+#ifndef CANERGY_CODEC_H
+#define CANERGY_CODEC_H
+
+#include <stdbool.h>
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* Results of calls that can refuse (0 is success). */
+#define CANERGY_OK 0
+#define CANERGY_ERR_ARGUMENT (-1) /* NULL pointer, bad configuration, field that does not fit */
+#define CANERGY_ERR_PHASE (-2)    /* not allowed now: joining, or a return still pending */
+#define CANERGY_ERR_AMOUNT (-3)   /* zero, not whole mJ, more than a frame or than usable */
+
+#define CANERGY_DEFAULT_ID_BASE 0x0CE00000UL
+#define CANERGY_ID_MASK 0x1FFFF000UL   /* the bits id_base owns; its low 12 bits are clear */
+#define CANERGY_QUANTUM_UJ 1000UL      /* one wire energy unit: 1 mJ */
+#define CANERGY_AMOUNT_MAX_MJ 0xFFFFUL /* most one frame carries: 65.535 J */
+#define CANERGY_USABLE_MAX_UJ 0xFFFFFFFFUL
+#define CANERGY_WIDE_MAX 0xFFFFFFUL    /* 24-bit fields: delivered Gs, telemetry level */
+#define CANERGY_MIN_NODE 1U
+#define CANERGY_MAX_NODE 127U
+
+/* 4-bit type codes; bit 3 set means client -> supervisor. */
+enum canergy_type {
+    CANERGY_INTENTION = 0x1,
+    CANERGY_COMMIT = 0x2,
+    CANERGY_ABORT = 0x3,
+    CANERGY_RETURN_ACK = 0x4,
+    CANERGY_STATUS_REQUEST = 0x5, /* paper variant only: decoded, ignored by this client */
+    CANERGY_FINAL_ACK = 0x6,      /* paper variant only: decoded, ignored by this client */
+    CANERGY_ADMIT = 0x7,
+    CANERGY_ACK = 0x9,
+    CANERGY_COMMITTED = 0xA,
+    CANERGY_ABORTED = 0xB,
+    CANERGY_RETURN = 0xC,
+    CANERGY_TELEMETRY = 0xD,
+    CANERGY_JOIN = 0xE
+};
+
+#define CANERGY_FROM_CLIENT 0x8U /* the direction bit of a type code */
+
+/* TELEMETRY flags */
+#define CANERGY_TELEMETRY_LOW 0x01U
+#define CANERGY_TELEMETRY_HALTED 0x02U
+#define CANERGY_TELEMETRY_JOINING 0x04U
+
+enum canergy_direction {
+    CANERGY_EITHER_WAY = 0,
+    CANERGY_TO_CLIENT = 1,
+    CANERGY_TO_SUPERVISOR = 2
+};
+
+/* Why a frame was refused, in the order the checks run (Python's DecodeErrorReason). */
+enum canergy_decode_status {
+    CANERGY_DECODE_OK = 0,
+    CANERGY_DECODE_FOREIGN = 1,         /* not in this id block, or an 11-bit identifier */
+    CANERGY_DECODE_UNKNOWN_TYPE = 2,
+    CANERGY_DECODE_BAD_NODE = 3,        /* node 0, bit 7 set, or bits above the 29th */
+    CANERGY_DECODE_REMOTE_FRAME = 4,
+    CANERGY_DECODE_WRONG_DIRECTION = 5,
+    CANERGY_DECODE_WRONG_DLC = 6,       /* also any length above 8 */
+    CANERGY_DECODE_BAD_CRC = 7,
+    CANERGY_DECODE_OUT_OF_RANGE = 8     /* a zero amount */
+};
+
+/*
+ * One message. Which fields a type uses (the others are zero after decoding):
+ *   INTENTION      tx, amount_mj, delivered_mj (Gs, 24 bit)
+ *   COMMIT, ABORT  tx, amount_mj
+ *   RETURN_ACK     seq
+ *   STATUS_REQUEST, FINAL_ACK, ACK, COMMITTED, ABORTED   tx
+ *   ADMIT          nonce, tx, seq
+ *   RETURN         seq, amount_mj
+ *   TELEMETRY      level_mj (24 bit), flags
+ *   JOIN           nonce
+ */
+struct canergy_msg {
+    uint32_t delivered_mj;
+    uint32_t level_mj;
+    uint16_t tx;
+    uint16_t seq;
+    uint16_t nonce;
+    uint16_t amount_mj;
+    uint8_t type;
+    uint8_t node;
+    uint8_t flags;
+};
+
+/* A frame to transmit: always a 29-bit (extended) data frame. */
+struct canergy_frame {
+    uint32_t id;
+    uint8_t dlc;
+    uint8_t data[8];
+};
+
+/* A frame as received. len is the payload length as the driver reports it; anything but the
+ * type's DLC (so anything above 8, e.g. a CAN FD frame) is CANERGY_DECODE_WRONG_DLC. data may
+ * be NULL only when len is 0. */
+struct canergy_rx_frame {
+    uint32_t id;
+    const uint8_t *data;
+    size_t len;
+    bool extended;
+    bool remote;
+};
+
+/* True for a 29-bit base with its low 12 bits clear. */
+bool canergy_id_base_valid(uint32_t id_base);
+
+/* The frame for msg. CANERGY_ERR_ARGUMENT (and *out untouched) when the type is unknown, the
+ * node is not 1..127, an amount is not 1..65535 mJ or a 24-bit field does not fit. */
+int canergy_encode(uint32_t id_base, const struct canergy_msg *msg, struct canergy_frame *out);
+
+/* Strict decoding. expect: the direction the caller listens to (CANERGY_EITHER_WAY: both).
+ * *msg is written only on CANERGY_DECODE_OK; msg may be NULL to validate only. */
+enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy_rx_frame *frame,
+                                          enum canergy_direction expect,
+                                          struct canergy_msg *msg);
+
+/* CRC-8 SAE J1850 register update (no final XOR): crc = canergy_crc8(0xFF, p, n) ^ 0xFF. */
+uint8_t canergy_crc8(uint8_t reg, const uint8_t *data, size_t len);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* CANERGY_CODEC_H */

@@ -1,0 +1,68 @@
+/*
+ * A node around the client: what firmware_model/node.py adds to the protocol, still sans-IO.
+ *   - TELEMETRY at start, every telemetry period, at once when the level falls below the
+ *     low-water mark, after a commit, a pay-back or the admission;
+ *   - the actuator's draw: the port says how much energy the actuator wants for the period it
+ *     just ran; the node spends what usable allows (persisted before the actuator uses it) and
+ *     reports the actuator halted when it got less;
+ *   - the return policy: after each draw, give back whatever exceeds return_above (whole mJ).
+ * The port keeps its actuator period itself (firmware_model's --tick): it calls
+ * canergy_node_draw() once per period and canergy_node_poll() whenever canergy_node_deadline()
+ * is reached. Same out contract as client.h: persist first, then send the frames.
+ */
+#ifndef CANERGY_NODE_H
+#define CANERGY_NODE_H
+
+#include "canergy/client.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define CANERGY_KEEP_ALL 0xFFFFFFFFUL /* return_above: never give anything back */
+
+struct canergy_node_config {
+    struct canergy_client_config client;
+    uint32_t telemetry_period_us; /* > 0 */
+    uint32_t low_water_uj;        /* report at once below this level */
+    uint32_t return_above_uj;     /* give back what exceeds this; CANERGY_KEEP_ALL: keep */
+};
+
+struct canergy_node {
+    struct canergy_client client;
+    uint64_t next_telemetry;
+    uint32_t telemetry_period_us;
+    uint32_t low_water_uj;
+    uint32_t return_above_uj;
+    uint32_t decode_errors;     /* frames refused by the codec (any reason but FOREIGN) */
+    uint32_t overflow_refused;  /* intentions and commits refused: usable would overflow */
+    bool was_low;
+    bool halted;                /* the last draw got less than it wanted */
+};
+
+/* As canergy_client_start; the first telemetry is due at once (poll at now). */
+int canergy_node_start(struct canergy_node *n, const struct canergy_node_config *cfg,
+                       const uint8_t *nv_image, size_t nv_len, uint16_t nonce, uint64_t now,
+                       struct canergy_out *out);
+
+/* As canergy_client_on_frame, plus counting and telemetry scheduling. */
+int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame *frame,
+                          uint64_t now, struct canergy_out *out);
+
+/* Timers and telemetry due at now. */
+void canergy_node_poll(struct canergy_node *n, uint64_t now, struct canergy_out *out);
+
+/* One actuator period: timers, the draw of wanted_uj, the return policy, telemetry (what
+ * firmware_model's wake-up does on a tick). Returns the microjoules the actuator may use:
+ * min(wanted_uj, usable), usable only after out->persist has been carried out. */
+uint32_t canergy_node_draw(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
+                           struct canergy_out *out);
+
+/* The earliest of the client's deadlines and the next telemetry. */
+uint64_t canergy_node_deadline(const struct canergy_node *n);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* CANERGY_NODE_H */

@@ -1,0 +1,94 @@
+/*
+ * The client's non-volatile record and its two-slot store, byte for byte as
+ * firmware_model/nvstore.py lays it out, so an NV image moves between the Python emulator and
+ * a C node in both directions.
+ *
+ * Record (30 bytes, little-endian, packed):
+ *   u32 usable_uj, u32 credited_mj (Rc modulo 2^32), u64 spent_uj, u32 last_tx (mod 2^32),
+ *   u32 return_seq (mod 2^32), u32 return_pending_uj, u8 outcome, u8 flags (bit 0: admitted
+ *   without books, Rc comes with the next fresh intention)
+ * Slot (40 bytes): u16 magic 0xCE57, u32 counter, the record, u32 CRC-32 (zlib) over the 36
+ * bytes before it.
+ * Image: slot 0 at offset 0, slot 1 at offset 40; firmware_model keeps its parameters in a third
+ * slot at offset 80, which this library never writes: a port must leave it alone.
+ *
+ * The library never writes storage itself: it hands the port a complete slot image and the slot
+ * to put it in (see canergy_out in client.h). The port only reads the image back at start.
+ */
+#ifndef CANERGY_NV_H
+#define CANERGY_NV_H
+
+#include <stdbool.h>
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define CANERGY_NV_RECORD_SIZE 30U
+#define CANERGY_NV_SLOT_SIZE 40U
+#define CANERGY_NV_SLOTS 2U      /* the record's slots: offsets 0 and 40 */
+#define CANERGY_NV_PARAM_SLOT 2U /* firmware_model's parameter slot, offset 80: not ours */
+#define CANERGY_NV_MAGIC 0xCE57U
+
+#define CANERGY_RECORD_CREDITED_UNKNOWN 0x01U
+
+/* How the last resolved transaction ended (Python's Outcome; WRITTEN_OFF is the supervisor's
+ * but a record holding it is still a valid record, as in Python). */
+enum canergy_outcome {
+    CANERGY_OUTCOME_NONE = 0,
+    CANERGY_OUTCOME_COMMITTED = 1,
+    CANERGY_OUTCOME_ABORTED = 2,
+    CANERGY_OUTCOME_SETTLED = 3,
+    CANERGY_OUTCOME_WRITTEN_OFF = 4
+};
+
+/* The books: everything that survives a power loss. Counters are kept modulo 2^32 (see
+ * README.md, "Counters"): 2^32 is a multiple of the wire's 2^16 and 2^24, so every serial
+ * comparison with a wire value comes out as with Python's unbounded integers. */
+struct canergy_record {
+    uint64_t spent_uj;
+    uint32_t usable_uj;
+    uint32_t credited_mj;
+    uint32_t last_tx;
+    uint32_t return_seq;
+    uint32_t return_pending_uj;
+    uint8_t outcome;
+    uint8_t flags;
+};
+
+/* What canergy_nv_load found in an image. */
+struct canergy_nv_state {
+    struct canergy_record record; /* valid when books is true */
+    uint32_t counter;             /* counter of the newest valid slot (0 when none) */
+    uint8_t newest_slot;          /* slot of that record; 1 when none, so slot 0 comes first */
+    bool books;                   /* a record to trust; false: the node must JOIN */
+    uint8_t fallbacks;            /* as NvStats.fallbacks: +1 a damaged slot, +1 impossible values */
+};
+
+/* Layout of one record. unpack refuses (CANERGY_ERR_ARGUMENT) values no client writes: an
+ * outcome above 4, or a pending return that is not 0 or 1..65535 whole mJ (the Python store
+ * accepts the latter and would fail later when re-sending it; see README.md). */
+void canergy_record_pack(const struct canergy_record *rec, uint8_t out[CANERGY_NV_RECORD_SIZE]);
+int canergy_record_unpack(const uint8_t in[CANERGY_NV_RECORD_SIZE], struct canergy_record *rec);
+
+/* A slot image of up to 30 payload bytes (zero-padded), e.g. the record or parameters. */
+void canergy_nv_slot_encode(uint32_t counter, const uint8_t *payload, size_t len,
+                            uint8_t out[CANERGY_NV_SLOT_SIZE]);
+/* True when raw holds exactly one slot (len 40) with the magic and a matching CRC-32. */
+bool canergy_nv_slot_decode(const uint8_t *raw, size_t len, uint32_t *counter,
+                            uint8_t payload[CANERGY_NV_RECORD_SIZE]);
+
+/* Read an image of len bytes (what the port read from offset 0; shorter images simply lack
+ * slots). Picks the valid slot written last, comparing counters as 32-bit serial numbers. */
+void canergy_nv_load(const uint8_t *image, size_t len, struct canergy_nv_state *out);
+
+/* CRC-32 as zlib computes it: canergy_crc32(0, p, n) == zlib.crc32(p[:n]). */
+uint32_t canergy_crc32(uint32_t crc, const uint8_t *data, size_t len);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* CANERGY_NV_H */

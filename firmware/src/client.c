@@ -1,0 +1,554 @@
+/*
+ * The hardened client's rules: src/canergy/core/hardened.py (CLIENT) and core/common.py, cell
+ * for cell, on fixed-width counters.
+ *
+ * Counters. Python widens every wire counter to an unbounded integer; here last_tx, return_seq
+ * and credited_mj are kept modulo 2^32 and every rule looks only at the signed distance of a
+ * wire value from its reference (serial16/serial24 below). That distance is what Python's
+ * unwrap() adds to the reference, and it depends only on the reference modulo 2^16 (2^24),
+ * which 2^32 preserves, so every "k > ltx", "k == ltx", "Gs > Rc" comes out the same. The one
+ * comparison between two stored counters (a held tx against a newer one) is a 32-bit serial
+ * comparison, exact because a held tx is at most 32767 ahead of ltx.
+ *
+ * Persisting. Each step compares the packed record before and after; a change asks the port
+ * to write the new slot image before any frame of the step leaves (client.h).
+ */
+#include "canergy/client.h"
+
+#include "client_internal.h"
+
+#include <string.h>
+
+#define MJ CANERGY_QUANTUM_UJ
+#define RETURN_MAX_UJ (CANERGY_AMOUNT_MAX_MJ * CANERGY_QUANTUM_UJ)
+
+/* Signed distance of a 16-bit wire value from the reference's position: Python's
+ * unwrap(wire, ref, 16) - ref, in [-32768, 32767]. */
+static int32_t serial16(uint32_t wire, uint32_t ref)
+{
+    const uint32_t d = (wire - ref) & 0xFFFFUL;
+    return d >= 0x8000UL ? (int32_t)d - 0x10000L : (int32_t)d;
+}
+
+/* The same for the 24-bit delivered count: unwrap(wire, ref, 24) - ref. */
+static int32_t serial24(uint32_t wire, uint32_t ref)
+{
+    const uint32_t d = (wire - ref) & 0xFFFFFFUL;
+    return d >= 0x800000UL ? (int32_t)d - 0x1000000L : (int32_t)d;
+}
+
+/* a < b as 32-bit serial numbers (exact while they are less than 2^31 apart). */
+static bool serial_before(uint32_t a, uint32_t b)
+{
+    return (uint32_t)(a - b) >= 0x80000000UL;
+}
+
+static uint64_t after(uint64_t now, uint32_t delay)
+{
+    return now + delay; /* now < 2^63 (client.h): no overflow, never CANERGY_NEVER */
+}
+
+/* -- output ----------------------------------------------------------------------------- */
+
+void canergy_internal_out_clear(struct canergy_out *out)
+{
+    memset(out, 0, sizeof *out);
+}
+
+void canergy_internal_send(const struct canergy_client *c, const struct canergy_msg *msg,
+                           struct canergy_out *out)
+{
+    /* Never full by construction (CANERGY_OUT_FRAMES counts the worst step); a frame that did
+     * not fit would be a lost frame, which the protocol survives. */
+    if (out->frame_count < CANERGY_OUT_FRAMES &&
+        canergy_encode(c->id_base, msg, &out->frames[out->frame_count]) == CANERGY_OK) {
+        out->frame_count++;
+    }
+}
+
+static void send(const struct canergy_client *c, uint8_t type, uint16_t counter,
+                 uint16_t amount_mj, struct canergy_out *out)
+{
+    struct canergy_msg m;
+    memset(&m, 0, sizeof m);
+    m.type = type;
+    m.node = c->node;
+    if (type == CANERGY_RETURN) {
+        m.seq = counter;
+    } else if (type == CANERGY_JOIN) {
+        m.nonce = counter;
+    } else {
+        m.tx = counter;
+    }
+    m.amount_mj = amount_mj;
+    canergy_internal_send(c, &m, out);
+}
+
+/* The confirmation of a resolved transaction: none when it was settled or written off. */
+static void reply_for(const struct canergy_client *c, uint32_t tx, uint8_t outcome,
+                      struct canergy_out *out)
+{
+    if (outcome == CANERGY_OUTCOME_COMMITTED) {
+        send(c, CANERGY_COMMITTED, (uint16_t)tx, 0U, out);
+    } else if (outcome == CANERGY_OUTCOME_ABORTED) {
+        send(c, CANERGY_ABORTED, (uint16_t)tx, 0U, out);
+    }
+}
+
+/* Ask for the record to be written. Several steps gathered into one out write one image: the
+ * slot and counter are chosen once, so the slot holding the last complete record is never the
+ * one overwritten. */
+static void persist(struct canergy_client *c, const uint8_t record[CANERGY_NV_RECORD_SIZE],
+                    struct canergy_out *out)
+{
+    if (out->persist == 0U) {
+        out->persist = 1U;
+        out->nv_slot = (uint8_t)(1U - c->nv_slot);
+        out->nv_counter = c->nv_counter + 1U;
+        c->nv_slot = out->nv_slot;
+        c->nv_counter = out->nv_counter;
+    }
+    canergy_nv_slot_encode(out->nv_counter, record, CANERGY_NV_RECORD_SIZE, out->nv_image);
+}
+
+/* Persist when the step changed the record (Python's client_record before != after). */
+static void persist_if_changed(struct canergy_client *c,
+                               const uint8_t before[CANERGY_NV_RECORD_SIZE],
+                               struct canergy_out *out)
+{
+    uint8_t now_rec[CANERGY_NV_RECORD_SIZE];
+    canergy_record_pack(&c->rec, now_rec);
+    if (memcmp(before, now_rec, sizeof now_rec) != 0) {
+        persist(c, now_rec, out);
+    }
+}
+
+/* -- holding and resolving ---------------------------------------------------------------- */
+
+static void drop_hold(struct canergy_client *c)
+{
+    c->phase = CANERGY_IDLE;
+    c->held_tx = 0U;
+    c->held_amount_mj = 0U;
+    c->deadline = CANERGY_NEVER;
+}
+
+static void resolved(struct canergy_client *c, uint32_t tx, uint8_t outcome)
+{
+    c->rec.last_tx = tx;
+    c->rec.outcome = outcome;
+    drop_hold(c);
+}
+
+/* Commit an amount: Uc += a, Rc += a. Callers refuse what would overflow usable; the one
+ * unguarded caller (the command timer) holds only what on_intention checked would fit, so the
+ * clamp is unreachable and, were it reached, could only lose energy. */
+static void commit_into(struct canergy_client *c, uint16_t amount_mj)
+{
+    const uint64_t usable = (uint64_t)c->rec.usable_uj + (uint64_t)amount_mj * MJ;
+    c->rec.usable_uj = usable > CANERGY_USABLE_MAX_UJ ? CANERGY_USABLE_MAX_UJ : (uint32_t)usable;
+    c->rec.credited_mj += amount_mj;
+}
+
+/* -- the cells ---------------------------------------------------------------------------- */
+
+/* INTENTION(k, a, Gs). Worked out on a copy: Gs may pay back more than usable can hold, and
+ * then nothing at all happens (Python's overflow refusal); usable is summed in 64 bits. */
+static void on_intention(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
+                         struct canergy_out *out)
+{
+    if ((c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U) {
+        if (serial16(m->tx, c->rec.last_tx) <= 0) {
+            return; /* a frame of the node's earlier life */
+        }
+        c->rec.credited_mj = m->delivered_mj; /* admitted without books: Rc = Gs, no pay-back */
+        c->rec.flags &= (uint8_t)~CANERGY_RECORD_CREDITED_UNKNOWN;
+    }
+    struct canergy_client next = *c;
+    uint64_t usable = c->rec.usable_uj;
+    const int32_t gs = serial24(m->delivered_mj, c->rec.credited_mj);
+    if (gs > 0) { /* pay back what the supervisor wrote off but this node never got */
+        usable += (uint64_t)(uint32_t)gs * MJ;
+        next.rec.credited_mj += (uint32_t)gs;
+    }
+    const int32_t d = serial16(m->tx, c->rec.last_tx);
+    const uint32_t tx = c->rec.last_tx + (uint32_t)d;
+    if (d > 1) { /* everything below tx is settled by the supervisor */
+        next.rec.last_tx = tx - 1U;
+        next.rec.outcome = CANERGY_OUTCOME_SETTLED;
+        if (next.phase == CANERGY_HOLDING && serial_before(next.held_tx, tx)) {
+            drop_hold(&next);
+        }
+    }
+    if (d > 0 && !(next.phase == CANERGY_HOLDING && next.held_tx == tx)) {
+        next.phase = CANERGY_HOLDING;
+        next.held_tx = tx;
+        next.held_amount_mj = m->amount_mj;
+        next.deadline = after(now, c->command_timeout_us);
+    }
+    if (usable + (uint64_t)next.held_amount_mj * MJ > CANERGY_USABLE_MAX_UJ) {
+        out->events |= CANERGY_EV_REFUSED; /* left unanswered: re-sent, written off, paid later */
+        return;
+    }
+    next.rec.usable_uj = (uint32_t)usable;
+    *c = next;
+    if (gs > 0) {
+        out->events |= CANERGY_EV_CREDITED;
+    }
+    if (d > 0) {
+        send(c, CANERGY_ACK, m->tx, 0U, out);
+    } else if (d == 0) {
+        reply_for(c, tx, c->rec.outcome, out); /* a duplicate: the recorded reply */
+    }
+}
+
+static void on_command(struct canergy_client *c, const struct canergy_msg *m,
+                       struct canergy_out *out)
+{
+    const int32_t d = serial16(m->tx, c->rec.last_tx);
+#ifdef CANERGY_BREAK_REPEATED_TX
+    /* Deliberately broken (tests only): a repeated COMMIT is applied again. */
+    if (d == 0 && m->type == CANERGY_COMMIT) {
+        commit_into(c, m->amount_mj);
+    }
+#endif
+    if (d == 0) {
+        reply_for(c, c->rec.last_tx, c->rec.outcome, out); /* late ABORT after a commit too */
+        return;
+    }
+    if (d < 0) {
+        return;
+    }
+    const uint32_t tx = c->rec.last_tx + (uint32_t)d;
+    if (m->type == CANERGY_ABORT) {
+        resolved(c, tx, CANERGY_OUTCOME_ABORTED);
+        out->events |= CANERGY_EV_ABORTED;
+        send(c, CANERGY_ABORTED, m->tx, 0U, out);
+        return;
+    }
+    if ((uint64_t)c->rec.usable_uj + (uint64_t)m->amount_mj * MJ > CANERGY_USABLE_MAX_UJ) {
+        out->events |= CANERGY_EV_REFUSED; /* never acknowledged so */
+        return;
+    }
+    commit_into(c, m->amount_mj);
+    resolved(c, tx, CANERGY_OUTCOME_COMMITTED);
+    out->events |= CANERGY_EV_COMMITTED;
+    send(c, CANERGY_COMMITTED, m->tx, 0U, out);
+}
+
+static void on_return_ack(struct canergy_client *c, const struct canergy_msg *m,
+                          struct canergy_out *out)
+{
+    if (m->seq != (uint16_t)c->rec.return_seq || c->rec.return_pending_uj == 0U) {
+        return; /* another return's number */
+    }
+    c->rec.return_pending_uj = 0U;
+    c->return_deadline = CANERGY_NEVER;
+    out->events |= CANERGY_EV_RETURN_ACKED;
+}
+
+static void on_admit(struct canergy_client *c, const struct canergy_msg *m,
+                     struct canergy_out *out)
+{
+    if (m->nonce != c->nonce) {
+        return; /* an answer to another start */
+    }
+    memset(&c->rec, 0, sizeof c->rec);
+    c->rec.last_tx = m->tx; /* every frame of the earlier life is at or below these counters */
+    c->rec.outcome = CANERGY_OUTCOME_SETTLED;
+    c->rec.return_seq = m->seq;
+    c->rec.flags = CANERGY_RECORD_CREDITED_UNKNOWN;
+    c->nonce = 0U;
+    c->return_deadline = CANERGY_NEVER;
+    drop_hold(c);
+    out->events |= CANERGY_EV_ADMITTED;
+}
+
+static void rx_message(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
+                       struct canergy_out *out)
+{
+    if (c->phase == CANERGY_JOINING) {
+        if (m->type == CANERGY_INTENTION) {
+            send(c, CANERGY_JOIN, c->nonce, 0U, out); /* moves nothing; JOIN again at once */
+        } else if (m->type == CANERGY_ADMIT) {
+            on_admit(c, m, out);
+        }
+        return;
+    }
+    switch (m->type) {
+    case CANERGY_INTENTION: on_intention(c, m, now, out); break;
+    case CANERGY_COMMIT: /* fall through */
+    case CANERGY_ABORT: on_command(c, m, out); break;
+    case CANERGY_RETURN_ACK: on_return_ack(c, m, out); break;
+    default: break; /* ADMIT with books, the paper's messages: ignored */
+    }
+}
+
+static void command_timer(struct canergy_client *c, uint64_t now, struct canergy_out *out)
+{
+    if (c->phase != CANERGY_HOLDING || c->deadline > now) {
+        return;
+    }
+    const uint32_t tx = c->held_tx;
+    commit_into(c, c->held_amount_mj); /* safe: the intention's id never changes */
+    resolved(c, tx, CANERGY_OUTCOME_COMMITTED);
+    out->events |= CANERGY_EV_TIMEOUT_COMMIT;
+    send(c, CANERGY_COMMITTED, (uint16_t)tx, 0U, out);
+}
+
+static void return_timer(struct canergy_client *c, uint64_t now, struct canergy_out *out)
+{
+    if (c->return_deadline > now) {
+        return;
+    }
+    if (c->phase == CANERGY_JOINING) {
+        c->return_deadline = after(now, c->return_retry_us);
+        send(c, CANERGY_JOIN, c->nonce, 0U, out);
+    } else if (c->rec.return_pending_uj != 0U) {
+        c->return_deadline = after(now, c->return_retry_us); /* same number until acked */
+        send(c, CANERGY_RETURN, (uint16_t)c->rec.return_seq,
+             (uint16_t)(c->rec.return_pending_uj / MJ), out);
+    }
+}
+
+static void restart(struct canergy_client *c, uint64_t now)
+{
+    if (c->phase == CANERGY_JOINING) {
+        c->return_deadline = now; /* still no record: JOIN again at once */
+        return;
+    }
+    drop_hold(c);
+    c->return_deadline = c->rec.return_pending_uj != 0U ? now : CANERGY_NEVER;
+}
+
+static void join(struct canergy_client *c, uint16_t nonce, uint64_t now, struct canergy_out *out)
+{
+    memset(&c->rec, 0, sizeof c->rec);
+    drop_hold(c);
+    c->phase = CANERGY_JOINING;
+    c->nonce = nonce;
+    c->return_deadline = now;
+    return_timer(c, now, out);
+}
+
+/* -- entry points: each clears *out, or appends for the node layer ------------------------ */
+
+static bool client_ok(const struct canergy_client *c, const struct canergy_out *out)
+{
+    return c != NULL && out != NULL;
+}
+
+static int message_step(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
+                        struct canergy_out *out)
+{
+    if (m->node != c->node) {
+        return CANERGY_RX_OTHER_NODE;
+    }
+    uint8_t before[CANERGY_NV_RECORD_SIZE];
+    canergy_record_pack(&c->rec, before);
+    rx_message(c, m, now, out);
+    persist_if_changed(c, before, out);
+    return CANERGY_DECODE_OK;
+}
+
+int canergy_internal_frame(struct canergy_client *c, const struct canergy_rx_frame *frame,
+                           uint64_t now, struct canergy_out *out)
+{
+    struct canergy_msg m;
+    const enum canergy_decode_status status =
+        canergy_decode(c->id_base, frame, CANERGY_TO_CLIENT, &m);
+    if (status != CANERGY_DECODE_OK) {
+        return (int)status;
+    }
+    return message_step(c, &m, now, out);
+}
+
+int canergy_client_on_frame(struct canergy_client *c, const struct canergy_rx_frame *frame,
+                            uint64_t now, struct canergy_out *out)
+{
+    if (!client_ok(c, out)) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    canergy_internal_out_clear(out);
+    return canergy_internal_frame(c, frame, now, out);
+}
+
+typedef void (*timer_cell)(struct canergy_client *c, uint64_t now, struct canergy_out *out);
+
+static void timer_step(struct canergy_client *c, timer_cell cell, uint64_t now,
+                       struct canergy_out *out)
+{
+    uint8_t before[CANERGY_NV_RECORD_SIZE];
+    canergy_record_pack(&c->rec, before);
+    cell(c, now, out);
+    persist_if_changed(c, before, out);
+}
+
+void canergy_internal_timers(struct canergy_client *c, uint64_t now, struct canergy_out *out)
+{
+    timer_step(c, command_timer, now, out);
+    timer_step(c, return_timer, now, out);
+}
+
+void canergy_client_on_timer(struct canergy_client *c, uint64_t now, struct canergy_out *out)
+{
+    if (client_ok(c, out)) {
+        canergy_internal_out_clear(out);
+        canergy_internal_timers(c, now, out);
+    }
+}
+
+void canergy_client_command_timer(struct canergy_client *c, uint64_t now, struct canergy_out *out)
+{
+    if (client_ok(c, out)) {
+        canergy_internal_out_clear(out);
+        timer_step(c, command_timer, now, out);
+    }
+}
+
+void canergy_client_return_timer(struct canergy_client *c, uint64_t now, struct canergy_out *out)
+{
+    if (client_ok(c, out)) {
+        canergy_internal_out_clear(out);
+        timer_step(c, return_timer, now, out);
+    }
+}
+
+uint64_t canergy_client_deadline(const struct canergy_client *c)
+{
+    if (c == NULL) {
+        return CANERGY_NEVER;
+    }
+    return c->deadline < c->return_deadline ? c->deadline : c->return_deadline;
+}
+
+int canergy_internal_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out)
+{
+    if (c->phase == CANERGY_JOINING) {
+        return CANERGY_ERR_PHASE;
+    }
+    if (uj == 0U || uj > c->rec.usable_uj) {
+        return CANERGY_ERR_AMOUNT;
+    }
+    c->rec.usable_uj -= uj;
+    c->rec.spent_uj += uj;
+    uint8_t rec[CANERGY_NV_RECORD_SIZE];
+    canergy_record_pack(&c->rec, rec);
+    persist(c, rec, out);
+    return CANERGY_OK;
+}
+
+int canergy_client_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out)
+{
+    if (!client_ok(c, out)) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    canergy_internal_out_clear(out);
+    return canergy_internal_spend(c, uj, out);
+}
+
+bool canergy_client_can_give_back(const struct canergy_client *c)
+{
+    return c != NULL && c->rec.return_pending_uj == 0U && c->phase != CANERGY_JOINING;
+}
+
+int canergy_internal_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,
+                               struct canergy_out *out)
+{
+    if (!canergy_client_can_give_back(c)) {
+        return CANERGY_ERR_PHASE; /* one numbered return at a time, none before admission */
+    }
+    if (uj == 0U || uj % MJ != 0U || uj > RETURN_MAX_UJ || uj > c->rec.usable_uj) {
+        return CANERGY_ERR_AMOUNT;
+    }
+    c->rec.usable_uj -= uj; /* debited first: the RETURN may be duplicated, never credited twice */
+    c->rec.return_seq++;
+    c->rec.return_pending_uj = uj;
+    c->return_deadline = after(now, c->return_retry_us);
+    uint8_t rec[CANERGY_NV_RECORD_SIZE];
+    canergy_record_pack(&c->rec, rec);
+    persist(c, rec, out);
+    send(c, CANERGY_RETURN, (uint16_t)c->rec.return_seq, (uint16_t)(uj / MJ), out);
+    return CANERGY_OK;
+}
+
+int canergy_client_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,
+                             struct canergy_out *out)
+{
+    if (!client_ok(c, out)) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    canergy_internal_out_clear(out);
+    return canergy_internal_give_back(c, uj, now, out);
+}
+
+bool canergy_client_joining(const struct canergy_client *c)
+{
+    return c != NULL && c->phase == CANERGY_JOINING;
+}
+
+uint32_t canergy_client_usable(const struct canergy_client *c)
+{
+    return c != NULL ? c->rec.usable_uj : 0U;
+}
+
+void canergy_client_restart(struct canergy_client *c, uint64_t now, struct canergy_out *out)
+{
+    if (client_ok(c, out)) {
+        canergy_internal_out_clear(out);
+        restart(c, now); /* the record is unchanged: nothing to persist */
+    }
+}
+
+void canergy_client_join(struct canergy_client *c, uint16_t nonce, uint64_t now,
+                         struct canergy_out *out)
+{
+    if (client_ok(c, out)) {
+        canergy_internal_out_clear(out);
+        join(c, nonce, now, out);
+    }
+}
+
+static bool config_ok(const struct canergy_client_config *cfg)
+{
+    return canergy_id_base_valid(cfg->id_base) && cfg->node >= CANERGY_MIN_NODE &&
+           cfg->node <= CANERGY_MAX_NODE;
+}
+
+int canergy_internal_start(struct canergy_client *c, const struct canergy_client_config *cfg,
+                           const uint8_t *nv_image, size_t nv_len, uint16_t nonce, uint64_t now,
+                           struct canergy_out *out)
+{
+    if (cfg == NULL || !config_ok(cfg)) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    memset(c, 0, sizeof *c);
+    c->id_base = cfg->id_base;
+    c->node = cfg->node;
+    c->command_timeout_us = cfg->command_timeout_us;
+    c->return_retry_us = cfg->return_retry_us;
+    c->deadline = CANERGY_NEVER;
+    c->return_deadline = CANERGY_NEVER;
+    struct canergy_nv_state nv;
+    canergy_nv_load(nv_image, nv_len, &nv);
+    c->nv_counter = nv.counter;
+    c->nv_slot = nv.newest_slot;
+    if (nv.books) {
+        c->rec = nv.record;
+        restart(c, now); /* every start is a restart from the record */
+    } else {
+        join(c, nonce, now, out); /* new, wiped or corrupted: trust nothing of the past */
+    }
+    return (int)nv.fallbacks;
+}
+
+int canergy_client_start(struct canergy_client *c, const struct canergy_client_config *cfg,
+                         const uint8_t *nv_image, size_t nv_len, uint16_t nonce, uint64_t now,
+                         struct canergy_out *out)
+{
+    if (!client_ok(c, out)) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    canergy_internal_out_clear(out);
+    return canergy_internal_start(c, cfg, nv_image, nv_len, nonce, now, out);
+}

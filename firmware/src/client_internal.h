@@ -1,0 +1,23 @@
+/*
+ * Library-internal: the client's steps without clearing *out, so the node layer can gather
+ * several steps into one out (one persist, written before all of their frames).
+ */
+#ifndef CANERGY_CLIENT_INTERNAL_H
+#define CANERGY_CLIENT_INTERNAL_H
+
+#include "canergy/client.h"
+
+void canergy_internal_out_clear(struct canergy_out *out);
+int canergy_internal_start(struct canergy_client *c, const struct canergy_client_config *cfg,
+                           const uint8_t *nv_image, size_t nv_len, uint16_t nonce, uint64_t now,
+                           struct canergy_out *out);
+int canergy_internal_frame(struct canergy_client *c, const struct canergy_rx_frame *frame,
+                           uint64_t now, struct canergy_out *out);
+void canergy_internal_timers(struct canergy_client *c, uint64_t now, struct canergy_out *out);
+int canergy_internal_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out);
+int canergy_internal_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,
+                               struct canergy_out *out);
+void canergy_internal_send(const struct canergy_client *c, const struct canergy_msg *msg,
+                           struct canergy_out *out);
+
+#endif /* CANERGY_CLIENT_INTERNAL_H */

@@ -1,0 +1,222 @@
+/*
+ * Wire format: layouts, CRC-8 and strict decoding (see include/canergy/codec.h).
+ *
+ * A layout is a list of at most three fields after the CRC byte; the DLC and whether the type
+ * carries an amount (which must not be zero) follow from it, so the table below is the only
+ * place a frame's shape is written down, as LAYOUTS is in codec.py.
+ */
+#include "canergy/codec.h"
+
+#include <string.h>
+
+enum field {
+    F_END = 0,
+    F_TX,        /* u16 */
+    F_SEQ,       /* u16 */
+    F_NONCE,     /* u16 */
+    F_AMOUNT,    /* u16, 1..65535 */
+    F_DELIVERED, /* u24 */
+    F_LEVEL,     /* u24 */
+    F_FLAGS      /* u8 */
+};
+
+#define MAX_FIELDS 3U
+
+/* Indexed by the 4-bit type code; an all-F_END row is an unknown type. */
+static const uint8_t layouts[16][MAX_FIELDS] = {
+    [CANERGY_INTENTION] = {F_TX, F_AMOUNT, F_DELIVERED},
+    [CANERGY_COMMIT] = {F_TX, F_AMOUNT, F_END},
+    [CANERGY_ABORT] = {F_TX, F_AMOUNT, F_END},
+    [CANERGY_RETURN_ACK] = {F_SEQ, F_END, F_END},
+    [CANERGY_STATUS_REQUEST] = {F_TX, F_END, F_END},
+    [CANERGY_FINAL_ACK] = {F_TX, F_END, F_END},
+    [CANERGY_ADMIT] = {F_NONCE, F_TX, F_SEQ},
+    [CANERGY_ACK] = {F_TX, F_END, F_END},
+    [CANERGY_COMMITTED] = {F_TX, F_END, F_END},
+    [CANERGY_ABORTED] = {F_TX, F_END, F_END},
+    [CANERGY_RETURN] = {F_SEQ, F_AMOUNT, F_END},
+    [CANERGY_TELEMETRY] = {F_LEVEL, F_FLAGS, F_END},
+    [CANERGY_JOIN] = {F_NONCE, F_END, F_END},
+};
+
+static size_t field_width(uint8_t f)
+{
+    if (f == F_FLAGS) {
+        return 1U;
+    }
+    return (f == F_DELIVERED || f == F_LEVEL) ? 3U : 2U;
+}
+
+/* 0 for an unknown type code. */
+static size_t layout_dlc(uint32_t code)
+{
+    const uint8_t *fields = layouts[code & 0xFU];
+    size_t dlc = 0U;
+    for (size_t i = 0U; i < MAX_FIELDS && fields[i] != F_END; i++) {
+        dlc += field_width(fields[i]);
+    }
+    return dlc == 0U ? 0U : dlc + 1U;
+}
+
+static bool has_amount(uint32_t code)
+{
+    const uint8_t *fields = layouts[code & 0xFU];
+    return fields[1] == F_AMOUNT; /* the amount is always the second field */
+}
+
+uint8_t canergy_crc8(uint8_t reg, const uint8_t *data, size_t len)
+{
+    /* Bit by bit: at most 10 bytes per frame, and no 256-byte table in flash. */
+    for (size_t i = 0U; i < len; i++) {
+        reg ^= data[i];
+        for (unsigned bit = 0U; bit < 8U; bit++) {
+            const uint8_t poly = (reg & 0x80U) != 0U ? 0x1DU : 0x00U;
+            reg = (uint8_t)((uint8_t)(reg << 1) ^ poly);
+        }
+    }
+    return reg;
+}
+
+/* CRC of the Data ID (node, then type) followed by the body: byte 0 of the frame. */
+static uint8_t frame_crc(uint32_t code, uint32_t node, const uint8_t *body, size_t len)
+{
+    const uint8_t data_id[2] = {(uint8_t)node, (uint8_t)code};
+    uint8_t reg = canergy_crc8(0xFFU, data_id, sizeof data_id);
+    return (uint8_t)(canergy_crc8(reg, body, len) ^ 0xFFU);
+}
+
+bool canergy_id_base_valid(uint32_t id_base)
+{
+    return (id_base & ~CANERGY_ID_MASK) == 0U;
+}
+
+static uint32_t field_value(const struct canergy_msg *m, uint8_t f)
+{
+    switch (f) {
+    case F_TX: return m->tx;
+    case F_SEQ: return m->seq;
+    case F_NONCE: return m->nonce;
+    case F_AMOUNT: return m->amount_mj;
+    case F_DELIVERED: return m->delivered_mj;
+    case F_LEVEL: return m->level_mj;
+    default: return m->flags;
+    }
+}
+
+static void set_field(struct canergy_msg *m, uint8_t f, uint32_t v)
+{
+    switch (f) {
+    case F_TX: m->tx = (uint16_t)v; break;
+    case F_SEQ: m->seq = (uint16_t)v; break;
+    case F_NONCE: m->nonce = (uint16_t)v; break;
+    case F_AMOUNT: m->amount_mj = (uint16_t)v; break;
+    case F_DELIVERED: m->delivered_mj = v; break;
+    case F_LEVEL: m->level_mj = v; break;
+    default: m->flags = (uint8_t)v; break;
+    }
+}
+
+int canergy_encode(uint32_t id_base, const struct canergy_msg *msg, struct canergy_frame *out)
+{
+    if (msg == NULL || out == NULL || !canergy_id_base_valid(id_base)) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    const uint32_t code = msg->type;
+    const size_t dlc = layout_dlc(code);
+    if (code > 0xFU || dlc == 0U || msg->node < CANERGY_MIN_NODE || msg->node > CANERGY_MAX_NODE) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    if (has_amount(code) && msg->amount_mj == 0U) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    uint8_t data[8] = {0};
+    size_t at = 1U;
+    for (size_t i = 0U; i < MAX_FIELDS && layouts[code][i] != F_END; i++) {
+        const uint8_t f = layouts[code][i];
+        const uint32_t v = field_value(msg, f);
+        const size_t width = field_width(f);
+        if (width == 3U && v > CANERGY_WIDE_MAX) {
+            return CANERGY_ERR_ARGUMENT;
+        }
+        for (size_t b = 0U; b < width; b++) {
+            data[at++] = (uint8_t)(v >> (8U * b));
+        }
+    }
+    data[0] = frame_crc(code, msg->node, &data[1], dlc - 1U);
+    out->id = id_base | code << 8 | msg->node;
+    out->dlc = (uint8_t)dlc;
+    memcpy(out->data, data, sizeof data);
+    return CANERGY_OK;
+}
+
+static bool wrong_way(uint32_t code, enum canergy_direction expect)
+{
+    const bool from_client = (code & CANERGY_FROM_CLIENT) != 0U;
+    return (expect == CANERGY_TO_CLIENT && from_client) ||
+           (expect == CANERGY_TO_SUPERVISOR && !from_client);
+}
+
+/* The identifier checks, in codec.py's order: only an exact id_base | known type | node 1..127
+ * passes; what fails is FOREIGN outside the block, then UNKNOWN_TYPE, then BAD_NODE. */
+static enum canergy_decode_status check_id(uint32_t id_base, const struct canergy_rx_frame *f)
+{
+    if (!f->extended || (f->id & CANERGY_ID_MASK) != id_base) {
+        return CANERGY_DECODE_FOREIGN;
+    }
+    if (layout_dlc(f->id >> 8) == 0U) {
+        return CANERGY_DECODE_UNKNOWN_TYPE;
+    }
+    const uint32_t node = f->id & 0xFFU;
+    if (node < CANERGY_MIN_NODE || node > CANERGY_MAX_NODE || (f->id >> 29) != 0U) {
+        return CANERGY_DECODE_BAD_NODE;
+    }
+    return CANERGY_DECODE_OK;
+}
+
+enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy_rx_frame *frame,
+                                          enum canergy_direction expect, struct canergy_msg *msg)
+{
+    if (frame == NULL) {
+        return CANERGY_DECODE_FOREIGN;
+    }
+    const enum canergy_decode_status id_status = check_id(id_base, frame);
+    if (id_status != CANERGY_DECODE_OK) {
+        return id_status;
+    }
+    const uint32_t code = frame->id >> 8 & 0xFU;
+    const uint32_t node = frame->id & 0xFFU;
+    if (frame->remote) {
+        return CANERGY_DECODE_REMOTE_FRAME;
+    }
+    if (wrong_way(code, expect)) {
+        return CANERGY_DECODE_WRONG_DIRECTION;
+    }
+    const size_t dlc = layout_dlc(code);
+    if (frame->len != dlc || frame->data == NULL) {
+        return CANERGY_DECODE_WRONG_DLC;
+    }
+    const uint8_t *d = frame->data;
+    if (frame_crc(code, node, &d[1], dlc - 1U) != d[0]) {
+        return CANERGY_DECODE_BAD_CRC;
+    }
+    struct canergy_msg m;
+    memset(&m, 0, sizeof m);
+    m.type = (uint8_t)code;
+    m.node = (uint8_t)node;
+    size_t at = 1U;
+    for (size_t i = 0U; i < MAX_FIELDS && layouts[code][i] != F_END; i++) {
+        const uint8_t f = layouts[code][i];
+        uint32_t v = 0U;
+        for (size_t b = 0U; b < field_width(f); b++) {
+            v |= (uint32_t)d[at++] << (8U * b);
+        }
+        set_field(&m, f, v);
+    }
+    if (has_amount(code) && m.amount_mj == 0U) {
+        return CANERGY_DECODE_OUT_OF_RANGE;
+    }
+    if (msg != NULL) {
+        *msg = m;
+    }
+    return CANERGY_DECODE_OK;
+}

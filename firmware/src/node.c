@@ -1,0 +1,154 @@
+/*
+ * The node layer: telemetry, the actuator's draw and the return policy around the client, as
+ * firmware_model/node.py does around canergy.core.Client (see include/canergy/node.h).
+ */
+#include "canergy/node.h"
+
+#include "client_internal.h"
+
+#include <string.h>
+
+#define MJ CANERGY_QUANTUM_UJ
+
+static bool is_low(const struct canergy_node *n)
+{
+    return n->client.rec.usable_uj < n->low_water_uj;
+}
+
+static void send_telemetry(struct canergy_node *n, uint64_t now, struct canergy_out *out)
+{
+    const uint32_t level = n->client.rec.usable_uj / MJ;
+    struct canergy_msg m;
+    memset(&m, 0, sizeof m);
+    m.type = CANERGY_TELEMETRY;
+    m.node = n->client.node;
+    m.level_mj = level > CANERGY_WIDE_MAX ? CANERGY_WIDE_MAX : level; /* saturating */
+    m.flags = (uint8_t)((is_low(n) ? CANERGY_TELEMETRY_LOW : 0U) |
+                        (n->halted ? CANERGY_TELEMETRY_HALTED : 0U) |
+                        (canergy_client_joining(&n->client) ? CANERGY_TELEMETRY_JOINING : 0U));
+    n->next_telemetry = now + n->telemetry_period_us;
+    canergy_internal_send(&n->client, &m, out);
+}
+
+/* What the client's step means for the node: a new level is reported at once. */
+static void after_client(struct canergy_node *n, uint64_t now, const struct canergy_out *out)
+{
+    const uint16_t level_moved =
+        CANERGY_EV_COMMITTED | CANERGY_EV_TIMEOUT_COMMIT | CANERGY_EV_CREDITED | CANERGY_EV_ADMITTED;
+    if ((out->events & level_moved) != 0U) {
+        n->next_telemetry = now;
+    }
+}
+
+/* Periodic telemetry, and at once when the level has just fallen below the low-water mark. */
+static void telemetry_due(struct canergy_node *n, uint64_t now, struct canergy_out *out)
+{
+    const bool low = is_low(n);
+    if (now >= n->next_telemetry || (low && !n->was_low)) {
+        send_telemetry(n, now, out);
+    }
+    n->was_low = low;
+}
+
+int canergy_node_start(struct canergy_node *n, const struct canergy_node_config *cfg,
+                       const uint8_t *nv_image, size_t nv_len, uint16_t nonce, uint64_t now,
+                       struct canergy_out *out)
+{
+    if (n == NULL || cfg == NULL || out == NULL || cfg->telemetry_period_us == 0U) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    canergy_internal_out_clear(out);
+    memset(n, 0, sizeof *n);
+    const int result =
+        canergy_internal_start(&n->client, &cfg->client, nv_image, nv_len, nonce, now, out);
+    n->telemetry_period_us = cfg->telemetry_period_us;
+    n->low_water_uj = cfg->low_water_uj;
+    n->return_above_uj = cfg->return_above_uj;
+    n->next_telemetry = now; /* announce the level at boot */
+    return result;
+}
+
+int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame *frame,
+                          uint64_t now, struct canergy_out *out)
+{
+    if (n == NULL || out == NULL) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    canergy_internal_out_clear(out);
+    const int result = canergy_internal_frame(&n->client, frame, now, out);
+    /* Count what was meant for this node: foreign frames and other nodes' replies (seen
+     * without acceptance filters) are no error of ours. */
+    if (result != CANERGY_DECODE_OK && result != CANERGY_RX_OTHER_NODE &&
+        result != CANERGY_DECODE_FOREIGN && result != CANERGY_DECODE_WRONG_DIRECTION &&
+        frame != NULL && (frame->id & 0xFFU) == n->client.node) {
+        n->decode_errors++;
+    }
+    if ((out->events & CANERGY_EV_REFUSED) != 0U) {
+        n->overflow_refused++;
+    }
+    after_client(n, now, out);
+    return result;
+}
+
+static void timers(struct canergy_node *n, uint64_t now, struct canergy_out *out)
+{
+    if (canergy_client_deadline(&n->client) <= now) {
+        canergy_internal_timers(&n->client, now, out);
+        after_client(n, now, out);
+    }
+}
+
+void canergy_node_poll(struct canergy_node *n, uint64_t now, struct canergy_out *out)
+{
+    if (n == NULL || out == NULL) {
+        return;
+    }
+    canergy_internal_out_clear(out);
+    timers(n, now, out);
+    telemetry_due(n, now, out);
+}
+
+/* Give back what exceeds return_above, in whole mJ, at most one frame's worth. */
+static void return_policy(struct canergy_node *n, uint64_t now, struct canergy_out *out)
+{
+    const uint32_t usable = n->client.rec.usable_uj;
+    if (!canergy_client_can_give_back(&n->client) || usable <= n->return_above_uj) {
+        return;
+    }
+    uint32_t excess = usable - n->return_above_uj;
+    excess -= excess % MJ;
+    if (excess > CANERGY_AMOUNT_MAX_MJ * MJ) {
+        excess = CANERGY_AMOUNT_MAX_MJ * MJ;
+    }
+    if (excess != 0U) {
+        (void)canergy_internal_give_back(&n->client, excess, now, out);
+    }
+}
+
+uint32_t canergy_node_draw(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
+                           struct canergy_out *out)
+{
+    if (n == NULL || out == NULL) {
+        return 0U;
+    }
+    canergy_internal_out_clear(out);
+    timers(n, now, out);
+    const uint32_t usable = n->client.rec.usable_uj;
+    uint32_t take = wanted_uj < usable ? wanted_uj : usable;
+    if (take != 0U && canergy_internal_spend(&n->client, take, out) != CANERGY_OK) {
+        take = 0U; /* joining: nothing to spend */
+    }
+    n->halted = take < wanted_uj;
+    return_policy(n, now, out);
+    telemetry_due(n, now, out);
+    return take;
+}
+
+uint64_t canergy_node_deadline(const struct canergy_node *n)
+{
+    if (n == NULL) {
+        return CANERGY_NEVER;
+    }
+    const uint64_t client = canergy_client_deadline(&n->client);
+    return client < n->next_telemetry ? client : n->next_telemetry;
+}

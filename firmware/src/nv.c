@@ -1,0 +1,167 @@
+/*
+ * The NV record and its two slots (see include/canergy/nv.h and firmware_model/nvstore.py).
+ *
+ * Why two slots: a write goes to the slot that does not hold the newest valid record, so a
+ * power loss mid-write leaves that record readable. Nothing is acted on before its write has
+ * completed, so the record a torn write falls back to was the last one anybody relied on.
+ */
+#include "canergy/nv.h"
+
+#include "canergy/codec.h"
+
+#include <string.h>
+
+#define HEAD_SIZE 6U /* u16 magic, u32 counter */
+#define CRC_AT (HEAD_SIZE + CANERGY_NV_RECORD_SIZE)
+
+/* Little-endian fields of up to 32 bits (the u64 is two of them: 64-bit shifts cost flash). */
+static void put_le(uint8_t *p, uint32_t v, size_t n)
+{
+    for (size_t i = 0U; i < n; i++) {
+        p[i] = (uint8_t)(v >> (8U * i));
+    }
+}
+
+static uint32_t get_le(const uint8_t *p, size_t n)
+{
+    uint32_t v = 0U;
+    for (size_t i = 0U; i < n; i++) {
+        v |= (uint32_t)p[i] << (8U * i);
+    }
+    return v;
+}
+
+uint32_t canergy_crc32(uint32_t crc, const uint8_t *data, size_t len)
+{
+    /* Reflected polynomial 0xEDB88320, bit by bit: 36 bytes per slot, only at start and on a
+     * write, so no 1 KiB table. */
+    crc = ~crc;
+    for (size_t i = 0U; i < len; i++) {
+        crc ^= data[i];
+        for (unsigned bit = 0U; bit < 8U; bit++) {
+            crc = (crc & 1U) != 0U ? (crc >> 1) ^ 0xEDB88320UL : crc >> 1;
+        }
+    }
+    return ~crc;
+}
+
+void canergy_record_pack(const struct canergy_record *rec, uint8_t out[CANERGY_NV_RECORD_SIZE])
+{
+    put_le(&out[0], rec->usable_uj, 4U);
+    put_le(&out[4], rec->credited_mj, 4U);
+    put_le(&out[8], (uint32_t)rec->spent_uj, 4U);
+    put_le(&out[12], (uint32_t)(rec->spent_uj >> 32), 4U);
+    put_le(&out[16], rec->last_tx, 4U);
+    put_le(&out[20], rec->return_seq, 4U);
+    put_le(&out[24], rec->return_pending_uj, 4U);
+    out[28] = rec->outcome;
+    out[29] = (uint8_t)(rec->flags & CANERGY_RECORD_CREDITED_UNKNOWN);
+}
+
+/* A pending return the client can have sent: none, or one frame's worth of whole mJ. */
+static bool return_possible(uint32_t pending_uj)
+{
+    return pending_uj == 0U || (pending_uj % CANERGY_QUANTUM_UJ == 0U &&
+                                pending_uj <= CANERGY_AMOUNT_MAX_MJ * CANERGY_QUANTUM_UJ);
+}
+
+int canergy_record_unpack(const uint8_t in[CANERGY_NV_RECORD_SIZE], struct canergy_record *rec)
+{
+    struct canergy_record r;
+    memset(&r, 0, sizeof r);
+    r.usable_uj = get_le(&in[0], 4U); /* a u32 never exceeds USABLE_MAX_UJ */
+    r.credited_mj = get_le(&in[4], 4U);
+    r.spent_uj = (uint64_t)get_le(&in[12], 4U) << 32 | get_le(&in[8], 4U);
+    r.last_tx = get_le(&in[16], 4U);
+    r.return_seq = get_le(&in[20], 4U);
+    r.return_pending_uj = get_le(&in[24], 4U);
+    r.outcome = in[28];
+    r.flags = (uint8_t)(in[29] & CANERGY_RECORD_CREDITED_UNKNOWN);
+    if (r.outcome > CANERGY_OUTCOME_WRITTEN_OFF || !return_possible(r.return_pending_uj)) {
+        return CANERGY_ERR_ARGUMENT; /* a CRC collision over garbage: not books */
+    }
+    *rec = r;
+    return CANERGY_OK;
+}
+
+void canergy_nv_slot_encode(uint32_t counter, const uint8_t *payload, size_t len,
+                            uint8_t out[CANERGY_NV_SLOT_SIZE])
+{
+    memset(out, 0, CANERGY_NV_SLOT_SIZE);
+    put_le(&out[0], CANERGY_NV_MAGIC, 2U);
+    put_le(&out[2], counter, 4U);
+    if (payload != NULL) {
+        memcpy(&out[HEAD_SIZE], payload, len < CANERGY_NV_RECORD_SIZE ? len : CANERGY_NV_RECORD_SIZE);
+    }
+    put_le(&out[CRC_AT], canergy_crc32(0U, out, CRC_AT), 4U);
+}
+
+bool canergy_nv_slot_decode(const uint8_t *raw, size_t len, uint32_t *counter,
+                            uint8_t payload[CANERGY_NV_RECORD_SIZE])
+{
+    if (raw == NULL || len != CANERGY_NV_SLOT_SIZE || get_le(raw, 2U) != CANERGY_NV_MAGIC ||
+        canergy_crc32(0U, raw, CRC_AT) != get_le(&raw[CRC_AT], 4U)) {
+        return false;
+    }
+    *counter = get_le(&raw[2], 4U);
+    memcpy(payload, &raw[HEAD_SIZE], CANERGY_NV_RECORD_SIZE);
+    return true;
+}
+
+/* Bytes of slot i present in an image of len bytes (a short image lacks the tail). */
+static size_t slot_bytes(size_t len, size_t i)
+{
+    const size_t start = i * CANERGY_NV_SLOT_SIZE;
+    if (len <= start) {
+        return 0U;
+    }
+    return len - start < CANERGY_NV_SLOT_SIZE ? len - start : CANERGY_NV_SLOT_SIZE;
+}
+
+static bool all_zero(const uint8_t *p, size_t n)
+{
+    for (size_t i = 0U; i < n; i++) {
+        if (p[i] != 0U) {
+            return false;
+        }
+    }
+    return true;
+}
+
+void canergy_nv_load(const uint8_t *image, size_t len, struct canergy_nv_state *out)
+{
+    uint8_t payload[CANERGY_NV_SLOTS][CANERGY_NV_RECORD_SIZE];
+    uint32_t counter[CANERGY_NV_SLOTS] = {0U, 0U};
+    bool valid[CANERGY_NV_SLOTS] = {false, false};
+    bool damaged = false;
+    memset(out, 0, sizeof *out);
+    out->newest_slot = 1U; /* none valid: the first write goes to slot 0 */
+    if (image == NULL) {
+        len = 0U;
+    }
+    for (size_t i = 0U; i < CANERGY_NV_SLOTS; i++) {
+        const size_t n = slot_bytes(len, i);
+        const uint8_t *raw = n != 0U ? &image[i * CANERGY_NV_SLOT_SIZE] : NULL;
+        valid[i] = canergy_nv_slot_decode(raw, n, &counter[i], payload[i]);
+        if (!valid[i] && n != 0U && !all_zero(raw, n)) {
+            damaged = true; /* a torn or corrupted write; an erased slot is not damage */
+        }
+    }
+    out->fallbacks = damaged ? 1U : 0U;
+    if (!valid[0] && !valid[1]) {
+        return;
+    }
+    /* Both valid: slot 1 is newer when its counter is at most 2^31 - 1 ahead of slot 0's
+     * (serial-number order, so the choice survives the counter's wrap; equal: slot 1). */
+    size_t pick = valid[1] ? 1U : 0U;
+    if (valid[0] && valid[1] && (uint32_t)(counter[1] - counter[0]) >= 0x80000000UL) {
+        pick = 0U;
+    }
+    out->counter = counter[pick];
+    out->newest_slot = (uint8_t)pick;
+    if (canergy_record_unpack(payload[pick], &out->record) == CANERGY_OK) {
+        out->books = true;
+    } else {
+        out->fallbacks++; /* the newest valid slot holds impossible values: no books */
+    }
+}

@@ -1,0 +1,36 @@
+/*
+ * Not a port: the smallest program that uses every call a real port makes, so that `make size`
+ * can link it for Cortex-M4 with --gc-sections and report what the library costs there.
+ * PORT_NODE selects the node layer's API, otherwise the bare client's.
+ */
+#include "canergy/node.h"
+
+void port_entry(void);
+void port_entry(void)
+{
+    static uint8_t nv[2U * CANERGY_NV_SLOT_SIZE];
+    static const uint8_t bytes[8] = {0};
+    struct canergy_out out;
+    const struct canergy_rx_frame rx = {0x0CE00105UL, bytes, 8U, true, false};
+    const struct canergy_client_config client = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 1U};
+    volatile uint64_t sink = 0U;
+#ifdef PORT_NODE
+    static struct canergy_node n;
+    const struct canergy_node_config cfg = {client, 1000000UL, 0U, CANERGY_KEEP_ALL};
+    sink += (uint64_t)canergy_node_start(&n, &cfg, nv, sizeof nv, 1U, 0U, &out);
+    sink += (uint64_t)canergy_node_on_frame(&n, &rx, 1U, &out);
+    canergy_node_poll(&n, 2U, &out);
+    sink += canergy_node_draw(&n, 5U, 3U, &out);
+    sink += canergy_node_deadline(&n);
+#else
+    static struct canergy_client c;
+    sink += (uint64_t)canergy_client_start(&c, &client, nv, sizeof nv, 1U, 0U, &out);
+    sink += (uint64_t)canergy_client_on_frame(&c, &rx, 1U, &out);
+    canergy_client_on_timer(&c, 2U, &out);
+    sink += (uint64_t)canergy_client_spend(&c, 5U, &out);
+    sink += (uint64_t)canergy_client_give_back(&c, 1000U, 3U, &out);
+    sink += canergy_client_deadline(&c);
+#endif
+    sink += out.nv_image[0];
+    (void)sink;
+}

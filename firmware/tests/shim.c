@@ -1,0 +1,119 @@
+/*
+ * Linked only into the shared objects the Python tests load: the layout of the public structs
+ * as this compiler lays them out, so the ctypes mirror in tests/test_c_binding.py can be
+ * checked field by field instead of trusted.
+ */
+#include "canergy/client.h"
+#include "canergy/node.h"
+
+#include <stddef.h>
+#include <string.h>
+
+long canergy_test_offset(const char *name);
+long canergy_test_sizeof(const char *name);
+
+#define FIELD(type, field) {#type "." #field, (long)offsetof(struct type, field)}
+
+struct entry {
+    const char *name;
+    long value;
+};
+
+static const struct entry offsets[] = {
+    FIELD(canergy_record, spent_uj),
+    FIELD(canergy_record, usable_uj),
+    FIELD(canergy_record, credited_mj),
+    FIELD(canergy_record, last_tx),
+    FIELD(canergy_record, return_seq),
+    FIELD(canergy_record, return_pending_uj),
+    FIELD(canergy_record, outcome),
+    FIELD(canergy_record, flags),
+    FIELD(canergy_client, rec),
+    FIELD(canergy_client, deadline),
+    FIELD(canergy_client, return_deadline),
+    FIELD(canergy_client, id_base),
+    FIELD(canergy_client, command_timeout_us),
+    FIELD(canergy_client, return_retry_us),
+    FIELD(canergy_client, held_tx),
+    FIELD(canergy_client, nv_counter),
+    FIELD(canergy_client, held_amount_mj),
+    FIELD(canergy_client, nonce),
+    FIELD(canergy_client, node),
+    FIELD(canergy_client, phase),
+    FIELD(canergy_client, nv_slot),
+    FIELD(canergy_frame, id),
+    FIELD(canergy_frame, dlc),
+    FIELD(canergy_frame, data),
+    FIELD(canergy_out, frames),
+    FIELD(canergy_out, nv_image),
+    FIELD(canergy_out, nv_counter),
+    FIELD(canergy_out, events),
+    FIELD(canergy_out, frame_count),
+    FIELD(canergy_out, persist),
+    FIELD(canergy_out, nv_slot),
+    FIELD(canergy_msg, delivered_mj),
+    FIELD(canergy_msg, level_mj),
+    FIELD(canergy_msg, tx),
+    FIELD(canergy_msg, seq),
+    FIELD(canergy_msg, nonce),
+    FIELD(canergy_msg, amount_mj),
+    FIELD(canergy_msg, type),
+    FIELD(canergy_msg, node),
+    FIELD(canergy_msg, flags),
+    FIELD(canergy_rx_frame, id),
+    FIELD(canergy_rx_frame, data),
+    FIELD(canergy_rx_frame, len),
+    FIELD(canergy_rx_frame, extended),
+    FIELD(canergy_rx_frame, remote),
+    FIELD(canergy_client_config, id_base),
+    FIELD(canergy_client_config, command_timeout_us),
+    FIELD(canergy_client_config, return_retry_us),
+    FIELD(canergy_client_config, node),
+    FIELD(canergy_nv_state, record),
+    FIELD(canergy_nv_state, counter),
+    FIELD(canergy_nv_state, newest_slot),
+    FIELD(canergy_nv_state, books),
+    FIELD(canergy_nv_state, fallbacks),
+    FIELD(canergy_node_config, client),
+    FIELD(canergy_node_config, telemetry_period_us),
+    FIELD(canergy_node_config, low_water_uj),
+    FIELD(canergy_node_config, return_above_uj),
+    FIELD(canergy_node, client),
+    FIELD(canergy_node, next_telemetry),
+    FIELD(canergy_node, telemetry_period_us),
+    FIELD(canergy_node, low_water_uj),
+    FIELD(canergy_node, return_above_uj),
+    FIELD(canergy_node, decode_errors),
+    FIELD(canergy_node, overflow_refused),
+    FIELD(canergy_node, was_low),
+    FIELD(canergy_node, halted),
+};
+
+#define SIZE(type) {#type, (long)sizeof(struct type)}
+
+static const struct entry sizes[] = {
+    SIZE(canergy_record),        SIZE(canergy_client),    SIZE(canergy_frame),
+    SIZE(canergy_out),           SIZE(canergy_msg),       SIZE(canergy_rx_frame),
+    SIZE(canergy_client_config), SIZE(canergy_nv_state),  SIZE(canergy_node_config),
+    SIZE(canergy_node),
+};
+
+static long find(const struct entry *table, size_t n, const char *name)
+{
+    for (size_t i = 0U; i < n; i++) {
+        if (strcmp(table[i].name, name) == 0) {
+            return table[i].value;
+        }
+    }
+    return -1;
+}
+
+long canergy_test_offset(const char *name)
+{
+    return find(offsets, sizeof offsets / sizeof offsets[0], name);
+}
+
+long canergy_test_sizeof(const char *name)
+{
+    return find(sizes, sizeof sizes / sizeof sizes[0], name);
+}

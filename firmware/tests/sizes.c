@@ -1,0 +1,10 @@
+/*
+ * Not linked anywhere: `make size` compiles it for the target and reads the sizes of these two
+ * objects back with nm, which is the state a node needs there.
+ */
+#include "canergy/node.h"
+
+extern char canergy_client_bytes[sizeof(struct canergy_client)];
+extern char canergy_node_bytes[sizeof(struct canergy_node)];
+char canergy_client_bytes[sizeof(struct canergy_client)];
+char canergy_node_bytes[sizeof(struct canergy_node)];

@@ -1,0 +1,47 @@
+"""The side-by-side machine has teeth: a C library with one rule broken on purpose is caught.
+
+``libcanergy-broken.so`` is built with ``-DCANERGY_BREAK_REPEATED_TX``: a COMMIT for the
+transaction the client already resolved is applied a second time (energy created) instead of
+being answered with the recorded reply. The machine of tests/test_c_sidebyside.py must find a
+difference with the Python rules within its default budget of examples.
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+import pytest
+from hypothesis import Phase as HypothesisPhase
+from test_c_binding import CClient, library, make
+from test_c_sidebyside import SideBySide, run_side_by_side
+
+from canergy.core import Timing
+from canergy.messages import Admit, Commit, Intention
+
+
+class BrokenSideBySide(SideBySide):
+    lib: ctypes.CDLL | None = None
+
+
+def test_the_broken_rule_is_really_broken() -> None:
+    """Scripted: a duplicated COMMIT credits twice in the broken build, once in the real one."""
+    for lib, expected in ((library(), 4000), (library("broken"), 8000)):
+        c = CClient(1, timing=Timing(), lib=lib)
+        c.join(7, 0)
+        c.message(Admit(1, 7, 0, 0), 1)
+        c.message(Intention(1, 1, 4, 0), 2)
+        c.message(Commit(1, 1, 4), 3)
+        c.message(Commit(1, 1, 4), 4)  # the duplicate
+        assert c.view()["usable_uj"] == expected
+
+
+def test_the_machine_finds_the_broken_rule() -> None:
+    make("build/libcanergy-broken.so")
+    BrokenSideBySide.lib = library("broken")
+    with pytest.raises(AssertionError, match="differ"):
+        run_side_by_side(
+            BrokenSideBySide,
+            database=None,
+            derandomize=True,
+            phases=[HypothesisPhase.generate],  # no shrinking: finding it is the point
+        )

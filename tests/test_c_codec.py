@@ -1,0 +1,221 @@
+"""The C codec against canergy.codec: any identifier, length, flags and bytes give the same
+message or the same refusal reason; every message encodes to the same frame, and what Python
+refuses to encode C refuses too."""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+
+import pytest
+from hypothesis import example, given
+from hypothesis import strategies as st
+from strategies import messages
+from test_c_binding import DIRECTIONS, OK, REASONS, Frame, Msg, library, rx
+
+from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeError
+from canergy.messages import (
+    Abort,
+    Ack,
+    Admit,
+    Commit,
+    Direction,
+    Intention,
+    Join,
+    Message,
+    MsgType,
+    Return,
+    Telemetry,
+)
+
+BASES = [DEFAULT_ID_BASE, 0, 0x1FFFF000, 0x12345000]
+ALL_MESSAGES = (
+    messages
+    | st.builds(
+        Admit,
+        st.integers(1, 127),
+        st.integers(0, 0xFFFF),
+        st.integers(0, 0xFFFF),
+        st.integers(0, 0xFFFF),
+    )
+    | st.builds(Join, st.integers(1, 127), st.integers(0, 0xFFFF))
+)
+
+
+@functools.cache
+def codec(base: int) -> Codec:
+    return Codec(base)
+
+
+def fields(msg: Message) -> dict[str, int]:
+    """A Python message in the C struct's terms (unused fields zero)."""
+    f = dict.fromkeys(("delivered_mj", "level_mj", "tx", "seq", "nonce", "amount_mj", "flags"), 0)
+    f.update({k: getattr(msg, k) for k in f if hasattr(msg, k)})
+    f["type"], f["node"] = int(msg.TYPE), msg.node
+    return f
+
+
+def c_fields(m: Msg) -> dict[str, int]:
+    return {name: getattr(m, name) for name, _ in Msg._fields_}
+
+
+def c_decode(
+    base: int, arbitration_id: int, data: bytes, extended: bool, remote: bool, direction: str | None
+) -> tuple[int, Msg]:
+    frame, buf = rx(arbitration_id, data, extended, remote)
+    m = Msg()
+    status = library().canergy_decode(
+        base, ctypes.byref(frame), DIRECTIONS[direction], ctypes.byref(m)
+    )
+    del buf
+    return status, m
+
+
+def assert_same_decoding(
+    base: int, arbitration_id: int, data: bytes, extended: bool, remote: bool, direction: str | None
+) -> None:
+    py_direction = {
+        None: None,
+        "to_client": Direction.TO_CLIENT,
+        "to_supervisor": Direction.TO_SUPERVISOR,
+    }[direction]
+    status, m = c_decode(base, arbitration_id, data, extended, remote, direction)
+    try:
+        msg = codec(base).decode(
+            arbitration_id, data, extended=extended, remote=remote, direction=py_direction
+        )
+    except DecodeError as err:
+        assert REASONS.get(status) is err.reason
+        return
+    assert status == OK and c_fields(m) == fields(msg)
+
+
+ids = (
+    st.integers(0, 2**32 - 1)
+    | st.integers(0, 0x7FF)
+    | st.builds(lambda t, n: t << 8 | n, st.integers(0, 15), st.integers(0, 255))
+    | st.builds(
+        lambda hi, t, n: hi << 29 | t << 8 | n,
+        st.integers(1, 7),
+        st.integers(0, 15),
+        st.integers(0, 255),
+    )
+)
+
+
+@given(
+    base=st.sampled_from(BASES),
+    low=ids,
+    data=st.binary(max_size=12),
+    extended=st.booleans(),
+    remote=st.booleans(),
+    direction=st.sampled_from(list(DIRECTIONS)),
+    in_block=st.booleans(),
+)
+@example(
+    base=DEFAULT_ID_BASE,
+    low=0x705,
+    data=b"\x05",
+    extended=False,
+    remote=False,
+    direction=None,
+    in_block=False,
+)
+def test_fuzzed_frames_decode_alike(
+    base: int,
+    low: int,
+    data: bytes,
+    extended: bool,
+    remote: bool,
+    direction: str | None,
+    in_block: bool,
+) -> None:
+    arbitration_id = (base | (low & 0xE0000FFF)) if in_block else low
+    assert_same_decoding(base, arbitration_id, data, extended, remote, direction)
+
+
+@given(
+    base=st.sampled_from(BASES),
+    msg=ALL_MESSAGES,
+    damage=st.none() | st.tuples(st.integers(0, 7), st.integers(1, 255)),
+    length=st.none() | st.integers(0, 64),
+    direction=st.sampled_from(list(DIRECTIONS)),
+    remote=st.booleans(),
+)
+def test_valid_and_damaged_frames_decode_alike(
+    base: int,
+    msg: Message,
+    damage: tuple[int, int] | None,
+    length: int | None,
+    direction: str | None,
+    remote: bool,
+) -> None:
+    arbitration_id, data = codec(base).encode(msg)
+    frame = bytearray(data)
+    if damage is not None:
+        frame[damage[0] % len(frame)] ^= damage[1]
+    if length is not None:
+        frame = (frame + bytes(64))[:length]  # CAN FD lengths and short frames
+    assert_same_decoding(base, arbitration_id, bytes(frame), True, remote, direction)
+
+
+def c_encode(base: int, f: dict[str, int]) -> tuple[int, tuple[int, bytes]]:
+    m = Msg(**f)
+    out = Frame()
+    status = library().canergy_encode(base, ctypes.byref(m), ctypes.byref(out))
+    return status, (out.id, bytes(out.data[: out.dlc]))
+
+
+@given(base=st.sampled_from(BASES), msg=ALL_MESSAGES)
+def test_messages_encode_alike(base: int, msg: Message) -> None:
+    status, frame = c_encode(base, fields(msg))
+    assert status == OK and frame == codec(base).encode(msg)
+
+
+@pytest.mark.parametrize(
+    "msg",
+    [
+        Commit(1, 0, 0),
+        Abort(1, 0, 0),
+        Return(1, 0, 0),
+        Intention(1, 0, 0, 5),
+        Intention(1, 0, 1, 0x1000000),
+        Telemetry(1, 0x1000000, 0),
+        Ack(0, 1),
+        Ack(128, 1),
+        Ack(255, 1),
+    ],
+    ids=str,
+)
+def test_what_python_refuses_to_encode_c_refuses(msg: Message) -> None:
+    with pytest.raises(ValueError):
+        Codec().encode(msg)
+    status, _ = c_encode(DEFAULT_ID_BASE, fields(msg))
+    assert status != OK
+
+
+@pytest.mark.parametrize("code", [0x0, 0x8, 0xF, 0x10, 0xFF])
+def test_unknown_types_do_not_encode(code: int) -> None:
+    status, _ = c_encode(DEFAULT_ID_BASE, {"type": code, "node": 1, "tx": 1, "amount_mj": 1})
+    assert status != OK
+    assert code > 0xF or code not in MsgType._value2member_map_
+
+
+@pytest.mark.parametrize("base", [0x123, 0x20000000, 0x0CE00001, 0xFFFFFFFF])
+def test_bad_id_bases_are_refused(base: int) -> None:
+    assert not library().canergy_id_base_valid(base)
+    status, _ = c_encode(base, fields(Ack(1, 1)))
+    assert status != OK
+    with pytest.raises(ValueError):
+        Codec(base)
+
+
+@given(st.binary(max_size=64))
+def test_crcs_agree_with_python_and_zlib(data: bytes) -> None:
+    import zlib
+
+    from canergy.crc import crc8
+
+    buf = ctypes.create_string_buffer(data, max(len(data), 1))
+    assert library().canergy_crc8(0xFF, buf, len(data)) ^ 0xFF == crc8(data)
+    assert library().canergy_crc32(0, buf, len(data)) == zlib.crc32(data)

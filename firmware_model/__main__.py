@@ -17,10 +17,10 @@ from typing import Any
 
 import can
 
-from canergy.cli_args import add_duration, bounded_int, energy, node_ids, power
+from canergy.cli_args import COUNT_MAX, add_duration, bounded_int, energy, node_ids, power
 from canergy.codec import Codec
 from canergy.core import Timing
-from canergy.live.atomic import check_writable_dir, write_json_atomic
+from canergy.live.atomic import check_writable_dir, same_file, write_json_atomic
 from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.shared_bus import STANDARD_FRAMES, SharedReader, shared_network
@@ -59,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_duration(p, "--response-timeout", 100_000, "wait this long for a reply")
     p.add_argument(
         "--crash-after",
-        type=bounded_int(1),
+        type=bounded_int(1, COUNT_MAX),
         help="lose power during the N-th NV write of a node (torn slot), exit 3",
     )
     p.add_argument("--status-file", type=Path, help="JSON status, rewritten atomically")
@@ -138,13 +138,49 @@ def _nv_store(args: argparse.Namespace, node: int, several: bool) -> NvStore:
     return NvStore(path, node, fsync=not args.no_fsync, crash_after=args.crash_after)
 
 
-def _start(args: argparse.Namespace, ids: tuple[int, ...]) -> tuple[NodeHost, Codec, can.BusABC]:
-    """Check --status-file's directory, restore the nodes, open the bus (errors: exit 2)."""
+def _check_paths(args: argparse.Namespace, ids: tuple[int, ...]) -> None:
+    """Before anything is read or written: every file the run writes can be written, and no two
+    options name one file (the NV records, the status and the power profile would overwrite each
+    other)."""
+    several = len(ids) > 1 or args.nodes is not None
+    nv = Path(args.nv)
+    if several and nv.exists() and not nv.is_dir():
+        raise NotADirectoryError(
+            f"--nv {nv}: not a directory (with --nodes, --nv holds one file per node)"
+        )
+    records = [nv / f"node-{n:03d}.nv" for n in ids] if several else [nv]
+    made = several and not nv.exists()  # the --nodes directory, made at start in its parent
+    for path in [nv] if made else records:
+        check_writable_dir(path, "--nv")
+    files = [("--nv", path) for path in ([nv, *records] if several else records)]
     if args.status_file is not None:
         check_writable_dir(args.status_file, "--status-file")
-    host = _host(args, ids)
+        files.append(("--status-file", args.status_file))
+    if args.power_profile is not None:
+        if not args.power_profile.is_file():
+            raise FileNotFoundError(f"--power-profile {args.power_profile}: no such file")
+        files.append(("--power-profile", args.power_profile))
+    for i, (option, path) in enumerate(files):
+        for other, other_path in files[:i]:
+            if option != other and same_file(path, other_path):
+                raise ValueError(
+                    f"{other} {other_path} and {option} {path} name the same file; "
+                    "give each its own path"
+                )
+
+
+def _start(args: argparse.Namespace, ids: tuple[int, ...]) -> tuple[NodeHost, Codec, can.BusABC]:
+    """Check every path, open the bus, restore the nodes (errors: exit 2). The bus comes first:
+    a bus that cannot be opened leaves no NV directory behind."""
+    _check_paths(args, ids)
     codec = Codec(args.id_base)
-    return host, codec, _open(args, ids, codec)
+    bus = _open(args, ids, codec)
+    try:
+        host = _host(args, ids)
+    except BaseException:
+        bus.shutdown()
+        raise
+    return host, codec, bus
 
 
 def _open(args: argparse.Namespace, ids: tuple[int, ...], codec: Codec) -> can.BusABC:

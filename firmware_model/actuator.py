@@ -8,6 +8,7 @@ carried, so nothing is rounded away or invented.
 from __future__ import annotations
 
 import csv
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,6 +40,8 @@ class PowerProfile:
                     if lineno == 1:
                         continue  # header
                     raise ValueError(f"{path}:{lineno}: expected time_s,watts") from None
+                if not (math.isfinite(t) and math.isfinite(w)):
+                    raise ValueError(f"{path}:{lineno}: time_s and watts must be finite numbers")
                 if w < 0 or (steps and round(t * 1e6) <= steps[-1][0]) or (not steps and t != 0):
                     raise ValueError(f"{path}:{lineno}: times must start at 0 and increase, W >= 0")
                 steps.append((round(t * 1e6), round(w * 1e6)))

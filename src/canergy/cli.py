@@ -10,10 +10,25 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from canergy import __version__, cli_inspect, cli_live, cli_sim
-from canergy.cli_args import add_duration, bounded_int, energy, node_ids, probability
+from canergy.cli_args import (
+    COUNT_MAX,
+    add_duration,
+    bounded_int,
+    energy,
+    id_base,
+    node_ids,
+    probability,
+    seed,
+)
 from canergy.core.variants import VARIANTS
 from canergy.messages import MAX_NODE
 from canergy.units import UJ_PER_J, US_PER_S
+
+DEMO_TRANSACTIONS_MAX = 1_000_000
+"""About a quarter of an hour of demo (some 1,000 transactions a second)."""
+CHECK_BOUND_MAX = 10
+"""Largest bound of the model checker's counters: the state space grows exponentially in each,
+and three transactions already take minutes, so anything above is never explored to the end."""
 
 
 def _demo_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -36,9 +51,9 @@ def _demo_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     nodes.add_argument("--node-ids", type=node_ids, help="explicit node ids, e.g. 1-5,9")
     p.add_argument(
         "--transactions",
-        type=bounded_int(1),
+        type=bounded_int(1, DEMO_TRANSACTIONS_MAX),
         default=200,
-        help="transactions to start in total (default 200)",
+        help=f"transactions to start in total (default 200, at most {DEMO_TRANSACTIONS_MAX:,})",
     )
     add_duration(p, "--duration", 300 * US_PER_S, "virtual-time limit")
     p.add_argument(
@@ -76,7 +91,7 @@ def _demo_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         default=0.8,
         help="probability the supervisor commits an acknowledged intention",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0, help="0..2**32-1 (default 0)")
     p.add_argument(
         "--log",
         type=Path,
@@ -123,10 +138,12 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
             "Breadth-first exploration of one supervisor, K clients and the frames in flight "
             "under every interleaving of deliveries, losses, duplicates, timer expiries and "
             "power losses, checking the conservation ledger in every state. Exit status 1 when "
-            "energy can be generated, 0 otherwise."
+            f"energy can be generated, 0 otherwise. Every bound is at most {CHECK_BOUND_MAX} "
+            "(--clients at most 8): the state space grows exponentially in each."
         ),
     )
-    count = bounded_int(0)
+    count = bounded_int(0, CHECK_BOUND_MAX)
+    positive = bounded_int(1, CHECK_BOUND_MAX)
     p.add_argument("--variant", choices=sorted(VARIANTS), default="hardened")
     p.add_argument("--clients", type=bounded_int(1, 8), default=d.clients)
     p.add_argument(
@@ -160,13 +177,13 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     )
     p.add_argument(
         "--in-flight",
-        type=bounded_int(1),
+        type=positive,
         default=d.in_flight,
         help="most frames in flight at once",
     )
     p.add_argument(
         "--units",
-        type=bounded_int(1),
+        type=positive,
         default=d.units,
         help="initial budget in units (1 unit = 1 mJ); grants are 1..units",
     )
@@ -181,7 +198,7 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     p.add_argument("--no-spending", action="store_true", help="actuators never spend")
     p.add_argument(
         "--max-states",
-        type=bounded_int(1),
+        type=bounded_int(1, COUNT_MAX),
         default=None,
         help="stop after this many states (the result is then incomplete)",
     )
@@ -258,7 +275,7 @@ def _dbc_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     p.add_argument("-o", "--output", type=Path, help="file to write (default: stdout)")
     p.add_argument(
         "--id-base",
-        type=lambda s: int(s, 0),
+        type=id_base,
         default=None,
         help="29-bit identifier base, low 12 bits clear (default 0x0CE00000)",
     )
@@ -304,7 +321,10 @@ def _run_rules(args: argparse.Namespace) -> int:
 
 def _run_bench(args: argparse.Namespace) -> int:
     from canergy.bench.run import run, table
+    from canergy.live.atomic import check_writable_dir
 
+    if args.json is not None:  # before minutes of measuring, not after
+        check_writable_dir(args.json, "--json")
     results = run(quick=args.quick)
     for reason in results["skipped"]:
         print(f"canergy bench: {reason}", file=sys.stderr)

@@ -1,16 +1,36 @@
 """argparse value types with clear messages: energies, durations, probabilities, node lists,
-counts."""
+counts, seeds, identifier bases.
+
+Every numeric option has an upper bound, so no value given on the command line can make a command
+overflow, allocate without end or never answer; ``inf``, ``nan`` and huge numbers are one-line
+argparse errors naming the option (exit status 2).
+"""
 
 from __future__ import annotations
 
 import argparse
+import math
+import os
 from collections.abc import Callable
 from typing import TypeVar
 
+from canergy.codec import MAX_EXTENDED_ID, Codec
 from canergy.messages import MAX_NODE, MIN_NODE
 from canergy.units import format_duration, parse_duration, parse_energy, parse_power
 
 _T = TypeVar("_T")
+
+SEED_MAX = 2**32 - 1
+"""Seeds are 0..2**32-1: every run reproducible from a 32-bit number."""
+COUNT_MAX = 10**9
+"""Largest count of frames or writes an option may ask for."""
+_SHOWN = 24
+"""Longest piece of an argument quoted back in an error message."""
+
+
+def _shown(text: str) -> str:
+    """``text`` quoted for an error message, cut short when long (one line, whatever the input)."""
+    return repr(text) if len(text) <= _SHOWN else f"{text[:_SHOWN]!r}..."
 
 
 def _argument(parse: Callable[[str], _T], text: str) -> _T:
@@ -69,27 +89,50 @@ def add_duration(
 
 
 def probability(text: str) -> float:
+    """A number within 0..1 (``nan`` and ``inf`` are not)."""
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"not a probability: {text!r}") from None
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"probability {text} outside 0..1")
+        raise argparse.ArgumentTypeError(f"not a probability: {_shown(text)}") from None
+    if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+        raise argparse.ArgumentTypeError(f"probability {_shown(text)} outside 0..1")
     return value
 
 
-def bounded_int(low: int, high: int | None = None) -> Callable[[str], int]:
+def bounded_int(low: int, high: int) -> Callable[[str], int]:
+    """An integer within ``low..high`` (decimal, or ``0x``/``0o``/``0b`` prefixed)."""
+
     def parse(text: str) -> int:
+        if len(text) > _SHOWN:  # also keeps int() from working through thousands of digits
+            raise argparse.ArgumentTypeError(f"{_shown(text)}: not an integer in {low}..{high}")
         try:
             value = int(text, 0)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-        if value < low or (high is not None and value > high):
-            span = f"{low}..{high}" if high is not None else f">= {low}"
-            raise argparse.ArgumentTypeError(f"{value} outside {span}")
+            raise argparse.ArgumentTypeError(f"not an integer: {_shown(text)}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{value} outside {low}..{high}")
         return value
 
     return parse
+
+
+seed = bounded_int(0, SEED_MAX)
+"""A random seed, 0..2**32-1."""
+
+
+def max_processes() -> int:
+    """Most worker processes worth asking for here: four per core, at most 256."""
+    return min(256, 4 * (os.cpu_count() or 1))
+
+
+def id_base(text: str) -> int:
+    """A 29-bit identifier block with its low 12 bits clear, e.g. ``0x0CE00000``."""
+    value = bounded_int(0, MAX_EXTENDED_ID)(text)
+    try:
+        Codec(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return value
 
 
 def node_ids(text: str) -> tuple[int, ...]:
@@ -102,10 +145,10 @@ def node_ids(text: str) -> tuple[int, ...]:
             lo = int(lo_text)
             hi = int(hi_text) if sep else lo
         except ValueError:
-            raise argparse.ArgumentTypeError(f"bad node list {text!r} (e.g. 1-5,9)") from None
+            raise argparse.ArgumentTypeError(f"bad node list {_shown(text)} (e.g. 1-5,9)") from None
         if not MIN_NODE <= lo <= hi <= MAX_NODE:
             raise argparse.ArgumentTypeError(
-                f"bad node range {part!r}: ids are {MIN_NODE}-{MAX_NODE}, low to high"
+                f"bad node range {_shown(part)}: ids are {MIN_NODE}-{MAX_NODE}, low to high"
             )
         nodes.update(range(lo, hi + 1))
     return tuple(sorted(nodes))

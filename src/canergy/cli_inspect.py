@@ -13,7 +13,7 @@ from typing import Any, TextIO
 
 import can
 
-from canergy.cli_args import bounded_int, energy, node_ids
+from canergy.cli_args import COUNT_MAX, bounded_int, energy, id_base, node_ids
 from canergy.codec import Codec
 from canergy.inspect.audit import Auditor
 from canergy.inspect.captures import CaptureError, read_file, read_text
@@ -43,7 +43,9 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     )
     add_bus_flags(d)
     _view_flags(d)
-    d.add_argument("-n", "--count", type=bounded_int(1), help="exit after this many frames")
+    d.add_argument(
+        "-n", "--count", type=bounded_int(1, COUNT_MAX), help="exit after this many frames"
+    )
     c = sub.add_parser(
         "decode",
         help="decode a capture: candump text from stdin or any python-can log file",
@@ -51,7 +53,7 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         "('-'), or .asc/.blf/.csv/.trc/.mf4 files through python-can.",
     )
     c.add_argument("file", nargs="?", default="-", help="capture file, or - for stdin")
-    c.add_argument("--id-base", type=lambda t: int(t, 0), default=Codec().id_base)
+    c.add_argument("--id-base", type=id_base, default=Codec().id_base)
     _view_flags(c)
     a = sub.add_parser(
         "audit",
@@ -67,7 +69,7 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         help="the capture was taken behind a channel that reorders frames (e.g. canergy demo): "
         "frames of older transactions are counted as stale, not as violations",
     )
-    a.add_argument("--id-base", type=lambda t: int(t, 0), default=Codec().id_base)
+    a.add_argument("--id-base", type=id_base, default=Codec().id_base)
     a.add_argument("--json", action="store_true", help="the report as JSON")
 
 

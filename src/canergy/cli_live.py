@@ -159,14 +159,31 @@ def _limits(args: argparse.Namespace) -> Limits:
     )
 
 
+def _check_eds(path: Path | None) -> None:
+    """The nodes' object dictionary loads, before anything is written or sent."""
+    import canopen
+
+    from canergy.live.shared_bus import EDS
+
+    try:
+        canopen.import_od(str(path or EDS))
+    except Exception as exc:  # canopen raises what its parsers raise
+        raise ValueError(f"--eds {path}: not a usable EDS ({exc})") from None
+
+
 def _canopen(args: argparse.Namespace, bus: Any, service: SupervisorService) -> tuple[Any, Any]:
     from canergy.live.canopen_manager import CanopenManager
     from canergy.live.shared_bus import EDS, shared_network
 
     network, reader = shared_network(bus)
-    manager = CanopenManager(
-        network, args.nodes, args.eds or EDS, args.heartbeat_timeout, monotonic_us
-    )
+    try:
+        manager = CanopenManager(
+            network, args.nodes, args.eds or EDS, args.heartbeat_timeout, monotonic_us
+        )
+    except BaseException:  # e.g. an --eds that is not an EDS: no Notifier thread left behind
+        if network.notifier is not None:
+            network.notifier.stop()
+        raise
     service.liveness = manager.alive
     if not args.listen_only:
         manager.start_all()
@@ -296,6 +313,8 @@ def run_supervisor(args: argparse.Namespace) -> int:
             "its --state (not --listen-only)"
         )
     _check_state(args, required=not args.listen_only)
+    if args.canopen:
+        _check_eds(args.eds)
     core = _build(args, args.nodes)
     config = ServiceConfig(
         policy=TopUp(args.target, args.min_grant) if args.target is not None else None,

@@ -4,40 +4,59 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
 from canergy.cli_args import (
+    SEED_MAX,
     add_duration,
     bounded_int,
     duration_or_zero,
     energy,
+    max_processes,
     milliseconds,
     probability,
+    seed,
 )
 from canergy.sim.channel import PRESETS, channel
 from canergy.sim.engine import STRATEGIES, SimConfig, simulate
 from canergy.units import UJ_PER_J, US_PER_S
 
 ALL = list(STRATEGIES)
+SEEDS_MAX = 100_000
+"""Most seeds per point of a sweep (the README's largest sweep runs 2,000)."""
+LOSS_POINTS_MAX = 100
+"""Most loss rates in one sweep."""
 
 
 def _strategies(text: str) -> list[str]:
     names = ALL if text == "all" else [s.strip() for s in text.split(",")]
     unknown = [n for n in names if n not in STRATEGIES]
     if unknown:
-        raise argparse.ArgumentTypeError(f"unknown strategy {unknown[0]!r} (all, {', '.join(ALL)})")
+        raise argparse.ArgumentTypeError(
+            f"unknown strategy {unknown[0][:24]!r} (all, {', '.join(ALL)})"
+        )
     return names
 
 
 def _floats(text: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected numbers like 0,0.1,0.3: {text!r}") from None
-    if not all(0.0 <= v <= 1.0 for v in values):
-        raise argparse.ArgumentTypeError("probabilities must be within 0..1")
-    return values
+    parts = text.split(",")
+    if len(parts) > LOSS_POINTS_MAX:
+        raise argparse.ArgumentTypeError(f"{len(parts)} rates, at most {LOSS_POINTS_MAX}")
+    return [probability(part) for part in parts]
+
+
+def _check_out_dir(out: Path, option: str = "--out") -> None:
+    """Fail now, not after the runs, unless ``out`` is a directory or can be made one: the
+    nearest existing folder on its way is a writable directory and no file stands in the way."""
+    folder = out
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise NotADirectoryError(f"cannot write {option} {out}: {folder} is not a directory")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise PermissionError(f"cannot write {option} {out}: directory {folder} is not writable")
 
 
 def _common(p: argparse.ArgumentParser, default_channel: str) -> None:
@@ -79,7 +98,7 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         "and write DIR/summary.json, DIR/trace.csv and PNG figures.",
     )
     p.add_argument("--strategy", type=_strategies, default=["hardened"], help="S, S1,S2 or all")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0, help="0..2**32-1 (default 0)")
     p.add_argument("--loss", type=probability, help="override the channel's frame loss")
     _common(p, "paper")
 
@@ -91,9 +110,23 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     )
     s.add_argument("--strategy", type=_strategies, default=ALL, help="S, S1,S2 or all")
     s.add_argument("--loss", type=_floats, default=[0.0, 0.1, 0.3, 0.5], help="e.g. 0,0.1,0.3")
-    s.add_argument("--seeds", type=bounded_int(1), default=100, help="seeds per point")
-    s.add_argument("--first-seed", type=int, default=0)
-    s.add_argument("--processes", type=bounded_int(1), help="default: all cores")
+    s.add_argument(
+        "--seeds",
+        type=bounded_int(1, SEEDS_MAX),
+        default=100,
+        help=f"seeds per point (default 100, at most {SEEDS_MAX:,})",
+    )
+    s.add_argument(
+        "--first-seed",
+        type=seed,
+        default=0,
+        help="seeds run from here (default 0); the last is at most 2**32-1",
+    )
+    s.add_argument(
+        "--processes",
+        type=bounded_int(1, max_processes()),
+        help=f"default: all cores (at most {max_processes()} here: 4 per core, at most 256)",
+    )
     _common(s, "ideal")
 
 
@@ -126,6 +159,7 @@ def run_simulate(args: argparse.Namespace) -> int:
 
     from canergy.sim.outputs import write_outputs
 
+    _check_out_dir(args.out)
     base = replace(_config(args, args.loss), seed=args.seed, trace=True)
     results = [simulate(replace(base, strategy=s)) for s in args.strategy]
     summary = write_outputs(results, args.out)
@@ -139,6 +173,11 @@ def run_simulate(args: argparse.Namespace) -> int:
 def run_sweep(args: argparse.Namespace) -> int:
     from canergy.sim.sweep import plot, sweep, write_csv
 
+    if args.first_seed + args.seeds - 1 > SEED_MAX:
+        raise ValueError(
+            f"--first-seed {args.first_seed} with --seeds {args.seeds} runs past seed {SEED_MAX}"
+        )
+    _check_out_dir(args.out)
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     points = sweep(_config(args), args.strategy, args.loss, seeds, processes=args.processes)
     args.out.mkdir(parents=True, exist_ok=True)

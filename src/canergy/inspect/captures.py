@@ -2,12 +2,17 @@
 stdin, and every file format python-can's ``LogReader`` knows (.asc, .blf, .csv, .trc, .mf4...).
 
 Text input is read line by line; a line that is not a frame is reported with its number and
-skipped. Binary formats are read by python-can; a damaged file is one clear error.
+skipped. Binary formats are read by python-can; a damaged file is one clear error. A capture is
+only ever read: a path that names no readable file is refused before any reader opens it (some of
+python-can's, such as the SQLite one, would create it).
 """
 
 from __future__ import annotations
 
+import math
+import os
 import re
+import stat
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
@@ -51,11 +56,21 @@ def _ident(text: str) -> tuple[int, bool]:
     raise ValueError(f"identifier {text!r} must have 3 or 8 hex digits")
 
 
+def _timestamp(text: str | None) -> float:
+    value = float(text) if text else 0.0
+    if not math.isfinite(value):
+        raise ValueError("timestamp out of range")
+    return value
+
+
 def _from_log(m: re.Match[str]) -> can.Message:
     ident, extended = _ident(m["id"])
     rest = m["rest"]
     common = dict(
-        timestamp=float(m["ts"]), channel=m["ch"], arbitration_id=ident, is_extended_id=extended
+        timestamp=_timestamp(m["ts"]),
+        channel=m["ch"],
+        arbitration_id=ident,
+        is_extended_id=extended,
     )
     if rest.startswith("#"):
         raise ValueError("CAN FD frames are not canergy frames")  # vcan carries them; we don't
@@ -71,7 +86,7 @@ def _from_dump(m: re.Match[str]) -> can.Message:
     ident, extended = _ident(m["id"])
     dlc, rest = int(m["dlc"]), m["rest"]
     common = dict(
-        timestamp=float(m["ts"]) if m["ts"] else 0.0,
+        timestamp=_timestamp(m["ts"]),
         channel=m["ch"],
         arbitration_id=ident,
         is_extended_id=extended,
@@ -97,8 +112,39 @@ def read_text(
             on_garbage(number, line.rstrip("\n"), str(exc))
 
 
+def check_capture(path: Path) -> None:
+    """Raise ``CaptureError`` unless ``path`` names a capture that can be read, touching nothing.
+
+    A regular file; candump text may also come through a pipe or a terminal (``<(candump -L
+    vcan0)``, ``/dev/stdin``). Never a directory, nor a name that does not exist.
+    """
+    suffix = path.suffix.lower()
+    if suffix not in TEXT_SUFFIXES and suffix not in can.io.MESSAGE_READERS:
+        known = ", ".join(sorted({*TEXT_SUFFIXES - {""}, *can.io.MESSAGE_READERS}))
+        raise CaptureError(f"{path}: unknown capture format (known: {known})")
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        raise CaptureError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise CaptureError(f"{path}: {exc.strerror or exc}") from None
+    text = suffix in TEXT_SUFFIXES
+    if stat.S_ISDIR(mode):
+        raise CaptureError(f"{path}: is a directory, not a capture file")
+    if not (stat.S_ISREG(mode) or (text and (stat.S_ISFIFO(mode) or stat.S_ISCHR(mode)))):
+        raise CaptureError(f"{path}: not a regular file")
+    if not os.access(path, os.R_OK):
+        raise CaptureError(f"{path}: not readable (permission denied)")
+
+
 def read_file(path: Path, on_garbage: Callable[[int, str, str], None]) -> Iterator[can.Message]:
-    """Any capture: candump text by line, other formats through python-can."""
+    """Any capture: candump text by line, other formats through python-can. A path that is not
+    a readable capture is refused here, at the call, before anything is opened."""
+    check_capture(path)
+    return _read_file(path, on_garbage)
+
+
+def _read_file(path: Path, on_garbage: Callable[[int, str, str], None]) -> Iterator[can.Message]:
     if path.suffix.lower() in TEXT_SUFFIXES:
         try:
             with open(path, errors="replace") as f:
@@ -106,9 +152,6 @@ def read_file(path: Path, on_garbage: Callable[[int, str, str], None]) -> Iterat
         except OSError as exc:
             raise CaptureError(f"{path}: {exc}") from exc
         return
-    if path.suffix.lower() not in can.io.MESSAGE_READERS:
-        known = ", ".join(sorted({*TEXT_SUFFIXES - {""}, *can.io.MESSAGE_READERS}))
-        raise CaptureError(f"{path}: unknown capture format (known: {known})")
     try:
         yield from can.LogReader(str(path))
     except Exception as exc:  # readers raise struct.error, zlib.error, KeyError...: one message

@@ -8,7 +8,7 @@ from typing import Any
 import can
 import can.cli
 
-from canergy.cli_args import bounded_int
+from canergy.cli_args import bounded_int, id_base
 from canergy.codec import DEFAULT_ID_BASE, ID_MASK
 
 
@@ -20,9 +20,12 @@ def add_bus_flags(parser: argparse.ArgumentParser) -> None:
     """``-i/--interface``, ``-c/--channel``, ``-b/--bitrate``, ``--fd``, ``--data-bitrate``,
     ``--timing``, ``--bus-kwargs`` (python-can's ``can.cli``), plus canergy's ``--id-base``."""
     can.cli.add_bus_arguments(parser)
+    for action in parser._actions:  # python-can takes any int: bound them like canergy's numbers
+        if action.dest in ("bitrate", "data_bitrate"):
+            action.type = bounded_int(1, 20_000_000)
     parser.add_argument(
         "--id-base",
-        type=bounded_int(0, 0x1FFFFFFF),
+        type=id_base,
         default=DEFAULT_ID_BASE,
         help=f"29-bit identifier block of canergy frames, low 12 bits clear "
         f"(default 0x{DEFAULT_ID_BASE:08X}; mask 0x{ID_MASK:08X})",

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from canergy.core.state import ClientState, Outcome
-from canergy.messages import QUANTUM_UJ, USABLE_MAX_UJ
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ
 from canergy.seqnum import unwrap
 
 RECORD = struct.Struct("<IIQIIIBB")
@@ -80,7 +80,8 @@ def pack_record(c: ClientState) -> bytes:
 
 def unpack_record(node: int, data: bytes) -> ClientState:
     usable, credited_mj, spent, last_tx, return_seq, pending, outcome, flags = RECORD.unpack(data)
-    if outcome not in Outcome._value2member_map_ or usable > USABLE_MAX_UJ:
+    pending_ok = pending % QUANTUM_UJ == 0 and pending <= AMOUNT_MAX_MJ * QUANTUM_UJ
+    if outcome not in Outcome._value2member_map_ or usable > USABLE_MAX_UJ or not pending_ok:
         raise NvError(f"node {node}: the record holds values no client writes")
     return ClientState(
         node,

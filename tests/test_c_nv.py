@@ -199,14 +199,13 @@ def test_impossible_outcomes_are_no_books_alike(outcome: int) -> None:
 
 
 @pytest.mark.parametrize("pending_uj", [1, 999, 1500, 65_536_000, U32])
-def test_impossible_pending_returns_are_no_books_in_c(pending_uj: int) -> None:
-    """The one documented difference: a pending return no client can have sent (not whole mJ,
-    or more than a frame) is refused by the C load; Python loads it and would fail when it
-    re-sends that return (Codec.encode refuses it)."""
+def test_impossible_pending_returns_are_no_books_in_both(pending_uj: int) -> None:
+    """A pending return no client can have sent (not whole mJ, or more than a frame): both loads
+    refuse the record (no books) rather than fail later when re-sending it."""
     image = encode_slot(1, pack_record(ClientState(5, return_pending=pending_uj)))
     c = c_load(image + bytes(SLOT))
     assert not c.books and c.fallbacks == 1
-    assert MemNv(bytearray(image)).load() is not None
+    assert MemNv(bytearray(image)).load() is None
 
 
 def test_the_parameter_slot_survives_c_writes(tmp_path: Path) -> None:

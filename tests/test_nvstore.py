@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import pytest
@@ -32,7 +33,8 @@ records = st.builds(
     last_tx=u32,
     outcome=st.sampled_from(list(Outcome)),
     return_seq=u32,
-    return_pending=u32,
+    return_pending=st.integers(0, 0xFFFF).map(lambda mj: mj * 1000),  # one frame, whole mJ
+    credited_unknown=st.booleans(),
 )
 
 
@@ -109,12 +111,31 @@ def test_garbage_in_both_slots_is_no_books(tmp_path: Path) -> None:
     assert store.load() is None and store.stats.fallbacks == 1
 
 
-def test_a_valid_slot_with_impossible_values_is_no_books(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    "state",
+    [
+        ClientState(3, usable=5000, outcome=9),  # type: ignore[arg-type]  # no such outcome
+        ClientState(3, return_seq=1, return_pending=1500),  # not whole mJ: no client returns it
+        ClientState(3, return_seq=1, return_pending=66_000_000),  # more than one frame carries
+    ],
+)
+def test_a_valid_slot_with_impossible_values_is_no_books(
+    tmp_path: Path, state: ClientState
+) -> None:
     """A CRC collision over garbage must not crash the node at start (NvError) nor be trusted."""
     path = tmp_path / "n.nv"
-    record = bytearray(pack_record(ClientState(3, usable=5000)))
-    record[-2] = 9  # no such outcome
-    path.write_bytes(encode_slot(1, bytes(record)) + bytes(SLOT_SIZE))
+    record = struct.pack(
+        "<IIQIIIBB",
+        state.usable,
+        0,
+        0,
+        0,
+        state.return_seq,
+        state.return_pending,
+        int(state.outcome),
+        0,
+    )
+    path.write_bytes(encode_slot(1, record) + bytes(SLOT_SIZE))
     store = NvStore(path, 3)
     assert store.load() is None and store.stats.fallbacks == 1
 

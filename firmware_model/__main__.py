@@ -28,7 +28,7 @@ from canergy.messages import Direction
 from firmware_model.actuator import PowerProfile
 from firmware_model.canopen_node import CanopenFace
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
-from firmware_model.nvstore import NvError, NvStore, SimulatedPowerLoss
+from firmware_model.nvstore import NV_FILE_SIZES, NvError, NvStore, SimulatedPowerLoss
 
 EXIT_POWER_LOSS = 3
 
@@ -138,6 +138,16 @@ def _nv_store(args: argparse.Namespace, node: int, several: bool) -> NvStore:
     return NvStore(path, node, fsync=not args.no_fsync, crash_after=args.crash_after)
 
 
+def _check_nv_file(path: Path) -> None:
+    """An existing --nv file must have an NV store's size (damaged slots are fine: the node then
+    joins); any other file would be overwritten by the first record."""
+    if path.is_file() and path.stat().st_size not in NV_FILE_SIZES:
+        raise ValueError(
+            f"--nv {path}: {path.stat().st_size} bytes is not an NV file of canergy "
+            f"(0, {' or '.join(map(str, NV_FILE_SIZES[1:]))} bytes); give a new path"
+        )
+
+
 def _check_paths(args: argparse.Namespace, ids: tuple[int, ...]) -> None:
     """Before anything is read or written: every file the run writes can be written, and no two
     options name one file (the NV records, the status and the power profile would overwrite each
@@ -167,6 +177,8 @@ def _check_paths(args: argparse.Namespace, ids: tuple[int, ...]) -> None:
                     f"{other} {other_path} and {option} {path} name the same file; "
                     "give each its own path"
                 )
+    for path in records:
+        _check_nv_file(path)
 
 
 def _start(args: argparse.Namespace, ids: tuple[int, ...]) -> tuple[NodeHost, Codec, can.BusABC]:

@@ -44,6 +44,8 @@ _PAD = 30
 _CREDITED_UNKNOWN = 0x01
 _CRC = struct.Struct("<I")
 SLOT_SIZE = _HEAD.size + _PAD + _CRC.size
+NV_FILE_SIZES = (0, 2 * SLOT_SIZE, 3 * SLOT_SIZE)
+"""Sizes an NV file can have: new, two record slots, and the CANopen parameter slot too."""
 U32 = 0xFFFFFFFF
 PARAM_SLOT = 2
 PARAMS = struct.Struct("<IIIB")

@@ -189,12 +189,16 @@ def _tree(root: Path) -> list[str]:
         (["--nodes", "1-2", "--nv", "p.csv"], "--nv p.csv: not a directory"),
         (["--node", "1", "--nv", "n.nv", "--power-profile", "none.csv"], "--power-profile"),
         (["--node", "1", "--nv", "n.nv", "--power-profile", "inf.csv"], "must be finite"),
+        (["--node", "1", "--nv", "p.csv"], "--nv p.csv: 19 bytes is not an NV file"),
+        (["--nodes", "1-2", "--nv", "old"], "--nv old/node-001.nv: 5 bytes is not an NV file"),
     ],
 )
 def test_firmware_paths_are_checked_before_it_starts(
     argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     (tmp_path / "sub").mkdir()
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "node-001.nv").write_text("notes")  # not written by a node
     (tmp_path / "p.csv").write_text("time_s,watts\n0,0.5\n")
     (tmp_path / "inf.csv").write_text("time_s,watts\n0,0.5\n1,inf\n")
     before = _tree(tmp_path)

@@ -114,6 +114,10 @@ def test_supervisor_serves_grants_over_its_control_socket(tmp_path: Path) -> Non
         (["supervisor", "--nodes", "1", "--initial", "lots"], "not an energy"),
         (["supervisor", "--nodes", "1", "--rate", "2J"], "unknown power unit"),
         (["grant", "--node", "1", "--amount", "1J", "-i", "nosuchbus"], "invalid choice"),
+        *(
+            (["grant", "--node", "1", "--amount", a, "-i", "virtual"], "whole millijoules")
+            for a in ("0", "0.5mJ", "70J", "1500uJ")
+        ),
         (
             [
                 "grant",
@@ -227,3 +231,18 @@ def test_read_only_directory_is_named(tmp_path: Path, monkeypatch: pytest.Monkey
         atomic.check_writable_dir(tmp_path / "s.json", "--state")
     monkeypatch.undo()
     atomic.check_writable_dir(tmp_path / "s.json", "--state")
+
+
+def test_a_grant_to_a_node_never_heard_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """No frame from the node (or it is still joining): nothing is granted, and the answer says
+    why instead of a write-off after retries."""
+    channel = f"cli-{uuid.uuid4().hex}"
+    argv = ["grant", "-i", "virtual", "-c", channel, "--node", "9", "--amount", "1J"]
+    state = str(tmp_path / "s.json")
+    assert main([*argv, "--state", state, "--timeout", "0.3", "--stop-timeout", "0.1"]) == 1
+    answer = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert "never heard" in answer["error"]
+    saved = json.loads((tmp_path / "s.json").read_text())
+    assert saved["usable_uj"] == saved["initial_uj"]  # nothing reserved, nothing written off

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from typing import TypeVar
 
 from canergy.codec import MAX_EXTENDED_ID, Codec
-from canergy.messages import MAX_NODE, MIN_NODE
+from canergy.messages import AMOUNT_MAX_MJ, MAX_NODE, MIN_NODE, QUANTUM_UJ
 from canergy.units import format_duration, parse_duration, parse_energy, parse_power
 
 _T = TypeVar("_T")
@@ -50,6 +50,17 @@ def _positive(value: int, text: str) -> int:
 def energy(text: str) -> int:
     """``10J``, ``250mJ``, ``1500uJ`` or plain joules, as µJ (at most 1 GJ)."""
     return _argument(parse_energy, text)
+
+
+def grant_amount(text: str) -> int:
+    """An energy one transaction can carry: whole millijoules, 1 mJ to 65.535 J."""
+    value = energy(text)
+    largest = AMOUNT_MAX_MJ * QUANTUM_UJ
+    if not QUANTUM_UJ <= value <= largest or value % QUANTUM_UJ:
+        raise argparse.ArgumentTypeError(
+            f"{text[:24]!r}: a grant is whole millijoules from 1 mJ to 65.535 J"
+        )
+    return value
 
 
 def power(text: str) -> int:

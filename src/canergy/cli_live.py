@@ -10,7 +10,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from canergy.cli_args import add_duration, bounded_int, energy, node_ids, power
+from canergy.cli_args import add_duration, bounded_int, energy, grant_amount, node_ids, power
 from canergy.codec import Codec
 from canergy.core import Supervisor, Timing
 from canergy.core.variants import VARIANTS
@@ -121,7 +121,7 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         "otherwise run a supervisor on the bus for this one transaction. Exit 0 when committed.",
     )
     g.add_argument("--node", type=bounded_int(1, 127), required=True)
-    g.add_argument("--amount", type=energy, required=True, help="e.g. 2J")
+    g.add_argument("--amount", type=grant_amount, required=True, help="e.g. 2J (1 mJ to 65.535 J)")
     g.add_argument("--control", type=Path, help="socket of a running supervisor")
     add_duration(g, "--timeout", 10_000_000, "wait this long for the end")
     _supervisor_flags(g)

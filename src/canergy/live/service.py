@@ -173,8 +173,13 @@ class SupervisorService:
             self.stopping = True
             self.stop_deadline = now + self.config.stop_timeout_us
             for info in self.nodes.values():
+                why = (
+                    "supervisor stopping"
+                    if info.heard_at is not None and not info.flags & Telemetry.JOINING
+                    else "node never heard from (or still joining): nothing granted"
+                )
                 for req in [*info.requests]:
-                    req.reply({"node": req.node, "error": "supervisor stopping"})
+                    req.reply({"node": req.node, "error": why})
                 info.requests.clear()
 
     def finished(self, now: int) -> bool:

@@ -77,11 +77,13 @@ def _python(*args: str) -> list[str]:
     return [sys.executable, *args]
 
 
-def _client(procs: Procs, node: int, *extra: str) -> subprocess.Popen[bytes]:
+def _client(
+    procs: Procs, node: int, *extra: str, program: list[str] | None = None
+) -> subprocess.Popen[bytes]:
+    """A node with the same flags, as ``python -m firmware_model`` or ``program`` (the C node)."""
     tmp = procs.tmp
-    argv = _python(
-        "-m",
-        "firmware_model",
+    argv = [
+        *(program or _python("-m", "firmware_model")),
         "--node",
         str(node),
         *BUS,
@@ -95,7 +97,7 @@ def _client(procs: Procs, node: int, *extra: str) -> subprocess.Popen[bytes]:
         "0.5",
         *TIMEOUT,
         *extra,
-    )
+    ]
     return procs.start(f"client{node}", argv)
 
 
@@ -350,24 +352,7 @@ def c_node() -> Path:
 
 
 def _c_client(procs: Procs, binary: Path, node: int, *extra: str) -> subprocess.Popen[bytes]:
-    tmp = procs.tmp
-    argv = [
-        str(binary),
-        "--node",
-        str(node),
-        *BUS,
-        "--nv",
-        str(tmp / f"n{node}.nv"),
-        "--power",
-        "0.2W",
-        "--status-file",
-        str(tmp / f"n{node}.json"),
-        "--telemetry-period",
-        "0.5",
-        *TIMEOUT,
-        *extra,
-    ]
-    return procs.start(f"client{node}", argv)
+    return _client(procs, node, *extra, program=[str(binary)])
 
 
 def test_c_nodes_on_vcan0_stay_passive_through_garbage_and_kill_9(

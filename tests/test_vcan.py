@@ -478,3 +478,17 @@ def test_a_node_moves_between_firmware_model_and_the_c_node_with_its_nv_file(
         node_books,
     )
     assert ledger_from_status(final, [last]).dissipated >= 0
+
+
+def test_the_c_node_refuses_an_nv_path_that_is_not_an_nv_file(tmp_path: Path, c_node: Path) -> None:
+    """The first record would overwrite it (as python -m firmware_model refuses too)."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a record")
+    run = subprocess.run(
+        [str(c_node), "--node", "1", *BUS, "--nv", str(notes)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert run.returncode == 2 and "is not an NV file" in run.stderr, run.stderr
+    assert notes.read_text() == "not a record"

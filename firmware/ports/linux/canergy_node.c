@@ -489,6 +489,16 @@ static void open_nv(struct port *p, uint8_t image[NV_IMAGE_BYTES], size_t *len)
         (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, p->opt.nv_path, strerror(errno));
         exit(EXIT_USAGE);
     }
+    /* an existing file of another size is not an NV file: the first record would overwrite it
+     * (0: new; two slots; three with firmware_model's CANopen parameter slot) */
+    struct stat size;
+    if (fstat(p->nv_fd, &size) == 0 && size.st_size != 0 &&
+        size.st_size != (off_t)NV_IMAGE_BYTES &&
+        size.st_size != (off_t)(NV_IMAGE_BYTES + CANERGY_NV_SLOT_SIZE)) {
+        (void)fprintf(stderr, "%s: error: --nv %s: %lld bytes is not an NV file of canergy\n",
+                      PROG, p->opt.nv_path, (long long)size.st_size);
+        exit(EXIT_USAGE);
+    }
     ssize_t n;
     do {
         n = pread(p->nv_fd, image, NV_IMAGE_BYTES, 0);

@@ -15,7 +15,9 @@ from collections.abc import Callable
 from typing import TypeVar
 
 from canergy.codec import MAX_EXTENDED_ID, Codec
-from canergy.messages import AMOUNT_MAX_MJ, MAX_NODE, MIN_NODE, QUANTUM_UJ
+from canergy.core.common import check_amount
+from canergy.core.errors import LocalProtocolError
+from canergy.messages import MAX_NODE, MIN_NODE
 from canergy.units import format_duration, parse_duration, parse_energy, parse_power
 
 _T = TypeVar("_T")
@@ -53,13 +55,15 @@ def energy(text: str) -> int:
 
 
 def grant_amount(text: str) -> int:
-    """An energy one transaction can carry: whole millijoules, 1 mJ to 65.535 J."""
+    """An energy one transaction can carry (the core's ``check_amount``): whole millijoules,
+    1 mJ to 65.535 J."""
     value = energy(text)
-    largest = AMOUNT_MAX_MJ * QUANTUM_UJ
-    if not QUANTUM_UJ <= value <= largest or value % QUANTUM_UJ:
+    try:
+        check_amount(value)
+    except LocalProtocolError:
         raise argparse.ArgumentTypeError(
             f"{text[:24]!r}: a grant is whole millijoules from 1 mJ to 65.535 J"
-        )
+        ) from None
     return value
 
 

@@ -11,7 +11,7 @@ from canergy.core.inputs import (
     GiveBack,
     Spend,
 )
-from canergy.core.state import ClientState, Phase
+from canergy.core.state import ClientState
 from canergy.core.table import Event
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
@@ -79,8 +79,8 @@ class Client:
     def _step(self, event: Event, now: int) -> list[Action]:
         old = self.state
         self.state, actions = self.rules.step(self.timing, old, event, now)
-        joining = self.state.phase is Phase.JOINING  # no books: there is no record to write
-        if not joining and self.rules.persistent(old) != self.rules.persistent(self.state):
+        record = self.rules.persistent(self.state)
+        if record and record != self.rules.persistent(old):  # (): no record to write
             return [Persist(), *actions]
         return list(actions)
 

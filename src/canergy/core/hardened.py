@@ -323,7 +323,10 @@ def on_admit(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
 
 
 def client_record(c: ClientState) -> tuple[object, ...]:
-    """What the client persists (one record, written before the reply that reports it)."""
+    """What the client persists (one record, written before the reply that reports it); none
+    while JOINING: a blank record on disk would be trusted at the next start."""
+    if c.phase is JOINING:
+        return ()
     return (
         c.usable,
         c.credited,

@@ -175,6 +175,7 @@ class RuleTable(Generic[S, R]):
         self.phases = tuple(phases)
         self.events = EVENTS[self.role]
         self.persistent: Callable[[S], tuple[object, ...]] = persistent
+        """What is written to non-volatile memory; ``()`` when there is no record to write."""
         self._build(cells)
 
     def _build(self, cells: Iterable[Cell]) -> None:

@@ -287,8 +287,11 @@ def test_canopen_on_vcan0_eds_master_heartbeat_loss_and_restart(procs: Procs) ->
     _wait(lambda: node_status(8).get("lost") is False, "node 8 back", timeout_s=60)
     # it dies and comes back from its NV file: boot-up, NMT start, grants resume
     procs.stop("client8", signal.SIGKILL)
+    (tmp / "n8.json").unlink()
+    time.sleep(1)  # let a COMMITTED already on its way be counted
     done = node_status(8)["committed"]
     _client(procs, 8, "--canopen")
+    _wait(lambda: (tmp / "n8.json").exists(), "node 8 restarting")  # up, its signals handled
     _wait(lambda: node_status(8)["committed"] > done, "grants to node 8 after its reboot")
 
     assert procs.stop("supervisor") == 0, procs.stderr("supervisor")

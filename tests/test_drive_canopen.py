@@ -1,0 +1,247 @@
+"""The emulated drive on python-can's ``virtual`` bus, driven by python-canopen masters.
+
+Timeouts are generous and no assertion depends on tight timing (a loaded 2-core machine).
+"""
+
+from __future__ import annotations
+
+import itertools
+import statistics
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import can
+import canopen
+import pytest
+from canopen.profiles.p402 import State402
+
+from canergy.live.runtime import monotonic_us
+from firmware_model.drive.canopen_face import DriveFace, drive_network
+from firmware_model.drive.model import DriveModel
+from firmware_model.drive.motor import LoadTorque
+
+NODE, MASTER = 10, 1
+CIA402_EDS = "src/canergy/live/cia402.eds"
+
+
+def wait_for(condition: Callable[[], bool], timeout: float = 10.0) -> None:
+    end = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.005)
+
+
+class Frames(can.Listener):
+    """Every frame the master sees, with its arrival time."""
+
+    def __init__(self) -> None:
+        self.seen: list[tuple[float, int, bytes]] = []
+        self.lock = threading.Lock()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        with self.lock:
+            self.seen.append((time.monotonic(), msg.arbitration_id, bytes(msg.data)))
+
+    def of(self, cob_id: int) -> list[tuple[float, bytes]]:
+        with self.lock:
+            return [(t, d) for t, c, d in self.seen if c == cob_id]
+
+
+@dataclass
+class Rig:
+    face: DriveFace
+    network: canopen.Network
+    node: canopen.BaseNode402
+    frames: Frames
+    channel: str
+
+    @property
+    def model(self) -> DriveModel:
+        return self.face.model
+
+    def master(self) -> tuple[canopen.Network, can.BusABC]:
+        """Another master on its own bus object (closed by the rig)."""
+        bus = can.Bus(interface="virtual", channel=self.channel)
+        net = drive_network(bus)
+        self._extra.append((net, bus))
+        return net, bus
+
+    _extra: list[tuple[canopen.Network, can.BusABC]]
+
+
+def _close(net: canopen.Network, bus: can.BusABC) -> None:
+    if net.notifier is not None:
+        net.notifier.stop()
+    bus.shutdown()
+
+
+@pytest.fixture
+def rig() -> Iterator[Rig]:
+    channel = f"drive-{uuid.uuid4().hex}"
+    drive_bus = can.Bus(interface="virtual", channel=channel)
+    drive_net = drive_network(drive_bus)
+    model = DriveModel(NODE, monotonic_us(), load=LoadTorque.constant(0.01, opposing=True))
+    face = DriveFace(model, drive_net)
+    master_bus = can.Bus(interface="virtual", channel=channel)
+    network = drive_network(master_bus)
+    frames = Frames()
+    assert network.notifier is not None
+    network.notifier.add_listener(frames)
+    node = canopen.BaseNode402(NODE, CIA402_EDS)
+    for name in ("TIMEOUT_SWITCH_STATE_FINAL", "TIMEOUT_SWITCH_STATE_SINGLE"):
+        setattr(node, name, 5.0)
+    node.TIMEOUT_CHECK_TPDO = 2.0
+    node.TIMEOUT_SWITCH_OP_MODE = 5.0
+    network.add_node(node)
+    face.boot()
+    face.start()
+    r = Rig(face, network, node, frames, channel, [])
+    try:
+        yield r
+    finally:
+        face.close()
+        for net, bus in [(network, master_bus), *r._extra, (drive_net, drive_bus)]:
+            _close(net, bus)
+
+
+def start(rig: Rig) -> None:
+    """Heard in PRE-OPERATIONAL, PDOs read by SDO, then NMT start and first TPDOs."""
+    node = rig.node
+    node.nmt.wait_for_heartbeat(5)
+    assert node.nmt.state == "PRE-OPERATIONAL"
+    node.setup_402_state_machine()
+    node.nmt.state = "OPERATIONAL"
+    assert node.tpdo[1].wait_for_reception(5) is not None
+    wait_for(lambda: node.state == "SWITCH ON DISABLED")
+
+
+def test_base_node_402_master_runs_profiled_velocity_and_quick_stops(rig: Rig) -> None:
+    node = rig.node
+    node.nmt.wait_for_heartbeat(5)
+    node.sdo[0x1800][5].raw = 20  # event timer by SDO in PRE-OPERATIONAL
+    node.sdo[0x1801][5].raw = 20
+    start(rig)
+    assert 0x6040 in node.rpdo_pointers  # controlword by RPDO1
+    node.op_mode = "PROFILED VELOCITY"
+    assert node.op_mode == "PROFILED VELOCITY"
+    node.sdo[0x60FF].raw = 40_000  # 40 rad/s
+    node.state = "OPERATION ENABLED"
+    assert rig.model.state == "OPERATION ENABLED"
+    wait_for(lambda: abs(node.tpdo_values[0x606C] - 40_000) < 100)
+    wait_for(lambda: node.statusword & 0x0400 != 0)  # target reached
+    t0 = time.monotonic()
+    time.sleep(1.0)
+    times = [t for t, _ in rig.frames.of(0x18A) if t >= t0]
+    gaps = [b - a for a, b in itertools.pairwise(times)]
+    assert len(gaps) >= 10
+    assert 0.010 <= statistics.median(gaps) <= 0.040  # the 20 ms event timer
+    velocity = rig.frames.of(0x28A)[-1][1][0:4]
+    assert abs(int.from_bytes(velocity, "little", signed=True) - 40_000) < 100
+    drawn = rig.face.status()["drawn_uj"]
+    assert drawn > 0.5 * 1e-4 * 40**2 * 1e6  # at least the kinetic energy
+    node.controlword = State402.CW_QUICK_STOP  # option 2: stop, then SWITCH ON DISABLED
+    wait_for(lambda: node.state == "SWITCH ON DISABLED")
+    assert abs(node.tpdo_values[0x606C]) < 20
+    status = rig.face.status()
+    assert status["quick_stop_count"] == 1
+    states = [h["state"] for h in status["history"]]
+    assert states[-2:] == ["QUICK STOP ACTIVE", "SWITCH ON DISABLED"]
+    node.state = "OPERATION ENABLED"
+    node.state = "SWITCH ON DISABLED"  # disable voltage: 9
+    assert rig.model.state == "SWITCH ON DISABLED"
+    assert status["bad_writes"] == 0 and status["decode_errors"] == 0
+
+
+def test_master_heartbeat_loss_faults_the_drive(rig: Rig) -> None:
+    node = rig.node
+    node.nmt.wait_for_heartbeat(5)
+    node.sdo[0x1016][1].raw = MASTER << 16 | 300  # 300 ms
+    heartbeat = rig.network.send_periodic(0x700 + MASTER, [5], 0.05)
+    try:
+        wait_for(lambda: rig.model.heartbeat_active)
+        node.sdo[0x6060].raw = 3
+        node.sdo[0x60FF].raw = 20_000
+        for cw in (0x06, 0x07, 0x0F):
+            node.sdo[0x6040].raw = cw
+        time.sleep(0.5)
+        assert rig.model.state == "OPERATION ENABLED"  # the heartbeat keeps it running
+    finally:
+        heartbeat.stop()
+    stopped = monotonic_us()
+    emcy = node.emcy.wait(0x8130, timeout=10)
+    assert emcy is not None
+    wait_for(lambda: node.sdo[0x6041].raw & 0x4F == 0x08)  # FAULT
+    assert node.sdo[0x603F].raw == 0x8130
+    assert node.sdo[0x1001].raw & 1
+    reaction = next(t for t, s in rig.model.psm.history if s == "FAULT REACTION ACTIVE")
+    assert 300_000 - 60_000 <= reaction - stopped <= 300_000 + 2_000_000
+    status = rig.face.status()
+    assert status["fault_reason"] == "heartbeat consumer timeout"
+    assert status["heartbeat_timeouts"] == 1
+    node.sdo[0x6040].raw = 0x00
+    node.sdo[0x6040].raw = 0x80  # fault reset
+    assert node.sdo[0x6041].raw & 0x4F == 0x40
+    assert node.sdo[0x603F].raw == 0
+
+
+def test_sync_triggers_tpdos_of_transmission_type_1(rig: Rig) -> None:
+    node = rig.node
+    node.nmt.wait_for_heartbeat(5)
+    node.sdo[0x1800][2].raw = 1
+    for comm in (0x1801, 0x1802):
+        node.sdo[comm][1].raw = node.sdo[comm][1].raw | 0x8000_0000  # invalid
+    node.nmt.state = "OPERATIONAL"
+    time.sleep(0.2)
+    assert rig.frames.of(0x18A) == [] and rig.frames.of(0x28A) == []
+    for _ in range(5):
+        rig.network.sync.transmit()
+        time.sleep(0.02)
+    wait_for(lambda: len(rig.frames.of(0x18A)) == 5)
+    time.sleep(0.2)
+    assert len(rig.frames.of(0x18A)) == 5 and rig.frames.of(0x38A) == []
+    sw = int.from_bytes(rig.frames.of(0x18A)[-1][1][0:2], "little")
+    assert sw & 0x4F == 0x40
+
+
+def test_a_second_master_reads_by_sdo_while_the_first_runs_the_drive(rig: Rig) -> None:
+    start(rig)
+    node = rig.node
+    node.op_mode = "PROFILED VELOCITY"
+    node.sdo[0x60FF].raw = 30_000
+    net, _ = rig.master()
+    other = canopen.RemoteNode(NODE, CIA402_EDS)
+    net.add_node(other)
+    seen: list[tuple[int, int]] = []
+    done = threading.Event()
+
+    def poll() -> None:
+        while not done.is_set():
+            seen.append((other.sdo[0x6041].raw, other.sdo[0x606C].raw))
+
+    reader = threading.Thread(target=poll)
+    reader.start()
+    try:
+        node.state = "OPERATION ENABLED"  # RPDO controlwords, TPDO statuswords
+        wait_for(lambda: abs(node.tpdo_values[0x606C] - 30_000) < 100)
+        wait_for(lambda: len(seen) > 20 and abs(seen[-1][1] - 30_000) < 200)
+    finally:
+        done.set()
+        reader.join(10)
+    assert any(sw & 0x6F == 0x27 for sw, _ in seen)  # OPERATION ENABLED, read by SDO
+    assert rig.model.state == "OPERATION ENABLED"
+
+
+def test_bad_sdo_writes_are_aborted_and_counted(rig: Rig) -> None:
+    node = rig.node
+    node.nmt.wait_for_heartbeat(5)
+    bad = [(0x6060, 1), (0x6085, 0), (0x6041, 0x27)]
+    for index, value in bad:
+        with pytest.raises(canopen.SdoAbortedError):
+            node.sdo[index].raw = value
+    with pytest.raises(canopen.SdoAbortedError):
+        node.sdo.download(0x6040, 0, b"\x01\x02\x03\x04")  # wrong length
+    assert rig.face.status()["bad_writes"] == 4
+    assert node.sdo[0x6060].raw == 0 and node.sdo[0x6041].raw & 0x4F == 0x40

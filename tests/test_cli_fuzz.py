@@ -49,14 +49,19 @@ import canergy.demo
 import canergy.rules_doc
 import canergy.sim.sweep
 import firmware_model.__main__ as firmware
+import firmware_model.drive.__main__ as drive
 from canergy.cli import build_parser
 from canergy.cli import main as canergy_main
 from canergy.live.runtime import BusRuntime
+from firmware_model.drive.canopen_face import DriveFace
 
 FIRMWARE = "firmware_model"
+DRIVE = "firmware_model.drive"
+EMULATORS = {FIRMWARE: firmware, DRIVE: drive}
+"""``python -m`` commands beside canergy's own: their parser and ``main``."""
 EXAMPLES = 30
 """Runs per command; ``derandomize``: the same ones every time."""
-MORE_EXAMPLES = {"supervisor": 60, "grant": 60, FIRMWARE: 60}
+MORE_EXAMPLES = {"supervisor": 60, "grant": 60, FIRMWARE: 60, DRIVE: 40}
 """Commands with many options and start-up checks behind them."""
 
 
@@ -67,7 +72,7 @@ def _subcommands() -> dict[str, argparse.ArgumentParser]:
 
 PARSERS: dict[str, argparse.ArgumentParser] = {
     **_subcommands(),
-    FIRMWARE: firmware.build_parser(),
+    **{name: module.build_parser() for name, module in EMULATORS.items()},
 }
 
 OUTPUTS: dict[str, set[str]] = {
@@ -77,9 +82,10 @@ OUTPUTS: dict[str, set[str]] = {
     "bench": {"json"},
     "simulate": {"out"},
     "sweep": {"out"},
-    "supervisor": {"state", "status_file", "control"},
+    "supervisor": {"state", "status_file", "control", "cia402_capture"},
     "grant": {"state"},
     FIRMWARE: {"nv", "status_file"},
+    DRIVE: {"status_file"},
 }
 """The options (argparse ``dest``) naming what a command may create or change: a file, or a
 directory and everything under it. Any other path is only read."""
@@ -131,6 +137,7 @@ NUMBERS = [
     "4294967296",
     "0x10",
     "0x0CE00000",
+    "0x2010",
     "1-2",
     "1.5s",
     "250ms",
@@ -298,6 +305,7 @@ def _bounded_commands() -> Iterator[None]:
 
     patches = [
         mock.patch.object(BusRuntime, "poll", _stop),  # supervisor, grant, firmware_model
+        mock.patch.object(DriveFace, "run", _stop),  # firmware_model.drive
         mock.patch.object(canergy.cli_inspect, "open_bus", open_bus),
         mock.patch.object(canergy.check, "check", check),
         mock.patch.object(canergy.demo, "run_demo", run_demo),
@@ -329,8 +337,8 @@ def _call(name: str, argv: Sequence[str]) -> Outcome:
     try:
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             try:
-                if name == FIRMWARE:
-                    code = firmware.main(list(argv))
+                if name in EMULATORS:
+                    code = EMULATORS[name].main(list(argv))
                 else:
                     code = canergy_main([name, *argv])
             except SystemExit as exc:
@@ -360,8 +368,8 @@ def _tree(root: Path) -> dict[str, str]:
 
 def _outputs(name: str, argv: Sequence[str], root: Path) -> list[Path]:
     """The declared outputs this invocation names (none when its arguments do not parse)."""
-    full = list(argv) if name == FIRMWARE else [name, *argv]
-    parser = PARSERS[FIRMWARE] if name == FIRMWARE else build_parser()
+    full = list(argv) if name in EMULATORS else [name, *argv]
+    parser = PARSERS[name] if name in EMULATORS else build_parser()
     try:
         with contextlib.redirect_stderr(io.StringIO()), contextlib.redirect_stdout(io.StringIO()):
             args = parser.parse_args(full)

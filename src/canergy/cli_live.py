@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from canergy.cli_args import add_duration, bounded_int, energy, grant_amount, node_ids, power
+from canergy.cli_cia402 import add_cia402_flags, check_cia402, guard_drives
 from canergy.codec import Codec
 from canergy.core import Supervisor, Timing
 from canergy.core.variants import VARIANTS
@@ -76,7 +77,7 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         description="Run the supervisor: keep nodes topped up and/or serve one-shot grants. "
         "SIGINT/SIGTERM stop it cleanly (open transactions settle or are written off).",
     )
-    p.add_argument("--nodes", type=node_ids, required=True, help="node ids, e.g. 1-5,9")
+    p.add_argument("--nodes", type=node_ids, help="canergy node ids, e.g. 1-5,9")
     _supervisor_flags(p)
     p.add_argument(
         "--target",
@@ -113,6 +114,7 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         "--canopen: a node is lost after this long without a heartbeat",
     )
     p.add_argument("--eds", type=Path, help="the nodes' EDS (default: canergy's node EDS)")
+    add_cia402_flags(p)
 
     g = sub.add_parser(
         "grant",
@@ -127,14 +129,18 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     _supervisor_flags(g)
 
 
-def _build(args: argparse.Namespace, nodes: tuple[int, ...]) -> Supervisor:
+def _timing(args: argparse.Namespace) -> Timing:
     timeout = args.response_timeout
-    timing = Timing(
+    return Timing(
         response_timeout_us=timeout,
         retries=args.retries,
         command_timeout_us=2 * timeout,
         return_retry_us=2 * timeout,
     )
+
+
+def _build(args: argparse.Namespace, nodes: tuple[int, ...]) -> Supervisor:
+    timing = _timing(args)
     state = None
     if args.state is not None and args.state.exists():
 
@@ -312,10 +318,12 @@ def run_supervisor(args: argparse.Namespace) -> int:
             "--inject needs an energy above 0 and a supervisor that sends and keeps "
             "its --state (not --listen-only)"
         )
+    check_cia402(args)
     _check_state(args, required=not args.listen_only)
     if args.canopen:
         _check_eds(args.eds)
-    core = _build(args, args.nodes)
+    nodes = tuple(sorted((*(args.nodes or ()), *(args.cia402 or ()))))
+    core = _build(args, nodes)
     config = ServiceConfig(
         policy=TopUp(args.target, args.min_grant) if args.target is not None else None,
         limits=_limits(args),
@@ -331,13 +339,15 @@ def run_supervisor(args: argparse.Namespace) -> int:
     )
     codec = Codec(args.id_base)
     filters = codec.supervisor_filters()
-    if args.canopen:
+    if args.canopen or args.cia402:
         from canergy.live.shared_bus import STANDARD_FRAMES
 
         filters.append(STANDARD_FRAMES)  # CANopen's 11-bit ids
     bus = open_bus(args, filters)
     control = None
     manager = None
+    network = None
+    guarded = None
     try:
         # the socket first: a run that cannot bind it stops before the state file is written
         control = ControlServer(args.control) if args.control is not None else None
@@ -350,9 +360,20 @@ def run_supervisor(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
         manager, reader = _canopen(args, bus, service) if args.canopen else (None, None)
+        handler: Any = service
+        if args.cia402:
+            from canergy.live.shared_bus import shared_network
+
+            if manager is not None:
+                network = manager.network
+            else:
+                network, reader = shared_network(bus)
+            now = monotonic_us()
+            guarded = guard_drives(args, network, bus, service, _timing(args), now, monotonic_us)
+            handler = guarded
         runtime = BusRuntime(
             bus,
-            service,
+            handler,
             codec=codec,
             receives=Direction.TO_SUPERVISOR,
             listen_only=args.listen_only,
@@ -363,8 +384,10 @@ def run_supervisor(args: argparse.Namespace) -> int:
     finally:
         if control is not None:
             control.close()
-        if manager is not None:
-            manager.network.notifier.stop()
+        if guarded is not None:
+            guarded.close()
+        for net in {id(n): n for n in (network, manager and manager.network) if n}.values():
+            net.notifier.stop()
         bus.shutdown()
     return 0
 

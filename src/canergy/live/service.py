@@ -107,6 +107,8 @@ class SupervisorService:
         self.status_stream = config.status_stream
         self.liveness: Callable[[int, int], bool] | None = None
         """Extra liveness test (the CANopen heartbeat watchdog); False: no grants."""
+        self.extra_status: Callable[[int], dict[str, Any]] | None = None
+        """More status under ``cia402`` (the guarded drives)."""
         self.bus_counters = BusCounters()
         """Replaced by the bus loop's own counters when one drives this service."""
         self.injected_this_run = 0
@@ -425,6 +427,7 @@ class SupervisorService:
             },
             **self.bus_counters.as_json(),
             "nodes": nodes,
+            **({"cia402": self.extra_status(self.now)} if self.extra_status else {}),
         }
 
     def write_status(self) -> None:

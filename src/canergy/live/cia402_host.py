@@ -1,0 +1,177 @@
+"""The supervisor with guarded CiA 402 drives: one loop, one core, proxies in the same books.
+
+``GuardedSupervisor`` wraps the supervisor service as the bus loop's ``Handler``. Frames the
+service sends to a guarded drive's id go to that drive's proxy client in this process, and the
+proxy's answers come back to the service, each encoded and decoded by the codec exactly as on the
+bus (and written to ``capture`` when given, so ``canergy audit`` reads them). Every loop pass
+drains the drives' TPDO samples into their guards, hands the guards' commands to the links, and
+produces the host's heartbeat (and SYNC, when asked) that the drives' consumers watch: a host
+whose loop stops, or whose process dies, goes silent and its drives fault on their own.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import can
+
+from canergy.cia402.guard import DriveGuard
+from canergy.codec import Codec, DecodeError
+from canergy.live.cia402_link import DriveLink
+from canergy.live.service import SupervisorService
+from canergy.messages import Direction, Message, ToClient
+
+NMT_OPERATIONAL = 0x05
+SYNC_ID = 0x080
+
+
+@dataclass(frozen=True, slots=True)
+class HostBeat:
+    """The host's heartbeat (0x700 + host id, state OPERATIONAL) and optional SYNC."""
+
+    host_id: int = 127
+    heartbeat_us: int = 100_000
+    sync_us: int | None = None
+
+
+class GuardedSupervisor:
+    """Implements ``canergy.live.runtime.Handler``."""
+
+    def __init__(
+        self,
+        service: SupervisorService,
+        drives: dict[int, tuple[DriveGuard, DriveLink]],
+        bus: can.BusABC,
+        beat: HostBeat,
+        now: int,
+        *,
+        codec: Codec | None = None,
+        capture: can.Listener | None = None,
+    ) -> None:
+        self.service = service
+        self.drives = drives
+        self.bus = bus
+        self.beat = beat
+        self.codec = codec or Codec()
+        self.capture = capture
+        self.next_beat = now
+        self.next_sync = now if beat.sync_us else None
+        self.beat_failures = 0
+        service.liveness = self._alive_with(service.liveness)
+        service.extra_status = self.status
+
+    def _alive_with(self, other: Any) -> Any:
+        def alive(node: int, now: int) -> bool:
+            if node in self.drives:
+                return self.drives[node][0].alive(now)
+            return other is None or bool(other(node, now))
+
+        return alive
+
+    # -- Handler ---------------------------------------------------------------------------
+    def on_message(self, msg: Message, now: int) -> Sequence[Message]:
+        if msg.node in self.drives:
+            return ()  # a frame for a guarded id from the bus: not the proxy's (counted there)
+        return self._route(list(self.service.on_message(msg, now)), now)
+
+    def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
+        self.service.on_decode_error(error, frame)
+
+    def next_wakeup(self) -> int | None:
+        times = [self.next_beat]
+        if self.next_sync is not None:
+            times.append(self.next_sync)
+        if (wakeup := self.service.next_wakeup()) is not None:
+            times.append(wakeup)
+        for guard, link in self.drives.values():
+            if link.samples or (link.ready_at is not None and guard.ready_at is None):
+                return 0
+            times.append(guard.next_wakeup())
+        return min(times)
+
+    def on_wakeup(self, now: int) -> Sequence[Message]:
+        up: list[Message] = []
+        for guard, link in self.drives.values():
+            if self.service.stopping and not guard.halted:
+                guard.halt(now)
+            if link.ready_at is not None and guard.ready_at is None and link.meter is not None:
+                guard.meter.config = link.meter
+                guard.on_ready(link.ready_at)
+            for at, values, state in link.drain():
+                up += guard.on_values(at, values, state)
+            if guard.next_wakeup() <= now:
+                up += guard.on_wakeup(now)
+            for cmd in guard.commands:
+                link.command(cmd)
+            guard.commands.clear()
+        out = self._deliver(up, now)
+        wakeup = self.service.next_wakeup()
+        if wakeup is not None and wakeup <= now:
+            out += self.service.on_wakeup(now)
+        self._produce(now)
+        return self._route(out, now)
+
+    # -- the in-process leg ----------------------------------------------------------------
+    def _route(self, frames: list[Message], now: int) -> list[Message]:
+        """Send on the bus what is not for a proxy; feed proxies until nothing is left."""
+        to_bus: list[Message] = []
+        queue = deque(frames)
+        while queue:
+            msg = queue.popleft()
+            if msg.node not in self.drives or not isinstance(msg, ToClient):
+                to_bus.append(msg)
+                continue
+            down = self._loop_back(msg, Direction.TO_CLIENT, now)
+            guard = self.drives[msg.node][0]
+            if isinstance(down, ToClient):
+                queue.extend(self._deliver(guard.on_message(down, now), now))
+        return to_bus
+
+    def _deliver(self, up: list[Message], now: int) -> list[Message]:
+        out: list[Message] = []
+        for msg in up:
+            out += self.service.on_message(self._loop_back(msg, Direction.TO_SUPERVISOR, now), now)
+        return out
+
+    def _loop_back(self, msg: Message, direction: Direction, now: int) -> Message:
+        arbitration_id, data = self.codec.encode(msg)
+        if self.capture is not None:
+            frame = can.Message(
+                timestamp=now / 1e6, arbitration_id=arbitration_id, data=data, channel="proxy"
+            )
+            self.capture.on_message_received(frame)
+        return self.codec.decode(arbitration_id, data, direction=direction)
+
+    def _produce(self, now: int) -> None:
+        if now >= self.next_beat:
+            self.next_beat = now + self.beat.heartbeat_us
+            self._send(0x700 + self.beat.host_id, bytes([NMT_OPERATIONAL]))
+        if self.next_sync is not None and self.beat.sync_us and now >= self.next_sync:
+            self.next_sync = max(self.next_sync + self.beat.sync_us, now)
+            self._send(SYNC_ID, b"")
+
+    def _send(self, arbitration_id: int, data: bytes) -> None:
+        try:
+            frame = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False)
+            self.bus.send(frame)
+        except can.CanError:
+            self.beat_failures += 1
+
+    def status(self, now: int) -> dict[str, Any]:
+        return {
+            "host_id": self.beat.host_id,
+            "heartbeat_failures": self.beat_failures,
+            "drives": {
+                str(n): {**guard.status(now), **link.status()}
+                for n, (guard, link) in self.drives.items()
+            },
+        }
+
+    def close(self) -> None:
+        for _, link in self.drives.values():
+            link.close()
+        if self.capture is not None:
+            self.capture.stop()

@@ -1,0 +1,214 @@
+"""One CiA 402 drive over python-canopen: set-up, TPDO values in, controlwords out.
+
+``canopen.BaseNode402`` does the profile: it reads the drive's PDO configuration, keeps the
+last TPDO values, decodes the statusword into a power state and writes the controlword by RPDO
+(when mapped) or SDO. Where it does not fit a guard it is worked around, not rewritten:
+
+- its ``state`` setter blocks (hard-coded 0.4-0.8 s timeouts per step) and, asked for QUICK STOP
+  ACTIVE, walks a drive whose quick stop fell through to SWITCH ON DISABLED (option codes 1 and
+  2) back up through READY TO SWITCH ON and SWITCHED ON, re-enabling it, or raises "Illegal
+  state transition" when the state moves between its two reads. The guard never uses it: quick
+  stop and disable are written as controlwords, and enabling goes one step at a time with the
+  profile's own transition table, each step decided by the next TPDO;
+- ``setup_pdos`` asserts ``nmt.state in 'PRE-OPERATIONAL'`` (a substring test) and so fails for
+  a drive whose heartbeat was not heard yet: the PDO configuration is read here and the profile
+  is set up with ``read_pdos=False``;
+- SDO and RPDO writes happen in a worker thread, so a drive that does not answer never blocks
+  the supervisor's loop.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import can
+import canopen
+from canopen.profiles.p402 import BaseNode402, State402
+
+from canergy.cia402.guard import ENABLED, Command
+from canergy.cia402.meter import RATED_CURRENT, RATED_TORQUE, MeterConfig
+
+log = logging.getLogger(__name__)
+
+STATUSWORD = 0x6041
+HEARTBEAT_CONSUMER = 0x1016
+EDS = Path(__file__).with_name("cia402.eds")
+"""A generic CiA 402 drive (standard objects only), for drives given without their own EDS."""
+
+Sample = tuple[int, dict[int, int], str | None]
+
+
+@dataclass(frozen=True, slots=True)
+class LinkConfig:
+    eds: Path = EDS
+    meter: MeterConfig = field(default_factory=MeterConfig)
+    host_id: int = 127
+    consumer_timeout_ms: int = 500
+    """Written to the drive's 0x1016:1 with ``host_id``: it faults when the host goes silent."""
+    sdo_timeout_s: float = 0.5
+    setup_retry_s: float = 1.0
+
+
+class SetupError(RuntimeError):
+    """The drive answers but cannot be guarded as configured (e.g. a needed object unmapped)."""
+
+
+def power_state(statusword: int) -> str:
+    """The power state a statusword shows, by the profile's own masks (as ``BaseNode402.state``)."""
+    for state, (mask, bits) in State402.SW_MASK.items():
+        if statusword & mask == bits:
+            return state
+    return "UNKNOWN"
+
+
+def enable_step(state: str) -> int | None:
+    """The controlword for one step from ``state`` toward OPERATION ENABLED, by the profile's
+    own transition table (None: no step from there, e.g. FAULT needs a reset first)."""
+    if (state, ENABLED) in State402.TRANSITIONTABLE:
+        return State402.TRANSITIONTABLE[(state, ENABLED)]
+    nxt = State402.next_state_indirect(state)
+    if state == "QUICK STOP ACTIVE":
+        nxt = "SWITCH ON DISABLED"  # via disable voltage (transition 12)
+    if nxt is None or state in ("FAULT", "FAULT REACTION ACTIVE"):
+        return None
+    return State402.TRANSITIONTABLE.get((state, nxt))
+
+
+class DriveLink:
+    """The host's end of one drive. TPDO callbacks run in the Notifier's thread and only
+    queue samples; the guard drains them in the supervisor's loop."""
+
+    def __init__(
+        self,
+        network: canopen.Network,
+        node_id: int,
+        config: LinkConfig,
+        clock: Callable[[], int],
+    ) -> None:
+        self.config = config
+        self.clock = clock
+        self.node = BaseNode402(node_id, str(config.eds))
+        self.node.sdo.RESPONSE_TIMEOUT = config.sdo_timeout_s
+        network.add_node(self.node)
+        self.samples: deque[Sample] = deque()
+        self.ready_at: int | None = None
+        self.meter: MeterConfig | None = None
+        self.error: str | None = None
+        self.commands_sent = 0
+        self.command_failures = 0
+        self.last_command: dict[str, Any] | None = None
+        self.reaction_max_us = 0
+        """Longest time from the TPDO that called for a command to the command leaving."""
+        self._jobs: queue.Queue[Command | None] = queue.Queue()
+        self._closed = threading.Event()
+        self._thread = threading.Thread(target=self._work, name=f"drive-{node_id}", daemon=True)
+        self._thread.start()
+
+    @property
+    def node_id(self) -> int:
+        return int(self.node.id or 0)
+
+    # -- the supervisor's loop ------------------------------------------------------------
+    def drain(self) -> list[Sample]:
+        out: list[Sample] = []
+        while self.samples:
+            out.append(self.samples.popleft())
+        return out
+
+    def command(self, cmd: Command) -> None:
+        self._jobs.put(cmd)
+
+    def close(self) -> None:
+        self._closed.set()
+        self._jobs.put(None)
+        self._thread.join(timeout=5)
+
+    # -- the worker thread ----------------------------------------------------------------
+    def _work(self) -> None:
+        while not self._closed.is_set():
+            try:
+                self._setup()
+                break
+            except SetupError as exc:
+                self.error = str(exc)
+                log.error("drive %d: %s", self.node_id, exc)
+                return
+            except (canopen.SdoCommunicationError, canopen.SdoAbortedError, can.CanError) as exc:
+                self.error = f"set-up failed, retrying: {exc}"
+                self._closed.wait(self.config.setup_retry_s)
+        while True:
+            cmd = self._jobs.get()
+            if cmd is None:
+                return
+            self._execute(cmd)
+
+    def _setup(self) -> None:
+        node, sdo = self.node, self.node.sdo
+        rated_torque = int(sdo[RATED_TORQUE].raw)
+        rated_current = int(sdo[RATED_CURRENT].raw)
+        consumer = self.config.host_id << 16 | self.config.consumer_timeout_ms
+        sdo[HEARTBEAT_CONSUMER][1].raw = consumer
+        if int(sdo[HEARTBEAT_CONSUMER][1].raw) != consumer:
+            raise SetupError("the drive did not keep its heartbeat consumer setting (0x1016:1)")
+        node.tpdo.read()
+        node.rpdo.read()
+        node.setup_402_state_machine(read_pdos=False)
+        meter = replace(
+            self.config.meter, rated_torque_mnm=rated_torque, rated_current_ma=rated_current
+        )
+        mapped = set(node.tpdo_values)
+        missing = [i for i in (STATUSWORD, *meter.needs()) if i not in mapped]
+        if missing:
+            names = ", ".join(f"0x{i:04X}" for i in missing)
+            raise SetupError(f"its TPDOs do not carry {names}: map them (see the README)")
+        for tpdo in node.tpdo.values():
+            if tpdo.enabled:
+                tpdo.add_callback(self._on_tpdo)
+        node.nmt.state = "OPERATIONAL"
+        self.meter = meter
+        self.error = None
+        self.ready_at = self.clock()
+
+    def _on_tpdo(self, pdo: Any) -> None:  # the Notifier's thread
+        values = {var.index: int(var.raw) for var in pdo}
+        state = power_state(values[STATUSWORD]) if STATUSWORD in values else None
+        self.samples.append((self.clock(), values, state))
+
+    def _execute(self, cmd: Command) -> None:
+        controlword = cmd.controlword
+        if controlword is None:
+            controlword = enable_step(power_state(int(self.node.statusword)))
+            if controlword is None:
+                return
+        try:
+            self.node.controlword = controlword
+        except (canopen.SdoCommunicationError, canopen.SdoAbortedError, can.CanError) as exc:
+            self.command_failures += 1
+            log.warning("drive %d: controlword 0x%04X lost: %s", self.node_id, controlword, exc)
+            return
+        self.commands_sent += 1
+        sent = self.clock()
+        self.reaction_max_us = max(self.reaction_max_us, sent - cmd.at)
+        self.last_command = {
+            "controlword": controlword,
+            "why": cmd.why,
+            "decided_at_us": cmd.at,
+            "reaction_us": sent - cmd.at,
+        }
+
+    def status(self) -> dict[str, Any]:
+        return {
+            "ready": self.ready_at is not None,
+            "error": self.error,
+            "commands_sent": self.commands_sent,
+            "command_failures": self.command_failures,
+            "last_command": self.last_command,
+            "reaction_max_us": self.reaction_max_us,
+        }

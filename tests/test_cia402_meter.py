@@ -1,0 +1,120 @@
+"""The drive meter: exact integer energy from sampled TPDO values, never under-metered."""
+
+from __future__ import annotations
+
+from fractions import Fraction
+
+from hypothesis import given
+from hypothesis import strategies as st
+
+from canergy.cia402.meter import (
+    CURRENT_ACTUAL,
+    DC_LINK_VOLTAGE,
+    TORQUE_ACTUAL,
+    VELOCITY_ACTUAL,
+    EnergyMeter,
+    MeterConfig,
+    MeterKind,
+    overshoot_bound_uj,
+)
+
+MECH = MeterConfig(rated_torque_mnm=500, rated_current_ma=5000)
+
+
+def values(torque: int, velocity: int, current: int = 0) -> dict[int, int]:
+    return {TORQUE_ACTUAL: torque, VELOCITY_ACTUAL: velocity, CURRENT_ACTUAL: current}
+
+
+def test_constant_mechanical_power_is_exact() -> None:
+    meter = EnergyMeter(MECH)
+    # 500 ‰ of 0.5 N·m = 0.25 N·m at 100 rad/s (100,000 mrad/s): 25 W; each value may be one
+    # unit off, so the meter charges 501 ‰ at 100.001 rad/s = 25.05025 W: 25.05025 J in 1 s
+    for t in range(0, 1_000_001, 10_000):
+        meter.sample(t, values(500, 100_000))
+    assert meter.metered_uj == 25_050_250
+
+
+def test_copper_losses_from_current_and_resistance() -> None:
+    meter = EnergyMeter(
+        MeterConfig(rated_torque_mnm=500, rated_current_ma=5000, resistance_mohm=1000)
+    )
+    # rated current 5 A through 1 Ω, standing still: 1001 ‰ of 5 A = 5.005 A, 25.050025 W; the
+    # torque and velocity allowance adds 1 ‰ × 0.5 N·m × 1 mrad/s = 0.5 µW
+    meter.sample(0, values(0, 0, 1000))
+    meter.sample(2_000_000, values(0, 0, 1000))
+    assert meter.metered_uj == 50_100_051
+
+
+def test_electrical_metering() -> None:
+    meter = EnergyMeter(
+        MeterConfig(kind=MeterKind.ELECTRICAL, bus_current_index=0x2010),
+    )
+    meter.sample(0, {DC_LINK_VOLTAGE: 24_000, 0x2010: 1_000})
+    meter.sample(500_000, {DC_LINK_VOLTAGE: 24_000, 0x2010: 1_000})
+    assert meter.metered_uj == 12_012_500  # 24.001 V × 1.001 A for 0.5 s
+
+
+def test_nothing_metered_until_every_needed_value_was_seen() -> None:
+    meter = EnergyMeter(MECH)
+    assert meter.sample(0, {TORQUE_ACTUAL: 1000}) == 0
+    assert meter.sample(1_000_000, {TORQUE_ACTUAL: 1000}) == 0
+    assert meter.samples == 0
+
+
+def test_power_flowing_back_is_not_credited_unless_configured() -> None:
+    plain = EnergyMeter(MECH)
+    credit = EnergyMeter(MeterConfig(rated_torque_mnm=500, credit_regen=True))
+    for meter in (plain, credit):
+        meter.sample(0, values(-500, 100_000))  # braking: -25 W
+        meter.sample(1_000_000, values(-500, 100_000))
+        meter.sample(2_000_000, values(500, 100_000))  # driving: +25 W
+        meter.sample(3_000_000, values(500, 100_000))
+    # braking counts at its smallest magnitude (499 ‰ at 99.999 rad/s: 24.9497505 W), driving at
+    # its largest (25.05025 W); the braking-to-driving interval at its larger end
+    assert plain.metered_uj == 50_100_501  # 2 s × 25.05025 W
+    assert plain.regen_uj == 24_949_750
+    # the 24.95 J that flowed back paid for most of a second of driving
+    assert credit.metered_uj == 25_150_750
+
+
+def test_a_fractional_power_rounds_up() -> None:
+    meter = EnergyMeter(MeterConfig(rated_torque_mnm=1, velocity_unit_rad_s=Fraction(1, 3)))
+    # 1 ‰ of 1 mN·m at 1/3 rad/s, each one unit up: 2e-6 N·m × 2/3 rad/s = 1,333,333,333.3 fW
+    assert meter.config.power_fw(values(1, 1)) == 1_333_333_334
+    meter.sample(0, values(1, 1))
+    meter.sample(3_000_000, values(1, 1))  # 3 s of it: just over 4 µJ
+    assert meter.metered_uj == 4
+
+
+@given(
+    st.lists(
+        st.tuples(st.integers(1, 50_000), st.integers(-3000, 3000), st.integers(-300_000, 300_000)),
+        min_size=2,
+        max_size=60,
+    )
+)
+def test_never_below_the_energy_of_linear_power_between_samples(
+    rows: list[tuple[int, int, int]],
+) -> None:
+    """Power that moves linearly between samples (monotone) is never under-metered, and the
+    meter charges at most the larger end of each interval, each value one unit up."""
+    meter = EnergyMeter(MECH)
+    t, reference, ceiling, last = 0, Fraction(0), Fraction(0), None
+    for dt, torque, velocity in rows:
+        t += dt
+        meter.sample(t, values(torque, velocity))
+        power = Fraction(torque * 500 * velocity, 10**9)  # W
+        high = Fraction((abs(torque) + 1) * 500 * (abs(velocity) + 1), 10**9)
+        if last is not None:
+            lt, lp, lh = last
+            reference += max((lp + power) / 2, Fraction(0)) * (t - lt) / 10**6
+            ceiling += max(lh, high) * (t - lt) / 10**6
+        last = (t, power, high)
+    assert meter.metered_uj >= reference * 10**6 - 1
+    assert meter.metered_uj <= ceiling * 10**6
+
+
+def test_overshoot_bound() -> None:
+    # 30 W × (10 ms + 5 ms + 200 ms) = 6.45 J
+    assert overshoot_bound_uj(30_000_000, 10_000, 5_000, 200_000) == 6_450_000
+    assert overshoot_bound_uj(1, 1, 0, 0) == 1  # rounded up

@@ -27,14 +27,18 @@ def _shell_commands(prefix: str) -> list[list[str]]:
 def test_readme_bench_commands_parse() -> None:
     from canergy.cli import build_parser
     from firmware_model.__main__ import build_parser as firmware_parser
+    from firmware_model.drive.__main__ import build_parser as drive_parser
 
     canergy = _shell_commands("canergy ")
-    firmware = _shell_commands("python -m firmware_model")
-    assert len(canergy) >= 4 and firmware
+    firmware = _shell_commands("python -m firmware_model ")
+    drive = _shell_commands("python -m firmware_model.drive ")
+    assert len(canergy) >= 4 and firmware and drive
     for argv in canergy:
         build_parser().parse_args(argv)  # exits 2 on a flag that does not exist
     for argv in firmware:
         firmware_parser().parse_args(argv)
+    for argv in drive:
+        drive_parser().parse_args(argv)
 
 
 def test_readme_grants_ask_what_their_supervisor_allows() -> None:

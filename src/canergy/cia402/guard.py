@@ -226,7 +226,7 @@ class DriveGuard:
             self._command(CW_QUICK_STOP, why, now)
         elif self.phase is GuardPhase.STOPPING:
             self._advance_stop(now)
-        elif self.state not in POWERLESS and retry_due:
+        elif self.state is not None and self.state not in POWERLESS and retry_due:
             self._command(CW_DISABLE_VOLTAGE, "still not disabled: again", now)
 
     def _advance_stop(self, now: int) -> None:

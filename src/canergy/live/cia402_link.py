@@ -105,7 +105,7 @@ class DriveLink:
         self.command_failures = 0
         self.last_command: dict[str, Any] | None = None
         self.reaction_max_us = 0
-        """Longest time from the TPDO that called for a command to the command leaving."""
+        """Longest time from the TPDO that called for a stop to its controlword leaving."""
         self._jobs: queue.Queue[Command | None] = queue.Queue()
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._work, name=f"drive-{node_id}", daemon=True)
@@ -159,7 +159,13 @@ class DriveLink:
             raise SetupError("the drive did not keep its heartbeat consumer setting (0x1016:1)")
         node.tpdo.read()
         node.rpdo.read()
-        node.setup_402_state_machine(read_pdos=False)
+        p402_log = logging.getLogger("canopen.profiles.p402")
+        level = p402_log.level
+        p402_log.setLevel(logging.ERROR)  # its advice on op-mode PDOs: the guard needs none
+        try:
+            node.setup_402_state_machine(read_pdos=False)
+        finally:
+            p402_log.setLevel(level)
         meter = replace(
             self.config.meter, rated_torque_mnm=rated_torque, rated_current_ma=rated_current
         )
@@ -195,7 +201,8 @@ class DriveLink:
             return
         self.commands_sent += 1
         sent = self.clock()
-        self.reaction_max_us = max(self.reaction_max_us, sent - cmd.at)
+        if cmd.controlword is not None:  # a stop (enabling is not a matter of safety)
+            self.reaction_max_us = max(self.reaction_max_us, sent - cmd.at)
         self.last_command = {
             "controlword": controlword,
             "why": cmd.why,

@@ -7,10 +7,10 @@ carried, so nothing is rounded away or invented.
 
 from __future__ import annotations
 
-import csv
-import math
 from dataclasses import dataclass
 from pathlib import Path
+
+from firmware_model.profile_csv import read_rows
 
 
 @dataclass(frozen=True, slots=True)
@@ -29,24 +29,10 @@ class PowerProfile:
     @classmethod
     def from_csv(cls, path: Path) -> PowerProfile:
         """Rows ``time_s,watts`` (a header row is allowed); times increasing from 0."""
-        steps: list[tuple[int, int]] = []
-        with open(path, newline="") as f:
-            for lineno, row in enumerate(csv.reader(f), 1):
-                if not row or row[0].strip().startswith("#"):
-                    continue
-                try:
-                    t, w = float(row[0]), float(row[1])
-                except (ValueError, IndexError):
-                    if lineno == 1:
-                        continue  # header
-                    raise ValueError(f"{path}:{lineno}: expected time_s,watts") from None
-                if not (math.isfinite(t) and math.isfinite(w)):
-                    raise ValueError(f"{path}:{lineno}: time_s and watts must be finite numbers")
-                if w < 0 or (steps and round(t * 1e6) <= steps[-1][0]) or (not steps and t != 0):
-                    raise ValueError(f"{path}:{lineno}: times must start at 0 and increase, W >= 0")
-                steps.append((round(t * 1e6), round(w * 1e6)))
-        if not steps:
-            raise ValueError(f"{path}: no power rows")
+        rows = read_rows(path, "watts", 0, 1e9)
+        steps = [(round(t * 1e6), round(w * 1e6)) for t, w in rows]
+        if len({t for t, _ in steps}) < len(steps):
+            raise ValueError(f"{path}: two rows less than 1 µs apart")
         last = steps[-1][0]
         period = last + (last - steps[-2][0] if len(steps) > 1 else 1_000_000)
         return cls(tuple(steps), period)

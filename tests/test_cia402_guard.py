@@ -10,6 +10,7 @@ from __future__ import annotations
 import pytest
 
 from canergy.cia402.meter import overshoot_bound_uj
+from canergy.ledger import ledger_from_status
 from canergy.units import UJ_PER_J
 from firmware_model.drive.cosim import STEP_US, Result, Scenario, run
 
@@ -33,6 +34,7 @@ def test_a_velocity_profile_exhausts_2_j_and_the_drive_stops_inside_the_bound(pd
     assert within_bound(r)
     assert r.tail_uj <= r.bound_uj  # the stop itself cost less than the bound allows
     assert r.guard["usable_uj"] == 0 and r.guard["spent_uj"] == r.granted_uj
+    assert ledger_from_status(r.supervisor, []).passive  # the books close over the proxy
 
 
 def test_without_its_stop_commands_the_drive_runs_far_past_the_bound() -> None:
@@ -54,6 +56,7 @@ def test_a_reserve_as_large_as_the_bound_keeps_the_drive_inside_its_grant() -> N
 
 def test_top_ups_keep_the_drive_running() -> None:
     r = run(Scenario(budget_uj=50 * UJ_PER_J, target_uj=UJ_PER_J, duration_us=4_000_000))
+    assert ledger_from_status(r.supervisor, []).passive
     enabled = r.states.index("OPERATION ENABLED")
     assert r.states[enabled:] == ["OPERATION ENABLED"]  # never stopped once running
     assert r.guard["stops"] == 0
@@ -101,3 +104,25 @@ def test_a_host_crash_stops_the_drive_through_its_heartbeat_consumer() -> None:
     silence = reaction - sc.host_crash_at_us + sc.pdo_period_us
     bound = overshoot_bound_uj(round(r.peak_power_w * 1e6), silence, 0, fault - reaction)
     assert r.drawn_uj <= r.granted_uj + bound
+
+
+def test_tpdos_that_come_back_find_the_stop_finished_and_the_drive_left_off() -> None:
+    r = run(
+        Scenario(
+            budget_uj=50 * UJ_PER_J,
+            target_uj=UJ_PER_J,
+            pdo_loss_at_us=1_000_000,
+            pdo_back_at_us=1_300_000,
+        )
+    )
+    assert r.guard["guard"] == "stopped" and r.guard["latched"]
+    assert r.states[-1] in POWERLESS  # the guard does not enable it again
+    assert r.guard["usable_uj"] > 0  # though it holds budget
+
+
+def test_a_drive_enabled_without_budget_is_stopped_at_once() -> None:
+    sc = Scenario(budget_uj=0, auto_enable=False, app_enables_at_us=500_000, duration_us=1_500_000)
+    r = run(sc)
+    assert "OPERATION ENABLED" in r.states and r.states[-1] in POWERLESS
+    assert r.granted_uj == 0 and r.guard["stops"] == 1
+    assert r.drawn_uj <= r.bound_uj

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from canergy.cli import main
+from canergy.ledger import ledger_from_status
 from firmware_model.drive.live_bench import DRIVE, NODE, Bench, exhausted, guarded_bench, wait_for
 
 
@@ -46,11 +47,12 @@ def test_the_budget_runs_out_and_the_drive_stops_inside_the_bound(exhausting: Be
     # the proxy's books: what was granted was spent on what the meter saw, or is still held
     assert drive["credited_uj"] == granted == drive["spent_uj"] + drive["usable_uj"]
     assert b.drawn() <= granted + b.bound_uj(drive["reaction_max_us"])
-    # the ledger over the supervisor, the canergy node and the drive
+    # the ledger over the supervisor, the canergy node and the drive's proxy
     assert final["conservation"]["holds"] and final["usable_uj"] == 0
     node_books = final["nodes"][str(NODE)]
-    assert b.node_host.nodes[NODE].client.state.credited <= node_books["delivered_uj"]
     assert granted + node_books["delivered_uj"] == final["initial_uj"]
+    books = ledger_from_status(final, [b.node_host.nodes[NODE].status()])
+    assert books.passive and books.spent >= drive["spent_uj"], books
 
 
 def test_the_proxy_leg_is_captured_and_audits_clean(

@@ -16,6 +16,7 @@ import pytest
 from test_vcan import BUS, IFACE, Procs, _python, _status, _vcan_up, _wait, procs
 
 from canergy.cia402.meter import overshoot_bound_uj
+from canergy.ledger import ledger_from_status
 from canergy.live.cia402_link import EDS
 
 pytestmark = pytest.mark.vcan
@@ -108,6 +109,7 @@ def test_a_guarded_drive_on_vcan0_stops_inside_the_bound(procs: Procs, pdo_ms: i
     books = sup["nodes"][str(DRIVE)]
     granted = books["delivered_uj"] - books["returns_credited_uj"]
     assert granted == 2_000_000 and sup["conservation"]["holds"]
+    assert ledger_from_status(sup, []).passive  # the books close over the drive's proxy
     quick_stop = _history(drive, "QUICK STOP ACTIVE")
     stop_us = _history(drive, "SWITCH ON DISABLED", after=quick_stop) - quick_stop
     bound = overshoot_bound_uj(

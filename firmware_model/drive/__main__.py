@@ -43,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
         "torque) that accounts the electrical energy it draws.",
     )
     p.add_argument("--node", type=bounded_int(1, 127), required=True, help="node id")
-    add_bus_flags(p)
+    add_bus_flags(p, id_base_flag=False)  # a CiA 402 drive: no canergy frames
     load = p.add_mutually_exclusive_group()
     load.add_argument("--load-torque", type=newton_metres, default=0.0, help="N·m, constant")
     load.add_argument("--load-profile", type=Path, help="CSV of time_s,newton_metres rows")

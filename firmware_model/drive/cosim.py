@@ -51,6 +51,10 @@ class Scenario:
     load_nm: float = 0.02
     duration_us: int = 3_000_000
     pdo_loss_at_us: int | None = None
+    pdo_back_at_us: int | None = None
+    auto_enable: bool = True
+    app_enables_at_us: int | None = None
+    """The application enables the drive itself at this time (shutdown, switch on, enable)."""
     fault_at_us: int | None = None
     host_crash_at_us: int | None = None
     consumer_timeout_ms: int = 200
@@ -74,6 +78,8 @@ class Result:
     timeline: list[tuple[int, int, int, str]] = field(default_factory=list)
     """Every 50 ms: time, energy granted so far, the proxy's budget, the drive's state."""
     guard: dict[str, Any] = field(default_factory=dict)
+    supervisor: dict[str, Any] = field(default_factory=dict)
+    """The supervisor's status at the end (its books, the guard's under ``cia402``)."""
     drive: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -144,7 +150,7 @@ def run(sc: Scenario) -> Result:
         timing=timing,
         pdo_timeout_us=max(5 * sc.pdo_period_us, 50_000),
         reserve_uj=sc.reserve_uj,
-        auto_enable=True,
+        auto_enable=sc.auto_enable,
     )
     guard = DriveGuard(NODE, guard_config, 0, nonce=0x1234)
     link, bus = _Link(meter), _Bus()
@@ -168,7 +174,11 @@ def run(sc: Scenario) -> Result:
         crashed = sc.host_crash_at_us is not None and t >= sc.host_crash_at_us
         if crashed:
             continue
-        lost = sc.pdo_loss_at_us is not None and t >= sc.pdo_loss_at_us
+        if sc.app_enables_at_us is not None and t == sc.app_enables_at_us:
+            for controlword in (0x06, 0x07, 0x0F):
+                drive.write(0x6040, 0, controlword, t)
+        back = sc.pdo_back_at_us is not None and t >= sc.pdo_back_at_us
+        lost = sc.pdo_loss_at_us is not None and t >= sc.pdo_loss_at_us and not back
         if t >= next_pdo:
             next_pdo += sc.pdo_period_us
             if not lost:
@@ -213,6 +223,7 @@ def run(sc: Scenario) -> Result:
         states=states,
         timeline=timeline,
         guard=guard.status(sc.duration_us),
+        supervisor=service.status(),
         drive=drive.status(),
     )
 

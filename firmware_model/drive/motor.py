@@ -15,10 +15,11 @@ a run is: ``drawn_uj`` is ``floor`` of the exact figure (off by less than 1 µJ 
 
 from __future__ import annotations
 
-import csv
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from firmware_model.profile_csv import read_rows
 
 __all__ = ["Account", "Energy", "LoadTorque", "Motor", "MotorParams"]
 
@@ -62,24 +63,7 @@ class LoadTorque:
     @classmethod
     def from_csv(cls, path: Path, opposing: bool = False) -> LoadTorque:
         """Rows ``time_s,newton_metres`` (a header row is allowed); times from 0, increasing."""
-        rows: list[tuple[float, float]] = []
-        with open(path, newline="") as f:
-            for lineno, row in enumerate(csv.reader(f), 1):
-                if not row or row[0].strip().startswith("#"):
-                    continue
-                try:
-                    t, nm = float(row[0]), float(row[1])
-                except (ValueError, IndexError):
-                    if lineno == 1:
-                        continue  # header
-                    raise ValueError(f"{path}:{lineno}: expected time_s,newton_metres") from None
-                if not (math.isfinite(t) and math.isfinite(nm)) or abs(nm) > 1e3:
-                    raise ValueError(f"{path}:{lineno}: finite numbers, |torque| <= 1000 N·m")
-                if (rows and t <= rows[-1][0]) or (not rows and t != 0):
-                    raise ValueError(f"{path}:{lineno}: times must start at 0 and increase")
-                rows.append((t, nm))
-        if not rows:
-            raise ValueError(f"{path}: no load rows")
+        rows = read_rows(path, "newton_metres", -1e3, 1e3)
         return cls(tuple(rows), opposing)
 
     def at(self, t_s: float, omega: float) -> float:

@@ -101,7 +101,9 @@ def ledger(
 
 def ledger_from_status(supervisor: dict[str, Any], clients: Iterable[dict[str, Any]]) -> Ledger:
     """The ledger from the JSON status files of a supervisor and its client emulators (or real
-    nodes reporting the same keys), as the processes last wrote them."""
+    nodes reporting the same keys), as the processes last wrote them. The proxies of guarded
+    CiA 402 drives are in the supervisor's own status and count as clients."""
+    guarded = supervisor.get("cia402", {}).get("drives", {}).values()
     sessions = tuple(
         Session(
             int(node),
@@ -123,6 +125,6 @@ def ledger_from_status(supervisor: dict[str, Any], clients: Iterable[dict[str, A
             return_seq=c["return_seq"],
             return_pending=c["return_pending_uj"],
         )
-        for c in clients
+        for c in (*clients, *guarded)
     ]
     return ledger(sup, states)

@@ -206,8 +206,8 @@ class DriveGuard:
             self._stop(why, now)
         elif self.phase is GuardPhase.STOPPED and self._may_resume():
             self._set_phase(GuardPhase.RUNNING, None, now)
-        elif self.phase is GuardPhase.STOPPING and self.stop_reason == "budget exhausted":
-            self._advance_stop(now)  # topped up meanwhile: still finish the stop first
+        elif self.phase is GuardPhase.STOPPING:
+            self._advance_stop(now)  # the cause went away (topped up, TPDOs back): finish first
         if self._wants_enable() and (
             self.state != self.state_at_command
             or now >= self.last_command_at + self.config.retry_us
@@ -294,6 +294,8 @@ class DriveGuard:
             "usable_uj": c.usable,
             "spent_uj": c.spent,
             "credited_uj": c.credited,
+            "return_seq": c.return_seq,
+            "return_pending_uj": c.return_pending,
             "metered_uj": self.meter.metered_uj,
             "overrun_uj": self.overrun_uj,
             "regenerated_uj": self.meter.regen_uj,

@@ -16,13 +16,16 @@ class BusOpenError(RuntimeError):
     """The bus could not be opened; the message says what to fix."""
 
 
-def add_bus_flags(parser: argparse.ArgumentParser) -> None:
+def add_bus_flags(parser: argparse.ArgumentParser, *, id_base_flag: bool = True) -> None:
     """``-i/--interface``, ``-c/--channel``, ``-b/--bitrate``, ``--fd``, ``--data-bitrate``,
-    ``--timing``, ``--bus-kwargs`` (python-can's ``can.cli``), plus canergy's ``--id-base``."""
+    ``--timing``, ``--bus-kwargs`` (python-can's ``can.cli``), plus canergy's ``--id-base``
+    (not for a program that sends no canergy frames: ``id_base_flag=False``)."""
     can.cli.add_bus_arguments(parser)
     for action in parser._actions:  # python-can takes any int: bound them like canergy's numbers
         if action.dest in ("bitrate", "data_bitrate"):
             action.type = bounded_int(1, 20_000_000)
+    if not id_base_flag:
+        return
     parser.add_argument(
         "--id-base",
         type=id_base,

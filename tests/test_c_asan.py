@@ -22,6 +22,7 @@ TESTS = Path(__file__).resolve().parent
 UNDER_ASAN = [
     "test_c_binding.py",
     "test_c_codec.py",
+    "test_c_cmac.py",
     "test_c_hardened.py",
     "test_c_hazards.py",
     "test_c_nv.py",

@@ -1,11 +1,32 @@
 /*
  * Not a port: the smallest program that uses every call a real port makes, so that `make size`
  * can link it for Cortex-M4 with --gc-sections and report what the library costs there.
- * PORT_NODE selects the node layer's API, otherwise the bare client's.
+ * PORT_NODE selects the node layer's API, PORT_CMAC AES-CMAC and the KDF alone (what an
+ * authenticated mode adds to either), otherwise the bare client's.
  */
+#include "canergy/cmac.h"
 #include "canergy/node.h"
 
 void port_entry(void);
+
+#ifdef PORT_CMAC
+void port_entry(void)
+{
+    static uint8_t master[16]; /* in RAM: only the library's flash is counted */
+    static uint8_t frame[8];
+    static struct canergy_cmac key;
+    uint8_t node_key[16];
+    uint8_t mac[16];
+    volatile unsigned sink = 0U;
+    canergy_kdf_cmac_ctr(master, frame, 4U, frame, 1U, node_key);
+    canergy_cmac_init(&key, node_key);
+    canergy_wipe(node_key, sizeof node_key);
+    canergy_cmac(&key, frame, sizeof frame, mac);
+    sink += canergy_mac_equal(mac, frame, 4U) ? 1U : 0U;
+    canergy_cmac_wipe(&key);
+    (void)sink;
+}
+#else
 void port_entry(void)
 {
     static uint8_t nv[2U * CANERGY_NV_SLOT_SIZE];
@@ -34,3 +55,4 @@ void port_entry(void)
     sink += out.nv_image[0];
     (void)sink;
 }
+#endif

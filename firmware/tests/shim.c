@@ -4,6 +4,7 @@
  * checked field by field instead of trusted.
  */
 #include "canergy/client.h"
+#include "canergy/cmac.h"
 #include "canergy/node.h"
 
 #include <stddef.h>
@@ -87,6 +88,12 @@ static const struct entry offsets[] = {
     FIELD(canergy_node, overflow_refused),
     FIELD(canergy_node, was_low),
     FIELD(canergy_node, halted),
+    FIELD(canergy_aes128, rk),
+    FIELD(canergy_cmac, aes),
+    FIELD(canergy_cmac, k1),
+    FIELD(canergy_cmac, k2),
+    FIELD(canergy_cmac_stream, x),
+    FIELD(canergy_cmac_stream, n),
 };
 
 #define SIZE(type) {#type, (long)sizeof(struct type)}
@@ -95,7 +102,8 @@ static const struct entry sizes[] = {
     SIZE(canergy_record),        SIZE(canergy_client),    SIZE(canergy_frame),
     SIZE(canergy_out),           SIZE(canergy_msg),       SIZE(canergy_rx_frame),
     SIZE(canergy_client_config), SIZE(canergy_nv_state),  SIZE(canergy_node_config),
-    SIZE(canergy_node),
+    SIZE(canergy_node),          SIZE(canergy_aes128),    SIZE(canergy_cmac),
+    SIZE(canergy_cmac_stream),
 };
 
 static long find(const struct entry *table, size_t n, const char *name)

@@ -1,10 +1,13 @@
 /*
- * Not linked anywhere: `make size` compiles it for the target and reads the sizes of these two
- * objects back with nm, which is the state a node needs there.
+ * Not linked anywhere: `make size` compiles it for the target and reads the sizes of these
+ * objects back with nm, which is the state a node needs there (and an AES-CMAC key).
  */
+#include "canergy/cmac.h"
 #include "canergy/node.h"
 
 extern char canergy_client_bytes[sizeof(struct canergy_client)];
 extern char canergy_node_bytes[sizeof(struct canergy_node)];
 char canergy_client_bytes[sizeof(struct canergy_client)];
 char canergy_node_bytes[sizeof(struct canergy_node)];
+extern char canergy_cmac_bytes[sizeof(struct canergy_cmac)];
+char canergy_cmac_bytes[sizeof(struct canergy_cmac)];

@@ -1,10 +1,12 @@
 /*
  * Known answers in plain C, runnable wherever the library builds (host, QEMU): the CRCs'
  * check values, the frames docs/protocol.md shows, one node's life from a blank NV image to
- * a committed grant and a restart, and the state budgets. The exhaustive comparison with the
- * Python rules is in tests/test_c_*.py.
+ * a committed grant and a restart, the state budgets, and AES-128 (FIPS-197 C.1), AES-CMAC
+ * (RFC 4493 section 4) and the KDF (a value from Python's cryptography). The exhaustive
+ * comparison with the Python code is in tests/test_c_*.py.
  */
 #include "canergy/client.h"
+#include "canergy/cmac.h"
 #include "canergy/node.h"
 
 #include <stdio.h>
@@ -170,6 +172,116 @@ static void test_budgets(void)
     check(sizeof(struct canergy_node) <= 128U, "node state within 128 bytes");
 }
 
+/* Parse up to max bytes of hex (even length, no separators); the number of bytes. */
+static size_t unhex(const char *hex, uint8_t *out, size_t max)
+{
+    size_t n = 0U;
+    for (; n < max && hex[2U * n] != '\0'; n++) {
+        unsigned byte = 0U;
+        (void)sscanf(&hex[2U * n], "%2x", &byte);
+        out[n] = (uint8_t)byte;
+    }
+    return n;
+}
+
+static int bytes_are(const uint8_t *b, size_t n, const char *hex)
+{
+    uint8_t want[64];
+    return unhex(hex, want, sizeof want) == n && memcmp(b, want, n) == 0;
+}
+
+static const char rfc4493_key[] = "2b7e151628aed2a6abf7158809cf4f3c";
+static const char rfc4493_msg[] = "6bc1bee22e409f96e93d7e117393172aae2d8a571e03ac9c9eb76fac45af8e51"
+                                  "30c81c46a35ce411e5fbc1191a0a52eff69f2445df4f9b17ad2b417be66c3710";
+
+static void test_aes128(void)
+{
+    struct canergy_aes128 aes;
+    uint8_t key[16];
+    uint8_t block[16];
+    (void)unhex("000102030405060708090a0b0c0d0e0f", key, sizeof key);
+    (void)unhex("00112233445566778899aabbccddeeff", block, sizeof block);
+    canergy_aes128_init(&aes, key);
+    canergy_aes128_encrypt(&aes, block, block);
+    check(bytes_are(block, 16U, "69c4e0d86a7b0430d8cdb78070b4c55a"), "AES-128, FIPS-197 C.1");
+    check(bytes_are(&aes.rk[160], 16U, "13111d7fe3944a17f307a78b4d2b30c5"),
+          "AES-128 last round key, FIPS-197 C.1");
+}
+
+static void test_cmac(void)
+{
+    static const struct {
+        size_t len;
+        const char *mac;
+    } examples[] = {
+        {0U, "bb1d6929e95937287fa37d129b756746"},
+        {16U, "070a16b46b4d4144f79bdd9dd04a287c"},
+        {40U, "dfa66747de9ae63030ca32611497c827"},
+        {64U, "51f0bebf7e3b9d92fc49741779363cfe"},
+    };
+    struct canergy_cmac ctx;
+    struct canergy_cmac_stream s;
+    uint8_t key[16];
+    uint8_t message[64];
+    uint8_t mac[16];
+    (void)unhex(rfc4493_key, key, sizeof key);
+    (void)unhex(rfc4493_msg, message, sizeof message);
+    canergy_cmac_init(&ctx, key);
+    check(bytes_are(ctx.k1, 16U, "fbeed618357133667c85e08f7236a8de") &&
+              bytes_are(ctx.k2, 16U, "f7ddac306ae266ccf90bc11ee46d513b"),
+          "CMAC subkeys K1, K2, RFC 4493 4");
+    for (size_t i = 0U; i < sizeof examples / sizeof examples[0]; i++) {
+        canergy_cmac(&ctx, i == 0U ? NULL : message, examples[i].len, mac);
+        check(bytes_are(mac, 16U, examples[i].mac), "CMAC, RFC 4493 examples 1-4");
+    }
+    /* the 64-byte example again in uneven pieces, an empty one included */
+    canergy_cmac_begin(&s);
+    canergy_cmac_update(&ctx, &s, message, 15U);
+    canergy_cmac_update(&ctx, &s, &message[15], 0U);
+    canergy_cmac_update(&ctx, &s, &message[15], 17U);
+    canergy_cmac_update(&ctx, &s, &message[32], 32U);
+    canergy_cmac_final(&ctx, &s, mac);
+    check(bytes_are(mac, 16U, examples[3].mac) && s.n == 0U, "CMAC in pieces, stream wiped");
+    canergy_cmac_wipe(&ctx);
+    check(ctx.aes.rk[0] == 0U && ctx.aes.rk[175] == 0U && ctx.k2[15] == 0U, "key wiped");
+}
+
+static void test_mac_equal(void)
+{
+    uint8_t a[16];
+    uint8_t b[16];
+    (void)unhex("51f0bebf7e3b9d92fc49741779363cfe", a, sizeof a);
+    memcpy(b, a, sizeof b);
+    check(canergy_mac_equal(a, b, 16U) && canergy_mac_equal(a, b, 4U) &&
+              canergy_mac_equal(a, b, 1U),
+          "equal MACs, full and truncated");
+    check(!canergy_mac_equal(a, b, 0U), "a zero-length MAC never matches");
+    int each = 1;
+    for (size_t i = 0U; i < 16U; i++) {
+        b[i] ^= 0x01U; /* one bit anywhere, first or last compared byte */
+        each &= !canergy_mac_equal(a, b, 16U) && !canergy_mac_equal(a, b, i + 1U) &&
+                (i == 0U || canergy_mac_equal(a, b, i));
+        b[i] ^= 0x81U; /* and the top bit */
+        each &= !canergy_mac_equal(a, b, i + 1U);
+        b[i] ^= 0x80U;
+    }
+    check(each, "a difference in any compared byte is found; past n it is ignored");
+}
+
+static void test_kdf(void)
+{
+    static const uint8_t label[] = "canergy node key";
+    static const uint8_t node[1] = {5U};
+    uint8_t master[16];
+    uint8_t out[16];
+    (void)unhex(rfc4493_key, master, sizeof master);
+    canergy_kdf_cmac_ctr(master, label, sizeof label - 1U, node, sizeof node, out);
+    check(bytes_are(out, 16U, "e169cefb0c726e0e1bf3d23ae4116882"),
+          "KDF as cryptography's KBKDFCMAC (label \"canergy node key\", context 05)");
+    canergy_kdf_cmac_ctr(master, NULL, 0U, NULL, 0U, out);
+    check(bytes_are(out, 16U, "4a10102ba6c210565f7e327e0befcae6"), "KDF, empty label and context");
+}
+
 int main(void)
 {
     test_crcs();
@@ -177,6 +289,10 @@ int main(void)
     test_decode_reasons();
     test_a_node_from_blank_to_books();
     test_budgets();
+    test_aes128();
+    test_cmac();
+    test_mac_equal();
+    test_kdf();
     printf("sizeof client %u, node %u, out %u bytes\n", (unsigned)sizeof(struct canergy_client),
            (unsigned)sizeof(struct canergy_node), (unsigned)sizeof(struct canergy_out));
     printf("%u passed, %u failed\n", passed, failed);

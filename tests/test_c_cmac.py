@@ -1,0 +1,177 @@
+"""The C AES-CMAC and KDF (firmware/include/canergy/cmac.h) against Python's ``cryptography``:
+any key and message give the same MAC, one-shot and in pieces; the KDF gives the same key as
+``KBKDFCMAC`` in counter mode (32-bit counter before the fixed input, 32-bit L) and is exactly
+the byte layout the header documents; truncated MACs compare as bytes do."""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import itertools
+from ctypes import POINTER, Structure, c_bool, c_size_t, c_uint8, c_void_p
+
+import pytest
+from cryptography.hazmat.primitives.ciphers import algorithms
+from cryptography.hazmat.primitives.cmac import CMAC
+from cryptography.hazmat.primitives.kdf.kbkdf import KBKDFCMAC, CounterLocation, Mode
+from hypothesis import example, given
+from hypothesis import strategies as st
+from test_c_binding import library
+
+RFC4493_KEY = bytes.fromhex("2b7e151628aed2a6abf7158809cf4f3c")
+keys = st.binary(min_size=16, max_size=16)
+messages = st.binary(max_size=100)
+
+
+class Aes128(Structure):
+    _fields_ = [("rk", c_uint8 * 176)]
+
+
+class Cmac(Structure):
+    _fields_ = [("aes", Aes128), ("k1", c_uint8 * 16), ("k2", c_uint8 * 16)]
+
+
+class CmacStream(Structure):
+    _fields_ = [("x", c_uint8 * 16), ("n", c_uint8)]
+
+
+MIRROR = {"canergy_aes128": Aes128, "canergy_cmac": Cmac, "canergy_cmac_stream": CmacStream}
+
+
+@functools.cache
+def lib() -> ctypes.CDLL:
+    c = library()
+    signatures = {
+        "canergy_cmac_init": (None, [POINTER(Cmac), c_void_p]),
+        "canergy_cmac": (None, [POINTER(Cmac), c_void_p, c_size_t, c_void_p]),
+        "canergy_cmac_begin": (None, [POINTER(CmacStream)]),
+        "canergy_cmac_update": (None, [POINTER(Cmac), POINTER(CmacStream), c_void_p, c_size_t]),
+        "canergy_cmac_final": (None, [POINTER(Cmac), POINTER(CmacStream), c_void_p]),
+        "canergy_mac_equal": (c_bool, [c_void_p, c_void_p, c_size_t]),
+        "canergy_wipe": (None, [c_void_p, c_size_t]),
+        "canergy_cmac_wipe": (None, [POINTER(Cmac)]),
+        "canergy_kdf_cmac_ctr": (
+            None,
+            [c_void_p, c_void_p, c_size_t, c_void_p, c_size_t, c_void_p],
+        ),
+    }
+    for name, (restype, argtypes) in signatures.items():
+        f = getattr(c, name)
+        f.restype, f.argtypes = restype, argtypes
+    return c
+
+
+def c_key(key: bytes) -> Cmac:
+    ctx = Cmac()
+    lib().canergy_cmac_init(ctypes.byref(ctx), key)
+    return ctx
+
+
+def c_cmac(key: bytes, msg: bytes) -> bytes:
+    mac = (c_uint8 * 16)()
+    lib().canergy_cmac(ctypes.byref(c_key(key)), msg, len(msg), mac)
+    return bytes(mac)
+
+
+def py_cmac(key: bytes, msg: bytes) -> bytes:
+    c = CMAC(algorithms.AES(key))
+    c.update(msg)
+    return c.finalize()
+
+
+def c_kdf(master: bytes, label: bytes, context: bytes) -> bytes:
+    out = (c_uint8 * 16)()
+    lib().canergy_kdf_cmac_ctr(master, label, len(label), context, len(context), out)
+    return bytes(out)
+
+
+def py_kdf(master: bytes, label: bytes, context: bytes) -> bytes:
+    return KBKDFCMAC(
+        algorithm=algorithms.AES,
+        mode=Mode.CounterMode,
+        length=16,
+        rlen=4,
+        llen=4,
+        location=CounterLocation.BeforeFixed,
+        label=label,
+        context=context,
+        fixed=None,
+    ).derive(master)
+
+
+def c_equal(a: bytes, b: bytes, n: int) -> bool:
+    return bool(lib().canergy_mac_equal(a, b, n))
+
+
+@pytest.mark.parametrize("name", sorted(MIRROR))
+def test_the_ctypes_mirror_matches_the_compiled_layout(name: str) -> None:
+    struct = MIRROR[name]
+    assert library().canergy_test_sizeof(name.encode()) == ctypes.sizeof(struct)
+    for field, *_ in struct._fields_:
+        offset = library().canergy_test_offset(f"{name}.{field}".encode())
+        assert offset == getattr(struct, field).offset, f"{name}.{field}"
+
+
+def test_rfc4493_subkeys() -> None:
+    ctx = c_key(RFC4493_KEY)
+    assert bytes(ctx.k1).hex() == "fbeed618357133667c85e08f7236a8de"
+    assert bytes(ctx.k2).hex() == "f7ddac306ae266ccf90bc11ee46d513b"
+
+
+@given(keys, messages)
+@example(RFC4493_KEY, b"")
+@example(bytes(16), bytes(16))
+@example(b"\xff" * 16, b"\xff" * 32)
+def test_cmac_matches_cryptography(key: bytes, msg: bytes) -> None:
+    assert c_cmac(key, msg) == py_cmac(key, msg)
+
+
+@given(keys, messages, st.lists(st.integers(0, 100), max_size=6))
+def test_cmac_in_pieces_is_the_one_shot_mac(key: bytes, msg: bytes, cuts: list[int]) -> None:
+    ctx, s, mac = c_key(key), CmacStream(), (c_uint8 * 16)()
+    lib().canergy_cmac_begin(ctypes.byref(s))
+    bounds = [0, *sorted(min(c, len(msg)) for c in cuts), len(msg)]
+    for lo, hi in itertools.pairwise(bounds):
+        lib().canergy_cmac_update(ctypes.byref(ctx), ctypes.byref(s), msg[lo:hi], hi - lo)
+    lib().canergy_cmac_final(ctypes.byref(ctx), ctypes.byref(s), mac)
+    assert bytes(mac) == py_cmac(key, msg)
+    assert bytes(s) == bytes(ctypes.sizeof(s)), "final wipes the stream"
+
+
+@given(keys, st.binary(max_size=40), st.binary(max_size=40))
+@example(RFC4493_KEY, b"canergy node key", b"\x05")
+@example(RFC4493_KEY, b"", b"")
+def test_kdf_matches_kbkdfcmac_and_the_documented_layout(
+    master: bytes, label: bytes, context: bytes
+) -> None:
+    derived = c_kdf(master, label, context)
+    assert derived == py_kdf(master, label, context)
+    layout = b"\x00\x00\x00\x01" + label + b"\x00" + context + b"\x00\x00\x00\x80"
+    assert derived == py_cmac(master, layout)
+
+
+def test_kdf_known_answer_of_the_c_tests() -> None:
+    expected = "e169cefb0c726e0e1bf3d23ae4116882"  # also in firmware/tests/test_vectors.c
+    assert py_kdf(RFC4493_KEY, b"canergy node key", b"\x05").hex() == expected
+    assert c_kdf(RFC4493_KEY, b"canergy node key", b"\x05").hex() == expected
+
+
+@given(keys, messages, st.integers(1, 16), st.binary(min_size=16, max_size=16))
+def test_truncated_macs_compare_as_bytes(key: bytes, msg: bytes, n: int, received: bytes) -> None:
+    mac = c_cmac(key, msg)
+    assert c_equal(mac, mac[:n] + received[n:], n)
+    assert c_equal(mac, received, n) == (mac[:n] == received[:n])
+    flipped = bytearray(mac)
+    flipped[n - 1] ^= 0x80
+    assert not c_equal(mac, bytes(flipped), n)
+    assert not c_equal(mac, mac, 0), "a MAC of no bytes never matches"
+
+
+def test_wiping() -> None:
+    ctx = c_key(RFC4493_KEY)
+    assert any(bytes(ctx))
+    lib().canergy_cmac_wipe(ctypes.byref(ctx))
+    assert bytes(ctx) == bytes(ctypes.sizeof(ctx))
+    buf = (c_uint8 * 5)(1, 2, 3, 4, 5)
+    lib().canergy_wipe(ctypes.byref(buf, 1), 3)
+    assert list(buf) == [1, 0, 0, 0, 5]

@@ -197,7 +197,7 @@ def _start(args: argparse.Namespace, ids: tuple[int, ...]) -> tuple[NodeHost, Co
 
 def _open(args: argparse.Namespace, ids: tuple[int, ...], codec: Codec) -> can.BusABC:
     """The bus, filtered to the nodes' frames (and CANopen's 11-bit ones with ``--canopen``)."""
-    filters: list[dict[str, Any]] = [f for n in ids for f in codec.client_filters(n)]
+    filters: list[dict[str, Any]] = [f for n in ids for f in codec.client_watch_filters(n)]
     if args.canopen:
         filters.append(STANDARD_FRAMES)
     return open_bus(args, filters)

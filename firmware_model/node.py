@@ -27,6 +27,7 @@ from canergy.core import (
     Timing,
 )
 from canergy.core.state import Phase
+from canergy.live.intrusions import Intrusions, frame_text
 from canergy.live.policy import quantize
 from canergy.messages import (
     AMOUNT_MAX_MJ,
@@ -87,6 +88,7 @@ class FirmwareNode:
         self.gate: Callable[[], str] = lambda: "OPERATIONAL"
         """NMT state when the node is also a CANopen slave (``canopen_node``)."""
         self.refused = 0
+        self.intrusions = Intrusions(f"node {node}")
 
     @property
     def node(self) -> int:
@@ -226,6 +228,8 @@ class FirmwareNode:
             "overflow_refused": self.overflow_refused,
             "joining": self.joining,
             "joins": self.joins,
+            "intrusions": self.intrusions.total,
+            "intrusion_report": self.intrusions.as_json(),
         }
 
 
@@ -247,6 +251,12 @@ class NodeHost:
         node = self.nodes.get(frame.arbitration_id & 0xFF)
         if node is not None:
             node.decode_errors += 1
+
+    def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
+        node = self.nodes.get(frame.arbitration_id & 0xFF)
+        if node is not None:  # a node never receives its own frames: someone speaks for it
+            node.intrusions.record(node.node, frame_text(frame), "a frame in its name", now)
+        return ()
 
     def next_wakeup(self) -> int | None:
         return min((n.next_wakeup() for n in self.nodes.values()), default=None)

@@ -175,8 +175,8 @@ def run(sc: Scenario) -> Result:
         if crashed:
             continue
         if sc.app_enables_at_us is not None and t == sc.app_enables_at_us:
-            for controlword in (0x06, 0x07, 0x0F):
-                drive.write(0x6040, 0, controlword, t)
+            for step in (0x06, 0x07, 0x0F):
+                drive.write(0x6040, 0, step, t)
         back = sc.pdo_back_at_us is not None and t >= sc.pdo_back_at_us
         lost = sc.pdo_loss_at_us is not None and t >= sc.pdo_loss_at_us and not back
         if t >= next_pdo:

@@ -28,6 +28,7 @@ from canergy.units import UJ_PER_J, US_PER_S, format_energy
 __all__ = ["COMMANDS", "BusOpenError", "add_parsers"]
 
 _LARGEST_GRANT = AMOUNT_MAX_MJ * QUANTUM_UJ
+EXIT_INTRUSION = 3
 
 
 def _joules(uj: int) -> str:
@@ -102,6 +103,14 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         "at exit",
     )
     p.add_argument("--listen-only", action="store_true", help="watch and report, never send")
+    p.add_argument(
+        "--on-intrusion",
+        choices=["warn", "stop"],
+        default="warn",
+        help="a frame only this supervisor sends, from someone else (a second supervisor, a "
+        "spoofer): warn = count, log and report it; stop = also grant nothing more, settle and "
+        "exit with status 3 (default warn)",
+    )
     p.add_argument(
         "--canopen",
         action="store_true",
@@ -336,9 +345,10 @@ def run_supervisor(args: argparse.Namespace) -> int:
         listen_only=args.listen_only,
         fsync=not args.no_fsync,
         inject_uj=args.inject or 0,
+        stop_on_intrusion=args.on_intrusion == "stop",
     )
     codec = Codec(args.id_base)
-    filters = codec.supervisor_filters()
+    filters = codec.supervisor_watch_filters()
     if args.canopen or args.cia402:
         from canergy.live.shared_bus import STANDARD_FRAMES
 
@@ -381,6 +391,14 @@ def run_supervisor(args: argparse.Namespace) -> int:
         )
         service.bus_counters = runtime.counters
         _serve(runtime, service, control, manager=manager)
+        if service.stopped_by_intrusion:
+            report = service.intrusions.as_json()
+            print(
+                f"canergy supervisor: stopped on intrusion (--on-intrusion stop): "
+                f"{report['total']} foreign frame(s), first {report['recent'][0]['frame']}",
+                file=sys.stderr,
+            )
+            return EXIT_INTRUSION
     finally:
         if control is not None:
             control.close()
@@ -415,7 +433,7 @@ def run_grant(args: argparse.Namespace) -> int:
         fsync=not args.no_fsync,
     )
     codec = Codec(args.id_base)
-    bus = open_bus(args, codec.supervisor_filters())
+    bus = open_bus(args, codec.supervisor_watch_filters())
     answers: list[dict[str, Any]] = []
     deadline = monotonic_us() + args.timeout
     try:

@@ -209,6 +209,16 @@ class Codec:
         """Filters passing only the supervisor's frames to ``node``."""
         return [{"can_id": self.id_base | node, "can_mask": _DIR_MASK | 0xFF, "extended": True}]
 
+    def supervisor_watch_filters(self) -> list[dict[str, int | bool]]:
+        """A supervisor's filters that also pass frames in its own direction: its own never come
+        back to it, so one for a node it manages is a second supervisor's or a spoofer's."""
+        return self.can_filters()
+
+    def client_watch_filters(self, node: int) -> list[dict[str, int | bool]]:
+        """A node's filters that also pass client-to-supervisor frames with its own id: a node
+        never receives its own, so such a frame was sent by someone else."""
+        return [{"can_id": self.id_base | node, "can_mask": ID_MASK | 0xFF, "extended": True}]
+
     def accepts(
         self, filters: list[dict[str, int | bool]], arbitration_id: int, extended: bool
     ) -> bool:

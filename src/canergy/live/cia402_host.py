@@ -73,12 +73,16 @@ class GuardedSupervisor:
 
     # -- Handler ---------------------------------------------------------------------------
     def on_message(self, msg: Message, now: int) -> Sequence[Message]:
-        if msg.node in self.drives:
-            return ()  # a frame for a guarded id from the bus: not the proxy's (counted there)
+        if msg.node in self.drives:  # only the proxy, in this process, speaks for a drive
+            self.service.intrusion(msg.node, repr(msg), "a drive's frame from the bus", now)
+            return ()
         return self._route(list(self.service.on_message(msg, now)), now)
 
     def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
         self.service.on_decode_error(error, frame)
+
+    def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
+        return self.service.on_foreign_direction(frame, now)
 
     def next_wakeup(self) -> int | None:
         times = [self.next_beat]

@@ -33,6 +33,12 @@ class Handler(Protocol):
         """A frame in canergy's identifier block failed to decode (it is dropped)."""
         ...
 
+    def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
+        """A frame in the direction this side sends (its own never come back to it): for a node
+        it handles, someone else (a second supervisor, a spoofer) sent it. Return frames to send
+        (none, usually)."""
+        ...
+
     def next_wakeup(self) -> int | None:
         """The earliest monotonic time (µs) at which ``on_wakeup`` must run, or None."""
         ...
@@ -173,7 +179,8 @@ class BusRuntime:
                 self.counters.foreign_frames += 1
                 return
             if err.reason is DecodeErrorReason.WRONG_DIRECTION:
-                return  # another node's traffic (only seen without hardware filters)
+                self._send_all(self.handler.on_foreign_direction(frame, self.clock()))
+                return
             self.counters.decode_errors += 1
             reasons = self.counters.decode_reasons
             reasons[err.reason.value] = reasons.get(err.reason.value, 0) + 1

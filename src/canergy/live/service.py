@@ -31,6 +31,7 @@ from canergy.core import (
 from canergy.core.errors import LocalProtocolError
 from canergy.core.state import Outcome, Phase
 from canergy.live.atomic import write_json_atomic
+from canergy.live.intrusions import Intrusions, frame_text
 from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant
 from canergy.live.runtime import BusCounters
 from canergy.live.state_file import ENERGY_MAX_UJ, save_state
@@ -86,6 +87,9 @@ class ServiceConfig:
     fsync: bool = True
     inject_uj: int = 0
     """Energy added to Us (counted as injected) once, at start, and saved before any grant."""
+    stop_on_intrusion: bool = False
+    """A frame only this supervisor may send, from someone else: stop (grant nothing more,
+    settle, exit non-zero) instead of only counting and reporting it."""
 
 
 class SupervisorService:
@@ -112,6 +116,8 @@ class SupervisorService:
         self.bus_counters = BusCounters()
         """Replaced by the bus loop's own counters when one drives this service."""
         self.injected_this_run = 0
+        self.intrusions = Intrusions("supervisor")
+        self.stopped_by_intrusion = False
         if config.inject_uj:
             self._inject(config.inject_uj)
         if not config.listen_only:
@@ -135,6 +141,20 @@ class SupervisorService:
         node = frame.arbitration_id & 0xFF
         if node in self.nodes:
             self.nodes[node].decode_errors += 1
+
+    def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
+        node = frame.arbitration_id & 0xFF
+        if node in self.nodes:
+            self.intrusion(node, frame_text(frame), "a frame only this supervisor sends", now)
+        return ()
+
+    def intrusion(self, node: int, what: str, kind: str, now: int) -> None:
+        """Someone else sent a frame for ``node`` that only this supervisor (or the node's proxy
+        in this process) sends: a second supervisor or a spoofer."""
+        self.intrusions.record(node, what, kind, now)
+        if self.config.stop_on_intrusion and not self.stopping:
+            self.stopped_by_intrusion = True
+            self.stop(now)
 
     def next_wakeup(self) -> int | None:
         times = [self.next_status, self.next_tick]
@@ -400,6 +420,7 @@ class SupervisorService:
                 "admitted": info.admitted,
                 "returns": info.returns,
                 "decode_errors": info.decode_errors,
+                "intrusions": self.intrusions.by_node.get(s.node, 0),
             }
         reserved = sum(s.reserved for s in st.sessions)
         delivered = sum(s.delivered for s in st.sessions)
@@ -426,6 +447,9 @@ class SupervisorService:
                 "holds": st.usable + reserved + delivered - returned == st.initial + st.injected,
             },
             **self.bus_counters.as_json(),
+            "intrusions": self.intrusions.total,
+            "intrusion_report": self.intrusions.as_json(),
+            "stopped_by_intrusion": self.stopped_by_intrusion,
             "nodes": nodes,
             **({"cia402": self.extra_status(self.now)} if self.extra_status else {}),
         }

@@ -65,10 +65,12 @@ class Rig:
         power_w: float = 0.0,
         faults: FaultProfile | None = None,
         seed: int = 0,
+        return_above: int | None = None,
     ) -> None:
         self.tmp, self.nodes, self.initial = tmp, tuple(nodes), initial
         self.target, self.max_grant, self.power_w = target, max_grant, power_w
         self.faults, self.rng = faults, random.Random(seed)
+        self.return_above = return_above
         self.channel = f"rig-{uuid.uuid4().hex}"
         self.codec = Codec()
         self.service: SupervisorService | None = None
@@ -114,7 +116,10 @@ class Rig:
         ids = tuple(nodes or self.nodes)
         now = monotonic_us()
         config = NodeConfig(
-            power=PowerProfile.constant(self.power_w), timing=TIMING, telemetry_period_us=300_000
+            power=PowerProfile.constant(self.power_w),
+            timing=TIMING,
+            telemetry_period_us=300_000,
+            return_above=self.return_above,
         )
         host = NodeHost(
             [

@@ -37,7 +37,15 @@ def test_a_supervisor_tops_up_127_emulated_nodes(tmp_path: Path) -> None:
 def test_faults_and_power_losses_never_generate_energy(tmp_path: Path) -> None:
     nodes = range(1, 6)
     faults = FaultProfile(loss=0.3, duplicate=0.1, reorder=0.1, delay_us=2000, jitter_us=1500)
-    rig = Rig(tmp_path, nodes, power_w=0.5, faults=faults, seed=3, initial=50 * UJ_PER_J)
+    rig = Rig(
+        tmp_path,
+        nodes,
+        power_w=0.5,
+        faults=faults,
+        seed=3,
+        initial=50 * UJ_PER_J,
+        return_above=UJ_PER_J * 6 // 10,  # returns too: topped up to 1 J, giving back above 0.6 J
+    )
     try:
         rig.start_supervisor()
         host = rig.start_clients()
@@ -51,6 +59,8 @@ def test_faults_and_power_losses_never_generate_energy(tmp_path: Path) -> None:
         books = rig.ledger()
         assert books.dissipated >= 0, books  # nothing generated
         assert books.spent > 0 and books.clients_usable > 0
+        assert service.nodes[1].returns > 0
+        assert service.intrusions.total == 0, service.intrusions.as_json()  # no false alarm
     finally:
         rig.close()
 

@@ -35,7 +35,21 @@ from canergy.live.intrusions import Intrusions, frame_text
 from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant
 from canergy.live.runtime import BusCounters
 from canergy.live.state_file import ENERGY_MAX_UJ, save_state
-from canergy.messages import QUANTUM_UJ, USABLE_MAX_UJ, Message, Telemetry, ToSupervisor
+from canergy.messages import (
+    LEVEL_MAX_MJ,
+    QUANTUM_UJ,
+    SEQ_BITS,
+    TX_BITS,
+    USABLE_MAX_UJ,
+    Aborted,
+    Ack,
+    Committed,
+    Message,
+    Return,
+    Telemetry,
+    ToSupervisor,
+)
+from canergy.seqnum import unwrap
 from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
@@ -69,6 +83,8 @@ class NodeInfo:
     returns: int = 0
     decode_errors: int = 0
     requests: deque[GrantRequest] = field(default_factory=deque)
+    recent_returns: deque[tuple[int, int]] = field(default_factory=deque)
+    """(time, µJ) of returns credited lately: a level reported before them may still show them."""
     active_request: GrantRequest | None = None
 
 
@@ -129,6 +145,10 @@ class SupervisorService:
         info = self.nodes.get(msg.node)
         if info is None:
             return ()
+        if (impossible := self._impossible(msg, info, now)) is not None:
+            self.intrusion(msg.node, repr(msg), impossible, now)
+            if not isinstance(msg, Telemetry):
+                return ()  # moves nothing: no honest node sends it
         info.heard_at = now
         if isinstance(msg, Telemetry):
             info.level, info.level_at, info.flags = msg.level_mj * QUANTUM_UJ, now, msg.flags
@@ -136,6 +156,28 @@ class SupervisorService:
         if self.config.listen_only or not isinstance(msg, ToSupervisor):
             return ()
         return self._flush(self._carry_out(self.core.receive(msg, now), now))
+
+    def _impossible(self, msg: Message, info: NodeInfo, now: int) -> str | None:
+        """What no honest node sends, judged by the books alone (no key needed): a level or a
+        fresh RETURN above what the books let it hold, a transaction the supervisor never began.
+        A level may lag a RETURN credited meanwhile: those of the last ``lost_after`` count."""
+        s = self.core.session(msg.node)
+        holdable = s.delivered + s.reserved - s.returned
+        while info.recent_returns and now - info.recent_returns[0][0] > self.config.lost_after_us:
+            info.recent_returns.popleft()
+        if isinstance(msg, Telemetry):
+            lagging = sum(amount for _, amount in info.recent_returns)
+            level = msg.level_mj * QUANTUM_UJ
+            if msg.level_mj < LEVEL_MAX_MJ and level > holdable + lagging:
+                return f"reports {format_energy(level)}, its books allow {format_energy(holdable)}"
+        elif isinstance(msg, Return):
+            fresh = unwrap(msg.seq, s.returns_credited, SEQ_BITS) == s.returns_credited + 1
+            amount = msg.amount_mj * QUANTUM_UJ
+            if fresh and amount > holdable:
+                return f"returns {format_energy(amount)}, it can hold {format_energy(holdable)}"
+        elif isinstance(msg, Ack | Committed | Aborted) and unwrap(msg.tx, s.tx, TX_BITS) > s.tx:
+            return f"answers transaction {unwrap(msg.tx, s.tx, TX_BITS)}, never begun"
+        return None
 
     def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
         node = frame.arbitration_id & 0xFF
@@ -339,6 +381,7 @@ class SupervisorService:
                 self._resolved(action, now)
             elif isinstance(action, ReturnCredited):
                 self.nodes[action.node].returns += 1
+                self.nodes[action.node].recent_returns.append((now, action.amount))
             elif isinstance(action, Admitted):
                 self._admitted(action)
         return out

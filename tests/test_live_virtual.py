@@ -102,7 +102,10 @@ def test_malformed_frames_are_counted_and_move_nothing(
     try:
         service = rig.start_supervisor()
         host = rig.start_clients()
-        rig.wait(lambda: host.nodes[1].client.state.usable == UJ_PER_J)
+        # topped up, and the supervisor has heard the outcome (nothing in flight to move "before")
+        rig.wait(
+            lambda: host.nodes[1].client.state.usable == UJ_PER_J and service.core.is_quiescent()
+        )
         before = rig.ledger()
         with can.Bus(interface="virtual", channel=rig.channel) as raw:
             for _ in range(5):

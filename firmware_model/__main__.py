@@ -17,6 +17,8 @@ from typing import Any
 
 import can
 
+from canergy.auth.frames import FrameAuth, Layout
+from canergy.auth.keys import load_key
 from canergy.cli_args import COUNT_MAX, add_duration, bounded_int, energy, node_ids, power
 from canergy.codec import Codec
 from canergy.core import Timing
@@ -64,6 +66,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--status-file", type=Path, help="JSON status, rewritten atomically")
     add_duration(p, "--status-period", 1_000_000, "time between status file writes")
+    p.add_argument(
+        "--auth",
+        type=Path,
+        metavar="KEY",
+        help="authenticated mode: the node's key file (`canergy keys node`, mode 0600); with "
+        "--nodes a directory of node-NNN.key files; --fd: CAN FD frames with a 64-bit MAC",
+    )
     p.add_argument(
         "--canopen",
         action="store_true",
@@ -185,6 +194,7 @@ def _start(args: argparse.Namespace, ids: tuple[int, ...]) -> tuple[NodeHost, Co
     """Check every path, open the bus, restore the nodes (errors: exit 2). The bus comes first:
     a bus that cannot be opened leaves no NV directory behind."""
     _check_paths(args, ids)
+    args.node_keys = _node_keys(args, ids)
     codec = Codec(args.id_base)
     bus = _open(args, ids, codec)
     try:
@@ -193,6 +203,31 @@ def _start(args: argparse.Namespace, ids: tuple[int, ...]) -> tuple[NodeHost, Co
         bus.shutdown()
         raise
     return host, codec, bus
+
+
+def _node_keys(args: argparse.Namespace, ids: tuple[int, ...]) -> dict[int, bytes] | None:
+    """``--auth``: each node's own key (a node key file per node; never the master)."""
+    if args.auth is None:
+        return None
+    paths = (
+        {ids[0]: args.auth}
+        if args.node is not None
+        else {n: Path(args.auth) / f"node-{n:03d}.key" for n in ids}
+    )
+    keys: dict[int, bytes] = {}
+    for node, path in paths.items():
+        key = load_key(path)
+        if key.kind != "node":
+            raise ValueError(f"--auth {path}: a node takes its own node key, not the master key")
+        keys[node] = key.node_key(node)  # refuses another node's key
+    return keys
+
+
+def _auth(args: argparse.Namespace, codec: Codec, host: NodeHost) -> FrameAuth | None:
+    if args.node_keys is None:
+        return None
+    layout = Layout.FD if getattr(args, "fd", False) else Layout.CLASSIC
+    return FrameAuth(codec, layout, args.node_keys.__getitem__, Direction.TO_CLIENT, host.freshness)
 
 
 def _open(args: argparse.Namespace, ids: tuple[int, ...], codec: Codec) -> can.BusABC:
@@ -249,7 +284,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, OSError, BusOpenError) as exc:  # NvError is a ValueError
         parser.exit(2, f"{parser.prog}: error: {exc}\n")
     reader, notifier = _canopen(bus, host) if args.canopen else (None, None)
-    runtime = BusRuntime(bus, host, codec=codec, receives=Direction.TO_CLIENT, source=reader)
+    runtime = BusRuntime(
+        bus,
+        host,
+        codec=codec,
+        receives=Direction.TO_CLIENT,
+        source=reader,
+        auth=_auth(args, codec, host),
+    )
     try:
         _serve(args, host, runtime, signals)
     except SimulatedPowerLoss as exc:

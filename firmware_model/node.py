@@ -14,6 +14,7 @@ from typing import Any
 
 import can
 
+from canergy.auth.frames import Verdict, freshness
 from canergy.codec import DecodeError
 from canergy.core import (
     Action,
@@ -251,6 +252,16 @@ class NodeHost:
         node = self.nodes.get(frame.arbitration_id & 0xFF)
         if node is not None:
             node.decode_errors += 1
+
+    def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
+        node = self.nodes.get(verdict.node or 0)
+        if node is not None and verdict.failure is not None:
+            node.intrusions.record(node.node, frame_text(frame), verdict.failure.value, now)
+
+    def freshness(self, msg: Message) -> int:
+        """Authenticated mode: a frame's freshness value from the node's own counters."""
+        c = self.nodes[msg.node].client.state
+        return freshness(msg, c.last_tx, c.return_seq)
 
     def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
         node = self.nodes.get(frame.arbitration_id & 0xFF)

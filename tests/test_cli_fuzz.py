@@ -84,6 +84,7 @@ OUTPUTS: dict[str, set[str]] = {
     "sweep": {"out"},
     "supervisor": {"state", "status_file", "control", "cia402_capture"},
     "grant": {"state"},
+    "keys": {"output"},
     FIRMWARE: {"nv", "status_file"},
     DRIVE: {"status_file"},
 }

@@ -9,7 +9,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from canergy import __version__, cli_inspect, cli_live, cli_sim
+from canergy import __version__, cli_inspect, cli_keys, cli_live, cli_sim
 from canergy.cli_args import (
     COUNT_MAX,
     add_duration,
@@ -136,8 +136,9 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         help="exhaustively model-check the protocol core within bounds",
         description=(
             "Breadth-first exploration of one supervisor, K clients and the frames in flight "
-            "under every interleaving of deliveries, losses, duplicates, timer expiries and "
-            "power losses, checking the conservation ledger in every state. Exit status 1 when "
+            "under every interleaving of deliveries, losses, duplicates, timer expiries, "
+            "power losses and an attacker's forged or replayed frames, checking the "
+            "conservation ledger in every state. Exit status 1 when "
             f"energy can be generated, 0 otherwise. Every bound is at most {CHECK_BOUND_MAX} "
             "(--clients at most 8): the state space grows exponentially in each."
         ),
@@ -174,6 +175,19 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         default=d.old_copies,
         help="node starts from the record before its last write (NV replaced by an old copy; "
         "default 0)",
+    )
+    p.add_argument(
+        "--forgeries",
+        type=count,
+        default=d.forgeries,
+        help="frames a keyless attacker builds and sends (the codec is public; default 0)",
+    )
+    p.add_argument(
+        "--replays",
+        type=count,
+        default=d.replays,
+        help="frames seen earlier on the bus that an attacker sends again, at any later time "
+        "(what is left to it in the authenticated mode; default 0)",
     )
     p.add_argument(
         "--in-flight",
@@ -245,6 +259,8 @@ def _run_check(args: argparse.Namespace) -> int:
         power_losses=args.power_losses,
         nv_losses=args.nv_losses,
         old_copies=args.old_copies,
+        forgeries=args.forgeries,
+        replays=args.replays,
         in_flight=args.in_flight,
         units=args.units,
         retries=args.retries,
@@ -348,6 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
     cli_live.add_parsers(sub)
     cli_sim.add_parsers(sub)
     cli_inspect.add_parsers(sub)
+    cli_keys.add_parsers(sub)
     b = sub.add_parser(
         "bench",
         help="benchmarks: codec vs cantools, core, live stack vs CANopen SDO, wire, memory",
@@ -365,6 +382,7 @@ _COMMANDS = {
     **cli_live.COMMANDS,
     **cli_sim.COMMANDS,
     **cli_inspect.COMMANDS,
+    **cli_keys.COMMANDS,
     "bench": _run_bench,
 }
 

@@ -69,6 +69,14 @@ def _supervisor_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-total", type=energy, help="energy granted in this run, all nodes")
     p.add_argument("--rate", type=power, help="sustained grant rate over all nodes, e.g. 2W")
     add_duration(p, "--stop-timeout", 5_000_000, "time to settle on exit")
+    p.add_argument(
+        "--auth",
+        type=Path,
+        metavar="KEYFILE",
+        help="authenticated mode with this master key (`canergy keys master`, mode 0600): every "
+        "frame carries a truncated AES-CMAC; with --fd one CAN FD frame and a 64-bit MAC, "
+        "otherwise each frame is followed by a MAC frame (40-bit MAC)",
+    )
 
 
 def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -171,6 +179,33 @@ def _limits(args: argparse.Namespace) -> Limits:
         max_node_level=args.max_node_level,
         max_total=args.max_total,
         rate_uj_per_s=args.rate,
+    )
+
+
+def _auth_key(args: argparse.Namespace) -> Any:
+    """``--auth``'s master key, checked before anything is written or opened."""
+    if args.auth is None:
+        return None
+    from canergy.auth.keys import load_key
+
+    key = load_key(args.auth)
+    if key.kind != "master":
+        raise ValueError(f"--auth {args.auth}: a supervisor needs the master key, not a node key")
+    if args.variant != "hardened":
+        raise ValueError("--auth needs the hardened rules (--variant hardened)")
+    return key
+
+
+def _auth(args: argparse.Namespace, key: Any, codec: Codec, service: SupervisorService) -> Any:
+    """The frame authenticator for ``--auth`` (None without it)."""
+    if key is None:
+        return None
+    from canergy.auth.frames import FrameAuth, Layout
+    from canergy.auth.keys import frame_auth_keys
+
+    layout = Layout.FD if getattr(args, "fd", False) else Layout.CLASSIC
+    return FrameAuth(
+        codec, layout, frame_auth_keys(key), Direction.TO_SUPERVISOR, service.freshness
     )
 
 
@@ -329,6 +364,7 @@ def run_supervisor(args: argparse.Namespace) -> int:
         )
     check_cia402(args)
     _check_state(args, required=not args.listen_only)
+    key = _auth_key(args)
     if args.canopen:
         _check_eds(args.eds)
     nodes = tuple(sorted((*(args.nodes or ()), *(args.cia402 or ()))))
@@ -388,6 +424,7 @@ def run_supervisor(args: argparse.Namespace) -> int:
             receives=Direction.TO_SUPERVISOR,
             listen_only=args.listen_only,
             source=reader,
+            auth=_auth(args, key, codec, service),
         )
         service.bus_counters = runtime.counters
         _serve(runtime, service, control, manager=manager)
@@ -424,6 +461,7 @@ def run_grant(args: argparse.Namespace) -> int:
         return _report_grant(answer)
     _check_widths(args)
     _check_state(args)
+    key = _auth_key(args)
     core = _build(args, (args.node,))
     config = ServiceConfig(
         limits=_limits(args),
@@ -438,7 +476,13 @@ def run_grant(args: argparse.Namespace) -> int:
     deadline = monotonic_us() + args.timeout
     try:
         service = SupervisorService(core, config, monotonic_us())
-        runtime = BusRuntime(bus, service, codec=codec, receives=Direction.TO_SUPERVISOR)
+        runtime = BusRuntime(
+            bus,
+            service,
+            codec=codec,
+            receives=Direction.TO_SUPERVISOR,
+            auth=_auth(args, key, codec, service),
+        )
         service.request_grant(args.node, args.amount, answers.append)
         _serve(runtime, service, None, until=lambda: bool(answers) or monotonic_us() > deadline)
     finally:

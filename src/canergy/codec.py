@@ -209,6 +209,11 @@ class Codec:
         """Filters passing only the supervisor's frames to ``node``."""
         return [{"can_id": self.id_base | node, "can_mask": _DIR_MASK | 0xFF, "extended": True}]
 
+    @staticmethod
+    def data_length(msg_type: MsgType) -> int:
+        """The classic data length of a message type (CRC byte and fields)."""
+        return LAYOUTS[msg_type].dlc
+
     def supervisor_watch_filters(self) -> list[dict[str, int | bool]]:
         """A supervisor's filters that also pass frames in its own direction: its own never come
         back to it, so one for a node it manages is a second supervisor's or a spoofer's."""

@@ -18,6 +18,7 @@ from typing import Any
 
 import can
 
+from canergy.auth.frames import Verdict
 from canergy.cia402.guard import DriveGuard
 from canergy.codec import Codec, DecodeError
 from canergy.live.cia402_link import DriveLink
@@ -83,6 +84,9 @@ class GuardedSupervisor:
 
     def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
         return self.service.on_foreign_direction(frame, now)
+
+    def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
+        self.service.on_auth_failure(verdict, frame, now)
 
     def next_wakeup(self) -> int | None:
         times = [self.next_beat]

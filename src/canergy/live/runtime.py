@@ -16,6 +16,7 @@ from typing import Any, Protocol
 
 import can
 
+from canergy.auth.frames import FrameAuth, Verdict
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
 from canergy.messages import Direction, Message
 
@@ -31,6 +32,11 @@ class Handler(Protocol):
 
     def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
         """A frame in canergy's identifier block failed to decode (it is dropped)."""
+        ...
+
+    def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
+        """Authenticated mode: a frame whose MAC or freshness failed (a forgery, a replay of
+        an old frame): it moves nothing."""
         ...
 
     def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
@@ -60,6 +66,7 @@ class BusCounters:
     error_frames: int = 0
     bus_state: str = "unknown"
     decode_reasons: dict[str, int] = field(default_factory=dict)
+    auth_failures: dict[str, int] = field(default_factory=dict)
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -73,6 +80,7 @@ class BusCounters:
             "receive_errors": self.receive_errors,
             "error_frames": self.error_frames,
             "bus_state": self.bus_state,
+            "auth_failures": dict(self.auth_failures),
         }
 
 
@@ -104,6 +112,7 @@ class BusRuntime:
         clock: Callable[[], int] = monotonic_us,
         sleep: Callable[[float], None] = time.sleep,
         source: can.BufferedReader | None = None,
+        auth: FrameAuth | None = None,
     ) -> None:
         """``source``: read from this listener instead of ``bus.recv`` when a ``can.Notifier``
         owns the bus (shared with python-canopen: one Notifier per bus)."""
@@ -118,6 +127,8 @@ class BusRuntime:
         self.sleep = sleep
         self.counters = BusCounters()
         self.max_batch = 512
+        self.auth = auth
+        """Authenticated mode: MACs added to what is sent and checked on what is received."""
 
     def poll(self, max_wait_s: float = 0.1) -> None:
         """Wait for one frame (at most until the next deadline or ``max_wait_s``) and run
@@ -167,13 +178,7 @@ class BusRuntime:
             return
         self.counters.frames_received += 1
         try:
-            msg = self.codec.decode(
-                frame.arbitration_id,
-                frame.data,
-                extended=frame.is_extended_id,
-                remote=frame.is_remote_frame,
-                direction=self.receives,
-            )
+            msg = self._decode(frame)
         except DecodeError as err:
             if err.reason is DecodeErrorReason.FOREIGN:
                 self.counters.foreign_frames += 1
@@ -186,7 +191,30 @@ class BusRuntime:
             reasons[err.reason.value] = reasons.get(err.reason.value, 0) + 1
             self.handler.on_decode_error(err, frame)
             return
-        self._send_all(self.handler.on_message(msg, self.clock()))
+        if msg is not None:
+            self._send_all(self.handler.on_message(msg, self.clock()))
+
+    def _decode(self, frame: can.Message) -> Message | None:
+        """The message a frame carries; None when it carries none yet (a classic authenticated
+        message before its MAC frame) or its MAC or freshness failed (counted, reported)."""
+        if self.auth is None or not self.codec.is_canergy_id(
+            frame.arbitration_id, frame.is_extended_id
+        ):
+            return self.codec.decode(
+                frame.arbitration_id,
+                frame.data,
+                extended=frame.is_extended_id,
+                remote=frame.is_remote_frame,
+                direction=self.receives,
+            )
+        if frame.is_remote_frame:
+            raise DecodeError(DecodeErrorReason.REMOTE_FRAME, f"id 0x{frame.arbitration_id:08X}")
+        verdict = self.auth.accept(frame)
+        if verdict.failure is not None:
+            failures = self.counters.auth_failures
+            failures[verdict.failure.value] = failures.get(verdict.failure.value, 0) + 1
+            self.handler.on_auth_failure(verdict, frame, self.clock())
+        return verdict.message
 
     def _send_all(self, messages: Sequence[Message]) -> None:
         if self.listen_only:
@@ -195,8 +223,14 @@ class BusRuntime:
             self._send(msg)
 
     def _send(self, msg: Message) -> None:
+        if self.auth is not None:
+            for frame in self.auth.frames(msg):
+                self._send_frame(frame)
+            return
         arbitration_id, data = self.codec.encode(msg)
-        frame = can.Message(arbitration_id=arbitration_id, is_extended_id=True, data=data)
+        self._send_frame(can.Message(arbitration_id=arbitration_id, is_extended_id=True, data=data))
+
+    def _send_frame(self, frame: can.Message) -> None:
         policy = self.send_policy
         backoff = policy.first_backoff_s
         for attempt in range(policy.attempts):

@@ -17,6 +17,7 @@ from typing import Any, TextIO
 
 import can
 
+from canergy.auth.frames import Verdict, freshness
 from canergy.codec import DecodeError
 from canergy.core import (
     Acknowledged,
@@ -189,6 +190,16 @@ class SupervisorService:
         if node in self.nodes:
             self.intrusion(node, frame_text(frame), "a frame only this supervisor sends", now)
         return ()
+
+    def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
+        if verdict.node in self.nodes and verdict.failure is not None:
+            self.intrusion(verdict.node, frame_text(frame), verdict.failure.value, now)
+
+    def freshness(self, msg: Message) -> int:
+        """Authenticated mode: the freshness value of a frame to or from ``msg.node``, from this
+        supervisor's counters for it."""
+        s = self.core.session(msg.node)
+        return freshness(msg, s.tx, s.returns_credited)
 
     def intrusion(self, node: int, what: str, kind: str, now: int) -> None:
         """Someone else sent a frame for ``node`` that only this supervisor (or the node's proxy

@@ -1,0 +1,1 @@
+"""Authenticated mode: key files, per-node keys, SecOC-like MACs on canergy frames."""

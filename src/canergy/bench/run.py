@@ -11,7 +11,7 @@ import tracemalloc
 from pathlib import Path
 from typing import Any
 
-from canergy.bench import codec, core, live, wire
+from canergy.bench import auth, codec, core, live, wire
 
 
 def memory_per_node(nodes: int = 127, emulator: live.Emulator | None = None) -> dict[str, Any]:
@@ -67,6 +67,7 @@ def run(quick: bool = False) -> dict[str, Any]:
         "wire": wire.model(),
         "headroom": wire.headroom(one["cpu_us_per_frame"]) if one["cpu_us_per_frame"] else None,
         "memory": memory_per_node(emulator=emulator),
+        "auth": auth.overhead(loops=20 if quick else 500, repeats=3 if quick else 7),
         "skipped": skipped,
     }
 
@@ -132,6 +133,13 @@ def table(r: dict[str, Any]) -> str:
         if "client_nv_record_bytes" in m
         else ""
     )
+    lines += ["", "authenticated mode, per message (MAC built and checked) and per transaction"]
+    for row in r["auth"]["rows"]:
+        ratio = f" ({row['vs_plain']:.1f}x plain)" if "vs_plain" in row else ""
+        lines.append(
+            f"  {row['layout']:>7}: {row['us_per_frame']:.1f} us/message{ratio}, "
+            f"{row['frames_per_tx']} frames and {row['bytes_per_tx']} data bytes per transaction"
+        )
     lines += [
         f"  CPU per frame {_n(h['cpu_us_per_frame'], '.1f')} us vs wire "
         f"{_n(h['wire_us_per_frame_1mbit'], '.0f')} us at 1 Mbit/s: headroom "

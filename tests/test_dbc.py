@@ -92,3 +92,49 @@ def test_cantools_cli_decodes_candump_output() -> None:
     ).stdout
     assert "INTENTION_N5(CRC: 41, TX: 1, AMOUNT: 0.5 J, DELIVERED: 0.0 J)" in out
     assert "ACK_N5(CRC: 69, TX: 1)" in out
+
+
+AUTH_KEY = bytes(range(16))
+
+
+@pytest.mark.parametrize("layout", ["fd", "classic"])
+def test_committed_authenticated_dbcs_are_what_the_codec_generates(layout: str) -> None:
+    path = DBC_PATH.with_name(f"canergy-auth-{layout}.dbc")
+    expected = dbc_text(CODEC.id_base, layout).encode()
+    assert path.read_bytes() == expected, f"regenerate: canergy dbc --auth {layout} -o {path}"
+
+
+@pytest.mark.parametrize("layout", ["fd", "classic"])
+@given(messages)
+def test_cantools_decodes_authenticated_frames(layout: str, msg: Message) -> None:
+    from canergy.auth.frames import FrameAuth, Layout, freshness
+    from canergy.messages import Direction
+
+    db = _auth_db(layout)
+    auth = FrameAuth(
+        CODEC,
+        Layout(layout),
+        lambda n: AUTH_KEY,
+        Direction.TO_CLIENT,
+        lambda m: freshness(m, 70_000, 3),
+    )
+    frames = auth.frames(msg)
+    fv = freshness(msg, 70_000, 3)
+    first = db.decode_message(frames[0].arbitration_id, bytes(frames[0].data), scaling=False)
+    assert {k: v for k, v in first.items() if k in _raw_signals(msg)} == _raw_signals(msg)
+    if layout == "fd":
+        assert first["FV"] == fv and first["MAC"] == int.from_bytes(frames[0].data[-8:], "big")
+    else:
+        trailer = db.decode_message(frames[1].arbitration_id, bytes(frames[1].data), scaling=False)
+        assert trailer["MSG_TYPE"] == msg.TYPE and trailer["FV_HIGH"] == fv >> 16
+        assert trailer["MAC"] == int.from_bytes(frames[1].data[3:], "big")
+
+
+_auth_dbs: dict[str, cantools.database.can.Database] = {}
+
+
+def _auth_db(layout: str) -> cantools.database.can.Database:
+    if layout not in _auth_dbs:
+        path = DBC_PATH.with_name(f"canergy-auth-{layout}.dbc")
+        _auth_dbs[layout] = cantools.database.load_file(str(path))
+    return _auth_dbs[layout]

@@ -290,6 +290,12 @@ def _dbc_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     p = sub.add_parser("dbc", help="write the DBC describing canergy's frames")
     p.add_argument("-o", "--output", type=Path, help="file to write (default: stdout)")
     p.add_argument(
+        "--auth",
+        choices=["fd", "classic"],
+        help="describe an authenticated layout: fd (CAN FD frames with FV and a 64-bit MAC) or "
+        "classic (each message followed by a MAC frame)",
+    )
+    p.add_argument(
         "--id-base",
         type=id_base,
         default=None,
@@ -301,7 +307,7 @@ def _run_dbc(args: argparse.Namespace) -> int:
     from canergy.codec import DEFAULT_ID_BASE
     from canergy.dbc import dbc_text
 
-    text = dbc_text(DEFAULT_ID_BASE if args.id_base is None else args.id_base)
+    text = dbc_text(DEFAULT_ID_BASE if args.id_base is None else args.id_base, args.auth)
     if args.output:
         args.output.write_bytes(text.encode())
     else:

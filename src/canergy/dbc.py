@@ -1,13 +1,15 @@
-"""Build ``dbc/canergy.dbc`` from the codec's layouts with cantools (one message per node/type)."""
+"""Build ``dbc/canergy.dbc`` from the codec's layouts with cantools (one message per node/type),
+and the authenticated layouts (``canergy-auth-fd.dbc``, ``canergy-auth-classic.dbc``)."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import cantools.database
 from cantools.database.can import Database, Message, Node, Signal
 from cantools.database.conversion import BaseConversion
 
+from canergy.auth.frames import MAC_TYPE, fd_length
 from canergy.codec import LAYOUTS, Codec
 from canergy.messages import MAX_NODE, MIN_NODE, QUANTUM_UJ, Direction, MsgType
 
@@ -42,16 +44,27 @@ _COMMENTS = {
     "LEVEL": "client's usable energy in mJ, saturating at 16777.215 J (information only)",
     "FLAGS": "bit 0: level low; bit 1: actuator halted; bit 2: no books, joining",
     "NONCE": "random number drawn by a node that starts without books; ADMIT echoes it",
+    "FV": "freshness value: the full 32-bit tx (or return number, or nonce) the MAC covers",
+    "MAC": "AES-128-CMAC over Data ID, FV and the classic data, truncated (SecOC-like)",
+    "MSG_TYPE": "type code of the message this MAC frame authenticates",
+    "FV_HIGH": "high 16 bits of the freshness value (the low 16 travel in the message)",
 }
 
 
-def _signal(name: str, start: int, length: int, scale: float, unit: str) -> Signal:
+def _signal(
+    name: str,
+    start: int,
+    length: int,
+    scale: float,
+    unit: str,
+    order: Literal["little_endian", "big_endian"] = "little_endian",
+) -> Signal:
     conversion = BaseConversion.factory(scale=scale, offset=0, is_float=False)
     return Signal(
         name,
         start,
         length,
-        "little_endian",
+        order,
         False,
         conversion=conversion,
         minimum=0,
@@ -61,31 +74,66 @@ def _signal(name: str, start: int, length: int, scale: float, unit: str) -> Sign
     )
 
 
-def _message(codec: Codec, msg_type: MsgType, node: int) -> Message:
-    sender = "SUPERVISOR" if msg_type.direction is Direction.TO_CLIENT else f"NODE_{node}"
+def _big_endian(name: str, byte: int, length: int) -> Signal:
+    """A big-endian signal whose most significant byte is ``byte`` (DBC's Motorola start bit)."""
+    return _signal(name, byte * 8 + 7, length, 1, "", "big_endian")
+
+
+def _sender(msg_type: MsgType, node: int) -> str:
+    return "SUPERVISOR" if msg_type.direction is Direction.TO_CLIENT else f"NODE_{node}"
+
+
+def _message(codec: Codec, msg_type: MsgType, node: int, fd: bool = False) -> Message:
     signals = [_signal("CRC", 0, 8, 1, "")] + [_signal(*s) for s in _SIGNALS[msg_type]]
+    length = LAYOUTS[msg_type].dlc
+    if fd:  # data, zero padding, FV (4), MAC (8)
+        length = fd_length(length + 12)
+        signals += [_big_endian("FV", length - 12, 32), _big_endian("MAC", length - 8, 64)]
     return Message(
         frame_id=codec.arbitration_id(msg_type, node),
         name=f"{msg_type.name}_N{node}",
-        length=LAYOUTS[msg_type].dlc,
+        length=length,
         signals=signals,
-        senders=[sender],
+        senders=[_sender(msg_type, node)],
         is_extended_frame=True,
+        is_fd=fd,
         comment=f"canergy {msg_type.name} for node {node}",
     )
 
 
-def build_database(id_base: int) -> Any:
+def _mac_message(codec: Codec, direction: Direction, node: int) -> Message:
+    """Classic authenticated layout: the MAC frame that follows every message."""
+    kind = MAC_TYPE[direction]
+    name = "MAC_TO_NODE" if direction is Direction.TO_CLIENT else "MAC_FROM_NODE"
+    return Message(
+        frame_id=codec.id_base | kind << 8 | node,
+        name=f"{name}_N{node}",
+        length=8,
+        signals=[
+            _signal("MSG_TYPE", 0, 8, 1, ""),
+            _big_endian("FV_HIGH", 1, 16),
+            _big_endian("MAC", 3, 40),
+        ],
+        senders=["SUPERVISOR" if direction is Direction.TO_CLIENT else f"NODE_{node}"],
+        is_extended_frame=True,
+        comment=f"canergy MAC frame ({direction.name.lower()}) for node {node}",
+    )
+
+
+def build_database(id_base: int, auth: str | None = None) -> Any:
+    """``auth``: None (plain), ``fd`` or ``classic`` (the authenticated layouts)."""
     codec = Codec(id_base)
-    nodes = [Node("SUPERVISOR", None)] + [
-        Node(f"NODE_{n}", None) for n in range(MIN_NODE, MAX_NODE + 1)
-    ]
-    messages = [_message(codec, t, n) for t in MsgType for n in range(MIN_NODE, MAX_NODE + 1)]
-    return Database(messages=messages, nodes=nodes, version="canergy 1")
+    ids = range(MIN_NODE, MAX_NODE + 1)
+    nodes = [Node("SUPERVISOR", None)] + [Node(f"NODE_{n}", None) for n in ids]
+    messages = [_message(codec, t, n, fd=auth == "fd") for t in MsgType for n in ids]
+    if auth == "classic":
+        messages += [_mac_message(codec, d, n) for d in Direction for n in ids]
+    version = "canergy 1" if auth is None else f"canergy 1 auth {auth}"
+    return Database(messages=messages, nodes=nodes, version=version)
 
 
-def dbc_text(id_base: int) -> str:
+def dbc_text(id_base: int, auth: str | None = None) -> str:
     """The DBC file for ``id_base``; loads back with ``cantools.database.load_file``."""
-    text: str = build_database(id_base).as_dbc_string()
+    text: str = build_database(id_base, auth).as_dbc_string()
     cantools.database.load_string(text, database_format="dbc")  # fail here, not at the user
     return text

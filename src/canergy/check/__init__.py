@@ -2,8 +2,8 @@
 
 The checker explores, breadth first, every interleaving of deliveries, losses, duplications,
 timer expiries, decisions, spending, returns and power losses of one supervisor and K clients,
-driving the same rule functions as the live runtime, and checks the conservation ledger in every
-state.
+and of an attacker forging or replaying frames when its bounds allow, driving the same rule
+functions as the live runtime, and checks the conservation ledger in every state.
 """
 
 from canergy.check.explore import CheckResult, check

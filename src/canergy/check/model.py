@@ -2,6 +2,10 @@
 
 Time is abstract: the rules run with zero timeouts and ``now = 0``, so an armed deadline is 0 and
 a timer fires only when a step says so. Energies are whole wire quanta ("units").
+
+An attacker on the bus (``Bounds.forgeries``, ``Bounds.replays``) sends a frame that its receiver
+takes at once: a CAN frame reaches every node when it is sent, and the attacker chooses when to
+send, so no delay is lost and its frames take no in-flight capacity.
 """
 
 from __future__ import annotations
@@ -10,6 +14,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from enum import Enum
 
+from canergy.check.attacker import forgeable
 from canergy.core.actions import Send
 from canergy.core.frozen import evolve
 from canergy.core.inputs import (
@@ -55,6 +60,10 @@ class Bounds:
     """Client starts with both NV slots unreadable (new, wiped or corrupted record)."""
     old_copies: int = 0
     """Client starts with its record replaced by the one before its last write."""
+    forgeries: int = 0
+    """Frames a keyless attacker builds and sends (``attacker.forgeable``; the codec is public)."""
+    replays: int = 0
+    """Copies of frames seen earlier on the bus an attacker sends again (authenticated mode)."""
     returns: bool = True
     spending: bool = True
     extra_ids: int = 2
@@ -82,6 +91,11 @@ class World:
     """Each client's state before its last record write (kept only when old copies are on)."""
     lost_records: tuple[tuple[int, LostRecord], ...] = ()
     """Nodes that lost their record, and what the observer saw it hold (for the ledger)."""
+    forged: int = 0
+    replayed: int = 0
+    seen: frozenset[Message] = frozenset()
+    """Every frame sent on the bus so far (kept only when replays are on): what can be replayed.
+    Forged frames are not energy: the ledger counts only the nodes' states."""
 
     def frames(self) -> int:
         return sum(n for _, n in self.flight)
@@ -118,6 +132,8 @@ class StepKind(Enum):
     SUPERVISOR_POWER_LOSS = "supervisor_power_loss"
     NV_LOST = "client_nv_lost"
     NV_OLD_COPY = "client_nv_old_copy"
+    FORGE = "forge"
+    REPLAY = "replay"
 
 
 K = StepKind
@@ -125,6 +141,7 @@ CHANNEL_KINDS = frozenset({K.DELIVER, K.LOSE, K.DUPLICATE})
 TIMER_KINDS = frozenset({K.SUPERVISOR_TIMER, K.COMMAND_TIMER, K.RETURN_TIMER})
 SUPERVISOR_KINDS = frozenset({K.BEGIN, K.DECIDE, K.SUPERVISOR_TIMER})
 POWER_LOSS_KINDS = frozenset({K.CLIENT_POWER_LOSS, K.SUPERVISOR_POWER_LOSS})
+ATTACKER_KINDS = frozenset({K.FORGE, K.REPLAY})
 
 
 @dataclass(frozen=True, slots=True)
@@ -204,6 +221,12 @@ class Model:
                 yield Step(K.NV_OLD_COPY, c.node)
         if may_lose_power:
             yield Step(K.SUPERVISOR_POWER_LOSS)
+        if w.forged < b.forgeries:
+            for msg in forgeable(self.variant, w.sup.sessions, w.clients, b.units):
+                yield Step(K.FORGE, message=msg)
+        if w.replayed < b.replays:
+            for msg in sorted(w.seen, key=_message_key):
+                yield Step(K.REPLAY, message=msg)
 
     # -- application -----------------------------------------------------------------
     def apply(self, w: World, step: Step) -> World | None:
@@ -228,12 +251,18 @@ class Model:
             return evolve(w, nv_lost=w.nv_lost + 1)  # the ghost Rc is kept in _apply
         if kind is K.NV_OLD_COPY:
             return evolve(w, old_copied=w.old_copied + 1)
+        if kind is K.FORGE:
+            return evolve(w, forged=w.forged + 1)
+        if kind is K.REPLAY:
+            return evolve(w, replayed=w.replayed + 1)
         return w
 
     def _apply(self, w: World, step: Step) -> World | None:
         """Every step but the channel's is one event fed to one table: the rules the demo runs."""
         if step.kind in CHANNEL_KINDS:
             return self._channel(w, step)
+        if step.kind in ATTACKER_KINDS:
+            return self._attack(w, step)
         if step.kind is K.SUPERVISOR_POWER_LOSS:
             for i in range(len(w.sup.sessions)):
                 w = self._to_session(w, i, POWER_LOSS)
@@ -281,6 +310,25 @@ class Model:
         w = evolve(w, flight=frozenset(counts.items()))
         if step.kind is K.LOSE:
             return evolve(w, lost=w.lost + 1)
+        return self._receive(w, msg)
+
+    def _attack(self, w: World, step: Step) -> World | None:
+        """The attacker sends a frame it may send now; its receiver takes it at once."""
+        msg, b = step.message, self.bounds
+        assert msg is not None
+        if w.forged > b.forgeries or w.replayed > b.replays:  # ``_count`` charged the step
+            return None
+        if step.kind is K.REPLAY and msg not in w.seen:
+            return None
+        if step.kind is K.FORGE:
+            if msg not in forgeable(self.variant, w.sup.sessions, w.clients, b.units):
+                return None
+            if b.replays:  # a forged frame has been on the bus: it can be replayed too
+                w = evolve(w, seen=w.seen | {msg})
+        return self._receive(w, msg)
+
+    def _receive(self, w: World, msg: Message) -> World:
+        """``msg`` arrives at its receiver."""
         i = msg.node - 1
         if msg.TYPE.direction is Direction.TO_CLIENT:
             assert isinstance(msg, ToClient)
@@ -301,14 +349,15 @@ class Model:
             w = evolve(w, older=(*w.older[:i], old, *w.older[i + 1 :]))
         return self._out(evolve(w, clients=clients), actions)
 
-    @staticmethod
-    def _out(w: World, actions: Actions) -> World:
+    def _out(self, w: World, actions: Actions) -> World:
         sends = [a.message for a in actions if isinstance(a, Send)]
         if not sends:
             return w
         counts = dict(w.flight)
         for msg in sends:
             counts[msg] = counts.get(msg, 0) + 1
+        if self.bounds.replays:
+            w = evolve(w, seen=w.seen.union(sends))
         return evolve(w, flight=frozenset(counts.items()))
 
 
@@ -322,7 +371,11 @@ _DATALESS: dict[StepKind, Event] = {
 
 
 def _flight_key(item: tuple[Message, int]) -> tuple[int, str]:
-    return (int(item[0].TYPE), repr(item[0]))
+    return _message_key(item[0])
+
+
+def _message_key(msg: Message) -> tuple[int, str]:
+    return (int(msg.TYPE), repr(msg))
 
 
 def replay(model: Model, steps: list[Step]) -> list[World]:

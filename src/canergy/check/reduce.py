@@ -5,10 +5,11 @@ same world with node ids permuted (sessions, clients and frames alike) have mirr
 Only one representative of each class is stored: the one with nodes sorted by what they hold.
 
 **Subsumption.** The run counters (transactions started, frames lost and duplicated, power
-losses, timer expiries) are budgets: a world that has used less of every budget can do everything
-the same world with more used can do. A world is skipped when the same protocol state has been
-stored with every counter lower or equal. Breadth-first order stores the cheaper one no later than
-at the same depth, so counterexamples stay shortest.
+losses, timer expiries, forgeries and replays) are budgets: a world that has used less of every
+budget can do everything the same world with more used can do, and so can one whose replayer has
+seen more frames. A world is skipped when the same protocol state has been stored with every
+counter lower or equal and every frame it has seen seen too. Breadth-first order stores the
+cheaper one no later than at the same depth, so counterexamples stay shortest.
 """
 
 from __future__ import annotations
@@ -17,14 +18,32 @@ from typing import Any, TypeVar, cast
 
 from canergy.check.model import Flight, Step, World
 from canergy.core.frozen import evolve
+from canergy.messages import Message
 
 T = TypeVar("T")
-Counters = tuple[int, int, int, int, int, int, int]
+Counters = tuple[int, int, int, int, int, int, int, int, int]
 Perm = tuple[int, ...]
 
 
 def counters(w: World) -> Counters:
-    return (w.started, w.lost, w.duplicated, w.power_lost, w.timed_out, w.nv_lost, w.old_copied)
+    return (
+        w.started,
+        w.lost,
+        w.duplicated,
+        w.power_lost,
+        w.timed_out,
+        w.nv_lost,
+        w.old_copied,
+        w.forged,
+        w.replayed,
+    )
+
+
+def _cheaper(
+    a: tuple[Counters, frozenset[Message]], b: tuple[Counters, frozenset[Message]]
+) -> bool:
+    """``a`` can do all ``b`` can: no counter higher, every frame ``b`` can replay seen."""
+    return a[1] >= b[1] and all(x <= y for x, y in zip(a[0], b[0], strict=True))
 
 
 _RENAMED: dict[tuple[object, int], Any] = {}
@@ -58,6 +77,7 @@ def relabel(w: World, perm: Perm) -> World:
         flight=flight,
         older=tuple(older),
         lost_records=tuple(sorted((perm[n - 1] + 1, r) for n, r in w.lost_records)),
+        seen=frozenset(_renamed(msg, perm[msg.node - 1] + 1) for msg in w.seen),
     )
 
 
@@ -94,7 +114,8 @@ def sorting_perm(w: World) -> Perm:
         frames = sorted((_signature(msg), n) for msg, n in w.flight if msg.node == client.node)
         older = _signature(w.older[client.node - 1]) if w.older else ()
         ghost = dict(w.lost_records).get(client.node, ())
-        keys.append((_signature(session), _signature(client), frames, older, ghost))
+        seen = sorted(_signature(msg) for msg in w.seen if msg.node == client.node)
+        keys.append((_signature(session), _signature(client), frames, older, ghost, seen))
     order = sorted(range(len(keys)), key=keys.__getitem__)
     perm = [0] * len(order)
     for new, old in enumerate(order):
@@ -117,7 +138,7 @@ class Reducer:
         _SIGNATURES.clear()
         self.symmetry = symmetry and clients > 1
         self.subsumption = subsumption
-        self._stored: dict[World, list[Counters]] = {}
+        self._stored: dict[World, list[tuple[Counters, frozenset[Message]]]] = {}
         self.subsumed = 0
 
     def perm(self, w: World) -> Perm:
@@ -133,17 +154,26 @@ class Reducer:
         if not self.subsumption:
             return True
         core = evolve(
-            w, started=0, lost=0, duplicated=0, power_lost=0, timed_out=0, nv_lost=0, old_copied=0
+            w,
+            started=0,
+            lost=0,
+            duplicated=0,
+            power_lost=0,
+            timed_out=0,
+            nv_lost=0,
+            old_copied=0,
+            forged=0,
+            replayed=0,
+            seen=frozenset(),
         )
-        mine = counters(w)
+        mine = (counters(w), w.seen)
         stored = self._stored.get(core)
         if stored is None:
             self._stored[core] = [mine]
             return True
-        for other in stored:
-            if all(a <= b for a, b in zip(other, mine, strict=True)):
-                self.subsumed += 1
-                return False
-        stored[:] = [o for o in stored if not all(a <= b for a, b in zip(mine, o, strict=True))]
+        if any(_cheaper(other, mine) for other in stored):
+            self.subsumed += 1
+            return False
+        stored[:] = [o for o in stored if not _cheaper(mine, o)]
         stored.append(mine)
         return True

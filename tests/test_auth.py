@@ -293,3 +293,117 @@ def test_authenticated_traffic_flows_and_forgeries_move_nothing(bench: Bench) ->
     books = ledger_from_status(final, [node.status()])
     assert books.passive and books.dissipated >= 0, books
     assert node.client.state.credited <= final["nodes"]["1"]["delivered_uj"]
+
+
+# --- captures: dump, decode and audit with --auth ---------------------------------------------
+
+
+def _capture(tmp: Path, layout: Layout, key_path: Path) -> tuple[Path, list[can.Message]]:
+    """Two honest transactions through both cores and authenticators, as a candump -l file."""
+    from canergy.core import Client, Send, Supervisor, Timing
+    from canergy.live.service import ServiceConfig, SupervisorService
+
+    master = load_key(key_path)
+    timing = Timing(response_timeout_us=10_000, retries=3)
+    service = SupervisorService(
+        Supervisor((1,), 10_000_000, timing=timing),
+        ServiceConfig(fsync=False, status_period_us=10**12),
+        0,
+    )
+    client = Client(1, timing=timing)
+    sup_auth = FrameAuth(CODEC, layout, master.node_key, Direction.TO_SUPERVISOR, service.freshness)
+    node_auth = FrameAuth(
+        CODEC,
+        layout,
+        master.node_key,
+        Direction.TO_CLIENT,
+        lambda m: freshness(m, client.state.last_tx, client.state.return_seq),
+    )
+    frames: list[can.Message] = []
+
+    def carry(msgs: list[Message]) -> None:
+        queue = list(msgs)
+        while queue:
+            msg = queue.pop(0)
+            down = msg.TYPE.direction is Direction.TO_CLIENT
+            sent = (sup_auth if down else node_auth).frames(msg)
+            frames.extend(sent)
+            verdicts = [(node_auth if down else sup_auth).accept(f) for f in sent]
+            got = verdicts[-1].message
+            assert got == msg
+            if down:
+                queue += [a.message for a in client.receive(got, 0) if isinstance(a, Send)]
+            else:
+                queue += list(service.on_message(got, 0))
+
+    carry([Telemetry(1, 0)])
+    for amount in (500_000, 250_000):
+        answers: list[dict[str, Any]] = []
+        service.request_grant(1, amount, answers.append)
+        carry(list(service.on_wakeup(0)))
+        assert answers[0]["outcome"] == "COMMITTED"
+    path = tmp / f"{layout.value}.log"
+    with can.Logger(str(path)) as log:
+        for i, frame in enumerate(frames):
+            frame.timestamp, frame.channel = 1_700_000_000 + i / 1000, "vcan0"
+            log.on_message_received(frame)
+    return path, frames
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_decode_and_audit_check_macs_in_a_capture(
+    tmp_path: Path, layout: Layout, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["keys", "-o", str(tmp_path / "m.key")]) == 0
+    path, frames = _capture(tmp_path, layout, tmp_path / "m.key")
+    capsys.readouterr()
+    assert main(["decode", str(path), "--auth", str(tmp_path / "m.key")]) == 0
+    out = capsys.readouterr().out
+    assert out.count("mac ok") == len(frames) // (1 if layout is Layout.FD else 2)
+    assert "MAC BAD" not in out and "INTENTION" in out
+    assert main(["decode", str(path)]) == 0  # no key: the messages, unverified
+    assert "mac ?" in capsys.readouterr().out
+    assert main(["audit", str(path), "--auth", str(tmp_path / "m.key")]) == 0
+    assert "no violation seen" in capsys.readouterr().out
+    # a forged COMMIT with a made-up MAC, then the audit: refused and not booked
+    forged = frames[-1]
+    arbitration_id, data = CODEC.encode(Commit(1, 3, 65535))
+    if layout is Layout.FD:
+        body = data + bytes(fd_frame_len(len(data)) - len(data))
+        extra = [can.Message(arbitration_id=arbitration_id, data=body, is_fd=True)]
+    else:
+        extra = [
+            can.Message(arbitration_id=arbitration_id, data=data),
+            can.Message(arbitration_id=CODEC.id_base | 1, data=bytes([2]) + bytes(7)),
+        ]
+    with can.Logger(str(path.with_suffix(".forged.log"))) as log:
+        for frame in [*frames, *extra]:
+            frame.timestamp = forged.timestamp + 1
+            frame.channel = "vcan0"
+            log.on_message_received(frame)
+    capsys.readouterr()
+    assert (
+        main(["decode", str(path.with_suffix(".forged.log")), "--auth", str(tmp_path / "m.key")])
+        == 0
+    )
+    assert "MAC BAD" in capsys.readouterr().out
+    assert (
+        main(
+            [
+                "audit",
+                str(path.with_suffix(".forged.log")),
+                "--auth",
+                str(tmp_path / "m.key"),
+                "--json",
+            ]
+        )
+        == 0
+    )
+    report = json.loads(capsys.readouterr().out)
+    assert report["nodes"]["1"]["granted_uj"] == 750_000  # the forged 65.535 J is not booked
+
+
+def fd_frame_len(n: int) -> int:
+    from canergy.auth.frames import fd_length
+
+    return fd_length(n + 12)

@@ -310,7 +310,9 @@ def _bounded_commands() -> Iterator[None]:
         mock.patch.object(canergy.cli_inspect, "open_bus", open_bus),
         mock.patch.object(canergy.check, "check", check),
         mock.patch.object(canergy.demo, "run_demo", run_demo),
-        mock.patch.object(canergy.dbc, "dbc_text", lambda base: f'VERSION "{base:#x}"\n'),
+        mock.patch.object(
+            canergy.dbc, "dbc_text", lambda base, auth=None: f'VERSION "{base:#x} {auth}"\n'
+        ),
         mock.patch.object(canergy.rules_doc, "write_docs", _stop),
         mock.patch.object(canergy.bench.run, "run", _stop),
         mock.patch.object(canergy.cli_sim, "simulate", _stop),

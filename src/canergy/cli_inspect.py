@@ -13,16 +13,33 @@ from typing import Any, TextIO
 
 import can
 
+from canergy.auth.capture import CaptureAuth, verified
+from canergy.auth.keys import load_key
 from canergy.cli_args import COUNT_MAX, bounded_int, energy, id_base, node_ids
 from canergy.codec import Codec
 from canergy.inspect.audit import Auditor
 from canergy.inspect.captures import CaptureError, read_file, read_text
-from canergy.inspect.frames import Described, describe
+from canergy.inspect.frames import Described
 from canergy.inspect.render import line
 from canergy.live.bus_args import add_bus_flags, open_bus
 
 
+def _auth_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--auth",
+        type=Path,
+        metavar="KEYFILE",
+        help="check the MACs of authenticated frames with this key (the master key, or a "
+        "node's own key for its frames): mac ok / MAC BAD; without it they show mac ?",
+    )
+
+
+def _capture_auth(args: argparse.Namespace, codec: Codec) -> CaptureAuth:
+    return CaptureAuth(codec, load_key(args.auth) if args.auth is not None else None)
+
+
 def _view_flags(p: argparse.ArgumentParser) -> None:
+    _auth_flag(p)
     p.add_argument("--nodes", type=node_ids, help="only frames of these node ids, e.g. 1-5,9")
     p.add_argument("--hide-foreign", action="store_true", help="hide frames that are not canergy's")
     p.add_argument("--json", action="store_true", help="one JSON object per frame")
@@ -71,6 +88,7 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     )
     a.add_argument("--id-base", type=id_base, default=Codec().id_base)
     a.add_argument("--json", action="store_true", help="the report as JSON")
+    _auth_flag(a)
 
 
 def _garbage(number: int, text: str, reason: str) -> None:
@@ -99,8 +117,9 @@ def _show(
 
 def run_decode(args: argparse.Namespace) -> int:
     codec = Codec(args.id_base)
+    auth = _capture_auth(args, codec)
     try:
-        _show((describe(codec, f) for f in _frames(args.file)), args, sys.stdout)
+        _show((auth.describe(f) for f in _frames(args.file)), args, sys.stdout)
     except CaptureError as exc:
         print(f"canergy decode: error: {exc}", file=sys.stderr)
         return 2
@@ -109,6 +128,7 @@ def run_decode(args: argparse.Namespace) -> int:
 
 def run_dump(args: argparse.Namespace) -> int:
     codec = Codec(args.id_base)
+    auth = _capture_auth(args, codec)
     bus = open_bus(args, [])
     stop = False
 
@@ -126,7 +146,7 @@ def run_dump(args: argparse.Namespace) -> int:
             frame = bus.recv(timeout=0.2)
             if frame is not None:
                 received += 1
-                yield describe(codec, frame)
+                yield auth.describe(frame)
 
     try:
         _show(frames(), args, sys.stdout, live=True)
@@ -137,13 +157,19 @@ def run_dump(args: argparse.Namespace) -> int:
 
 def run_audit(args: argparse.Namespace) -> int:
     codec = Codec(args.id_base)
+    auth = _capture_auth(args, codec)
     auditor = Auditor(initial=args.initial, reordered=args.reordered)
     try:
-        for frame in _frames(args.file):
-            auditor.feed(describe(codec, frame))
+        described = [auth.describe(frame) for frame in _frames(args.file)]
     except CaptureError as exc:
         print(f"canergy audit: error: {exc}", file=sys.stderr)
         return 2
+    if auth.key is not None:  # what the receivers took: forged and unauthenticated frames out
+        bad = sum(d.mac == "BAD" for d in described)
+        described = verified(described)
+        print(f"canergy audit: {bad} frame(s) failed their MAC and move nothing", file=sys.stderr)
+    for d in described:
+        auditor.feed(d)
     auditor.finish()
     report = auditor.report()
     if args.json:

@@ -15,6 +15,7 @@ import re
 import stat
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 import can
 
@@ -26,8 +27,9 @@ _LOG = re.compile(
 # [(1699999999.123456)]  vcan0  0CE00105   [8]  FF 01 ...   -- candump default / -ta
 _DUMP = re.compile(
     r"^(?:\((?P<ts>\d+\.\d+)\)\s+)?(?P<ch>\S+)\s+(?P<id>[0-9A-Fa-f]{3}|[0-9A-Fa-f]{8})\s+"
-    r"\[(?P<dlc>\d)\]\s*(?P<rest>.*?)\s*$"
+    r"\[(?P<dlc>\d{1,2})\]\s*(?P<rest>.*?)\s*$"
 )
+FD_LENGTHS = frozenset((*range(9), 12, 16, 20, 24, 32, 48, 64))
 TEXT_SUFFIXES = {".log", ".txt", ".candump", ""}
 
 
@@ -72,8 +74,11 @@ def _from_log(m: re.Match[str]) -> can.Message:
         arbitration_id=ident,
         is_extended_id=extended,
     )
-    if rest.startswith("#"):
-        raise ValueError("CAN FD frames are not canergy frames")  # vcan carries them; we don't
+    if rest.startswith("#"):  # CAN FD: a flags digit (bit 0: bit rate switch), then the data
+        flags, body = rest[1:2], rest[2:]
+        if not flags or not _HEX.match(flags + body) or len(body) % 2:
+            raise ValueError(f"bad CAN FD data {rest!r}")
+        return _fd(common, bytes.fromhex(body), int(flags, 16))
     if rest.upper().startswith("R"):
         dlc = int(rest[1:]) if rest[1:].isdigit() else 0
         return can.Message(**common, is_remote_frame=True, dlc=dlc)  # type: ignore[arg-type]
@@ -96,7 +101,16 @@ def _from_dump(m: re.Match[str]) -> can.Message:
     parts = rest.split()
     if len(parts) != dlc or not all(len(p) == 2 and _HEX.match(p) for p in parts):
         raise ValueError(f"expected {dlc} data bytes, got {rest!r}")
-    return can.Message(**common, data=bytes.fromhex("".join(parts)))  # type: ignore[arg-type]
+    data = bytes.fromhex("".join(parts))
+    if dlc > 8:
+        return _fd(common, data, 0)
+    return can.Message(**common, data=data)  # type: ignore[arg-type]
+
+
+def _fd(common: dict[str, Any], data: bytes, flags: int) -> can.Message:
+    if len(data) not in FD_LENGTHS:
+        raise ValueError(f"{len(data)} bytes is not a CAN FD length")
+    return can.Message(**common, data=data, is_fd=True, bitrate_switch=bool(flags & 1))
 
 
 def read_text(

@@ -34,6 +34,8 @@ class Described:
     crc_ok: bool | None
     problem: str | None
     """Why the frame is not a valid canergy frame (decode error reason), or None."""
+    mac: str | None = None
+    """Authenticated frames: ``ok``, ``BAD`` or ``unverified`` (no key given); None: plain."""
 
     @property
     def ours(self) -> bool:
@@ -80,6 +82,7 @@ class Described:
             **self.fields(),
             "crc_ok": self.crc_ok,
             "problem": self.problem,
+            "mac": self.mac,
         }
 
 

@@ -22,8 +22,13 @@ def raw_part(d: Described) -> str:
     return f"{stamp}{d.channel or '-':>6}  {ident:>8}   [{len(d.data)}]  {body}"
 
 
+_MAC = {"ok": "mac ok", "BAD": "MAC BAD", "unverified": "mac ?"}
+
+
 def decoded_part(d: Described) -> str:
     m = d.message
+    if m is None and d.mac is not None:
+        return f"{d.problem}  {_MAC[d.mac]}"
     if m is None:
         return f"!! {d.problem}" if d.ours else ""
     arrow = f"S->{m.node}" if m.TYPE.direction is Direction.TO_CLIENT else f"{m.node}->S"
@@ -37,6 +42,8 @@ def decoded_part(d: Described) -> str:
         else:
             parts.append(f"{name} {value}")
     parts.append("crc ok" if d.crc_ok else "CRC BAD")
+    if d.mac is not None:
+        parts.append(_MAC[d.mac])
     return "  ".join(parts)
 
 

@@ -1,0 +1,117 @@
+"""MACs in a capture: what ``canergy dump``, ``decode`` and ``audit`` show with ``--auth``.
+
+A capture needs no counters to be checked: an FD frame carries its whole freshness value, and a
+classic message's MAC frame carries the high half (the message, the low half). So each
+authenticated frame is split into the message it carries and a verdict: ``ok``, ``BAD``, or
+``unverified`` without the key. Replays verify (they are genuine frames); the receiver's
+freshness check and the audit see them for what they are.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import can
+
+from canergy.auth.frames import CLASSIC_MAC, FD_MAC, MAC_TYPE, fd_length, mac
+from canergy.auth.keys import Key
+from canergy.codec import Codec
+from canergy.inspect.frames import Described, describe
+from canergy.messages import Direction, MsgType
+
+_DIRECTION = {kind: direction for direction, kind in MAC_TYPE.items()}
+
+
+@dataclass
+class CaptureAuth:
+    """Splits authenticated frames and checks their MACs, frame by frame in capture order."""
+
+    codec: Codec
+    key: Key | None
+    pending: dict[tuple[int, Direction], tuple[Described, bytes]] = field(default_factory=dict)
+    """Classic layout: per node and direction, the message whose MAC frame is still to come."""
+
+    def describe(self, frame: can.Message) -> Described:
+        data = bytes(frame.data)
+        kind = frame.arbitration_id >> 8 & 0xF
+        ours = frame.is_extended_id and self.codec.is_canergy_id(frame.arbitration_id)
+        if not ours or frame.is_error_frame or frame.is_remote_frame:
+            return describe(self.codec, frame)
+        if kind in _DIRECTION:
+            return self._mac_frame(frame, _DIRECTION[kind], data)
+        try:
+            length = self.codec.data_length(MsgType(kind))
+        except (ValueError, KeyError):
+            return describe(self.codec, frame)
+        if len(data) == fd_length(length + 12) and len(data) > 8:
+            inner = describe(self.codec, _with_data(frame, data[:length]))
+            fv = int.from_bytes(data[-12:-8], "big")
+            return replace(inner, data=data, mac=self._check(inner, data[:length], fv, data[-8:]))
+        d = describe(self.codec, frame)
+        if d.message is not None:
+            self.pending[(d.message.node, d.message.TYPE.direction)] = (d, data)
+        return d
+
+    def _mac_frame(self, frame: can.Message, direction: Direction, data: bytes) -> Described:
+        node = frame.arbitration_id & 0xFF
+        plain = describe(self.codec, frame)
+        waiting = self.pending.pop((node, direction), None)
+        if len(data) != 3 + CLASSIC_MAC or waiting is None or waiting[0].message is None:
+            return replace(plain, problem="MAC frame without its message", mac="BAD")
+        d, body = waiting
+        assert d.message is not None
+        if data[0] != d.message.TYPE:
+            return replace(plain, problem="MAC frame for another message", mac="BAD")
+        low = _low_half(d)
+        fv = int.from_bytes(data[1:3], "big") << 16 | low
+        verdict = self._check(d, body, fv, data[3:])
+        return replace(plain, problem=f"MAC frame of {d.message.TYPE.name}", mac=verdict)
+
+    def _check(self, d: Described, body: bytes, fv: int, tag: bytes) -> str:
+        if d.message is None:
+            return "BAD"
+        if self.key is None:
+            return "unverified"
+        node = d.message.node
+        expected = mac(self.key.node_key(node), d.message.TYPE << 8 | node, fv, body)
+        return "ok" if expected[: len(tag)] == tag and len(tag) in (FD_MAC, CLASSIC_MAC) else "BAD"
+
+
+def _low_half(d: Described) -> int:
+    from canergy.auth.frames import freshness
+
+    assert d.message is not None
+    return freshness(d.message, 0, 0) & 0xFFFF
+
+
+def _with_data(frame: can.Message, data: bytes) -> can.Message:
+    return can.Message(
+        timestamp=frame.timestamp,
+        arbitration_id=frame.arbitration_id,
+        is_extended_id=frame.is_extended_id,
+        data=data,
+        channel=frame.channel,
+    )
+
+
+def verified(frames: list[Described]) -> list[Described]:
+    """For the audit: each message as the receivers took it. A message whose MAC failed or never
+    came is kept out (``damaged``); a classic message counts where it stood in the capture."""
+    verdicts: dict[int, str] = {}
+    waiting: dict[tuple[int, Direction], int] = {}
+    for i, d in enumerate(frames):
+        if d.message is not None and d.mac is None:  # classic: waits for its MAC frame
+            waiting[(d.message.node, d.message.TYPE.direction)] = i
+        elif d.message is not None:
+            verdicts[i] = d.mac or "BAD"
+        elif d.mac is not None:
+            kind = d.arbitration_id >> 8 & 0xF
+            j = waiting.pop(
+                (d.arbitration_id & 0xFF, _DIRECTION.get(kind, Direction.TO_CLIENT)), -1
+            )
+            if j >= 0:
+                verdicts[j] = d.mac
+    return [
+        d if d.message is None or verdicts.get(i) == "ok" else replace(d, message=None, crc_ok=None)
+        for i, d in enumerate(frames)
+    ]

@@ -20,6 +20,7 @@ from test_c_binding import FIRMWARE, make
 
 TESTS = Path(__file__).resolve().parent
 UNDER_ASAN = [
+    "test_c_auth.py",
     "test_c_binding.py",
     "test_c_codec.py",
     "test_c_cmac.py",

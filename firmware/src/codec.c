@@ -58,6 +58,11 @@ static size_t layout_dlc(uint32_t code)
     return dlc == 0U ? 0U : dlc + 1U;
 }
 
+size_t canergy_data_length(uint32_t type)
+{
+    return type > 0xFU ? 0U : layout_dlc(type);
+}
+
 static bool has_amount(uint32_t code)
 {
     const uint8_t *fields = layouts[code & 0xFU];

@@ -1,9 +1,10 @@
 /*
  * Not a port: the smallest program that uses every call a real port makes, so that `make size`
  * can link it for Cortex-M4 with --gc-sections and report what the library costs there.
- * PORT_NODE selects the node layer's API, PORT_CMAC AES-CMAC and the KDF alone (what an
- * authenticated mode adds to either), otherwise the bare client's.
+ * PORT_NODE selects the node layer's API, PORT_AUTH the node layer in authenticated mode
+ * (canergy/auth.h), PORT_CMAC AES-CMAC and the KDF alone, otherwise the bare client's.
  */
+#include "canergy/auth.h"
 #include "canergy/cmac.h"
 #include "canergy/node.h"
 
@@ -35,11 +36,22 @@ void port_entry(void)
     const struct canergy_rx_frame rx = {0x0CE00105UL, bytes, 8U, true, false};
     const struct canergy_client_config client = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 1U};
     volatile uint64_t sink = 0U;
-#ifdef PORT_NODE
+#if defined(PORT_NODE) || defined(PORT_AUTH)
     static struct canergy_node n;
     const struct canergy_node_config cfg = {client, 1000000UL, 0U, CANERGY_KEEP_ALL};
     sink += (uint64_t)canergy_node_start(&n, &cfg, nv, sizeof nv, 1U, 0U, &out);
+#ifdef PORT_AUTH
+    static struct canergy_auth auth;
+    static uint8_t key[16]; /* in RAM: only the library's flash is counted */
+    struct canergy_auth_frame frames[2];
+    sink += (uint64_t)canergy_auth_init(&auth, key, CANERGY_DEFAULT_ID_BASE, 1U,
+                                        CANERGY_AUTH_CLASSIC, CANERGY_TO_CLIENT);
+    sink += (uint64_t)canergy_auth_node_frame(&auth, &n, &rx, 1U, &out);
+    sink += (uint64_t)canergy_auth_node_protect(&auth, &n, &out.frames[0], frames);
+    sink += frames[0].data[0];
+#else
     sink += (uint64_t)canergy_node_on_frame(&n, &rx, 1U, &out);
+#endif
     canergy_node_poll(&n, 2U, &out);
     sink += canergy_node_draw(&n, 5U, 3U, &out);
     sink += canergy_node_deadline(&n);

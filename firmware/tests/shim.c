@@ -3,6 +3,7 @@
  * as this compiler lays them out, so the ctypes mirror in tests/test_c_binding.py can be
  * checked field by field instead of trusted.
  */
+#include "canergy/auth.h"
 #include "canergy/client.h"
 #include "canergy/cmac.h"
 #include "canergy/node.h"
@@ -94,6 +95,17 @@ static const struct entry offsets[] = {
     FIELD(canergy_cmac, k2),
     FIELD(canergy_cmac_stream, x),
     FIELD(canergy_cmac_stream, n),
+    FIELD(canergy_auth_frame, id),
+    FIELD(canergy_auth_frame, len),
+    FIELD(canergy_auth_frame, data),
+    FIELD(canergy_auth, key),
+    FIELD(canergy_auth, id_base),
+    FIELD(canergy_auth, pending_id),
+    FIELD(canergy_auth, pending_data),
+    FIELD(canergy_auth, pending_len),
+    FIELD(canergy_auth, node),
+    FIELD(canergy_auth, layout),
+    FIELD(canergy_auth, receives),
 };
 
 #define SIZE(type) {#type, (long)sizeof(struct type)}
@@ -103,7 +115,7 @@ static const struct entry sizes[] = {
     SIZE(canergy_out),           SIZE(canergy_msg),       SIZE(canergy_rx_frame),
     SIZE(canergy_client_config), SIZE(canergy_nv_state),  SIZE(canergy_node_config),
     SIZE(canergy_node),          SIZE(canergy_aes128),    SIZE(canergy_cmac),
-    SIZE(canergy_cmac_stream),
+    SIZE(canergy_cmac_stream),   SIZE(canergy_auth_frame), SIZE(canergy_auth),
 };
 
 static long find(const struct entry *table, size_t n, const char *name)

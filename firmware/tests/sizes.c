@@ -2,6 +2,7 @@
  * Not linked anywhere: `make size` compiles it for the target and reads the sizes of these
  * objects back with nm, which is the state a node needs there (and an AES-CMAC key).
  */
+#include "canergy/auth.h"
 #include "canergy/cmac.h"
 #include "canergy/node.h"
 
@@ -11,3 +12,5 @@ char canergy_client_bytes[sizeof(struct canergy_client)];
 char canergy_node_bytes[sizeof(struct canergy_node)];
 extern char canergy_cmac_bytes[sizeof(struct canergy_cmac)];
 char canergy_cmac_bytes[sizeof(struct canergy_cmac)];
+extern char canergy_auth_bytes[sizeof(struct canergy_auth)];
+char canergy_auth_bytes[sizeof(struct canergy_auth)];

@@ -2,9 +2,11 @@
  * Known answers in plain C, runnable wherever the library builds (host, QEMU): the CRCs'
  * check values, the frames docs/protocol.md shows, one node's life from a blank NV image to
  * a committed grant and a restart, the state budgets, and AES-128 (FIPS-197 C.1), AES-CMAC
- * (RFC 4493 section 4) and the KDF (a value from Python's cryptography). The exhaustive
+ * (RFC 4493 section 4), the KDF (a value from Python's cryptography) and authenticated frames
+ * (values from src/canergy/auth/frames.py). The exhaustive
  * comparison with the Python code is in tests/test_c_*.py.
  */
+#include "canergy/auth.h"
 #include "canergy/client.h"
 #include "canergy/cmac.h"
 #include "canergy/node.h"
@@ -282,6 +284,195 @@ static void test_kdf(void)
     check(bytes_are(out, 16U, "4a10102ba6c210565f7e327e0befcae6"), "KDF, empty label and context");
 }
 
+/* Authenticated frames as src/canergy/auth/frames.py builds them (key: RFC 4493's, node 5;
+ * printed once with FrameAuth(Codec(), layout, key, ..., freshness(m, last_tx, return_seq))). */
+struct auth_vector {
+    enum canergy_auth_layout layout;
+    struct canergy_msg m;
+    uint32_t last_tx;
+    uint32_t return_seq;
+    uint32_t id;
+    const char *data;
+    const char *mac_frame; /* classic: the MAC frame on 0x0CE00005 / 0x0CE00805 */
+    const char *what;
+};
+
+static const struct auth_vector auth_vectors[] = {
+    {CANERGY_AUTH_FD,
+     {.type = CANERGY_INTENTION, .node = 5U, .tx = 2U, .amount_mj = 500U, .delivered_mj = 1000U},
+     0x0001FFFFUL, 0U, 0x0CE00105UL, "860200F401E803000002000267362F45D1E04133", NULL,
+     "FD INTENTION: tx 2 next to 0x1FFFF is FV 0x20002, 20 bytes"},
+    {CANERGY_AUTH_FD, {.type = CANERGY_ACK, .node = 5U, .tx = 2U}, 0x0001FFFFUL, 0U,
+     0x0CE00905UL, "910200000002000209021F44DA0FE551", NULL, "FD ACK: 16 bytes, FV 0x20002"},
+    {CANERGY_AUTH_FD, {.type = CANERGY_TELEMETRY, .node = 5U, .level_mj = 500U, .flags = 2U},
+     0x00031234UL, 0U, 0x0CE00D05UL, "28F4010002000000000300009B3C0DBB17EC26BC", NULL,
+     "FD TELEMETRY: FV is last_tx's high half, zero padding"},
+    {CANERGY_AUTH_FD, {.type = CANERGY_JOIN, .node = 5U, .nonce = 0xBEEFU}, 0U, 0U,
+     0x0CE00E05UL, "BCEFBE000000BEEFCDA616F1B0346BF5", NULL, "FD JOIN: FV is the nonce"},
+    {CANERGY_AUTH_CLASSIC, {.type = CANERGY_RETURN, .node = 5U, .seq = 0xFFFFU, .amount_mj = 120U},
+     0U, 0x00010002UL, 0x0CE00C05UL, "AEFFFF7800", "0C000053434A36E5",
+     "classic RETURN: seq 0xFFFF next to 0x10002 is FV 0xFFFF"},
+    {CANERGY_AUTH_CLASSIC, {.type = CANERGY_COMMIT, .node = 5U, .tx = 0x8000U, .amount_mj = 300U},
+     0U, 0U, 0x0CE00205UL, "BE00802C01", "02FFFF3E7FAD35A0",
+     "classic COMMIT: tx 0x8000 next to 0 is -32768, FV 0xFFFF8000"},
+};
+
+static int auth_frame_is(const struct canergy_auth_frame *f, uint32_t id, const char *hex)
+{
+    return f->id == id && bytes_are(f->data, f->len, hex);
+}
+
+/* Feed frames[0..n) to a receiver; the last result. */
+static int auth_feed(struct canergy_auth *rx, const struct canergy_auth_frame *frames, int n,
+                     uint32_t last_tx, uint32_t return_seq, struct canergy_frame *verified)
+{
+    int result = -100;
+    for (int i = 0; i < n; i++) {
+        const struct canergy_rx_frame f = {frames[i].id, frames[i].data, frames[i].len, true,
+                                           false};
+        result = canergy_auth_accept(rx, &f, last_tx, return_seq, verified);
+    }
+    return result;
+}
+
+static void test_auth_vector(const uint8_t key[16], const struct auth_vector *v)
+{
+    const bool to_supervisor = (v->m.type & CANERGY_FROM_CLIENT) != 0U;
+    struct canergy_auth tx_side;
+    struct canergy_auth rx_side;
+    struct canergy_frame plain;
+    struct canergy_frame verified;
+    struct canergy_auth_frame out[2];
+    (void)canergy_auth_init(&tx_side, key, CANERGY_DEFAULT_ID_BASE, 5U, v->layout,
+                            to_supervisor ? CANERGY_TO_CLIENT : CANERGY_TO_SUPERVISOR);
+    (void)canergy_auth_init(&rx_side, key, CANERGY_DEFAULT_ID_BASE, 5U, v->layout,
+                            to_supervisor ? CANERGY_TO_SUPERVISOR : CANERGY_TO_CLIENT);
+    (void)canergy_encode(CANERGY_DEFAULT_ID_BASE, &v->m, &plain);
+    const int n = canergy_auth_protect(&tx_side, &plain, v->last_tx, v->return_seq, out);
+    const uint32_t mac_id = CANERGY_DEFAULT_ID_BASE | (to_supervisor ? 0x800UL : 0U) | 5U;
+    check(n == (v->mac_frame == NULL ? 1 : 2) && auth_frame_is(&out[0], v->id, v->data) &&
+              (n == 1 || auth_frame_is(&out[1], mac_id, v->mac_frame)),
+          v->what);
+    check(auth_feed(&rx_side, out, n, v->last_tx, v->return_seq, &verified) == CANERGY_DECODE_OK &&
+              verified.id == plain.id && verified.dlc == plain.dlc &&
+              memcmp(verified.data, plain.data, plain.dlc) == 0,
+          "the receiver verifies it and hands back the classic frame");
+    out[n - 1].data[out[n - 1].len - 1U] ^= 0x01U; /* last MAC bit */
+    check(auth_feed(&rx_side, out, n, v->last_tx, v->return_seq, &verified) ==
+              CANERGY_AUTH_MAC_BAD,
+          "a flipped MAC bit is MAC BAD");
+    out[n - 1].data[out[n - 1].len - 1U] ^= 0x01U;
+    const bool checks_fv = v->m.type != CANERGY_TELEMETRY && v->m.type != CANERGY_JOIN;
+    check(!checks_fv || auth_feed(&rx_side, out, n, v->last_tx + 0x10000UL,
+                                  v->return_seq + 0x10000UL, &verified) == CANERGY_AUTH_STALE,
+          "a frame 65,536 counts old is stale");
+}
+
+static void test_auth_refusals(const uint8_t key[16])
+{
+    struct canergy_auth node;
+    struct canergy_frame plain;
+    struct canergy_frame verified;
+    struct canergy_msg m = msg(CANERGY_COMMIT, 5U);
+    m.tx = 1U;
+    m.amount_mj = 300U;
+    (void)canergy_encode(CANERGY_DEFAULT_ID_BASE, &m, &plain);
+    const struct canergy_rx_frame bare = {plain.id, plain.data, plain.dlc, true, false};
+    (void)canergy_auth_init(&node, key, CANERGY_DEFAULT_ID_BASE, 5U, CANERGY_AUTH_FD,
+                            CANERGY_TO_CLIENT);
+    check(canergy_auth_accept(&node, &bare, 0U, 0U, &verified) == CANERGY_AUTH_UNAUTHENTICATED,
+          "FD: a classic frame is a frame without a MAC");
+    uint8_t padded[20] = {0};
+    memcpy(padded, plain.data, plain.dlc);
+    padded[6] = 1U;
+    const struct canergy_rx_frame dirty = {plain.id, padded, 20U, true, false};
+    check(canergy_auth_accept(&node, &dirty, 0U, 0U, &verified) == CANERGY_DECODE_WRONG_DLC,
+          "FD: padding that is not zero is the codec's wrong length");
+    (void)canergy_auth_init(&node, key, CANERGY_DEFAULT_ID_BASE, 5U, CANERGY_AUTH_CLASSIC,
+                            CANERGY_TO_CLIENT);
+    const uint8_t trailer[8] = {CANERGY_COMMIT, 0U, 0U, 1U, 2U, 3U, 4U, 5U};
+    const struct canergy_rx_frame mac_only = {0x0CE00005UL, trailer, 8U, true, false};
+    const struct canergy_rx_frame short_mac = {0x0CE00005UL, trailer, 7U, true, false};
+    const struct canergy_rx_frame their_mac = {0x0CE00805UL, trailer, 8U, true, false};
+    check(canergy_auth_accept(&node, &mac_only, 0U, 0U, &verified) == CANERGY_AUTH_NO_DATA,
+          "classic: a MAC frame without its message");
+    check(canergy_auth_accept(&node, &bare, 0U, 0U, &verified) == CANERGY_AUTH_PENDING &&
+              canergy_auth_accept(&node, &short_mac, 0U, 0U, &verified) ==
+                  CANERGY_AUTH_MALFORMED &&
+              canergy_auth_accept(&node, &mac_only, 0U, 0U, &verified) == CANERGY_AUTH_NO_DATA,
+          "classic: a 7-byte MAC frame is malformed and uses up the waiting message");
+    check(canergy_auth_accept(&node, &their_mac, 0U, 0U, &verified) ==
+              CANERGY_DECODE_WRONG_DIRECTION,
+          "classic: a node->supervisor MAC frame at a node is the wrong direction");
+    canergy_auth_wipe(&node);
+    check(node.key.k1[0] == 0U && node.node == 0U, "wiped");
+}
+
+/* A node joins, is admitted and granted through authenticated frames (classic layout). */
+static void test_auth_node(const uint8_t key[16])
+{
+    const struct canergy_node_config cfg = {
+        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U}, 1000000UL, 0U, CANERGY_KEEP_ALL};
+    struct canergy_node n;
+    struct canergy_auth node_auth;
+    struct canergy_auth sup;
+    struct canergy_out out;
+    struct canergy_frame plain;
+    struct canergy_frame verified;
+    struct canergy_auth_frame frames[2];
+    (void)canergy_auth_init(&node_auth, key, CANERGY_DEFAULT_ID_BASE, 5U, CANERGY_AUTH_CLASSIC,
+                            CANERGY_TO_CLIENT);
+    (void)canergy_auth_init(&sup, key, CANERGY_DEFAULT_ID_BASE, 5U, CANERGY_AUTH_CLASSIC,
+                            CANERGY_TO_SUPERVISOR);
+    (void)canergy_node_start(&n, &cfg, NULL, 0U, 0x1234U, 0U, &out);
+    int n_frames = canergy_auth_node_protect(&node_auth, &n, &out.frames[0], frames);
+    check(n_frames == 2 && auth_feed(&sup, frames, 2, 0U, 0U, &verified) == CANERGY_DECODE_OK &&
+              verified.id == 0x0CE00E05UL,
+          "the node's JOIN verifies at the supervisor");
+    struct canergy_msg m = msg(CANERGY_ADMIT, 5U);
+    m.nonce = 0x1234U;
+    m.tx = 0xFFFFU;
+    m.seq = 3U;
+    (void)canergy_encode(CANERGY_DEFAULT_ID_BASE, &m, &plain);
+    n_frames = canergy_auth_protect(&sup, &plain, 0U, 0U, frames);
+    struct canergy_rx_frame f = {frames[0].id, frames[0].data, frames[0].len, true, false};
+    int first = canergy_auth_node_frame(&node_auth, &n, &f, 10U, &out);
+    f = (struct canergy_rx_frame){frames[1].id, frames[1].data, frames[1].len, true, false};
+    check(n_frames == 2 && first == CANERGY_AUTH_PENDING && out.frame_count == 0U &&
+              canergy_auth_node_frame(&node_auth, &n, &f, 11U, &out) == CANERGY_DECODE_OK &&
+              !canergy_client_joining(&n.client) && n.client.rec.last_tx == 0xFFFFUL,
+          "the ADMIT counts once its MAC frame came");
+    m = msg(CANERGY_INTENTION, 5U);
+    m.tx = 0U; /* 0x10000 */
+    m.amount_mj = 700U;
+    (void)canergy_encode(CANERGY_DEFAULT_ID_BASE, &m, &plain);
+    (void)canergy_auth_protect(&sup, &plain, 0x10000UL, 0U, frames);
+    f = (struct canergy_rx_frame){frames[0].id, frames[0].data, frames[0].len, true, false};
+    (void)canergy_auth_node_frame(&node_auth, &n, &f, 20U, &out);
+    f = (struct canergy_rx_frame){frames[1].id, frames[1].data, frames[1].len, true, false};
+    check(canergy_auth_node_frame(&node_auth, &n, &f, 21U, &out) == CANERGY_DECODE_OK &&
+              out.frame_count == 1U && out.frames[0].id == 0x0CE00905UL,
+          "an INTENTION across the 16-bit wrap verifies and is acknowledged");
+    n_frames = canergy_auth_node_protect(&node_auth, &n, &out.frames[0], frames);
+    check(n_frames == 2 &&
+              auth_feed(&sup, frames, 2, 0x10000UL, 0U, &verified) == CANERGY_DECODE_OK &&
+              auth_feed(&sup, frames, 2, 0U, 0U, &verified) == CANERGY_AUTH_STALE,
+          "its ACK verifies at FV 0x10000, not at 0");
+    canergy_auth_wipe(&node_auth);
+    canergy_auth_wipe(&sup);
+}
+
+static void test_auth(void)
+{
+    uint8_t key[16];
+    (void)unhex(rfc4493_key, key, sizeof key);
+    for (size_t i = 0U; i < sizeof auth_vectors / sizeof auth_vectors[0]; i++) {
+        test_auth_vector(key, &auth_vectors[i]);
+    }
+    test_auth_refusals(key);
+    test_auth_node(key);
+}
+
 int main(void)
 {
     test_crcs();
@@ -293,6 +484,7 @@ int main(void)
     test_cmac();
     test_mac_equal();
     test_kdf();
+    test_auth();
     printf("sizeof client %u, node %u, out %u bytes\n", (unsigned)sizeof(struct canergy_client),
            (unsigned)sizeof(struct canergy_node), (unsigned)sizeof(struct canergy_out));
     printf("%u passed, %u failed\n", passed, failed);

@@ -131,6 +131,10 @@ enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy
                                           enum canergy_direction expect,
                                           struct canergy_msg *msg);
 
+/* The classic data length of a type code (CRC byte and fields, 2..8); 0 for a code no message
+ * uses (0x0, 0x8, 0xF, or above 0xF). Python's Codec.data_length. */
+size_t canergy_data_length(uint32_t type);
+
 /* CRC-8 SAE J1850 register update (no final XOR): crc = canergy_crc8(0xFF, p, n) ^ 0xFF. */
 uint8_t canergy_crc8(uint8_t reg, const uint8_t *data, size_t len);
 

@@ -7,11 +7,18 @@
  *   canergy-node --node N -i socketcan -c vcan0 --nv PATH [--power 0.2W] [--status-file PATH]
  *                [--telemetry-period 1s] [--return-above 2J] [--response-timeout 100ms]
  *                [--tick 100ms] [--low-water 0J] [--status-period 1s] [--id-base 0x0CE00000]
+ *                [--auth NODE.key [--fd]]
  *
  * The port may use libc and POSIX; only the library is restricted. One loop: poll() on a raw
- * CAN socket (kernel filters pass exactly this node's frames) until the earliest of the
+ * CAN socket (kernel filters pass exactly this node's frames, both directions: a frame in the
+ * node's own direction with its id is someone speaking in its name, an intrusion) until the
+ * earliest of the
  * library's deadline, the actuator tick and the status write. Every canergy_out is carried out
  * in order: pwrite + fsync of the slot image, then the frames. kill -9 at any instant is safe.
+ *
+ * --auth: authenticated mode (canergy/auth.h) with the node's key file (src/canergy/auth/keys.py:
+ * mode 0600, kind=node, this node's id; the key is never printed); --fd: CAN FD frames with a
+ * 64-bit MAC, otherwise the classic layout (each frame followed by a MAC frame).
  *
  * Exit status: 0 after SIGINT/SIGTERM (final status written), 1 when the NV file cannot be
  * written (the node stops without sending what that step produced), 2 for bad arguments or a
@@ -19,6 +26,7 @@
  */
 #define _GNU_SOURCE 1
 
+#include "canergy/auth.h"
 #include "canergy/node.h"
 
 #include <errno.h>
@@ -62,8 +70,10 @@ struct options {
     uint64_t low_water_uj;
     uint64_t return_above_uj;
     uint32_t id_base;
+    const char *auth_path;
     int node;
     int keep_all;
+    int fd;
 };
 
 /* What firmware_model's BusRuntime counts, with the same names in the status file. */
@@ -77,12 +87,31 @@ struct counters {
     uint64_t send_failures;
     uint64_t receive_errors;
     uint64_t error_frames;
+    uint64_t auth_failures[CANERGY_AUTH_UNAUTHENTICATED - CANERGY_AUTH_MAC_BAD + 1];
+};
+
+/* firmware_model's intrusion report: a count, when the first came, the latest few. */
+#define INTRUSIONS_KEPT 20U
+#define FRAME_TEXT 140U /* "0CE00D05#" and 64 bytes in hex */
+
+struct intrusion {
+    uint64_t time_us;
+    const char *kind;
+    char frame[FRAME_TEXT];
+};
+
+struct intrusions {
+    uint64_t total;
+    uint64_t first_at_us;
+    struct intrusion recent[INTRUSIONS_KEPT]; /* a ring: the newest at (total - 1) % KEPT */
 };
 
 struct port {
     struct options opt;
     struct canergy_node node;
     struct counters count;
+    struct intrusions intrusions;
+    struct canergy_auth auth; /* with --auth */
     uint64_t drawn_uj;
     uint64_t remainder_pj; /* energy owed below 1 uJ, in uW*us, as firmware_model's actuator */
     uint64_t last_draw_us;
@@ -335,12 +364,18 @@ static void parse_args(int argc, char **argv, struct options *o)
             (void)printf("usage: %s --node N -i socketcan -c CHANNEL --nv PATH [--power P]\n"
                          "       [--status-file PATH] [--status-period T] [--tick T]\n"
                          "       [--telemetry-period T] [--low-water E] [--return-above E]\n"
-                         "       [--response-timeout T] [--id-base ID]\n"
+                         "       [--response-timeout T] [--id-base ID] [--auth KEY [--fd]]\n"
                          "One canergy client node on Linux SocketCAN (the C library's node\n"
                          "layer); flags as python -m firmware_model --node N. Energies 0.5J,\n"
-                         "250mJ; powers 0.2W, 200mW; durations 50ms, 1.5s or plain seconds.\n",
+                         "250mJ; powers 0.2W, 200mW; durations 50ms, 1.5s or plain seconds.\n"
+                         "--auth: authenticated mode with this node's key file (mode 0600);\n"
+                         "--fd: CAN FD (64-bit MAC; the interface needs mtu 72).\n",
                          PROG);
             exit(0);
+        }
+        if (strcmp(flag, "--fd") == 0) {
+            o->fd = 1;
+            continue;
         }
         if (i + 1 >= argc) {
             usage_error("argument %s: expected one argument", flag);
@@ -374,6 +409,8 @@ static void parse_args(int argc, char **argv, struct options *o)
             o->return_above_uj = parse_quantity(flag, v, ENERGY_UNITS, MAX_QUANTITY_U,
                                                 "10J, 250mJ, 1500uJ or 2.5");
             o->keep_all = 0;
+        } else if (strcmp(flag, "--auth") == 0) {
+            o->auth_path = v;
         } else if (strcmp(flag, "--id-base") == 0) {
             o->id_base = (uint32_t)parse_int(flag, v, 0U, CAN_EFF_MASK);
             if (!canergy_id_base_valid(o->id_base)) {
@@ -396,6 +433,193 @@ static void parse_args(int argc, char **argv, struct options *o)
     }
 }
 
+/* ---- key file (src/canergy/auth/keys.py): no message ever holds a byte of the key ---- */
+
+#define KEY_FILE_MAX 4096
+
+static void key_error(const char *path, const char *fmt, ...)
+{
+    va_list ap;
+    va_start(ap, fmt);
+    (void)fprintf(stderr, "%s: error: --auth %s: ", PROG, path);
+    (void)vfprintf(stderr, fmt, ap);
+    (void)fputc('\n', stderr);
+    va_end(ap);
+    exit(EXIT_USAGE);
+}
+
+static int is_space(char c)
+{
+    return c == ' ' || c == '\t' || c == '\r' || c == '\v' || c == '\f';
+}
+
+/* s without leading and trailing white space (in place). */
+static char *trim(char *s)
+{
+    while (is_space(*s)) {
+        s++;
+    }
+    size_t n = strlen(s);
+    while (n > 0U && is_space(s[n - 1U])) {
+        s[--n] = '\0';
+    }
+    return s;
+}
+
+static int hex_value(char c)
+{
+    if (c >= '0' && c <= '9') {
+        return c - '0';
+    }
+    if (c >= 'a' && c <= 'f') {
+        return c - 'a' + 10;
+    }
+    return (c >= 'A' && c <= 'F') ? c - 'A' + 10 : -1;
+}
+
+/* A decimal integer, at most max: 0 when text is not one. */
+static int decimal(const char *text, unsigned long long max, unsigned long long *out)
+{
+    unsigned long long v = 0U;
+    if (*text == '\0' || strlen(text) > 12U) {
+        return 0;
+    }
+    for (; *text != '\0'; text++) {
+        if (*text < '0' || *text > '9') {
+            return 0;
+        }
+        v = v * 10U + (unsigned long long)(*text - '0');
+    }
+    *out = v;
+    return v <= max;
+}
+
+struct key_fields {
+    char *kind;
+    char *node;
+    char *epoch;
+    char *key;
+    int others;
+};
+
+static void key_field(const char *path, struct key_fields *k, char *line, int number)
+{
+    char *eq = strchr(line, '=');
+    char **slot = NULL;
+    if (eq != NULL) {
+        *eq = '\0';
+        const char *name = trim(line);
+        slot = strcmp(name, "kind") == 0    ? &k->kind
+               : strcmp(name, "node") == 0  ? &k->node
+               : strcmp(name, "epoch") == 0 ? &k->epoch
+               : strcmp(name, "key") == 0   ? &k->key
+                                            : NULL;
+    }
+    if (eq == NULL || (slot != NULL && *slot != NULL)) {
+        key_error(path, "line %d: expected one name=value per line", number);
+    }
+    if (slot == NULL) {
+        k->others++; /* (two unknown names with the same spelling pass as one: no matter) */
+    } else {
+        *slot = trim(eq + 1);
+    }
+}
+
+/* The node's key from the key file at o->auth_path (kind=node, node=o->node). */
+static void load_key(const struct options *o, uint8_t key[CANERGY_KDF_KEY_SIZE])
+{
+    const char *path = o->auth_path;
+    const int fd = open(path, O_RDONLY | O_CLOEXEC);
+    struct stat st;
+    if (fd < 0 || fstat(fd, &st) != 0) {
+        key_error(path, "cannot read the key file (%s)", strerror(errno));
+    }
+    if (!S_ISREG(st.st_mode)) {
+        key_error(path, "not a regular file");
+    }
+    if ((st.st_mode & 077) != 0U) {
+        key_error(path, "mode %04o lets others read it; chmod 600 %s",
+                  (unsigned)(st.st_mode & 07777), path);
+    }
+    char text[KEY_FILE_MAX + 1];
+    size_t len = 0U;
+    for (;;) {
+        const ssize_t n = read(fd, &text[len], sizeof text - 1U - len);
+        if (n < 0 && errno == EINTR) {
+            continue;
+        }
+        if (n < 0) {
+            key_error(path, "cannot read the key file (%s)", strerror(errno));
+        }
+        if (n == 0) {
+            break;
+        }
+        len += (size_t)n;
+        if (len == sizeof text - 1U) {
+            key_error(path, "more than %d bytes is not a key file", KEY_FILE_MAX);
+        }
+    }
+    (void)close(fd);
+    text[len] = '\0';
+    for (size_t i = 0U; i < len; i++) {
+        if (text[i] == '\0' || (unsigned char)text[i] > 0x7FU) {
+            key_error(path, "cannot read the key file (not ASCII text)");
+        }
+    }
+    struct key_fields k = {NULL, NULL, NULL, NULL, 0};
+    int number = 0;
+    for (char *line = text; line != NULL;) {
+        char *next = strchr(line, '\n');
+        if (next != NULL) {
+            *next++ = '\0';
+        }
+        number++;
+        line = trim(line);
+        if (*line != '\0' && *line != '#') {
+            key_field(path, &k, line, number);
+        }
+        line = next;
+    }
+    if (k.kind == NULL || (strcmp(k.kind, "master") != 0 && strcmp(k.kind, "node") != 0)) {
+        key_error(path, "kind must be master or node");
+    }
+    const int is_node = strcmp(k.kind, "node") == 0;
+    if (k.others != 0 || k.epoch == NULL || k.key == NULL || (k.node != NULL) != is_node) {
+        key_error(path, "a %s key file holds exactly epoch, key, kind%s", k.kind,
+                  is_node ? ", node" : "");
+    }
+    unsigned long long epoch = 0U;
+    unsigned long long node = 0U;
+    const size_t digits = strlen(k.key);
+    int hex_ok = digits % 2U == 0U;
+    for (size_t i = 0U; i < digits; i++) {
+        hex_ok &= hex_value(k.key[i]) >= 0;
+    }
+    if (!hex_ok || !decimal(k.epoch, ~0ULL, &epoch) || (is_node && !decimal(k.node, ~0ULL, &node))) {
+        key_error(path, "key must be hex, epoch and node integers");
+    }
+    if (digits != 2U * CANERGY_KDF_KEY_SIZE) {
+        key_error(path, "key must be %u bytes (%u hex digits)", CANERGY_KDF_KEY_SIZE,
+                  2U * CANERGY_KDF_KEY_SIZE);
+    }
+    if (epoch > 0xFFFFFFFFULL) {
+        key_error(path, "epoch must be 0 to 4294967295");
+    }
+    if (!is_node) {
+        key_error(path, "a node takes its own node key, not the master key");
+    }
+    if (node < CANERGY_MIN_NODE || node > CANERGY_MAX_NODE) {
+        key_error(path, "node must be %u to %u", CANERGY_MIN_NODE, CANERGY_MAX_NODE);
+    }
+    if (node != (unsigned long long)o->node) {
+        key_error(path, "a key for node %llu cannot serve node %d", node, o->node);
+    }
+    for (size_t i = 0U; i < CANERGY_KDF_KEY_SIZE; i++) {
+        key[i] = (uint8_t)(hex_value(k.key[2U * i]) << 4 | hex_value(k.key[2U * i + 1U]));
+    }
+    canergy_wipe(text, sizeof text);
+}
+
 /* ---- bus ---- */
 
 static int open_can(const struct options *o)
@@ -414,13 +638,29 @@ static int open_can(const struct options *o)
                       strerror(errno));
         exit(EXIT_USAGE);
     }
-    /* only the supervisor's frames to this node: id_base | type 0..7 << 8 | node, 29 bit */
+    /* this node's frames, both directions (Codec.client_watch_filters): id_base | type << 8 |
+     * node, 29 bit; a frame in the node's own direction is an intrusion (a node never
+     * receives its own frames back) */
     struct can_filter filter;
     filter.can_id = (canid_t)(o->id_base | (uint32_t)o->node) | CAN_EFF_FLAG;
-    filter.can_mask = (canid_t)0x1FFFF8FFU | CAN_EFF_FLAG;
+    filter.can_mask = (canid_t)(CANERGY_ID_MASK | 0xFFU) | CAN_EFF_FLAG;
     if (setsockopt(s, SOL_CAN_RAW, CAN_RAW_FILTER, &filter, sizeof filter) != 0) {
         (void)fprintf(stderr, "%s: error: CAN filter: %s\n", PROG, strerror(errno));
         exit(EXIT_USAGE);
+    }
+    if (o->fd) {
+        const int on = 1;
+        struct ifreq ifr;
+        memset(&ifr, 0, sizeof ifr);
+        memcpy(ifr.ifr_name, o->channel, strlen(o->channel));
+        if (ioctl(s, SIOCGIFMTU, &ifr) != 0 || ifr.ifr_mtu != (int)CANFD_MTU) {
+            usage_error("--fd: %s is not a CAN FD interface (ip link set %s mtu 72)", o->channel,
+                        o->channel);
+        }
+        if (setsockopt(s, SOL_CAN_RAW, CAN_RAW_FD_FRAMES, &on, sizeof on) != 0) {
+            (void)fprintf(stderr, "%s: error: CAN FD frames: %s\n", PROG, strerror(errno));
+            exit(EXIT_USAGE);
+        }
     }
     struct sockaddr_can addr;
     memset(&addr, 0, sizeof addr);
@@ -434,17 +674,22 @@ static int open_can(const struct options *o)
     return s;
 }
 
-static void send_frame(struct port *p, const struct canergy_frame *f)
+/* One frame: classic up to 8 bytes, CAN FD with bit rate switch above (FD layout). */
+static void send_frame(struct port *p, uint32_t id, const uint8_t *data, size_t len)
 {
-    struct can_frame cf;
+    struct canfd_frame cf; /* a struct can_frame is its first CAN_MTU bytes */
     memset(&cf, 0, sizeof cf);
-    cf.can_id = (canid_t)f->id | CAN_EFF_FLAG;
-    cf.can_dlc = f->dlc;
-    memcpy(cf.data, f->data, f->dlc <= 8U ? f->dlc : 8U);
+    cf.can_id = (canid_t)id | CAN_EFF_FLAG;
+    cf.len = (uint8_t)(len <= CANFD_MAX_DLEN ? len : CANFD_MAX_DLEN);
+    memcpy(cf.data, data, cf.len);
+    const size_t size = len > CAN_MAX_DLEN ? CANFD_MTU : CAN_MTU;
+    if (len > CAN_MAX_DLEN) {
+        cf.flags = CANFD_BRS;
+    }
     struct timespec backoff = {0, 1000000L}; /* 1 ms, doubling up to 50 ms */
     for (int attempt = 0; attempt < SEND_ATTEMPTS; attempt++) {
-        const ssize_t n = send(p->sock, &cf, sizeof cf, 0);
-        if (n == (ssize_t)sizeof cf) {
+        const ssize_t n = send(p->sock, &cf, size, 0);
+        if (n == (ssize_t)size) {
             p->count.frames_sent++;
             return;
         }
@@ -476,7 +721,16 @@ static void carry_out(struct port *p, const struct canergy_out *out)
         p->nv_writes++;
     }
     for (unsigned i = 0U; i < out->frame_count; i++) {
-        send_frame(p, &out->frames[i]);
+        const struct canergy_frame *f = &out->frames[i];
+        if (p->opt.auth_path == NULL) {
+            send_frame(p, f->id, f->data, f->dlc);
+            continue;
+        }
+        struct canergy_auth_frame frames[2];
+        const int n = canergy_auth_node_protect(&p->auth, &p->node, f, frames);
+        for (int k = 0; k < n; k++) {
+            send_frame(p, frames[k].id, frames[k].data, frames[k].len);
+        }
     }
 }
 
@@ -540,6 +794,33 @@ static const char *const REASONS[] = {
     "remote frame", "message sent the wrong way", "wrong data length", "CRC mismatch",
     "field out of range"};
 
+/* Python's AuthFailure values, indexed by CANERGY_AUTH_MAC_BAD .. _UNAUTHENTICATED. */
+static const char *const AUTH_FAILURES[] = {
+    "MAC BAD", "freshness not the expected one", "MAC frame without its message",
+    "malformed authenticated frame", "frame without a MAC"};
+
+/* "intrusions" and "intrusion_report" as firmware_model's Intrusions.as_json */
+static void write_intrusions(const struct port *p, FILE *f)
+{
+    const struct intrusions *in = &p->intrusions;
+    (void)fprintf(f, "\"intrusions\": %llu, \"intrusion_report\": {\"total\": %llu, \"by_node\": {",
+                  (unsigned long long)in->total, (unsigned long long)in->total);
+    if (in->total != 0U) {
+        (void)fprintf(f, "\"%d\": %llu}, \"first_at_us\": %llu, \"recent\": [", p->opt.node,
+                      (unsigned long long)in->total, (unsigned long long)in->first_at_us);
+    } else {
+        (void)fprintf(f, "}, \"first_at_us\": null, \"recent\": [");
+    }
+    const uint64_t kept = in->total < INTRUSIONS_KEPT ? in->total : INTRUSIONS_KEPT;
+    for (uint64_t i = in->total - kept; i < in->total; i++) { /* oldest first */
+        const struct intrusion *e = &in->recent[i % INTRUSIONS_KEPT];
+        (void)fprintf(f, "%s{\"time_us\": %llu, \"node\": %d, \"kind\": \"%s\", \"frame\": \"%s\"}",
+                      i == in->total - kept ? "" : ", ", (unsigned long long)e->time_us,
+                      p->opt.node, e->kind, e->frame);
+    }
+    (void)fprintf(f, "]}, ");
+}
+
 static void write_status(const struct port *p, FILE *f)
 {
     const struct canergy_record *r = &p->node.client.rec;
@@ -559,6 +840,7 @@ static void write_status(const struct port *p, FILE *f)
                   (unsigned long long)p->nv_writes, p->nv_fallbacks,
                   (unsigned long)p->node.overflow_refused,
                   canergy_client_joining(&p->node.client) ? "true" : "false", p->joins);
+    write_intrusions(p, f);
     (void)fprintf(f,
                   "\"frames_sent\": %llu, \"frames_received\": %llu, \"decode_errors\": %llu, "
                   "\"decode_error_reasons\": {",
@@ -575,12 +857,22 @@ static void write_status(const struct port *p, FILE *f)
     }
     (void)fprintf(f,
                   "}, \"foreign_frames\": %llu, \"send_retries\": %llu, \"send_failures\": %llu, "
-                  "\"receive_errors\": %llu, \"error_frames\": %llu, \"bus_state\": \"%s\"}\n",
+                  "\"receive_errors\": %llu, \"error_frames\": %llu, \"bus_state\": \"%s\", "
+                  "\"auth_failures\": {",
                   (unsigned long long)p->count.foreign_frames,
                   (unsigned long long)p->count.send_retries,
                   (unsigned long long)p->count.send_failures,
                   (unsigned long long)p->count.receive_errors,
                   (unsigned long long)p->count.error_frames, "unknown");
+    sep = "";
+    for (size_t i = 0U; i < sizeof AUTH_FAILURES / sizeof AUTH_FAILURES[0]; i++) {
+        if (p->count.auth_failures[i] != 0U) {
+            (void)fprintf(f, "%s\"%s\": %llu", sep, AUTH_FAILURES[i],
+                          (unsigned long long)p->count.auth_failures[i]);
+            sep = ", ";
+        }
+    }
+    (void)fprintf(f, "}}\n");
 }
 
 /* temp file + fsync + rename: a reader sees the old or the new status, never half of one */
@@ -628,10 +920,73 @@ static uint32_t actuator_need(struct port *p, uint64_t now)
     return uj > UINT32_MAX ? UINT32_MAX : (uint32_t)uj;
 }
 
+/* candump's compact form, as firmware_model's frame_text: 0CE00905#450100 */
+static void frame_text(char out[FRAME_TEXT], uint32_t id, bool remote, const uint8_t *data,
+                       size_t len)
+{
+    int at = snprintf(out, FRAME_TEXT, "%08X#%s", (unsigned)id, remote ? "R" : "");
+    for (size_t i = 0U; !remote && i < len && at + 3 <= (int)FRAME_TEXT; i++) {
+        at += snprintf(&out[at], FRAME_TEXT - (size_t)at, "%02X", (unsigned)data[i]);
+    }
+}
+
+static void record_intrusion(struct port *p, const char *kind, const struct canergy_rx_frame *rx,
+                             uint64_t now)
+{
+    struct intrusions *in = &p->intrusions;
+    struct intrusion *e = &in->recent[in->total % INTRUSIONS_KEPT];
+    if (in->total == 0U) {
+        in->first_at_us = now;
+    }
+    in->total++;
+    e->time_us = now;
+    e->kind = kind;
+    frame_text(e->frame, rx->id, rx->remote, rx->data, rx->len);
+    if (in->total == 1U || in->total % 100U == 0U) { /* as firmware_model logs them */
+        (void)fprintf(stderr, "%s: node %d: intrusion #%llu: %s (%s)\n", PROG, p->opt.node,
+                      (unsigned long long)in->total, e->frame, kind);
+    }
+}
+
+/* A frame in this node's own direction (type bit 3, MAC frames 0x8 included) with its id: a
+ * node never receives its own frames back, so someone else speaks in its name. */
+static bool in_its_name(const struct port *p, const struct canergy_rx_frame *rx)
+{
+    return rx->extended && (rx->id & CANERGY_ID_MASK) == p->opt.id_base &&
+           (rx->id & 0xFFU) == (uint32_t)p->opt.node &&
+           (rx->id & ((uint32_t)CANERGY_FROM_CLIENT << 8)) != 0U;
+}
+
+static void receive_one(struct port *p, const struct canergy_rx_frame *rx)
+{
+    const uint64_t now = now_us();
+    if (in_its_name(p, rx)) {
+        record_intrusion(p, "a frame in its name", rx, now);
+        return;
+    }
+    struct canergy_out out;
+    const int status = p->opt.auth_path != NULL
+                           ? canergy_auth_node_frame(&p->auth, &p->node, rx, now, &out)
+                           : canergy_node_on_frame(&p->node, rx, now, &out);
+    if (status == CANERGY_DECODE_FOREIGN || status == CANERGY_RX_OTHER_NODE) {
+        p->count.foreign_frames++;
+    } else if (status == CANERGY_DECODE_WRONG_DIRECTION) {
+        /* another node's frame to the supervisor: the filter passes none; nobody's error */
+    } else if (status > 0 && status <= (int)CANERGY_DECODE_OUT_OF_RANGE) {
+        p->count.decode_errors++;
+        p->count.reasons[status]++;
+    } else if (status >= CANERGY_AUTH_MAC_BAD && status <= CANERGY_AUTH_UNAUTHENTICATED) {
+        const size_t reason = (size_t)(status - CANERGY_AUTH_MAC_BAD);
+        p->count.auth_failures[reason]++; /* moves nothing; an intrusion, as in Python */
+        record_intrusion(p, AUTH_FAILURES[reason], rx, now);
+    }
+    carry_out(p, &out);
+}
+
 static void receive_all(struct port *p)
 {
     for (;;) {
-        struct can_frame cf;
+        struct canfd_frame cf; /* CAN_MTU bytes of it for a classic frame */
         const ssize_t n = recv(p->sock, &cf, sizeof cf, MSG_DONTWAIT);
         if (n < 0) {
             if (errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR) {
@@ -639,7 +994,7 @@ static void receive_all(struct port *p)
             }
             return;
         }
-        if (n != (ssize_t)sizeof cf) {
+        if (n != (ssize_t)CAN_MTU && n != (ssize_t)CANFD_MTU) {
             p->count.receive_errors++;
             continue;
         }
@@ -652,18 +1007,10 @@ static void receive_all(struct port *p)
         struct canergy_rx_frame rx;
         rx.id = (uint32_t)(cf.can_id & (extended ? CAN_EFF_MASK : CAN_SFF_MASK));
         rx.data = cf.data;
-        rx.len = cf.can_dlc;
+        rx.len = cf.len <= CANFD_MAX_DLEN ? cf.len : CANFD_MAX_DLEN;
         rx.extended = extended;
         rx.remote = (cf.can_id & CAN_RTR_FLAG) != 0U;
-        struct canergy_out out;
-        const int status = canergy_node_on_frame(&p->node, &rx, now_us(), &out);
-        if (status == CANERGY_DECODE_FOREIGN || status == CANERGY_RX_OTHER_NODE) {
-            p->count.foreign_frames++;
-        } else if (status > 0 && status <= (int)CANERGY_DECODE_OUT_OF_RANGE) {
-            p->count.decode_errors++;
-            p->count.reasons[status]++;
-        }
-        carry_out(p, &out);
+        receive_one(p, &rx);
     }
 }
 
@@ -684,6 +1031,17 @@ int main(int argc, char **argv)
     (void)sigaction(SIGTERM, &sa, NULL);
 
     parse_args(argc, argv, &p.opt);
+    if (p.opt.auth_path != NULL) {
+        uint8_t key[CANERGY_KDF_KEY_SIZE];
+        load_key(&p.opt, key);
+        const int ok = canergy_auth_init(&p.auth, key, p.opt.id_base, (uint8_t)p.opt.node,
+                                         p.opt.fd ? CANERGY_AUTH_FD : CANERGY_AUTH_CLASSIC,
+                                         CANERGY_TO_CLIENT);
+        canergy_wipe(key, sizeof key);
+        if (ok != CANERGY_OK) {
+            usage_error("--auth: bad node or id base");
+        }
+    }
     p.sock = open_can(&p.opt);
     uint8_t image[NV_IMAGE_BYTES];
     size_t image_len = 0U;
@@ -751,6 +1109,7 @@ int main(int argc, char **argv)
         }
     }
     save_status(&p);
+    canergy_auth_wipe(&p.auth);
     (void)close(p.sock);
     (void)close(p.nv_fd);
     return 0;

@@ -1,0 +1,121 @@
+/*
+ * Authenticated frames (docs/security.md, "Authenticated mode"): a truncated AES-128-CMAC over
+ * Data ID, freshness value and payload, AUTOSAR SecOC style, byte for byte what
+ * src/canergy/auth/frames.py builds and checks.
+ *
+ *   MAC input: Data ID type << 8 | node (2 bytes, big-endian) || FV (4 bytes, big-endian)
+ *              || the classic frame's data (CRC byte and fields, as canergy_encode lays them)
+ *
+ *   FV (canergy_auth_freshness), from the receiver's or sender's own counters:
+ *     JOIN, ADMIT          the nonce
+ *     TELEMETRY            last_tx & 0xFFFF0000 (a receiver checks the MAC only)
+ *     RETURN, RETURN_ACK   the wire seq extended next to return_seq (nearest value), mod 2^32
+ *     every other type     the wire tx extended next to last_tx (nearest value), mod 2^32
+ *
+ *   FD layout: one CAN FD frame, data || zero padding || FV (4, BE) || MAC[0..8), its length the
+ *     smallest CAN FD length >= len(data) + 12 (12, 16 or 20 for canergy's messages).
+ *   Classic layout: the unchanged classic frame, then a MAC frame on id_base | M << 8 | node
+ *     (M = 0x0 to a node, 0x8 to the supervisor): type (1) || FV >> 16 (2, BE) || MAC[0..5).
+ *     The receiver keeps the data frame (one per node) until its MAC frame arrives; the FV is
+ *     the MAC frame's high half << 16 | the frame's own 16-bit counter (nonce; 0 for TELEMETRY).
+ *
+ * A received frame is verified (constant-time compare of the truncated MAC), then, except for
+ * TELEMETRY, its FV must be the one the receiver expects from its own counters. Refused frames
+ * change nothing but the classic layout's waiting slot, as in Python.
+ *
+ * One struct canergy_auth serves one node (its key) in one direction; no heap, no globals.
+ */
+#ifndef CANERGY_AUTH_H
+#define CANERGY_AUTH_H
+
+#include "canergy/cmac.h"
+#include "canergy/node.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define CANERGY_AUTH_FD_MAC 8U        /* MAC bytes in an FD frame (64 bits) */
+#define CANERGY_AUTH_CLASSIC_MAC 5U   /* MAC bytes in a classic MAC frame (40 bits) */
+#define CANERGY_AUTH_TRAILER 12U      /* FD: FV (4) and MAC (8) after the data */
+#define CANERGY_AUTH_FRAME_MAX 20U    /* the longest frame: 8 data bytes + 12, an FD length */
+#define CANERGY_AUTH_MAC_FRAME_LEN 8U /* classic MAC frame: type, FV high half, MAC */
+#define CANERGY_AUTH_MAC_TO_CLIENT 0x0U
+#define CANERGY_AUTH_MAC_TO_SUPERVISOR 0x8U
+
+enum canergy_auth_layout {
+    CANERGY_AUTH_FD = 0,
+    CANERGY_AUTH_CLASSIC = 1
+};
+
+/* canergy_auth_accept's results besides CANERGY_DECODE_OK, the decode statuses (1..8, the
+ * codec's refusal as without a key) and CANERGY_RX_OTHER_NODE. The refusals are Python's
+ * AuthFailure values, named in the comments. */
+#define CANERGY_AUTH_PENDING 32         /* classic: the message waits for its MAC frame */
+#define CANERGY_AUTH_MAC_BAD 33         /* "MAC BAD" */
+#define CANERGY_AUTH_STALE 34           /* "freshness not the expected one" */
+#define CANERGY_AUTH_NO_DATA 35         /* "MAC frame without its message" */
+#define CANERGY_AUTH_MALFORMED 36       /* "malformed authenticated frame" */
+#define CANERGY_AUTH_UNAUTHENTICATED 37 /* "frame without a MAC" */
+
+/* A frame to transmit: 29-bit; len above 8 is a CAN FD frame (send it with bit rate switch). */
+struct canergy_auth_frame {
+    uint32_t id;
+    uint8_t len;
+    uint8_t data[CANERGY_AUTH_FRAME_MAX];
+};
+
+/* One node's key and, in the classic layout, the data frame waiting for its MAC frame
+ * (236 bytes; key material: canergy_auth_wipe when done). */
+struct canergy_auth {
+    struct canergy_cmac key;
+    uint32_t id_base;
+    uint32_t pending_id;
+    uint8_t pending_data[8];
+    uint8_t pending_len;  /* 0: nothing waits */
+    uint8_t node;
+    uint8_t layout;       /* enum canergy_auth_layout */
+    uint8_t receives;     /* enum canergy_direction: CANERGY_TO_CLIENT on a node */
+};
+
+/* CANERGY_ERR_ARGUMENT for a bad id base, node, layout or a direction that is not one way. */
+int canergy_auth_init(struct canergy_auth *a, const uint8_t key[CANERGY_KDF_KEY_SIZE],
+                      uint32_t id_base, uint8_t node, enum canergy_auth_layout layout,
+                      enum canergy_direction receives);
+
+void canergy_auth_wipe(struct canergy_auth *a);
+
+/* The FV of m for a side whose own counters are last_tx and return_seq (table above). */
+uint32_t canergy_auth_freshness(const struct canergy_msg *m, uint32_t last_tx,
+                                uint32_t return_seq);
+
+/* The frames that carry plain (a classic frame from canergy_encode or a struct canergy_out, for
+ * this node, either direction): 1 (FD) or 2 (classic: the frame, then its MAC frame), in
+ * sending order; CANERGY_ERR_ARGUMENT for a frame that is not a valid message of this node. */
+int canergy_auth_protect(const struct canergy_auth *a, const struct canergy_frame *plain,
+                         uint32_t last_tx, uint32_t return_seq, struct canergy_auth_frame out[2]);
+
+/* A received frame (any id, flags, length up to 64). CANERGY_DECODE_OK: *verified is the
+ * verified classic frame, to be given to canergy_*_on_frame. Otherwise a decode status (the
+ * codec's refusal; CANERGY_DECODE_WRONG_DIRECTION also for a MAC frame of the other
+ * direction), CANERGY_RX_OTHER_NODE (a valid frame or a MAC frame of another node, ignored),
+ * CANERGY_AUTH_PENDING, or a refusal CANERGY_AUTH_MAC_BAD .. _UNAUTHENTICATED. */
+int canergy_auth_accept(struct canergy_auth *a, const struct canergy_rx_frame *frame,
+                        uint32_t last_tx, uint32_t return_seq, struct canergy_frame *verified);
+
+/* The node layer in authenticated mode: canergy_auth_accept with the node's counters, then
+ * canergy_node_on_frame with the verified frame. Returns what either returned (out is empty
+ * unless the frame was verified). */
+int canergy_auth_node_frame(struct canergy_auth *a, struct canergy_node *n,
+                            const struct canergy_rx_frame *frame, uint64_t now,
+                            struct canergy_out *out);
+
+/* canergy_auth_protect with the node's counters, for each of out->frames in turn. */
+int canergy_auth_node_protect(const struct canergy_auth *a, const struct canergy_node *n,
+                              const struct canergy_frame *plain, struct canergy_auth_frame out[2]);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* CANERGY_AUTH_H */

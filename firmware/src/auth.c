@@ -1,0 +1,292 @@
+/*
+ * Authenticated frames (see include/canergy/auth.h): FrameAuth of src/canergy/auth/frames.py,
+ * check for check and in its order, for one node's key.
+ */
+#include "canergy/auth.h"
+
+#include "client_internal.h"
+
+#include <string.h>
+
+static const uint8_t fd_lengths[] = {12U, 16U, 20U, 24U, 32U, 48U, 64U};
+
+/* The smallest CAN FD length >= n (n <= 20 here); 0 past 64. */
+static size_t fd_length(size_t n)
+{
+    for (size_t i = 0U; i < sizeof fd_lengths; i++) {
+        if (fd_lengths[i] >= n) {
+            return fd_lengths[i];
+        }
+    }
+    return 0U;
+}
+
+/* Python's unwrap(wire, ref, 16) & 0xFFFFFFFF: the value nearest ref with these low 16 bits. */
+static uint32_t extend16(uint32_t wire, uint32_t ref)
+{
+    const uint32_t d = (uint32_t)((wire - ref) & 0xFFFFU);
+    return d >= 0x8000U ? ref + d - 0x10000U : ref + d;
+}
+
+uint32_t canergy_auth_freshness(const struct canergy_msg *m, uint32_t last_tx,
+                                uint32_t return_seq)
+{
+    switch (m->type) {
+    case CANERGY_JOIN:
+    case CANERGY_ADMIT: return m->nonce;
+    case CANERGY_TELEMETRY: return last_tx & 0xFFFF0000UL;
+    case CANERGY_RETURN:
+    case CANERGY_RETURN_ACK: return extend16(m->seq, return_seq);
+    default: return extend16(m->tx, last_tx);
+    }
+}
+
+static void put_be32(uint8_t *p, uint32_t v)
+{
+    p[0] = (uint8_t)(v >> 24);
+    p[1] = (uint8_t)(v >> 16);
+    p[2] = (uint8_t)(v >> 8);
+    p[3] = (uint8_t)v;
+}
+
+static uint32_t get_be32(const uint8_t *p)
+{
+    return (uint32_t)p[0] << 24 | (uint32_t)p[1] << 16 | (uint32_t)p[2] << 8 | p[3];
+}
+
+/* AES-CMAC over Data ID (type << 8 | node, BE) || FV (BE) || the classic data. */
+static void mac(const struct canergy_auth *a, const struct canergy_msg *m, uint32_t fv,
+                const uint8_t *data, size_t len, uint8_t tag[CANERGY_CMAC_SIZE])
+{
+    uint8_t head[6] = {m->type, m->node, 0U, 0U, 0U, 0U};
+    struct canergy_cmac_stream s;
+    put_be32(&head[2], fv);
+    canergy_cmac_begin(&s);
+    canergy_cmac_update(&a->key, &s, head, sizeof head);
+    canergy_cmac_update(&a->key, &s, data, len);
+    canergy_cmac_final(&a->key, &s, tag);
+}
+
+int canergy_auth_init(struct canergy_auth *a, const uint8_t key[CANERGY_KDF_KEY_SIZE],
+                      uint32_t id_base, uint8_t node, enum canergy_auth_layout layout,
+                      enum canergy_direction receives)
+{
+    if (a == NULL || key == NULL || !canergy_id_base_valid(id_base) ||
+        node < CANERGY_MIN_NODE || node > CANERGY_MAX_NODE ||
+        (layout != CANERGY_AUTH_FD && layout != CANERGY_AUTH_CLASSIC) ||
+        (receives != CANERGY_TO_CLIENT && receives != CANERGY_TO_SUPERVISOR)) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    memset(a, 0, sizeof *a);
+    canergy_cmac_init(&a->key, key);
+    a->id_base = id_base;
+    a->node = node;
+    a->layout = (uint8_t)layout;
+    a->receives = (uint8_t)receives;
+    return CANERGY_OK;
+}
+
+void canergy_auth_wipe(struct canergy_auth *a)
+{
+    canergy_wipe(a, sizeof *a);
+}
+
+static uint32_t mac_type(uint32_t type)
+{
+    return (type & CANERGY_FROM_CLIENT) != 0U ? CANERGY_AUTH_MAC_TO_SUPERVISOR
+                                              : CANERGY_AUTH_MAC_TO_CLIENT;
+}
+
+int canergy_auth_protect(const struct canergy_auth *a, const struct canergy_frame *plain,
+                         uint32_t last_tx, uint32_t return_seq, struct canergy_auth_frame out[2])
+{
+    if (a == NULL || plain == NULL || out == NULL || plain->dlc > 8U) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    const struct canergy_rx_frame rx = {plain->id, plain->data, plain->dlc, true, false};
+    struct canergy_msg m;
+    if (canergy_decode(a->id_base, &rx, CANERGY_EITHER_WAY, &m) != CANERGY_DECODE_OK ||
+        m.node != a->node) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    const uint32_t fv = canergy_auth_freshness(&m, last_tx, return_seq);
+    uint8_t tag[CANERGY_CMAC_SIZE];
+    mac(a, &m, fv, plain->data, plain->dlc, tag);
+    memset(out, 0, 2U * sizeof out[0]);
+    out[0].id = plain->id;
+    memcpy(out[0].data, plain->data, plain->dlc);
+    if (a->layout == CANERGY_AUTH_FD) {
+        const size_t len = fd_length(plain->dlc + CANERGY_AUTH_TRAILER);
+        put_be32(&out[0].data[len - CANERGY_AUTH_TRAILER], fv);
+        memcpy(&out[0].data[len - CANERGY_AUTH_FD_MAC], tag, CANERGY_AUTH_FD_MAC);
+        out[0].len = (uint8_t)len;
+        return 1;
+    }
+    out[0].len = plain->dlc;
+    out[1].id = a->id_base | mac_type(m.type) << 8 | m.node;
+    out[1].len = CANERGY_AUTH_MAC_FRAME_LEN;
+    out[1].data[0] = m.type;
+    out[1].data[1] = (uint8_t)(fv >> 24);
+    out[1].data[2] = (uint8_t)(fv >> 16);
+    memcpy(&out[1].data[3], tag, CANERGY_AUTH_CLASSIC_MAC);
+    return 2;
+}
+
+/* The MAC, then (but for TELEMETRY) the FV the receiver expects; the verified classic frame. */
+static int verdict(const struct canergy_auth *a, const struct canergy_msg *m, uint32_t id,
+                   const uint8_t *body, size_t len, uint32_t fv, const uint8_t *tag,
+                   size_t tag_len, uint32_t last_tx, uint32_t return_seq,
+                   struct canergy_frame *verified)
+{
+    uint8_t expected[CANERGY_CMAC_SIZE];
+    mac(a, m, fv, body, len, expected);
+    const bool good = canergy_mac_equal(expected, tag, tag_len);
+    canergy_wipe(expected, sizeof expected);
+    if (!good) {
+        return CANERGY_AUTH_MAC_BAD;
+    }
+    if (m->type != CANERGY_TELEMETRY && canergy_auth_freshness(m, last_tx, return_seq) != fv) {
+        return CANERGY_AUTH_STALE;
+    }
+    memset(verified, 0, sizeof *verified);
+    verified->id = id;
+    verified->dlc = (uint8_t)len;
+    memcpy(verified->data, body, len);
+    return CANERGY_DECODE_OK;
+}
+
+/* Classic: a MAC frame of the direction this side receives completes the waiting message. */
+static int mac_frame(struct canergy_auth *a, const struct canergy_rx_frame *f, uint32_t last_tx,
+                     uint32_t return_seq, struct canergy_frame *verified)
+{
+    if ((f->id & 0xFFU) != a->node) {
+        return CANERGY_RX_OTHER_NODE;
+    }
+    const size_t waiting = a->pending_len;
+    a->pending_len = 0U; /* taken, whatever the MAC frame turns out to be */
+    if (f->len != CANERGY_AUTH_MAC_FRAME_LEN || f->data == NULL) {
+        return CANERGY_AUTH_MALFORMED;
+    }
+    const uint32_t type = a->pending_id >> 8 & 0xFU;
+    if (waiting == 0U || f->data[0] != type) {
+        return CANERGY_AUTH_NO_DATA;
+    }
+    const struct canergy_rx_frame rx = {a->pending_id, a->pending_data, waiting, true, false};
+    struct canergy_msg m;
+    (void)canergy_decode(a->id_base, &rx, CANERGY_EITHER_WAY, &m); /* it decoded when it came */
+    const uint32_t low = canergy_auth_freshness(&m, 0U, 0U) & 0xFFFFUL;
+    const uint32_t fv = (uint32_t)f->data[1] << 24 | (uint32_t)f->data[2] << 16 | low;
+    return verdict(a, &m, a->pending_id, a->pending_data, waiting, fv, &f->data[3],
+                   CANERGY_AUTH_CLASSIC_MAC, last_tx, return_seq, verified);
+}
+
+/* Classic: a data frame waits (replacing any other) until its MAC frame comes. */
+static int data_frame(struct canergy_auth *a, const struct canergy_rx_frame *f)
+{
+    struct canergy_msg m;
+    const enum canergy_decode_status status =
+        canergy_decode(a->id_base, f, (enum canergy_direction)a->receives, &m);
+    if (status != CANERGY_DECODE_OK) {
+        return (int)status;
+    }
+    if (m.node != a->node) {
+        return CANERGY_RX_OTHER_NODE;
+    }
+    a->pending_id = f->id;
+    a->pending_len = (uint8_t)f->len;
+    memcpy(a->pending_data, f->data, f->len);
+    return CANERGY_AUTH_PENDING;
+}
+
+static bool all_zero(const uint8_t *p, size_t n)
+{
+    uint8_t any = 0U;
+    for (size_t i = 0U; i < n; i++) {
+        any |= p[i];
+    }
+    return any == 0U;
+}
+
+/* FD: data || zero padding || FV || MAC in one frame of exactly the type's length. */
+static int fd_frame(const struct canergy_auth *a, const struct canergy_rx_frame *f,
+                    uint32_t last_tx, uint32_t return_seq, struct canergy_frame *verified)
+{
+    const enum canergy_direction dir = (enum canergy_direction)a->receives;
+    const size_t length = canergy_data_length(f->id >> 8 & 0xFU);
+    struct canergy_msg m;
+    if (length == 0U || f->data == NULL ||
+        f->len != fd_length(length + CANERGY_AUTH_TRAILER) ||
+        !all_zero(&f->data[length], f->len - length - CANERGY_AUTH_TRAILER)) {
+        const enum canergy_decode_status status = canergy_decode(a->id_base, f, dir, &m);
+        if (status != CANERGY_DECODE_OK) {
+            return (int)status; /* the codec's own refusal, if it has one */
+        }
+        return m.node == a->node ? CANERGY_AUTH_UNAUTHENTICATED : CANERGY_RX_OTHER_NODE;
+    }
+    const struct canergy_rx_frame body = {f->id, f->data, length, f->extended, false};
+    const enum canergy_decode_status status = canergy_decode(a->id_base, &body, dir, &m);
+    if (status != CANERGY_DECODE_OK) {
+        return (int)status;
+    }
+    if (m.node != a->node) {
+        return CANERGY_RX_OTHER_NODE;
+    }
+    const uint8_t *trailer = &f->data[f->len - CANERGY_AUTH_TRAILER];
+    return verdict(a, &m, f->id, f->data, length, get_be32(trailer), &trailer[4],
+                   CANERGY_AUTH_FD_MAC, last_tx, return_seq, verified);
+}
+
+int canergy_auth_accept(struct canergy_auth *a, const struct canergy_rx_frame *frame,
+                        uint32_t last_tx, uint32_t return_seq, struct canergy_frame *verified)
+{
+    if (a == NULL || frame == NULL || verified == NULL || !frame->extended ||
+        (frame->id & CANERGY_ID_MASK) != a->id_base) {
+        return CANERGY_DECODE_FOREIGN;
+    }
+    if (frame->remote) {
+        return CANERGY_DECODE_REMOTE_FRAME;
+    }
+    if (frame->len > 64U || (frame->data == NULL && frame->len != 0U)) {
+        return CANERGY_DECODE_WRONG_DLC;
+    }
+    if (a->layout == CANERGY_AUTH_FD) {
+        return fd_frame(a, frame, last_tx, return_seq, verified);
+    }
+    const uint32_t kind = frame->id >> 8 & 0xFU;
+    if (kind == CANERGY_AUTH_MAC_TO_CLIENT || kind == CANERGY_AUTH_MAC_TO_SUPERVISOR) {
+        const uint32_t mine = a->receives == CANERGY_TO_CLIENT ? CANERGY_AUTH_MAC_TO_CLIENT
+                                                               : CANERGY_AUTH_MAC_TO_SUPERVISOR;
+        if (kind != mine) {
+            return CANERGY_DECODE_WRONG_DIRECTION;
+        }
+        return mac_frame(a, frame, last_tx, return_seq, verified);
+    }
+    return data_frame(a, frame);
+}
+
+int canergy_auth_node_frame(struct canergy_auth *a, struct canergy_node *n,
+                            const struct canergy_rx_frame *frame, uint64_t now,
+                            struct canergy_out *out)
+{
+    if (a == NULL || n == NULL || out == NULL) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    struct canergy_frame plain;
+    const int result =
+        canergy_auth_accept(a, frame, n->client.rec.last_tx, n->client.rec.return_seq, &plain);
+    if (result != CANERGY_DECODE_OK) {
+        canergy_internal_out_clear(out);
+        return result;
+    }
+    const struct canergy_rx_frame rx = {plain.id, plain.data, plain.dlc, true, false};
+    return canergy_node_on_frame(n, &rx, now, out);
+}
+
+int canergy_auth_node_protect(const struct canergy_auth *a, const struct canergy_node *n,
+                              const struct canergy_frame *plain, struct canergy_auth_frame out[2])
+{
+    if (n == NULL) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    return canergy_auth_protect(a, plain, n->client.rec.last_tx, n->client.rec.return_seq, out);
+}

@@ -1,0 +1,454 @@
+"""The C authenticated frames (firmware/include/canergy/auth.h) against Python's ``FrameAuth``
+(src/canergy/auth/frames.py): for both layouts and every message type, the C frames are the
+Python frames byte for byte and each side accepts the other's; a flipped bit, a stale FV, a
+frame without a MAC come to the same outcome on both sides, for counters near every wrap."""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+from collections.abc import Callable
+from ctypes import POINTER, Structure, c_int, c_size_t, c_uint8, c_uint32, c_uint64, c_void_p
+from typing import Any
+
+import can
+import pytest
+from hypothesis import example, given
+from hypothesis import strategies as st
+from test_c_binding import (
+    REASONS,
+    RX_OTHER_NODE,
+    CNodeState,
+    Frame,
+    Msg,
+    NodeConfig,
+    Out,
+    library,
+    rx,
+)
+from test_c_cmac import Cmac
+
+from canergy.auth.frames import AuthFailure, FrameAuth, Layout, freshness
+from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeError
+from canergy.messages import (
+    AMOUNT_MAX_MJ,
+    Abort,
+    Aborted,
+    Ack,
+    Admit,
+    Commit,
+    Committed,
+    Direction,
+    FinalAck,
+    Intention,
+    Join,
+    Message,
+    MsgType,
+    Return,
+    ReturnAck,
+    StatusRequest,
+    Telemetry,
+)
+
+NODE = 5
+U32 = 0xFFFF_FFFF
+KEY = bytes.fromhex("2b7e151628aed2a6abf7158809cf4f3c")
+CODEC = Codec()
+LAYOUTS = {Layout.FD: 0, Layout.CLASSIC: 1}
+C_DIRECTIONS = {Direction.TO_CLIENT: 1, Direction.TO_SUPERVISOR: 2}
+PENDING, FIRST_FAILURE = 32, 33
+FAILURES = {FIRST_FAILURE + i: f for i, f in enumerate(AuthFailure)}
+"""C result -> Python's AuthFailure: auth.h lists them in the enum's order."""
+
+
+class AuthFrame(Structure):
+    _fields_ = [("id", c_uint32), ("len", c_uint8), ("data", c_uint8 * 20)]
+
+
+class Auth(Structure):
+    _fields_ = [
+        ("key", Cmac),
+        ("id_base", c_uint32),
+        ("pending_id", c_uint32),
+        ("pending_data", c_uint8 * 8),
+        ("pending_len", c_uint8),
+        ("node", c_uint8),
+        ("layout", c_uint8),
+        ("receives", c_uint8),
+    ]
+
+
+MIRROR = {"canergy_auth_frame": AuthFrame, "canergy_auth": Auth}
+
+
+@functools.cache
+def lib() -> ctypes.CDLL:
+    c = library()
+    signatures: dict[str, tuple[Any, list[Any]]] = {
+        "canergy_auth_init": (c_int, [POINTER(Auth), c_void_p, c_uint32, c_uint8, c_int, c_int]),
+        "canergy_auth_wipe": (None, [POINTER(Auth)]),
+        "canergy_auth_freshness": (c_uint32, [c_void_p, c_uint32, c_uint32]),
+        "canergy_auth_protect": (
+            c_int,
+            [POINTER(Auth), POINTER(Frame), c_uint32, c_uint32, POINTER(AuthFrame)],
+        ),
+        "canergy_auth_accept": (
+            c_int,
+            [POINTER(Auth), c_void_p, c_uint32, c_uint32, POINTER(Frame)],
+        ),
+        "canergy_auth_node_frame": (
+            c_int,
+            [POINTER(Auth), POINTER(CNodeState), c_void_p, c_uint64, POINTER(Out)],
+        ),
+        "canergy_auth_node_protect": (
+            c_int,
+            [POINTER(Auth), POINTER(CNodeState), POINTER(Frame), POINTER(AuthFrame)],
+        ),
+        "canergy_data_length": (c_size_t, [c_uint32]),
+    }
+    for name, (restype, argtypes) in signatures.items():
+        f = getattr(c, name)
+        f.restype, f.argtypes = restype, argtypes
+    return c
+
+
+class CAuth:
+    """One side's C auth context for node 5: the frames it builds, the outcome of each frame."""
+
+    def __init__(self, layout: Layout, receives: Direction, key: bytes = KEY) -> None:
+        self.ctx = Auth()
+        result = lib().canergy_auth_init(
+            ctypes.byref(self.ctx),
+            key,
+            DEFAULT_ID_BASE,
+            NODE,
+            LAYOUTS[layout],
+            C_DIRECTIONS[receives],
+        )
+        assert result == 0
+
+    def frames(self, msg: Message, tx: int, seq: int) -> list[can.Message]:
+        arbitration_id, data = CODEC.encode(msg)
+        plain = Frame(arbitration_id, len(data), (c_uint8 * 8)(*data))
+        out = (AuthFrame * 2)()
+        n = lib().canergy_auth_protect(
+            ctypes.byref(self.ctx), ctypes.byref(plain), tx & U32, seq & U32, out
+        )
+        assert n in (1, 2)
+        return [_can(f.id, bytes(f.data[: f.len])) for f in list(out)[:n]]
+
+    def outcome(self, frame: can.Message, tx: int, seq: int) -> str:
+        """ "ok" (the verified frame must be the classic one), "pending", or the refusal."""
+        r, _buf = rx(frame.arbitration_id, bytes(frame.data))
+        verified = Frame()
+        status = lib().canergy_auth_accept(
+            ctypes.byref(self.ctx), ctypes.byref(r), tx & U32, seq & U32, ctypes.byref(verified)
+        )
+        if status == 0:
+            self.verified = (verified.id, bytes(verified.data[: verified.dlc]))
+            return "ok"
+        if status == PENDING:
+            return "pending"
+        if status == RX_OTHER_NODE:
+            return "other node"
+        return str((FAILURES[status] if status in FAILURES else REASONS[status]).value)
+
+
+def _can(arbitration_id: int, data: bytes) -> can.Message:
+    return can.Message(arbitration_id=arbitration_id, data=data, is_fd=len(data) > 8)
+
+
+def py_auth(layout: Layout, receives: Direction, tx: int, seq: int, key: bytes = KEY) -> FrameAuth:
+    return FrameAuth(CODEC, layout, lambda n: key, receives, lambda m: freshness(m, tx, seq))
+
+
+def py_outcome(auth: FrameAuth, frame: can.Message) -> str:
+    try:
+        verdict = auth.accept(frame)
+    except DecodeError as err:
+        return err.reason.value
+    if verdict.failure is not None:
+        return verdict.failure.value
+    return "pending" if verdict.message is None else "ok"
+
+
+# -- strategies -------------------------------------------------------------------------------
+
+u16 = st.integers(0, 0xFFFF)
+u24 = st.integers(0, 0xFF_FFFF)
+amounts = st.integers(1, AMOUNT_MAX_MJ)
+near_wraps = st.one_of(
+    st.integers(65530, 65545),
+    st.integers(0x7FF0, 0x8010),
+    st.integers(0, 20),
+    st.integers(U32 - 10, U32 + 20),
+    st.integers(0, 2**40),
+)
+"""Counters as the Python side holds them (unbounded): near 2^16, 2^15, 0, 2^32, anywhere."""
+layouts = st.sampled_from(Layout)
+
+
+def messages(tx: int, seq: int) -> st.SearchStrategy[Message]:
+    """Every message type, its wire counter near (or far from) the sender's own."""
+    wire_tx = st.one_of(
+        st.integers(-40, 40).map(lambda d: (tx + d) & 0xFFFF),
+        st.sampled_from([(tx + 0x8000) & 0xFFFF, (tx + 0x7FFF) & 0xFFFF]),  # the halfway ties
+        u16,
+    )
+    wire_seq = st.one_of(st.integers(-40, 40).map(lambda d: (seq + d) & 0xFFFF), u16)
+    n = st.just(NODE)
+    return st.one_of(
+        st.builds(Intention, n, wire_tx, amounts, u24),
+        st.builds(Commit, n, wire_tx, amounts),
+        st.builds(Abort, n, wire_tx, amounts),
+        st.builds(ReturnAck, n, wire_seq),
+        st.builds(StatusRequest, n, wire_tx),
+        st.builds(FinalAck, n, wire_tx),
+        st.builds(Admit, n, u16, wire_tx, wire_seq),
+        st.builds(Ack, n, wire_tx),
+        st.builds(Committed, n, wire_tx),
+        st.builds(Aborted, n, wire_tx),
+        st.builds(Return, n, wire_seq, amounts),
+        st.builds(Telemetry, n, u24, st.integers(0, 7)),
+        st.builds(Join, n, u16),
+    )
+
+
+@st.composite
+def cases(draw: Callable[..., Any]) -> tuple[Layout, Message, int, int]:
+    tx, seq = draw(near_wraps), draw(near_wraps)
+    return draw(layouts), draw(messages(tx, seq)), tx, seq
+
+
+ALL_TYPES: list[Message] = [
+    Intention(NODE, 2, 500, 1000),
+    Commit(NODE, 2, 500),
+    Abort(NODE, 2, 500),
+    ReturnAck(NODE, 0xFFFF),
+    StatusRequest(NODE, 2),
+    FinalAck(NODE, 2),
+    Admit(NODE, 0xBEEF, 2, 0xFFFF),
+    Ack(NODE, 2),
+    Committed(NODE, 2),
+    Aborted(NODE, 2),
+    Return(NODE, 0xFFFF, 120),
+    Telemetry(NODE, 500, 2),
+    Join(NODE, 0xBEEF),
+]
+
+
+def _receiver(msg: Message) -> Direction:
+    return msg.TYPE.direction
+
+
+# -- the tests --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", sorted(MIRROR))
+def test_the_ctypes_mirror_matches_the_compiled_layout(name: str) -> None:
+    c = library()
+    struct = MIRROR[name]
+    assert c.canergy_test_sizeof(name.encode()) == ctypes.sizeof(struct)
+    for field, *_ in struct._fields_:
+        assert c.canergy_test_offset(f"{name}.{field}".encode()) == getattr(struct, field).offset
+
+
+def test_data_lengths_are_the_codecs() -> None:
+    for code in range(17):
+        try:
+            want = Codec.data_length(MsgType(code))
+        except (ValueError, KeyError):
+            want = 0
+        assert lib().canergy_data_length(code) == want, code
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+@pytest.mark.parametrize("msg", ALL_TYPES, ids=lambda m: type(m).__name__)
+def test_every_type_both_ways_at_the_16_bit_wrap(layout: Layout, msg: Message) -> None:
+    _both_ways(layout, msg, 0x1_FFFF, 0x1_FFFF)
+
+
+@given(cases())
+@example((Layout.CLASSIC, Commit(NODE, 0x8000, 300), 0, 0))  # the halfway tie: FV 0xFFFF8000
+@example((Layout.FD, Ack(NODE, 0), 65535, 0))
+@example((Layout.FD, Return(NODE, 0, 1), 0, 65535))
+def test_c_frames_are_python_frames_and_each_side_accepts_the_other(
+    case: tuple[Layout, Message, int, int],
+) -> None:
+    _both_ways(*case)
+
+
+def _both_ways(layout: Layout, msg: Message, tx: int, seq: int) -> None:
+    receiver = _receiver(msg)
+    sender = Direction.TO_CLIENT if receiver is Direction.TO_SUPERVISOR else Direction.TO_SUPERVISOR
+    c_frames = CAuth(layout, sender).frames(msg, tx, seq)
+    py_frames = py_auth(layout, sender, tx, seq).frames(msg)
+    assert [(f.arbitration_id, bytes(f.data)) for f in c_frames] == [
+        (f.arbitration_id, bytes(f.data)) for f in py_frames
+    ]
+    assert [f.is_fd for f in c_frames] == [f.is_fd for f in py_frames]
+    # Python accepts the C frames, C accepts the Python frames, with the same counters
+    python = py_auth(layout, receiver, tx, seq)
+    verdicts = [python.accept(f) for f in c_frames]
+    assert verdicts[-1].message == msg and all(v.failure is None for v in verdicts)
+    c_side = CAuth(layout, receiver)
+    outcomes = [c_side.outcome(f, tx, seq) for f in py_frames]
+    assert outcomes == ["pending", "ok"] if layout is Layout.CLASSIC else ["ok"]
+    assert c_side.verified == CODEC.encode(msg)
+
+
+@given(cases(), st.data())
+def test_a_flipped_bit_is_refused_for_the_same_reason_on_both_sides(
+    case: tuple[Layout, Message, int, int], data: st.DataObject
+) -> None:
+    layout, msg, tx, seq = case
+    receiver = _receiver(msg)
+    frames = py_auth(layout, receiver, tx, seq).frames(msg)
+    which = data.draw(st.integers(0, len(frames) - 1))
+    body = bytearray(frames[which].data)
+    bit = data.draw(st.integers(0, 8 * len(body) - 1))
+    body[bit // 8] ^= 1 << bit % 8
+    frames[which] = _can(frames[which].arbitration_id, bytes(body))
+    python, c_side = py_auth(layout, receiver, tx, seq), CAuth(layout, receiver)
+    py_outcomes = [py_outcome(python, f) for f in frames]
+    c_outcomes = [c_side.outcome(f, tx, seq) for f in frames]
+    assert c_outcomes == py_outcomes
+    assert py_outcomes[-1] != "ok"  # never accepted
+
+
+@given(cases(), st.sampled_from([0x1_0000, -0x1_0000, 1, -1, 0x8000, 2**32]))
+def test_a_stale_fv_is_refused_on_both_sides(
+    case: tuple[Layout, Message, int, int], shift: int
+) -> None:
+    """The sender's counters are `shift` away from the receiver's: a replay from 65,536
+    transactions ago, say. Only the FV of JOIN, ADMIT (the nonce) and TELEMETRY (not checked)
+    still verifies then; both sides agree for every shift (a small one may still extend to the
+    same FV)."""
+    layout, msg, tx, seq = case
+    receiver = _receiver(msg)
+    frames = py_auth(layout, receiver, tx, seq).frames(msg)
+    rtx, rseq = tx + shift, seq + shift
+    python, c_side = py_auth(layout, receiver, rtx, rseq), CAuth(layout, receiver)
+    py_outcomes = [py_outcome(python, f) for f in frames]
+    assert [c_side.outcome(f, rtx, rseq) for f in frames] == py_outcomes
+    if abs(shift) == 0x1_0000:  # one whole wire period away: always stale
+        fresh_anyway = isinstance(msg, Join | Admit | Telemetry)
+        assert py_outcomes[-1] == ("ok" if fresh_anyway else AuthFailure.STALE.value)
+    if shift == 2**32:  # the same counters modulo 2^32: the same FV
+        assert py_outcomes[-1] == "ok"
+
+
+@given(layouts, near_wraps, near_wraps)
+def test_the_freshness_value_is_pythons(layout: Layout, tx: int, seq: int) -> None:
+    for msg in ALL_TYPES:
+        arbitration_id, data = CODEC.encode(msg)
+        m = Msg()
+        assert (
+            lib().canergy_decode(
+                DEFAULT_ID_BASE, ctypes.byref(rx(arbitration_id, data)[0]), 0, ctypes.byref(m)
+            )
+            == 0
+        )
+        assert (
+            lib().canergy_auth_freshness(ctypes.byref(m), tx & U32, seq & U32)
+            == freshness(msg, tx, seq) & U32
+        )
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_a_frame_without_a_mac_and_a_lone_mac_frame(layout: Layout) -> None:
+    forged = _can(*CODEC.encode(Commit(NODE, 1, 65535)))
+    python, c_side = py_auth(layout, Direction.TO_CLIENT, 0, 0), CAuth(layout, Direction.TO_CLIENT)
+    lone_mac = _can(DEFAULT_ID_BASE | NODE, bytes([2, 0, 0, 1, 2, 3, 4, 5]))
+    short_mac = _can(DEFAULT_ID_BASE | NODE, bytes([2, 0, 0, 1, 2, 3, 4]))
+    their_mac = _can(DEFAULT_ID_BASE | 0x800 | NODE, bytes(8))
+    fd_padded = _can(forged.arbitration_id, bytes(forged.data) + bytes(15))
+    fd_dirty = _can(forged.arbitration_id, bytes(forged.data) + bytes([1]) + bytes(14))
+    frames = [forged, lone_mac, forged, short_mac, lone_mac, their_mac, fd_padded, fd_dirty]
+    py_outcomes = [py_outcome(python, f) for f in frames]
+    assert [c_side.outcome(f, 0, 0) for f in frames] == py_outcomes
+    if layout is Layout.FD:
+        assert py_outcomes[0] == AuthFailure.UNAUTHENTICATED.value
+    else:
+        assert py_outcomes[:5] == [
+            "pending",
+            AuthFailure.MAC_BAD.value,
+            "pending",
+            AuthFailure.MALFORMED.value,
+            AuthFailure.NO_DATA.value,
+        ]
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout: Layout) -> None:
+    """The node layer in authenticated mode: a Python supervisor's ADMIT, INTENTION and COMMIT
+    reach it; its own replies verify at the supervisor; forged frames move nothing."""
+    node, out = CNodeState(), Out()
+    cfg = NodeConfig()
+    cfg.client.id_base, cfg.client.node = DEFAULT_ID_BASE, NODE
+    cfg.client.command_timeout_us = cfg.client.return_retry_us = 100_000
+    cfg.telemetry_period_us, cfg.return_above_uj = 1_000_000, U32
+    c = lib()
+    assert (
+        c.canergy_node_start(
+            ctypes.byref(node), ctypes.byref(cfg), None, 0, 0x1234, 0, ctypes.byref(out)
+        )
+        == 0
+    )
+    c_auth = CAuth(layout, Direction.TO_CLIENT)
+    sup = {"tx": 0xFFFF, "seq": 0}
+    supervisor = FrameAuth(
+        CODEC,
+        layout,
+        lambda n: KEY,
+        Direction.TO_SUPERVISOR,
+        lambda m: freshness(m, sup["tx"], sup["seq"]),
+    )
+
+    def deliver(frames: list[can.Message], now: int) -> list[int]:
+        results = []
+        for f in frames:
+            r, _buf = rx(f.arbitration_id, bytes(f.data))
+            results.append(
+                c.canergy_auth_node_frame(
+                    ctypes.byref(c_auth.ctx),
+                    ctypes.byref(node),
+                    ctypes.byref(r),
+                    now,
+                    ctypes.byref(out),
+                )
+            )
+        return results
+
+    def replies() -> list[Message]:
+        got = []
+        for plain in list(out.frames)[: out.frame_count]:
+            frames = (AuthFrame * 2)()
+            n = c.canergy_auth_node_protect(
+                ctypes.byref(c_auth.ctx), ctypes.byref(node), ctypes.byref(plain), frames
+            )
+            for f in list(frames)[:n]:
+                v = supervisor.accept(_can(f.id, bytes(f.data[: f.len])))
+                assert v.failure is None
+                if v.message is not None:
+                    got.append(v.message)
+        return got
+
+    assert deliver(supervisor.frames(Admit(NODE, 0x1234, 0xFFFF, 0)), 10)[-1] == 0
+    assert node.client.phase == 0 and node.client.rec.last_tx == 0xFFFF
+    sup["tx"] = 0x1_0000
+    assert deliver(supervisor.frames(Intention(NODE, 0, 700, 700)), 20)[-1] == 0
+    assert replies() == [Ack(NODE, 0)]
+    before = node.client.rec.usable_uj
+    forged = _can(*CODEC.encode(Commit(NODE, 0, AMOUNT_MAX_MJ)))
+    no_mac = FIRST_FAILURE + 4
+    assert deliver([forged], 25)[-1] == (PENDING if layout is Layout.CLASSIC else no_mac)
+    assert node.client.rec.usable_uj == before
+    assert deliver(supervisor.frames(Commit(NODE, 0, 700)), 30)[-1] == 0
+    assert node.client.rec.usable_uj == before + 700_000
+    assert Committed(NODE, 0) in replies()
+    # the COMMIT again, 65,536 transactions later: the same frames do not verify
+    replay = supervisor.frames(Commit(NODE, 0, 700))
+    node.client.rec.last_tx += 0x1_0000
+    assert deliver(replay, 40)[-1] == FIRST_FAILURE + 1  # stale
+    assert node.client.rec.usable_uj == before + 700_000

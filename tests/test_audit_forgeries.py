@@ -368,3 +368,28 @@ def test_the_cli_names_the_forged_frame(tmp_path: Path, capsys: pytest.CaptureFi
     (violation,) = json.loads(capsys.readouterr().out)["violations"]
     assert violation["frame"] == forged and violation["node"] == 1
     assert "jumps" in violation["what"]
+
+
+def test_decode_with_audit_marks_the_forged_frame(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`canergy decode --audit` (and `dump --audit`, the same code) puts the audit's verdict
+    under the frame it flags: here a COMMIT for a transaction never intended."""
+    from canergy.messages import Ack, Commit, Committed, Intention
+
+    codec = Codec()
+    honest = [Intention(1, 1, 500, 0), Ack(1, 1), Commit(1, 1, 500), Committed(1, 1)]
+    path = tmp_path / "c.log"
+    with can.Logger(str(path)) as log:
+        for i, msg in enumerate([*honest, Commit(1, 2, 65535)]):
+            arbitration_id, data = codec.encode(msg)
+            frame = can.Message(arbitration_id=arbitration_id, data=data, timestamp=1e9 + i)
+            frame.channel = "vcan0"
+            log.on_message_received(frame)
+    capsys.readouterr()
+    assert main(["decode", str(path), "--audit", "--color", "never"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    flagged = [i for i, text in enumerate(lines) if text.startswith("!!")]
+    assert flagged == [len(lines) - 1] and "COMMIT" in lines[-2] and "65.535" in lines[-2]
+    assert main(["decode", str(path), "--color", "never"]) == 0  # without --audit: no verdicts
+    assert not any(t.startswith("!!") for t in capsys.readouterr().out.splitlines())

@@ -8,6 +8,7 @@ import signal
 import sys
 import threading
 from collections.abc import Iterable, Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -40,6 +41,12 @@ def _capture_auth(args: argparse.Namespace, codec: Codec) -> CaptureAuth:
 
 def _view_flags(p: argparse.ArgumentParser) -> None:
     _auth_flag(p)
+    p.add_argument(
+        "--audit",
+        action="store_true",
+        help="run the audit alongside: a frame it flags (a forgery, a second supervisor's "
+        "interleaved sequence...) gets a line starting with !! under it",
+    )
     p.add_argument("--nodes", type=node_ids, help="only frames of these node ids, e.g. 1-5,9")
     p.add_argument("--hide-foreign", action="store_true", help="hide frames that are not canergy's")
     p.add_argument("--json", action="store_true", help="one JSON object per frame")
@@ -105,14 +112,32 @@ def _show(
     described: Iterable[Described], args: argparse.Namespace, out: TextIO, live: bool = False
 ) -> None:
     colour = args.color == "always" or (args.color == "auto" and out.isatty())
+    auditor = Auditor() if args.audit else None
     for d in described:
+        flagged = _audited(auditor, d)
         if args.hide_foreign and d.message is None and not d.ours:
             continue
         if args.nodes is not None and (d.message is None or d.message.node not in args.nodes):
             continue
         out.write((json.dumps(d.as_json()) if args.json else line(d, colour=colour)) + "\n")
+        for here, v in flagged:
+            out.write(json.dumps({"violation": v.as_json()}) if args.json else f"!! {here}{v.what}")
+            out.write("\n")
         if live:
             out.flush()
+
+
+def _audited(auditor: Auditor | None, d: Described) -> list[tuple[str, Any]]:
+    """The audit's new violations once ``d`` is fed, each with where it points ("" for this
+    frame; some are decided later and concern an earlier one). A MAC that failed moves nothing."""
+    if auditor is None:
+        return []
+    before = len(auditor.violations)
+    auditor.feed(replace(d, message=None, crc_ok=None) if d.mac == "BAD" else d)
+    return [
+        ("" if v.frame == auditor.frames else f"frame {v.frame}: ", v)
+        for v in auditor.violations[before:]
+    ]
 
 
 def run_decode(args: argparse.Namespace) -> int:

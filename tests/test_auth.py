@@ -407,3 +407,30 @@ def fd_frame_len(n: int) -> int:
     from canergy.auth.frames import fd_length
 
     return fd_length(n + 12)
+
+
+def test_a_single_run_grant_to_an_authenticated_node(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`canergy grant --auth` (no running supervisor) speaks the node's authenticated frames;
+    without the key the node never takes its intention."""
+    assert main(["keys", "-o", str(tmp_path / "m.key")]) == 0
+    channel = f"auth-grant-{uuid.uuid4().hex}"
+    node = FirmwareNode(1, NvStore(tmp_path / "1.nv", 1, fsync=False), NodeConfig(), monotonic_us())
+    host = NodeHost([node])
+    key = load_key(tmp_path / "m.key").node_key(1)
+    auth = FrameAuth(CODEC, Layout.CLASSIC, lambda n: key, Direction.TO_CLIENT, host.freshness)
+    bus = can.Bus(interface="virtual", channel=channel, can_filters=CODEC.client_watch_filters(1))
+    loop = Loop(BusRuntime(bus, host, codec=CODEC, receives=Direction.TO_CLIENT, auth=auth))
+    grant = ["grant", "-i", "virtual", "-c", channel, "--node", "1", "--amount", "0.5J"]
+    try:
+        time.sleep(0.3)  # the node's JOIN and telemetry
+        plain = [*grant, "--state", str(tmp_path / "plain.json"), "--timeout", "1.5s"]
+        assert main(plain) == 1  # frames without a MAC: the node takes nothing
+        assert node.client.state.usable == 0
+        signed = [*grant, "--state", str(tmp_path / "s.json"), "--auth", str(tmp_path / "m.key")]
+        assert main(signed) == 0, capsys.readouterr().out
+        assert node.client.state.usable == 500_000
+        assert node.intrusions.total >= 1  # the plain run's frames, refused and counted
+    finally:
+        loop.halt()

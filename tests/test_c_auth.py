@@ -364,18 +364,31 @@ def test_a_frame_without_a_mac_and_a_lone_mac_frame(layout: Layout) -> None:
     their_mac = _can(DEFAULT_ID_BASE | 0x800 | NODE, bytes(8))
     fd_padded = _can(forged.arbitration_id, bytes(forged.data) + bytes(15))
     fd_dirty = _can(forged.arbitration_id, bytes(forged.data) + bytes([1]) + bytes(14))
-    frames = [forged, lone_mac, forged, short_mac, lone_mac, their_mac, fd_padded, fd_dirty]
+    frames = [
+        forged,
+        lone_mac,
+        forged,
+        short_mac,
+        lone_mac,
+        forged,
+        forged,  # classic: the first never got its MAC frame
+        their_mac,
+        fd_padded,
+        fd_dirty,
+    ]
     py_outcomes = [py_outcome(python, f) for f in frames]
     assert [c_side.outcome(f, 0, 0) for f in frames] == py_outcomes
     if layout is Layout.FD:
         assert py_outcomes[0] == AuthFailure.UNAUTHENTICATED.value
     else:
-        assert py_outcomes[:5] == [
+        assert py_outcomes[:7] == [
             "pending",
             AuthFailure.MAC_BAD.value,
             "pending",
             AuthFailure.MALFORMED.value,
             AuthFailure.NO_DATA.value,
+            "pending",
+            AuthFailure.UNAUTHENTICATED.value,
         ]
 
 

@@ -192,10 +192,12 @@ static int data_frame(struct canergy_auth *a, const struct canergy_rx_frame *f)
     if (m.node != a->node) {
         return CANERGY_RX_OTHER_NODE;
     }
+    /* a message still waiting here never got its MAC frame: it is dropped, and counted */
+    const bool displaced = a->pending_len != 0U;
     a->pending_id = f->id;
     a->pending_len = (uint8_t)f->len;
     memcpy(a->pending_data, f->data, f->len);
-    return CANERGY_AUTH_PENDING;
+    return displaced ? CANERGY_AUTH_UNAUTHENTICATED : CANERGY_AUTH_PENDING;
 }
 
 static bool all_zero(const uint8_t *p, size_t n)

@@ -16,7 +16,8 @@ Two layouts:
 - **classic**: the unchanged classic frame followed by a MAC frame on type code 0x0 (supervisor
   to node) or 0x8 (node to supervisor) of the same node: ``type (1) || FV high 16 bits (2) ||
   MAC (5)``. A 40-bit MAC: 2^-40 per attempt (at 2,000 forged frames/s, one success expected in
-  about 17 years). A message counts only once its MAC frame followed it.
+  about 17 years). A message counts only once its MAC frame followed it; one whose MAC frame never came is dropped, and counted as a frame without a MAC
+when the next message arrives.
 """
 
 from __future__ import annotations
@@ -127,7 +128,10 @@ class FrameAuth:
             return self._mac_frame(frame)
         if self.layout is Layout.CLASSIC:
             msg = self._decode(frame.arbitration_id, data)
+            displaced = self.pending.get(msg.node)  # it never got its MAC frame: dropped, counted
             self.pending[msg.node] = (msg, data)
+            if displaced is not None:
+                return Verdict(failure=AuthFailure.UNAUTHENTICATED, node=msg.node)
             return Verdict(node=msg.node)  # nothing until its MAC frame
         try:
             length = self.codec.data_length(MsgType(kind))

@@ -16,8 +16,8 @@ Two layouts:
 - **classic**: the unchanged classic frame followed by a MAC frame on type code 0x0 (supervisor
   to node) or 0x8 (node to supervisor) of the same node: ``type (1) || FV high 16 bits (2) ||
   MAC (5)``. A 40-bit MAC: 2^-40 per attempt (at 2,000 forged frames/s, one success expected in
-  about 17 years). A message counts only once its MAC frame followed it; one whose MAC frame never came is dropped, and counted as a frame without a MAC
-when the next message arrives.
+  about 17 years). A message counts only once its MAC frame followed it; one whose MAC frame
+  never came is dropped, and counted as a frame without a MAC when the next message arrives.
 """
 
 from __future__ import annotations

@@ -22,6 +22,7 @@ Two layouts:
 
 from __future__ import annotations
 
+import functools
 import hmac
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -66,8 +67,14 @@ class AuthFailure(Enum):
     UNAUTHENTICATED = "frame without a MAC"
 
 
+@functools.lru_cache(maxsize=256)
+def _keyed(key: bytes) -> cmac.CMAC:
+    """A CMAC with the key schedule done once; each MAC starts from a copy (~5x cheaper)."""
+    return cmac.CMAC(algorithms.AES(key))
+
+
 def mac(key: bytes, data_id: int, fv: int, data: bytes) -> bytes:
-    c = cmac.CMAC(algorithms.AES(key))
+    c = _keyed(key).copy()
     c.update(data_id.to_bytes(2, "big") + (fv & 0xFFFF_FFFF).to_bytes(4, "big") + data)
     return c.finalize()
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import secrets
 import signal
 import sys
 from collections.abc import Sequence
@@ -227,7 +228,12 @@ def _auth(args: argparse.Namespace, codec: Codec, host: NodeHost) -> FrameAuth |
     if args.node_keys is None:
         return None
     layout = Layout.FD if getattr(args, "fd", False) else Layout.CLASSIC
-    return FrameAuth(codec, layout, args.node_keys.__getitem__, Direction.TO_CLIENT, host.freshness)
+    keys: dict[int, bytes] = args.node_keys
+    auth = FrameAuth(codec, layout, keys.__getitem__, Direction.TO_CLIENT, host.freshness)
+    for n, node in host.nodes.items():  # a 32-bit JOIN freshness: 16 random bits above the nonce
+        if node.joining:
+            auth.join_fv[n] = secrets.randbits(16) << 16 | node.client.state.nonce
+    return auth
 
 
 def _open(args: argparse.Namespace, ids: tuple[int, ...], codec: Codec) -> can.BusABC:

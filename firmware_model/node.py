@@ -14,7 +14,7 @@ from typing import Any
 
 import can
 
-from canergy.auth.frames import Verdict, freshness
+from canergy.auth.frames import AuthFailure, Verdict, freshness
 from canergy.codec import DecodeError
 from canergy.core import (
     Action,
@@ -255,12 +255,19 @@ class NodeHost:
 
     def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
         node = self.nodes.get(verdict.node or 0)
-        if node is not None and verdict.failure is not None:
-            node.intrusions.record(node.node, frame_text(frame), verdict.failure.value, now)
+        if node is None or verdict.failure is None:
+            return
+        if node.joining and verdict.failure is AuthFailure.STALE:
+            return  # no counters yet: the supervisor's in-flight frames cannot match them
+        node.intrusions.record(node.node, frame_text(frame), verdict.failure.value, now)
 
-    def freshness(self, msg: Message) -> int:
-        """Authenticated mode: a frame's freshness value from the node's own counters."""
-        c = self.nodes[msg.node].client.state
+    def freshness(self, msg: Message) -> int | None:
+        """Authenticated mode: a frame's freshness value from the node's own counters (None:
+        a node this host does not run)."""
+        node = self.nodes.get(msg.node)
+        if node is None:
+            return None
+        c = node.client.state
         return freshness(msg, c.last_tx, c.return_seq)
 
     def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:

@@ -434,3 +434,46 @@ def test_a_single_run_grant_to_an_authenticated_node(
         assert node.intrusions.total >= 1  # the plain run's frames, refused and counted
     finally:
         loop.halt()
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_join_and_admit_carry_32_bits_of_freshness(layout: Layout) -> None:
+    """A node draws 16 random bits above its JOIN nonce; the supervisor echoes the JOIN's FV in
+    ADMIT. An ADMIT recorded in an earlier life whose 16-bit nonce happens to match is stale."""
+    sup, node = pair(layout)
+    node.join_fv[3] = 0xBEEF << 16 | 7
+    join = node.frames(Join(3, 7))
+    assert deliver(sup, join)[-1].message == Join(3, 7) and sup.join_fv[3] == 0xBEEF0007
+    admit = sup.frames(Admit(3, 7, 1, 0))
+    assert deliver(node, admit)[-1].message == Admit(3, 7, 1, 0)
+    old_sup, _ = pair(layout)
+    old_sup.join_fv[3] = 0x1234 << 16 | 7  # the earlier life's JOIN, same 16-bit nonce
+    replayed = old_sup.frames(Admit(3, 7, 1, 0))
+    assert deliver(node, replayed)[-1].failure is AuthFailure.STALE
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_a_frame_for_a_node_this_side_does_not_handle_is_left_alone(layout: Layout) -> None:
+    """A supervisor with nodes 1-3 sees node 4's authenticated frames (another supervisor's, or
+    a grant run for one node): nothing happens, nothing crashes, nothing is counted."""
+    _, node4 = pair(layout)
+
+    def only_1_to_3(msg: Message) -> int | None:
+        return freshness(msg, 0, 0) if msg.node <= 3 else None
+
+    sup = FrameAuth(CODEC, layout, lambda n: KEY, Direction.TO_SUPERVISOR, only_1_to_3)
+    for msg in (Join(4, 9), Return(4, 1, 5), Ack(4, 1)):
+        verdict = deliver(sup, node4.frames(msg))[-1]
+        assert verdict.message is None and verdict.failure is None
+
+
+def test_a_capture_checked_with_a_node_key_leaves_other_nodes_unverified(tmp_path: Path) -> None:
+    from canergy.auth.capture import CaptureAuth
+    from canergy.auth.keys import Key
+
+    sup, _ = pair(Layout.FD)
+    own = Key("node", 1, derive_node_key(KEY, 3, 1), 3)
+    capture = CaptureAuth(CODEC, own)
+    mine, other = sup.frames(Intention(3, 1, 5, 0))[0], sup.frames(Intention(4, 1, 5, 0))[0]
+    assert capture.describe(mine).mac == "ok"
+    assert capture.describe(other).mac == "unverified"

@@ -22,14 +22,19 @@ from canergy.live.service import SupervisorService
 CONSUMER_MAX_US = 65_535_000  # 0x1016 holds milliseconds in 16 bits
 
 
-def _positive_number(what: str, high: float) -> Any:
+def _number(what: str, high: float, *, zero: bool) -> Any:
+    """A decimal number of ``what`` (exact, as a fraction), up to ``high``; 0 only if ``zero``."""
+
     def parse(text: str) -> Fraction:
         try:
             value = Fraction(text.strip())
         except (ValueError, ZeroDivisionError):
             raise argparse.ArgumentTypeError(f"not a number of {what}: {text[:40]!r}") from None
-        if not 0 <= value <= high or not math.isfinite(float(value)):
-            raise argparse.ArgumentTypeError(f"{text[:40]}: must be 0 to {high} {what}")
+        low = "0" if zero else "more than 0"
+        if value > high or value < 0 or (value == 0 and not zero):
+            raise argparse.ArgumentTypeError(
+                f"{text[:40]}: must be {low} and at most {high} {what}"
+            )
         return value
 
     return parse
@@ -60,14 +65,14 @@ def add_cia402_flags(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument(
         "--cia402-resistance",
-        type=_positive_number("ohms", 1000),
+        type=_number("ohms", 1000, zero=True),
         default=Fraction(0),
         metavar="OHMS",
         help="mechanical metering: winding resistance (hot), for copper losses (default 0)",
     )
     g.add_argument(
         "--cia402-velocity-unit",
-        type=_positive_number("rad/s", 1000),
+        type=_number("rad/s", 1000, zero=False),
         default=Fraction(1, 1000),
         metavar="RAD_S",
         help="what one unit of 0x606C is in rad/s (default 0.001; rpm: 0.10471975512)",

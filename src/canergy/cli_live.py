@@ -440,6 +440,7 @@ def run_supervisor(args: argparse.Namespace) -> int:
         if control is not None:
             control.close()
         if guarded is not None:
+            guarded.halt_all(monotonic_us())  # an exit never leaves a drive running
             guarded.close()
         for net in {id(n): n for n in (network, manager and manager.network) if n}.values():
             net.notifier.stop()

@@ -95,18 +95,25 @@ class Verdict:
 @dataclass
 class FrameAuth:
     """Builds and checks authenticated frames for one side. ``key_for(node)`` gives a node's key;
-    ``freshness(msg)`` the FV the side expects for a message (its own counters)."""
+    ``freshness(msg)`` the FV the side expects for a message (its own counters), None for a
+    node it does not handle (such frames are left alone, as without a key)."""
 
     codec: Codec
     layout: Layout
     key_for: Callable[[int], bytes]
     receives: Direction
-    freshness: Callable[[Message], int]
+    freshness: Callable[[Message], int | None]
     pending: dict[int, tuple[Message, bytes]] = field(default_factory=dict)
     """Classic layout: per node, the message waiting for its MAC frame."""
+    join_fv: dict[int, int] = field(default_factory=dict)
+    """Per node, the FV of its JOIN: a node sets its own (random high half, the JOIN's nonce
+    below) before it joins; the supervisor keeps the one it received and echoes it in ADMIT.
+    A replayed ADMIT of an earlier life then fails unless 32 bits, not 16, happen to match."""
 
     def frames(self, msg: Message) -> list[can.Message]:
-        fv = self.freshness(msg)
+        fv = self._join_fv(msg) if isinstance(msg, Join | Admit) else self.freshness(msg)
+        if fv is None:
+            raise ValueError(f"no freshness for node {msg.node}: not one this side handles")
         arbitration_id, data = self.codec.encode(msg)
         tag = mac(self.key_for(msg.node), msg.TYPE << 8 | msg.node, fv, data)
         if self.layout is Layout.FD:
@@ -165,13 +172,26 @@ class FrameAuth:
         fv = int.from_bytes(data[1:3], "big") << 16 | _low_counter(msg)
         return self._verdict(msg, body, fv, data[3:])
 
+    def _join_fv(self, msg: Join | Admit) -> int:
+        fv = self.join_fv.get(msg.node)
+        return fv if fv is not None and fv & 0xFFFF == msg.nonce else msg.nonce
+
     def _verdict(self, msg: Message, body: bytes, fv: int, tag: bytes) -> Verdict:
+        wanted = self.freshness(msg)
+        if wanted is None:  # another supervisor's node, say: not ours to judge
+            return Verdict(node=msg.node)
+        if isinstance(msg, Join):  # any fresh nonce is the node's to draw: keep it for ADMIT
+            wanted = fv if fv & 0xFFFF == msg.nonce else -1
+        elif isinstance(msg, Admit):
+            wanted = self._join_fv(msg)
         expected = mac(self.key_for(msg.node), msg.TYPE << 8 | msg.node, fv, body)
         if not hmac.compare_digest(expected[: len(tag)], tag):
             return Verdict(failure=AuthFailure.MAC_BAD, node=msg.node)
         # TELEMETRY's FV is the sender's transaction (high half): the MAC alone counts for it
-        if msg.TYPE is not MsgType.TELEMETRY and self.freshness(msg) & 0xFFFF_FFFF != fv:
+        if msg.TYPE is not MsgType.TELEMETRY and wanted & 0xFFFF_FFFF != fv:
             return Verdict(failure=AuthFailure.STALE, node=msg.node)
+        if isinstance(msg, Join):
+            self.join_fv[msg.node] = fv
         return Verdict(message=msg, node=msg.node)
 
 

@@ -75,7 +75,8 @@ class GuardedSupervisor:
     # -- Handler ---------------------------------------------------------------------------
     def on_message(self, msg: Message, now: int) -> Sequence[Message]:
         if msg.node in self.drives:  # only the proxy, in this process, speaks for a drive
-            self.service.intrusion(msg.node, repr(msg), "a drive's frame from the bus", now)
+            kind = "a drive's frame from the bus"
+            self.service.intrusion(msg.node, repr(msg), kind, now, stop=True)
             return ()
         return self._route(list(self.service.on_message(msg, now)), now)
 
@@ -177,6 +178,16 @@ class GuardedSupervisor:
                 for n, (guard, link) in self.drives.items()
             },
         }
+
+    def halt_all(self, now: int) -> None:
+        """Quick stop every drive that may still run (the supervisor is exiting); the links
+        write it before they close."""
+        for guard, link in self.drives.values():
+            if not guard.halted:
+                guard.halt(now)
+            for cmd in guard.commands:
+                link.command(cmd)
+            guard.commands.clear()
 
     def close(self) -> None:
         for _, link in self.drives.values():

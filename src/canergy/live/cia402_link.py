@@ -136,9 +136,9 @@ class DriveLink:
             try:
                 self._setup()
                 break
-            except SetupError as exc:
-                self.error = str(exc)
-                log.error("drive %d: %s", self.node_id, exc)
+            except (SetupError, KeyError) as exc:  # KeyError: an object the EDS lacks
+                self.error = f"cannot be guarded: {exc}"
+                log.error("drive %d: %s", self.node_id, self.error)
                 return
             except (canopen.SdoCommunicationError, canopen.SdoAbortedError, can.CanError) as exc:
                 self.error = f"set-up failed, retrying: {exc}"
@@ -147,12 +147,18 @@ class DriveLink:
             cmd = self._jobs.get()
             if cmd is None:
                 return
-            self._execute(cmd)
+            try:
+                self._execute(cmd)
+            except Exception as exc:  # never lose the worker: the next stop must still go out
+                self.command_failures += 1
+                log.exception("drive %d: controlword not written: %s", self.node_id, exc)
 
     def _setup(self) -> None:
         node, sdo = self.node, self.node.sdo
         rated_torque = int(sdo[RATED_TORQUE].raw)
         rated_current = int(sdo[RATED_CURRENT].raw)
+        if rated_torque <= 0 or rated_current <= 0:
+            raise SetupError(f"rated torque {rated_torque} mNm / current {rated_current} mA")
         consumer = self.config.host_id << 16 | self.config.consumer_timeout_ms
         sdo[HEARTBEAT_CONSUMER][1].raw = consumer
         if int(sdo[HEARTBEAT_CONSUMER][1].raw) != consumer:

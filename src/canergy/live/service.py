@@ -188,24 +188,29 @@ class SupervisorService:
     def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
         node = frame.arbitration_id & 0xFF
         if node in self.nodes:
-            self.intrusion(node, frame_text(frame), "a frame only this supervisor sends", now)
+            kind = "a frame only this supervisor sends"
+            self.intrusion(node, frame_text(frame), kind, now, stop=True)
         return ()
 
     def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
         if verdict.node in self.nodes and verdict.failure is not None:
             self.intrusion(verdict.node, frame_text(frame), verdict.failure.value, now)
 
-    def freshness(self, msg: Message) -> int:
+    def freshness(self, msg: Message) -> int | None:
         """Authenticated mode: the freshness value of a frame to or from ``msg.node``, from this
-        supervisor's counters for it."""
+        supervisor's counters for it (None: not a node it manages)."""
+        if msg.node not in self.nodes:
+            return None
         s = self.core.session(msg.node)
         return freshness(msg, s.tx, s.returns_credited)
 
-    def intrusion(self, node: int, what: str, kind: str, now: int) -> None:
-        """Someone else sent a frame for ``node`` that only this supervisor (or the node's proxy
-        in this process) sends: a second supervisor or a spoofer."""
+    def intrusion(self, node: int, what: str, kind: str, now: int, *, stop: bool = False) -> None:
+        """Report what no honest participant sends. ``stop``: a frame in this supervisor's own
+        direction (a second supervisor or a spoofer), which ``--on-intrusion stop`` acts on;
+        failed cross-checks and MACs are reported only (a replayed TELEMETRY or a duplicated
+        classic frame must not be able to stop the supervisor)."""
         self.intrusions.record(node, what, kind, now)
-        if self.config.stop_on_intrusion and not self.stopping:
+        if stop and self.config.stop_on_intrusion and not self.stopping:
             self.stopped_by_intrusion = True
             self.stop(now)
 

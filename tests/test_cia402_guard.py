@@ -126,3 +126,12 @@ def test_a_drive_enabled_without_budget_is_stopped_at_once() -> None:
     assert "OPERATION ENABLED" in r.states and r.states[-1] in POWERLESS
     assert r.granted_uj == 0 and r.guard["stops"] == 1
     assert r.drawn_uj <= r.bound_uj
+
+
+def test_enabling_never_cuts_a_quick_stop_short() -> None:
+    from canergy.live.cia402_link import enable_step
+
+    assert enable_step("QUICK STOP ACTIVE") == 0x0000  # disable voltage, not enable operation
+    assert enable_step("SWITCH ON DISABLED") == 0x0006  # shutdown
+    assert enable_step("SWITCHED ON") == 0x000F
+    assert enable_step("FAULT") is None and enable_step("FAULT REACTION ACTIVE") is None

@@ -70,15 +70,17 @@ def power_state(statusword: int) -> str:
 
 def enable_step(state: str) -> int | None:
     """The controlword for one step from ``state`` toward OPERATION ENABLED, by the profile's
-    own transition table (None: no step from there, e.g. FAULT needs a reset first)."""
+    own transition table (None: no step from there, e.g. FAULT needs a reset first). From QUICK
+    STOP ACTIVE it goes by SWITCH ON DISABLED (transition 12), never straight back (16): a quick
+    stop someone else ordered is not cut short."""
+    if state in ("FAULT", "FAULT REACTION ACTIVE"):
+        return None
+    if state == "QUICK STOP ACTIVE":
+        return State402.TRANSITIONTABLE[(state, "SWITCH ON DISABLED")]
     if (state, ENABLED) in State402.TRANSITIONTABLE:
         return State402.TRANSITIONTABLE[(state, ENABLED)]
     nxt = State402.next_state_indirect(state)
-    if state == "QUICK STOP ACTIVE":
-        nxt = "SWITCH ON DISABLED"  # via disable voltage (transition 12)
-    if nxt is None or state in ("FAULT", "FAULT REACTION ACTIVE"):
-        return None
-    return State402.TRANSITIONTABLE.get((state, nxt))
+    return None if nxt is None else State402.TRANSITIONTABLE.get((state, nxt))
 
 
 class DriveLink:

@@ -14,6 +14,7 @@ import can
 from canergy.cia402.guard import DriveGuard, GuardConfig
 from canergy.cia402.meter import MeterConfig, MeterKind
 from canergy.cli_args import add_duration, bounded_int, duration, energy, node_ids
+from canergy.codec import Codec
 from canergy.core import Timing
 from canergy.live.cia402_host import GuardedSupervisor, HostBeat
 from canergy.live.cia402_link import EDS, DriveLink, LinkConfig
@@ -176,6 +177,8 @@ def guard_drives(
         host_id=args.cia402_host_id,
         consumer_timeout_ms=args.cia402_consumer_timeout // 1000,
     )
+    # the capture first: a file that cannot be opened leaves no link thread behind
+    capture = can.Logger(str(args.cia402_capture)) if args.cia402_capture else None
     drives = {
         n: (
             DriveGuard(n, config, now, secrets.randbits(16)),
@@ -183,6 +186,6 @@ def guard_drives(
         )
         for n in args.cia402
     }
-    capture = can.Logger(str(args.cia402_capture)) if args.cia402_capture else None
     beat = HostBeat(args.cia402_host_id, args.cia402_heartbeat, args.cia402_sync)
-    return GuardedSupervisor(service, drives, bus, beat, now, capture=capture)
+    codec = Codec(args.id_base)
+    return GuardedSupervisor(service, drives, bus, beat, now, codec=codec, capture=capture)

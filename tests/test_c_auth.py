@@ -8,7 +8,17 @@ from __future__ import annotations
 import ctypes
 import functools
 from collections.abc import Callable
-from ctypes import POINTER, Structure, c_int, c_size_t, c_uint8, c_uint32, c_uint64, c_void_p
+from ctypes import (
+    POINTER,
+    Structure,
+    c_int,
+    c_size_t,
+    c_uint8,
+    c_uint16,
+    c_uint32,
+    c_uint64,
+    c_void_p,
+)
 from typing import Any
 
 import can
@@ -70,6 +80,7 @@ class Auth(Structure):
         ("key", Cmac),
         ("id_base", c_uint32),
         ("pending_id", c_uint32),
+        ("join_fv", c_uint32),
         ("pending_data", c_uint8 * 8),
         ("pending_len", c_uint8),
         ("node", c_uint8),
@@ -105,6 +116,7 @@ def lib() -> ctypes.CDLL:
             [POINTER(Auth), POINTER(CNodeState), POINTER(Frame), POINTER(AuthFrame)],
         ),
         "canergy_data_length": (c_size_t, [c_uint32]),
+        "canergy_auth_set_join": (None, [POINTER(Auth), c_uint16, c_uint16]),
     }
     for name, (restype, argtypes) in signatures.items():
         f = getattr(c, name)
@@ -465,3 +477,21 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
     node.client.rec.last_tx += 0x1_0000
     assert deliver(replay, 40)[-1] == FIRST_FAILURE + 1  # stale
     assert node.client.rec.usable_uj == before + 700_000
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_a_c_node_joins_with_32_bits_of_freshness(layout: Layout) -> None:
+    """The C node's JOIN carries 16 random bits above its nonce, as the Python node's does; the
+    Python supervisor echoes them in ADMIT; an ADMIT of an earlier life with the same 16-bit
+    nonce is stale at the C node."""
+    c_node = CAuth(layout, Direction.TO_CLIENT)
+    lib().canergy_auth_set_join(ctypes.byref(c_node.ctx), 0xBEEF, 7)
+    sup = py_auth(layout, Direction.TO_SUPERVISOR, 0, 0)
+    join = c_node.frames(Join(NODE, 7), 0, 0)
+    assert [py_outcome(sup, f) for f in join][-1] == "ok" and sup.join_fv[NODE] == 0xBEEF0007
+    admit = sup.frames(Admit(NODE, 7, 1, 0))
+    assert [c_node.outcome(f, 0, 0) for f in admit][-1] == "ok"
+    earlier = py_auth(layout, Direction.TO_SUPERVISOR, 0, 0)
+    earlier.join_fv[NODE] = 0x1234 << 16 | 7
+    replayed = earlier.frames(Admit(NODE, 7, 1, 0))
+    assert [c_node.outcome(f, 0, 0) for f in replayed][-1] == AuthFailure.STALE.value

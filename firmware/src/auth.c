@@ -41,6 +41,22 @@ uint32_t canergy_auth_freshness(const struct canergy_msg *m, uint32_t last_tx,
     }
 }
 
+void canergy_auth_set_join(struct canergy_auth *a, uint16_t random_high, uint16_t nonce)
+{
+    a->join_fv = (uint32_t)random_high << 16 | nonce;
+}
+
+/* The FV of m on this side: JOIN and ADMIT take the JOIN's FV when it belongs to their nonce. */
+static uint32_t fv_of(const struct canergy_auth *a, const struct canergy_msg *m, uint32_t last_tx,
+                      uint32_t return_seq)
+{
+    const bool join = m->type == CANERGY_JOIN || m->type == CANERGY_ADMIT;
+    if (join && (a->join_fv & 0xFFFFU) == m->nonce) {
+        return a->join_fv;
+    }
+    return canergy_auth_freshness(m, last_tx, return_seq);
+}
+
 static void put_be32(uint8_t *p, uint32_t v)
 {
     p[0] = (uint8_t)(v >> 24);
@@ -109,7 +125,7 @@ int canergy_auth_protect(const struct canergy_auth *a, const struct canergy_fram
         m.node != a->node) {
         return CANERGY_ERR_ARGUMENT;
     }
-    const uint32_t fv = canergy_auth_freshness(&m, last_tx, return_seq);
+    const uint32_t fv = fv_of(a, &m, last_tx, return_seq);
     uint8_t tag[CANERGY_CMAC_SIZE];
     mac(a, &m, fv, plain->data, plain->dlc, tag);
     memset(out, 0, 2U * sizeof out[0]);
@@ -145,7 +161,7 @@ static int verdict(const struct canergy_auth *a, const struct canergy_msg *m, ui
     if (!good) {
         return CANERGY_AUTH_MAC_BAD;
     }
-    if (m->type != CANERGY_TELEMETRY && canergy_auth_freshness(m, last_tx, return_seq) != fv) {
+    if (m->type != CANERGY_TELEMETRY && fv_of(a, m, last_tx, return_seq) != fv) {
         return CANERGY_AUTH_STALE;
     }
     memset(verified, 0, sizeof *verified);

@@ -66,11 +66,12 @@ struct canergy_auth_frame {
 };
 
 /* One node's key and, in the classic layout, the data frame waiting for its MAC frame
- * (236 bytes; key material: canergy_auth_wipe when done). */
+ * (232 bytes on Cortex-M4; key material: canergy_auth_wipe when done). */
 struct canergy_auth {
     struct canergy_cmac key;
     uint32_t id_base;
     uint32_t pending_id;
+    uint32_t join_fv;     /* FV of this node's JOIN (0: the nonce alone); see set_join */
     uint8_t pending_data[8];
     uint8_t pending_len;  /* 0: nothing waits */
     uint8_t node;
@@ -84,6 +85,11 @@ int canergy_auth_init(struct canergy_auth *a, const uint8_t key[CANERGY_KDF_KEY_
                       enum canergy_direction receives);
 
 void canergy_auth_wipe(struct canergy_auth *a);
+
+/* Before a node JOINs: 16 random bits above its JOIN nonce as the JOIN's FV, which the
+ * supervisor echoes in ADMIT, so an ADMIT recorded in an earlier life (same 16-bit nonce) is
+ * stale unless 32 bits match. Without it JOIN and ADMIT carry the nonce alone. */
+void canergy_auth_set_join(struct canergy_auth *a, uint16_t random_high, uint16_t nonce);
 
 /* The FV of m for a side whose own counters are last_tx and return_seq (table above). */
 uint32_t canergy_auth_freshness(const struct canergy_msg *m, uint32_t last_tx,

@@ -1061,13 +1061,16 @@ int main(int argc, char **argv)
     };
     struct canergy_out out;
     uint64_t now = now_us();
-    const int fallbacks = canergy_node_start(&p.node, &cfg, image, image_len, random16(), now,
-                                             &out);
+    const uint16_t nonce = random16();
+    const int fallbacks = canergy_node_start(&p.node, &cfg, image, image_len, nonce, now, &out);
     if (fallbacks < 0) {
         usage_error("bad node configuration");
     }
     p.nv_fallbacks = fallbacks;
     p.joins = canergy_client_joining(&p.node.client) ? 1 : 0;
+    if (p.joins && p.opt.auth_path != NULL) {
+        canergy_auth_set_join(&p.auth, random16(), nonce); /* a 32-bit JOIN freshness */
+    }
     carry_out(&p, &out);
     p.last_draw_us = now;
     uint64_t next_tick = now + p.opt.tick_us;

@@ -135,3 +135,16 @@ def test_enabling_never_cuts_a_quick_stop_short() -> None:
     assert enable_step("SWITCH ON DISABLED") == 0x0006  # shutdown
     assert enable_step("SWITCHED ON") == 0x000F
     assert enable_step("FAULT") is None and enable_step("FAULT REACTION ACTIVE") is None
+
+
+def test_tpdos_lost_while_stopped_latch_too() -> None:
+    """A drive stopped for want of budget whose TPDOs then stop is never enabled by the guard."""
+    from canergy.cia402.guard import DriveGuard, GuardConfig
+    from canergy.cia402.meter import MeterConfig
+
+    guard = DriveGuard(10, GuardConfig(MeterConfig(rated_torque_mnm=500), auto_enable=True), 0, 1)
+    guard.on_ready(0)
+    guard.on_values(10_000, {0x6041: 0x40, 0x6077: 0, 0x606C: 0}, "SWITCH ON DISABLED")
+    assert guard.phase.value == "stopped" and not guard.latched
+    guard.on_wakeup(10_000 + guard.config.pdo_timeout_us + 1)
+    assert guard.latched and guard.stop_reason == "no budget yet"

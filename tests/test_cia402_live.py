@@ -6,6 +6,7 @@ uses the reaction and stop times measured in the same run.
 
 from __future__ import annotations
 
+import json
 import re
 import time
 from collections.abc import Iterator
@@ -15,6 +16,8 @@ import pytest
 
 from canergy.cli import main
 from canergy.ledger import ledger_from_status
+from canergy.live.control import request
+from canergy.live.runtime import monotonic_us
 from firmware_model.drive.live_bench import DRIVE, NODE, Bench, exhausted, guarded_bench, wait_for
 
 
@@ -85,3 +88,65 @@ def test_top_ups_keep_the_drive_running(plenty: Bench) -> None:
     assert books["committed"] >= 3
     # topped up ahead of its needs, it never even reached the end of what it was granted
     assert drawn <= books["delivered_uj"]
+
+
+def test_a_drive_the_guard_cannot_meter_is_disabled(tmp_path: Path) -> None:
+    """Its TPDOs lack the current object electrical metering needs: the guard refuses it, says
+    why in the status, and disables the drive the application had enabled."""
+    import threading
+    import uuid
+
+    import can
+    import canopen
+
+    from canergy.live.cia402_link import EDS
+    from firmware_model.drive.canopen_face import DriveFace, drive_network
+    from firmware_model.drive.model import DriveModel
+
+    channel = f"cia402-bad-{uuid.uuid4().hex}"
+    model = DriveModel(DRIVE, monotonic_us())  # the face advances it on the monotonic clock
+    drive_net = drive_network(can.Bus(interface="virtual", channel=channel))
+    face = DriveFace(model, drive_net)
+    face.boot()
+    face.start()
+    app_bus = can.Bus(interface="virtual", channel=channel)
+    app_net = canopen.Network(app_bus)
+    app_net.notifier = can.Notifier(app_bus, list(app_net.listeners), 0.1)
+    app = canopen.RemoteNode(DRIVE, str(EDS))
+    app.sdo.RESPONSE_TIMEOUT = 2.0
+    app_net.add_node(app)
+    result: list[int] = []
+    argv = [
+        "supervisor",
+        *("-i", "virtual", "-c", channel, "--cia402", str(DRIVE), "--initial", "1J"),
+        *("--state", str(tmp_path / "s.json"), "--no-fsync", "--status-period", "50ms"),
+        *("--status-file", str(tmp_path / "status.json"), "--control", str(tmp_path / "c")),
+        *("--cia402-meter", "electrical", "--cia402-bus-current", "0x2011"),
+    ]
+    try:
+        for controlword in (0x06, 0x07, 0x0F):
+            app.sdo[0x6040].raw = controlword
+        wait_for(lambda: model.state == "OPERATION ENABLED")
+        thread = threading.Thread(target=lambda: result.append(main(argv)), daemon=True)
+        thread.start()
+        wait_for(lambda: model.state == "SWITCH ON DISABLED", timeout=60)
+
+        def refused() -> bool:
+            try:
+                status = json.loads((tmp_path / "status.json").read_text())
+            except (FileNotFoundError, json.JSONDecodeError):
+                return False
+            error = status["cia402"]["drives"][str(DRIVE)]["error"] or ""
+            return "cannot be guarded" in error and "0x2011" in error
+
+        wait_for(refused)
+        request(tmp_path / "c", {"stop": True}, 30)
+        thread.join(timeout=60)
+        assert result == [0]
+    finally:
+        face.close()
+        for net in (drive_net, app_net):
+            if net.notifier is not None:
+                net.notifier.stop()
+            if net.bus is not None:
+                net.bus.shutdown()

@@ -217,11 +217,11 @@ class DriveGuard:
 
     def _stop(self, why: str, now: int) -> None:
         retry_due = now >= self.last_command_at + self.config.retry_us
+        self.latched = self.latched or why == "TPDOs stopped"  # in any phase
         if self.phase is GuardPhase.RUNNING or (
             self.phase is GuardPhase.STOPPED and self.state == ENABLED and retry_due
         ):  # the guard's own decision, or the drive enabled again (by the application)
             self.stops += 1
-            self.latched = self.latched or why == "TPDOs stopped"
             self._set_phase(GuardPhase.STOPPING, why, now)
             self._command(CW_QUICK_STOP, why, now)
         elif self.phase is GuardPhase.STOPPING:

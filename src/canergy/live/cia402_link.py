@@ -32,12 +32,13 @@ import can
 import canopen
 from canopen.profiles.p402 import BaseNode402, State402
 
-from canergy.cia402.guard import ENABLED, Command
+from canergy.cia402.guard import CW_DISABLE_VOLTAGE, ENABLED, Command
 from canergy.cia402.meter import RATED_CURRENT, RATED_TORQUE, MeterConfig
 
 log = logging.getLogger(__name__)
 
 STATUSWORD = 0x6041
+CONTROLWORD = 0x6040
 HEARTBEAT_CONSUMER = 0x1016
 EDS = Path(__file__).with_name("cia402.eds")
 """A generic CiA 402 drive (standard objects only), for drives given without their own EDS."""
@@ -140,7 +141,8 @@ class DriveLink:
                 break
             except (SetupError, KeyError) as exc:  # KeyError: an object the EDS lacks
                 self.error = f"cannot be guarded: {exc}"
-                log.error("drive %d: %s", self.node_id, self.error)
+                log.error("drive %d: %s; disabling it", self.node_id, self.error)
+                self._disable()  # a drive the guard cannot meter must not run
                 return
             except (canopen.SdoCommunicationError, canopen.SdoAbortedError, can.CanError) as exc:
                 self.error = f"set-up failed, retrying: {exc}"
@@ -189,6 +191,13 @@ class DriveLink:
         self.meter = meter
         self.error = None
         self.ready_at = self.clock()
+
+    def _disable(self) -> None:
+        """Disable voltage by SDO, best effort (the drive answers SDO but cannot be guarded)."""
+        try:
+            self.node.sdo[CONTROLWORD].raw = CW_DISABLE_VOLTAGE
+        except (canopen.SdoCommunicationError, canopen.SdoAbortedError, can.CanError, KeyError):
+            self.command_failures += 1
 
     def _on_tpdo(self, pdo: Any) -> None:  # the Notifier's thread
         values = {var.index: int(var.raw) for var in pdo}

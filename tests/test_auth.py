@@ -50,9 +50,11 @@ def pair(layout: Layout, tx: int = 0, seq: int = 0) -> tuple[FrameAuth, FrameAut
     def fresh(msg: Message) -> int:
         return freshness(msg, tx, seq)
 
-    keys = derive_node_key.__call__
-    sup = FrameAuth(CODEC, layout, lambda n: keys(KEY, n, 1), Direction.TO_SUPERVISOR, fresh)
-    node = FrameAuth(CODEC, layout, lambda n: keys(KEY, n, 1), Direction.TO_CLIENT, fresh)
+    def key(node: int) -> bytes:
+        return derive_node_key(KEY, node, 1)
+
+    sup = FrameAuth(CODEC, layout, key, Direction.TO_SUPERVISOR, fresh)
+    node = FrameAuth(CODEC, layout, key, Direction.TO_CLIENT, fresh)
     return sup, node
 
 

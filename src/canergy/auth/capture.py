@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, replace
 
 import can
 
-from canergy.auth.frames import CLASSIC_MAC, FD_MAC, MAC_TYPE, fd_length, mac
+from canergy.auth.frames import CLASSIC_MAC, FD_MAC, MAC_TYPE, fd_length, low_counter, mac
 from canergy.auth.keys import Key
 from canergy.codec import Codec
 from canergy.inspect.frames import Described, describe
@@ -62,7 +62,7 @@ class CaptureAuth:
         assert d.message is not None
         if data[0] != d.message.TYPE:
             return replace(plain, problem="MAC frame for another message", mac="BAD")
-        low = _low_half(d)
+        low = low_counter(d.message)
         fv = int.from_bytes(data[1:3], "big") << 16 | low
         verdict = self._check(d, body, fv, data[3:])
         return replace(plain, problem=f"MAC frame of {d.message.TYPE.name}", mac=verdict)
@@ -75,13 +75,6 @@ class CaptureAuth:
             return "unverified"  # no key, or a node's own key and another node's frame
         expected = mac(self.key.node_key(node), d.message.TYPE << 8 | node, fv, body)
         return "ok" if expected[: len(tag)] == tag and len(tag) in (FD_MAC, CLASSIC_MAC) else "BAD"
-
-
-def _low_half(d: Described) -> int:
-    from canergy.auth.frames import freshness
-
-    assert d.message is not None
-    return freshness(d.message, 0, 0) & 0xFFFF
 
 
 def _with_data(frame: can.Message, data: bytes) -> can.Message:

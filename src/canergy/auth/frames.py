@@ -169,7 +169,7 @@ class FrameAuth:
         if waiting is None or data[0] != waiting[0].TYPE:
             return Verdict(failure=AuthFailure.NO_DATA, node=node)
         msg, body = waiting
-        fv = int.from_bytes(data[1:3], "big") << 16 | _low_counter(msg)
+        fv = int.from_bytes(data[1:3], "big") << 16 | low_counter(msg)
         return self._verdict(msg, body, fv, data[3:])
 
     def _join_fv(self, msg: Join | Admit) -> int:
@@ -195,7 +195,7 @@ class FrameAuth:
         return Verdict(message=msg, node=msg.node)
 
 
-def _low_counter(msg: Message) -> int:
+def low_counter(msg: Message) -> int:
     """The FV's low half, which the frame itself carries (TELEMETRY's is 0)."""
     return freshness(msg, 0, 0) & 0xFFFF
 

@@ -9,7 +9,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from canergy import __version__, cli_inspect, cli_keys, cli_live, cli_sim
+from canergy import __version__, cli_gateway, cli_inspect, cli_keys, cli_live, cli_sim
 from canergy.cli_args import (
     COUNT_MAX,
     add_duration,
@@ -128,6 +128,7 @@ def _run_demo(args: argparse.Namespace) -> int:
 
 
 def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    from canergy.check.chain import BROKEN_RULES, ChainBounds
     from canergy.check.model import Bounds
 
     d = Bounds()
@@ -192,8 +193,9 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     p.add_argument(
         "--in-flight",
         type=positive,
-        default=d.in_flight,
-        help="most frames in flight at once",
+        default=None,
+        help=f"most frames in flight at once (default {d.in_flight}; --topology chain: "
+        f"{ChainBounds().in_flight} per leg)",
     )
     p.add_argument(
         "--units",
@@ -240,6 +242,59 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--trace", action="store_true", help="print the counterexample step by step")
+    p.add_argument(
+        "--topology",
+        choices=["single", "chain"],
+        default="single",
+        help="single: one supervisor and --clients nodes; chain: a root supervisor, a gateway "
+        "(client above, supervisor below) and --clients nodes below it, faults on both legs, "
+        "--power-losses of any of them (--transactions per supervisor, --in-flight per leg)",
+    )
+    p.add_argument(
+        "--broken-gateway",
+        choices=BROKEN_RULES,
+        help="--topology chain with a gateway rule broken on purpose (early-grant: grants "
+        "below what the intention above holds, before its commit): shows a counterexample",
+    )
+
+
+_NOT_IN_CHAIN = (
+    "nv_losses",
+    "old_copies",
+    "forgeries",
+    "replays",
+    "timeouts",
+    "no_returns",
+    "no_spending",
+)
+
+
+def _run_chain(args: argparse.Namespace) -> int:
+    from canergy.check.chain import ChainBounds, check_chain, format_chain
+
+    given = [name for name in _NOT_IN_CHAIN if getattr(args, name)]
+    if args.variant != "hardened" or given:
+        flags = ", ".join("--" + name.replace("_", "-") for name in given) or "--variant"
+        raise ValueError(f"--topology chain checks the hardened rules only; not with {flags}")
+    bounds = ChainBounds(
+        clients=args.clients,
+        transactions=args.transactions,
+        losses=args.losses,
+        duplicates=args.duplicates,
+        power_losses=args.power_losses,
+        in_flight=args.in_flight or ChainBounds().in_flight,
+        units=args.units,
+        retries=args.retries,
+    )
+    result = check_chain(
+        bounds=bounds,
+        broken=args.broken_gateway,
+        max_states=args.max_states,
+        stop_at_first=not args.keep_going,
+        progress=_report_progress if args.progress else None,
+    )
+    print(json.dumps(result.as_json(), indent=2) if args.json else format_chain(result, args.trace))
+    return 1 if result.violations else 0
 
 
 def _report_progress(states: int, depth: int, seconds: float) -> None:
@@ -251,6 +306,10 @@ def _run_check(args: argparse.Namespace) -> int:
     from canergy.check import Bounds, check
     from canergy.check.report import format_summary, format_trace
 
+    if args.topology == "chain":
+        return _run_chain(args)
+    if args.broken_gateway is not None:
+        raise ValueError("--broken-gateway needs --topology chain")
     bounds = Bounds(
         clients=args.clients,
         transactions=args.transactions,
@@ -261,7 +320,7 @@ def _run_check(args: argparse.Namespace) -> int:
         old_copies=args.old_copies,
         forgeries=args.forgeries,
         replays=args.replays,
-        in_flight=args.in_flight,
+        in_flight=args.in_flight or Bounds().in_flight,
         units=args.units,
         retries=args.retries,
         timeouts=args.timeouts,
@@ -368,6 +427,7 @@ def build_parser() -> argparse.ArgumentParser:
     _dbc_parser(sub)
     _rules_parser(sub)
     cli_live.add_parsers(sub)
+    cli_gateway.add_parsers(sub)
     cli_sim.add_parsers(sub)
     cli_inspect.add_parsers(sub)
     cli_keys.add_parsers(sub)
@@ -386,6 +446,7 @@ _COMMANDS = {
     "dbc": _run_dbc,
     "rules": _run_rules,
     **cli_live.COMMANDS,
+    **cli_gateway.COMMANDS,
     **cli_sim.COMMANDS,
     **cli_inspect.COMMANDS,
     **cli_keys.COMMANDS,

@@ -8,7 +8,7 @@ import signal
 import sys
 import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from canergy.cli_args import add_duration, bounded_int, energy, grant_amount, node_ids, power
 from canergy.cli_cia402 import add_cia402_flags, check_cia402, guard_drives
@@ -42,6 +42,19 @@ def _supervisor_flags(p: argparse.ArgumentParser) -> None:
     add_bus_flags(p)
     p.add_argument("--variant", choices=sorted(VARIANTS), default="hardened")
     p.add_argument("--initial", type=energy, default=10 * UJ_PER_J, help="budget of a new state")
+    book_flags(p)
+    p.add_argument(
+        "--auth",
+        type=Path,
+        metavar="KEYFILE",
+        help="authenticated mode with this master key (`canergy keys master`, mode 0600): every "
+        "frame carries a truncated AES-CMAC; with --fd one CAN FD frame and a 64-bit MAC, "
+        "otherwise each frame is followed by a MAC frame (40-bit MAC)",
+    )
+
+
+def book_flags(p: argparse.ArgumentParser) -> None:
+    """The flags of a supervisor's books, limits and timing (a gateway's downstream too)."""
     p.add_argument("--state", type=Path, help="non-volatile state file (created if missing)")
     p.add_argument(
         ACCEPT_EDITED,
@@ -69,13 +82,24 @@ def _supervisor_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-total", type=energy, help="energy granted in this run, all nodes")
     p.add_argument("--rate", type=power, help="sustained grant rate over all nodes, e.g. 2W")
     add_duration(p, "--stop-timeout", 5_000_000, "time to settle on exit")
+
+
+def service_flags(p: argparse.ArgumentParser) -> None:
+    """Top-up policy, liveness, status and control of a running supervisor (or gateway)."""
     p.add_argument(
-        "--auth",
+        "--target",
+        type=energy,
+        help=f"top each node up to this reported level; at most {_ROOM} (see --max-node-level)",
+    )
+    p.add_argument("--min-grant", type=energy, default=QUANTUM_UJ, help="smallest top-up")
+    add_duration(p, "--lost-after", 3_000_000, "a node is lost after this long without a frame")
+    p.add_argument("--status-file", type=Path, help="JSON status (default: JSON lines on stdout)")
+    add_duration(p, "--status-period", 1_000_000, "time between status reports")
+    p.add_argument(
+        "--control",
         type=Path,
-        metavar="KEYFILE",
-        help="authenticated mode with this master key (`canergy keys master`, mode 0600): every "
-        "frame carries a truncated AES-CMAC; with --fd one CAN FD frame and a 64-bit MAC, "
-        "otherwise each frame is followed by a MAC frame (40-bit MAC)",
+        help="UNIX socket for `canergy grant --control`; replaces only a stale socket, removed "
+        "at exit",
     )
 
 
@@ -88,27 +112,13 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     )
     p.add_argument("--nodes", type=node_ids, help="canergy node ids, e.g. 1-5,9")
     _supervisor_flags(p)
-    p.add_argument(
-        "--target",
-        type=energy,
-        help=f"top each node up to this reported level; at most {_ROOM} (see --max-node-level)",
-    )
+    service_flags(p)
     p.add_argument(
         "--inject",
         type=energy,
         metavar="ENERGY",
         help="add this energy to the usable budget, counted as injected, once at start: it is "
         "saved in --state before anything is granted (e.g. 5J; not with --listen-only)",
-    )
-    p.add_argument("--min-grant", type=energy, default=QUANTUM_UJ, help="smallest top-up")
-    add_duration(p, "--lost-after", 3_000_000, "a node is lost after this long without a frame")
-    p.add_argument("--status-file", type=Path, help="JSON status (default: JSON lines on stdout)")
-    add_duration(p, "--status-period", 1_000_000, "time between status reports")
-    p.add_argument(
-        "--control",
-        type=Path,
-        help="UNIX socket for `canergy grant --control`; replaces only a stale socket, removed "
-        "at exit",
     )
     p.add_argument("--listen-only", action="store_true", help="watch and report, never send")
     p.add_argument(
@@ -240,8 +250,12 @@ def _canopen(args: argparse.Namespace, bus: Any, service: SupervisorService) -> 
     return manager, reader
 
 
+class _Loop(Protocol):
+    def poll(self, max_wait_s: float = 0.1) -> None: ...
+
+
 def _serve(
-    runtime: BusRuntime,
+    runtime: _Loop,
     service: SupervisorService,
     control: ControlServer | None,
     until: Any = None,
@@ -316,7 +330,7 @@ def _check_state(args: argparse.Namespace, *, required: bool = True) -> None:
         for option, path in (
             ("--state", args.state),
             ("--status-file", getattr(args, "status_file", None)),
-            ("--control", args.control if args.command == "supervisor" else None),
+            ("--control", args.control if args.command != "grant" else None),
         )
         if path is not None
     ]

@@ -1,6 +1,7 @@
 """The observer's conservation ledger over one supervisor and its clients.
 
-    initial + injected = Us + ΣTs + Σ(Uc + spent) + returns in flight − overlap + dissipated
+    initial + injected − withdrawn
+        = Us + ΣTs + Σ(Uc + spent) + returns in flight − overlap + dissipated
 
 ``overlap`` counts the travelling energy once: per node, the part of the client's credited
 count Rc beyond the supervisor's delivered count Gs, capped at Ts (what the client has committed
@@ -31,6 +32,8 @@ class Ledger:
     spent: int
     returns_in_flight: int
     overlap: int
+    withdrawn: int = 0
+    """Energy a gateway's supervisor handed back upstream (out of this level)."""
 
     @property
     def held(self) -> int:
@@ -47,7 +50,7 @@ class Ledger:
     @property
     def dissipated(self) -> int:
         """Energy lost so far; negative means energy was generated."""
-        return self.initial + self.injected - self.held
+        return self.initial + self.injected - self.withdrawn - self.held
 
     @property
     def passive(self) -> bool:
@@ -96,6 +99,7 @@ def ledger(
         spent=sum(c.spent for _, c in pairs) + sum(r.spent for r in lost.values()),
         returns_in_flight=sum(node_return_in_flight(s, c) for s, c in pairs),
         overlap=sum(node_overlap(s, c, lost.get(s.node, NOT_LOST)) for s, c in pairs),
+        withdrawn=sup.withdrawn,
     )
 
 
@@ -114,7 +118,11 @@ def ledger_from_status(supervisor: dict[str, Any], clients: Iterable[dict[str, A
         for node, v in supervisor["nodes"].items()
     )
     sup = SupervisorState(
-        supervisor["initial_uj"], supervisor["usable_uj"], supervisor["injected_uj"], sessions
+        supervisor["initial_uj"],
+        supervisor["usable_uj"],
+        supervisor["injected_uj"],
+        sessions,
+        supervisor.get("withdrawn_uj", 0),
     )
     states = [
         ClientState(
@@ -128,3 +136,37 @@ def ledger_from_status(supervisor: dict[str, Any], clients: Iterable[dict[str, A
         for c in (*clients, *guarded)
     ]
     return ledger(sup, states)
+
+
+@dataclass(frozen=True, slots=True)
+class TreeLedger:
+    """The ledgers of every level of a tree of supervisors and gateways.
+
+    Each level is one bus (a supervisor, or a gateway's downstream side, and its clients); a
+    gateway is a client of the level above, its spent count being what it injected below net of
+    what it withdrew. ``link_gaps`` is, per gateway, energy created between its two roles
+    (always 0 under the gateway rules). The tree is passive when no level and no gateway created
+    energy; ``dissipated`` is the whole tree's loss.
+    """
+
+    levels: Mapping[str, Ledger]
+    link_gaps: Mapping[str, int]
+
+    @property
+    def dissipated(self) -> int:
+        levels = sum(led.dissipated for led in self.levels.values())
+        return levels - sum(self.link_gaps.values())
+
+    @property
+    def passive(self) -> bool:
+        return all(led.passive for led in self.levels.values()) and all(
+            gap <= 0 for gap in self.link_gaps.values()
+        )
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "passive": self.passive,
+            "dissipated_uj": self.dissipated,
+            "levels": {name: led.as_json() for name, led in self.levels.items()},
+            "link_gaps_uj": dict(self.link_gaps),
+        }

@@ -225,7 +225,7 @@ class Model:
             for msg in forgeable(self.variant, w.sup.sessions, w.clients, b.units):
                 yield Step(K.FORGE, message=msg)
         if w.replayed < b.replays:
-            for msg in sorted(w.seen, key=_message_key):
+            for msg in sorted(w.seen, key=message_key):
                 yield Step(K.REPLAY, message=msg)
 
     # -- application -----------------------------------------------------------------
@@ -371,10 +371,10 @@ _DATALESS: dict[StepKind, Event] = {
 
 
 def _flight_key(item: tuple[Message, int]) -> tuple[int, str]:
-    return _message_key(item[0])
+    return message_key(item[0])
 
 
-def _message_key(msg: Message) -> tuple[int, str]:
+def message_key(msg: Message) -> tuple[int, str]:
     return (int(msg.TYPE), repr(msg))
 
 

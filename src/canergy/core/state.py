@@ -59,12 +59,14 @@ class Session:
 
 @dataclass(frozen=True, slots=True)
 class SupervisorState:
-    """Usable budget Us, energy injected since start, and one session per node."""
+    """Usable budget Us, energy injected from outside since start, energy withdrawn to outside
+    (a gateway handing its budget back upstream), and one session per node."""
 
     initial: int
     usable: int
     injected: int = 0
     sessions: tuple[Session, ...] = ()
+    withdrawn: int = 0
 
 
 @dataclass(frozen=True, slots=True)

@@ -34,6 +34,13 @@ def inject_into(st: SupervisorState, amount: int) -> SupervisorState:
     return evolve(st, usable=st.usable + amount, injected=st.injected + amount)
 
 
+def withdraw_from(st: SupervisorState, amount: int) -> SupervisorState:
+    """Take energy out of Us to outside the system, counted as withdrawn (pure)."""
+    if amount <= 0 or amount > st.usable:
+        raise LocalProtocolError(f"cannot withdraw {amount} µJ of {st.usable} µJ usable")
+    return evolve(st, usable=st.usable - amount, withdrawn=st.withdrawn + amount)
+
+
 class Supervisor:
     """Grants energy from its usable budget to client nodes."""
 

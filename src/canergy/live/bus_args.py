@@ -16,18 +16,22 @@ class BusOpenError(RuntimeError):
     """The bus could not be opened; the message says what to fix."""
 
 
-def add_bus_flags(parser: argparse.ArgumentParser, *, id_base_flag: bool = True) -> None:
+def add_bus_flags(
+    parser: argparse.ArgumentParser, *, id_base_flag: bool = True, prefix: str | None = None
+) -> None:
     """``-i/--interface``, ``-c/--channel``, ``-b/--bitrate``, ``--fd``, ``--data-bitrate``,
     ``--timing``, ``--bus-kwargs`` (python-can's ``can.cli``), plus canergy's ``--id-base``
-    (not for a program that sends no canergy frames: ``id_base_flag=False``)."""
-    can.cli.add_bus_arguments(parser)
+    (not for a program that sends no canergy frames: ``id_base_flag=False``). ``prefix``: a
+    second bus, as python-can names it: ``--<prefix>-interface`` ... ``--<prefix>-id-base``."""
+    can.cli.add_bus_arguments(parser, prefix=prefix)
+    dest = f"{prefix}_" if prefix else ""
     for action in parser._actions:  # python-can takes any int: bound them like canergy's numbers
-        if action.dest in ("bitrate", "data_bitrate"):
+        if action.dest in (f"{dest}bitrate", f"{dest}data_bitrate"):
             action.type = bounded_int(1, 20_000_000)
     if not id_base_flag:
         return
     parser.add_argument(
-        "--id-base",
+        f"--{prefix}-id-base" if prefix else "--id-base",
         type=id_base,
         default=DEFAULT_ID_BASE,
         help=f"29-bit identifier block of canergy frames, low 12 bits clear "
@@ -35,14 +39,18 @@ def add_bus_flags(parser: argparse.ArgumentParser, *, id_base_flag: bool = True)
     )
 
 
-def open_bus(args: argparse.Namespace, filters: list[dict[str, Any]]) -> can.BusABC:
+def open_bus(
+    args: argparse.Namespace, filters: list[dict[str, Any]], *, prefix: str | None = None
+) -> can.BusABC:
     """Open the bus the flags describe, with ``filters`` as hardware acceptance filters."""
     try:
-        return can.cli.create_bus_from_namespace(args, can_filters=filters)
+        return can.cli.create_bus_from_namespace(args, prefix=prefix, can_filters=filters)
     except argparse.ArgumentError as exc:
         cause = exc.__cause__ or exc
         hint = ""
-        given = getattr(args, "interface", None)
+        given = getattr(args, f"{prefix}_interface" if prefix else "interface", None)
+        flag = f"--{prefix}-interface" if prefix else "-i/--interface"
         if given is None and isinstance(cause, can.CanInterfaceNotImplementedError):
-            hint = " (give -i/--interface, e.g. socketcan, pcan, kvaser, slcan, virtual)"
-        raise BusOpenError(f"cannot open the CAN bus: {cause}{hint}") from cause
+            hint = f" (give {flag}, e.g. socketcan, pcan, kvaser, slcan, virtual)"
+        which = f"the {prefix} CAN bus" if prefix else "the CAN bus"
+        raise BusOpenError(f"cannot open {which}: {cause}{hint}") from cause

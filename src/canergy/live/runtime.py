@@ -144,9 +144,13 @@ class BusRuntime:
             frame = None
         batch = 0
         while frame is not None:  # drain what is queued before judging any timeout
-            self._received(frame)
+            self.receive(frame)
             batch += 1
             frame = self._recv_now() if batch < self.max_batch else None
+        self.run_due()
+
+    def run_due(self) -> None:
+        """Note the bus state and run the handler's deadlines that are due."""
         self._update_bus_state()
         wakeup = self.handler.next_wakeup()
         now = self.clock()
@@ -172,7 +176,8 @@ class BusRuntime:
     def send_messages(self, messages: Sequence[Message]) -> None:
         self._send_all(messages)
 
-    def _received(self, frame: can.Message) -> None:
+    def receive(self, frame: can.Message) -> None:
+        """One frame read from the bus (by ``poll`` or by a reader thread of ``BusGroup``)."""
         if frame.is_error_frame:
             self.counters.error_frames += 1
             return

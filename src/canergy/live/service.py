@@ -112,8 +112,18 @@ class ServiceConfig:
 class SupervisorService:
     """Grants energy to nodes on one bus; implements ``canergy.live.runtime.Handler``."""
 
-    def __init__(self, core: Supervisor, config: ServiceConfig, now: int) -> None:
+    def __init__(
+        self,
+        core: Supervisor,
+        config: ServiceConfig,
+        now: int,
+        *,
+        save: Callable[[], None] | None = None,
+    ) -> None:
+        """``save``: writes the books instead of ``config.state_path`` (a gateway keeps both of
+        its roles in one file)."""
         self.core = core
+        self.save = save
         self.config = config
         self.nodes = {n: NodeInfo() for n in core.nodes}
         self.rate = RateLimiter(config.limits.rate_uj_per_s, config.limits.max_grant)
@@ -449,7 +459,9 @@ class SupervisorService:
         return out
 
     def _persist(self) -> None:
-        if self.config.state_path is not None:
+        if self.save is not None:
+            self.save()
+        elif self.config.state_path is not None:
             save_state(
                 self.config.state_path,
                 self.core.state,
@@ -493,6 +505,7 @@ class SupervisorService:
             "initial_uj": st.initial,
             "injected_uj": st.injected,
             "injected_this_run_uj": self.injected_this_run,
+            "withdrawn_uj": st.withdrawn,
             "usable_uj": st.usable,
             "reserved_uj": reserved,
             "delivered_uj": delivered,
@@ -501,9 +514,11 @@ class SupervisorService:
             "conservation": {
                 "supervisor_side_uj": st.usable + reserved,
                 "out_net_uj": delivered - returned,
-                "in_uj": st.initial + st.injected,
-                "identity": "usable + reserved + (delivered - returned) = initial + injected",
-                "holds": st.usable + reserved + delivered - returned == st.initial + st.injected,
+                "in_uj": st.initial + st.injected - st.withdrawn,
+                "identity": "usable + reserved + (delivered - returned) = "
+                "initial + injected - withdrawn",
+                "holds": st.usable + reserved + delivered - returned
+                == st.initial + st.injected - st.withdrawn,
             },
             **self.bus_counters.as_json(),
             "intrusions": self.intrusions.total,

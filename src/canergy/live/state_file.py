@@ -8,7 +8,8 @@ Version 2 adds ``checksum``, ``sha256:<hex>`` over the canonical JSON (sorted ke
 every other field. Loading checks every field: JSON integers only (no booleans, strings,
 fractions, exponents or ``Infinity``), ranges, the phases the variant's table stores, the
 invariants of a session, and the supervisor-side identity ``usable + Σreserved +
-Σ(delivered − returned) = initial + injected``. A file that fails is refused naming the field; a
+Σ(delivered − returned) = initial + injected − withdrawn`` (``withdrawn_uj``, a gateway's
+returns upstream, may be absent: 0). A file that fails is refused naming the field; a
 file whose checksum is missing or wrong (edited by hand, or version 1, which has none) only with
 ``accept_edited``, and the next save writes a fresh checksum.
 """
@@ -23,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
+from canergy.core.frozen import evolve
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.core.table import SupervisorTable
 from canergy.core.variants import VARIANTS
@@ -90,6 +92,7 @@ def state_json(state: SupervisorState, variant: str) -> dict[str, Any]:
         "initial_uj": state.initial,
         "usable_uj": state.usable,
         "injected_uj": state.injected,
+        "withdrawn_uj": state.withdrawn,
         "sessions": {
             str(s.node): {
                 "phase": (s.phase if table is None else stored_phase(table, s.phase)).name,
@@ -123,8 +126,8 @@ def load_state(
     """Read and check ``path``; the file's nodes must all be in ``nodes`` (new nodes get fresh
     sessions). A missing or wrong checksum is refused unless ``accept_edited``; then the file is
     taken when it passes every other check and ``on_edited`` hears why it needed the flag."""
-    data = _read(path)
-    state = _Checker(path).books(data, variant)
+    data = read_json(path)
+    state = FieldChecker(path).books(data, variant)
     _check_sum(path, data, accept_edited, on_edited)
     sessions = {s.node: s for s in state.sessions}
     extra = sorted(set(sessions) - set(nodes))
@@ -133,7 +136,7 @@ def load_state(
             f"{path} holds open books for node(s) {extra} not in --nodes; add them to --nodes"
         )
     merged = tuple(sessions.get(n, Session(n)) for n in sorted(nodes))
-    return SupervisorState(state.initial, state.usable, state.injected, merged)
+    return evolve(state, sessions=merged)
 
 
 @dataclass(frozen=True, slots=True)
@@ -168,7 +171,7 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return obj
 
 
-def _read(path: Path) -> Any:
+def read_json(path: Path) -> Any:
     try:
         with open(path, "rb") as f:
             raw = f.read(MAX_FILE_BYTES + 1)
@@ -239,7 +242,7 @@ def _at(where: str, key: str) -> str:
     return f"{where}.{key}" if where else key
 
 
-class _Checker:
+class FieldChecker:
     """Checks the parsed file field by field; the first failure is refused, naming the field."""
 
     def __init__(self, path: Path) -> None:
@@ -249,13 +252,13 @@ class _Checker:
         raise StateFileError(f"{self.path}: {field}: {why}")
 
     def fields(
-        self, obj: object, where: str, names: Iterable[str], optional: str = ""
+        self, obj: object, where: str, names: Iterable[str], optional: tuple[str, ...] = ()
     ) -> dict[str, Any]:
         if not isinstance(obj, dict):
             self.refuse(where or "file", "not a JSON object")
         names = tuple(names)
         for key in obj:
-            if key not in names and key != optional:
+            if key not in names and key not in optional:
                 self.refuse(_at(where, key[:40]), "unknown field")
         for name in names:
             if name not in obj:
@@ -295,10 +298,11 @@ class _Checker:
         if variant not in VARIANTS:
             self.refuse("variant", f"unknown variant {variant!r}")
         table = VARIANTS[variant].supervisor
-        self.fields(data, "", _TOP, optional="checksum")
+        self.fields(data, "", _TOP, optional=("checksum", "withdrawn_uj"))
         initial = self.integer(data, "", "initial_uj")
         usable = self.integer(data, "", "usable_uj")
         injected = self.integer(data, "", "injected_uj")
+        withdrawn = self.integer(data, "", "withdrawn_uj") if "withdrawn_uj" in data else 0
         raw_sessions = data["sessions"]  # its keys are node ids, checked one by one
         if not isinstance(raw_sessions, dict):
             self.refuse("sessions", "not a JSON object")
@@ -308,13 +312,14 @@ class _Checker:
         )
         reserved = sum(s.reserved for s in sessions)
         out_net = sum(s.delivered - s.returned for s in sessions)
-        if usable + reserved + out_net != initial + injected:
+        if usable + reserved + out_net != initial + injected - withdrawn:
             self.refuse(
                 "usable_uj",
                 f"the books do not balance: usable + reserved + (delivered - returned) = "
-                f"{usable + reserved + out_net} µJ, initial + injected = {initial + injected} µJ",
+                f"{usable + reserved + out_net} µJ, initial + injected - withdrawn = "
+                f"{initial + injected - withdrawn} µJ",
             )
-        return SupervisorState(initial, usable, injected, sessions)
+        return SupervisorState(initial, usable, injected, sessions, withdrawn)
 
     def node(self, key: str) -> int:
         if not (key.isascii() and key.isdigit() and str(int(key)) == key):

@@ -1,0 +1,508 @@
+"""The chain root → gateway → node(s): every interleaving within bounds, through the same core.
+
+The root is a supervisor of one node, the gateway (``canergy.core.gateway.Gateway``); the gateway
+supervises ``clients`` nodes on its own bus. Both legs lose, duplicate and reorder frames (a leg's
+frames in flight are a multiset); root, gateway and nodes lose power (the gateway's two roles
+restart from their one record). Time is abstract, as in ``model``. After every step the tree's
+ledger is checked: no level, and no gateway between its roles, may create energy.
+
+``broken="early-grant"`` replaces the gateway's forward rule by one that grants downstream what
+the upstream intention holds before the upstream commit: a counterexample follows.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+from canergy.check.model import UNIT, Flight, message_key
+from canergy.core.actions import Action, Send
+from canergy.core.frozen import evolve
+from canergy.core.gateway import Gateway, GatewayState, forward, link_gap
+from canergy.core.inputs import (
+    COMMAND_TIMEOUT,
+    POWER_LOSS,
+    RESPONSE_TIMEOUT,
+    RETURN_TIMEOUT,
+    Begin,
+    Decide,
+    GiveBack,
+    Spend,
+)
+from canergy.core.state import ClientState, Decision, Phase, Session, SupervisorState
+from canergy.core.supervisor import apply_session, inject_into
+from canergy.core.table import Event
+from canergy.core.timing import Timing
+from canergy.core.variants import Variant, get_variant
+from canergy.ledger import TreeLedger, ledger
+from canergy.messages import Direction, Message, ToClient, ToSupervisor
+
+GATEWAY_NODE = 1
+BROKEN_RULES = ("early-grant",)
+
+
+@dataclass(frozen=True, slots=True)
+class ChainBounds:
+    """What the exploration may spend. Energies in units (1 unit = 1 mJ)."""
+
+    clients: int = 1
+    transactions: int = 2
+    """Transactions each supervisor (root, gateway) may begin."""
+    losses: int = 1
+    duplicates: int = 1
+    power_losses: int = 1
+    """Power losses of root, gateway and nodes, in all."""
+    in_flight: int = 2
+    """Frames in flight on each leg."""
+    units: int = 1
+    retries: int = 1
+
+    def timing(self) -> Timing:
+        return Timing(
+            response_timeout_us=0, retries=self.retries, command_timeout_us=0, return_retry_us=0
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class ChainWorld:
+    root: SupervisorState
+    gateway: GatewayState
+    nodes: tuple[ClientState, ...]
+    up: Flight = frozenset()
+    down: Flight = frozenset()
+    root_started: int = 0
+    gateway_started: int = 0
+    lost: int = 0
+    duplicated: int = 0
+    power_lost: int = 0
+    advanced: int = 0
+    """The broken rule only: energy granted downstream ahead of an upstream commit."""
+
+    def ledger(self) -> TreeLedger:
+        gw = self.gateway
+        return TreeLedger(
+            {"root": ledger(self.root, (gw.up,)), "gateway": ledger(gw.down, self.nodes)},
+            {"gateway": link_gap(gw.up, gw.down)},
+        )
+
+
+class Kind(Enum):
+    ROOT_BEGIN = "root_begin"
+    ROOT_DECIDE = "root_decide"
+    ROOT_TIMER = "root_timer"
+    GATEWAY_COMMAND_TIMER = "gateway_command_timer"
+    GATEWAY_RETURN_TIMER = "gateway_return_timer"
+    GATEWAY_GIVE_BACK = "gateway_give_back"
+    GATEWAY_BEGIN = "gateway_begin"
+    GATEWAY_DECIDE = "gateway_decide"
+    GATEWAY_TIMER = "gateway_timer"
+    NODE_COMMAND_TIMER = "node_command_timer"
+    NODE_RETURN_TIMER = "node_return_timer"
+    NODE_SPEND = "node_spend"
+    NODE_GIVE_BACK = "node_give_back"
+    DELIVER = "deliver"
+    LOSE = "lose"
+    DUPLICATE = "duplicate"
+    ROOT_POWER_LOSS = "root_power_loss"
+    GATEWAY_POWER_LOSS = "gateway_power_loss"
+    NODE_POWER_LOSS = "node_power_loss"
+
+
+CHANNEL = frozenset({Kind.DELIVER, Kind.LOSE, Kind.DUPLICATE})
+POWER = frozenset({Kind.ROOT_POWER_LOSS, Kind.GATEWAY_POWER_LOSS, Kind.NODE_POWER_LOSS})
+
+
+@dataclass(frozen=True, slots=True)
+class ChainStep:
+    kind: Kind
+    node: int = 0
+    units: int = 0
+    commit: bool = False
+    leg: str = ""
+    message: Message | None = None
+
+    def describe(self) -> str:
+        text = self.kind.value
+        if self.message is not None:
+            return f"{text} on the {self.leg} leg: {self.message}"
+        if self.node:
+            text += f" node {self.node}"
+        if self.units:
+            text += f" {self.units} unit(s)"
+        if self.kind in (Kind.ROOT_DECIDE, Kind.GATEWAY_DECIDE):
+            text += " commit" if self.commit else " abort"
+        return text
+
+
+class EarlyGrantGateway(Gateway):
+    """Broken on purpose: grants downstream what the upstream intention holds as soon as it
+    acknowledges it, and takes it from the commit when that comes."""
+
+    advanced = 0
+
+    def _forwarded(self, actions: list[Action]) -> list[Action]:
+        up, down = self.up.state, self.down.state
+        if up.phase is Phase.AWAIT_COMMAND and up.held_amount and not self.advanced:
+            self.advanced = up.held_amount
+            down = inject_into(down, up.held_amount)
+        paid = min(up.usable, self.advanced)
+        if paid:
+            self.advanced -= paid
+            up = evolve(up, usable=up.usable - paid, spent=up.spent + paid)
+        self.up.state, self.down.state = forward(up, down)
+        return actions
+
+
+class ChainModel:
+    def __init__(self, variant: Variant, bounds: ChainBounds, broken: str | None = None) -> None:
+        if broken is not None and broken not in BROKEN_RULES:
+            raise ValueError(f"unknown broken rule {broken!r} (one of {', '.join(BROKEN_RULES)})")
+        self.variant = variant
+        self.bounds = bounds
+        self.broken = broken
+        self.timing = bounds.timing()
+        self.node_ids = tuple(range(1, bounds.clients + 1))
+
+    def initial(self) -> ChainWorld:
+        total = self.bounds.units * UNIT
+        root = SupervisorState(total, total, 0, (Session(GATEWAY_NODE),))
+        gateway = Gateway(GATEWAY_NODE, self.node_ids, variant=self.variant).state
+        return ChainWorld(root, gateway, tuple(ClientState(n) for n in self.node_ids))
+
+    # -- enumeration -------------------------------------------------------------------------
+    def steps(self, w: ChainWorld) -> Iterator[ChainStep]:
+        b = self.bounds
+        yield from self._supervisor_steps(w.root, w.root_started, "ROOT")
+        yield from self._supervisor_steps(w.gateway.down, w.gateway_started, "GATEWAY")
+        for leg, flight in (("up", w.up), ("down", w.down)):
+            for msg, _ in sorted(flight, key=lambda item: message_key(item[0])):
+                yield ChainStep(Kind.DELIVER, leg=leg, message=msg)
+                if w.lost < b.losses:
+                    yield ChainStep(Kind.LOSE, leg=leg, message=msg)
+                if w.duplicated < b.duplicates and _frames(flight) < b.in_flight:
+                    yield ChainStep(Kind.DUPLICATE, leg=leg, message=msg)
+        up = w.gateway.up
+        if up.deadline is not None:
+            yield ChainStep(Kind.GATEWAY_COMMAND_TIMER)
+        if up.return_deadline is not None:
+            yield ChainStep(Kind.GATEWAY_RETURN_TIMER)
+        rules = self.variant.client
+        if w.gateway.down.usable >= UNIT and rules.can_give_back(up):
+            yield ChainStep(Kind.GATEWAY_GIVE_BACK)
+        for c in w.nodes:
+            if c.deadline is not None:
+                yield ChainStep(Kind.NODE_COMMAND_TIMER, c.node)
+            if c.return_deadline is not None:
+                yield ChainStep(Kind.NODE_RETURN_TIMER, c.node)
+            if c.usable >= UNIT:
+                yield ChainStep(Kind.NODE_SPEND, c.node)
+                if rules.can_give_back(c):
+                    yield ChainStep(Kind.NODE_GIVE_BACK, c.node)
+        if w.power_lost < b.power_losses:
+            yield ChainStep(Kind.ROOT_POWER_LOSS)
+            yield ChainStep(Kind.GATEWAY_POWER_LOSS)
+            for c in w.nodes:
+                yield ChainStep(Kind.NODE_POWER_LOSS, c.node)
+
+    def _supervisor_steps(self, st: SupervisorState, started: int, who: str) -> Iterator[ChainStep]:
+        for s in st.sessions:
+            if s.phase is Phase.IDLE and started < self.bounds.transactions:
+                for units in range(1, min(st.usable // UNIT, self.bounds.units) + 1):
+                    yield ChainStep(Kind[f"{who}_BEGIN"], s.node, units=units)
+            if s.phase is Phase.ACKED:
+                yield ChainStep(Kind[f"{who}_DECIDE"], s.node, commit=True)
+                yield ChainStep(Kind[f"{who}_DECIDE"], s.node, commit=False)
+            if s.deadline is not None:
+                yield ChainStep(Kind[f"{who}_TIMER"], s.node)
+
+    # -- application -------------------------------------------------------------------------
+    def apply(self, w: ChainWorld, step: ChainStep) -> ChainWorld | None:
+        """The world after ``step``, or None when it leaves the bounds."""
+        k = step.kind
+        if k in POWER:
+            w = evolve(w, power_lost=w.power_lost + 1)
+        elif k is Kind.ROOT_BEGIN:
+            w = evolve(w, root_started=w.root_started + 1)
+        elif k is Kind.GATEWAY_BEGIN:
+            w = evolve(w, gateway_started=w.gateway_started + 1)
+        new = self._apply(w, step)
+        if new is None or max(_frames(new.up), _frames(new.down)) > self.bounds.in_flight:
+            return None
+        return new
+
+    def _apply(self, w: ChainWorld, step: ChainStep) -> ChainWorld | None:
+        k = step.kind
+        if k in CHANNEL:
+            return self._channel(w, step)
+        if k is Kind.ROOT_POWER_LOSS:
+            return self._to_root(w, POWER_LOSS)
+        if k in (Kind.ROOT_BEGIN, Kind.ROOT_DECIDE, Kind.ROOT_TIMER):
+            return self._to_root(w, _event(step))
+        if k is Kind.GATEWAY_POWER_LOSS:
+            return self._gateway(w, lambda g: _no_actions(g.power_loss(0)))
+        if k is Kind.GATEWAY_COMMAND_TIMER:
+            return self._gateway(w, lambda g: g.fire_command_timer(0))
+        if k is Kind.GATEWAY_RETURN_TIMER:
+            return self._gateway(w, lambda g: g.fire_return_timer(0))
+        if k is Kind.GATEWAY_GIVE_BACK:
+            return self._gateway(w, lambda g: g.give_back(UNIT, 0))
+        if k in (Kind.GATEWAY_BEGIN, Kind.GATEWAY_DECIDE, Kind.GATEWAY_TIMER):
+            return self._to_session(w, step.node, _event(step))
+        if k is Kind.NODE_POWER_LOSS:
+            return self._to_node(w, step.node, POWER_LOSS)
+        return self._to_node(w, step.node, _event(step))
+
+    def _channel(self, w: ChainWorld, step: ChainStep) -> ChainWorld | None:
+        msg = step.message
+        assert msg is not None
+        counts = dict(w.up if step.leg == "up" else w.down)
+        if msg not in counts:
+            return None
+        if step.kind is Kind.DUPLICATE:
+            counts[msg] += 1
+            w = evolve(w, duplicated=w.duplicated + 1)
+        else:
+            counts[msg] -= 1
+            if not counts[msg]:
+                del counts[msg]
+        w = evolve(w, **{step.leg: frozenset(counts.items())})
+        if step.kind is Kind.DUPLICATE:
+            return w
+        if step.kind is Kind.LOSE:
+            return evolve(w, lost=w.lost + 1)
+        return self._receive(w, step.leg, msg)
+
+    def _receive(self, w: ChainWorld, leg: str, msg: Message) -> ChainWorld:
+        if msg.TYPE.direction is Direction.TO_CLIENT:
+            assert isinstance(msg, ToClient)
+            if leg == "up":
+                return self._gateway(w, lambda g: g.receive_upstream(msg, 0))
+            return self._to_node(w, msg.node, msg)
+        assert isinstance(msg, ToSupervisor)
+        if leg == "up":
+            return self._to_root(w, msg)
+        return self._to_session(w, msg.node, msg)
+
+    def _to_root(self, w: ChainWorld, event: Event) -> ChainWorld:
+        step = self.variant.supervisor.step(self.timing, w.root.sessions[0], event, 0)
+        w = evolve(w, root=apply_session(w.root, 0, step))
+        return _sent(w, "up", step.actions)
+
+    def _to_session(self, w: ChainWorld, node: int, event: Event) -> ChainWorld:
+        down = w.gateway.down
+        step = self.variant.supervisor.step(self.timing, down.sessions[node - 1], event, 0)
+        gateway = evolve(w.gateway, down=apply_session(down, node - 1, step))
+        return _sent(evolve(w, gateway=gateway), "down", step.actions)
+
+    def _to_node(self, w: ChainWorld, node: int, event: Event) -> ChainWorld:
+        c, actions = self.variant.client.step(self.timing, w.nodes[node - 1], event, 0)
+        nodes = (*w.nodes[: node - 1], c, *w.nodes[node:])
+        return _sent(evolve(w, nodes=nodes), "down", actions)
+
+    def _gateway(self, w: ChainWorld, act: Any) -> ChainWorld:
+        """Run one gateway method on the world's gateway (the live gateway's own code)."""
+        cls = EarlyGrantGateway if self.broken == "early-grant" else Gateway
+        g = cls(
+            GATEWAY_NODE,
+            self.node_ids,
+            variant=self.variant,
+            up_timing=self.timing,
+            down_timing=self.timing,
+            state=w.gateway,
+        )
+        if isinstance(g, EarlyGrantGateway):
+            g.advanced = w.advanced
+        actions = act(g)
+        w = evolve(w, gateway=g.state, advanced=getattr(g, "advanced", 0))
+        return _sent(w, "up", actions)
+
+
+def _no_actions(_: None) -> list[Action]:
+    return []
+
+
+def _event(step: ChainStep) -> Event:
+    k = step.kind
+    if k in (Kind.ROOT_BEGIN, Kind.GATEWAY_BEGIN):
+        return Begin(step.units * UNIT)
+    if k in (Kind.ROOT_DECIDE, Kind.GATEWAY_DECIDE):
+        return Decide(Decision.COMMIT if step.commit else Decision.ABORT)
+    if k is Kind.NODE_SPEND:
+        return Spend(UNIT)
+    if k is Kind.NODE_GIVE_BACK:
+        return GiveBack(UNIT)
+    if k in (Kind.ROOT_TIMER, Kind.GATEWAY_TIMER):
+        return RESPONSE_TIMEOUT
+    if k is Kind.NODE_COMMAND_TIMER:
+        return COMMAND_TIMEOUT
+    return RETURN_TIMEOUT
+
+
+def _frames(flight: Flight) -> int:
+    return sum(n for _, n in flight)
+
+
+def _sent(w: ChainWorld, leg: str, actions: Any) -> ChainWorld:
+    sends = [a.message for a in actions if isinstance(a, Send)]
+    if not sends:
+        return w
+    counts = dict(w.up if leg == "up" else w.down)
+    for msg in sends:
+        counts[msg] = counts.get(msg, 0) + 1
+    return evolve(w, **{leg: frozenset(counts.items())})
+
+
+@dataclass(slots=True)
+class ChainResult:
+    bounds: ChainBounds
+    broken: str | None
+    states: int = 0
+    transitions: int = 0
+    depth: int = 0
+    seconds: float = 0.0
+    violations: int = 0
+    subsumed: int = 0
+    counterexample: list[tuple[ChainStep, ChainWorld]] | None = None
+    complete: bool = True
+    notes: list[str] = field(default_factory=list)
+
+    def as_json(self) -> dict[str, Any]:
+        trace = None
+        if self.counterexample is not None:
+            trace = [
+                {"event": step.describe(), "ledger": w.ledger().as_json()}
+                for step, w in self.counterexample
+            ]
+        return {
+            "topology": "chain root -> gateway -> node(s)",
+            "broken_rule": self.broken,
+            "bounds": {k: getattr(self.bounds, k) for k in self.bounds.__slots__},
+            "states": self.states,
+            "transitions": self.transitions,
+            "depth": self.depth,
+            "seconds": round(self.seconds, 3),
+            "violations": self.violations,
+            "subsumed": self.subsumed,
+            "complete": self.complete,
+            "counterexample": trace,
+        }
+
+
+Counters = tuple[int, int, int, int, int]
+
+
+def _counters(w: ChainWorld) -> Counters:
+    return (w.root_started, w.gateway_started, w.lost, w.duplicated, w.power_lost)
+
+
+class _Subsumption:
+    """A world is skipped when the same protocol state was stored with every run counter (a
+    budget) lower or equal: it can do all this one can (see ``reduce``)."""
+
+    def __init__(self) -> None:
+        self.seen: dict[ChainWorld, list[Counters]] = {}
+        self.subsumed = 0
+
+    def admit(self, w: ChainWorld) -> bool:
+        key = evolve(w, root_started=0, gateway_started=0, lost=0, duplicated=0, power_lost=0)
+        mine = _counters(w)
+        stored = self.seen.setdefault(key, [])
+        if any(all(a <= b for a, b in zip(old, mine, strict=True)) for old in stored):
+            self.subsumed += 1
+            return False
+        stored.append(mine)
+        return True
+
+
+def check_chain(
+    variant: str = "hardened",
+    bounds: ChainBounds | None = None,
+    *,
+    broken: str | None = None,
+    max_states: int | None = None,
+    stop_at_first: bool = False,
+    progress: Callable[[int, int, float], None] | None = None,
+) -> ChainResult:
+    """Breadth-first over every reachable world; a counterexample found is a shortest one."""
+    b = bounds or ChainBounds()
+    model = ChainModel(get_variant(variant), b, broken)
+    result = ChainResult(b, broken)
+    start = time.perf_counter()
+    root = model.initial()
+    reducer = _Subsumption()
+    reducer.admit(root)
+    parent: dict[ChainWorld, tuple[ChainWorld, ChainStep] | None] = {root: None}
+    frontier: deque[tuple[ChainWorld, int]] = deque([(root, 0)])
+    while frontier:
+        world, depth = frontier.popleft()
+        result.depth = max(result.depth, depth)
+        for step in model.steps(world):
+            nxt = model.apply(world, step)
+            if nxt is None:
+                continue
+            result.transitions += 1
+            if nxt in parent or not reducer.admit(nxt):
+                continue
+            parent[nxt] = (world, step)
+            if progress is not None and len(parent) % 100_000 == 0:
+                progress(len(parent), depth + 1, time.perf_counter() - start)
+            if not nxt.ledger().passive:
+                result.violations += 1
+                if result.counterexample is None:
+                    result.counterexample = _trace(parent, nxt)
+                    if stop_at_first:
+                        frontier.clear()
+                        break
+                continue
+            frontier.append((nxt, depth + 1))
+        if max_states is not None and len(parent) >= max_states:
+            result.complete = False
+            result.notes.append(f"stopped at --max-states {max_states}")
+            break
+    result.states = len(parent)
+    result.subsumed = reducer.subsumed
+    result.seconds = time.perf_counter() - start
+    return result
+
+
+def _trace(
+    parent: dict[ChainWorld, tuple[ChainWorld, ChainStep] | None], end: ChainWorld
+) -> list[tuple[ChainStep, ChainWorld]]:
+    links: list[tuple[ChainStep, ChainWorld]] = []
+    node = end
+    while (link := parent[node]) is not None:
+        prev, step = link
+        links.append((step, node))
+        node = prev
+    return links[::-1]
+
+
+def format_chain(result: ChainResult, trace: bool = False) -> str:
+    b = result.bounds
+    rule = f", gateway rule broken: {result.broken}" if result.broken else ""
+    lines = [
+        f"chain root -> gateway -> {b.clients} node(s){rule}",
+        f"bounds: {b.transactions} transaction(s) per supervisor, {b.losses} loss(es), "
+        f"{b.duplicates} duplicate(s), {b.power_losses} power loss(es) (root, gateway or node), "
+        f"{b.in_flight} frame(s) in flight per leg, {b.units} unit(s), {b.retries} retries",
+        f"{result.states:,} states ({result.subsumed:,} subsumed), {result.transitions:,} "
+        f"transitions, depth {result.depth}, {result.seconds:.1f} s"
+        + ("" if result.complete else " (incomplete: " + "; ".join(result.notes) + ")"),
+    ]
+    if not result.violations:
+        lines.append("PASSIVE: no level of the tree and no gateway created energy")
+        return "\n".join(lines)
+    lines.append(f"VIOLATION: energy created in {result.violations} state(s)")
+    if trace and result.counterexample is not None:
+        for i, (step, world) in enumerate(result.counterexample, 1):
+            tree = world.ledger()
+            levels = ", ".join(
+                f"{name} {led.dissipated:+d} µJ" for name, led in tree.levels.items()
+            )
+            gaps = ", ".join(f"{name} gap {gap:+d} µJ" for name, gap in tree.link_gaps.items())
+            lines.append(f"  {i:2d}. {step.describe()}  [dissipated: {levels}; {gaps}]")
+    return "\n".join(lines)

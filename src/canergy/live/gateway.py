@@ -1,0 +1,213 @@
+"""A gateway process: a client on the bus above, a supervisor on the bus below, one core.
+
+``Uplink`` is the bus loop's handler for the upstream bus: it feeds the gateway core's client
+role, reports the downstream usable budget as the gateway's level (so the supervisor above tops
+it up like any node), and returns what the downstream budget holds above ``return_above``.
+The downstream bus is served by an ordinary ``SupervisorService`` over the core's supervisor
+role. Both save through ``GatewayFiles.save``: one file, written before any frame of the step.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+
+from canergy.auth.frames import Verdict
+from canergy.codec import DecodeError
+from canergy.core import Action, Credited, Persist, Send
+from canergy.core.actions import ClientCommitted, IntentionRefused
+from canergy.core.gateway import Gateway, link_gap
+from canergy.core.state import Phase
+from canergy.live.gateway_state import save_gateway
+from canergy.live.intrusions import Intrusions, frame_text
+from canergy.live.policy import quantize
+from canergy.live.runtime import BusCounters
+from canergy.live.service import SupervisorService
+from canergy.messages import AMOUNT_MAX_MJ, LEVEL_MAX_MJ, QUANTUM_UJ, Message, Telemetry, ToClient
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class UplinkConfig:
+    telemetry_period_us: int = 100_000
+    return_above: int | None = None
+    """Return the downstream usable budget above this upstream (None: never)."""
+    tick_us: int = 50_000
+    low_water: int = 0
+    """Flag LOW in the telemetry below this level."""
+
+
+class GatewayFiles:
+    """Where the gateway's one record goes."""
+
+    def __init__(self, gateway: Gateway, path: Path | None, *, fsync: bool = True) -> None:
+        self.gateway = gateway
+        self.path = path
+        self.fsync = fsync
+        self.writes = 0
+
+    def save(self) -> None:
+        if self.path is not None:
+            save_gateway(
+                self.path, self.gateway.state, self.gateway.up.variant.name, fsync=self.fsync
+            )
+            self.writes += 1
+
+
+class Uplink:
+    """The upstream half of a gateway; implements ``canergy.live.runtime.Handler``."""
+
+    def __init__(
+        self, gateway: Gateway, config: UplinkConfig, files: GatewayFiles, now: int
+    ) -> None:
+        self.gateway = gateway
+        self.config = config
+        self.files = files
+        self.next_telemetry = now
+        self.next_tick = now
+        self.outbox: list[Message] = []
+        self.decode_errors = 0
+        self.refused = 0
+        self.joins = 0
+        self.returned = 0
+        self.intrusions = Intrusions(f"gateway {gateway.up.node} (upstream)")
+        self.counters = BusCounters()
+
+    @property
+    def node(self) -> int:
+        return self.gateway.up.node
+
+    def start_without_books(self, nonce: int, now: int) -> None:
+        """No record: JOIN the supervisor above (and wait to be admitted)."""
+        self.joins += 1
+        self.outbox += self._carry_out(self.gateway.books_lost(nonce, now), now)
+
+    # -- Handler -----------------------------------------------------------------------------
+    def on_message(self, msg: Message, now: int) -> Sequence[Message]:
+        if msg.node != self.node or not isinstance(msg, ToClient):
+            return ()
+        joining = self.joining
+        out = self._carry_out(self.gateway.receive_upstream(msg, now), now)
+        if joining and not self.joining:
+            self.next_telemetry = now
+        return out
+
+    def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
+        if frame.arbitration_id & 0xFF == self.node:
+            self.decode_errors += 1
+
+    def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
+        pass  # the gateway does not take --auth upstream yet (the CLI refuses it)
+
+    def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
+        if frame.arbitration_id & 0xFF == self.node:
+            self.intrusions.record(
+                self.node, frame_text(frame), "a frame only this node sends", now
+            )
+        return ()
+
+    def next_wakeup(self) -> int | None:
+        if self.outbox:
+            return 0
+        times = [self.next_tick, self.next_telemetry]
+        if (timer := self.gateway.up.get_timer()) is not None:
+            times.append(timer)
+        return min(times)
+
+    def on_wakeup(self, now: int) -> Sequence[Message]:
+        out, self.outbox = self.outbox, []
+        timer = self.gateway.up.get_timer()
+        if timer is not None and timer <= now:
+            out += self._carry_out(self.gateway.handle_upstream_timer(now), now)
+        if now >= self.next_tick:
+            self.next_tick = now + self.config.tick_us
+            out += self._maybe_return(now)
+        if now >= self.next_telemetry:
+            out.append(self.telemetry(now))
+        return out
+
+    # -- internals ---------------------------------------------------------------------------
+    @property
+    def joining(self) -> bool:
+        return self.gateway.up.state.phase is Phase.JOINING
+
+    def level(self) -> int:
+        """What the gateway reports upstream: the budget it can still grant below."""
+        return self.gateway.down.state.usable
+
+    def telemetry(self, now: int) -> Telemetry:
+        self.next_telemetry = now + self.config.telemetry_period_us
+        level = self.level()
+        flags = (Telemetry.LOW if level < self.config.low_water else 0) | (
+            Telemetry.JOINING if self.joining else 0
+        )
+        return Telemetry(self.node, min(level // QUANTUM_UJ, LEVEL_MAX_MJ), flags)
+
+    def _maybe_return(self, now: int) -> list[Message]:
+        keep = self.config.return_above
+        if keep is None or not self.gateway.can_give_back():
+            return []
+        excess = quantize(self.gateway.down.state.usable - keep)
+        if excess <= 0:
+            return []
+        amount = min(excess, AMOUNT_MAX_MJ * QUANTUM_UJ)
+        self.returned += amount
+        return self._carry_out(self.gateway.give_back(amount, now), now)
+
+    def _carry_out(self, actions: list[Action], now: int) -> list[Message]:
+        out: list[Message] = []
+        for action in actions:
+            if isinstance(action, Persist):
+                self.files.save()  # before any frame of this step leaves
+            elif isinstance(action, Send):
+                out.append(action.message)
+            elif isinstance(action, ClientCommitted | Credited):
+                self.next_telemetry = now
+            elif isinstance(action, IntentionRefused):
+                self.refused += 1
+        return out
+
+    def status(self) -> dict[str, Any]:
+        c = self.gateway.up.state
+        return {
+            "node": self.node,
+            "usable_uj": c.usable,
+            "spent_uj": c.spent,
+            "credited_uj": c.credited,
+            "return_pending_uj": c.return_pending,
+            "return_seq": c.return_seq,
+            "last_tx": c.last_tx,
+            "joining": self.joining,
+            "joins": self.joins,
+            "returned_this_run_uj": self.returned,
+            "intentions_refused": self.refused,
+            "decode_errors": self.decode_errors,
+            "intrusions": self.intrusions.total,
+            **self.counters.as_json(),
+        }
+
+
+class DownstreamService(SupervisorService):
+    """The gateway's supervisor role; its status also shows the upstream role (``upstream``,
+    the keys a node's status has) and the link between the two (``link_gap_uj``, always 0)."""
+
+    uplink: Uplink | None = None
+
+    def status(self) -> dict[str, Any]:
+        status = super().status()
+        if self.uplink is None:
+            return status
+        gateway = self.uplink.gateway
+        return {
+            **status,
+            "role": "gateway",
+            "upstream": self.uplink.status(),
+            "link_gap_uj": link_gap(gateway.up.state, gateway.down.state),
+            "state_writes": self.uplink.files.writes,
+        }

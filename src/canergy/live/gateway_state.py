@@ -1,0 +1,134 @@
+"""A gateway's non-volatile record: its upstream client record and its downstream supervisor's
+books in one JSON file, replaced atomically, so the two roles never disagree after a crash.
+
+The downstream part is a supervisor state file's books (checked as ``state_file`` checks them);
+the upstream part is the client record the hardened rules persist. Loading also checks the link
+between the roles: ``upstream.spent = downstream.injected - downstream.withdrawn`` and nothing
+initial downstream (every joule below came from above). A gateway that was still waiting to be
+admitted upstream (``joining``) has no upstream books: it joins again at the next start, never
+trusting the blank record.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from canergy.core.frozen import evolve
+from canergy.core.gateway import GatewayState, link_gap
+from canergy.core.state import ClientState, Outcome, Phase, Session
+from canergy.live.atomic import write_atomic
+from canergy.live.state_file import (
+    ACCEPT_EDITED,
+    FieldChecker,
+    StateFileError,
+    books_checksum,
+    read_json,
+    state_json,
+)
+from canergy.messages import MAX_NODE, MIN_NODE, USABLE_MAX_UJ
+
+FORMAT = "canergy-gateway-state"
+VERSION = 1
+_TOP = ("format", "version", "variant", "upstream", "downstream")
+_UPSTREAM = (
+    "node",
+    "usable_uj",
+    "credited_uj",
+    "spent_uj",
+    "last_tx",
+    "outcome",
+    "return_seq",
+    "return_pending_uj",
+    "credited_unknown",
+    "joining",
+)
+
+
+def gateway_json(state: GatewayState, variant: str) -> dict[str, Any]:
+    up = state.up
+    return {
+        "format": FORMAT,
+        "version": VERSION,
+        "variant": variant,
+        "upstream": {
+            "node": up.node,
+            "usable_uj": up.usable,
+            "credited_uj": up.credited,
+            "spent_uj": up.spent,
+            "last_tx": up.last_tx,
+            "outcome": up.outcome.name,
+            "return_seq": up.return_seq,
+            "return_pending_uj": up.return_pending,
+            "credited_unknown": int(up.credited_unknown),
+            "joining": int(up.phase is Phase.JOINING),
+        },
+        "downstream": state_json(state.down, variant),
+    }
+
+
+def save_gateway(path: Path, state: GatewayState, variant: str, *, fsync: bool = True) -> None:
+    books = gateway_json(state, variant)
+    books["checksum"] = books_checksum(books)
+    write_atomic(path, json.dumps(books, separators=(",", ":")).encode() + b"\n", fsync=fsync)
+
+
+def load_gateway(
+    path: Path, variant: str, node: int, nodes: tuple[int, ...], *, accept_edited: bool = False
+) -> GatewayState:
+    """Read and check ``path`` for gateway ``node`` over ``nodes``; refused naming the field."""
+    data = read_json(path)
+    check = FieldChecker(path)
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise StateFileError(f"{path}: not a {FORMAT} file")
+    check.fields(data, "", _TOP, optional=("checksum",))
+    if data["version"] != VERSION:
+        check.refuse("version", f"{data['version']!r} is not {VERSION}")
+    if data["variant"] != variant:
+        raise StateFileError(f"{path}: written by variant {data['variant']!r}, not {variant!r}")
+    if not accept_edited and data.get("checksum") != books_checksum(data):
+        raise StateFileError(
+            f"{path}: checksum: missing or not matching the books (edited by hand?); check the "
+            f"books, then pass {ACCEPT_EDITED} to take it as it is"
+        )
+    up = _upstream(check, data["upstream"], node)
+    down = check.books(data["downstream"], variant)
+    extra = sorted({s.node for s in down.sessions} - set(nodes))
+    if extra:
+        raise StateFileError(
+            f"{path} holds books for downstream node(s) {extra} not in --nodes; add them"
+        )
+    if down.initial:
+        check.refuse("downstream.initial_uj", "a gateway's budget all comes from upstream: 0")
+    if (gap := link_gap(up, down)) != 0:
+        check.refuse(
+            "upstream.spent_uj",
+            f"the roles disagree by {gap} µJ: upstream spent must equal downstream injected "
+            "minus withdrawn",
+        )
+    by_node = {s.node: s for s in down.sessions}
+    down = evolve(down, sessions=tuple(by_node.get(n, Session(n)) for n in sorted(nodes)))
+    return GatewayState(up, down)
+
+
+def _upstream(check: FieldChecker, raw: object, node: int) -> ClientState:
+    v = check.fields(raw, "upstream", _UPSTREAM)
+    found = check.integer(v, "upstream", "node", MAX_NODE)
+    if found != node or found < MIN_NODE:
+        check.refuse("upstream.node", f"{found}, but this gateway is node {node} (--node)")
+    outcome = Outcome[check.name(v, "upstream", "outcome", (o.name for o in Outcome))]
+    unknown = check.integer(v, "upstream", "credited_unknown", 1)
+    joining = check.integer(v, "upstream", "joining", 1)
+    return ClientState(
+        node,
+        usable=check.integer(v, "upstream", "usable_uj", USABLE_MAX_UJ),
+        credited=check.integer(v, "upstream", "credited_uj"),
+        spent=check.integer(v, "upstream", "spent_uj"),
+        last_tx=check.integer(v, "upstream", "last_tx"),
+        outcome=outcome,
+        return_seq=check.integer(v, "upstream", "return_seq"),
+        return_pending=check.integer(v, "upstream", "return_pending_uj"),
+        credited_unknown=bool(unknown),
+        phase=Phase.JOINING if joining else Phase.IDLE,
+    )

@@ -1,0 +1,157 @@
+"""The gateway core: a client above and a supervisor below, energy crossing only as the rules say;
+the chain checker over root → gateway → node, and its counterexample for a broken gateway."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from canergy.check.chain import ChainBounds, Kind, check_chain
+from canergy.core import Action, Client, Persist, Send, Supervisor
+from canergy.core.errors import LocalProtocolError
+from canergy.core.gateway import Gateway, link_gap
+from canergy.ledger import TreeLedger, ledger
+from canergy.messages import (
+    Ack,
+    Admit,
+    Commit,
+    Intention,
+    Return,
+    ReturnAck,
+    ToClient,
+    ToSupervisor,
+)
+
+GW = 20
+J = 1_000_000
+
+
+def _admitted_gateway() -> Gateway:
+    gw = Gateway(GW, [1, 2])
+    gw.books_lost(7, 0)
+    gw.receive_upstream(Admit(GW, 7, 0, 0), 0)
+    return gw
+
+
+def test_energy_goes_below_only_when_committed_above() -> None:
+    gw = _admitted_gateway()
+    acts = gw.receive_upstream(Intention(GW, 1, 2000, 0), 0)
+    assert Send(Ack(GW, 1)) in acts
+    assert gw.down.state.usable == 0  # held, not yet granted: nothing to grant below
+    acts = gw.receive_upstream(Commit(GW, 1, 2000), 0)
+    assert acts[0] == Persist()  # one write covers both roles, before COMMITTED leaves
+    assert gw.down.state.usable == 2 * J and gw.down.state.injected == 2 * J
+    assert gw.up.state.usable == 0 and gw.up.state.spent == 2 * J
+    assert link_gap(gw.up.state, gw.down.state) == 0
+
+
+def test_give_back_withdraws_below_and_returns_above() -> None:
+    gw = _admitted_gateway()
+    gw.receive_upstream(Intention(GW, 1, 3000, 0), 0)
+    gw.receive_upstream(Commit(GW, 1, 3000), 0)
+    acts = gw.give_back(1000_000, 0)
+    assert acts[0] == Persist() and Send(Return(GW, 1, 1000)) in acts
+    assert gw.down.state.usable == 2 * J and gw.down.state.withdrawn == J
+    assert gw.up.state.spent == 2 * J and gw.up.state.return_pending == J
+    with pytest.raises(LocalProtocolError):  # one numbered return at a time
+        gw.give_back(1000, 0)
+    gw.receive_upstream(ReturnAck(GW, 1), 0)
+    with pytest.raises(LocalProtocolError):  # never more than the budget below holds
+        gw.give_back(3 * J, 0)
+    assert gw.down.state.usable == 2 * J and link_gap(gw.up.state, gw.down.state) == 0
+
+
+def test_a_timeout_commit_is_forwarded_too() -> None:
+    gw = _admitted_gateway()
+    gw.receive_upstream(Intention(GW, 1, 1000, 0), 0)
+    timer = gw.get_timer()
+    assert timer is not None
+    gw.handle_upstream_timer(timer)
+    assert gw.down.state.usable == J and gw.up.state.usable == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.tuples(st.sampled_from(["grant", "below", "back", "node", "power"]), st.integers(1, 9)),
+        max_size=30,
+    )
+)
+def test_random_runs_keep_every_level_passive(ops: list[tuple[str, int]]) -> None:
+    """Root, gateway and two nodes exchanging frames directly (no loss): the tree's ledger
+    never shows energy created, and the gateway's roles stay linked."""
+    root = Supervisor([GW], 50 * J)
+    gw = _admitted_gateway()
+    nodes = {n: Client(n) for n in (1, 2)}
+
+    def pump(actions: Sequence[Action], above: bool) -> None:
+        """Deliver every frame the actions send, and what the answers send, in order."""
+        queue = [(a, above) for a in actions]
+        while queue:
+            action, up = queue.pop(0)
+            if not isinstance(action, Send):
+                continue
+            msg = action.message
+            if isinstance(msg, ToClient):
+                target = gw.receive_upstream if up else nodes[msg.node].receive
+                queue += [(a, up) for a in target(msg, 0)]
+            elif isinstance(msg, ToSupervisor):
+                queue += [(a, up) for a in (root if up else gw.down).receive(msg, 0)]
+
+    for op, k in ops:
+        if op == "grant" and root.is_quiescent() and root.state.usable >= k * 1000:
+            acts = root.begin(GW, k * 1000, 0)
+            pump(acts, True)
+        elif op == "below" and gw.down.is_quiescent() and gw.down.state.usable >= k * 1000:
+            node = 1 + k % 2
+            acts = gw.down.begin(node, k * 1000, 0)
+            pump(acts, False)
+        elif op == "back" and gw.can_give_back() and gw.down.state.usable >= k * 1000:
+            pump(gw.give_back(k * 1000, 0), True)
+        elif op == "node":
+            c = nodes[1 + k % 2]
+            if c.state.usable >= 1000 and c.can_give_back():
+                pump(c.give_back(1000, 0), False)
+        elif op == "power":
+            gw.power_loss(0)
+        for deadline in (root.get_timer(), gw.get_timer()):
+            if deadline is not None:
+                pump(root.handle_timer(deadline), True)
+                pump(gw.handle_upstream_timer(deadline), True)
+                pump(gw.down.handle_timer(deadline), False)
+        # acknowledged intentions are committed by both supervisors
+        for s in root.state.sessions:
+            if s.phase.name == "ACKED":
+                pump(root.commit(s.node, 0), True)
+        for s in gw.down.state.sessions:
+            if s.phase.name == "ACKED":
+                pump(gw.down.commit(s.node, 0), False)
+        tree = TreeLedger(
+            {
+                "root": ledger(root.state, [gw.up.state]),
+                "gateway": ledger(gw.down.state, [c.state for c in nodes.values()]),
+            },
+            {"gateway": link_gap(gw.up.state, gw.down.state)},
+        )
+        assert tree.passive, tree.as_json()
+        assert link_gap(gw.up.state, gw.down.state) == 0
+
+
+def test_chain_checker_finds_no_energy_created_within_its_bound() -> None:
+    result = check_chain(bounds=ChainBounds(transactions=1, duplicates=0))
+    assert result.complete and result.violations == 0
+    assert result.states > 10_000  # it explored: loss and power loss on both legs
+
+
+def test_chain_checker_catches_a_gateway_that_grants_before_the_upstream_commit() -> None:
+    result = check_chain(bounds=ChainBounds(transactions=1), broken="early-grant")
+    assert result.violations > 0 and result.counterexample is not None
+    steps = [step for step, _ in result.counterexample]
+    assert steps[0].kind is Kind.ROOT_BEGIN
+    last = result.counterexample[-1][1].ledger()
+    assert not last.passive and last.link_gaps["gateway"] > 0
+    # the same bound with the real rule: nothing
+    assert check_chain(bounds=ChainBounds(transactions=1), max_states=20_000).violations == 0

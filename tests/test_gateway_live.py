@@ -1,0 +1,203 @@
+"""`canergy gateway` as users run it: a root supervisor above, nodes below, on python-can's
+virtual buses, frames lost and duplicated on the upstream leg; the gateway's one state file."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+from live_rig import Loop
+
+from canergy.cli import main
+from canergy.codec import Codec
+from canergy.core.gateway import Gateway, GatewayState
+from canergy.core.state import Phase
+from canergy.ledger import TreeLedger, ledger_from_status
+from canergy.live.control import request
+from canergy.live.gateway_state import load_gateway, save_gateway
+from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.state_file import StateFileError
+from canergy.messages import Admit, Commit, Direction, Intention
+from firmware_model.actuator import PowerProfile
+from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
+from firmware_model.nvstore import NvStore
+
+GW = 20
+NODES = (1, 2, 3)
+
+
+class Tree:
+    """A root supervisor and a gateway (CLI runs in threads) and three emulated nodes."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.up, self.down = f"up-{uuid.uuid4().hex}", f"down-{uuid.uuid4().hex}"
+        config = NodeConfig(power=PowerProfile.constant(2.0), return_above=900_000)
+        now = monotonic_us()
+        self.host = NodeHost(
+            [FirmwareNode(n, NvStore(tmp / f"{n}.nv", n, fsync=False), config, now) for n in NODES]
+        )
+        bus = can.Bus(interface="virtual", channel=self.down)
+        self.nodes = Loop(BusRuntime(bus, self.host, codec=Codec(), receives=Direction.TO_CLIENT))
+        self.results: dict[str, int] = {}
+        self.threads: dict[str, threading.Thread] = {}
+
+    def start(self, name: str, argv: list[str], control: Path) -> None:
+        def run() -> None:
+            self.results[name] = main(argv)
+
+        self.threads[name] = threading.Thread(target=run, daemon=True)
+        self.threads[name].start()
+        deadline = time.monotonic() + 30
+        while not control.exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
+
+    def start_root(self) -> None:
+        t = self.tmp
+        argv = ["supervisor", "-i", "virtual", "-c", self.up, "--nodes", str(GW)]
+        argv += ["--initial", "30J", "--target", "4J", "--state", str(t / "root.json")]
+        argv += ["--status-file", str(t / "root-status.json"), "--control", str(t / "root.sock")]
+        self.start("root", [*argv, "--no-fsync", "--status-period", "100ms"], t / "root.sock")
+
+    def start_gateway(self, *extra: str) -> None:
+        t = self.tmp
+        argv = ["gateway", "--node", str(GW), "--nodes", "1-3", "-i", "virtual", "-c", self.down]
+        argv += ["--upstream-interface", "virtual", "--upstream-channel", self.up]
+        argv += ["--state", str(t / "gw.json"), "--status-file", str(t / "gw-status.json")]
+        argv += ["--control", str(t / "gw.sock"), "--target", "1J", "--return-above", "6J"]
+        argv += ["--no-fsync", "--status-period", "100ms", "--telemetry-period", "50ms", *extra]
+        self.start("gateway", argv, t / "gw.sock")
+
+    def stop(self, name: str) -> None:
+        assert request(self.tmp / f"{'gw' if name == 'gateway' else name}.sock", {"stop": True}, 30)
+        self.threads[name].join(timeout=60)
+        assert self.results.get(name) == 0
+
+    def status(self, name: str) -> dict[str, Any]:
+        return json.loads((self.tmp / f"{name}-status.json").read_text())  # type: ignore[no-any-return]
+
+    def wait(self, what: Any, timeout: float = 60) -> None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                if what():
+                    return
+            except (OSError, ValueError, KeyError):
+                pass  # a status file not written yet
+            time.sleep(0.05)
+        raise AssertionError("timed out")
+
+    def tree(self) -> TreeLedger:
+        root, gw = self.status("root"), self.status("gw")
+        nodes = [node.status() for node in self.host.nodes.values()]
+        return TreeLedger(
+            {
+                "root": ledger_from_status(root, [gw["upstream"]]),
+                "gateway": ledger_from_status(gw, nodes),
+            },
+            {"gateway": gw["link_gap_uj"]},
+        )
+
+
+@contextmanager
+def tree(tmp: Path) -> Iterator[Tree]:
+    t = Tree(tmp)
+    try:
+        yield t
+    finally:
+        for name in ("gateway", "root"):
+            thread = t.threads.get(name)
+            if thread is not None and thread.is_alive():
+                sock = tmp / f"{'gw' if name == 'gateway' else name}.sock"
+                request(sock, {"stop": True}, 30)
+                thread.join(timeout=60)
+        t.nodes.halt()
+
+
+def test_a_tree_through_a_lossy_upstream_leg_creates_nothing(tmp_path: Path) -> None:
+    with tree(tmp_path) as t:
+        t.start_root()
+        t.start_gateway("--upstream-loss", "0.15", "--upstream-duplicate", "0.1")
+        drawn = lambda: sum(n.actuator.drawn_uj for n in t.host.nodes.values())  # noqa: E731
+        t.wait(lambda: drawn() > 12_000_000)  # more than the root's target: topped up again
+        gw = t.status("gw")
+        assert gw["role"] == "gateway" and gw["link_gap_uj"] == 0
+        assert gw["upstream"]["credited_uj"] > 4_000_000
+        t.stop("gateway")
+        t.stop("root")
+        books = t.tree()
+    assert books.passive, books.as_json()
+    root = t.status("root")
+    assert root["nodes"][str(GW)]["delivered_uj"] == t.status("gw")["upstream"]["credited_uj"]
+
+
+def test_a_restarted_gateway_continues_from_its_one_file(tmp_path: Path) -> None:
+    with tree(tmp_path) as t:
+        t.start_root()
+        t.start_gateway()
+        t.wait(lambda: t.status("gw")["upstream"]["credited_uj"] >= 4_000_000)
+        t.stop("gateway")
+        before = json.loads((tmp_path / "gw.json").read_text())
+        t.start_gateway()
+        t.wait(
+            lambda: t.status("gw")["upstream"]["credited_uj"] > before["upstream"]["credited_uj"]
+        )
+        gw = t.status("gw")
+        assert gw["upstream"]["joins"] == 0  # its books came back: no JOIN, nothing written off
+        t.stop("gateway")
+        t.stop("root")
+        assert t.status("root")["nodes"][str(GW)]["admitted"] == 1  # the first start only
+        books = t.tree()
+    assert books.passive, books.as_json()
+
+
+def _state(tmp: Path) -> tuple[Path, GatewayState]:
+    gw = Gateway(GW, NODES)
+    gw.books_lost(1, 0)
+    gw.receive_upstream(Admit(GW, 1, 0, 0), 0)
+    gw.receive_upstream(Intention(GW, 1, 3000, 0), 0)
+    gw.receive_upstream(Commit(GW, 1, 3000), 0)
+    gw.down.begin(2, 1_000_000, 0)
+    path = tmp / "gw.json"
+    save_gateway(path, gw.state, "hardened", fsync=False)
+    return path, gw.state
+
+
+def test_the_state_file_keeps_both_roles(tmp_path: Path) -> None:
+    path, state = _state(tmp_path)
+    loaded = load_gateway(path, "hardened", GW, NODES)
+    assert loaded.up.spent == 3_000_000 and loaded.up.last_tx == 1
+    assert loaded.down.injected == 3_000_000 and loaded.down.sessions[1].reserved == 1_000_000
+    assert loaded.down.usable == state.down.usable == 2_000_000
+
+
+def test_the_state_file_refuses_roles_that_disagree(tmp_path: Path) -> None:
+    path, state = _state(tmp_path)
+    up = replace(state.up, spent=state.up.spent - 1000, usable=1000)
+    save_gateway(path, GatewayState(up, state.down), "hardened", fsync=False)
+    with pytest.raises(StateFileError, match="roles disagree by 1000"):
+        load_gateway(path, "hardened", GW, NODES)
+    with pytest.raises(StateFileError, match="20, but this gateway is node 21"):
+        _state(tmp_path)
+        load_gateway(path, "hardened", 21, NODES)
+    text = path.read_text().replace('"spent_uj":3000000', '"spent_uj":3000001')
+    path.write_text(text)
+    with pytest.raises(StateFileError, match="checksum"):
+        load_gateway(path, "hardened", GW, NODES)
+
+
+def test_a_gateway_that_was_joining_joins_again(tmp_path: Path) -> None:
+    gw = Gateway(GW, NODES)
+    gw.books_lost(1, 0)
+    path = tmp_path / "gw.json"
+    save_gateway(path, gw.state, "hardened", fsync=False)
+    assert load_gateway(path, "hardened", GW, NODES).up.phase is Phase.JOINING

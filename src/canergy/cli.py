@@ -12,8 +12,8 @@ from pathlib import Path
 from canergy import __version__, cli_gateway, cli_inspect, cli_keys, cli_live, cli_sim
 from canergy.cli_args import (
     COUNT_MAX,
-    add_duration,
     bounded_int,
+    duration,
     energy,
     id_base,
     node_ids,
@@ -52,15 +52,32 @@ def _demo_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     p.add_argument(
         "--transactions",
         type=bounded_int(1, DEMO_TRANSACTIONS_MAX),
-        default=200,
+        default=None,
         help=f"transactions to start in total (default 200, at most {DEMO_TRANSACTIONS_MAX:,})",
     )
-    add_duration(p, "--duration", 300 * US_PER_S, "virtual-time limit")
+    p.add_argument(
+        "--duration",
+        type=duration,
+        metavar="TIME",
+        help="virtual-time limit (default 300s; --topology tree: 60s of work, then the drain)",
+    )
+    p.add_argument(
+        "--topology",
+        choices=["bus", "tree"],
+        default="bus",
+        help="bus: one supervisor and --nodes clients; tree: a root supervisor, --gateways "
+        "gateways on their own buses and --nodes nodes under each, faults on every bus",
+    )
+    p.add_argument(
+        "--gateways",
+        type=bounded_int(1, MAX_NODE),
+        default=2,
+        help="--topology tree: gateways under the root (default 2)",
+    )
     p.add_argument(
         "--initial",
         type=energy,
-        default=10 * UJ_PER_J,
-        help="supervisor's initial usable budget (default 10J)",
+        help="the (root) supervisor's initial usable budget (default 10J; --topology tree: 30J)",
     )
     p.add_argument("--variant", choices=sorted(VARIANTS), default="hardened")
     p.add_argument("--loss", type=probability, default=0.1, help="frame loss probability")
@@ -101,15 +118,53 @@ def _demo_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
     p.add_argument("--json", action="store_true", help="print the result as JSON")
 
 
+def _run_tree(args: argparse.Namespace) -> int:
+    from canergy.demo.tree import TreeConfig, format_tree, run_tree
+    from canergy.faults import FaultProfile
+
+    given = [
+        flag
+        for flag, value in (
+            ("--node-ids", args.node_ids),
+            ("--transactions", args.transactions),
+            ("--log", args.log),
+        )
+        if value is not None
+    ]
+    if given or args.variant != "hardened":
+        raise ValueError(
+            f"--topology tree: not with {', '.join(given) or '--variant'} (it runs the hardened "
+            "rules, --nodes under each of --gateways, for --duration)"
+        )
+    cfg = TreeConfig(
+        gateways=args.gateways,
+        nodes=args.nodes,
+        initial=args.initial or TreeConfig().initial,
+        duration_us=args.duration or TreeConfig().duration_us,
+        faults=FaultProfile(
+            loss=args.loss, duplicate=args.duplicate, reorder=args.reorder, corrupt=args.corrupt
+        ),
+        seed=args.seed,
+        gateway_resets=args.resets,
+        node_resets=args.resets,
+        commit_ratio=args.commit_ratio,
+    )
+    result = run_tree(cfg)
+    print(json.dumps(result.as_json(), indent=2) if args.json else format_tree(result))
+    return 0 if result.passive else 1
+
+
 def _run_demo(args: argparse.Namespace) -> int:
     from canergy.demo import DemoConfig, format_report, run_demo
     from canergy.faults import FaultProfile
 
+    if args.topology == "tree":
+        return _run_tree(args)
     cfg = DemoConfig(
         nodes=args.node_ids or tuple(range(1, args.nodes + 1)),
-        transactions=args.transactions,
-        duration_us=args.duration,
-        initial=args.initial,
+        transactions=args.transactions or 200,
+        duration_us=args.duration or 300 * US_PER_S,
+        initial=args.initial or 10 * UJ_PER_J,
         variant=args.variant,
         faults=FaultProfile(
             loss=args.loss, duplicate=args.duplicate, reorder=args.reorder, corrupt=args.corrupt

@@ -31,6 +31,9 @@ def test_quick_bench_runs_every_comparison(
     assert sum(row["transactions"] for row in report["live"]) > 0
     assert report["skipped"] == []  # the emulator is importable here
     assert report["memory"]["client_nv_record_bytes"] <= 32
+    tree = report["tree"]
+    assert tree["tree"]["nodes"] > tree["baseline"]["nodes"] and tree["tree"]["passive"]
+    assert tree["tree"]["transactions"] > 0 and tree["bytes_per_added_node"] > 0
     assert "quick smoke run" in capsys.readouterr().out
 
 

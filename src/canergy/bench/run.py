@@ -11,7 +11,7 @@ import tracemalloc
 from pathlib import Path
 from typing import Any
 
-from canergy.bench import auth, codec, core, live, wire
+from canergy.bench import auth, codec, core, live, tree, wire
 
 
 def memory_per_node(nodes: int = 127, emulator: live.Emulator | None = None) -> dict[str, Any]:
@@ -68,6 +68,7 @@ def run(quick: bool = False) -> dict[str, Any]:
         "headroom": wire.headroom(one["cpu_us_per_frame"]) if one["cpu_us_per_frame"] else None,
         "memory": memory_per_node(emulator=emulator),
         "auth": auth.overhead(loops=20 if quick else 500, repeats=3 if quick else 7),
+        "tree": tree.scale(quick),
         "skipped": skipped,
     }
 
@@ -148,5 +149,20 @@ def table(r: dict[str, Any]) -> str:
         "",
         f"memory: supervisor {m['supervisor_bytes_per_node']:.0f} bytes/node at {m['nodes']} "
         f"nodes{nv}",
+        "",
+        "scale by composition, virtual time (root -> gateways -> nodes, 1% loss and duplicates)",
     ]
+    t = r["tree"]
+    for row in (t["baseline"], t["tree"]):
+        lines.append(
+            f"  {row['gateways']} x {row['nodes_per_gateway']:>3} = {row['nodes']:>4} nodes: "
+            f"{row['transactions']:>7,} tx in {row['virtual_s']:.1f} s virtual "
+            f"({_n(row['tx_per_virtual_s'], ',')} tx/s), {_n(row['cpu_us_per_tx'], '.0f')} us "
+            f"CPU/tx, {_n(row['cpu_ms_per_node_per_virtual_s'], '.2f')} ms CPU per node per "
+            f"second, {'passive' if row['passive'] else 'NOT PASSIVE'}"
+        )
+    lines.append(
+        f"  CPU per transaction vs the small tree: {_n(t['cpu_per_tx_ratio'], '.2f')}x; memory "
+        f"{t['bytes_per_added_node']:,} bytes per added node"
+    )
     return "\n".join(lines)

@@ -1,0 +1,97 @@
+"""A gateway between two real SocketCAN buses: the root supervisor on vcan0, the gateway a node
+of vcan0 and the supervisor of vcan1, emulated nodes on vcan1; the gateway killed with SIGKILL
+and restarted from its one state file. The tree's ledger closes over both buses."""
+
+from __future__ import annotations
+
+import signal
+from pathlib import Path
+
+import pytest
+from test_vcan import TIMEOUT, Procs, _python, _status, _wait
+from test_vcan import procs as procs  # the fixture
+
+from canergy.ledger import TreeLedger, ledger_from_status
+
+pytestmark = pytest.mark.vcan
+
+UP, DOWN = "vcan0", "vcan1"
+GW = 20
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _both_up() -> None:
+    for iface in (UP, DOWN):
+        assert Path(f"/sys/class/net/{iface}/operstate").exists(), (
+            f"{iface} missing: ip link add dev {iface} type vcan; ip link set up {iface}"
+        )
+
+
+def _root(procs: Procs) -> None:
+    tmp = procs.tmp
+    argv = ["-m", "canergy", "supervisor", "-i", "socketcan", "-c", UP, "--nodes", str(GW)]
+    argv += ["--initial", "20J", "--target", "3J", "--state", str(tmp / "root.json")]
+    argv += ["--status-file", str(tmp / "root-status.json"), "--lost-after", "10", *TIMEOUT]
+    procs.start("root", _python(*argv))
+
+
+def _gateway(procs: Procs) -> None:
+    tmp = procs.tmp
+    argv = ["-m", "canergy", "gateway", "--node", str(GW), "--nodes", "1-2"]
+    argv += ["-i", "socketcan", "-c", DOWN, "--upstream-interface", "socketcan"]
+    argv += ["--upstream-channel", UP, "--state", str(tmp / "gw.json"), "--target", "0.6J"]
+    argv += ["--return-above", "5J", "--status-file", str(tmp / "gw-status.json")]
+    argv += ["--upstream-response-timeout", "0.3", "--telemetry-period", "0.3"]
+    procs.start("gateway", _python(*argv, "--lost-after", "10", *TIMEOUT))
+
+
+def _node(procs: Procs, node: int) -> None:
+    tmp = procs.tmp
+    argv = ["-m", "firmware_model", "--node", str(node), "-i", "socketcan", "-c", DOWN]
+    argv += ["--nv", str(tmp / f"n{node}.nv"), "--power", "0.2W", "--telemetry-period", "0.5"]
+    procs.start(
+        f"node{node}", _python(*argv, "--status-file", str(tmp / f"n{node}.json"), *TIMEOUT)
+    )
+
+
+def test_a_gateway_between_vcan0_and_vcan1_survives_kill_9(procs: Procs) -> None:
+    tmp = procs.tmp
+    gw_status = tmp / "gw-status.json"
+    _root(procs)
+    _gateway(procs)
+    for node in (1, 2):
+        _node(procs, node)
+
+    def committed(node: int) -> int:
+        return int(_status(gw_status)["nodes"][str(node)]["committed"]) if gw_status.exists() else 0
+
+    _wait(lambda: all(committed(n) >= 2 for n in (1, 2)), "two grants per node below the gateway")
+    procs.stop("gateway", signal.SIGKILL)  # mid-whatever: one file holds both roles
+    credited = _status(tmp / "gw.json")["upstream"]["credited_uj"]
+    gw_status.unlink()
+    _gateway(procs)
+    _wait(lambda: gw_status.exists(), "the gateway restarting")
+    done = committed(1) + committed(2)
+    _wait(lambda: committed(1) + committed(2) > done + 2, "grants below after the restart")
+    _wait(
+        lambda: _status(gw_status)["upstream"]["credited_uj"] > credited,
+        "a grant from the root after the restart",
+    )
+    assert _status(gw_status)["upstream"]["joins"] == 0  # its books survived: no JOIN
+
+    assert procs.stop("gateway") == 0, procs.stderr("gateway")  # settles below, then exits
+    assert procs.stop("root") == 0, procs.stderr("root")
+    for node in (1, 2):
+        assert procs.stop(f"node{node}") == 0, procs.stderr(f"node{node}")
+    root, gw = _status(tmp / "root-status.json"), _status(gw_status)
+    nodes = [_status(tmp / f"n{n}.json") for n in (1, 2)]
+    tree = TreeLedger(
+        {
+            "root": ledger_from_status(root, [gw["upstream"]]),
+            "gateway": ledger_from_status(gw, nodes),
+        },
+        {"gateway": gw["link_gap_uj"]},
+    )
+    assert tree.passive, tree.as_json()
+    assert root["nodes"][str(GW)]["admitted"] == 1  # the gateway's first start only
+    assert sum(n["spent_uj"] for n in nodes) > 0

@@ -11,6 +11,7 @@ from test_vcan import Procs, _python, _status, _wait
 from test_vcan import procs as procs  # the fixture
 from test_zenoh_bus import endpoint, free_port, site
 
+from canergy.cli import main
 from canergy.ledger import TreeLedger, ledger_from_status
 
 GW = 7
@@ -61,4 +62,7 @@ def test_root_and_gateway_processes_over_zenoh_survive_kill_9(procs: Procs) -> N
     levels["gateway"] = ledger_from_status(gw, [_status(tmp / "n1.json")])
     tree = TreeLedger(levels, {"gateway": gw["link_gap_uj"]})
     assert tree.passive, tree.as_json()
+    files = [str(tmp / name) for name in ("root-status.json", "gw-status.json", "n1.json")]
+    argv = ["ledger", "--level", files[0], files[1], "--level", files[1], files[2]]
+    assert main(argv) == 0  # the same books, closed by the command
     assert root_books["nodes"][str(GW)]["admitted"] == admitted  # no JOIN after the restart

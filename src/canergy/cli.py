@@ -9,7 +9,15 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from canergy import __version__, cli_gateway, cli_inspect, cli_keys, cli_live, cli_sim
+from canergy import (
+    __version__,
+    cli_gateway,
+    cli_inspect,
+    cli_keys,
+    cli_ledger,
+    cli_live,
+    cli_sim,
+)
 from canergy.cli_args import (
     COUNT_MAX,
     bounded_int,
@@ -483,6 +491,7 @@ def build_parser() -> argparse.ArgumentParser:
     _rules_parser(sub)
     cli_live.add_parsers(sub)
     cli_gateway.add_parsers(sub)
+    cli_ledger.add_parsers(sub)
     cli_sim.add_parsers(sub)
     cli_inspect.add_parsers(sub)
     cli_keys.add_parsers(sub)
@@ -502,6 +511,7 @@ _COMMANDS = {
     "rules": _run_rules,
     **cli_live.COMMANDS,
     **cli_gateway.COMMANDS,
+    **cli_ledger.COMMANDS,
     **cli_sim.COMMANDS,
     **cli_inspect.COMMANDS,
     **cli_keys.COMMANDS,

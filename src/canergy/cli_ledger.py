@@ -1,0 +1,102 @@
+"""``canergy ledger``: the conservation ledger of a running tree, from its status files.
+
+Each ``--level SUPERVISOR CLIENT...`` names one bus: the status file of its supervisor (``canergy
+supervisor`` or the downstream side of ``canergy gateway``) and those of its clients (node
+emulators, C nodes, or gateways, whose ``upstream`` part is their client record). Every gateway
+named as a supervisor adds its link between its two roles. Exit 1 when any level created energy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from canergy.ledger import Ledger, TreeLedger, ledger_from_status
+from canergy.units import format_energy
+
+
+def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "ledger",
+        help="the conservation ledger of a bus or a tree of buses, from status files",
+        description="Close the books over one bus or a tree: for each --level give the status "
+        "file of its supervisor (or gateway) and of its clients (a gateway's status file counts "
+        "as a client of the level above). Exit status 0 when no level and no gateway created "
+        "energy, 1 otherwise.",
+    )
+    p.add_argument(
+        "--level",
+        nargs="+",
+        action="append",
+        required=True,
+        type=Path,
+        metavar=("SUPERVISOR", "CLIENT"),
+        help="a supervisor's status file, then its clients' (repeat for every bus)",
+    )
+    p.add_argument("--json", action="store_true", help="print the ledger as JSON")
+
+
+def _read(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: not a readable status file ({exc})") from exc
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: not a status file (a JSON object)")
+    return data
+
+
+def _client(path: Path, status: dict[str, Any]) -> dict[str, Any]:
+    """A client's record: a node's status, or a gateway's upstream part."""
+    record = status.get("upstream", status) if status.get("role") == "gateway" else status
+    if not isinstance(record, dict) or "credited_uj" not in record:
+        raise ValueError(f"{path}: not a client's status (no credited_uj)")
+    return record
+
+
+def tree_from_files(levels: list[list[Path]]) -> TreeLedger:
+    books: dict[str, Ledger] = {}
+    gaps: dict[str, int] = {}
+    for supervisor, *clients in levels:
+        status = _read(supervisor)
+        if "nodes" not in status or "initial_uj" not in status:
+            raise ValueError(f"{supervisor}: not a supervisor's or gateway's status file")
+        name = str(supervisor)
+        try:
+            books[name] = ledger_from_status(status, [_client(c, _read(c)) for c in clients])
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"--level {supervisor}: a status file lacks {exc}") from None
+        except ValueError as exc:  # clients that do not match the supervisor's nodes
+            raise ValueError(f"--level {supervisor}: {exc}") from None
+        if status.get("role") == "gateway":
+            gaps[name] = int(status["link_gap_uj"])
+    return TreeLedger(books, gaps)
+
+
+def run_ledger(args: argparse.Namespace) -> int:
+    try:
+        tree = tree_from_files(args.level)
+    except ValueError as exc:  # as a CLI error, naming the file
+        print(f"canergy ledger: error: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(tree.as_json(), indent=2))
+    else:
+        for name, led in tree.levels.items():
+            print(
+                f"{name}: in {format_energy(led.initial + led.injected - led.withdrawn)}, held "
+                f"{format_energy(led.held)}, dissipated {format_energy(led.dissipated)}"
+            )
+        for name, gap in tree.link_gaps.items():
+            print(f"{name}: gateway link gap {gap} µJ")
+        print(
+            f"tree: dissipated {format_energy(tree.dissipated)}: "
+            + ("PASSIVE" if tree.passive else "VIOLATION: energy created")
+        )
+    return 0 if tree.passive else 1
+
+
+COMMANDS = {"ledger": run_ledger}

@@ -180,7 +180,7 @@ def test_the_ledger_command_closes_the_tree_from_status_files(
     assert "PASSIVE" in capsys.readouterr().out
     # a gateway whose roles disagree (energy made between them) is caught
     status = json.loads(Path(gw).read_text())
-    status["link_gap_uj"] = 1000
+    status["injected_uj"] += 1000  # more below than ever left the upstream role
     Path(gw).write_text(json.dumps(status))
     assert main([*argv, "--json"]) == 1
     assert json.loads(capsys.readouterr().out)["passive"] is False
@@ -212,7 +212,7 @@ def test_the_state_file_keeps_both_roles(tmp_path: Path) -> None:
 
 def test_the_state_file_refuses_roles_that_disagree(tmp_path: Path) -> None:
     path, state = _state(tmp_path)
-    up = replace(state.up, spent=state.up.spent - 1000, usable=1000)
+    up = replace(state.up, spent=state.up.spent - 1000)
     save_gateway(path, GatewayState(up, state.down), "hardened", fsync=False)
     with pytest.raises(StateFileError, match="roles disagree by 1000"):
         load_gateway(path, "hardened", GW, NODES)
@@ -227,7 +227,46 @@ def test_the_state_file_refuses_roles_that_disagree(tmp_path: Path) -> None:
 
 def test_a_gateway_that_was_joining_joins_again(tmp_path: Path) -> None:
     gw = Gateway(GW, NODES)
-    gw.books_lost(1, 0)
     path = tmp_path / "gw.json"
+    save_gateway(path, gw.state, "hardened", fsync=False)  # blank, never admitted
+    assert load_gateway(path, "hardened", GW, NODES).up.phase is Phase.JOINING
+    gw.books_lost(1, 0)
     save_gateway(path, gw.state, "hardened", fsync=False)
     assert load_gateway(path, "hardened", GW, NODES).up.phase is Phase.JOINING
+    path.write_text(path.read_text().replace('"credited_uj":0', '"credited_uj":5000'))
+    with pytest.raises(StateFileError, match="joining has no upstream books"):
+        load_gateway(path, "hardened", GW, NODES, accept_edited=True)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "why"),
+    [
+        ("usable_uj", 1000, "forwards what it is credited"),
+        ("return_pending_uj", 500, "not a whole number of mJ"),
+        ("return_pending_uj", 70_000_000, "above"),
+        ("last_tx", -1, "negative"),
+    ],
+)
+def test_the_state_file_refuses_an_upstream_record_no_gateway_writes(
+    tmp_path: Path, field: str, value: int, why: str
+) -> None:
+    path, _ = _state(tmp_path)
+    books = json.loads(path.read_text())
+    books["upstream"][field] = value
+    path.write_text(json.dumps(books))
+    with pytest.raises(StateFileError, match=why):
+        load_gateway(path, "hardened", GW, NODES, accept_edited=True)
+
+
+def test_a_gateway_killed_before_it_was_admitted_joins_again(tmp_path: Path) -> None:
+    """No supervisor above yet: the gateway waits for ADMIT; its file says it is joining, so
+    after a restart it joins again instead of trusting a blank record."""
+    with tree(tmp_path) as t:
+        t.start_gateway()
+        t.wait(lambda: t.status("gw")["upstream"]["joining"])
+        t.stop("gateway")
+        assert json.loads((tmp_path / "gw.json").read_text())["upstream"]["joining"] == 1
+        t.start_root()
+        t.start_gateway()
+        t.wait(lambda: t.status("gw")["upstream"]["credited_uj"] > 0)
+        assert t.status("gw")["upstream"]["joins"] == 1  # joined again at the restart

@@ -108,7 +108,8 @@ def _demo_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> No
         "--resets",
         type=bounded_int(0, 100),
         default=2,
-        help="power losses of random nodes (or the supervisor) during the run",
+        help="power losses of random nodes (or the supervisor) during the run; --topology tree: "
+        "of gateways, and as many of nodes, and one of the root when above 0",
     )
     p.add_argument(
         "--commit-ratio",
@@ -147,7 +148,7 @@ def _run_tree(args: argparse.Namespace) -> int:
     cfg = TreeConfig(
         gateways=args.gateways,
         nodes=args.nodes,
-        initial=args.initial or TreeConfig().initial,
+        initial=TreeConfig().initial if args.initial is None else args.initial,
         duration_us=args.duration or TreeConfig().duration_us,
         faults=FaultProfile(
             loss=args.loss, duplicate=args.duplicate, reorder=args.reorder, corrupt=args.corrupt
@@ -155,6 +156,7 @@ def _run_tree(args: argparse.Namespace) -> int:
         seed=args.seed,
         gateway_resets=args.resets,
         node_resets=args.resets,
+        root_resets=min(args.resets, 1),
         commit_ratio=args.commit_ratio,
     )
     result = run_tree(cfg)
@@ -172,7 +174,7 @@ def _run_demo(args: argparse.Namespace) -> int:
         nodes=args.node_ids or tuple(range(1, args.nodes + 1)),
         transactions=args.transactions or 200,
         duration_us=args.duration or 300 * US_PER_S,
-        initial=args.initial or 10 * UJ_PER_J,
+        initial=10 * UJ_PER_J if args.initial is None else args.initial,
         variant=args.variant,
         faults=FaultProfile(
             loss=args.loss, duplicate=args.duplicate, reorder=args.reorder, corrupt=args.corrupt
@@ -202,7 +204,8 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
             "Breadth-first exploration of one supervisor, K clients and the frames in flight "
             "under every interleaving of deliveries, losses, duplicates, timer expiries, "
             "power losses and an attacker's forged or replayed frames, checking the "
-            "conservation ledger in every state. Exit status 1 when "
+            "conservation ledger in every state (--topology chain: a root supervisor, a gateway "
+            "and K nodes below it, the ledger of every level). Exit status 1 when "
             f"energy can be generated, 0 otherwise. Every bound is at most {CHECK_BOUND_MAX} "
             "(--clients at most 8): the state space grows exponentially in each."
         ),
@@ -316,8 +319,9 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
     p.add_argument(
         "--broken-gateway",
         choices=BROKEN_RULES,
-        help="--topology chain with a gateway rule broken on purpose (early-grant: grants "
-        "below what the intention above holds, before its commit): shows a counterexample",
+        help="--topology chain with a gateway rule broken on purpose, to see a counterexample: "
+        "early-grant grants below what the intention above holds before its commit; "
+        "split-save writes the two roles to two files, one after the other",
     )
 
 
@@ -329,6 +333,8 @@ _NOT_IN_CHAIN = (
     "timeouts",
     "no_returns",
     "no_spending",
+    "no_symmetry",
+    "no_subsumption",
 )
 
 

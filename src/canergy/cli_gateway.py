@@ -55,7 +55,9 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     p.add_argument(
         "--return-above",
         type=energy,
-        help="return the downstream usable budget above this upstream (default: keep it)",
+        help="return the downstream usable budget above this upstream (default: keep it); keep "
+        "it above the --target the supervisor above gives this gateway, or the two would pass "
+        "the same energy back and forth",
     )
     add_duration(p, "--telemetry-period", 100_000, "time between level reports upstream")
     add_duration(
@@ -90,7 +92,12 @@ def _build(args: argparse.Namespace, now: int) -> tuple[Gateway, bool]:
     state = None
     if args.state.exists():
         state = load_gateway(
-            args.state, "hardened", args.node, nodes, accept_edited=args.accept_edited_state
+            args.state,
+            "hardened",
+            args.node,
+            nodes,
+            accept_edited=args.accept_edited_state,
+            on_edited=lambda why: print(f"canergy gateway: warning: {why}", file=sys.stderr),
         )
     gateway = Gateway(
         args.node,
@@ -118,13 +125,25 @@ def _upstream_bus(args: argparse.Namespace, codec: Codec) -> Any:
     return FaultyBus(bus, FaultInjector(profile, random.Random(args.fault_seed)))
 
 
+def _check_buses(args: argparse.Namespace) -> None:
+    """The two legs are two buses (or two identifier blocks of one): a gateway that heard its
+    own downstream frames as its upstream supervisor's would credit itself."""
+    same = (
+        args.interface == args.upstream_interface
+        and args.channel == args.upstream_channel
+        and args.id_base == args.upstream_id_base
+    )
+    if same:
+        raise ValueError(
+            "the upstream and downstream buses are the same bus and identifier block: give "
+            "--upstream-channel another bus (or --upstream-id-base another block)"
+        )
+
+
 def run_gateway(args: argparse.Namespace) -> int:
     if args.target is not None and args.target < QUANTUM_UJ:
         raise ValueError("--target must be at least 1 mJ")
-    if None not in (args.return_above, args.target) and args.return_above < args.target:
-        raise ValueError(
-            "--return-above below --target would return what the nodes are topped up from"
-        )
+    _check_buses(args)
     _check_widths(args)
     _check_state(args)
     now = monotonic_us()
@@ -148,16 +167,16 @@ def run_gateway(args: argparse.Namespace) -> int:
     try:
         up_bus = _upstream_bus(args, up_codec)
         control = ControlServer(args.control) if args.control is not None else None
-        service = DownstreamService(gateway.down, config, now, save=files.save)
         uplink = Uplink(
             gateway,
             UplinkConfig(telemetry_period_us=args.telemetry_period, return_above=args.return_above),
             files,
             now,
         )
-        service.uplink = uplink
-        if without_books:
+        if without_books:  # JOINING before the first save: a blank record is never trusted
             uplink.start_without_books(secrets.randbits(16), now)
+        service = DownstreamService(gateway.down, config, now, save=files.save)  # saves once
+        service.uplink = uplink
         up = BusRuntime(up_bus, uplink, codec=up_codec, receives=Direction.TO_CLIENT)
         down = BusRuntime(down_bus, service, codec=down_codec, receives=Direction.TO_SUPERVISOR)
         uplink.counters, service.bus_counters = up.counters, down.counters

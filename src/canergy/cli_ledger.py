@@ -1,4 +1,7 @@
-"""``canergy ledger``: the conservation ledger of a running tree, from its status files.
+"""``canergy ledger``: the conservation ledger of a tree, from its processes' status files.
+
+The files must show one moment: taken from a stopped tree (each process writes its status at
+exit), or they may disagree by what was in flight between two writes.
 
 Each ``--level SUPERVISOR CLIENT...`` names one bus: the status file of its supervisor (``canergy
 supervisor`` or the downstream side of ``canergy gateway``) and those of its clients (node
@@ -71,8 +74,12 @@ def tree_from_files(levels: list[list[Path]]) -> TreeLedger:
             raise ValueError(f"--level {supervisor}: a status file lacks {exc}") from None
         except ValueError as exc:  # clients that do not match the supervisor's nodes
             raise ValueError(f"--level {supervisor}: {exc}") from None
-        if status.get("role") == "gateway":
-            gaps[name] = int(status["link_gap_uj"])
+        if status.get("role") == "gateway":  # recomputed, not taken from the file's claim
+            try:
+                spent = int(status["upstream"]["spent_uj"])
+                gaps[name] = int(status["injected_uj"]) - int(status["withdrawn_uj"]) - spent
+            except (KeyError, TypeError, ValueError) as exc:
+                raise ValueError(f"{supervisor}: a gateway's status file lacks {exc}") from None
     return TreeLedger(books, gaps)
 
 

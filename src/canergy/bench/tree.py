@@ -3,10 +3,11 @@
 Each node draws power and is topped up by its gateway, each gateway by the root, through the
 codec and a mildly lossy channel per bus. Measured per tree: transactions completed (all
 levels), per second of virtual time and per CPU second of this process, CPU µs per transaction,
-and memory per node: what ``tracemalloc`` sees held by the large tree's run minus the small one's,
-over the nodes it adds (a shorter run). The bus's
-bandwidth is not modelled: the virtual-time rate is the load the cores carried, not what one
-CAN bus would carry.
+and memory per node. The CPU is the simulator's: every core (root, gateways, nodes), the
+workload, the codec and the channels in one process. Memory per node: what ``tracemalloc`` sees
+held by the large tree's run minus the small one's, over the nodes it adds (a shorter run). The
+bus's bandwidth is not modelled: the virtual-time rate is the load the cores carried, not what
+one CAN bus would carry.
 """
 
 from __future__ import annotations

@@ -6,8 +6,10 @@ frames in flight are a multiset); root, gateway and nodes lose power (the gatewa
 restart from their one record). Time is abstract, as in ``model``. After every step the tree's
 ledger is checked: no level, and no gateway between its roles, may create energy.
 
-``broken="early-grant"`` replaces the gateway's forward rule by one that grants downstream what
-the upstream intention holds before the upstream commit: a counterexample follows.
+Two gateway rules can be broken on purpose, each yielding a counterexample: ``early-grant``
+grants downstream what the upstream intention holds before the upstream commit;
+``split-save`` keeps the two roles in two files written one after the other, and a power loss
+between the two writes (``gateway_torn_write``) restarts the upstream role from its older record.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from canergy.ledger import TreeLedger, ledger
 from canergy.messages import Direction, Message, ToClient, ToSupervisor
 
 GATEWAY_NODE = 1
-BROKEN_RULES = ("early-grant",)
+BROKEN_RULES = ("early-grant", "split-save")
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,7 +82,10 @@ class ChainWorld:
     duplicated: int = 0
     power_lost: int = 0
     advanced: int = 0
-    """The broken rule only: energy granted downstream ahead of an upstream commit."""
+    """``early-grant`` only: energy granted downstream ahead of an upstream commit."""
+    torn: ClientState | None = None
+    """``split-save`` only: the upstream record before the latest step that changed both roles'
+    records; the downstream file was written first, so a crash in between restarts from it."""
 
     def ledger(self) -> TreeLedger:
         gw = self.gateway
@@ -109,11 +114,14 @@ class Kind(Enum):
     DUPLICATE = "duplicate"
     ROOT_POWER_LOSS = "root_power_loss"
     GATEWAY_POWER_LOSS = "gateway_power_loss"
+    GATEWAY_TORN_WRITE = "gateway_torn_write"
     NODE_POWER_LOSS = "node_power_loss"
 
 
 CHANNEL = frozenset({Kind.DELIVER, Kind.LOSE, Kind.DUPLICATE})
-POWER = frozenset({Kind.ROOT_POWER_LOSS, Kind.GATEWAY_POWER_LOSS, Kind.NODE_POWER_LOSS})
+POWER = frozenset(
+    {Kind.ROOT_POWER_LOSS, Kind.GATEWAY_POWER_LOSS, Kind.GATEWAY_TORN_WRITE, Kind.NODE_POWER_LOSS}
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -205,6 +213,8 @@ class ChainModel:
         if w.power_lost < b.power_losses:
             yield ChainStep(Kind.ROOT_POWER_LOSS)
             yield ChainStep(Kind.GATEWAY_POWER_LOSS)
+            if w.torn is not None:
+                yield ChainStep(Kind.GATEWAY_TORN_WRITE)
             for c in w.nodes:
                 yield ChainStep(Kind.NODE_POWER_LOSS, c.node)
 
@@ -242,6 +252,10 @@ class ChainModel:
             return self._to_root(w, POWER_LOSS)
         if k in (Kind.ROOT_BEGIN, Kind.ROOT_DECIDE, Kind.ROOT_TIMER):
             return self._to_root(w, _event(step))
+        if k is Kind.GATEWAY_TORN_WRITE:  # the upstream file still holds the older record
+            assert w.torn is not None
+            w = evolve(w, gateway=evolve(w.gateway, up=w.torn), torn=None)
+            return self._gateway(w, lambda g: _no_actions(g.power_loss(0)))
         if k is Kind.GATEWAY_POWER_LOSS:
             return self._gateway(w, lambda g: _no_actions(g.power_loss(0)))
         if k is Kind.GATEWAY_COMMAND_TIMER:
@@ -296,7 +310,7 @@ class ChainModel:
         down = w.gateway.down
         step = self.variant.supervisor.step(self.timing, down.sessions[node - 1], event, 0)
         gateway = evolve(w.gateway, down=apply_session(down, node - 1, step))
-        return _sent(evolve(w, gateway=gateway), "down", step.actions)
+        return _sent(evolve(w, gateway=gateway, torn=None), "down", step.actions)
 
     def _to_node(self, w: ChainWorld, node: int, event: Event) -> ChainWorld:
         c, actions = self.variant.client.step(self.timing, w.nodes[node - 1], event, 0)
@@ -317,7 +331,10 @@ class ChainModel:
         if isinstance(g, EarlyGrantGateway):
             g.advanced = w.advanced
         actions = act(g)
-        w = evolve(w, gateway=g.state, advanced=getattr(g, "advanced", 0))
+        torn = None
+        if self.broken == "split-save" and g.state.down != w.gateway.down:
+            torn = w.gateway.up if g.state.up != w.gateway.up else None
+        w = evolve(w, gateway=g.state, advanced=getattr(g, "advanced", 0), torn=torn)
         return _sent(w, "up", actions)
 
 

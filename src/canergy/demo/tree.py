@@ -5,12 +5,13 @@ Virtual time, one seeded event queue. Every frame goes through the codec (CRC in
 bus of its own for its nodes. Gateways run ``canergy.core.gateway.Gateway`` (the live gateway's
 core); the root and the gateways top up from TELEMETRY like ``canergy supervisor --target``,
 gateways return what they hold above ``gateway_return_above``, nodes spend and return. Power
-losses strike gateways (a ``kill -9`` and restart from their one record), nodes and the root.
+losses strike gateways, nodes and the root: each restarts from its persistent record (what the
+gateway's one state file holds; the live gateway's file is tested on its own).
 
 A *work* phase grants for ``duration_us``; then a *drain* phase grants nothing, nodes return all
 they hold and gateways return everything upstream, until the tree is quiet. The tree's ledger
 (every level and every gateway's link) is checked after every event (``observe_every=1``) or
-every that many events.
+every that many events; with 0, only at the end (the scale bench).
 """
 
 from __future__ import annotations
@@ -396,7 +397,8 @@ class TreeRun:
                 self.draining = self.now >= self.cfg.duration_us
                 self.tick()
                 next_tick += TICK_US
-                self.observe()
+                if self.cfg.observe_every:
+                    self.observe()
                 if self.draining and self.quiet() and self.all_returned():
                     finished = True
                     break
@@ -452,7 +454,7 @@ def format_tree(r: TreeResult) -> str:
         f"reorder {cfg.faults.reorder:g}, corrupt {cfg.faults.corrupt:g})",
         f"power losses: root {r.resets['root']}, gateways {r.resets['gateways']}, "
         f"nodes {r.resets['nodes']}; {r.frames_sent:,} frames sent, {r.frames_lost:,} lost, "
-        f"{r.decode_errors:,} dropped by the CRC; {r.virtual_us / US_PER_S:.1f} s virtual",
+        f"{r.decode_errors:,} refused by the codec (CRC); {r.virtual_us / US_PER_S:.1f} s virtual",
         "",
         f"{'level':<12}{'committed':>10}{'aborted':>9}{'written off':>13}"
         f"{'held (J)':>11}{'dissipated (J)':>16}",

@@ -7,6 +7,7 @@ several buses) are only ever called from the loop's thread.
 
 from __future__ import annotations
 
+import logging
 import queue
 import threading
 import time
@@ -16,6 +17,12 @@ import can
 
 from canergy.live.runtime import BusRuntime
 
+log = logging.getLogger(__name__)
+
+QUEUE_FRAMES = 8192
+"""Frames waiting for the loop, all buses; beyond, a frame is dropped and counted (lost, for the
+protocol) rather than memory and every deadline growing while the loop is held up."""
+
 
 class BusGroup:
     """Drive ``runtimes`` from one thread; ``close`` stops the readers (not the buses)."""
@@ -23,7 +30,8 @@ class BusGroup:
     def __init__(self, runtimes: Sequence[BusRuntime], max_batch: int = 512) -> None:
         self.runtimes = tuple(runtimes)
         self.max_batch = max_batch
-        self._frames: queue.Queue[tuple[int, can.Message]] = queue.Queue()
+        self._frames: queue.Queue[tuple[int, can.Message]] = queue.Queue(QUEUE_FRAMES)
+        self.dropped = 0
         self._running = True
         self._readers = [
             threading.Thread(target=self._read, args=(i,), name=f"canergy-bus-{i}", daemon=True)
@@ -41,13 +49,19 @@ class BusGroup:
                 runtime.counters.receive_errors += 1
                 time.sleep(0.1)
                 continue
-            except Exception:  # a bus closed under us at shutdown
+            except Exception:  # a bus closed under us at shutdown, or a driver's own error
                 if self._running:
+                    log.exception("bus %d: receive failed; retrying", i)
                     runtime.counters.receive_errors += 1
                     time.sleep(0.1)
                 continue
-            if frame is not None:
-                self._frames.put((i, frame))
+            if frame is None:
+                continue
+            try:
+                self._frames.put_nowait((i, frame))
+            except queue.Full:
+                self.dropped += 1
+                runtime.counters.receive_errors += 1
 
     def poll(self, max_wait_s: float = 0.1) -> None:
         """Wait for a frame on any bus (at most until the earliest deadline), hand over what is

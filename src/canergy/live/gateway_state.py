@@ -12,6 +12,7 @@ trusting the blank record.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +28,7 @@ from canergy.live.state_file import (
     read_json,
     state_json,
 )
-from canergy.messages import MAX_NODE, MIN_NODE, USABLE_MAX_UJ
+from canergy.messages import AMOUNT_MAX_MJ, MAX_NODE, MIN_NODE, QUANTUM_UJ
 
 FORMAT = "canergy-gateway-state"
 VERSION = 1
@@ -75,23 +76,34 @@ def save_gateway(path: Path, state: GatewayState, variant: str, *, fsync: bool =
 
 
 def load_gateway(
-    path: Path, variant: str, node: int, nodes: tuple[int, ...], *, accept_edited: bool = False
+    path: Path,
+    variant: str,
+    node: int,
+    nodes: tuple[int, ...],
+    *,
+    accept_edited: bool = False,
+    on_edited: Callable[[str], None] | None = None,
 ) -> GatewayState:
-    """Read and check ``path`` for gateway ``node`` over ``nodes``; refused naming the field."""
+    """Read and check ``path`` for gateway ``node`` over ``nodes``; refused naming the field. A
+    missing or wrong checksum is taken only with ``accept_edited`` (``on_edited`` hears it)."""
     data = read_json(path)
     check = FieldChecker(path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise StateFileError(f"{path}: not a {FORMAT} file")
     check.fields(data, "", _TOP, optional=("checksum",))
-    if data["version"] != VERSION:
+    if type(data["version"]) is not int or data["version"] != VERSION:
         check.refuse("version", f"{data['version']!r} is not {VERSION}")
     if data["variant"] != variant:
         raise StateFileError(f"{path}: written by variant {data['variant']!r}, not {variant!r}")
-    if not accept_edited and data.get("checksum") != books_checksum(data):
-        raise StateFileError(
-            f"{path}: checksum: missing or not matching the books (edited by hand?); check the "
-            f"books, then pass {ACCEPT_EDITED} to take it as it is"
-        )
+    if data.get("checksum") != books_checksum(data):
+        problem = "missing or not matching the books (edited by hand?)"
+        if not accept_edited:
+            raise StateFileError(
+                f"{path}: checksum: {problem}; check the books, then pass {ACCEPT_EDITED} to "
+                "take it as it is"
+            )
+        if on_edited is not None:
+            on_edited(f"{path}: checksum {problem}; taken as it is ({ACCEPT_EDITED})")
     up = _upstream(check, data["upstream"], node)
     down = check.books(data["downstream"], variant)
     extra = sorted({s.node for s in down.sessions} - set(nodes))
@@ -113,22 +125,31 @@ def load_gateway(
 
 
 def _upstream(check: FieldChecker, raw: object, node: int) -> ClientState:
+    """The upstream record. One never admitted (blank: what a new client holds) is JOINING: the
+    gateway joins again rather than trust it, whatever its ``joining`` field says."""
     v = check.fields(raw, "upstream", _UPSTREAM)
     found = check.integer(v, "upstream", "node", MAX_NODE)
     if found != node or found < MIN_NODE:
         check.refuse("upstream.node", f"{found}, but this gateway is node {node} (--node)")
     outcome = Outcome[check.name(v, "upstream", "outcome", (o.name for o in Outcome))]
-    unknown = check.integer(v, "upstream", "credited_unknown", 1)
-    joining = check.integer(v, "upstream", "joining", 1)
-    return ClientState(
+    if check.integer(v, "upstream", "usable_uj"):
+        check.refuse("upstream.usable_uj", "a gateway forwards what it is credited: 0")
+    pending = check.integer(v, "upstream", "return_pending_uj", AMOUNT_MAX_MJ * QUANTUM_UJ)
+    if pending % QUANTUM_UJ:
+        check.refuse("upstream.return_pending_uj", f"{pending} µJ is not a whole number of mJ")
+    up = ClientState(
         node,
-        usable=check.integer(v, "upstream", "usable_uj", USABLE_MAX_UJ),
         credited=check.integer(v, "upstream", "credited_uj"),
         spent=check.integer(v, "upstream", "spent_uj"),
         last_tx=check.integer(v, "upstream", "last_tx"),
         outcome=outcome,
         return_seq=check.integer(v, "upstream", "return_seq"),
-        return_pending=check.integer(v, "upstream", "return_pending_uj"),
-        credited_unknown=bool(unknown),
-        phase=Phase.JOINING if joining else Phase.IDLE,
+        return_pending=pending,
+        credited_unknown=bool(check.integer(v, "upstream", "credited_unknown", 1)),
     )
+    if pending and not up.return_seq:
+        check.refuse("upstream.return_pending_uj", "a return pending with return_seq 0")
+    joining = check.integer(v, "upstream", "joining", 1)
+    if joining and up != ClientState(node):
+        check.refuse("upstream.joining", "a gateway that is joining has no upstream books yet")
+    return evolve(up, phase=Phase.JOINING) if up == ClientState(node) else up

@@ -4,6 +4,7 @@ virtual buses, frames lost and duplicated on the upstream leg; the gateway's one
 from __future__ import annotations
 
 import json
+import tempfile
 import threading
 import time
 import uuid
@@ -15,12 +16,15 @@ from typing import Any
 
 import can
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from live_rig import Loop
 
 from canergy.cli import main
 from canergy.codec import Codec
 from canergy.core.gateway import Gateway, GatewayState
-from canergy.core.state import Phase
+from canergy.core.hardened import CLIENT, SUPERVISOR
+from canergy.core.state import ClientState, Outcome, Phase, Session, SupervisorState
 from canergy.ledger import TreeLedger, ledger_from_status
 from canergy.live.control import request
 from canergy.live.gateway_state import load_gateway, save_gateway
@@ -270,3 +274,42 @@ def test_a_gateway_killed_before_it_was_admitted_joins_again(tmp_path: Path) -> 
         t.start_gateway()
         t.wait(lambda: t.status("gw")["upstream"]["credited_uj"] > 0)
         assert t.status("gw")["upstream"]["joins"] == 1  # joined again at the restart
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    up=st.builds(
+        ClientState,
+        node=st.just(GW),
+        credited=st.integers(0, 10**12),
+        last_tx=st.integers(1, 10**6),
+        outcome=st.sampled_from(list(Outcome)),
+        return_seq=st.integers(1, 10**6),
+        return_pending=st.integers(0, 65_535).map(lambda mj: mj * 1000),
+        credited_unknown=st.booleans(),
+    ),
+    delivered=st.lists(st.integers(0, 10**9), min_size=3, max_size=3),
+    usable=st.integers(0, 10**9),
+    withdrawn=st.integers(0, 10**9),
+)
+def test_the_file_keeps_every_field_the_rules_persist(
+    up: ClientState, delivered: list[int], usable: int, withdrawn: int
+) -> None:
+    """Whatever the client's and the supervisor's rules persist comes back from the file."""
+    sessions = tuple(Session(n, delivered=d) for n, d in zip(NODES, delivered, strict=True))
+    injected = usable + sum(delivered) + withdrawn
+    down = SupervisorState(0, usable, injected, sessions, withdrawn)
+    state = GatewayState(replace(up, spent=injected - withdrawn), down)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "gw.json"
+        save_gateway(path, state, "hardened", fsync=False)
+        loaded = load_gateway(path, "hardened", GW, NODES)
+    assert CLIENT.persistent(loaded.up) == CLIENT.persistent(state.up)
+    assert [SUPERVISOR.persistent(s) for s in loaded.down.sessions] == [
+        SUPERVISOR.persistent(s) for s in state.down.sessions
+    ]
+    assert (loaded.down.usable, loaded.down.injected, loaded.down.withdrawn) == (
+        usable,
+        injected,
+        withdrawn,
+    )

@@ -39,8 +39,6 @@ class UplinkConfig:
     return_above: int | None = None
     """Return the downstream usable budget above this upstream (None: never)."""
     tick_us: int = 50_000
-    low_water: int = 0
-    """Flag LOW in the telemetry below this level."""
 
 
 class GatewayFiles:
@@ -144,9 +142,7 @@ class Uplink:
     def telemetry(self, now: int) -> Telemetry:
         self.next_telemetry = now + self.config.telemetry_period_us
         level = self.level()
-        flags = (Telemetry.LOW if level < self.config.low_water else 0) | (
-            Telemetry.JOINING if self.joining else 0
-        )
+        flags = Telemetry.JOINING if self.joining else 0
         return Telemetry(self.node, min(level // QUANTUM_UJ, LEVEL_MAX_MJ), flags)
 
     def _maybe_return(self, now: int) -> list[Message]:

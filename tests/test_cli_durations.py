@@ -100,7 +100,8 @@ def test_defaults_keep_their_values() -> None:
     )
     sim = build_parser().parse_args(SIMULATE)
     assert (sim.duration, sim.return_every, sim.delay_ms) == (60_000_000, 5_000_000, None)
-    assert build_parser().parse_args(["demo"]).duration == 300_000_000
+    assert build_parser().parse_args(["demo"]).duration is None  # per topology (300s, tree 60s)
+    assert build_parser().parse_args(["demo", "--duration", "2min"]).duration == 120_000_000
     assert build_parser().parse_args([*SIMULATE, "--delay-ms", "250"]).delay_ms == 250_000
 
 

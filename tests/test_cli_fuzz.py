@@ -52,6 +52,7 @@ import firmware_model.__main__ as firmware
 import firmware_model.drive.__main__ as drive
 from canergy.cli import build_parser
 from canergy.cli import main as canergy_main
+from canergy.live.bus_group import BusGroup
 from canergy.live.runtime import BusRuntime
 from firmware_model.drive.canopen_face import DriveFace
 
@@ -162,8 +163,13 @@ _TEXT = st.text(
 )
 """Anything a shell could pass (no NUL, no lone surrogate)."""
 _PATH = st.sampled_from(PATHS)
-_BUS_WORDS = {"interface": ["virtual"], "bus_kwargs": BUS_KWARGS[0], "timing": TIMINGS[0]}
-"""python-can's bus flags that take free text: a value each accepts."""
+_BUS_WORDS = {
+    "interface": ["virtual"],
+    "bus_kwargs": BUS_KWARGS[0],
+    "timing": TIMINGS[0],
+    "bus": ["virtual:fuzz:1-2"],
+}
+"""python-can's bus flags that take free text (and ``supervisor --bus``): a value each accepts."""
 
 
 def _fuzzed(parser: argparse.ArgumentParser) -> list[argparse.Action]:
@@ -246,8 +252,8 @@ def invocations(draw: st.DrawFn, name: str) -> list[str]:
         group = group_of.get(id(action))
         likely = action.required or (group is not None and group.required)
         roll = draw(st.integers(0, 9))  # 0, hypothesis's simplest draw, is the usual choice
-        if action.dest == "interface":
-            give = True
+        if action.dest == "interface":  # the bus is virtual, unless --bus names it
+            give = not any(word.startswith("--bus=") for word in argv)
         elif group is not None and id(group) in used_groups:
             give = roll == 9
         else:
@@ -306,6 +312,7 @@ def _bounded_commands() -> Iterator[None]:
 
     patches = [
         mock.patch.object(BusRuntime, "poll", _stop),  # supervisor, grant, firmware_model
+        mock.patch.object(BusGroup, "poll", _stop),  # supervisor --bus
         mock.patch.object(DriveFace, "run", _stop),  # firmware_model.drive
         mock.patch.object(canergy.cli_inspect, "open_bus", open_bus),
         mock.patch.object(canergy.check, "check", check),

@@ -113,7 +113,8 @@ def _write(path: Path, frames: list[can.Message]) -> None:
 
 def _frame(msg: Commit | Intention, t: float) -> can.Message:
     ident, data = CODEC.encode(msg)
-    return can.Message(timestamp=t, arbitration_id=ident, data=data, channel="vcan0")
+    # on the capture's own bus: the audit keeps each channel's nodes apart
+    return can.Message(timestamp=t, arbitration_id=ident, data=data, channel="virtual0")
 
 
 @pytest.mark.parametrize(

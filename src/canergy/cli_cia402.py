@@ -121,7 +121,7 @@ def check_cia402(args: argparse.Namespace) -> None:
     drives = args.cia402 or ()
     nodes = args.nodes or ()
     if not drives and not nodes:
-        raise ValueError("give --nodes, --cia402 or both")
+        raise ValueError("give --nodes, --cia402 or both (or --bus for several buses)")
     if not drives:
         return
     if set(drives) & set(nodes):

@@ -8,7 +8,7 @@ import secrets
 import sys
 from typing import Any
 
-from canergy.cli_args import add_duration, bounded_int, energy, node_ids, probability
+from canergy.cli_args import add_duration, bounded_int, energy, node_ids, probability, seed
 from canergy.cli_live import (
     _check_state,
     _check_widths,
@@ -73,7 +73,7 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
             default=0.0,
             help=f"tests and soak runs: {kind} this fraction of the frames sent upstream",
         )
-    p.add_argument("--fault-seed", type=int, default=0, help="seed of the upstream faults")
+    p.add_argument("--fault-seed", type=seed, default=0, help="seed of the upstream faults")
 
 
 def _up_timing(args: argparse.Namespace) -> Timing:
@@ -128,9 +128,13 @@ def _upstream_bus(args: argparse.Namespace, codec: Codec) -> Any:
 def _check_buses(args: argparse.Namespace) -> None:
     """The two legs are two buses (or two identifier blocks of one): a gateway that heard its
     own downstream frames as its upstream supervisor's would credit itself."""
+
+    def flag(name: str) -> object:  # python-can leaves an option not given unset
+        return getattr(args, name, None)
+
     same = (
-        args.interface == args.upstream_interface
-        and args.channel == args.upstream_channel
+        flag("interface") == flag("upstream_interface")
+        and flag("channel") == flag("upstream_channel")
         and args.id_base == args.upstream_id_base
     )
     if same:

@@ -121,7 +121,12 @@ def _show(
             continue
         out.write((json.dumps(d.as_json()) if args.json else line(d, colour=colour)) + "\n")
         for here, v in flagged:
-            out.write(json.dumps({"violation": v.as_json()}) if args.json else f"!! {here}{v.what}")
+            assert auditor is not None
+            many = auditor.channels
+            where = f"{here}{v.channel}/{v.node}: " if many and v.node is not None else here
+            out.write(
+                json.dumps({"violation": v.as_json(many)}) if args.json else f"!! {where}{v.what}"
+            )
             out.write("\n")
         if live:
             out.flush()
@@ -155,6 +160,7 @@ def run_dump(args: argparse.Namespace) -> int:
     codec = Codec(args.id_base)
     auth = _capture_auth(args, codec)
     bus = open_bus(args, [])
+    channel = getattr(args, "channel", None)
     stop = False
 
     def request_stop(signum: int, frame: object) -> None:
@@ -171,6 +177,8 @@ def run_dump(args: argparse.Namespace) -> int:
             frame = bus.recv(timeout=0.2)
             if frame is not None:
                 received += 1
+                if frame.channel is None:  # not every interface names it: the one opened
+                    frame.channel = channel
                 yield auth.describe(frame)
 
     try:
@@ -210,14 +218,15 @@ def _print_audit(report: dict[str, Any]) -> None:
         f"{report['foreign_frames']} foreign, {report['damaged_frames']} damaged, "
         f"{report['stale_frames']} stale"
     )
+    wide = max([4, *map(len, report["nodes"])])  # can1/5 in a capture of several channels
     print(
-        f"{'node':>4} {'seen':>5} {'commit':>6} {'abort':>5} {'open':>4} {'resent':>6} "
+        f"{'node':>{wide}} {'seen':>5} {'commit':>6} {'abort':>5} {'open':>4} {'resent':>6} "
         f"{'granted J':>10} {'returned J':>10} {'holdable<= J':>12}"
     )
     for node, r in report["nodes"].items():
         hold = "" if r["holdable_max_uj"] is None else f"{r['holdable_max_uj'] / 1e6:.3f}"
         print(
-            f"{node:>4} {r['transactions_seen']:>5} {r['committed']:>6} {r['aborted']:>5} "
+            f"{node:>{wide}} {r['transactions_seen']:>5} {r['committed']:>6} {r['aborted']:>5} "
             f"{r['unresolved']:>4} {r['resent_intentions']:>6} {r['granted_uj'] / 1e6:>10.3f} "
             f"{r['returned_uj'] / 1e6:>10.3f} {hold:>12}"
         )

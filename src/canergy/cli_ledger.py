@@ -37,7 +37,8 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         required=True,
         type=Path,
         metavar=("SUPERVISOR", "CLIENT"),
-        help="a supervisor's status file, then its clients' (repeat for every bus)",
+        help="a supervisor's status file, then its clients' (repeat for every bus); for a "
+        "supervisor over several buses (--bus), each client as BUS=FILE",
     )
     p.add_argument("--json", action="store_true", help="print the ledger as JSON")
 
@@ -60,6 +61,23 @@ def _client(path: Path, status: dict[str, Any]) -> dict[str, Any]:
     return record
 
 
+def _clients(paths: list[Path]) -> list[dict[str, Any]] | dict[str, list[dict[str, Any]]]:
+    """The clients' records; ``BUS=FILE`` names the bus of a supervisor over several buses."""
+    plain: list[dict[str, Any]] = []
+    by_bus: dict[str, list[dict[str, Any]]] = {}
+    for given in paths:
+        bus, eq, rest = str(given).partition("=")
+        path = Path(rest) if eq and bus and "/" not in bus else given
+        record = _client(path, _read(path))
+        if path is given:
+            plain.append(record)
+        else:
+            by_bus.setdefault(bus, []).append(record)
+    if plain and by_bus:
+        raise ValueError("give every client as BUS=FILE, or none")
+    return by_bus or plain
+
+
 def tree_from_files(levels: list[list[Path]]) -> TreeLedger:
     books: dict[str, Ledger] = {}
     gaps: dict[str, int] = {}
@@ -69,7 +87,7 @@ def tree_from_files(levels: list[list[Path]]) -> TreeLedger:
             raise ValueError(f"{supervisor}: not a supervisor's or gateway's status file")
         name = str(supervisor)
         try:
-            books[name] = ledger_from_status(status, [_client(c, _read(c)) for c in clients])
+            books[name] = ledger_from_status(status, _clients(clients))
         except (KeyError, TypeError) as exc:
             raise ValueError(f"--level {supervisor}: a status file lacks {exc}") from None
         except ValueError as exc:  # clients that do not match the supervisor's nodes

@@ -7,6 +7,7 @@ import json
 import signal
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -16,13 +17,24 @@ from canergy.codec import Codec
 from canergy.core import Supervisor, Timing
 from canergy.core.variants import VARIANTS
 from canergy.live.atomic import check_writable_dir, same_file
-from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
+from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus, open_bus_at
+from canergy.live.bus_group import BusGroup
+from canergy.live.bus_keys import parse_node_id, parse_node_name
 from canergy.live.control import ControlServer, check_control_path, request
+from canergy.live.multi_bus import (
+    BUS_SYNTAX,
+    BusPort,
+    BusRouter,
+    BusSpec,
+    bus_spec,
+    check_buses,
+    session_keys,
+)
 from canergy.live.policy import Limits, TopUp, level_room
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.state_file import ACCEPT_EDITED, load_state
-from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ, Direction
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ, Direction, Message
 from canergy.units import UJ_PER_J, US_PER_S, format_energy
 
 __all__ = ["COMMANDS", "BusOpenError", "add_parsers"]
@@ -110,7 +122,18 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         description="Run the supervisor: keep nodes topped up and/or serve one-shot grants. "
         "SIGINT/SIGTERM stop it cleanly (open transactions settle or are written off).",
     )
-    p.add_argument("--nodes", type=node_ids, help="canergy node ids, e.g. 1-5,9")
+    p.add_argument("--nodes", type=node_ids, help="canergy node ids on the -i/-c bus, e.g. 1-5,9")
+    p.add_argument(
+        "--bus",
+        action="append",
+        type=bus_spec,
+        metavar=BUS_SYNTAX,
+        help="instead of -i/-c/--nodes: one bus and its nodes, e.g. --bus socketcan:can0:1-40 "
+        "--bus socketcan:can1:1-127; repeat for every bus. All share one budget; nodes are "
+        "named BUS/NODE (can1/5) in the status, the control socket and --state. NAME defaults "
+        "to the channel; bit rates, --fd, --timing, --bus-kwargs and --id-base apply to every "
+        "bus",
+    )
     _supervisor_flags(p)
     service_flags(p)
     p.add_argument(
@@ -149,11 +172,27 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         description="Grant energy to one node. With --control, ask a running supervisor; "
         "otherwise run a supervisor on the bus for this one transaction. Exit 0 when committed.",
     )
-    g.add_argument("--node", type=bounded_int(1, 127), required=True)
+    g.add_argument(
+        "--node",
+        type=_grant_node,
+        required=True,
+        help="node id 1-127; with --control, BUS/NODE (e.g. can1/5) names a node of a "
+        "supervisor over several buses (--bus)",
+    )
     g.add_argument("--amount", type=grant_amount, required=True, help="e.g. 2J (1 mJ to 65.535 J)")
     g.add_argument("--control", type=Path, help="socket of a running supervisor")
     add_duration(g, "--timeout", 10_000_000, "wait this long for the end")
     _supervisor_flags(g)
+
+
+def _grant_node(text: str) -> int | str:
+    """``grant --node``: an id, or ``BUS/NODE`` (checked by the supervisor that has buses)."""
+    bus, sep, node = text.rpartition("/")
+    if not sep:
+        return bounded_int(1, 127)(text)
+    if not bus or parse_node_id(node) is None:
+        raise argparse.ArgumentTypeError(f"{text[:40]!r}: expected a node id 1-127 or BUS/NODE")
+    return text
 
 
 def _timing(args: argparse.Namespace) -> Timing:
@@ -166,7 +205,11 @@ def _timing(args: argparse.Namespace) -> Timing:
     )
 
 
-def _build(args: argparse.Namespace, nodes: tuple[int, ...]) -> Supervisor:
+def _build(
+    args: argparse.Namespace, nodes: tuple[int, ...], buses: tuple[str, ...] = ()
+) -> Supervisor:
+    """The core, from ``--state`` when it exists; ``buses``: bus names with ``--bus`` (``nodes``
+    are then session keys)."""
     timing = _timing(args)
     state = None
     if args.state is not None and args.state.exists():
@@ -175,7 +218,12 @@ def _build(args: argparse.Namespace, nodes: tuple[int, ...]) -> Supervisor:
             print(f"canergy {args.command}: warning: {message}", file=sys.stderr)
 
         state = load_state(
-            args.state, args.variant, nodes, accept_edited=args.accept_edited_state, on_edited=warn
+            args.state,
+            args.variant,
+            nodes,
+            buses=buses,
+            accept_edited=args.accept_edited_state,
+            on_edited=warn,
         )
     core = Supervisor(nodes, args.initial, variant=args.variant, timing=timing, state=state)
     if state is not None:
@@ -206,17 +254,21 @@ def _auth_key(args: argparse.Namespace) -> Any:
     return key
 
 
-def _auth(args: argparse.Namespace, key: Any, codec: Codec, service: SupervisorService) -> Any:
-    """The frame authenticator for ``--auth`` (None without it)."""
+def _auth(
+    args: argparse.Namespace,
+    key: Any,
+    codec: Codec,
+    freshness: Callable[[Message], int | None],
+) -> Any:
+    """The frame authenticator for ``--auth`` (None without it); ``freshness``: the service's
+    (or its port's, over several buses)."""
     if key is None:
         return None
     from canergy.auth.frames import FrameAuth, Layout
     from canergy.auth.keys import frame_auth_keys
 
     layout = Layout.FD if getattr(args, "fd", False) else Layout.CLASSIC
-    return FrameAuth(
-        codec, layout, frame_auth_keys(key), Direction.TO_SUPERVISOR, service.freshness
-    )
+    return FrameAuth(codec, layout, frame_auth_keys(key), Direction.TO_SUPERVISOR, freshness)
 
 
 def _check_eds(path: Path | None) -> None:
@@ -310,10 +362,16 @@ def _control_request(
         )
         return
     node, amount = grant.get("node"), grant.get("amount_uj")
-    if not isinstance(node, int) or not isinstance(amount, int) or amount <= 0:
-        reply({"error": "node and amount_uj must be positive integers"})
+    buses = service.config.bus_names
+    if not isinstance(amount, int) or isinstance(amount, bool) or amount <= 0:
+        reply({"error": "amount_uj must be a positive integer"})
         return
-    service.request_grant(node, amount, reply)
+    try:
+        key = parse_node_name(buses, node)
+    except ValueError as exc:
+        reply({"error": str(exc)})
+        return
+    service.request_grant(key, amount, reply)
 
 
 def _check_state(args: argparse.Namespace, *, required: bool = True) -> None:
@@ -367,7 +425,62 @@ def _check_widths(args: argparse.Namespace) -> None:
             )
 
 
+def _buses(args: argparse.Namespace) -> tuple[BusSpec, ...]:
+    """The ``--bus`` options, checked against each other and the rest (none without --bus)."""
+    specs = tuple(args.bus or ())
+    if not specs:
+        return ()
+    given = [
+        flag
+        for flag, dest in (("-i/--interface", "interface"), ("-c/--channel", "channel"))
+        if getattr(args, dest, None) is not None
+    ] + ["--nodes"] * (args.nodes is not None)
+    if given:
+        raise ValueError(
+            f"--bus names each bus's interface, channel and nodes: not with {', '.join(given)}"
+        )
+    single = [flag for flag, on in (("--canopen", args.canopen), ("--cia402", args.cia402)) if on]
+    if single:
+        raise ValueError(f"{' and '.join(single)} work on one bus (-i/-c/--nodes), not with --bus")
+    check_buses(specs)
+    if args.auth is not None:
+        seen: dict[int, str] = {}
+        for spec in specs:
+            for node in spec.nodes:
+                if node in seen:
+                    raise ValueError(
+                        f"--auth: node {node} is on bus {seen[node]} and on bus {spec.name}, and "
+                        "a node's key comes from its id alone: one could pass for the other; "
+                        "give every node a different id"
+                    )
+                seen[node] = spec.name
+    return specs
+
+
+def _announce(args: argparse.Namespace, service: SupervisorService) -> None:
+    if service.injected_this_run:
+        st, added = service.core.state, _joules(service.injected_this_run)
+        print(
+            f"canergy supervisor: injected {added} into the budget, saved in {args.state}: "
+            f"usable {_joules(st.usable)}, injected in all {_joules(st.injected)}",
+            file=sys.stderr,
+        )
+
+
+def _exit_status(service: SupervisorService) -> int:
+    if not service.stopped_by_intrusion:
+        return 0
+    report = service.intrusions.as_json()
+    print(
+        f"canergy supervisor: stopped on intrusion (--on-intrusion stop): "
+        f"{report['total']} foreign frame(s), first {report['recent'][0]['frame']}",
+        file=sys.stderr,
+    )
+    return EXIT_INTRUSION
+
+
 def run_supervisor(args: argparse.Namespace) -> int:
+    buses = _buses(args)
     if args.target is not None and args.target < QUANTUM_UJ:
         raise ValueError("--target must be at least 1 mJ")
     _check_widths(args)
@@ -376,13 +489,18 @@ def run_supervisor(args: argparse.Namespace) -> int:
             "--inject needs an energy above 0 and a supervisor that sends and keeps "
             "its --state (not --listen-only)"
         )
-    check_cia402(args)
+    if not buses:
+        check_cia402(args)
     _check_state(args, required=not args.listen_only)
     key = _auth_key(args)
     if args.canopen:
         _check_eds(args.eds)
-    nodes = tuple(sorted((*(args.nodes or ()), *(args.cia402 or ()))))
-    core = _build(args, nodes)
+    names = tuple(spec.name for spec in buses)
+    if buses:
+        nodes = session_keys(buses)
+    else:
+        nodes = tuple(sorted((*(args.nodes or ()), *(args.cia402 or ()))))
+    core = _build(args, nodes, names)
     config = ServiceConfig(
         policy=TopUp(args.target, args.min_grant) if args.target is not None else None,
         limits=_limits(args),
@@ -396,7 +514,10 @@ def run_supervisor(args: argparse.Namespace) -> int:
         fsync=not args.no_fsync,
         inject_uj=args.inject or 0,
         stop_on_intrusion=args.on_intrusion == "stop",
+        bus_names=names,
     )
+    if buses:
+        return _run_buses(args, buses, core, config, key)
     codec = Codec(args.id_base)
     filters = codec.supervisor_watch_filters()
     if args.canopen or args.cia402:
@@ -412,13 +533,7 @@ def run_supervisor(args: argparse.Namespace) -> int:
         # the socket first: a run that cannot bind it stops before the state file is written
         control = ControlServer(args.control) if args.control is not None else None
         service = SupervisorService(core, config, monotonic_us())
-        if service.injected_this_run:
-            st, added = core.state, _joules(service.injected_this_run)
-            print(
-                f"canergy supervisor: injected {added} into the budget, saved in {args.state}: "
-                f"usable {_joules(st.usable)}, injected in all {_joules(st.injected)}",
-                file=sys.stderr,
-            )
+        _announce(args, service)
         manager, reader = _canopen(args, bus, service) if args.canopen else (None, None)
         handler: Any = service
         if args.cia402:
@@ -438,18 +553,11 @@ def run_supervisor(args: argparse.Namespace) -> int:
             receives=Direction.TO_SUPERVISOR,
             listen_only=args.listen_only,
             source=reader,
-            auth=_auth(args, key, codec, service),
+            auth=_auth(args, key, codec, service.freshness),
         )
         service.bus_counters = runtime.counters
         _serve(runtime, service, control, manager=manager)
-        if service.stopped_by_intrusion:
-            report = service.intrusions.as_json()
-            print(
-                f"canergy supervisor: stopped on intrusion (--on-intrusion stop): "
-                f"{report['total']} foreign frame(s), first {report['recent'][0]['frame']}",
-                file=sys.stderr,
-            )
-            return EXIT_INTRUSION
+        return _exit_status(service)
     finally:
         if control is not None:
             control.close()
@@ -459,7 +567,51 @@ def run_supervisor(args: argparse.Namespace) -> int:
         for net in {id(n): n for n in (network, manager and manager.network) if n}.values():
             net.notifier.stop()
         bus.shutdown()
-    return 0
+
+
+def _run_buses(
+    args: argparse.Namespace,
+    specs: tuple[BusSpec, ...],
+    core: Supervisor,
+    config: ServiceConfig,
+    key: Any,
+) -> int:
+    """``--bus``: one service over every bus, a runtime per bus, one loop for them all."""
+    codec = Codec(args.id_base)
+    opened: list[Any] = []
+    control = None
+    group = None
+    try:
+        for spec in specs:
+            filters = codec.supervisor_watch_filters()
+            opened.append(open_bus_at(args, spec.interface, spec.channel, filters, spec.name))
+        # the socket first: a run that cannot bind it stops before the state file is written
+        control = ControlServer(args.control) if args.control is not None else None
+        service = SupervisorService(core, config, monotonic_us())
+        _announce(args, service)
+        router = BusRouter()
+        for i, (spec, bus) in enumerate(zip(specs, opened, strict=True)):
+            port = BusPort(service, i, router, deadlines=i == 0)
+            runtime = BusRuntime(
+                bus,
+                port,
+                codec=codec,
+                receives=Direction.TO_SUPERVISOR,
+                listen_only=args.listen_only,
+                auth=_auth(args, key, codec, port.freshness),
+            )
+            router.runtimes.append(runtime)
+            service.buses[spec.name] = runtime.counters
+        group = BusGroup(router.runtimes)
+        _serve(group, service, control)
+        return _exit_status(service)
+    finally:
+        if group is not None:
+            group.close()
+        if control is not None:
+            control.close()
+        for bus in opened:
+            bus.shutdown()
 
 
 def run_grant(args: argparse.Namespace) -> int:
@@ -474,6 +626,11 @@ def run_grant(args: argparse.Namespace) -> int:
             )
             return 2
         return _report_grant(answer)
+    if isinstance(args.node, str):
+        raise ValueError(
+            f"--node {args.node}: a node named by its bus is granted through a running "
+            "supervisor (--control)"
+        )
     _check_widths(args)
     _check_state(args)
     key = _auth_key(args)
@@ -496,7 +653,7 @@ def run_grant(args: argparse.Namespace) -> int:
             service,
             codec=codec,
             receives=Direction.TO_SUPERVISOR,
-            auth=_auth(args, key, codec, service),
+            auth=_auth(args, key, codec, service.freshness),
         )
         service.request_grant(args.node, args.amount, answers.append)
         _serve(runtime, service, None, until=lambda: bool(answers) or monotonic_us() > deadline)

@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass
 from typing import Any, NamedTuple
 
 from canergy.core.state import ClientState, Session, SupervisorState
+from canergy.live.bus_keys import session_key
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,19 +104,38 @@ def ledger(
     )
 
 
-def ledger_from_status(supervisor: dict[str, Any], clients: Iterable[dict[str, Any]]) -> Ledger:
+def ledger_from_status(
+    supervisor: dict[str, Any],
+    clients: Iterable[dict[str, Any]] | Mapping[str, Iterable[dict[str, Any]]],
+) -> Ledger:
     """The ledger from the JSON status files of a supervisor and its client emulators (or real
     nodes reporting the same keys), as the processes last wrote them. The proxies of guarded
-    CiA 402 drives are in the supervisor's own status and count as clients."""
+    CiA 402 drives are in the supervisor's own status and count as clients.
+
+    A supervisor over several buses names its nodes ``bus/node``: ``clients`` then maps each
+    bus name to the statuses of the clients on that bus (whose ``node`` is their plain id)."""
     guarded = supervisor.get("cia402", {}).get("drives", {}).values()
+    buses = list(dict.fromkeys(name.rpartition("/")[0] for name in supervisor["nodes"]))
+    if buses == [""]:  # one bus: nodes are plain ids
+        buses = []
+    if bool(buses) != isinstance(clients, Mapping):
+        raise ValueError(
+            "give the clients per bus name exactly when the supervisor names its nodes bus/node"
+        )
+
+    def key(bus: str, node: int) -> int:
+        if bus not in buses:
+            raise ValueError(f"no bus named {bus!r} in the supervisor's status")
+        return session_key(buses.index(bus), node)
+
     sessions = tuple(
         Session(
-            int(node),
+            key(*_split(name)) if buses else int(name),
             reserved=v["reserved_uj"],
             delivered=v["delivered_uj"],
             returns_credited=v["returns_credited"],
         )
-        for node, v in supervisor["nodes"].items()
+        for name, v in supervisor["nodes"].items()
     )
     sup = SupervisorState(
         supervisor["initial_uj"],
@@ -124,18 +144,28 @@ def ledger_from_status(supervisor: dict[str, Any], clients: Iterable[dict[str, A
         sessions,
         supervisor.get("withdrawn_uj", 0),
     )
+    if isinstance(clients, Mapping):
+        keyed = [(key(bus, c["node"]), c) for bus, cs in clients.items() for c in cs]
+    else:
+        keyed = [(c["node"], c) for c in (*clients, *guarded)]
     states = [
         ClientState(
-            c["node"],
+            node,
             usable=c["usable_uj"],
             credited=c["credited_uj"],
             spent=c["spent_uj"],
             return_seq=c["return_seq"],
             return_pending=c["return_pending_uj"],
         )
-        for c in (*clients, *guarded)
+        for node, c in keyed
     ]
     return ledger(sup, states)
+
+
+def _split(name: str) -> tuple[str, int]:
+    """``bus/node`` as (bus, node)."""
+    bus, _, node = name.rpartition("/")
+    return bus, int(node)
 
 
 @dataclass(frozen=True, slots=True)

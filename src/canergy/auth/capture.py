@@ -28,8 +28,9 @@ class CaptureAuth:
 
     codec: Codec
     key: Key | None
-    pending: dict[tuple[int, Direction], tuple[Described, bytes]] = field(default_factory=dict)
-    """Classic layout: per node and direction, the message whose MAC frame is still to come."""
+    pending: dict[tuple[str, int, Direction], tuple[Described, bytes]] = field(default_factory=dict)
+    """Classic layout: per channel, node and direction, the message whose MAC frame is still
+    to come."""
 
     def describe(self, frame: can.Message) -> Described:
         data = bytes(frame.data)
@@ -49,13 +50,13 @@ class CaptureAuth:
             return replace(inner, data=data, mac=self._check(inner, data[:length], fv, data[-8:]))
         d = describe(self.codec, frame)
         if d.message is not None:
-            self.pending[(d.message.node, d.message.TYPE.direction)] = (d, data)
+            self.pending[(d.channel, d.message.node, d.message.TYPE.direction)] = (d, data)
         return d
 
     def _mac_frame(self, frame: can.Message, direction: Direction, data: bytes) -> Described:
         node = frame.arbitration_id & 0xFF
         plain = describe(self.codec, frame)
-        waiting = self.pending.pop((node, direction), None)
+        waiting = self.pending.pop((plain.channel, node, direction), None)
         if len(data) != 3 + CLASSIC_MAC or waiting is None or waiting[0].message is None:
             return replace(plain, problem="MAC frame without its message", mac="BAD")
         d, body = waiting
@@ -91,17 +92,16 @@ def verified(frames: list[Described]) -> list[Described]:
     """For the audit: each message as the receivers took it. A message whose MAC failed or never
     came is kept out (``damaged``); a classic message counts where it stood in the capture."""
     verdicts: dict[int, str] = {}
-    waiting: dict[tuple[int, Direction], int] = {}
+    waiting: dict[tuple[str, int, Direction], int] = {}
     for i, d in enumerate(frames):
         if d.message is not None and d.mac is None:  # classic: waits for its MAC frame
-            waiting[(d.message.node, d.message.TYPE.direction)] = i
+            waiting[(d.channel, d.message.node, d.message.TYPE.direction)] = i
         elif d.message is not None:
             verdicts[i] = d.mac or "BAD"
         elif d.mac is not None:
             kind = d.arbitration_id >> 8 & 0xF
-            j = waiting.pop(
-                (d.arbitration_id & 0xFF, _DIRECTION.get(kind, Direction.TO_CLIENT)), -1
-            )
+            direction = _DIRECTION.get(kind, Direction.TO_CLIENT)
+            j = waiting.pop((d.channel, d.arbitration_id & 0xFF, direction), -1)
             if j >= 0:
                 verdicts[j] = d.mac
     return [

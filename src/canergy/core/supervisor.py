@@ -20,6 +20,15 @@ from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
 from canergy.messages import MAX_NODE, MIN_NODE, ToSupervisor
 
+BUS_SHIFT = 8
+"""A supervisor over several buses keys its sessions ``bus << BUS_SHIFT | node``; bus 0's keys
+are the plain node ids, so a single bus's books look as they always did."""
+
+
+def is_session_key(key: int) -> bool:
+    """A node id (1-127), or a node id above bus bits (``bus << BUS_SHIFT | node``)."""
+    return key >= 0 and MIN_NODE <= key & ((1 << BUS_SHIFT) - 1) <= MAX_NODE
+
 
 def apply_session(st: SupervisorState, i: int, step: SessionStep) -> SupervisorState:
     """Put session ``i`` back into the state and add the step's credit to Us (pure)."""
@@ -57,8 +66,11 @@ class Supervisor:
         self.rules = self.variant.supervisor
         self.timing = timing or Timing()
         node_list = sorted(set(nodes))
-        if not node_list or not all(MIN_NODE <= n <= MAX_NODE for n in node_list):
-            raise ValueError(f"nodes must be a non-empty set of ids {MIN_NODE}-{MAX_NODE}")
+        if not node_list or not all(is_session_key(n) for n in node_list):
+            raise ValueError(
+                f"nodes must be a non-empty set of ids {MIN_NODE}-{MAX_NODE} (each optionally "
+                f"above bus bits: bus << {BUS_SHIFT} | node)"
+            )
         if initial < 0:
             raise ValueError("initial budget must be >= 0")
         self.state = state or SupervisorState(

@@ -56,6 +56,10 @@ with COMMITTED: allowed), an ADMIT behind a transaction already begun, and passi
 booking (COMMITTED) more than the supervisor can have released since the capture began, or, with
 ``initial``, the net energy granted on the bus exceeding the initial budget.
 
+A capture of several buses (candump of can0 and can1, an ASC or BLF file with channels) is
+audited per bus: each (channel, node) has its own books, so node 5 on two buses are two nodes,
+reported as ``can0/5`` and ``can1/5`` when the capture has more than one channel.
+
 Limits: captures may start mid-run, so rules that need an earlier frame apply only once it was
 seen. A capture is taken to be in bus order; frames lost before the bus (a failed transmission,
 the demo's losses) are fine, but a capture that misses frames others received (candump overruns)
@@ -114,12 +118,14 @@ class Violation:
     node: int | None
     what: str
     line: str
+    channel: str = ""
 
-    def as_json(self) -> dict[str, Any]:
+    def as_json(self, channels: bool = False) -> dict[str, Any]:
+        """``channels``: the capture has several, name the node ``channel/node``."""
         return {
             "frame": self.frame,
             "timestamp": self.timestamp,
-            "node": self.node,
+            "node": node_label(self.channel, self.node, channels),
             "what": self.what,
             "line": self.line,
         }
@@ -155,6 +161,11 @@ class Starving:
     evidence: int = 0
 
 
+def node_label(channel: str, node: int | None, channels: bool) -> int | str | None:
+    """A node as reports name it: its id, or ``channel/node`` in a capture of several channels."""
+    return f"{channel}/{node}" if channels and node is not None else node
+
+
 def _live(versions: Iterable[Version]) -> list[Version]:
     return [v for v in versions if not v.forged]
 
@@ -162,6 +173,7 @@ def _live(versions: Iterable[Version]) -> list[Version]:
 @dataclass(slots=True)
 class NodeBooks:
     node: int
+    channel: str = ""
     intentions: dict[int, list[Version]] = field(default_factory=dict)
     acked: set[int] = field(default_factory=set)
     last_ack: dict[int, int] = field(default_factory=dict)
@@ -267,7 +279,8 @@ class Auditor:
         self.initial = initial
         self.reordered = reordered
         self.stale = 0
-        self.nodes: dict[int, NodeBooks] = {}
+        self.nodes: dict[tuple[str, int], NodeBooks] = {}
+        """Books per (channel, node): the same id on two buses is two nodes."""
         self.violations: list[Violation] = []
         self.frames = 0
         self.foreign = 0
@@ -282,7 +295,7 @@ class Auditor:
             self.damaged += 1  # a receiver drops it; so does the audit
             return
         m = d.message
-        b = self.nodes.setdefault(m.node, NodeBooks(m.node))
+        b = self.nodes.setdefault((d.channel, m.node), NodeBooks(m.node, d.channel))
         seen = Seen(self.frames, d.timestamp, raw_part(d))
 
         def flag(what: str) -> None:
@@ -310,7 +323,9 @@ class Auditor:
             self._admit(b, m, flag)
 
     def _flag(self, b: NodeBooks, seen: Seen, what: str) -> None:
-        self.violations.append(Violation(seen.frame, seen.timestamp, b.node, what, seen.line))
+        self.violations.append(
+            Violation(seen.frame, seen.timestamp, b.node, what, seen.line, b.channel)
+        )
 
     # -- intentions ---------------------------------------------------------------------------
     def _tx(self, b: NodeBooks, wire: int) -> int:
@@ -595,13 +610,22 @@ class Auditor:
                 )
             )
 
+    @property
+    def channels(self) -> bool:
+        """Whether the canergy frames so far came from more than one channel."""
+        return len({channel for channel, _ in self.nodes}) > 1
+
     def report(self) -> dict[str, Any]:
+        many = self.channels
         return {
             "frames": self.frames,
             "foreign_frames": self.foreign,
             "damaged_frames": self.damaged,
             "stale_frames": self.stale,
-            "nodes": {str(n): b.report() for n, b in sorted(self.nodes.items())},
-            "violations": [v.as_json() for v in self.violations],
+            "nodes": {
+                str(node_label(ch, n, many)): b.report()
+                for (ch, n), b in sorted(self.nodes.items())
+            },
+            "violations": [v.as_json(many) for v in self.violations],
             "passive": not self.violations,
         }

@@ -96,7 +96,7 @@ def describe(codec: Codec, frame: can.Message) -> Described:
     def make(message: Message | None, crc_ok: bool | None, problem: str | None) -> Described:
         return Described(
             frame.timestamp or None,
-            str(frame.channel or ""),
+            "" if frame.channel is None else str(frame.channel),  # ASC/BLF: 0 is a channel
             frame.arbitration_id,
             frame.is_extended_id,
             frame.is_remote_frame,

@@ -54,3 +54,19 @@ def open_bus(
             hint = f" (give {flag}, e.g. socketcan, pcan, kvaser, slcan, virtual)"
         which = f"the {prefix} CAN bus" if prefix else "the CAN bus"
         raise BusOpenError(f"cannot open {which}: {cause}{hint}") from cause
+
+
+def open_bus_at(
+    args: argparse.Namespace,
+    interface: str,
+    channel: str,
+    filters: list[dict[str, Any]],
+    name: str,
+) -> can.BusABC:
+    """Open ``interface``/``channel`` (one ``--bus``, called ``name``) with the other bus flags
+    of ``args``: bit rates, ``--fd``, ``--timing``, ``--bus-kwargs``."""
+    one = argparse.Namespace(**{**vars(args), "interface": interface, "channel": channel})
+    try:
+        return open_bus(one, filters)
+    except BusOpenError as exc:
+        raise BusOpenError(f"--bus {name}: {exc}") from exc.__cause__

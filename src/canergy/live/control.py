@@ -2,8 +2,10 @@
 
 Request ``{"grant": {"node": 5, "amount_uj": 2000000}}`` → reply once the transaction ends:
 ``{"node": 5, "tx": 12, "outcome": "COMMITTED", "amount_uj": 2000000}`` or ``{"error": ...}``.
-``{"status": true}`` answers the status object; ``{"stop": true}`` stops as SIGTERM does.
-Requests are queued for the supervisor's own loop; nothing here touches its state.
+A supervisor over several buses (``--bus``) names its nodes ``"node": "can1/5"`` (a plain number
+only when it has one bus). ``{"status": true}`` answers the status object; ``{"stop": true}``
+stops as SIGTERM does. Requests are queued for the supervisor's own loop; nothing here touches
+its state.
 
 The server never removes anything but a socket: a stale one left at its path by a supervisor that
 died (nobody answers there), and at close the one it created itself.

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,6 +29,8 @@ def frame_text(frame: can.Message) -> str:
 class Intrusions:
     who: str
     """Who saw them, for the log: ``supervisor`` or ``node 3``."""
+    name: Callable[[int], int | str] = int
+    """How reports name a node (a supervisor over several buses: ``bus/node``)."""
     by_node: dict[int, int] = field(default_factory=dict)
     recent: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=KEPT))
     first_at: int | None = None
@@ -41,14 +44,15 @@ class Intrusions:
         self.by_node[node] = count
         if self.first_at is None:
             self.first_at = now
-        self.recent.append({"time_us": now, "node": node, "kind": kind, "frame": what})
+        name = self.name(node)
+        self.recent.append({"time_us": now, "node": name, "kind": kind, "frame": what})
         if count == 1 or count % LOG_EVERY == 0:
-            log.warning("%s: intrusion #%d for node %d: %s (%s)", self.who, count, node, what, kind)
+            log.warning("%s: intrusion #%d for node %s: %s (%s)", self.who, count, name, what, kind)
 
     def as_json(self) -> dict[str, Any]:
         return {
             "total": self.total,
-            "by_node": {str(n): c for n, c in sorted(self.by_node.items())},
+            "by_node": {str(self.name(n)): c for n, c in sorted(self.by_node.items())},
             "first_at_us": self.first_at,
             "recent": list(self.recent),
         }

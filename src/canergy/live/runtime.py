@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import errno
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field, fields
 from typing import Any, Protocol
 
 import can
@@ -82,6 +82,27 @@ class BusCounters:
             "bus_state": self.bus_state,
             "auth_failures": dict(self.auth_failures),
         }
+
+
+_BUS_STATES = ("error", "passive", "active")
+"""python-can's bus states, worst first."""
+
+
+def total_counters(counters: Iterable[BusCounters]) -> BusCounters:
+    """Several buses' counters summed (counts by reason too); the bus state is the worst one."""
+    total = BusCounters()
+    states = set()
+    for c in counters:
+        for f in fields(BusCounters):
+            mine, theirs = getattr(total, f.name), getattr(c, f.name)
+            if isinstance(theirs, int):
+                setattr(total, f.name, mine + theirs)
+            elif isinstance(theirs, dict):
+                for reason, count in theirs.items():
+                    mine[reason] = mine.get(reason, 0) + count
+        states.add(c.bus_state)
+    total.bus_state = next((s for s in _BUS_STATES if s in states), "unknown")
+    return total
 
 
 def monotonic_us() -> int:

@@ -32,9 +32,10 @@ from canergy.core import (
 from canergy.core.errors import LocalProtocolError
 from canergy.core.state import Outcome, Phase
 from canergy.live.atomic import write_json_atomic
+from canergy.live.bus_keys import node_name
 from canergy.live.intrusions import Intrusions, frame_text
 from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant
-from canergy.live.runtime import BusCounters
+from canergy.live.runtime import BusCounters, total_counters
 from canergy.live.state_file import ENERGY_MAX_UJ, save_state
 from canergy.messages import (
     LEVEL_MAX_MJ,
@@ -107,10 +108,14 @@ class ServiceConfig:
     stop_on_intrusion: bool = False
     """A frame only this supervisor may send, from someone else: stop (grant nothing more,
     settle, exit non-zero) instead of only counting and reporting it."""
+    bus_names: tuple[str, ...] = ()
+    """Several buses (``canergy supervisor --bus``): their names in order. The core's session
+    keys are then ``bus index << 8 | node``, shown and saved as ``bus/node``."""
 
 
 class SupervisorService:
-    """Grants energy to nodes on one bus; implements ``canergy.live.runtime.Handler``."""
+    """Grants energy to nodes on one bus; implements ``canergy.live.runtime.Handler``. Over
+    several buses, ``canergy.live.multi_bus`` puts one port per bus in front of it."""
 
     def __init__(
         self,
@@ -142,8 +147,10 @@ class SupervisorService:
         """More status under ``cia402`` (the guarded drives)."""
         self.bus_counters = BusCounters()
         """Replaced by the bus loop's own counters when one drives this service."""
+        self.buses: dict[str, BusCounters] = {}
+        """Several buses: each one's counters by name (the status shows them and their sums)."""
         self.injected_this_run = 0
-        self.intrusions = Intrusions("supervisor")
+        self.intrusions = Intrusions("supervisor", name=self.node_name)
         self.stopped_by_intrusion = False
         if config.inject_uj:
             self._inject(config.inject_uj)
@@ -190,13 +197,18 @@ class SupervisorService:
             return f"answers transaction {unwrap(msg.tx, s.tx, TX_BITS)}, never begun"
         return None
 
-    def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
-        node = frame.arbitration_id & 0xFF
+    def on_decode_error(
+        self, error: DecodeError, frame: can.Message, node: int | None = None
+    ) -> None:
+        """``node``: the session key of the frame's node (default: its node id)."""
+        node = frame.arbitration_id & 0xFF if node is None else node
         if node in self.nodes:
             self.nodes[node].decode_errors += 1
 
-    def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
-        node = frame.arbitration_id & 0xFF
+    def on_foreign_direction(
+        self, frame: can.Message, now: int, node: int | None = None
+    ) -> Sequence[Message]:
+        node = frame.arbitration_id & 0xFF if node is None else node
         if node in self.nodes:
             kind = "a frame only this supervisor sends"
             self.intrusion(node, frame_text(frame), kind, now, stop=True)
@@ -213,6 +225,10 @@ class SupervisorService:
             return None
         s = self.core.session(msg.node)
         return freshness(msg, s.tx, s.returns_credited)
+
+    def node_name(self, node: int) -> int | str:
+        """A node as status, replies and the state file name it: its id, or ``bus/node``."""
+        return node_name(self.config.bus_names, node)
 
     def intrusion(self, node: int, what: str, kind: str, now: int, *, stop: bool = False) -> None:
         """Report what no honest participant sends. ``stop``: a frame in this supervisor's own
@@ -250,9 +266,10 @@ class SupervisorService:
         """Queue a one-shot grant; ``reply`` gets the outcome as a JSON-able dict."""
         info = self.nodes.get(node)
         if info is None:
-            reply({"node": node, "error": f"node {node} is not managed by this supervisor"})
+            name = self.node_name(node)
+            reply({"node": name, "error": f"node {name} is not managed by this supervisor"})
         elif self.config.listen_only or self.stopping:
-            reply({"node": node, "error": "supervisor is listen-only or stopping"})
+            reply({"node": self.node_name(node), "error": "supervisor is listen-only or stopping"})
         else:
             info.requests.append(GrantRequest(node, amount, reply))
             self.next_tick = self.now  # start it at the loop's next turn, not a tick later
@@ -269,7 +286,7 @@ class SupervisorService:
                     else "node never heard from (or still joining): nothing granted"
                 )
                 for req in [*info.requests]:
-                    req.reply({"node": req.node, "error": why})
+                    req.reply({"node": self.node_name(req.node), "error": why})
                 info.requests.clear()
 
     def finished(self, now: int) -> bool:
@@ -342,10 +359,11 @@ class SupervisorService:
     def _one_shot(self, node: int, info: NodeInfo, now: int) -> list[Message]:
         req = info.requests.popleft()
         if info.level is not None and info.level + req.amount > USABLE_MAX_UJ:
+            name = self.node_name(node)
             req.reply(
                 {
-                    "node": node,
-                    "error": f"refused: node {node} reports {format_energy(info.level)}; "
+                    "node": name,
+                    "error": f"refused: node {name} reports {format_energy(info.level)}; "
                     f"{format_energy(req.amount)} more would lift it above "
                     f"{format_energy(USABLE_MAX_UJ)}, the most its record holds",
                 }
@@ -354,7 +372,9 @@ class SupervisorService:
         amount = self._cap(req.amount, info, now)
         if amount != req.amount:
             allowed = f"{format_energy(amount)} allowed" if amount else "nothing allowed"
-            req.reply({"node": node, "error": f"refused by limits or budget ({allowed})"})
+            req.reply(
+                {"node": self.node_name(node), "error": f"refused by limits or budget ({allowed})"}
+            )
             return []
         info.active_request = req
         return self._begin(node, amount, now)
@@ -383,7 +403,7 @@ class SupervisorService:
         try:
             actions = self.core.begin(node, amount, now)
         except LocalProtocolError as exc:  # budget changed under us: report, do not crash
-            self._finish_request(node, {"node": node, "error": str(exc)})
+            self._finish_request(node, {"node": self.node_name(node), "error": str(exc)})
             return []
         self.rate.take(amount)
         req = self.nodes[node].active_request
@@ -417,9 +437,9 @@ class SupervisorService:
         info.admitted += 1
         if action.tx or action.seq:  # books existed: what it held is gone with its record
             log.warning(
-                "node %d has no books (NV lost or replaced): admitted at tx %d, return %d; "
+                "node %s has no books (NV lost or replaced): admitted at tx %d, return %d; "
                 "anything it held is written off",
-                action.node,
+                self.node_name(action.node),
                 action.tx,
                 action.seq,
             )
@@ -437,7 +457,7 @@ class SupervisorService:
         self._finish_request(
             action.node,
             {
-                "node": action.node,
+                "node": self.node_name(action.node),
                 "tx": action.tx,
                 "outcome": action.outcome.name,
                 "amount_uj": action.amount,
@@ -467,6 +487,7 @@ class SupervisorService:
                 self.core.state,
                 self.core.variant.name,
                 fsync=self.config.fsync,
+                buses=self.config.bus_names,
             )
 
     # -- status ----------------------------------------------------------------------------
@@ -475,7 +496,7 @@ class SupervisorService:
         nodes: dict[str, Any] = {}
         for s in st.sessions:
             info = self.nodes[s.node]
-            nodes[str(s.node)] = {
+            nodes[str(self.node_name(s.node))] = {
                 "state": s.phase.name,
                 "open_tx": s.tx if s.phase is not Phase.IDLE else None,
                 "reserved_uj": s.reserved,
@@ -496,6 +517,8 @@ class SupervisorService:
         reserved = sum(s.reserved for s in st.sessions)
         delivered = sum(s.delivered for s in st.sessions)
         returned = sum(s.returned for s in st.sessions)
+        counters = total_counters(self.buses.values()) if self.buses else self.bus_counters
+        buses = {name: c.as_json() for name, c in self.buses.items()}
         return {
             "role": "supervisor",
             "variant": self.core.variant.name,
@@ -520,7 +543,8 @@ class SupervisorService:
                 "holds": st.usable + reserved + delivered - returned
                 == st.initial + st.injected - st.withdrawn,
             },
-            **self.bus_counters.as_json(),
+            **counters.as_json(),
+            **({"buses": buses} if buses else {}),
             "intrusions": self.intrusions.total,
             "intrusion_report": self.intrusions.as_json(),
             "stopped_by_intrusion": self.stopped_by_intrusion,

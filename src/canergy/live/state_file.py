@@ -12,6 +12,9 @@ invariants of a session, and the supervisor-side identity ``usable + Σreserved 
 returns upstream, may be absent: 0). A file that fails is refused naming the field; a
 file whose checksum is missing or wrong (edited by hand, or version 1, which has none) only with
 ``accept_edited``, and the next save writes a fresh checksum.
+
+A supervisor over several buses (``--bus``) keys its sessions ``bus/node`` (``can1/5``); its
+file loads only with the same bus names, as one on a single bus loads only with its nodes.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
@@ -29,6 +32,7 @@ from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.core.table import SupervisorTable
 from canergy.core.variants import VARIANTS
 from canergy.live.atomic import write_atomic
+from canergy.live.bus_keys import node_name, parse_node_id, session_key
 from canergy.messages import AMOUNT_MAX_MJ, MAX_NODE, MIN_NODE, QUANTUM_UJ
 
 FORMAT = "canergy-supervisor-state"
@@ -81,8 +85,9 @@ def books_checksum(books: dict[str, Any]) -> str:
     return "sha256:" + hashlib.sha256(canonical.encode()).hexdigest()
 
 
-def state_json(state: SupervisorState, variant: str) -> dict[str, Any]:
-    """The books as saved, without the checksum."""
+def state_json(state: SupervisorState, variant: str, buses: Sequence[str] = ()) -> dict[str, Any]:
+    """The books as saved, without the checksum; ``buses``: the names of a supervisor's buses
+    (sessions keyed ``bus/node``), none on a single bus (keyed by node id)."""
     known = VARIANTS.get(variant)
     table = known.supervisor if known is not None else None
     return {
@@ -94,7 +99,7 @@ def state_json(state: SupervisorState, variant: str) -> dict[str, Any]:
         "injected_uj": state.injected,
         "withdrawn_uj": state.withdrawn,
         "sessions": {
-            str(s.node): {
+            str(node_name(buses, s.node)): {
                 "phase": (s.phase if table is None else stored_phase(table, s.phase)).name,
                 "tx": s.tx,
                 "reserved_uj": s.reserved,
@@ -108,8 +113,15 @@ def state_json(state: SupervisorState, variant: str) -> dict[str, Any]:
     }
 
 
-def save_state(path: Path, state: SupervisorState, variant: str, *, fsync: bool = True) -> None:
-    books = state_json(state, variant)
+def save_state(
+    path: Path,
+    state: SupervisorState,
+    variant: str,
+    *,
+    fsync: bool = True,
+    buses: Sequence[str] = (),
+) -> None:
+    books = state_json(state, variant, buses)
     books["checksum"] = books_checksum(books)
     text = json.dumps(books, separators=(",", ":"))  # C encoder: fast
     write_atomic(path, text.encode() + b"\n", fsync=fsync)
@@ -120,17 +132,26 @@ def load_state(
     variant: str,
     nodes: tuple[int, ...],
     *,
+    buses: Sequence[str] = (),
     accept_edited: bool = False,
     on_edited: Callable[[str], None] | None = None,
 ) -> SupervisorState:
     """Read and check ``path``; the file's nodes must all be in ``nodes`` (new nodes get fresh
-    sessions). A missing or wrong checksum is refused unless ``accept_edited``; then the file is
-    taken when it passes every other check and ``on_edited`` hears why it needed the flag."""
+    sessions). ``buses``: a supervisor over several buses, its bus names in order (``nodes`` are
+    then session keys); the file's buses must all be among them. A missing or wrong checksum is
+    refused unless ``accept_edited``; then the file is taken when it passes every other check
+    and ``on_edited`` hears why it needed the flag."""
     data = read_json(path)
-    state = FieldChecker(path).books(data, variant)
+    state = FieldChecker(path, buses).books(data, variant)
     _check_sum(path, data, accept_edited, on_edited)
     sessions = {s.node: s for s in state.sessions}
     extra = sorted(set(sessions) - set(nodes))
+    if extra and buses:
+        names = ", ".join(str(node_name(buses, key)) for key in extra)
+        raise StateFileError(
+            f"{path} holds open books for node(s) {names} not on the command line; add them "
+            "to their --bus"
+        )
     if extra:
         raise StateFileError(
             f"{path} holds open books for node(s) {extra} not in --nodes; add them to --nodes"
@@ -245,8 +266,10 @@ def _at(where: str, key: str) -> str:
 class FieldChecker:
     """Checks the parsed file field by field; the first failure is refused, naming the field."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, buses: Sequence[str] = ()) -> None:
         self.path = path
+        self.buses = tuple(buses)
+        """Bus names: sessions are keyed ``bus/node``; none: by node id."""
 
     def refuse(self, field: str, why: str) -> NoReturn:
         raise StateFileError(f"{self.path}: {field}: {why}")
@@ -322,15 +345,36 @@ class FieldChecker:
         return SupervisorState(initial, usable, injected, sessions, withdrawn)
 
     def node(self, key: str) -> int:
-        if not (key.isascii() and key.isdigit() and str(int(key)) == key):
-            self.refuse(f"sessions.{key[:40]}", f"not a node id ({MIN_NODE}-{MAX_NODE})")
-        node = int(key)
-        if not MIN_NODE <= node <= MAX_NODE:
-            self.refuse(f"sessions.{key}", f"not a node id ({MIN_NODE}-{MAX_NODE})")
-        return node
+        """The session key of a ``sessions`` key: a node id, or with bus names ``bus/node``."""
+        where = f"sessions.{key[:40]}"
+        bus, sep, text = key.rpartition("/")
+        node = parse_node_id(text)
+        if not self.buses and sep:
+            self.refuse(
+                where,
+                "a bus/node key: written by a supervisor over several buses; run it with the "
+                "same --bus options",
+            )
+        if self.buses and not sep:
+            self.refuse(
+                where,
+                "a node id without its bus: written by a supervisor on one bus (--nodes); with "
+                "--bus the books are keyed bus/node",
+            )
+        if node is None:
+            self.refuse(where, f"not a node id ({MIN_NODE}-{MAX_NODE})")
+        if not self.buses:
+            return node
+        if bus not in self.buses:
+            self.refuse(
+                where,
+                f"bus {bus[:40]!r} is not on the command line (--bus {', '.join(self.buses)}); "
+                "give every bus the file holds books for",
+            )
+        return session_key(self.buses.index(bus), node)
 
     def session(self, node: int, raw: object, table: SupervisorTable) -> Session:
-        where = f"sessions.{node}"
+        where = f"sessions.{node_name(self.buses, node)}"
         v = self.fields(raw, where, _SESSION)
         phase = Phase[self.name(v, where, "phase", (p.name for p in stored_phases(table)))]
         tx = self.integer(v, where, "tx")

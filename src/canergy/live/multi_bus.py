@@ -1,0 +1,141 @@
+"""One supervisor over several buses: one usable budget, one core, one ``BusRuntime`` per bus.
+
+The core keys each node's session ``bus index << 8 | node`` (``canergy.live.bus_keys``), so node 5
+on two buses are two sessions. A ``BusPort`` per bus stands between its runtime and the shared
+``SupervisorService``: what arrives on bus i is handed over with its node replaced by the key,
+and every message the service returns is sent on the bus its key names, as a plain node id.
+Only the first port runs the service's deadlines (``BusGroup`` asks every runtime).
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import can
+
+from canergy.auth.frames import Verdict
+from canergy.cli_args import node_ids
+from canergy.codec import DecodeError
+from canergy.live.bus_keys import bus_of, node_of, session_key
+from canergy.live.runtime import BusRuntime
+from canergy.live.service import SupervisorService
+from canergy.messages import Message
+
+BUS_SYNTAX = "[NAME=]INTERFACE:CHANNEL:NODES"
+
+
+@dataclass(frozen=True, slots=True)
+class BusSpec:
+    """One ``--bus``: its name (default: the channel), where it is, the nodes on it."""
+
+    name: str
+    interface: str
+    channel: str
+    nodes: tuple[int, ...]
+
+
+def bus_spec(text: str) -> BusSpec:
+    """argparse type of ``--bus``: ``[NAME=]INTERFACE:CHANNEL:NODES``, e.g.
+    ``socketcan:can1:1-40`` or ``left=pcan:PCAN_USBBUS1:1-5,9``. The channel may hold ':' (the
+    first field is the interface, the last the nodes); a name is what precedes a '=' before the
+    first ':'."""
+    shown = repr(text[:40]) + ("..." if len(text) > 40 else "")
+    head, eq, rest = text.partition("=")
+    name, body = (head, rest) if eq and ":" not in head else ("", text)
+    interface, sep, tail = body.partition(":")
+    channel, last, nodes = tail.rpartition(":")
+    if not (sep and last and interface and channel and nodes):
+        raise argparse.ArgumentTypeError(
+            f"{shown}: expected {BUS_SYNTAX}, e.g. socketcan:can1:1-40 or left=socketcan:can0:1-5,9"
+        )
+    if eq and ":" not in head and not name:
+        raise argparse.ArgumentTypeError(f"{shown}: the name before '=' is empty")
+    if interface not in can.VALID_INTERFACES:
+        raise argparse.ArgumentTypeError(
+            f"{shown}: unknown interface {interface[:24]!r} (one of "
+            f"{', '.join(sorted(can.VALID_INTERFACES))})"
+        )
+    return BusSpec(name or channel, interface, channel, node_ids(nodes))
+
+
+def check_buses(specs: Sequence[BusSpec]) -> None:
+    """Every bus once, under a name of its own (``ValueError`` otherwise)."""
+    for i, spec in enumerate(specs):
+        for other in specs[:i]:
+            if (spec.interface, spec.channel) == (other.interface, other.channel):
+                raise ValueError(
+                    f"--bus {spec.interface}:{spec.channel} is given twice; give each bus once "
+                    "with all its nodes"
+                )
+            if spec.name == other.name:
+                raise ValueError(
+                    f"two buses are named {spec.name!r}; name them apart: "
+                    f"--bus NAME={spec.interface}:{spec.channel}:NODES"
+                )
+
+
+def session_keys(specs: Sequence[BusSpec]) -> tuple[int, ...]:
+    """The core's session keys of every node on every bus, in bus order."""
+    return tuple(session_key(i, n) for i, spec in enumerate(specs) for n in spec.nodes)
+
+
+class BusRouter:
+    """Sends each message the service addresses by session key on its own bus."""
+
+    def __init__(self) -> None:
+        self.runtimes: list[BusRuntime] = []
+        """One per bus, in bus order: filled in once the runtimes exist."""
+
+    def send(self, messages: Sequence[Message]) -> Sequence[Message]:
+        """Send ``messages``; returns nothing left for the caller's own bus to send."""
+        for msg in messages:
+            plain = replace(msg, node=node_of(msg.node))
+            self.runtimes[bus_of(msg.node)].send_messages([plain])
+        return ()
+
+
+class BusPort:
+    """Bus ``bus``'s side of a service shared by several buses: a ``Handler`` for its runtime.
+
+    Returns nothing itself: everything the service answers goes out through the router, on the
+    bus of each message's node (a frame on one bus may start grants on another)."""
+
+    def __init__(
+        self, service: SupervisorService, bus: int, router: BusRouter, *, deadlines: bool
+    ) -> None:
+        self.service = service
+        self.bus = bus
+        self.router = router
+        self.deadlines = deadlines
+        """Whether this port runs the service's deadlines (exactly one port does)."""
+
+    def key(self, node: int) -> int:
+        return session_key(self.bus, node)
+
+    def on_message(self, msg: Message, now: int) -> Sequence[Message]:
+        keyed = replace(msg, node=self.key(msg.node))
+        return self.router.send(self.service.on_message(keyed, now))
+
+    def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
+        self.service.on_decode_error(error, frame, self.key(frame.arbitration_id & 0xFF))
+
+    def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
+        if verdict.node is not None:
+            verdict = replace(verdict, node=self.key(verdict.node))
+        self.service.on_auth_failure(verdict, frame, now)
+
+    def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
+        node = self.key(frame.arbitration_id & 0xFF)
+        return self.router.send(self.service.on_foreign_direction(frame, now, node))
+
+    def freshness(self, msg: Message) -> int | None:
+        """Authenticated mode: the service's freshness for this bus's node ``msg.node``."""
+        return self.service.freshness(replace(msg, node=self.key(msg.node)))
+
+    def next_wakeup(self) -> int | None:
+        return self.service.next_wakeup() if self.deadlines else None
+
+    def on_wakeup(self, now: int) -> Sequence[Message]:
+        return self.router.send(self.service.on_wakeup(now)) if self.deadlines else ()

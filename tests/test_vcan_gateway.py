@@ -5,6 +5,7 @@ and restarted from its one state file. The tree's ledger closes over both buses.
 from __future__ import annotations
 
 import signal
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -95,3 +96,48 @@ def test_a_gateway_between_vcan0_and_vcan1_survives_kill_9(procs: Procs) -> None
     assert tree.passive, tree.as_json()
     assert root["nodes"][str(GW)]["admitted"] == 1  # the gateway's first start only
     assert sum(n["spent_uj"] for n in nodes) > 0
+
+
+def test_one_supervisor_over_vcan0_and_vcan1(procs: Procs) -> None:
+    """Node 1 on each bus, one budget: grants land on the bus they name; candump of both buses
+    audits clean with each bus's node 1 kept apart."""
+    tmp = procs.tmp
+    candump = subprocess.Popen(["candump", "-l", "any"], cwd=tmp)
+    control = tmp / "sup.sock"
+    argv = ["-m", "canergy", "supervisor", "--bus", f"socketcan:{UP}:1", "--bus"]
+    argv += [f"socketcan:{DOWN}:1", "--initial", "10J", "--state", str(tmp / "state.json")]
+    argv += ["--status-file", str(tmp / "sup.json"), "--control", str(control), *TIMEOUT]
+    procs.start("supervisor", _python(*argv))
+    for bus in (UP, DOWN):
+        node = ["-m", "firmware_model", "--node", "1", "-i", "socketcan", "-c", bus]
+        node += ["--nv", str(tmp / f"{bus}.nv"), "--status-file", str(tmp / f"{bus}.json")]
+        procs.start(bus, _python(*node, "--telemetry-period", "0.5", *TIMEOUT))
+    _wait(lambda: control.exists(), "the control socket")
+    _wait(
+        lambda: all(
+            _status(tmp / "sup.json")["nodes"][f"{b}/1"]["level_uj"] is not None for b in (UP, DOWN)
+        ),
+        "both nodes heard",
+    )
+    grant = ["-m", "canergy", "grant", "--control", str(control), "--amount"]
+    for bus, amount in ((UP, "2J"), (DOWN, "3J")):
+        done = subprocess.run(_python(*grant, amount, "--node", f"{bus}/1"), timeout=120)
+        assert done.returncode == 0
+    assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
+    for bus in (UP, DOWN):
+        assert procs.stop(bus) == 0, procs.stderr(bus)
+    candump.send_signal(signal.SIGINT)
+    candump.wait(30)
+    final = _status(tmp / "sup.json")
+    assert final["nodes"][f"{UP}/1"]["delivered_uj"] == 2_000_000
+    assert final["nodes"][f"{DOWN}/1"]["delivered_uj"] == 3_000_000
+    assert _status(tmp / f"{UP}.json")["credited_uj"] == 2_000_000
+    assert _status(tmp / f"{DOWN}.json")["credited_uj"] == 3_000_000
+    books = ledger_from_status(final, {b: [_status(tmp / f"{b}.json")] for b in (UP, DOWN)})
+    assert books.passive and books.dissipated == 0
+    (capture,) = tmp.glob("candump-*.log")
+    audit = subprocess.run(
+        _python("-m", "canergy", "audit", str(capture)), capture_output=True, timeout=120
+    )
+    assert audit.returncode == 0, audit.stdout.decode() + audit.stderr.decode()
+    assert f"{DOWN}/1" in audit.stdout.decode()

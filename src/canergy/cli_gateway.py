@@ -19,7 +19,6 @@ from canergy.cli_live import (
     service_flags,
 )
 from canergy.codec import Codec
-from canergy.core import Timing
 from canergy.core.gateway import Gateway
 from canergy.core.state import Phase
 from canergy.faults import FaultInjector, FaultProfile
@@ -76,16 +75,6 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     p.add_argument("--fault-seed", type=seed, default=0, help="seed of the upstream faults")
 
 
-def _up_timing(args: argparse.Namespace) -> Timing:
-    timeout = args.upstream_response_timeout
-    return Timing(
-        response_timeout_us=timeout,
-        retries=args.retries,
-        command_timeout_us=2 * timeout,
-        return_retry_us=2 * timeout,
-    )
-
-
 def _build(args: argparse.Namespace, now: int) -> tuple[Gateway, bool]:
     """The gateway core from its state file; True when it has no upstream books (a JOIN)."""
     nodes = tuple(args.nodes)
@@ -102,7 +91,7 @@ def _build(args: argparse.Namespace, now: int) -> tuple[Gateway, bool]:
     gateway = Gateway(
         args.node,
         nodes,
-        up_timing=_up_timing(args),
+        up_timing=_timing(args, args.upstream_response_timeout),
         down_timing=_timing(args),
         state=state,
     )

@@ -195,8 +195,10 @@ def _grant_node(text: str) -> int | str:
     return text
 
 
-def _timing(args: argparse.Namespace) -> Timing:
-    timeout = args.response_timeout
+def _timing(args: argparse.Namespace, response_timeout_us: int | None = None) -> Timing:
+    """The rules' timing from ``--response-timeout`` (or ``response_timeout_us``) and
+    ``--retries``: a node waits twice the response timeout for a command or a RETURN_ACK."""
+    timeout = args.response_timeout if response_timeout_us is None else response_timeout_us
     return Timing(
         response_timeout_us=timeout,
         retries=args.retries,

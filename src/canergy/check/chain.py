@@ -14,14 +14,13 @@ between the two writes (``gateway_torn_write``) restarts the upstream role from 
 
 from __future__ import annotations
 
-import time
-from collections import deque
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any
 
 from canergy.check.model import UNIT, Flight, message_key
+from canergy.check.search import breadth_first
 from canergy.core.actions import Action, Send
 from canergy.core.frozen import evolve
 from canergy.core.gateway import Gateway, GatewayState, forward, link_gap
@@ -447,55 +446,33 @@ def check_chain(
     """Breadth-first over every reachable world; a counterexample found is a shortest one."""
     b = bounds or ChainBounds()
     model = ChainModel(get_variant(variant), b, broken)
-    result = ChainResult(b, broken)
-    start = time.perf_counter()
-    root = model.initial()
     reducer = _Subsumption()
-    reducer.admit(root)
-    parent: dict[ChainWorld, tuple[ChainWorld, ChainStep] | None] = {root: None}
-    frontier: deque[tuple[ChainWorld, int]] = deque([(root, 0)])
-    while frontier:
-        world, depth = frontier.popleft()
-        result.depth = max(result.depth, depth)
+
+    def successors(world: ChainWorld) -> Iterator[tuple[ChainStep, ChainWorld]]:
         for step in model.steps(world):
             nxt = model.apply(world, step)
-            if nxt is None:
-                continue
-            result.transitions += 1
-            if nxt in parent or not reducer.admit(nxt):
-                continue
-            parent[nxt] = (world, step)
-            if progress is not None and len(parent) % 100_000 == 0:
-                progress(len(parent), depth + 1, time.perf_counter() - start)
-            if not nxt.ledger().passive:
-                result.violations += 1
-                if result.counterexample is None:
-                    result.counterexample = _trace(parent, nxt)
-                    if stop_at_first:
-                        frontier.clear()
-                        break
-                continue
-            frontier.append((nxt, depth + 1))
-        if max_states is not None and len(parent) >= max_states:
-            result.complete = False
-            result.notes.append(f"stopped at --max-states {max_states}")
-            break
-    result.states = len(parent)
-    result.subsumed = reducer.subsumed
-    result.seconds = time.perf_counter() - start
+            if nxt is not None:
+                yield step, nxt
+
+    search = breadth_first(
+        model.initial(),
+        successors,
+        admit=reducer.admit,
+        violates=lambda world: not world.ledger().passive,
+        max_states=max_states,
+        stop_at_first=stop_at_first,
+        progress=progress,
+    )
+    result = ChainResult(b, broken, search.states, search.transitions, search.depth)
+    result.seconds, result.violations, result.subsumed = (
+        search.seconds,
+        search.violations,
+        reducer.subsumed,
+    )
+    result.complete, result.notes = search.complete, search.notes
+    if search.first_violation is not None:
+        result.counterexample = search.path(search.first_violation)
     return result
-
-
-def _trace(
-    parent: dict[ChainWorld, tuple[ChainWorld, ChainStep] | None], end: ChainWorld
-) -> list[tuple[ChainStep, ChainWorld]]:
-    links: list[tuple[ChainStep, ChainWorld]] = []
-    node = end
-    while (link := parent[node]) is not None:
-        prev, step = link
-        links.append((step, node))
-        node = prev
-    return links[::-1]
 
 
 def format_chain(result: ChainResult, trace: bool = False) -> str:

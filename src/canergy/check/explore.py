@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import time
-from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
 from canergy.check.model import Bounds, Model, Step, StepKind, World, initial_world
 from canergy.check.reduce import Reducer, inverse, relabel_step
+from canergy.check.search import breadth_first
 from canergy.core.variants import Variant, get_variant
 from canergy.messages import MESSAGE_CLASSES, MsgType
 
@@ -113,63 +112,52 @@ def check(
     model = Model(v, b)
     reducer = Reducer(b.clients, symmetry=symmetry, subsumption=subsumption)
     result = CheckResult(v.name, b, symmetry=reducer.symmetry)
-    start = time.perf_counter()
-    root = reducer.canonical(initial_world(b))
-    reducer.admit(root)
-    parent: dict[World, tuple[World, Step] | None] = {root: None}
-    frontier: deque[tuple[World, int]] = deque([(root, 0)])
-    while frontier:
-        world, depth = frontier.popleft()
-        result.depth = max(result.depth, depth)
+
+    def successors(world: World) -> Iterator[tuple[Step, World]]:
         for step in model.steps(world):
             nxt = model.apply(world, step)
-            if nxt is None:
-                continue
-            result.transitions += 1
-            nxt = reducer.canonical(nxt)
-            if nxt in parent or not reducer.admit(nxt):
-                continue
-            parent[nxt] = (world, step)
-            if progress is not None and len(parent) % 100_000 == 0:
-                progress(len(parent), depth + 1, time.perf_counter() - start)
-            dissipated = nxt.ledger().dissipated
-            if dissipated < 0:
-                result.violations += 1
-                if result.counterexample is None:
-                    result.counterexample = _trace(model, reducer, parent, nxt)
-                    if stop_at_first:
-                        frontier.clear()
-                        break
-                continue  # energy was created: nothing after it matters
-            if nxt.quiescent():
-                result.quiescent_states += 1
-                result.worst_quiescent_dissipation = max(
-                    result.worst_quiescent_dissipation, dissipated
-                )
-            frontier.append((nxt, depth + 1))
-        if max_states is not None and len(parent) >= max_states:
-            result.complete = False
-            result.notes.append(f"stopped at --max-states {max_states}")
-            break
-    result.states = len(parent)
-    result.subsumed = reducer.subsumed
-    result.seconds = time.perf_counter() - start
+            if nxt is not None:
+                yield step, reducer.canonical(nxt)
+
+    def kept(world: World) -> None:
+        if world.quiescent():
+            result.quiescent_states += 1
+            dissipated = world.ledger().dissipated
+            result.worst_quiescent_dissipation = max(result.worst_quiescent_dissipation, dissipated)
+
+    search = breadth_first(
+        reducer.canonical(initial_world(b)),
+        successors,
+        admit=reducer.admit,
+        violates=lambda world: world.ledger().dissipated < 0,
+        kept=kept,
+        max_states=max_states,
+        stop_at_first=stop_at_first,
+        progress=progress,
+    )
+    result.states, result.transitions, result.depth = (
+        search.states,
+        search.transitions,
+        search.depth,
+    )
+    result.violations, result.complete, result.notes = (
+        search.violations,
+        search.complete,
+        search.notes,
+    )
+    result.subsumed, result.seconds = reducer.subsumed, search.seconds
+    if search.first_violation is not None:
+        result.counterexample = _trace(model, reducer, search.path(search.first_violation))
     return result
 
 
 def _trace(
-    model: Model, reducer: Reducer, parent: dict[World, tuple[World, Step] | None], end: World
+    model: Model, reducer: Reducer, links: list[tuple[Step, World]]
 ) -> list[tuple[Step, World]]:
-    """The path to ``end`` as steps that replay from the initial world (symmetry undone)."""
-    links: list[tuple[Step, World]] = []
-    node = end
-    while (link := parent[node]) is not None:
-        prev, step = link
-        links.append((step, node))
-        node = prev
+    """The path as steps that replay from the initial world (symmetry undone)."""
     trace: list[tuple[Step, World]] = []
     actual = initial_world(model.bounds)
-    for step, stored in reversed(links):
+    for step, stored in links:
         # ``step`` was taken from the canonical form of ``actual``: undo that relabeling.
         step = relabel_step(step, inverse(reducer.perm(actual)))
         actual_next = model.apply(actual, step)

@@ -136,11 +136,18 @@ def _status(path: Path) -> dict[str, Any]:
     raise AssertionError(f"{path} never appeared")
 
 
-def _wait(condition: Callable[[], bool], what: str, timeout_s: float = 120) -> None:
+def _wait(
+    condition: Callable[[], bool],
+    what: str,
+    timeout_s: float = 120,
+    show: Callable[[], object] | None = None,
+) -> None:
+    """Poll ``condition``; on timeout fail naming ``what`` and what ``show`` returns then."""
     deadline = time.monotonic() + timeout_s
     while not condition():
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
+            shown = f"\n{show()}" if show is not None else ""
+            raise AssertionError(f"timed out waiting for {what}{shown}")
         time.sleep(0.2)
 
 
@@ -185,7 +192,15 @@ def test_processes_on_vcan0_stay_passive_through_garbage_and_kill_9(procs: Procs
     done_before = committed(2)
     _client(procs, 2)
     _wait(lambda: (tmp / "n2.json").exists(), "node 2 restarting")
-    _wait(lambda: committed(2) > done_before, "node 2 resuming after kill -9")
+    _wait(
+        lambda: committed(2) > done_before,
+        "node 2 resuming after kill -9",
+        show=lambda: (
+            f"supervisor's node 2: {_status(sup_status)['nodes']['2']}\n"
+            f"node 2: {_status(tmp / 'n2.json')}\nnode 2 stderr: {procs.stderr('client2')[-2000:]}"
+            f"\nsupervisor stderr: {procs.stderr('supervisor')[-2000:]}"
+        ),
+    )
 
     assert procs.stop("supervisor") == 0, procs.stderr("supervisor")  # settles, then exits
     for node in (1, 2, 3):

@@ -333,7 +333,8 @@ class ChainModel:
         torn = None
         if self.broken == "split-save" and g.state.down != w.gateway.down:
             torn = w.gateway.up if g.state.up != w.gateway.up else None
-        w = evolve(w, gateway=g.state, advanced=getattr(g, "advanced", 0), torn=torn)
+        advanced = g.advanced if isinstance(g, EarlyGrantGateway) else 0
+        w = evolve(w, gateway=g.state, advanced=advanced, torn=torn)
         return _sent(w, "up", actions)
 
 

@@ -98,7 +98,8 @@ class Gateway:
         return self.up.fire_return_timer(now)
 
     def books_lost(self, nonce: int, now: int) -> list[Action]:
-        """No valid record upstream: JOIN (the downstream books are kept apart, see the CLI)."""
+        """No valid upstream record: JOIN the supervisor above and wait for ADMIT; the
+        downstream books are not touched."""
         return self.up.books_lost(nonce, now)
 
     def can_give_back(self) -> bool:

@@ -77,6 +77,8 @@ class Supervisor:
             initial, initial, 0, tuple(Session(n) for n in node_list)
         )
         self._index = {s.node: i for i, s in enumerate(self.state.sessions)}
+        self._timer: int | None = None
+        self._timer_of: SupervisorState | None = None
 
     @property
     def nodes(self) -> tuple[int, ...]:
@@ -107,9 +109,12 @@ class Supervisor:
         return self._step(self.state.sessions[i], msg, now)
 
     def get_timer(self) -> int | None:
-        """The earliest deadline of any session, or None."""
-        deadlines = [s.deadline for s in self.state.sessions if s.deadline is not None]
-        return min(deadlines) if deadlines else None
+        """The earliest deadline of any session, or None (worked out once per state)."""
+        if self._timer_of is not self.state:
+            deadlines = [s.deadline for s in self.state.sessions if s.deadline is not None]
+            self._timer = min(deadlines) if deadlines else None
+            self._timer_of = self.state
+        return self._timer
 
     def handle_timer(self, now: int) -> list[Action]:
         """Fire every session whose deadline is at or before ``now``."""
@@ -144,8 +149,9 @@ class Supervisor:
         return self._apply(s, self.rules.step(self.timing, s, event, now))
 
     def _apply(self, s: Session, step: SessionStep) -> list[Action]:
-        i = self._index[s.node]
-        self.state = apply_session(self.state, i, step)
+        if step.session is s and not step.credit:  # nothing changed (an ignored frame)
+            return list(step.actions)
+        self.state = apply_session(self.state, self._index[s.node], step)
         if step.credit or self.rules.persistent(s) != self.rules.persistent(step.session):
             return [Persist(), *step.actions]
         return list(step.actions)

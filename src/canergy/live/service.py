@@ -137,6 +137,9 @@ class SupervisorService:
         self.now = now
         self.next_status = now
         self.next_tick = now
+        self.ready: set[int] = set()
+        """Nodes to try a grant for at the loop's next pass (a request queued, a transaction
+        ended); every node is tried at each tick."""
         self.stopping = False
         self._dirty = False
         self.stop_deadline: int | None = None
@@ -170,10 +173,14 @@ class SupervisorService:
         info.heard_at = now
         if isinstance(msg, Telemetry):
             info.level, info.level_at, info.flags = msg.level_mj * QUANTUM_UJ, now, msg.flags
-            return self._flush(self._start_grants(now))
+            self.ready.add(msg.node)
+            return self._flush(self._start_grants(now, self.ready))
         if self.config.listen_only or not isinstance(msg, ToSupervisor):
             return ()
-        return self._flush(self._carry_out(self.core.receive(msg, now), now))
+        out = self._carry_out(self.core.receive(msg, now), now)
+        if self.ready:  # a transaction ended: the node's next grant goes out in this step
+            out += self._start_grants(now, self.ready)
+        return self._flush(out)
 
     def _impossible(self, msg: Message, info: NodeInfo, now: int) -> str | None:
         """What no honest node sends, judged by the books alone (no key needed): a level or a
@@ -241,10 +248,11 @@ class SupervisorService:
             self.stop(now)
 
     def next_wakeup(self) -> int | None:
-        times = [self.next_status, self.next_tick]
-        if (timer := self.core.get_timer()) is not None:
-            times.append(timer)
-        return min(times)
+        wakeup = min(self.next_status, self.next_tick)
+        if self.ready and not self.stopping:
+            wakeup = min(wakeup, self.now)
+        timer = self.core.get_timer()
+        return wakeup if timer is None else min(wakeup, timer)
 
     def on_wakeup(self, now: int) -> Sequence[Message]:
         self.now = now
@@ -253,7 +261,7 @@ class SupervisorService:
             timer = self.core.get_timer()
             if timer is not None and timer <= now:
                 out += self._carry_out(self.core.handle_timer(now), now)
-            out += self._start_grants(now)
+            out += self._start_grants(now, None if now >= self.next_tick else self.ready)
         if now >= self.next_tick:
             self.next_tick = now + self.config.tick_us
         if now >= self.next_status:
@@ -272,7 +280,7 @@ class SupervisorService:
             reply({"node": self.node_name(node), "error": "supervisor is listen-only or stopping"})
         else:
             info.requests.append(GrantRequest(node, amount, reply))
-            self.next_tick = self.now  # start it at the loop's next turn, not a tick later
+            self.ready.add(node)  # start it at the loop's next pass, not a tick later
 
     def stop(self, now: int) -> None:
         """Start no more transactions; open ones settle or are written off by the rules."""
@@ -339,11 +347,16 @@ class SupervisorService:
             info.level = None
             info.ended_at = now
 
-    def _start_grants(self, now: int) -> list[Message]:
+    def _start_grants(self, now: int, nodes: set[int] | None) -> list[Message]:
+        """Begin what ``nodes`` (None: every node) may get now; they leave ``ready``."""
         if self.stopping or self.config.listen_only:
+            self.ready.clear()
             return []
+        todo = list(self.nodes) if nodes is None else sorted(nodes)
+        self.ready.clear()
         out: list[Message] = []
-        for node, info in self.nodes.items():
+        for node in todo:
+            info = self.nodes[node]
             if self.core.session(node).phase is not Phase.IDLE:
                 continue
             if self.liveness is not None and not self.liveness(node, now):
@@ -395,7 +408,7 @@ class SupervisorService:
             limits=self.config.limits,
             level=info.level,
             usable=self.core.state.usable,
-            granted_total=self.granted_total(),
+            granted_total=self.granted_total() if self.config.limits.max_total is not None else 0,
             rate_tokens=self.rate.available(now),
         )
 
@@ -447,6 +460,8 @@ class SupervisorService:
     def _resolved(self, action: Resolved, now: int) -> None:
         info = self.nodes[action.node]
         info.ended_at = now
+        if info.requests:
+            self.ready.add(action.node)
         if action.outcome is Outcome.COMMITTED:
             info.committed += 1
             info.committed_uj += action.amount

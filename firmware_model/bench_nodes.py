@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -27,9 +28,9 @@ class BenchNodes:
             ]
         )
 
-    def telemetry_sent(self, host: Handler) -> int:
-        assert isinstance(host, NodeHost)
-        return sum(n.telemetry_sent for n in host.nodes.values())
+    def command(self, nodes: str, nv_dir: Path, bus_flags: Sequence[str]) -> list[str]:
+        program = [sys.executable, "-m", "firmware_model"]
+        return [*program, "--nodes", nodes, "--nv", str(nv_dir), "--no-fsync", *bus_flags]
 
 
 EMULATOR = BenchNodes()

@@ -29,6 +29,17 @@ def test_quick_bench_runs_every_comparison(
     assert len(report["codec"]["rows"]) == 11 and len(report["core"]) == 4
     assert [row["nodes"] for row in report["live"]] == [1, 16, 127]
     assert sum(row["transactions"] for row in report["live"]) > 0
+    for row in report["live"]:  # measured apart: the supervisor's loop thread, the nodes'
+        assert row["supervisor_cpu_us_per_frame"] > 0 and row["nodes_cpu_us_per_frame"] > 0
+        assert 0 < row["virtual_driver_us_per_frame"] < row["supervisor_cpu_us_per_frame"]
+    headroom = report["headroom"]
+    worst = max(row["supervisor_cpu_us_per_frame"] for row in report["live"][1:])
+    assert headroom["supervisor_cpu_us_per_frame"] == worst
+    assert headroom["met"] == (worst <= headroom["target_us_per_frame"])
+    if not headroom["met"]:  # a miss comes with the profile of the supervisor's loop thread
+        assert any("service.py" in f["function"] for f in headroom["profile_16_nodes"])
+    ratio = report["live"][0]["latency_p50_ms"] / report["sdo"]["latency_p50_ms"]
+    assert report["latency_ratio_vs_sdo"] == ratio
     assert report["skipped"] == []  # the emulator is importable here
     assert report["memory"]["client_nv_record_bytes"] <= 32
     tree = report["tree"]

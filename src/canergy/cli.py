@@ -11,11 +11,14 @@ from pathlib import Path
 
 from canergy import (
     __version__,
+    cli_bench,
     cli_gateway,
     cli_inspect,
     cli_keys,
     cli_ledger,
     cli_live,
+    cli_monitor,
+    cli_plot,
     cli_sim,
 )
 from canergy.cli_args import (
@@ -469,21 +472,6 @@ def _run_rules(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_bench(args: argparse.Namespace) -> int:
-    from canergy.bench.run import run, table
-    from canergy.live.atomic import check_writable_dir
-
-    if args.json is not None:  # before minutes of measuring, not after
-        check_writable_dir(args.json, "--json")
-    results = run(quick=args.quick)
-    for reason in results["skipped"]:
-        print(f"canergy bench: {reason}", file=sys.stderr)
-    print(table(results))
-    if args.json is not None:
-        args.json.write_text(json.dumps(results, indent=2) + "\n")
-    return 0
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="canergy",
@@ -500,13 +488,10 @@ def build_parser() -> argparse.ArgumentParser:
     cli_ledger.add_parsers(sub)
     cli_sim.add_parsers(sub)
     cli_inspect.add_parsers(sub)
+    cli_monitor.add_parsers(sub)
+    cli_plot.add_parsers(sub)
     cli_keys.add_parsers(sub)
-    b = sub.add_parser(
-        "bench",
-        help="benchmarks: codec vs cantools, core, live stack vs CANopen SDO, wire, memory",
-    )
-    b.add_argument("--quick", action="store_true", help="smoke run: seconds, figures meaningless")
-    b.add_argument("--json", type=Path, help="also write the results here")
+    cli_bench.add_parsers(sub)
     return parser
 
 
@@ -520,8 +505,10 @@ _COMMANDS = {
     **cli_ledger.COMMANDS,
     **cli_sim.COMMANDS,
     **cli_inspect.COMMANDS,
+    **cli_monitor.COMMANDS,
+    **cli_plot.COMMANDS,
     **cli_keys.COMMANDS,
-    "bench": _run_bench,
+    **cli_bench.COMMANDS,
 }
 
 

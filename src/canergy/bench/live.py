@@ -2,8 +2,10 @@
 
 canergy: a supervisor service and a firmware node host, each with its own bus end and loop thread
 (as two processes would be), one-shot grants kept in flight for every node; per-transaction
-latency from request to resolution. Baseline: a ``canopen.LocalNode`` serving expedited SDO
-downloads of 4 bytes to a ``RemoteNode`` client, one at a time, in the same process.
+latency from request to resolution; the CPU of the supervisor's loop thread and of the nodes'
+measured apart. Baseline: a ``canopen.LocalNode`` serving expedited SDO downloads of 4 bytes to a
+``RemoteNode`` client, one at a time, in the same process. ``canergy.bench.on_bus`` runs the same
+measurement on a real interface, the nodes and the SDO server in processes of their own.
 
 The nodes come from a client emulator registered under the ``canergy.emulators`` entry-point
 group (the way python-can finds its interfaces): canergy names none and depends on none, and a
@@ -12,11 +14,13 @@ host-only install without one skips this part (see ``load_emulator``).
 
 from __future__ import annotations
 
+import cProfile
+import pstats
 import statistics
 import threading
 import time
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from importlib.metadata import entry_points
 from pathlib import Path
 from typing import Any, Protocol
@@ -24,11 +28,12 @@ from typing import Any, Protocol
 import can
 import canopen
 
-from canergy.codec import Codec
+from canergy.auth.frames import Verdict
+from canergy.codec import Codec, DecodeError
 from canergy.core import Supervisor, Timing
 from canergy.live.runtime import BusRuntime, Handler, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.messages import Direction
+from canergy.messages import Direction, Message, Telemetry
 
 TIMING = Timing(response_timeout_us=500_000, retries=3, command_timeout_us=1_000_000)
 
@@ -51,8 +56,9 @@ class Emulator(Protocol):
         """Nodes with NV files under ``nv_dir``, behind one bus handler."""
         ...
 
-    def telemetry_sent(self, host: Handler) -> int:
-        """TELEMETRY frames the host's nodes sent (information, not protocol frames)."""
+    def command(self, nodes: str, nv_dir: Path, bus_flags: Sequence[str]) -> list[str]:
+        """A command line running ``nodes`` (e.g. ``1-16``) on the bus ``bus_flags`` name,
+        with NV files under ``nv_dir`` (``canergy bench`` on a real interface)."""
         ...
 
 
@@ -76,94 +82,264 @@ def load_emulator() -> Emulator:
     )
 
 
-def canergy_grants(
-    emulator: Emulator, nodes: int, duration_s: float, nv_dir: Path
+class _Counting:
+    """The supervisor service as the loop sees it, counting the TELEMETRY frames it gets
+    (information from the nodes, not protocol frames)."""
+
+    def __init__(self, service: SupervisorService) -> None:
+        self.service = service
+        self.telemetry = 0
+
+    def on_message(self, msg: Message, now: int) -> Sequence[Message]:
+        if isinstance(msg, Telemetry):
+            self.telemetry += 1
+        return self.service.on_message(msg, now)
+
+    def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
+        self.service.on_decode_error(error, frame)
+
+    def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
+        self.service.on_auth_failure(verdict, frame, now)
+
+    def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
+        return self.service.on_foreign_direction(frame, now)
+
+    def next_wakeup(self) -> int | None:
+        return self.service.next_wakeup()
+
+    def on_wakeup(self, now: int) -> Sequence[Message]:
+        return self.service.on_wakeup(now)
+
+
+class NoAnswer(RuntimeError):
+    """The nodes did not complete a first transaction each in time (emulator not on the bus)."""
+
+
+def _thread_cpu(thread: threading.Thread) -> float:
+    """CPU seconds ``thread`` has used so far (Linux: its own clock; elsewhere 0)."""
+    assert thread.ident is not None
+    try:
+        return time.clock_gettime(time.pthread_getcpuclockid(thread.ident))
+    except (AttributeError, OSError):  # no per-thread clocks on this platform
+        return 0.0
+
+
+def drive_grants(
+    bus: can.BusABC,
+    nodes: Sequence[int],
+    duration_s: float,
+    *,
+    others: Sequence[BusRuntime] = (),
+    warm_up_s: float = 10.0,
+    profile: cProfile.Profile | None = None,
+    node_clocks: Sequence[Callable[[], float | None]] = (),
 ) -> dict[str, Any]:
-    channel = f"bench-{uuid.uuid4().hex}"
-    codec = Codec()
-    ids = list(range(1, nodes + 1))
+    """A supervisor on ``bus`` keeps one grant of 1 mJ in flight to each of ``nodes`` for
+    ``duration_s``, after a warm-up in which every node completes a transaction. ``others``:
+    loops to run in threads of their own (in-process nodes). Measured in the window only:
+    transactions, latency from request to COMMITTED, frames the supervisor sent and received,
+    the CPU of the supervisor's loop thread and of the other loops' threads. ``profile``:
+    profile the supervisor's loop thread (figures then include the profiler's cost).
+    ``node_clocks``: CPU clocks (seconds; None: unreadable) of node processes, read at the
+    window's ends like the threads' clocks."""
     now = monotonic_us()
-    core = Supervisor(ids, 10**15, timing=TIMING)
+    core = Supervisor(nodes, 10**15, timing=TIMING)
     service = SupervisorService(core, ServiceConfig(status_period_us=10**12, fsync=False), now)
-    host = emulator.node_host(ids, nv_dir, TIMING, now)
-    sup_bus = can.Bus(interface="virtual", channel=channel, can_filters=codec.supervisor_filters())
-    node_bus = can.Bus(interface="virtual", channel=channel)
-    runtimes = [
-        BusRuntime(sup_bus, service, codec=codec, receives=Direction.TO_SUPERVISOR),
-        BusRuntime(node_bus, host, codec=codec, receives=Direction.TO_CLIENT),
-    ]
-    stop = threading.Event()
-    threads = [
-        threading.Thread(target=r.run, args=(stop.is_set, 0.01), daemon=True) for r in runtimes
-    ]
+    counting = _Counting(service)
+    runtime = BusRuntime(bus, counting, codec=Codec(), receives=Direction.TO_SUPERVISOR)
+    stop, measuring = threading.Event(), threading.Event()
     latencies: list[float] = []
+    warmed: set[int] = set()
+    all_warm = threading.Event()
 
     def ask(node: int) -> None:
         started = time.perf_counter()
 
-        def reply(result: dict[str, Any]) -> None:  # runs in the service's thread
+        def reply(result: dict[str, Any]) -> None:  # runs in the supervisor's loop thread
             if result.get("outcome") == "COMMITTED":
-                latencies.append(time.perf_counter() - started)
+                if measuring.is_set():
+                    latencies.append(time.perf_counter() - started)
+                warmed.add(node)
+                if len(warmed) == len(nodes):
+                    all_warm.set()
             if not stop.is_set():
                 ask(node)  # keep one grant in flight per node
 
         service.request_grant(node, 1_000, reply)
 
-    for n in ids:  # queued before the loops start
+    for n in nodes:  # queued before the loops start
         ask(n)
-    start, cpu_start = time.perf_counter(), time.process_time()
+
+    def supervise() -> None:
+        if profile is not None:
+            profile.enable()
+        try:
+            runtime.run(stop.is_set, 0.01)
+        finally:
+            if profile is not None:
+                profile.disable()
+
+    threads = [threading.Thread(target=supervise, daemon=True)] + [
+        threading.Thread(target=r.run, args=(stop.is_set, 0.01), daemon=True) for r in others
+    ]
     for t in threads:
         t.start()
-    time.sleep(duration_s)
-    stop.set()
-    for t in threads:
-        t.join(timeout=10)
-    elapsed, cpu = time.perf_counter() - start, time.process_time() - cpu_start
-    frames = sum(r.counters.frames_sent for r in runtimes)
-    telemetry = emulator.telemetry_sent(host)  # not protocol frames
-    for r in runtimes:
-        r.bus.shutdown()
-    done = len(latencies)
+    try:
+        if not all_warm.wait(warm_up_s):
+            missing = sorted(set(nodes) - warmed)
+            raise NoAnswer(
+                f"{len(missing)} of {len(nodes)} node(s) completed no transaction in "
+                f"{warm_up_s:g} s (first: {missing[:5]}): is the emulator on this bus?"
+            )
+        counters = runtime.counters
+        sent0, received0, telemetry0 = (
+            counters.frames_sent,
+            counters.frames_received,
+            counting.telemetry,
+        )
+        cpu0 = [_thread_cpu(t) for t in threads]
+        nodes0 = [clock() for clock in node_clocks]
+        start = time.perf_counter()
+        measuring.set()
+        time.sleep(duration_s)
+        measuring.clear()
+        elapsed = time.perf_counter() - start
+        cpu = [_thread_cpu(t) - c for t, c in zip(threads, cpu0, strict=True)]
+        nodes1 = [clock() for clock in node_clocks]
+        sent, received = counters.frames_sent - sent0, counters.frames_received - received0
+        frames = sent + received
+        telemetry = counting.telemetry - telemetry0
+        done = len(latencies)
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(timeout=10)
     return {
-        "nodes": nodes,
+        "nodes": len(nodes),
         "transactions": done,
         "tx_per_s": done / elapsed,
         "latency_p50_ms": 1e3 * _percentile(latencies, 0.5) if done else None,
         "latency_p99_ms": 1e3 * _percentile(latencies, 0.99) if done else None,
+        "frames_sent": sent,
+        "frames_received": received,
         "frames_per_tx": (frames - telemetry) / done if done else None,
         "telemetry_per_tx": telemetry / done if done else None,
-        "cpu_us_per_frame": 1e6 * cpu / frames if frames else None,
+        "supervisor_cpu_us_per_frame": 1e6 * cpu[0] / frames if frames else None,
+        "nodes_cpu_us_per_frame": _per_frame(cpu[1:], nodes0, nodes1, frames),
     }
 
 
-def sdo_writes(count: int) -> dict[str, Any]:
-    channel = f"sdo-{uuid.uuid4().hex}"
+def _per_frame(
+    threads: list[float], before: list[float | None], after: list[float | None], frames: int
+) -> float | None:
+    """The nodes' CPU (their threads here, their processes' clocks) per frame, or None."""
+    spent = threads + [b - a for a, b in zip(before, after, strict=True) if a is not None and b]
+    return 1e6 * sum(spent) / frames if spent and frames else None
+
+
+def canergy_grants(
+    emulator: Emulator,
+    nodes: int,
+    duration_s: float,
+    nv_dir: Path,
+    profile: cProfile.Profile | None = None,
+) -> dict[str, Any]:
+    """``drive_grants`` on python-can's virtual bus, the emulator's nodes in a thread of this
+    process (a bus end and a loop of their own, as another process would have)."""
+    channel = f"bench-{uuid.uuid4().hex}"
+    codec = Codec()
+    ids = list(range(1, nodes + 1))
+    host = emulator.node_host(ids, nv_dir, TIMING, monotonic_us())
+    sup_bus = can.Bus(interface="virtual", channel=channel, can_filters=codec.supervisor_filters())
+    node_bus = can.Bus(interface="virtual", channel=channel)
+    node_loop = BusRuntime(node_bus, host, codec=codec, receives=Direction.TO_CLIENT)
+    try:
+        return drive_grants(sup_bus, ids, duration_s, others=[node_loop], profile=profile)
+    finally:
+        sup_bus.shutdown()
+        node_bus.shutdown()
+
+
+def sdo_dictionary() -> canopen.ObjectDictionary:
+    """One writable UNSIGNED32 at 0x2000:00: what the SDO baseline writes."""
     od = canopen.ObjectDictionary()
     var = canopen.objectdictionary.ODVariable("Value", 0x2000, 0)
     var.data_type = canopen.objectdictionary.UNSIGNED32
     var.access_type = "rw"
     od.add_object(var)
-    server_net, client_net = canopen.Network(), canopen.Network()
-    server_net.connect(interface="virtual", channel=channel)
-    client_net.connect(interface="virtual", channel=channel)
-    try:
-        server_net.add_node(canopen.LocalNode(5, od))
-        remote = client_net.add_node(canopen.RemoteNode(5, od))
-        remote.sdo.RESPONSE_TIMEOUT = 5.0
-        latencies = []
-        start = time.perf_counter()
-        for i in range(count):
-            t = time.perf_counter()
-            remote.sdo.download(0x2000, 0, i.to_bytes(4, "little"))
-            latencies.append(time.perf_counter() - t)
-        elapsed = time.perf_counter() - start
-    finally:
-        server_net.disconnect()
-        client_net.disconnect()
+    return od
+
+
+def sdo_latencies(remote: canopen.RemoteNode, count: int) -> dict[str, Any]:
+    """``count`` expedited 4-byte downloads to ``remote``, one at a time."""
+    remote.sdo.RESPONSE_TIMEOUT = 5.0
+    latencies = []
+    start = time.perf_counter()
+    for i in range(count):
+        t = time.perf_counter()
+        remote.sdo.download(0x2000, 0, i.to_bytes(4, "little"))
+        latencies.append(time.perf_counter() - t)
+    elapsed = time.perf_counter() - start
     return {
         "writes": count,
         "writes_per_s": count / elapsed,
         "latency_p50_ms": 1e3 * statistics.median(latencies),
         "latency_p99_ms": 1e3 * _percentile(latencies, 0.99),
         "frames_per_write": 2,
+    }
+
+
+def sdo_writes(count: int) -> dict[str, Any]:
+    """The SDO baseline on python-can's virtual bus: server and client in this process."""
+    channel = f"sdo-{uuid.uuid4().hex}"
+    od = sdo_dictionary()
+    server_net, client_net = canopen.Network(), canopen.Network()
+    server_net.connect(interface="virtual", channel=channel)
+    client_net.connect(interface="virtual", channel=channel)
+    try:
+        server_net.add_node(canopen.LocalNode(5, od))
+        return sdo_latencies(client_net.add_node(canopen.RemoteNode(5, od)), count)
+    finally:
+        server_net.disconnect()
+        client_net.disconnect()
+
+
+def top_functions(profile: cProfile.Profile, count: int = 12) -> list[dict[str, Any]]:
+    """The functions that used the most time of their own, with their share of the total."""
+    stats = pstats.Stats(profile)
+    table: dict[Any, Any] = stats.stats  # type: ignore[attr-defined]
+    total = sum(row[2] for row in table.values()) or 1.0
+    rows = sorted(table.items(), key=lambda item: item[1][2], reverse=True)[:count]
+    return [
+        {
+            "function": f"{Path(file).name}:{line}({name})",
+            "calls": row[1],
+            "own_share": round(row[2] / total, 3),
+            "with_callees_share": round(row[3] / total, 3),
+        }
+        for (file, line, name), row in rows
+    ]
+
+
+def virtual_driver_us(frames: int = 5_000) -> dict[str, float]:
+    """What python-can's virtual bus itself costs the sender per ``send`` (a deep copy of the
+    message per receiver) and the receiver per ``recv``: the driver's share of a frame."""
+    channel = f"driver-{uuid.uuid4().hex}"
+    sender = can.Bus(interface="virtual", channel=channel)
+    receiver = can.Bus(interface="virtual", channel=channel)
+    frame = can.Message(arbitration_id=0x0CE00801, is_extended_id=True, data=bytes(8))
+    try:
+        start = time.thread_time()
+        for _ in range(frames):
+            sender.send(frame)
+        sent = time.thread_time()
+        for _ in range(frames):
+            receiver.recv(0)
+        received = time.thread_time()
+    finally:
+        sender.shutdown()
+        receiver.shutdown()
+    return {
+        "send_us": 1e6 * (sent - start) / frames,
+        "recv_us": 1e6 * (received - sent) / frames,
     }

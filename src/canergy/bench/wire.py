@@ -45,14 +45,14 @@ def model() -> dict[str, Any]:
     return {"frames_per_tx": len(NOMINAL), "frame_bytes": sizes, "rows": rows}
 
 
-def headroom(cpu_us_per_frame: float) -> dict[str, float]:
+def headroom(supervisor_cpu_us_per_frame: float) -> dict[str, float]:
     """Wire time of an average canergy frame at 1 Mbit/s (29-bit, no stuffing, the best case
-    for the bus) against the host's CPU time per frame; >= 1 means the host keeps up."""
+    for the bus) against the supervisor's CPU time per frame; >= 1 means it keeps up."""
     codec = Codec()
     sizes = [len(codec.encode(m)[1]) for m in NOMINAL]
     wire_us = sum(frame_bits(n, True, False) for n in sizes) / len(sizes)  # 1 bit = 1 µs
     return {
         "wire_us_per_frame_1mbit": wire_us,
-        "cpu_us_per_frame": cpu_us_per_frame,
-        "headroom": wire_us / cpu_us_per_frame,
+        "supervisor_cpu_us_per_frame": supervisor_cpu_us_per_frame,
+        "headroom": wire_us / supervisor_cpu_us_per_frame,
     }

@@ -1,0 +1,196 @@
+"""``canergy bench`` on a bus the user names: their interface, their host, their figures.
+
+The supervisor runs in this process on the bus the flags open (as ``canergy supervisor`` would);
+the nodes run in another process: the registered emulator's command (``python -m
+firmware_model``) or, on SocketCAN, the C node (``--c-node PATH``: one process per node). Then
+python-canopen's SDO client in this process writes to an SDO server in a process of its own
+(``python -m canergy.bench.sdo_server``), on the same interface. Reported: throughput, latency
+p50/p99, the CPU of the supervisor's loop thread per frame on the bus, the nodes' processes'
+CPU, and the latency ratio against the SDO write.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import select
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import canopen
+
+from canergy.bench import live
+from canergy.codec import Codec
+from canergy.live.bus_args import open_bus
+
+SDO_NODE = 5
+"""The SDO server's node id (its frames are 11-bit, outside canergy's 29-bit block)."""
+
+
+def bus_argv(args: argparse.Namespace, *, id_base: bool = True) -> list[str]:
+    """The bus flags of ``args`` as a command line for another program taking the same flags."""
+    if getattr(args, "interface", None) == "virtual":
+        raise ValueError(
+            "-i virtual: python-can's virtual bus does not cross processes; run `canergy bench` "
+            "without bus flags for the in-process bench"
+        )
+    if getattr(args, "timing", None) is not None:
+        raise ValueError("--timing is not passed on to the node processes: give -b/--data-bitrate")
+    out = []
+    for flag, name in (("-i", "interface"), ("-c", "channel"), ("-b", "bitrate")):
+        if (value := getattr(args, name, None)) is not None:
+            out += [flag, str(value)]
+    if getattr(args, "fd", False):
+        out.append("--fd")
+    if (data_bitrate := getattr(args, "data_bitrate", None)) is not None:
+        out += ["--data-bitrate", str(data_bitrate)]
+    if kwargs := getattr(args, "bus_kwargs", None):
+        out += ["--bus-kwargs", *(f"{k}={v}" for k, v in kwargs.items())]
+    if id_base:
+        out += ["--id-base", f"0x{args.id_base:08X}"]
+    return out
+
+
+def _wait_ready(proc: subprocess.Popen[str], what: str, timeout_s: float) -> None:
+    """Wait for the line ``ready`` on ``proc``'s stdout; a clear error if it exits first."""
+    assert proc.stdout is not None
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        readable, _, _ = select.select([proc.stdout], [], [], 0.2)
+        if readable and proc.stdout.readline().strip() == "ready":
+            return
+        if proc.poll() is not None:
+            err = proc.stderr.read() if proc.stderr is not None else ""
+            raise RuntimeError(f"{what} exited with status {proc.returncode}: {err.strip()}")
+    raise RuntimeError(f"{what} not ready after {timeout_s:g} s")
+
+
+def _stop(procs: Sequence[subprocess.Popen[Any]]) -> None:
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+    for proc in procs:
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _process_cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of a live process (Linux ``/proc``; None elsewhere)."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def node_commands(
+    args: argparse.Namespace, nodes: int, nv_dir: Path, c_node: Path | None
+) -> list[list[str]]:
+    """The processes that put ``nodes`` nodes (ids 1..nodes) on the bus."""
+    if c_node is None:
+        return [live.load_emulator().command(f"1-{nodes}", nv_dir, bus_argv(args))]
+    if getattr(args, "interface", None) != "socketcan":
+        raise ValueError("--c-node: the C node runs on SocketCAN only (-i socketcan)")
+    base = [str(c_node), "-i", "socketcan", "-c", str(getattr(args, "channel", None))]
+    base += ["--id-base", f"0x{args.id_base:08X}"]
+    return [[*base, "--node", str(n), "--nv", str(nv_dir / f"{n}.nv")] for n in range(1, nodes + 1)]
+
+
+@contextmanager
+def _processes(commands: list[list[str]], logs: Path) -> Iterator[list[subprocess.Popen[bytes]]]:
+    """``commands`` running, their stderr in files under ``logs``; stopped on the way out."""
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        for i, cmd in enumerate(commands):
+            with (logs / f"{i}.err").open("w") as err:
+                procs.append(
+                    subprocess.Popen(
+                        cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=err
+                    )
+                )
+        yield procs
+    finally:
+        _stop(procs)
+
+
+def grants_on_bus(
+    args: argparse.Namespace, nodes: int, duration_s: float, c_node: Path | None
+) -> dict[str, Any]:
+    """``live.drive_grants`` on the flags' bus against node processes."""
+    codec = Codec(args.id_base)
+    with tempfile.TemporaryDirectory() as tmp:
+        logs = Path(tmp)
+        with _processes(node_commands(args, nodes, logs, c_node), logs) as procs:
+            bus = open_bus(args, codec.supervisor_filters())
+            clocks = [partial(_process_cpu_s, p.pid) for p in procs]
+            try:
+                row = live.drive_grants(
+                    bus, range(1, nodes + 1), duration_s, warm_up_s=30.0, node_clocks=clocks
+                )
+            except live.NoAnswer as exc:
+                dead = [i for i, p in enumerate(procs) if p.poll() is not None]
+                if dead:
+                    why = (logs / f"{dead[0]}.err").read_text().strip()
+                    raise RuntimeError(f"{exc}; a node process exited: {why}") from exc
+                raise
+            finally:
+                bus.shutdown()
+    row["node_processes"] = len(procs)
+    return row
+
+
+def sdo_on_bus(args: argparse.Namespace, count: int) -> dict[str, Any]:
+    """SDO expedited writes from this process to an SDO server process on the same bus."""
+    cmd = [sys.executable, "-m", "canergy.bench.sdo_server", *bus_argv(args, id_base=False)]
+    server = subprocess.Popen(
+        [*cmd, "--node", str(SDO_NODE)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        _wait_ready(server, "the SDO server process", 30.0)
+        answers = [{"can_id": 0x580 + SDO_NODE, "can_mask": 0x7FF, "extended": False}]
+        network = canopen.Network(open_bus(args, answers))
+        network.connect()
+        try:
+            od = live.sdo_dictionary()
+            return live.sdo_latencies(network.add_node(canopen.RemoteNode(SDO_NODE, od)), count)
+        finally:
+            network.disconnect()
+    finally:
+        _stop([server])
+
+
+def run_on_bus(
+    args: argparse.Namespace,
+    node_counts: Sequence[int],
+    seconds: float,
+    writes: int,
+    c_node: Path | None,
+) -> dict[str, Any]:
+    """Every row of ``node_counts``, then the SDO baseline, on the flags' bus."""
+    from canergy.bench.run import LATENCY_RATIO_TARGET, latency_ratio, supervisor_headroom
+
+    rows = [grants_on_bus(args, n, seconds, c_node) for n in node_counts]
+    sdo = sdo_on_bus(args, writes)
+    return {
+        "bus": bus_argv(args),
+        "nodes_by": "C node processes" if c_node else "python -m firmware_model",
+        "live": rows,
+        "sdo": sdo,
+        "latency_ratio_vs_sdo": latency_ratio(rows, sdo),
+        "latency_ratio_target": LATENCY_RATIO_TARGET,
+        "headroom": supervisor_headroom(rows, counts=None),
+    }

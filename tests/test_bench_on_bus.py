@@ -1,0 +1,97 @@
+"""``canergy bench`` with bus flags: the flags handed to the node and SDO server processes, and
+clear refusals. (The run itself is tested on vcan0: tests/test_vcan_bench.py.)"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import pytest
+
+from canergy.bench.on_bus import bus_argv, node_commands
+from canergy.cli import main
+from canergy.live.bus_args import add_bus_flags
+
+
+def _parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_bus_flags(parser)
+    return parser.parse_args(argv)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["-i", "socketcan", "-c", "vcan0"],
+        ["-i", "pcan", "-c", "PCAN_USBBUS1", "-b", "500000", "--id-base", "0x1000000"],
+        ["-i", "socketcan", "-c", "can0", "--fd", "--data-bitrate", "2000000"],
+        ["-i", "zenoh", "-c", "lab", "--bus-kwargs", "connect=tcp/127.0.0.1:7447", "n=3"],
+    ],
+)
+def test_bus_flags_reach_the_other_processes_unchanged(argv: list[str]) -> None:
+    args = _parse(argv)
+    again = _parse(bus_argv(args))
+    assert vars(again) == vars(args)
+
+
+def test_refusals_name_the_flag() -> None:
+    with pytest.raises(ValueError, match="virtual bus does not cross processes"):
+        bus_argv(_parse(["-i", "virtual", "-c", "x"]))
+    with pytest.raises(ValueError, match="--timing"):
+        bus_argv(
+            _parse(
+                [
+                    "-i",
+                    "socketcan",
+                    "-c",
+                    "can0",
+                    "--timing",
+                    "f_clock=8000000",
+                    "brp=1",
+                    "tseg1=5",
+                    "tseg2=2",
+                    "sjw=1",
+                    "nof_samples=1",
+                ]
+            )
+        )
+    with pytest.raises(ValueError, match="SocketCAN only"):
+        node_commands(_parse(["-i", "pcan", "-c", "x"]), 2, Path("/tmp"), Path("/bin/true"))
+
+
+def test_c_nodes_are_one_process_per_node() -> None:
+    args = _parse(["-i", "socketcan", "-c", "vcan0", "--id-base", "0x1000000"])
+    commands = node_commands(args, 3, Path("/nv"), Path("/opt/canergy-node"))
+    assert [c[c.index("--node") + 1] for c in commands] == ["1", "2", "3"]
+    assert all(c[c.index("--id-base") + 1] == "0x01000000" for c in commands)
+    assert commands[2][-2:] == ["--nv", "/nv/3.nv"]
+
+
+def test_the_python_emulator_gets_the_node_range_and_the_bus(tmp_path: Path) -> None:
+    args = _parse(["-i", "socketcan", "-c", "vcan0"])
+    (command,) = node_commands(args, 16, tmp_path, None)
+    assert command[1:3] == ["-m", "firmware_model"]
+    assert command[command.index("--nodes") + 1] == "1-16"
+    assert command[command.index("-c") + 1] == "vcan0"
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["-i", "virtual", "-c", "x"], "does not cross processes"),
+        (["-i", "socketcan", "-c", "vcan0", "--c-node", "/no/such/node"], "no such program"),
+    ],
+)
+def test_cli_errors_are_clear(
+    argv: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["bench", *argv]) == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value", ["0", "128", "1,x", ""])
+def test_bad_node_counts_are_refused(value: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "-i", "socketcan", "-c", "vcan0", "--nodes", value])
+    assert exc.value.code == 2
+    assert "--nodes" in capsys.readouterr().err

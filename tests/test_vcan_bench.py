@@ -1,0 +1,63 @@
+"""``canergy bench`` on real SocketCAN (vcan0): the supervisor in the bench process, the nodes
+in processes of their own (the Python emulator, then the C node), the SDO baseline against a
+server process. Figures inside user-mode Linux are not speed figures: only the run's shape and
+its counts are checked here."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from test_vcan import c_node as c_node  # the fixture (builds firmware/build/canergy-node)
+
+pytestmark = pytest.mark.vcan
+
+BENCH = [sys.executable, "-m", "canergy", "bench", "-i", "socketcan", "-c", "vcan0"]
+
+
+def _bench(tmp_path: Path, *extra: str) -> dict[str, object]:
+    out = tmp_path / "bench.json"
+    argv = [*BENCH, "--nodes", "1,3", "--duration", "1.5s", "--writes", "100", "--json", str(out)]
+    run = subprocess.run([*argv, *extra], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert "live stack on socketcan vcan0" in run.stdout
+    report: dict[str, object] = json.loads(out.read_text())
+    return report
+
+
+def _check(report: dict[str, object]) -> None:
+    try:
+        _check_shape(report)
+    except AssertionError as exc:  # show the whole report: a run in UML is hard to repeat
+        raise AssertionError(f"{exc}\n{json.dumps(report, indent=1)[:4000]}") from exc
+
+
+def _check_shape(report: dict[str, object]) -> None:
+    rows = report["live"]
+    assert isinstance(rows, list) and [row["nodes"] for row in rows] == [1, 3]
+    for row in rows:
+        assert row["transactions"] > 0
+        assert 4.0 <= row["frames_per_tx"] < 5  # INTENTION, ACK, COMMIT, COMMITTED, re-sends
+        assert 0 < row["latency_p50_ms"] <= row["latency_p99_ms"]
+        assert row["supervisor_cpu_us_per_frame"] > 0 and row["nodes_cpu_us_per_frame"] > 0
+    sdo = report["sdo"]
+    assert isinstance(sdo, dict) and sdo["writes"] == 100 and sdo["latency_p50_ms"] > 0
+    assert isinstance(report["latency_ratio_vs_sdo"], float)
+    headroom = report["headroom"]
+    assert isinstance(headroom, dict) and headroom["supervisor_cpu_us_per_frame"] > 0
+
+
+def test_bench_on_vcan0_with_emulator_processes(tmp_path: Path) -> None:
+    report = _bench(tmp_path)
+    assert report["nodes_by"] == "python -m firmware_model"
+    _check(report)
+
+
+def test_bench_on_vcan0_with_c_nodes(tmp_path: Path, c_node: Path) -> None:
+    report = _bench(tmp_path, "--c-node", str(c_node))
+    assert report["nodes_by"] == "C node processes"
+    _check(report)
+    assert [row["node_processes"] for row in report["live"]] == [1, 3]  # type: ignore[index]

@@ -426,13 +426,15 @@ class SupervisorService:
 
     def _carry_out(self, actions: list[Action], now: int) -> list[Message]:
         out: list[Message] = []
-        queue = deque(actions)
-        while queue:
-            action = queue.popleft()
-            if isinstance(action, Persist):
-                self._dirty = True
-            elif isinstance(action, Send):
+        queue = actions  # grows at its end (a decision follows an ACK), read in order
+        i = 0
+        while i < len(queue):
+            action = queue[i]
+            i += 1
+            if isinstance(action, Send):
                 out.append(action.message)
+            elif isinstance(action, Persist):
+                self._dirty = True
             elif isinstance(action, Acknowledged):
                 decide = self.core.abort if self.stopping else self.core.commit
                 queue.extend(decide(action.node, now))

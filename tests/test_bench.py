@@ -45,6 +45,8 @@ def test_quick_bench_runs_every_comparison(
     tree = report["tree"]
     assert tree["tree"]["nodes"] > tree["baseline"]["nodes"] and tree["tree"]["passive"]
     assert tree["tree"]["transactions"] > 0 and tree["bytes_per_added_node"] > 0
+    monitor = report["monitor"]  # a lossless virtual bus: the monitor counts every frame
+    assert monitor["frames_sent"] == monitor["frames_counted"] == monitor["model_frames"] == 500
     assert "quick smoke run" in capsys.readouterr().out
 
 

@@ -14,7 +14,7 @@ from collections.abc import Collection
 from pathlib import Path
 from typing import Any
 
-from canergy.bench import auth, codec, core, live, tree, wire
+from canergy.bench import auth, codec, core, live, monitor, tree, wire
 
 
 def memory_per_node(nodes: int = 127, emulator: live.Emulator | None = None) -> dict[str, Any]:
@@ -123,6 +123,7 @@ def run(quick: bool = False) -> dict[str, Any]:
         "memory": memory_per_node(emulator=emulator),
         "auth": auth.overhead(loops=20 if quick else 500, repeats=3 if quick else 7),
         "tree": tree.scale(quick),
+        "monitor": monitor.throughput(500 if quick else 50_000),
         "skipped": skipped,
     }
 
@@ -240,4 +241,5 @@ def table(r: dict[str, Any]) -> str:
         f"  CPU per transaction vs the small tree: {_n(t['cpu_per_tx_ratio'], '.2f')}x; memory "
         f"{t['bytes_per_added_node']:,} bytes per added node"
     )
+    lines += monitor.lines(r["monitor"])
     return "\n".join(lines)

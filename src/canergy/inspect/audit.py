@@ -137,7 +137,12 @@ class Seen:
 
     frame: int
     timestamp: float | None
-    line: str
+    described: Described
+
+    @property
+    def line(self) -> str:
+        """The frame as candump shows it (formatted only for a violation)."""
+        return raw_part(self.described)
 
 
 @dataclass(slots=True)
@@ -182,6 +187,9 @@ class NodeBooks:
     committed: set[int] = field(default_factory=set)
     aborted: set[int] = field(default_factory=set)
     booked_tx: set[int] = field(default_factory=set)
+    booked_uj: int | None = None
+    """``booked()`` as last summed; None once an intention version changed (a capture of a
+    long run books thousands of transactions: summing them at every COMMITTED is quadratic)."""
     newest_tx: int | None = None
     first_gs: int | None = None
     last_gs: int | None = None
@@ -216,7 +224,9 @@ class NodeBooks:
 
     def booked(self) -> int:
         """Amounts of committed transactions whose intention the capture saw."""
-        return sum(self.amount(tx) for tx in self.booked_tx)
+        if self.booked_uj is None:
+            self.booked_uj = sum(self.amount(tx) for tx in self.booked_tx)
+        return self.booked_uj
 
     def returned(self, exclude: int | None = None) -> int:
         """Amounts of the node's returns since its base (one per number)."""
@@ -250,12 +260,20 @@ class NodeBooks:
         top = max((v.gs + v.amount for v in self.live(self.newest_tx)), default=self.hold_base)
         return top - self.hold_base - self.returned(exclude) + self.forged_uj
 
+    def holdable_bound(self) -> int | None:
+        """Most the node can hold: ``holdable`` when the capture saw it start from zero, else
+        what the supervisor can have released since the capture began, less acknowledged
+        returns; None before any intention."""
+        hold = self.holdable()
+        released = self.released_max()
+        if hold is None and released is not None:
+            hold = released - self.acked_returns()
+        return hold
+
     def report(self) -> dict[str, Any]:
         seen = {tx for tx in self.intentions if self.live(tx)}
         released = self.released_max()
-        hold = self.holdable()
-        if hold is None and released is not None:
-            hold = released - self.acked_returns()
+        hold = self.holdable_bound()
         return {
             "transactions_seen": len(seen),
             "committed": len(self.committed),
@@ -296,7 +314,7 @@ class Auditor:
             return
         m = d.message
         b = self.nodes.setdefault((d.channel, m.node), NodeBooks(m.node, d.channel))
-        seen = Seen(self.frames, d.timestamp, raw_part(d))
+        seen = Seen(self.frames, d.timestamp, d)
 
         def flag(what: str) -> None:
             self._flag(b, seen, what)
@@ -390,6 +408,7 @@ class Auditor:
                 return
         if not _live(versions):  # newest came from an ADMIT
             versions.append(Version(amount, gs, [seen]))
+            b.booked_uj = None
             return
         problem = self._gs_problem(b, tx - 1, tx, gs) if b.live(tx - 1) else None
         if problem is not None:
@@ -397,10 +416,12 @@ class Auditor:
             b.forged_uj += amount + max(0, gs - versions[0].gs)
             return
         versions.append(Version(amount, gs, [seen]))  # disputed until the next intention
+        b.booked_uj = None
 
     def _new_tx(self, b: NodeBooks, tx: int, v: Version) -> None:
         fresh = b.first_gs is None and tx == 1 and v.gs == 0
         b.intentions[tx] = [v]
+        b.booked_uj = None if tx in b.booked_tx else b.booked_uj
         b.newest_tx = tx
         b.last_gs = v.gs
         if b.first_gs is None:
@@ -431,6 +452,7 @@ class Auditor:
 
     def _forge(self, b: NodeBooks, v: Version, what: str) -> None:
         v.forged = True
+        b.booked_uj = None
         for seen in v.frames:
             self._flag(b, seen, what)
 
@@ -493,6 +515,8 @@ class Auditor:
                 flag(f"COMMITTED tx {tx} after ABORTED")
             if tx not in b.committed and b.live(tx):
                 b.booked_tx.add(tx)
+                if b.booked_uj is not None:
+                    b.booked_uj += b.amount(tx)
             b.committed.add(tx)
             released = b.released_max()
             if released is not None and b.booked() > released:

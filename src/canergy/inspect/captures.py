@@ -168,6 +168,9 @@ def _read_file(path: Path, on_garbage: Callable[[int, str, str], None]) -> Itera
         return
     try:
         yield from can.LogReader(str(path))
+    except NotImplementedError as exc:  # python-can's reader needs an optional package
+        hint = " (pip install 'canergy[mf4]')" if path.suffix.lower() == ".mf4" else ""
+        raise CaptureError(f"{path}: cannot read {path.suffix} here: {exc}{hint}") from exc
     except Exception as exc:  # readers raise struct.error, zlib.error, KeyError...: one message
         if isinstance(exc, CaptureError):
             raise

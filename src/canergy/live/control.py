@@ -135,13 +135,16 @@ def _answer(conn: socket.socket, result: dict[str, Any]) -> None:
     conn.close()
 
 
-def request(path: Path, payload: dict[str, Any], timeout_s: float) -> dict[str, Any]:
-    """Send one request to a running supervisor and wait for its answer."""
+def request(
+    path: Path, payload: dict[str, Any], timeout_s: float, max_answer: int = MAX_REQUEST
+) -> dict[str, Any]:
+    """Send one request to a running supervisor and wait for its answer (one line of at most
+    ``max_answer`` bytes: a status takes more than a grant's outcome)."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
         sock.settimeout(timeout_s)
         sock.connect(str(path))
         sock.sendall((json.dumps(payload) + "\n").encode())
-        line = sock.makefile("rb").readline(MAX_REQUEST)
+        line = sock.makefile("rb").readline(max_answer)
     if not line:
         raise ConnectionError("the supervisor closed the connection without an answer")
     answer = json.loads(line)

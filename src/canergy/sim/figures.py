@@ -10,20 +10,8 @@ import matplotlib
 matplotlib.use("Agg")  # files only, no display needed
 import matplotlib.pyplot as plt
 
+from canergy.sequence_chart import Arrow, draw_arrows, label_lanes
 from canergy.sim.engine import SimResult
-
-COLOURS = {
-    "INTENTION": "black",
-    "ACK": "tab:blue",
-    "COMMIT": "tab:green",
-    "COMMITTED": "tab:green",
-    "ABORT": "tab:red",
-    "ABORTED": "tab:red",
-    "STATUS_REQUEST": "gold",
-    "FINAL_ACK": "deepskyblue",
-    "RETURN": "tab:purple",
-    "RETURN_ACK": "plum",
-}
 
 
 def message_sequence(result: SimResult, path: Path, until_s: float | None = 30.0) -> None:
@@ -31,32 +19,23 @@ def message_sequence(result: SimResult, path: Path, until_s: float | None = 30.0
     lost ones as a dashed stub ending in a cross; grey ticks where a timeout re-sent."""
     k = result.config.clients
     fig, ax = plt.subplots(figsize=(12, 2.2 + 0.6 * k))
-    seen: set[str] = set()
+    arrows = []
     for f in result.frames:
         if until_s is not None and f["t"] > until_s:
             continue
-        top, node = float(k), k - f["node"]
-        start_y, end_y = (top, node) if f["to_client"] else (node, top)
-        colour = COLOURS.get(f["type"], "grey")
-        label = f["type"] if f["type"] not in seen else None
-        seen.add(f["type"])
-        if f["arrivals"]:
-            for arrival in f["arrivals"]:
-                ax.plot([f["t"], arrival], [start_y, end_y], color=colour, lw=1.2, label=label)
-                label = None
-        else:
-            mid = (start_y + end_y) / 2
-            ax.plot([f["t"], f["t"] + 0.5], [start_y, mid], color=colour, lw=1, ls="--")
-            ax.plot([f["t"] + 0.5], [mid], marker="x", color=colour, label=label)
+        top, node = float(k), float(k - f["node"])
+        start, end = (top, node) if f["to_client"] else (node, top)
+        arrows.append(Arrow(f["type"], f["t"], start, end, tuple(f["arrivals"])))
+    draw_arrows(ax, arrows)
     for t, where, _ in result.timeouts:
         if until_s is None or t <= until_s:
             y = float(k) if where == 0 else float(k - where)
             ax.plot([t, t], [y - 0.15, y + 0.15], color="grey", lw=2)
-    ax.set_yticks([float(k), *range(k - 1, -1, -1)])
-    ax.set_yticklabels(["supervisor", *(f"client {n}" for n in range(1, k + 1))])
-    ax.set_xlabel("time (s)")
-    ax.set_title(f"message sequence: {result.config.strategy} (grey ticks: timeouts, x: lost)")
-    ax.legend(loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)
+    label_lanes(
+        ax,
+        ["supervisor", *(f"client {n}" for n in range(1, k + 1))],
+        f"message sequence: {result.config.strategy} (grey ticks: timeouts, x: lost)",
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -198,6 +198,7 @@ def _run_demo(args: argparse.Namespace) -> int:
 def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     from canergy.check.chain import BROKEN_RULES, ChainBounds
     from canergy.check.model import Bounds
+    from canergy.check.workers import MAX_WORKERS
 
     d = Bounds()
     p = sub.add_parser(
@@ -309,6 +310,20 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
         action="store_true",
         help="also store states already reached with smaller run counters",
     )
+    p.add_argument(
+        "--engine",
+        choices=["compact", "reference"],
+        default=None,
+        help="compact: worlds packed into ints, each node's moves worked out once (default); "
+        "reference: the World-object search, slower, for cross-checks (same states, same trace)",
+    )
+    p.add_argument(
+        "--workers",
+        type=bounded_int(1, MAX_WORKERS),
+        default=None,
+        help="processes: 2, one storing states while the other expands them (same result), "
+        "or 1; default 2 when two cores are free to this process",
+    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--trace", action="store_true", help="print the counterexample step by step")
     p.add_argument(
@@ -329,6 +344,8 @@ def _check_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> N
 
 
 _NOT_IN_CHAIN = (
+    "engine",
+    "workers",
     "nv_losses",
     "old_copies",
     "forgeries",
@@ -377,6 +394,7 @@ def _report_progress(states: int, depth: int, seconds: float) -> None:
 def _run_check(args: argparse.Namespace) -> int:
     from canergy.check import Bounds, check
     from canergy.check.report import format_summary, format_trace
+    from canergy.check.workers import default_workers
 
     if args.topology == "chain":
         return _run_chain(args)
@@ -407,6 +425,8 @@ def _run_check(args: argparse.Namespace) -> int:
         progress=_report_progress if args.progress else None,
         symmetry=not args.no_symmetry,
         subsumption=not args.no_subsumption,
+        engine=args.engine or "compact",
+        workers=args.workers or (default_workers() if args.engine != "reference" else 1),
     )
     if args.json:
         print(json.dumps(result.as_json(), indent=2))

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
+from canergy.check.engine import Engine
 from canergy.check.model import Bounds, Model, Step, StepKind, World, initial_world
 from canergy.check.reduce import Reducer, inverse, relabel_step
 from canergy.check.search import breadth_first
@@ -27,6 +29,8 @@ class CheckResult:
     quiescent_states: int = 0
     subsumed: int = 0
     symmetry: bool = True
+    engine: str = "compact"
+    workers: int = 1
     complete: bool = True
     notes: list[str] = field(default_factory=list)
 
@@ -52,6 +56,8 @@ class CheckResult:
             "violations": self.violations,
             "subsumed": self.subsumed,
             "symmetry": self.symmetry,
+            "engine": self.engine,
+            "workers": self.workers,
             "complete": self.complete,
             "worst_quiescent_dissipated_uj": self.worst_quiescent_dissipation,
             "quiescent_states": self.quiescent_states,
@@ -101,17 +107,28 @@ def check(
     progress: Callable[[int, int, float], None] | None = None,
     symmetry: bool = True,
     subsumption: bool = True,
+    engine: str = "compact",
+    workers: int = 1,
 ) -> CheckResult:
     """Explore every reachable world within ``bounds``; count the ones that generate energy.
 
     Worlds are stored up to client symmetry and counter subsumption (see ``reduce``), which the
     flags can turn off. ``progress(states, depth, seconds)`` is called every 100,000 new states.
+    ``engine``: ``compact`` (packed worlds, ``engine``) or ``reference`` (``World`` objects);
+    both store the same states in the same order and find the same counterexample. ``workers``
+    2 (compact engine): a second process expands the states while this one stores them.
     """
     v = get_variant(variant) if isinstance(variant, str) else variant
     b = bounds or Bounds()
     model = Model(v, b)
     reducer = Reducer(b.clients, symmetry=symmetry, subsumption=subsumption)
-    result = CheckResult(v.name, b, symmetry=reducer.symmetry)
+    result = CheckResult(v.name, b, symmetry=reducer.symmetry, engine=engine)
+    if engine == "compact":
+        return _check_compact(model, reducer, result, max_states, stop_at_first, progress, workers)
+    if engine != "reference":
+        raise ValueError(f"unknown engine {engine!r}; choose compact or reference")
+    if workers != 1:
+        raise ValueError("more workers need the compact engine")
 
     def successors(world: World) -> Iterator[tuple[Step, World]]:
         for step in model.steps(world):
@@ -149,6 +166,49 @@ def check(
     if search.first_violation is not None:
         result.counterexample = _trace(model, reducer, search.path(search.first_violation))
     return result
+
+
+def _check_compact(
+    model: Model,
+    reducer: Reducer,
+    result: CheckResult,
+    max_states: int | None,
+    stop_at_first: bool,
+    progress: Callable[[int, int, float], None] | None,
+    workers: int,
+) -> CheckResult:
+    engine = Engine(model, symmetry=reducer.symmetry, subsumption=reducer.subsumption)
+    found = engine.run(
+        max_states=max_states, stop_at_first=stop_at_first, progress=progress, workers=workers
+    )
+    result.workers = workers
+    for name in (
+        "states",
+        "transitions",
+        "depth",
+        "violations",
+        "subsumed",
+        "quiescent_states",
+        "worst_quiescent_dissipation",
+        "complete",
+        "notes",
+        "seconds",
+    ):
+        setattr(result, name, getattr(found, name))
+    if found.first_violation is not None:
+        worlds = engine.path(found.first_violation)
+        links = [(_step_between(model, reducer, a, b), b) for a, b in itertools.pairwise(worlds)]
+        result.counterexample = _trace(model, reducer, links)
+    return result
+
+
+def _step_between(model: Model, reducer: Reducer, world: World, stored: World) -> Step:
+    """The first step (in ``Model.steps`` order) from ``world`` to the canonical ``stored``."""
+    for step in model.steps(world):
+        nxt = model.apply(world, step)
+        if nxt is not None and reducer.canonical(nxt) == stored:
+            return step
+    raise AssertionError("no step leads to a stored successor")
 
 
 def _trace(

@@ -231,15 +231,15 @@ class Model:
     # -- application -----------------------------------------------------------------
     def apply(self, w: World, step: Step) -> World | None:
         """The world after ``step``, or None when it leaves the bounds."""
-        new = self._apply(self._count(w, step.kind), step)
-        if new is None or new.frames() > self.bounds.in_flight:
-            return None
-        limit = self.bounds.transactions + self.bounds.extra_ids
-        if any(s.tx > limit for s in new.sup.sessions):
-            return None
-        return new
+        new = self._apply(self.charge(w, step.kind), step)
+        return new if new is not None and self.within(new) else None
 
-    def _count(self, w: World, kind: StepKind) -> World:
+    def within(self, w: World) -> bool:
+        """Within the frames in flight and the transaction ids the bounds allow."""
+        limit = self.bounds.transactions + self.bounds.extra_ids
+        return w.frames() <= self.bounds.in_flight and all(s.tx <= limit for s in w.sup.sessions)
+
+    def charge(self, w: World, kind: StepKind) -> World:
         """Charge the step to the bounds it uses."""
         if kind in TIMER_KINDS and self.bounds.timeouts is not None:
             return evolve(w, timed_out=w.timed_out + 1)
@@ -265,7 +265,7 @@ class Model:
             return self._attack(w, step)
         if step.kind is K.SUPERVISOR_POWER_LOSS:
             for i in range(len(w.sup.sessions)):
-                w = self._to_session(w, i, POWER_LOSS)
+                w = self.restart_session(w, i)
             return w
         i = step.node - 1
         if step.kind is K.NV_LOST:
@@ -277,11 +277,12 @@ class Model:
             clients = (*w.clients[:i], w.older[i], *w.clients[i + 1 :])
             return self._to_client(evolve(w, clients=clients), i, POWER_LOSS)
         if step.kind in SUPERVISOR_KINDS:
-            return self._to_session(w, i, self._event(step))
-        return self._to_client(w, i, self._event(step))
+            return self._to_session(w, i, self.event(step))
+        return self._to_client(w, i, self.event(step))
 
     @staticmethod
-    def _event(step: Step) -> Event:
+    def event(step: Step) -> Event:
+        """The event a step that is neither the channel's nor the attacker's feeds its node."""
         kind = step.kind
         if kind is K.BEGIN:
             return Begin(step.units * UNIT)
@@ -316,7 +317,7 @@ class Model:
         """The attacker sends a frame it may send now; its receiver takes it at once."""
         msg, b = step.message, self.bounds
         assert msg is not None
-        if w.forged > b.forgeries or w.replayed > b.replays:  # ``_count`` charged the step
+        if w.forged > b.forgeries or w.replayed > b.replays:  # ``charge`` counted the step
             return None
         if step.kind is K.REPLAY and msg not in w.seen:
             return None
@@ -335,6 +336,10 @@ class Model:
             return self._to_client(w, i, msg)
         assert isinstance(msg, ToSupervisor)
         return self._to_session(w, i, msg)
+
+    def restart_session(self, w: World, i: int) -> World:
+        """Session ``i``'s share of a supervisor power loss (it touches no other node)."""
+        return self._to_session(w, i, POWER_LOSS)
 
     def _to_session(self, w: World, i: int, event: Event) -> World:
         step = self.variant.supervisor.step(self.timing, w.sup.sessions[i], event, 0)

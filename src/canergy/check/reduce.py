@@ -14,10 +14,13 @@ cheaper one no later than at the same depth, so counterexamples stay shortest.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import Any, TypeVar, cast
 
 from canergy.check.model import Flight, Step, World
 from canergy.core.frozen import evolve
+from canergy.core.state import ClientState, Session
+from canergy.ledger import LostRecord
 from canergy.messages import Message
 
 T = TypeVar("T")
@@ -106,16 +109,78 @@ def _signature(obj: object) -> tuple[object, ...]:
     return sig
 
 
+NodeKey = tuple[object, ...]
+Signature = tuple[object, ...]
+
+
+def signature(obj: object) -> Signature:
+    """Everything in a record but its node id (``_signature``)."""
+    return _signature(obj)
+
+
+def frames_key(frames: Iterable[tuple[Message, int]]) -> list[tuple[Signature, int]]:
+    return sorted((_signature(msg), n) for msg, n in frames)
+
+
+def seen_key(seen: Iterable[Message]) -> list[Signature]:
+    return sorted(_signature(msg) for msg in seen)
+
+
+def node_key(
+    session: Session,
+    client: ClientState,
+    frames: Iterable[tuple[Message, int]],
+    older: ClientState | None,
+    ghost: LostRecord | None,
+    seen: Iterable[Message],
+) -> NodeKey:
+    """What one node holds, its id left out: its session, client record, frames to or from it,
+    its older record and lost record (when kept) and the frames seen for it."""
+    older_sig = None if older is None else _signature(older)
+    return compose_key(
+        _signature(session),
+        _signature(client),
+        frames_key(frames),
+        older_sig,
+        ghost,
+        seen_key(seen),
+    )
+
+
+def compose_key(
+    session: Signature,
+    client: Signature,
+    frames: list[tuple[Signature, int]],
+    older: Signature | None,
+    ghost: LostRecord | None,
+    seen: list[Signature],
+) -> NodeKey:
+    """``node_key`` from the signatures and keys of its parts."""
+    return (
+        session,
+        client,
+        frames,
+        () if older is None else older,
+        () if ghost is None else ghost,
+        seen,
+    )
+
+
 def sorting_perm(w: World) -> Perm:
-    """The relabeling that orders nodes by what they hold (session, client, frames to or from
-    them). Nodes with equal contents are interchangeable, so the result is canonical."""
-    keys = []
-    for session, client in zip(w.sup.sessions, w.clients, strict=True):
-        frames = sorted((_signature(msg), n) for msg, n in w.flight if msg.node == client.node)
-        older = _signature(w.older[client.node - 1]) if w.older else ()
-        ghost = dict(w.lost_records).get(client.node, ())
-        seen = sorted(_signature(msg) for msg in w.seen if msg.node == client.node)
-        keys.append((_signature(session), _signature(client), frames, older, ghost, seen))
+    """The relabeling that orders nodes by what they hold (``node_key``). Nodes with equal
+    contents are interchangeable, so the result is canonical."""
+    lost = dict(w.lost_records)
+    keys = [
+        node_key(
+            session,
+            client,
+            (item for item in w.flight if item[0].node == client.node),
+            w.older[client.node - 1] if w.older else None,
+            lost.get(client.node),
+            (msg for msg in w.seen if msg.node == client.node),
+        )
+        for session, client in zip(w.sup.sessions, w.clients, strict=True)
+    ]
     order = sorted(range(len(keys)), key=keys.__getitem__)
     perm = [0] * len(order)
     for new, old in enumerate(order):

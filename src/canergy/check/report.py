@@ -21,7 +21,8 @@ def format_summary(r: CheckResult) -> str:
     lines = [
         f"canergy check: variant {r.variant}; {bounds}",
         f"states {r.states:,}  transitions {r.transitions:,}  depth {r.depth}  "
-        f"time {r.seconds:.2f} s  ({r.states_per_second:,.0f} states/s)"
+        f"time {r.seconds:.2f} s  ({r.states_per_second:,.0f} states/s, {r.engine} engine"
+        + (f", {r.workers} processes)" if r.workers > 1 else ")")
         + ("" if r.complete else "  INCOMPLETE: " + "; ".join(r.notes)),
         f"reductions: symmetry {'on' if r.symmetry else 'off'}, "
         f"{r.subsumed:,} states subsumed by cheaper ones",

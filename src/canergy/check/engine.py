@@ -1,0 +1,286 @@
+"""The compact engine: the reference breadth-first search over worlds packed into ints.
+
+It stores what ``explore``'s reference search stores, in the same order: the same canonical
+representatives (nodes sorted by ``reduce.node_key``), successors in ``Model.steps`` order and
+the same subsumption. So states, transitions, depth, violations and the counterexample are the
+reference's. What differs is the representation: a world is one int (``packed.Layout``), a
+node's content a small int (``nodes``), and a node's moves are worked out once per content and
+position rather than once per world. Counterexamples are decoded into ``World`` objects, their
+steps recovered through ``Model.steps`` and ``Model.apply``.
+"""
+
+from __future__ import annotations
+
+import gc
+import time
+from array import array
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from canergy.check.model import UNIT, Model, World, initial_world
+from canergy.check.nodes import INVALID, Keyed, Move, NodeMoves, NodeTable, Result
+from canergy.check.packed import NODE_BITS, Budgets, Guards, Layout
+from canergy.check.search import PROGRESS_EVERY
+from canergy.check.workers import expansions
+
+NODE_MASK = (1 << NODE_BITS) - 1
+
+
+@dataclass(slots=True)
+class Explored:
+    """What one compact search found. States are numbered in the order they were stored."""
+
+    states: int = 0
+    transitions: int = 0
+    depth: int = 0
+    violations: int = 0
+    first_violation: int | None = None
+    subsumed: int = 0
+    quiescent_states: int = 0
+    worst_quiescent_dissipation: int = 0
+    complete: bool = True
+    notes: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+class Engine:
+    """Breadth-first search of one model with packed worlds."""
+
+    def __init__(self, model: Model, *, symmetry: bool, subsumption: bool) -> None:
+        self.model = model
+        b = model.bounds
+        self.layout = layout = Layout(b)
+        self.guards = Guards(b, layout)
+        self.table = NodeTable(model, layout, self.guards)
+        self.symmetry = symmetry and b.clients > 1
+        self.budgets = Budgets(layout, self.table) if subsumption else None
+        self.codes: list[int] = []
+        """Every stored world's code, by state number (breadth-first order)."""
+        self.parents = array("q")
+        """The number of the state each one was first reached from (-1: the root)."""
+        self.shifts = [NODE_BITS * (b.clients - 1 - p) for p in range(b.clients)]
+
+    # -- encoding ----------------------------------------------------------------------
+    def encode(self, w: World) -> int:
+        """The code of ``w``'s canonical form."""
+        table = self.table
+        nodes = [table.intern(table.content_of(w, p)) for p in range(len(w.clients))]
+        if self.symmetry:
+            nodes.sort(key=table.keys.__getitem__)
+        return self.layout.pack(w.sup.usable, nodes, self.layout.pack_counters(w))
+
+    def decode(self, code: int) -> World:
+        usable, nodes, packed = self.layout.unpack(code)
+        return self.table.world(usable, nodes, self.layout.unpack_counters(packed))
+
+    def path(self, state: int) -> list[World]:
+        """The stored worlds from the root to state number ``state``."""
+        numbers = [state]
+        while (parent := self.parents[numbers[-1]]) >= 0:
+            numbers.append(parent)
+        return [self.decode(self.codes[n]) for n in reversed(numbers)]
+
+    # -- expanding ---------------------------------------------------------------------
+    def successors(self, code: int) -> list[int]:
+        """The canonical codes of the world's successors in ``Model.steps`` order, one per
+        transition (repeats included)."""
+        table, layout, in_flight = self.table, self.layout, self.model.bounds.in_flight
+        counter_bits = layout.counter_bits
+        packed = code & layout.counter_mask
+        usable = code >> (counter_bits + layout.nodes_bits)
+        cs = [code >> (counter_bits + shift) & NODE_MASK for shift in self.shifts]
+        frames = 0
+        for c in cs:
+            frames += table.frames[c]
+        ok = self.guards.table(packed, usable, frames < in_flight)
+        nms = [table.moves[p][c] or table.moves_of(c, p) for p, c in enumerate(cs)]
+        if len(nms) == 2:  # the common case, with fewer steps
+            nm0, nm1 = nms
+            if nm0.flight and nm1.flight:
+                flight = _merged(nms)
+            else:
+                flight = nm0.flight_moves or nm1.flight_moves
+            before = nm0.session + nm1.session + flight + nm0.client + nm1.client
+        else:
+            before = [mv for nm in nms for mv in nm.session]
+            before += _merged(nms)
+            before += [mv for nm in nms for mv in nm.client]
+        after: list[Move] = []
+        if any(nm.attacks for nm in nms):
+            after = [mv for nm in nms for mv in nm.forge]
+            after += _merged(nms, replays=True)
+        out: list[int] = []
+        self._add(out, before, ok, usable, cs, packed, in_flight - frames)
+        if ok[self.guards.power]:
+            new, r = self._restart(nms)
+            if r[0] >= 0 and r[3] <= in_flight - frames:
+                out.append(self._place(usable, new, packed, r))
+        if after:
+            self._add(out, after, ok, usable, cs, packed, in_flight - frames)
+        return out
+
+    def _add(
+        self,
+        out: list[int],
+        moves: list[Move],
+        ok: tuple[bool, ...],
+        usable: int,
+        cs: list[int],
+        packed: int,
+        room: int,
+    ) -> None:
+        """Append the codes of the successors through ``moves`` whose guard holds, that stay
+        in bounds and add at most ``room`` frames. A move is ``[result, guard, position...]``."""
+        resolve = self.table.resolve
+        if len(cs) != 2:
+            for mv in moves:
+                if ok[mv[1]]:
+                    r = mv[0] or resolve(mv)
+                    if r[0] >= 0 and r[3] <= room:
+                        new = cs.copy()
+                        new[mv[2]] = r[0]
+                        out.append(self._place(usable, new, packed, r))
+            return
+        keys, symmetry = self.table.keys, self.symmetry
+        nodes_bits, counter_bits = self.layout.nodes_bits, self.layout.counter_bits
+        c0, c1 = cs
+        for mv in moves:  # two nodes, the common case: inline
+            if not ok[mv[1]]:
+                continue
+            nc, credit, delta, added = mv[0] or resolve(mv)
+            if nc < 0 or added > room:
+                continue
+            a, b = (c0, nc) if mv[2] else (nc, c1)
+            if symmetry and keys[b] < keys[a]:
+                a, b = b, a
+            out.append(
+                ((usable + credit) << nodes_bits | a << NODE_BITS | b) << counter_bits
+                | (packed + delta)
+            )
+
+    def _place(self, usable: int, new: list[int], packed: int, r: Result) -> int:
+        """The code of the successor with these contents (in position order) after ``r``."""
+        if self.symmetry:
+            new.sort(key=self.table.keys.__getitem__)
+        return self.layout.pack(usable + r[1], new, packed + r[2])
+
+    def _restart(self, nms: list[NodeMoves]) -> tuple[list[int], Result]:
+        """A supervisor power loss restarts every session: each node's share, combined."""
+        new: list[int] = []
+        credit = added = delta = 0
+        for nm in nms:
+            r = nm.restart[0] or self.table.resolve(nm.restart)
+            if r[0] < 0:
+                return new, INVALID
+            new.append(r[0])
+            credit += r[1]
+            delta = r[2]
+            added += r[3]
+        return new, (0, credit, delta, added)
+
+    # -- search ------------------------------------------------------------------------
+    def run(
+        self,
+        *,
+        max_states: int | None = None,
+        stop_at_first: bool = False,
+        progress: Callable[[int, int, float], None] | None = None,
+        workers: int = 1,
+    ) -> Explored:
+        """Breadth first from the initial world, as ``search.breadth_first`` explores (with
+        ``workers`` 2, a second process expands: ``workers.expansions``)."""
+        start = time.perf_counter()
+        store = _Store(self, progress, start)
+        store.add(-1, self.encode(initial_world(self.model.bounds)), checked=False)
+        out = store.out
+        level, level_end = 0, 1
+        collecting = gc.isenabled()
+        gc.disable()  # the search makes no cycles; the collector would walk every table (~10 %)
+        try:
+            for i, found in expansions(self, store.violating, workers):
+                if i >= level_end:
+                    level, level_end = level + 1, len(self.codes)
+                out.transitions += len(found)
+                visited = store.visited
+                for n, code in enumerate(found):
+                    if code not in visited and store.add(i, code, level + 1) and stop_at_first:
+                        out.transitions -= len(found) - n - 1  # not looked at
+                        break
+                out.depth = level
+                if max_states is not None and len(self.codes) >= max_states:
+                    out.complete = False
+                    out.notes.append(f"stopped at --max-states {max_states}")
+                    break
+                if stop_at_first and out.first_violation is not None:
+                    break
+        finally:
+            if collecting:
+                gc.enable()
+        out.states = len(self.codes)
+        out.subsumed = 0 if self.budgets is None else self.budgets.subsumed
+        out.seconds = time.perf_counter() - start
+        return out
+
+
+class _Store:
+    """The stored worlds of one search, and what was found in them."""
+
+    def __init__(
+        self, engine: Engine, progress: Callable[[int, int, float], None] | None, start: float
+    ) -> None:
+        self.engine, self.progress, self.start = engine, progress, start
+        self.out = Explored()
+        self.visited: set[int] = set()
+        self.violating: set[int] = set()
+        """The numbers of the stored worlds that generate energy (not expanded)."""
+        b = engine.model.bounds
+        self.initial = b.units * UNIT
+        self.counter_bits, self.nodes_bits = engine.layout.counter_bits, engine.layout.nodes_bits
+
+    def add(self, parent: int, code: int, depth: int = 0, *, checked: bool = True) -> bool:
+        """Store ``code``, reached from state ``parent``, unless it is stored or subsumed, and
+        check its ledger (not the root's, as ``breadth_first``); True at the first violation."""
+        engine, out = self.engine, self.out
+        budgets = engine.budgets
+        if code in self.visited or (budgets is not None and not budgets.admit(code)):
+            return False
+        self.visited.add(code)
+        codes = engine.codes
+        codes.append(code)
+        engine.parents.append(parent)
+        if self.progress is not None and len(codes) % PROGRESS_EVERY == 0:
+            self.progress(len(codes), depth, time.perf_counter() - self.start)
+        if not checked:
+            return False
+        held, quiet = engine.table.held, engine.table.quiet
+        nodes = code >> self.counter_bits
+        dissipated = self.initial - (nodes >> self.nodes_bits)  # the ledger: less Us...
+        still = True
+        for shift in engine.shifts:
+            c = nodes >> shift & NODE_MASK
+            dissipated -= held[c]  # ...less what each node holds
+            still = still and quiet[c]
+        if dissipated < 0:
+            out.violations += 1
+            self.violating.add(len(codes) - 1)
+            if out.first_violation is None:
+                out.first_violation = len(codes) - 1
+                return True
+        elif still:
+            out.quiescent_states += 1
+            out.worst_quiescent_dissipation = max(out.worst_quiescent_dissipation, dissipated)
+        return False
+
+
+def _merged(nms: list[NodeMoves], *, replays: bool = False) -> list[Move]:
+    """The nodes' frames' (or replayed frames') moves in ``message_key`` order, as
+    ``Model.steps`` sorts the frames."""
+    keyed: list[Keyed] = []
+    for nm in nms:
+        keyed += nm.replay if replays else nm.flight
+    keyed.sort(key=_by_key)
+    return [mv for _, _, mv in keyed]
+
+
+def _by_key(keyed: Keyed) -> tuple[tuple[int, str], int]:
+    return keyed[0], keyed[1]

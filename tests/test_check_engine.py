@@ -14,7 +14,7 @@ from typing import Any
 
 import pytest
 
-from canergy.check import Bounds, CheckResult, check
+from canergy.check import Bounds, CheckResult, check, workers
 from canergy.check.engine import Engine
 from canergy.check.model import Model, StepKind, initial_world
 from canergy.check.reduce import Reducer, relabel
@@ -153,10 +153,21 @@ def test_codes_decode_to_the_canonical_worlds() -> None:
     ids=["hardened", "paper, all", "paper, first", "replayer", "forger"],
 )
 def test_a_second_process_expanding_changes_nothing(
-    variant: str, bounds: Bounds, kwargs: dict[str, Any]
+    variant: str, bounds: Bounds, kwargs: dict[str, Any], monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    monkeypatch.setattr(workers, "TWO_FROM", 40)  # the expander takes over early in the search
+    forked = []
+    pipelined = workers._pipelined
+
+    def spy(*args: Any) -> Any:
+        forked.append(args[2])
+        return pipelined(*args)
+
+    monkeypatch.setattr(workers, "_pipelined", spy)
     alone = check(variant, bounds, **kwargs)
+    assert not forked
     shared = check(variant, bounds, workers=2, **kwargs)
+    assert len(forked) == 1 and 0 < forked[0] < shared.states
     assert [getattr(shared, f) for f in FIGURES] == [getattr(alone, f) for f in FIGURES]
     assert shared.counterexample == alone.counterexample
     assert shared.workers == 2 and shared.as_json()["workers"] == 2
@@ -169,7 +180,7 @@ def test_cli_engine_and_workers(capsys: pytest.CaptureFixture[str]) -> None:
         assert main([*argv, *extra]) == 0
         runs.append(json.loads(capsys.readouterr().out))
     assert [r["engine"] for r in runs] == ["compact", "reference", "compact"]
-    assert runs[1]["workers"] == 1 and runs[2]["workers"] == 2
+    assert [r["workers"] for r in runs] == [1, 1, 1]  # too small a search to fork for
     assert len({(r["states"], r["transitions"], r["depth"], r["subsumed"]) for r in runs}) == 1
     with pytest.raises(SystemExit):
         main(["check", "--workers", "3"])

@@ -58,6 +58,8 @@ class Engine:
         """Every stored world's code, by state number (breadth-first order)."""
         self.parents = array("q")
         """The number of the state each one was first reached from (-1: the root)."""
+        self.expander_from: int | None = None
+        """The state from which a second process expanded (``workers``), if one did."""
         self.shifts = [NODE_BITS * (b.clients - 1 - p) for p in range(b.clients)]
 
     # -- encoding ----------------------------------------------------------------------

@@ -31,6 +31,7 @@ class CheckResult:
     symmetry: bool = True
     engine: str = "compact"
     workers: int = 1
+    """Processes the search ran in (a second one expands large searches: ``workers``)."""
     complete: bool = True
     notes: list[str] = field(default_factory=list)
 
@@ -181,7 +182,7 @@ def _check_compact(
     found = engine.run(
         max_states=max_states, stop_at_first=stop_at_first, progress=progress, workers=workers
     )
-    result.workers = workers
+    result.workers = 1 if engine.expander_from is None else 2
     for name in (
         "states",
         "transitions",

@@ -4,7 +4,8 @@ Storing (membership, subsumption, the ledger check) is about a quarter of a sear
 (``Engine.successors``) the rest. Here a forked *expander* process keeps the engine's tables and
 expands the stored states in breadth-first order as this process sends them, in batches, while
 this process stores the successors it gets back, in the same order as the sequential search: the
-states, their numbers and the counterexample are the same. The gain is what storing costs.
+states, their numbers and the counterexample are the same. The gain is what storing costs, and
+it pays only in large searches: the expander is forked once ``TWO_FROM`` states are stored.
 
 Node contents are numbered by the expander alone; with each batch it sends what the storing side
 needs of the contents it numbered since (``NodeTable.held``, ``quiet``, ``bare``, ``seen``), and
@@ -29,6 +30,8 @@ BATCH = 1_000
 """States sent to the expander at once."""
 AHEAD = 8
 """Batches sent ahead of the storing side (what it waits for when the search stops early)."""
+TWO_FROM = 500_000
+"""Stored states from which a second process expands (below, forking and sending cost more)."""
 MAX_WORKERS = 2
 """Storing and expanding (a second expander would have to share the numbering of contents)."""
 
@@ -45,24 +48,26 @@ def default_workers() -> int:
 def expansions(engine: Engine, violating: set[int], workers: int) -> Iterator[Expanded]:
     """Each stored state that is not a violation, by number, with its successors' codes, in
     breadth-first order; the caller stores each one's successors before asking for the next."""
-    if workers > 1:
-        yield from _pipelined(engine, violating)
-        return
     codes, i = engine.codes, 0
     while i < len(codes):
+        if workers > 1 and len(codes) >= TWO_FROM:
+            yield from _pipelined(engine, violating, i)
+            return
         if i not in violating:
             yield i, engine.successors(codes[i])
         i += 1
 
 
-def _pipelined(engine: Engine, violating: set[int]) -> Iterator[Expanded]:
+def _pipelined(engine: Engine, violating: set[int], first: int) -> Iterator[Expanded]:
+    """``expansions`` from state ``first`` on, by a forked expander."""
+    engine.expander_from = first
     context = multiprocessing.get_context("fork")
     requests: Queue[Any] = context.Queue()
     answers: Queue[Any] = context.Queue()
     expander = context.Process(target=_expand, args=(engine, requests, answers), daemon=True)
     expander.start()
     codes, table = engine.codes, engine.table
-    sent = 0  # states numbered below have been sent (or skipped: violations)
+    sent = first  # states numbered below have been sent (or skipped: violations)
     waiting = 0  # batches sent and not answered yet
     ready: deque[Expanded] = deque()
 

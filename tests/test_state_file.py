@@ -11,15 +11,19 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from canergy import cli_live
 from canergy.cli import main
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.live.state_file import (
+    BooksWriter,
     StateFileError,
     books_checksum,
     load_state,
     save_state,
+    state_json,
 )
 
 J = 1_000_000
@@ -347,3 +351,39 @@ def test_the_supervisor_names_the_field_in_one_line(
     assert code == 2 and not started
     assert len(err.splitlines()) == 1 and "Traceback" not in err, err
     assert f"{path}: {words}" in err, err
+
+
+# -- the running supervisor's writer ---------------------------------------------------------
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    steps=st.lists(
+        st.tuples(st.sampled_from((1, 2, 10, 100, 127)), st.integers(0, 50), st.integers(0, 9)),
+        min_size=1,
+        max_size=12,
+    ),
+    buses=st.sampled_from(((), ("can0", "can1"), ("z", "a!"))),
+)
+def test_the_writer_saves_what_the_reference_encoding_saves(
+    tmp_path_factory: pytest.TempPathFactory,
+    steps: list[tuple[int, int, int]],
+    buses: tuple[str, ...],
+) -> None:
+    """Save after save, one session changed each time (its kept text must not go stale): the
+    file holds exactly ``state_json`` plus the checksum ``load_state`` checks."""
+    path = tmp_path_factory.mktemp("books") / "s.json"
+    keys = (1, 2, 10, 100, 127) if not buses else (1, 2, 10, 1 << 8 | 100, 1 << 8 | 127)
+    sessions = {k: Session(k) for k in keys}
+    writer = BooksWriter(path, "hardened", fsync=False, buses=buses)
+    for node, tx, returns in steps:
+        key = keys[(1, 2, 10, 100, 127).index(node)]
+        sessions[key] = Session(key, Phase.IDLE, tx, 0, tx * J, Decision.NONE, returns, returns)
+        delivered = sum(s.delivered - s.returned for s in sessions.values())
+        state = SupervisorState(10**9, 10**9 - delivered, 0, tuple(sessions.values()))
+        writer.save(state)
+        books = json.loads(path.read_text())
+        checksum = books.pop("checksum")
+        assert books == state_json(state, "hardened", buses)
+        assert checksum == books_checksum(books)
+        assert load_state(path, "hardened", keys, buses=buses) == state

@@ -104,6 +104,12 @@ class _Counting:
     def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
         return self.service.on_foreign_direction(frame, now)
 
+    def begin_pass(self) -> None:
+        self.service.begin_pass()
+
+    def end_pass(self) -> Sequence[Message]:
+        return self.service.end_pass()
+
     def next_wakeup(self) -> int | None:
         return self.service.next_wakeup()
 

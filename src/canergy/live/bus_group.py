@@ -73,16 +73,22 @@ class BusGroup:
             item: tuple[int, can.Message] | None = self._frames.get(timeout=wait)
         except queue.Empty:
             item = None
-        batch = 0
-        while item is not None:
-            self.runtimes[item[0]].receive(item[1])
-            batch += 1
-            try:
-                item = self._frames.get_nowait() if batch < self.max_batch else None
-            except queue.Empty:
-                item = None
         for runtime in self.runtimes:
-            runtime.run_due()
+            runtime.begin_pass()
+        try:
+            batch = 0
+            while item is not None:
+                self.runtimes[item[0]].receive(item[1])
+                batch += 1
+                try:
+                    item = self._frames.get_nowait() if batch < self.max_batch else None
+                except queue.Empty:
+                    item = None
+            for runtime in self.runtimes:
+                runtime.run_due()
+        finally:
+            for runtime in self.runtimes:
+                runtime.end_pass()
 
     def close(self) -> None:
         self._running = False

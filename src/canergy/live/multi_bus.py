@@ -134,6 +134,14 @@ class BusPort:
         """Authenticated mode: the service's freshness for this bus's node ``msg.node``."""
         return self.service.freshness(replace(msg, node=self.key(msg.node)))
 
+    def begin_pass(self) -> None:
+        self.service.begin_pass()
+
+    def end_pass(self) -> Sequence[Message]:
+        """What the service held through the pass (all buses' frames, once the outermost pass
+        ends), each sent on its own bus."""
+        return self.router.send(self.service.end_pass())
+
     def next_wakeup(self) -> int | None:
         return self.service.next_wakeup() if self.deadlines else None
 

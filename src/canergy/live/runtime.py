@@ -12,7 +12,7 @@ import errno
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, fields
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import can
 
@@ -51,6 +51,19 @@ class Handler(Protocol):
 
     def on_wakeup(self, now: int) -> Sequence[Message]:
         """Deadlines due at ``now`` (and any periodic work); return the frames to send."""
+        ...
+
+
+@runtime_checkable
+class PassHandler(Protocol):
+    """A handler that takes loop passes: it holds the frames of a whole pass (every frame
+    drained in one go and the deadlines then due) and saves its books once before they leave,
+    instead of once per frame (the supervisor service)."""
+
+    def begin_pass(self) -> None: ...
+
+    def end_pass(self) -> Sequence[Message]:
+        """The frames held since ``begin_pass``, to send now."""
         ...
 
 
@@ -150,6 +163,7 @@ class BusRuntime:
         self.max_batch = 512
         self.auth = auth
         """Authenticated mode: MACs added to what is sent and checked on what is received."""
+        self._passes = handler if isinstance(handler, PassHandler) else None
 
     def poll(self, max_wait_s: float = 0.1) -> None:
         """Wait for one frame (at most until the next deadline or ``max_wait_s``) and run
@@ -163,12 +177,27 @@ class BusRuntime:
             self.counters.receive_errors += 1
             self.sleep(min(wait, 0.1))
             frame = None
-        batch = 0
-        while frame is not None:  # drain what is queued before judging any timeout
-            self.receive(frame)
-            batch += 1
-            frame = self._recv_now() if batch < self.max_batch else None
-        self.run_due()
+        self.begin_pass()
+        try:
+            batch = 0
+            while frame is not None:  # drain what is queued before judging any timeout
+                self.receive(frame)
+                batch += 1
+                frame = self._recv_now() if batch < self.max_batch else None
+            self.run_due()
+        finally:
+            self.end_pass()
+
+    def begin_pass(self) -> None:
+        """Tell a handler that takes passes (``PassHandler``) that a loop pass begins."""
+        if self._passes is not None:
+            self._passes.begin_pass()
+
+    def end_pass(self) -> None:
+        """End the pass: send what the handler held back through it (it saved its books
+        first)."""
+        if self._passes is not None:
+            self._send_all(self._passes.end_pass())
 
     def run_due(self) -> None:
         """Note the bus state and run the handler's deadlines that are due."""

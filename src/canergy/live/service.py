@@ -36,7 +36,7 @@ from canergy.live.bus_keys import node_name
 from canergy.live.intrusions import Intrusions, frame_text
 from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant
 from canergy.live.runtime import BusCounters, total_counters
-from canergy.live.state_file import ENERGY_MAX_UJ, save_state
+from canergy.live.state_file import ENERGY_MAX_UJ, BooksWriter
 from canergy.messages import (
     LEVEL_MAX_MJ,
     QUANTUM_UJ,
@@ -142,6 +142,18 @@ class SupervisorService:
         ended); every node is tried at each tick."""
         self.stopping = False
         self._dirty = False
+        self._passes = 0
+        self._books = (
+            None
+            if config.state_path is None
+            else BooksWriter(
+                config.state_path,
+                core.variant.name,
+                fsync=config.fsync,
+                buses=config.bus_names,
+            )
+        )
+        self._held: list[Message] = []
         self.stop_deadline: int | None = None
         self.status_stream = config.status_stream
         self.liveness: Callable[[int, int], bool] | None = None
@@ -268,6 +280,24 @@ class SupervisorService:
             self.write_status()
             self.next_status = now + self.config.status_period_us
         return self._flush(out)
+
+    # -- loop passes -----------------------------------------------------------------------
+    def begin_pass(self) -> None:
+        """Hold every frame until ``end_pass``: the state file is then written once for the
+        whole pass (a drained batch of frames and the deadlines then due) before any of the
+        pass's frames leaves. Passes nest (several buses' runtimes open one each)."""
+        self._passes += 1
+
+    def end_pass(self) -> list[Message]:
+        """Close a pass; the outermost one writes the state file if anything changed and returns
+        every frame held since the pass began, in order, for the caller to send."""
+        if not self._passes:
+            raise RuntimeError("end_pass without begin_pass")
+        self._passes -= 1
+        if self._passes:
+            return []
+        held, self._held = self._held, []
+        return self._flush(held)
 
     # -- control ---------------------------------------------------------------------------
     def request_grant(self, node: int, amount: int, reply: GrantCallback) -> None:
@@ -489,7 +519,11 @@ class SupervisorService:
 
     def _flush(self, out: list[Message]) -> list[Message]:
         """Write the state file once for everything decided in this step, before any of the
-        step's frames leave (the caller sends ``out`` only after this returns)."""
+        step's frames leave (the caller sends ``out`` only after this returns). In a pass, hold
+        them: ``end_pass`` writes and returns them."""
+        if self._passes:
+            self._held += out
+            return []
         if self._dirty:
             self._persist()
             self._dirty = False
@@ -498,14 +532,8 @@ class SupervisorService:
     def _persist(self) -> None:
         if self.save is not None:
             self.save()
-        elif self.config.state_path is not None:
-            save_state(
-                self.config.state_path,
-                self.core.state,
-                self.core.variant.name,
-                fsync=self.config.fsync,
-                buses=self.config.bus_names,
-            )
+        elif self._books is not None:
+            self._books.save(self.core.state)
 
     # -- status ----------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:

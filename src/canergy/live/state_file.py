@@ -78,18 +78,33 @@ def stored_phases(table: SupervisorTable) -> tuple[Phase, ...]:
     return tuple(dict.fromkeys(stored_phase(table, p) for p in table.phases))
 
 
+_CANONICAL = json.JSONEncoder(sort_keys=True, separators=(",", ":"))
+"""The checksum's encoding, made once (``json.dumps`` with options builds an encoder per
+call)."""
+_canonical = _CANONICAL.encode
+
+
 def books_checksum(books: dict[str, Any]) -> str:
     """``sha256:<hex>`` over the canonical JSON of every field but ``checksum``."""
     body = {k: v for k, v in books.items() if k != "checksum"}
-    canonical = json.dumps(body, sort_keys=True, separators=(",", ":"))
+    canonical = _canonical(body)
     return "sha256:" + hashlib.sha256(canonical.encode()).hexdigest()
 
 
-def state_json(state: SupervisorState, variant: str, buses: Sequence[str] = ()) -> dict[str, Any]:
-    """The books as saved, without the checksum; ``buses``: the names of a supervisor's buses
-    (sessions keyed ``bus/node``), none on a single bus (keyed by node id)."""
-    known = VARIANTS.get(variant)
-    table = known.supervisor if known is not None else None
+def session_json(table: SupervisorTable | None, s: Session) -> dict[str, Any]:
+    """One session as saved (``table``: the variant's, to store phases as its record does)."""
+    return {
+        "phase": (s.phase if table is None else stored_phase(table, s.phase)).name,
+        "tx": s.tx,
+        "reserved_uj": s.reserved,
+        "delivered_uj": s.delivered,
+        "decision": s.decision.name,
+        "returns_credited": s.returns_credited,
+        "returned_uj": s.returned,
+    }
+
+
+def _books_head(state: SupervisorState, variant: str) -> dict[str, Any]:
     return {
         "format": FORMAT,
         "version": VERSION,
@@ -98,19 +113,67 @@ def state_json(state: SupervisorState, variant: str, buses: Sequence[str] = ()) 
         "usable_uj": state.usable,
         "injected_uj": state.injected,
         "withdrawn_uj": state.withdrawn,
-        "sessions": {
-            str(node_name(buses, s.node)): {
-                "phase": (s.phase if table is None else stored_phase(table, s.phase)).name,
-                "tx": s.tx,
-                "reserved_uj": s.reserved,
-                "delivered_uj": s.delivered,
-                "decision": s.decision.name,
-                "returns_credited": s.returns_credited,
-                "returned_uj": s.returned,
-            }
-            for s in state.sessions
-        },
     }
+
+
+def _table(variant: str) -> SupervisorTable | None:
+    known = VARIANTS.get(variant)
+    return known.supervisor if known is not None else None
+
+
+def state_json(state: SupervisorState, variant: str, buses: Sequence[str] = ()) -> dict[str, Any]:
+    """The books as saved, without the checksum; ``buses``: the names of a supervisor's buses
+    (sessions keyed ``bus/node``), none on a single bus (keyed by node id)."""
+    table = _table(variant)
+    sessions = {str(node_name(buses, s.node)): session_json(table, s) for s in state.sessions}
+    return {**_books_head(state, variant), "sessions": sessions}
+
+
+class BooksWriter:
+    """Saves one supervisor's books to ``path``, atomically, as often as they change.
+
+    The file is the books' canonical JSON (what ``books_checksum`` hashes) with the checksum
+    added last, so each save builds the JSON once; and each session's JSON is kept until that
+    session changes (a step changes one), so a save of 127 nodes encodes one session, not 127.
+    """
+
+    def __init__(
+        self, path: Path, variant: str, *, fsync: bool = True, buses: Sequence[str] = ()
+    ) -> None:
+        self.path = path
+        self.variant = variant
+        self.fsync = fsync
+        self.buses = tuple(buses)
+        self._table = _table(variant)
+        self._sessions: dict[int, tuple[Session, str]] = {}
+        """Per session key: the session last encoded and its ``"name":{...}`` text."""
+        self._order: tuple[tuple[int, ...], list[int]] = ((), [])
+        """The session keys as last seen, and the same keys in the order of their names."""
+
+    def text(self, state: SupervisorState) -> str:
+        """The file's content for ``state`` (checksum included)."""
+        sessions = {s.node: s for s in state.sessions}
+        keys = tuple(sessions)
+        if self._order[0] != keys:
+            by_name = sorted(keys, key=lambda k: str(node_name(self.buses, k)))
+            self._order = (keys, by_name)
+        parts = []
+        for key in self._order[1]:
+            s = sessions[key]
+            kept = self._sessions.get(key)
+            if kept is None or kept[0] is not s:
+                name = _canonical(str(node_name(self.buses, key)))
+                entry = _canonical(session_json(self._table, s))
+                kept = self._sessions[key] = (s, f"{name}:{entry}")
+            parts.append(kept[1])
+        fields = {k: _canonical(v) for k, v in _books_head(state, self.variant).items()}
+        fields["sessions"] = "{" + ",".join(parts) + "}"
+        body = "{" + ",".join(f"{_canonical(k)}:{fields[k]}" for k in sorted(fields)) + "}"
+        checksum = "sha256:" + hashlib.sha256(body.encode()).hexdigest()
+        return f'{body[:-1]},"checksum":"{checksum}"}}\n'
+
+    def save(self, state: SupervisorState) -> None:
+        write_atomic(self.path, self.text(state).encode(), fsync=self.fsync)
 
 
 def save_state(
@@ -121,10 +184,8 @@ def save_state(
     fsync: bool = True,
     buses: Sequence[str] = (),
 ) -> None:
-    books = state_json(state, variant, buses)
-    books["checksum"] = books_checksum(books)
-    text = json.dumps(books, separators=(",", ":"))  # C encoder: fast
-    write_atomic(path, text.encode() + b"\n", fsync=fsync)
+    """Save ``state`` once (a running supervisor keeps a ``BooksWriter``)."""
+    BooksWriter(path, variant, fsync=fsync, buses=buses).save(state)
 
 
 def load_state(

@@ -27,14 +27,25 @@ def test_quick_bench_runs_every_comparison(
     report = json.loads(out.read_text())
     assert {"codec", "core", "live", "sdo", "wire", "headroom", "memory"} <= set(report)
     assert len(report["codec"]["rows"]) == 11 and len(report["core"]) == 4
-    assert [row["nodes"] for row in report["live"]] == [1, 16, 127]
-    assert sum(row["transactions"] for row in report["live"]) > 0
-    for row in report["live"]:  # measured apart: the supervisor's loop thread, the nodes'
+    rows = report["live"]  # then 16 and 127 again with the supervisor's books in a state file
+    assert [(row["nodes"], row["state_file"]) for row in rows] == [
+        (1, False),
+        (16, False),
+        (127, False),
+        (16, True),
+        (127, True),
+    ]
+    assert sum(row["transactions"] for row in rows) > 0
+    for row in rows:  # measured apart: the supervisor's loop thread, the nodes'
         assert row["supervisor_cpu_us_per_frame"] > 0 and row["nodes_cpu_us_per_frame"] > 0
         assert 0 < row["virtual_driver_us_per_frame"] < row["supervisor_cpu_us_per_frame"]
+        assert (row["saves_per_tx"] > 0) == row["state_file"]
     headroom = report["headroom"]
-    worst = max(row["supervisor_cpu_us_per_frame"] for row in report["live"][1:])
+    worst = max(row["supervisor_cpu_us_per_frame"] for row in rows[1:3])
     assert headroom["supervisor_cpu_us_per_frame"] == worst
+    assert headroom["with_state_file"] == {
+        str(row["nodes"]): row["supervisor_cpu_us_per_frame"] for row in rows[3:]
+    }
     assert headroom["met"] == (worst <= headroom["target_us_per_frame"])
     if not headroom["met"]:  # a miss comes with the profile of the supervisor's loop thread
         assert any("service.py" in f["function"] for f in headroom["profile_16_nodes"])

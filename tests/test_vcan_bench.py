@@ -37,9 +37,11 @@ def _check(report: dict[str, object]) -> None:
 
 def _check_shape(report: dict[str, object]) -> None:
     rows = report["live"]
-    assert isinstance(rows, list) and [row["nodes"] for row in rows] == [1, 3]
+    assert isinstance(rows, list) and [row["nodes"] for row in rows] == [1, 3, 1, 3]
+    assert [row["state_file"] for row in rows] == [False, False, True, True]
     for row in rows:
         assert row["transactions"] > 0
+        assert (row["saves_per_tx"] > 0) == row["state_file"]  # books saved, once per pass
         assert 4.0 <= row["frames_per_tx"] < 5  # INTENTION, ACK, COMMIT, COMMITTED, re-sends
         assert 0 < row["latency_p50_ms"] <= row["latency_p99_ms"]
         assert row["supervisor_cpu_us_per_frame"] > 0 and row["nodes_cpu_us_per_frame"] > 0
@@ -48,6 +50,7 @@ def _check_shape(report: dict[str, object]) -> None:
     assert isinstance(report["latency_ratio_vs_sdo"], float)
     headroom = report["headroom"]
     assert isinstance(headroom, dict) and headroom["supervisor_cpu_us_per_frame"] > 0
+    assert set(headroom["with_state_file"]) == {"1", "3"}
 
 
 def test_bench_on_vcan0_with_emulator_processes(tmp_path: Path) -> None:
@@ -60,4 +63,5 @@ def test_bench_on_vcan0_with_c_nodes(tmp_path: Path, c_node: Path) -> None:
     report = _bench(tmp_path, "--c-node", str(c_node))
     assert report["nodes_by"] == "C node processes"
     _check(report)
-    assert [row["node_processes"] for row in report["live"]] == [1, 3]  # type: ignore[index]
+    processes = [row["node_processes"] for row in report["live"]]  # type: ignore[attr-defined]
+    assert processes == [1, 3, 1, 3]

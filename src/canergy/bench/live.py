@@ -139,6 +139,7 @@ def drive_grants(
     warm_up_s: float = 10.0,
     profile: cProfile.Profile | None = None,
     node_clocks: Sequence[Callable[[], float | None]] = (),
+    state_path: Path | None = None,
 ) -> dict[str, Any]:
     """A supervisor on ``bus`` keeps one grant of 1 mJ in flight to each of ``nodes`` for
     ``duration_s``, after a warm-up in which every node completes a transaction. ``others``:
@@ -147,10 +148,12 @@ def drive_grants(
     the CPU of the supervisor's loop thread and of the other loops' threads. ``profile``:
     profile the supervisor's loop thread (figures then include the profiler's cost).
     ``node_clocks``: CPU clocks (seconds; None: unreadable) of node processes, read at the
-    window's ends like the threads' clocks."""
+    window's ends like the threads' clocks. ``state_path``: the supervisor keeps its books
+    there, as ``canergy supervisor --state`` does (without fsync: its cost is the disk's)."""
     now = monotonic_us()
     core = Supervisor(nodes, 10**15, timing=TIMING)
-    service = SupervisorService(core, ServiceConfig(status_period_us=10**12, fsync=False), now)
+    config = ServiceConfig(status_period_us=10**12, fsync=False, state_path=state_path)
+    service = SupervisorService(core, config, now)
     counting = _Counting(service)
     runtime = BusRuntime(bus, counting, codec=Codec(), receives=Direction.TO_SUPERVISOR)
     stop, measuring = threading.Event(), threading.Event()
@@ -198,10 +201,11 @@ def drive_grants(
                 f"{warm_up_s:g} s (first: {missing[:5]}): is the emulator on this bus?"
             )
         counters = runtime.counters
-        sent0, received0, telemetry0 = (
+        sent0, received0, telemetry0, saves0 = (
             counters.frames_sent,
             counters.frames_received,
             counting.telemetry,
+            service.saves,
         )
         cpu0 = [_thread_cpu(t) for t in threads]
         nodes0 = [clock() for clock in node_clocks]
@@ -215,6 +219,7 @@ def drive_grants(
         sent, received = counters.frames_sent - sent0, counters.frames_received - received0
         frames = sent + received
         telemetry = counting.telemetry - telemetry0
+        saves = service.saves - saves0
         done = len(latencies)
     finally:
         stop.set()
@@ -232,6 +237,8 @@ def drive_grants(
         "telemetry_per_tx": telemetry / done if done else None,
         "supervisor_cpu_us_per_frame": 1e6 * cpu[0] / frames if frames else None,
         "nodes_cpu_us_per_frame": _per_frame(cpu[1:], nodes0, nodes1, frames),
+        "state_file": state_path is not None,
+        "saves_per_tx": saves / done if done else None,
     }
 
 
@@ -249,9 +256,11 @@ def canergy_grants(
     duration_s: float,
     nv_dir: Path,
     profile: cProfile.Profile | None = None,
+    state_file: bool = False,
 ) -> dict[str, Any]:
     """``drive_grants`` on python-can's virtual bus, the emulator's nodes in a thread of this
-    process (a bus end and a loop of their own, as another process would have)."""
+    process (a bus end and a loop of their own, as another process would have); ``state_file``:
+    the supervisor's books in ``nv_dir``."""
     channel = f"bench-{uuid.uuid4().hex}"
     codec = Codec()
     ids = list(range(1, nodes + 1))
@@ -260,7 +269,10 @@ def canergy_grants(
     node_bus = can.Bus(interface="virtual", channel=channel)
     node_loop = BusRuntime(node_bus, host, codec=codec, receives=Direction.TO_CLIENT)
     try:
-        return drive_grants(sup_bus, ids, duration_s, others=[node_loop], profile=profile)
+        books = nv_dir / "supervisor.json" if state_file else None
+        return drive_grants(
+            sup_bus, ids, duration_s, others=[node_loop], profile=profile, state_path=books
+        )
     finally:
         sup_bus.shutdown()
         node_bus.shutdown()

@@ -124,9 +124,14 @@ def _processes(commands: list[list[str]], logs: Path) -> Iterator[list[subproces
 
 
 def grants_on_bus(
-    args: argparse.Namespace, nodes: int, duration_s: float, c_node: Path | None
+    args: argparse.Namespace,
+    nodes: int,
+    duration_s: float,
+    c_node: Path | None,
+    state_file: bool = False,
 ) -> dict[str, Any]:
-    """``live.drive_grants`` on the flags' bus against node processes."""
+    """``live.drive_grants`` on the flags' bus against node processes; ``state_file``: the
+    supervisor keeps its books in a file."""
     codec = Codec(args.id_base)
     with tempfile.TemporaryDirectory() as tmp:
         logs = Path(tmp)
@@ -135,7 +140,12 @@ def grants_on_bus(
             clocks = [partial(_process_cpu_s, p.pid) for p in procs]
             try:
                 row = live.drive_grants(
-                    bus, range(1, nodes + 1), duration_s, warm_up_s=30.0, node_clocks=clocks
+                    bus,
+                    range(1, nodes + 1),
+                    duration_s,
+                    warm_up_s=30.0,
+                    node_clocks=clocks,
+                    state_path=logs / "supervisor.json" if state_file else None,
                 )
             except live.NoAnswer as exc:
                 dead = [i for i, p in enumerate(procs) if p.poll() is not None]
@@ -183,7 +193,11 @@ def run_on_bus(
     """Every row of ``node_counts``, then the SDO baseline, on the flags' bus."""
     from canergy.bench.run import LATENCY_RATIO_TARGET, latency_ratio, supervisor_headroom
 
-    rows = [grants_on_bus(args, n, seconds, c_node) for n in node_counts]
+    rows = [
+        grants_on_bus(args, n, seconds, c_node, state_file)
+        for state_file in (False, True)
+        for n in node_counts
+    ]
     sdo = sdo_on_bus(args, writes)
     return {
         "bus": bus_argv(args),

@@ -143,6 +143,8 @@ class SupervisorService:
         self.stopping = False
         self._dirty = False
         self._passes = 0
+        self.saves = 0
+        """Times the books were written (the state file, or ``save``)."""
         self._books = (
             None
             if config.state_path is None
@@ -534,6 +536,9 @@ class SupervisorService:
             self.save()
         elif self._books is not None:
             self._books.save(self.core.state)
+        else:
+            return
+        self.saves += 1
 
     # -- status ----------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:

@@ -17,6 +17,7 @@ class BenchNodes:
 
     nv_record_bytes = RECORD_SIZE
     nv_file_bytes = 2 * SLOT_SIZE
+    label = "python -m firmware_model"
 
     def node_host(self, nodes: Sequence[int], nv_dir: Path, timing: Timing, now: int) -> Handler:
         return NodeHost(

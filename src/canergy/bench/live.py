@@ -51,6 +51,8 @@ class Emulator(Protocol):
 
     nv_record_bytes: int
     nv_file_bytes: int
+    label: str
+    """How reports name the node processes ``command`` starts (e.g. the command, short)."""
 
     def node_host(self, nodes: Sequence[int], nv_dir: Path, timing: Timing, now: int) -> Handler:
         """Nodes with NV files under ``nv_dir``, behind one bus handler."""
@@ -337,6 +339,22 @@ def top_functions(profile: cProfile.Profile, count: int = 12) -> list[dict[str, 
         }
         for (file, line, name), row in rows
     ]
+
+
+def driver_share(profile: cProfile.Profile) -> float:
+    """The share of the profiled time spent in python-can when canergy's code calls it: the
+    bus's ``send`` and ``recv`` (deep copies, queues and waits included) and ``can.Message``."""
+    table: dict[Any, Any] = pstats.Stats(profile).stats  # type: ignore[attr-defined]
+    total = sum(row[2] for row in table.values()) or 1.0
+    in_can, in_canergy = str(Path(can.__file__).parent), str(Path(__file__).parents[1])
+    spent = sum(
+        by_caller[3]
+        for (file, _, _), row in table.items()
+        if file.startswith(in_can)
+        for (caller, _, _), by_caller in row[4].items()
+        if caller.startswith(in_canergy)
+    )
+    return float(spent / total)
 
 
 def virtual_driver_us(frames: int = 5_000) -> dict[str, float]:

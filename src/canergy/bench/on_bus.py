@@ -201,7 +201,7 @@ def run_on_bus(
     sdo = sdo_on_bus(args, writes)
     return {
         "bus": bus_argv(args),
-        "nodes_by": "C node processes" if c_node else "python -m firmware_model",
+        "nodes_by": "C node processes" if c_node else live.load_emulator().label,
         "live": rows,
         "sdo": sdo,
         "latency_ratio_vs_sdo": latency_ratio(rows, sdo),

@@ -105,6 +105,7 @@ def live_part(emulator: live.Emulator, quick: bool) -> dict[str, Any]:
             nv.mkdir()
             live.canergy_grants(emulator, 16, seconds, nv, profile=profile)
             headroom["profile_16_nodes"] = live.top_functions(profile)
+            headroom["bus_driver_share_16_nodes"] = live.driver_share(profile)
     return {"live": rows, "virtual_driver": driver, "headroom": headroom}
 
 
@@ -220,6 +221,11 @@ def live_lines(r: dict[str, Any]) -> list[str]:
         if h.get(key):
             figures = ", ".join(f"{n} nodes {us:.1f} us" for n, us in h[key].items())
             lines.append(f"    {what}: {figures}")
+    if "bus_driver_share_16_nodes" in h:
+        lines.append(
+            f"    profile of its loop thread at 16 nodes: {h['bus_driver_share_16_nodes']:.0%} in "
+            "python-can's send, recv and Message; the functions of most time of their own:"
+        )
     for f in h.get("profile_16_nodes", []):
         lines.append(
             f"      {f['own_share']:6.1%} own, {f['with_callees_share']:6.1%} with callees  "

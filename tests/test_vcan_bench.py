@@ -45,6 +45,7 @@ def _check_shape(report: dict[str, object]) -> None:
         assert 4.0 <= row["frames_per_tx"] < 5  # INTENTION, ACK, COMMIT, COMMITTED, re-sends
         assert 0 < row["latency_p50_ms"] <= row["latency_p99_ms"]
         assert row["supervisor_cpu_us_per_frame"] > 0 and row["nodes_cpu_us_per_frame"] > 0
+        assert 0 < row["bus_cpu_us_per_frame"] < row["supervisor_cpu_us_per_frame"]
     sdo = report["sdo"]
     assert isinstance(sdo, dict) and sdo["writes"] == 100 and sdo["latency_p50_ms"] > 0
     assert isinstance(report["latency_ratio_vs_sdo"], float)

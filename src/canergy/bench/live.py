@@ -119,6 +119,41 @@ class _Counting:
         return self.service.on_wakeup(now)
 
 
+class _TimedBus(can.BusABC):
+    """The supervisor's bus with the CPU its ``send`` and ``recv`` take counted (the driver's
+    share of a frame, measured where it is spent: copies, queues, waits and system calls)."""
+
+    def __init__(self, bus: can.BusABC) -> None:  # nothing of BusABC's own state is used
+        self.bus = bus
+        self.spent = 0.0
+        self._is_shutdown = True  # the wrapped bus is shut down by its owner
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        start = time.thread_time()
+        try:
+            self.bus.send(msg, timeout)
+        finally:
+            self.spent += time.thread_time() - start
+
+    def recv(self, timeout: float | None = None) -> can.Message | None:
+        start = time.thread_time()
+        try:
+            return self.bus.recv(timeout)
+        finally:
+            self.spent += time.thread_time() - start
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        raise NotImplementedError  # recv is forwarded whole
+
+    @property
+    def state(self) -> can.BusState:
+        return self.bus.state
+
+    @state.setter
+    def state(self, new_state: can.BusState) -> None:
+        self.bus.state = new_state
+
+
 class NoAnswer(RuntimeError):
     """The nodes did not complete a first transaction each in time (emulator not on the bus)."""
 
@@ -147,7 +182,8 @@ def drive_grants(
     ``duration_s``, after a warm-up in which every node completes a transaction. ``others``:
     loops to run in threads of their own (in-process nodes). Measured in the window only:
     transactions, latency from request to COMMITTED, frames the supervisor sent and received,
-    the CPU of the supervisor's loop thread and of the other loops' threads. ``profile``:
+    the CPU of the supervisor's loop thread (and of it, what its bus's ``send`` and ``recv``
+    took) and of the other loops' threads. ``profile``:
     profile the supervisor's loop thread (figures then include the profiler's cost).
     ``node_clocks``: CPU clocks (seconds; None: unreadable) of node processes, read at the
     window's ends like the threads' clocks. ``state_path``: the supervisor keeps its books
@@ -157,7 +193,8 @@ def drive_grants(
     config = ServiceConfig(status_period_us=10**12, fsync=False, state_path=state_path)
     service = SupervisorService(core, config, now)
     counting = _Counting(service)
-    runtime = BusRuntime(bus, counting, codec=Codec(), receives=Direction.TO_SUPERVISOR)
+    timed = _TimedBus(bus)
+    runtime = BusRuntime(timed, counting, codec=Codec(), receives=Direction.TO_SUPERVISOR)
     stop, measuring = threading.Event(), threading.Event()
     latencies: list[float] = []
     warmed: set[int] = set()
@@ -209,7 +246,7 @@ def drive_grants(
             counting.telemetry,
             service.saves,
         )
-        cpu0 = [_thread_cpu(t) for t in threads]
+        cpu0, bus0 = [_thread_cpu(t) for t in threads], timed.spent
         nodes0 = [clock() for clock in node_clocks]
         start = time.perf_counter()
         measuring.set()
@@ -217,6 +254,7 @@ def drive_grants(
         measuring.clear()
         elapsed = time.perf_counter() - start
         cpu = [_thread_cpu(t) - c for t, c in zip(threads, cpu0, strict=True)]
+        in_bus = timed.spent - bus0
         nodes1 = [clock() for clock in node_clocks]
         sent, received = counters.frames_sent - sent0, counters.frames_received - received0
         frames = sent + received
@@ -238,6 +276,7 @@ def drive_grants(
         "frames_per_tx": (frames - telemetry) / done if done else None,
         "telemetry_per_tx": telemetry / done if done else None,
         "supervisor_cpu_us_per_frame": 1e6 * cpu[0] / frames if frames else None,
+        "bus_cpu_us_per_frame": 1e6 * in_bus / frames if frames else None,
         "nodes_cpu_us_per_frame": _per_frame(cpu[1:], nodes0, nodes1, frames),
         "state_file": state_path is not None,
         "saves_per_tx": saves / done if done else None,
@@ -339,43 +378,3 @@ def top_functions(profile: cProfile.Profile, count: int = 12) -> list[dict[str, 
         }
         for (file, line, name), row in rows
     ]
-
-
-def driver_share(profile: cProfile.Profile) -> float:
-    """The share of the profiled time spent in python-can when canergy's code calls it: the
-    bus's ``send`` and ``recv`` (deep copies, queues and waits included) and ``can.Message``."""
-    table: dict[Any, Any] = pstats.Stats(profile).stats  # type: ignore[attr-defined]
-    total = sum(row[2] for row in table.values()) or 1.0
-    in_can, in_canergy = str(Path(can.__file__).parent), str(Path(__file__).parents[1])
-    spent = sum(
-        by_caller[3]
-        for (file, _, _), row in table.items()
-        if file.startswith(in_can)
-        for (caller, _, _), by_caller in row[4].items()
-        if caller.startswith(in_canergy)
-    )
-    return float(spent / total)
-
-
-def virtual_driver_us(frames: int = 5_000) -> dict[str, float]:
-    """What python-can's virtual bus itself costs the sender per ``send`` (a deep copy of the
-    message per receiver) and the receiver per ``recv``: the driver's share of a frame."""
-    channel = f"driver-{uuid.uuid4().hex}"
-    sender = can.Bus(interface="virtual", channel=channel)
-    receiver = can.Bus(interface="virtual", channel=channel)
-    frame = can.Message(arbitration_id=0x0CE00801, is_extended_id=True, data=bytes(8))
-    try:
-        start = time.thread_time()
-        for _ in range(frames):
-            sender.send(frame)
-        sent = time.thread_time()
-        for _ in range(frames):
-            receiver.recv(0)
-        received = time.thread_time()
-    finally:
-        sender.shutdown()
-        receiver.shutdown()
-    return {
-        "send_us": 1e6 * (sent - start) / frames,
-        "recv_us": 1e6 * (received - sent) / frames,
-    }

@@ -77,18 +77,13 @@ def live_part(emulator: live.Emulator, quick: bool) -> dict[str, Any]:
     """The live stack at 1, 16 and 127 nodes, the virtual bus's own cost, and where the
     supervisor's time goes when it misses its target (a profiled run of its loop thread)."""
     seconds = 0.3 if quick else 3.0
-    driver = live.virtual_driver_us(500 if quick else 5_000)
     with tempfile.TemporaryDirectory() as tmp:
         rows = []
         # then the supervisor as it runs: books in a state file, saved once per loop pass
         for n, state_file in ((1, False), (16, False), (127, False), (16, True), (127, True)):
             nv = Path(tmp) / f"nodes-{n}-{state_file}"
             nv.mkdir()
-            row = live.canergy_grants(emulator, n, seconds, nv, state_file=state_file)
-            sent, received = row["frames_sent"], row["frames_received"]
-            cost = sent * driver["send_us"] + received * driver["recv_us"]
-            row["virtual_driver_us_per_frame"] = cost / (sent + received) if sent else None
-            rows.append(row)
+            rows.append(live.canergy_grants(emulator, n, seconds, nv, state_file=state_file))
         headroom = supervisor_headroom(rows)
         by_itself = []
         for n, state_file in ((16, False), (127, False), (16, True), (127, True)):
@@ -105,8 +100,7 @@ def live_part(emulator: live.Emulator, quick: bool) -> dict[str, Any]:
             nv.mkdir()
             live.canergy_grants(emulator, 16, seconds, nv, profile=profile)
             headroom["profile_16_nodes"] = live.top_functions(profile)
-            headroom["bus_driver_share_16_nodes"] = live.driver_share(profile)
-    return {"live": rows, "virtual_driver": driver, "headroom": headroom}
+    return {"live": rows, "headroom": headroom}
 
 
 def latency_ratio(rows: list[dict[str, Any]], sdo: dict[str, Any]) -> float | None:
@@ -136,7 +130,7 @@ def run(quick: bool = False) -> dict[str, Any]:
         emulator = live.load_emulator()
     except live.EmulatorMissing as exc:
         skipped.append(str(exc))
-    stack: dict[str, Any] = {"live": [], "virtual_driver": None, "headroom": None}
+    stack: dict[str, Any] = {"live": [], "headroom": None}
     if emulator is not None:
         stack = live_part(emulator, quick)
     sdo = live.sdo_writes(50 if quick else 2000)
@@ -175,7 +169,7 @@ def live_lines(r: dict[str, Any]) -> list[str]:
     its profile when it misses); shared by the virtual bench and ``canergy bench`` on a bus."""
     lines = []
     for row in r["live"]:
-        driver = row.get("virtual_driver_us_per_frame")
+        driver = row.get("bus_cpu_us_per_frame")
         nodes_cpu = row["nodes_cpu_us_per_frame"]
         books = row.get("state_file") and row.get("saves_per_tx") is not None
         lines += [
@@ -186,7 +180,7 @@ def live_lines(r: dict[str, Any]) -> list[str]:
             f"(+{_n(row['telemetry_per_tx'], '.2f')} telemetry)",
             f"      CPU per frame on the bus: supervisor "
             f"{_n(row['supervisor_cpu_us_per_frame'], '.1f')} us"
-            + (f" (of which python-can virtual {driver:.1f} us)" if driver is not None else "")
+            + (f" (of which in the bus's send and recv {driver:.1f} us)" if driver else "")
             + (f", nodes {nodes_cpu:.1f} us" if nodes_cpu is not None else "")
             + (f"; {row['saves_per_tx']:.2f} saves/tx" if books else ""),
         ]
@@ -221,11 +215,8 @@ def live_lines(r: dict[str, Any]) -> list[str]:
         if h.get(key):
             figures = ", ".join(f"{n} nodes {us:.1f} us" for n, us in h[key].items())
             lines.append(f"    {what}: {figures}")
-    if "bus_driver_share_16_nodes" in h:
-        lines.append(
-            f"    profile of its loop thread at 16 nodes: {h['bus_driver_share_16_nodes']:.0%} in "
-            "python-can's send, recv and Message; the functions of most time of their own:"
-        )
+    if h.get("profile_16_nodes"):
+        lines.append("    its loop thread's profile at 16 nodes, the most time of their own:")
     for f in h.get("profile_16_nodes", []):
         lines.append(
             f"      {f['own_share']:6.1%} own, {f['with_callees_share']:6.1%} with callees  "

@@ -8,7 +8,6 @@ handler may leave its state in, which the diagrams in ``docs/`` are drawn from a
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from enum import Enum
@@ -218,9 +217,11 @@ class RuleTable(Generic[S, R]):
             for (p, e), tr in self.listed.items()
             if (p, e) not in replaced
         ]
-        new = copy.copy(self)
-        new._build([*kept, *cells])
-        return new
+        return self._with_cells([*kept, *cells])
+
+    def _with_cells(self, cells: list[Cell]) -> Self:
+        """The same table built from ``cells`` (no ``copy``: compiled classes have none)."""
+        return type(self)(self.variant, self.phases, cells, self.persistent)
 
 
 class SupervisorTable(RuleTable[Session, SessionStep]):
@@ -244,3 +245,6 @@ class ClientTable(RuleTable[ClientState, ClientStep]):
     ) -> None:
         super().__init__(variant, phases, cells, persistent)
         self.can_give_back = can_give_back
+
+    def _with_cells(self, cells: list[Cell]) -> Self:
+        return type(self)(self.variant, self.phases, cells, self.persistent, self.can_give_back)

@@ -12,7 +12,7 @@ import errno
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, fields
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol, cast
 
 import can
 
@@ -54,7 +54,6 @@ class Handler(Protocol):
         ...
 
 
-@runtime_checkable
 class PassHandler(Protocol):
     """A handler that takes loop passes: it holds the frames of a whole pass (every frame
     drained in one go and the deadlines then due) and saves its books once before they leave,
@@ -163,7 +162,8 @@ class BusRuntime:
         self.max_batch = 512
         self.auth = auth
         """Authenticated mode: MACs added to what is sent and checked on what is received."""
-        self._passes = handler if isinstance(handler, PassHandler) else None
+        passes = callable(getattr(handler, "begin_pass", None))
+        self._passes = cast(PassHandler, handler) if passes else None
 
     def poll(self, max_wait_s: float = 0.1) -> None:
         """Wait for one frame (at most until the next deadline or ``max_wait_s``) and run

@@ -42,7 +42,9 @@ def _check_shape(report: dict[str, object]) -> None:
     for row in rows:
         assert row["transactions"] > 0
         assert (row["saves_per_tx"] > 0) == row["state_file"]  # books saved, once per pass
-        assert 4.0 <= row["frames_per_tx"] < 5  # INTENTION, ACK, COMMIT, COMMITTED, re-sends
+        # INTENTION, ACK, COMMIT, COMMITTED, re-sends; a transaction open at either end of the
+        # window is counted with only some of its frames
+        assert 3.8 <= row["frames_per_tx"] < 5
         assert 0 < row["latency_p50_ms"] <= row["latency_p99_ms"]
         assert row["supervisor_cpu_us_per_frame"] > 0 and row["nodes_cpu_us_per_frame"] > 0
         assert 0 < row["bus_cpu_us_per_frame"] < row["supervisor_cpu_us_per_frame"]

@@ -75,11 +75,11 @@ def _grant_to_all(service: SupervisorService, replies: list[dict[str, Any]]) -> 
 
 
 def _phase_by_phase(
-    bus: _CheckedBus, poll: Any, tx: dict[int, int], saves: list[int], nodes: tuple[int, ...]
+    bus: _CheckedBus, poll: Any, saves: list[int], nodes: tuple[int, ...]
 ) -> list[int]:
     """Drive every node through one transaction, each answer of all nodes queued at once: the
     saves after each pass."""
-    per_pass = []
+    per_pass, tx = [], {}
     bus.queue(*(Telemetry(n, 0) for n in nodes))
     for answer in (None, Ack, Committed):
         if answer is not None:
@@ -87,53 +87,43 @@ def _phase_by_phase(
         before = len(saves)
         poll()
         per_pass.append(len(saves) - before)
-        for msg in bus.sent:
-            if isinstance(msg, Intention):
-                tx[msg.node] = msg.tx
+        tx |= {m.node: m.tx for m in bus.sent if isinstance(m, Intention)}
     return per_pass
 
 
+class _NoPasses:
+    """The service's Handler methods only, no begin_pass/end_pass (a wrapping handler)."""
+
+    def __init__(self, service: SupervisorService) -> None:
+        self.service = service
+
+    def __getattr__(self, name: str) -> Any:
+        if name in ("begin_pass", "end_pass"):
+            raise AttributeError(name)
+        return getattr(self.service, name)
+
+
+@pytest.mark.parametrize(("passes", "saves"), [(True, [1, 1, 1]), (False, [16, 16, 16])])
 def test_a_drained_batch_is_saved_once_and_sent_after(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, passes: bool, saves: list[int]
 ) -> None:
-    saves = _count_saves(monkeypatch)
+    """16 TELEMETRY, then 16 ACKs, then 16 COMMITTEDs, each lot drained by one poll: one save
+    per pass; a handler that takes no passes keeps the per-step order (a save per step, each
+    before its frames)."""
+    counted = _count_saves(monkeypatch)
     service = _service(tmp_path)
     bus = _CheckedBus(service, tmp_path / "books.json")
-    runtime = BusRuntime(bus, service, codec=CODEC, receives=Direction.TO_SUPERVISOR)
+    handler = service if passes else _NoPasses(service)
+    runtime = BusRuntime(bus, handler, codec=CODEC, receives=Direction.TO_SUPERVISOR)
     replies: list[dict[str, Any]] = []
     _grant_to_all(service, replies)
-    tx: dict[int, int] = {}
-    # 16 TELEMETRY, then 16 ACKs, then 16 COMMITTEDs: three passes, one save each
-    per_pass = _phase_by_phase(bus, lambda: runtime.poll(0), tx, saves, NODES)
+    per_pass = _phase_by_phase(bus, lambda: runtime.poll(0), counted, NODES)
     bus.shutdown()
-    assert per_pass == [1, 1, 1]
+    assert per_pass == saves
     kinds = [type(m).__name__ for m in bus.sent]
     assert kinds == ["Intention"] * 16 + ["Commit"] * 16
     assert [r["outcome"] for r in replies] == ["COMMITTED"] * 16
     assert service.core.is_quiescent()
-
-
-def test_without_passes_every_step_saves_before_its_frames(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """A driver that opens no pass (a wrapping handler) keeps the per-step order."""
-    saves = _count_saves(monkeypatch)
-    service = _service(tmp_path)
-    bus = _CheckedBus(service, tmp_path / "books.json")
-
-    class Plain:  # the service's Handler methods only: no begin_pass/end_pass
-        def __getattr__(self, name: str) -> Any:
-            if name in ("begin_pass", "end_pass"):
-                raise AttributeError(name)
-            return getattr(service, name)
-
-    runtime = BusRuntime(bus, Plain(), codec=CODEC, receives=Direction.TO_SUPERVISOR)
-    replies: list[dict[str, Any]] = []
-    _grant_to_all(service, replies)
-    per_pass = _phase_by_phase(bus, lambda: runtime.poll(0), {}, saves, NODES)
-    bus.shutdown()
-    assert per_pass == [16, 16, 16]
-    assert [r["outcome"] for r in replies] == ["COMMITTED"] * 16
 
 
 def test_several_buses_share_one_pass(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -13,10 +13,10 @@ from canergy.cli import main
 from canergy.core import ClientState, ClientStep, Session, SessionStep, Timing
 from canergy.core import hardened as H
 from canergy.core.common import start_blank
-from canergy.core.frozen import evolve
 from canergy.core.inputs import BooksLost, PowerLoss, ReturnTimeout
 from canergy.core.table import ANY, cell
 from canergy.core.variants import VARIANTS, Variant
+from canergy.frozen import evolve
 from canergy.messages import (
     QUANTUM_UJ,
     Ack,

@@ -11,8 +11,8 @@ from canergy.check.attacker import forgeable
 from canergy.check.explore import step_from_json
 from canergy.check.model import Model, Step, StepKind, initial_world
 from canergy.cli import main
-from canergy.core.frozen import evolve
 from canergy.core.variants import VARIANTS
+from canergy.frozen import evolve
 from canergy.messages import Admit, Commit, Intention, Return, StatusRequest
 
 FORGER = Bounds(clients=1, transactions=2, forgeries=1)

@@ -9,8 +9,8 @@ import pytest
 from canergy.check import Bounds, check, replay
 from canergy.check.model import Model, World, initial_world
 from canergy.check.reduce import Reducer, inverse, relabel
-from canergy.core.frozen import evolve
 from canergy.core.variants import VARIANTS
+from canergy.frozen import evolve
 
 
 def _reachable(bounds: Bounds, limit: int) -> list[World]:

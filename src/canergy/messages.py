@@ -11,6 +11,8 @@ from dataclasses import dataclass
 from enum import IntEnum
 from typing import ClassVar
 
+from canergy.frozen import fast_init
+
 QUANTUM_UJ = 1000
 """One wire energy unit: amounts and the delivered count travel in millijoules."""
 
@@ -58,6 +60,7 @@ class MsgType(IntEnum):
         return Direction.TO_SUPERVISOR if self & 0x8 else Direction.TO_CLIENT
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Intention:
     """INT: the supervisor reserved ``amount_mj`` for transaction ``tx``; ``delivered_mj`` is Gs."""
@@ -69,6 +72,7 @@ class Intention:
     delivered_mj: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Commit:
     """COMMIT: move the reserved amount into the client's usable budget."""
@@ -79,6 +83,7 @@ class Commit:
     amount_mj: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Abort:
     """ABORT: discard the intention; the supervisor takes its reservation back."""
@@ -89,6 +94,7 @@ class Abort:
     amount_mj: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ReturnAck:
     """RETACK: the supervisor has credited return number ``seq``."""
@@ -98,6 +104,7 @@ class ReturnAck:
     seq: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class StatusRequest:
     """Paper variant: the supervisor asks what the client did with ``tx``."""
@@ -107,6 +114,7 @@ class StatusRequest:
     tx: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class FinalAck:
     """Paper variant: the supervisor closes transaction ``tx``."""
@@ -116,6 +124,7 @@ class FinalAck:
     tx: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Admit:
     """ADMIT: answer to JOIN(``nonce``): the supervisor's transaction and return counters.
@@ -131,6 +140,7 @@ class Admit:
     seq: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Ack:
     """ACK: the client holds intention ``tx``."""
@@ -140,6 +150,7 @@ class Ack:
     tx: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Committed:
     """COMMITTED: the client committed ``tx`` (on command or by timeout)."""
@@ -149,6 +160,7 @@ class Committed:
     tx: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Aborted:
     """ABORTED: the client aborted ``tx``."""
@@ -158,6 +170,7 @@ class Aborted:
     tx: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Return:
     """RETURN: the client gave back ``amount_mj`` as return number ``seq``."""
@@ -168,6 +181,7 @@ class Return:
     amount_mj: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Join:
     """JOIN: the node has no valid record (new, wiped or corrupted); ``nonce`` is drawn at random
@@ -178,6 +192,7 @@ class Join:
     nonce: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Telemetry:
     """TELEMETRY: the client's usable level (24-bit mJ, saturating) and status flags.

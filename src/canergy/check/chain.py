@@ -22,7 +22,6 @@ from typing import Any
 from canergy.check.model import UNIT, Flight, message_key
 from canergy.check.search import breadth_first
 from canergy.core.actions import Action, Send
-from canergy.core.frozen import evolve
 from canergy.core.gateway import Gateway, GatewayState, forward, link_gap
 from canergy.core.inputs import (
     COMMAND_TIMEOUT,
@@ -39,6 +38,7 @@ from canergy.core.supervisor import apply_session, inject_into
 from canergy.core.table import Event
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
+from canergy.frozen import evolve
 from canergy.ledger import TreeLedger, ledger
 from canergy.messages import Direction, Message, ToClient, ToSupervisor
 

@@ -16,7 +16,6 @@ from enum import Enum
 
 from canergy.check.attacker import forgeable
 from canergy.core.actions import Send
-from canergy.core.frozen import evolve
 from canergy.core.inputs import (
     COMMAND_TIMEOUT,
     POWER_LOSS,
@@ -34,6 +33,7 @@ from canergy.core.supervisor import apply_session
 from canergy.core.table import Event
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant
+from canergy.frozen import evolve
 from canergy.ledger import NOT_LOST, Ledger, LostRecord, ledger
 from canergy.messages import QUANTUM_UJ, Direction, Message, ToClient, ToSupervisor
 

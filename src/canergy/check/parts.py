@@ -13,9 +13,9 @@ from typing import Any, TypeVar, cast
 
 from canergy.check.model import Model
 from canergy.core.actions import Send
-from canergy.core.frozen import evolve
 from canergy.core.state import ClientState, Session
 from canergy.core.table import Event
+from canergy.frozen import evolve
 from canergy.messages import Direction, Message
 
 T = TypeVar("T")

@@ -18,8 +18,8 @@ from collections.abc import Iterable
 from typing import Any, TypeVar, cast
 
 from canergy.check.model import Flight, Step, World
-from canergy.core.frozen import evolve
 from canergy.core.state import ClientState, Session
+from canergy.frozen import evolve
 from canergy.ledger import LostRecord
 from canergy.messages import Message
 

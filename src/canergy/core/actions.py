@@ -5,9 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from canergy.core.state import Outcome
+from canergy.frozen import fast_init
 from canergy.messages import Message
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Send:
     """Put this message on the bus."""
@@ -15,11 +17,13 @@ class Send:
     message: Message
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Persist:
     """Write the non-volatile record now, before any following ``Send`` leaves."""
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Acknowledged:
     """Supervisor: the node holds the intention; call ``commit`` or ``abort``."""
@@ -28,6 +32,7 @@ class Acknowledged:
     tx: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Resolved:
     """Supervisor: transaction ``tx`` ended with ``outcome`` for ``amount`` µJ."""
@@ -38,6 +43,7 @@ class Resolved:
     amount: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ReturnCredited:
     """Supervisor: credited return ``seq`` of ``amount`` µJ to the usable budget."""
@@ -47,6 +53,7 @@ class ReturnCredited:
     amount: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Admitted:
     """Supervisor: a node without books asked to join and was sent the counters ``tx``/``seq``
@@ -57,6 +64,7 @@ class Admitted:
     seq: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class IntentionRefused:
     """Client: did not acknowledge intention ``tx``: it would take the usable budget past what
@@ -66,6 +74,7 @@ class IntentionRefused:
     tx: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ClientCommitted:
     """Client: committed ``tx``, ``amount`` µJ now usable; ``by_timeout`` if no command came."""
@@ -76,6 +85,7 @@ class ClientCommitted:
     by_timeout: bool
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ClientAborted:
     """Client: aborted ``tx``."""
@@ -84,6 +94,7 @@ class ClientAborted:
     tx: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Credited:
     """Client: the supervisor's delivered count paid back ``amount`` µJ written off earlier."""
@@ -92,6 +103,7 @@ class Credited:
     amount: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class RolledBack:
     """Client (paper variant): undid a timeout-commit of ``tx``, removing ``amount`` µJ."""
@@ -101,6 +113,7 @@ class RolledBack:
     amount: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ReturnAcknowledged:
     """Client: the supervisor confirmed return ``seq``."""

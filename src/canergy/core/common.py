@@ -5,11 +5,11 @@ from __future__ import annotations
 
 from canergy.core.actions import Action, ClientCommitted, Resolved, Send
 from canergy.core.errors import LocalProtocolError
-from canergy.core.frozen import evolve
 from canergy.core.inputs import Begin, BooksLost, Decide, Spend
 from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
 from canergy.core.steps import NO_ACTIONS, Actions, ClientStep, SessionStep
 from canergy.core.timing import Timing
+from canergy.frozen import evolve
 from canergy.messages import (
     AMOUNT_MAX_MJ,
     DELIVERED_BITS,

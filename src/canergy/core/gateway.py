@@ -22,11 +22,11 @@ from dataclasses import dataclass
 from canergy.core.actions import Action, Persist
 from canergy.core.client import Client
 from canergy.core.errors import LocalProtocolError
-from canergy.core.frozen import evolve
 from canergy.core.state import ClientState, SupervisorState
 from canergy.core.supervisor import Supervisor, inject_into, withdraw_from
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant
+from canergy.frozen import evolve
 from canergy.messages import ToClient
 
 

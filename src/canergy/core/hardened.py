@@ -32,7 +32,6 @@ from canergy.core.common import (
     wire_tx,
 )
 from canergy.core.errors import LocalProtocolError
-from canergy.core.frozen import evolve
 from canergy.core.inputs import (
     RETURN_TIMEOUT,
     Begin,
@@ -49,6 +48,7 @@ from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
 from canergy.core.steps import ClientStep, SessionStep
 from canergy.core.table import ANY, STAY, ClientTable, SupervisorTable, cell
 from canergy.core.timing import Timing
+from canergy.frozen import evolve
 from canergy.messages import (
     DELIVERED_BITS,
     QUANTUM_UJ,

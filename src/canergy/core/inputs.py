@@ -10,8 +10,10 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from canergy.core.state import Decision
+from canergy.frozen import fast_init
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Begin:
     """Supervisor: reserve ``amount`` µJ for a new transaction and send its intention."""
@@ -20,6 +22,7 @@ class Begin:
     amount: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Decide:
     """Supervisor: commit or abort the acknowledged intention."""
@@ -28,6 +31,7 @@ class Decide:
     decision: Decision
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ResponseTimeout:
     """Supervisor: the response timer of a session expired."""
@@ -35,6 +39,7 @@ class ResponseTimeout:
     NAME: ClassVar[str] = "response timeout"
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class CommandTimeout:
     """Client: no command came for the held intention in time."""
@@ -42,6 +47,7 @@ class CommandTimeout:
     NAME: ClassVar[str] = "command timeout"
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ReturnTimeout:
     """Client: the pending return was not acknowledged in time."""
@@ -49,6 +55,7 @@ class ReturnTimeout:
     NAME: ClassVar[str] = "return timeout"
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Spend:
     """Client: the actuator used ``amount`` µJ."""
@@ -57,6 +64,7 @@ class Spend:
     amount: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class GiveBack:
     """Client: return ``amount`` µJ of unused energy to the supervisor."""
@@ -65,6 +73,7 @@ class GiveBack:
     amount: int
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class PowerLoss:
     """Either side: volatile memory is lost; restart from the persistent record."""
@@ -72,6 +81,7 @@ class PowerLoss:
     NAME: ClassVar[str] = "power loss"
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class BooksLost:
     """Client: started without a valid NV record (new, wiped or corrupted); ``nonce`` is a fresh

@@ -22,7 +22,6 @@ from canergy.core.common import (
     start_return,
     wire_tx,
 )
-from canergy.core.frozen import evolve
 from canergy.core.inputs import (
     Begin,
     BooksLost,
@@ -37,6 +36,7 @@ from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
 from canergy.core.steps import ClientStep, SessionStep
 from canergy.core.table import ANY, STAY, ClientTable, SupervisorTable, cell
 from canergy.core.timing import Timing
+from canergy.frozen import evolve
 from canergy.messages import (
     QUANTUM_UJ,
     SEQ_BITS,

@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 
+from canergy.frozen import fast_init
+
 
 class Phase(IntEnum):
     """Where a transaction stands, on either side."""
@@ -35,6 +37,7 @@ class Outcome(IntEnum):
     WRITTEN_OFF = 4  # supervisor: gave up, counted as delivered
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class Session:
     """The supervisor's record for one node. Energies in µJ.
@@ -57,6 +60,7 @@ class Session:
     deadline: int | None = None
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class SupervisorState:
     """Usable budget Us, energy injected from outside since start, energy withdrawn to outside
@@ -69,6 +73,7 @@ class SupervisorState:
     withdrawn: int = 0
 
 
+@fast_init
 @dataclass(frozen=True, slots=True)
 class ClientState:
     """A client's record. Energies in µJ.

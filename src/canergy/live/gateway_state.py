@@ -16,9 +16,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from canergy.core.frozen import evolve
 from canergy.core.gateway import GatewayState, link_gap
 from canergy.core.state import ClientState, Outcome, Phase, Session
+from canergy.frozen import evolve
 from canergy.live.atomic import write_atomic
 from canergy.live.state_file import (
     ACCEPT_EDITED,

@@ -27,10 +27,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
-from canergy.core.frozen import evolve
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.core.table import SupervisorTable
 from canergy.core.variants import VARIANTS
+from canergy.frozen import evolve
 from canergy.live.atomic import write_atomic
 from canergy.live.bus_keys import node_name, parse_node_id, session_key
 from canergy.messages import AMOUNT_MAX_MJ, MAX_NODE, MIN_NODE, QUANTUM_UJ

@@ -16,13 +16,13 @@ from __future__ import annotations
 from canergy.core.actions import Resolved, Send
 from canergy.core.common import check_amount, spend, wire_tx
 from canergy.core.errors import LocalProtocolError
-from canergy.core.frozen import evolve
 from canergy.core.inputs import Begin, GiveBack, PowerLoss, ResponseTimeout, Spend
 from canergy.core.state import ClientState, Outcome, Phase, Session
 from canergy.core.steps import ClientStep, SessionStep
 from canergy.core.table import ANY, STAY, ClientTable, SupervisorTable, cell
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant
+from canergy.frozen import evolve
 from canergy.messages import QUANTUM_UJ, SEQ_BITS, Ack, Intention, Return
 from canergy.seqnum import unwrap, wrap
 

@@ -1,0 +1,78 @@
+"""Fast building and copying of frozen, slotted records (the protocol's messages, states,
+inputs and actions), which the live loop makes several of per frame and the model checker
+millions of.
+
+A frozen dataclass's own ``__init__`` (and ``dataclasses.replace``) sets each field through
+``object.__setattr__``, a lookup by name per field. Here each class gets generated code that
+sets every slot through the slot's own descriptor: ``fast_init`` replaces the ``__init__`` of a
+record (same parameters, same defaults), ``evolve`` copies one with changes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+_MISSING: Any = object()
+_COPIERS: dict[type, Callable[..., Any]] = {}
+
+
+def _generate(cls: type, head: str, values: dict[str, str], scope: dict[str, Any]) -> Any:
+    """Compile ``head`` (``init(new, ...)`` fills ``new``; ``copy(obj, ...)`` makes and returns
+    it) with one descriptor call per slot; ``values``: each slot's value as an expression."""
+    make = head.startswith("copy")
+    body = "".join(f"    _set_{i}(new, {values[n]})\n" for i, n in enumerate(values))
+    source = f"def {head}:\n" + ("    new = _new(cls)\n" if make else "") + body
+    source += "    return new\n" if make else "    return None\n"
+    scope |= {f"_set_{i}": cls.__dict__[n].__set__ for i, n in enumerate(values)}
+    scope |= {"cls": cls, "_new": object.__new__}
+    exec(source, scope)  # built only from the class's field names
+    return scope[head.partition("(")[0]]
+
+
+def fast_init(cls: type[T]) -> type[T]:
+    """Give a frozen, slotted dataclass an ``__init__`` with the same parameters and defaults
+    that sets its slots through their descriptors. Only for plain records: no ``__post_init__``,
+    no default factory, every field in ``__init__`` and in a slot."""
+    fields = dataclasses.fields(cls)  # type: ignore[arg-type]
+    names = tuple(f.name for f in fields)
+    plain = all(f.init and f.default_factory is dataclasses.MISSING for f in fields)
+    if not plain or hasattr(cls, "__post_init__") or getattr(cls, "__slots__", None) != names:
+        raise TypeError(f"{cls.__name__}: fast_init takes plain frozen, slotted records only")
+    params = "".join(
+        f", {f.name}" if f.default is dataclasses.MISSING else f", {f.name}=_default_{f.name}"
+        for f in fields
+    )
+    defaults = {f"_default_{f.name}": f.default for f in fields}
+    init = _generate(cls, f"init(new{params})", {n: n for n in names}, defaults)
+    init.__qualname__ = f"{cls.__qualname__}.__init__"
+    cls.__init__ = init  # type: ignore[method-assign]
+    return cls
+
+
+def _copier(cls: type) -> Callable[..., Any]:
+    names: tuple[str, ...] = cls.__slots__  # type: ignore[attr-defined]
+    params = "".join(f", {n}=_MISSING" for n in names)
+    values = {n: f"obj.{n} if {n} is _MISSING else {n}" for n in names}
+    copy: Callable[..., Any] = _generate(
+        cls, f"copy(obj, *{params})" if names else "copy(obj)", values, {"_MISSING": _MISSING}
+    )
+    return copy
+
+
+def _new_copier(cls: type) -> Callable[..., Any]:
+    copy = _COPIERS[cls] = _copier(cls)
+    return copy
+
+
+def evolve(obj: T, **changes: Any) -> T:
+    """A copy of ``obj`` with ``changes`` applied; unknown field names raise ``TypeError``."""
+    cls = type(obj)
+    try:
+        new: T = (_COPIERS.get(cls) or _new_copier(cls))(obj, **changes)
+    except TypeError as exc:
+        unknown = sorted(set(changes) - set(cls.__slots__))  # type: ignore[attr-defined]
+        raise TypeError(f"{cls.__name__} has no field(s) {unknown}") from exc
+    return new

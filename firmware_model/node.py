@@ -139,10 +139,9 @@ class FirmwareNode:
     def next_wakeup(self) -> int:
         if self.outbox:
             return 0
-        times = [self.next_tick, self.next_telemetry]
-        if (timer := self.client.get_timer()) is not None:
-            times.append(timer)
-        return min(times)
+        wake = min(self.next_tick, self.next_telemetry)
+        timer = self.client.get_timer()
+        return wake if timer is None else min(wake, timer)
 
     def on_wakeup(self, now: int) -> list[Message]:
         out, self.outbox = self.outbox, []

@@ -44,8 +44,10 @@ class Client:
         return self._step(msg, now)
 
     def get_timer(self) -> int | None:
-        deadlines = [d for d in (self.state.deadline, self.state.return_deadline) if d is not None]
-        return min(deadlines) if deadlines else None
+        command, give_back = self.state.deadline, self.state.return_deadline
+        if command is None or give_back is None:
+            return give_back if command is None else command
+        return min(command, give_back)
 
     def handle_timer(self, now: int) -> list[Action]:
         return self.fire_command_timer(now) + self.fire_return_timer(now)

@@ -11,13 +11,13 @@ from collections.abc import Iterable
 
 from canergy.core.actions import Action, Persist
 from canergy.core.errors import LocalProtocolError
-from canergy.core.frozen import evolve
 from canergy.core.inputs import POWER_LOSS, RESPONSE_TIMEOUT, Begin, Decide
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.core.steps import SessionStep
 from canergy.core.table import Event
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
+from canergy.frozen import evolve
 from canergy.messages import MAX_NODE, MIN_NODE, ToSupervisor
 
 BUS_SHIFT = 8
@@ -32,8 +32,9 @@ def is_session_key(key: int) -> bool:
 
 def apply_session(st: SupervisorState, i: int, step: SessionStep) -> SupervisorState:
     """Put session ``i`` back into the state and add the step's credit to Us (pure)."""
-    sessions = (*st.sessions[:i], step.session, *st.sessions[i + 1 :])
-    return evolve(st, usable=st.usable + step.credit, sessions=sessions)
+    sessions = list(st.sessions)
+    sessions[i] = step.session
+    return evolve(st, usable=st.usable + step.credit, sessions=tuple(sessions))
 
 
 def inject_into(st: SupervisorState, amount: int) -> SupervisorState:

@@ -159,6 +159,7 @@ class BusRuntime:
         self.clock = clock
         self.sleep = sleep
         self.counters = BusCounters()
+        self._bus_state: can.BusState | None = None
         self.max_batch = 512
         self.auth = auth
         """Authenticated mode: MACs added to what is sent and checked on what is received."""
@@ -307,7 +308,9 @@ class BusRuntime:
             state = self.bus.state
         except (NotImplementedError, can.CanError):
             return
-        self.counters.bus_state = state.name.lower()
+        if state is not self._bus_state:  # named once per change, not once per pass
+            self._bus_state = state
+            self.counters.bus_state = state.name.lower()
 
 
 def _retryable(exc: can.CanError) -> bool:

@@ -57,6 +57,15 @@ def test_quick_bench_runs_every_comparison(
     for r in rounds:
         assert r["ratio"] == r["canergy_p50_ms"] / r["sdo_p50_ms"] > 0
     assert report["latency_ratio_vs_sdo"] == statistics.median(r["ratio"] for r in rounds)
+    for r in rounds:  # the floor: two bare python-can round trips, in the same turns
+        assert r["floor_ratio"] == r["bare_round_trips_p50_ms"] / r["sdo_p50_ms"] > 0
+    assert report["latency_floor_vs_sdo"] == statistics.median(r["floor_ratio"] for r in rounds)
+    profile = rows[0]["latency_profile"]  # where the 1-node transaction's time goes
+    assert profile["supervisor_turn_us"] > 0 and profile["nodes_turn_us"] > 0
+    assert all(row["latency_profile"] is None for row in rows[1:])  # turns: one node only
+    out_text = capsys.readouterr().out
+    assert "two bare python-can round trips on this bus" in out_text
+    assert f"supervisor 2 x {profile['supervisor_turn_us']:.0f} us" in out_text
     assert report["skipped"] == []  # the emulator is importable here
     assert report["memory"]["client_nv_record_bytes"] <= 32
     tree = report["tree"]
@@ -64,7 +73,7 @@ def test_quick_bench_runs_every_comparison(
     assert tree["tree"]["transactions"] > 0 and tree["bytes_per_added_node"] > 0
     monitor = report["monitor"]  # a lossless virtual bus: the monitor counts every frame
     assert monitor["frames_sent"] == monitor["frames_counted"] == monitor["model_frames"] == 500
-    assert "quick smoke run" in capsys.readouterr().out
+    assert "quick smoke run" in out_text
 
 
 def test_the_emulator_is_found_through_its_entry_point(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -73,3 +82,22 @@ def test_the_emulator_is_found_through_its_entry_point(monkeypatch: pytest.Monke
     monkeypatch.setattr(live, "entry_points", lambda group: [])
     with pytest.raises(live.EmulatorMissing, match=r"none registered under the canergy\.emulators"):
         live.load_emulator()
+
+
+def test_a_turn_runs_from_a_frame_received_to_the_next_sent() -> None:
+    us = 1e-6  # (time, sent): in at 0, out at 10; in at 30, in at 50, out at 90
+    stamps = [(0.0, False), (10 * us, True), (30 * us, False), (50 * us, False), (90 * us, True)]
+    assert live.turn_us(stamps) == pytest.approx(25.0)  # the median of 10 and 40
+    assert live.turn_us([(0.0, True), (1.0, True)]) is None  # nothing received: no turn
+
+
+def test_the_latency_profile_leaves_the_bus_what_the_turns_do_not_take() -> None:
+    profile = live.latency_profile(1.0, 100.0, 150.0)  # 1 ms; turns of 100 and 150 us
+    assert profile == {
+        "supervisor_turn_us": 100.0,
+        "nodes_turn_us": 150.0,
+        "bus_hop_us": 125.0,  # (1000 - 200 - 300) / 4
+        "nodes_and_bus_us": 800.0,
+    }
+    assert live.latency_profile(1.0, 100.0, None)["bus_hop_us"] is None  # nodes not seen
+    assert live.latency_profile(None, 100.0, 150.0) is None

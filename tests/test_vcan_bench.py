@@ -48,6 +48,12 @@ def _check_shape(report: dict[str, object]) -> None:
         assert 0 < row["latency_p50_ms"] <= row["latency_p99_ms"]
         assert row["supervisor_cpu_us_per_frame"] > 0 and row["nodes_cpu_us_per_frame"] > 0
         assert 0 < row["bus_cpu_us_per_frame"] < row["supervisor_cpu_us_per_frame"]
+        profile = row["latency_profile"]  # one node: the supervisor's turns; the nodes unseen
+        if row["nodes"] == 1:
+            assert profile["supervisor_turn_us"] > 0 and profile["nodes_turn_us"] is None
+            assert 0 < profile["nodes_and_bus_us"] < 1e3 * row["latency_p50_ms"]
+        else:
+            assert profile is None
     sdo = report["sdo"]
     assert isinstance(sdo, dict) and sdo["writes"] == 100 and sdo["latency_p50_ms"] > 0
     assert isinstance(report["latency_ratio_vs_sdo"], float)

@@ -15,6 +15,7 @@ host-only install without one skips this part (see ``load_emulator``).
 from __future__ import annotations
 
 import cProfile
+import itertools
 import pstats
 import statistics
 import threading
@@ -119,17 +120,21 @@ class _Counting:
         return self.service.on_wakeup(now)
 
 
-class _TimedBus(can.BusABC):
-    """The supervisor's bus with the CPU its ``send`` and ``recv`` take counted (the driver's
-    share of a frame, measured where it is spent: copies, queues, waits and system calls)."""
+class TimedBus(can.BusABC):
+    """A loop's bus with the CPU its ``send`` and ``recv`` take counted (the driver's share of
+    a frame, measured where it is spent: copies, queues, waits and system calls) and, while
+    ``stamps`` is a list, the time each frame left or arrived (``(perf_counter, sent)``)."""
 
     def __init__(self, bus: can.BusABC) -> None:  # nothing of BusABC's own state is used
         self.bus = bus
         self.spent = 0.0
+        self.stamps: list[tuple[float, bool]] | None = None
         self._is_shutdown = True  # the wrapped bus is shut down by its owner
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         start = time.thread_time()
+        if self.stamps is not None:
+            self.stamps.append((time.perf_counter(), True))
         try:
             self.bus.send(msg, timeout)
         finally:
@@ -138,9 +143,12 @@ class _TimedBus(can.BusABC):
     def recv(self, timeout: float | None = None) -> can.Message | None:
         start = time.thread_time()
         try:
-            return self.bus.recv(timeout)
+            msg = self.bus.recv(timeout)
         finally:
             self.spent += time.thread_time() - start
+        if msg is not None and self.stamps is not None:
+            self.stamps.append((time.perf_counter(), False))
+        return msg
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         raise NotImplementedError  # recv is forwarded whole
@@ -152,6 +160,31 @@ class _TimedBus(can.BusABC):
     @state.setter
     def state(self, new_state: can.BusState) -> None:
         self.bus.state = new_state
+
+
+def turn_us(stamps: Sequence[tuple[float, bool]]) -> float | None:
+    """The median time (µs) from a frame received to the next frame sent: one side's turn in
+    a one-node exchange (its decode, rules and encode, as the latency sees them)."""
+    gaps = [b[0] - a[0] for a, b in itertools.pairwise(stamps) if not a[1] and b[1]]
+    return 1e6 * statistics.median(gaps) if gaps else None
+
+
+def latency_profile(
+    latency_ms: float | None, supervisor_us: float | None, nodes_us: float | None
+) -> dict[str, float | None] | None:
+    """Where a one-node transaction's time goes: two turns of the supervisor (ACK to COMMIT,
+    and the request to INTENTION with COMMITTED's handling), two of the node (INTENTION to
+    ACK, COMMIT to COMMITTED) and four bus hops (a send, the receiver's wake-up, its receive),
+    derived as what is left. ``nodes_us`` None: the nodes' side is not seen (other process)."""
+    if latency_ms is None or supervisor_us is None:
+        return None
+    rest = 1e3 * latency_ms - 2 * supervisor_us
+    return {
+        "supervisor_turn_us": supervisor_us,
+        "nodes_turn_us": nodes_us,
+        "bus_hop_us": None if nodes_us is None else (rest - 2 * nodes_us) / 4,
+        "nodes_and_bus_us": rest,
+    }
 
 
 class NoAnswer(RuntimeError):
@@ -193,7 +226,7 @@ def drive_grants(
     config = ServiceConfig(status_period_us=10**12, fsync=False, state_path=state_path)
     service = SupervisorService(core, config, now)
     counting = _Counting(service)
-    timed = _TimedBus(bus)
+    timed = TimedBus(bus)
     runtime = BusRuntime(timed, counting, codec=Codec(), receives=Direction.TO_SUPERVISOR)
     stop, measuring = threading.Event(), threading.Event()
     latencies: list[float] = []
@@ -248,11 +281,17 @@ def drive_grants(
         )
         cpu0, bus0 = [_thread_cpu(t) for t in threads], timed.spent
         nodes0 = [clock() for clock in node_clocks]
+        stamped = [timed, *(r.bus for r in others if isinstance(r.bus, TimedBus))]
+        for b in stamped if len(nodes) == 1 else ():
+            b.stamps = []
         start = time.perf_counter()
         measuring.set()
         time.sleep(duration_s)
         measuring.clear()
         elapsed = time.perf_counter() - start
+        turns = [turn_us(b.stamps) if b.stamps is not None else None for b in stamped]
+        for b in stamped:
+            b.stamps = None
         cpu = [_thread_cpu(t) - c for t, c in zip(threads, cpu0, strict=True)]
         in_bus = timed.spent - bus0
         nodes1 = [clock() for clock in node_clocks]
@@ -280,6 +319,11 @@ def drive_grants(
         "nodes_cpu_us_per_frame": _per_frame(cpu[1:], nodes0, nodes1, frames),
         "state_file": state_path is not None,
         "saves_per_tx": saves / done if done else None,
+        "latency_profile": latency_profile(
+            1e3 * _percentile(latencies, 0.5) if done else None,
+            turns[0],
+            turns[1] if len(turns) > 1 else None,
+        ),
     }
 
 
@@ -308,7 +352,7 @@ def canergy_grants(
     host = emulator.node_host(ids, nv_dir, TIMING, monotonic_us())
     sup_bus = can.Bus(interface="virtual", channel=channel, can_filters=codec.supervisor_filters())
     node_bus = can.Bus(interface="virtual", channel=channel)
-    node_loop = BusRuntime(node_bus, host, codec=codec, receives=Direction.TO_CLIENT)
+    node_loop = BusRuntime(TimedBus(node_bus), host, codec=codec, receives=Direction.TO_CLIENT)
     try:
         books = nv_dir / "supervisor.json" if state_file else None
         return drive_grants(
@@ -317,6 +361,38 @@ def canergy_grants(
     finally:
         sup_bus.shutdown()
         node_bus.shutdown()
+
+
+def bare_round_trips(count: int) -> float:
+    """p50 (ms) of two frame round trips on python-can's virtual bus between this thread and
+    an echo thread, bare python-can: the floor of a two-round-trip exchange on this bus, in the
+    same process as the SDO baseline's."""
+    channel = f"echo-{uuid.uuid4().hex}"
+    ours, echo = (can.Bus(interface="virtual", channel=channel) for _ in range(2))
+    stop = threading.Event()
+
+    def answer() -> None:
+        while not stop.is_set():
+            if (msg := echo.recv(0.01)) is not None:
+                echo.send(can.Message(arbitration_id=msg.arbitration_id | 0x80, data=msg.data))
+
+    thread = threading.Thread(target=answer, daemon=True)
+    thread.start()
+    latencies = []
+    try:
+        for i in range(count):
+            start = time.perf_counter()
+            for _ in range(2):
+                ours.send(can.Message(arbitration_id=0x100, data=i.to_bytes(4, "little")))
+                while ours.recv(5.0) is None and thread.is_alive():
+                    pass
+            latencies.append(time.perf_counter() - start)
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+        ours.shutdown()
+        echo.shutdown()
+    return 1e3 * statistics.median(latencies)
 
 
 def sdo_dictionary() -> canopen.ObjectDictionary:

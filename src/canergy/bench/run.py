@@ -118,8 +118,17 @@ def latency_rounds(emulator: live.Emulator, quick: bool) -> list[dict[str, float
             nv.mkdir()
             one = live.canergy_grants(emulator, 1, 0.2 if quick else 1.0, nv)["latency_p50_ms"]
             sdo = live.sdo_writes(30 if quick else 400)["latency_p50_ms"]
+            bare = live.bare_round_trips(30 if quick else 400)
             if one is not None:
-                rounds.append({"canergy_p50_ms": one, "sdo_p50_ms": sdo, "ratio": one / sdo})
+                rounds.append(
+                    {
+                        "canergy_p50_ms": one,
+                        "sdo_p50_ms": sdo,
+                        "ratio": one / sdo,
+                        "bare_round_trips_p50_ms": bare,
+                        "floor_ratio": bare / sdo,
+                    }
+                )
     return rounds
 
 
@@ -149,6 +158,9 @@ def run(quick: bool = False) -> dict[str, Any]:
         "sdo": sdo,
         "latency_rounds": rounds,
         "latency_ratio_vs_sdo": statistics.median(r["ratio"] for r in rounds) if rounds else None,
+        "latency_floor_vs_sdo": (
+            statistics.median(r["floor_ratio"] for r in rounds) if rounds else None
+        ),
         "latency_ratio_target": LATENCY_RATIO_TARGET,
         "wire": wire.model(),
         "memory": memory_per_node(emulator=emulator),
@@ -197,6 +209,24 @@ def live_lines(r: dict[str, Any]) -> list[str]:
             else ""
         ),
     ]
+    if r.get("latency_floor_vs_sdo") is not None:
+        lines.append(
+            f"    two bare python-can round trips on this bus (an echo thread, no protocol): "
+            f"{r['latency_floor_vs_sdo']:.2f}x an SDO write (the floor of two round trips)"
+        )
+    one = next((row for row in r["live"] if row["nodes"] == 1 and row["latency_profile"]), None)
+    if one is not None:
+        p = one["latency_profile"]
+        nodes = (
+            f"nodes 2 x {p['nodes_turn_us']:.0f} us, 4 bus hops of {p['bus_hop_us']:.0f} us "
+            "(send, wake-up, receive; what is left)"
+            if p["nodes_turn_us"] is not None
+            else f"nodes and bus {p['nodes_and_bus_us']:.0f} us"
+        )
+        lines.append(
+            f"    1-node transaction, p50 {one['latency_p50_ms']:.2f} ms: supervisor 2 x "
+            f"{p['supervisor_turn_us']:.0f} us (a frame in to the next out), {nodes}"
+        )
     h = r["headroom"]
     if h is None:
         return lines

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import os
 import struct
+import weakref
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -143,6 +144,9 @@ class NvStore:
         self.stats = NvStats()
         self._counter = 0
         self._newest_slot = 1  # so the first write goes to slot 0
+        self._fd: int | None = None
+        self._closer: weakref.finalize[[int], NvStore] | None = None
+        self._size = 0
 
     def load(self) -> ClientState | None:
         """The newest valid record; None when there is none (a new, wiped or corrupted file):
@@ -195,12 +199,21 @@ class NvStore:
         return None if slot is None else PARAMS.unpack(slot[1][: PARAMS.size])
 
     def _write(self, slot: int, data: bytes) -> None:
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            if os.fstat(fd).st_size < max(2, slot + 1) * SLOT_SIZE:
-                os.ftruncate(fd, max(2, slot + 1) * SLOT_SIZE)
-            os.pwrite(fd, data, slot * SLOT_SIZE)
-            if self.fsync:
-                os.fsync(fd)
-        finally:
-            os.close(fd)
+        """Write one slot through the file kept open from the first write on (a flash driver
+        set up once), grown to hold the slot if it is shorter."""
+        if self._fd is None:
+            self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            self._closer = weakref.finalize(self, os.close, self._fd)
+            self._size = os.fstat(self._fd).st_size
+        if self._size < max(2, slot + 1) * SLOT_SIZE:
+            self._size = max(2, slot + 1) * SLOT_SIZE
+            os.ftruncate(self._fd, self._size)
+        os.pwrite(self._fd, data, slot * SLOT_SIZE)
+        if self.fsync:
+            os.fsync(self._fd)
+
+    def close(self) -> None:
+        """Close the file (also done when the store is garbage-collected)."""
+        if self._closer is not None:
+            self._closer()
+        self._fd, self._closer = None, None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import struct
 from pathlib import Path
 
@@ -184,3 +185,21 @@ def test_slot_counters_compare_across_the_32_bit_wrap(tmp_path: Path, start: int
     reopened.load()
     reopened.save(states[0])
     assert NvStore(tmp_path / "n.nv", 3, fsync=False).load() == states[0]
+
+
+def test_a_store_keeps_one_file_open_and_closes_it(tmp_path: Path) -> None:
+    """Writes go through one descriptor kept open (a flash driver set up once); it is closed by
+    ``close`` or when the store is dropped, so nodes started and stopped leak none."""
+    fds = Path("/proc/self/fd")
+    before = len(list(fds.iterdir()))
+    store = NvStore(tmp_path / "kept.nv", 3, fsync=False)
+    for state in _states(4):
+        store.save(state)
+    assert len(list(fds.iterdir())) == before + 1
+    store.close()
+    assert len(list(fds.iterdir())) == before
+    assert NvStore(tmp_path / "kept.nv", 3).load() == _states(4)[-1]
+    for i in range(50):  # dropped without close
+        NvStore(tmp_path / f"{i}.nv", 3, fsync=False).save(_states(1)[0])
+    gc.collect()
+    assert len(list(fds.iterdir())) == before

@@ -120,32 +120,38 @@ class _Counting:
         return self.service.on_wakeup(now)
 
 
+def _no_clock() -> float:
+    return 0.0
+
+
 class TimedBus(can.BusABC):
     """A loop's bus with the CPU its ``send`` and ``recv`` take counted (the driver's share of
     a frame, measured where it is spent: copies, queues, waits and system calls) and, while
     ``stamps`` is a list, the time each frame left or arrived (``(perf_counter, sent)``)."""
 
-    def __init__(self, bus: can.BusABC) -> None:  # nothing of BusABC's own state is used
-        self.bus = bus
+    def __init__(self, bus: can.BusABC, *, cpu: bool = True) -> None:
+        """``cpu`` False: stamps only (a thread's CPU clock is a system call per reading)."""
+        self.bus = bus  # nothing of BusABC's own state is used
         self.spent = 0.0
         self.stamps: list[tuple[float, bool]] | None = None
+        self._clock = time.thread_time if cpu else _no_clock
         self._is_shutdown = True  # the wrapped bus is shut down by its owner
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        start = time.thread_time()
+        start = self._clock()
         if self.stamps is not None:
             self.stamps.append((time.perf_counter(), True))
         try:
             self.bus.send(msg, timeout)
         finally:
-            self.spent += time.thread_time() - start
+            self.spent += self._clock() - start
 
     def recv(self, timeout: float | None = None) -> can.Message | None:
-        start = time.thread_time()
+        start = self._clock()
         try:
             msg = self.bus.recv(timeout)
         finally:
-            self.spent += time.thread_time() - start
+            self.spent += self._clock() - start
         if msg is not None and self.stamps is not None:
             self.stamps.append((time.perf_counter(), False))
         return msg
@@ -352,7 +358,9 @@ def canergy_grants(
     host = emulator.node_host(ids, nv_dir, TIMING, monotonic_us())
     sup_bus = can.Bus(interface="virtual", channel=channel, can_filters=codec.supervisor_filters())
     node_bus = can.Bus(interface="virtual", channel=channel)
-    node_loop = BusRuntime(TimedBus(node_bus), host, codec=codec, receives=Direction.TO_CLIENT)
+    node_loop = BusRuntime(
+        TimedBus(node_bus, cpu=False), host, codec=codec, receives=Direction.TO_CLIENT
+    )
     try:
         books = nv_dir / "supervisor.json" if state_file else None
         return drive_grants(

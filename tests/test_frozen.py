@@ -8,9 +8,10 @@ from dataclasses import dataclass, field
 
 import pytest
 
+from canergy import messages
+from canergy.core import actions, inputs, state
 from canergy.core.state import Session
 from canergy.frozen import evolve, fast_init
-from canergy.messages import MESSAGE_CLASSES
 
 
 @dataclass(frozen=True, slots=True)
@@ -50,14 +51,43 @@ def test_fast_init_refuses_what_the_dataclass_init_refuses(args: tuple, kwargs: 
         Fast(*args, **kwargs)
 
 
+RECORD_MODULES = (messages, actions, inputs, state)
+
+
 def test_the_protocol_records_keep_their_signatures() -> None:
-    for cls in [*MESSAGE_CLASSES.values(), Session]:
+    records = [
+        cls
+        for module in RECORD_MODULES
+        for cls in vars(module).values()
+        if isinstance(cls, type) and cls.__module__ == module.__name__
+        if dataclasses.is_dataclass(cls)
+    ]
+    assert len(records) >= 30  # messages, actions, inputs and states
+    for cls in records:
         params = list(inspect.signature(cls).parameters.values())
-        assert [p.name for p in params] == [f.name for f in dataclasses.fields(cls)]
-        defaults = [f.default for f in dataclasses.fields(cls)]
+        fields = dataclasses.fields(cls)
+        assert [p.name for p in params] == [f.name for f in fields], cls
+        assert all(p.kind is inspect.Parameter.POSITIONAL_OR_KEYWORD for p in params), cls
         assert [p.default for p in params] == [
-            inspect.Parameter.empty if d is dataclasses.MISSING else d for d in defaults
-        ]
+            inspect.Parameter.empty if f.default is dataclasses.MISSING else f.default
+            for f in fields
+        ], cls
+
+
+def test_names_the_generated_code_uses_are_free_for_fields() -> None:
+    @dataclass(frozen=True, slots=True)
+    class Base:
+        new: int
+
+    @fast_init
+    @dataclass(frozen=True, slots=True)
+    class Derived(Base):  # fields of a base class, and names a generator might use itself
+        cls: int = 1
+        obj: int = 2
+
+    record = Derived(0, obj=5)
+    assert (record.new, record.cls, record.obj) == (0, 1, 5)
+    assert evolve(record, new=3, cls=4) == Derived(3, 4, 5)
 
 
 def test_fast_init_takes_plain_records_only() -> None:
@@ -76,7 +106,12 @@ def test_fast_init_takes_plain_records_only() -> None:
     class NoSlots:
         a: int
 
-    for cls in (Derived, Factory, NoSlots):
+    @dataclass(frozen=True, slots=True)
+    class KeywordOnly:
+        a: int = field(kw_only=True)
+        b: int = 0
+
+    for cls in (Derived, Factory, NoSlots, KeywordOnly):
         with pytest.raises(TypeError, match="plain frozen, slotted records only"):
             fast_init(cls)
 

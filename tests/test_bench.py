@@ -61,11 +61,13 @@ def test_quick_bench_runs_every_comparison(
         assert r["floor_ratio"] == r["bare_round_trips_p50_ms"] / r["sdo_p50_ms"] > 0
     assert report["latency_floor_vs_sdo"] == statistics.median(r["floor_ratio"] for r in rounds)
     profile = rows[0]["latency_profile"]  # where the 1-node transaction's time goes
-    assert profile["supervisor_turn_us"] > 0 and profile["nodes_turn_us"] > 0
+    assert (profile is None) == (rows[0]["latency_p50_ms"] is None)  # none in a short window
     assert all(row["latency_profile"] is None for row in rows[1:])  # turns: one node only
     out_text = capsys.readouterr().out
     assert "two bare python-can round trips on this bus" in out_text
-    assert f"supervisor 2 x {profile['supervisor_turn_us']:.0f} us" in out_text
+    if profile is not None:
+        assert profile["supervisor_turn_us"] > 0 and profile["nodes_turn_us"] > 0
+        assert f"supervisor 2 x {profile['supervisor_turn_us']:.0f} us" in out_text
     assert report["skipped"] == []  # the emulator is importable here
     assert report["memory"]["client_nv_record_bytes"] <= 32
     tree = report["tree"]

@@ -139,8 +139,8 @@ class TimedBus(can.BusABC):
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
         start = self._clock()
-        if self.stamps is not None:
-            self.stamps.append((time.perf_counter(), True))
+        if (stamps := self.stamps) is not None:  # read once: another thread may clear it
+            stamps.append((time.perf_counter(), True))
         try:
             self.bus.send(msg, timeout)
         finally:
@@ -152,8 +152,8 @@ class TimedBus(can.BusABC):
             msg = self.bus.recv(timeout)
         finally:
             self.spent += self._clock() - start
-        if msg is not None and self.stamps is not None:
-            self.stamps.append((time.perf_counter(), False))
+        if msg is not None and (stamps := self.stamps) is not None:
+            stamps.append((time.perf_counter(), False))
         return msg
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
@@ -371,12 +371,17 @@ def canergy_grants(
         node_bus.shutdown()
 
 
-def bare_round_trips(count: int) -> float:
+def bare_round_trips(count: int, timeout_s: float = 5.0) -> float:
     """p50 (ms) of two frame round trips on python-can's virtual bus between this thread and
     an echo thread, bare python-can: the floor of a two-round-trip exchange on this bus, in the
-    same process as the SDO baseline's."""
+    same process as the SDO baseline's. ``NoAnswer`` when an echo takes over ``timeout_s``."""
     channel = f"echo-{uuid.uuid4().hex}"
-    ours, echo = (can.Bus(interface="virtual", channel=channel) for _ in range(2))
+    ours = can.Bus(interface="virtual", channel=channel)
+    try:
+        echo = can.Bus(interface="virtual", channel=channel)
+    except BaseException:
+        ours.shutdown()
+        raise
     stop = threading.Event()
 
     def answer() -> None:
@@ -392,8 +397,8 @@ def bare_round_trips(count: int) -> float:
             start = time.perf_counter()
             for _ in range(2):
                 ours.send(can.Message(arbitration_id=0x100, data=i.to_bytes(4, "little")))
-                while ours.recv(5.0) is None and thread.is_alive():
-                    pass
+                if ours.recv(timeout_s) is None:
+                    raise NoAnswer(f"the echo thread did not answer in {timeout_s:g} s")
             latencies.append(time.perf_counter() - start)
     finally:
         stop.set()

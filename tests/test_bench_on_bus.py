@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from canergy.bench import run
 from canergy.bench.on_bus import bus_argv, node_commands
 from canergy.cli import main
 from canergy.live.bus_args import add_bus_flags
@@ -95,3 +96,39 @@ def test_bad_node_counts_are_refused(value: str, capsys: pytest.CaptureFixture[s
         main(["bench", "-i", "socketcan", "-c", "vcan0", "--nodes", value])
     assert exc.value.code == 2
     assert "--nodes" in capsys.readouterr().err
+
+
+def _row(nodes: int, cpu: float, *, state_file: bool = False, p50: float = 1.0) -> dict:
+    return {
+        "nodes": nodes,
+        "supervisor_cpu_us_per_frame": cpu,
+        "state_file": state_file,
+        "latency_p50_ms": p50,
+    }
+
+
+def test_the_cpu_target_is_judged_at_its_node_counts_when_they_ran() -> None:
+    # one node pays a loop pass per frame: its row is shown, not judged, when 16 ran too
+    rows = [
+        _row(1, 90.0),
+        _row(16, 30.0),
+        _row(1, 95.0, state_file=True),
+        _row(16, 40.0, state_file=True),
+    ]
+    headroom = run.supervisor_headroom(rows)
+    assert headroom["by_nodes"] == {"16": 30.0} and headroom["with_state_file"] == {"16": 40.0}
+    assert headroom["supervisor_cpu_us_per_frame"] == 30.0
+    only_small = run.supervisor_headroom([_row(1, 90.0), _row(4, 50.0)])  # none of 16, 127
+    assert only_small["supervisor_cpu_us_per_frame"] == 90.0
+    assert set(only_small["by_nodes"]) == {"1", "4"}
+
+
+def test_the_latency_ratio_takes_the_one_node_row_wherever_it_is() -> None:
+    sdo = {"latency_p50_ms": 0.5}
+    rows = [
+        _row(16, 30.0, p50=8.0),
+        _row(1, 60.0, p50=1.5),
+        _row(1, 70.0, state_file=True, p50=2.0),
+    ]
+    assert run.latency_ratio(rows, sdo) == 3.0
+    assert run.latency_ratio(rows[:1], sdo) is None  # no 1-node row ran

@@ -206,5 +206,5 @@ def run_on_bus(
         "sdo": sdo,
         "latency_ratio_vs_sdo": latency_ratio(rows, sdo),
         "latency_ratio_target": LATENCY_RATIO_TARGET,
-        "headroom": supervisor_headroom(rows, counts=None),
+        "headroom": supervisor_headroom(rows),
     }

@@ -26,8 +26,8 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         "the live stack on that bus against node processes",
         description="Without bus flags: every comparison in this process, the live stack on "
         "python-can's virtual bus. With bus flags (-i/-c...): the supervisor in this process on "
-        "that bus, the nodes in another process (python -m firmware_model, or --c-node), then "
-        "python-canopen SDO writes to an SDO server process on the same bus.",
+        "that bus, the nodes in another process (the registered client emulator, or "
+        "--c-node), then python-canopen SDO writes to an SDO server process on the same bus.",
     )
     p.add_argument("--quick", action="store_true", help="smoke run: seconds, figures meaningless")
     p.add_argument("--json", type=Path, help="also write the results here")

@@ -1,8 +1,8 @@
 """``canergy bench`` on a bus the user names: their interface, their host, their figures.
 
 The supervisor runs in this process on the bus the flags open (as ``canergy supervisor`` would);
-the nodes run in another process: the registered emulator's command (``python -m
-firmware_model``) or, on SocketCAN, the C node (``--c-node PATH``: one process per node). Then
+the nodes run in another process: the command of the client emulator registered under
+``canergy.emulators`` or, on SocketCAN, the C node (``--c-node PATH``: one process per node). Then
 python-canopen's SDO client in this process writes to an SDO server in a process of its own
 (``python -m canergy.bench.sdo_server``), on the same interface. Reported: throughput, latency
 p50/p99, the CPU of the supervisor's loop thread per frame on the bus, the nodes' processes'

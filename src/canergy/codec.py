@@ -169,14 +169,10 @@ def _prefix_register(msg_type: MsgType, node: int) -> int:
 
 @dataclass(frozen=True, slots=True)
 class _Entry:
-    """One identifier's message type and node, with what decoding it needs worked out once."""
-
     msg_type: MsgType
     node: int
     layout: _Layout
     crc_start: int
-    direction: Direction
-    dlc: int
 
 
 class Codec:
@@ -191,8 +187,7 @@ class Codec:
         self._by_id: dict[int, _Entry] = {}
         for msg_type, layout in LAYOUTS.items():
             for node in range(MIN_NODE, MAX_NODE + 1):
-                crc_start = _prefix_register(msg_type, node)
-                entry = _Entry(msg_type, node, layout, crc_start, msg_type.direction, layout.dlc)
+                entry = _Entry(msg_type, node, layout, _prefix_register(msg_type, node))
                 self._by_id[self.arbitration_id(msg_type, node)] = entry
 
     def arbitration_id(self, msg_type: MsgType, node: int) -> int:
@@ -277,13 +272,13 @@ class Codec:
             raise AssertionError("unreachable")  # pragma: no cover
         if remote:
             raise DecodeError(DecodeErrorReason.REMOTE_FRAME, f"id 0x{arbitration_id:08X}")
-        if direction is not None and entry.direction is not direction:
+        if direction is not None and entry.msg_type.direction is not direction:
             raise DecodeError(DecodeErrorReason.WRONG_DIRECTION, entry.msg_type.name)
         layout = entry.layout
-        if len(data) != entry.dlc:
+        if len(data) != layout.dlc:
             raise DecodeError(
                 DecodeErrorReason.WRONG_DLC,
-                f"{entry.msg_type.name} needs {entry.dlc} bytes, got {len(data)}",
+                f"{entry.msg_type.name} needs {layout.dlc} bytes, got {len(data)}",
             )
         body = bytes(data[1:])
         if check_crc and crc8_update(entry.crc_start, body) ^ XOR_OUT != data[0]:

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from canergy.bench import live
+from canergy.bench import alone, live
 from canergy.bench.wire import frame_bits
 from canergy.cli import main
 from firmware_model.nvstore import RECORD_SIZE, SLOT_SIZE
@@ -44,7 +44,7 @@ def test_quick_bench_runs_every_comparison(
     headroom = report["headroom"]
     worst = max(row["supervisor_cpu_us_per_frame"] for row in rows[1:3])
     assert headroom["supervisor_cpu_us_per_frame"] == worst
-    for key in ("alone", "alone_with_state_file"):  # its own code, one thread, no driver
+    for key in ("alone", "alone_with_state_file", "alone_frame_by_frame"):  # one thread
         assert set(headroom[key]) == {"16", "127"} and min(headroom[key].values()) > 0
     assert headroom["with_state_file"] == {
         str(row["nodes"]): row["supervisor_cpu_us_per_frame"] for row in rows[3:]
@@ -103,3 +103,15 @@ def test_the_latency_profile_leaves_the_bus_what_the_turns_do_not_take() -> None
     }
     assert live.latency_profile(1.0, 100.0, None)["bus_hop_us"] is None  # nodes not seen
     assert live.latency_profile(None, 100.0, 150.0) is None
+
+
+def test_the_paced_alone_loop_reads_one_frame_per_pass(tmp_path: Path) -> None:
+    """Own code frame by frame: each supervisor pass reads at most one frame, where the unpaced
+    loop reads what 16 nodes sent in their turn."""
+    emulator = live.load_emulator()
+    (tmp_path / "hot").mkdir()
+    (tmp_path / "paced").mkdir()
+    hot = alone.supervisor_alone(emulator, 16, 0.3, tmp_path / "hot")
+    paced = alone.supervisor_alone(emulator, 16, 0.3, tmp_path / "paced", pace_s=0.0)
+    assert paced["frames"] > 0 and paced["supervisor_cpu_us_per_frame"] > 0
+    assert paced["frames_received_per_pass"] <= 1.0 < hot["frames_received_per_pass"]

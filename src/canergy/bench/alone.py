@@ -5,6 +5,11 @@ take turns in one thread over an in-memory wire that hands frames over without c
 the supervisor's turns are timed (CPU time of the thread). What the live bench adds to this
 figure is the bus driver's cost and that of sharing a process with the nodes' thread; this one is
 what canergy's code costs, and what its optimisations move.
+
+Taking turns, each side reads every frame the other sent in its turn: long loop passes, the code
+hot in the caches, the best case. With ``pace_s`` each pass reads one frame and the thread
+sleeps between turns, as a supervisor does on a bus that is not saturated (a frame, then a wait
+for the next): the same code then runs colder and pays a whole loop pass per frame.
 """
 
 from __future__ import annotations
@@ -40,10 +45,17 @@ class _Wire(can.BusABC):
 
 
 def supervisor_alone(
-    emulator: Emulator, nodes: int, duration_s: float, nv_dir: Path, *, state_file: bool = False
+    emulator: Emulator,
+    nodes: int,
+    duration_s: float,
+    nv_dir: Path,
+    *,
+    state_file: bool = False,
+    pace_s: float | None = None,
 ) -> dict[str, Any]:
     """One grant of 1 mJ kept in flight to each of ``nodes`` for ``duration_s`` after every node
-    completed one; the supervisor's CPU per frame it sent or received."""
+    completed one; the supervisor's CPU per frame it sent or received. ``pace_s``: one frame per
+    loop pass on both sides, and a sleep of that long between turns."""
     ids = list(range(1, nodes + 1))
     sup_end, node_end = _Wire(), _Wire()
     sup_end.peer, node_end.peer = node_end, sup_end
@@ -72,22 +84,32 @@ def supervisor_alone(
             node_loop.poll(0)
         if len(committed) < nodes:
             raise NoAnswer(f"{nodes - len(committed)} of {nodes} node(s) never committed")
+        if pace_s is not None:
+            supervisor.max_batch = node_loop.max_batch = 1
         counters = supervisor.counters
         frames0 = counters.frames_sent + counters.frames_received
+        received0 = counters.frames_received
         spent = 0.0
+        passes = 0
         end = time.monotonic() + duration_s
         while time.monotonic() < end:
             start = time.thread_time()
             supervisor.poll(0)
             spent += time.thread_time() - start
+            passes += 1
             node_loop.poll(0)
+            if pace_s is not None:
+                time.sleep(pace_s)
         frames = counters.frames_sent + counters.frames_received - frames0
+        received = counters.frames_received - received0
     finally:
         sup_end.shutdown()
         node_end.shutdown()
     return {
         "nodes": nodes,
         "state_file": state_file,
+        "pace_s": pace_s,
         "frames": frames,
+        "frames_received_per_pass": received / passes if passes else None,
         "supervisor_cpu_us_per_frame": 1e6 * spent / frames if frames else None,
     }

@@ -14,6 +14,7 @@ from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, pr
 from canergy.codec import Codec, DecodeError
 from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing
 from canergy.core.state import Phase
+from canergy.frozen import evolve
 from canergy.ledger import ledger, node_overlap
 from canergy.messages import Direction, Message, ToClient, ToSupervisor
 
@@ -165,6 +166,11 @@ class Channel(RuleBasedStateMachine):
         assert led.dissipated >= 0, f"energy generated: {led}"
 
     @invariant()
+    def timer_is_the_earliest_deadline(self) -> None:
+        deadlines = [s.deadline for s in self.sup.state.sessions if s.deadline is not None]
+        assert self.sup.get_timer() == (min(deadlines) if deadlines else None)
+
+    @invariant()
     def budgets_never_negative(self) -> None:
         assert self.sup.state.usable >= 0
         for s in self.sup.state.sessions:
@@ -176,6 +182,18 @@ class Channel(RuleBasedStateMachine):
 
 
 TestHardenedChannel = Channel.TestCase
+
+
+class StateSetFromOutside(Channel):
+    """The same, the supervisor's state also replaced by an equal one that is another object
+    (as a gateway or a restore sets it): the deadlines it keeps for its timer follow."""
+
+    @rule()
+    def state_set_from_outside(self) -> None:
+        self.sup.state = evolve(self.sup.state)
+
+
+TestStateSetFromOutside = StateSetFromOutside.TestCase
 
 
 class PaperChannel(Channel):

@@ -7,6 +7,7 @@ every energy movement comes from the variant's transition table.
 
 from __future__ import annotations
 
+import heapq
 from collections.abc import Iterable
 
 from canergy.core.actions import Action, Persist
@@ -78,8 +79,11 @@ class Supervisor:
             initial, initial, 0, tuple(Session(n) for n in node_list)
         )
         self._index = {s.node: i for i, s in enumerate(self.state.sessions)}
-        self._timer: int | None = None
-        self._timer_of: SupervisorState | None = None
+        self._deadlines: list[tuple[int, int]] = []
+        """A heap of (deadline, session index): every session's deadline is in it, and entries
+        a session has since left (a deadline changed or cleared) until they reach the top."""
+        self._deadlines_of: SupervisorState | None = None
+        """The state the heap was kept for: a state set from outside has it rebuilt."""
 
     @property
     def nodes(self) -> tuple[int, ...]:
@@ -110,12 +114,17 @@ class Supervisor:
         return self._step(self.state.sessions[i], msg, now)
 
     def get_timer(self) -> int | None:
-        """The earliest deadline of any session, or None (worked out once per state)."""
-        if self._timer_of is not self.state:
-            deadlines = [s.deadline for s in self.state.sessions if s.deadline is not None]
-            self._timer = min(deadlines) if deadlines else None
-            self._timer_of = self.state
-        return self._timer
+        """The earliest deadline of any session, or None (a heap kept up as sessions change:
+        no scan of every session per frame)."""
+        sessions = self.state.sessions
+        heap = self._deadlines
+        if self._deadlines_of is not self.state:
+            heap = [(s.deadline, i) for i, s in enumerate(sessions) if s.deadline is not None]
+            heapq.heapify(heap)
+            self._deadlines, self._deadlines_of = heap, self.state
+        while heap and sessions[heap[0][1]].deadline != heap[0][0]:
+            heapq.heappop(heap)  # a deadline its session no longer has
+        return heap[0][0] if heap else None
 
     def handle_timer(self, now: int) -> list[Action]:
         """Fire every session whose deadline is at or before ``now``."""
@@ -152,7 +161,15 @@ class Supervisor:
     def _apply(self, s: Session, step: SessionStep) -> list[Action]:
         if step.session is s and not step.credit:  # nothing changed (an ignored frame)
             return list(step.actions)
-        self.state = apply_session(self.state, self._index[s.node], step)
+        before, i = self.state, self._index[s.node]
+        self.state = apply_session(before, i, step)
+        if self._deadlines_of is before:  # keep the heap: one entry for a new deadline
+            self._deadlines_of = self.state
+            deadline = step.session.deadline
+            if deadline is not None and deadline != s.deadline:
+                heapq.heappush(self._deadlines, (deadline, i))
+                if len(self._deadlines) > 2 * len(self.state.sessions) + 16:
+                    self._deadlines_of = None  # mostly left entries: rebuilt when next read
         if step.credit or self.rules.persistent(s) != self.rules.persistent(step.session):
             return [Persist(), *step.actions]
         return list(step.actions)

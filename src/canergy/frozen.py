@@ -66,7 +66,9 @@ def fast_init(cls: type[T]) -> type[T]:
     return cls
 
 
-def _copier(cls: type) -> Callable[..., Any]:
+def _new_copier(cls: type) -> Callable[..., Any]:
+    """Generate ``cls``'s copier (every slot a keyword, the source's value when not given) and
+    keep it for the next ``evolve``."""
     names = tuple(_slots(cls))
     params = "".join(f", {n}=__missing" for n in names)
     values = {n: f"__source.{n} if {n} is __missing else {n}" for n in names}
@@ -76,11 +78,7 @@ def _copier(cls: type) -> Callable[..., Any]:
         values,
         {"__missing": _MISSING},
     )
-    return copy
-
-
-def _new_copier(cls: type) -> Callable[..., Any]:
-    copy = _COPIERS[cls] = _copier(cls)
+    _COPIERS[cls] = copy
     return copy
 
 

@@ -54,11 +54,11 @@ def by_nodes(rows: list[dict[str, Any]], *, state_file: bool = False) -> dict[st
 
 
 TARGET_NODE_COUNTS = (16, 127)
+"""The node counts issue 18's CPU target is set at (a single node pays a loop pass per frame)."""
 
 ALONE_PACE_S = 0.0003
 """The supervisor's own code also measured one frame per loop pass after a wait this long, as
 on a bus that is not saturated (a 1 Mbit/s frame lasts about 0.1 ms)."""
-"""The node counts issue 18's CPU target is set at (a single node pays a loop pass per frame)."""
 
 
 def supervisor_headroom(rows: list[dict[str, Any]]) -> dict[str, Any] | None:

@@ -6,9 +6,12 @@ not) exactly as on a bus. Invariant after every step: the ledger never shows gen
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
+from hypothesis.internal.conjecture import providers
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
 from canergy.codec import Codec, DecodeError
@@ -200,6 +203,19 @@ class PaperChannel(Channel):
     variant = "paper"
 
 
+@pytest.fixture
+def no_local_constants(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    """Hypothesis also draws literals found in the project's modules imported so far, so a
+    derandomized search varies with which tests ran before it in the process (this one missed
+    the paper's flaw after the bench tests). The pool is emptied for the search's duration:
+    the same examples whatever ran before (hypothesis is pinned; its internals may move)."""
+    monkeypatch.setattr(providers, "_get_local_constants", providers.Constants)
+    providers.CONSTANTS_CACHE.cache.clear()  # entries drawn from the pool so far
+    yield
+    providers.CONSTANTS_CACHE.cache.clear()
+
+
+@pytest.mark.usefixtures("no_local_constants")
 def test_the_invariant_catches_the_paper_rules() -> None:
     """The same machine on the paper's rules must find generated energy (the check has teeth)."""
     from hypothesis.stateful import run_state_machine_as_test

@@ -108,13 +108,15 @@ def rig() -> Iterator[Rig]:
 
 
 def start(rig: Rig) -> None:
-    """Heard in PRE-OPERATIONAL, PDOs read by SDO, then NMT start and first TPDOs."""
+    """Heard in PRE-OPERATIONAL, PDOs read by SDO, then NMT start and TPDO1 seen periodic (the
+    master then waits for statuswords instead of reading them by SDO)."""
     node = rig.node
     node.nmt.wait_for_heartbeat(5)
     assert node.nmt.state == "PRE-OPERATIONAL"
     node.setup_402_state_machine()
     node.nmt.state = "OPERATIONAL"
     assert node.tpdo[1].wait_for_reception(5) is not None
+    wait_for(lambda: node.tpdo[1].is_periodic)
     wait_for(lambda: node.state == "SWITCH ON DISABLED")
 
 
@@ -245,3 +247,19 @@ def test_bad_sdo_writes_are_aborted_and_counted(rig: Rig) -> None:
         node.sdo.download(0x6040, 0, b"\x01\x02\x03\x04")  # wrong length
     assert rig.face.status()["bad_writes"] == 4
     assert node.sdo[0x6060].raw == 0 and node.sdo[0x6041].raw & 0x4F == 0x40
+
+
+def test_a_guard_writes_the_limits_reads_them_back_and_reads_the_energy(rig: Rig) -> None:
+    """0x6072, 0x6073 and 0x6080 by SDO (raw, whatever the master's EDS has), 0 refused for
+    0x6080 only; 0x2011 is the drive's energy drawn."""
+    sdo = rig.node.sdo
+    rig.node.nmt.wait_for_heartbeat(5)
+    for index, value in ((0x6072, 0), (0x6073, 0), (0x6080, 5_000), (0x6072, 800)):
+        sdo.download(index, 0, value.to_bytes(4 if index == 0x6080 else 2, "little"))
+        assert int.from_bytes(sdo.upload(index, 0), "little") == value
+    with pytest.raises(canopen.SdoAbortedError):
+        sdo.download(0x6080, 0, bytes(4))
+    with rig.face.lock:
+        rig.model.motor.energy.drawn.uj = 2**32 + 1_234
+    assert sdo.upload(0x2011, 0) == (1_234).to_bytes(4, "little")
+    assert rig.model.read(0x6080) == 5_000 and rig.model.bad_writes == 1

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -324,9 +326,9 @@ def test_tpdos_follow_event_timer_sync_and_nmt() -> None:
     sent = [f for t in range(MS, 101 * MS, MS) for f in m.due_tpdos(t)]
     ids = [cob for cob, _ in sent]
     assert (ids.count(0x18A), ids.count(0x28A), ids.count(0x38A)) == (10, 10, 10)
-    sw, torque, mode = sent[0][1][0:2], sent[0][1][2:4], sent[0][1][4:5]
-    assert int.from_bytes(sw, "little") == 0x240 and torque == b"\0\0" and mode == b"\0"
-    assert len(dict(sent)[0x28A]) == 8 and len(dict(sent)[0x38A]) == 8
+    sw, torque, energy = sent[0][1][0:2], sent[0][1][2:4], sent[0][1][4:8]
+    assert int.from_bytes(sw, "little") == 0x240 and torque == b"\0\0" and energy == bytes(4)
+    assert [len(dict(sent)[cob]) for cob in (0x18A, 0x28A, 0x38A)] == [8, 8, 8]
     m.set_nmt("PRE-OPERATIONAL", 101 * MS)
     m.write(0x1800, 2, 2)  # TPDO1 on every 2nd SYNC
     m.write(0x1801, 5, 0)  # TPDO2 on change only
@@ -356,3 +358,204 @@ def test_load_profile_and_opposing_load(tmp_path: Path) -> None:
 def test_rated_values_follow_motor_params() -> None:
     m = DriveModel(NODE, params=MotorParams(kt=0.05, rated_current=2.0, dc_voltage=48.0))
     assert (m.read(0x6075), m.read(0x6076), m.read(0x6079)) == (2000, 100, 48000)
+
+
+# -- 0x2011 energy drawn ---------------------------------------------------------------------
+
+
+def test_energy_drawn_object_is_drawn_uj_modulo_2_32_and_in_tpdo1() -> None:
+    m = enabled({0x60FF: 50_000})
+    m.set_nmt("OPERATIONAL", MS)
+    m.advance(200 * MS)
+    assert m.drawn_uj > 0 and m.read(0x2011) == m.drawn_uj
+    frame = dict(m.due_tpdos(200 * MS))[0x18A]
+    assert int.from_bytes(frame[4:8], "little") == m.drawn_uj
+    m.motor.energy.drawn.uj = 2**32 + 7
+    assert m.read(0x2011) == 7
+    with pytest.raises(DriveAbort):
+        m.write(0x2011, 0, 0)  # read-only
+
+
+# -- limits: 0x6072, 0x6073, 0x6080 and the power envelope -----------------------------------
+
+
+def envelope(m: DriveModel) -> tuple[float, float, float]:
+    """``(τ_max N·m, i_max A, P_max W)`` from the limit objects now in force."""
+    p = m.motor.params
+    tau_max = min(
+        m.read(0x6072) / 1000 * p.rated_torque,
+        m.read(0x6073) / 1000 * p.rated_current * p.kt,
+    )
+    i_max = tau_max / p.kt
+    return tau_max, i_max, tau_max * m.read(0x6080) / 1000 + p.resistance * i_max**2
+
+
+def within(value: float, bound: float) -> bool:
+    """``value <= bound`` but for float rounding."""
+    return value <= bound * (1 + 1e-9) + 1e-12
+
+
+@dataclass
+class Trace:
+    """Per substep: the envelope in force (W) and the exact energy drawn at its end (J)."""
+
+    envelope_w: list[float]
+    drawn_j: list[float]
+
+
+def run_checked(m: DriveModel, substeps: int, events: dict[int, list[Event]]) -> Trace:
+    """Run ``substeps`` substeps, applying ``events`` before theirs; check every substep's
+    torque, current and power (at both ends: P is monotonic within one) against the limits."""
+    p, trace = m.motor.params, Trace([], [m.motor.energy.drawn.joules])
+    for k in range(substeps):
+        for event in events.get(k, []):
+            event(m)
+        tau_max, i_max, p_max = envelope(m)
+        w0 = m.motor.omega
+        m.advance(m.time_us + SUBSTEP_US)
+        tau, i, w1 = m.motor.torque, m.motor.current, m.motor.omega
+        assert within(abs(tau), tau_max) and within(abs(i), i_max), (k, tau, i)
+        for w in (w0, w1):
+            assert within(tau * w + p.resistance * i * i, p_max), (k, tau, w, p_max)
+        trace.envelope_w.append(p_max)
+        trace.drawn_j.append(m.motor.energy.drawn.joules)
+    return trace
+
+
+def check_windows(trace: Trace, lengths: tuple[int, ...] = (1, 7, 100, 10**9)) -> None:
+    """Energy drawn over any window of these lengths is within the envelope's integral."""
+    dt = SUBSTEP_US / 1e6
+    allowed = [0.0]
+    for p_max in trace.envelope_w:
+        allowed.append(allowed[-1] + p_max * dt)
+    n = len(trace.envelope_w)
+    for length in (min(w, n) for w in lengths):
+        for a in range(n - length + 1):
+            drawn = trace.drawn_j[a + length] - trace.drawn_j[a]
+            assert within(drawn, allowed[a + length] - allowed[a]), (a, length, drawn)
+
+
+Event = Callable[[DriveModel], None]
+
+
+def write(index: int, value: int) -> Event:
+    def event(m: DriveModel) -> None:
+        m.write(index, 0, value)
+
+    return event
+
+
+def fault(m: DriveModel) -> None:
+    m.fault("injected", 0x5000)
+
+
+_EVENTS: st.SearchStrategy[Event] = st.one_of(
+    st.builds(write, st.just(0x60FF), st.integers(-300_000, 300_000)),
+    st.builds(write, st.just(0x6071), st.integers(-3000, 3000)),
+    st.builds(write, st.sampled_from([0x6072, 0x6073]), st.integers(0, 3000)),
+    st.builds(write, st.just(0x6080), st.integers(1, 200_000)),
+    st.builds(write, st.just(0x6060), st.sampled_from([3, 10])),
+    st.builds(write, st.just(0x6040), st.sampled_from([0x02, 0x06, 0x07, 0x0F, 0x00, 0x80])),
+    st.builds(write, st.just(0x605A), st.sampled_from([0, 1, 2, 5, 6])),
+    st.just(fault),
+)
+
+
+@st.composite
+def loads(draw: st.DrawFn) -> LoadTorque:
+    """Constant or stepped loads, either sign (overhauling when they push the motor along)."""
+    torques = draw(st.lists(st.floats(-0.5, 0.5), min_size=1, max_size=4))
+    rows = tuple((0.05 * k, nm) for k, nm in enumerate(torques))
+    return LoadTorque(rows, opposing=draw(st.booleans()))
+
+
+@given(
+    loads(),
+    st.sampled_from([3, 10]),
+    st.dictionaries(
+        st.sampled_from([0x60FF, 0x6071, 0x6072, 0x6073, 0x6080, 0x6083]),
+        st.integers(1, 3000),
+        max_size=6,
+    ),
+    st.lists(st.tuples(st.integers(0, 1999), _EVENTS), max_size=25),
+)
+def test_power_never_exceeds_the_limits_envelope(
+    load: LoadTorque,
+    mode: int,
+    initial: dict[int, int],
+    events: list[tuple[int, Event]],
+) -> None:
+    """Whatever the profile, the load and the limits (changed at any substep), the electrical
+    power drawn stays within τ_max·ω_max + R·i_max² at every instant, and so does the energy
+    drawn over any window."""
+    m = DriveModel(NODE, load=load)
+    m.advance(MS)
+    m.write(0x6060, 0, mode)
+    for index, value in initial.items():
+        scale = 100 if index in (0x60FF, 0x6080, 0x6083) else 1  # velocities up to 300 rad/s
+        m.write(index, 0, value * scale)
+    for cw in (0x06, 0x07, 0x0F):
+        m.write(0x6040, 0, cw)
+    by_substep: dict[int, list[Event]] = {}
+    for k, event in events:
+        by_substep.setdefault(k, []).append(event)
+    check_windows(run_checked(m, 2000, by_substep))
+
+
+def test_max_speed_holds_against_an_overhauling_load_in_cst() -> None:
+    """The load pushes the rotor along past 0x6080: the drive gives no motoring torque."""
+    m = DriveModel(NODE, load=LoadTorque.constant(-0.3))
+    m.advance(MS)
+    for index, value in ((0x6060, 10), (0x6080, 20_000), (0x6071, 1000)):
+        m.write(index, 0, value)
+    for cw in (0x06, 0x07, 0x0F):
+        m.write(0x6040, 0, cw)
+    past = 0
+    for _ in range(3000):
+        w0 = m.velocity_rad_s
+        m.advance(m.time_us + SUBSTEP_US)
+        if w0 > 20.0:
+            past += 1
+            assert m.motor.torque <= 0.0 and m.read(0x6041) & 0x0800
+        assert m.motor.torque * max(w0, m.velocity_rad_s) <= 0.5 * 20.0 * (1 + 1e-9)
+    assert past > 1000 and m.velocity_rad_s > 100  # the load alone drives it, unhelped
+
+
+def test_pv_target_is_clamped_to_max_speed() -> None:
+    m = enabled({0x60FF: 100_000, 0x6083: 1_000_000, 0x6080: 30_000})
+    trace = run_checked(m, 5000, {})
+    assert m.velocity_rad_s == pytest.approx(30.0, abs=0.05) and m.velocity_rad_s <= 30.0 + 1e-9
+    assert m.read(0x6041) & 0x0400  # the clamped target is reached
+    check_windows(trace)
+    m.write(0x6080, 0, 10_000)  # lowered while faster: the drive slows down to it
+    run_checked(m, 5000, {})
+    assert m.velocity_rad_s == pytest.approx(10.0, abs=0.05)
+    m.write(0x60FF, 0, -100_000)
+    run_checked(m, 5000, {})
+    assert m.velocity_rad_s == pytest.approx(-10.0, abs=0.05)
+
+
+def test_max_speed_is_refused_at_0_and_leaves_the_defaults_alone() -> None:
+    m = DriveModel(NODE)
+    assert m.read(0x6080) == 10_000_000  # 10,000 rad/s
+    with pytest.raises(DriveAbort) as info:
+        m.write(0x6080, 0, 0)
+    assert info.value.code == 0x06090032 and m.read(0x6080) == 10_000_000
+
+
+@pytest.mark.parametrize("index", [0x6072, 0x6073])
+@pytest.mark.parametrize("then", ["running", "quick stop", "fault"])
+def test_zero_max_torque_or_current_means_no_torque_in_every_state(index: int, then: str) -> None:
+    m = enabled({0x60FF: 60_000, 0x6083: 600_000, 0x605A: 6})
+    m.advance(300 * MS)
+    assert m.velocity_rad_s > 50
+    m.write(index, 0, 0)
+    if then == "quick stop":
+        m.write(0x6040, 0, 0x02)
+    elif then == "fault":
+        m.fault("injected", 0x5000)
+    for _ in range(2000):
+        m.advance(m.time_us + SUBSTEP_US)
+        assert m.motor.current == 0.0 and m.motor.torque == 0.0
+    assert m.state in TORQUE_STATES or m.state == "FAULT"
+    assert m.drawn_uj == m.status()["drawn_uj"]

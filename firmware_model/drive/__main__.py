@@ -1,6 +1,8 @@
 """``python -m firmware_model.drive``: one emulated CiA 402 drive on any python-can bus.
 
-The physics runs in real time (advanced every 1 ms of monotonic time). Exit status: 0 after
+The physics runs in real time (advanced every 1 ms of monotonic time). With ``--power-meter NODE``
+a DC bus power meter node (``power_meter``) meters the drive on the same bus, its TPDO1 every
+``--pdo-period``; the status gains its ``power_meter`` figures. Exit status: 0 after
 SIGINT/SIGTERM (final status written), 2 for bad arguments or a bus that cannot be opened.
 """
 
@@ -23,6 +25,7 @@ from canergy.live.shared_bus import STANDARD_FRAMES
 from firmware_model.drive.canopen_face import DriveFace, drive_network
 from firmware_model.drive.model import DriveModel
 from firmware_model.drive.motor import LoadTorque
+from firmware_model.drive.power_meter import PowerMeterFace, PowerMeterModel
 
 
 def newton_metres(text: str) -> float:
@@ -52,6 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_duration(p, "--pdo-period", 10_000, "TPDO1-3 event timer, whole ms")
     add_duration(p, "--heartbeat-period", 100_000, "producer heartbeat time 0x1017, whole ms")
+    p.add_argument(
+        "--power-meter",
+        type=bounded_int(1, 127),
+        metavar="NODE",
+        help="also emulate a DC bus power meter node metering this drive (0x2100 energy, mJ)",
+    )
     p.add_argument("--status-file", type=Path, help="JSON status, rewritten atomically")
     add_duration(p, "--status-period", 1_000_000, "time between status file writes")
     return p
@@ -63,10 +72,21 @@ def _whole_ms(parser: argparse.ArgumentParser, flag: str, us: int) -> int:
     return us // 1000
 
 
-def _model(parser: argparse.ArgumentParser, args: argparse.Namespace) -> DriveModel:
-    """The drive as the options describe it (errors: exit 2)."""
+def _timers(
+    parser: argparse.ArgumentParser, args: argparse.Namespace
+) -> dict[tuple[int, int], int]:
+    """Heartbeat period and TPDO event timers, as both nodes take them (errors: exit 2)."""
     pdo_ms = _whole_ms(parser, "--pdo-period", args.pdo_period)
     heartbeat_ms = _whole_ms(parser, "--heartbeat-period", args.heartbeat_period)
+    return {(0x1017, 0): heartbeat_ms, **{(c, 5): pdo_ms for c in (0x1800, 0x1801, 0x1802)}}
+
+
+def _model(
+    parser: argparse.ArgumentParser, args: argparse.Namespace, timers: dict[tuple[int, int], int]
+) -> DriveModel:
+    """The drive as the options describe it (errors: exit 2)."""
+    if args.power_meter == args.node:
+        parser.error("--power-meter: another node id than --node")
     try:
         if args.status_file is not None:
             check_writable_dir(args.status_file, "--status-file")
@@ -78,8 +98,29 @@ def _model(parser: argparse.ArgumentParser, args: argparse.Namespace) -> DriveMo
             load = LoadTorque.constant(args.load_torque, args.load_opposes)
     except (ValueError, OSError) as exc:
         parser.exit(2, f"{parser.prog}: error: {exc}\n")
-    defaults = {(0x1017, 0): heartbeat_ms, **{(c, 5): pdo_ms for c in (0x1800, 0x1801, 0x1802)}}
-    return DriveModel(args.node, monotonic_us(), load=load, defaults=defaults)
+    return DriveModel(args.node, monotonic_us(), load=load, defaults=timers)
+
+
+def _meter(node: int, face: DriveFace, timers: dict[tuple[int, int], int]) -> PowerMeterFace:
+    """Power meter ``node`` on the drive's network, reading the drive's energy drawn when asked."""
+
+    def drawn_uj() -> int:
+        with face.lock:
+            face.model.advance(face.clock())
+            return face.model.drawn_uj
+
+    def dc_voltage_mv() -> int:
+        with face.lock:
+            return face.model.read(0x6079)
+
+    model = PowerMeterModel(
+        node,
+        drawn_uj,
+        monotonic_us(),
+        voltage_mv=dc_voltage_mv,
+        defaults={key: timers[key] for key in ((0x1017, 0), (0x1800, 5))},
+    )
+    return PowerMeterFace(model, face.network)
 
 
 class _Signals:
@@ -98,30 +139,43 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     signals = _Signals()
-    model = _model(parser, args)
+    timers = _timers(parser, args)
+    model = _model(parser, args, timers)
     try:
         bus = open_bus(args, [STANDARD_FRAMES])
     except BusOpenError as exc:
         parser.exit(2, f"{parser.prog}: error: {exc}\n")
     network = drive_network(bus)
     face = DriveFace(model, network)
+    meter = None if args.power_meter is None else _meter(args.power_meter, face, timers)
     next_status = 0
+
+    def status() -> dict[str, Any]:
+        out = face.status()
+        if meter is not None:
+            out["power_meter"] = meter.status()
+        return out
 
     def every(now: int) -> None:
         nonlocal next_status
         if args.status_file is not None and now >= next_status:
-            write_json_atomic(args.status_file, face.status(), fsync=False)
+            write_json_atomic(args.status_file, status(), fsync=False)
             next_status = now + args.status_period
 
     try:
         face.boot()
+        if meter is not None:
+            meter.boot()
+            meter.start()
         face.run(lambda: signals.stop, every)
     finally:
+        if meter is not None:
+            meter.close()
         face.close()
         if network.notifier is not None:
             network.notifier.stop()
         bus.shutdown()
-    final: dict[str, Any] = face.status()
+    final = status()
     if args.status_file is not None:
         write_json_atomic(args.status_file, final, fsync=False)
     else:

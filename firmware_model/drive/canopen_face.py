@@ -1,13 +1,16 @@
-"""The drive on a CAN bus: a python-canopen ``LocalNode`` in front of a ``DriveModel``.
+"""Emulated nodes on a CAN bus: a python-canopen ``LocalNode`` in front of a ``NodeModel``.
+
+``NodeFace`` serves any ``NodeModel``; ``DriveFace`` is the drive's (``DriveModel``), and
+``power_meter.PowerMeterFace`` the power meter's. Several faces may share one network.
 
 - NMT slave and heartbeat producer (0x1017) are the ``LocalNode``'s: ``boot()`` sends the boot-up
   message and enters PRE-OPERATIONAL; NMT reset node / reset communication reset the model
-  (``DriveModel.reset``) and boot again. NMT changes reach the model (``set_nmt``).
+  (``NodeModel.reset``) and boot again. NMT changes reach the model (``set_nmt``).
 - SDO server: reads are live (read callback, after advancing the model), writes go through
-  ``DriveModel.write``; a refused write is an SDO abort and is counted (``bad_writes``), including
+  ``NodeModel.write``; a refused write is an SDO abort and is counted (``bad_writes``), including
   the ones python-canopen refuses itself (read-only, wrong length, no such object).
-- Every other frame (heartbeats for the 0x1016 consumer, SYNC, RPDO1) goes to
-  ``DriveModel.receive`` through a listener on the network's Notifier; TPDOs (SYNC-triggered
+- Every other frame (the drive's heartbeats for its 0x1016 consumer, SYNC, RPDOs) goes to
+  ``NodeModel.receive`` through a listener on the network's Notifier; TPDOs (SYNC-triggered
   and event-timer ones) are sent as the model makes them due; EMCYs through the node's producer.
 - ``run`` (or ``start``, in a thread) advances the model every 1 ms of monotonic time.
 
@@ -19,20 +22,21 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Generic, TypeVar
 
 import can
 import canopen
 from canopen import SdoAbortedError
 
 from canergy.live.runtime import monotonic_us
-from firmware_model.drive.model import DriveAbort, DriveModel, Frame
+from firmware_model.drive.model import DriveAbort, DriveModel, Frame, NodeModel
 
-__all__ = ["TICK_US", "DriveFace", "drive_network"]
+__all__ = ["TICK_US", "DriveFace", "NodeFace", "drive_network"]
 
 TICK_US = 1000
 """The model is advanced and due TPDOs are sent every this many µs of monotonic time."""
 _ABORT_NOT_WRITABLE = 0x06010002
+M = TypeVar("M", bound=NodeModel)
 
 
 def drive_network(bus: can.BusABC) -> canopen.Network:
@@ -43,10 +47,10 @@ def drive_network(bus: can.BusABC) -> canopen.Network:
     return network
 
 
-class _DriveNode(canopen.LocalNode):
+class _LocalNode(canopen.LocalNode):
     """A ``LocalNode`` that counts every refused SDO write."""
 
-    def __init__(self, model: DriveModel, refused: Callable[[], None]) -> None:
+    def __init__(self, model: NodeModel, refused: Callable[[], None]) -> None:
         super().__init__(model.node_id, model.od)
         self.refused = refused
 
@@ -64,7 +68,7 @@ class _DriveNode(canopen.LocalNode):
 class _Frames(can.Listener):
     """Raw frames for the model (python-canopen's own listener serves SDO and NMT)."""
 
-    def __init__(self, face: DriveFace) -> None:
+    def __init__(self, face: NodeFace[Any]) -> None:
         self.face = face
         self.errors = 0
 
@@ -77,12 +81,16 @@ class _Frames(can.Listener):
         self.errors += 1
 
 
-class DriveFace:
-    """One drive's CANopen side; ``network`` must have its Notifier (see ``drive_network``)."""
+class NodeFace(Generic[M]):
+    """One emulated node's CANopen side; ``network`` must have its Notifier (see
+    ``drive_network``)."""
+
+    kind = "node"
+    """Names the thread ``start`` runs in."""
 
     def __init__(
         self,
-        model: DriveModel,
+        model: M,
         network: canopen.Network,
         clock: Callable[[], int] = monotonic_us,
     ) -> None:
@@ -91,7 +99,7 @@ class DriveFace:
         self.model, self.network, self.clock = model, network, clock
         self.lock = threading.RLock()
         self.send_errors = 0
-        self.local = _DriveNode(model, self._refused)
+        self.local = _LocalNode(model, self._refused)
         self.local.add_read_callback(self._read)
         self.local.add_write_callback(self._write)
         network.add_node(self.local)
@@ -208,7 +216,7 @@ class DriveFace:
     def start(self) -> None:
         """Run in a daemon thread until ``close()``."""
         self._thread = threading.Thread(
-            target=self.run, args=(self._stop.is_set,), name=f"drive-{self.model.node_id}"
+            target=self.run, args=(self._stop.is_set,), name=f"{self.kind}-{self.model.node_id}"
         )
         self._thread.daemon = True
         self._thread.start()
@@ -230,3 +238,9 @@ class DriveFace:
                 "send_errors": self.send_errors,
                 "listener_errors": self.frames.errors,
             }
+
+
+class DriveFace(NodeFace[DriveModel]):
+    """One drive's CANopen side."""
+
+    kind = "drive"

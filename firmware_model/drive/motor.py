@@ -161,6 +161,24 @@ class Motor:
     def kinetic_j(self) -> float:
         return 0.5 * self.params.inertia * self.omega**2
 
+    def speed_limited(self, tau: float, dt: float, t_s: float, w_max: float) -> float:
+        """``tau`` (N·m) cut so that a ``step(dt, tau / kt, t_s)`` from now does no motoring
+        (τ·ω > 0) beyond ``w_max`` rad/s: none in ω's direction once |ω| is past it, else at most
+        the torque that ends the step at ±``w_max`` (within a step ω moves monotonically toward
+        (τ − load)/b, so |ω| stays within its ends). Braking torque is left as it is."""
+        if tau == 0.0:
+            return tau
+        sign = 1.0 if tau > 0 else -1.0
+        w0 = sign * self.omega  # mirrored: the torque is positive
+        if w0 > w_max:
+            return 0.0
+        p = self.params
+        load = sign * self.load_torque.at(t_s, self.omega)
+        rate = p.damping / p.inertia
+        decay = math.exp(-rate * dt)
+        bound = load + p.damping * (w_max - w0 * decay) / -math.expm1(-rate * dt)
+        return sign * min(sign * tau, max(0.0, bound))
+
     def step(self, dt: float, current: float, t_s: float) -> None:
         """Advance ``dt`` seconds with ``current`` (A) held; ``t_s`` is the step's start time."""
         p = self.params

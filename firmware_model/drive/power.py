@@ -108,6 +108,8 @@ class Limits:
     quick_stop_decel: float = 500.0
     max_torque: float = 1.5
     """The tighter of 0x6072 and 0x6073 (as kt·i), N·m."""
+    max_speed: float = 10_000.0
+    """0x6080, rad/s: no motoring torque past it (the drive model enforces it)."""
     quick_stop_option: int = 2
     fault_reaction_option: int = 2
 

@@ -1,7 +1,7 @@
 """``canergy supervisor --cia402`` on python-can's virtual bus, against the emulated drive (a
 python-canopen ``LocalNode``) and a canergy node, with an independent python-canopen master as
 the application (``firmware_model.drive.live_bench``). Wall clock, generous timeouts; the bound
-uses the reaction and stop times measured in the same run.
+is the guard's own, with the reaction and latency it measured in the same run.
 """
 
 from __future__ import annotations
@@ -23,14 +23,14 @@ from firmware_model.drive.live_bench import DRIVE, NODE, Bench, exhausted, guard
 
 @pytest.fixture
 def exhausting(tmp_path: Path) -> Iterator[Bench]:
-    """2 J in all: the drive and the canergy node are topped up to 1 J until it is gone."""
-    with guarded_bench(tmp_path, 10, "--initial", "2J", "--target", "1J") as bench:
+    """4 J in all: the drive and the canergy node are topped up to 2 J until it is gone."""
+    with guarded_bench(tmp_path, 10, "--initial", "4J", "--target", "2J") as bench:
         yield bench
 
 
 @pytest.fixture
 def plenty(tmp_path: Path) -> Iterator[Bench]:
-    with guarded_bench(tmp_path, 10, "--initial", "100J", "--target", "1J") as bench:
+    with guarded_bench(tmp_path, 10, "--initial", "100J", "--target", "2J") as bench:
         yield bench
 
 
@@ -38,9 +38,15 @@ def test_the_budget_runs_out_and_the_drive_stops_inside_the_bound(exhausting: Be
     b = exhausting
     wait_for(lambda: exhausted(b), timeout=120)
     assert "OPERATION ENABLED" in [s for _, s in b.model.psm.history]
-    with b.face.lock:
-        assert abs(b.model.velocity_rad_s) < 0.05
-    # an independent master reads the drive's objects alongside the guard
+
+    def standing() -> bool:  # a coasting stop: the load and friction bring it to rest
+        with b.face.lock:
+            return abs(b.model.velocity_rad_s) < 0.05
+
+    wait_for(standing)
+    # an independent master reads the drive's objects alongside the guard (once the guard's
+    # own SDO transfers are over: the drive has one SDO server for both)
+    wait_for(lambda: (d := b.drive_status()) and d["limits_confirmed"])
     assert b.app.sdo[0x6041].raw & 0x4F == 0x40  # SWITCH ON DISABLED
     assert abs(int(b.app.sdo[0x606C].raw)) < 50
     final = b.stop()
@@ -49,7 +55,8 @@ def test_the_budget_runs_out_and_the_drive_stops_inside_the_bound(exhausting: Be
     drive = final["cia402"]["drives"][str(DRIVE)]
     # the proxy's books: what was granted was spent on what the meter saw, or is still held
     assert drive["credited_uj"] == granted == drive["spent_uj"] + drive["usable_uj"]
-    assert b.drawn() <= granted + b.bound_uj(drive["reaction_max_us"])
+    assert drive["meter"] == "counter"
+    assert b.drawn() <= granted + drive["bound_uj"]
     # the ledger over the supervisor, the canergy node and the drive's proxy
     assert final["conservation"]["holds"] and final["usable_uj"] == 0
     node_books = final["nodes"][str(NODE)]
@@ -76,7 +83,7 @@ def test_the_proxy_leg_is_captured_and_audits_clean(
 def test_top_ups_keep_the_drive_running(plenty: Bench) -> None:
     b = plenty
     wait_for(lambda: b.model.state == "OPERATION ENABLED")
-    time.sleep(3)  # about 3 W for 3 s: several 1 J top-ups
+    time.sleep(3)  # about 3 W for 3 s: several top-ups of what 2 J less the bound leaves
     drive = b.drive_status()
     assert drive is not None and drive["stops"] == 0 and drive["guard"] == "running"
     history = [s for _, s in b.model.psm.history]
@@ -90,9 +97,57 @@ def test_top_ups_keep_the_drive_running(plenty: Bench) -> None:
     assert drawn <= books["delivered_uj"]
 
 
-def test_a_drive_the_guard_cannot_meter_is_disabled(tmp_path: Path) -> None:
-    """Its TPDOs lack the current object electrical metering needs: the guard refuses it, says
-    why in the status, and disables the drive the application had enabled."""
+def _without_max_speed(tmp_path: Path) -> Path:
+    """The emulator's EDS without 0x6080: a drive that has no speed limit to write."""
+    from firmware_model.drive.model import EDS as DRIVE_EDS
+
+    text = DRIVE_EDS.read_text()
+    start = text.index("[6080]")
+    text = text[:start] + text[text.index("\n[", start) + 1 :]
+    listed = re.search(r"(\d+)=0x6080\n", text)
+    assert listed is not None
+    text = text.replace(listed[0], "")  # its entry in the object list goes too (renumbered)
+    lines, n = [], 0
+    section = ""
+    for line in text.splitlines():
+        if line.startswith("["):
+            section = line
+        if section == "[OptionalObjects]" and re.match(r"\d+=0x", line):
+            n += 1
+            line = f"{n}={line.split('=', 1)[1]}"
+        elif section == "[OptionalObjects]" and line.startswith("SupportedObjects="):
+            line = "SupportedObjects=@"
+        lines.append(line)
+    path = tmp_path / "no-6080.eds"
+    path.write_text("\n".join(lines).replace("SupportedObjects=@", f"SupportedObjects={n}", 1))
+    return path
+
+
+@pytest.mark.parametrize(
+    ("flags", "eds_without_speed", "object_named"),
+    [
+        (
+            ("--cia402-meter", "sampled-electrical", "--cia402-bus-current", "0x2012"),
+            False,
+            "0x2012",
+        ),
+        (
+            (
+                *("--cia402-meter", "envelope", "--cia402-max-torque", "265"),
+                *("--cia402-max-current", "265", "--cia402-max-speed", "100500"),
+            ),
+            True,
+            "0x6080",
+        ),
+    ],
+    ids=["tpdos-lack-the-current", "no-speed-limit-to-write"],
+)
+def test_a_drive_the_guard_cannot_meter_is_disabled(
+    tmp_path: Path, flags: tuple[str, ...], eds_without_speed: bool, object_named: str
+) -> None:
+    """Its TPDOs lack the object sampled-electrical metering needs, or it has no 0x6080 to take
+    the envelope's speed limit: the guard refuses it, names the drive and the object in the
+    status, and disables the drive the application had enabled."""
     import threading
     import uuid
 
@@ -101,10 +156,12 @@ def test_a_drive_the_guard_cannot_meter_is_disabled(tmp_path: Path) -> None:
 
     from canergy.live.cia402_link import EDS
     from firmware_model.drive.canopen_face import DriveFace, drive_network
+    from firmware_model.drive.model import EDS as DRIVE_EDS
     from firmware_model.drive.model import DriveModel
 
     channel = f"cia402-bad-{uuid.uuid4().hex}"
-    model = DriveModel(DRIVE, monotonic_us())  # the face advances it on the monotonic clock
+    eds = _without_max_speed(tmp_path) if eds_without_speed else DRIVE_EDS
+    model = DriveModel(DRIVE, monotonic_us(), eds=eds)  # the face advances it on its clock
     drive_net = drive_network(can.Bus(interface="virtual", channel=channel))
     face = DriveFace(model, drive_net)
     face.boot()
@@ -121,7 +178,7 @@ def test_a_drive_the_guard_cannot_meter_is_disabled(tmp_path: Path) -> None:
         *("-i", "virtual", "-c", channel, "--cia402", str(DRIVE), "--initial", "1J"),
         *("--state", str(tmp_path / "s.json"), "--no-fsync", "--status-period", "50ms"),
         *("--status-file", str(tmp_path / "status.json"), "--control", str(tmp_path / "c")),
-        *("--cia402-meter", "electrical", "--cia402-bus-current", "0x2011"),
+        *flags,
     ]
     try:
         for controlword in (0x06, 0x07, 0x0F):
@@ -137,7 +194,7 @@ def test_a_drive_the_guard_cannot_meter_is_disabled(tmp_path: Path) -> None:
             except (FileNotFoundError, json.JSONDecodeError):
                 return False
             error = status["cia402"]["drives"][str(DRIVE)]["error"] or ""
-            return "cannot be guarded" in error and "0x2011" in error
+            return "cannot be guarded" in error and object_named in error and "drive 10" in error
 
         wait_for(refused)
         request(tmp_path / "c", {"stop": True}, 30)

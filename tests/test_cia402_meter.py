@@ -1,4 +1,5 @@
-"""The drive meter: exact integer energy from sampled TPDO values, never under-metered."""
+"""The drive meters: sampled power (exact integers, never under-metered where power is monotone),
+the envelope of a drive's limits and its bound, and a wrapping energy counter."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ from fractions import Fraction
 from hypothesis import given
 from hypothesis import strategies as st
 
+from canergy.cia402.counter import CounterConfig, CounterMeter
+from canergy.cia402.envelope import Limits, Ratings, StopKind, Timings, bound
 from canergy.cia402.meter import (
     CURRENT_ACTUAL,
     DC_LINK_VOLTAGE,
@@ -15,8 +18,8 @@ from canergy.cia402.meter import (
     EnergyMeter,
     MeterConfig,
     MeterKind,
-    overshoot_bound_uj,
 )
+from canergy.units import UJ_PER_J
 
 MECH = MeterConfig(rated_torque_mnm=500, rated_current_ma=5000)
 
@@ -47,7 +50,7 @@ def test_copper_losses_from_current_and_resistance() -> None:
 
 def test_electrical_metering() -> None:
     meter = EnergyMeter(
-        MeterConfig(kind=MeterKind.ELECTRICAL, bus_current_index=0x2010),
+        MeterConfig(kind=MeterKind.SAMPLED_ELECTRICAL, bus_current_index=0x2010),
     )
     meter.sample(0, {DC_LINK_VOLTAGE: 24_000, 0x2010: 1_000})
     meter.sample(500_000, {DC_LINK_VOLTAGE: 24_000, 0x2010: 1_000})
@@ -114,7 +117,59 @@ def test_never_below_the_energy_of_linear_power_between_samples(
     assert meter.metered_uj <= ceiling * 10**6
 
 
-def test_overshoot_bound() -> None:
-    # 30 W × (10 ms + 5 ms + 200 ms) = 6.45 J
-    assert overshoot_bound_uj(30_000_000, 10_000, 5_000, 200_000) == 6_450_000
-    assert overshoot_bound_uj(1, 1, 0, 0) == 1  # rounded up
+RATINGS = Ratings(500, 5000, Fraction(1, 1000), 1000)
+"""The emulator's motor: 0.5 N·m and 5 A rated, velocity in mrad/s, 1 Ω."""
+
+
+def test_the_envelope_is_torque_times_speed_plus_copper() -> None:
+    # 265 ‰ of 0.5 N·m = 0.1325 N·m at 100.5 rad/s: 13.31625 W; 1.325 A² × 1 Ω = 1.755625 W
+    assert RATINGS.envelope_fw(Limits(265, 265, 100_500)) == 15_071_875 * 10**9
+    assert RATINGS.envelope_fw(Limits(265, 265, 100_500).closed()) == 0
+    assert RATINGS.envelope_fw(Limits(1, 0, 1)) == 500_000_000  # 0.5 mN·m × 1 mrad/s, exact
+    halves = [RATINGS.envelope_fw(Limits(265, 265, 100_500).tapered(k)) for k in range(4)]
+    assert halves == sorted(halves, reverse=True) and halves[3] < halves[0] // 7
+
+
+def test_the_bound_is_the_envelope_over_the_notice_time_plus_the_stop() -> None:
+    limits = Limits(265, 265, 100_500)
+    timings = Timings(gap_us=25_000, reaction_us=2_500, latency_us=500, stop_timeout_us=100_000)
+    coast = bound(RATINGS, limits, timings, StopKind.DISABLE)
+    assert coast.notice_uj == 422_013  # 15.071875 W × 28 ms, rounded up
+    assert coast.stop_uj == 0 and coast.total_uj == 422_013
+    quick = bound(RATINGS, limits, timings, StopKind.QUICK, deceleration=2_000_000)
+    # copper 1.755625 W × 103 ms + 0.1325 N·m × (100.5 rad/s)² / (2 × 2,000 rad/s²)
+    assert quick.stop_uj == round(1.755625 * 0.103 * 1e6 + 0.1325 * 100.5**2 / 4000 * 1e6) + 1
+    slow = bound(RATINGS, limits, timings, StopKind.QUICK, deceleration=1)
+    assert slow.stop_uj == -(-15_071_875 * 103_000 // 10**6)  # never above the envelope
+    counted = bound(RATINGS, limits, timings, StopKind.DISABLE, resolution_uj=1000)
+    assert counted.total_uj == coast.total_uj + 1000
+
+
+def test_a_counter_is_read_across_its_wrap() -> None:
+    meter = CounterMeter(CounterConfig(0x2100, node=20, bits=16, unit_uj=1000))
+    assert meter.sample(0, 65_000, envelope_fw=15 * 10**15) == 0  # the first reading: a start
+    assert meter.sample(20_000, 65_300, envelope_fw=15 * 10**15) == 300_000
+    assert meter.sample(40_000, 100, envelope_fw=15 * 10**15) == 336_000  # 65,536 + 100 - 65,300
+    assert meter.ambiguous == 0 and meter.metered_uj == 636_000
+
+
+def test_a_counter_that_may_have_turned_over_is_charged_at_the_most() -> None:
+    meter = CounterMeter(CounterConfig(0x2100, bits=8, unit_uj=1000))  # 256 mJ a turn
+    meter.sample(0, 10, envelope_fw=10**15)
+    # 1 W for 600 ms may be 600 mJ: 20 counts read could be 20, 276 or 532 mJ
+    assert meter.sample(600_000, 30, envelope_fw=10**15) == 532_000
+    assert meter.ambiguous == 1
+
+
+@given(st.lists(st.integers(0, 70_000_000), min_size=1, max_size=40))
+def test_a_counter_never_charges_less_than_was_drawn(steps: list[int]) -> None:
+    """Whatever is drawn between readings (within the envelope), a 16-bit mJ counter charges at
+    least that, minus the count it has not shown yet."""
+    meter = CounterMeter(CounterConfig(0x2100, bits=16, unit_uj=1000))
+    drawn, t = 0, 0
+    meter.sample(t, 0, envelope_fw=0)
+    for step in steps:  # at most 70 J in 1 s: 70 W
+        drawn += step
+        t += 1_000_000
+        meter.sample(t, drawn // 1000, envelope_fw=70 * 10**15)
+    assert drawn - 1000 < meter.metered_uj <= 70 * UJ_PER_J * len(steps)

@@ -2,42 +2,71 @@
 
 Everything runs on one integer clock, so a run is exact and repeatable: the supervisor service
 and ``GuardedSupervisor`` exactly as ``canergy supervisor --cia402`` runs them, with the CAN
-links replaced by delays: TPDO values reach the guard every ``pdo_period_us``, a controlword
-reaches the drive ``reaction_us`` after the guard decided it, and the host's heartbeats reach the
-drive's consumer. The application sets profile velocity and a target; the guard enables the drive
-while it holds budget (``auto_enable``) and stops it when the budget runs out.
+links replaced by delays: TPDO values reach the guard every ``pdo_period_us`` (late by a jitter,
+or lost, as the scenario says), a command (controlword or limits) reaches the drive
+``reaction_us`` after the guard decided it, and the host's heartbeats reach the drive's consumer.
+The application writes the drive's objects at the instants the scenario gives (``app``), e.g.
+target velocity between two TPDOs; the host can pause (its loop, receive stamps and link worker
+all stop). In ``counter`` mode the counter is the drive's 0x2011 (µJ, 32 bits) or a power-meter
+node's 16-bit mJ counter (``counter_on="meter"``) sampled on the same schedule.
 
-``python -m firmware_model.drive.cosim`` prints the overshoot table of the README.
+``python -m firmware_model.drive.cosim`` prints the table of BENCHMARKS.md: per metering mode
+and TPDO period, what the drive drew past its grant against the bound the guard showed.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
-from canergy.cia402.guard import POWERLESS, QUICK_STOP, Command, DriveGuard, GuardConfig
-from canergy.cia402.meter import MeterConfig, overshoot_bound_uj
+from canergy.cia402.counter import COUNTER_KEY, CounterConfig
+from canergy.cia402.envelope import Limits, Ratings, StopKind
+from canergy.cia402.guard import Command, DriveGuard, GuardConfig, LimitsCommand
+from canergy.cia402.meter import MeterConfig, MeterKind
+from canergy.cia402.metering import DriveSetup
 from canergy.core import Supervisor, Timing
 from canergy.live.cia402_host import GuardedSupervisor, HostBeat
 from canergy.live.cia402_link import enable_step, power_state
-from canergy.live.policy import Limits, TopUp
+from canergy.live.policy import Limits as GrantLimits
+from canergy.live.policy import TopUp
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.units import UJ_PER_J
-from firmware_model.drive.model import DriveModel
+from firmware_model.drive.model import DriveAbort, DriveModel
 from firmware_model.drive.motor import LoadTorque
 
 NODE = 10
 HOST = 127
 STEP_US = 500
+ENERGY_OBJECT = 0x2011
+"""The emulated drive's energy counter (µJ, 32 bits)."""
+FIFTEEN_WATTS = Limits(265, 265, 100_500)
+"""0.1325 N·m, 1.325 A, 100.5 rad/s: a 15.07 W envelope with the emulator's motor (R = 1 Ω),
+just above what accelerating to 100 rad/s at 1,000 rad/s² against 0.02 N·m needs (14.7 W)."""
+
+Write = tuple[int, int, int]
+"""An application's SDO/RPDO write: (time µs, index, value)."""
+ENABLE = ((0x6040, 0x06), (0x6040, 0x07), (0x6040, 0x0F))
 
 
 @dataclass(frozen=True, slots=True)
 class Scenario:
-    pdo_period_us: int = 10_000
+    meter: MeterKind = MeterKind.ENVELOPE
+    limits: Limits | None = FIFTEEN_WATTS
+    counter_on: str = "drive"
+    """``drive`` (0x2011) or ``meter`` (a power-meter node's 16-bit mJ counter)."""
+    stop: StopKind = StopKind.DISABLE
+    pdo_period_us: int = 20_000
+    pdo_timeout_us: int | None = None
+    """The guard's gap allowance (None: the period plus 5 ms)."""
+    pdo_jitter_us: tuple[int, ...] = (0,)
+    """Each TPDO reaches the host this much late (cycled; arrivals stay in order)."""
+    pdo_lost: frozenset[int] = frozenset()
+    """TPDOs (by number from 0) that never arrive."""
     reaction_us: int = 2_000
-    """Host reaction plus transmission: from a TPDO's arrival to its controlword taking effect."""
+    """From the guard's decision to its command taking effect on the drive."""
     budget_uj: int = 2 * UJ_PER_J
     """The supervisor's whole budget (all of it may go to the drive)."""
     max_grant_uj: int = 500_000
@@ -48,18 +77,22 @@ class Scenario:
     """Target velocity, 0.001 rad/s."""
     acceleration: int = 1_000_000
     quick_stop_deceleration: int = 2_000_000
+    stop_timeout_us: int = 100_000
     load_nm: float = 0.02
     duration_us: int = 3_000_000
-    pdo_loss_at_us: int | None = None
-    pdo_back_at_us: int | None = None
+    app: tuple[Write, ...] = ()
+    """The application's writes (target velocity, torque, mode, controlword) at their times."""
+    pauses: tuple[tuple[int, int], ...] = ()
+    """Host pauses: (start µs, length µs)."""
     auto_enable: bool = True
-    app_enables_at_us: int | None = None
-    """The application enables the drive itself at this time (shutdown, switch on, enable)."""
     fault_at_us: int | None = None
     host_crash_at_us: int | None = None
     consumer_timeout_ms: int = 200
+    heartbeat_us: int = 50_000
     drop_stops: bool = False
-    """Lose every quick stop and disable on the way (a broken link: tests that the checks fail)."""
+    """Lose every stop command and every write that lowers the limits (a broken link)."""
+    meter_config: MeterConfig | None = None
+    """Sampled modes: how to compute power (None: mechanical with the motor's R)."""
 
 
 @dataclass
@@ -68,12 +101,13 @@ class Result:
     granted_uj: int
     metered_uj: int
     overrun_uj: int
-    peak_power_w: float
-    stop_us: int | None
-    """From the first stop command reaching the drive to the drive putting out no more power."""
+    debt_uj: int
+    bound_uj: int | None
+    """The guard's bound at its full limits, as its status showed it at the end."""
     tail_uj: int | None
-    """Drawn from the TPDO that showed the budget gone to the end: what the stop itself cost."""
-    bound_uj: int
+    """Drawn from the last TPDO sampled before the guard found the budget exhausted to the end:
+    what the bound bounds (None: the budget never ran out)."""
+    peak_power_w: float
     states: list[str] = field(default_factory=list)
     timeline: list[tuple[int, int, int, str]] = field(default_factory=list)
     """Every 50 ms: time, energy granted so far, the proxy's budget, the drive's state."""
@@ -90,26 +124,36 @@ class Result:
 class _Link:
     """Stands for ``DriveLink``: samples in, commands out after the reaction time."""
 
-    def __init__(self, meter: MeterConfig) -> None:
+    def __init__(self, setup: DriveSetup) -> None:
         self.samples: deque[tuple[int, dict[int, int], str | None]] = deque()
+        self.limit_answers: deque[tuple[Limits, bool, str]] = deque()
         self.ready_at: int | None = 0
-        self.meter: MeterConfig | None = meter
-        self.pending: deque[Command] = deque()
+        self.setup: DriveSetup | None = setup
+        self.pending_commands: deque[Command | LimitsCommand] = deque()
         self.reaction_max_us = 0
+        self.latency_max_us = 0
 
     def drain(self) -> list[tuple[int, dict[int, int], str | None]]:
         out = list(self.samples)
         self.samples.clear()
         return out
 
-    def command(self, cmd: Command) -> None:
-        self.pending.append(cmd)
+    def drain_limits(self) -> list[tuple[Limits, bool, str]]:
+        out = list(self.limit_answers)
+        self.limit_answers.clear()
+        return out
+
+    def pending(self) -> bool:
+        return bool(self.samples or self.limit_answers)
+
+    def command(self, cmd: Command | LimitsCommand) -> None:
+        self.pending_commands.append(cmd)
 
     def close(self) -> None:
         pass
 
     def status(self) -> dict[str, Any]:
-        return {"pending_commands": len(self.pending)}
+        return {"pending_commands": len(self.pending_commands)}
 
 
 class _Bus:
@@ -120,7 +164,7 @@ class _Bus:
         self.frames.append(frame)
 
 
-def run(sc: Scenario) -> Result:
+def _drive(sc: Scenario) -> DriveModel:
     drive = DriveModel(NODE, 0, load=LoadTorque.constant(sc.load_nm, opposing=True))
     drive.set_nmt("OPERATIONAL", 0)
     drive.write(0x1016, 1, HOST << 16 | sc.consumer_timeout_ms, 0)
@@ -128,42 +172,93 @@ def run(sc: Scenario) -> Result:
     drive.write(0x6083, 0, sc.acceleration, 0)
     drive.write(0x6085, 0, sc.quick_stop_deceleration, 0)
     drive.write(0x60FF, 0, sc.velocity, 0)
+    return drive
+
+
+def _write_limits(drive: DriveModel, limits: Limits, t: int) -> None:
+    for index, value in limits.as_objects().items():
+        drive.write(index, 0, value, t)
+
+
+def _guard_config(sc: Scenario, drive: DriveModel, timing: Timing) -> GuardConfig:
     params = drive.motor.params
-    meter = MeterConfig(
-        rated_torque_mnm=drive.read(0x6076),
-        rated_current_ma=drive.read(0x6075),
+    sampled = sc.meter_config or MeterConfig(
+        kind=sc.meter if sc.meter.sampled else MeterKind.SAMPLED_MECHANICAL,
         resistance_mohm=round(params.resistance * 1000),
     )
+    counter = None
+    if sc.meter is MeterKind.COUNTER:
+        counter = (
+            CounterConfig(ENERGY_OBJECT)
+            if sc.counter_on == "drive"
+            else CounterConfig(0x2100, node=20, bits=16, unit_uj=1000)
+        )
+    return GuardConfig(
+        meter=replace(sampled, kind=sc.meter),
+        limits=None if sc.meter.sampled else sc.limits,
+        counter=counter,
+        stop=sc.stop,
+        timing=timing,
+        pdo_timeout_us=sc.pdo_timeout_us or sc.pdo_period_us + 5_000,
+        stop_timeout_us=sc.stop_timeout_us,
+        reaction_us=sc.reaction_us + STEP_US,
+        latency_us=STEP_US,
+        reserve_uj=sc.reserve_uj,
+        auto_enable=sc.auto_enable,
+    )
+
+
+def _counter_values(sc: Scenario, drive: DriveModel) -> dict[int, int]:
+    if sc.meter is not MeterKind.COUNTER:
+        return {}
+    if sc.counter_on == "drive":
+        return {COUNTER_KEY: drive.drawn_uj % 2**32}
+    return {COUNTER_KEY: drive.drawn_uj // 1000 % 2**16}
+
+
+def _setup(sc: Scenario, drive: DriveModel, config: GuardConfig) -> DriveSetup:
+    params = drive.motor.params
+    closed = None if config.limits is None else config.limits.closed()
+    if closed is not None:
+        _write_limits(drive, closed, 0)
+    ratings = Ratings(
+        drive.read(0x6076),
+        drive.read(0x6075),
+        resistance_mohm=round(params.resistance * 1000),
+    )
+    return DriveSetup(ratings, drive.read(0x6085), STEP_US, closed)
+
+
+def run(sc: Scenario) -> Result:
+    drive = _drive(sc)
     timing = Timing(response_timeout_us=20_000, retries=3)
     service = SupervisorService(
         Supervisor((NODE,), sc.budget_uj, timing=timing),
         ServiceConfig(
             policy=TopUp(sc.target_uj) if sc.target_uj is not None else TopUp(sc.budget_uj),
-            limits=Limits(max_grant=sc.max_grant_uj),
+            limits=GrantLimits(max_grant=sc.max_grant_uj),
             fsync=False,
             status_period_us=10**12,
         ),
         0,
     )
-    guard_config = GuardConfig(
-        meter=meter,
-        timing=timing,
-        pdo_timeout_us=max(5 * sc.pdo_period_us, 50_000),
-        reserve_uj=sc.reserve_uj,
-        auto_enable=sc.auto_enable,
-    )
-    guard = DriveGuard(NODE, guard_config, 0, nonce=0x1234)
-    link, bus = _Link(meter), _Bus()
+    config = _guard_config(sc, drive, timing)
+    guard = DriveGuard(NODE, config, 0, nonce=0x1234)
+    link, bus = _Link(_setup(sc, drive, config)), _Bus()
     drives: dict[int, Any] = {NODE: (guard, link)}
-    host = GuardedSupervisor(service, drives, bus, HostBeat(HOST, 50_000), 0)  # type: ignore[arg-type]
-    stop_sent_at: int | None = None
-    stop_us: int | None = None
-    decided_drawn: int | None = None
+    host = GuardedSupervisor(service, drives, bus, HostBeat(HOST, sc.heartbeat_us), 0)  # type: ignore[arg-type]
+    app = sorted(sc.app)
+    in_flight: deque[tuple[int, dict[int, int], str | None, int]] = deque()
+    seen_drawn, decided_drawn = 0, None
     states: list[str] = []
     timeline: list[tuple[int, int, int, str]] = []
-    next_pdo = 0
+    pdo_number, last_arrival = 0, 0
     for t in range(0, sc.duration_us + 1, STEP_US):
         drive.advance(t)
+        while app and app[0][0] <= t:
+            _, index, value = app.pop(0)
+            with contextlib.suppress(DriveAbort):  # refused: the application's problem
+                drive.write(index, 0, value, t)
         if sc.fault_at_us is not None and t == sc.fault_at_us:
             drive.fault("injected fault", 0x5000, t)
         if not states or states[-1] != drive.state:
@@ -171,97 +266,131 @@ def run(sc: Scenario) -> Result:
         if t % 50_000 == 0:
             b = service.books()[NODE]
             timeline.append((t, b["delivered_uj"] - b["returned_uj"], guard.usable, drive.state))
-        crashed = sc.host_crash_at_us is not None and t >= sc.host_crash_at_us
-        if crashed:
+        if t % sc.pdo_period_us == 0:
+            if pdo_number not in sc.pdo_lost:
+                values = drive.tpdo_values() | _counter_values(sc, drive)
+                jitter = sc.pdo_jitter_us[pdo_number % len(sc.pdo_jitter_us)]
+                last_arrival = max(last_arrival, t + jitter)
+                sampled = power_state(values[0x6041])
+                in_flight.append((last_arrival, values, sampled, drive.drawn_uj))
+            pdo_number += 1
+        if sc.host_crash_at_us is not None and t >= sc.host_crash_at_us:
             continue
-        if sc.app_enables_at_us is not None and t == sc.app_enables_at_us:
-            for step in (0x06, 0x07, 0x0F):
-                drive.write(0x6040, 0, step, t)
-        back = sc.pdo_back_at_us is not None and t >= sc.pdo_back_at_us
-        lost = sc.pdo_loss_at_us is not None and t >= sc.pdo_loss_at_us and not back
-        if t >= next_pdo:
-            next_pdo += sc.pdo_period_us
-            if not lost:
-                values = drive.tpdo_values()
-                link.samples.append((t, values, power_state(values[0x6041])))
-        while link.pending and t >= link.pending[0].at + sc.reaction_us:
-            cmd = link.pending.popleft()
-            controlword = cmd.controlword
-            if controlword is None:
-                controlword = enable_step(power_state(drive.read(0x6041)))
-            elif stop_sent_at is None and drive.state == "OPERATION ENABLED":
-                stop_sent_at = t  # the first stop of a running drive
-            if controlword is not None and not (sc.drop_stops and cmd.controlword is not None):
-                drive.write(0x6040, 0, controlword, t)
-        if stop_sent_at is not None and stop_us is None and _powerless(drive):
-            stop_us = t - stop_sent_at
+        if any(start <= t < start + length for start, length in sc.pauses):
+            continue  # the whole host process stands still
+        while in_flight and in_flight[0][0] <= t:
+            arrival, carried, shown, seen_drawn = in_flight.popleft()
+            link.samples.append((max(arrival, t - STEP_US), carried, shown))
+        _apply_commands(sc, drive, link, t)
         wakeup = host.next_wakeup()
         if wakeup is not None and wakeup <= t:
             host.on_wakeup(t)
-            if decided_drawn is None and any(c.why == "budget exhausted" for c in link.pending):
-                decided_drawn = drive.drawn_uj if drive.state == "OPERATION ENABLED" else None
+            if decided_drawn is None and guard.stop_reason == "budget exhausted":
+                decided_drawn = seen_drawn
         for _frame in bus.frames:
             drive.host_heartbeat(HOST, t)
         bus.frames.clear()
     books = service.books()[NODE]
-    granted = books["delivered_uj"] - books["returned_uj"]
-    bound = overshoot_bound_uj(
-        round(drive.peak_power_w * 1e6),
-        sc.pdo_period_us,
-        sc.reaction_us + STEP_US,
-        stop_us if stop_us is not None else sc.duration_us,
-    )
+    status = guard.status(sc.duration_us)
     return Result(
         drawn_uj=drive.drawn_uj,
-        granted_uj=granted,
-        metered_uj=guard.meter.metered_uj,
+        granted_uj=books["delivered_uj"] - books["returned_uj"],
+        metered_uj=status["metered_uj"],
         overrun_uj=guard.overrun_uj,
-        peak_power_w=drive.peak_power_w,
-        stop_us=stop_us,
+        debt_uj=guard.debt_uj,
+        bound_uj=status["bound_uj"],
         tail_uj=None if decided_drawn is None else drive.drawn_uj - decided_drawn,
-        bound_uj=bound,
+        peak_power_w=drive.peak_power_w,
         states=states,
         timeline=timeline,
-        guard=guard.status(sc.duration_us),
+        guard=status,
         supervisor=service.status(),
         drive=drive.status(),
     )
 
 
-def _powerless(drive: DriveModel) -> bool:
-    standing = abs(drive.velocity_rad_s) < 0.01
-    return drive.state in POWERLESS or (drive.state == QUICK_STOP and standing)
+def _apply_commands(sc: Scenario, drive: DriveModel, link: _Link, t: int) -> None:
+    """Commands whose reaction time is up reach the drive; limits are read back."""
+    while link.pending_commands and t >= link.pending_commands[0].at + sc.reaction_us:
+        cmd = link.pending_commands.popleft()
+        link.reaction_max_us = max(link.reaction_max_us, t - cmd.at - sc.reaction_us)
+        if isinstance(cmd, LimitsCommand):
+            lowering = cmd.limits.torque_permille < drive.read(0x6072)
+            if not (sc.drop_stops and lowering):
+                _write_limits(drive, cmd.limits, t)
+                link.limit_answers.append((cmd.limits, True, ""))
+            continue
+        controlword = cmd.controlword
+        if controlword is None:
+            controlword = enable_step(power_state(drive.read(0x6041)))
+        elif sc.drop_stops:
+            continue
+        if controlword is not None:
+            drive.write(0x6040, 0, controlword, t)
 
 
-def table(periods_ms: tuple[int, ...] = (1, 5, 10, 20, 50)) -> list[dict[str, Any]]:
+MODES = (
+    ("counter", MeterKind.COUNTER, StopKind.DISABLE),
+    ("counter, quick stop", MeterKind.COUNTER, StopKind.QUICK),
+    ("envelope", MeterKind.ENVELOPE, StopKind.DISABLE),
+    ("envelope, quick stop", MeterKind.ENVELOPE, StopKind.QUICK),
+    ("sampled-mechanical", MeterKind.SAMPLED_MECHANICAL, StopKind.QUICK),
+)
+
+
+def table(periods_ms: tuple[int, ...] = (5, 10, 20, 50)) -> list[dict[str, Any]]:
+    """Each mode at each TPDO period: the plain velocity profile (3 s), and 10 s of pulses timed
+    between TPDOs (target 100 rad/s just after one, 0 at mid-period, 10,000 rad/s² both ways)."""
     rows = []
-    for ms in periods_ms:
-        r = run(Scenario(pdo_period_us=ms * 1000))
-        rows.append(
-            {
-                "pdo_period_ms": ms,
-                "granted_j": r.granted_uj / 1e6,
-                "drawn_j": r.drawn_uj / 1e6,
-                "overshoot_mj": r.overshoot_uj / 1e3,
-                "tail_mj": None if r.tail_uj is None else r.tail_uj / 1e3,
-                "bound_mj": r.bound_uj / 1e3,
-                "peak_power_w": round(r.peak_power_w, 2),
-                "stop_ms": None if r.stop_us is None else r.stop_us / 1e3,
-            }
-        )
+    for name, kind, stop in MODES:
+        for ms in periods_ms:
+            period = ms * 1000
+            for profile, app in (("steady", ()), ("pulses", pulses(period, 3_000_000))):
+                sc = Scenario(
+                    meter=kind,
+                    stop=stop,
+                    pdo_period_us=period,
+                    app=app,
+                    velocity=0 if app else 100_000,
+                )
+                r = run(sc)
+                rows.append(
+                    {
+                        "mode": name,
+                        "pdo_period_ms": ms,
+                        "profile": profile,
+                        "granted_j": r.granted_uj / 1e6,
+                        "drawn_j": r.drawn_uj / 1e6,
+                        "overshoot_mj": r.overshoot_uj / 1e3,
+                        "tail_mj": None if r.tail_uj is None else r.tail_uj / 1e3,
+                        "bound_mj": None if r.bound_uj is None else r.bound_uj / 1e3,
+                    }
+                )
     return rows
+
+
+def pulses(
+    period_us: int, until_us: int, high: int = 100_000, offset_us: int = 1_000
+) -> tuple[Write, ...]:
+    """Target velocity ``high`` just after each TPDO, back to 0 at mid-period."""
+    out: list[Write] = []
+    for start in range(0, until_us, period_us):
+        out += [(start + offset_us, 0x60FF, high), (start + period_us // 2, 0x60FF, 0)]
+    return tuple(out)
 
 
 def main() -> None:
     argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args()
-    print("| TPDO period | granted | drawn | overshoot | drawn after the stop decision | bound |")
-    print("| ---: | ---: | ---: | ---: | ---: | ---: |")
+    print("| mode | TPDO period | profile | granted | drawn | overshoot | after decision | bound |")
+    print("| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: |")
     for row in table():
+        tail = "-" if row["tail_mj"] is None else f"{row['tail_mj']:.1f} mJ"
+        bound = "none" if row["bound_mj"] is None else f"{row['bound_mj']:.1f} mJ"
         print(
-            f"| {row['pdo_period_ms']} ms | {row['granted_j']:.3f} J | {row['drawn_j']:.4f} J | "
-            f"{row['overshoot_mj']:.1f} mJ | {row['tail_mj']:.1f} mJ | {row['bound_mj']:.1f} mJ |"
+            f"| {row['mode']} | {row['pdo_period_ms']} ms | {row['profile']} | "
+            f"{row['granted_j']:.3f} J | {row['drawn_j']:.4f} J | {row['overshoot_mj']:.1f} mJ | "
+            f"{tail} | {bound} |"
         )
-    print(f"peak power {row['peak_power_w']} W, stop time {row['stop_ms']} ms (last row)")
 
 
 if __name__ == "__main__":

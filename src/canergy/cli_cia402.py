@@ -5,12 +5,15 @@ from __future__ import annotations
 import argparse
 import math
 import secrets
+import sys
 from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
 import can
 
+from canergy.cia402.counter import CounterConfig
+from canergy.cia402.envelope import Limits, StopKind
 from canergy.cia402.guard import DriveGuard, GuardConfig
 from canergy.cia402.meter import MeterConfig, MeterKind
 from canergy.cli_args import add_duration, bounded_int, duration, energy, node_ids
@@ -41,6 +44,53 @@ def _number(what: str, high: float, *, zero: bool) -> Any:
     return parse
 
 
+RENAMED = {"mechanical": "sampled-mechanical", "electrical": "sampled-electrical"}
+SAMPLED_WARNING = (
+    "warning: --cia402-meter {mode} samples power at TPDO instants only: motion timed between "
+    "two TPDOs is not metered and no bound is claimed; use counter or envelope metering for a "
+    "guarantee (README: Guarding CiA 402 drives)"
+)
+
+
+def meter_name(text: str) -> str:
+    """A metering mode's name (argparse checks the choices); the old names of the sampled
+    modes say what they became."""
+    if text in RENAMED:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is now {RENAMED[text]!r}: it samples power and can be fooled; "
+            "counter or envelope metering is sound"
+        )
+    if text not in {k.value for k in MeterKind}:
+        modes = ", ".join(k.value for k in MeterKind)
+        raise argparse.ArgumentTypeError(f"{text[:40]!r}: one of {modes}")
+    return text
+
+
+def counter_object(text: str) -> tuple[int | None, int, int]:
+    """``[NODE:]INDEX[.SUB]``, e.g. ``0x2011`` (on the drive) or ``20:0x2100`` (node 20)."""
+    node_text, _, obj = text.strip().rpartition(":")
+    index_text, _, sub_text = obj.partition(".")
+    try:
+        node = int(node_text, 0) if node_text else None
+        index, sub = int(index_text, 16), int(sub_text or "0", 0)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text[:40]!r}: [NODE:]INDEX[.SUB], e.g. 0x2011 or 20:0x2100"
+        ) from None
+    if node is not None and not 1 <= node <= 127:
+        raise argparse.ArgumentTypeError(f"{text[:40]!r}: node id 1-127")
+    if not 0x1000 <= index <= 0xFFFF or not 0 <= sub <= 0xFF:
+        raise argparse.ArgumentTypeError(f"{text[:40]!r}: index 0x1000-0xFFFF, sub-index 0-255")
+    return node, index, sub
+
+
+def counter_bits(text: str) -> int:
+    """8, 16, 32 or 64."""
+    if text.strip() not in ("8", "16", "32", "64"):
+        raise argparse.ArgumentTypeError(f"{text[:24]!r}: 8, 16, 32 or 64 bits")
+    return int(text)
+
+
 def add_cia402_flags(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group(
         "CiA 402 drives",
@@ -53,10 +103,51 @@ def add_cia402_flags(p: argparse.ArgumentParser) -> None:
     g.add_argument("--cia402-eds", type=Path, help=f"the drives' EDS (default: {EDS.name})")
     g.add_argument(
         "--cia402-meter",
+        type=meter_name,
         choices=[k.value for k in MeterKind],
-        default=MeterKind.MECHANICAL.value,
-        help="mechanical: 0x6077 × 0x6076 × 0x606C (+ R·i² from 0x6078); electrical: 0x6079 × "
-        "--cia402-bus-current (default mechanical)",
+        help="counter: a cumulative energy object (--cia402-counter), sound and tight; "
+        "envelope: the limits the guard writes (--cia402-max-*), charged at their largest "
+        "power by the clock, sound; sampled-mechanical / sampled-electrical: power at TPDO "
+        "instants, no guarantee (required with --cia402)",
+    )
+    g.add_argument(
+        "--cia402-counter",
+        type=counter_object,
+        metavar="[NODE:]INDEX[.SUB]",
+        help="counter metering: the energy object, on the drive (0x2011) or on a power-meter "
+        "node (20:0x2100); its TPDO must carry it",
+    )
+    g.add_argument(
+        "--cia402-counter-unit",
+        type=energy,
+        default=1,
+        metavar="ENERGY",
+        help="what one count is (default 1uJ; e.g. 1mJ, 0.36J for 0.1 mWh)",
+    )
+    g.add_argument(
+        "--cia402-counter-bits",
+        type=counter_bits,
+        choices=(8, 16, 32, 64),
+        default=32,
+        help="the counter's width: it wraps at 2**bits counts (default 32)",
+    )
+    for flag, index, high, unit, metavar in (
+        ("--cia402-max-torque", 0x6072, 65535, "‰ of rated torque", "PERMILLE"),
+        ("--cia402-max-current", 0x6073, 65535, "‰ of rated current", "PERMILLE"),
+        ("--cia402-max-speed", 0x6080, 2**32 - 1, "in the drive's velocity unit", "UNITS"),
+    ):
+        g.add_argument(
+            flag,
+            type=bounded_int(1, high),
+            metavar=metavar,
+            help=f"0x{index:04X} the guard writes, {unit} (counter and envelope metering)",
+        )
+    g.add_argument(
+        "--cia402-stop",
+        choices=[k.value for k in StopKind],
+        default=StopKind.QUICK.value,
+        help="quick: quick stop, then disable voltage once standing (the bound adds what the "
+        "stop can draw); disable: disable voltage at once, the drive coasts (default quick)",
     )
     g.add_argument(
         "--cia402-bus-current",
@@ -69,7 +160,8 @@ def add_cia402_flags(p: argparse.ArgumentParser) -> None:
         type=_number("ohms", 1000, zero=True),
         default=Fraction(0),
         metavar="OHMS",
-        help="mechanical metering: winding resistance (hot), for copper losses (default 0)",
+        help="winding resistance (hot): copper losses in the envelope and in sampled-mechanical "
+        "metering (default 0)",
     )
     g.add_argument(
         "--cia402-velocity-unit",
@@ -87,8 +179,8 @@ def add_cia402_flags(p: argparse.ArgumentParser) -> None:
         "--cia402-reserve",
         type=energy,
         default=0,
-        help="quick stop when a drive's budget falls to this; at least the overshoot bound "
-        "keeps it inside what was granted (default 0)",
+        help="keep this on top of the bound (sound modes; a drive whose bound exceeds a reserve "
+        "given here is refused) or as the whole margin (sampled modes) (default 0)",
     )
     g.add_argument(
         "--cia402-enable",
@@ -96,7 +188,15 @@ def add_cia402_flags(p: argparse.ArgumentParser) -> None:
         help="bring a drive to OPERATION ENABLED while it holds budget (default: the "
         "application enables it; the guard only stops it)",
     )
-    add_duration(g, "--cia402-pdo-timeout", 200_000, "quick stop when TPDOs stop this long")
+    add_duration(
+        g, "--cia402-pdo-timeout", 200_000, "stop when TPDOs stop this long: the bound's gap"
+    )
+    add_duration(
+        g, "--cia402-reaction", 10_000, "host reaction the bound allows (raised to what is seen)"
+    )
+    add_duration(
+        g, "--cia402-latency", 5_000, "drive latency the bound allows (raised to what is seen)"
+    )
     add_duration(g, "--cia402-stop-timeout", 1_000_000, "disable this long after quick stop")
     add_duration(g, "--cia402-heartbeat", 100_000, "host heartbeat period")
     add_duration(
@@ -128,8 +228,27 @@ def check_cia402(args: argparse.Namespace) -> None:
         raise ValueError("a node id is either a canergy node (--nodes) or a drive (--cia402)")
     if args.cia402_host_id in (*drives, *nodes):
         raise ValueError(f"--cia402-host-id {args.cia402_host_id} is also a node or drive id")
-    if args.cia402_meter == MeterKind.ELECTRICAL.value and args.cia402_bus_current is None:
-        raise ValueError("--cia402-meter electrical needs --cia402-bus-current INDEX")
+    if args.cia402_meter is None:
+        modes = ", ".join(k.value for k in MeterKind)
+        raise ValueError(f"--cia402 needs --cia402-meter MODE ({modes}): see the README")
+    kind = MeterKind(args.cia402_meter)
+    if kind is MeterKind.SAMPLED_ELECTRICAL and args.cia402_bus_current is None:
+        raise ValueError("--cia402-meter sampled-electrical needs --cia402-bus-current INDEX")
+    if not kind.sampled:
+        flags = ("--cia402-max-torque", "--cia402-max-current", "--cia402-max-speed")
+        missing = [f for f in flags if getattr(args, f[2:].replace("-", "_")) is None]
+        if missing:
+            raise ValueError(f"--cia402-meter {kind.value} needs {', '.join(missing)}")
+    if kind is MeterKind.COUNTER:
+        if args.cia402_counter is None:
+            raise ValueError("--cia402-meter counter needs --cia402-counter [NODE:]INDEX")
+        meter_node = args.cia402_counter[0]
+        if meter_node is not None and len(drives) > 1:
+            raise ValueError("a power-meter node meters one drive: give one --cia402 id")
+        if meter_node in (*drives, *nodes, args.cia402_host_id):
+            raise ValueError(f"--cia402-counter node {meter_node} is also a node or drive id")
+    if args.cia402_counter_unit < 1:
+        raise ValueError("--cia402-counter-unit: at least 1uJ")
     if args.cia402_consumer_timeout > CONSUMER_MAX_US or args.cia402_consumer_timeout % 1000:
         raise ValueError("--cia402-consumer-timeout: whole milliseconds, at most 65535ms")
     if args.cia402_consumer_timeout < 2 * args.cia402_heartbeat:
@@ -139,6 +258,8 @@ def check_cia402(args: argparse.Namespace) -> None:
         )
     if args.listen_only:
         raise ValueError("--cia402 guards drives and must send: not with --listen-only")
+    if kind.sampled:
+        print(SAMPLED_WARNING.format(mode=kind.value), file=sys.stderr)
     import canopen
 
     try:
@@ -156,24 +277,43 @@ def guard_drives(
     now: int,
     clock: Any,
 ) -> GuardedSupervisor:
+    kind = MeterKind(args.cia402_meter)
     meter = MeterConfig(
-        kind=MeterKind(args.cia402_meter),
+        kind=kind,
         velocity_unit_rad_s=args.cia402_velocity_unit,
         resistance_mohm=math.ceil(args.cia402_resistance * 1000),
         bus_current_index=args.cia402_bus_current,
         credit_regen=args.cia402_credit_regen,
     )
+    limits = None
+    if not kind.sampled:
+        limits = Limits(args.cia402_max_torque, args.cia402_max_current, args.cia402_max_speed)
+    counter = None
+    if kind is MeterKind.COUNTER:
+        node, index, sub = args.cia402_counter
+        counter = CounterConfig(
+            index, sub, node, args.cia402_counter_bits, args.cia402_counter_unit
+        )
+    stop = StopKind(args.cia402_stop)
     config = GuardConfig(
         meter=meter,
+        limits=limits,
+        counter=counter,
+        stop=stop,
         timing=timing,
         pdo_timeout_us=args.cia402_pdo_timeout,
         stop_timeout_us=args.cia402_stop_timeout,
+        reaction_us=args.cia402_reaction,
+        latency_us=args.cia402_latency,
         reserve_uj=args.cia402_reserve,
         auto_enable=args.cia402_enable,
     )
     link_config = LinkConfig(
         eds=args.cia402_eds or EDS,
         meter=meter,
+        limits=limits,
+        counter=counter,
+        stop=stop,
         host_id=args.cia402_host_id,
         consumer_timeout_ms=args.cia402_consumer_timeout // 1000,
     )
@@ -188,4 +328,10 @@ def guard_drives(
     }
     beat = HostBeat(args.cia402_host_id, args.cia402_heartbeat, args.cia402_sync)
     codec = Codec(args.id_base)
-    return GuardedSupervisor(service, drives, bus, beat, now, codec=codec, capture=capture)
+    return GuardedSupervisor(
+        service, drives, bus, beat, now, codec=codec, capture=capture, report=_report
+    )
+
+
+def _report(line: str) -> None:
+    print(f"canergy supervisor: {line}", file=sys.stderr, flush=True)

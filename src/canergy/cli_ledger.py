@@ -111,9 +111,12 @@ def run_ledger(args: argparse.Namespace) -> int:
         print(json.dumps(tree.as_json(), indent=2))
     else:
         for name, led in tree.levels.items():
+            debt = (
+                f" (drives' unpaid debt {format_energy(led.drive_debt)})" if led.drive_debt else ""
+            )
             print(
                 f"{name}: in {format_energy(led.initial + led.injected - led.withdrawn)}, held "
-                f"{format_energy(led.held)}, dissipated {format_energy(led.dissipated)}"
+                f"{format_energy(led.held)}{debt}, dissipated {format_energy(led.dissipated)}"
             )
         for name, gap in tree.link_gaps.items():
             print(f"{name}: gateway link gap {gap} µJ")

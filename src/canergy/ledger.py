@@ -16,7 +16,7 @@ open reservation off. What the node still held is what the loss dissipated.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any, NamedTuple
 
 from canergy.core.state import ClientState, Session, SupervisorState
@@ -35,15 +35,19 @@ class Ledger:
     overlap: int
     withdrawn: int = 0
     """Energy a gateway's supervisor handed back upstream (out of this level)."""
+    drive_debt: int = 0
+    """Energy guarded CiA 402 drives were charged past their budgets and no grant has paid
+    yet: spent as surely as ``spent``, so it counts against what the system holds."""
 
     @property
     def held(self) -> int:
-        """Energy the system holds, travelling energy counted once."""
+        """Energy the system holds, travelling energy counted once (spent on credit too)."""
         return (
             self.supervisor_usable
             + self.supervisor_reserved
             + self.clients_usable
             + self.spent
+            + self.drive_debt
             + self.returns_in_flight
             - self.overlap
         )
@@ -159,7 +163,9 @@ def ledger_from_status(
         )
         for node, c in keyed
     ]
-    return ledger(sup, states)
+    books = ledger(sup, states)
+    debt = sum(int(d.get("debt_uj", 0)) for d in guarded)
+    return replace(books, drive_debt=debt) if debt else books
 
 
 def _split(name: str) -> tuple[str, int]:

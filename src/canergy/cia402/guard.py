@@ -1,21 +1,24 @@
 """One CiA 402 drive under an energy budget: a proxy client, a meter and a stop rule. Sans-IO.
 
 The drive never runs canergy. The host keeps a *proxy*: a real hardened ``Client`` that the
-supervisor grants to like any node. Every set of TPDO values is metered (``EnergyMeter``) and
-spent from the proxy's budget. When the budget falls to the reserve, or the TPDOs stop, the guard
-commands quick stop, and disables the drive once it stands still (or after ``stop_timeout_us``).
+supervisor grants to like any node. What the drive may have drawn is charged to the proxy's
+budget (``DriveMeter``: a counter, the envelope of the limits the guard writes, or sampled power).
+The guard stops the drive while what is left still covers what it may draw before it stands:
+in the sound modes the stop comes when the budget falls to the reserve plus the bound
+(``envelope.bound``) of the limits in force, so a drive stays inside what it was granted. As the
+budget falls the guard tapers the drive's torque and current limits, so the envelope and the bound
+shrink with what is left; it closes them (0 torque, 0 current) while the drive is off.
 
-A drive cannot be stopped at once: what it draws past its budget is bounded by peak power ×
-(PDO period + host reaction + stop time) (``overshoot_bound_uj``); a reserve at least that large
-keeps the drive inside what was granted. Energy metered that the budget no longer covered is
-counted as ``overrun_uj``: the proxy never spends more than it holds.
+Energy charged that the budget no longer covers is a **debt**: the next grant pays it first
+(``debt_uj``; ``overrun_uj`` counts it all). The proxy never spends more than it holds.
 
 The proxy's record is volatile: a restarted host has no books for it, so it JOINs and the
 supervisor writes off what it held (the drive was stopped meanwhile by its heartbeat consumer).
 
-Inputs: ``on_values`` (TPDO values with the power state decoded by the caller), ``on_message``
+Inputs: ``on_ready`` (set-up read from the drive), ``on_values`` (TPDO values with the power state
+decoded by the caller), ``on_limits`` (the drive confirmed or refused limits), ``on_message``
 (canergy frames from the supervisor), ``on_wakeup``; outputs: frames to the supervisor, and
-controlword commands collected in ``commands`` for the caller to write.
+commands (controlwords, limits) collected in ``commands`` for the caller to write.
 """
 
 from __future__ import annotations
@@ -24,7 +27,10 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any
 
-from canergy.cia402.meter import VELOCITY_ACTUAL, EnergyMeter, MeterConfig
+from canergy.cia402.counter import COUNTER_KEY, CounterConfig
+from canergy.cia402.envelope import LEVELS, Limits, StopKind
+from canergy.cia402.meter import VELOCITY_ACTUAL, MeterConfig, MeterKind
+from canergy.cia402.metering import Allowances, DriveMeter, DriveSetup
 from canergy.core import (
     Action,
     Client,
@@ -43,6 +49,8 @@ QUICK_STOP = "QUICK STOP ACTIVE"
 FAULT_STATES = ("FAULT", "FAULT REACTION ACTIVE")
 POWERLESS = ("SWITCH ON DISABLED", "READY TO SWITCH ON", "NOT READY TO SWITCH ON", "FAULT")
 """States in which a drive puts no torque on its motor."""
+TAPER_DOWN, TAPER_UP = 2, 4
+"""Lower the limits when what is left falls below 2× their bound; raise them again at 4×."""
 
 
 class GuardPhase(Enum):
@@ -57,21 +65,36 @@ class GuardPhase(Enum):
 @dataclass(frozen=True, slots=True)
 class GuardConfig:
     meter: MeterConfig
+    """The metering mode (``meter.kind``) and, for the sampled modes, how to compute power."""
+    limits: Limits | None = None
+    """The drive's full limits (counter and envelope modes)."""
+    counter: CounterConfig | None = None
+    stop: StopKind = StopKind.QUICK
     timing: Timing = field(default_factory=Timing)
     pdo_timeout_us: int = 200_000
-    """Quick stop when no TPDO came for this long."""
+    """Stop when no TPDO came for this long: the worst gap the bound allows."""
     stop_timeout_us: int = 1_000_000
     """Disable the drive this long after quick stop even if it still moves."""
+    reaction_us: int = 10_000
+    """The host reaction the bound allows (raised to what is measured)."""
+    latency_us: int = 5_000
+    """The drive latency the bound allows (raised to what is measured)."""
     retry_us: int = 100_000
     """Repeat a command the drive's state does not show after this long."""
     reserve_uj: int = 0
-    """Quick stop when the budget falls to this; resume above it by ``resume_margin_uj``."""
+    """Kept on top of the bound; with the sampled modes, the whole reserve. A drive whose bound
+    at its full limits exceeds a reserve given here is refused."""
     resume_margin_uj: int = 10 * QUANTUM_UJ
     standstill: int = 10
     """|velocity actual| at or below this (drive units) counts as standing still."""
     auto_enable: bool = False
     """Bring the drive to OPERATION ENABLED while it holds budget (else the application does)."""
     telemetry_period_us: int = 50_000
+
+    def allowances(self) -> Allowances:
+        return Allowances(
+            self.pdo_timeout_us, self.reaction_us, self.latency_us, self.stop_timeout_us
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,29 +107,51 @@ class Command:
     at: int
 
 
+@dataclass(frozen=True, slots=True)
+class LimitsCommand:
+    """Write these limits to the drive and read them back (answer with ``on_limits``)."""
+
+    limits: Limits
+    why: str
+    at: int
+
+
 class DriveGuard:
     """The budget of one CiA 402 drive."""
 
     def __init__(self, node: int, config: GuardConfig, now: int, nonce: int) -> None:
         self.config = config
         self.client = Client(node, timing=config.timing)
-        self.meter = EnergyMeter(config.meter)
+        self.metering = DriveMeter(
+            config.meter.kind,
+            config.meter,
+            config.limits,
+            config.counter,
+            config.stop,
+            config.allowances(),
+        )
         self.started_at = now
         self.values: dict[int, int] = {}
         self.state: str | None = None
         """The drive's power state as its statusword last showed it."""
         self.last_values_at: int | None = None
+        self.last_counter_at: int | None = None
         self.phase = GuardPhase.STOPPED  # nothing granted yet: the drive must not run
         self.phase_at = now
         self.stop_reason: str | None = "no budget yet"
         self.latched = False
-        """Stopped for lost TPDOs: never re-enabled by the guard (the application may)."""
-        self.commands: list[Command] = []
+        """Stopped for lost TPDOs or refused limits: never re-enabled by the guard."""
+        self.refused: str | None = None
+        """Why the drive cannot be guarded as configured (it is kept stopped)."""
+        self.commands: list[Command | LimitsCommand] = []
         self.last_command_at = -config.retry_us
         self.state_at_command: str | None = None
         self.ready_at: int | None = None
         """When the drive was set up (PDOs mapped and started); TPDOs are awaited from then."""
+        self.level = 0
+        """Taper: torque and current at 1/2**level of the full limits."""
         self.overrun_uj = 0
+        self.debt_uj = 0
         self.stops = 0
         self.halted = False
         """The supervisor is stopping: stop the drive and keep it stopped."""
@@ -126,22 +171,62 @@ class DriveGuard:
         return self.client.state.phase is Phase.JOINING
 
     # -- inputs -----------------------------------------------------------------------------
+    def on_ready(self, now: int, setup: DriveSetup | None = None) -> None:
+        """The drive is set up and started: from now on its TPDOs must keep coming. ``setup``:
+        what was read from it (ratings, quick stop deceleration, latency, limits written)."""
+        self.ready_at = now
+        if setup is None:
+            return
+        self.metering.ready(now, setup)
+        worst = self.metering.bound(self.config.limits)
+        reserve = self.config.reserve_uj
+        if worst is not None and reserve and worst.total_uj > reserve:
+            self.refused = (
+                f"bound {worst.total_uj / 1e6:.3f} J at the full limits (envelope "
+                f"{worst.envelope_fw / 1e15:.2f} W × {self.metering.timings().notice_us / 1e3:g} "
+                f"ms, stop {worst.stop_uj / 1e6:.3f} J) exceeds --cia402-reserve "
+                f"{reserve / 1e6:.3f} J: lower --cia402-max-torque/--cia402-max-current/"
+                "--cia402-max-speed, shorten --cia402-pdo-timeout, use --cia402-stop disable, "
+                "or raise the reserve"
+            )
+            self.latched = True
+
     def on_values(self, now: int, values: dict[int, int], state: str | None) -> list[Message]:
         """TPDO values received at ``now`` (all objects of one TPDO), ``state`` decoded from the
         statusword when the TPDO carried it."""
-        self.values.update(values)
         off = self.state in POWERLESS and (state or self.state) in POWERLESS
+        counter = COUNTER_KEY in values
+        drive = any(k != COUNTER_KEY for k in values)
+        self.values.update(values)
         if state is not None:
             self.state = state
-        self.last_values_at = now
-        drawn = self.meter.sample(now, self.values, charge=not off)
-        take = min(drawn, self.usable)
-        self.overrun_uj += drawn - take
-        out = self._carry_out(self.client.spend(take), now) if take else []
+        for seen, last in ((drive, self.last_values_at), (counter, self.last_counter_at)):
+            if seen and last is not None:
+                self.metering.gap(now - last)
+        if drive:
+            self.last_values_at = now
+        if counter:
+            self.last_counter_at = now
+        out = self._book(self.metering.sample(now, self.values, off), now)
+        self.values.pop(COUNTER_KEY, None)  # a reading counts once
         return out + self._evaluate(now)
 
+    def on_limits(self, now: int, limits: Limits, taken: bool, detail: str = "") -> list[Message]:
+        """The drive read back ``limits`` (``taken``), or refused or changed them."""
+        if taken:
+            self.metering.confirm(now, limits)
+        else:
+            self.refused = f"limits not taken ({limits.describe()}): {detail}"
+            self.latched = True
+        return self._book(self.metering.charge(now), now) + self._evaluate(now)
+
     def on_message(self, msg: ToClient, now: int) -> list[Message]:
-        return self._carry_out(self.client.receive(msg, now), now) + self._evaluate(now)
+        out = self._carry_out(self.client.receive(msg, now), now)
+        return out + self._pay_debt(now) + self._evaluate(now)
+
+    def watch(self, reaction_us: int, latency_us: int) -> None:
+        """The longest host reaction and drive latency measured so far (the bound grows)."""
+        self.metering.watch(reaction_us, latency_us)
 
     def next_wakeup(self) -> int:
         times = [self.next_telemetry]
@@ -159,10 +244,27 @@ class DriveGuard:
         out, self.outbox = self.outbox, []
         if (timer := self.client.get_timer()) is not None and timer <= now:
             out += self._carry_out(self.client.handle_timer(now), now)
+        out += self._book(self.metering.charge(now), now)
         out += self._evaluate(now)
         if now >= self.next_telemetry:
             out.append(self.telemetry(now))
         return out
+
+    # -- booking ----------------------------------------------------------------------------
+    def _book(self, drawn: int, now: int) -> list[Message]:
+        """Spend what was drawn; what the budget does not cover becomes debt."""
+        take = min(drawn, self.usable)
+        self.overrun_uj += drawn - take
+        self.debt_uj += drawn - take
+        return self._carry_out(self.client.spend(take), now) if take else []
+
+    def _pay_debt(self, now: int) -> list[Message]:
+        """New budget pays the debt first."""
+        pay = min(self.debt_uj, self.usable)
+        if not pay:
+            return []
+        self.debt_uj -= pay
+        return self._carry_out(self.client.spend(pay), now)
 
     # -- decisions --------------------------------------------------------------------------
     def alive(self, now: int) -> bool:
@@ -176,12 +278,11 @@ class DriveGuard:
             and self.state not in FAULT_STATES
         )
 
-    def on_ready(self, now: int) -> None:
-        """The drive is set up and started: from now on its TPDOs must keep coming."""
-        self.ready_at = now
-
     def _pdo_deadline(self) -> int | None:
         since = self.last_values_at if self.last_values_at is not None else self.ready_at
+        if since is not None and self.metering.kind is MeterKind.COUNTER:
+            counter = self.last_counter_at if self.last_counter_at is not None else self.ready_at
+            since = min(since, counter if counter is not None else since)
         return None if since is None else since + self.config.pdo_timeout_us
 
     def halt(self, now: int) -> None:
@@ -189,14 +290,31 @@ class DriveGuard:
         self.halted = True
         self._evaluate(now)
 
+    def threshold_uj(self) -> int:
+        """Stop when the budget falls to this: the reserve, plus in the sound modes the bound
+        of the limits in force or being tapered to (whichever is larger)."""
+        m = self.metering
+        if not m.sound or m.full is None:
+            return self.config.reserve_uj
+        worst = 0
+        for limits in (m.confirmed, m.pending, m.full.tapered(self.level)):
+            b = m.bound(limits)
+            worst = max(worst, 0 if b is None else b.total_uj)
+        return self.config.reserve_uj + worst
+
     def _stop_reason(self, now: int) -> str | None:
         if self.halted:
             return "supervisor stopping"
+        if self.refused is not None:
+            return self.refused
         deadline = self._pdo_deadline()
         if deadline is not None and now > deadline:
+            self.metering.gap(now - (deadline - self.config.pdo_timeout_us))
             return "TPDOs stopped"
-        if self.usable <= self.config.reserve_uj:
+        if self.usable <= self.threshold_uj():
             return "budget exhausted"
+        if self.metering.sound and self.metering.setup is None:
+            return "not set up yet"
         return None
 
     def _evaluate(self, now: int) -> list[Message]:
@@ -208,9 +326,14 @@ class DriveGuard:
             self._set_phase(GuardPhase.RUNNING, None, now)
         elif self.phase is GuardPhase.STOPPING:
             self._advance_stop(now)  # the cause went away (topped up, TPDOs back): finish first
-        if self._wants_enable() and (
-            self.state != self.state_at_command
-            or now >= self.last_command_at + self.config.retry_us
+        self._steer_limits(now)
+        if (
+            self._wants_enable()
+            and self._limits_open()
+            and (
+                self.state != self.state_at_command
+                or now >= self.last_command_at + self.config.retry_us
+            )
         ):
             self._command(None, "budget available", now)
         return [self.telemetry(now)] if self.phase is not before else []
@@ -218,12 +341,17 @@ class DriveGuard:
     def _stop(self, why: str, now: int) -> None:
         retry_due = now >= self.last_command_at + self.config.retry_us
         self.latched = self.latched or why == "TPDOs stopped"  # in any phase
+        quick = self.config.stop is StopKind.QUICK
         if self.phase is GuardPhase.RUNNING or (
             self.phase is GuardPhase.STOPPED and self.state == ENABLED and retry_due
         ):  # the guard's own decision, or the drive enabled again (by the application)
             self.stops += 1
-            self._set_phase(GuardPhase.STOPPING, why, now)
-            self._command(CW_QUICK_STOP, why, now)
+            if quick:
+                self._set_phase(GuardPhase.STOPPING, why, now)
+                self._command(CW_QUICK_STOP, why, now)
+            else:
+                self._set_phase(GuardPhase.STOPPED, why, now)
+                self._command(CW_DISABLE_VOLTAGE, why, now)
         elif self.phase is GuardPhase.STOPPING:
             self._advance_stop(now)
         elif self.state is not None and self.state not in POWERLESS and retry_due:
@@ -242,7 +370,7 @@ class DriveGuard:
         return (
             not self.latched
             and self.state not in FAULT_STATES
-            and self.usable > self.config.reserve_uj + self.config.resume_margin_uj
+            and self.usable > self.threshold_uj() + self.config.resume_margin_uj
         )
 
     def _wants_enable(self) -> bool:
@@ -255,6 +383,46 @@ class DriveGuard:
             and self.state not in FAULT_STATES
         )
 
+    # -- limits -----------------------------------------------------------------------------
+    def _taper(self) -> int:
+        """The lowest level (most torque) whose bound what is left covers: twice over to go
+        down to it, four times to come back up."""
+        m = self.metering
+        assert m.full is not None
+        left = self.usable - self.config.reserve_uj
+        for level in range(LEVELS):
+            b = m.bound(m.full.tapered(level))
+            factor = TAPER_DOWN if level >= self.level else TAPER_UP
+            if b is not None and left >= factor * b.total_uj:
+                return level
+        return LEVELS - 1
+
+    def _desired_limits(self) -> Limits | None:
+        m = self.metering
+        if m.full is None or m.setup is None:
+            return None
+        if self.phase is GuardPhase.STOPPING:
+            return m.target()  # a quick stop brakes with what it has
+        if self.phase is GuardPhase.STOPPED or self.latched:
+            return m.full.closed()
+        self.level = self._taper()
+        idle = self.state is None or self.state in POWERLESS
+        if m.kind is MeterKind.ENVELOPE and idle and not self._wants_enable():
+            return m.full.closed()  # an envelope is charged by the clock: closed while off
+        return m.full.tapered(self.level)
+
+    def _steer_limits(self, now: int) -> None:
+        desired = self._desired_limits()
+        if desired is None or desired == self.metering.target():
+            return
+        why = "closed" if desired.torque_permille == 0 else f"level {self.level}"
+        self.metering.write(now, desired)
+        self.commands.append(LimitsCommand(desired, why, now))
+
+    def _limits_open(self) -> bool:
+        m = self.metering
+        return m.full is None or (m.confirmed is not None and m.confirmed.torque_permille > 0)
+
     def _set_phase(self, phase: GuardPhase, why: str | None, now: int) -> None:
         self.phase, self.stop_reason, self.phase_at = phase, why, now
 
@@ -266,7 +434,7 @@ class DriveGuard:
     def telemetry(self, now: int) -> Telemetry:
         self.next_telemetry = now + self.config.telemetry_period_us
         flags = (
-            (Telemetry.LOW if self.usable <= self.config.reserve_uj else 0)
+            (Telemetry.LOW if self.usable <= self.threshold_uj() else 0)
             | (Telemetry.HALTED if self.phase is not GuardPhase.RUNNING else 0)
             | (Telemetry.JOINING if self.joining else 0)
         )
@@ -288,6 +456,7 @@ class DriveGuard:
             "drive_state": self.state,
             "guard": self.phase.value,
             "stop_reason": self.stop_reason,
+            "refused": self.refused,
             "latched": self.latched,
             "alive": self.alive(now),
             "joining": self.joining,
@@ -296,11 +465,11 @@ class DriveGuard:
             "credited_uj": c.credited,
             "return_seq": c.return_seq,
             "return_pending_uj": c.return_pending,
-            "metered_uj": self.meter.metered_uj,
+            **self.metering.status(now),
+            "stop_at_uj": self.threshold_uj(),
+            "taper_level": self.level,
             "overrun_uj": self.overrun_uj,
-            "regenerated_uj": self.meter.regen_uj,
-            "peak_power_w": round(self.meter.peak_fw / 1e15, 3),
-            "samples": self.meter.samples,
+            "debt_uj": self.debt_uj,
             "stops": self.stops,
             "tpdo_age_us": None if self.last_values_at is None else now - self.last_values_at,
         }

@@ -1,19 +1,22 @@
-"""Energy drawn by a CiA 402 drive, metered from the values its TPDOs carry. Integers only.
+"""Metering modes, and the *sampled* meters: power from the values TPDOs carry. Integers only.
 
-Two ways to meter, chosen per installation:
+The sound modes are ``counter`` (``canergy.cia402.counter``) and ``envelope``
+(``canergy.cia402.envelope``). The two sampled modes below only see power at the instants TPDOs
+are sampled: motion timed between two samples is invisible to them (aliasing), so they guarantee
+nothing and exist for drives that have neither a counter nor limits the guard can write.
 
-- **mechanical**: torque actual (0x6077, ‰ of the rated torque 0x6076) × velocity actual
+- **sampled-mechanical**: torque actual (0x6077, ‰ of the rated torque 0x6076) × velocity actual
   (0x606C, in the drive's velocity unit), plus copper losses R·i² from current actual (0x6078,
   ‰ of the rated current 0x6075) and the winding resistance the installer gives. Without R the
   meter misses what the windings turn into heat: give the largest R the motor can have (hot).
-- **electrical**: DC link voltage (0x6079, mV) × a DC link current object (mA), for drives that
-  have one (manufacturer-specific; the emulator's is 0x2010).
+- **sampled-electrical**: DC link voltage (0x6079, mV) × a DC link current object (mA), for
+  drives that have one (manufacturer-specific; the emulator's is 0x2010).
 
 Power is known only at samples. Over each interval the meter charges the larger of the power at
-its two ends, which is an upper bound whenever power is monotone between two samples (sample
-faster than the load changes). A silence (PDOs lost) is charged the same way when they resume.
-Power that flows back (negative) is not credited unless ``credit_regen``; then it only offsets
-energy drawn later, never the books.
+its two ends, which is an upper bound *only* where power is monotone between two samples: a
+pulse that starts after one sample and ends before the next is not seen at all. Power that flows
+back (negative) is not credited unless ``credit_regen``; then it only offsets energy drawn later,
+never the books.
 
 Power is in fW (1e-15 W) and time in µs, so energy is exact in fW·µs; 1 µJ = 1e15 fW·µs.
 """
@@ -35,15 +38,24 @@ RATED_TORQUE = 0x6076
 
 
 class MeterKind(Enum):
-    MECHANICAL = "mechanical"
-    ELECTRICAL = "electrical"
+    COUNTER = "counter"
+    """A cumulative energy object: tight, sound."""
+    ENVELOPE = "envelope"
+    """The drive's limits written by the guard, charged at their largest power: sound."""
+    SAMPLED_MECHANICAL = "sampled-mechanical"
+    SAMPLED_ELECTRICAL = "sampled-electrical"
+
+    @property
+    def sampled(self) -> bool:
+        """Power read at TPDO instants only: can be fooled, no bound claimed."""
+        return self in (MeterKind.SAMPLED_MECHANICAL, MeterKind.SAMPLED_ELECTRICAL)
 
 
 @dataclass(frozen=True, slots=True)
 class MeterConfig:
     """How to turn one set of PDO values into power. Scales are exact fractions."""
 
-    kind: MeterKind = MeterKind.MECHANICAL
+    kind: MeterKind = MeterKind.SAMPLED_MECHANICAL
     rated_torque_mnm: int = 0
     """0x6076, read from the drive at set-up."""
     rated_current_ma: int = 0
@@ -57,8 +69,10 @@ class MeterConfig:
     credit_regen: bool = False
 
     def needs(self) -> tuple[int, ...]:
-        """The objects the TPDOs must carry."""
-        if self.kind is MeterKind.ELECTRICAL:
+        """The objects the TPDOs must carry for sampled power (none in the sound modes)."""
+        if not self.kind.sampled:
+            return ()
+        if self.kind is MeterKind.SAMPLED_ELECTRICAL:
             assert self.bus_current_index is not None
             return (DC_LINK_VOLTAGE, self.bus_current_index)
         needed = (TORQUE_ACTUAL, VELOCITY_ACTUAL)
@@ -68,7 +82,7 @@ class MeterConfig:
         """Power in fW from the latest values, or None while one of them was never seen."""
         if any(index not in values for index in self.needs()):
             return None
-        if self.kind is MeterKind.ELECTRICAL:
+        if self.kind is MeterKind.SAMPLED_ELECTRICAL:
             assert self.bus_current_index is not None
             mv, ma = values[DC_LINK_VOLTAGE], values[self.bus_current_index]
             return max(v * a for v in (mv - 1, mv + 1) for a in (ma - 1, ma + 1)) * 10**9
@@ -124,12 +138,3 @@ class EnergyMeter:
             self.last_us, self.last_fw = now, power
         self.metered_uj += drawn
         return drawn
-
-
-def overshoot_bound_uj(
-    peak_power_uw: int, pdo_period_us: int, reaction_us: int, stop_us: int
-) -> int:
-    """Energy a guarded drive may draw past its budget: peak power × (PDO period + host
-    reaction + stop time). Inputs in µW and µs; rounded up."""
-    total = peak_power_uw * (pdo_period_us + reaction_us + stop_us)
-    return -(-total // 10**6)

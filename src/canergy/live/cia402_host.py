@@ -12,7 +12,7 @@ whose loop stops, or whose process dies, goes silent and its drives fault on the
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -51,8 +51,12 @@ class GuardedSupervisor:
         *,
         codec: Codec | None = None,
         capture: can.Listener | None = None,
+        report: Callable[[str], None] | None = None,
     ) -> None:
         self.service = service
+        self.report = report
+        """Told in one line whenever a guard stops or releases its drive."""
+        self.reported: dict[int, tuple[str, str | None]] = {}
         self.drives = drives
         self.bus = bus
         self.beat = beat
@@ -96,7 +100,7 @@ class GuardedSupervisor:
         if (wakeup := self.service.next_wakeup()) is not None:
             times.append(wakeup)
         for guard, link in self.drives.values():
-            if link.samples or (link.ready_at is not None and guard.ready_at is None):
+            if link.pending() or (link.ready_at is not None and guard.ready_at is None):
                 return 0
             times.append(guard.next_wakeup())
         return min(times)
@@ -106,16 +110,17 @@ class GuardedSupervisor:
         for guard, link in self.drives.values():
             if self.service.stopping and not guard.halted:
                 guard.halt(now)
-            if link.ready_at is not None and guard.ready_at is None and link.meter is not None:
-                guard.meter.config = link.meter
-                guard.on_ready(link.ready_at)
+            if link.ready_at is not None and guard.ready_at is None:
+                guard.on_ready(link.ready_at, link.setup)
+            guard.watch(link.reaction_max_us, link.latency_max_us)
+            for limits, taken, detail in link.drain_limits():
+                up += guard.on_limits(now, limits, taken, detail)
             for at, values, state in link.drain():
                 up += guard.on_values(at, values, state)
             if guard.next_wakeup() <= now:
                 up += guard.on_wakeup(now)
-            for cmd in guard.commands:
-                link.command(cmd)
-            guard.commands.clear()
+            self._hand_over(guard, link)
+            self._tell(guard)
         out = self._deliver(up, now)
         wakeup = self.service.next_wakeup()
         if wakeup is not None and wakeup <= now:
@@ -185,9 +190,25 @@ class GuardedSupervisor:
         for guard, link in self.drives.values():
             if not guard.halted:
                 guard.halt(now)
-            for cmd in guard.commands:
-                link.command(cmd)
-            guard.commands.clear()
+            self._hand_over(guard, link)
+
+    def _tell(self, guard: DriveGuard) -> None:
+        seen = (guard.phase.value, guard.stop_reason)
+        if self.report is None or self.reported.get(guard.node, seen) == seen:
+            self.reported[guard.node] = seen
+            return
+        self.reported[guard.node] = seen
+        left = f"{guard.usable / 1e6:.3f} J left"
+        if guard.stop_reason is None:
+            self.report(f"drive {guard.node}: released ({left})")
+        else:
+            self.report(f"drive {guard.node}: {guard.phase.value} ({guard.stop_reason}; {left})")
+
+    @staticmethod
+    def _hand_over(guard: DriveGuard, link: DriveLink) -> None:
+        for cmd in guard.commands:
+            link.command(cmd)
+        guard.commands.clear()
 
     def close(self) -> None:
         for _, link in self.drives.values():

@@ -15,6 +15,12 @@ last TPDO values, decodes the statusword into a power state and writes the contr
   is set up with ``read_pdos=False``;
 - SDO and RPDO writes happen in a worker thread, so a drive that does not answer never blocks
   the supervisor's loop.
+
+At set-up the link also writes the guard's limits (0x6072, 0x6073, 0x6080) closed and reads them
+back, reads the quick stop deceleration 0x6085, times one controlword write (the drive's latency),
+and, in counter mode, finds the counter object in a TPDO of the drive or of a power-meter node
+(an object the EDS lacks is added from its width). Every later limits write is read back and the
+answer queued for the guard.
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ import queue
 import threading
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -32,8 +38,16 @@ import can
 import canopen
 from canopen.profiles.p402 import BaseNode402, State402
 
-from canergy.cia402.guard import CW_DISABLE_VOLTAGE, ENABLED, Command
+from canergy.cia402.counter import COUNTER_KEY, CounterConfig
+from canergy.cia402.envelope import (
+    QUICK_STOP_DECELERATION,
+    Limits,
+    Ratings,
+    StopKind,
+)
+from canergy.cia402.guard import CW_DISABLE_VOLTAGE, ENABLED, Command, LimitsCommand
 from canergy.cia402.meter import RATED_CURRENT, RATED_TORQUE, MeterConfig
+from canergy.cia402.metering import DriveSetup
 
 log = logging.getLogger(__name__)
 
@@ -44,12 +58,21 @@ EDS = Path(__file__).with_name("cia402.eds")
 """A generic CiA 402 drive (standard objects only), for drives given without their own EDS."""
 
 Sample = tuple[int, dict[int, int], str | None]
+LimitsAnswer = tuple[Limits, bool, str]
+"""Limits written, whether the drive read them back unchanged, and what went wrong if not."""
+UNSIGNED_TYPES = {8: 0x5, 16: 0x6, 32: 0x7, 64: 0x1B}
+SDO_ERRORS = (canopen.SdoCommunicationError, canopen.SdoAbortedError, can.CanError)
+SDO_ATTEMPTS = 5
 
 
 @dataclass(frozen=True, slots=True)
 class LinkConfig:
     eds: Path = EDS
     meter: MeterConfig = field(default_factory=MeterConfig)
+    limits: Limits | None = None
+    """The guard's full limits (written closed at set-up)."""
+    counter: CounterConfig | None = None
+    stop: StopKind = StopKind.QUICK
     host_id: int = 127
     consumer_timeout_ms: int = 500
     """Written to the drive's 0x1016:1 with ``host_id``: it faults when the host goes silent."""
@@ -59,6 +82,20 @@ class LinkConfig:
 
 class SetupError(RuntimeError):
     """The drive answers but cannot be guarded as configured (e.g. a needed object unmapped)."""
+
+
+def ensure_variable(od: Any, index: int, subindex: int, bits: int, name: str) -> None:
+    """Add an unsigned object of ``bits`` to ``od`` where its EDS lacks it (a counter is
+    manufacturer-specific: the command line gives its width, not the EDS)."""
+    if index in od and (subindex == 0 or subindex in getattr(od[index], "subindices", {})):
+        return
+    if index in od:
+        raise SetupError(f"0x{index:04X} is in the EDS but has no sub-index {subindex}")
+    var = canopen.objectdictionary.ODVariable(name, index, subindex)
+    var.data_type = UNSIGNED_TYPES[bits]
+    var.access_type = "ro"
+    var.pdo_mappable = True
+    od.add_object(var)
 
 
 def power_state(statusword: int) -> str:
@@ -100,16 +137,25 @@ class DriveLink:
         self.node = BaseNode402(node_id, str(config.eds))
         self.node.sdo.RESPONSE_TIMEOUT = config.sdo_timeout_s
         network.add_node(self.node)
+        self.meter_node: canopen.RemoteNode | None = None
+        counter = config.counter
+        if counter is not None and counter.node is not None:
+            self.meter_node = canopen.RemoteNode(counter.node, str(EDS))
+            self.meter_node.sdo.RESPONSE_TIMEOUT = config.sdo_timeout_s
+            network.add_node(self.meter_node)
         self.samples: deque[Sample] = deque()
+        self.limit_answers: deque[LimitsAnswer] = deque()
         self.ready_at: int | None = None
-        self.meter: MeterConfig | None = None
+        self.setup: DriveSetup | None = None
         self.error: str | None = None
         self.commands_sent = 0
         self.command_failures = 0
         self.last_command: dict[str, Any] | None = None
         self.reaction_max_us = 0
         """Longest time from the TPDO that called for a stop to its controlword leaving."""
-        self._jobs: queue.Queue[Command | None] = queue.Queue()
+        self.latency_max_us = 0
+        """Longest controlword write by SDO, set-up included (the drive's answer)."""
+        self._jobs: queue.Queue[Command | LimitsCommand | None] = queue.Queue()
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._work, name=f"drive-{node_id}", daemon=True)
         self._thread.start()
@@ -125,7 +171,17 @@ class DriveLink:
             out.append(self.samples.popleft())
         return out
 
-    def command(self, cmd: Command) -> None:
+    def drain_limits(self) -> list[LimitsAnswer]:
+        out: list[LimitsAnswer] = []
+        while self.limit_answers:
+            out.append(self.limit_answers.popleft())
+        return out
+
+    def pending(self) -> bool:
+        """Samples or answers wait for the guard."""
+        return bool(self.samples or self.limit_answers)
+
+    def command(self, cmd: Command | LimitsCommand) -> None:
         self._jobs.put(cmd)
 
     def close(self) -> None:
@@ -140,11 +196,11 @@ class DriveLink:
                 self._setup()
                 break
             except (SetupError, KeyError) as exc:  # KeyError: an object the EDS lacks
-                self.error = f"cannot be guarded: {exc}"
+                self.error = f"cannot be guarded: {self._explain(exc)}"
                 log.error("drive %d: %s; disabling it", self.node_id, self.error)
                 self._disable()  # a drive the guard cannot meter must not run
                 return
-            except (canopen.SdoCommunicationError, canopen.SdoAbortedError, can.CanError) as exc:
+            except SDO_ERRORS as exc:
                 self.error = f"set-up failed, retrying: {exc}"
                 self._closed.wait(self.config.setup_retry_s)
         while True:
@@ -157,12 +213,33 @@ class DriveLink:
                 self.command_failures += 1
                 log.exception("drive %d: controlword not written: %s", self.node_id, exc)
 
+    def _explain(self, exc: Exception) -> str:
+        """A set-up failure that names the drive's EDS and the object."""
+        if isinstance(exc, KeyError):
+            what = str(exc.args[0]) if exc.args else "an object"
+            return (
+                f"drive {self.node_id}: {what} (EDS {self.config.eds}): give the drive's own "
+                "EDS with --cia402-eds, or a metering mode that does not need that object"
+            )
+        return f"drive {self.node_id}: {exc}"
+
     def _setup(self) -> None:
         node, sdo = self.node, self.node.sdo
         rated_torque = int(sdo[RATED_TORQUE].raw)
         rated_current = int(sdo[RATED_CURRENT].raw)
         if rated_torque <= 0 or rated_current <= 0:
             raise SetupError(f"rated torque {rated_torque} mNm / current {rated_current} mA")
+        counter = self.config.counter
+        if counter is not None:
+            target = node if counter.node is None else self.meter_node
+            assert target is not None
+            ensure_variable(
+                target.object_dictionary,
+                counter.index,
+                counter.subindex,
+                counter.bits,
+                "energy counter",
+            )
         consumer = self.config.host_id << 16 | self.config.consumer_timeout_ms
         sdo[HEARTBEAT_CONSUMER][1].raw = consumer
         if int(sdo[HEARTBEAT_CONSUMER][1].raw) != consumer:
@@ -176,21 +253,96 @@ class DriveLink:
             node.setup_402_state_machine(read_pdos=False)
         finally:
             p402_log.setLevel(level)
-        meter = replace(
-            self.config.meter, rated_torque_mnm=rated_torque, rated_current_ma=rated_current
-        )
+        meter = self.config.meter
         mapped = set(node.tpdo_values)
-        missing = [i for i in (STATUSWORD, *meter.needs()) if i not in mapped]
+        needed = [STATUSWORD, *meter.needs()]
+        if counter is not None and counter.node is None:
+            needed.append(counter.index)
+        missing = [i for i in needed if i not in mapped]
         if missing:
             names = ", ".join(f"0x{i:04X}" for i in missing)
             raise SetupError(f"its TPDOs do not carry {names}: map them (see the README)")
+        if counter is not None and counter.node is not None:
+            self._setup_meter_node(counter)
         for tpdo in node.tpdo.values():
             if tpdo.enabled:
                 tpdo.add_callback(self._on_tpdo)
+        limits = self._setup_limits()
+        deceleration = 0
+        if self.config.stop is StopKind.QUICK and QUICK_STOP_DECELERATION in node.object_dictionary:
+            deceleration = int(sdo[QUICK_STOP_DECELERATION].raw)
+        latency = self._timed_controlword(CW_DISABLE_VOLTAGE)  # no budget yet: off, and timed
+        ratings = Ratings(
+            rated_torque, rated_current, meter.velocity_unit_rad_s, meter.resistance_mohm
+        )
         node.nmt.state = "OPERATIONAL"
-        self.meter = meter
+        self.setup = DriveSetup(ratings, deceleration, latency, limits)
         self.error = None
         self.ready_at = self.clock()
+
+    def _setup_meter_node(self, counter: CounterConfig) -> None:
+        """The power-meter node's TPDOs: the one that carries the counter feeds the guard."""
+        meter = self.meter_node
+        assert meter is not None
+        meter.tpdo.read()
+        carrying = [
+            pdo
+            for pdo in meter.tpdo.values()
+            if pdo.enabled and any(v.index == counter.index for v in pdo)
+        ]
+        if not carrying:
+            raise SetupError(
+                f"no TPDO of power-meter node {counter.node} carries 0x{counter.index:04X}"
+            )
+        for pdo in carrying:
+            pdo.add_callback(self._on_counter_tpdo)
+        meter.nmt.state = "OPERATIONAL"
+
+    def _setup_limits(self) -> Limits | None:
+        """Write the limits closed and read them back (refused: the drive cannot be guarded)."""
+        if self.config.limits is None:
+            return None
+        closed = self.config.limits.closed()
+        taken, detail = self._write_limits(closed)
+        if not taken:
+            raise SetupError(f"the drive does not take its limits: {detail}")
+        return closed
+
+    def _write_limits(self, limits: Limits) -> tuple[bool, str]:
+        """Write each limit object, read it back; (all taken, what went wrong)."""
+        for index, value in limits.as_objects().items():
+            try:
+                back = self._write_read(index, value)
+            except KeyError:
+                return False, f"0x{index:04X} is not in the EDS {self.config.eds}"
+            except SDO_ERRORS as exc:
+                return False, f"0x{index:04X} = {value}: {exc}"
+            if back != value:
+                return False, f"0x{index:04X} = {value} written, {back} read back"
+        return True, ""
+
+    def _write_read(self, index: int, value: int) -> int:
+        """Write ``value`` and read it back by SDO. The drive's default SDO server is shared
+        with the application's master: a transfer garbled by one of theirs is tried again
+        (``SDO_ATTEMPTS`` in all); an abort is the drive's answer and is not."""
+        sdo = self.node.sdo
+        for attempt in range(SDO_ATTEMPTS):
+            try:
+                sdo[index].raw = value
+                return int(sdo[index].raw)
+            except canopen.SdoCommunicationError:
+                if attempt == SDO_ATTEMPTS - 1:
+                    raise
+                self._closed.wait(0.01 * (attempt + 1))
+        raise AssertionError("unreachable")
+
+    def _timed_controlword(self, controlword: int) -> int:
+        """Write a controlword by SDO; the µs until the drive answered."""
+        start = self.clock()
+        self.node.sdo[CONTROLWORD].raw = controlword
+        took = self.clock() - start
+        self.latency_max_us = max(self.latency_max_us, took)
+        return took
 
     def _disable(self) -> None:
         """Disable voltage by SDO, best effort (the drive answers SDO but cannot be guarded)."""
@@ -201,18 +353,34 @@ class DriveLink:
 
     def _on_tpdo(self, pdo: Any) -> None:  # the Notifier's thread
         values = {var.index: int(var.raw) for var in pdo}
+        counter = self.config.counter
+        if counter is not None and counter.node is None and counter.index in values:
+            values[COUNTER_KEY] = values.pop(counter.index)
         state = power_state(values[STATUSWORD]) if STATUSWORD in values else None
         self.samples.append((self.clock(), values, state))
 
-    def _execute(self, cmd: Command) -> None:
+    def _on_counter_tpdo(self, pdo: Any) -> None:  # the Notifier's thread
+        counter = self.config.counter
+        assert counter is not None
+        for var in pdo:
+            if var.index == counter.index and var.subindex == counter.subindex:
+                self.samples.append((self.clock(), {COUNTER_KEY: int(var.raw)}, None))
+
+    def _execute(self, cmd: Command | LimitsCommand) -> None:
+        if isinstance(cmd, LimitsCommand):
+            self.limit_answers.append((cmd.limits, *self._write_limits(cmd.limits)))
+            return
         controlword = cmd.controlword
         if controlword is None:
             controlword = enable_step(power_state(int(self.node.statusword)))
             if controlword is None:
                 return
         try:
-            self.node.controlword = controlword
-        except (canopen.SdoCommunicationError, canopen.SdoAbortedError, can.CanError) as exc:
+            if self.node.rpdo_pointers.get(CONTROLWORD) is None:
+                self._timed_controlword(controlword)  # by SDO: the answer times the drive
+            else:
+                self.node.controlword = controlword  # by RPDO: nothing to time
+        except SDO_ERRORS as exc:
             self.command_failures += 1
             log.warning("drive %d: controlword 0x%04X lost: %s", self.node_id, controlword, exc)
             return
@@ -235,4 +403,5 @@ class DriveLink:
             "command_failures": self.command_failures,
             "last_command": self.last_command,
             "reaction_max_us": self.reaction_max_us,
+            "latency_max_us": self.latency_max_us,
         }

@@ -1,0 +1,251 @@
+"""What one guarded drive is charged, in each metering mode, and the bound that goes with it.
+
+``DriveMeter`` holds what the guard knows of the drive's energy: the limits in force (written by
+the guard, confirmed by read-back), the figures its bound is made of (configured allowances raised
+to what was seen), and the mode's meter:
+
+- ``envelope``: every µs of host time is charged at the largest envelope in force during it. A
+  raised limit is in force from the moment the guard decides it; a lowered one only once the
+  drive has confirmed it and had its latency to act on it.
+- ``counter``: each reading is charged its difference from the previous one (``CounterMeter``);
+  the limits bound only what may be drawn after the last reading.
+- ``sampled-*``: power at TPDO instants (``EnergyMeter``); no limits, no bound.
+
+Sans-IO: times are integer µs from the caller.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+from canergy.cia402.counter import COUNTER_KEY, CounterConfig, CounterMeter
+from canergy.cia402.envelope import (
+    Bound,
+    Limits,
+    Ratings,
+    StopKind,
+    Timings,
+    bound,
+)
+from canergy.cia402.meter import FW_US_PER_UJ, EnergyMeter, MeterConfig, MeterKind
+
+
+@dataclass(frozen=True, slots=True)
+class Allowances:
+    """The configured figures a bound starts from, µs (raised to what is seen, never lowered)."""
+
+    gap_us: int = 200_000
+    reaction_us: int = 10_000
+    latency_us: int = 5_000
+    stop_timeout_us: int = 1_000_000
+
+
+@dataclass(frozen=True, slots=True)
+class DriveSetup:
+    """What the link read from the drive at set-up."""
+
+    ratings: Ratings
+    deceleration: int = 0
+    """0x6085 quick stop deceleration, velocity units per s (0: unknown)."""
+    latency_us: int = 0
+    """The controlword write measured at set-up."""
+    limits: Limits | None = None
+    """The limits the link wrote and read back at set-up."""
+
+
+class DriveMeter:
+    """Charges and bounds for one drive (see the module doc)."""
+
+    def __init__(
+        self,
+        kind: MeterKind,
+        sampled: MeterConfig,
+        limits: Limits | None,
+        counter: CounterConfig | None,
+        stop: StopKind,
+        allowances: Allowances,
+    ) -> None:
+        if not kind.sampled and limits is None:
+            raise ValueError(f"{kind.value} metering needs the drive's limits")
+        if kind is MeterKind.COUNTER and counter is None:
+            raise ValueError("counter metering needs a counter object")
+        self.kind = kind
+        self.full = None if kind.sampled else limits
+        """The full limits (the sampled modes write none)."""
+        self.stop = stop
+        self.allowances = allowances
+        self.sampled = EnergyMeter(sampled)
+        self.counter = CounterMeter(counter) if counter is not None else None
+        self.setup: DriveSetup | None = None
+        self.confirmed: Limits | None = None
+        """The limits the drive last confirmed (read back)."""
+        self.pending: Limits | None = None
+        """Written, not yet confirmed."""
+        self.lowered_fw = 0
+        self.lowered_until = 0
+        """A lowered envelope still charged until the drive has had time to act on it."""
+        self.charged_until: int | None = None
+        self.charge_fw = 0
+        """The largest envelope in force since ``charged_until``."""
+        self.remainder = 0
+        self.metered_uj = 0
+        self.worst_gap_us = 0
+        self.reaction_us = 0
+        self.latency_us = 0
+
+    @property
+    def sound(self) -> bool:
+        return not self.kind.sampled
+
+    # -- set-up and limits ------------------------------------------------------------------
+    def ready(self, now: int, setup: DriveSetup) -> None:
+        """The drive is set up: its ratings known, its set-up limits confirmed."""
+        self.setup = setup
+        r = setup.ratings
+        self.sampled.config = replace(
+            self.sampled.config,
+            rated_torque_mnm=r.rated_torque_mnm,
+            rated_current_ma=r.rated_current_ma,
+        )
+        self.latency_us = max(self.latency_us, setup.latency_us)
+        self.confirmed, self.pending = setup.limits, None
+        if self.sound:
+            self.charged_until = now
+            self.charge_fw = self.in_force_fw(now)
+
+    def envelope_fw(self, limits: Limits | None) -> int:
+        if limits is None or self.setup is None:
+            return 0
+        return self.setup.ratings.envelope_fw(limits)
+
+    def in_force_fw(self, now: int) -> int:
+        """The largest envelope the drive may be working to now."""
+        fw = max(self.envelope_fw(self.confirmed), self.envelope_fw(self.pending))
+        return max(fw, self.lowered_fw) if now < self.lowered_until else fw
+
+    def write(self, now: int, limits: Limits) -> None:
+        """The guard writes ``limits``: a raise counts from now."""
+        self.charge(now)
+        self.pending = limits
+        self.charge_fw = max(self.charge_fw, self.in_force_fw(now))
+
+    def confirm(self, now: int, limits: Limits) -> None:
+        """The drive read back ``limits``."""
+        self.charge(now)
+        before = self.in_force_fw(now)
+        self.confirmed = limits
+        if self.pending == limits:
+            self.pending = None
+        if self.in_force_fw(now) < before:
+            self.lowered_fw, self.lowered_until = before, now + self.timings().latency_us
+        self.charge_fw = max(self.charge_fw, self.in_force_fw(now))
+
+    def target(self) -> Limits | None:
+        """The limits written or being written."""
+        return self.pending if self.pending is not None else self.confirmed
+
+    # -- charging ---------------------------------------------------------------------------
+    def charge(self, now: int) -> int:
+        """Envelope mode: µJ the drive may have drawn up to ``now``, by the host's clock."""
+        if self.kind is not MeterKind.ENVELOPE or self.charged_until is None:
+            return 0
+        if now <= self.charged_until:
+            return 0
+        self.remainder += self.charge_fw * (now - self.charged_until)
+        drawn, self.remainder = divmod(self.remainder, FW_US_PER_UJ)
+        self.charged_until, self.charge_fw = now, self.in_force_fw(now)
+        self.metered_uj += drawn
+        return drawn
+
+    def sample(self, now: int, values: dict[int, int], powerless: bool) -> int:
+        """TPDO values received at ``now``: µJ drawn since the last ones (every mode)."""
+        if self.kind is MeterKind.ENVELOPE:
+            return self.charge(now)
+        if self.kind is MeterKind.COUNTER:
+            if self.counter is None or COUNTER_KEY not in values or self.setup is None:
+                return 0
+            fw = max(self.charge_fw, self.in_force_fw(now))
+            self.charge_fw = self.in_force_fw(now)
+            drawn = self.counter.sample(now, values[COUNTER_KEY], fw)
+            self.metered_uj += drawn
+            return drawn
+        drawn = self.sampled.sample(now, values, charge=not powerless)
+        self.metered_uj += drawn
+        return drawn
+
+    def gap(self, gap_us: int) -> None:
+        self.worst_gap_us = max(self.worst_gap_us, gap_us)
+
+    def watch(self, reaction_us: int, latency_us: int) -> None:
+        """The longest host reaction and drive latency the link has measured."""
+        self.reaction_us = max(self.reaction_us, reaction_us)
+        self.latency_us = max(self.latency_us, latency_us)
+
+    # -- the bound --------------------------------------------------------------------------
+    def timings(self) -> Timings:
+        a = self.allowances
+        return Timings(
+            gap_us=max(a.gap_us, self.worst_gap_us),
+            reaction_us=max(a.reaction_us, self.reaction_us),
+            latency_us=max(a.latency_us, self.latency_us),
+            stop_timeout_us=a.stop_timeout_us,
+        )
+
+    def bound(self, limits: Limits | None) -> Bound | None:
+        """What a drive working to ``limits`` may draw past its last charged reading (None in
+        the sampled modes, or before set-up)."""
+        if not self.sound or limits is None or self.setup is None:
+            return None
+        resolution = 0
+        if self.counter is not None and self.kind is MeterKind.COUNTER:
+            resolution = self.counter.config.unit_uj
+        return bound(
+            self.setup.ratings,
+            limits,
+            self.timings(),
+            self.stop,
+            self.setup.deceleration,
+            resolution,
+        )
+
+    def status(self, now: int) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "meter": self.kind.value,
+            "metered_uj": self.metered_uj,
+            "stop": self.stop.value,
+        }
+        if not self.sound:
+            m = self.sampled
+            out |= {
+                "bound_uj": None,
+                "regenerated_uj": m.regen_uj,
+                "peak_power_w": round(m.peak_fw / 1e15, 3),
+                "samples": m.samples,
+            }
+            return out
+        t = self.timings()
+        target = self.target()
+        worst = self.bound(self.full)
+        now_bound = self.bound(target)
+        out |= {
+            "bound_uj": None if worst is None else worst.total_uj,
+            "bound_stop_uj": None if worst is None else worst.stop_uj,
+            "bound_now_uj": None if now_bound is None else now_bound.total_uj,
+            "envelope_w": round(self.in_force_fw(now) / 1e15, 3),
+            "limits": None
+            if target is None
+            else {f"0x{i:04X}": v for i, v in target.as_objects().items()},
+            "limits_confirmed": self.confirmed == target,
+            "worst_gap_us": self.worst_gap_us,
+            "bound_timings_us": {
+                "gap": t.gap_us,
+                "reaction": t.reaction_us,
+                "latency": t.latency_us,
+                "stop_timeout": t.stop_timeout_us,
+            },
+        }
+        if self.counter is not None:
+            c = self.counter
+            out |= {"counter_readings": c.readings, "counter_ambiguous": c.ambiguous}
+        return out

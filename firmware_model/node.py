@@ -14,7 +14,7 @@ from typing import Any
 
 import can
 
-from canergy.auth.frames import AuthFailure, Verdict, freshness
+from canergy.auth.frames import AuthFailure, Verdict, expected_freshness
 from canergy.codec import DecodeError
 from canergy.core import (
     Action,
@@ -34,11 +34,16 @@ from canergy.messages import (
     AMOUNT_MAX_MJ,
     LEVEL_MAX_MJ,
     QUANTUM_UJ,
+    SEQ_BITS,
+    WITNESS_BITS,
+    Admit,
     Intention,
     Message,
+    ReturnAck,
     Telemetry,
     ToClient,
 )
+from canergy.seqnum import unwrap
 from firmware_model.actuator import Actuator, PowerProfile
 from firmware_model.nvstore import NvStore
 
@@ -58,6 +63,7 @@ class NodeConfig:
 
 
 PARAM_INDEXES = (0x2100, 0x2101, 0x2102)
+SEQ_MASK = (1 << SEQ_BITS) - 1
 
 
 class FirmwareNode:
@@ -72,9 +78,14 @@ class FirmwareNode:
         self.outbox: list[Message] = []
         self.overflow_refused = 0
         self.joins = 0
+        self.join_nonce: int | None = None
+        """The nonce of this start's JOIN: an ADMIT that does not echo it was not for us."""
+        self.witnessed = 0
+        """Frames seen in this node's name that it did not send (TELEMETRY's ``witness``)."""
         if record is None:  # new, wiped or corrupted: no books, so no pay-back is trusted
             self.joins += 1
-            self.outbox = self._carry_out(self.client.books_lost(secrets.randbits(16), now), now)
+            self.join_nonce = secrets.randbits(16)
+            self.outbox = self._carry_out(self.client.books_lost(self.join_nonce, now), now)
         self.actuator = Actuator(config.power, now, now)
         self.next_tick = now + config.tick_us
         self.next_telemetry = now  # announce the level at boot
@@ -99,11 +110,27 @@ class FirmwareNode:
         if isinstance(msg, Intention) and self.gate() != "OPERATIONAL":
             self.refused += 1  # no grants outside OPERATIONAL: left unanswered
             return []
+        if self._never_asked(msg):
+            self.witness(now)
         joining = self.joining
         out = self._carry_out(self.client.receive(msg, now), now)
         if joining and not self.joining:
             self.next_telemetry = now  # admitted: tell the supervisor at once
         return out
+
+    def _never_asked(self, msg: ToClient) -> bool:
+        """An answer to something this node never sent: a RETURN_ACK for a return number it has
+        not reached, an ADMIT that does not echo its JOIN's nonce (duplicates of genuine answers
+        are not counted: a lossy bus makes them)."""
+        if isinstance(msg, ReturnAck):
+            seq = self.client.state.return_seq
+            return unwrap(msg.seq, seq, SEQ_BITS) > seq
+        return isinstance(msg, Admit) and msg.nonce != self.join_nonce
+
+    def witness(self, now: int) -> None:
+        """Someone spoke in this node's name: count it and tell the supervisor at once."""
+        self.witnessed += 1
+        self.next_telemetry = now
 
     def parameters(self) -> tuple[int, int, int]:
         return (
@@ -166,7 +193,13 @@ class FirmwareNode:
             | (Telemetry.HALTED if self.actuator.halted else 0)
             | (Telemetry.JOINING if self.joining else 0)
         )
-        return Telemetry(self.node, min(usable // QUANTUM_UJ, LEVEL_MAX_MJ), flags)
+        return Telemetry(
+            self.node,
+            min(usable // QUANTUM_UJ, LEVEL_MAX_MJ),
+            flags,
+            self.client.state.return_seq & SEQ_MASK,
+            self.witnessed % (1 << WITNESS_BITS),
+        )
 
     def _actuate(self, now: int) -> list[Message]:
         wanted = self.actuator.need(now)
@@ -229,6 +262,7 @@ class FirmwareNode:
             "joining": self.joining,
             "joins": self.joins,
             "intrusions": self.intrusions.total,
+            "witnessed": self.witnessed,
             "intrusion_report": self.intrusions.as_json(),
         }
 
@@ -267,12 +301,13 @@ class NodeHost:
         if node is None:
             return None
         c = node.client.state
-        return freshness(msg, c.last_tx, c.return_seq)
+        return expected_freshness(msg, c.last_tx, c.return_seq)  # older: refused as stale
 
     def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
         node = self.nodes.get(frame.arbitration_id & 0xFF)
         if node is not None:  # a node never receives its own frames: someone speaks for it
             node.intrusions.record(node.node, frame_text(frame), "a frame in its name", now)
+            node.witness(now)
         return ()
 
     def next_wakeup(self) -> int | None:

@@ -37,5 +37,12 @@ messages: st.SearchStrategy[Message] = st.one_of(
     st.builds(Committed, nodes, u16),
     st.builds(Aborted, nodes, u16),
     st.builds(Return, nodes, u16, amounts),
-    st.builds(Telemetry, nodes, st.integers(0, 0xFFFFFF), st.integers(0, 0xFF)),
+    st.builds(
+        Telemetry,
+        nodes,
+        st.integers(0, 0xFFFFFF),
+        st.integers(0, 0xFF),
+        st.integers(0, 0xFFFF),
+        st.integers(0, 0xFF),
+    ),
 )

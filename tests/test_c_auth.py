@@ -221,7 +221,7 @@ def messages(tx: int, seq: int) -> st.SearchStrategy[Message]:
         st.builds(Committed, n, wire_tx),
         st.builds(Aborted, n, wire_tx),
         st.builds(Return, n, wire_seq, amounts),
-        st.builds(Telemetry, n, u24, st.integers(0, 7)),
+        st.builds(Telemetry, n, u24, st.integers(0, 7), wire_seq, st.integers(0, 0xFF)),
         st.builds(Join, n, u16),
     )
 
@@ -244,7 +244,7 @@ ALL_TYPES: list[Message] = [
     Committed(NODE, 2),
     Aborted(NODE, 2),
     Return(NODE, 0xFFFF, 120),
-    Telemetry(NODE, 500, 2),
+    Telemetry(NODE, 500, 2, 0xFFFF, 0xFF),
     Join(NODE, 0xBEEF),
 ]
 
@@ -272,6 +272,14 @@ def test_data_lengths_are_the_codecs() -> None:
         except (ValueError, KeyError):
             want = 0
         assert lib().canergy_data_length(code) == want, code
+
+
+@pytest.mark.parametrize("msg", ALL_TYPES, ids=lambda m: type(m).__name__)
+def test_fd_frames_are_the_smallest_fd_length_that_holds_data_fv_and_mac(msg: Message) -> None:
+    data_length = Codec.data_length(msg.TYPE)
+    (frame,) = CAuth(Layout.FD, _receiver(msg)).frames(msg, 0, 0)
+    want = 16 if data_length + 12 <= 16 else 20
+    assert len(frame.data) == want and (msg.TYPE is not MsgType.TELEMETRY or want == 20)
 
 
 @pytest.mark.parametrize("layout", list(Layout))
@@ -477,6 +485,15 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
     node.client.rec.last_tx += 0x1_0000
     assert deliver(replay, 40)[-1] == FIRST_FAILURE + 1  # stale
     assert node.client.rec.usable_uj == before + 700_000
+    # a RETURN in its name and (classic) a MAC frame 0x8: witnessed, moving nothing; in the
+    # FD layout 0x8 is no MAC frame but an unknown type, as in Python
+    spoof = _can(*CODEC.encode(Return(NODE, 1, AMOUNT_MAX_MJ)))
+    mac_frame = _can(DEFAULT_ID_BASE | 0x800 | NODE, bytes([MsgType.RETURN, 0, 0, 1, 2, 3, 4, 5]))
+    results = deliver([spoof, mac_frame], 50)
+    wrong_way = [REASONS[r].name == "WRONG_DIRECTION" for r in results]
+    assert wrong_way == [True, layout is Layout.CLASSIC] and out.frame_count == 0
+    assert node.witness == sum(wrong_way) and node.client.rec.usable_uj == before + 700_000
+    assert c.canergy_node_deadline(ctypes.byref(node)) == 50  # its TELEMETRY at the next poll
 
 
 @pytest.mark.parametrize("layout", list(Layout))

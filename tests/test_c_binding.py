@@ -128,6 +128,7 @@ class Msg(Structure):
         ("type", c_uint8),
         ("node", c_uint8),
         ("flags", c_uint8),
+        ("witness", c_uint8),
     ]
 
 
@@ -180,6 +181,9 @@ class CNodeState(Structure):
         ("overflow_refused", c_uint32),
         ("was_low", c_bool),
         ("halted", c_bool),
+        ("witness", c_uint8),
+        ("joined", c_bool),
+        ("join_nonce", c_uint16),
     ]
 
 

@@ -47,10 +47,16 @@ def codec(base: int) -> Codec:
     return Codec(base)
 
 
+C_FIELDS = ("delivered_mj", "level_mj", "tx", "seq", "nonce", "amount_mj", "flags", "witness")
+
+
 def fields(msg: Message) -> dict[str, int]:
-    """A Python message in the C struct's terms (unused fields zero)."""
-    f = dict.fromkeys(("delivered_mj", "level_mj", "tx", "seq", "nonce", "amount_mj", "flags"), 0)
+    """A Python message in the C struct's terms (unused fields zero; TELEMETRY's return_seq is
+    the struct's seq)."""
+    f = dict.fromkeys(C_FIELDS, 0)
     f.update({k: getattr(msg, k) for k in f if hasattr(msg, k)})
+    if isinstance(msg, Telemetry):
+        f["seq"] = msg.return_seq
     f["type"], f["node"] = int(msg.TYPE), msg.node
     return f
 
@@ -170,6 +176,27 @@ def c_encode(base: int, f: dict[str, int]) -> tuple[int, tuple[int, bytes]]:
 def test_messages_encode_alike(base: int, msg: Message) -> None:
     status, frame = c_encode(base, fields(msg))
     assert status == OK and frame == codec(base).encode(msg)
+
+
+@pytest.mark.parametrize(
+    "msg",
+    [
+        Telemetry(5, 500, 2, 0x1234, 3),
+        Telemetry(127, 0xFFFFFF, 0xFF, 0xFFFF, 0xFF),
+        Telemetry(1, 0),
+    ],
+    ids=str,
+)
+def test_telemetry_is_eight_bytes_in_both_codecs(msg: Telemetry) -> None:
+    """level u24, flags, the return number, the witness: canergy.codec's "<HBBHB", DLC 8."""
+    arbitration_id, data = Codec().encode(msg)
+    assert len(data) == Codec.data_length(MsgType.TELEMETRY) == 8
+    status, frame = c_encode(DEFAULT_ID_BASE, fields(msg))
+    assert status == OK and frame == (arbitration_id, data)
+    status, m = c_decode(DEFAULT_ID_BASE, arbitration_id, data, True, False, "to_supervisor")
+    assert status == OK and c_fields(m) == fields(msg)
+    for short in (data[:5], data[:7]):  # the old 5-byte layout, a truncated frame
+        assert c_decode(DEFAULT_ID_BASE, arbitration_id, short, True, False, None)[0] != OK
 
 
 @pytest.mark.parametrize(

@@ -33,6 +33,8 @@ def _raw_signals(msg: Message) -> dict[str, int]:
         "delivered_mj": "DELIVERED",
         "level_mj": "LEVEL",
         "flags": "FLAGS",
+        "return_seq": "RETURN_SEQ",
+        "witness": "WITNESS",
     }
     return {sig: getattr(msg, field) for field, sig in names.items() if hasattr(msg, field)}
 

@@ -136,7 +136,9 @@ def test_replay_pause_step_filter_raw_frames_and_quit(
     # the raw frames of the selected node (node 3, the only row), and back
     t.keys("Enter")
     text = t.wait("node 3's raw frames", lambda s: "raw frames of node 3 on vcan0" in s)
-    assert re.search(r"0CE00D03 +\[5\] +89 EE 02 00 00 +TELEMETRY +3->S +level 0\.750 J", text)
+    assert re.search(
+        r"0CE00D03 +\[8\] +B2 EE 02 00 00 00 00 00 +TELEMETRY +3->S +level 0\.750 J", text
+    )
     assert "COMMITTED      3->S     tx 1  crc ok" in text and "CRC BAD" in text
     assert "INTENTION      S->5" not in text
     t.keys("Escape")

@@ -282,6 +282,12 @@ int canergy_auth_accept(struct canergy_auth *a, const struct canergy_rx_frame *f
     return data_frame(a, frame);
 }
 
+/* Refused as the node's own direction (MAC frames 0x8 too) with its id: sent in its name. */
+static bool in_its_name(const struct canergy_node *n, const struct canergy_rx_frame *f, int result)
+{
+    return result == CANERGY_DECODE_WRONG_DIRECTION && (f->id & 0xE00000FFUL) == n->client.node;
+}
+
 int canergy_auth_node_frame(struct canergy_auth *a, struct canergy_node *n,
                             const struct canergy_rx_frame *frame, uint64_t now,
                             struct canergy_out *out)
@@ -294,6 +300,9 @@ int canergy_auth_node_frame(struct canergy_auth *a, struct canergy_node *n,
         canergy_auth_accept(a, frame, n->client.rec.last_tx, n->client.rec.return_seq, &plain);
     if (result != CANERGY_DECODE_OK) {
         canergy_internal_out_clear(out);
+        if (in_its_name(n, frame, result)) {
+            canergy_internal_witness(n, now);
+        }
         return result;
     }
     const struct canergy_rx_frame rx = {plain.id, plain.data, plain.dlc, true, false};

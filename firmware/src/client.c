@@ -352,15 +352,14 @@ static int message_step(struct canergy_client *c, const struct canergy_msg *m, u
 }
 
 int canergy_internal_frame(struct canergy_client *c, const struct canergy_rx_frame *frame,
-                           uint64_t now, struct canergy_out *out)
+                           uint64_t now, struct canergy_out *out, struct canergy_msg *m)
 {
-    struct canergy_msg m;
     const enum canergy_decode_status status =
-        canergy_decode(c->id_base, frame, CANERGY_TO_CLIENT, &m);
+        canergy_decode(c->id_base, frame, CANERGY_TO_CLIENT, m);
     if (status != CANERGY_DECODE_OK) {
         return (int)status;
     }
-    return message_step(c, &m, now, out);
+    return message_step(c, m, now, out);
 }
 
 int canergy_client_on_frame(struct canergy_client *c, const struct canergy_rx_frame *frame,
@@ -370,7 +369,8 @@ int canergy_client_on_frame(struct canergy_client *c, const struct canergy_rx_fr
         return CANERGY_ERR_ARGUMENT;
     }
     canergy_internal_out_clear(out);
-    return canergy_internal_frame(c, frame, now, out);
+    struct canergy_msg m;
+    return canergy_internal_frame(c, frame, now, out, &m);
 }
 
 typedef void (*timer_cell)(struct canergy_client *c, uint64_t now, struct canergy_out *out);

@@ -1,6 +1,7 @@
 /*
  * Library-internal: the client's steps without clearing *out, so the node layer can gather
- * several steps into one out (one persist, written before all of their frames).
+ * several steps into one out (one persist, written before all of their frames); the node's
+ * witness, which the authenticated layer counts too.
  */
 #ifndef CANERGY_CLIENT_INTERNAL_H
 #define CANERGY_CLIENT_INTERNAL_H
@@ -11,13 +12,18 @@ void canergy_internal_out_clear(struct canergy_out *out);
 int canergy_internal_start(struct canergy_client *c, const struct canergy_client_config *cfg,
                            const uint8_t *nv_image, size_t nv_len, uint16_t nonce, uint64_t now,
                            struct canergy_out *out);
+/* *m: the decoded message, valid when the result is CANERGY_DECODE_OK or CANERGY_RX_OTHER_NODE */
 int canergy_internal_frame(struct canergy_client *c, const struct canergy_rx_frame *frame,
-                           uint64_t now, struct canergy_out *out);
+                           uint64_t now, struct canergy_out *out, struct canergy_msg *m);
 void canergy_internal_timers(struct canergy_client *c, uint64_t now, struct canergy_out *out);
 int canergy_internal_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out);
 int canergy_internal_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,
                                struct canergy_out *out);
 void canergy_internal_send(const struct canergy_client *c, const struct canergy_msg *msg,
                            struct canergy_out *out);
+
+struct canergy_node;
+/* A frame seen in the node's name that it did not send: counted, reported at the next poll. */
+void canergy_internal_witness(struct canergy_node *n, uint64_t now);
 
 #endif /* CANERGY_CLIENT_INTERNAL_H */

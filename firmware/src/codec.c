@@ -1,7 +1,7 @@
 /*
  * Wire format: layouts, CRC-8 and strict decoding (see include/canergy/codec.h).
  *
- * A layout is a list of at most three fields after the CRC byte; the DLC and whether the type
+ * A layout is a list of at most four fields after the CRC byte; the DLC and whether the type
  * carries an amount (which must not be zero) follow from it, so the table below is the only
  * place a frame's shape is written down, as LAYOUTS is in codec.py.
  */
@@ -17,10 +17,11 @@ enum field {
     F_AMOUNT,    /* u16, 1..65535 */
     F_DELIVERED, /* u24 */
     F_LEVEL,     /* u24 */
-    F_FLAGS      /* u8 */
+    F_FLAGS,     /* u8 */
+    F_WITNESS    /* u8 */
 };
 
-#define MAX_FIELDS 3U
+#define MAX_FIELDS 4U
 
 /* Indexed by the 4-bit type code; an all-F_END row is an unknown type. */
 static const uint8_t layouts[16][MAX_FIELDS] = {
@@ -35,13 +36,13 @@ static const uint8_t layouts[16][MAX_FIELDS] = {
     [CANERGY_COMMITTED] = {F_TX, F_END, F_END},
     [CANERGY_ABORTED] = {F_TX, F_END, F_END},
     [CANERGY_RETURN] = {F_SEQ, F_AMOUNT, F_END},
-    [CANERGY_TELEMETRY] = {F_LEVEL, F_FLAGS, F_END},
+    [CANERGY_TELEMETRY] = {F_LEVEL, F_FLAGS, F_SEQ, F_WITNESS},
     [CANERGY_JOIN] = {F_NONCE, F_END, F_END},
 };
 
 static size_t field_width(uint8_t f)
 {
-    if (f == F_FLAGS) {
+    if (f == F_FLAGS || f == F_WITNESS) {
         return 1U;
     }
     return (f == F_DELIVERED || f == F_LEVEL) ? 3U : 2U;
@@ -104,6 +105,7 @@ static uint32_t field_value(const struct canergy_msg *m, uint8_t f)
     case F_AMOUNT: return m->amount_mj;
     case F_DELIVERED: return m->delivered_mj;
     case F_LEVEL: return m->level_mj;
+    case F_WITNESS: return m->witness;
     default: return m->flags;
     }
 }
@@ -117,6 +119,7 @@ static void set_field(struct canergy_msg *m, uint8_t f, uint32_t v)
     case F_AMOUNT: m->amount_mj = (uint16_t)v; break;
     case F_DELIVERED: m->delivered_mj = v; break;
     case F_LEVEL: m->level_mj = v; break;
+    case F_WITNESS: m->witness = (uint8_t)v; break;
     default: m->flags = (uint8_t)v; break;
     }
 }

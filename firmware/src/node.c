@@ -26,6 +26,8 @@ static void send_telemetry(struct canergy_node *n, uint64_t now, struct canergy_
     m.flags = (uint8_t)((is_low(n) ? CANERGY_TELEMETRY_LOW : 0U) |
                         (n->halted ? CANERGY_TELEMETRY_HALTED : 0U) |
                         (canergy_client_joining(&n->client) ? CANERGY_TELEMETRY_JOINING : 0U));
+    m.seq = (uint16_t)n->client.rec.return_seq; /* the number its RETURN frames carry */
+    m.witness = n->witness;
     n->next_telemetry = now + n->telemetry_period_us;
     canergy_internal_send(&n->client, &m, out);
 }
@@ -38,6 +40,34 @@ static void after_client(struct canergy_node *n, uint64_t now, const struct cane
     if ((out->events & level_moved) != 0U) {
         n->next_telemetry = now;
     }
+}
+
+void canergy_internal_witness(struct canergy_node *n, uint64_t now)
+{
+    n->witness = (uint8_t)(n->witness + 1U); /* modulo 256, as on the wire */
+    n->next_telemetry = now;                 /* the supervisor hears of it at the next poll */
+}
+
+/* An answer to something the node never sent: a RETURN_ACK for a return number ahead of its own
+ * (serial16 > 0; the step left return_seq as it was), an ADMIT not for this start's JOIN. */
+static bool never_asked(const struct canergy_node *n, const struct canergy_msg *m)
+{
+    if (m->type == CANERGY_RETURN_ACK) {
+        const uint16_t ahead = (uint16_t)(m->seq - (uint16_t)n->client.rec.return_seq);
+        return ahead != 0U && ahead < 0x8000U;
+    }
+    return m->type == CANERGY_ADMIT && !(n->joined && m->nonce == n->join_nonce);
+}
+
+/* A frame in the node's name that it did not send. */
+static bool witnessed(const struct canergy_node *n, const struct canergy_rx_frame *f, int result,
+                      const struct canergy_msg *m)
+{
+    if (result == CANERGY_DECODE_WRONG_DIRECTION) {
+        /* the codec checked the id block, the type and the node: is it this node's id? */
+        return (f->id & 0xFFU) == n->client.node;
+    }
+    return result == CANERGY_DECODE_OK && never_asked(n, m);
 }
 
 /* Periodic telemetry, and at once when the level has just fallen below the low-water mark. */
@@ -65,6 +95,8 @@ int canergy_node_start(struct canergy_node *n, const struct canergy_node_config 
     n->low_water_uj = cfg->low_water_uj;
     n->return_above_uj = cfg->return_above_uj;
     n->next_telemetry = now; /* announce the level at boot */
+    n->joined = canergy_client_joining(&n->client);
+    n->join_nonce = nonce;
     return result;
 }
 
@@ -75,7 +107,8 @@ int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame 
         return CANERGY_ERR_ARGUMENT;
     }
     canergy_internal_out_clear(out);
-    const int result = canergy_internal_frame(&n->client, frame, now, out);
+    struct canergy_msg m;
+    const int result = canergy_internal_frame(&n->client, frame, now, out, &m);
     /* Count what was meant for this node: foreign frames and other nodes' replies (seen
      * without acceptance filters) are no error of ours. */
     if (result != CANERGY_DECODE_OK && result != CANERGY_RX_OTHER_NODE &&
@@ -85,6 +118,9 @@ int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame 
     }
     if ((out->events & CANERGY_EV_REFUSED) != 0U) {
         n->overflow_refused++;
+    }
+    if (witnessed(n, frame, result, &m)) {
+        canergy_internal_witness(n, now);
     }
     after_client(n, now, out);
     return result;

@@ -76,9 +76,19 @@ static void test_documented_frames(void)
     m = msg(CANERGY_TELEMETRY, 5U);
     m.level_mj = 500U;
     m.flags = CANERGY_TELEMETRY_HALTED;
+    m.seq = 0x1234U;
+    m.witness = 3U;
     check(canergy_encode(CANERGY_DEFAULT_ID_BASE, &m, &f) == CANERGY_OK &&
-              frame_is(&f, 0x0CE00D05UL, "28F4010002"),
-          "TELEMETRY as in the README");
+              frame_is(&f, 0x0CE00D05UL, "E8F4010002341203"),
+          "TELEMETRY: level, flags, return number, witness (canergy.codec's frame)");
+    struct canergy_msg back;
+    const struct canergy_rx_frame rx = {f.id, f.data, f.dlc, true, false};
+    check(canergy_decode(CANERGY_DEFAULT_ID_BASE, &rx, CANERGY_TO_SUPERVISOR, &back) ==
+              CANERGY_DECODE_OK &&
+              back.level_mj == 500U && back.flags == CANERGY_TELEMETRY_HALTED &&
+              back.seq == 0x1234U && back.witness == 3U &&
+              canergy_data_length(CANERGY_TELEMETRY) == 8U,
+          "TELEMETRY decodes back, 8 bytes");
     m = msg(CANERGY_COMMIT, 5U);
     check(canergy_encode(CANERGY_DEFAULT_ID_BASE, &m, &f) == CANERGY_ERR_ARGUMENT,
           "a zero amount does not encode");
@@ -166,6 +176,136 @@ static void test_a_node_from_blank_to_books(void)
               !canergy_client_joining(&again) && again.rec.usable_uj == 0U &&
               again.held_tx == 0U && again.rec.credited_mj == 9999UL,
           "a damaged newest slot falls back to the previous record");
+}
+
+/* Feed the node a message through the real codec (either direction). */
+static int node_deliver(struct canergy_node *n, const struct canergy_msg *m, uint64_t now,
+                        struct canergy_out *out)
+{
+    struct canergy_frame f;
+    if (canergy_encode(CANERGY_DEFAULT_ID_BASE, m, &f) != CANERGY_OK) {
+        return -100;
+    }
+    const struct canergy_rx_frame rx = {f.id, f.data, f.dlc, true, false};
+    return canergy_node_on_frame(n, &rx, now, out);
+}
+
+/* The TELEMETRY the next poll sends: its return number and witness, or 0x7FFFFFFF for none. */
+static long polled_telemetry(struct canergy_node *n, uint64_t now, uint8_t *witness)
+{
+    struct canergy_out out;
+    struct canergy_msg m;
+    canergy_node_poll(n, now, &out);
+    for (unsigned i = 0U; i < out.frame_count; i++) {
+        const struct canergy_rx_frame rx = {out.frames[i].id, out.frames[i].data,
+                                            out.frames[i].dlc, true, false};
+        if (canergy_decode(CANERGY_DEFAULT_ID_BASE, &rx, CANERGY_TO_SUPERVISOR, &m) ==
+                CANERGY_DECODE_OK &&
+            m.type == CANERGY_TELEMETRY) {
+            *witness = m.witness;
+            return (long)m.seq;
+        }
+    }
+    return 0x7FFFFFFFL;
+}
+
+/* Frames in the node's name that it did not send are counted, reported at the next poll, and
+ * move nothing; genuine answers, their duplicates and other nodes' frames are not counted. */
+static void test_node_witness(void)
+{
+    const struct canergy_node_config cfg = {
+        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U}, 1000000UL, 0U, CANERGY_KEEP_ALL};
+    struct canergy_node n;
+    struct canergy_out out;
+    uint8_t nv[2U * CANERGY_NV_SLOT_SIZE] = {0};
+    uint8_t w = 0xEEU;
+    (void)canergy_node_start(&n, &cfg, NULL, 0U, 0x1234U, 0U, &out);
+    check(polled_telemetry(&n, 0U, &w) == 0L && w == 0U, "a new node reports witness 0");
+    struct canergy_msg admit = msg(CANERGY_ADMIT, 5U);
+    admit.nonce = 0x4321U;
+    admit.tx = 40U;
+    admit.seq = 7U;
+    struct canergy_msg retack = msg(CANERGY_RETURN_ACK, 5U);
+    retack.seq = 1U;
+    check(node_deliver(&n, &admit, 10U, &out) == CANERGY_DECODE_OK &&
+              node_deliver(&n, &retack, 11U, &out) == CANERGY_DECODE_OK && n.witness == 2U &&
+              canergy_client_joining(&n.client) && canergy_node_deadline(&n) == 11U,
+          "joining: an ADMIT for another nonce, a RETURN_ACK ahead: witnessed, due at once");
+    admit.nonce = 0x1234U;
+    check(node_deliver(&n, &admit, 20U, &out) == CANERGY_DECODE_OK && n.witness == 2U &&
+              !canergy_client_joining(&n.client) && out.persist == 1U,
+          "the ADMIT for its JOIN is not witnessed");
+    memcpy(&nv[out.nv_slot * CANERGY_NV_SLOT_SIZE], out.nv_image, CANERGY_NV_SLOT_SIZE);
+    admit.tx = 90U;
+    check(node_deliver(&n, &admit, 21U, &out) == CANERGY_DECODE_OK && n.witness == 2U &&
+              out.persist == 0U && out.frame_count == 0U,
+          "the same nonce once admitted (a duplicate) is not witnessed, moves nothing");
+    admit.nonce = 0x1235U;
+    check(node_deliver(&n, &admit, 22U, &out) == CANERGY_DECODE_OK && n.witness == 3U &&
+              polled_telemetry(&n, 22U, &w) == 7L && w == 3U,
+          "another nonce is; the next poll's TELEMETRY carries return number and witness");
+
+    struct canergy_msg m = msg(CANERGY_INTENTION, 5U);
+    m.tx = 41U;
+    m.amount_mj = 500U;
+    (void)node_deliver(&n, &m, 30U, &out);
+    m = msg(CANERGY_COMMIT, 5U);
+    m.tx = 41U;
+    m.amount_mj = 500U;
+    (void)node_deliver(&n, &m, 31U, &out);
+    (void)canergy_client_give_back(&n.client, 100000UL, 32U, &out); /* RETURN number 8 */
+    uint8_t books[CANERGY_NV_RECORD_SIZE];
+    uint8_t after[CANERGY_NV_RECORD_SIZE];
+    canergy_record_pack(&n.client.rec, books);
+    retack.seq = 7U;
+    check(node_deliver(&n, &retack, 40U, &out) == CANERGY_DECODE_OK && n.witness == 3U,
+          "a RETURN_ACK behind its return number (a late duplicate) is not witnessed");
+    retack.seq = (uint16_t)(8U + 0x7FFFU);
+    check(node_deliver(&n, &retack, 41U, &out) == CANERGY_DECODE_OK && n.witness == 4U &&
+              n.client.rec.return_pending_uj == 100000UL,
+          "one ahead of it is, the return still pending");
+    retack.seq = (uint16_t)(8U + 0x8000U);
+    check(node_deliver(&n, &retack, 42U, &out) == CANERGY_DECODE_OK && n.witness == 4U,
+          "half the wire away counts as behind, as unwrap() does");
+    struct canergy_msg spoof = msg(CANERGY_RETURN, 5U);
+    spoof.seq = 9U;
+    spoof.amount_mj = 65535U;
+    struct canergy_msg other = msg(CANERGY_ACK, 6U);
+    const int spoofed = node_deliver(&n, &spoof, 43U, &out);
+    canergy_record_pack(&n.client.rec, after);
+    check(spoofed == CANERGY_DECODE_WRONG_DIRECTION && n.witness == 5U && out.persist == 0U &&
+              memcmp(after, books, sizeof books) == 0 &&
+              node_deliver(&n, &other, 44U, &out) == CANERGY_DECODE_WRONG_DIRECTION &&
+              n.witness == 5U,
+          "a RETURN in its name is witnessed and moves nothing; another node's ACK is not");
+    const uint8_t garbage[12] = {0};
+    struct canergy_rx_frame raw = {0x0CE00D05UL, garbage, 12U, true, false};
+    const uint32_t errors = n.decode_errors;
+    check(canergy_node_on_frame(&n, &raw, 45U, &out) == CANERGY_DECODE_WRONG_DIRECTION &&
+              n.witness == 6U && n.decode_errors == errors,
+          "any length in its own direction with its id is witnessed, not a decode error");
+    raw.remote = true;
+    check(canergy_node_on_frame(&n, &raw, 46U, &out) == CANERGY_DECODE_REMOTE_FRAME &&
+              n.witness == 6U && n.decode_errors == errors + 1U,
+          "a remote frame stays a decode error");
+    retack.seq = 8U;
+    check(node_deliver(&n, &retack, 50U, &out) == CANERGY_DECODE_OK && n.witness == 6U &&
+              n.client.rec.return_pending_uj == 0U &&
+              node_deliver(&n, &retack, 51U, &out) == CANERGY_DECODE_OK && n.witness == 6U,
+          "the RETURN_ACK for its return and a duplicate of it are not witnessed");
+    canergy_record_pack(&n.client.rec, books);
+    for (unsigned i = 0U; i < 256U; i++) {
+        (void)node_deliver(&n, &spoof, 60U, &out);
+    }
+    canergy_record_pack(&n.client.rec, after);
+    check(n.witness == 6U && polled_telemetry(&n, 60U, &w) == 8L && w == 6U &&
+              memcmp(after, books, sizeof books) == 0,
+          "the witness wraps modulo 256, the books untouched");
+    admit.nonce = 0x1234U;
+    (void)canergy_node_start(&n, &cfg, nv, sizeof nv, 0x1234U, 70U, &out);
+    check(!canergy_client_joining(&n.client) && n.witness == 0U &&
+              node_deliver(&n, &admit, 71U, &out) == CANERGY_DECODE_OK && n.witness == 1U,
+          "started with books: the witness starts at 0, any ADMIT is witnessed");
 }
 
 static void test_budgets(void)
@@ -304,9 +444,16 @@ static const struct auth_vector auth_vectors[] = {
      "FD INTENTION: tx 2 next to 0x1FFFF is FV 0x20002, 20 bytes"},
     {CANERGY_AUTH_FD, {.type = CANERGY_ACK, .node = 5U, .tx = 2U}, 0x0001FFFFUL, 0U,
      0x0CE00905UL, "910200000002000209021F44DA0FE551", NULL, "FD ACK: 16 bytes, FV 0x20002"},
-    {CANERGY_AUTH_FD, {.type = CANERGY_TELEMETRY, .node = 5U, .level_mj = 500U, .flags = 2U},
-     0x00031234UL, 0U, 0x0CE00D05UL, "28F4010002000000000300009B3C0DBB17EC26BC", NULL,
-     "FD TELEMETRY: FV is last_tx's high half, zero padding"},
+    {CANERGY_AUTH_FD,
+     {.type = CANERGY_TELEMETRY, .node = 5U, .level_mj = 500U, .flags = 2U, .seq = 0x1234U,
+      .witness = 3U},
+     0x00031234UL, 0U, 0x0CE00D05UL, "E8F401000234120300030000A41C83D4F6562717", NULL,
+     "FD TELEMETRY: 8 data bytes, no padding, 20 bytes; FV is last_tx's high half"},
+    {CANERGY_AUTH_CLASSIC,
+     {.type = CANERGY_TELEMETRY, .node = 5U, .level_mj = 500U, .flags = 2U, .seq = 0x1234U,
+      .witness = 3U},
+     0x00031234UL, 0U, 0x0CE00D05UL, "E8F4010002341203", "0D0003A41C83D4F6",
+     "classic TELEMETRY: MAC frame FV high half 0x0003"},
     {CANERGY_AUTH_FD, {.type = CANERGY_JOIN, .node = 5U, .nonce = 0xBEEFU}, 0U, 0U,
      0x0CE00E05UL, "BCEFBE000000BEEFCDA616F1B0346BF5", NULL, "FD JOIN: FV is the nonce"},
     {CANERGY_AUTH_CLASSIC, {.type = CANERGY_RETURN, .node = 5U, .seq = 0xFFFFU, .amount_mj = 120U},
@@ -458,6 +605,18 @@ static void test_auth_node(const uint8_t key[16])
               auth_feed(&sup, frames, 2, 0x10000UL, 0U, &verified) == CANERGY_DECODE_OK &&
               auth_feed(&sup, frames, 2, 0U, 0U, &verified) == CANERGY_AUTH_STALE,
           "its ACK verifies at FV 0x10000, not at 0");
+    /* frames in its name: its ACK and MAC frame replayed, a MAC frame of node 6 */
+    const uint8_t witness = n.witness;
+    f = (struct canergy_rx_frame){frames[0].id, frames[0].data, frames[0].len, true, false};
+    const int data = canergy_auth_node_frame(&node_auth, &n, &f, 30U, &out);
+    f = (struct canergy_rx_frame){frames[1].id, frames[1].data, frames[1].len, true, false};
+    const int mac = canergy_auth_node_frame(&node_auth, &n, &f, 31U, &out);
+    f.id = 0x0CE00806UL;
+    const int theirs = canergy_auth_node_frame(&node_auth, &n, &f, 32U, &out);
+    check(data == CANERGY_DECODE_WRONG_DIRECTION && mac == CANERGY_DECODE_WRONG_DIRECTION &&
+              theirs == CANERGY_DECODE_WRONG_DIRECTION && n.witness == witness + 2U &&
+              out.frame_count == 0U && canergy_node_deadline(&n) == 31U,
+          "authenticated: its own direction with its id, MAC frames too, is witnessed");
     canergy_auth_wipe(&node_auth);
     canergy_auth_wipe(&sup);
 }
@@ -479,6 +638,7 @@ int main(void)
     test_documented_frames();
     test_decode_reasons();
     test_a_node_from_blank_to_books();
+    test_node_witness();
     test_budgets();
     test_aes128();
     test_cmac();

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
 
+from canergy.auth.state_key import state_seal
 from canergy.cli_args import add_duration, bounded_int, energy, grant_amount, node_ids, power
 from canergy.cli_cia402 import add_cia402_flags, check_cia402, guard_drives
 from canergy.codec import Codec
@@ -33,7 +34,7 @@ from canergy.live.multi_bus import (
 from canergy.live.policy import Limits, TopUp, level_room
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.state_file import ACCEPT_EDITED, load_state
+from canergy.live.state_file import ACCEPT_EDITED, keep_books, load_state
 from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ, Direction, Message
 from canergy.units import UJ_PER_J, US_PER_S, format_energy
 
@@ -152,6 +153,14 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         "spoofer): warn = count, log and report it; stop = also grant nothing more, settle and "
         "exit with status 3 (default warn)",
     )
+    add_duration(
+        p,
+        "--return-hold",
+        500_000,
+        "without --auth: credit a RETURN only once the node's own TELEMETRY confirms it and this "
+        "long has passed with no report of frames in its name (a forged RETURN is refuted, "
+        "never credited)",
+    )
     p.add_argument(
         "--canopen",
         action="store_true",
@@ -208,12 +217,13 @@ def _timing(args: argparse.Namespace, response_timeout_us: int | None = None) ->
 
 
 def _build(
-    args: argparse.Namespace, nodes: tuple[int, ...], buses: tuple[str, ...] = ()
+    args: argparse.Namespace, nodes: tuple[int, ...], buses: tuple[str, ...] = (), key: Any = None
 ) -> Supervisor:
     """The core, from ``--state`` when it exists; ``buses``: bus names with ``--bus`` (``nodes``
-    are then session keys)."""
+    are then session keys); ``key``: ``--auth``'s, which seals the state file."""
     timing = _timing(args)
     state = None
+    seal = None if key is None else state_seal(key)
     if args.state is not None and args.state.exists():
 
         def warn(message: str) -> None:
@@ -226,7 +236,10 @@ def _build(
             buses=buses,
             accept_edited=args.accept_edited_state,
             on_edited=warn,
+            seal=seal,
         )
+    if args.state is not None and not getattr(args, "listen_only", False):
+        keep_books(args.state, seal, args.auth, fresh=state is None)
     core = Supervisor(nodes, args.initial, variant=args.variant, timing=timing, state=state)
     if state is not None:
         core.power_loss(monotonic_us())  # a start is a restart from the persistent record
@@ -502,7 +515,7 @@ def run_supervisor(args: argparse.Namespace) -> int:
         nodes = session_keys(buses)
     else:
         nodes = tuple(sorted((*(args.nodes or ()), *(args.cia402 or ()))))
-    core = _build(args, nodes, names)
+    core = _build(args, nodes, names, key)
     config = ServiceConfig(
         policy=TopUp(args.target, args.min_grant) if args.target is not None else None,
         limits=_limits(args),
@@ -516,6 +529,7 @@ def run_supervisor(args: argparse.Namespace) -> int:
         fsync=not args.no_fsync,
         inject_uj=args.inject or 0,
         stop_on_intrusion=args.on_intrusion == "stop",
+        return_hold_us=None if key is not None else args.return_hold,
         bus_names=names,
     )
     if buses:
@@ -636,7 +650,7 @@ def run_grant(args: argparse.Namespace) -> int:
     _check_widths(args)
     _check_state(args)
     key = _auth_key(args)
-    core = _build(args, (args.node,))
+    core = _build(args, (args.node,), key=key)
     config = ServiceConfig(
         limits=_limits(args),
         state_path=args.state,

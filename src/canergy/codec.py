@@ -110,7 +110,7 @@ def _retack_fields(m: Message) -> tuple[int, ...]:
 
 def _telemetry_fields(m: Message) -> tuple[int, ...]:
     assert isinstance(m, Telemetry)
-    return (m.level_mj & 0xFFFF, m.level_mj >> 16, m.flags)
+    return (m.level_mj & 0xFFFF, m.level_mj >> 16, m.flags, m.return_seq, m.witness)
 
 
 def _join_fields(m: Message) -> tuple[int, ...]:
@@ -148,9 +148,9 @@ LAYOUTS: dict[MsgType, _Layout] = {
     ),
     MsgType.JOIN: _Layout(struct.Struct("<H"), _join_fields, lambda n, f: Join(n, f[0]), False),
     MsgType.TELEMETRY: _Layout(
-        struct.Struct("<HBB"),
+        struct.Struct("<HBBHB"),
         _telemetry_fields,
-        lambda n, f: Telemetry(n, f[0] | f[1] << 16, f[2]),
+        lambda n, f: Telemetry(n, f[0] | f[1] << 16, f[2], f[3], f[4]),
         False,
     ),
 }

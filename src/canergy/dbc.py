@@ -29,7 +29,12 @@ _SIGNALS: dict[MsgType, list[tuple[str, int, int, float, str]]] = {
     MsgType.COMMITTED: [("TX", 8, 16, 1, "")],
     MsgType.ABORTED: [("TX", 8, 16, 1, "")],
     MsgType.RETURN: [("SEQ", 8, 16, 1, ""), ("AMOUNT", 24, 16, 0.001, "J")],
-    MsgType.TELEMETRY: [("LEVEL", 8, 24, 0.001, "J"), ("FLAGS", 32, 8, 1, "")],
+    MsgType.TELEMETRY: [
+        ("LEVEL", 8, 24, 0.001, "J"),
+        ("FLAGS", 32, 8, 1, ""),
+        ("RETURN_SEQ", 40, 16, 1, ""),
+        ("WITNESS", 56, 8, 1, ""),
+    ],
     MsgType.JOIN: [("NONCE", 8, 16, 1, "")],
     MsgType.ADMIT: [("NONCE", 8, 16, 1, ""), ("TX", 24, 16, 1, ""), ("SEQ", 40, 16, 1, "")],
 }
@@ -43,6 +48,8 @@ _COMMENTS = {
     "DELIVERED": "Gs: energy counted as delivered to this node, 24-bit wrapping mJ",
     "LEVEL": "client's usable energy in mJ, saturating at 16777.215 J (information only)",
     "FLAGS": "bit 0: level low; bit 1: actuator halted; bit 2: no books, joining",
+    "RETURN_SEQ": "the node's current return number (as its RETURN frames carry it)",
+    "WITNESS": "frames the node saw in its own name that it did not send, modulo 256",
     "NONCE": "random number drawn by a node that starts without books; ADMIT echoes it",
     "FV": "freshness value: the full 32-bit tx (or return number, or nonce) the MAC covers",
     "MAC": "AES-128-CMAC over Data ID, FV and the classic data, truncated (SecOC-like)",

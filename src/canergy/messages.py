@@ -195,15 +195,18 @@ class Join:
 @fast_init
 @dataclass(frozen=True, slots=True)
 class Telemetry:
-    """TELEMETRY: the client's usable level (24-bit mJ, saturating) and status flags.
-
-    Information for grant policies only: it moves no energy and the core never sees it.
+    """TELEMETRY: the client's usable level (24-bit mJ, saturating), status flags, its current
+    return number (as its RETURN frames carry it) and how many frames it has seen in its own
+    name that it did not send (``witness``, modulo 256). Information for grant policies and for
+    the supervisor's checks: it moves no energy and the core never sees it.
     """
 
     TYPE: ClassVar[MsgType] = MsgType.TELEMETRY
     node: int
     level_mj: int
     flags: int = 0
+    return_seq: int = 0
+    witness: int = 0
 
     LOW: ClassVar[int] = 0x01
     """Flag: the level fell below the client's low-water mark."""
@@ -214,6 +217,7 @@ class Telemetry:
 
 
 LEVEL_MAX_MJ = (1 << 24) - 1
+WITNESS_BITS = 8
 
 NONCE_BITS = 16
 

@@ -111,7 +111,8 @@ int canergy_auth_accept(struct canergy_auth *a, const struct canergy_rx_frame *f
 
 /* The node layer in authenticated mode: canergy_auth_accept with the node's counters, then
  * canergy_node_on_frame with the verified frame. Returns what either returned (out is empty
- * unless the frame was verified). */
+ * unless the frame was verified). A frame refused as the node's own direction with its id (a
+ * MAC frame 0x8 too) is counted in the node's witness, as canergy_node_on_frame counts one. */
 int canergy_auth_node_frame(struct canergy_auth *a, struct canergy_node *n,
                             const struct canergy_rx_frame *frame, uint64_t now,
                             struct canergy_out *out);

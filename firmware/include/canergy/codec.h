@@ -85,7 +85,8 @@ enum canergy_decode_status {
  *   STATUS_REQUEST, FINAL_ACK, ACK, COMMITTED, ABORTED   tx
  *   ADMIT          nonce, tx, seq
  *   RETURN         seq, amount_mj
- *   TELEMETRY      level_mj (24 bit), flags
+ *   TELEMETRY      level_mj (24 bit), flags, seq (the client's return number, as its RETURN
+ *                  frames carry it), witness (frames seen in its name that it did not send)
  *   JOIN           nonce
  */
 struct canergy_msg {
@@ -98,6 +99,7 @@ struct canergy_msg {
     uint8_t type;
     uint8_t node;
     uint8_t flags;
+    uint8_t witness;
 };
 
 /* A frame to transmit: always a 29-bit (extended) data frame. */

@@ -5,7 +5,16 @@
  *   - the actuator's draw: the port says how much energy the actuator wants for the period it
  *     just ran; the node spends what usable allows (persisted before the actuator uses it) and
  *     reports the actuator halted when it got less;
- *   - the return policy: after each draw, give back whatever exceeds return_above (whole mJ).
+ *   - the return policy: after each draw, give back whatever exceeds return_above (whole mJ);
+ *   - the witness (firmware_model's FirmwareNode.witnessed): frames seen in the node's name
+ *     that it did not send, counted modulo 256 and carried in every TELEMETRY (a change is
+ *     reported at the next poll, as a new level is): a frame in its own direction with its id
+ *     (a node never receives its own frames back), a RETURN_ACK for a return number it has not
+ *     reached (ahead of its own), an ADMIT whose nonce is not its JOIN's of this start (any
+ *     ADMIT when it started with books). Duplicates of genuine answers, which a lossy bus
+ *     makes, are not counted. Counting only: such a frame moves nothing. The port's acceptance
+ *     filter must pass the node's own direction for its id (README.md); with a filter that does
+ *     not, the node works as before, unwitnessed.
  * The port keeps its actuator period itself (firmware_model's --tick): it calls
  * canergy_node_draw() once per period and canergy_node_poll() whenever canergy_node_deadline()
  * is reached. Same out contract as client.h: persist first, then send the frames.
@@ -38,6 +47,9 @@ struct canergy_node {
     uint32_t overflow_refused;  /* intentions and commits refused: usable would overflow */
     bool was_low;
     bool halted;                /* the last draw got less than it wanted */
+    uint8_t witness;            /* frames in its name it did not send, modulo 256 */
+    bool joined;                /* this start JOINed (no books): join_nonce is its JOIN's */
+    uint16_t join_nonce;
 };
 
 /* As canergy_client_start; the first telemetry is due at once (poll at now). */
@@ -45,7 +57,10 @@ int canergy_node_start(struct canergy_node *n, const struct canergy_node_config 
                        const uint8_t *nv_image, size_t nv_len, uint16_t nonce, uint64_t now,
                        struct canergy_out *out);
 
-/* As canergy_client_on_frame, plus counting and telemetry scheduling. */
+/* As canergy_client_on_frame, plus counting (decode errors, the witness) and telemetry
+ * scheduling. A frame in the node's own direction is CANERGY_DECODE_WRONG_DIRECTION: with its
+ * id it is witnessed (an intrusion, for the port's report), with another node's it is nobody's
+ * error. */
 int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame *frame,
                           uint64_t now, struct canergy_out *out);
 

@@ -12,7 +12,8 @@
 
 #include <string.h>
 
-/* ---- BOARD: CAN controller (extended frames, acceptance filter id_base | node / 0x1FFFF8FF) */
+/* ---- BOARD: CAN controller (extended frames, acceptance filter id_base | node / 0x1FFFF0FF:
+ * this node's frames both ways, so the node layer witnesses frames sent in its name) ---- */
 
 #define RX_RING 8U
 static struct {

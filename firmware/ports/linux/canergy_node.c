@@ -31,6 +31,7 @@
 
 #include <errno.h>
 #include <fcntl.h>
+#include <libgen.h>
 #include <limits.h>
 #include <linux/can.h>
 #include <linux/can/raw.h>
@@ -116,6 +117,7 @@ struct port {
     uint64_t remainder_pj; /* energy owed below 1 uJ, in uW*us, as firmware_model's actuator */
     uint64_t last_draw_us;
     uint64_t nv_writes;
+    uint64_t witnessed; /* the library's witness, not wrapped: firmware_model's "witnessed" */
     int nv_fallbacks;
     int joins;
     int sock;
@@ -349,6 +351,85 @@ static uint64_t parse_int(const char *flag, const char *text, uint64_t low, uint
     return (uint64_t)v;
 }
 
+/* ---- paths: two names for one file (canergy.live.atomic.same_file) ---- */
+
+/* dst = src, or a usage error naming what was too long. */
+static void copy_path(char dst[PATH_MAX], const char *src)
+{
+    if (snprintf(dst, PATH_MAX, "%s", src) >= PATH_MAX) {
+        usage_error("path too long: %.64s...", src);
+    }
+}
+
+/* dst = "dir/name" ("/name" when dir is "/"), or a usage error naming what was too long. */
+static void join_path(char dst[PATH_MAX], const char *dir, const char *name)
+{
+    const char *sep = strcmp(dir, "/") == 0 ? "" : "/";
+    if (snprintf(dst, PATH_MAX, "%s%s%s", dir, sep, name) >= PATH_MAX) {
+        usage_error("path too long: %.64s...", name);
+    }
+}
+
+/* A path that does not exist: its resolved directory and its last part (as written when the
+ * directory does not exist either: nothing can be created there). */
+static void resolve_missing(const char *p, char out[PATH_MAX])
+{
+    char dir[PATH_MAX];
+    char base[PATH_MAX];
+    char real_dir[PATH_MAX];
+    copy_path(dir, p);
+    copy_path(base, p);
+    if (realpath(dirname(dir), real_dir) == NULL) {
+        copy_path(out, p);
+    } else {
+        join_path(out, real_dir, basename(base));
+    }
+}
+
+/* path's file once symlinks are resolved, as Python's Path.resolve(): a missing file (the target
+ * of a dangling symlink too) is named below its resolved directory. */
+static void resolve(const char *path, char out[PATH_MAX])
+{
+    char p[PATH_MAX];
+    copy_path(p, path);
+    for (int hops = 0; hops < 40; hops++) {
+        if (realpath(p, out) != NULL) {
+            return;
+        }
+        char target[PATH_MAX];
+        const ssize_t n = readlink(p, target, sizeof target - 1U);
+        if (n < 0) { /* not a symlink: missing */
+            resolve_missing(p, out);
+            return;
+        }
+        target[n] = '\0';
+        char dir[PATH_MAX];
+        copy_path(dir, p);
+        if (target[0] == '/') {
+            copy_path(p, target);
+        } else {
+            join_path(p, dirname(dir), target);
+        }
+    }
+    copy_path(out, p); /* a symlink loop: as written */
+}
+
+/* a and b name one file: the same inode when both exist (hard links too), otherwise the same
+ * path once resolved. */
+static int same_file(const char *a, const char *b)
+{
+    struct stat sa;
+    struct stat sb;
+    if (stat(a, &sa) == 0 && stat(b, &sb) == 0) {
+        return sa.st_dev == sb.st_dev && sa.st_ino == sb.st_ino;
+    }
+    char ra[PATH_MAX];
+    char rb[PATH_MAX];
+    resolve(a, ra);
+    resolve(b, rb);
+    return strcmp(ra, rb) == 0;
+}
+
 static void parse_args(int argc, char **argv, struct options *o)
 {
     memset(o, 0, sizeof *o);
@@ -427,7 +508,7 @@ static void parse_args(int argc, char **argv, struct options *o)
     if (o->interface != NULL && strcmp(o->interface, "socketcan") != 0) {
         usage_error("argument -i: this port speaks socketcan only, not '%s'", o->interface);
     }
-    if (o->status_path != NULL && strcmp(o->status_path, o->nv_path) == 0) {
+    if (o->status_path != NULL && same_file(o->nv_path, o->status_path)) {
         usage_error("--nv %s and --status-file %s name the same file; give each its own path",
                     o->nv_path, o->status_path);
     }
@@ -435,7 +516,7 @@ static void parse_args(int argc, char **argv, struct options *o)
 
 /* ---- key file (src/canergy/auth/keys.py): no message ever holds a byte of the key ---- */
 
-#define KEY_FILE_MAX 4096
+#define KEY_FILE_MAX 4096 /* keys.py KEY_FILE_MAX: far above what canergy keys writes */
 
 static void key_error(const char *path, const char *fmt, ...)
 {
@@ -525,26 +606,52 @@ static void key_field(const char *path, struct key_fields *k, char *line, int nu
     }
 }
 
-/* The node's key from the key file at o->auth_path (kind=node, node=o->node). */
-static void load_key(const struct options *o, uint8_t key[CANERGY_KDF_KEY_SIZE])
+static const char *file_kind(mode_t mode)
 {
-    const char *path = o->auth_path;
-    const int fd = open(path, O_RDONLY | O_CLOEXEC);
+    return S_ISFIFO(mode)  ? "a FIFO"
+           : S_ISCHR(mode) ? "a character device"
+           : S_ISBLK(mode) ? "a block device"
+           : S_ISDIR(mode) ? "a directory"
+           : S_ISSOCK(mode) ? "a socket"
+                            : "of an unknown type";
+}
+
+/* A key file's size, checked as keys.py does: a regular file, mode 0600 or stricter, at most
+ * KEY_FILE_MAX bytes. */
+static size_t check_key_file(const char *path, const struct stat *st)
+{
+    if (!S_ISREG(st->st_mode)) {
+        key_error(path, "not a regular file (%s)", file_kind(st->st_mode));
+    }
+    if ((st->st_mode & 077) != 0U) {
+        key_error(path, "mode %04o lets others read it; chmod 600 %s",
+                  (unsigned)(st->st_mode & 07777), path);
+    }
+    if (st->st_size > KEY_FILE_MAX) {
+        key_error(path, "%lld bytes, more than a key file holds (%d)", (long long)st->st_size,
+                  KEY_FILE_MAX);
+    }
+    return (size_t)st->st_size;
+}
+
+/* The key file's text (NUL-terminated) and its length: checked before it is opened (a device is
+ * never opened), opened with O_NONBLOCK (a FIFO put there meanwhile cannot block), checked again
+ * on the opened file, read to exactly its size. */
+static size_t read_key_file(const char *path, char text[KEY_FILE_MAX + 2])
+{
     struct stat st;
+    if (stat(path, &st) != 0) {
+        key_error(path, "cannot read the key file (%s)", strerror(errno));
+    }
+    (void)check_key_file(path, &st);
+    const int fd = open(path, O_RDONLY | O_NONBLOCK | O_NOCTTY | O_CLOEXEC);
     if (fd < 0 || fstat(fd, &st) != 0) {
         key_error(path, "cannot read the key file (%s)", strerror(errno));
     }
-    if (!S_ISREG(st.st_mode)) {
-        key_error(path, "not a regular file");
-    }
-    if ((st.st_mode & 077) != 0U) {
-        key_error(path, "mode %04o lets others read it; chmod 600 %s",
-                  (unsigned)(st.st_mode & 07777), path);
-    }
-    char text[KEY_FILE_MAX + 1];
+    const size_t size = check_key_file(path, &st);
     size_t len = 0U;
-    for (;;) {
-        const ssize_t n = read(fd, &text[len], sizeof text - 1U - len);
+    while (len <= size) { /* one byte more than its size: a file that grew shows it */
+        const ssize_t n = read(fd, &text[len], size + 1U - len);
         if (n < 0 && errno == EINTR) {
             continue;
         }
@@ -555,12 +662,21 @@ static void load_key(const struct options *o, uint8_t key[CANERGY_KDF_KEY_SIZE])
             break;
         }
         len += (size_t)n;
-        if (len == sizeof text - 1U) {
-            key_error(path, "more than %d bytes is not a key file", KEY_FILE_MAX);
-        }
     }
     (void)close(fd);
+    if (len != size) {
+        key_error(path, "changed while read (%zu bytes by its size, %zu)", size, len);
+    }
     text[len] = '\0';
+    return len;
+}
+
+/* The node's key from the key file at o->auth_path (kind=node, node=o->node). */
+static void load_key(const struct options *o, uint8_t key[CANERGY_KDF_KEY_SIZE])
+{
+    const char *path = o->auth_path;
+    char text[KEY_FILE_MAX + 2];
+    const size_t len = read_key_file(path, text);
     for (size_t i = 0U; i < len; i++) {
         if (text[i] == '\0' || (unsigned char)text[i] > 0x7FU) {
             key_error(path, "cannot read the key file (not ASCII text)");
@@ -640,7 +756,7 @@ static int open_can(const struct options *o)
     }
     /* this node's frames, both directions (Codec.client_watch_filters): id_base | type << 8 |
      * node, 29 bit; a frame in the node's own direction is an intrusion (a node never
-     * receives its own frames back) */
+     * receives its own frames back), and its TELEMETRY's witness counts it */
     struct can_filter filter;
     filter.can_id = (canid_t)(o->id_base | (uint32_t)o->node) | CAN_EFF_FLAG;
     filter.can_mask = (canid_t)(CANERGY_ID_MASK | 0xFFU) | CAN_EFF_FLAG;
@@ -840,6 +956,7 @@ static void write_status(const struct port *p, FILE *f)
                   (unsigned long long)p->nv_writes, p->nv_fallbacks,
                   (unsigned long)p->node.overflow_refused,
                   canergy_client_joining(&p->node.client) ? "true" : "false", p->joins);
+    (void)fprintf(f, "\"witnessed\": %llu, ", (unsigned long long)p->witnessed);
     write_intrusions(p, f);
     (void)fprintf(f,
                   "\"frames_sent\": %llu, \"frames_received\": %llu, \"decode_errors\": %llu, "
@@ -948,30 +1065,24 @@ static void record_intrusion(struct port *p, const char *kind, const struct cane
     }
 }
 
-/* A frame in this node's own direction (type bit 3, MAC frames 0x8 included) with its id: a
- * node never receives its own frames back, so someone else speaks in its name. */
-static bool in_its_name(const struct port *p, const struct canergy_rx_frame *rx)
-{
-    return rx->extended && (rx->id & CANERGY_ID_MASK) == p->opt.id_base &&
-           (rx->id & 0xFFU) == (uint32_t)p->opt.node &&
-           (rx->id & ((uint32_t)CANERGY_FROM_CLIENT << 8)) != 0U;
-}
-
 static void receive_one(struct port *p, const struct canergy_rx_frame *rx)
 {
     const uint64_t now = now_us();
-    if (in_its_name(p, rx)) {
-        record_intrusion(p, "a frame in its name", rx, now);
-        return;
-    }
     struct canergy_out out;
+    const uint8_t witness = p->node.witness;
     const int status = p->opt.auth_path != NULL
                            ? canergy_auth_node_frame(&p->auth, &p->node, rx, now, &out)
                            : canergy_node_on_frame(&p->node, rx, now, &out);
+    p->witnessed += (uint8_t)(p->node.witness - witness); /* 0 or 1 per frame */
     if (status == CANERGY_DECODE_FOREIGN || status == CANERGY_RX_OTHER_NODE) {
         p->count.foreign_frames++;
     } else if (status == CANERGY_DECODE_WRONG_DIRECTION) {
-        /* another node's frame to the supervisor: the filter passes none; nobody's error */
+        /* its own direction (MAC frames 0x8 too) with its id, as the filter passes no other
+         * node's: a node never receives its own frames back, so someone speaks in its name. The
+         * library counted it in the witness of its next TELEMETRY. */
+        if ((rx->id & 0xFFU) == (uint32_t)p->opt.node) {
+            record_intrusion(p, "a frame in its name", rx, now);
+        }
     } else if (status > 0 && status <= (int)CANERGY_DECODE_OUT_OF_RANGE) {
         p->count.decode_errors++;
         p->count.reasons[status]++;

@@ -6,7 +6,11 @@ big-endian) || the classic frame's data (CRC-8 byte and fields). FV never repeat
 full 32-bit transaction number for transaction frames, the full return number for RETURN and
 RETURN_ACK, the sender's last transaction for TELEMETRY, the nonce for JOIN and ADMIT. The
 wire carries 16-bit counters; a receiver extends them from its own counters, and a frame whose
-FV is not the one it expects (a replay from 65,536 transactions ago, say) is refused.
+FV is not the one it expects (a replay from 65,536 transactions ago, say) is refused. So is, once
+the side's freshness gives an ``Expected`` (``expected_freshness``), a frame whose FV is older
+than its own counter: a replay of an earlier transaction or return, refused as stale (``STALE``)
+and counted, never handed to the protocol; a current duplicate (the FV at the counter) passes,
+as the protocol tolerates duplicates.
 
 Two layouts:
 
@@ -49,6 +53,7 @@ from canergy.seqnum import unwrap
 
 FD_MAC = 8
 CLASSIC_MAC = 5
+FV_MASK = 0xFFFF_FFFF
 FD_LENGTHS = (12, 16, 20, 24, 32, 48, 64)
 MAC_TYPE = {Direction.TO_CLIENT: 0x0, Direction.TO_SUPERVISOR: 0x8}
 """The two type codes no message uses carry the classic layout's MAC frames."""
@@ -65,6 +70,26 @@ class AuthFailure(Enum):
     NO_DATA = "MAC frame without its message"
     MALFORMED = "malformed authenticated frame"
     UNAUTHENTICATED = "frame without a MAC"
+
+
+class Expected(int):
+    """The FV a side expects for a message (an ``int``, as ``FrameAuth.freshness`` returns it),
+    with ``counter``: the side's own counter it was extended next to (its transaction for
+    transaction frames, its return number for RETURN and RETURN_ACK; 32 bits). A verified frame
+    whose FV is older than ``counter`` is refused as stale; a plain ``int`` checks the FV
+    alone."""
+
+    counter: int
+
+    def __new__(cls, fv: int, counter: int) -> Expected:
+        made = super().__new__(cls, fv)
+        made.counter = counter & FV_MASK
+        return made
+
+
+def fv_before(a: int, b: int) -> bool:
+    """FV ``a`` comes before ``b`` (serial-number order on 32 bits)."""
+    return a != b and (b - a) & FV_MASK < 1 << 31
 
 
 @functools.lru_cache(maxsize=256)
@@ -188,11 +213,17 @@ class FrameAuth:
         if not hmac.compare_digest(expected[: len(tag)], tag):
             return Verdict(failure=AuthFailure.MAC_BAD, node=msg.node)
         # TELEMETRY's FV is the sender's transaction (high half): the MAC alone counts for it
-        if msg.TYPE is not MsgType.TELEMETRY and wanted & 0xFFFF_FFFF != fv:
+        if msg.TYPE is not MsgType.TELEMETRY and (wanted & FV_MASK != fv or _older(wanted, fv)):
             return Verdict(failure=AuthFailure.STALE, node=msg.node)
         if isinstance(msg, Join):
             self.join_fv[msg.node] = fv
         return Verdict(message=msg, node=msg.node)
+
+
+def _older(wanted: int, fv: int) -> bool:
+    """A verified FV below the receiver's own counter: a replay of an earlier transaction or
+    return (at the counter: a current duplicate, which the protocol tolerates)."""
+    return isinstance(wanted, Expected) and fv_before(fv, wanted.counter)
 
 
 def low_counter(msg: Message) -> int:
@@ -210,3 +241,13 @@ def freshness(msg: Message, tx: int, seq: int) -> int:
     if isinstance(msg, Return | ReturnAck):
         return unwrap(msg.seq, seq, SEQ_BITS) & 0xFFFF_FFFF
     return unwrap(msg.tx, tx, TX_BITS) & 0xFFFF_FFFF
+
+
+def expected_freshness(msg: Message, tx: int, seq: int) -> int:
+    """``freshness``, for a side whose frames a ``FrameAuth`` checks: for the frames of a
+    transaction or a return an ``Expected`` that knows the side's counter, so that a verified
+    frame older than it is refused as stale (JOIN, ADMIT and TELEMETRY: the plain FV)."""
+    fv = freshness(msg, tx, seq)
+    if isinstance(msg, Join | Admit | Telemetry):
+        return fv
+    return Expected(fv, seq if isinstance(msg, Return | ReturnAck) else tx)

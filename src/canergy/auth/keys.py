@@ -8,7 +8,8 @@ another. The **epoch** is the provisioning generation: a supervisor whose books 
 new state file, counters back at zero) needs keys of a new epoch, or frames of the old life would
 verify again.
 
-A key file is text, mode 0600 (anything more open is refused)::
+A key file is text, mode 0600 (anything more open is refused), a regular file of at most
+``KEY_FILE_MAX`` bytes (a FIFO, a device or a huge file is refused before anything is read)::
 
     # canergy key: keep it secret
     kind=node
@@ -35,6 +36,15 @@ from canergy.messages import MAX_NODE, MIN_NODE
 KEY_BYTES = 16
 LABEL = b"canergy node key"
 EPOCH_MAX = 0xFFFF_FFFF
+KEY_FILE_MAX = 4096
+"""A key file's size limit in bytes (the C node's too): ``write_key`` writes about 100."""
+_KINDS = {
+    stat.S_IFIFO: "a FIFO",
+    stat.S_IFCHR: "a character device",
+    stat.S_IFBLK: "a block device",
+    stat.S_IFDIR: "a directory",
+    stat.S_IFSOCK: "a socket",
+}
 
 
 class KeyFileError(ValueError):
@@ -80,16 +90,9 @@ def derive_node_key(master: bytes, node: int, epoch: int) -> bytes:
 def load_key(path: Path) -> Key:
     """Read and check a key file (mode 0600 or stricter, every field valid)."""
     try:
-        mode = path.stat().st_mode
-        text = path.read_text(encoding="ascii")
-    except (OSError, UnicodeDecodeError) as exc:
+        text = _read_key_file(path).decode("ascii")
+    except UnicodeDecodeError as exc:
         raise KeyFileError(f"{path}: cannot read the key file ({exc.__class__.__name__})") from None
-    if not stat.S_ISREG(mode):
-        raise KeyFileError(f"{path}: not a regular file")
-    if mode & 0o077:
-        raise KeyFileError(
-            f"{path}: mode {stat.S_IMODE(mode):04o} lets others read it; chmod 600 {path}"
-        )
     fields: dict[str, str] = {}
     for number, line in enumerate(text.splitlines(), 1):
         line = line.strip()
@@ -100,6 +103,48 @@ def load_key(path: Path) -> Key:
             raise KeyFileError(f"{path}:{number}: expected one name=value per line")
         fields[name.strip()] = value.strip()
     return _key(path, fields)
+
+
+def _read_key_file(path: Path) -> bytes:
+    """The bytes of a key file that passes ``_check_file``: checked before it is opened (a
+    device is never opened), then again on the opened file (it may have been replaced), opened
+    with O_NONBLOCK (a FIFO put there meanwhile cannot block) and read to exactly its size."""
+    try:
+        _check_file(path, os.stat(path))
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC)
+        try:
+            size = _check_file(path, os.fstat(fd))
+            data = _read_at_most(fd, size + 1)  # one byte more: a file that grew shows it
+        finally:
+            os.close(fd)
+    except OSError as exc:
+        raise KeyFileError(f"{path}: cannot read the key file ({exc.__class__.__name__})") from None
+    if len(data) != size:
+        raise KeyFileError(f"{path}: changed while read ({size} bytes by its size, {len(data)})")
+    return data
+
+
+def _read_at_most(fd: int, limit: int) -> bytes:
+    data = b""
+    while len(data) < limit and (chunk := os.read(fd, limit - len(data))):
+        data += chunk
+    return data
+
+
+def _check_file(path: Path, st: os.stat_result) -> int:
+    """The size of a key file: a regular file, mode 0600 or stricter, at most KEY_FILE_MAX."""
+    if not stat.S_ISREG(st.st_mode):
+        kind = _KINDS.get(stat.S_IFMT(st.st_mode), "of an unknown type")
+        raise KeyFileError(f"{path}: not a regular file ({kind})")
+    if st.st_mode & 0o077:
+        raise KeyFileError(
+            f"{path}: mode {stat.S_IMODE(st.st_mode):04o} lets others read it; chmod 600 {path}"
+        )
+    if st.st_size > KEY_FILE_MAX:
+        raise KeyFileError(
+            f"{path}: {st.st_size} bytes, more than a key file holds ({KEY_FILE_MAX})"
+        )
+    return st.st_size
 
 
 def _key(path: Path, fields: dict[str, str]) -> Key:

@@ -3,6 +3,7 @@ directory. A reader sees the old content or the new, never a mix."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from pathlib import Path
@@ -32,9 +33,18 @@ def same_file(a: Path, b: Path) -> bool:
         return False
 
 
-def write_atomic(path: Path, data: bytes, *, fsync: bool = True) -> None:
+def write_atomic(path: Path, data: bytes, *, fsync: bool = True, mode: int | None = None) -> None:
+    """Replace ``path`` with ``data`` through a temporary beside it. ``mode``: the temporary is
+    new (a stale one is removed) and has exactly this mode, whatever the umask, before a byte
+    goes in (0o600 for a file only its owner may read or write)."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as f:
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(tmp)
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL
+    fd = os.open(tmp, flags, 0o666 if mode is None else mode)
+    with os.fdopen(fd, "wb") as f:
+        if mode is not None:
+            os.fchmod(fd, mode)
         f.write(data)
         if fsync:
             f.flush()

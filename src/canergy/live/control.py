@@ -9,20 +9,29 @@ its state.
 
 The server never removes anything but a socket: a stale one left at its path by a supervisor that
 died (nobody answers there), and at close the one it created itself.
+
+Only the supervisor's own user and root may use it: the socket is created with mode 0600
+whatever the umask, and each connection's peer (``SO_PEERCRED``) must have the supervisor's uid
+or be root; others get ``{"error": "refused: ..."}``, counted per uid in ``refused`` and logged
+once per uid. (Where the platform has no ``SO_PEERCRED`` the mode alone guards it.)
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import queue
 import socket
 import stat
+import struct
 import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 Reply = Callable[[dict[str, Any]], None]
 MAX_REQUEST = 4096
@@ -60,16 +69,45 @@ def check_control_path(path: Path, option: str = "--control") -> bool:
     raise ValueError(f"{option} {path}: a supervisor is already listening there")
 
 
+_UMASK = threading.Lock()
+
+
+def _bind_private(sock: socket.socket, path: Path) -> None:
+    """Bind ``sock`` at ``path`` with mode 0600 whatever the umask: umask 077 during bind (it is
+    the process's: a file another thread creates in that instant comes out narrower, never
+    wider), so no one else can connect at any moment; chmod then clears the owner's x bit."""
+    with _UMASK:
+        old = os.umask(0o077)
+        try:
+            sock.bind(str(path))
+        finally:
+            os.umask(old)
+    os.chmod(path, 0o600)
+
+
+def peer_credentials(conn: socket.socket) -> tuple[int, int] | None:
+    """The connected peer's (pid, uid), or None where the platform cannot tell."""
+    option = getattr(socket, "SO_PEERCRED", None)
+    if option is None:
+        return None
+    pid, uid, _gid = struct.unpack("iII", conn.getsockopt(socket.SOL_SOCKET, option, 12))
+    return pid, uid
+
+
 class ControlServer:
     def __init__(self, path: Path) -> None:
         self.path = path
         self.requests: queue.Queue[tuple[dict[str, Any], Reply]] = queue.Queue()
+        self.owner = os.geteuid()
+        self.refused: dict[int, int] = {}
+        """Connections refused, by peer uid (-1: credentials unreadable)."""
+        self._refused_lock = threading.Lock()
         if check_control_path(path):
             with contextlib.suppress(FileNotFoundError):
                 path.unlink()
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
-            self._sock.bind(str(path))
+            _bind_private(self._sock, path)
         except OSError:
             self._sock.close()
             raise
@@ -88,17 +126,46 @@ class ControlServer:
             threading.Thread(target=self._read, args=(conn,), daemon=True).start()
 
     def _read(self, conn: socket.socket) -> None:
-        """One client's request, in its own thread: a slow client delays no one else."""
+        """One client's request, in its own thread: a slow client delays no one else. A refused
+        peer's request is read too (never parsed): it then gets its refusal, not EPIPE."""
         conn.settimeout(5)
+        refusal = self._refusal(conn)
         try:
             line = conn.makefile("rb").readline(MAX_REQUEST)
+            if refusal is not None:
+                _answer(conn, refusal)
+                return
             request = json.loads(line)
             if not isinstance(request, dict):
                 raise ValueError("request must be a JSON object")
         except (OSError, ValueError) as exc:
-            _answer(conn, {"error": f"bad request: {exc}"})
+            _answer(conn, refusal or {"error": f"bad request: {exc}"})
             return
         self.requests.put((request, _replier(conn)))
+
+    def _refusal(self, conn: socket.socket) -> dict[str, Any] | None:
+        """None for the supervisor's user or root; for anyone else the answer, counted, and
+        logged the first time per uid."""
+        try:
+            peer = peer_credentials(conn)
+        except OSError as exc:
+            peer, why = (-1, -1), f"cannot tell who connected ({exc})"
+        else:
+            if peer is None or peer[1] in (self.owner, 0):
+                return None
+            why = f"uid {peer[1]} may not use this socket (only uid {self.owner} or root)"
+        pid, uid = peer
+        with self._refused_lock:
+            count = self.refused[uid] = self.refused.get(uid, 0) + 1
+        if count == 1:
+            log.warning(
+                "control socket %s: refused pid %d: %s; uid %d's next refusals are only counted",
+                self.path,
+                pid,
+                why,
+                uid,
+            )
+        return {"error": f"refused: {why}"}
 
     def pending(self) -> list[tuple[dict[str, Any], Reply]]:
         out = []

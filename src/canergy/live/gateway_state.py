@@ -7,26 +7,31 @@ between the roles: ``upstream.spent = downstream.injected - downstream.withdrawn
 initial downstream (every joule below came from above). A gateway that was still waiting to be
 admitted upstream (``joining``) has no upstream books: it joins again at the next start, never
 trusting the blank record.
+
+The file is guarded as a supervisor's: a checksum, and in authenticated mode the keys' ``epoch``
+and a MAC under a state key derived for this gateway (context: epoch and its node id upstream).
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from canergy.auth.state_key import StateSeal
 from canergy.core.gateway import GatewayState, link_gap
 from canergy.core.state import ClientState, Outcome, Phase, Session
 from canergy.frozen import evolve
-from canergy.live.atomic import write_atomic
 from canergy.live.state_file import (
-    ACCEPT_EDITED,
+    TOP_OPTIONAL,
     FieldChecker,
     StateFileError,
-    books_checksum,
+    check_guards,
     read_json,
+    saves_seal,
+    sealed_text,
     state_json,
+    write_private,
 )
 from canergy.messages import AMOUNT_MAX_MJ, MAX_NODE, MIN_NODE, QUANTUM_UJ
 
@@ -69,10 +74,17 @@ def gateway_json(state: GatewayState, variant: str) -> dict[str, Any]:
     }
 
 
-def save_gateway(path: Path, state: GatewayState, variant: str, *, fsync: bool = True) -> None:
-    books = gateway_json(state, variant)
-    books["checksum"] = books_checksum(books)
-    write_atomic(path, json.dumps(books, separators=(",", ":")).encode() + b"\n", fsync=fsync)
+def save_gateway(
+    path: Path,
+    state: GatewayState,
+    variant: str,
+    *,
+    fsync: bool = True,
+    seal: StateSeal | None = None,
+) -> None:
+    """Write the record (0600); ``seal``: by default the one ``keep_books`` set for ``path``."""
+    seal = seal if seal is not None else saves_seal(path)
+    write_private(path, sealed_text(gateway_json(state, variant), seal), fsync=fsync)
 
 
 def load_gateway(
@@ -83,27 +95,21 @@ def load_gateway(
     *,
     accept_edited: bool = False,
     on_edited: Callable[[str], None] | None = None,
+    seal: StateSeal | None = None,
 ) -> GatewayState:
-    """Read and check ``path`` for gateway ``node`` over ``nodes``; refused naming the field. A
-    missing or wrong checksum is taken only with ``accept_edited`` (``on_edited`` hears it)."""
+    """Read and check ``path`` for gateway ``node`` over ``nodes``; refused naming the field.
+    ``seal``: authenticated mode (derived for ``node``). A missing or wrong checksum or MAC is
+    taken only with ``accept_edited`` (``on_edited`` hears it); another epoch never."""
     data = read_json(path)
     check = FieldChecker(path)
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise StateFileError(f"{path}: not a {FORMAT} file")
-    check.fields(data, "", _TOP, optional=("checksum",))
+    check.fields(data, "", _TOP, optional=TOP_OPTIONAL)
     if type(data["version"]) is not int or data["version"] != VERSION:
         check.refuse("version", f"{data['version']!r} is not {VERSION}")
     if data["variant"] != variant:
         raise StateFileError(f"{path}: written by variant {data['variant']!r}, not {variant!r}")
-    if data.get("checksum") != books_checksum(data):
-        problem = "missing or not matching the books (edited by hand?)"
-        if not accept_edited:
-            raise StateFileError(
-                f"{path}: checksum: {problem}; check the books, then pass {ACCEPT_EDITED} to "
-                "take it as it is"
-            )
-        if on_edited is not None:
-            on_edited(f"{path}: checksum {problem}; taken as it is ({ACCEPT_EDITED})")
+    check_guards(path, data, seal, accept_edited, on_edited)
     up = _upstream(check, data["upstream"], node)
     down = check.books(data["downstream"], variant)
     extra = sorted({s.node for s in down.sessions} - set(nodes))

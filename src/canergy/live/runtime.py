@@ -4,6 +4,11 @@ The loop waits for a frame no longer than the handler's next deadline, decodes i
 it over, and sends what comes back. Sending survives a full transmit queue (retried with
 backoff); a send that still fails is counted and dropped: for the protocol it is a lost frame.
 Error frames and bus-state changes are counted, never fatal.
+
+In authenticated mode a frame in the direction this side sends is checked as the other side
+would check it (``OwnDirection``): only one that verifies under the node's key with a freshness
+value this side never used reaches ``on_foreign_direction``; the rest are refused and counted like
+any frame whose MAC or freshness failed (``on_auth_failure``).
 """
 
 from __future__ import annotations
@@ -16,9 +21,18 @@ from typing import Any, Protocol, cast
 
 import can
 
-from canergy.auth.frames import FrameAuth, Verdict
+from canergy.auth.frames import (
+    FV_MASK,
+    MAC_TYPE,
+    AuthFailure,
+    Expected,
+    FrameAuth,
+    Layout,
+    Verdict,
+    fv_before,
+)
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
-from canergy.messages import Direction, Message
+from canergy.messages import Admit, Direction, Join, Message, Return, ReturnAck, Telemetry
 
 Filters = list[dict[str, int | bool]]
 
@@ -41,8 +55,9 @@ class Handler(Protocol):
 
     def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
         """A frame in the direction this side sends (its own never come back to it): for a node
-        it handles, someone else (a second supervisor, a spoofer) sent it. Return frames to send
-        (none, usually)."""
+        it handles, someone else (a second supervisor, a spoofer) sent it. In authenticated
+        mode only one that verified under the node's key with a freshness value this side never
+        used (``OwnDirection``): authentic evidence. Return frames to send (none, usually)."""
         ...
 
     def next_wakeup(self) -> int | None:
@@ -79,6 +94,8 @@ class BusCounters:
     bus_state: str = "unknown"
     decode_reasons: dict[str, int] = field(default_factory=dict)
     auth_failures: dict[str, int] = field(default_factory=dict)
+    auth: str | None = None
+    """The authenticated layout (``fd``, ``classic``); None without a key."""
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -93,6 +110,7 @@ class BusCounters:
             "error_frames": self.error_frames,
             "bus_state": self.bus_state,
             "auth_failures": dict(self.auth_failures),
+            "auth": self.auth,
         }
 
 
@@ -104,7 +122,10 @@ def total_counters(counters: Iterable[BusCounters]) -> BusCounters:
     """Several buses' counters summed (counts by reason too); the bus state is the worst one."""
     total = BusCounters()
     states = set()
+    layouts: set[str] = set()
     for c in counters:
+        if c.auth is not None:
+            layouts.add(c.auth)
         for f in fields(BusCounters):
             mine, theirs = getattr(total, f.name), getattr(c, f.name)
             if isinstance(theirs, int):
@@ -114,11 +135,129 @@ def total_counters(counters: Iterable[BusCounters]) -> BusCounters:
                     mine[reason] = mine.get(reason, 0) + count
         states.add(c.bus_state)
     total.bus_state = next((s for s in _BUS_STATES if s in states), "unknown")
+    total.auth = min(layouts, default=None)
     return total
 
 
 def monotonic_us() -> int:
     return time.monotonic_ns() // 1000
+
+
+OWN_MAC_WAIT_US = 200_000
+"""Classic layout: a message in this side's own direction whose MAC frame has not followed it
+within this long is refused as a frame without a MAC (no later message of its node need come:
+this side's own frames never come back to it)."""
+
+
+@dataclass(frozen=True, slots=True)
+class OwnFrame:
+    """What a frame in this side's own direction came to (authenticated mode)."""
+
+    frame: can.Message
+    """The frame to report (for a classic message, its data frame)."""
+    refused: Verdict | None
+    """Why it was refused; None: authentic evidence (see ``OwnDirection``)."""
+
+
+class OwnDirection:
+    """Authenticated mode: frames in the direction this side sends. Its own never come back to
+    it, so each one is someone else's, checked as the other side would check it:
+
+    - refused, counted by reason and never acted on, when it fails there: no MAC, a bad one, a
+      MAC frame without its message, a classic message whose MAC frame does not follow within
+      ``OWN_MAC_WAIT_US``. Anyone on the bus can send these;
+    - refused as stale when it verifies but carries a freshness value this side may have used
+      itself: not above both its own counter and the highest it sent for that node (a replay of
+      its own frames), or one whose freshness says nothing of that (JOIN, ADMIT, TELEMETRY);
+    - authentic evidence otherwise: it verifies under the node's key with a freshness value this
+      side never used, so someone else holds the key (a second supervisor with the master key).
+      A far newer one (32,768 or more ahead of the side's counter) is refused as stale, as the
+      receiving side refuses it too.
+    """
+
+    def __init__(self, auth: FrameAuth) -> None:
+        other = (
+            Direction.TO_CLIENT
+            if auth.receives is Direction.TO_SUPERVISOR
+            else Direction.TO_SUPERVISOR
+        )
+        self.auth = auth
+        self.mirror = FrameAuth(auth.codec, auth.layout, auth.key_for, other, auth.freshness)
+        """The other side's check: its own pending messages, the same keys and counters."""
+        self.sent: dict[tuple[int, bool], int] = {}
+        """Per node and counter (False: transactions, True: returns) the newest FV sent."""
+        self.waiting: dict[int, tuple[int, can.Message]] = {}
+        """Classic layout: per node, when a data frame came and the frame, until its MAC frame."""
+
+    def note_sent(self, msg: Message) -> None:
+        """This side sent ``msg``: its FV is its own from now on."""
+        if isinstance(msg, Join | Admit | Telemetry):
+            return
+        fv = self.auth.freshness(msg)
+        if fv is None:
+            return
+        key = (msg.node, isinstance(msg, Return | ReturnAck))
+        last = self.sent.get(key)
+        if last is None or fv_before(last, fv & FV_MASK):
+            self.sent[key] = fv & FV_MASK
+
+    def check(self, frame: can.Message, now: int) -> OwnFrame | None:
+        """One frame of this side's direction; None when it comes to nothing yet (a classic
+        message before its MAC frame) or is for a node this side does not handle.
+        ``DecodeError`` for what the codec refuses."""
+        node = frame.arbitration_id & 0xFF
+        classic = self.auth.layout is Layout.CLASSIC
+        if classic and frame.arbitration_id >> 8 & 0xF not in MAC_TYPE.values():
+            previous = self.waiting.get(node)
+            verdict = self.mirror.accept(frame)
+            self.waiting[node] = (now, frame)
+            if verdict.failure is not None:  # the one before never got its MAC frame
+                return OwnFrame(previous[1] if previous else frame, verdict)
+            return None
+        shown = frame
+        if classic:
+            waiting = self.waiting.pop(node, None)
+            verdict = self.mirror.accept(frame)
+            lone = verdict.failure in (AuthFailure.MALFORMED, AuthFailure.NO_DATA)
+            shown = waiting[1] if waiting is not None and not lone else frame
+        else:
+            verdict = self.mirror.accept(frame)
+        if verdict.failure is not None:
+            return OwnFrame(shown, verdict)
+        msg = verdict.message
+        if msg is None:
+            return None
+        if self._never_sent(msg):
+            return OwnFrame(shown, None)
+        return OwnFrame(shown, Verdict(failure=AuthFailure.STALE, node=msg.node))
+
+    def _never_sent(self, msg: Message) -> bool:
+        """A verified message's FV is above this side's counter and above all it sent."""
+        if isinstance(msg, Join | Admit | Telemetry):
+            return False
+        wanted = self.auth.freshness(msg)
+        if not isinstance(wanted, Expected):
+            return False
+        floor = wanted.counter
+        last = self.sent.get((msg.node, isinstance(msg, Return | ReturnAck)))
+        if last is not None and fv_before(floor, last):
+            floor = last
+        return fv_before(floor, wanted & FV_MASK)
+
+    def expire(self, now: int) -> list[OwnFrame]:
+        """Classic messages whose MAC frame did not follow in time: refused, without a MAC."""
+        if not self.waiting:
+            return []
+        out: list[OwnFrame] = []
+        for node, (since, frame) in list(self.waiting.items()):
+            if now - since < OWN_MAC_WAIT_US:
+                continue
+            del self.waiting[node]
+            pending = self.mirror.pending.pop(node, None)
+            if pending is not None and self.auth.freshness(pending[0]) is not None:
+                refused = Verdict(failure=AuthFailure.UNAUTHENTICATED, node=node)
+                out.append(OwnFrame(frame, refused))
+        return out
 
 
 @dataclass(frozen=True, slots=True)
@@ -163,6 +302,10 @@ class BusRuntime:
         self.max_batch = 512
         self.auth = auth
         """Authenticated mode: MACs added to what is sent and checked on what is received."""
+        self.own = None if auth is None else OwnDirection(auth)
+        """Authenticated mode: frames of this side's own direction, checked before they count."""
+        if auth is not None:
+            self.counters.auth = auth.layout.value
         passes = callable(getattr(handler, "begin_pass", None))
         self._passes = cast(PassHandler, handler) if passes else None
 
@@ -203,6 +346,9 @@ class BusRuntime:
     def run_due(self) -> None:
         """Note the bus state and run the handler's deadlines that are due."""
         self._update_bus_state()
+        if self.own is not None and self.own.waiting:
+            for own in self.own.expire(self.clock()):
+                self._own_frame(own)
         wakeup = self.handler.next_wakeup()
         now = self.clock()
         if wakeup is not None and wakeup <= now:
@@ -240,15 +386,45 @@ class BusRuntime:
                 self.counters.foreign_frames += 1
                 return
             if err.reason is DecodeErrorReason.WRONG_DIRECTION:
-                self._send_all(self.handler.on_foreign_direction(frame, self.clock()))
+                self._foreign_direction(frame)
                 return
-            self.counters.decode_errors += 1
-            reasons = self.counters.decode_reasons
-            reasons[err.reason.value] = reasons.get(err.reason.value, 0) + 1
-            self.handler.on_decode_error(err, frame)
+            self._decode_error(err, frame)
             return
         if msg is not None:
             self._send_all(self.handler.on_message(msg, self.clock()))
+
+    def _decode_error(self, err: DecodeError, frame: can.Message) -> None:
+        self.counters.decode_errors += 1
+        reasons = self.counters.decode_reasons
+        reasons[err.reason.value] = reasons.get(err.reason.value, 0) + 1
+        self.handler.on_decode_error(err, frame)
+
+    def _foreign_direction(self, frame: can.Message) -> None:
+        """A frame in this side's own direction: someone else's. Without a key, the handler
+        judges it; with one, only authentic evidence reaches it (``OwnDirection``)."""
+        if self.own is None:
+            self._send_all(self.handler.on_foreign_direction(frame, self.clock()))
+            return
+        try:
+            own = self.own.check(frame, self.clock())
+        except DecodeError as err:
+            self._decode_error(err, frame)
+            return
+        if own is not None:
+            self._own_frame(own)
+
+    def _own_frame(self, own: OwnFrame) -> None:
+        if own.refused is None:
+            self._send_all(self.handler.on_foreign_direction(own.frame, self.clock()))
+        else:
+            self._refused(own.refused, own.frame)
+
+    def _refused(self, verdict: Verdict, frame: can.Message) -> None:
+        """A frame whose MAC or freshness failed: counted by reason, reported, never acted on."""
+        assert verdict.failure is not None
+        failures = self.counters.auth_failures
+        failures[verdict.failure.value] = failures.get(verdict.failure.value, 0) + 1
+        self.handler.on_auth_failure(verdict, frame, self.clock())
 
     def _decode(self, frame: can.Message) -> Message | None:
         """The message a frame carries; None when it carries none yet (a classic authenticated
@@ -267,9 +443,7 @@ class BusRuntime:
             raise DecodeError(DecodeErrorReason.REMOTE_FRAME, f"id 0x{frame.arbitration_id:08X}")
         verdict = self.auth.accept(frame)
         if verdict.failure is not None:
-            failures = self.counters.auth_failures
-            failures[verdict.failure.value] = failures.get(verdict.failure.value, 0) + 1
-            self.handler.on_auth_failure(verdict, frame, self.clock())
+            self._refused(verdict, frame)
         return verdict.message
 
     def _send_all(self, messages: Sequence[Message]) -> None:
@@ -282,6 +456,8 @@ class BusRuntime:
         if self.auth is not None:
             for frame in self.auth.frames(msg):
                 self._send_frame(frame)
+            if self.own is not None:
+                self.own.note_sent(msg)
             return
         arbitration_id, data = self.codec.encode(msg)
         self._send_frame(can.Message(arbitration_id=arbitration_id, is_extended_id=True, data=data))

@@ -16,7 +16,7 @@ from typing import Any, TextIO
 
 import can
 
-from canergy.auth.frames import Verdict, freshness
+from canergy.auth.frames import MAC_TYPE, Verdict, expected_freshness
 from canergy.codec import DecodeError
 from canergy.core import (
     Acknowledged,
@@ -32,10 +32,11 @@ from canergy.core.errors import LocalProtocolError
 from canergy.core.state import Outcome, Phase
 from canergy.live.atomic import write_json_atomic
 from canergy.live.bus_keys import node_name
-from canergy.live.intrusions import Intrusions, frame_text
+from canergy.live.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant
 from canergy.live.runtime import BusCounters, total_counters
 from canergy.live.state_file import ENERGY_MAX_UJ, BooksWriter
+from canergy.live.witness import ReturnGate
 from canergy.messages import (
     LEVEL_MAX_MJ,
     QUANTUM_UJ,
@@ -45,7 +46,9 @@ from canergy.messages import (
     Aborted,
     Ack,
     Committed,
+    Direction,
     Message,
+    MsgType,
     Return,
     Telemetry,
     ToSupervisor,
@@ -107,8 +110,16 @@ class ServiceConfig:
     inject_uj: int = 0
     """Energy added to Us (counted as injected) once, at start, and saved before any grant."""
     stop_on_intrusion: bool = False
-    """A frame only this supervisor may send, from someone else: stop (grant nothing more,
-    settle, exit non-zero) instead of only counting and reporting it."""
+    """Evidence of an intrusion: stop (grant nothing more, settle, exit non-zero) instead of
+    only counting and reporting it. Without a key: a frame only this supervisor may send, from
+    someone else. In authenticated mode only authentic evidence (``authentic_intrusion``): frames
+    without a MAC, with a bad one or a stale one are refused and counted, never a reason."""
+    return_hold_us: int | None = None
+    """Without a key: hold each RETURN until the node's own TELEMETRY confirms it and this long
+    has passed without the node reporting frames in its name (``canergy.live.witness``);
+    None: credit at once (authenticated mode, where a RETURN carries a MAC)."""
+    witness_block_us: int = 10_000_000
+    """No top-ups for a node this long after evidence against its TELEMETRY."""
     bus_names: tuple[str, ...] = ()
     """Several buses (``canergy supervisor --bus``): their names in order. The core's session
     keys are then ``bus index << 8 | node``, shown and saved as ``bus/node``."""
@@ -169,7 +180,10 @@ class SupervisorService:
         """Several buses: each one's counters by name (the status shows them and their sums)."""
         self.injected_this_run = 0
         self.intrusions = Intrusions("supervisor", name=self.node_name)
+        self.refusals = Refusals("supervisor", name=self.node_name)
+        """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
         self.stopped_by_intrusion = False
+        self.witness = ReturnGate(config.return_hold_us or 0, config.witness_block_us)
         if config.inject_uj:
             self._inject(config.inject_uj)
         if not config.listen_only:
@@ -188,14 +202,39 @@ class SupervisorService:
         info.heard_at = now
         if isinstance(msg, Telemetry):
             info.level, info.level_at, info.flags = msg.level_mj * QUANTUM_UJ, now, msg.flags
+            credited = self.core.session(msg.node).returns_credited
+            for line in self.witness.telemetry(msg, credited, now):
+                self.intrusion(msg.node, repr(msg), line, now, stop=True)
             self.ready.add(msg.node)
-            return self._flush(self._start_grants(now, self.ready))
+            return self._flush(self._released(msg.node, now) + self._start_grants(now, self.ready))
         if self.config.listen_only or not isinstance(msg, ToSupervisor):
             return ()
+        if isinstance(msg, Return) and self._hold_return(msg, now):
+            return self._flush(self._released(msg.node, now))
         out = self._carry_out(self.core.receive(msg, now), now)
         if self.ready:  # a transaction ended: the node's next grant goes out in this step
             out += self._start_grants(now, self.ready)
         return self._flush(out)
+
+    def _hold_return(self, msg: Return, now: int) -> bool:
+        """Detection mode: a fresh RETURN waits for the node's confirmation (``witness``)."""
+        credited = self.core.session(msg.node).returns_credited
+        if self.config.return_hold_us is None or self.witness.old(msg, credited):
+            return False
+        if (evidence := self.witness.hold(msg, credited, now)) is not None:
+            self.intrusion(msg.node, repr(msg), evidence, now, stop=True)
+        return True
+
+    def _released(self, node: int, now: int) -> list[Message]:
+        """The held RETURNs of ``node`` its TELEMETRY has confirmed, credited by the core."""
+        out: list[Message] = []
+        credited = self.core.session(node).returns_credited
+        for ret in self.witness.release(node, credited, now):
+            if ret.amount_mj == 0:
+                kind = "return numbers acknowledged by someone else: resynchronised at 0 mJ"
+                self.intrusion(node, repr(ret), kind, now, stop=True)
+            out += self._carry_out(self.core.receive(ret, now), now)
+        return out
 
     def _impossible(self, msg: Message, info: NodeInfo, now: int) -> str | None:
         """What no honest node sends, judged by the books alone (no key needed): a level or a
@@ -230,35 +269,83 @@ class SupervisorService:
     def on_foreign_direction(
         self, frame: can.Message, now: int, node: int | None = None
     ) -> Sequence[Message]:
+        """A frame only this supervisor sends, from someone else. Authenticated mode: the bus
+        loop hands over only one verified under the node's key with a freshness value this
+        supervisor never used (``canergy.live.runtime.OwnDirection``): authentic evidence."""
         node = frame.arbitration_id & 0xFF if node is None else node
-        if node in self.nodes:
+        if node not in self.nodes:
+            return ()
+        if self.authenticated:
+            kind = (
+                "a frame only this supervisor sends, verified under the node's key and newer "
+                "than any it sent: a second supervisor holds the master key"
+            )
+            self.authentic_intrusion(node, frame_text(frame), kind, now)
+        else:
             kind = "a frame only this supervisor sends"
             self.intrusion(node, frame_text(frame), kind, now, stop=True)
         return ()
 
     def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
-        if verdict.node in self.nodes and verdict.failure is not None:
-            self.intrusion(verdict.node, frame_text(frame), verdict.failure.value, now)
+        """A refused frame (no MAC, a bad one, a stale one...): counted per node and reason
+        with a rate, reported (an intrusion, logged at most once a second), never acted on:
+        anyone on the bus can send one."""
+        node, failure = verdict.node, verdict.failure
+        if node not in self.nodes or failure is None:
+            return
+        reason = failure.value
+        if _own_direction(frame):
+            reason += " (in the supervisor's direction)"
+        what = frame_text(frame)
+        self.refusals.record(node, reason, what, now)
+        self.intrusions.record(node, what, reason, now, quiet=True)
 
     def freshness(self, msg: Message) -> int | None:
         """Authenticated mode: the freshness value of a frame to or from ``msg.node``, from this
-        supervisor's counters for it (None: not a node it manages)."""
+        supervisor's counters for it (None: not a node it manages). A frame older than them (a
+        replay of an earlier transaction or return) is refused as stale."""
         if msg.node not in self.nodes:
             return None
         s = self.core.session(msg.node)
-        return freshness(msg, s.tx, s.returns_credited)
+        return expected_freshness(msg, s.tx, s.returns_credited)
+
+    @property
+    def authenticated(self) -> bool:
+        """Whether the bus loop checks MACs (``--auth``): it marks the counters it shares."""
+        counters = self.buses.values() if self.buses else (self.bus_counters,)
+        return any(c.auth is not None for c in counters)
 
     def node_name(self, node: int) -> int | str:
         """A node as status, replies and the state file name it: its id, or ``bus/node``."""
         return node_name(self.config.bus_names, node)
 
     def intrusion(self, node: int, what: str, kind: str, now: int, *, stop: bool = False) -> None:
-        """Report what no honest participant sends. ``stop``: a frame in this supervisor's own
-        direction (a second supervisor or a spoofer), which ``--on-intrusion stop`` acts on;
-        failed cross-checks and MACs are reported only (a replayed TELEMETRY or a duplicated
-        classic frame must not be able to stop the supervisor)."""
+        """Report what no honest participant sends. ``stop``: evidence that ``--on-intrusion
+        stop`` acts on without a key (a frame in this supervisor's own direction: a second
+        supervisor or a spoofer); failed cross-checks are reported only (a replayed TELEMETRY or
+        a duplicated classic frame must not be able to stop the supervisor). In authenticated
+        mode anyone can still send such frames without a MAC: only ``authentic_intrusion``
+        stops then, and ``stop`` here is reported only."""
         self.intrusions.record(node, what, kind, now)
-        if stop and self.config.stop_on_intrusion and not self.stopping:
+        if stop and not self.authenticated:
+            self._stop_on_intrusion(now)
+
+    def authentic_intrusion(self, node: int, what: str, kind: str, now: int) -> None:
+        """Authentic evidence of intrusion for node ``node``: what only a holder of a key could
+        have sent, checked under that key. ``--on-intrusion stop`` acts on it, in authenticated
+        mode as without a key. The bus loop calls it (through ``on_foreign_direction``) for a
+        frame in this supervisor's own direction verified under the node's key with a freshness
+        value this supervisor never used: a second supervisor holding the master key.
+
+        The hook for a node's own report: call it for a MAC-verified message whose content says
+        the node saw an intrusion (say a TELEMETRY flag), and only once that content is known
+        to be fresh: a TELEMETRY's freshness value is only the high half of the node's
+        transaction, so a recorded one verifies again when replayed."""
+        self.intrusions.record(node, what, kind, now, authentic=True)
+        self._stop_on_intrusion(now)
+
+    def _stop_on_intrusion(self, now: int) -> None:
+        if self.config.stop_on_intrusion and not self.stopping:
             self.stopped_by_intrusion = True
             self.stop(now)
 
@@ -266,6 +353,8 @@ class SupervisorService:
         wakeup = min(self.next_status, self.next_tick)
         if self.ready and not self.stopping:
             wakeup = min(wakeup, self.now)
+        if (release := self.witness.next_release()) is not None:
+            wakeup = min(wakeup, release)
         timer = self.core.get_timer()
         return wakeup if timer is None else min(wakeup, timer)
 
@@ -276,12 +365,15 @@ class SupervisorService:
             timer = self.core.get_timer()
             if timer is not None and timer <= now:
                 out += self._carry_out(self.core.handle_timer(now), now)
+            for node in [n for n, w in self.witness.nodes.items() if w.held]:
+                out += self._released(node, now)
             out += self._start_grants(now, None if now >= self.next_tick else self.ready)
         if now >= self.next_tick:
             self.next_tick = now + self.config.tick_us
         if now >= self.next_status:
             self.write_status()
             self.next_status = now + self.config.status_period_us
+        self.refusals.tick(now)  # what was refused since the last line, once a second at most
         return self._flush(out)
 
     # -- loop passes -----------------------------------------------------------------------
@@ -398,8 +490,8 @@ class SupervisorService:
                 continue  # not heard yet, or no books until admitted: a grant would be lost
             if info.requests:
                 out += self._one_shot(node, info, now)
-            elif self.config.policy is not None:
-                out += self._top_up(node, info, now)
+            elif self.config.policy is not None and not self.witness.blocked(node, now):
+                out += self._top_up(node, info, now)  # none against contradictory TELEMETRY
         return out
 
     def _one_shot(self, node: int, info: NodeInfo, now: int) -> list[Message]:
@@ -554,6 +646,7 @@ class SupervisorService:
                 "delivered_uj": s.delivered,
                 "returns_credited_uj": s.returned,
                 "returns_credited": s.returns_credited,
+                **self.witness.status(s.node),
                 "level_uj": info.level,
                 "lost": self.is_lost(s.node, self.now),
                 "committed": info.committed,
@@ -564,6 +657,7 @@ class SupervisorService:
                 "returns": info.returns,
                 "decode_errors": info.decode_errors,
                 "intrusions": self.intrusions.by_node.get(s.node, 0),
+                "refused": self.refusals.of_node(s.node),
             }
         reserved = sum(s.reserved for s in st.sessions)
         delivered = sum(s.delivered for s in st.sessions)
@@ -598,6 +692,7 @@ class SupervisorService:
             **({"buses": buses} if buses else {}),
             "intrusions": self.intrusions.total,
             "intrusion_report": self.intrusions.as_json(),
+            "refused": self.refusals.as_json(self.now),
             "stopped_by_intrusion": self.stopped_by_intrusion,
             "nodes": nodes,
             **({"cia402": self.extra_status(self.now)} if self.extra_status else {}),
@@ -613,3 +708,14 @@ class SupervisorService:
                 self.status_stream.flush()
             except BrokenPipeError:  # the reader went away (``| head``): keep supervising
                 self.status_stream = None
+
+
+def _own_direction(frame: can.Message) -> bool:
+    """A frame (or classic MAC frame) in the supervisor's own direction, to a node."""
+    kind = frame.arbitration_id >> 8 & 0xF
+    if kind in MAC_TYPE.values():
+        return kind == MAC_TYPE[Direction.TO_CLIENT]
+    try:
+        return MsgType(kind).direction is Direction.TO_CLIENT
+    except ValueError:
+        return False

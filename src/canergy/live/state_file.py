@@ -13,6 +13,13 @@ returns upstream, may be absent: 0). A file that fails is refused naming the fie
 file whose checksum is missing or wrong (edited by hand, or version 1, which has none) only with
 ``accept_edited``, and the next save writes a fresh checksum.
 
+The checksum guards against damage, not edits: anyone can recompute it. In authenticated mode
+(``--auth``) the file also records the keys' ``epoch`` and carries ``mac``, a MAC over the same
+canonical content under a key derived from the master key (``canergy.auth.state_key``). A file
+kept under keys of another epoch is refused, whatever the flags; a MAC that is missing (stripped,
+or the file written without ``--auth``) or wrong is refused unless ``accept_edited``, and so is a
+sealed file loaded without a key. State files and their temporaries are created 0600.
+
 A supervisor over several buses (``--bus``) keys its sessions ``bus/node`` (``can1/5``); its
 file loads only with the same bus names, as one on a single bus loads only with its nodes.
 """
@@ -27,6 +34,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
 
+from canergy.auth.keys import EPOCH_MAX
+from canergy.auth.state_key import StateSeal, claim
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.core.table import SupervisorTable
 from canergy.core.variants import VARIANTS
@@ -46,6 +55,9 @@ RESERVED_MAX_UJ = AMOUNT_MAX_MJ * QUANTUM_UJ
 MAX_FILE_BYTES = 1 << 20
 """Far above any real state file (127 nodes take about 25 kB)."""
 ACCEPT_EDITED = "--accept-edited-state"
+SEAL_FIELDS = ("checksum", "mac")
+"""Fields outside the canonical content: what guards it."""
+TOP_OPTIONAL = (*SEAL_FIELDS, "epoch")
 
 _TOP = ("format", "version", "variant", "initial_uj", "usable_uj", "injected_uj", "sessions")
 _SESSION = (
@@ -78,17 +90,78 @@ def stored_phases(table: SupervisorTable) -> tuple[Phase, ...]:
     return tuple(dict.fromkeys(stored_phase(table, p) for p in table.phases))
 
 
-_CANONICAL = json.JSONEncoder(sort_keys=True, separators=(",", ":"))
+def _as_read(value: object) -> str:
+    """A number no field takes (``1e30``), encoded as its text: it can only fail the check."""
+    if isinstance(value, _Number):
+        return value.text
+    raise TypeError(f"{type(value).__name__} is not JSON")
+
+
+_CANONICAL = json.JSONEncoder(sort_keys=True, separators=(",", ":"), default=_as_read)
 """The checksum's encoding, made once (``json.dumps`` with options builds an encoder per
 call)."""
 _canonical = _CANONICAL.encode
 
 
+def canonical_content(books: dict[str, Any]) -> bytes:
+    """The canonical JSON of every field but ``checksum`` and ``mac``: what they guard."""
+    return _canonical({k: v for k, v in books.items() if k not in SEAL_FIELDS}).encode()
+
+
+def _sha256(content: bytes) -> str:
+    return "sha256:" + hashlib.sha256(content).hexdigest()
+
+
 def books_checksum(books: dict[str, Any]) -> str:
-    """``sha256:<hex>`` over the canonical JSON of every field but ``checksum``."""
-    body = {k: v for k, v in books.items() if k != "checksum"}
-    canonical = _canonical(body)
-    return "sha256:" + hashlib.sha256(canonical.encode()).hexdigest()
+    """``sha256:<hex>`` over the books' canonical content."""
+    return _sha256(canonical_content(books))
+
+
+def sealed_text(books: dict[str, Any], seal: StateSeal | None) -> bytes:
+    """A file's content: ``books`` (epoch included when sealed), its checksum and MAC."""
+    head = {} if seal is None else {"epoch": seal.epoch}
+    body = _canonical({**books, **head})
+    return _with_seal(body, seal)
+
+
+def _with_seal(body: str, seal: StateSeal | None) -> bytes:
+    """``body`` (canonical JSON, ``epoch`` in it when sealed) with its checksum and MAC."""
+    content = body.encode()
+    tail = f',"checksum":"{_sha256(content)}"'
+    if seal is not None:
+        tail += f',"mac":"{seal.mac(content)}"'
+    return content[:-1] + tail.encode() + b"}\n"
+
+
+@dataclass(slots=True)
+class _Kept:
+    """How this process saves one state file (``keep_books``)."""
+
+    seal: StateSeal | None
+    claim: Callable[[], None] | None = None
+    """Records the seal's key in its epochs record; run before the first save."""
+
+
+_KEPT: dict[Path, _Kept] = {}
+"""Per state file path: the service and a gateway's files save by path alone."""
+
+
+def saves_seal(path: Path) -> StateSeal | None:
+    """The seal of a save of ``path`` (``keep_books``; None: none); the first save records the
+    key's claim before it writes."""
+    kept = _KEPT.get(path)
+    if kept is None:
+        return None
+    if kept.claim is not None:
+        kept.claim()
+        kept.claim = None
+    return kept.seal
+
+
+def write_private(path: Path, data: bytes, *, fsync: bool = True) -> None:
+    """Replace ``path`` atomically with a file only its owner may read or write (0600 from
+    the first byte, whatever the umask)."""
+    write_atomic(path, data, fsync=fsync, mode=0o600)
 
 
 def session_json(table: SupervisorTable | None, s: Session) -> dict[str, Any]:
@@ -133,25 +206,34 @@ class BooksWriter:
     """Saves one supervisor's books to ``path``, atomically, as often as they change.
 
     The file is the books' canonical JSON (what ``books_checksum`` hashes) with the checksum
-    added last, so each save builds the JSON once; and each session's JSON is kept until that
-    session changes (a step changes one), so a save of 127 nodes encodes one session, not 127.
+    (and with ``seal`` the MAC) added last, so each save builds the JSON once; and each
+    session's JSON is kept until that session changes (a step changes one), so a save of 127
+    nodes encodes one session, not 127. ``seal``: by default the one ``keep_books`` set.
     """
 
     def __init__(
-        self, path: Path, variant: str, *, fsync: bool = True, buses: Sequence[str] = ()
+        self,
+        path: Path,
+        variant: str,
+        *,
+        fsync: bool = True,
+        buses: Sequence[str] = (),
+        seal: StateSeal | None = None,
     ) -> None:
         self.path = path
         self.variant = variant
         self.fsync = fsync
         self.buses = tuple(buses)
+        self.seal = seal
+        """None: the one ``keep_books`` set for ``path``, if any."""
         self._table = _table(variant)
         self._sessions: dict[int, tuple[Session, str]] = {}
         """Per session key: the session last encoded and its ``"name":{...}`` text."""
         self._order: tuple[tuple[int, ...], list[int]] = ((), [])
         """The session keys as last seen, and the same keys in the order of their names."""
 
-    def text(self, state: SupervisorState) -> str:
-        """The file's content for ``state`` (checksum included)."""
+    def text(self, state: SupervisorState, seal: StateSeal | None = None) -> bytes:
+        """The file's content for ``state`` (checksum, and with ``seal`` the MAC)."""
         sessions = {s.node: s for s in state.sessions}
         keys = tuple(sessions)
         if self._order[0] != keys:
@@ -167,13 +249,15 @@ class BooksWriter:
                 kept = self._sessions[key] = (s, f"{name}:{entry}")
             parts.append(kept[1])
         fields = {k: _canonical(v) for k, v in _books_head(state, self.variant).items()}
+        if seal is not None:
+            fields["epoch"] = _canonical(seal.epoch)
         fields["sessions"] = "{" + ",".join(parts) + "}"
         body = "{" + ",".join(f"{_canonical(k)}:{fields[k]}" for k in sorted(fields)) + "}"
-        checksum = "sha256:" + hashlib.sha256(body.encode()).hexdigest()
-        return f'{body[:-1]},"checksum":"{checksum}"}}\n'
+        return _with_seal(body, seal)
 
     def save(self, state: SupervisorState) -> None:
-        write_atomic(self.path, self.text(state).encode(), fsync=self.fsync)
+        seal = self.seal if self.seal is not None else saves_seal(self.path)
+        write_private(self.path, self.text(state, seal), fsync=self.fsync)
 
 
 def save_state(
@@ -183,9 +267,10 @@ def save_state(
     *,
     fsync: bool = True,
     buses: Sequence[str] = (),
+    seal: StateSeal | None = None,
 ) -> None:
     """Save ``state`` once (a running supervisor keeps a ``BooksWriter``)."""
-    BooksWriter(path, variant, fsync=fsync, buses=buses).save(state)
+    BooksWriter(path, variant, fsync=fsync, buses=buses, seal=seal).save(state)
 
 
 def load_state(
@@ -196,15 +281,18 @@ def load_state(
     buses: Sequence[str] = (),
     accept_edited: bool = False,
     on_edited: Callable[[str], None] | None = None,
+    seal: StateSeal | None = None,
 ) -> SupervisorState:
     """Read and check ``path``; the file's nodes must all be in ``nodes`` (new nodes get fresh
     sessions). ``buses``: a supervisor over several buses, its bus names in order (``nodes`` are
-    then session keys); the file's buses must all be among them. A missing or wrong checksum is
-    refused unless ``accept_edited``; then the file is taken when it passes every other check
-    and ``on_edited`` hears why it needed the flag."""
+    then session keys); the file's buses must all be among them. ``seal``: authenticated mode,
+    the file's epoch must be the seal's. A missing or wrong checksum or MAC is refused unless
+    ``accept_edited``; then the file is taken when it passes every other check and
+    ``on_edited`` hears why it needed the flag."""
     data = read_json(path)
     state = FieldChecker(path, buses).books(data, variant)
-    _check_sum(path, data, accept_edited, on_edited)
+    legacy = data["version"] if data["version"] != VERSION else None
+    check_guards(path, data, seal, accept_edited, on_edited, legacy=legacy)
     sessions = {s.node: s for s in state.sessions}
     extra = sorted(set(sessions) - set(nodes))
     if extra and buses:
@@ -219,6 +307,14 @@ def load_state(
         )
     merged = tuple(sessions.get(n, Session(n)) for n in sorted(nodes))
     return evolve(state, sessions=merged)
+
+
+def keep_books(path: Path, seal: StateSeal | None, key_path: Path | None, *, fresh: bool) -> None:
+    """Seal every later save of ``path`` in this process (None: the checksum only). With a seal,
+    its key is checked against the epochs record beside ``key_path`` now (``fresh``, new books:
+    refused if it kept books) and recorded there before the first save."""
+    pending = None if seal is None or key_path is None else claim(key_path, seal, path, fresh=fresh)
+    _KEPT[path] = _Kept(seal, pending)
 
 
 @dataclass(frozen=True, slots=True)
@@ -296,28 +392,89 @@ def _shown(value: object) -> str:
     return f"{'an object' if isinstance(value, dict) else 'a list'} is not an integer"
 
 
-def _check_sum(
-    path: Path, data: dict[str, Any], accept_edited: bool, on_edited: Callable[[str], None] | None
+@dataclass(frozen=True, slots=True)
+class _Problem:
+    """Why a file's guard fails: the field, what is wrong, what may fix it besides the flag."""
+
+    field: str
+    why: str
+    hint: str = ""
+
+
+def check_guards(
+    path: Path,
+    data: dict[str, Any],
+    seal: StateSeal | None,
+    accept_edited: bool,
+    on_edited: Callable[[str], None] | None,
+    *,
+    legacy: int | None = None,
 ) -> None:
-    found = data.get("checksum")
-    if data["version"] != VERSION:
-        problem = f"a version {data['version']} file carries no checksum"
-    elif found is None:
-        problem = "no checksum"
-    elif not isinstance(found, str) or found != books_checksum(data):
-        problem = "the checksum does not match the books"
-    else:
+    """Refuse books of another epoch than ``seal``'s, whatever the flag; then a checksum or MAC
+    that is missing or wrong unless ``accept_edited`` (``on_edited`` hears why the flag was
+    needed). ``legacy``: the version of a file written before checksums."""
+    _check_epoch(path, data, seal)
+    problem = _sum_problem(data, legacy) or _seal_problem(data, seal)
+    if problem is None:
         return
     if not accept_edited:
         raise StateFileError(
-            f"{path}: checksum: {problem} (edited by hand?); check the books, then pass "
+            f"{path}: {problem.field}: {problem.why}; {problem.hint}check the books, then pass "
             f"{ACCEPT_EDITED} to take it as it is"
         )
     if on_edited is not None:
+        fresh = "a fresh checksum" + (" and MAC" if seal is not None else "")
         on_edited(
-            f"{path}: {problem}; taken as it is ({ACCEPT_EDITED}), the next save writes "
-            "a fresh checksum"
+            f"{path}: {problem.why}; taken as it is ({ACCEPT_EDITED}), the next save writes {fresh}"
         )
+
+
+def _check_epoch(path: Path, data: dict[str, Any], seal: StateSeal | None) -> None:
+    if "epoch" not in data:
+        return
+    found = FieldChecker(path).integer(data, "", "epoch", EPOCH_MAX)
+    if seal is not None and found != seal.epoch:
+        raise StateFileError(
+            f"{path}: epoch: the books were begun under keys of epoch {found}, but --auth gives "
+            f"keys of epoch {seal.epoch}; run with the master key of epoch {found}. Books keep "
+            "the epoch they began with: keys of a new epoch need a new state file, and a state "
+            "file started again needs keys of a new epoch, or frames of the old books verify "
+            "again"
+        )
+
+
+def _sum_problem(data: dict[str, Any], legacy: int | None) -> _Problem | None:
+    found = data.get("checksum")
+    if legacy is not None:
+        why = f"a version {legacy} file carries no checksum"
+    elif found is None:
+        why = "no checksum"
+    elif found != books_checksum(data):
+        why = "the checksum does not match the books"
+    else:
+        return None
+    return _Problem("checksum", f"{why} (edited by hand?)")
+
+
+def _seal_problem(data: dict[str, Any], seal: StateSeal | None) -> _Problem | None:
+    """A MAC the key does not check: missing, wrong, or no key for a sealed file."""
+    found = data.get("mac")
+    if seal is None:
+        if found is None and "epoch" not in data:
+            return None
+        return _Problem(
+            "mac",
+            "sealed in authenticated mode, and without its master key (--auth) the MAC cannot "
+            "be checked",
+            "run with that key, or ",
+        )
+    if found is None or "epoch" not in data:
+        why = "no MAC (stripped, or written without --auth?)"
+    elif not seal.matches(canonical_content(data), found):
+        why = "the MAC does not match the books (edited, or sealed with another master key?)"
+    else:
+        return None
+    return _Problem("mac", why)
 
 
 def _at(where: str, key: str) -> str:
@@ -382,7 +539,7 @@ class FieldChecker:
         if variant not in VARIANTS:
             self.refuse("variant", f"unknown variant {variant!r}")
         table = VARIANTS[variant].supervisor
-        self.fields(data, "", _TOP, optional=("checksum", "withdrawn_uj"))
+        self.fields(data, "", _TOP, optional=(*TOP_OPTIONAL, "withdrawn_uj"))
         initial = self.integer(data, "", "initial_uj")
         usable = self.integer(data, "", "usable_uj")
         injected = self.integer(data, "", "injected_uj")

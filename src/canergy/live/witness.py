@@ -1,0 +1,148 @@
+"""The node as the witness for its own id, and RETURNs credited only once the node confirms them.
+
+Without a key anyone can send a RETURN in a node's name, and the supervisor would credit it:
+energy out of nothing. The node sees every frame on the bus; one in its own name that it did not
+send, or an answer to something it never asked, is counted and reported in its next TELEMETRY
+(``witness``), which it sends at once. The supervisor:
+
+- raises an intrusion for the node whenever its reported ``witness`` count moves, or its
+  TELEMETRY contradicts itself (its return number going back: two streams in one name), and
+  stops topping that node up for ``block_us`` after;
+- holds every RETURN (``ReturnGate``) until the node's own TELEMETRY shows it has made that
+  return and ``hold_us`` has passed with no such evidence: a forged RETURN is then refuted by the
+  genuine node's report before it can be credited, never credited;
+- resynchronises returns: when the node's confirmed number is past the next one the supervisor
+  expects (someone acknowledged a return in the supervisor's name while it was away), the missed
+  numbers are credited as 0 mJ, so the node's later returns are credited again. What they held is
+  lost (dissipated), never created.
+
+Sans-IO: times in µs from the caller. Counters are unwrapped against the supervisor's own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from canergy.messages import SEQ_BITS, WITNESS_BITS, Return, Telemetry
+from canergy.seqnum import unwrap, wrap
+
+
+@dataclass(slots=True)
+class _Held:
+    amount_mj: int
+    since: int
+
+
+@dataclass(slots=True)
+class NodeWitness:
+    """What one node's TELEMETRY has said, and its RETURNs waiting for it."""
+
+    witness: int = 0
+    """The node's count as last reported: it starts at 0, so frames it saw before its first
+    report reaches this supervisor count too."""
+    return_seq: int | None = None
+    """The highest return number the node reported (unwrapped)."""
+    confirmed_at: int = 0
+    evidence_at: int | None = None
+    """When the node last reported frames in its name, or contradicted itself."""
+    held: dict[int, _Held] = field(default_factory=dict)
+    resynced: int = 0
+    refuted: int = 0
+
+
+class ReturnGate:
+    """Per node: evidence from TELEMETRY, RETURNs held until confirmed (see the module doc)."""
+
+    def __init__(self, hold_us: int, block_us: int) -> None:
+        self.hold_us = hold_us
+        self.block_us = block_us
+        self.nodes: dict[int, NodeWitness] = {}
+
+    def _of(self, node: int) -> NodeWitness:
+        return self.nodes.setdefault(node, NodeWitness())
+
+    def telemetry(self, msg: Telemetry, credited: int, now: int) -> list[str]:
+        """A TELEMETRY; returns the evidence it carries, one line each (empty: none)."""
+        w = self._of(msg.node)
+        evidence: list[str] = []
+        if msg.witness != w.witness:
+            seen = (msg.witness - w.witness) % (1 << WITNESS_BITS)
+            evidence.append(f"the node saw {seen} frame(s) in its name that it did not send")
+        w.witness = msg.witness
+        seq = unwrap(msg.return_seq, max(credited, w.return_seq or 0), SEQ_BITS)
+        if w.return_seq is not None and seq < w.return_seq:
+            evidence.append(f"its TELEMETRY contradicts itself: return {seq} after {w.return_seq}")
+        else:  # the node stands by the number: what it made is confirmed as of now
+            w.return_seq, w.confirmed_at = seq, now
+        if evidence:
+            self._refute(w, now)
+        return evidence
+
+    def hold(self, msg: Return, credited: int, now: int) -> str | None:
+        """A RETURN to hold until the node confirms it; evidence if it contradicts one held."""
+        w = self._of(msg.node)
+        seq = unwrap(msg.seq, credited, SEQ_BITS)
+        if seq <= credited:
+            return None  # an old number: the core re-acks it, no energy moves
+        held = w.held.get(seq)
+        if held is None:
+            w.held[seq] = _Held(msg.amount_mj, now)
+        elif held.amount_mj != msg.amount_mj:
+            self._refute(w, now)
+            return f"two RETURNs numbered {seq}: {held.amount_mj} and {msg.amount_mj} mJ"
+        return None
+
+    def old(self, msg: Return, credited: int) -> bool:
+        """A RETURN the core has credited already (its re-ack is harmless)."""
+        return unwrap(msg.seq, credited, SEQ_BITS) <= credited
+
+    def release(self, node: int, credited: int, now: int) -> list[Return]:
+        """The held RETURNs the node has confirmed and no evidence contradicts, in order, each
+        missed number before them as a 0 mJ RETURN."""
+        w = self.nodes.get(node)
+        if w is None or not w.held or w.return_seq is None:
+            return []
+        out: list[Return] = []
+        for seq in sorted(w.held):
+            held = w.held[seq]
+            ready = (
+                seq <= w.return_seq
+                and w.confirmed_at >= held.since
+                and now >= held.since + self.hold_us
+            )
+            if not ready or seq <= credited:
+                if seq <= credited:
+                    del w.held[seq]
+                continue
+            for missed in range(credited + 1, seq):
+                out.append(Return(node, wrap(missed, SEQ_BITS), 0))
+                w.resynced += 1
+            out.append(Return(node, wrap(seq, SEQ_BITS), held.amount_mj))
+            del w.held[seq]
+            credited = seq
+        return out
+
+    def blocked(self, node: int, now: int) -> bool:
+        """No top-ups for a node with recent evidence against its TELEMETRY."""
+        w = self.nodes.get(node)
+        return w is not None and w.evidence_at is not None and now < w.evidence_at + self.block_us
+
+    def _refute(self, w: NodeWitness, now: int) -> None:
+        """Evidence: every RETURN held so far is dropped (a genuine one is sent again)."""
+        w.evidence_at = now
+        w.refuted += len(w.held)
+        w.held.clear()
+
+    def next_release(self) -> int | None:
+        times = [h.since + self.hold_us for w in self.nodes.values() for h in w.held.values()]
+        return min(times, default=None)
+
+    def status(self, node: int) -> dict[str, int]:
+        w = self.nodes.get(node)
+        if w is None:
+            return {}
+        return {
+            "returns_held": len(w.held),
+            "returns_refuted": w.refuted,
+            "returns_resynchronised": w.resynced,
+        }

@@ -1,0 +1,432 @@
+"""Authenticated mode and ``--on-intrusion stop``: what anyone on the bus can send (frames without
+a MAC, with a bad one, replays) is refused, counted per node and reason with a rate and never
+stops the supervisor; only authentic evidence does (a frame verified under a node's key in the
+supervisor's own direction, with a freshness value it never used: a second supervisor holding the
+master key). A replayed genuine frame of an earlier transaction is refused as stale, on both
+sides."""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+from live_rig import Loop
+
+from canergy.auth.frames import (
+    MAC_TYPE,
+    AuthFailure,
+    FrameAuth,
+    Layout,
+    expected_freshness,
+    freshness,
+)
+from canergy.auth.keys import derive_node_key, load_key
+from canergy.cli import main
+from canergy.codec import Codec
+from canergy.core import Supervisor
+from canergy.live.control import request as ask
+from canergy.live.runtime import OWN_MAC_WAIT_US, BusRuntime, OwnDirection, monotonic_us
+from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.messages import (
+    Ack,
+    Commit,
+    Committed,
+    Direction,
+    Intention,
+    Message,
+    MsgType,
+    Return,
+    ReturnAck,
+    Telemetry,
+)
+from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
+from firmware_model.nvstore import NvStore
+
+CODEC = Codec()
+KEY = bytes(range(16))
+STALE = AuthFailure.STALE.value
+NO_MAC = AuthFailure.UNAUTHENTICATED.value
+
+
+def key(node: int) -> bytes:
+    return derive_node_key(KEY, node, 1)
+
+
+def side(layout: Layout, receives: Direction, tx: int, seq: int) -> FrameAuth:
+    """An authenticator whose counters are ``tx`` and ``seq`` and that refuses older frames."""
+    return FrameAuth(CODEC, layout, key, receives, lambda m: expected_freshness(m, tx, seq))
+
+
+def sender(layout: Layout, direction: Direction, tx: int, seq: int) -> FrameAuth:
+    """What builds the frames of ``direction`` with counters ``tx`` and ``seq``."""
+    receives = Direction.TO_SUPERVISOR if direction is Direction.TO_CLIENT else Direction.TO_CLIENT
+    return FrameAuth(CODEC, layout, key, receives, lambda m: freshness(m, tx, seq))
+
+
+def last(auth: FrameAuth, frames: list[can.Message]) -> Any:
+    return [auth.accept(f) for f in frames][-1]
+
+
+# --- stale refusals, frame by frame ------------------------------------------------------------
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+@pytest.mark.parametrize(
+    "msg",
+    [
+        *(Ack(3, 7), Committed(3, 7), Return(3, 7, 20)),
+        *(Intention(3, 7, 500, 0), Commit(3, 7, 500), ReturnAck(3, 7)),
+    ],
+)
+def test_a_genuine_frame_older_than_the_receivers_counter_is_stale(
+    layout: Layout, msg: Message
+) -> None:
+    """Sent at counter 7; received at 9 (an earlier transaction or return, replayed): stale,
+    not MAC BAD. At 7 it is a current duplicate and passes; at 6 it is the next one."""
+    receives = msg.TYPE.direction
+    frames = sender(layout, receives, 7, 7).frames(msg)
+    assert last(side(layout, receives, 9, 9), frames).failure is AuthFailure.STALE
+    for counter in (7, 6):
+        assert last(side(layout, receives, counter, counter), frames).message == msg
+    tampered = [
+        can.Message(arbitration_id=f.arbitration_id, data=bytearray(f.data), is_fd=f.is_fd)
+        for f in frames
+    ]
+    tampered[-1].data[-1] ^= 1
+    assert last(side(layout, receives, 9, 9), tampered).failure is AuthFailure.MAC_BAD
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_plain_freshness_keeps_checking_the_fv_alone(layout: Layout) -> None:
+    """``freshness`` (a plain int, what the C client computes) still takes an older frame whose
+    16-bit counter extends to its FV: only ``expected_freshness`` refuses it."""
+    frames = sender(layout, Direction.TO_SUPERVISOR, 7, 0).frames(Committed(3, 7))
+    plain = FrameAuth(CODEC, layout, key, Direction.TO_SUPERVISOR, lambda m: freshness(m, 9, 0))
+    assert last(plain, frames).message == Committed(3, 7)
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_telemetry_is_checked_by_its_mac_alone(layout: Layout) -> None:
+    frames = sender(layout, Direction.TO_SUPERVISOR, 7, 0).frames(Telemetry(3, 40))
+    assert last(side(layout, Direction.TO_SUPERVISOR, 9, 0), frames).message == Telemetry(3, 40)
+
+
+# --- frames in the supervisor's own direction ---------------------------------------------------
+
+
+def own(layout: Layout, tx: int) -> tuple[OwnDirection, FrameAuth]:
+    auth = side(layout, Direction.TO_SUPERVISOR, tx, 0)
+    return OwnDirection(auth), auth
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_own_direction_frames_are_refused_unless_authentic_and_new(layout: Layout) -> None:
+    checker, auth = own(layout, 10)
+    # without a MAC: refused (classic: once its MAC frame has not followed in time)
+    arbitration_id, data = CODEC.encode(Intention(3, 11, 500, 0))
+    outcome = checker.check(can.Message(arbitration_id=arbitration_id, data=data), 0)
+    if layout is Layout.CLASSIC:
+        assert outcome is None and checker.expire(OWN_MAC_WAIT_US - 1) == []
+        (outcome,) = checker.expire(OWN_MAC_WAIT_US)
+    assert outcome is not None and outcome.refused is not None
+    assert outcome.refused.failure is AuthFailure.UNAUTHENTICATED and outcome.refused.node == 3
+    assert outcome.frame.arbitration_id == arbitration_id
+
+    def verdict(msg: Message, tx: int) -> Any:
+        frames = sender(layout, Direction.TO_CLIENT, tx, 0).frames(msg)
+        outcomes = [checker.check(f, 0) for f in frames]
+        assert outcomes[:-1] == [None] * (len(frames) - 1)
+        return outcomes[-1]
+
+    # verified, at or below the supervisor's counter: a replay of its own frames
+    for tx in (10, 9):
+        refused = verdict(Intention(3, tx, 500, 0), tx).refused
+        assert refused is not None and refused.failure is AuthFailure.STALE
+    # verified and newer than anything it sent: authentic evidence
+    evidence = verdict(Commit(3, 12, 500), 12)
+    assert evidence is not None and evidence.refused is None
+    assert evidence.frame.arbitration_id == CODEC.encode(Commit(3, 12, 500))[0]
+    # what the supervisor sends itself is its own from then on
+    checker.note_sent(Intention(3, 12, 500, 0))
+    refused = verdict(Intention(3, 12, 500, 0), 12).refused
+    assert refused is not None and refused.failure is AuthFailure.STALE
+    # a bad MAC in its direction: refused as MAC BAD
+    frames = sender(layout, Direction.TO_CLIENT, 20, 0).frames(Commit(3, 20, 1))
+    frames[-1] = can.Message(
+        arbitration_id=frames[-1].arbitration_id,
+        data=bytes(frames[-1].data[:-1]) + bytes([frames[-1].data[-1] ^ 1]),
+        is_fd=frames[-1].is_fd,
+    )
+    outcomes = [checker.check(f, 0) for f in frames]
+    assert outcomes[-1] is not None and outcomes[-1].refused is not None
+    assert outcomes[-1].refused.failure is AuthFailure.MAC_BAD
+    assert auth.pending == {}  # the receiving side's state is not touched
+
+
+def test_without_a_key_stop_evidence_still_stops_and_with_one_only_authentic_evidence() -> None:
+    def service() -> SupervisorService:
+        core = Supervisor((1,), 10_000_000)
+        return SupervisorService(core, ServiceConfig(stop_on_intrusion=True, fsync=False), 0)
+
+    plain = service()
+    plain.intrusion(1, "f", "a frame only this supervisor sends", 0, stop=True)
+    assert plain.stopping and plain.stopped_by_intrusion
+    keyed = service()
+    keyed.bus_counters.auth = "fd"
+    assert keyed.authenticated
+    keyed.intrusion(1, "f", "evidence anyone without a key can make", 0, stop=True)
+    assert not keyed.stopping and keyed.intrusions.total == 1
+    keyed.authentic_intrusion(1, "f", "a node's verified report", 0)
+    assert keyed.stopping and keyed.stopped_by_intrusion
+    assert keyed.status()["intrusion_report"]["authentic"] == {"total": 1, "by_node": {"1": 1}}
+
+
+# --- the live stack on the virtual bus ----------------------------------------------------------
+
+
+@dataclass
+class Bench:
+    tmp: Path
+    layout: Layout
+    rogue: can.BusABC
+    sniffer: can.BusABC
+    node: FirmwareNode
+    node_runtime: BusRuntime
+    result: list[int]
+    thread: threading.Thread
+
+    def status(self) -> dict[str, Any]:
+        try:
+            return dict(json.loads((self.tmp / "status.json").read_text()))
+        except (FileNotFoundError, json.JSONDecodeError):
+            return {}
+
+    def wait(self, condition: Callable[[], Any], timeout: float = 30) -> None:
+        end = time.monotonic() + timeout
+        while not condition():
+            assert time.monotonic() < end, "timed out"
+            time.sleep(0.01)
+
+    def committed(self) -> int:
+        return int(self.status().get("nodes", {}).get("1", {}).get("committed", 0))
+
+    def refused(self, reason: str) -> int:
+        reasons = self.status().get("refused", {}).get("by_node", {}).get("1", {})
+        return int(reasons.get("reasons", {}).get(reason, {}).get("count", 0))
+
+    def plain(self, msg: Message) -> int:
+        """``msg`` as anyone without the key sends it: the codec's frame, no MAC. When it
+        left (monotonic µs)."""
+        arbitration_id, data = CODEC.encode(msg)
+        sent = monotonic_us()
+        self.rogue.send(can.Message(arbitration_id=arbitration_id, data=data))
+        return sent
+
+    def send(self, frames: list[can.Message]) -> int:
+        sent = monotonic_us()
+        for frame in frames:
+            self.rogue.send(frame)
+        return sent
+
+
+@pytest.fixture(params=list(Layout))
+def bench(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[Bench]:
+    layout: Layout = request.param
+    fd = layout is Layout.FD
+    assert main(["keys", "-o", str(tmp_path / "m.key")]) == 0
+    channel = f"auth-stop-{uuid.uuid4().hex}"
+    node = FirmwareNode(
+        1,
+        NvStore(tmp_path / "1.nv", 1, fsync=False),
+        NodeConfig(return_above=600_000, telemetry_period_us=100_000),
+        monotonic_us(),
+    )
+    host = NodeHost([node])
+    node_key = load_key(tmp_path / "m.key").node_key(1)
+    node_bus = can.Bus(
+        interface="virtual", channel=channel, fd=fd, can_filters=CODEC.client_watch_filters(1)
+    )
+    auth = FrameAuth(CODEC, layout, lambda n: node_key, Direction.TO_CLIENT, host.freshness)
+    runtime = BusRuntime(node_bus, host, codec=CODEC, receives=Direction.TO_CLIENT, auth=auth)
+    loop = Loop(runtime)
+    sniffer = can.Bus(interface="virtual", channel=channel, fd=fd)
+    argv = [
+        "supervisor",
+        *("-i", "virtual", "-c", channel, *(["--fd"] if fd else [])),
+        *("--nodes", "1", "--initial", "10J", "--target", "1J", "--max-grant", "0.5J"),
+        *("--auth", str(tmp_path / "m.key"), "--on-intrusion", "stop"),
+        *("--state", str(tmp_path / "s.json"), "--no-fsync"),
+        *("--status-file", str(tmp_path / "status.json"), "--status-period", "50ms"),
+        *("--control", str(tmp_path / "ctl.sock"), "--response-timeout", "100ms"),
+    ]
+    result: list[int] = []
+    thread = threading.Thread(target=lambda: result.append(main(argv)), daemon=True)
+    thread.start()
+    rogue = can.Bus(interface="virtual", channel=channel, fd=fd)
+    b = Bench(tmp_path, layout, rogue, sniffer, node, runtime, result, thread)
+    try:
+        b.wait(lambda: b.committed() >= 1)
+        yield b
+    finally:
+        if thread.is_alive() and (tmp_path / "ctl.sock").exists():
+            ask(tmp_path / "ctl.sock", {"stop": True}, 30)
+        thread.join(timeout=60)
+        loop.halt()
+        rogue.shutdown()
+        sniffer.shutdown()
+
+
+def _latency_ms(b: Bench, reason: str, sent: int) -> float:
+    events = [e for e in b.status()["refused"]["recent"] if e["reason"] == reason]
+    return float(events[-1]["time_us"] - sent) / 1000
+
+
+def test_frames_without_a_mac_are_counted_and_never_stop_the_supervisor(bench: Bench) -> None:
+    b = bench
+    own_reason = f"{NO_MAC} (in the supervisor's direction)"
+    # one plain frame in the supervisor's own direction: before, exit 3 within a few ms
+    sent = b.plain(Intention(1, 40_000, 65_535, 0))
+    b.wait(lambda: b.refused(own_reason) >= 1)
+    own_ms = _latency_ms(b, own_reason, sent)
+    # and in the node's direction (classic: counted once the node's next message displaces it)
+    sent = b.plain(Return(1, 1_000, 65_535))
+    b.wait(lambda: b.refused(NO_MAC) >= 1)
+    up_ms = _latency_ms(b, NO_MAC, sent)
+    before = b.committed()
+    b.wait(lambda: b.committed() >= before + 2)  # still granting
+    final = b.status()
+    assert b.thread.is_alive() and not final["stopping"] and not final["stopped_by_intrusion"]
+    assert final["auth"] == b.layout.value
+    assert final["auth_failures"].get(NO_MAC, 0) >= 2
+    assert final["nodes"]["1"]["refused"] >= 2
+    assert final["intrusion_report"]["authentic"]["total"] == 0
+    print(f"\n{b.layout.value}: counted after {own_ms:.1f} ms (own direction), {up_ms:.1f} ms")
+    ask(b.tmp / "ctl.sock", {"stop": True}, 30)
+    b.thread.join(timeout=60)
+    assert b.result == [0]
+
+
+def test_a_flood_is_rated_and_logged_at_most_once_a_second(
+    bench: Bench, caplog: pytest.LogCaptureFixture
+) -> None:
+    b = bench
+    caplog.set_level(logging.WARNING, logger="canergy.live.intrusions")
+    start = time.monotonic()
+    rates = []
+    while time.monotonic() - start < 2.5:
+        for _ in range(20):
+            b.plain(Commit(1, 50_000, 1))
+            b.plain(Ack(1, 50_000))  # in the node's direction, MAC-less
+        time.sleep(0.02)
+        rates.append(b.status().get("refused", {}).get("per_s", 0))
+    b.wait(lambda: b.status()["refused"]["total"] >= 100)
+    assert max(rates) >= 50, rates
+    refused = b.status()["refused"]["by_node"]["1"]
+    assert refused["per_s"] >= 0 and refused["total"] >= 100
+    assert f"{NO_MAC} (in the supervisor's direction)" in refused["reasons"]
+    assert set(refused["reasons"]) <= {  # a MAC-less ACK may displace the node's own (classic)
+        NO_MAC,
+        f"{NO_MAC} (in the supervisor's direction)",
+        AuthFailure.NO_DATA.value,
+        AuthFailure.MAC_BAD.value,
+    }
+    lines = [r for r in caplog.records if "refused" in r.getMessage()]
+    assert 2 <= len(lines) <= 5, [r.getMessage() for r in lines]  # 2.5 s: one a second
+    assert b.thread.is_alive() and not b.status()["stopping"]
+
+
+def test_a_second_supervisor_with_the_master_key_stops_it_with_status_3(
+    bench: Bench, capsys: pytest.CaptureFixture[str]
+) -> None:
+    b = bench
+    b.wait(lambda: b.committed() >= 2)
+    tx = 1_000 + b.committed()  # beyond anything this supervisor began
+    master = load_key(b.tmp / "m.key")
+    second = FrameAuth(
+        CODEC, b.layout, master.node_key, Direction.TO_SUPERVISOR, lambda m: freshness(m, tx, 0)
+    )
+    sent = b.send(second.frames(Intention(1, tx & 0xFFFF, 100, 0)))
+    b.thread.join(timeout=60)
+    took_ms = (monotonic_us() - sent) / 1000
+    assert b.result == [3]
+    final = b.status()
+    assert final["stopped_by_intrusion"]
+    report = final["intrusion_report"]
+    assert report["authentic"] == {"total": 1, "by_node": {"1": 1}}
+    (event,) = [e for e in report["recent"] if e.get("authentic")]
+    assert "second supervisor" in event["kind"]
+    assert "stopped on intrusion" in capsys.readouterr().err
+    first_ms = (report["first_at_us"] - sent) / 1000
+    with capsys.disabled():
+        print(
+            f"\n{b.layout.value}: second supervisor: seen after {first_ms:.1f} ms, "
+            f"exit 3 after {took_ms:.0f} ms"
+        )
+
+
+def _genuine(
+    b: Bench, captured: list[can.Message], msg_type: MsgType, tx: int
+) -> list[can.Message]:
+    """The frames of the genuine message ``msg_type`` of transaction ``tx`` in a capture (the
+    classic layout: its data frame and the MAC frame after it)."""
+    ident = CODEC.id_base | msg_type << 8 | 1
+    mac_id = CODEC.id_base | MAC_TYPE[msg_type.direction] << 8 | 1
+    for i, frame in enumerate(captured):
+        if frame.arbitration_id != ident:
+            continue
+        if b.layout is Layout.FD:
+            if int.from_bytes(frame.data[-12:-8], "big") == tx:
+                return [frame]
+            continue
+        if getattr(CODEC.decode(ident, bytes(frame.data)), "tx", None) != tx:
+            continue
+        trailer = next(
+            f for f in captured[i + 1 :] if f.arbitration_id == mac_id and f.data[0] == msg_type
+        )
+        return [frame, trailer]
+    raise AssertionError(f"no {msg_type.name} of tx {tx} captured")
+
+
+def test_a_replayed_frame_of_an_earlier_transaction_is_counted_as_stale(bench: Bench) -> None:
+    b = bench
+    b.wait(lambda: b.committed() >= 3)
+    captured: list[can.Message] = []
+    while (frame := b.sniffer.recv(0)) is not None:
+        captured.append(frame)
+    committed = _genuine(b, captured, MsgType.COMMITTED, 1)  # the node's, to the supervisor
+    intention = _genuine(b, captured, MsgType.INTENTION, 1)  # the supervisor's own, to the node
+    node_stale = b.node_runtime.counters.auth_failures.get(STALE, 0)
+    sent = _replay(b, committed, lambda: b.refused(STALE) >= 1)
+    up_ms = _latency_ms(b, STALE, sent)
+    own_reason = f"{STALE} (in the supervisor's direction)"
+    # a replay of its own frame: stale, not a second supervisor; the node refuses it as stale
+    _replay(b, intention, lambda: b.refused(own_reason) >= 1)
+    b.wait(lambda: b.node_runtime.counters.auth_failures.get(STALE, 0) >= node_stale + 1)
+    before = b.committed()
+    b.wait(lambda: b.committed() >= before + 1)
+    final = b.status()
+    assert final["auth_failures"][STALE] >= 2
+    assert not final["stopping"] and final["intrusion_report"]["authentic"]["total"] == 0
+    print(f"\n{b.layout.value}: replayed COMMITTED counted as stale after {up_ms:.1f} ms")
+
+
+def _replay(b: Bench, frames: list[can.Message], counted: Callable[[], bool]) -> int:
+    """Send ``frames`` again until ``counted`` (classic: a genuine frame of the node may land
+    between a replayed message and its MAC frame, as it may between any two)."""
+    for _ in range(5):
+        sent = b.send(frames)
+        end = time.monotonic() + 1
+        while time.monotonic() < end:
+            if counted():
+                return sent
+            time.sleep(0.01)
+    raise AssertionError("the replay was never counted")

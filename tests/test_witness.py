@@ -1,0 +1,141 @@
+"""The node as the witness for its own id (security second pass, items 1-4): without a key, a
+forged RETURN is refuted by the node's own TELEMETRY and never credited; frames in a node's name
+are reported by the node and raised by the supervisor within a second; a node whose TELEMETRY
+contradicts itself gets no top-ups; returns acknowledged in the supervisor's name while it was
+away resynchronise."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from harness import Harness
+from test_intrusions import Bench, bench
+
+from canergy.live.control import request
+from canergy.live.runtime import monotonic_us
+from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.witness import ReturnGate
+from canergy.messages import Join, Return, ReturnAck, Telemetry
+
+HOLD = 300_000
+
+
+def tel(return_seq: int, witness: int = 0, node: int = 1, level_mj: int = 0) -> Telemetry:
+    return Telemetry(node, level_mj, 0, return_seq, witness)
+
+
+def test_a_return_is_released_only_once_the_node_confirms_it_and_the_hold_passed() -> None:
+    gate = ReturnGate(HOLD, 10_000_000)
+    gate.telemetry(tel(0), 0, 0)
+    assert gate.hold(Return(1, 1, 700), 0, 1_000) is None
+    assert gate.release(1, 0, 1_000 + HOLD) == []  # the node has not said it made return 1
+    gate.telemetry(tel(1), 0, 50_000)
+    assert gate.release(1, 0, 50_000) == []  # confirmed, but the hold is not over
+    assert gate.release(1, 0, 1_000 + HOLD) == [Return(1, 1, 700)]
+    assert gate.release(1, 1, 2 * HOLD) == []  # once
+
+
+def test_a_forged_return_is_refuted_by_the_nodes_report_and_never_released() -> None:
+    gate = ReturnGate(HOLD, 10_000_000)
+    gate.telemetry(tel(0), 0, 0)
+    gate.hold(Return(1, 1, 65_535), 0, 1_000)  # forged: the node made no return
+    assert gate.telemetry(tel(1, witness=0), 0, 2_000) == []  # a forged confirmation, too ...
+    evidence = gate.telemetry(tel(0, witness=2), 0, 30_000)  # ... and the genuine node's report
+    assert any("2 frame(s) in its name" in line for line in evidence)
+    assert any("contradicts itself" in line for line in evidence)
+    assert gate.release(1, 0, 10 * HOLD) == []
+    assert gate.status(1)["returns_refuted"] == 1
+    assert gate.blocked(1, 40_000) and not gate.blocked(1, 10_030_000)
+
+
+def test_two_returns_with_one_number_are_evidence() -> None:
+    gate = ReturnGate(HOLD, 10_000_000)
+    gate.hold(Return(1, 1, 500), 0, 0)
+    assert gate.hold(Return(1, 1, 500), 0, 10) is None  # a resent one: the same
+    assert "two RETURNs numbered 1" in (gate.hold(Return(1, 1, 900), 0, 20) or "")
+
+
+def test_returns_acknowledged_by_someone_else_resynchronise_at_0_mj() -> None:
+    gate = ReturnGate(HOLD, 10_000_000)
+    gate.hold(Return(1, 3, 800), 1, 0)  # the supervisor credited 1; the node is at 3
+    gate.telemetry(tel(3), 1, 10_000)
+    assert gate.release(1, 1, HOLD) == [Return(1, 2, 0), Return(1, 3, 800)]
+    assert gate.status(1)["returns_resynchronised"] == 1
+
+
+def test_the_service_credits_a_resynchronised_return_and_reports_the_gap() -> None:
+    rig = Harness("hardened")
+    rig.begin(1_000_000)
+    rig.settle()  # 1 J delivered to node 1
+    core = rig.sup
+    config = ServiceConfig(return_hold_us=HOLD, fsync=False, status_period_us=10**12)
+    service = SupervisorService(core, config, 0)
+    service.on_message(tel(0), 0)
+    service.on_message(Return(1, 2, 400), 1_000)  # return 1 was acked in its name meanwhile
+    service.on_message(tel(2), 2_000)
+    assert core.session(1).returns_credited == 0  # held
+    out = service.on_wakeup(HOLD + 1_000)
+    assert core.session(1).returns_credited == 2 and core.session(1).returned == 400_000
+    assert ReturnAck(1, 2) in out
+    (gap,) = [e for e in service.intrusions.as_json()["recent"] if "resynchronised" in e["kind"]]
+    assert gap["node"] == 1 and service.intrusions.total == 1  # someone else's doing
+
+
+@pytest.fixture
+def guarded(tmp_path: Path) -> Iterator[Bench]:
+    yield from bench(tmp_path, "--return-hold", "300ms")
+
+
+def grant(b: Bench, amount_uj: int) -> None:
+    answer = request(b.tmp / "ctl.sock", {"grant": {"node": 1, "amount_uj": amount_uj}}, 30)
+    assert answer.get("outcome") == "COMMITTED", answer
+
+
+def supervisor_intrusions(b: Bench) -> int:
+    return int(b.status().get("nodes", {}).get("1", {}).get("intrusions", 0))
+
+
+def test_a_forged_return_is_never_credited_and_raised_within_a_second(guarded: Bench) -> None:
+    b = guarded
+    grant(b, 2_000_000)
+    b.wait(lambda: b.status()["nodes"]["1"]["delivered_uj"] == 2_000_000)
+    before = b.status()
+    sent = b.forge(Return(1, 1, 1_000))  # no larger than what the node may hold
+    b.wait(lambda: supervisor_intrusions(b) >= 1)
+    assert b.status()["intrusion_report"]["first_at_us"] - sent < 1_000_000
+    time.sleep(1.0)  # well past the hold
+    after = b.status()
+    assert after["nodes"]["1"]["returns_credited_uj"] == 0
+    assert after["usable_uj"] == before["usable_uj"]  # nothing created
+    assert b.host.nodes[1].witnessed >= 1
+
+
+@pytest.fixture
+def topped_up(tmp_path: Path) -> Iterator[Bench]:
+    yield from bench(tmp_path, "--target", "1J", "--return-hold", "300ms")
+
+
+def test_a_forged_telemetry_stops_the_nodes_top_ups(topped_up: Bench) -> None:
+    b = topped_up
+    b.wait(lambda: b.status()["nodes"]["1"]["delivered_uj"] >= 1_000_000)
+    started = monotonic_us()
+    start = time.monotonic()
+    while time.monotonic() - start < 3:
+        b.forge(Telemetry(1, 0, 0, 0, 0))  # "empty": top me up
+        time.sleep(0.05)
+    status = b.status()
+    assert supervisor_intrusions(b) >= 1
+    first = status["intrusion_report"]["first_at_us"]
+    assert first is not None and first - started < 1_000_000
+    assert status["nodes"]["1"]["delivered_uj"] <= 2_000_000  # not the whole 10 J
+
+
+def test_a_forged_join_is_raised_by_the_supervisor(guarded: Bench) -> None:
+    b = guarded
+    sent = b.forge(Join(1, 0x1234))
+    b.wait(lambda: supervisor_intrusions(b) >= 1)
+    assert b.status()["intrusion_report"]["first_at_us"] - sent < 1_000_000
+    assert any("in its name" in e["kind"] for e in b.status()["intrusion_report"]["recent"])

@@ -207,3 +207,31 @@ def test_a_drive_the_guard_cannot_meter_is_disabled(
                 net.notifier.stop()
             if net.bus is not None:
                 net.bus.shutdown()
+
+
+@pytest.mark.parametrize("mode", ["counter", "envelope"])
+def test_pulses_between_tpdos_on_the_virtual_bus_stay_inside_grant_plus_bound(
+    tmp_path: Path, mode: str
+) -> None:
+    """The issue's pulses, from an application master on the wall clock: target velocity up and
+    down every 10 ms at 10,000 rad/s² with 20 ms TPDOs, until the budget runs out (or 20 s)."""
+    from firmware_model.drive.live_bench import app_write
+
+    with guarded_bench(
+        tmp_path, 20, "--initial", "2J", "--target", "2J", with_node=False, mode=mode
+    ) as b:
+        app_write(b.app, 0x6083, 10_000_000)
+        app_write(b.app, 0x6084, 10_000_000)
+        end = time.monotonic() + 20
+        high = True
+        while time.monotonic() < end and not exhausted(b):
+            app_write(b.app, 0x60FF, 100_000 if high else 0)
+            high = not high
+            time.sleep(0.01)
+        final = b.stop()
+    drive = final["cia402"]["drives"][str(DRIVE)]
+    books = final["nodes"][str(DRIVE)]
+    granted = books["delivered_uj"] - books["returns_credited_uj"]
+    assert drive["meter"] == mode and drive["bound_uj"] is not None
+    assert b.drawn() <= granted + drive["bound_uj"]
+    assert drive["metered_uj"] >= min(b.drawn(), granted) - 1_000  # all of it charged

@@ -80,7 +80,10 @@ class GuardedSupervisor:
     def on_message(self, msg: Message, now: int) -> Sequence[Message]:
         if msg.node in self.drives:  # only the proxy, in this process, speaks for a drive
             kind = "a drive's frame from the bus"
-            self.service.intrusion(msg.node, repr(msg), kind, now, stop=True)
+            if self.service.authenticated:  # it verified: only a key holder could send it
+                self.service.authentic_intrusion(msg.node, repr(msg), kind, now)
+            else:
+                self.service.intrusion(msg.node, repr(msg), kind, now, stop=True)
             return ()
         return self._route(list(self.service.on_message(msg, now)), now)
 

@@ -25,6 +25,7 @@ answer queued for the guard.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
@@ -284,7 +285,11 @@ class DriveLink:
         """The power-meter node's TPDOs: the one that carries the counter feeds the guard."""
         meter = self.meter_node
         assert meter is not None
-        meter.tpdo.read()
+        maps = meter.tpdo.map
+        assert maps is not None
+        for pdo in maps.values():  # a meter has fewer TPDOs than the generic EDS
+            with contextlib.suppress(canopen.SdoAbortedError):
+                pdo.read()
         carrying = [
             pdo
             for pdo in meter.tpdo.values()

@@ -3,13 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import hmac
 import random
 import secrets
 import sys
+from pathlib import Path
 from typing import Any
 
+from canergy.auth.frames import FrameAuth, Layout
+from canergy.auth.keys import Key, KeyFileError, frame_auth_keys, load_key
+from canergy.auth.state_key import state_seal
 from canergy.cli_args import add_duration, bounded_int, energy, node_ids, probability, seed
 from canergy.cli_live import (
+    _auth,
     _check_state,
     _check_widths,
     _limits,
@@ -30,6 +36,7 @@ from canergy.live.gateway_state import load_gateway
 from canergy.live.policy import TopUp
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.service import ServiceConfig
+from canergy.live.state_file import keep_books
 from canergy.messages import QUANTUM_UJ, Direction
 
 UP = "upstream"
@@ -43,7 +50,9 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         "--upstream-interface zenoh), supervisor of --nodes on the downstream bus (-i/-c ...). "
         "Energy committed to it upstream becomes its downstream budget at once; what it holds "
         "above --return-above goes back upstream as numbered returns. One --state file keeps "
-        "both roles. SIGINT/SIGTERM stop it cleanly.",
+        "both roles. Authenticated mode, leg by leg: --upstream-auth (its node key from the "
+        "supervisor above) and --auth (its own master key, for its nodes). SIGINT/SIGTERM stop it "
+        "cleanly.",
     )
     p.add_argument("--node", type=bounded_int(1, 127), required=True, help="its id upstream")
     p.add_argument("--nodes", type=node_ids, required=True, help="downstream node ids, e.g. 1-40")
@@ -73,12 +82,81 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
             help=f"tests and soak runs: {kind} this fraction of the frames sent upstream",
         )
     p.add_argument("--fault-seed", type=seed, default=0, help="seed of the upstream faults")
+    p.add_argument(
+        "--auth",
+        type=Path,
+        metavar="MASTER_KEY",
+        help="downstream: authenticated mode with the gateway's own master key (`canergy keys -o "
+        "gw.key`; its nodes' keys are derived from it, never the key of the supervisor above); "
+        "it also seals --state. With --fd one CAN FD frame and a 64-bit MAC, otherwise each frame "
+        "is followed by a MAC frame (40-bit MAC)",
+    )
+    p.add_argument(
+        "--upstream-auth",
+        type=Path,
+        metavar="NODE_KEY",
+        help="upstream: authenticated mode with this gateway's node key, derived from the master "
+        "key of the supervisor above for --node (`canergy keys --master root.key --nodes NODE -o "
+        "keys/`); --upstream-fd for the CAN FD layout",
+    )
+    add_duration(
+        p,
+        "--return-hold",
+        500_000,
+        "without --auth: credit a node's RETURN only once its own TELEMETRY confirms it and this "
+        "long has passed with no report of frames in its name (a forged RETURN is refuted, "
+        "never credited)",
+    )
 
 
-def _build(args: argparse.Namespace, now: int) -> tuple[Gateway, bool]:
-    """The gateway core from its state file; True when it has no upstream books (a JOIN)."""
+def _keys(args: argparse.Namespace) -> tuple[Key | None, Key | None]:
+    """The keys of the two legs (``--upstream-auth``, ``--auth``), checked before anything is
+    written or opened: upstream this gateway's own node key, downstream a master key of its
+    own. Each refusal is one line naming the file, never the key."""
+    up = down = None
+    if args.upstream_auth is not None:
+        up = _load(args.upstream_auth, "--upstream-auth")
+        if up.kind != "node":
+            raise ValueError(
+                f"--upstream-auth {args.upstream_auth}: a master key; upstream the gateway is "
+                f"node {args.node} of the supervisor above and takes its node key (canergy keys "
+                f"--master ROOT.key --nodes {args.node} -o keys/)"
+            )
+        if up.node != args.node:
+            raise ValueError(
+                f"--upstream-auth {args.upstream_auth}: the key of node {up.node}, but this "
+                f"gateway is node {args.node} upstream (--node)"
+            )
+    if args.auth is not None:
+        down = _load(args.auth, "--auth")
+        if down.kind != "master":
+            raise ValueError(
+                f"--auth {args.auth}: a node key; downstream the gateway is a supervisor and "
+                "needs a master key of its own (canergy keys -o GATEWAY.key)"
+            )
+        if up is not None and hmac.compare_digest(down.node_key(args.node), up.secret):
+            raise ValueError(
+                f"--auth {args.auth}: the master key --upstream-auth {args.upstream_auth} was "
+                "derived from (the supervisor above's): a gateway holding it could speak for "
+                "every node above; give it a master key of its own (canergy keys -o GATEWAY.key)"
+            )
+    return up, down
+
+
+def _load(path: Path, flag: str) -> Key:
+    """``load_key``'s checks, its refusal naming the flag too."""
+    try:
+        return load_key(path)
+    except KeyFileError as exc:
+        raise KeyFileError(f"{flag} {exc}") from None
+
+
+def _build(args: argparse.Namespace, now: int, key: Key | None = None) -> tuple[Gateway, bool]:
+    """The gateway core from its state file; True when it has no upstream books (a JOIN).
+    ``key``: the downstream master key (``--auth``), which seals the state file."""
     nodes = tuple(args.nodes)
     state = None
+    seal = None if key is None else state_seal(key, args.node)
     if args.state.exists():
         state = load_gateway(
             args.state,
@@ -87,7 +165,9 @@ def _build(args: argparse.Namespace, now: int) -> tuple[Gateway, bool]:
             nodes,
             accept_edited=args.accept_edited_state,
             on_edited=lambda why: print(f"canergy gateway: warning: {why}", file=sys.stderr),
+            seal=seal,
         )
+    keep_books(args.state, seal, args.auth, fresh=state is None)
     gateway = Gateway(
         args.node,
         nodes,
@@ -100,6 +180,37 @@ def _build(args: argparse.Namespace, now: int) -> tuple[Gateway, bool]:
     joining = state.up.phase is Phase.JOINING
     gateway.power_loss(now)  # a start is a restart from the one record
     return gateway, joining
+
+
+def _config(args: argparse.Namespace, key: Key | None) -> ServiceConfig:
+    """The downstream supervisor's configuration; without a key it holds RETURNs for the
+    node's confirmation (``--return-hold``), as ``canergy supervisor`` does."""
+    return ServiceConfig(
+        policy=TopUp(args.target, args.min_grant) if args.target is not None else None,
+        limits=_limits(args),
+        status_path=args.status_file,
+        status_stream=sys.stdout if args.status_file is None else None,
+        status_period_us=args.status_period,
+        lost_after_us=args.lost_after,
+        stop_timeout_us=args.stop_timeout,
+        fsync=not args.no_fsync,
+        return_hold_us=None if key is not None else args.return_hold,
+    )
+
+
+def _upstream_auth(
+    args: argparse.Namespace, key: Key | None, codec: Codec, uplink: Uplink
+) -> FrameAuth | None:
+    """The upstream leg's authenticator (None without ``--upstream-auth``): the gateway's node
+    key, the FD layout with ``--upstream-fd``; a JOIN gets 16 random bits above its nonce."""
+    if key is None:
+        return None
+    layout = Layout.FD if getattr(args, "upstream_fd", False) else Layout.CLASSIC
+    keys = frame_auth_keys(key)
+    auth = FrameAuth(codec, layout, keys, Direction.TO_CLIENT, uplink.freshness)
+    if uplink.join_nonce is not None:
+        auth.join_fv[uplink.node] = secrets.randbits(16) << 16 | uplink.join_nonce
+    return auth
 
 
 def _upstream_bus(args: argparse.Namespace, codec: Codec) -> Any:
@@ -139,19 +250,11 @@ def run_gateway(args: argparse.Namespace) -> int:
     _check_buses(args)
     _check_widths(args)
     _check_state(args)
+    up_key, down_key = _keys(args)
     now = monotonic_us()
-    gateway, without_books = _build(args, now)
+    gateway, without_books = _build(args, now, down_key)
     files = GatewayFiles(gateway, args.state, fsync=not args.no_fsync)
-    config = ServiceConfig(
-        policy=TopUp(args.target, args.min_grant) if args.target is not None else None,
-        limits=_limits(args),
-        status_path=args.status_file,
-        status_stream=sys.stdout if args.status_file is None else None,
-        status_period_us=args.status_period,
-        lost_after_us=args.lost_after,
-        stop_timeout_us=args.stop_timeout,
-        fsync=not args.no_fsync,
-    )
+    config = _config(args, down_key)
     down_codec, up_codec = Codec(args.id_base), Codec(args.upstream_id_base)
     down_bus = open_bus(args, down_codec.supervisor_watch_filters())
     up_bus = None
@@ -170,8 +273,20 @@ def run_gateway(args: argparse.Namespace) -> int:
             uplink.start_without_books(secrets.randbits(16), now)
         service = DownstreamService(gateway.down, config, now, save=files.save)  # saves once
         service.uplink = uplink
-        up = BusRuntime(up_bus, uplink, codec=up_codec, receives=Direction.TO_CLIENT)
-        down = BusRuntime(down_bus, service, codec=down_codec, receives=Direction.TO_SUPERVISOR)
+        up = BusRuntime(
+            up_bus,
+            uplink,
+            codec=up_codec,
+            receives=Direction.TO_CLIENT,
+            auth=_upstream_auth(args, up_key, up_codec, uplink),
+        )
+        down = BusRuntime(
+            down_bus,
+            service,
+            codec=down_codec,
+            receives=Direction.TO_SUPERVISOR,
+            auth=_auth(args, down_key, down_codec, service.freshness),
+        )
         uplink.counters, service.bus_counters = up.counters, down.counters
         group = BusGroup([up, down])
         _serve(group, service, control)

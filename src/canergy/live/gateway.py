@@ -5,6 +5,14 @@ role, reports the downstream usable budget as the gateway's level (so the superv
 it up like any node), and returns what the downstream budget holds above ``return_above``.
 The downstream bus is served by an ordinary ``SupervisorService`` over the core's supervisor
 role. Both save through ``GatewayFiles.save``: one file, written before any frame of the step.
+
+Upstream the gateway is a node like any other: in authenticated mode (``canergy gateway
+--upstream-auth``) its frames carry MACs under its own node key and ``Uplink.freshness`` gives
+their freshness values from its client counters; frames refused there are counted, never acted
+on. It is also the witness for its own id, as a node is: frames in its name that it did not send
+(and answers to what it never asked) are counted in its TELEMETRY's ``witness``, which also
+carries its return number, so a supervisor above without a key credits its RETURNs once its own
+TELEMETRY confirms them (``canergy.live.witness``).
 """
 
 from __future__ import annotations
@@ -17,20 +25,34 @@ from typing import Any
 
 import can
 
-from canergy.auth.frames import Verdict
+from canergy.auth.frames import AuthFailure, Verdict, expected_freshness
 from canergy.codec import DecodeError
 from canergy.core import Action, Credited, Persist, Send
 from canergy.core.actions import ClientCommitted, IntentionRefused
 from canergy.core.gateway import Gateway, link_gap
 from canergy.core.state import Phase
 from canergy.live.gateway_state import save_gateway
-from canergy.live.intrusions import Intrusions, frame_text
+from canergy.live.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.policy import quantize
 from canergy.live.runtime import BusCounters
 from canergy.live.service import SupervisorService
-from canergy.messages import AMOUNT_MAX_MJ, LEVEL_MAX_MJ, QUANTUM_UJ, Message, Telemetry, ToClient
+from canergy.messages import (
+    AMOUNT_MAX_MJ,
+    LEVEL_MAX_MJ,
+    QUANTUM_UJ,
+    SEQ_BITS,
+    WITNESS_BITS,
+    Admit,
+    Message,
+    ReturnAck,
+    Telemetry,
+    ToClient,
+)
+from canergy.seqnum import unwrap
 
 log = logging.getLogger(__name__)
+
+SEQ_MASK = (1 << SEQ_BITS) - 1
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,6 +97,14 @@ class Uplink:
         self.joins = 0
         self.returned = 0
         self.intrusions = Intrusions(f"gateway {gateway.up.node} (upstream)")
+        self.refusals = Refusals(f"gateway {gateway.up.node} (upstream)")
+        """Authenticated mode: frames for this gateway refused by the MAC or freshness check."""
+        self.join_nonce: int | None = None
+        """The nonce of this start's JOIN: an ADMIT that does not echo it was not for us."""
+        self.witnessed = 0
+        """Frames seen in this gateway's name upstream that it did not send (TELEMETRY's
+        ``witness``)."""
+        self.now = now
         self.counters = BusCounters()
 
     @property
@@ -84,12 +114,16 @@ class Uplink:
     def start_without_books(self, nonce: int, now: int) -> None:
         """No record: JOIN the supervisor above (and wait to be admitted)."""
         self.joins += 1
+        self.join_nonce = nonce
         self.outbox += self._carry_out(self.gateway.books_lost(nonce, now), now)
 
     # -- Handler -----------------------------------------------------------------------------
     def on_message(self, msg: Message, now: int) -> Sequence[Message]:
         if msg.node != self.node or not isinstance(msg, ToClient):
             return ()
+        self.now = now
+        if self._never_asked(msg):
+            self.witness(now)
         joining = self.joining
         out = self._carry_out(self.gateway.receive_upstream(msg, now), now)
         if joining and not self.joining:
@@ -101,14 +135,36 @@ class Uplink:
             self.decode_errors += 1
 
     def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
-        pass  # the gateway does not take --auth upstream yet (the CLI refuses it)
+        """Authenticated mode: a frame for this gateway without a MAC, with a bad one or a stale
+        one. Counted by reason (``refused``) and among the intrusions, never acted on."""
+        if verdict.node != self.node or verdict.failure is None:
+            return
+        if self.joining and verdict.failure is AuthFailure.STALE:
+            return  # no counters yet: the supervisor's in-flight frames cannot match them
+        what, reason = frame_text(frame), verdict.failure.value
+        self.refusals.record(self.node, reason, what, now)
+        self.intrusions.record(self.node, what, reason, now, quiet=True)
+
+    def freshness(self, msg: Message) -> int | None:
+        """Authenticated mode: a frame's freshness value from the upstream client's counters
+        (None: not this gateway's); an older one is refused as stale."""
+        if msg.node != self.node:
+            return None
+        c = self.gateway.up.state
+        return expected_freshness(msg, c.last_tx, c.return_seq)
 
     def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
         if frame.arbitration_id & 0xFF == self.node:
             self.intrusions.record(
                 self.node, frame_text(frame), "a frame only this node sends", now
             )
+            self.witness(now)
         return ()
+
+    def witness(self, now: int) -> None:
+        """Someone spoke in this gateway's name upstream: count it, report it at once."""
+        self.witnessed += 1
+        self.next_telemetry = now
 
     def next_wakeup(self) -> int | None:
         if self.outbox:
@@ -119,6 +175,7 @@ class Uplink:
         return min(times)
 
     def on_wakeup(self, now: int) -> Sequence[Message]:
+        self.now = now
         out, self.outbox = self.outbox, []
         timer = self.gateway.up.get_timer()
         if timer is not None and timer <= now:
@@ -128,12 +185,21 @@ class Uplink:
             out += self._maybe_return(now)
         if now >= self.next_telemetry:
             out.append(self.telemetry(now))
+        self.refusals.tick(now)
         return out
 
     # -- internals ---------------------------------------------------------------------------
     @property
     def joining(self) -> bool:
         return self.gateway.up.state.phase is Phase.JOINING
+
+    def _never_asked(self, msg: ToClient) -> bool:
+        """An answer to something this gateway never sent (as a node judges it): a RETURN_ACK
+        for a return number it has not reached, an ADMIT that does not echo its JOIN's nonce."""
+        if isinstance(msg, ReturnAck):
+            seq = self.gateway.up.state.return_seq
+            return unwrap(msg.seq, seq, SEQ_BITS) > seq
+        return isinstance(msg, Admit) and msg.nonce != self.join_nonce
 
     def level(self) -> int:
         """What the gateway reports upstream: the budget it can still grant below."""
@@ -143,7 +209,13 @@ class Uplink:
         self.next_telemetry = now + self.config.telemetry_period_us
         level = self.level()
         flags = Telemetry.JOINING if self.joining else 0
-        return Telemetry(self.node, min(level // QUANTUM_UJ, LEVEL_MAX_MJ), flags)
+        return Telemetry(
+            self.node,
+            min(level // QUANTUM_UJ, LEVEL_MAX_MJ),
+            flags,
+            self.gateway.up.state.return_seq & SEQ_MASK,
+            self.witnessed % (1 << WITNESS_BITS),
+        )
 
     def _maybe_return(self, now: int) -> list[Message]:
         keep = self.config.return_above
@@ -185,6 +257,9 @@ class Uplink:
             "intentions_refused": self.refused,
             "decode_errors": self.decode_errors,
             "intrusions": self.intrusions.total,
+            "witnessed": self.witnessed,
+            "intrusion_report": self.intrusions.as_json(),
+            "refused": self.refusals.as_json(self.now),
             **self.counters.as_json(),
         }
 

@@ -64,6 +64,9 @@ class NodeConfig:
 
 PARAM_INDEXES = (0x2100, 0x2101, 0x2102)
 SEQ_MASK = (1 << SEQ_BITS) - 1
+WITNESS_REPORT_AT = 128
+"""Unreported witnessed frames that make the node report at once (the C node's
+CANERGY_WITNESS_REPORT_AT)."""
 
 
 class FirmwareNode:
@@ -82,6 +85,7 @@ class FirmwareNode:
         """The nonce of this start's JOIN: an ADMIT that does not echo it was not for us."""
         self.witnessed = 0
         """Frames seen in this node's name that it did not send (TELEMETRY's ``witness``)."""
+        self.witness_reported = 0
         if record is None:  # new, wiped or corrupted: no books, so no pay-back is trusted
             self.joins += 1
             self.join_nonce = secrets.randbits(16)
@@ -110,10 +114,9 @@ class FirmwareNode:
         if isinstance(msg, Intention) and self.gate() != "OPERATIONAL":
             self.refused += 1  # no grants outside OPERATIONAL: left unanswered
             return []
-        if self._never_asked(msg):
-            self.witness(now)
+        out = self.witness(now) if self._never_asked(msg) else []
         joining = self.joining
-        out = self._carry_out(self.client.receive(msg, now), now)
+        out += self._carry_out(self.client.receive(msg, now), now)
         if joining and not self.joining:
             self.next_telemetry = now  # admitted: tell the supervisor at once
         return out
@@ -127,10 +130,15 @@ class FirmwareNode:
             return unwrap(msg.seq, seq, SEQ_BITS) > seq
         return isinstance(msg, Admit) and msg.nonce != self.join_nonce
 
-    def witness(self, now: int) -> None:
-        """Someone spoke in this node's name: count it and tell the supervisor at once."""
+    def witness(self, now: int) -> list[Message]:
+        """Someone spoke in this node's name: count it and tell the supervisor at the next
+        wakeup, or now when ``WITNESS_REPORT_AT`` frames have gone unreported (so that no
+        report is ever a whole turn of the 8-bit count after the last)."""
         self.witnessed += 1
         self.next_telemetry = now
+        if self.witnessed - self.witness_reported >= WITNESS_REPORT_AT:
+            return [self.telemetry(now)]
+        return []
 
     def parameters(self) -> tuple[int, int, int]:
         return (
@@ -193,6 +201,7 @@ class FirmwareNode:
             | (Telemetry.HALTED if self.actuator.halted else 0)
             | (Telemetry.JOINING if self.joining else 0)
         )
+        self.witness_reported = self.witnessed
         return Telemetry(
             self.node,
             min(usable // QUANTUM_UJ, LEVEL_MAX_MJ),
@@ -307,7 +316,7 @@ class NodeHost:
         node = self.nodes.get(frame.arbitration_id & 0xFF)
         if node is not None:  # a node never receives its own frames: someone speaks for it
             node.intrusions.record(node.node, frame_text(frame), "a frame in its name", now)
-            node.witness(now)
+            return node.witness(now)
         return ()
 
     def next_wakeup(self) -> int | None:

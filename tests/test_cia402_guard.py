@@ -272,3 +272,36 @@ def test_tpdos_lost_while_stopped_latch_too() -> None:
     assert guard.phase.value == "stopped" and not guard.latched
     guard.on_wakeup(10_000 + guard.config.pdo_timeout_us + 1)
     assert guard.latched and guard.stop_reason == "no budget yet"
+
+
+@pytest.mark.parametrize("reaction_ms", [2, 19])
+def test_limits_toggled_at_every_tpdo_are_all_charged(reaction_ms: int) -> None:
+    """Found in review: an application that enables the drive just after each TPDO and
+    disables it just before every other one makes the guard open and close the limits at every
+    TPDO; the envelope charged up to each limits write and read-back was metered but never
+    spent (a flywheel at 100 rad/s, cyclic torque 3000 ‰ against 0.07 N·m drew 1.3 J past
+    granted + bound)."""
+    period, duration = 20_000, 4_000_000
+    app: list[tuple[int, int, int]] = [(0, 0x6060, 10), (0, 0x6071, 3000)]
+    for t0 in range(0, duration, 2 * period):
+        app += [(t0 + 500 + i, index, value) for i, (index, value) in enumerate(ENABLE)]
+        app += [(t0 + period - 500, 0x6040, 0x06)]
+        app += [(t0 + period + 500 + i, index, value) for i, (index, value) in enumerate(ENABLE)]
+    r = run(
+        Scenario(
+            pdo_period_us=period,
+            reaction_us=reaction_ms * 1000,
+            app=tuple(app),
+            auto_enable=False,
+            velocity=0,
+            inertia=0.01,
+            initial_rad_s=100.0,
+            load_nm=0.07,
+            duration_us=duration,
+            budget_uj=200 * UJ_PER_J,
+            target_uj=5 * UJ_PER_J,
+            max_grant_uj=5 * UJ_PER_J,
+        )
+    )
+    assert r.metered_uj == r.guard["spent_uj"] + r.debt_uj  # every charge spent or owed
+    assert within_bound(r)

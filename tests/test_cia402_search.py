@@ -70,3 +70,4 @@ def test_no_application_profile_draws_past_the_grant_plus_the_bound(
     )
     assert r.bound_uj is not None
     assert r.drawn_uj <= r.granted_uj + r.bound_uj, (r.drawn_uj, r.granted_uj, r.guard)
+    assert r.metered_uj == r.guard["spent_uj"] + r.debt_uj  # every charge spent or owed

@@ -27,14 +27,15 @@ def tel(return_seq: int, witness: int = 0, node: int = 1, level_mj: int = 0) -> 
     return Telemetry(node, level_mj, 0, return_seq, witness)
 
 
-def test_a_return_is_released_only_once_the_node_confirms_it_and_the_hold_passed() -> None:
+def test_a_return_is_released_only_a_hold_after_the_node_confirmed_it() -> None:
     gate = ReturnGate(HOLD, 10_000_000)
     gate.telemetry(tel(0), 0, 0)
     assert gate.hold(Return(1, 1, 700), 0, 1_000) is None
     assert gate.release(1, 0, 1_000 + HOLD) == []  # the node has not said it made return 1
     gate.telemetry(tel(1), 0, 50_000)
-    assert gate.release(1, 0, 50_000) == []  # confirmed, but the hold is not over
-    assert gate.release(1, 0, 1_000 + HOLD) == [Return(1, 1, 700)]
+    assert gate.release(1, 0, 50_000) == []  # confirmed just now: the node may still refute
+    assert gate.release(1, 0, 49_999 + HOLD) == []
+    assert gate.release(1, 0, 50_000 + HOLD) == [Return(1, 1, 700)]
     assert gate.release(1, 1, 2 * HOLD) == []  # once
 
 
@@ -42,13 +43,62 @@ def test_a_forged_return_is_refuted_by_the_nodes_report_and_never_released() -> 
     gate = ReturnGate(HOLD, 10_000_000)
     gate.telemetry(tel(0), 0, 0)
     gate.hold(Return(1, 1, 65_535), 0, 1_000)  # forged: the node made no return
-    assert gate.telemetry(tel(1, witness=0), 0, 2_000) == []  # a forged confirmation, too ...
-    evidence = gate.telemetry(tel(0, witness=2), 0, 30_000)  # ... and the genuine node's report
+    assert gate.telemetry(tel(1, witness=0), 0, 2_000) == ([], [])  # a forged confirmation ...
+    evidence, _ = gate.telemetry(tel(0, witness=2), 0, 30_000)  # ... and the genuine report
     assert any("2 frame(s) in its name" in line for line in evidence)
     assert any("contradicts itself" in line for line in evidence)
     assert gate.release(1, 0, 10 * HOLD) == []
     assert gate.status(1)["returns_refuted"] == 1
     assert gate.blocked(1, 40_000) and not gate.blocked(1, 10_030_000)
+
+
+def test_a_confirmation_that_arrives_after_the_hold_does_not_release_at_once() -> None:
+    """Found in review: the hold counted from the RETURN let a forged TELEMETRY sent after it
+    release a forged RETURN in the same step, before the node could refute it."""
+    gate = ReturnGate(HOLD, 10_000_000)
+    gate.telemetry(tel(0), 0, 0)
+    gate.hold(Return(1, 1, 1_000), 0, 1_000)
+    gate.telemetry(tel(1), 0, 10 * HOLD)  # forged, long after the RETURN
+    assert gate.release(1, 0, 10 * HOLD) == []
+    evidence, _ = gate.telemetry(tel(0, witness=2), 0, 10 * HOLD + 30_000)  # the node refutes
+    assert evidence and gate.release(1, 0, 20 * HOLD) == []
+
+
+def test_a_restart_or_a_first_report_is_no_evidence_but_a_count_that_moves_is() -> None:
+    gate = ReturnGate(HOLD, 10_000_000)
+    assert gate.telemetry(tel(0, witness=3), 0, 0) == (
+        [],
+        ["the node reports 3 frame(s) in its name since it started"],
+    )  # this supervisor cannot tell when
+    assert gate.telemetry(tel(0, witness=0), 0, 1) == (
+        [],
+        ["the node's witness count went back: it restarted"],
+    )
+    evidence, _ = gate.telemetry(tel(0, witness=128), 0, 2)  # at most 128 between two reports
+    assert evidence == ["the node saw 128 frame(s) in its name that it did not send"]
+    joining = Telemetry(1, 0, Telemetry.JOINING, 0, 7)
+    assert gate.telemetry(joining, 0, 3) == ([], [])  # no books: nothing to compare
+    assert gate.nodes[1].evidence_at == 2 and gate.blocked(1, 2)  # only the count that moved
+
+
+def test_a_node_reports_before_its_witness_count_could_turn_over(tmp_path: Path) -> None:
+    """256 frames in a node's name between two of its wakeups would leave its 8-bit count where
+    it was: the node reports at once after 128 (so does the C node, in lockstep)."""
+    import can
+
+    from canergy.codec import Codec
+    from firmware_model.node import WITNESS_REPORT_AT, FirmwareNode, NodeConfig, NodeHost
+    from firmware_model.nvstore import NvStore
+
+    node = FirmwareNode(1, NvStore(tmp_path / "1.nv", 1, fsync=False), NodeConfig(), 0)
+    host = NodeHost([node])
+    node.on_wakeup(0)  # the boot-up report
+    arbitration_id, data = Codec().encode(Return(1, 1, 1_000))
+    reports = []
+    for i in range(256):
+        frame = can.Message(arbitration_id=arbitration_id, data=data, timestamp=i)
+        reports += host.on_foreign_direction(frame, 10 + i)
+    assert [r.witness for r in reports] == [WITNESS_REPORT_AT, 0]  # 128, then 256 mod 256
 
 
 def test_two_returns_with_one_number_are_evidence() -> None:
@@ -62,7 +112,7 @@ def test_returns_acknowledged_by_someone_else_resynchronise_at_0_mj() -> None:
     gate = ReturnGate(HOLD, 10_000_000)
     gate.hold(Return(1, 3, 800), 1, 0)  # the supervisor credited 1; the node is at 3
     gate.telemetry(tel(3), 1, 10_000)
-    assert gate.release(1, 1, HOLD) == [Return(1, 2, 0), Return(1, 3, 800)]
+    assert gate.release(1, 1, 10_000 + HOLD) == [Return(1, 2, 0), Return(1, 3, 800)]
     assert gate.status(1)["returns_resynchronised"] == 1
 
 
@@ -77,7 +127,7 @@ def test_the_service_credits_a_resynchronised_return_and_reports_the_gap() -> No
     service.on_message(Return(1, 2, 400), 1_000)  # return 1 was acked in its name meanwhile
     service.on_message(tel(2), 2_000)
     assert core.session(1).returns_credited == 0  # held
-    out = service.on_wakeup(HOLD + 1_000)
+    out = service.on_wakeup(HOLD + 2_000)
     assert core.session(1).returns_credited == 2 and core.session(1).returned == 400_000
     assert ReturnAck(1, 2) in out
     (gap,) = [e for e in service.intrusions.as_json()["recent"] if "resynchronised" in e["kind"]]
@@ -135,6 +185,8 @@ def test_a_forged_telemetry_stops_the_nodes_top_ups(topped_up: Bench) -> None:
 
 def test_a_forged_join_is_raised_by_the_supervisor(guarded: Bench) -> None:
     b = guarded
+    # the supervisor judges the node's count once it has heard it (its baseline)
+    b.wait(lambda: b.status()["nodes"]["1"]["level_uj"] is not None)
     sent = b.forge(Join(1, 0x1234))
     b.wait(lambda: supervisor_intrusions(b) >= 1)
     assert b.status()["intrusion_report"]["first_at_us"] - sent < 1_000_000

@@ -24,6 +24,10 @@ void canergy_internal_send(const struct canergy_client *c, const struct canergy_
 
 struct canergy_node;
 /* A frame seen in the node's name that it did not send: counted, reported at the next poll. */
-void canergy_internal_witness(struct canergy_node *n, uint64_t now);
+/* A frame in the node's name: count it, report it at the next poll, or at once (into out) when
+ * CANERGY_WITNESS_REPORT_AT frames have gone unreported, so that no report is ever 256 frames
+ * (a whole turn of the 8-bit count) after the last. */
+#define CANERGY_WITNESS_REPORT_AT 128U
+void canergy_internal_witness(struct canergy_node *n, uint64_t now, struct canergy_out *out);
 
 #endif /* CANERGY_CLIENT_INTERNAL_H */

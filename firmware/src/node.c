@@ -28,6 +28,7 @@ static void send_telemetry(struct canergy_node *n, uint64_t now, struct canergy_
                         (canergy_client_joining(&n->client) ? CANERGY_TELEMETRY_JOINING : 0U));
     m.seq = (uint16_t)n->client.rec.return_seq; /* the number its RETURN frames carry */
     m.witness = n->witness;
+    n->witness_reported = n->witness;
     n->next_telemetry = now + n->telemetry_period_us;
     canergy_internal_send(&n->client, &m, out);
 }
@@ -42,10 +43,13 @@ static void after_client(struct canergy_node *n, uint64_t now, const struct cane
     }
 }
 
-void canergy_internal_witness(struct canergy_node *n, uint64_t now)
+void canergy_internal_witness(struct canergy_node *n, uint64_t now, struct canergy_out *out)
 {
     n->witness = (uint8_t)(n->witness + 1U); /* modulo 256, as on the wire */
     n->next_telemetry = now;                 /* the supervisor hears of it at the next poll */
+    if ((uint8_t)(n->witness - n->witness_reported) >= CANERGY_WITNESS_REPORT_AT) {
+        send_telemetry(n, now, out); /* at once: the count never moves 256 between reports */
+    }
 }
 
 /* An answer to something the node never sent: a RETURN_ACK for a return number ahead of its own
@@ -120,7 +124,7 @@ int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame 
         n->overflow_refused++;
     }
     if (witnessed(n, frame, result, &m)) {
-        canergy_internal_witness(n, now);
+        canergy_internal_witness(n, now, out);
     }
     after_client(n, now, out);
     return result;

@@ -35,7 +35,7 @@ from canergy.live.policy import TopUp
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.units import UJ_PER_J
 from firmware_model.drive.model import DriveAbort, DriveModel
-from firmware_model.drive.motor import LoadTorque
+from firmware_model.drive.motor import LoadTorque, MotorParams
 
 NODE = 10
 HOST = 127
@@ -79,6 +79,10 @@ class Scenario:
     quick_stop_deceleration: int = 2_000_000
     stop_timeout_us: int = 100_000
     load_nm: float = 0.02
+    inertia: float | None = None
+    """Rotor and load inertia, kg·m² (None: the motor's own)."""
+    initial_rad_s: float = 0.0
+    """The rotor already turning at the start (a flywheel)."""
     duration_us: int = 3_000_000
     app: tuple[Write, ...] = ()
     """The application's writes (target velocity, torque, mode, controlword) at their times."""
@@ -125,7 +129,7 @@ class _Link:
     """Stands for ``DriveLink``: samples in, commands out after the reaction time."""
 
     def __init__(self, setup: DriveSetup) -> None:
-        self.samples: deque[tuple[int, dict[int, int], str | None]] = deque()
+        self.samples: deque[tuple[int, dict[int, int], str | None, int]] = deque()
         self.limit_answers: deque[tuple[Limits, bool, str]] = deque()
         self.ready_at: int | None = 0
         self.setup: DriveSetup | None = setup
@@ -133,7 +137,7 @@ class _Link:
         self.reaction_max_us = 0
         self.latency_max_us = 0
 
-    def drain(self) -> list[tuple[int, dict[int, int], str | None]]:
+    def drain(self) -> list[tuple[int, dict[int, int], str | None, int]]:
         out = list(self.samples)
         self.samples.clear()
         return out
@@ -165,7 +169,10 @@ class _Bus:
 
 
 def _drive(sc: Scenario) -> DriveModel:
-    drive = DriveModel(NODE, 0, load=LoadTorque.constant(sc.load_nm, opposing=True))
+    params = MotorParams() if sc.inertia is None else MotorParams(inertia=sc.inertia)
+    load = LoadTorque.constant(sc.load_nm, opposing=True)
+    drive = DriveModel(NODE, 0, params=params, load=load)
+    drive.motor.omega = sc.initial_rad_s
     drive.set_nmt("OPERATIONAL", 0)
     drive.write(0x1016, 1, HOST << 16 | sc.consumer_timeout_ms, 0)
     drive.write(0x6060, 0, 3, 0)
@@ -248,7 +255,7 @@ def run(sc: Scenario) -> Result:
     drives: dict[int, Any] = {NODE: (guard, link)}
     host = GuardedSupervisor(service, drives, bus, HostBeat(HOST, sc.heartbeat_us), 0)  # type: ignore[arg-type]
     app = sorted(sc.app)
-    in_flight: deque[tuple[int, dict[int, int], str | None, int]] = deque()
+    in_flight: deque[tuple[int, dict[int, int], str | None, int, int]] = deque()
     seen_drawn, decided_drawn = 0, None
     states: list[str] = []
     timeline: list[tuple[int, int, int, str]] = []
@@ -272,15 +279,16 @@ def run(sc: Scenario) -> Result:
                 jitter = sc.pdo_jitter_us[pdo_number % len(sc.pdo_jitter_us)]
                 last_arrival = max(last_arrival, t + jitter)
                 sampled = power_state(values[0x6041])
-                in_flight.append((last_arrival, values, sampled, drive.drawn_uj))
+                in_flight.append((last_arrival, values, sampled, drive.drawn_uj, t))
             pdo_number += 1
         if sc.host_crash_at_us is not None and t >= sc.host_crash_at_us:
             continue
         if any(start <= t < start + length for start, length in sc.pauses):
             continue  # the whole host process stands still
         while in_flight and in_flight[0][0] <= t:
-            arrival, carried, shown, seen_drawn = in_flight.popleft()
-            link.samples.append((max(arrival, t - STEP_US), carried, shown))
+            arrival, carried, shown, seen_drawn, sampled_at = in_flight.popleft()
+            taken = max(arrival, t - STEP_US)
+            link.samples.append((taken, carried, shown, taken - sampled_at))
         _apply_commands(sc, drive, link, t)
         wakeup = host.next_wakeup()
         if wakeup is not None and wakeup <= t:

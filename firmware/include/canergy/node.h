@@ -50,6 +50,7 @@ struct canergy_node {
     uint8_t witness;            /* frames in its name it did not send, modulo 256 */
     bool joined;                /* this start JOINed (no books): join_nonce is its JOIN's */
     uint16_t join_nonce;
+    uint8_t witness_reported;   /* the count its last TELEMETRY carried */
 };
 
 /* As canergy_client_start; the first telemetry is due at once (poll at now). */

@@ -130,10 +130,12 @@ class Timings:
     """From a controlword write to the drive acting on it."""
     stop_timeout_us: int
     """Quick stop: disable voltage this long after, at the latest."""
+    age_us: int = 0
+    """The oldest a TPDO was when the host took it in: drawn before it arrived, not in it."""
 
     @property
     def notice_us(self) -> int:
-        return self.gap_us + self.reaction_us + self.latency_us
+        return self.age_us + self.gap_us + self.reaction_us + self.latency_us
 
     @property
     def stop_us(self) -> int:

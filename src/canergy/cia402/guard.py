@@ -191,9 +191,13 @@ class DriveGuard:
             )
             self.latched = True
 
-    def on_values(self, now: int, values: dict[int, int], state: str | None) -> list[Message]:
+    def on_values(
+        self, now: int, values: dict[int, int], state: str | None, age_us: int = 0
+    ) -> list[Message]:
         """TPDO values received at ``now`` (all objects of one TPDO), ``state`` decoded from the
-        statusword when the TPDO carried it."""
+        statusword when the TPDO carried it; ``age_us``: how old they were then (the bound
+        grows by the oldest seen: what the drive drew since they were sampled is not in them)."""
+        self.metering.age(age_us)
         off = self.state in POWERLESS and (state or self.state) in POWERLESS
         counter = COUNTER_KEY in values
         drive = any(k != COUNTER_KEY for k in values)
@@ -207,9 +211,9 @@ class DriveGuard:
             self.last_values_at = now
         if counter:
             self.last_counter_at = now
-        out = self._book(self.metering.sample(now, self.values, off), now)
+        self.metering.sample(now, self.values, off)
         self.values.pop(COUNTER_KEY, None)  # a reading counts once
-        return out + self._evaluate(now)
+        return self._settled(now)
 
     def on_limits(self, now: int, limits: Limits, taken: bool, detail: str = "") -> list[Message]:
         """The drive read back ``limits`` (``taken``), or refused or changed them."""
@@ -218,11 +222,13 @@ class DriveGuard:
         else:
             self.refused = f"limits not taken ({limits.describe()}): {detail}"
             self.latched = True
-        return self._book(self.metering.charge(now), now) + self._evaluate(now)
+        self.metering.charge(now)
+        return self._settled(now)
 
     def on_message(self, msg: ToClient, now: int) -> list[Message]:
+        self.metering.charge(now)
         out = self._carry_out(self.client.receive(msg, now), now)
-        return out + self._pay_debt(now) + self._evaluate(now)
+        return out + self._pay_debt(now) + self._settled(now)
 
     def watch(self, reaction_us: int, latency_us: int) -> None:
         """The longest host reaction and drive latency measured so far (the bound grows)."""
@@ -244,13 +250,20 @@ class DriveGuard:
         out, self.outbox = self.outbox, []
         if (timer := self.client.get_timer()) is not None and timer <= now:
             out += self._carry_out(self.client.handle_timer(now), now)
-        out += self._book(self.metering.charge(now), now)
-        out += self._evaluate(now)
+        self.metering.charge(now)
+        out += self._settled(now)
         if now >= self.next_telemetry:
             out.append(self.telemetry(now))
         return out
 
     # -- booking ----------------------------------------------------------------------------
+    def _settled(self, now: int) -> list[Message]:
+        """Spend what was charged, decide, and spend what deciding charged (a limits write
+        charges the envelope up to now): no charge is ever left unspent."""
+        out = self._book(self.metering.take(), now)
+        out += self._evaluate(now)
+        return out + self._book(self.metering.take(), now)
+
     def _book(self, drawn: int, now: int) -> list[Message]:
         """Spend what was drawn; what the budget does not cover becomes debt."""
         take = min(drawn, self.usable)
@@ -286,7 +299,8 @@ class DriveGuard:
         return None if since is None else since + self.config.pdo_timeout_us
 
     def halt(self, now: int) -> None:
-        """Stop the drive for good (the supervisor is shutting down)."""
+        """Stop the drive for good (the supervisor is shutting down); what it charged is
+        booked at the next input."""
         self.halted = True
         self._evaluate(now)
 

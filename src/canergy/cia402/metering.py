@@ -90,7 +90,10 @@ class DriveMeter:
         """The largest envelope in force since ``charged_until``."""
         self.remainder = 0
         self.metered_uj = 0
+        self.unbooked_uj = 0
+        """Charged, not yet taken by the guard (``take``): every charge ends up booked."""
         self.worst_gap_us = 0
+        self.worst_age_us = 0
         self.reaction_us = 0
         self.latency_us = 0
 
@@ -146,36 +149,51 @@ class DriveMeter:
         return self.pending if self.pending is not None else self.confirmed
 
     # -- charging ---------------------------------------------------------------------------
-    def charge(self, now: int) -> int:
-        """Envelope mode: µJ the drive may have drawn up to ``now``, by the host's clock."""
-        if self.kind is not MeterKind.ENVELOPE or self.charged_until is None:
-            return 0
-        if now <= self.charged_until:
-            return 0
-        self.remainder += self.charge_fw * (now - self.charged_until)
-        drawn, self.remainder = divmod(self.remainder, FW_US_PER_UJ)
-        self.charged_until, self.charge_fw = now, self.in_force_fw(now)
-        self.metered_uj += drawn
+    def take(self) -> int:
+        """µJ charged since the last ``take``, for the guard to spend."""
+        drawn, self.unbooked_uj = self.unbooked_uj, 0
         return drawn
 
-    def sample(self, now: int, values: dict[int, int], powerless: bool) -> int:
-        """TPDO values received at ``now``: µJ drawn since the last ones (every mode)."""
+    def _charged(self, drawn: int) -> None:
+        self.metered_uj += drawn
+        self.unbooked_uj += drawn
+
+    def charge(self, now: int) -> None:
+        """Envelope mode: charge what the drive may have drawn up to ``now``, by the host's
+        clock (``take`` hands it over); a lowered envelope stops counting when it expired."""
+        if self.kind is not MeterKind.ENVELOPE or self.charged_until is None:
+            return
+        if self.charged_until < self.lowered_until < now:
+            self._charge_to(self.lowered_until)
+        if now > self.charged_until:
+            self._charge_to(now)
+
+    def _charge_to(self, until: int) -> None:
+        assert self.charged_until is not None
+        self.remainder += self.charge_fw * (until - self.charged_until)
+        drawn, self.remainder = divmod(self.remainder, FW_US_PER_UJ)
+        self.charged_until, self.charge_fw = until, self.in_force_fw(until)
+        self._charged(drawn)
+
+    def sample(self, now: int, values: dict[int, int], powerless: bool) -> None:
+        """TPDO values received at ``now``: charge what was drawn since the last ones."""
         if self.kind is MeterKind.ENVELOPE:
-            return self.charge(now)
-        if self.kind is MeterKind.COUNTER:
+            self.charge(now)
+        elif self.kind is MeterKind.COUNTER:
             if self.counter is None or COUNTER_KEY not in values or self.setup is None:
-                return 0
+                return
             fw = max(self.charge_fw, self.in_force_fw(now))
             self.charge_fw = self.in_force_fw(now)
-            drawn = self.counter.sample(now, values[COUNTER_KEY], fw)
-            self.metered_uj += drawn
-            return drawn
-        drawn = self.sampled.sample(now, values, charge=not powerless)
-        self.metered_uj += drawn
-        return drawn
+            self._charged(self.counter.sample(now, values[COUNTER_KEY], fw))
+        else:
+            self._charged(self.sampled.sample(now, values, charge=not powerless))
 
     def gap(self, gap_us: int) -> None:
         self.worst_gap_us = max(self.worst_gap_us, gap_us)
+
+    def age(self, age_us: int) -> None:
+        """A TPDO's age when the host took it in (sampled that long before)."""
+        self.worst_age_us = max(self.worst_age_us, age_us)
 
     def watch(self, reaction_us: int, latency_us: int) -> None:
         """The longest host reaction and drive latency the link has measured."""
@@ -190,6 +208,7 @@ class DriveMeter:
             reaction_us=max(a.reaction_us, self.reaction_us),
             latency_us=max(a.latency_us, self.latency_us),
             stop_timeout_us=a.stop_timeout_us,
+            age_us=self.worst_age_us,
         )
 
     def bound(self, limits: Limits | None) -> Bound | None:
@@ -243,6 +262,7 @@ class DriveMeter:
                 "reaction": t.reaction_us,
                 "latency": t.latency_us,
                 "stop_timeout": t.stop_timeout_us,
+                "age": t.age_us,
             },
         }
         if self.counter is not None:

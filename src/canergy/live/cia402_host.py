@@ -118,8 +118,8 @@ class GuardedSupervisor:
             guard.watch(link.reaction_max_us, link.latency_max_us)
             for limits, taken, detail in link.drain_limits():
                 up += guard.on_limits(now, limits, taken, detail)
-            for at, values, state in link.drain():
-                up += guard.on_values(at, values, state)
+            for at, values, state, age in link.drain():
+                up += guard.on_values(at, values, state, age)
             if guard.next_wakeup() <= now:
                 up += guard.on_wakeup(now)
             self._hand_over(guard, link)

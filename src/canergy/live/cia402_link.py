@@ -29,6 +29,7 @@ import contextlib
 import logging
 import queue
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -58,7 +59,9 @@ HEARTBEAT_CONSUMER = 0x1016
 EDS = Path(__file__).with_name("cia402.eds")
 """A generic CiA 402 drive (standard objects only), for drives given without their own EDS."""
 
-Sample = tuple[int, dict[int, int], str | None]
+Sample = tuple[int, dict[int, int], str | None, int]
+"""When the host took the TPDO in (µs), its values, the power state its statusword shows, and
+its age then (µs since the CAN frame was received: a backlog the loop has not read yet)."""
 LimitsAnswer = tuple[Limits, bool, str]
 """Limits written, whether the drive read them back unchanged, and what went wrong if not."""
 UNSIGNED_TYPES = {8: 0x5, 16: 0x6, 32: 0x7, 64: 0x1B}
@@ -193,6 +196,7 @@ class DriveLink:
     # -- the worker thread ----------------------------------------------------------------
     def _work(self) -> None:
         while not self._closed.is_set():
+            self._disable()  # unguarded until set up: off first, at every attempt (best effort)
             try:
                 self._setup()
                 break
@@ -356,20 +360,26 @@ class DriveLink:
         except (canopen.SdoCommunicationError, canopen.SdoAbortedError, can.CanError, KeyError):
             self.command_failures += 1
 
+    def _age_us(self, pdo: Any) -> int:
+        """How long ago the frame was received (its timestamp is wall-clock, as python-can's)."""
+        stamp = getattr(pdo, "timestamp", None)
+        return 0 if not stamp else max(0, round((time.time() - stamp) * 1e6))
+
     def _on_tpdo(self, pdo: Any) -> None:  # the Notifier's thread
         values = {var.index: int(var.raw) for var in pdo}
         counter = self.config.counter
         if counter is not None and counter.node is None and counter.index in values:
             values[COUNTER_KEY] = values.pop(counter.index)
         state = power_state(values[STATUSWORD]) if STATUSWORD in values else None
-        self.samples.append((self.clock(), values, state))
+        self.samples.append((self.clock(), values, state, self._age_us(pdo)))
 
     def _on_counter_tpdo(self, pdo: Any) -> None:  # the Notifier's thread
         counter = self.config.counter
         assert counter is not None
         for var in pdo:
             if var.index == counter.index and var.subindex == counter.subindex:
-                self.samples.append((self.clock(), {COUNTER_KEY: int(var.raw)}, None))
+                reading = {COUNTER_KEY: int(var.raw)}
+                self.samples.append((self.clock(), reading, None, self._age_us(pdo)))
 
     def _execute(self, cmd: Command | LimitsCommand) -> None:
         if isinstance(cmd, LimitsCommand):

@@ -203,8 +203,11 @@ class SupervisorService:
         if isinstance(msg, Telemetry):
             info.level, info.level_at, info.flags = msg.level_mj * QUANTUM_UJ, now, msg.flags
             credited = self.core.session(msg.node).returns_credited
-            for line in self.witness.telemetry(msg, credited, now):
+            evidence, notes = self.witness.telemetry(msg, credited, now)
+            for line in evidence:
                 self.intrusion(msg.node, repr(msg), line, now, stop=True)
+            for line in notes:
+                log.warning("node %s: %s", self.node_name(msg.node), line)
             self.ready.add(msg.node)
             return self._flush(self._released(msg.node, now) + self._start_grants(now, self.ready))
         if self.config.listen_only or not isinstance(msg, ToSupervisor):
@@ -215,6 +218,11 @@ class SupervisorService:
         if self.ready:  # a transaction ended: the node's next grant goes out in this step
             out += self._start_grants(now, self.ready)
         return self._flush(out)
+
+    def _distrusted(self, node: int, now: int) -> bool:
+        """Without a key: no top-ups while the node's TELEMETRY was lately contradicted (with a
+        key, anyone could make the node count frames in its name: that is no reason)."""
+        return not self.authenticated and self.witness.blocked(node, now)
 
     def _hold_return(self, msg: Return, now: int) -> bool:
         """Detection mode: a fresh RETURN waits for the node's confirmation (``witness``)."""
@@ -490,8 +498,8 @@ class SupervisorService:
                 continue  # not heard yet, or no books until admitted: a grant would be lost
             if info.requests:
                 out += self._one_shot(node, info, now)
-            elif self.config.policy is not None and not self.witness.blocked(node, now):
-                out += self._top_up(node, info, now)  # none against contradictory TELEMETRY
+            elif self.config.policy is not None and not self._distrusted(node, now):
+                out += self._top_up(node, info, now)
         return out
 
     def _one_shot(self, node: int, info: NodeInfo, now: int) -> list[Message]:
@@ -575,6 +583,7 @@ class SupervisorService:
     def _admitted(self, action: Admitted) -> None:
         info = self.nodes[action.node]
         info.admitted += 1
+        self.witness.forget(action.node)  # a new life: its counts start again
         if action.tx or action.seq:  # books existed: what it held is gone with its record
             log.warning(
                 "node %s has no books (NV lost or replaced): admitted at tx %d, return %d; "

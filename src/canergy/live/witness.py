@@ -9,8 +9,10 @@ send, or an answer to something it never asked, is counted and reported in its n
   TELEMETRY contradicts itself (its return number going back: two streams in one name), and
   stops topping that node up for ``block_us`` after;
 - holds every RETURN (``ReturnGate``) until the node's own TELEMETRY shows it has made that
-  return and ``hold_us`` has passed with no such evidence: a forged RETURN is then refuted by the
-  genuine node's report before it can be credited, never credited;
+  return and ``hold_us`` has passed since that TELEMETRY with no such evidence: a forged RETURN,
+  or a forged TELEMETRY confirming it, is then refuted by the genuine node's report before it can
+  be credited. The node reports at once when ``WITNESS_REPORT_AT`` frames went unreported, so its
+  8-bit count never hides a whole turn;
 - resynchronises returns: when the node's confirmed number is past the next one the supervisor
   expects (someone acknowledged a return in the supervisor's name while it was away), the missed
   numbers are credited as 0 mJ, so the node's later returns are credited again. What they held is
@@ -31,15 +33,23 @@ from canergy.seqnum import unwrap, wrap
 class _Held:
     amount_mj: int
     since: int
+    confirmed_at: int | None = None
+    """When a TELEMETRY first showed the node had made this return: the hold runs from then,
+    so the node has that long to refute a TELEMETRY that confirms a forged RETURN."""
+
+
+WITNESS_REPORT_AT = 128
+"""A node reports at once once this many witnessed frames went unreported, so two reports never
+differ by a whole turn of the 8-bit count; a count that moved by more went back: the node
+restarted (its count starts at 0 again)."""
 
 
 @dataclass(slots=True)
 class NodeWitness:
     """What one node's TELEMETRY has said, and its RETURNs waiting for it."""
 
-    witness: int = 0
-    """The node's count as last reported: it starts at 0, so frames it saw before its first
-    report reaches this supervisor count too."""
+    witness: int | None = None
+    """The node's count as last reported (None: no report yet)."""
     return_seq: int | None = None
     """The highest return number the node reported (unwrapped)."""
     confirmed_at: int = 0
@@ -61,12 +71,20 @@ class ReturnGate:
     def _of(self, node: int) -> NodeWitness:
         return self.nodes.setdefault(node, NodeWitness())
 
-    def telemetry(self, msg: Telemetry, credited: int, now: int) -> list[str]:
-        """A TELEMETRY; returns the evidence it carries, one line each (empty: none)."""
+    def telemetry(self, msg: Telemetry, credited: int, now: int) -> tuple[list[str], list[str]]:
+        """A TELEMETRY: the evidence it carries, and what it says that is no evidence (frames
+        the node saw before this supervisor heard from it; a restart), one line each."""
         w = self._of(msg.node)
         evidence: list[str] = []
-        if msg.witness != w.witness:
-            seen = (msg.witness - w.witness) % (1 << WITNESS_BITS)
+        notes: list[str] = []
+        if msg.flags & Telemetry.JOINING:
+            return evidence, notes  # no books, no return number: nothing to compare yet
+        seen = (msg.witness - (w.witness or 0)) % (1 << WITNESS_BITS)
+        if w.witness is None and seen:
+            notes.append(f"the node reports {seen} frame(s) in its name since it started")
+        elif seen > WITNESS_REPORT_AT:
+            notes.append("the node's witness count went back: it restarted")
+        elif seen:
             evidence.append(f"the node saw {seen} frame(s) in its name that it did not send")
         w.witness = msg.witness
         seq = unwrap(msg.return_seq, max(credited, w.return_seq or 0), SEQ_BITS)
@@ -74,9 +92,12 @@ class ReturnGate:
             evidence.append(f"its TELEMETRY contradicts itself: return {seq} after {w.return_seq}")
         else:  # the node stands by the number: what it made is confirmed as of now
             w.return_seq, w.confirmed_at = seq, now
+            for number, held in w.held.items():
+                if number <= seq and held.confirmed_at is None:
+                    held.confirmed_at = now
         if evidence:
             self._refute(w, now)
-        return evidence
+        return evidence, notes
 
     def hold(self, msg: Return, credited: int, now: int) -> str | None:
         """A RETURN to hold until the node confirms it; evidence if it contradicts one held."""
@@ -86,7 +107,7 @@ class ReturnGate:
             return None  # an old number: the core re-acks it, no energy moves
         held = w.held.get(seq)
         if held is None:
-            w.held[seq] = _Held(msg.amount_mj, now)
+            w.held[seq] = _Held(msg.amount_mj, now)  # confirmed by a later TELEMETRY only
         elif held.amount_mj != msg.amount_mj:
             self._refute(w, now)
             return f"two RETURNs numbered {seq}: {held.amount_mj} and {msg.amount_mj} mJ"
@@ -105,10 +126,9 @@ class ReturnGate:
         out: list[Return] = []
         for seq in sorted(w.held):
             held = w.held[seq]
+            confirmed = held.confirmed_at
             ready = (
-                seq <= w.return_seq
-                and w.confirmed_at >= held.since
-                and now >= held.since + self.hold_us
+                confirmed is not None and seq <= w.return_seq and now >= confirmed + self.hold_us
             )
             if not ready or seq <= credited:
                 if seq <= credited:
@@ -134,8 +154,17 @@ class ReturnGate:
         w.held.clear()
 
     def next_release(self) -> int | None:
-        times = [h.since + self.hold_us for w in self.nodes.values() for h in w.held.values()]
+        times = [
+            h.confirmed_at + self.hold_us
+            for w in self.nodes.values()
+            for h in w.held.values()
+            if h.confirmed_at is not None
+        ]
         return min(times, default=None)
+
+    def forget(self, node: int) -> None:
+        """The node was admitted afresh (it had lost its books): start over with it."""
+        self.nodes.pop(node, None)
 
     def status(self, node: int) -> dict[str, int]:
         w = self.nodes.get(node)

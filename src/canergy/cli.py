@@ -32,6 +32,7 @@ from canergy.cli_args import (
     seed,
 )
 from canergy.core.variants import VARIANTS
+from canergy.extras import MissingExtra, require
 from canergy.messages import MAX_NODE
 from canergy.units import UJ_PER_J, US_PER_S
 
@@ -485,6 +486,7 @@ def _run_rules(args: argparse.Namespace) -> int:
     if args.docs is None:
         sys.stdout.write(markdown())
         return 0
+    require("plot")
     if not args.docs.is_dir():
         raise ValueError(f"--docs {args.docs}: not a directory")
     for path in write_docs(args.docs):
@@ -541,6 +543,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     except (ValueError, OSError, cli_live.BusOpenError) as exc:  # bad values, paths, buses
         print(f"canergy {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except MissingExtra as exc:  # e.g. canergy plot: needs matplotlib: pip install ...
+        print(f"canergy {args.command}: {exc}", file=sys.stderr)
         return 2
 
 

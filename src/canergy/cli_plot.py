@@ -10,6 +10,7 @@ from canergy.auth.capture import CaptureAuth, verified
 from canergy.auth.keys import load_key
 from canergy.cli_args import duration_or_zero, id_base, node_ids
 from canergy.codec import Codec
+from canergy.extras import require
 from canergy.inspect.captures import CaptureError, read_file
 from canergy.inspect.timeline import Timeline, timeline
 from canergy.live.atomic import check_writable_dir
@@ -88,6 +89,7 @@ def _nodes(tl: Timeline, wanted: tuple[int, ...] | None) -> list[str]:
 
 
 def run_plot(args: argparse.Namespace) -> int:
+    require("plot")  # before the capture is read: one line when matplotlib is missing
     _check_output(args.output)
     codec = Codec(args.id_base)
     auth = CaptureAuth(codec, load_key(args.auth) if args.auth is not None else None)

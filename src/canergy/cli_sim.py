@@ -19,6 +19,7 @@ from canergy.cli_args import (
     probability,
     seed,
 )
+from canergy.extras import require
 from canergy.sim.channel import PRESETS, channel
 from canergy.sim.engine import STRATEGIES, SimConfig, simulate
 from canergy.units import UJ_PER_J, US_PER_S
@@ -159,6 +160,7 @@ def run_simulate(args: argparse.Namespace) -> int:
 
     from canergy.sim.outputs import write_outputs
 
+    require("plot")  # the figures are written last: say so before simulating
     _check_out_dir(args.out)
     base = replace(_config(args, args.loss), seed=args.seed, trace=True)
     results = [simulate(replace(base, strategy=s)) for s in args.strategy]
@@ -173,6 +175,7 @@ def run_simulate(args: argparse.Namespace) -> int:
 def run_sweep(args: argparse.Namespace) -> int:
     from canergy.sim.sweep import plot, sweep, write_csv
 
+    require("plot")  # sweep.png is written last: say so before sweeping
     if args.first_seed + args.seeds - 1 > SEED_MAX:
         raise ValueError(
             f"--first-seed {args.first_seed} with --seeds {args.seeds} runs past seed {SEED_MAX}"

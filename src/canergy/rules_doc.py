@@ -16,6 +16,7 @@ from typing import Any
 from canergy.core.state import Phase
 from canergy.core.table import RuleTable, event_name, refuse
 from canergy.core.variants import VARIANTS
+from canergy.extras import require
 
 TABLES: list[RuleTable[Any, Any]] = [
     table for v in VARIANTS.values() for table in (v.supervisor, v.client)
@@ -100,6 +101,7 @@ def _defaults(table: RuleTable[Any, Any]) -> tuple[str, str]:
 
 def draw(table: RuleTable[Any, Any], path: Path) -> None:
     """Phases on a circle, one arrow per phase change, self-loop events listed under a phase."""
+    require("plot")
     import matplotlib
 
     matplotlib.use("Agg")
@@ -179,6 +181,7 @@ def draw(table: RuleTable[Any, Any], path: Path) -> None:
 
 def write_docs(docs: Path) -> list[Path]:
     """Write ``transitions.md`` and the figures under ``docs``; the paths written."""
+    require("plot")  # before anything is written
     figures = docs / "figures"
     figures.mkdir(parents=True, exist_ok=True)
     written = []

@@ -7,8 +7,13 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-from matplotlib.axes import Axes
-from matplotlib.collections import LineCollection
+from canergy.extras import MissingExtra
+
+try:
+    from matplotlib.axes import Axes
+    from matplotlib.collections import LineCollection
+except ImportError as exc:  # canergy[plot]
+    raise MissingExtra("plot", exc) from exc
 
 COLOURS = {
     "INTENTION": "black",

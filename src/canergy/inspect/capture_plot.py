@@ -6,10 +6,15 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-import matplotlib
+from canergy.extras import MissingExtra
 
-matplotlib.use("Agg")  # files only, no display needed
-import matplotlib.pyplot as plt
+try:
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only, no display needed
+    import matplotlib.pyplot as plt
+except ImportError as exc:  # canergy[plot]
+    raise MissingExtra("plot", exc) from exc
 
 from canergy.inspect.timeline import Timeline
 from canergy.sequence_chart import COLOURS, Arrow, draw_arrows, label_lanes

@@ -38,8 +38,14 @@ from dataclasses import dataclass
 from typing import Any
 
 import can
-import zenoh
-import zenoh.handlers
+
+from canergy.extras import MissingExtra
+
+try:
+    import zenoh
+    import zenoh.handlers
+except ImportError as exc:  # canergy[zenoh]; python-can reports it as the interface's error
+    raise MissingExtra("zenoh", exc) from exc
 
 KEY_PREFIX = "canergy"
 SENDER_BYTES = 8

@@ -5,10 +5,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-import matplotlib
+from canergy.extras import MissingExtra
 
-matplotlib.use("Agg")  # files only, no display needed
-import matplotlib.pyplot as plt
+try:
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only, no display needed
+    import matplotlib.pyplot as plt
+except ImportError as exc:  # canergy[plot]
+    raise MissingExtra("plot", exc) from exc
 
 from canergy.sequence_chart import Arrow, draw_arrows, label_lanes
 from canergy.sim.engine import SimResult

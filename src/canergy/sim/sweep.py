@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, TextIO
 
+from canergy.extras import require
 from canergy.sim.engine import SimConfig, simulate
 
 
@@ -135,6 +136,7 @@ def write_csv(points: Sequence[Point], path: Path) -> None:
 
 
 def plot(points: Sequence[Point], path: Path) -> None:
+    require("plot")
     import matplotlib
 
     matplotlib.use("Agg")

@@ -191,3 +191,13 @@ def test_a_forged_join_is_raised_by_the_supervisor(guarded: Bench) -> None:
     b.wait(lambda: supervisor_intrusions(b) >= 1)
     assert b.status()["intrusion_report"]["first_at_us"] - sent < 1_000_000
     assert any("in its name" in e["kind"] for e in b.status()["intrusion_report"]["recent"])
+
+
+def test_a_forged_join_does_not_wipe_the_witness_baseline() -> None:
+    """Found in CI: the ADMIT a forged JOIN draws reset the node's witness state, so the node's
+    report of that very JOIN looked like a first report (logged, not raised)."""
+    gate = ReturnGate(HOLD, 10_000_000)
+    gate.telemetry(tel(3), 3, 0)
+    gate.readmitted(1)  # the supervisor admitted "the node" again
+    evidence, _ = gate.telemetry(tel(3, witness=1), 3, 10_000)
+    assert evidence == ["the node saw 1 frame(s) in its name that it did not send"]

@@ -583,7 +583,7 @@ class SupervisorService:
     def _admitted(self, action: Admitted) -> None:
         info = self.nodes[action.node]
         info.admitted += 1
-        self.witness.forget(action.node)  # a new life: its counts start again
+        self.witness.readmitted(action.node)  # its return numbers start again
         if action.tx or action.seq:  # books existed: what it held is gone with its record
             log.warning(
                 "node %s has no books (NV lost or replaced): admitted at tx %d, return %d; "

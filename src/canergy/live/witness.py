@@ -162,9 +162,14 @@ class ReturnGate:
         ]
         return min(times, default=None)
 
-    def forget(self, node: int) -> None:
-        """The node was admitted afresh (it had lost its books): start over with it."""
-        self.nodes.pop(node, None)
+    def readmitted(self, node: int) -> None:
+        """The node was admitted afresh: its return numbers start again from the supervisor's
+        counters. Its witness count is kept (a JOIN forged in its name must not wipe the
+        baseline it is judged by; a node that really restarted shows a count that went back)."""
+        w = self.nodes.get(node)
+        if w is not None:
+            w.return_seq, w.confirmed_at = None, 0
+            w.held.clear()
 
     def status(self, node: int) -> dict[str, int]:
         w = self.nodes.get(node)

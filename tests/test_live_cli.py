@@ -53,10 +53,33 @@ def test_grant_as_a_single_run(tmp_path: Path, capsys: pytest.CaptureFixture[str
         assert state["usable_uj"] == 3_000_000
         # a second run continues from the state file; asking for more than is left is refused
         assert main([*args, "--state", str(tmp_path / "s.json"), "--amount", "4J"]) == 1
-        assert "refused" in capsys.readouterr().out
+        refused = capsys.readouterr().out
+        assert "refused" in refused and "the supervisor has 3.000000 J left" in refused  # why
     finally:
         loop.halt()
     assert host.nodes[4].client.state.usable == 2_000_000
+
+
+def test_a_single_run_grant_keeps_the_books_of_the_other_nodes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Found following the README: a state file with books for nodes 1-5 refused `grant --node
+    3` ("not in --nodes; add them to --nodes"), and grant has no --nodes."""
+    channel = f"cli-{uuid.uuid4().hex}"
+    _, loop = _emulator(tmp_path, channel, [2, 3])
+    state = tmp_path / "s.json"
+    try:
+        base = ["grant", "-i", "virtual", "-c", channel, "--state", str(state)]
+        assert main([*base, "--node", "2", "--amount", "1J", "--initial", "5J"]) == 0
+        assert main([*base, "--node", "3", "--amount", "0.5J"]) == 0
+        answers = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+        assert [a["outcome"] for a in answers] == ["COMMITTED", "COMMITTED"]
+    finally:
+        loop.halt()
+    books = json.loads(state.read_text())
+    assert books["sessions"]["2"]["delivered_uj"] == 1_000_000  # kept by the second run
+    assert books["sessions"]["3"]["delivered_uj"] == 500_000
+    assert books["usable_uj"] == 3_500_000
 
 
 def test_supervisor_serves_grants_over_its_control_socket(tmp_path: Path) -> None:

@@ -34,7 +34,7 @@ from canergy.live.multi_bus import (
 from canergy.live.policy import Limits, TopUp, level_room
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.state_file import ACCEPT_EDITED, keep_books, load_state
+from canergy.live.state_file import ACCEPT_EDITED, books_nodes, keep_books, load_state
 from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ, Direction, Message
 from canergy.units import UJ_PER_J, US_PER_S, format_energy
 
@@ -650,7 +650,8 @@ def run_grant(args: argparse.Namespace) -> int:
     _check_widths(args)
     _check_state(args)
     key = _auth_key(args)
-    core = _build(args, (args.node,), key=key)
+    nodes = tuple(sorted({args.node, *books_nodes(args.state)}))  # every node's books kept
+    core = _build(args, nodes, key=key)
     config = ServiceConfig(
         limits=_limits(args),
         state_path=args.state,

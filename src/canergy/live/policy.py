@@ -99,6 +99,35 @@ def capped_grant(
     return max(0, quantize(min(caps)))
 
 
+def what_limits(
+    wanted: int,
+    *,
+    limits: Limits,
+    level: int | None,
+    usable: int,
+    granted_total: int,
+    rate_tokens: int | None,
+) -> list[str]:
+    """What keeps a grant below ``wanted``, one phrase each, as ``capped_grant`` applies it."""
+    caps = [
+        (usable, f"the supervisor has {format_energy(usable)} left"),
+        (limits.max_grant, f"--max-grant {format_energy(limits.max_grant)}"),
+        (AMOUNT_MAX_MJ * QUANTUM_UJ, "one transaction carries at most 65.535 J"),
+    ]
+    if level is not None:
+        caps.append((USABLE_MAX_UJ - level, "the node's record holds no more"))
+    if limits.max_node_level is not None:
+        room = 0 if level is None else limits.max_node_level - level
+        caps.append((room, f"--max-node-level {format_energy(limits.max_node_level)}"))
+    if limits.max_total is not None:
+        room = limits.max_total - granted_total
+        left = format_energy(max(room, 0))
+        caps.append((room, f"--max-total {format_energy(limits.max_total)} ({left} left)"))
+    if rate_tokens is not None:
+        caps.append((rate_tokens, f"--rate ({format_energy(max(rate_tokens, 0))} available now)"))
+    return [why for cap, why in caps if cap < wanted]
+
+
 @dataclass(frozen=True, slots=True)
 class TopUp:
     """Keep each node's reported level at ``target``: grant the shortfall, at least ``minimum``

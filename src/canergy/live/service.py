@@ -33,7 +33,7 @@ from canergy.core.state import Outcome, Phase
 from canergy.live.atomic import write_json_atomic
 from canergy.live.bus_keys import node_name
 from canergy.live.intrusions import Intrusions, Refusals, frame_text
-from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant
+from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant, what_limits
 from canergy.live.runtime import BusCounters, total_counters
 from canergy.live.state_file import ENERGY_MAX_UJ, BooksWriter
 from canergy.live.witness import ReturnGate
@@ -518,8 +518,12 @@ class SupervisorService:
         amount = self._cap(req.amount, info, now)
         if amount != req.amount:
             allowed = f"{format_energy(amount)} allowed" if amount else "nothing allowed"
+            why = "; ".join(self._limiting(req.amount, info, now))
             req.reply(
-                {"node": self.node_name(node), "error": f"refused by limits or budget ({allowed})"}
+                {
+                    "node": self.node_name(node),
+                    "error": f"refused by limits or budget ({allowed}: {why})",
+                }
             )
             return []
         info.active_request = req
@@ -536,14 +540,21 @@ class SupervisorService:
         return self._begin(node, amount, now) if amount else []
 
     def _cap(self, wanted: int, info: NodeInfo, now: int) -> int:
-        return capped_grant(
-            wanted,
-            limits=self.config.limits,
-            level=info.level,
-            usable=self.core.state.usable,
-            granted_total=self.granted_total() if self.config.limits.max_total is not None else 0,
-            rate_tokens=self.rate.available(now),
-        )
+        return capped_grant(wanted, **self._caps(info, now))
+
+    def _limiting(self, wanted: int, info: NodeInfo, now: int) -> list[str]:
+        return what_limits(wanted, **self._caps(info, now))
+
+    def _caps(self, info: NodeInfo, now: int) -> dict[str, Any]:
+        return {
+            "limits": self.config.limits,
+            "level": info.level,
+            "usable": self.core.state.usable,
+            "granted_total": (
+                self.granted_total() if self.config.limits.max_total is not None else 0
+            ),
+            "rate_tokens": self.rate.available(now),
+        }
 
     def _begin(self, node: int, amount: int, now: int) -> list[Message]:
         try:

@@ -273,6 +273,23 @@ def save_state(
     BooksWriter(path, variant, fsync=fsync, buses=buses, seal=seal).save(state)
 
 
+def books_nodes(path: Path | None) -> tuple[int, ...]:
+    """The node ids a one-bus state file holds books for (none when it cannot be read, or for a
+    bus/node key: ``load_state`` then says what is wrong). ``canergy grant`` carries them all, so
+    that the books of nodes it does not grant to are kept as they are."""
+    if path is None:
+        return ()
+    try:
+        sessions = json.loads(path.read_text())["sessions"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return ()
+    nodes = []
+    for key in sessions if isinstance(sessions, dict) else ():
+        if isinstance(key, str) and key.isdigit() and MIN_NODE <= int(key) <= MAX_NODE:
+            nodes.append(int(key))
+    return tuple(sorted(nodes))
+
+
 def load_state(
     path: Path,
     variant: str,

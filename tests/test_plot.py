@@ -91,6 +91,7 @@ def test_a_demo_capture_plots(tmp_path: Path) -> None:
         (["story.log", "-o", "nodir/f.png"], "no directory"),
         (["story.log", "-o", "f.png", "--node", "9"], "none of these nodes in the capture"),
         (["story.log", "-o", "f.png", "--from", "2s", "--to", "1s"], "--to must be after --from"),
+        (["story.log", "-o", "f.png", "--from", "10000s"], "nothing of it in that window"),
         (["foreign.log", "-o", "f.png"], "no canergy frames among its 1 frame(s)"),
     ],
 )

@@ -128,6 +128,11 @@ def run_plot(args: argparse.Namespace) -> int:
             (args.start or 0) / US_PER_S,
             args.end / US_PER_S if args.end is not None else tl.end,
         )
+        if window[0] >= tl.end:  # times run from the capture's first frame
+            raise ValueError(
+                f"--from/--to: the capture spans 0 s to {tl.end:.3f} s, nothing of it in that "
+                "window"
+            )
         if window[1] <= window[0]:
             raise ValueError("--to must be after --from")
     draw(tl, nodes, args.output, title, window)

@@ -191,8 +191,9 @@ def run_sweep(args: argparse.Namespace) -> int:
         row = p.row()
         print(
             f"{p.strategy:<12} loss {p.loss:<5} tx {p.transactions:>9,}  generating runs "
-            f"{p.runs_generating:>4}/{p.seeds}  generated/tx {row['generated_per_tx_uj']:>9} µJ  "
-            f"dissipated/tx {row['dissipated_per_tx_uj']:>9} µJ"
+            f"{p.runs_generating:>4}/{p.seeds}  generated/tx "
+            f"{row['generated_per_tx_uj'] / 1000:>9.3f} mJ  "
+            f"dissipated/tx {row['dissipated_per_tx_uj'] / 1000:>9.3f} mJ"
         )
     print(f"{total:,} transactions in {len(points) * args.seeds:,} runs -> {args.out}/sweep.csv")
     return 0

@@ -76,39 +76,17 @@ def quantize(amount: int) -> int:
     return amount - amount % QUANTUM_UJ
 
 
-def capped_grant(
-    wanted: int,
+def grant_caps(
     *,
     limits: Limits,
     level: int | None,
     usable: int,
     granted_total: int,
     rate_tokens: int | None,
-) -> int:
-    """The largest grant ≤ ``wanted`` every limit allows (0: none), in whole quanta. A node is
-    never lifted above what its record holds (``USABLE_MAX_UJ``) from a level it reported."""
-    caps = [wanted, limits.max_grant, usable, AMOUNT_MAX_MJ * QUANTUM_UJ]
-    if level is not None:
-        caps.append(USABLE_MAX_UJ - level)
-    if limits.max_node_level is not None:  # an unknown level fails closed
-        caps.append(0 if level is None else limits.max_node_level - level)
-    if limits.max_total is not None:
-        caps.append(limits.max_total - granted_total)
-    if rate_tokens is not None:
-        caps.append(rate_tokens)
-    return max(0, quantize(min(caps)))
-
-
-def what_limits(
-    wanted: int,
-    *,
-    limits: Limits,
-    level: int | None,
-    usable: int,
-    granted_total: int,
-    rate_tokens: int | None,
-) -> list[str]:
-    """What keeps a grant below ``wanted``, one phrase each, as ``capped_grant`` applies it."""
+) -> list[tuple[int, str]]:
+    """Every cap on one grant now, with what it is in a phrase. A node is never lifted above
+    what its record holds (``USABLE_MAX_UJ``) from a level it reported; an unknown level fails
+    ``--max-node-level`` closed."""
     caps = [
         (usable, f"the supervisor has {format_energy(usable)} left"),
         (limits.max_grant, f"--max-grant {format_energy(limits.max_grant)}"),
@@ -125,7 +103,28 @@ def what_limits(
         caps.append((room, f"--max-total {format_energy(limits.max_total)} ({left} left)"))
     if rate_tokens is not None:
         caps.append((rate_tokens, f"--rate ({format_energy(max(rate_tokens, 0))} available now)"))
-    return [why for cap, why in caps if cap < wanted]
+    return caps
+
+
+def capped_grant(
+    wanted: int,
+    *,
+    limits: Limits,
+    level: int | None,
+    usable: int,
+    granted_total: int,
+    rate_tokens: int | None,
+) -> int:
+    """The largest grant ≤ ``wanted`` every cap of ``grant_caps`` allows (0: none), in whole
+    quanta."""
+    caps = grant_caps(
+        limits=limits,
+        level=level,
+        usable=usable,
+        granted_total=granted_total,
+        rate_tokens=rate_tokens,
+    )
+    return max(0, quantize(min([wanted, *(cap for cap, _ in caps)])))
 
 
 @dataclass(frozen=True, slots=True)

@@ -33,7 +33,7 @@ from canergy.core.state import Outcome, Phase
 from canergy.live.atomic import write_json_atomic
 from canergy.live.bus_keys import node_name
 from canergy.live.intrusions import Intrusions, Refusals, frame_text
-from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant, what_limits
+from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
 from canergy.live.runtime import BusCounters, total_counters
 from canergy.live.state_file import ENERGY_MAX_UJ, BooksWriter
 from canergy.live.witness import ReturnGate
@@ -543,7 +543,8 @@ class SupervisorService:
         return capped_grant(wanted, **self._caps(info, now))
 
     def _limiting(self, wanted: int, info: NodeInfo, now: int) -> list[str]:
-        return what_limits(wanted, **self._caps(info, now))
+        """What keeps a grant below ``wanted``, one phrase each."""
+        return [why for cap, why in grant_caps(**self._caps(info, now)) if cap < wanted]
 
     def _caps(self, info: NodeInfo, now: int) -> dict[str, Any]:
         return {

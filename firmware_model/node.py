@@ -30,20 +30,17 @@ from canergy.core import (
 from canergy.core.state import Phase
 from canergy.live.intrusions import Intrusions, frame_text
 from canergy.live.policy import quantize
+from canergy.live.witness import ClientWitness
 from canergy.messages import (
     AMOUNT_MAX_MJ,
     LEVEL_MAX_MJ,
     QUANTUM_UJ,
     SEQ_BITS,
-    WITNESS_BITS,
-    Admit,
     Intention,
     Message,
-    ReturnAck,
     Telemetry,
     ToClient,
 )
-from canergy.seqnum import unwrap
 from firmware_model.actuator import Actuator, PowerProfile
 from firmware_model.nvstore import NvStore
 
@@ -64,9 +61,6 @@ class NodeConfig:
 
 PARAM_INDEXES = (0x2100, 0x2101, 0x2102)
 SEQ_MASK = (1 << SEQ_BITS) - 1
-WITNESS_REPORT_AT = 128
-"""Unreported witnessed frames that make the node report at once (the C node's
-CANERGY_WITNESS_REPORT_AT)."""
 
 
 class FirmwareNode:
@@ -81,15 +75,12 @@ class FirmwareNode:
         self.outbox: list[Message] = []
         self.overflow_refused = 0
         self.joins = 0
-        self.join_nonce: int | None = None
-        """The nonce of this start's JOIN: an ADMIT that does not echo it was not for us."""
-        self.witnessed = 0
+        self.witnessing = ClientWitness()
         """Frames seen in this node's name that it did not send (TELEMETRY's ``witness``)."""
-        self.witness_reported = 0
         if record is None:  # new, wiped or corrupted: no books, so no pay-back is trusted
             self.joins += 1
-            self.join_nonce = secrets.randbits(16)
-            self.outbox = self._carry_out(self.client.books_lost(self.join_nonce, now), now)
+            nonce = self.witnessing.join_nonce = secrets.randbits(16)
+            self.outbox = self._carry_out(self.client.books_lost(nonce, now), now)
         self.actuator = Actuator(config.power, now, now)
         self.next_tick = now + config.tick_us
         self.next_telemetry = now  # announce the level at boot
@@ -114,31 +105,23 @@ class FirmwareNode:
         if isinstance(msg, Intention) and self.gate() != "OPERATIONAL":
             self.refused += 1  # no grants outside OPERATIONAL: left unanswered
             return []
-        out = self.witness(now) if self._never_asked(msg) else []
+        asked = not self.witnessing.never_asked(msg, self.client.state.return_seq)
+        out = [] if asked else self.witness(now)
         joining = self.joining
         out += self._carry_out(self.client.receive(msg, now), now)
         if joining and not self.joining:
             self.next_telemetry = now  # admitted: tell the supervisor at once
         return out
 
-    def _never_asked(self, msg: ToClient) -> bool:
-        """An answer to something this node never sent: a RETURN_ACK for a return number it has
-        not reached, an ADMIT that does not echo its JOIN's nonce (duplicates of genuine answers
-        are not counted: a lossy bus makes them)."""
-        if isinstance(msg, ReturnAck):
-            seq = self.client.state.return_seq
-            return unwrap(msg.seq, seq, SEQ_BITS) > seq
-        return isinstance(msg, Admit) and msg.nonce != self.join_nonce
-
     def witness(self, now: int) -> list[Message]:
         """Someone spoke in this node's name: count it and tell the supervisor at the next
-        wakeup, or now when ``WITNESS_REPORT_AT`` frames have gone unreported (so that no
-        report is ever a whole turn of the 8-bit count after the last)."""
-        self.witnessed += 1
+        wakeup, or now (``ClientWitness.seen``)."""
         self.next_telemetry = now
-        if self.witnessed - self.witness_reported >= WITNESS_REPORT_AT:
-            return [self.telemetry(now)]
-        return []
+        return [self.telemetry(now)] if self.witnessing.seen() else []
+
+    @property
+    def witnessed(self) -> int:
+        return self.witnessing.count
 
     def parameters(self) -> tuple[int, int, int]:
         return (
@@ -201,13 +184,12 @@ class FirmwareNode:
             | (Telemetry.HALTED if self.actuator.halted else 0)
             | (Telemetry.JOINING if self.joining else 0)
         )
-        self.witness_reported = self.witnessed
         return Telemetry(
             self.node,
             min(usable // QUANTUM_UJ, LEVEL_MAX_MJ),
             flags,
             self.client.state.return_seq & SEQ_MASK,
-            self.witnessed % (1 << WITNESS_BITS),
+            self.witnessing.report(),
         )
 
     def _actuate(self, now: int) -> list[Message]:

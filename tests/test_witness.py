@@ -17,7 +17,7 @@ from test_intrusions import Bench, bench
 from canergy.live.control import request
 from canergy.live.runtime import monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.witness import ReturnGate
+from canergy.live.witness import WITNESS_REPORT_AT, ReturnGate
 from canergy.messages import Join, Return, ReturnAck, Telemetry
 
 HOLD = 300_000
@@ -87,7 +87,7 @@ def test_a_node_reports_before_its_witness_count_could_turn_over(tmp_path: Path)
     import can
 
     from canergy.codec import Codec
-    from firmware_model.node import WITNESS_REPORT_AT, FirmwareNode, NodeConfig, NodeHost
+    from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
     from firmware_model.nvstore import NvStore
 
     node = FirmwareNode(1, NvStore(tmp_path / "1.nv", 1, fsync=False), NodeConfig(), 0)

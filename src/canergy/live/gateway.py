@@ -36,19 +36,16 @@ from canergy.live.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.policy import quantize
 from canergy.live.runtime import BusCounters
 from canergy.live.service import SupervisorService
+from canergy.live.witness import ClientWitness
 from canergy.messages import (
     AMOUNT_MAX_MJ,
     LEVEL_MAX_MJ,
     QUANTUM_UJ,
     SEQ_BITS,
-    WITNESS_BITS,
-    Admit,
     Message,
-    ReturnAck,
     Telemetry,
     ToClient,
 )
-from canergy.seqnum import unwrap
 
 log = logging.getLogger(__name__)
 
@@ -99,9 +96,7 @@ class Uplink:
         self.intrusions = Intrusions(f"gateway {gateway.up.node} (upstream)")
         self.refusals = Refusals(f"gateway {gateway.up.node} (upstream)")
         """Authenticated mode: frames for this gateway refused by the MAC or freshness check."""
-        self.join_nonce: int | None = None
-        """The nonce of this start's JOIN: an ADMIT that does not echo it was not for us."""
-        self.witnessed = 0
+        self.witnessing = ClientWitness()
         """Frames seen in this gateway's name upstream that it did not send (TELEMETRY's
         ``witness``)."""
         self.now = now
@@ -114,7 +109,7 @@ class Uplink:
     def start_without_books(self, nonce: int, now: int) -> None:
         """No record: JOIN the supervisor above (and wait to be admitted)."""
         self.joins += 1
-        self.join_nonce = nonce
+        self.witnessing.join_nonce = nonce
         self.outbox += self._carry_out(self.gateway.books_lost(nonce, now), now)
 
     # -- Handler -----------------------------------------------------------------------------
@@ -122,10 +117,11 @@ class Uplink:
         if msg.node != self.node or not isinstance(msg, ToClient):
             return ()
         self.now = now
-        if self._never_asked(msg):
-            self.witness(now)
+        out = []
+        if self.witnessing.never_asked(msg, self.gateway.up.state.return_seq):
+            out += self.witness(now)
         joining = self.joining
-        out = self._carry_out(self.gateway.receive_upstream(msg, now), now)
+        out += self._carry_out(self.gateway.receive_upstream(msg, now), now)
         if joining and not self.joining:
             self.next_telemetry = now
         return out
@@ -158,13 +154,18 @@ class Uplink:
             self.intrusions.record(
                 self.node, frame_text(frame), "a frame only this node sends", now
             )
-            self.witness(now)
+            return self.witness(now)
         return ()
 
-    def witness(self, now: int) -> None:
-        """Someone spoke in this gateway's name upstream: count it, report it at once."""
-        self.witnessed += 1
+    def witness(self, now: int) -> list[Message]:
+        """Someone spoke in this gateway's name upstream: count it, report it at the next
+        wakeup, or now (``ClientWitness.seen``)."""
         self.next_telemetry = now
+        return [self.telemetry(now)] if self.witnessing.seen() else []
+
+    @property
+    def join_nonce(self) -> int | None:
+        return self.witnessing.join_nonce
 
     def next_wakeup(self) -> int | None:
         if self.outbox:
@@ -193,14 +194,6 @@ class Uplink:
     def joining(self) -> bool:
         return self.gateway.up.state.phase is Phase.JOINING
 
-    def _never_asked(self, msg: ToClient) -> bool:
-        """An answer to something this gateway never sent (as a node judges it): a RETURN_ACK
-        for a return number it has not reached, an ADMIT that does not echo its JOIN's nonce."""
-        if isinstance(msg, ReturnAck):
-            seq = self.gateway.up.state.return_seq
-            return unwrap(msg.seq, seq, SEQ_BITS) > seq
-        return isinstance(msg, Admit) and msg.nonce != self.join_nonce
-
     def level(self) -> int:
         """What the gateway reports upstream: the budget it can still grant below."""
         return self.gateway.down.state.usable
@@ -214,7 +207,7 @@ class Uplink:
             min(level // QUANTUM_UJ, LEVEL_MAX_MJ),
             flags,
             self.gateway.up.state.return_seq & SEQ_MASK,
-            self.witnessed % (1 << WITNESS_BITS),
+            self.witnessing.report(),
         )
 
     def _maybe_return(self, now: int) -> list[Message]:
@@ -257,7 +250,7 @@ class Uplink:
             "intentions_refused": self.refused,
             "decode_errors": self.decode_errors,
             "intrusions": self.intrusions.total,
-            "witnessed": self.witnessed,
+            "witnessed": self.witnessing.count,
             "intrusion_report": self.intrusions.as_json(),
             "refused": self.refusals.as_json(self.now),
             **self.counters.as_json(),

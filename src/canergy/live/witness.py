@@ -25,8 +25,52 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from canergy.messages import SEQ_BITS, WITNESS_BITS, Return, Telemetry
+from canergy.messages import (
+    SEQ_BITS,
+    WITNESS_BITS,
+    Admit,
+    Return,
+    ReturnAck,
+    Telemetry,
+    ToClient,
+)
 from canergy.seqnum import unwrap, wrap
+
+WITNESS_REPORT_AT = 128
+"""A node reports at once once this many witnessed frames went unreported, so two reports never
+differ by a whole turn of the 8-bit count; a count that moved by more went back: the node
+restarted (its count starts at 0 again)."""
+
+
+@dataclass(slots=True)
+class ClientWitness:
+    """A client's side (an emulated node, a gateway's upstream leg; the C node in node.c does
+    the same): the frames it saw in its own name that it did not send."""
+
+    join_nonce: int | None = None
+    """The nonce of this start's JOIN: an ADMIT that does not echo it was not for us."""
+    count: int = 0
+    reported: int = 0
+    """The count its last TELEMETRY carried."""
+
+    def never_asked(self, msg: ToClient, return_seq: int) -> bool:
+        """An answer to something the client never sent: a RETURN_ACK for a return number it has
+        not reached, an ADMIT that does not echo its JOIN's nonce (duplicates of genuine answers
+        are not counted: a lossy bus makes them)."""
+        if isinstance(msg, ReturnAck):
+            return unwrap(msg.seq, return_seq, SEQ_BITS) > return_seq
+        return isinstance(msg, Admit) and msg.nonce != self.join_nonce
+
+    def seen(self) -> bool:
+        """One more frame in its name; True: report now (``WITNESS_REPORT_AT`` unreported), so
+        that no report is ever a whole turn of the 8-bit count after the last."""
+        self.count += 1
+        return self.count - self.reported >= WITNESS_REPORT_AT
+
+    def report(self) -> int:
+        """The count for a TELEMETRY about to leave, as the wire carries it."""
+        self.reported = self.count
+        return self.count % (1 << WITNESS_BITS)
 
 
 @dataclass(slots=True)
@@ -36,12 +80,6 @@ class _Held:
     confirmed_at: int | None = None
     """When a TELEMETRY first showed the node had made this return: the hold runs from then,
     so the node has that long to refute a TELEMETRY that confirms a forged RETURN."""
-
-
-WITNESS_REPORT_AT = 128
-"""A node reports at once once this many witnessed frames went unreported, so two reports never
-differ by a whole turn of the 8-bit count; a count that moved by more went back: the node
-restarted (its count starts at 0 again)."""
 
 
 @dataclass(slots=True)

@@ -97,14 +97,15 @@ def test_top_ups_keep_the_drive_running(plenty: Bench) -> None:
     assert drawn <= books["delivered_uj"]
 
 
-def _without_max_speed(tmp_path: Path) -> Path:
-    """The emulator's EDS without 0x6080: a drive that has no speed limit to write."""
+def _eds_without(tmp_path: Path, index: int) -> Path:
+    """The emulator's EDS without object ``index`` (0x6080: a drive that has no speed limit to
+    write; 0x6076: one whose set-up keeps failing)."""
     from firmware_model.drive.model import EDS as DRIVE_EDS
 
     text = DRIVE_EDS.read_text()
-    start = text.index("[6080]")
+    start = text.index(f"[{index:04X}]")
     text = text[:start] + text[text.index("\n[", start) + 1 :]
-    listed = re.search(r"(\d+)=0x6080\n", text)
+    listed = re.search(rf"(\d+)=0x{index:04X}\n", text)
     assert listed is not None
     text = text.replace(listed[0], "")  # its entry in the object list goes too (renumbered)
     lines, n = [], 0
@@ -118,36 +119,37 @@ def _without_max_speed(tmp_path: Path) -> Path:
         elif section == "[OptionalObjects]" and line.startswith("SupportedObjects="):
             line = "SupportedObjects=@"
         lines.append(line)
-    path = tmp_path / "no-6080.eds"
+    path = tmp_path / f"no-{index:04X}.eds"
     path.write_text("\n".join(lines).replace("SupportedObjects=@", f"SupportedObjects={n}", 1))
     return path
 
 
+ENVELOPE = (
+    *("--cia402-meter", "envelope", "--cia402-max-torque", "265"),
+    *("--cia402-max-current", "265", "--cia402-max-speed", "100500"),
+)
+
+
 @pytest.mark.parametrize(
-    ("flags", "eds_without_speed", "object_named"),
+    ("flags", "eds_without", "said"),
     [
         (
             ("--cia402-meter", "sampled-electrical", "--cia402-bus-current", "0x2012"),
-            False,
-            "0x2012",
+            None,
+            ("cannot be guarded", "0x2012", "drive 10"),
         ),
-        (
-            (
-                *("--cia402-meter", "envelope", "--cia402-max-torque", "265"),
-                *("--cia402-max-current", "265", "--cia402-max-speed", "100500"),
-            ),
-            True,
-            "0x6080",
-        ),
+        (ENVELOPE, 0x6080, ("cannot be guarded", "0x6080", "drive 10")),
+        (ENVELOPE, 0x6076, ("set-up failed, retrying",)),
     ],
-    ids=["tpdos-lack-the-current", "no-speed-limit-to-write"],
+    ids=["tpdos-lack-the-current", "no-speed-limit-to-write", "set-up-keeps-failing"],
 )
 def test_a_drive_the_guard_cannot_meter_is_disabled(
-    tmp_path: Path, flags: tuple[str, ...], eds_without_speed: bool, object_named: str
+    tmp_path: Path, flags: tuple[str, ...], eds_without: int | None, said: tuple[str, ...]
 ) -> None:
     """Its TPDOs lack the object sampled-electrical metering needs, or it has no 0x6080 to take
     the envelope's speed limit: the guard refuses it, names the drive and the object in the
-    status, and disables the drive the application had enabled."""
+    status, and disables the drive the application had enabled. One whose set-up keeps failing
+    (no 0x6076 to read) is disabled at every attempt meanwhile."""
     import threading
     import uuid
 
@@ -160,7 +162,7 @@ def test_a_drive_the_guard_cannot_meter_is_disabled(
     from firmware_model.drive.model import DriveModel
 
     channel = f"cia402-bad-{uuid.uuid4().hex}"
-    eds = _without_max_speed(tmp_path) if eds_without_speed else DRIVE_EDS
+    eds = DRIVE_EDS if eds_without is None else _eds_without(tmp_path, eds_without)
     model = DriveModel(DRIVE, monotonic_us(), eds=eds)  # the face advances it on its clock
     drive_net = drive_network(can.Bus(interface="virtual", channel=channel))
     face = DriveFace(model, drive_net)
@@ -194,7 +196,7 @@ def test_a_drive_the_guard_cannot_meter_is_disabled(
             except (FileNotFoundError, json.JSONDecodeError):
                 return False
             error = status["cia402"]["drives"][str(DRIVE)]["error"] or ""
-            return "cannot be guarded" in error and object_named in error and "drive 10" in error
+            return all(part in error for part in said)
 
         wait_for(refused)
         request(tmp_path / "c", {"stop": True}, 30)

@@ -26,7 +26,7 @@ import canopen
 
 from canergy.cli import main as canergy_main
 from canergy.codec import Codec
-from canergy.live.cia402_link import EDS
+from canergy.live.cia402_link import EDS, shared_sdo
 from canergy.live.control import request
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.messages import Direction
@@ -108,17 +108,13 @@ class Bench:
         return next(t for t, s in history if t > start and s != "QUICK STOP ACTIVE") - start
 
 
-def app_write(node: canopen.RemoteNode, index: int, value: int, attempts: int = 5) -> None:
-    """An application's SDO write, tried again when the guard's own transfer on the drive's
-    one SDO server garbled it (two masters share it: CANopen leaves that to them)."""
-    for attempt in range(attempts):
-        try:
-            node.sdo[index].raw = value
-            return
-        except canopen.SdoCommunicationError:
-            if attempt == attempts - 1:
-                raise
-            time.sleep(0.02 * (attempt + 1))
+def app_write(node: canopen.RemoteNode, index: int, value: int) -> None:
+    """An application's SDO write, beside the guard's on the drive's one SDO server."""
+
+    def transfer() -> None:
+        node.sdo[index].raw = value
+
+    shared_sdo(transfer, time.sleep)
 
 
 @contextlib.contextmanager

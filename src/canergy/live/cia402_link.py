@@ -34,7 +34,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import can
 import canopen
@@ -67,6 +67,7 @@ LimitsAnswer = tuple[Limits, bool, str]
 UNSIGNED_TYPES = {8: 0x5, 16: 0x6, 32: 0x7, 64: 0x1B}
 SDO_ERRORS = (canopen.SdoCommunicationError, canopen.SdoAbortedError, can.CanError)
 SDO_ATTEMPTS = 5
+T = TypeVar("T")
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,6 +87,21 @@ class LinkConfig:
 
 class SetupError(RuntimeError):
     """The drive answers but cannot be guarded as configured (e.g. a needed object unmapped)."""
+
+
+def shared_sdo(
+    transfer: Callable[[], T], pause: Callable[[float], object], attempts: int = SDO_ATTEMPTS
+) -> T:
+    """Run an SDO ``transfer``. A drive's default SDO server is shared by every master (the
+    guard and the application's): a transfer garbled by another master's is tried again
+    (``attempts`` in all, ``pause`` growing between); an abort is the drive's answer and is
+    not."""
+    for attempt in range(1, attempts):
+        try:
+            return transfer()
+        except canopen.SdoCommunicationError:
+            pause(0.01 * attempt)
+    return transfer()
 
 
 def ensure_variable(od: Any, index: int, subindex: int, bits: int, name: str) -> None:
@@ -331,19 +347,14 @@ class DriveLink:
         return True, ""
 
     def _write_read(self, index: int, value: int) -> int:
-        """Write ``value`` and read it back by SDO. The drive's default SDO server is shared
-        with the application's master: a transfer garbled by one of theirs is tried again
-        (``SDO_ATTEMPTS`` in all); an abort is the drive's answer and is not."""
+        """Write ``value`` and read it back by SDO (``shared_sdo``)."""
         sdo = self.node.sdo
-        for attempt in range(SDO_ATTEMPTS):
-            try:
-                sdo[index].raw = value
-                return int(sdo[index].raw)
-            except canopen.SdoCommunicationError:
-                if attempt == SDO_ATTEMPTS - 1:
-                    raise
-                self._closed.wait(0.01 * (attempt + 1))
-        raise AssertionError("unreachable")
+
+        def transfer() -> int:
+            sdo[index].raw = value
+            return int(sdo[index].raw)
+
+        return shared_sdo(transfer, self._closed.wait)
 
     def _timed_controlword(self, controlword: int) -> int:
         """Write a controlword by SDO; the µs until the drive answered."""

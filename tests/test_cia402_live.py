@@ -34,9 +34,13 @@ def plenty(tmp_path: Path) -> Iterator[Bench]:
         yield bench
 
 
-def test_the_budget_runs_out_and_the_drive_stops_inside_the_bound(exhausting: Bench) -> None:
+def test_the_budget_runs_out_and_the_drive_stops_inside_the_bound(
+    exhausting: Bench, capsys: pytest.CaptureFixture[str]
+) -> None:
     b = exhausting
     wait_for(lambda: exhausted(b), timeout=120)
+    told = capsys.readouterr().err  # the supervisor says when the guard stops a drive
+    assert "canergy supervisor: drive 10: stopped (budget exhausted; " in told
     assert "OPERATION ENABLED" in [s for _, s in b.model.psm.history]
 
     def standing() -> bool:  # a coasting stop: the load and friction bring it to rest

@@ -8,6 +8,8 @@ bound held back as the guard does, not even what was granted.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import pytest
 
 from canergy.cia402.envelope import StopKind
@@ -44,6 +46,20 @@ def test_a_velocity_profile_exhausts_2_j_and_the_drive_stops_inside_its_grant(
     assert r.drawn_uj <= r.granted_uj  # the guard held its bound back
     assert r.guard["taper_level"] > 0  # the limits were lowered on the way
     assert ledger_from_status(r.supervisor, []).passive  # the books close over the proxy
+
+
+@pytest.mark.parametrize(("kind", "where"), SOUND)
+def test_limits_writes_left_unanswered_are_written_again_and_charged_as_taken(
+    kind: MeterKind, where: str
+) -> None:
+    """Found on vcan0: an application's SDO writes, as fast as they go, garbled every attempt
+    of one of the guard's limits writes on the drive's shared SDO server; taken as a refusal,
+    it latched the drive off for good. Unanswered (half of them taken by the drive all the
+    same), the writes are tried again, and the drive runs and stops inside its bound."""
+    r = run(Scenario(meter=kind, counter_on=where, unanswered_limits=6))
+    assert "OPERATION ENABLED" in r.states and r.states[-1] in POWERLESS
+    assert r.guard["stop_reason"] == "budget exhausted" and r.guard["refused"] is None
+    assert within_bound(r)
 
 
 @pytest.mark.parametrize(("kind", "where"), SOUND)
@@ -144,7 +160,7 @@ def test_an_application_that_enables_the_drive_gets_torque_once_the_guard_opens_
 def test_what_is_drawn_past_the_budget_is_a_debt_the_next_grant_pays_first() -> None:
     """A sampled meter holds no bound back: its quick stops meter past the budget."""
     sampled = {"meter": MeterKind.SAMPLED_MECHANICAL, "stop": StopKind.QUICK}
-    r = run(Scenario(**sampled, duration_us=1_500_000))  # type: ignore[arg-type]
+    r = run(Scenario(**sampled, duration_us=1_500_000))
     assert r.overrun_uj > 0  # metered past the budget while the drive stopped
     assert r.debt_uj == r.overrun_uj  # and nothing paid it yet: no grant came
     assert r.guard["spent_uj"] == r.granted_uj  # the proxy never spent more than it held
@@ -153,7 +169,7 @@ def test_what_is_drawn_past_the_budget_is_a_debt_the_next_grant_pays_first() -> 
     no_debt = dict(r.supervisor, cia402={"drives": {}})
     assert books.dissipated == ledger_from_status(no_debt, [{**r.guard}]).dissipated - r.debt_uj
     topped = run(
-        Scenario(**sampled, budget_uj=50 * UJ_PER_J, target_uj=200_000, max_grant_uj=200_000)  # type: ignore[arg-type]
+        Scenario(**sampled, budget_uj=50 * UJ_PER_J, target_uj=200_000, max_grant_uj=200_000)
     )
     assert topped.guard["stops"] > 1 and topped.overrun_uj > 0
     assert topped.debt_uj == 0  # each grant paid the debt first
@@ -305,3 +321,37 @@ def test_limits_toggled_at_every_tpdo_are_all_charged(reaction_ms: int) -> None:
     )
     assert r.metered_uj == r.guard["spent_uj"] + r.debt_uj  # every charge spent or owed
     assert within_bound(r)
+
+
+def _transfers(*outcomes: Exception | int) -> tuple[list[int], Callable[[], int]]:
+    """A transfer that raises or returns ``outcomes`` in turn; the list counts its calls."""
+    calls: list[int] = []
+
+    def transfer() -> int:
+        outcome = outcomes[len(calls)]
+        calls.append(1)
+        if isinstance(outcome, Exception):
+            raise outcome
+        return outcome
+
+    return calls, transfer
+
+
+def test_a_shared_sdo_server_abort_is_the_drives_answer_only_when_it_comes_twice() -> None:
+    import canopen
+
+    from canergy.live.cia402_link import shared_sdo
+
+    garbled = canopen.SdoCommunicationError("Unexpected response 0x60")
+    another_masters = canopen.SdoAbortedError(0x06090030)
+    calls, transfer = _transfers(garbled, another_masters, garbled, 7)
+    assert shared_sdo(transfer, lambda _s: None) == 7 and len(calls) == 4
+    refused = canopen.SdoAbortedError(0x06010002)
+    calls, transfer = _transfers(refused, refused, 7)
+    with pytest.raises(canopen.SdoAbortedError):
+        shared_sdo(transfer, lambda _s: None)
+    assert len(calls) == 2
+    calls, transfer = _transfers(*[garbled] * 5, 7)
+    with pytest.raises(canopen.SdoCommunicationError):
+        shared_sdo(transfer, lambda _s: None)
+    assert len(calls) == 5

@@ -151,7 +151,7 @@ def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
     granted = books["delivered_uj"] - books["returns_credited_uj"]
     assert granted == 2_000_000 and sup["conservation"]["holds"]
     assert ledger_from_status(sup, []).passive  # the books close over the drive's proxy
-    assert "OPERATION ENABLED" in [h["state"] for h in drive["history"]]
+    assert "OPERATION ENABLED" in [h["state"] for h in drive["history"]], guarded
     # all charged but what the drive drew after the guard's last reading, as the supervisor
     # stopped: a count, and the 2.75 W envelope over a TPDO period, a reaction and a latency
     t = guarded["bound_timings_us"]

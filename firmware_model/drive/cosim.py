@@ -95,6 +95,9 @@ class Scenario:
     heartbeat_us: int = 50_000
     drop_stops: bool = False
     """Lose every stop command and every write that lowers the limits (a broken link)."""
+    unanswered_limits: int = 0
+    """The first limits writes whose answer never comes (another master garbled it on the
+    drive's shared SDO server); every other one of them took effect all the same."""
     meter_config: MeterConfig | None = None
     """Sampled modes: how to compute power (None: mechanical with the motor's R)."""
 
@@ -130,7 +133,8 @@ class _Link:
 
     def __init__(self, setup: DriveSetup) -> None:
         self.samples: deque[tuple[int, dict[int, int], str | None, int]] = deque()
-        self.limit_answers: deque[tuple[Limits, bool, str]] = deque()
+        self.limit_answers: deque[tuple[Limits, bool | None, str]] = deque()
+        self.limits_writes = 0
         self.ready_at: int | None = 0
         self.setup: DriveSetup | None = setup
         self.pending_commands: deque[Command | LimitsCommand] = deque()
@@ -142,7 +146,7 @@ class _Link:
         self.samples.clear()
         return out
 
-    def drain_limits(self) -> list[tuple[Limits, bool, str]]:
+    def drain_limits(self) -> list[tuple[Limits, bool | None, str]]:
         out = list(self.limit_answers)
         self.limit_answers.clear()
         return out
@@ -324,7 +328,12 @@ def _apply_commands(sc: Scenario, drive: DriveModel, link: _Link, t: int) -> Non
         link.reaction_max_us = max(link.reaction_max_us, t - cmd.at - sc.reaction_us)
         if isinstance(cmd, LimitsCommand):
             lowering = cmd.limits.torque_permille < drive.read(0x6072)
-            if not (sc.drop_stops and lowering):
+            link.limits_writes += 1
+            if link.limits_writes <= sc.unanswered_limits:
+                if link.limits_writes % 2:
+                    _write_limits(drive, cmd.limits, t)
+                link.limit_answers.append((cmd.limits, None, "no SDO response received"))
+            elif not (sc.drop_stops and lowering):
                 _write_limits(drive, cmd.limits, t)
                 link.limit_answers.append((cmd.limits, True, ""))
             continue

@@ -148,6 +148,9 @@ class DriveGuard:
         self.state_at_command: str | None = None
         self.ready_at: int | None = None
         """When the drive was set up (PDOs mapped and started); TPDOs are awaited from then."""
+        self.rewrite_at: int | None = None
+        """A limits write went unanswered (the drive's SDO server busy with another master):
+        when to write the same limits again (they are charged as if taken meanwhile)."""
         self.level = 0
         """Taper: torque and current at 1/2**level of the full limits."""
         self.overrun_uj = 0
@@ -215,9 +218,16 @@ class DriveGuard:
         self.values.pop(COUNTER_KEY, None)  # a reading counts once
         return self._settled(now)
 
-    def on_limits(self, now: int, limits: Limits, taken: bool, detail: str = "") -> list[Message]:
-        """The drive read back ``limits`` (``taken``), or refused or changed them."""
-        if taken:
+    def on_limits(
+        self, now: int, limits: Limits, taken: bool | None, detail: str = ""
+    ) -> list[Message]:
+        """The drive read back ``limits`` (``taken``), refused or changed them (False), or the
+        write went unanswered (None: written again after ``retry_us``; until then the drive
+        may be working to either)."""
+        if taken is None:
+            if limits == self.metering.target():
+                self.rewrite_at = now + self.config.retry_us
+        elif taken:
             self.metering.confirm(now, limits)
         else:
             self.refused = f"limits not taken ({limits.describe()}): {detail}"
@@ -244,6 +254,8 @@ class DriveGuard:
             times.append(self.last_command_at + self.config.retry_us)
         if self.phase is GuardPhase.STOPPING:
             times.append(self.phase_at + self.config.stop_timeout_us)
+        if self.rewrite_at is not None:
+            times.append(self.rewrite_at)
         return min(times)
 
     def on_wakeup(self, now: int) -> list[Message]:
@@ -427,8 +439,10 @@ class DriveGuard:
 
     def _steer_limits(self, now: int) -> None:
         desired = self._desired_limits()
-        if desired is None or desired == self.metering.target():
+        again = self.rewrite_at is not None and now >= self.rewrite_at
+        if desired is None or (desired == self.metering.target() and not again):
             return
+        self.rewrite_at = None
         why = "closed" if desired.torque_permille == 0 else f"level {self.level}"
         self.metering.write(now, desired)
         self.commands.append(LimitsCommand(desired, why, now))

@@ -62,8 +62,9 @@ EDS = Path(__file__).with_name("cia402.eds")
 Sample = tuple[int, dict[int, int], str | None, int]
 """When the host took the TPDO in (µs), its values, the power state its statusword shows, and
 its age then (µs since the CAN frame was received: a backlog the loop has not read yet)."""
-LimitsAnswer = tuple[Limits, bool, str]
-"""Limits written, whether the drive read them back unchanged, and what went wrong if not."""
+LimitsAnswer = tuple[Limits, bool | None, str]
+"""Limits written; whether the drive read them back unchanged (None: no answer came through
+the shared SDO server, so it is not known); what went wrong if not."""
 UNSIGNED_TYPES = {8: 0x5, 16: 0x6, 32: 0x7, 64: 0x1B}
 SDO_ERRORS = (canopen.SdoCommunicationError, canopen.SdoAbortedError, can.CanError)
 SDO_ATTEMPTS = 5
@@ -94,13 +95,19 @@ def shared_sdo(
 ) -> T:
     """Run an SDO ``transfer``. A drive's default SDO server is shared by every master (the
     guard and the application's): a transfer garbled by another master's is tried again
-    (``attempts`` in all, ``pause`` growing between); an abort is the drive's answer and is
-    not."""
+    (``attempts`` in all, ``pause`` growing between). An abort may be the answer to another
+    master's request: only one that comes twice in a row is the drive's."""
+    aborted: int | None = None
     for attempt in range(1, attempts):
         try:
             return transfer()
         except canopen.SdoCommunicationError:
-            pause(0.01 * attempt)
+            aborted = None
+        except canopen.SdoAbortedError as exc:
+            if exc.code == aborted:
+                raise
+            aborted = exc.code
+        pause(0.01 * attempt)
     return transfer()
 
 
@@ -329,19 +336,24 @@ class DriveLink:
             return None
         closed = self.config.limits.closed()
         taken, detail = self._write_limits(closed)
+        if taken is None:  # set-up is tried again
+            raise canopen.SdoCommunicationError(detail)
         if not taken:
             raise SetupError(f"the drive does not take its limits: {detail}")
         return closed
 
-    def _write_limits(self, limits: Limits) -> tuple[bool, str]:
-        """Write each limit object, read it back; (all taken, what went wrong)."""
+    def _write_limits(self, limits: Limits) -> tuple[bool | None, str]:
+        """Write each limit object, read it back; (all taken, what went wrong): None when no
+        answer came through (the guard writes them again)."""
         for index, value in limits.as_objects().items():
             try:
                 back = self._write_read(index, value)
             except KeyError:
                 return False, f"0x{index:04X} is not in the EDS {self.config.eds}"
-            except SDO_ERRORS as exc:
+            except canopen.SdoAbortedError as exc:
                 return False, f"0x{index:04X} = {value}: {exc}"
+            except (canopen.SdoCommunicationError, can.CanError) as exc:
+                return None, f"0x{index:04X} = {value}: {exc}"
             if back != value:
                 return False, f"0x{index:04X} = {value} written, {back} read back"
         return True, ""

@@ -17,10 +17,20 @@ import can
 import pytest
 from live_rig import Loop
 
-from canergy.auth.frames import AuthFailure, FrameAuth, Layout, freshness
+from canergy.auth.frames import (
+    FV_MASK,
+    AuthFailure,
+    FrameAuth,
+    Layout,
+    expected_freshness,
+    freshness,
+)
 from canergy.auth.keys import KeyFileError, derive_node_key, load_key, new_master, write_key
 from canergy.cli import main
 from canergy.codec import Codec
+from canergy.core.actions import Send
+from canergy.core.state import Session, SupervisorState
+from canergy.core.supervisor import Supervisor
 from canergy.ledger import ledger_from_status
 from canergy.live.control import request
 from canergy.live.runtime import BusRuntime, monotonic_us
@@ -438,10 +448,46 @@ def test_a_single_run_grant_to_an_authenticated_node(
         loop.halt()
 
 
+def test_a_node_that_lost_its_nv_past_transaction_65535_is_granted_again(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 30: admitted at the wire's 16-bit counters, a node whose books were lost past
+    transaction 65,535 could take no grant in authenticated mode (its freshness never met the
+    supervisor's). The ADMIT now carries the full counters."""
+    from canergy.auth.state_key import state_seal
+    from canergy.live.state_file import save_state
+
+    assert main(["keys", "-o", str(tmp_path / "m.key")]) == 0
+    master = load_key(tmp_path / "m.key")
+    books = SupervisorState(
+        10_000_000, 10_000_000, 0, (Session(1, tx=70_000, returns_credited=70_003),)
+    )
+    save_state(tmp_path / "s.json", books, "hardened", fsync=False, seal=state_seal(master))
+    channel = f"auth-admit-{uuid.uuid4().hex}"
+    config = NodeConfig(telemetry_period_us=100_000)
+    node = FirmwareNode(1, NvStore(tmp_path / "1.nv", 1, fsync=False), config, monotonic_us())
+    host = NodeHost([node])
+    key = master.node_key(1)
+    auth = FrameAuth(CODEC, Layout.CLASSIC, lambda n: key, Direction.TO_CLIENT, host.freshness)
+    auth.join_fv[1] = 0xBEEF << 16 | node.client.state.nonce
+    bus = can.Bus(interface="virtual", channel=channel, can_filters=CODEC.client_watch_filters(1))
+    loop = Loop(BusRuntime(bus, host, codec=CODEC, receives=Direction.TO_CLIENT, auth=auth))
+    grant = ["grant", "-i", "virtual", "-c", channel, "--node", "1", "--amount", "0.5J"]
+    grant += ["--state", str(tmp_path / "s.json"), "--auth", str(tmp_path / "m.key")]
+    try:
+        assert main([*grant, "--no-fsync"]) == 0, capsys.readouterr().out
+        assert node.client.state.usable == 500_000
+        assert node.client.state.last_tx == 70_001  # the full counters, not 70,001 - 65,536
+        assert node.client.state.return_seq == 70_003
+    finally:
+        loop.halt()
+
+
 @pytest.mark.parametrize("layout", list(Layout))
 def test_join_and_admit_carry_32_bits_of_freshness(layout: Layout) -> None:
-    """A node draws 16 random bits above its JOIN nonce; the supervisor echoes the JOIN's FV in
-    ADMIT. An ADMIT recorded in an earlier life whose 16-bit nonce happens to match is stale."""
+    """A node draws 16 random bits above its JOIN nonce; the supervisor binds the JOIN's FV in
+    the ADMIT's MAC. An ADMIT recorded in an earlier life whose 16-bit nonce happens to match
+    fails its MAC."""
     sup, node = pair(layout)
     node.join_fv[3] = 0xBEEF << 16 | 7
     join = node.frames(Join(3, 7))
@@ -451,7 +497,34 @@ def test_join_and_admit_carry_32_bits_of_freshness(layout: Layout) -> None:
     old_sup, _ = pair(layout)
     old_sup.join_fv[3] = 0x1234 << 16 | 7  # the earlier life's JOIN, same 16-bit nonce
     replayed = old_sup.frames(Admit(3, 7, 1, 0))
-    assert deliver(node, replayed)[-1].failure is AuthFailure.STALE
+    assert deliver(node, replayed)[-1].failure is AuthFailure.MAC_BAD
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+@pytest.mark.parametrize(("tx", "seq"), [(0x2_0005, 0x2_0001), (0x1_FFFF, 0x3), (0xFFFF_0003, 7)])
+def test_admit_carries_the_full_counters(layout: Layout, tx: int, seq: int) -> None:
+    """Issue 30: a node admitted past transaction 65,535 took only the wire's 16 bits, so its
+    freshness never met the supervisor's again. The supervisor's core moves both counters up to
+    one high half at admission (never back) and the ADMIT's FV carries it."""
+    books = SupervisorState(10_000_000, 10_000_000, 0, (Session(3, tx=tx, returns_credited=seq),))
+    core = Supervisor((3,), 10_000_000, state=books)
+    admit = next(a.message for a in core.receive(Join(3, 7), 0) if isinstance(a, Send))
+    s = core.session(3)
+    assert s.tx >> 16 == s.returns_credited >> 16 == max(tx >> 16, seq >> 16)
+    assert s.tx & 0xFFFF == tx & 0xFFFF and s.returns_credited & 0xFFFF == seq & 0xFFFF
+    sup = FrameAuth(
+        CODEC,
+        layout,
+        lambda n: KEY,
+        Direction.TO_SUPERVISOR,
+        lambda m: expected_freshness(m, s.tx, s.returns_credited),
+    )
+    node = FrameAuth(
+        CODEC, layout, lambda n: KEY, Direction.TO_CLIENT, lambda m: freshness(m, 0, 0)
+    )
+    node.join_fv[3] = sup.join_fv[3] = 0xBEEF << 16 | 7
+    taken = deliver(node, sup.frames(admit))[-1].message
+    assert taken == Admit(3, 7, s.tx & FV_MASK, s.returns_credited & FV_MASK)
 
 
 @pytest.mark.parametrize("layout", list(Layout))

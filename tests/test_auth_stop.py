@@ -115,9 +115,49 @@ def test_plain_freshness_keeps_checking_the_fv_alone(layout: Layout) -> None:
 
 
 @pytest.mark.parametrize("layout", list(Layout))
-def test_telemetry_is_checked_by_its_mac_alone(layout: Layout) -> None:
-    frames = sender(layout, Direction.TO_SUPERVISOR, 7, 0).frames(Telemetry(3, 40))
-    assert last(side(layout, Direction.TO_SUPERVISOR, 9, 0), frames).message == Telemetry(3, 40)
+@pytest.mark.parametrize("base", [0, 0xFFFF, 0x1_2345])
+def test_telemetry_is_fresh_from_the_last_transaction_the_node_resolved(
+    layout: Layout, base: int
+) -> None:
+    """A level only rises when the node resolves a transaction: a TELEMETRY from before the
+    last one it is known to have resolved would report less than it holds (replayed, it drew
+    top-ups: issue 30, item 6). Its FV is the node's last resolved transaction; classic frames
+    carry its low half (``base`` crosses the half's wrap)."""
+
+    def telemetry(resolved: int, level: int = 40) -> list[can.Message]:
+        return sender(layout, Direction.TO_SUPERVISOR, base + resolved, 0).frames(
+            Telemetry(3, level)
+        )
+
+    def verdict(auth: FrameAuth, resolved: int) -> Any:
+        return last(auth, telemetry(resolved))
+
+    supervisor = side(layout, Direction.TO_SUPERVISOR, base + 9, 0)
+    # nothing known yet: the supervisor's transaction, or the one before it (not yet resolved)
+    assert verdict(supervisor, 7).failure is AuthFailure.STALE
+    assert verdict(supervisor, 10).failure is AuthFailure.STALE  # ahead of the supervisor
+    assert verdict(supervisor, 8).message == Telemetry(3, 40)
+    assert verdict(supervisor, 9).message == Telemetry(3, 40)
+    assert verdict(supervisor, 8).failure is AuthFailure.STALE  # 9 was taken: 8 is past
+    # a resolution seen in the node's answers moves the window too
+    supervisor = side(layout, Direction.TO_SUPERVISOR, base + 9, 0)
+    wire = (base + 9) & 0xFFFF
+    answer = sender(layout, Direction.TO_SUPERVISOR, base + 9, 0).frames(Committed(3, wire))
+    assert last(supervisor, answer).message is not None
+    assert verdict(supervisor, 8).failure is AuthFailure.STALE
+    supervisor = side(layout, Direction.TO_SUPERVISOR, base + 9, 0)
+    ack = sender(layout, Direction.TO_SUPERVISOR, base + 9, 0).frames(Ack(3, wire))
+    assert last(supervisor, ack).message is not None
+    assert verdict(supervisor, 7).failure is AuthFailure.STALE
+    assert verdict(supervisor, 8).message == Telemetry(3, 40)  # ACK 9: 8 resolved, 9 open
+    # a forged or damaged one is still MAC BAD
+    tampered = telemetry(9)
+    tampered[-1] = can.Message(
+        arbitration_id=tampered[-1].arbitration_id,
+        data=bytes(tampered[-1].data[:-1]) + bytes([tampered[-1].data[-1] ^ 1]),
+        is_fd=tampered[-1].is_fd,
+    )
+    assert last(supervisor, tampered).failure is AuthFailure.MAC_BAD
 
 
 # --- frames in the supervisor's own direction ---------------------------------------------------
@@ -430,3 +470,76 @@ def _replay(b: Bench, frames: list[can.Message], counted: Callable[[], bool]) ->
                 return sent
             time.sleep(0.01)
     raise AssertionError("the replay was never counted")
+
+
+def _first_telemetry(b: Bench, captured: list[can.Message], joining: bool) -> list[can.Message]:
+    """The node's first TELEMETRY in a capture sent without books (``joining``: bound to its
+    JOIN) or with them, and in the classic layout the MAC frame after it."""
+    ident = CODEC.id_base | MsgType.TELEMETRY << 8 | 1
+    mac_id = CODEC.id_base | MAC_TYPE[Direction.TO_SUPERVISOR] << 8 | 1
+    i = next(
+        i
+        for i, f in enumerate(captured)
+        if f.arbitration_id == ident and bool(f.data[4] & Telemetry.JOINING) == joining
+    )
+    if b.layout is Layout.FD:
+        return [captured[i]]
+    trailer = next(
+        f
+        for f in captured[i + 1 :]
+        if f.arbitration_id == mac_id and f.data[0] == MsgType.TELEMETRY
+    )
+    return [captured[i], trailer]
+
+
+def test_a_replayed_telemetry_is_stale_and_moves_nothing(bench: Bench) -> None:
+    """Issue 30, item 6: the node's genuine TELEMETRY at level 0, replayed every 50 ms for 3 s,
+    drew the whole budget into the node. Now each is refused as stale (one sent without books
+    and one sent with them, before its first grants), and the node holds what the policy gives
+    it: 1 J target, 0.5 J grants."""
+    b = bench
+    b.wait(lambda: b.committed() >= 3)
+    captured: list[can.Message] = []
+    while (frame := b.sniffer.recv(0)) is not None:
+        captured.append(frame)
+    replayed = [_first_telemetry(b, captured, joining) for joining in (True, False)]
+    levels = [CODEC.decode(r[0].arbitration_id, bytes(r[0].data[:8])) for r in replayed]
+    assert all(isinstance(t, Telemetry) and t.level_mj < 500 for t in levels), levels
+    before, highest = b.refused(STALE), 0
+    end = time.monotonic() + 3
+    while time.monotonic() < end:
+        for frames in replayed:
+            b.send(frames)
+        highest = max(highest, b.node.client.state.usable)
+        time.sleep(0.05)
+    b.wait(lambda: b.refused(STALE) >= before + 60)
+    assert highest <= 1_500_000, highest  # target + one grant: the replays added nothing
+    final = b.status()
+    assert not final["stopping"] and final["intrusion_report"]["authentic"]["total"] == 0
+    assert final["nodes"]["1"]["admitted"] == 1  # the JOIN's report did not admit it again
+    delivered = final["nodes"]["1"]["delivered_uj"] - final["nodes"]["1"]["returns_credited_uj"]
+    assert delivered <= 1_500_000, delivered
+
+
+def test_a_replayed_join_neither_admits_nor_writes_off(bench: Bench) -> None:
+    """Issue 30, item 7: replayed JOINs re-admitted a node 16-26 times a run, each writing off
+    what was open. A verified JOIN now waits for the node's next TELEMETRY: one with its books
+    shows it a replay, refused as stale within a telemetry period (100 ms here)."""
+    b = bench
+    b.wait(lambda: b.committed() >= 3)
+    captured: list[can.Message] = []
+    while (frame := b.sniffer.recv(0)) is not None:
+        captured.append(frame)
+    ident = CODEC.id_base | MsgType.JOIN << 8 | 1
+    i = next(i for i, f in enumerate(captured) if f.arbitration_id == ident)
+    join = captured[i : i + 1] if b.layout is Layout.FD else [captured[i], captured[i + 1]]
+    reason = f"{STALE} (a JOIN of an earlier life: the node has its books)"
+    for n in range(1, 6):
+        sent = b.send(join)
+        b.wait(lambda n=n: b.refused(reason) >= n, timeout=10)
+        took_ms = _latency_ms(b, reason, sent)
+        assert took_ms < 1000, took_ms
+    before = b.committed()
+    b.wait(lambda: b.committed() >= before + 1)  # and it goes on being granted
+    node = b.status()["nodes"]["1"]
+    assert node["admitted"] == 1 and node["written_off"] == 0, node

@@ -19,7 +19,7 @@ from ctypes import (
     c_uint64,
     c_void_p,
 )
-from typing import Any
+from typing import Any, TypeVar
 
 import can
 import pytest
@@ -81,6 +81,7 @@ class Auth(Structure):
         ("id_base", c_uint32),
         ("pending_id", c_uint32),
         ("join_fv", c_uint32),
+        ("admit_fv", c_uint32),
         ("pending_data", c_uint8 * 8),
         ("pending_len", c_uint8),
         ("node", c_uint8),
@@ -298,20 +299,38 @@ def test_c_frames_are_python_frames_and_each_side_accepts_the_other(
     _both_ways(*case)
 
 
+JOIN_FV = 0xBEEF_0007
+A = TypeVar("A", FrameAuth, CAuth)
+
+
+def _joined(auth: A, msg: Message) -> A:
+    """``auth`` with the JOIN FV set, for a TELEMETRY sent without books (bound to its JOIN)."""
+    if isinstance(msg, Telemetry) and msg.flags & Telemetry.JOINING:
+        if isinstance(auth, CAuth):
+            lib().canergy_auth_set_join(ctypes.byref(auth.ctx), JOIN_FV >> 16, JOIN_FV & 0xFFFF)
+        else:
+            auth.join_fv[msg.node] = JOIN_FV
+    return auth
+
+
 def _both_ways(layout: Layout, msg: Message, tx: int, seq: int) -> None:
     receiver = _receiver(msg)
     sender = Direction.TO_CLIENT if receiver is Direction.TO_SUPERVISOR else Direction.TO_SUPERVISOR
-    c_frames = CAuth(layout, sender).frames(msg, tx, seq)
-    py_frames = py_auth(layout, sender, tx, seq).frames(msg)
+    c_frames = _joined(CAuth(layout, sender), msg).frames(msg, tx, seq)
+    py_frames = _joined(py_auth(layout, sender, tx, seq), msg).frames(msg)
     assert [(f.arbitration_id, bytes(f.data)) for f in c_frames] == [
         (f.arbitration_id, bytes(f.data)) for f in py_frames
     ]
     assert [f.is_fd for f in c_frames] == [f.is_fd for f in py_frames]
     # Python accepts the C frames, C accepts the Python frames, with the same counters
-    python = py_auth(layout, receiver, tx, seq)
+    python = _joined(py_auth(layout, receiver, tx, seq), msg)
     verdicts = [python.accept(f) for f in c_frames]
-    assert verdicts[-1].message == msg and all(v.failure is None for v in verdicts)
-    c_side = CAuth(layout, receiver)
+    taken = msg
+    if isinstance(msg, Admit):  # the full counters: the FV's high half (the sender's tx's)
+        high = tx & 0xFFFF_0000
+        taken = Admit(msg.node, msg.nonce, high | msg.tx, high | msg.seq)
+    assert verdicts[-1].message == taken and all(v.failure is None for v in verdicts)
+    c_side = _joined(CAuth(layout, receiver), msg)
     outcomes = [c_side.outcome(f, tx, seq) for f in py_frames]
     assert outcomes == ["pending", "ok"] if layout is Layout.CLASSIC else ["ok"]
     assert c_side.verified == CODEC.encode(msg)
@@ -341,9 +360,10 @@ def test_a_stale_fv_is_refused_on_both_sides(
     case: tuple[Layout, Message, int, int], shift: int
 ) -> None:
     """The sender's counters are `shift` away from the receiver's: a replay from 65,536
-    transactions ago, say. Only the FV of JOIN, ADMIT (the nonce) and TELEMETRY (not checked)
-    still verifies then; both sides agree for every shift (a small one may still extend to the
-    same FV)."""
+    transactions ago, say. Only the FV of JOIN, ADMIT (the nonce) and an FD TELEMETRY (its
+    window is the supervisor's to judge) still verifies then; a classic TELEMETRY's low half
+    extends to another FV, so its MAC fails; both sides agree for every shift (a small one may
+    still extend to the same FV)."""
     layout, msg, tx, seq = case
     receiver = _receiver(msg)
     frames = py_auth(layout, receiver, tx, seq).frames(msg)
@@ -351,10 +371,15 @@ def test_a_stale_fv_is_refused_on_both_sides(
     python, c_side = py_auth(layout, receiver, rtx, rseq), CAuth(layout, receiver)
     py_outcomes = [py_outcome(python, f) for f in frames]
     assert [c_side.outcome(f, rtx, rseq) for f in frames] == py_outcomes
-    if abs(shift) == 0x1_0000:  # one whole wire period away: always stale
-        fresh_anyway = isinstance(msg, Join | Admit | Telemetry)
-        assert py_outcomes[-1] == ("ok" if fresh_anyway else AuthFailure.STALE.value)
-    if shift == 2**32:  # the same counters modulo 2^32: the same FV
+    if isinstance(msg, Telemetry) and msg.flags & Telemetry.JOINING:  # no JOIN FV to bind
+        assert py_outcomes[-1] != "ok"
+    elif abs(shift) == 0x1_0000:  # one whole wire period away: always stale
+        if isinstance(msg, Telemetry) and layout is Layout.CLASSIC:
+            assert py_outcomes[-1] == AuthFailure.MAC_BAD.value
+        else:
+            fresh_anyway = isinstance(msg, Join | Admit | Telemetry)
+            assert py_outcomes[-1] == ("ok" if fresh_anyway else AuthFailure.STALE.value)
+    elif shift == 2**32:  # the same counters modulo 2^32: the same FV
         assert py_outcomes[-1] == "ok"
 
 
@@ -415,7 +440,9 @@ def test_a_frame_without_a_mac_and_a_lone_mac_frame(layout: Layout) -> None:
 @pytest.mark.parametrize("layout", list(Layout))
 def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout: Layout) -> None:
     """The node layer in authenticated mode: a Python supervisor's ADMIT, INTENTION and COMMIT
-    reach it; its own replies verify at the supervisor; forged frames move nothing."""
+    reach it; its own replies verify at the supervisor; forged frames move nothing. Admitted
+    past transaction 65,535 (its NV lost there), the node takes the supervisor's full counters
+    from the ADMIT's FV, so its freshness meets the supervisor's."""
     node, out = CNodeState(), Out()
     cfg = NodeConfig()
     cfg.client.id_base, cfg.client.node = DEFAULT_ID_BASE, NODE
@@ -429,7 +456,7 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
         == 0
     )
     c_auth = CAuth(layout, Direction.TO_CLIENT)
-    sup = {"tx": 0xFFFF, "seq": 0}
+    sup = {"tx": 0x3_FFFF, "seq": 0x3_0002}
     supervisor = FrameAuth(
         CODEC,
         layout,
@@ -467,9 +494,10 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
                     got.append(v.message)
         return got
 
-    assert deliver(supervisor.frames(Admit(NODE, 0x1234, 0xFFFF, 0)), 10)[-1] == 0
-    assert node.client.phase == 0 and node.client.rec.last_tx == 0xFFFF
-    sup["tx"] = 0x1_0000
+    assert deliver(supervisor.frames(Admit(NODE, 0x1234, 0xFFFF, 2)), 10)[-1] == 0
+    assert node.client.phase == 0 and node.client.rec.last_tx == 0x3_FFFF
+    assert node.client.rec.return_seq == 0x3_0002
+    sup["tx"] = 0x4_0000
     assert deliver(supervisor.frames(Intention(NODE, 0, 700, 700)), 20)[-1] == 0
     assert replies() == [Ack(NODE, 0)]
     before = node.client.rec.usable_uj
@@ -499,8 +527,8 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
 @pytest.mark.parametrize("layout", list(Layout))
 def test_a_c_node_joins_with_32_bits_of_freshness(layout: Layout) -> None:
     """The C node's JOIN carries 16 random bits above its nonce, as the Python node's does; the
-    Python supervisor echoes them in ADMIT; an ADMIT of an earlier life with the same 16-bit
-    nonce is stale at the C node."""
+    Python supervisor binds its JOIN FV in the ADMIT's MAC; an ADMIT of an earlier life with
+    the same 16-bit nonce fails its MAC at the C node."""
     c_node = CAuth(layout, Direction.TO_CLIENT)
     lib().canergy_auth_set_join(ctypes.byref(c_node.ctx), 0xBEEF, 7)
     sup = py_auth(layout, Direction.TO_SUPERVISOR, 0, 0)
@@ -511,4 +539,4 @@ def test_a_c_node_joins_with_32_bits_of_freshness(layout: Layout) -> None:
     earlier = py_auth(layout, Direction.TO_SUPERVISOR, 0, 0)
     earlier.join_fv[NODE] = 0x1234 << 16 | 7
     replayed = earlier.frames(Admit(NODE, 7, 1, 0))
-    assert [c_node.outcome(f, 0, 0) for f in replayed][-1] == AuthFailure.STALE.value
+    assert [c_node.outcome(f, 0, 0) for f in replayed][-1] == AuthFailure.MAC_BAD.value

@@ -10,7 +10,7 @@ from strategies import messages
 from canergy.codec import XOR_OUT, Codec, _prefix_register
 from canergy.crc import crc8_update
 from canergy.dbc import dbc_text
-from canergy.messages import Message
+from canergy.messages import Message, Telemetry
 
 DBC_PATH = Path(__file__).parent.parent / "dbc" / "canergy.dbc"
 CODEC = Codec()
@@ -128,7 +128,8 @@ def test_cantools_decodes_authenticated_frames(layout: str, msg: Message) -> Non
         assert first["FV"] == fv and first["MAC"] == int.from_bytes(frames[0].data[-8:], "big")
     else:
         trailer = db.decode_message(frames[1].arbitration_id, bytes(frames[1].data), scaling=False)
-        assert trailer["MSG_TYPE"] == msg.TYPE and trailer["FV_HIGH"] == fv >> 16
+        half = fv & 0xFFFF if isinstance(msg, Telemetry) else fv >> 16
+        assert trailer["MSG_TYPE"] == msg.TYPE and trailer["FV_HALF"] == half
         assert trailer["MAC"] == int.from_bytes(frames[1].data[3:], "big")
 
 

@@ -32,9 +32,9 @@ uint32_t canergy_auth_freshness(const struct canergy_msg *m, uint32_t last_tx,
                                 uint32_t return_seq)
 {
     switch (m->type) {
-    case CANERGY_JOIN:
-    case CANERGY_ADMIT: return m->nonce;
-    case CANERGY_TELEMETRY: return last_tx & 0xFFFF0000UL;
+    case CANERGY_JOIN: return m->nonce;
+    case CANERGY_ADMIT: return (last_tx & 0xFFFF0000UL) | m->nonce;
+    case CANERGY_TELEMETRY: return last_tx;
     case CANERGY_RETURN:
     case CANERGY_RETURN_ACK: return extend16(m->seq, return_seq);
     default: return extend16(m->tx, last_tx);
@@ -46,12 +46,23 @@ void canergy_auth_set_join(struct canergy_auth *a, uint16_t random_high, uint16_
     a->join_fv = (uint32_t)random_high << 16 | nonce;
 }
 
-/* The FV of m on this side: JOIN and ADMIT take the JOIN's FV when it belongs to their nonce. */
+/* The FV of the JOIN that m (a JOIN or an ADMIT) belongs to: set_join's, or the nonce alone. */
+static uint32_t join_fv_of(const struct canergy_auth *a, const struct canergy_msg *m)
+{
+    return (a->join_fv & 0xFFFFU) == m->nonce ? a->join_fv : m->nonce;
+}
+
+/* The FV of m on this side: a JOIN takes the JOIN FV; a TELEMETRY sent without books
+ * (JOINING) too, once one is set. */
 static uint32_t fv_of(const struct canergy_auth *a, const struct canergy_msg *m, uint32_t last_tx,
                       uint32_t return_seq)
 {
-    const bool join = m->type == CANERGY_JOIN || m->type == CANERGY_ADMIT;
-    if (join && (a->join_fv & 0xFFFFU) == m->nonce) {
+    if (m->type == CANERGY_JOIN) {
+        return join_fv_of(a, m);
+    }
+    const bool joining =
+        m->type == CANERGY_TELEMETRY && (m->flags & CANERGY_TELEMETRY_JOINING) != 0U;
+    if (joining && a->join_fv != 0U) {
         return a->join_fv;
     }
     return canergy_auth_freshness(m, last_tx, return_seq);
@@ -70,16 +81,22 @@ static uint32_t get_be32(const uint8_t *p)
     return (uint32_t)p[0] << 24 | (uint32_t)p[1] << 16 | (uint32_t)p[2] << 8 | p[3];
 }
 
-/* AES-CMAC over Data ID (type << 8 | node, BE) || FV (BE) || the classic data. */
+/* AES-CMAC over Data ID (type << 8 | node, BE) || FV (BE) || the classic data, and for ADMIT
+ * || the FV of the JOIN it answers (BE; both sides know it, so it is bound without travelling). */
 static void mac(const struct canergy_auth *a, const struct canergy_msg *m, uint32_t fv,
                 const uint8_t *data, size_t len, uint8_t tag[CANERGY_CMAC_SIZE])
 {
     uint8_t head[6] = {m->type, m->node, 0U, 0U, 0U, 0U};
+    uint8_t join[4];
     struct canergy_cmac_stream s;
     put_be32(&head[2], fv);
     canergy_cmac_begin(&s);
     canergy_cmac_update(&a->key, &s, head, sizeof head);
     canergy_cmac_update(&a->key, &s, data, len);
+    if (m->type == CANERGY_ADMIT) {
+        put_be32(join, join_fv_of(a, m));
+        canergy_cmac_update(&a->key, &s, join, sizeof join);
+    }
     canergy_cmac_final(&a->key, &s, tag);
 }
 
@@ -141,15 +158,17 @@ int canergy_auth_protect(const struct canergy_auth *a, const struct canergy_fram
     out[0].len = plain->dlc;
     out[1].id = a->id_base | mac_type(m.type) << 8 | m.node;
     out[1].len = CANERGY_AUTH_MAC_FRAME_LEN;
+    /* TELEMETRY carries no counter: its MAC frame carries the FV's low half, not the high */
+    const uint32_t half = m.type == CANERGY_TELEMETRY ? fv : fv >> 16;
     out[1].data[0] = m.type;
-    out[1].data[1] = (uint8_t)(fv >> 24);
-    out[1].data[2] = (uint8_t)(fv >> 16);
+    out[1].data[1] = (uint8_t)(half >> 8);
+    out[1].data[2] = (uint8_t)half;
     memcpy(&out[1].data[3], tag, CANERGY_AUTH_CLASSIC_MAC);
     return 2;
 }
 
 /* The MAC, then (but for TELEMETRY) the FV the receiver expects; the verified classic frame. */
-static int verdict(const struct canergy_auth *a, const struct canergy_msg *m, uint32_t id,
+static int verdict(struct canergy_auth *a, const struct canergy_msg *m, uint32_t id,
                    const uint8_t *body, size_t len, uint32_t fv, const uint8_t *tag,
                    size_t tag_len, uint32_t last_tx, uint32_t return_seq,
                    struct canergy_frame *verified)
@@ -161,8 +180,21 @@ static int verdict(const struct canergy_auth *a, const struct canergy_msg *m, ui
     if (!good) {
         return CANERGY_AUTH_MAC_BAD;
     }
-    if (m->type != CANERGY_TELEMETRY && fv_of(a, m, last_tx, return_seq) != fv) {
-        return CANERGY_AUTH_STALE;
+    const bool joining =
+        m->type == CANERGY_TELEMETRY && (m->flags & CANERGY_TELEMETRY_JOINING) != 0U;
+    bool stale;
+    if (joining) {
+        stale = a->join_fv == 0U || a->join_fv != fv;
+    } else if (m->type == CANERGY_ADMIT) {
+        stale = (fv & 0xFFFFU) != m->nonce; /* any high half: the counters the node starts from */
+    } else {
+        stale = m->type != CANERGY_TELEMETRY && fv_of(a, m, last_tx, return_seq) != fv;
+    }
+    if (stale) {
+        return CANERGY_AUTH_STALE; /* TELEMETRY's window is the supervisor's to judge */
+    }
+    if (m->type == CANERGY_ADMIT) {
+        a->admit_fv = fv;
     }
     memset(verified, 0, sizeof *verified);
     verified->id = id;
@@ -190,8 +222,10 @@ static int mac_frame(struct canergy_auth *a, const struct canergy_rx_frame *f, u
     const struct canergy_rx_frame rx = {a->pending_id, a->pending_data, waiting, true, false};
     struct canergy_msg m;
     (void)canergy_decode(a->id_base, &rx, CANERGY_EITHER_WAY, &m); /* it decoded when it came */
-    const uint32_t low = canergy_auth_freshness(&m, 0U, 0U) & 0xFFFFUL;
-    const uint32_t fv = (uint32_t)f->data[1] << 24 | (uint32_t)f->data[2] << 16 | low;
+    const uint32_t half = (uint32_t)f->data[1] << 8 | f->data[2];
+    const uint32_t fv = m.type == CANERGY_TELEMETRY
+                            ? extend16(half, fv_of(a, &m, last_tx, return_seq))
+                            : half << 16 | (canergy_auth_freshness(&m, 0U, 0U) & 0xFFFFUL);
     return verdict(a, &m, a->pending_id, a->pending_data, waiting, fv, &f->data[3],
                    CANERGY_AUTH_CLASSIC_MAC, last_tx, return_seq, verified);
 }
@@ -226,7 +260,7 @@ static bool all_zero(const uint8_t *p, size_t n)
 }
 
 /* FD: data || zero padding || FV || MAC in one frame of exactly the type's length. */
-static int fd_frame(const struct canergy_auth *a, const struct canergy_rx_frame *f,
+static int fd_frame(struct canergy_auth *a, const struct canergy_rx_frame *f,
                     uint32_t last_tx, uint32_t return_seq, struct canergy_frame *verified)
 {
     const enum canergy_direction dir = (enum canergy_direction)a->receives;
@@ -296,6 +330,7 @@ int canergy_auth_node_frame(struct canergy_auth *a, struct canergy_node *n,
         return CANERGY_ERR_ARGUMENT;
     }
     struct canergy_frame plain;
+    a->admit_fv = 0U;
     const int result =
         canergy_auth_accept(a, frame, n->client.rec.last_tx, n->client.rec.return_seq, &plain);
     if (result != CANERGY_DECODE_OK) {
@@ -306,7 +341,14 @@ int canergy_auth_node_frame(struct canergy_auth *a, struct canergy_node *n,
         return result;
     }
     const struct canergy_rx_frame rx = {plain.id, plain.data, plain.dlc, true, false};
-    return canergy_node_on_frame(n, &rx, now, out);
+    const int taken = canergy_node_on_frame(n, &rx, now, out);
+    if (taken == CANERGY_DECODE_OK && (out->events & CANERGY_EV_ADMITTED) != 0U) {
+        /* the full counters: the ADMIT's FV carries their high half (before out->persist) */
+        const uint32_t high = a->admit_fv & 0xFFFF0000UL;
+        n->client.rec.last_tx = high | (n->client.rec.last_tx & 0xFFFFU);
+        n->client.rec.return_seq = high | (n->client.rec.return_seq & 0xFFFFU);
+    }
+    return taken;
 }
 
 int canergy_auth_node_protect(const struct canergy_auth *a, const struct canergy_node *n,

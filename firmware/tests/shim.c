@@ -106,6 +106,7 @@ static const struct entry offsets[] = {
     FIELD(canergy_auth, id_base),
     FIELD(canergy_auth, pending_id),
     FIELD(canergy_auth, join_fv),
+    FIELD(canergy_auth, admit_fv),
     FIELD(canergy_auth, pending_data),
     FIELD(canergy_auth, pending_len),
     FIELD(canergy_auth, node),

@@ -54,7 +54,10 @@ _COMMENTS = {
     "FV": "freshness value: the full 32-bit tx (or return number, or nonce) the MAC covers",
     "MAC": "AES-128-CMAC over Data ID, FV and the classic data, truncated (SecOC-like)",
     "MSG_TYPE": "type code of the message this MAC frame authenticates",
-    "FV_HIGH": "high 16 bits of the freshness value (the low 16 travel in the message)",
+    "FV_HALF": (
+        "high 16 bits of the freshness value (the low 16 travel in the message); "
+        "for TELEMETRY, which carries no counter, the low 16 bits"
+    ),
 }
 
 
@@ -118,7 +121,7 @@ def _mac_message(codec: Codec, direction: Direction, node: int) -> Message:
         length=8,
         signals=[
             _signal("MSG_TYPE", 0, 8, 1, ""),
-            _big_endian("FV_HIGH", 1, 16),
+            _big_endian("FV_HALF", 1, 16),
             _big_endian("MAC", 3, 40),
         ],
         senders=["SUPERVISOR" if direction is Direction.TO_CLIENT else f"NODE_{node}"],

@@ -7,21 +7,30 @@
  *              || the classic frame's data (CRC byte and fields, as canergy_encode lays them)
  *
  *   FV (canergy_auth_freshness), from the receiver's or sender's own counters:
- *     JOIN, ADMIT          the nonce
- *     TELEMETRY            last_tx & 0xFFFF0000 (a receiver checks the MAC only)
+ *     JOIN                 the nonce (with set_join: 16 random bits above it)
+ *     ADMIT                last_tx's high half << 16 | the nonce: the supervisor's counters
+ *                          share that high half; a node takes any, and its counters from it.
+ *                          Its MAC input ends with the FV of the JOIN it answers (4, BE).
+ *     TELEMETRY            last_tx, the sender's last resolved transaction (the supervisor takes
+ *                          it from the last one it knows the node resolved to its own tx);
+ *                          JOINING (no books), the JOIN's FV once set_join gave one
  *     RETURN, RETURN_ACK   the wire seq extended next to return_seq (nearest value), mod 2^32
  *     every other type     the wire tx extended next to last_tx (nearest value), mod 2^32
  *
  *   FD layout: one CAN FD frame, data || zero padding || FV (4, BE) || MAC[0..8), its length the
  *     smallest CAN FD length >= len(data) + 12 (12, 16 or 20 for canergy's messages).
  *   Classic layout: the unchanged classic frame, then a MAC frame on id_base | M << 8 | node
- *     (M = 0x0 to a node, 0x8 to the supervisor): type (1) || FV >> 16 (2, BE) || MAC[0..5).
- *     The receiver keeps the data frame (one per node) until its MAC frame arrives; the FV is
- *     the MAC frame's high half << 16 | the frame's own 16-bit counter (nonce; 0 for TELEMETRY).
+ *     (M = 0x0 to a node, 0x8 to the supervisor): type (1) || FV >> 16 (2, BE) || MAC[0..5);
+ *     TELEMETRY, which carries no counter, puts FV & 0xFFFF there instead. The receiver keeps
+ *     the data frame (one per node) until its MAC frame arrives; the FV is the MAC frame's high
+ *     half << 16 | the frame's own 16-bit counter (the nonce for JOIN and ADMIT), or for
+ *     TELEMETRY the MAC frame's low half extended next to the receiver's last_tx.
  *
- * A received frame is verified (constant-time compare of the truncated MAC), then, except for
- * TELEMETRY, its FV must be the one the receiver expects from its own counters. Refused frames
- * change nothing but the classic layout's waiting slot, as in Python.
+ * A received frame is verified (constant-time compare of the truncated MAC), then its FV must
+ * be the one the receiver expects from its own counters; a JOINING TELEMETRY's must be the
+ * JOIN's (set_join), any other TELEMETRY's window is the supervisor's to judge (as Python's
+ * FrameAuth with a plain freshness). Refused frames change nothing but the classic layout's
+ * waiting slot, as in Python.
  *
  * One struct canergy_auth serves one node (its key) in one direction; no heap, no globals.
  */
@@ -72,6 +81,7 @@ struct canergy_auth {
     uint32_t id_base;
     uint32_t pending_id;
     uint32_t join_fv;     /* FV of this node's JOIN (0: the nonce alone); see set_join */
+    uint32_t admit_fv;    /* FV of the ADMIT just verified: its high half is the counters' */
     uint8_t pending_data[8];
     uint8_t pending_len;  /* 0: nothing waits */
     uint8_t node;
@@ -87,8 +97,8 @@ int canergy_auth_init(struct canergy_auth *a, const uint8_t key[CANERGY_KDF_KEY_
 void canergy_auth_wipe(struct canergy_auth *a);
 
 /* Before a node JOINs: 16 random bits above its JOIN nonce as the JOIN's FV, which the
- * supervisor echoes in ADMIT, so an ADMIT recorded in an earlier life (same 16-bit nonce) is
- * stale unless 32 bits match. Without it JOIN and ADMIT carry the nonce alone. */
+ * supervisor's ADMIT binds in its MAC, so an ADMIT recorded in an earlier life (same 16-bit
+ * nonce) fails unless 32 bits match. Without it JOIN and ADMIT carry the nonce alone. */
 void canergy_auth_set_join(struct canergy_auth *a, uint16_t random_high, uint16_t nonce);
 
 /* The FV of m for a side whose own counters are last_tx and return_seq (table above). */

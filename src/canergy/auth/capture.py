@@ -1,7 +1,11 @@
 """MACs in a capture: what ``canergy dump``, ``decode`` and ``audit`` show with ``--auth``.
 
 A capture needs no counters to be checked: an FD frame carries its whole freshness value, and a
-classic message's MAC frame carries the high half (the message, the low half). So each
+classic message's MAC frame carries the high half (the message, the low half). A classic
+TELEMETRY's MAC frame carries the low half of its FV, the node's last transaction: the high half
+is taken from the node's transaction frames seen before it (none yet: the FV is taken to be
+below 32,768, and a MAC that fails so is ``unverified``); a JOINING one's, and an ADMIT's MAC,
+from the node's JOIN seen before it (none: ``unverified``). So each
 authenticated frame is split into the message it carries and a verdict: ``ok``, ``BAD``, or
 ``unverified`` without the key. Replays verify (they are genuine frames); the receiver's
 freshness check and the audit see them for what they are.
@@ -13,13 +17,33 @@ from dataclasses import dataclass, field, replace
 
 import can
 
-from canergy.auth.frames import CLASSIC_MAC, FD_MAC, MAC_TYPE, fd_length, low_counter, mac
+from canergy.auth.frames import (
+    CLASSIC_MAC,
+    FD_MAC,
+    FV_MASK,
+    MAC_TYPE,
+    fd_length,
+    low_counter,
+    mac,
+)
 from canergy.auth.keys import Key
 from canergy.codec import Codec
 from canergy.inspect.frames import Described, describe
-from canergy.messages import Direction, MsgType
+from canergy.messages import Admit, Direction, Join, MsgType, Telemetry
+from canergy.seqnum import unwrap
 
 _DIRECTION = {kind: direction for direction, kind in MAC_TYPE.items()}
+TRANSACTION_TYPES = frozenset(
+    {
+        MsgType.INTENTION,
+        MsgType.COMMIT,
+        MsgType.ABORT,
+        MsgType.ACK,
+        MsgType.COMMITTED,
+        MsgType.ABORTED,
+    }
+)
+"""Messages whose FV is their transaction's number."""
 
 
 @dataclass
@@ -31,6 +55,11 @@ class CaptureAuth:
     pending: dict[tuple[str, int, Direction], tuple[Described, bytes]] = field(default_factory=dict)
     """Classic layout: per channel, node and direction, the message whose MAC frame is still
     to come."""
+    join_fv: dict[tuple[str, int], int] = field(default_factory=dict)
+    """Per channel and node, the FV of its last JOIN (an ADMIT's MAC binds it)."""
+    last_tx: dict[tuple[str, int], int] = field(default_factory=dict)
+    """Per channel and node, the FV of its last transaction frame (a classic TELEMETRY's FV
+    is extended next to it)."""
 
     def describe(self, frame: can.Message) -> Described:
         data = bytes(frame.data)
@@ -63,8 +92,17 @@ class CaptureAuth:
         assert d.message is not None
         if data[0] != d.message.TYPE:
             return replace(plain, problem="MAC frame for another message", mac="BAD")
-        low = low_counter(d.message)
-        fv = int.from_bytes(data[1:3], "big") << 16 | low
+        half = int.from_bytes(data[1:3], "big")
+        if isinstance(d.message, Telemetry):
+            joining = d.message.flags & Telemetry.JOINING
+            ref = (self.join_fv if joining else self.last_tx).get((d.channel, node))
+            fv = unwrap(half, ref or 0, 16) & FV_MASK
+            verdict = self._check(d, body, fv, data[3:])
+            if ref is None and verdict == "BAD":  # past transaction 32,767: not known here
+                verdict = "unverified"
+            return replace(plain, problem="MAC frame of TELEMETRY", mac=verdict)
+        else:
+            fv = half << 16 | low_counter(d.message)
         verdict = self._check(d, body, fv, data[3:])
         return replace(plain, problem=f"MAC frame of {d.message.TYPE.name}", mac=verdict)
 
@@ -73,9 +111,23 @@ class CaptureAuth:
             return "BAD"
         node = d.message.node
         if self.key is None or (self.key.kind == "node" and self.key.node != node):
-            return "unverified"  # no key, or a node's own key and another node's frame
-        expected = mac(self.key.node_key(node), d.message.TYPE << 8 | node, fv, body)
-        return "ok" if expected[: len(tag)] == tag and len(tag) in (FD_MAC, CLASSIC_MAC) else "BAD"
+            verdict = "unverified"  # no key, or a node's own key and another node's frame
+        else:
+            bound = join = None
+            if isinstance(d.message, Admit):  # its MAC binds the JOIN it answers
+                join = self.join_fv.get((d.channel, node))
+                known = join is not None and join & 0xFFFF == d.message.nonce
+                bound = join if known else d.message.nonce
+            expected = mac(self.key.node_key(node), d.message.TYPE << 8 | node, fv, body, bound)
+            ok = expected[: len(tag)] == tag and len(tag) in (FD_MAC, CLASSIC_MAC)
+            verdict = "ok" if ok else "BAD"
+            if not ok and isinstance(d.message, Admit) and bound != join:
+                verdict = "unverified"  # its JOIN is not in the capture
+        if verdict != "BAD" and d.message.TYPE in TRANSACTION_TYPES:
+            self.last_tx[(d.channel, node)] = fv
+        if verdict != "BAD" and isinstance(d.message, Join):
+            self.join_fv[(d.channel, node)] = fv
+        return verdict
 
 
 def _with_data(frame: can.Message, data: bytes) -> can.Message:

@@ -4,13 +4,21 @@ AUTOSAR SecOC does.
 MAC input: Data ID ``type << 8 | node`` (2 bytes, big-endian) || freshness value FV (4 bytes,
 big-endian) || the classic frame's data (CRC-8 byte and fields). FV never repeats for a key: the
 full 32-bit transaction number for transaction frames, the full return number for RETURN and
-RETURN_ACK, the sender's last transaction for TELEMETRY, the nonce for JOIN and ADMIT. The
-wire carries 16-bit counters; a receiver extends them from its own counters, and a frame whose
-FV is not the one it expects (a replay from 65,536 transactions ago, say) is refused. So is, once
-the side's freshness gives an ``Expected`` (``expected_freshness``), a frame whose FV is older
-than its own counter: a replay of an earlier transaction or return, refused as stale (``STALE``)
-and counted, never handed to the protocol; a current duplicate (the FV at the counter) passes,
-as the protocol tolerates duplicates.
+RETURN_ACK, the sender's last resolved transaction for TELEMETRY, the nonce for JOIN and ADMIT.
+The wire carries 16-bit counters; a receiver extends them from its own counters, and a frame
+whose FV is not the one it expects (a replay from 65,536 transactions ago, say) is refused. So
+is, once the side's freshness gives an ``Expected`` (``expected_freshness``), a frame whose FV
+is older than its own counter: a replay of an earlier transaction or return, refused as stale
+(``STALE``) and counted, never handed to the protocol; a current duplicate (the FV at the
+counter) passes, as the protocol tolerates duplicates.
+
+A node without books binds its TELEMETRY to its JOIN (the JOIN's FV, whose ADMIT it awaits);
+the supervisor takes one only with the FV of the JOIN it took last. Otherwise TELEMETRY is
+fresh from the last transaction the receiver knows the node resolved (its
+COMMITTED or ABORTED, its ACK of the next, its last TELEMETRY taken) up to the receiver's own
+transaction. A node's level only rises when it resolves a transaction, so a TELEMETRY replayed
+within that window reports at least what the node holds: it can make the supervisor grant
+less, never more. One from before the window is refused as stale.
 
 Two layouts:
 
@@ -19,9 +27,10 @@ Two layouts:
   attempt.
 - **classic**: the unchanged classic frame followed by a MAC frame on type code 0x0 (supervisor
   to node) or 0x8 (node to supervisor) of the same node: ``type (1) || FV high 16 bits (2) ||
-  MAC (5)``. A 40-bit MAC: 2^-40 per attempt (at 2,000 forged frames/s, one success expected in
-  about 17 years). A message counts only once its MAC frame followed it; one whose MAC frame
-  never came is dropped, and counted as a frame without a MAC when the next message arrives.
+  MAC (5)``; TELEMETRY, which carries no counter, puts the FV's low 16 bits there instead. A
+  40-bit MAC: 2^-40 per attempt (at 2,000 forged frames/s, one success expected in about 17
+  years). A message counts only once its MAC frame followed it; one whose MAC frame never came
+  is dropped, and counted as a frame without a MAC when the next message arrives.
 """
 
 from __future__ import annotations
@@ -40,7 +49,10 @@ from canergy.codec import Codec, DecodeError, DecodeErrorReason
 from canergy.messages import (
     SEQ_BITS,
     TX_BITS,
+    Aborted,
+    Ack,
     Admit,
+    Committed,
     Direction,
     Join,
     Message,
@@ -98,9 +110,13 @@ def _keyed(key: bytes) -> cmac.CMAC:
     return cmac.CMAC(algorithms.AES(key))
 
 
-def mac(key: bytes, data_id: int, fv: int, data: bytes) -> bytes:
+def mac(key: bytes, data_id: int, fv: int, data: bytes, join_fv: int | None = None) -> bytes:
+    """The CMAC over Data ID || FV || data, and for ADMIT || the FV of the JOIN it answers
+    (``join_fv``: both sides know it, so it is bound without travelling)."""
     c = _keyed(key).copy()
     c.update(data_id.to_bytes(2, "big") + (fv & 0xFFFF_FFFF).to_bytes(4, "big") + data)
+    if join_fv is not None:
+        c.update((join_fv & FV_MASK).to_bytes(4, "big"))
     return c.finalize()
 
 
@@ -130,17 +146,27 @@ class FrameAuth:
     freshness: Callable[[Message], int | None]
     pending: dict[int, tuple[Message, bytes]] = field(default_factory=dict)
     """Classic layout: per node, the message waiting for its MAC frame."""
+    telemetry_floor: dict[int, int] = field(default_factory=dict)
+    """Per node, the oldest TELEMETRY FV still fresh: the last transaction the node is known to
+    have resolved (until one is known, the one before the side's own)."""
     join_fv: dict[int, int] = field(default_factory=dict)
     """Per node, the FV of its JOIN: a node sets its own (random high half, the JOIN's nonce
     below) before it joins; the supervisor keeps the one it received and echoes it in ADMIT.
     A replayed ADMIT of an earlier life then fails unless 32 bits, not 16, happen to match."""
 
     def frames(self, msg: Message) -> list[can.Message]:
-        fv = self._join_fv(msg) if isinstance(msg, Join | Admit) else self.freshness(msg)
+        fv: int | None
+        if isinstance(msg, Join):
+            fv = self.join_fv[msg.node] = self._join_fv(msg)  # JOINING TELEMETRY is bound to it
+        elif _joining(msg) and msg.node in self.join_fv:
+            fv = self.join_fv[msg.node]  # a node without books: bound to its JOIN
+        else:
+            fv = self.freshness(msg)
         if fv is None:
             raise ValueError(f"no freshness for node {msg.node}: not one this side handles")
         arbitration_id, data = self.codec.encode(msg)
-        tag = mac(self.key_for(msg.node), msg.TYPE << 8 | msg.node, fv, data)
+        bound = self._join_fv(msg) if isinstance(msg, Admit) else None
+        tag = mac(self.key_for(msg.node), msg.TYPE << 8 | msg.node, fv, data, bound)
         if self.layout is Layout.FD:
             body = data + bytes(fd_length(len(data) + 12) - len(data) - 12)
             body += (fv & 0xFFFF_FFFF).to_bytes(4, "big") + tag[:FD_MAC]
@@ -150,7 +176,7 @@ class FrameAuth:
                 )
             ]
         mac_id = self.codec.id_base | MAC_TYPE[msg.TYPE.direction] << 8 | msg.node
-        trailer = bytes([msg.TYPE]) + ((fv >> 16) & 0xFFFF).to_bytes(2, "big") + tag[:CLASSIC_MAC]
+        trailer = bytes([msg.TYPE]) + wire_half(msg, fv).to_bytes(2, "big") + tag[:CLASSIC_MAC]
         return [
             can.Message(arbitration_id=arbitration_id, data=data),
             can.Message(arbitration_id=mac_id, data=trailer),
@@ -194,8 +220,14 @@ class FrameAuth:
         if waiting is None or data[0] != waiting[0].TYPE:
             return Verdict(failure=AuthFailure.NO_DATA, node=node)
         msg, body = waiting
-        fv = int.from_bytes(data[1:3], "big") << 16 | low_counter(msg)
-        return self._verdict(msg, body, fv, data[3:])
+        half = int.from_bytes(data[1:3], "big")
+        if isinstance(msg, Telemetry):  # the low half, next to this side's own transaction
+            wanted = self.join_fv.get(msg.node) if _joining(msg) else None
+            wanted = self.freshness(msg) if wanted is None else wanted
+            if wanted is None:
+                return Verdict(node=msg.node)
+            return self._verdict(msg, body, unwrap(half, int(wanted), 16) & FV_MASK, data[3:])
+        return self._verdict(msg, body, half << 16 | low_counter(msg), data[3:])
 
     def _join_fv(self, msg: Join | Admit) -> int:
         fv = self.join_fv.get(msg.node)
@@ -205,19 +237,62 @@ class FrameAuth:
         wanted = self.freshness(msg)
         if wanted is None:  # another supervisor's node, say: not ours to judge
             return Verdict(node=msg.node)
+        bound = None
         if isinstance(msg, Join):  # any fresh nonce is the node's to draw: keep it for ADMIT
             wanted = fv if fv & 0xFFFF == msg.nonce else -1
-        elif isinstance(msg, Admit):
-            wanted = self._join_fv(msg)
-        expected = mac(self.key_for(msg.node), msg.TYPE << 8 | msg.node, fv, body)
+        elif isinstance(msg, Admit):  # any high half, for the JOIN this side took or sent
+            wanted = fv if fv & 0xFFFF == msg.nonce else -1
+            bound = self._join_fv(msg)
+        expected = mac(self.key_for(msg.node), msg.TYPE << 8 | msg.node, fv, body, bound)
         if not hmac.compare_digest(expected[: len(tag)], tag):
             return Verdict(failure=AuthFailure.MAC_BAD, node=msg.node)
-        # TELEMETRY's FV is the sender's transaction (high half): the MAC alone counts for it
-        if msg.TYPE is not MsgType.TELEMETRY and (wanted & FV_MASK != fv or _older(wanted, fv)):
+        if _joining(msg):  # bound to the node's JOIN: the one this side took last
+            if self.join_fv.get(msg.node) != fv:
+                return Verdict(failure=AuthFailure.STALE, node=msg.node)
+            return Verdict(message=msg, node=msg.node)
+        if isinstance(msg, Telemetry):
+            if self._stale_telemetry(msg.node, wanted, fv):
+                return Verdict(failure=AuthFailure.STALE, node=msg.node)
+        elif wanted & FV_MASK != fv or _older(wanted, fv):
             return Verdict(failure=AuthFailure.STALE, node=msg.node)
         if isinstance(msg, Join):
             self.join_fv[msg.node] = fv
+        if isinstance(msg, Admit):  # the full counters: the FV's high half above the wire's
+            high = fv & 0xFFFF_0000
+            msg = Admit(msg.node, msg.nonce, high | msg.tx, high | msg.seq)
+        self._resolved(msg, fv)
         return Verdict(message=msg, node=msg.node)
+
+    def _stale_telemetry(self, node: int, wanted: int, fv: int) -> bool:
+        """Outside the window: older than the node is known to have resolved, or past this
+        side's own transaction (``wanted``: a plain FV, a sender's, is not judged)."""
+        if not isinstance(wanted, Expected):
+            return False
+        floor = self.telemetry_floor.get(node, (wanted.counter - 1) & FV_MASK)
+        return fv_before(fv, floor) or fv_before(wanted.counter, fv)
+
+    def _resolved(self, msg: Message, fv: int) -> None:
+        """A verified frame that shows how far the node has resolved: TELEMETRY up to its FV,
+        ACK to the transaction before, COMMITTED and ABORTED to theirs. Any but a JOIN shows
+        the node has its books."""
+        if self.receives is not Direction.TO_SUPERVISOR:
+            return
+        if not isinstance(msg, Join):  # admitted: no TELEMETRY without books is fresh now
+            self.join_fv.pop(msg.node, None)
+        if isinstance(msg, Telemetry | Committed | Aborted):
+            resolved = fv
+        elif isinstance(msg, Ack):
+            resolved = (fv - 1) & FV_MASK
+        else:
+            return
+        floor = self.telemetry_floor.get(msg.node)
+        if floor is None or fv_before(floor, resolved):
+            self.telemetry_floor[msg.node] = resolved
+
+
+def _joining(msg: Message) -> bool:
+    """A TELEMETRY of a node without books (JOIN sent, no ADMIT yet): its FV is its JOIN's."""
+    return isinstance(msg, Telemetry) and bool(msg.flags & Telemetry.JOINING)
 
 
 def _older(wanted: int, fv: int) -> bool:
@@ -231,13 +306,21 @@ def low_counter(msg: Message) -> int:
     return freshness(msg, 0, 0) & 0xFFFF
 
 
+def wire_half(msg: Message, fv: int) -> int:
+    """The half of the FV a classic MAC frame carries: the high half, which the message does
+    not; TELEMETRY carries no counter, so its MAC frame carries the low half."""
+    return fv & 0xFFFF if isinstance(msg, Telemetry) else fv >> 16 & 0xFFFF
+
+
 def freshness(msg: Message, tx: int, seq: int) -> int:
     """The FV of ``msg`` for a side whose own counters are ``tx`` and ``seq``: the wire's 16-bit
     counter extended next to them (serial-number arithmetic), 32 bits."""
-    if isinstance(msg, Join | Admit):
+    if isinstance(msg, Join):
         return msg.nonce
+    if isinstance(msg, Admit):  # the high half its counters share (for the supervisor: tx)
+        return (tx >> 16 & 0xFFFF) << 16 | msg.nonce
     if isinstance(msg, Telemetry):
-        return tx & 0xFFFF_0000
+        return tx & FV_MASK
     if isinstance(msg, Return | ReturnAck):
         return unwrap(msg.seq, seq, SEQ_BITS) & 0xFFFF_FFFF
     return unwrap(msg.tx, tx, TX_BITS) & 0xFFFF_FFFF
@@ -246,8 +329,9 @@ def freshness(msg: Message, tx: int, seq: int) -> int:
 def expected_freshness(msg: Message, tx: int, seq: int) -> int:
     """``freshness``, for a side whose frames a ``FrameAuth`` checks: for the frames of a
     transaction or a return an ``Expected`` that knows the side's counter, so that a verified
-    frame older than it is refused as stale (JOIN, ADMIT and TELEMETRY: the plain FV)."""
+    frame older than it is refused as stale; for TELEMETRY, the side's transaction ``tx``, the
+    newest FV it takes (JOIN and ADMIT: the plain FV)."""
     fv = freshness(msg, tx, seq)
-    if isinstance(msg, Join | Admit | Telemetry):
+    if isinstance(msg, Join | Admit):
         return fv
     return Expected(fv, seq if isinstance(msg, Return | ReturnAck) else tx)

@@ -124,14 +124,24 @@ def resend_or_write_off(t: Timing, s: Session, event: ResponseTimeout, now: int)
 
 
 def admit(t: Timing, s: Session, msg: Join, now: int) -> SessionStep:
-    """JOIN(n) from a node without books: write off what is open; send ADMIT(n, tx, q)."""
+    """JOIN(n) from a node without books: write off what is open; send ADMIT(n, tx, q).
+
+    The wire carries the counters' low 16 bits; both counters first move up to the same high
+    part (never back), which authenticated mode sends in the ADMIT's FV, so that a node
+    admitted past transaction 65,535 starts from the supervisor's full counters."""
     step = SessionStep(s)
     if s.phase is not IDLE:  # the node may have committed it before it lost its books
         step = resolve(s, Outcome.WRITTEN_OFF)
     s = step.session
+    high = max(s.tx >> TX_BITS, s.returns_credited >> SEQ_BITS)
+    s = evolve(
+        s,
+        tx=high << TX_BITS | wire_tx(s.tx),
+        returns_credited=high << SEQ_BITS | wrap(s.returns_credited, SEQ_BITS),
+    )
     answer = Admit(s.node, msg.nonce, wire_tx(s.tx), wrap(s.returns_credited, SEQ_BITS))
     admitted = Admitted(s.node, s.tx, s.returns_credited)
-    return step._replace(actions=(*step.actions, admitted, Send(answer)))
+    return SessionStep(s, (*step.actions, admitted, Send(answer)))
 
 
 def restart_session(t: Timing, s: Session, event: PowerLoss, now: int) -> SessionStep:

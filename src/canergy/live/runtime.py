@@ -184,6 +184,7 @@ class OwnDirection:
         self.auth = auth
         self.mirror = FrameAuth(auth.codec, auth.layout, auth.key_for, other, auth.freshness)
         """The other side's check: its own pending messages, the same keys and counters."""
+        self.mirror.join_fv = auth.join_fv  # the JOINs an ADMIT's MAC binds
         self.sent: dict[tuple[int, bool], int] = {}
         """Per node and counter (False: transactions, True: returns) the newest FV sent."""
         self.waiting: dict[int, tuple[int, can.Message]] = {}

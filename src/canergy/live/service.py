@@ -16,7 +16,7 @@ from typing import Any, TextIO
 
 import can
 
-from canergy.auth.frames import MAC_TYPE, Verdict, expected_freshness
+from canergy.auth.frames import MAC_TYPE, AuthFailure, Verdict, expected_freshness
 from canergy.codec import DecodeError
 from canergy.core import (
     Acknowledged,
@@ -47,6 +47,7 @@ from canergy.messages import (
     Ack,
     Committed,
     Direction,
+    Join,
     Message,
     MsgType,
     Return,
@@ -92,6 +93,9 @@ class NodeInfo:
     recent_returns: list[tuple[int, int]] = field(default_factory=list)
     """(time, µJ) of returns credited lately: a level reported before them may still show them."""
     active_request: GrantRequest | None = None
+    held_join: Join | None = None
+    """Authenticated mode: a verified JOIN waiting for the node's next TELEMETRY to show it
+    current (JOINING, bound to it) or a replay (the node reports its books)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -209,8 +213,12 @@ class SupervisorService:
             for line in notes:
                 log.warning("node %s: %s", self.node_name(msg.node), line)
             self.ready.add(msg.node)
-            return self._flush(self._released(msg.node, now) + self._start_grants(now, self.ready))
+            out = self._released(msg.node, now) + self._joined(msg, info, now)
+            return self._flush(out + self._start_grants(now, self.ready))
         if self.config.listen_only or not isinstance(msg, ToSupervisor):
+            return ()
+        if isinstance(msg, Join) and self.authenticated:
+            info.held_join = msg  # a replay verifies too: the node's next report tells
             return ()
         if isinstance(msg, Return) and self._hold_return(msg, now):
             return self._flush(self._released(msg.node, now))
@@ -218,6 +226,20 @@ class SupervisorService:
         if self.ready:  # a transaction ended: the node's next grant goes out in this step
             out += self._start_grants(now, self.ready)
         return self._flush(out)
+
+    def _joined(self, msg: Telemetry, info: NodeInfo, now: int) -> list[Message]:
+        """Authenticated mode: a held JOIN is admitted once the node's TELEMETRY shows it
+        without books (JOINING: its FV is that JOIN's); a TELEMETRY with books shows the JOIN
+        a replay of an earlier life, refused as stale (nothing written off, nobody admitted)."""
+        join, info.held_join = info.held_join, None
+        if join is None:
+            return []
+        if msg.flags & Telemetry.JOINING:
+            return self._carry_out(self.core.receive(join, now), now)
+        reason = f"{AuthFailure.STALE.value} (a JOIN of an earlier life: the node has its books)"
+        self.refusals.record(msg.node, reason, repr(join), now)
+        self.intrusions.record(msg.node, repr(join), reason, now, quiet=True)
+        return []
 
     def _distrusted(self, node: int, now: int) -> bool:
         """Without a key: no top-ups while the node's TELEMETRY was lately contradicted (with a
@@ -494,7 +516,7 @@ class SupervisorService:
                 continue
             if self.liveness is not None and not self.liveness(node, now):
                 continue  # heartbeat lost or not OPERATIONAL: nothing for it, not even one-shots
-            if info.heard_at is None or info.flags & Telemetry.JOINING:
+            if info.heard_at is None or info.flags & Telemetry.JOINING or info.held_join:
                 continue  # not heard yet, or no books until admitted: a grant would be lost
             if info.requests:
                 out += self._one_shot(node, info, now)

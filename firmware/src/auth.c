@@ -87,13 +87,13 @@ static void mac(const struct canergy_auth *a, const struct canergy_msg *m, uint3
                 const uint8_t *data, size_t len, uint8_t tag[CANERGY_CMAC_SIZE])
 {
     uint8_t head[6] = {m->type, m->node, 0U, 0U, 0U, 0U};
-    uint8_t join[4];
     struct canergy_cmac_stream s;
     put_be32(&head[2], fv);
     canergy_cmac_begin(&s);
     canergy_cmac_update(&a->key, &s, head, sizeof head);
     canergy_cmac_update(&a->key, &s, data, len);
     if (m->type == CANERGY_ADMIT) {
+        uint8_t join[4];
         put_be32(join, join_fv_of(a, m));
         canergy_cmac_update(&a->key, &s, join, sizeof join);
     }

@@ -18,14 +18,15 @@ from typing import Any
 
 import can
 
+from canergy.argtypes import COUNT_MAX, add_duration, bounded_int, energy, node_ids, power
 from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import load_key
-from canergy.cli_args import COUNT_MAX, add_duration, bounded_int, energy, node_ids, power
 from canergy.codec import Codec
 from canergy.core import Timing
 from canergy.live.atomic import check_writable_dir, same_file, write_json_atomic
 from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
 from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.serve import serve
 from canergy.live.shared_bus import STANDARD_FRAMES, SharedReader, shared_network
 from canergy.messages import Direction
 from firmware_model.actuator import PowerProfile
@@ -123,12 +124,15 @@ class _Signals:
 
     def __init__(self) -> None:
         self.stop = False
-        signal.signal(signal.SIGINT, self._request_stop)
-        signal.signal(signal.SIGTERM, self._request_stop)
+        signal.signal(signal.SIGINT, self._on_stop)
+        signal.signal(signal.SIGTERM, self._on_stop)
         signal.signal(signal.SIGUSR1, self._lose_power)
 
-    def _request_stop(self, signum: int, frame: object) -> None:
+    def request_stop(self, now: int = 0) -> None:
         self.stop = True
+
+    def _on_stop(self, signum: int, frame: object) -> None:
+        self.request_stop()
 
     @staticmethod
     def _lose_power(signum: int, frame: object) -> None:
@@ -256,13 +260,14 @@ def _serve(
     args: argparse.Namespace, host: NodeHost, runtime: BusRuntime, signals: _Signals
 ) -> None:
     """Run the bus loop until a stop is asked for, rewriting ``--status-file`` periodically."""
-    next_status = 0
-    while not signals.stop:
-        runtime.poll(0.05)
-        now = monotonic_us()
-        if args.status_file is not None and now >= next_status:
+    next_status = [0]
+
+    def each(now: int) -> None:
+        if args.status_file is not None and now >= next_status[0]:
             write_json_atomic(args.status_file, status(host, runtime), fsync=False)
-            next_status = now + args.status_period
+            next_status[0] = now + args.status_period
+
+    serve(runtime, lambda now: signals.stop, signals.request_stop, each)
 
 
 def _close(bus: can.BusABC, notifier: can.Notifier | None) -> None:

@@ -60,7 +60,7 @@ def test_a_power_meter_node_meters_one_drive(
 def test_a_sampled_mode_warns_at_start_that_it_guarantees_nothing(
     capsys: pytest.CaptureFixture[str], tmp_path: Path
 ) -> None:
-    from canergy.cli_cia402 import SAMPLED_WARNING
+    from canergy.cli.shared.cia402 import SAMPLED_WARNING
 
     code, err = run(
         capsys,

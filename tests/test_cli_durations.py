@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from canergy.argtypes import duration, milliseconds
 from canergy.cli import build_parser
-from canergy.cli_args import duration, milliseconds
 from firmware_model.__main__ import build_parser as firmware_parser
 
 SUPERVISOR = ["supervisor", "--nodes", "1"]

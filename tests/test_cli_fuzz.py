@@ -42,8 +42,8 @@ from hypothesis import strategies as st
 
 import canergy.bench.run
 import canergy.check
-import canergy.cli_inspect
-import canergy.cli_sim
+import canergy.cli.dump
+import canergy.cli.simulate
 import canergy.dbc
 import canergy.demo
 import canergy.rules_doc
@@ -293,7 +293,7 @@ STARTED = "started"
 def _bounded_commands() -> Iterator[None]:
     """Stop long, endless or bus-bound commands right after their start-up; shrink the model
     checker and the demo to a few states and transactions; stdin holds a small capture."""
-    real_open = canergy.cli_inspect.open_bus
+    real_open = canergy.cli.dump.open_bus
     real_check = canergy.check.check
     real_demo = canergy.demo.run_demo
 
@@ -314,7 +314,7 @@ def _bounded_commands() -> Iterator[None]:
         mock.patch.object(BusRuntime, "poll", _stop),  # supervisor, grant, firmware_model
         mock.patch.object(BusGroup, "poll", _stop),  # supervisor --bus
         mock.patch.object(DriveFace, "run", _stop),  # firmware_model.drive
-        mock.patch.object(canergy.cli_inspect, "open_bus", open_bus),
+        mock.patch.object(canergy.cli.dump, "open_bus", open_bus),
         mock.patch.object(canergy.check, "check", check),
         mock.patch.object(canergy.demo, "run_demo", run_demo),
         mock.patch.object(
@@ -322,7 +322,7 @@ def _bounded_commands() -> Iterator[None]:
         ),
         mock.patch.object(canergy.rules_doc, "write_docs", _stop),
         mock.patch.object(canergy.bench.run, "run", _stop),
-        mock.patch.object(canergy.cli_sim, "simulate", _stop),
+        mock.patch.object(canergy.cli.simulate, "simulate", _stop),
         mock.patch.object(canergy.sim.sweep, "sweep", _stop),
         mock.patch.object(sys, "stdin", io.StringIO(CAPTURE)),
     ]
@@ -508,7 +508,7 @@ def test_the_harness_catches_a_stray_file() -> None:
         return 0
 
     with (
-        mock.patch.dict("canergy.cli._COMMANDS", {"rules": litter}),
+        mock.patch("canergy.cli.rules.run", litter),
         pytest.raises(AssertionError, match=r"stray\.txt"),
     ):
         check_one("rules", [])
@@ -519,7 +519,7 @@ def test_the_harness_catches_a_traceback() -> None:
         raise OverflowError("too big")
 
     with (
-        mock.patch.dict("canergy.cli._COMMANDS", {"rules": crash}),
+        mock.patch("canergy.cli.rules.run", crash),
         pytest.raises(OverflowError),
     ):
         check_one("rules", [])

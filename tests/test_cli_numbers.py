@@ -13,9 +13,12 @@ from pathlib import Path
 
 import pytest
 
-from canergy.cli import CHECK_BOUND_MAX, DEMO_TRANSACTIONS_MAX, build_parser, main
-from canergy.cli_args import COUNT_MAX, SEED_MAX, bounded_int, max_processes
-from canergy.cli_sim import LOSS_POINTS_MAX, SEEDS_MAX
+from canergy.argtypes import COUNT_MAX, SEED_MAX, bounded_int, max_processes
+from canergy.cli import build_parser, main
+from canergy.cli.check import CHECK_BOUND_MAX
+from canergy.cli.demo import DEMO_TRANSACTIONS_MAX
+from canergy.cli.shared.sim import LOSS_POINTS_MAX
+from canergy.cli.sweep import SEEDS_MAX
 from canergy.inspect.captures import read_text
 from firmware_model.__main__ import build_parser as firmware_parser
 

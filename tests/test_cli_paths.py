@@ -262,7 +262,7 @@ def test_simulations_check_their_output_directory_first(
 ) -> None:
     (tmp_path / "file.txt").write_text("not a directory")
     with (
-        mock.patch("canergy.cli_sim.simulate", side_effect=AssertionError("simulated")),
+        mock.patch("canergy.cli.simulate.simulate", side_effect=AssertionError("simulated")),
         mock.patch("canergy.sim.sweep.sweep", side_effect=AssertionError("swept")),
     ):
         assert main([command, "--out", str(tmp_path / out), "--duration", "1"]) == 2
@@ -274,7 +274,7 @@ def test_simulations_check_their_output_directory_first(
 @pytest.mark.parametrize("command", ["simulate", "sweep"])
 def test_a_new_output_directory_may_be_nested(command: str, tmp_path: Path) -> None:
     with (
-        mock.patch("canergy.cli_sim.simulate", side_effect=_Served),
+        mock.patch("canergy.cli.simulate.simulate", side_effect=_Served),
         mock.patch("canergy.sim.sweep.sweep", side_effect=_Served),
         pytest.raises(_Served),
     ):

@@ -25,7 +25,7 @@ from live_rig import Loop
 from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import load_key
 from canergy.cli import build_parser, main
-from canergy.cli_gateway import _config
+from canergy.cli.gateway import _config
 from canergy.codec import Codec
 from canergy.ledger import TreeLedger, ledger_from_status
 from canergy.live.control import request

@@ -14,8 +14,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from canergy import cli_live
+from canergy.cli import grant as grant_cli
 from canergy.cli import main
+from canergy.cli import supervisor as supervisor_cli
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.live.state_file import (
     BooksWriter,
@@ -292,7 +293,8 @@ def started(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[dict[str, Any]]]:
     def serve(runtime: Any, service: Any, control: Any, **kw: Any) -> None:
         seen.append(service.status())
 
-    monkeypatch.setattr(cli_live, "_serve", serve)
+    monkeypatch.setattr(supervisor_cli, "serve_supervisor", serve)
+    monkeypatch.setattr(grant_cli, "serve_supervisor", serve)
     yield seen
 
 

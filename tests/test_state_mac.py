@@ -15,10 +15,10 @@ from typing import Any
 
 import pytest
 
-from canergy import cli_live
 from canergy.auth.keys import Key, derive_node_key, load_key, new_master
 from canergy.auth.state_key import StateKeyError, StateSeal, claim, epochs_record, state_seal
 from canergy.cli import main
+from canergy.cli import supervisor as supervisor_cli
 from canergy.core.gateway import Gateway, GatewayState
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.frozen import evolve
@@ -407,7 +407,9 @@ class Cli:
 def cli(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> Cli:
     runs = Cli(tmp_path, capsys)
     monkeypatch.setattr(
-        cli_live, "_serve", lambda runtime, service, *a, **kw: runs.status.append(service.status())
+        supervisor_cli,
+        "serve_supervisor",
+        lambda runtime, service, *a, **kw: runs.status.append(service.status()),
     )
     return runs
 
@@ -457,7 +459,7 @@ def test_a_run_that_never_saved_claims_no_keys(cli: Cli, monkeypatch: pytest.Mon
         raise OSError("no such bus")
 
     with monkeypatch.context() as patched:
-        patched.setattr(cli_live, "open_bus", no_bus)
+        patched.setattr(supervisor_cli, "open_bus", no_bus)
         assert cli.supervisor("--auth", str(master))[0] == 2
     assert cli.supervisor("--auth", str(master), "--listen-only")[0] == 0
     assert not (cli.tmp / "s.json").exists() and not epochs_record(master).exists()

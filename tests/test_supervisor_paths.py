@@ -14,8 +14,9 @@ from typing import Any
 
 import pytest
 
-from canergy import cli_live
+from canergy.cli import grant as grant_cli
 from canergy.cli import main
+from canergy.cli import supervisor as supervisor_cli
 from canergy.core import Supervisor
 from canergy.live.control import ControlServer, request
 from canergy.live.policy import Limits, capped_grant
@@ -37,7 +38,8 @@ def started(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[dict[str, Any]]]:
         on_disk = json.loads(state_path.read_text()) if state_path is not None else None
         seen.append({"status": service.status(), "state_on_disk": on_disk})
 
-    monkeypatch.setattr(cli_live, "_serve", serve)
+    monkeypatch.setattr(supervisor_cli, "serve_supervisor", serve)
+    monkeypatch.setattr(grant_cli, "serve_supervisor", serve)
     yield seen
 
 

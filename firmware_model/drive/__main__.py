@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from canergy.cli_args import add_duration, bounded_int
+from canergy.argtypes import add_duration, bounded_int
 from canergy.live.atomic import check_writable_dir, same_file, write_json_atomic
 from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
 from canergy.live.runtime import monotonic_us

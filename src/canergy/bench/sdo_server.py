@@ -14,8 +14,8 @@ from collections.abc import Sequence
 
 import canopen
 
+from canergy.argtypes import bounded_int
 from canergy.bench.live import sdo_dictionary
-from canergy.cli_args import bounded_int
 from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
 
 

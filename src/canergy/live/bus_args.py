@@ -8,7 +8,7 @@ from typing import Any
 import can
 import can.cli
 
-from canergy.cli_args import bounded_int, id_base
+from canergy.argtypes import bounded_int, id_base
 from canergy.codec import DEFAULT_ID_BASE, ID_MASK
 
 

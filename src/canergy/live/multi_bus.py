@@ -15,8 +15,8 @@ from dataclasses import dataclass, replace
 
 import can
 
+from canergy.argtypes import node_ids
 from canergy.auth.frames import Verdict
-from canergy.cli_args import node_ids
 from canergy.codec import DecodeError
 from canergy.live.bus_keys import bus_of, node_of, session_key
 from canergy.live.runtime import BusRuntime

@@ -10,7 +10,7 @@ import argparse
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from canergy.cli_args import node_ids
+from canergy.argtypes import node_ids
 from canergy.monitor.model import Key, Row
 
 SORTS = ("node", "level", "activity", "trouble")

@@ -21,7 +21,7 @@ from canergy.ledger import Ledger, TreeLedger, ledger_from_status
 from canergy.units import format_energy
 
 
-def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "ledger",
         help="the conservation ledger of a bus or a tree of buses, from status files",
@@ -41,6 +41,7 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         "supervisor over several buses (--bus), each client as BUS=FILE",
     )
     p.add_argument("--json", action="store_true", help="print the ledger as JSON")
+    p.set_defaults(run=run)
 
 
 def _read(path: Path) -> dict[str, Any]:
@@ -101,7 +102,7 @@ def tree_from_files(levels: list[list[Path]]) -> TreeLedger:
     return TreeLedger(books, gaps)
 
 
-def run_ledger(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     try:
         tree = tree_from_files(args.level)
     except ValueError as exc:  # as a CLI error, naming the file
@@ -125,6 +126,3 @@ def run_ledger(args: argparse.Namespace) -> int:
             + ("PASSIVE" if tree.passive else "VIOLATION: energy created")
         )
     return 0 if tree.passive else 1
-
-
-COMMANDS = {"ledger": run_ledger}

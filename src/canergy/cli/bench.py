@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from canergy.cli_args import add_duration, bounded_int
+from canergy.argtypes import add_duration, bounded_int
 from canergy.live.atomic import check_writable_dir
 from canergy.live.bus_args import add_bus_flags
 
@@ -19,7 +19,7 @@ def node_counts(text: str) -> tuple[int, ...]:
     return tuple(parse(part.strip()) for part in text.split(","))
 
 
-def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "bench",
         help="benchmarks: codec, core, live stack vs CANopen SDO, wire, memory; with bus flags "
@@ -53,9 +53,10 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         help="run the nodes as this C node program (firmware/build/canergy-node), one process "
         "per node; SocketCAN only",
     )
+    p.set_defaults(run=run)
 
 
-def run_bench(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     from canergy.bench.run import live_lines, run, table
 
     if args.json is not None:  # before minutes of measuring, not after
@@ -82,6 +83,3 @@ def run_bench(args: argparse.Namespace) -> int:
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
     return 0
-
-
-COMMANDS = {"bench": run_bench}

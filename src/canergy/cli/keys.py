@@ -5,13 +5,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from canergy.argtypes import bounded_int, node_ids
 from canergy.auth.keys import EPOCH_MAX, load_key, new_master, node_key_of, write_key
-from canergy.cli_args import bounded_int, node_ids
-
-__all__ = ["COMMANDS", "add_parsers"]
 
 
-def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "keys",
         help="create key files for authenticated mode (--auth)",
@@ -37,9 +35,10 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
     )
     p.add_argument("--master", type=Path, help="derive node keys from this master key file")
     p.add_argument("--nodes", type=node_ids, help="the nodes to derive keys for, e.g. 1-5,9")
+    p.set_defaults(run=run)
 
 
-def run_keys(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     if args.master is None:
         if args.nodes is not None:
             raise ValueError("--nodes derives node keys: give the --master key to derive from")
@@ -64,6 +63,3 @@ def run_keys(args: argparse.Namespace) -> int:
         write_key(path, node_key_of(master, node))
     print(f"canergy keys: wrote {len(targets)} node key(s), epoch {master.epoch}")
     return 0
-
-
-COMMANDS = {"keys": run_keys}

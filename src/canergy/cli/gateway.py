@@ -10,18 +10,17 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from canergy.argtypes import add_duration, bounded_int, energy, node_ids, probability, seed
 from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import Key, KeyFileError, frame_auth_keys, load_key
 from canergy.auth.state_key import state_seal
-from canergy.cli_args import add_duration, bounded_int, energy, node_ids, probability, seed
-from canergy.cli_live import (
-    _auth,
-    _check_state,
-    _check_widths,
-    _limits,
-    _serve,
-    _timing,
+from canergy.cli.shared.live import (
     book_flags,
+    check_state,
+    check_widths,
+    frame_auth,
+    grant_limits,
+    rule_timing,
     service_flags,
 )
 from canergy.codec import Codec
@@ -35,6 +34,7 @@ from canergy.live.gateway import DownstreamService, GatewayFiles, Uplink, Uplink
 from canergy.live.gateway_state import load_gateway
 from canergy.live.policy import TopUp
 from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.serve import serve_supervisor
 from canergy.live.service import ServiceConfig
 from canergy.live.state_file import keep_books
 from canergy.messages import QUANTUM_UJ, Direction
@@ -42,7 +42,7 @@ from canergy.messages import QUANTUM_UJ, Direction
 UP = "upstream"
 
 
-def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "gateway",
         help="a client of the supervisor above and the supervisor of the bus below",
@@ -107,6 +107,7 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         "long has passed with no report of frames in its name (a forged RETURN is refuted, "
         "never credited)",
     )
+    p.set_defaults(run=run)
 
 
 def _keys(args: argparse.Namespace) -> tuple[Key | None, Key | None]:
@@ -171,8 +172,8 @@ def _build(args: argparse.Namespace, now: int, key: Key | None = None) -> tuple[
     gateway = Gateway(
         args.node,
         nodes,
-        up_timing=_timing(args, args.upstream_response_timeout),
-        down_timing=_timing(args),
+        up_timing=rule_timing(args, args.upstream_response_timeout),
+        down_timing=rule_timing(args),
         state=state,
     )
     if state is None:
@@ -187,7 +188,7 @@ def _config(args: argparse.Namespace, key: Key | None) -> ServiceConfig:
     node's confirmation (``--return-hold``), as ``canergy supervisor`` does."""
     return ServiceConfig(
         policy=TopUp(args.target, args.min_grant) if args.target is not None else None,
-        limits=_limits(args),
+        limits=grant_limits(args),
         status_path=args.status_file,
         status_stream=sys.stdout if args.status_file is None else None,
         status_period_us=args.status_period,
@@ -244,12 +245,12 @@ def _check_buses(args: argparse.Namespace) -> None:
         )
 
 
-def run_gateway(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     if args.target is not None and args.target < QUANTUM_UJ:
         raise ValueError("--target must be at least 1 mJ")
     _check_buses(args)
-    _check_widths(args)
-    _check_state(args)
+    check_widths(args)
+    check_state(args)
     up_key, down_key = _keys(args)
     now = monotonic_us()
     gateway, without_books = _build(args, now, down_key)
@@ -285,11 +286,11 @@ def run_gateway(args: argparse.Namespace) -> int:
             service,
             codec=down_codec,
             receives=Direction.TO_SUPERVISOR,
-            auth=_auth(args, down_key, down_codec, service.freshness),
+            auth=frame_auth(args, down_key, down_codec, service.freshness),
         )
         uplink.counters, service.bus_counters = up.counters, down.counters
         group = BusGroup([up, down])
-        _serve(group, service, control)
+        serve_supervisor(group, service, control)
     finally:
         if group is not None:
             group.close()
@@ -299,6 +300,3 @@ def run_gateway(args: argparse.Namespace) -> int:
             if bus is not None:
                 bus.shutdown()
     return 0
-
-
-COMMANDS = {"gateway": run_gateway}

@@ -12,11 +12,11 @@ from typing import Any
 
 import can
 
+from canergy.argtypes import add_duration, bounded_int, duration, energy, node_ids
 from canergy.cia402.counter import CounterConfig
 from canergy.cia402.envelope import Limits, StopKind
 from canergy.cia402.guard import DriveGuard, GuardConfig
 from canergy.cia402.meter import MeterConfig, MeterKind
-from canergy.cli_args import add_duration, bounded_int, duration, energy, node_ids
 from canergy.codec import Codec
 from canergy.core import Timing
 from canergy.live.cia402_host import GuardedSupervisor, HostBeat

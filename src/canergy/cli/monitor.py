@@ -13,9 +13,9 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from canergy.argtypes import add_duration, duration, energy
 from canergy.auth.capture import CaptureAuth
 from canergy.auth.keys import load_key
-from canergy.cli_args import add_duration, duration, energy
 from canergy.codec import Codec
 from canergy.inspect.captures import read_file
 from canergy.live.bus_args import add_bus_flags, open_bus
@@ -48,7 +48,7 @@ def node_filter(text: str) -> tuple[str, frozenset[int] | None]:
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "monitor",
         help="full-screen live view of every node's budget and transactions",
@@ -117,6 +117,7 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         metavar="TIME",
         help="--once on a bus: listen this long (default 2s)",
     )
+    p.set_defaults(run=run)
 
 
 _BUS_ONLY = ("interface", "channel", "fd", "bus_kwargs", "timing")
@@ -159,7 +160,7 @@ def _source(args: argparse.Namespace) -> str:
     return where or "default bus (python-can configuration)"
 
 
-def run_monitor(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     _check(args)
     codec = Codec(args.id_base)
     auth = CaptureAuth(codec, load_key(args.auth)) if args.auth is not None else None
@@ -275,6 +276,3 @@ def _print_once(
     while text and not text[-1]:
         text.pop()
     print("\n".join(text))
-
-
-COMMANDS = {"monitor": run_monitor}

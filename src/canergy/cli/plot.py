@@ -6,9 +6,9 @@ import argparse
 import sys
 from pathlib import Path
 
+from canergy.argtypes import duration_or_zero, id_base, node_ids
 from canergy.auth.capture import CaptureAuth, verified
 from canergy.auth.keys import load_key
-from canergy.cli_args import duration_or_zero, id_base, node_ids
 from canergy.codec import Codec
 from canergy.extras import require
 from canergy.inspect.captures import CaptureError, read_file
@@ -20,7 +20,7 @@ MAX_PANELS = 12
 """Nodes drawn when ``--node`` is not given (the lowest ids)."""
 
 
-def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "plot",
         help="plot a capture: per node granted, returned and holdable energy, and the messages",
@@ -58,6 +58,7 @@ def add_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> Non
         metavar="KEYFILE",
         help="authenticated frames: leave out those whose MAC fails",
     )
+    p.set_defaults(run=run)
 
 
 def _check_output(path: Path) -> None:
@@ -88,7 +89,7 @@ def _nodes(tl: Timeline, wanted: tuple[int, ...] | None) -> list[str]:
     return chosen
 
 
-def run_plot(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     require("plot")  # before the capture is read: one line when matplotlib is missing
     _check_output(args.output)
     codec = Codec(args.id_base)
@@ -138,6 +139,3 @@ def run_plot(args: argparse.Namespace) -> int:
     draw(tl, nodes, args.output, title, window)
     print(f"wrote {args.output}: {', '.join(f'node {n}' for n in nodes)}")
     return 0
-
-
-COMMANDS = {"plot": run_plot}

@@ -1,0 +1,119 @@
+"""``canergy grant``: one grant, through a running supervisor (``--control``) or as a single run."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from canergy.argtypes import add_duration, bounded_int, grant_amount
+from canergy.cli.shared.live import (
+    auth_key,
+    build_core,
+    check_state,
+    check_widths,
+    frame_auth,
+    grant_limits,
+    supervisor_flags,
+)
+from canergy.codec import Codec
+from canergy.live.bus_args import open_bus
+from canergy.live.bus_keys import parse_node_id
+from canergy.live.control import request
+from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.serve import serve_supervisor
+from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.state_file import books_nodes
+from canergy.messages import Direction
+from canergy.units import US_PER_S
+
+
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    g = sub.add_parser(
+        "grant",
+        help="one grant: through a running supervisor (--control) or as a single run",
+        description="Grant energy to one node. With --control, ask a running supervisor; "
+        "otherwise run a supervisor on the bus for this one transaction. Exit 0 when committed.",
+    )
+    g.add_argument(
+        "--node",
+        type=_grant_node,
+        required=True,
+        help="node id 1-127; with --control, BUS/NODE (e.g. can1/5) names a node of a "
+        "supervisor over several buses (--bus)",
+    )
+    g.add_argument("--amount", type=grant_amount, required=True, help="e.g. 2J (1 mJ to 65.535 J)")
+    g.add_argument("--control", type=Path, help="socket of a running supervisor")
+    add_duration(g, "--timeout", 10_000_000, "wait this long for the end")
+    supervisor_flags(g)
+    g.set_defaults(run=run)
+
+
+def _grant_node(text: str) -> int | str:
+    """``grant --node``: an id, or ``BUS/NODE`` (checked by the supervisor that has buses)."""
+    bus, sep, node = text.rpartition("/")
+    if not sep:
+        return bounded_int(1, 127)(text)
+    if not bus or parse_node_id(node) is None:
+        raise argparse.ArgumentTypeError(f"{text[:40]!r}: expected a node id 1-127 or BUS/NODE")
+    return text
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.control is not None:
+        payload = {"grant": {"node": args.node, "amount_uj": args.amount}}
+        try:
+            answer = request(args.control, payload, args.timeout / US_PER_S)
+        except (OSError, ValueError) as exc:
+            print(
+                f"canergy grant: cannot reach the supervisor at {args.control}: {exc}",
+                file=sys.stderr,
+            )
+            return 2
+        return _report_grant(answer)
+    if isinstance(args.node, str):
+        raise ValueError(
+            f"--node {args.node}: a node named by its bus is granted through a running "
+            "supervisor (--control)"
+        )
+    check_widths(args)
+    check_state(args)
+    key = auth_key(args)
+    nodes = tuple(sorted({args.node, *books_nodes(args.state)}))  # every node's books kept
+    core = build_core(args, nodes, key=key)
+    config = ServiceConfig(
+        limits=grant_limits(args),
+        state_path=args.state,
+        stop_timeout_us=args.stop_timeout,
+        status_period_us=10**12,
+        fsync=not args.no_fsync,
+    )
+    codec = Codec(args.id_base)
+    bus = open_bus(args, codec.supervisor_watch_filters())
+    answers: list[dict[str, Any]] = []
+    deadline = monotonic_us() + args.timeout
+    try:
+        service = SupervisorService(core, config, monotonic_us())
+        runtime = BusRuntime(
+            bus,
+            service,
+            codec=codec,
+            receives=Direction.TO_SUPERVISOR,
+            auth=frame_auth(args, key, codec, service.freshness),
+        )
+        service.request_grant(args.node, args.amount, answers.append)
+        serve_supervisor(
+            runtime, service, None, until=lambda: bool(answers) or monotonic_us() > deadline
+        )
+    finally:
+        bus.shutdown()
+    if not answers:
+        answers.append({"node": args.node, "error": "no answer before --timeout"})
+    return _report_grant(answers[0])
+
+
+def _report_grant(answer: dict[str, Any]) -> int:
+    print(json.dumps(answer, sort_keys=True))
+    return 0 if answer.get("outcome") == "COMMITTED" else 1

@@ -1,0 +1,1 @@
+"""Flag groups and helpers that several commands share."""

@@ -1,0 +1,103 @@
+"""Flags and output shared by ``dump``, ``decode`` and ``audit``: MAC checks, the view,
+reading captures."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Iterable, Iterator
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, TextIO
+
+import can
+
+from canergy.argtypes import node_ids
+from canergy.auth.capture import CaptureAuth
+from canergy.auth.keys import load_key
+from canergy.codec import Codec
+from canergy.inspect.audit import Auditor
+from canergy.inspect.captures import read_file, read_text
+from canergy.inspect.frames import Described
+from canergy.inspect.render import line
+
+
+def auth_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--auth",
+        type=Path,
+        metavar="KEYFILE",
+        help="check the MACs of authenticated frames with this key (the master key, or a "
+        "node's own key for its frames): mac ok / MAC BAD; without it they show mac ?",
+    )
+
+
+def capture_auth(args: argparse.Namespace, codec: Codec) -> CaptureAuth:
+    return CaptureAuth(codec, load_key(args.auth) if args.auth is not None else None)
+
+
+def view_flags(p: argparse.ArgumentParser) -> None:
+    auth_flag(p)
+    p.add_argument(
+        "--audit",
+        action="store_true",
+        help="run the audit alongside: a frame it flags (a forgery, a second supervisor's "
+        "interleaved sequence...) gets a line starting with !! under it",
+    )
+    p.add_argument("--nodes", type=node_ids, help="only frames of these node ids, e.g. 1-5,9")
+    p.add_argument("--hide-foreign", action="store_true", help="hide frames that are not canergy's")
+    p.add_argument("--json", action="store_true", help="one JSON object per frame")
+    p.add_argument(
+        "--color",
+        choices=["auto", "always", "never"],
+        default="auto",
+        help="colour per transaction (auto: only on a terminal)",
+    )
+
+
+def garbage(number: int, text: str, reason: str) -> None:
+    print(f"line {number}: skipped ({reason}): {text[:80]}", file=sys.stderr)
+
+
+def capture_frames(path: str) -> Iterator[can.Message]:
+    if path == "-":
+        return read_text(sys.stdin, garbage)
+    return read_file(Path(path), garbage)
+
+
+def show(
+    described: Iterable[Described], args: argparse.Namespace, out: TextIO, live: bool = False
+) -> None:
+    colour = args.color == "always" or (args.color == "auto" and out.isatty())
+    auditor = Auditor() if args.audit else None
+    for d in described:
+        flagged = audited(auditor, d)
+        if args.hide_foreign and d.message is None and not d.ours:
+            continue
+        if args.nodes is not None and (d.message is None or d.message.node not in args.nodes):
+            continue
+        out.write((json.dumps(d.as_json()) if args.json else line(d, colour=colour)) + "\n")
+        for here, v in flagged:
+            assert auditor is not None
+            many = auditor.channels
+            where = f"{here}{v.channel}/{v.node}: " if many and v.node is not None else here
+            out.write(
+                json.dumps({"violation": v.as_json(many)}) if args.json else f"!! {where}{v.what}"
+            )
+            out.write("\n")
+        if live:
+            out.flush()
+
+
+def audited(auditor: Auditor | None, d: Described) -> list[tuple[str, Any]]:
+    """The audit's new violations once ``d`` is fed, each with where it points ("" for this
+    frame; some are decided later and concern an earlier one). A MAC that failed moves nothing."""
+    if auditor is None:
+        return []
+    before = len(auditor.violations)
+    auditor.feed(replace(d, message=None, crc_ok=None) if d.mac == "BAD" else d)
+    return [
+        ("" if v.frame == auditor.frames else f"frame {v.frame}: ", v)
+        for v in auditor.violations[before:]
+    ]

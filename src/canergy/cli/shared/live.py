@@ -1,0 +1,231 @@
+"""Flag groups and set-up shared by ``supervisor``, ``grant`` and ``gateway``: the books,
+limits and timing, the service, authenticated mode, the files a run writes."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from canergy.argtypes import add_duration, bounded_int, energy, power
+from canergy.auth.state_key import state_seal
+from canergy.codec import Codec
+from canergy.core import Supervisor, Timing
+from canergy.core.variants import VARIANTS
+from canergy.live.atomic import check_writable_dir, same_file
+from canergy.live.bus_args import add_bus_flags
+from canergy.live.control import check_control_path
+from canergy.live.policy import Limits, level_room
+from canergy.live.runtime import monotonic_us
+from canergy.live.state_file import ACCEPT_EDITED, keep_books, load_state
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ, Direction, Message
+from canergy.units import UJ_PER_J, format_energy
+
+LARGEST_GRANT = AMOUNT_MAX_MJ * QUANTUM_UJ
+
+
+def joules(uj: int) -> str:
+    return format_energy(uj).replace(" ", "")
+
+
+ROOM = f"{joules(USABLE_MAX_UJ)} (what a node's record holds) minus --max-grant"
+
+
+def supervisor_flags(p: argparse.ArgumentParser) -> None:
+    add_bus_flags(p)
+    p.add_argument("--variant", choices=sorted(VARIANTS), default="hardened")
+    p.add_argument("--initial", type=energy, default=10 * UJ_PER_J, help="budget of a new state")
+    book_flags(p)
+    p.add_argument(
+        "--auth",
+        type=Path,
+        metavar="KEYFILE",
+        help="authenticated mode with this master key (`canergy keys master`, mode 0600): every "
+        "frame carries a truncated AES-CMAC; with --fd one CAN FD frame and a 64-bit MAC, "
+        "otherwise each frame is followed by a MAC frame (40-bit MAC)",
+    )
+
+
+def book_flags(p: argparse.ArgumentParser) -> None:
+    """The flags of a supervisor's books, limits and timing (a gateway's downstream too)."""
+    p.add_argument("--state", type=Path, help="non-volatile state file (created if missing)")
+    p.add_argument(
+        ACCEPT_EDITED,
+        action="store_true",
+        help="take a --state file whose checksum is missing or wrong (edited by hand, or "
+        "written by an older canergy) if it passes every other check; the next save writes a "
+        "fresh checksum",
+    )
+    p.add_argument("--no-fsync", action="store_true", help="skip fsync of the state file (tests)")
+    add_duration(p, "--response-timeout", 50_000, "wait this long for a reply")
+    p.add_argument("--retries", type=bounded_int(0, 100), default=3)
+    p.add_argument(
+        "--max-grant",
+        type=energy,
+        default=LARGEST_GRANT,
+        help=f"largest grant per transaction (default and at most {joules(LARGEST_GRANT)}, what "
+        "one frame carries)",
+    )
+    p.add_argument(
+        "--max-node-level",
+        type=energy,
+        help=f"never lift a node's level above this; at most {ROOM}, room for a written-off "
+        "grant paid back on top",
+    )
+    p.add_argument("--max-total", type=energy, help="energy granted in this run, all nodes")
+    p.add_argument("--rate", type=power, help="sustained grant rate over all nodes, e.g. 2W")
+    add_duration(p, "--stop-timeout", 5_000_000, "time to settle on exit")
+
+
+def service_flags(p: argparse.ArgumentParser) -> None:
+    """Top-up policy, liveness, status and control of a running supervisor (or gateway)."""
+    p.add_argument(
+        "--target",
+        type=energy,
+        help=f"top each node up to this reported level; at most {ROOM} (see --max-node-level)",
+    )
+    p.add_argument("--min-grant", type=energy, default=QUANTUM_UJ, help="smallest top-up")
+    add_duration(p, "--lost-after", 3_000_000, "a node is lost after this long without a frame")
+    p.add_argument("--status-file", type=Path, help="JSON status (default: JSON lines on stdout)")
+    add_duration(p, "--status-period", 1_000_000, "time between status reports")
+    p.add_argument(
+        "--control",
+        type=Path,
+        help="UNIX socket for `canergy grant --control`; replaces only a stale socket, removed "
+        "at exit",
+    )
+
+
+def rule_timing(args: argparse.Namespace, response_timeout_us: int | None = None) -> Timing:
+    """The rules' timing from ``--response-timeout`` (or ``response_timeout_us``) and
+    ``--retries``: a node waits twice the response timeout for a command or a RETURN_ACK."""
+    timeout = args.response_timeout if response_timeout_us is None else response_timeout_us
+    return Timing(
+        response_timeout_us=timeout,
+        retries=args.retries,
+        command_timeout_us=2 * timeout,
+        return_retry_us=2 * timeout,
+    )
+
+
+def build_core(
+    args: argparse.Namespace, nodes: tuple[int, ...], buses: tuple[str, ...] = (), key: Any = None
+) -> Supervisor:
+    """The core, from ``--state`` when it exists; ``buses``: bus names with ``--bus`` (``nodes``
+    are then session keys); ``key``: ``--auth``'s, which seals the state file."""
+    timing = rule_timing(args)
+    state = None
+    seal = None if key is None else state_seal(key)
+    if args.state is not None and args.state.exists():
+
+        def warn(message: str) -> None:
+            print(f"canergy {args.command}: warning: {message}", file=sys.stderr)
+
+        state = load_state(
+            args.state,
+            args.variant,
+            nodes,
+            buses=buses,
+            accept_edited=args.accept_edited_state,
+            on_edited=warn,
+            seal=seal,
+        )
+    if args.state is not None and not getattr(args, "listen_only", False):
+        keep_books(args.state, seal, args.auth, fresh=state is None)
+    core = Supervisor(nodes, args.initial, variant=args.variant, timing=timing, state=state)
+    if state is not None:
+        core.power_loss(monotonic_us())  # a start is a restart from the persistent record
+    return core
+
+
+def grant_limits(args: argparse.Namespace) -> Limits:
+    return Limits(
+        max_grant=args.max_grant,
+        max_node_level=args.max_node_level,
+        max_total=args.max_total,
+        rate_uj_per_s=args.rate,
+    )
+
+
+def auth_key(args: argparse.Namespace) -> Any:
+    """``--auth``'s master key, checked before anything is written or opened."""
+    if args.auth is None:
+        return None
+    from canergy.auth.keys import load_key
+
+    key = load_key(args.auth)
+    if key.kind != "master":
+        raise ValueError(f"--auth {args.auth}: a supervisor needs the master key, not a node key")
+    if args.variant != "hardened":
+        raise ValueError("--auth needs the hardened rules (--variant hardened)")
+    return key
+
+
+def frame_auth(
+    args: argparse.Namespace,
+    key: Any,
+    codec: Codec,
+    freshness: Callable[[Message], int | None],
+) -> Any:
+    """The frame authenticator for ``--auth`` (None without it); ``freshness``: the service's
+    (or its port's, over several buses)."""
+    if key is None:
+        return None
+    from canergy.auth.frames import FrameAuth, Layout
+    from canergy.auth.keys import frame_auth_keys
+
+    layout = Layout.FD if getattr(args, "fd", False) else Layout.CLASSIC
+    return FrameAuth(codec, layout, frame_auth_keys(key), Direction.TO_SUPERVISOR, freshness)
+
+
+def check_state(args: argparse.Namespace, *, required: bool = True) -> None:
+    """``--state`` is given (when ``required``); every file the run writes can be written, none
+    is another under a second name, and ``--control`` replaces nothing but a stale socket.
+    Reads and writes nothing."""
+    if args.state is None and required:
+        raise ValueError(
+            "--state PATH is required: without its non-volatile record a restarted supervisor "
+            "would reuse transaction numbers and grant its budget again"
+        )
+    outputs = [
+        (option, path)
+        for option, path in (
+            ("--state", args.state),
+            ("--status-file", getattr(args, "status_file", None)),
+            ("--control", args.control if args.command != "grant" else None),
+        )
+        if path is not None
+    ]
+    for i, (option, path) in enumerate(outputs):
+        for other, other_path in outputs[:i]:
+            if same_file(path, other_path):
+                raise ValueError(
+                    f"{option} {path} and {other} {other_path} name the same file; "
+                    "give each its own path"
+                )
+    for option, path in outputs:
+        check_writable_dir(path, option)
+        if option == "--control":
+            check_control_path(path, option)
+
+
+def check_widths(args: argparse.Namespace) -> None:
+    """No configuration may plan a node above what its record holds (``USABLE_MAX_UJ``)."""
+    if not QUANTUM_UJ <= args.max_grant <= LARGEST_GRANT:
+        raise ValueError(
+            f"--max-grant {joules(args.max_grant)} must be {joules(QUANTUM_UJ)} to "
+            f"{joules(LARGEST_GRANT)}, what one frame carries"
+        )
+    room = level_room(args.max_grant)
+    for option, value in (
+        ("--target", getattr(args, "target", None)),
+        ("--max-node-level", args.max_node_level),
+    ):
+        if value is not None and value > room:
+            raise ValueError(
+                f"{option} {joules(value)} is above {joules(room)}: a node's record holds at "
+                f"most {joules(USABLE_MAX_UJ)}, and a written-off grant (--max-grant "
+                f"{joules(args.max_grant)}) may be paid back on top"
+            )

@@ -1,0 +1,345 @@
+"""``canergy supervisor``: grant energy to client nodes on a CAN bus (one bus, or several
+with ``--bus``)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from canergy.argtypes import add_duration, energy, node_ids
+from canergy.cli.shared.cia402 import add_cia402_flags, check_cia402, guard_drives
+from canergy.cli.shared.live import (
+    auth_key,
+    build_core,
+    check_state,
+    check_widths,
+    frame_auth,
+    grant_limits,
+    joules,
+    rule_timing,
+    service_flags,
+    supervisor_flags,
+)
+from canergy.codec import Codec
+from canergy.core import Supervisor
+from canergy.live.bus_args import open_bus, open_bus_at
+from canergy.live.bus_group import BusGroup
+from canergy.live.control import ControlServer
+from canergy.live.multi_bus import (
+    BUS_SYNTAX,
+    BusPort,
+    BusRouter,
+    BusSpec,
+    bus_spec,
+    check_buses,
+    session_keys,
+)
+from canergy.live.policy import TopUp
+from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.serve import serve_supervisor
+from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.messages import QUANTUM_UJ, Direction
+
+EXIT_INTRUSION = 3
+
+
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "supervisor",
+        help="grant energy to client nodes on a CAN bus",
+        description="Run the supervisor: keep nodes topped up and/or serve one-shot grants. "
+        "SIGINT/SIGTERM stop it cleanly (open transactions settle or are written off).",
+    )
+    p.add_argument("--nodes", type=node_ids, help="canergy node ids on the -i/-c bus, e.g. 1-5,9")
+    p.add_argument(
+        "--bus",
+        action="append",
+        type=bus_spec,
+        metavar=BUS_SYNTAX,
+        help="instead of -i/-c/--nodes: one bus and its nodes, e.g. --bus socketcan:can0:1-40 "
+        "--bus socketcan:can1:1-127; repeat for every bus. All share one budget; nodes are "
+        "named BUS/NODE (can1/5) in the status, the control socket and --state. NAME defaults "
+        "to the channel; bit rates, --fd, --timing, --bus-kwargs and --id-base apply to every "
+        "bus",
+    )
+    supervisor_flags(p)
+    service_flags(p)
+    p.add_argument(
+        "--inject",
+        type=energy,
+        metavar="ENERGY",
+        help="add this energy to the usable budget, counted as injected, once at start: it is "
+        "saved in --state before anything is granted (e.g. 5J; not with --listen-only)",
+    )
+    p.add_argument("--listen-only", action="store_true", help="watch and report, never send")
+    p.add_argument(
+        "--on-intrusion",
+        choices=["warn", "stop"],
+        default="warn",
+        help="a frame only this supervisor sends, from someone else (a second supervisor, a "
+        "spoofer): warn = count, log and report it; stop = also grant nothing more, settle and "
+        "exit with status 3 (default warn)",
+    )
+    add_duration(
+        p,
+        "--return-hold",
+        500_000,
+        "without --auth: credit a RETURN only once the node's own TELEMETRY confirms it and this "
+        "long has passed with no report of frames in its name (a forged RETURN is refuted, "
+        "never credited)",
+    )
+    p.add_argument(
+        "--canopen",
+        action="store_true",
+        help="use CANopen on the same bus: NMT start, heartbeat watchdog, boot-up, SDO audit",
+    )
+    add_duration(
+        p,
+        "--heartbeat-timeout",
+        3_000_000,
+        "--canopen: a node is lost after this long without a heartbeat",
+    )
+    p.add_argument("--eds", type=Path, help="the nodes' EDS (default: canergy's node EDS)")
+    add_cia402_flags(p)
+    p.set_defaults(run=run)
+
+
+def _check_eds(path: Path | None) -> None:
+    """The nodes' object dictionary loads, before anything is written or sent."""
+    import canopen
+
+    from canergy.live.shared_bus import EDS
+
+    try:
+        canopen.import_od(str(path or EDS))
+    except Exception as exc:  # canopen raises what its parsers raise
+        raise ValueError(f"--eds {path}: not a usable EDS ({exc})") from None
+
+
+def _canopen(args: argparse.Namespace, bus: Any, service: SupervisorService) -> tuple[Any, Any]:
+    from canergy.live.canopen_manager import CanopenManager
+    from canergy.live.shared_bus import EDS, shared_network
+
+    network, reader = shared_network(bus)
+    try:
+        manager = CanopenManager(
+            network, args.nodes, args.eds or EDS, args.heartbeat_timeout, monotonic_us
+        )
+    except BaseException:  # e.g. an --eds that is not an EDS: no Notifier thread left behind
+        if network.notifier is not None:
+            network.notifier.stop()
+        raise
+    service.liveness = manager.alive
+    if not args.listen_only:
+        manager.start_all()
+    return manager, reader
+
+
+def _buses(args: argparse.Namespace) -> tuple[BusSpec, ...]:
+    """The ``--bus`` options, checked against each other and the rest (none without --bus)."""
+    specs = tuple(args.bus or ())
+    if not specs:
+        return ()
+    given = [
+        flag
+        for flag, dest in (("-i/--interface", "interface"), ("-c/--channel", "channel"))
+        if getattr(args, dest, None) is not None
+    ] + ["--nodes"] * (args.nodes is not None)
+    if given:
+        raise ValueError(
+            f"--bus names each bus's interface, channel and nodes: not with {', '.join(given)}"
+        )
+    single = [flag for flag, on in (("--canopen", args.canopen), ("--cia402", args.cia402)) if on]
+    if single:
+        raise ValueError(f"{' and '.join(single)} work on one bus (-i/-c/--nodes), not with --bus")
+    check_buses(specs)
+    if args.auth is not None:
+        seen: dict[int, str] = {}
+        for spec in specs:
+            for node in spec.nodes:
+                if node in seen:
+                    raise ValueError(
+                        f"--auth: node {node} is on bus {seen[node]} and on bus {spec.name}, and "
+                        "a node's key comes from its id alone: one could pass for the other; "
+                        "give every node a different id"
+                    )
+                seen[node] = spec.name
+    return specs
+
+
+def _announce(args: argparse.Namespace, service: SupervisorService) -> None:
+    if service.injected_this_run:
+        st, added = service.core.state, joules(service.injected_this_run)
+        print(
+            f"canergy supervisor: injected {added} into the budget, saved in {args.state}: "
+            f"usable {joules(st.usable)}, injected in all {joules(st.injected)}",
+            file=sys.stderr,
+        )
+
+
+def _exit_status(service: SupervisorService) -> int:
+    if not service.stopped_by_intrusion:
+        return 0
+    report = service.intrusions.as_json()
+    print(
+        f"canergy supervisor: stopped on intrusion (--on-intrusion stop): "
+        f"{report['total']} foreign frame(s), first {report['recent'][0]['frame']}",
+        file=sys.stderr,
+    )
+    return EXIT_INTRUSION
+
+
+def run(args: argparse.Namespace) -> int:
+    buses = _check(args)
+    key = auth_key(args)
+    if args.canopen:
+        _check_eds(args.eds)
+    names = tuple(spec.name for spec in buses)
+    if buses:
+        nodes = session_keys(buses)
+    else:
+        nodes = tuple(sorted((*(args.nodes or ()), *(args.cia402 or ()))))
+    core = build_core(args, nodes, names, key)
+    config = _config(args, key, names)
+    if buses:
+        return _run_buses(args, buses, core, config, key)
+    return _run_bus(args, core, config, key)
+
+
+def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
+    """Every value checked against the others before anything is read, written or opened;
+    the ``--bus`` options (none on one bus)."""
+    buses = _buses(args)
+    if args.target is not None and args.target < QUANTUM_UJ:
+        raise ValueError("--target must be at least 1 mJ")
+    check_widths(args)
+    if args.inject is not None and (args.listen_only or args.inject <= 0):
+        raise ValueError(
+            "--inject needs an energy above 0 and a supervisor that sends and keeps "
+            "its --state (not --listen-only)"
+        )
+    if not buses:
+        check_cia402(args)
+    check_state(args, required=not args.listen_only)
+    return buses
+
+
+def _config(args: argparse.Namespace, key: Any, names: tuple[str, ...]) -> ServiceConfig:
+    return ServiceConfig(
+        policy=TopUp(args.target, args.min_grant) if args.target is not None else None,
+        limits=grant_limits(args),
+        state_path=args.state,
+        status_path=args.status_file,
+        status_stream=sys.stdout if args.status_file is None else None,
+        status_period_us=args.status_period,
+        lost_after_us=args.lost_after,
+        stop_timeout_us=args.stop_timeout,
+        listen_only=args.listen_only,
+        fsync=not args.no_fsync,
+        inject_uj=args.inject or 0,
+        stop_on_intrusion=args.on_intrusion == "stop",
+        return_hold_us=None if key is not None else args.return_hold,
+        bus_names=names,
+    )
+
+
+def _run_bus(args: argparse.Namespace, core: Supervisor, config: ServiceConfig, key: Any) -> int:
+    """One bus (-i/-c/--nodes), with CANopen and guarded CiA 402 drives if asked for."""
+    codec = Codec(args.id_base)
+    filters = codec.supervisor_watch_filters()
+    if args.canopen or args.cia402:
+        from canergy.live.shared_bus import STANDARD_FRAMES
+
+        filters.append(STANDARD_FRAMES)  # CANopen's 11-bit ids
+    bus = open_bus(args, filters)
+    control = None
+    manager = None
+    network = None
+    guarded = None
+    try:
+        # the socket first: a run that cannot bind it stops before the state file is written
+        control = ControlServer(args.control) if args.control is not None else None
+        service = SupervisorService(core, config, monotonic_us())
+        _announce(args, service)
+        manager, reader = _canopen(args, bus, service) if args.canopen else (None, None)
+        handler: Any = service
+        if args.cia402:
+            from canergy.live.shared_bus import shared_network
+
+            if manager is not None:
+                network = manager.network
+            else:
+                network, reader = shared_network(bus)
+            now = monotonic_us()
+            guarded = guard_drives(
+                args, network, bus, service, rule_timing(args), now, monotonic_us
+            )
+            handler = guarded
+        runtime = BusRuntime(
+            bus,
+            handler,
+            codec=codec,
+            receives=Direction.TO_SUPERVISOR,
+            listen_only=args.listen_only,
+            source=reader,
+            auth=frame_auth(args, key, codec, service.freshness),
+        )
+        service.bus_counters = runtime.counters
+        serve_supervisor(runtime, service, control, manager=manager)
+        return _exit_status(service)
+    finally:
+        if control is not None:
+            control.close()
+        if guarded is not None:
+            guarded.halt_all(monotonic_us())  # an exit never leaves a drive running
+            guarded.close()
+        for net in {id(n): n for n in (network, manager and manager.network) if n}.values():
+            net.notifier.stop()
+        bus.shutdown()
+
+
+def _run_buses(
+    args: argparse.Namespace,
+    specs: tuple[BusSpec, ...],
+    core: Supervisor,
+    config: ServiceConfig,
+    key: Any,
+) -> int:
+    """``--bus``: one service over every bus, a runtime per bus, one loop for them all."""
+    codec = Codec(args.id_base)
+    opened: list[Any] = []
+    control = None
+    group = None
+    try:
+        for spec in specs:
+            filters = codec.supervisor_watch_filters()
+            opened.append(open_bus_at(args, spec.interface, spec.channel, filters, spec.name))
+        # the socket first: a run that cannot bind it stops before the state file is written
+        control = ControlServer(args.control) if args.control is not None else None
+        service = SupervisorService(core, config, monotonic_us())
+        _announce(args, service)
+        router = BusRouter()
+        for i, (spec, bus) in enumerate(zip(specs, opened, strict=True)):
+            port = BusPort(service, i, router, deadlines=i == 0)
+            runtime = BusRuntime(
+                bus,
+                port,
+                codec=codec,
+                receives=Direction.TO_SUPERVISOR,
+                listen_only=args.listen_only,
+                auth=frame_auth(args, key, codec, port.freshness),
+            )
+            router.runtimes.append(runtime)
+            service.buses[spec.name] = runtime.counters
+        group = BusGroup(router.runtimes)
+        serve_supervisor(group, service, control)
+        return _exit_status(service)
+    finally:
+        if group is not None:
+            group.close()
+        if control is not None:
+            control.close()
+        for bus in opened:
+            bus.shutdown()

@@ -1,0 +1,331 @@
+/*
+ * canergy-node's files (ports/linux): the NV record file and the status file.
+ *   - the check that --nv and --status-file are two files (two names for one file, symlinks and
+ *     hard links included, as canergy.live.atomic.same_file);
+ *   - the NV file in firmware_model's layout (slots at 0 and 40, bytes 80-119 untouched): read
+ *     at start, each slot image pwrite + fsynced before the frames of its step leave;
+ *   - the status file with the keys of firmware_model's single-node status, and what it counts
+ *     of each received frame (decode errors, auth failures, the intrusion report), written to a
+ *     temp file, fsynced and renamed.
+ */
+#define _GNU_SOURCE 1
+
+#include "storage.h"
+
+#include "args.h"
+
+#include <errno.h>
+#include <fcntl.h>
+#include <libgen.h>
+#include <limits.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+/* ---- paths: two names for one file (canergy.live.atomic.same_file) ---- */
+
+/* dst = src, or a usage error naming what was too long. */
+static void copy_path(char dst[PATH_MAX], const char *src)
+{
+    if (snprintf(dst, PATH_MAX, "%s", src) >= PATH_MAX) {
+        port_usage_error("path too long: %.64s...", src);
+    }
+}
+
+/* dst = "dir/name" ("/name" when dir is "/"), or a usage error naming what was too long. */
+static void join_path(char dst[PATH_MAX], const char *dir, const char *name)
+{
+    const char *sep = strcmp(dir, "/") == 0 ? "" : "/";
+    if (snprintf(dst, PATH_MAX, "%s%s%s", dir, sep, name) >= PATH_MAX) {
+        port_usage_error("path too long: %.64s...", name);
+    }
+}
+
+/* A path that does not exist: its resolved directory and its last part (as written when the
+ * directory does not exist either: nothing can be created there). */
+static void resolve_missing(const char *p, char out[PATH_MAX])
+{
+    char dir[PATH_MAX];
+    char base[PATH_MAX];
+    char real_dir[PATH_MAX];
+    copy_path(dir, p);
+    copy_path(base, p);
+    if (realpath(dirname(dir), real_dir) == NULL) {
+        copy_path(out, p);
+    } else {
+        join_path(out, real_dir, basename(base));
+    }
+}
+
+/* path's file once symlinks are resolved, as Python's Path.resolve(): a missing file (the target
+ * of a dangling symlink too) is named below its resolved directory. */
+static void resolve(const char *path, char out[PATH_MAX])
+{
+    char p[PATH_MAX];
+    copy_path(p, path);
+    for (int hops = 0; hops < 40; hops++) {
+        if (realpath(p, out) != NULL) {
+            return;
+        }
+        char target[PATH_MAX];
+        const ssize_t n = readlink(p, target, sizeof target - 1U);
+        if (n < 0) { /* not a symlink: missing */
+            resolve_missing(p, out);
+            return;
+        }
+        target[n] = '\0';
+        char dir[PATH_MAX];
+        copy_path(dir, p);
+        if (target[0] == '/') {
+            copy_path(p, target);
+        } else {
+            join_path(p, dirname(dir), target);
+        }
+    }
+    copy_path(out, p); /* a symlink loop: as written */
+}
+
+/* a and b name one file: the same inode when both exist (hard links too), otherwise the same
+ * path once resolved. */
+static int same_file(const char *a, const char *b)
+{
+    struct stat sa;
+    struct stat sb;
+    if (stat(a, &sa) == 0 && stat(b, &sb) == 0) {
+        return sa.st_dev == sb.st_dev && sa.st_ino == sb.st_ino;
+    }
+    char ra[PATH_MAX];
+    char rb[PATH_MAX];
+    resolve(a, ra);
+    resolve(b, rb);
+    return strcmp(ra, rb) == 0;
+}
+
+void port_check_paths(const struct port_options *o)
+{
+    if (o->status_path != NULL && same_file(o->nv_path, o->status_path)) {
+        port_usage_error(
+            "--nv %s and --status-file %s name the same file; give each its own path",
+            o->nv_path, o->status_path);
+    }
+}
+
+/* ---- NV file ---- */
+
+void port_nv_open(struct port *p, uint8_t image[NV_IMAGE_BYTES], size_t *len)
+{
+    p->nv_fd = open(p->opt.nv_path, O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+    if (p->nv_fd < 0) {
+        (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, p->opt.nv_path, strerror(errno));
+        exit(EXIT_USAGE);
+    }
+    /* an existing file of another size is not an NV file: the first record would overwrite it
+     * (0: new; two slots; three with firmware_model's CANopen parameter slot) */
+    struct stat size;
+    if (fstat(p->nv_fd, &size) == 0 && size.st_size != 0 &&
+        size.st_size != (off_t)NV_IMAGE_BYTES &&
+        size.st_size != (off_t)(NV_IMAGE_BYTES + CANERGY_NV_SLOT_SIZE)) {
+        (void)fprintf(stderr, "%s: error: --nv %s: %lld bytes is not an NV file of canergy\n",
+                      PROG, p->opt.nv_path, (long long)size.st_size);
+        exit(EXIT_USAGE);
+    }
+    ssize_t n;
+    do {
+        n = pread(p->nv_fd, image, NV_IMAGE_BYTES, 0);
+    } while (n < 0 && errno == EINTR);
+    if (n < 0) {
+        (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, p->opt.nv_path, strerror(errno));
+        exit(EXIT_USAGE);
+    }
+    *len = (size_t)n;
+    /* as firmware_model: the file always holds both record slots (never shrunk: the
+     * parameter slot at 80 stays as it is) */
+    struct stat st;
+    if (fstat(p->nv_fd, &st) == 0 && st.st_size < (off_t)NV_IMAGE_BYTES &&
+        ftruncate(p->nv_fd, (off_t)NV_IMAGE_BYTES) != 0) {
+        (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, p->opt.nv_path, strerror(errno));
+        exit(EXIT_USAGE);
+    }
+}
+
+/* The persist half of the contract: the slot image is on disk before any frame of its step
+ * leaves; a failed write ends the process at once (exit 1). */
+void port_nv_write(struct port *p, const struct canergy_out *out)
+{
+    const off_t at = (off_t)out->nv_slot * (off_t)CANERGY_NV_SLOT_SIZE;
+    const ssize_t n = pwrite(p->nv_fd, out->nv_image, CANERGY_NV_SLOT_SIZE, at);
+    if (n != (ssize_t)CANERGY_NV_SLOT_SIZE || fsync(p->nv_fd) != 0) {
+        (void)fprintf(stderr, "%s: NV store: %s: write failed: %s\n", PROG, p->opt.nv_path,
+                      n < 0 ? strerror(errno) : "short write or fsync");
+        _exit(EXIT_NV); /* reset: never send what this step produced */
+    }
+    p->nv_writes++;
+}
+
+/* ---- status file (the keys of firmware_model's single-node status) ---- */
+
+static const char *const REASONS[] = {
+    "", "not a canergy identifier", "unknown message type", "node id out of range",
+    "remote frame", "message sent the wrong way", "wrong data length", "CRC mismatch",
+    "field out of range"};
+
+/* Python's AuthFailure values, indexed by CANERGY_AUTH_MAC_BAD .. _UNAUTHENTICATED. */
+static const char *const AUTH_FAILURES[] = {
+    "MAC BAD", "freshness not the expected one", "MAC frame without its message",
+    "malformed authenticated frame", "frame without a MAC"};
+
+/* candump's compact form, as firmware_model's frame_text: 0CE00905#450100 */
+static void frame_text(char out[FRAME_TEXT], uint32_t id, bool remote, const uint8_t *data,
+                       size_t len)
+{
+    int at = snprintf(out, FRAME_TEXT, "%08X#%s", (unsigned)id, remote ? "R" : "");
+    for (size_t i = 0U; !remote && i < len && at + 3 <= (int)FRAME_TEXT; i++) {
+        at += snprintf(&out[at], FRAME_TEXT - (size_t)at, "%02X", (unsigned)data[i]);
+    }
+}
+
+static void record_intrusion(struct port *p, const char *kind, const struct canergy_rx_frame *rx,
+                             uint64_t now)
+{
+    struct port_intrusions *in = &p->intrusions;
+    struct port_intrusion *e = &in->recent[in->total % INTRUSIONS_KEPT];
+    if (in->total == 0U) {
+        in->first_at_us = now;
+    }
+    in->total++;
+    e->time_us = now;
+    e->kind = kind;
+    frame_text(e->frame, rx->id, rx->remote, rx->data, rx->len);
+    if (in->total == 1U || in->total % 100U == 0U) { /* as firmware_model logs them */
+        (void)fprintf(stderr, "%s: node %d: intrusion #%llu: %s (%s)\n", PROG, p->opt.node,
+                      (unsigned long long)in->total, e->frame, kind);
+    }
+}
+
+/* A received frame's result, counted as firmware_model's BusRuntime counts it. */
+void port_count_received(struct port *p, int status, const struct canergy_rx_frame *rx,
+                         uint64_t now)
+{
+    if (status == CANERGY_DECODE_FOREIGN || status == CANERGY_RX_OTHER_NODE) {
+        p->count.foreign_frames++;
+    } else if (status == CANERGY_DECODE_WRONG_DIRECTION) {
+        /* its own direction (MAC frames 0x8 too) with its id, as the filter passes no other
+         * node's: a node never receives its own frames back, so someone speaks in its name. The
+         * library counted it in the witness of its next TELEMETRY. */
+        if ((rx->id & 0xFFU) == (uint32_t)p->opt.node) {
+            record_intrusion(p, "a frame in its name", rx, now);
+        }
+    } else if (status > 0 && status <= (int)CANERGY_DECODE_OUT_OF_RANGE) {
+        p->count.decode_errors++;
+        p->count.reasons[status]++;
+    } else if (status >= CANERGY_AUTH_MAC_BAD && status <= CANERGY_AUTH_UNAUTHENTICATED) {
+        const size_t reason = (size_t)(status - CANERGY_AUTH_MAC_BAD);
+        p->count.auth_failures[reason]++; /* moves nothing; an intrusion, as in Python */
+        record_intrusion(p, AUTH_FAILURES[reason], rx, now);
+    }
+}
+
+/* "intrusions" and "intrusion_report" as firmware_model's Intrusions.as_json */
+static void write_intrusions(const struct port *p, FILE *f)
+{
+    const struct port_intrusions *in = &p->intrusions;
+    (void)fprintf(f, "\"intrusions\": %llu, \"intrusion_report\": {\"total\": %llu, \"by_node\": {",
+                  (unsigned long long)in->total, (unsigned long long)in->total);
+    if (in->total != 0U) {
+        (void)fprintf(f, "\"%d\": %llu}, \"first_at_us\": %llu, \"recent\": [", p->opt.node,
+                      (unsigned long long)in->total, (unsigned long long)in->first_at_us);
+    } else {
+        (void)fprintf(f, "}, \"first_at_us\": null, \"recent\": [");
+    }
+    const uint64_t kept = in->total < INTRUSIONS_KEPT ? in->total : INTRUSIONS_KEPT;
+    for (uint64_t i = in->total - kept; i < in->total; i++) { /* oldest first */
+        const struct port_intrusion *e = &in->recent[i % INTRUSIONS_KEPT];
+        (void)fprintf(f, "%s{\"time_us\": %llu, \"node\": %d, \"kind\": \"%s\", \"frame\": \"%s\"}",
+                      i == in->total - kept ? "" : ", ", (unsigned long long)e->time_us,
+                      p->opt.node, e->kind, e->frame);
+    }
+    (void)fprintf(f, "]}, ");
+}
+
+static void write_status(const struct port *p, FILE *f)
+{
+    const struct canergy_record *r = &p->node.client.rec;
+    const long long credited = (long long)r->credited_mj * 1000LL;
+    const long long returned = credited - (long long)r->spent_uj - (long long)r->usable_uj;
+    (void)fprintf(f,
+                  "{\"node\": %d, \"usable_uj\": %lu, \"spent_uj\": %llu, \"credited_uj\": %lld, "
+                  "\"returned_uj\": %lld, \"return_pending_uj\": %lu, \"return_seq\": %lu, "
+                  "\"last_tx\": %lu, \"halted\": %s, \"drawn_uj\": %llu, \"nv_writes\": %llu, "
+                  "\"nv_fallbacks\": %d, \"nmt_state\": \"OPERATIONAL\", "
+                  "\"intentions_refused\": 0, \"overflow_refused\": %lu, \"joining\": %s, "
+                  "\"joins\": %d, \"implementation\": \"c\", ",
+                  p->opt.node, (unsigned long)r->usable_uj, (unsigned long long)r->spent_uj,
+                  credited, returned, (unsigned long)r->return_pending_uj,
+                  (unsigned long)r->return_seq, (unsigned long)r->last_tx,
+                  p->node.halted ? "true" : "false", (unsigned long long)p->drawn_uj,
+                  (unsigned long long)p->nv_writes, p->nv_fallbacks,
+                  (unsigned long)p->node.overflow_refused,
+                  canergy_client_joining(&p->node.client) ? "true" : "false", p->joins);
+    (void)fprintf(f, "\"witnessed\": %llu, ", (unsigned long long)p->witnessed);
+    write_intrusions(p, f);
+    (void)fprintf(f,
+                  "\"frames_sent\": %llu, \"frames_received\": %llu, \"decode_errors\": %llu, "
+                  "\"decode_error_reasons\": {",
+                  (unsigned long long)p->count.frames_sent,
+                  (unsigned long long)p->count.frames_received,
+                  (unsigned long long)p->count.decode_errors);
+    const char *sep = "";
+    for (unsigned i = 1U; i <= CANERGY_DECODE_OUT_OF_RANGE; i++) {
+        if (p->count.reasons[i] != 0U) {
+            (void)fprintf(f, "%s\"%s\": %llu", sep, REASONS[i],
+                          (unsigned long long)p->count.reasons[i]);
+            sep = ", ";
+        }
+    }
+    (void)fprintf(f,
+                  "}, \"foreign_frames\": %llu, \"send_retries\": %llu, \"send_failures\": %llu, "
+                  "\"receive_errors\": %llu, \"error_frames\": %llu, \"bus_state\": \"%s\", "
+                  "\"auth_failures\": {",
+                  (unsigned long long)p->count.foreign_frames,
+                  (unsigned long long)p->count.send_retries,
+                  (unsigned long long)p->count.send_failures,
+                  (unsigned long long)p->count.receive_errors,
+                  (unsigned long long)p->count.error_frames, "unknown");
+    sep = "";
+    for (size_t i = 0U; i < sizeof AUTH_FAILURES / sizeof AUTH_FAILURES[0]; i++) {
+        if (p->count.auth_failures[i] != 0U) {
+            (void)fprintf(f, "%s\"%s\": %llu", sep, AUTH_FAILURES[i],
+                          (unsigned long long)p->count.auth_failures[i]);
+            sep = ", ";
+        }
+    }
+    (void)fprintf(f, "}}\n");
+}
+
+/* temp file + fsync + rename: a reader sees the old or the new status, never half of one */
+void port_save_status(const struct port *p)
+{
+    if (p->opt.status_path == NULL) {
+        write_status(p, stdout);
+        return;
+    }
+    char tmp[PATH_MAX];
+    if (snprintf(tmp, sizeof tmp, "%s.tmp.%ld", p->opt.status_path, (long)getpid()) >=
+        (int)sizeof tmp) {
+        port_usage_error("--status-file %s: path too long", p->opt.status_path);
+    }
+    FILE *f = fopen(tmp, "w");
+    if (f == NULL) {
+        (void)fprintf(stderr, "%s: status file %s: %s\n", PROG, tmp, strerror(errno));
+        return;
+    }
+    write_status(p, f);
+    const int ok = fflush(f) == 0 && fsync(fileno(f)) == 0;
+    if (fclose(f) != 0 || !ok || rename(tmp, p->opt.status_path) != 0) {
+        (void)fprintf(stderr, "%s: status file %s: %s\n", PROG, p->opt.status_path,
+                      strerror(errno));
+        (void)unlink(tmp);
+    }
+}

@@ -1,0 +1,33 @@
+/*
+ * canergy-node's files (storage.c): the NV record file and the status file, and what the status
+ * file counts of each received frame.
+ */
+#ifndef CANERGY_PORT_LINUX_STORAGE_H
+#define CANERGY_PORT_LINUX_STORAGE_H
+
+#include "port.h"
+
+#include <stddef.h>
+#include <stdint.h>
+
+/* Exit 2 when --nv and --status-file name one file (symlinks and hard links included). */
+void port_check_paths(const struct port_options *o);
+
+/* Open (or create) the NV file of p->opt.nv_path into p->nv_fd and read its two slots into
+ * image (*len bytes of it; 0 for a new file); exit 2 when it cannot be opened or read, or is
+ * not an NV file of canergy. */
+void port_nv_open(struct port *p, uint8_t image[NV_IMAGE_BYTES], size_t *len);
+
+/* pwrite + fsync of out's slot image (out->persist set); exit 1 at once when that fails. */
+void port_nv_write(struct port *p, const struct canergy_out *out);
+
+/* Count what the library made of a received frame (status: its result): foreign frames, decode
+ * errors by reason, auth failures by reason, intrusions (reported on stderr, as firmware_model
+ * logs them). */
+void port_count_received(struct port *p, int status, const struct canergy_rx_frame *rx,
+                         uint64_t now);
+
+/* Write the status file (stdout without --status-file): temp file, fsync, rename. */
+void port_save_status(const struct port *p);
+
+#endif /* CANERGY_PORT_LINUX_STORAGE_H */

@@ -149,6 +149,14 @@ def test_one_budget_serves_two_buses_and_restarts_from_its_file(tmp_path: Path) 
                 path.write_text(json.dumps(node.status()))
                 files.append(f"{name}={path}")
         assert main(["ledger", "--level", str(status), *files]) == 0  # BUS=FILE per client
+        from firmware_model.__main__ import status as emulator_status
+
+        emulators = []  # python -m firmware_model --nodes 1-2 --status-file: one file per bus
+        for name, (host, loop) in buses.hosts.items():
+            path = tmp_path / f"{name}-emulator.json"
+            path.write_text(json.dumps(emulator_status(host, loop.runtime)))
+            emulators.append(f"{name}={path}")
+        assert main(["ledger", "--level", str(status), *emulators]) == 0
         assert main(["ledger", "--level", str(status), *files[1:]]) == 2  # one client missing
         saved = json.loads(state.read_text())
         assert list(saved["sessions"]) == ["chanA/1", "chanA/2", "chanB/1", "chanB/2"]

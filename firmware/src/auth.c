@@ -177,14 +177,20 @@ static int verdict(struct canergy_auth *a, const struct canergy_msg *m, uint32_t
     mac(a, m, fv, body, len, expected);
     const bool good = canergy_mac_equal(expected, tag, tag_len);
     canergy_wipe(expected, sizeof expected);
+    const bool joining =
+        m->type == CANERGY_TELEMETRY && (m->flags & CANERGY_TELEMETRY_JOINING) != 0U;
+    if (joining && (good || a->layout == CANERGY_AUTH_CLASSIC) &&
+        !(good && a->join_fv != 0U && a->join_fv == fv)) {
+        /* bound to a JOIN not seen (or a classic MAC extended next to another): moves nothing,
+         * proves nothing, as in Python */
+        return CANERGY_AUTH_PENDING;
+    }
     if (!good) {
         return CANERGY_AUTH_MAC_BAD;
     }
-    const bool joining =
-        m->type == CANERGY_TELEMETRY && (m->flags & CANERGY_TELEMETRY_JOINING) != 0U;
     bool stale;
     if (joining) {
-        stale = a->join_fv == 0U || a->join_fv != fv;
+        stale = false; /* its JOIN's, checked above */
     } else if (m->type == CANERGY_ADMIT) {
         stale = (fv & 0xFFFFU) != m->nonce; /* any high half: the counters the node starts from */
     } else {

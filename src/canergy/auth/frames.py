@@ -13,7 +13,8 @@ is older than its own counter: a replay of an earlier transaction or return, ref
 counter) passes, as the protocol tolerates duplicates.
 
 A node without books binds its TELEMETRY to its JOIN (the JOIN's FV, whose ADMIT it awaits);
-the supervisor takes one only with the FV of the JOIN it took last. Otherwise TELEMETRY is
+the supervisor takes one only with the FV of the JOIN it took last, and ignores any other (it
+moves nothing: a JOIN not seen yet, or a replay). Otherwise TELEMETRY is
 fresh from the last transaction the receiver knows the node resolved (its
 COMMITTED or ABORTED, its ACK of the next, its last TELEMETRY taken) up to the receiver's own
 transaction. A node's level only rises when it resolves a transaction, so a TELEMETRY replayed
@@ -244,12 +245,16 @@ class FrameAuth:
             wanted = fv if fv & 0xFFFF == msg.nonce else -1
             bound = self._join_fv(msg)
         expected = mac(self.key_for(msg.node), msg.TYPE << 8 | msg.node, fv, body, bound)
-        if not hmac.compare_digest(expected[: len(tag)], tag):
+        good = hmac.compare_digest(expected[: len(tag)], tag)
+        if _joining(msg) and (good or self.layout is Layout.CLASSIC):
+            # bound to the node's JOIN: taken for the JOIN this side took last; another one
+            # (a JOIN not seen yet, as when this side started after it; a classic frame then
+            # fails its MAC, extended next to another JOIN) moves nothing and proves nothing
+            if good and self.join_fv.get(msg.node) == fv:
+                return Verdict(message=msg, node=msg.node)
+            return Verdict(node=msg.node)
+        if not good:
             return Verdict(failure=AuthFailure.MAC_BAD, node=msg.node)
-        if _joining(msg):  # bound to the node's JOIN: the one this side took last
-            if self.join_fv.get(msg.node) != fv:
-                return Verdict(failure=AuthFailure.STALE, node=msg.node)
-            return Verdict(message=msg, node=msg.node)
         if isinstance(msg, Telemetry):
             if self._stale_telemetry(msg.node, wanted, fv):
                 return Verdict(failure=AuthFailure.STALE, node=msg.node)

@@ -54,12 +54,23 @@ def _read(path: Path) -> dict[str, Any]:
     return data
 
 
-def _client(path: Path, status: dict[str, Any]) -> dict[str, Any]:
-    """A client's record: a node's status, or a gateway's upstream part."""
-    record = status.get("upstream", status) if status.get("role") == "gateway" else status
-    if not isinstance(record, dict) or "credited_uj" not in record:
-        raise ValueError(f"{path}: not a client's status (no credited_uj)")
-    return record
+def _client(path: Path, status: dict[str, Any]) -> list[dict[str, Any]]:
+    """The client records of a status file: a node's, each node's of an emulator serving
+    several (``nodes``), or a gateway's upstream part."""
+    found: list[object]
+    if status.get("role") == "gateway":
+        found = [status.get("upstream")]
+    elif "credited_uj" not in status and isinstance(status.get("nodes"), dict):
+        found = list(status["nodes"].values())  # python -m firmware_model --nodes 1-3
+    else:
+        found = [status]
+    records = [r for r in found if isinstance(r, dict) and "credited_uj" in r]
+    if len(records) != len(found):
+        raise ValueError(
+            f"{path}: not a client's status (no credited_uj): give node status files "
+            "(python -m firmware_model --status-file) or a gateway's"
+        )
+    return records
 
 
 def _clients(paths: list[Path]) -> list[dict[str, Any]] | dict[str, list[dict[str, Any]]]:
@@ -69,11 +80,11 @@ def _clients(paths: list[Path]) -> list[dict[str, Any]] | dict[str, list[dict[st
     for given in paths:
         bus, eq, rest = str(given).partition("=")
         path = Path(rest) if eq and bus and "/" not in bus else given
-        record = _client(path, _read(path))
+        records = _client(path, _read(path))
         if path is given:
-            plain.append(record)
+            plain.extend(records)
         else:
-            by_bus.setdefault(bus, []).append(record)
+            by_bus.setdefault(bus, []).extend(records)
     if plain and by_bus:
         raise ValueError("give every client as BUS=FILE, or none")
     return by_bus or plain

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -279,3 +280,26 @@ def test_a_new_output_directory_may_be_nested(command: str, tmp_path: Path) -> N
         pytest.raises(_Served),
     ):
         main([command, "--out", str(tmp_path / "sweeps" / "paper"), "--duration", "1"])
+
+
+def test_a_long_check_reports_progress_on_a_terminal_unless_told_not_to(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 31, item 8: the README's 100 s and 12 min checks printed nothing unless one knew
+    --progress."""
+    import io
+
+    from canergy.cli import build_parser
+    from canergy.cli.check import _progress, _report_progress
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    def shown(*flags: str) -> bool:
+        return _progress(build_parser().parse_args(["check", *flags])) is _report_progress
+
+    monkeypatch.setattr(sys, "stderr", Terminal())
+    assert shown() and shown("--progress") and not shown("--no-progress")
+    monkeypatch.setattr(sys, "stderr", io.StringIO())  # a pipe or a file: quiet by default
+    assert not shown() and shown("--progress")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from typing import Any
 
 from canergy.argtypes import (
@@ -132,8 +133,10 @@ def _search_flags(p: argparse.ArgumentParser, max_workers: int) -> None:
     )
     p.add_argument(
         "--progress",
-        action="store_true",
-        help="report states, depth and rate on stderr every 100,000 states",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="report states, depth and rate on stderr every 100,000 states (default: when "
+        "stderr is a terminal)",
     )
     p.add_argument(
         "--no-symmetry",
@@ -219,10 +222,16 @@ def _run_chain(args: argparse.Namespace) -> int:
         broken=args.broken_gateway,
         max_states=args.max_states,
         stop_at_first=not args.keep_going,
-        progress=_report_progress if args.progress else None,
+        progress=_progress(args),
     )
     print(json.dumps(result.as_json(), indent=2) if args.json else format_chain(result, args.trace))
     return 1 if result.violations else 0
+
+
+def _progress(args: argparse.Namespace) -> Callable[[int, int, float], None] | None:
+    """``--progress``, or by default progress on a terminal: a long check is never silent."""
+    shown = sys.stderr.isatty() if args.progress is None else args.progress
+    return _report_progress if shown else None
 
 
 def _report_progress(states: int, depth: int, seconds: float) -> None:
@@ -261,7 +270,7 @@ def run(args: argparse.Namespace) -> int:
         bounds,
         max_states=args.max_states,
         stop_at_first=not args.keep_going,
-        progress=_report_progress if args.progress else None,
+        progress=_progress(args),
         symmetry=not args.no_symmetry,
         subsumption=not args.no_subsumption,
         engine=args.engine or "compact",

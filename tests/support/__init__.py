@@ -1,0 +1,1 @@
+"""Helpers that test modules import (rigs, README recipes); not tests themselves."""

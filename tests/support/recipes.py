@@ -1,0 +1,200 @@
+"""The README's recipes as tests: its marked shell blocks, run as written.
+
+A shell block preceded by ``<!-- recipe: SESSION WHERE -->`` is a recipe. WHERE is ``local``
+(python-can's virtual bus or no bus: the normal suite) or ``vcan`` (real SocketCAN on vcan0 and
+vcan1: the vcan suite). The recipes of one session run in README order in one working directory,
+as a user would type them in one shell: each line is a command (``\\`` continues it, ``#``
+starts a comment); a line ending in ``&`` runs in the background, as in another terminal, and is
+waited for until its ``--control`` socket and ``--status-file`` exist; any other line must exit 0
+within ``FOREGROUND_S``. When the session ends, or before a recipe marked ``stopped`` (one that
+reads what the processes wrote once they were stopped), its background processes get SIGINT, as
+Ctrl-C would give them, and must exit 0.
+
+The working directory holds links to the repository's ``dbc``, ``firmware``, ``firmware_model``
+and ``scripts``, so paths in the README resolve as in a checkout; ``canergy`` and ``python`` are
+the venv's.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+README = ROOT / "README.md"
+MARK = re.compile(
+    r"^( *)<!-- recipe: (\S+) (local|vcan)( stopped)? -->\n\1```sh\n(.*?)^\1```", re.S | re.M
+)
+LINKED = ("dbc", "firmware", "firmware_model", "scripts")
+FOREGROUND_S = 120.0
+READY_S = 60.0
+STOP_S = 60.0
+
+
+@dataclass(frozen=True)
+class Command:
+    text: str
+    line: int
+    background: bool
+
+    @property
+    def argv(self) -> list[str]:
+        return shlex.split(self.text)
+
+    def waits_for(self) -> list[str]:
+        """The files a background command makes once it is up: its socket and status file."""
+        argv = self.argv
+        return [argv[i + 1] for i, a in enumerate(argv[:-1]) if a in ("--control", "--status-file")]
+
+
+@dataclass(frozen=True)
+class Recipe:
+    session: str
+    where: str
+    line: int
+    commands: tuple[Command, ...]
+    stopped: bool = False
+    """Runs once the session's background processes have stopped."""
+
+
+def recipes(text: str | None = None) -> list[Recipe]:
+    """Every marked block of the README, in order."""
+    text = README.read_text() if text is None else text
+    found = []
+    for m in MARK.finditer(text):
+        first = text[: m.start(5)].count("\n") + 1
+        commands = tuple(_commands(textwrap.dedent(m.group(5)), first))
+        found.append(Recipe(m.group(2), m.group(3), first, commands, bool(m.group(4))))
+    return found
+
+
+def _commands(block: str, first: int) -> list[Command]:
+    out: list[Command] = []
+    pending, start = "", first
+    for number, raw in enumerate(block.splitlines(), first):
+        if not pending:
+            start = number
+        code = _without_comment(raw)
+        if code.rstrip().endswith("\\"):
+            pending += code.rstrip()[:-1] + " "
+            continue
+        text = (pending + code).strip()
+        pending = ""
+        if not text:
+            continue
+        background = text.endswith("&")
+        out.append(Command(text.rstrip("&").strip(), start, background))
+    return out
+
+
+def _without_comment(line: str) -> str:
+    """The line up to a ``#`` that starts a comment (not one inside quotes or a word)."""
+    quote = ""
+    for i, ch in enumerate(line):
+        if quote:
+            quote = "" if ch == quote else quote
+        elif ch in "'\"":
+            quote = ch
+        elif ch == "#" and (i == 0 or line[i - 1].isspace()):
+            return line[:i]
+    return line
+
+
+@dataclass
+class Session:
+    """One session's working directory and background processes."""
+
+    cwd: Path
+    log: list[str] = field(default_factory=list)
+    background: list[tuple[Command, subprocess.Popen[bytes], Path]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        for name in LINKED:
+            link = self.cwd / name
+            if not link.exists():
+                link.symlink_to(ROOT / name)
+        venv_bin = str(Path(sys.executable).parent)
+        self.env = {
+            **os.environ,
+            "PATH": f"{venv_bin}{os.pathsep}{os.environ.get('PATH', '')}",
+            "PYTHONUNBUFFERED": "1",
+            "COLUMNS": "100",
+        }
+
+    def run(self, recipe: Recipe) -> None:
+        if recipe.stopped:
+            self.close()
+        for command in recipe.commands:
+            if command.background:
+                self._start(command)
+            else:
+                self._run(command)
+
+    def _where(self, command: Command) -> str:
+        return f"README.md:{command.line}: {command.text}"
+
+    def _start(self, command: Command) -> None:
+        out = self.cwd / f"background-{len(self.background)}.log"
+        with out.open("wb") as sink:
+            proc = subprocess.Popen(  # exec: SIGINT reaches the program, not a shell
+                ["bash", "-c", f"exec {command.text}"],
+                cwd=self.cwd,
+                env=self.env,
+                stdout=sink,
+                stderr=subprocess.STDOUT,
+            )
+        self.background.append((command, proc, out))
+        end = time.monotonic() + READY_S
+        for name in command.waits_for():
+            while not (self.cwd / name).exists():
+                if proc.poll() is not None:
+                    raise AssertionError(
+                        f"{self._where(command)}\nended with {proc.returncode} before it was "
+                        f"up:\n{out.read_text()[-3000:]}"
+                    )
+                assert time.monotonic() < end, f"{self._where(command)}\nnever made {name}"
+                time.sleep(0.05)
+
+    def _run(self, command: Command) -> None:
+        done = subprocess.run(
+            ["bash", "-o", "pipefail", "-c", command.text],
+            cwd=self.cwd,
+            env=self.env,
+            capture_output=True,
+            timeout=FOREGROUND_S,
+        )
+        shown = (done.stdout + done.stderr).decode(errors="replace")
+        self.log.append(f"$ {command.text}\n{shown}")
+        assert done.returncode == 0, (
+            f"{self._where(command)}\nexit {done.returncode}:\n{shown[-3000:]}\n"
+            f"background:\n{self.background_output()}"
+        )
+
+    def background_output(self) -> str:
+        return "\n".join(
+            f"--- {command.text}\n{out.read_text()[-2000:]}" for command, _, out in self.background
+        )
+
+    def close(self) -> None:
+        """SIGINT to every background process, newest first; each must exit 0."""
+        failures = []
+        for command, proc, out in reversed(self.background):
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+            try:
+                code = proc.wait(timeout=STOP_S)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                code = proc.wait()
+            if code != 0:
+                failures.append(f"{self._where(command)}\nexit {code}:\n{out.read_text()[-3000:]}")
+        self.background.clear()
+        assert not failures, "\n".join(failures)

@@ -184,11 +184,13 @@ class Session:
         )
 
     def close(self) -> None:
-        """SIGINT to every background process, newest first; each must exit 0."""
+        """SIGINT to every background process at once, as Ctrl-C gives a terminal's process
+        group; each must exit 0."""
         failures = []
-        for command, proc, out in reversed(self.background):
+        for _, proc, _ in self.background:
             if proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
+        for command, proc, out in self.background:
             try:
                 code = proc.wait(timeout=STOP_S)
             except subprocess.TimeoutExpired:

@@ -192,7 +192,9 @@ def test_nobody_can_neither_grant_nor_stop_a_supervisor_run_under_umask_000(
             answer = _request_as(NOBODY, path, payload)
             assert "refused" in answer.get("ok", {}).get("error", ""), answer
         assert sup.poll() is None
-        assert request(path, {"status": True}, 10)["usable_uj"] == 10_000_000
+        status = request(path, {"status": True}, 10)
+        assert status["usable_uj"] == 10_000_000
+        assert status["control_refused"] == {str(NOBODY): 2}  # the grant and the stop
         assert request(path, {"stop": True}, 10) == {"stopping": True}
         _, err = sup.communicate(timeout=30)
     finally:

@@ -63,6 +63,7 @@ def serve_supervisor(
         if until is not None and until():
             service.stop(now)
 
+    service.control = control
     serve(loop, service.finished, service.stop, each)
     service.write_status()
 

@@ -32,6 +32,7 @@ from canergy.core.errors import LocalProtocolError
 from canergy.core.state import Outcome, Phase
 from canergy.live.atomic import write_json_atomic
 from canergy.live.bus_keys import node_name
+from canergy.live.control import ControlServer
 from canergy.live.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
 from canergy.live.runtime import BusCounters, total_counters
@@ -185,6 +186,8 @@ class SupervisorService:
         self.injected_this_run = 0
         self.intrusions = Intrusions("supervisor", name=self.node_name)
         self.refusals = Refusals("supervisor", name=self.node_name)
+        self.control: ControlServer | None = None
+        """The control socket, once the serve loop answers it (its refusals are in the status)."""
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
         self.stopped_by_intrusion = False
         self.witness = ReturnGate(config.return_hold_us or 0, config.witness_block_us)
@@ -736,10 +739,16 @@ class SupervisorService:
             "intrusions": self.intrusions.total,
             "intrusion_report": self.intrusions.as_json(),
             "refused": self.refusals.as_json(self.now),
+            **({"control_refused": self._control_refused()} if self.control else {}),
             "stopped_by_intrusion": self.stopped_by_intrusion,
             "nodes": nodes,
             **({"cia402": self.extra_status(self.now)} if self.extra_status else {}),
         }
+
+    def _control_refused(self) -> dict[str, int]:
+        """Connections to the control socket refused, by peer uid (-1: unreadable)."""
+        assert self.control is not None
+        return {str(uid): n for uid, n in sorted(dict(self.control.refused).items())}
 
     def write_status(self) -> None:
         status = self.status()

@@ -33,6 +33,7 @@ from canergy.monitor.feeds import LiveFeed, ModelListener, ReplayFeed, enlarge_r
 from canergy.monitor.model import MonitorModel, Row
 from canergy.monitor.render import Context, bar, screen, sparkline
 from canergy.monitor.sessions import Ending, Phase
+from canergy.monitor.tui import Display
 from canergy.monitor.view import View, parse_filter
 
 J = 1_000_000
@@ -240,6 +241,27 @@ def test_keys_filter_sort_select_and_raw_view() -> None:
     assert parse_filter("") is None and parse_filter("3, 5-7") == {3, 5, 6, 7}
 
 
+def test_an_empty_filter_shows_every_node_again() -> None:
+    """Issue 31: ``/`` then Enter went back to the filter in force, not to every node."""
+    snap = fed(scenario.frames()).snapshot(scenario.T0 + scenario.GAP + 1)
+    view = View()
+    keys = [r.key for r in view.arrange(snap.rows)]
+    for typed in ["", "all", "*", " ALL "]:
+        for key in "/3\n":
+            view.handle(key, keys)
+        assert view.nodes == {3} and [r.node for r in view.arrange(snap.rows)] == [3]
+        view.handle("/", keys)
+        prompt = screen(snap, view, Context("x", "live"), 160, 20)[-1][0]
+        assert prompt.startswith("filter nodes (now 3; ") and prompt.endswith(": _")
+        for key in [*typed, "\n"]:
+            view.handle(key, keys)
+        assert view.prompt is None and view.nodes is None and view.filter_text == ""
+        assert [r.node for r in view.arrange(snap.rows)] == [3, 5]
+        text = [t for t, _ in screen(snap, view, Context("x", "live"), 160, 20)]
+        assert any(t.startswith("sort node  filter all  2 nodes") for t in text)
+    assert parse_filter("all") is None and parse_filter("*") is None
+
+
 def test_sorting_puts_trouble_first() -> None:
     snap = fed(scenario.frames()).snapshot(scenario.T0 + scenario.GAP + 1)
     view = View(sort="trouble")
@@ -254,7 +276,8 @@ def test_the_screen_text() -> None:
     lines = screen(snap, View(), Context("replay s.log", "replay done"), 160, 30)
     assert len(lines) == 30 and all(len(t) <= 160 for t, _ in lines)
     text = [t for t, _ in lines]
-    assert text[0].startswith("canergy monitor  replay s.log") and text[0].endswith("replay done")
+    assert text[0].startswith("canergy monitor  replay s.log")
+    assert text[0].endswith("replay done: 17 frames") and text[1].startswith("frames 17  ")
     assert "foreign 1  decode errors 1: crc 1" in text[1] and "of 500 kbit/s" in text[1]
     three = next(t for t in text if t.lstrip().startswith("3 "))
     assert "0.630 J" in three and "commit 0.500 J" in three and "CRC 1" in three
@@ -316,7 +339,7 @@ def test_a_replay_keeps_the_capture_s_pace_pauses_and_steps() -> None:
         feed.pause(False)
         while not feed.done and time.monotonic() < deadline:
             time.sleep(0.01)
-        assert feed.fed == len(frames) and feed.state(False).startswith("replay done: 17")
+        assert feed.fed == len(frames) and feed.state(False) == "replay done"
         assert feed.now() == frames[-1].timestamp  # the clock stops at the last frame
     finally:
         feed.stop()
@@ -409,6 +432,117 @@ def test_a_socket_bus_gets_a_larger_receive_buffer() -> None:
         assert after is not None and after > before
     with can.Bus(interface="virtual", channel=uuid.uuid4().hex) as virtual:
         assert enlarge_receive_buffer(virtual) is None
+
+
+# -- the screen loop -----------------------------------------------------------------------
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class BusFeed:
+    """A bus as the screen loop sees it (``LiveFeed``'s states), the frames fed by the test."""
+
+    def __init__(self) -> None:
+        self.t = scenario.T0
+
+    def start(self) -> None: ...
+    def stop(self) -> None: ...
+    def now(self) -> float:
+        return self.t
+
+    def pause(self, paused: bool) -> None: ...
+    def step(self) -> None: ...
+    def state(self, paused: bool) -> str:
+        return "PAUSED (still counting)" if paused else "live"
+
+
+def counts(lines: list[tuple[str, str]]) -> tuple[int, int]:
+    """The frame counts in the title's corner and in the header line below it."""
+    corner = re.search(r"([\d,]+) frames$", lines[0][0])
+    header = re.match(r"frames ([\d,]+) ", lines[1][0])
+    assert corner is not None and header is not None, lines[:2]
+    return int(corner[1].replace(",", "")), int(header[1].replace(",", ""))
+
+
+def test_pausing_a_replay_shows_one_frame_count_of_that_moment() -> None:
+    """Issue 31: the header (the latest snapshot) and the corner (the replay's own count, read
+    when painting) disagreed on a paused screen: 7,475 vs 7,720."""
+    frames = scenario.frames()
+    model, lock = MonitorModel(Codec()), threading.Lock()
+    feed = ReplayFeed(iter(frames), model, lock, speed=1.0)
+    display = Display(feed, model, lock, View(), Context("replay s.log", ""), 1.0, Clock())
+    first = display.update([], 160, 30)  # a snapshot before the replay began
+    assert first is not None and counts(first) == (0, 0)
+    feed.start()
+    try:
+        deadline = time.monotonic() + 60
+        while feed.fed < scenario.WRITE_OFF_AT and time.monotonic() < deadline:
+            time.sleep(0.01)
+        paused = display.update(["p"], 160, 30)  # no snapshot due: the clock stood still
+        assert paused is not None and "replay x1 PAUSED" in paused[0][0]
+        assert counts(paused) == (scenario.WRITE_OFF_AT, scenario.WRITE_OFF_AT)
+        assert any(t.lstrip().startswith("5 ") and "INTENTION x3" in t for t, _ in paused)
+    finally:
+        feed.stop()
+
+
+def test_a_paused_screen_is_redrawn_with_its_frozen_snapshot() -> None:
+    """Issue 31: while paused the screen is still painted every refresh, after a resize and
+    after the keys that change the view, from the snapshot taken when it was paused; the raw
+    frames too, though the bus brought more since."""
+    frames = scenario.frames()
+    model, lock, clock, feed = MonitorModel(Codec()), threading.Lock(), Clock(), BusFeed()
+    view = View()
+    display = Display(feed, model, lock, view, Context("virtual", ""), 0.25, clock)
+
+    def bus(upto: int) -> None:
+        for f in frames[model.frames : upto]:
+            feed.t = f.timestamp
+            model.feed(f, f.timestamp)
+
+    bus(scenario.WRITE_OFF_AT)
+    assert display.update([], 160, 30) is not None
+    clock.t += 0.1
+    bus(scenario.WRITE_OFF_AT + 1)
+    frozen = display.update(["p"], 160, 30)  # between two refreshes
+    assert frozen is not None and frozen[0][0].endswith("PAUSED (still counting): 13 frames")
+    assert counts(frozen) == (13, 13)
+    bus(len(frames))  # the bus is still read and counted
+
+    clock.t += 0.25
+    again = display.update([], 160, 30)  # the periodic redraw
+    assert again == frozen
+    assert display.update([], 160, 30) is None  # nothing new within the period
+
+    resized = display.update(["KEY_RESIZE"], 100, 20)
+    assert resized is not None and len(resized) == 20 and counts(resized) == (13, 13)
+    assert len(resized[0][0]) == 100 and all(len(t) <= 100 for t, _ in resized)
+
+    by_level = display.update(["s"], 100, 20)
+    assert by_level is not None and counts(by_level) == (13, 13)
+    assert any(t.startswith("sort level  filter all  2 nodes") for t, _ in by_level)
+
+    text = display.update(["/", "5", "\n"], 160, 30)
+    assert text is not None and counts(text) == (13, 13)
+    five = next(t for t, _ in text if t.lstrip().startswith("5 "))
+    assert "write-off 0.300 J" in five and "commit" not in five  # tx 2's COMMITTED came after
+
+    raw = display.update(["\n"], 160, 30)  # node 5's raw frames, as they were
+    assert raw is not None
+    head = next(t for t, _ in raw if t.startswith("raw frames of node 5"))
+    assert head.endswith("the latest 4 of 4")
+    assert sum("S->5" in t or "5->S" in t for t, _ in raw) == 4
+    assert not any("COMMITTED" in t for t, _ in raw)
+    clock.t += 0.25
+    assert display.update([], 160, 30) == raw
+
+    live = display.update(["p"], 160, 30)  # on again: what the bus brought meanwhile
+    assert live is not None and counts(live) == (len(frames), len(frames))
+    assert any(t.startswith("raw frames of node 5 on vcan0: the latest 7 of 7") for t, _ in live)
 
 
 # -- the command line -----------------------------------------------------------------------

@@ -154,6 +154,71 @@ def test_replay_pause_step_filter_raw_frames_and_quit(
     assert "EXIT=0" in text and "Traceback" not in text
 
 
+def frame_counts(text: str) -> tuple[int, int] | None:
+    """The frame counts in the title's corner and in the header line below it."""
+    corner = re.search(r"([\d,]+) frames$", lines(text)[0].rstrip())
+    header = re.match(r"frames ([\d,]+) ", lines(text)[1])
+    if corner is None or header is None:
+        return None
+    return int(corner[1].replace(",", "")), int(header[1].replace(",", ""))
+
+
+def test_an_empty_filter_and_a_paused_screen_redrawn(
+    tmp_path: Path, terminal: Callable[[list[str]], Terminal]
+) -> None:
+    """Issue 31: ``/`` then Enter shows every node again; a paused screen is one moment (the
+    header and the corner agree) and is redrawn after a resize and the keys that change it.
+    A snapshot a minute apart: only keys and the pause paint a new screen in this test."""
+    capture = scenario.write(tmp_path / "story.log")
+    t = terminal(canergy("monitor", "--replay", str(capture), "--refresh", "60s"))
+    t.wait("the first screen", lambda s: lines(s)[-1].startswith("q quit"))
+
+    t.keys("/")
+    t.wait("the filter prompt", lambda s: lines(s)[-1].startswith("filter nodes"))
+    t.keys("3", literal=True)
+    t.keys("Enter")
+    t.wait("the filter applied", lambda s: lines(s)[3].startswith("sort node  filter 3  "))
+    t.keys("/")
+    t.wait("the filter prompt", lambda s: lines(s)[-1].startswith("filter nodes"))
+    t.keys("Enter")  # nothing typed: every node
+    t.wait("every node", lambda s: lines(s)[3].startswith("sort node  filter all  "))
+
+    time.sleep(0.5)  # the replay reaches its ten-minute silence (the checks hold either way)
+    t.keys("p")
+    text = t.wait("the pause", lambda s: "PAUSED" in lines(s)[0] and frame_counts(s) is not None)
+    counts = frame_counts(text)
+    assert counts is not None and counts[0] == counts[1], lines(text)[:2]
+    corner = lines(text)[0].rstrip()[-30:]
+
+    subprocess.run([*t.base, "resize-window", "-t", "t", "-x", "120", "-y", "40"], check=True)
+    text = t.wait(
+        "the paused screen at 120 x 40",
+        lambda s: (
+            len(lines(s)) == 40
+            and lines(s)[0].rstrip().endswith(corner)
+            and len(lines(s)[0].rstrip()) == 120
+            and lines(s)[-1].startswith("q quit")
+        ),
+    )
+    assert frame_counts(text) == counts
+    t.keys("s")
+    text = t.wait("the sort by level", lambda s: lines(s)[3].startswith("sort level  "))
+    assert frame_counts(text) == counts and len(lines(text)) == 40
+    t.keys("Enter")
+    text = t.wait("raw frames", lambda s: "raw frames of node" in s)
+    raw = re.search(r"raw frames of node (\d+) on vcan0: the latest (\d+) of (\d+)", text)
+    assert raw is not None and raw[2] == raw[3] and frame_counts(text) == counts
+    node = int(raw[1])
+    shown = [line for line in lines(text) if re.search(rf" S->{node} | {node}->S ", line)]
+    assert len(shown) == int(raw[2]), text
+
+    t.keys("Escape")
+    t.wait("the table again", lambda s: lines(s)[3].startswith("sort level  "))
+    t.keys("q")
+    text = t.wait("the monitor exit", lambda s: "EXIT=" in s)
+    assert "EXIT=0" in text and "Traceback" not in text
+
+
 def test_live_bus_with_a_running_supervisor_s_books(
     tmp_path: Path, terminal: Callable[[list[str]], Terminal]
 ) -> None:
@@ -176,7 +241,8 @@ def test_live_bus_with_a_running_supervisor_s_books(
             time.sleep(0.1)
         t = terminal(canergy("monitor", "-i", "virtual", "-c", "mon", "--control", str(sock)))
         text = t.wait("the books", lambda s: "supervisor usable 7.000 J" in s)
-        assert "virtual mon" in lines(text)[0] and lines(text)[0].rstrip().endswith("live")
+        title = lines(text)[0].rstrip()
+        assert "virtual mon" in title and title.endswith("live: 0 frames")
         for node in (2, 3, 4):
             row = node_row(text, node)
             assert row is not None and "| IDLE" in row and "0/0/0" in row and "LOST" in row

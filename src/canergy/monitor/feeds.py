@@ -62,7 +62,8 @@ class Feed(Protocol):
         ...
 
     def state(self, paused: bool) -> str:
-        """For the header: ``live``, ``replay x1 12.3 s in``..."""
+        """For the title's corner: ``live``, ``replay x1 12.3 s in``... The frame count beside
+        it is the snapshot's (``MonitorModel.frames``), never the feed's own."""
         ...
 
 
@@ -143,6 +144,7 @@ class ReplayFeed:
         self._steps = 0
         self._stopped = False
         self.fed = 0
+        """Frames handed to the model, for ``step``: the screen counts them in the model."""
         self.done = False
         self.first: float | None = None
         self.last = 0.0
@@ -196,11 +198,11 @@ class ReplayFeed:
     def state(self, paused: bool) -> str:
         with self._cond:
             elapsed = self._clock() - (self.first or 0.0) if self.first is not None else 0.0
-            fed, done = self.fed, self.done
-        pace = "fast" if self.speed is None else f"x{self.speed:g}"
+            done = self.done
         if done:
-            return f"replay done: {fed:,} frames, {elapsed:.1f} s"
-        return f"replay {pace}{' PAUSED' if paused else ''} {elapsed:.1f} s in, {fed:,} frames"
+            return "replay done"
+        pace = "fast" if self.speed is None else f"x{self.speed:g}"
+        return f"replay {pace}{' PAUSED' if paused else ''} {elapsed:.1f} s in"
 
     # -- the thread ----------------------------------------------------------------------------
     def _run(self) -> None:

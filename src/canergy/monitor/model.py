@@ -94,6 +94,7 @@ class Row:
 class Snapshot:
     now: float
     frames: int
+    """``MonitorModel.frames`` at ``now``: the one frame count on the screen (header and corner)."""
     frames_per_s: float
     load: float | None
     """Fraction of the bus's time taken in the last window; None without a bit rate."""
@@ -129,6 +130,11 @@ class MonitorModel:
             auth.describe if auth is not None else lambda f: describe(codec, f)
         )
         self.frames = 0
+        """Every frame received from the bus or read from the capture, in one place: canergy's,
+        foreign ones, error frames and those that failed to decode (CRC, DLC, MAC...) alike. The
+        screen shows this count only (the header's ``frames`` and the title's corner, both from
+        one ``Snapshot``); the feeds' own counters (``ReplayFeed.fed``, ``ModelListener.received``)
+        pace the replay and measure the reader, never the screen."""
         self.foreign = 0
         self.errors: Counter[str] = Counter()
         self.tracks: dict[Key, NodeTrack] = {}
@@ -229,11 +235,18 @@ class MonitorModel:
             notes=tuple(self.notes.values()),
         )
 
-    def raw(self, key: Key) -> tuple[list[Described], list[Alarm]]:
-        """The latest frames of one node and its alarms."""
+    def raw(self, key: Key, shown: Snapshot | None = None) -> tuple[list[Described], list[Alarm]]:
+        """The latest frames of one node and its alarms; with ``shown``, as they were when that
+        snapshot was taken (a paused screen's raw view is of its frozen moment, without the
+        frames a bus kept bringing since)."""
         track = self.tracks.get(key)
         frames = list(track.raw) if track is not None else []
-        return frames, [a for a in self.alarms if a.key == key]
+        if shown is None:
+            return frames, [a for a in self.alarms if a.key == key]
+        then = next((r.frames for r in shown.rows if r.key == key), 0)
+        newer = track.frames - then if track is not None else 0
+        frames = frames[: max(0, len(frames) - newer)]
+        return frames, [a for a in shown.alarms if a.key == key]
 
     def _rows(self, now: float) -> list[Row]:
         channels = {channel for channel, _ in self.tracks}

@@ -33,7 +33,7 @@ class Context:
     source: str
     """The bus or capture, e.g. ``socketcan can0`` or ``replay cap.log``."""
     state: str
-    """``live``, ``PAUSED``, ``replay 3.2 of 31.0 s x1``..."""
+    """The feed's (``Feed.state``): ``live``, ``replay x1 3.2 s in``, ``replay done``..."""
     full_scale_uj: int | None = None
     """Level of a full bar; None: the highest level shown."""
     unicode: bool = True
@@ -91,7 +91,10 @@ def _kbits(bitrate: int) -> str:
 
 def header(snap: Snapshot, ctx: Context, width: int) -> list[Line]:
     title = f"canergy monitor  {ctx.source}"
-    stamp = ctx.state
+    # The corner and the line below show one count, the snapshot's: every frame the model was
+    # fed (canergy's, foreign, undecodable; MonitorModel.frames), at the moment the rest shows.
+    count = f"{snap.frames:,} frames"
+    stamp = f"{ctx.state}: {count}" if ctx.state else count
     lines: list[Line] = [(title + stamp.rjust(max(1, width - len(title))), "title")]
     load = (
         f"load {snap.load:.1%} of {_kbits(snap.bitrate)}"
@@ -310,7 +313,11 @@ def _alarm_text(a: Alarm) -> str:
 
 def _footer(view: View, unicode: bool) -> Line:
     if view.prompt is not None:
-        return (f"filter nodes (e.g. 3,5-7; empty: all; Esc cancels): {view.prompt}_", "prompt")
+        now = view.filter_text or "all"
+        return (
+            f"filter nodes (now {now}; e.g. 3,5-7; empty: all; Esc cancels): {view.prompt}_",
+            "prompt",
+        )
     if view.message:
         return (view.message, "alarm")
     keys = RAW_HELP if view.raw else KEYS_HELP

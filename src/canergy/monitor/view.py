@@ -24,9 +24,14 @@ KEYS_HELP = "q quit  p pause  / filter  s sort  ↑↓ select  Enter raw frames"
 RAW_HELP = "Esc/Enter back  ↑↓ other node  q quit  p pause"
 
 
+EVERY_NODE = frozenset({"", "all", "*"})
+"""Filters that show every node (what ``parse_filter`` returns None for)."""
+
+
 def parse_filter(text: str) -> frozenset[int] | None:
-    """``3,5-7`` as node ids; empty: every node. ``ValueError`` says what is wrong."""
-    if not text.strip():
+    """``3,5-7`` as node ids; empty, ``all`` or ``*``: every node (None). ``ValueError`` says
+    what is wrong."""
+    if text.strip().lower() in EVERY_NODE:
         return None
     try:
         return frozenset(node_ids(text))
@@ -54,7 +59,8 @@ class View:
     selected: Key | None = None
     raw: bool = False
     prompt: str | None = None
-    """The filter being typed, or None."""
+    """The filter being typed, or None. It opens empty, so ``/`` then Enter shows every node
+    again; the filter in force stays on the status line until Enter replaces it."""
     message: str = ""
     quit: bool = False
     steps: int = 0
@@ -88,7 +94,7 @@ class View:
             else:  # the previous or next node's frames
                 self._move(key, list(shown))
         elif key in ("/", "f"):
-            self.prompt = self.filter_text
+            self.prompt = ""
         elif key == "s":
             self.sort = SORTS[(SORTS.index(self.sort) + 1) % len(SORTS)]
         elif key in ENTER or key == "r":
@@ -119,7 +125,8 @@ class View:
             except ValueError as exc:
                 self.message = f"filter: {exc}"
                 return
-            self.filter_text, self.prompt = self.prompt.strip(), None
+            self.filter_text = self.prompt.strip() if self.nodes is not None else ""
+            self.prompt = None
         elif key == "\x1b":
             self.prompt = None
         elif key in ERASE:

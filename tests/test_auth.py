@@ -15,7 +15,7 @@ from typing import Any
 
 import can
 import pytest
-from live_rig import Loop
+from support.live_rig import Loop
 
 from canergy.auth.frames import (
     FV_MASK,

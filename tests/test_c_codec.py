@@ -10,7 +10,7 @@ import functools
 import pytest
 from hypothesis import example, given
 from hypothesis import strategies as st
-from strategies import messages
+from support.strategies import messages
 from test_c_binding import DIRECTIONS, OK, REASONS, Frame, Msg, library, rx
 
 from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeError

@@ -11,7 +11,7 @@ from dataclasses import replace
 
 import pytest
 import test_hardened_client as py
-from cells import Case, params
+from support.cells import Case, params
 from test_c_binding import (
     ERR_AMOUNT,
     ERR_PHASE,

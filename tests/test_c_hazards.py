@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import pytest
-from harness import Harness
+from support.harness import Harness
 from test_c_binding import CClient, c_view
 from test_hazards import HAZARDS
 

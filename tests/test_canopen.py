@@ -11,7 +11,7 @@ from pathlib import Path
 import can
 import canopen
 import pytest
-from live_rig import TIMING, Loop
+from support.live_rig import TIMING, Loop
 
 from canergy.codec import ID_MASK, Codec
 from canergy.core import Supervisor

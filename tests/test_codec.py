@@ -1,7 +1,7 @@
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from strategies import messages
+from support.strategies import messages
 
 from canergy.codec import LAYOUTS, Codec, DecodeError, DecodeErrorReason
 from canergy.messages import Ack, Commit, Direction, Intention, Message, MsgType, Return

@@ -5,7 +5,7 @@ from pathlib import Path
 import cantools
 import pytest
 from hypothesis import given
-from strategies import messages
+from support.strategies import messages
 
 from canergy.codec import XOR_OUT, Codec, _prefix_register
 from canergy.crc import crc8_update

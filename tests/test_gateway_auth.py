@@ -20,7 +20,7 @@ from typing import Any
 
 import can
 import pytest
-from live_rig import Loop
+from support.live_rig import Loop
 
 from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import load_key

@@ -18,7 +18,7 @@ import can
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from live_rig import Loop
+from support.live_rig import Loop
 
 from canergy.cli import main
 from canergy.codec import Codec

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-import cells
 import pytest
-from cells import Case, params, run_case, run_ignored
+from support import cells
+from support.cells import Case, params, run_case, run_ignored
 
 from canergy.core import (
     ClientAborted,

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import pytest
-from harness import Harness, J
+from support.harness import Harness, J
 
 A = J  # the reservation in every scenario
 

@@ -17,7 +17,7 @@ from typing import Any
 
 import can
 import pytest
-from live_rig import Loop
+from support.live_rig import Loop
 
 from canergy.cli import main
 from canergy.codec import Codec

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import can
 import pytest
-from live_rig import Loop
+from support.live_rig import Loop
 
 from canergy.cli import main
 from canergy.codec import Codec

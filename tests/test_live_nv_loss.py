@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from live_rig import Rig
+from support.live_rig import Rig
 
 from canergy.core import Phase
 from canergy.messages import Intention

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import can
 import pytest
-from live_rig import Rig
+from support.live_rig import Rig
 
 from canergy.faults import FaultProfile
 from canergy.units import UJ_PER_J

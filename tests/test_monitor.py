@@ -12,10 +12,10 @@ import uuid
 from pathlib import Path
 
 import can
-import monitor_scenario as scenario
 import pytest
-from live_rig import Rig
-from monitor_scenario import cell
+from support import monitor_scenario as scenario
+from support.live_rig import Rig
+from support.monitor_scenario import cell
 
 from canergy.bench.wire import frame_bits
 from canergy.cli import main

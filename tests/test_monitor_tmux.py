@@ -16,9 +16,9 @@ import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
-import monitor_scenario as scenario
 import pytest
-from monitor_scenario import cell
+from support import monitor_scenario as scenario
+from support.monitor_scenario import cell
 
 TIMEOUT_S = 60.0
 """Longest wait for the screen to show something (a loaded 2-core CI machine)."""

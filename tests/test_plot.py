@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import can
-import monitor_scenario as scenario
 import pytest
+from support import monitor_scenario as scenario
 
 from canergy.cli import main
 from canergy.codec import Codec

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from harness import Harness
+from support.harness import Harness
 from test_intrusions import Bench, bench
 
 from canergy.live.control import request

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from harness import Harness, J
+from support.harness import Harness, J
 
 from canergy.core import Client, LocalProtocolError, Persist, Send, Supervisor
 from canergy.messages import Ack, Intention

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import can
 import pytest
-from live_rig import Loop, Rig
+from support.live_rig import Loop, Rig
 
 from canergy.cli import main
 from canergy.codec import Codec

@@ -81,6 +81,7 @@ OUTPUTS: dict[str, set[str]] = {
     "dbc": {"output"},
     "rules": {"docs"},
     "bench": {"json"},
+    "dump": {"log"},  # -l: a file in "." (its dest "log" is then ".")
     "simulate": {"out"},
     "sweep": {"out"},
     "supervisor": {"state", "status_file", "control", "cia402_capture"},
@@ -168,6 +169,7 @@ _BUS_WORDS = {
     "bus_kwargs": BUS_KWARGS[0],
     "timing": TIMINGS[0],
     "bus": ["virtual:fuzz:1-2"],
+    "channel_filters": ["fuzz,0CE00100:1FFFFF00,701~7FF"],
 }
 """python-can's bus flags that take free text (and ``supervisor --bus``): a value each accepts."""
 
@@ -457,7 +459,8 @@ def test_the_fuzzed_commands_are_the_parsers_own() -> None:
         assert dests <= {a.dest for a in _fuzzed(PARSERS[name])}, name
     for name, parser in PARSERS.items():
         for action in _fuzzed(parser):
-            assert action.option_strings or action.dest == "file", (name, action.dest)
+            positional = action.dest in ("file", "channel_filters")  # dump's CHANNEL,FILTER
+            assert action.option_strings or positional, (name, action.dest)
             if action.nargs != 0:  # a new kind of value needs a word it accepts in NUMBERS
                 assert _valid(action), (name, action.dest)
 

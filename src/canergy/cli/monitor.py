@@ -18,7 +18,7 @@ from canergy.auth.capture import CaptureAuth
 from canergy.auth.keys import load_key
 from canergy.codec import Codec
 from canergy.inspect.captures import read_file
-from canergy.live.bus_args import add_bus_flags, open_bus
+from canergy.live.bus_args import add_bus_flags, open_receiving_bus
 from canergy.monitor.books import Books, BooksPoller, from_control, from_status_file
 from canergy.monitor.feeds import Feed, LiveFeed, ReplayFeed
 from canergy.monitor.model import MonitorModel
@@ -59,7 +59,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--status-file or --control. Keys: q quit, p pause, / filter, s sort, arrows select, "
         "Enter raw frames, n step a paused replay.",
     )
-    add_bus_flags(p)
+    add_bus_flags(p, fd_default=True)
     p.add_argument(
         "--replay",
         type=Path,
@@ -190,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
             frames, model, lock, None if args.once or args.fast else args.speed or 1.0
         )
         return _run(feed, model, lock, view, ctx, args, None)
-    bus = open_bus(args, [])
+    bus = open_receiving_bus(args, [])  # CAN FD on where the interface takes it
     try:
         return _run(
             LiveFeed(bus, model, lock), model, lock, view, ctx, args, _poller(args, model, lock)

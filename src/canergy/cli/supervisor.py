@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,7 @@ from canergy.cli.shared.live import (
 )
 from canergy.codec import Codec
 from canergy.core import Supervisor
-from canergy.live.bus_args import open_bus, open_bus_at
+from canergy.live.bus_args import bus_where, open_bus, open_bus_at
 from canergy.live.bus_group import BusGroup
 from canergy.live.control import ControlServer
 from canergy.live.multi_bus import (
@@ -73,7 +74,13 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="add this energy to the usable budget, counted as injected, once at start: it is "
         "saved in --state before anything is granted (e.g. 5J; not with --listen-only)",
     )
-    p.add_argument("--listen-only", action="store_true", help="watch and report, never send")
+    p.add_argument(
+        "--listen-only",
+        action="store_true",
+        help="watch and report, never send; without --status-file the status on stdout is one "
+        "line per --status-period: frames, nodes talking and silent, their levels, decode "
+        "errors, intrusions",
+    )
     p.add_argument(
         "--on-intrusion",
         choices=["warn", "stop"],
@@ -227,12 +234,14 @@ def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
 
 
 def _config(args: argparse.Namespace, key: Any, names: tuple[str, ...]) -> ServiceConfig:
+    listening = args.listen_only and args.status_file is None
     return ServiceConfig(
         policy=TopUp(args.target, args.min_grant) if args.target is not None else None,
         limits=grant_limits(args),
         state_path=args.state,
         status_path=args.status_file,
         status_stream=sys.stdout if args.status_file is None else None,
+        status_text=listening_line(", ".join(names) or _channel(args)) if listening else None,
         status_period_us=args.status_period,
         lost_after_us=args.lost_after,
         stop_timeout_us=args.stop_timeout,
@@ -242,6 +251,53 @@ def _config(args: argparse.Namespace, key: Any, names: tuple[str, ...]) -> Servi
         stop_on_intrusion=args.on_intrusion == "stop",
         return_hold_us=None if key is not None else args.return_hold,
         bus_names=names,
+    )
+
+
+def _channel(args: argparse.Namespace) -> str:
+    channel, interface = bus_where(args)
+    return channel or interface or "the bus"
+
+
+def listening_line(where: str) -> Callable[[dict[str, Any]], str]:
+    """``--listen-only``'s status on stdout: who talks (heard within --lost-after) and what
+    fails to decode, one line, e.g. ``listening on can0: 1234 frames, nodes talking 1-4, silent
+    5, levels 3.200 J, decode errors 0, intrusions 0``."""
+
+    def line(status: dict[str, Any]) -> str:
+        nodes: dict[str, dict[str, Any]] = status["nodes"]
+        talking = [name for name, n in nodes.items() if not n["lost"]]
+        silent = [name for name, n in nodes.items() if n["lost"]]
+        levels = sum(nodes[name]["level_uj"] or 0 for name in talking)
+        reasons: dict[str, int] = status["decode_error_reasons"]
+        why = ", ".join(f"{r} {n}" for r, n in sorted(reasons.items()))
+        parts = [
+            f"{status['frames_received']} frames",
+            f"nodes talking {_names(talking) or 'none'}",
+            f"silent {_names(silent) or 'none'}",
+            f"levels {levels / 1e6:.3f} J",
+            f"decode errors {status['decode_errors']}" + (f" ({why})" if why else ""),
+            f"intrusions {status['intrusions']}",
+        ]
+        if status.get("stopping"):
+            parts.append("stopping")
+        return f"listening on {where}: {', '.join(parts)}"
+
+    return line
+
+
+def _names(names: list[str]) -> str:
+    """Node names as ranges, ``1-3,5`` (several buses: ``can0/1-3,can1/5``)."""
+    runs: list[tuple[str, int, int]] = []
+    for name in sorted(names, key=lambda n: (n.rpartition("/")[0], int(n.rpartition("/")[2]))):
+        bus, _, number = name.rpartition("/")
+        node = int(number)
+        if runs and runs[-1][0] == bus and runs[-1][2] == node - 1:
+            runs[-1] = (bus, runs[-1][1], node)
+        else:
+            runs.append((bus, node, node))
+    return ",".join(
+        f"{bus + '/' if bus else ''}{a}" + (f"-{b}" if b != a else "") for bus, a, b in runs
     )
 
 

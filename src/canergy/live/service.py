@@ -106,6 +106,9 @@ class ServiceConfig:
     state_path: Path | None = None
     status_path: Path | None = None
     status_stream: TextIO | None = None
+    status_text: Callable[[dict[str, Any]], str] | None = None
+    """How a status reads on ``status_stream``: None, JSON (one object a line); else the line
+    this makes of it (``canergy supervisor --listen-only``). The status file is always JSON."""
     status_period_us: int = 1_000_000
     lost_after_us: int = 3_000_000
     tick_us: int = 50_000
@@ -202,7 +205,10 @@ class SupervisorService:
         info = self.nodes.get(msg.node)
         if info is None:
             return ()
-        if (impossible := self._impossible(msg, info, now)) is not None:
+        # listen-only keeps no books of its own (another supervisor may be granting): no
+        # judgement by them, or every level reported would look impossible
+        listening = self.config.listen_only
+        if not listening and (impossible := self._impossible(msg, info, now)) is not None:
             self.intrusion(msg.node, repr(msg), impossible, now)
             if not isinstance(msg, Telemetry):
                 return ()  # moves nothing: no honest node sends it
@@ -755,8 +761,10 @@ class SupervisorService:
         if self.config.status_path is not None:
             write_json_atomic(self.config.status_path, status, fsync=False)
         if self.status_stream is not None:
+            make = self.config.status_text
+            text = json.dumps(status, sort_keys=True) if make is None else make(status)
             try:
-                self.status_stream.write(json.dumps(status, sort_keys=True) + "\n")
+                self.status_stream.write(text + "\n")
                 self.status_stream.flush()
             except BrokenPipeError:  # the reader went away (``| head``): keep supervising
                 self.status_stream = None

@@ -20,7 +20,7 @@ from canergy.codec import Codec
 from canergy.inspect.audit import Auditor
 from canergy.inspect.captures import read_file, read_text
 from canergy.inspect.frames import Described
-from canergy.inspect.render import line
+from canergy.inspect.render import Stamps, line
 
 
 def auth_flag(p: argparse.ArgumentParser) -> None:
@@ -67,8 +67,14 @@ def capture_frames(path: str) -> Iterator[can.Message]:
 
 
 def show(
-    described: Iterable[Described], args: argparse.Namespace, out: TextIO, live: bool = False
+    described: Iterable[Described],
+    args: argparse.Namespace,
+    out: TextIO,
+    live: bool = False,
+    stamps: Stamps | None = None,
 ) -> None:
+    """The frames as lines (or JSON objects), those --nodes/--hide-foreign leave; ``stamps``:
+    candump's ``-t`` timestamps instead of the absolute ones, counted over the frames shown."""
     colour = args.color == "always" or (args.color == "auto" and out.isatty())
     auditor = Auditor() if args.audit else None
     for d in described:
@@ -77,7 +83,11 @@ def show(
             continue
         if args.nodes is not None and (d.message is None or d.message.node not in args.nodes):
             continue
-        out.write((json.dumps(d.as_json()) if args.json else line(d, colour=colour)) + "\n")
+        if args.json:
+            out.write(json.dumps(d.as_json()) + "\n")
+        else:
+            stamp = stamps.text(d.timestamp) if stamps is not None else None
+            out.write(line(d, colour=colour, stamp=stamp) + "\n")
         for here, v in flagged:
             assert auditor is not None
             many = auditor.channels

@@ -595,3 +595,17 @@ def test_log_line_as_candump_writes_it() -> None:
     assert log_line(frame, "can0") == "(0000000001.500000) can0 0CE00101#0102\n"
     fd = _raw(0x123, bytes(9), 2.0, is_fd=True, error_state_indicator=True, is_extended_id=False)
     assert log_line(fd, "can1") == "(0000000002.000000) can1 123##2" + "00" * 9 + "\n"
+
+
+def test_an_error_frame_logged_as_candump_writes_it_is_read_back_as_one() -> None:
+    """candump -l writes an error frame's id with SocketCAN's error flag (0x20000000): the
+    capture readers took it for an identifier beyond 29 bits and skipped the line."""
+    from canergy.inspect.captures import parse_line
+
+    error = can.Message(
+        is_error_frame=True, arbitration_id=0x4, data=bytes([0, 4, 0, 0, 0, 0, 0, 0])
+    )
+    back = parse_line(log_line(error, "can0"))
+    assert back.is_error_frame and back.arbitration_id == 0x4 and back.data == error.data
+    with pytest.raises(ValueError, match="beyond 29 bits"):
+        parse_line("(1.000000) can0 40000004#00")  # no flag canergy knows

@@ -65,9 +65,23 @@ def _timestamp(text: str | None) -> float:
     return value
 
 
+CAN_ERR_FLAG = 0x20000000
+"""SocketCAN's error-frame flag: candump -l writes an error frame's id with it set."""
+
+
 def _from_log(m: re.Match[str]) -> can.Message:
-    ident, extended = _ident(m["id"])
-    rest = m["rest"]
+    text, rest = m["id"], m["rest"]
+    if len(text) == 8 and int(text, 16) & ~0x1FFFFFFF == CAN_ERR_FLAG:  # an error frame
+        if not _HEX.match(rest) or len(rest) % 2 or len(rest) > 16:
+            raise ValueError(f"bad error frame data {rest!r}")
+        return can.Message(
+            timestamp=_timestamp(m["ts"]),
+            channel=m["ch"],
+            arbitration_id=int(text, 16) & 0x1FFFFFFF,
+            is_error_frame=True,
+            data=bytes.fromhex(rest),
+        )
+    ident, extended = _ident(text)
     common = dict(
         timestamp=_timestamp(m["ts"]),
         channel=m["ch"],

@@ -5,7 +5,25 @@ import os
 import pytest
 from hypothesis import HealthCheck, settings
 
-pytest.register_assert_rewrite("cells")
+# The helpers moved out of test modules into tests/support/ keep pytest's assertion messages.
+# (Not support.recipes: its failure messages, matched by tests, stay as written.)
+pytest.register_assert_rewrite(
+    "support.blocked_imports",
+    "support.c_binding",
+    "support.c_cmac",
+    "support.cells",
+    "support.client_cases",
+    "support.drive_model",
+    "support.hazards",
+    "support.intrusion_bench",
+    "support.mem_nv",
+    "support.procs",
+    "support.readme",
+    "support.side_by_side",
+    "support.vcan",
+    "support.virtual_bus",
+    "support.zenoh_loopback",
+)
 
 settings.register_profile(
     "ci",

@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from test_c_binding import FIRMWARE, make
+from support.c_binding import FIRMWARE, make
 
 TESTS = Path(__file__).resolve().parent
 UNDER_ASAN = [
@@ -89,7 +89,7 @@ def test_the_c_tests_pass_under_address_sanitizer() -> None:
 PROBE = """
 import ctypes, sys
 sys.path.insert(0, "tests")
-from test_c_binding import RxFrame, library
+from support.c_binding import RxFrame, library
 libc = ctypes.CDLL(None)
 libc.malloc.restype = ctypes.c_void_p
 two = libc.malloc(2)  # an ACK needs 3 bytes: the decoder reads one past the end

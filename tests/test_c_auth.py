@@ -25,7 +25,7 @@ import can
 import pytest
 from hypothesis import example, given
 from hypothesis import strategies as st
-from test_c_binding import (
+from support.c_binding import (
     REASONS,
     RX_OTHER_NODE,
     CNodeState,
@@ -36,7 +36,7 @@ from test_c_binding import (
     library,
     rx,
 )
-from test_c_cmac import Cmac
+from support.c_cmac import Cmac
 
 from canergy.auth.frames import AuthFailure, FrameAuth, Layout, freshness
 from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeError

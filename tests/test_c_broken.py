@@ -2,8 +2,9 @@
 
 ``libcanergy-broken.so`` is built with ``-DCANERGY_BREAK_REPEATED_TX``: a COMMIT for the
 transaction the client already resolved is applied a second time (energy created) instead of
-being answered with the recorded reply. The machine of tests/test_c_sidebyside.py must find a
-difference with the Python rules within its default budget of examples.
+being answered with the recorded reply. The machine of tests/test_c_sidebyside.py
+(``support.side_by_side``) must find a difference with the Python rules within its default
+budget of examples.
 """
 
 from __future__ import annotations
@@ -12,8 +13,8 @@ import ctypes
 
 import pytest
 from hypothesis import Phase as HypothesisPhase
-from test_c_binding import CClient, library, make
-from test_c_sidebyside import SideBySide, run_side_by_side
+from support.c_binding import CClient, library, make
+from support.side_by_side import SideBySide, run_side_by_side
 
 from canergy.core import Timing
 from canergy.messages import Admit, Commit, Intention

@@ -8,7 +8,7 @@ from __future__ import annotations
 import ctypes
 import functools
 import itertools
-from ctypes import POINTER, Structure, c_bool, c_size_t, c_uint8, c_void_p
+from ctypes import POINTER, c_bool, c_size_t, c_uint8, c_void_p
 
 import pytest
 from cryptography.hazmat.primitives.ciphers import algorithms
@@ -16,25 +16,12 @@ from cryptography.hazmat.primitives.cmac import CMAC
 from cryptography.hazmat.primitives.kdf.kbkdf import KBKDFCMAC, CounterLocation, Mode
 from hypothesis import example, given
 from hypothesis import strategies as st
-from test_c_binding import library
+from support.c_binding import library
+from support.c_cmac import Aes128, Cmac, CmacStream
 
 RFC4493_KEY = bytes.fromhex("2b7e151628aed2a6abf7158809cf4f3c")
 keys = st.binary(min_size=16, max_size=16)
 messages = st.binary(max_size=100)
-
-
-class Aes128(Structure):
-    _fields_ = [("rk", c_uint8 * 176)]
-
-
-class Cmac(Structure):
-    _fields_ = [("aes", Aes128), ("k1", c_uint8 * 16), ("k2", c_uint8 * 16)]
-
-
-class CmacStream(Structure):
-    _fields_ = [("x", c_uint8 * 16), ("n", c_uint8)]
-
-
 MIRROR = {"canergy_aes128": Aes128, "canergy_cmac": Cmac, "canergy_cmac_stream": CmacStream}
 
 

@@ -10,8 +10,8 @@ import functools
 import pytest
 from hypothesis import example, given
 from hypothesis import strategies as st
+from support.c_binding import DIRECTIONS, OK, REASONS, Frame, Msg, library, rx
 from support.strategies import messages
-from test_c_binding import DIRECTIONS, OK, REASONS, Frame, Msg, library, rx
 
 from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeError
 from canergy.messages import (

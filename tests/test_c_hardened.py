@@ -10,9 +10,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import pytest
-import test_hardened_client as py
-from support.cells import Case, params
-from test_c_binding import (
+from support.c_binding import (
     ERR_AMOUNT,
     ERR_PHASE,
     EV_ADMITTED,
@@ -24,15 +22,34 @@ from test_c_binding import (
     events_of,
     frames_of,
 )
+from support.cells import Case, check_coverage, params
+from support.client_cases import (
+    CASES,
+    EVENTS,
+    FRESH,
+    HOLDING,
+    IGNORED,
+    REFUSED,
+    RETURNING,
+    STATES,
+    T,
+)
 
 from canergy.codec import Codec
 from canergy.core.hardened import CLIENT as TABLE
-from canergy.core.inputs import BooksLost, CommandTimeout, GiveBack, PowerLoss, ReturnTimeout, Spend
+from canergy.core.inputs import (
+    RETURN_TIMEOUT,
+    BooksLost,
+    CommandTimeout,
+    GiveBack,
+    PowerLoss,
+    ReturnTimeout,
+    Spend,
+)
 from canergy.core.state import ClientState, Phase
-from canergy.messages import USABLE_MAX_UJ, Intention
+from canergy.messages import USABLE_MAX_UJ, Abort, Commit, Intention, ReturnAck
 
 CODEC = Codec()
-T = py.T
 
 
 def run_c(start: ClientState, event: object, now: int) -> tuple[CClient, Out | int]:
@@ -70,7 +87,7 @@ def assert_same_step(start: ClientState, event: object, now: int) -> None:
         assert bool(out.persist) == record_changed
 
 
-@pytest.mark.parametrize("case", params(py.CASES))
+@pytest.mark.parametrize("case", params(CASES))
 def test_cell(case: Case) -> None:
     assert isinstance(case.start, ClientState)
     assert_same_step(case.start, case.event, case.now)
@@ -80,18 +97,18 @@ def test_cell(case: Case) -> None:
     assert out.sent() == frames_of(CODEC, case.actions)
 
 
-@pytest.mark.parametrize("cell", sorted(py.IGNORED, key=str), ids=str)
+@pytest.mark.parametrize("cell", sorted(IGNORED, key=str), ids=str)
 def test_ignored(cell: tuple[Phase, type]) -> None:
-    start, event = py.STATES[cell[0]], py.EVENTS[cell[1]]
+    start, event = STATES[cell[0]], EVENTS[cell[1]]
     c, out = run_c(start, event, 10**9)
     assert isinstance(out, Out)
     assert c.view() == c_view(start) and out.sent() == [] and not out.persist
     assert out.events == 0
 
 
-@pytest.mark.parametrize("cell", sorted(py.REFUSED, key=str), ids=str)
+@pytest.mark.parametrize("cell", sorted(REFUSED, key=str), ids=str)
 def test_refused(cell: tuple[Phase, type]) -> None:
-    start, event = py.STATES[cell[0]], py.EVENTS[cell[1]]
+    start, event = STATES[cell[0]], EVENTS[cell[1]]
     c, out = run_c(start, event, 0)
     assert out == ERR_PHASE and c.view() == c_view(start)
 
@@ -100,19 +117,19 @@ def test_refused(cell: tuple[Phase, type]) -> None:
     "event", [Spend(0), Spend(10_001), GiveBack(1500), GiveBack(11_000), GiveBack(0)], ids=str
 )
 def test_local_requests_guarded_by_energy(event: object) -> None:
-    c, out = run_c(py.FRESH, event, 0)
-    assert out == ERR_AMOUNT and c.view() == c_view(py.FRESH)
+    c, out = run_c(FRESH, event, 0)
+    assert out == ERR_AMOUNT and c.view() == c_view(FRESH)
 
 
 def test_one_return_at_a_time() -> None:
-    c, out = run_c(py.RETURNING, GiveBack(1000), 0)
+    c, out = run_c(RETURNING, GiveBack(1000), 0)
     assert out == ERR_PHASE and not c.can_give_back()
-    assert CClient(2, timing=T, state=py.FRESH).can_give_back()
+    assert CClient(2, timing=T, state=FRESH).can_give_back()
 
 
 def test_every_cell_is_run_on_c_too() -> None:
     """The cases above are the Python table's own list, so a new cell there is a new C test."""
-    py.test_every_cell_has_a_test()
+    check_coverage(TABLE, CASES, IGNORED, REFUSED)
 
 
 # -- beyond the table's cases: counters at their wrap, and energy at the record's limit ---------
@@ -126,15 +143,15 @@ def test_tx_comparisons_wrap_as_in_python(last_tx: int, delta: int) -> None:
     """Counters the record keeps modulo 2**32 compare as Python's unbounded ones, past every
     wrap of the wire and of the record."""
     for start in (
-        replace(py.FRESH, last_tx=last_tx),
-        replace(py.HOLDING, last_tx=last_tx, held_tx=last_tx + 1, deadline=1000),
-        replace(py.HOLDING, last_tx=last_tx, held_tx=last_tx + 3, deadline=1000),
+        replace(FRESH, last_tx=last_tx),
+        replace(HOLDING, last_tx=last_tx, held_tx=last_tx + 1, deadline=1000),
+        replace(HOLDING, last_tx=last_tx, held_tx=last_tx + 3, deadline=1000),
     ):
         wire = (last_tx + delta) & 0xFFFF
         for event in (
             Intention(2, wire, 4, 50),
-            py.Commit(2, wire, 4),
-            py.Abort(2, wire, 4),
+            Commit(2, wire, 4),
+            Abort(2, wire, 4),
         ):
             assert_same_step(start, event, 77)
 
@@ -143,7 +160,7 @@ def test_tx_comparisons_wrap_as_in_python(last_tx: int, delta: int) -> None:
 @pytest.mark.parametrize("delta", [-0x800000, -1, 0, 1, 1000, 0x7FFFFF])
 def test_delivered_count_wraps_as_in_python(credited_mj: int, delta: int) -> None:
     for usable in (0, 10_000, USABLE_MAX_UJ - 4000, USABLE_MAX_UJ):
-        start = replace(py.FRESH, usable=usable, credited=credited_mj * 1000)
+        start = replace(FRESH, usable=usable, credited=credited_mj * 1000)
         gs = (credited_mj + delta) & 0xFFFFFF
         assert_same_step(start, Intention(2, 6, 4, gs), 0)
         assert_same_step(start, Intention(2, 5, 4, gs), 0)
@@ -152,11 +169,11 @@ def test_delivered_count_wraps_as_in_python(credited_mj: int, delta: int) -> Non
 
 @pytest.mark.parametrize("seq", [0, 1, 0xFFFF, 0x10000, 2**32 - 1, 2**32])
 def test_return_numbers_wrap_as_in_python(seq: int) -> None:
-    start = replace(py.RETURNING, return_seq=seq)
+    start = replace(RETURNING, return_seq=seq)
     for wire in (seq & 0xFFFF, (seq + 1) & 0xFFFF, (seq - 1) & 0xFFFF):
-        assert_same_step(start, py.ReturnAck(2, wire), 0)
-    assert_same_step(replace(py.FRESH, return_seq=seq), GiveBack(3000), 5)
-    assert_same_step(start, py.RETURN_TIMEOUT, 300)
+        assert_same_step(start, ReturnAck(2, wire), 0)
+    assert_same_step(replace(FRESH, return_seq=seq), GiveBack(3000), 5)
+    assert_same_step(start, RETURN_TIMEOUT, 300)
 
 
 def test_phases_map_one_to_one() -> None:

@@ -10,9 +10,9 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import pytest
+from support.c_binding import CClient, c_view
 from support.harness import Harness
-from test_c_binding import CClient, c_view
-from test_hazards import HAZARDS
+from support.hazards import HAZARDS
 
 from canergy.core import Action, Persist, Send
 

@@ -21,7 +21,7 @@ import random
 
 import can
 import pytest
-from test_c_binding import (
+from support.c_binding import (
     NEVER,
     ClientConfig,
     CNodeState,
@@ -30,7 +30,7 @@ from test_c_binding import (
     library,
     rx,
 )
-from test_c_sidebyside import MemNv, write_slot
+from support.mem_nv import MemNv, write_slot
 
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
 from canergy.core import Acknowledged, Send, Supervisor, Timing

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from test_c_binding import SLOT, CClient, NvState, Record, c_view, library
-from test_c_sidebyside import MemNv, write_slot
+from support.c_binding import SLOT, CClient, NvState, Record, c_view, library
+from support.mem_nv import MemNv, write_slot
 
 from canergy.core import Timing
 from canergy.core.state import ClientState, Outcome

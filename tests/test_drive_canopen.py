@@ -10,13 +10,14 @@ import statistics
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import can
 import canopen
 import pytest
 from canopen.profiles.p402 import State402
+from support.virtual_bus import Frames, wait_for
 
 from canergy.live.runtime import monotonic_us
 from firmware_model.drive.canopen_face import DriveFace, drive_network
@@ -25,29 +26,6 @@ from firmware_model.drive.motor import LoadTorque
 
 NODE, MASTER = 10, 1
 CIA402_EDS = "src/canergy/live/cia402.eds"
-
-
-def wait_for(condition: Callable[[], bool], timeout: float = 10.0) -> None:
-    end = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < end, "timed out"
-        time.sleep(0.005)
-
-
-class Frames(can.Listener):
-    """Every frame the master sees, with its arrival time."""
-
-    def __init__(self) -> None:
-        self.seen: list[tuple[float, int, bytes]] = []
-        self.lock = threading.Lock()
-
-    def on_message_received(self, msg: can.Message) -> None:
-        with self.lock:
-            self.seen.append((time.monotonic(), msg.arbitration_id, bytes(msg.data)))
-
-    def of(self, cob_id: int) -> list[tuple[float, bytes]]:
-        with self.lock:
-            return [(t, d) for t, c, d in self.seen if c == cob_id]
 
 
 @dataclass

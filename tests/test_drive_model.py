@@ -10,13 +10,13 @@ import pytest
 from canopen.profiles.p402 import State402
 from hypothesis import given
 from hypothesis import strategies as st
+from support.drive_model import MS, NODE, enabled
 
 from firmware_model.drive.model import SUBSTEP_US, DriveAbort, DriveModel
 from firmware_model.drive.motor import LoadTorque, MotorParams
 from firmware_model.drive.power import TORQUE_STATES
 
-NODE, HOST = 10, 1
-MS = 1000
+HOST = 1
 
 
 def state_of(statusword: int) -> str:
@@ -25,19 +25,6 @@ def state_of(statusword: int) -> str:
         if statusword & mask == bits:
             return name
     return "UNKNOWN"
-
-
-def enabled(objects: dict[int, int] | None = None, mode: int = 3) -> DriveModel:
-    """A drive in OPERATION ENABLED at t = 1 ms in ``mode``, with ``objects`` written first."""
-    m = DriveModel(NODE, load=LoadTorque.constant(0.02, opposing=True))
-    m.advance(MS)
-    m.write(0x6060, 0, mode)
-    for index, value in (objects or {}).items():
-        m.write(index, 0, value)
-    for cw in (0x06, 0x07, 0x0F):
-        m.write(0x6040, 0, cw)
-    assert m.state == "OPERATION ENABLED"
-    return m
 
 
 def test_starts_switch_on_disabled_and_statusword_matches_canopen() -> None:

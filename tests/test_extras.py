@@ -13,7 +13,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
-from test_packaging import EXTRAS, RUN_CLI, run_blocked
+from support.blocked_imports import EXTRAS, RUN_CLI, run_blocked
 
 from canergy.extras import EXTRAS as EXTRA_MODULES
 from canergy.extras import MissingExtra, require

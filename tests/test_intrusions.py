@@ -6,28 +6,14 @@ frame in its own direction for a node it handles was sent by someone else.
 
 from __future__ import annotations
 
-import json
-import threading
 import time
-import uuid
 from collections.abc import Iterator
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
-import can
 import pytest
-from support.live_rig import Loop
+from support.intrusion_bench import CODEC, Bench, bench
 
-from canergy.cli import main
-from canergy.codec import Codec
-from canergy.live.control import request
-from canergy.live.runtime import BusRuntime, monotonic_us
-from canergy.messages import Ack, Direction, Intention
-from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
-from firmware_model.nvstore import NvStore
-
-CODEC = Codec()
+from canergy.messages import Ack, Intention
 
 
 def test_watch_filters_pass_the_own_direction_too() -> None:
@@ -39,66 +25,6 @@ def test_watch_filters_pass_the_own_direction_too() -> None:
     assert not CODEC.accepts(CODEC.client_filters(5), ack, True)
     assert CODEC.accepts(CODEC.client_watch_filters(5), ack, True)
     assert not CODEC.accepts(CODEC.client_watch_filters(5), other_ack, True)
-
-
-@dataclass
-class Bench:
-    tmp: Path
-    rogue: can.BusABC
-    host: NodeHost
-    result: list[int]
-    thread: threading.Thread
-
-    def status(self) -> dict[str, Any]:
-        try:
-            return dict(json.loads((self.tmp / "status.json").read_text()))
-        except (FileNotFoundError, json.JSONDecodeError):
-            return {}
-
-    def forge(self, msg: Any) -> int:
-        """Send ``msg`` as a rogue would; when it left (monotonic µs)."""
-        arbitration_id, data = CODEC.encode(msg)
-        sent = monotonic_us()
-        self.rogue.send(can.Message(arbitration_id=arbitration_id, data=data))
-        return sent
-
-    def wait(self, condition: Any, timeout: float = 30) -> None:
-        end = time.monotonic() + timeout
-        while not condition():
-            assert time.monotonic() < end, "timed out"
-            time.sleep(0.02)
-
-
-def bench(tmp: Path, *extra: str) -> Iterator[Bench]:
-    channel = f"intrusion-{uuid.uuid4().hex}"
-    now = monotonic_us()
-    node = FirmwareNode(1, NvStore(tmp / "1.nv", 1, fsync=False), NodeConfig(), now)
-    host = NodeHost([node])
-    node_bus = can.Bus(
-        interface="virtual", channel=channel, can_filters=CODEC.client_watch_filters(1)
-    )
-    loop = Loop(BusRuntime(node_bus, host, codec=CODEC, receives=Direction.TO_CLIENT))
-    argv = [
-        "supervisor",
-        *("-i", "virtual", "-c", channel, "--nodes", "1", "--initial", "10J"),
-        *("--state", str(tmp / "s.json"), "--no-fsync"),
-        *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
-        *("--control", str(tmp / "ctl.sock"), *extra),
-    ]
-    result: list[int] = []
-    thread = threading.Thread(target=lambda: result.append(main(argv)), daemon=True)
-    thread.start()
-    rogue = can.Bus(interface="virtual", channel=channel)
-    b = Bench(tmp, rogue, host, result, thread)
-    try:
-        b.wait(lambda: b.status().get("nodes"))
-        yield b
-    finally:
-        if thread.is_alive():
-            request(tmp / "ctl.sock", {"stop": True}, 30)
-        thread.join(timeout=60)
-        loop.halt()
-        rogue.shutdown()
 
 
 @pytest.fixture

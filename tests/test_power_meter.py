@@ -18,8 +18,8 @@ import canopen
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from test_drive_canopen import Frames, wait_for
-from test_drive_model import MS, enabled
+from support.drive_model import MS, enabled
+from support.virtual_bus import Frames, wait_for
 
 import firmware_model.drive.__main__ as drive_main
 from canergy.live.runtime import monotonic_us

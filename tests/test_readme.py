@@ -4,16 +4,7 @@ import re
 import shlex
 from pathlib import Path
 
-VCAN_MARK = "<!-- vcan0:"
-"""Marks a python block that needs vcan0: the vcan suite runs it (``vcan_python_blocks``)."""
-
-
-def python_blocks() -> list[tuple[bool, str]]:
-    """Every python block of the README, and whether it is marked ``<!-- vcan0: ...`` (it needs
-    vcan0: the vcan suite runs it)."""
-    text = (Path(__file__).parent.parent / "README.md").read_text()
-    found = re.findall(r"(<!-- vcan0:[^\n]*\n)?```python\n(.*?)```", text, re.S)
-    return [(bool(mark), block) for mark, block in found]
+from support.readme import python_blocks
 
 
 def test_readme_python_example_runs() -> None:

@@ -6,25 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from support.recipes import Recipe, Session, recipes
-
-
-def sessions(where: str) -> dict[str, list[Recipe]]:
-    found: dict[str, list[Recipe]] = {}
-    for recipe in recipes():
-        if recipe.where == where:
-            found.setdefault(recipe.session, []).append(recipe)
-    return found
-
-
-def run_session(blocks: list[Recipe], tmp_path: Path) -> Session:
-    session = Session(tmp_path)
-    try:
-        for recipe in blocks:
-            session.run(recipe)
-    finally:
-        session.close()
-    return session
+from support.recipes import recipes, run_session, sessions
 
 
 def test_the_readme_has_recipes_of_both_kinds() -> None:

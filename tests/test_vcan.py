@@ -8,17 +8,19 @@ vcan0 is missing: selecting them is asking for them.
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
-import sys
 import time
-from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import cantools
 import pytest
+from support.procs import Procs, python, status, wait
+from support.procs import procs as procs  # the fixture
+from support.vcan import BUDGET, BUS, IFACE, c_client, client, supervisor
+from support.vcan import c_node as c_node  # the fixtures: the C node, built when missing
+from support.vcan import vcan_up as vcan_up  # and vcan0 or a failure, for every test here
 
 from canergy.ledger import ledger_from_status
 from canergy.live.shared_bus import EDS
@@ -27,131 +29,6 @@ pytestmark = pytest.mark.vcan
 
 ROOT = Path(__file__).resolve().parents[1]
 DBC = ROOT / "dbc" / "canergy.dbc"
-IFACE = os.environ.get("CANERGY_VCAN", "vcan0")
-BUS = ["-i", "socketcan", "-c", IFACE]
-# syscalls inside user-mode Linux are slow: timeouts and waits are generous
-TIMEOUT = ["--response-timeout", "0.3"]
-BUDGET = "100J"
-"""The supervisor's budget: three 0.2 W nodes spend 10 J in about 17 s, which a slow run (a
-busy CI machine, user-mode Linux) could pass before its last step, and then nothing is granted."""
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _vcan_up() -> None:
-    state = Path(f"/sys/class/net/{IFACE}/operstate")
-    assert state.exists(), (
-        f"{IFACE} missing: ip link add dev {IFACE} type vcan; ip link set up {IFACE}"
-    )
-
-
-class Procs:
-    def __init__(self, tmp: Path) -> None:
-        self.tmp = tmp
-        self.procs: dict[str, subprocess.Popen[bytes]] = {}
-
-    def start(self, name: str, argv: list[str]) -> subprocess.Popen[bytes]:
-        log = open(self.tmp / f"{name}.stderr", "wb")  # noqa: SIM115 - closed with the process
-        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=log, cwd=self.tmp)
-        self.procs[name] = proc
-        return proc
-
-    def stderr(self, name: str) -> str:
-        return (self.tmp / f"{name}.stderr").read_text(errors="replace")
-
-    def stop(self, name: str, sig: int = signal.SIGTERM, timeout: float = 60) -> int:
-        proc = self.procs.pop(name)
-        proc.send_signal(sig)
-        return proc.wait(timeout)
-
-    def close(self) -> None:
-        for proc in self.procs.values():
-            proc.kill()
-            proc.wait(30)
-
-
-@pytest.fixture
-def procs(tmp_path: Path) -> Iterator[Procs]:
-    p = Procs(tmp_path)
-    yield p
-    p.close()
-
-
-def _python(*args: str) -> list[str]:
-    return [sys.executable, *args]
-
-
-def _client(
-    procs: Procs, node: int, *extra: str, program: list[str] | None = None
-) -> subprocess.Popen[bytes]:
-    """A node with the same flags, as ``python -m firmware_model`` or ``program`` (the C node)."""
-    tmp = procs.tmp
-    argv = [
-        *(program or _python("-m", "firmware_model")),
-        "--node",
-        str(node),
-        *BUS,
-        "--nv",
-        str(tmp / f"n{node}.nv"),
-        "--power",
-        "0.2W",
-        "--status-file",
-        str(tmp / f"n{node}.json"),
-        "--telemetry-period",
-        "0.5",
-        *TIMEOUT,
-        *extra,
-    ]
-    return procs.start(f"client{node}", argv)
-
-
-def _supervisor(procs: Procs, nodes: str, *extra: str) -> subprocess.Popen[bytes]:
-    tmp = procs.tmp
-    argv = _python(
-        "-m",
-        "canergy",
-        "supervisor",
-        *BUS,
-        "--nodes",
-        nodes,
-        "--initial",
-        BUDGET,
-        "--target",
-        "1J",
-        "--max-grant",
-        "0.5J",
-        "--state",
-        str(tmp / "state.json"),
-        "--status-file",
-        str(tmp / "sup.json"),
-        *TIMEOUT,
-        *extra,
-    )
-    return procs.start("supervisor", argv)
-
-
-def _status(path: Path) -> dict[str, Any]:
-    for _ in range(50):  # the writer replaces the file atomically; it may not exist yet
-        try:
-            data: dict[str, Any] = json.loads(path.read_text())
-            return data
-        except FileNotFoundError:
-            time.sleep(0.1)
-    raise AssertionError(f"{path} never appeared")
-
-
-def _wait(
-    condition: Callable[[], bool],
-    what: str,
-    timeout_s: float = 120,
-    show: Callable[[], object] | None = None,
-) -> None:
-    """Poll ``condition``; on timeout fail naming ``what`` and what ``show`` returns then."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            shown = f"\n{show()}" if show is not None else ""
-            raise AssertionError(f"timed out waiting for {what}{shown}")
-        time.sleep(0.2)
 
 
 def _cansend(frame: str) -> None:
@@ -162,19 +39,19 @@ def test_processes_on_vcan0_stay_passive_through_garbage_and_kill_9(procs: Procs
     tmp = procs.tmp
     candump = subprocess.Popen(["candump", "-l", IFACE], cwd=tmp)  # candump-<date>.log in tmp
     sup_status = tmp / "sup.json"
-    _supervisor(procs, "1-3", "--lost-after", "10")
+    supervisor(procs, "1-3", "--lost-after", "10")
     for node in (1, 2, 3):
-        _client(procs, node)
+        client(procs, node)
 
     def committed(node: int) -> int:
         return (
-            int(_status(sup_status)["nodes"][str(node)]["committed"]) if sup_status.exists() else 0
+            int(status(sup_status)["nodes"][str(node)]["committed"]) if sup_status.exists() else 0
         )
 
-    _wait(lambda: all(committed(n) >= 2 for n in (1, 2, 3)), "two grants per node")
+    wait(lambda: all(committed(n) >= 2 for n in (1, 2, 3)), "two grants per node")
 
     # malformed and foreign frames: counted, never acted on
-    before = _status(sup_status)["decode_errors"]
+    before = status(sup_status)["decode_errors"]
     for frame in (
         "0CE00901#00",
         "0CE00901#000100",
@@ -185,22 +62,22 @@ def test_processes_on_vcan0_stay_passive_through_garbage_and_kill_9(procs: Procs
         "0CE0090A#R",
     ):
         _cansend(frame)
-    _wait(lambda: _status(sup_status)["decode_errors"] >= before + 3, "supervisor decode errors")
-    _wait(lambda: _status(tmp / "n1.json")["decode_errors"] >= 1, "client decode errors")
+    wait(lambda: status(sup_status)["decode_errors"] >= before + 3, "supervisor decode errors")
+    wait(lambda: status(tmp / "n1.json")["decode_errors"] >= 1, "client decode errors")
 
     # a client loses power hard, mid-whatever, and restarts from its NV file
     procs.stop("client2", signal.SIGKILL)
     (tmp / "n2.json").unlink()
     time.sleep(1)  # let a COMMITTED already on its way be counted
     done_before = committed(2)
-    _client(procs, 2)
-    _wait(lambda: (tmp / "n2.json").exists(), "node 2 restarting")
-    _wait(
+    client(procs, 2)
+    wait(lambda: (tmp / "n2.json").exists(), "node 2 restarting")
+    wait(
         lambda: committed(2) > done_before,
         "node 2 resuming after kill -9",
         show=lambda: (
-            f"supervisor's node 2: {_status(sup_status)['nodes']['2']}\n"
-            f"node 2: {_status(tmp / 'n2.json')}\nnode 2 stderr: {procs.stderr('client2')[-2000:]}"
+            f"supervisor's node 2: {status(sup_status)['nodes']['2']}\n"
+            f"node 2: {status(tmp / 'n2.json')}\nnode 2 stderr: {procs.stderr('client2')[-2000:]}"
             f"\nsupervisor stderr: {procs.stderr('supervisor')[-2000:]}"
         ),
     )
@@ -212,8 +89,8 @@ def test_processes_on_vcan0_stay_passive_through_garbage_and_kill_9(procs: Procs
     candump.wait(30)
     (capture,) = tmp.glob("candump-*.log")
 
-    final = _status(sup_status)
-    clients = [_status(tmp / f"n{n}.json") for n in (1, 2, 3)]
+    final = status(sup_status)
+    clients = [status(tmp / f"n{n}.json") for n in (1, 2, 3)]
     books = ledger_from_status(final, clients)
     assert books.dissipated >= 0, books  # nothing generated, NV files and all
     assert final["conservation"]["holds"] and final["decode_errors"] >= 3
@@ -244,7 +121,7 @@ def test_processes_on_vcan0_stay_passive_through_garbage_and_kill_9(procs: Procs
 
     # canergy's own decoder and auditor agree with the supervisor's books
     audit = subprocess.run(
-        _python("-m", "canergy", "audit", str(capture), "--initial", BUDGET, "--json"),
+        python("-m", "canergy", "audit", str(capture), "--initial", BUDGET, "--json"),
         capture_output=True,
         text=True,
         timeout=120,
@@ -259,7 +136,7 @@ def test_processes_on_vcan0_stay_passive_through_garbage_and_kill_9(procs: Procs
             books["committed_uj"],
         )
     decode = subprocess.run(
-        _python("-m", "canergy", "decode", "-", "--color", "never"),
+        python("-m", "canergy", "decode", "-", "--color", "never"),
         input=capture.read_text(),
         capture_output=True,
         text=True,
@@ -273,14 +150,14 @@ def test_canopen_on_vcan0_eds_master_heartbeat_loss_and_restart(procs: Procs) ->
 
     tmp = procs.tmp
     sup_status = tmp / "sup.json"
-    _supervisor(procs, "7-8", "--canopen", "--heartbeat-timeout", "3", "--status-period", "0.3")
+    supervisor(procs, "7-8", "--canopen", "--heartbeat-timeout", "3", "--status-period", "0.3")
     for node in (7, 8):
-        _client(procs, node, "--canopen")
+        client(procs, node, "--canopen")
 
     def node_status(node: int) -> dict[str, Any]:
-        return _status(sup_status)["nodes"][str(node)] if sup_status.exists() else {}
+        return status(sup_status)["nodes"][str(node)] if sup_status.exists() else {}
 
-    _wait(lambda: all(node_status(n).get("committed", 0) >= 1 for n in (7, 8)), "grants")
+    wait(lambda: all(node_status(n).get("committed", 0) >= 1 for n in (7, 8)), "grants")
 
     # a master that knows only the EDS reads every energy object of a running emulator
     master = canopen.Network()
@@ -297,25 +174,25 @@ def test_canopen_on_vcan0_eds_master_heartbeat_loss_and_restart(procs: Procs) ->
     # node 8 freezes (no telemetry; its heartbeat may go on from the kernel's CAN_BCM): the
     # supervisor marks it lost and stops granting to it
     procs.procs["client8"].send_signal(signal.SIGSTOP)
-    _wait(lambda: node_status(8).get("lost") is True, "node 8 marked lost", timeout_s=30)
+    wait(lambda: node_status(8).get("lost") is True, "node 8 marked lost", timeout_s=30)
     granted = node_status(8)["delivered_uj"]
     time.sleep(2)
     assert node_status(8)["delivered_uj"] == granted
     procs.procs["client8"].send_signal(signal.SIGCONT)
-    _wait(lambda: node_status(8).get("lost") is False, "node 8 back", timeout_s=60)
+    wait(lambda: node_status(8).get("lost") is False, "node 8 back", timeout_s=60)
     # it dies and comes back from its NV file: boot-up, NMT start, grants resume
     procs.stop("client8", signal.SIGKILL)
     (tmp / "n8.json").unlink()
     time.sleep(1)  # let a COMMITTED already on its way be counted
     done = node_status(8)["committed"]
-    _client(procs, 8, "--canopen")
-    _wait(lambda: (tmp / "n8.json").exists(), "node 8 restarting")  # up, its signals handled
-    _wait(lambda: node_status(8)["committed"] > done, "grants to node 8 after its reboot")
+    client(procs, 8, "--canopen")
+    wait(lambda: (tmp / "n8.json").exists(), "node 8 restarting")  # up, its signals handled
+    wait(lambda: node_status(8)["committed"] > done, "grants to node 8 after its reboot")
 
     assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
     for node in (7, 8):
         assert procs.stop(f"client{node}") == 0, procs.stderr(f"client{node}")
-    books = ledger_from_status(_status(sup_status), [_status(tmp / f"n{n}.json") for n in (7, 8)])
+    books = ledger_from_status(status(sup_status), [status(tmp / f"n{n}.json") for n in (7, 8)])
     assert books.dissipated >= 0, books
 
 
@@ -323,26 +200,26 @@ def test_a_node_whose_nv_file_is_deleted_rejoins_without_creating_energy(procs: 
     """Issue 13: a node started without its record used to be paid back all of Gs."""
     tmp = procs.tmp
     sup_status, node_status = tmp / "sup.json", tmp / "n1.json"
-    _supervisor(procs, "1", "--lost-after", "10")
-    _client(procs, 1)
+    supervisor(procs, "1", "--lost-after", "10")
+    client(procs, 1)
 
     def node_books() -> dict[str, Any]:
-        return dict(_status(sup_status)["nodes"]["1"]) if sup_status.exists() else {}
+        return dict(status(sup_status)["nodes"]["1"]) if sup_status.exists() else {}
 
-    _wait(lambda: node_books().get("committed", 0) >= 2, "two grants")
+    wait(lambda: node_books().get("committed", 0) >= 2, "two grants")
     procs.stop("client1", signal.SIGKILL)
-    before = _status(node_status)
+    before = status(node_status)
     (tmp / "n1.nv").unlink()
     node_status.unlink()
-    _client(procs, 1)
+    client(procs, 1)
     assert node_books()["admitted"] == 1  # its first start had no file either
-    _wait(lambda: node_books()["admitted"] >= 2, "node 1 admitted again")
+    wait(lambda: node_books()["admitted"] >= 2, "node 1 admitted again")
     done = node_books()["committed"]
-    _wait(lambda: node_books()["committed"] >= done + 1, "a grant after admission")
+    wait(lambda: node_books()["committed"] >= done + 1, "a grant after admission")
 
     assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
     assert procs.stop("client1") == 0, procs.stderr("client1")
-    final, after = _status(sup_status), _status(node_status)
+    final, after = status(sup_status), status(node_status)
     assert after["joins"] == 1 and not after["joining"]
     books = final["nodes"]["1"]
     released = books["delivered_uj"] - books["returns_credited_uj"]
@@ -353,46 +230,23 @@ def test_a_node_whose_nv_file_is_deleted_rejoins_without_creating_energy(procs: 
 
 # The C node (firmware/ports/linux): the same process model, flags, NV file and status file as
 # firmware_model --node, so the tests above carry over with the binary in its place.
-FIRMWARE = ROOT / "firmware"
-C_NODE = FIRMWARE / "build" / "canergy-node"
-
-
-@pytest.fixture(scope="module")
-def c_node() -> Path:
-    """Build the binary when missing (make); a build that fails fails the test loudly."""
-    if not C_NODE.exists():
-        build = subprocess.run(
-            ["make", "-C", str(FIRMWARE), "build/canergy-node"],
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
-        assert build.returncode == 0, f"make canergy-node failed:\n{build.stdout}{build.stderr}"
-    assert os.access(C_NODE, os.X_OK), f"{C_NODE} was not built"
-    return C_NODE
-
-
-def _c_client(procs: Procs, binary: Path, node: int, *extra: str) -> subprocess.Popen[bytes]:
-    return _client(procs, node, *extra, program=[str(binary)])
-
-
 def test_c_nodes_on_vcan0_stay_passive_through_garbage_and_kill_9(
     procs: Procs, c_node: Path
 ) -> None:
     tmp = procs.tmp
     candump = subprocess.Popen(["candump", "-l", IFACE], cwd=tmp)
     sup_status = tmp / "sup.json"
-    _supervisor(procs, "1-3", "--lost-after", "10")
+    supervisor(procs, "1-3", "--lost-after", "10")
     for node in (1, 2, 3):
-        _c_client(procs, c_node, node, "--return-above", "0.8J")
+        c_client(procs, c_node, node, "--return-above", "0.8J")
 
     def committed(node: int) -> int:
         return (
-            int(_status(sup_status)["nodes"][str(node)]["committed"]) if sup_status.exists() else 0
+            int(status(sup_status)["nodes"][str(node)]["committed"]) if sup_status.exists() else 0
         )
 
-    _wait(lambda: all(committed(n) >= 2 for n in (1, 2, 3)), "two grants per C node")
-    before = _status(sup_status)["decode_errors"]
+    wait(lambda: all(committed(n) >= 2 for n in (1, 2, 3)), "two grants per C node")
+    before = status(sup_status)["decode_errors"]
     for frame in (
         "0CE00901#00",  # ACK with a wrong length, to the supervisor
         "0CE00101#00",  # INTENTION to node 1 with a wrong length
@@ -403,19 +257,19 @@ def test_c_nodes_on_vcan0_stay_passive_through_garbage_and_kill_9(
         "701#05",
     ):
         _cansend(frame)
-    _wait(lambda: _status(sup_status)["decode_errors"] >= before + 1, "supervisor decode errors")
-    _wait(lambda: _status(tmp / "n1.json")["decode_errors"] >= 4, "C node decode errors")
-    reasons = _status(tmp / "n1.json")["decode_error_reasons"]
+    wait(lambda: status(sup_status)["decode_errors"] >= before + 1, "supervisor decode errors")
+    wait(lambda: status(tmp / "n1.json")["decode_errors"] >= 4, "C node decode errors")
+    reasons = status(tmp / "n1.json")["decode_error_reasons"]
     assert reasons.get("remote frame", 0) >= 1 and reasons.get("CRC mismatch", 0) >= 1, reasons
 
     procs.stop("client2", signal.SIGKILL)  # power lost at any instant: NV holds the books
     (tmp / "n2.json").unlink()
     time.sleep(1)
     done_before = committed(2)
-    _c_client(procs, c_node, 2, "--return-above", "0.8J")
-    _wait(lambda: (tmp / "n2.json").exists(), "C node 2 restarting")
-    _wait(lambda: committed(2) > done_before, "C node 2 resuming after kill -9")
-    restarted = _status(tmp / "n2.json")
+    c_client(procs, c_node, 2, "--return-above", "0.8J")
+    wait(lambda: (tmp / "n2.json").exists(), "C node 2 restarting")
+    wait(lambda: committed(2) > done_before, "C node 2 resuming after kill -9")
+    restarted = status(tmp / "n2.json")
     assert restarted["joins"] == 0 and restarted["nv_fallbacks"] == 0, restarted
 
     assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
@@ -425,8 +279,8 @@ def test_c_nodes_on_vcan0_stay_passive_through_garbage_and_kill_9(
     candump.wait(30)
     (capture,) = tmp.glob("candump-*.log")
 
-    final = _status(sup_status)
-    clients = [_status(tmp / f"n{n}.json") for n in (1, 2, 3)]
+    final = status(sup_status)
+    clients = [status(tmp / f"n{n}.json") for n in (1, 2, 3)]
     assert all(c["implementation"] == "c" for c in clients)
     books = ledger_from_status(final, clients)
     assert books.dissipated >= 0, books  # nothing created
@@ -437,7 +291,7 @@ def test_c_nodes_on_vcan0_stay_passive_through_garbage_and_kill_9(
         assert c["credited_uj"] <= final["nodes"][str(c["node"])]["delivered_uj"], c
 
     audit = subprocess.run(
-        _python("-m", "canergy", "audit", str(capture), "--initial", BUDGET, "--json"),
+        python("-m", "canergy", "audit", str(capture), "--initial", BUDGET, "--json"),
         capture_output=True,
         text=True,
         timeout=120,
@@ -459,25 +313,25 @@ def test_a_node_moves_between_firmware_model_and_the_c_node_with_its_nv_file(
     """Python -> C -> Python on one NV file: the books carry over, nothing replays."""
     tmp = procs.tmp
     sup_status, node_status = tmp / "sup.json", tmp / "n4.json"
-    _supervisor(procs, "4", "--lost-after", "10")
+    supervisor(procs, "4", "--lost-after", "10")
 
     def books() -> dict[str, Any]:
-        return dict(_status(sup_status)["nodes"]["4"]) if sup_status.exists() else {}
+        return dict(status(sup_status)["nodes"]["4"]) if sup_status.exists() else {}
 
     lives: list[dict[str, Any]] = []
     for i, implementation in enumerate(("python", "c", "python")):
         node_status.unlink(missing_ok=True)
         done = int(books().get("committed", 0))
         if implementation == "c":
-            _c_client(procs, c_node, 4)
+            c_client(procs, c_node, 4)
         else:
-            _client(procs, 4)
-        _wait(
+            client(procs, 4)
+        wait(
             lambda done=done: books().get("committed", 0) >= done + 2,  # type: ignore[misc]
             f"two grants in life {i} ({implementation})",
         )
         assert procs.stop("client4") == 0, procs.stderr("client4")
-        life = _status(node_status)
+        life = status(node_status)
         assert life["joins"] == (1 if i == 0 else 0), life  # only the blank file joins
         assert life["nv_fallbacks"] == 0 and life["nv_writes"] > 0, life
         if lives:
@@ -490,7 +344,7 @@ def test_a_node_moves_between_firmware_model_and_the_c_node_with_its_nv_file(
     assert len(nv) >= 80
 
     assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
-    final = _status(sup_status)
+    final = status(sup_status)
     last = lives[-1]
     node_books = final["nodes"]["4"]
     # every COMMIT the supervisor counted was credited, none twice, across three processes

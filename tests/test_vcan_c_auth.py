@@ -12,16 +12,17 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_vcan import IFACE, Procs, _c_client, _status, _supervisor, _vcan_up, _wait
-from test_vcan import c_node as c_node  # the fixtures
-from test_vcan import procs as procs
+from support.procs import Procs, status, wait
+from support.procs import procs as procs  # the fixtures
+from support.vcan import IFACE, c_client, supervisor, vcan_up
+from support.vcan import c_node as c_node
 
 from canergy.codec import Codec
 from canergy.ledger import ledger_from_status
 from canergy.messages import Commit, Intention, Return
 
 pytestmark = pytest.mark.vcan
-__all__ = ["_vcan_up"]
+__all__ = ["vcan_up"]
 
 CODEC = Codec()
 
@@ -75,17 +76,17 @@ def test_c_auth_node_is_granted_by_the_python_supervisor_and_refuses_forgeries(
     master, node_key = _keys(tmp)
     fd_flag = ["--fd"] if fd else []
     sup_status, node_status = tmp / "sup.json", tmp / "n1.json"
-    _supervisor(procs, "1", *fd_flag, "--auth", str(master), "--status-period", "0.2")
-    _c_client(procs, c_node, 1, *fd_flag, "--auth", str(node_key), "--return-above", "0.8J")
+    supervisor(procs, "1", *fd_flag, "--auth", str(master), "--status-period", "0.2")
+    c_client(procs, c_node, 1, *fd_flag, "--auth", str(node_key), "--return-above", "0.8J")
 
     def committed() -> int:
-        return int(_status(sup_status)["nodes"]["1"]["committed"]) if sup_status.exists() else 0
+        return int(status(sup_status)["nodes"]["1"]["committed"]) if sup_status.exists() else 0
 
-    _wait(lambda: committed() >= 3, "three authenticated grants to the C node")
-    node = _status(node_status)
+    wait(lambda: committed() >= 3, "three authenticated grants to the C node")
+    node = status(node_status)
     assert node["implementation"] == "c" and node["joins"] == 1, node
     assert node["auth_failures"] == {} and node["intrusions"] == 0, node
-    sup = _status(sup_status)
+    sup = status(sup_status)
     assert not sup.get("auth_failures"), sup  # every frame of the C node verified in Python
 
     # forgeries with the public codec: refused and counted by the C node, nothing credited
@@ -95,11 +96,11 @@ def test_c_auth_node_is_granted_by_the_python_supervisor_and_refuses_forgeries(
     _cansend(_plain(Return(1, 500, 65535)))  # someone speaking in node 1's name
 
     def refused() -> int:
-        return sum(_status(node_status)["auth_failures"].values())
+        return sum(status(node_status)["auth_failures"].values())
 
-    _wait(lambda: refused() >= 2, "the C node counting the forgeries")
-    _wait(lambda: _status(node_status)["intrusions"] >= refused() + 1, "the spoofed RETURN")
-    node = _status(node_status)
+    wait(lambda: refused() >= 2, "the C node counting the forgeries")
+    wait(lambda: status(node_status)["intrusions"] >= refused() + 1, "the spoofed RETURN")
+    node = status(node_status)
     reasons = set(node["auth_failures"])
     if fd:
         assert {"frame without a MAC", "MAC BAD"} <= reasons, node["auth_failures"]
@@ -109,11 +110,11 @@ def test_c_auth_node_is_granted_by_the_python_supervisor_and_refuses_forgeries(
     assert "a frame in its name" in kinds, node["intrusion_report"]
     # grants go on after the forgeries
     done = committed()
-    _wait(lambda: committed() >= done + 2, "grants after the forgeries")
+    wait(lambda: committed() >= done + 2, "grants after the forgeries")
 
     assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
     assert procs.stop("client1") == 0, procs.stderr("client1")
-    final, node = _status(sup_status), _status(node_status)
+    final, node = status(sup_status), status(node_status)
     # nothing forged was credited (a forged COMMIT alone was 65.535 J): the node holds no more
     # than the supervisor delivered
     assert node["credited_uj"] <= final["nodes"]["1"]["delivered_uj"], (node, final)

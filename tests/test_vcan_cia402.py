@@ -20,15 +20,16 @@ from typing import Any
 
 import canopen
 import pytest
-from test_readme import python_blocks
-from test_vcan import BUS, IFACE, Procs, _python, _status, _vcan_up, _wait, procs
+from support.procs import Procs, procs, python, status, wait
+from support.readme import python_blocks
+from support.vcan import BUS, IFACE, vcan_up
 
 from canergy.ledger import ledger_from_status
 from canergy.live.cia402_link import EDS
 from firmware_model.drive.live_bench import app_write
 
 pytestmark = pytest.mark.vcan
-__all__ = ["_vcan_up", "procs"]  # the fixtures of test_vcan, used here
+__all__ = ["procs", "vcan_up"]  # the fixtures of support, used here
 
 DRIVE, METER = 10, 20
 LIMITS = (
@@ -52,7 +53,7 @@ MODES = {
 def _drive(procs: Procs, pdo_ms: int, meter: bool = False) -> None:
     procs.start(
         "drive",
-        _python(
+        python(
             "-m",
             "firmware_model.drive",
             *("--node", str(DRIVE), *BUS),
@@ -68,7 +69,7 @@ def _guard(procs: Procs, mode: str, *extra: str) -> None:
     tmp = procs.tmp
     procs.start(
         "supervisor",
-        _python(
+        python(
             "-m",
             "canergy",
             "supervisor",
@@ -89,12 +90,12 @@ def _guarded(procs: Procs) -> dict[str, Any]:
     path = procs.tmp / "sup.json"
     if not path.exists():
         return {}
-    return dict(_status(path)["cia402"]["drives"][str(DRIVE)])
+    return dict(status(path)["cia402"]["drives"][str(DRIVE)])
 
 
 def _application(procs: Procs) -> canopen.Network:
     """Once the guard has set the drive up: profile velocity at 10,000 rad/s² both ways."""
-    _wait(lambda: bool(_guarded(procs).get("ready")), "the guard setting the drive up")
+    wait(lambda: bool(_guarded(procs).get("ready")), "the guard setting the drive up")
     network = canopen.Network()
     network.connect(interface="socketcan", channel=IFACE)
     app = network.add_node(DRIVE, str(EDS))
@@ -145,7 +146,7 @@ def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
         network.disconnect()
     assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
     assert procs.stop("drive") == 0, procs.stderr("drive")
-    sup, drive = _status(tmp / "sup.json"), _status(tmp / "drive.json")
+    sup, drive = status(tmp / "sup.json"), status(tmp / "drive.json")
     guarded = sup["cia402"]["drives"][str(DRIVE)]
     books = sup["nodes"][str(DRIVE)]
     granted = books["delivered_uj"] - books["returns_credited_uj"]
@@ -176,12 +177,12 @@ def test_the_readme_drive_example_runs_on_vcan0(procs: Procs) -> None:
     assert blocks, "the README lost its vcan0 python block"
     for block in blocks:
         exec(compile(block, "README.md", "exec"), {})
-    _wait(
-        lambda: _status(procs.tmp / "drive.json")["state"] == "OPERATION ENABLED",
+    wait(
+        lambda: status(procs.tmp / "drive.json")["state"] == "OPERATION ENABLED",
         "the README's commands enabling the drive",
     )
-    _wait(
-        lambda: abs(_status(procs.tmp / "drive.json")["velocity_rad_s"] - 50) < 1,
+    wait(
+        lambda: abs(status(procs.tmp / "drive.json")["velocity_rad_s"] - 50) < 1,
         "the drive reaching the README's 50 rad/s",
     )
     assert procs.stop("drive") == 0, procs.stderr("drive")
@@ -194,13 +195,13 @@ def test_kill_9_of_the_host_stops_the_drive_through_its_heartbeat_consumer(procs
     network = _application(procs)
     app_write(network[DRIVE], 0x60FF, 40_000)
     network.disconnect()
-    _wait(lambda: _status(tmp / "drive.json")["state"] == "OPERATION ENABLED", "the drive running")
+    wait(lambda: status(tmp / "drive.json")["state"] == "OPERATION ENABLED", "the drive running")
     time.sleep(1)
     killed_at = time.monotonic_ns() // 1000
     procs.stop("supervisor", signal.SIGKILL)
-    _wait(lambda: _status(tmp / "drive.json")["state"] == "FAULT", "the drive's own fault reaction")
+    wait(lambda: status(tmp / "drive.json")["state"] == "FAULT", "the drive's own fault reaction")
     assert procs.stop("drive") == 0, procs.stderr("drive")
-    drive = _status(tmp / "drive.json")
+    drive = status(tmp / "drive.json")
     assert drive["fault_reason"] == "heartbeat consumer timeout"
     assert drive["error_code"] == 0x8130
     reaction = _history(drive, "FAULT REACTION ACTIVE")
@@ -208,7 +209,7 @@ def test_kill_9_of_the_host_stops_the_drive_through_its_heartbeat_consumer(procs
     # scheduling, generously) bound the time from the kill to the drive's reaction
     assert killed_at < reaction <= killed_at + 1_000_000 + 500_000
     assert abs(drive["velocity_rad_s"]) < 0.05
-    sup = _status(tmp / "sup.json")  # its last status before the kill
+    sup = status(tmp / "sup.json")  # its last status before the kill
     books = sup["nodes"][str(DRIVE)]
     guarded = sup["cia402"]["drives"][str(DRIVE)]
     # a crash replaces the gap by the consumer time: the envelope (2.75 W) over the last status

@@ -9,8 +9,9 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from test_vcan import TIMEOUT, Procs, _python, _status, _wait
-from test_vcan import procs as procs  # the fixture
+from support.procs import Procs, python, status, wait
+from support.procs import procs as procs  # the fixture
+from support.vcan import TIMEOUT
 
 from canergy.ledger import TreeLedger, ledger_from_status
 
@@ -33,7 +34,7 @@ def _root(procs: Procs) -> None:
     argv = ["-m", "canergy", "supervisor", "-i", "socketcan", "-c", UP, "--nodes", str(GW)]
     argv += ["--initial", "20J", "--target", "3J", "--state", str(tmp / "root.json")]
     argv += ["--status-file", str(tmp / "root-status.json"), "--lost-after", "10", *TIMEOUT]
-    procs.start("root", _python(*argv))
+    procs.start("root", python(*argv))
 
 
 def _gateway(procs: Procs) -> None:
@@ -43,16 +44,14 @@ def _gateway(procs: Procs) -> None:
     argv += ["--upstream-channel", UP, "--state", str(tmp / "gw.json"), "--target", "0.6J"]
     argv += ["--return-above", "5J", "--status-file", str(tmp / "gw-status.json")]
     argv += ["--upstream-response-timeout", "0.3", "--telemetry-period", "0.3"]
-    procs.start("gateway", _python(*argv, "--lost-after", "10", *TIMEOUT))
+    procs.start("gateway", python(*argv, "--lost-after", "10", *TIMEOUT))
 
 
 def _node(procs: Procs, node: int) -> None:
     tmp = procs.tmp
     argv = ["-m", "firmware_model", "--node", str(node), "-i", "socketcan", "-c", DOWN]
     argv += ["--nv", str(tmp / f"n{node}.nv"), "--power", "0.2W", "--telemetry-period", "0.5"]
-    procs.start(
-        f"node{node}", _python(*argv, "--status-file", str(tmp / f"n{node}.json"), *TIMEOUT)
-    )
+    procs.start(f"node{node}", python(*argv, "--status-file", str(tmp / f"n{node}.json"), *TIMEOUT))
 
 
 def test_a_gateway_between_vcan0_and_vcan1_survives_kill_9(procs: Procs) -> None:
@@ -64,28 +63,28 @@ def test_a_gateway_between_vcan0_and_vcan1_survives_kill_9(procs: Procs) -> None
         _node(procs, node)
 
     def committed(node: int) -> int:
-        return int(_status(gw_status)["nodes"][str(node)]["committed"]) if gw_status.exists() else 0
+        return int(status(gw_status)["nodes"][str(node)]["committed"]) if gw_status.exists() else 0
 
-    _wait(lambda: all(committed(n) >= 2 for n in (1, 2)), "two grants per node below the gateway")
+    wait(lambda: all(committed(n) >= 2 for n in (1, 2)), "two grants per node below the gateway")
     procs.stop("gateway", signal.SIGKILL)  # mid-whatever: one file holds both roles
-    credited = _status(tmp / "gw.json")["upstream"]["credited_uj"]
+    credited = status(tmp / "gw.json")["upstream"]["credited_uj"]
     gw_status.unlink()
     _gateway(procs)
-    _wait(lambda: gw_status.exists(), "the gateway restarting")
+    wait(lambda: gw_status.exists(), "the gateway restarting")
     done = committed(1) + committed(2)
-    _wait(lambda: committed(1) + committed(2) > done + 2, "grants below after the restart")
-    _wait(
-        lambda: _status(gw_status)["upstream"]["credited_uj"] > credited,
+    wait(lambda: committed(1) + committed(2) > done + 2, "grants below after the restart")
+    wait(
+        lambda: status(gw_status)["upstream"]["credited_uj"] > credited,
         "a grant from the root after the restart",
     )
-    assert _status(gw_status)["upstream"]["joins"] == 0  # its books survived: no JOIN
+    assert status(gw_status)["upstream"]["joins"] == 0  # its books survived: no JOIN
 
     assert procs.stop("gateway") == 0, procs.stderr("gateway")  # settles below, then exits
     assert procs.stop("root") == 0, procs.stderr("root")
     for node in (1, 2):
         assert procs.stop(f"node{node}") == 0, procs.stderr(f"node{node}")
-    root, gw = _status(tmp / "root-status.json"), _status(gw_status)
-    nodes = [_status(tmp / f"n{n}.json") for n in (1, 2)]
+    root, gw = status(tmp / "root-status.json"), status(gw_status)
+    nodes = [status(tmp / f"n{n}.json") for n in (1, 2)]
     tree = TreeLedger(
         {
             "root": ledger_from_status(root, [gw["upstream"]]),
@@ -107,37 +106,37 @@ def test_one_supervisor_over_vcan0_and_vcan1(procs: Procs) -> None:
     argv = ["-m", "canergy", "supervisor", "--bus", f"socketcan:{UP}:1", "--bus"]
     argv += [f"socketcan:{DOWN}:1", "--initial", "10J", "--state", str(tmp / "state.json")]
     argv += ["--status-file", str(tmp / "sup.json"), "--control", str(control), *TIMEOUT]
-    procs.start("supervisor", _python(*argv))
+    procs.start("supervisor", python(*argv))
     for bus in (UP, DOWN):
         node = ["-m", "firmware_model", "--node", "1", "-i", "socketcan", "-c", bus]
         node += ["--nv", str(tmp / f"{bus}.nv"), "--status-file", str(tmp / f"{bus}.json")]
-        procs.start(bus, _python(*node, "--telemetry-period", "0.5", *TIMEOUT))
-    _wait(lambda: control.exists(), "the control socket")
-    _wait(
+        procs.start(bus, python(*node, "--telemetry-period", "0.5", *TIMEOUT))
+    wait(lambda: control.exists(), "the control socket")
+    wait(
         lambda: all(
-            _status(tmp / "sup.json")["nodes"][f"{b}/1"]["level_uj"] is not None for b in (UP, DOWN)
+            status(tmp / "sup.json")["nodes"][f"{b}/1"]["level_uj"] is not None for b in (UP, DOWN)
         ),
         "both nodes heard",
     )
     grant = ["-m", "canergy", "grant", "--control", str(control), "--amount"]
     for bus, amount in ((UP, "2J"), (DOWN, "3J")):
-        done = subprocess.run(_python(*grant, amount, "--node", f"{bus}/1"), timeout=120)
+        done = subprocess.run(python(*grant, amount, "--node", f"{bus}/1"), timeout=120)
         assert done.returncode == 0
     assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
     for bus in (UP, DOWN):
         assert procs.stop(bus) == 0, procs.stderr(bus)
     candump.send_signal(signal.SIGINT)
     candump.wait(30)
-    final = _status(tmp / "sup.json")
+    final = status(tmp / "sup.json")
     assert final["nodes"][f"{UP}/1"]["delivered_uj"] == 2_000_000
     assert final["nodes"][f"{DOWN}/1"]["delivered_uj"] == 3_000_000
-    assert _status(tmp / f"{UP}.json")["credited_uj"] == 2_000_000
-    assert _status(tmp / f"{DOWN}.json")["credited_uj"] == 3_000_000
-    books = ledger_from_status(final, {b: [_status(tmp / f"{b}.json")] for b in (UP, DOWN)})
+    assert status(tmp / f"{UP}.json")["credited_uj"] == 2_000_000
+    assert status(tmp / f"{DOWN}.json")["credited_uj"] == 3_000_000
+    books = ledger_from_status(final, {b: [status(tmp / f"{b}.json")] for b in (UP, DOWN)})
     assert books.passive and books.dissipated == 0
     (capture,) = tmp.glob("candump-*.log")
     audit = subprocess.run(
-        _python("-m", "canergy", "audit", str(capture)), capture_output=True, timeout=120
+        python("-m", "canergy", "audit", str(capture)), capture_output=True, timeout=120
     )
     assert audit.returncode == 0, audit.stdout.decode() + audit.stderr.decode()
     assert f"{DOWN}/1" in audit.stdout.decode()

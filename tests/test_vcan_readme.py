@@ -5,11 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from test_readme_recipes import run_session, sessions
-from test_vcan import _vcan_up
+from support.recipes import run_session, sessions
+from support.vcan import vcan_up
 
 pytestmark = pytest.mark.vcan
-__all__ = ["_vcan_up"]  # the fixture of test_vcan that brings vcan0 and vcan1 up
+__all__ = ["vcan_up"]  # the fixture of support.vcan that fails the tests here without vcan0
 
 
 @pytest.mark.parametrize("name", sorted(sessions("vcan")))

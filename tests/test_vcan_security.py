@@ -13,15 +13,16 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_vcan import BUS, IFACE, TIMEOUT, Procs, _client, _status, _supervisor, _vcan_up, _wait
-from test_vcan import procs as procs  # the fixture
+from support.procs import Procs, status, wait
+from support.procs import procs as procs  # the fixture
+from support.vcan import BUS, IFACE, TIMEOUT, client, supervisor, vcan_up
 
 from canergy.codec import Codec
 from canergy.ledger import ledger_from_status
 from canergy.messages import Commit, Intention, Return
 
 pytestmark = pytest.mark.vcan
-__all__ = ["_vcan_up"]
+__all__ = ["vcan_up"]
 
 CODEC = Codec()
 
@@ -44,33 +45,33 @@ def _cansend(frame: str) -> int:
 
 
 def _intrusions(path: Path) -> dict[str, Any]:
-    return dict(_status(path)["intrusion_report"]) if path.exists() else {"total": 0}
+    return dict(status(path)["intrusion_report"]) if path.exists() else {"total": 0}
 
 
 def test_a_spoofer_and_a_second_supervisor_are_reported_within_a_second(procs: Procs) -> None:
     tmp = procs.tmp
     sup_status = tmp / "sup.json"
-    _supervisor(procs, "1", "--status-period", "0.2")
-    _client(procs, 1)
-    _wait(
-        lambda: sup_status.exists() and _status(sup_status)["nodes"]["1"]["committed"] >= 1,
+    supervisor(procs, "1", "--status-period", "0.2")
+    client(procs, 1)
+    wait(
+        lambda: sup_status.exists() and status(sup_status)["nodes"]["1"]["committed"] >= 1,
         "a first grant",
     )
     # a spoofer speaking for node 1: the node reports it
     sent = _cansend(_frame(Return(1, 500, 65535)))
-    _wait(lambda: _status(tmp / "n1.json")["intrusions"] >= 1, "the node reporting the spoof")
-    first = _status(tmp / "n1.json")["intrusion_report"]["first_at_us"]
+    wait(lambda: status(tmp / "n1.json")["intrusions"] >= 1, "the node reporting the spoof")
+    first = status(tmp / "n1.json")["intrusion_report"]["first_at_us"]
     assert first - sent < 1_000_000
     # a frame only the supervisor sends, as a second supervisor's first one: reported in time
     sent = _cansend(_frame(Intention(1, 900, 1, 0)))
-    _wait(lambda: _intrusions(sup_status)["total"] >= 1, "the supervisor reporting it")
+    wait(lambda: _intrusions(sup_status)["total"] >= 1, "the supervisor reporting it")
     assert _intrusions(sup_status)["first_at_us"] - sent < 1_000_000
     # and a real second supervisor on the same id is reported too
     second = tmp / "second"
     second.mkdir()
     procs.start("second", _second_supervisor(second))
-    _wait(
-        lambda: (second / "sup.json").exists() and _status(second / "sup.json")["frames_sent"] > 0,
+    wait(
+        lambda: (second / "sup.json").exists() and status(second / "sup.json")["frames_sent"] > 0,
         "the second supervisor sending",
     )
 
@@ -78,7 +79,7 @@ def test_a_spoofer_and_a_second_supervisor_are_reported_within_a_second(procs: P
         events = _intrusions(sup_status).get("recent", [])
         return sum(e["kind"] == "a frame only this supervisor sends" for e in events)
 
-    _wait(lambda: foreign_supervisor_frames() >= 2, "the supervisor reporting the other")
+    wait(lambda: foreign_supervisor_frames() >= 2, "the supervisor reporting the other")
     assert procs.stop("second") == 0, procs.stderr("second")
     assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
     assert procs.stop("client1") == 0, procs.stderr("client1")
@@ -115,17 +116,17 @@ def test_authenticated_fd_moves_nothing_for_forgeries_or_a_replayed_capture(proc
     )
     candump = subprocess.Popen(["candump", "-l", IFACE], cwd=tmp)
     sup_status = tmp / "sup.json"
-    _supervisor(procs, "1", "--fd", "--auth", str(tmp / "m.key"), "--status-period", "0.2")
-    _client(procs, 1, "--fd", "--auth", str(tmp / "n1.key"))
-    _wait(
-        lambda: sup_status.exists() and _status(sup_status)["nodes"]["1"]["committed"] >= 3,
+    supervisor(procs, "1", "--fd", "--auth", str(tmp / "m.key"), "--status-period", "0.2")
+    client(procs, 1, "--fd", "--auth", str(tmp / "n1.key"))
+    wait(
+        lambda: sup_status.exists() and status(sup_status)["nodes"]["1"]["committed"] >= 3,
         "authenticated grants",
     )
     candump.send_signal(signal.SIGINT)
     candump.wait(30)
     (capture,) = tmp.glob("candump-*.log")
     # forgeries with the public codec: plain frames, and FD-shaped ones with a made-up MAC
-    tx = _status(sup_status)["nodes"]["1"]["open_tx"] or 0
+    tx = status(sup_status)["nodes"]["1"]["open_tx"] or 0
     for msg in (Commit(1, tx + 1, 65535), Intention(1, tx + 1, 65535, 0)):
         _cansend(_frame(msg))
         arbitration_id, data = CODEC.encode(msg)
@@ -134,18 +135,18 @@ def test_authenticated_fd_moves_nothing_for_forgeries_or_a_replayed_capture(proc
     procs.stop("client1", signal.SIGKILL)
     (tmp / "n1.nv").unlink()
     (tmp / "n1.json").unlink()
-    _client(procs, 1, "--fd", "--auth", str(tmp / "n1.key"))
-    _wait(
-        lambda: (tmp / "n1.json").exists() and not _status(tmp / "n1.json")["joining"],
+    client(procs, 1, "--fd", "--auth", str(tmp / "n1.key"))
+    wait(
+        lambda: (tmp / "n1.json").exists() and not status(tmp / "n1.json")["joining"],
         "node 1 admitted again",
     )
-    before = _status(tmp / "n1.json")["credited_uj"]
+    before = status(tmp / "n1.json")["credited_uj"]
     subprocess.run(["canplayer", "-I", str(capture), "-t"], check=True, timeout=120)
-    _wait(lambda: _status(tmp / "n1.json")["intrusions"] >= 3, "the node counting the replay")
+    wait(lambda: status(tmp / "n1.json")["intrusions"] >= 3, "the node counting the replay")
     time.sleep(1)
     assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
     assert procs.stop("client1") == 0, procs.stderr("client1")
-    final, node = _status(sup_status), _status(tmp / "n1.json")
+    final, node = status(sup_status), status(tmp / "n1.json")
     assert sum(node["intrusion_report"]["by_node"].values()) >= 3
     # the replay credited nothing beyond what the supervisor granted since the rejoin
     assert node["credited_uj"] - before <= final["nodes"]["1"]["delivered_uj"]

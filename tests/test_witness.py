@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 from support.harness import Harness
-from test_intrusions import Bench, bench
+from support.intrusion_bench import Bench, bench
 
 from canergy.live.control import request
 from canergy.live.runtime import monotonic_us

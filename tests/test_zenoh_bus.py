@@ -8,16 +8,15 @@ from __future__ import annotations
 
 import json
 import random
-import socket
 import threading
 import time
-import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
 import can
 import pytest
 from support.live_rig import Loop, Rig
+from support.zenoh_loopback import endpoint, free_port, site
 
 from canergy.cli import main
 from canergy.codec import Codec
@@ -40,20 +39,6 @@ from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
 from firmware_model.nvstore import NvStore
 
 TIMEOUT_S = 30.0
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-def site() -> str:
-    return f"t-{uuid.uuid4().hex[:12]}"
-
-
-def endpoint(port: int) -> str:
-    return f"tcp/127.0.0.1:{port}"
 
 
 def link(a: can.BusABC, b: can.BusABC) -> None:

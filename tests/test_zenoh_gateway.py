@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import signal
 
-from test_vcan import Procs, _python, _status, _wait
-from test_vcan import procs as procs  # the fixture
-from test_zenoh_bus import endpoint, free_port, site
+from support.procs import Procs, python, status, wait
+from support.procs import procs as procs  # the fixture
+from support.zenoh_loopback import endpoint, free_port, site
 
 from canergy.cli import main
 from canergy.ledger import TreeLedger, ledger_from_status
@@ -25,11 +25,11 @@ def test_root_and_gateway_processes_over_zenoh_survive_kill_9(procs: Procs) -> N
     root = ["-m", "canergy", "supervisor", "-i", "zenoh", "-c", up_site, "--nodes", str(GW)]
     root += ["--bus-kwargs", f"listen={endpoint(up_port)}", "--initial", "20J", "--target", "3J"]
     root += ["--state", str(tmp / "root.json"), "--status-file", str(tmp / "root-status.json")]
-    procs.start("root", _python(*root, "--status-period", "0.2", *FAST))
+    procs.start("root", python(*root, "--status-period", "0.2", *FAST))
     node = ["-m", "firmware_model", "--node", "1", "-i", "zenoh", "-c", down_site, "--bus-kwargs"]
     node += [f"listen={endpoint(down_port)}", "--nv", str(tmp / "n1.nv"), "--power", "0.5W"]
     node += ["--status-file", str(tmp / "n1.json"), "--telemetry-period", "0.2", *FAST]
-    procs.start("node", _python(*node))
+    procs.start("node", python(*node))
     gateway = ["-m", "canergy", "gateway", "--node", str(GW), "--nodes", "1"]
     gateway += ["-i", "zenoh", "-c", down_site, "--bus-kwargs", f"connect={endpoint(down_port)}"]
     gateway += ["--upstream-interface", "zenoh", "--upstream-channel", up_site]
@@ -41,25 +41,25 @@ def test_root_and_gateway_processes_over_zenoh_survive_kill_9(procs: Procs) -> N
     gw_status = tmp / "gw-status.json"
 
     def credited() -> int:
-        return int(_status(gw_status)["upstream"]["credited_uj"]) if gw_status.exists() else 0
+        return int(status(gw_status)["upstream"]["credited_uj"]) if gw_status.exists() else 0
 
-    procs.start("gateway", _python(*gateway))
-    _wait(lambda: credited() >= 3_000_000, "the root granting to the gateway over Zenoh", 90)
-    _wait(lambda: _status(gw_status)["nodes"]["1"]["committed"] >= 2, "grants below", 90)
+    procs.start("gateway", python(*gateway))
+    wait(lambda: credited() >= 3_000_000, "the root granting to the gateway over Zenoh", 90)
+    wait(lambda: status(gw_status)["nodes"]["1"]["committed"] >= 2, "grants below", 90)
     procs.stop("gateway", signal.SIGKILL)
-    before = _status(tmp / "gw.json")["upstream"]["credited_uj"]
-    admitted = _status(tmp / "root-status.json")["nodes"][str(GW)]["admitted"]  # JOINs answered
+    before = status(tmp / "gw.json")["upstream"]["credited_uj"]
+    admitted = status(tmp / "root-status.json")["nodes"][str(GW)]["admitted"]  # JOINs answered
     gw_status.unlink()
-    procs.start("gateway", _python(*gateway))
-    _wait(lambda: credited() > before, "a grant from the root after the restart", 90)
-    assert _status(gw_status)["upstream"]["joins"] == 0  # its books survived
+    procs.start("gateway", python(*gateway))
+    wait(lambda: credited() > before, "a grant from the root after the restart", 90)
+    assert status(gw_status)["upstream"]["joins"] == 0  # its books survived
 
     assert procs.stop("gateway") == 0, procs.stderr("gateway")
     assert procs.stop("root") == 0, procs.stderr("root")
     assert procs.stop("node") == 0, procs.stderr("node")
-    root_books, gw = _status(tmp / "root-status.json"), _status(gw_status)
+    root_books, gw = status(tmp / "root-status.json"), status(gw_status)
     levels = {"root": ledger_from_status(root_books, [gw["upstream"]])}
-    levels["gateway"] = ledger_from_status(gw, [_status(tmp / "n1.json")])
+    levels["gateway"] = ledger_from_status(gw, [status(tmp / "n1.json")])
     tree = TreeLedger(levels, {"gateway": gw["link_gap_uj"]})
     assert tree.passive, tree.as_json()
     files = [str(tmp / name) for name in ("root-status.json", "gw-status.json", "n1.json")]

@@ -12,7 +12,8 @@ Ctrl-C would give them, and must exit 0.
 
 The working directory holds links to the repository's ``dbc``, ``firmware``, ``firmware_model``
 and ``scripts``, so paths in the README resolve as in a checkout; ``canergy`` and ``python`` are
-the venv's.
+the venv's. ``sessions`` groups the recipes of one WHERE by session and ``run_session`` runs one
+(tests/test_readme_recipes.py and tests/test_vcan_readme.py).
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ MARK = re.compile(
     r"^( *)<!-- recipe: (\S+) (local|vcan)( stopped)? -->\n\1```sh\n(.*?)^\1```", re.S | re.M
 )
 LINKED = ("dbc", "firmware", "firmware_model", "scripts")
-FOREGROUND_S = 120.0
+FOREGROUND_S = 900.0
+"""The README's sweep takes about 4 minutes on two cores."""
 READY_S = 60.0
 STOP_S = 60.0
 
@@ -164,17 +166,27 @@ class Session:
                 time.sleep(0.05)
 
     def _run(self, command: Command) -> None:
-        done = subprocess.run(
+        proc = subprocess.Popen(  # a session of its own: a timeout ends its workers too
             ["bash", "-o", "pipefail", "-c", command.text],
             cwd=self.cwd,
             env=self.env,
-            capture_output=True,
-            timeout=FOREGROUND_S,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            start_new_session=True,
         )
-        shown = (done.stdout + done.stderr).decode(errors="replace")
+        try:
+            out, _ = proc.communicate(timeout=FOREGROUND_S)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            out, _ = proc.communicate()
+            raise AssertionError(
+                f"{self._where(command)}\nstill running after {FOREGROUND_S:.0f} s:\n"
+                f"{out.decode(errors='replace')[-3000:]}"
+            ) from None
+        shown = out.decode(errors="replace")
         self.log.append(f"$ {command.text}\n{shown}")
-        assert done.returncode == 0, (
-            f"{self._where(command)}\nexit {done.returncode}:\n{shown[-3000:]}\n"
+        assert proc.returncode == 0, (
+            f"{self._where(command)}\nexit {proc.returncode}:\n{shown[-3000:]}\n"
             f"background:\n{self.background_output()}"
         )
 
@@ -200,3 +212,21 @@ class Session:
                 failures.append(f"{self._where(command)}\nexit {code}:\n{out.read_text()[-3000:]}")
         self.background.clear()
         assert not failures, "\n".join(failures)
+
+
+def sessions(where: str) -> dict[str, list[Recipe]]:
+    found: dict[str, list[Recipe]] = {}
+    for recipe in recipes():
+        if recipe.where == where:
+            found.setdefault(recipe.session, []).append(recipe)
+    return found
+
+
+def run_session(blocks: list[Recipe], tmp_path: Path) -> Session:
+    session = Session(tmp_path)
+    try:
+        for recipe in blocks:
+            session.run(recipe)
+    finally:
+        session.close()
+    return session

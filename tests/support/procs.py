@@ -1,0 +1,82 @@
+"""Separate processes for a test, and reading what they write.
+
+``Procs`` starts and stops a test's processes, each with its stderr in a file of the test's
+directory; ``procs`` is the fixture (one ``Procs`` in ``tmp_path``, whatever still runs killed
+at the end). ``python`` is an argv for this interpreter, ``status`` reads a status file a
+process writes, ``wait`` polls until a condition holds. The vcan suite and the Zenoh gateway
+test run their processes this way.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+
+class Procs:
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.procs: dict[str, subprocess.Popen[bytes]] = {}
+
+    def start(self, name: str, argv: list[str]) -> subprocess.Popen[bytes]:
+        log = open(self.tmp / f"{name}.stderr", "wb")  # noqa: SIM115 - closed with the process
+        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=log, cwd=self.tmp)
+        self.procs[name] = proc
+        return proc
+
+    def stderr(self, name: str) -> str:
+        return (self.tmp / f"{name}.stderr").read_text(errors="replace")
+
+    def stop(self, name: str, sig: int = signal.SIGTERM, timeout: float = 60) -> int:
+        proc = self.procs.pop(name)
+        proc.send_signal(sig)
+        return proc.wait(timeout)
+
+    def close(self) -> None:
+        for proc in self.procs.values():
+            proc.kill()
+            proc.wait(30)
+
+
+@pytest.fixture
+def procs(tmp_path: Path) -> Iterator[Procs]:
+    p = Procs(tmp_path)
+    yield p
+    p.close()
+
+
+def python(*args: str) -> list[str]:
+    return [sys.executable, *args]
+
+
+def status(path: Path) -> dict[str, Any]:
+    for _ in range(50):  # the writer replaces the file atomically; it may not exist yet
+        try:
+            data: dict[str, Any] = json.loads(path.read_text())
+            return data
+        except FileNotFoundError:
+            time.sleep(0.1)
+    raise AssertionError(f"{path} never appeared")
+
+
+def wait(
+    condition: Callable[[], bool],
+    what: str,
+    timeout_s: float = 120,
+    show: Callable[[], object] | None = None,
+) -> None:
+    """Poll ``condition``; on timeout fail naming ``what`` and what ``show`` returns then."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            shown = f"\n{show()}" if show is not None else ""
+            raise AssertionError(f"timed out waiting for {what}{shown}")
+        time.sleep(0.2)

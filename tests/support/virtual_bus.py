@@ -1,0 +1,36 @@
+"""Watching python-can's ``virtual`` bus from a test: what a master sees, and waiting for it.
+
+``Frames`` is a listener that keeps every frame with its arrival time; ``wait_for`` polls a
+condition until it holds or fails after a generous timeout (no test depends on tight timing).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+import can
+
+
+def wait_for(condition: Callable[[], bool], timeout: float = 10.0) -> None:
+    end = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < end, "timed out"
+        time.sleep(0.005)
+
+
+class Frames(can.Listener):
+    """Every frame the master sees, with its arrival time."""
+
+    def __init__(self) -> None:
+        self.seen: list[tuple[float, int, bytes]] = []
+        self.lock = threading.Lock()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        with self.lock:
+            self.seen.append((time.monotonic(), msg.arbitration_id, bytes(msg.data)))
+
+    def of(self, cob_id: int) -> list[tuple[float, bytes]]:
+        with self.lock:
+            return [(t, d) for t, c, d in self.seen if c == cob_id]

@@ -6,7 +6,8 @@
 - ``canergy[plot]`` (matplotlib): ``plot``, ``simulate``, ``sweep`` and ``rules --docs``, which
   draw figures;
 - ``canergy[zenoh]`` (eclipse-zenoh): the ``zenoh`` python-can interface (``-i zenoh``,
-  ``--upstream-interface zenoh``).
+  ``--upstream-interface zenoh``);
+- ``canergy[prove]`` (z3-solver): the hardened rules as SMT terms (``canergy.prove``).
 
 ``canergy[all]`` is both. A command that needs a missing extra checks before it does any work
 and exits 2 with one line, e.g. ``canergy plot: needs matplotlib: pip install 'canergy[plot]'``;
@@ -22,12 +23,14 @@ import importlib
 EXTRAS: dict[str, tuple[str, str]] = {
     "plot": ("matplotlib", "matplotlib"),
     "zenoh": ("zenoh", "eclipse-zenoh"),
+    "prove": ("z3", "z3-solver"),
 }
 """Extra -> (the module it brings, the distribution ``pip`` installs)."""
 
 NEEDS_EXTRA: dict[str, str] = {
     "canergy.inspect.capture_plot": "plot",
     "canergy.live.zenoh_bus": "zenoh",
+    "canergy.prove.symbolic": "prove",
     "canergy.sequence_chart": "plot",
     "canergy.sim.figures": "plot",
 }

@@ -11,9 +11,9 @@ import subprocess
 import sys
 from pathlib import Path
 
-EXTRAS = ("matplotlib", "mpl_toolkits", "numpy", "zenoh")
-"""What ``canergy[plot]`` and ``canergy[zenoh]`` bring that canergy imports (numpy: matplotlib's,
-and no dependency of a light install)."""
+EXTRAS = ("matplotlib", "mpl_toolkits", "numpy", "zenoh", "z3")
+"""What ``canergy[plot]``, ``canergy[zenoh]`` and ``canergy[prove]`` bring that canergy imports
+(numpy: matplotlib's, and no dependency of a light install)."""
 
 # Prepended to each ``python -c`` of run_blocked (after BLOCKED = (...)): stands for a host-only
 # or light install, where importing a blocked package (or anything under it) fails however it is

@@ -1,0 +1,263 @@
+"""The symbolic hardened rules (``canergy.prove.symbolic``) are the Python tables: every
+handler, evaluated on concrete states and messages drawn by hypothesis, gives the state, the
+frame sent and the budget moved that ``canergy.core.hardened`` gives. A cell changed in one and
+not the other fails here."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from canergy.core.actions import Send
+from canergy.core.hardened import CLIENT, SUPERVISOR
+from canergy.core.inputs import Begin, CommandTimeout, Decide
+from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
+from canergy.core.timing import Timing
+from canergy.messages import (
+    QUANTUM_UJ,
+    USABLE_MAX_UJ,
+    Abort,
+    Aborted,
+    Ack,
+    Admit,
+    Commit,
+    Committed,
+    Intention,
+    Join,
+    Message,
+    Return,
+    ReturnAck,
+)
+
+z3 = pytest.importorskip("z3")  # the prove extra: in dev, so CI runs this
+from canergy.prove import symbolic as sym  # noqa: E402
+
+T = Timing()
+LIMIT = (1 << 32) - (1 << 18)
+"""Counters drawn below this: the Python core's are unbounded, the model's 32 bits wide."""
+
+counters = st.one_of(st.integers(0, 40), st.integers(65_500, 65_600), st.integers(0, LIMIT))
+mj = st.integers(0, 70_000)
+energy = mj.map(lambda m: m * QUANTUM_UJ)
+amounts = st.integers(1, 65_535)
+
+
+def near(reference: st.SearchStrategy[int], bits: int = 16) -> st.SearchStrategy[int]:
+    """Wire values near a counter (the interesting branches) or anywhere."""
+    return st.one_of(st.integers(0, (1 << bits) - 1), reference)
+
+
+@st.composite
+def clients(draw: Any) -> ClientState:
+    phase = draw(st.sampled_from([Phase.IDLE, Phase.AWAIT_COMMAND, Phase.JOINING]))
+    last_tx = draw(counters)
+    holding = phase is Phase.AWAIT_COMMAND
+    return ClientState(
+        node=1,
+        usable=draw(st.integers(0, USABLE_MAX_UJ // QUANTUM_UJ)) * QUANTUM_UJ,
+        credited=draw(energy),
+        spent=draw(energy),
+        last_tx=last_tx,
+        outcome=draw(st.sampled_from(list(Outcome))),
+        return_seq=draw(counters),
+        return_pending=draw(st.sampled_from([0, 5_000])),
+        credited_unknown=draw(st.booleans()),
+        held_tx=draw(st.integers(last_tx, last_tx + 3)) if holding else 0,
+        held_amount=draw(amounts) * QUANTUM_UJ if holding else 0,
+        phase=phase,
+        nonce=draw(st.integers(0, 0xFFFF)),
+    )
+
+
+def wire_near(value: int) -> st.SearchStrategy[int]:
+    return st.one_of(st.integers(0, 0xFFFF), st.integers(-3, 4).map(lambda d: (value + d) & 0xFFFF))
+
+
+def sym_client(c: ClientState) -> sym.Client:
+    return sym.Client(
+        usable=z3.IntVal(c.usable),
+        credited=z3.IntVal(c.credited),
+        spent=z3.IntVal(c.spent),
+        last_tx=sym.counter(c.last_tx),
+        outcome=z3.IntVal(int(c.outcome)),
+        return_seq=sym.counter(c.return_seq),
+        return_pending=z3.IntVal(c.return_pending),
+        credited_unknown=z3.BoolVal(c.credited_unknown),
+        held_tx=sym.counter(c.held_tx),
+        held_amount=z3.IntVal(c.held_amount),
+        phase=z3.IntVal(int(c.phase)),
+        nonce=z3.BitVecVal(c.nonce, 16),
+    )
+
+
+def value(term: Any) -> int | bool:
+    term = z3.simplify(term)
+    if z3.is_bool(term):
+        return bool(z3.is_true(term))
+    return int(term.as_long())
+
+
+def client_fields(c: ClientState | sym.Client) -> dict[str, int | bool]:
+    names = ("usable", "credited", "spent", "last_tx", "outcome", "return_seq", "return_pending")
+    names += ("credited_unknown", "held_tx", "held_amount", "phase", "nonce")
+    if isinstance(c, ClientState):
+        return {
+            n: int(getattr(c, n)) if n != "credited_unknown" else c.credited_unknown for n in names
+        }
+    return {n: value(getattr(c, n)) for n in names}
+
+
+def sent_python(actions: tuple[Any, ...]) -> tuple[int, ...] | None:
+    """The one frame a step sends, as (type, fields...), or None."""
+    frames = [a.message for a in actions if isinstance(a, Send)]
+    assert len(frames) <= 1
+    if not frames:
+        return None
+    m: Message = frames[0]
+    fields = {
+        Ack: lambda: (m.tx,),
+        Committed: lambda: (m.tx,),
+        Aborted: lambda: (m.tx,),
+        Join: lambda: (m.nonce,),
+        ReturnAck: lambda: (m.seq,),
+        Admit: lambda: (m.nonce, m.tx, m.seq),
+        Intention: lambda: (m.tx, m.amount_mj, m.delivered_mj),
+        Commit: lambda: (m.tx, m.amount_mj),
+        Abort: lambda: (m.tx, m.amount_mj),
+    }[type(m)]()
+    return (int(m.TYPE), *fields)
+
+
+def sent_symbolic(s: sym.Sent, width: int) -> tuple[int, ...] | None:
+    if not value(s.present):
+        return None
+    return (value(s.kind), value(s.a), value(s.b), value(s.c))[: width + 1]
+
+
+def same_client(py: Any, symbolic: tuple[sym.Client, sym.Sent]) -> None:
+    state, sent = symbolic
+    assert client_fields(state) == client_fields(py.client)
+    expected = sent_python(py.actions)
+    assert sent_symbolic(sent, 0 if expected is None else len(expected) - 1) == expected
+
+
+@settings(max_examples=400)
+@given(st.data())
+def test_intention(data: st.DataObject) -> None:
+    c = data.draw(clients())
+    tx = data.draw(wire_near(c.last_tx))
+    delivered = data.draw(
+        near(st.integers(-3, 3).map(lambda d: (c.credited // 1000 + d) % (1 << 24)), 24)
+    )
+    amount = data.draw(amounts)
+    py = CLIENT.step(T, c, Intention(1, tx, amount, delivered), 0)
+    args = (z3.BitVecVal(tx, 16), z3.IntVal(amount), z3.IntVal(delivered))
+    same_client(py, sym.on_intention(sym_client(c), *args))
+
+
+@settings(max_examples=300)
+@given(st.data(), st.booleans())
+def test_commit_and_abort(data: st.DataObject, commit: bool) -> None:
+    c = data.draw(clients())
+    tx, amount = data.draw(wire_near(c.last_tx)), data.draw(amounts)
+    msg = (Commit if commit else Abort)(1, tx, amount)
+    py = CLIENT.step(T, c, msg, 0)
+    same_client(py, sym.on_command(sym_client(c), commit, z3.BitVecVal(tx, 16), z3.IntVal(amount)))
+
+
+@settings(max_examples=200)
+@given(st.data())
+def test_return_ack_admit_and_timeout_commit(data: st.DataObject) -> None:
+    c = data.draw(clients())
+    seq = data.draw(wire_near(c.return_seq))
+    same_client(
+        CLIENT.step(T, c, ReturnAck(1, seq), 0),
+        sym.on_return_ack(sym_client(c), z3.BitVecVal(seq, 16)),
+    )
+    nonce = data.draw(st.one_of(st.just(c.nonce), st.integers(0, 0xFFFF)))
+    tx, q = data.draw(st.integers(0, 0xFFFF)), data.draw(st.integers(0, 0xFFFF))
+    same_client(
+        CLIENT.step(T, c, Admit(1, nonce, tx, q), 0),
+        sym.on_admit(sym_client(c), *(z3.BitVecVal(v, 16) for v in (nonce, tx, q))),
+    )
+    if c.phase is Phase.AWAIT_COMMAND:
+        c = ClientState(**{**{f: getattr(c, f) for f in c.__slots__}, "deadline": 0})
+    same_client(CLIENT.step(T, c, CommandTimeout(), 0), sym.timeout_commit(sym_client(c)))
+
+
+# -- the supervisor's session ---------------------------------------------------------------
+
+
+@st.composite
+def sessions(draw: Any) -> Session:
+    phase = draw(st.sampled_from([Phase.IDLE, Phase.WAIT_ACK, Phase.ACKED, Phase.WAIT_CONFIRM]))
+    idle = phase is Phase.IDLE
+    decided = phase is Phase.WAIT_CONFIRM
+    return Session(
+        node=1,
+        phase=phase,
+        tx=draw(counters),
+        reserved=0 if idle else draw(amounts) * QUANTUM_UJ,
+        delivered=draw(energy),
+        decision=draw(st.sampled_from([Decision.COMMIT, Decision.ABORT]))
+        if decided
+        else Decision.NONE,
+        returns_credited=draw(counters),
+        returned=draw(energy),
+    )
+
+
+def sym_session(s: Session) -> sym.Session:
+    return sym.Session(
+        phase=z3.IntVal(int(s.phase)),
+        tx=sym.counter(s.tx),
+        reserved=z3.IntVal(s.reserved),
+        delivered=z3.IntVal(s.delivered),
+        decision=z3.IntVal(int(s.decision)),
+        returns_credited=sym.counter(s.returns_credited),
+        returned=z3.IntVal(s.returned),
+    )
+
+
+def same_session(py: Any, step: sym.SessionStep) -> None:
+    names = ("phase", "tx", "reserved", "delivered", "decision", "returns_credited", "returned")
+    assert {n: value(getattr(step.session, n)) for n in names} == {
+        n: int(getattr(py.session, n)) for n in names
+    }
+    assert value(step.credit) == py.credit
+    expected = sent_python(py.actions)
+    assert sent_symbolic(step.sent, 0 if expected is None else len(expected) - 1) == expected
+
+
+@settings(max_examples=300)
+@given(st.data())
+def test_session_answers(data: st.DataObject) -> None:
+    s = data.draw(sessions())
+    tx = data.draw(wire_near(s.tx))
+    bv = z3.BitVecVal(tx, 16)
+    same_session(SUPERVISOR.step(T, s, Ack(1, tx), 0), sym.on_ack(sym_session(s), bv))
+    same_session(SUPERVISOR.step(T, s, Committed(1, tx), 0), sym.on_committed(sym_session(s), bv))
+    same_session(SUPERVISOR.step(T, s, Aborted(1, tx), 0), sym.on_aborted(sym_session(s), bv))
+    seq, amount = data.draw(wire_near(s.returns_credited)), data.draw(amounts)
+    same_session(
+        SUPERVISOR.step(T, s, Return(1, seq, amount), 0),
+        sym.credit_return(sym_session(s), z3.BitVecVal(seq, 16), z3.IntVal(amount)),
+    )
+    nonce = data.draw(st.integers(0, 0xFFFF))
+    same_session(
+        SUPERVISOR.step(T, s, Join(1, nonce), 0), sym.admit(sym_session(s), z3.BitVecVal(nonce, 16))
+    )
+
+
+@settings(max_examples=200)
+@given(sessions(), amounts, st.booleans())
+def test_begin_and_decide(s: Session, amount: int, commit: bool) -> None:
+    if s.phase is Phase.IDLE:
+        py = SUPERVISOR.step(T, s, Begin(amount * QUANTUM_UJ), 0)
+        same_session(py, sym.begin(sym_session(s), z3.IntVal(amount * QUANTUM_UJ)))
+    if s.phase is Phase.ACKED:
+        decision = Decision.COMMIT if commit else Decision.ABORT
+        same_session(SUPERVISOR.step(T, s, Decide(decision), 0), sym.decide(sym_session(s), commit))

@@ -5,6 +5,7 @@ not the other fails here."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import pytest
@@ -13,7 +14,17 @@ from hypothesis import strategies as st
 
 from canergy.core.actions import Send
 from canergy.core.hardened import CLIENT, SUPERVISOR
-from canergy.core.inputs import Begin, CommandTimeout, Decide
+from canergy.core.inputs import (
+    POWER_LOSS,
+    RESPONSE_TIMEOUT,
+    RETURN_TIMEOUT,
+    Begin,
+    BooksLost,
+    CommandTimeout,
+    Decide,
+    GiveBack,
+    Spend,
+)
 from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
 from canergy.core.timing import Timing
 from canergy.messages import (
@@ -123,6 +134,7 @@ def sent_python(actions: tuple[Any, ...]) -> tuple[int, ...] | None:
         Aborted: lambda: (m.tx,),
         Join: lambda: (m.nonce,),
         ReturnAck: lambda: (m.seq,),
+        Return: lambda: (m.seq, m.amount_mj),
         Admit: lambda: (m.nonce, m.tx, m.seq),
         Intention: lambda: (m.tx, m.amount_mj, m.delivered_mj),
         Commit: lambda: (m.tx, m.amount_mj),
@@ -261,3 +273,42 @@ def test_begin_and_decide(s: Session, amount: int, commit: bool) -> None:
     if s.phase is Phase.ACKED:
         decision = Decision.COMMIT if commit else Decision.ABORT
         same_session(SUPERVISOR.step(T, s, Decide(decision), 0), sym.decide(sym_session(s), commit))
+
+
+# -- local events and timers ------------------------------------------------------------------
+
+
+def due(c: ClientState) -> ClientState:
+    """``c`` with its timers due now (the model takes them as due)."""
+    return replace(c, deadline=0, return_deadline=0)
+
+
+@settings(max_examples=200)
+@given(clients(), st.integers(1, 80_000).map(lambda m: m * QUANTUM_UJ), st.integers(0, 0xFFFF))
+def test_spend_give_back_timers_resets_and_lost_books(
+    c: ClientState, amount: int, nonce: int
+) -> None:
+    s = sym_client(c)
+    state, allowed = sym.spend(s, z3.IntVal(amount))
+    assert value(allowed) == (c.phase is not Phase.JOINING and amount <= c.usable)
+    if value(allowed):
+        same_client(CLIENT.step(T, c, Spend(amount), 0), (state, sym.Sent.none()))
+    state, sent, allowed = sym.give_back(s, z3.IntVal(amount))
+    assert value(allowed) == (CLIENT.can_give_back(c) and amount <= min(c.usable, 65_535_000))
+    if value(allowed):
+        same_client(CLIENT.step(T, c, GiveBack(amount), 0), (state, sent))
+    same_client(CLIENT.step(T, due(c), RETURN_TIMEOUT, 0), sym.resend_return(s))
+    same_client(CLIENT.step(T, c, POWER_LOSS, 0), sym.client_power_loss(s))
+    same_client(CLIENT.step(T, c, BooksLost(nonce), 0), sym.books_lost(s, z3.BitVecVal(nonce, 16)))
+
+
+@settings(max_examples=200)
+@given(sessions(), st.integers(0, 6))
+def test_response_timeouts_and_resets(s: Session, tries: int) -> None:
+    timed = replace(s, tries=tries, deadline=0)
+    gives_up = z3.BoolVal(tries > T.retries)
+    same_session(
+        SUPERVISOR.step(T, timed, RESPONSE_TIMEOUT, 0),
+        sym.response_timeout(sym_session(s), gives_up),
+    )
+    same_session(SUPERVISOR.step(T, s, POWER_LOSS, 0), sym.supervisor_power_loss(sym_session(s)))

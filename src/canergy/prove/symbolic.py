@@ -386,3 +386,89 @@ def decide(s: Session, commit: bool) -> SessionStep:
         Sent.of(kind, low(s.tx, TX_BITS), s.reserved / QUANTUM_UJ),
         z3.IntVal(0),
     )
+
+
+# -- local events and timers ---------------------------------------------------------------------
+
+
+def spend(c: Client, amount: Term) -> tuple[Client, Term]:
+    """Spend(x) in IDLE and HOLDING: Uc -= x, spent += x; the term says whether the rules allow
+    it (0 < x <= Uc, books kept), as the Python core refuses it otherwise."""
+    allowed = z3.And(c.phase != JOINING, amount > 0, amount <= c.usable)
+    return replace(c, usable=c.usable - amount, spent=c.spent + amount), allowed
+
+
+def give_back(c: Client, amount: Term) -> tuple[Client, Sent, Term]:
+    """GiveBack(x) with no return pending: Uc -= x, q += 1, RETURN(q, x); allowed when x is a
+    whole number of mJ in one frame and at most Uc."""
+    allowed = z3.And(
+        c.phase != JOINING,
+        c.return_pending == 0,
+        amount > 0,
+        amount % QUANTUM_UJ == 0,
+        amount <= 65_535 * QUANTUM_UJ,
+        amount <= c.usable,
+    )
+    seq = c.return_seq + 1
+    returned = replace(c, usable=c.usable - amount, return_seq=seq, return_pending=amount)
+    return returned, Sent.of(MsgType.RETURN, low(seq, SEQ_BITS), amount / QUANTUM_UJ), allowed
+
+
+def resend_return(c: Client) -> tuple[Client, Sent]:
+    """The return timer, due: the pending RETURN again (JOINING: the JOIN again)."""
+    pending = z3.And(c.phase != JOINING, c.return_pending != 0)
+    again = Sent.of(MsgType.RETURN, low(c.return_seq, SEQ_BITS), c.return_pending / QUANTUM_UJ)
+    return c, pick(
+        c.phase == JOINING, Sent.of(MsgType.JOIN, c.nonce), pick(pending, again, Sent.none())
+    )
+
+
+def client_power_loss(c: Client) -> tuple[Client, Sent]:
+    """A reset with the record kept: the held intention is lost (JOINING: stays JOINING)."""
+    return pick(c.phase == JOINING, c, _drop_hold(c)), Sent.none()
+
+
+def books_lost(c: Client, nonce16: Term) -> tuple[Client, Sent]:
+    """No valid record at start: a blank client, JOINING with a new nonce, JOIN(n)."""
+    zero = z3.IntVal(0)
+    blank = Client(
+        usable=zero,
+        credited=zero,
+        spent=zero,
+        last_tx=counter(0),
+        outcome=z3.IntVal(int(Outcome.NONE)),
+        return_seq=counter(0),
+        return_pending=zero,
+        credited_unknown=z3.BoolVal(False),
+        held_tx=counter(0),
+        held_amount=zero,
+        phase=JOINING,
+        nonce=nonce16,
+    )
+    return blank, Sent.of(MsgType.JOIN, nonce16)
+
+
+def response_timeout(s: Session, gives_up: Term) -> SessionStep:
+    """The response timer of an open session, due: the identical frame again, or (``gives_up``:
+    N re-sends done) a write-off, Gs += Ts."""
+    waiting = z3.Or(s.phase == WAIT_ACK, s.phase == WAIT_CONFIRM)
+    delivered_mj = (s.delivered / QUANTUM_UJ) % (1 << DELIVERED_BITS)
+    intention = Sent.of(
+        MsgType.INTENTION, low(s.tx, TX_BITS), s.reserved / QUANTUM_UJ, delivered_mj
+    )
+    command = pick(
+        s.decision == ABORT,
+        Sent.of(MsgType.ABORT, low(s.tx, TX_BITS), s.reserved / QUANTUM_UJ),
+        Sent.of(MsgType.COMMIT, low(s.tx, TX_BITS), s.reserved / QUANTUM_UJ),
+    )
+    again = SessionStep(s, pick(s.phase == WAIT_ACK, intention, command), z3.IntVal(0))
+    step = choose(gives_up, _resolve(s, z3.BoolVal(False)), again)
+    return choose(waiting, step, _unchanged(s))
+
+
+def supervisor_power_loss(s: Session) -> SessionStep:
+    """A reset: ACKED (not persisted) falls back to WAIT_ACK; nothing sent at once here (open
+    sessions re-send when their timer, set due, fires)."""
+    return SessionStep(
+        replace(s, phase=z3.If(s.phase == ACKED, WAIT_ACK, s.phase)), Sent.none(), z3.IntVal(0)
+    )

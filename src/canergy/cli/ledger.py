@@ -61,14 +61,14 @@ def _client(path: Path, status: dict[str, Any]) -> list[dict[str, Any]]:
     if status.get("role") == "gateway":
         found = [status.get("upstream")]
     elif "credited_uj" not in status and isinstance(status.get("nodes"), dict):
-        found = list(status["nodes"].values())  # python -m firmware_model --nodes 1-3
+        found = list(status["nodes"].values())  # a node emulator serving several
     else:
         found = [status]
     records = [r for r in found if isinstance(r, dict) and "credited_uj" in r]
     if len(records) != len(found):
         raise ValueError(
             f"{path}: not a client's status (no credited_uj): give node status files "
-            "(python -m firmware_model --status-file) or a gateway's"
+            "(a node's or node emulator's --status-file) or a gateway's"
         )
     return records
 

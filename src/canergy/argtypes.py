@@ -35,8 +35,9 @@ def _shown(text: str) -> str:
     return repr(text) if len(text) <= _SHOWN else f"{text[:_SHOWN]!r}..."
 
 
-def _argument(parse: Callable[[str], _T], text: str) -> _T:
-    """``parse(text)``, its ``ValueError`` turned into argparse's one-line error."""
+def argument(parse: Callable[[str], _T], text: str) -> _T:
+    """``parse(text)``, its ``ValueError`` turned into argparse's one-line error (for any
+    command's value type)."""
     try:
         return parse(text)
     except ValueError as exc:
@@ -51,7 +52,7 @@ def _positive(value: int, text: str) -> int:
 
 def energy(text: str) -> int:
     """``10J``, ``250mJ``, ``1500uJ`` or plain joules, as µJ (at most 1 GJ)."""
-    return _argument(parse_energy, text)
+    return argument(parse_energy, text)
 
 
 def grant_amount(text: str) -> int:
@@ -69,12 +70,12 @@ def grant_amount(text: str) -> int:
 
 def power(text: str) -> int:
     """``0.5W``, ``200mW`` or plain watts, as µW (at most 1 GW)."""
-    return _argument(parse_power, text)
+    return argument(parse_power, text)
 
 
 def duration_or_zero(text: str) -> int:
     """``50ms``, ``1.5s``, ``200us``, ``2min``, ``1h`` or plain seconds, as µs (at most a week)."""
-    return _argument(parse_duration, text)
+    return argument(parse_duration, text)
 
 
 def duration(text: str) -> int:
@@ -84,7 +85,7 @@ def duration(text: str) -> int:
 
 def milliseconds(text: str) -> int:
     """A duration more than zero with plain numbers in ms (``--delay-ms 250``), as µs."""
-    return _positive(_argument(lambda t: parse_duration(t, plain="ms"), text), text)
+    return _positive(argument(lambda t: parse_duration(t, plain="ms"), text), text)
 
 
 _DURATION_SYNTAX = "e.g. 50ms, 1.5s, 2min or plain seconds, at most a week"

@@ -10,7 +10,7 @@ from collections.abc import Iterator
 from datetime import datetime
 from pathlib import Path
 
-from canergy.argtypes import COUNT_MAX, bounded_int
+from canergy.argtypes import COUNT_MAX, argument, bounded_int
 from canergy.cli.shared.capture import (
     capture_auth,
     show,
@@ -28,10 +28,7 @@ from canergy.live.bus_args import open_receiving_bus as open_bus
 
 def channel_filters(text: str) -> ChannelFilters:
     """candump's ``CHANNEL[,FILTER[,FILTER...]]``."""
-    try:
-        return ChannelFilters.parse(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
+    return argument(ChannelFilters.parse, text)
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

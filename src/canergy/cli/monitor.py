@@ -13,7 +13,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from canergy.argtypes import add_duration, duration, energy
+from canergy.argtypes import add_duration, argument, duration, energy
 from canergy.auth.capture import CaptureAuth
 from canergy.auth.keys import load_key
 from canergy.codec import Codec
@@ -42,10 +42,7 @@ def speed(text: str) -> float:
 
 def node_filter(text: str) -> tuple[str, frozenset[int] | None]:
     """``--nodes 3,5-7``: the text as typed and the ids it names."""
-    try:
-        return text.strip(), parse_filter(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text.strip(), argument(parse_filter, text)
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

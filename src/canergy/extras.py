@@ -7,7 +7,8 @@
   draw figures;
 - ``canergy[zenoh]`` (eclipse-zenoh): the ``zenoh`` python-can interface (``-i zenoh``,
   ``--upstream-interface zenoh``);
-- ``canergy[prove]`` (z3-solver): the hardened rules as SMT terms (``canergy.prove``).
+- ``canergy[prove]`` (z3-solver): ``prove``, the passivity theorem checked by z3
+  (``canergy.prove``).
 
 ``canergy[all]`` is both. A command that needs a missing extra checks before it does any work
 and exits 2 with one line, e.g. ``canergy plot: needs matplotlib: pip install 'canergy[plot]'``;
@@ -30,7 +31,12 @@ EXTRAS: dict[str, tuple[str, str]] = {
 NEEDS_EXTRA: dict[str, str] = {
     "canergy.inspect.capture_plot": "plot",
     "canergy.live.zenoh_bus": "zenoh",
+    "canergy.prove.invariant": "prove",
+    "canergy.prove.obligations": "prove",
+    "canergy.prove.rules": "prove",
+    "canergy.prove.steps": "prove",
     "canergy.prove.symbolic": "prove",
+    "canergy.prove.world": "prove",
     "canergy.sequence_chart": "plot",
     "canergy.sim.figures": "plot",
 }

@@ -25,6 +25,7 @@ from canergy.cli import (
     ledger,
     monitor,
     plot,
+    prove,
     rules,
     simulate,
     supervisor,
@@ -36,6 +37,7 @@ from canergy.live.bus_args import BusOpenError
 COMMANDS: tuple[ModuleType, ...] = (
     demo,
     check,
+    prove,
     dbc,
     rules,
     supervisor,

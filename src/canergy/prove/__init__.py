@@ -1,3 +1,27 @@
-"""Passivity as a theorem, in progress (issue 32; the ``prove`` extra: z3-solver): so far the
-hardened rules of one session as SMT terms (``symbolic``), tested cell by cell against the
-Python tables. The inductive invariant and ``canergy prove`` are to come."""
+"""Passivity as a theorem (the ``prove`` extra: z3-solver): an inductive invariant of the
+hardened rules of one session, with any set of messages in flight, checked by z3 for any number
+of transactions.
+
+- ``symbolic``: the hardened cells as SMT terms, tested against the Python tables;
+- ``world``: the session, its client, the ghost state and messages;
+- ``invariant``: the clauses, ``P(m, world)`` of messages in flight, the assumptions;
+- ``steps``: every cell as a step of a world; ``rules``: the hardened set and unsound ones;
+- ``obligations``: each (step, clause) checked by z3, with counterexamples to induction.
+
+``canergy prove`` runs it. The names below need no z3.
+"""
+
+RULE_NAMES = ("hardened", "paper", "trusting-nv", "early-grant", "split-save")
+"""The rule sets ``canergy prove --rules`` takes; only ``hardened`` is expected to prove."""
+
+CONFIRMED_BY: dict[str, tuple[str, ...]] = {
+    "paper": ("canergy check --variant paper",),
+    "trusting-nv": (),
+    "early-grant": ("canergy check --topology chain --broken-gateway early-grant",),
+    "split-save": (
+        "canergy check --old-copies 1",
+        "canergy check --topology chain --broken-gateway split-save",
+    ),
+}
+"""The bounded checker's runs that find a real trace of each unsound rule set's hazard (a
+node starting blank and trusting Gs has no CLI variant: tests/test_check.py checks it)."""

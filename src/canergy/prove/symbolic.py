@@ -29,7 +29,7 @@ from canergy.messages import (
 )
 
 try:
-    import z3
+    import z3 as z3  # re-exported: the other proof modules take it from here
 except ImportError as exc:
     raise MissingExtra("prove", exc) from exc
 

@@ -1,0 +1,278 @@
+"""The proof obligations and their check by z3.
+
+For every step (each message delivered to its receiver, each local request and timer) and every
+clause (each clause of the invariant, ``P`` of each kind of message already in flight, ``P`` of
+what the step sends, the budget the session moves): from the invariant, ``P`` of the delivered
+message, the step's enabling condition and the theorem's assumptions, the clause holds after the
+step. z3 answers ``unsat`` for the negation (proved) or gives a model: a counterexample to
+induction, printed as a state, a message and a step.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, fields
+
+from canergy.prove import invariant as inv
+from canergy.prove import steps as st
+from canergy.prove.invariant import ule
+from canergy.prove.rules import HARDENED, Rules
+from canergy.prove.symbolic import Term, z3
+from canergy.prove.world import (
+    TO_CLIENT,
+    H,
+    Kind,
+    Msg,
+    World,
+    any_msg,
+    any_world,
+    initial_world,
+)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    step: str
+    clause: str
+    proved: bool
+    seconds: float
+    counterexample: str = ""
+
+
+def _h_args(terms: Iterable[Term]) -> list[Term]:
+    """Every argument ``H`` is applied to in ``terms``."""
+    seen: set[int] = set()
+    found: dict[int, Term] = {}
+    stack = list(terms)
+    while stack:
+        e = stack.pop()
+        if e.get_id() in seen:
+            continue
+        seen.add(e.get_id())
+        if z3.is_app(e) and e.decl().eq(H):
+            found[e.arg(0).get_id()] = e.arg(0)
+        stack.extend(e.children())
+    return list(found.values())
+
+
+def monotone(terms: Iterable[Term]) -> list[Term]:
+    """``H`` is monotone, instantiated at every pair of arguments it is applied to."""
+    args = _h_args(terms)
+    return [z3.Implies(ule(a, b), H(a) <= H(b)) for a in args for b in args if a is not b]
+
+
+def drawn(w: World) -> Term:
+    """What the supervisor's books count the session as holding: Ts + Gs - returned."""
+    return w.s.reserved + w.s.delivered - w.s.returned
+
+
+def resolved_consistently(before: World, after: World) -> Term:
+    """The prophecy agrees with the run: when a transaction closes, Gs is H of the next."""
+    closes = z3.And(before.open, z3.Not(after.open))
+    return z3.Implies(closes, after.s.delivered == H(inv.one(after.tx)))
+
+
+def _terms(w: World) -> list[Term]:
+    records = [w.s, w.c, w]
+    return [
+        getattr(r, f.name)
+        for r in records
+        for f in fields(r)  # type: ignore[arg-type]
+        if z3.is_expr(getattr(r, f.name))
+    ]
+
+
+def changes(before: World, step: st.Step) -> Term:
+    """The step changes some field of the world, or sends something."""
+    moved = [a != b for a, b in zip(_terms(before), _terms(step.after), strict=True)]
+    return z3.Or(*moved, *(cond for cond, _ in step.sent))
+
+
+@dataclass(frozen=True)
+class Goal:
+    clause: str
+    holds: Term
+    assuming: Term | None = None
+
+
+def goals(before: World, step: st.Step) -> Iterator[Goal]:
+    after = step.after
+    for name, clause in inv.STATE:
+        yield Goal(name, clause(after))
+    for kind, p in inv.MESSAGE.items():
+        m = any_msg(kind, "other")
+        yield Goal(f"P({kind.name}) in flight", p(m, after), p(m, before))
+    for cond, msg in step.sent:
+        yield Goal(f"P({msg.kind.name}) sent", z3.Implies(cond, inv.MESSAGE[msg.kind](msg, after)))
+    yield Goal("budget moved = books moved", step.credit == drawn(before) - drawn(after))
+
+
+@dataclass(frozen=True)
+class StepCase:
+    name: str
+    build: Callable[[World], Built]
+
+
+Built = tuple[st.Step, list[Term], Msg | None]
+"""A step, its hypotheses beyond the invariant, and the message it delivers (if any)."""
+
+
+def _delivery(kind: Kind, deliver: st.Deliver) -> Callable[[World], Built]:
+    def build(w: World) -> Built:
+        d = any_msg(kind, "delivered")
+        return deliver(w, d), [inv.MESSAGE[kind](d, w), inv.deliverable(d, w)], d
+
+    return build
+
+
+def _local(local: st.Local) -> Callable[[World], Built]:
+    return lambda w: (local(w), [], None)
+
+
+def cases(rules: Rules = HARDENED) -> list[StepCase]:
+    """Every step: each message delivered, each local request and timer."""
+    out = []
+    for kind, deliver in st.deliveries(rules).items():
+        receiver = "client" if kind in TO_CLIENT else "supervisor"
+        out.append(StepCase(f"{receiver} receives {kind.name}", _delivery(kind, deliver)))
+    for name, local in st.local(rules).items():
+        out.append(StepCase(name, _local(local)))
+    return out
+
+
+def _describe(model: z3.ModelRef, label: str, record: object) -> str:
+    parts = []
+    for f in fields(record):  # type: ignore[arg-type]
+        value = getattr(record, f.name)
+        if f.name == "kind":
+            parts.append(value.name)
+            continue
+        if not z3.is_expr(value):
+            continue
+        parts.append(f"{f.name}={model.eval(value, model_completion=True)}")
+    return f"  {label}: " + ", ".join(parts)
+
+
+def counterexample(model: z3.ModelRef, before: World, step: st.Step, delivered: Msg | None) -> str:
+    lines = ["  a counterexample to induction: the invariant holds before, not after the step"]
+    for label, w in (("before", before), ("after", step.after)):
+        lines.append(_describe(model, f"{label}: session", w.s))
+        lines.append(_describe(model, f"{label}: client", w.c))
+        ghost = {f.name: getattr(w, f.name) for f in fields(w) if f.name not in ("s", "c")}
+        lines.append(
+            f"  {label}: ghost "
+            + ", ".join(f"{k}={model.eval(v, model_completion=True)}" for k, v in ghost.items())
+        )
+    if delivered is not None:
+        lines.insert(4, _describe(model, "delivered", delivered))
+    for cond, msg in step.sent:
+        if z3.is_true(model.eval(cond, model_completion=True)):
+            lines.append(_describe(model, "sent", msg))
+    return "\n".join(lines)
+
+
+def check_step(case: StepCase, timeout_ms: int = 120_000) -> Iterator[Outcome]:
+    """Every obligation of one step."""
+    before = any_world("before")
+    step, hyps, delivered = case.build(before)
+    base = [
+        inv.invariant(before),
+        inv.bounded(before),
+        inv.bounded(step.after),
+        step.enabled,
+        resolved_consistently(before, step.after),
+        *hyps,
+    ]
+    todo = list(goals(before, step))
+    solver = z3.Solver()
+    solver.set("timeout", timeout_ms)
+    solver.add(*base)
+    started = time.perf_counter()
+    solver.push()
+    solver.add(*monotone(base), changes(before, step))
+    possible = solver.check()
+    solver.pop()
+    seconds = time.perf_counter() - started
+    yield Outcome(
+        case.name,
+        "can happen (changes the world or sends)",
+        possible == z3.sat,
+        seconds,
+        "" if possible == z3.sat else "  the invariant and assumptions rule this step out entirely",
+    )
+    for name, lemma in step.lemmas:
+        yield _check(solver, case.name, name, lemma, None, before, step, delivered)
+        solver.add(lemma)  # a failed lemma fails the proof; the rest are still checked
+    for goal in todo:
+        yield _check(
+            solver, case.name, goal.clause, goal.holds, goal.assuming, before, step, delivered
+        )
+
+
+def _check(
+    solver: z3.Solver,
+    step_name: str,
+    clause: str,
+    holds: Term,
+    assuming: Term | None,
+    before: World,
+    step: st.Step,
+    delivered: Msg | None,
+) -> Outcome:
+    """One obligation: ``holds`` after the step (``assuming`` of a message in flight before)."""
+    started = time.perf_counter()
+    solver.push()
+    facts = [holds] if assuming is None else [holds, assuming]
+    solver.add(*monotone([*solver.assertions(), *facts]))
+    if assuming is not None:
+        solver.add(assuming)
+    solver.add(z3.Not(holds))
+    result = solver.check()
+    seconds = time.perf_counter() - started
+    if result == z3.unsat:
+        outcome = Outcome(step_name, clause, True, seconds)
+    elif result == z3.sat:
+        text = counterexample(solver.model(), before, step, delivered)
+        outcome = Outcome(step_name, clause, False, seconds, text)
+    else:
+        outcome = Outcome(step_name, clause, False, seconds, f"  z3: {solver.reason_unknown()}")
+    solver.pop()
+    return outcome
+
+
+def check_initial() -> Iterator[Outcome]:
+    """The invariant holds for two new nodes (H starts at 0: nothing delivered before)."""
+    w = initial_world()
+    for name, clause in inv.STATE:
+        yield _prove("initial state", name, [H(inv.one(w.tx)) == 0], clause(w))
+
+
+def check_conclusion() -> Iterator[Outcome]:
+    """The invariant gives the ledger: the session's books hold at least what the node holds
+    and used (dissipation >= 0)."""
+    w = any_world("w")
+    held = w.c.usable + w.spent
+    hyps = [inv.invariant(w), inv.bounded(w)]
+    yield _prove("invariant", "usable >= 0", hyps, w.c.usable >= 0)
+    yield _prove("invariant", "dissipation >= 0", hyps, drawn(w) - held >= 0)
+
+
+def _prove(step: str, clause: str, hyps: list[Term], goal: Term) -> Outcome:
+    solver = z3.Solver()
+    solver.add(*hyps, *monotone([*hyps, goal]), z3.Not(goal))
+    started = time.perf_counter()
+    result = solver.check()
+    seconds = time.perf_counter() - started
+    if result == z3.unsat:
+        return Outcome(step, clause, True, seconds)
+    text = f"  {solver.model()}" if result == z3.sat else f"  z3: {solver.reason_unknown()}"
+    return Outcome(step, clause, False, seconds, text)
+
+
+def check_all(rules: Rules = HARDENED, timeout_ms: int = 120_000) -> Iterator[Outcome]:
+    """Every obligation, in order: the initial state, each step, the conclusion."""
+    yield from check_initial()
+    for case in cases(rules):
+        yield from check_step(case, timeout_ms)
+    yield from check_conclusion()

@@ -1,0 +1,305 @@
+"""Every cell of the hardened tables as a step of a world: the symbolic handler moves the session
+or the client, and the ghost state follows (it never changes what a node does).
+
+A step gives the next world, the messages it may send (each with the condition under which it is
+that kind), when it is enabled (local requests the core would refuse are not steps) and, for the
+supervisor, what it moves into or out of the usable budget.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+from canergy.messages import AMOUNT_MAX_MJ, DELIVERED_BITS, QUANTUM_UJ
+from canergy.prove import symbolic as sym
+from canergy.prove.invariant import COMMITTED
+from canergy.prove.rules import Rules
+from canergy.prove.symbolic import Term, z3
+from canergy.prove.world import (
+    BV16,
+    BV32,
+    INT,
+    TO_CLIENT,
+    TO_SUPERVISOR,
+    H,
+    Kind,
+    Msg,
+    World,
+)
+
+
+@dataclass(frozen=True)
+class Step:
+    after: World
+    sent: tuple[tuple[Term, Msg], ...]
+    enabled: Term
+    credit: Term
+    lemmas: tuple[tuple[str, Term], ...] = ()
+    """Facts about the step proved first (each an obligation), then assumed for the rest."""
+
+
+_ZERO = {BV16: z3.BitVecVal(0, 16), BV32: z3.BitVecVal(0, 32), INT: z3.IntVal(0)}
+
+
+def _msg(kind: Kind, **given: Term) -> Msg:
+    zero = {
+        "w": _ZERO[BV16],
+        "amount": _ZERO[INT],
+        "gs": _ZERO[INT],
+        "nonce": _ZERO[BV16],
+        "admit_tx": _ZERO[BV16],
+        "admit_seq": _ZERO[BV16],
+        "k": _ZERO[BV32],
+        "q": _ZERO[BV32],
+        "life": _ZERO[INT],
+    }
+    return Msg(kind, **{**zero, **given})
+
+
+def _is(sent: sym.Sent, kind: Kind) -> Term:
+    return z3.And(sent.present, sent.kind == int(kind.value))
+
+
+def client_sent(w: World, sent: sym.Sent) -> tuple[tuple[Term, Msg], ...]:
+    """What a client step sent, each kind with its ghosts read from the world after it."""
+    c, life = w.c, w.life
+    out: list[tuple[Term, Msg]] = []
+    for kind in (Kind.ACK, Kind.COMMITTED, Kind.ABORTED):
+        k = sym.unwrap(sent.a, c.last_tx, 16) + w.off_tx
+        out.append((_is(sent, kind), _msg(kind, w=sent.a, k=k, life=life)))
+    k = sym.unwrap(sent.a, c.return_seq, 16) + w.off_seq
+    out.append((_is(sent, Kind.RETURN), _msg(Kind.RETURN, w=sent.a, amount=sent.b, k=k, life=life)))
+    out.append((_is(sent, Kind.JOIN), _msg(Kind.JOIN, nonce=sent.a, life=life)))
+    return tuple(out)
+
+
+def supervisor_sent(w: World, sent: sym.Sent, life: Term) -> tuple[tuple[Term, Msg], ...]:
+    """What a supervisor step sent, with its ghosts (``life``: of the JOIN an ADMIT answers)."""
+    s = w.s
+    k = sym.unwrap(sent.a, s.tx, 16) - w.shift_tx
+    out: list[tuple[Term, Msg]] = [
+        (_is(sent, kind), _msg(kind, w=sent.a, amount=sent.b, gs=sent.c, k=k))
+        for kind in (Kind.INTENTION, Kind.COMMIT, Kind.ABORT)
+    ]
+    q = sym.unwrap(sent.a, s.returns_credited, 16) - w.shift_seq
+    out.append((_is(sent, Kind.RETURN_ACK), _msg(Kind.RETURN_ACK, w=sent.a, k=q)))
+    admit = _msg(
+        Kind.ADMIT,
+        nonce=sent.a,
+        admit_tx=z3.Int2BV(sent.b, 16),
+        admit_seq=z3.Int2BV(sent.c, 16),
+        k=w.tx,
+        q=w.rc,
+        life=life,
+    )
+    out.append((_is(sent, Kind.ADMIT), admit))
+    return tuple(out)
+
+
+# -- the client's steps ----------------------------------------------------------------------------
+
+
+def _client_moved(w: World, c: sym.Client, gave: Term = 0, **ghost: Term) -> World:
+    """The world after a client step that kept its books: energy into its usable budget is
+    ``received``; ``cc`` once it resolved the open transaction as committed."""
+    received = w.received + (c.usable - w.c.usable) + (c.spent - w.c.spent) + gave
+    after = replace(
+        w,
+        c=c,
+        received=received,
+        spent=w.spent + (c.spent - w.c.spent),
+        given=w.given + gave,
+        **ghost,
+    )
+    committed = z3.And(after.booked, after.last == after.tx, c.outcome == COMMITTED)
+    return replace(after, cc=z3.Or(w.cc, committed))
+
+
+def _client_step(w: World, result: tuple[sym.Client, sym.Sent], **ghost: Term) -> Step:
+    c, sent = result
+    after = _client_moved(w, c, **ghost)
+    return Step(after, client_sent(after, sent), z3.BoolVal(True), z3.IntVal(0))
+
+
+def on_intention(w: World, m: Msg) -> Step:
+    c, sent = sym.on_intention(w.c, m.w, m.amount, m.gs)
+    learned = z3.And(w.c.credited_unknown, z3.Not(c.credited_unknown))
+    roff = z3.If(learned, H(m.k) - c.credited, w.roff)
+    step = _client_step(w, (c, sent), roff=roff)
+    known = z3.And(w.booked, z3.Not(w.c.credited_unknown))
+    paid_to = sym.unwrap_int(m.gs, w.c.credited / QUANTUM_UJ, DELIVERED_BITS) * QUANTUM_UJ
+    names_h = z3.Implies(known, paid_to + w.roff == H(m.k))
+    return replace(step, lemmas=(("lemma: the wire's Gs names H(k)", names_h),))
+
+
+def on_commit(w: World, m: Msg) -> Step:
+    return _client_step(w, sym.on_command(w.c, True, m.w, m.amount))
+
+
+def on_abort(w: World, m: Msg) -> Step:
+    return _client_step(w, sym.on_command(w.c, False, m.w, m.amount))
+
+
+def on_return_ack(w: World, m: Msg) -> Step:
+    return _client_step(w, sym.on_return_ack(w.c, m.w))
+
+
+def on_admit(w: World, m: Msg) -> Step:
+    c, sent = sym.on_admit(w.c, m.nonce, m.admit_tx, m.admit_seq)
+    taken = z3.And(z3.Not(w.booked), m.nonce == w.c.nonce)
+    off_tx = z3.If(taken, m.k - z3.ZeroExt(16, m.admit_tx), w.off_tx)
+    off_seq = z3.If(taken, m.q - z3.ZeroExt(16, m.admit_seq), w.off_seq)
+    roff = z3.If(taken, z3.IntVal(0), w.roff)
+    return _client_step(w, (c, sent), off_tx=off_tx, off_seq=off_seq, roff=roff)
+
+
+def timeout_commit(w: World) -> Step:
+    return _client_step(w, sym.timeout_commit(w.c))
+
+
+def spend(w: World, amount: Term, rules: Rules) -> Step:
+    c, allowed = rules.spend(w.c, amount)
+    return Step(_client_moved(w, c), (), allowed, z3.IntVal(0))
+
+
+def give_back(w: World, amount: Term) -> Step:
+    c, sent, allowed = sym.give_back(w.c, amount)
+    after = _client_moved(w, c, gave=amount)
+    return Step(after, client_sent(after, sent), allowed, z3.IntVal(0))
+
+
+def resend_return(w: World) -> Step:
+    return _client_step(w, sym.resend_return(w.c))
+
+
+def client_power_loss(w: World, rules: Rules) -> Step:
+    return _client_step(w, rules.client_power_loss(w.c))
+
+
+def books_lost(w: World, nonce: Term, rules: Rules) -> Step:
+    """No valid record at start: a new life (JOINING, hardened); its usable budget is lost."""
+    c, sent = rules.books_lost(w.c, nonce)
+    zero32 = sym.counter(0)
+    after = replace(
+        w,
+        c=c,
+        lost=w.lost + w.c.usable,
+        life=w.life + 1,
+        admitted=z3.BoolVal(False),
+        off_tx=zero32,
+        off_seq=zero32,
+        roff=z3.IntVal(0),
+    )
+    return Step(after, client_sent(after, sent), z3.BoolVal(True), z3.IntVal(0))
+
+
+# -- the supervisor's steps ----------------------------------------------------------------------
+
+
+def _session_step(w: World, step: sym.SessionStep, life: Term | None = None, **ghost: Term) -> Step:
+    after = replace(w, s=step.session, **ghost)
+    answers = z3.IntVal(0) if life is None else life
+    return Step(after, supervisor_sent(after, step.sent, answers), z3.BoolVal(True), step.credit)
+
+
+def on_ack(w: World, m: Msg) -> Step:
+    return _session_step(w, sym.on_ack(w.s, m.w))
+
+
+def on_committed(w: World, m: Msg) -> Step:
+    return _session_step(w, sym.on_committed(w.s, m.w))
+
+
+def on_aborted(w: World, m: Msg) -> Step:
+    return _session_step(w, sym.on_aborted(w.s, m.w))
+
+
+def on_return(w: World, m: Msg, rules: Rules) -> Step:
+    return _session_step(w, rules.credit_return(w.s, m.w, m.amount))
+
+
+def on_join(w: World, m: Msg) -> Step:
+    step = sym.admit(w.s, m.nonce)
+    s = step.session
+    shift_tx = w.shift_tx + (s.tx - w.s.tx)
+    shift_seq = w.shift_seq + (s.returns_credited - w.s.returns_credited)
+    first = z3.And(m.life == w.life, z3.Not(w.admitted))
+    admitted_at = z3.If(first, s.tx - shift_tx, w.admitted_at)
+    return _session_step(
+        w,
+        step,
+        m.life,
+        shift_tx=shift_tx,
+        shift_seq=shift_seq,
+        admitted=z3.Or(w.admitted, first),
+        admitted_at=admitted_at,
+    )
+
+
+def begin(w: World, amount: Term) -> Step:
+    step = _session_step(w, sym.begin(w.s, amount), cc=z3.BoolVal(False))
+    most = AMOUNT_MAX_MJ * QUANTUM_UJ
+    valid = z3.And(amount % QUANTUM_UJ == 0, amount >= QUANTUM_UJ, amount <= most)
+    return replace(step, enabled=z3.And(w.s.phase == sym.S_IDLE, valid))
+
+
+def decide(commit: bool) -> Callable[[World], Step]:
+    def decided(w: World) -> Step:
+        step = _session_step(w, sym.decide(w.s, commit))
+        return replace(step, enabled=w.s.phase == sym.ACKED)
+
+    return decided
+
+
+def response_timeout(w: World, gives_up: Term) -> Step:
+    return _session_step(w, sym.response_timeout(w.s, gives_up))
+
+
+def supervisor_power_loss(w: World, rules: Rules) -> Step:
+    return _session_step(w, rules.supervisor_power_loss(w.s))
+
+
+# -- the table of steps ----------------------------------------------------------------------------
+
+Deliver = Callable[[World, Msg], Step]
+Local = Callable[[World], Step]
+
+
+def deliveries(rules: Rules) -> dict[Kind, Deliver]:
+    """Each message delivered to its receiver."""
+    table: dict[Kind, Deliver] = {
+        Kind.INTENTION: on_intention,
+        Kind.COMMIT: on_commit,
+        Kind.ABORT: on_abort,
+        Kind.RETURN_ACK: on_return_ack,
+        Kind.ADMIT: on_admit,
+        Kind.ACK: on_ack,
+        Kind.COMMITTED: on_committed,
+        Kind.ABORTED: on_aborted,
+        Kind.RETURN: lambda w, m: on_return(w, m, rules),
+        Kind.JOIN: on_join,
+    }
+    assert set(table) == set(TO_CLIENT) | set(TO_SUPERVISOR)
+    return table
+
+
+def local(rules: Rules) -> dict[str, Local]:
+    """Each local request and timer (amounts and choices are free constants)."""
+    return {
+        "client: command timer (timeout-commit)": timeout_commit,
+        "client: spend": lambda w: spend(w, z3.Int("spend.amount"), rules),
+        "client: give back": lambda w: give_back(w, z3.Int("give_back.amount")),
+        "client: return timer (RETURN or JOIN again)": resend_return,
+        "client: power loss": lambda w: client_power_loss(w, rules),
+        "client: books lost (JOIN)": lambda w: books_lost(
+            w, z3.BitVec("books_lost.nonce", 16), rules
+        ),
+        "supervisor: begin": lambda w: begin(w, z3.Int("begin.amount")),
+        "supervisor: decide commit": decide(True),
+        "supervisor: decide abort": decide(False),
+        "supervisor: response timer (re-send or write off)": lambda w: response_timeout(
+            w, z3.Bool("response_timeout.gives_up")
+        ),
+        "supervisor: power loss": lambda w: supervisor_power_loss(w, rules),
+    }

@@ -1,0 +1,236 @@
+"""What the proof reasons about: one supervisor session, its client, ghost state, and messages.
+
+The ghost state is what an observer outside the protocol could keep and no node stores:
+- **canonical counters**: the supervisor lifts its counters at an admission (by a multiple of
+  2**16, invisible on the wire) and an admitted client counts from the wire's 16 bits, so each
+  side's counters are mapped to one numbering (``shift_*`` on the supervisor, ``off_*`` on the
+  client, both multiples of 2**16); a message carries its counter in that numbering;
+- **energy over every life of the client**: ``received`` (all energy credited into its usable
+  budget), ``given`` (all it debited to return), ``spent`` and ``lost`` (usable budgets lost with
+  its books); ``roff`` maps its Rc to the supervisor's Gs after an admission (the wire carries Gs
+  modulo 2**24 mJ);
+- **lives**: ``life`` counts the client's losses of its books; ``admitted``/``admitted_at`` say
+  whether, and at which transaction, the supervisor has admitted the current life;
+- ``cc``: the client has committed the supervisor's open transaction;
+- ``H`` (a function, shared by every world of one run): ``H(k)`` is the supervisor's Gs when
+  transaction ``k`` began, for the whole run (a prophecy: fixed once the run is, monotone since Gs
+  only grows). Messages carry no Gs of their own; an INTENTION's Gs is ``H`` of its transaction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from enum import Enum
+from itertools import count
+from typing import Any
+
+from canergy.messages import MsgType
+from canergy.prove import symbolic as sym
+from canergy.prove.symbolic import COUNTER, Term, z3
+
+H = z3.Function("H", z3.BitVecSort(COUNTER), z3.IntSort())
+"""Gs at the start of each transaction (canonical numbering), the run's prophecy."""
+
+_names = count()
+
+
+def _fresh(prefix: str, sort: Any) -> Term:
+    return z3.Const(f"{prefix}{next(_names)}", sort)
+
+
+BV32, BV16 = z3.BitVecSort(COUNTER), z3.BitVecSort(16)
+INT, BOOL = z3.IntSort(), z3.BoolSort()
+
+
+@dataclass(frozen=True)
+class World:
+    """A session, its client and the ghost state (see the module's docstring)."""
+
+    s: sym.Session
+    c: sym.Client
+    shift_tx: Term
+    shift_seq: Term
+    off_tx: Term
+    off_seq: Term
+    roff: Term
+    received: Term
+    given: Term
+    spent: Term
+    lost: Term
+    cc: Term
+    life: Term
+    admitted: Term
+    admitted_at: Term
+
+    # canonical views
+    @property
+    def tx(self) -> Term:
+        """The supervisor's transaction."""
+        return self.s.tx - self.shift_tx
+
+    @property
+    def rc(self) -> Term:
+        """The supervisor's last credited return."""
+        return self.s.returns_credited - self.shift_seq
+
+    @property
+    def last(self) -> Term:
+        """The client's last resolved transaction."""
+        return self.c.last_tx + self.off_tx
+
+    @property
+    def held(self) -> Term:
+        return self.c.held_tx + self.off_tx
+
+    @property
+    def seq(self) -> Term:
+        """The client's last return number."""
+        return self.c.return_seq + self.off_seq
+
+    @property
+    def rc_true(self) -> Term:
+        """The client's Rc on the supervisor's scale."""
+        return self.c.credited + self.roff
+
+    @property
+    def open(self) -> Term:
+        return self.s.phase != sym.S_IDLE
+
+    @property
+    def booked(self) -> Term:
+        return self.c.phase != sym.JOINING
+
+
+_SESSION = {
+    "phase": INT,
+    "tx": BV32,
+    "reserved": INT,
+    "delivered": INT,
+    "decision": INT,
+    "returns_credited": BV32,
+    "returned": INT,
+}
+_CLIENT = {
+    "usable": INT,
+    "credited": INT,
+    "spent": INT,
+    "last_tx": BV32,
+    "outcome": INT,
+    "return_seq": BV32,
+    "return_pending": INT,
+    "credited_unknown": BOOL,
+    "held_tx": BV32,
+    "held_amount": INT,
+    "phase": INT,
+    "nonce": BV16,
+}
+_GHOST = {
+    "shift_tx": BV32,
+    "shift_seq": BV32,
+    "off_tx": BV32,
+    "off_seq": BV32,
+    "roff": INT,
+    "received": INT,
+    "given": INT,
+    "spent": INT,
+    "lost": INT,
+    "cc": BOOL,
+    "life": INT,
+    "admitted": BOOL,
+    "admitted_at": BV32,
+}
+
+
+def any_world(name: str = "w") -> World:
+    """A world of fresh constants: any state at all."""
+    s = sym.Session(**{f: _fresh(f"{name}.s.{f}.", sort) for f, sort in _SESSION.items()})
+    c = sym.Client(**{f: _fresh(f"{name}.c.{f}.", sort) for f, sort in _CLIENT.items()})
+    ghost = {f: _fresh(f"{name}.{f}.", sort) for f, sort in _GHOST.items()}
+    return World(s, c, **ghost)
+
+
+def initial_world() -> World:
+    """Both sides new: nothing granted, no message sent, the client's first life admitted."""
+    zero, zero32, no = z3.IntVal(0), sym.counter(0), z3.BoolVal(False)
+    s = sym.Session(sym.S_IDLE, zero32, zero, zero, sym.NO_DECISION, zero32, zero)
+    c = sym.Client(
+        zero,
+        zero,
+        zero,
+        zero32,
+        z3.IntVal(0),
+        zero32,
+        zero,
+        no,
+        zero32,
+        zero,
+        sym.IDLE,
+        z3.BitVecVal(0, 16),
+    )
+    return World(
+        s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,
+        z3.BoolVal(True), zero32,
+    )  # fmt: skip
+
+
+class Kind(Enum):
+    """The messages of the hardened protocol."""
+
+    INTENTION = MsgType.INTENTION
+    COMMIT = MsgType.COMMIT
+    ABORT = MsgType.ABORT
+    RETURN_ACK = MsgType.RETURN_ACK
+    ADMIT = MsgType.ADMIT
+    ACK = MsgType.ACK
+    COMMITTED = MsgType.COMMITTED
+    ABORTED = MsgType.ABORTED
+    RETURN = MsgType.RETURN
+    JOIN = MsgType.JOIN
+
+
+TO_CLIENT = (Kind.INTENTION, Kind.COMMIT, Kind.ABORT, Kind.RETURN_ACK, Kind.ADMIT)
+TO_SUPERVISOR = (Kind.ACK, Kind.COMMITTED, Kind.ABORTED, Kind.RETURN, Kind.JOIN)
+
+
+@dataclass(frozen=True)
+class Msg:
+    """A message in flight: its wire fields and its ghosts.
+
+    Wire: ``w`` the 16-bit counter (tx or return number; a JOIN's or ADMIT's nonce is
+    ``nonce``), ``amount`` in mJ, ``gs`` an INTENTION's Gs in mJ modulo 2**24, ``admit_tx`` and
+    ``admit_seq`` an ADMIT's counters. Ghost: ``k`` the counter in canonical numbering (an
+    ADMIT's transaction), ``q`` an ADMIT's return number, ``life`` the sender's life (client
+    messages, and the JOIN an ADMIT answers)."""
+
+    kind: Kind
+    w: Term
+    amount: Term
+    gs: Term
+    nonce: Term
+    admit_tx: Term
+    admit_seq: Term
+    k: Term
+    q: Term
+    life: Term
+
+
+_MSG = {
+    "w": BV16,
+    "amount": INT,
+    "gs": INT,
+    "nonce": BV16,
+    "admit_tx": BV16,
+    "admit_seq": BV16,
+    "k": BV32,
+    "q": BV32,
+    "life": INT,
+}
+
+
+def any_msg(kind: Kind, name: str = "m") -> Msg:
+    """A message of ``kind`` with every field a fresh constant: any message at all."""
+    return Msg(kind, **{f: _fresh(f"{name}.{kind.name}.{f}.", sort) for f, sort in _MSG.items()})
+
+
+def msg_fields(m: Msg) -> dict[str, Term]:
+    return {f.name: getattr(m, f.name) for f in fields(m) if f.name != "kind"}

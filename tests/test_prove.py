@@ -1,0 +1,229 @@
+"""``canergy prove``: the hardened rules prove, every unsound rule set and a changed cell fail
+with a counterexample, and the bounded checker finds a real trace for each unsound set."""
+
+from __future__ import annotations
+
+import json
+import shlex
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from canergy.cli import main
+from canergy.core import common, paper
+from canergy.core.inputs import POWER_LOSS, BooksLost
+from canergy.core.state import ClientState, Decision, Phase, Session
+from canergy.core.timing import Timing
+from canergy.messages import Return
+
+z3 = pytest.importorskip("z3")  # the prove extra: in dev, so CI runs this
+from canergy.prove import (  # noqa: E402
+    CONFIRMED_BY,
+    RULE_NAMES,
+    rules,
+)
+from canergy.prove import invariant as inv  # noqa: E402
+from canergy.prove import symbolic as sym  # noqa: E402
+from canergy.prove.obligations import cases, check_step  # noqa: E402
+
+T = Timing()
+
+
+def _prove(tmp_path: Path, *args: str) -> tuple[int, list[dict[str, Any]]]:
+    out = tmp_path / "prove.json"
+    code = main(["prove", "-q", "--json", str(out), *args])
+    return code, json.loads(out.read_text())
+
+
+def test_the_hardened_rules_prove_every_obligation(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, results = _prove(tmp_path)
+    assert code == 0, capsys.readouterr().out
+    assert all(r["proved"] for r in results)
+    steps = {c.name for c in cases()}
+    by_step: dict[str, set[str]] = {}
+    for r in results:
+        by_step.setdefault(r["step"], set()).add(r["clause"])
+    assert steps <= set(by_step)  # every cell of both tables is a step
+    for step in steps:  # every clause, every message in flight, the budget, the step possible
+        clauses = by_step[step]
+        assert {name for name, _ in inv.STATE} <= clauses
+        assert {f"P({k.name}) in flight" for k in inv.MESSAGE} <= clauses
+        assert {"budget moved = books moved", "can happen (changes the world or sends)"} <= clauses
+    assert {"usable >= 0", "dissipation >= 0"} <= by_step["invariant"]
+    assert "proved in" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("name", [n for n in RULE_NAMES if n != "hardened"])
+def test_each_unsound_rule_set_fails_with_a_counterexample(
+    name: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, results = _prove(tmp_path, "--rules", name)
+    out, err = capsys.readouterr()
+    assert code == 1
+    assert not results[-1]["proved"] and all(r["proved"] for r in results[:-1])  # stops there
+    assert "a counterexample to induction" in out and "  before: client:" in out
+    for command in CONFIRMED_BY[name]:
+        assert f"the bounded checker finds a real trace: {command}" in err
+
+
+@pytest.mark.parametrize(
+    "command", [c for commands in CONFIRMED_BY.values() for c in commands], ids=str
+)
+def test_the_bounded_checker_finds_a_real_trace_for_each(
+    command: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The teeth are real hazards: each is a trace the bounded checker finds (the blank-record
+    rule's is tests/test_check.py's TRUSTING test)."""
+    argv = shlex.split(command)
+    assert argv[:2] == ["canergy", "check"]
+    assert main([*argv[1:], "--no-progress"]) == 1
+    out = capsys.readouterr().out
+    assert "VIOLATION" in out or "violations: 1" in out, out
+
+
+def _first_failure(step: str, rule_set: rules.Rules = rules.HARDENED) -> Any:
+    (case,) = [c for c in cases(rule_set) if c.name == step]
+    return next((o for o in check_step(case, 60_000) if not o.proved), None)
+
+
+def _failed_clauses(step: str, rule_set: rules.Rules) -> set[str]:
+    (case,) = [c for c in cases(rule_set) if c.name == step]
+    return {o.clause for o in check_step(case, 60_000) if not o.proved}
+
+
+def test_a_client_that_commits_a_duplicate_again_fails_the_proof(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Hazard (a) of the paper: a duplicated COMMIT of the last transaction credits again."""
+    original = sym.on_command
+
+    def recommits(c: sym.Client, commit: bool, tx16: Any, amount_mj: Any) -> Any:
+        state, sent = original(c, commit, tx16, amount_mj)
+        amount = amount_mj * 1000
+        again = replace(c, usable=c.usable + amount, credited=c.credited + amount)
+        duplicate = z3.And(c.phase != sym.JOINING, sym.unwrap(tx16, c.last_tx, 16) == c.last_tx)
+        return (sym.pick(duplicate, again, state), sent) if commit else (state, sent)
+
+    assert _first_failure("client receives COMMIT") is None
+    monkeypatch.setattr(sym, "on_command", recommits)
+    failure = _first_failure("client receives COMMIT")
+    assert failure is not None and "counterexample to induction" in failure.counterexample
+
+
+def test_a_supervisor_that_credits_a_return_twice_fails_the_proof() -> None:
+    original = sym.credit_return
+
+    def credits_again(s: sym.Session, seq16: Any, amount_mj: Any) -> Any:
+        """The window off by one: the last credited number is credited again."""
+        return original(replace(s, returns_credited=s.returns_credited - 1), seq16, amount_mj)
+
+    assert _first_failure("supervisor receives RETURN") is None
+    mutated = rules.Rules("mutated", credit_return=credits_again)
+    assert "returned <= given" in _failed_clauses("supervisor receives RETURN", mutated)
+
+
+def test_a_write_off_that_credits_the_budget_back_fails_the_proof(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Giving up on a transaction must count it as delivered (the client may have committed
+    it); crediting Ts back to Us instead creates energy."""
+    original = sym.response_timeout
+
+    def credits_back(s: sym.Session, gives_up: Any) -> Any:
+        step = original(s, gives_up)
+        refund = z3.And(gives_up, z3.Or(s.phase == sym.WAIT_ACK, s.phase == sym.WAIT_CONFIRM))
+        delivered = z3.If(refund, s.delivered, step.session.delivered)
+        credit = z3.If(refund, s.reserved, step.credit)
+        return sym.SessionStep(replace(step.session, delivered=delivered), step.sent, credit)
+
+    step = "supervisor: response timer (re-send or write off)"
+    assert _first_failure(step) is None
+    monkeypatch.setattr(sym, "response_timeout", credits_back)
+    assert _first_failure(step) is not None
+
+
+# -- the unsound cells are the Python cells they are named after --------------------------------
+
+
+def _value(term: Any) -> int:
+    return int(z3.simplify(term).as_long())
+
+
+@settings(max_examples=200)
+@given(
+    st.integers(0, 1 << 20),
+    st.integers(0, 0xFFFF),
+    st.integers(1, 0xFFFF),
+    st.integers(0, 10**9),
+)
+def test_credit_any_return_is_the_papers(rc: int, seq: int, amount: int, returned: int) -> None:
+    s = Session(1, returns_credited=rc, returned=returned)
+    py = paper.SUPERVISOR.step(T, s, Return(1, seq, amount), 0)
+    step = rules.credit_any_return(_session(s), z3.BitVecVal(seq, 16), z3.IntVal(amount))
+    assert _value(step.session.returns_credited) == py.session.returns_credited
+    assert _value(step.session.returned) == py.session.returned
+    assert _value(step.credit) == py.credit
+    assert not z3.is_true(z3.simplify(step.sent.present))
+
+
+@settings(max_examples=100)
+@given(
+    st.sampled_from([Phase.IDLE, Phase.WAIT_ACK, Phase.ACKED, Phase.WAIT_CONFIRM]),
+    st.integers(0, 1 << 20),
+    st.integers(1, 0xFFFF),
+    st.integers(0, 10**9),
+)
+def test_reset_session_is_the_papers(phase: Phase, tx: int, amount: int, delivered: int) -> None:
+    reserved = 0 if phase is Phase.IDLE else amount * 1000
+    decision = Decision.COMMIT if phase is Phase.WAIT_CONFIRM else Decision.NONE
+    s = Session(1, phase, tx, reserved, delivered, decision)
+    py = paper.SUPERVISOR.step(T, s, POWER_LOSS, 0)
+    step = rules.reset_session(_session(s))
+    for name in ("phase", "tx", "reserved", "delivered", "decision"):
+        assert _value(getattr(step.session, name)) == int(getattr(py.session, name))
+
+
+@given(st.integers(0, 10**9), st.integers(0, 1 << 20), st.integers(0, 0xFFFF))
+def test_start_blank_is_the_shared_cell(usable: int, last_tx: int, nonce: int) -> None:
+    c = ClientState(1, usable=usable, credited=usable, last_tx=last_tx)
+    py = common.start_blank(T, c, BooksLost(nonce), 0).client
+    blank, sent = rules.start_blank(_client(c), z3.BitVecVal(nonce, 16))
+    for name in ("usable", "credited", "last_tx", "phase", "nonce", "return_seq"):
+        assert _value(getattr(blank, name)) == int(getattr(py, name))
+    assert not z3.is_true(z3.simplify(blank.credited_unknown)) and not py.credited_unknown
+    assert not z3.is_true(z3.simplify(sent.present))
+
+
+def _session(s: Session) -> sym.Session:
+    return sym.Session(
+        phase=z3.IntVal(int(s.phase)),
+        tx=sym.counter(s.tx),
+        reserved=z3.IntVal(s.reserved),
+        delivered=z3.IntVal(s.delivered),
+        decision=z3.IntVal(int(s.decision)),
+        returns_credited=sym.counter(s.returns_credited),
+        returned=z3.IntVal(s.returned),
+    )
+
+
+def _client(c: ClientState) -> sym.Client:
+    return sym.Client(
+        usable=z3.IntVal(c.usable),
+        credited=z3.IntVal(c.credited),
+        spent=z3.IntVal(c.spent),
+        last_tx=sym.counter(c.last_tx),
+        outcome=z3.IntVal(int(c.outcome)),
+        return_seq=sym.counter(c.return_seq),
+        return_pending=z3.IntVal(c.return_pending),
+        credited_unknown=z3.BoolVal(c.credited_unknown),
+        held_tx=sym.counter(c.held_tx),
+        held_amount=z3.IntVal(c.held_amount),
+        phase=z3.IntVal(int(c.phase)),
+        nonce=z3.BitVecVal(c.nonce, 16),
+    )

@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from canergy.core.actions import Send
+from canergy.core.gateway import forward, withdraw_for_return
 from canergy.core.hardened import CLIENT, SUPERVISOR
 from canergy.core.inputs import (
     POWER_LOSS,
@@ -25,7 +26,8 @@ from canergy.core.inputs import (
     GiveBack,
     Spend,
 )
-from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
+from canergy.core.state import ClientState, Decision, Outcome, Phase, Session, SupervisorState
+from canergy.core.steps import ClientStep
 from canergy.core.timing import Timing
 from canergy.messages import (
     QUANTUM_UJ,
@@ -312,3 +314,24 @@ def test_response_timeouts_and_resets(s: Session, tries: int) -> None:
         sym.response_timeout(sym_session(s), gives_up),
     )
     same_session(SUPERVISOR.step(T, s, POWER_LOSS, 0), sym.supervisor_power_loss(sym_session(s)))
+
+
+# -- a gateway's link rules on its client role -------------------------------------------------
+
+
+@settings(max_examples=200)
+@given(clients(), st.integers(1, 80_000).map(lambda m: m * QUANTUM_UJ))
+def test_a_gateways_forward_and_give_back_from_below(c: ClientState, amount: int) -> None:
+    down = SupervisorState(initial=0, usable=10**12, injected=10**12)
+    s = sym_client(c)
+    state, allowed = sym.forward(s)
+    assert value(allowed) == (c.usable > 0)
+    if c.usable > 0:
+        up, _ = forward(c, down)
+        same_client(ClientStep(up), (state, sym.Sent.none()))
+    state, sent, allowed = sym.give_back_from_below(s, z3.IntVal(amount))
+    room = CLIENT.can_give_back(c) and amount <= min(c.spent, 65_535_000)
+    assert value(allowed) == room
+    if room:
+        up, _ = withdraw_for_return(c, down, amount)
+        same_client(CLIENT.step(T, up, GiveBack(amount), 0), (state, sent))

@@ -161,6 +161,7 @@ def energy(w: World) -> Term:
     """Every µJ credited to the client is usable, spent, given back or lost with its books."""
     return z3.And(
         w.c.usable + w.spent + w.given + w.lost == w.received,
+        w.c.spent <= w.spent,
         w.spent >= 0,
         w.given >= 0,
         w.lost >= 0,

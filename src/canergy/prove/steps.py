@@ -169,6 +169,17 @@ def give_back(w: World, amount: Term) -> Step:
     return Step(after, client_sent(after, sent), allowed, z3.IntVal(0))
 
 
+def forward(w: World) -> Step:
+    c, allowed = sym.forward(w.c)
+    return Step(_client_moved(w, c), (), allowed, z3.IntVal(0))
+
+
+def give_back_from_below(w: World, amount: Term) -> Step:
+    c, sent, allowed = sym.give_back_from_below(w.c, amount)
+    after = _client_moved(w, c, gave=amount)
+    return Step(after, client_sent(after, sent), allowed, z3.IntVal(0))
+
+
 def resend_return(w: World) -> Step:
     return _client_step(w, sym.resend_return(w.c))
 
@@ -294,6 +305,10 @@ def local(rules: Rules) -> dict[str, Local]:
         "client: power loss": lambda w: client_power_loss(w, rules),
         "client: books lost (JOIN)": lambda w: books_lost(
             w, z3.BitVec("books_lost.nonce", 16), rules
+        ),
+        "gateway: forward its usable budget below": forward,
+        "gateway: give back from below": lambda w: give_back_from_below(
+            w, z3.Int("from_below.amount")
         ),
         "supervisor: begin": lambda w: begin(w, z3.Int("begin.amount")),
         "supervisor: decide commit": decide(True),

@@ -472,3 +472,22 @@ def supervisor_power_loss(s: Session) -> SessionStep:
     return SessionStep(
         replace(s, phase=z3.If(s.phase == ACKED, WAIT_ACK, s.phase)), Sent.none(), z3.IntVal(0)
     )
+
+
+# -- a gateway's link rules, on its client role ----------------------------------------------------
+
+
+def forward(c: Client) -> tuple[Client, Term]:
+    """``core.gateway.forward`` seen from the client role: all of Uc passed below (spent, and
+    injected into the downstream usable budget); the term says whether there is any."""
+    moved, _ = spend(c, c.usable)
+    return moved, c.usable > 0
+
+
+def give_back_from_below(c: Client, amount: Term) -> tuple[Client, Sent, Term]:
+    """``core.gateway.withdraw_for_return`` then ``give_back``: ``amount`` taken back out of what
+    was passed below (spent) and returned upstream in one step; allowed when the return is and
+    no more was passed below than that (the downstream usable budget holds at most that)."""
+    back = replace(c, usable=c.usable + amount, spent=c.spent - amount)
+    returned, sent, allowed = give_back(back, amount)
+    return returned, sent, z3.And(allowed, amount <= c.spent)

@@ -29,6 +29,7 @@ from canergy.prove import (  # noqa: E402
 from canergy.prove import invariant as inv  # noqa: E402
 from canergy.prove import symbolic as sym  # noqa: E402
 from canergy.prove.obligations import cases, check_step  # noqa: E402
+from canergy.prove.steps import MOVES  # noqa: E402
 
 T = Timing()
 
@@ -55,6 +56,7 @@ def test_the_hardened_rules_prove_every_obligation(
         assert {name for name, _ in inv.STATE} <= clauses
         assert {f"P({k.name}) in flight" for k in inv.MESSAGE} <= clauses
         assert {"budget moved = books moved", "can happen (changes the world or sends)"} <= clauses
+        assert {f"can move {e}" for e in MOVES.get(step, ())} <= clauses
     assert {"usable >= 0", "dissipation >= 0"} <= by_step["invariant"]
     assert "proved in" in capsys.readouterr().out
 
@@ -227,3 +229,16 @@ def _client(c: ClientState) -> sym.Client:
         phase=z3.IntVal(int(c.phase)),
         nonce=z3.BitVecVal(c.nonce, 16),
     )
+
+
+def test_a_too_strong_invariant_is_caught_by_the_witnesses(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A clause that rules out the branch a step moves energy in would let the proof pass that
+    step vacuously; the witness obligations ('can move ...') fail instead."""
+    never_aborts = ("no abort decided", lambda w: w.s.decision != inv.D_ABORT)
+    (case,) = [c for c in cases() if c.name == "supervisor receives ABORTED"]
+    assert all(o.proved for o in check_step(case) if o.clause.startswith("can move"))
+    monkeypatch.setattr(inv, "STATE", (*inv.STATE, never_aborts))
+    failed = {o.clause for o in check_step(case) if not o.proved}
+    assert "can move Ts" in failed

@@ -201,6 +201,8 @@ def check_step(case: StepCase, timeout_ms: int = 120_000) -> Iterator[Outcome]:
         seconds,
         "" if possible == z3.sat else "  the invariant and assumptions rule this step out entirely",
     )
+    for energy in st.MOVES.get(case.name, ()):
+        yield _witness(solver, case.name, energy, before, step)
     for name, lemma in step.lemmas:
         yield _check(solver, case.name, name, lemma, None, before, step, delivered)
         solver.add(lemma)  # a failed lemma fails the proof; the rest are still checked
@@ -208,6 +210,22 @@ def check_step(case: StepCase, timeout_ms: int = 120_000) -> Iterator[Outcome]:
         yield _check(
             solver, case.name, goal.clause, goal.holds, goal.assuming, before, step, delivered
         )
+
+
+def _witness(
+    solver: z3.Solver, step_name: str, energy: str, before: World, step: st.Step
+) -> Outcome:
+    """The step can move ``energy`` from a state where the invariant holds."""
+    value = st.ENERGY[energy]
+    started = time.perf_counter()
+    solver.push()
+    moved = value(before) != value(step.after)
+    solver.add(*monotone([*solver.assertions(), moved]), moved)
+    result = solver.check()
+    solver.pop()
+    seconds = time.perf_counter() - started
+    text = "" if result == z3.sat else "  no state where the invariant holds lets this step move it"
+    return Outcome(step_name, f"can move {energy}", result == z3.sat, seconds, text)
 
 
 def _check(

@@ -271,6 +271,40 @@ def supervisor_power_loss(w: World, rules: Rules) -> Step:
     return _session_step(w, rules.supervisor_power_loss(w.s))
 
 
+# -- what each step can move ---------------------------------------------------------------------
+
+ENERGY: dict[str, Callable[[World], Term]] = {
+    "Ts": lambda w: w.s.reserved,
+    "Gs": lambda w: w.s.delivered,
+    "returned": lambda w: w.s.returned,
+    "Uc": lambda w: w.c.usable,
+    "received": lambda w: w.received,
+    "spent": lambda w: w.spent,
+    "given": lambda w: w.given,
+    "lost": lambda w: w.lost,
+}
+"""The energies of a world, by name."""
+
+MOVES: dict[str, tuple[str, ...]] = {
+    "client receives INTENTION": ("Uc", "received"),
+    "client receives COMMIT": ("Uc", "received"),
+    "supervisor receives COMMITTED": ("Ts", "Gs"),
+    "supervisor receives ABORTED": ("Ts",),
+    "supervisor receives RETURN": ("returned",),
+    "supervisor receives JOIN": ("Ts", "Gs"),
+    "client: command timer (timeout-commit)": ("Uc", "received"),
+    "client: spend": ("Uc", "spent"),
+    "client: give back": ("Uc", "given"),
+    "client: books lost (JOIN)": ("Uc", "lost"),
+    "gateway: forward its usable budget below": ("Uc", "spent"),
+    "gateway: give back from below": ("spent", "given"),
+    "supervisor: begin": ("Ts",),
+    "supervisor: response timer (re-send or write off)": ("Ts", "Gs"),
+}
+"""The energies each step's rule moves: the proof shows each can move under the invariant (a
+too strong invariant that ruled the branch out would prove that step vacuously)."""
+
+
 # -- the table of steps ----------------------------------------------------------------------------
 
 Deliver = Callable[[World, Msg], Step]

@@ -17,7 +17,7 @@ from canergy.cia402.guard import DriveGuard, GuardConfig
 from canergy.cia402.meter import MeterConfig, MeterKind
 from canergy.ledger import ledger_from_status
 from canergy.units import UJ_PER_J
-from firmware_model.drive.cosim import ENABLE, STEP_US, Result, Scenario, pulses, run
+from firmware_model.drive.cosim import ENABLE, STEP_US, Result, Scenario, pulsing, run
 
 POWERLESS = ("SWITCH ON DISABLED", "READY TO SWITCH ON", "FAULT")
 SOUND = [
@@ -67,35 +67,17 @@ def test_limits_writes_left_unanswered_are_written_again_and_charged_as_taken(
 def test_pulses_between_tpdos_are_charged(kind: MeterKind, where: str, pdo_ms: int) -> None:
     """The application sets 100 rad/s just after each TPDO and 0 at mid-period, at 10,000
     rad/s² both ways: a sampled meter sees none of it; the sound modes charge all of it."""
-    period = pdo_ms * 1000
-    sc = Scenario(
-        meter=kind,
-        counter_on=where,
-        pdo_period_us=period,
-        velocity=0,
-        acceleration=10_000_000,
-        app=((0, 0x6084, 10_000_000), *pulses(period, 10_000_000)),
-        duration_us=10_000_000,
-    )
-    r = run(sc)
+    r = run(pulsing(Scenario(meter=kind, counter_on=where, pdo_period_us=pdo_ms * 1000)))
     assert within_bound(r) and r.drawn_uj <= r.granted_uj
     assert r.metered_uj >= r.drawn_uj - 1_000  # every pulse was charged (a count at most left)
 
 
 def test_a_sampled_meter_is_fooled_by_pulses_between_tpdos() -> None:
     """What the README's warning says: the sampled modes guarantee nothing."""
-    period = 50_000
-    r = run(
-        Scenario(
-            meter=MeterKind.SAMPLED_MECHANICAL,
-            stop=StopKind.QUICK,
-            pdo_period_us=period,
-            velocity=0,
-            acceleration=10_000_000,
-            app=((0, 0x6084, 10_000_000), *pulses(period, 10_000_000, offset_us=500)),
-            duration_us=10_000_000,
-        )
+    sampled = Scenario(
+        meter=MeterKind.SAMPLED_MECHANICAL, stop=StopKind.QUICK, pdo_period_us=50_000
     )
+    r = run(pulsing(sampled, offset_us=500))
     assert r.bound_uj is None  # and it claims none
     assert r.drawn_uj > 2 * r.granted_uj
     assert r.metered_uj < r.drawn_uj / 2

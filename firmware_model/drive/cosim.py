@@ -356,20 +356,14 @@ MODES = (
 
 
 def table(periods_ms: tuple[int, ...] = (5, 10, 20, 50)) -> list[dict[str, Any]]:
-    """Each mode at each TPDO period: the plain velocity profile (3 s), and 10 s of pulses timed
-    between TPDOs (target 100 rad/s just after one, 0 at mid-period, 10,000 rad/s² both ways)."""
+    """Each mode at each TPDO period: the plain velocity profile (3 s), and ``pulsing``'s 10 s of
+    pulses timed between TPDOs."""
     rows = []
     for name, kind, stop in MODES:
         for ms in periods_ms:
             period = ms * 1000
-            for profile, app in (("steady", ()), ("pulses", pulses(period, 3_000_000))):
-                sc = Scenario(
-                    meter=kind,
-                    stop=stop,
-                    pdo_period_us=period,
-                    app=app,
-                    velocity=0 if app else 100_000,
-                )
+            steady = Scenario(meter=kind, stop=stop, pdo_period_us=period)
+            for profile, sc in (("steady", steady), ("pulses", pulsing(steady))):
                 r = run(sc)
                 rows.append(
                     {
@@ -384,6 +378,14 @@ def table(periods_ms: tuple[int, ...] = (5, 10, 20, 50)) -> list[dict[str, Any]]
                     }
                 )
     return rows
+
+
+def pulsing(sc: Scenario, offset_us: int = 1_000) -> Scenario:
+    """``sc`` with the issue's application: target 100 rad/s just after each TPDO and 0 at
+    mid-period, 10,000 rad/s² both ways (0x6083, 0x6084), for 10 s."""
+    ramps = ((0, 0x6084, 10_000_000),)
+    app = (*ramps, *pulses(sc.pdo_period_us, 10_000_000, offset_us=offset_us))
+    return replace(sc, velocity=0, acceleration=10_000_000, app=app, duration_us=10_000_000)
 
 
 def pulses(

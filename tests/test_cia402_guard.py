@@ -159,6 +159,39 @@ def test_what_is_drawn_past_the_budget_is_a_debt_the_next_grant_pays_first() -> 
     assert ledger_from_status(topped.supervisor, []).passive
 
 
+@pytest.mark.parametrize(
+    ("kind", "pause_at_us"), [(MeterKind.COUNTER, 600_000), (MeterKind.ENVELOPE, 300_000)]
+)
+def test_a_sound_mode_books_a_host_pause_past_the_budget_as_debt(
+    kind: MeterKind, pause_at_us: int
+) -> None:
+    """The times the bound allows do not hold (the host away for a second): what the drive
+    drew meanwhile is charged when the host is back, past the budget, as a debt; the bound is
+    raised to the gap seen, so granted plus the bound still holds."""
+    paused = {"meter": kind, "pauses": ((pause_at_us, 1_000_000),)}
+    r = run(Scenario(**paused))
+    assert r.overrun_uj > 0 and r.debt_uj == r.overrun_uj
+    assert ledger_from_status(r.supervisor, []).drive_debt == r.debt_uj
+    assert within_bound(r) and r.bound_uj is not None and r.bound_uj > 1_000_000  # 1 s seen
+    assert r.states[-1] == "FAULT"  # its heartbeat consumer saw the host go: no grant since
+
+
+def test_a_debt_of_a_sound_mode_is_paid_by_the_next_grant() -> None:
+    """A 150 ms host pause (past the 25 ms gap allowed, inside the drive's 200 ms consumer
+    time) with the drive topped up to 1 J: charged at the envelope past its level; paid."""
+    r = run(
+        Scenario(
+            meter=MeterKind.ENVELOPE,
+            pauses=((600_000, 150_000),),
+            budget_uj=50 * UJ_PER_J,
+            target_uj=UJ_PER_J,
+            max_grant_uj=500_000,
+        )
+    )
+    assert r.overrun_uj > 0 and r.debt_uj == 0  # metered past the level, and paid first
+    assert ledger_from_status(r.supervisor, []).passive
+
+
 def test_top_ups_keep_the_drive_running() -> None:
     r = run(
         Scenario(

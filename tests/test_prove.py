@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import shlex
-from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,8 @@ from canergy.core.timing import Timing
 from canergy.messages import Return
 
 z3 = pytest.importorskip("z3")  # the prove extra: in dev, so CI runs this
+from support.sym_states import sym_client, sym_session  # noqa: E402
+
 from canergy.prove import (  # noqa: E402
     CONFIRMED_BY,
     RULE_NAMES,
@@ -168,7 +169,7 @@ def _value(term: Any) -> int:
 def test_credit_any_return_is_the_papers(rc: int, seq: int, amount: int, returned: int) -> None:
     s = Session(1, returns_credited=rc, returned=returned)
     py = paper.SUPERVISOR.step(T, s, Return(1, seq, amount), 0)
-    step = rules.credit_any_return(_session(s), z3.BitVecVal(seq, 16), z3.IntVal(amount))
+    step = rules.credit_any_return(sym_session(s), z3.BitVecVal(seq, 16), z3.IntVal(amount))
     assert _value(step.session.returns_credited) == py.session.returns_credited
     assert _value(step.session.returned) == py.session.returned
     assert _value(step.credit) == py.credit
@@ -187,7 +188,7 @@ def test_reset_session_is_the_papers(phase: Phase, tx: int, amount: int, deliver
     decision = Decision.COMMIT if phase is Phase.WAIT_CONFIRM else Decision.NONE
     s = Session(1, phase, tx, reserved, delivered, decision)
     py = paper.SUPERVISOR.step(T, s, POWER_LOSS, 0)
-    step = rules.reset_session(_session(s))
+    step = rules.reset_session(sym_session(s))
     for name in ("phase", "tx", "reserved", "delivered", "decision"):
         assert _value(getattr(step.session, name)) == int(getattr(py.session, name))
 
@@ -196,76 +197,8 @@ def test_reset_session_is_the_papers(phase: Phase, tx: int, amount: int, deliver
 def test_start_blank_is_the_shared_cell(usable: int, last_tx: int, nonce: int) -> None:
     c = ClientState(1, usable=usable, credited=usable, last_tx=last_tx)
     py = common.start_blank(T, c, BooksLost(nonce), 0).client
-    blank, sent = rules.start_blank(_client(c), z3.BitVecVal(nonce, 16))
+    blank, sent = rules.start_blank(sym_client(c), z3.BitVecVal(nonce, 16))
     for name in ("usable", "credited", "last_tx", "phase", "nonce", "return_seq"):
         assert _value(getattr(blank, name)) == int(getattr(py, name))
     assert not z3.is_true(z3.simplify(blank.credited_unknown)) and not py.credited_unknown
     assert not z3.is_true(z3.simplify(sent.present))
-
-
-def _session(s: Session) -> sym.Session:
-    return sym.Session(
-        phase=z3.IntVal(int(s.phase)),
-        tx=sym.counter(s.tx),
-        reserved=z3.IntVal(s.reserved),
-        delivered=z3.IntVal(s.delivered),
-        decision=z3.IntVal(int(s.decision)),
-        returns_credited=sym.counter(s.returns_credited),
-        returned=z3.IntVal(s.returned),
-    )
-
-
-def _client(c: ClientState) -> sym.Client:
-    return sym.Client(
-        usable=z3.IntVal(c.usable),
-        credited=z3.IntVal(c.credited),
-        spent=z3.IntVal(c.spent),
-        last_tx=sym.counter(c.last_tx),
-        outcome=z3.IntVal(int(c.outcome)),
-        return_seq=sym.counter(c.return_seq),
-        return_pending=z3.IntVal(c.return_pending),
-        credited_unknown=z3.BoolVal(c.credited_unknown),
-        held_tx=sym.counter(c.held_tx),
-        held_amount=z3.IntVal(c.held_amount),
-        phase=z3.IntVal(int(c.phase)),
-        nonce=z3.BitVecVal(c.nonce, 16),
-    )
-
-
-def test_a_too_strong_invariant_is_caught_by_the_witnesses(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """A clause that rules out the branch a step moves energy in would let the proof pass that
-    step vacuously; the witness obligations ('can move ...') fail instead."""
-    never_aborts = ("no abort decided", lambda w: w.s.decision != inv.D_ABORT)
-    (case,) = [c for c in cases() if c.name == "supervisor receives ABORTED"]
-    assert all(o.proved for o in check_step(case) if o.clause.startswith("can move"))
-    monkeypatch.setattr(inv, "STATE", (*inv.STATE, never_aborts))
-    failed = {o.clause for o in check_step(case) if not o.proved}
-    assert "can move Ts" in failed
-
-
-def _without_nonce_freshness(original: Callable[..., Any]) -> Callable[..., Any]:
-    return lambda m, w: z3.BoolVal(True) if m.kind.name == "ADMIT" else original(m, w)
-
-
-@pytest.mark.parametrize(
-    ("assumption", "step", "clause"),
-    [
-        ("bounded age", "client receives COMMIT", "passivity"),
-        ("bounded life", "client receives COMMIT", "passivity"),
-        ("fresh nonces", "client receives ADMIT", "received <= H"),
-    ],
-)
-def test_each_assumption_is_needed(
-    assumption: str, step: str, clause: str, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """Without it the proof fails: the theorem's assumptions are not decoration."""
-    if assumption == "bounded age":
-        monkeypatch.setattr(inv, "near", lambda a, b: z3.BoolVal(True))
-    elif assumption == "bounded life":
-        monkeypatch.setattr(inv, "bounded", lambda w: z3.BoolVal(True))
-    else:
-        monkeypatch.setattr(inv, "deliverable", _without_nonce_freshness(inv.deliverable))
-    (case,) = [c for c in cases() if c.name == step]
-    assert clause in {o.clause for o in check_step(case, 60_000) if not o.proved}

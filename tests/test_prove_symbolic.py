@@ -46,6 +46,8 @@ from canergy.messages import (
 )
 
 z3 = pytest.importorskip("z3")  # the prove extra: in dev, so CI runs this
+from support.sym_states import sym_client, sym_session  # noqa: E402
+
 from canergy.prove import symbolic as sym  # noqa: E402
 
 T = Timing()
@@ -87,23 +89,6 @@ def clients(draw: Any) -> ClientState:
 
 def wire_near(value: int) -> st.SearchStrategy[int]:
     return st.one_of(st.integers(0, 0xFFFF), st.integers(-3, 4).map(lambda d: (value + d) & 0xFFFF))
-
-
-def sym_client(c: ClientState) -> sym.Client:
-    return sym.Client(
-        usable=z3.IntVal(c.usable),
-        credited=z3.IntVal(c.credited),
-        spent=z3.IntVal(c.spent),
-        last_tx=sym.counter(c.last_tx),
-        outcome=z3.IntVal(int(c.outcome)),
-        return_seq=sym.counter(c.return_seq),
-        return_pending=z3.IntVal(c.return_pending),
-        credited_unknown=z3.BoolVal(c.credited_unknown),
-        held_tx=sym.counter(c.held_tx),
-        held_amount=z3.IntVal(c.held_amount),
-        phase=z3.IntVal(int(c.phase)),
-        nonce=z3.BitVecVal(c.nonce, 16),
-    )
 
 
 def value(term: Any) -> int | bool:
@@ -221,18 +206,6 @@ def sessions(draw: Any) -> Session:
         else Decision.NONE,
         returns_credited=draw(counters),
         returned=draw(energy),
-    )
-
-
-def sym_session(s: Session) -> sym.Session:
-    return sym.Session(
-        phase=z3.IntVal(int(s.phase)),
-        tx=sym.counter(s.tx),
-        reserved=z3.IntVal(s.reserved),
-        delivered=z3.IntVal(s.delivered),
-        decision=z3.IntVal(int(s.decision)),
-        returns_credited=sym.counter(s.returns_credited),
-        returned=z3.IntVal(s.returned),
     )
 
 

@@ -202,3 +202,16 @@ def test_start_blank_is_the_shared_cell(usable: int, last_tx: int, nonce: int) -
         assert _value(getattr(blank, name)) == int(getattr(py, name))
     assert not z3.is_true(z3.simplify(blank.credited_unknown)) and not py.credited_unknown
     assert not z3.is_true(z3.simplify(sent.present))
+
+
+def test_energy_the_actuator_used_cannot_come_back() -> None:
+    """A reset that puts what was spent back into the usable budget (books 'restored' from
+    the actuator's counter) fails the proof: spent energy is gone, only a gateway takes back
+    what it passed below, in its own step."""
+
+    def restores_spent(c: sym.Client) -> Any:
+        state, sent = sym.client_power_loss(c)
+        return replace(state, usable=c.usable + c.spent, spent=z3.IntVal(0)), sent
+
+    mutated = rules.Rules("mutated", client_power_loss=restores_spent)
+    assert "passivity" in _failed_clauses("client: power loss", mutated)

@@ -100,15 +100,21 @@ def supervisor_sent(w: World, sent: sym.Sent, life: Term) -> tuple[tuple[Term, M
 # -- the client's steps ----------------------------------------------------------------------------
 
 
-def _client_moved(w: World, c: sym.Client, gave: Term = 0, **ghost: Term) -> World:
+def _client_moved(
+    w: World, c: sym.Client, gave: Term = 0, from_below: Term = 0, **ghost: Term
+) -> World:
     """The world after a client step that kept its books: energy into its usable budget is
-    ``received``; ``cc`` once it resolved the open transaction as committed."""
-    received = w.received + (c.usable - w.c.usable) + (c.spent - w.c.spent) + gave
+    ``received``; what the actuator used is ``spent`` and never comes back, except what a
+    gateway takes back from below (``from_below``, its one move that lowers spent); ``cc``
+    once it resolved the open transaction as committed."""
+    grown = c.spent - w.c.spent
+    used = z3.If(grown > 0, grown, 0)
+    received = w.received + (c.usable - w.c.usable) + used + gave - from_below
     after = replace(
         w,
         c=c,
         received=received,
-        spent=w.spent + (c.spent - w.c.spent),
+        spent=w.spent + used - from_below,
         given=w.given + gave,
         **ghost,
     )
@@ -176,7 +182,7 @@ def forward(w: World) -> Step:
 
 def give_back_from_below(w: World, amount: Term) -> Step:
     c, sent, allowed = sym.give_back_from_below(w.c, amount)
-    after = _client_moved(w, c, gave=amount)
+    after = _client_moved(w, c, gave=amount, from_below=amount)
     return Step(after, client_sent(after, sent), allowed, z3.IntVal(0))
 
 

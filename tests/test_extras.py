@@ -83,6 +83,12 @@ def test_a_command_that_draws_says_it_needs_matplotlib(tmp_path: Path, argv: lis
     assert list((tmp_path / "out").iterdir()) == []  # checked before any work
 
 
+def test_prove_says_it_needs_z3(tmp_path: Path) -> None:
+    line = _one_line(_cli(tmp_path, "prove", "--json", "out.json"))
+    assert line == "canergy prove: needs z3-solver: pip install 'canergy[prove]'"
+    assert not (tmp_path / "out.json").exists()  # checked before any work
+
+
 def test_rules_without_docs_needs_no_matplotlib(tmp_path: Path) -> None:
     out = _cli(tmp_path, "rules")
     assert out.returncode == 0 and out.stdout.startswith("# Transition tables"), out.stderr

@@ -215,3 +215,11 @@ def test_energy_the_actuator_used_cannot_come_back() -> None:
 
     mutated = rules.Rules("mutated", client_power_loss=restores_spent)
     assert "passivity" in _failed_clauses("client: power loss", mutated)
+
+
+def test_a_report_that_cannot_be_written_fails_at_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["prove", "--json", str(tmp_path / "no" / "such" / "dir.json")]) == 2
+    out, err = capsys.readouterr()
+    assert err.startswith("canergy prove: error: ") and "proved" not in out

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
+from collections.abc import Iterable
 from typing import Any
 
 from canergy.argtypes import bounded_int
@@ -58,24 +60,14 @@ def run(args: argparse.Namespace) -> int:
     from canergy.prove.rules import RULES
     from canergy.prove.symbolic import z3
 
-    started = time.perf_counter()
-    done: list[Any] = []
-    failed = []
-    print(f"{args.rules} rules, z3 {z3.get_version_string()}")
-    for outcome in check_all(RULES[args.rules], args.timeout * 1000):
-        done.append(outcome)
-        mark = "proved" if outcome.proved else "FAILED"
-        if not (args.quiet and outcome.proved):
-            print(f"  {mark}  {outcome.seconds:7.2f} s  {outcome.step}: {outcome.clause}")
-        if not outcome.proved:
-            failed.append(outcome)
-            print(outcome.counterexample)
-            if not args.keep_going:
-                break
-    elapsed = time.perf_counter() - started
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump([vars(o) for o in done], f, indent=1)
+    with contextlib.ExitStack() as stack:  # a report that cannot be written fails at once
+        report = stack.enter_context(open(args.json, "w")) if args.json else None
+        print(f"{args.rules} rules, z3 {z3.get_version_string()}")
+        started = time.perf_counter()
+        done, failed = _check(check_all(RULES[args.rules], args.timeout * 1000), args)
+        elapsed = time.perf_counter() - started
+        if report is not None:
+            json.dump([vars(o) for o in done], report, indent=1)
     if not failed:
         print(f"{len(done)} obligations proved in {elapsed:.1f} s: no step creates energy")
         return 0
@@ -87,3 +79,20 @@ def run(args: argparse.Namespace) -> int:
     for command in CONFIRMED_BY.get(args.rules, ()):
         print(f"the bounded checker finds a real trace: {command}", file=sys.stderr)
     return 1
+
+
+def _check(outcomes: Iterable[Any], args: argparse.Namespace) -> tuple[list[Any], list[Any]]:
+    """Print each obligation as it is checked; stop at the first failure unless told not to."""
+    done: list[Any] = []
+    failed: list[Any] = []
+    for outcome in outcomes:
+        done.append(outcome)
+        mark = "proved" if outcome.proved else "FAILED"
+        if not (args.quiet and outcome.proved):
+            print(f"  {mark}  {outcome.seconds:7.2f} s  {outcome.step}: {outcome.clause}")
+        if not outcome.proved:
+            failed.append(outcome)
+            print(outcome.counterexample)
+            if not args.keep_going:
+                break
+    return done, failed

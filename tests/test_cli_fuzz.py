@@ -46,6 +46,7 @@ import canergy.cli.dump
 import canergy.cli.simulate
 import canergy.dbc
 import canergy.demo
+import canergy.prove.obligations
 import canergy.rules_doc
 import canergy.sim.sweep
 import firmware_model.__main__ as firmware
@@ -81,6 +82,7 @@ OUTPUTS: dict[str, set[str]] = {
     "dbc": {"output"},
     "rules": {"docs"},
     "bench": {"json"},
+    "prove": {"json"},
     "dump": {"log"},  # -l: a file in "." (its dest "log" is then ".")
     "simulate": {"out"},
     "sweep": {"out"},
@@ -324,6 +326,7 @@ def _bounded_commands() -> Iterator[None]:
         ),
         mock.patch.object(canergy.rules_doc, "write_docs", _stop),
         mock.patch.object(canergy.bench.run, "run", _stop),
+        mock.patch.object(canergy.prove.obligations, "check_all", _stop),
         mock.patch.object(canergy.cli.simulate, "simulate", _stop),
         mock.patch.object(canergy.sim.sweep, "sweep", _stop),
         mock.patch.object(sys, "stdin", io.StringIO(CAPTURE)),

@@ -16,37 +16,12 @@
 #include "canergy/client.h"
 
 #include "client_internal.h"
+#include "serial.h"
 
 #include <string.h>
 
 #define MJ CANERGY_QUANTUM_UJ
 #define RETURN_MAX_UJ (CANERGY_AMOUNT_MAX_MJ * CANERGY_QUANTUM_UJ)
-
-/* Signed distance of a 16-bit wire value from the reference's position: Python's
- * unwrap(wire, ref, 16) - ref, in [-32768, 32767]. */
-static int32_t serial16(uint32_t wire, uint32_t ref)
-{
-    const uint32_t d = (wire - ref) & 0xFFFFUL;
-    return d >= 0x8000UL ? (int32_t)d - 0x10000L : (int32_t)d;
-}
-
-/* The same for the 24-bit delivered count: unwrap(wire, ref, 24) - ref. */
-static int32_t serial24(uint32_t wire, uint32_t ref)
-{
-    const uint32_t d = (wire - ref) & 0xFFFFFFUL;
-    return d >= 0x800000UL ? (int32_t)d - 0x1000000L : (int32_t)d;
-}
-
-/* a < b as 32-bit serial numbers (exact while they are less than 2^31 apart). */
-static bool serial_before(uint32_t a, uint32_t b)
-{
-    return (uint32_t)(a - b) >= 0x80000000UL;
-}
-
-static uint64_t after(uint64_t now, uint32_t delay)
-{
-    return now + delay; /* now < 2^63 (client.h): no overflow, never CANERGY_NEVER */
-}
 
 /* -- output ----------------------------------------------------------------------------- */
 
@@ -184,7 +159,7 @@ static void on_intention(struct canergy_client *c, const struct canergy_msg *m, 
         next.phase = CANERGY_HOLDING;
         next.held_tx = tx;
         next.held_amount_mj = m->amount_mj;
-        next.deadline = after(now, c->command_timeout_us);
+        next.deadline = serial_after(now, c->command_timeout_us);
     }
     if (usable + (uint64_t)next.held_amount_mj * MJ > CANERGY_USABLE_MAX_UJ) {
         out->events |= CANERGY_EV_REFUSED; /* left unanswered: re-sent, written off, paid later */
@@ -302,10 +277,10 @@ static void return_timer(struct canergy_client *c, uint64_t now, struct canergy_
         return;
     }
     if (c->phase == CANERGY_JOINING) {
-        c->return_deadline = after(now, c->return_retry_us);
+        c->return_deadline = serial_after(now, c->return_retry_us);
         send(c, CANERGY_JOIN, c->nonce, 0U, out);
     } else if (c->rec.return_pending_uj != 0U) {
-        c->return_deadline = after(now, c->return_retry_us); /* same number until acked */
+        c->return_deadline = serial_after(now, c->return_retry_us); /* same number until acked */
         send(c, CANERGY_RETURN, (uint16_t)c->rec.return_seq,
              (uint16_t)(c->rec.return_pending_uj / MJ), out);
     }
@@ -464,7 +439,7 @@ int canergy_internal_give_back(struct canergy_client *c, uint32_t uj, uint64_t n
     c->rec.usable_uj -= uj; /* debited first: the RETURN may be duplicated, never credited twice */
     c->rec.return_seq++;
     c->rec.return_pending_uj = uj;
-    c->return_deadline = after(now, c->return_retry_us);
+    c->return_deadline = serial_after(now, c->return_retry_us);
     uint8_t rec[CANERGY_NV_RECORD_SIZE];
     canergy_record_pack(&c->rec, rec);
     persist(c, rec, out);

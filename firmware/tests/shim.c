@@ -7,6 +7,7 @@
 #include "canergy/client.h"
 #include "canergy/cmac.h"
 #include "canergy/node.h"
+#include "canergy/session.h"
 
 #include <stddef.h>
 #include <string.h>
@@ -53,6 +54,23 @@ static const struct entry offsets[] = {
     FIELD(canergy_out, frame_count),
     FIELD(canergy_out, persist),
     FIELD(canergy_out, nv_slot),
+    FIELD(canergy_session, delivered_uj),
+    FIELD(canergy_session, returned_uj),
+    FIELD(canergy_session, deadline),
+    FIELD(canergy_session, tx),
+    FIELD(canergy_session, returns_credited),
+    FIELD(canergy_session, reserved_uj),
+    FIELD(canergy_session, node),
+    FIELD(canergy_session, phase),
+    FIELD(canergy_session, decision),
+    FIELD(canergy_session, tries),
+    FIELD(canergy_session_step, msg),
+    FIELD(canergy_session_step, credit_uj),
+    FIELD(canergy_session_step, send),
+    FIELD(canergy_session_step, resolved),
+    FIELD(canergy_session_step, acknowledged),
+    FIELD(canergy_session_timing, response_timeout_us),
+    FIELD(canergy_session_timing, retries),
     FIELD(canergy_msg, delivered_mj),
     FIELD(canergy_msg, level_mj),
     FIELD(canergy_msg, tx),
@@ -122,6 +140,7 @@ static const struct entry sizes[] = {
     SIZE(canergy_client_config), SIZE(canergy_nv_state),  SIZE(canergy_node_config),
     SIZE(canergy_node),          SIZE(canergy_aes128),    SIZE(canergy_cmac),
     SIZE(canergy_cmac_stream),   SIZE(canergy_auth_frame), SIZE(canergy_auth),
+    SIZE(canergy_session),       SIZE(canergy_session_step), SIZE(canergy_session_timing),
 };
 
 static long find(const struct entry *table, size_t n, const char *name)

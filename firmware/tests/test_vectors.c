@@ -10,6 +10,7 @@
 #include "canergy/client.h"
 #include "canergy/cmac.h"
 #include "canergy/node.h"
+#include "canergy/session.h"
 
 #include <stdio.h>
 #include <string.h>
@@ -306,6 +307,85 @@ static void test_node_witness(void)
     check(!canergy_client_joining(&n.client) && n.witness == 0U &&
               node_deliver(&n, &admit, 71U, &out) == CANERGY_DECODE_OK && n.witness == 1U,
           "started with books: the witness starts at 0, any ADMIT is witnessed");
+}
+
+/* One session's life (the Python table's answers): a commit, an abort, a write-off, returns
+ * credited once, an admission lifting both counters. */
+static void test_session(void)
+{
+    const struct canergy_session_timing t = {50000U, 1U};
+    struct canergy_session s;
+    struct canergy_session_step step;
+    struct canergy_msg m = msg(CANERGY_ACK, 5U);
+    canergy_session_init(&s, 5U);
+
+    check(canergy_session_begin(&s, &t, 1500U, 0U, &step) == CANERGY_ERR_AMOUNT,
+          "whole mJ only");
+    check(canergy_session_decide(&s, &t, true, 0U, &step) == CANERGY_ERR_PHASE, "decide in IDLE");
+    check(canergy_session_begin(&s, &t, 2000U, 0U, &step) == CANERGY_OK && step.send &&
+              step.msg.type == CANERGY_INTENTION && step.msg.tx == 1U &&
+              step.msg.amount_mj == 2U && step.credit_uj == -2000,
+          "begin: INTENTION(1, 2 mJ), Us -= 2 mJ");
+    m.tx = 1U;
+    canergy_session_on_msg(&s, &t, &m, 10U, &step);
+    check(s.phase == CANERGY_S_ACKED && step.acknowledged, "ACK(1)");
+    check(canergy_session_decide(&s, &t, true, 20U, &step) == CANERGY_OK &&
+              step.msg.type == CANERGY_COMMIT && s.phase == CANERGY_S_WAIT_CONFIRM,
+          "decide: COMMIT(1)");
+    m.type = CANERGY_ABORTED;
+    canergy_session_on_msg(&s, &t, &m, 30U, &step);
+    check(s.phase == CANERGY_S_WAIT_CONFIRM && step.credit_uj == 0,
+          "ABORTED after COMMIT: ignored");
+    m.type = CANERGY_COMMITTED;
+    canergy_session_on_msg(&s, &t, &m, 30U, &step);
+    check(s.phase == CANERGY_S_IDLE && s.delivered_uj == 2000U &&
+              step.resolved == CANERGY_RESOLVED_COMMITTED,
+          "COMMITTED(1): Gs 2 mJ");
+
+    (void)canergy_session_begin(&s, &t, 3000U, 40U, &step);
+    m.type = CANERGY_ACK;
+    m.tx = 2U;
+    canergy_session_on_msg(&s, &t, &m, 50U, &step);
+    (void)canergy_session_decide(&s, &t, false, 60U, &step);
+    m.type = CANERGY_ABORTED;
+    canergy_session_on_msg(&s, &t, &m, 70U, &step);
+    check(step.resolved == CANERGY_RESOLVED_ABORTED && step.credit_uj == 3000 &&
+              s.delivered_uj == 2000U,
+          "ABORTED(2) after ABORT: Ts back to Us");
+
+    (void)canergy_session_begin(&s, &t, 4000U, 100U, &step);
+    canergy_session_timer(&s, &t, 50099U, &step);
+    check(!step.send, "timer before its deadline: nothing");
+    canergy_session_timer(&s, &t, 50100U, &step);
+    check(step.send && step.msg.type == CANERGY_INTENTION && step.msg.tx == 3U && s.tries == 2U,
+          "timer: the identical INTENTION(3)");
+    canergy_session_timer(&s, &t, 100100U, &step);
+    check(step.resolved == CANERGY_RESOLVED_WRITTEN_OFF && s.delivered_uj == 6000U,
+          "after N re-sends: written off, Gs += Ts");
+
+    m = msg(CANERGY_RETURN, 5U);
+    m.seq = 1U;
+    m.amount_mj = 7U;
+    canergy_session_on_msg(&s, &t, &m, 200U, &step);
+    check(step.credit_uj == 7000 && step.msg.type == CANERGY_RETURN_ACK && step.msg.seq == 1U,
+          "RETURN(1, 7 mJ): credited, acknowledged");
+    canergy_session_on_msg(&s, &t, &m, 210U, &step);
+    check(step.credit_uj == 0 && step.send && s.returned_uj == 7000U,
+          "RETURN(1) again: acknowledged, not credited");
+    m.seq = 3U;
+    canergy_session_on_msg(&s, &t, &m, 220U, &step);
+    check(!step.send && s.returns_credited == 1U, "RETURN(3) beyond the next: ignored");
+
+    s.returns_credited = 0x2FFFFUL; /* returns past 2^17: the admission lifts tx to them */
+    (void)canergy_session_begin(&s, &t, 1000U, 300U, &step);
+    m = msg(CANERGY_JOIN, 5U);
+    m.nonce = 0xBEEFU;
+    canergy_session_on_msg(&s, &t, &m, 310U, &step);
+    check(step.resolved == CANERGY_RESOLVED_WRITTEN_OFF && s.tx == 0x20004UL &&
+              step.msg.type == CANERGY_ADMIT && step.msg.nonce == 0xBEEFU &&
+              step.msg.tx == 4U && step.msg.seq == 0xFFFFU,
+          "JOIN: the open one written off, counters on one high half, ADMIT(n, 4, 0xFFFF)");
+    check(sizeof(struct canergy_session) <= 40U, "session record within 40 bytes");
 }
 
 static void test_budgets(void)
@@ -640,6 +720,7 @@ int main(void)
     test_a_node_from_blank_to_books();
     test_node_witness();
     test_budgets();
+    test_session();
     test_aes128();
     test_cmac();
     test_mac_equal();

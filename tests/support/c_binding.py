@@ -132,6 +132,35 @@ class Msg(Structure):
     ]
 
 
+class CSession(Structure):
+    _fields_ = [
+        ("delivered_uj", c_uint64),
+        ("returned_uj", c_uint64),
+        ("deadline", c_uint64),
+        ("tx", c_uint32),
+        ("returns_credited", c_uint32),
+        ("reserved_uj", c_uint32),
+        ("node", c_uint8),
+        ("phase", c_uint8),
+        ("decision", c_uint8),
+        ("tries", c_uint8),
+    ]
+
+
+class SessionStep(Structure):
+    _fields_ = [
+        ("msg", Msg),
+        ("credit_uj", ctypes.c_int64),
+        ("send", c_uint8),
+        ("resolved", c_uint8),
+        ("acknowledged", c_uint8),
+    ]
+
+
+class SessionTiming(Structure):
+    _fields_ = [("response_timeout_us", c_uint32), ("retries", c_uint8)]
+
+
 class RxFrame(Structure):
     _fields_ = [
         ("id", c_uint32),
@@ -198,6 +227,9 @@ MIRROR: dict[str, type[Structure]] = {
     "canergy_nv_state": NvState,
     "canergy_node_config": NodeConfig,
     "canergy_node": CNodeState,
+    "canergy_session": CSession,
+    "canergy_session_step": SessionStep,
+    "canergy_session_timing": SessionTiming,
 }
 
 # Constants of the headers the tests use.
@@ -214,6 +246,24 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "canergy_test_offset": (c_long, [c_char_p]),
     "canergy_test_sizeof": (c_long, [c_char_p]),
     "canergy_id_base_valid": (c_bool, [c_uint32]),
+    "canergy_session_init": (None, [POINTER(CSession), c_uint8]),
+    "canergy_session_begin": (
+        c_int,
+        [POINTER(CSession), POINTER(SessionTiming), c_uint32, c_uint64, POINTER(SessionStep)],
+    ),
+    "canergy_session_decide": (
+        c_int,
+        [POINTER(CSession), POINTER(SessionTiming), c_bool, c_uint64, POINTER(SessionStep)],
+    ),
+    "canergy_session_on_msg": (
+        None,
+        [POINTER(CSession), POINTER(SessionTiming), POINTER(Msg), c_uint64, POINTER(SessionStep)],
+    ),
+    "canergy_session_timer": (
+        None,
+        [POINTER(CSession), POINTER(SessionTiming), c_uint64, POINTER(SessionStep)],
+    ),
+    "canergy_session_restart": (None, [POINTER(CSession), c_uint64, POINTER(SessionStep)]),
     "canergy_encode": (c_int, [c_uint32, POINTER(Msg), POINTER(Frame)]),
     "canergy_decode": (c_int, [c_uint32, POINTER(RxFrame), c_int, POINTER(Msg)]),
     "canergy_crc8": (c_uint8, [c_uint8, c_void_p, c_size_t]),

@@ -1,0 +1,118 @@
+/*
+ * The hardened supervisor's rules for one node (docs/protocol.md, "The hardened rules"),
+ * sans-IO: the cells of src/canergy/core/hardened.py's SUPERVISOR table, one call each, on a
+ * caller-owned struct canergy_session. This is the supervisor role's core; the supervisor
+ * around it (the usable budget Us over all sessions, the node table, NV, frames) is built on it
+ * (issue 33). tests/test_c_session.py compares every call with the Python table.
+ *
+ * Each call fills a struct canergy_session_step (overwritten): the message to send (encode it
+ * with canergy_encode), what the step moves into (+) or out of (-) the usable budget Us, and
+ * how it closed the transaction when it did. Counters are kept modulo 2^32 (the Python ones are
+ * unbounded; every rule looks only at a wire value's signed distance from them).
+ *
+ * Time: as client.h (uint64_t microseconds, monotonic, below 2^63).
+ */
+#ifndef CANERGY_SESSION_H
+#define CANERGY_SESSION_H
+
+#include "canergy/client.h"
+#include "canergy/codec.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* CANERGY_ASSERT(x): an invariant the code relies on. Off unless CANERGY_ASSERTS is defined
+ * (the sanitizer builds define it, so a broken invariant aborts there); a port may define
+ * CANERGY_ASSERT itself, e.g. to its own fault handler. */
+#ifndef CANERGY_ASSERT
+#ifdef CANERGY_ASSERTS
+#include <assert.h>
+#define CANERGY_ASSERT(x) assert(x)
+#else
+#define CANERGY_ASSERT(x) ((void)0)
+#endif
+#endif
+
+enum canergy_session_phase {
+    CANERGY_S_IDLE = 0,
+    CANERGY_S_WAIT_ACK = 1,    /* intention sent */
+    CANERGY_S_ACKED = 2,       /* intention acknowledged, awaiting the local decision */
+    CANERGY_S_WAIT_CONFIRM = 3 /* commit or abort sent */
+};
+
+enum canergy_decision {
+    CANERGY_DECIDE_NONE = 0,
+    CANERGY_DECIDE_COMMIT = 1,
+    CANERGY_DECIDE_ABORT = 2
+};
+
+/* How a step closed the open transaction (Python's Outcome). */
+enum canergy_resolution {
+    CANERGY_RESOLVED_NONE = 0,
+    CANERGY_RESOLVED_COMMITTED = 1,
+    CANERGY_RESOLVED_ABORTED = 2,  /* Ts back into Us: the only way back */
+    CANERGY_RESOLVED_WRITTEN_OFF = 4 /* given up (or a JOIN): counted as delivered */
+};
+
+struct canergy_session_timing {
+    uint32_t response_timeout_us; /* re-send after this long (Python 50 ms) */
+    uint8_t retries;              /* N: re-sends before the write-off (Python 3) */
+};
+
+/* The supervisor's record for one node. 40 bytes. */
+struct canergy_session {
+    uint64_t delivered_uj;     /* Gs: all energy that left the supervisor's books for the node */
+    uint64_t returned_uj;      /* all returns credited */
+    uint64_t deadline;         /* response timer, CANERGY_NEVER when not armed (volatile) */
+    uint32_t tx;               /* the transaction, modulo 2^32 */
+    uint32_t returns_credited; /* number of the last RETURN credited, modulo 2^32 */
+    uint32_t reserved_uj;      /* Ts: at most 65,535,000 */
+    uint8_t node;
+    uint8_t phase;             /* enum canergy_session_phase */
+    uint8_t decision;          /* enum canergy_decision */
+    uint8_t tries;             /* sends of the frame awaiting an answer (volatile) */
+};
+
+struct canergy_session_step {
+    struct canergy_msg msg; /* valid when send is 1 */
+    int64_t credit_uj;      /* into Us (+), out of it (-) */
+    uint8_t send;
+    uint8_t resolved;       /* enum canergy_resolution */
+    uint8_t acknowledged;   /* 1: an ACK of the open intention (Python's Acknowledged) */
+};
+
+/* A new record for node (1..127): IDLE, nothing delivered. */
+void canergy_session_init(struct canergy_session *s, uint8_t node);
+
+/* Begin(a) in IDLE: Us -= a, tx += 1, INTENTION(tx, a, Gs). CANERGY_ERR_AMOUNT unless a is a
+ * positive whole number of mJ up to 65,535 mJ; CANERGY_ERR_PHASE outside IDLE. The caller
+ * checks a against Us (the one guard a session cannot see). */
+int canergy_session_begin(struct canergy_session *s, const struct canergy_session_timing *t,
+                          uint32_t amount_uj, uint64_t now, struct canergy_session_step *step);
+
+/* Decide in ACKED: COMMIT or ABORT(tx, Ts). CANERGY_ERR_PHASE in any other phase. */
+int canergy_session_decide(struct canergy_session *s, const struct canergy_session_timing *t,
+                           bool commit, uint64_t now, struct canergy_session_step *step);
+
+/* A decoded client message for this node (ACK, COMMITTED, ABORTED, RETURN, JOIN; anything else
+ * changes nothing). */
+void canergy_session_on_msg(struct canergy_session *s, const struct canergy_session_timing *t,
+                            const struct canergy_msg *m, uint64_t now,
+                            struct canergy_session_step *step);
+
+/* The response timer (early calls are harmless): the identical frame again, or after N
+ * re-sends the write-off (Gs += Ts). */
+void canergy_session_timer(struct canergy_session *s, const struct canergy_session_timing *t,
+                           uint64_t now, struct canergy_session_step *step);
+
+/* A reset with the record kept: ACKED (not persisted) falls back to WAIT_ACK; an open
+ * transaction's frame is due at once. */
+void canergy_session_restart(struct canergy_session *s, uint64_t now,
+                             struct canergy_session_step *step);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* CANERGY_SESSION_H */

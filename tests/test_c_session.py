@@ -83,13 +83,13 @@ def test_every_local_cell_and_timer(s: Session, t: Timing, data: st.DataObject) 
 
 
 def test_a_changed_cell_fails_here() -> None:
-    """The broken build credits an ABORTED without an abort decision (CANERGY_BREAK_ABORTED):
-    the comparison catches it on the first such record."""
-    s = Session(1, Phase.WAIT_CONFIRM, 7, 5_000, 0, Decision.COMMIT)
-    same(s, Timing(), Aborted(1, 7), 0)
-    broken = c_call(Aborted(1, 7), Timing(), 0, "broken")
+    """The broken build credits a duplicated RETURN again (CANERGY_BREAK_RETURN_AGAIN, hazard
+    (c)): the comparison catches it on the first such record."""
+    s = Session(1, returns_credited=5, returned=7_000)
+    again = Return(1, 5, 7)
+    same(s, Timing(), again, 0)
     with pytest.raises(AssertionError):
-        same(s, Timing(), Aborted(1, 7), 0, broken)
+        same(s, Timing(), again, 0, c_call(again, Timing(), 0, "broken"))
 
 
 CI_BOUND = Bounds(

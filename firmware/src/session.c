@@ -128,6 +128,12 @@ static void credit_return(struct canergy_session *s, const struct canergy_msg *m
         s->returned_uj += amount;
         step->credit_uj = (int64_t)amount;
     }
+#ifdef CANERGY_BREAK_RETURN_AGAIN /* the broken build for tests/test_c_session.py: hazard (c) */
+    if (ahead == 0) {
+        s->returned_uj += (uint32_t)m->amount_mj * MJ;
+        step->credit_uj = (int64_t)m->amount_mj * (int64_t)MJ;
+    }
+#endif
     step->send = 1U;
     step->msg.type = CANERGY_RETURN_ACK;
     step->msg.node = s->node;
@@ -172,12 +178,8 @@ void canergy_session_on_msg(struct canergy_session *s, const struct canergy_sess
         }
         break;
     case CANERGY_ABORTED: /* only after an abort decision: the one way back to Us */
-#ifndef CANERGY_BREAK_ABORTED /* the broken build for tests/test_c_session.py */
         if (s->phase == CANERGY_S_WAIT_CONFIRM && !other_tx(s, m->tx) &&
             s->decision == CANERGY_DECIDE_ABORT) {
-#else
-        if (s->phase == CANERGY_S_WAIT_CONFIRM && !other_tx(s, m->tx)) {
-#endif
             resolve(s, CANERGY_RESOLVED_ABORTED, step);
         }
         break;

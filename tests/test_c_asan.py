@@ -28,6 +28,7 @@ UNDER_ASAN = [
     "test_c_hazards.py",
     "test_c_nv.py",
     "test_c_session.py",
+    "test_c_supervisor.py",
     "test_c_node.py",
     "test_c_sidebyside.py",
 ]

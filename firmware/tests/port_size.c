@@ -2,15 +2,37 @@
  * Not a port: the smallest program that uses every call a real port makes, so that `make size`
  * can link it for Cortex-M4 with --gc-sections and report what the library costs there.
  * PORT_NODE selects the node layer's API, PORT_AUTH the node layer in authenticated mode
- * (canergy/auth.h), PORT_CMAC AES-CMAC and the KDF alone, otherwise the bare client's.
+ * (canergy/auth.h), PORT_CMAC AES-CMAC and the KDF alone, PORT_SUPERVISOR the supervisor
+ * (canergy/supervisor.h), otherwise the bare client's.
  */
 #include "canergy/auth.h"
 #include "canergy/cmac.h"
 #include "canergy/node.h"
+#include "canergy/supervisor.h"
 
 void port_entry(void);
 
-#ifdef PORT_CMAC
+#ifdef PORT_SUPERVISOR
+void port_entry(void)
+{
+    static struct canergy_supervisor sup;
+    static struct canergy_supervisor_out out;
+    static const uint8_t nodes[1] = {1U};
+    static const uint8_t bytes[8] = {0};
+    const struct canergy_rx_frame rx = {0x0CE00901UL, bytes, 2U, true, false};
+    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000UL, 3U}};
+    volatile uint64_t sink = 0U;
+    sink += (uint64_t)canergy_supervisor_init(&sup, &cfg, nodes, 1U, 1000000U);
+    sink += (uint64_t)canergy_supervisor_inject(&sup, 1000U);
+    sink += (uint64_t)canergy_supervisor_begin(&sup, 1U, 1000U, 0U, &out);
+    sink += (uint64_t)canergy_supervisor_on_frame(&sup, &rx, 1U, &out);
+    sink += (uint64_t)canergy_supervisor_decide(&sup, 1U, true, 2U, &out);
+    canergy_supervisor_on_timer(&sup, 3U, &out);
+    canergy_supervisor_restart(&sup, 4U);
+    sink += canergy_supervisor_deadline(&sup) + out.frames[0].data[0];
+    (void)sink;
+}
+#elif defined(PORT_CMAC)
 void port_entry(void)
 {
     static uint8_t master[16]; /* in RAM: only the library's flash is counted */

@@ -8,6 +8,7 @@
 #include "canergy/cmac.h"
 #include "canergy/node.h"
 #include "canergy/session.h"
+#include "canergy/supervisor.h"
 
 #include <stddef.h>
 #include <string.h>
@@ -71,6 +72,17 @@ static const struct entry offsets[] = {
     FIELD(canergy_session_step, acknowledged),
     FIELD(canergy_session_timing, response_timeout_us),
     FIELD(canergy_session_timing, retries),
+    FIELD(canergy_supervisor, usable_uj),
+    FIELD(canergy_supervisor, injected_uj),
+    FIELD(canergy_supervisor, sessions),
+    FIELD(canergy_supervisor, timing),
+    FIELD(canergy_supervisor, id_base),
+    FIELD(canergy_supervisor, count),
+    FIELD(canergy_supervisor_config, id_base),
+    FIELD(canergy_supervisor_config, timing),
+    FIELD(canergy_supervisor_out, frames),
+    FIELD(canergy_supervisor_out, frame_count),
+    FIELD(canergy_supervisor_out, persist),
     FIELD(canergy_msg, delivered_mj),
     FIELD(canergy_msg, level_mj),
     FIELD(canergy_msg, tx),
@@ -141,6 +153,7 @@ static const struct entry sizes[] = {
     SIZE(canergy_node),          SIZE(canergy_aes128),    SIZE(canergy_cmac),
     SIZE(canergy_cmac_stream),   SIZE(canergy_auth_frame), SIZE(canergy_auth),
     SIZE(canergy_session),       SIZE(canergy_session_step), SIZE(canergy_session_timing),
+    SIZE(canergy_supervisor),    SIZE(canergy_supervisor_config), SIZE(canergy_supervisor_out),
 };
 
 static long find(const struct entry *table, size_t n, const char *name)

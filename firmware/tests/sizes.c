@@ -5,6 +5,7 @@
 #include "canergy/auth.h"
 #include "canergy/cmac.h"
 #include "canergy/node.h"
+#include "canergy/supervisor.h"
 
 extern char canergy_client_bytes[sizeof(struct canergy_client)];
 extern char canergy_node_bytes[sizeof(struct canergy_node)];
@@ -14,3 +15,7 @@ extern char canergy_cmac_bytes[sizeof(struct canergy_cmac)];
 char canergy_cmac_bytes[sizeof(struct canergy_cmac)];
 extern char canergy_auth_bytes[sizeof(struct canergy_auth)];
 char canergy_auth_bytes[sizeof(struct canergy_auth)];
+extern char canergy_supervisor_bytes[sizeof(struct canergy_supervisor)];
+char canergy_supervisor_bytes[sizeof(struct canergy_supervisor)];
+extern char canergy_session_bytes[sizeof(struct canergy_session)];
+char canergy_session_bytes[sizeof(struct canergy_session)];

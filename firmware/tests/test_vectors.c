@@ -11,6 +11,7 @@
 #include "canergy/cmac.h"
 #include "canergy/node.h"
 #include "canergy/session.h"
+#include "canergy/supervisor.h"
 
 #include <stdio.h>
 #include <string.h>
@@ -388,6 +389,51 @@ static void test_session(void)
     check(sizeof(struct canergy_session) <= 40U, "session record within 40 bytes");
 }
 
+/* The supervisor around the sessions: Us guards a grant, frames go through the codec, a
+ * change of the record asks to persist first. */
+static void test_supervisor(void)
+{
+    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U}};
+    const uint8_t nodes[2] = {3U, 5U};
+    const uint8_t unsorted[2] = {5U, 3U};
+    static struct canergy_supervisor sup;
+    static struct canergy_supervisor_out out;
+    check(canergy_supervisor_init(&sup, &cfg, unsorted, 2U, 5000U) == CANERGY_ERR_ARGUMENT,
+          "nodes ascending");
+    check(canergy_supervisor_init(&sup, &cfg, nodes, 2U, 5000U) == CANERGY_OK, "init");
+    check(canergy_supervisor_begin(&sup, 9U, 1000U, 0U, &out) == CANERGY_ERR_ARGUMENT,
+          "a node not managed here");
+    check(canergy_supervisor_begin(&sup, 3U, 6000U, 0U, &out) == CANERGY_ERR_AMOUNT &&
+              sup.usable_uj == 5000U && sup.sessions[0].phase == CANERGY_S_IDLE,
+          "a grant beyond Us: refused, nothing changed");
+    check(canergy_supervisor_begin(&sup, 3U, 2000U, 0U, &out) == CANERGY_OK && out.persist &&
+              out.frame_count == 1U && out.frames[0].id == 0x0CE00103UL &&
+              sup.usable_uj == 3000U,
+          "begin: persist, then INTENTION to node 3; Us 3 mJ");
+    const uint8_t bad_crc[3] = {0x00U, 0x01U, 0x00U}; /* ACK(3, tx 1) is 2C 01 00 */
+    struct canergy_rx_frame f = {0x0CE00903UL, bad_crc, 3U, true, false};
+    check(canergy_supervisor_on_frame(&sup, &f, 10U, &out) == CANERGY_DECODE_BAD_CRC &&
+              sup.sessions[0].phase == CANERGY_S_WAIT_ACK && out.frame_count == 0U,
+          "a frame with a bad CRC: counted, nothing happens");
+    const uint8_t ack4[3] = {0xD8U, 0x01U, 0x00U}; /* ACK(4, tx 1), a valid frame */
+    f.id = 0x0CE00904UL;
+    f.data = ack4;
+    check(canergy_supervisor_on_frame(&sup, &f, 10U, &out) == CANERGY_RX_OTHER_NODE &&
+              out.frame_count == 0U,
+          "ACK of node 4, not managed here: ignored");
+    check(canergy_supervisor_deadline(&sup) == 50000U, "the intention's response timer");
+    canergy_supervisor_on_timer(&sup, 49999U, &out);
+    check(out.frame_count == 0U, "nothing due before it");
+    canergy_supervisor_on_timer(&sup, 50000U, &out);
+    check(out.frame_count == 1U && out.frames[0].id == 0x0CE00103UL && !out.persist,
+          "due: the identical INTENTION, nothing to persist");
+    check(canergy_supervisor_inject(&sup, 0U) == CANERGY_ERR_AMOUNT &&
+              canergy_supervisor_inject(&sup, 500U) == CANERGY_OK && sup.usable_uj == 3500U,
+          "inject");
+    check(sizeof(struct canergy_supervisor) <= 64U * CANERGY_SUPERVISOR_NODES,
+          "supervisor state within 64 bytes per node");
+}
+
 static void test_budgets(void)
 {
     check(sizeof(struct canergy_client) <= 128U, "client state within 128 bytes");
@@ -721,6 +767,7 @@ int main(void)
     test_node_witness();
     test_budgets();
     test_session();
+    test_supervisor();
     test_aes128();
     test_cmac();
     test_mac_equal();

@@ -161,6 +161,33 @@ class SessionTiming(Structure):
     _fields_ = [("response_timeout_us", c_uint32), ("retries", c_uint8)]
 
 
+SUPERVISOR_NODES = 16
+"""CANERGY_SUPERVISOR_NODES as the library is built."""
+
+
+class CSupervisor(Structure):
+    _fields_ = [
+        ("usable_uj", c_uint64),
+        ("injected_uj", c_uint64),
+        ("sessions", CSession * SUPERVISOR_NODES),
+        ("timing", SessionTiming),
+        ("id_base", c_uint32),
+        ("count", c_uint8),
+    ]
+
+
+class SupervisorConfig(Structure):
+    _fields_ = [("id_base", c_uint32), ("timing", SessionTiming)]
+
+
+class SupervisorOut(Structure):
+    _fields_ = [
+        ("frames", Frame * SUPERVISOR_NODES),
+        ("frame_count", c_uint8),
+        ("persist", c_uint8),
+    ]
+
+
 class RxFrame(Structure):
     _fields_ = [
         ("id", c_uint32),
@@ -230,6 +257,9 @@ MIRROR: dict[str, type[Structure]] = {
     "canergy_session": CSession,
     "canergy_session_step": SessionStep,
     "canergy_session_timing": SessionTiming,
+    "canergy_supervisor": CSupervisor,
+    "canergy_supervisor_config": SupervisorConfig,
+    "canergy_supervisor_out": SupervisorOut,
 }
 
 # Constants of the headers the tests use.
@@ -264,6 +294,26 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
         [POINTER(CSession), POINTER(SessionTiming), c_uint64, POINTER(SessionStep)],
     ),
     "canergy_session_restart": (None, [POINTER(CSession), c_uint64, POINTER(SessionStep)]),
+    "canergy_supervisor_init": (
+        c_int,
+        [POINTER(CSupervisor), POINTER(SupervisorConfig), c_void_p, c_uint8, c_uint64],
+    ),
+    "canergy_supervisor_begin": (
+        c_int,
+        [POINTER(CSupervisor), c_uint8, c_uint32, c_uint64, POINTER(SupervisorOut)],
+    ),
+    "canergy_supervisor_decide": (
+        c_int,
+        [POINTER(CSupervisor), c_uint8, c_bool, c_uint64, POINTER(SupervisorOut)],
+    ),
+    "canergy_supervisor_on_frame": (
+        c_int,
+        [POINTER(CSupervisor), POINTER(RxFrame), c_uint64, POINTER(SupervisorOut)],
+    ),
+    "canergy_supervisor_on_timer": (None, [POINTER(CSupervisor), c_uint64, POINTER(SupervisorOut)]),
+    "canergy_supervisor_deadline": (c_uint64, [POINTER(CSupervisor)]),
+    "canergy_supervisor_restart": (None, [POINTER(CSupervisor), c_uint64]),
+    "canergy_supervisor_inject": (c_int, [POINTER(CSupervisor), c_uint64]),
     "canergy_encode": (c_int, [c_uint32, POINTER(Msg), POINTER(Frame)]),
     "canergy_decode": (c_int, [c_uint32, POINTER(RxFrame), c_int, POINTER(Msg)]),
     "canergy_crc8": (c_uint8, [c_uint8, c_void_p, c_size_t]),

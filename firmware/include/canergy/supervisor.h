@@ -1,0 +1,89 @@
+/*
+ * The hardened supervisor (src/canergy/core/supervisor.py's Supervisor), sans-IO: one usable
+ * budget Us, one struct canergy_session per node (canergy/session.h), frames in and out through
+ * the codec. No heap: the caller owns the struct and the session table, whose size is fixed at
+ * build time (CANERGY_SUPERVISOR_NODES). tests/test_c_supervisor.py runs it side by side with
+ * the Python supervisor.
+ *
+ * Contract of every call that takes a struct canergy_supervisor_out *out (overwritten): if
+ * out->persist is set, write the supervisor's record (Us, and per session its phase with ACKED
+ * stored as WAIT_ACK, tx, Ts, Gs, decision and the last return credited) and let the write
+ * complete before any of out->frames is sent; then send out->frames[0 .. out->frame_count - 1]
+ * in order.
+ *
+ * Not written yet (issue 33): the NV layout of that record and its load at start.
+ */
+#ifndef CANERGY_SUPERVISOR_H
+#define CANERGY_SUPERVISOR_H
+
+#include "canergy/session.h"
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#ifndef CANERGY_SUPERVISOR_NODES
+#define CANERGY_SUPERVISOR_NODES 16U /* sessions one supervisor holds: choose at build time */
+#endif
+
+struct canergy_supervisor_config {
+    uint32_t id_base; /* CANERGY_DEFAULT_ID_BASE unless the bus uses another block */
+    struct canergy_session_timing timing;
+};
+
+struct canergy_supervisor {
+    uint64_t usable_uj;   /* Us */
+    uint64_t injected_uj; /* energy added from outside since start (a gateway's upstream) */
+    struct canergy_session sessions[CANERGY_SUPERVISOR_NODES]; /* by node, ascending */
+    struct canergy_session_timing timing;
+    uint32_t id_base;
+    uint8_t count;        /* sessions in use */
+};
+
+struct canergy_supervisor_out {
+    struct canergy_frame frames[CANERGY_SUPERVISOR_NODES]; /* a timer call answers every node */
+    uint8_t frame_count;
+    uint8_t persist; /* 1: write the record before sending */
+};
+
+/* Nodes 1..127, ascending and distinct, at most CANERGY_SUPERVISOR_NODES of them; Us starts
+ * at initial_uj. CANERGY_ERR_ARGUMENT otherwise (and for a bad id_base). */
+int canergy_supervisor_init(struct canergy_supervisor *sup,
+                            const struct canergy_supervisor_config *cfg, const uint8_t *nodes,
+                            uint8_t count, uint64_t initial_uj);
+
+/* Reserve amount_uj from Us and send node an intention. CANERGY_ERR_ARGUMENT for a node not
+ * managed here, CANERGY_ERR_PHASE outside IDLE, CANERGY_ERR_AMOUNT for an amount that is not
+ * whole mJ up to 65,535 mJ or exceeds Us. */
+int canergy_supervisor_begin(struct canergy_supervisor *sup, uint8_t node, uint32_t amount_uj,
+                             uint64_t now, struct canergy_supervisor_out *out);
+
+/* Decide the acknowledged intention of node: COMMIT or ABORT. */
+int canergy_supervisor_decide(struct canergy_supervisor *sup, uint8_t node, bool commit,
+                              uint64_t now, struct canergy_supervisor_out *out);
+
+/* A received frame: decoded strictly (client -> supervisor), then the node's rules. Returns
+ * CANERGY_DECODE_OK, a decode status (count it; nothing else happens) or CANERGY_RX_OTHER_NODE
+ * (a valid frame of a node not managed here). */
+int canergy_supervisor_on_frame(struct canergy_supervisor *sup,
+                                const struct canergy_rx_frame *frame, uint64_t now,
+                                struct canergy_supervisor_out *out);
+
+/* Fire every session whose deadline is at or before now (calling early is harmless). */
+void canergy_supervisor_on_timer(struct canergy_supervisor *sup, uint64_t now,
+                                 struct canergy_supervisor_out *out);
+
+/* The earliest armed deadline, CANERGY_NEVER when none. */
+uint64_t canergy_supervisor_deadline(const struct canergy_supervisor *sup);
+
+/* A reset with the record kept: every session restarts (open ones re-send at the next timer). */
+void canergy_supervisor_restart(struct canergy_supervisor *sup, uint64_t now);
+
+/* Energy from outside into Us (counted as injected). CANERGY_ERR_AMOUNT for 0. */
+int canergy_supervisor_inject(struct canergy_supervisor *sup, uint64_t amount_uj);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* CANERGY_SUPERVISOR_H */

@@ -1,0 +1,192 @@
+/*
+ * The hardened supervisor: Us and one session per node (canergy/supervisor.h), as
+ * src/canergy/core/supervisor.py's Supervisor drives the SUPERVISOR table.
+ */
+#include "canergy/supervisor.h"
+
+#include <string.h>
+
+static void out_clear(struct canergy_supervisor_out *out)
+{
+    memset(out, 0, sizeof *out);
+}
+
+static struct canergy_session *session_of(struct canergy_supervisor *sup, uint8_t node)
+{
+    for (uint8_t i = 0U; i < sup->count; i++) {
+        if (sup->sessions[i].node == node) {
+            return &sup->sessions[i];
+        }
+    }
+    return NULL;
+}
+
+/* What the supervisor persists of a session changed (ACKED is stored as WAIT_ACK). */
+static uint8_t stored_phase(const struct canergy_session *s)
+{
+    return s->phase == CANERGY_S_ACKED ? (uint8_t)CANERGY_S_WAIT_ACK : s->phase;
+}
+
+static bool record_changed(const struct canergy_session *a, const struct canergy_session *b)
+{
+    return stored_phase(a) != stored_phase(b) || a->tx != b->tx ||
+           a->reserved_uj != b->reserved_uj || a->delivered_uj != b->delivered_uj ||
+           a->decision != b->decision || a->returns_credited != b->returns_credited;
+}
+
+/* Apply a session step: its credit to Us, a persist when the record or Us changed, its frame. */
+static void apply(struct canergy_supervisor *sup, const struct canergy_session *before,
+                  const struct canergy_session *after, const struct canergy_session_step *step,
+                  struct canergy_supervisor_out *out)
+{
+    if (step->credit_uj != 0) {
+        CANERGY_ASSERT(step->credit_uj > 0 || (uint64_t)(-step->credit_uj) <= sup->usable_uj);
+        sup->usable_uj = step->credit_uj > 0 ? sup->usable_uj + (uint64_t)step->credit_uj
+                                             : sup->usable_uj - (uint64_t)(-step->credit_uj);
+    }
+    if (step->credit_uj != 0 || record_changed(before, after)) {
+        out->persist = 1U;
+    }
+    if (step->send && out->frame_count < CANERGY_SUPERVISOR_NODES) {
+        struct canergy_frame *f = &out->frames[out->frame_count];
+        const int encoded = canergy_encode(sup->id_base, &step->msg, f);
+        CANERGY_ASSERT(encoded == CANERGY_OK); /* the rules send only what the codec takes */
+        if (encoded == CANERGY_OK) {
+            out->frame_count++;
+        }
+    }
+}
+
+int canergy_supervisor_init(struct canergy_supervisor *sup,
+                            const struct canergy_supervisor_config *cfg, const uint8_t *nodes,
+                            uint8_t count, uint64_t initial_uj)
+{
+    if (sup == NULL || cfg == NULL || nodes == NULL || count == 0U ||
+        count > CANERGY_SUPERVISOR_NODES || !canergy_id_base_valid(cfg->id_base)) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    for (uint8_t i = 0U; i < count; i++) {
+        const bool ascending = i == 0U || nodes[i] > nodes[i - 1U];
+        if (nodes[i] < CANERGY_MIN_NODE || nodes[i] > CANERGY_MAX_NODE || !ascending) {
+            return CANERGY_ERR_ARGUMENT;
+        }
+    }
+    memset(sup, 0, sizeof *sup);
+    for (uint8_t i = 0U; i < count; i++) {
+        canergy_session_init(&sup->sessions[i], nodes[i]);
+    }
+    sup->count = count;
+    sup->usable_uj = initial_uj;
+    sup->id_base = cfg->id_base;
+    sup->timing = cfg->timing;
+    return CANERGY_OK;
+}
+
+int canergy_supervisor_begin(struct canergy_supervisor *sup, uint8_t node, uint32_t amount_uj,
+                             uint64_t now, struct canergy_supervisor_out *out)
+{
+    out_clear(out);
+    struct canergy_session *s = session_of(sup, node);
+    if (s == NULL) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    struct canergy_session next = *s;
+    struct canergy_session_step step;
+    const int rc = canergy_session_begin(&next, &sup->timing, amount_uj, now, &step);
+    if (rc != CANERGY_OK) {
+        return rc;
+    }
+    if ((uint64_t)amount_uj > sup->usable_uj) { /* the one guard a session cannot see */
+        return CANERGY_ERR_AMOUNT;
+    }
+    apply(sup, s, &next, &step, out);
+    *s = next;
+    return CANERGY_OK;
+}
+
+int canergy_supervisor_decide(struct canergy_supervisor *sup, uint8_t node, bool commit,
+                              uint64_t now, struct canergy_supervisor_out *out)
+{
+    out_clear(out);
+    struct canergy_session *s = session_of(sup, node);
+    if (s == NULL) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    struct canergy_session next = *s;
+    struct canergy_session_step step;
+    const int rc = canergy_session_decide(&next, &sup->timing, commit, now, &step);
+    if (rc == CANERGY_OK) {
+        apply(sup, s, &next, &step, out);
+        *s = next;
+    }
+    return rc;
+}
+
+int canergy_supervisor_on_frame(struct canergy_supervisor *sup,
+                                const struct canergy_rx_frame *frame, uint64_t now,
+                                struct canergy_supervisor_out *out)
+{
+    out_clear(out);
+    struct canergy_msg m;
+    const enum canergy_decode_status status =
+        canergy_decode(sup->id_base, frame, CANERGY_TO_SUPERVISOR, &m);
+    if (status != CANERGY_DECODE_OK) {
+        return (int)status;
+    }
+    struct canergy_session *s = session_of(sup, m.node);
+    if (s == NULL) {
+        return CANERGY_RX_OTHER_NODE;
+    }
+    struct canergy_session next = *s;
+    struct canergy_session_step step;
+    canergy_session_on_msg(&next, &sup->timing, &m, now, &step);
+    apply(sup, s, &next, &step, out);
+    *s = next;
+    return CANERGY_DECODE_OK;
+}
+
+void canergy_supervisor_on_timer(struct canergy_supervisor *sup, uint64_t now,
+                                 struct canergy_supervisor_out *out)
+{
+    out_clear(out);
+    for (uint8_t i = 0U; i < sup->count; i++) {
+        struct canergy_session *s = &sup->sessions[i];
+        if (s->deadline == CANERGY_NEVER || s->deadline > now) {
+            continue;
+        }
+        struct canergy_session next = *s;
+        struct canergy_session_step step;
+        canergy_session_timer(&next, &sup->timing, now, &step);
+        apply(sup, s, &next, &step, out);
+        *s = next;
+    }
+}
+
+uint64_t canergy_supervisor_deadline(const struct canergy_supervisor *sup)
+{
+    uint64_t earliest = CANERGY_NEVER;
+    for (uint8_t i = 0U; i < sup->count; i++) {
+        if (sup->sessions[i].deadline < earliest) {
+            earliest = sup->sessions[i].deadline;
+        }
+    }
+    return earliest;
+}
+
+void canergy_supervisor_restart(struct canergy_supervisor *sup, uint64_t now)
+{
+    struct canergy_session_step step;
+    for (uint8_t i = 0U; i < sup->count; i++) {
+        canergy_session_restart(&sup->sessions[i], now, &step);
+    }
+}
+
+int canergy_supervisor_inject(struct canergy_supervisor *sup, uint64_t amount_uj)
+{
+    if (amount_uj == 0U) {
+        return CANERGY_ERR_AMOUNT;
+    }
+    sup->usable_uj += amount_uj;
+    sup->injected_uj += amount_uj;
+    return CANERGY_OK;
+}

@@ -1,0 +1,200 @@
+"""The C supervisor (firmware/src/supervisor.c) side by side with ``canergy.core.Supervisor``:
+hypothesis drives both with the same grants, decisions, client frames (for managed nodes and
+others, counters near the sessions' and anywhere, bytes that do not decode), timers, resets and
+injections. After every step both hold the same Us and sessions, sent the same frames byte for
+byte, asked to persist alike, and refused the same requests."""
+
+from __future__ import annotations
+
+import ctypes
+from typing import Any
+
+import pytest
+from hypothesis import Phase, settings
+from hypothesis import strategies as st
+from hypothesis.stateful import (
+    RuleBasedStateMachine,
+    invariant,
+    rule,
+    run_state_machine_as_test,
+)
+from support.c_binding import (
+    ERR_AMOUNT,
+    ERR_ARGUMENT,
+    ERR_PHASE,
+    OK,
+    RX_OTHER_NODE,
+    CSupervisor,
+    SupervisorConfig,
+    SupervisorOut,
+    library,
+    rx,
+)
+from support.c_session import fields_of, timing_of
+
+from canergy.codec import Codec
+from canergy.core.actions import Persist, Send
+from canergy.core.errors import LocalProtocolError
+from canergy.core.supervisor import Supervisor
+from canergy.core.timing import Timing
+from canergy.messages import QUANTUM_UJ, Aborted, Ack, Committed, Join, Return
+
+NODES = (3, 5, 9)
+T = Timing(response_timeout_us=1_000, retries=2)
+CODEC = Codec()
+amounts = st.one_of(
+    st.integers(1, 3_000).map(lambda mj: mj * QUANTUM_UJ), st.sampled_from([0, 500, 65_536_000])
+)
+
+
+class SideBySide(RuleBasedStateMachine):
+    def __init__(self) -> None:
+        super().__init__()
+        self.lib = library()
+        self.py = Supervisor(NODES, 10_000_000, timing=T)
+        self.c = CSupervisor()
+        cfg = SupervisorConfig(id_base=CODEC.id_base, timing=timing_of(T))
+        nodes = (ctypes.c_uint8 * len(NODES))(*NODES)
+        assert (
+            self.lib.canergy_supervisor_init(
+                ctypes.byref(self.c), ctypes.byref(cfg), nodes, len(NODES), 10_000_000
+            )
+            == OK
+        )
+        self.now = 0
+        self.out = SupervisorOut()
+
+    def _same_actions(self, actions: list[Any]) -> None:
+        sent = [CODEC.encode(a.message) for a in actions if isinstance(a, Send)]
+        frames = [(f.id, bytes(f.data[: f.dlc])) for f in self.out.frames[: self.out.frame_count]]
+        assert frames == [(i, bytes(d)) for i, d in sent]
+        assert bool(self.out.persist) == any(isinstance(a, Persist) for a in actions)
+
+    def _request(self, py: Any, c: Any) -> None:
+        try:
+            actions = py()
+        except LocalProtocolError:
+            assert c() in (ERR_AMOUNT, ERR_PHASE, ERR_ARGUMENT)
+            return
+        assert c() == OK
+        self._same_actions(actions)
+
+    @rule(node=st.sampled_from([*NODES, 4]), amount=amounts)
+    def begin(self, node: int, amount: int) -> None:
+        self._request(
+            lambda: self.py.begin(node, amount, self.now),
+            lambda: self.lib.canergy_supervisor_begin(
+                ctypes.byref(self.c), node, amount, self.now, ctypes.byref(self.out)
+            ),
+        )
+
+    @rule(node=st.sampled_from([*NODES, 4]), commit=st.booleans())
+    def decide(self, node: int, commit: bool) -> None:
+        self._request(
+            lambda: (self.py.commit if commit else self.py.abort)(node, self.now),
+            lambda: self.lib.canergy_supervisor_decide(
+                ctypes.byref(self.c), node, commit, self.now, ctypes.byref(self.out)
+            ),
+        )
+
+    @rule(data=st.data())
+    def receive(self, data: st.DataObject) -> None:
+        node = data.draw(st.sampled_from([*NODES, 4]))
+        s = self.py.session(node) if node in NODES else None
+        near = 0 if s is None else s.tx
+        seq_near = 0 if s is None else s.returns_credited
+        tx = data.draw(st.one_of(st.integers(-2, 2).map(lambda d: (near + d) & 0xFFFF),
+                                 st.integers(0, 0xFFFF)))  # fmt: skip
+        seq = data.draw(st.one_of(st.integers(-2, 2).map(lambda d: (seq_near + d) & 0xFFFF),
+                                  st.integers(0, 0xFFFF)))  # fmt: skip
+        msg = data.draw(
+            st.sampled_from(
+                [
+                    Ack(node, tx),
+                    Committed(node, tx),
+                    Aborted(node, tx),
+                    Return(node, seq, data.draw(st.integers(1, 2_000))),
+                    Join(node, data.draw(st.integers(0, 0xFFFF))),
+                ]
+            )
+        )
+        arbitration_id, payload = CODEC.encode(msg)
+        if data.draw(st.booleans(), label="damage a byte"):
+            payload = bytearray(payload)
+            payload[0] ^= 0x5A
+        frame, _buf = rx(arbitration_id, bytes(payload))  # the buffer outlives the call
+        status = self.lib.canergy_supervisor_on_frame(
+            ctypes.byref(self.c), ctypes.byref(frame), self.now, ctypes.byref(self.out)
+        )
+        try:
+            decoded = CODEC.decode(arbitration_id, bytes(payload))
+        except ValueError:
+            assert status not in (OK, RX_OTHER_NODE) and self.out.frame_count == 0
+            return
+        if node not in NODES:
+            assert status == RX_OTHER_NODE and self.out.frame_count == 0
+            return
+        assert status == OK
+        self._same_actions(self.py.receive(decoded, self.now))
+
+    @rule(dt=st.integers(0, 3_000))
+    def timer(self, dt: int) -> None:
+        self.now += dt
+        actions = self.py.handle_timer(self.now)
+        self.lib.canergy_supervisor_on_timer(ctypes.byref(self.c), self.now, ctypes.byref(self.out))
+        self._same_actions(actions)
+
+    @rule()
+    def restart(self) -> None:
+        self.py.power_loss(self.now)
+        self.lib.canergy_supervisor_restart(ctypes.byref(self.c), self.now)
+
+    @rule(amount=st.integers(0, 5_000_000))
+    def inject(self, amount: int) -> None:
+        code = self.lib.canergy_supervisor_inject(ctypes.byref(self.c), amount)
+        try:
+            self.py.inject(amount)
+        except LocalProtocolError:
+            assert code == ERR_AMOUNT
+            return
+        assert code == OK
+
+    @invariant()
+    def same_books(self) -> None:
+        st_ = self.py.state
+        assert (self.c.usable_uj, self.c.injected_uj) == (st_.usable, st_.injected)
+        for i, s in enumerate(st_.sessions):
+            assert fields_of(self.c.sessions[i]) == fields_of(s)
+        deadline = self.py.get_timer()
+        expected = (1 << 64) - 1 if deadline is None else deadline
+        assert self.lib.canergy_supervisor_deadline(ctypes.byref(self.c)) == expected
+
+
+TestSideBySide = SideBySide.TestCase
+TestSideBySide.settings = settings(max_examples=150, stateful_step_count=60, deadline=None)
+
+
+class AgainstTheBrokenBuild(SideBySide):
+    """The same machine on the build that credits a duplicated RETURN again."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.lib = library("broken")
+        cfg = SupervisorConfig(id_base=CODEC.id_base, timing=timing_of(T))
+        nodes = (ctypes.c_uint8 * len(NODES))(*NODES)
+        self.lib.canergy_supervisor_init(
+            ctypes.byref(self.c), ctypes.byref(cfg), nodes, len(NODES), 10_000_000
+        )
+
+
+def test_the_machine_catches_a_broken_build() -> None:
+    with pytest.raises(AssertionError):
+        run_state_machine_as_test(
+            AgainstTheBrokenBuild,
+            settings=settings(
+                max_examples=300,
+                stateful_step_count=60,
+                deadline=None,
+                phases=[Phase.explicit, Phase.reuse, Phase.generate],  # found is enough
+            ),
+        )

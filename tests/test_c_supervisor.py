@@ -2,7 +2,9 @@
 hypothesis drives both with the same grants, decisions, client frames (for managed nodes and
 others, counters near the sessions' and anywhere, bytes that do not decode), timers, resets and
 injections. After every step both hold the same Us and sessions, sent the same frames byte for
-byte, asked to persist alike, and refused the same requests."""
+byte, asked to persist alike, and refused the same requests. The C supervisor's record is
+written to its two NV slots whenever it asks (and after an injection), and a reset restarts it
+from those bytes alone: so every change it must not lose was asked to be persisted."""
 
 from __future__ import annotations
 
@@ -24,6 +26,7 @@ from support.c_binding import (
     ERR_PHASE,
     OK,
     RX_OTHER_NODE,
+    SUPERVISOR_SLOT,
     CSupervisor,
     SupervisorConfig,
     SupervisorOut,
@@ -53,18 +56,34 @@ class SideBySide(RuleBasedStateMachine):
         self.lib = library()
         self.py = Supervisor(NODES, 10_000_000, timing=T)
         self.c = CSupervisor()
-        cfg = SupervisorConfig(id_base=CODEC.id_base, timing=timing_of(T))
-        nodes = (ctypes.c_uint8 * len(NODES))(*NODES)
-        assert (
-            self.lib.canergy_supervisor_init(
-                ctypes.byref(self.c), ctypes.byref(cfg), nodes, len(NODES), 10_000_000
-            )
-            == OK
-        )
+        self.nv = ctypes.create_string_buffer(2 * SUPERVISOR_SLOT)
+        self.nv_counter, self.nv_slot = ctypes.c_uint32(), ctypes.c_uint8()
+        assert self._load() == 0  # blank NV: a new supervisor
         self.now = 0
         self.out = SupervisorOut()
 
+    def _load(self) -> int:
+        cfg = SupervisorConfig(id_base=CODEC.id_base, timing=timing_of(T))
+        nodes = (ctypes.c_uint8 * len(NODES))(*NODES)
+        return int(
+            self.lib.canergy_supervisor_load(
+                ctypes.byref(self.c), ctypes.byref(cfg), nodes, len(NODES), 10_000_000,
+                self.nv, len(self.nv), ctypes.byref(self.nv_counter), ctypes.byref(self.nv_slot),
+            )
+        )  # fmt: skip
+
+    def _persist(self) -> None:
+        """Write the record to the other slot, as a port does before sending."""
+        self.nv_slot.value ^= 1
+        self.nv_counter.value += 1
+        image = ctypes.create_string_buffer(SUPERVISOR_SLOT)
+        self.lib.canergy_supervisor_image(ctypes.byref(self.c), self.nv_counter.value, image)
+        start = self.nv_slot.value * SUPERVISOR_SLOT
+        ctypes.memmove(ctypes.addressof(self.nv) + start, image, SUPERVISOR_SLOT)
+
     def _same_actions(self, actions: list[Any]) -> None:
+        if self.out.persist:
+            self._persist()
         sent = [CODEC.encode(a.message) for a in actions if isinstance(a, Send)]
         frames = [(f.id, bytes(f.data[: f.dlc])) for f in self.out.frames[: self.out.frame_count]]
         assert frames == [(i, bytes(d)) for i, d in sent]
@@ -146,7 +165,9 @@ class SideBySide(RuleBasedStateMachine):
 
     @rule()
     def restart(self) -> None:
+        """A reset: Python keeps its record in memory; C has only what it asked to persist."""
         self.py.power_loss(self.now)
+        assert self._load() == (1 if self.nv_counter.value else 0)
         self.lib.canergy_supervisor_restart(ctypes.byref(self.c), self.now)
 
     @rule(amount=st.integers(0, 5_000_000))
@@ -158,6 +179,7 @@ class SideBySide(RuleBasedStateMachine):
             assert code == ERR_AMOUNT
             return
         assert code == OK
+        self._persist()  # supervisor.h: write the record after an injection
 
     @invariant()
     def same_books(self) -> None:
@@ -180,11 +202,7 @@ class AgainstTheBrokenBuild(SideBySide):
     def __init__(self) -> None:
         super().__init__()
         self.lib = library("broken")
-        cfg = SupervisorConfig(id_base=CODEC.id_base, timing=timing_of(T))
-        nodes = (ctypes.c_uint8 * len(NODES))(*NODES)
-        self.lib.canergy_supervisor_init(
-            ctypes.byref(self.c), ctypes.byref(cfg), nodes, len(NODES), 10_000_000
-        )
+        self._load()
 
 
 def test_the_machine_catches_a_broken_build() -> None:

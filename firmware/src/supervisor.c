@@ -190,3 +190,136 @@ int canergy_supervisor_inject(struct canergy_supervisor *sup, uint64_t amount_uj
     sup->injected_uj += amount_uj;
     return CANERGY_OK;
 }
+
+/* -- the record in NV --------------------------------------------------------------------- */
+
+#define SLOT_MAGIC 0x534E5243UL /* "CNRS" little-endian */
+#define SLOT_VERSION 1U
+#define SLOT_HEADER 28U /* magic, version, count, 2 spare, counter, Us, injected */
+#define SESSION_BYTES 32U
+
+static void put_le(uint8_t *p, uint64_t v, size_t n)
+{
+    for (size_t i = 0U; i < n; i++) {
+        p[i] = (uint8_t)(v >> (8U * i));
+    }
+}
+
+static uint64_t get_le(const uint8_t *p, size_t n)
+{
+    uint64_t v = 0U;
+    for (size_t i = 0U; i < n; i++) {
+        v |= (uint64_t)p[i] << (8U * i);
+    }
+    return v;
+}
+
+static size_t slot_bytes(uint8_t count)
+{
+    return SLOT_HEADER + SESSION_BYTES * (size_t)count + 4U;
+}
+
+size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t counter,
+                                uint8_t out[CANERGY_SUPERVISOR_SLOT_SIZE])
+{
+    put_le(&out[0], SLOT_MAGIC, 4U);
+    out[4] = SLOT_VERSION;
+    out[5] = sup->count;
+    out[6] = 0U;
+    out[7] = 0U;
+    put_le(&out[8], counter, 4U);
+    put_le(&out[12], sup->usable_uj, 8U);
+    put_le(&out[20], sup->injected_uj, 8U);
+    for (uint8_t i = 0U; i < sup->count; i++) {
+        const struct canergy_session *s = &sup->sessions[i];
+        uint8_t *r = &out[SLOT_HEADER + SESSION_BYTES * (size_t)i];
+        r[0] = s->node;
+        r[1] = stored_phase(s);
+        r[2] = s->decision;
+        r[3] = 0U;
+        put_le(&r[4], s->tx, 4U);
+        put_le(&r[8], s->returns_credited, 4U);
+        put_le(&r[12], s->reserved_uj, 4U);
+        put_le(&r[16], s->delivered_uj, 8U);
+        put_le(&r[24], s->returned_uj, 8U);
+    }
+    const size_t body = slot_bytes(sup->count) - 4U;
+    put_le(&out[body], canergy_crc32(0U, out, body), 4U);
+    return body + 4U;
+}
+
+/* A slot holding this supervisor's record: magic, version, its nodes, a matching CRC, and
+ * values the rules can produce. */
+static bool slot_valid(const struct canergy_supervisor *sup, const uint8_t *p)
+{
+    const size_t body = slot_bytes(sup->count) - 4U;
+    if (get_le(p, 4U) != SLOT_MAGIC || p[4] != SLOT_VERSION || p[5] != sup->count ||
+        get_le(&p[body], 4U) != canergy_crc32(0U, p, body)) {
+        return false;
+    }
+    for (uint8_t i = 0U; i < sup->count; i++) {
+        const uint8_t *r = &p[SLOT_HEADER + SESSION_BYTES * (size_t)i];
+        const uint64_t reserved = get_le(&r[12], 4U);
+        const bool idle = r[1] == CANERGY_S_IDLE;
+        const bool confirm = r[1] == CANERGY_S_WAIT_CONFIRM;
+        if (r[0] != sup->sessions[i].node || r[1] > CANERGY_S_WAIT_CONFIRM ||
+            r[1] == CANERGY_S_ACKED || r[2] > CANERGY_DECIDE_ABORT ||
+            (confirm != (r[2] != CANERGY_DECIDE_NONE)) || (idle != (reserved == 0U)) ||
+            reserved % CANERGY_QUANTUM_UJ != 0U ||
+            reserved > CANERGY_AMOUNT_MAX_MJ * CANERGY_QUANTUM_UJ) {
+            return false;
+        }
+    }
+    return true;
+}
+
+static void slot_take(struct canergy_supervisor *sup, const uint8_t *p)
+{
+    sup->usable_uj = get_le(&p[12], 8U);
+    sup->injected_uj = get_le(&p[20], 8U);
+    for (uint8_t i = 0U; i < sup->count; i++) {
+        const uint8_t *r = &p[SLOT_HEADER + SESSION_BYTES * (size_t)i];
+        struct canergy_session *s = &sup->sessions[i];
+        s->phase = r[1];
+        s->decision = r[2];
+        s->tx = (uint32_t)get_le(&r[4], 4U);
+        s->returns_credited = (uint32_t)get_le(&r[8], 4U);
+        s->reserved_uj = (uint32_t)get_le(&r[12], 4U);
+        s->delivered_uj = get_le(&r[16], 8U);
+        s->returned_uj = get_le(&r[24], 8U);
+    }
+}
+
+int canergy_supervisor_load(struct canergy_supervisor *sup,
+                            const struct canergy_supervisor_config *cfg, const uint8_t *nodes,
+                            uint8_t count, uint64_t initial_uj, const uint8_t *image, size_t len,
+                            uint32_t *counter, uint8_t *slot)
+{
+    const int rc = canergy_supervisor_init(sup, cfg, nodes, count, initial_uj);
+    if (rc != CANERGY_OK || counter == NULL || slot == NULL) {
+        return rc != CANERGY_OK ? rc : CANERGY_ERR_ARGUMENT;
+    }
+    const size_t each = CANERGY_SUPERVISOR_SLOT_SIZE;
+    int newest = -1;
+    uint32_t best = 0U;
+    for (uint8_t i = 0U; i < 2U; i++) {
+        const size_t start = (size_t)i * each;
+        if (image == NULL || len < start + slot_bytes(count)) {
+            continue;
+        }
+        const uint8_t *p = &image[start];
+        const uint32_t c = (uint32_t)get_le(&p[8], 4U);
+        if (slot_valid(sup, p) && (newest < 0 || (uint32_t)(c - best) - 1U < 0x7FFFFFFFUL)) {
+            newest = (int)i;
+            best = c;
+        }
+    }
+    *counter = best;
+    *slot = newest < 0 ? 1U : (uint8_t)newest; /* none: slot 0 is written first */
+    if (newest < 0) {
+        return 0;
+    }
+    slot_take(sup, &image[(size_t)newest * each]);
+    canergy_supervisor_restart(sup, 0U);
+    return 1;
+}

@@ -17,12 +17,17 @@ void port_entry(void)
 {
     static struct canergy_supervisor sup;
     static struct canergy_supervisor_out out;
+    static uint8_t nv[2U * CANERGY_SUPERVISOR_SLOT_SIZE];
     static const uint8_t nodes[1] = {1U};
     static const uint8_t bytes[8] = {0};
     const struct canergy_rx_frame rx = {0x0CE00901UL, bytes, 2U, true, false};
     const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000UL, 3U}};
     volatile uint64_t sink = 0U;
-    sink += (uint64_t)canergy_supervisor_init(&sup, &cfg, nodes, 1U, 1000000U);
+    uint32_t counter = 0U;
+    uint8_t slot = 0U;
+    sink += (uint64_t)canergy_supervisor_load(&sup, &cfg, nodes, 1U, 1000000U, nv, sizeof nv,
+                                              &counter, &slot);
+    sink += canergy_supervisor_image(&sup, counter + 1U, nv);
     sink += (uint64_t)canergy_supervisor_inject(&sup, 1000U);
     sink += (uint64_t)canergy_supervisor_begin(&sup, 1U, 1000U, 0U, &out);
     sink += (uint64_t)canergy_supervisor_on_frame(&sup, &rx, 1U, &out);

@@ -432,6 +432,33 @@ static void test_supervisor(void)
           "inject");
     check(sizeof(struct canergy_supervisor) <= 64U * CANERGY_SUPERVISOR_NODES,
           "supervisor state within 64 bytes per node");
+
+    /* Its record in NV: written to slot 0 (counter 1), then 1 (counter 2); the newer wins, a
+     * damaged newer one gives way to the older, none at all starts a new supervisor. */
+    static uint8_t nv[2U * CANERGY_SUPERVISOR_SLOT_SIZE];
+    static struct canergy_supervisor back;
+    uint32_t counter = 0U;
+    uint8_t slot = 0U;
+    check(canergy_supervisor_load(&back, &cfg, nodes, 2U, 7U, nv, sizeof nv, &counter, &slot) ==
+              0 && back.usable_uj == 7U && slot == 1U,
+          "blank NV: a new supervisor, slot 0 first");
+    const size_t used = canergy_supervisor_image(&sup, 1U, nv);
+    check(used == 32U + 32U * 2U, "the image: 32 bytes and 32 per session");
+    sup.usable_uj += 1000U;
+    (void)canergy_supervisor_image(&sup, 2U, &nv[CANERGY_SUPERVISOR_SLOT_SIZE]);
+    check(canergy_supervisor_load(&back, &cfg, nodes, 2U, 7U, nv, sizeof nv, &counter, &slot) ==
+              1 && counter == 2U && slot == 1U && back.usable_uj == 4500U &&
+              back.sessions[0].tx == 1U && back.sessions[0].phase == CANERGY_S_WAIT_ACK &&
+              back.sessions[0].reserved_uj == 2000U && back.sessions[0].deadline == 0U,
+          "the newer slot, its open intention due at once");
+    nv[CANERGY_SUPERVISOR_SLOT_SIZE + 40U] ^= 0x01U;
+    check(canergy_supervisor_load(&back, &cfg, nodes, 2U, 7U, nv, sizeof nv, &counter, &slot) ==
+              1 && counter == 1U && slot == 0U && back.usable_uj == 3500U,
+          "a damaged newer slot: the older one");
+    const uint8_t others[2] = {3U, 6U};
+    check(canergy_supervisor_load(&back, &cfg, others, 2U, 7U, nv, sizeof nv, &counter, &slot) ==
+              0,
+          "another node list: not this supervisor's record");
 }
 
 static void test_budgets(void)

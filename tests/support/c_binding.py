@@ -163,6 +163,8 @@ class SessionTiming(Structure):
 
 SUPERVISOR_NODES = 16
 """CANERGY_SUPERVISOR_NODES as the library is built."""
+SUPERVISOR_SLOT = 32 + 32 * SUPERVISOR_NODES
+"""CANERGY_SUPERVISOR_SLOT_SIZE: one of the two slots of the supervisor's NV image."""
 
 
 class CSupervisor(Structure):
@@ -314,6 +316,21 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "canergy_supervisor_deadline": (c_uint64, [POINTER(CSupervisor)]),
     "canergy_supervisor_restart": (None, [POINTER(CSupervisor), c_uint64]),
     "canergy_supervisor_inject": (c_int, [POINTER(CSupervisor), c_uint64]),
+    "canergy_supervisor_image": (c_size_t, [POINTER(CSupervisor), c_uint32, c_void_p]),
+    "canergy_supervisor_load": (
+        c_int,
+        [
+            POINTER(CSupervisor),
+            POINTER(SupervisorConfig),
+            c_void_p,
+            c_uint8,
+            c_uint64,
+            c_void_p,
+            c_size_t,
+            POINTER(c_uint32),
+            POINTER(c_uint8),
+        ],
+    ),
     "canergy_encode": (c_int, [c_uint32, POINTER(Msg), POINTER(Frame)]),
     "canergy_decode": (c_int, [c_uint32, POINTER(RxFrame), c_int, POINTER(Msg)]),
     "canergy_crc8": (c_uint8, [c_uint8, c_void_p, c_size_t]),

@@ -11,11 +11,13 @@
  * complete before any of out->frames is sent; then send out->frames[0 .. out->frame_count - 1]
  * in order.
  *
- * Not written yet (issue 33): the NV layout of that record and its load at start.
+ * The record (canergy_supervisor_image) goes to NV in two slots written in turn, as the
+ * client's does: canergy_supervisor_load takes the valid one written last at start.
  */
 #ifndef CANERGY_SUPERVISOR_H
 #define CANERGY_SUPERVISOR_H
 
+#include "canergy/nv.h"
 #include "canergy/session.h"
 
 #ifdef __cplusplus
@@ -79,8 +81,30 @@ uint64_t canergy_supervisor_deadline(const struct canergy_supervisor *sup);
 /* A reset with the record kept: every session restarts (open ones re-send at the next timer). */
 void canergy_supervisor_restart(struct canergy_supervisor *sup, uint64_t now);
 
-/* Energy from outside into Us (counted as injected). CANERGY_ERR_AMOUNT for 0. */
+/* Energy from outside into Us (counted as injected). CANERGY_ERR_AMOUNT for 0. Write the
+ * record after it, before the energy is granted. */
 int canergy_supervisor_inject(struct canergy_supervisor *sup, uint64_t amount_uj);
+
+/* -- the record in NV --------------------------------------------------------------------- */
+
+/* One slot: a 12-byte header ("CNRS", version, count, counter), Us and injected, 32 bytes per
+ * session (node, stored phase, decision, tx, last return credited, Ts, Gs, returned) and a
+ * CRC-32 of all that. Two slots of CANERGY_SUPERVISOR_SLOT_SIZE bytes back to back. */
+#define CANERGY_SUPERVISOR_SLOT_SIZE (32U + 32U * CANERGY_SUPERVISOR_NODES)
+
+/* The record as slot bytes with this counter (the slot written before it has counter - 1);
+ * returns the bytes used, 32 + 32 per session (the rest of the slot is left as it is). */
+size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t counter,
+                                uint8_t out[CANERGY_SUPERVISOR_SLOT_SIZE]);
+
+/* Start: init, then take the valid slot written last in image (len bytes, both slots; NULL/0
+ * when blank) whose nodes are these. Returns 1 with *counter and *slot of that record, 0 when
+ * there is none (the supervisor starts new: its nodes may still hold books of an earlier life,
+ * so the port should not grant before they have told it, e.g. by JOIN), or an init error. */
+int canergy_supervisor_load(struct canergy_supervisor *sup,
+                            const struct canergy_supervisor_config *cfg, const uint8_t *nodes,
+                            uint8_t count, uint64_t initial_uj, const uint8_t *image, size_t len,
+                            uint32_t *counter, uint8_t *slot);
 
 #ifdef __cplusplus
 }

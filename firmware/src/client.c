@@ -15,6 +15,8 @@
  */
 #include "canergy/client.h"
 
+#include "canergy/assert.h"
+
 #include "client_internal.h"
 #include "serial.h"
 
@@ -76,6 +78,7 @@ static void reply_for(const struct canergy_client *c, uint32_t tx, uint8_t outco
 static void persist(struct canergy_client *c, const uint8_t record[CANERGY_NV_RECORD_SIZE],
                     struct canergy_out *out)
 {
+    CANERGY_ASSERT(c->phase != CANERGY_JOINING); /* a blank record is not books: never written */
     if (out->persist == 0U) {
         out->persist = 1U;
         out->nv_slot = (uint8_t)(1U - c->nv_slot);
@@ -121,6 +124,7 @@ static void resolved(struct canergy_client *c, uint32_t tx, uint8_t outcome)
 static void commit_into(struct canergy_client *c, uint16_t amount_mj)
 {
     const uint64_t usable = (uint64_t)c->rec.usable_uj + (uint64_t)amount_mj * MJ;
+    CANERGY_ASSERT(usable <= CANERGY_USABLE_MAX_UJ); /* refused when held or commanded */
     c->rec.usable_uj = usable > CANERGY_USABLE_MAX_UJ ? CANERGY_USABLE_MAX_UJ : (uint32_t)usable;
     c->rec.credited_mj += amount_mj;
 }
@@ -161,6 +165,8 @@ static void on_intention(struct canergy_client *c, const struct canergy_msg *m, 
         next.held_amount_mj = m->amount_mj;
         next.deadline = serial_after(now, c->command_timeout_us);
     }
+    CANERGY_ASSERT(next.phase != CANERGY_HOLDING ||
+                   (uint32_t)(next.held_tx - next.rec.last_tx) - 1U < 0x7FFFUL); /* 1..32767 */
     if (usable + (uint64_t)next.held_amount_mj * MJ > CANERGY_USABLE_MAX_UJ) {
         out->events |= CANERGY_EV_REFUSED; /* left unanswered: re-sent, written off, paid later */
         return;

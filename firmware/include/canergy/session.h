@@ -15,23 +15,12 @@
 #ifndef CANERGY_SESSION_H
 #define CANERGY_SESSION_H
 
+#include "canergy/assert.h"
 #include "canergy/client.h"
 #include "canergy/codec.h"
 
 #ifdef __cplusplus
 extern "C" {
-#endif
-
-/* CANERGY_ASSERT(x): an invariant the code relies on. Off unless CANERGY_ASSERTS is defined
- * (the sanitizer builds define it, so a broken invariant aborts there); a port may define
- * CANERGY_ASSERT itself, e.g. to its own fault handler. */
-#ifndef CANERGY_ASSERT
-#ifdef CANERGY_ASSERTS
-#include <assert.h>
-#define CANERGY_ASSERT(x) assert(x)
-#else
-#define CANERGY_ASSERT(x) ((void)0)
-#endif
 #endif
 
 enum canergy_session_phase {

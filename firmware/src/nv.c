@@ -8,28 +8,12 @@
 #include "canergy/nv.h"
 
 #include "canergy/codec.h"
+#include "le.h"
 
 #include <string.h>
 
 #define HEAD_SIZE 6U /* u16 magic, u32 counter */
 #define CRC_AT (HEAD_SIZE + CANERGY_NV_RECORD_SIZE)
-
-/* Little-endian fields of up to 32 bits (the u64 is two of them: 64-bit shifts cost flash). */
-static void put_le(uint8_t *p, uint32_t v, size_t n)
-{
-    for (size_t i = 0U; i < n; i++) {
-        p[i] = (uint8_t)(v >> (8U * i));
-    }
-}
-
-static uint32_t get_le(const uint8_t *p, size_t n)
-{
-    uint32_t v = 0U;
-    for (size_t i = 0U; i < n; i++) {
-        v |= (uint32_t)p[i] << (8U * i);
-    }
-    return v;
-}
 
 uint32_t canergy_crc32(uint32_t crc, const uint8_t *data, size_t len)
 {
@@ -47,13 +31,12 @@ uint32_t canergy_crc32(uint32_t crc, const uint8_t *data, size_t len)
 
 void canergy_record_pack(const struct canergy_record *rec, uint8_t out[CANERGY_NV_RECORD_SIZE])
 {
-    put_le(&out[0], rec->usable_uj, 4U);
-    put_le(&out[4], rec->credited_mj, 4U);
-    put_le(&out[8], (uint32_t)rec->spent_uj, 4U);
-    put_le(&out[12], (uint32_t)(rec->spent_uj >> 32), 4U);
-    put_le(&out[16], rec->last_tx, 4U);
-    put_le(&out[20], rec->return_seq, 4U);
-    put_le(&out[24], rec->return_pending_uj, 4U);
+    le_put(&out[0], rec->usable_uj, 4U);
+    le_put(&out[4], rec->credited_mj, 4U);
+    le_put64(&out[8], rec->spent_uj);
+    le_put(&out[16], rec->last_tx, 4U);
+    le_put(&out[20], rec->return_seq, 4U);
+    le_put(&out[24], rec->return_pending_uj, 4U);
     out[28] = rec->outcome;
     out[29] = (uint8_t)(rec->flags & CANERGY_RECORD_CREDITED_UNKNOWN);
 }
@@ -69,12 +52,12 @@ int canergy_record_unpack(const uint8_t in[CANERGY_NV_RECORD_SIZE], struct caner
 {
     struct canergy_record r;
     memset(&r, 0, sizeof r);
-    r.usable_uj = get_le(&in[0], 4U); /* a u32 never exceeds USABLE_MAX_UJ */
-    r.credited_mj = get_le(&in[4], 4U);
-    r.spent_uj = (uint64_t)get_le(&in[12], 4U) << 32 | get_le(&in[8], 4U);
-    r.last_tx = get_le(&in[16], 4U);
-    r.return_seq = get_le(&in[20], 4U);
-    r.return_pending_uj = get_le(&in[24], 4U);
+    r.usable_uj = le_get(&in[0], 4U); /* a u32 never exceeds USABLE_MAX_UJ */
+    r.credited_mj = le_get(&in[4], 4U);
+    r.spent_uj = le_get64(&in[8]);
+    r.last_tx = le_get(&in[16], 4U);
+    r.return_seq = le_get(&in[20], 4U);
+    r.return_pending_uj = le_get(&in[24], 4U);
     r.outcome = in[28];
     r.flags = (uint8_t)(in[29] & CANERGY_RECORD_CREDITED_UNKNOWN);
     if (r.outcome > CANERGY_OUTCOME_WRITTEN_OFF || !return_possible(r.return_pending_uj)) {
@@ -88,22 +71,22 @@ void canergy_nv_slot_encode(uint32_t counter, const uint8_t *payload, size_t len
                             uint8_t out[CANERGY_NV_SLOT_SIZE])
 {
     memset(out, 0, CANERGY_NV_SLOT_SIZE);
-    put_le(&out[0], CANERGY_NV_MAGIC, 2U);
-    put_le(&out[2], counter, 4U);
+    le_put(&out[0], CANERGY_NV_MAGIC, 2U);
+    le_put(&out[2], counter, 4U);
     if (payload != NULL) {
         memcpy(&out[HEAD_SIZE], payload, len < CANERGY_NV_RECORD_SIZE ? len : CANERGY_NV_RECORD_SIZE);
     }
-    put_le(&out[CRC_AT], canergy_crc32(0U, out, CRC_AT), 4U);
+    le_put(&out[CRC_AT], canergy_crc32(0U, out, CRC_AT), 4U);
 }
 
 bool canergy_nv_slot_decode(const uint8_t *raw, size_t len, uint32_t *counter,
                             uint8_t payload[CANERGY_NV_RECORD_SIZE])
 {
-    if (raw == NULL || len != CANERGY_NV_SLOT_SIZE || get_le(raw, 2U) != CANERGY_NV_MAGIC ||
-        canergy_crc32(0U, raw, CRC_AT) != get_le(&raw[CRC_AT], 4U)) {
+    if (raw == NULL || len != CANERGY_NV_SLOT_SIZE || le_get(raw, 2U) != CANERGY_NV_MAGIC ||
+        canergy_crc32(0U, raw, CRC_AT) != le_get(&raw[CRC_AT], 4U)) {
         return false;
     }
-    *counter = get_le(&raw[2], 4U);
+    *counter = le_get(&raw[2], 4U);
     memcpy(payload, &raw[HEAD_SIZE], CANERGY_NV_RECORD_SIZE);
     return true;
 }

@@ -4,6 +4,8 @@
  */
 #include "canergy/supervisor.h"
 
+#include "le.h"
+
 #include <string.h>
 
 static void out_clear(struct canergy_supervisor_out *out)
@@ -34,8 +36,9 @@ static bool record_changed(const struct canergy_session *a, const struct canergy
            a->decision != b->decision || a->returns_credited != b->returns_credited;
 }
 
-/* Apply a session step: its credit to Us, a persist when the record or Us changed, its frame. */
-static void apply(struct canergy_supervisor *sup, const struct canergy_session *before,
+/* Apply a session step worked out on a copy: its credit to Us, a persist when the record or Us
+ * changed, its frame, then the session itself. */
+static void apply(struct canergy_supervisor *sup, struct canergy_session *s,
                   const struct canergy_session *after, const struct canergy_session_step *step,
                   struct canergy_supervisor_out *out)
 {
@@ -44,7 +47,7 @@ static void apply(struct canergy_supervisor *sup, const struct canergy_session *
         sup->usable_uj = step->credit_uj > 0 ? sup->usable_uj + (uint64_t)step->credit_uj
                                              : sup->usable_uj - (uint64_t)(-step->credit_uj);
     }
-    if (step->credit_uj != 0 || record_changed(before, after)) {
+    if (step->credit_uj != 0 || record_changed(s, after)) {
         out->persist = 1U;
     }
     if (step->send && out->frame_count < CANERGY_SUPERVISOR_NODES) {
@@ -55,6 +58,7 @@ static void apply(struct canergy_supervisor *sup, const struct canergy_session *
             out->frame_count++;
         }
     }
+    *s = *after;
 }
 
 int canergy_supervisor_init(struct canergy_supervisor *sup,
@@ -100,7 +104,6 @@ int canergy_supervisor_begin(struct canergy_supervisor *sup, uint8_t node, uint3
         return CANERGY_ERR_AMOUNT;
     }
     apply(sup, s, &next, &step, out);
-    *s = next;
     return CANERGY_OK;
 }
 
@@ -117,7 +120,6 @@ int canergy_supervisor_decide(struct canergy_supervisor *sup, uint8_t node, bool
     const int rc = canergy_session_decide(&next, &sup->timing, commit, now, &step);
     if (rc == CANERGY_OK) {
         apply(sup, s, &next, &step, out);
-        *s = next;
     }
     return rc;
 }
@@ -141,7 +143,6 @@ int canergy_supervisor_on_frame(struct canergy_supervisor *sup,
     struct canergy_session_step step;
     canergy_session_on_msg(&next, &sup->timing, &m, now, &step);
     apply(sup, s, &next, &step, out);
-    *s = next;
     return CANERGY_DECODE_OK;
 }
 
@@ -158,7 +159,6 @@ void canergy_supervisor_on_timer(struct canergy_supervisor *sup, uint64_t now,
         struct canergy_session_step step;
         canergy_session_timer(&next, &sup->timing, now, &step);
         apply(sup, s, &next, &step, out);
-        *s = next;
     }
 }
 
@@ -198,22 +198,6 @@ int canergy_supervisor_inject(struct canergy_supervisor *sup, uint64_t amount_uj
 #define SLOT_HEADER 28U /* magic, version, count, 2 spare, counter, Us, injected */
 #define SESSION_BYTES 32U
 
-static void put_le(uint8_t *p, uint64_t v, size_t n)
-{
-    for (size_t i = 0U; i < n; i++) {
-        p[i] = (uint8_t)(v >> (8U * i));
-    }
-}
-
-static uint64_t get_le(const uint8_t *p, size_t n)
-{
-    uint64_t v = 0U;
-    for (size_t i = 0U; i < n; i++) {
-        v |= (uint64_t)p[i] << (8U * i);
-    }
-    return v;
-}
-
 static size_t slot_bytes(uint8_t count)
 {
     return SLOT_HEADER + SESSION_BYTES * (size_t)count + 4U;
@@ -222,14 +206,14 @@ static size_t slot_bytes(uint8_t count)
 size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t counter,
                                 uint8_t out[CANERGY_SUPERVISOR_SLOT_SIZE])
 {
-    put_le(&out[0], SLOT_MAGIC, 4U);
+    le_put(&out[0], SLOT_MAGIC, 4U);
     out[4] = SLOT_VERSION;
     out[5] = sup->count;
     out[6] = 0U;
     out[7] = 0U;
-    put_le(&out[8], counter, 4U);
-    put_le(&out[12], sup->usable_uj, 8U);
-    put_le(&out[20], sup->injected_uj, 8U);
+    le_put(&out[8], counter, 4U);
+    le_put64(&out[12], sup->usable_uj);
+    le_put64(&out[20], sup->injected_uj);
     for (uint8_t i = 0U; i < sup->count; i++) {
         const struct canergy_session *s = &sup->sessions[i];
         uint8_t *r = &out[SLOT_HEADER + SESSION_BYTES * (size_t)i];
@@ -237,14 +221,14 @@ size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t c
         r[1] = stored_phase(s);
         r[2] = s->decision;
         r[3] = 0U;
-        put_le(&r[4], s->tx, 4U);
-        put_le(&r[8], s->returns_credited, 4U);
-        put_le(&r[12], s->reserved_uj, 4U);
-        put_le(&r[16], s->delivered_uj, 8U);
-        put_le(&r[24], s->returned_uj, 8U);
+        le_put(&r[4], s->tx, 4U);
+        le_put(&r[8], s->returns_credited, 4U);
+        le_put(&r[12], s->reserved_uj, 4U);
+        le_put64(&r[16], s->delivered_uj);
+        le_put64(&r[24], s->returned_uj);
     }
     const size_t body = slot_bytes(sup->count) - 4U;
-    put_le(&out[body], canergy_crc32(0U, out, body), 4U);
+    le_put(&out[body], canergy_crc32(0U, out, body), 4U);
     return body + 4U;
 }
 
@@ -253,13 +237,13 @@ size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t c
 static bool slot_valid(const struct canergy_supervisor *sup, const uint8_t *p)
 {
     const size_t body = slot_bytes(sup->count) - 4U;
-    if (get_le(p, 4U) != SLOT_MAGIC || p[4] != SLOT_VERSION || p[5] != sup->count ||
-        get_le(&p[body], 4U) != canergy_crc32(0U, p, body)) {
+    if (le_get(p, 4U) != SLOT_MAGIC || p[4] != SLOT_VERSION || p[5] != sup->count ||
+        le_get(&p[body], 4U) != canergy_crc32(0U, p, body)) {
         return false;
     }
     for (uint8_t i = 0U; i < sup->count; i++) {
         const uint8_t *r = &p[SLOT_HEADER + SESSION_BYTES * (size_t)i];
-        const uint64_t reserved = get_le(&r[12], 4U);
+        const uint32_t reserved = le_get(&r[12], 4U);
         const bool idle = r[1] == CANERGY_S_IDLE;
         const bool confirm = r[1] == CANERGY_S_WAIT_CONFIRM;
         if (r[0] != sup->sessions[i].node || r[1] > CANERGY_S_WAIT_CONFIRM ||
@@ -275,18 +259,18 @@ static bool slot_valid(const struct canergy_supervisor *sup, const uint8_t *p)
 
 static void slot_take(struct canergy_supervisor *sup, const uint8_t *p)
 {
-    sup->usable_uj = get_le(&p[12], 8U);
-    sup->injected_uj = get_le(&p[20], 8U);
+    sup->usable_uj = le_get64(&p[12]);
+    sup->injected_uj = le_get64(&p[20]);
     for (uint8_t i = 0U; i < sup->count; i++) {
         const uint8_t *r = &p[SLOT_HEADER + SESSION_BYTES * (size_t)i];
         struct canergy_session *s = &sup->sessions[i];
         s->phase = r[1];
         s->decision = r[2];
-        s->tx = (uint32_t)get_le(&r[4], 4U);
-        s->returns_credited = (uint32_t)get_le(&r[8], 4U);
-        s->reserved_uj = (uint32_t)get_le(&r[12], 4U);
-        s->delivered_uj = get_le(&r[16], 8U);
-        s->returned_uj = get_le(&r[24], 8U);
+        s->tx = le_get(&r[4], 4U);
+        s->returns_credited = le_get(&r[8], 4U);
+        s->reserved_uj = le_get(&r[12], 4U);
+        s->delivered_uj = le_get64(&r[16]);
+        s->returned_uj = le_get64(&r[24]);
     }
 }
 
@@ -308,7 +292,7 @@ int canergy_supervisor_load(struct canergy_supervisor *sup,
             continue;
         }
         const uint8_t *p = &image[start];
-        const uint32_t c = (uint32_t)get_le(&p[8], 4U);
+        const uint32_t c = le_get(&p[8], 4U);
         if (slot_valid(sup, p) && (newest < 0 || (uint32_t)(c - best) - 1U < 0x7FFFFFFFUL)) {
             newest = (int)i;
             best = c;

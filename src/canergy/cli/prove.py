@@ -11,7 +11,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from canergy.argtypes import bounded_int
-from canergy.prove import CONFIRMED_BY, RULE_NAMES
+from canergy.prove import CONFIRMED_BY, RULE_NAMES, TRACE_IN_TESTS
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -76,8 +76,11 @@ def run(args: argparse.Namespace) -> int:
         "the invariant is not inductive under these rules",
         file=sys.stderr,
     )
-    for command in CONFIRMED_BY.get(args.rules, ()):
+    commands = CONFIRMED_BY.get(args.rules, ())
+    for command in commands:
         print(f"the bounded checker finds a real trace: {command}", file=sys.stderr)
+    if args.rules in CONFIRMED_BY and not commands:
+        print(f"the bounded checker finds a real trace: {TRACE_IN_TESTS}", file=sys.stderr)
     return 1
 
 

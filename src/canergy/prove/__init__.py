@@ -25,3 +25,5 @@ CONFIRMED_BY: dict[str, tuple[str, ...]] = {
 }
 """The bounded checker's runs that find a real trace of each unsound rule set's hazard (a
 node starting blank and trusting Gs has no CLI variant: tests/test_check.py checks it)."""
+TRACE_IN_TESTS = "a node that starts blank and trusts Gs, tests/test_check.py (TRUSTING)"
+"""Where the trace is for a rule set with no CLI command (the blank-record rule)."""

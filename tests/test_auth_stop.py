@@ -545,3 +545,7 @@ def test_a_replayed_join_neither_admits_nor_writes_off(bench: Bench) -> None:
     b.wait(lambda: b.committed() >= before + 1)  # and it goes on being granted
     node = b.status()["nodes"]["1"]
     assert node["admitted"] == 1 and node["written_off"] == 0, node
+
+
+pytestmark = pytest.mark.usefixtures("both_cores")
+"""Each test on the Python core and on the compiled one (tests/conftest.py)."""

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import pytest
+
 from canergy.core import Client, Send, Supervisor, Timing
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.messages import Ack, Committed, Message, Return, Telemetry, ToClient
@@ -88,3 +90,7 @@ def test_an_answer_to_a_transaction_never_begun_moves_nothing() -> None:
     assert service.intrusions.total == 2 and service.core.session(1).delivered == delivered
     service.on_message(Committed(1, tx), 80)  # a late duplicate of the genuine answer: fine
     assert service.intrusions.total == 2
+
+
+pytestmark = pytest.mark.usefixtures("both_cores")
+"""Each test on the Python core and on the compiled one (tests/conftest.py)."""

@@ -60,6 +60,27 @@ def test_grant_as_a_single_run(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert host.nodes[4].client.state.usable == 2_000_000
 
 
+def test_the_cores_continue_each_others_books(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One state file, grants by the Python core and the compiled one in turn: each takes
+    the other's books as its own (the file is the service's, not the core's)."""
+    channel = f"cli-{uuid.uuid4().hex}"
+    host, loop = _emulator(tmp_path, channel, [2])
+    state = tmp_path / "s.json"
+    try:
+        base = ["grant", "-i", "virtual", "-c", channel, "--state", str(state), "--node", "2"]
+        for core in ("python", "c", "python", "c"):
+            assert main([*base, "--amount", "1J", "--initial", "5J", "--core", core]) == 0
+        answers = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+        assert [a["tx"] for a in answers] == [1, 2, 3, 4]
+    finally:
+        loop.halt()
+    books = json.loads(state.read_text())
+    assert books["usable_uj"] == 1_000_000 and books["sessions"]["2"]["delivered_uj"] == 4_000_000
+    assert host.nodes[2].client.state.usable == 4_000_000
+
+
 def test_a_single_run_grant_keeps_the_books_of_the_other_nodes(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -82,7 +103,8 @@ def test_a_single_run_grant_keeps_the_books_of_the_other_nodes(
     assert books["usable_uj"] == 3_500_000
 
 
-def test_supervisor_serves_grants_over_its_control_socket(tmp_path: Path) -> None:
+@pytest.mark.parametrize("core", ["python", "c"])
+def test_supervisor_serves_grants_over_its_control_socket(tmp_path: Path, core: str) -> None:
     channel = f"cli-{uuid.uuid4().hex}"
     host, loop = _emulator(tmp_path, channel, [1, 2])
     control = tmp_path / "ctl.sock"
@@ -106,6 +128,8 @@ def test_supervisor_serves_grants_over_its_control_socket(tmp_path: Path) -> Non
         "--max-grant",
         "3J",
         "--no-fsync",
+        "--core",
+        core,
     ]
     result: list[int] = []
     thread = threading.Thread(target=lambda: result.append(main(argv)))
@@ -123,6 +147,7 @@ def test_supervisor_serves_grants_over_its_control_socket(tmp_path: Path) -> Non
         loop.halt()
     assert result == [0]
     final = json.loads(status.read_text())
+    assert final["core"] == core
     assert final["usable_uj"] == 7_500_000 and final["nodes"]["2"]["delivered_uj"] == 2_500_000
     assert (
         final["conservation"]["holds"] and final["frames_sent"] >= 2
@@ -136,6 +161,14 @@ def test_supervisor_serves_grants_over_its_control_socket(tmp_path: Path) -> Non
         (["supervisor", "--nodes", "0-3"], "ids are 1-127"),
         (["supervisor", "--nodes", "1", "--initial", "lots"], "not an energy"),
         (["supervisor", "--nodes", "1", "--rate", "2J"], "unknown power unit"),
+        (["supervisor", "--nodes", "1", "--core", "fast"], "invalid choice"),
+        (
+            [
+                *("grant", "--node", "1", "--amount", "1J", "-i", "virtual", "--state", "s.json"),
+                *("--core", "c", "--variant", "paper"),
+            ],
+            "--core c: it runs the hardened rules only",
+        ),
         (["grant", "--node", "1", "--amount", "1J", "-i", "nosuchbus"], "invalid choice"),
         *(
             (["grant", "--node", "1", "--amount", a, "-i", "virtual"], "whole millijoules")

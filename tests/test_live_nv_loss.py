@@ -79,3 +79,7 @@ def test_a_replayed_intention_moves_nothing_after_admission(tmp_path: Path) -> N
         assert new.client.state.usable == level
     finally:
         rig.close()
+
+
+pytestmark = pytest.mark.usefixtures("both_cores")
+"""Each test on the Python core and on the compiled one (tests/conftest.py)."""

@@ -119,3 +119,7 @@ def test_malformed_frames_are_counted_and_move_nothing(
         assert rig.ledger() == before
     finally:
         rig.close()
+
+
+pytestmark = pytest.mark.usefixtures("both_cores")
+"""Each test on the Python core and on the compiled one (tests/conftest.py)."""

@@ -103,6 +103,7 @@ class _NoPasses:
         return getattr(self.service, name)
 
 
+@pytest.mark.usefixtures("both_cores")  # one bus: on the Python core and the compiled one
 @pytest.mark.parametrize(("passes", "saves"), [(True, [1, 1, 1]), (False, [16, 16, 16])])
 def test_a_drained_batch_is_saved_once_and_sent_after(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, passes: bool, saves: list[int]

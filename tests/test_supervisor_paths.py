@@ -338,3 +338,7 @@ def test_capped_grant_keeps_a_known_level_within_the_record() -> None:
     assert capped_grant(10 * J, level=None, **grant) == 10 * J  # unknown: the node refuses
     with pytest.raises(ValueError, match="max node level must be at most"):
         Limits(max_node_level=USABLE_MAX_UJ)
+
+
+pytestmark = pytest.mark.usefixtures("both_cores")
+"""Each test on the Python core and on the compiled one (tests/conftest.py)."""

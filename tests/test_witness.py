@@ -201,3 +201,7 @@ def test_a_forged_join_does_not_wipe_the_witness_baseline() -> None:
     gate.readmitted(1)  # the supervisor admitted "the node" again
     evidence, _ = gate.telemetry(tel(3, witness=1), 3, 10_000)
     assert evidence == ["the node saw 1 frame(s) in its name that it did not send"]
+
+
+pytestmark = pytest.mark.usefixtures("both_cores")
+"""Each test on the Python core and on the compiled one (tests/conftest.py)."""

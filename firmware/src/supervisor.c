@@ -10,7 +10,9 @@
 
 static void out_clear(struct canergy_supervisor_out *out)
 {
-    memset(out, 0, sizeof *out);
+    out->frame_count = 0U;
+    out->event_count = 0U;
+    out->persist = 0U;
 }
 
 static struct canergy_session *session_of(struct canergy_supervisor *sup, uint8_t node)
@@ -36,11 +38,34 @@ static bool record_changed(const struct canergy_session *a, const struct canergy
            a->decision != b->decision || a->returns_credited != b->returns_credited;
 }
 
+/* What a step did besides its frame (in: the client message it handled, NULL for the
+ * supervisor's own calls). */
+static void record_event(const struct canergy_session *s, const struct canergy_session_step *step,
+                         const struct canergy_msg *in, struct canergy_supervisor_out *out)
+{
+    if (out->event_count >= CANERGY_SUPERVISOR_NODES) {
+        return;
+    }
+    struct canergy_supervisor_event *e = &out->events[out->event_count++];
+    e->node = s->node;
+    e->tx = s->tx;
+    e->resolved = step->resolved;
+    e->flags = step->acknowledged != 0U ? CANERGY_SUP_ACKNOWLEDGED : 0U;
+    e->amount_uj = step->resolved != CANERGY_RESOLVED_NONE ? s->reserved_uj : 0U;
+    if (in != NULL && in->type == CANERGY_RETURN && step->credit_uj > 0) {
+        e->flags |= CANERGY_SUP_RETURN_CREDITED;
+        e->amount_uj = (uint32_t)step->credit_uj;
+    }
+    if (in != NULL && in->type == CANERGY_JOIN) {
+        e->flags |= CANERGY_SUP_ADMITTED;
+    }
+}
+
 /* Apply a session step worked out on a copy: its credit to Us, a persist when the record or Us
- * changed, its frame, then the session itself. */
+ * changed, its frame, what it did, then the session itself. */
 static void apply(struct canergy_supervisor *sup, struct canergy_session *s,
                   const struct canergy_session *after, const struct canergy_session_step *step,
-                  struct canergy_supervisor_out *out)
+                  const struct canergy_msg *in, struct canergy_supervisor_out *out)
 {
     if (step->credit_uj != 0) {
         CANERGY_ASSERT(step->credit_uj > 0 || (uint64_t)(-step->credit_uj) <= sup->usable_uj);
@@ -58,6 +83,7 @@ static void apply(struct canergy_supervisor *sup, struct canergy_session *s,
             out->frame_count++;
         }
     }
+    record_event(s, step, in, out);
     *s = *after;
 }
 
@@ -103,7 +129,7 @@ int canergy_supervisor_begin(struct canergy_supervisor *sup, uint8_t node, uint3
     if ((uint64_t)amount_uj > sup->usable_uj) { /* the one guard a session cannot see */
         return CANERGY_ERR_AMOUNT;
     }
-    apply(sup, s, &next, &step, out);
+    apply(sup, s, &next, &step, NULL, out);
     return CANERGY_OK;
 }
 
@@ -119,7 +145,7 @@ int canergy_supervisor_decide(struct canergy_supervisor *sup, uint8_t node, bool
     struct canergy_session_step step;
     const int rc = canergy_session_decide(&next, &sup->timing, commit, now, &step);
     if (rc == CANERGY_OK) {
-        apply(sup, s, &next, &step, out);
+        apply(sup, s, &next, &step, NULL, out);
     }
     return rc;
 }
@@ -135,14 +161,24 @@ int canergy_supervisor_on_frame(struct canergy_supervisor *sup,
     if (status != CANERGY_DECODE_OK) {
         return (int)status;
     }
-    struct canergy_session *s = session_of(sup, m.node);
+    return canergy_supervisor_on_msg(sup, &m, now, out);
+}
+
+int canergy_supervisor_on_msg(struct canergy_supervisor *sup, const struct canergy_msg *m,
+                              uint64_t now, struct canergy_supervisor_out *out)
+{
+    out_clear(out);
+    struct canergy_session *s = session_of(sup, m->node);
     if (s == NULL) {
         return CANERGY_RX_OTHER_NODE;
     }
+    if ((m->type & CANERGY_FROM_CLIENT) == 0U) {
+        return CANERGY_DECODE_OK;
+    }
     struct canergy_session next = *s;
     struct canergy_session_step step;
-    canergy_session_on_msg(&next, &sup->timing, &m, now, &step);
-    apply(sup, s, &next, &step, out);
+    canergy_session_on_msg(&next, &sup->timing, m, now, &step);
+    apply(sup, s, &next, &step, m, out);
     return CANERGY_DECODE_OK;
 }
 
@@ -158,7 +194,7 @@ void canergy_supervisor_on_timer(struct canergy_supervisor *sup, uint64_t now,
         struct canergy_session next = *s;
         struct canergy_session_step step;
         canergy_session_timer(&next, &sup->timing, now, &step);
-        apply(sup, s, &next, &step, out);
+        apply(sup, s, &next, &step, NULL, out);
     }
 }
 

@@ -80,8 +80,15 @@ static const struct entry offsets[] = {
     FIELD(canergy_supervisor, count),
     FIELD(canergy_supervisor_config, id_base),
     FIELD(canergy_supervisor_config, timing),
+    FIELD(canergy_supervisor_event, tx),
+    FIELD(canergy_supervisor_event, amount_uj),
+    FIELD(canergy_supervisor_event, node),
+    FIELD(canergy_supervisor_event, resolved),
+    FIELD(canergy_supervisor_event, flags),
     FIELD(canergy_supervisor_out, frames),
+    FIELD(canergy_supervisor_out, events),
     FIELD(canergy_supervisor_out, frame_count),
+    FIELD(canergy_supervisor_out, event_count),
     FIELD(canergy_supervisor_out, persist),
     FIELD(canergy_msg, delivered_mj),
     FIELD(canergy_msg, level_mj),
@@ -154,6 +161,7 @@ static const struct entry sizes[] = {
     SIZE(canergy_cmac_stream),   SIZE(canergy_auth_frame), SIZE(canergy_auth),
     SIZE(canergy_session),       SIZE(canergy_session_step), SIZE(canergy_session_timing),
     SIZE(canergy_supervisor),    SIZE(canergy_supervisor_config), SIZE(canergy_supervisor_out),
+    SIZE(canergy_supervisor_event),
 };
 
 static long find(const struct entry *table, size_t n, const char *name)

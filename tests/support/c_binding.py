@@ -182,10 +182,22 @@ class SupervisorConfig(Structure):
     _fields_ = [("id_base", c_uint32), ("timing", SessionTiming)]
 
 
+class SupervisorEvent(Structure):
+    _fields_ = [
+        ("tx", c_uint32),
+        ("amount_uj", c_uint32),
+        ("node", c_uint8),
+        ("resolved", c_uint8),
+        ("flags", c_uint8),
+    ]
+
+
 class SupervisorOut(Structure):
     _fields_ = [
         ("frames", Frame * SUPERVISOR_NODES),
+        ("events", SupervisorEvent * SUPERVISOR_NODES),
         ("frame_count", c_uint8),
+        ("event_count", c_uint8),
         ("persist", c_uint8),
     ]
 
@@ -262,6 +274,7 @@ MIRROR: dict[str, type[Structure]] = {
     "canergy_supervisor": CSupervisor,
     "canergy_supervisor_config": SupervisorConfig,
     "canergy_supervisor_out": SupervisorOut,
+    "canergy_supervisor_event": SupervisorEvent,
 }
 
 # Constants of the headers the tests use.

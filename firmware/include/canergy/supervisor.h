@@ -42,9 +42,26 @@ struct canergy_supervisor {
     uint8_t count;        /* sessions in use */
 };
 
+/* What one session's step did, beside its frame: for the port's application (a grant's
+ * outcome) and for the host's books (Python's Acknowledged, Resolved, ReturnCredited,
+ * Admitted). */
+#define CANERGY_SUP_ACKNOWLEDGED 0x01U   /* the open intention was acknowledged: decide it */
+#define CANERGY_SUP_RETURN_CREDITED 0x02U /* a fresh RETURN: amount_uj went into Us */
+#define CANERGY_SUP_ADMITTED 0x04U       /* a JOIN: the node starts again at the session's tx */
+
+struct canergy_supervisor_event {
+    uint32_t tx;        /* the transaction acknowledged or resolved (before an admission's lift) */
+    uint32_t amount_uj; /* resolved: its Ts; a RETURN credited: the amount */
+    uint8_t node;
+    uint8_t resolved;   /* enum canergy_resolution */
+    uint8_t flags;      /* CANERGY_SUP_* */
+};
+
 struct canergy_supervisor_out {
     struct canergy_frame frames[CANERGY_SUPERVISOR_NODES]; /* a timer call answers every node */
+    struct canergy_supervisor_event events[CANERGY_SUPERVISOR_NODES]; /* one per session step */
     uint8_t frame_count;
+    uint8_t event_count;
     uint8_t persist; /* 1: write the record before sending */
 };
 
@@ -70,6 +87,12 @@ int canergy_supervisor_decide(struct canergy_supervisor *sup, uint8_t node, bool
 int canergy_supervisor_on_frame(struct canergy_supervisor *sup,
                                 const struct canergy_rx_frame *frame, uint64_t now,
                                 struct canergy_supervisor_out *out);
+
+/* A client message already decoded (the host's own decoder, a gateway): the node's rules, as
+ * canergy_supervisor_on_frame after its decode. CANERGY_RX_OTHER_NODE for a node not managed
+ * here; a message in the other direction changes nothing. */
+int canergy_supervisor_on_msg(struct canergy_supervisor *sup, const struct canergy_msg *m,
+                              uint64_t now, struct canergy_supervisor_out *out);
 
 /* Fire every session whose deadline is at or before now (calling early is harmless). */
 void canergy_supervisor_on_timer(struct canergy_supervisor *sup, uint64_t now,

@@ -24,7 +24,7 @@ from canergy.cli.shared.live import (
     supervisor_flags,
 )
 from canergy.codec import Codec
-from canergy.core import Supervisor
+from canergy.core.supervisor import SupervisorCore
 from canergy.live.bus_args import bus_where, open_bus, open_bus_at
 from canergy.live.bus_group import BusGroup
 from canergy.live.control import ControlServer
@@ -301,7 +301,9 @@ def _names(names: list[str]) -> str:
     )
 
 
-def _run_bus(args: argparse.Namespace, core: Supervisor, config: ServiceConfig, key: Any) -> int:
+def _run_bus(
+    args: argparse.Namespace, core: SupervisorCore, config: ServiceConfig, key: Any
+) -> int:
     """One bus (-i/-c/--nodes), with CANopen and guarded CiA 402 drives if asked for."""
     codec = Codec(args.id_base)
     filters = codec.supervisor_watch_filters()
@@ -359,7 +361,7 @@ def _run_bus(args: argparse.Namespace, core: Supervisor, config: ServiceConfig, 
 def _run_buses(
     args: argparse.Namespace,
     specs: tuple[BusSpec, ...],
-    core: Supervisor,
+    core: SupervisorCore,
     config: ServiceConfig,
     key: Any,
 ) -> int:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import heapq
 from collections.abc import Iterable
+from typing import Protocol
 
 from canergy.core.actions import Action, Persist
 from canergy.core.errors import LocalProtocolError
@@ -52,8 +53,35 @@ def withdraw_from(st: SupervisorState, amount: int) -> SupervisorState:
     return evolve(st, usable=st.usable - amount, withdrawn=st.withdrawn + amount)
 
 
+class SupervisorCore(Protocol):
+    """What the service drives: ``Supervisor`` here, or the compiled one
+    (``canergy.ccore.supervisor.CompiledSupervisor``, the C supervisor role)."""
+
+    variant: Variant
+    timing: Timing
+    implementation: str
+    """"python" or "c": what the status names."""
+
+    @property
+    def nodes(self) -> tuple[int, ...]: ...
+    @property
+    def state(self) -> SupervisorState: ...
+    def session(self, node: int) -> Session: ...
+    def begin(self, node: int, amount: int, now: int) -> list[Action]: ...
+    def commit(self, node: int, now: int) -> list[Action]: ...
+    def abort(self, node: int, now: int) -> list[Action]: ...
+    def receive(self, msg: ToSupervisor, now: int) -> list[Action]: ...
+    def get_timer(self) -> int | None: ...
+    def handle_timer(self, now: int) -> list[Action]: ...
+    def inject(self, amount: int) -> None: ...
+    def power_loss(self, now: int) -> None: ...
+    def is_quiescent(self) -> bool: ...
+
+
 class Supervisor:
     """Grants energy from its usable budget to client nodes."""
+
+    implementation = "python"
 
     def __init__(
         self,

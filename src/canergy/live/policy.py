@@ -7,6 +7,7 @@ and the protocol stays passive whatever telemetry says.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ
@@ -76,6 +77,32 @@ def quantize(amount: int) -> int:
     return amount - amount % QUANTUM_UJ
 
 
+def _caps(
+    limits: Limits, level: int | None, usable: int, granted_total: int, rate_tokens: int | None
+) -> list[tuple[int, Callable[[], str]]]:
+    """Every cap on one grant now, each with how to say what it is (said only when a refusal
+    names it: a top-up on every frame formats nothing)."""
+    caps: list[tuple[int, Callable[[], str]]] = [
+        (usable, lambda: f"the supervisor has {format_energy(usable)} left"),
+        (limits.max_grant, lambda: f"--max-grant {format_energy(limits.max_grant)}"),
+        (AMOUNT_MAX_MJ * QUANTUM_UJ, lambda: "one transaction carries at most 65.535 J"),
+    ]
+    if level is not None:
+        caps.append((USABLE_MAX_UJ - level, lambda: "the node's record holds no more"))
+    if (most := limits.max_node_level) is not None:
+        room = 0 if level is None else most - level
+        caps.append((room, lambda: f"--max-node-level {format_energy(most)}"))
+    if (total := limits.max_total) is not None:
+        left = total - granted_total
+        remaining = max(left, 0)
+        caps.append(
+            (left, lambda: f"--max-total {format_energy(total)} ({format_energy(remaining)} left)")
+        )
+    if (tokens := rate_tokens) is not None:
+        caps.append((tokens, lambda: f"--rate ({format_energy(max(tokens, 0))} available now)"))
+    return caps
+
+
 def grant_caps(
     *,
     limits: Limits,
@@ -87,23 +114,8 @@ def grant_caps(
     """Every cap on one grant now, with what it is in a phrase. A node is never lifted above
     what its record holds (``USABLE_MAX_UJ``) from a level it reported; an unknown level fails
     ``--max-node-level`` closed."""
-    caps = [
-        (usable, f"the supervisor has {format_energy(usable)} left"),
-        (limits.max_grant, f"--max-grant {format_energy(limits.max_grant)}"),
-        (AMOUNT_MAX_MJ * QUANTUM_UJ, "one transaction carries at most 65.535 J"),
-    ]
-    if level is not None:
-        caps.append((USABLE_MAX_UJ - level, "the node's record holds no more"))
-    if limits.max_node_level is not None:
-        room = 0 if level is None else limits.max_node_level - level
-        caps.append((room, f"--max-node-level {format_energy(limits.max_node_level)}"))
-    if limits.max_total is not None:
-        room = limits.max_total - granted_total
-        left = format_energy(max(room, 0))
-        caps.append((room, f"--max-total {format_energy(limits.max_total)} ({left} left)"))
-    if rate_tokens is not None:
-        caps.append((rate_tokens, f"--rate ({format_energy(max(rate_tokens, 0))} available now)"))
-    return caps
+    caps = _caps(limits, level, usable, granted_total, rate_tokens)
+    return [(cap, why()) for cap, why in caps]
 
 
 def capped_grant(
@@ -117,13 +129,7 @@ def capped_grant(
 ) -> int:
     """The largest grant ≤ ``wanted`` every cap of ``grant_caps`` allows (0: none), in whole
     quanta."""
-    caps = grant_caps(
-        limits=limits,
-        level=level,
-        usable=usable,
-        granted_total=granted_total,
-        rate_tokens=rate_tokens,
-    )
+    caps = _caps(limits, level, usable, granted_total, rate_tokens)
     return max(0, quantize(min([wanted, *(cap for cap, _ in caps)])))
 
 

@@ -26,10 +26,10 @@ from canergy.core import (
     Resolved,
     ReturnCredited,
     Send,
-    Supervisor,
 )
 from canergy.core.errors import LocalProtocolError
 from canergy.core.state import Outcome, Phase
+from canergy.core.supervisor import SupervisorCore
 from canergy.live.atomic import write_json_atomic
 from canergy.live.bus_keys import node_name
 from canergy.live.control import ControlServer
@@ -139,7 +139,7 @@ class SupervisorService:
 
     def __init__(
         self,
-        core: Supervisor,
+        core: SupervisorCore,
         config: ServiceConfig,
         now: int,
         *,
@@ -404,7 +404,7 @@ class SupervisorService:
             timer = self.core.get_timer()
             if timer is not None and timer <= now:
                 out += self._carry_out(self.core.handle_timer(now), now)
-            for node in [n for n, w in self.witness.nodes.items() if w.held]:
+            for node in self.witness.holding():
                 out += self._released(node, now)
             out += self._start_grants(now, None if now >= self.next_tick else self.ready)
         if now >= self.next_tick:
@@ -719,6 +719,7 @@ class SupervisorService:
         return {
             "role": "supervisor",
             "variant": self.core.variant.name,
+            "core": self.core.implementation,
             "uptime_s": round((self.now - self.started_at) / 1e6, 3),
             "stopping": self.stopping,
             "listen_only": self.config.listen_only,

@@ -105,6 +105,15 @@ class ReturnGate:
         self.hold_us = hold_us
         self.block_us = block_us
         self.nodes: dict[int, NodeWitness] = {}
+        self._holding: set[int] = set()
+        """Nodes that may hold RETURNs (each one held was added here; emptied lazily), so the
+        loop's every pass does not look at every node."""
+
+    def holding(self) -> list[int]:
+        """The nodes holding RETURNs, ascending."""
+        nodes = self.nodes
+        self._holding = {n for n in self._holding if nodes[n].held}
+        return sorted(self._holding)
 
     def _of(self, node: int) -> NodeWitness:
         return self.nodes.setdefault(node, NodeWitness())
@@ -146,6 +155,7 @@ class ReturnGate:
         held = w.held.get(seq)
         if held is None:
             w.held[seq] = _Held(msg.amount_mj, now)  # confirmed by a later TELEMETRY only
+            self._holding.add(msg.node)
         elif held.amount_mj != msg.amount_mj:
             self._refute(w, now)
             return f"two RETURNs numbered {seq}: {held.amount_mj} and {msg.amount_mj} mJ"
@@ -192,10 +202,12 @@ class ReturnGate:
         w.held.clear()
 
     def next_release(self) -> int | None:
+        if not self._holding:
+            return None
         times = [
             h.confirmed_at + self.hold_us
-            for w in self.nodes.values()
-            for h in w.held.values()
+            for n in self.holding()
+            for h in self.nodes[n].held.values()
             if h.confirmed_at is not None
         ]
         return min(times, default=None)

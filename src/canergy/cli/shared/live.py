@@ -13,6 +13,7 @@ from canergy.argtypes import add_duration, bounded_int, energy, power
 from canergy.auth.state_key import state_seal
 from canergy.codec import Codec
 from canergy.core import Supervisor, Timing
+from canergy.core.supervisor import SupervisorCore
 from canergy.core.variants import VARIANTS
 from canergy.live.atomic import check_writable_dir, same_file
 from canergy.live.bus_args import add_bus_flags
@@ -37,6 +38,14 @@ def supervisor_flags(p: argparse.ArgumentParser) -> None:
     add_bus_flags(p)
     p.add_argument("--variant", choices=sorted(VARIANTS), default="hardened")
     p.add_argument("--initial", type=energy, default=10 * UJ_PER_J, help="budget of a new state")
+    p.add_argument(
+        "--core",
+        choices=("auto", "c", "python"),
+        default="auto",
+        help="the rules' implementation: c (firmware/'s supervisor role, compiled at install; "
+        "the hardened rules on one bus), python, or auto (default): c where it is built and "
+        "takes the configuration, python otherwise; the status names the one running",
+    )
     book_flags(p)
     p.add_argument(
         "--auth",
@@ -110,12 +119,35 @@ def rule_timing(args: argparse.Namespace, response_timeout_us: int | None = None
     )
 
 
+def core_choice(args: argparse.Namespace, buses: tuple[str, ...] = ()) -> str:
+    """``--core`` resolved: "c" or "python". ``--core c`` where the C core cannot run is an
+    error that says why; ``auto`` then takes the Python core."""
+    from canergy.ccore.supervisor import missing
+
+    wanted = getattr(args, "core", "python")
+    if wanted == "python":
+        return "python"
+    why = (
+        "it runs the hardened rules only (--variant hardened)"
+        if args.variant != "hardened"
+        else "it takes one bus (no --bus)"
+        if buses
+        else missing()
+    )
+    if why is None:
+        return "c"
+    if wanted == "c":
+        raise ValueError(f"--core c: {why}")
+    return "python"
+
+
 def build_core(
     args: argparse.Namespace, nodes: tuple[int, ...], buses: tuple[str, ...] = (), key: Any = None
-) -> Supervisor:
+) -> SupervisorCore:
     """The core, from ``--state`` when it exists; ``buses``: bus names with ``--bus`` (``nodes``
     are then session keys); ``key``: ``--auth``'s, which seals the state file."""
     timing = rule_timing(args)
+    kind = core_choice(args, buses)  # before the state file is touched
     state = None
     seal = None if key is None else state_seal(key)
     if args.state is not None and args.state.exists():
@@ -134,7 +166,13 @@ def build_core(
         )
     if args.state is not None and not getattr(args, "listen_only", False):
         keep_books(args.state, seal, args.auth, fresh=state is None)
-    core = Supervisor(nodes, args.initial, variant=args.variant, timing=timing, state=state)
+    core: SupervisorCore
+    if kind == "c":
+        from canergy.ccore.supervisor import CompiledSupervisor
+
+        core = CompiledSupervisor(nodes, args.initial, timing=timing, state=state)
+    else:
+        core = Supervisor(nodes, args.initial, variant=args.variant, timing=timing, state=state)
     if state is not None:
         core.power_loss(monotonic_us())  # a start is a restart from the persistent record
     return core

@@ -1,0 +1,270 @@
+"""The supervisor core compiled: firmware/'s C supervisor role behind ``core.Supervisor``'s
+interface, for ``canergy supervisor --core c``.
+
+One C call per frame, timer or request runs the hardened rules and Us, and reports what each
+session step did; this side turns that into the same actions the Python core returns (``Send``,
+``Persist``, ``Acknowledged``, ``Resolved``, ``ReturnCredited``, ``Admitted``) and keeps a Python
+copy of the sessions it touched. Books, files, policies and intrusions stay in the service.
+tests/test_ccore.py runs it side by side with ``core.Supervisor``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import Any
+
+from canergy.codec import Codec
+from canergy.core.actions import (
+    Acknowledged,
+    Action,
+    Admitted,
+    Persist,
+    Resolved,
+    ReturnCredited,
+    Send,
+)
+from canergy.core.errors import LocalProtocolError
+from canergy.core.state import Decision, Outcome, Phase, Session, SupervisorState
+from canergy.core.timing import Timing
+from canergy.core.variants import get_variant
+from canergy.messages import (
+    MAX_NODE,
+    MIN_NODE,
+    Aborted,
+    Ack,
+    Committed,
+    Direction,
+    Join,
+    Return,
+    ToSupervisor,
+)
+
+try:
+    from canergy.ccore._supervisor import ffi, lib  # type: ignore[import-not-found]
+except ImportError as exc:  # built by pip install where a compiler exists
+    _MISSING: str | None = (
+        f"the compiled supervisor core is not built ({exc}): install canergy where a C compiler "
+        "exists, or run python -m canergy.ccore.build in a checkout"
+    )
+else:
+    _MISSING = None
+
+
+class CoreMissing(RuntimeError):
+    """The C core was asked for and is not built here."""
+
+
+def missing() -> str | None:
+    """Why the C core cannot run here, or None when it can."""
+    return _MISSING
+
+
+_PHASES = tuple(Phase(i) for i in range(4))
+_DECISIONS = tuple(Decision(i) for i in range(3))
+_OUTCOMES = {1: Outcome.COMMITTED, 2: Outcome.ABORTED, 4: Outcome.WRITTEN_OFF}
+_ERRORS = {-1: "argument", -2: "phase", -3: "amount"}
+
+
+class CompiledSupervisor:
+    """``core.Supervisor`` (hardened rules) with the rules, Us and the codec in C."""
+
+    implementation = "c"
+
+    def __init__(
+        self,
+        nodes: Iterable[int],
+        initial: int,
+        *,
+        timing: Timing | None = None,
+        state: SupervisorState | None = None,
+        id_base: int | None = None,
+    ) -> None:
+        if _MISSING is not None:
+            raise CoreMissing(_MISSING)
+        self.variant = get_variant("hardened")
+        self.timing = timing or Timing()
+        node_list = sorted(set(nodes))
+        if not node_list or not all(MIN_NODE <= n <= MAX_NODE for n in node_list):
+            raise ValueError(f"the C core takes node ids {MIN_NODE}-{MAX_NODE} (one bus)")
+        if initial < 0:
+            raise ValueError("initial budget must be >= 0")
+        if not 0 <= self.timing.response_timeout_us < 2**32 or not 0 <= self.timing.retries < 256:
+            raise ValueError("the C core needs a response timeout below 2^32 µs, retries < 256")
+        self.codec = Codec() if id_base is None else Codec(id_base)
+        self._sup = ffi.new("struct canergy_supervisor *")
+        self._out = ffi.new("struct canergy_supervisor_out *")
+        self._msg = ffi.new("struct canergy_msg *")
+        cfg = ffi.new("struct canergy_supervisor_config *")
+        cfg.id_base = self.codec.id_base
+        cfg.timing.response_timeout_us = self.timing.response_timeout_us
+        cfg.timing.retries = self.timing.retries
+        ids = ffi.new("uint8_t[]", node_list)
+        rc = lib.canergy_supervisor_init(self._sup, cfg, ids, len(node_list), initial)
+        if rc != lib.CANERGY_OK:
+            raise ValueError(
+                f"the C core refused {len(node_list)} nodes (it holds "
+                f"{lib.CANERGY_SUPERVISOR_NODES})"
+            )
+        self._initial = initial
+        self._withdrawn = 0
+        self._index = {n: i for i, n in enumerate(node_list)}
+        self._sessions = [Session(n) for n in node_list]
+        if state is not None:
+            self._load(state)
+
+    # -- state -----------------------------------------------------------------------------
+    @property
+    def nodes(self) -> tuple[int, ...]:
+        return tuple(self._index)
+
+    @property
+    def state(self) -> SupervisorState:
+        sup = self._sup
+        return SupervisorState(
+            self._initial, sup.usable_uj, sup.injected_uj, tuple(self._sessions), self._withdrawn
+        )
+
+    @property
+    def usable(self) -> int:
+        return int(self._sup.usable_uj)
+
+    def session(self, node: int) -> Session:
+        return self._sessions[self._index[node]]
+
+    def is_quiescent(self) -> bool:
+        return all(s.phase is Phase.IDLE for s in self._sessions)
+
+    def _load(self, st: SupervisorState) -> None:
+        """Take a saved state (the state file's): Us, injected and every session's record."""
+        if tuple(s.node for s in st.sessions) != self.nodes:
+            raise ValueError("the state's nodes are not this supervisor's")
+        if st.withdrawn:
+            raise ValueError(
+                "the C core keeps no withdrawn energy (a gateway's): use --core python"
+            )
+        sup = self._sup
+        sup.usable_uj, sup.injected_uj = st.usable, st.injected
+        self._initial = st.initial
+        for i, s in enumerate(st.sessions):
+            if s.phase not in _PHASES or s.tx >= 2**32 or s.returns_credited >= 2**32:
+                raise ValueError(f"node {s.node}: a record the C core cannot hold")
+            c = sup.sessions[i]
+            c.phase, c.tx, c.reserved_uj = int(s.phase), s.tx, s.reserved
+            c.delivered_uj, c.returned_uj, c.decision = s.delivered, s.returned, int(s.decision)
+            c.returns_credited, c.tries = s.returns_credited, s.tries
+            c.deadline = lib.CANERGY_NEVER if s.deadline is None else s.deadline
+            self._sessions[i] = self._read(i)
+
+    def _read(self, i: int) -> Session:
+        c = self._sup.sessions[i]
+        deadline = c.deadline
+        return Session(
+            c.node,
+            _PHASES[c.phase],
+            c.tx,
+            c.reserved_uj,
+            c.delivered_uj,
+            _DECISIONS[c.decision],
+            c.returns_credited,
+            c.returned_uj,
+            c.tries,
+            None if deadline == lib.CANERGY_NEVER else deadline,
+        )
+
+    # -- requests --------------------------------------------------------------------------
+    def begin(self, node: int, amount: int, now: int) -> list[Action]:
+        """Reserve ``amount`` µJ from Us and send node ``node`` an intention."""
+        self._managed(node)
+        if not 0 < amount < 2**32:
+            raise LocalProtocolError(f"amount {amount} µJ is not a grant one frame carries")
+        rc = lib.canergy_supervisor_begin(self._sup, node, amount, now, self._out)
+        if rc == -3 and amount <= self._sup.usable_uj:
+            raise LocalProtocolError(f"amount {amount} µJ is not a whole mJ up to 65,535 mJ")
+        if rc == -3:
+            raise LocalProtocolError(f"amount {amount} µJ exceeds usable {self.usable} µJ")
+        return self._checked(rc, node, "begin")
+
+    def commit(self, node: int, now: int) -> list[Action]:
+        self._managed(node)
+        rc = lib.canergy_supervisor_decide(self._sup, node, True, now, self._out)
+        return self._checked(rc, node, "commit")
+
+    def abort(self, node: int, now: int) -> list[Action]:
+        self._managed(node)
+        rc = lib.canergy_supervisor_decide(self._sup, node, False, now, self._out)
+        return self._checked(rc, node, "abort")
+
+    def receive(self, msg: ToSupervisor, now: int) -> list[Action]:
+        """Feed a decoded client message; messages for unknown nodes are ignored."""
+        if msg.node not in self._index:
+            return []
+        m = self._msg
+        m.type, m.node = msg.TYPE, msg.node
+        if isinstance(msg, Ack | Committed | Aborted):
+            m.tx = msg.tx
+        elif isinstance(msg, Return):
+            m.seq, m.amount_mj = msg.seq, msg.amount_mj
+        elif isinstance(msg, Join):
+            m.nonce = msg.nonce
+        else:  # as the Python table: no rule takes it (a TELEMETRY is the service's)
+            raise LocalProtocolError(f"hardened supervisor: no rule for {type(msg).__name__}")
+        lib.canergy_supervisor_on_msg(self._sup, m, now, self._out)
+        return self._actions()
+
+    def get_timer(self) -> int | None:
+        deadline = lib.canergy_supervisor_deadline(self._sup)
+        return None if deadline == lib.CANERGY_NEVER else int(deadline)
+
+    def handle_timer(self, now: int) -> list[Action]:
+        lib.canergy_supervisor_on_timer(self._sup, now, self._out)
+        return self._actions()
+
+    def inject(self, amount: int) -> None:
+        if amount <= 0:
+            raise LocalProtocolError("injected energy must be positive")
+        lib.canergy_supervisor_inject(self._sup, amount)
+
+    def power_loss(self, now: int) -> None:
+        """Lose volatile state and restart from the persistent record."""
+        lib.canergy_supervisor_restart(self._sup, now)
+        self._sessions = [self._read(i) for i in range(len(self._sessions))]
+
+    # -- internals -------------------------------------------------------------------------
+    def _managed(self, node: int) -> None:
+        if node not in self._index:
+            raise LocalProtocolError(f"node {node} is not managed by this supervisor")
+
+    def _checked(self, rc: int, node: int, what: str) -> list[Action]:
+        if rc != lib.CANERGY_OK:
+            phase = self.session(node).phase.name
+            raise LocalProtocolError(f"cannot {what} node {node} in {phase} ({_ERRORS[rc]})")
+        return self._actions()
+
+    def _actions(self) -> list[Action]:
+        """The last call's output as the Python core's actions, in its order."""
+        out = self._out
+        actions: list[Action] = [Persist()] if out.persist else []
+        frames = out.frames
+        sent = 0
+        for k in range(out.event_count):
+            e = out.events[k]
+            node = e.node
+            i = self._index[node]
+            s = self._sessions[i] = self._read(i)
+            flags, resolved = e.flags, e.resolved
+            if flags & lib.CANERGY_SUP_ACKNOWLEDGED:
+                actions.append(Acknowledged(node, e.tx))
+            if resolved:
+                actions.append(Resolved(node, e.tx, _OUTCOMES[resolved], e.amount_uj))
+            if flags & lib.CANERGY_SUP_RETURN_CREDITED:
+                actions.append(ReturnCredited(node, s.returns_credited, e.amount_uj))
+            if flags & lib.CANERGY_SUP_ADMITTED:
+                actions.append(Admitted(node, s.tx, s.returns_credited))
+            if sent < out.frame_count and frames[sent].id & 0xFF == node:
+                actions.append(Send(self._message(frames[sent])))
+                sent += 1
+        return actions
+
+    def _message(self, frame: Any) -> Any:
+        data = bytes(ffi.buffer(frame.data, frame.dlc))
+        return self.codec.decode(frame.id, data, direction=Direction.TO_CLIENT)

@@ -1,0 +1,135 @@
+"""The compiled supervisor core (``canergy.ccore``, the C supervisor through cffi) side by side
+with ``canergy.core.Supervisor``: the same grants, decisions, client messages, timers, restarts
+and injections give the same actions (every ``Send``, ``Acknowledged``, ``Resolved``,
+``ReturnCredited`` and ``Admitted``, in order; ``Persist`` alike) and the same state, field for
+field. The service drives both through this interface, so these are what it sees."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import pytest
+from hypothesis import settings
+from hypothesis import strategies as st
+from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
+
+from canergy.ccore.supervisor import CompiledSupervisor, missing
+from canergy.core.actions import Action, Persist
+from canergy.core.errors import LocalProtocolError
+from canergy.core.supervisor import Supervisor
+from canergy.core.timing import Timing
+from canergy.messages import QUANTUM_UJ, Aborted, Ack, Committed, Join, Return, Telemetry
+
+pytestmark = pytest.mark.skipif(
+    missing() is not None and not os.environ.get("CANERGY_REQUIRE_CCORE"),
+    reason=f"{missing()} (scripts/test builds it and sets CANERGY_REQUIRE_CCORE)",
+)
+
+NODES = (3, 5, 9, 127)
+T = Timing(response_timeout_us=1_000, retries=2)
+amounts = st.one_of(
+    st.integers(1, 3_000).map(lambda mj: mj * QUANTUM_UJ),
+    st.sampled_from([0, 500, 65_536_000, 2**40]),
+)
+
+
+def steps(actions: list[Action]) -> tuple[bool, list[Action]]:
+    """Whether a persist was asked, and every other action in order (the Python core puts one
+    Persist before each session's step; the C core asks once per call)."""
+    return any(isinstance(a, Persist) for a in actions), [
+        a for a in actions if not isinstance(a, Persist)
+    ]
+
+
+class SideBySide(RuleBasedStateMachine):
+    def __init__(self) -> None:
+        super().__init__()
+        self.py = Supervisor(NODES, 10_000_000, timing=T)
+        self.c = CompiledSupervisor(NODES, 10_000_000, timing=T)
+        self.now = 0
+
+    def _same(self, py: Any, c: Any) -> None:
+        try:
+            expected = py()
+        except LocalProtocolError:
+            with pytest.raises(LocalProtocolError):
+                c()
+            return
+        got = c()
+        assert (got is None) == (expected is None)
+        if expected is not None:
+            assert steps(got) == steps(expected)
+
+    @rule(node=st.sampled_from([*NODES, 4]), amount=amounts)
+    def begin(self, node: int, amount: int) -> None:
+        self._same(
+            lambda: self.py.begin(node, amount, self.now),
+            lambda: self.c.begin(node, amount, self.now),
+        )
+
+    @rule(node=st.sampled_from([*NODES, 4]), commit=st.booleans())
+    def decide(self, node: int, commit: bool) -> None:
+        self._same(
+            lambda: (self.py.commit if commit else self.py.abort)(node, self.now),
+            lambda: (self.c.commit if commit else self.c.abort)(node, self.now),
+        )
+
+    @rule(data=st.data())
+    def receive(self, data: st.DataObject) -> None:
+        node = data.draw(st.sampled_from([*NODES, 4]))
+        s = self.py.session(node) if node in NODES else None
+        near = 0 if s is None else s.tx
+        seq_near = 0 if s is None else s.returns_credited
+        tx = data.draw(st.one_of(st.integers(-2, 2).map(lambda d: (near + d) & 0xFFFF),
+                                 st.integers(0, 0xFFFF)))  # fmt: skip
+        seq = data.draw(st.one_of(st.integers(-2, 2).map(lambda d: (seq_near + d) & 0xFFFF),
+                                  st.integers(0, 0xFFFF)))  # fmt: skip
+        msg = data.draw(
+            st.sampled_from(
+                [
+                    Ack(node, tx),
+                    Committed(node, tx),
+                    Aborted(node, tx),
+                    Return(node, seq, data.draw(st.integers(1, 2_000))),
+                    Join(node, data.draw(st.integers(0, 0xFFFF))),
+                    Telemetry(node, data.draw(st.integers(0, 0xFFFFFF))),
+                ]
+            )
+        )
+        self._same(lambda: self.py.receive(msg, self.now), lambda: self.c.receive(msg, self.now))
+
+    @rule(dt=st.integers(0, 3_000))
+    def timer(self, dt: int) -> None:
+        self.now += dt
+        self._same(lambda: self.py.handle_timer(self.now), lambda: self.c.handle_timer(self.now))
+
+    @rule()
+    def restart(self) -> None:
+        """A reset from the saved state, as ``canergy supervisor`` restarts from its file."""
+        self.py.power_loss(self.now)
+        self.c = CompiledSupervisor(NODES, 1, timing=T, state=self.c.state)
+        self.c.power_loss(self.now)
+
+    @rule(amount=st.integers(0, 5_000_000))
+    def inject(self, amount: int) -> None:
+        self._same(lambda: self.py.inject(amount), lambda: self.c.inject(amount))
+
+    @invariant()
+    def same_state(self) -> None:
+        assert self.c.state == self.py.state
+        assert self.c.get_timer() == self.py.get_timer()
+        assert self.c.is_quiescent() == self.py.is_quiescent()
+
+
+TestSideBySide = SideBySide.TestCase
+TestSideBySide.settings = settings(max_examples=200, stateful_step_count=60, deadline=None)
+
+
+def test_refuses_what_the_c_core_cannot_hold() -> None:
+    with pytest.raises(ValueError, match="node ids"):
+        CompiledSupervisor([1, 1 << 8 | 1], 0)
+    with pytest.raises(ValueError, match="response timeout"):
+        CompiledSupervisor([1], 0, timing=Timing(response_timeout_us=2**32))
+    with pytest.raises(LocalProtocolError, match="not managed"):
+        CompiledSupervisor([1], 0).begin(2, 1_000, 0)

@@ -10,8 +10,9 @@ tests/test_ccore.py runs it side by side with ``core.Supervisor``.
 
 from __future__ import annotations
 
+import struct
 from collections.abc import Iterable
-from typing import Any
+from functools import partial
 
 from canergy.codec import Codec
 from canergy.core.actions import (
@@ -59,8 +60,49 @@ def missing() -> str | None:
     return _MISSING
 
 
+_SESSION = struct.Struct("<QQQIIIBBBB")
+"""struct canergy_session: delivered, returned, deadline, tx, returns credited, reserved, node,
+phase, decision, tries (checked against the compiled layout below)."""
+_EVENT = struct.Struct("<IIBBB")
+"""struct canergy_supervisor_event: tx, amount, node, resolved, flags."""
+_FRAME = struct.Struct("<IB8s")
+"""struct canergy_frame: id, dlc, data."""
+
+
+_LAYOUT = {
+    "struct canergy_session": {"delivered_uj": 0, "returned_uj": 8, "deadline": 16, "tx": 24,
+                               "returns_credited": 28, "reserved_uj": 32, "node": 36,
+                               "phase": 37, "decision": 38, "tries": 39},
+    "struct canergy_supervisor_event": {"tx": 0, "amount_uj": 4, "node": 8, "resolved": 9,
+                                        "flags": 10},
+    "struct canergy_frame": {"id": 0, "dlc": 4, "data": 5},
+}  # fmt: skip
+"""The offsets the readers above take (a library laid out otherwise is refused, not misread)."""
+
+
+def _misread() -> str | None:
+    """Why the built library cannot be read here (a layout that is not ``_LAYOUT``), or None."""
+    for name, fields in _LAYOUT.items():
+        if any(ffi.offsetof(name, field) != at for field, at in fields.items()):
+            return f"the compiled core's {name} is not laid out as canergy reads it: rebuild it"
+    return None
+
+
+if _MISSING is None:
+    _MISSING = _misread()
+if _MISSING is None:
+    _SESSION_SIZE = ffi.sizeof("struct canergy_session")
+    _EVENT_SIZE = ffi.sizeof("struct canergy_supervisor_event")
+    _FRAME_SIZE = ffi.sizeof("struct canergy_frame")
+    _SESSIONS_AT = ffi.offsetof("struct canergy_supervisor", "sessions")
+    _EVENTS_AT = ffi.offsetof("struct canergy_supervisor_out", "events")
+    _FRAMES_AT = ffi.offsetof("struct canergy_supervisor_out", "frames")
+    _NEVER = lib.CANERGY_NEVER
+
 _PHASES = tuple(Phase(i) for i in range(4))
 _DECISIONS = tuple(Decision(i) for i in range(3))
+_ACKNOWLEDGED, _RETURN_CREDITED, _ADMITTED = 0x01, 0x02, 0x04
+"""CANERGY_SUP_* (checked against the library when the core is built)."""
 _OUTCOMES = {1: Outcome.COMMITTED, 2: Outcome.ABORTED, 4: Outcome.WRITTEN_OFF}
 _ERRORS = {-1: "argument", -2: "phase", -3: "amount"}
 
@@ -91,8 +133,18 @@ class CompiledSupervisor:
         if not 0 <= self.timing.response_timeout_us < 2**32 or not 0 <= self.timing.retries < 256:
             raise ValueError("the C core needs a response timeout below 2^32 µs, retries < 256")
         self.codec = Codec() if id_base is None else Codec(id_base)
+        self._decode = partial(self.codec.decode, direction=Direction.TO_CLIENT)
+        flags = (
+            lib.CANERGY_SUP_ACKNOWLEDGED,
+            lib.CANERGY_SUP_RETURN_CREDITED,
+            lib.CANERGY_SUP_ADMITTED,
+        )
+        if flags != (_ACKNOWLEDGED, _RETURN_CREDITED, _ADMITTED):
+            raise CoreMissing("canergy.ccore: the library's event flags are not this reader's")
         self._sup = ffi.new("struct canergy_supervisor *")
         self._out = ffi.new("struct canergy_supervisor_out *")
+        self._sup_bytes = ffi.buffer(self._sup)  # live views of the C memory
+        self._out_bytes = ffi.buffer(self._out)
         self._msg = ffi.new("struct canergy_msg *")
         cfg = ffi.new("struct canergy_supervisor_config *")
         cfg.id_base = self.codec.id_base
@@ -156,19 +208,20 @@ class CompiledSupervisor:
             self._sessions[i] = self._read(i)
 
     def _read(self, i: int) -> Session:
-        c = self._sup.sessions[i]
-        deadline = c.deadline
+        delivered, returned, deadline, tx, credited, reserved, node, phase, decision, tries = (
+            _SESSION.unpack_from(self._sup_bytes, _SESSIONS_AT + i * _SESSION_SIZE)
+        )
         return Session(
-            c.node,
-            _PHASES[c.phase],
-            c.tx,
-            c.reserved_uj,
-            c.delivered_uj,
-            _DECISIONS[c.decision],
-            c.returns_credited,
-            c.returned_uj,
-            c.tries,
-            None if deadline == lib.CANERGY_NEVER else deadline,
+            node,
+            _PHASES[phase],
+            tx,
+            reserved,
+            delivered,
+            _DECISIONS[decision],
+            credited,
+            returned,
+            tries,
+            None if deadline == _NEVER else deadline,
         )
 
     # -- requests --------------------------------------------------------------------------
@@ -243,28 +296,27 @@ class CompiledSupervisor:
     def _actions(self) -> list[Action]:
         """The last call's output as the Python core's actions, in its order."""
         out = self._out
+        raw = self._out_bytes
         actions: list[Action] = [Persist()] if out.persist else []
-        frames = out.frames
+        frames = out.frame_count
         sent = 0
         for k in range(out.event_count):
-            e = out.events[k]
-            node = e.node
+            tx, amount, node, resolved, flags = _EVENT.unpack_from(
+                raw, _EVENTS_AT + k * _EVENT_SIZE
+            )
             i = self._index[node]
             s = self._sessions[i] = self._read(i)
-            flags, resolved = e.flags, e.resolved
-            if flags & lib.CANERGY_SUP_ACKNOWLEDGED:
-                actions.append(Acknowledged(node, e.tx))
+            if flags & _ACKNOWLEDGED:
+                actions.append(Acknowledged(node, tx))
             if resolved:
-                actions.append(Resolved(node, e.tx, _OUTCOMES[resolved], e.amount_uj))
-            if flags & lib.CANERGY_SUP_RETURN_CREDITED:
-                actions.append(ReturnCredited(node, s.returns_credited, e.amount_uj))
-            if flags & lib.CANERGY_SUP_ADMITTED:
+                actions.append(Resolved(node, tx, _OUTCOMES[resolved], amount))
+            if flags & _RETURN_CREDITED:
+                actions.append(ReturnCredited(node, s.returns_credited, amount))
+            if flags & _ADMITTED:
                 actions.append(Admitted(node, s.tx, s.returns_credited))
-            if sent < out.frame_count and frames[sent].id & 0xFF == node:
-                actions.append(Send(self._message(frames[sent])))
-                sent += 1
+            if sent < frames:
+                arbitration_id, dlc, data = _FRAME.unpack_from(raw, _FRAMES_AT + sent * _FRAME_SIZE)
+                if arbitration_id & 0xFF == node:  # a step sends at most one frame, its node's
+                    actions.append(Send(self._decode(arbitration_id, data[:dlc])))
+                    sent += 1
         return actions
-
-    def _message(self, frame: Any) -> Any:
-        data = bytes(ffi.buffer(frame.data, frame.dlc))
-        return self.codec.decode(frame.id, data, direction=Direction.TO_CLIENT)

@@ -27,7 +27,9 @@ def test_quick_bench_runs_every_comparison(
     assert main(["bench", "--quick", "--json", str(out)]) == 0
     report = json.loads(out.read_text())
     assert {"codec", "core", "live", "sdo", "wire", "headroom", "memory"} <= set(report)
-    assert len(report["codec"]["rows"]) == 11 and len(report["core"]) == 4
+    assert len(report["codec"]["rows"]) == 11
+    assert [r["core"] for r in report["core"]] == ["python"] * 4 + ["c"] * 4  # both cores
+    assert all(r["tx_per_s"] > 0 for r in report["core"])
     rows = report["live"]  # then 16 and 127 again with the supervisor's books in a state file
     assert [(row["nodes"], row["state_file"]) for row in rows] == [
         (1, False),
@@ -76,6 +78,15 @@ def test_quick_bench_runs_every_comparison(
     monitor = report["monitor"]  # a lossless virtual bus: the monitor counts every frame
     assert monitor["frames_sent"] == monitor["frames_counted"] == monitor["model_frames"] == 500
     assert "quick smoke run" in out_text
+    c_core = report["c_core"]  # the live stack again on the C core, compared in the same run
+    assert [(row["nodes"], row["core"]) for row in c_core["live"]] == [
+        (n, "c") for n in (1, 16, 127, 16, 127)
+    ] and all(row["core"] == "python" for row in rows)
+    ratios = report["c_vs_python"]
+    for key in ("by_nodes", "alone", "alone_frame_by_frame"):
+        for n, x in ratios[key].items():
+            assert x == c_core["headroom"][key][n] / headroom[key][n]
+    assert len(c_core["latency_rounds"]) == 3 and "the same on the C core" in out_text
 
 
 def test_the_emulator_is_found_through_its_entry_point(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -22,8 +22,8 @@ from typing import Any
 import can
 
 from canergy.bench.live import TIMING, Emulator, NoAnswer
+from canergy.ccore.supervisor import make_supervisor
 from canergy.codec import Codec
-from canergy.core import Supervisor
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.messages import Direction
@@ -52,16 +52,19 @@ def supervisor_alone(
     *,
     state_file: bool = False,
     pace_s: float | None = None,
+    core: str = "python",
 ) -> dict[str, Any]:
     """One grant of 1 mJ kept in flight to each of ``nodes`` for ``duration_s`` after every node
     completed one; the supervisor's CPU per frame it sent or received. ``pace_s``: one frame per
-    loop pass on both sides, and a sleep of that long between turns."""
+    loop pass on both sides, and a sleep of that long between turns. ``core``: "python" or "c"."""
     ids = list(range(1, nodes + 1))
     sup_end, node_end = _Wire(), _Wire()
     sup_end.peer, node_end.peer = node_end, sup_end
     books = nv_dir / "supervisor.json" if state_file else None
     config = ServiceConfig(status_period_us=10**12, fsync=False, state_path=books)
-    service = SupervisorService(Supervisor(ids, 10**15, timing=TIMING), config, monotonic_us())
+    service = SupervisorService(
+        make_supervisor(core, ids, 10**15, timing=TIMING), config, monotonic_us()
+    )
     supervisor = BusRuntime(sup_end, service, codec=Codec(), receives=Direction.TO_SUPERVISOR)
     host = emulator.node_host(ids, nv_dir, TIMING, monotonic_us())
     node_loop = BusRuntime(node_end, host, codec=Codec(), receives=Direction.TO_CLIENT)
@@ -107,6 +110,7 @@ def supervisor_alone(
         node_end.shutdown()
     return {
         "nodes": nodes,
+        "core": core,
         "state_file": state_file,
         "pace_s": pace_s,
         "frames": frames,

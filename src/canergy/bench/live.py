@@ -30,8 +30,9 @@ import can
 import canopen
 
 from canergy.auth.frames import Verdict
+from canergy.ccore.supervisor import make_supervisor
 from canergy.codec import Codec, DecodeError
-from canergy.core import Supervisor, Timing
+from canergy.core import Timing
 from canergy.live.runtime import BusRuntime, Handler, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.messages import Direction, Message, Telemetry
@@ -216,6 +217,7 @@ def drive_grants(
     profile: cProfile.Profile | None = None,
     node_clocks: Sequence[Callable[[], float | None]] = (),
     state_path: Path | None = None,
+    core: str = "python",
 ) -> dict[str, Any]:
     """A supervisor on ``bus`` keeps one grant of 1 mJ in flight to each of ``nodes`` for
     ``duration_s``, after a warm-up in which every node completes a transaction. ``others``:
@@ -226,11 +228,12 @@ def drive_grants(
     profile the supervisor's loop thread (figures then include the profiler's cost).
     ``node_clocks``: CPU clocks (seconds; None: unreadable) of node processes, read at the
     window's ends like the threads' clocks. ``state_path``: the supervisor keeps its books
-    there, as ``canergy supervisor --state`` does (without fsync: its cost is the disk's)."""
+    there, as ``canergy supervisor --state`` does (without fsync: its cost is the disk's).
+    ``core``: the supervisor core, "python" or "c" (``canergy supervisor --core``)."""
     now = monotonic_us()
-    core = Supervisor(nodes, 10**15, timing=TIMING)
+    rules = make_supervisor(core, nodes, 10**15, timing=TIMING)
     config = ServiceConfig(status_period_us=10**12, fsync=False, state_path=state_path)
-    service = SupervisorService(core, config, now)
+    service = SupervisorService(rules, config, now)
     counting = _Counting(service)
     timed = TimedBus(bus)
     runtime = BusRuntime(timed, counting, codec=Codec(), receives=Direction.TO_SUPERVISOR)
@@ -312,6 +315,7 @@ def drive_grants(
             t.join(timeout=10)
     return {
         "nodes": len(nodes),
+        "core": core,
         "transactions": done,
         "tx_per_s": done / elapsed,
         "latency_p50_ms": 1e3 * _percentile(latencies, 0.5) if done else None,
@@ -348,6 +352,7 @@ def canergy_grants(
     nv_dir: Path,
     profile: cProfile.Profile | None = None,
     state_file: bool = False,
+    core: str = "python",
 ) -> dict[str, Any]:
     """``drive_grants`` on python-can's virtual bus, the emulator's nodes in a thread of this
     process (a bus end and a loop of their own, as another process would have); ``state_file``:
@@ -364,7 +369,13 @@ def canergy_grants(
     try:
         books = nv_dir / "supervisor.json" if state_file else None
         return drive_grants(
-            sup_bus, ids, duration_s, others=[node_loop], profile=profile, state_path=books
+            sup_bus,
+            ids,
+            duration_s,
+            others=[node_loop],
+            profile=profile,
+            state_path=books,
+            core=core,
         )
     finally:
         sup_bus.shutdown()

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from canergy.bench import alone, auth, codec, core, live, monitor, tree, wire
+from canergy.ccore import supervisor as ccore
 
 
 def memory_per_node(nodes: int = 127, emulator: live.Emulator | None = None) -> dict[str, Any]:
@@ -78,17 +79,20 @@ def supervisor_headroom(rows: list[dict[str, Any]]) -> dict[str, Any] | None:
     }
 
 
-def live_part(emulator: live.Emulator, quick: bool) -> dict[str, Any]:
+def live_part(emulator: live.Emulator, quick: bool, core: str = "python") -> dict[str, Any]:
     """The live stack at 1, 16 and 127 nodes, the virtual bus's own cost, and where the
-    supervisor's time goes when it misses its target (a profiled run of its loop thread)."""
+    supervisor's time goes when it misses its target (a profiled run of its loop thread);
+    ``core``: the supervisor core ("python", "c")."""
     seconds = 0.3 if quick else 3.0
     with tempfile.TemporaryDirectory() as tmp:
         rows = []
         # then the supervisor as it runs: books in a state file, saved once per loop pass
         for n, state_file in ((1, False), (16, False), (127, False), (16, True), (127, True)):
-            nv = Path(tmp) / f"nodes-{n}-{state_file}"
+            nv = Path(tmp) / f"nodes-{n}-{state_file}-{core}"
             nv.mkdir()
-            rows.append(live.canergy_grants(emulator, n, seconds, nv, state_file=state_file))
+            rows.append(
+                live.canergy_grants(emulator, n, seconds, nv, state_file=state_file, core=core)
+            )
         headroom = supervisor_headroom(rows)
         by_itself: list[dict[str, Any]] = []
         paced: list[dict[str, Any]] = []
@@ -100,10 +104,10 @@ def live_part(emulator: live.Emulator, quick: bool) -> dict[str, Any]:
             (16, False, ALONE_PACE_S),
             (127, False, ALONE_PACE_S),
         ):
-            nv = Path(tmp) / f"alone-{n}-{state_file}-{pace}"
+            nv = Path(tmp) / f"alone-{n}-{state_file}-{pace}-{core}"
             nv.mkdir()
             row = alone.supervisor_alone(
-                emulator, n, seconds, nv, state_file=state_file, pace_s=pace
+                emulator, n, seconds, nv, state_file=state_file, pace_s=pace, core=core
             )
             (by_itself if pace is None else paced).append(row)
         if headroom is not None:
@@ -114,9 +118,26 @@ def live_part(emulator: live.Emulator, quick: bool) -> dict[str, Any]:
             profile = cProfile.Profile(time.thread_time)  # CPU, not time spent blocked
             nv = Path(tmp) / "profiled"
             nv.mkdir()
-            live.canergy_grants(emulator, 16, seconds, nv, profile=profile)
+            live.canergy_grants(emulator, 16, seconds, nv, profile=profile, core=core)
             headroom["profile_16_nodes"] = live.top_functions(profile)
     return {"live": rows, "headroom": headroom}
+
+
+def compare_cores(stacks: dict[str, dict[str, Any]]) -> dict[str, Any] | None:
+    """The C core's figures over the Python core's, measured in this run (None without both):
+    CPU per frame on the bus, its own code hot and frame by frame, by node count, and the
+    1-node latency (p50)."""
+    if "c" not in stacks or "python" not in stacks:
+        return None
+    py, c = stacks["python"], stacks["c"]
+    ratios: dict[str, Any] = {}
+    for key in ("by_nodes", "alone", "alone_frame_by_frame"):
+        mine, theirs = (c["headroom"] or {}).get(key) or {}, (py["headroom"] or {}).get(key) or {}
+        ratios[key] = {n: mine[n] / theirs[n] for n in mine if theirs.get(n)}
+    one = [next((r for r in s["live"] if r["nodes"] == 1), None) for s in (py, c)]
+    p50 = [None if r is None else r["latency_p50_ms"] for r in one]
+    ratios["latency_1_node"] = p50[1] / p50[0] if p50[0] and p50[1] else None
+    return ratios
 
 
 def latency_ratio(rows: list[dict[str, Any]], sdo: dict[str, Any]) -> float | None:
@@ -127,15 +148,18 @@ def latency_ratio(rows: list[dict[str, Any]], sdo: dict[str, Any]) -> float | No
     return p50 / sdo["latency_p50_ms"] if p50 else None
 
 
-def latency_rounds(emulator: live.Emulator, quick: bool) -> list[dict[str, float]]:
+def latency_rounds(
+    emulator: live.Emulator, quick: bool, core: str = "python"
+) -> list[dict[str, float]]:
     """1-node transactions and SDO writes measured in turns, a p50 ratio per round: this VM's
     speed drifts within a run, and a ratio of two figures taken minutes apart drifts with it."""
     rounds = []
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(3 if quick else 5):
-            nv = Path(tmp) / f"round-{i}"
+            nv = Path(tmp) / f"round-{i}-{core}"
             nv.mkdir()
-            one = live.canergy_grants(emulator, 1, 0.2 if quick else 1.0, nv)["latency_p50_ms"]
+            seconds = 0.2 if quick else 1.0
+            one = live.canergy_grants(emulator, 1, seconds, nv, core=core)["latency_p50_ms"]
             sdo = live.sdo_writes(30 if quick else 400)["latency_p50_ms"]
             bare = live.bare_round_trips(30 if quick else 400)
             if one is not None:
@@ -158,22 +182,39 @@ def run(quick: bool = False) -> dict[str, Any]:
         emulator = live.load_emulator()
     except live.EmulatorMissing as exc:
         skipped.append(str(exc))
-    stack: dict[str, Any] = {"live": [], "headroom": None}
+    cores = ["python"] if ccore.missing() else ["python", "c"]
+    if ccore.missing():
+        skipped.append(f"the C core: {ccore.missing()}")
+    stacks: dict[str, dict[str, Any]] = {}
     if emulator is not None:
-        stack = live_part(emulator, quick)
+        stacks = {name: live_part(emulator, quick, name) for name in cores}
+    stack = stacks.get("python", {"live": [], "headroom": None})
     sdo = live.sdo_writes(50 if quick else 2000)
-    rounds = latency_rounds(emulator, quick) if emulator is not None else []
+    by_core = (
+        {name: latency_rounds(emulator, quick, name) for name in stacks}
+        if emulator is not None
+        else {}
+    )
+    rounds = by_core.get("python", [])
+    if "c" in stacks:
+        stacks["c"]["latency_rounds"] = by_core["c"]
+        stacks["c"]["latency_ratio_vs_sdo"] = (
+            statistics.median(x["ratio"] for x in by_core["c"]) if by_core["c"] else None
+        )
     return {
         "machine": f"{platform.node()} {platform.machine()} {platform.python_implementation()} "
         f"{platform.python_version()}, {__import__('os').cpu_count()} cores",
         "quick": quick,
         "codec": codec.compare(loops=100 if quick else 2000, repeats=3 if quick else 9),
         "core": [
-            core.transactions_per_second(n, loss, 0.2 if quick else 3.0)
+            core.transactions_per_second(n, loss, 0.2 if quick else 3.0, core=name)
+            for name in cores
             for n in (1, 127)
             for loss in (0.0, 0.3)
         ],
         **stack,
+        "c_core": stacks.get("c"),
+        "c_vs_python": compare_cores(stacks),
         "sdo": sdo,
         "latency_rounds": rounds,
         "latency_ratio_vs_sdo": statistics.median(r["ratio"] for r in rounds) if rounds else None,
@@ -278,6 +319,25 @@ def live_lines(r: dict[str, Any]) -> list[str]:
     return lines
 
 
+def core_lines(ratios: dict[str, Any] | None) -> list[str]:
+    """The C core's figures over the Python core's, from the same run."""
+    if ratios is None:
+        return []
+    shown = (
+        ("by_nodes", "CPU per frame on the bus"),
+        ("alone", "its own code, long loop passes"),
+        ("alone_frame_by_frame", "its own code, one frame per loop pass"),
+    )
+    lines = ["  C core / Python core, same run:"]
+    for key, what in shown:
+        if ratios.get(key):
+            figures = ", ".join(f"{n} nodes {x:.2f}x" for n, x in ratios[key].items())
+            lines.append(f"    {what}: {figures}")
+    if ratios.get("latency_1_node") is not None:
+        lines.append(f"    1-node latency p50: {ratios['latency_1_node']:.2f}x")
+    return lines
+
+
 def table(r: dict[str, Any]) -> str:
     c = r["codec"]
     lines = [
@@ -293,12 +353,17 @@ def table(r: dict[str, Any]) -> str:
     for row in r["core"]:
         target = ">= 50,000" if row["nodes"] == 1 and row["loss"] == 0 else ""
         lines.append(
-            f"  {row['nodes']:>3} nodes, loss {row['loss']:.0%}: {row['tx_per_s']:>9,.0f} tx/s "
+            f"  {row.get('core', 'python'):>6} core, {row['nodes']:>3} nodes, loss "
+            f"{row['loss']:.0%}: {row['tx_per_s']:>9,.0f} tx/s "
             f"({row['frames_per_tx']:.2f} frames/tx) {target}"
         )
     lines += ["", "live stack on python-can virtual (supervisor + emulator threads)"]
     lines += [f"  {reason}" for reason in r["skipped"]]
     lines += live_lines(r)
+    if r.get("c_core"):
+        lines += ["", "the same on the C core (canergy supervisor --core c)"]
+        lines += live_lines({**r, **r["c_core"]})
+        lines += core_lines(r["c_vs_python"])
     lines += [
         "",
         "wire model, nominal transaction (frames of "

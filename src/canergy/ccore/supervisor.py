@@ -26,6 +26,7 @@ from canergy.core.actions import (
 )
 from canergy.core.errors import LocalProtocolError
 from canergy.core.state import Decision, Outcome, Phase, Session, SupervisorState
+from canergy.core.supervisor import Supervisor, SupervisorCore
 from canergy.core.timing import Timing
 from canergy.core.variants import get_variant
 from canergy.messages import (
@@ -320,3 +321,22 @@ class CompiledSupervisor:
                     actions.append(Send(self._decode(arbitration_id, data[:dlc])))
                     sent += 1
         return actions
+
+
+def make_supervisor(
+    core: str,
+    nodes: Iterable[int],
+    initial: int,
+    *,
+    variant: str = "hardened",
+    timing: Timing | None = None,
+    state: SupervisorState | None = None,
+) -> SupervisorCore:
+    """A supervisor core by name: "python" (``core.Supervisor``, any variant) or "c"."""
+    if core == "c":
+        if variant != "hardened":
+            raise ValueError("the C core runs the hardened rules only")
+        return CompiledSupervisor(nodes, initial, timing=timing, state=state)
+    if core != "python":
+        raise ValueError(f"unknown core {core!r}: c or python")
+    return Supervisor(nodes, initial, variant=variant, timing=timing, state=state)

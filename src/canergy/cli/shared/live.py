@@ -11,8 +11,9 @@ from typing import Any
 
 from canergy.argtypes import add_duration, bounded_int, energy, power
 from canergy.auth.state_key import state_seal
+from canergy.ccore.supervisor import make_supervisor, missing
 from canergy.codec import Codec
-from canergy.core import Supervisor, Timing
+from canergy.core import Timing
 from canergy.core.supervisor import SupervisorCore
 from canergy.core.variants import VARIANTS
 from canergy.live.atomic import check_writable_dir, same_file
@@ -122,8 +123,6 @@ def rule_timing(args: argparse.Namespace, response_timeout_us: int | None = None
 def core_choice(args: argparse.Namespace, buses: tuple[str, ...] = ()) -> str:
     """``--core`` resolved: "c" or "python". ``--core c`` where the C core cannot run is an
     error that says why; ``auto`` then takes the Python core."""
-    from canergy.ccore.supervisor import missing
-
     wanted = getattr(args, "core", "python")
     if wanted == "python":
         return "python"
@@ -166,13 +165,9 @@ def build_core(
         )
     if args.state is not None and not getattr(args, "listen_only", False):
         keep_books(args.state, seal, args.auth, fresh=state is None)
-    core: SupervisorCore
-    if kind == "c":
-        from canergy.ccore.supervisor import CompiledSupervisor
-
-        core = CompiledSupervisor(nodes, args.initial, timing=timing, state=state)
-    else:
-        core = Supervisor(nodes, args.initial, variant=args.variant, timing=timing, state=state)
+    core = make_supervisor(
+        kind, nodes, args.initial, variant=args.variant, timing=timing, state=state
+    )
     if state is not None:
         core.power_loss(monotonic_us())  # a start is a restart from the persistent record
     return core

@@ -499,8 +499,20 @@ static void test_aes128(void)
     canergy_aes128_init(&aes, key);
     canergy_aes128_encrypt(&aes, block, block);
     check(bytes_are(block, 16U, "69c4e0d86a7b0430d8cdb78070b4c55a"), "AES-128, FIPS-197 C.1");
+#ifndef CANERGY_AES_PORT /* the port's context is its own */
     check(bytes_are(&aes.rk[160], 16U, "13111d7fe3944a17f307a78b4d2b30c5"),
           "AES-128 last round key, FIPS-197 C.1");
+#endif
+}
+
+static bool all_zero(const void *p, size_t n)
+{
+    const uint8_t *b = p;
+    uint8_t any = 0U;
+    for (size_t i = 0U; i < n; i++) {
+        any |= b[i];
+    }
+    return any == 0U;
 }
 
 static void test_cmac(void)
@@ -538,7 +550,7 @@ static void test_cmac(void)
     canergy_cmac_final(&ctx, &s, mac);
     check(bytes_are(mac, 16U, examples[3].mac) && s.n == 0U, "CMAC in pieces, stream wiped");
     canergy_cmac_wipe(&ctx);
-    check(ctx.aes.rk[0] == 0U && ctx.aes.rk[175] == 0U && ctx.k2[15] == 0U, "key wiped");
+    check(all_zero(&ctx.aes, sizeof ctx.aes) && ctx.k2[15] == 0U, "key wiped");
 }
 
 static void test_mac_equal(void)

@@ -19,10 +19,19 @@ extern "C" {
 
 #define CANERGY_AES_BLOCK 16U
 
+#ifdef CANERGY_AES_PORT
+/* The port's block cipher (hardware AES, mbedTLS, tinycrypt) instead of the table S-box below:
+ * build with -DCANERGY_AES_PORT='"its_header.h"'. That header defines struct canergy_aes128 (the
+ * port's key context; the library never copies it by value and wipes it with canergy_wipe),
+ * the port implements the two functions below, and src/aes128.c compiles to nothing.
+ * ports/aes_mbedtls is one; `make aes-port-test` runs every C known answer on it. */
+#include CANERGY_AES_PORT
+#else
 /* The 11 round keys, 176 bytes: key material (wipe it with canergy_wipe when done). */
 struct canergy_aes128 {
     uint8_t rk[11U * CANERGY_AES_BLOCK];
 };
+#endif
 
 void canergy_aes128_init(struct canergy_aes128 *ctx, const uint8_t key[CANERGY_AES_BLOCK]);
 

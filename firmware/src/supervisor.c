@@ -227,11 +227,21 @@ int canergy_supervisor_inject(struct canergy_supervisor *sup, uint64_t amount_uj
     return CANERGY_OK;
 }
 
+int canergy_supervisor_withdraw(struct canergy_supervisor *sup, uint64_t amount_uj)
+{
+    if (amount_uj == 0U || amount_uj > sup->usable_uj) {
+        return CANERGY_ERR_AMOUNT;
+    }
+    sup->usable_uj -= amount_uj;
+    sup->withdrawn_uj += amount_uj;
+    return CANERGY_OK;
+}
+
 /* -- the record in NV --------------------------------------------------------------------- */
 
 #define SLOT_MAGIC 0x534E5243UL /* "CNRS" little-endian */
-#define SLOT_VERSION 1U
-#define SLOT_HEADER 28U /* magic, version, count, 2 spare, counter, Us, injected */
+#define SLOT_VERSION 2U
+#define SLOT_HEADER 36U /* magic, version, count, 2 spare, counter, Us, injected, withdrawn */
 #define SESSION_BYTES 32U
 
 static size_t slot_bytes(uint8_t count)
@@ -250,6 +260,7 @@ size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t c
     le_put(&out[8], counter, 4U);
     le_put64(&out[12], sup->usable_uj);
     le_put64(&out[20], sup->injected_uj);
+    le_put64(&out[28], sup->withdrawn_uj);
     for (uint8_t i = 0U; i < sup->count; i++) {
         const struct canergy_session *s = &sup->sessions[i];
         uint8_t *r = &out[SLOT_HEADER + SESSION_BYTES * (size_t)i];
@@ -297,6 +308,7 @@ static void slot_take(struct canergy_supervisor *sup, const uint8_t *p)
 {
     sup->usable_uj = le_get64(&p[12]);
     sup->injected_uj = le_get64(&p[20]);
+    sup->withdrawn_uj = le_get64(&p[28]);
     for (uint8_t i = 0U; i < sup->count; i++) {
         const uint8_t *r = &p[SLOT_HEADER + SESSION_BYTES * (size_t)i];
         struct canergy_session *s = &sup->sessions[i];

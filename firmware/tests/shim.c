@@ -6,6 +6,7 @@
 #include "canergy/auth.h"
 #include "canergy/client.h"
 #include "canergy/cmac.h"
+#include "canergy/gateway.h"
 #include "canergy/node.h"
 #include "canergy/session.h"
 #include "canergy/supervisor.h"
@@ -74,12 +75,15 @@ static const struct entry offsets[] = {
     FIELD(canergy_session_timing, retries),
     FIELD(canergy_supervisor, usable_uj),
     FIELD(canergy_supervisor, injected_uj),
+    FIELD(canergy_supervisor, withdrawn_uj),
     FIELD(canergy_supervisor, sessions),
     FIELD(canergy_supervisor, timing),
     FIELD(canergy_supervisor, id_base),
     FIELD(canergy_supervisor, count),
     FIELD(canergy_supervisor_config, id_base),
     FIELD(canergy_supervisor_config, timing),
+    FIELD(canergy_gateway, up),
+    FIELD(canergy_gateway, down),
     FIELD(canergy_supervisor_event, tx),
     FIELD(canergy_supervisor_event, amount_uj),
     FIELD(canergy_supervisor_event, node),
@@ -161,7 +165,7 @@ static const struct entry sizes[] = {
     SIZE(canergy_cmac_stream),   SIZE(canergy_auth_frame), SIZE(canergy_auth),
     SIZE(canergy_session),       SIZE(canergy_session_step), SIZE(canergy_session_timing),
     SIZE(canergy_supervisor),    SIZE(canergy_supervisor_config), SIZE(canergy_supervisor_out),
-    SIZE(canergy_supervisor_event),
+    SIZE(canergy_supervisor_event), SIZE(canergy_gateway),
 };
 
 static long find(const struct entry *table, size_t n, const char *name)

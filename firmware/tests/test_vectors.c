@@ -9,6 +9,7 @@
 #include "canergy/auth.h"
 #include "canergy/client.h"
 #include "canergy/cmac.h"
+#include "canergy/gateway.h"
 #include "canergy/node.h"
 #include "canergy/session.h"
 #include "canergy/supervisor.h"
@@ -430,6 +431,11 @@ static void test_supervisor(void)
     check(canergy_supervisor_inject(&sup, 0U) == CANERGY_ERR_AMOUNT &&
               canergy_supervisor_inject(&sup, 500U) == CANERGY_OK && sup.usable_uj == 3500U,
           "inject");
+    check(canergy_supervisor_withdraw(&sup, 0U) == CANERGY_ERR_AMOUNT &&
+              canergy_supervisor_withdraw(&sup, 3501U) == CANERGY_ERR_AMOUNT &&
+              canergy_supervisor_withdraw(&sup, 500U) == CANERGY_OK && sup.usable_uj == 3000U &&
+              sup.withdrawn_uj == 500U && canergy_supervisor_inject(&sup, 500U) == CANERGY_OK,
+          "withdraw: never more than Us, counted");
     check(sizeof(struct canergy_supervisor) <= 64U * CANERGY_SUPERVISOR_NODES,
           "supervisor state within 64 bytes per node");
 
@@ -443,13 +449,14 @@ static void test_supervisor(void)
               0 && back.usable_uj == 7U && slot == 1U,
           "blank NV: a new supervisor, slot 0 first");
     const size_t used = canergy_supervisor_image(&sup, 1U, nv);
-    check(used == 32U + 32U * 2U, "the image: 32 bytes and 32 per session");
+    check(used == 40U + 32U * 2U, "the image: 40 bytes and 32 per session");
     sup.usable_uj += 1000U;
     (void)canergy_supervisor_image(&sup, 2U, &nv[CANERGY_SUPERVISOR_SLOT_SIZE]);
     check(canergy_supervisor_load(&back, &cfg, nodes, 2U, 7U, nv, sizeof nv, &counter, &slot) ==
               1 && counter == 2U && slot == 1U && back.usable_uj == 4500U &&
               back.sessions[0].tx == 1U && back.sessions[0].phase == CANERGY_S_WAIT_ACK &&
-              back.sessions[0].reserved_uj == 2000U && back.sessions[0].deadline == 0U,
+              back.sessions[0].reserved_uj == 2000U && back.sessions[0].deadline == 0U &&
+              back.injected_uj == 1000U && back.withdrawn_uj == 500U,
           "the newer slot, its open intention due at once");
     nv[CANERGY_SUPERVISOR_SLOT_SIZE + 40U] ^= 0x01U;
     check(canergy_supervisor_load(&back, &cfg, nodes, 2U, 7U, nv, sizeof nv, &counter, &slot) ==
@@ -797,6 +804,41 @@ static void test_auth(void)
     test_auth_node(key);
 }
 
+/* The gateway rules: what the client above holds goes below at once; a give-back takes it
+ * out of Us below into a RETURN above; never any energy between the two roles. */
+static void test_gateway(void)
+{
+    static struct canergy_gateway gw;
+    static struct canergy_out out;
+    static struct canergy_supervisor_out sup_out;
+    const struct canergy_client_config up = {CANERGY_DEFAULT_ID_BASE, 100000U, 100000U, 7U};
+    const struct canergy_supervisor_config down = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U}};
+    const uint8_t nodes[1] = {3U};
+    (void)canergy_client_start(&gw.up, &up, NULL, 0U, 1U, 0U, &out);
+    gw.up.phase = CANERGY_IDLE; /* admitted (tests reach in) */
+    check(canergy_supervisor_init(&gw.down, &down, nodes, 1U, 0U) == CANERGY_OK, "gateway init");
+    gw.up.rec.usable_uj = 3000U; /* a commit above */
+    check(canergy_gateway_forward(&gw, &out) == 3000U && out.persist && gw.up.rec.usable_uj == 0U &&
+              gw.up.rec.spent_uj == 3000U && gw.down.usable_uj == 3000U &&
+              canergy_gateway_link_gap(&gw) == 0,
+          "forward: usable above becomes Us below, in one persisted step");
+    check(canergy_gateway_forward(&gw, &out) == 0U, "nothing more to forward");
+    check(canergy_supervisor_begin(&gw.down, 3U, 1000U, 0U, &sup_out) == CANERGY_OK &&
+              gw.down.usable_uj == 2000U,
+          "granted below from what came from above");
+    check(canergy_gateway_give_back(&gw, 3000U, 0U, &out) == CANERGY_ERR_AMOUNT &&
+              canergy_gateway_give_back(&gw, 1500U, 0U, &out) == CANERGY_ERR_AMOUNT &&
+              out.frame_count == 0U && gw.down.usable_uj == 2000U,
+          "give back: no more than Us below, whole mJ, nothing moved on a refusal");
+    check(canergy_gateway_give_back(&gw, 2000U, 0U, &out) == CANERGY_OK && out.persist &&
+              out.frame_count == 1U && gw.down.usable_uj == 0U && gw.down.withdrawn_uj == 2000U &&
+              gw.up.rec.return_pending_uj == 2000U && gw.up.rec.spent_uj == 1000U &&
+              canergy_gateway_link_gap(&gw) == 0,
+          "give back: Us below withdrawn into the next RETURN above");
+    check(canergy_gateway_give_back(&gw, 1000U, 0U, &out) == CANERGY_ERR_PHASE,
+          "one return at a time");
+}
+
 int main(void)
 {
     test_crcs();
@@ -807,6 +849,7 @@ int main(void)
     test_budgets();
     test_session();
     test_supervisor();
+    test_gateway();
     test_aes128();
     test_cmac();
     test_mac_equal();

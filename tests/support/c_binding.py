@@ -163,7 +163,7 @@ class SessionTiming(Structure):
 
 SUPERVISOR_NODES = 16
 """CANERGY_SUPERVISOR_NODES as the library is built."""
-SUPERVISOR_SLOT = 32 + 32 * SUPERVISOR_NODES
+SUPERVISOR_SLOT = 40 + 32 * SUPERVISOR_NODES
 """CANERGY_SUPERVISOR_SLOT_SIZE: one of the two slots of the supervisor's NV image."""
 
 
@@ -171,11 +171,16 @@ class CSupervisor(Structure):
     _fields_ = [
         ("usable_uj", c_uint64),
         ("injected_uj", c_uint64),
+        ("withdrawn_uj", c_uint64),
         ("sessions", CSession * SUPERVISOR_NODES),
         ("timing", SessionTiming),
         ("id_base", c_uint32),
         ("count", c_uint8),
     ]
+
+
+class CGateway(Structure):
+    _fields_ = [("up", CClientState), ("down", CSupervisor)]
 
 
 class SupervisorConfig(Structure):
@@ -275,6 +280,7 @@ MIRROR: dict[str, type[Structure]] = {
     "canergy_supervisor_config": SupervisorConfig,
     "canergy_supervisor_out": SupervisorOut,
     "canergy_supervisor_event": SupervisorEvent,
+    "canergy_gateway": CGateway,
 }
 
 # Constants of the headers the tests use.
@@ -329,6 +335,15 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "canergy_supervisor_deadline": (c_uint64, [POINTER(CSupervisor)]),
     "canergy_supervisor_restart": (None, [POINTER(CSupervisor), c_uint64]),
     "canergy_supervisor_inject": (c_int, [POINTER(CSupervisor), c_uint64]),
+    "canergy_supervisor_withdraw": (c_int, [POINTER(CSupervisor), c_uint64]),
+    "canergy_gateway_forward": (c_uint32, [POINTER(CGateway), POINTER(Out)]),
+    "canergy_gateway_on_up_frame": (
+        c_int,
+        [POINTER(CGateway), POINTER(RxFrame), c_uint64, POINTER(Out)],
+    ),
+    "canergy_gateway_on_up_timer": (None, [POINTER(CGateway), c_uint64, POINTER(Out)]),
+    "canergy_gateway_give_back": (c_int, [POINTER(CGateway), c_uint32, c_uint64, POINTER(Out)]),
+    "canergy_gateway_link_gap": (ctypes.c_int64, [POINTER(CGateway)]),
     "canergy_supervisor_image": (c_size_t, [POINTER(CSupervisor), c_uint32, c_void_p]),
     "canergy_supervisor_load": (
         c_int,

@@ -36,6 +36,7 @@ struct canergy_supervisor_config {
 struct canergy_supervisor {
     uint64_t usable_uj;   /* Us */
     uint64_t injected_uj; /* energy added from outside since start (a gateway's upstream) */
+    uint64_t withdrawn_uj; /* energy taken out to outside (a gateway's returns upstream) */
     struct canergy_session sessions[CANERGY_SUPERVISOR_NODES]; /* by node, ascending */
     struct canergy_session_timing timing;
     uint32_t id_base;
@@ -108,12 +109,17 @@ void canergy_supervisor_restart(struct canergy_supervisor *sup, uint64_t now);
  * record after it, before the energy is granted. */
 int canergy_supervisor_inject(struct canergy_supervisor *sup, uint64_t amount_uj);
 
+/* Energy out of Us to outside (counted as withdrawn): a gateway returning it upstream.
+ * CANERGY_ERR_AMOUNT for 0 or more than Us. Write the record in the same step. */
+int canergy_supervisor_withdraw(struct canergy_supervisor *sup, uint64_t amount_uj);
+
 /* -- the record in NV --------------------------------------------------------------------- */
 
-/* One slot: a 12-byte header ("CNRS", version, count, counter), Us and injected, 32 bytes per
- * session (node, stored phase, decision, tx, last return credited, Ts, Gs, returned) and a
- * CRC-32 of all that. Two slots of CANERGY_SUPERVISOR_SLOT_SIZE bytes back to back. */
-#define CANERGY_SUPERVISOR_SLOT_SIZE (32U + 32U * CANERGY_SUPERVISOR_NODES)
+/* One slot: a 12-byte header ("CNRS", version 2, count, counter), Us, injected and withdrawn,
+ * 32 bytes per session (node, stored phase, decision, tx, last return credited, Ts, Gs,
+ * returned) and a CRC-32 of all that. Two slots of CANERGY_SUPERVISOR_SLOT_SIZE bytes back to
+ * back. */
+#define CANERGY_SUPERVISOR_SLOT_SIZE (40U + 32U * CANERGY_SUPERVISOR_NODES)
 
 /* The record as slot bytes with this counter (the slot written before it has counter - 1);
  * returns the bytes used, 32 + 32 per session (the rest of the slot is left as it is). */

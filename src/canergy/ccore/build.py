@@ -44,7 +44,8 @@ struct canergy_session {
 };
 struct canergy_supervisor_config { uint32_t id_base; struct canergy_session_timing timing; ...; };
 struct canergy_supervisor {
-    uint64_t usable_uj; uint64_t injected_uj; struct canergy_session sessions[...];
+    uint64_t usable_uj; uint64_t injected_uj; uint64_t withdrawn_uj;
+    struct canergy_session sessions[...];
     uint32_t id_base; uint8_t count; ...;
 };
 struct canergy_supervisor_event {

@@ -159,7 +159,6 @@ class CompiledSupervisor:
                 f"{lib.CANERGY_SUPERVISOR_NODES})"
             )
         self._initial = initial
-        self._withdrawn = 0
         self._index = {n: i for i, n in enumerate(node_list)}
         self._sessions = [Session(n) for n in node_list]
         if state is not None:
@@ -174,7 +173,7 @@ class CompiledSupervisor:
     def state(self) -> SupervisorState:
         sup = self._sup
         return SupervisorState(
-            self._initial, sup.usable_uj, sup.injected_uj, tuple(self._sessions), self._withdrawn
+            self._initial, sup.usable_uj, sup.injected_uj, tuple(self._sessions), sup.withdrawn_uj
         )
 
     @property

@@ -3,16 +3,49 @@
  * can link it for Cortex-M4 with --gc-sections and report what the library costs there.
  * PORT_NODE selects the node layer's API, PORT_AUTH the node layer in authenticated mode
  * (canergy/auth.h), PORT_CMAC AES-CMAC and the KDF alone, PORT_SUPERVISOR the supervisor
- * (canergy/supervisor.h), otherwise the bare client's.
+ * (canergy/supervisor.h), PORT_GATEWAY a gateway (canergy/gateway.h: the client above, the
+ * supervisor below), otherwise the bare client's.
  */
 #include "canergy/auth.h"
 #include "canergy/cmac.h"
+#include "canergy/gateway.h"
 #include "canergy/node.h"
 #include "canergy/supervisor.h"
 
 void port_entry(void);
 
-#ifdef PORT_SUPERVISOR
+#ifdef PORT_GATEWAY
+void port_entry(void)
+{
+    static struct canergy_gateway gw;
+    static struct canergy_out out;
+    static struct canergy_supervisor_out down;
+    static uint8_t nv[2U * CANERGY_NV_SLOT_SIZE];
+    static uint8_t sup_nv[2U * CANERGY_SUPERVISOR_SLOT_SIZE];
+    static const uint8_t nodes[1] = {1U};
+    static const uint8_t bytes[8] = {0};
+    const struct canergy_rx_frame rx = {0x0CE00101UL, bytes, 8U, true, false};
+    const struct canergy_client_config up = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 9U};
+    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000UL, 3U}};
+    volatile uint64_t sink = 0U;
+    uint32_t counter = 0U;
+    uint8_t slot = 0U;
+    sink += (uint64_t)canergy_client_start(&gw.up, &up, nv, sizeof nv, 7U, 0U, &out);
+    sink += (uint64_t)canergy_supervisor_load(&gw.down, &cfg, nodes, 1U, 0U, sup_nv,
+                                              sizeof sup_nv, &counter, &slot);
+    sink += (uint64_t)canergy_gateway_on_up_frame(&gw, &rx, 1U, &out);
+    canergy_gateway_on_up_timer(&gw, 2U, &out);
+    sink += (uint64_t)canergy_gateway_give_back(&gw, 1000U, 3U, &out);
+    sink += (uint64_t)canergy_supervisor_begin(&gw.down, 1U, 1000U, 4U, &down);
+    sink += (uint64_t)canergy_supervisor_on_frame(&gw.down, &rx, 5U, &down);
+    sink += (uint64_t)canergy_supervisor_decide(&gw.down, 1U, true, 6U, &down);
+    canergy_supervisor_on_timer(&gw.down, 7U, &down);
+    sink += canergy_supervisor_image(&gw.down, counter + 1U, sup_nv);
+    sink += canergy_client_deadline(&gw.up) + canergy_supervisor_deadline(&gw.down);
+    sink += (uint64_t)canergy_gateway_link_gap(&gw) + out.frames[0].data[0];
+    (void)sink;
+}
+#elif defined(PORT_SUPERVISOR)
 void port_entry(void)
 {
     static struct canergy_supervisor sup;

@@ -4,6 +4,7 @@
  */
 #include "canergy/auth.h"
 #include "canergy/cmac.h"
+#include "canergy/gateway.h"
 #include "canergy/node.h"
 #include "canergy/supervisor.h"
 
@@ -19,3 +20,7 @@ extern char canergy_supervisor_bytes[sizeof(struct canergy_supervisor)];
 char canergy_supervisor_bytes[sizeof(struct canergy_supervisor)];
 extern char canergy_session_bytes[sizeof(struct canergy_session)];
 char canergy_session_bytes[sizeof(struct canergy_session)];
+extern char canergy_gateway_bytes[sizeof(struct canergy_gateway)];
+char canergy_gateway_bytes[sizeof(struct canergy_gateway)];
+extern char canergy_supervisor_out_bytes[sizeof(struct canergy_supervisor_out)];
+char canergy_supervisor_out_bytes[sizeof(struct canergy_supervisor_out)];

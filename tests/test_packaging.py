@@ -96,12 +96,16 @@ def _run(argv: list[str], cwd: Path, env: dict[str, str] | None = None) -> str:
 
 
 def _build_wheel(tmp: Path) -> Path:
-    """The wheel of a copy of the source tree (building in place would leave build/ behind)."""
+    """The wheel of a copy of the source tree (building in place would leave build/ behind):
+    what the sdist holds (MANIFEST.in), the C sources of the compiled core included, and no
+    extension built here before (the wheel's is its own)."""
     tree = tmp / "tree"
-    skip = shutil.ignore_patterns("__pycache__", "*.egg-info")
+    skip = shutil.ignore_patterns("__pycache__", "*.egg-info", "*.so")
     shutil.copytree(ROOT / "src", tree / "src", ignore=skip)
     shutil.copytree(ROOT / "firmware_model", tree / "firmware_model", ignore=skip)
-    for name in ("pyproject.toml", "README.md", "LICENSE"):
+    for part in ("src", "include"):
+        shutil.copytree(ROOT / "firmware" / part, tree / "firmware" / part, ignore=skip)
+    for name in ("pyproject.toml", "setup.py", "MANIFEST.in", "README.md", "LICENSE"):
         shutil.copy2(ROOT / name, tree / name)
     pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "--no-input"]
     build = ["wheel", "--no-deps", "--no-build-isolation", "--no-index", "-w", str(tmp / "dist")]
@@ -236,6 +240,7 @@ def test_the_installed_supervisor_runs(host: Install, canopen: bool) -> None:
         proc.kill()
     assert proc.returncode == 0, err
     assert status is not None and status["nodes"]["1"]["lost"] is True  # no node answers
+    assert status["core"] == "c"  # the wheel carries the compiled core: --core auto takes it
 
 
 def test_the_installed_bench_skips_the_emulator_part_in_one_line(host: Install) -> None:

@@ -9,17 +9,30 @@ from __future__ import annotations
 import os
 from typing import Any
 
+import can
 import pytest
 from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 
-from canergy.ccore.supervisor import CompiledSupervisor, missing
+from canergy.ccore.supervisor import CompiledSupervisor, make_supervisor, missing
+from canergy.codec import Codec
 from canergy.core.actions import Action, Persist
 from canergy.core.errors import LocalProtocolError
 from canergy.core.supervisor import Supervisor
 from canergy.core.timing import Timing
-from canergy.messages import QUANTUM_UJ, Aborted, Ack, Committed, Join, Return, Telemetry
+from canergy.live.runtime import BusRuntime
+from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.messages import (
+    QUANTUM_UJ,
+    Aborted,
+    Ack,
+    Committed,
+    Direction,
+    Join,
+    Return,
+    Telemetry,
+)
 
 pytestmark = pytest.mark.skipif(
     missing() is not None and not os.environ.get("CANERGY_REQUIRE_CCORE"),
@@ -133,3 +146,77 @@ def test_refuses_what_the_c_core_cannot_hold() -> None:
         CompiledSupervisor([1], 0, timing=Timing(response_timeout_us=2**32))
     with pytest.raises(LocalProtocolError, match="not managed"):
         CompiledSupervisor([1], 0).begin(2, 1_000, 0)
+
+
+class _Wire(can.BusABC):
+    """An in-memory bus end: what is sent is kept, what is queued is received."""
+
+    def __init__(self) -> None:
+        super().__init__(channel="wire")
+        self.inbox: list[can.Message] = []
+        self.sent: list[tuple[int, bytes]] = []
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.sent.append((msg.arbitration_id, bytes(msg.data)))
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return (self.inbox.pop(0) if self.inbox else None), False
+
+
+def _run_script(core: str) -> tuple[list[tuple[int, bytes]], dict[str, Any], int]:
+    """The same frames to a service on each core through the bus loop: a grant, a forged ACK
+    naming a transaction never begun, damaged bytes, the real ACK twice, COMMITTED."""
+    codec = Codec()
+    wire = _Wire()
+    now = [0]
+    service = SupervisorService(
+        make_supervisor(core, [3], 10_000_000, timing=T), ServiceConfig(), 0
+    )
+    taken = 0
+    fast = service.fast_frame
+
+    def counted(frame: can.Message, t: int) -> bool:
+        nonlocal taken
+        took = fast(frame, t)
+        taken += took
+        return took
+
+    service.fast_frame = counted  # type: ignore[method-assign]
+    loop = BusRuntime(wire, service, codec=codec, receives=Direction.TO_SUPERVISOR)
+    loop.clock = lambda: now[0]
+    service.on_message(Telemetry(3, 0), 0)  # heard: a one-shot grant may begin
+    service.request_grant(3, 2_000_000, lambda reply: None)
+    loop.poll(0)
+
+    def frame(msg: Any, damage: bool = False) -> can.Message:
+        arbitration_id, data = codec.encode(msg)
+        data = bytes([data[0] ^ 0x5A, *data[1:]]) if damage else data
+        return can.Message(arbitration_id=arbitration_id, is_extended_id=True, data=data)
+
+    for msg, damage in (
+        (Ack(3, 9), False),
+        (Ack(3, 1), True),
+        (Ack(3, 1), False),
+        (Ack(3, 1), False),
+        (Committed(3, 1), False),
+    ):
+        now[0] += 100
+        wire.inbox.append(frame(msg, damage))
+        loop.poll(0)
+    wire.shutdown()
+    return wire.sent, service.status(), taken
+
+
+def test_the_fast_path_answers_as_the_python_core_does() -> None:
+    """The compiled core's fast path sends the same frames and keeps the same books as the
+    Python core's usual path; the forged ACK is still an intrusion and the damaged frame a
+    decode error (both left to the usual path), and the fast path took the genuine answers."""
+    py_sent, py_status, py_taken = _run_script("python")
+    c_sent, c_status, c_taken = _run_script("c")
+    assert c_sent == py_sent and len(c_sent) >= 2  # INTENTION, COMMIT
+    for key in ("usable_uj", "delivered_uj", "intrusions"):
+        assert c_status[key] == py_status[key], key
+    node, py_node = c_status["nodes"]["3"], py_status["nodes"]["3"]
+    assert c_status["intrusions"] == 1 and node["decode_errors"] == py_node["decode_errors"] == 1
+    assert node["committed"] == py_node["committed"] == 1
+    assert (py_taken, c_taken) == (0, 3)  # both ACKs and the COMMITTED, on the C core only

@@ -5,6 +5,7 @@
 #include "canergy/supervisor.h"
 
 #include "le.h"
+#include "serial.h"
 
 #include <string.h>
 
@@ -179,6 +180,40 @@ int canergy_supervisor_on_msg(struct canergy_supervisor *sup, const struct caner
     struct canergy_session_step step;
     canergy_session_on_msg(&next, &sup->timing, m, now, &step);
     apply(sup, s, &next, &step, m, out);
+    return CANERGY_DECODE_OK;
+}
+
+int canergy_supervisor_on_answer(struct canergy_supervisor *sup,
+                                 const struct canergy_rx_frame *frame, uint64_t now,
+                                 bool abort_acks, struct canergy_supervisor_out *out,
+                                 struct canergy_msg *m)
+{
+    out_clear(out);
+    const enum canergy_decode_status status =
+        canergy_decode(sup->id_base, frame, CANERGY_TO_SUPERVISOR, m);
+    if (status != CANERGY_DECODE_OK) {
+        return (int)status;
+    }
+    struct canergy_session *s = session_of(sup, m->node);
+    if (s == NULL) {
+        return CANERGY_RX_OTHER_NODE;
+    }
+    if (m->type != CANERGY_ACK && m->type != CANERGY_COMMITTED && m->type != CANERGY_ABORTED) {
+        return CANERGY_RX_CALLER;
+    }
+    if (serial16(m->tx, s->tx) > 0) {
+        return CANERGY_RX_AHEAD;
+    }
+    struct canergy_session next = *s;
+    struct canergy_session_step step;
+    canergy_session_on_msg(&next, &sup->timing, m, now, &step);
+    apply(sup, s, &next, &step, m, out);
+    if (step.acknowledged != 0U) {
+        next = *s;
+        if (canergy_session_decide(&next, &sup->timing, !abort_acks, now, &step) == CANERGY_OK) {
+            apply(sup, s, &next, &step, NULL, out);
+        }
+    }
     return CANERGY_DECODE_OK;
 }
 

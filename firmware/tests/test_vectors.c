@@ -804,6 +804,42 @@ static void test_auth(void)
     test_auth_node(key);
 }
 
+/* The answers at once: an ACK decided in the same out; one naming a transaction never begun
+ * and a TELEMETRY left to the caller, nothing applied. */
+static void test_supervisor_answers(void)
+{
+    static struct canergy_supervisor sup;
+    static struct canergy_supervisor_out out;
+    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U}};
+    const uint8_t nodes[1] = {3U};
+    struct canergy_msg m;
+    check(canergy_supervisor_init(&sup, &cfg, nodes, 1U, 5000U) == CANERGY_OK &&
+              canergy_supervisor_begin(&sup, 3U, 2000U, 0U, &out) == CANERGY_OK,
+          "answers: an intention to node 3");
+    const uint8_t ahead[3] = {0xF8U, 0x02U, 0x00U}; /* ACK(3, tx 2) */
+    struct canergy_rx_frame f = {0x0CE00903UL, ahead, 3U, true, false};
+    check(canergy_supervisor_on_answer(&sup, &f, 10U, false, &out, &m) == CANERGY_RX_AHEAD &&
+              sup.sessions[0].phase == CANERGY_S_WAIT_ACK && out.frame_count == 0U,
+          "an ACK of a transaction never begun: left to the caller, nothing applied");
+    const uint8_t level[8] = {0x1BU, 0x05U, 0U, 0U, 0U, 0U, 0U, 0U}; /* TELEMETRY(3, 5 mJ) */
+    f.id = 0x0CE00D03UL;
+    f.data = level;
+    f.len = 8U;
+    check(canergy_supervisor_on_answer(&sup, &f, 10U, false, &out, &m) == CANERGY_RX_CALLER &&
+              m.type == CANERGY_TELEMETRY && m.level_mj == 5U && out.frame_count == 0U,
+          "a TELEMETRY: decoded for the caller");
+    const uint8_t ack[3] = {0x2CU, 0x01U, 0x00U}; /* ACK(3, tx 1) */
+    f.id = 0x0CE00903UL;
+    f.data = ack;
+    f.len = 3U;
+    check(canergy_supervisor_on_answer(&sup, &f, 11U, false, &out, &m) == CANERGY_DECODE_OK &&
+              out.persist && out.frame_count == 1U && out.frames[0].id == 0x0CE00203UL &&
+              out.event_count == 2U && out.events[0].flags == CANERGY_SUP_ACKNOWLEDGED &&
+              sup.sessions[0].phase == CANERGY_S_WAIT_CONFIRM &&
+              sup.sessions[0].decision == CANERGY_DECIDE_COMMIT,
+          "the ACK: committed in the same out, persisted, COMMIT to send");
+}
+
 /* The gateway rules: what the client above holds goes below at once; a give-back takes it
  * out of Us below into a RETURN above; never any energy between the two roles. */
 static void test_gateway(void)
@@ -849,6 +885,7 @@ int main(void)
     test_budgets();
     test_session();
     test_supervisor();
+    test_supervisor_answers();
     test_gateway();
     test_aes128();
     test_cmac();

@@ -95,6 +95,22 @@ int canergy_supervisor_on_frame(struct canergy_supervisor *sup,
 int canergy_supervisor_on_msg(struct canergy_supervisor *sup, const struct canergy_msg *m,
                               uint64_t now, struct canergy_supervisor_out *out);
 
+/* What canergy_supervisor_on_answer leaves to the caller. */
+#define CANERGY_RX_AHEAD 17  /* an answer naming a transaction after the session's: no honest
+                                node sends it (an intrusion to report); nothing applied */
+#define CANERGY_RX_CALLER 18 /* a TELEMETRY, RETURN or JOIN: *m holds it, nothing applied */
+
+/* The answers to the supervisor's own frames at once, for a port that decides every
+ * acknowledged intention when it comes (a gateway, the host's fast path): the frame decoded
+ * strictly; an ACK, COMMITTED or ABORTED of a managed node runs its rules, and an ACK's
+ * intention is decided in the same out (committed, aborted when abort_acks). Returns
+ * CANERGY_DECODE_OK, a decode status, CANERGY_RX_OTHER_NODE, CANERGY_RX_AHEAD or
+ * CANERGY_RX_CALLER; *m is the decoded message whenever the decode succeeded. */
+int canergy_supervisor_on_answer(struct canergy_supervisor *sup,
+                                 const struct canergy_rx_frame *frame, uint64_t now,
+                                 bool abort_acks, struct canergy_supervisor_out *out,
+                                 struct canergy_msg *m);
+
 /* Fire every session whose deadline is at or before now (calling early is harmless). */
 void canergy_supervisor_on_timer(struct canergy_supervisor *sup, uint64_t now,
                                  struct canergy_supervisor_out *out);

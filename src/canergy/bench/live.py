@@ -33,7 +33,7 @@ from canergy.auth.frames import Verdict
 from canergy.ccore.supervisor import make_supervisor
 from canergy.codec import Codec, DecodeError
 from canergy.core import Timing
-from canergy.live.runtime import BusRuntime, Handler, monotonic_us
+from canergy.live.runtime import BusRuntime, Handler, Outgoing, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.messages import Direction, Message, Telemetry
 
@@ -111,8 +111,12 @@ class _Counting:
     def begin_pass(self) -> None:
         self.service.begin_pass()
 
-    def end_pass(self) -> Sequence[Message]:
+    def end_pass(self) -> Sequence[Outgoing]:
         return self.service.end_pass()
+
+    def fast_frame(self, frame: can.Message, now: int) -> bool:
+        """The compiled core's fast path (never a TELEMETRY: those are counted above)."""
+        return self.service.fast_frame(frame, now)
 
     def next_wakeup(self) -> int | None:
         return self.service.next_wakeup()

@@ -99,6 +99,8 @@ if _MISSING is None:
     _EVENTS_AT = ffi.offsetof("struct canergy_supervisor_out", "events")
     _FRAMES_AT = ffi.offsetof("struct canergy_supervisor_out", "frames")
     _NEVER = lib.CANERGY_NEVER
+    _OK = lib.CANERGY_DECODE_OK
+    ANSWER_AHEAD, ANSWER_CALLER = lib.CANERGY_RX_AHEAD, lib.CANERGY_RX_CALLER
 
 _PHASES = tuple(Phase(i) for i in range(4))
 _DECISIONS = tuple(Decision(i) for i in range(3))
@@ -147,6 +149,7 @@ class CompiledSupervisor:
         self._sup_bytes = ffi.buffer(self._sup)  # live views of the C memory
         self._out_bytes = ffi.buffer(self._out)
         self._msg = ffi.new("struct canergy_msg *")
+        self._rx = ffi.new("struct canergy_rx_frame *")
         cfg = ffi.new("struct canergy_supervisor_config *")
         cfg.id_base = self.codec.id_base
         cfg.timing.response_timeout_us = self.timing.response_timeout_us
@@ -264,6 +267,29 @@ class CompiledSupervisor:
         lib.canergy_supervisor_on_msg(self._sup, m, now, self._out)
         return self._actions()
 
+    def on_answer(
+        self,
+        arbitration_id: int,
+        data: bytes | bytearray,
+        extended: bool,
+        remote: bool,
+        now: int,
+        abort: bool,
+    ) -> tuple[int, list[Action], list[tuple[int, bytes]]]:
+        """A received frame on the fast path (one C call: decode, rules, the decision on an ACK,
+        encode): its status and, when it was an answer the rules took (ACK, COMMITTED, ABORTED
+        of a managed node), their actions and the frames to send, encoded. Any other status
+        (``ANSWER_*``, a decode status) applied nothing: the caller takes the frame its usual
+        way, where it is judged, counted or reported."""
+        rx = self._rx
+        rx.id, rx.extended, rx.remote = arbitration_id, extended, remote
+        buf = ffi.from_buffer(data)
+        rx.data, rx.len = buf, len(data)
+        status = lib.canergy_supervisor_on_answer(self._sup, rx, now, abort, self._out, self._msg)
+        if status != _OK:
+            return status, [], []
+        return status, self._actions(fast=True), self._frames()
+
     def get_timer(self) -> int | None:
         deadline = lib.canergy_supervisor_deadline(self._sup)
         return None if deadline == lib.CANERGY_NEVER else int(deadline)
@@ -293,8 +319,10 @@ class CompiledSupervisor:
             raise LocalProtocolError(f"cannot {what} node {node} in {phase} ({_ERRORS[rc]})")
         return self._actions()
 
-    def _actions(self) -> list[Action]:
-        """The last call's output as the Python core's actions, in its order."""
+    def _actions(self, *, fast: bool = False) -> list[Action]:
+        """The last call's output as the Python core's actions, in its order. ``fast``
+        (``on_answer``): no ``Acknowledged`` (decided in C already) and no ``Send`` (the
+        frames go out as C encoded them, ``_frames``)."""
         out = self._out
         raw = self._out_bytes
         actions: list[Action] = [Persist()] if out.persist else []
@@ -306,7 +334,7 @@ class CompiledSupervisor:
             )
             i = self._index[node]
             s = self._sessions[i] = self._read(i)
-            if flags & _ACKNOWLEDGED:
+            if flags & _ACKNOWLEDGED and not fast:
                 actions.append(Acknowledged(node, tx))
             if resolved:
                 actions.append(Resolved(node, tx, _OUTCOMES[resolved], amount))
@@ -314,12 +342,21 @@ class CompiledSupervisor:
                 actions.append(ReturnCredited(node, s.returns_credited, amount))
             if flags & _ADMITTED:
                 actions.append(Admitted(node, s.tx, s.returns_credited))
-            if sent < frames:
+            if sent < frames and not fast:
                 arbitration_id, dlc, data = _FRAME.unpack_from(raw, _FRAMES_AT + sent * _FRAME_SIZE)
                 if arbitration_id & 0xFF == node:  # a step sends at most one frame, its node's
                     actions.append(Send(self._decode(arbitration_id, data[:dlc])))
                     sent += 1
         return actions
+
+    def _frames(self) -> list[tuple[int, bytes]]:
+        """The last call's frames as (identifier, data), encoded by the C codec."""
+        raw = self._out_bytes
+        frames = []
+        for k in range(self._out.frame_count):
+            arbitration_id, dlc, data = _FRAME.unpack_from(raw, _FRAMES_AT + k * _FRAME_SIZE)
+            frames.append((arbitration_id, data[:dlc]))
+        return frames
 
 
 def make_supervisor(

@@ -37,6 +37,18 @@ from canergy.messages import Admit, Direction, Join, Message, Return, ReturnAck,
 Filters = list[dict[str, int | bool]]
 
 
+@dataclass(frozen=True, slots=True)
+class RawFrame:
+    """A frame encoded already (the compiled core's fast path): sent as it is."""
+
+    arbitration_id: int
+    data: bytes
+
+
+Outgoing = Message | RawFrame
+"""What a pass hands the loop to send."""
+
+
 class Handler(Protocol):
     """What the loop drives: the supervisor service or a host of firmware nodes."""
 
@@ -76,7 +88,7 @@ class PassHandler(Protocol):
 
     def begin_pass(self) -> None: ...
 
-    def end_pass(self) -> Sequence[Message]:
+    def end_pass(self) -> Sequence[Outgoing]:
         """The frames held since ``begin_pass``, to send now."""
         ...
 
@@ -309,6 +321,10 @@ class BusRuntime:
             self.counters.auth = auth.layout.value
         passes = callable(getattr(handler, "begin_pass", None))
         self._passes = cast(PassHandler, handler) if passes else None
+        fast = getattr(handler, "fast_frame", None) if auth is None and passes else None
+        self._fast: Callable[[can.Message, int], bool] | None = fast
+        """A handler's fast path (``SupervisorService.fast_frame`` on the compiled core): a
+        received frame before any decoding here; True when it took the frame."""
 
     def poll(self, max_wait_s: float = 0.1) -> None:
         """Wait for one frame (at most until the next deadline or ``max_wait_s``) and run
@@ -380,6 +396,8 @@ class BusRuntime:
             self.counters.error_frames += 1
             return
         self.counters.frames_received += 1
+        if self._fast is not None and self._fast(frame, self.clock()):
+            return
         try:
             msg = self._decode(frame)
         except DecodeError as err:
@@ -447,11 +465,17 @@ class BusRuntime:
             self._refused(verdict, frame)
         return verdict.message
 
-    def _send_all(self, messages: Sequence[Message]) -> None:
+    def _send_all(self, messages: Sequence[Outgoing]) -> None:
         if self.listen_only:
             return
         for msg in messages:
-            self._send(msg)
+            if isinstance(msg, RawFrame):
+                data = msg.data
+                self._send_frame(
+                    can.Message(arbitration_id=msg.arbitration_id, is_extended_id=True, data=data)
+                )
+            else:
+                self._send(msg)
 
     def _send(self, msg: Message) -> None:
         if self.auth is not None:

@@ -12,7 +12,7 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, TextIO, TypeVar
 
 import can
 
@@ -35,7 +35,7 @@ from canergy.live.bus_keys import node_name
 from canergy.live.control import ControlServer
 from canergy.live.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
-from canergy.live.runtime import BusCounters, total_counters
+from canergy.live.runtime import BusCounters, Outgoing, RawFrame, total_counters
 from canergy.live.state_file import ENERGY_MAX_UJ, BooksWriter
 from canergy.live.witness import ReturnGate
 from canergy.messages import (
@@ -59,6 +59,8 @@ from canergy.seqnum import unwrap
 from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
+
+_Out = TypeVar("_Out", Message, Outgoing)
 
 GrantCallback = Callable[[dict[str, Any]], None]
 
@@ -175,7 +177,9 @@ class SupervisorService:
                 buses=config.bus_names,
             )
         )
-        self._held: list[Message] = []
+        self._held: list[Outgoing] = []
+        self._answer = getattr(core, "on_answer", None)
+        """The compiled core's fast path (``fast_frame``); None on the Python core."""
         self.stop_deadline: int | None = None
         self.status_stream = config.status_stream
         self.liveness: Callable[[int, int], bool] | None = None
@@ -415,6 +419,35 @@ class SupervisorService:
         self.refusals.tick(now)  # what was refused since the last line, once a second at most
         return self._flush(out)
 
+    def fast_frame(self, frame: can.Message, now: int) -> bool:
+        """The compiled core's fast path, for a frame the bus loop has not decoded: an ACK,
+        COMMITTED or ABORTED of a managed node goes through decode, rules, the decision on an
+        ACK (commit, abort when stopping) and encode in one C call, and only what it did comes
+        back here (books, replies, the next grant). False, nothing done: any other frame, one
+        that names a transaction never begun (judged on the usual path, an intrusion), the
+        Python core, listen-only, outside a loop pass. The bus loop then takes it as usual."""
+        answer = self._answer
+        if answer is None or self.config.listen_only or not self._passes:
+            return False
+        status, actions, frames = answer(
+            frame.arbitration_id,
+            frame.data,
+            frame.is_extended_id,
+            frame.is_remote_frame,
+            now,
+            self.stopping,
+        )
+        if status:
+            return False
+        self.now = now
+        self.nodes[frame.arbitration_id & 0xFF].heard_at = now
+        out: list[Outgoing] = [RawFrame(i, d) for i, d in frames]
+        out += self._carry_out(actions, now)
+        if self.ready:  # a transaction ended: the node's next grant goes out in this pass
+            out += self._start_grants(now, self.ready)
+        self._held += out
+        return True
+
     # -- loop passes -----------------------------------------------------------------------
     def begin_pass(self) -> None:
         """Hold every frame until ``end_pass``: the state file is then written once for the
@@ -422,7 +455,7 @@ class SupervisorService:
         pass's frames leaves. Passes nest (several buses' runtimes open one each)."""
         self._passes += 1
 
-    def end_pass(self) -> list[Message]:
+    def end_pass(self) -> list[Outgoing]:
         """Close a pass; the outermost one writes the state file if anything changed and returns
         every frame held since the pass began, in order, for the caller to send."""
         if not self._passes:
@@ -664,7 +697,7 @@ class SupervisorService:
             info.active_request.reply(result)
             info.active_request = None
 
-    def _flush(self, out: list[Message]) -> list[Message]:
+    def _flush(self, out: list[_Out]) -> list[_Out]:
         """Write the state file once for everything decided in this step, before any of the
         step's frames leave (the caller sends ``out`` only after this returns). In a pass, hold
         them: ``end_pass`` writes and returns them."""

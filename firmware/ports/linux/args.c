@@ -183,7 +183,12 @@ static uint64_t parse_quantity(const char *flag, const char *text, const struct 
     return value;
 }
 
-static uint64_t parse_duration(const char *flag, const char *text, uint64_t max)
+uint64_t port_parse_energy(const char *flag, const char *text)
+{
+    return parse_quantity(flag, text, ENERGY_UNITS, MAX_QUANTITY_U, "10J, 250mJ, 1500uJ or 2.5");
+}
+
+uint64_t port_parse_duration(const char *flag, const char *text, uint64_t max)
 {
     const uint64_t us = parse_quantity(flag, text, DURATION_UNITS, MAX_DURATION_US,
                                        "50ms, 1.5s, 200us, 2min or 0.5 (seconds)");
@@ -197,7 +202,7 @@ static uint64_t parse_duration(const char *flag, const char *text, uint64_t max)
     return us;
 }
 
-static uint64_t parse_int(const char *flag, const char *text, uint64_t low, uint64_t high)
+uint64_t port_parse_int(const char *flag, const char *text, uint64_t low, uint64_t high)
 {
     char *end = NULL;
     errno = 0;
@@ -263,7 +268,7 @@ void port_parse_args(int argc, char **argv, struct port_options *o)
         }
         const char *v = argv[++i];
         if (strcmp(flag, "--node") == 0) {
-            o->node = (int)parse_int(flag, v, CANERGY_MIN_NODE, CANERGY_MAX_NODE);
+            o->node = (int)port_parse_int(flag, v, CANERGY_MIN_NODE, CANERGY_MAX_NODE);
         } else if (strcmp(flag, "-i") == 0 || strcmp(flag, "--interface") == 0) {
             o->interface = v;
         } else if (strcmp(flag, "-c") == 0 || strcmp(flag, "--channel") == 0) {
@@ -276,13 +281,13 @@ void port_parse_args(int argc, char **argv, struct port_options *o)
             o->power_uw = parse_quantity(flag, v, POWER_UNITS, MAX_QUANTITY_U,
                                          "0.5W, 200mW or 2");
         } else if (strcmp(flag, "--tick") == 0) {
-            o->tick_us = parse_duration(flag, v, MAX_DURATION_US);
+            o->tick_us = port_parse_duration(flag, v, MAX_DURATION_US);
         } else if (strcmp(flag, "--telemetry-period") == 0) {
-            o->telemetry_period_us = parse_duration(flag, v, UINT32_MAX);
+            o->telemetry_period_us = port_parse_duration(flag, v, UINT32_MAX);
         } else if (strcmp(flag, "--status-period") == 0) {
-            o->status_period_us = parse_duration(flag, v, MAX_DURATION_US);
+            o->status_period_us = port_parse_duration(flag, v, MAX_DURATION_US);
         } else if (strcmp(flag, "--response-timeout") == 0) {
-            o->response_timeout_us = parse_duration(flag, v, UINT32_MAX / 2U);
+            o->response_timeout_us = port_parse_duration(flag, v, UINT32_MAX / 2U);
         } else if (strcmp(flag, "--low-water") == 0) {
             o->low_water_uj = parse_quantity(flag, v, ENERGY_UNITS, MAX_QUANTITY_U,
                                              "10J, 250mJ, 1500uJ or 2.5");
@@ -293,7 +298,7 @@ void port_parse_args(int argc, char **argv, struct port_options *o)
         } else if (strcmp(flag, "--auth") == 0) {
             o->auth_path = v;
         } else if (strcmp(flag, "--id-base") == 0) {
-            o->id_base = (uint32_t)parse_int(flag, v, 0U, CAN_EFF_MASK);
+            o->id_base = (uint32_t)port_parse_int(flag, v, 0U, CAN_EFF_MASK);
             if (!canergy_id_base_valid(o->id_base)) {
                 port_usage_error(
                     "argument %s: id base 0x%08X has bits in its low 12 (mask 0x1FFFF000)", flag,

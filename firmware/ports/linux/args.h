@@ -18,5 +18,10 @@ int port_mul_fits(uint64_t a, uint64_t b, uint64_t *out);
 /* The options of argv, with their defaults; -h prints the usage and exits 0, a bad argument
  * exits 2. Paths are not checked here (storage.h, keyfile.h). */
 void port_parse_args(int argc, char **argv, struct port_options *o);
+/* One value of a flag (exit 2 with one line when it is not one): an energy in uJ ("0.5J",
+ * "250mJ", plain joules), a duration in us above 0 and at most max, an integer (0x.. too). */
+uint64_t port_parse_energy(const char *flag, const char *text);
+uint64_t port_parse_duration(const char *flag, const char *text, uint64_t max);
+uint64_t port_parse_int(const char *flag, const char *text, uint64_t low, uint64_t high);
 
 #endif /* CANERGY_PORT_LINUX_ARGS_H */

@@ -44,6 +44,8 @@
 #include <time.h>
 #include <unistd.h>
 
+const char *const port_prog = "canergy-node";
+
 static volatile sig_atomic_t stop_requested;
 
 static void on_stop_signal(int signum)
@@ -56,7 +58,7 @@ static uint64_t now_us(void)
 {
     struct timespec ts;
     if (clock_gettime(CLOCK_MONOTONIC, &ts) != 0) {
-        perror(PROG ": clock_gettime");
+        perror("canergy-node: clock_gettime");
         exit(EXIT_NV);
     }
     return (uint64_t)ts.tv_sec * US_PER_S + (uint64_t)ts.tv_nsec / 1000U;

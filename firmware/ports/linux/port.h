@@ -11,7 +11,8 @@
 
 #include <stdint.h>
 
-#define PROG "canergy-node"
+extern const char *const port_prog; /* the program's name in its messages */
+#define PROG port_prog
 #define EXIT_NV 1
 #define EXIT_USAGE 2
 #define US_PER_S 1000000ULL

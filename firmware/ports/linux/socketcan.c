@@ -77,6 +77,18 @@ int port_can_open(const struct port_options *o)
     return s;
 }
 
+/* Replace the socket's kernel filter: extended frames whose id & mask is can_id & mask. */
+void port_can_filter(int sock, uint32_t can_id, uint32_t mask)
+{
+    struct can_filter filter;
+    filter.can_id = (canid_t)can_id | CAN_EFF_FLAG;
+    filter.can_mask = (canid_t)mask | CAN_EFF_FLAG;
+    if (setsockopt(sock, SOL_CAN_RAW, CAN_RAW_FILTER, &filter, sizeof filter) != 0) {
+        (void)fprintf(stderr, "%s: error: CAN filter: %s\n", PROG, strerror(errno));
+        exit(EXIT_USAGE);
+    }
+}
+
 /* One frame: classic up to 8 bytes, CAN FD with bit rate switch above (FD layout). */
 void port_can_send(int sock, struct port_counters *count, uint32_t id, const uint8_t *data,
                    size_t len)

@@ -14,6 +14,7 @@
 /* A raw CAN socket bound to o->channel that passes this node's frames in both directions
  * (id_base | node, mask 0x1FFFF0FF, 29-bit); CAN FD frames with o->fd. Exits 2 on failure. */
 int port_can_open(const struct port_options *o);
+void port_can_filter(int sock, uint32_t can_id, uint32_t mask);
 
 /* Send one 29-bit frame (CAN FD with bit rate switch above 8 bytes); ENOBUFS is tried again
  * with backoff, then counted in send_failures. */

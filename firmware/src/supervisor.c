@@ -339,6 +339,35 @@ static bool slot_valid(const struct canergy_supervisor *sup, const uint8_t *p)
     return true;
 }
 
+/* A slot holding a supervisor's record that is not this one's: another version, or another
+ * node list under a matching CRC (a torn or damaged slot is not foreign, only invalid). */
+static bool slot_foreign(const struct canergy_supervisor *sup, const uint8_t *p, size_t room)
+{
+    if (le_get(p, 4U) != SLOT_MAGIC) {
+        return false;
+    }
+    if (p[4] != SLOT_VERSION) {
+        return true;
+    }
+    const uint8_t count = p[5];
+    if (count > CANERGY_SUPERVISOR_NODES || slot_bytes(count) > room) {
+        return false;
+    }
+    const size_t body = slot_bytes(count) - 4U;
+    if (le_get(&p[body], 4U) != canergy_crc32(0U, p, body)) {
+        return false;
+    }
+    if (count != sup->count) {
+        return true;
+    }
+    for (uint8_t i = 0U; i < count; i++) {
+        if (p[SLOT_HEADER + SESSION_BYTES * (size_t)i] != sup->sessions[i].node) {
+            return true;
+        }
+    }
+    return false;
+}
+
 static void slot_take(struct canergy_supervisor *sup, const uint8_t *p)
 {
     sup->usable_uj = le_get64(&p[12]);
@@ -369,12 +398,18 @@ int canergy_supervisor_load(struct canergy_supervisor *sup,
     const size_t each = CANERGY_SUPERVISOR_SLOT_SIZE;
     int newest = -1;
     uint32_t best = 0U;
+    bool foreign = false;
     for (uint8_t i = 0U; i < 2U; i++) {
         const size_t start = (size_t)i * each;
-        if (image == NULL || len < start + slot_bytes(count)) {
+        if (image == NULL || len < start + 8U) {
             continue;
         }
         const uint8_t *p = &image[start];
+        const size_t room = len - start < each ? len - start : each;
+        foreign = foreign || slot_foreign(sup, p, room);
+        if (room < slot_bytes(count)) {
+            continue;
+        }
         const uint32_t c = le_get(&p[8], 4U);
         if (slot_valid(sup, p) && (newest < 0 || (uint32_t)(c - best) - 1U < 0x7FFFFFFFUL)) {
             newest = (int)i;
@@ -384,7 +419,7 @@ int canergy_supervisor_load(struct canergy_supervisor *sup,
     *counter = best;
     *slot = newest < 0 ? 1U : (uint8_t)newest; /* none: slot 0 is written first */
     if (newest < 0) {
-        return 0;
+        return foreign ? CANERGY_ERR_RECORD : 0;
     }
     slot_take(sup, &image[(size_t)newest * each]);
     canergy_supervisor_restart(sup, 0U);

@@ -464,8 +464,12 @@ static void test_supervisor(void)
           "a damaged newer slot: the older one");
     const uint8_t others[2] = {3U, 6U};
     check(canergy_supervisor_load(&back, &cfg, others, 2U, 7U, nv, sizeof nv, &counter, &slot) ==
-              0,
-          "another node list: not this supervisor's record");
+              CANERGY_ERR_RECORD,
+          "another node list: not this supervisor's record, and no new start over it");
+    nv[4] = 1U; /* the older slot now says version 1, the newer one is damaged */
+    check(canergy_supervisor_load(&back, &cfg, nodes, 2U, 7U, nv, sizeof nv, &counter, &slot) ==
+              CANERGY_ERR_RECORD,
+          "a record of another version: no new start over it");
 }
 
 static void test_budgets(void)

@@ -138,14 +138,18 @@ int canergy_supervisor_withdraw(struct canergy_supervisor *sup, uint64_t amount_
 #define CANERGY_SUPERVISOR_SLOT_SIZE (40U + 32U * CANERGY_SUPERVISOR_NODES)
 
 /* The record as slot bytes with this counter (the slot written before it has counter - 1);
- * returns the bytes used, 32 + 32 per session (the rest of the slot is left as it is). */
+ * returns the bytes used, 40 + 32 per session (the rest of the slot is left as it is). */
 size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t counter,
                                 uint8_t out[CANERGY_SUPERVISOR_SLOT_SIZE]);
+
+#define CANERGY_ERR_RECORD (-4) /* NV holds a supervisor record of another version or node list */
 
 /* Start: init, then take the valid slot written last in image (len bytes, both slots; NULL/0
  * when blank) whose nodes are these. Returns 1 with *counter and *slot of that record, 0 when
  * there is none (the supervisor starts new: its nodes may still hold books of an earlier life,
- * so the port should not grant before they have told it, e.g. by JOIN), or an init error. */
+ * so the port should not grant before they have told it, e.g. by JOIN), CANERGY_ERR_RECORD
+ * when there is none of these nodes but a record of another version or node list (never start
+ * new over it: its Us would be granted a second time), or an init error. */
 int canergy_supervisor_load(struct canergy_supervisor *sup,
                             const struct canergy_supervisor_config *cfg, const uint8_t *nodes,
                             uint8_t count, uint64_t initial_uj, const uint8_t *image, size_t len,

@@ -86,15 +86,20 @@ def test_the_c_gateway_survives_kill_9_and_the_tree_closes(
     )
     assert status(gw_status)["upstream"]["joins"] == 0  # its books survived: no JOIN
 
-    # a RETURN forged in node 1's name (no key on vcan1): held, refuted by the node's own
-    # TELEMETRY, never credited
-    seq = (int(status(tmp / "n1.json")["return_seq"]) + 1) & 0xFFFF
-    arbitration_id, data = Codec().encode(Return(1, seq, 1_000))
+    # RETURNs forged in node 1's name (no key on vcan1), never credited: 1 mJ (it holds that
+    # much) is held until the node's own TELEMETRY refutes it; 60 J is more than its books let
+    # it hold, refuted at once
     credited = status(gw_status)["nodes"]["1"]["returns_credited_uj"]
-    forged = subprocess.run(["cansend", DOWN, f"{arbitration_id:08X}#{data.hex().upper()}"])
-    assert forged.returncode == 0
-    wait(lambda: status(gw_status)["nodes"]["1"]["returns_refuted"] >= 1, "the forgery refuted")
-    assert status(gw_status)["nodes"]["1"]["returns_credited_uj"] - credited < 1_000_000
+    for amount_mj, refuted in ((1, 1), (60_000, 2)):
+        seq = (int(status(tmp / "n1.json")["return_seq"]) + 1) & 0xFFFF
+        arbitration_id, data = Codec().encode(Return(1, seq, amount_mj))
+        forged = subprocess.run(["cansend", DOWN, f"{arbitration_id:08X}#{data.hex().upper()}"])
+        assert forged.returncode == 0
+        wait(
+            lambda n=refuted: status(gw_status)["nodes"]["1"]["returns_refuted"] >= n,
+            f"the forged RETURN of {amount_mj} mJ refuted",
+        )
+    assert status(gw_status)["nodes"]["1"]["returns_credited_uj"] == credited
 
     assert procs.stop("gateway") == 0, procs.stderr("gateway")  # settles below, then exits
     assert procs.stop("root") == 0, procs.stderr("root")

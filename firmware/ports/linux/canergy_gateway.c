@@ -8,7 +8,7 @@
  *                   --nv PATH [--status-file PATH] [--target E] [--min-grant E]
  *                   [--return-above E] [--telemetry-period T] [--response-timeout T]
  *                   [--upstream-response-timeout T] [--retries N] [--status-period T]
- *                   [--stop-timeout T] [--id-base ID]
+ *                   [--stop-timeout T] [--return-hold T] [--id-base ID]
  *
  * One record for both roles (the client's above, the supervisor's below) in two slots of the NV
  * file, written in turn with fsync before any frame of the step leaves: a kill -9 at any instant
@@ -120,6 +120,7 @@ struct gateway_port {
     int nv_fd;
     int stopping;
     int telemetry_now; /* a commit or pay-back above: report the new level at once */
+    uint64_t witnessed; /* frames in its name above that it did not send (not wrapped) */
 };
 
 static volatile sig_atomic_t stop_requested;
@@ -347,6 +348,11 @@ static void start(struct gateway_port *g, uint64_t now)
         (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, o->nv_path, strerror(errno));
         exit(EXIT_USAGE);
     }
+    if (got > 0 && get32(image) != GW_MAGIC && get32(&image[GW_SLOT]) != GW_MAGIC) {
+        (void)fprintf(stderr, "%s: error: --nv %s: not a gateway's NV file (a node's?)\n",
+                      PROG, o->nv_path);
+        exit(EXIT_USAGE);
+    }
     const struct canergy_supervisor_config down = {
         o->id_base, {(uint32_t)o->response_timeout_us, o->retries}};
     const struct canergy_client_config up = {o->id_base, (uint32_t)(2U * o->up_response_timeout_us),
@@ -499,6 +505,10 @@ static void receive_up(struct gateway_port *g, uint64_t now)
         struct canergy_out out;
         const int status = canergy_gateway_on_up_frame(&g->gw, &rx, now, &out);
         count_decode(&g->up_count, status);
+        if (status == CANERGY_DECODE_WRONG_DIRECTION && (rx.id & 0xFFU) == g->opt.node) {
+            g->witnessed++; /* someone speaks in its name above: say so in TELEMETRY at once */
+            g->telemetry_now = 1;
+        }
         up_out(g, &out);
         if ((out.events & (CANERGY_EV_COMMITTED | CANERGY_EV_TIMEOUT_COMMIT | CANERGY_EV_CREDITED |
                            CANERGY_EV_ADMITTED)) != 0U) {
@@ -531,6 +541,12 @@ static int hold_return(struct gateway_port *g, struct below *b, const struct can
     const struct canergy_session *s = &g->gw.down.sessions[b - g->below];
     if (ahead16(m->seq, s->returns_credited) != 1) {
         return 0;
+    }
+    const uint64_t holdable = s->delivered_uj + s->reserved_uj - s->returned_uj;
+    if ((uint64_t)m->amount_mj * MJ > holdable) {
+        refute(b, now); /* more than its books let it hold: no honest node sends it */
+        b->refuted++;
+        return 1;
     }
     if (!b->held) {
         b->held = 1U;
@@ -630,7 +646,9 @@ static void top_up(struct gateway_port *g, uint64_t now)
         if (wanted < g->opt.min_grant_uj) {
             continue;
         }
-        uint64_t amount = least(least(wanted, (uint64_t)CANERGY_AMOUNT_MAX_MJ * MJ),
+        /* never above what the node's record holds, nor one frame, nor Us */
+        const uint64_t room = CANERGY_USABLE_MAX_UJ - least(b->level_uj, CANERGY_USABLE_MAX_UJ);
+        uint64_t amount = least(least(least(wanted, room), (uint64_t)CANERGY_AMOUNT_MAX_MJ * MJ),
                                 g->gw.down.usable_uj);
         amount -= amount % MJ;
         if (amount == 0U) {
@@ -674,6 +692,7 @@ static void telemetry(struct gateway_port *g)
     m.level_mj = mj > CANERGY_WIDE_MAX ? (uint32_t)CANERGY_WIDE_MAX : (uint32_t)mj;
     m.flags = canergy_client_joining(&g->gw.up) ? CANERGY_TELEMETRY_JOINING : 0U;
     m.seq = (uint16_t)(g->gw.up.rec.return_seq & 0xFFFFU);
+    m.witness = (uint8_t)(g->witnessed & 0xFFU);
     struct canergy_frame f;
     if (canergy_encode(g->opt.id_base, &m, &f) == CANERGY_OK) {
         port_can_send(g->up_sock, &g->up_count, f.id, f.data, f.dlc);
@@ -748,12 +767,13 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                   "}, \"upstream\": {\"node\": %u, \"usable_uj\": %lu, \"spent_uj\": %llu, "
                   "\"credited_uj\": %llu, \"return_pending_uj\": %lu, \"return_seq\": %lu, "
                   "\"last_tx\": %lu, \"joining\": %s, \"joins\": %d, "
-                  "\"returned_this_run_uj\": %llu, ",
+                  "\"returned_this_run_uj\": %llu, \"witnessed\": %llu, ",
                   (unsigned)g->opt.node, (unsigned long)r->usable_uj,
                   (unsigned long long)r->spent_uj, (unsigned long long)r->credited_mj * MJ,
                   (unsigned long)r->return_pending_uj, (unsigned long)r->return_seq,
                   (unsigned long)r->last_tx, canergy_client_joining(&g->gw.up) ? "true" : "false",
-                  g->joins, (unsigned long long)g->returned_uj);
+                  g->joins, (unsigned long long)g->returned_uj,
+                  (unsigned long long)g->witnessed);
     write_counters(f, "bus", &g->up_count);
     (void)fputs("}}\n", f);
 }
@@ -845,6 +865,9 @@ int main(int argc, char **argv)
             struct canergy_out out;
             canergy_gateway_on_up_timer(&g.gw, now, &out);
             up_out(&g, &out);
+            if ((out.events & (CANERGY_EV_TIMEOUT_COMMIT | CANERGY_EV_CREDITED)) != 0U) {
+                g.telemetry_now = 1;
+            }
         }
         if (canergy_supervisor_deadline(&g.gw.down) <= now) {
             struct canergy_supervisor_out out;

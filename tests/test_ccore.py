@@ -163,14 +163,16 @@ class _Wire(can.BusABC):
         return (self.inbox.pop(0) if self.inbox else None), False
 
 
-def _run_script(core: str) -> tuple[list[tuple[int, bytes]], dict[str, Any], int]:
+def _run_script(
+    core: str, id_base: int | None = None
+) -> tuple[list[tuple[int, bytes]], dict[str, Any], int]:
     """The same frames to a service on each core through the bus loop: a grant, a forged ACK
     naming a transaction never begun, damaged bytes, the real ACK twice, COMMITTED."""
-    codec = Codec()
+    codec = Codec() if id_base is None else Codec(id_base)
     wire = _Wire()
     now = [0]
     service = SupervisorService(
-        make_supervisor(core, [3], 10_000_000, timing=T), ServiceConfig(), 0
+        make_supervisor(core, [3], 10_000_000, timing=T, id_base=id_base), ServiceConfig(), 0
     )
     taken = 0
     fast = service.fast_frame
@@ -207,12 +209,14 @@ def _run_script(core: str) -> tuple[list[tuple[int, bytes]], dict[str, Any], int
     return wire.sent, service.status(), taken
 
 
-def test_the_fast_path_answers_as_the_python_core_does() -> None:
+@pytest.mark.parametrize("id_base", [None, 0x0CF00000])
+def test_the_fast_path_answers_as_the_python_core_does(id_base: int | None) -> None:
     """The compiled core's fast path sends the same frames and keeps the same books as the
-    Python core's usual path; the forged ACK is still an intrusion and the damaged frame a
-    decode error (both left to the usual path), and the fast path took the genuine answers."""
-    py_sent, py_status, py_taken = _run_script("python")
-    c_sent, c_status, c_taken = _run_script("c")
+    Python core's usual path, in the bus's identifier block; the forged ACK is still an
+    intrusion and the damaged frame a decode error (both left to the usual path), and the fast
+    path took the genuine answers."""
+    py_sent, py_status, py_taken = _run_script("python", id_base)
+    c_sent, c_status, c_taken = _run_script("c", id_base)
     assert c_sent == py_sent and len(c_sent) >= 2  # INTENTION, COMMIT
     for key in ("usable_uj", "delivered_uj", "intrusions"):
         assert c_status[key] == py_status[key], key

@@ -190,15 +190,12 @@ class CompiledSupervisor:
         return all(s.phase is Phase.IDLE for s in self._sessions)
 
     def _load(self, st: SupervisorState) -> None:
-        """Take a saved state (the state file's): Us, injected and every session's record."""
+        """Take a saved state (the state file's): Us, injected, withdrawn and every session's
+        record."""
         if tuple(s.node for s in st.sessions) != self.nodes:
             raise ValueError("the state's nodes are not this supervisor's")
-        if st.withdrawn:
-            raise ValueError(
-                "the C core keeps no withdrawn energy (a gateway's): use --core python"
-            )
         sup = self._sup
-        sup.usable_uj, sup.injected_uj = st.usable, st.injected
+        sup.usable_uj, sup.injected_uj, sup.withdrawn_uj = st.usable, st.injected, st.withdrawn
         self._initial = st.initial
         for i, s in enumerate(st.sessions):
             if s.phase not in _PHASES or s.tx >= 2**32 or s.returns_credited >= 2**32:
@@ -367,12 +364,14 @@ def make_supervisor(
     variant: str = "hardened",
     timing: Timing | None = None,
     state: SupervisorState | None = None,
+    id_base: int | None = None,
 ) -> SupervisorCore:
-    """A supervisor core by name: "python" (``core.Supervisor``, any variant) or "c"."""
+    """A supervisor core by name: "python" (``core.Supervisor``, any variant) or "c";
+    ``id_base``: the bus's identifier block (the C core encodes and decodes frames itself)."""
     if core == "c":
         if variant != "hardened":
             raise ValueError("the C core runs the hardened rules only")
-        return CompiledSupervisor(nodes, initial, timing=timing, state=state)
+        return CompiledSupervisor(nodes, initial, timing=timing, state=state, id_base=id_base)
     if core != "python":
         raise ValueError(f"unknown core {core!r}: c or python")
     return Supervisor(nodes, initial, variant=variant, timing=timing, state=state)

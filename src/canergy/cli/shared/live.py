@@ -166,7 +166,13 @@ def build_core(
     if args.state is not None and not getattr(args, "listen_only", False):
         keep_books(args.state, seal, args.auth, fresh=state is None)
     core = make_supervisor(
-        kind, nodes, args.initial, variant=args.variant, timing=timing, state=state
+        kind,
+        nodes,
+        args.initial,
+        variant=args.variant,
+        timing=timing,
+        state=state,
+        id_base=args.id_base,
     )
     if state is not None:
         core.power_loss(monotonic_us())  # a start is a restart from the persistent record

@@ -55,11 +55,13 @@ def test_faults_and_power_losses_never_generate_energy(tmp_path: Path) -> None:
         rig.power_loss_supervisor()  # and so does the supervisor, from its state file
         service = rig.start_supervisor()
         rig.wait(lambda: all(service.nodes[n].committed >= 2 for n in nodes), timeout_s=120)
+        # a return credited since the restart: waited for, not assumed (a RETURN lost to the
+        # faults is re-sent later, later still on a loaded machine)
+        rig.wait(lambda: service.nodes[1].returns > 0, timeout_s=120)
         rig.settle()
         books = rig.ledger()
         assert books.dissipated >= 0, books  # nothing generated
         assert books.spent > 0 and books.clients_usable > 0
-        assert service.nodes[1].returns > 0
         assert service.intrusions.total == 0, service.intrusions.as_json()  # no false alarm
     finally:
         rig.close()

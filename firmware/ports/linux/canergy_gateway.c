@@ -32,6 +32,7 @@
 #include "args.h"
 #include "port.h"
 #include "socketcan.h"
+#include "system.h"
 
 #include "canergy/gateway.h"
 
@@ -43,9 +44,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <sys/random.h>
 #include <sys/stat.h>
-#include <time.h>
 #include <unistd.h>
 
 const char *const port_prog = "canergy-gateway";
@@ -129,26 +128,6 @@ static void on_stop_signal(int signum)
 {
     (void)signum;
     stop_requested = 1;
-}
-
-static uint64_t now_us(void)
-{
-    struct timespec ts;
-    if (clock_gettime(CLOCK_MONOTONIC, &ts) != 0) {
-        perror("canergy-gateway: clock_gettime");
-        exit(EXIT_NV);
-    }
-    return (uint64_t)ts.tv_sec * US_PER_S + (uint64_t)ts.tv_nsec / 1000U;
-}
-
-static uint16_t random16(void)
-{
-    uint16_t v = 0U;
-    if (getrandom(&v, sizeof v, 0) != (ssize_t)sizeof v) {
-        (void)fprintf(stderr, "%s: error: no entropy for the JOIN nonce\n", PROG);
-        exit(EXIT_USAGE);
-    }
-    return v;
 }
 
 /* ---- the command line ---- */
@@ -380,7 +359,7 @@ static void start(struct gateway_port *g, uint64_t now)
         uint8_t client_nv[CANERGY_NV_SLOTS * CANERGY_NV_SLOT_SIZE];
         memset(client_nv, 0, sizeof client_nv);
         canergy_nv_slot_encode(best, &s[GW_HEADER], CANERGY_NV_RECORD_SIZE, client_nv);
-        (void)canergy_client_start(&g->gw.up, &up, client_nv, sizeof client_nv, random16(), now,
+        (void)canergy_client_start(&g->gw.up, &up, client_nv, sizeof client_nv, port_random16(), now,
                                    &out);
         const int loaded = canergy_supervisor_load(
             &g->gw.down, &down, o->nodes, o->count, 0U, &s[GW_HEADER + CANERGY_NV_RECORD_SIZE],
@@ -393,7 +372,7 @@ static void start(struct gateway_port *g, uint64_t now)
         g->nv_counter = best;
         g->nv_slot = (uint8_t)newest;
     } else {
-        (void)canergy_client_start(&g->gw.up, &up, NULL, 0U, random16(), now, &out);
+        (void)canergy_client_start(&g->gw.up, &up, NULL, 0U, port_random16(), now, &out);
         if (canergy_supervisor_init(&g->gw.down, &down, o->nodes, o->count, 0U) != CANERGY_OK) {
             port_usage_error("argument --nodes: not a node list this gateway can hold");
         }
@@ -834,11 +813,11 @@ int main(int argc, char **argv)
     sa.sa_handler = on_stop_signal;
     (void)sigaction(SIGINT, &sa, NULL);
     (void)sigaction(SIGTERM, &sa, NULL);
-    uint64_t now = now_us();
+    uint64_t now = port_now_us();
     start(&g, now);
     uint64_t next_telemetry = now, next_tick = now, next_status = now, stop_at = 0U;
     for (;;) {
-        now = now_us();
+        now = port_now_us();
         if (stop_requested && !g.stopping) {
             g.stopping = 1;
             stop_at = now + g.opt.stop_timeout_us;
@@ -858,7 +837,7 @@ int main(int argc, char **argv)
         if (poll(fds, 2U, timeout_ms) < 0 && errno != EINTR) {
             g.down_count.receive_errors++;
         }
-        now = now_us();
+        now = port_now_us();
         receive_up(&g, now);
         receive_down(&g, now);
         if (canergy_client_deadline(&g.gw.up) <= now) {
@@ -890,7 +869,7 @@ int main(int argc, char **argv)
             save_status(&g, now);
         }
     }
-    save_status(&g, now_us());
+    save_status(&g, port_now_us());
     (void)close(g.nv_fd);
     return 0;
 }

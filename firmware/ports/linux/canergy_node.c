@@ -34,14 +34,13 @@
 #include "keyfile.h"
 #include "port.h"
 #include "socketcan.h"
+#include "system.h"
 #include "storage.h"
 
 #include <signal.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
-#include <sys/random.h>
-#include <time.h>
 #include <unistd.h>
 
 const char *const port_prog = "canergy-node";
@@ -52,31 +51,6 @@ static void on_stop_signal(int signum)
 {
     (void)signum;
     stop_requested = 1;
-}
-
-static uint64_t now_us(void)
-{
-    struct timespec ts;
-    if (clock_gettime(CLOCK_MONOTONIC, &ts) != 0) {
-        perror("canergy-node: clock_gettime");
-        exit(EXIT_NV);
-    }
-    return (uint64_t)ts.tv_sec * US_PER_S + (uint64_t)ts.tv_nsec / 1000U;
-}
-
-static uint16_t random16(void)
-{
-    uint16_t v = 0U;
-    if (getrandom(&v, sizeof v, 0) == (ssize_t)sizeof v) {
-        return v;
-    }
-    FILE *f = fopen("/dev/urandom", "rb");
-    if (f == NULL || fread(&v, sizeof v, 1U, f) != 1U) {
-        (void)fprintf(stderr, "%s: error: no entropy for the JOIN nonce\n", PROG);
-        exit(EXIT_USAGE);
-    }
-    (void)fclose(f);
-    return v;
 }
 
 /* ---- the loop ---- */
@@ -120,7 +94,7 @@ static void carry_out(struct port *p, const struct canergy_out *out)
 
 static void receive_one(struct port *p, const struct canergy_rx_frame *rx)
 {
-    const uint64_t now = now_us();
+    const uint64_t now = port_now_us();
     struct canergy_out out;
     const uint8_t witness = p->node.witness;
     const int status = p->opt.auth_path != NULL
@@ -187,8 +161,8 @@ int main(int argc, char **argv)
                                : (uint32_t)p.opt.return_above_uj,
     };
     struct canergy_out out;
-    uint64_t now = now_us();
-    const uint16_t nonce = random16();
+    uint64_t now = port_now_us();
+    const uint16_t nonce = port_random16();
     const int fallbacks = canergy_node_start(&p.node, &cfg, image, image_len, nonce, now, &out);
     if (fallbacks < 0) {
         port_usage_error("bad node configuration");
@@ -196,7 +170,7 @@ int main(int argc, char **argv)
     p.nv_fallbacks = fallbacks;
     p.joins = canergy_client_joining(&p.node.client) ? 1 : 0;
     if (p.joins && p.opt.auth_path != NULL) {
-        canergy_auth_set_join(&p.auth, random16(), nonce); /* a 32-bit JOIN freshness */
+        canergy_auth_set_join(&p.auth, port_random16(), nonce); /* a 32-bit JOIN freshness */
     }
     carry_out(&p, &out);
     p.last_draw_us = now;
@@ -204,7 +178,7 @@ int main(int argc, char **argv)
     uint64_t next_status = now;
 
     while (!stop_requested) {
-        now = now_us();
+        now = port_now_us();
         if (now >= canergy_node_deadline(&p.node)) {
             canergy_node_poll(&p.node, now, &out);
             carry_out(&p, &out);
@@ -224,7 +198,7 @@ int main(int argc, char **argv)
             next_status = now + p.opt.status_period_us;
         }
         const uint64_t wake = min3(canergy_node_deadline(&p.node), next_tick, next_status);
-        now = now_us();
+        now = port_now_us();
         if (port_can_wait(p.sock, &p.count, wake, now)) {
             receive_all(&p);
         }

@@ -34,13 +34,14 @@ from support.c_binding import (
     rx,
 )
 from support.c_session import fields_of, timing_of
+from support.strategies import client_answer
 
 from canergy.codec import Codec
 from canergy.core.actions import Persist, Send
 from canergy.core.errors import LocalProtocolError
 from canergy.core.supervisor import Supervisor
 from canergy.core.timing import Timing
-from canergy.messages import QUANTUM_UJ, Aborted, Ack, Committed, Join, Return
+from canergy.messages import QUANTUM_UJ
 
 NODES = (3, 5, 9)
 T = Timing(response_timeout_us=1_000, retries=2)
@@ -120,23 +121,8 @@ class SideBySide(RuleBasedStateMachine):
     def receive(self, data: st.DataObject) -> None:
         node = data.draw(st.sampled_from([*NODES, 4]))
         s = self.py.session(node) if node in NODES else None
-        near = 0 if s is None else s.tx
-        seq_near = 0 if s is None else s.returns_credited
-        tx = data.draw(st.one_of(st.integers(-2, 2).map(lambda d: (near + d) & 0xFFFF),
-                                 st.integers(0, 0xFFFF)))  # fmt: skip
-        seq = data.draw(st.one_of(st.integers(-2, 2).map(lambda d: (seq_near + d) & 0xFFFF),
-                                  st.integers(0, 0xFFFF)))  # fmt: skip
-        msg = data.draw(
-            st.sampled_from(
-                [
-                    Ack(node, tx),
-                    Committed(node, tx),
-                    Aborted(node, tx),
-                    Return(node, seq, data.draw(st.integers(1, 2_000))),
-                    Join(node, data.draw(st.integers(0, 0xFFFF))),
-                ]
-            )
-        )
+        tx, credited = (0, 0) if s is None else (s.tx, s.returns_credited)
+        msg = client_answer(data, node, tx, credited)
         arbitration_id, payload = CODEC.encode(msg)
         if data.draw(st.booleans(), label="damage a byte"):
             payload = bytearray(payload)

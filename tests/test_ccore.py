@@ -14,6 +14,7 @@ import pytest
 from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
+from support.strategies import client_answer
 
 from canergy.ccore.supervisor import CompiledSupervisor, make_supervisor, missing
 from canergy.codec import Codec
@@ -25,12 +26,9 @@ from canergy.live.runtime import BusRuntime
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.messages import (
     QUANTUM_UJ,
-    Aborted,
     Ack,
     Committed,
     Direction,
-    Join,
-    Return,
     Telemetry,
 )
 
@@ -92,24 +90,8 @@ class SideBySide(RuleBasedStateMachine):
     def receive(self, data: st.DataObject) -> None:
         node = data.draw(st.sampled_from([*NODES, 4]))
         s = self.py.session(node) if node in NODES else None
-        near = 0 if s is None else s.tx
-        seq_near = 0 if s is None else s.returns_credited
-        tx = data.draw(st.one_of(st.integers(-2, 2).map(lambda d: (near + d) & 0xFFFF),
-                                 st.integers(0, 0xFFFF)))  # fmt: skip
-        seq = data.draw(st.one_of(st.integers(-2, 2).map(lambda d: (seq_near + d) & 0xFFFF),
-                                  st.integers(0, 0xFFFF)))  # fmt: skip
-        msg = data.draw(
-            st.sampled_from(
-                [
-                    Ack(node, tx),
-                    Committed(node, tx),
-                    Aborted(node, tx),
-                    Return(node, seq, data.draw(st.integers(1, 2_000))),
-                    Join(node, data.draw(st.integers(0, 0xFFFF))),
-                    Telemetry(node, data.draw(st.integers(0, 0xFFFFFF))),
-                ]
-            )
-        )
+        tx, credited = (0, 0) if s is None else (s.tx, s.returns_credited)
+        msg = client_answer(data, node, tx, credited, telemetry=True)
         self._same(lambda: self.py.receive(msg, self.now), lambda: self.c.receive(msg, self.now))
 
     @rule(dt=st.integers(0, 3_000))

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from support.procs import Procs, python, status, wait
 from support.procs import procs as procs  # the fixture
-from support.vcan import FIRMWARE, TIMEOUT
+from support.vcan import TIMEOUT, built
 from support.vcan import c_node as c_node  # the fixture: builds canergy-node when missing
 
 from canergy.codec import Codec
@@ -22,19 +22,11 @@ pytestmark = pytest.mark.vcan
 
 UP, DOWN = "vcan0", "vcan1"
 GW = 20
-C_GATEWAY = FIRMWARE / "build" / "canergy-gateway"
 
 
 @pytest.fixture(scope="module")
 def c_gateway() -> Path:
-    build = subprocess.run(
-        ["make", "-C", str(FIRMWARE), "build/canergy-gateway"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert build.returncode == 0, f"make canergy-gateway failed:\n{build.stdout}{build.stderr}"
-    return C_GATEWAY
+    return built("build/canergy-gateway")
 
 
 @pytest.fixture(scope="module", autouse=True)

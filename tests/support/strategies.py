@@ -15,6 +15,7 @@ from canergy.messages import (
     Committed,
     FinalAck,
     Intention,
+    Join,
     Message,
     Return,
     ReturnAck,
@@ -46,3 +47,28 @@ messages: st.SearchStrategy[Message] = st.one_of(
         st.integers(0, 0xFF),
     ),
 )
+
+
+def client_answer(
+    data: st.DataObject, node: int, tx: int, returns_credited: int, *, telemetry: bool = False
+) -> Message:
+    """A message a client could send its supervisor, its counters near the session's
+    (``tx``, ``returns_credited``) or anywhere: ACK, COMMITTED, ABORTED, RETURN, JOIN (and
+    TELEMETRY, which no supervisor rule takes)."""
+
+    def near(counter: int) -> st.SearchStrategy[int]:
+        return st.one_of(
+            st.integers(-2, 2).map(lambda d: (counter + d) & 0xFFFF), st.integers(0, 0xFFFF)
+        )
+
+    wire_tx, seq = data.draw(near(tx)), data.draw(near(returns_credited))
+    choices: list[Message] = [
+        Ack(node, wire_tx),
+        Committed(node, wire_tx),
+        Aborted(node, wire_tx),
+        Return(node, seq, data.draw(st.integers(1, 2_000))),
+        Join(node, data.draw(st.integers(0, 0xFFFF))),
+    ]
+    if telemetry:
+        choices.append(Telemetry(node, data.draw(st.integers(0, 0xFFFFFF))))
+    return data.draw(st.sampled_from(choices))

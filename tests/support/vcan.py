@@ -86,22 +86,27 @@ def supervisor(procs: Procs, nodes: str, *extra: str) -> subprocess.Popen[bytes]
 # The C node (firmware/ports/linux): the same process model, flags, NV file and status file as
 # firmware_model --node, so the tests carry over with the binary in its place.
 FIRMWARE = ROOT / "firmware"
-C_NODE = FIRMWARE / "build" / "canergy-node"
 
 
-@pytest.fixture(scope="module")
-def c_node() -> Path:
-    """Build the binary when missing (make); a build that fails fails the test loudly."""
-    if not C_NODE.exists():
+def built(target: str) -> Path:
+    """``firmware/build/TARGET``, built when missing (make); a build that fails fails the test
+    loudly."""
+    binary = FIRMWARE / target
+    if not binary.exists():
         build = subprocess.run(
-            ["make", "-C", str(FIRMWARE), "build/canergy-node"],
+            ["make", "-C", str(FIRMWARE), target],
             capture_output=True,
             text=True,
             timeout=600,
         )
-        assert build.returncode == 0, f"make canergy-node failed:\n{build.stdout}{build.stderr}"
-    assert os.access(C_NODE, os.X_OK), f"{C_NODE} was not built"
-    return C_NODE
+        assert build.returncode == 0, f"make {target} failed:\n{build.stdout}{build.stderr}"
+    assert os.access(binary, os.X_OK), f"{binary} was not built"
+    return binary
+
+
+@pytest.fixture(scope="module")
+def c_node() -> Path:
+    return built("build/canergy-node")
 
 
 def c_client(procs: Procs, binary: Path, node: int, *extra: str) -> subprocess.Popen[bytes]:

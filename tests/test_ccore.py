@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 from support.strategies import client_answer
 
+from canergy.auth.frames import FrameAuth, Layout, expected_freshness, freshness
 from canergy.ccore.supervisor import CompiledSupervisor, make_supervisor, missing
 from canergy.codec import Codec
 from canergy.core.actions import Action, Persist
@@ -27,8 +28,10 @@ from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.messages import (
     QUANTUM_UJ,
     Ack,
+    Commit,
     Committed,
     Direction,
+    Intention,
     Telemetry,
 )
 
@@ -206,3 +209,41 @@ def test_the_fast_path_answers_as_the_python_core_does(id_base: int | None) -> N
     assert c_status["intrusions"] == 1 and node["decode_errors"] == py_node["decode_errors"] == 1
     assert node["committed"] == py_node["committed"] == 1
     assert (py_taken, c_taken) == (0, 3)  # both ACKs and the COMMITTED, on the C core only
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_with_a_key_every_frame_of_the_c_core_leaves_with_its_mac(layout: Layout) -> None:
+    """The fast path sends C's bytes as they are, without a MAC: with a key the bus loop must
+    not take it. The INTENTION and the COMMIT that answers an authenticated ACK (whose classic
+    data frame alone would decode on the fast path) both verify at the node."""
+    key = bytes(range(16))
+    codec, fd = Codec(), layout is Layout.FD
+    wire = _Wire()
+    service = SupervisorService(make_supervisor("c", [3], 10_000_000, timing=T), ServiceConfig(), 0)
+    auth = FrameAuth(codec, layout, lambda n: key, Direction.TO_SUPERVISOR, service.freshness)
+    loop = BusRuntime(wire, service, codec=codec, receives=Direction.TO_SUPERVISOR, auth=auth)
+    loop.clock = lambda: 0
+    service.on_message(Telemetry(3, 0), 0)
+    service.request_grant(3, 2_000_000, lambda reply: None)
+    loop.poll(0)
+    node = FrameAuth(
+        codec, layout, lambda n: key, Direction.TO_CLIENT, lambda m: expected_freshness(m, 0, 0)
+    )
+    node_sends = FrameAuth(
+        codec, layout, lambda n: key, Direction.TO_CLIENT, lambda m: freshness(m, 1, 0)
+    )
+
+    def heard(sent: list[tuple[int, bytes]]) -> list[Any]:
+        frames = [can.Message(arbitration_id=i, data=d, is_fd=fd) for i, d in sent]
+        return [v.message for v in map(node.accept, frames) if v.failure is None and v.message]
+
+    assert heard(wire.sent) == [Intention(3, 1, 2_000, 0)]
+    wire.sent.clear()
+    wire.inbox += node_sends.frames(Ack(3, 1))
+    loop.poll(0)
+    node = FrameAuth(
+        codec, layout, lambda n: key, Direction.TO_CLIENT, lambda m: expected_freshness(m, 1, 0)
+    )
+    assert heard(wire.sent) == [Commit(3, 1, 2_000)]
+    assert service.core.session(3).phase.name == "WAIT_CONFIRM"
+    wire.shutdown()

@@ -114,9 +114,9 @@ class _Counting:
     def end_pass(self) -> Sequence[Outgoing]:
         return self.service.end_pass()
 
-    def fast_frame(self, frame: can.Message, now: int) -> bool:
+    def fast_path(self) -> Callable[[can.Message, int], bool] | None:
         """The compiled core's fast path (never a TELEMETRY: those are counted above)."""
-        return self.service.fast_frame(frame, now)
+        return self.service.fast_path()
 
     def next_wakeup(self) -> int | None:
         return self.service.next_wakeup()

@@ -129,9 +129,10 @@ def grants_on_bus(
     duration_s: float,
     c_node: Path | None,
     state_file: bool = False,
+    core: str = "python",
 ) -> dict[str, Any]:
     """``live.drive_grants`` on the flags' bus against node processes; ``state_file``: the
-    supervisor keeps its books in a file."""
+    supervisor keeps its books in a file; ``core``: its core ("python", "c")."""
     codec = Codec(args.id_base)
     with tempfile.TemporaryDirectory() as tmp:
         logs = Path(tmp)
@@ -146,6 +147,7 @@ def grants_on_bus(
                     warm_up_s=30.0,
                     node_clocks=clocks,
                     state_path=logs / "supervisor.json" if state_file else None,
+                    core=core,
                 )
             except live.NoAnswer as exc:
                 dead = [i for i, p in enumerate(procs) if p.poll() is not None]
@@ -189,22 +191,36 @@ def run_on_bus(
     seconds: float,
     writes: int,
     c_node: Path | None,
+    cores: Sequence[str] = ("python",),
 ) -> dict[str, Any]:
-    """Every row of ``node_counts``, then the SDO baseline, on the flags' bus."""
-    from canergy.bench.run import LATENCY_RATIO_TARGET, latency_ratio, supervisor_headroom
+    """Every row of ``node_counts`` for each of ``cores`` in turn (the supervisor's core; the
+    first one's figures at the top, the C core's under ``c_core`` with its ratios to the Python
+    core's under ``c_vs_python``), then the SDO baseline, on the flags' bus."""
+    from canergy.bench.run import (
+        LATENCY_RATIO_TARGET,
+        compare_cores,
+        latency_ratio,
+        supervisor_headroom,
+    )
 
-    rows = [
-        grants_on_bus(args, n, seconds, c_node, state_file)
-        for state_file in (False, True)
-        for n in node_counts
-    ]
+    stacks: dict[str, dict[str, Any]] = {}
+    for core in cores:
+        rows = [
+            grants_on_bus(args, n, seconds, c_node, state_file, core)
+            for state_file in (False, True)
+            for n in node_counts
+        ]
+        stacks[core] = {"live": rows, "headroom": supervisor_headroom(rows)}
     sdo = sdo_on_bus(args, writes)
+    for stack in stacks.values():
+        stack["latency_ratio_vs_sdo"] = latency_ratio(stack["live"], sdo)
+    first = stacks[cores[0]]
     return {
         "bus": bus_argv(args),
         "nodes_by": "C node processes" if c_node else live.load_emulator().label,
-        "live": rows,
+        **first,
         "sdo": sdo,
-        "latency_ratio_vs_sdo": latency_ratio(rows, sdo),
         "latency_ratio_target": LATENCY_RATIO_TARGET,
-        "headroom": supervisor_headroom(rows),
+        "c_core": stacks["c"] if "c" in stacks and cores[0] != "c" else None,
+        "c_vs_python": compare_cores(stacks),
     }

@@ -227,6 +227,18 @@ class CompiledSupervisor:
     # -- requests --------------------------------------------------------------------------
     def begin(self, node: int, amount: int, now: int) -> list[Action]:
         """Reserve ``amount`` µJ from Us and send node ``node`` an intention."""
+        self._begin(node, amount, now)
+        return self._actions()
+
+    def begin_encoded(
+        self, node: int, amount: int, now: int
+    ) -> tuple[list[Action], list[tuple[int, bytes]]]:
+        """``begin`` with its INTENTION as the C codec encoded it (``_frames``) instead of a
+        ``Send``: the fast path's loop sends those bytes as they are."""
+        self._begin(node, amount, now)
+        return self._actions(fast=True), self._frames()
+
+    def _begin(self, node: int, amount: int, now: int) -> None:
         self._managed(node)
         if not 0 < amount < 2**32:
             raise LocalProtocolError(f"amount {amount} µJ is not a grant one frame carries")
@@ -235,7 +247,7 @@ class CompiledSupervisor:
             raise LocalProtocolError(f"amount {amount} µJ is not a whole mJ up to 65,535 mJ")
         if rc == -3:
             raise LocalProtocolError(f"amount {amount} µJ exceeds usable {self.usable} µJ")
-        return self._checked(rc, node, "begin")
+        self._check(rc, node, "begin")
 
     def commit(self, node: int, now: int) -> list[Action]:
         self._managed(node)
@@ -311,10 +323,13 @@ class CompiledSupervisor:
             raise LocalProtocolError(f"node {node} is not managed by this supervisor")
 
     def _checked(self, rc: int, node: int, what: str) -> list[Action]:
+        self._check(rc, node, what)
+        return self._actions()
+
+    def _check(self, rc: int, node: int, what: str) -> None:
         if rc != lib.CANERGY_OK:
             phase = self.session(node).phase.name
             raise LocalProtocolError(f"cannot {what} node {node} in {phase} ({_ERRORS[rc]})")
-        return self._actions()
 
     def _actions(self, *, fast: bool = False) -> list[Action]:
         """The last call's output as the Python core's actions, in its order. ``fast``

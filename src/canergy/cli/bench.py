@@ -53,11 +53,34 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="run the nodes as this C node program (firmware/build/canergy-node), one process "
         "per node; SocketCAN only",
     )
+    bus.add_argument(
+        "--core",
+        choices=("both", "python", "c"),
+        default="both",
+        help="the supervisor's core: both in turn (default; the Python core alone where the C "
+        "core is not built), or one",
+    )
     p.set_defaults(run=run)
 
 
+def _cores(choice: str) -> tuple[str, ...]:
+    """The supervisor cores ``--core`` names, in the order they run; a clear error when it
+    names the C core and it is not built."""
+    from canergy.ccore.supervisor import missing
+
+    if choice == "python":
+        return ("python",)
+    why = missing()
+    if choice == "c" and why:
+        raise ValueError(f"--core c: {why}")
+    if why:
+        print(f"canergy bench: the Python core only: {why}", file=sys.stderr)
+        return ("python",)
+    return ("c",) if choice == "c" else ("python", "c")
+
+
 def run(args: argparse.Namespace) -> int:
-    from canergy.bench.run import live_lines, run, table
+    from canergy.bench.run import core_lines, live_lines, run, table
 
     if args.json is not None:  # before minutes of measuring, not after
         check_writable_dir(args.json, "--json")
@@ -74,12 +97,16 @@ def run(args: argparse.Namespace) -> int:
             raise FileNotFoundError(f"--c-node {args.c_node}: no such program")
         seconds = 0.5 if args.quick else args.duration / 1e6
         writes = 50 if args.quick else args.writes
-        results = run_on_bus(args, args.nodes, seconds, writes, args.c_node)
+        results = run_on_bus(args, args.nodes, seconds, writes, args.c_node, _cores(args.core))
         where = " ".join(
             str(getattr(args, n, None) or "") for n in ("interface", "channel")
         ).strip()
         print(f"live stack on {where}, nodes: {results['nodes_by']}")
         print("\n".join(live_lines(results)))
+        if results["c_core"] is not None:
+            print("the same on the C core (canergy supervisor --core c)")
+            print("\n".join(live_lines({**results, **results["c_core"]})))
+            print("\n".join(core_lines(results["c_vs_python"])))
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
     return 0

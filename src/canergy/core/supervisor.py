@@ -66,6 +66,11 @@ class SupervisorCore(Protocol):
     def nodes(self) -> tuple[int, ...]: ...
     @property
     def state(self) -> SupervisorState: ...
+    @property
+    def usable(self) -> int:
+        """Us, µJ (``state.usable`` without building the whole state)."""
+        ...
+
     def session(self, node: int) -> Session: ...
     def begin(self, node: int, amount: int, now: int) -> list[Action]: ...
     def commit(self, node: int, now: int) -> list[Action]: ...
@@ -116,6 +121,10 @@ class Supervisor:
     @property
     def nodes(self) -> tuple[int, ...]:
         return tuple(self._index)
+
+    @property
+    def usable(self) -> int:
+        return self.state.usable
 
     def session(self, node: int) -> Session:
         return self.state.sessions[self._index[node]]

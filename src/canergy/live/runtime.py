@@ -321,10 +321,12 @@ class BusRuntime:
             self.counters.auth = auth.layout.value
         passes = callable(getattr(handler, "begin_pass", None))
         self._passes = cast(PassHandler, handler) if passes else None
-        fast = getattr(handler, "fast_frame", None) if auth is None and passes else None
-        self._fast: Callable[[can.Message, int], bool] | None = fast
-        """A handler's fast path (``SupervisorService.fast_frame`` on the compiled core): a
-        received frame before any decoding here; True when it took the frame."""
+        fast_path = getattr(handler, "fast_path", None) if auth is None and passes else None
+        self._fast: Callable[[can.Message, int], bool] | None = (
+            None if fast_path is None else fast_path()
+        )
+        """A handler's fast path (``SupervisorService.fast_path`` on the compiled core, never
+        with a key): a received frame before any decoding here; True when it took the frame."""
 
     def poll(self, max_wait_s: float = 0.1) -> None:
         """Wait for one frame (at most until the next deadline or ``max_wait_s``) and run

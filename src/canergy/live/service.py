@@ -12,7 +12,7 @@ import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO, TypeVar
+from typing import Any, TextIO, cast
 
 import can
 
@@ -59,8 +59,6 @@ from canergy.seqnum import unwrap
 from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
-
-_Out = TypeVar("_Out", Message, Outgoing)
 
 GrantCallback = Callable[[dict[str, Any]], None]
 
@@ -180,6 +178,9 @@ class SupervisorService:
         self._held: list[Outgoing] = []
         self._answer = getattr(core, "on_answer", None)
         """The compiled core's fast path (``fast_frame``); None on the Python core."""
+        self._begin_encoded = None
+        """The compiled core's ``begin`` with its frame as C encoded it, once a bus loop without
+        a key took the fast path (``fast_path``): an INTENTION then leaves as C's bytes."""
         self.stop_deadline: int | None = None
         self.status_stream = config.status_stream
         self.liveness: Callable[[int, int], bool] | None = None
@@ -240,7 +241,7 @@ class SupervisorService:
             out += self._start_grants(now, self.ready)
         return self._flush(out)
 
-    def _joined(self, msg: Telemetry, info: NodeInfo, now: int) -> list[Message]:
+    def _joined(self, msg: Telemetry, info: NodeInfo, now: int) -> list[Outgoing]:
         """Authenticated mode: a held JOIN is admitted once the node's TELEMETRY shows it
         without books (JOINING: its FV is that JOIN's); a TELEMETRY with books shows the JOIN
         a replay of an earlier life, refused as stale (nothing written off, nobody admitted)."""
@@ -268,9 +269,9 @@ class SupervisorService:
             self.intrusion(msg.node, repr(msg), evidence, now, stop=True)
         return True
 
-    def _released(self, node: int, now: int) -> list[Message]:
+    def _released(self, node: int, now: int) -> list[Outgoing]:
         """The held RETURNs of ``node`` its TELEMETRY has confirmed, credited by the core."""
-        out: list[Message] = []
+        out: list[Outgoing] = []
         credited = self.core.session(node).returns_credited
         for ret in self.witness.release(node, credited, now):
             if ret.amount_mj == 0:
@@ -403,7 +404,7 @@ class SupervisorService:
 
     def on_wakeup(self, now: int) -> Sequence[Message]:
         self.now = now
-        out: list[Message] = []
+        out: list[Outgoing] = []
         if not self.config.listen_only:
             timer = self.core.get_timer()
             if timer is not None and timer <= now:
@@ -418,6 +419,17 @@ class SupervisorService:
             self.next_status = now + self.config.status_period_us
         self.refusals.tick(now)  # what was refused since the last line, once a second at most
         return self._flush(out)
+
+    def fast_path(self) -> Callable[[can.Message, int], bool] | None:
+        """For a bus loop without a key (``BusRuntime``): the compiled core's fast path
+        (``fast_frame``), or None on the Python core. From then on, in a loop pass, frames the
+        C core encoded (COMMIT, ABORT, INTENTION) go to the loop as C's bytes (``RawFrame``),
+        never decoded and encoded again. A loop with a key never calls this: its frames get
+        MACs, so each leaves as a message."""
+        if self._answer is None:
+            return None
+        self._begin_encoded = getattr(self.core, "begin_encoded", None)
+        return self.fast_frame
 
     def fast_frame(self, frame: can.Message, now: int) -> bool:
         """The compiled core's fast path, for a frame the bus loop has not decoded: an ACK,
@@ -464,7 +476,8 @@ class SupervisorService:
         if self._passes:
             return []
         held, self._held = self._held, []
-        return self._flush(held)
+        self._save_if_dirty()
+        return held
 
     # -- control ---------------------------------------------------------------------------
     def request_grant(self, node: int, amount: int, reply: GrantCallback) -> None:
@@ -544,14 +557,14 @@ class SupervisorService:
             info.level = None
             info.ended_at = now
 
-    def _start_grants(self, now: int, nodes: set[int] | None) -> list[Message]:
+    def _start_grants(self, now: int, nodes: set[int] | None) -> list[Outgoing]:
         """Begin what ``nodes`` (None: every node) may get now; they leave ``ready``."""
         if self.stopping or self.config.listen_only:
             self.ready.clear()
             return []
         todo = list(self.nodes) if nodes is None else sorted(nodes)
         self.ready.clear()
-        out: list[Message] = []
+        out: list[Outgoing] = []
         for node in todo:
             info = self.nodes[node]
             if self.core.session(node).phase is not Phase.IDLE:
@@ -566,7 +579,7 @@ class SupervisorService:
                 out += self._top_up(node, info, now)
         return out
 
-    def _one_shot(self, node: int, info: NodeInfo, now: int) -> list[Message]:
+    def _one_shot(self, node: int, info: NodeInfo, now: int) -> list[Outgoing]:
         req = info.requests.pop(0)
         if info.level is not None and info.level + req.amount > USABLE_MAX_UJ:
             name = self.node_name(node)
@@ -593,7 +606,7 @@ class SupervisorService:
         info.active_request = req
         return self._begin(node, amount, now)
 
-    def _top_up(self, node: int, info: NodeInfo, now: int) -> list[Message]:
+    def _top_up(self, node: int, info: NodeInfo, now: int) -> list[Outgoing]:
         policy = self.config.policy
         assert policy is not None
         if info.level is None or info.level_at is None or info.level_at <= info.ended_at:
@@ -614,16 +627,22 @@ class SupervisorService:
         return {
             "limits": self.config.limits,
             "level": info.level,
-            "usable": self.core.state.usable,
+            "usable": self.core.usable,
             "granted_total": (
                 self.granted_total() if self.config.limits.max_total is not None else 0
             ),
             "rate_tokens": self.rate.available(now),
         }
 
-    def _begin(self, node: int, amount: int, now: int) -> list[Message]:
+    def _begin(self, node: int, amount: int, now: int) -> list[Outgoing]:
+        encoded = self._begin_encoded if self._passes else None
+        frames: list[Outgoing] = []
         try:
-            actions = self.core.begin(node, amount, now)
+            if encoded is None:
+                actions = self.core.begin(node, amount, now)
+            else:
+                actions, raw = encoded(node, amount, now)
+                frames = [RawFrame(i, d) for i, d in raw]
         except LocalProtocolError as exc:  # budget changed under us: report, do not crash
             self._finish_request(node, {"node": self.node_name(node), "error": str(exc)})
             return []
@@ -631,10 +650,10 @@ class SupervisorService:
         req = self.nodes[node].active_request
         if req is not None:
             req.tx = self.core.session(node).tx
-        return self._carry_out(actions, now)
+        return frames + self._carry_out(actions, now)
 
-    def _carry_out(self, actions: list[Action], now: int) -> list[Message]:
-        out: list[Message] = []
+    def _carry_out(self, actions: list[Action], now: int) -> list[Outgoing]:
+        out: list[Outgoing] = []
         queue = actions  # grows at its end (a decision follows an ACK), read in order
         i = 0
         while i < len(queue):
@@ -697,17 +716,22 @@ class SupervisorService:
             info.active_request.reply(result)
             info.active_request = None
 
-    def _flush(self, out: list[_Out]) -> list[_Out]:
+    def _flush(self, out: list[Outgoing]) -> list[Message]:
         """Write the state file once for everything decided in this step, before any of the
         step's frames leave (the caller sends ``out`` only after this returns). In a pass, hold
         them: ``end_pass`` writes and returns them."""
         if self._passes:
             self._held += out
             return []
+        self._save_if_dirty()
+        if any(isinstance(m, RawFrame) for m in out):  # ``_begin`` makes them in a pass only
+            raise RuntimeError("frames encoded by the C core outside a loop pass")
+        return cast(list[Message], out)
+
+    def _save_if_dirty(self) -> None:
         if self._dirty:
             self._persist()
             self._dirty = False
-        return out
 
     def _persist(self) -> None:
         if self.save is not None:

@@ -32,6 +32,7 @@ from canergy.messages import (
     Committed,
     Direction,
     Intention,
+    Return,
     Telemetry,
 )
 
@@ -152,7 +153,8 @@ def _run_script(
     core: str, id_base: int | None = None
 ) -> tuple[list[tuple[int, bytes]], dict[str, Any], int]:
     """The same frames to a service on each core through the bus loop: a grant, a forged ACK
-    naming a transaction never begun, damaged bytes, the real ACK twice, COMMITTED."""
+    naming a transaction never begun, damaged bytes, the real ACK twice, COMMITTED, the node's
+    level, a RETURN and the level after it."""
     codec = Codec() if id_base is None else Codec(id_base)
     wire = _Wire()
     now = [0]
@@ -186,6 +188,9 @@ def _run_script(
         (Ack(3, 1), False),
         (Ack(3, 1), False),
         (Committed(3, 1), False),
+        (Telemetry(3, 2_000), False),
+        (Return(3, 1, 500), False),
+        (Telemetry(3, 1_500, return_seq=1), False),
     ):
         now[0] += 100
         wire.inbox.append(frame(msg, damage))
@@ -199,7 +204,7 @@ def test_the_fast_path_answers_as_the_python_core_does(id_base: int | None) -> N
     """The compiled core's fast path sends the same frames and keeps the same books as the
     Python core's usual path, in the bus's identifier block; the forged ACK is still an
     intrusion and the damaged frame a decode error (both left to the usual path), and the fast
-    path took the genuine answers."""
+    path took the genuine frames (a TELEMETRY or RETURN decoded in C, then handled as usual)."""
     py_sent, py_status, py_taken = _run_script("python", id_base)
     c_sent, c_status, c_taken = _run_script("c", id_base)
     assert c_sent == py_sent and len(c_sent) >= 2  # INTENTION, COMMIT
@@ -207,8 +212,11 @@ def test_the_fast_path_answers_as_the_python_core_does(id_base: int | None) -> N
         assert c_status[key] == py_status[key], key
     node, py_node = c_status["nodes"]["3"], py_status["nodes"]["3"]
     assert c_status["intrusions"] == 1 and node["decode_errors"] == py_node["decode_errors"] == 1
-    assert node["committed"] == py_node["committed"] == 1
-    assert (py_taken, c_taken) == (0, 3)  # both ACKs and the COMMITTED, on the C core only
+    assert node == py_node and node["committed"] == 1 and node["returns_credited"] == 1
+    assert node["level_uj"] == 1_500_000  # the TELEMETRY after the RETURN, decoded in C
+    assert len(c_sent) == 3  # INTENTION, COMMIT, RETURN_ACK
+    # both ACKs, COMMITTED, both TELEMETRY and the RETURN, on the C core only
+    assert (py_taken, c_taken) == (0, 6)
 
 
 @pytest.mark.parametrize("layout", list(Layout))

@@ -29,8 +29,16 @@ def _bench(tmp_path: Path, *extra: str) -> dict[str, object]:
 
 
 def _check(report: dict[str, object]) -> None:
+    """Both cores' rows (the C core's under ``c_core``: ``scripts/test`` builds it), each with
+    its own latency ratio over the one SDO baseline."""
     try:
+        c_core = report["c_core"]
+        assert isinstance(c_core, dict), "no C core rows"
         _check_shape(report)
+        _check_shape({**report, **c_core})
+        assert [row["core"] for row in report["live"]] == ["python"] * 4  # type: ignore[attr-defined]
+        assert [row["core"] for row in c_core["live"]] == ["c"] * 4
+        assert isinstance(report["c_vs_python"], dict)
     except AssertionError as exc:  # show the whole report: a run in UML is hard to repeat
         raise AssertionError(f"{exc}\n{json.dumps(report, indent=1)[:4000]}") from exc
 

@@ -29,13 +29,12 @@ from typing import Any, Protocol
 import can
 import canopen
 
-from canergy.auth.frames import Verdict
 from canergy.ccore.supervisor import make_supervisor
-from canergy.codec import Codec, DecodeError
+from canergy.codec import Codec
 from canergy.core import Timing
-from canergy.live.runtime import BusRuntime, Handler, Outgoing, monotonic_us
+from canergy.live.runtime import BusRuntime, Handler, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.messages import Direction, Message, Telemetry
+from canergy.messages import Direction
 
 TIMING = Timing(response_timeout_us=500_000, retries=3, command_timeout_us=1_000_000)
 
@@ -84,45 +83,6 @@ def load_emulator() -> Emulator:
     raise EmulatorMissing(
         f"skipped the live stack and the client NV figures: they need a client emulator ({why})"
     )
-
-
-class _Counting:
-    """The supervisor service as the loop sees it, counting the TELEMETRY frames it gets
-    (information from the nodes, not protocol frames)."""
-
-    def __init__(self, service: SupervisorService) -> None:
-        self.service = service
-        self.telemetry = 0
-
-    def on_message(self, msg: Message, now: int) -> Sequence[Message]:
-        if isinstance(msg, Telemetry):
-            self.telemetry += 1
-        return self.service.on_message(msg, now)
-
-    def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
-        self.service.on_decode_error(error, frame)
-
-    def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
-        self.service.on_auth_failure(verdict, frame, now)
-
-    def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
-        return self.service.on_foreign_direction(frame, now)
-
-    def begin_pass(self) -> None:
-        self.service.begin_pass()
-
-    def end_pass(self) -> Sequence[Outgoing]:
-        return self.service.end_pass()
-
-    def fast_path(self) -> Callable[[can.Message, int], bool] | None:
-        """The compiled core's fast path (never a TELEMETRY: those are counted above)."""
-        return self.service.fast_path()
-
-    def next_wakeup(self) -> int | None:
-        return self.service.next_wakeup()
-
-    def on_wakeup(self, now: int) -> Sequence[Message]:
-        return self.service.on_wakeup(now)
 
 
 def _no_clock() -> float:
@@ -238,9 +198,8 @@ def drive_grants(
     rules = make_supervisor(core, nodes, 10**15, timing=TIMING)
     config = ServiceConfig(status_period_us=10**12, fsync=False, state_path=state_path)
     service = SupervisorService(rules, config, now)
-    counting = _Counting(service)
     timed = TimedBus(bus)
-    runtime = BusRuntime(timed, counting, codec=Codec(), receives=Direction.TO_SUPERVISOR)
+    runtime = BusRuntime(timed, service, codec=Codec(), receives=Direction.TO_SUPERVISOR)
     stop, measuring = threading.Event(), threading.Event()
     latencies: list[float] = []
     warmed: set[int] = set()
@@ -289,7 +248,7 @@ def drive_grants(
         sent0, received0, telemetry0, saves0 = (
             counters.frames_sent,
             counters.frames_received,
-            counting.telemetry,
+            service.telemetry_heard,
             service.saves,
         )
         cpu0, bus0 = [_thread_cpu(t) for t in threads], timed.spent
@@ -310,7 +269,7 @@ def drive_grants(
         nodes1 = [clock() for clock in node_clocks]
         sent, received = counters.frames_sent - sent0, counters.frames_received - received0
         frames = sent + received
-        telemetry = counting.telemetry - telemetry0
+        telemetry = service.telemetry_heard - telemetry0
         saves = service.saves - saves0
         done = len(latencies)
     finally:

@@ -37,7 +37,10 @@ from canergy.messages import (
     Committed,
     Direction,
     Join,
+    Message,
+    MsgType,
     Return,
+    Telemetry,
     ToSupervisor,
 )
 
@@ -100,7 +103,7 @@ if _MISSING is None:
     _FRAMES_AT = ffi.offsetof("struct canergy_supervisor_out", "frames")
     _NEVER = lib.CANERGY_NEVER
     _OK = lib.CANERGY_DECODE_OK
-    ANSWER_AHEAD, ANSWER_CALLER = lib.CANERGY_RX_AHEAD, lib.CANERGY_RX_CALLER
+    _CALLER = lib.CANERGY_RX_CALLER
 
 _PHASES = tuple(Phase(i) for i in range(4))
 _DECISIONS = tuple(Decision(i) for i in range(3))
@@ -284,20 +287,34 @@ class CompiledSupervisor:
         remote: bool,
         now: int,
         abort: bool,
-    ) -> tuple[int, list[Action], list[tuple[int, bytes]]]:
+    ) -> tuple[int, list[Action], list[tuple[int, bytes]], Message | None]:
         """A received frame on the fast path (one C call: decode, rules, the decision on an ACK,
         encode): its status and, when it was an answer the rules took (ACK, COMMITTED, ABORTED
-        of a managed node), their actions and the frames to send, encoded. Any other status
-        (``ANSWER_*``, a decode status) applied nothing: the caller takes the frame its usual
-        way, where it is judged, counted or reported."""
+        of a managed node), their actions and the frames to send, encoded. A TELEMETRY, RETURN
+        or JOIN of a managed node applies nothing and comes back decoded (by the C codec, which
+        the Python one's tests fuzz against) for the caller's usual handling. Any other status
+        (an answer ahead of the session, a decode status, another node) applied nothing and
+        decoded nothing: the caller takes the frame its usual way, where it is judged, counted
+        or reported."""
         rx = self._rx
         rx.id, rx.extended, rx.remote = arbitration_id, extended, remote
         buf = ffi.from_buffer(data)
         rx.data, rx.len = buf, len(data)
-        status = lib.canergy_supervisor_on_answer(self._sup, rx, now, abort, self._out, self._msg)
-        if status != _OK:
-            return status, [], []
-        return status, self._actions(fast=True), self._frames()
+        m = self._msg
+        status = lib.canergy_supervisor_on_answer(self._sup, rx, now, abort, self._out, m)
+        if status == _OK:
+            return status, self._actions(fast=True), self._frames(), None
+        if status != _CALLER:
+            return status, [], [], None
+        kind = m.type
+        msg: Message
+        if kind == MsgType.TELEMETRY:  # the type code on the wire, the same in both codecs
+            msg = Telemetry(m.node, m.level_mj, m.flags, m.seq, m.witness)
+        elif kind == MsgType.RETURN:
+            msg = Return(m.node, m.seq, m.amount_mj)
+        else:
+            msg = Join(m.node, m.nonce)
+        return status, [], [], msg
 
     def get_timer(self) -> int | None:
         deadline = lib.canergy_supervisor_deadline(self._sup)

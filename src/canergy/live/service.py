@@ -165,6 +165,8 @@ class SupervisorService:
         self._passes = 0
         self.saves = 0
         """Times the books were written (the state file, or ``save``)."""
+        self.telemetry_heard = 0
+        """TELEMETRY frames of managed nodes taken (information, not protocol frames)."""
         self._books = (
             None
             if config.state_path is None
@@ -219,6 +221,7 @@ class SupervisorService:
                 return ()  # moves nothing: no honest node sends it
         info.heard_at = now
         if isinstance(msg, Telemetry):
+            self.telemetry_heard += 1
             info.level, info.level_at, info.flags = msg.level_mj * QUANTUM_UJ, now, msg.flags
             credited = self.core.session(msg.node).returns_credited
             evidence, notes = self.witness.telemetry(msg, credited, now)
@@ -441,7 +444,7 @@ class SupervisorService:
         answer = self._answer
         if answer is None or self.config.listen_only or not self._passes:
             return False
-        status, actions, frames = answer(
+        status, actions, frames, decoded = answer(
             frame.arbitration_id,
             frame.data,
             frame.is_extended_id,
@@ -449,6 +452,9 @@ class SupervisorService:
             now,
             self.stopping,
         )
+        if decoded is not None:  # a TELEMETRY, RETURN or JOIN: as if the loop had decoded it
+            self.on_message(decoded, now)  # in a pass: its frames are held
+            return True
         if status:
             return False
         self.now = now

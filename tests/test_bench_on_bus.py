@@ -132,3 +132,21 @@ def test_the_latency_ratio_takes_the_one_node_row_wherever_it_is() -> None:
     ]
     assert run.latency_ratio(rows, sdo) == 3.0
     assert run.latency_ratio(rows[:1], sdo) is None  # no 1-node row ran
+
+
+def test_core_names_which_supervisor_cores_run(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from canergy.ccore import supervisor as ccore
+    from canergy.cli.bench import _cores
+
+    monkeypatch.setattr(ccore, "missing", lambda: None)
+    assert _cores("both") == ("python", "c") and _cores("c") == ("c",)
+    assert _cores("python") == ("python",)
+    monkeypatch.setattr(ccore, "missing", lambda: "not built here")
+    assert _cores("both") == ("python",)
+    assert "the Python core only: not built here" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="--core c: not built here"):
+        _cores("c")
+    assert main(["bench", "-i", "socketcan", "-c", "vcan0", "--core", "c"]) == 2
+    assert "--core c: not built here" in capsys.readouterr().err

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import statistics
 from pathlib import Path
 
@@ -126,3 +127,15 @@ def test_the_paced_alone_loop_reads_one_frame_per_pass(tmp_path: Path) -> None:
     paced = alone.supervisor_alone(emulator, 16, 0.3, tmp_path / "paced", pace_s=0.0)
     assert paced["frames"] > 0 and paced["supervisor_cpu_us_per_frame"] > 0
     assert paced["frames_received_per_pass"] <= 1.0 < hot["frames_received_per_pass"]
+
+
+@pytest.mark.parametrize("core", ["python", "c"])
+def test_the_live_bench_runs_in_another_identifier_block(tmp_path: Path, core: str) -> None:
+    """``canergy bench --id-base``: the supervisor (either core) encodes in the bus's block,
+    where the nodes listen; in canergy's default block they would never answer."""
+    from canergy.ccore.supervisor import missing
+
+    if core == "c" and missing() is not None and not os.environ.get("CANERGY_REQUIRE_CCORE"):
+        pytest.skip(str(missing()))
+    row = live.canergy_grants(live.load_emulator(), 2, 0.3, tmp_path, core=core, id_base=0x0CF00000)
+    assert row["transactions"] > 0 and row["core"] == core

@@ -182,6 +182,7 @@ def drive_grants(
     node_clocks: Sequence[Callable[[], float | None]] = (),
     state_path: Path | None = None,
     core: str = "python",
+    codec: Codec | None = None,
 ) -> dict[str, Any]:
     """A supervisor on ``bus`` keeps one grant of 1 mJ in flight to each of ``nodes`` for
     ``duration_s``, after a warm-up in which every node completes a transaction. ``others``:
@@ -193,13 +194,15 @@ def drive_grants(
     ``node_clocks``: CPU clocks (seconds; None: unreadable) of node processes, read at the
     window's ends like the threads' clocks. ``state_path``: the supervisor keeps its books
     there, as ``canergy supervisor --state`` does (without fsync: its cost is the disk's).
-    ``core``: the supervisor core, "python" or "c" (``canergy supervisor --core``)."""
+    ``core``: the supervisor core, "python" or "c" (``canergy supervisor --core``); ``codec``:
+    the bus's identifier block (default: canergy's)."""
     now = monotonic_us()
-    rules = make_supervisor(core, nodes, 10**15, timing=TIMING)
+    codec = codec or Codec()
+    rules = make_supervisor(core, nodes, 10**15, timing=TIMING, id_base=codec.id_base)
     config = ServiceConfig(status_period_us=10**12, fsync=False, state_path=state_path)
     service = SupervisorService(rules, config, now)
     timed = TimedBus(bus)
-    runtime = BusRuntime(timed, service, codec=Codec(), receives=Direction.TO_SUPERVISOR)
+    runtime = BusRuntime(timed, service, codec=codec, receives=Direction.TO_SUPERVISOR)
     stop, measuring = threading.Event(), threading.Event()
     latencies: list[float] = []
     warmed: set[int] = set()
@@ -316,12 +319,13 @@ def canergy_grants(
     profile: cProfile.Profile | None = None,
     state_file: bool = False,
     core: str = "python",
+    id_base: int | None = None,
 ) -> dict[str, Any]:
     """``drive_grants`` on python-can's virtual bus, the emulator's nodes in a thread of this
     process (a bus end and a loop of their own, as another process would have); ``state_file``:
-    the supervisor's books in ``nv_dir``."""
+    the supervisor's books in ``nv_dir``; ``id_base``: the identifier block (default canergy's)."""
     channel = f"bench-{uuid.uuid4().hex}"
-    codec = Codec()
+    codec = Codec() if id_base is None else Codec(id_base)
     ids = list(range(1, nodes + 1))
     host = emulator.node_host(ids, nv_dir, TIMING, monotonic_us())
     sup_bus = can.Bus(interface="virtual", channel=channel, can_filters=codec.supervisor_filters())
@@ -339,6 +343,7 @@ def canergy_grants(
             profile=profile,
             state_path=books,
             core=core,
+            codec=codec,
         )
     finally:
         sup_bus.shutdown()

@@ -148,6 +148,7 @@ def grants_on_bus(
                     node_clocks=clocks,
                     state_path=logs / "supervisor.json" if state_file else None,
                     core=core,
+                    codec=codec,
                 )
             except live.NoAnswer as exc:
                 dead = [i for i, p in enumerate(procs) if p.poll() is not None]

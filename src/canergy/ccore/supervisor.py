@@ -317,8 +317,8 @@ class CompiledSupervisor:
         return status, [], [], msg
 
     def get_timer(self) -> int | None:
-        deadline = lib.canergy_supervisor_deadline(self._sup)
-        return None if deadline == lib.CANERGY_NEVER else int(deadline)
+        deadline: int = lib.canergy_supervisor_deadline(self._sup)
+        return None if deadline == _NEVER else deadline
 
     def handle_timer(self, now: int) -> list[Action]:
         lib.canergy_supervisor_on_timer(self._sup, now, self._out)

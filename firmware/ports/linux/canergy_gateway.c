@@ -315,7 +315,7 @@ static void save(struct gateway_port *g)
 static void start(struct gateway_port *g, uint64_t now)
 {
     const struct gw_options *o = &g->opt;
-    g->nv_fd = open(o->nv_path, O_RDWR | O_CREAT | O_CLOEXEC, 0600);
+    g->nv_fd = port_open_nv(o->nv_path, 0600);
     if (g->nv_fd < 0) {
         (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, o->nv_path, strerror(errno));
         exit(EXIT_USAGE);

@@ -13,6 +13,7 @@
 #include "storage.h"
 
 #include "args.h"
+#include "system.h"
 
 #include <errno.h>
 #include <fcntl.h>
@@ -116,7 +117,7 @@ void port_check_paths(const struct port_options *o)
 
 void port_nv_open(struct port *p, uint8_t image[NV_IMAGE_BYTES], size_t *len)
 {
-    p->nv_fd = open(p->opt.nv_path, O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+    p->nv_fd = port_open_nv(p->opt.nv_path, 0644);
     if (p->nv_fd < 0) {
         (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, p->opt.nv_path, strerror(errno));
         exit(EXIT_USAGE);

@@ -1,5 +1,5 @@
 /*
- * The clock and the entropy of the Linux programs (system.h).
+ * The clock, the entropy and the NV file's creation of the Linux programs (system.h).
  */
 #define _GNU_SOURCE 1
 
@@ -7,10 +7,15 @@
 
 #include "port.h"
 
+#include <errno.h>
+#include <fcntl.h>
+#include <libgen.h>
+#include <limits.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <sys/random.h>
 #include <time.h>
+#include <unistd.h>
 
 uint64_t port_now_us(void)
 {
@@ -35,4 +40,44 @@ uint16_t port_random16(void)
     }
     (void)fclose(f);
     return v;
+}
+
+/* fsync the directory holding path. */
+static int sync_directory_of(const char *path)
+{
+    char dir[PATH_MAX];
+    if (snprintf(dir, sizeof dir, "%s", path) >= (int)sizeof dir) {
+        errno = ENAMETOOLONG;
+        return -1;
+    }
+    const int fd = open(dirname(dir), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+    if (fd < 0) {
+        return -1;
+    }
+    const int rc = fsync(fd);
+    const int saved = errno;
+    (void)close(fd);
+    errno = saved;
+    return rc;
+}
+
+int port_open_nv(const char *path, mode_t mode)
+{
+    int fd = open(path, O_RDWR | O_CLOEXEC);
+    if (fd >= 0 || errno != ENOENT) {
+        return fd;
+    }
+    fd = open(path, O_RDWR | O_CREAT | O_EXCL | O_CLOEXEC, mode);
+    if (fd < 0) {
+        /* created by someone else meanwhile: theirs to have synced */
+        return errno == EEXIST ? open(path, O_RDWR | O_CLOEXEC) : -1;
+    }
+    if (sync_directory_of(path) != 0) {
+        const int saved = errno;
+        (void)close(fd);
+        (void)unlink(path);
+        errno = saved;
+        return -1;
+    }
+    return fd;
 }

@@ -1,16 +1,24 @@
 /*
  * What both Linux programs (canergy-node, canergy-gateway) take from the system besides the
- * CAN socket and their files: the monotonic clock, and entropy for a JOIN nonce.
+ * CAN socket: the monotonic clock, entropy for a JOIN nonce, and their NV file opened so that
+ * a new one stays on disk.
  */
 #ifndef CANERGY_PORT_LINUX_SYSTEM_H
 #define CANERGY_PORT_LINUX_SYSTEM_H
 
 #include <stdint.h>
+#include <sys/types.h>
 
 /* CLOCK_MONOTONIC in microseconds; exits 1 when the clock cannot be read. */
 uint64_t port_now_us(void);
 
 /* 16 random bits from getrandom() (/dev/urandom when that fails); exits 2 without entropy. */
 uint16_t port_random16(void);
+
+/* The NV file at path, read-write; created with mode when missing, and then its directory
+ * fsynced too, so that the records fsynced into it later cannot vanish with an unwritten
+ * directory entry on a power loss. -1 with errno set on failure (a new file whose directory
+ * could not be synced is removed again: the next start creates it afresh). */
+int port_open_nv(const char *path, mode_t mode);
 
 #endif /* CANERGY_PORT_LINUX_SYSTEM_H */

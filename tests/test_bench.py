@@ -27,7 +27,8 @@ def test_quick_bench_runs_every_comparison(
     out = tmp_path / "bench.json"
     assert main(["bench", "--quick", "--json", str(out)]) == 0
     report = json.loads(out.read_text())
-    assert {"codec", "core", "live", "sdo", "wire", "headroom", "memory"} <= set(report)
+    assert {"codec", "core", "live", "sdo", "wire", "headroom", "memory", "code"} <= set(report)
+    assert report["code"]["version"]  # and the commit, run from a checkout (test_bench_code)
     assert len(report["codec"]["rows"]) == 11
     assert [r["core"] for r in report["core"]] == ["python"] * 4 + ["c"] * 4  # both cores
     assert all(r["tx_per_s"] > 0 for r in report["core"])
@@ -68,6 +69,7 @@ def test_quick_bench_runs_every_comparison(
     assert all(row["latency_profile"] is None for row in rows[1:])  # turns: one node only
     out_text = capsys.readouterr().out
     assert "two bare python-can round trips on this bus" in out_text
+    assert f"code: canergy {report['code']['version']}" in out_text
     if profile is not None:
         assert profile["supervisor_turn_us"] > 0 and profile["nodes_turn_us"] > 0
         assert f"supervisor 2 x {profile['supervisor_turn_us']:.0f} us" in out_text

@@ -26,7 +26,7 @@ from typing import Any
 
 import canopen
 
-from canergy.bench import live
+from canergy.bench import code, live
 from canergy.codec import Codec
 from canergy.live.bus_args import open_bus
 
@@ -218,6 +218,7 @@ def run_on_bus(
     first = stacks[cores[0]]
     return {
         "bus": bus_argv(args),
+        "code": code.code(),
         "nodes_by": "C node processes" if c_node else live.load_emulator().label,
         **first,
         "sdo": sdo,

@@ -14,7 +14,7 @@ import tracemalloc
 from pathlib import Path
 from typing import Any
 
-from canergy.bench import alone, auth, codec, core, live, monitor, tree, wire
+from canergy.bench import alone, auth, code, codec, core, live, monitor, tree, wire
 from canergy.ccore import supervisor as ccore
 
 
@@ -204,6 +204,7 @@ def run(quick: bool = False) -> dict[str, Any]:
     return {
         "machine": f"{platform.node()} {platform.machine()} {platform.python_implementation()} "
         f"{platform.python_version()}, {__import__('os').cpu_count()} cores",
+        "code": code.code(),
         "quick": quick,
         "codec": codec.compare(loops=100 if quick else 2000, repeats=3 if quick else 9),
         "core": [
@@ -343,6 +344,7 @@ def table(r: dict[str, Any]) -> str:
     lines = [
         f"machine: {r['machine']}"
         + ("  (quick smoke run: figures meaningless)" if r["quick"] else ""),
+        f"code: {code.line(r['code'])}",
         "",
         "codec, encode+decode per frame (median per type)",
         f"  canergy {c['canergy_us_per_frame']:.2f} us; speed-up vs cantools (median/min) "

@@ -80,6 +80,7 @@ def _cores(choice: str) -> tuple[str, ...]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canergy.bench.code import line
     from canergy.bench.run import core_lines, live_lines, run, table
 
     if args.json is not None:  # before minutes of measuring, not after
@@ -101,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
         where = " ".join(
             str(getattr(args, n, None) or "") for n in ("interface", "channel")
         ).strip()
-        print(f"live stack on {where}, nodes: {results['nodes_by']}")
+        print(f"live stack on {where}, nodes: {results['nodes_by']}; {line(results['code'])}")
         print("\n".join(live_lines(results)))
         if results["c_core"] is not None:
             print("the same on the C core (canergy supervisor --core c)")

@@ -183,3 +183,35 @@ def test_receive_errors_are_counted_not_fatal() -> None:
         runtime.poll(0.01)
     bus.shutdown()
     assert runtime.counters.receive_errors == 3
+
+
+class _StatefulBus(_FullQueueBus):
+    """A bus whose state the test sets (as a controller going error-passive would)."""
+
+    def __init__(self) -> None:
+        super().__init__(0)
+        self.now_state = can.BusState.ACTIVE
+        self.reads = 0
+
+    @property
+    def state(self) -> can.BusState:
+        self.reads += 1
+        return self.now_state
+
+
+def test_a_bus_state_change_is_counted_within_its_period() -> None:
+    from canergy.live.runtime import BUS_STATE_PERIOD_US
+
+    bus, now = _StatefulBus(), [1_000]
+    runtime = BusRuntime(bus, _Quiet(), receives=Direction.TO_SUPERVISOR, clock=lambda: now[0])
+    runtime.poll(0)
+    assert runtime.counters.bus_state == "active" and bus.reads == 1
+    bus.now_state = can.BusState.PASSIVE
+    for _ in range(50):  # many passes within one period: the driver is asked once
+        now[0] += BUS_STATE_PERIOD_US // 100
+        runtime.poll(0)
+    assert runtime.counters.bus_state == "active" and bus.reads == 1
+    now[0] += BUS_STATE_PERIOD_US
+    runtime.poll(0)
+    assert runtime.counters.bus_state == "passive" and bus.reads == 2
+    bus.shutdown()

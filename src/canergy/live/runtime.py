@@ -273,6 +273,11 @@ class OwnDirection:
         return out
 
 
+BUS_STATE_PERIOD_US = 100_000
+"""How often the loop reads the bus's state (a driver call on some interfaces): reported in
+the counters, never acted on, so a change shows within this long."""
+
+
 @dataclass(frozen=True, slots=True)
 class SendPolicy:
     """How hard to push a frame into a full transmit queue before calling it lost."""
@@ -312,6 +317,7 @@ class BusRuntime:
         self.sleep = sleep
         self.counters = BusCounters()
         self._bus_state: can.BusState | None = None
+        self._bus_state_due = 0
         self.max_batch = 512
         self.auth = auth
         """Authenticated mode: MACs added to what is sent and checked on what is received."""
@@ -363,13 +369,16 @@ class BusRuntime:
             self._send_all(self._passes.end_pass())
 
     def run_due(self) -> None:
-        """Note the bus state and run the handler's deadlines that are due."""
-        self._update_bus_state()
+        """Note the bus state (every ``BUS_STATE_PERIOD_US``) and run the handler's deadlines
+        that are due."""
         if self.own is not None and self.own.waiting:
             for own in self.own.expire(self.clock()):
                 self._own_frame(own)
         wakeup = self.handler.next_wakeup()
         now = self.clock()
+        if now >= self._bus_state_due:
+            self._bus_state_due = now + BUS_STATE_PERIOD_US
+            self._update_bus_state()
         if wakeup is not None and wakeup <= now:
             self._send_all(self.handler.on_wakeup(now))
 

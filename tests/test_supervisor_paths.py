@@ -12,17 +12,19 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import can
 import pytest
 
 from canergy.cli import grant as grant_cli
 from canergy.cli import main
 from canergy.cli import supervisor as supervisor_cli
+from canergy.codec import Codec
 from canergy.core import Supervisor
 from canergy.live.control import ControlServer, request
 from canergy.live.policy import Limits, capped_grant
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.state_file import load_state
-from canergy.messages import QUANTUM_UJ, USABLE_MAX_UJ, Telemetry
+from canergy.messages import QUANTUM_UJ, USABLE_MAX_UJ, Intention, Telemetry
 
 J = 1_000_000
 RunMain = Callable[[list[str]], tuple[int, str]]
@@ -258,6 +260,23 @@ def test_the_service_saves_an_injection_before_its_first_frame(tmp_path: Path) -
     assert service.status()["injected_this_run_uj"] == 3 * J
     with pytest.raises(ValueError, match="--inject"):
         SupervisorService(Supervisor((1,), J), ServiceConfig(listen_only=True, inject_uj=J), 0)
+
+
+def test_a_listener_counts_a_supervisors_frames_and_calls_none_an_intrusion() -> None:
+    """Listen-only watches a bus where a supervisor grants: frames in the supervisor's
+    direction are what it came to see, counted per node; to a supervisor that sends, the same
+    frame is someone else speaking in its name."""
+    arbitration_id, data = Codec().encode(Intention(1, 5, 100, 0))
+    frame = can.Message(arbitration_id=arbitration_id, data=data)
+    listener = SupervisorService(Supervisor((1,), J), ServiceConfig(listen_only=True), 0)
+    granting = SupervisorService(Supervisor((1,), J), ServiceConfig(), 0)
+    for service in (listener, granting):
+        service.on_foreign_direction(frame, 10)
+    heard, judged = listener.status(), granting.status()
+    assert heard["intrusions"] == 0 and heard["nodes"]["1"]["supervisor_frames"] == 1
+    assert judged["intrusions"] == 1 and judged["nodes"]["1"]["supervisor_frames"] == 0
+    line = supervisor_cli.listening_line("can0")(heard)
+    assert line.endswith("intrusions 0, a supervisor's frames 1"), line
 
 
 # -- widths ----------------------------------------------------------------------------------

@@ -262,7 +262,8 @@ def _channel(args: argparse.Namespace) -> str:
 def listening_line(where: str) -> Callable[[dict[str, Any]], str]:
     """``--listen-only``'s status on stdout: who talks (heard within --lost-after) and what
     fails to decode, one line, e.g. ``listening on can0: 1234 frames, nodes talking 1-4, silent
-    5, levels 3.200 J, decode errors 0, intrusions 0``."""
+    5, levels 3.200 J, decode errors 0, intrusions 0``; with ``, a supervisor's frames 612`` when
+    a supervisor grants on the bus (frames in its direction: no intrusion to a listener)."""
 
     def line(status: dict[str, Any]) -> str:
         nodes: dict[str, dict[str, Any]] = status["nodes"]
@@ -279,6 +280,8 @@ def listening_line(where: str) -> Callable[[dict[str, Any]], str]:
             f"decode errors {status['decode_errors']}" + (f" ({why})" if why else ""),
             f"intrusions {status['intrusions']}",
         ]
+        if seen := sum(n["supervisor_frames"] for n in nodes.values()):
+            parts.append(f"a supervisor's frames {seen}")
         if status.get("stopping"):
             parts.append("stopping")
         return f"listening on {where}: {', '.join(parts)}"

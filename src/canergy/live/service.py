@@ -88,6 +88,9 @@ class NodeInfo:
     """JOINs answered: the node started without books (new, wiped or corrupted NV)."""
     returns: int = 0
     decode_errors: int = 0
+    supervisor_frames: int = 0
+    """Listen-only: frames in the supervisor's direction for this node (another supervisor's:
+    what listen-only watches, no intrusion)."""
     requests: list[GrantRequest] = field(default_factory=list)
     """Grants asked for and not begun, oldest first (lists: a node holds few, and an empty
     deque takes 760 bytes against a list's 56)."""
@@ -321,6 +324,9 @@ class SupervisorService:
         supervisor never used (``canergy.live.runtime.OwnDirection``): authentic evidence."""
         node = frame.arbitration_id & 0xFF if node is None else node
         if node not in self.nodes:
+            return ()
+        if self.config.listen_only:  # it sends nothing: they are the supervisor's it watches
+            self.nodes[node].supervisor_frames += 1
             return ()
         if self.authenticated:
             kind = (
@@ -771,6 +777,7 @@ class SupervisorService:
                 "admitted": info.admitted,
                 "returns": info.returns,
                 "decode_errors": info.decode_errors,
+                "supervisor_frames": info.supervisor_frames,
                 "intrusions": self.intrusions.by_node.get(s.node, 0),
                 "refused": self.refusals.of_node(s.node),
             }

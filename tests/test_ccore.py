@@ -255,3 +255,13 @@ def test_with_a_key_every_frame_of_the_c_core_leaves_with_its_mac(layout: Layout
     assert heard(wire.sent) == [Commit(3, 1, 2_000)]
     assert service.core.session(3).phase.name == "WAIT_CONFIRM"
     wire.shutdown()
+
+
+@pytest.mark.parametrize("arbitration_id", [-1, 1 << 29, (1 << 32) | 0x0CE00903])
+def test_an_identifier_no_can_frame_carries_takes_the_usual_path(arbitration_id: int) -> None:
+    """Transports that are not CAN (zenoh, UDP) can hand over any integer: the fast path
+    leaves it to the usual path (which counts it) instead of failing in the C call."""
+    core = CompiledSupervisor([3], 10_000_000, timing=T)
+    _, data = Codec().encode(Ack(3, 1))
+    status, actions, frames, decoded = core.on_answer(arbitration_id, data, True, False, 0, False)
+    assert status != 0 and (actions, frames, decoded) == ([], [], None)

@@ -14,6 +14,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <sys/random.h>
+#include <sys/stat.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -54,7 +55,8 @@ static int sync_directory_of(const char *path)
     if (fd < 0) {
         return -1;
     }
-    const int rc = fsync(fd);
+    /* EINVAL: a filesystem that cannot sync a directory (some FUSE and 9p mounts) */
+    const int rc = (fsync(fd) == 0 || errno == EINVAL) ? 0 : -1;
     const int saved = errno;
     (void)close(fd);
     errno = saved;
@@ -63,19 +65,16 @@ static int sync_directory_of(const char *path)
 
 int port_open_nv(const char *path, mode_t mode)
 {
-    int fd = open(path, O_RDWR | O_CLOEXEC);
-    if (fd >= 0 || errno != ENOENT) {
-        return fd;
-    }
-    fd = open(path, O_RDWR | O_CREAT | O_EXCL | O_CLOEXEC, mode);
+    const int fd = open(path, O_RDWR | O_CREAT | O_CLOEXEC, mode);
     if (fd < 0) {
-        /* created by someone else meanwhile: theirs to have synced */
-        return errno == EEXIST ? open(path, O_RDWR | O_CLOEXEC) : -1;
+        return -1;
     }
-    if (sync_directory_of(path) != 0) {
+    /* An empty file may be new, or one whose creator stopped before syncing its directory:
+     * sync it now (a file holding a record had its directory synced before the record). */
+    struct stat st;
+    if (fstat(fd, &st) != 0 || (st.st_size == 0 && sync_directory_of(path) != 0)) {
         const int saved = errno;
         (void)close(fd);
-        (void)unlink(path);
         errno = saved;
         return -1;
     }

@@ -15,10 +15,11 @@ uint64_t port_now_us(void);
 /* 16 random bits from getrandom() (/dev/urandom when that fails); exits 2 without entropy. */
 uint16_t port_random16(void);
 
-/* The NV file at path, read-write; created with mode when missing, and then its directory
- * fsynced too, so that the records fsynced into it later cannot vanish with an unwritten
- * directory entry on a power loss. -1 with errno set on failure (a new file whose directory
- * could not be synced is removed again: the next start creates it afresh). */
+/* The NV file at path, read-write, created with mode when missing. While it is empty (new, or
+ * made by a start that stopped before this step) its directory is fsynced too, so that the
+ * records fsynced into it later cannot vanish with an unwritten directory entry on a power
+ * loss; a filesystem that cannot sync a directory (EINVAL) is taken as it is. -1 with errno
+ * set on failure. */
 int port_open_nv(const char *path, mode_t mode);
 
 #endif /* CANERGY_PORT_LINUX_SYSTEM_H */

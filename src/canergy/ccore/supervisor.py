@@ -104,6 +104,9 @@ if _MISSING is None:
     _NEVER = lib.CANERGY_NEVER
     _OK = lib.CANERGY_DECODE_OK
     _CALLER = lib.CANERGY_RX_CALLER
+_ID_LIMIT = 1 << 29
+_NOT_CAN = -1
+"""``on_answer``'s status for an identifier no CAN frame carries: taken the usual way."""
 
 _PHASES = tuple(Phase(i) for i in range(4))
 _DECISIONS = tuple(Decision(i) for i in range(3))
@@ -296,6 +299,8 @@ class CompiledSupervisor:
         (an answer ahead of the session, a decode status, another node) applied nothing and
         decoded nothing: the caller takes the frame its usual way, where it is judged, counted
         or reported."""
+        if not 0 <= arbitration_id < _ID_LIMIT:  # no CAN identifier (another transport's)
+            return _NOT_CAN, [], [], None
         rx = self._rx
         rx.id, rx.extended, rx.remote = arbitration_id, extended, remote
         buf = ffi.from_buffer(data)

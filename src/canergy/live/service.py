@@ -61,6 +61,8 @@ from canergy.units import format_energy
 log = logging.getLogger(__name__)
 
 GrantCallback = Callable[[dict[str, Any]], None]
+EncodedBegin = Callable[[int, int, int], tuple[list[Action], list[tuple[int, bytes]]]]
+"""The compiled core's ``begin_encoded``: actions, and the INTENTION as C encoded it."""
 
 
 @dataclass(slots=True)
@@ -183,7 +185,7 @@ class SupervisorService:
         self._held: list[Outgoing] = []
         self._answer = getattr(core, "on_answer", None)
         """The compiled core's fast path (``fast_frame``); None on the Python core."""
-        self._begin_encoded = None
+        self._begin_encoded: EncodedBegin | None = None
         """The compiled core's ``begin`` with its frame as C encoded it, once a bus loop without
         a key took the fast path (``fast_path``): an INTENTION then leaves as C's bytes."""
         self.stop_deadline: int | None = None

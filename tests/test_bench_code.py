@@ -27,6 +27,8 @@ def test_a_checkout_is_named_by_its_commit_and_marked_dirty_when_changed(tmp_pat
     assert commit(tmp_path) == head
     (tmp_path / "f.txt").write_text("two\n")
     assert commit(tmp_path) == f"{head}+dirty"
+    (tmp_path / ".git" / "index").write_bytes(b"not an index")  # git status now fails
+    assert commit(tmp_path) == f"{head}+status-unknown"
     assert (
         line({"version": "9.9", "commit": f"{head}+dirty"}) == f"canergy 9.9, commit {head}+dirty"
     )

@@ -11,7 +11,8 @@ import canergy
 
 def commit(where: Path | None = None) -> str | None:
     """The short commit of the checkout holding ``where`` (default: this package), ``+dirty``
-    when its tracked files differ from it; None outside a checkout or without git."""
+    when its tracked files differ from it (``+status-unknown`` when git cannot tell); None
+    outside a checkout or without git."""
     folder = where or Path(canergy.__file__).resolve().parent
 
     def git(*args: str) -> str | None:
@@ -27,6 +28,8 @@ def commit(where: Path | None = None) -> str | None:
     if not head:
         return None
     changed = git("status", "--porcelain", "--untracked-files=no")
+    if changed is None:  # unknown is not clean
+        return head + "+status-unknown"
     return head + ("+dirty" if changed else "")
 
 

@@ -339,6 +339,15 @@ def core_lines(ratios: dict[str, Any] | None) -> list[str]:
     return lines
 
 
+def c_core_lines(r: dict[str, Any]) -> list[str]:
+    """The C core's live rows and its ratios to the Python core's, when the run has them;
+    shared by the virtual bench and ``canergy bench`` on a bus."""
+    if not r.get("c_core"):
+        return []
+    lines = ["", "the same on the C core (canergy supervisor --core c)"]
+    return lines + live_lines({**r, **r["c_core"]}) + core_lines(r["c_vs_python"])
+
+
 def table(r: dict[str, Any]) -> str:
     c = r["codec"]
     lines = [
@@ -362,10 +371,7 @@ def table(r: dict[str, Any]) -> str:
     lines += ["", "live stack on python-can virtual (supervisor + emulator threads)"]
     lines += [f"  {reason}" for reason in r["skipped"]]
     lines += live_lines(r)
-    if r.get("c_core"):
-        lines += ["", "the same on the C core (canergy supervisor --core c)"]
-        lines += live_lines({**r, **r["c_core"]})
-        lines += core_lines(r["c_vs_python"])
+    lines += c_core_lines(r)
     lines += [
         "",
         "wire model, nominal transaction (frames of "

@@ -81,7 +81,7 @@ def _cores(choice: str) -> tuple[str, ...]:
 
 def run(args: argparse.Namespace) -> int:
     from canergy.bench.code import line
-    from canergy.bench.run import core_lines, live_lines, run, table
+    from canergy.bench.run import c_core_lines, live_lines, run, table
 
     if args.json is not None:  # before minutes of measuring, not after
         check_writable_dir(args.json, "--json")
@@ -103,11 +103,7 @@ def run(args: argparse.Namespace) -> int:
             str(getattr(args, n, None) or "") for n in ("interface", "channel")
         ).strip()
         print(f"live stack on {where}, nodes: {results['nodes_by']}; {line(results['code'])}")
-        print("\n".join(live_lines(results)))
-        if results["c_core"] is not None:
-            print("the same on the C core (canergy supervisor --core c)")
-            print("\n".join(live_lines({**results, **results["c_core"]})))
-            print("\n".join(core_lines(results["c_vs_python"])))
+        print("\n".join(live_lines(results) + c_core_lines(results)))
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=2) + "\n")
     return 0

@@ -38,10 +38,12 @@ from canergy.live.runtime import OWN_MAC_WAIT_US, BusRuntime, OwnDirection, mono
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.messages import (
     Ack,
+    Admit,
     Commit,
     Committed,
     Direction,
     Intention,
+    Join,
     Message,
     MsgType,
     Return,
@@ -545,6 +547,41 @@ def test_a_replayed_join_neither_admits_nor_writes_off(bench: Bench) -> None:
     b.wait(lambda: b.committed() >= before + 1)  # and it goes on being granted
     node = b.status()["nodes"]["1"]
     assert node["admitted"] == 1 and node["written_off"] == 0, node
+
+
+def test_a_join_resent_while_its_admit_was_on_the_way_is_no_replay() -> None:
+    """Found in CI: the node re-sent its JOIN (same nonce, same FV: the same bytes) before the
+    slow ADMIT reached it; the supervisor held the copy until the node's next TELEMETRY, which
+    showed books, and counted the node's own re-send as a replayed JOIN. A copy of the JOIN
+    admitted last, decided by the first TELEMETRY with books after it, is dropped; a later copy
+    is the replay it was before; a copy the node follows with a TELEMETRY still JOINING (its
+    ADMIT was lost) is admitted again."""
+    core = Supervisor((1,), 10_000_000)
+    service = SupervisorService(core, ServiceConfig(fsync=False, status_period_us=10**12), 0)
+    service.bus_counters.auth = Layout.FD.value
+    joining, books = Telemetry(1, 0, flags=Telemetry.JOINING), Telemetry(1, 0)
+
+    def node_status() -> Any:
+        return service.status()["nodes"]["1"]
+
+    assert not service.on_message(Join(1, 7), 1_000)  # held until the node's report
+    assert [m for m in service.on_message(joining, 2_000) if isinstance(m, Admit)]
+    assert not service.on_message(Join(1, 7), 3_000)  # its re-send, the ADMIT on the way
+    service.on_message(books, 4_000)
+    assert service.intrusions.total == 0 and service.refusals.of_node(1) == 0
+    assert node_status()["admitted"] == 1 and node_status()["joins_resent"] == 1
+
+    service.on_message(Join(1, 7), 5_000)  # the same bytes once the node showed its books
+    service.on_message(books, 6_000)
+    assert service.intrusions.total == 1 and node_status()["admitted"] == 1
+
+    service.on_message(Join(1, 9), 7_000)  # a new life, whose ADMIT is lost
+    assert [m for m in service.on_message(joining, 8_000) if isinstance(m, Admit)]
+    service.on_message(Join(1, 9), 9_000)
+    assert [m for m in service.on_message(joining, 10_000) if isinstance(m, Admit)]
+    service.on_message(books, 11_000)
+    assert node_status()["admitted"] == 3 and node_status()["joins_resent"] == 1
+    assert service.intrusions.total == 1
 
 
 pytestmark = pytest.mark.usefixtures("both_cores")

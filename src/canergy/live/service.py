@@ -102,6 +102,12 @@ class NodeInfo:
     held_join: Join | None = None
     """Authenticated mode: a verified JOIN waiting for the node's next TELEMETRY to show it
     current (JOINING, bound to it) or a replay (the node reports its books)."""
+    admitted_nonce: int | None = None
+    """Authenticated mode: the nonce of the JOIN admitted last, until the node's first
+    TELEMETRY with books: a copy of that JOIN held meanwhile is the node's own re-send, sent
+    before the ADMIT reached it, not a replay."""
+    joins_resent: int = 0
+    """Copies of the JOIN just admitted, re-sent before the node heard its ADMIT: dropped."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -252,12 +258,22 @@ class SupervisorService:
     def _joined(self, msg: Telemetry, info: NodeInfo, now: int) -> list[Outgoing]:
         """Authenticated mode: a held JOIN is admitted once the node's TELEMETRY shows it
         without books (JOINING: its FV is that JOIN's); a TELEMETRY with books shows the JOIN
-        a replay of an earlier life, refused as stale (nothing written off, nobody admitted)."""
+        a replay of an earlier life, refused as stale (nothing written off, nobody admitted),
+        unless it is a copy of the JOIN admitted just before that TELEMETRY: the node re-sent
+        it while its ADMIT was on the way (the same bytes: a replay then moves nothing either).
+        """
         join, info.held_join = info.held_join, None
+        if msg.flags & Telemetry.JOINING:
+            if join is None:
+                return []
+            info.admitted_nonce = join.nonce
+            return self._carry_out(self.core.receive(join, now), now)
+        admitted, info.admitted_nonce = info.admitted_nonce, None
         if join is None:
             return []
-        if msg.flags & Telemetry.JOINING:
-            return self._carry_out(self.core.receive(join, now), now)
+        if join.nonce == admitted:
+            info.joins_resent += 1
+            return []
         reason = f"{AuthFailure.STALE.value} (a JOIN of an earlier life: the node has its books)"
         self.refusals.record(msg.node, reason, repr(join), now)
         self.intrusions.record(msg.node, repr(join), reason, now, quiet=True)
@@ -777,6 +793,7 @@ class SupervisorService:
                 "aborted": info.aborted,
                 "written_off": info.written_off,
                 "admitted": info.admitted,
+                "joins_resent": info.joins_resent,
                 "returns": info.returns,
                 "decode_errors": info.decode_errors,
                 "supervisor_frames": info.supervisor_frames,

@@ -19,7 +19,7 @@ from support.strategies import client_answer
 from canergy.auth.frames import FrameAuth, Layout, expected_freshness, freshness
 from canergy.ccore.supervisor import CompiledSupervisor, make_supervisor, missing
 from canergy.codec import Codec
-from canergy.core.actions import Action, Persist
+from canergy.core.actions import Acknowledged, Action, Persist
 from canergy.core.errors import LocalProtocolError
 from canergy.core.supervisor import Supervisor
 from canergy.core.timing import Timing
@@ -42,6 +42,7 @@ pytestmark = pytest.mark.skipif(
 )
 
 NODES = (3, 5, 9, 127)
+CODEC = Codec()
 T = Timing(response_timeout_us=1_000, retries=2)
 amounts = st.one_of(
     st.integers(1, 3_000).map(lambda mj: mj * QUANTUM_UJ),
@@ -98,6 +99,27 @@ class SideBySide(RuleBasedStateMachine):
         msg = client_answer(data, node, tx, credited, telemetry=True)
         self._same(lambda: self.py.receive(msg, self.now), lambda: self.c.receive(msg, self.now))
 
+    @rule(data=st.data(), stopping=st.booleans(), dt=st.integers(0, 1_500))
+    def fast_answer(self, data: st.DataObject, stopping: bool, dt: int) -> None:
+        """The fast path (``on_answer``: one frame, decoded, judged and an ACK decided in C)
+        against the Python core given the same message and then the service's decision, ``dt``
+        after the last event (an answer moves deadlines). A frame the fast path leaves to the
+        caller goes the usual way, as the service sends it."""
+        self.now += dt
+        node = data.draw(st.sampled_from([*NODES, 4]))
+        s = self.py.session(node) if node in NODES else None
+        tx, credited = (0, 0) if s is None else (s.tx, s.returns_credited)
+        msg = client_answer(data, node, tx, credited, telemetry=True)
+        ident, payload = CODEC.encode(msg)
+        status, _, _, decoded = self.c.on_answer(ident, payload, True, False, self.now, stopping)
+        if status != 0 and not isinstance(decoded or msg, Telemetry):
+            self.c.receive(decoded or msg, self.now)
+        if isinstance(msg, Telemetry):
+            return  # the service's: no rule of either core takes it
+        for action in self.py.receive(msg, self.now):
+            if isinstance(action, Acknowledged):
+                (self.py.abort if stopping else self.py.commit)(action.node, self.now)
+
     @rule(dt=st.integers(0, 3_000))
     def timer(self, dt: int) -> None:
         self.now += dt
@@ -119,6 +141,25 @@ class SideBySide(RuleBasedStateMachine):
         assert self.c.state == self.py.state
         assert self.c.get_timer() == self.py.get_timer()
         assert self.c.is_quiescent() == self.py.is_quiescent()
+
+
+def test_the_fast_path_moves_deadlines_as_the_python_core_does() -> None:
+    """The compiled core keeps its deadline between calls; an answer on the fast path moves it
+    (the ACK's COMMIT starts a wait, COMMITTED ends one), as the Python core's does."""
+    py, c = Supervisor(NODES, 10_000_000, timing=T), CompiledSupervisor(NODES, 10_000_000, timing=T)
+    for node, now in ((3, 0), (5, 200)):
+        py.begin(node, 5 * QUANTUM_UJ, now)
+        c.begin(node, 5 * QUANTUM_UJ, now)
+    deadlines = [c.get_timer()]
+    for now, msg in ((300, Ack(3, 1)), (400, Committed(3, 1)), (500, Ack(5, 1))):
+        ident, payload = CODEC.encode(msg)
+        assert c.on_answer(ident, payload, True, False, now, False)[0] == 0  # taken
+        for action in py.receive(msg, now):
+            if isinstance(action, Acknowledged):
+                py.commit(action.node, now)
+        deadlines.append(c.get_timer())
+        assert deadlines[-1] == py.get_timer() and c.state == py.state
+    assert deadlines == [1_000, 1_200, 1_200, 1_500]
 
 
 TestSideBySide = SideBySide.TestCase

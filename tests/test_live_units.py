@@ -16,10 +16,10 @@ from canergy.codec import Codec
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.faults import FaultInjector, FaultProfile
 from canergy.live.faulty_bus import FaultyBus
-from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant
+from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
 from canergy.live.runtime import BusRuntime
 from canergy.live.state_file import StateFileError, load_state, save_state
-from canergy.messages import Ack, Direction
+from canergy.messages import USABLE_MAX_UJ, Ack, Direction
 
 
 class _FullQueueBus(can.BusABC):
@@ -90,6 +90,22 @@ def test_limits_cap_every_grant() -> None:
     assert capped_grant(2_000_000, level=0, **poor) == 0  # type: ignore[arg-type]
     with pytest.raises(ValueError):
         Limits(max_grant=0)
+
+
+def test_each_cap_says_what_it_is_with_its_energies() -> None:
+    limits = Limits(max_grant=500_000, max_node_level=1_000_000, max_total=2_000_000)
+    caps = grant_caps(
+        limits=limits, level=800_000, usable=3_000_000, granted_total=2_100_000, rate_tokens=-5
+    )
+    assert dict(caps) == {
+        3_000_000: "the supervisor has 3.000000 J left",
+        500_000: "--max-grant 0.500000 J",
+        65_535_000: "one transaction carries at most 65.535 J",
+        USABLE_MAX_UJ - 800_000: "the node's record holds no more",
+        200_000: "--max-node-level 1.000000 J",
+        -100_000: "--max-total 2.000000 J (0.000000 J left)",
+        -5: "--rate (0.000000 J available now)",
+    }
 
 
 def test_rate_limiter_refills_at_its_rate() -> None:

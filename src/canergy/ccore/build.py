@@ -76,9 +76,32 @@ int canergy_supervisor_on_answer(struct canergy_supervisor *sup,
 void canergy_supervisor_on_timer(struct canergy_supervisor *sup, uint64_t now,
     struct canergy_supervisor_out *out);
 uint64_t canergy_supervisor_deadline(const struct canergy_supervisor *sup);
+int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned kind,
+    const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
+    struct canergy_supervisor_out *out, struct canergy_msg *m);
 void canergy_supervisor_restart(struct canergy_supervisor *sup, uint64_t now);
 int canergy_supervisor_inject(struct canergy_supervisor *sup, uint64_t amount_uj);
 """
+
+HOST_SOURCE = """
+#include "canergy/supervisor.h"
+
+/* The fast path's call with the frame as arguments: one call, no struct filled field by field
+   from Python (kind: bit 0 extended identifier, bit 1 remote frame). */
+static int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned kind,
+    const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
+    struct canergy_supervisor_out *out, struct canergy_msg *m)
+{
+    struct canergy_rx_frame rx = {0};
+    rx.id = id;
+    rx.data = data;
+    rx.len = len;
+    rx.extended = (kind & 1U) != 0U;
+    rx.remote = (kind & 2U) != 0U;
+    return canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, m);
+}
+"""
+"""Compiled with the role: what only the host's binding calls."""
 
 
 def builder(root: Path = ROOT) -> FFI:
@@ -88,7 +111,7 @@ def builder(root: Path = ROOT) -> FFI:
     ffi.cdef(CDEF)
     ffi.set_source(
         "canergy.ccore._supervisor",
-        '#include "canergy/supervisor.h"',
+        HOST_SOURCE,
         sources=[str(firmware / "src" / name) for name in SOURCES],
         include_dirs=[str(firmware / "include")],
         define_macros=[("CANERGY_SUPERVISOR_NODES", f"{NODES}U")],

@@ -71,6 +71,9 @@ _EVENT = struct.Struct("<IIBBB")
 """struct canergy_supervisor_event: tx, amount, node, resolved, flags."""
 _FRAME = struct.Struct("<IB8s")
 """struct canergy_frame: id, dlc, data."""
+_COUNTS = struct.Struct("<BBB")
+"""struct canergy_supervisor_out's tail: frame_count, event_count, persist (one read, not three
+attribute lookups through cffi)."""
 
 
 _LAYOUT = {
@@ -82,6 +85,8 @@ _LAYOUT = {
     "struct canergy_frame": {"id": 0, "dlc": 4, "data": 5},
 }  # fmt: skip
 """The offsets the readers above take (a library laid out otherwise is refused, not misread)."""
+_COUNTS_LAYOUT = ("frame_count", "event_count", "persist")
+"""The out struct's fields ``_COUNTS`` reads, in order and adjacent."""
 
 
 def _misread() -> str | None:
@@ -89,6 +94,10 @@ def _misread() -> str | None:
     for name, fields in _LAYOUT.items():
         if any(ffi.offsetof(name, field) != at for field, at in fields.items()):
             return f"the compiled core's {name} is not laid out as canergy reads it: rebuild it"
+    out = "struct canergy_supervisor_out"
+    first = ffi.offsetof(out, _COUNTS_LAYOUT[0])
+    if any(ffi.offsetof(out, f) != first + k for k, f in enumerate(_COUNTS_LAYOUT)):
+        return f"the compiled core's {out} is not laid out as canergy reads it: rebuild it"
     return None
 
 
@@ -101,6 +110,7 @@ if _MISSING is None:
     _SESSIONS_AT = ffi.offsetof("struct canergy_supervisor", "sessions")
     _EVENTS_AT = ffi.offsetof("struct canergy_supervisor_out", "events")
     _FRAMES_AT = ffi.offsetof("struct canergy_supervisor_out", "frames")
+    _COUNTS_AT = ffi.offsetof("struct canergy_supervisor_out", _COUNTS_LAYOUT[0])
     _NEVER = lib.CANERGY_NEVER
     _OK = lib.CANERGY_DECODE_OK
     _CALLER = lib.CANERGY_RX_CALLER
@@ -155,7 +165,6 @@ class CompiledSupervisor:
         self._sup_bytes = ffi.buffer(self._sup)  # live views of the C memory
         self._out_bytes = ffi.buffer(self._out)
         self._msg = ffi.new("struct canergy_msg *")
-        self._rx = ffi.new("struct canergy_rx_frame *")
         cfg = ffi.new("struct canergy_supervisor_config *")
         cfg.id_base = self.codec.id_base
         cfg.timing.response_timeout_us = self.timing.response_timeout_us
@@ -169,7 +178,13 @@ class CompiledSupervisor:
             )
         self._initial = initial
         self._index = {n: i for i, n in enumerate(node_list)}
-        self._sessions = [Session(n) for n in node_list]
+        self._timer: int | None = None
+        self._timer_known = True
+        """``get_timer``'s answer, kept until a call into C that may move a deadline (the C
+        side scans every session for it: twice a loop pass, on data gone cold meanwhile)."""
+        self._sessions: list[Session | None] = [Session(n) for n in node_list]
+        """Python copies of the C sessions; None where a call changed one since it was read
+        (read again when asked for: a frame's step need not build one nobody looks at)."""
         if state is not None:
             self._load(state)
 
@@ -182,7 +197,7 @@ class CompiledSupervisor:
     def state(self) -> SupervisorState:
         sup = self._sup
         return SupervisorState(
-            self._initial, sup.usable_uj, sup.injected_uj, tuple(self._sessions), sup.withdrawn_uj
+            self._initial, sup.usable_uj, sup.injected_uj, self._all(), sup.withdrawn_uj
         )
 
     @property
@@ -190,10 +205,17 @@ class CompiledSupervisor:
         return int(self._sup.usable_uj)
 
     def session(self, node: int) -> Session:
-        return self._sessions[self._index[node]]
+        i = self._index[node]
+        s = self._sessions[i]
+        if s is None:
+            s = self._sessions[i] = self._read(i)
+        return s
 
     def is_quiescent(self) -> bool:
-        return all(s.phase is Phase.IDLE for s in self._sessions)
+        return all(s.phase is Phase.IDLE for s in self._all())
+
+    def _all(self) -> tuple[Session, ...]:
+        return tuple(self.session(n) for n in self._index)
 
     def _load(self, st: SupervisorState) -> None:
         """Take a saved state (the state file's): Us, injected, withdrawn and every session's
@@ -212,6 +234,7 @@ class CompiledSupervisor:
             c.returns_credited, c.tries = s.returns_credited, s.tries
             c.deadline = lib.CANERGY_NEVER if s.deadline is None else s.deadline
             self._sessions[i] = self._read(i)
+        self._timer_known = False
 
     def _read(self, i: int) -> Session:
         delivered, returned, deadline, tx, credited, reserved, node, phase, decision, tries = (
@@ -248,6 +271,7 @@ class CompiledSupervisor:
         self._managed(node)
         if not 0 < amount < 2**32:
             raise LocalProtocolError(f"amount {amount} µJ is not a grant one frame carries")
+        self._timer_known = False  # deadlines may move
         rc = lib.canergy_supervisor_begin(self._sup, node, amount, now, self._out)
         if rc == -3 and amount <= self._sup.usable_uj:
             raise LocalProtocolError(f"amount {amount} µJ is not a whole mJ up to 65,535 mJ")
@@ -257,11 +281,13 @@ class CompiledSupervisor:
 
     def commit(self, node: int, now: int) -> list[Action]:
         self._managed(node)
+        self._timer_known = False  # deadlines may move
         rc = lib.canergy_supervisor_decide(self._sup, node, True, now, self._out)
         return self._checked(rc, node, "commit")
 
     def abort(self, node: int, now: int) -> list[Action]:
         self._managed(node)
+        self._timer_known = False  # deadlines may move
         rc = lib.canergy_supervisor_decide(self._sup, node, False, now, self._out)
         return self._checked(rc, node, "abort")
 
@@ -279,6 +305,7 @@ class CompiledSupervisor:
             m.nonce = msg.nonce
         else:  # as the Python table: no rule takes it (a TELEMETRY is the service's)
             raise LocalProtocolError(f"hardened supervisor: no rule for {type(msg).__name__}")
+        self._timer_known = False  # deadlines may move
         lib.canergy_supervisor_on_msg(self._sup, m, now, self._out)
         return self._actions()
 
@@ -301,19 +328,19 @@ class CompiledSupervisor:
         or reported."""
         if not 0 <= arbitration_id < _ID_LIMIT:  # no CAN identifier (another transport's)
             return _NOT_CAN, [], [], None
-        rx = self._rx
-        rx.id, rx.extended, rx.remote = arbitration_id, extended, remote
-        buf = ffi.from_buffer(data)
-        rx.data, rx.len = buf, len(data)
         m = self._msg
-        status = lib.canergy_supervisor_on_answer(self._sup, rx, now, abort, self._out, m)
+        kind = (1 if extended else 0) | (2 if remote else 0)
+        payload = data if type(data) is bytes else bytes(data)  # cffi takes bytes as they are
+        self._timer_known = False  # deadlines may move
+        status = lib.canergy_host_answer(
+            self._sup, arbitration_id, kind, payload, len(payload), now, abort, self._out, m
+        )
         if status == _OK:
             return status, self._actions(fast=True), self._frames(), None
         if status != _CALLER:
             return status, [], [], None
-        kind = m.type
         msg: Message
-        if kind == MsgType.TELEMETRY:  # the type code on the wire, the same in both codecs
+        if (kind := m.type) == MsgType.TELEMETRY:  # the wire's type code, the same in both codecs
             msg = Telemetry(m.node, m.level_mj, m.flags, m.seq, m.witness)
         elif kind == MsgType.RETURN:
             msg = Return(m.node, m.seq, m.amount_mj)
@@ -322,10 +349,14 @@ class CompiledSupervisor:
         return status, [], [], msg
 
     def get_timer(self) -> int | None:
-        deadline: int = lib.canergy_supervisor_deadline(self._sup)
-        return None if deadline == _NEVER else deadline
+        if not self._timer_known:
+            deadline: int = lib.canergy_supervisor_deadline(self._sup)
+            self._timer = None if deadline == _NEVER else deadline
+            self._timer_known = True
+        return self._timer
 
     def handle_timer(self, now: int) -> list[Action]:
+        self._timer_known = False  # deadlines may move
         lib.canergy_supervisor_on_timer(self._sup, now, self._out)
         return self._actions()
 
@@ -336,8 +367,9 @@ class CompiledSupervisor:
 
     def power_loss(self, now: int) -> None:
         """Lose volatile state and restart from the persistent record."""
+        self._timer_known = False  # deadlines may move
         lib.canergy_supervisor_restart(self._sup, now)
-        self._sessions = [self._read(i) for i in range(len(self._sessions))]
+        self._sessions = [None] * len(self._sessions)
 
     # -- internals -------------------------------------------------------------------------
     def _managed(self, node: int) -> None:
@@ -357,24 +389,23 @@ class CompiledSupervisor:
         """The last call's output as the Python core's actions, in its order. ``fast``
         (``on_answer``): no ``Acknowledged`` (decided in C already) and no ``Send`` (the
         frames go out as C encoded them, ``_frames``)."""
-        out = self._out
         raw = self._out_bytes
-        actions: list[Action] = [Persist()] if out.persist else []
-        frames = out.frame_count
+        frames, events, persist = _COUNTS.unpack_from(raw, _COUNTS_AT)
+        actions: list[Action] = [Persist()] if persist else []
         sent = 0
-        for k in range(out.event_count):
+        for k in range(events):
             tx, amount, node, resolved, flags = _EVENT.unpack_from(
                 raw, _EVENTS_AT + k * _EVENT_SIZE
             )
-            i = self._index[node]
-            s = self._sessions[i] = self._read(i)
+            self._sessions[self._index[node]] = None
             if flags & _ACKNOWLEDGED and not fast:
                 actions.append(Acknowledged(node, tx))
             if resolved:
                 actions.append(Resolved(node, tx, _OUTCOMES[resolved], amount))
             if flags & _RETURN_CREDITED:
-                actions.append(ReturnCredited(node, s.returns_credited, amount))
+                actions.append(ReturnCredited(node, self.session(node).returns_credited, amount))
             if flags & _ADMITTED:
+                s = self.session(node)
                 actions.append(Admitted(node, s.tx, s.returns_credited))
             if sent < frames and not fast:
                 arbitration_id, dlc, data = _FRAME.unpack_from(raw, _FRAMES_AT + sent * _FRAME_SIZE)
@@ -387,7 +418,7 @@ class CompiledSupervisor:
         """The last call's frames as (identifier, data), encoded by the C codec."""
         raw = self._out_bytes
         frames = []
-        for k in range(self._out.frame_count):
+        for k in range(_COUNTS.unpack_from(raw, _COUNTS_AT)[0]):
             arbitration_id, dlc, data = _FRAME.unpack_from(raw, _FRAMES_AT + k * _FRAME_SIZE)
             frames.append((arbitration_id, data[:dlc]))
         return frames

@@ -7,7 +7,6 @@ and the protocol stays passive whatever telemetry says.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ
@@ -77,29 +76,29 @@ def quantize(amount: int) -> int:
     return amount - amount % QUANTUM_UJ
 
 
+_Cap = tuple[int, str, tuple[int, ...]]
+"""A cap on one grant: its value, and what it is as a template for the energies that follow
+(formatted only when a refusal names it: a top-up on every frame formats nothing)."""
+
+
 def _caps(
     limits: Limits, level: int | None, usable: int, granted_total: int, rate_tokens: int | None
-) -> list[tuple[int, Callable[[], str]]]:
-    """Every cap on one grant now, each with how to say what it is (said only when a refusal
-    names it: a top-up on every frame formats nothing)."""
-    caps: list[tuple[int, Callable[[], str]]] = [
-        (usable, lambda: f"the supervisor has {format_energy(usable)} left"),
-        (limits.max_grant, lambda: f"--max-grant {format_energy(limits.max_grant)}"),
-        (AMOUNT_MAX_MJ * QUANTUM_UJ, lambda: "one transaction carries at most 65.535 J"),
+) -> list[_Cap]:
+    """Every cap on one grant now."""
+    caps: list[_Cap] = [
+        (usable, "the supervisor has {} left", (usable,)),
+        (limits.max_grant, "--max-grant {}", (limits.max_grant,)),
+        (AMOUNT_MAX_MJ * QUANTUM_UJ, "one transaction carries at most 65.535 J", ()),
     ]
     if level is not None:
-        caps.append((USABLE_MAX_UJ - level, lambda: "the node's record holds no more"))
+        caps.append((USABLE_MAX_UJ - level, "the node's record holds no more", ()))
     if (most := limits.max_node_level) is not None:
-        room = 0 if level is None else most - level
-        caps.append((room, lambda: f"--max-node-level {format_energy(most)}"))
+        caps.append((0 if level is None else most - level, "--max-node-level {}", (most,)))
     if (total := limits.max_total) is not None:
         left = total - granted_total
-        remaining = max(left, 0)
-        caps.append(
-            (left, lambda: f"--max-total {format_energy(total)} ({format_energy(remaining)} left)")
-        )
+        caps.append((left, "--max-total {} ({} left)", (total, max(left, 0))))
     if (tokens := rate_tokens) is not None:
-        caps.append((tokens, lambda: f"--rate ({format_energy(max(tokens, 0))} available now)"))
+        caps.append((tokens, "--rate ({} available now)", (max(tokens, 0),)))
     return caps
 
 
@@ -115,7 +114,7 @@ def grant_caps(
     what its record holds (``USABLE_MAX_UJ``) from a level it reported; an unknown level fails
     ``--max-node-level`` closed."""
     caps = _caps(limits, level, usable, granted_total, rate_tokens)
-    return [(cap, why()) for cap, why in caps]
+    return [(cap, why.format(*map(format_energy, uj))) for cap, why, uj in caps]
 
 
 def capped_grant(
@@ -130,7 +129,7 @@ def capped_grant(
     """The largest grant ≤ ``wanted`` every cap of ``grant_caps`` allows (0: none), in whole
     quanta."""
     caps = _caps(limits, level, usable, granted_total, rate_tokens)
-    return max(0, quantize(min([wanted, *(cap for cap, _ in caps)])))
+    return max(0, quantize(min([wanted, *(cap for cap, _, _ in caps)])))
 
 
 @dataclass(frozen=True, slots=True)

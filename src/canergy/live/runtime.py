@@ -337,9 +337,10 @@ class BusRuntime:
     def poll(self, max_wait_s: float = 0.1) -> None:
         """Wait for one frame (at most until the next deadline or ``max_wait_s``) and run
         whatever is due."""
-        now = self.clock()
-        wakeup = self.handler.next_wakeup()
-        wait = max_wait_s if wakeup is None else min(max_wait_s, max(0, wakeup - now) / 1e6)
+        wait = 0.0
+        if max_wait_s > 0:  # how long to wait: no sooner than the next deadline
+            wakeup, now = self.handler.next_wakeup(), self.clock()
+            wait = max_wait_s if wakeup is None else min(max_wait_s, max(0, wakeup - now) / 1e6)
         try:
             frame = self._recv(wait)
         except can.CanError:  # e.g. the interface went down: count, back off, keep going

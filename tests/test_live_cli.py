@@ -132,7 +132,8 @@ def test_supervisor_serves_grants_over_its_control_socket(tmp_path: Path, core: 
         core,
     ]
     result: list[int] = []
-    thread = threading.Thread(target=lambda: result.append(main(argv)))
+    # a daemon: a failed assertion below must fail the test, not leave the run waiting for it
+    thread = threading.Thread(target=lambda: result.append(main(argv)), daemon=True)
     thread.start()
     try:
         _wait_for(control)

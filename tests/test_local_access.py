@@ -90,6 +90,42 @@ def test_the_control_socket_is_0600_under_umask_000(tmp_path: Path) -> None:
     assert os.umask(old) == old  # the umask is as it was
 
 
+def test_the_control_socket_appears_only_once_it_listens(tmp_path: Path) -> None:
+    """Found in CI: a client that waited for the file and connected at once was refused now and
+    then (the file existed from bind, before listen), and a test then hung on the supervisor it
+    could not stop. Each of many starts is watched by a client that connects the moment the path
+    exists; none is refused, and a second server at a path in use is refused and leaves it."""
+    refused = 0
+    for i in range(100):
+        path = tmp_path / f"c{i}.sock"
+
+        def connect(path: Path = path) -> None:
+            nonlocal refused
+            while not path.exists():
+                pass
+            with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as client:
+                try:
+                    client.connect(str(path))
+                except ConnectionRefusedError:
+                    refused += 1
+
+        watcher = threading.Thread(target=connect)
+        watcher.start()
+        server = ControlServer(path)
+        watcher.join(5)
+        server.close()
+    assert refused == 0
+    first = ControlServer(tmp_path / "ctl.sock")
+    try:
+        with pytest.raises(ValueError, match="already listening"):
+            ControlServer(tmp_path / "ctl.sock")
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as client:
+            client.connect(str(tmp_path / "ctl.sock"))  # still the first one's
+    finally:
+        first.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no staging name left behind
+
+
 def _answer_all(server: ControlServer, until: float, done: Callable[[], bool]) -> None:
     """Answer every request with what it asked, until ``done()`` or the deadline."""
     while time.monotonic() < until and not done():

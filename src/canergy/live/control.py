@@ -85,6 +85,20 @@ def _bind_private(sock: socket.socket, path: Path) -> None:
     os.chmod(path, 0o600)
 
 
+def _listen_at(sock: socket.socket, path: Path) -> None:
+    """Make ``sock`` listen at ``path``, which appears only once it listens (a client that
+    waits for the file is never refused): bound and listening under a name of its own in the
+    same directory first, then hard-linked to ``path``, which fails when something is there
+    (it replaces nothing, as a bind would not)."""
+    staging = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident() % 99991}")
+    _bind_private(sock, staging)
+    try:
+        sock.listen(8)
+        os.link(staging, path)
+    finally:
+        staging.unlink(missing_ok=True)
+
+
 def peer_credentials(conn: socket.socket) -> tuple[int, int] | None:
     """The connected peer's (pid, uid), or None where the platform cannot tell."""
     option = getattr(socket, "SO_PEERCRED", None)
@@ -107,13 +121,12 @@ class ControlServer:
                 path.unlink()
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
-            _bind_private(self._sock, path)
+            _listen_at(self._sock, path)
         except OSError:
             self._sock.close()
             raise
         st = os.lstat(path)
         self._made = (st.st_dev, st.st_ino)
-        self._sock.listen(8)
         self._thread = threading.Thread(target=self._serve, name="canergy-control", daemon=True)
         self._thread.start()
 

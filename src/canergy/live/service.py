@@ -70,7 +70,6 @@ class GrantRequest:
     node: int
     amount: int
     reply: GrantCallback
-    tx: int | None = None
 
 
 @dataclass(slots=True)
@@ -595,8 +594,11 @@ class SupervisorService:
         todo = list(self.nodes) if nodes is None else sorted(nodes)
         self.ready.clear()
         out: list[Outgoing] = []
+        policy = self.config.policy
         for node in todo:
             info = self.nodes[node]
+            if not info.requests and policy is None:
+                continue  # nothing asked for, no policy: nothing to begin (the cheap test first)
             if self.core.session(node).phase is not Phase.IDLE:
                 continue
             if self.liveness is not None and not self.liveness(node, now):
@@ -605,7 +607,7 @@ class SupervisorService:
                 continue  # not heard yet, or no books until admitted: a grant would be lost
             if info.requests:
                 out += self._one_shot(node, info, now)
-            elif self.config.policy is not None and not self._distrusted(node, now):
+            elif policy is not None and not self._distrusted(node, now):
                 out += self._top_up(node, info, now)
         return out
 
@@ -677,9 +679,6 @@ class SupervisorService:
             self._finish_request(node, {"node": self.node_name(node), "error": str(exc)})
             return []
         self.rate.take(amount)
-        req = self.nodes[node].active_request
-        if req is not None:
-            req.tx = self.core.session(node).tx
         return frames + self._carry_out(actions, now)
 
     def _carry_out(self, actions: list[Action], now: int) -> list[Outgoing]:

@@ -181,10 +181,12 @@ class CompiledSupervisor:
         self._timer: int | None = None
         self._timer_known = True
         """``get_timer``'s answer, kept until a call into C that may move a deadline (the C
-        side scans every session for it: twice a loop pass, on data gone cold meanwhile)."""
-        self._sessions: list[Session | None] = [Session(n) for n in node_list]
-        """Python copies of the C sessions; None where a call changed one since it was read
-        (read again when asked for: a frame's step need not build one nobody looks at)."""
+        side scans every session for it, on data gone cold since the last pass). The loop's
+        thread alone asks for it, as it alone makes those calls."""
+        self._sessions = [Session(n) for n in node_list]
+        """Python copies of the C sessions, each read whole right after the call that changed
+        it, on the loop's thread: another thread (the SDO audit's ``books``) reads only these,
+        never C memory a call may be changing, and never stores into them."""
         if state is not None:
             self._load(state)
 
@@ -197,7 +199,7 @@ class CompiledSupervisor:
     def state(self) -> SupervisorState:
         sup = self._sup
         return SupervisorState(
-            self._initial, sup.usable_uj, sup.injected_uj, self._all(), sup.withdrawn_uj
+            self._initial, sup.usable_uj, sup.injected_uj, tuple(self._sessions), sup.withdrawn_uj
         )
 
     @property
@@ -205,17 +207,10 @@ class CompiledSupervisor:
         return int(self._sup.usable_uj)
 
     def session(self, node: int) -> Session:
-        i = self._index[node]
-        s = self._sessions[i]
-        if s is None:
-            s = self._sessions[i] = self._read(i)
-        return s
+        return self._sessions[self._index[node]]
 
     def is_quiescent(self) -> bool:
-        return all(s.phase is Phase.IDLE for s in self._all())
-
-    def _all(self) -> tuple[Session, ...]:
-        return tuple(self.session(n) for n in self._index)
+        return all(s.phase is Phase.IDLE for s in self._sessions)
 
     def _load(self, st: SupervisorState) -> None:
         """Take a saved state (the state file's): Us, injected, withdrawn and every session's
@@ -369,7 +364,7 @@ class CompiledSupervisor:
         """Lose volatile state and restart from the persistent record."""
         self._timer_known = False  # deadlines may move
         lib.canergy_supervisor_restart(self._sup, now)
-        self._sessions = [None] * len(self._sessions)
+        self._sessions = [self._read(i) for i in range(len(self._sessions))]
 
     # -- internals -------------------------------------------------------------------------
     def _managed(self, node: int) -> None:
@@ -397,15 +392,15 @@ class CompiledSupervisor:
             tx, amount, node, resolved, flags = _EVENT.unpack_from(
                 raw, _EVENTS_AT + k * _EVENT_SIZE
             )
-            self._sessions[self._index[node]] = None
+            i = self._index[node]
+            s = self._sessions[i] = self._read(i)
             if flags & _ACKNOWLEDGED and not fast:
                 actions.append(Acknowledged(node, tx))
             if resolved:
                 actions.append(Resolved(node, tx, _OUTCOMES[resolved], amount))
             if flags & _RETURN_CREDITED:
-                actions.append(ReturnCredited(node, self.session(node).returns_credited, amount))
+                actions.append(ReturnCredited(node, s.returns_credited, amount))
             if flags & _ADMITTED:
-                s = self.session(node)
                 actions.append(Admitted(node, s.tx, s.returns_credited))
             if sent < frames and not fast:
                 arbitration_id, dlc, data = _FRAME.unpack_from(raw, _FRAMES_AT + sent * _FRAME_SIZE)

@@ -10,6 +10,7 @@ that reads keys.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import resource
@@ -29,7 +30,7 @@ from typing import Any
 import pytest
 
 from canergy.auth.keys import KEY_FILE_MAX, KeyFileError, load_key, new_master, write_key
-from canergy.live.control import ControlServer, request
+from canergy.live.control import MAX_SOCKET_PATH, ControlServer, request
 
 NOBODY = 65534
 STRANGER = 65533  # a second unprivileged uid (need not exist in /etc/passwd)
@@ -124,6 +125,47 @@ def test_the_control_socket_appears_only_once_it_listens(tmp_path: Path) -> None
     finally:
         first.close()
     assert sorted(p.name for p in tmp_path.iterdir()) == []  # no staging name left behind
+
+
+def _serves(path: Path) -> None:
+    """A ControlServer starts at ``path``, is 0600, takes a connection, and leaves only its
+    own path behind while it runs."""
+    server = ControlServer(path)
+    try:
+        mode = os.lstat(path).st_mode
+        assert stat.S_ISSOCK(mode) and stat.S_IMODE(mode) == 0o600, oct(mode)
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as client:
+            client.connect(str(path))
+        assert [p.name for p in path.parent.iterdir()] == [path.name]
+    finally:
+        server.close()
+
+
+def test_the_control_socket_starts_where_no_staging_name_can_be_used(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Where the staging name cannot be used the socket is bound at its path as before: a path
+    too long for the staging name (but not for a socket), a filesystem without hard links; and
+    a staging socket left by a start of this pid that was killed is replaced."""
+    short = Path(tempfile.mkdtemp(dir="/tmp"))
+    try:
+        room = MAX_SOCKET_PATH - len(os.fsencode(short)) - 1
+        long = short / ("x" * room)  # the socket fits, ".name.pid" does not
+        _serves(long)
+    finally:
+        for p in short.iterdir():
+            p.unlink()
+        short.rmdir()
+    left = tmp_path / f".ctl.sock.{os.getpid()}"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as stale:
+        stale.bind(str(left))
+    _serves(tmp_path / "ctl.sock")
+
+    def no_links(src: object, dst: object) -> None:
+        raise OSError(errno.EPERM, "Operation not permitted")
+
+    monkeypatch.setattr(os, "link", no_links)
+    _serves(tmp_path / "ctl.sock")
 
 
 def _answer_all(server: ControlServer, until: float, done: Callable[[], bool]) -> None:

@@ -19,6 +19,7 @@ once per uid. (Where the platform has no ``SO_PEERCRED`` the mode alone guards i
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import os
@@ -85,18 +86,42 @@ def _bind_private(sock: socket.socket, path: Path) -> None:
     os.chmod(path, 0o600)
 
 
-def _listen_at(sock: socket.socket, path: Path) -> None:
-    """Make ``sock`` listen at ``path``, which appears only once it listens (a client that
-    waits for the file is never refused): bound and listening under a name of its own in the
-    same directory first, then hard-linked to ``path``, which fails when something is there
-    (it replaces nothing, as a bind would not)."""
-    staging = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident() % 99991}")
-    _bind_private(sock, staging)
+_NO_LINKS = (errno.EPERM, errno.EOPNOTSUPP)
+"""What ``link`` says on a filesystem without hard links (some FUSE and 9p mounts)."""
+
+
+def _listening(path: Path) -> socket.socket:
+    """A socket listening at ``path``, 0600 from the first moment. Where it can, the path
+    appears only once the socket listens (a client that waits for the file is never refused):
+    bound and listening under a staging name beside it, then hard-linked to ``path``, which
+    fails when something is there (it replaces nothing, as a bind would not). A staging name
+    too long for a socket, or a filesystem without hard links: bound at ``path`` itself."""
+    staging = path.with_name(f".{path.name}.{os.getpid()}")
+    if len(os.fsencode(staging)) <= MAX_SOCKET_PATH:
+        with contextlib.suppress(FileNotFoundError):
+            if stat.S_ISSOCK(os.lstat(staging).st_mode):
+                staging.unlink()  # this pid's, left by a start killed before it was unlinked
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            _bind_private(sock, staging)
+            try:
+                sock.listen(8)
+                os.link(staging, path)
+            finally:
+                staging.unlink(missing_ok=True)
+            return sock
+        except OSError as exc:
+            sock.close()
+            if exc.errno not in _NO_LINKS:
+                raise
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
+        _bind_private(sock, path)
         sock.listen(8)
-        os.link(staging, path)
-    finally:
-        staging.unlink(missing_ok=True)
+    except OSError:
+        sock.close()
+        raise
+    return sock
 
 
 def peer_credentials(conn: socket.socket) -> tuple[int, int] | None:
@@ -119,12 +144,7 @@ class ControlServer:
         if check_control_path(path):
             with contextlib.suppress(FileNotFoundError):
                 path.unlink()
-        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        try:
-            _listen_at(self._sock, path)
-        except OSError:
-            self._sock.close()
-            raise
+        self._sock = _listening(path)
         st = os.lstat(path)
         self._made = (st.st_dev, st.st_ino)
         self._thread = threading.Thread(target=self._serve, name="canergy-control", daemon=True)

@@ -575,13 +575,21 @@ def test_a_join_resent_while_its_admit_was_on_the_way_is_no_replay() -> None:
     service.on_message(books, 6_000)
     assert service.intrusions.total == 1 and node_status()["admitted"] == 1
 
-    service.on_message(Join(1, 9), 7_000)  # a new life, whose ADMIT is lost
+    service.on_message(Join(1, 9), 6_100)  # a new life: admitted...
+    assert [m for m in service.on_message(joining, 6_200) if isinstance(m, Admit)]
+    service.on_message(Join(1, 5), 6_300)  # ...an earlier life's JOIN replayed, then the
+    service.on_message(Join(1, 9), 6_400)  # node's own re-send of the JOIN just admitted
+    service.on_message(books, 6_500)  # each judged: the earlier life's is still reported
+    assert service.intrusions.total == 2 and node_status()["joins_resent"] == 2
+    assert node_status()["admitted"] == 2
+
+    service.on_message(Join(1, 11), 7_000)  # another life, whose ADMIT is lost
     assert [m for m in service.on_message(joining, 8_000) if isinstance(m, Admit)]
-    service.on_message(Join(1, 9), 9_000)
+    service.on_message(Join(1, 11), 9_000)
     assert [m for m in service.on_message(joining, 10_000) if isinstance(m, Admit)]
     service.on_message(books, 11_000)
-    assert node_status()["admitted"] == 3 and node_status()["joins_resent"] == 1
-    assert service.intrusions.total == 1
+    assert node_status()["admitted"] == 4 and node_status()["joins_resent"] == 2
+    assert service.intrusions.total == 2
 
 
 pytestmark = pytest.mark.usefixtures("both_cores")

@@ -59,6 +59,9 @@ from canergy.seqnum import unwrap
 from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
+HELD_JOINS = 8
+"""Authenticated mode: distinct JOINs held per node until its next TELEMETRY (replays beyond
+it push out the oldest, which is then neither admitted nor reported)."""
 
 GrantCallback = Callable[[dict[str, Any]], None]
 EncodedBegin = Callable[[int, int, int], tuple[list[Action], list[tuple[int, bytes]]]]
@@ -98,9 +101,10 @@ class NodeInfo:
     recent_returns: list[tuple[int, int]] = field(default_factory=list)
     """(time, µJ) of returns credited lately: a level reported before them may still show them."""
     active_request: GrantRequest | None = None
-    held_join: Join | None = None
-    """Authenticated mode: a verified JOIN waiting for the node's next TELEMETRY to show it
-    current (JOINING, bound to it) or a replay (the node reports its books)."""
+    held_joins: list[Join] = field(default_factory=list)
+    """Authenticated mode: verified JOINs (distinct, the latest last, at most ``HELD_JOINS``)
+    waiting for the node's next TELEMETRY to show the latest current (JOINING, bound to it) or
+    each a replay (the node reports its books)."""
     admitted_nonce: int | None = None
     """Authenticated mode: the nonce of the JOIN admitted last, until the node's first
     TELEMETRY with books: a copy of that JOIN held meanwhile is the node's own re-send, sent
@@ -245,7 +249,11 @@ class SupervisorService:
         if self.config.listen_only or not isinstance(msg, ToSupervisor):
             return ()
         if isinstance(msg, Join) and self.authenticated:
-            info.held_join = msg  # a replay verifies too: the node's next report tells
+            held = info.held_joins  # a replay verifies too: the node's next report tells
+            if msg in held:
+                held.remove(msg)
+            held.append(msg)
+            del held[:-HELD_JOINS]
             return ()
         if isinstance(msg, Return) and self._hold_return(msg, now):
             return self._flush(self._released(msg.node, now))
@@ -255,27 +263,26 @@ class SupervisorService:
         return self._flush(out)
 
     def _joined(self, msg: Telemetry, info: NodeInfo, now: int) -> list[Outgoing]:
-        """Authenticated mode: a held JOIN is admitted once the node's TELEMETRY shows it
-        without books (JOINING: its FV is that JOIN's); a TELEMETRY with books shows the JOIN
-        a replay of an earlier life, refused as stale (nothing written off, nobody admitted),
-        unless it is a copy of the JOIN admitted just before that TELEMETRY: the node re-sent
-        it while its ADMIT was on the way (the same bytes: a replay then moves nothing either).
-        """
-        join, info.held_join = info.held_join, None
+        """Authenticated mode: the latest held JOIN is admitted once the node's TELEMETRY shows
+        it without books (JOINING: its FV is that JOIN's; older ones held are dropped, as a node
+        that restarted twice sends two); a TELEMETRY with books shows every held JOIN a replay
+        of an earlier life, each refused as stale (nothing written off, nobody admitted), except
+        a copy of the JOIN admitted just before that TELEMETRY: the node re-sent it while its
+        ADMIT was on the way (the same nonce: a replay then moves nothing either)."""
+        joins, info.held_joins = info.held_joins, []
         if msg.flags & Telemetry.JOINING:
-            if join is None:
+            if not joins:
                 return []
-            info.admitted_nonce = join.nonce
-            return self._carry_out(self.core.receive(join, now), now)
+            info.admitted_nonce = joins[-1].nonce
+            return self._carry_out(self.core.receive(joins[-1], now), now)
         admitted, info.admitted_nonce = info.admitted_nonce, None
-        if join is None:
-            return []
-        if join.nonce == admitted:
-            info.joins_resent += 1
-            return []
         reason = f"{AuthFailure.STALE.value} (a JOIN of an earlier life: the node has its books)"
-        self.refusals.record(msg.node, reason, repr(join), now)
-        self.intrusions.record(msg.node, repr(join), reason, now, quiet=True)
+        for join in joins:
+            if join.nonce == admitted:
+                info.joins_resent += 1
+                continue
+            self.refusals.record(msg.node, reason, repr(join), now)
+            self.intrusions.record(msg.node, repr(join), reason, now, quiet=True)
         return []
 
     def _distrusted(self, node: int, now: int) -> bool:
@@ -603,7 +610,7 @@ class SupervisorService:
                 continue
             if self.liveness is not None and not self.liveness(node, now):
                 continue  # heartbeat lost or not OPERATIONAL: nothing for it, not even one-shots
-            if info.heard_at is None or info.flags & Telemetry.JOINING or info.held_join:
+            if info.heard_at is None or info.flags & Telemetry.JOINING or info.held_joins:
                 continue  # not heard yet, or no books until admitted: a grant would be lost
             if info.requests:
                 out += self._one_shot(node, info, now)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import socket
 import threading
 import time
 import uuid
@@ -36,9 +37,17 @@ def _emulator(tmp: Path, channel: str, nodes: list[int]) -> tuple[NodeHost, Loop
 
 
 def _wait_for(path: Path) -> None:
+    """Until a connection to the control socket at ``path`` is accepted (the file appears a
+    moment before the socket listens; a thread of this process can land in that moment)."""
     deadline = time.monotonic() + 30
-    while not path.exists() and time.monotonic() < deadline:
-        time.sleep(0.02)
+    while time.monotonic() < deadline:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+            try:
+                probe.connect(str(path))
+            except (FileNotFoundError, ConnectionRefusedError):
+                time.sleep(0.02)
+            else:
+                return
 
 
 def test_grant_as_a_single_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -19,7 +19,6 @@ once per uid. (Where the platform has no ``SO_PEERCRED`` the mode alone guards i
 from __future__ import annotations
 
 import contextlib
-import errno
 import json
 import logging
 import os
@@ -73,51 +72,23 @@ def check_control_path(path: Path, option: str = "--control") -> bool:
 _UMASK = threading.Lock()
 
 
-def _bind_private(sock: socket.socket, path: Path) -> None:
-    """Bind ``sock`` at ``path`` with mode 0600 whatever the umask: umask 077 during bind (it is
-    the process's: a file another thread creates in that instant comes out narrower, never
-    wider), so no one else can connect at any moment; chmod then clears the owner's x bit."""
-    with _UMASK:
-        old = os.umask(0o077)
-        try:
-            sock.bind(str(path))
-        finally:
-            os.umask(old)
-    os.chmod(path, 0o600)
-
-
-_NO_LINKS = (errno.EPERM, errno.EOPNOTSUPP)
-"""What ``link`` says on a filesystem without hard links (some FUSE and 9p mounts)."""
-
-
 def _listening(path: Path) -> socket.socket:
-    """A socket listening at ``path``, 0600 from the first moment. Where it can, the path
-    appears only once the socket listens (a client that waits for the file is never refused):
-    bound and listening under a staging name beside it, then hard-linked to ``path``, which
-    fails when something is there (it replaces nothing, as a bind would not). A staging name
-    too long for a socket, or a filesystem without hard links: bound at ``path`` itself."""
-    staging = path.with_name(f".{path.name}.{os.getpid()}")
-    if len(os.fsencode(staging)) <= MAX_SOCKET_PATH:
-        with contextlib.suppress(FileNotFoundError):
-            if stat.S_ISSOCK(os.lstat(staging).st_mode):
-                staging.unlink()  # this pid's, left by a start killed before it was unlinked
-        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        try:
-            _bind_private(sock, staging)
-            try:
-                sock.listen(8)
-                os.link(staging, path)
-            finally:
-                staging.unlink(missing_ok=True)
-            return sock
-        except OSError as exc:
-            sock.close()
-            if exc.errno not in _NO_LINKS:
-                raise
+    """A socket listening at ``path``, mode 0600 whatever the umask: umask 077 during bind (it
+    is the process's: a file another thread creates in that instant comes out narrower, never
+    wider), so no one else can connect at any moment; it listens right after the bind (a client
+    that connects as soon as the file appears is refused only in that instant), and chmod then
+    clears the owner's x bit. Bound at ``path`` itself: clients were refused at a socket
+    hard-linked into place in user-mode Linux (hostfs)."""
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
-        _bind_private(sock, path)
-        sock.listen(8)
+        with _UMASK:
+            old = os.umask(0o077)
+            try:
+                sock.bind(str(path))
+                sock.listen(8)
+            finally:
+                os.umask(old)
+        os.chmod(path, 0o600)
     except OSError:
         sock.close()
         raise

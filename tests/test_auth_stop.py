@@ -583,13 +583,18 @@ def test_a_join_resent_while_its_admit_was_on_the_way_is_no_replay() -> None:
     assert service.intrusions.total == 2 and node_status()["joins_resent"] == 2
     assert node_status()["admitted"] == 2
 
+    for nonce in range(100, 110):  # ten replays of earlier lives: the latest 8 are judged
+        service.on_message(Join(1, nonce), 6_600)
+    service.on_message(books, 6_700)
+    assert service.intrusions.total == 10 and node_status()["admitted"] == 2
+
     service.on_message(Join(1, 11), 7_000)  # another life, whose ADMIT is lost
     assert [m for m in service.on_message(joining, 8_000) if isinstance(m, Admit)]
     service.on_message(Join(1, 11), 9_000)
     assert [m for m in service.on_message(joining, 10_000) if isinstance(m, Admit)]
     service.on_message(books, 11_000)
     assert node_status()["admitted"] == 4 and node_status()["joins_resent"] == 2
-    assert service.intrusions.total == 2
+    assert service.intrusions.total == 10
 
 
 pytestmark = pytest.mark.usefixtures("both_cores")

@@ -338,7 +338,7 @@ class BusRuntime:
         """Wait for one frame (at most until the next deadline or ``max_wait_s``) and run
         whatever is due."""
         wait = 0.0
-        if max_wait_s > 0:  # how long to wait: no sooner than the next deadline
+        if max_wait_s > 0:  # wait no longer than until the next deadline
             wakeup, now = self.handler.next_wakeup(), self.clock()
             wait = max_wait_s if wakeup is None else min(max_wait_s, max(0, wakeup - now) / 1e6)
         try:

@@ -370,3 +370,17 @@ def test_a_shared_sdo_server_abort_is_the_drives_answer_only_when_it_comes_twice
     with pytest.raises(canopen.SdoCommunicationError):
         shared_sdo(transfer, lambda _s: None)
     assert len(calls) == 5
+
+
+@pytest.mark.parametrize("stop", [StopKind.DISABLE, StopKind.QUICK])
+def test_a_budget_below_the_full_limits_bound_starts_the_drive_at_tapered_limits(
+    stop: StopKind,
+) -> None:
+    """A 200 ms PDO timeout puts the full limits' bound (about 3 J) above the 2 J granted: the
+    guard starts the drive at the tapered level what it holds covers, and keeps its bound (it
+    once compared the budget with the full limits' bound while stopped, and never started)."""
+    r = run(Scenario(meter=MeterKind.COUNTER, pdo_timeout_us=200_000, stop=stop))
+    assert r.granted_uj == 2 * UJ_PER_J
+    assert "OPERATION ENABLED" in r.states, r.guard
+    assert r.guard["taper_level"] > 0
+    assert within_bound(r)

@@ -345,6 +345,10 @@ class DriveGuard:
 
     def _evaluate(self, now: int) -> list[Message]:
         before = self.phase
+        if self.phase is GuardPhase.STOPPED and self.metering.full is not None:
+            # the level what is left covers, also while stopped: a budget below the full
+            # limits' bound starts the drive at tapered limits instead of never
+            self.level = self._taper(resting=True)
         why = self._stop_reason(now)
         if why is not None:
             self._stop(why, now)
@@ -410,15 +414,15 @@ class DriveGuard:
         )
 
     # -- limits -----------------------------------------------------------------------------
-    def _taper(self) -> int:
+    def _taper(self, resting: bool = False) -> int:
         """The lowest level (most torque) whose bound what is left covers: twice over to go
-        down to it, four times to come back up."""
+        down to it, four times to come back up (twice from a stop: nothing to come back to)."""
         m = self.metering
         assert m.full is not None
         left = self.usable - self.config.reserve_uj
         for level in range(LEVELS):
             b = m.bound(m.full.tapered(level))
-            factor = TAPER_DOWN if level >= self.level else TAPER_UP
+            factor = TAPER_DOWN if resting or level >= self.level else TAPER_UP
             if b is not None and left >= factor * b.total_uj:
                 return level
         return LEVELS - 1

@@ -63,3 +63,11 @@ def both_cores(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) 
             if hasattr(module, "Supervisor"):
                 monkeypatch.setattr(module, "Supervisor", compiled)
     return str(request.param)
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    """The vcan suite's venue and the timeouts it sized from it (support.venue), when measured."""
+    from support.venue import MEASURED
+
+    for venue in MEASURED.values():
+        terminalreporter.write_line(venue.report())

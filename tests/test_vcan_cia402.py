@@ -2,12 +2,14 @@
 meter node) and a python-canopen application as separate processes on vcan0 (``pytest -m vcan``).
 
 Figures inside user-mode Linux are not speed figures: TPDOs there arrive up to a few hundred ms
-apart, so the guard is given a 300 ms PDO timeout and a 2.75 W envelope (100 ‰ torque and
-current, 50 rad/s), whose bound a 2 J budget can hold back. The application pulses the target
-velocity as fast as its SDO writes go, whatever the TPDO schedule, until the budget runs out or
-30 s have passed (as the budget falls the tapered limits may no longer move the load, and the
-drive then draws only copper losses). The check is the guarantee: drawn ≤ granted + the bound
-the guard showed, with every µJ drawn charged.
+apart, so the PDO timeout, the drive's heartbeat consumer time and the application's SDO timeout
+are sized from what ``support.venue`` measured of this venue at the start of the run (at least
+300 ms PDO timeout, 1 s in user-mode Linux; the summary line prints them), with a 2.75 W
+envelope (100 ‰ torque and current, 50 rad/s) whose bound the guard tapers to what is left.
+The application pulses the target velocity as fast as its SDO writes go, whatever the TPDO
+schedule, until the budget runs out or 30 s have passed (as the budget falls the tapered limits
+may no longer move the load, and the drive then draws only copper losses). The check is the
+guarantee: drawn ≤ granted + the bound the guard showed, with every µJ drawn charged.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import pytest
 from support.procs import Procs, procs, python, status, wait
 from support.readme import python_blocks
 from support.vcan import BUS, IFACE, vcan_up
+from support.venue import Venue, venue
 
 from canergy.ledger import ledger_from_status
 from canergy.live.cia402_link import EDS
@@ -50,6 +53,11 @@ MODES = {
 }
 
 
+@pytest.fixture(scope="module")
+def place() -> Venue:
+    return venue(IFACE)
+
+
 def _drive(procs: Procs, pdo_ms: int, meter: bool = False) -> None:
     procs.start(
         "drive",
@@ -65,7 +73,7 @@ def _drive(procs: Procs, pdo_ms: int, meter: bool = False) -> None:
     )
 
 
-def _guard(procs: Procs, mode: str, *extra: str) -> None:
+def _guard(procs: Procs, place: Venue, mode: str, *extra: str) -> None:
     tmp = procs.tmp
     procs.start(
         "supervisor",
@@ -77,7 +85,8 @@ def _guard(procs: Procs, mode: str, *extra: str) -> None:
             *("--cia402", str(DRIVE), "--cia402-enable", "--cia402-resistance", "1"),
             *MODES[mode],
             *LIMITS,
-            *("--cia402-pdo-timeout", "300ms", "--cia402-consumer-timeout", "1s"),
+            *("--cia402-pdo-timeout", f"{place.pdo_timeout_ms}ms"),
+            *("--cia402-consumer-timeout", f"{place.consumer_timeout_s}s"),
             *("--target", "2J", "--max-grant", "0.5J", "--response-timeout", "0.3"),
             *("--state", str(tmp / "state.json"), "--no-fsync"),
             *("--status-file", str(tmp / "sup.json"), "--status-period", "0.2"),
@@ -93,13 +102,17 @@ def _guarded(procs: Procs) -> dict[str, Any]:
     return dict(status(path)["cia402"]["drives"][str(DRIVE)])
 
 
-def _application(procs: Procs) -> canopen.Network:
+def _application(procs: Procs, place: Venue) -> canopen.Network:
     """Once the guard has set the drive up: profile velocity at 10,000 rad/s² both ways."""
-    wait(lambda: bool(_guarded(procs).get("ready")), "the guard setting the drive up")
+    wait(
+        lambda: bool(_guarded(procs).get("ready")),
+        "the guard setting the drive up",
+        show=lambda: (_guarded(procs), procs.stderr("supervisor")[-2000:]),
+    )
     network = canopen.Network()
     network.connect(interface="socketcan", channel=IFACE)
     app = network.add_node(DRIVE, str(EDS))
-    app.sdo.RESPONSE_TIMEOUT = 5.0
+    app.sdo.RESPONSE_TIMEOUT = max(5.0, place.sdo_timeout_s)
     for index, value in ((0x6060, 3), (0x6083, 10_000_000), (0x6084, 10_000_000)):
         app_write(app, index, value)  # the guard's own SDO transfers share the drive's server
     return network
@@ -118,19 +131,21 @@ def _pulse(network: canopen.Network, done: threading.Event) -> None:
 
 
 def _history(drive: dict[str, Any], state: str, after: int = 0) -> int:
+    """When the drive first entered ``state`` at or after ``after`` (a fault reaction of a
+    drive already standing ends at the instant it began)."""
     return next(
-        h["time_us"] for h in drive["history"] if h["state"] == state and h["time_us"] > after
+        h["time_us"] for h in drive["history"] if h["state"] == state and h["time_us"] >= after
     )
 
 
 @pytest.mark.parametrize("mode", list(MODES))
 def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
-    procs: Procs, mode: str
+    procs: Procs, place: Venue, mode: str
 ) -> None:
     tmp = procs.tmp
     _drive(procs, 20, meter=mode == "counter-on-meter-node")
-    _guard(procs, mode, "--initial", "2J")
-    network = _application(procs)
+    _guard(procs, place, mode, "--initial", "2J")
+    network = _application(procs, place)
     done = threading.Event()
     pulser = threading.Thread(target=_pulse, args=(network, done), daemon=True)
     pulser.start()
@@ -150,9 +165,15 @@ def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
     guarded = sup["cia402"]["drives"][str(DRIVE)]
     books = sup["nodes"][str(DRIVE)]
     granted = books["delivered_uj"] - books["returns_credited_uj"]
-    assert granted == 2_000_000 and sup["conservation"]["holds"]
-    assert ledger_from_status(sup, []).passive  # the books close over the drive's proxy
-    assert "OPERATION ENABLED" in [h["state"] for h in drive["history"]], guarded
+    assert granted == 2_000_000 and sup["conservation"]["holds"], (books, guarded, place)
+    # the books close over the drive's proxy, but for a debt: what a host held off past its
+    # reaction allowance (seen in user-mode Linux) let the drive be charged past its budget,
+    # which its bound covers and the next grant would pay
+    debt = guarded["debt_uj"]
+    books_closed = ledger_from_status(sup, [])
+    assert books_closed.dissipated + debt >= 0, books_closed
+    assert debt <= guarded["bound_uj"], guarded
+    assert "OPERATION ENABLED" in [h["state"] for h in drive["history"]], (guarded, place)
     # all charged but what the drive drew after the guard's last reading, as the supervisor
     # stopped: a count, and the 2.75 W envelope over a TPDO period, a reaction and a latency
     t = guarded["bound_timings_us"]
@@ -168,11 +189,15 @@ def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
         assert guarded["counter_readings"] > 10
 
 
-def test_the_readme_drive_example_runs_on_vcan0(procs: Procs) -> None:
+def test_the_readme_drive_example_runs_on_vcan0(
+    procs: Procs, place: Venue, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The README's python block for commanding a guarded drive, as written, against the
-    emulated drive on vcan0 (without the guard: the block enables the drive itself)."""
+    emulated drive on vcan0 (without the guard: the block enables the drive itself), once the
+    drive has booted (its first status), with python-canopen's SDO timeout sized for the venue."""
     _drive(procs, 20)
-    time.sleep(3)  # the emulator's boot-up
+    wait(lambda: (procs.tmp / "drive.json").exists(), "the emulated drive's boot-up")
+    monkeypatch.setattr(canopen.sdo.SdoClient, "RESPONSE_TIMEOUT", place.sdo_timeout_s)
     blocks = [block for on_vcan, block in python_blocks() if on_vcan]
     assert blocks, "the README lost its vcan0 python block"
     for block in blocks:
@@ -188,11 +213,13 @@ def test_the_readme_drive_example_runs_on_vcan0(procs: Procs) -> None:
     assert procs.stop("drive") == 0, procs.stderr("drive")
 
 
-def test_kill_9_of_the_host_stops_the_drive_through_its_heartbeat_consumer(procs: Procs) -> None:
+def test_kill_9_of_the_host_stops_the_drive_through_its_heartbeat_consumer(
+    procs: Procs, place: Venue
+) -> None:
     tmp = procs.tmp
     _drive(procs, 20)
-    _guard(procs, "counter-on-drive", "--initial", "100J")
-    network = _application(procs)
+    _guard(procs, place, "counter-on-drive", "--initial", "100J")
+    network = _application(procs, place)
     app_write(network[DRIVE], 0x60FF, 40_000)
     network.disconnect()
     wait(lambda: status(tmp / "drive.json")["state"] == "OPERATION ENABLED", "the drive running")
@@ -205,9 +232,10 @@ def test_kill_9_of_the_host_stops_the_drive_through_its_heartbeat_consumer(procs
     assert drive["fault_reason"] == "heartbeat consumer timeout"
     assert drive["error_code"] == 0x8130
     reaction = _history(drive, "FAULT REACTION ACTIVE")
-    # the last heartbeat left before the kill: the consumer's 1 s (and a slow UML kernel's
-    # scheduling, generously) bound the time from the kill to the drive's reaction
-    assert killed_at < reaction <= killed_at + 1_000_000 + 500_000
+    # the last heartbeat left before the kill: the consumer's time (and the venue's scheduling,
+    # generously) bound the time from the kill to the drive's reaction
+    late_us = round(place.consumer_timeout_s * 1e6) + max(500_000, 2_000 * place.stall_ms)
+    assert killed_at < reaction <= killed_at + late_us, place
     assert abs(drive["velocity_rad_s"]) < 0.05
     sup = status(tmp / "sup.json")  # its last status before the kill
     books = sup["nodes"][str(DRIVE)]

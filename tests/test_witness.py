@@ -230,6 +230,19 @@ def test_a_forged_join_is_refuted_on_the_frame_and_writes_nothing_off(tmp_path: 
     assert w.node.client.state.usable == 1_000_000
 
 
+def test_a_forged_telemetry_is_raised_on_the_frame_not_a_period_later(tmp_path: Path) -> None:
+    """Issue 40, item 11: a forged TELEMETRY ("empty: top me up") is raised when it is sent,
+    not at the node's next periodic report (1 s here): the node sees it in its name and reports
+    at once; the supervisor raises on that report and tops the node up no more."""
+    w = Wire(tmp_path)
+    w.run(0)
+    w.run(JOIN_HOLD_US)
+    t = JOIN_HOLD_US + 300_000  # well inside the node's telemetry period
+    w.forge(Telemetry(1, 0, 0, 0, w.node.witnessing.reported), t)  # copies its count
+    assert w.service.intrusions.as_json()["first_at_us"] == t
+    assert w.service.witness.blocked(1, t)
+
+
 def test_a_forged_join_while_the_node_is_off_writes_off_what_was_open(tmp_path: Path) -> None:
     """The residual: a node that is off cannot object, so a forged JOIN and TELEMETRY without
     books are admitted once the hold is over and what was open is written off (lost to the

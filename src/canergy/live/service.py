@@ -148,10 +148,11 @@ class ServiceConfig:
     witness_block_us: int = 10_000_000
     """No top-ups for a node this long after evidence against its TELEMETRY."""
     join_hold_us: int = JOIN_HOLD_US
-    """Without a key, a JOIN confirmed by the node's TELEMETRY without books is admitted this
-    long after it: a node that is on and has its books sees a JOIN or a TELEMETRY in its name
-    that it did not send and reports at once, with its books, which drops the JOIN before
-    anything is written off. 0: admitted on the confirming TELEMETRY."""
+    """A JOIN confirmed by the node's TELEMETRY without books is admitted this long after it: a
+    node that is on and has its books sees a JOIN or a TELEMETRY in its name that it did not
+    send (forged without a key, replayed from an earlier life with one) and reports at once,
+    with its books, which drops the JOIN before anything is written off. 0: admitted on the
+    confirming TELEMETRY."""
     bus_names: tuple[str, ...] = ()
     """Several buses (``canergy supervisor --bus``): their names in order. The core's session
     keys are then ``bus index << 8 | node``, shown and saved as ``bus/node``."""
@@ -279,7 +280,9 @@ class SupervisorService:
 
     def _joined(self, msg: Telemetry, info: NodeInfo, now: int) -> list[Outgoing]:
         """The latest held JOIN is admitted ``join_hold_us`` after the node's TELEMETRY shows it
-        without books (JOINING; with a key its FV is that JOIN's; older ones held are dropped,
+        without books (JOINING; with a key its FV is that JOIN's, which a replay of an earlier
+        life's JOIN and its TELEMETRY also shows: the hold lets a node that is on object; older
+        ones held are dropped,
         as a node that restarted twice sends two). A TELEMETRY with books before that shows
         every held JOIN a replay of an earlier life or a forgery, each refused (nothing written
         off, nobody admitted), except a copy of the JOIN admitted just before that TELEMETRY:
@@ -288,9 +291,8 @@ class SupervisorService:
         if msg.flags & Telemetry.JOINING:
             if not info.held_joins:
                 return []
-            if info.admitting is None:  # with a key, the TELEMETRY is bound to the JOIN
-                hold = 0 if self.authenticated else self.config.join_hold_us
-                info.admitting = (info.held_joins[-1], now + hold)
+            if info.admitting is None:
+                info.admitting = (info.held_joins[-1], now + self.config.join_hold_us)
                 self._joins_due.add(msg.node)
             return self._admit(info, now)
         joins, info.held_joins, info.admitting = info.held_joins, [], None

@@ -707,6 +707,24 @@ def test_a_node_reports_at_once_a_refused_frame_in_its_name(tmp_path: Path) -> N
     assert node.witnessed == 1  # the supervisor's direction: not in its name
 
 
+def test_a_gateway_reports_at_once_a_refused_frame_in_its_name_above() -> None:
+    """The gateway's upstream leg is a node to the supervisor above: the same rule."""
+    from canergy.core.gateway import Gateway
+    from canergy.live.gateway import GatewayFiles, Uplink, UplinkConfig
+
+    gateway = Gateway(5, (1, 2))
+    up = Uplink(
+        gateway, UplinkConfig(telemetry_period_us=60_000_000), GatewayFiles(gateway, None), 0
+    )
+    up.on_wakeup(0)
+    assert up.next_wakeup() == 50_000  # its tick; its TELEMETRY a minute away
+    frame = can.Message(arbitration_id=CODEC.id_base | MsgType.JOIN << 8 | 5, data=b"\0\0\0")
+    up.on_auth_failure(Verdict(failure=AuthFailure.STALE, node=5), frame, 10_000)
+    assert up.witnessing.count == 1 and up.next_wakeup() == 10_000
+    (report,) = [m for m in up.on_wakeup(10_000) if isinstance(m, Telemetry)]
+    assert report.witness == 1
+
+
 def test_a_join_resent_while_its_admit_was_on_the_way_is_no_replay() -> None:
     """Found in CI: the node re-sent its JOIN (same nonce, same FV: the same bytes) before the
     slow ADMIT reached it; the supervisor held the copy until the node's next TELEMETRY, which

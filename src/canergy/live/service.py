@@ -111,9 +111,9 @@ class NodeInfo:
     """The held JOIN a TELEMETRY without books confirmed, and when it is admitted unless the
     node shows its books before (``ServiceConfig.join_hold_us``); a new JOIN cancels it."""
     admitted_nonce: int | None = None
-    """Authenticated mode: the nonce of the JOIN admitted last, until the node's first
-    TELEMETRY with books: a copy of that JOIN held meanwhile is the node's own re-send, sent
-    before the ADMIT reached it, not a replay."""
+    """The nonce of the JOIN admitted last, until the node's first TELEMETRY with books: a copy
+    of that JOIN held meanwhile is the node's own re-send, sent before the ADMIT reached it, not
+    a replay."""
     joins_resent: int = 0
     """Copies of the JOIN just admitted, re-sent before the node heard its ADMIT: dropped."""
 
@@ -280,14 +280,13 @@ class SupervisorService:
 
     def _joined(self, msg: Telemetry, info: NodeInfo, now: int) -> list[Outgoing]:
         """The latest held JOIN is admitted ``join_hold_us`` after the node's TELEMETRY shows it
-        without books (JOINING; with a key its FV is that JOIN's, which a replay of an earlier
-        life's JOIN and its TELEMETRY also shows: the hold lets a node that is on object; older
-        ones held are dropped,
-        as a node that restarted twice sends two). A TELEMETRY with books before that shows
-        every held JOIN a replay of an earlier life or a forgery, each refused (nothing written
-        off, nobody admitted), except a copy of the JOIN admitted just before that TELEMETRY:
-        the node re-sent it while its ADMIT was on the way (the same nonce: a replay then moves
-        nothing either)."""
+        without books (JOINING; with a key its FV is that JOIN's, as a replay of an earlier
+        life's JOIN and its TELEMETRY shows too: the hold lets a node that is on object; older
+        ones held are dropped, as a node that restarted twice sends two). A TELEMETRY with
+        books before that shows every held JOIN a replay of an earlier life or a forgery, each
+        refused (nothing written off, nobody admitted), except a copy of the JOIN admitted just
+        before that TELEMETRY: the node re-sent it while its ADMIT was on the way (the same
+        nonce: a replay then moves nothing either)."""
         if msg.flags & Telemetry.JOINING:
             if not info.held_joins:
                 return []

@@ -557,6 +557,7 @@ class AuthWire:
 
     def __init__(self, tmp: Path, layout: Layout) -> None:
         self.now = 0
+        self.layout = layout
         channel = f"auth-wire-{uuid.uuid4().hex}"
         fd = layout is Layout.FD
 
@@ -608,16 +609,29 @@ class AuthWire:
     def node_status(self) -> dict[str, Any]:
         return dict(self.service.status()["nodes"]["1"])
 
+    def close(self) -> None:
+        for bus in (self.sup.bus, self.node_rt.bus, self.tap, self.rogue):
+            bus.shutdown()
 
-def _join_and_its_telemetry(w: AuthWire, layout: Layout) -> list[can.Message]:
+
+@pytest.fixture
+def auth_wire(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[AuthWire]:
+    wire = AuthWire(tmp_path, request.param)
+    try:
+        yield wire
+    finally:
+        wire.close()
+
+
+def _join_and_its_telemetry(w: AuthWire) -> list[can.Message]:
     """The node's JOIN and its TELEMETRY without books as it sent them at its start."""
-    per = 1 if layout is Layout.FD else 2
+    per = 1 if w.layout is Layout.FD else 2
     return w.recorded(CODEC.id_base | MsgType.JOIN << 8 | 1, 2 * per)  # sent together
 
 
-@pytest.mark.parametrize("layout", list(Layout))
+@pytest.mark.parametrize("auth_wire", list(Layout), indirect=True)
 def test_a_join_replayed_with_its_telemetry_while_the_node_is_on_writes_nothing_off(
-    tmp_path: Path, layout: Layout
+    auth_wire: AuthWire,
 ) -> None:
     """Issue 40, item 10: the node's JOIN and its TELEMETRY without books (bound to that JOIN),
     recorded at its start and replayed together while a transaction was in flight, admitted the
@@ -626,9 +640,9 @@ def test_a_join_replayed_with_its_telemetry_while_the_node_is_on_writes_nothing_
     books (its periodic report is a minute away), which refuses the JOIN as a replay at once.
     (With a transaction in flight the node's report of its commit would do too; idle, only its
     report of the frames in its name does.)"""
-    w = AuthWire(tmp_path, layout)
+    w = auth_wire
     w.settle(0)
-    replay = _join_and_its_telemetry(w, layout)
+    replay = _join_and_its_telemetry(w)
     assert w.node.joining
     w.settle(JOIN_HOLD_US)  # no objection in the hold: admitted
     assert not w.node.joining and w.node_status()["admitted"] == 1
@@ -657,16 +671,16 @@ def test_a_join_replayed_with_its_telemetry_while_the_node_is_on_writes_nothing_
     assert w.node.client.state.usable == 1_500_000
 
 
-@pytest.mark.parametrize("layout", list(Layout))
+@pytest.mark.parametrize("auth_wire", list(Layout), indirect=True)
 def test_a_join_replayed_with_its_telemetry_while_the_node_is_off_is_the_residual(
-    tmp_path: Path, layout: Layout
+    auth_wire: AuthWire,
 ) -> None:
     """What is left (docs/security.md): while the node is off nobody can object, so the replay
     is admitted 500 ms later and what was open is written off: booked as delivered, lost to the
     supervisor, never created. Further replays write off nothing more: nothing is open."""
-    w = AuthWire(tmp_path, layout)
+    w = auth_wire
     w.settle(0)
-    replay = _join_and_its_telemetry(w, layout)
+    replay = _join_and_its_telemetry(w)
     w.settle(JOIN_HOLD_US)
     replies: list[dict[str, Any]] = []
     w.service.request_grant(1, 500_000, replies.append)

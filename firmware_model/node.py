@@ -14,7 +14,7 @@ from typing import Any
 
 import can
 
-from canergy.auth.frames import AuthFailure, Verdict, expected_freshness
+from canergy.auth.frames import AuthFailure, Verdict, expected_freshness, frame_direction
 from canergy.codec import DecodeError
 from canergy.core import (
     Action,
@@ -36,6 +36,7 @@ from canergy.messages import (
     LEVEL_MAX_MJ,
     QUANTUM_UJ,
     SEQ_BITS,
+    Direction,
     Intention,
     Message,
     Telemetry,
@@ -281,6 +282,8 @@ class NodeHost:
         node = self.nodes.get(verdict.node or 0)
         if node is None or verdict.failure is None:
             return
+        if frame_direction(frame.arbitration_id) is Direction.TO_SUPERVISOR:
+            node.outbox += node.witness(now)  # in its name, refused or not: reported at once
         if node.joining and verdict.failure is AuthFailure.STALE:
             return  # no counters yet: the supervisor's in-flight frames cannot match them
         node.intrusions.record(node.node, frame_text(frame), verdict.failure.value, now)

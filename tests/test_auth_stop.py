@@ -26,6 +26,7 @@ from canergy.auth.frames import (
     AuthFailure,
     FrameAuth,
     Layout,
+    Verdict,
     expected_freshness,
     freshness,
 )
@@ -35,7 +36,7 @@ from canergy.codec import Codec
 from canergy.core import Supervisor
 from canergy.live.control import request as ask
 from canergy.live.runtime import OWN_MAC_WAIT_US, BusRuntime, OwnDirection, monotonic_us
-from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.service import JOIN_HOLD_US, ServiceConfig, SupervisorService
 from canergy.messages import (
     Ack,
     Admit,
@@ -549,6 +550,195 @@ def test_a_replayed_join_neither_admits_nor_writes_off(bench: Bench) -> None:
     assert node["admitted"] == 1 and node["written_off"] == 0, node
 
 
+class AuthWire:
+    """An authenticated supervisor and an emulated node, each behind its own ``BusRuntime`` on
+    python-can's virtual bus, driven in one thread on an explicit clock: frames wait in the
+    receiver's queue until that side is polled. ``tap`` records every frame; ``rogue`` sends."""
+
+    def __init__(self, tmp: Path, layout: Layout) -> None:
+        self.now = 0
+        self.layout = layout
+        channel = f"auth-wire-{uuid.uuid4().hex}"
+        fd = layout is Layout.FD
+
+        def bus() -> can.BusABC:
+            return can.Bus(interface="virtual", channel=channel, fd=fd)
+
+        config = ServiceConfig(fsync=False, status_period_us=10**12)
+        self.service = SupervisorService(Supervisor((1,), 10_000_000), config, 0)
+        sup_auth = FrameAuth(CODEC, layout, key, Direction.TO_SUPERVISOR, self.service.freshness)
+        self.sup = BusRuntime(
+            bus(), self.service, receives=Direction.TO_SUPERVISOR, auth=sup_auth, clock=self.clock
+        )
+        self.service.bus_counters = self.sup.counters
+        nv = NvStore(tmp / "1.nv", 1, fsync=False)
+        self.node = FirmwareNode(1, nv, NodeConfig(telemetry_period_us=60_000_000), 0)
+        host = NodeHost([self.node])
+        node_auth = FrameAuth(CODEC, layout, key, Direction.TO_CLIENT, host.freshness)
+        node_auth.join_fv[1] = 0xBEEF << 16 | self.node.client.state.nonce  # as firmware_model
+        self.node_rt = BusRuntime(
+            bus(), host, receives=Direction.TO_CLIENT, auth=node_auth, clock=self.clock
+        )
+        self.tap, self.rogue = bus(), bus()
+        self.node_on = True
+
+    def clock(self) -> int:
+        return self.now
+
+    def settle(self, now: int, *, supervisor_only: bool = False) -> None:
+        """Poll both sides (or the supervisor alone; a node that is off is never polled) at
+        ``now`` until no side sends anything more."""
+        self.now = now
+        sides = [self.sup] if supervisor_only or not self.node_on else [self.sup, self.node_rt]
+        for _ in range(100):
+            sent = sum(rt.counters.frames_sent for rt in sides)
+            for rt in sides:
+                rt.poll(0)
+            if sum(rt.counters.frames_sent for rt in sides) == sent:
+                return
+        raise AssertionError("the two sides never went quiet")
+
+    def recorded(self, ident: int, count: int = 1) -> list[can.Message]:
+        """The first frame recorded on ``ident`` (and in the classic layout its MAC frame)."""
+        frames = []
+        while (f := self.tap.recv(0)) is not None:
+            frames.append(f)
+        i = next(i for i, f in enumerate(frames) if f.arbitration_id == ident)
+        return frames[i : i + count]
+
+    def node_status(self) -> dict[str, Any]:
+        return dict(self.service.status()["nodes"]["1"])
+
+    def close(self) -> None:
+        for bus in (self.sup.bus, self.node_rt.bus, self.tap, self.rogue):
+            bus.shutdown()
+
+
+@pytest.fixture
+def auth_wire(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[AuthWire]:
+    wire = AuthWire(tmp_path, request.param)
+    try:
+        yield wire
+    finally:
+        wire.close()
+
+
+def _join_and_its_telemetry(w: AuthWire) -> list[can.Message]:
+    """The node's JOIN and its TELEMETRY without books as it sent them at its start."""
+    per = 1 if w.layout is Layout.FD else 2
+    return w.recorded(CODEC.id_base | MsgType.JOIN << 8 | 1, 2 * per)  # sent together
+
+
+@pytest.mark.parametrize("auth_wire", list(Layout), indirect=True)
+def test_a_join_replayed_with_its_telemetry_while_the_node_is_on_writes_nothing_off(
+    auth_wire: AuthWire,
+) -> None:
+    """Issue 40, item 10: the node's JOIN and its TELEMETRY without books (bound to that JOIN),
+    recorded at its start and replayed together while a transaction was in flight, admitted the
+    node again and wrote the transaction off. Now the admission waits 500 ms after the
+    TELEMETRY; the node, which is on, sees both frames in its name and reports at once with its
+    books (its periodic report is a minute away), which refuses the JOIN as a replay at once.
+    (With a transaction in flight the node's report of its commit would do too; idle, only its
+    report of the frames in its name does.)"""
+    w = auth_wire
+    w.settle(0)
+    replay = _join_and_its_telemetry(w)
+    assert w.node.joining
+    w.settle(JOIN_HOLD_US)  # no objection in the hold: admitted
+    assert not w.node.joining and w.node_status()["admitted"] == 1
+    replies: list[dict[str, Any]] = []
+    t = 1_000_000
+    for n in range(1, 4):
+        w.service.request_grant(1, 500_000, replies.append)
+        w.settle(t, supervisor_only=True)  # its INTENTION waits in the node's queue
+        assert w.service.core.session(1).reserved == 500_000
+        for frame in replay:
+            w.rogue.send(frame)
+        w.settle(t)
+        reason = f"{STALE} (a JOIN of an earlier life: the node has its books)"
+        assert w.service.refusals.by_node[1][reason].count == n
+        assert w.service.refusals.recent[-1]["time_us"] == t  # on the frame, not a period on
+        w.settle(t + 10 * JOIN_HOLD_US)
+        t += 20 * JOIN_HOLD_US
+    assert [r["outcome"] for r in replies] == ["COMMITTED"] * 3
+    for frame in replay:  # and with nothing in flight, the node has nothing else to report
+        w.rogue.send(frame)
+    w.settle(t)
+    w.settle(t + 10 * JOIN_HOLD_US)
+    status = w.node_status()
+    assert status["admitted"] == 1 and status["written_off"] == 0, status
+    assert w.service.refusals.by_node[1][reason].count == 4
+    assert w.node.client.state.usable == 1_500_000
+
+
+@pytest.mark.parametrize("auth_wire", list(Layout), indirect=True)
+def test_a_join_replayed_with_its_telemetry_while_the_node_is_off_is_the_residual(
+    auth_wire: AuthWire,
+) -> None:
+    """What is left (docs/security.md): while the node is off nobody can object, so the replay
+    is admitted 500 ms later and what was open is written off: booked as delivered, lost to the
+    supervisor, never created. Further replays write off nothing more: nothing is open."""
+    w = auth_wire
+    w.settle(0)
+    replay = _join_and_its_telemetry(w)
+    w.settle(JOIN_HOLD_US)
+    replies: list[dict[str, Any]] = []
+    w.service.request_grant(1, 500_000, replies.append)
+    w.settle(1_000_000, supervisor_only=True)
+    w.node_on = False  # off, its INTENTION unheard
+    for frame in replay:
+        w.rogue.send(frame)
+    w.settle(1_000_000)
+    w.settle(1_000_000 + JOIN_HOLD_US - 1)
+    assert w.node_status()["written_off"] == 0
+    w.settle(1_000_000 + JOIN_HOLD_US)
+    status = w.node_status()
+    assert status["admitted"] == 2 and status["written_off"] == 1
+    assert replies[0]["outcome"] == "WRITTEN_OFF"
+    assert w.service.core.session(1).delivered == 500_000  # booked as delivered: lost
+    for frame in replay:  # again and again: nothing more is open, nothing more written off
+        w.rogue.send(frame)
+    w.settle(2_000_000)
+    w.settle(2_000_000 + JOIN_HOLD_US)
+    assert w.node_status()["written_off"] == 1 and w.service.core.usable == 9_500_000
+
+
+def test_a_node_reports_at_once_a_refused_frame_in_its_name(tmp_path: Path) -> None:
+    """With a key, a frame in the node's own direction that fails the check (a replay of its
+    own, no MAC, a bad one) is counted in its witness and reported at once, as the C node
+    does (auth.c) and as without a key: the supervisor hears of a replayed JOIN before it
+    could admit it."""
+    node = FirmwareNode(1, NvStore(tmp_path / "1.nv", 1, fsync=False), NodeConfig(), 0)
+    host = NodeHost([node])
+    node.on_wakeup(0)
+    frame = can.Message(arbitration_id=CODEC.id_base | MsgType.JOIN << 8 | 1, data=b"\0\0\0")
+    host.on_auth_failure(Verdict(failure=AuthFailure.STALE, node=1), frame, 300_000)
+    assert node.witnessed == 1 and node.next_wakeup() <= 300_000
+    (report,) = [m for m in node.on_wakeup(300_000) if isinstance(m, Telemetry)]
+    assert report.witness == 1
+    to_node = can.Message(arbitration_id=CODEC.id_base | MsgType.ADMIT << 8 | 1, data=b"\0")
+    host.on_auth_failure(Verdict(failure=AuthFailure.MAC_BAD, node=1), to_node, 400_000)
+    assert node.witnessed == 1  # the supervisor's direction: not in its name
+
+
+def test_a_gateway_reports_at_once_a_refused_frame_in_its_name_above() -> None:
+    """The gateway's upstream leg is a node to the supervisor above: the same rule."""
+    from canergy.core.gateway import Gateway
+    from canergy.live.gateway import GatewayFiles, Uplink, UplinkConfig
+
+    gateway = Gateway(5, (1, 2))
+    up = Uplink(
+        gateway, UplinkConfig(telemetry_period_us=60_000_000), GatewayFiles(gateway, None), 0
+    )
+    up.on_wakeup(0)
+    assert up.next_wakeup() == 50_000  # its tick; its TELEMETRY a minute away
+    frame = can.Message(arbitration_id=CODEC.id_base | MsgType.JOIN << 8 | 5, data=b"\0\0\0")
+    up.on_auth_failure(Verdict(failure=AuthFailure.STALE, node=5), frame, 10_000)
+    assert up.witnessing.count == 1 and up.next_wakeup() == 10_000
+    (report,) = [m for m in up.on_wakeup(10_000) if isinstance(m, Telemetry)]
+    assert report.witness == 1
+
+
 def test_a_join_resent_while_its_admit_was_on_the_way_is_no_replay() -> None:
     """Found in CI: the node re-sent its JOIN (same nonce, same FV: the same bytes) before the
     slow ADMIT reached it; the supervisor held the copy until the node's next TELEMETRY, which
@@ -557,7 +747,8 @@ def test_a_join_resent_while_its_admit_was_on_the_way_is_no_replay() -> None:
     is the replay it was before; a copy the node follows with a TELEMETRY still JOINING (its
     ADMIT was lost) is admitted again."""
     core = Supervisor((1,), 10_000_000)
-    service = SupervisorService(core, ServiceConfig(fsync=False, status_period_us=10**12), 0)
+    config = ServiceConfig(fsync=False, status_period_us=10**12, join_hold_us=0)  # no hold here
+    service = SupervisorService(core, config, 0)
     service.bus_counters.auth = Layout.FD.value
     joining, books = Telemetry(1, 0, flags=Telemetry.JOINING), Telemetry(1, 0)
 

@@ -10,15 +10,28 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import can
 import pytest
 from support.harness import Harness
 from support.intrusion_bench import Bench, bench
 
+from canergy.codec import Codec
+from canergy.core import Supervisor
 from canergy.live.control import request
 from canergy.live.runtime import monotonic_us
-from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.service import JOIN_HOLD_US, ServiceConfig, SupervisorService
 from canergy.live.witness import WITNESS_REPORT_AT, ReturnGate
-from canergy.messages import Join, Return, ReturnAck, Telemetry
+from canergy.messages import (
+    Intention,
+    Join,
+    Message,
+    Return,
+    ReturnAck,
+    Telemetry,
+    ToClient,
+)
+from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
+from firmware_model.nvstore import NvStore
 
 HOLD = 300_000
 
@@ -84,12 +97,6 @@ def test_a_restart_or_a_first_report_is_no_evidence_but_a_count_that_moves_is() 
 def test_a_node_reports_before_its_witness_count_could_turn_over(tmp_path: Path) -> None:
     """256 frames in a node's name between two of its wakeups would leave its 8-bit count where
     it was: the node reports at once after 128 (so does the C node, in lockstep)."""
-    import can
-
-    from canergy.codec import Codec
-    from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
-    from firmware_model.nvstore import NvStore
-
     node = FirmwareNode(1, NvStore(tmp_path / "1.nv", 1, fsync=False), NodeConfig(), 0)
     host = NodeHost([node])
     node.on_wakeup(0)  # the boot-up report
@@ -132,6 +139,129 @@ def test_the_service_credits_a_resynchronised_return_and_reports_the_gap() -> No
     assert ReturnAck(1, 2) in out
     (gap,) = [e for e in service.intrusions.as_json()["recent"] if "resynchronised" in e["kind"]]
     assert gap["node"] == 1 and service.intrusions.total == 1  # someone else's doing
+
+
+class Wire:
+    """A supervisor service and an emulated node joined by hand, time driven explicitly: each
+    frame reaches the other side at once, and the node sees a rogue's frame in its name as its
+    bus loop hands it over (``on_foreign_direction``)."""
+
+    def __init__(self, tmp: Path) -> None:
+        config = ServiceConfig(return_hold_us=HOLD, fsync=False, status_period_us=10**12)
+        self.service = SupervisorService(Supervisor((1,), 10_000_000), config, 0)
+        nv = NvStore(tmp / "1.nv", 1, fsync=False)
+        self.node = FirmwareNode(1, nv, NodeConfig(telemetry_period_us=1_000_000), 0)
+        self.host = NodeHost([self.node])
+        self.held: list[ToClient] = []
+        """Frames to the node kept back (``hold_down``): a transaction in flight."""
+        self.hold_down = False
+
+    def run(self, now: int, up: list[Message] | None = None) -> None:
+        """Deliver ``up`` and every frame it causes, then what falls due at ``now``."""
+        up = list(up or [])
+        while True:
+            down: list[Message] = []
+            for msg in up:
+                down += self.service.on_message(msg, now)
+            if (due := self.service.next_wakeup()) is not None and due <= now:
+                down += self.service.on_wakeup(now)
+            up = []
+            for msg in down:
+                assert isinstance(msg, ToClient)
+                if self.hold_down:
+                    self.held.append(msg)
+                else:
+                    up += self.host.on_message(msg, now)
+            if (wake := self.host.next_wakeup()) is not None and wake <= now:
+                up += self.host.on_wakeup(now)
+            if not up:
+                return
+
+    def forge(self, msg: Message, now: int) -> None:
+        """A rogue's frame in the node's name: the supervisor takes it, the node sees it."""
+        ident, data = Codec().encode(msg)
+        frame = can.Message(arbitration_id=ident, data=data)
+        self.service.on_message(msg, now)
+        reply = list(self.host.on_foreign_direction(frame, now))
+        self.run(now, reply)
+
+    def release(self, now: int) -> None:
+        self.hold_down = False
+        down, self.held = self.held, []
+        up: list[Message] = []
+        for msg in down:
+            up += self.host.on_message(msg, now)
+        self.run(now, up)
+
+    def node_status(self) -> dict[str, int]:
+        return dict(self.service.status()["nodes"]["1"])
+
+
+def test_a_forged_join_is_refuted_on_the_frame_and_writes_nothing_off(tmp_path: Path) -> None:
+    """Issue 40, item 11: a forged JOIN (and a forged TELEMETRY without books confirming it)
+    wrote off the grant in flight at once. The JOIN is now held: the node sees both frames in
+    its name and reports at once, with its books, which drops the JOIN; the intrusion is raised
+    at the very time of the forgery, not a telemetry period later."""
+    w = Wire(tmp_path)
+    w.run(0)  # the new node's JOIN and its TELEMETRY without books: held ...
+    assert w.node.joining and w.node_status()["admitted"] == 0
+    w.run(JOIN_HOLD_US - 1)
+    assert w.node.joining
+    w.run(JOIN_HOLD_US)  # ... admitted once the hold is over, nobody having objected
+    assert not w.node.joining and w.node_status()["admitted"] == 1
+
+    replies: list[dict[str, object]] = []
+    w.service.request_grant(1, 1_000_000, replies.append)
+    w.hold_down = True  # its INTENTION in flight when the rogue speaks
+    t = 2_000_000
+    w.run(t)
+    assert [type(m) for m in w.held] == [Intention]
+    w.forge(Join(1, 0x1234), t)
+    w.forge(Telemetry(1, 0, Telemetry.JOINING, 0, 0), t)
+    report = w.service.intrusions.as_json()
+    assert report["first_at_us"] == t  # raised on the forged frame itself
+    assert any("frame(s) in its name" in e["kind"] for e in report["recent"])
+    assert any("forged or replayed" in e["kind"] for e in report["recent"])
+    w.run(t + 10 * JOIN_HOLD_US)
+    w.release(t + 10 * JOIN_HOLD_US)
+    assert replies == [{"node": 1, "tx": 1, "outcome": "COMMITTED", "amount_uj": 1_000_000}]
+    status = w.node_status()
+    assert status["admitted"] == 1 and status["written_off"] == 0
+    assert w.node.client.state.usable == 1_000_000
+
+
+def test_a_forged_telemetry_is_raised_on_the_frame_not_a_period_later(tmp_path: Path) -> None:
+    """Issue 40, item 11: a forged TELEMETRY ("empty: top me up") is raised when it is sent,
+    not at the node's next periodic report (1 s here): the node sees it in its name and reports
+    at once; the supervisor raises on that report and tops the node up no more."""
+    w = Wire(tmp_path)
+    w.run(0)
+    w.run(JOIN_HOLD_US)
+    t = JOIN_HOLD_US + 300_000  # well inside the node's telemetry period
+    w.forge(Telemetry(1, 0, 0, 0, w.node.witnessing.reported), t)  # copies its count
+    assert w.service.intrusions.as_json()["first_at_us"] == t
+    assert w.service.witness.blocked(1, t)
+
+
+def test_a_forged_join_while_the_node_is_off_writes_off_what_was_open(tmp_path: Path) -> None:
+    """The residual: a node that is off cannot object, so a forged JOIN and TELEMETRY without
+    books are admitted once the hold is over and what was open is written off (lost to the
+    supervisor's books, never created: the node, back with its books, is paid it through Gs at
+    its next intention)."""
+    w = Wire(tmp_path)
+    w.run(0)
+    w.run(JOIN_HOLD_US)
+    w.service.request_grant(1, 1_000_000, lambda reply: None)
+    w.hold_down = True
+    t = 2_000_000
+    w.run(t)
+    w.service.on_message(Join(1, 0x1234), t)  # the node is off: it sees nothing
+    w.service.on_message(Telemetry(1, 0, Telemetry.JOINING, 0, 0), t)
+    w.service.on_wakeup(t + JOIN_HOLD_US - 1)
+    assert w.node_status()["written_off"] == 0
+    w.service.on_wakeup(t + JOIN_HOLD_US)
+    assert w.node_status()["admitted"] == 2 and w.node_status()["written_off"] == 1
+    assert w.service.core.session(1).delivered == 1_000_000  # booked as delivered
 
 
 @pytest.fixture
@@ -185,8 +315,12 @@ def test_a_forged_telemetry_stops_the_nodes_top_ups(topped_up: Bench) -> None:
 
 def test_a_forged_join_is_raised_by_the_supervisor(guarded: Bench) -> None:
     b = guarded
-    # the supervisor judges the node's count once it has heard it (its baseline)
-    b.wait(lambda: b.status()["nodes"]["1"]["level_uj"] is not None)
+    # the supervisor judges the node's count once it has heard it with books (its baseline):
+    # the node's TELEMETRY once admitted, sent before the forgery (the bus keeps the order)
+    node = b.host.nodes[1]
+    b.wait(lambda: not node.joining)
+    admitted_at = node.telemetry_sent
+    b.wait(lambda: node.telemetry_sent > admitted_at)
     sent = b.forge(Join(1, 0x1234))
     b.wait(lambda: supervisor_intrusions(b) >= 1)
     assert b.status()["intrusion_report"]["first_at_us"] - sent < 1_000_000

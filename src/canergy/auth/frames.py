@@ -72,6 +72,19 @@ MAC_TYPE = {Direction.TO_CLIENT: 0x0, Direction.TO_SUPERVISOR: 0x8}
 """The two type codes no message uses carry the classic layout's MAC frames."""
 
 
+def frame_direction(arbitration_id: int) -> Direction | None:
+    """Which way a frame travels, by its type: a message's direction, or a classic MAC frame's
+    (0x0 to a node, 0x8 to the supervisor); None for a type no frame uses."""
+    kind = arbitration_id >> 8 & 0xF
+    for direction, mac_kind in MAC_TYPE.items():
+        if kind == mac_kind:
+            return direction
+    try:
+        return MsgType(kind).direction
+    except ValueError:
+        return None
+
+
 class Layout(Enum):
     FD = "fd"
     CLASSIC = "classic"

@@ -25,7 +25,7 @@ from typing import Any
 
 import can
 
-from canergy.auth.frames import AuthFailure, Verdict, expected_freshness
+from canergy.auth.frames import AuthFailure, Verdict, expected_freshness, frame_direction
 from canergy.codec import DecodeError
 from canergy.core import Action, Credited, Persist, Send
 from canergy.core.actions import ClientCommitted, IntentionRefused
@@ -42,6 +42,7 @@ from canergy.messages import (
     LEVEL_MAX_MJ,
     QUANTUM_UJ,
     SEQ_BITS,
+    Direction,
     Message,
     Telemetry,
     ToClient,
@@ -132,9 +133,12 @@ class Uplink:
 
     def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
         """Authenticated mode: a frame for this gateway without a MAC, with a bad one or a stale
-        one. Counted by reason (``refused``) and among the intrusions, never acted on."""
+        one. Counted by reason (``refused``) and among the intrusions, never acted on; one in its
+        own direction (in its name) is witnessed and reported at once, as a node does."""
         if verdict.node != self.node or verdict.failure is None:
             return
+        if frame_direction(frame.arbitration_id) is Direction.TO_SUPERVISOR:
+            self.outbox += self.witness(now)
         if self.joining and verdict.failure is AuthFailure.STALE:
             return  # no counters yet: the supervisor's in-flight frames cannot match them
         what, reason = frame_text(frame), verdict.failure.value

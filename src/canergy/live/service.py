@@ -16,7 +16,7 @@ from typing import Any, TextIO, cast
 
 import can
 
-from canergy.auth.frames import MAC_TYPE, AuthFailure, Verdict, expected_freshness
+from canergy.auth.frames import AuthFailure, Verdict, expected_freshness, frame_direction
 from canergy.codec import DecodeError
 from canergy.core import (
     Acknowledged,
@@ -50,7 +50,6 @@ from canergy.messages import (
     Direction,
     Join,
     Message,
-    MsgType,
     Return,
     Telemetry,
     ToSupervisor,
@@ -60,8 +59,11 @@ from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
 HELD_JOINS = 8
-"""Authenticated mode: distinct JOINs held per node until its next TELEMETRY (replays beyond
-it push out the oldest, which is then neither admitted nor reported)."""
+"""Distinct JOINs held per node until its next TELEMETRY (replays or forgeries beyond it push
+out the oldest, which is then neither admitted nor reported)."""
+JOIN_HOLD_US = 500_000
+"""A held JOIN is admitted this long after the node's TELEMETRY without books confirmed it,
+unless the node shows its books meanwhile (``ServiceConfig.join_hold_us``)."""
 
 GrantCallback = Callable[[dict[str, Any]], None]
 EncodedBegin = Callable[[int, int, int], tuple[list[Action], list[tuple[int, bytes]]]]
@@ -102,13 +104,16 @@ class NodeInfo:
     """(time, µJ) of returns credited lately: a level reported before them may still show them."""
     active_request: GrantRequest | None = None
     held_joins: list[Join] = field(default_factory=list)
-    """Authenticated mode: verified JOINs (distinct, the latest last, at most ``HELD_JOINS``)
-    waiting for the node's next TELEMETRY to show the latest current (JOINING, bound to it) or
-    each a replay (the node reports its books)."""
+    """JOINs (verified, in authenticated mode; distinct, the latest last, at most
+    ``HELD_JOINS``) waiting for the node's TELEMETRY to show the latest current (JOINING; with a
+    key bound to it) or each a replay or forgery (the node reports its books)."""
+    admitting: tuple[Join, int] | None = None
+    """The held JOIN a TELEMETRY without books confirmed, and when it is admitted unless the
+    node shows its books before (``ServiceConfig.join_hold_us``); a new JOIN cancels it."""
     admitted_nonce: int | None = None
-    """Authenticated mode: the nonce of the JOIN admitted last, until the node's first
-    TELEMETRY with books: a copy of that JOIN held meanwhile is the node's own re-send, sent
-    before the ADMIT reached it, not a replay."""
+    """The nonce of the JOIN admitted last, until the node's first TELEMETRY with books: a copy
+    of that JOIN held meanwhile is the node's own re-send, sent before the ADMIT reached it, not
+    a replay."""
     joins_resent: int = 0
     """Copies of the JOIN just admitted, re-sent before the node heard its ADMIT: dropped."""
 
@@ -142,6 +147,12 @@ class ServiceConfig:
     None: credit at once (authenticated mode, where a RETURN carries a MAC)."""
     witness_block_us: int = 10_000_000
     """No top-ups for a node this long after evidence against its TELEMETRY."""
+    join_hold_us: int = JOIN_HOLD_US
+    """A JOIN confirmed by the node's TELEMETRY without books is admitted this long after it: a
+    node that is on and has its books sees a JOIN or a TELEMETRY in its name that it did not
+    send (forged without a key, replayed from an earlier life with one) and reports at once,
+    with its books, which drops the JOIN before anything is written off. 0: admitted on the
+    confirming TELEMETRY."""
     bus_names: tuple[str, ...] = ()
     """Several buses (``canergy supervisor --bus``): their names in order. The core's session
     keys are then ``bus index << 8 | node``, shown and saved as ``bus/node``."""
@@ -215,6 +226,9 @@ class SupervisorService:
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
         self.stopped_by_intrusion = False
         self.witness = ReturnGate(config.return_hold_us or 0, config.witness_block_us)
+        self._joins_due: set[int] = set()
+        """Nodes with a JOIN confirmed and waiting for its hold (emptied as they are admitted
+        or refused), so the loop's every pass does not look at every node."""
         if config.inject_uj:
             self._inject(config.inject_uj)
         if not config.listen_only:
@@ -248,10 +262,12 @@ class SupervisorService:
             return self._flush(out + self._start_grants(now, self.ready))
         if self.config.listen_only or not isinstance(msg, ToSupervisor):
             return ()
-        if isinstance(msg, Join) and self.authenticated:
-            held = info.held_joins  # a replay verifies too: the node's next report tells
+        if isinstance(msg, Join):  # a replay or forgery looks the same: the node's report tells
+            held = info.held_joins
             if msg in held:
                 held.remove(msg)
+            else:  # another start (or a replay): only a TELEMETRY after it confirms it
+                info.admitting = None
             held.append(msg)
             del held[:-HELD_JOINS]
             return ()
@@ -263,27 +279,44 @@ class SupervisorService:
         return self._flush(out)
 
     def _joined(self, msg: Telemetry, info: NodeInfo, now: int) -> list[Outgoing]:
-        """Authenticated mode: the latest held JOIN is admitted once the node's TELEMETRY shows
-        it without books (JOINING: its FV is that JOIN's; older ones held are dropped, as a node
-        that restarted twice sends two); a TELEMETRY with books shows every held JOIN a replay
-        of an earlier life, each refused as stale (nothing written off, nobody admitted), except
-        a copy of the JOIN admitted just before that TELEMETRY: the node re-sent it while its
-        ADMIT was on the way (the same nonce: a replay then moves nothing either)."""
-        joins, info.held_joins = info.held_joins, []
+        """The latest held JOIN is admitted ``join_hold_us`` after the node's TELEMETRY shows it
+        without books (JOINING; with a key its FV is that JOIN's, as a replay of an earlier
+        life's JOIN and its TELEMETRY shows too: the hold lets a node that is on object; older
+        ones held are dropped, as a node that restarted twice sends two). A TELEMETRY with
+        books before that shows every held JOIN a replay of an earlier life or a forgery, each
+        refused (nothing written off, nobody admitted), except a copy of the JOIN admitted just
+        before that TELEMETRY: the node re-sent it while its ADMIT was on the way (the same
+        nonce: a replay then moves nothing either)."""
         if msg.flags & Telemetry.JOINING:
-            if not joins:
+            if not info.held_joins:
                 return []
-            info.admitted_nonce = joins[-1].nonce
-            return self._carry_out(self.core.receive(joins[-1], now), now)
+            if info.admitting is None:
+                info.admitting = (info.held_joins[-1], now + self.config.join_hold_us)
+                self._joins_due.add(msg.node)
+            return self._admit(info, now)
+        joins, info.held_joins, info.admitting = info.held_joins, [], None
         admitted, info.admitted_nonce = info.admitted_nonce, None
-        reason = f"{AuthFailure.STALE.value} (a JOIN of an earlier life: the node has its books)"
+        reason = (
+            f"{AuthFailure.STALE.value} (a JOIN of an earlier life: the node has its books)"
+            if self.authenticated
+            else "a JOIN in its name while the node reports its books: forged or replayed"
+        )
         for join in joins:
             if join.nonce == admitted:
                 info.joins_resent += 1
                 continue
-            self.refusals.record(msg.node, reason, repr(join), now)
-            self.intrusions.record(msg.node, repr(join), reason, now, quiet=True)
+            if self.authenticated:
+                self.refusals.record(msg.node, reason, repr(join), now)
+            self.intrusions.record(msg.node, repr(join), reason, now, quiet=self.authenticated)
         return []
+
+    def _admit(self, info: NodeInfo, now: int) -> list[Outgoing]:
+        """Admit the confirmed JOIN once its hold is over (the others held are dropped)."""
+        if info.admitting is None or now < info.admitting[1]:
+            return []
+        join = info.admitting[0]
+        info.held_joins, info.admitting, info.admitted_nonce = [], None, join.nonce
+        return self._carry_out(self.core.receive(join, now), now)
 
     def _distrusted(self, node: int, now: int) -> bool:
         """Without a key: no top-ups while the node's TELEMETRY was lately contradicted (with a
@@ -432,6 +465,10 @@ class SupervisorService:
             wakeup = min(wakeup, self.now)
         if (release := self.witness.next_release()) is not None:
             wakeup = min(wakeup, release)
+        for node in self._joins_due:
+            admitting = self.nodes[node].admitting
+            if admitting is not None:
+                wakeup = min(wakeup, admitting[1])
         timer = self.core.get_timer()
         return wakeup if timer is None else min(wakeup, timer)
 
@@ -444,6 +481,11 @@ class SupervisorService:
                 out += self._carry_out(self.core.handle_timer(now), now)
             for node in self.witness.holding():
                 out += self._released(node, now)
+            for node in sorted(self._joins_due):
+                info = self.nodes[node]
+                out += self._admit(info, now)
+                if info.admitting is None:
+                    self._joins_due.discard(node)
             out += self._start_grants(now, None if now >= self.next_tick else self.ready)
         if now >= self.next_tick:
             self.next_tick = now + self.config.tick_us
@@ -868,10 +910,4 @@ class SupervisorService:
 
 def _own_direction(frame: can.Message) -> bool:
     """A frame (or classic MAC frame) in the supervisor's own direction, to a node."""
-    kind = frame.arbitration_id >> 8 & 0xF
-    if kind in MAC_TYPE.values():
-        return kind == MAC_TYPE[Direction.TO_CLIENT]
-    try:
-        return MsgType(kind).direction is Direction.TO_CLIENT
-    except ValueError:
-        return False
+    return frame_direction(frame.arbitration_id) is Direction.TO_CLIENT

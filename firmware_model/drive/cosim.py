@@ -250,6 +250,7 @@ def run(sc: Scenario) -> Result:
             limits=GrantLimits(max_grant=sc.max_grant_uj),
             fsync=False,
             status_period_us=10**12,
+            local_nodes=frozenset({NODE}),
         ),
         0,
     )

@@ -250,6 +250,7 @@ def _config(args: argparse.Namespace, key: Any, names: tuple[str, ...]) -> Servi
         inject_uj=args.inject or 0,
         stop_on_intrusion=args.on_intrusion == "stop",
         return_hold_us=None if key is not None else args.return_hold,
+        local_nodes=frozenset(args.cia402 or ()),
         bus_names=names,
     )
 

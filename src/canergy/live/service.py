@@ -153,6 +153,9 @@ class ServiceConfig:
     send (forged without a key, replayed from an earlier life with one) and reports at once,
     with its books, which drops the JOIN before anything is written off. 0: admitted on the
     confirming TELEMETRY."""
+    local_nodes: frozenset[int] = frozenset()
+    """Nodes only this process speaks for (the proxies of guarded CiA 402 drives: a frame on the
+    bus in their name never reaches the core): a JOIN of theirs needs no hold."""
     bus_names: tuple[str, ...] = ()
     """Several buses (``canergy supervisor --bus``): their names in order. The core's session
     keys are then ``bus index << 8 | node``, shown and saved as ``bus/node``."""
@@ -291,7 +294,8 @@ class SupervisorService:
             if not info.held_joins:
                 return []
             if info.admitting is None:
-                info.admitting = (info.held_joins[-1], now + self.config.join_hold_us)
+                hold = 0 if msg.node in self.config.local_nodes else self.config.join_hold_us
+                info.admitting = (info.held_joins[-1], now + hold)
                 self._joins_due.add(msg.node)
             return self._admit(info, now)
         joins, info.held_joins, info.admitting = info.held_joins, [], None

@@ -5,7 +5,9 @@ A shell block preceded by ``<!-- recipe: SESSION WHERE -->`` is a recipe. WHERE 
 vcan1: the vcan suite). The recipes of one session run in README order in one working directory,
 as a user would type them in one shell: each line is a command (``\\`` continues it, ``#``
 starts a comment); a line ending in ``&`` runs in the background, as in another terminal, and is
-waited for until its ``--control`` socket and ``--status-file`` exist; any other line must exit 0
+waited for until its ``--control`` socket and ``--status-file`` exist (one with neither: until it
+holds a socket, its bus, which it opens after it has set its Ctrl-C handler; a SIGINT during its
+imports would end it with a traceback); any other line must exit 0
 within ``FOREGROUND_S``. When the session ends, or before a recipe marked ``stopped`` (one that
 reads what the processes wrote once they were stopped), its background processes get SIGINT, as
 Ctrl-C would give them, and must exit 0.
@@ -155,6 +157,15 @@ class Session:
             )
         self.background.append((command, proc, out))
         end = time.monotonic() + READY_S
+        if not command.waits_for():
+            while not _holds_socket(proc.pid):
+                if proc.poll() is not None:
+                    raise AssertionError(
+                        f"{self._where(command)}\nended with {proc.returncode} before it was "
+                        f"up:\n{out.read_text()[-3000:]}"
+                    )
+                assert time.monotonic() < end, f"{self._where(command)}\nnever opened its bus"
+                time.sleep(0.05)
         for name in command.waits_for():
             while not (self.cwd / name).exists():
                 if proc.poll() is not None:
@@ -230,3 +241,13 @@ def run_session(blocks: list[Recipe], tmp_path: Path) -> Session:
     finally:
         session.close()
     return session
+
+
+def _holds_socket(pid: int) -> bool:
+    """Whether process ``pid`` has a socket open (/proc/PID/fd)."""
+    fds = Path(f"/proc/{pid}/fd")
+    try:
+        links = [os.readlink(fd) for fd in fds.iterdir()]
+    except OSError:  # gone, or an fd closed while read
+        return False
+    return any(link.startswith("socket:") for link in links)

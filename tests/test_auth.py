@@ -162,6 +162,25 @@ def test_a_node_key_serves_only_its_node(tmp_path: Path) -> None:
         node_key.node_key(3)
 
 
+def test_node_keys_take_their_masters_epoch_and_another_epoch_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--epoch belongs to a master key: with --master, an epoch other than the master's is
+    refused (keys of it would verify with no supervisor), its own is accepted."""
+    master = tmp_path / "m.key"
+    assert main(["keys", "-o", str(master), "--epoch", "2"]) == 0
+    derive = ["keys", "--master", str(master), "--nodes", "1", "-o"]
+    assert main([*derive, str(tmp_path / "d3"), "--epoch", "3"]) == 2
+    assert "--epoch 3: node keys take the epoch of their master key" in capsys.readouterr().err
+    assert not (tmp_path / "d3").exists()
+    assert main([*derive, str(tmp_path / "d2"), "--epoch", "2"]) == 0
+    assert main([*derive, str(tmp_path / "d")]) == 0
+    for folder in ("d2", "d"):
+        key = load_key(tmp_path / folder / "node-001.key")
+        assert key.epoch == 2
+        assert key.secret == derive_node_key(load_key(master).secret, 1, 2)
+
+
 # --- the live stack on the virtual bus ---------------------------------------------------------
 
 

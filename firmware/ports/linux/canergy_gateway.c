@@ -30,6 +30,7 @@
 #define _GNU_SOURCE 1
 
 #include "args.h"
+#include "paths.h"
 #include "port.h"
 #include "socketcan.h"
 #include "system.h"
@@ -805,6 +806,9 @@ int main(int argc, char **argv)
 {
     static struct gateway_port g;
     parse_args(argc, argv, &g.opt);
+    const struct port_file files[] = {{"--nv", g.opt.nv_path},
+                                      {"--status-file", g.opt.status_path}};
+    port_check_distinct(files, sizeof files / sizeof files[0]);
     g.up_sock = open_bus(g.opt.up_channel, g.opt.id_base, g.opt.node); /* its own id above */
     g.down_sock = open_bus(g.opt.down_channel, g.opt.id_base, 1U);
     port_can_filter(g.down_sock, g.opt.id_base, CANERGY_ID_MASK); /* every node below */

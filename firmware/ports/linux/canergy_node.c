@@ -32,6 +32,7 @@
 
 #include "args.h"
 #include "keyfile.h"
+#include "paths.h"
 #include "port.h"
 #include "socketcan.h"
 #include "system.h"
@@ -131,7 +132,10 @@ int main(int argc, char **argv)
     (void)sigaction(SIGTERM, &sa, NULL);
 
     port_parse_args(argc, argv, &p.opt);
-    port_check_paths(&p.opt);
+    const struct port_file files[] = {{"--nv", p.opt.nv_path},
+                                      {"--status-file", p.opt.status_path},
+                                      {"--auth", p.opt.auth_path}};
+    port_check_distinct(files, sizeof files / sizeof files[0]);
     if (p.opt.auth_path != NULL) {
         uint8_t key[CANERGY_KDF_KEY_SIZE];
         port_load_key(p.opt.auth_path, p.opt.node, key);

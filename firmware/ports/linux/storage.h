@@ -10,9 +10,6 @@
 #include <stddef.h>
 #include <stdint.h>
 
-/* Exit 2 when --nv and --status-file name one file (symlinks and hard links included). */
-void port_check_paths(const struct port_options *o);
-
 /* Open (or create) the NV file of p->opt.nv_path into p->nv_fd and read its two slots into
  * image (*len bytes of it; 0 for a new file); exit 2 when it cannot be opened or read, or is
  * not an NV file of canergy. */

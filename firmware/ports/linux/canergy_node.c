@@ -147,6 +147,7 @@ int main(int argc, char **argv)
             port_usage_error("--auth: bad node or id base");
         }
     }
+    port_nv_check(&p.opt);
     p.sock = port_can_open(&p.opt);
     uint8_t image[NV_IMAGE_BYTES];
     size_t image_len = 0U;

@@ -24,6 +24,46 @@
 
 /* ---- NV file ---- */
 
+/* Exit 2 when the newest valid slot holds a counter beyond the bound the proof assumes (the
+ * library would take it as no books and JOIN: refused here, with the field named, as
+ * firmware_model refuses it). */
+static void check_counters(const struct port_options *o, const uint8_t *image, size_t len)
+{
+    struct canergy_nv_state st;
+    canergy_nv_load(image, len, &st);
+    const size_t at = (size_t)st.newest_slot * CANERGY_NV_SLOT_SIZE;
+    uint32_t counter;
+    uint8_t payload[CANERGY_NV_RECORD_SIZE];
+    struct canergy_record rec;
+    if (st.books || len < at + CANERGY_NV_SLOT_SIZE ||
+        !canergy_nv_slot_decode(&image[at], CANERGY_NV_SLOT_SIZE, &counter, payload) ||
+        canergy_record_unpack(payload, &rec) != CANERGY_ERR_END) {
+        return;
+    }
+    const int tx = rec.last_tx >= CANERGY_COUNTER_BOUND;
+    port_usage_error("--nv %s: node %d: %s %lu is beyond the bound 2^30 - 1 the proof assumes",
+                     o->nv_path, o->node, tx ? "last_tx" : "return_seq",
+                     (unsigned long)(tx ? rec.last_tx : rec.return_seq));
+}
+
+void port_nv_check(const struct port_options *o)
+{
+    struct stat st;
+    if (stat(o->nv_path, &st) != 0 || !S_ISREG(st.st_mode)) {
+        return; /* new, or not a file: port_nv_open says so */
+    }
+    const int fd = open(o->nv_path, O_RDONLY | O_CLOEXEC);
+    if (fd < 0) {
+        return;
+    }
+    uint8_t image[NV_IMAGE_BYTES];
+    const ssize_t n = pread(fd, image, sizeof image, 0);
+    (void)close(fd);
+    if (n > 0) {
+        check_counters(o, image, (size_t)n);
+    }
+}
+
 void port_nv_open(struct port *p, uint8_t image[NV_IMAGE_BYTES], size_t *len)
 {
     p->nv_fd = port_open_nv(p->opt.nv_path, 0644);
@@ -50,6 +90,7 @@ void port_nv_open(struct port *p, uint8_t image[NV_IMAGE_BYTES], size_t *len)
         exit(EXIT_USAGE);
     }
     *len = (size_t)n;
+    check_counters(&p->opt, image, *len);
     /* as firmware_model: the file always holds both record slots (never shrunk: the
      * parameter slot at 80 stays as it is) */
     struct stat st;

@@ -14,6 +14,7 @@ counter moves, alike in the Python and the C core.
 from __future__ import annotations
 
 import ctypes
+import logging
 import struct
 import subprocess
 import zlib
@@ -28,6 +29,7 @@ from canergy.cli import supervisor as supervisor_cli
 from canergy.core import Client, LocalProtocolError, Supervisor
 from canergy.core.actions import Send
 from canergy.core.state import ClientState, Phase, Session, SupervisorState
+from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.state_file import StateFileError, load_state, save_state
 from canergy.messages import (
     COUNTER_BOUND,
@@ -38,6 +40,7 @@ from canergy.messages import (
     Join,
     Return,
     ReturnAck,
+    Telemetry,
 )
 from firmware_model.nvstore import NvError, NvStore, encode_slot, pack_record
 
@@ -281,3 +284,24 @@ def test_the_c_gateway_refuses_a_record_beyond_the_bound_in_either_role(
         assert "beyond" not in run.stderr, run.stderr
     else:
         assert run.stderr == f"canergy-gateway: error: --nv g.nv: {words}\n"
+
+
+@pytest.mark.parametrize("core", CORES)
+def test_the_live_supervisor_answers_a_grant_at_the_end_and_warns_once(
+    core: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    sup = CORES[core]([4], 0, state=_books(4, tx=COUNTER_END - 1))
+    service = SupervisorService(sup, ServiceConfig(), 0)
+    service.on_message(Telemetry(4, 0), 1)
+    replies: list[dict[str, object]] = []
+    with caplog.at_level(logging.WARNING, logger="canergy"):
+        for now in (2, 3):
+            service.request_grant(4, J, replies.append)
+            assert service.on_wakeup(now) == []
+    assert [r["error"] for r in replies] == [
+        f"node 4: transaction {COUNTER_END - 1} is the last below 1,073,676,288 (2^30 - 2^16, the "
+        "bound the proof assumes less the admission's room): its books must start again (a new "
+        "state file; with --auth keys of a new epoch)"
+    ] * 2
+    assert len([r for r in caplog.records if "is the last below" in r.getMessage()]) == 1
+    assert service.status()["usable_uj"] == 10 * J  # nothing reserved

@@ -520,7 +520,10 @@ def test_join_and_admit_carry_32_bits_of_freshness(layout: Layout) -> None:
 
 
 @pytest.mark.parametrize("layout", list(Layout))
-@pytest.mark.parametrize(("tx", "seq"), [(0x2_0005, 0x2_0001), (0x1_FFFF, 0x3), (0xFFFF_0003, 7)])
+@pytest.mark.parametrize(
+    ("tx", "seq"),
+    [(0x2_0005, 0x2_0001), (0x1_FFFF, 0x3), (0x3FFE_0003, 7)],  # the last high half below 2**30
+)
 def test_admit_carries_the_full_counters(layout: Layout, tx: int, seq: int) -> None:
     """Issue 30: a node admitted past transaction 65,535 took only the wire's 16 bits, so its
     freshness never met the supervisor's again. The supervisor's core moves both counters up to

@@ -25,8 +25,8 @@
  * socket or file that cannot be opened.
  *
  * This file: main(), its loop and the glue between the library and the port's other files:
- * port.h (shared state), args.c (options, units), keyfile.c (--auth key file), storage.c (NV
- * file, status file), socketcan.c (the CAN socket).
+ * port.h (shared state), args.c (options, units), keyfile.c (--auth key file), paths.c (no two
+ * file flags naming one file), storage.c (NV file, status file), socketcan.c (the CAN socket).
  */
 #define _GNU_SOURCE 1
 

@@ -184,6 +184,9 @@ def _check_paths(args: argparse.Namespace, ids: tuple[int, ...]) -> None:
         if not args.power_profile.is_file():
             raise FileNotFoundError(f"--power-profile {args.power_profile}: no such file")
         files.append(("--power-profile", args.power_profile))
+    if args.auth is not None:  # a key read at start, then written over: lost
+        keys = [args.auth / f"node-{n:03d}.key" for n in ids] if several else [args.auth]
+        files += [("--auth", key) for key in keys]
     for i, (option, path) in enumerate(files):
         for other, other_path in files[:i]:
             if option != other and same_file(path, other_path):

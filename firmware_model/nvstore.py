@@ -33,7 +33,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from canergy.core.state import ClientState, Outcome
-from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ
+from canergy.messages import (
+    AMOUNT_MAX_MJ,
+    COUNTER_BOUND,
+    QUANTUM_UJ,
+    USABLE_MAX_UJ,
+    counter_beyond,
+)
 from canergy.seqnum import unwrap
 
 RECORD = struct.Struct("<IIQIIIBB")
@@ -56,6 +62,11 @@ mask of which of the three were written."""
 
 class NvError(ValueError):
     """A value does not fit the record, or the store cannot be read at all."""
+
+
+class NvBeyondBound(NvError):
+    """A record whose counter is at or beyond ``COUNTER_BOUND``: refused, never taken as no
+    books (the other slot may be an older copy, and an older copy is not covered)."""
 
 
 class SimulatedPowerLoss(Exception):
@@ -86,6 +97,9 @@ def unpack_record(node: int, data: bytes) -> ClientState:
     pending_ok = pending % QUANTUM_UJ == 0 and pending <= AMOUNT_MAX_MJ * QUANTUM_UJ
     if outcome not in Outcome._value2member_map_ or usable > USABLE_MAX_UJ or not pending_ok:
         raise NvError(f"node {node}: the record holds values no client writes")
+    for name, value in (("last_tx", last_tx), ("return_seq", return_seq)):
+        if value >= COUNTER_BOUND:
+            raise NvBeyondBound(f"node {node}: {name} {counter_beyond(value)}")
     return ClientState(
         node,
         usable=usable,
@@ -168,6 +182,8 @@ class NvStore:
         self._counter, self._newest_slot = counter, index
         try:
             return unpack_record(self.node, record)
+        except NvBeyondBound as exc:
+            raise NvError(f"--nv {self.path}: {exc}") from None
         except NvError:
             self.stats.fallbacks += 1
             return None  # a checksum collision over garbage: no books, not a crash

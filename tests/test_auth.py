@@ -162,6 +162,25 @@ def test_a_node_key_serves_only_its_node(tmp_path: Path) -> None:
         node_key.node_key(3)
 
 
+def test_node_keys_take_their_masters_epoch_and_another_epoch_is_refused(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--epoch belongs to a master key: with --master, an epoch other than the master's is
+    refused (keys of it would verify with no supervisor), its own is accepted."""
+    master = tmp_path / "m.key"
+    assert main(["keys", "-o", str(master), "--epoch", "2"]) == 0
+    derive = ["keys", "--master", str(master), "--nodes", "1", "-o"]
+    assert main([*derive, str(tmp_path / "d3"), "--epoch", "3"]) == 2
+    assert "--epoch 3: node keys take the epoch of their master key" in capsys.readouterr().err
+    assert not (tmp_path / "d3").exists()
+    assert main([*derive, str(tmp_path / "d2"), "--epoch", "2"]) == 0
+    assert main([*derive, str(tmp_path / "d")]) == 0
+    for folder in ("d2", "d"):
+        key = load_key(tmp_path / folder / "node-001.key")
+        assert key.epoch == 2
+        assert key.secret == derive_node_key(load_key(master).secret, 1, 2)
+
+
 # --- the live stack on the virtual bus ---------------------------------------------------------
 
 
@@ -501,7 +520,10 @@ def test_join_and_admit_carry_32_bits_of_freshness(layout: Layout) -> None:
 
 
 @pytest.mark.parametrize("layout", list(Layout))
-@pytest.mark.parametrize(("tx", "seq"), [(0x2_0005, 0x2_0001), (0x1_FFFF, 0x3), (0xFFFF_0003, 7)])
+@pytest.mark.parametrize(
+    ("tx", "seq"),
+    [(0x2_0005, 0x2_0001), (0x1_FFFF, 0x3), (0x3FFE_0003, 7)],  # the last high half below 2**30
+)
 def test_admit_carries_the_full_counters(layout: Layout, tx: int, seq: int) -> None:
     """Issue 30: a node admitted past transaction 65,535 took only the wire's 16 bits, so its
     freshness never met the supervisor's again. The supervisor's core moves both counters up to

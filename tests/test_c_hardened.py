@@ -36,6 +36,7 @@ from support.client_cases import (
 )
 
 from canergy.codec import Codec
+from canergy.core.errors import LocalProtocolError
 from canergy.core.hardened import CLIENT as TABLE
 from canergy.core.inputs import (
     RETURN_TIMEOUT,
@@ -47,7 +48,15 @@ from canergy.core.inputs import (
     Spend,
 )
 from canergy.core.state import ClientState, Phase
-from canergy.messages import USABLE_MAX_UJ, Abort, Commit, Intention, ReturnAck
+from canergy.messages import (
+    COUNTER_BOUND,
+    COUNTER_END,
+    USABLE_MAX_UJ,
+    Abort,
+    Commit,
+    Intention,
+    ReturnAck,
+)
 
 CODEC = Codec()
 
@@ -132,16 +141,26 @@ def test_every_cell_is_run_on_c_too() -> None:
     check_coverage(TABLE, CASES, IGNORED, REFUSED)
 
 
-# -- beyond the table's cases: counters at their wrap, and energy at the record's limit ---------
+# -- beyond the table's cases: counters at their wrap and end, energy at the record's limit ------
 
-WRAPS = [0xFFFF, 0x10000, 0x1_0000_0000 - 1, 0x1_0000_0000, 0x1_0000_FFFF, 2**40 + 0x7FFF]
+WRAPS = [
+    0xFFFF,
+    0x10000,
+    0x2_FFFF,
+    COUNTER_END - 0x8000,
+    COUNTER_END - 3,
+    COUNTER_END - 2,
+    COUNTER_END - 1,
+    COUNTER_END,
+    COUNTER_BOUND - 1,
+]
 
 
 @pytest.mark.parametrize("last_tx", WRAPS)
 @pytest.mark.parametrize("delta", [-0x8000, -2, -1, 0, 1, 2, 3, 0x7FFE, 0x7FFF])
 def test_tx_comparisons_wrap_as_in_python(last_tx: int, delta: int) -> None:
-    """Counters the record keeps modulo 2**32 compare as Python's unbounded ones, past every
-    wrap of the wire and of the record."""
+    """Counters compare as Python's, past every wrap of the wire, up to the end of the numbering
+    (``COUNTER_END``: neither takes a transaction there) and in a record at the bound."""
     for start in (
         replace(FRESH, last_tx=last_tx),
         replace(HOLDING, last_tx=last_tx, held_tx=last_tx + 1, deadline=1000),
@@ -167,13 +186,28 @@ def test_delivered_count_wraps_as_in_python(credited_mj: int, delta: int) -> Non
         assert_same_step(replace(start, credited_unknown=True), Intention(2, 6, 4, gs), 0)
 
 
-@pytest.mark.parametrize("seq", [0, 1, 0xFFFF, 0x10000, 2**32 - 1, 2**32])
+@pytest.mark.parametrize("seq", [0, 1, 0xFFFF, 0x10000, COUNTER_END - 3, COUNTER_END - 2])
 def test_return_numbers_wrap_as_in_python(seq: int) -> None:
     start = replace(RETURNING, return_seq=seq)
     for wire in (seq & 0xFFFF, (seq + 1) & 0xFFFF, (seq - 1) & 0xFFFF):
         assert_same_step(start, ReturnAck(2, wire), 0)
     assert_same_step(replace(FRESH, return_seq=seq), GiveBack(3000), 5)
     assert_same_step(start, RETURN_TIMEOUT, 300)
+
+
+@pytest.mark.parametrize("seq", [COUNTER_END - 1, COUNTER_END, COUNTER_BOUND - 1])
+def test_no_return_is_numbered_at_the_end_in_either_core(seq: int) -> None:
+    """The return after ``COUNTER_END - 1`` is refused by both (its RETURN would be ignored),
+    and a pending one at the end still completes."""
+    fresh = replace(FRESH, return_seq=seq)
+    assert not TABLE.can_give_back(fresh)
+    with pytest.raises(LocalProtocolError, match=f"return {seq} is the last below"):
+        TABLE.step(T, fresh, GiveBack(3000), 5)
+    c, code = run_c(fresh, GiveBack(3000), 5)
+    assert code == ERR_PHASE and not c.can_give_back() and c.view() == c_view(fresh)
+    pending = replace(RETURNING, return_seq=seq)
+    assert_same_step(pending, ReturnAck(2, seq & 0xFFFF), 0)
+    assert_same_step(pending, RETURN_TIMEOUT, 300)
 
 
 def test_phases_map_one_to_one() -> None:

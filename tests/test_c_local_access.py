@@ -1,8 +1,9 @@
-"""The C node (firmware/build/canergy-node) and its local files (security second pass, items 11
-and 12): a key file must be a regular file of a bounded size, read without blocking (a FIFO,
-``/dev/zero`` or a huge file is refused at once, as in Python), and ``--nv`` and
-``--status-file`` must not name one file, through symlinks and hard links too (the status JSON
-would replace the NV record). Everything here is refused before the bus is opened: no vcan0.
+"""The C node and gateway (firmware/build/canergy-node, canergy-gateway) and their local files
+(security second pass, items 11 and 12; issue 40 item 8): a key file must be a regular file of a
+bounded size, read without blocking (a FIFO, ``/dev/zero`` or a huge file is refused at once, as
+in Python), and no two file flags (``--nv``, ``--status-file``, the node's ``--auth``) may name
+one file, through symlinks and hard links too (the status JSON would replace the NV record or
+the key). Everything here is refused before the bus is opened: no vcan0.
 """
 
 from __future__ import annotations
@@ -17,24 +18,38 @@ import pytest
 from canergy.auth.keys import KEY_FILE_MAX, new_master, node_key_of, write_key
 
 FIRMWARE = Path(__file__).resolve().parents[1] / "firmware"
-C_NODE = FIRMWARE / "build" / "canergy-node"
 
 
-@pytest.fixture(scope="module")
-def c_node() -> Path:
-    """The binary, rebuilt when its sources changed (make); a failed build fails loudly."""
+def _built(target: str) -> Path:
+    """A binary, rebuilt when its sources changed (make); a failed build fails loudly."""
     build = subprocess.run(
-        ["make", "-s", "-C", str(FIRMWARE), "build/canergy-node"],
+        ["make", "-s", "-C", str(FIRMWARE), target],
         capture_output=True,
         text=True,
         timeout=600,
     )
-    assert build.returncode == 0, f"make canergy-node failed:\n{build.stdout}{build.stderr}"
-    return C_NODE
+    assert build.returncode == 0, f"make {target} failed:\n{build.stdout}{build.stderr}"
+    return FIRMWARE / target
 
 
-def _run(c_node: Path, tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    argv = [str(c_node), "--node", "1", "-i", "socketcan", "-c", "nosuchcan0", *args]
+@pytest.fixture(scope="module")
+def c_node() -> Path:
+    return _built("build/canergy-node")
+
+
+@pytest.fixture(scope="module")
+def c_gateway() -> Path:
+    return _built("build/canergy-gateway")
+
+
+def _run(binary: Path, tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """The node (node 1) or the gateway (node 1 above, node 2 below) on buses that do not
+    exist."""
+    if binary.name == "canergy-gateway":
+        bus = ["--nodes", "2", "-c", "nosuchcan0", "--upstream-channel", "nosuchcan1"]
+    else:
+        bus = ["-i", "socketcan", "-c", "nosuchcan0"]
+    argv = [str(binary), "--node", "1", *bus, *args]
     return subprocess.run(argv, capture_output=True, text=True, timeout=10, cwd=tmp)
 
 
@@ -137,23 +152,47 @@ SAME = [
 ]
 
 
+@pytest.mark.parametrize("program", ["canergy-node", "canergy-gateway"])
 @pytest.mark.parametrize("same", SAME, ids=lambda f: f.__name__[1:])
-def test_the_c_node_refuses_nv_and_status_file_naming_one_file(
-    same: Callable[[Path], tuple[str, str]], c_node: Path, tmp_path: Path
+def test_the_c_programs_refuse_nv_and_status_file_naming_one_file(
+    same: Callable[[Path], tuple[str, str]], program: str, tmp_path: Path
 ) -> None:
+    binary = _built(f"build/{program}")
     nv, status = same(tmp_path)
     before = sorted(p.name for p in tmp_path.rglob("*"))
-    run = _run(c_node, tmp_path, "--nv", nv, "--status-file", status)
-    _refused(run, f"--nv {nv} and --status-file {status} name the same file")
+    run = _run(binary, tmp_path, "--nv", nv, "--status-file", status)
+    _refused(run, f"{program}: error: --nv {nv} and --status-file {status} name the same file")
     assert sorted(p.name for p in tmp_path.rglob("*")) == before  # nothing created
 
 
-def test_the_c_node_accepts_two_files_that_only_look_alike(c_node: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("program", ["canergy-node", "canergy-gateway"])
+def test_the_c_programs_accept_two_files_that_only_look_alike(program: str, tmp_path: Path) -> None:
+    binary = _built(f"build/{program}")
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     (tmp_path / "a" / "n.nv").write_bytes(b"")
     (tmp_path / "b" / "n.nv").write_bytes(b"")  # same name, another directory
     (tmp_path / "dangling").symlink_to("elsewhere.json")
     for nv, status in (("a/n.nv", "b/n.nv"), ("n.nv", "dangling"), ("a/n.nv", "a/new.json")):
-        run = _run(c_node, tmp_path, "--nv", nv, "--status-file", status)
+        run = _run(binary, tmp_path, "--nv", nv, "--status-file", status)
         assert run.returncode == 2 and "same file" not in run.stderr, run.stderr  # the bus
+
+
+def test_the_c_node_refuses_its_key_file_named_as_its_nv_or_status_file(
+    c_node: Path, tmp_path: Path
+) -> None:
+    """The key is read at start, the NV record and the status written over it afterwards: the
+    key would be gone at the next start."""
+    key = _node_key(tmp_path / "n1.key")
+    (tmp_path / "alias.key").symlink_to("n1.key")
+    os.link(key, tmp_path / "hard.key")
+    _refused(
+        _run(c_node, tmp_path, "--nv", "alias.key", "--auth", str(key)),
+        f"--nv alias.key and --auth {key} name the same file",
+    )
+    _refused(
+        _run(c_node, tmp_path, "--nv", "n.nv", "--status-file", "hard.key", "--auth", "n1.key"),
+        "--status-file hard.key and --auth n1.key name the same file",
+    )
+    assert key.read_text() == (tmp_path / "hard.key").read_text()
+    assert not (tmp_path / "n.nv").exists()

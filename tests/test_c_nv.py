@@ -19,7 +19,7 @@ from support.mem_nv import MemNv, write_slot
 
 from canergy.core import Timing
 from canergy.core.state import ClientState, Outcome
-from canergy.messages import Commit
+from canergy.messages import COUNTER_BOUND, Commit
 from firmware_model.nvstore import (
     RECORD_SIZE,
     NvStore,
@@ -36,9 +36,9 @@ records = st.builds(
     usable=st.integers(0, U32),
     credited=st.integers(0, U32).map(lambda mj: mj * 1000),
     spent=st.integers(0, 2**64 - 1),
-    last_tx=st.integers(0, U32),
+    last_tx=st.integers(0, COUNTER_BOUND - 1),  # beyond: tests/test_counters_end.py
     outcome=st.sampled_from(list(Outcome)),
-    return_seq=st.integers(0, U32),
+    return_seq=st.integers(0, COUNTER_BOUND - 1),
     return_pending=pending,
     credited_unknown=st.booleans(),
 )

@@ -187,6 +187,11 @@ def _tree(root: Path) -> list[str]:
             "--status-file p.csv and --power-profile p.csv name the same file",
         ),
         (["--node", "1", "--nv", "p.csv", "--power-profile", "p.csv"], "name the same file"),
+        (
+            ["--node", "1", "--nv", "n.nv", "--status-file", "./k.key", "--auth", "k.key"],
+            "--status-file k.key and --auth k.key name the same file",
+        ),
+        (["--node", "1", "--nv", "k.key", "--auth", "k.key"], "--nv k.key and --auth k.key"),
         (["--nodes", "1-2", "--nv", "p.csv"], "--nv p.csv: not a directory"),
         (["--node", "1", "--nv", "n.nv", "--power-profile", "none.csv"], "--power-profile"),
         (["--node", "1", "--nv", "n.nv", "--power-profile", "inf.csv"], "must be finite"),

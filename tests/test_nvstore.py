@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from canergy.core.state import ClientState, Outcome
-from canergy.messages import USABLE_MAX_UJ
+from canergy.messages import COUNTER_BOUND, USABLE_MAX_UJ
 from canergy.seqnum import unwrap
 from firmware_model.nvstore import (
     RECORD_SIZE,
@@ -25,15 +25,16 @@ from firmware_model.nvstore import (
 )
 
 u32 = st.integers(0, 0xFFFFFFFF)
+counters = st.integers(0, COUNTER_BOUND - 1)  # beyond: tests/test_counters_end.py
 records = st.builds(
     ClientState,
     st.just(5),
     usable=u32,
     credited=u32.map(lambda mj: mj * 1000),
     spent=st.integers(0, 2**64 - 1),
-    last_tx=u32,
+    last_tx=counters,
     outcome=st.sampled_from(list(Outcome)),
-    return_seq=u32,
+    return_seq=counters,
     return_pending=st.integers(0, 0xFFFF).map(lambda mj: mj * 1000),  # one frame, whole mJ
     credited_unknown=st.booleans(),
 )

@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from canergy.core.actions import Send
+from canergy.core.errors import LocalProtocolError
 from canergy.core.gateway import forward, withdraw_for_return
 from canergy.core.hardened import CLIENT, SUPERVISOR
 from canergy.core.inputs import (
@@ -30,6 +31,7 @@ from canergy.core.state import ClientState, Decision, Outcome, Phase, Session, S
 from canergy.core.steps import ClientStep
 from canergy.core.timing import Timing
 from canergy.messages import (
+    COUNTER_END,
     QUANTUM_UJ,
     USABLE_MAX_UJ,
     Abort,
@@ -54,7 +56,12 @@ T = Timing()
 LIMIT = (1 << 32) - (1 << 18)
 """Counters drawn below this: the Python core's are unbounded, the model's 32 bits wide."""
 
-counters = st.one_of(st.integers(0, 40), st.integers(65_500, 65_600), st.integers(0, LIMIT))
+counters = st.one_of(
+    st.integers(0, 40),
+    st.integers(65_500, 65_600),
+    st.integers(COUNTER_END - 3, COUNTER_END + 1),  # the end of a node's numbering
+    st.integers(0, LIMIT),
+)
 mj = st.integers(0, 70_000)
 energy = mj.map(lambda m: m * QUANTUM_UJ)
 amounts = st.integers(1, 65_535)
@@ -243,8 +250,14 @@ def test_session_answers(data: st.DataObject) -> None:
 @given(sessions(), amounts, st.booleans())
 def test_begin_and_decide(s: Session, amount: int, commit: bool) -> None:
     if s.phase is Phase.IDLE:
-        py = SUPERVISOR.step(T, s, Begin(amount * QUANTUM_UJ), 0)
-        same_session(py, sym.begin(sym_session(s), z3.IntVal(amount * QUANTUM_UJ)))
+        room = value(sym.may_begin(sym_session(s)))
+        assert room == (s.tx + 1 < COUNTER_END)
+        if room:
+            py = SUPERVISOR.step(T, s, Begin(amount * QUANTUM_UJ), 0)
+            same_session(py, sym.begin(sym_session(s), z3.IntVal(amount * QUANTUM_UJ)))
+        else:
+            with pytest.raises(LocalProtocolError, match="the last below"):
+                SUPERVISOR.step(T, s, Begin(amount * QUANTUM_UJ), 0)
     if s.phase is Phase.ACKED:
         decision = Decision.COMMIT if commit else Decision.ABORT
         same_session(SUPERVISOR.step(T, s, Decide(decision), 0), sym.decide(sym_session(s), commit))

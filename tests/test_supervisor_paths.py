@@ -80,6 +80,23 @@ def test_control_on_the_state_file_is_refused_and_the_books_survive(
     assert state.read_bytes() == books and len(started) == 1
 
 
+@pytest.mark.parametrize("output", ["--state", "--status-file"])
+def test_a_file_the_run_writes_on_its_key_file_is_refused_and_the_key_survives(
+    tmp_path: Path, run: RunMain, started: list[dict[str, Any]], output: str
+) -> None:
+    """The key is read at start and the state or status written over it afterwards: the next
+    start would have no key."""
+    key = tmp_path / "m.key"
+    assert run(["keys", "-o", str(key)])[0] == 0
+    alias = tmp_path / "alias.key"
+    alias.symlink_to(key.name)
+    text = key.read_text()
+    files = {"--state": str(tmp_path / "s.json"), output: str(alias)}
+    code, err = run(_supervisor(*(w for pair in files.items() for w in pair), "--auth", str(key)))
+    _refused(code, err, f"--auth {key} and {output} {alias} name the same file")
+    assert key.read_text() == text and not started
+
+
 @pytest.mark.parametrize("how", ["same", "relative", "symlink", "hardlink"])
 def test_status_file_on_the_state_file_is_refused(
     tmp_path: Path,

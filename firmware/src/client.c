@@ -131,11 +131,21 @@ static void commit_into(struct canergy_client *c, uint16_t amount_mj)
 
 /* -- the cells ---------------------------------------------------------------------------- */
 
+/* A transaction ahead of ltx at or beyond CANERGY_COUNTER_END (Python's _beyond_end). */
+static bool beyond_end(const struct canergy_client *c, uint16_t wire)
+{
+    const int32_t d = serial16(wire, c->rec.last_tx);
+    return d > 0 && c->rec.last_tx + (uint32_t)d >= CANERGY_COUNTER_END;
+}
+
 /* INTENTION(k, a, Gs). Worked out on a copy: Gs may pay back more than usable can hold, and
  * then nothing at all happens (Python's overflow refusal); usable is summed in 64 bits. */
 static void on_intention(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
                          struct canergy_out *out)
 {
+    if (beyond_end(c, m->tx)) {
+        return; /* no supervisor sends one: it would move ltx to the end of the numbering */
+    }
     if ((c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U) {
         if (serial16(m->tx, c->rec.last_tx) <= 0) {
             return; /* a frame of the node's earlier life */
@@ -197,7 +207,7 @@ static void on_command(struct canergy_client *c, const struct canergy_msg *m,
         reply_for(c, c->rec.last_tx, c->rec.outcome, out); /* late ABORT after a commit too */
         return;
     }
-    if (d < 0) {
+    if (d < 0 || beyond_end(c, m->tx)) {
         return;
     }
     const uint32_t tx = c->rec.last_tx + (uint32_t)d;
@@ -430,7 +440,8 @@ int canergy_client_spend(struct canergy_client *c, uint32_t uj, struct canergy_o
 
 bool canergy_client_can_give_back(const struct canergy_client *c)
 {
-    return c != NULL && c->rec.return_pending_uj == 0U && c->phase != CANERGY_JOINING;
+    return c != NULL && c->rec.return_pending_uj == 0U && c->phase != CANERGY_JOINING &&
+           c->rec.return_seq < CANERGY_COUNTER_END - 1U; /* none numbered at the end */
 }
 
 int canergy_internal_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,

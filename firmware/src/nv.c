@@ -64,6 +64,9 @@ int canergy_record_unpack(const uint8_t in[CANERGY_NV_RECORD_SIZE], struct caner
         return CANERGY_ERR_ARGUMENT; /* a CRC collision over garbage: not books */
     }
     *rec = r;
+    if (r.last_tx >= CANERGY_COUNTER_BOUND || r.return_seq >= CANERGY_COUNTER_BOUND) {
+        return CANERGY_ERR_END; /* beyond the bound the proof assumes: not books either */
+    }
     return CANERGY_OK;
 }
 

@@ -86,6 +86,9 @@ int canergy_session_begin(struct canergy_session *s, const struct canergy_sessio
     if (amount_uj == 0U || amount_uj % MJ != 0U || amount_uj > AMOUNT_MAX_UJ) {
         return CANERGY_ERR_AMOUNT;
     }
+    if (s->tx >= CANERGY_COUNTER_END - 1U) {
+        return CANERGY_ERR_END;
+    }
     CANERGY_ASSERT(s->reserved_uj == 0U);
     s->phase = CANERGY_S_WAIT_ACK;
     s->tx += 1U;
@@ -114,12 +117,12 @@ int canergy_session_decide(struct canergy_session *s, const struct canergy_sessi
 }
 
 /* RETURN(q, x): credit x and acknowledge if q is the next number; re-acknowledge an old q;
- * ignore one beyond. */
+ * ignore one beyond, and the next at the end of the numbering (CANERGY_COUNTER_END). */
 static void credit_return(struct canergy_session *s, const struct canergy_msg *m,
                           struct canergy_session_step *step)
 {
     const int32_t ahead = serial16(m->seq, s->returns_credited);
-    if (ahead > 1) {
+    if (ahead > 1 || (ahead == 1 && s->returns_credited >= CANERGY_COUNTER_END - 1U)) {
         return;
     }
     if (ahead == 1) {

@@ -368,6 +368,20 @@ static bool slot_foreign(const struct canergy_supervisor *sup, const uint8_t *p,
     return false;
 }
 
+/* A slot with a session whose tx or last return credited is at or beyond the bound the proof
+ * assumes (CANERGY_COUNTER_BOUND): no rule writes one. */
+static bool slot_beyond(const struct canergy_supervisor *sup, const uint8_t *p)
+{
+    for (uint8_t i = 0U; i < sup->count; i++) {
+        const uint8_t *r = &p[SLOT_HEADER + SESSION_BYTES * (size_t)i];
+        if (le_get(&r[4], 4U) >= CANERGY_COUNTER_BOUND ||
+            le_get(&r[8], 4U) >= CANERGY_COUNTER_BOUND) {
+            return true;
+        }
+    }
+    return false;
+}
+
 static void slot_take(struct canergy_supervisor *sup, const uint8_t *p)
 {
     sup->usable_uj = le_get64(&p[12]);
@@ -399,6 +413,7 @@ int canergy_supervisor_load(struct canergy_supervisor *sup,
     int newest = -1;
     uint32_t best = 0U;
     bool foreign = false;
+    bool beyond = false;
     for (uint8_t i = 0U; i < 2U; i++) {
         const size_t start = (size_t)i * each;
         if (image == NULL || len < start + 8U) {
@@ -411,6 +426,7 @@ int canergy_supervisor_load(struct canergy_supervisor *sup,
             continue;
         }
         const uint32_t c = le_get(&p[8], 4U);
+        beyond = beyond || (slot_valid(sup, p) && slot_beyond(sup, p));
         if (slot_valid(sup, p) && (newest < 0 || (uint32_t)(c - best) - 1U < 0x7FFFFFFFUL)) {
             newest = (int)i;
             best = c;
@@ -418,6 +434,9 @@ int canergy_supervisor_load(struct canergy_supervisor *sup,
     }
     *counter = best;
     *slot = newest < 0 ? 1U : (uint8_t)newest; /* none: slot 0 is written first */
+    if (beyond) { /* neither slot: the other may be older, and an older copy grants again */
+        return CANERGY_ERR_END;
+    }
     if (newest < 0) {
         return foreign ? CANERGY_ERR_RECORD : 0;
     }

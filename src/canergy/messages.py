@@ -22,6 +22,22 @@ DELIVERED_BITS = 24
 AMOUNT_MAX_MJ = 0xFFFF
 """Largest amount in one frame: 65.535 J."""
 
+COUNTER_BOUND = 1 << 30
+"""The theorem's bounded life (``canergy prove``, assumption 4): every 32-bit counter of a record
+(a node's transaction and return numbers, the supervisor's and the client's) stays below this. A
+record holding one at or beyond it is refused when it is loaded."""
+COUNTER_END = COUNTER_BOUND - (1 << 16)
+"""No rule moves a counter to this or beyond: a node's numbering ends one below it (the
+supervisor begins no transaction and credits no return numbered here; a client takes neither).
+A multiple of 2**16, so an admission's lift (a counter's low 16 bits under the larger high part
+of the two) keeps counters below it."""
+
+
+def counter_beyond(value: int) -> str:
+    """Why a record's counter ``value`` (at or beyond ``COUNTER_BOUND``) is refused."""
+    return f"{value} is beyond the bound 2^30 - 1 the proof assumes"
+
+
 USABLE_MAX_UJ = 0xFFFF_FFFF
 """Most a client's record holds in its usable budget (the NV record's u32 µJ field): 4294.967295 J.
 A supervisor never plans a node above it; a client refuses (does not acknowledge) an intention

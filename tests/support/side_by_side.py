@@ -29,6 +29,8 @@ from canergy.core import Action, Client, LocalProtocolError, Persist, Supervisor
 from canergy.core.state import ClientState, Outcome, Phase, Session, SupervisorState
 from canergy.messages import (
     AMOUNT_MAX_MJ,
+    COUNTER_BOUND,
+    COUNTER_END,
     USABLE_MAX_UJ,
     Abort,
     Ack,
@@ -87,9 +89,13 @@ class SideBySide(RuleBasedStateMachine):
             | st.integers(USABLE_MAX_UJ - 70_000_000, USABLE_MAX_UJ),
             credited=st.integers(0, 2**32 - 1).map(lambda mj: mj * 1000),
             spent=st.integers(0, 2**40),
-            last_tx=st.integers(0, 2**32 - 1) | st.integers(2**32 - 5, 2**32 - 1),
+            last_tx=st.integers(0, COUNTER_BOUND - 1)
+            | st.integers(COUNTER_END - 5, COUNTER_END + 1)  # the end of the numbering
+            | st.just(COUNTER_BOUND - 1),
             outcome=st.sampled_from(list(Outcome)[:4]),
-            return_seq=st.integers(0, 2**32 - 1) | st.integers(0xFFFB, 0x10004),
+            return_seq=st.integers(0, COUNTER_BOUND - 1)
+            | st.integers(0xFFFB, 0x10004)
+            | st.integers(COUNTER_END - 4, COUNTER_END),
         ),
     )
     def start(self, initial_mj: int, nonce: int, books: ClientState | None) -> None:
@@ -190,7 +196,8 @@ class SideBySide(RuleBasedStateMachine):
     @rule(amount_mj=st.integers(1, 3000))
     def begin(self, amount_mj: int) -> None:
         s = self.sup.session(NODE)
-        if s.phase is Phase.IDLE and amount_mj * 1000 <= self.sup.state.usable:
+        room = s.tx + 1 < COUNTER_END  # else refused (tests/test_counters_end.py)
+        if s.phase is Phase.IDLE and amount_mj * 1000 <= self.sup.state.usable and room:
             self._sup_out(self.sup.begin(NODE, amount_mj * 1000, self.now))
 
     @rule(commit=st.booleans())

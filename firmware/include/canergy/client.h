@@ -114,7 +114,8 @@ uint64_t canergy_client_deadline(const struct canergy_client *c);
 int canergy_client_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out);
 
 /* Give uj back to the supervisor as the next numbered RETURN (whole mJ, 1..65535 mJ, at most
- * usable); CANERGY_ERR_PHASE while joining or while a return awaits its acknowledgement. */
+ * usable); CANERGY_ERR_PHASE while joining, while a return awaits its acknowledgement, or when
+ * the next number would reach CANERGY_COUNTER_END. */
 int canergy_client_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,
                              struct canergy_out *out);
 

@@ -24,6 +24,14 @@ extern "C" {
 #define CANERGY_ERR_ARGUMENT (-1) /* NULL pointer, bad configuration, field that does not fit */
 #define CANERGY_ERR_PHASE (-2)    /* not allowed now: joining, or a return still pending */
 #define CANERGY_ERR_AMOUNT (-3)   /* zero, not whole mJ, more than a frame or than usable */
+#define CANERGY_ERR_END (-5) /* a counter at CANERGY_COUNTER_END, or a record beyond the bound */
+
+/* The theorem's bounded life (canergy prove, assumption 4): a record holding a counter (tx,
+ * return number) at or beyond CANERGY_COUNTER_BOUND is refused when it is loaded, and no rule
+ * moves one to CANERGY_COUNTER_END or beyond (2^30 - 2^16: an admission's lift stays below it).
+ * Python's canergy.messages.COUNTER_BOUND and COUNTER_END. */
+#define CANERGY_COUNTER_BOUND 0x40000000UL
+#define CANERGY_COUNTER_END 0x3FFF0000UL
 
 #define CANERGY_DEFAULT_ID_BASE 0x0CE00000UL
 #define CANERGY_ID_MASK 0x1FFFF000UL   /* the bits id_base owns; its low 12 bits are clear */

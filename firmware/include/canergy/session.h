@@ -75,7 +75,8 @@ struct canergy_session_step {
 void canergy_session_init(struct canergy_session *s, uint8_t node);
 
 /* Begin(a) in IDLE: Us -= a, tx += 1, INTENTION(tx, a, Gs). CANERGY_ERR_AMOUNT unless a is a
- * positive whole number of mJ up to 65,535 mJ; CANERGY_ERR_PHASE outside IDLE. The caller
+ * positive whole number of mJ up to 65,535 mJ; CANERGY_ERR_PHASE outside IDLE; CANERGY_ERR_END
+ * when tx + 1 would reach CANERGY_COUNTER_END. The caller
  * checks a against Us (the one guard a session cannot see). */
 int canergy_session_begin(struct canergy_session *s, const struct canergy_session_timing *t,
                           uint32_t amount_uj, uint64_t now, struct canergy_session_step *step);

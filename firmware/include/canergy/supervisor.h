@@ -149,7 +149,9 @@ size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t c
  * there is none (the supervisor starts new: its nodes may still hold books of an earlier life,
  * so the port should not grant before they have told it, e.g. by JOIN), CANERGY_ERR_RECORD
  * when there is none of these nodes but a record of another version or node list (never start
- * new over it: its Us would be granted a second time), or an init error. */
+ * new over it: its Us would be granted a second time), CANERGY_ERR_END when a valid slot of
+ * these nodes holds a tx or return number at or beyond CANERGY_COUNTER_BOUND (neither slot is
+ * taken), or an init error. */
 int canergy_supervisor_load(struct canergy_supervisor *sup,
                             const struct canergy_supervisor_config *cfg, const uint8_t *nodes,
                             uint8_t count, uint64_t initial_uj, const uint8_t *image, size_t len,

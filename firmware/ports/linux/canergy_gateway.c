@@ -30,6 +30,7 @@
 #define _GNU_SOURCE 1
 
 #include "args.h"
+#include "paths.h"
 #include "port.h"
 #include "socketcan.h"
 #include "system.h"
@@ -310,6 +311,79 @@ static void save(struct gateway_port *g)
     g->nv_writes++;
 }
 
+/* The slot of image holding the newest valid record (-1: none; *best its counter). Exit 2 when
+ * a valid slot's upstream record holds a counter beyond the bound the proof assumes: neither
+ * slot is taken (the other may be an older copy). */
+static int newest_slot(const char *path, const uint8_t *image, uint32_t *best)
+{
+    int newest = -1;
+    struct canergy_record rec;
+    for (unsigned i = 0U; i < 2U; i++) {
+        const uint8_t *s = &image[i * GW_SLOT];
+        const uint32_t c = get32(&s[4]);
+        if (get32(s) != GW_MAGIC || get32(&s[GW_SLOT - 4U]) != canergy_crc32(0U, s, GW_SLOT - 4U)) {
+            continue;
+        }
+        const int unpacked = canergy_record_unpack(&s[GW_HEADER], &rec);
+        if (unpacked == CANERGY_ERR_END) {
+            const int tx = rec.last_tx >= CANERGY_COUNTER_BOUND;
+            port_usage_error("--nv %s: upstream: %s %lu is beyond the bound 2^30 - 1 the proof "
+                             "assumes",
+                             path, tx ? "last_tx" : "return_seq",
+                             (unsigned long)(tx ? rec.last_tx : rec.return_seq));
+        }
+        if (unpacked != CANERGY_OK) {
+            continue;
+        }
+        if (newest < 0 || (uint32_t)(c - *best) - 1U < 0x7FFFFFFFUL) {
+            newest = (int)i;
+            *best = c;
+        }
+    }
+    return newest;
+}
+
+static void refuse_below_beyond(const char *path)
+{
+    port_usage_error("--nv %s: downstream: a node's tx or returns_credited is beyond the bound "
+                     "2^30 - 1 the proof assumes",
+                     path);
+}
+
+/* Before the buses are opened: exit 2 when an existing NV file holds a counter beyond the bound
+ * in either role (reads only). */
+static void check_nv(const struct gw_options *o)
+{
+    struct stat st;
+    if (stat(o->nv_path, &st) != 0 || !S_ISREG(st.st_mode)) {
+        return; /* new, or not a file: start() says so */
+    }
+    const int fd = open(o->nv_path, O_RDONLY | O_CLOEXEC);
+    if (fd < 0) {
+        return;
+    }
+    static uint8_t image[2U * GW_SLOT];
+    memset(image, 0, sizeof image);
+    const ssize_t got = pread(fd, image, sizeof image, 0);
+    (void)close(fd);
+    uint32_t best = 0U;
+    const int newest = got > 0 ? newest_slot(o->nv_path, image, &best) : -1;
+    if (newest < 0) {
+        return;
+    }
+    static struct canergy_supervisor down;
+    const struct canergy_supervisor_config cfg = {
+        o->id_base, {(uint32_t)o->response_timeout_us, o->retries}};
+    uint32_t counter = 0U;
+    uint8_t slot = 0U;
+    if (canergy_supervisor_load(&down, &cfg, o->nodes, o->count, 0U,
+                                &image[(unsigned)newest * GW_SLOT + GW_HEADER +
+                                       CANERGY_NV_RECORD_SIZE],
+                                CANERGY_SUPERVISOR_SLOT_SIZE, &counter, &slot) == CANERGY_ERR_END) {
+        refuse_below_beyond(o->nv_path);
+    }
+}
+
 /* Start: the newest valid slot of the NV file gives both roles their books; none (a new or
  * wiped file) starts the client JOINing above and the supervisor new below. */
 static void start(struct gateway_port *g, uint64_t now)
@@ -336,21 +410,8 @@ static void start(struct gateway_port *g, uint64_t now)
         o->id_base, {(uint32_t)o->response_timeout_us, o->retries}};
     const struct canergy_client_config up = {o->id_base, (uint32_t)(2U * o->up_response_timeout_us),
                                              (uint32_t)(2U * o->up_response_timeout_us), o->node};
-    int newest = -1;
     uint32_t best = 0U;
-    struct canergy_record rec;
-    for (unsigned i = 0U; i < 2U; i++) {
-        const uint8_t *s = &image[i * GW_SLOT];
-        const uint32_t c = get32(&s[4]);
-        if (get32(s) != GW_MAGIC || get32(&s[GW_SLOT - 4U]) != canergy_crc32(0U, s, GW_SLOT - 4U) ||
-            canergy_record_unpack(&s[GW_HEADER], &rec) != CANERGY_OK) {
-            continue;
-        }
-        if (newest < 0 || (uint32_t)(c - best) - 1U < 0x7FFFFFFFUL) {
-            newest = (int)i;
-            best = c;
-        }
-    }
+    const int newest = newest_slot(o->nv_path, image, &best);
     struct canergy_out out;
     uint32_t sup_counter = 0U;
     uint8_t sup_slot = 0U;
@@ -364,6 +425,9 @@ static void start(struct gateway_port *g, uint64_t now)
         const int loaded = canergy_supervisor_load(
             &g->gw.down, &down, o->nodes, o->count, 0U, &s[GW_HEADER + CANERGY_NV_RECORD_SIZE],
             CANERGY_SUPERVISOR_SLOT_SIZE, &sup_counter, &sup_slot);
+        if (loaded == CANERGY_ERR_END) {
+            refuse_below_beyond(o->nv_path);
+        }
         if (loaded != 1 || canergy_client_joining(&g->gw.up)) {
             (void)fprintf(stderr, "%s: error: --nv %s: a record of other nodes or damaged\n",
                           PROG, o->nv_path);
@@ -805,6 +869,10 @@ int main(int argc, char **argv)
 {
     static struct gateway_port g;
     parse_args(argc, argv, &g.opt);
+    const struct port_file files[] = {{"--nv", g.opt.nv_path},
+                                      {"--status-file", g.opt.status_path}};
+    port_check_distinct(files, sizeof files / sizeof files[0]);
+    check_nv(&g.opt);
     g.up_sock = open_bus(g.opt.up_channel, g.opt.id_base, g.opt.node); /* its own id above */
     g.down_sock = open_bus(g.opt.down_channel, g.opt.id_base, 1U);
     port_can_filter(g.down_sock, g.opt.id_base, CANERGY_ID_MASK); /* every node below */

@@ -25,13 +25,14 @@
  * socket or file that cannot be opened.
  *
  * This file: main(), its loop and the glue between the library and the port's other files:
- * port.h (shared state), args.c (options, units), keyfile.c (--auth key file), storage.c (NV
- * file, status file), socketcan.c (the CAN socket).
+ * port.h (shared state), args.c (options, units), keyfile.c (--auth key file), paths.c (no two
+ * file flags naming one file), storage.c (NV file, status file), socketcan.c (the CAN socket).
  */
 #define _GNU_SOURCE 1
 
 #include "args.h"
 #include "keyfile.h"
+#include "paths.h"
 #include "port.h"
 #include "socketcan.h"
 #include "system.h"
@@ -131,7 +132,10 @@ int main(int argc, char **argv)
     (void)sigaction(SIGTERM, &sa, NULL);
 
     port_parse_args(argc, argv, &p.opt);
-    port_check_paths(&p.opt);
+    const struct port_file files[] = {{"--nv", p.opt.nv_path},
+                                      {"--status-file", p.opt.status_path},
+                                      {"--auth", p.opt.auth_path}};
+    port_check_distinct(files, sizeof files / sizeof files[0]);
     if (p.opt.auth_path != NULL) {
         uint8_t key[CANERGY_KDF_KEY_SIZE];
         port_load_key(p.opt.auth_path, p.opt.node, key);
@@ -143,6 +147,7 @@ int main(int argc, char **argv)
             port_usage_error("--auth: bad node or id base");
         }
     }
+    port_nv_check(&p.opt);
     p.sock = port_can_open(&p.opt);
     uint8_t image[NV_IMAGE_BYTES];
     size_t image_len = 0U;

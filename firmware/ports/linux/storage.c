@@ -1,7 +1,5 @@
 /*
  * canergy-node's files (ports/linux): the NV record file and the status file.
- *   - the check that --nv and --status-file are two files (two names for one file, symlinks and
- *     hard links included, as canergy.live.atomic.same_file);
  *   - the NV file in firmware_model's layout (slots at 0 and 40, bytes 80-119 untouched): read
  *     at start, each slot image pwrite + fsynced before the frames of its step leave;
  *   - the status file with the keys of firmware_model's single-node status, and what it counts
@@ -17,7 +15,6 @@
 
 #include <errno.h>
 #include <fcntl.h>
-#include <libgen.h>
 #include <limits.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -25,95 +22,47 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
-/* ---- paths: two names for one file (canergy.live.atomic.same_file) ---- */
-
-/* dst = src, or a usage error naming what was too long. */
-static void copy_path(char dst[PATH_MAX], const char *src)
-{
-    if (snprintf(dst, PATH_MAX, "%s", src) >= PATH_MAX) {
-        port_usage_error("path too long: %.64s...", src);
-    }
-}
-
-/* dst = "dir/name" ("/name" when dir is "/"), or a usage error naming what was too long. */
-static void join_path(char dst[PATH_MAX], const char *dir, const char *name)
-{
-    const char *sep = strcmp(dir, "/") == 0 ? "" : "/";
-    if (snprintf(dst, PATH_MAX, "%s%s%s", dir, sep, name) >= PATH_MAX) {
-        port_usage_error("path too long: %.64s...", name);
-    }
-}
-
-/* A path that does not exist: its resolved directory and its last part (as written when the
- * directory does not exist either: nothing can be created there). */
-static void resolve_missing(const char *p, char out[PATH_MAX])
-{
-    char dir[PATH_MAX];
-    char base[PATH_MAX];
-    char real_dir[PATH_MAX];
-    copy_path(dir, p);
-    copy_path(base, p);
-    if (realpath(dirname(dir), real_dir) == NULL) {
-        copy_path(out, p);
-    } else {
-        join_path(out, real_dir, basename(base));
-    }
-}
-
-/* path's file once symlinks are resolved, as Python's Path.resolve(): a missing file (the target
- * of a dangling symlink too) is named below its resolved directory. */
-static void resolve(const char *path, char out[PATH_MAX])
-{
-    char p[PATH_MAX];
-    copy_path(p, path);
-    for (int hops = 0; hops < 40; hops++) {
-        if (realpath(p, out) != NULL) {
-            return;
-        }
-        char target[PATH_MAX];
-        const ssize_t n = readlink(p, target, sizeof target - 1U);
-        if (n < 0) { /* not a symlink: missing */
-            resolve_missing(p, out);
-            return;
-        }
-        target[n] = '\0';
-        char dir[PATH_MAX];
-        copy_path(dir, p);
-        if (target[0] == '/') {
-            copy_path(p, target);
-        } else {
-            join_path(p, dirname(dir), target);
-        }
-    }
-    copy_path(out, p); /* a symlink loop: as written */
-}
-
-/* a and b name one file: the same inode when both exist (hard links too), otherwise the same
- * path once resolved. */
-static int same_file(const char *a, const char *b)
-{
-    struct stat sa;
-    struct stat sb;
-    if (stat(a, &sa) == 0 && stat(b, &sb) == 0) {
-        return sa.st_dev == sb.st_dev && sa.st_ino == sb.st_ino;
-    }
-    char ra[PATH_MAX];
-    char rb[PATH_MAX];
-    resolve(a, ra);
-    resolve(b, rb);
-    return strcmp(ra, rb) == 0;
-}
-
-void port_check_paths(const struct port_options *o)
-{
-    if (o->status_path != NULL && same_file(o->nv_path, o->status_path)) {
-        port_usage_error(
-            "--nv %s and --status-file %s name the same file; give each its own path",
-            o->nv_path, o->status_path);
-    }
-}
-
 /* ---- NV file ---- */
+
+/* Exit 2 when the newest valid slot holds a counter beyond the bound the proof assumes (the
+ * library would take it as no books and JOIN: refused here, with the field named, as
+ * firmware_model refuses it). */
+static void check_counters(const struct port_options *o, const uint8_t *image, size_t len)
+{
+    struct canergy_nv_state st;
+    canergy_nv_load(image, len, &st);
+    const size_t at = (size_t)st.newest_slot * CANERGY_NV_SLOT_SIZE;
+    uint32_t counter;
+    uint8_t payload[CANERGY_NV_RECORD_SIZE];
+    struct canergy_record rec;
+    if (st.books || len < at + CANERGY_NV_SLOT_SIZE ||
+        !canergy_nv_slot_decode(&image[at], CANERGY_NV_SLOT_SIZE, &counter, payload) ||
+        canergy_record_unpack(payload, &rec) != CANERGY_ERR_END) {
+        return;
+    }
+    const int tx = rec.last_tx >= CANERGY_COUNTER_BOUND;
+    port_usage_error("--nv %s: node %d: %s %lu is beyond the bound 2^30 - 1 the proof assumes",
+                     o->nv_path, o->node, tx ? "last_tx" : "return_seq",
+                     (unsigned long)(tx ? rec.last_tx : rec.return_seq));
+}
+
+void port_nv_check(const struct port_options *o)
+{
+    struct stat st;
+    if (stat(o->nv_path, &st) != 0 || !S_ISREG(st.st_mode)) {
+        return; /* new, or not a file: port_nv_open says so */
+    }
+    const int fd = open(o->nv_path, O_RDONLY | O_CLOEXEC);
+    if (fd < 0) {
+        return;
+    }
+    uint8_t image[NV_IMAGE_BYTES];
+    const ssize_t n = pread(fd, image, sizeof image, 0);
+    (void)close(fd);
+    if (n > 0) {
+        check_counters(o, image, (size_t)n);
+    }
+}
 
 void port_nv_open(struct port *p, uint8_t image[NV_IMAGE_BYTES], size_t *len)
 {
@@ -141,6 +90,7 @@ void port_nv_open(struct port *p, uint8_t image[NV_IMAGE_BYTES], size_t *len)
         exit(EXIT_USAGE);
     }
     *len = (size_t)n;
+    check_counters(&p->opt, image, *len);
     /* as firmware_model: the file always holds both record slots (never shrunk: the
      * parameter slot at 80 stays as it is) */
     struct stat st;

@@ -10,8 +10,9 @@
 #include <stddef.h>
 #include <stdint.h>
 
-/* Exit 2 when --nv and --status-file name one file (symlinks and hard links included). */
-void port_check_paths(const struct port_options *o);
+/* Exit 2 when an existing NV file's newest record holds a counter beyond the bound the proof
+ * assumes (2^30 - 1), naming it; reads only (before the bus is opened). */
+void port_nv_check(const struct port_options *o);
 
 /* Open (or create) the NV file of p->opt.nv_path into p->nv_fd and read its two slots into
  * image (*len bytes of it; 0 for a new file); exit 2 when it cannot be opened or read, or is

@@ -24,6 +24,7 @@ from canergy.core.actions import (
     ReturnCredited,
     Send,
 )
+from canergy.core.common import check_counters, check_life
 from canergy.core.errors import LocalProtocolError
 from canergy.core.state import Decision, Outcome, Phase, Session, SupervisorState
 from canergy.core.supervisor import Supervisor, SupervisorCore
@@ -123,7 +124,7 @@ _DECISIONS = tuple(Decision(i) for i in range(3))
 _ACKNOWLEDGED, _RETURN_CREDITED, _ADMITTED = 0x01, 0x02, 0x04
 """CANERGY_SUP_* (checked against the library when the core is built)."""
 _OUTCOMES = {1: Outcome.COMMITTED, 2: Outcome.ABORTED, 4: Outcome.WRITTEN_OFF}
-_ERRORS = {-1: "argument", -2: "phase", -3: "amount"}
+_ERRORS = {-1: "argument", -2: "phase", -3: "amount", -5: "end of the numbering"}
 
 
 class CompiledSupervisor:
@@ -221,8 +222,9 @@ class CompiledSupervisor:
         sup.usable_uj, sup.injected_uj, sup.withdrawn_uj = st.usable, st.injected, st.withdrawn
         self._initial = st.initial
         for i, s in enumerate(st.sessions):
-            if s.phase not in _PHASES or s.tx >= 2**32 or s.returns_credited >= 2**32:
+            if s.phase not in _PHASES:
                 raise ValueError(f"node {s.node}: a record the C core cannot hold")
+            check_counters(s)
             c = sup.sessions[i]
             c.phase, c.tx, c.reserved_uj = int(s.phase), s.tx, s.reserved
             c.delivered_uj, c.returned_uj, c.decision = s.delivered, s.returned, int(s.decision)
@@ -272,6 +274,8 @@ class CompiledSupervisor:
             raise LocalProtocolError(f"amount {amount} µJ is not a whole mJ up to 65,535 mJ")
         if rc == -3:
             raise LocalProtocolError(f"amount {amount} µJ exceeds usable {self.usable} µJ")
+        if rc == -5:
+            check_life(self.session(node))  # the Python core's words
         self._check(rc, node, "begin")
 
     def commit(self, node: int, now: int) -> list[Action]:

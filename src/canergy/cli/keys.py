@@ -29,9 +29,9 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument(
         "--epoch",
         type=bounded_int(0, EPOCH_MAX),
-        default=1,
         help="a master key's provisioning epoch: a new one for every supervisor whose books "
-        "start again (default 1)",
+        "start again (default 1). Node keys take their master's epoch: with --master, --epoch "
+        "only states the epoch expected of it, and another is refused",
     )
     p.add_argument("--master", type=Path, help="derive node keys from this master key file")
     p.add_argument("--nodes", type=node_ids, help="the nodes to derive keys for, e.g. 1-5,9")
@@ -42,14 +42,21 @@ def run(args: argparse.Namespace) -> int:
     if args.master is None:
         if args.nodes is not None:
             raise ValueError("--nodes derives node keys: give the --master key to derive from")
-        write_key(args.output, new_master(args.epoch))
-        print(f"canergy keys: wrote a master key (epoch {args.epoch}) to {args.output}")
+        epoch = 1 if args.epoch is None else args.epoch
+        write_key(args.output, new_master(epoch))
+        print(f"canergy keys: wrote a master key (epoch {epoch}) to {args.output}")
         return 0
     if args.nodes is None:
         raise ValueError("--master derives node keys: say which with --nodes")
     master = load_key(args.master)
     if master.kind != "master":
         raise ValueError(f"--master {args.master}: a {master.kind} key, not a master key")
+    if args.epoch is not None and args.epoch != master.epoch:
+        raise ValueError(
+            f"--epoch {args.epoch}: node keys take the epoch of their master key, and "
+            f"{args.master} is epoch {master.epoch} (a new epoch needs a new master key: "
+            f"canergy keys -o NEW.key --epoch {args.epoch})"
+        )
     nodes: tuple[int, ...] = args.nodes
     if len(nodes) == 1 and args.output.suffix == ".key":
         targets = {nodes[0]: args.output}

@@ -12,6 +12,8 @@ from canergy.core.timing import Timing
 from canergy.frozen import evolve
 from canergy.messages import (
     AMOUNT_MAX_MJ,
+    COUNTER_BOUND,
+    COUNTER_END,
     DELIVERED_BITS,
     QUANTUM_UJ,
     SEQ_BITS,
@@ -22,6 +24,7 @@ from canergy.messages import (
     Committed,
     Intention,
     Return,
+    counter_beyond,
 )
 from canergy.seqnum import wrap
 
@@ -33,6 +36,28 @@ def check_amount(amount: int) -> None:
             f"amount {amount} µJ must be a positive multiple of {QUANTUM_UJ} µJ "
             f"and at most {AMOUNT_MAX_MJ * QUANTUM_UJ} µJ"
         )
+
+
+def at_end(counter: int) -> bool:
+    """``counter`` is at the end of its numbering: the next one would reach ``COUNTER_END``."""
+    return counter + 1 >= COUNTER_END
+
+
+def check_life(s: Session) -> None:
+    """A transaction may begin: the node's transaction number has room below ``COUNTER_END``."""
+    if at_end(s.tx):
+        raise LocalProtocolError(
+            f"node {s.node}: transaction {s.tx} is the last below {COUNTER_END:,} "
+            "(2^30 - 2^16, the bound the proof assumes less the admission's room): its books "
+            "must start again (a new state file; with --auth keys of a new epoch)"
+        )
+
+
+def check_counters(s: Session) -> None:
+    """A loaded record's counters are below ``COUNTER_BOUND`` (ValueError naming the field)."""
+    for name, value in (("tx", s.tx), ("returns_credited", s.returns_credited)):
+        if value >= COUNTER_BOUND:
+            raise ValueError(f"node {s.node}: {name} {counter_beyond(value)}")
 
 
 def wire_tx(tx: int) -> int:
@@ -85,8 +110,11 @@ def send_decision(t: Timing, s: Session, decision: Decision, now: int) -> tuple[
 
 
 def begin(t: Timing, s: Session, event: Begin, now: int) -> SessionStep:
-    """Us -= a, Ts = a, tx += 1; send INTENTION(tx, a, Gs)."""
+    """Us -= a, Ts = a, tx += 1; send INTENTION(tx, a, Gs); refused at the numbering's end.
+
+    The end: ``COUNTER_END``, one below which no transaction is numbered."""
     check_amount(event.amount)
+    check_life(s)
     s, actions = start_intention(t, s, s.tx + 1, event.amount, now)
     return SessionStep(s, actions, -event.amount)
 

@@ -19,6 +19,7 @@ from canergy.core.actions import (
     Send,
 )
 from canergy.core.common import (
+    at_end,
     begin,
     command_of,
     commit_into,
@@ -50,6 +51,7 @@ from canergy.core.table import ANY, STAY, ClientTable, SupervisorTable, cell
 from canergy.core.timing import Timing
 from canergy.frozen import evolve
 from canergy.messages import (
+    COUNTER_END,
     DELIVERED_BITS,
     QUANTUM_UJ,
     SEQ_BITS,
@@ -100,10 +102,12 @@ def on_aborted(t: Timing, s: Session, msg: Aborted, now: int) -> SessionStep:
 
 
 def credit_return(t: Timing, s: Session, msg: Return, now: int) -> SessionStep:
-    """RETURN(q, x): credit x and ack if q is the next number; re-ack an old q; ignore beyond."""
+    """RETURN(q, x): credit and ack the next q (not at the end); re-ack an old q; ignore beyond.
+
+    The end: a next number at ``COUNTER_END`` is ignored too (neither credited nor acked)."""
     seq = unwrap(msg.seq, s.returns_credited, SEQ_BITS)
     ack = (Send(ReturnAck(s.node, msg.seq)),)
-    if seq == s.returns_credited + 1:
+    if seq == s.returns_credited + 1 and not at_end(s.returns_credited):
         amount = msg.amount_mj * QUANTUM_UJ
         s = evolve(s, returns_credited=seq, returned=s.returned + amount)
         return SessionStep(s, (ReturnCredited(s.node, seq, amount), *ack), amount)
@@ -196,8 +200,11 @@ def on_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientS
     """INTENTION(k, a, Gs): pay back Gs > Rc; settle below k; hold and ACK a new k; re-reply.
 
     Admitted without books: a k below the admission moves nothing, a fresh one sets Rc = Gs.
-    Refused (no ACK, nothing changes) when the pay-back and the amount would overflow Uc.
+    Refused (no ACK, nothing changes) when the pay-back and the amount would overflow Uc, and
+    ignored when k is new and at or beyond ``COUNTER_END`` (no supervisor sends one).
     """
+    if _beyond_end(msg.tx, c):
+        return ClientStep(c)
     if c.credited_unknown:
         if unwrap(msg.tx, c.last_tx, TX_BITS) <= c.last_tx:
             return ClientStep(c)  # a frame of the node's earlier life
@@ -206,6 +213,12 @@ def on_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientS
     if step.client.usable + step.client.held_amount > USABLE_MAX_UJ:
         return ClientStep(c, (IntentionRefused(c.node, unwrap(msg.tx, c.last_tx, TX_BITS)),))
     return step
+
+
+def _beyond_end(wire: int, c: ClientState) -> bool:
+    """A transaction ahead of ltx at or beyond ``COUNTER_END``: it would move ltx there."""
+    tx = unwrap(wire, c.last_tx, TX_BITS)
+    return tx > c.last_tx and tx >= COUNTER_END
 
 
 def _take_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientStep:
@@ -234,7 +247,7 @@ def on_command(t: Timing, c: ClientState, msg: Commit | Abort, now: int) -> Clie
     tx = unwrap(msg.tx, c.last_tx, TX_BITS)
     if tx == c.last_tx:
         return ClientStep(c, reply_for(c, tx, c.outcome))  # a late ABORT after a commit: COMMITTED
-    if tx < c.last_tx:
+    if tx < c.last_tx or _beyond_end(msg.tx, c):
         return ClientStep(c)
     if isinstance(msg, Commit):
         if c.usable + msg.amount_mj * QUANTUM_UJ > USABLE_MAX_UJ:  # never acknowledged so
@@ -274,12 +287,18 @@ def resend_return(t: Timing, c: ClientState, event: ReturnTimeout, now: int) -> 
 
 
 def can_give_back(c: ClientState) -> bool:
-    """One numbered return at a time, and none before the node is admitted."""
-    return c.return_pending == 0 and c.phase is not JOINING
+    """One numbered return at a time, none before the node is admitted, and none numbered at the
+    end of the numbering (``COUNTER_END``)."""
+    return c.return_pending == 0 and c.phase is not JOINING and not at_end(c.return_seq)
 
 
 def give_back(t: Timing, c: ClientState, event: GiveBack, now: int) -> ClientStep:
     """Uc -= x, q += 1, persist, send RETURN(q, x); re-sent until RETURN_ACK(q)."""
+    if at_end(c.return_seq):
+        raise LocalProtocolError(
+            f"node {c.node}: return {c.return_seq} is the last below {COUNTER_END:,}: its "
+            "books must start again"
+        )
     if not can_give_back(c):
         raise LocalProtocolError("a return is still waiting for its acknowledgement")
     return start_return(t, c, event.amount, now)

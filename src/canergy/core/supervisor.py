@@ -12,6 +12,7 @@ from collections.abc import Iterable
 from typing import Protocol
 
 from canergy.core.actions import Action, Persist
+from canergy.core.common import check_counters
 from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import POWER_LOSS, RESPONSE_TIMEOUT, Begin, Decide
 from canergy.core.state import Decision, Phase, Session, SupervisorState
@@ -111,6 +112,8 @@ class Supervisor:
         self.state = state or SupervisorState(
             initial, initial, 0, tuple(Session(n) for n in node_list)
         )
+        for s in self.state.sessions:
+            check_counters(s)
         self._index = {s.node: i for i, s in enumerate(self.state.sessions)}
         self._deadlines: list[tuple[int, int]] = []
         """A heap of (deadline, session index): every session's deadline is in it, and entries

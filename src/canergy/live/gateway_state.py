@@ -147,9 +147,9 @@ def _upstream(check: FieldChecker, raw: object, node: int) -> ClientState:
         node,
         credited=check.integer(v, "upstream", "credited_uj"),
         spent=check.integer(v, "upstream", "spent_uj"),
-        last_tx=check.integer(v, "upstream", "last_tx"),
+        last_tx=check.counter(v, "upstream", "last_tx"),
         outcome=outcome,
-        return_seq=check.integer(v, "upstream", "return_seq"),
+        return_seq=check.counter(v, "upstream", "return_seq"),
         return_pending=pending,
         credited_unknown=bool(check.integer(v, "upstream", "credited_unknown", 1)),
     )

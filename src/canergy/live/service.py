@@ -27,6 +27,7 @@ from canergy.core import (
     ReturnCredited,
     Send,
 )
+from canergy.core.common import at_end
 from canergy.core.errors import LocalProtocolError
 from canergy.core.state import Outcome, Phase
 from canergy.core.supervisor import SupervisorCore
@@ -186,6 +187,8 @@ class SupervisorService:
         self.next_status = now
         self.next_tick = now
         self.ready: set[int] = set()
+        self.ended: set[int] = set()
+        """Nodes at the end of their numbering (``COUNTER_END``): granted nothing more."""
         """Nodes to try a grant for at the loop's next pass (a request queued, a transaction
         ended); every node is tried at each tick."""
         self.stopping = False
@@ -730,6 +733,9 @@ class SupervisorService:
                 frames = [RawFrame(i, d) for i, d in raw]
         except LocalProtocolError as exc:  # budget changed under us: report, do not crash
             self._finish_request(node, {"node": self.node_name(node), "error": str(exc)})
+            if at_end(self.core.session(node).tx) and node not in self.ended:
+                self.ended.add(node)
+                log.warning("%s", exc)  # once: the top-up policy asks again each pass
             return []
         self.rate.take(amount)
         return frames + self._carry_out(actions, now)

@@ -42,7 +42,14 @@ from canergy.core.variants import VARIANTS
 from canergy.frozen import evolve
 from canergy.live.atomic import write_atomic
 from canergy.live.bus_keys import node_name, parse_node_id, session_key
-from canergy.messages import AMOUNT_MAX_MJ, MAX_NODE, MIN_NODE, QUANTUM_UJ
+from canergy.messages import (
+    AMOUNT_MAX_MJ,
+    COUNTER_BOUND,
+    MAX_NODE,
+    MIN_NODE,
+    QUANTUM_UJ,
+    counter_beyond,
+)
 
 FORMAT = "canergy-supervisor-state"
 VERSION = 2
@@ -533,6 +540,14 @@ class FieldChecker:
             self.refuse(field, f"{value} is above {high}, the most this field may hold")
         return value
 
+    def counter(self, obj: dict[str, Any], where: str, name: str) -> int:
+        """A transaction or return number: below ``COUNTER_BOUND``, the bound the proof
+        assumes (``canergy prove``, assumption 4)."""
+        value = self.integer(obj, where, name)
+        if value >= COUNTER_BOUND:
+            self.refuse(_at(where, name), counter_beyond(value))
+        return value
+
     def name(self, obj: dict[str, Any], where: str, name: str, choices: Iterable[str]) -> str:
         value, allowed = obj[name], tuple(choices)
         if value not in allowed:  # also every non-string
@@ -612,11 +627,11 @@ class FieldChecker:
         where = f"sessions.{node_name(self.buses, node)}"
         v = self.fields(raw, where, _SESSION)
         phase = Phase[self.name(v, where, "phase", (p.name for p in stored_phases(table)))]
-        tx = self.integer(v, where, "tx")
+        tx = self.counter(v, where, "tx")
         reserved = self.integer(v, where, "reserved_uj", RESERVED_MAX_UJ)
         delivered = self.integer(v, where, "delivered_uj")
         decision = Decision[self.name(v, where, "decision", (d.name for d in Decision))]
-        returns_credited = self.integer(v, where, "returns_credited")
+        returns_credited = self.counter(v, where, "returns_credited")
         returned = self.integer(v, where, "returned_uj")
         if phase is Phase.IDLE and reserved:
             self.refuse(f"{where}.reserved_uj", f"{reserved} µJ reserved while IDLE")

@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from canergy.core.state import Decision, Outcome
-from canergy.messages import AMOUNT_MAX_MJ, DELIVERED_BITS, QUANTUM_UJ
+from canergy.messages import AMOUNT_MAX_MJ, COUNTER_BOUND, DELIVERED_BITS, QUANTUM_UJ
 from canergy.prove import symbolic as sym
 from canergy.prove.symbolic import Term, z3
 from canergy.prove.world import H, Kind, Msg, World
@@ -15,7 +15,7 @@ from canergy.prove.world import H, Kind, Msg, World
 Clause = Callable[[World], Term]
 MsgClause = Callable[[Msg, World], Term]
 
-LIFE = 1 << 30
+LIFE = COUNTER_BOUND
 """Bounded life: every 32-bit counter stays below this (a billion transactions per node)."""
 Q = QUANTUM_UJ
 GS_WRAP = (1 << DELIVERED_BITS) * Q

@@ -258,7 +258,7 @@ def begin(w: World, amount: Term) -> Step:
     step = _session_step(w, sym.begin(w.s, amount), cc=z3.BoolVal(False))
     most = AMOUNT_MAX_MJ * QUANTUM_UJ
     valid = z3.And(amount % QUANTUM_UJ == 0, amount >= QUANTUM_UJ, amount <= most)
-    return replace(step, enabled=z3.And(w.s.phase == sym.S_IDLE, valid))
+    return replace(step, enabled=z3.And(w.s.phase == sym.S_IDLE, valid, sym.may_begin(w.s)))
 
 
 def decide(commit: bool) -> Callable[[World], Step]:

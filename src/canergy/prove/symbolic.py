@@ -20,6 +20,7 @@ from typing import Any, TypeVar
 from canergy.core.state import Decision, Outcome, Phase
 from canergy.extras import MissingExtra
 from canergy.messages import (
+    COUNTER_END,
     DELIVERED_BITS,
     QUANTUM_UJ,
     SEQ_BITS,
@@ -42,6 +43,16 @@ COUNTER = 32
 
 def counter(value: int) -> Term:
     return z3.BitVecVal(value, COUNTER)
+
+
+def at_end(value: Term) -> Term:
+    """``core.common.at_end``: the next counter would reach ``COUNTER_END``."""
+    return z3.UGE(value, counter(COUNTER_END - 1))
+
+
+def beyond_end(tx: Term, last: Term) -> Term:
+    """``tx`` (widened) is ahead of ``last`` and at or beyond ``COUNTER_END``."""
+    return z3.And(tx - last > 0, z3.UGE(tx, counter(COUNTER_END)))
 
 
 def unwrap(wire: Term, reference: Term, bits: int) -> Term:
@@ -169,7 +180,8 @@ def _take_intention(
 
 def on_intention(c: Client, tx16: Term, amount_mj: Term, delivered_mj: Term) -> tuple[Client, Sent]:
     """INTENTION(k, a, Gs) in every phase (JOINING: JOIN again)."""
-    stale = z3.And(c.credited_unknown, unwrap(tx16, c.last_tx, TX_BITS) - c.last_tx <= 0)
+    tx = unwrap(tx16, c.last_tx, TX_BITS)
+    stale = z3.Or(z3.And(c.credited_unknown, tx - c.last_tx <= 0), beyond_end(tx, c.last_tx))
     known = replace(
         c,
         credited=z3.If(c.credited_unknown, delivered_mj * QUANTUM_UJ, c.credited),
@@ -207,8 +219,9 @@ def on_command(c: Client, commit: bool, tx16: Term, amount_mj: Term) -> tuple[Cl
     else:
         new_state = _drop_hold(replace(c, last_tx=tx, outcome=ABORTED))
         new_sent = Sent.of(MsgType.ABORTED, low(tx, TX_BITS))
-    state = pick(ahead > 0, new_state, c)
-    sent = pick(ahead > 0, new_sent, pick(ahead == 0, _reply_for(c, tx, c.outcome), Sent.none()))
+    take = z3.And(ahead > 0, z3.Not(beyond_end(tx, c.last_tx)))
+    state = pick(take, new_state, c)
+    sent = pick(take, new_sent, pick(ahead == 0, _reply_for(c, tx, c.outcome), Sent.none()))
     joining = c.phase == JOINING
     return pick(joining, c, state), pick(joining, Sent.none(), sent)
 
@@ -345,7 +358,8 @@ def credit_return(s: Session, seq16: Term, amount_mj: Term) -> SessionStep:
         replace(s, returns_credited=seq, returned=s.returned + amount), ack, amount
     )
     again = SessionStep(s, ack, z3.IntVal(0))
-    return choose(ahead == 1, credited, choose(ahead <= 0, again, _unchanged(s)))
+    next_one = z3.And(ahead == 1, z3.Not(at_end(s.returns_credited)))
+    return choose(next_one, credited, choose(ahead <= 0, again, _unchanged(s)))
 
 
 def admit(s: Session, nonce16: Term) -> SessionStep:
@@ -368,8 +382,13 @@ def admit(s: Session, nonce16: Term) -> SessionStep:
     return SessionStep(t, sent, written.credit)
 
 
+def may_begin(s: Session) -> Term:
+    """``core.common.check_life``: the node's numbering has room for one more transaction."""
+    return z3.Not(at_end(s.tx))
+
+
 def begin(s: Session, amount: Term) -> SessionStep:
-    """Begin(a) in IDLE: Us -= a, tx += 1, INTENTION(tx, a, Gs)."""
+    """Begin(a) in IDLE: Us -= a, tx += 1, INTENTION(tx, a, Gs) (when ``may_begin``)."""
     tx = s.tx + 1
     started = replace(s, phase=WAIT_ACK, tx=tx, reserved=amount, decision=NO_DECISION)
     delivered_mj = (s.delivered / QUANTUM_UJ) % (1 << DELIVERED_BITS)
@@ -404,6 +423,7 @@ def give_back(c: Client, amount: Term) -> tuple[Client, Sent, Term]:
     allowed = z3.And(
         c.phase != JOINING,
         c.return_pending == 0,
+        z3.Not(at_end(c.return_seq)),
         amount > 0,
         amount % QUANTUM_UJ == 0,
         amount <= 65_535 * QUANTUM_UJ,

@@ -221,8 +221,8 @@ def frame_auth(
 
 def check_state(args: argparse.Namespace, *, required: bool = True) -> None:
     """``--state`` is given (when ``required``); every file the run writes can be written, none
-    is another under a second name, and ``--control`` replaces nothing but a stale socket.
-    Reads and writes nothing."""
+    is another under a second name (nor a key file it reads), and ``--control`` replaces
+    nothing but a stale socket. Reads and writes nothing."""
     if args.state is None and required:
         raise ValueError(
             "--state PATH is required: without its non-volatile record a restarted supervisor "
@@ -237,8 +237,17 @@ def check_state(args: argparse.Namespace, *, required: bool = True) -> None:
         )
         if path is not None
     ]
-    for i, (option, path) in enumerate(outputs):
-        for other, other_path in outputs[:i]:
+    keys = [
+        (option, path)
+        for option, path in (
+            ("--auth", getattr(args, "auth", None)),
+            ("--upstream-auth", getattr(args, "upstream_auth", None)),
+        )
+        if path is not None
+    ]
+    files = [*outputs, *keys]  # a key file read at start, then written over, is lost
+    for i, (option, path) in enumerate(files):
+        for other, other_path in files[: min(i, len(outputs))]:
             if same_file(path, other_path):
                 raise ValueError(
                     f"{option} {path} and {other} {other_path} name the same file; "

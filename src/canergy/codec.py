@@ -25,11 +25,13 @@ from canergy.messages import (
     Commit,
     Committed,
     Direction,
+    Draw,
     FinalAck,
     Intention,
     Join,
     Message,
     MsgType,
+    Resume,
     Return,
     ReturnAck,
     StatusRequest,
@@ -128,6 +130,16 @@ def _return_fields(m: Message) -> tuple[int, ...]:
     return (m.seq, m.amount_mj)
 
 
+def _draw_fields(m: Message) -> tuple[int, ...]:
+    assert isinstance(m, Draw)
+    return (m.seq, m.amount_mj)
+
+
+def _resume_fields(m: Message) -> tuple[int, ...]:
+    assert isinstance(m, Resume)
+    return (m.nonce, m.flags, m.seq, m.pending_mj)
+
+
 LAYOUTS: dict[MsgType, _Layout] = {
     MsgType.INTENTION: _Layout(struct.Struct("<HHHB"), _int_fields, _int_build, True),
     MsgType.COMMIT: _tx_amount(Commit),
@@ -147,6 +159,15 @@ LAYOUTS: dict[MsgType, _Layout] = {
         struct.Struct("<HHH"), _admit_fields, lambda n, f: Admit(n, f[0], f[1], f[2]), False
     ),
     MsgType.JOIN: _Layout(struct.Struct("<H"), _join_fields, lambda n, f: Join(n, f[0]), False),
+    MsgType.DRAW: _Layout(
+        struct.Struct("<HH"), _draw_fields, lambda n, f: Draw(n, f[0], f[1]), True
+    ),
+    MsgType.RESUME: _Layout(
+        struct.Struct("<HBHH"),
+        _resume_fields,
+        lambda n, f: Resume(n, f[0], f[2], f[3], f[1]),
+        False,
+    ),
     MsgType.TELEMETRY: _Layout(
         struct.Struct("<HBBHB"),
         _telemetry_fields,

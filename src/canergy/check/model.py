@@ -25,6 +25,7 @@ from canergy.core.inputs import (
     BooksLost,
     Decide,
     GiveBack,
+    PowerLoss,
     Spend,
 )
 from canergy.core.state import ClientState, Decision, Phase, Session, SupervisorState
@@ -38,6 +39,12 @@ from canergy.ledger import NOT_LOST, Ledger, LostRecord, ledger
 from canergy.messages import QUANTUM_UJ, Direction, Message, ToClient, ToSupervisor
 
 UNIT = QUANTUM_UJ
+RESTART_NONCE = 0x100
+"""A client's n-th power loss of a run restarts it with nonce ``RESTART_NONCE + n``, and its n-th
+old copy with ``OLD_COPY_NONCE + n`` (JOIN nonces are 1, 2...): every start draws a nonce no
+earlier start drew, as a random 16-bit one does but for a chance of 2^-16 (rules that confirm a
+start, ``witnessed``, use it; the others ignore it)."""
+OLD_COPY_NONCE = 0x200
 Flight = frozenset[tuple[Message, int]]
 """The multiset of frames in flight as (message, copies): canonical without sorting."""
 
@@ -209,16 +216,16 @@ class Model:
                 yield Step(K.COMMAND_TIMER, c.node)
             if c.return_deadline is not None and may_time_out:
                 yield Step(K.RETURN_TIMER, c.node)
-            if b.spending and c.usable >= UNIT:
+            if b.spending and c.usable >= UNIT and self.variant.client.can_spend(c):
                 yield Step(K.SPEND, c.node)
             if b.returns and c.usable >= UNIT and self.variant.client.can_give_back(c):
                 yield Step(K.GIVE_BACK, c.node)
             if may_lose_power:
-                yield Step(K.CLIENT_POWER_LOSS, c.node)
+                yield Step(K.CLIENT_POWER_LOSS, c.node, nonce=RESTART_NONCE + w.power_lost + 1)
             if w.nv_lost < b.nv_losses:
                 yield Step(K.NV_LOST, c.node, nonce=w.nv_lost + 1)
             if w.old_copied < b.old_copies and w.older[c.node - 1] != c:
-                yield Step(K.NV_OLD_COPY, c.node)
+                yield Step(K.NV_OLD_COPY, c.node, nonce=OLD_COPY_NONCE + w.old_copied + 1)
         if may_lose_power:
             yield Step(K.SUPERVISOR_POWER_LOSS)
         if w.forged < b.forgeries:
@@ -274,8 +281,11 @@ class Model:
             lost[step.node] = LostRecord(max(c.credited, before.credited), c.spent + before.spent)
             w = evolve(w, lost_records=tuple(sorted(lost.items())))
         if step.kind is K.NV_OLD_COPY:  # the old record comes back; the node restarts from it
-            clients = (*w.clients[:i], w.older[i], *w.clients[i + 1 :])
-            return self._to_client(evolve(w, clients=clients), i, POWER_LOSS)
+            c, older, lost = w.clients[i], w.older[i], dict(w.lost_records)
+            lost[step.node] = restored_ghost(lost.get(step.node, NOT_LOST), c, older)
+            clients = (*w.clients[:i], older, *w.clients[i + 1 :])
+            w = evolve(w, clients=clients, lost_records=tuple(sorted(lost.items())))
+            return self._to_client(w, i, PowerLoss(step.nonce))
         if step.kind in SUPERVISOR_KINDS:
             return self._to_session(w, i, self.event(step))
         return self._to_client(w, i, self.event(step))
@@ -294,6 +304,8 @@ class Model:
             return GiveBack(UNIT)
         if kind is K.NV_LOST:
             return BooksLost(step.nonce)
+        if kind is K.CLIENT_POWER_LOSS:
+            return PowerLoss(step.nonce)
         return _DATALESS[kind]
 
     def _channel(self, w: World, step: Step) -> World | None:
@@ -370,9 +382,14 @@ _DATALESS: dict[StepKind, Event] = {
     K.SUPERVISOR_TIMER: RESPONSE_TIMEOUT,
     K.COMMAND_TIMER: COMMAND_TIMEOUT,
     K.RETURN_TIMER: RETURN_TIMEOUT,
-    K.CLIENT_POWER_LOSS: POWER_LOSS,
 }
 """The events of steps that carry no data."""
+
+
+def restored_ghost(before: LostRecord, c: ClientState, older: ClientState) -> LostRecord:
+    """What the observer keeps when a node's record is replaced by an older copy: the largest
+    Rc seen, and what the actuator used after the copy was written (the copy forgets it)."""
+    return LostRecord(max(c.credited, before.credited), before.spent + c.spent - older.spent)
 
 
 def _flight_key(item: tuple[Message, int]) -> tuple[int, str]:

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from support.c_binding import DIRECTIONS, OK, REASONS, Frame, Msg, library, rx
 from support.strategies import messages
 
-from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeError
+from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeError, DecodeErrorReason
 from canergy.messages import (
     Abort,
     Ack,
@@ -91,9 +91,29 @@ def assert_same_decoding(
             arbitration_id, data, extended=extended, remote=remote, direction=py_direction
         )
     except DecodeError as err:
+        if _c_lacks(base, arbitration_id, extended):
+            assert REASONS.get(status) is DecodeErrorReason.UNKNOWN_TYPE
+            return
         assert REASONS.get(status) is err.reason
         return
+    if msg.TYPE in C_LACKS:
+        assert REASONS.get(status) is DecodeErrorReason.UNKNOWN_TYPE
+        return
     assert status == OK and c_fields(m) == fields(msg)
+
+
+C_LACKS = {MsgType.DEBIT}
+"""The witnessed rule set's frame (``canergy.core.witnessed``): not in the C codec yet, which
+refuses it as an unknown type."""
+
+
+def _c_lacks(base: int, arbitration_id: int, extended: bool) -> bool:
+    """An identifier of a type C_LACKS, for a valid node (where Python refuses the frame for
+    another reason, C refuses the type first)."""
+    if not extended or arbitration_id & 0x1FFFF000 != base:
+        return False
+    code, node = arbitration_id >> 8 & 0xF, arbitration_id & 0xFF
+    return code in {int(t) for t in C_LACKS} and 1 <= node <= 127
 
 
 ids = (
@@ -225,7 +245,7 @@ def test_what_python_refuses_to_encode_c_refuses(msg: Message) -> None:
 def test_unknown_types_do_not_encode(code: int) -> None:
     status, _ = c_encode(DEFAULT_ID_BASE, {"type": code, "node": 1, "tx": 1, "amount_mj": 1})
     assert status != OK
-    assert code > 0xF or code not in MsgType._value2member_map_
+    assert code > 0xF or code not in MsgType._value2member_map_ or MsgType(code) in C_LACKS
 
 
 @pytest.mark.parametrize("base", [0x123, 0x20000000, 0x0CE00001, 0xFFFFFFFF])

@@ -48,14 +48,13 @@ class MsgType(IntEnum):
     STATUS_REQUEST = 0x5  # paper variant only
     FINAL_ACK = 0x6  # paper variant only
     ADMIT = 0x7  # hardened: a node without books joins at the supervisor's counters
-    DRAW = 0x8  # witnessed: a numbered debit for the actuator, acknowledged as a RETURN
     ACK = 0x9
     COMMITTED = 0xA
     ABORTED = 0xB
     RETURN = 0xC
     TELEMETRY = 0xD  # moves no energy; the protocol's safety never depends on it
     JOIN = 0xE  # hardened: a node without a valid NV record asks to be admitted
-    RESUME = 0xF  # witnessed: a node that starts with books asks the supervisor to confirm them
+    DEBIT = 0xF  # witnessed: a numbered draw for the actuator, or a start's debit count (RESUME)
 
     @property
     def direction(self) -> Direction:
@@ -196,32 +195,31 @@ class Join:
 
 @fast_init
 @dataclass(frozen=True, slots=True)
-class Draw:
-    """DRAW (witnessed rules): the client debited ``amount_mj`` for its actuator as debit number
-    ``seq`` (the numbering RETURN uses); the actuator gets it only on RETURN_ACK(``seq``)."""
+class Debit:
+    """DEBIT (witnessed rules), one of two kinds, acknowledged by RETURN_ACK(``seq``):
 
-    TYPE: ClassVar[MsgType] = MsgType.DRAW
+    - a *draw* (``flags`` = ``DRAW``): the node debited ``amount_mj`` for its actuator as debit
+      number ``seq`` (the numbering RETURN uses); the actuator gets it only on the ack;
+    - a *resume* (``START`` set): the node started with books whose last debit number is
+      ``seq``, ``amount_mj`` of it still unacknowledged (0: none; a draw when ``DRAW`` is set);
+      it moves nothing until ADMIT(``nonce``) confirms them or finds them behind.
+    """
+
+    TYPE: ClassVar[MsgType] = MsgType.DEBIT
     node: int
+    nonce: int
+    flags: int
     seq: int
     amount_mj: int
 
-
-@fast_init
-@dataclass(frozen=True, slots=True)
-class Resume:
-    """RESUME (witnessed rules): the node started with books whose last debit number is ``seq``
-    (``pending_mj`` still unacknowledged, a draw when ``flags`` has ``DRAW``); it moves nothing
-    until ADMIT(``nonce``) confirms them or finds them behind."""
-
-    TYPE: ClassVar[MsgType] = MsgType.RESUME
-    node: int
-    nonce: int
-    seq: int
-    pending_mj: int = 0
-    flags: int = 0
-
     DRAW: ClassVar[int] = 0x01
-    """Flag: the pending debit is a draw (credited to nobody), not a return."""
+    """Flag: the amount is a draw for the actuator (credited to nobody), not a return."""
+    START: ClassVar[int] = 0x02
+    """Flag: the node's start (RESUME), not a draw."""
+
+    @property
+    def is_resume(self) -> bool:
+        return bool(self.flags & Debit.START)
 
 
 @fast_init
@@ -254,7 +252,7 @@ WITNESS_BITS = 8
 NONCE_BITS = 16
 
 ToClient = Intention | Commit | Abort | ReturnAck | StatusRequest | FinalAck | Admit
-ToSupervisor = Ack | Committed | Aborted | Return | Join | Draw | Resume
+ToSupervisor = Ack | Committed | Aborted | Return | Join | Debit
 Message = ToClient | ToSupervisor | Telemetry
 
 MESSAGE_CLASSES: dict[MsgType, type[Message]] = {
@@ -273,7 +271,6 @@ MESSAGE_CLASSES: dict[MsgType, type[Message]] = {
         Return,
         Join,
         Telemetry,
-        Draw,
-        Resume,
+        Debit,
     )
 }

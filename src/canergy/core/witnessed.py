@@ -37,9 +37,8 @@ from canergy.messages import (
     Abort,
     Admit,
     Commit,
-    Draw,
+    Debit,
     Intention,
-    Resume,
     ReturnAck,
 )
 from canergy.seqnum import unwrap, wrap
@@ -50,7 +49,12 @@ HOLDING, JOINING, RESUMING = Phase.AWAIT_COMMAND, Phase.JOINING, Phase.RESUMING
 # -- supervisor, per node --------------------------------------------------------------------
 
 
-def hold_draw(t: Timing, s: Session, msg: Draw, now: int) -> SessionStep:
+def on_debit(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
+    """DEBIT: a draw is held as the node's last debit; a resume confirms the node's start."""
+    return confirm(t, s, msg, now) if msg.is_resume else hold_draw(t, s, msg, now)
+
+
+def hold_draw(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
     """DRAW(q, x): hold q as the node's last debit and ack it (nothing to Us); re-ack an old q."""
     seq = unwrap(msg.seq, s.returns_credited, SEQ_BITS)
     ack = (Send(ReturnAck(s.node, msg.seq)),)
@@ -61,7 +65,7 @@ def hold_draw(t: Timing, s: Session, msg: Draw, now: int) -> SessionStep:
     return SessionStep(s)
 
 
-def confirm(t: Timing, s: Session, msg: Resume, now: int) -> SessionStep:
+def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
     """RESUME(n, q): write off what is open; behind (q below the last debit held): admit; a
     pending RETURN numbered next is credited; the number after max(C, q) is voided; answer
     ADMIT(n, k, C) with k the last transaction closed, which the node takes as settled.
@@ -76,8 +80,8 @@ def confirm(t: Timing, s: Session, msg: Resume, now: int) -> SessionStep:
     else:  # the older record may not hold how the node resolved it
         step = resolve(s, Outcome.WRITTEN_OFF) if s.phase is not IDLE else SessionStep(s)
         s = step.session
-        if seq == s.returns_credited + 1 and msg.pending_mj and not msg.flags & Resume.DRAW:
-            amount = msg.pending_mj * QUANTUM_UJ
+        if seq == s.returns_credited + 1 and msg.amount_mj and not msg.flags & Debit.DRAW:
+            amount = msg.amount_mj * QUANTUM_UJ
             s = evolve(s, returns_credited=seq, returned=s.returned + amount)
             credited = (ReturnCredited(s.node, seq, amount),)
             step = SessionStep(s, (*step.actions, *credited), step.credit + amount)
@@ -105,8 +109,7 @@ SUPERVISOR = SupervisorTable(
     (IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM),
     [
         *(cell((p,), e, tr.handler, tuple(tr.to)) for (p, e), tr in h.SUPERVISOR.listed.items()),
-        cell(ANY, Draw, hold_draw),
-        cell(ANY, Resume, confirm, to=(IDLE, STAY)),
+        cell(ANY, Debit, on_debit, to=(IDLE, STAY)),
     ],
     supervisor_record,
 )
@@ -120,15 +123,18 @@ def can_debit(c: ClientState) -> bool:
     return c.return_pending == 0 and c.phase in BOOKED
 
 
-def draw_of(c: ClientState) -> Draw:
-    return Draw(c.node, wrap(c.return_seq, SEQ_BITS), c.return_pending // QUANTUM_UJ)
-
-
-def resume_of(c: ClientState) -> Resume:
-    flags = Resume.DRAW if c.pending_draw else 0
-    return Resume(
-        c.node, c.nonce, wrap(c.return_seq, SEQ_BITS), c.return_pending // QUANTUM_UJ, flags
+def draw_of(c: ClientState) -> Debit:
+    """DRAW(q, x): the pending draw."""
+    return Debit(
+        c.node, 0, Debit.DRAW, wrap(c.return_seq, SEQ_BITS), c.return_pending // QUANTUM_UJ
     )
+
+
+def resume_of(c: ClientState) -> Debit:
+    """RESUME(n, q, x): the node's start, its last debit number and what of it is pending."""
+    flags = Debit.START | (Debit.DRAW if c.pending_draw else 0)
+    pending = c.return_pending // QUANTUM_UJ
+    return Debit(c.node, c.nonce, flags, wrap(c.return_seq, SEQ_BITS), pending)
 
 
 def draw(t: Timing, c: ClientState, event: Spend, now: int) -> ClientStep:

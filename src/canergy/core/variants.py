@@ -24,6 +24,10 @@ VARIANTS: dict[str, Variant] = {
     "paper": Variant("paper", paper.SUPERVISOR, paper.CLIENT),
     "witnessed": Variant("witnessed", witnessed.SUPERVISOR, witnessed.CLIENT),
 }
+RUNNABLE: dict[str, Variant] = {name: VARIANTS[name] for name in ("hardened", "paper")}
+"""What the demo, the simulator and the live service run. ``witnessed`` is for the checker and
+the rules reference only: its actuator spends in acknowledged whole-millijoule draws, which no
+live node, emulator or C port does yet."""
 
 
 def get_variant(

@@ -18,9 +18,11 @@ from test_hardened_supervisor import STATES as H_SUP_STATES
 from canergy.check import Bounds, check
 from canergy.core import (
     Admitted,
+    Client,
     ReturnAcknowledged,
     ReturnCredited,
     Send,
+    Supervisor,
     Timing,
 )
 from canergy.core import hardened as H
@@ -42,6 +44,7 @@ from canergy.messages import (
     Admit,
     Commit,
     Debit,
+    Direction,
     FinalAck,
     Join,
     Return,
@@ -363,3 +366,40 @@ def test_each_witnessing_rule_is_needed(variant: Variant) -> None:
     result = check(variant, OLD_COPY, stop_at_first=True)
     assert result.counterexample is not None
     assert any(step.kind.value == "client_nv_old_copy" for step, _ in result.counterexample)
+
+
+# -- the issue's scenario through the core objects ---------------------------------------------
+def _exchange(actions: list[object], sup: Supervisor, node: Client, now: int) -> None:
+    """Deliver every frame sent, each to its receiver, until nobody sends anything."""
+    queue = list(actions)
+    while queue:
+        a = queue.pop(0)
+        if isinstance(a, Send):
+            to_node = a.message.TYPE.direction is Direction.TO_CLIENT
+            queue += node.receive(a.message, now) if to_node else sup.receive(a.message, now)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("rules", ["hardened", "witnessed"])
+def test_a_node_started_from_its_copy_before_a_spend(rules: str) -> None:
+    """Issue 40, item 6: 2 J granted, 1.5 J spent, the node's record put back to the copy
+    written before the spend: the hardened node spends the 1.5 J again; the witnessed node is
+    found behind at its start and spends nothing it was not granted."""
+    timing = Timing(response_timeout_us=10, command_timeout_us=10, return_retry_us=10)
+    sup = Supervisor([2], 2_000_000, variant=rules, timing=timing)
+    node = Client(2, variant=rules, timing=timing)
+    _exchange(sup.begin(2, 2_000_000, 0), sup, node, 0)
+    _exchange(sup.commit(2, 0), sup, node, 0)
+    copy = node.state  # the record as written after the commit
+    _exchange(node.spend(1_500_000), sup, node, 0)
+    assert node.state.spent == 1_500_000
+    spent_before = node.state.spent
+    node.state = copy  # the older copy is put back; the node starts from it
+    _exchange(node.power_loss(1, nonce=0xBEEF), sup, node, 1)
+    if node.can_spend() and node.state.usable:
+        _exchange(node.spend(node.state.usable), sup, node, 1)
+    held_and_used = node.state.usable + node.state.spent + spent_before - copy.spent
+    created = held_and_used - 2_000_000
+    if rules == "hardened":
+        assert created == 1_500_000
+    else:  # found behind: the 0.5 J the copy still held is lost with its books, nothing created
+        assert node.state.credited_unknown and created == -500_000

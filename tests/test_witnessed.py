@@ -403,3 +403,18 @@ def test_a_node_started_from_its_copy_before_a_spend(rules: str) -> None:
         assert created == 1_500_000
     else:  # found behind: the 0.5 J the copy still held is lost with its books, nothing created
         assert node.state.credited_unknown and created == -500_000
+
+
+def test_an_older_copy_of_the_supervisors_state_file_creates_energy() -> None:
+    """Issue 40, item 5, which the witnessed rules do not close yet (the supervisor side of
+    docs/protocol.md is a design): the state file put back to its copy before a grant counts in
+    Us what the node already holds."""
+    bounds = Bounds(clients=2, supervisor_old_copies=1)
+    for rules in ("hardened", "witnessed"):
+        result = check(rules, bounds, stop_at_first=True, engine="reference")
+        assert result.counterexample is not None
+        last, world = result.counterexample[-1]
+        assert last.kind.value == "supervisor_old_copy" and world.ledger().dissipated < 0
+    with pytest.raises(ValueError, match="reference engine"):
+        check("hardened", bounds)
+    assert check("hardened", Bounds(clients=2), engine="reference").violations == 0

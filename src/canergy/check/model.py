@@ -67,6 +67,9 @@ class Bounds:
     """Client starts with both NV slots unreadable (new, wiped or corrupted record)."""
     old_copies: int = 0
     """Client starts with its record replaced by the one before its last write."""
+    supervisor_old_copies: int = 0
+    """Supervisor starts from its state file as it was before its last write (a backup or a
+    snapshot put back; reference engine only)."""
     forgeries: int = 0
     """Frames a keyless attacker builds and sends (``attacker.forgeable``; the codec is public)."""
     replays: int = 0
@@ -96,6 +99,10 @@ class World:
     old_copied: int = 0
     older: tuple[ClientState, ...] = ()
     """Each client's state before its last record write (kept only when old copies are on)."""
+    sup_older: SupervisorState | None = None
+    """The supervisor's state before its last record write (kept only when its old copies are
+    on)."""
+    sup_old_copied: int = 0
     lost_records: tuple[tuple[int, LostRecord], ...] = ()
     """Nodes that lost their record, and what the observer saw it hold (for the ledger)."""
     forged: int = 0
@@ -139,6 +146,7 @@ class StepKind(Enum):
     SUPERVISOR_POWER_LOSS = "supervisor_power_loss"
     NV_LOST = "client_nv_lost"
     NV_OLD_COPY = "client_nv_old_copy"
+    SUPERVISOR_OLD_COPY = "supervisor_old_copy"
     FORGE = "forge"
     REPLAY = "replay"
 
@@ -149,6 +157,8 @@ TIMER_KINDS = frozenset({K.SUPERVISOR_TIMER, K.COMMAND_TIMER, K.RETURN_TIMER})
 SUPERVISOR_KINDS = frozenset({K.BEGIN, K.DECIDE, K.SUPERVISOR_TIMER})
 POWER_LOSS_KINDS = frozenset({K.CLIENT_POWER_LOSS, K.SUPERVISOR_POWER_LOSS})
 ATTACKER_KINDS = frozenset({K.FORGE, K.REPLAY})
+REFERENCE_ONLY_KINDS = frozenset({K.SUPERVISOR_OLD_COPY})
+"""Steps the compact engine does not take (``check`` refuses their bounds there)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -180,7 +190,13 @@ def initial_world(bounds: Bounds) -> World:
     total = bounds.units * UNIT
     sup = SupervisorState(total, total, 0, tuple(Session(n) for n in nodes))
     clients = tuple(ClientState(n) for n in nodes)
-    return World(sup, clients, frozenset(), older=clients if bounds.old_copies else ())
+    return World(
+        sup,
+        clients,
+        frozenset(),
+        older=clients if bounds.old_copies else (),
+        sup_older=sup if bounds.supervisor_old_copies else None,
+    )
 
 
 class Model:
@@ -228,6 +244,8 @@ class Model:
                 yield Step(K.NV_OLD_COPY, c.node, nonce=OLD_COPY_NONCE + w.old_copied + 1)
         if may_lose_power:
             yield Step(K.SUPERVISOR_POWER_LOSS)
+        if w.sup_old_copied < b.supervisor_old_copies and w.sup_older not in (None, w.sup):
+            yield Step(K.SUPERVISOR_OLD_COPY)
         if w.forged < b.forgeries:
             for msg in forgeable(self.variant, w.sup.sessions, w.clients, b.units):
                 yield Step(K.FORGE, message=msg)
@@ -258,6 +276,8 @@ class Model:
             return evolve(w, nv_lost=w.nv_lost + 1)  # the ghost Rc is kept in _apply
         if kind is K.NV_OLD_COPY:
             return evolve(w, old_copied=w.old_copied + 1)
+        if kind is K.SUPERVISOR_OLD_COPY:
+            return evolve(w, sup_old_copied=w.sup_old_copied + 1)
         if kind is K.FORGE:
             return evolve(w, forged=w.forged + 1)
         if kind is K.REPLAY:
@@ -270,7 +290,9 @@ class Model:
             return self._channel(w, step)
         if step.kind in ATTACKER_KINDS:
             return self._attack(w, step)
-        if step.kind is K.SUPERVISOR_POWER_LOSS:
+        if step.kind is K.SUPERVISOR_OLD_COPY and w.sup_older is not None:
+            w = evolve(w, sup=w.sup_older)  # the old state file comes back; it restarts from it
+        if step.kind in (K.SUPERVISOR_POWER_LOSS, K.SUPERVISOR_OLD_COPY):
             for i in range(len(w.sup.sessions)):
                 w = self.restart_session(w, i)
             return w
@@ -354,7 +376,13 @@ class Model:
         return self._to_session(w, i, POWER_LOSS)
 
     def _to_session(self, w: World, i: int, event: Event) -> World:
-        step = self.variant.supervisor.step(self.timing, w.sup.sessions[i], event, 0)
+        rules = self.variant.supervisor
+        old = w.sup.sessions[i]
+        step = rules.step(self.timing, old, event, 0)
+        if w.sup_older is not None and (
+            step.credit or rules.persistent(old) != rules.persistent(step.session)
+        ):
+            w = evolve(w, sup_older=w.sup)
         return self._out(evolve(w, sup=apply_session(w.sup, i, step)), step.actions)
 
     def _to_client(self, w: World, i: int, event: Event) -> World:

@@ -251,7 +251,7 @@ class NodeTable:
     def world(self, usable: int, nodes: list[int], counted: tuple[int, ...]) -> World:
         """The reference model's world with these contents at these positions."""
         xs = [self.objects(c, p + 1) for p, c in enumerate(nodes)]
-        started, lost, dup, power, timed, nv, old, forged, replayed = counted
+        started, lost, dup, power, timed, nv, old, forged, replayed, _ = counted  # no sup copy
         return World(
             SupervisorState(self.total, usable, 0, tuple(x.session for x in xs)),
             tuple(x.client for x in xs),

@@ -46,6 +46,7 @@ class Layout:
             bounds.old_copies,
             bounds.forgeries,
             bounds.replays,
+            bounds.supervisor_old_copies,  # 0 here: the compact engine does not take them
         )
         self.offsets: list[int] = []
         self.widths: list[int] = []
@@ -159,7 +160,7 @@ class Guards:
         if table is None:
             b = self.bounds
             cap = min(max(usable // UNIT, 0), b.units)
-            started, lost, dup, power, timed, nv, old, forged, replayed = (
+            started, lost, dup, power, timed, nv, old, forged, replayed, _ = (
                 self.layout.unpack_counters(packed)
             )
             k = self._by_kind

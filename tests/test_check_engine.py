@@ -84,6 +84,12 @@ CASES: list[tuple[str, str, Bounds, dict[str, Any]]] = [
         Bounds(transactions=1, old_copies=1, power_losses=0, losses=0),
         {},
     ),
+    (
+        "witnessed, old copy",
+        "witnessed",
+        Bounds(transactions=1, old_copies=1, losses=0, duplicates=0, timeouts=3),
+        {"max_states": 20000},
+    ),
     ("3 clients", "hardened", Bounds(clients=3, transactions=1, losses=0, in_flight=2), {}),
     (
         "bounded timers",

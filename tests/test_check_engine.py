@@ -90,6 +90,12 @@ CASES: list[tuple[str, str, Bounds, dict[str, Any]]] = [
         Bounds(transactions=1, old_copies=1, losses=0, duplicates=0, timeouts=3),
         {"max_states": 20000},
     ),
+    (
+        "backups, 2 clients",
+        "witnessed",
+        Bounds(clients=2, transactions=1, old_copies=1, backups=True, losses=0, duplicates=0),
+        {"max_states": 20000},
+    ),
     ("3 clients", "hardened", Bounds(clients=3, transactions=1, losses=0, in_flight=2), {}),
     (
         "bounded timers",

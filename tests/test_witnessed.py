@@ -325,6 +325,16 @@ def test_no_older_copy_of_a_node_record_creates_energy() -> None:
     assert result.states > without.states  # the old copies were explored too
 
 
+def test_no_backup_taken_at_any_moment_creates_energy() -> None:
+    """The copy put back is a backup taken at any earlier moment, not only the record before
+    the last write: the argument's 'any older copy', as far as the bound reaches."""
+    bounds = replace(OLD_COPY, timeouts=3, backups=True)
+    result = check("witnessed", bounds)
+    assert result.complete and result.violations == 0
+    assert result.states > check("witnessed", replace(bounds, backups=False)).states
+    assert check("hardened", bounds, stop_at_first=True).counterexample is not None
+
+
 def test_the_hardened_rules_create_energy_from_an_older_copy() -> None:
     result = check("hardened", OLD_COPY, stop_at_first=True)
     assert result.counterexample is not None

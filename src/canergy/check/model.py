@@ -67,6 +67,9 @@ class Bounds:
     """Client starts with both NV slots unreadable (new, wiped or corrupted record)."""
     old_copies: int = 0
     """Client starts with its record replaced by the one before its last write."""
+    backups: bool = False
+    """With ``old_copies``: the old copy is a backup taken at any earlier moment (a step of its
+    own, ``client_nv_backup``), not the record before the node's last write."""
     supervisor_old_copies: int = 0
     """Supervisor starts from its state file as it was before its last write (a backup or a
     snapshot put back; reference engine only)."""
@@ -146,6 +149,7 @@ class StepKind(Enum):
     SUPERVISOR_POWER_LOSS = "supervisor_power_loss"
     NV_LOST = "client_nv_lost"
     NV_OLD_COPY = "client_nv_old_copy"
+    NV_BACKUP = "client_nv_backup"
     SUPERVISOR_OLD_COPY = "supervisor_old_copy"
     FORGE = "forge"
     REPLAY = "replay"
@@ -242,6 +246,8 @@ class Model:
                 yield Step(K.NV_LOST, c.node, nonce=w.nv_lost + 1)
             if w.old_copied < b.old_copies and w.older[c.node - 1] != c:
                 yield Step(K.NV_OLD_COPY, c.node, nonce=OLD_COPY_NONCE + w.old_copied + 1)
+            if b.backups and b.old_copies and w.older[c.node - 1] != c:
+                yield Step(K.NV_BACKUP, c.node)
         if may_lose_power:
             yield Step(K.SUPERVISOR_POWER_LOSS)
         if w.sup_old_copied < b.supervisor_old_copies and w.sup_older not in (None, w.sup):
@@ -302,6 +308,8 @@ class Model:
             before = lost.get(step.node, NOT_LOST)
             lost[step.node] = LostRecord(max(c.credited, before.credited), c.spent + before.spent)
             w = evolve(w, lost_records=tuple(sorted(lost.items())))
+        if step.kind is K.NV_BACKUP:  # a copy of the record as it is now
+            return evolve(w, older=(*w.older[:i], w.clients[i], *w.older[i + 1 :]))
         if step.kind is K.NV_OLD_COPY:  # the old record comes back; the node restarts from it
             c, older, lost = w.clients[i], w.older[i], dict(w.lost_records)
             lost[step.node] = restored_ghost(lost.get(step.node, NOT_LOST), c, older)
@@ -390,7 +398,7 @@ class Model:
         old = w.clients[i]
         c, actions = rules.step(self.timing, old, event, 0)
         clients = (*w.clients[:i], c, *w.clients[i + 1 :])
-        if w.older and rules.persistent(old) != rules.persistent(c):
+        if w.older and not self.bounds.backups and rules.persistent(old) != rules.persistent(c):
             w = evolve(w, older=(*w.older[:i], old, *w.older[i + 1 :]))
         return self._out(evolve(w, clients=clients), actions)
 

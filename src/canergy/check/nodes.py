@@ -319,6 +319,8 @@ class NodeTable:
             event, side = POWER_LOSS, SESSION
         elif kind is K.NV_OLD_COPY:
             event, side = PowerLoss(arg), CLIENT
+        elif kind is K.NV_BACKUP:  # nothing is fed to a node: ``_apply`` copies the record
+            event, side = None, CHANNEL
         elif kind not in CHANNEL_KINDS:
             event = self.model.event(Step(kind, units=arg, commit=bool(arg), nonce=arg))
             side = SESSION if kind in SUPERVISOR_KINDS else CLIENT
@@ -358,6 +360,8 @@ class NodeTable:
         if b.old_copies and older != client:
             copies = range(OLD_COPY_NONCE + 1, OLD_COPY_NONCE + b.old_copies + 1)
             out += [(NO_KEY, K.NV_OLD_COPY, nonce) for nonce in copies]
+            if b.backups:
+                out.append((NO_KEY, K.NV_BACKUP, 0))
         return out
 
     def _forge_steps(self, session: int, client: int, n: int) -> list[Listed]:
@@ -399,6 +403,8 @@ class NodeTable:
             record = parts.objects[client]
             before = ghost or NOT_LOST
             ghost = LostRecord(max(record.credited, before.credited), record.spent + before.spent)
+        elif kind is K.NV_BACKUP:  # a copy of the record as it is now
+            older = client
         elif kind is K.NV_OLD_COPY:  # the old record comes back; the node restarts from it
             objects = parts.objects
             ghost = restored_ghost(ghost or NOT_LOST, objects[client], objects[older])
@@ -409,7 +415,7 @@ class NodeTable:
         elif side == CLIENT:
             old = client
             client, sent, persisted = parts.client_step(old, n, event)  # type: ignore[arg-type]
-            if older >= 0 and persisted:
+            if older >= 0 and persisted and not self.bounds.backups:
                 older = old
         if sent:
             flight = parts.add(flight, sent)

@@ -126,6 +126,7 @@ class Guards:
             K.DELIVER: self.always,
             K.SPEND: self.always,
             K.GIVE_BACK: self.always,
+            K.NV_BACKUP: self.always,
             K.LOSE: lose,
             K.DUPLICATE: duplicate,
             K.SUPERVISOR_TIMER: timer,

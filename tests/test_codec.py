@@ -72,7 +72,7 @@ def _frame(msg: Message) -> tuple[int, bytearray]:
         (0x705, b"\x05", {"extended": False}, DecodeErrorReason.FOREIGN),  # CANopen heartbeat
         (0x0CE00105, b"", {"extended": False}, DecodeErrorReason.FOREIGN),
         (0x18FEF100, bytes(8), {}, DecodeErrorReason.FOREIGN),
-        (0x0CE00F05, bytes(3), {}, DecodeErrorReason.UNKNOWN_TYPE),
+        (0x0CE00005, bytes(3), {}, DecodeErrorReason.UNKNOWN_TYPE),
         (0x0CE00100, bytes(8), {}, DecodeErrorReason.BAD_NODE),
         (0x0CE00185, bytes(8), {}, DecodeErrorReason.BAD_NODE),
         (*_frame(Ack(3, 1)), {"remote": True}, DecodeErrorReason.REMOTE_FRAME),

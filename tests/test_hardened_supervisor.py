@@ -20,6 +20,7 @@ from canergy.messages import (
     Admit,
     Commit,
     Committed,
+    Debit,
     Intention,
     Join,
     Return,
@@ -232,6 +233,7 @@ IGNORED = {
     (AC, Aborted),
     (ID, Timeout),
     (AC, Timeout),
+    *((p, e) for p in (ID, WA, AC, WC) for e in (Debit,)),  # the witnessed rules' frames
 }
 REFUSED = {(WA, Begin), (AC, Begin), (WC, Begin), (ID, Decide), (WA, Decide), (WC, Decide)}
 STATES = {ID: IDLE, WA: OPEN, AC: ACKED, WC: COMMITTING}
@@ -243,6 +245,7 @@ EVENTS = {
     Begin: Begin(TS),
     Decide: Decide(Decision.COMMIT),
     PowerLoss: POWER_LOSS,
+    Debit: Debit(3, 9, Debit.START, 4, 0),
 }
 
 

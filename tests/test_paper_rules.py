@@ -41,6 +41,7 @@ from canergy.messages import (
     Admit,
     Commit,
     Committed,
+    Debit,
     FinalAck,
     Intention,
     Join,
@@ -184,6 +185,7 @@ SUP_IGNORED = {
     (ID, ResponseTimeout),
     (AC, ResponseTimeout),
     *((p, Join) for p in (ID, WA, AC, WC, WS)),  # the paper has no re-provisioning
+    *((p, e) for p in (ID, WA, AC, WC, WS) for e in (Debit,)),  # nor witnessed records
 }
 SUP_REFUSED = {(p, Begin) for p in (WA, AC, WC, WS)} | {(p, Decide) for p in (ID, WA, WC, WS)}
 SUP_STATES = {ID: IDLE, WA: OPEN, AC: ACKED, WC: WAITING, WS: ASKED}
@@ -195,6 +197,7 @@ SUP_EVENTS = {
     Begin: Begin(1000),
     Decide: Decide(Decision.ABORT),
     Join: Join(1, 7),
+    Debit: Debit(3, 9, Debit.START, 4, 0),
 }
 
 # -- client ----------------------------------------------------------------------------------

@@ -24,6 +24,7 @@ from canergy.messages import (
     Admit,
     Commit,
     Committed,
+    Debit,
     Direction,
     FinalAck,
     Intention,
@@ -128,6 +129,21 @@ def _return_fields(m: Message) -> tuple[int, ...]:
     return (m.seq, m.amount_mj)
 
 
+def _debit_fields(m: Message) -> tuple[int, ...]:
+    assert isinstance(m, Debit)
+    return (m.nonce, m.flags, m.seq, m.amount_mj)
+
+
+def _debit_build(node: int, f: tuple[int, ...]) -> Message:
+    """A draw carries a non-zero amount and no nonce; a resume may carry none. No other flags."""
+    msg = Debit(node, f[0], f[1], f[2], f[3])
+    if msg.flags & ~(Debit.DRAW | Debit.START) or (
+        not msg.is_resume and (msg.flags != Debit.DRAW or not msg.amount_mj or msg.nonce)
+    ):
+        raise DecodeError(DecodeErrorReason.OUT_OF_RANGE, f"not a draw nor a resume: {msg}")
+    return msg
+
+
 LAYOUTS: dict[MsgType, _Layout] = {
     MsgType.INTENTION: _Layout(struct.Struct("<HHHB"), _int_fields, _int_build, True),
     MsgType.COMMIT: _tx_amount(Commit),
@@ -147,6 +163,7 @@ LAYOUTS: dict[MsgType, _Layout] = {
         struct.Struct("<HHH"), _admit_fields, lambda n, f: Admit(n, f[0], f[1], f[2]), False
     ),
     MsgType.JOIN: _Layout(struct.Struct("<H"), _join_fields, lambda n, f: Join(n, f[0]), False),
+    MsgType.DEBIT: _Layout(struct.Struct("<HBHH"), _debit_fields, _debit_build, False),
     MsgType.TELEMETRY: _Layout(
         struct.Struct("<HBBHB"),
         _telemetry_fields,

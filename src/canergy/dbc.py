@@ -37,6 +37,12 @@ _SIGNALS: dict[MsgType, list[tuple[str, int, int, float, str]]] = {
     ],
     MsgType.JOIN: [("NONCE", 8, 16, 1, "")],
     MsgType.ADMIT: [("NONCE", 8, 16, 1, ""), ("TX", 24, 16, 1, ""), ("SEQ", 40, 16, 1, "")],
+    MsgType.DEBIT: [
+        ("NONCE", 8, 16, 1, ""),
+        ("DEBIT_FLAGS", 24, 8, 1, ""),
+        ("SEQ", 32, 16, 1, ""),
+        ("AMOUNT", 48, 16, 0.001, "J"),
+    ],
 }
 assert QUANTUM_UJ == 1000  # the 0.001 J scale above is one wire quantum
 
@@ -50,7 +56,8 @@ _COMMENTS = {
     "FLAGS": "bit 0: level low; bit 1: actuator halted; bit 2: no books, joining",
     "RETURN_SEQ": "the node's current return number (as its RETURN frames carry it)",
     "WITNESS": "frames the node saw in its own name that it did not send, modulo 256",
-    "NONCE": "random number drawn by a node that starts without books; ADMIT echoes it",
+    "NONCE": "random number drawn by a node at a start (JOIN, RESUME); ADMIT echoes it",
+    "DEBIT_FLAGS": "bit 0: a draw for the actuator (not a return); bit 1: the node's start",
     "FV": "freshness value: the full 32-bit tx (or return number, or nonce) the MAC covers",
     "MAC": "AES-128-CMAC over Data ID, FV and the classic data, truncated (SecOC-like)",
     "MSG_TYPE": "type code of the message this MAC frame authenticates",

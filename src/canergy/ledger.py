@@ -19,7 +19,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass, replace
 from typing import Any, NamedTuple
 
-from canergy.core.state import ClientState, Session, SupervisorState
+from canergy.core.state import ClientState, Phase, Session, SupervisorState
 from canergy.live.bus_keys import session_key
 
 
@@ -83,7 +83,14 @@ def node_overlap(s: Session, c: ClientState, lost: LostRecord = NOT_LOST) -> int
 
 
 def node_return_in_flight(s: Session, c: ClientState) -> int:
-    return c.return_pending if c.return_seq > s.returns_credited else 0
+    """The pending return not yet credited (a pending draw goes to nobody: it is not counted)."""
+    return c.return_pending if c.return_seq > s.returns_credited and not c.pending_draw else 0
+
+
+def node_usable(c: ClientState) -> int:
+    """What the node can use: nothing while its supervisor has not confirmed its books
+    (witnessed rules, RESUMING); they count from the moment they are confirmed."""
+    return 0 if c.phase is Phase.RESUMING else c.usable
 
 
 def ledger(
@@ -100,7 +107,7 @@ def ledger(
         injected=sup.injected,
         supervisor_usable=sup.usable,
         supervisor_reserved=sum(s.reserved for s, _ in pairs),
-        clients_usable=sum(c.usable for _, c in pairs),
+        clients_usable=sum(node_usable(c) for _, c in pairs),
         spent=sum(c.spent for _, c in pairs) + sum(r.spent for r in lost.values()),
         returns_in_flight=sum(node_return_in_flight(s, c) for s, c in pairs),
         overlap=sum(node_overlap(s, c, lost.get(s.node, NOT_LOST)) for s, c in pairs),

@@ -70,6 +70,7 @@ class MsgType(IntEnum):
     RETURN = 0xC
     TELEMETRY = 0xD  # moves no energy; the protocol's safety never depends on it
     JOIN = 0xE  # hardened: a node without a valid NV record asks to be admitted
+    DEBIT = 0xF  # witnessed: a numbered draw for the actuator, or a start's debit count (RESUME)
 
     @property
     def direction(self) -> Direction:
@@ -210,6 +211,35 @@ class Join:
 
 @fast_init
 @dataclass(frozen=True, slots=True)
+class Debit:
+    """DEBIT (witnessed rules), one of two kinds, acknowledged by RETURN_ACK(``seq``):
+
+    - a *draw* (``flags`` = ``DRAW``): the node debited ``amount_mj`` for its actuator as debit
+      number ``seq`` (the numbering RETURN uses); the actuator gets it only on the ack;
+    - a *resume* (``START`` set): the node started with books whose last debit number is
+      ``seq``, ``amount_mj`` of it still unacknowledged (0: none; a draw when ``DRAW`` is set);
+      it moves nothing until ADMIT(``nonce``) confirms them or finds them behind.
+    """
+
+    TYPE: ClassVar[MsgType] = MsgType.DEBIT
+    node: int
+    nonce: int
+    flags: int
+    seq: int
+    amount_mj: int
+
+    DRAW: ClassVar[int] = 0x01
+    """Flag: the amount is a draw for the actuator (credited to nobody), not a return."""
+    START: ClassVar[int] = 0x02
+    """Flag: the node's start (RESUME), not a draw."""
+
+    @property
+    def is_resume(self) -> bool:
+        return bool(self.flags & Debit.START)
+
+
+@fast_init
+@dataclass(frozen=True, slots=True)
 class Telemetry:
     """TELEMETRY: the client's usable level (24-bit mJ, saturating), status flags, its current
     return number (as its RETURN frames carry it) and how many frames it has seen in its own
@@ -238,7 +268,7 @@ WITNESS_BITS = 8
 NONCE_BITS = 16
 
 ToClient = Intention | Commit | Abort | ReturnAck | StatusRequest | FinalAck | Admit
-ToSupervisor = Ack | Committed | Aborted | Return | Join
+ToSupervisor = Ack | Committed | Aborted | Return | Join | Debit
 Message = ToClient | ToSupervisor | Telemetry
 
 MESSAGE_CLASSES: dict[MsgType, type[Message]] = {
@@ -257,5 +287,6 @@ MESSAGE_CLASSES: dict[MsgType, type[Message]] = {
         Return,
         Join,
         Telemetry,
+        Debit,
     )
 }

@@ -54,6 +54,7 @@ from canergy.messages import (
     Ack,
     Admit,
     Committed,
+    Debit,
     Direction,
     Join,
     Message,
@@ -333,13 +334,13 @@ def wire_half(msg: Message, fv: int) -> int:
 def freshness(msg: Message, tx: int, seq: int) -> int:
     """The FV of ``msg`` for a side whose own counters are ``tx`` and ``seq``: the wire's 16-bit
     counter extended next to them (serial-number arithmetic), 32 bits."""
-    if isinstance(msg, Join):
+    if isinstance(msg, Join) or (isinstance(msg, Debit) and msg.is_resume):
         return msg.nonce
     if isinstance(msg, Admit):  # the high half its counters share (for the supervisor: tx)
         return (tx >> 16 & 0xFFFF) << 16 | msg.nonce
     if isinstance(msg, Telemetry):
         return tx & FV_MASK
-    if isinstance(msg, Return | ReturnAck):
+    if isinstance(msg, Return | ReturnAck | Debit):  # a draw is numbered as a return
         return unwrap(msg.seq, seq, SEQ_BITS) & 0xFFFF_FFFF
     return unwrap(msg.tx, tx, TX_BITS) & 0xFFFF_FFFF
 
@@ -350,6 +351,6 @@ def expected_freshness(msg: Message, tx: int, seq: int) -> int:
     frame older than it is refused as stale; for TELEMETRY, the side's transaction ``tx``, the
     newest FV it takes (JOIN and ADMIT: the plain FV)."""
     fv = freshness(msg, tx, seq)
-    if isinstance(msg, Join | Admit):
+    if isinstance(msg, Join | Admit) or (isinstance(msg, Debit) and msg.is_resume):
         return fv
-    return Expected(fv, seq if isinstance(msg, Return | ReturnAck) else tx)
+    return Expected(fv, seq if isinstance(msg, Return | ReturnAck | Debit) else tx)

@@ -122,8 +122,12 @@ def check(
     v = get_variant(variant) if isinstance(variant, str) else variant
     b = bounds or Bounds()
     model = Model(v, b)
+    # the supervisor's old copy holds every session: it is not relabeled with the nodes
+    symmetry = symmetry and not b.supervisor_old_copies
     reducer = Reducer(b.clients, symmetry=symmetry, subsumption=subsumption)
     result = CheckResult(v.name, b, symmetry=reducer.symmetry, engine=engine)
+    if b.supervisor_old_copies and engine != "reference":
+        raise ValueError("the supervisor's old copies need the reference engine")
     if engine == "compact":
         return _check_compact(model, reducer, result, max_states, stop_at_first, progress, workers)
     if engine != "reference":

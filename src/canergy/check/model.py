@@ -25,6 +25,7 @@ from canergy.core.inputs import (
     BooksLost,
     Decide,
     GiveBack,
+    PowerLoss,
     Spend,
 )
 from canergy.core.state import ClientState, Decision, Phase, Session, SupervisorState
@@ -38,6 +39,12 @@ from canergy.ledger import NOT_LOST, Ledger, LostRecord, ledger
 from canergy.messages import QUANTUM_UJ, Direction, Message, ToClient, ToSupervisor
 
 UNIT = QUANTUM_UJ
+RESTART_NONCE = 0x100
+"""A client's n-th power loss of a run restarts it with nonce ``RESTART_NONCE + n``, and its n-th
+old copy with ``OLD_COPY_NONCE + n`` (JOIN nonces are 1, 2...): every start draws a nonce no
+earlier start drew, as a random 16-bit one does but for a chance of 2^-16 (rules that confirm a
+start, ``witnessed``, use it; the others ignore it)."""
+OLD_COPY_NONCE = 0x200
 Flight = frozenset[tuple[Message, int]]
 """The multiset of frames in flight as (message, copies): canonical without sorting."""
 
@@ -60,6 +67,12 @@ class Bounds:
     """Client starts with both NV slots unreadable (new, wiped or corrupted record)."""
     old_copies: int = 0
     """Client starts with its record replaced by the one before its last write."""
+    backups: bool = False
+    """With ``old_copies``: the old copy is a backup taken at any earlier moment (a step of its
+    own, ``client_nv_backup``), not the record before the node's last write."""
+    supervisor_old_copies: int = 0
+    """Supervisor starts from its state file as it was before its last write (a backup or a
+    snapshot put back; reference engine only)."""
     forgeries: int = 0
     """Frames a keyless attacker builds and sends (``attacker.forgeable``; the codec is public)."""
     replays: int = 0
@@ -89,6 +102,10 @@ class World:
     old_copied: int = 0
     older: tuple[ClientState, ...] = ()
     """Each client's state before its last record write (kept only when old copies are on)."""
+    sup_older: SupervisorState | None = None
+    """The supervisor's state before its last record write (kept only when its old copies are
+    on)."""
+    sup_old_copied: int = 0
     lost_records: tuple[tuple[int, LostRecord], ...] = ()
     """Nodes that lost their record, and what the observer saw it hold (for the ledger)."""
     forged: int = 0
@@ -132,6 +149,8 @@ class StepKind(Enum):
     SUPERVISOR_POWER_LOSS = "supervisor_power_loss"
     NV_LOST = "client_nv_lost"
     NV_OLD_COPY = "client_nv_old_copy"
+    NV_BACKUP = "client_nv_backup"
+    SUPERVISOR_OLD_COPY = "supervisor_old_copy"
     FORGE = "forge"
     REPLAY = "replay"
 
@@ -142,6 +161,8 @@ TIMER_KINDS = frozenset({K.SUPERVISOR_TIMER, K.COMMAND_TIMER, K.RETURN_TIMER})
 SUPERVISOR_KINDS = frozenset({K.BEGIN, K.DECIDE, K.SUPERVISOR_TIMER})
 POWER_LOSS_KINDS = frozenset({K.CLIENT_POWER_LOSS, K.SUPERVISOR_POWER_LOSS})
 ATTACKER_KINDS = frozenset({K.FORGE, K.REPLAY})
+REFERENCE_ONLY_KINDS = frozenset({K.SUPERVISOR_OLD_COPY})
+"""Steps the compact engine does not take (``check`` refuses their bounds there)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -173,7 +194,13 @@ def initial_world(bounds: Bounds) -> World:
     total = bounds.units * UNIT
     sup = SupervisorState(total, total, 0, tuple(Session(n) for n in nodes))
     clients = tuple(ClientState(n) for n in nodes)
-    return World(sup, clients, frozenset(), older=clients if bounds.old_copies else ())
+    return World(
+        sup,
+        clients,
+        frozenset(),
+        older=clients if bounds.old_copies else (),
+        sup_older=sup if bounds.supervisor_old_copies else None,
+    )
 
 
 class Model:
@@ -209,18 +236,22 @@ class Model:
                 yield Step(K.COMMAND_TIMER, c.node)
             if c.return_deadline is not None and may_time_out:
                 yield Step(K.RETURN_TIMER, c.node)
-            if b.spending and c.usable >= UNIT:
+            if b.spending and c.usable >= UNIT and self.variant.client.can_spend(c):
                 yield Step(K.SPEND, c.node)
             if b.returns and c.usable >= UNIT and self.variant.client.can_give_back(c):
                 yield Step(K.GIVE_BACK, c.node)
             if may_lose_power:
-                yield Step(K.CLIENT_POWER_LOSS, c.node)
+                yield Step(K.CLIENT_POWER_LOSS, c.node, nonce=RESTART_NONCE + w.power_lost + 1)
             if w.nv_lost < b.nv_losses:
                 yield Step(K.NV_LOST, c.node, nonce=w.nv_lost + 1)
             if w.old_copied < b.old_copies and w.older[c.node - 1] != c:
-                yield Step(K.NV_OLD_COPY, c.node)
+                yield Step(K.NV_OLD_COPY, c.node, nonce=OLD_COPY_NONCE + w.old_copied + 1)
+            if b.backups and b.old_copies and w.older[c.node - 1] != c:
+                yield Step(K.NV_BACKUP, c.node)
         if may_lose_power:
             yield Step(K.SUPERVISOR_POWER_LOSS)
+        if w.sup_old_copied < b.supervisor_old_copies and w.sup_older not in (None, w.sup):
+            yield Step(K.SUPERVISOR_OLD_COPY)
         if w.forged < b.forgeries:
             for msg in forgeable(self.variant, w.sup.sessions, w.clients, b.units):
                 yield Step(K.FORGE, message=msg)
@@ -251,6 +282,8 @@ class Model:
             return evolve(w, nv_lost=w.nv_lost + 1)  # the ghost Rc is kept in _apply
         if kind is K.NV_OLD_COPY:
             return evolve(w, old_copied=w.old_copied + 1)
+        if kind is K.SUPERVISOR_OLD_COPY:
+            return evolve(w, sup_old_copied=w.sup_old_copied + 1)
         if kind is K.FORGE:
             return evolve(w, forged=w.forged + 1)
         if kind is K.REPLAY:
@@ -263,7 +296,9 @@ class Model:
             return self._channel(w, step)
         if step.kind in ATTACKER_KINDS:
             return self._attack(w, step)
-        if step.kind is K.SUPERVISOR_POWER_LOSS:
+        if step.kind is K.SUPERVISOR_OLD_COPY and w.sup_older is not None:
+            w = evolve(w, sup=w.sup_older)  # the old state file comes back; it restarts from it
+        if step.kind in (K.SUPERVISOR_POWER_LOSS, K.SUPERVISOR_OLD_COPY):
             for i in range(len(w.sup.sessions)):
                 w = self.restart_session(w, i)
             return w
@@ -273,9 +308,14 @@ class Model:
             before = lost.get(step.node, NOT_LOST)
             lost[step.node] = LostRecord(max(c.credited, before.credited), c.spent + before.spent)
             w = evolve(w, lost_records=tuple(sorted(lost.items())))
+        if step.kind is K.NV_BACKUP:  # a copy of the record as it is now
+            return evolve(w, older=(*w.older[:i], w.clients[i], *w.older[i + 1 :]))
         if step.kind is K.NV_OLD_COPY:  # the old record comes back; the node restarts from it
-            clients = (*w.clients[:i], w.older[i], *w.clients[i + 1 :])
-            return self._to_client(evolve(w, clients=clients), i, POWER_LOSS)
+            c, older, lost = w.clients[i], w.older[i], dict(w.lost_records)
+            lost[step.node] = restored_ghost(lost.get(step.node, NOT_LOST), c, older)
+            clients = (*w.clients[:i], older, *w.clients[i + 1 :])
+            w = evolve(w, clients=clients, lost_records=tuple(sorted(lost.items())))
+            return self._to_client(w, i, PowerLoss(step.nonce))
         if step.kind in SUPERVISOR_KINDS:
             return self._to_session(w, i, self.event(step))
         return self._to_client(w, i, self.event(step))
@@ -294,6 +334,8 @@ class Model:
             return GiveBack(UNIT)
         if kind is K.NV_LOST:
             return BooksLost(step.nonce)
+        if kind is K.CLIENT_POWER_LOSS:
+            return PowerLoss(step.nonce)
         return _DATALESS[kind]
 
     def _channel(self, w: World, step: Step) -> World | None:
@@ -342,7 +384,13 @@ class Model:
         return self._to_session(w, i, POWER_LOSS)
 
     def _to_session(self, w: World, i: int, event: Event) -> World:
-        step = self.variant.supervisor.step(self.timing, w.sup.sessions[i], event, 0)
+        rules = self.variant.supervisor
+        old = w.sup.sessions[i]
+        step = rules.step(self.timing, old, event, 0)
+        if w.sup_older is not None and (
+            step.credit or rules.persistent(old) != rules.persistent(step.session)
+        ):
+            w = evolve(w, sup_older=w.sup)
         return self._out(evolve(w, sup=apply_session(w.sup, i, step)), step.actions)
 
     def _to_client(self, w: World, i: int, event: Event) -> World:
@@ -350,7 +398,7 @@ class Model:
         old = w.clients[i]
         c, actions = rules.step(self.timing, old, event, 0)
         clients = (*w.clients[:i], c, *w.clients[i + 1 :])
-        if w.older and rules.persistent(old) != rules.persistent(c):
+        if w.older and not self.bounds.backups and rules.persistent(old) != rules.persistent(c):
             w = evolve(w, older=(*w.older[:i], old, *w.older[i + 1 :]))
         return self._out(evolve(w, clients=clients), actions)
 
@@ -370,9 +418,14 @@ _DATALESS: dict[StepKind, Event] = {
     K.SUPERVISOR_TIMER: RESPONSE_TIMEOUT,
     K.COMMAND_TIMER: COMMAND_TIMEOUT,
     K.RETURN_TIMER: RETURN_TIMEOUT,
-    K.CLIENT_POWER_LOSS: POWER_LOSS,
 }
 """The events of steps that carry no data."""
+
+
+def restored_ghost(before: LostRecord, c: ClientState, older: ClientState) -> LostRecord:
+    """What the observer keeps when a node's record is replaced by an older copy: the largest
+    Rc seen, and what the actuator used after the copy was written (the copy forgets it)."""
+    return LostRecord(max(c.credited, before.credited), before.spent + c.spent - older.spent)
 
 
 def _flight_key(item: tuple[Message, int]) -> tuple[int, str]:

@@ -22,6 +22,8 @@ from canergy.check.attacker import forgeable
 from canergy.check.model import (
     ATTACKER_KINDS,
     CHANNEL_KINDS,
+    OLD_COPY_NONCE,
+    RESTART_NONCE,
     SUPERVISOR_KINDS,
     UNIT,
     Model,
@@ -29,6 +31,7 @@ from canergy.check.model import (
     StepKind,
     World,
     message_key,
+    restored_ghost,
 )
 from canergy.check.packed import NODE_BITS, Guards, Layout
 from canergy.check.parts import Parts
@@ -40,7 +43,7 @@ from canergy.check.reduce import (
     seen_key,
     signature,
 )
-from canergy.core.inputs import POWER_LOSS
+from canergy.core.inputs import POWER_LOSS, PowerLoss
 from canergy.core.state import ClientState, Phase, SupervisorState
 from canergy.core.table import Event
 from canergy.ledger import NOT_LOST, LostRecord
@@ -248,7 +251,7 @@ class NodeTable:
     def world(self, usable: int, nodes: list[int], counted: tuple[int, ...]) -> World:
         """The reference model's world with these contents at these positions."""
         xs = [self.objects(c, p + 1) for p, c in enumerate(nodes)]
-        started, lost, dup, power, timed, nv, old, forged, replayed = counted
+        started, lost, dup, power, timed, nv, old, forged, replayed, _ = counted  # no sup copy
         return World(
             SupervisorState(self.total, usable, 0, tuple(x.session for x in xs)),
             tuple(x.client for x in xs),
@@ -312,9 +315,12 @@ class NodeTable:
         if kind is K.DELIVER or kind in ATTACKER_KINDS:
             event = arg
             side = CLIENT if self.parts.to_client(arg) else SESSION
-        elif kind is K.SUPERVISOR_POWER_LOSS or kind is K.NV_OLD_COPY:
-            event = POWER_LOSS
-            side = SESSION if kind is K.SUPERVISOR_POWER_LOSS else CLIENT
+        elif kind is K.SUPERVISOR_POWER_LOSS:
+            event, side = POWER_LOSS, SESSION
+        elif kind is K.NV_OLD_COPY:
+            event, side = PowerLoss(arg), CLIENT
+        elif kind is K.NV_BACKUP:  # nothing is fed to a node: ``_apply`` copies the record
+            event, side = None, CHANNEL
         elif kind not in CHANNEL_KINDS:
             event = self.model.event(Step(kind, units=arg, commit=bool(arg), nonce=arg))
             side = SESSION if kind in SUPERVISOR_KINDS else CLIENT
@@ -344,14 +350,18 @@ class NodeTable:
             out.append((NO_KEY, K.COMMAND_TIMER, 0))
         if c.return_deadline is not None:
             out.append((NO_KEY, K.RETURN_TIMER, 0))
-        if b.spending and c.usable >= UNIT:
+        if b.spending and c.usable >= UNIT and self.model.variant.client.can_spend(c):
             out.append((NO_KEY, K.SPEND, 0))
         if b.returns and c.usable >= UNIT and self.model.variant.client.can_give_back(c):
             out.append((NO_KEY, K.GIVE_BACK, 0))
-        out.append((NO_KEY, K.CLIENT_POWER_LOSS, 0))
+        restarts = range(RESTART_NONCE + 1, RESTART_NONCE + b.power_losses + 1)
+        out += [(NO_KEY, K.CLIENT_POWER_LOSS, nonce) for nonce in restarts]
         out += [(NO_KEY, K.NV_LOST, nonce) for nonce in range(1, b.nv_losses + 1)]
         if b.old_copies and older != client:
-            out.append((NO_KEY, K.NV_OLD_COPY, 0))
+            copies = range(OLD_COPY_NONCE + 1, OLD_COPY_NONCE + b.old_copies + 1)
+            out += [(NO_KEY, K.NV_OLD_COPY, nonce) for nonce in copies]
+            if b.backups:
+                out.append((NO_KEY, K.NV_BACKUP, 0))
         return out
 
     def _forge_steps(self, session: int, client: int, n: int) -> list[Listed]:
@@ -393,7 +403,11 @@ class NodeTable:
             record = parts.objects[client]
             before = ghost or NOT_LOST
             ghost = LostRecord(max(record.credited, before.credited), record.spent + before.spent)
+        elif kind is K.NV_BACKUP:  # a copy of the record as it is now
+            older = client
         elif kind is K.NV_OLD_COPY:  # the old record comes back; the node restarts from it
+            objects = parts.objects
+            ghost = restored_ghost(ghost or NOT_LOST, objects[client], objects[older])
             client = older
         assert event is not None or side == CHANNEL
         if side == SESSION:
@@ -401,7 +415,7 @@ class NodeTable:
         elif side == CLIENT:
             old = client
             client, sent, persisted = parts.client_step(old, n, event)  # type: ignore[arg-type]
-            if older >= 0 and persisted:
+            if older >= 0 and persisted and not self.bounds.backups:
                 older = old
         if sent:
             flight = parts.add(flight, sent)

@@ -12,7 +12,16 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from canergy.check.model import UNIT, Bounds, Model, StepKind, World, initial_world
+from canergy.check.model import (
+    OLD_COPY_NONCE,
+    RESTART_NONCE,
+    UNIT,
+    Bounds,
+    Model,
+    StepKind,
+    World,
+    initial_world,
+)
 from canergy.check.reduce import counters
 
 if TYPE_CHECKING:
@@ -37,6 +46,7 @@ class Layout:
             bounds.old_copies,
             bounds.forgeries,
             bounds.replays,
+            bounds.supervisor_old_copies,  # 0 here: the compact engine does not take them
         )
         self.offsets: list[int] = []
         self.widths: list[int] = []
@@ -106,13 +116,17 @@ class Guards:
         # 0: always; 1..units: a BEGIN of that many units; then one per budget; then NV losses.
         lose, duplicate, timer, power, old_copy, forge, replay = range(units + 1, units + 8)
         self._nv = units + 7
-        self.size = self._nv + bounds.nv_losses + 1
+        # then one per client restart nonce (the power loss or old copy it is the next one of)
+        self._restart = self._nv + bounds.nv_losses + 1
+        self._old_copy = self._restart + bounds.power_losses
+        self.size = self._old_copy + bounds.old_copies
         self.power = power
         self._by_kind = {
             K.DECIDE: self.always,
             K.DELIVER: self.always,
             K.SPEND: self.always,
             K.GIVE_BACK: self.always,
+            K.NV_BACKUP: self.always,
             K.LOSE: lose,
             K.DUPLICATE: duplicate,
             K.SUPERVISOR_TIMER: timer,
@@ -133,6 +147,10 @@ class Guards:
             return arg
         if kind is K.NV_LOST:
             return self._nv + arg
+        if kind is K.CLIENT_POWER_LOSS:
+            return self._restart + arg - RESTART_NONCE - 1
+        if kind is K.NV_OLD_COPY:
+            return self._old_copy + arg - OLD_COPY_NONCE - 1
         return self._by_kind[kind]
 
     def table(self, packed: int, usable: int, room: bool) -> tuple[bool, ...]:
@@ -143,7 +161,7 @@ class Guards:
         if table is None:
             b = self.bounds
             cap = min(max(usable // UNIT, 0), b.units)
-            started, lost, dup, power, timed, nv, old, forged, replayed = (
+            started, lost, dup, power, timed, nv, old, forged, replayed, _ = (
                 self.layout.unpack_counters(packed)
             )
             k = self._by_kind
@@ -160,6 +178,10 @@ class Guards:
             ok[k[K.REPLAY]] = replayed < b.replays
             for nonce in range(1, b.nv_losses + 1):
                 ok[self._nv + nonce] = nv == nonce - 1
+            for n in range(b.power_losses):
+                ok[self._restart + n] = power == n
+            for n in range(b.old_copies):
+                ok[self._old_copy + n] = old == n
             table = self._tables[key] = tuple(ok)
         return table
 

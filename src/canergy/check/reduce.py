@@ -24,7 +24,7 @@ from canergy.ledger import LostRecord
 from canergy.messages import Message
 
 T = TypeVar("T")
-Counters = tuple[int, int, int, int, int, int, int, int, int]
+Counters = tuple[int, int, int, int, int, int, int, int, int, int]
 Perm = tuple[int, ...]
 
 
@@ -39,6 +39,7 @@ def counters(w: World) -> Counters:
         w.old_copied,
         w.forged,
         w.replayed,
+        w.sup_old_copied,
     )
 
 
@@ -227,6 +228,7 @@ class Reducer:
             timed_out=0,
             nv_lost=0,
             old_copied=0,
+            sup_old_copied=0,
             forged=0,
             replayed=0,
             seen=frozenset(),

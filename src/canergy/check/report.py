@@ -15,6 +15,8 @@ def format_summary(r: CheckResult) -> str:
         + ("" if b.timeouts is None else f", timeouts {b.timeouts}")
         + (f", NV losses {b.nv_losses}" if b.nv_losses else "")
         + (f", old copies {b.old_copies}" if b.old_copies else "")
+        + (" (backups taken at any moment)" if b.backups and b.old_copies else "")
+        + (f", supervisor old copies {b.supervisor_old_copies}" if b.supervisor_old_copies else "")
         + (f", forgeries {b.forgeries}" if b.forgeries else "")
         + (f", replays {b.replays}" if b.replays else "")
     )

@@ -80,6 +80,19 @@ def _bound_flags(p: argparse.ArgumentParser, d: Any, chain_in_flight: int) -> No
         "default 0)",
     )
     p.add_argument(
+        "--backups",
+        action="store_true",
+        help="with --old-copies: the old copy is a backup taken at any earlier moment (a step "
+        "of its own), not the record before the node's last write",
+    )
+    p.add_argument(
+        "--supervisor-old-copies",
+        type=count,
+        default=d.supervisor_old_copies,
+        help="supervisor starts from its state as it was before its last write (a backup put "
+        "back; needs --engine reference; default 0)",
+    )
+    p.add_argument(
         "--forgeries",
         type=count,
         default=d.forgeries,
@@ -190,6 +203,8 @@ _NOT_IN_CHAIN = (
     "workers",
     "nv_losses",
     "old_copies",
+    "backups",
+    "supervisor_old_copies",
     "forgeries",
     "replays",
     "timeouts",
@@ -256,6 +271,8 @@ def run(args: argparse.Namespace) -> int:
         power_losses=args.power_losses,
         nv_losses=args.nv_losses,
         old_copies=args.old_copies,
+        backups=args.backups,
+        supervisor_old_copies=args.supervisor_old_copies,
         forgeries=args.forgeries,
         replays=args.replays,
         in_flight=args.in_flight or Bounds().in_flight,

@@ -15,7 +15,7 @@ from canergy.argtypes import (
     probability,
     seed,
 )
-from canergy.core.variants import VARIANTS
+from canergy.core.variants import RUNNABLE
 from canergy.messages import MAX_NODE
 from canergy.units import UJ_PER_J, US_PER_S
 
@@ -71,7 +71,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         type=energy,
         help="the (root) supervisor's initial usable budget (default 10J; --topology tree: 30J)",
     )
-    p.add_argument("--variant", choices=sorted(VARIANTS), default="hardened")
+    p.add_argument("--variant", choices=sorted(RUNNABLE), default="hardened")
     p.add_argument("--loss", type=probability, default=0.1, help="frame loss probability")
     p.add_argument(
         "--duplicate", type=probability, default=0.05, help="frame duplication probability"

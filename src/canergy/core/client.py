@@ -9,6 +9,7 @@ from canergy.core.inputs import (
     RETURN_TIMEOUT,
     BooksLost,
     GiveBack,
+    PowerLoss,
     Spend,
 )
 from canergy.core.state import ClientState
@@ -69,9 +70,15 @@ class Client:
     def can_give_back(self) -> bool:
         return self.rules.can_give_back(self.state)
 
-    def power_loss(self, now: int) -> None:
-        """Lose volatile state and restart from the non-volatile record."""
-        self._step(POWER_LOSS, now)
+    def can_spend(self) -> bool:
+        """Whether the rules let the actuator spend now (witnessed: no debit waiting, books
+        confirmed); the amount is the budget's to guard."""
+        return self.rules.can_spend(self.state)
+
+    def power_loss(self, now: int, nonce: int | None = None) -> list[Action]:
+        """Lose volatile state and restart from the non-volatile record; ``nonce``: a fresh
+        random 16-bit number for rules that confirm every start (witnessed: RESUME is sent)."""
+        return self._step(POWER_LOSS if nonce is None else PowerLoss(nonce & 0xFFFF), now)
 
     def books_lost(self, nonce: int, now: int) -> list[Action]:
         """Started without a valid NV record; ``nonce``: a fresh random 16-bit number. The

@@ -133,8 +133,18 @@ def admit(t: Timing, s: Session, msg: Join, now: int) -> SessionStep:
     The wire carries the counters' low 16 bits; both counters first move up to the same high
     part (never back), which authenticated mode sends in the ADMIT's FV, so that a node
     admitted past transaction 65,535 starts from the supervisor's full counters."""
+    step = write_off_and_lift(s)
+    s = step.session
+    answer = Admit(s.node, msg.nonce, wire_tx(s.tx), wrap(s.returns_credited, SEQ_BITS))
+    admitted = Admitted(s.node, s.tx, s.returns_credited)
+    return SessionStep(s, (*step.actions, admitted, Send(answer)))
+
+
+def write_off_and_lift(s: Session) -> SessionStep:
+    """Write off the open transaction (the node may have committed it before it lost its books)
+    and move both counters up to the same high part above their wire bits (never back)."""
     step = SessionStep(s)
-    if s.phase is not IDLE:  # the node may have committed it before it lost its books
+    if s.phase is not IDLE:
         step = resolve(s, Outcome.WRITTEN_OFF)
     s = step.session
     high = max(s.tx >> TX_BITS, s.returns_credited >> SEQ_BITS)
@@ -143,9 +153,7 @@ def admit(t: Timing, s: Session, msg: Join, now: int) -> SessionStep:
         tx=high << TX_BITS | wire_tx(s.tx),
         returns_credited=high << SEQ_BITS | wrap(s.returns_credited, SEQ_BITS),
     )
-    answer = Admit(s.node, msg.nonce, wire_tx(s.tx), wrap(s.returns_credited, SEQ_BITS))
-    admitted = Admitted(s.node, s.tx, s.returns_credited)
-    return SessionStep(s, (*step.actions, admitted, Send(answer)))
+    return SessionStep(s, step.actions, step.credit)
 
 
 def restart_session(t: Timing, s: Session, event: PowerLoss, now: int) -> SessionStep:

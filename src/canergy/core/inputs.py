@@ -76,9 +76,11 @@ class GiveBack:
 @fast_init
 @dataclass(frozen=True, slots=True)
 class PowerLoss:
-    """Either side: volatile memory is lost; restart from the persistent record."""
+    """Either side: volatile memory is lost; restart from the persistent record. ``nonce``: a
+    fresh random number for a client whose rules confirm every start (witnessed)."""
 
     NAME: ClassVar[str] = "power loss"
+    nonce: int = 0
 
 
 @fast_init

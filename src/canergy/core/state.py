@@ -19,6 +19,7 @@ class Phase(IntEnum):
     AWAIT_COMMAND = 5  # client (paper): intention acknowledged
     AWAIT_SUPERVISOR = 6  # client (paper): committed or aborted, awaiting the final ACK
     JOINING = 7  # client (hardened): no valid record; JOIN sent, awaiting ADMIT
+    RESUMING = 8  # client (witnessed): started with a record; RESUME sent, awaiting ADMIT
 
 
 class Decision(IntEnum):
@@ -45,7 +46,8 @@ class Session:
     ``reserved`` is Ts; ``delivered`` is Gs, all energy that left the supervisor's books for this
     node (committed, written off, or in the paper variant lost with a reset).
     ``returns_credited`` is the number of the last RETURN credited. ``tries`` and ``deadline``
-    are volatile.
+    are volatile. Witnessed rules: ``resume_*`` is the last RESUME answered (its nonce, the
+    node's debit number and the number it voided), so that a re-sent copy gets the same answer.
     """
 
     node: int
@@ -58,6 +60,9 @@ class Session:
     returned: int = 0
     tries: int = 0
     deadline: int | None = None
+    resume_nonce: int = 0
+    resume_from: int = 0
+    resume_to: int = 0
 
 
 @fast_init
@@ -81,8 +86,9 @@ class ClientState:
     ``credited`` is Rc, all energy ever added to ``usable`` by the protocol (commits, write-off
     paybacks; paper: minus roll-backs). ``last_tx``/``outcome`` is the last transaction resolved
     or settled. ``credited_unknown``: admitted without books, Rc is taken from the next fresh
-    intention. ``held_*``, ``phase``, ``nonce`` (of the pending JOIN), ``timeout_commit`` and the
-    deadlines are volatile.
+    intention. ``held_*``, ``phase``, ``nonce`` (of the pending JOIN or RESUME),
+    ``timeout_commit`` and the deadlines are volatile. ``pending_draw`` (witnessed rules): the
+    pending debit is a draw for the actuator, not a return.
     """
 
     node: int
@@ -101,3 +107,4 @@ class ClientState:
     nonce: int = 0
     deadline: int | None = None
     return_deadline: int | None = None
+    pending_draw: bool = False

@@ -37,6 +37,7 @@ from canergy.messages import (
     Admit,
     Commit,
     Committed,
+    Debit,
     FinalAck,
     Intention,
     Join,
@@ -70,6 +71,7 @@ EVENTS: dict[Role, tuple[type, ...]] = {
         Aborted,
         Return,
         Join,
+        Debit,
         ResponseTimeout,
         PowerLoss,
     ),
@@ -230,8 +232,14 @@ class SupervisorTable(RuleTable[Session, SessionStep]):
     role = Role.SUPERVISOR
 
 
+def always(c: ClientState) -> bool:
+    """No guard: the actuator may spend whenever the budget holds it."""
+    return True
+
+
 class ClientTable(RuleTable[ClientState, ClientStep]):
-    """A client's rules, plus the guard the application asks before it gives energy back."""
+    """A client's rules, plus the guards the application asks before it gives energy back and
+    before it spends."""
 
     role = Role.CLIENT
 
@@ -242,9 +250,13 @@ class ClientTable(RuleTable[ClientState, ClientStep]):
         cells: Iterable[Cell],
         persistent: Callable[[ClientState], tuple[object, ...]],
         can_give_back: Callable[[ClientState], bool],
+        can_spend: Callable[[ClientState], bool] = always,
     ) -> None:
         super().__init__(variant, phases, cells, persistent)
         self.can_give_back = can_give_back
+        self.can_spend = can_spend
 
     def _with_cells(self, cells: list[Cell]) -> Self:
-        return type(self)(self.variant, self.phases, cells, self.persistent, self.can_give_back)
+        return type(self)(
+            self.variant, self.phases, cells, self.persistent, self.can_give_back, self.can_spend
+        )

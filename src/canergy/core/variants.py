@@ -1,11 +1,12 @@
-"""The rule sets by name: ``hardened`` (default, H1) and ``paper`` (literal Figs. 3-4)."""
+"""The rule sets by name: ``hardened`` (default, H1), ``paper`` (literal Figs. 3-4) and
+``witnessed`` (H1 with node records the supervisor witnesses: older copies found out)."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from canergy.core import hardened, paper
+from canergy.core import hardened, paper, witnessed
 from canergy.core.table import ClientTable, SupervisorTable
 
 
@@ -21,7 +22,12 @@ class Variant:
 VARIANTS: dict[str, Variant] = {
     "hardened": Variant("hardened", hardened.SUPERVISOR, hardened.CLIENT),
     "paper": Variant("paper", paper.SUPERVISOR, paper.CLIENT),
+    "witnessed": Variant("witnessed", witnessed.SUPERVISOR, witnessed.CLIENT),
 }
+RUNNABLE: dict[str, Variant] = {name: VARIANTS[name] for name in ("hardened", "paper")}
+"""What the demo, the simulator and the live service run. ``witnessed`` is for the checker and
+the rules reference only: its actuator spends in acknowledged whole-millijoule draws, which no
+live node, emulator or C port does yet."""
 
 
 def get_variant(

@@ -11,6 +11,7 @@ from canergy.codec import Codec, DecodeError, DecodeErrorReason
 from canergy.messages import (
     QUANTUM_UJ,
     Admit,
+    Debit,
     Direction,
     Join,
     Message,
@@ -47,7 +48,9 @@ class Described:
         m = self.message
         if m is None or isinstance(m, Telemetry):
             return None
-        if isinstance(m, Return | ReturnAck):
+        if isinstance(m, Debit) and m.is_resume:
+            return (m.node, "join", m.nonce)
+        if isinstance(m, Return | ReturnAck | Debit):
             return (m.node, "return", m.seq)
         if isinstance(m, Join | Admit):
             return (m.node, "join", m.nonce)

@@ -17,14 +17,14 @@ from typing import Any
 from canergy.codec import Codec, DecodeError
 from canergy.core import Acknowledged, Action, Client, Resolved, Send, Supervisor, Timing
 from canergy.core.state import Outcome, Phase
-from canergy.core.variants import VARIANTS, Variant, get_variant
+from canergy.core.variants import RUNNABLE, Variant, get_variant
 from canergy.ledger import ledger
 from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Direction, Message, ToClient, ToSupervisor
 from canergy.sim.channel import PRESETS, Channel, ChannelModel
 from canergy.sim.naive import NAIVE
 from canergy.units import UJ_PER_J
 
-STRATEGIES: dict[str, Variant] = {**VARIANTS, **NAIVE}
+STRATEGIES: dict[str, Variant] = {**RUNNABLE, **NAIVE}
 SUP = 0
 
 

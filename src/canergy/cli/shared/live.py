@@ -15,7 +15,7 @@ from canergy.ccore.supervisor import make_supervisor, missing
 from canergy.codec import Codec
 from canergy.core import Timing
 from canergy.core.supervisor import SupervisorCore
-from canergy.core.variants import VARIANTS
+from canergy.core.variants import RUNNABLE
 from canergy.live.atomic import check_writable_dir, same_file
 from canergy.live.bus_args import add_bus_flags
 from canergy.live.control import check_control_path
@@ -37,7 +37,7 @@ ROOM = f"{joules(USABLE_MAX_UJ)} (what a node's record holds) minus --max-grant"
 
 def supervisor_flags(p: argparse.ArgumentParser) -> None:
     add_bus_flags(p)
-    p.add_argument("--variant", choices=sorted(VARIANTS), default="hardened")
+    p.add_argument("--variant", choices=sorted(RUNNABLE), default="hardened")
     p.add_argument("--initial", type=energy, default=10 * UJ_PER_J, help="budget of a new state")
     p.add_argument(
         "--core",

@@ -1,0 +1,266 @@
+"""The witnessed rules: the hardened rules (H1) with a node record that its supervisor witnesses.
+
+A node's record put back from an older copy is a valid record; only the supervisor, who saw what
+came after it, can tell that it is old. So every debit of the node's budget is numbered and held
+by the supervisor before it takes effect (a return as before, and now a *draw* for the actuator,
+which the actuator gets only once the supervisor has acknowledged it), and every start of the
+node is confirmed by the supervisor before the node moves energy: RESUME(n, q) carries the
+node's last debit number, and a node behind the supervisor's count is admitted afresh, as one
+without books. ``docs/protocol.md`` ("Records restored from older copies") argues it; the
+bounded checker checks it (``canergy check --variant witnessed --old-copies 1``).
+"""
+
+from __future__ import annotations
+
+from canergy.core import hardened as h
+from canergy.core.actions import Admitted, ReturnCredited, Send
+from canergy.core.common import check_amount, resolve, start_return, wire_tx
+from canergy.core.errors import LocalProtocolError
+from canergy.core.inputs import (
+    RETURN_TIMEOUT,
+    BooksLost,
+    CommandTimeout,
+    GiveBack,
+    PowerLoss,
+    ReturnTimeout,
+    Spend,
+)
+from canergy.core.state import ClientState, Outcome, Phase, Session
+from canergy.core.steps import ClientStep, SessionStep
+from canergy.core.table import ANY, STAY, ClientTable, SupervisorTable, cell
+from canergy.core.timing import Timing
+from canergy.frozen import evolve
+from canergy.messages import (
+    QUANTUM_UJ,
+    SEQ_BITS,
+    TX_BITS,
+    Abort,
+    Admit,
+    Commit,
+    Debit,
+    Intention,
+    ReturnAck,
+)
+from canergy.seqnum import unwrap, wrap
+
+IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM = Phase.IDLE, Phase.WAIT_ACK, Phase.ACKED, Phase.WAIT_CONFIRM
+HOLDING, JOINING, RESUMING = Phase.AWAIT_COMMAND, Phase.JOINING, Phase.RESUMING
+
+# -- supervisor, per node --------------------------------------------------------------------
+
+
+def on_debit(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
+    """DEBIT: a draw is held as the node's last debit; a resume confirms the node's start."""
+    return confirm(t, s, msg, now) if msg.is_resume else hold_draw(t, s, msg, now)
+
+
+def hold_draw(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
+    """DRAW(q, x): hold q as the node's last debit and ack it (nothing to Us); re-ack an old q."""
+    seq = unwrap(msg.seq, s.returns_credited, SEQ_BITS)
+    ack = (Send(ReturnAck(s.node, msg.seq)),)
+    if seq == s.returns_credited + 1:
+        return SessionStep(evolve(s, returns_credited=seq), ack)
+    if seq <= s.returns_credited:
+        return SessionStep(s, ack)
+    return SessionStep(s)
+
+
+def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
+    """RESUME(n, q): write off what is open; behind (q below the last debit held): admit; a
+    pending RETURN numbered next is credited; the number after max(C, q) is voided; answer
+    ADMIT(n, k, C) with k the last transaction closed, which the node takes as settled.
+
+    A re-sent copy (same nonce and q, nothing held since) gets the same answer."""
+    seq = unwrap(msg.seq, s.returns_credited, SEQ_BITS)
+    if (s.resume_to, s.resume_nonce, s.resume_from) == (s.returns_credited, msg.nonce, seq):
+        return SessionStep(s, (Send(_confirmation(s, msg.nonce)),))
+    behind = seq < s.returns_credited
+    if behind:  # the record lacks a debit the supervisor holds: the node starts afresh
+        step = h.write_off_and_lift(s)
+    else:  # the older record may not hold how the node resolved it
+        step = resolve(s, Outcome.WRITTEN_OFF) if s.phase is not IDLE else SessionStep(s)
+        s = step.session
+        if seq == s.returns_credited + 1 and msg.amount_mj and not msg.flags & Debit.DRAW:
+            amount = msg.amount_mj * QUANTUM_UJ
+            s = evolve(s, returns_credited=seq, returned=s.returned + amount)
+            credited = (ReturnCredited(s.node, seq, amount),)
+            step = SessionStep(s, (*step.actions, *credited), step.credit + amount)
+    s = step.session
+    void = max(s.returns_credited, seq) + 1  # any debit in flight from a discarded history
+    s = evolve(s, returns_credited=void, resume_nonce=msg.nonce, resume_from=seq, resume_to=void)
+    admitted = (Admitted(s.node, s.tx, void),) if behind else ()
+    answer = Send(_confirmation(s, msg.nonce))
+    return SessionStep(s, (*step.actions, *admitted, answer), step.credit)
+
+
+def _confirmation(s: Session, nonce: int) -> Admit:
+    """ADMIT(n, k, C): k the last transaction closed, C the last debit number held."""
+    closed = s.tx if s.phase is IDLE else s.tx - 1
+    return Admit(s.node, nonce, wire_tx(closed), wrap(s.returns_credited, SEQ_BITS))
+
+
+def supervisor_record(s: Session) -> tuple[object, ...]:
+    """The hardened record and the last RESUME answered."""
+    return (*h.supervisor_record(s), s.resume_nonce, s.resume_from, s.resume_to)
+
+
+SUPERVISOR = SupervisorTable(
+    "witnessed",
+    (IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM),
+    [
+        *(cell((p,), e, tr.handler, tuple(tr.to)) for (p, e), tr in h.SUPERVISOR.listed.items()),
+        cell(ANY, Debit, on_debit, to=(IDLE, STAY)),
+    ],
+    supervisor_record,
+)
+
+# -- client ----------------------------------------------------------------------------------
+
+
+def can_debit(c: ClientState) -> bool:
+    """One numbered debit at a time (a return or a draw), and none before the supervisor has
+    confirmed the node's books."""
+    return c.return_pending == 0 and c.phase in BOOKED
+
+
+def draw_of(c: ClientState) -> Debit:
+    """DRAW(q, x): the pending draw."""
+    return Debit(
+        c.node, 0, Debit.DRAW, wrap(c.return_seq, SEQ_BITS), c.return_pending // QUANTUM_UJ
+    )
+
+
+def resume_of(c: ClientState) -> Debit:
+    """RESUME(n, q, x): the node's start, its last debit number and what of it is pending."""
+    flags = Debit.START | (Debit.DRAW if c.pending_draw else 0)
+    pending = c.return_pending // QUANTUM_UJ
+    return Debit(c.node, c.nonce, flags, wrap(c.return_seq, SEQ_BITS), pending)
+
+
+def draw(t: Timing, c: ClientState, event: Spend, now: int) -> ClientStep:
+    """Uc -= x as debit q + 1, persist, send DRAW(q + 1, x); the actuator gets x on its ack."""
+    if not can_debit(c):
+        raise LocalProtocolError("a debit is still waiting for its acknowledgement")
+    check_amount(event.amount)
+    step = start_return(t, c, event.amount, now)
+    c = evolve(step.client, pending_draw=True)
+    return ClientStep(c, (Send(draw_of(c)),))
+
+
+def give_back(t: Timing, c: ClientState, event: GiveBack, now: int) -> ClientStep:
+    """Uc -= x, q += 1, persist, send RETURN(q, x); re-sent until RETURN_ACK(q)."""
+    if not can_debit(c):
+        raise LocalProtocolError("a debit is still waiting for its acknowledgement")
+    return start_return(t, c, event.amount, now)
+
+
+def on_debit_ack(t: Timing, c: ClientState, msg: ReturnAck, now: int) -> ClientStep:
+    """RETURN_ACK(q) for the pending debit: done; a draw goes to the actuator (spent += x)."""
+    step = h.on_return_ack(t, c, msg, now)
+    if step.client is c or not c.pending_draw:
+        return step
+    released = evolve(step.client, spent=c.spent + c.return_pending, pending_draw=False)
+    return ClientStep(released, step.actions)
+
+
+def resend_debit(t: Timing, c: ClientState, event: ReturnTimeout, now: int) -> ClientStep:
+    """Re-send the pending RETURN or DRAW under the same number."""
+    step = h.resend_return(t, c, event, now)
+    if not c.pending_draw or step.client is c:
+        return step
+    return ClientStep(step.client, (Send(draw_of(c)),))
+
+
+def resume(t: Timing, c: ClientState, event: PowerLoss, now: int) -> ClientStep:
+    """A start with a record (after a power loss or from an older copy: the node cannot tell):
+    lose the held intention, send RESUME(n, q, pending) and move nothing until ADMIT(n)."""
+    c = evolve(h._drop_hold(c), phase=RESUMING, nonce=event.nonce, return_deadline=now)
+    return resend_resume(t, c, RETURN_TIMEOUT, now)
+
+
+def resend_resume(t: Timing, c: ClientState, event: ReturnTimeout, now: int) -> ClientStep:
+    """Re-send RESUME(n, q, pending) with the same nonce."""
+    if c.return_deadline is None or c.return_deadline > now:
+        return ClientStep(c)
+    c = evolve(c, return_deadline=now + t.return_retry_us)
+    return ClientStep(c, (Send(resume_of(c)),))
+
+
+def resume_again(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientStep:
+    """An intention before the books are confirmed: it moves nothing; RESUME is re-sent."""
+    return ClientStep(c, (Send(resume_of(c)),))
+
+
+def on_confirm(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
+    """ADMIT(n, k, Q) for our nonce: Q = q + 1 confirms the books (everything up to k settled,
+    the pending debit settled: a return credited, a draw dropped unreleased); a larger Q finds
+    them behind: admitted afresh at k and Q, as after JOIN (what the actuator used stays
+    counted)."""
+    if msg.nonce != c.nonce:
+        return ClientStep(c)
+    q = unwrap(msg.seq, c.return_seq, SEQ_BITS)
+    if q == c.return_seq + 1:
+        closed = unwrap(msg.tx, c.last_tx, TX_BITS)
+        if closed > c.last_tx:  # resolved by the supervisor: never again by this record
+            c = evolve(c, last_tx=closed, outcome=Outcome.SETTLED)
+        confirmed = evolve(
+            c,
+            phase=IDLE,
+            nonce=0,
+            return_seq=q,
+            return_pending=0,
+            pending_draw=False,
+            return_deadline=None,
+        )
+        return ClientStep(confirmed)
+    if q < c.return_seq + 1:
+        return ClientStep(c)
+    fresh = ClientState(
+        c.node,
+        spent=c.spent,
+        last_tx=msg.tx,
+        outcome=Outcome.SETTLED,
+        return_seq=q,
+        credited_unknown=True,
+    )
+    return ClientStep(fresh)
+
+
+def client_record(c: ClientState) -> tuple[object, ...]:
+    """The hardened record and whether the pending debit is a draw."""
+    record = h.client_record(c)
+    return (*record, c.pending_draw) if record else ()
+
+
+BOOKED = (IDLE, HOLDING)
+
+CLIENT = ClientTable(
+    "witnessed",
+    (IDLE, HOLDING, JOINING, RESUMING),
+    [
+        cell(IDLE, Intention, h.on_intention, to=(HOLDING, STAY)),
+        cell(HOLDING, Intention, h.on_intention),
+        cell(BOOKED, Commit, h.on_command, to=(IDLE, STAY)),
+        cell(BOOKED, Abort, h.on_command, to=(IDLE, STAY)),
+        cell(BOOKED, ReturnAck, on_debit_ack),
+        cell(HOLDING, CommandTimeout, h.timeout_commit, to=(IDLE, STAY)),
+        cell(BOOKED, ReturnTimeout, resend_debit),
+        cell(BOOKED, Spend, draw),
+        cell(BOOKED, GiveBack, give_back),
+        cell(BOOKED, PowerLoss, resume, to=RESUMING),
+        cell(ANY, BooksLost, h.join, to=JOINING),
+        cell(JOINING, ReturnTimeout, h.resend_join),
+        cell(JOINING, Intention, h.join_again),
+        cell(JOINING, PowerLoss, h.rejoin),
+        cell(JOINING, Admit, h.on_admit, to=(IDLE, STAY)),
+        cell(RESUMING, ReturnTimeout, resend_resume),
+        cell(RESUMING, Intention, resume_again),
+        cell(RESUMING, PowerLoss, resume),
+        cell(RESUMING, Admit, on_confirm, to=(IDLE, STAY)),
+    ],
+    client_record,
+    can_debit,
+    can_debit,
+)
+
+__all__ = ["CLIENT", "SUPERVISOR"]

@@ -114,7 +114,7 @@ def app_write(node: canopen.RemoteNode, index: int, value: int) -> None:
     def transfer() -> None:
         node.sdo[index].raw = value
 
-    shared_sdo(transfer, time.sleep)
+    shared_sdo(transfer, time.sleep, attempts=10)  # the guard reads back too, once a second
 
 
 @contextlib.contextmanager

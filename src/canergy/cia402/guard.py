@@ -23,12 +23,12 @@ commands (controlwords, limits) collected in ``commands`` for the caller to writ
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Any
 
 from canergy.cia402.counter import COUNTER_KEY, CounterConfig
-from canergy.cia402.envelope import LEVELS, Limits, StopKind
+from canergy.cia402.envelope import LEVELS, Limits, StopKind, bound
 from canergy.cia402.meter import VELOCITY_ACTUAL, MeterConfig, MeterKind
 from canergy.cia402.metering import Allowances, DriveMeter, DriveSetup
 from canergy.cia402.watch import (
@@ -597,6 +597,19 @@ class DriveGuard:
         self.commands.append(Command(controlword, why, now))
         self.last_command_at, self.state_at_command = now, self.state
 
+    def _unseen_uj(self) -> int | None:
+        """What a write the guard cannot see may cost: the reach's bound with the re-read
+        period (and the PDO timeout the read-back may take) added to the gap."""
+        m = self.metering
+        if m.setup is None or m.reach is None or not self.config.reread_us:
+            return None
+        t = m.timings()
+        gap = t.gap_us + self.config.reread_us + self.config.pdo_timeout_us
+        b = bound(
+            m.setup.ratings, m.reach, replace(t, gap_us=gap), m.stop, m.setup.deceleration
+        )
+        return b.total_uj
+
     # -- the proxy client -------------------------------------------------------------------
     def telemetry(self, now: int) -> Telemetry:
         self.next_telemetry = now + self.config.telemetry_period_us
@@ -633,6 +646,7 @@ class DriveGuard:
             "return_seq": c.return_seq,
             "return_pending_uj": c.return_pending,
             **self.metering.status(now),
+            "bound_unseen_uj": self._unseen_uj(),
             "stop_at_uj": self.threshold_uj(),
             "taper_level": self.level,
             "overrun_uj": self.overrun_uj,

@@ -605,9 +605,7 @@ class DriveGuard:
             return None
         t = m.timings()
         gap = t.gap_us + self.config.reread_us + self.config.pdo_timeout_us
-        b = bound(
-            m.setup.ratings, m.reach, replace(t, gap_us=gap), m.stop, m.setup.deceleration
-        )
+        b = bound(m.setup.ratings, m.reach, replace(t, gap_us=gap), m.stop, m.setup.deceleration)
         return b.total_uj
 
     # -- the proxy client -------------------------------------------------------------------

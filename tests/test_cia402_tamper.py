@@ -43,11 +43,15 @@ def open_limits(app: canopen.RemoteNode) -> None:
     app_write(app, 0x6080, REACH_SPEED)
 
 
-def swing(b: Bench, until: float, each: Callable[[], None] | None = None) -> None:
+def swing(
+    b: Bench, until: float, each: Callable[[], None] | None = None, brake: bool = True
+) -> None:
     """Target velocity ±150 rad/s every 50 ms, speeding up at 20,000 rad/s² (as hard as the limits
-    let it),
-    ``each`` between swings, until ``until`` (monotonic s)."""
+    let it) and braking as hard unless not ``brake``, ``each`` between swings, until ``until``
+    (monotonic s)."""
     app_write(b.app, 0x6083, 20_000_000)
+    if brake:
+        app_write(b.app, 0x6084, 20_000_000)
     sign = 1
     while time.monotonic() < until:
         app_write(b.app, 0x60FF, sign * REACH_SPEED)
@@ -163,8 +167,29 @@ def test_a_tpdo_remapped_behind_the_guard_stops_the_drive(tmp_path: Path) -> Non
         wait_for(lambda: b.model.state == "OPERATION ENABLED")
         app_write(b.app, 0x6084, b.drawn() % 2**32 + 200_000)  # 0x2011: drawn µJ, 32 bits
         remap_tpdo1(b.app, 0x6084)
-        swing(b, time.monotonic() + ATTACK_S)
+        swing(b, time.monotonic() + ATTACK_S, brake=False)
         final = b.stop()
     drive = assert_inside_reach_bound(b, final)
     assert drive["latched"] and "0x1A00" in (drive["refused"] or "")
     assert b.model.state == "SWITCH ON DISABLED"
+
+
+def test_a_lowered_quick_stop_deceleration_stops_the_drive(tmp_path: Path) -> None:
+    """Item 4 (counter mode, quick stop): 0x6085 lowered while the drive runs would make its
+    stop draw more than the bound allows; the guard reads it back lower than at set-up and
+    stops the drive for good (0x6085 raised would be fine: a faster stop draws less)."""
+    quick = ("--cia402-stop", "quick", "--cia402-stop-timeout", "200ms")
+    with guarded_bench(
+        tmp_path,
+        10,
+        *("--initial", "100J", "--target", "10J", *REACH_FLAGS, *quick),
+        with_node=False,
+        mode="counter",
+        gap_ms=GAP_MS,
+    ) as b:
+        wait_for(lambda: b.model.state == "OPERATION ENABLED")
+        app_write(b.app, 0x6085, 1_000)  # 1 rad/s² instead of 500
+        swing(b, time.monotonic() + 1.0, brake=False)  # 0x6084 is watched too
+        final = b.stop()
+    drive = assert_inside_reach_bound(b, final)
+    assert drive["latched"] and "0x6085" in (drive["refused"] or "")

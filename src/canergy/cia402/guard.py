@@ -205,6 +205,8 @@ class DriveGuard:
         self.seq = 0
         """Bumped at each write seen: a read-back answers the writes seen before it was sent."""
         self.verifying: int | None = None
+        self.controlword_seq = 0
+        """``seq`` of the last enabling controlword seen: a read-back older shows nothing."""
         self.next_reread = now + config.reread_us if config.reread_us else None
         self.writes_seen = 0
         self.restops = 0
@@ -298,6 +300,7 @@ class DriveGuard:
         self.writes_seen += 1
         if controlword:  # a drive the guard holds stopped is stopped again at once
             self.restops += 1
+            self.controlword_seq = self.seq + 1
             stop = CW_QUICK_STOP if self.phase is GuardPhase.STOPPING else CW_DISABLE_VOLTAGE
             self._command(stop, f"enabled behind the guard ({write.describe()})", now)
         off = self.phase is GuardPhase.STOPPED and self.state in POWERLESS
@@ -310,6 +313,8 @@ class DriveGuard:
             self.scope = None
         elif write.index in PDO_CONFIG:
             self.scope.update(pdo_pair(write.index))
+        else:
+            self.scope.add(write.index)
         return self._settled(now)
 
     def on_verified(self, now: int, seq: int, read: dict[Key, int | None]) -> list[Message]:
@@ -319,24 +324,32 @@ class DriveGuard:
         setup = m.setup
         if setup is None:
             return []
+        if any(v is None for v in read.values()):  # garbled by another master's transfer
+            if self.suspect is not None:
+                self.last_verify_at = now - self.config.retry_us  # again (until the deadline)
+            return self._settled(now)
         problem = None
         for limits in (m.target(), m.confirmed):
             problem = check({k: v for k, v in setup.config.items() if k in read}, read, limits)
             if problem is None:
                 break
         status = read.get(STATUSWORD_KEY)
-        off = status is not None and powerless(status)
+        torque = status is None or not powerless(status)  # None: not here (read again above)
+        held = self.phase is GuardPhase.STOPPED and torque  # held stopped, yet not off
+        what = self.suspect or "a periodic read-back"
         if problem is not None and not self.latched:
-            what = self.suspect or "a periodic read-back"
             self.refused = f"configuration changed behind the guard ({what}): {problem}"
             self.latched = True
             self.rewrite_at = now  # the guard's limits again, closed
+        if held or (problem is not None and self.phase is not GuardPhase.STOPPED):
             m.suspect(now, now)  # charged at the reach until seen off
-        held = self.phase is GuardPhase.STOPPED and self.suspect is not None
-        fine = problem is None and (off or not held)
-        if seq != self.seq:
+            if self.suspect is None:  # a periodic read-back: read again until then
+                self.suspect, self.suspect_at, self.seq = what, now, self.seq + 1
+        # a drive seen off stays off whatever was written since, but a controlword
+        off = self.phase is GuardPhase.STOPPED and not torque and seq >= self.controlword_seq
+        if seq != self.seq and not off:
             self.last_verify_at = now - self.config.retry_us  # written meanwhile: read again
-        elif fine or (self.latched and off):  # off: torque needs a controlword, watched
+        elif not held and (problem is None or not torque):
             m.verified(now)
             self.suspect, self.suspect_at, self.scope = None, None, set()
         return self._settled(now)

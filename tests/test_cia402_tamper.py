@@ -193,3 +193,26 @@ def test_a_lowered_quick_stop_deceleration_stops_the_drive(tmp_path: Path) -> No
         final = b.stop()
     drive = assert_inside_reach_bound(b, final)
     assert drive["latched"] and "0x6085" in (drive["refused"] or "")
+
+
+def test_a_write_the_guard_cannot_see_is_found_by_the_periodic_read_back(tmp_path: Path) -> None:
+    """The drive's own panel (not the bus) switches its heartbeat consumer off: the guard sees
+    no frame, and its read-back every 200 ms finds 0x1016:1 changed and stops the drive."""
+    with guarded_bench(
+        tmp_path,
+        10,
+        *("--initial", "100J", "--target", "2J", *REACH_FLAGS, "--cia402-reread", "200ms"),
+        with_node=False,
+        mode="counter",
+        gap_ms=GAP_MS,
+    ) as b:
+        wait_for(lambda: b.model.state == "OPERATION ENABLED")
+        with b.face.lock:
+            b.model.write(0x1016, 1, 0)
+        swing(b, time.monotonic() + 1.0)
+        final = b.stop()
+    granted, drive = books(final)
+    assert b.drawn() <= granted + drive["bound_unseen_uj"]
+    assert drive["latched"] and "periodic read-back" in drive["refused"]
+    assert "0x1016:1 = 0" in drive["refused"]
+    assert b.model.state == "SWITCH ON DISABLED"

@@ -28,7 +28,7 @@ from enum import Enum
 from typing import Any
 
 from canergy.cia402.counter import COUNTER_KEY, CounterConfig
-from canergy.cia402.envelope import LEVELS, Limits, StopKind, bound
+from canergy.cia402.envelope import LEVELS, LIMIT_OBJECTS, Limits, StopKind, bound
 from canergy.cia402.meter import VELOCITY_ACTUAL, MeterConfig, MeterKind
 from canergy.cia402.metering import Allowances, DriveMeter, DriveSetup
 from canergy.cia402.watch import (
@@ -324,7 +324,8 @@ class DriveGuard:
         setup = m.setup
         if setup is None:
             return []
-        if any(v is None for v in read.values()):  # garbled by another master's transfer
+        always = [STATUSWORD_KEY, *(() if m.full is None else ((i, 0) for i in LIMIT_OBJECTS))]
+        if any(read.get(k) is None for k in (*read, *always)):  # garbled by another master's
             if self.suspect is not None:
                 self.last_verify_at = now - self.config.retry_us  # again (until the deadline)
             return self._settled(now)

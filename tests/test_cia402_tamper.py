@@ -37,10 +37,17 @@ def books(final: dict[str, Any]) -> tuple[int, dict[str, Any]]:
     return granted["delivered_uj"] - granted["returns_credited_uj"], drive
 
 
-def open_limits(app: canopen.RemoteNode) -> None:
-    app_write(app, 0x6072, 3000)
-    app_write(app, 0x6073, 3000)
-    app_write(app, 0x6080, REACH_SPEED)
+def open_limits(app: canopen.RemoteNode, segmented: bool = False) -> None:
+    """3000 ‰ and the reach's speed, by expedited SDO or (``segmented``) segmented SDO."""
+    for index, value, size in ((0x6072, 3000, 2), (0x6073, 3000, 2), (0x6080, REACH_SPEED, 4)):
+        if not segmented:
+            app_write(app, index, value)
+            continue
+
+        def transfer(index: int = index, value: int = value, size: int = size) -> None:
+            app.sdo.download(index, 0, value.to_bytes(size, "little"), force_segment=True)
+
+        shared_sdo(transfer, time.sleep, attempts=10)
 
 
 def swing(
@@ -70,8 +77,12 @@ def assert_inside_reach_bound(b: Bench, final: dict[str, Any]) -> dict[str, Any]
     return drive
 
 
-@pytest.mark.parametrize("mode", ["envelope", "counter"])
-def test_limits_opened_by_the_application_stop_the_drive(tmp_path: Path, mode: str) -> None:
+@pytest.mark.parametrize(
+    ("mode", "segmented"), [("envelope", False), ("counter", False), ("envelope", True)]
+)
+def test_limits_opened_by_the_application_stop_the_drive(
+    tmp_path: Path, mode: str, segmented: bool
+) -> None:
     """Item 2: 0x6072/0x6073 = 3000 ‰ and 0x6080 raised while the drive runs, the application
     swinging the motor as hard as they let it: the write is charged at the drive's reach, the
     read-back differs from what the guard wrote, the drive is stopped and kept stopped."""
@@ -88,18 +99,23 @@ def test_limits_opened_by_the_application_stop_the_drive(tmp_path: Path, mode: s
         gap_ms=GAP_MS,
     ) as b:
         wait_for(lambda: b.model.state == "OPERATION ENABLED")
-        swing(b, time.monotonic() + ATTACK_S, lambda: open_limits(b.app))
+        swing(b, time.monotonic() + ATTACK_S, lambda: open_limits(b.app, segmented))
         final = b.stop()
     drive = assert_inside_reach_bound(b, final)
     assert drive["latched"] and any(f"0x{i:04X}" in (drive["refused"] or "") for i in LIMITS)
     assert b.model.state == "SWITCH ON DISABLED"
 
 
-@pytest.mark.parametrize("mode", ["envelope", "counter"])
-def test_a_drive_re_enabled_after_its_stop_is_stopped_again(tmp_path: Path, mode: str) -> None:
+@pytest.mark.parametrize(
+    ("mode", "via"), [("envelope", "SDO"), ("counter", "SDO"), ("envelope", "RPDO")]
+)
+def test_a_drive_re_enabled_after_its_stop_is_stopped_again(
+    tmp_path: Path, mode: str, via: str
+) -> None:
     """Item 3: the budget runs out (or TPDOs come late on a loaded machine) and the guard stops
     the drive; the application opens the
-    limits and writes controlword 6, 7, 15 by SDO, and again whenever it sees the drive off."""
+    limits and writes controlword 6, 7, 15 by SDO (or RPDO1), and again whenever it sees the
+    drive off."""
     with guarded_bench(
         tmp_path,
         10,
@@ -120,7 +136,11 @@ def test_a_drive_re_enabled_after_its_stop_is_stopped_again(tmp_path: Path, mode
         def enable() -> None:
             if b.model.state == "SWITCH ON DISABLED":
                 for controlword in (6, 7, 15):
-                    app_write(b.app, 0x6040, controlword)
+                    if via == "SDO":
+                        app_write(b.app, 0x6040, controlword)
+                    else:  # RPDO1 carries the controlword
+                        b.app.network.send_message(0x200 + DRIVE, controlword.to_bytes(2, "little"))
+                        time.sleep(0.005)
 
         swing(b, time.monotonic() + ATTACK_S, enable)
         final = b.stop()

@@ -117,6 +117,9 @@ class Command:
     controlword: int | None
     why: str
     at: int
+    by_sdo: bool = False
+    """Written by SDO even where an RPDO carries the controlword: answered by the drive, and
+    not overwritten by the next RPDO of an application that writes it too."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -302,7 +305,9 @@ class DriveGuard:
             self.restops += 1
             self.controlword_seq = self.seq + 1
             stop = CW_QUICK_STOP if self.phase is GuardPhase.STOPPING else CW_DISABLE_VOLTAGE
-            self._command(stop, f"enabled behind the guard ({write.describe()})", now)
+            why = f"enabled behind the guard ({write.describe()})"
+            self.commands.append(Command(stop, why, now, by_sdo=True))
+            self.last_command_at, self.state_at_command = now, self.state
         off = self.phase is GuardPhase.STOPPED and self.state in POWERLESS
         if controlword or not off:  # a drive held off gets torque only by a controlword
             m.suspect(now, now - age_us)

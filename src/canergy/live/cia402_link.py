@@ -552,7 +552,7 @@ class DriveLink:
             if controlword is None:
                 return
         try:
-            if self.node.rpdo_pointers.get(CONTROLWORD) is None:
+            if cmd.by_sdo or self.node.rpdo_pointers.get(CONTROLWORD) is None:
                 self._timed_controlword(controlword)  # by SDO: the answer times the drive
             else:
                 self.node.controlword = controlword  # by RPDO: nothing to time

@@ -10,6 +10,7 @@ application goes on, and a configuration the guard cannot verify stops the drive
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -44,10 +45,11 @@ def open_limits(app: canopen.RemoteNode, segmented: bool = False) -> None:
             app_write(app, index, value)
             continue
 
-        def transfer(index: int = index, value: int = value, size: int = size) -> None:
-            app.sdo.download(index, 0, value.to_bytes(size, "little"), force_segment=True)
-
-        shared_sdo(transfer, time.sleep, attempts=10)
+        for _ in range(10):  # the guard's reads interleave with it on the one SDO server
+            with contextlib.suppress(canopen.SdoCommunicationError, canopen.SdoAbortedError):
+                app.sdo.download(index, 0, value.to_bytes(size, "little"), force_segment=True)
+                break
+            time.sleep(0.01)
 
 
 def swing(

@@ -132,17 +132,23 @@ def test_a_limit_written_while_the_drive_may_run_is_charged_at_the_reach_until_r
 
 
 def test_an_enabling_controlword_to_a_drive_held_stopped_is_answered_at_once() -> None:
+    """By SDO, whatever carries the controlword otherwise; charged at the reach only while a
+    write to the configuration is not read back yet (else the limits it holds bound it)."""
     g = guard()
     g.state = "SWITCH ON DISABLED"
     g.on_write(5_000, Write(0x6040, 0, 0x0F), 0)
     stops = [c for c in g.commands if isinstance(c, Command)]
-    assert [(c.controlword, c.at) for c in stops] == [(CW_DISABLE_VOLTAGE, 5_000)]
-    assert g.restops == 1 and g.metering.suspect_from == 5_000
+    assert [(c.controlword, c.at, c.by_sdo) for c in stops] == [(CW_DISABLE_VOLTAGE, 5_000, True)]
+    assert g.restops == 1 and g.metering.suspect_from is None and not verifies(g)
+    g.on_write(6_000, Write(0x6072, 0, 3000), 0)  # held off: read back, not charged
+    assert g.metering.suspect_from is None
+    g.on_write(7_000, Write(0x6040, 0, 0x0F), 0)
+    assert g.restops == 2 and g.metering.suspect_from == 7_000
     (ask,) = verifies(g)
-    g.on_verified(6_000, ask.seq, {(0x6041, 0): 0x0640, **{(i, 0): 0 for i in (0x6072, 0x6073)}})
+    g.on_verified(8_000, ask.seq, {(0x6041, 0): 0x0640, **{(i, 0): 0 for i in (0x6072, 0x6073)}})
     assert g.metering.suspect_from is not None and not g.latched  # 0x6080 unread: again
     closed = {(0x6072, 0): 0, (0x6073, 0): 0, (0x6080, 0): 100_500}
-    g.on_verified(7_000, g.seq, {(0x6041, 0): 0x0640, **closed})
+    g.on_verified(9_000, g.seq, {(0x6041, 0): 0x0640, **closed})
     assert g.metering.suspect_from is None and g.suspect is None and not g.latched
 
 

@@ -210,6 +210,11 @@ class DriveGuard:
         self.verifying: int | None = None
         self.controlword_seq = 0
         """``seq`` of the last enabling controlword seen: a read-back older shows nothing."""
+        self.config_seq = 0
+        """``seq`` of the last write other than a controlword."""
+        self.verified_seq = 0
+        """Every write up to this ``seq`` was read back as expected (or the drive seen off)."""
+        """``seq`` of the last enabling controlword seen: a read-back older shows nothing."""
         self.next_reread = now + config.reread_us if config.reread_us else None
         self.writes_seen = 0
         self.restops = 0
@@ -301,6 +306,8 @@ class DriveGuard:
         if not controlword and not self.watched.matters(write):
             return []
         self.writes_seen += 1
+        if not controlword:
+            self.config_seq = self.seq + 1
         if controlword:  # a drive the guard holds stopped is stopped again at once
             self.restops += 1
             self.controlword_seq = self.seq + 1
@@ -308,6 +315,8 @@ class DriveGuard:
             why = f"enabled behind the guard ({write.describe()})"
             self.commands.append(Command(stop, why, now, by_sdo=True))
             self.last_command_at, self.state_at_command = now, self.state
+            if self.config_seq <= self.verified_seq:  # the limits read back bound it: charged
+                return self._settled(now)  # as they are (closed, while held stopped)
         off = self.phase is GuardPhase.STOPPED and self.state in POWERLESS
         if controlword or not off:  # a drive held off gets torque only by a controlword
             m.suspect(now, now - age_us)
@@ -340,24 +349,32 @@ class DriveGuard:
             if problem is None:
                 break
         status = read.get(STATUSWORD_KEY)
-        torque = status is None or not powerless(status)  # None: not here (read again above)
-        held = self.phase is GuardPhase.STOPPED and torque  # held stopped, yet not off
+        torque = status is None or not powerless(status)
+        stopped = self.phase is GuardPhase.STOPPED
         what = self.suspect or "a periodic read-back"
         if problem is not None and not self.latched:
             self.refused = f"configuration changed behind the guard ({what}): {problem}"
             self.latched = True
-            self.rewrite_at = now  # the guard's limits again, closed
-        if held or (problem is not None and self.phase is not GuardPhase.STOPPED):
-            m.suspect(now, now)  # charged at the reach until seen off
+        if problem is not None:
+            self.rewrite_at = now  # the guard's limits again (closed), whatever else differs
+        if problem is not None and (torque or not stopped):
+            m.suspect(now, now)  # charged at the reach until the drive is seen off
             if self.suspect is None:  # a periodic read-back: read again until then
                 self.suspect, self.suspect_at, self.seq = what, now, self.seq + 1
-        # a drive seen off stays off whatever was written since, but a controlword
-        off = self.phase is GuardPhase.STOPPED and not torque and seq >= self.controlword_seq
-        if seq != self.seq and not off:
-            self.last_verify_at = now - self.config.retry_us  # written meanwhile: read again
-        elif not held and (problem is None or not torque):
+        # what was read holds unless the configuration was written since (a controlword
+        # changes no limit); a drive seen off stays off whatever was written since but one
+        held = problem is None and seq >= self.config_seq
+        off = stopped and not torque and seq >= self.controlword_seq
+        if not (held or off):
+            if seq != self.seq:
+                self.last_verify_at = now - self.config.retry_us  # written since: read again
+        else:  # the limits as written bound it, or it is off: no charge at the reach
             m.verified(now)
-            self.suspect, self.suspect_at, self.scope = None, None, set()
+            if seq >= self.config_seq:  # and nothing read back yet is left
+                self.suspect, self.suspect_at, self.scope = None, None, set()
+                self.verified_seq = max(self.verified_seq, seq)
+            else:
+                self.last_verify_at = now - self.config.retry_us
         return self._settled(now)
 
     def on_message(self, msg: ToClient, now: int) -> list[Message]:

@@ -78,12 +78,13 @@ def test_what_the_bound_depends_on() -> None:
     assert Watched(StopKind.QUICK).matters(Write(0x6085))
 
 
-def test_a_read_back_names_what_differs_and_lets_0x6085_rise() -> None:
-    setup = {(0x1A00, 3): 0x2011_0020, (0x6085, 0): 500_000}
+def test_a_read_back_names_what_differs_and_lets_the_stop_ramps_rise() -> None:
+    setup = {(0x1A00, 3): 0x2011_0020, (0x6085, 0): 500_000, (0x6084, 0): 100_000}
     limits = Limits(265, 265, 100_500)
     read: dict[tuple[int, int], int | None] = {
         (0x1A00, 3): 0x2011_0020,
         (0x6085, 0): 600_000,
+        (0x6084, 0): 10_000_000,  # steeper: a faster stop
         (0x6072, 0): 265,
         (0x6073, 0): 265,
         (0x6080, 0): 100_500,

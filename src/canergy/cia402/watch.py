@@ -31,6 +31,8 @@ PROFILE_DECELERATION = 0x6084
 RATINGS = (0x6075, 0x6076)
 RESTORE_DEFAULTS = 0x1011
 PDO_CONFIG = range(0x1400, 0x1C00)
+RAMPS = (QUICK_STOP_DECELERATION, PROFILE_DECELERATION)
+"""A stop ramp may grow steeper (a faster stop draws less), never flatter."""
 NMT_HARMLESS = (0x01,)
 """Start remote node: the guard wants its drives OPERATIONAL anyway."""
 
@@ -154,7 +156,7 @@ class Watched:
 
 def expected_keys(stop: StopKind) -> tuple[Key, ...]:
     """The objects beside the PDO configuration and the limits that are read back and must
-    hold what they held at set-up (0x6085 may rise: a faster stop draws less)."""
+    hold what they held at set-up (the stop ramps 0x6084 and 0x6085 may rise)."""
     keys: list[Key] = [(HEARTBEAT_CONSUMER, 1), (ABORT_CONNECTION, 0), *((r, 0) for r in RATINGS)]
     if stop is StopKind.QUICK:
         keys += [(QUICK_STOP_DECELERATION, 0), (PROFILE_DECELERATION, 0), (QUICK_STOP_OPTION, 0)]
@@ -163,15 +165,15 @@ def expected_keys(stop: StopKind) -> tuple[Key, ...]:
 
 def check(setup: dict[Key, int], read: dict[Key, int | None], limits: Limits | None) -> str | None:
     """What differs between the configuration read back (``read``; None: could not be read)
-    and what the guard expects: ``setup`` as read at set-up, the limits it wrote. None: all
-    holds."""
+    and what the guard expects: ``setup`` as read at set-up (a stop ramp may be steeper), the
+    limits it wrote. None: all holds."""
     wrong: list[str] = []
     expect = dict(setup)
     if limits is not None:
         expect |= {(i, 0): v for i, v in limits.as_objects().items()}
     for key, want in sorted(expect.items()):
         got = read.get(key)
-        if got == want or (key[0] == QUICK_STOP_DECELERATION and got is not None and got > want):
+        if got == want or (key[0] in RAMPS and got is not None and got > want):
             continue
         wrong.append(f"0x{key[0]:04X}:{key[1]} = {got} (expected {want})")
     return None if not wrong else "; ".join(wrong)

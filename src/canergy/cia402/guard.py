@@ -15,10 +15,15 @@ Energy charged that the budget no longer covers is a **debt**: the next grant pa
 The proxy's record is volatile: a restarted host has no books for it, so it JOINs and the
 supervisor writes off what it held (the drive was stopped meanwhile by its heartbeat consumer).
 
+Writes by others to what the bound depends on (``watch``) are charged at the drive's reach until
+the guard has read them back (``VerifyCommand``); a read-back that differs, or that does not come
+within the PDO timeout, stops the drive for good (docs/cia402.md).
+
 Inputs: ``on_ready`` (set-up read from the drive), ``on_values`` (TPDO values with the power state
-decoded by the caller), ``on_limits`` (the drive confirmed or refused limits), ``on_message``
-(canergy frames from the supervisor), ``on_wakeup``; outputs: frames to the supervisor, and
-commands (controlwords, limits) collected in ``commands`` for the caller to write.
+decoded by the caller), ``on_limits`` (the drive confirmed or refused limits), ``on_write`` (a
+frame to the drive from someone else), ``on_verified`` (a read-back), ``on_message`` (canergy
+frames from the supervisor), ``on_wakeup``; outputs: frames to the supervisor, and commands
+(controlwords, limits, read-backs) collected in ``commands`` for the caller to carry out.
 """
 
 from __future__ import annotations
@@ -214,7 +219,6 @@ class DriveGuard:
         """``seq`` of the last write other than a controlword."""
         self.verified_seq = 0
         """Every write up to this ``seq`` was read back as expected (or the drive seen off)."""
-        """``seq`` of the last enabling controlword seen: a read-back older shows nothing."""
         self.next_reread = now + config.reread_us if config.reread_us else None
         self.writes_seen = 0
         self.restops = 0
@@ -306,21 +310,21 @@ class DriveGuard:
         if not controlword and not self.watched.matters(write):
             return []
         self.writes_seen += 1
-        if not controlword:
-            self.config_seq = self.seq + 1
+        self.seq += 1
         if controlword:  # a drive the guard holds stopped is stopped again at once
             self.restops += 1
-            self.controlword_seq = self.seq + 1
+            self.controlword_seq = self.seq
             stop = CW_QUICK_STOP if self.phase is GuardPhase.STOPPING else CW_DISABLE_VOLTAGE
             why = f"enabled behind the guard ({write.describe()})"
             self.commands.append(Command(stop, why, now, by_sdo=True))
             self.last_command_at, self.state_at_command = now, self.state
             if self.config_seq <= self.verified_seq:  # the limits read back bound it: charged
                 return self._settled(now)  # as they are (closed, while held stopped)
+        else:
+            self.config_seq = self.seq
         off = self.phase is GuardPhase.STOPPED and self.state in POWERLESS
         if controlword or not off:  # a drive held off gets torque only by a controlword
             m.suspect(now, now - age_us)
-        self.seq += 1
         if self.suspect is None:
             self.suspect, self.suspect_at = write.describe(), now
         if write.index is None or self.scope is None:

@@ -77,3 +77,13 @@ def test_a_sampled_mode_warns_at_start_that_it_guarantees_nothing(
         capsys, tmp_path, "--cia402-meter", "envelope", *LIMITS, "--cia402-eds", "missing.eds"
     )
     assert code == 2 and "warning" not in err  # the sound modes have nothing to warn of
+
+
+def test_a_reach_below_the_limit_the_guard_writes_is_refused(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    """The reach is what a write behind the guard is charged at: never less than what the
+    guard itself writes."""
+    flags = ("--cia402-meter", "envelope", *LIMITS, "--cia402-reach-torque", "100")
+    code, err = run(capsys, tmp_path, *flags)
+    assert code == 2 and "--cia402-reach-torque 100 is below --cia402-max-torque" in err, err

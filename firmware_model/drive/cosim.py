@@ -24,7 +24,14 @@ from typing import Any
 
 from canergy.cia402.counter import COUNTER_KEY, CounterConfig
 from canergy.cia402.envelope import Limits, Ratings, StopKind
-from canergy.cia402.guard import Command, DriveGuard, GuardConfig, LimitsCommand
+from canergy.cia402.guard import (
+    STATUSWORD_KEY,
+    Command,
+    DriveGuard,
+    GuardConfig,
+    LimitsCommand,
+    VerifyCommand,
+)
 from canergy.cia402.meter import MeterConfig, MeterKind
 from canergy.cia402.metering import DriveSetup
 from canergy.core import Supervisor, Timing
@@ -137,7 +144,8 @@ class _Link:
         self.limits_writes = 0
         self.ready_at: int | None = 0
         self.setup: DriveSetup | None = setup
-        self.pending_commands: deque[Command | LimitsCommand] = deque()
+        self.pending_commands: deque[Command | LimitsCommand | VerifyCommand] = deque()
+        self.verified: deque[tuple[int, dict[tuple[int, int], int | None]]] = deque()
         self.reaction_max_us = 0
         self.latency_max_us = 0
 
@@ -151,10 +159,18 @@ class _Link:
         self.limit_answers.clear()
         return out
 
-    def pending(self) -> bool:
-        return bool(self.samples or self.limit_answers)
+    def drain_writes(self) -> list[Any]:
+        return []  # nobody else writes to the drive here
 
-    def command(self, cmd: Command | LimitsCommand) -> None:
+    def drain_verified(self) -> list[tuple[int, dict[tuple[int, int], int | None]]]:
+        out = list(self.verified)
+        self.verified.clear()
+        return out
+
+    def pending(self) -> bool:
+        return bool(self.samples or self.limit_answers or self.verified)
+
+    def command(self, cmd: Command | LimitsCommand | VerifyCommand) -> None:
         self.pending_commands.append(cmd)
 
     def close(self) -> None:
@@ -327,6 +343,10 @@ def _apply_commands(sc: Scenario, drive: DriveModel, link: _Link, t: int) -> Non
     while link.pending_commands and t >= link.pending_commands[0].at + sc.reaction_us:
         cmd = link.pending_commands.popleft()
         link.reaction_max_us = max(link.reaction_max_us, t - cmd.at - sc.reaction_us)
+        if isinstance(cmd, VerifyCommand):
+            keys = [*cmd.keys, STATUSWORD_KEY, *((i, 0) for i in (0x6072, 0x6073, 0x6080))]
+            link.verified.append((cmd.seq, {k: drive.read(*k) for k in keys}))
+            continue
         if isinstance(cmd, LimitsCommand):
             lowering = cmd.limits.torque_permille < drive.read(0x6072)
             link.limits_writes += 1

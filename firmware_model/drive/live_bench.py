@@ -114,7 +114,7 @@ def app_write(node: canopen.RemoteNode, index: int, value: int) -> None:
     def transfer() -> None:
         node.sdo[index].raw = value
 
-    shared_sdo(transfer, time.sleep)
+    shared_sdo(transfer, time.sleep, attempts=10)  # the guard reads back too, once a second
 
 
 @contextlib.contextmanager
@@ -161,6 +161,8 @@ def guarded_bench(
     app = canopen.RemoteNode(DRIVE, str(EDS))
     app.sdo.RESPONSE_TIMEOUT = 2.0
     app_net.add_node(app)
+    # the mode before the guard starts: a mode written while it guards is charged at the reach
+    app_write(app, 0x6060, 3)  # profile velocity
     control = tmp / "ctl.sock"
     argv = [
         "supervisor",
@@ -182,7 +184,6 @@ def guarded_bench(
     bench = Bench(tmp, pdo_ms, model, face, app, control, result, thread, node_host)
     try:
         wait_for(lambda: (d := bench.drive_status()) and d["ready"])
-        app_write(app, 0x6060, 3)  # profile velocity
         app_write(app, 0x6083, 1_000_000)  # 1000 rad/s²
         app_write(app, 0x60FF, 100_000)  # 100 rad/s
         yield bench

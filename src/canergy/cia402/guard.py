@@ -15,22 +15,37 @@ Energy charged that the budget no longer covers is a **debt**: the next grant pa
 The proxy's record is volatile: a restarted host has no books for it, so it JOINs and the
 supervisor writes off what it held (the drive was stopped meanwhile by its heartbeat consumer).
 
+Writes by others to what the bound depends on (``watch``) are charged at the drive's reach until
+the guard has read them back (``VerifyCommand``); a read-back that differs, or that does not come
+within the PDO timeout, stops the drive for good (docs/cia402.md).
+
 Inputs: ``on_ready`` (set-up read from the drive), ``on_values`` (TPDO values with the power state
-decoded by the caller), ``on_limits`` (the drive confirmed or refused limits), ``on_message``
-(canergy frames from the supervisor), ``on_wakeup``; outputs: frames to the supervisor, and
-commands (controlwords, limits) collected in ``commands`` for the caller to write.
+decoded by the caller), ``on_limits`` (the drive confirmed or refused limits), ``on_write`` (a
+frame to the drive from someone else), ``on_verified`` (a read-back), ``on_message`` (canergy
+frames from the supervisor), ``on_wakeup``; outputs: frames to the supervisor, and commands
+(controlwords, limits, read-backs) collected in ``commands`` for the caller to carry out.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Any
 
 from canergy.cia402.counter import COUNTER_KEY, CounterConfig
-from canergy.cia402.envelope import LEVELS, Limits, StopKind
+from canergy.cia402.envelope import LEVELS, LIMIT_OBJECTS, Limits, StopKind, bound
 from canergy.cia402.meter import VELOCITY_ACTUAL, MeterConfig, MeterKind
 from canergy.cia402.metering import Allowances, DriveMeter, DriveSetup
+from canergy.cia402.watch import (
+    CONTROLWORD,
+    PDO_CONFIG,
+    Key,
+    Watched,
+    Write,
+    check,
+    enables,
+    powerless,
+)
 from canergy.core import (
     Action,
     Client,
@@ -90,6 +105,8 @@ class GuardConfig:
     auto_enable: bool = False
     """Bring the drive to OPERATION ENABLED while it holds budget (else the application does)."""
     telemetry_period_us: int = 50_000
+    reread_us: int = 1_000_000
+    """Read the configuration back this often (writes the guard cannot see); 0: never."""
 
     def allowances(self) -> Allowances:
         return Allowances(
@@ -105,6 +122,9 @@ class Command:
     controlword: int | None
     why: str
     at: int
+    by_sdo: bool = False
+    """Written by SDO even where an RPDO carries the controlword: answered by the drive, and
+    not overwritten by the next RPDO of an application that writes it too."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -114,6 +134,26 @@ class LimitsCommand:
     limits: Limits
     why: str
     at: int
+
+
+@dataclass(frozen=True, slots=True)
+class VerifyCommand:
+    """Read back ``keys`` (and the limits and the statusword, always): answer with
+    ``on_verified`` and this ``seq``."""
+
+    seq: int
+    keys: tuple[Key, ...]
+    why: str
+    at: int
+
+
+STATUSWORD_KEY = (0x6041, 0)
+
+
+def pdo_pair(index: int) -> tuple[int, int]:
+    """A PDO's communication and mapping objects, from either."""
+    comm = index - 0x200 if index & 0x200 else index
+    return comm, comm + 0x200
 
 
 class DriveGuard:
@@ -143,7 +183,7 @@ class DriveGuard:
         """Stopped for lost TPDOs or refused limits: never re-enabled by the guard."""
         self.refused: str | None = None
         """Why the drive cannot be guarded as configured (it is kept stopped)."""
-        self.commands: list[Command | LimitsCommand] = []
+        self.commands: list[Command | LimitsCommand | VerifyCommand] = []
         self.last_command_at = -config.retry_us
         self.state_at_command: str | None = None
         self.ready_at: int | None = None
@@ -160,6 +200,29 @@ class DriveGuard:
         """The supervisor is stopping: stop the drive and keep it stopped."""
         self.next_telemetry = now
         self.outbox = self._carry_out(self.client.books_lost(nonce, now), now)
+        counter = config.counter
+        on_drive = counter is not None and counter.node is None
+        self.watched = Watched(
+            config.stop, (counter.index, counter.subindex) if counter and on_drive else None
+        )
+        self.suspect: str | None = None
+        """The first write behind the guard not verified yet."""
+        self.suspect_at: int | None = None
+        self.scope: set[int] | None = set()
+        """The objects to read back (None: everything)."""
+        self.seq = 0
+        """Bumped at each write seen: a read-back answers the writes seen before it was sent."""
+        self.verifying: int | None = None
+        self.controlword_seq = 0
+        """``seq`` of the last enabling controlword seen: a read-back older shows nothing."""
+        self.config_seq = 0
+        """``seq`` of the last write other than a controlword."""
+        self.verified_seq = 0
+        """Every write up to this ``seq`` was read back as expected (or the drive seen off)."""
+        self.next_reread = now + config.reread_us if config.reread_us else None
+        self.writes_seen = 0
+        self.restops = 0
+        self.last_verify_at = now - config.retry_us
 
     @property
     def node(self) -> int:
@@ -235,6 +298,89 @@ class DriveGuard:
         self.metering.charge(now)
         return self._settled(now)
 
+    def on_write(self, now: int, write: Write, age_us: int = 0) -> list[Message]:
+        """Someone else wrote ``write`` to the drive (seen ``age_us`` before ``now``)."""
+        m = self.metering
+        if m.setup is None:
+            return []  # not set up yet: the set-up reads what it relies on afterwards
+        held = self.phase is not GuardPhase.RUNNING or self.latched
+        controlword = write.index == CONTROLWORD
+        if controlword and not (held and enables(write.value)):
+            return []  # the application's to give while the drive may run
+        if not controlword and not self.watched.matters(write):
+            return []
+        self.writes_seen += 1
+        self.seq += 1
+        if controlword:  # a drive the guard holds stopped is stopped again at once
+            self.restops += 1
+            self.controlword_seq = self.seq
+            stop = CW_QUICK_STOP if self.phase is GuardPhase.STOPPING else CW_DISABLE_VOLTAGE
+            why = f"enabled behind the guard ({write.describe()})"
+            self.commands.append(Command(stop, why, now, by_sdo=True))
+            self.last_command_at, self.state_at_command = now, self.state
+            if self.config_seq <= self.verified_seq:  # the limits read back bound it: charged
+                return self._settled(now)  # as they are (closed, while held stopped)
+        else:
+            self.config_seq = self.seq
+        off = self.phase is GuardPhase.STOPPED and self.state in POWERLESS
+        if controlword or not off:  # a drive held off gets torque only by a controlword
+            m.suspect(now, now - age_us)
+        if self.suspect is None:
+            self.suspect, self.suspect_at = write.describe(), now
+        if write.index is None or self.scope is None:
+            self.scope = None
+        elif write.index in PDO_CONFIG:
+            self.scope.update(pdo_pair(write.index))
+        else:
+            self.scope.add(write.index)
+        return self._settled(now)
+
+    def on_verified(self, now: int, seq: int, read: dict[Key, int | None]) -> list[Message]:
+        """The link read back what ``VerifyCommand`` ``seq`` asked for (None: not readable)."""
+        self.verifying = None
+        m = self.metering
+        setup = m.setup
+        if setup is None:
+            return []
+        always = [STATUSWORD_KEY, *(() if m.full is None else ((i, 0) for i in LIMIT_OBJECTS))]
+        if any(read.get(k) is None for k in (*read, *always)):  # garbled by another master's
+            if self.suspect is not None:
+                self.last_verify_at = now - self.config.retry_us  # again (until the deadline)
+            return self._settled(now)
+        problem = None
+        for limits in (m.target(), m.confirmed):
+            problem = check({k: v for k, v in setup.config.items() if k in read}, read, limits)
+            if problem is None:
+                break
+        status = read.get(STATUSWORD_KEY)
+        torque = status is None or not powerless(status)
+        stopped = self.phase is GuardPhase.STOPPED
+        what = self.suspect or "a periodic read-back"
+        if problem is not None and not self.latched:
+            self.refused = f"configuration changed behind the guard ({what}): {problem}"
+            self.latched = True
+        if problem is not None:
+            self.rewrite_at = now  # the guard's limits again (closed), whatever else differs
+        if problem is not None and (torque or not stopped):
+            m.suspect(now, now)  # charged at the reach until the drive is seen off
+            if self.suspect is None:  # a periodic read-back: read again until then
+                self.suspect, self.suspect_at, self.seq = what, now, self.seq + 1
+        # what was read holds unless the configuration was written since (a controlword
+        # changes no limit); a drive seen off stays off whatever was written since but one
+        held = problem is None and seq >= self.config_seq
+        off = stopped and not torque and seq >= self.controlword_seq
+        if not (held or off):
+            if seq != self.seq:
+                self.last_verify_at = now - self.config.retry_us  # written since: read again
+        else:  # the limits as written bound it, or it is off: no charge at the reach
+            m.verified(now)
+            if seq >= self.config_seq:  # and nothing read back yet is left
+                self.suspect, self.suspect_at, self.scope = None, None, set()
+                self.verified_seq = max(self.verified_seq, seq)
+            else:
+                self.last_verify_at = now - self.config.retry_us
+        return self._settled(now)
+
     def on_message(self, msg: ToClient, now: int) -> list[Message]:
         self.metering.charge(now)
         out = self._carry_out(self.client.receive(msg, now), now)
@@ -256,6 +402,12 @@ class DriveGuard:
             times.append(self.phase_at + self.config.stop_timeout_us)
         if self.rewrite_at is not None:
             times.append(self.rewrite_at)
+        if self.suspect_at is not None:
+            times.append(self.suspect_at + self.config.pdo_timeout_us + 1)
+            if self.verifying is None:
+                times.append(self.last_verify_at + self.config.retry_us)
+        if self.next_reread is not None:
+            times.append(self.next_reread)
         return min(times)
 
     def on_wakeup(self, now: int) -> list[Message]:
@@ -263,6 +415,11 @@ class DriveGuard:
         if (timer := self.client.get_timer()) is not None and timer <= now:
             out += self._carry_out(self.client.handle_timer(now), now)
         self.metering.charge(now)
+        if self.next_reread is not None and now >= self.next_reread:
+            self.next_reread = now + self.config.reread_us
+            if self.suspect is None and self.verifying is None and self.ready_at is not None:
+                self.scope = None
+                self._verify("periodic read-back", now)
         out += self._settled(now)
         if now >= self.next_telemetry:
             out.append(self.telemetry(now))
@@ -323,7 +480,8 @@ class DriveGuard:
         if not m.sound or m.full is None:
             return self.config.reserve_uj
         worst = 0
-        for limits in (m.confirmed, m.pending, m.full.tapered(self.level)):
+        reach = m.reach if self.suspect is not None else None
+        for limits in (m.confirmed, m.pending, m.full.tapered(self.level), reach):
             b = m.bound(limits)
             worst = max(worst, 0 if b is None else b.total_uj)
         return self.config.reserve_uj + worst
@@ -333,12 +491,17 @@ class DriveGuard:
             return "supervisor stopping"
         if self.refused is not None:
             return self.refused
+        if self.suspect_at is not None and now > self.suspect_at + self.config.pdo_timeout_us:
+            self.refused = f"a write behind the guard ({self.suspect}) not verified in time"
+            self.latched = True
+            self.rewrite_at = now
+            return self.refused
         deadline = self._pdo_deadline()
         if deadline is not None and now > deadline:
             self.metering.gap(now - (deadline - self.config.pdo_timeout_us))
             return "TPDOs stopped"
         if self.usable <= self.threshold_uj():
-            return "budget exhausted"
+            return "budget exhausted" if self.suspect is None else f"written: {self.suspect}"
         if self.metering.sound and self.metering.setup is None:
             return "not set up yet"
         return None
@@ -357,6 +520,12 @@ class DriveGuard:
         elif self.phase is GuardPhase.STOPPING:
             self._advance_stop(now)  # the cause went away (topped up, TPDOs back): finish first
         self._steer_limits(now)
+        if (
+            self.suspect is not None
+            and self.verifying is None
+            and now >= self.last_verify_at + self.config.retry_us
+        ):
+            self._verify(self.suspect, now)
         if (
             self._wants_enable()
             and self._limits_open()
@@ -399,6 +568,7 @@ class DriveGuard:
     def _may_resume(self) -> bool:
         return (
             not self.latched
+            and self.suspect is None
             and self.state not in FAULT_STATES
             and self.usable > self.threshold_uj() + self.config.resume_margin_uj
         )
@@ -455,12 +625,32 @@ class DriveGuard:
         m = self.metering
         return m.full is None or (m.confirmed is not None and m.confirmed.torque_permille > 0)
 
+    def _verify(self, why: str, now: int) -> None:
+        """Ask the link to read back the scope of the writes seen (the limits and the
+        statusword always)."""
+        config = self.metering.setup.config if self.metering.setup is not None else {}
+        scope = self.scope
+        keys = tuple(k for k in config if scope is None or k[0] in scope)
+        self.verifying, self.last_verify_at = self.seq, now
+        self.commands.append(VerifyCommand(self.seq, keys, why, now))
+
     def _set_phase(self, phase: GuardPhase, why: str | None, now: int) -> None:
         self.phase, self.stop_reason, self.phase_at = phase, why, now
 
     def _command(self, controlword: int | None, why: str, now: int) -> None:
         self.commands.append(Command(controlword, why, now))
         self.last_command_at, self.state_at_command = now, self.state
+
+    def _unseen_uj(self) -> int | None:
+        """What a write the guard cannot see may cost: the reach's bound with the re-read
+        period (and the PDO timeout the read-back may take) added to the gap."""
+        m = self.metering
+        if m.setup is None or m.reach is None or not self.config.reread_us:
+            return None
+        t = m.timings()
+        gap = t.gap_us + self.config.reread_us + self.config.pdo_timeout_us
+        b = bound(m.setup.ratings, m.reach, replace(t, gap_us=gap), m.stop, m.setup.deceleration)
+        return b.total_uj
 
     # -- the proxy client -------------------------------------------------------------------
     def telemetry(self, now: int) -> Telemetry:
@@ -498,10 +688,14 @@ class DriveGuard:
             "return_seq": c.return_seq,
             "return_pending_uj": c.return_pending,
             **self.metering.status(now),
+            "bound_unseen_uj": self._unseen_uj(),
             "stop_at_uj": self.threshold_uj(),
             "taper_level": self.level,
             "overrun_uj": self.overrun_uj,
             "debt_uj": self.debt_uj,
             "stops": self.stops,
+            "writes_seen": self.writes_seen,
+            "restops": self.restops,
+            "unverified": self.suspect,
             "tpdo_age_us": None if self.last_values_at is None else now - self.last_values_at,
         }

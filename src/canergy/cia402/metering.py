@@ -16,7 +16,7 @@ Sans-IO: times are integer µs from the caller.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from canergy.cia402.counter import COUNTER_KEY, CounterConfig, CounterMeter
@@ -52,6 +52,12 @@ class DriveSetup:
     """The controlword write measured at set-up."""
     limits: Limits | None = None
     """The limits the link wrote and read back at set-up."""
+    reach: Limits | None = None
+    """The most the drive can be set to (its EDS maxima, the objects' ranges, or flags): what a
+    write the guard has not verified yet is charged at."""
+    config: dict[tuple[int, int], int] = field(default_factory=dict)
+    """What the guard's bound depends on beside the limits, as read at set-up (PDO
+    configuration, heartbeat consumer, ratings, quick stop objects): read back after a write."""
 
 
 class DriveMeter:
@@ -96,6 +102,11 @@ class DriveMeter:
         self.worst_age_us = 0
         self.reaction_us = 0
         self.latency_us = 0
+        self.suspect_from: int | None = None
+        """A write behind the guard was seen: charged at the reach by the clock from then (in
+        counter mode from the last trusted reading) until the configuration is verified."""
+        self.rebase = False
+        """Counter mode: verified; the next reading is the new baseline (not differenced)."""
 
     @property
     def sound(self) -> bool:
@@ -122,9 +133,15 @@ class DriveMeter:
             return 0
         return self.setup.ratings.envelope_fw(limits)
 
+    @property
+    def reach(self) -> Limits | None:
+        return None if self.setup is None else self.setup.reach
+
     def in_force_fw(self, now: int) -> int:
         """The largest envelope the drive may be working to now."""
         fw = max(self.envelope_fw(self.confirmed), self.envelope_fw(self.pending))
+        if self.suspect_from is not None:
+            fw = max(fw, self.envelope_fw(self.reach))
         return max(fw, self.lowered_fw) if now < self.lowered_until else fw
 
     def write(self, now: int, limits: Limits) -> None:
@@ -148,6 +165,37 @@ class DriveMeter:
         """The limits written or being written."""
         return self.pending if self.pending is not None else self.confirmed
 
+    def suspect(self, now: int, since: int) -> None:
+        """A write the bound depends on was seen at ``since``: charge the reach from then."""
+        if not self.sound or self.setup is None or self.charged_until is None:
+            return
+        self.rebase = False
+        if self.suspect_from is not None:
+            return
+        if self.kind is MeterKind.ENVELOPE:
+            self.charge(now)
+            early = max(0, self.charged_until - since)  # charged below the reach meanwhile
+            self.suspect_from = since
+            self.remainder += self.envelope_fw(self.reach) * early
+        else:  # the counter may be lying from here: the clock at the reach, from the last reading
+            last = self.counter.last_us if self.counter is not None else None
+            self.charged_until = min(since, now if last is None else last)
+            self.suspect_from = self.charged_until
+        self.charge_fw = self.in_force_fw(now)
+        self.charge(now)
+
+    def verified(self, now: int) -> None:
+        """The configuration read back as the guard expects: back to the limits in force (in
+        counter mode from the next reading, the new baseline)."""
+        if self.suspect_from is None:
+            return
+        self.charge(now)
+        if self.kind is MeterKind.COUNTER:
+            self.rebase = True
+            return
+        self.suspect_from = None
+        self.charge_fw = self.in_force_fw(now)
+
     # -- charging ---------------------------------------------------------------------------
     def take(self) -> int:
         """µJ charged since the last ``take``, for the guard to spend."""
@@ -161,7 +209,8 @@ class DriveMeter:
     def charge(self, now: int) -> None:
         """Envelope mode: charge what the drive may have drawn up to ``now``, by the host's
         clock (``take`` hands it over); a lowered envelope stops counting when it expired."""
-        if self.kind is not MeterKind.ENVELOPE or self.charged_until is None:
+        by_clock = self.kind is MeterKind.ENVELOPE or self.suspect_from is not None
+        if not by_clock or self.charged_until is None:
             return
         if self.charged_until < self.lowered_until < now:
             self._charge_to(self.lowered_until)
@@ -182,6 +231,12 @@ class DriveMeter:
         elif self.kind is MeterKind.COUNTER:
             if self.counter is None or COUNTER_KEY not in values or self.setup is None:
                 return
+            if self.suspect_from is not None:
+                self.charge(now)
+                if not self.rebase:
+                    return  # not trusted: the clock charges the reach
+                self.suspect_from, self.rebase = None, False
+                self.counter.last_raw = None  # the new baseline
             fw = max(self.charge_fw, self.in_force_fw(now))
             self.charge_fw = self.in_force_fw(now)
             self._charged(self.counter.sample(now, values[COUNTER_KEY], fw))
@@ -247,8 +302,11 @@ class DriveMeter:
         target = self.target()
         worst = self.bound(self.full)
         now_bound = self.bound(target)
+        reach = self.bound(self.reach)
         out |= {
             "bound_uj": None if worst is None else worst.total_uj,
+            "bound_reach_uj": None if reach is None else reach.total_uj,
+            "suspect": self.suspect_from is not None,
             "bound_stop_uj": None if worst is None else worst.stop_uj,
             "bound_now_uj": None if now_bound is None else now_bound.total_uj,
             "envelope_w": round(self.in_force_fw(now) / 1e15, 3),

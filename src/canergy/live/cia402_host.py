@@ -118,6 +118,10 @@ class GuardedSupervisor:
             guard.watch(link.reaction_max_us, link.latency_max_us)
             for limits, taken, detail in link.drain_limits():
                 up += guard.on_limits(now, limits, taken, detail)
+            for at, write, age in link.drain_writes():
+                up += guard.on_write(at, write, age)
+            for seq, read in link.drain_verified():
+                up += guard.on_verified(now, seq, read)
             for at, values, state, age in link.drain():
                 up += guard.on_values(at, values, state, age)
             if guard.next_wakeup() <= now:

@@ -47,9 +47,26 @@ from canergy.cia402.envelope import (
     Ratings,
     StopKind,
 )
-from canergy.cia402.guard import CW_DISABLE_VOLTAGE, ENABLED, Command, LimitsCommand
+from canergy.cia402.guard import (
+    CW_DISABLE_VOLTAGE,
+    ENABLED,
+    STATUSWORD_KEY,
+    Command,
+    LimitsCommand,
+    VerifyCommand,
+)
 from canergy.cia402.meter import RATED_CURRENT, RATED_TORQUE, MeterConfig
 from canergy.cia402.metering import DriveSetup
+from canergy.cia402.watch import (
+    NMT,
+    SDO_REQUEST,
+    Key,
+    SdoWatch,
+    Write,
+    expected_keys,
+    nmt_writes,
+    pdo_writes,
+)
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +83,11 @@ LimitsAnswer = tuple[Limits, bool | None, str]
 """Limits written; whether the drive read them back unchanged (None: no answer came through
 the shared SDO server, so it is not known); what went wrong if not."""
 UNSIGNED_TYPES = {8: 0x5, 16: 0x6, 32: 0x7, 64: 0x1B}
+TYPE_MAX = {0x2: 2**7 - 1, 0x3: 2**15 - 1, 0x4: 2**31 - 1, 0x5: 2**8 - 1, 0x6: 2**16 - 1}
+TYPE_MAX |= {0x7: 2**32 - 1}
+"""The largest value of a limit object's data type: its reach when neither flag nor EDS says."""
+Seen = tuple[int, Write, int]
+"""When the host took a frame in (µs), what it wrote, and its age then (µs)."""
 SDO_ERRORS = (canopen.SdoCommunicationError, canopen.SdoAbortedError, can.CanError)
 SDO_ATTEMPTS = 5
 T = TypeVar("T")
@@ -84,6 +106,8 @@ class LinkConfig:
     """Written to the drive's 0x1016:1 with ``host_id``: it faults when the host goes silent."""
     sdo_timeout_s: float = 0.5
     setup_retry_s: float = 1.0
+    reach: tuple[int | None, int | None, int | None] = (None, None, None)
+    """0x6072, 0x6073, 0x6080 at most (flags); None: the EDS's HighLimit, else the type's."""
 
 
 class SetupError(RuntimeError):
@@ -161,6 +185,7 @@ class DriveLink:
     ) -> None:
         self.config = config
         self.clock = clock
+        self.network = network
         self.node = BaseNode402(node_id, str(config.eds))
         self.node.sdo.RESPONSE_TIMEOUT = config.sdo_timeout_s
         network.add_node(self.node)
@@ -172,6 +197,12 @@ class DriveLink:
             network.add_node(self.meter_node)
         self.samples: deque[Sample] = deque()
         self.limit_answers: deque[LimitsAnswer] = deque()
+        self.writes: deque[Seen] = deque()
+        """Frames to the drive from others: what they wrote."""
+        self.verified: deque[tuple[int, dict[Key, int | None]]] = deque()
+        self._sdo_watch = SdoWatch()
+        network.subscribe(SDO_REQUEST + node_id, self._on_sdo_request)
+        network.subscribe(NMT, self._on_nmt)
         self.ready_at: int | None = None
         self.setup: DriveSetup | None = None
         self.error: str | None = None
@@ -182,7 +213,7 @@ class DriveLink:
         """Longest time from the TPDO that called for a stop to its controlword leaving."""
         self.latency_max_us = 0
         """Longest controlword write by SDO, set-up included (the drive's answer)."""
-        self._jobs: queue.Queue[Command | LimitsCommand | None] = queue.Queue()
+        self._jobs: queue.Queue[Command | LimitsCommand | VerifyCommand | None] = queue.Queue()
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._work, name=f"drive-{node_id}", daemon=True)
         self._thread.start()
@@ -204,11 +235,23 @@ class DriveLink:
             out.append(self.limit_answers.popleft())
         return out
 
+    def drain_writes(self) -> list[Seen]:
+        out: list[Seen] = []
+        while self.writes:
+            out.append(self.writes.popleft())
+        return out
+
+    def drain_verified(self) -> list[tuple[int, dict[Key, int | None]]]:
+        out: list[tuple[int, dict[Key, int | None]]] = []
+        while self.verified:
+            out.append(self.verified.popleft())
+        return out
+
     def pending(self) -> bool:
         """Samples or answers wait for the guard."""
-        return bool(self.samples or self.limit_answers)
+        return bool(self.samples or self.limit_answers or self.writes or self.verified)
 
-    def command(self, cmd: Command | LimitsCommand) -> None:
+    def command(self, cmd: Command | LimitsCommand | VerifyCommand) -> None:
         self._jobs.put(cmd)
 
     def close(self) -> None:
@@ -303,10 +346,99 @@ class DriveLink:
         ratings = Ratings(
             rated_torque, rated_current, meter.velocity_unit_rad_s, meter.resistance_mohm
         )
+        config = self._read_config()
+        self._watch_rpdos(config)
         node.nmt.state = "OPERATIONAL"
-        self.setup = DriveSetup(ratings, deceleration, latency, limits)
+        self.setup = DriveSetup(ratings, deceleration, latency, limits, self._reach(), config)
         self.error = None
         self.ready_at = self.clock()
+
+    def _reach(self) -> Limits | None:
+        """The most the limit objects can be set to: a flag, else the EDS's HighLimit, else
+        the largest value of the object's type."""
+        if self.config.limits is None:
+            return None
+        od = self.node.object_dictionary
+        most: list[int] = []
+        for index, given in zip((0x6072, 0x6073, 0x6080), self.config.reach, strict=True):
+            var: Any = od[index]
+            high = var.max if var.max is not None else TYPE_MAX.get(var.data_type, 2**32 - 1)
+            most.append(given if given is not None else int(high))
+        return Limits(*most)
+
+    def _config_keys(self) -> list[Key]:
+        """The PDO configuration (COB-ID and type of each PDO, its map) and the objects of
+        ``expected_keys`` that the EDS has."""
+        od = self.node.object_dictionary
+        keys: list[Key] = []
+        for index in (*range(0x1400, 0x1600), *range(0x1800, 0x1A00)):
+            if index in od:
+                keys += [(index, 1), (index, 2)]
+                keys += [(index + 0x200, sub) for sub in range(9) if index + 0x200 in od]
+        for index, sub in expected_keys(self.config.stop):
+            if index in od and (sub == 0 or sub in getattr(od[index], "subindices", {})):
+                keys.append((index, sub))
+        return keys
+
+    def _read_config(self) -> dict[Key, int]:
+        """Read what the bound depends on (``_config_keys``), map entries past the count
+        left out."""
+        out: dict[Key, int] = {}
+        for index, sub in self._config_keys():
+            if index & 0x200 and sub > out.get((index, 0), 0):
+                continue
+            out[index, sub] = self._read(index, sub)
+        return out
+
+    def _read(self, index: int, sub: int) -> int:
+        var = self.node.sdo[index]
+        target = var[sub] if sub or not hasattr(var, "raw") else var
+
+        def transfer() -> int:
+            return int(target.raw)
+
+        return shared_sdo(transfer, self._closed.wait)
+
+    def _watch_rpdos(self, config: dict[Key, int]) -> None:
+        """Frames on the drive's enabled RPDOs from others are writes of their mapped objects."""
+        for comm in range(0x1400, 0x1600):
+            cob = config.get((comm, 1))
+            if cob is None or cob & 0x8000_0000:
+                continue
+            count = config.get((comm + 0x200, 0), 0)
+            entries = [config.get((comm + 0x200, s), 0) for s in range(1, count + 1)]
+            mapping = tuple((e >> 16, e >> 8 & 0xFF, e & 0xFF) for e in entries)
+
+            def on_rpdo(can_id: int, data: bytearray, stamp: float, mapping: Any = mapping) -> None:
+                self._seen(pdo_writes(bytes(data), mapping), stamp)
+
+            self.network.subscribe(cob & 0x7FF, on_rpdo)
+
+    def _seen(self, writes: list[Write], stamp: float) -> None:  # the Notifier's thread
+        if writes:
+            now, age = self.clock(), self._stamp_age(stamp)
+            self.writes.extend((now, w, age) for w in writes)
+
+    def _on_sdo_request(self, can_id: int, data: bytearray, stamp: float) -> None:
+        self._seen(self._sdo_watch.frame(bytes(data)), stamp)
+
+    def _on_nmt(self, can_id: int, data: bytearray, stamp: float) -> None:
+        self._seen(nmt_writes(bytes(data), self.node_id), stamp)
+
+    def _verify(self, cmd: VerifyCommand) -> None:
+        """Read back what the guard asked for, the limits and the statusword."""
+        keys = [*cmd.keys, STATUSWORD_KEY]
+        if self.config.limits is not None:
+            keys += [(i, 0) for i in self.config.limits.as_objects()]
+        read: dict[Key, int | None] = {}
+        for index, sub in keys:
+            if index & 0x200 and 0x1600 <= index < 0x1C00 and sub > (read.get((index, 0)) or 0):
+                continue  # past the map's count
+            try:
+                read[index, sub] = self._read(index, sub)
+            except (*SDO_ERRORS, KeyError):
+                read[index, sub] = None
+        self.verified.append((cmd.seq, read))
 
     def _setup_meter_node(self, counter: CounterConfig) -> None:
         """The power-meter node's TPDOs: the one that carries the counter feeds the guard."""
@@ -385,7 +517,10 @@ class DriveLink:
 
     def _age_us(self, pdo: Any) -> int:
         """How long ago the frame was received (its timestamp is wall-clock, as python-can's)."""
-        stamp = getattr(pdo, "timestamp", None)
+        return self._stamp_age(getattr(pdo, "timestamp", None))
+
+    @staticmethod
+    def _stamp_age(stamp: float | None) -> int:
         return 0 if not stamp else max(0, round((time.time() - stamp) * 1e6))
 
     def _on_tpdo(self, pdo: Any) -> None:  # the Notifier's thread
@@ -404,7 +539,10 @@ class DriveLink:
                 reading = {COUNTER_KEY: int(var.raw)}
                 self.samples.append((self.clock(), reading, None, self._age_us(pdo)))
 
-    def _execute(self, cmd: Command | LimitsCommand) -> None:
+    def _execute(self, cmd: Command | LimitsCommand | VerifyCommand) -> None:
+        if isinstance(cmd, VerifyCommand):
+            self._verify(cmd)
+            return
         if isinstance(cmd, LimitsCommand):
             self.limit_answers.append((cmd.limits, *self._write_limits(cmd.limits)))
             return
@@ -414,7 +552,7 @@ class DriveLink:
             if controlword is None:
                 return
         try:
-            if self.node.rpdo_pointers.get(CONTROLWORD) is None:
+            if cmd.by_sdo or self.node.rpdo_pointers.get(CONTROLWORD) is None:
                 self._timed_controlword(controlword)  # by SDO: the answer times the drive
             else:
                 self.node.controlword = controlword  # by RPDO: nothing to time

@@ -12,7 +12,14 @@ from typing import Any
 
 import can
 
-from canergy.argtypes import add_duration, bounded_int, duration, energy, node_ids
+from canergy.argtypes import (
+    add_duration,
+    bounded_int,
+    duration,
+    duration_or_zero,
+    energy,
+    node_ids,
+)
 from canergy.cia402.counter import CounterConfig
 from canergy.cia402.envelope import Limits, StopKind
 from canergy.cia402.guard import DriveGuard, GuardConfig
@@ -142,6 +149,26 @@ def add_cia402_flags(p: argparse.ArgumentParser) -> None:
             metavar=metavar,
             help=f"0x{index:04X} the guard writes, {unit} (counter and envelope metering)",
         )
+    for flag, index, high in (
+        ("--cia402-reach-torque", 0x6072, 65535),
+        ("--cia402-reach-current", 0x6073, 65535),
+        ("--cia402-reach-speed", 0x6080, 2**32 - 1),
+    ):
+        g.add_argument(
+            flag,
+            type=bounded_int(1, high),
+            metavar="VALUE",
+            help=f"the most 0x{index:04X} can be set to on the drive: a write the guard has not "
+            "verified yet is charged at it (default: the EDS's HighLimit, else the type's range)",
+        )
+    g.add_argument(
+        "--cia402-reread",
+        type=duration_or_zero,
+        default=1_000_000,
+        metavar="TIME",
+        help="read the drive's configuration back this often, for writes the guard cannot see "
+        "(default 1s; 0: never)",
+    )
     g.add_argument(
         "--cia402-stop",
         choices=[k.value for k in StopKind],
@@ -239,6 +266,10 @@ def check_cia402(args: argparse.Namespace) -> None:
         missing = [f for f in flags if getattr(args, f[2:].replace("-", "_")) is None]
         if missing:
             raise ValueError(f"--cia402-meter {kind.value} needs {', '.join(missing)}")
+    for what in ("torque", "current", "speed"):
+        limit, reach = (getattr(args, f"cia402_{k}_{what}") for k in ("max", "reach"))
+        if limit is not None and reach is not None and reach < limit:
+            raise ValueError(f"--cia402-reach-{what} {reach} is below --cia402-max-{what}")
     if kind is MeterKind.COUNTER:
         if args.cia402_counter is None:
             raise ValueError("--cia402-meter counter needs --cia402-counter [NODE:]INDEX")
@@ -307,6 +338,7 @@ def guard_drives(
         latency_us=args.cia402_latency,
         reserve_uj=args.cia402_reserve,
         auto_enable=args.cia402_enable,
+        reread_us=args.cia402_reread,
     )
     link_config = LinkConfig(
         eds=args.cia402_eds or EDS,
@@ -316,6 +348,7 @@ def guard_drives(
         stop=stop,
         host_id=args.cia402_host_id,
         consumer_timeout_ms=args.cia402_consumer_timeout // 1000,
+        reach=(args.cia402_reach_torque, args.cia402_reach_current, args.cia402_reach_speed),
     )
     # the capture first: a file that cannot be opened leaves no link thread behind
     capture = can.Logger(str(args.cia402_capture)) if args.cia402_capture else None

@@ -103,19 +103,24 @@ def _guarded(procs: Procs) -> dict[str, Any]:
 
 
 def _application(procs: Procs, place: Venue) -> canopen.Network:
-    """Once the guard has set the drive up: profile velocity at 10,000 rad/s² both ways."""
-    wait(
-        lambda: bool(_guarded(procs).get("ready")),
-        "the guard setting the drive up",
-        show=lambda: (_guarded(procs), procs.stderr("supervisor")[-2000:]),
-    )
+    """Before the guard starts (a mode written while it guards is charged at the drive's reach):
+    profile velocity at 10,000 rad/s² both ways, once the drive has booted (its first status)."""
+    wait(lambda: (procs.tmp / "drive.json").exists(), "the emulated drive's boot-up")
     network = canopen.Network()
     network.connect(interface="socketcan", channel=IFACE)
     app = network.add_node(DRIVE, str(EDS))
     app.sdo.RESPONSE_TIMEOUT = max(5.0, place.sdo_timeout_s)
     for index, value in ((0x6060, 3), (0x6083, 10_000_000), (0x6084, 10_000_000)):
-        app_write(app, index, value)  # the guard's own SDO transfers share the drive's server
+        app_write(app, index, value)
     return network
+
+
+def _ready(procs: Procs) -> None:
+    wait(
+        lambda: bool(_guarded(procs).get("ready")),
+        "the guard setting the drive up",
+        show=lambda: (_guarded(procs), procs.stderr("supervisor")[-2000:]),
+    )
 
 
 def _pulse(network: canopen.Network, done: threading.Event) -> None:
@@ -144,8 +149,9 @@ def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
 ) -> None:
     tmp = procs.tmp
     _drive(procs, 20, meter=mode == "counter-on-meter-node")
-    _guard(procs, place, mode, "--initial", "2J")
     network = _application(procs, place)
+    _guard(procs, place, mode, "--initial", "2J")
+    _ready(procs)
     done = threading.Event()
     pulser = threading.Thread(target=_pulse, args=(network, done), daemon=True)
     pulser.start()
@@ -218,8 +224,9 @@ def test_kill_9_of_the_host_stops_the_drive_through_its_heartbeat_consumer(
 ) -> None:
     tmp = procs.tmp
     _drive(procs, 20)
-    _guard(procs, place, "counter-on-drive", "--initial", "100J")
     network = _application(procs, place)
+    _guard(procs, place, "counter-on-drive", "--initial", "100J")
+    _ready(procs)
     app_write(network[DRIVE], 0x60FF, 40_000)
     network.disconnect()
     wait(lambda: status(tmp / "drive.json")["state"] == "OPERATION ENABLED", "the drive running")
@@ -246,3 +253,59 @@ def test_kill_9_of_the_host_stops_the_drive_through_its_heartbeat_consumer(
     envelope_w = 2.75
     assert drive["drawn_uj"] <= books["delivered_uj"] + envelope_w * silence_s * 1e6 + 1
     assert guarded["meter"] == "counter"
+
+
+def test_limits_opened_behind_the_guard_on_vcan0_stop_the_drive(procs: Procs, place: Venue) -> None:
+    """Issue 40, item 2 on vcan0: while the guarded drive runs, the application (another process's
+    python-canopen master here: this test's) opens 0x6072/0x6073 to 3000 ‰ and 0x6080 to
+    150 rad/s by SDO and keeps asking for speed. The guard sees the writes on the bus, charges
+    them at the drive's reach (given by flags) until it has read the limits back, finds them not
+    as it wrote them, and stops the drive for good: drawn ≤ granted + the bound at the reach."""
+    tmp = procs.tmp
+    _drive(procs, 20)
+    network = _application(procs, place)
+    reach = ("--cia402-reach-torque", "3000", "--cia402-reach-current", "3000")
+    _guard(
+        procs,
+        place,
+        "envelope",
+        *("--initial", "100J", *reach, "--cia402-reach-speed", "150000"),
+    )
+    _ready(procs)
+    wait(
+        lambda: status(tmp / "drive.json")["state"] == "OPERATION ENABLED",
+        "the guard enabling the drive",
+        show=lambda: _guarded(procs),
+    )
+    app = network[DRIVE]
+    app_write(app, 0x60FF, 50_000)
+    for index, value in ((0x6072, 3000), (0x6073, 3000), (0x6080, 150_000), (0x60FF, 150_000)):
+        app_write(app, index, value)
+    wait(
+        lambda: bool(_guarded(procs).get("latched")),
+        "the guard latching the drive off after the limits were opened",
+        show=lambda: _guarded(procs),
+    )
+    wait(
+        lambda: status(tmp / "drive.json")["state"] == "SWITCH ON DISABLED",
+        "the drive stopped",
+        show=lambda: _guarded(procs),
+    )
+    network.disconnect()
+    assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
+    assert procs.stop("drive") == 0, procs.stderr("drive")
+    sup, drive = status(tmp / "sup.json"), status(tmp / "drive.json")
+    guarded = sup["cia402"]["drives"][str(DRIVE)]
+    books = sup["nodes"][str(DRIVE)]
+    granted = books["delivered_uj"] - books["returns_credited_uj"]
+    print(
+        f"vcan0 limits opened: granted {granted} µJ, drawn {drive['drawn_uj']} µJ, bound at the "
+        f"reach {guarded['bound_reach_uj']} µJ, refused {guarded['refused']!r}"
+    )
+    assert guarded["writes_seen"] >= 1, guarded
+    assert any(f"0x{i:04X}" in (guarded["refused"] or "") for i in (0x6072, 0x6073, 0x6080))
+    assert guarded["bound_reach_uj"] is not None
+    assert drive["drawn_uj"] <= granted + guarded["bound_reach_uj"]
+    # the reach's bound over a 1 s PDO timeout is hundreds of joules in user-mode Linux; what the
+    # guard did was charge the reach from the write on, grant that, and stop: nothing overdrawn
+    assert drive["drawn_uj"] <= granted, guarded

@@ -34,6 +34,8 @@ fi
 stamp="$VENV/.canergy-installed$EXTRAS"
 if [ ! -f "$stamp" ] || [ "$ROOT/pyproject.toml" -nt "$stamp" ]; then
     "$VENV/bin/python" -m pip install -q --upgrade pip
-    "$VENV/bin/python" -m pip install -q -e "$ROOT$EXTRAS"
+    # the build backend's warnings (setuptools' "Editable installation" box) are for whoever
+    # works on the packaging, not for a first ./scripts/demo: pip shows them unless ignored
+    PYTHONWARNINGS=ignore::UserWarning "$VENV/bin/python" -m pip install -q -e "$ROOT$EXTRAS"
     touch "$stamp"
 fi

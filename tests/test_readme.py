@@ -1,10 +1,11 @@
-"""The README's library example runs as printed."""
+"""The library examples of the README and the site's pages run as printed; their shell commands
+parse."""
 
 import re
 import shlex
 from pathlib import Path
 
-from support.readme import python_blocks
+from support.readme import pages, python_blocks
 
 
 def test_readme_python_example_runs() -> None:
@@ -15,7 +16,7 @@ def test_readme_python_example_runs() -> None:
 
 
 def _shell_commands(prefix: str) -> list[list[str]]:
-    text = (Path(__file__).parent.parent / "README.md").read_text()
+    text = "\n".join(page.read_text() for page in pages())
     commands = []
     for block in re.findall(r"```sh\n(.*?)```", text, re.S):
         for line in block.replace("\\\n", " ").splitlines():
@@ -57,3 +58,30 @@ def test_readme_grants_ask_what_their_supervisor_allows() -> None:
         caps = [sup.max_grant] + ([sup.max_total] if sup.max_total else [])
         caps += [sup.initial] if sup.command != "gateway" else []  # a gateway's comes from above
         assert grant.amount <= min(caps), f"--amount {grant.amount} µJ is above {min(caps)} µJ"
+
+
+def _heading_anchors(page: Path) -> set[str]:
+    """The anchors GitHub (and the site, myst_heading_anchors) give a page's headings."""
+    text = re.sub(r"```.*?```", "", page.read_text(), flags=re.S)
+    found = set()
+    for heading in re.findall(r"^#+ (.*)$", text, flags=re.M):
+        words = re.sub(r"[^\w\- ]", "", re.sub(r"[`*]", "", heading.strip()).lower())
+        found.add(words.replace(" ", "-"))
+    return found
+
+
+def test_readme_links_reach_pages_and_headings_that_exist() -> None:
+    """The README is not part of the site, whose build checks its own links: its links into the
+    site and the repository are checked here."""
+    readme = pages()[0]
+    broken = []
+    for link in re.findall(r"\]\(([^)\s]+)\)", readme.read_text()):
+        if re.match(r"[a-z]+:", link):
+            continue
+        path, _, anchor = link.partition("#")
+        target = readme.parent / path if path else readme
+        if not target.exists() or (
+            anchor and target.suffix == ".md" and anchor not in _heading_anchors(target)
+        ):
+            broken.append(link)
+    assert not broken

@@ -1,5 +1,5 @@
-"""The README's recipes that need no SocketCAN run as written (``support.recipes``); the vcan
-suite runs the others (``test_vcan_readme.py``)."""
+"""The recipes of the README and the site (docs/) that need no SocketCAN run as written
+(``support.recipes``); the vcan suite runs the others (``test_vcan_readme.py``)."""
 
 from __future__ import annotations
 
@@ -36,6 +36,17 @@ def test_a_failing_recipe_fails_and_names_its_line(tmp_path: Path) -> None:
     text = "<!-- recipe: s local -->\n```sh\ncanergy demo --nodes 0\n```\n"
     with pytest.raises(AssertionError, match=r"README.md:3: canergy demo --nodes 0\nexit 2"):
         run_session(recipes(text), tmp_path)
+
+
+def test_a_failing_recipe_on_a_site_page_names_that_page(tmp_path: Path) -> None:
+    text = "<!-- recipe: s local -->\n```sh\ncanergy demo --nodes 0\n```\n"
+    with pytest.raises(AssertionError, match=r"docs/guide/x.md:3: canergy demo --nodes 0"):
+        run_session(recipes(text, "docs/guide/x.md"), tmp_path)
+
+
+def test_recipes_are_read_from_the_readme_and_the_sites_pages() -> None:
+    pages = {command.page for recipe in recipes() for command in recipe.commands}
+    assert "README.md" in pages and any(page.startswith("docs/guide/") for page in pages)
 
 
 def test_a_background_command_that_does_not_stop_cleanly_fails(tmp_path: Path) -> None:

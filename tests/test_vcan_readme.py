@@ -1,4 +1,5 @@
-"""The README's SocketCAN recipes run as written on vcan0 and vcan1 (``pytest -m vcan``)."""
+"""The SocketCAN recipes of the README and the site (docs/) run as written on vcan0 and vcan1
+(``pytest -m vcan``)."""
 
 from __future__ import annotations
 

@@ -1,8 +1,10 @@
-"""The README's recipes as tests: its marked shell blocks, run as written.
+"""The recipes of the README and of the site's pages as tests: their marked shell blocks, run
+as written (``support.readme.pages()``: README.md, then docs/).
 
 A shell block preceded by ``<!-- recipe: SESSION WHERE -->`` is a recipe. WHERE is ``local``
 (python-can's virtual bus or no bus: the normal suite) or ``vcan`` (real SocketCAN on vcan0 and
-vcan1: the vcan suite). The recipes of one session run in README order in one working directory,
+vcan1: the vcan suite). The recipes of one session run in page order (README first, then the
+site's pages by path) in one working directory,
 as a user would type them in one shell: each line is a command (``\\`` continues it, ``#``
 starts a comment); a line ending in ``&`` runs in the background, as in another terminal, and is
 waited for until its ``--control`` socket and ``--status-file`` exist (one with neither: until it
@@ -13,7 +15,7 @@ reads what the processes wrote once they were stopped), its background processes
 Ctrl-C would give them, and must exit 0.
 
 The working directory holds links to the repository's ``dbc``, ``firmware``, ``firmware_model``
-and ``scripts``, so paths in the README resolve as in a checkout; ``canergy`` and ``python`` are
+and ``scripts``, so paths in the pages resolve as in a checkout; ``canergy`` and ``python`` are
 the venv's. ``sessions`` groups the recipes of one WHERE by session and ``run_session`` runs one
 (tests/test_readme_recipes.py and tests/test_vcan_readme.py).
 """
@@ -31,8 +33,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
-README = ROOT / "README.md"
+from support.readme import ROOT, page_name, pages
+
 MARK = re.compile(
     r"^( *)<!-- recipe: (\S+) (local|vcan)( stopped)? -->\n\1```sh\n(.*?)^\1```", re.S | re.M
 )
@@ -48,6 +50,8 @@ class Command:
     text: str
     line: int
     background: bool
+    page: str = "README.md"
+    """The page it is written on (its path in the repository), for failures."""
 
     @property
     def argv(self) -> list[str]:
@@ -69,18 +73,20 @@ class Recipe:
     """Runs once the session's background processes have stopped."""
 
 
-def recipes(text: str | None = None) -> list[Recipe]:
-    """Every marked block of the README, in order."""
-    text = README.read_text() if text is None else text
+def recipes(text: str | None = None, page: str = "README.md") -> list[Recipe]:
+    """Every marked block of ``text`` (on ``page``), in order; without ``text``, of every page
+    (``support.readme.pages()``)."""
+    if text is None:
+        return [r for path in pages() for r in recipes(path.read_text(), page_name(path))]
     found = []
     for m in MARK.finditer(text):
         first = text[: m.start(5)].count("\n") + 1
-        commands = tuple(_commands(textwrap.dedent(m.group(5)), first))
+        commands = tuple(_commands(textwrap.dedent(m.group(5)), first, page))
         found.append(Recipe(m.group(2), m.group(3), first, commands, bool(m.group(4))))
     return found
 
 
-def _commands(block: str, first: int) -> list[Command]:
+def _commands(block: str, first: int, page: str) -> list[Command]:
     out: list[Command] = []
     pending, start = "", first
     for number, raw in enumerate(block.splitlines(), first):
@@ -95,7 +101,7 @@ def _commands(block: str, first: int) -> list[Command]:
         if not text:
             continue
         background = text.endswith("&")
-        out.append(Command(text.rstrip("&").strip(), start, background))
+        out.append(Command(text.rstrip("&").strip(), start, background, page))
     return out
 
 
@@ -143,7 +149,7 @@ class Session:
                 self._run(command)
 
     def _where(self, command: Command) -> str:
-        return f"README.md:{command.line}: {command.text}"
+        return f"{command.page}:{command.line}: {command.text}"
 
     def _start(self, command: Command) -> None:
         out = self.cwd / f"background-{len(self.background)}.log"

@@ -21,13 +21,17 @@ from canergy.cli.shared.live import (
 from canergy.codec import Codec
 from canergy.live.bus_args import open_bus
 from canergy.live.bus_keys import parse_node_id
-from canergy.live.control import request
+from canergy.live.control import NoAnswer, NoSupervisor, request
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.serve import serve_supervisor
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.state_file import books_nodes
 from canergy.messages import Direction
-from canergy.units import US_PER_S
+from canergy.units import US_PER_S, format_energy
+
+STATUS_WAIT_S = 5.0
+"""How long ``grant`` waits for the status it asks for once its grant went unanswered."""
+MAX_STATUS = 8 << 20
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -66,6 +70,22 @@ def run(args: argparse.Namespace) -> int:
         payload = {"grant": {"node": args.node, "amount_uj": args.amount}}
         try:
             answer = request(args.control, payload, args.timeout / US_PER_S)
+        except NoSupervisor as exc:
+            print(
+                f"canergy grant: {exc}: is `canergy supervisor --control {args.control}` "
+                "running (as this user)?",
+                file=sys.stderr,
+            )
+            return 2
+        except NoAnswer:
+            print(
+                f"canergy grant: the supervisor at {args.control} took the request, but node "
+                f"{args.node} took no grant within --timeout {args.timeout / US_PER_S:g} s (the "
+                "request stays queued there until the node is heard or the supervisor stops): "
+                f"{_node_state(args.control, args.node)}",
+                file=sys.stderr,
+            )
+            return 1
         except (OSError, ValueError) as exc:
             print(
                 f"canergy grant: cannot reach the supervisor at {args.control}: {exc}",
@@ -112,6 +132,29 @@ def run(args: argparse.Namespace) -> int:
     if not answers:
         answers.append({"node": args.node, "error": "no answer before --timeout"})
     return _report_grant(answers[0])
+
+
+def _node_state(control: Path, node: int | str) -> str:
+    """What the supervisor's status says of ``node`` (and of its bus when nothing is heard)."""
+    try:
+        status = request(control, {"status": True}, STATUS_WAIT_S, max_answer=MAX_STATUS)
+    except (OSError, ValueError) as exc:
+        return f"its status did not come either ({exc})"
+    info = status.get("nodes", {}).get(str(node))
+    if not isinstance(info, dict):
+        return "the supervisor's status does not show it"
+    received = status.get("frames_received")
+    if info.get("lost"):
+        text = f"the supervisor has heard nothing from node {node} lately: it is lost"
+        text += f" (frames received from the bus in all: {received})"
+    elif info.get("level_uj") is None:
+        text = f"node {node} is heard but has not reported its level yet"
+    else:
+        text = f"node {node} reports {format_energy(info['level_uj'])}"
+    text += f"; its transaction state is {info.get('state')}"
+    if status.get("bus_note"):
+        text += f"; on its bus, {status['bus_note']}"
+    return text
 
 
 def _report_grant(answer: dict[str, Any]) -> int:

@@ -206,16 +206,35 @@ def _answer(conn: socket.socket, result: dict[str, Any]) -> None:
     conn.close()
 
 
+class NoSupervisor(ConnectionError):
+    """Nothing serves the control socket: no file at its path, or a socket nobody listens on."""
+
+
+class NoAnswer(TimeoutError):
+    """A supervisor took the request but did not answer it in time."""
+
+
 def request(
     path: Path, payload: dict[str, Any], timeout_s: float, max_answer: int = MAX_REQUEST
 ) -> dict[str, Any]:
     """Send one request to a running supervisor and wait for its answer (one line of at most
-    ``max_answer`` bytes: a status takes more than a grant's outcome)."""
+    ``max_answer`` bytes: a status takes more than a grant's outcome). ``NoSupervisor`` when
+    nothing listens at ``path``, ``NoAnswer`` when the supervisor took the request and did not
+    answer within ``timeout_s``."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
         sock.settimeout(timeout_s)
-        sock.connect(str(path))
+        try:
+            sock.connect(str(path))
+        except (FileNotFoundError, ConnectionRefusedError, NotADirectoryError) as exc:
+            why = "no such file" if isinstance(exc, FileNotFoundError) else exc.strerror
+            raise NoSupervisor(f"no supervisor listens on {path} ({why})") from exc
         sock.sendall((json.dumps(payload) + "\n").encode())
-        line = sock.makefile("rb").readline(max_answer)
+        try:
+            line = sock.makefile("rb").readline(max_answer)
+        except TimeoutError as exc:
+            raise NoAnswer(
+                f"the supervisor at {path} gave no answer within {timeout_s:g} s"
+            ) from exc
     if not line:
         raise ConnectionError("the supervisor closed the connection without an answer")
     answer = json.loads(line)

@@ -14,6 +14,7 @@ any frame whose MAC or freshness failed (``on_auth_failure``).
 from __future__ import annotations
 
 import errno
+import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field, fields
@@ -32,6 +33,7 @@ from canergy.auth.frames import (
     fv_before,
 )
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
+from canergy.live.virtual_alone import ALONE_AFTER_US, alone_on_virtual, explanation
 from canergy.messages import Admit, Direction, Join, Message, Return, ReturnAck, Telemetry
 
 Filters = list[dict[str, int | bool]]
@@ -108,6 +110,9 @@ class BusCounters:
     auth_failures: dict[str, int] = field(default_factory=dict)
     auth: str | None = None
     """The authenticated layout (``fd``, ``classic``); None without a key."""
+    bus_note: str | None = None
+    """Why nothing is heard, when the loop knows (python-can's virtual bus within one process
+    only: ``canergy.live.virtual_alone``); in the status only when set."""
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -123,6 +128,7 @@ class BusCounters:
             "bus_state": self.bus_state,
             "auth_failures": dict(self.auth_failures),
             "auth": self.auth,
+            **({"bus_note": self.bus_note} if self.bus_note else {}),
         }
 
 
@@ -318,6 +324,8 @@ class BusRuntime:
         self.counters = BusCounters()
         self._bus_state: can.BusState | None = None
         self._bus_state_due = 0
+        self._alone_due: int | None = clock() + ALONE_AFTER_US
+        """When to look whether this is a virtual bus no other bus of this process shares."""
         self.max_batch = 512
         self.auth = auth
         """Authenticated mode: MACs added to what is sent and checked on what is received."""
@@ -380,8 +388,19 @@ class BusRuntime:
         if now >= self._bus_state_due:
             self._bus_state_due = now + BUS_STATE_PERIOD_US
             self._update_bus_state()
+        if self._alone_due is not None and now >= self._alone_due:
+            self._alone_due = None
+            self._say_if_alone()
         if wakeup is not None and wakeup <= now:
             self._send_all(self.handler.on_wakeup(now))
+
+    def _say_if_alone(self) -> None:
+        """On a virtual bus that no other bus of this process shares, nothing will ever be
+        heard: say why on stderr and in the status (``bus_note``), once."""
+        channel = alone_on_virtual(self.bus)
+        if channel is not None and self.counters.frames_received == 0:
+            self.counters.bus_note = explanation(channel)
+            print(f"canergy: {self.counters.bus_note}", file=sys.stderr, flush=True)
 
     def _recv(self, timeout: float) -> can.Message | None:
         if self.source is not None:

@@ -332,7 +332,7 @@ class DriveLink:
         missing = [i for i in needed if i not in mapped]
         if missing:
             names = ", ".join(f"0x{i:04X}" for i in missing)
-            raise SetupError(f"its TPDOs do not carry {names}: map them (see the README)")
+            raise SetupError(f"its TPDOs do not carry {names}: map them (see docs/guide/drives.md)")
         if counter is not None and counter.node is not None:
             self._setup_meter_node(counter)
         for tpdo in node.tpdo.values():

@@ -55,7 +55,7 @@ RENAMED = {"mechanical": "sampled-mechanical", "electrical": "sampled-electrical
 SAMPLED_WARNING = (
     "warning: --cia402-meter {mode} samples power at TPDO instants only: motion timed between "
     "two TPDOs is not metered and no bound is claimed; use counter or envelope metering for a "
-    "guarantee (README: Guarding CiA 402 drives)"
+    "guarantee (docs/guide/drives.md: Guarding CiA 402 drives)"
 )
 
 
@@ -257,7 +257,7 @@ def check_cia402(args: argparse.Namespace) -> None:
         raise ValueError(f"--cia402-host-id {args.cia402_host_id} is also a node or drive id")
     if args.cia402_meter is None:
         modes = ", ".join(k.value for k in MeterKind)
-        raise ValueError(f"--cia402 needs --cia402-meter MODE ({modes}): see the README")
+        raise ValueError(f"--cia402 needs --cia402-meter MODE ({modes}): see docs/guide/drives.md")
     kind = MeterKind(args.cia402_meter)
     if kind is MeterKind.SAMPLED_ELECTRICAL and args.cia402_bus_current is None:
         raise ValueError("--cia402-meter sampled-electrical needs --cia402-bus-current INDEX")

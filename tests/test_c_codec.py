@@ -11,7 +11,7 @@ import pytest
 from hypothesis import example, given
 from hypothesis import strategies as st
 from support.c_binding import DIRECTIONS, OK, REASONS, Frame, Msg, library, rx
-from support.c_lacks import C_LACKS
+from support.c_lacks import C_LACKS, c_lacks
 from support.strategies import messages
 
 from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeError, DecodeErrorReason
@@ -92,7 +92,7 @@ def assert_same_decoding(
             arbitration_id, data, extended=extended, remote=remote, direction=py_direction
         )
     except DecodeError as err:
-        if _c_lacks(base, arbitration_id, extended):
+        if c_lacks(base, arbitration_id, extended):
             assert REASONS.get(status) is DecodeErrorReason.UNKNOWN_TYPE
             return
         assert REASONS.get(status) is err.reason
@@ -101,14 +101,6 @@ def assert_same_decoding(
         assert REASONS.get(status) is DecodeErrorReason.UNKNOWN_TYPE
         return
     assert status == OK and c_fields(m) == fields(msg)
-
-
-def _c_lacks(base: int, arbitration_id: int, extended: bool) -> bool:
-    """An identifier in the block of a type C_LACKS (where Python refuses the frame for
-    another reason, a bad node included, C refuses the type first)."""
-    if not extended or arbitration_id & 0x1FFFF000 != base:
-        return False
-    return arbitration_id >> 8 & 0xF in {int(t) for t in C_LACKS}
 
 
 ids = (

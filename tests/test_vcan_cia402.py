@@ -123,6 +123,17 @@ def _ready(procs: Procs) -> None:
     )
 
 
+def _stopped(procs: Procs) -> tuple[dict[str, Any], dict[str, Any], dict[str, Any], int]:
+    """Stop the supervisor and the drive (each must exit 0); their last statuses, the guard's
+    view of the drive, and what the drive was granted net of returns."""
+    for name in ("supervisor", "drive"):
+        assert procs.stop(name) == 0, procs.stderr(name)
+    sup, drive = status(procs.tmp / "sup.json"), status(procs.tmp / "drive.json")
+    books = sup["nodes"][str(DRIVE)]
+    granted = books["delivered_uj"] - books["returns_credited_uj"]
+    return sup, drive, sup["cia402"]["drives"][str(DRIVE)], granted
+
+
 def _pulse(network: canopen.Network, done: threading.Event) -> None:
     """Target velocity 50 rad/s and 0 in turn, as fast as SDO writes go."""
     sdo = network[DRIVE].sdo
@@ -147,7 +158,6 @@ def _history(drive: dict[str, Any], state: str, after: int = 0) -> int:
 def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
     procs: Procs, place: Venue, mode: str
 ) -> None:
-    tmp = procs.tmp
     _drive(procs, 20, meter=mode == "counter-on-meter-node")
     network = _application(procs, place)
     _guard(procs, place, mode, "--initial", "2J")
@@ -165,13 +175,8 @@ def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
         done.set()
         pulser.join(timeout=30)
         network.disconnect()
-    assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
-    assert procs.stop("drive") == 0, procs.stderr("drive")
-    sup, drive = status(tmp / "sup.json"), status(tmp / "drive.json")
-    guarded = sup["cia402"]["drives"][str(DRIVE)]
-    books = sup["nodes"][str(DRIVE)]
-    granted = books["delivered_uj"] - books["returns_credited_uj"]
-    assert granted == 2_000_000 and sup["conservation"]["holds"], (books, guarded, place)
+    sup, drive, guarded, granted = _stopped(procs)
+    assert granted == 2_000_000 and sup["conservation"]["holds"], (sup["nodes"], guarded, place)
     # the books close over the drive's proxy, but for a debt: what a host held off past its
     # reaction allowance (seen in user-mode Linux) let the drive be charged past its budget,
     # which its bound covers and the next grant would pay
@@ -292,12 +297,7 @@ def test_limits_opened_behind_the_guard_on_vcan0_stop_the_drive(procs: Procs, pl
         show=lambda: _guarded(procs),
     )
     network.disconnect()
-    assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
-    assert procs.stop("drive") == 0, procs.stderr("drive")
-    sup, drive = status(tmp / "sup.json"), status(tmp / "drive.json")
-    guarded = sup["cia402"]["drives"][str(DRIVE)]
-    books = sup["nodes"][str(DRIVE)]
-    granted = books["delivered_uj"] - books["returns_credited_uj"]
+    _sup, drive, guarded, granted = _stopped(procs)
     print(
         f"vcan0 limits opened: granted {granted} µJ, drawn {drive['drawn_uj']} µJ, bound at the "
         f"reach {guarded['bound_reach_uj']} µJ, refused {guarded['refused']!r}"

@@ -30,6 +30,7 @@ import subprocess
 import sys
 import textwrap
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -163,23 +164,17 @@ class Session:
             )
         self.background.append((command, proc, out))
         end = time.monotonic() + READY_S
-        if not command.waits_for():
-            while not _holds_socket(proc.pid):
+        waits: list[tuple[str, Callable[[], bool]]] = [
+            (f"never made {name}", (self.cwd / name).exists) for name in command.waits_for()
+        ] or [("never opened its bus", lambda: _holds_socket(proc.pid))]
+        for failure, up in waits:
+            while not up():
                 if proc.poll() is not None:
                     raise AssertionError(
                         f"{self._where(command)}\nended with {proc.returncode} before it was "
                         f"up:\n{out.read_text()[-3000:]}"
                     )
-                assert time.monotonic() < end, f"{self._where(command)}\nnever opened its bus"
-                time.sleep(0.05)
-        for name in command.waits_for():
-            while not (self.cwd / name).exists():
-                if proc.poll() is not None:
-                    raise AssertionError(
-                        f"{self._where(command)}\nended with {proc.returncode} before it was "
-                        f"up:\n{out.read_text()[-3000:]}"
-                    )
-                assert time.monotonic() < end, f"{self._where(command)}\nnever made {name}"
+                assert time.monotonic() < end, f"{self._where(command)}\n{failure}"
                 time.sleep(0.05)
 
     def _run(self, command: Command) -> None:

@@ -62,6 +62,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--return-above", type=energy, help="give back energy above this level")
     add_duration(p, "--response-timeout", 100_000, "wait this long for a reply")
     p.add_argument(
+        "--variant",
+        choices=("hardened", "witnessed"),
+        default="hardened",
+        help="the rules, as the supervisor's --variant; witnessed: the actuator runs only on "
+        "draws the supervisor acknowledged, and every start waits for it to confirm the record",
+    )
+    p.add_argument(
+        "--draw-chunk",
+        type=energy,
+        help="witnessed: energy drawn ahead of need (default: two ticks at peak power)",
+    )
+    p.add_argument(
         "--crash-after",
         type=bounded_int(1, COUNT_MAX),
         help="lose power during the N-th NV write of a node (torn slot), exit 3",
@@ -103,6 +115,8 @@ def _config(args: argparse.Namespace) -> NodeConfig:
         telemetry_period_us=args.telemetry_period,
         low_water=args.low_water,
         return_above=args.return_above,
+        variant=args.variant,
+        draw_chunk=args.draw_chunk,
         timing=Timing(
             response_timeout_us=timeout,
             command_timeout_us=2 * timeout,

@@ -1,0 +1,190 @@
+"""A node's NV record put back from an older copy (a backup, an image flashed over a newer
+record), on the live stack: `canergy supervisor` as users run it and the emulated node on
+python-can's virtual bus. Under the hardened rules the older record gets back what its actuator
+already used (paid back as if written off); under ``--variant witnessed`` the supervisor finds it
+behind and admits it afresh, with and without ``--auth``: nothing is created.
+
+What the actuators used is counted across both lives (each life's ``drawn_uj``: the older
+record's own ``spent`` went back with it, which is why the node's books alone cannot show it).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+from support.live_rig import Loop
+
+from canergy.auth.frames import FrameAuth, Layout
+from canergy.auth.keys import load_key
+from canergy.cli import main
+from canergy.codec import Codec
+from canergy.core import Timing
+from canergy.live.control import request
+from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.messages import Direction
+from canergy.units import UJ_PER_J
+from firmware_model.actuator import PowerProfile
+from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
+from firmware_model.nvstore import NvStore
+
+NODE = 1
+CODEC = Codec()
+TIMING = Timing(response_timeout_us=100_000, retries=3, command_timeout_us=200_000)
+
+
+@dataclass
+class Bench:
+    tmp: Path
+    channel: str
+    variant: str
+    auth: bool
+    thread: threading.Thread
+    result: list[int]
+
+    def status(self) -> dict[str, Any]:
+        try:
+            data: dict[str, Any] = json.loads((self.tmp / "status.json").read_text())
+            return data
+        except (FileNotFoundError, json.JSONDecodeError):
+            return {}
+
+    def node_status(self) -> dict[str, Any]:
+        found: dict[str, Any] = self.status().get("nodes", {}).get(str(NODE), {})
+        return found
+
+    def start_node(self) -> tuple[FirmwareNode, Loop]:
+        """One life of the node, from whatever its NV file holds now."""
+        config = NodeConfig(
+            power=PowerProfile.constant(0.5),
+            telemetry_period_us=100_000,
+            timing=TIMING,
+            variant=self.variant,
+        )
+        node = FirmwareNode(
+            NODE, NvStore(self.tmp / "node.nv", NODE, fsync=False), config, monotonic_us()
+        )
+        host = NodeHost([node])
+        auth = None
+        if self.auth:
+            key = load_key(self.tmp / "n1.key").node_key(NODE)
+            auth = FrameAuth(
+                CODEC, Layout.CLASSIC, lambda n: key, Direction.TO_CLIENT, host.freshness
+            )
+        bus = can.Bus(
+            interface="virtual", channel=self.channel, can_filters=CODEC.client_watch_filters(NODE)
+        )
+        runtime = BusRuntime(bus, host, codec=CODEC, receives=Direction.TO_CLIENT, auth=auth)
+        return node, Loop(runtime)
+
+    def stop_supervisor(self) -> dict[str, Any]:
+        request(self.tmp / "ctl.sock", {"stop": True}, 30)
+        self.thread.join(timeout=60)
+        assert self.result == [0]
+        return self.status()
+
+
+def wait(condition: Any, timeout_s: float = 60.0) -> None:
+    """Until ``condition()``; the loops run on the wall clock, so the bound is generous."""
+    done = threading.Event()
+    deadline = monotonic_us() + int(timeout_s * 1e6)
+    while not condition():
+        assert monotonic_us() < deadline, f"condition not met within {timeout_s} s"
+        done.wait(0.02)
+
+
+def bench(tmp: Path, variant: str, auth: bool) -> Bench:
+    channel = f"oldcopy-{uuid.uuid4().hex}"
+    argv = [
+        "supervisor",
+        *("-i", "virtual", "-c", channel, "--variant", variant),
+        *("--nodes", str(NODE), "--initial", "50J", "--target", "1J", "--max-grant", "0.5J"),
+        *("--state", str(tmp / "s.json"), "--no-fsync", "--response-timeout", "100ms"),
+        *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
+        *("--control", str(tmp / "ctl.sock")),
+    ]
+    if auth:
+        assert main(["keys", "-o", str(tmp / "m.key")]) == 0
+        keys = ["keys", "--master", str(tmp / "m.key"), "--nodes", "1", "-o", str(tmp / "n1.key")]
+        assert main(keys) == 0
+        argv += ["--auth", str(tmp / "m.key")]
+    result: list[int] = []
+    thread = threading.Thread(target=lambda: result.append(main(argv)), daemon=True)
+    thread.start()
+    return Bench(tmp, channel, variant, auth, thread, result)
+
+
+def released(session: dict[str, Any]) -> int:
+    """All the supervisor's books let go to the node: delivered (committed and written off)
+    and reserved, less what it credited back."""
+    return int(session["delivered_uj"] + session["reserved_uj"] - session["returns_credited_uj"])
+
+
+def held(node: FirmwareNode) -> int:
+    """What the node still holds: its budget, a draw on the way, what its actuator may use."""
+    c = node.client.state
+    return c.usable + c.return_pending + node.ready_uj
+
+
+def restored_older_copy(b: Bench) -> tuple[FirmwareNode, FirmwareNode, Loop]:
+    """Life 1 spends; its NV file is copied; it spends 1 J more and loses power; the copy is
+    put back and life 2 starts from it."""
+    first, loop = b.start_node()
+    wait(lambda: b.node_status().get("committed", 0) >= 3 and first.actuator.drawn_uj >= UJ_PER_J)
+    copy = (b.tmp / "node.nv").read_bytes()
+    at_copy = first.actuator.drawn_uj
+    wait(lambda: first.actuator.drawn_uj >= at_copy + UJ_PER_J)
+    loop.halt()  # power lost: only the NV file survives
+    (b.tmp / "node.nv").write_bytes(copy)
+    second, loop = b.start_node()
+    return first, second, loop
+
+
+@pytest.mark.parametrize("auth", [False, True], ids=["no key", "auth"])
+def test_an_older_copy_of_a_nodes_record_creates_nothing_under_witnessed(
+    tmp_path: Path, auth: bool, caplog: pytest.LogCaptureFixture
+) -> None:
+    b = bench(tmp_path, "witnessed", auth)
+    first, second, loop = restored_older_copy(b)
+    try:
+        assert second.resuming  # it waits for the supervisor before it spends anything
+        wait(lambda: second.found_behind == 1 and not second.resuming)
+        status = b.node_status()
+        wait(lambda: b.node_status().get("found_behind") == 1)
+        committed = b.node_status()["committed"]
+        wait(lambda: b.node_status()["committed"] >= committed + 3)  # it runs on, afresh
+        wait(lambda: second.actuator.drawn_uj >= UJ_PER_J // 2)
+    finally:
+        loop.halt()
+    final = b.stop_supervisor()["nodes"][str(NODE)]
+    used = first.actuator.drawn_uj + second.actuator.drawn_uj + held(second)
+    assert used <= released(final), (used, released(final), status)
+    assert final["found_behind"] == 1 and final["resumes"] >= 1
+    assert second.status()["found_behind"] == 1 and second.dropped_uj > 0
+    said = caplog.text
+    assert "RESUMING" in said and "older than the supervisor's: admitted afresh" in said
+    assert "started from a record older than the books" in said
+
+
+def test_the_same_restore_under_the_hardened_rules_creates_energy(tmp_path: Path) -> None:
+    """The measurement the witnessed rules answer: the older record is paid back what the node
+    received after the copy, and its actuator uses it a second time."""
+    b = bench(tmp_path, "hardened", False)
+    first, second, loop = restored_older_copy(b)
+    try:
+
+        def created() -> int:
+            session = b.node_status()
+            used = first.actuator.drawn_uj + second.actuator.drawn_uj + held(second)
+            return used - released(session) if session else 0
+
+        wait(lambda: created() >= UJ_PER_J // 2)
+    finally:
+        loop.halt()
+    b.stop_supervisor()

@@ -25,10 +25,13 @@ from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import load_key
 from canergy.cli import main
 from canergy.codec import Codec
-from canergy.core import Timing
+from canergy.core import Supervisor, Timing
+from canergy.core.state import Session, SupervisorState
 from canergy.live.control import request
 from canergy.live.runtime import BusRuntime, monotonic_us
-from canergy.messages import Direction
+from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.state_file import load_state, save_state
+from canergy.messages import Admit, Debit, Direction, Telemetry
 from canergy.units import UJ_PER_J
 from firmware_model.actuator import PowerProfile
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
@@ -188,3 +191,67 @@ def test_the_same_restore_under_the_hardened_rules_creates_energy(tmp_path: Path
     finally:
         loop.halt()
     b.stop_supervisor()
+
+
+# --- without a key: a RESUME's pending return is held as a RETURN is ------------------------
+
+HOLD = 300_000
+
+
+def _service() -> SupervisorService:
+    """A witnessed supervisor whose books let node 1 hold 1 J, holding returns for ``HOLD``."""
+    state = SupervisorState(
+        10 * UJ_PER_J, 9 * UJ_PER_J, sessions=(Session(NODE, delivered=UJ_PER_J),)
+    )
+    core = Supervisor([NODE], 10 * UJ_PER_J, variant="witnessed", timing=TIMING, state=state)
+    return SupervisorService(core, ServiceConfig(return_hold_us=HOLD), 0)
+
+
+def resume(amount_mj: int, nonce: int = 7) -> Debit:
+    """RESUME: started with debit 1 pending, a return of ``amount_mj`` (the next number)."""
+    return Debit(NODE, nonce, Debit.START, 1, amount_mj)
+
+
+def test_a_forged_resume_is_refuted_by_the_nodes_report_and_credits_nothing() -> None:
+    """Without a key anyone can send a RESUME claiming a pending return numbered next; credited
+    at once (as the core alone does) it is a forged RETURN. Held, the genuine node refutes it."""
+    s = _service()
+    s.on_message(Telemetry(NODE, 1000, 0, 0, 0), 0)
+    assert s.on_message(resume(500), 1_000) == []  # held: no ADMIT, nothing credited
+    assert s.status()["nodes"]["1"]["resume_waiting"] is True
+    s.on_message(Telemetry(NODE, 1000, 0, 0, 1), 20_000)  # the node saw a frame in its name
+    for now in (HOLD, 3 * HOLD):
+        assert not any(isinstance(m, Admit) for m in s.on_wakeup(now))
+    assert s.core.session(NODE).returned == 0 and s.core.session(NODE).returns_credited == 0
+    assert s.intrusions.total >= 1
+
+
+def test_a_genuine_resume_with_a_pending_return_is_credited_once_confirmed() -> None:
+    s = _service()
+    s.on_message(Telemetry(NODE, 500, 0, 0, 0), 0)
+    assert s.on_message(resume(500), 1_000) == []
+    s.on_message(Telemetry(NODE, 500, 0, 1, 0), 20_000)  # the node stands by debit 1
+    assert s.on_wakeup(20_000 + HOLD - 1) == []
+    out = s.on_wakeup(20_000 + HOLD)
+    assert [m for m in out if isinstance(m, Admit)] == [Admit(NODE, 7, 0, 2)]  # 1 credited
+    session = s.core.session(NODE)
+    assert session.returned == 500_000 and session.returns_credited == 2
+    assert s.status()["nodes"]["1"]["resumes"] == 1 and s.intrusions.total == 0
+
+
+def test_the_last_resume_answered_survives_a_supervisor_restart(tmp_path: Path) -> None:
+    """A RESUME re-sent across a supervisor restart gets the same answer: no second void (which
+    would find the node's confirmed books behind and drop them)."""
+    s = _service()
+    s.on_message(Telemetry(NODE, 500, 0, 0, 0), 0)
+    first = s.on_message(Debit(NODE, 9, Debit.START, 0, 0), 1_000)
+    path = tmp_path / "s.json"
+    save_state(path, s.core.state, "witnessed")
+    state = load_state(path, "witnessed", (NODE,))
+    assert state.sessions == s.core.state.sessions
+    again = Supervisor([NODE], 10 * UJ_PER_J, variant="witnessed", timing=TIMING, state=state)
+    again.power_loss(2_000)
+    answer = [a.message for a in again.receive(Debit(NODE, 9, Debit.START, 0, 0), 3_000)]
+    assert answer == first == [Admit(NODE, 9, 0, 1)]
+    save_state(path, s.core.state, "hardened")
+    assert "resume_to" not in path.read_text()

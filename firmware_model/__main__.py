@@ -251,10 +251,18 @@ def _auth(args: argparse.Namespace, codec: Codec, host: NodeHost) -> FrameAuth |
     layout = Layout.FD if getattr(args, "fd", False) else Layout.CLASSIC
     keys: dict[int, bytes] = args.node_keys
     auth = FrameAuth(codec, layout, keys.__getitem__, Direction.TO_CLIENT, host.freshness)
-    for n, node in host.nodes.items():  # a 32-bit JOIN freshness: 16 random bits above the nonce
+    bind_starts(auth, host)
+    return auth
+
+
+def bind_starts(auth: FrameAuth, host: NodeHost) -> None:
+    """A 32-bit freshness for each node's JOIN (or, witnessed rules, RESUME): 16 random bits
+    above its nonce, which the ADMIT's MAC binds."""
+    for n, node in host.nodes.items():
         if node.joining:
             auth.join_fv[n] = secrets.randbits(16) << 16 | node.client.state.nonce
-    return auth
+        elif node.resuming:
+            auth.resume_fv[n] = secrets.randbits(16) << 16 | node.client.state.nonce
 
 
 def _open(args: argparse.Namespace, ids: tuple[int, ...], codec: Codec) -> can.BusABC:

@@ -21,7 +21,7 @@ import can
 import pytest
 from support.live_rig import Loop
 
-from canergy.auth.frames import FrameAuth, Layout
+from canergy.auth.frames import AuthFailure, FrameAuth, Layout, expected_freshness
 from canergy.auth.keys import load_key
 from canergy.cli import main
 from canergy.codec import Codec
@@ -33,6 +33,7 @@ from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.state_file import load_state, save_state
 from canergy.messages import Admit, Debit, Direction, Telemetry
 from canergy.units import UJ_PER_J
+from firmware_model.__main__ import bind_starts
 from firmware_model.actuator import PowerProfile
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
 from firmware_model.nvstore import NvStore
@@ -80,6 +81,7 @@ class Bench:
             auth = FrameAuth(
                 CODEC, Layout.CLASSIC, lambda n: key, Direction.TO_CLIENT, host.freshness
             )
+            bind_starts(auth, host)
         bus = can.Bus(
             interface="virtual", channel=self.channel, can_filters=CODEC.client_watch_filters(NODE)
         )
@@ -255,3 +257,30 @@ def test_the_last_resume_answered_survives_a_supervisor_restart(tmp_path: Path) 
     assert answer == first == [Admit(NODE, 9, 0, 1)]
     save_state(path, s.core.state, "hardened")
     assert "resume_to" not in path.read_text()
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_a_resume_and_its_admit_carry_32_bits_of_freshness(layout: Layout) -> None:
+    """As a JOIN's: a RESUMING node draws 16 random bits above its nonce, the ADMIT's MAC binds
+    them, and an ADMIT answering an earlier start with the same 16-bit nonce fails. A draw is
+    fresh from its debit number: a replay older than the supervisor's count is stale."""
+    key = bytes(range(16))
+
+    def side(receives: Direction, seq: int) -> FrameAuth:
+        return FrameAuth(
+            CODEC, layout, lambda n: key, receives, lambda m: expected_freshness(m, 0, seq)
+        )
+
+    sup, node = side(Direction.TO_SUPERVISOR, 5), side(Direction.TO_CLIENT, 5)
+    node.resume_fv[NODE] = 0xBEEF << 16 | 7
+    resumed = Debit(NODE, 7, Debit.START, 5, 0)
+    assert [v.message for v in map(sup.accept, node.frames(resumed))][-1] == resumed
+    assert sup.resume_fv[NODE] == 0xBEEF0007
+    admit = Admit(NODE, 7, 0, 6)
+    assert [v.message for v in map(node.accept, sup.frames(admit))][-1] == admit
+    earlier = side(Direction.TO_SUPERVISOR, 5)
+    earlier.resume_fv[NODE] = 0x1234 << 16 | 7  # an earlier start, the same 16-bit nonce
+    replayed = [node.accept(f) for f in earlier.frames(admit)][-1]
+    assert replayed.failure is AuthFailure.MAC_BAD
+    old_draw = side(Direction.TO_CLIENT, 4).frames(Debit(NODE, 0, Debit.DRAW, 4, 10))
+    assert [sup.accept(f) for f in old_draw][-1].failure is AuthFailure.STALE

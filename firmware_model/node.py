@@ -106,6 +106,12 @@ class FirmwareNode:
         self.ready_uj = 0
         """Witnessed rules: draws acknowledged and not yet used by the actuator (volatile)."""
         self.draws = 0
+        self.draw_sent_at: int | None = None
+        self.released = 0
+        self.draw_rtt_sum_us = 0
+        self.draw_rtt_max_us = 0
+        """Draws released, the sum and the largest of their round trips (DEBIT sent to its
+        acknowledgement, first sending only): the price of the witnessed rules, one per chunk."""
         self.resumes = 0
         self.found_behind = 0
         self.dropped_uj = 0
@@ -203,6 +209,7 @@ class FirmwareNode:
         if short <= 0 or amount <= 0:
             return []
         self.draws += 1
+        self.draw_sent_at = now
         return self._carry_out(self.client._step(Spend(amount), now), now)
 
     def witness(self, now: int) -> list[Message]:
@@ -318,6 +325,12 @@ class FirmwareNode:
     def _carry_out(self, actions: list[Action], now: int) -> list[Message]:
         if self.client.state.spent != self._spent_seen and self.witnessed_rules:
             self.ready_uj += self.client.state.spent - self._spent_seen  # draws released
+            if self.draw_sent_at is not None:
+                rtt = now - self.draw_sent_at
+                self.released += 1
+                self.draw_rtt_sum_us += rtt
+                self.draw_rtt_max_us = max(self.draw_rtt_max_us, rtt)
+                self.draw_sent_at = None
         self._spent_seen = self.client.state.spent
         out: list[Message] = []
         for action in actions:
@@ -361,6 +374,10 @@ class FirmwareNode:
             "draws": self.draws,
             "draw_pending_uj": c.return_pending if c.pending_draw else 0,
             "ready_uj": self.ready_uj,
+            "draw_round_trip_us": {
+                "mean": self.draw_rtt_sum_us // self.released if self.released else None,
+                "max": self.draw_rtt_max_us,
+            },
             "intrusions": self.intrusions.total,
             "witnessed": self.witnessed,
             "intrusion_report": self.intrusions.as_json(),

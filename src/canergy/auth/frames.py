@@ -43,6 +43,7 @@ import hmac
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import TypeGuard
 
 import can
 from cryptography.hazmat.primitives import cmac
@@ -325,7 +326,7 @@ class FrameAuth:
             self.telemetry_floor[msg.node] = resolved
 
 
-def _resume(msg: Message) -> bool:
+def _resume(msg: Message) -> TypeGuard[Debit]:
     """A DEBIT that is a node's start (RESUME): its FV is a random high half over its nonce."""
     return isinstance(msg, Debit) and msg.is_resume
 

@@ -226,6 +226,7 @@ def test_a_forged_resume_is_refuted_by_the_nodes_report_and_credits_nothing() ->
         assert not any(isinstance(m, Admit) for m in s.on_wakeup(now))
     assert s.core.session(NODE).returned == 0 and s.core.session(NODE).returns_credited == 0
     assert s.intrusions.total >= 1
+    assert s.status()["nodes"]["1"]["resume_waiting"] is False  # refuted: grants go on
 
 
 def test_a_genuine_resume_with_a_pending_return_is_credited_once_confirmed() -> None:

@@ -123,9 +123,6 @@ class NodeInfo:
     found_behind: int = 0
     """Of them, records older than the books (a debit number below the supervisor's): the node
     was admitted afresh and what that record held was dropped."""
-    resume_waiting: bool = False
-    """A RESUME is held until the node's TELEMETRY confirms its pending return (no key): no
-    grant meanwhile."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -293,7 +290,7 @@ class SupervisorService:
         if isinstance(msg, Return) and self._hold_return(msg, now):
             return self._flush(self._released(msg.node, now))
         if isinstance(msg, Debit) and msg.is_resume and self.witnessed:
-            if self._hold_resume(msg, info, now):
+            if self._hold_resume(msg, now):
                 return self._flush(self._released(msg.node, now))
             out = self._resume(msg, info, now)
         else:
@@ -357,14 +354,14 @@ class SupervisorService:
             self.intrusion(msg.node, repr(msg), evidence, now, stop=True)
         return True
 
-    def _hold_resume(self, msg: Debit, info: NodeInfo, now: int) -> bool:
+    def _hold_resume(self, msg: Debit, now: int) -> bool:
         """A RESUME (witnessed rules): without a key, one whose pending return the core would
         credit waits for the node's TELEMETRY, as a RETURN does (``witness``)."""
         credited = self.core.session(msg.node).returns_credited
+        waiting = self.witness.resume_held(msg.node)
         if not self.witness.hold_resume(msg, credited, now, self.config.return_hold_us is not None):
             return False
-        if not info.resume_waiting:
-            info.resume_waiting = True
+        if not waiting:
             log.warning(
                 "node %s: RESUME with a pending return of %d mJ held until its TELEMETRY "
                 "confirms it (no key); nothing granted meanwhile",
@@ -383,7 +380,6 @@ class SupervisorService:
             msg.nonce,
             seq,
         )
-        info.resume_waiting = False
         self._resuming = msg.node
         try:
             out = self._carry_out(self.core.receive(msg, now), now)
@@ -737,7 +733,7 @@ class SupervisorService:
                 info.heard_at is None
                 or info.flags & Telemetry.JOINING
                 or info.held_joins
-                or info.resume_waiting
+                or self.witness.resume_held(node)
             ):
                 continue  # not heard yet, or no books until admitted: a grant would be lost
             if info.requests:
@@ -935,7 +931,7 @@ class SupervisorService:
                 "joins_resent": info.joins_resent,
                 "resumes": info.resumes,
                 "found_behind": info.found_behind,
-                "resume_waiting": info.resume_waiting,
+                "resume_waiting": self.witness.resume_held(s.node),
                 "returns": info.returns,
                 "decode_errors": info.decode_errors,
                 "supervisor_frames": info.supervisor_frames,

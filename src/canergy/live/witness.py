@@ -242,6 +242,11 @@ class ReturnGate:
         ]
         return min(times, default=None)
 
+    def resume_held(self, node: int) -> bool:
+        """A RESUME of ``node`` is held (no grant for it meanwhile)."""
+        w = self.nodes.get(node)
+        return w is not None and w.resume is not None
+
     def _resume_held(self, node: int) -> list[_Held]:
         resume = self.nodes[node].resume
         return [] if resume is None else [resume[1]]
@@ -262,7 +267,6 @@ class ReturnGate:
             return {}
         return {
             "returns_held": len(w.held),
-            "resume_held": w.resume is not None,
             "returns_refuted": w.refuted,
             "returns_resynchronised": w.resynced,
         }

@@ -48,7 +48,7 @@ class Bench:
     tmp: Path
     channel: str
     variant: str
-    auth: bool
+    auth: Layout | None
     thread: threading.Thread
     result: list[int]
 
@@ -76,14 +76,15 @@ class Bench:
         )
         host = NodeHost([node])
         auth = None
-        if self.auth:
+        if self.auth is not None:
             key = load_key(self.tmp / "n1.key").node_key(NODE)
-            auth = FrameAuth(
-                CODEC, Layout.CLASSIC, lambda n: key, Direction.TO_CLIENT, host.freshness
-            )
+            auth = FrameAuth(CODEC, self.auth, lambda n: key, Direction.TO_CLIENT, host.freshness)
             bind_starts(auth, host)
         bus = can.Bus(
-            interface="virtual", channel=self.channel, can_filters=CODEC.client_watch_filters(NODE)
+            interface="virtual",
+            channel=self.channel,
+            fd=self.auth is Layout.FD,
+            can_filters=CODEC.client_watch_filters(NODE),
         )
         runtime = BusRuntime(bus, host, codec=CODEC, receives=Direction.TO_CLIENT, auth=auth)
         return node, Loop(runtime)
@@ -104,7 +105,7 @@ def wait(condition: Any, timeout_s: float = 60.0) -> None:
         done.wait(0.02)
 
 
-def bench(tmp: Path, variant: str, auth: bool) -> Bench:
+def bench(tmp: Path, variant: str, auth: Layout | None) -> Bench:
     channel = f"oldcopy-{uuid.uuid4().hex}"
     argv = [
         "supervisor",
@@ -114,11 +115,11 @@ def bench(tmp: Path, variant: str, auth: bool) -> Bench:
         *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
         *("--control", str(tmp / "ctl.sock")),
     ]
-    if auth:
+    if auth is not None:
         assert main(["keys", "-o", str(tmp / "m.key")]) == 0
         keys = ["keys", "--master", str(tmp / "m.key"), "--nodes", "1", "-o", str(tmp / "n1.key")]
         assert main(keys) == 0
-        argv += ["--auth", str(tmp / "m.key")]
+        argv += ["--auth", str(tmp / "m.key"), *(["--fd"] if auth is Layout.FD else [])]
     result: list[int] = []
     thread = threading.Thread(target=lambda: result.append(main(argv)), daemon=True)
     thread.start()
@@ -151,9 +152,9 @@ def restored_older_copy(b: Bench) -> tuple[FirmwareNode, FirmwareNode, Loop]:
     return first, second, loop
 
 
-@pytest.mark.parametrize("auth", [False, True], ids=["no key", "auth"])
+@pytest.mark.parametrize("auth", [None, *Layout], ids=["no key", "auth classic", "auth fd"])
 def test_an_older_copy_of_a_nodes_record_creates_nothing_under_witnessed(
-    tmp_path: Path, auth: bool, caplog: pytest.LogCaptureFixture
+    tmp_path: Path, auth: Layout | None, caplog: pytest.LogCaptureFixture
 ) -> None:
     b = bench(tmp_path, "witnessed", auth)
     first, second, loop = restored_older_copy(b)
@@ -180,7 +181,7 @@ def test_an_older_copy_of_a_nodes_record_creates_nothing_under_witnessed(
 def test_the_same_restore_under_the_hardened_rules_creates_energy(tmp_path: Path) -> None:
     """The measurement the witnessed rules answer: the older record is paid back what the node
     received after the copy, and its actuator uses it a second time."""
-    b = bench(tmp_path, "hardened", False)
+    b = bench(tmp_path, "hardened", None)
     first, second, loop = restored_older_copy(b)
     try:
 

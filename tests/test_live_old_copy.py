@@ -25,13 +25,13 @@ from canergy.auth.frames import AuthFailure, FrameAuth, Layout, expected_freshne
 from canergy.auth.keys import load_key
 from canergy.cli import main
 from canergy.codec import Codec
-from canergy.core import Supervisor, Timing
+from canergy.core import ClientState, Supervisor, Timing
 from canergy.core.state import Session, SupervisorState
 from canergy.live.control import request
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.state_file import load_state, save_state
-from canergy.messages import Admit, Debit, Direction, Telemetry
+from canergy.messages import Admit, Debit, Direction, ReturnAck, Telemetry
 from canergy.units import UJ_PER_J
 from firmware_model.__main__ import bind_starts
 from firmware_model.actuator import PowerProfile
@@ -286,3 +286,34 @@ def test_a_resume_and_its_admit_carry_32_bits_of_freshness(layout: Layout) -> No
     assert replayed.failure is AuthFailure.MAC_BAD
     old_draw = side(Direction.TO_CLIENT, 4).frames(Debit(NODE, 0, Debit.DRAW, 4, 10))
     assert [sup.accept(f) for f in old_draw][-1].failure is AuthFailure.STALE
+
+
+# --- the emulated node: the actuator runs on acknowledged draws only -------------------------
+
+
+def test_the_actuator_runs_only_on_draws_the_supervisor_acknowledged(tmp_path: Path) -> None:
+    """A witnessed node started with 1 J in its record: RESUMING, it draws nothing and its
+    actuator gets nothing; confirmed, it draws one chunk (in NV, marked a draw, before the DEBIT
+    leaves) and its actuator still gets nothing until the RETURN_ACK; then it runs."""
+    nv = NvStore(tmp_path / "node.nv", NODE, fsync=False)
+    nv.save(ClientState(NODE, usable=UJ_PER_J, credited=UJ_PER_J, last_tx=3, return_seq=4))
+    config = NodeConfig(power=PowerProfile.constant(0.5), timing=TIMING, variant="witnessed")
+    node = FirmwareNode(NODE, NvStore(tmp_path / "node.nv", NODE, fsync=False), config, 0)
+    sent = node.on_wakeup(0)
+    (start,) = [m for m in sent if isinstance(m, Debit)]
+    assert start.is_resume and start.seq == 4 and node.resuming
+    tick = config.tick_us
+    assert not [m for m in node.on_wakeup(tick) if isinstance(m, Debit) and not m.is_resume]
+    assert node.actuator.drawn_uj == 0 and node.actuator.halted
+    draws = [
+        m for m in node.on_message(Admit(NODE, start.nonce, 3, 5), tick + 1) if isinstance(m, Debit)
+    ]
+    assert draws == [Debit(NODE, 0, Debit.DRAW, 6, config.chunk() // 1000)]
+    record = NvStore(tmp_path / "node.nv", NODE).load()
+    assert record is not None and record.pending_draw and record.return_pending == config.chunk()
+    node.on_wakeup(2 * tick)
+    assert node.actuator.drawn_uj == 0  # drawn, not yet acknowledged
+    node.on_message(ReturnAck(NODE, 6), 2 * tick + 1)
+    node.on_wakeup(3 * tick)
+    assert node.actuator.drawn_uj == 50_000 and not node.actuator.halted  # 0.5 W for 100 ms
+    assert node.status()["draws"] >= 1 and node.status()["resumes"] == 1

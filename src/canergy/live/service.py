@@ -375,11 +375,8 @@ class SupervisorService:
         (its last debit below the books': an older record) and admitted afresh."""
         s = self.core.session(msg.node)
         seq = unwrap(msg.seq, s.returns_credited, SEQ_BITS)
-        repeat = (s.resume_to, s.resume_nonce, s.resume_from) == (
-            s.returns_credited,
-            msg.nonce,
-            seq,
-        )
+        last = (s.resume_nonce, s.resume_from, s.resume_to)
+        repeat = last == (msg.nonce, seq, s.returns_credited)  # answered as before: no news
         self._resuming = msg.node
         try:
             out = self._carry_out(self.core.receive(msg, now), now)
@@ -842,9 +839,8 @@ class SupervisorService:
         info = self.nodes[action.node]
         info.admitted += 1
         self.witness.readmitted(action.node)  # its return numbers start again
-        if action.node != self._resuming and (
-            action.tx or action.seq
-        ):  # books existed: what it held is gone with its record
+        had_books = action.tx or action.seq  # what it held is gone with its record
+        if had_books and action.node != self._resuming:  # a RESUME's is logged by ``_resume``
             log.warning(
                 "node %s has no books (NV lost or replaced): admitted at tx %d, return %d; "
                 "anything it held is written off",

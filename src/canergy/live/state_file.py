@@ -187,8 +187,11 @@ def session_json(table: SupervisorTable | None, s: Session) -> dict[str, Any]:
         "returned_uj": s.returned,
     }
     if table is not None and _takes_resume(table):
-        saved |= {"resume_nonce": s.resume_nonce, "resume_from": s.resume_from}
-        saved["resume_to"] = s.resume_to
+        saved |= {
+            "resume_nonce": s.resume_nonce,
+            "resume_from": s.resume_from,
+            "resume_to": s.resume_to,
+        }
     return saved
 
 

@@ -101,6 +101,8 @@ class NodeWitness:
     held: dict[int, _Held] = field(default_factory=dict)
     resume: tuple[Debit, _Held] | None = None
     """A RESUME whose pending return the core would credit, until the node confirms it."""
+    resume_nonce: int | None = None
+    """The nonce of the last RESUME seen: its copies leave the baseline as the first set it."""
     resynced: int = 0
     refuted: int = 0
 
@@ -176,7 +178,8 @@ class ReturnGate:
         RETURN's number, next after ``credited``), until a TELEMETRY of the node shows that
         number. Any RESUME resets the return number the node's TELEMETRY is judged by."""
         w = self._of(msg.node)
-        w.return_seq = None  # a start from an older record goes back: no contradiction
+        if msg.nonce != w.resume_nonce:  # a start: from an older record it goes back, honestly
+            w.resume_nonce, w.return_seq = msg.nonce, None
         seq = unwrap(msg.seq, credited, SEQ_BITS)
         if not hold or seq != credited + 1 or not msg.amount_mj or msg.flags & Debit.DRAW:
             return False

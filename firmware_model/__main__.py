@@ -62,6 +62,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--return-above", type=energy, help="give back energy above this level")
     add_duration(p, "--response-timeout", 100_000, "wait this long for a reply")
     p.add_argument(
+        "--variant",
+        choices=("hardened", "witnessed"),
+        default="hardened",
+        help="the rules, as the supervisor's --variant; witnessed: the actuator runs only on "
+        "draws the supervisor acknowledged, and every start waits for it to confirm the record",
+    )
+    p.add_argument(
+        "--draw-chunk",
+        type=energy,
+        help="witnessed: energy drawn ahead of need (default: two ticks at peak power)",
+    )
+    p.add_argument(
         "--crash-after",
         type=bounded_int(1, COUNT_MAX),
         help="lose power during the N-th NV write of a node (torn slot), exit 3",
@@ -103,6 +115,8 @@ def _config(args: argparse.Namespace) -> NodeConfig:
         telemetry_period_us=args.telemetry_period,
         low_water=args.low_water,
         return_above=args.return_above,
+        variant=args.variant,
+        draw_chunk=args.draw_chunk,
         timing=Timing(
             response_timeout_us=timeout,
             command_timeout_us=2 * timeout,
@@ -237,10 +251,18 @@ def _auth(args: argparse.Namespace, codec: Codec, host: NodeHost) -> FrameAuth |
     layout = Layout.FD if getattr(args, "fd", False) else Layout.CLASSIC
     keys: dict[int, bytes] = args.node_keys
     auth = FrameAuth(codec, layout, keys.__getitem__, Direction.TO_CLIENT, host.freshness)
-    for n, node in host.nodes.items():  # a 32-bit JOIN freshness: 16 random bits above the nonce
+    bind_starts(auth, host)
+    return auth
+
+
+def bind_starts(auth: FrameAuth, host: NodeHost) -> None:
+    """A 32-bit freshness for each node's JOIN (or, witnessed rules, RESUME): 16 random bits
+    above its nonce, which the ADMIT's MAC binds."""
+    for n, node in host.nodes.items():
         if node.joining:
             auth.join_fv[n] = secrets.randbits(16) << 16 | node.client.state.nonce
-    return auth
+        elif node.resuming:
+            auth.resume_fv[n] = secrets.randbits(16) << 16 | node.client.state.nonce
 
 
 def _open(args: argparse.Namespace, ids: tuple[int, ...], codec: Codec) -> can.BusABC:

@@ -3,10 +3,16 @@
 The protocol rules are the shared core's ``Client``; this file only adds what firmware adds
 around them: the NV record written before anything is sent or drawn, the actuator, telemetry,
 and a return policy. A loop step never waits and keeps no history.
+
+Under the witnessed rules (``NodeConfig.variant``) the actuator runs only on draws the supervisor
+has acknowledged: the node draws a chunk ahead of its need (one DEBIT, one round trip), keeps
+what was released in volatile memory (lost at a power loss: dissipated) and every start with a
+record is RESUMING: nothing is spent until the supervisor confirms the record or finds it behind.
 """
 
 from __future__ import annotations
 
+import logging
 import secrets
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
@@ -27,6 +33,7 @@ from canergy.core import (
     Send,
     Timing,
 )
+from canergy.core.inputs import Spend
 from canergy.core.state import Phase
 from canergy.live.intrusions import Intrusions, frame_text
 from canergy.live.policy import quantize
@@ -45,6 +52,8 @@ from canergy.messages import (
 from firmware_model.actuator import Actuator, PowerProfile
 from firmware_model.nvstore import NvStore
 
+log = logging.getLogger(__name__)
+
 
 @dataclass(frozen=True, slots=True)
 class NodeConfig:
@@ -58,6 +67,20 @@ class NodeConfig:
     return_above: int | None = None
     """Give back whatever exceeds this level (None: keep everything)."""
     timing: Timing = field(default_factory=Timing)
+    variant: str = "hardened"
+    """The client's rules: ``hardened`` or ``witnessed`` (draws acknowledged before use)."""
+    draw_chunk: int | None = None
+    """Witnessed rules: µJ drawn ahead of need (None: two ticks at the profile's peak power)."""
+
+    def chunk(self) -> int:
+        """What the node keeps drawn ahead (witnessed rules): whole mJ, one frame's most."""
+        if self.draw_chunk is not None:
+            wanted = self.draw_chunk
+        else:
+            peak = max(p for _, p in self.power.steps)
+            wanted = peak * 2 * self.tick_us // 1_000_000
+        whole = -(-wanted // QUANTUM_UJ) * QUANTUM_UJ
+        return min(max(whole, QUANTUM_UJ), AMOUNT_MAX_MJ * QUANTUM_UJ)
 
 
 PARAM_INDEXES = (0x2100, 0x2101, 0x2102)
@@ -71,17 +94,49 @@ class FirmwareNode:
         self.config = config
         self.nv = nv
         record = nv.load()
-        self.client = Client(node, timing=config.timing, state=record or ClientState(node))
-        self.client.power_loss(now)  # every start is a restart from the NV record
+        self.client = Client(
+            node, variant=config.variant, timing=config.timing, state=record or ClientState(node)
+        )
+        self._spent_seen = self.client.state.spent
         self.outbox: list[Message] = []
         self.overflow_refused = 0
         self.joins = 0
         self.witnessing = ClientWitness()
         """Frames seen in this node's name that it did not send (TELEMETRY's ``witness``)."""
+        self.ready_uj = 0
+        """Witnessed rules: draws acknowledged and not yet used by the actuator (volatile)."""
+        self.draws = 0
+        self.draw_sent_at: int | None = None
+        self.released = 0
+        self.draw_rtt_sum_us = 0
+        self.draw_rtt_max_us = 0
+        """Draws released, the sum and the largest of their round trips (DEBIT sent to its
+        acknowledgement, first sending only): the price of the witnessed rules, one per chunk."""
+        self.resumes = 0
+        self.found_behind = 0
+        self.dropped_uj = 0
+        """Of a record found behind: what it held that was dropped (usable and a pending draw)."""
+        self.resumed_at: int | None = None
+        self.confirm_us: int | None = None
+        """How long the last RESUME waited for the supervisor's answer."""
         if record is None:  # new, wiped or corrupted: no books, so no pay-back is trusted
+            self.client.power_loss(now)
             self.joins += 1
             nonce = self.witnessing.join_nonce = secrets.randbits(16)
             self.outbox = self._carry_out(self.client.books_lost(nonce, now), now)
+        elif self.witnessed_rules:  # the record may be an older copy: the supervisor confirms
+            nonce = self.witnessing.join_nonce = secrets.randbits(16)
+            self.outbox = self._carry_out(self.client.power_loss(now, nonce), now)
+            self.resumes += 1
+            self.resumed_at = now
+            log.warning(
+                "node %d: RESUMING: started with a record (debit %d); nothing spent until the "
+                "supervisor confirms it",
+                node,
+                self.client.state.return_seq,
+            )
+        else:
+            self.client.power_loss(now)  # every start is a restart from the NV record
         self.actuator = Actuator(config.power, now, now)
         self.next_tick = now + config.tick_us
         self.next_telemetry = now  # announce the level at boot
@@ -108,11 +163,54 @@ class FirmwareNode:
             return []
         asked = not self.witnessing.never_asked(msg, self.client.state.return_seq)
         out = [] if asked else self.witness(now)
-        joining = self.joining
+        joining, resuming, before = self.joining, self.resuming, self.client.state
         out += self._carry_out(self.client.receive(msg, now), now)
-        if joining and not self.joining:
+        if (joining and not self.joining) or (resuming and not self.resuming):
             self.next_telemetry = now  # admitted: tell the supervisor at once
-        return out
+        if resuming and not self.resuming:
+            self._confirmed(before, now)
+        return out + self._draw_ahead(now)
+
+    @property
+    def witnessed_rules(self) -> bool:
+        return self.client.variant.name == "witnessed"
+
+    @property
+    def resuming(self) -> bool:
+        """Started with a record: RESUME sent, waiting for the supervisor's ADMIT."""
+        return self.client.state.phase is Phase.RESUMING
+
+    def _confirmed(self, before: ClientState, now: int) -> None:
+        """The supervisor answered the RESUME: books confirmed, or found behind (dropped)."""
+        self.confirm_us = None if self.resumed_at is None else now - self.resumed_at
+        c = self.client.state
+        if c.credited_unknown and not before.credited_unknown:
+            dropped = before.usable + (before.return_pending if before.pending_draw else 0)
+            self.found_behind += 1
+            self.dropped_uj += dropped
+            log.warning(
+                "node %d: record older than the supervisor's: admitted afresh, %d µJ of its "
+                "record dropped",
+                self.node,
+                dropped,
+            )
+        else:
+            log.info(
+                "node %d: books confirmed by the supervisor (debit %d)", self.node, c.return_seq
+            )
+
+    def _draw_ahead(self, now: int) -> list[Message]:
+        """Witnessed rules: draw (one DEBIT) what tops the acknowledged pool up to the chunk,
+        when the rules allow a debit now and the budget holds a whole mJ."""
+        if not self.witnessed_rules or not self.client.can_spend():
+            return []
+        short = self.config.chunk() - self.ready_uj
+        amount = min(-(-short // QUANTUM_UJ) * QUANTUM_UJ, quantize(self.client.state.usable))
+        if short <= 0 or amount <= 0:
+            return []
+        self.draws += 1
+        self.draw_sent_at = now
+        return self._carry_out(self.client._step(Spend(amount), now), now)
 
     def witness(self, now: int) -> list[Message]:
         """Someone spoke in this node's name: count it and tell the supervisor at the next
@@ -198,6 +296,11 @@ class FirmwareNode:
         if self.gate() == "STOPPED":
             self.actuator.run(0, wanted)  # NMT STOPPED: the actuator halts
             return []
+        if self.witnessed_rules:  # only what the supervisor acknowledged
+            take = min(wanted, self.ready_uj)
+            self.ready_uj -= take
+            self.actuator.run(take, wanted)
+            return self._draw_ahead(now)
         take = min(wanted, self.client.state.usable)
         out = self._carry_out(self.client.spend(take), now) if take else []
         self.actuator.run(take, wanted)  # only after the spend is in NV
@@ -220,6 +323,15 @@ class FirmwareNode:
         return self.client.state.phase is Phase.JOINING
 
     def _carry_out(self, actions: list[Action], now: int) -> list[Message]:
+        if self.client.state.spent != self._spent_seen and self.witnessed_rules:
+            self.ready_uj += self.client.state.spent - self._spent_seen  # draws released
+            if self.draw_sent_at is not None:
+                rtt = now - self.draw_sent_at
+                self.released += 1
+                self.draw_rtt_sum_us += rtt
+                self.draw_rtt_max_us = max(self.draw_rtt_max_us, rtt)
+                self.draw_sent_at = None
+        self._spent_seen = self.client.state.spent
         out: list[Message] = []
         for action in actions:
             if isinstance(action, Persist):
@@ -253,6 +365,19 @@ class FirmwareNode:
             "overflow_refused": self.overflow_refused,
             "joining": self.joining,
             "joins": self.joins,
+            "variant": self.client.variant.name,
+            "resuming": self.resuming,
+            "resumes": self.resumes,
+            "found_behind": self.found_behind,
+            "dropped_uj": self.dropped_uj,
+            "confirm_us": self.confirm_us,
+            "draws": self.draws,
+            "draw_pending_uj": c.return_pending if c.pending_draw else 0,
+            "ready_uj": self.ready_uj,
+            "draw_round_trip_us": {
+                "mean": self.draw_rtt_sum_us // self.released if self.released else None,
+                "max": self.draw_rtt_max_us,
+            },
             "intrusions": self.intrusions.total,
             "witnessed": self.witnessed,
             "intrusion_report": self.intrusions.as_json(),

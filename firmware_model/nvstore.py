@@ -9,7 +9,8 @@ Record (30 bytes, little-endian, packed)::
     u32 return_seq       number of the last return sent, modulo 2**32
     u32 return_pending_uj  amount of that return until acknowledged
     u8  outcome          how ``last_tx`` ended
-    u8  flags            bit 0: admitted without books, Rc comes with the next intention
+    u8  flags            bit 0: admitted without books, Rc comes with the next intention;
+                         bit 1: the pending debit is a draw (witnessed rules), not a return
 
 The three counters are only ever compared with the wire's 24- and 16-bit values through
 serial-number arithmetic, so keeping them modulo 2**32 (a multiple of both wire ranges) changes
@@ -49,6 +50,7 @@ _MAGIC = 0xCE57
 _HEAD = struct.Struct("<HI")
 _PAD = 30
 _CREDITED_UNKNOWN = 0x01
+_PENDING_DRAW = 0x02
 _CRC = struct.Struct("<I")
 SLOT_SIZE = _HEAD.size + _PAD + _CRC.size
 NV_FILE_SIZES = (0, 2 * SLOT_SIZE, 3 * SLOT_SIZE)
@@ -84,7 +86,7 @@ def pack_record(c: ClientState) -> bytes:
         c.return_seq & U32,
         c.return_pending,
         int(c.outcome),
-        _CREDITED_UNKNOWN if c.credited_unknown else 0,
+        (_CREDITED_UNKNOWN if c.credited_unknown else 0) | (_PENDING_DRAW if c.pending_draw else 0),
     )
     try:
         return RECORD.pack(*fields)
@@ -95,6 +97,7 @@ def pack_record(c: ClientState) -> bytes:
 def unpack_record(node: int, data: bytes) -> ClientState:
     usable, credited_mj, spent, last_tx, return_seq, pending, outcome, flags = RECORD.unpack(data)
     pending_ok = pending % QUANTUM_UJ == 0 and pending <= AMOUNT_MAX_MJ * QUANTUM_UJ
+    pending_ok &= pending > 0 or not flags & _PENDING_DRAW
     if outcome not in Outcome._value2member_map_ or usable > USABLE_MAX_UJ or not pending_ok:
         raise NvError(f"node {node}: the record holds values no client writes")
     for name, value in (("last_tx", last_tx), ("return_seq", return_seq)):
@@ -110,6 +113,7 @@ def unpack_record(node: int, data: bytes) -> ClientState:
         return_seq=return_seq,
         return_pending=pending,
         credited_unknown=bool(flags & _CREDITED_UNKNOWN),
+        pending_draw=bool(flags & _PENDING_DRAW),
     )
 
 

@@ -29,7 +29,7 @@ from canergy.auth.frames import (
 from canergy.auth.keys import Key
 from canergy.codec import Codec
 from canergy.inspect.frames import Described, describe
-from canergy.messages import Admit, Direction, Join, MsgType, Telemetry
+from canergy.messages import Admit, Debit, Direction, Join, MsgType, Telemetry
 from canergy.seqnum import unwrap
 
 _DIRECTION = {kind: direction for direction, kind in MAC_TYPE.items()}
@@ -125,8 +125,10 @@ class CaptureAuth:
                 verdict = "unverified"  # its JOIN is not in the capture
         if verdict != "BAD" and d.message.TYPE in TRANSACTION_TYPES:
             self.last_tx[(d.channel, node)] = fv
-        if verdict != "BAD" and isinstance(d.message, Join):
-            self.join_fv[(d.channel, node)] = fv
+        if verdict != "BAD" and (
+            isinstance(d.message, Join) or (isinstance(d.message, Debit) and d.message.is_resume)
+        ):
+            self.join_fv[(d.channel, node)] = fv  # a RESUME's ADMIT binds it as a JOIN's does
         return verdict
 
 

@@ -3,8 +3,10 @@ AUTOSAR SecOC does.
 
 MAC input: Data ID ``type << 8 | node`` (2 bytes, big-endian) || freshness value FV (4 bytes,
 big-endian) || the classic frame's data (CRC-8 byte and fields). FV never repeats for a key: the
-full 32-bit transaction number for transaction frames, the full return number for RETURN and
-RETURN_ACK, the sender's last resolved transaction for TELEMETRY, the nonce for JOIN and ADMIT.
+full 32-bit transaction number for transaction frames, the full return number for RETURN,
+RETURN_ACK and a DEBIT's draw (numbered as a return), the sender's last resolved transaction for
+TELEMETRY, the nonce for JOIN, RESUME (a DEBIT's start) and ADMIT; a JOIN's and a RESUME's FV
+has a random high half the ADMIT's MAC binds (32 bits for a replayed ADMIT to match, not 16).
 The wire carries 16-bit counters; a receiver extends them from its own counters, and a frame
 whose FV is not the one it expects (a replay from 65,536 transactions ago, say) is refused. So
 is, once the side's freshness gives an ``Expected`` (``expected_freshness``), a frame whose FV
@@ -41,6 +43,7 @@ import hmac
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
+from typing import TypeGuard
 
 import can
 from cryptography.hazmat.primitives import cmac
@@ -168,11 +171,19 @@ class FrameAuth:
     """Per node, the FV of its JOIN: a node sets its own (random high half, the JOIN's nonce
     below) before it joins; the supervisor keeps the one it received and echoes it in ADMIT.
     A replayed ADMIT of an earlier life then fails unless 32 bits, not 16, happen to match."""
+    resume_fv: dict[int, int] = field(default_factory=dict)
+    """Per node, the FV of its RESUME (witnessed rules), as ``join_fv`` for a JOIN: a random
+    high half over the nonce, bound into the ADMIT that answers it. Kept until a JOIN or the
+    next RESUME replaces it (an ADMIT is sent again for each copy of a RESUME)."""
 
     def frames(self, msg: Message) -> list[can.Message]:
         fv: int | None
         if isinstance(msg, Join):
             fv = self.join_fv[msg.node] = self._join_fv(msg)  # JOINING TELEMETRY is bound to it
+        elif _resume(msg):
+            fv = self.resume_fv.get(msg.node, msg.nonce)
+            if fv & 0xFFFF != msg.nonce:
+                fv = msg.nonce
         elif _joining(msg) and msg.node in self.join_fv:
             fv = self.join_fv[msg.node]  # a node without books: bound to its JOIN
         else:
@@ -245,7 +256,10 @@ class FrameAuth:
         return self._verdict(msg, body, half << 16 | low_counter(msg), data[3:])
 
     def _join_fv(self, msg: Join | Admit) -> int:
-        fv = self.join_fv.get(msg.node)
+        """The FV of the JOIN (or, for an ADMIT, first the RESUME) a message goes with."""
+        fv = self.resume_fv.get(msg.node) if isinstance(msg, Admit) else None
+        if fv is None or fv & 0xFFFF != msg.nonce:
+            fv = self.join_fv.get(msg.node)
         return fv if fv is not None and fv & 0xFFFF == msg.nonce else msg.nonce
 
     def _verdict(self, msg: Message, body: bytes, fv: int, tag: bytes) -> Verdict:
@@ -253,7 +267,7 @@ class FrameAuth:
         if wanted is None:  # another supervisor's node, say: not ours to judge
             return Verdict(node=msg.node)
         bound = None
-        if isinstance(msg, Join):  # any fresh nonce is the node's to draw: keep it for ADMIT
+        if isinstance(msg, Join) or _resume(msg):  # any fresh nonce: kept for the ADMIT
             wanted = fv if fv & 0xFFFF == msg.nonce else -1
         elif isinstance(msg, Admit):  # any high half, for the JOIN this side took or sent
             wanted = fv if fv & 0xFFFF == msg.nonce else -1
@@ -276,6 +290,9 @@ class FrameAuth:
             return Verdict(failure=AuthFailure.STALE, node=msg.node)
         if isinstance(msg, Join):
             self.join_fv[msg.node] = fv
+            self.resume_fv.pop(msg.node, None)
+        elif _resume(msg):
+            self.resume_fv[msg.node] = fv
         if isinstance(msg, Admit):  # the full counters: the FV's high half above the wire's
             high = fv & 0xFFFF_0000
             msg = Admit(msg.node, msg.nonce, high | msg.tx, high | msg.seq)
@@ -307,6 +324,11 @@ class FrameAuth:
         floor = self.telemetry_floor.get(msg.node)
         if floor is None or fv_before(floor, resolved):
             self.telemetry_floor[msg.node] = resolved
+
+
+def _resume(msg: Message) -> TypeGuard[Debit]:
+    """A DEBIT that is a node's start (RESUME): its FV is a random high half over its nonce."""
+    return isinstance(msg, Debit) and msg.is_resume
 
 
 def _joining(msg: Message) -> bool:

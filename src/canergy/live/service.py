@@ -48,6 +48,7 @@ from canergy.messages import (
     Aborted,
     Ack,
     Committed,
+    Debit,
     Direction,
     Join,
     Message,
@@ -117,6 +118,11 @@ class NodeInfo:
     a replay."""
     joins_resent: int = 0
     """Copies of the JOIN just admitted, re-sent before the node heard its ADMIT: dropped."""
+    resumes: int = 0
+    """Starts with books answered (witnessed rules: RESUME confirmed or found behind)."""
+    found_behind: int = 0
+    """Of them, records older than the books (a debit number below the supervisor's): the node
+    was admitted afresh and what that record held was dropped."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -232,6 +238,10 @@ class SupervisorService:
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
         self.stopped_by_intrusion = False
         self.witness = ReturnGate(config.return_hold_us or 0, config.witness_block_us)
+        self.witnessed = (Phase.IDLE, Debit) in core.variant.supervisor.cells
+        """Rules that take DEBIT (``witnessed``): draws held, every node start confirmed."""
+        self._resuming: int | None = None
+        """The node whose RESUME the core is answering (its admission is no JOIN's)."""
         self._joins_due: set[int] = set()
         """Nodes with a JOIN confirmed and waiting for its hold (emptied as they are admitted
         or refused), so the loop's every pass does not look at every node."""
@@ -279,7 +289,12 @@ class SupervisorService:
             return ()
         if isinstance(msg, Return) and self._hold_return(msg, now):
             return self._flush(self._released(msg.node, now))
-        out = self._carry_out(self.core.receive(msg, now), now)
+        if isinstance(msg, Debit) and msg.is_resume and self.witnessed:
+            if self._hold_resume(msg, now):
+                return self._flush(self._released(msg.node, now))
+            out = self._resume(msg, info, now)
+        else:
+            out = self._carry_out(self.core.receive(msg, now), now)
         if self.ready:  # a transaction ended: the node's next grant goes out in this step
             out += self._start_grants(now, self.ready)
         return self._flush(out)
@@ -339,11 +354,62 @@ class SupervisorService:
             self.intrusion(msg.node, repr(msg), evidence, now, stop=True)
         return True
 
+    def _hold_resume(self, msg: Debit, now: int) -> bool:
+        """A RESUME (witnessed rules): without a key, one whose pending return the core would
+        credit waits for the node's TELEMETRY, as a RETURN does (``witness``)."""
+        credited = self.core.session(msg.node).returns_credited
+        waiting = self.witness.resume_held(msg.node)
+        if not self.witness.hold_resume(msg, credited, now, self.config.return_hold_us is not None):
+            return False
+        if not waiting:
+            log.warning(
+                "node %s: RESUME with a pending return of %d mJ held until its TELEMETRY "
+                "confirms it (no key); nothing granted meanwhile",
+                self.node_name(msg.node),
+                msg.amount_mj,
+            )
+        return True
+
+    def _resume(self, msg: Debit, info: NodeInfo, now: int) -> list[Outgoing]:
+        """A node's start with books, answered by the core (ADMIT): confirmed, or found behind
+        (its last debit below the books': an older record) and admitted afresh."""
+        s = self.core.session(msg.node)
+        seq = unwrap(msg.seq, s.returns_credited, SEQ_BITS)
+        last = (s.resume_nonce, s.resume_from, s.resume_to)
+        repeat = last == (msg.nonce, seq, s.returns_credited)  # answered as before: no news
+        self._resuming = msg.node
+        try:
+            out = self._carry_out(self.core.receive(msg, now), now)
+        finally:
+            self._resuming = None
+        if repeat:
+            return out
+        info.resumes += 1
+        info.ended_at = now  # its level before the answer is stale
+        name = self.node_name(msg.node)
+        if seq < s.returns_credited:
+            info.found_behind += 1
+            log.warning(
+                "node %s started from a record older than the books (its last debit %d, the "
+                "books hold %d): admitted afresh at tx %d; what that record held is dropped",
+                name,
+                seq,
+                s.returns_credited,
+                self.core.session(msg.node).tx,
+            )
+        else:
+            log.info("node %s resumed: its books confirmed at debit %d", name, seq)
+        return out
+
     def _released(self, node: int, now: int) -> list[Outgoing]:
-        """The held RETURNs of ``node`` its TELEMETRY has confirmed, credited by the core."""
+        """The held RETURNs of ``node`` its TELEMETRY has confirmed, credited by the core (and a
+        held RESUME it confirmed, answered)."""
         out: list[Outgoing] = []
         credited = self.core.session(node).returns_credited
         for ret in self.witness.release(node, credited, now):
+            if isinstance(ret, Debit):
+                out += self._resume(ret, self.nodes[node], now)
+                continue
             if ret.amount_mj == 0:
                 kind = "return numbers acknowledged by someone else: resynchronised at 0 mJ"
                 self.intrusion(node, repr(ret), kind, now, stop=True)
@@ -363,11 +429,12 @@ class SupervisorService:
             level = msg.level_mj * QUANTUM_UJ
             if msg.level_mj < LEVEL_MAX_MJ and level > holdable + lagging:
                 return f"reports {format_energy(level)}, its books allow {format_energy(holdable)}"
-        elif isinstance(msg, Return):
+        elif isinstance(msg, Return | Debit):
             fresh = unwrap(msg.seq, s.returns_credited, SEQ_BITS) == s.returns_credited + 1
             amount = msg.amount_mj * QUANTUM_UJ
+            verb = "returns" if isinstance(msg, Return) else "debits"
             if fresh and amount > holdable:
-                return f"returns {format_energy(amount)}, it can hold {format_energy(holdable)}"
+                return f"{verb} {format_energy(amount)}, it can hold {format_energy(holdable)}"
         elif isinstance(msg, Ack | Committed | Aborted) and unwrap(msg.tx, s.tx, TX_BITS) > s.tx:
             return f"answers transaction {unwrap(msg.tx, s.tx, TX_BITS)}, never begun"
         return None
@@ -659,7 +726,12 @@ class SupervisorService:
                 continue
             if self.liveness is not None and not self.liveness(node, now):
                 continue  # heartbeat lost or not OPERATIONAL: nothing for it, not even one-shots
-            if info.heard_at is None or info.flags & Telemetry.JOINING or info.held_joins:
+            if (
+                info.heard_at is None
+                or info.flags & Telemetry.JOINING
+                or info.held_joins
+                or self.witness.resume_held(node)
+            ):
                 continue  # not heard yet, or no books until admitted: a grant would be lost
             if info.requests:
                 out += self._one_shot(node, info, now)
@@ -767,7 +839,8 @@ class SupervisorService:
         info = self.nodes[action.node]
         info.admitted += 1
         self.witness.readmitted(action.node)  # its return numbers start again
-        if action.tx or action.seq:  # books existed: what it held is gone with its record
+        had_books = action.tx or action.seq  # what it held is gone with its record
+        if had_books and action.node != self._resuming:  # a RESUME's is logged by ``_resume``
             log.warning(
                 "node %s has no books (NV lost or replaced): admitted at tx %d, return %d; "
                 "anything it held is written off",
@@ -852,6 +925,9 @@ class SupervisorService:
                 "written_off": info.written_off,
                 "admitted": info.admitted,
                 "joins_resent": info.joins_resent,
+                "resumes": info.resumes,
+                "found_behind": info.found_behind,
+                "resume_waiting": self.witness.resume_held(s.node),
                 "returns": info.returns,
                 "decode_errors": info.decode_errors,
                 "supervisor_frames": info.supervisor_frames,

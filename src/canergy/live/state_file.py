@@ -76,6 +76,9 @@ _SESSION = (
     "returns_credited",
     "returned_uj",
 )
+_RESUME = ("resume_nonce", "resume_from", "resume_to")
+"""Witnessed rules: the last RESUME answered (its nonce, the node's debit number, the number
+it voided), so that a copy re-sent after a restart gets the same answer, not a second void."""
 _DECIDED = (Phase.WAIT_CONFIRM, Phase.WAIT_STATUS)
 """Phases a session reaches only after sending its decision (COMMIT or ABORT)."""
 
@@ -172,8 +175,9 @@ def write_private(path: Path, data: bytes, *, fsync: bool = True) -> None:
 
 
 def session_json(table: SupervisorTable | None, s: Session) -> dict[str, Any]:
-    """One session as saved (``table``: the variant's, to store phases as its record does)."""
-    return {
+    """One session as saved (``table``: the variant's, to store phases as its record does;
+    the witnessed rules' also the last RESUME answered)."""
+    saved = {
         "phase": (s.phase if table is None else stored_phase(table, s.phase)).name,
         "tx": s.tx,
         "reserved_uj": s.reserved,
@@ -182,6 +186,18 @@ def session_json(table: SupervisorTable | None, s: Session) -> dict[str, Any]:
         "returns_credited": s.returns_credited,
         "returned_uj": s.returned,
     }
+    if table is not None and _takes_resume(table):
+        saved |= {
+            "resume_nonce": s.resume_nonce,
+            "resume_from": s.resume_from,
+            "resume_to": s.resume_to,
+        }
+    return saved
+
+
+def _takes_resume(table: SupervisorTable) -> bool:
+    """The table answers RESUME (witnessed rules): its sessions keep the last one answered."""
+    return table.variant == "witnessed"
 
 
 def _books_head(state: SupervisorState, variant: str) -> dict[str, Any]:
@@ -625,7 +641,8 @@ class FieldChecker:
 
     def session(self, node: int, raw: object, table: SupervisorTable) -> Session:
         where = f"sessions.{node_name(self.buses, node)}"
-        v = self.fields(raw, where, _SESSION)
+        resumes = _takes_resume(table)
+        v = self.fields(raw, where, _SESSION, optional=_RESUME if resumes else ())
         phase = Phase[self.name(v, where, "phase", (p.name for p in stored_phases(table)))]
         tx = self.counter(v, where, "tx")
         reserved = self.integer(v, where, "reserved_uj", RESERVED_MAX_UJ)
@@ -645,4 +662,23 @@ class FieldChecker:
         if decided == (decision is Decision.NONE):
             why = "no decision" if decided else f"decision {decision.name}"
             self.refuse(f"{where}.decision", f"{why} in {phase.name}")
-        return Session(node, phase, tx, reserved, delivered, decision, returns_credited, returned)
+        nonce, start, void = (
+            (self.integer(v, where, "resume_nonce", 0xFFFF) if "resume_nonce" in v else 0),
+            (self.counter(v, where, "resume_from") if "resume_from" in v else 0),
+            (self.counter(v, where, "resume_to") if "resume_to" in v else 0),
+        )
+        if resumes and void > returns_credited:
+            self.refuse(f"{where}.resume_to", f"{void}: above returns_credited {returns_credited}")
+        return Session(
+            node,
+            phase,
+            tx,
+            reserved,
+            delivered,
+            decision,
+            returns_credited,
+            returned,
+            resume_nonce=nonce,
+            resume_from=start,
+            resume_to=void,
+        )

@@ -13,6 +13,9 @@ send, or an answer to something it never asked, is counted and reported in its n
   or a forged TELEMETRY confirming it, is then refuted by the genuine node's report before it can
   be credited. The node reports at once when ``WITNESS_REPORT_AT`` frames went unreported, so its
   8-bit count never hides a whole turn;
+- holds the same way a RESUME (witnessed rules) whose pending return the core would credit (its
+  number the next one): a forged RESUME is a forged RETURN too. Any RESUME resets the baseline
+  its return number is judged by (a node started from an older record goes back, honestly);
 - resynchronises returns: when the node's confirmed number is past the next one the supervisor
   expects (someone acknowledged a return in the supervisor's name while it was away), the missed
   numbers are credited as 0 mJ, so the node's later returns are credited again. What they held is
@@ -29,6 +32,7 @@ from canergy.messages import (
     SEQ_BITS,
     WITNESS_BITS,
     Admit,
+    Debit,
     Return,
     ReturnAck,
     Telemetry,
@@ -48,7 +52,8 @@ class ClientWitness:
     the same): the frames it saw in its own name that it did not send."""
 
     join_nonce: int | None = None
-    """The nonce of this start's JOIN: an ADMIT that does not echo it was not for us."""
+    """The nonce of this start's JOIN or RESUME: an ADMIT that does not echo it was not for
+    us."""
     count: int = 0
     reported: int = 0
     """The count its last TELEMETRY carried."""
@@ -94,6 +99,10 @@ class NodeWitness:
     evidence_at: int | None = None
     """When the node last reported frames in its name, or contradicted itself."""
     held: dict[int, _Held] = field(default_factory=dict)
+    resume: tuple[Debit, _Held] | None = None
+    """A RESUME whose pending return the core would credit, until the node confirms it."""
+    resume_nonce: int | None = None
+    """The nonce of the last RESUME seen: its copies leave the baseline as the first set it."""
     resynced: int = 0
     refuted: int = 0
 
@@ -112,7 +121,7 @@ class ReturnGate:
     def holding(self) -> list[int]:
         """The nodes holding RETURNs, ascending."""
         nodes = self.nodes
-        self._holding = {n for n in self._holding if nodes[n].held}
+        self._holding = {n for n in self._holding if nodes[n].held or nodes[n].resume}
         return sorted(self._holding)
 
     def _of(self, node: int) -> NodeWitness:
@@ -142,6 +151,9 @@ class ReturnGate:
             for number, held in w.held.items():
                 if number <= seq and held.confirmed_at is None:
                     held.confirmed_at = now
+            resume = w.resume
+            if resume and resume[0].seq == wrap(seq, SEQ_BITS) and resume[1].confirmed_at is None:
+                resume[1].confirmed_at = now
         if evidence:
             self._refute(w, now)
         return evidence, notes
@@ -161,17 +173,32 @@ class ReturnGate:
             return f"two RETURNs numbered {seq}: {held.amount_mj} and {msg.amount_mj} mJ"
         return None
 
+    def hold_resume(self, msg: Debit, credited: int, now: int, hold: bool) -> bool:
+        """A RESUME: True when it is held (``hold``, and its pending return would be credited: a
+        RETURN's number, next after ``credited``), until a TELEMETRY of the node shows that
+        number. Any RESUME resets the return number the node's TELEMETRY is judged by."""
+        w = self._of(msg.node)
+        if msg.nonce != w.resume_nonce:  # a start: from an older record it goes back, honestly
+            w.resume_nonce, w.return_seq = msg.nonce, None
+        seq = unwrap(msg.seq, credited, SEQ_BITS)
+        if not hold or seq != credited + 1 or not msg.amount_mj or msg.flags & Debit.DRAW:
+            return False
+        if w.resume is None or w.resume[0] != msg:
+            w.resume = (msg, _Held(msg.amount_mj, now))
+            self._holding.add(msg.node)
+        return True
+
     def old(self, msg: Return, credited: int) -> bool:
         """A RETURN the core has credited already (its re-ack is harmless)."""
         return unwrap(msg.seq, credited, SEQ_BITS) <= credited
 
-    def release(self, node: int, credited: int, now: int) -> list[Return]:
+    def release(self, node: int, credited: int, now: int) -> list[Return | Debit]:
         """The held RETURNs the node has confirmed and no evidence contradicts, in order, each
-        missed number before them as a 0 mJ RETURN."""
+        missed number before them as a 0 mJ RETURN; then a held RESUME it has confirmed."""
         w = self.nodes.get(node)
-        if w is None or not w.held or w.return_seq is None:
+        if w is None or w.return_seq is None:
             return []
-        out: list[Return] = []
+        out: list[Return | Debit] = []
         for seq in sorted(w.held):
             held = w.held[seq]
             confirmed = held.confirmed_at
@@ -188,6 +215,11 @@ class ReturnGate:
             out.append(Return(node, wrap(seq, SEQ_BITS), held.amount_mj))
             del w.held[seq]
             credited = seq
+        if w.resume is not None:
+            resume, held = w.resume
+            if held.confirmed_at is not None and now >= held.confirmed_at + self.hold_us:
+                out.append(resume)  # the core judges it against its count now
+                w.resume = None
         return out
 
     def blocked(self, node: int, now: int) -> bool:
@@ -198,8 +230,9 @@ class ReturnGate:
     def _refute(self, w: NodeWitness, now: int) -> None:
         """Evidence: every RETURN held so far is dropped (a genuine one is sent again)."""
         w.evidence_at = now
-        w.refuted += len(w.held)
+        w.refuted += len(w.held) + (w.resume is not None)
         w.held.clear()
+        w.resume = None
 
     def next_release(self) -> int | None:
         if not self._holding:
@@ -207,10 +240,19 @@ class ReturnGate:
         times = [
             h.confirmed_at + self.hold_us
             for n in self.holding()
-            for h in self.nodes[n].held.values()
+            for h in [*self.nodes[n].held.values(), *self._resume_held(n)]
             if h.confirmed_at is not None
         ]
         return min(times, default=None)
+
+    def resume_held(self, node: int) -> bool:
+        """A RESUME of ``node`` is held (no grant for it meanwhile)."""
+        w = self.nodes.get(node)
+        return w is not None and w.resume is not None
+
+    def _resume_held(self, node: int) -> list[_Held]:
+        resume = self.nodes[node].resume
+        return [] if resume is None else [resume[1]]
 
     def readmitted(self, node: int) -> None:
         """The node was admitted afresh: its return numbers start again from the supervisor's
@@ -220,6 +262,7 @@ class ReturnGate:
         if w is not None:
             w.return_seq, w.confirmed_at = None, 0
             w.held.clear()
+            w.resume = None
 
     def status(self, node: int) -> dict[str, int]:
         w = self.nodes.get(node)

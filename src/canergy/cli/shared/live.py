@@ -26,6 +26,9 @@ from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ, Direction
 from canergy.units import UJ_PER_J, format_energy
 
 LARGEST_GRANT = AMOUNT_MAX_MJ * QUANTUM_UJ
+LIVE_VARIANTS = sorted({*RUNNABLE, "witnessed"})
+"""The rules a live supervisor runs: the demo's, and ``witnessed`` (its nodes draw through
+numbered DEBITs and confirm every start: ``python -m firmware_model --variant witnessed``)."""
 
 
 def joules(uj: int) -> str:
@@ -37,7 +40,13 @@ ROOM = f"{joules(USABLE_MAX_UJ)} (what a node's record holds) minus --max-grant"
 
 def supervisor_flags(p: argparse.ArgumentParser) -> None:
     add_bus_flags(p)
-    p.add_argument("--variant", choices=sorted(RUNNABLE), default="hardened")
+    p.add_argument(
+        "--variant",
+        choices=LIVE_VARIANTS,
+        default="hardened",
+        help="the rules (default hardened); witnessed: a node's record restored from an older "
+        "copy creates nothing (its nodes must run them too; Python core only)",
+    )
     p.add_argument("--initial", type=energy, default=10 * UJ_PER_J, help="budget of a new state")
     p.add_argument(
         "--core",
@@ -197,8 +206,8 @@ def auth_key(args: argparse.Namespace) -> Any:
     key = load_key(args.auth)
     if key.kind != "master":
         raise ValueError(f"--auth {args.auth}: a supervisor needs the master key, not a node key")
-    if args.variant != "hardened":
-        raise ValueError("--auth needs the hardened rules (--variant hardened)")
+    if args.variant not in ("hardened", "witnessed"):
+        raise ValueError("--auth needs the hardened or witnessed rules (--variant)")
     return key
 
 

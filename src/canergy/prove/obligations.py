@@ -25,6 +25,7 @@ from canergy.prove.world import (
     Kind,
     Msg,
     World,
+    any_image,
     any_msg,
     any_world,
     initial_world,
@@ -130,9 +131,21 @@ def _local(local: st.Local) -> Callable[[World], Built]:
     return lambda w: (local(w), [], None)
 
 
+def _restore(rules: Rules) -> Callable[[World], Built]:
+    def build(w: World) -> Built:
+        image = any_image("image")
+        return st.restore(w, image, rules), [inv.p_image(image, w)], None
+
+    return build
+
+
+RESTORE = "client: restored from an older image"
+
+
 def cases(rules: Rules = HARDENED) -> list[StepCase]:
-    """Every step: each message delivered, each local request and timer."""
-    out = []
+    """Every step: each message delivered, each local request and timer (and, when the rules
+    say so, a start from an older image of the node's record, first)."""
+    out = [StepCase(RESTORE, _restore(rules))] if rules.restores else []
     for kind, deliver in st.deliveries(rules).items():
         receiver = "client" if kind in TO_CLIENT else "supervisor"
         out.append(StepCase(f"{receiver} receives {kind.name}", _delivery(kind, deliver)))

@@ -153,6 +153,12 @@ def any_world(name: str = "w") -> World:
     return World(s, c, **ghost)
 
 
+def any_image(name: str = "image") -> sym.Client:
+    """A record of fresh constants: any image the node's NV could be put back to (what the
+    restore step may take is said by ``invariant.p_image``)."""
+    return sym.Client(**{f: _fresh(f"{name}.{f}.", sort) for f, sort in _CLIENT.items()})
+
+
 def initial_world() -> World:
     """Both sides new: nothing granted, no message sent, the client's first life admitted."""
     zero, zero32, no = z3.IntVal(0), sym.counter(0), z3.BoolVal(False)

@@ -240,6 +240,24 @@ def test_a_restored_image_creates_energy_under_the_hardened_rules_by_what_was_de
     assert not ledger & _failed_clauses(step, rules.RULES["old-image"])
 
 
+def test_a_restored_supervisor_image_creates_energy_under_the_hardened_rules(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The supervisor's side of assumption 2: an older state file counts in Us what the node
+    received since (the +4 J of issue 40). It fails passivity even for an image with no
+    transaction open, where whether the node committed one plays no part."""
+    step = "supervisor: restored from an older image"
+    assert step not in {c.name for c in cases()}
+    assert "passivity" in _failed_clauses(step, rules.RULES["old-image"])
+    original = inv.p_session_image
+
+    def idle(r: sym.Session, w: Any) -> Any:
+        return z3.And(original(r, w), r.phase == sym.S_IDLE)
+
+    monkeypatch.setattr(inv, "p_session_image", idle)
+    assert "passivity" in _failed_clauses(step, rules.RULES["old-image"])
+
+
 def test_a_report_that_cannot_be_written_fails_at_once(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

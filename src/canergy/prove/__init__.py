@@ -22,7 +22,10 @@ CONFIRMED_BY: dict[str, tuple[str, ...]] = {
         "canergy check --old-copies 1",
         "canergy check --topology chain --broken-gateway split-save",
     ),
-    "old-image": ("canergy check --old-copies 1",),
+    "old-image": (
+        "canergy check --old-copies 1",
+        "canergy check --supervisor-old-copies 1 --engine reference --clients 2",
+    ),
 }
 """The bounded checker's runs that find a real trace of each unsound rule set's hazard (a
 node starting blank and trusting Gs has no CLI variant: tests/test_check.py checks it)."""

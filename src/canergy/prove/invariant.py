@@ -400,6 +400,28 @@ def p_image(r: sym.Client, w: World) -> Term:
     )
 
 
+def p_session_image(r: sym.Session, w: World) -> Term:
+    """What is known of an image the supervisor's record of the session may be put back to: a
+    record it wrote earlier in the current numbering (no counter of it ahead, its Gs and what
+    it credited back not either, ACKED stored as WAIT_ACK), of which the invariant's clauses on
+    the supervisor's books hold (``supervisor books``, ``decision``, ``Gs = H``, ``counter
+    lifts``). Encoded as ``p_image`` is for the node's record."""
+    then = replace(w, s=r)
+    return z3.And(
+        r.phase != sym.ACKED,
+        ule(w.shift_tx, r.tx),
+        ule(then.tx, w.tx),
+        ule(w.shift_seq, r.returns_credited),
+        ule(then.rc, w.rc),
+        r.delivered <= w.s.delivered,
+        r.returned <= w.s.returned,
+        supervisor_books(then),
+        decision(then),
+        prophecy(then),
+        lifts(then),
+    )
+
+
 # -- the theorem's assumptions --------------------------------------------------------------------
 
 

@@ -13,8 +13,10 @@ Each unsound set is the hardened model with some cells replaced:
 - ``split-save``: a node's record written in two parts, a power loss between them leaving its
   usable budget new and its last transaction one back (``--broken-gateway split-save``, read for
   one node; the theorem assumes NV is never restored to an older image);
-- ``old-image``: the hardened cells with assumption 2 dropped: a step puts the node's record
-  back to an older image (``canergy check --old-copies 1``).
+- ``old-image``: the hardened cells with assumption 2 dropped: steps put the node's record, or
+  the supervisor's, back to an older image (``canergy check --old-copies 1`` for the node's;
+  ``canergy check --supervisor-old-copies 1 --engine reference --clients 2`` for the
+  supervisor's).
 """
 
 from __future__ import annotations
@@ -82,7 +84,8 @@ class Rules:
     spend: Callable[[sym.Client, Term], tuple[sym.Client, Term]] = sym.spend
     client_power_loss: Callable[[sym.Client], tuple[sym.Client, sym.Sent]] = sym.client_power_loss
     restores: bool = False
-    """A step puts the node's record back to an older image (assumption 2 dropped)."""
+    """Steps put the node's record, or the supervisor's, back to an older image (assumption 2
+    dropped)."""
 
 
 HARDENED = Rules()

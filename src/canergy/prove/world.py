@@ -159,6 +159,12 @@ def any_image(name: str = "image") -> sym.Client:
     return sym.Client(**{f: _fresh(f"{name}.{f}.", sort) for f, sort in _CLIENT.items()})
 
 
+def any_session_image(name: str = "session_image") -> sym.Session:
+    """A session record of fresh constants: any image the supervisor's state file could be put
+    back to (``invariant.p_session_image`` says which)."""
+    return sym.Session(**{f: _fresh(f"{name}.{f}.", sort) for f, sort in _SESSION.items()})
+
+
 def initial_world() -> World:
     """Both sides new: nothing granted, no message sent, the client's first life admitted."""
     zero, zero32, no = z3.IntVal(0), sym.counter(0), z3.BoolVal(False)

@@ -351,8 +351,12 @@ def witnessed_sessions(draw: Any) -> Session:
     """A session with the last RESUME it answered, often the one about to arrive again."""
     s = draw(sessions())
     to = draw(st.one_of(st.just(s.returns_credited), counters))
+    near_c = st.integers(-2, 2).map(lambda d: max(0, s.returns_credited + d))
     return replace(
-        s, resume_nonce=draw(st.integers(0, 3)), resume_from=draw(counters), resume_to=to
+        s,
+        resume_nonce=draw(st.integers(0, 3)),
+        resume_from=draw(st.one_of(near_c, counters)),
+        resume_to=to,
     )
 
 

@@ -439,3 +439,14 @@ def test_witnessed_supervisor_answers_debits(data: st.DataObject) -> None:
         n: getattr(py.session, n) % (1 << 32)
         for n in names  # the core keeps an unwrapped -q
     }
+
+
+def test_a_resume_far_behind_a_lifted_count_is_voided_above_the_lift() -> None:
+    """C lifted to tx's high half lies 2**31 above a q unwrapped below 0: the voided number is
+    the lifted C + 1, which a signed comparison of the two would get wrong."""
+    s = Session(1, tx=1 << 31)
+    msg = Debit(1, 0, Debit.START, 0x8000, 0)
+    py = W_SUPERVISOR.step(T, s, msg, 0)
+    args = (z3.BitVecVal(0, 16), z3.IntVal(Debit.START), z3.BitVecVal(0x8000, 16), z3.IntVal(0))
+    same_session(py, sym_w.on_debit(sym_session(s), *args))
+    assert py.session.returns_credited == (1 << 31) + 1

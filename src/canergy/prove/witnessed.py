@@ -237,7 +237,9 @@ def confirm(s: Session, nonce16: Term, is_draw: Term, seq16: Term, amount_mj: Te
     kept = sym.choose(credits, credited, closed)
     step = sym.choose(behind, SessionStep(lifted.session, Sent.none(), lifted.credit), kept)
     t = step.session
-    void = z3.If(seq - t.returns_credited > 0, seq, t.returns_credited) + 1
+    # behind: seq < C <= the lifted C (which may be 2**31 above seq: no signed comparison)
+    later = z3.And(z3.Not(behind), seq - t.returns_credited > 0)
+    void = z3.If(later, seq, t.returns_credited) + 1
     t = replace(t, returns_credited=void, resume_nonce=nonce16, resume_from=seq, resume_to=void)
     answered = SessionStep(t, _confirmation(t, nonce16), step.credit)
     return sym.choose(repeat, SessionStep(s, _confirmation(s, nonce16), z3.IntVal(0)), answered)

@@ -78,7 +78,7 @@ def test_each_unsound_rule_set_fails_with_a_counterexample(
 
 
 @pytest.mark.parametrize(
-    "command", [c for commands in CONFIRMED_BY.values() for c in commands], ids=str
+    "command", sorted({c for commands in CONFIRMED_BY.values() for c in commands}), ids=str
 )
 def test_the_bounded_checker_finds_a_real_trace_for_each(
     command: str, capsys: pytest.CaptureFixture[str]
@@ -216,6 +216,46 @@ def test_energy_the_actuator_used_cannot_come_back() -> None:
 
     mutated = rules.Rules("mutated", client_power_loss=restores_spent)
     assert "passivity" in _failed_clauses("client: power loss", mutated)
+
+
+def test_a_restored_image_creates_energy_under_the_hardened_rules_by_what_was_debited_since(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Assumption 2 dropped: the restore step fails the hardened rules on the node's books, and
+    it does so because of a debit since the image: an image that differs only in credits (all
+    of them counted by Rc) keeps the ledger's clauses. (It still fails those on transactions:
+    an image older in its ltx may take again what it resolved, which is why the witnessed
+    confirmation settles the node up to the supervisor's last closed transaction.)"""
+    step = "client: restored from an older image"
+    assert step not in {c.name for c in cases()}  # the hardened theorem keeps assumption 2
+    failed = _failed_clauses(step, rules.RULES["old-image"])
+    assert {"received <= Rc", "passivity"} <= failed
+    original = inv.p_image
+
+    def nothing_debited_since(r: sym.Client, w: Any) -> Any:
+        return z3.And(original(r, w), w.c.usable == r.usable + w.c.credited - r.credited)
+
+    monkeypatch.setattr(inv, "p_image", nothing_debited_since)
+    ledger = {"energy identity", "received <= Rc", "passivity", "budget moved = books moved"}
+    assert not ledger & _failed_clauses(step, rules.RULES["old-image"])
+
+
+def test_a_restored_supervisor_image_creates_energy_under_the_hardened_rules(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The supervisor's side of assumption 2: an older state file counts in Us what the node
+    received since (the +4 J of issue 40). It fails passivity even for an image with no
+    transaction open, where whether the node committed one plays no part."""
+    step = "supervisor: restored from an older image"
+    assert step not in {c.name for c in cases()}
+    assert "passivity" in _failed_clauses(step, rules.RULES["old-image"])
+    original = inv.p_session_image
+
+    def idle(r: sym.Session, w: Any) -> Any:
+        return z3.And(original(r, w), r.phase == sym.S_IDLE)
+
+    monkeypatch.setattr(inv, "p_session_image", idle)
+    assert "passivity" in _failed_clauses(step, rules.RULES["old-image"])
 
 
 def test_a_report_that_cannot_be_written_fails_at_once(

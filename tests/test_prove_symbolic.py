@@ -25,11 +25,14 @@ from canergy.core.inputs import (
     CommandTimeout,
     Decide,
     GiveBack,
+    PowerLoss,
     Spend,
 )
 from canergy.core.state import ClientState, Decision, Outcome, Phase, Session, SupervisorState
 from canergy.core.steps import ClientStep
 from canergy.core.timing import Timing
+from canergy.core.witnessed import CLIENT as W_CLIENT
+from canergy.core.witnessed import SUPERVISOR as W_SUPERVISOR
 from canergy.messages import (
     COUNTER_END,
     QUANTUM_UJ,
@@ -40,6 +43,7 @@ from canergy.messages import (
     Admit,
     Commit,
     Committed,
+    Debit,
     Intention,
     Join,
     Message,
@@ -51,6 +55,7 @@ z3 = pytest.importorskip("z3")  # the prove extra: in dev, so CI runs this
 from support.sym_states import sym_client, sym_session  # noqa: E402
 
 from canergy.prove import symbolic as sym  # noqa: E402
+from canergy.prove import witnessed as sym_w  # noqa: E402
 
 T = Timing()
 LIMIT = (1 << 32) - (1 << 18)
@@ -107,11 +112,10 @@ def value(term: Any) -> int | bool:
 
 def client_fields(c: ClientState | sym.Client) -> dict[str, int | bool]:
     names = ("usable", "credited", "spent", "last_tx", "outcome", "return_seq", "return_pending")
-    names += ("credited_unknown", "held_tx", "held_amount", "phase", "nonce")
+    names += ("credited_unknown", "held_tx", "held_amount", "phase", "nonce", "pending_draw")
     if isinstance(c, ClientState):
-        return {
-            n: int(getattr(c, n)) if n != "credited_unknown" else c.credited_unknown for n in names
-        }
+        flags = ("credited_unknown", "pending_draw")
+        return {n: int(getattr(c, n)) if n not in flags else getattr(c, n) for n in names}
     return {n: value(getattr(c, n)) for n in names}
 
 
@@ -133,6 +137,7 @@ def sent_python(actions: tuple[Any, ...]) -> tuple[int, ...] | None:
         Intention: lambda: (m.tx, m.amount_mj, m.delivered_mj),
         Commit: lambda: (m.tx, m.amount_mj),
         Abort: lambda: (m.tx, m.amount_mj),
+        Debit: lambda: (m.seq, m.amount_mj, m.flags, m.nonce),
     }[type(m)]()
     return (int(m.TYPE), *fields)
 
@@ -140,7 +145,7 @@ def sent_python(actions: tuple[Any, ...]) -> tuple[int, ...] | None:
 def sent_symbolic(s: sym.Sent, width: int) -> tuple[int, ...] | None:
     if not value(s.present):
         return None
-    return (value(s.kind), value(s.a), value(s.b), value(s.c))[: width + 1]
+    return (value(s.kind), value(s.a), value(s.b), value(s.c), value(s.d))[: width + 1]
 
 
 def same_client(py: Any, symbolic: tuple[sym.Client, sym.Sent]) -> None:
@@ -321,3 +326,127 @@ def test_a_gateways_forward_and_give_back_from_below(c: ClientState, amount: int
     if room:
         up, _ = withdraw_for_return(c, down, amount)
         same_client(CLIENT.step(T, up, GiveBack(amount), 0), (state, sent))
+
+
+# -- the witnessed rules (canergy.prove.witnessed against canergy.core.witnessed) --------------
+
+
+@st.composite
+def witnessed_clients(draw: Any) -> ClientState:
+    """A client of the witnessed rules: any phase of their table, a pending draw or return."""
+    c = draw(clients())
+    phase = draw(st.sampled_from([c.phase, Phase.RESUMING]))
+    held = phase is Phase.AWAIT_COMMAND
+    return replace(
+        c,
+        phase=phase,
+        held_tx=c.held_tx if held else 0,
+        held_amount=c.held_amount if held else 0,
+        pending_draw=bool(c.return_pending) and draw(st.booleans()),
+    )
+
+
+@st.composite
+def witnessed_sessions(draw: Any) -> Session:
+    """A session with the last RESUME it answered, often the one about to arrive again."""
+    s = draw(sessions())
+    to = draw(st.one_of(st.just(s.returns_credited), counters))
+    near_c = st.integers(-2, 2).map(lambda d: max(0, s.returns_credited + d))
+    return replace(
+        s,
+        resume_nonce=draw(st.integers(0, 3)),
+        resume_from=draw(st.one_of(near_c, counters)),
+        resume_to=to,
+    )
+
+
+@settings(max_examples=400)
+@given(st.data())
+def test_witnessed_client_answers(data: st.DataObject) -> None:
+    c = data.draw(witnessed_clients())
+    s = sym_client(c)
+    tx, amount = data.draw(wire_near(c.last_tx)), data.draw(amounts)
+    delivered = data.draw(st.integers(0, (1 << 24) - 1))
+    same_client(
+        W_CLIENT.step(T, c, Intention(1, tx, amount, delivered), 0),
+        sym_w.on_intention(s, z3.BitVecVal(tx, 16), z3.IntVal(amount), z3.IntVal(delivered)),
+    )
+    for commit in (True, False):
+        msg = (Commit if commit else Abort)(1, tx, amount)
+        same_client(
+            W_CLIENT.step(T, c, msg, 0),
+            sym_w.on_command(s, commit, z3.BitVecVal(tx, 16), z3.IntVal(amount)),
+        )
+    seq = data.draw(wire_near(c.return_seq))
+    same_client(
+        W_CLIENT.step(T, c, ReturnAck(1, seq), 0), sym_w.on_debit_ack(s, z3.BitVecVal(seq, 16))
+    )
+    nonce = data.draw(st.one_of(st.just(c.nonce), st.integers(0, 0xFFFF)))
+    q = data.draw(st.one_of(wire_near(c.return_seq + 1), st.integers(0, 0xFFFF)))
+    same_client(
+        W_CLIENT.step(T, c, Admit(1, nonce, tx, q), 0),
+        sym_w.on_admit(s, *(z3.BitVecVal(v, 16) for v in (nonce, tx, q))),
+    )
+
+
+@settings(max_examples=300)
+@given(
+    witnessed_clients(),
+    st.integers(1, 80_000).map(lambda m: m * QUANTUM_UJ),
+    st.integers(0, 0xFFFF),
+)
+def test_witnessed_client_requests_timers_and_starts(
+    c: ClientState, amount: int, nonce: int
+) -> None:
+    s = sym_client(c)
+    for request, cell in ((Spend, sym_w.draw), (GiveBack, sym_w.give_back)):
+        state, sent, allowed = cell(s, z3.IntVal(amount))
+        try:
+            py = W_CLIENT.step(T, c, request(amount), 0)
+        except LocalProtocolError:
+            assert not value(allowed)
+        else:
+            assert value(allowed)
+            same_client(py, (state, sent))
+    same_client(W_CLIENT.step(T, due(c), RETURN_TIMEOUT, 0), sym_w.resend(s))
+    if c.phase is Phase.AWAIT_COMMAND:
+        same_client(W_CLIENT.step(T, due(c), CommandTimeout(), 0), sym_w.timeout_commit(s))
+    same_client(
+        W_CLIENT.step(T, c, PowerLoss(nonce), 0), sym_w.power_loss(s, z3.BitVecVal(nonce, 16))
+    )
+    same_client(
+        W_CLIENT.step(T, c, BooksLost(nonce), 0), sym_w.books_lost(s, z3.BitVecVal(nonce, 16))
+    )
+
+
+@settings(max_examples=400)
+@given(st.data())
+def test_witnessed_supervisor_answers_debits(data: st.DataObject) -> None:
+    s = data.draw(witnessed_sessions())
+    seq = data.draw(st.one_of(wire_near(s.returns_credited), wire_near(s.resume_from)))
+    nonce = data.draw(st.integers(0, 3))
+    flags = data.draw(st.sampled_from([Debit.DRAW, Debit.START, Debit.START | Debit.DRAW]))
+    amount = 0 if flags == Debit.START and data.draw(st.booleans()) else data.draw(amounts)
+    if flags == Debit.DRAW:
+        nonce = 0
+    msg = Debit(1, nonce, flags, seq, amount)
+    args = (z3.BitVecVal(nonce, 16), z3.IntVal(flags), z3.BitVecVal(seq, 16), z3.IntVal(amount))
+    step = sym_w.on_debit(sym_session(s), *args)
+    py = W_SUPERVISOR.step(T, s, msg, 0)
+    same_session(py, step)
+    names = ("resume_nonce", "resume_from", "resume_to")
+    assert {n: value(getattr(step.session, n)) for n in names} == {
+        n: getattr(py.session, n) % (1 << 32)
+        for n in names  # the core keeps an unwrapped -q
+    }
+
+
+def test_a_resume_far_behind_a_lifted_count_is_voided_above_the_lift() -> None:
+    """C lifted to tx's high half lies 2**31 above a q unwrapped below 0: the voided number is
+    the lifted C + 1, which a signed comparison of the two would get wrong."""
+    s = Session(1, tx=1 << 31)
+    msg = Debit(1, 0, Debit.START, 0x8000, 0)
+    py = W_SUPERVISOR.step(T, s, msg, 0)
+    args = (z3.BitVecVal(0, 16), z3.IntVal(Debit.START), z3.BitVecVal(0x8000, 16), z3.IntVal(0))
+    same_session(py, sym_w.on_debit(sym_session(s), *args))
+    assert py.session.returns_credited == (1 << 31) + 1

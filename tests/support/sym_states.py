@@ -23,6 +23,7 @@ def sym_client(c: ClientState) -> sym.Client:
         held_amount=z3.IntVal(c.held_amount),
         phase=z3.IntVal(int(c.phase)),
         nonce=z3.BitVecVal(c.nonce, 16),
+        pending_draw=z3.BoolVal(c.pending_draw),
     )
 
 
@@ -35,4 +36,7 @@ def sym_session(s: Session) -> sym.Session:
         decision=z3.IntVal(int(s.decision)),
         returns_credited=sym.counter(s.returns_credited),
         returned=z3.IntVal(s.returned),
+        resume_nonce=z3.BitVecVal(s.resume_nonce, 16),
+        resume_from=sym.counter(s.resume_from),
+        resume_to=sym.counter(s.resume_to),
     )

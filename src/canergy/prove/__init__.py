@@ -11,7 +11,7 @@ of transactions.
 ``canergy prove`` runs it. The names below need no z3.
 """
 
-RULE_NAMES = ("hardened", "paper", "trusting-nv", "early-grant", "split-save")
+RULE_NAMES = ("hardened", "paper", "trusting-nv", "early-grant", "split-save", "old-image")
 """The rule sets ``canergy prove --rules`` takes; only ``hardened`` is expected to prove."""
 
 CONFIRMED_BY: dict[str, tuple[str, ...]] = {
@@ -21,6 +21,10 @@ CONFIRMED_BY: dict[str, tuple[str, ...]] = {
     "split-save": (
         "canergy check --old-copies 1",
         "canergy check --topology chain --broken-gateway split-save",
+    ),
+    "old-image": (
+        "canergy check --old-copies 1",
+        "canergy check --supervisor-old-copies 1 --engine reference --clients 2",
     ),
 }
 """The bounded checker's runs that find a real trace of each unsound rule set's hazard (a

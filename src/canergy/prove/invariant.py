@@ -5,9 +5,16 @@ nonces). Counters are compared in canonical numbering (``World``'s properties)."
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import replace
 
 from canergy.core.state import Decision, Outcome
-from canergy.messages import AMOUNT_MAX_MJ, COUNTER_BOUND, DELIVERED_BITS, QUANTUM_UJ
+from canergy.messages import (
+    AMOUNT_MAX_MJ,
+    COUNTER_BOUND,
+    DELIVERED_BITS,
+    QUANTUM_UJ,
+    USABLE_MAX_UJ,
+)
 from canergy.prove import symbolic as sym
 from canergy.prove.symbolic import Term, z3
 from canergy.prove.world import H, Kind, Msg, World
@@ -351,6 +358,68 @@ MESSAGE: dict[Kind, MsgClause] = {
 
 def invariant(w: World) -> Term:
     return z3.And(*(clause(w) for _, clause in STATE))
+
+
+# -- an older image of the node's record --------------------------------------------------------
+
+
+def p_image(r: sym.Client, w: World) -> Term:
+    """What is known of an image the node's record may be put back to: a record the current
+    life wrote (with books, in its numbering, after its admission) at an earlier point, so no
+    number of it is ahead of the current record's, nor its Rc, nor what its actuator had used;
+    what it lacks of the current Uc it debited since, what it holds it had received (Rc counts
+    every credit since); and the invariant's own clauses on the
+    node's books hold of it (``numbering``, ``client books``, ``pending return``).
+
+    "Any older image" is encoded as a message in flight is: the node's writes form a channel to
+    its later starts, and the restore step takes any record of it with this property as its
+    hypothesis. A proof *with* the step needs this property to be inductive (established by
+    every write, kept by every step, as ``P`` of a message is); the hardened rules fail already
+    at the step itself, on an image a real trace reaches (an image from before a spend has Uc
+    larger by what the actuator used: ``canergy check --old-copies 1``), so no stronger form
+    can save them."""
+    c, then = w.c, replace(w, c=r)
+    return z3.And(
+        w.booked,
+        r.phase == sym.IDLE,
+        r.held_tx == 0,
+        r.held_amount == 0,
+        z3.Or(*(r.outcome == int(o) for o in Outcome)),
+        r.usable <= USABLE_MAX_UJ,
+        c.usable <= r.usable + c.credited - r.credited,  # what it lacks now, it debited since
+        r.usable <= w.received - (c.credited - r.credited),  # received then, Rc counts all since
+        r.spent <= c.spent,
+        r.credited <= c.credited,
+        r.credited_unknown == c.credited_unknown,
+        ule(w.admitted_at, then.last),
+        ule(then.last, w.last),
+        ule(then.seq, w.seq),
+        numbering(then),
+        client_books(then),
+        pending_return(then),
+    )
+
+
+def p_session_image(r: sym.Session, w: World) -> Term:
+    """What is known of an image the supervisor's record of the session may be put back to: a
+    record it wrote earlier in the current numbering (no counter of it ahead, its Gs and what
+    it credited back not either, ACKED stored as WAIT_ACK), of which the invariant's clauses on
+    the supervisor's books hold (``supervisor books``, ``decision``, ``Gs = H``, ``counter
+    lifts``). Encoded as ``p_image`` is for the node's record."""
+    then = replace(w, s=r)
+    return z3.And(
+        r.phase != sym.ACKED,
+        ule(w.shift_tx, r.tx),
+        ule(then.tx, w.tx),
+        ule(w.shift_seq, r.returns_credited),
+        ule(then.rc, w.rc),
+        r.delivered <= w.s.delivered,
+        r.returned <= w.s.returned,
+        supervisor_books(then),
+        decision(then),
+        prophecy(then),
+        lifts(then),
+    )
 
 
 # -- the theorem's assumptions --------------------------------------------------------------------

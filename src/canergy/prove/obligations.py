@@ -25,7 +25,9 @@ from canergy.prove.world import (
     Kind,
     Msg,
     World,
+    any_image,
     any_msg,
+    any_session_image,
     any_world,
     initial_world,
 )
@@ -130,9 +132,35 @@ def _local(local: st.Local) -> Callable[[World], Built]:
     return lambda w: (local(w), [], None)
 
 
+def _restore(rules: Rules) -> Callable[[World], Built]:
+    def build(w: World) -> Built:
+        image = any_image("image")
+        return st.restore(w, image, rules), [inv.p_image(image, w)], None
+
+    return build
+
+
+def _restore_supervisor(rules: Rules) -> Callable[[World], Built]:
+    def build(w: World) -> Built:
+        image = any_session_image("session_image")
+        return st.restore_supervisor(w, image, rules), [inv.p_session_image(image, w)], None
+
+    return build
+
+
+RESTORE = "client: restored from an older image"
+RESTORE_SUPERVISOR = "supervisor: restored from an older image"
+
+
 def cases(rules: Rules = HARDENED) -> list[StepCase]:
-    """Every step: each message delivered, each local request and timer."""
+    """Every step: each message delivered, each local request and timer (and, when the rules
+    say so, a start of either side from an older image of its record, first)."""
     out = []
+    if rules.restores:
+        out += [
+            StepCase(RESTORE, _restore(rules)),
+            StepCase(RESTORE_SUPERVISOR, _restore_supervisor(rules)),
+        ]
     for kind, deliver in st.deliveries(rules).items():
         receiver = "client" if kind in TO_CLIENT else "supervisor"
         out.append(StepCase(f"{receiver} receives {kind.name}", _delivery(kind, deliver)))

@@ -12,7 +12,11 @@ Each unsound set is the hardened model with some cells replaced:
   chain checker's ``--broken-gateway early-grant`` gateway grants downstream;
 - ``split-save``: a node's record written in two parts, a power loss between them leaving its
   usable budget new and its last transaction one back (``--broken-gateway split-save``, read for
-  one node; the theorem assumes NV is never restored to an older image).
+  one node; the theorem assumes NV is never restored to an older image);
+- ``old-image``: the hardened cells with assumption 2 dropped: steps put the node's record, or
+  the supervisor's, back to an older image (``canergy check --old-copies 1`` for the node's;
+  ``canergy check --supervisor-old-copies 1 --engine reference --clients 2`` for the
+  supervisor's).
 """
 
 from __future__ import annotations
@@ -79,6 +83,9 @@ class Rules:
     books_lost: Callable[[sym.Client, Term], tuple[sym.Client, sym.Sent]] = sym.books_lost
     spend: Callable[[sym.Client, Term], tuple[sym.Client, Term]] = sym.spend
     client_power_loss: Callable[[sym.Client], tuple[sym.Client, sym.Sent]] = sym.client_power_loss
+    restores: bool = False
+    """Steps put the node's record, or the supervisor's, back to an older image (assumption 2
+    dropped)."""
 
 
 HARDENED = Rules()
@@ -95,6 +102,7 @@ RULES: dict[str, Rules] = {
         Rules("trusting-nv", books_lost=start_blank),
         Rules("early-grant", spend=spend_held),
         Rules("split-save", client_power_loss=power_loss_split),
+        Rules("old-image", restores=True),
     )
 }
 """Every rule set by name; only ``hardened`` is expected to prove."""

@@ -194,6 +194,28 @@ def client_power_loss(w: World, rules: Rules) -> Step:
     return _client_step(w, rules.client_power_loss(w.c))
 
 
+def restore(w: World, image: sym.Client, rules: Rules) -> Step:
+    """The node's record put back to an older ``image`` and the node started from it, as a
+    start after a power loss (it cannot tell the two apart). What its usable budget gains is
+    received; what the actuator used stays used (the ghost ``spent`` never goes back)."""
+    c, sent = rules.client_power_loss(image)
+    grown = c.usable - w.c.usable
+    after = replace(w, c=c, received=w.received + grown)
+    return Step(after, client_sent(after, sent), z3.BoolVal(True), z3.IntVal(0))
+
+
+def restore_supervisor(w: World, image: sym.Session, rules: Rules) -> Step:
+    """The supervisor's state file put back to an older ``image`` and the supervisor started
+    from it, as after a power loss. Its usable budget Us comes back with the file: the session
+    moves into Us what its books count less in the image (Ts + Gs - returned)."""
+    step = rules.supervisor_power_loss(image)
+    after = replace(w, s=step.session, cc=z3.And(w.cc, step.session.tx == w.s.tx))
+    books = image.reserved + image.delivered - image.returned
+    now = w.s.reserved + w.s.delivered - w.s.returned
+    sent = supervisor_sent(after, step.sent, z3.IntVal(0))
+    return Step(after, sent, z3.BoolVal(True), now - books + step.credit)
+
+
 def books_lost(w: World, nonce: Term, rules: Rules) -> Step:
     """No valid record at start: a new life (JOINING, hardened); its usable budget is lost."""
     c, sent = rules.books_lost(w.c, nonce)
@@ -304,6 +326,8 @@ MOVES: dict[str, tuple[str, ...]] = {
     "client: books lost (JOIN)": ("Uc", "lost"),
     "gateway: forward its usable budget below": ("Uc", "spent"),
     "gateway: give back from below": ("spent", "given"),
+    "client: restored from an older image": ("Uc", "received"),
+    "supervisor: restored from an older image": ("Ts", "Gs"),
     "supervisor: begin": ("Ts",),
     "supervisor: response timer (re-send or write off)": ("Ts", "Gs"),
 }

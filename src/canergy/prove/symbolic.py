@@ -84,20 +84,29 @@ class Sent:
     a: Term
     b: Term
     c: Term
+    d: Term
+    """A DEBIT's nonce (16 bits; zero for every other kind)."""
 
     @staticmethod
     def none() -> Sent:
         zero16 = z3.BitVecVal(0, 16)
-        return Sent(z3.BoolVal(False), z3.IntVal(0), zero16, z3.IntVal(0), z3.IntVal(0))
+        return Sent(z3.BoolVal(False), z3.IntVal(0), zero16, z3.IntVal(0), z3.IntVal(0), zero16)
 
     @staticmethod
-    def of(kind: MsgType, a: Term, b: Term | None = None, c: Term | None = None) -> Sent:
+    def of(
+        kind: MsgType,
+        a: Term,
+        b: Term | None = None,
+        c: Term | None = None,
+        d: Term | None = None,
+    ) -> Sent:
         return Sent(
             z3.BoolVal(True),
             z3.IntVal(int(kind)),
             a,
             z3.IntVal(0) if b is None else b,
             z3.IntVal(0) if c is None else c,
+            z3.BitVecVal(0, 16) if d is None else d,
         )
 
 
@@ -126,10 +135,12 @@ class Client:
     held_amount: Term
     phase: Term
     nonce: Term
+    pending_draw: Term
+    """The pending debit is a draw for the actuator (witnessed rules; hardened: always false)."""
 
 
-IDLE, HOLDING, JOINING = (
-    z3.IntVal(int(p)) for p in (Phase.IDLE, Phase.AWAIT_COMMAND, Phase.JOINING)
+IDLE, HOLDING, JOINING, RESUMING = (
+    z3.IntVal(int(p)) for p in (Phase.IDLE, Phase.AWAIT_COMMAND, Phase.JOINING, Phase.RESUMING)
 )
 COMMITTED, ABORTED, SETTLED = (
     z3.IntVal(int(o)) for o in (Outcome.COMMITTED, Outcome.ABORTED, Outcome.SETTLED)
@@ -249,6 +260,7 @@ def on_admit(c: Client, nonce16: Term, tx16: Term, seq16: Term) -> tuple[Client,
         held_amount=zero,
         phase=IDLE,
         nonce=z3.BitVecVal(0, 16),
+        pending_draw=z3.BoolVal(False),
     )
     taken = z3.And(c.phase == JOINING, nonce16 == c.nonce)
     return pick(taken, admitted, c), Sent.none()
@@ -285,6 +297,11 @@ class Session:
     decision: Term
     returns_credited: Term
     returned: Term
+    resume_nonce: Term
+    """The last RESUME answered (witnessed rules; hardened: never moved): its nonce, the node's
+    debit number in it and the number voided."""
+    resume_from: Term
+    resume_to: Term
 
 
 S_IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM = (
@@ -464,6 +481,7 @@ def books_lost(c: Client, nonce16: Term) -> tuple[Client, Sent]:
         held_amount=zero,
         phase=JOINING,
         nonce=nonce16,
+        pending_draw=z3.BoolVal(False),
     )
     return blank, Sent.of(MsgType.JOIN, nonce16)
 

@@ -109,6 +109,9 @@ _SESSION = {
     "decision": INT,
     "returns_credited": BV32,
     "returned": INT,
+    "resume_nonce": BV16,
+    "resume_from": BV32,
+    "resume_to": BV32,
 }
 _CLIENT = {
     "usable": INT,
@@ -123,6 +126,7 @@ _CLIENT = {
     "held_amount": INT,
     "phase": INT,
     "nonce": BV16,
+    "pending_draw": BOOL,
 }
 _GHOST = {
     "shift_tx": BV32,
@@ -149,10 +153,25 @@ def any_world(name: str = "w") -> World:
     return World(s, c, **ghost)
 
 
+def any_image(name: str = "image") -> sym.Client:
+    """A record of fresh constants: any image the node's NV could be put back to (what the
+    restore step may take is said by ``invariant.p_image``)."""
+    return sym.Client(**{f: _fresh(f"{name}.{f}.", sort) for f, sort in _CLIENT.items()})
+
+
+def any_session_image(name: str = "session_image") -> sym.Session:
+    """A session record of fresh constants: any image the supervisor's state file could be put
+    back to (``invariant.p_session_image`` says which)."""
+    return sym.Session(**{f: _fresh(f"{name}.{f}.", sort) for f, sort in _SESSION.items()})
+
+
 def initial_world() -> World:
     """Both sides new: nothing granted, no message sent, the client's first life admitted."""
     zero, zero32, no = z3.IntVal(0), sym.counter(0), z3.BoolVal(False)
-    s = sym.Session(sym.S_IDLE, zero32, zero, zero, sym.NO_DECISION, zero32, zero)
+    zero16 = z3.BitVecVal(0, 16)
+    s = sym.Session(
+        sym.S_IDLE, zero32, zero, zero, sym.NO_DECISION, zero32, zero, zero16, zero32, zero32
+    )
     c = sym.Client(
         zero,
         zero,
@@ -165,7 +184,8 @@ def initial_world() -> World:
         zero32,
         zero,
         sym.IDLE,
-        z3.BitVecVal(0, 16),
+        zero16,
+        no,
     )
     return World(
         s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,

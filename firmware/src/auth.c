@@ -35,6 +35,11 @@ uint32_t canergy_auth_freshness(const struct canergy_msg *m, uint32_t last_tx,
     case CANERGY_JOIN: return m->nonce;
     case CANERGY_ADMIT: return (last_tx & 0xFFFF0000UL) | m->nonce;
     case CANERGY_TELEMETRY: return last_tx;
+    case CANERGY_DEBIT:
+        if ((m->flags & CANERGY_DEBIT_START) != 0U) {
+            return m->nonce; /* a resume, as a JOIN */
+        }
+        return extend16(m->seq, return_seq); /* a draw is numbered as a return */
     case CANERGY_RETURN:
     case CANERGY_RETURN_ACK: return extend16(m->seq, return_seq);
     default: return extend16(m->tx, last_tx);

@@ -131,7 +131,7 @@ static int deliver(struct canergy_client *c, const struct canergy_msg *m, uint64
 
 static void test_a_node_from_blank_to_books(void)
 {
-    const struct canergy_client_config cfg = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U};
+    const struct canergy_client_config cfg = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, CANERGY_RULES_HARDENED};
     struct canergy_client c;
     struct canergy_out out;
     uint8_t nv[2U * CANERGY_NV_SLOT_SIZE];
@@ -217,7 +217,7 @@ static long polled_telemetry(struct canergy_node *n, uint64_t now, uint8_t *witn
 static void test_node_witness(void)
 {
     const struct canergy_node_config cfg = {
-        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U}, 1000000UL, 0U, CANERGY_KEEP_ALL};
+        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, CANERGY_RULES_HARDENED}, 1000000UL, 0U, CANERGY_KEEP_ALL};
     struct canergy_node n;
     struct canergy_out out;
     uint8_t nv[2U * CANERGY_NV_SLOT_SIZE] = {0};
@@ -735,7 +735,7 @@ static void test_auth_refusals(const uint8_t key[16])
 static void test_auth_node(const uint8_t key[16])
 {
     const struct canergy_node_config cfg = {
-        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U}, 1000000UL, 0U, CANERGY_KEEP_ALL};
+        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, CANERGY_RULES_HARDENED}, 1000000UL, 0U, CANERGY_KEEP_ALL};
     struct canergy_node n;
     struct canergy_auth node_auth;
     struct canergy_auth sup;
@@ -851,7 +851,7 @@ static void test_gateway(void)
     static struct canergy_gateway gw;
     static struct canergy_out out;
     static struct canergy_supervisor_out sup_out;
-    const struct canergy_client_config up = {CANERGY_DEFAULT_ID_BASE, 100000U, 100000U, 7U};
+    const struct canergy_client_config up = {CANERGY_DEFAULT_ID_BASE, 100000U, 100000U, 7U, CANERGY_RULES_HARDENED};
     const struct canergy_supervisor_config down = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U}};
     const uint8_t nodes[1] = {3U};
     (void)canergy_client_start(&gw.up, &up, NULL, 0U, 1U, 0U, &out);

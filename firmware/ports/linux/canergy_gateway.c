@@ -409,7 +409,8 @@ static void start(struct gateway_port *g, uint64_t now)
     const struct canergy_supervisor_config down = {
         o->id_base, {(uint32_t)o->response_timeout_us, o->retries}};
     const struct canergy_client_config up = {o->id_base, (uint32_t)(2U * o->up_response_timeout_us),
-                                             (uint32_t)(2U * o->up_response_timeout_us), o->node};
+                                             (uint32_t)(2U * o->up_response_timeout_us), o->node,
+                                             CANERGY_RULES_HARDENED};
     uint32_t best = 0U;
     const int newest = newest_slot(o->nv_path, image, &best);
     struct canergy_out out;

@@ -6,8 +6,11 @@ record carries the pending draw; a hardened client refuses a record holding one.
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from support import client_cases
 from support.c_binding import (
     ERR_AMOUNT,
@@ -22,8 +25,12 @@ from support.c_binding import (
     events_of,
     frames_of,
 )
+from support.c_session import same
 from support.cells import Case, params
 from support.mem_nv import MemNv, write_slot
+from test_c_session import sessions, timings, wire_near
+from test_hardened_supervisor import REFUSED as SUP_REFUSED
+from test_hardened_supervisor import STATES as SUP_STATES
 from test_witnessed import (
     CLIENT_CASES,
     CLIENT_IGNORED,
@@ -32,7 +39,13 @@ from test_witnessed import (
     DRAWING,
     FRESH,
     RESUMED,
+    S_OPEN,
+    ST,
+    SUP_CASES,
+    SUP_EVENTS,
+    SUP_IGNORED,
     T,
+    resume,
 )
 
 from canergy.codec import Codec
@@ -45,7 +58,8 @@ from canergy.core.inputs import (
     ReturnTimeout,
     Spend,
 )
-from canergy.core.state import ClientState, Phase
+from canergy.core.state import ClientState, Phase, Session
+from canergy.core.timing import Timing
 from canergy.messages import Admit, Debit, ReturnAck
 
 CODEC = Codec()
@@ -179,3 +193,61 @@ def test_a_restored_older_record_spends_nothing_and_is_found_behind() -> None:
     restored.message(Admit(start.node, 0x99, start.last_tx & 0xFFFF, 2), 30)
     assert restored.state.phase is Phase.IDLE and restored.state.usable == 0
     assert restored.state.spent == start.spent
+
+
+# -- the supervisor's session: witnessed.SUPERVISOR -------------------------------------------
+
+
+@pytest.mark.parametrize("case", params(SUP_CASES))
+def test_session_cell(case: Case) -> None:
+    assert isinstance(case.start, Session)
+    same(case.start, ST, case.event, case.now, table=W.SUPERVISOR)
+
+
+@pytest.mark.parametrize("cell", sorted(SUP_IGNORED, key=str), ids=str)
+def test_session_ignored(cell: tuple[Phase, type]) -> None:
+    same(SUP_STATES[cell[0]], ST, SUP_EVENTS[cell[1]], 10**9, table=W.SUPERVISOR)
+
+
+@pytest.mark.parametrize("cell", sorted(SUP_REFUSED, key=str), ids=str)
+def test_session_refused(cell: tuple[Phase, type]) -> None:
+    same(SUP_STATES[cell[0]], ST, SUP_EVENTS[cell[1]], 0, table=W.SUPERVISOR)
+
+
+def test_the_hardened_session_ignores_a_debit() -> None:
+    """DEBIT is taken only with the session's rules set to witnessed."""
+    for event in (resume(4), Debit(3, 0, Debit.DRAW, 5, 2)):
+        same(S_OPEN, ST, event, 0)
+
+
+@st.composite
+def witnessed_sessions(draw: Any) -> Session:
+    """Records with a last RESUME answered near the session's count, as the rules leave it
+    (Python's numbers are unbounded, C's modulo 2**32: they agree within 2**15 of each other)."""
+    s = draw(sessions())
+    near = st.integers(-3, 2).map(lambda d: s.returns_credited + d)
+    far = st.sampled_from([-0x10000, 0x10000, 0x8000]).map(lambda d: s.returns_credited + d)
+    return replace(
+        s,
+        resume_nonce=draw(st.sampled_from([0, 9]) | st.integers(0, 0xFFFF)),
+        resume_from=draw(near | far),
+        resume_to=draw(st.just(s.returns_credited) | near),
+    )
+
+
+@settings(max_examples=400)
+@given(witnessed_sessions(), timings, st.data())
+def test_every_debit_cell_on_drawn_records(s: Session, t: Timing, data: st.DataObject) -> None:
+    """Draws and resumes near the session's counters (a repeat of the last RESUME answered
+    included) give in C the record, the frame, the budget, the resolution of witnessed.py."""
+    seq = data.draw(wire_near(s.returns_credited))
+    amount = data.draw(st.sampled_from([0, 1, 0xFFFF]) | st.integers(0, 0xFFFF))
+    nonce = data.draw(st.just(s.resume_nonce) | st.integers(0, 0xFFFF))
+    repeat = (s.resume_from & 0xFFFF) if data.draw(st.booleans()) else seq
+    for m in (
+        Debit(s.node, 0, Debit.DRAW, seq, max(amount, 1)),
+        Debit(s.node, nonce, Debit.START, seq, amount),
+        Debit(s.node, nonce, Debit.START | Debit.DRAW, seq, amount),
+        Debit(s.node, s.resume_nonce, Debit.START, repeat, amount),
+    ):
+        same(s, t, m, data.draw(st.integers(0, 10**9)), table=W.SUPERVISOR)

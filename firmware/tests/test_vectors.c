@@ -315,7 +315,7 @@ static void test_node_witness(void)
  * credited once, an admission lifting both counters. */
 static void test_session(void)
 {
-    const struct canergy_session_timing t = {50000U, 1U};
+    const struct canergy_session_timing t = {50000U, 1U, CANERGY_RULES_HARDENED};
     struct canergy_session s;
     struct canergy_session_step step;
     struct canergy_msg m = msg(CANERGY_ACK, 5U);
@@ -387,14 +387,14 @@ static void test_session(void)
               step.msg.type == CANERGY_ADMIT && step.msg.nonce == 0xBEEFU &&
               step.msg.tx == 4U && step.msg.seq == 0xFFFFU,
           "JOIN: the open one written off, counters on one high half, ADMIT(n, 4, 0xFFFF)");
-    check(sizeof(struct canergy_session) <= 40U, "session record within 40 bytes");
+    check(sizeof(struct canergy_session) <= 56U, "session record within 56 bytes");
 }
 
 /* The supervisor around the sessions: Us guards a grant, frames go through the codec, a
  * change of the record asks to persist first. */
 static void test_supervisor(void)
 {
-    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U}};
+    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U, CANERGY_RULES_HARDENED}};
     const uint8_t nodes[2] = {3U, 5U};
     const uint8_t unsorted[2] = {5U, 3U};
     static struct canergy_supervisor sup;
@@ -449,7 +449,7 @@ static void test_supervisor(void)
               0 && back.usable_uj == 7U && slot == 1U,
           "blank NV: a new supervisor, slot 0 first");
     const size_t used = canergy_supervisor_image(&sup, 1U, nv);
-    check(used == 40U + 32U * 2U, "the image: 40 bytes and 32 per session");
+    check(used == 40U + 44U * 2U, "the image: 40 bytes and 44 per session");
     sup.usable_uj += 1000U;
     (void)canergy_supervisor_image(&sup, 2U, &nv[CANERGY_SUPERVISOR_SLOT_SIZE]);
     check(canergy_supervisor_load(&back, &cfg, nodes, 2U, 7U, nv, sizeof nv, &counter, &slot) ==
@@ -814,7 +814,7 @@ static void test_supervisor_answers(void)
 {
     static struct canergy_supervisor sup;
     static struct canergy_supervisor_out out;
-    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U}};
+    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U, CANERGY_RULES_HARDENED}};
     const uint8_t nodes[1] = {3U};
     struct canergy_msg m;
     check(canergy_supervisor_init(&sup, &cfg, nodes, 1U, 5000U) == CANERGY_OK &&
@@ -852,7 +852,7 @@ static void test_gateway(void)
     static struct canergy_out out;
     static struct canergy_supervisor_out sup_out;
     const struct canergy_client_config up = {CANERGY_DEFAULT_ID_BASE, 100000U, 100000U, 7U, CANERGY_RULES_HARDENED};
-    const struct canergy_supervisor_config down = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U}};
+    const struct canergy_supervisor_config down = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U, CANERGY_RULES_HARDENED}};
     const uint8_t nodes[1] = {3U};
     (void)canergy_client_start(&gw.up, &up, NULL, 0U, 1U, 0U, &out);
     gw.up.phase = CANERGY_IDLE; /* admitted (tests reach in) */

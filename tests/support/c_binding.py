@@ -141,6 +141,9 @@ class CSession(Structure):
         ("tx", c_uint32),
         ("returns_credited", c_uint32),
         ("reserved_uj", c_uint32),
+        ("resume_from", c_uint32),
+        ("resume_to", c_uint32),
+        ("resume_nonce", c_uint16),
         ("node", c_uint8),
         ("phase", c_uint8),
         ("decision", c_uint8),
@@ -155,16 +158,17 @@ class SessionStep(Structure):
         ("send", c_uint8),
         ("resolved", c_uint8),
         ("acknowledged", c_uint8),
+        ("admitted", c_uint8),
     ]
 
 
 class SessionTiming(Structure):
-    _fields_ = [("response_timeout_us", c_uint32), ("retries", c_uint8)]
+    _fields_ = [("response_timeout_us", c_uint32), ("retries", c_uint8), ("rules", c_uint8)]
 
 
 SUPERVISOR_NODES = 16
 """CANERGY_SUPERVISOR_NODES as the library is built."""
-SUPERVISOR_SLOT = 40 + 32 * SUPERVISOR_NODES
+SUPERVISOR_SLOT = 40 + 44 * SUPERVISOR_NODES
 """CANERGY_SUPERVISOR_SLOT_SIZE: one of the two slots of the supervisor's NV image."""
 
 

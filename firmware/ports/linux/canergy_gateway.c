@@ -75,6 +75,7 @@ struct gw_options {
     uint8_t count;
     uint8_t node;
     uint8_t retries;
+    uint8_t rules; /* below: enum canergy_rules */
     int keep_all;
     int has_target;
 };
@@ -175,9 +176,12 @@ static void usage(void)
                  "       [--telemetry-period T] [--response-timeout T]\n"
                  "       [--upstream-response-timeout T] [--retries N] [--status-period T]\n"
                  "       [--stop-timeout T] [--return-hold T] [--id-base ID]\n"
+                 "       [--rules hardened|witnessed]\n"
                  "A canergy gateway on Linux SocketCAN (the C library's gateway rules): node\n"
                  "--node above (--upstream-channel), supervisor of --nodes below (-c); flags\n"
-                 "as canergy gateway's. Energies 0.5J, 250mJ; durations 50ms, 1.5s.\n",
+                 "as canergy gateway's. Energies 0.5J, 250mJ; durations 50ms, 1.5s.\n"
+                 "--rules witnessed: the nodes below draw through DEBIT and RESUME at\n"
+                 "every start (the supervisor side below; above, the hardened rules).\n",
                  PROG);
     exit(0);
 }
@@ -237,6 +241,8 @@ static void parse_args(int argc, char **argv, struct gw_options *o)
             o->response_timeout_us = port_parse_duration(flag, v, UINT32_MAX / 2U);
         } else if (strcmp(flag, "--upstream-response-timeout") == 0) {
             o->up_response_timeout_us = port_parse_duration(flag, v, UINT32_MAX / 4U);
+        } else if (strcmp(flag, "--rules") == 0) {
+            o->rules = port_parse_rules(flag, v);
         } else if (strcmp(flag, "--retries") == 0) {
             o->retries = (uint8_t)port_parse_int(flag, v, 0U, 255U);
         } else if (strcmp(flag, "--status-period") == 0) {
@@ -373,7 +379,7 @@ static void check_nv(const struct gw_options *o)
     }
     static struct canergy_supervisor down;
     const struct canergy_supervisor_config cfg = {
-        o->id_base, {(uint32_t)o->response_timeout_us, o->retries}};
+        o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules}};
     uint32_t counter = 0U;
     uint8_t slot = 0U;
     if (canergy_supervisor_load(&down, &cfg, o->nodes, o->count, 0U,
@@ -407,7 +413,7 @@ static void start(struct gateway_port *g, uint64_t now)
         exit(EXIT_USAGE);
     }
     const struct canergy_supervisor_config down = {
-        o->id_base, {(uint32_t)o->response_timeout_us, o->retries}};
+        o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules}};
     const struct canergy_client_config up = {o->id_base, (uint32_t)(2U * o->up_response_timeout_us),
                                              (uint32_t)(2U * o->up_response_timeout_us), o->node,
                                              CANERGY_RULES_HARDENED};

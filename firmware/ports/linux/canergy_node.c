@@ -157,7 +157,8 @@ int main(int argc, char **argv)
         .client = {.id_base = p.opt.id_base,
                    .command_timeout_us = (uint32_t)(2U * p.opt.response_timeout_us),
                    .return_retry_us = (uint32_t)(2U * p.opt.response_timeout_us),
-                   .node = (uint8_t)p.opt.node},
+                   .node = (uint8_t)p.opt.node,
+                   .rules = p.opt.rules},
         .telemetry_period_us = (uint32_t)p.opt.telemetry_period_us,
         .low_water_uj = p.opt.low_water_uj > UINT32_MAX ? UINT32_MAX
                                                         : (uint32_t)p.opt.low_water_uj,

@@ -65,9 +65,10 @@ def missing() -> str | None:
     return _MISSING
 
 
-_SESSION = struct.Struct("<QQQIIIBBBB")
-"""struct canergy_session: delivered, returned, deadline, tx, returns credited, reserved, node,
-phase, decision, tries (checked against the compiled layout below)."""
+_SESSION = struct.Struct("<QQQIIIIIHBBBB")
+"""struct canergy_session: delivered, returned, deadline, tx, returns credited, reserved, the last
+RESUME answered (from, to, nonce: the witnessed rules' fields, which the hardened rules leave at
+0), node, phase, decision, tries (checked against the compiled layout below)."""
 _EVENT = struct.Struct("<IIBBB")
 """struct canergy_supervisor_event: tx, amount, node, resolved, flags."""
 _FRAME = struct.Struct("<IB8s")
@@ -79,8 +80,9 @@ attribute lookups through cffi)."""
 
 _LAYOUT = {
     "struct canergy_session": {"delivered_uj": 0, "returned_uj": 8, "deadline": 16, "tx": 24,
-                               "returns_credited": 28, "reserved_uj": 32, "node": 36,
-                               "phase": 37, "decision": 38, "tries": 39},
+                               "returns_credited": 28, "reserved_uj": 32, "resume_from": 36,
+                               "resume_to": 40, "resume_nonce": 44, "node": 46, "phase": 47,
+                               "decision": 48, "tries": 49},
     "struct canergy_supervisor_event": {"tx": 0, "amount_uj": 4, "node": 8, "resolved": 9,
                                         "flags": 10},
     "struct canergy_frame": {"id": 0, "dlc": 4, "data": 5},
@@ -229,14 +231,16 @@ class CompiledSupervisor:
             c.phase, c.tx, c.reserved_uj = int(s.phase), s.tx, s.reserved
             c.delivered_uj, c.returned_uj, c.decision = s.delivered, s.returned, int(s.decision)
             c.returns_credited, c.tries = s.returns_credited, s.tries
+            c.resume_from, c.resume_to = s.resume_from, s.resume_to
+            c.resume_nonce = s.resume_nonce
             c.deadline = lib.CANERGY_NEVER if s.deadline is None else s.deadline
             self._sessions[i] = self._read(i)
         self._timer_known = False
 
     def _read(self, i: int) -> Session:
-        delivered, returned, deadline, tx, credited, reserved, node, phase, decision, tries = (
-            _SESSION.unpack_from(self._sup_bytes, _SESSIONS_AT + i * _SESSION_SIZE)
-        )
+        fields = _SESSION.unpack_from(self._sup_bytes, _SESSIONS_AT + i * _SESSION_SIZE)
+        delivered, returned, deadline, tx, credited, reserved = fields[:6]
+        resume_from, resume_to, resume_nonce, node, phase, decision, tries = fields[6:]
         return Session(
             node,
             _PHASES[phase],
@@ -248,6 +252,9 @@ class CompiledSupervisor:
             returned,
             tries,
             None if deadline == _NEVER else deadline,
+            resume_nonce,
+            resume_from,
+            resume_to,
         )
 
     # -- requests --------------------------------------------------------------------------

@@ -5,7 +5,12 @@ record carries the pending draw; a hardened client refuses a record holding one.
 
 from __future__ import annotations
 
+import ctypes
+import struct
+import subprocess
+import zlib
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -17,13 +22,27 @@ from support.c_binding import (
     ERR_PHASE,
     EV_ADMITTED,
     EV_RELEASED,
+    FIRMWARE,
+    FLAG_CREDITED_UNKNOWN,
     FLAG_PENDING_DRAW,
     OK,
+    PHASES,
+    RULES,
     CClient,
+    ClientConfig,
+    CNodeState,
+    CSupervisor,
+    NodeConfig,
     Out,
+    SessionTiming,
+    SupervisorConfig,
+    SupervisorOut,
     c_view,
     events_of,
     frames_of,
+    library,
+    make,
+    rx,
 )
 from support.c_session import same
 from support.cells import Case, params
@@ -48,7 +67,7 @@ from test_witnessed import (
     resume,
 )
 
-from canergy.codec import Codec
+from canergy.codec import DEFAULT_ID_BASE, Codec
 from canergy.core import witnessed as W
 from canergy.core.inputs import (
     BooksLost,
@@ -61,6 +80,7 @@ from canergy.core.inputs import (
 from canergy.core.state import ClientState, Phase, Session
 from canergy.core.timing import Timing
 from canergy.messages import Admit, Debit, ReturnAck
+from firmware_model.nvstore import pack_record
 
 CODEC = Codec()
 TABLE = W.CLIENT
@@ -251,3 +271,189 @@ def test_every_debit_cell_on_drawn_records(s: Session, t: Timing, data: st.DataO
         Debit(s.node, s.resume_nonce, Debit.START, repeat, amount),
     ):
         same(s, t, m, data.draw(st.integers(0, 10**9)), table=W.SUPERVISOR)
+
+
+# -- issue 40, item 6: a C node restored from an older NV copy ---------------------------------
+
+J = 1_000_000
+NODE_ID = 2
+SCENARIO = Timing(
+    response_timeout_us=10_000, retries=2, command_timeout_us=20_000, return_retry_us=20_000
+)
+
+
+class _Node:
+    """The C node as its port drives it (canergy_node_*), NV image kept in bytes."""
+
+    def __init__(self, rules: str, raw: bytearray, nonce: int, now: int) -> None:
+        self.lib = library()
+        self.raw = raw
+        cfg = NodeConfig(
+            ClientConfig(
+                DEFAULT_ID_BASE,
+                SCENARIO.command_timeout_us,
+                SCENARIO.return_retry_us,
+                NODE_ID,
+                RULES[rules],
+            ),
+            1_000_000,
+            0,
+            0xFFFF_FFFF,  # keep all: no return policy
+        )
+        self.n, self.out, self.used = CNodeState(), Out(), 0
+        buf = ctypes.create_string_buffer(bytes(raw), max(len(raw), 1))
+        self.lib.canergy_node_start(self.n, ctypes.byref(cfg), buf, len(raw), nonce, now, self.out)
+        self.sent = self._done()
+
+    def _done(self) -> list[tuple[int, bytes]]:
+        if self.out.persist:
+            write_slot(self.raw, self.out.nv_slot, bytes(self.out.nv_image))
+        return [f for f in self.out.sent() if f[0] >> 8 & 0xF != 0xD]  # no TELEMETRY
+
+    def frame(self, arbitration_id: int, data: bytes, now: int) -> list[tuple[int, bytes]]:
+        frame, buf = rx(arbitration_id, data)
+        self.lib.canergy_node_on_frame(self.n, ctypes.byref(frame), now, self.out)
+        del buf
+        return self._done()
+
+    def tick(self, wanted: int, now: int) -> list[tuple[int, bytes]]:
+        self.used += self.lib.canergy_node_draw(self.n, wanted, now, self.out)
+        return self._done()
+
+    def held(self) -> int:
+        """What the node holds for its actuator: usable, released, a draw still pending."""
+        rec = self.n.client.rec
+        pending = rec.return_pending_uj if rec.flags & FLAG_PENDING_DRAW else 0
+        return rec.usable_uj + self.n.released_uj + pending
+
+
+class _CSup:
+    """The C supervisor (canergy_supervisor_*) for the node, its rules set by timing.rules."""
+
+    def __init__(self, rules: str, initial: int) -> None:
+        self.lib = library()
+        self.s, self.out = CSupervisor(), SupervisorOut()
+        timing = SessionTiming(SCENARIO.response_timeout_us, SCENARIO.retries, RULES[rules])
+        cfg = SupervisorConfig(DEFAULT_ID_BASE, timing)
+        nodes = (ctypes.c_uint8 * 1)(NODE_ID)
+        assert self.lib.canergy_supervisor_init(self.s, ctypes.byref(cfg), nodes, 1, initial) == OK
+
+    def _sent(self) -> list[tuple[int, bytes]]:
+        frames = list(self.out.frames)[: self.out.frame_count]
+        return [(f.id, bytes(f.data[: f.dlc])) for f in frames]
+
+    def grant(self, amount: int, now: int) -> list[tuple[int, bytes]]:
+        assert self.lib.canergy_supervisor_begin(self.s, NODE_ID, amount, now, self.out) == OK
+        return self._sent()
+
+    def frame(self, arbitration_id: int, data: bytes, now: int) -> list[tuple[int, bytes]]:
+        frame, buf = rx(arbitration_id, data)
+        self.lib.canergy_supervisor_on_frame(self.s, ctypes.byref(frame), now, self.out)
+        del buf
+        sent = self._sent()
+        for e in list(self.out.events)[: self.out.event_count]:
+            if e.flags & 0x01:  # acknowledged: commit it
+                self.lib.canergy_supervisor_decide(self.s, NODE_ID, True, now, self.out)
+                sent += self._sent()
+        return sent
+
+    def taken(self) -> int:
+        """What the books count as the node's: delivered minus returned."""
+        s = self.s.sessions[0]
+        return int(s.delivered_uj - s.returned_uj)
+
+
+def _exchange(sent: list[tuple[int, bytes]], node: _Node, sup: _CSup, now: int) -> None:
+    queue = list(sent)
+    while queue:
+        arbitration_id, data = queue.pop(0)
+        to_node = not arbitration_id >> 8 & 0x8
+        queue += (
+            node.frame(arbitration_id, data, now)
+            if to_node
+            else sup.frame(arbitration_id, data, now)
+        )
+
+
+@pytest.mark.parametrize("rules", ["hardened", "witnessed"])
+def test_a_c_node_restored_from_an_older_copy_creates_no_energy(rules: str) -> None:
+    """2 J granted by the C supervisor, the C node's actuator uses 1.5 J, its NV is put back to
+    the copy written after the grant and it starts from it: under the hardened rules the node
+    uses the 1.5 J again (+1.5 J); under the witnessed rules its RESUME is found behind and
+    everything the actuator used, plus what the node still holds, is at most what the books
+    count as taken: 0 J created."""
+    raw = bytearray()
+    node, sup = _Node(rules, raw, 0x1111, 0), _CSup(rules, 2 * J)
+    _exchange(node.sent, node, sup, 0)  # the JOIN of a node without books
+    _exchange(sup.grant(2 * J, 1), node, sup, 1)
+    assert node.held() == 2 * J
+    copy = bytearray(raw)  # the NV image right after the commit
+    now = 10
+    while node.used < 1_500_000:
+        _exchange(node.tick(500_000, now), node, sup, now)
+        now += 10
+    assert node.used == 1_500_000
+    before = node.used
+    node = _Node(rules, copy, 0x2222, now)  # restored from the older copy, started again
+    node.used = before
+    _exchange(node.sent, node, sup, now)
+    for _ in range(8):
+        now += 10
+        _exchange(node.tick(500_000, now), node, sup, now)
+    created = node.used + node.held() - sup.taken()
+    if rules == "hardened":
+        assert created == 1_500_000
+    else:
+        assert node.n.client.phase == PHASES[Phase.IDLE]
+        assert node.n.client.rec.flags & FLAG_CREDITED_UNKNOWN  # found behind: admitted afresh
+        assert created <= 0 and node.used == 1_500_000
+
+
+# -- the Linux ports --------------------------------------------------------------------------
+
+
+def _port(target: str) -> Path:
+    make(target)
+    return FIRMWARE / target
+
+
+@pytest.mark.parametrize("binary", ["canergy-node", "canergy-gateway"])
+def test_the_ports_take_rules_and_refuse_others(binary: str, tmp_path: Path) -> None:
+    port = _port(f"build/{binary}")
+    assert (
+        "--rules hardened|witnessed"
+        in subprocess.run(
+            [str(port), "--help"], capture_output=True, text=True, timeout=10, check=True
+        ).stdout
+    )
+    run = subprocess.run(
+        [str(port), "--rules", "trusting", "--node", "1"],
+        capture_output=True,
+        text=True,
+        timeout=10,
+        cwd=tmp_path,
+    )
+    assert run.returncode == 2
+    assert run.stderr == (
+        f"{binary}: error: argument --rules: invalid choice: 'trusting' "
+        "(choose from 'hardened', 'witnessed')\n"
+    )
+
+
+def test_the_c_gateway_refuses_a_file_of_the_older_supervisor_record(tmp_path: Path) -> None:
+    """Its supervisor record grew (version 3: the last RESUME answered); a file written before
+    is refused by name before the buses open, never taken as a blank file."""
+    gateway = _port("build/canergy-gateway")
+    head = struct.pack("<IBBBBIQQQ", 0x534E5243, 2, 1, 0, 0, 1, 0, 0, 0)
+    session = struct.pack("<BBBBIIIQQ", 2, 0, 0, 0, 9, 4, 0, 0, 0)
+    sup = (head + session + struct.pack("<I", zlib.crc32(head + session))).ljust(40 + 32 * 127)
+    body = struct.pack("<II", 0x47524E43, 1) + pack_record(ClientState(1, last_tx=5)) + sup
+    (tmp_path / "g.nv").write_bytes(body + struct.pack("<I", zlib.crc32(body)))
+    argv = [str(gateway), "--node", "1", "--nodes", "2", "-c", "nosuchcan0"]
+    argv += ["--upstream-channel", "nosuchcan1", "--nv", "g.nv", "--rules", "witnessed"]
+    run = subprocess.run(argv, capture_output=True, text=True, timeout=10, cwd=tmp_path)
+    assert run.returncode == 2
+    assert run.stderr == (
+        "canergy-gateway: error: --nv g.nv: written by an older canergy-gateway (supervisor "
+        "record version 2); this one reads version 3 only\n"
+    )

@@ -141,6 +141,8 @@ static const struct entry offsets[] = {
     FIELD(canergy_node, witness),
     FIELD(canergy_node, joined),
     FIELD(canergy_node, join_nonce),
+    FIELD(canergy_node, witness_reported),
+    FIELD(canergy_node, released_uj),
     FIELD(canergy_aes128, rk),
     FIELD(canergy_cmac, aes),
     FIELD(canergy_cmac, k1),

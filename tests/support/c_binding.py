@@ -265,6 +265,8 @@ class CNodeState(Structure):
         ("witness", c_uint8),
         ("joined", c_bool),
         ("join_nonce", c_uint16),
+        ("witness_reported", c_uint8),
+        ("released_uj", c_uint32),
     ]
 
 

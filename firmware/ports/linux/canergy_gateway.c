@@ -53,6 +53,8 @@ const char *const port_prog = "canergy-gateway";
 #define GW_MAGIC 0x47524E43UL /* "CNRG" little-endian */
 #define GW_HEADER 8U           /* magic, counter */
 #define GW_SLOT (GW_HEADER + CANERGY_NV_RECORD_SIZE + CANERGY_SUPERVISOR_SLOT_SIZE + 4U)
+/* The slot before the supervisor record's version 3 (32 bytes per node): refused by name. */
+#define GW_SLOT_V2 (GW_HEADER + CANERGY_NV_RECORD_SIZE + 40U + 32U * CANERGY_SUPERVISOR_NODES + 4U)
 #define MJ 1000U
 
 struct gw_options {
@@ -349,6 +351,21 @@ static int newest_slot(const char *path, const uint8_t *image, uint32_t *best)
     return newest;
 }
 
+/* Exit 2 when image holds no slot of this layout but one of the layout before the witnessed
+ * rules' supervisor record (version 2): never taken as a new, blank file. */
+static void refuse_older_layout(const char *path, const uint8_t *image)
+{
+    for (unsigned i = 0U; i < 2U; i++) {
+        const uint8_t *old = &image[i * GW_SLOT_V2];
+        if (get32(old) == GW_MAGIC &&
+            get32(&old[GW_SLOT_V2 - 4U]) == canergy_crc32(0U, old, GW_SLOT_V2 - 4U)) {
+            port_usage_error("--nv %s: written by an older canergy-gateway (supervisor record "
+                             "version 2); this one reads version 3 only",
+                             path);
+        }
+    }
+}
+
 static void refuse_below_beyond(const char *path)
 {
     port_usage_error("--nv %s: downstream: a node's tx or returns_credited is beyond the bound "
@@ -375,6 +392,7 @@ static void check_nv(const struct gw_options *o)
     uint32_t best = 0U;
     const int newest = got > 0 ? newest_slot(o->nv_path, image, &best) : -1;
     if (newest < 0) {
+        refuse_older_layout(o->nv_path, image);
         return;
     }
     static struct canergy_supervisor down;

@@ -99,7 +99,11 @@ int canergy_node_start(struct canergy_node *n, const struct canergy_node_config 
     n->low_water_uj = cfg->low_water_uj;
     n->return_above_uj = cfg->return_above_uj;
     n->next_telemetry = now; /* announce the level at boot */
+#ifdef CANERGY_WITNESSED
     n->joined = canergy_client_joining(&n->client) || n->client.phase == CANERGY_RESUMING;
+#else
+    n->joined = canergy_client_joining(&n->client);
+#endif
     n->join_nonce = nonce;
     return result;
 }
@@ -112,10 +116,14 @@ int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame 
     }
     canergy_internal_out_clear(out);
     struct canergy_msg m;
+#ifdef CANERGY_WITNESSED
     const uint64_t spent = n->client.rec.spent_uj;
+#endif
     const int result = canergy_internal_frame(&n->client, frame, now, out, &m);
-    /* witnessed: an acknowledged DRAW is the actuator's now (spent grew by it) */
+#ifdef CANERGY_WITNESSED
+    /* an acknowledged DRAW is the actuator's now (spent grew by it) */
     n->released_uj += (uint32_t)(n->client.rec.spent_uj - spent);
+#endif
     /* Count what was meant for this node: foreign frames and other nodes' replies (seen
      * without acceptance filters) are no error of ours. */
     if (result != CANERGY_DECODE_OK && result != CANERGY_RX_OTHER_NODE &&
@@ -177,12 +185,16 @@ static void draw_ahead(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
     if (n->released_uj >= wanted_uj || !canergy_client_can_draw(&n->client)) {
         return;
     }
-    const uint64_t ahead = ((uint64_t)wanted_uj * CANERGY_DRAW_AHEAD + MJ - 1U) / MJ * MJ;
     uint32_t room = n->client.rec.usable_uj - n->client.rec.usable_uj % MJ;
     if (room > CANERGY_AMOUNT_MAX_MJ * MJ) {
         room = CANERGY_AMOUNT_MAX_MJ * MJ;
     }
-    const uint32_t chunk = ahead < room ? (uint32_t)ahead : room;
+    uint32_t chunk = room; /* 32-bit only: no 64-bit division linked in */
+    if (wanted_uj < room / CANERGY_DRAW_AHEAD) {
+        const uint32_t ahead = wanted_uj * CANERGY_DRAW_AHEAD; /* below room: no overflow */
+        chunk = (uint32_t)(ahead + (MJ - ahead % MJ) % MJ); /* up to whole mJ */
+        chunk = chunk < room ? chunk : room;
+    }
     if (chunk != 0U) {
         (void)canergy_internal_draw(&n->client, chunk, now, out);
     }

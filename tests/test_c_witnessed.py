@@ -28,6 +28,7 @@ from support.c_binding import (
     OK,
     PHASES,
     RULES,
+    SLOT,
     CClient,
     ClientConfig,
     CNodeState,
@@ -47,6 +48,9 @@ from support.c_binding import (
 from support.c_session import same
 from support.cells import Case, params
 from support.mem_nv import MemNv, write_slot
+from support.side_by_side import SETTINGS as SIDE_SETTINGS
+from support.side_by_side import TIMING as SIDE_TIMING
+from support.side_by_side import SideBySide
 from test_c_session import sessions, timings, wire_near
 from test_hardened_supervisor import REFUSED as SUP_REFUSED
 from test_hardened_supervisor import STATES as SUP_STATES
@@ -68,6 +72,7 @@ from test_witnessed import (
 )
 
 from canergy.codec import DEFAULT_ID_BASE, Codec
+from canergy.core import Client, Supervisor
 from canergy.core import witnessed as W
 from canergy.core.inputs import (
     BooksLost,
@@ -77,9 +82,9 @@ from canergy.core.inputs import (
     ReturnTimeout,
     Spend,
 )
-from canergy.core.state import ClientState, Phase, Session
+from canergy.core.state import ClientState, Phase, Session, SupervisorState
 from canergy.core.timing import Timing
-from canergy.messages import Admit, Debit, ReturnAck
+from canergy.messages import COUNTER_END, Admit, Debit, ReturnAck
 from firmware_model.nvstore import pack_record
 
 CODEC = Codec()
@@ -457,3 +462,77 @@ def test_the_c_gateway_refuses_a_file_of_the_older_supervisor_record(tmp_path: P
         "canergy-gateway: error: --nv g.nv: written by an older canergy-gateway (supervisor "
         "record version 2); this one reads version 3 only\n"
     )
+
+
+# -- side by side: the hypothesis machine of support.side_by_side, under the witnessed rules ----
+
+
+class WitnessedMemNv(MemNv):
+    """firmware_model's store with the witnessed record: flag bit 1 of the record's flags byte
+    (what the C client writes) says the pending debit is a draw."""
+
+    FLAGS_AT = 6 + 29  # slot header (magic, counter), then the record's flags byte
+
+    def save(self, c: ClientState) -> None:
+        super().save(c)
+        if c.pending_draw:
+            at = self._newest_slot * SLOT
+            slot = bytearray(self.raw[at : at + SLOT])
+            slot[self.FLAGS_AT] |= FLAG_PENDING_DRAW
+            slot[SLOT - 4 :] = struct.pack("<I", zlib.crc32(bytes(slot[: SLOT - 4])))
+            self.raw[at : at + SLOT] = slot
+
+    def load(self) -> ClientState | None:
+        state = super().load()
+        if state is None:
+            return None
+        flags = self.raw[self._newest_slot * SLOT + self.FLAGS_AT]
+        return replace(state, pending_draw=bool(flags & FLAG_PENDING_DRAW))
+
+
+class WitnessedSideBySide(SideBySide):
+    """The Python witnessed client and supervisor and the C client with rules witnessed: every
+    start RESUMEs, the actuator draws through DEBIT; same frames, persists, NV bytes, state."""
+
+    def _new_supervisor(self, state: SupervisorState) -> Supervisor:
+        return Supervisor([1], state.initial, timing=SIDE_TIMING, state=state, variant="witnessed")
+
+    def _new_client(self) -> CClient:
+        return CClient(1, timing=SIDE_TIMING, lib=library(), rules="witnessed")
+
+    def _store(self, raw: bytearray) -> MemNv:
+        return WitnessedMemNv(raw)
+
+    def _boot(self, nonce: int) -> None:
+        self.py_store = self._store(self.py_raw)
+        record = self.py_store.load()
+        self.py = Client(1, timing=SIDE_TIMING, state=record or ClientState(1), variant="witnessed")
+        if record is not None:
+            actions = self.py.power_loss(self.now, nonce=nonce)
+        else:
+            self.py.power_loss(self.now)
+            actions = self.py.books_lost(nonce, self.now)
+        fallbacks = self.c.start(bytes(self.c_raw), nonce, self.now)
+        assert fallbacks == self.py_store.stats.fallbacks, "NV load differs"
+        self._carry_out(actions, self.c.out)
+
+    def _py_spend(self, amount: int) -> list[Any]:
+        # Client.spend passes now=0 (the draw's re-send deadline then counts from 0): the rule
+        # itself is stepped here at the machine's time, as the C draw is.
+        return self.py._step(Spend(amount), self.now)
+
+    def _c_spend(self, amount: int) -> int:
+        return self.c.do_draw(amount, self.now)
+
+
+TestWitnessedSideBySide = WitnessedSideBySide.TestCase
+TestWitnessedSideBySide.settings = SIDE_SETTINGS
+
+
+@pytest.mark.parametrize("seq", [0x12344, COUNTER_END - 4])
+@pytest.mark.parametrize("ahead", [1, 2, 0x7FFF])
+def test_an_admit_far_from_zero_confirms_or_finds_behind_alike(seq: int, ahead: int) -> None:
+    """Q counted from the node's q (not from the blank books a behind node gets)."""
+    start = replace(RESUMED, return_seq=seq, last_tx=0x2FFF0)
+    admit = Admit(start.node, start.nonce, 0x0005, (seq + ahead) & 0xFFFF)
+    assert_same_step(start, admit, 500)

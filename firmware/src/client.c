@@ -296,6 +296,7 @@ static void on_confirm(struct canergy_client *c, const struct canergy_msg *m,
     if (d < 1) {
         return;
     }
+    const uint32_t q = c->rec.return_seq + (uint32_t)d; /* Q: the supervisor's count */
     if (d == 1) {
         const int32_t closed = serial16(m->tx, c->rec.last_tx);
         if (closed > 0) { /* resolved by the supervisor: never again by this record */
@@ -312,7 +313,7 @@ static void on_confirm(struct canergy_client *c, const struct canergy_msg *m,
         c->rec.outcome = CANERGY_OUTCOME_SETTLED;
         c->rec.flags = CANERGY_RECORD_CREDITED_UNKNOWN;
     }
-    c->rec.return_seq += (uint32_t)d;
+    c->rec.return_seq = q;
     c->nonce = 0U;
     c->return_deadline = CANERGY_NEVER;
     drop_hold(c);

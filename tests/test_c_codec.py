@@ -44,8 +44,7 @@ ALL_MESSAGES = (
         Debit,
         st.integers(1, 127),
         st.sampled_from([0, 1, 0xFFFF]) | st.integers(0, 0xFFFF),
-        st.sampled_from([Debit.DRAW, Debit.START, Debit.START | Debit.DRAW])
-        | st.integers(0, 0xFF),
+        st.sampled_from([Debit.DRAW, Debit.START, Debit.START | Debit.DRAW]) | st.integers(0, 0xFF),
         st.integers(0, 0xFFFF),
         st.sampled_from([0, 1, 0xFFFF]) | st.integers(0, 0xFFFF),
     )

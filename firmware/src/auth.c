@@ -352,8 +352,9 @@ int canergy_auth_node_frame(struct canergy_auth *a, struct canergy_node *n,
         return result;
     }
     const struct canergy_rx_frame rx = {plain.id, plain.data, plain.dlc, true, false};
+    const bool joining = canergy_client_joining(&n->client); /* not a witnessed RESUME's ADMIT */
     const int taken = canergy_node_on_frame(n, &rx, now, out);
-    if (taken == CANERGY_DECODE_OK && (out->events & CANERGY_EV_ADMITTED) != 0U) {
+    if (joining && taken == CANERGY_DECODE_OK && (out->events & CANERGY_EV_ADMITTED) != 0U) {
         /* the full counters: the ADMIT's FV carries their high half (before out->persist) */
         const uint32_t high = a->admit_fv & 0xFFFF0000UL;
         n->client.rec.last_tx = high | (n->client.rec.last_tx & 0xFFFFU);

@@ -58,7 +58,9 @@ static void record_event(const struct canergy_session *s, const struct canergy_s
     const bool debit = in != NULL && (in->type == CANERGY_RETURN || in->type == CANERGY_DEBIT);
     if (debit && step->credit_uj > 0) { /* a RETURN, or one pending at a RESUME */
         e->flags |= CANERGY_SUP_RETURN_CREDITED;
-        e->amount_uj = (uint32_t)step->credit_uj;
+        if (step->resolved == CANERGY_RESOLVED_NONE) { /* else the session's returned tells */
+            e->amount_uj = (uint32_t)step->credit_uj;
+        }
     }
     if (step->admitted != 0U) { /* a JOIN, or a RESUME found behind */
         e->flags |= CANERGY_SUP_ADMITTED;

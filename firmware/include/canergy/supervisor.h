@@ -52,7 +52,9 @@ struct canergy_supervisor {
 
 struct canergy_supervisor_event {
     uint32_t tx;        /* the transaction acknowledged or resolved (before an admission's lift) */
-    uint32_t amount_uj; /* resolved: its Ts; a RETURN credited: the amount */
+    uint32_t amount_uj; /* resolved: its Ts; else a RETURN credited: the amount (a witnessed
+                         * RESUME that does both: its Ts; the session's returned_uj grew by
+                         * the credit) */
     uint8_t node;
     uint8_t resolved;   /* enum canergy_resolution */
     uint8_t flags;      /* CANERGY_SUP_* */

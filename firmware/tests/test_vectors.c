@@ -313,6 +313,68 @@ static void test_node_witness(void)
 
 /* One session's life (the Python table's answers): a commit, an abort, a write-off, returns
  * credited once, an admission lifting both counters. */
+#ifdef CANERGY_WITNESSED
+/* The client's one frame (a DEBIT) into the session, the session's answer back: the answer. */
+static struct canergy_msg to_session(struct canergy_session *s, const struct canergy_out *out)
+{
+    const struct canergy_session_timing t = {50000U, 1U, CANERGY_RULES_WITNESSED};
+    struct canergy_msg m;
+    struct canergy_session_step step;
+    const struct canergy_rx_frame rx = {out->frames[0].id, out->frames[0].data,
+                                        out->frames[0].dlc, true, false};
+    memset(&step, 0, sizeof step);
+    if (out->frame_count == 1U &&
+        canergy_decode(CANERGY_DEFAULT_ID_BASE, &rx, CANERGY_TO_SUPERVISOR, &m) ==
+            CANERGY_DECODE_OK) {
+        canergy_session_on_msg(s, &t, &m, 0U, &step);
+    }
+    return step.msg;
+}
+
+/* Issue 40, item 6 in C alone: 2 J on the books, 1.5 J drawn and acknowledged, the record put
+ * back to the copy from before the draw: found behind, nothing left to draw. */
+static void test_witnessed_older_copy(void)
+{
+    const struct canergy_client_config cfg = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U,
+                                              CANERGY_RULES_WITNESSED};
+    struct canergy_record rec;
+    memset(&rec, 0, sizeof rec);
+    rec.usable_uj = 2000000UL;
+    rec.outcome = CANERGY_OUTCOME_SETTLED;
+    uint8_t packed[CANERGY_NV_RECORD_SIZE];
+    canergy_record_pack(&rec, packed);
+    uint8_t copy[CANERGY_NV_SLOT_SIZE];
+    canergy_nv_slot_encode(1U, packed, sizeof packed, copy);
+    struct canergy_session s;
+    canergy_session_init(&s, 5U);
+    struct canergy_client c;
+    struct canergy_out out;
+
+    (void)canergy_client_start(&c, &cfg, copy, sizeof copy, 0x1111U, 0U, &out);
+    check(c.phase == CANERGY_RESUMING && out.frame_count == 1U &&
+              canergy_client_draw(&c, 1000U, 1U, &out) == CANERGY_ERR_PHASE,
+          "witnessed: a start RESUMEs and draws nothing before its ADMIT");
+    (void)canergy_client_start(&c, &cfg, copy, sizeof copy, 0x1111U, 0U, &out);
+    struct canergy_msg m = to_session(&s, &out);
+    check(deliver(&c, &m, 2U, &out) == CANERGY_DECODE_OK && c.phase == CANERGY_IDLE &&
+              c.rec.return_seq == 1U && c.rec.usable_uj == 2000000UL,
+          "witnessed: ADMIT(q + 1) confirms the books");
+    check(canergy_client_draw(&c, 1500000UL, 3U, &out) == CANERGY_OK && out.persist == 1U &&
+              c.rec.spent_uj == 0U,
+          "witnessed: a draw is persisted and sent; the actuator waits");
+    m = to_session(&s, &out);
+    check(deliver(&c, &m, 4U, &out) == CANERGY_DECODE_OK && c.rec.spent_uj == 1500000UL &&
+              (out.events & CANERGY_EV_RELEASED) != 0U && s.returns_credited == 2U,
+          "witnessed: its acknowledgement releases it (the session holds number 2)");
+    (void)canergy_client_start(&c, &cfg, copy, sizeof copy, 0x2222U, 5U, &out);
+    m = to_session(&s, &out);
+    check(deliver(&c, &m, 6U, &out) == CANERGY_DECODE_OK && c.phase == CANERGY_IDLE &&
+              c.rec.usable_uj == 0U && c.rec.return_seq == 3U &&
+              canergy_client_draw(&c, 1000U, 7U, &out) == CANERGY_ERR_AMOUNT,
+          "witnessed: the older copy is found behind and holds nothing to draw");
+}
+#endif
+
 static void test_session(void)
 {
     const struct canergy_session_timing t = {50000U, 1U, CANERGY_RULES_HARDENED};
@@ -888,6 +950,9 @@ int main(void)
     test_node_witness();
     test_budgets();
     test_session();
+#ifdef CANERGY_WITNESSED
+    test_witnessed_older_copy();
+#endif
     test_supervisor();
     test_supervisor_answers();
     test_gateway();

@@ -536,3 +536,14 @@ def test_an_admit_far_from_zero_confirms_or_finds_behind_alike(seq: int, ahead: 
     start = replace(RESUMED, return_seq=seq, last_tx=0x2FFF0)
     admit = Admit(start.node, start.nonce, 0x0005, (seq + ahead) & 0xFFFF)
     assert_same_step(start, admit, 500)
+
+
+def test_a_record_flagged_with_a_draw_of_nothing_is_no_books() -> None:
+    """No client writes the draw flag without a pending amount: such a record is not books."""
+    image = bytearray()
+    MemNv(image).save(FRESH)
+    slot = bytearray(image[:SLOT])
+    slot[WitnessedMemNv.FLAGS_AT] |= FLAG_PENDING_DRAW
+    slot[SLOT - 4 :] = struct.pack("<I", zlib.crc32(bytes(slot[: SLOT - 4])))
+    c = _booted(bytes(slot), "witnessed")
+    assert c.state.phase is Phase.JOINING

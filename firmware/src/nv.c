@@ -60,7 +60,10 @@ int canergy_record_unpack(const uint8_t in[CANERGY_NV_RECORD_SIZE], struct caner
     r.return_pending_uj = le_get(&in[24], 4U);
     r.outcome = in[28];
     r.flags = (uint8_t)(in[29] & CANERGY_RECORD_FLAGS);
-    if (r.outcome > CANERGY_OUTCOME_WRITTEN_OFF || !return_possible(r.return_pending_uj)) {
+    const bool draw_of_nothing =
+        (r.flags & CANERGY_RECORD_PENDING_DRAW) != 0U && r.return_pending_uj == 0U;
+    if (r.outcome > CANERGY_OUTCOME_WRITTEN_OFF || !return_possible(r.return_pending_uj) ||
+        draw_of_nothing) {
         return CANERGY_ERR_ARGUMENT; /* a CRC collision over garbage: not books */
     }
     *rec = r;

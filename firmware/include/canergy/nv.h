@@ -75,7 +75,8 @@ struct canergy_nv_state {
 };
 
 /* Layout of one record. unpack refuses (CANERGY_ERR_ARGUMENT) values no client writes: an
- * outcome above 4, or a pending return that is not 0 or 1..65535 whole mJ (the Python store
+ * outcome above 4, a pending draw flag with nothing pending, or a pending return that is not 0
+ * or 1..65535 whole mJ (the Python store
  * accepts the latter and would fail later when re-sending it; see README.md); and
  * (CANERGY_ERR_END, *rec filled for the caller's message) a last_tx or return_seq at or beyond
  * CANERGY_COUNTER_BOUND. canergy_nv_load takes either as no books: the node JOINs. */

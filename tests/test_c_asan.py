@@ -31,6 +31,7 @@ UNDER_ASAN = [
     "test_c_supervisor.py",
     "test_c_node.py",
     "test_c_sidebyside.py",
+    "test_c_witnessed.py",
 ]
 
 

@@ -30,6 +30,7 @@ from canergy.messages import (
     Ack,
     Commit,
     Committed,
+    Debit,
     Direction,
     Intention,
     Return,
@@ -59,10 +60,12 @@ def steps(actions: list[Action]) -> tuple[bool, list[Action]]:
 
 
 class SideBySide(RuleBasedStateMachine):
+    variant = "hardened"
+
     def __init__(self) -> None:
         super().__init__()
-        self.py = Supervisor(NODES, 10_000_000, timing=T)
-        self.c = CompiledSupervisor(NODES, 10_000_000, timing=T)
+        self.py = Supervisor(NODES, 10_000_000, timing=T, variant=self.variant)
+        self.c = CompiledSupervisor(NODES, 10_000_000, timing=T, variant=self.variant)
         self.now = 0
 
     def _same(self, py: Any, c: Any) -> None:
@@ -99,6 +102,27 @@ class SideBySide(RuleBasedStateMachine):
         msg = client_answer(data, node, tx, credited, telemetry=True)
         self._same(lambda: self.py.receive(msg, self.now), lambda: self.c.receive(msg, self.now))
 
+    @rule(data=st.data(), fast=st.booleans())
+    def debit(self, data: st.DataObject, fast: bool) -> None:
+        """A DRAW or a RESUME near the session's count (the hardened rules ignore both), by
+        ``receive`` or as the fast path hands it back to the caller."""
+        node = data.draw(st.sampled_from([*NODES, 4]))
+        s = self.py.session(node) if node in NODES else None
+        credited = 0 if s is None else s.returns_credited
+        seq = (credited + data.draw(st.integers(-2, 3))) & 0xFFFF
+        nonce = data.draw(st.sampled_from([0, 7]))
+        flags = data.draw(st.sampled_from([Debit.DRAW, Debit.START, Debit.START | Debit.DRAW]))
+        amount = data.draw(st.sampled_from([0, 1, 2_000]))
+        if flags == Debit.DRAW:
+            nonce, amount = 0, max(amount, 1)
+        msg = Debit(node, nonce, flags, seq, amount)
+        if fast:
+            _, actions, _, decoded = self.c.on_answer(
+                *CODEC.encode(msg), True, False, self.now, False
+            )
+            assert actions == [] and (decoded == msg or node not in NODES)
+        self._same(lambda: self.py.receive(msg, self.now), lambda: self.c.receive(msg, self.now))
+
     @rule(data=st.data(), stopping=st.booleans(), dt=st.integers(0, 1_500))
     def fast_answer(self, data: st.DataObject, stopping: bool, dt: int) -> None:
         """The fast path (``on_answer``: one frame, decoded, judged and an ACK decided in C)
@@ -129,7 +153,7 @@ class SideBySide(RuleBasedStateMachine):
     def restart(self) -> None:
         """A reset from the saved state, as ``canergy supervisor`` restarts from its file."""
         self.py.power_loss(self.now)
-        self.c = CompiledSupervisor(NODES, 1, timing=T, state=self.c.state)
+        self.c = CompiledSupervisor(NODES, 1, timing=T, state=self.c.state, variant=self.variant)
         self.c.power_loss(self.now)
 
     @rule(amount=st.integers(0, 5_000_000))
@@ -164,6 +188,16 @@ def test_the_fast_path_moves_deadlines_as_the_python_core_does() -> None:
 
 TestSideBySide = SideBySide.TestCase
 TestSideBySide.settings = settings(max_examples=200, stateful_step_count=60, deadline=None)
+
+
+class WitnessedSideBySide(SideBySide):
+    """The same under the witnessed rules (``--core c --rules witnessed``'s supervisor)."""
+
+    variant = "witnessed"
+
+
+TestWitnessedSideBySide = WitnessedSideBySide.TestCase
+TestWitnessedSideBySide.settings = settings(max_examples=200, stateful_step_count=60, deadline=None)
 
 
 def test_refuses_what_the_c_core_cannot_hold() -> None:

@@ -35,6 +35,11 @@ uint32_t canergy_auth_freshness(const struct canergy_msg *m, uint32_t last_tx,
     case CANERGY_JOIN: return m->nonce;
     case CANERGY_ADMIT: return (last_tx & 0xFFFF0000UL) | m->nonce;
     case CANERGY_TELEMETRY: return last_tx;
+    case CANERGY_DEBIT:
+        if ((m->flags & CANERGY_DEBIT_START) != 0U) {
+            return m->nonce; /* a resume, as a JOIN */
+        }
+        return extend16(m->seq, return_seq); /* a draw is numbered as a return */
     case CANERGY_RETURN:
     case CANERGY_RETURN_ACK: return extend16(m->seq, return_seq);
     default: return extend16(m->tx, last_tx);
@@ -347,8 +352,9 @@ int canergy_auth_node_frame(struct canergy_auth *a, struct canergy_node *n,
         return result;
     }
     const struct canergy_rx_frame rx = {plain.id, plain.data, plain.dlc, true, false};
+    const bool joining = canergy_client_joining(&n->client); /* not a witnessed RESUME's ADMIT */
     const int taken = canergy_node_on_frame(n, &rx, now, out);
-    if (taken == CANERGY_DECODE_OK && (out->events & CANERGY_EV_ADMITTED) != 0U) {
+    if (joining && taken == CANERGY_DECODE_OK && (out->events & CANERGY_EV_ADMITTED) != 0U) {
         /* the full counters: the ADMIT's FV carries their high half (before out->persist) */
         const uint32_t high = a->admit_fv & 0xFFFF0000UL;
         n->client.rec.last_tx = high | (n->client.rec.last_tx & 0xFFFFU);

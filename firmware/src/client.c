@@ -233,6 +233,13 @@ static void on_return_ack(struct canergy_client *c, const struct canergy_msg *m,
     if (m->seq != (uint16_t)c->rec.return_seq || c->rec.return_pending_uj == 0U) {
         return; /* another return's number */
     }
+#ifdef CANERGY_WITNESSED
+    if ((c->rec.flags & CANERGY_RECORD_PENDING_DRAW) != 0U) {
+        c->rec.spent_uj += c->rec.return_pending_uj; /* the actuator gets the draw now */
+        c->rec.flags &= (uint8_t)~CANERGY_RECORD_PENDING_DRAW;
+        out->events |= CANERGY_EV_RELEASED;
+    }
+#endif
     c->rec.return_pending_uj = 0U;
     c->return_deadline = CANERGY_NEVER;
     out->events |= CANERGY_EV_RETURN_ACKED;
@@ -255,9 +262,98 @@ static void on_admit(struct canergy_client *c, const struct canergy_msg *m,
     out->events |= CANERGY_EV_ADMITTED;
 }
 
+#ifdef CANERGY_WITNESSED
+static bool witnessed(const struct canergy_client *c)
+{
+    return c->rules == CANERGY_RULES_WITNESSED;
+}
+
+/* DEBIT: the pending draw (DRAW(q, x)), or with start the node's RESUME(n, q, pending). */
+static void send_debit(const struct canergy_client *c, bool start, struct canergy_out *out)
+{
+    const bool draw = (c->rec.flags & CANERGY_RECORD_PENDING_DRAW) != 0U;
+    struct canergy_msg m;
+    memset(&m, 0, sizeof m);
+    m.type = CANERGY_DEBIT;
+    m.node = c->node;
+    m.nonce = start ? c->nonce : 0U;
+    m.flags = (uint8_t)((start ? CANERGY_DEBIT_START : 0U) | (draw ? CANERGY_DEBIT_DRAW : 0U));
+    m.seq = (uint16_t)c->rec.return_seq;
+    m.amount_mj = (uint16_t)(c->rec.return_pending_uj / MJ);
+    canergy_internal_send(c, &m, out);
+}
+
+/* ADMIT(n, k, Q) while RESUMING (witnessed.on_confirm): Q = q + 1 confirms the books (settled up
+ * to k, the pending debit settled: a return credited, a draw dropped unreleased); a larger Q
+ * finds them behind: admitted afresh at k and Q, what the actuator used still counted. */
+static void on_confirm(struct canergy_client *c, const struct canergy_msg *m,
+                       struct canergy_out *out)
+{
+    if (m->nonce != c->nonce) {
+        return; /* an answer to another start */
+    }
+    const int32_t d = serial16(m->seq, c->rec.return_seq);
+    if (d < 1) {
+        return;
+    }
+    const uint32_t q = c->rec.return_seq + (uint32_t)d; /* Q: the supervisor's count */
+    if (d == 1) {
+        const int32_t closed = serial16(m->tx, c->rec.last_tx);
+        if (closed > 0) { /* resolved by the supervisor: never again by this record */
+            c->rec.last_tx += (uint32_t)closed;
+            c->rec.outcome = CANERGY_OUTCOME_SETTLED;
+        }
+        c->rec.return_pending_uj = 0U;
+        c->rec.flags &= (uint8_t)~CANERGY_RECORD_PENDING_DRAW;
+    } else {
+        const uint64_t spent = c->rec.spent_uj;
+        memset(&c->rec, 0, sizeof c->rec);
+        c->rec.spent_uj = spent;
+        c->rec.last_tx = m->tx;
+        c->rec.outcome = CANERGY_OUTCOME_SETTLED;
+        c->rec.flags = CANERGY_RECORD_CREDITED_UNKNOWN;
+    }
+    c->rec.return_seq = q;
+    c->nonce = 0U;
+    c->return_deadline = CANERGY_NEVER;
+    drop_hold(c);
+    out->events |= CANERGY_EV_ADMITTED;
+}
+
+static bool resuming_message(struct canergy_client *c, const struct canergy_msg *m,
+                             struct canergy_out *out)
+{
+    if (c->phase != CANERGY_RESUMING) {
+        return false;
+    }
+    if (m->type == CANERGY_INTENTION) {
+        send_debit(c, true, out); /* moves nothing; RESUME again at once */
+    } else if (m->type == CANERGY_ADMIT) {
+        on_confirm(c, m, out);
+    }
+    return true;
+}
+
+/* The power-loss cell from the books (or RESUMING): lose the hold, RESUME(n, q, pending). */
+static void resume(struct canergy_client *c, uint16_t nonce, uint64_t now,
+                   struct canergy_out *out)
+{
+    drop_hold(c);
+    c->phase = CANERGY_RESUMING;
+    c->nonce = nonce;
+    c->return_deadline = serial_after(now, c->return_retry_us);
+    send_debit(c, true, out);
+}
+#endif
+
 static void rx_message(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
                        struct canergy_out *out)
 {
+#ifdef CANERGY_WITNESSED
+    if (resuming_message(c, m, out)) {
+        return;
+    }
+#endif
     if (c->phase == CANERGY_JOINING) {
         if (m->type == CANERGY_INTENTION) {
             send(c, CANERGY_JOIN, c->nonce, 0U, out); /* moves nothing; JOIN again at once */
@@ -295,6 +391,14 @@ static void return_timer(struct canergy_client *c, uint64_t now, struct canergy_
     if (c->phase == CANERGY_JOINING) {
         c->return_deadline = serial_after(now, c->return_retry_us);
         send(c, CANERGY_JOIN, c->nonce, 0U, out);
+#ifdef CANERGY_WITNESSED
+    } else if (c->phase == CANERGY_RESUMING) {
+        c->return_deadline = serial_after(now, c->return_retry_us);
+        send_debit(c, true, out);
+    } else if ((c->rec.flags & CANERGY_RECORD_PENDING_DRAW) != 0U) {
+        c->return_deadline = serial_after(now, c->return_retry_us); /* same number until acked */
+        send_debit(c, false, out);
+#endif
     } else if (c->rec.return_pending_uj != 0U) {
         c->return_deadline = serial_after(now, c->return_retry_us); /* same number until acked */
         send(c, CANERGY_RETURN, (uint16_t)c->rec.return_seq,
@@ -302,12 +406,21 @@ static void return_timer(struct canergy_client *c, uint64_t now, struct canergy_
     }
 }
 
-static void restart(struct canergy_client *c, uint64_t now)
+static void restart(struct canergy_client *c, uint16_t nonce, uint64_t now,
+                    struct canergy_out *out)
 {
     if (c->phase == CANERGY_JOINING) {
         c->return_deadline = now; /* still no record: JOIN again at once */
         return;
     }
+#ifdef CANERGY_WITNESSED
+    if (witnessed(c)) {
+        resume(c, nonce, now, out); /* a power loss or an older copy: the node cannot tell */
+        return;
+    }
+#endif
+    (void)nonce;
+    (void)out;
     drop_hold(c);
     c->return_deadline = c->rec.return_pending_uj != 0U ? now : CANERGY_NEVER;
 }
@@ -415,8 +528,8 @@ uint64_t canergy_client_deadline(const struct canergy_client *c)
 
 int canergy_internal_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out)
 {
-    if (c->phase == CANERGY_JOINING) {
-        return CANERGY_ERR_PHASE;
+    if (c->phase == CANERGY_JOINING || c->rules != CANERGY_RULES_HARDENED) {
+        return CANERGY_ERR_PHASE; /* witnessed: only through a draw */
     }
     if (uj == 0U || uj > c->rec.usable_uj) {
         return CANERGY_ERR_AMOUNT;
@@ -440,15 +553,33 @@ int canergy_client_spend(struct canergy_client *c, uint32_t uj, struct canergy_o
 
 bool canergy_client_can_give_back(const struct canergy_client *c)
 {
+#ifdef CANERGY_WITNESSED
+    if (c != NULL && witnessed(c)) {
+        /* witnessed.can_debit: one numbered debit at a time, books confirmed */
+        return c->rec.return_pending_uj == 0U &&
+               (c->phase == CANERGY_IDLE || c->phase == CANERGY_HOLDING);
+    }
+#endif
     return c != NULL && c->rec.return_pending_uj == 0U && c->phase != CANERGY_JOINING &&
            c->rec.return_seq < CANERGY_COUNTER_END - 1U; /* none numbered at the end */
 }
 
-int canergy_internal_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,
-                               struct canergy_out *out)
+bool canergy_client_can_draw(const struct canergy_client *c)
+{
+#ifdef CANERGY_WITNESSED
+    if (c != NULL && witnessed(c)) {
+        return canergy_client_can_give_back(c);
+    }
+#endif
+    return c != NULL && c->phase != CANERGY_JOINING;
+}
+
+/* Debit uj as the next numbered RETURN, or (witnessed) DRAW: persisted before it leaves. */
+static int debit(struct canergy_client *c, uint32_t uj, uint64_t now, uint8_t draw,
+                 struct canergy_out *out)
 {
     if (!canergy_client_can_give_back(c)) {
-        return CANERGY_ERR_PHASE; /* one numbered return at a time, none before admission */
+        return CANERGY_ERR_PHASE; /* one numbered debit at a time, none before admission */
     }
     if (uj == 0U || uj % MJ != 0U || uj > RETURN_MAX_UJ || uj > c->rec.usable_uj) {
         return CANERGY_ERR_AMOUNT;
@@ -456,12 +587,47 @@ int canergy_internal_give_back(struct canergy_client *c, uint32_t uj, uint64_t n
     c->rec.usable_uj -= uj; /* debited first: the RETURN may be duplicated, never credited twice */
     c->rec.return_seq++;
     c->rec.return_pending_uj = uj;
+    c->rec.flags |= draw;
     c->return_deadline = serial_after(now, c->return_retry_us);
     uint8_t rec[CANERGY_NV_RECORD_SIZE];
     canergy_record_pack(&c->rec, rec);
     persist(c, rec, out);
+#ifdef CANERGY_WITNESSED
+    if (draw != 0U) {
+        send_debit(c, false, out);
+        return CANERGY_OK;
+    }
+#endif
     send(c, CANERGY_RETURN, (uint16_t)c->rec.return_seq, (uint16_t)(uj / MJ), out);
     return CANERGY_OK;
+}
+
+int canergy_internal_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,
+                               struct canergy_out *out)
+{
+    return debit(c, uj, now, 0U, out);
+}
+
+int canergy_internal_draw(struct canergy_client *c, uint32_t uj, uint64_t now,
+                          struct canergy_out *out)
+{
+#ifdef CANERGY_WITNESSED
+    if (witnessed(c)) {
+        return debit(c, uj, now, CANERGY_RECORD_PENDING_DRAW, out);
+    }
+#endif
+    (void)now;
+    return canergy_internal_spend(c, uj, out);
+}
+
+int canergy_client_draw(struct canergy_client *c, uint32_t uj, uint64_t now,
+                        struct canergy_out *out)
+{
+    if (!client_ok(c, out)) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    canergy_internal_out_clear(out);
+    return canergy_internal_draw(c, uj, now, out);
 }
 
 int canergy_client_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,
@@ -486,9 +652,15 @@ uint32_t canergy_client_usable(const struct canergy_client *c)
 
 void canergy_client_restart(struct canergy_client *c, uint64_t now, struct canergy_out *out)
 {
+    canergy_client_resume(c, 0U, now, out);
+}
+
+void canergy_client_resume(struct canergy_client *c, uint16_t nonce, uint64_t now,
+                           struct canergy_out *out)
+{
     if (client_ok(c, out)) {
         canergy_internal_out_clear(out);
-        restart(c, now); /* the record is unchanged: nothing to persist */
+        restart(c, nonce, now, out); /* the record is unchanged: nothing to persist */
     }
 }
 
@@ -503,8 +675,13 @@ void canergy_client_join(struct canergy_client *c, uint16_t nonce, uint64_t now,
 
 static bool config_ok(const struct canergy_client_config *cfg)
 {
+#ifdef CANERGY_WITNESSED
+    const uint8_t last_rules = CANERGY_RULES_WITNESSED;
+#else
+    const uint8_t last_rules = CANERGY_RULES_HARDENED;
+#endif
     return canergy_id_base_valid(cfg->id_base) && cfg->node >= CANERGY_MIN_NODE &&
-           cfg->node <= CANERGY_MAX_NODE;
+           cfg->node <= CANERGY_MAX_NODE && cfg->rules <= last_rules;
 }
 
 int canergy_internal_start(struct canergy_client *c, const struct canergy_client_config *cfg,
@@ -519,15 +696,21 @@ int canergy_internal_start(struct canergy_client *c, const struct canergy_client
     c->node = cfg->node;
     c->command_timeout_us = cfg->command_timeout_us;
     c->return_retry_us = cfg->return_retry_us;
+    c->rules = cfg->rules;
     c->deadline = CANERGY_NEVER;
     c->return_deadline = CANERGY_NEVER;
     struct canergy_nv_state nv;
     canergy_nv_load(nv_image, nv_len, &nv);
     c->nv_counter = nv.counter;
     c->nv_slot = nv.newest_slot;
+    const bool draw_pending = (nv.record.flags & CANERGY_RECORD_PENDING_DRAW) != 0U;
+    if (nv.books && draw_pending && c->rules == CANERGY_RULES_HARDENED) {
+        nv.books = false; /* the witnessed rules' record: not books for these rules */
+        nv.fallbacks++;
+    }
     if (nv.books) {
         c->rec = nv.record;
-        restart(c, now); /* every start is a restart from the record */
+        restart(c, nonce, now, out); /* every start is a restart from the record */
     } else {
         join(c, nonce, now, out); /* new, wiped or corrupted: trust nothing of the past */
     }

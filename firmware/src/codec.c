@@ -38,6 +38,7 @@ static const uint8_t layouts[16][MAX_FIELDS] = {
     [CANERGY_RETURN] = {F_SEQ, F_AMOUNT, F_END},
     [CANERGY_TELEMETRY] = {F_LEVEL, F_FLAGS, F_SEQ, F_WITNESS},
     [CANERGY_JOIN] = {F_NONCE, F_END, F_END},
+    [CANERGY_DEBIT] = {F_NONCE, F_FLAGS, F_SEQ, F_AMOUNT},
 };
 
 static size_t field_width(uint8_t f)
@@ -67,7 +68,19 @@ size_t canergy_data_length(uint32_t type)
 static bool has_amount(uint32_t code)
 {
     const uint8_t *fields = layouts[code & 0xFU];
-    return fields[1] == F_AMOUNT; /* the amount is always the second field */
+    return fields[1] == F_AMOUNT; /* a required amount is the second field (DEBIT's: optional) */
+}
+
+/* DEBIT is a draw (DRAW alone, an amount, no nonce) or a resume (START, DRAW optional); no
+ * other flags. codec.py's _debit_build. */
+static bool debit_valid(const struct canergy_msg *m)
+{
+    const uint8_t known = CANERGY_DEBIT_DRAW | CANERGY_DEBIT_START;
+    if ((m->flags & (uint8_t)~known) != 0U) {
+        return false;
+    }
+    return (m->flags & CANERGY_DEBIT_START) != 0U ||
+           (m->flags == CANERGY_DEBIT_DRAW && m->amount_mj != 0U && m->nonce == 0U);
 }
 
 uint8_t canergy_crc8(uint8_t reg, const uint8_t *data, size_t len)
@@ -220,7 +233,7 @@ enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy
         }
         set_field(&m, f, v);
     }
-    if (has_amount(code) && m.amount_mj == 0U) {
+    if ((has_amount(code) && m.amount_mj == 0U) || (code == CANERGY_DEBIT && !debit_valid(&m))) {
         return CANERGY_DECODE_OUT_OF_RANGE;
     }
     if (msg != NULL) {

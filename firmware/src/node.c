@@ -99,7 +99,11 @@ int canergy_node_start(struct canergy_node *n, const struct canergy_node_config 
     n->low_water_uj = cfg->low_water_uj;
     n->return_above_uj = cfg->return_above_uj;
     n->next_telemetry = now; /* announce the level at boot */
+#ifdef CANERGY_WITNESSED
+    n->joined = canergy_client_joining(&n->client) || n->client.phase == CANERGY_RESUMING;
+#else
     n->joined = canergy_client_joining(&n->client);
+#endif
     n->join_nonce = nonce;
     return result;
 }
@@ -112,7 +116,14 @@ int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame 
     }
     canergy_internal_out_clear(out);
     struct canergy_msg m;
+#ifdef CANERGY_WITNESSED
+    const uint64_t spent = n->client.rec.spent_uj;
+#endif
     const int result = canergy_internal_frame(&n->client, frame, now, out, &m);
+#ifdef CANERGY_WITNESSED
+    /* an acknowledged DRAW is the actuator's now (spent grew by it) */
+    n->released_uj += (uint32_t)(n->client.rec.spent_uj - spent);
+#endif
     /* Count what was meant for this node: foreign frames and other nodes' replies (seen
      * without acceptance filters) are no error of ours. */
     if (result != CANERGY_DECODE_OK && result != CANERGY_RX_OTHER_NODE &&
@@ -165,6 +176,31 @@ static void return_policy(struct canergy_node *n, uint64_t now, struct canergy_o
     }
 }
 
+#ifdef CANERGY_WITNESSED
+/* Witnessed: when what the actuator holds would not cover the next period, DRAW ahead (whole
+ * mJ, at most a frame's worth and what usable holds); one debit at a time. */
+static void draw_ahead(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
+                       struct canergy_out *out)
+{
+    if (n->released_uj >= wanted_uj || !canergy_client_can_draw(&n->client)) {
+        return;
+    }
+    uint32_t room = n->client.rec.usable_uj - n->client.rec.usable_uj % MJ;
+    if (room > CANERGY_AMOUNT_MAX_MJ * MJ) {
+        room = CANERGY_AMOUNT_MAX_MJ * MJ;
+    }
+    uint32_t chunk = room; /* 32-bit only: no 64-bit division linked in */
+    if (wanted_uj < room / CANERGY_DRAW_AHEAD) {
+        const uint32_t ahead = wanted_uj * CANERGY_DRAW_AHEAD; /* below room: no overflow */
+        chunk = (uint32_t)(ahead + (MJ - ahead % MJ) % MJ); /* up to whole mJ */
+        chunk = chunk < room ? chunk : room;
+    }
+    if (chunk != 0U) {
+        (void)canergy_internal_draw(&n->client, chunk, now, out);
+    }
+}
+#endif
+
 uint32_t canergy_node_draw(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
                            struct canergy_out *out)
 {
@@ -173,10 +209,20 @@ uint32_t canergy_node_draw(struct canergy_node *n, uint32_t wanted_uj, uint64_t 
     }
     canergy_internal_out_clear(out);
     timers(n, now, out);
-    const uint32_t usable = n->client.rec.usable_uj;
-    uint32_t take = wanted_uj < usable ? wanted_uj : usable;
-    if (take != 0U && canergy_internal_spend(&n->client, take, out) != CANERGY_OK) {
-        take = 0U; /* joining: nothing to spend */
+    uint32_t take;
+#ifdef CANERGY_WITNESSED
+    if (n->client.rules == CANERGY_RULES_WITNESSED) {
+        take = wanted_uj < n->released_uj ? wanted_uj : n->released_uj;
+        n->released_uj -= take;
+        draw_ahead(n, wanted_uj, now, out);
+    } else
+#endif
+    {
+        const uint32_t usable = n->client.rec.usable_uj;
+        take = wanted_uj < usable ? wanted_uj : usable;
+        if (take != 0U && canergy_internal_spend(&n->client, take, out) != CANERGY_OK) {
+            take = 0U; /* joining: nothing to spend */
+        }
     }
     n->halted = take < wanted_uj;
     return_policy(n, now, out);

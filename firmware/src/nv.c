@@ -38,7 +38,7 @@ void canergy_record_pack(const struct canergy_record *rec, uint8_t out[CANERGY_N
     le_put(&out[20], rec->return_seq, 4U);
     le_put(&out[24], rec->return_pending_uj, 4U);
     out[28] = rec->outcome;
-    out[29] = (uint8_t)(rec->flags & CANERGY_RECORD_CREDITED_UNKNOWN);
+    out[29] = (uint8_t)(rec->flags & CANERGY_RECORD_FLAGS);
 }
 
 /* A pending return the client can have sent: none, or one frame's worth of whole mJ. */
@@ -59,8 +59,11 @@ int canergy_record_unpack(const uint8_t in[CANERGY_NV_RECORD_SIZE], struct caner
     r.return_seq = le_get(&in[20], 4U);
     r.return_pending_uj = le_get(&in[24], 4U);
     r.outcome = in[28];
-    r.flags = (uint8_t)(in[29] & CANERGY_RECORD_CREDITED_UNKNOWN);
-    if (r.outcome > CANERGY_OUTCOME_WRITTEN_OFF || !return_possible(r.return_pending_uj)) {
+    r.flags = (uint8_t)(in[29] & CANERGY_RECORD_FLAGS);
+    const bool draw_of_nothing =
+        (r.flags & CANERGY_RECORD_PENDING_DRAW) != 0U && r.return_pending_uj == 0U;
+    if (r.outcome > CANERGY_OUTCOME_WRITTEN_OFF || !return_possible(r.return_pending_uj) ||
+        draw_of_nothing) {
         return CANERGY_ERR_ARGUMENT; /* a CRC collision over garbage: not books */
     }
     *rec = r;

@@ -158,7 +158,80 @@ static void admit(struct canergy_session *s, const struct canergy_msg *m,
     put_msg(s, CANERGY_ADMIT, step);
     step->msg.nonce = m->nonce;
     step->msg.seq = (uint16_t)(s->returns_credited & 0xFFFFUL);
+    step->admitted = 1U;
 }
+
+#ifdef CANERGY_WITNESSED
+static void ack_debit(const struct canergy_session *s, uint16_t seq,
+                      struct canergy_session_step *step)
+{
+    step->send = 1U;
+    step->msg.type = CANERGY_RETURN_ACK;
+    step->msg.node = s->node;
+    step->msg.seq = seq;
+}
+
+/* DRAW(q, x): hold q as the node's last debit and acknowledge it (nothing to Us); re-ack an old
+ * q; ignore one beyond (witnessed.hold_draw). */
+static void hold_draw(struct canergy_session *s, const struct canergy_msg *m,
+                      struct canergy_session_step *step)
+{
+    const int32_t ahead = serial16(m->seq, s->returns_credited);
+    if (ahead > 1) {
+        return;
+    }
+    if (ahead == 1) {
+        s->returns_credited += 1U;
+    }
+    ack_debit(s, m->seq, step);
+}
+
+/* ADMIT(n, k, C): k the last transaction closed (all are, once a RESUME is answered). */
+static void confirmation(const struct canergy_session *s, uint16_t nonce,
+                         struct canergy_session_step *step)
+{
+    put_msg(s, CANERGY_ADMIT, step);
+    step->msg.tx = (uint16_t)((s->phase == CANERGY_S_IDLE ? s->tx : s->tx - 1U) & 0xFFFFUL);
+    step->msg.nonce = nonce;
+    step->msg.seq = (uint16_t)(s->returns_credited & 0xFFFFUL);
+}
+
+/* RESUME(n, q, x) (witnessed.confirm): a repeat gets the same answer; behind (q below the last
+ * debit held): write off, lift, admit; otherwise write off what is open and credit a pending
+ * RETURN numbered next; then void max(C, q) + 1 and answer ADMIT(n, k, C). */
+static void confirm(struct canergy_session *s, const struct canergy_msg *m,
+                    struct canergy_session_step *step)
+{
+    const int32_t d = serial16(m->seq, s->returns_credited);
+    const uint32_t seq = s->returns_credited + (uint32_t)d;
+    if (s->resume_to == s->returns_credited && s->resume_nonce == m->nonce &&
+        s->resume_from == seq) {
+        confirmation(s, m->nonce, step);
+        return;
+    }
+    const bool behind = d < 0;
+    if (behind) {
+        admit(s, m, step); /* the record lacks a debit held here: the node starts afresh */
+    } else {
+        if (s->phase != CANERGY_S_IDLE) {
+            resolve(s, CANERGY_RESOLVED_WRITTEN_OFF, step); /* the old record may not know */
+        }
+        const bool draw = (m->flags & CANERGY_DEBIT_DRAW) != 0U;
+        if (d == 1 && m->amount_mj != 0U && !draw) { /* the one RETURN ever numbered q */
+            const uint32_t amount = (uint32_t)m->amount_mj * MJ;
+            s->returns_credited = seq;
+            s->returned_uj += amount;
+            step->credit_uj += (int64_t)amount;
+        }
+    }
+    const uint32_t last = behind ? s->returns_credited : seq; /* max(C, q) */
+    s->returns_credited = last + 1U; /* voids any debit in flight from a discarded history */
+    s->resume_nonce = m->nonce;
+    s->resume_from = seq;
+    s->resume_to = s->returns_credited;
+    confirmation(s, m->nonce, step);
+}
+#endif
 
 void canergy_session_on_msg(struct canergy_session *s, const struct canergy_session_timing *t,
                             const struct canergy_msg *m, uint64_t now,
@@ -192,6 +265,18 @@ void canergy_session_on_msg(struct canergy_session *s, const struct canergy_sess
     case CANERGY_JOIN:
         admit(s, m, step);
         break;
+#ifdef CANERGY_WITNESSED
+    case CANERGY_DEBIT:
+        if (t->rules != CANERGY_RULES_WITNESSED) {
+            break; /* the hardened rules have no cell for it */
+        }
+        if ((m->flags & CANERGY_DEBIT_START) != 0U) {
+            confirm(s, m, step);
+        } else {
+            hold_draw(s, m, step);
+        }
+        break;
+#endif
     default:
         break;
     }

@@ -36,7 +36,9 @@ static bool record_changed(const struct canergy_session *a, const struct canergy
 {
     return stored_phase(a) != stored_phase(b) || a->tx != b->tx ||
            a->reserved_uj != b->reserved_uj || a->delivered_uj != b->delivered_uj ||
-           a->decision != b->decision || a->returns_credited != b->returns_credited;
+           a->decision != b->decision || a->returns_credited != b->returns_credited ||
+           a->resume_from != b->resume_from || a->resume_to != b->resume_to ||
+           a->resume_nonce != b->resume_nonce;
 }
 
 /* What a step did besides its frame (in: the client message it handled, NULL for the
@@ -53,11 +55,14 @@ static void record_event(const struct canergy_session *s, const struct canergy_s
     e->resolved = step->resolved;
     e->flags = step->acknowledged != 0U ? CANERGY_SUP_ACKNOWLEDGED : 0U;
     e->amount_uj = step->resolved != CANERGY_RESOLVED_NONE ? s->reserved_uj : 0U;
-    if (in != NULL && in->type == CANERGY_RETURN && step->credit_uj > 0) {
+    const bool debit = in != NULL && (in->type == CANERGY_RETURN || in->type == CANERGY_DEBIT);
+    if (debit && step->credit_uj > 0) { /* a RETURN, or one pending at a RESUME */
         e->flags |= CANERGY_SUP_RETURN_CREDITED;
-        e->amount_uj = (uint32_t)step->credit_uj;
+        if (step->resolved == CANERGY_RESOLVED_NONE) { /* else the session's returned tells */
+            e->amount_uj = (uint32_t)step->credit_uj;
+        }
     }
-    if (in != NULL && in->type == CANERGY_JOIN) {
+    if (step->admitted != 0U) { /* a JOIN, or a RESUME found behind */
         e->flags |= CANERGY_SUP_ADMITTED;
     }
 }
@@ -275,9 +280,9 @@ int canergy_supervisor_withdraw(struct canergy_supervisor *sup, uint64_t amount_
 /* -- the record in NV --------------------------------------------------------------------- */
 
 #define SLOT_MAGIC 0x534E5243UL /* "CNRS" little-endian */
-#define SLOT_VERSION 2U
+#define SLOT_VERSION 3U /* 3: the last RESUME answered (witnessed rules) in each session */
 #define SLOT_HEADER 36U /* magic, version, count, 2 spare, counter, Us, injected, withdrawn */
-#define SESSION_BYTES 32U
+#define SESSION_BYTES 44U
 
 static size_t slot_bytes(uint8_t count)
 {
@@ -308,6 +313,11 @@ size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t c
         le_put(&r[12], s->reserved_uj, 4U);
         le_put64(&r[16], s->delivered_uj);
         le_put64(&r[24], s->returned_uj);
+        le_put(&r[32], s->resume_from, 4U);
+        le_put(&r[36], s->resume_to, 4U);
+        le_put(&r[40], s->resume_nonce, 2U);
+        r[42] = 0U;
+        r[43] = 0U;
     }
     const size_t body = slot_bytes(sup->count) - 4U;
     le_put(&out[body], canergy_crc32(0U, out, body), 4U);
@@ -397,6 +407,9 @@ static void slot_take(struct canergy_supervisor *sup, const uint8_t *p)
         s->reserved_uj = le_get(&r[12], 4U);
         s->delivered_uj = le_get64(&r[16]);
         s->returned_uj = le_get64(&r[24]);
+        s->resume_from = le_get(&r[32], 4U);
+        s->resume_to = le_get(&r[36], 4U);
+        s->resume_nonce = (uint16_t)le_get(&r[40], 2U);
     }
 }
 

@@ -131,7 +131,7 @@ static int deliver(struct canergy_client *c, const struct canergy_msg *m, uint64
 
 static void test_a_node_from_blank_to_books(void)
 {
-    const struct canergy_client_config cfg = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U};
+    const struct canergy_client_config cfg = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, CANERGY_RULES_HARDENED};
     struct canergy_client c;
     struct canergy_out out;
     uint8_t nv[2U * CANERGY_NV_SLOT_SIZE];
@@ -217,7 +217,7 @@ static long polled_telemetry(struct canergy_node *n, uint64_t now, uint8_t *witn
 static void test_node_witness(void)
 {
     const struct canergy_node_config cfg = {
-        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U}, 1000000UL, 0U, CANERGY_KEEP_ALL};
+        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, CANERGY_RULES_HARDENED}, 1000000UL, 0U, CANERGY_KEEP_ALL};
     struct canergy_node n;
     struct canergy_out out;
     uint8_t nv[2U * CANERGY_NV_SLOT_SIZE] = {0};
@@ -313,9 +313,71 @@ static void test_node_witness(void)
 
 /* One session's life (the Python table's answers): a commit, an abort, a write-off, returns
  * credited once, an admission lifting both counters. */
+#ifdef CANERGY_WITNESSED
+/* The client's one frame (a DEBIT) into the session, the session's answer back: the answer. */
+static struct canergy_msg to_session(struct canergy_session *s, const struct canergy_out *out)
+{
+    const struct canergy_session_timing t = {50000U, 1U, CANERGY_RULES_WITNESSED};
+    struct canergy_msg m;
+    struct canergy_session_step step;
+    const struct canergy_rx_frame rx = {out->frames[0].id, out->frames[0].data,
+                                        out->frames[0].dlc, true, false};
+    memset(&step, 0, sizeof step);
+    if (out->frame_count == 1U &&
+        canergy_decode(CANERGY_DEFAULT_ID_BASE, &rx, CANERGY_TO_SUPERVISOR, &m) ==
+            CANERGY_DECODE_OK) {
+        canergy_session_on_msg(s, &t, &m, 0U, &step);
+    }
+    return step.msg;
+}
+
+/* Issue 40, item 6 in C alone: 2 J on the books, 1.5 J drawn and acknowledged, the record put
+ * back to the copy from before the draw: found behind, nothing left to draw. */
+static void test_witnessed_older_copy(void)
+{
+    const struct canergy_client_config cfg = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U,
+                                              CANERGY_RULES_WITNESSED};
+    struct canergy_record rec;
+    memset(&rec, 0, sizeof rec);
+    rec.usable_uj = 2000000UL;
+    rec.outcome = CANERGY_OUTCOME_SETTLED;
+    uint8_t packed[CANERGY_NV_RECORD_SIZE];
+    canergy_record_pack(&rec, packed);
+    uint8_t copy[CANERGY_NV_SLOT_SIZE];
+    canergy_nv_slot_encode(1U, packed, sizeof packed, copy);
+    struct canergy_session s;
+    canergy_session_init(&s, 5U);
+    struct canergy_client c;
+    struct canergy_out out;
+
+    (void)canergy_client_start(&c, &cfg, copy, sizeof copy, 0x1111U, 0U, &out);
+    check(c.phase == CANERGY_RESUMING && out.frame_count == 1U &&
+              canergy_client_draw(&c, 1000U, 1U, &out) == CANERGY_ERR_PHASE,
+          "witnessed: a start RESUMEs and draws nothing before its ADMIT");
+    (void)canergy_client_start(&c, &cfg, copy, sizeof copy, 0x1111U, 0U, &out);
+    struct canergy_msg m = to_session(&s, &out);
+    check(deliver(&c, &m, 2U, &out) == CANERGY_DECODE_OK && c.phase == CANERGY_IDLE &&
+              c.rec.return_seq == 1U && c.rec.usable_uj == 2000000UL,
+          "witnessed: ADMIT(q + 1) confirms the books");
+    check(canergy_client_draw(&c, 1500000UL, 3U, &out) == CANERGY_OK && out.persist == 1U &&
+              c.rec.spent_uj == 0U,
+          "witnessed: a draw is persisted and sent; the actuator waits");
+    m = to_session(&s, &out);
+    check(deliver(&c, &m, 4U, &out) == CANERGY_DECODE_OK && c.rec.spent_uj == 1500000UL &&
+              (out.events & CANERGY_EV_RELEASED) != 0U && s.returns_credited == 2U,
+          "witnessed: its acknowledgement releases it (the session holds number 2)");
+    (void)canergy_client_start(&c, &cfg, copy, sizeof copy, 0x2222U, 5U, &out);
+    m = to_session(&s, &out);
+    check(deliver(&c, &m, 6U, &out) == CANERGY_DECODE_OK && c.phase == CANERGY_IDLE &&
+              c.rec.usable_uj == 0U && c.rec.return_seq == 3U &&
+              canergy_client_draw(&c, 1000U, 7U, &out) == CANERGY_ERR_AMOUNT,
+          "witnessed: the older copy is found behind and holds nothing to draw");
+}
+#endif
+
 static void test_session(void)
 {
-    const struct canergy_session_timing t = {50000U, 1U};
+    const struct canergy_session_timing t = {50000U, 1U, CANERGY_RULES_HARDENED};
     struct canergy_session s;
     struct canergy_session_step step;
     struct canergy_msg m = msg(CANERGY_ACK, 5U);
@@ -387,14 +449,14 @@ static void test_session(void)
               step.msg.type == CANERGY_ADMIT && step.msg.nonce == 0xBEEFU &&
               step.msg.tx == 4U && step.msg.seq == 0xFFFFU,
           "JOIN: the open one written off, counters on one high half, ADMIT(n, 4, 0xFFFF)");
-    check(sizeof(struct canergy_session) <= 40U, "session record within 40 bytes");
+    check(sizeof(struct canergy_session) <= 56U, "session record within 56 bytes");
 }
 
 /* The supervisor around the sessions: Us guards a grant, frames go through the codec, a
  * change of the record asks to persist first. */
 static void test_supervisor(void)
 {
-    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U}};
+    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U, CANERGY_RULES_HARDENED}};
     const uint8_t nodes[2] = {3U, 5U};
     const uint8_t unsorted[2] = {5U, 3U};
     static struct canergy_supervisor sup;
@@ -449,7 +511,7 @@ static void test_supervisor(void)
               0 && back.usable_uj == 7U && slot == 1U,
           "blank NV: a new supervisor, slot 0 first");
     const size_t used = canergy_supervisor_image(&sup, 1U, nv);
-    check(used == 40U + 32U * 2U, "the image: 40 bytes and 32 per session");
+    check(used == 40U + 44U * 2U, "the image: 40 bytes and 44 per session");
     sup.usable_uj += 1000U;
     (void)canergy_supervisor_image(&sup, 2U, &nv[CANERGY_SUPERVISOR_SLOT_SIZE]);
     check(canergy_supervisor_load(&back, &cfg, nodes, 2U, 7U, nv, sizeof nv, &counter, &slot) ==
@@ -735,7 +797,7 @@ static void test_auth_refusals(const uint8_t key[16])
 static void test_auth_node(const uint8_t key[16])
 {
     const struct canergy_node_config cfg = {
-        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U}, 1000000UL, 0U, CANERGY_KEEP_ALL};
+        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, CANERGY_RULES_HARDENED}, 1000000UL, 0U, CANERGY_KEEP_ALL};
     struct canergy_node n;
     struct canergy_auth node_auth;
     struct canergy_auth sup;
@@ -814,7 +876,7 @@ static void test_supervisor_answers(void)
 {
     static struct canergy_supervisor sup;
     static struct canergy_supervisor_out out;
-    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U}};
+    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U, CANERGY_RULES_HARDENED}};
     const uint8_t nodes[1] = {3U};
     struct canergy_msg m;
     check(canergy_supervisor_init(&sup, &cfg, nodes, 1U, 5000U) == CANERGY_OK &&
@@ -851,8 +913,8 @@ static void test_gateway(void)
     static struct canergy_gateway gw;
     static struct canergy_out out;
     static struct canergy_supervisor_out sup_out;
-    const struct canergy_client_config up = {CANERGY_DEFAULT_ID_BASE, 100000U, 100000U, 7U};
-    const struct canergy_supervisor_config down = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U}};
+    const struct canergy_client_config up = {CANERGY_DEFAULT_ID_BASE, 100000U, 100000U, 7U, CANERGY_RULES_HARDENED};
+    const struct canergy_supervisor_config down = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U, CANERGY_RULES_HARDENED}};
     const uint8_t nodes[1] = {3U};
     (void)canergy_client_start(&gw.up, &up, NULL, 0U, 1U, 0U, &out);
     gw.up.phase = CANERGY_IDLE; /* admitted (tests reach in) */
@@ -888,6 +950,9 @@ int main(void)
     test_node_witness();
     test_budgets();
     test_session();
+#ifdef CANERGY_WITNESSED
+    test_witnessed_older_copy();
+#endif
     test_supervisor();
     test_supervisor_answers();
     test_gateway();

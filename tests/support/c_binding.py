@@ -91,6 +91,7 @@ class CClientState(Structure):
         ("node", c_uint8),
         ("phase", c_uint8),
         ("nv_slot", c_uint8),
+        ("rules", c_uint8),
     ]
 
 
@@ -140,6 +141,9 @@ class CSession(Structure):
         ("tx", c_uint32),
         ("returns_credited", c_uint32),
         ("reserved_uj", c_uint32),
+        ("resume_from", c_uint32),
+        ("resume_to", c_uint32),
+        ("resume_nonce", c_uint16),
         ("node", c_uint8),
         ("phase", c_uint8),
         ("decision", c_uint8),
@@ -154,16 +158,17 @@ class SessionStep(Structure):
         ("send", c_uint8),
         ("resolved", c_uint8),
         ("acknowledged", c_uint8),
+        ("admitted", c_uint8),
     ]
 
 
 class SessionTiming(Structure):
-    _fields_ = [("response_timeout_us", c_uint32), ("retries", c_uint8)]
+    _fields_ = [("response_timeout_us", c_uint32), ("retries", c_uint8), ("rules", c_uint8)]
 
 
 SUPERVISOR_NODES = 16
 """CANERGY_SUPERVISOR_NODES as the library is built."""
-SUPERVISOR_SLOT = 40 + 32 * SUPERVISOR_NODES
+SUPERVISOR_SLOT = 40 + 44 * SUPERVISOR_NODES
 """CANERGY_SUPERVISOR_SLOT_SIZE: one of the two slots of the supervisor's NV image."""
 
 
@@ -223,6 +228,7 @@ class ClientConfig(Structure):
         ("command_timeout_us", c_uint32),
         ("return_retry_us", c_uint32),
         ("node", c_uint8),
+        ("rules", c_uint8),
     ]
 
 
@@ -259,6 +265,8 @@ class CNodeState(Structure):
         ("witness", c_uint8),
         ("joined", c_bool),
         ("join_nonce", c_uint16),
+        ("witness_reported", c_uint8),
+        ("released_uj", c_uint32),
     ]
 
 
@@ -287,8 +295,11 @@ MIRROR: dict[str, type[Structure]] = {
 OK, ERR_ARGUMENT, ERR_PHASE, ERR_AMOUNT, ERR_END = 0, -1, -2, -3, -5
 RX_OTHER_NODE = 16
 EV_COMMITTED, EV_TIMEOUT_COMMIT, EV_ABORTED, EV_CREDITED = 0x01, 0x02, 0x04, 0x08
-EV_RETURN_ACKED, EV_REFUSED, EV_ADMITTED = 0x10, 0x20, 0x40
-PHASES = {Phase.IDLE: 0, Phase.AWAIT_COMMAND: 1, Phase.JOINING: 2}
+EV_RETURN_ACKED, EV_REFUSED, EV_ADMITTED, EV_RELEASED = 0x10, 0x20, 0x40, 0x80
+PHASES = {Phase.IDLE: 0, Phase.AWAIT_COMMAND: 1, Phase.JOINING: 2, Phase.RESUMING: 3}
+RULES = {"hardened": 0, "witnessed": 1}
+"""enum canergy_rules: the rule sets the C client runs."""
+FLAG_CREDITED_UNKNOWN, FLAG_PENDING_DRAW = 0x01, 0x02
 DIRECTIONS = {None: 0, "to_client": 1, "to_supervisor": 2}
 REASONS = {i + 1: reason for i, reason in enumerate(DecodeErrorReason)}
 """C decode status -> Python reason: the C enum lists them in the same order."""
@@ -388,6 +399,12 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "canergy_client_return_timer": (None, [POINTER(CClientState), c_uint64, POINTER(Out)]),
     "canergy_client_deadline": (c_uint64, [POINTER(CClientState)]),
     "canergy_client_spend": (c_int, [POINTER(CClientState), c_uint32, POINTER(Out)]),
+    "canergy_client_draw": (c_int, [POINTER(CClientState), c_uint32, c_uint64, POINTER(Out)]),
+    "canergy_client_can_draw": (c_bool, [POINTER(CClientState)]),
+    "canergy_client_resume": (
+        None,
+        [POINTER(CClientState), c_uint16, c_uint64, POINTER(Out)],
+    ),
     "canergy_client_give_back": (c_int, [POINTER(CClientState), c_uint32, c_uint64, POINTER(Out)]),
     "canergy_client_can_give_back": (c_bool, [POINTER(CClientState)]),
     "canergy_client_joining": (c_bool, [POINTER(CClientState)]),
@@ -467,7 +484,7 @@ def c_view(s: ClientState) -> dict[str, int]:
         "return_seq": s.return_seq & U32,
         "return_pending_uj": s.return_pending,
         "outcome": int(s.outcome),
-        "flags": int(s.credited_unknown),
+        "flags": int(s.credited_unknown) | (FLAG_PENDING_DRAW if s.pending_draw else 0),
         "phase": PHASES[s.phase],
         "held_tx": s.held_tx & U32,
         "held_amount_mj": s.held_amount // 1000,
@@ -540,13 +557,18 @@ class CClient:
         state: ClientState | None = None,
         id_base: int = DEFAULT_ID_BASE,
         lib: ctypes.CDLL | None = None,
+        rules: str = "hardened",
     ) -> None:
         self.lib = lib or library()
         self.node = node
         self.timing = timing or Timing()
         self.codec = Codec(id_base)
         self.config = ClientConfig(
-            id_base, self.timing.command_timeout_us, self.timing.return_retry_us, node
+            id_base,
+            self.timing.command_timeout_us,
+            self.timing.return_retry_us,
+            node,
+            RULES[rules],
         )
         self.c = CClientState()
         self.out = Out()
@@ -591,7 +613,8 @@ class CClient:
             outcome=Outcome(v["outcome"]),
             return_seq=v["return_seq"],
             return_pending=v["return_pending_uj"],
-            credited_unknown=bool(v["flags"]),
+            credited_unknown=bool(v["flags"] & FLAG_CREDITED_UNKNOWN),
+            pending_draw=bool(v["flags"] & FLAG_PENDING_DRAW),
             held_tx=v["held_tx"],
             held_amount=v["held_amount_mj"] * 1000,
             phase=phase,
@@ -644,6 +667,17 @@ class CClient:
         )
         self._done()
         return result
+
+    def do_draw(self, uj: int, now: int) -> int:
+        result: int = self.lib.canergy_client_draw(
+            ctypes.byref(self.c), uj, now, ctypes.byref(self.out)
+        )
+        self._done()
+        return result
+
+    def resume(self, nonce: int, now: int) -> Out:
+        self.lib.canergy_client_resume(ctypes.byref(self.c), nonce, now, ctypes.byref(self.out))
+        return self._done()
 
     def do_give_back(self, uj: int, now: int) -> int:
         result: int = self.lib.canergy_client_give_back(

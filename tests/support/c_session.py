@@ -9,11 +9,12 @@ import ctypes
 from collections.abc import Callable
 from typing import Any
 
-from canergy.core.actions import Acknowledged, Resolved, Send
+from canergy.core.actions import Acknowledged, Admitted, Resolved, Send
 from canergy.core.errors import LocalProtocolError
 from canergy.core.hardened import SUPERVISOR
 from canergy.core.inputs import Begin, Decide, PowerLoss, ResponseTimeout
 from canergy.core.state import Decision, Outcome, Session
+from canergy.core.table import SupervisorTable
 from canergy.core.timing import Timing
 from canergy.messages import Message
 from support.c_binding import (
@@ -41,6 +42,9 @@ def to_c(s: Session) -> CSession:
         tx=s.tx % MOD,
         returns_credited=s.returns_credited % MOD,
         reserved_uj=s.reserved,
+        resume_from=s.resume_from % MOD,
+        resume_to=s.resume_to % MOD,
+        resume_nonce=s.resume_nonce,
         node=s.node,
         phase=int(s.phase),
         decision=int(s.decision),
@@ -52,12 +56,13 @@ def fields_of(s: Session | CSession) -> dict[str, int]:
     if isinstance(s, Session):
         return fields_of(to_c(s))
     names = ("delivered_uj", "returned_uj", "deadline", "tx", "returns_credited", "reserved_uj")
-    names += ("phase", "decision", "tries")
+    names += ("phase", "decision", "tries", "resume_from", "resume_to", "resume_nonce")
     return {n: int(getattr(s, n)) for n in names}
 
 
-def timing_of(t: Timing) -> SessionTiming:
-    return SessionTiming(response_timeout_us=t.response_timeout_us, retries=t.retries)
+def timing_of(t: Timing, rules: int = 0) -> SessionTiming:
+    """The C session's timing; ``rules``: enum canergy_rules (1: witnessed)."""
+    return SessionTiming(response_timeout_us=t.response_timeout_us, retries=t.retries, rules=rules)
 
 
 def sent_of(actions: tuple[Any, ...]) -> dict[str, int] | None:
@@ -85,9 +90,9 @@ def resolution(actions: tuple[Any, ...]) -> int:
     return int(done[0]) if done else int(Outcome.NONE)
 
 
-def c_call(event: Any, t: Timing, now: int, variant: str = "") -> Call:
+def c_call(event: Any, t: Timing, now: int, variant: str = "", rules: int = 0) -> Call:
     """The C call for ``event`` (a client message for the node, or a local request or timer)."""
-    lib, ct = library(variant), timing_of(t)
+    lib, ct = library(variant), timing_of(t, rules)
     ref = ctypes.byref
     if isinstance(event, Begin):
         return lambda c, step: lib.canergy_session_begin(
@@ -101,19 +106,27 @@ def c_call(event: Any, t: Timing, now: int, variant: str = "") -> Call:
     if isinstance(event, PowerLoss):
         return lambda c, step: lib.canergy_session_restart(ref(c), now, ref(step))
     cm = Msg(type=int(event.TYPE), node=event.node)
-    for name in ("tx", "seq", "nonce", "amount_mj"):
+    for name in ("tx", "seq", "nonce", "amount_mj", "flags"):
         if hasattr(event, name):
             setattr(cm, name, getattr(event, name))
     return lambda c, step: lib.canergy_session_on_msg(ref(c), ref(ct), ref(cm), now, ref(step))
 
 
-def same(s: Session, t: Timing, event: Any, now: int, call: Call | None = None) -> None:
-    """Step the Python table and the C library from the same record; compare everything."""
-    call = call or c_call(event, t, now)
+def same(
+    s: Session,
+    t: Timing,
+    event: Any,
+    now: int,
+    call: Call | None = None,
+    table: SupervisorTable = SUPERVISOR,
+) -> None:
+    """Step the Python table and the C library from the same record; compare everything
+    (``table``: the witnessed one runs the C session with its rules set to witnessed)."""
+    call = call or c_call(event, t, now, rules=int(table.variant == "witnessed"))
     c = to_c(s)
     step = SessionStep()
     try:
-        py = SUPERVISOR.step(t, s, event, now)
+        py = table.step(t, s, event, now)
     except LocalProtocolError:
         before = fields_of(c)
         assert call(c, step) in (ERR_PHASE, ERR_AMOUNT, ERR_END)
@@ -126,3 +139,4 @@ def same(s: Session, t: Timing, event: Any, now: int, call: Call | None = None) 
     assert c_sent(step, expected) == expected
     assert step.resolved == resolution(py.actions)
     assert step.acknowledged == any(isinstance(a, Acknowledged) for a in py.actions)
+    assert step.admitted == any(isinstance(a, Admitted) for a in py.actions)

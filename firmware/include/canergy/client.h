@@ -4,6 +4,13 @@
  * struct canergy_out. The rules are those of src/canergy/core/hardened.py (CLIENT), cell for
  * cell; tests/test_c_*.py run both side by side.
  *
+ * The witnessed rules (src/canergy/core/witnessed.py, CLIENT; docs/protocol.md, "Records
+ * restored from older copies") are chosen at run time by cfg->rules: the actuator's energy is a
+ * numbered DRAW the supervisor acknowledges first (canergy_client_draw), and every start with a
+ * record is RESUMING until the supervisor's ADMIT confirms the books or finds them behind. A
+ * build with CANERGY_HARDENED_ONLY defined leaves them out (cfg->rules witnessed is then
+ * refused as CANERGY_ERR_ARGUMENT).
+ *
  * Contract of every call that takes a struct canergy_out *out:
  *   - *out is overwritten (the call starts it empty);
  *   - if out->persist is set, write out->nv_image (CANERGY_NV_SLOT_SIZE bytes) to slot
@@ -36,8 +43,18 @@ extern "C" {
 enum canergy_phase {
     CANERGY_IDLE = 0,    /* books, no intention held */
     CANERGY_HOLDING = 1, /* an acknowledged intention awaits COMMIT/ABORT or the command timer */
-    CANERGY_JOINING = 2  /* no books: JOIN sent, waiting for the ADMIT that echoes the nonce */
+    CANERGY_JOINING = 2, /* no books: JOIN sent, waiting for the ADMIT that echoes the nonce */
+    CANERGY_RESUMING = 3 /* witnessed: started with books, RESUME sent, awaiting its ADMIT */
 };
+
+enum canergy_rules {
+    CANERGY_RULES_HARDENED = 0, /* the default */
+    CANERGY_RULES_WITNESSED = 1
+};
+
+#ifndef CANERGY_HARDENED_ONLY
+#define CANERGY_WITNESSED 1 /* the witnessed rules are compiled in */
+#endif
 
 /* out->events bits: the notes of the Python rules (ClientCommitted, ...), one bit each. */
 #define CANERGY_EV_COMMITTED 0x01U       /* a COMMIT added its amount to usable */
@@ -46,7 +63,8 @@ enum canergy_phase {
 #define CANERGY_EV_CREDITED 0x08U        /* Gs paid back a write-off into usable */
 #define CANERGY_EV_RETURN_ACKED 0x10U    /* the pending return is acknowledged */
 #define CANERGY_EV_REFUSED 0x20U         /* an intention or commit would overflow usable */
-#define CANERGY_EV_ADMITTED 0x40U        /* the ADMIT for our JOIN came: books from now on */
+#define CANERGY_EV_ADMITTED 0x40U        /* the ADMIT for our JOIN (or RESUME) came */
+#define CANERGY_EV_RELEASED 0x80U        /* witnessed: a DRAW was acknowledged, spent += it */
 
 /* canergy_client_on_frame: a valid frame for another node (nothing happens, not an error). */
 #define CANERGY_RX_OTHER_NODE 16
@@ -56,6 +74,7 @@ struct canergy_client_config {
     uint32_t command_timeout_us; /* hold an intention this long, then commit it (Python 100 ms) */
     uint32_t return_retry_us;    /* re-send RETURN / JOIN this often (Python 100 ms) */
     uint8_t node;                /* 1..127 */
+    uint8_t rules;               /* enum canergy_rules; 0 (zeroed config): hardened */
 };
 
 /* Opaque in spirit: read it through the accessors below; tests reach in. 80 bytes. */
@@ -69,10 +88,11 @@ struct canergy_client {
     uint32_t held_tx;            /* widened tx of the held intention, modulo 2^32 */
     uint32_t nv_counter;         /* counter of the newest slot written or loaded */
     uint16_t held_amount_mj;
-    uint16_t nonce;              /* of the pending JOIN */
+    uint16_t nonce;              /* of the pending JOIN or RESUME */
     uint8_t node;
     uint8_t phase;               /* enum canergy_phase */
     uint8_t nv_slot;             /* slot holding the newest record: the next write goes to the other */
+    uint8_t rules;               /* enum canergy_rules */
 };
 
 struct canergy_out {
@@ -89,6 +109,8 @@ struct canergy_out {
  * Start (every boot): check cfg, read the NV image (len bytes from offset 0; NULL/0 when the
  * storage is blank) and either restart from its record or, with no valid record, JOIN with
  * nonce (draw it from a hardware entropy source: a fresh random 16-bit number each start).
+ * Witnessed rules: a start with a record sends RESUME with nonce. The hardened rules take a
+ * record holding a pending draw (CANERGY_RECORD_PENDING_DRAW) as no books: they JOIN.
  * Returns the number of fallbacks seen (0..2, see nv.h) or CANERGY_ERR_ARGUMENT (bad cfg).
  * The JOIN leaves in *out; a restart with a pending return re-sends it at the first timer call.
  */
@@ -110,8 +132,16 @@ void canergy_client_on_timer(struct canergy_client *c, uint64_t now, struct cane
 uint64_t canergy_client_deadline(const struct canergy_client *c);
 
 /* The actuator used uj microjoules: refused (CANERGY_ERR_AMOUNT) for 0 or more than usable,
- * CANERGY_ERR_PHASE while joining. Persist before the actuator runs on it. */
+ * CANERGY_ERR_PHASE while joining, and always under the witnessed rules (use draw). Persist
+ * before the actuator runs on it. */
 int canergy_client_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out);
+
+/* Witnessed rules: debit uj (whole mJ, 1..65535 mJ, at most usable) as the next numbered DRAW;
+ * the actuator gets it only when its RETURN_ACK comes (CANERGY_EV_RELEASED; rec.spent_uj grows
+ * by it). CANERGY_ERR_PHASE while a debit is pending or the books are not confirmed. Hardened
+ * rules: canergy_client_spend. */
+int canergy_client_draw(struct canergy_client *c, uint32_t uj, uint64_t now,
+                        struct canergy_out *out);
 
 /* Give uj back to the supervisor as the next numbered RETURN (whole mJ, 1..65535 mJ, at most
  * usable); CANERGY_ERR_PHASE while joining, while a return awaits its acknowledgement, or when
@@ -120,6 +150,8 @@ int canergy_client_give_back(struct canergy_client *c, uint32_t uj, uint64_t now
                              struct canergy_out *out);
 
 bool canergy_client_can_give_back(const struct canergy_client *c);
+/* Witnessed: no debit pending and the books confirmed; hardened: not joining. */
+bool canergy_client_can_draw(const struct canergy_client *c);
 bool canergy_client_joining(const struct canergy_client *c);
 uint32_t canergy_client_usable(const struct canergy_client *c);
 
@@ -135,6 +167,10 @@ void canergy_client_command_timer(struct canergy_client *c, uint64_t now,
 void canergy_client_return_timer(struct canergy_client *c, uint64_t now,
                                  struct canergy_out *out);
 void canergy_client_restart(struct canergy_client *c, uint64_t now, struct canergy_out *out);
+/* The power-loss cell with the start's nonce: witnessed rules RESUME with it (into *out);
+ * hardened rules as canergy_client_restart. */
+void canergy_client_resume(struct canergy_client *c, uint16_t nonce, uint64_t now,
+                           struct canergy_out *out);
 void canergy_client_join(struct canergy_client *c, uint16_t nonce, uint64_t now,
                          struct canergy_out *out);
 

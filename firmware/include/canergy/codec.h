@@ -56,7 +56,8 @@ enum canergy_type {
     CANERGY_ABORTED = 0xB,
     CANERGY_RETURN = 0xC,
     CANERGY_TELEMETRY = 0xD,
-    CANERGY_JOIN = 0xE
+    CANERGY_JOIN = 0xE,
+    CANERGY_DEBIT = 0xF /* witnessed rules: a numbered draw, or a start (RESUME) */
 };
 
 #define CANERGY_FROM_CLIENT 0x8U /* the direction bit of a type code */
@@ -65,6 +66,12 @@ enum canergy_type {
 #define CANERGY_TELEMETRY_LOW 0x01U
 #define CANERGY_TELEMETRY_HALTED 0x02U
 #define CANERGY_TELEMETRY_JOINING 0x04U
+
+/* DEBIT flags: DRAW alone is a draw (an amount, nonce 0); START is a resume (RESUME), DRAW set
+ * when its pending amount is a draw rather than a return. Decoding refuses any other mix as
+ * CANERGY_DECODE_OUT_OF_RANGE; encoding writes what it is given, as codec.py does. */
+#define CANERGY_DEBIT_DRAW 0x01U
+#define CANERGY_DEBIT_START 0x02U
 
 enum canergy_direction {
     CANERGY_EITHER_WAY = 0,
@@ -82,7 +89,7 @@ enum canergy_decode_status {
     CANERGY_DECODE_WRONG_DIRECTION = 5,
     CANERGY_DECODE_WRONG_DLC = 6,       /* also any length above 8 */
     CANERGY_DECODE_BAD_CRC = 7,
-    CANERGY_DECODE_OUT_OF_RANGE = 8     /* a zero amount */
+    CANERGY_DECODE_OUT_OF_RANGE = 8     /* a zero amount; a DEBIT neither draw nor resume */
 };
 
 /*
@@ -96,6 +103,7 @@ enum canergy_decode_status {
  *   TELEMETRY      level_mj (24 bit), flags, seq (the client's return number, as its RETURN
  *                  frames carry it), witness (frames seen in its name that it did not send)
  *   JOIN           nonce
+ *   DEBIT          nonce, flags, seq, amount_mj (0 allowed in a resume)
  */
 struct canergy_msg {
     uint32_t delivered_mj;
@@ -142,7 +150,7 @@ enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy
                                           struct canergy_msg *msg);
 
 /* The classic data length of a type code (CRC byte and fields, 2..8); 0 for a code no message
- * uses (0x0, 0x8, 0xF, or above 0xF). Python's Codec.data_length. */
+ * uses (0x0, 0x8, or above 0xF). Python's Codec.data_length. */
 size_t canergy_data_length(uint32_t type);
 
 /* CRC-8 SAE J1850 register update (no final XOR): crc = canergy_crc8(0xFF, p, n) ^ 0xFF. */

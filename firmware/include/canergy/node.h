@@ -48,10 +48,16 @@ struct canergy_node {
     bool was_low;
     bool halted;                /* the last draw got less than it wanted */
     uint8_t witness;            /* frames in its name it did not send, modulo 256 */
-    bool joined;                /* this start JOINed (no books): join_nonce is its JOIN's */
+    bool joined;                /* this start JOINed or RESUMEd: join_nonce is its nonce */
     uint16_t join_nonce;
     uint8_t witness_reported;   /* the count its last TELEMETRY carried */
+    uint32_t released_uj;       /* witnessed: acknowledged draws the actuator has not used yet
+                                 * (volatile: lost, i.e. dissipated, at a reset) */
 };
+
+/* Witnessed rules: a node draws this many periods' worth ahead of its need (one DRAW round trip
+ * per chunk), at most one frame's worth and what usable holds in whole mJ. */
+#define CANERGY_DRAW_AHEAD 4U
 
 /* As canergy_client_start; the first telemetry is due at once (poll at now). */
 int canergy_node_start(struct canergy_node *n, const struct canergy_node_config *cfg,
@@ -70,7 +76,9 @@ void canergy_node_poll(struct canergy_node *n, uint64_t now, struct canergy_out 
 
 /* One actuator period: timers, the draw of wanted_uj, the return policy, telemetry (what
  * firmware_model's wake-up does on a tick). Returns the microjoules the actuator may use:
- * min(wanted_uj, usable), usable only after out->persist has been carried out. */
+ * min(wanted_uj, usable), usable only after out->persist has been carried out. Witnessed
+ * rules: min(wanted_uj, released_uj), what acknowledged DRAWs released; when that runs short
+ * the next DRAW (CANERGY_DRAW_AHEAD periods' worth) leaves in out. */
 uint32_t canergy_node_draw(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
                            struct canergy_out *out);
 

@@ -6,7 +6,8 @@
  * Record (30 bytes, little-endian, packed):
  *   u32 usable_uj, u32 credited_mj (Rc modulo 2^32), u64 spent_uj, u32 last_tx (mod 2^32),
  *   u32 return_seq (mod 2^32), u32 return_pending_uj, u8 outcome, u8 flags (bit 0: admitted
- *   without books, Rc comes with the next fresh intention)
+ *   without books, Rc comes with the next fresh intention; bit 1, witnessed rules only: the
+ *   pending debit is a draw for the actuator, not a return)
  * Slot (40 bytes): u16 magic 0xCE57, u32 counter, the record, u32 CRC-32 (zlib) over the 36
  * bytes before it.
  * Image: slot 0 at offset 0, slot 1 at offset 40; firmware_model keeps its parameters in a third
@@ -33,6 +34,12 @@ extern "C" {
 #define CANERGY_NV_MAGIC 0xCE57U
 
 #define CANERGY_RECORD_CREDITED_UNKNOWN 0x01U
+/* The witnessed rules' record: the pending debit (return_pending_uj, number return_seq) is a
+ * DRAW. A record with it set is refused by a client running the hardened rules (it would
+ * re-send the draw as a RETURN): it starts without books. A record without it means the same
+ * under both rule sets. Other bits are ignored, as firmware_model's store ignores them. */
+#define CANERGY_RECORD_PENDING_DRAW 0x02U
+#define CANERGY_RECORD_FLAGS (CANERGY_RECORD_CREDITED_UNKNOWN | CANERGY_RECORD_PENDING_DRAW)
 
 /* How the last resolved transaction ended (Python's Outcome; WRITTEN_OFF is the supervisor's
  * but a record holding it is still a valid record, as in Python). */
@@ -68,7 +75,8 @@ struct canergy_nv_state {
 };
 
 /* Layout of one record. unpack refuses (CANERGY_ERR_ARGUMENT) values no client writes: an
- * outcome above 4, or a pending return that is not 0 or 1..65535 whole mJ (the Python store
+ * outcome above 4, a pending draw flag with nothing pending, or a pending return that is not 0
+ * or 1..65535 whole mJ (the Python store
  * accepts the latter and would fail later when re-sending it; see README.md); and
  * (CANERGY_ERR_END, *rec filled for the caller's message) a last_tx or return_seq at or beyond
  * CANERGY_COUNTER_BOUND. canergy_nv_load takes either as no books: the node JOINs. */

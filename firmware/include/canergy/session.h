@@ -44,19 +44,24 @@ enum canergy_resolution {
     CANERGY_RESOLVED_WRITTEN_OFF = 4 /* given up (or a JOIN): counted as delivered */
 };
 
+/* The session's timing and its rule set (enum canergy_rules: 0, hardened, the default). */
 struct canergy_session_timing {
     uint32_t response_timeout_us; /* re-send after this long (Python 50 ms) */
     uint8_t retries;              /* N: re-sends before the write-off (Python 3) */
+    uint8_t rules;                /* witnessed: DEBIT is taken (on_debit), else ignored */
 };
 
-/* The supervisor's record for one node. 40 bytes. */
+/* The supervisor's record for one node. 56 bytes. */
 struct canergy_session {
     uint64_t delivered_uj;     /* Gs: all energy that left the supervisor's books for the node */
     uint64_t returned_uj;      /* all returns credited */
     uint64_t deadline;         /* response timer, CANERGY_NEVER when not armed (volatile) */
     uint32_t tx;               /* the transaction, modulo 2^32 */
-    uint32_t returns_credited; /* number of the last RETURN credited, modulo 2^32 */
+    uint32_t returns_credited; /* number of the last debit held (RETURN or DRAW), modulo 2^32 */
     uint32_t reserved_uj;      /* Ts: at most 65,535,000 */
+    uint32_t resume_from;      /* witnessed: the last RESUME answered, its q (widened) ... */
+    uint32_t resume_to;        /* ... the number it voided ... */
+    uint16_t resume_nonce;     /* ... and its nonce: a repeat gets the same ADMIT */
     uint8_t node;
     uint8_t phase;             /* enum canergy_session_phase */
     uint8_t decision;          /* enum canergy_decision */
@@ -69,6 +74,7 @@ struct canergy_session_step {
     uint8_t send;
     uint8_t resolved;       /* enum canergy_resolution */
     uint8_t acknowledged;   /* 1: an ACK of the open intention (Python's Acknowledged) */
+    uint8_t admitted;       /* 1: a JOIN, or a RESUME found behind (Python's Admitted) */
 };
 
 /* A new record for node (1..127): IDLE, nothing delivered. */
@@ -85,8 +91,9 @@ int canergy_session_begin(struct canergy_session *s, const struct canergy_sessio
 int canergy_session_decide(struct canergy_session *s, const struct canergy_session_timing *t,
                            bool commit, uint64_t now, struct canergy_session_step *step);
 
-/* A decoded client message for this node (ACK, COMMITTED, ABORTED, RETURN, JOIN; anything else
- * changes nothing). */
+/* A decoded client message for this node (ACK, COMMITTED, ABORTED, RETURN, JOIN, and under the
+ * witnessed rules DEBIT: a DRAW held as the last debit and acknowledged, a RESUME confirmed or
+ * found behind, as core/witnessed.py's on_debit; anything else changes nothing). */
 void canergy_session_on_msg(struct canergy_session *s, const struct canergy_session_timing *t,
                             const struct canergy_msg *m, uint64_t now,
                             struct canergy_session_step *step);

@@ -52,7 +52,9 @@ struct canergy_supervisor {
 
 struct canergy_supervisor_event {
     uint32_t tx;        /* the transaction acknowledged or resolved (before an admission's lift) */
-    uint32_t amount_uj; /* resolved: its Ts; a RETURN credited: the amount */
+    uint32_t amount_uj; /* resolved: its Ts; else a RETURN credited: the amount (a witnessed
+                         * RESUME that does both: its Ts; the session's returned_uj grew by
+                         * the credit) */
     uint8_t node;
     uint8_t resolved;   /* enum canergy_resolution */
     uint8_t flags;      /* CANERGY_SUP_* */
@@ -131,14 +133,15 @@ int canergy_supervisor_withdraw(struct canergy_supervisor *sup, uint64_t amount_
 
 /* -- the record in NV --------------------------------------------------------------------- */
 
-/* One slot: a 12-byte header ("CNRS", version 2, count, counter), Us, injected and withdrawn,
- * 32 bytes per session (node, stored phase, decision, tx, last return credited, Ts, Gs,
- * returned) and a CRC-32 of all that. Two slots of CANERGY_SUPERVISOR_SLOT_SIZE bytes back to
- * back. */
-#define CANERGY_SUPERVISOR_SLOT_SIZE (40U + 32U * CANERGY_SUPERVISOR_NODES)
+/* One slot: a 12-byte header ("CNRS", version 3, count, counter), Us, injected and withdrawn,
+ * 44 bytes per session (node, stored phase, decision, tx, last debit held, Ts, Gs, returned,
+ * and the last RESUME answered: its q, the number it voided, its nonce) and a CRC-32 of all
+ * that. Two slots of CANERGY_SUPERVISOR_SLOT_SIZE bytes back to back. A slot of version 2
+ * (before the witnessed rules) is refused as CANERGY_ERR_RECORD, as another node list is. */
+#define CANERGY_SUPERVISOR_SLOT_SIZE (40U + 44U * CANERGY_SUPERVISOR_NODES)
 
 /* The record as slot bytes with this counter (the slot written before it has counter - 1);
- * returns the bytes used, 40 + 32 per session (the rest of the slot is left as it is). */
+ * returns the bytes used, 40 + 44 per session (the rest of the slot is left as it is). */
 size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t counter,
                                 uint8_t out[CANERGY_SUPERVISOR_SLOT_SIZE]);
 

@@ -233,6 +233,19 @@ uint64_t port_parse_int(const char *flag, const char *text, uint64_t low, uint64
     return (uint64_t)v;
 }
 
+uint8_t port_parse_rules(const char *flag, const char *text)
+{
+    if (strcmp(text, "hardened") == 0) {
+        return CANERGY_RULES_HARDENED;
+    }
+    if (strcmp(text, "witnessed") == 0) {
+        return CANERGY_RULES_WITNESSED;
+    }
+    port_usage_error("argument %s: invalid choice: '%s' (choose from 'hardened', 'witnessed')",
+                     flag, text);
+    return CANERGY_RULES_HARDENED;
+}
+
 /* ---- the command line ---- */
 
 void port_parse_args(int argc, char **argv, struct port_options *o)
@@ -251,11 +264,15 @@ void port_parse_args(int argc, char **argv, struct port_options *o)
                          "       [--status-file PATH] [--status-period T] [--tick T]\n"
                          "       [--telemetry-period T] [--low-water E] [--return-above E]\n"
                          "       [--response-timeout T] [--id-base ID] [--auth KEY [--fd]]\n"
+                         "       [--rules hardened|witnessed]\n"
                          "One canergy client node on Linux SocketCAN (the C library's node\n"
                          "layer); flags as python -m firmware_model --node N. Energies 0.5J,\n"
                          "250mJ; powers 0.2W, 200mW; durations 50ms, 1.5s or plain seconds.\n"
                          "--auth: authenticated mode with this node's key file (mode 0600);\n"
-                         "--fd: CAN FD (64-bit MAC; the interface needs mtu 72).\n",
+                         "--fd: CAN FD (64-bit MAC; the interface needs mtu 72).\n"
+                         "--rules witnessed: every draw a DEBIT the supervisor acknowledges\n"
+                         "first, every start a RESUME it confirms (a record restored from an\n"
+                         "older copy creates no energy); the supervisor must run them too.\n",
                          PROG);
             exit(0);
         }
@@ -295,6 +312,8 @@ void port_parse_args(int argc, char **argv, struct port_options *o)
             o->return_above_uj = parse_quantity(flag, v, ENERGY_UNITS, MAX_QUANTITY_U,
                                                 "10J, 250mJ, 1500uJ or 2.5");
             o->keep_all = 0;
+        } else if (strcmp(flag, "--rules") == 0) {
+            o->rules = port_parse_rules(flag, v);
         } else if (strcmp(flag, "--auth") == 0) {
             o->auth_path = v;
         } else if (strcmp(flag, "--id-base") == 0) {

@@ -23,5 +23,7 @@ void port_parse_args(int argc, char **argv, struct port_options *o);
 uint64_t port_parse_energy(const char *flag, const char *text);
 uint64_t port_parse_duration(const char *flag, const char *text, uint64_t max);
 uint64_t port_parse_int(const char *flag, const char *text, uint64_t low, uint64_t high);
+/* --rules: "hardened" (CANERGY_RULES_HARDENED) or "witnessed" (CANERGY_RULES_WITNESSED). */
+uint8_t port_parse_rules(const char *flag, const char *text);
 
 #endif /* CANERGY_PORT_LINUX_ARGS_H */

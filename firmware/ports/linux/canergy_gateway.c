@@ -53,6 +53,8 @@ const char *const port_prog = "canergy-gateway";
 #define GW_MAGIC 0x47524E43UL /* "CNRG" little-endian */
 #define GW_HEADER 8U           /* magic, counter */
 #define GW_SLOT (GW_HEADER + CANERGY_NV_RECORD_SIZE + CANERGY_SUPERVISOR_SLOT_SIZE + 4U)
+/* The slot before the supervisor record's version 3 (32 bytes per node): refused by name. */
+#define GW_SLOT_V2 (GW_HEADER + CANERGY_NV_RECORD_SIZE + 40U + 32U * CANERGY_SUPERVISOR_NODES + 4U)
 #define MJ 1000U
 
 struct gw_options {
@@ -75,6 +77,7 @@ struct gw_options {
     uint8_t count;
     uint8_t node;
     uint8_t retries;
+    uint8_t rules; /* below: enum canergy_rules */
     int keep_all;
     int has_target;
 };
@@ -175,9 +178,12 @@ static void usage(void)
                  "       [--telemetry-period T] [--response-timeout T]\n"
                  "       [--upstream-response-timeout T] [--retries N] [--status-period T]\n"
                  "       [--stop-timeout T] [--return-hold T] [--id-base ID]\n"
+                 "       [--rules hardened|witnessed]\n"
                  "A canergy gateway on Linux SocketCAN (the C library's gateway rules): node\n"
                  "--node above (--upstream-channel), supervisor of --nodes below (-c); flags\n"
-                 "as canergy gateway's. Energies 0.5J, 250mJ; durations 50ms, 1.5s.\n",
+                 "as canergy gateway's. Energies 0.5J, 250mJ; durations 50ms, 1.5s.\n"
+                 "--rules witnessed: the nodes below draw through DEBIT and RESUME at\n"
+                 "every start (the supervisor side below; above, the hardened rules).\n",
                  PROG);
     exit(0);
 }
@@ -237,6 +243,8 @@ static void parse_args(int argc, char **argv, struct gw_options *o)
             o->response_timeout_us = port_parse_duration(flag, v, UINT32_MAX / 2U);
         } else if (strcmp(flag, "--upstream-response-timeout") == 0) {
             o->up_response_timeout_us = port_parse_duration(flag, v, UINT32_MAX / 4U);
+        } else if (strcmp(flag, "--rules") == 0) {
+            o->rules = port_parse_rules(flag, v);
         } else if (strcmp(flag, "--retries") == 0) {
             o->retries = (uint8_t)port_parse_int(flag, v, 0U, 255U);
         } else if (strcmp(flag, "--status-period") == 0) {
@@ -343,6 +351,21 @@ static int newest_slot(const char *path, const uint8_t *image, uint32_t *best)
     return newest;
 }
 
+/* Exit 2 when image holds no slot of this layout but one of the layout before the witnessed
+ * rules' supervisor record (version 2): never taken as a new, blank file. */
+static void refuse_older_layout(const char *path, const uint8_t *image)
+{
+    for (unsigned i = 0U; i < 2U; i++) {
+        const uint8_t *old = &image[i * GW_SLOT_V2];
+        if (get32(old) == GW_MAGIC &&
+            get32(&old[GW_SLOT_V2 - 4U]) == canergy_crc32(0U, old, GW_SLOT_V2 - 4U)) {
+            port_usage_error("--nv %s: written by an older canergy-gateway (supervisor record "
+                             "version 2); this one reads version 3 only",
+                             path);
+        }
+    }
+}
+
 static void refuse_below_beyond(const char *path)
 {
     port_usage_error("--nv %s: downstream: a node's tx or returns_credited is beyond the bound "
@@ -369,11 +392,12 @@ static void check_nv(const struct gw_options *o)
     uint32_t best = 0U;
     const int newest = got > 0 ? newest_slot(o->nv_path, image, &best) : -1;
     if (newest < 0) {
+        refuse_older_layout(o->nv_path, image);
         return;
     }
     static struct canergy_supervisor down;
     const struct canergy_supervisor_config cfg = {
-        o->id_base, {(uint32_t)o->response_timeout_us, o->retries}};
+        o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules}};
     uint32_t counter = 0U;
     uint8_t slot = 0U;
     if (canergy_supervisor_load(&down, &cfg, o->nodes, o->count, 0U,
@@ -407,9 +431,10 @@ static void start(struct gateway_port *g, uint64_t now)
         exit(EXIT_USAGE);
     }
     const struct canergy_supervisor_config down = {
-        o->id_base, {(uint32_t)o->response_timeout_us, o->retries}};
+        o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules}};
     const struct canergy_client_config up = {o->id_base, (uint32_t)(2U * o->up_response_timeout_us),
-                                             (uint32_t)(2U * o->up_response_timeout_us), o->node};
+                                             (uint32_t)(2U * o->up_response_timeout_us), o->node,
+                                             CANERGY_RULES_HARDENED};
     uint32_t best = 0U;
     const int newest = newest_slot(o->nv_path, image, &best);
     struct canergy_out out;

@@ -98,12 +98,21 @@ static void receive_one(struct port *p, const struct canergy_rx_frame *rx)
     const uint64_t now = port_now_us();
     struct canergy_out out;
     const uint8_t witness = p->node.witness;
+    const bool resuming = p->node.client.phase == CANERGY_RESUMING;
+    const uint32_t seq = p->node.client.rec.return_seq; /* confirmed: it moves to seq + 1 */
     const int status = p->opt.auth_path != NULL
                            ? canergy_auth_node_frame(&p->auth, &p->node, rx, now, &out)
                            : canergy_node_on_frame(&p->node, rx, now, &out);
     p->witnessed += (uint8_t)(p->node.witness - witness); /* 0 or 1 per frame */
     port_count_received(p, status, rx, now);
     carry_out(p, &out);
+    if (resuming && p->node.client.phase != CANERGY_RESUMING) {
+        const bool behind = p->node.client.rec.return_seq != seq + 1U;
+        (void)fprintf(stderr, "%s: node %d: %s\n", PROG, p->opt.node,
+                      behind ? "the supervisor found this record behind (an older copy): "
+                               "admitted afresh, its usable budget dropped"
+                             : "the supervisor confirmed this record");
+    }
 }
 
 static void receive_all(struct port *p)
@@ -157,7 +166,8 @@ int main(int argc, char **argv)
         .client = {.id_base = p.opt.id_base,
                    .command_timeout_us = (uint32_t)(2U * p.opt.response_timeout_us),
                    .return_retry_us = (uint32_t)(2U * p.opt.response_timeout_us),
-                   .node = (uint8_t)p.opt.node},
+                   .node = (uint8_t)p.opt.node,
+                   .rules = p.opt.rules},
         .telemetry_period_us = (uint32_t)p.opt.telemetry_period_us,
         .low_water_uj = p.opt.low_water_uj > UINT32_MAX ? UINT32_MAX
                                                         : (uint32_t)p.opt.low_water_uj,
@@ -174,6 +184,12 @@ int main(int argc, char **argv)
     }
     p.nv_fallbacks = fallbacks;
     p.joins = canergy_client_joining(&p.node.client) ? 1 : 0;
+    if (p.node.client.phase == CANERGY_RESUMING) {
+        (void)fprintf(stderr,
+                      "%s: node %d: witnessed rules: RESUME sent; no energy to the actuator until "
+                      "the supervisor confirms this record (an older copy is found behind)\n",
+                      PROG, p.opt.node);
+    }
     if (p.joins && p.opt.auth_path != NULL) {
         canergy_auth_set_join(&p.auth, port_random16(), nonce); /* a 32-bit JOIN freshness */
     }

@@ -35,6 +35,7 @@ struct port_options {
     int node;
     int keep_all;
     int fd;
+    uint8_t rules; /* enum canergy_rules */
 };
 
 /* What firmware_model's BusRuntime counts, with the same names in the status file. */

@@ -39,11 +39,12 @@ struct canergy_msg {
 struct canergy_frame { uint32_t id; uint8_t dlc; uint8_t data[8]; ...; };
 struct canergy_rx_frame { uint32_t id; const uint8_t *data; size_t len; bool extended;
     bool remote; ...; };
-struct canergy_session_timing { uint32_t response_timeout_us; uint8_t retries; ...; };
+struct canergy_session_timing { uint32_t response_timeout_us; uint8_t retries; uint8_t rules;
+    ...; };
 struct canergy_session {
     uint64_t delivered_uj; uint64_t returned_uj; uint64_t deadline; uint32_t tx;
-    uint32_t returns_credited; uint32_t reserved_uj; uint8_t node; uint8_t phase;
-    uint8_t decision; uint8_t tries; ...;
+    uint32_t returns_credited; uint32_t reserved_uj; uint32_t resume_from; uint32_t resume_to;
+    uint16_t resume_nonce; uint8_t node; uint8_t phase; uint8_t decision; uint8_t tries; ...;
 };
 struct canergy_supervisor_config { uint32_t id_base; struct canergy_session_timing timing; ...; };
 struct canergy_supervisor {

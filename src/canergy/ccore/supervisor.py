@@ -1,7 +1,8 @@
 """The supervisor core compiled: firmware/'s C supervisor role behind ``core.Supervisor``'s
 interface, for ``canergy supervisor --core c``.
 
-One C call per frame, timer or request runs the hardened rules and Us, and reports what each
+One C call per frame, timer or request runs the hardened (or the witnessed) rules and Us, and
+reports what each
 session step did; this side turns that into the same actions the Python core returns (``Send``,
 ``Persist``, ``Acknowledged``, ``Resolved``, ``ReturnCredited``, ``Admitted``) and keeps a Python
 copy of the sessions it touched. Books, files, policies and intrusions stay in the service.
@@ -36,6 +37,7 @@ from canergy.messages import (
     Aborted,
     Ack,
     Committed,
+    Debit,
     Direction,
     Join,
     Message,
@@ -65,9 +67,10 @@ def missing() -> str | None:
     return _MISSING
 
 
-_SESSION = struct.Struct("<QQQIIIBBBB")
-"""struct canergy_session: delivered, returned, deadline, tx, returns credited, reserved, node,
-phase, decision, tries (checked against the compiled layout below)."""
+_SESSION = struct.Struct("<QQQIIIIIHBBBB")
+"""struct canergy_session: delivered, returned, deadline, tx, returns credited, reserved, the last
+RESUME answered (from, to, nonce: the witnessed rules' fields, which the hardened rules leave at
+0), node, phase, decision, tries (checked against the compiled layout below)."""
 _EVENT = struct.Struct("<IIBBB")
 """struct canergy_supervisor_event: tx, amount, node, resolved, flags."""
 _FRAME = struct.Struct("<IB8s")
@@ -79,8 +82,9 @@ attribute lookups through cffi)."""
 
 _LAYOUT = {
     "struct canergy_session": {"delivered_uj": 0, "returned_uj": 8, "deadline": 16, "tx": 24,
-                               "returns_credited": 28, "reserved_uj": 32, "node": 36,
-                               "phase": 37, "decision": 38, "tries": 39},
+                               "returns_credited": 28, "reserved_uj": 32, "resume_from": 36,
+                               "resume_to": 40, "resume_nonce": 44, "node": 46, "phase": 47,
+                               "decision": 48, "tries": 49},
     "struct canergy_supervisor_event": {"tx": 0, "amount_uj": 4, "node": 8, "resolved": 9,
                                         "flags": 10},
     "struct canergy_frame": {"id": 0, "dlc": 4, "data": 5},
@@ -127,8 +131,12 @@ _OUTCOMES = {1: Outcome.COMMITTED, 2: Outcome.ABORTED, 4: Outcome.WRITTEN_OFF}
 _ERRORS = {-1: "argument", -2: "phase", -3: "amount", -5: "end of the numbering"}
 
 
+_RULES = {"hardened": 0, "witnessed": 1}
+"""The rule sets the C supervisor runs (enum canergy_rules)."""
+
+
 class CompiledSupervisor:
-    """``core.Supervisor`` (hardened rules) with the rules, Us and the codec in C."""
+    """``core.Supervisor`` (hardened or witnessed rules) with the rules, Us and the codec in C."""
 
     implementation = "c"
 
@@ -140,10 +148,13 @@ class CompiledSupervisor:
         timing: Timing | None = None,
         state: SupervisorState | None = None,
         id_base: int | None = None,
+        variant: str = "hardened",
     ) -> None:
         if _MISSING is not None:
             raise CoreMissing(_MISSING)
-        self.variant = get_variant("hardened")
+        if variant not in _RULES:
+            raise ValueError(f"the C core runs the rules {', '.join(_RULES)}, not {variant!r}")
+        self.variant = get_variant(variant)
         self.timing = timing or Timing()
         node_list = sorted(set(nodes))
         if not node_list or not all(MIN_NODE <= n <= MAX_NODE for n in node_list):
@@ -170,6 +181,7 @@ class CompiledSupervisor:
         cfg.id_base = self.codec.id_base
         cfg.timing.response_timeout_us = self.timing.response_timeout_us
         cfg.timing.retries = self.timing.retries
+        cfg.timing.rules = _RULES[variant]
         ids = ffi.new("uint8_t[]", node_list)
         rc = lib.canergy_supervisor_init(self._sup, cfg, ids, len(node_list), initial)
         if rc != lib.CANERGY_OK:
@@ -229,14 +241,17 @@ class CompiledSupervisor:
             c.phase, c.tx, c.reserved_uj = int(s.phase), s.tx, s.reserved
             c.delivered_uj, c.returned_uj, c.decision = s.delivered, s.returned, int(s.decision)
             c.returns_credited, c.tries = s.returns_credited, s.tries
+            c.resume_from, c.resume_to = s.resume_from % 2**32, s.resume_to % 2**32
+            c.resume_nonce = s.resume_nonce
             c.deadline = lib.CANERGY_NEVER if s.deadline is None else s.deadline
             self._sessions[i] = self._read(i)
         self._timer_known = False
 
     def _read(self, i: int) -> Session:
-        delivered, returned, deadline, tx, credited, reserved, node, phase, decision, tries = (
-            _SESSION.unpack_from(self._sup_bytes, _SESSIONS_AT + i * _SESSION_SIZE)
-        )
+        fields = _SESSION.unpack_from(self._sup_bytes, _SESSIONS_AT + i * _SESSION_SIZE)
+        delivered, returned, deadline, tx, credited, reserved = fields[:6]
+        resume_from, resume_to, resume_nonce, node, phase, decision, tries = fields[6:]
+        resume_from = resume_to - (resume_to - resume_from) % 2**32  # Python's: below resume_to
         return Session(
             node,
             _PHASES[phase],
@@ -248,6 +263,9 @@ class CompiledSupervisor:
             returned,
             tries,
             None if deadline == _NEVER else deadline,
+            resume_nonce,
+            resume_from,
+            resume_to,
         )
 
     # -- requests --------------------------------------------------------------------------
@@ -302,11 +320,15 @@ class CompiledSupervisor:
             m.seq, m.amount_mj = msg.seq, msg.amount_mj
         elif isinstance(msg, Join):
             m.nonce = msg.nonce
+        elif isinstance(msg, Debit):  # the witnessed rules take it; the hardened ones ignore it
+            m.nonce, m.flags, m.seq, m.amount_mj = msg.nonce, msg.flags, msg.seq, msg.amount_mj
         else:  # as the Python table: no rule takes it (a TELEMETRY is the service's)
-            raise LocalProtocolError(f"hardened supervisor: no rule for {type(msg).__name__}")
+            raise LocalProtocolError(
+                f"{self.variant.name} supervisor: no rule for {type(msg).__name__}"
+            )
         self._timer_known = False  # deadlines may move
         lib.canergy_supervisor_on_msg(self._sup, m, now, self._out)
-        return self._actions()
+        return self._actions(resumed=isinstance(msg, Debit) and msg.is_resume)
 
     def on_answer(
         self,
@@ -319,9 +341,9 @@ class CompiledSupervisor:
     ) -> tuple[int, list[Action], list[tuple[int, bytes]], Message | None]:
         """A received frame on the fast path (one C call: decode, rules, the decision on an ACK,
         encode): its status and, when it was an answer the rules took (ACK, COMMITTED, ABORTED
-        of a managed node), their actions and the frames to send, encoded. A TELEMETRY, RETURN
-        or JOIN of a managed node applies nothing and comes back decoded (by the C codec, which
-        the Python one's tests fuzz against) for the caller's usual handling. Any other status
+        of a managed node), their actions and the frames to send, encoded. A TELEMETRY, RETURN,
+        JOIN or DEBIT of a managed node applies nothing and comes back decoded (by the C codec,
+        which the Python one's tests fuzz against) for the caller's usual handling. Any other status
         (an answer ahead of the session, a decode status, another node) applied nothing and
         decoded nothing: the caller takes the frame its usual way, where it is judged, counted
         or reported."""
@@ -343,6 +365,8 @@ class CompiledSupervisor:
             msg = Telemetry(m.node, m.level_mj, m.flags, m.seq, m.witness)
         elif kind == MsgType.RETURN:
             msg = Return(m.node, m.seq, m.amount_mj)
+        elif kind == MsgType.DEBIT:
+            msg = Debit(m.node, m.nonce, m.flags, m.seq, m.amount_mj)
         else:
             msg = Join(m.node, m.nonce)
         return status, [], [], msg
@@ -384,10 +408,11 @@ class CompiledSupervisor:
             phase = self.session(node).phase.name
             raise LocalProtocolError(f"cannot {what} node {node} in {phase} ({_ERRORS[rc]})")
 
-    def _actions(self, *, fast: bool = False) -> list[Action]:
+    def _actions(self, *, fast: bool = False, resumed: bool = False) -> list[Action]:
         """The last call's output as the Python core's actions, in its order. ``fast``
         (``on_answer``): no ``Acknowledged`` (decided in C already) and no ``Send`` (the
-        frames go out as C encoded them, ``_frames``)."""
+        frames go out as C encoded them, ``_frames``). ``resumed``: a RESUME, which credits a
+        pending return numbered one below the number it then voids."""
         raw = self._out_bytes
         frames, events, persist = _COUNTS.unpack_from(raw, _COUNTS_AT)
         actions: list[Action] = [Persist()] if persist else []
@@ -397,13 +422,15 @@ class CompiledSupervisor:
                 raw, _EVENTS_AT + k * _EVENT_SIZE
             )
             i = self._index[node]
+            before = self._sessions[i]
             s = self._sessions[i] = self._read(i)
             if flags & _ACKNOWLEDGED and not fast:
                 actions.append(Acknowledged(node, tx))
             if resolved:
                 actions.append(Resolved(node, tx, _OUTCOMES[resolved], amount))
-            if flags & _RETURN_CREDITED:
-                actions.append(ReturnCredited(node, s.returns_credited, amount))
+            if flags & _RETURN_CREDITED:  # the amount as the session's returned count grew
+                credited = s.returned - before.returned
+                actions.append(ReturnCredited(node, s.returns_credited - resumed, credited))
             if flags & _ADMITTED:
                 actions.append(Admitted(node, s.tx, s.returns_credited))
             if sent < frames and not fast:
@@ -436,9 +463,9 @@ def make_supervisor(
     """A supervisor core by name: "python" (``core.Supervisor``, any variant) or "c";
     ``id_base``: the bus's identifier block (the C core encodes and decodes frames itself)."""
     if core == "c":
-        if variant != "hardened":
-            raise ValueError("the C core runs the hardened rules only")
-        return CompiledSupervisor(nodes, initial, timing=timing, state=state, id_base=id_base)
+        return CompiledSupervisor(
+            nodes, initial, timing=timing, state=state, id_base=id_base, variant=variant
+        )
     if core != "python":
         raise ValueError(f"unknown core {core!r}: c or python")
     return Supervisor(nodes, initial, variant=variant, timing=timing, state=state)

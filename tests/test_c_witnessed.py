@@ -1,0 +1,549 @@
+"""The C client under the witnessed rules (``cfg.rules = CANERGY_RULES_WITNESSED``) is
+``canergy.core.witnessed.CLIENT``: every table case of tests/test_witnessed.py, every ignored
+and refused cell, run on the C struct with the same state, frames, notes and persist; the NV
+record carries the pending draw; a hardened client refuses a record holding one."""
+
+from __future__ import annotations
+
+import ctypes
+import struct
+import subprocess
+import zlib
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from support import client_cases
+from support.c_binding import (
+    ERR_AMOUNT,
+    ERR_PHASE,
+    EV_ADMITTED,
+    EV_RELEASED,
+    FIRMWARE,
+    FLAG_CREDITED_UNKNOWN,
+    FLAG_PENDING_DRAW,
+    OK,
+    PHASES,
+    RULES,
+    SLOT,
+    CClient,
+    ClientConfig,
+    CNodeState,
+    CSupervisor,
+    NodeConfig,
+    Out,
+    SessionTiming,
+    SupervisorConfig,
+    SupervisorOut,
+    c_view,
+    events_of,
+    frames_of,
+    library,
+    make,
+    rx,
+)
+from support.c_session import same
+from support.cells import Case, params
+from support.mem_nv import MemNv, write_slot
+from support.side_by_side import SETTINGS as SIDE_SETTINGS
+from support.side_by_side import TIMING as SIDE_TIMING
+from support.side_by_side import SideBySide
+from test_c_session import sessions, timings, wire_near
+from test_hardened_supervisor import REFUSED as SUP_REFUSED
+from test_hardened_supervisor import STATES as SUP_STATES
+from test_witnessed import (
+    CLIENT_CASES,
+    CLIENT_IGNORED,
+    CLIENT_REFUSED,
+    CLIENT_STATES,
+    DRAWING,
+    FRESH,
+    RESUMED,
+    S_OPEN,
+    ST,
+    SUP_CASES,
+    SUP_EVENTS,
+    SUP_IGNORED,
+    T,
+    resume,
+)
+
+from canergy.codec import DEFAULT_ID_BASE, Codec
+from canergy.core import Client, Supervisor
+from canergy.core import witnessed as W
+from canergy.core.inputs import (
+    BooksLost,
+    CommandTimeout,
+    GiveBack,
+    PowerLoss,
+    ReturnTimeout,
+    Spend,
+)
+from canergy.core.state import ClientState, Phase, Session, SupervisorState
+from canergy.core.timing import Timing
+from canergy.messages import COUNTER_END, Admit, Debit, ReturnAck
+from firmware_model.nvstore import pack_record
+
+CODEC = Codec()
+TABLE = W.CLIENT
+
+
+def run_c(start: ClientState, event: object, now: int) -> tuple[CClient, Out | int]:
+    """The witnessed C client in ``start``, after ``event`` at ``now``."""
+    c = CClient(start.node, timing=T, state=start, rules="witnessed")
+    if isinstance(event, CommandTimeout):
+        return c, c.command_timer(now)
+    if isinstance(event, ReturnTimeout):
+        return c, c.return_timer(now)
+    if isinstance(event, PowerLoss):
+        return c, c.resume(event.nonce, now)
+    if isinstance(event, BooksLost):
+        return c, c.join(event.nonce, now)
+    if isinstance(event, Spend):
+        code = c.do_draw(event.amount, now)
+        return c, c.out if code == OK else code
+    if isinstance(event, GiveBack):
+        code = c.do_give_back(event.amount, now)
+        return c, c.out if code == OK else code
+    return c, c.message(event, now)  # type: ignore[arg-type]
+
+
+def assert_same_step(start: ClientState, event: object, now: int) -> Out:
+    """The C client and the Python witnessed table agree on this step in every respect."""
+    step = TABLE.step(T, start, event, now)
+    c, out = run_c(start, event, now)
+    assert isinstance(out, Out), f"C refused with {out}"
+    assert c.view() == c_view(step.client)
+    assert out.sent() == frames_of(CODEC, step.actions)
+    assert out.events & ~(EV_ADMITTED | EV_RELEASED) == events_of(step.actions)
+    books_from = start.phase in (Phase.JOINING, Phase.RESUMING)
+    admitted = books_from and step.client.phase not in (Phase.JOINING, Phase.RESUMING)
+    assert bool(out.events & EV_ADMITTED) == admitted
+    assert bool(out.events & EV_RELEASED) == (step.client.spent > start.spent)
+    record_changed = TABLE.persistent(start) != TABLE.persistent(step.client)
+    if not isinstance(event, BooksLost):  # C never writes a blank record (client.h)
+        assert bool(out.persist) == record_changed
+    return out
+
+
+@pytest.mark.parametrize("case", params(CLIENT_CASES))
+def test_cell(case: Case) -> None:
+    assert isinstance(case.start, ClientState)
+    assert_same_step(case.start, case.event, case.now)
+    c, out = run_c(case.start, case.event, case.now)
+    assert isinstance(out, Out)
+    assert c.view() == c_view(case.end)  # type: ignore[arg-type]
+    assert out.sent() == frames_of(CODEC, case.actions)
+
+
+@pytest.mark.parametrize("cell", sorted(CLIENT_IGNORED, key=str), ids=str)
+def test_ignored(cell: tuple[Phase, type]) -> None:
+    start, event = CLIENT_STATES[cell[0]], client_cases.EVENTS[cell[1]]
+    c, out = run_c(start, event, 10**9)
+    assert isinstance(out, Out)
+    assert c.view() == c_view(start) and out.sent() == [] and not out.persist
+    assert out.events == 0
+
+
+@pytest.mark.parametrize("cell", sorted(CLIENT_REFUSED, key=str), ids=str)
+def test_refused(cell: tuple[Phase, type]) -> None:
+    start, event = CLIENT_STATES[cell[0]], client_cases.EVENTS[cell[1]]
+    c, out = run_c(start, event, 0)
+    assert out == ERR_PHASE and c.view() == c_view(start)
+
+
+@pytest.mark.parametrize("state", [DRAWING, client_cases.RETURNING, RESUMED, FRESH], ids=str)
+def test_one_debit_at_a_time_and_none_before_the_confirmation(state: ClientState) -> None:
+    c = CClient(state.node, timing=T, state=state, rules="witnessed")
+    assert c.lib.canergy_client_can_draw(c.c) == TABLE.can_spend(state)
+    assert c.can_give_back() == TABLE.can_give_back(state)
+
+
+@pytest.mark.parametrize(
+    "event", [Spend(0), Spend(1500), Spend(65_536_000), GiveBack(0), GiveBack(11_000)], ids=str
+)
+def test_draws_and_returns_guarded_by_energy(event: object) -> None:
+    c, out = run_c(FRESH, event, 0)
+    assert out == ERR_AMOUNT and c.view() == c_view(FRESH)
+
+
+def test_spend_is_refused_under_the_witnessed_rules() -> None:
+    """Energy reaches the actuator only through an acknowledged draw."""
+    c = CClient(FRESH.node, timing=T, state=FRESH, rules="witnessed")
+    assert c.do_spend(1000) == ERR_PHASE and c.view() == c_view(FRESH)
+
+
+def _booted(image: bytes, rules: str, nonce: int = 0x77) -> CClient:
+    c = CClient(FRESH.node, timing=T, rules=rules)
+    c.start(image, nonce, 0)
+    return c
+
+
+def test_a_pending_draw_survives_a_reset_and_is_resumed_with_it() -> None:
+    """The draw's record (flag bit 1) is written before DRAW leaves; the next start RESUMEs
+    with the draw pending, and a hardened client refuses that record (it would return it)."""
+    c = CClient(FRESH.node, timing=T, state=FRESH, rules="witnessed")
+    assert c.do_draw(2000, 5) == OK and c.out.persist
+    assert c.out.sent() == [CODEC.encode(Debit(FRESH.node, 0, Debit.DRAW, 1, 2))]
+    assert bytes(c.out.nv_image)[6 + 29] & FLAG_PENDING_DRAW
+    image = bytearray()
+    write_slot(image, c.out.nv_slot, bytes(c.out.nv_image))
+    again = _booted(bytes(image), "witnessed")
+    resume = Debit(FRESH.node, 0x77, Debit.START | Debit.DRAW, 1, 2)
+    assert again.out.sent() == [CODEC.encode(resume)]
+    assert again.state.pending_draw and again.state.phase is Phase.RESUMING
+    hardened = _booted(bytes(image), "hardened")
+    assert hardened.state.phase is Phase.JOINING
+    assert not hardened.state.return_pending
+
+
+def test_a_restored_older_record_spends_nothing_and_is_found_behind() -> None:
+    """A node draws and the supervisor acknowledges (C = 1); its NV is put back to the copy
+    from before the draw: it RESUMEs with q = 0, spends nothing, and ADMIT(C + 1) finds it
+    behind: its usable budget is gone, the energy the actuator got is counted once."""
+    start = replace(FRESH, usable=8000)
+    c = CClient(start.node, timing=T, state=start, rules="witnessed")
+    older = bytearray()
+    MemNv(older).save(start)  # the copy from before the draw
+    assert c.do_draw(8000, 0) == OK
+    c.message(ReturnAck(start.node, 1), 10)
+    assert c.state.spent == start.spent + 8000  # the actuator got it once
+    restored = _booted(bytes(older), "witnessed", nonce=0x99)
+    assert restored.state.phase is Phase.RESUMING and restored.state.usable == 8000
+    assert restored.do_draw(1000, 20) == ERR_PHASE
+    assert restored.lib.canergy_client_can_draw(restored.c) is False
+    restored.message(Admit(start.node, 0x99, start.last_tx & 0xFFFF, 2), 30)
+    assert restored.state.phase is Phase.IDLE and restored.state.usable == 0
+    assert restored.state.spent == start.spent
+
+
+# -- the supervisor's session: witnessed.SUPERVISOR -------------------------------------------
+
+
+@pytest.mark.parametrize("case", params(SUP_CASES))
+def test_session_cell(case: Case) -> None:
+    assert isinstance(case.start, Session)
+    same(case.start, ST, case.event, case.now, table=W.SUPERVISOR)
+
+
+@pytest.mark.parametrize("cell", sorted(SUP_IGNORED, key=str), ids=str)
+def test_session_ignored(cell: tuple[Phase, type]) -> None:
+    same(SUP_STATES[cell[0]], ST, SUP_EVENTS[cell[1]], 10**9, table=W.SUPERVISOR)
+
+
+@pytest.mark.parametrize("cell", sorted(SUP_REFUSED, key=str), ids=str)
+def test_session_refused(cell: tuple[Phase, type]) -> None:
+    same(SUP_STATES[cell[0]], ST, SUP_EVENTS[cell[1]], 0, table=W.SUPERVISOR)
+
+
+def test_the_hardened_session_ignores_a_debit() -> None:
+    """DEBIT is taken only with the session's rules set to witnessed."""
+    for event in (resume(4), Debit(3, 0, Debit.DRAW, 5, 2)):
+        same(S_OPEN, ST, event, 0)
+
+
+@st.composite
+def witnessed_sessions(draw: Any) -> Session:
+    """Records with a last RESUME answered near the session's count, as the rules leave it
+    (Python's numbers are unbounded, C's modulo 2**32: they agree within 2**15 of each other)."""
+    s = draw(sessions())
+    near = st.integers(-3, 2).map(lambda d: s.returns_credited + d)
+    far = st.sampled_from([-0x10000, 0x10000, 0x8000]).map(lambda d: s.returns_credited + d)
+    return replace(
+        s,
+        resume_nonce=draw(st.sampled_from([0, 9]) | st.integers(0, 0xFFFF)),
+        resume_from=draw(near | far),
+        resume_to=draw(st.just(s.returns_credited) | near),
+    )
+
+
+@settings(max_examples=400)
+@given(witnessed_sessions(), timings, st.data())
+def test_every_debit_cell_on_drawn_records(s: Session, t: Timing, data: st.DataObject) -> None:
+    """Draws and resumes near the session's counters (a repeat of the last RESUME answered
+    included) give in C the record, the frame, the budget, the resolution of witnessed.py."""
+    seq = data.draw(wire_near(s.returns_credited))
+    amount = data.draw(st.sampled_from([0, 1, 0xFFFF]) | st.integers(0, 0xFFFF))
+    nonce = data.draw(st.just(s.resume_nonce) | st.integers(0, 0xFFFF))
+    repeat = (s.resume_from & 0xFFFF) if data.draw(st.booleans()) else seq
+    for m in (
+        Debit(s.node, 0, Debit.DRAW, seq, max(amount, 1)),
+        Debit(s.node, nonce, Debit.START, seq, amount),
+        Debit(s.node, nonce, Debit.START | Debit.DRAW, seq, amount),
+        Debit(s.node, s.resume_nonce, Debit.START, repeat, amount),
+    ):
+        same(s, t, m, data.draw(st.integers(0, 10**9)), table=W.SUPERVISOR)
+
+
+# -- issue 40, item 6: a C node restored from an older NV copy ---------------------------------
+
+J = 1_000_000
+NODE_ID = 2
+SCENARIO = Timing(
+    response_timeout_us=10_000, retries=2, command_timeout_us=20_000, return_retry_us=20_000
+)
+
+
+class _Node:
+    """The C node as its port drives it (canergy_node_*), NV image kept in bytes."""
+
+    def __init__(self, rules: str, raw: bytearray, nonce: int, now: int) -> None:
+        self.lib = library()
+        self.raw = raw
+        cfg = NodeConfig(
+            ClientConfig(
+                DEFAULT_ID_BASE,
+                SCENARIO.command_timeout_us,
+                SCENARIO.return_retry_us,
+                NODE_ID,
+                RULES[rules],
+            ),
+            1_000_000,
+            0,
+            0xFFFF_FFFF,  # keep all: no return policy
+        )
+        self.n, self.out, self.used = CNodeState(), Out(), 0
+        buf = ctypes.create_string_buffer(bytes(raw), max(len(raw), 1))
+        self.lib.canergy_node_start(self.n, ctypes.byref(cfg), buf, len(raw), nonce, now, self.out)
+        self.sent = self._done()
+
+    def _done(self) -> list[tuple[int, bytes]]:
+        if self.out.persist:
+            write_slot(self.raw, self.out.nv_slot, bytes(self.out.nv_image))
+        return [f for f in self.out.sent() if f[0] >> 8 & 0xF != 0xD]  # no TELEMETRY
+
+    def frame(self, arbitration_id: int, data: bytes, now: int) -> list[tuple[int, bytes]]:
+        frame, buf = rx(arbitration_id, data)
+        self.lib.canergy_node_on_frame(self.n, ctypes.byref(frame), now, self.out)
+        del buf
+        return self._done()
+
+    def tick(self, wanted: int, now: int) -> list[tuple[int, bytes]]:
+        self.used += self.lib.canergy_node_draw(self.n, wanted, now, self.out)
+        return self._done()
+
+    def held(self) -> int:
+        """What the node holds for its actuator: usable, released, a draw still pending."""
+        rec = self.n.client.rec
+        pending = rec.return_pending_uj if rec.flags & FLAG_PENDING_DRAW else 0
+        return rec.usable_uj + self.n.released_uj + pending
+
+
+class _CSup:
+    """The C supervisor (canergy_supervisor_*) for the node, its rules set by timing.rules."""
+
+    def __init__(self, rules: str, initial: int) -> None:
+        self.lib = library()
+        self.s, self.out = CSupervisor(), SupervisorOut()
+        timing = SessionTiming(SCENARIO.response_timeout_us, SCENARIO.retries, RULES[rules])
+        cfg = SupervisorConfig(DEFAULT_ID_BASE, timing)
+        nodes = (ctypes.c_uint8 * 1)(NODE_ID)
+        assert self.lib.canergy_supervisor_init(self.s, ctypes.byref(cfg), nodes, 1, initial) == OK
+
+    def _sent(self) -> list[tuple[int, bytes]]:
+        frames = list(self.out.frames)[: self.out.frame_count]
+        return [(f.id, bytes(f.data[: f.dlc])) for f in frames]
+
+    def grant(self, amount: int, now: int) -> list[tuple[int, bytes]]:
+        assert self.lib.canergy_supervisor_begin(self.s, NODE_ID, amount, now, self.out) == OK
+        return self._sent()
+
+    def frame(self, arbitration_id: int, data: bytes, now: int) -> list[tuple[int, bytes]]:
+        frame, buf = rx(arbitration_id, data)
+        self.lib.canergy_supervisor_on_frame(self.s, ctypes.byref(frame), now, self.out)
+        del buf
+        sent = self._sent()
+        for e in list(self.out.events)[: self.out.event_count]:
+            if e.flags & 0x01:  # acknowledged: commit it
+                self.lib.canergy_supervisor_decide(self.s, NODE_ID, True, now, self.out)
+                sent += self._sent()
+        return sent
+
+    def taken(self) -> int:
+        """What the books count as the node's: delivered minus returned."""
+        s = self.s.sessions[0]
+        return int(s.delivered_uj - s.returned_uj)
+
+
+def _exchange(sent: list[tuple[int, bytes]], node: _Node, sup: _CSup, now: int) -> None:
+    queue = list(sent)
+    while queue:
+        arbitration_id, data = queue.pop(0)
+        to_node = not arbitration_id >> 8 & 0x8
+        queue += (
+            node.frame(arbitration_id, data, now)
+            if to_node
+            else sup.frame(arbitration_id, data, now)
+        )
+
+
+@pytest.mark.parametrize("rules", ["hardened", "witnessed"])
+def test_a_c_node_restored_from_an_older_copy_creates_no_energy(rules: str) -> None:
+    """2 J granted by the C supervisor, the C node's actuator uses 1.5 J, its NV is put back to
+    the copy written after the grant and it starts from it: under the hardened rules the node
+    uses the 1.5 J again (+1.5 J); under the witnessed rules its RESUME is found behind and
+    everything the actuator used, plus what the node still holds, is at most what the books
+    count as taken: 0 J created."""
+    raw = bytearray()
+    node, sup = _Node(rules, raw, 0x1111, 0), _CSup(rules, 2 * J)
+    _exchange(node.sent, node, sup, 0)  # the JOIN of a node without books
+    _exchange(sup.grant(2 * J, 1), node, sup, 1)
+    assert node.held() == 2 * J
+    copy = bytearray(raw)  # the NV image right after the commit
+    now = 10
+    while node.used < 1_500_000:
+        _exchange(node.tick(500_000, now), node, sup, now)
+        now += 10
+    assert node.used == 1_500_000
+    before = node.used
+    node = _Node(rules, copy, 0x2222, now)  # restored from the older copy, started again
+    node.used = before
+    _exchange(node.sent, node, sup, now)
+    for _ in range(8):
+        now += 10
+        _exchange(node.tick(500_000, now), node, sup, now)
+    created = node.used + node.held() - sup.taken()
+    if rules == "hardened":
+        assert created == 1_500_000
+    else:
+        assert node.n.client.phase == PHASES[Phase.IDLE]
+        assert node.n.client.rec.flags & FLAG_CREDITED_UNKNOWN  # found behind: admitted afresh
+        assert created <= 0 and node.used == 1_500_000
+
+
+# -- the Linux ports --------------------------------------------------------------------------
+
+
+def _port(target: str) -> Path:
+    make(target)
+    return FIRMWARE / target
+
+
+@pytest.mark.parametrize("binary", ["canergy-node", "canergy-gateway"])
+def test_the_ports_take_rules_and_refuse_others(binary: str, tmp_path: Path) -> None:
+    port = _port(f"build/{binary}")
+    assert (
+        "--rules hardened|witnessed"
+        in subprocess.run(
+            [str(port), "--help"], capture_output=True, text=True, timeout=10, check=True
+        ).stdout
+    )
+    run = subprocess.run(
+        [str(port), "--rules", "trusting", "--node", "1"],
+        capture_output=True,
+        text=True,
+        timeout=10,
+        cwd=tmp_path,
+    )
+    assert run.returncode == 2
+    assert run.stderr == (
+        f"{binary}: error: argument --rules: invalid choice: 'trusting' "
+        "(choose from 'hardened', 'witnessed')\n"
+    )
+
+
+def test_the_c_gateway_refuses_a_file_of_the_older_supervisor_record(tmp_path: Path) -> None:
+    """Its supervisor record grew (version 3: the last RESUME answered); a file written before
+    is refused by name before the buses open, never taken as a blank file."""
+    gateway = _port("build/canergy-gateway")
+    head = struct.pack("<IBBBBIQQQ", 0x534E5243, 2, 1, 0, 0, 1, 0, 0, 0)
+    session = struct.pack("<BBBBIIIQQ", 2, 0, 0, 0, 9, 4, 0, 0, 0)
+    sup = (head + session + struct.pack("<I", zlib.crc32(head + session))).ljust(40 + 32 * 127)
+    body = struct.pack("<II", 0x47524E43, 1) + pack_record(ClientState(1, last_tx=5)) + sup
+    (tmp_path / "g.nv").write_bytes(body + struct.pack("<I", zlib.crc32(body)))
+    argv = [str(gateway), "--node", "1", "--nodes", "2", "-c", "nosuchcan0"]
+    argv += ["--upstream-channel", "nosuchcan1", "--nv", "g.nv", "--rules", "witnessed"]
+    run = subprocess.run(argv, capture_output=True, text=True, timeout=10, cwd=tmp_path)
+    assert run.returncode == 2
+    assert run.stderr == (
+        "canergy-gateway: error: --nv g.nv: written by an older canergy-gateway (supervisor "
+        "record version 2); this one reads version 3 only\n"
+    )
+
+
+# -- side by side: the hypothesis machine of support.side_by_side, under the witnessed rules ----
+
+
+class WitnessedMemNv(MemNv):
+    """firmware_model's store with the witnessed record: flag bit 1 of the record's flags byte
+    (what the C client writes) says the pending debit is a draw."""
+
+    FLAGS_AT = 6 + 29  # slot header (magic, counter), then the record's flags byte
+
+    def save(self, c: ClientState) -> None:
+        super().save(c)
+        if c.pending_draw:
+            at = self._newest_slot * SLOT
+            slot = bytearray(self.raw[at : at + SLOT])
+            slot[self.FLAGS_AT] |= FLAG_PENDING_DRAW
+            slot[SLOT - 4 :] = struct.pack("<I", zlib.crc32(bytes(slot[: SLOT - 4])))
+            self.raw[at : at + SLOT] = slot
+
+    def load(self) -> ClientState | None:
+        state = super().load()
+        if state is None:
+            return None
+        flags = self.raw[self._newest_slot * SLOT + self.FLAGS_AT]
+        return replace(state, pending_draw=bool(flags & FLAG_PENDING_DRAW))
+
+
+class WitnessedSideBySide(SideBySide):
+    """The Python witnessed client and supervisor and the C client with rules witnessed: every
+    start RESUMEs, the actuator draws through DEBIT; same frames, persists, NV bytes, state."""
+
+    def _new_supervisor(self, state: SupervisorState) -> Supervisor:
+        return Supervisor([1], state.initial, timing=SIDE_TIMING, state=state, variant="witnessed")
+
+    def _new_client(self) -> CClient:
+        return CClient(1, timing=SIDE_TIMING, lib=library(), rules="witnessed")
+
+    def _store(self, raw: bytearray) -> MemNv:
+        return WitnessedMemNv(raw)
+
+    def _boot(self, nonce: int) -> None:
+        self.py_store = self._store(self.py_raw)
+        record = self.py_store.load()
+        self.py = Client(1, timing=SIDE_TIMING, state=record or ClientState(1), variant="witnessed")
+        if record is not None:
+            actions = self.py.power_loss(self.now, nonce=nonce)
+        else:
+            self.py.power_loss(self.now)
+            actions = self.py.books_lost(nonce, self.now)
+        fallbacks = self.c.start(bytes(self.c_raw), nonce, self.now)
+        assert fallbacks == self.py_store.stats.fallbacks, "NV load differs"
+        self._carry_out(actions, self.c.out)
+
+    def _py_spend(self, amount: int) -> list[Any]:
+        # Client.spend passes now=0 (the draw's re-send deadline then counts from 0): the rule
+        # itself is stepped here at the machine's time, as the C draw is.
+        return self.py._step(Spend(amount), self.now)
+
+    def _c_spend(self, amount: int) -> int:
+        return self.c.do_draw(amount, self.now)
+
+
+TestWitnessedSideBySide = WitnessedSideBySide.TestCase
+TestWitnessedSideBySide.settings = SIDE_SETTINGS
+
+
+@pytest.mark.parametrize("seq", [0x12344, COUNTER_END - 4])
+@pytest.mark.parametrize("ahead", [1, 2, 0x7FFF])
+def test_an_admit_far_from_zero_confirms_or_finds_behind_alike(seq: int, ahead: int) -> None:
+    """Q counted from the node's q (not from the blank books a behind node gets)."""
+    start = replace(RESUMED, return_seq=seq, last_tx=0x2FFF0)
+    admit = Admit(start.node, start.nonce, 0x0005, (seq + ahead) & 0xFFFF)
+    assert_same_step(start, admit, 500)
+
+
+def test_a_record_flagged_with_a_draw_of_nothing_is_no_books() -> None:
+    """No client writes the draw flag without a pending amount: such a record is not books."""
+    image = bytearray()
+    MemNv(image).save(FRESH)
+    slot = bytearray(image[:SLOT])
+    slot[WitnessedMemNv.FLAGS_AT] |= FLAG_PENDING_DRAW
+    slot[SLOT - 4 :] = struct.pack("<I", zlib.crc32(bytes(slot[: SLOT - 4])))
+    c = _booted(bytes(slot), "witnessed")
+    assert c.state.phase is Phase.JOINING

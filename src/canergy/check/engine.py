@@ -61,6 +61,10 @@ class Engine:
         self.expander_from: int | None = None
         """The state from which a second process expanded (``workers``), if one did."""
         self.shifts = [NODE_BITS * (b.clients - 1 - p) for p in range(b.clients)]
+        self.power_offset, width = layout.offsets[3], layout.widths[3]
+        self.power_mask = (1 << width) - 1
+        self.lifts = model.variant.lifts_tx
+        """The rules have every start confirmed (witnessed): worlds may wait for books."""
 
     # -- encoding ----------------------------------------------------------------------
     def encode(self, w: World) -> int:
@@ -94,7 +98,9 @@ class Engine:
         frames = 0
         for c in cs:
             frames += table.frames[c]
-        ok = self.guards.table(packed, usable, frames < in_flight)
+        syncing = self.table.syncing
+        waiting = self.lifts and any(syncing[c] for c in cs)
+        ok = self.guards.table(packed, usable, frames < in_flight, waiting)
         nms = [table.moves[p][c] or table.moves_of(c, p) for p, c in enumerate(cs)]
         if len(nms) == 2:  # the common case, with fewer steps
             nm0, nm1 = nms
@@ -114,7 +120,7 @@ class Engine:
         out: list[int] = []
         self._add(out, before, ok, usable, cs, packed, in_flight - frames)
         if ok[self.guards.power]:
-            new, r = self._restart(nms)
+            new, r = self._restart(nms, packed >> self.power_offset & self.power_mask)
             if r[0] >= 0 and r[3] <= in_flight - frames:
                 out.append(self._place(usable, new, packed, r))
         if after:
@@ -166,12 +172,14 @@ class Engine:
             new.sort(key=self.table.keys.__getitem__)
         return self.layout.pack(usable + r[1], new, packed + r[2])
 
-    def _restart(self, nms: list[NodeMoves]) -> tuple[list[int], Result]:
-        """A supervisor power loss restarts every session: each node's share, combined."""
+    def _restart(self, nms: list[NodeMoves], before: int) -> tuple[list[int], Result]:
+        """A supervisor power loss restarts every session: each node's share, combined;
+        ``before``: the power losses before it (the start's nonce)."""
         new: list[int] = []
         credit = added = delta = 0
         for nm in nms:
-            r = nm.restart[0] or self.table.resolve(nm.restart)
+            move = nm.restart[before]
+            r = move[0] or self.table.resolve(move)
             if r[0] < 0:
                 return new, INVALID
             new.append(r[0])
@@ -254,14 +262,17 @@ class _Store:
             self.progress(len(codes), depth, time.perf_counter() - self.start)
         if not checked:
             return False
-        held, quiet = engine.table.held, engine.table.quiet
+        held, quiet, syncing = engine.table.held, engine.table.quiet, engine.table.syncing
         nodes = code >> self.counter_bits
-        dissipated = self.initial - (nodes >> self.nodes_bits)  # the ledger: less Us...
-        still = True
+        usable = nodes >> self.nodes_bits
+        dissipated = self.initial
+        still, waiting = True, False
         for shift in engine.shifts:
             c = nodes >> shift & NODE_MASK
-            dissipated -= held[c]  # ...less what each node holds
+            dissipated -= held[c]  # the ledger: less what each node holds...
             still = still and quiet[c]
+            waiting = waiting or syncing[c]
+        dissipated -= min(usable, 0) if waiting else usable  # ...less Us (none while waiting)
         if dissipated < 0:
             out.violations += 1
             self.violating.add(len(codes) - 1)

@@ -32,6 +32,7 @@ from canergy.check.model import (
     World,
     message_key,
     restored_ghost,
+    supervisor_nonce,
 )
 from canergy.check.packed import NODE_BITS, Guards, Layout
 from canergy.check.parts import Parts
@@ -44,7 +45,7 @@ from canergy.check.reduce import (
     signature,
 )
 from canergy.core.inputs import POWER_LOSS, PowerLoss
-from canergy.core.state import ClientState, Phase, SupervisorState
+from canergy.core.state import SYNC_PHASES, ClientState, Phase, SupervisorState
 from canergy.core.table import Event
 from canergy.ledger import NOT_LOST, LostRecord
 
@@ -103,13 +104,14 @@ class NodeMoves:
         "session",
     )
 
-    def __init__(self, restart: Move) -> None:
+    def __init__(self, restart: list[Move]) -> None:
         self.session: list[Move] = []
         self.flight: list[Keyed] = []
         self.flight_moves: list[Move] = []
         """The frames' moves alone (when no other node has frames in flight)."""
         self.client: list[Move] = []
         self.restart = restart
+        """A supervisor power loss: its share, by how many power losses came before."""
         self.forge: list[Move] = []
         self.replay: list[Keyed] = []
         self.attacks = False
@@ -127,7 +129,7 @@ class NodeTable:
         self.parts = Parts(model)
         self.charge = layout.charges(model)
         self.total = b.units * UNIT
-        self.tx_limit = b.transactions + b.extra_ids
+        self.tx_limit = model.tx_limit
         self.contents: list[Content] = []
         self.ids: dict[Content, int] = {}
         self.keys: list[NodeKey] = []
@@ -135,6 +137,9 @@ class NodeTable:
         """The node's share of the ledger's held energy (its Ts, Uc, spent and return in flight,
         less the overlap): the ledger is a sum over nodes plus Us."""
         self.quiet: list[bool] = []
+        self.syncing: list[bool] = []
+        """The node's session waits for its books after a start (witnessed): no grant to anyone,
+        and the ledger counts none of Us (``ledger.supervisor_usable``)."""
         self.frames: list[int] = []
         self.bare: list[int] = []
         """The same content with nothing seen (subsumption compares what was seen apart)."""
@@ -175,6 +180,7 @@ class NodeTable:
         held, quiet = self._held_and_quiet(c.session, c.client, c.ghost)
         self.held.append(held)
         self.quiet.append(quiet and not frames)
+        self.syncing.append(self.parts.objects[c.session].phase in SYNC_PHASES)
         self.frames.append(frames)
         mask = 0
         for frame in self.parts.seens[c.seen]:
@@ -288,8 +294,7 @@ class NodeTable:
             return [(spec[0], i, [None, spec[1], p, c, spec]) for i, spec in enumerate(specs)]
 
         n, b = p + 1, self.bounds
-        restart = self._listed(("restart", n), lambda n: [(NO_KEY, K.SUPERVISOR_POWER_LOSS, 0)])
-        nm = NodeMoves(moves(restart)[0])
+        nm = NodeMoves(moves(self._listed(("restart", n), self._restart_steps)))
         nm.session = moves(self._listed(("session", x.session, n), self._session_steps))
         nm.flight = keyed(self._listed(("flight", x.flight, n), self._flight_steps))
         nm.client = moves(self._listed(("client", x.client, x.older, n), self._client_steps))
@@ -316,7 +321,7 @@ class NodeTable:
             event = arg
             side = CLIENT if self.parts.to_client(arg) else SESSION
         elif kind is K.SUPERVISOR_POWER_LOSS:
-            event, side = POWER_LOSS, SESSION
+            event, side = (PowerLoss(arg) if arg else POWER_LOSS), SESSION
         elif kind is K.NV_OLD_COPY:
             event, side = PowerLoss(arg), CLIENT
         elif kind is K.NV_BACKUP:  # nothing is fed to a node: ``_apply`` copies the record
@@ -325,6 +330,12 @@ class NodeTable:
             event = self.model.event(Step(kind, units=arg, commit=bool(arg), nonce=arg))
             side = SESSION if kind in SUPERVISOR_KINDS else CLIENT
         return (key, self.guards.of(kind, arg), kind, arg, self.charge[kind], event, side)
+
+    def _restart_steps(self, n: int) -> list[Listed]:
+        """A supervisor power loss, one per SYNC nonce it may draw (the n-th start's)."""
+        starts = range(self.bounds.power_losses)
+        nonces = [supervisor_nonce(K.SUPERVISOR_POWER_LOSS, p + 1, 0) for p in starts] or [0]
+        return [(NO_KEY, K.SUPERVISOR_POWER_LOSS, nonce) for nonce in nonces]
 
     # As ``Model.steps`` lists them, for any run counters (``Guards`` checks those per world):
     def _session_steps(self, session: int, n: int) -> list[Listed]:

@@ -138,7 +138,7 @@ class Guards:
             K.FORGE: forge,
             K.REPLAY: replay,
         }
-        self._tables: dict[tuple[int, int, bool], tuple[bool, ...]] = {}
+        self._tables: dict[tuple[int, int, bool, bool], tuple[bool, ...]] = {}
 
     def of(self, kind: StepKind, arg: int = 0) -> int:
         """The condition a step needs: a BEGIN of ``arg`` units, an NV loss with nonce ``arg``
@@ -153,10 +153,13 @@ class Guards:
             return self._old_copy + arg - OLD_COPY_NONCE - 1
         return self._by_kind[kind]
 
-    def table(self, packed: int, usable: int, room: bool) -> tuple[bool, ...]:
-        """Which conditions hold with these counters, this usable budget and (``room``) fewer
-        frames in flight than the bound; memoized."""
-        key = (packed, usable, room)
+    def table(
+        self, packed: int, usable: int, room: bool, waiting: bool = False
+    ) -> tuple[bool, ...]:
+        """Which conditions hold with these counters, this usable budget, (``room``) fewer
+        frames in flight than the bound and (``waiting``) a start waiting for a node's books
+        (no BEGIN); memoized."""
+        key = (packed, usable, room, waiting)
         table = self._tables.get(key)
         if table is None:
             b = self.bounds
@@ -168,7 +171,7 @@ class Guards:
             ok = [False] * self.size
             ok[self.always] = True
             for units in range(1, b.units + 1):
-                ok[units] = started < b.transactions and units <= cap
+                ok[units] = started < b.transactions and units <= cap and not waiting
             ok[k[K.LOSE]] = lost < b.losses
             ok[k[K.DUPLICATE]] = dup < b.duplicates and room
             ok[k[K.SUPERVISOR_TIMER]] = b.timeouts is None or timed < b.timeouts

@@ -16,6 +16,7 @@ from enum import Enum
 
 from canergy.check.attacker import forgeable
 from canergy.core.actions import Send
+from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import (
     COMMAND_TIMEOUT,
     POWER_LOSS,
@@ -280,8 +281,14 @@ class Model:
 
     # -- application -----------------------------------------------------------------
     def apply(self, w: World, step: Step) -> World | None:
-        """The world after ``step``, or None when it leaves the bounds."""
-        new = self._apply(self.charge(w, step.kind), step)
+        """The world after ``step``, or None when it leaves the bounds (or the rules refuse a
+        BEGIN: beyond the witnessed rules' window)."""
+        try:
+            new = self._apply(self.charge(w, step.kind), step)
+        except LocalProtocolError:
+            if step.kind is not K.BEGIN:
+                raise
+            return None
         return new if new is not None and self.within(new) else None
 
     def within(self, w: World) -> bool:

@@ -44,6 +44,7 @@ from canergy.check.reduce import (
     seen_key,
     signature,
 )
+from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import POWER_LOSS, PowerLoss
 from canergy.core.state import SYNC_PHASES, ClientState, Phase, SupervisorState
 from canergy.core.table import Event
@@ -422,7 +423,12 @@ class NodeTable:
             client = older
         assert event is not None or side == CHANNEL
         if side == SESSION:
-            session, credit, sent = parts.session_step(session, n, event)  # type: ignore[arg-type]
+            try:
+                session, credit, sent = parts.session_step(session, n, event)  # type: ignore[arg-type]
+            except LocalProtocolError:  # a BEGIN the rules refuse (``Model.apply``)
+                if kind is not K.BEGIN:
+                    raise
+                return INVALID
         elif side == CLIENT:
             old = client
             client, sent, persisted = parts.client_step(old, n, event)  # type: ignore[arg-type]

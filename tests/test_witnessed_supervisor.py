@@ -13,8 +13,7 @@ from hypothesis import strategies as st
 
 from canergy.check import Bounds, check
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
-from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing
-from canergy.core import common
+from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing, common
 from canergy.core import witnessed as W
 from canergy.core.inputs import Begin
 from canergy.core.state import ClientState, Phase, Session
@@ -70,7 +69,7 @@ def test_books_beyond_24_bits_and_draws_without_amount_or_with_a_nonce_are_refus
 
 def test_a_sync_is_an_admit_the_node_did_not_ask_for() -> None:
     """No new type: SYNC travels as ADMIT (DLC 7); a booked node answers it."""
-    arbitration_id, data = CODEC.encode(Admit(3, 0x51, 7, 4))
+    _, data = CODEC.encode(Admit(3, 0x51, 7, 4))
     assert len(data) == 7
     node = Client(3, variant="witnessed")
     sent = [a.message for a in node.receive(Admit(3, 0x51, 7, 4), 0) if isinstance(a, Send)]

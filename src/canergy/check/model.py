@@ -173,8 +173,6 @@ TIMER_KINDS = frozenset({K.SUPERVISOR_TIMER, K.COMMAND_TIMER, K.RETURN_TIMER})
 SUPERVISOR_KINDS = frozenset({K.BEGIN, K.DECIDE, K.SUPERVISOR_TIMER})
 POWER_LOSS_KINDS = frozenset({K.CLIENT_POWER_LOSS, K.SUPERVISOR_POWER_LOSS})
 ATTACKER_KINDS = frozenset({K.FORGE, K.REPLAY})
-REFERENCE_ONLY_KINDS = frozenset({K.SUPERVISOR_OLD_COPY})
-"""Steps the compact engine does not take (``check`` refuses their bounds there)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -325,10 +323,7 @@ class Model:
         if step.kind is K.SUPERVISOR_OLD_COPY and w.sup_older is not None:
             w = evolve(w, sup=w.sup_older)  # the old state file comes back; it restarts from it
         if step.kind in (K.SUPERVISOR_POWER_LOSS, K.SUPERVISOR_OLD_COPY):
-            nonce = supervisor_nonce(step.kind, w.power_lost, w.sup_old_copied)
-            for i in range(len(w.sup.sessions)):
-                w = self.restart_session(w, i, nonce)
-            return w
+            return self.restart(w, supervisor_nonce(step.kind, w.power_lost, w.sup_old_copied))
         i = step.node - 1
         if step.kind is K.NV_LOST:
             c, lost = w.clients[i], dict(w.lost_records)
@@ -405,6 +400,21 @@ class Model:
             return self._to_client(w, i, msg)
         assert isinstance(msg, ToSupervisor)
         return self._to_session(w, i, msg)
+
+    def restart(self, w: World, nonce: int) -> World:
+        """A supervisor start: every session restarts; the state file is written once, after
+        them all (the copy before it is kept when it changed)."""
+        before, older = w.sup, w.sup_older
+        for i in range(len(w.sup.sessions)):
+            w = self.restart_session(w, i, nonce)
+        if older is None:
+            return w
+        rules = self.variant.supervisor
+        wrote = w.sup.usable != before.usable or any(
+            rules.persistent(a) != rules.persistent(b)
+            for a, b in zip(before.sessions, w.sup.sessions, strict=True)
+        )
+        return evolve(w, sup_older=before if wrote else older)
 
     def restart_session(self, w: World, i: int, nonce: int = 0) -> World:
         """Session ``i``'s share of a supervisor start (it touches no other node)."""

@@ -153,6 +153,8 @@ class NodeTable:
         self._seen_keys: dict[int, list[Signature]] = {}
         self._solo: dict[tuple[int, int, LostRecord | None], tuple[int, bool]] = {}
         self._specs: dict[tuple[object, ...], list[Spec]] = {}
+        self._wrote: dict[tuple[int, int], bool] = {}
+        self._restored: dict[tuple[int, int, int, int], Result] = {}
 
     # -- contents ----------------------------------------------------------------------
     def intern(self, c: Content) -> int:
@@ -255,10 +257,22 @@ class NodeTable:
             [named(m, n) for m in self.parts.seens[x.seen]],
         )
 
-    def world(self, usable: int, nodes: list[int], counted: tuple[int, ...]) -> World:
-        """The reference model's world with these contents at these positions."""
+    def world(
+        self,
+        usable: int,
+        nodes: list[int],
+        counted: tuple[int, ...],
+        older: tuple[int, tuple[int, ...]] | None = None,
+    ) -> World:
+        """The reference model's world with these contents at these positions (and ``older``:
+        the supervisor's older state, its Us and each position's session part)."""
         xs = [self.objects(c, p + 1) for p, c in enumerate(nodes)]
-        started, lost, dup, power, timed, nv, old, forged, replayed, _ = counted  # no sup copy
+        started, lost, dup, power, timed, nv, old, forged, replayed, sup_old = counted
+        sup_older = None
+        if older is not None:
+            named = self.parts.named
+            sessions = tuple(named(x, p + 1) for p, x in enumerate(older[1]))
+            sup_older = SupervisorState(self.total, older[0], 0, sessions)
         return World(
             SupervisorState(self.total, usable, 0, tuple(x.session for x in xs)),
             tuple(x.client for x in xs),
@@ -275,6 +289,8 @@ class NodeTable:
             forged=forged,
             replayed=replayed,
             seen=frozenset(m for x in xs for m in x.seen),
+            sup_older=sup_older,
+            sup_old_copied=sup_old,
         )
 
     # -- listing moves -----------------------------------------------------------------
@@ -387,6 +403,36 @@ class NodeTable:
 
     def _key(self, frame: int, n: int) -> tuple[int, str]:
         return message_key(self.parts.named(frame, n))
+
+    # -- the supervisor's state file (its old copies) ---------------------------------------
+    def wrote(self, before: int, after: int, credit: int) -> bool:
+        """A step from content ``before`` to ``after`` wrote the supervisor's state file: its
+        session's record changed or Us moved (``Model._to_session``)."""
+        if credit:
+            return True
+        a, b = self.contents[before].session, self.contents[after].session
+        if a == b:
+            return False
+        key = (a, b)
+        out = self._wrote.get(key)
+        if out is None:
+            persistent, objects = self.model.variant.supervisor.persistent, self.parts.objects
+            out = self._wrote[key] = persistent(objects[a]) != persistent(objects[b])
+        return out
+
+    def restored(self, c: int, p: int, session: int, nonce: int) -> Result:
+        """Content ``c`` at position ``p`` with its session put back to part ``session`` and
+        restarted with SYNC nonce ``nonce`` (the supervisor's old copy comes back)."""
+        key = (c, p, session, nonce)
+        out = self._restored.get(key)
+        if out is None:
+            back = self.intern(self.contents[c]._replace(session=session))
+            spec = self._spec(NO_KEY, K.SUPERVISOR_POWER_LOSS, nonce)
+            r = self._apply(back, p + 1, spec)
+            out = self._restored[key] = (r[0], r[1], 0, self.frames[r[0]] - self.frames[c])
+            if r[0] < 0:
+                out = INVALID
+        return out
 
     # -- applying moves ----------------------------------------------------------------
     def resolve(self, mv: Move) -> Result:

@@ -38,8 +38,8 @@ from canergy.messages import (
     DELIVERED_BITS,
     NONCE_BITS,
     QUANTUM_UJ,
-    SYNC_CONFIRMED,
     SEQ_BITS,
+    SYNC_CONFIRMED,
     TX_BITS,
     Abort,
     Aborted,
@@ -228,7 +228,7 @@ SUPERVISOR = SupervisorTable(
     (IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM, SYNCING, SYNC_BOOKS),
     [
         cell(IDLE, Begin, begin, to=WAIT_ACK),
-        cell(ACKED, Decide, h.decide, to=WAIT_CONFIRM),
+        cell(ACKED, Decide, common.decide, to=WAIT_CONFIRM),
         cell(WAIT_ACK, Ack, on_ack, to=(ACKED, STAY)),
         cell(OPEN, Committed, on_committed, to=(IDLE, STAY)),
         cell(WAIT_CONFIRM, Aborted, on_aborted, to=(IDLE, STAY)),

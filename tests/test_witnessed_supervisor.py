@@ -13,9 +13,8 @@ from hypothesis import strategies as st
 
 from canergy.check import Bounds, check
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
-from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing, common
+from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing
 from canergy.core import witnessed as W
-from canergy.core.inputs import Begin
 from canergy.core.state import ClientState, Phase, Session
 from canergy.core.steps import ClientStep, SessionStep
 from canergy.core.table import cell
@@ -164,11 +163,11 @@ SUP_COPY = Bounds(
 
 
 def test_an_older_copy_of_the_supervisors_state_file_creates_no_energy() -> None:
-    hardened = check("hardened", SUP_COPY, stop_at_first=True, engine="reference")
+    hardened = check("hardened", SUP_COPY, stop_at_first=True, engine="compact")
     assert hardened.counterexample is not None
     last, world = hardened.counterexample[-1]
     assert last.kind.value == "supervisor_old_copy" and world.ledger().dissipated < 0
-    witnessed = check("witnessed", SUP_COPY, engine="reference")
+    witnessed = check("witnessed", SUP_COPY, engine="compact")
     assert witnessed.complete and witnessed.violations == 0
     assert witnessed.states > check("witnessed", replace(SUP_COPY, supervisor_old_copies=0)).states
 
@@ -210,15 +209,6 @@ SY, ID, HO = Phase.SYNCING, Phase.IDLE, Phase.AWAIT_COMMAND
     ids=["books-not-taken", "answer-without-settling"],
 )
 def test_each_supervisor_witnessing_rule_is_needed(variant: Variant) -> None:
-    result = check(variant, SUP_COPY, stop_at_first=True, engine="reference")
+    result = check(variant, SUP_COPY, stop_at_first=True, engine="compact")
     assert result.counterexample is not None
     assert any(step.kind.value == "supervisor_old_copy" for step, _ in result.counterexample)
-
-
-def test_no_window_is_caught_with_two_transactions() -> None:
-    """Begin without the window: with two transactions the discarded history reaches past the
-    node's ltx + B."""
-    no_window = _broken(sup=cell(ID, Begin, common.begin, to=Phase.WAIT_ACK))
-    bounds = replace(SUP_COPY, transactions=2)
-    result = check(no_window, bounds, stop_at_first=True, engine="reference")
-    assert result.counterexample is not None

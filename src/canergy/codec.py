@@ -134,13 +134,27 @@ def _debit_fields(m: Message) -> tuple[int, ...]:
     return (m.nonce, m.flags, m.seq, m.amount_mj)
 
 
+_DEBIT_KINDS = (
+    Debit.DRAW,
+    Debit.START,
+    Debit.START | Debit.DRAW,
+    Debit.START | Debit.SYNC,
+    Debit.BOOKS,
+)
+
+
 def _debit_build(node: int, f: tuple[int, ...]) -> Message:
-    """A draw carries a non-zero amount and no nonce; a resume may carry none. No other flags."""
+    """A draw carries a non-zero amount and no nonce; a resume may carry none; the books carry
+    24 bits of Rc. No other flags."""
     msg = Debit(node, f[0], f[1], f[2], f[3])
-    if msg.flags & ~(Debit.DRAW | Debit.START) or (
-        not msg.is_resume and (msg.flags != Debit.DRAW or not msg.amount_mj or msg.nonce)
+    if (
+        msg.flags not in _DEBIT_KINDS
+        or (msg.flags == Debit.DRAW and (not msg.amount_mj or msg.nonce))
+        or (msg.is_books and msg.amount_mj > 0xFF)
     ):
-        raise DecodeError(DecodeErrorReason.OUT_OF_RANGE, f"not a draw nor a resume: {msg}")
+        raise DecodeError(
+            DecodeErrorReason.OUT_OF_RANGE, f"not a draw, a resume nor a SYNC's answer: {msg}"
+        )
     return msg
 
 

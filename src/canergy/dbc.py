@@ -56,8 +56,15 @@ _COMMENTS = {
     "FLAGS": "bit 0: level low; bit 1: actuator halted; bit 2: no books, joining",
     "RETURN_SEQ": "the node's current return number (as its RETURN frames carry it)",
     "WITNESS": "frames the node saw in its own name that it did not send, modulo 256",
-    "NONCE": "random number drawn by a node at a start (JOIN, RESUME); ADMIT echoes it",
-    "DEBIT_FLAGS": "bit 0: a draw for the actuator (not a return); bit 1: the node's start",
+    "NONCE": (
+        "random number drawn at a start (a node's JOIN or RESUME, a supervisor's SYNC, which "
+        "is an ADMIT a node did not ask for); the answer echoes it"
+    ),
+    "DEBIT_FLAGS": (
+        "0x01: a draw for the actuator; 0x02: the node's start (RESUME; 0x03: its pending "
+        "debit is a draw); 0x06: a SYNC's counts (SEQ, and ltx in AMOUNT's bits); 0x08: a "
+        "SYNC's books (Rc in mJ: low 16 bits in SEQ, high 8 in AMOUNT's bits); nothing else"
+    ),
     "FV": "freshness value: the full 32-bit tx (or return number, or nonce) the MAC covers",
     "MAC": "AES-128-CMAC over Data ID, FV and the classic data, truncated (SecOC-like)",
     "MSG_TYPE": "type code of the message this MAC frame authenticates",

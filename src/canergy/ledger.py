@@ -19,7 +19,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass, replace
 from typing import Any, NamedTuple
 
-from canergy.core.state import ClientState, Phase, Session, SupervisorState
+from canergy.core.state import SYNC_PHASES, ClientState, Phase, Session, SupervisorState
 from canergy.live.bus_keys import session_key
 
 
@@ -89,8 +89,18 @@ def node_return_in_flight(s: Session, c: ClientState) -> int:
 
 def node_usable(c: ClientState) -> int:
     """What the node can use: nothing while its supervisor has not confirmed its books
-    (witnessed rules, RESUMING); they count from the moment they are confirmed."""
-    return 0 if c.phase is Phase.RESUMING else c.usable
+    (witnessed rules, RESUMING, or SYNCING: answering a supervisor's start); they count from the
+    moment they are confirmed."""
+    return 0 if c.phase in (Phase.RESUMING, Phase.SYNCING) else c.usable
+
+
+def supervisor_usable(sup: SupervisorState) -> int:
+    """Us, but none of it while a start waits for a node's books (witnessed rules: the books
+    may be an older copy's, and grant nothing meanwhile): it counts from the moment every node
+    has confirmed them. A debt (Us below zero) always counts."""
+    if any(s.phase in SYNC_PHASES for s in sup.sessions):
+        return min(sup.usable, 0)
+    return sup.usable
 
 
 def ledger(
@@ -105,7 +115,7 @@ def ledger(
     return Ledger(
         initial=sup.initial,
         injected=sup.injected,
-        supervisor_usable=sup.usable,
+        supervisor_usable=supervisor_usable(sup),
         supervisor_reserved=sum(s.reserved for s, _ in pairs),
         clients_usable=sum(node_usable(c) for _, c in pairs),
         spent=sum(c.spent for _, c in pairs) + sum(r.spent for r in lost.values()),

@@ -70,7 +70,7 @@ class MsgType(IntEnum):
     RETURN = 0xC
     TELEMETRY = 0xD  # moves no energy; the protocol's safety never depends on it
     JOIN = 0xE  # hardened: a node without a valid NV record asks to be admitted
-    DEBIT = 0xF  # witnessed: a numbered draw for the actuator, or a start's debit count (RESUME)
+    DEBIT = 0xF  # witnessed: a numbered draw, a start's debit count (RESUME), a SYNC's answer
 
     @property
     def direction(self) -> Direction:
@@ -147,7 +147,10 @@ class Admit:
     """ADMIT: answer to JOIN(``nonce``): the supervisor's transaction and return counters.
 
     The node starts afresh from them, so every frame of its earlier life is below its counters
-    and moves nothing; the supervisor has written off what was open.
+    and moves nothing; the supervisor has written off what was open. Witnessed rules: it also
+    answers a RESUME or a SYNC's counts, and one that answers nothing the node asked (a nonce
+    not its own) is a supervisor's start, SYNC(``nonce``, ``tx``, ``seq``): the node answers it
+    with its books.
     """
 
     TYPE: ClassVar[MsgType] = MsgType.ADMIT
@@ -212,13 +215,18 @@ class Join:
 @fast_init
 @dataclass(frozen=True, slots=True)
 class Debit:
-    """DEBIT (witnessed rules), one of two kinds, acknowledged by RETURN_ACK(``seq``):
+    """DEBIT (witnessed rules), told apart by ``flags``:
 
-    - a *draw* (``flags`` = ``DRAW``): the node debited ``amount_mj`` for its actuator as debit
-      number ``seq`` (the numbering RETURN uses); the actuator gets it only on the ack;
-    - a *resume* (``START`` set): the node started with books whose last debit number is
-      ``seq``, ``amount_mj`` of it still unacknowledged (0: none; a draw when ``DRAW`` is set);
-      it moves nothing until ADMIT(``nonce``) confirms them or finds them behind.
+    - a *draw* (``DRAW``): the node debited ``amount_mj`` for its actuator as debit number
+      ``seq`` (the numbering RETURN uses), acknowledged by RETURN_ACK(``seq``); the actuator
+      gets it only on the ack;
+    - a *resume* (``START``, maybe ``DRAW``): the node started with books whose last debit number
+      is ``seq``, ``amount_mj`` of it still unacknowledged (0: none; a draw when ``DRAW`` is
+      set); it moves nothing until ADMIT(``nonce``) confirms them or finds them behind;
+    - the two frames that answer a supervisor's start, SYNC(``nonce``), each bound to its nonce:
+      *books* (``BOOKS``): the node's Rc in mJ, its low 16 bits in ``seq`` and its high 8 in
+      ``amount_mj``; and *counts* (``START | SYNC``): the node's last debit number ``seq`` and, in
+      ``amount_mj``, the last transaction it has settled (ltx, 16 bits on the wire).
     """
 
     TYPE: ClassVar[MsgType] = MsgType.DEBIT
@@ -232,10 +240,43 @@ class Debit:
     """Flag: the amount is a draw for the actuator (credited to nobody), not a return."""
     START: ClassVar[int] = 0x02
     """Flag: the node's start (RESUME), not a draw."""
+    SYNC: ClassVar[int] = 0x04
+    """Flag, with ``START``: the counts answering a supervisor's SYNC (``amount_mj`` is ltx)."""
+    BOOKS: ClassVar[int] = 0x08
+    """Flag, alone: the books answering a supervisor's SYNC (Rc in ``seq`` and ``amount_mj``)."""
 
     @property
     def is_resume(self) -> bool:
+        """A node's start: a RESUME, or the counts answering a SYNC."""
         return bool(self.flags & Debit.START)
+
+    @property
+    def is_counts(self) -> bool:
+        return self.flags == Debit.START | Debit.SYNC
+
+    @property
+    def is_books(self) -> bool:
+        return self.flags == Debit.BOOKS
+
+    @property
+    def pending_mj(self) -> int:
+        """A RESUME's unacknowledged debit (none in the answer to a SYNC: it is voided)."""
+        return 0 if self.flags & (Debit.SYNC | Debit.BOOKS) else self.amount_mj
+
+    @property
+    def credited_mj(self) -> int:
+        """The books' Rc in mJ (24 bits)."""
+        return self.seq | self.amount_mj << 16
+
+    @staticmethod
+    def books(node: int, nonce: int, credited_mj: int) -> Debit:
+        """The books frame answering SYNC(``nonce``): Rc (24 bits, mJ)."""
+        return Debit(node, nonce, Debit.BOOKS, credited_mj & 0xFFFF, credited_mj >> 16 & 0xFF)
+
+    @staticmethod
+    def counts(node: int, nonce: int, seq: int, last_tx: int) -> Debit:
+        """The counts frame answering SYNC(``nonce``): debit number and ltx (wire values)."""
+        return Debit(node, nonce, Debit.START | Debit.SYNC, seq, last_tx)
 
 
 @fast_init
@@ -266,6 +307,9 @@ LEVEL_MAX_MJ = (1 << 24) - 1
 WITNESS_BITS = 8
 
 NONCE_BITS = 16
+SYNC_CONFIRMED = 0x8000
+"""The ADMIT that confirms the answer to SYNC(n) carries n with this bit flipped (witnessed
+rules): a SYNC re-sent with the same nonce and counters never reads as its own confirmation."""
 
 ToClient = Intention | Commit | Abort | ReturnAck | StatusRequest | FinalAck | Admit
 ToSupervisor = Ack | Committed | Aborted | Return | Join | Debit

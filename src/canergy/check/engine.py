@@ -17,13 +17,14 @@ from array import array
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from canergy.check.model import UNIT, Model, World, initial_world
+from canergy.check.model import UNIT, Model, StepKind, World, initial_world, supervisor_nonce
 from canergy.check.nodes import INVALID, Keyed, Move, NodeMoves, NodeTable, Result
 from canergy.check.packed import NODE_BITS, Budgets, Guards, Layout
 from canergy.check.search import PROGRESS_EVERY
 from canergy.check.workers import expansions
 
 NODE_MASK = (1 << NODE_BITS) - 1
+K = StepKind
 
 
 @dataclass(slots=True)
@@ -61,6 +62,15 @@ class Engine:
         self.expander_from: int | None = None
         """The state from which a second process expanded (``workers``), if one did."""
         self.shifts = [NODE_BITS * (b.clients - 1 - p) for p in range(b.clients)]
+        self.power_offset, width = layout.offsets[3], layout.widths[3]
+        self.power_mask = (1 << width) - 1
+        self.copies = b.supervisor_old_copies > 0
+        self.olders: list[tuple[int, tuple[int, ...]]] = []
+        """The supervisor's older states (its Us, each position's session part), numbered."""
+        self._older_ids: dict[tuple[int, tuple[int, ...]], int] = {}
+        self.copy_charge = self.table.charge[K.SUPERVISOR_OLD_COPY]
+        self.lifts = model.variant.lifts_tx
+        """The rules have every start confirmed (witnessed): worlds may wait for books."""
 
     # -- encoding ----------------------------------------------------------------------
     def encode(self, w: World) -> int:
@@ -69,11 +79,27 @@ class Engine:
         nodes = [table.intern(table.content_of(w, p)) for p in range(len(w.clients))]
         if self.symmetry:
             nodes.sort(key=table.keys.__getitem__)
-        return self.layout.pack(w.sup.usable, nodes, self.layout.pack_counters(w))
+        older = 0
+        if w.sup_older is not None:
+            part = table.parts.part
+            older = self.older(w.sup_older.usable, tuple(part(s) for s in w.sup_older.sessions))
+        return self.layout.pack(w.sup.usable, nodes, self.layout.pack_counters(w), older)
 
     def decode(self, code: int) -> World:
         usable, nodes, packed = self.layout.unpack(code)
-        return self.table.world(usable, nodes, self.layout.unpack_counters(packed))
+        older = self.olders[self.layout.older(code)] if self.copies else None
+        return self.table.world(usable, nodes, self.layout.unpack_counters(packed), older)
+
+    def older(self, usable: int, sessions: tuple[int, ...]) -> int:
+        """The number of the supervisor state with this Us and these session parts."""
+        key = (usable, sessions)
+        i = self._older_ids.get(key)
+        if i is None:
+            i = self._older_ids[key] = len(self.olders)
+            if i >> self.layout.older_bits:
+                raise OverflowError("more supervisor states than a world's code has room for")
+            self.olders.append(key)
+        return i
 
     def path(self, state: int) -> list[World]:
         """The stored worlds from the root to state number ``state``."""
@@ -86,6 +112,8 @@ class Engine:
     def successors(self, code: int) -> list[int]:
         """The canonical codes of the world's successors in ``Model.steps`` order, one per
         transition (repeats included)."""
+        if self.copies:
+            return self._successors_with_copies(code)
         table, layout, in_flight = self.table, self.layout, self.model.bounds.in_flight
         counter_bits = layout.counter_bits
         packed = code & layout.counter_mask
@@ -94,7 +122,9 @@ class Engine:
         frames = 0
         for c in cs:
             frames += table.frames[c]
-        ok = self.guards.table(packed, usable, frames < in_flight)
+        syncing = self.table.syncing
+        waiting = self.lifts and any(syncing[c] for c in cs)
+        ok = self.guards.table(packed, usable, frames < in_flight, waiting)
         nms = [table.moves[p][c] or table.moves_of(c, p) for p, c in enumerate(cs)]
         if len(nms) == 2:  # the common case, with fewer steps
             nm0, nm1 = nms
@@ -114,11 +144,63 @@ class Engine:
         out: list[int] = []
         self._add(out, before, ok, usable, cs, packed, in_flight - frames)
         if ok[self.guards.power]:
-            new, r = self._restart(nms)
+            new, r = self._restart(nms, packed >> self.power_offset & self.power_mask)
             if r[0] >= 0 and r[3] <= in_flight - frames:
                 out.append(self._place(usable, new, packed, r))
         if after:
             self._add(out, after, ok, usable, cs, packed, in_flight - frames)
+        return out
+
+    def _successors_with_copies(self, code: int) -> list[int]:
+        """``successors`` when the supervisor's state file has an older copy: every step that
+        writes it keeps the state before as that copy, and the copy may come back (no symmetry:
+        the copy holds every session)."""
+        table, layout, in_flight = self.table, self.layout, self.model.bounds.in_flight
+        usable, cs, packed = layout.unpack(code)
+        older = layout.older(code)
+        frames = sum(table.frames[c] for c in cs)
+        room = in_flight - frames
+        waiting = self.lifts and any(table.syncing[c] for c in cs)
+        ok = self.guards.table(packed, usable, frames < in_flight, waiting)
+        nms = [table.moves[p][c] or table.moves_of(c, p) for p, c in enumerate(cs)]
+        sessions = tuple(table.contents[c].session for c in cs)
+        out: list[int] = []
+
+        def add(new: list[int], credit: int, delta: int, wrote: bool, keep: int) -> None:
+            mine = self.older(usable, sessions) if wrote else keep
+            out.append(layout.pack(usable + credit, new, packed + delta, mine))
+
+        moves = [mv for nm in nms for mv in nm.session] + _merged(nms)
+        moves += [mv for nm in nms for mv in nm.client]
+        for mv in moves:
+            if ok[mv[1]]:
+                r = mv[0] or table.resolve(mv)
+                if r[0] >= 0 and r[3] <= room:
+                    new = cs.copy()
+                    new[mv[2]] = r[0]
+                    add(new, r[1], r[2], table.wrote(cs[mv[2]], r[0], r[1]), older)
+        if ok[self.guards.power]:
+            new, r = self._restart(nms, packed >> self.power_offset & self.power_mask)
+            if r[0] >= 0 and r[3] <= room:
+                wrote = r[1] != 0 or any(table.wrote(a, b, 0) for a, b in zip(cs, new, strict=True))
+                add(new, r[1], r[2], wrote, older)
+        back_usable, back = self.olders[older]
+        if ok[self.guards.sup_copy] and (back_usable, back) != (usable, sessions):
+            copied = layout.unpack_counters(packed)[9] + 1
+            nonce = supervisor_nonce(K.SUPERVISOR_OLD_COPY, 0, copied)
+            rs = [table.restored(c, p, back[p], nonce) for p, c in enumerate(cs)]
+            if all(r[0] >= 0 for r in rs) and sum(r[3] for r in rs) <= room:
+                credit = sum(r[1] for r in rs)
+                new = [r[0] for r in rs]
+                out.append(layout.pack(back_usable + credit, new, packed + self.copy_charge, older))
+        after = [mv for nm in nms for mv in nm.forge] + _merged(nms, replays=True)
+        for mv in after:
+            if ok[mv[1]]:
+                r = mv[0] or table.resolve(mv)
+                if r[0] >= 0 and r[3] <= room:
+                    new = cs.copy()
+                    new[mv[2]] = r[0]
+                    add(new, r[1], r[2], table.wrote(cs[mv[2]], r[0], r[1]), older)
         return out
 
     def _add(
@@ -166,12 +248,14 @@ class Engine:
             new.sort(key=self.table.keys.__getitem__)
         return self.layout.pack(usable + r[1], new, packed + r[2])
 
-    def _restart(self, nms: list[NodeMoves]) -> tuple[list[int], Result]:
-        """A supervisor power loss restarts every session: each node's share, combined."""
+    def _restart(self, nms: list[NodeMoves], before: int) -> tuple[list[int], Result]:
+        """A supervisor power loss restarts every session: each node's share, combined;
+        ``before``: the power losses before it (the start's nonce)."""
         new: list[int] = []
         credit = added = delta = 0
         for nm in nms:
-            r = nm.restart[0] or self.table.resolve(nm.restart)
+            move = nm.restart[before]
+            r = move[0] or self.table.resolve(move)
             if r[0] < 0:
                 return new, INVALID
             new.append(r[0])
@@ -238,6 +322,7 @@ class _Store:
         b = engine.model.bounds
         self.initial = b.units * UNIT
         self.counter_bits, self.nodes_bits = engine.layout.counter_bits, engine.layout.nodes_bits
+        self.usable_shift = self.nodes_bits + engine.layout.older_bits
 
     def add(self, parent: int, code: int, depth: int = 0, *, checked: bool = True) -> bool:
         """Store ``code``, reached from state ``parent``, unless it is stored or subsumed, and
@@ -254,14 +339,17 @@ class _Store:
             self.progress(len(codes), depth, time.perf_counter() - self.start)
         if not checked:
             return False
-        held, quiet = engine.table.held, engine.table.quiet
+        held, quiet, syncing = engine.table.held, engine.table.quiet, engine.table.syncing
         nodes = code >> self.counter_bits
-        dissipated = self.initial - (nodes >> self.nodes_bits)  # the ledger: less Us...
-        still = True
+        usable = nodes >> self.usable_shift
+        dissipated = self.initial
+        still, waiting = True, False
         for shift in engine.shifts:
             c = nodes >> shift & NODE_MASK
-            dissipated -= held[c]  # ...less what each node holds
+            dissipated -= held[c]  # the ledger: less what each node holds...
             still = still and quiet[c]
+            waiting = waiting or syncing[c]
+        dissipated -= min(usable, 0) if waiting else usable  # ...less Us (none while waiting)
         if dissipated < 0:
             out.violations += 1
             self.violating.add(len(codes) - 1)

@@ -126,8 +126,6 @@ def check(
     symmetry = symmetry and not b.supervisor_old_copies
     reducer = Reducer(b.clients, symmetry=symmetry, subsumption=subsumption)
     result = CheckResult(v.name, b, symmetry=reducer.symmetry, engine=engine)
-    if b.supervisor_old_copies and engine != "reference":
-        raise ValueError("the supervisor's old copies need the reference engine")
     if engine == "compact":
         return _check_compact(model, reducer, result, max_states, stop_at_first, progress, workers)
     if engine != "reference":

@@ -16,6 +16,7 @@ from enum import Enum
 
 from canergy.check.attacker import forgeable
 from canergy.core.actions import Send
+from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import (
     COMMAND_TIMEOUT,
     POWER_LOSS,
@@ -30,7 +31,7 @@ from canergy.core.inputs import (
 )
 from canergy.core.state import ClientState, Decision, Phase, Session, SupervisorState
 from canergy.core.steps import Actions
-from canergy.core.supervisor import apply_session
+from canergy.core.supervisor import apply_session, unconfirmed
 from canergy.core.table import Event
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant
@@ -45,6 +46,13 @@ old copy with ``OLD_COPY_NONCE + n`` (JOIN nonces are 1, 2...): every start draw
 earlier start drew, as a random 16-bit one does but for a chance of 2^-16 (rules that confirm a
 start, ``witnessed``, use it; the others ignore it)."""
 OLD_COPY_NONCE = 0x200
+SUPERVISOR_NONCE = 0x300
+"""The supervisor's n-th start of a run (a power loss, or with ``SUPERVISOR_COPY_NONCE`` an old
+copy) sends SYNC with nonce ``SUPERVISOR_NONCE + n``: no earlier start drew it (rules that have
+every start confirmed, ``witnessed``, use it)."""
+SUPERVISOR_COPY_NONCE = 0x380
+WINDOW = 1
+"""The checker's window B (``Timing.window``): 1, so that it binds within the bounds."""
 Flight = frozenset[tuple[Message, int]]
 """The multiset of frames in flight as (message, copies): canonical without sorting."""
 
@@ -84,7 +92,11 @@ class Bounds:
 
     def timing(self) -> Timing:
         return Timing(
-            response_timeout_us=0, retries=self.retries, command_timeout_us=0, return_retry_us=0
+            response_timeout_us=0,
+            retries=self.retries,
+            command_timeout_us=0,
+            return_retry_us=0,
+            window=WINDOW,
         )
 
 
@@ -161,8 +173,6 @@ TIMER_KINDS = frozenset({K.SUPERVISOR_TIMER, K.COMMAND_TIMER, K.RETURN_TIMER})
 SUPERVISOR_KINDS = frozenset({K.BEGIN, K.DECIDE, K.SUPERVISOR_TIMER})
 POWER_LOSS_KINDS = frozenset({K.CLIENT_POWER_LOSS, K.SUPERVISOR_POWER_LOSS})
 ATTACKER_KINDS = frozenset({K.FORGE, K.REPLAY})
-REFERENCE_ONLY_KINDS = frozenset({K.SUPERVISOR_OLD_COPY})
-"""Steps the compact engine does not take (``check`` refuses their bounds there)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -210,14 +220,22 @@ class Model:
         self.variant = variant
         self.bounds = bounds
         self.timing = bounds.timing()
+        b = bounds
+        self.tx_limit = b.transactions + b.extra_ids
+        """The highest transaction number a world may reach: what begins, and with the rules
+        that lift it at a start (``witnessed``) one window per start or frame that lifts it."""
+        if variant.lifts_tx:
+            lifts = b.power_losses + b.supervisor_old_copies + b.old_copies + b.duplicates + 1
+            self.tx_limit += self.timing.window * lifts
 
     # -- enumeration -----------------------------------------------------------------
     def steps(self, w: World) -> Iterator[Step]:
         b = self.bounds
         may_time_out = b.timeouts is None or w.timed_out < b.timeouts
         may_lose_power = w.power_lost < b.power_losses
+        waiting = bool(unconfirmed(w.sup))
         for s in w.sup.sessions:
-            if s.phase is Phase.IDLE and w.started < b.transactions:
+            if s.phase is Phase.IDLE and w.started < b.transactions and not waiting:
                 for units in range(1, min(w.sup.usable // UNIT, b.units) + 1):
                     yield Step(K.BEGIN, s.node, units=units)
             if s.phase is Phase.ACKED:
@@ -261,13 +279,19 @@ class Model:
 
     # -- application -----------------------------------------------------------------
     def apply(self, w: World, step: Step) -> World | None:
-        """The world after ``step``, or None when it leaves the bounds."""
-        new = self._apply(self.charge(w, step.kind), step)
+        """The world after ``step``, or None when it leaves the bounds (or the rules refuse a
+        BEGIN: beyond the witnessed rules' window)."""
+        try:
+            new = self._apply(self.charge(w, step.kind), step)
+        except LocalProtocolError:
+            if step.kind is not K.BEGIN:
+                raise
+            return None
         return new if new is not None and self.within(new) else None
 
     def within(self, w: World) -> bool:
         """Within the frames in flight and the transaction ids the bounds allow."""
-        limit = self.bounds.transactions + self.bounds.extra_ids
+        limit = self.tx_limit
         return w.frames() <= self.bounds.in_flight and all(s.tx <= limit for s in w.sup.sessions)
 
     def charge(self, w: World, kind: StepKind) -> World:
@@ -299,9 +323,7 @@ class Model:
         if step.kind is K.SUPERVISOR_OLD_COPY and w.sup_older is not None:
             w = evolve(w, sup=w.sup_older)  # the old state file comes back; it restarts from it
         if step.kind in (K.SUPERVISOR_POWER_LOSS, K.SUPERVISOR_OLD_COPY):
-            for i in range(len(w.sup.sessions)):
-                w = self.restart_session(w, i)
-            return w
+            return self.restart(w, supervisor_nonce(step.kind, w.power_lost, w.sup_old_copied))
         i = step.node - 1
         if step.kind is K.NV_LOST:
             c, lost = w.clients[i], dict(w.lost_records)
@@ -379,9 +401,24 @@ class Model:
         assert isinstance(msg, ToSupervisor)
         return self._to_session(w, i, msg)
 
-    def restart_session(self, w: World, i: int) -> World:
-        """Session ``i``'s share of a supervisor power loss (it touches no other node)."""
-        return self._to_session(w, i, POWER_LOSS)
+    def restart(self, w: World, nonce: int) -> World:
+        """A supervisor start: every session restarts; the state file is written once, after
+        them all (the copy before it is kept when it changed)."""
+        before, older = w.sup, w.sup_older
+        for i in range(len(w.sup.sessions)):
+            w = self.restart_session(w, i, nonce)
+        if older is None:
+            return w
+        rules = self.variant.supervisor
+        wrote = w.sup.usable != before.usable or any(
+            rules.persistent(a) != rules.persistent(b)
+            for a, b in zip(before.sessions, w.sup.sessions, strict=True)
+        )
+        return evolve(w, sup_older=before if wrote else older)
+
+    def restart_session(self, w: World, i: int, nonce: int = 0) -> World:
+        """Session ``i``'s share of a supervisor start (it touches no other node)."""
+        return self._to_session(w, i, PowerLoss(nonce) if nonce else POWER_LOSS)
 
     def _to_session(self, w: World, i: int, event: Event) -> World:
         rules = self.variant.supervisor
@@ -420,6 +457,13 @@ _DATALESS: dict[StepKind, Event] = {
     K.RETURN_TIMER: RETURN_TIMEOUT,
 }
 """The events of steps that carry no data."""
+
+
+def supervisor_nonce(kind: StepKind, power_lost: int, old_copied: int) -> int:
+    """The SYNC nonce of a supervisor start, from the run counters once the step is charged."""
+    if kind is K.SUPERVISOR_OLD_COPY:
+        return SUPERVISOR_COPY_NONCE + old_copied
+    return SUPERVISOR_NONCE + power_lost
 
 
 def restored_ghost(before: LostRecord, c: ClientState, older: ClientState) -> LostRecord:

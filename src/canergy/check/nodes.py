@@ -32,6 +32,7 @@ from canergy.check.model import (
     World,
     message_key,
     restored_ghost,
+    supervisor_nonce,
 )
 from canergy.check.packed import NODE_BITS, Guards, Layout
 from canergy.check.parts import Parts
@@ -43,8 +44,9 @@ from canergy.check.reduce import (
     seen_key,
     signature,
 )
+from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import POWER_LOSS, PowerLoss
-from canergy.core.state import ClientState, Phase, SupervisorState
+from canergy.core.state import SYNC_PHASES, ClientState, Phase, SupervisorState
 from canergy.core.table import Event
 from canergy.ledger import NOT_LOST, LostRecord
 
@@ -103,13 +105,14 @@ class NodeMoves:
         "session",
     )
 
-    def __init__(self, restart: Move) -> None:
+    def __init__(self, restart: list[Move]) -> None:
         self.session: list[Move] = []
         self.flight: list[Keyed] = []
         self.flight_moves: list[Move] = []
         """The frames' moves alone (when no other node has frames in flight)."""
         self.client: list[Move] = []
         self.restart = restart
+        """A supervisor power loss: its share, by how many power losses came before."""
         self.forge: list[Move] = []
         self.replay: list[Keyed] = []
         self.attacks = False
@@ -127,7 +130,7 @@ class NodeTable:
         self.parts = Parts(model)
         self.charge = layout.charges(model)
         self.total = b.units * UNIT
-        self.tx_limit = b.transactions + b.extra_ids
+        self.tx_limit = model.tx_limit
         self.contents: list[Content] = []
         self.ids: dict[Content, int] = {}
         self.keys: list[NodeKey] = []
@@ -135,6 +138,9 @@ class NodeTable:
         """The node's share of the ledger's held energy (its Ts, Uc, spent and return in flight,
         less the overlap): the ledger is a sum over nodes plus Us."""
         self.quiet: list[bool] = []
+        self.syncing: list[bool] = []
+        """The node's session waits for its books after a start (witnessed): no grant to anyone,
+        and the ledger counts none of Us (``ledger.supervisor_usable``)."""
         self.frames: list[int] = []
         self.bare: list[int] = []
         """The same content with nothing seen (subsumption compares what was seen apart)."""
@@ -147,6 +153,8 @@ class NodeTable:
         self._seen_keys: dict[int, list[Signature]] = {}
         self._solo: dict[tuple[int, int, LostRecord | None], tuple[int, bool]] = {}
         self._specs: dict[tuple[object, ...], list[Spec]] = {}
+        self._wrote: dict[tuple[int, int], bool] = {}
+        self._restored: dict[tuple[int, int, int, int], Result] = {}
 
     # -- contents ----------------------------------------------------------------------
     def intern(self, c: Content) -> int:
@@ -175,6 +183,7 @@ class NodeTable:
         held, quiet = self._held_and_quiet(c.session, c.client, c.ghost)
         self.held.append(held)
         self.quiet.append(quiet and not frames)
+        self.syncing.append(self.parts.objects[c.session].phase in SYNC_PHASES)
         self.frames.append(frames)
         mask = 0
         for frame in self.parts.seens[c.seen]:
@@ -248,10 +257,22 @@ class NodeTable:
             [named(m, n) for m in self.parts.seens[x.seen]],
         )
 
-    def world(self, usable: int, nodes: list[int], counted: tuple[int, ...]) -> World:
-        """The reference model's world with these contents at these positions."""
+    def world(
+        self,
+        usable: int,
+        nodes: list[int],
+        counted: tuple[int, ...],
+        older: tuple[int, tuple[int, ...]] | None = None,
+    ) -> World:
+        """The reference model's world with these contents at these positions (and ``older``:
+        the supervisor's older state, its Us and each position's session part)."""
         xs = [self.objects(c, p + 1) for p, c in enumerate(nodes)]
-        started, lost, dup, power, timed, nv, old, forged, replayed, _ = counted  # no sup copy
+        started, lost, dup, power, timed, nv, old, forged, replayed, sup_old = counted
+        sup_older = None
+        if older is not None:
+            named = self.parts.named
+            sessions = tuple(named(x, p + 1) for p, x in enumerate(older[1]))
+            sup_older = SupervisorState(self.total, older[0], 0, sessions)
         return World(
             SupervisorState(self.total, usable, 0, tuple(x.session for x in xs)),
             tuple(x.client for x in xs),
@@ -268,6 +289,8 @@ class NodeTable:
             forged=forged,
             replayed=replayed,
             seen=frozenset(m for x in xs for m in x.seen),
+            sup_older=sup_older,
+            sup_old_copied=sup_old,
         )
 
     # -- listing moves -----------------------------------------------------------------
@@ -288,8 +311,7 @@ class NodeTable:
             return [(spec[0], i, [None, spec[1], p, c, spec]) for i, spec in enumerate(specs)]
 
         n, b = p + 1, self.bounds
-        restart = self._listed(("restart", n), lambda n: [(NO_KEY, K.SUPERVISOR_POWER_LOSS, 0)])
-        nm = NodeMoves(moves(restart)[0])
+        nm = NodeMoves(moves(self._listed(("restart", n), self._restart_steps)))
         nm.session = moves(self._listed(("session", x.session, n), self._session_steps))
         nm.flight = keyed(self._listed(("flight", x.flight, n), self._flight_steps))
         nm.client = moves(self._listed(("client", x.client, x.older, n), self._client_steps))
@@ -316,7 +338,7 @@ class NodeTable:
             event = arg
             side = CLIENT if self.parts.to_client(arg) else SESSION
         elif kind is K.SUPERVISOR_POWER_LOSS:
-            event, side = POWER_LOSS, SESSION
+            event, side = (PowerLoss(arg) if arg else POWER_LOSS), SESSION
         elif kind is K.NV_OLD_COPY:
             event, side = PowerLoss(arg), CLIENT
         elif kind is K.NV_BACKUP:  # nothing is fed to a node: ``_apply`` copies the record
@@ -325,6 +347,12 @@ class NodeTable:
             event = self.model.event(Step(kind, units=arg, commit=bool(arg), nonce=arg))
             side = SESSION if kind in SUPERVISOR_KINDS else CLIENT
         return (key, self.guards.of(kind, arg), kind, arg, self.charge[kind], event, side)
+
+    def _restart_steps(self, n: int) -> list[Listed]:
+        """A supervisor power loss, one per SYNC nonce it may draw (the n-th start's)."""
+        starts = range(self.bounds.power_losses)
+        nonces = [supervisor_nonce(K.SUPERVISOR_POWER_LOSS, p + 1, 0) for p in starts] or [0]
+        return [(NO_KEY, K.SUPERVISOR_POWER_LOSS, nonce) for nonce in nonces]
 
     # As ``Model.steps`` lists them, for any run counters (``Guards`` checks those per world):
     def _session_steps(self, session: int, n: int) -> list[Listed]:
@@ -376,6 +404,36 @@ class NodeTable:
     def _key(self, frame: int, n: int) -> tuple[int, str]:
         return message_key(self.parts.named(frame, n))
 
+    # -- the supervisor's state file (its old copies) ---------------------------------------
+    def wrote(self, before: int, after: int, credit: int) -> bool:
+        """A step from content ``before`` to ``after`` wrote the supervisor's state file: its
+        session's record changed or Us moved (``Model._to_session``)."""
+        if credit:
+            return True
+        a, b = self.contents[before].session, self.contents[after].session
+        if a == b:
+            return False
+        key = (a, b)
+        out = self._wrote.get(key)
+        if out is None:
+            persistent, objects = self.model.variant.supervisor.persistent, self.parts.objects
+            out = self._wrote[key] = persistent(objects[a]) != persistent(objects[b])
+        return out
+
+    def restored(self, c: int, p: int, session: int, nonce: int) -> Result:
+        """Content ``c`` at position ``p`` with its session put back to part ``session`` and
+        restarted with SYNC nonce ``nonce`` (the supervisor's old copy comes back)."""
+        key = (c, p, session, nonce)
+        out = self._restored.get(key)
+        if out is None:
+            back = self.intern(self.contents[c]._replace(session=session))
+            spec = self._spec(NO_KEY, K.SUPERVISOR_POWER_LOSS, nonce)
+            r = self._apply(back, p + 1, spec)
+            out = self._restored[key] = (r[0], r[1], 0, self.frames[r[0]] - self.frames[c])
+            if r[0] < 0:
+                out = INVALID
+        return out
+
     # -- applying moves ----------------------------------------------------------------
     def resolve(self, mv: Move) -> Result:
         """The move's result, worked out (as ``Model.apply`` does) on first use."""
@@ -411,7 +469,12 @@ class NodeTable:
             client = older
         assert event is not None or side == CHANNEL
         if side == SESSION:
-            session, credit, sent = parts.session_step(session, n, event)  # type: ignore[arg-type]
+            try:
+                session, credit, sent = parts.session_step(session, n, event)  # type: ignore[arg-type]
+            except LocalProtocolError:  # a BEGIN the rules refuse (``Model.apply``)
+                if kind is not K.BEGIN:
+                    raise
+                return INVALID
         elif side == CLIENT:
             old = client
             client, sent, persisted = parts.client_step(old, n, event)  # type: ignore[arg-type]

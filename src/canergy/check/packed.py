@@ -46,7 +46,7 @@ class Layout:
             bounds.old_copies,
             bounds.forgeries,
             bounds.replays,
-            bounds.supervisor_old_copies,  # 0 here: the compact engine does not take them
+            bounds.supervisor_old_copies,
         )
         self.offsets: list[int] = []
         self.widths: list[int] = []
@@ -63,6 +63,9 @@ class Layout:
         self.clients = clients = bounds.clients
         self.node_mask = (1 << NODE_BITS) - 1
         self.nodes_bits = NODE_BITS * clients
+        self.older_bits = NODE_BITS if bounds.supervisor_old_copies else 0
+        """With the supervisor's old copies: the number of its state before its last write,
+        between Us and the nodes (``Engine.older``)."""
 
     def charges(self, model: Model) -> dict[StepKind, int]:
         """What each kind of step adds to the packed counters (``Model.charge``; the channel
@@ -85,11 +88,15 @@ class Layout:
         """Packed counters ``a`` no higher than ``b`` in any field."""
         return ((b | self.spare) - a) & self.spare == self.spare
 
-    def pack(self, usable: int, nodes: list[int], packed_counters: int) -> int:
-        code = usable
+    def pack(self, usable: int, nodes: list[int], packed_counters: int, older: int = 0) -> int:
+        code = usable << self.older_bits | older
         for node in nodes:
             code = code << NODE_BITS | node
         return code << self.counter_bits | packed_counters
+
+    def older(self, code: int) -> int:
+        """The number of the supervisor's older state (0 when its old copies are off)."""
+        return code >> (self.counter_bits + self.nodes_bits) & ((1 << self.older_bits) - 1)
 
     def unpack(self, code: int) -> tuple[int, list[int], int]:
         """(usable, node contents, packed counters)."""
@@ -99,7 +106,7 @@ class Layout:
             rest >> (NODE_BITS * (self.clients - 1 - p)) & self.node_mask
             for p in range(self.clients)
         ]
-        return rest >> self.nodes_bits, nodes, packed
+        return rest >> (self.nodes_bits + self.older_bits), nodes, packed
 
 
 class Guards:
@@ -119,7 +126,8 @@ class Guards:
         # then one per client restart nonce (the power loss or old copy it is the next one of)
         self._restart = self._nv + bounds.nv_losses + 1
         self._old_copy = self._restart + bounds.power_losses
-        self.size = self._old_copy + bounds.old_copies
+        self.sup_copy = self._old_copy + bounds.old_copies
+        self.size = self.sup_copy + 1
         self.power = power
         self._by_kind = {
             K.DECIDE: self.always,
@@ -138,7 +146,7 @@ class Guards:
             K.FORGE: forge,
             K.REPLAY: replay,
         }
-        self._tables: dict[tuple[int, int, bool], tuple[bool, ...]] = {}
+        self._tables: dict[tuple[int, int, bool, bool], tuple[bool, ...]] = {}
 
     def of(self, kind: StepKind, arg: int = 0) -> int:
         """The condition a step needs: a BEGIN of ``arg`` units, an NV loss with nonce ``arg``
@@ -153,22 +161,25 @@ class Guards:
             return self._old_copy + arg - OLD_COPY_NONCE - 1
         return self._by_kind[kind]
 
-    def table(self, packed: int, usable: int, room: bool) -> tuple[bool, ...]:
-        """Which conditions hold with these counters, this usable budget and (``room``) fewer
-        frames in flight than the bound; memoized."""
-        key = (packed, usable, room)
+    def table(
+        self, packed: int, usable: int, room: bool, waiting: bool = False
+    ) -> tuple[bool, ...]:
+        """Which conditions hold with these counters, this usable budget, (``room``) fewer
+        frames in flight than the bound and (``waiting``) a start waiting for a node's books
+        (no BEGIN); memoized."""
+        key = (packed, usable, room, waiting)
         table = self._tables.get(key)
         if table is None:
             b = self.bounds
             cap = min(max(usable // UNIT, 0), b.units)
-            started, lost, dup, power, timed, nv, old, forged, replayed, _ = (
+            started, lost, dup, power, timed, nv, old, forged, replayed, sup_old = (
                 self.layout.unpack_counters(packed)
             )
             k = self._by_kind
             ok = [False] * self.size
             ok[self.always] = True
             for units in range(1, b.units + 1):
-                ok[units] = started < b.transactions and units <= cap
+                ok[units] = started < b.transactions and units <= cap and not waiting
             ok[k[K.LOSE]] = lost < b.losses
             ok[k[K.DUPLICATE]] = dup < b.duplicates and room
             ok[k[K.SUPERVISOR_TIMER]] = b.timeouts is None or timed < b.timeouts
@@ -182,6 +193,7 @@ class Guards:
                 ok[self._restart + n] = power == n
             for n in range(b.old_copies):
                 ok[self._old_copy + n] = old == n
+            ok[self.sup_copy] = sup_old < b.supervisor_old_copies
             table = self._tables[key] = tuple(ok)
         return table
 

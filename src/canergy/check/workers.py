@@ -8,7 +8,8 @@ states, their numbers and the counterexample are the same. The gain is what stor
 it pays only in large searches: the expander is forked once ``TWO_FROM`` states are stored.
 
 Node contents are numbered by the expander alone; with each batch it sends what the storing side
-needs of the contents it numbered since (``NodeTable.held``, ``quiet``, ``bare``, ``seen``), and
+needs of the contents it numbered since (``NodeTable.held``, ``quiet``, ``syncing``, ``bare``,
+``seen``), and
 at the end the tables that decode a code into a world.
 """
 
@@ -99,9 +100,10 @@ def _pipelined(engine: Engine, violating: set[int], first: int) -> Iterator[Expa
                     break  # nothing stored is left to expand: the search is over
                 numbered, expanded = _receive(answers, expander)
                 waiting -= 1
-                for held, quiet, bare, seen in numbered:
+                for held, quiet, syncing, bare, seen in numbered:
                     table.held.append(held)
                     table.quiet.append(quiet)
+                    table.syncing.append(syncing)
                     table.bare.append(bare)
                     table.seen.append(seen)
                 ready.extend(expanded)
@@ -133,7 +135,7 @@ def _expand(engine: Engine, requests: Queue[Any], answers: Queue[Any]) -> None:
     while (batch := requests.get()) is not None:
         expanded = [(i, engine.successors(code)) for i, code in batch]
         numbered = [
-            (table.held[c], table.quiet[c], table.bare[c], table.seen[c])
+            (table.held[c], table.quiet[c], table.syncing[c], table.bare[c], table.seen[c])
             for c in range(known, len(table.contents))
         ]
         known = len(table.contents)

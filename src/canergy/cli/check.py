@@ -90,7 +90,7 @@ def _bound_flags(p: argparse.ArgumentParser, d: Any, chain_in_flight: int) -> No
         type=count,
         default=d.supervisor_old_copies,
         help="supervisor starts from its state as it was before its last write (a backup put "
-        "back; needs --engine reference; default 0)",
+        "back; default 0)",
     )
     p.add_argument(
         "--forgeries",

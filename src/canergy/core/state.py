@@ -20,6 +20,13 @@ class Phase(IntEnum):
     AWAIT_SUPERVISOR = 6  # client (paper): committed or aborted, awaiting the final ACK
     JOINING = 7  # client (hardened): no valid record; JOIN sent, awaiting ADMIT
     RESUMING = 8  # client (witnessed): started with a record; RESUME sent, awaiting ADMIT
+    SYNCING = 9  # witnessed: supervisor: started, SYNC sent; client: SYNC answered, awaiting ADMIT
+    SYNC_BOOKS = 10  # supervisor (witnessed): the node's Rc taken, awaiting its counts
+
+
+SYNC_PHASES = frozenset({Phase.SYNCING, Phase.SYNC_BOOKS})
+"""A supervisor's session in these waits for its node to confirm the books after a start: the
+supervisor grants nothing to anyone meanwhile (``Supervisor.unconfirmed``)."""
 
 
 class Decision(IntEnum):
@@ -47,7 +54,10 @@ class Session:
     node (committed, written off, or in the paper variant lost with a reset).
     ``returns_credited`` is the number of the last RETURN credited. ``tries`` and ``deadline``
     are volatile. Witnessed rules: ``resume_*`` is the last RESUME answered (its nonce, the
-    node's debit number and the number it voided), so that a re-sent copy gets the same answer.
+    node's debit number and the number it voided), so that a re-sent copy gets the same answer;
+    ``witness`` is W, the highest transaction the node has shown it persisted (a transaction
+    begins only within ``Timing.window`` of it), and ``sync_nonce`` the nonce of the SYNC this
+    start sent (both volatile: every start sets them again).
     """
 
     node: int
@@ -63,6 +73,8 @@ class Session:
     resume_nonce: int = 0
     resume_from: int = 0
     resume_to: int = 0
+    witness: int = 0
+    sync_nonce: int = 0
 
 
 @fast_init

@@ -14,8 +14,8 @@ from typing import Protocol
 from canergy.core.actions import Action, Persist
 from canergy.core.common import check_counters
 from canergy.core.errors import LocalProtocolError
-from canergy.core.inputs import POWER_LOSS, RESPONSE_TIMEOUT, Begin, Decide
-from canergy.core.state import Decision, Phase, Session, SupervisorState
+from canergy.core.inputs import RESPONSE_TIMEOUT, Begin, Decide, PowerLoss
+from canergy.core.state import SYNC_PHASES, Decision, Phase, Session, SupervisorState
 from canergy.core.steps import SessionStep
 from canergy.core.table import Event
 from canergy.core.timing import Timing
@@ -38,6 +38,13 @@ def apply_session(st: SupervisorState, i: int, step: SessionStep) -> SupervisorS
     sessions = list(st.sessions)
     sessions[i] = step.session
     return evolve(st, usable=st.usable + step.credit, sessions=tuple(sessions))
+
+
+def unconfirmed(st: SupervisorState, without: Iterable[int] = ()) -> tuple[int, ...]:
+    """The nodes whose books this start still waits for (witnessed rules), but those in
+    ``without``: while any is left the supervisor grants nothing to anyone."""
+    skip = frozenset(without)
+    return tuple(s.node for s in st.sessions if s.phase in SYNC_PHASES and s.node not in skip)
 
 
 def inject_into(st: SupervisorState, amount: int) -> SupervisorState:
@@ -97,7 +104,12 @@ class Supervisor:
         variant: str | Variant = "hardened",
         timing: Timing | None = None,
         state: SupervisorState | None = None,
+        start_without: Iterable[int] = (),
     ) -> None:
+        """``start_without``: nodes a start does not wait for (witnessed rules). The risk the
+        operator takes: such a node may hold energy the restored books count in Us again (up
+        to all it received after the copy was taken; nobody can know how much), and Us grants
+        it to the other nodes. The node's own session still waits for its books."""
         self.variant = get_variant(variant) if isinstance(variant, str) else variant
         self.rules = self.variant.supervisor
         self.timing = timing or Timing()
@@ -115,6 +127,9 @@ class Supervisor:
         for s in self.state.sessions:
             check_counters(s)
         self._index = {s.node: i for i, s in enumerate(self.state.sessions)}
+        self.start_without = frozenset(start_without)
+        if not self.start_without <= set(self._index):
+            raise ValueError("start_without names nodes this supervisor does not manage")
         self._deadlines: list[tuple[int, int]] = []
         """A heap of (deadline, session index): every session's deadline is in it, and entries
         a session has since left (a deadline changed or cleared) until they reach the top."""
@@ -132,9 +147,21 @@ class Supervisor:
     def session(self, node: int) -> Session:
         return self.state.sessions[self._index[node]]
 
+    def unconfirmed(self) -> tuple[int, ...]:
+        """The nodes whose books this start waits for before any grant (witnessed rules; never
+        any under the others): what a runtime prints while it waits."""
+        return unconfirmed(self.state, self.start_without)
+
     def begin(self, node: int, amount: int, now: int) -> list[Action]:
-        """Reserve ``amount`` µJ from Us and send node ``node`` an intention."""
+        """Reserve ``amount`` µJ from Us and send node ``node`` an intention; refused while a
+        start waits for a node's books (``unconfirmed``)."""
         s = self._session_or_error(node)
+        waiting = self.unconfirmed()
+        if waiting:
+            raise LocalProtocolError(
+                "no grant before every node has confirmed its books after this start: waiting "
+                f"for node(s) {', '.join(map(str, waiting))}"
+            )
         step = self.rules.step(self.timing, s, Begin(amount), now)
         if -step.credit > self.state.usable:  # the one guard a session's rule cannot see
             raise LocalProtocolError(f"amount {amount} µJ exceeds usable {self.state.usable} µJ")
@@ -182,10 +209,12 @@ class Supervisor:
         """Add energy from outside the system to Us (counted as injected)."""
         self.state = inject_into(self.state, amount)
 
-    def power_loss(self, now: int) -> None:
-        """Lose volatile state and restart from the persistent record."""
+    def power_loss(self, now: int, nonce: int = 0) -> None:
+        """Lose volatile state and restart from the persistent record. ``nonce``: a fresh
+        random number for rules that have every start confirmed (witnessed: the SYNC's)."""
+        event = PowerLoss(nonce)
         for s in self.state.sessions:
-            self._step(s, POWER_LOSS, now)
+            self._step(s, event, now)
 
     def is_quiescent(self) -> bool:
         return all(s.phase is Phase.IDLE for s in self.state.sessions)

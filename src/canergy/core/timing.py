@@ -18,6 +18,10 @@ class Timing:
     retries: int = 3
     command_timeout_us: int = 100_000
     return_retry_us: int = 100_000
+    window: int = 64
+    """B (witnessed rules): a supervisor begins transaction k only when k <= W + B, W the
+    highest transaction the node has shown it persisted; a node answering a supervisor's start
+    settles the next B transactions."""
 
     def __post_init__(self) -> None:
         for name in ("response_timeout_us", "command_timeout_us", "return_retry_us"):
@@ -25,6 +29,8 @@ class Timing:
                 raise ValueError(f"{name} must be >= 0")
         if self.retries < 0:
             raise ValueError("retries must be >= 0")
+        if self.window < 1:
+            raise ValueError("window must be >= 1")
 
     @property
     def quiet_timeout_us(self) -> int:

@@ -17,12 +17,14 @@ class Variant:
     name: str
     supervisor: SupervisorTable
     client: ClientTable
+    lifts_tx: bool = False
+    """A start lifts transaction numbers by ``Timing.window`` (witnessed)."""
 
 
 VARIANTS: dict[str, Variant] = {
     "hardened": Variant("hardened", hardened.SUPERVISOR, hardened.CLIENT),
     "paper": Variant("paper", paper.SUPERVISOR, paper.CLIENT),
-    "witnessed": Variant("witnessed", witnessed.SUPERVISOR, witnessed.CLIENT),
+    "witnessed": Variant("witnessed", witnessed.SUPERVISOR, witnessed.CLIENT, lifts_tx=True),
 }
 RUNNABLE: dict[str, Variant] = {name: VARIANTS[name] for name in ("hardened", "paper")}
 """What the demo, the simulator and the live service run. ``witnessed`` is for the checker and

@@ -12,45 +12,96 @@ bounded checker checks it (``canergy check --variant witnessed --old-copies 1``)
 
 from __future__ import annotations
 
+from canergy.core import common
 from canergy.core import hardened as h
 from canergy.core.actions import Admitted, ReturnCredited, Send
-from canergy.core.common import check_amount, resolve, start_return, wire_tx
+from canergy.core.common import check_amount, reply_for, resolve, start_return, wire_tx
 from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import (
     RETURN_TIMEOUT,
+    Begin,
     BooksLost,
     CommandTimeout,
+    Decide,
     GiveBack,
     PowerLoss,
+    ResponseTimeout,
     ReturnTimeout,
     Spend,
 )
-from canergy.core.state import ClientState, Outcome, Phase, Session
+from canergy.core.state import SYNC_PHASES, ClientState, Outcome, Phase, Session
 from canergy.core.steps import ClientStep, SessionStep
 from canergy.core.table import ANY, STAY, ClientTable, SupervisorTable, cell
 from canergy.core.timing import Timing
 from canergy.frozen import evolve
 from canergy.messages import (
+    DELIVERED_BITS,
+    NONCE_BITS,
     QUANTUM_UJ,
     SEQ_BITS,
+    SYNC_CONFIRMED,
     TX_BITS,
     Abort,
+    Aborted,
+    Ack,
     Admit,
     Commit,
+    Committed,
     Debit,
     Intention,
+    Join,
+    Return,
     ReturnAck,
 )
 from canergy.seqnum import unwrap, wrap
 
 IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM = Phase.IDLE, Phase.WAIT_ACK, Phase.ACKED, Phase.WAIT_CONFIRM
 HOLDING, JOINING, RESUMING = Phase.AWAIT_COMMAND, Phase.JOINING, Phase.RESUMING
+SYNCING, SYNC_BOOKS = Phase.SYNCING, Phase.SYNC_BOOKS
 
 # -- supervisor, per node --------------------------------------------------------------------
 
 
+def begin(t: Timing, s: Session, event: Begin, now: int) -> SessionStep:
+    """Begin k = tx + 1 only within the window: k <= W + B (W: the highest transaction the
+    node has shown it persisted), so every transaction of a discarded history is at most the
+    node's ltx + B."""
+    if s.tx + 1 > s.witness + t.window:
+        raise LocalProtocolError(
+            f"node {s.node}: transaction {s.tx + 1} is beyond the window: the node has shown "
+            f"transaction {s.witness} persisted, and no transaction begins more than "
+            f"{t.window} past it"
+        )
+    return common.begin(t, s, event, now)
+
+
+def _witnessed(s: Session, k: int, step: SessionStep) -> SessionStep:
+    """The step of a response that names transaction ``k``: W moves up to ``k``."""
+    if step.session is s or k <= s.witness:
+        return step
+    return SessionStep(evolve(step.session, witness=k), step.actions, step.credit)
+
+
+def on_ack(t: Timing, s: Session, msg: Ack, now: int) -> SessionStep:
+    """ACK(tx): as the hardened rules; the node has persisted tx - 1 (W >= tx - 1)."""
+    return _witnessed(s, s.tx - 1, h.on_ack(t, s, msg, now))
+
+
+def on_committed(t: Timing, s: Session, msg: Committed, now: int) -> SessionStep:
+    """COMMITTED(tx): as the hardened rules; the node has persisted tx (W >= tx)."""
+    return _witnessed(s, s.tx, h.on_committed(t, s, msg, now))
+
+
+def on_aborted(t: Timing, s: Session, msg: Aborted, now: int) -> SessionStep:
+    """ABORTED(tx) after an abort decision: as the hardened rules; W >= tx."""
+    return _witnessed(s, s.tx, h.on_aborted(t, s, msg, now))
+
+
 def on_debit(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
-    """DEBIT: a draw is held as the node's last debit; a resume confirms the node's start."""
+    """DEBIT: a draw is held as the node's last debit; a resume (or a SYNC's counts arriving
+    after this start's) confirms the node's start; books outside a start are ignored."""
+    if msg.is_books:
+        return SessionStep(s)
     return confirm(t, s, msg, now) if msg.is_resume else hold_draw(t, s, msg, now)
 
 
@@ -70,27 +121,39 @@ def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
     pending RETURN numbered next is credited; the number after max(C, q) is voided; answer
     ADMIT(n, k, C) with k the last transaction closed, which the node takes as settled.
 
-    A re-sent copy (same nonce and q, nothing held since) gets the same answer."""
-    seq = unwrap(msg.seq, s.returns_credited, SEQ_BITS)
-    if (s.resume_to, s.resume_nonce, s.resume_from) == (s.returns_credited, msg.nonce, seq):
-        return SessionStep(s, (Send(_confirmation(s, msg.nonce)),))
+    A re-sent copy (same nonce and q, nothing held since) gets the same answer. A SYNC's counts
+    also carry the node's ltx: tx moves up to it (never back); their ADMIT carries n with
+    ``SYNC_CONFIRMED`` flipped."""
+    seq, key = unwrap(msg.seq, s.returns_credited, SEQ_BITS), _answered(msg)
+    nonce = msg.nonce ^ SYNC_CONFIRMED if msg.is_counts else msg.nonce
+    if (s.resume_to, s.resume_nonce, s.resume_from) == (s.returns_credited, key, seq):
+        return SessionStep(s, (Send(_confirmation(s, nonce)),))
     behind = seq < s.returns_credited
     if behind:  # the record lacks a debit the supervisor holds: the node starts afresh
         step = h.write_off_and_lift(s)
     else:  # the older record may not hold how the node resolved it
         step = resolve(s, Outcome.WRITTEN_OFF) if s.phase is not IDLE else SessionStep(s)
         s = step.session
-        if seq == s.returns_credited + 1 and msg.amount_mj and not msg.flags & Debit.DRAW:
-            amount = msg.amount_mj * QUANTUM_UJ
+        if seq == s.returns_credited + 1 and msg.pending_mj and not msg.flags & Debit.DRAW:
+            amount = msg.pending_mj * QUANTUM_UJ
             s = evolve(s, returns_credited=seq, returned=s.returned + amount)
             credited = (ReturnCredited(s.node, seq, amount),)
             step = SessionStep(s, (*step.actions, *credited), step.credit + amount)
     s = step.session
+    if msg.is_counts:  # the node settled up to its ltx: no transaction begins at or below it
+        settled = unwrap(msg.amount_mj, s.tx, TX_BITS)
+        s = evolve(s, tx=max(s.tx, settled), witness=max(s.witness, settled))
     void = max(s.returns_credited, seq) + 1  # any debit in flight from a discarded history
-    s = evolve(s, returns_credited=void, resume_nonce=msg.nonce, resume_from=seq, resume_to=void)
+    s = evolve(s, returns_credited=void, resume_nonce=key, resume_from=seq, resume_to=void)
     admitted = (Admitted(s.node, s.tx, void),) if behind else ()
-    answer = Send(_confirmation(s, msg.nonce))
+    answer = Send(_confirmation(s, nonce))
     return SessionStep(s, (*step.actions, *admitted, answer), step.credit)
+
+
+def _answered(msg: Debit) -> int:
+    """What the last answer remembers of a start: its nonce, and above it whether the start was
+    a SYNC's counts (a stale ADMIT a node took for a SYNC does not replay a RESUME's answer)."""
+    return msg.nonce | (1 << NONCE_BITS if msg.is_counts else 0)
 
 
 def _confirmation(s: Session, nonce: int) -> Admit:
@@ -99,22 +162,99 @@ def _confirmation(s: Session, nonce: int) -> Admit:
     return Admit(s.node, nonce, wire_tx(closed), wrap(s.returns_credited, SEQ_BITS))
 
 
+def _sync(s: Session) -> Admit:
+    """SYNC(n, tx, C): an ADMIT the node did not ask for."""
+    return Admit(s.node, s.sync_nonce, wire_tx(s.tx), wrap(s.returns_credited, SEQ_BITS))
+
+
+def start(t: Timing, s: Session, event: PowerLoss, now: int) -> SessionStep:
+    """A start (after a power loss or from an older copy: the supervisor cannot tell): write
+    off what is open and send SYNC(n) at once (its timer is due), re-sent every response
+    timeout without end; grant nothing until the node has answered with its books
+    (``Supervisor.unconfirmed``)."""
+    step = SessionStep(s)
+    if s.phase not in (IDLE, *SYNC_PHASES):
+        step = resolve(s, Outcome.WRITTEN_OFF)
+    s = evolve(step.session, phase=SYNCING, sync_nonce=event.nonce, deadline=now)
+    return SessionStep(s, step.actions, step.credit)
+
+
+def resend_sync(t: Timing, s: Session, event: ResponseTimeout, now: int) -> SessionStep:
+    """Re-send SYNC(n): the node may be off; the supervisor waits (it says for whom)."""
+    if s.deadline is None or s.deadline > now:
+        return SessionStep(s)
+    s = evolve(s, deadline=now + t.response_timeout_us)
+    return SessionStep(s, (Send(_sync(s)),))
+
+
+def take_books(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
+    """The SYNC's books (n, Rc): Gs moves up to Rc and the difference leaves Us (which may go
+    below zero: a debt, no grant until it is covered); then the counts are awaited.
+
+    The counts before the books are ignored (the node re-sends both), other frames too."""
+    if msg.nonce != s.sync_nonce or not msg.is_books:
+        return SessionStep(s)
+    credited = unwrap(msg.credited_mj, s.delivered // QUANTUM_UJ, DELIVERED_BITS) * QUANTUM_UJ
+    gain = max(0, credited - s.delivered)
+    s = evolve(s, phase=SYNC_BOOKS, delivered=s.delivered + gain)
+    return SessionStep(s, (), -gain)
+
+
+def take_counts(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
+    """The SYNC's counts (n, q, ltx) after its books: tx = max(tx, ltx), W = ltx (every
+    transaction of a discarded history is at or below it: the node settled B ahead), then as a
+    RESUME: C = max(C, q) + 1 voids any debit in flight, ADMIT(n, tx, C) answers."""
+    if msg.nonce != s.sync_nonce:
+        return SessionStep(s)
+    if msg.is_books:
+        return take_books(t, s, msg, now)
+    if not msg.is_counts:
+        return SessionStep(s)
+    settled = unwrap(msg.amount_mj, s.tx, TX_BITS)
+    s = evolve(s, phase=IDLE, sync_nonce=0, deadline=None, witness=settled)
+    return confirm(t, s, msg, now)
+
+
 def supervisor_record(s: Session) -> tuple[object, ...]:
-    """The hardened record and the last RESUME answered."""
-    return (*h.supervisor_record(s), s.resume_nonce, s.resume_from, s.resume_to)
+    """The hardened record and the last RESUME answered (a start's phases are stored as IDLE:
+    every start is one)."""
+    stored = evolve(s, phase=IDLE) if s.phase in SYNC_PHASES else s
+    return (*h.supervisor_record(stored), s.resume_nonce, s.resume_from, s.resume_to)
 
 
+OPEN = (WAIT_ACK, ACKED, WAIT_CONFIRM)
 SUPERVISOR = SupervisorTable(
     "witnessed",
-    (IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM),
+    (IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM, SYNCING, SYNC_BOOKS),
     [
-        *(cell((p,), e, tr.handler, tuple(tr.to)) for (p, e), tr in h.SUPERVISOR.listed.items()),
-        cell(ANY, Debit, on_debit, to=(IDLE, STAY)),
+        cell(IDLE, Begin, begin, to=WAIT_ACK),
+        cell(ACKED, Decide, common.decide, to=WAIT_CONFIRM),
+        cell(WAIT_ACK, Ack, on_ack, to=(ACKED, STAY)),
+        cell(OPEN, Committed, on_committed, to=(IDLE, STAY)),
+        cell(WAIT_CONFIRM, Aborted, on_aborted, to=(IDLE, STAY)),
+        cell((IDLE, *OPEN), Return, h.credit_return),
+        cell((IDLE, *OPEN), Join, h.admit, to=(IDLE, STAY)),
+        cell((WAIT_ACK, WAIT_CONFIRM), ResponseTimeout, h.resend_or_write_off, to=(IDLE, STAY)),
+        cell((IDLE, *OPEN), Debit, on_debit, to=(IDLE, STAY)),
+        cell(ANY, PowerLoss, start, to=SYNCING),
+        cell((SYNCING, SYNC_BOOKS), ResponseTimeout, resend_sync),
+        cell(SYNCING, Debit, take_books, to=(SYNC_BOOKS, STAY)),
+        cell(SYNC_BOOKS, Debit, take_counts, to=(IDLE, STAY)),
     ],
     supervisor_record,
 )
 
 # -- client ----------------------------------------------------------------------------------
+
+
+def on_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientStep:
+    """INTENTION(k, a, Gs): as the hardened rules, but Gs pays back only from a fresh
+    intention (k > ltx): an intention of a discarded supervisor history (at or below the ltx
+    a SYNC settled) carries a Gs nobody holds."""
+    tx = unwrap(msg.tx, c.last_tx, TX_BITS)
+    if tx <= c.last_tx and not c.credited_unknown:
+        return ClientStep(c, reply_for(c, tx, c.outcome) if tx == c.last_tx else ())
+    return h.on_intention(t, c, msg, now)
 
 
 def can_debit(c: ClientState) -> bool:
@@ -191,13 +331,59 @@ def resume_again(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientS
     return ClientStep(c, (Send(resume_of(c)),))
 
 
-def on_confirm(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
-    """ADMIT(n, k, Q) for our nonce: Q = q + 1 confirms the books (everything up to k settled,
-    the pending debit settled: a return credited, a draw dropped unreleased); a larger Q finds
-    them behind: admitted afresh at k and Q, as after JOIN (what the actuator used stays
-    counted)."""
-    if msg.nonce != c.nonce:
+def answer_of(c: ClientState) -> tuple[Send, Send]:
+    """The answer to SYNC(n): the books (n, Rc), then the counts (n, q, ltx)."""
+    books = Debit.books(c.node, c.nonce, c.credited // QUANTUM_UJ)
+    counts = Debit.counts(c.node, c.nonce, wrap(c.return_seq, SEQ_BITS), wire_tx(c.last_tx))
+    return Send(books), Send(counts)
+
+
+def answer_sync(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
+    """SYNC(n) (an ADMIT not answering this node's start): the supervisor started, maybe from an
+    older copy. Settle the next B transactions (ltx += B: none of a discarded history can be
+    above), drop the held intention, persist, answer with the books and the counts, and move
+    nothing until ADMIT(n) (a pending debit is voided: dropped on the answer, never credited)."""
+    c = evolve(
+        h._drop_hold(c),
+        phase=SYNCING,
+        nonce=msg.nonce,
+        last_tx=c.last_tx + t.window,
+        outcome=Outcome.SETTLED,
+        return_deadline=now + t.return_retry_us,
+    )
+    return ClientStep(c, answer_of(c))
+
+
+def resend_answer(t: Timing, c: ClientState, event: ReturnTimeout, now: int) -> ClientStep:
+    """Re-send the books and the counts answering SYNC(n)."""
+    if c.return_deadline is None or c.return_deadline > now:
         return ClientStep(c)
+    return ClientStep(evolve(c, return_deadline=now + t.return_retry_us), answer_of(c))
+
+
+def answer_again(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientStep:
+    """An intention while the answer waits for its ADMIT: it moves nothing; the answer is
+    re-sent."""
+    return ClientStep(c, answer_of(c))
+
+
+def on_start_answer(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
+    """ADMIT while a start waits: the answer to it (``on_confirm``; a SYNC's answer is
+    confirmed with ``SYNC_CONFIRMED`` flipped in its nonce), the same SYNC again (the answer is
+    re-sent), or another nonce: a supervisor's SYNC (``answer_sync``)."""
+    expected = c.nonce ^ SYNC_CONFIRMED if c.phase is SYNCING else c.nonce
+    if msg.nonce == expected:
+        return on_confirm(t, c, msg, now)
+    if c.phase is SYNCING and msg.nonce == c.nonce:
+        return ClientStep(c, answer_of(c))
+    return answer_sync(t, c, msg, now)
+
+
+def on_confirm(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
+    """ADMIT(n, k, Q) answering this start: Q = q + 1 confirms the books (everything up to k
+    settled, the pending debit settled: a return credited, a draw dropped unreleased); a larger
+    Q finds them behind: admitted afresh at k and Q, as after JOIN (what the actuator used
+    stays counted)."""
     q = unwrap(msg.seq, c.return_seq, SEQ_BITS)
     if q == c.return_seq + 1:
         closed = unwrap(msg.tx, c.last_tx, TX_BITS)
@@ -236,10 +422,10 @@ BOOKED = (IDLE, HOLDING)
 
 CLIENT = ClientTable(
     "witnessed",
-    (IDLE, HOLDING, JOINING, RESUMING),
+    (IDLE, HOLDING, JOINING, RESUMING, SYNCING),
     [
-        cell(IDLE, Intention, h.on_intention, to=(HOLDING, STAY)),
-        cell(HOLDING, Intention, h.on_intention),
+        cell(IDLE, Intention, on_intention, to=(HOLDING, STAY)),
+        cell(HOLDING, Intention, on_intention),
         cell(BOOKED, Commit, h.on_command, to=(IDLE, STAY)),
         cell(BOOKED, Abort, h.on_command, to=(IDLE, STAY)),
         cell(BOOKED, ReturnAck, on_debit_ack),
@@ -253,10 +439,15 @@ CLIENT = ClientTable(
         cell(JOINING, Intention, h.join_again),
         cell(JOINING, PowerLoss, h.rejoin),
         cell(JOINING, Admit, h.on_admit, to=(IDLE, STAY)),
+        cell(BOOKED, Admit, answer_sync, to=SYNCING),
         cell(RESUMING, ReturnTimeout, resend_resume),
         cell(RESUMING, Intention, resume_again),
         cell(RESUMING, PowerLoss, resume),
-        cell(RESUMING, Admit, on_confirm, to=(IDLE, STAY)),
+        cell(RESUMING, Admit, on_start_answer, to=(IDLE, SYNCING, STAY)),
+        cell(SYNCING, ReturnTimeout, resend_answer),
+        cell(SYNCING, Intention, answer_again),
+        cell(SYNCING, PowerLoss, resume, to=RESUMING),
+        cell(SYNCING, Admit, on_start_answer, to=(IDLE, STAY)),
     ],
     client_record,
     can_debit,

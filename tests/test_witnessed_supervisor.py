@@ -1,0 +1,214 @@
+"""The witnessed rules' supervisor side: a supervisor started from an older copy of its state
+file creates no energy (docs/protocol.md, "Records restored from older copies"): the window,
+SYNC at every start, the books and counts on the wire, no grant before every node confirmed,
+and the bounded checker on both rule sets. The table's cells are in tests/test_witnessed.py."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from canergy.check import Bounds, check
+from canergy.codec import Codec, DecodeError, DecodeErrorReason
+from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing
+from canergy.core import witnessed as W
+from canergy.core.state import ClientState, Phase, Session
+from canergy.core.steps import ClientStep, SessionStep
+from canergy.core.table import cell
+from canergy.core.variants import Variant
+from canergy.frozen import evolve
+from canergy.messages import Admit, Debit, Direction, Message
+
+CODEC = Codec()
+nodes = st.integers(1, 127)
+u16 = st.integers(0, 0xFFFF)
+
+
+# -- the wire ---------------------------------------------------------------------------------
+@given(nodes, u16, st.integers(0, 0xFFFFFF), u16, u16)
+def test_the_answer_to_a_sync_round_trips(node: int, nonce: int, rc: int, q: int, ltx: int) -> None:
+    books, counts = Debit.books(node, nonce, rc), Debit.counts(node, nonce, q, ltx)
+    for msg in (books, counts):
+        arbitration_id, data = CODEC.encode(msg)
+        assert len(data) == 8
+        assert CODEC.decode(arbitration_id, data, direction=Direction.TO_SUPERVISOR) == msg
+    assert books.is_books and books.credited_mj == rc and not books.is_resume
+    assert counts.is_counts and counts.is_resume and counts.pending_mj == 0
+
+
+def _frame(flags: int, seq: int = 1, amount: int = 1, nonce: int = 7) -> tuple[int, bytes]:
+    """A DEBIT frame with a good CRC, whatever its fields say."""
+    msg = Debit(3, nonce, flags, seq, amount)
+    return CODEC.encode(msg)
+
+
+ACCEPTED = {Debit.DRAW, Debit.START, Debit.START | Debit.DRAW, Debit.START | Debit.SYNC, 0x08}
+
+
+@pytest.mark.parametrize("flags", [f for f in range(256) if f not in ACCEPTED])
+def test_any_other_flags_are_refused(flags: int) -> None:
+    with pytest.raises(DecodeError) as e:
+        CODEC.decode(*_frame(flags))
+    assert e.value.reason is DecodeErrorReason.OUT_OF_RANGE
+
+
+def test_books_beyond_24_bits_and_draws_without_amount_or_with_a_nonce_are_refused() -> None:
+    for frame in (
+        _frame(Debit.BOOKS, amount=0x100),
+        _frame(Debit.DRAW, amount=0, nonce=0),
+        _frame(Debit.DRAW, nonce=5),
+    ):
+        with pytest.raises(DecodeError):
+            CODEC.decode(*frame)
+    assert CODEC.decode(*_frame(Debit.BOOKS, amount=0xFF)) == Debit.books(3, 7, 0xFF0001)
+
+
+def test_a_sync_is_an_admit_the_node_did_not_ask_for() -> None:
+    """No new type: SYNC travels as ADMIT (DLC 7); a booked node answers it."""
+    _, data = CODEC.encode(Admit(3, 0x51, 7, 4))
+    assert len(data) == 7
+    node = Client(3, variant="witnessed")
+    sent = [a.message for a in node.receive(Admit(3, 0x51, 7, 4), 0) if isinstance(a, Send)]
+    assert [type(m) for m in sent] == [Debit, Debit] and node.state.phase is Phase.SYNCING
+
+
+# -- the supervisor core ----------------------------------------------------------------------
+TIMING = Timing(response_timeout_us=10, command_timeout_us=10, return_retry_us=10)
+
+
+def _exchange(actions: list[object], sup: Supervisor, nodes_: dict[int, Client], now: int) -> None:
+    """Deliver every frame sent, each to its receiver, until nobody sends anything."""
+    queue = list(actions)
+    while queue:
+        a = queue.pop(0)
+        if isinstance(a, Send):
+            msg: Message = a.message
+            if msg.TYPE.direction is Direction.TO_CLIENT:
+                queue += nodes_[msg.node].receive(msg, now)  # type: ignore[arg-type]
+            else:
+                queue += sup.receive(msg, now)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("rules", ["hardened", "witnessed"])
+def test_a_supervisor_started_from_its_copy_before_a_grant(rules: str) -> None:
+    """Issue 40, item 5: 4 J granted to node 1 and committed, the state file put back to its
+    copy from before the grant: the hardened supervisor grants the 4 J again to node 2; the
+    witnessed one grants nothing until both nodes have answered, and then has nothing to
+    grant."""
+    sup = Supervisor([1, 2], 4_000_000, variant=rules, timing=TIMING)
+    clients = {n: Client(n, variant=rules, timing=TIMING) for n in (1, 2)}
+    copy = sup.state
+    _exchange(sup.begin(1, 4_000_000, 0), sup, clients, 0)
+    _exchange(sup.commit(1, 0), sup, clients, 0)
+    assert clients[1].state.usable == 4_000_000
+    sup.state = copy
+    sup.power_loss(1, nonce=0x5A5A)
+    if rules == "hardened":
+        _exchange(sup.begin(2, 4_000_000, 1), sup, clients, 1)
+        _exchange(sup.commit(2, 1), sup, clients, 1)
+        assert clients[2].state.usable == 4_000_000  # 8 J held of 4 J: created
+        return
+    assert sup.unconfirmed() == (1, 2)
+    with pytest.raises(LocalProtocolError, match=r"waiting for node\(s\) 1, 2"):
+        sup.begin(2, 1000, 1)
+    _exchange(sup.handle_timer(1), sup, clients, 1)  # SYNC to both, answered, confirmed
+    assert sup.unconfirmed() == () and sup.usable == 0
+    assert sup.session(1).delivered == 4_000_000
+    with pytest.raises(LocalProtocolError, match="exceeds usable"):
+        sup.begin(2, 1000, 2)
+    assert all(c.state.phase is Phase.IDLE for c in clients.values())
+
+
+def test_a_node_that_is_off_holds_every_grant_unless_the_operator_starts_without_it() -> None:
+    for without, waiting in (((), (1, 2)), ((2,), (1,))):
+        sup = Supervisor([1, 2], 4000, variant="witnessed", timing=TIMING, start_without=without)
+        node = Client(1, variant="witnessed", timing=TIMING)
+        sup.power_loss(0, nonce=9)
+        assert sup.unconfirmed() == waiting
+        _exchange(sup.handle_timer(0), sup, {1: node, 2: Client(2, variant="witnessed")}, 0)
+    sup = Supervisor([1, 2], 4000, variant="witnessed", timing=TIMING, start_without=(2,))
+    sup.power_loss(0, nonce=9)
+    only_1 = {1: Client(1, variant="witnessed", timing=TIMING)}
+    for a in sup.handle_timer(0):
+        if isinstance(a, Send) and a.message.node == 1:
+            _exchange([a], sup, only_1, 0)
+    assert sup.unconfirmed() == ()
+    sup.begin(1, 1000, 1)  # node 2 (off) is not waited for; its own session still waits
+    with pytest.raises(LocalProtocolError):
+        sup.begin(2, 1000, 1)
+    with pytest.raises(ValueError, match="start_without"):
+        Supervisor([1], 1, variant="witnessed", start_without=(5,))
+
+
+def test_hardened_books_never_wait() -> None:
+    sup = Supervisor([1, 2], 4000, variant="hardened", timing=TIMING)
+    sup.power_loss(0)
+    assert sup.unconfirmed() == ()
+
+
+# -- what the rules are for: the bounded checker ----------------------------------------------
+SUP_COPY = Bounds(
+    clients=2,
+    supervisor_old_copies=1,
+    transactions=1,
+    losses=0,
+    duplicates=0,
+    power_losses=0,
+    timeouts=3,
+)
+"""One older copy of the supervisor's state file, two nodes, one transaction."""
+
+
+def test_an_older_copy_of_the_supervisors_state_file_creates_no_energy() -> None:
+    hardened = check("hardened", SUP_COPY, stop_at_first=True, engine="compact")
+    assert hardened.counterexample is not None
+    last, world = hardened.counterexample[-1]
+    assert last.kind.value == "supervisor_old_copy" and world.ledger().dissipated < 0
+    witnessed = check("witnessed", SUP_COPY, engine="compact")
+    assert witnessed.complete and witnessed.violations == 0
+    assert witnessed.states > check("witnessed", replace(SUP_COPY, supervisor_old_copies=0)).states
+
+
+def _books_ignored(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
+    """Takes the books without moving Gs up to Rc: Us keeps what the node received since."""
+    if msg.nonce != s.sync_nonce or not msg.is_books:
+        return SessionStep(s)
+    return SessionStep(evolve(s, phase=Phase.SYNC_BOOKS))
+
+
+def _answer_unsettled(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
+    """Answers a SYNC without settling the window ahead: a discarded history's intention can
+    still be taken."""
+    c = evolve(W.answer_sync(t, c, msg, now).client, last_tx=c.last_tx)
+    return ClientStep(c, W.answer_of(c))
+
+
+def _restart_unsynced(t: Timing, s: Session, event: object, now: int) -> SessionStep:
+    """The hardened restart: no SYNC, grants at once."""
+    return W.h.restart_session(t, s, event, now)  # type: ignore[arg-type]
+
+
+def _broken(sup: object = None, client: object = None) -> Variant:
+    s = W.SUPERVISOR.with_cells(sup) if sup else W.SUPERVISOR  # type: ignore[arg-type]
+    c = W.CLIENT.with_cells(client) if client else W.CLIENT  # type: ignore[arg-type]
+    return Variant("broken-witnessed", s, c, lifts_tx=True)
+
+
+SY, ID, HO = Phase.SYNCING, Phase.IDLE, Phase.AWAIT_COMMAND
+
+
+@pytest.mark.parametrize(
+    "variant",
+    [
+        _broken(sup=cell(SY, Debit, _books_ignored, to=(Phase.SYNC_BOOKS, None))),
+        _broken(client=cell((ID, HO), Admit, _answer_unsettled, to=SY)),
+    ],
+    ids=["books-not-taken", "answer-without-settling"],
+)
+def test_each_supervisor_witnessing_rule_is_needed(variant: Variant) -> None:
+    result = check(variant, SUP_COPY, stop_at_first=True, engine="compact")
+    assert result.counterexample is not None
+    assert any(step.kind.value == "supervisor_old_copy" for step, _ in result.counterexample)

@@ -40,6 +40,7 @@ from canergy.core.state import ClientState, Outcome, Phase, Session
 from canergy.core.table import RuleTable, cell
 from canergy.core.variants import Variant
 from canergy.messages import (
+    COUNTER_END,
     Abort,
     Admit,
     Commit,
@@ -51,6 +52,7 @@ from canergy.messages import (
     ReturnAck,
     StatusRequest,
 )
+from canergy.seqnum import wrap
 
 # -- supervisor ------------------------------------------------------------------------------
 ST = Timing(response_timeout_us=100, retries=2)
@@ -127,6 +129,43 @@ SUP_CASES = [
         resume(4),
         resumed(S_OPEN, 4, 5),
         (Send(Admit(3, 9, 6, 5)),),
+    ),
+    Case(
+        "join while idle: admitted with the next debit number voided",
+        S_IDLE,
+        Join(3, 0xBEEF),
+        replace(S_IDLE, returns_credited=5),
+        (Admitted(3, 7, 5), Send(Admit(3, 0xBEEF, 7, 5))),
+    ),
+    *[
+        Case(
+            f"join while {s.phase.name}: written off, admitted with the next number voided",
+            s,
+            Join(3, 0xBEEF),
+            replace(WROTE_OFF, returns_credited=5),
+            (Resolved(3, 7, Outcome.WRITTEN_OFF, TS), Admitted(3, 7, 5), Send(Admit(3, 0xBEEF, 7, 5))),
+        )
+        for s in (S_OPEN, S_ACKED, S_WC)
+    ],
+    Case(
+        "no RESUME answered yet (resume_to 0): a first start at 0 with nonce 0 is answered",
+        Session(node=3),
+        Debit(3, 0, START, 0, 0),
+        replace(Session(node=3), returns_credited=1, resume_to=1),
+        (Send(Admit(3, 0, 0, 1)),),
+    ),
+    Case(
+        "a draw numbered next at the end of the numbering is ignored",
+        replace(S_IDLE, returns_credited=COUNTER_END - 1),
+        Debit(3, 0, DRAW, wrap(COUNTER_END, 16), 2),
+        replace(S_IDLE, returns_credited=COUNTER_END - 1),
+    ),
+    Case(
+        "a start with its return pending at the end: not credited, the number after it voided",
+        replace(S_IDLE, returns_credited=COUNTER_END - 1),
+        resume(wrap(COUNTER_END, 16), 2),
+        resumed(S_IDLE, COUNTER_END, COUNTER_END + 1),
+        (Send(Admit(3, 9, 7, wrap(COUNTER_END + 1, 16))),),
     ),
 ]
 SUP_IGNORED = H_SUP_IGNORED - {(p, Debit) for p in W.SUPERVISOR.phases}

@@ -84,7 +84,7 @@ from canergy.core.inputs import (
 )
 from canergy.core.state import ClientState, Phase, Session, SupervisorState
 from canergy.core.timing import Timing
-from canergy.messages import COUNTER_END, Admit, Debit, ReturnAck
+from canergy.messages import COUNTER_END, Admit, Debit, Join, ReturnAck
 from firmware_model.nvstore import pack_record
 
 CODEC = Codec()
@@ -256,7 +256,7 @@ def witnessed_sessions(draw: Any) -> Session:
         s,
         resume_nonce=draw(st.sampled_from([0, 9]) | st.integers(0, 0xFFFF)),
         resume_from=draw(near | far),
-        resume_to=draw(st.just(s.returns_credited) | near),
+        resume_to=draw(st.just(s.returns_credited) | st.just(0) | near),
     )
 
 
@@ -274,6 +274,7 @@ def test_every_debit_cell_on_drawn_records(s: Session, t: Timing, data: st.DataO
         Debit(s.node, nonce, Debit.START, seq, amount),
         Debit(s.node, nonce, Debit.START | Debit.DRAW, seq, amount),
         Debit(s.node, s.resume_nonce, Debit.START, repeat, amount),
+        Join(s.node, nonce),
     ):
         same(s, t, m, data.draw(st.integers(0, 10**9)), table=W.SUPERVISOR)
 
@@ -412,6 +413,36 @@ def test_a_c_node_restored_from_an_older_copy_creates_no_energy(rules: str) -> N
         assert node.n.client.phase == PHASES[Phase.IDLE]
         assert node.n.client.rec.flags & FLAG_CREDITED_UNKNOWN  # found behind: admitted afresh
         assert created <= 0 and node.used == 1_500_000
+
+
+def test_a_c_node_whose_lives_would_share_a_debit_number_creates_no_energy() -> None:
+    """tests/test_witnessed.py's two lives on the C supervisor and C nodes: the books lost while
+    DRAW(C + 1) is unacknowledged, the new life JOINs and draws 5 J, the old life's NV image is
+    put back. The JOIN's admission voided C + 1, so the old image is found behind (when the
+    admission left C + 1 free, the old image was confirmed and this sequence ended 1 J above the
+    books)."""
+    sup, now = _CSup("witnessed", 20 * J), 0
+    node = _Node("witnessed", bytearray(), 0x1111, now)
+    _exchange(node.sent, node, sup, now)
+    _exchange(sup.grant(10 * J, 1), node, sup, 1)
+    node.tick(J, 2)  # DRAW(C + 1) sent, lost
+    image = bytearray(node.raw)
+    new_life = _Node("witnessed", bytearray(), 0x2222, 3)  # no books: JOIN
+    _exchange(new_life.sent, new_life, sup, 3)
+    _exchange(sup.grant(5 * J, 4), new_life, sup, 4)
+    now = 10
+    while new_life.used < 5 * J and now < 1000:
+        _exchange(new_life.tick(5 * J - new_life.used, now), new_life, sup, now)
+        now += 10
+    assert new_life.used == 5 * J
+    old = _Node("witnessed", image, 0x3333, now)  # the old life's image, started again
+    _exchange(old.sent, old, sup, now)
+    assert old.n.client.rec.flags & FLAG_CREDITED_UNKNOWN  # found behind: admitted afresh
+    _exchange(sup.grant(J, now + 1), old, sup, now + 1)
+    for _ in range(4):
+        now += 10
+        _exchange(old.tick(J, now), old, sup, now)
+    assert old.used + old.held() + new_life.used - sup.taken() <= 0
 
 
 # -- the Linux ports --------------------------------------------------------------------------

@@ -31,9 +31,9 @@ from canergy.core.actions import Resolved
 from canergy.core.inputs import (
     RETURN_TIMEOUT,
     Begin,
-    Decide,
     BooksLost,
     CommandTimeout,
+    Decide,
     GiveBack,
     PowerLoss,
     Spend,

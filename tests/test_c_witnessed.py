@@ -548,9 +548,7 @@ class WitnessedSideBySide(SideBySide):
         self._carry_out(actions, self.c.out)
 
     def _py_spend(self, amount: int) -> list[Any]:
-        # Client.spend passes now=0 (the draw's re-send deadline then counts from 0): the rule
-        # itself is stepped here at the machine's time, as the C draw is.
-        return self.py._step(Spend(amount), self.now)
+        return self.py.spend(amount, self.now)
 
     def _c_spend(self, amount: int) -> int:
         return self.c.do_draw(amount, self.now)

@@ -529,3 +529,13 @@ def test_an_older_copy_of_the_supervisors_state_file_creates_energy() -> None:
     with pytest.raises(ValueError, match="reference engine"):
         check("hardened", bounds)
     assert check("hardened", Bounds(clients=2), engine="reference").violations == 0
+
+
+def test_a_draw_through_the_client_is_re_sent_from_the_time_given() -> None:
+    """``Client.spend(x, now)``: the DRAW's re-send deadline counts from ``now``, not from 0."""
+    timing = Timing(return_retry_us=50)
+    node = Client(1, variant="witnessed", timing=timing, state=ClientState(1, usable=3000))
+    node.spend(1000, 10_000)
+    assert node.get_timer() == 10_050
+    assert node.handle_timer(10_049) == []
+    assert node.handle_timer(10_050) == [Send(Debit(1, 0, DRAW, 1, 1))]

@@ -70,7 +70,9 @@ from test_witnessed import (
     T,
     resume,
 )
+from test_witnessed import _exchange as _exchange_py
 
+from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.codec import DEFAULT_ID_BASE, Codec
 from canergy.core import Client, Supervisor
 from canergy.core import witnessed as W
@@ -84,6 +86,7 @@ from canergy.core.inputs import (
 )
 from canergy.core.state import ClientState, Phase, Session, SupervisorState
 from canergy.core.timing import Timing
+from canergy.live.state_file import load_state, save_state
 from canergy.messages import COUNTER_END, Admit, Debit, Join, ReturnAck
 from firmware_model.nvstore import pack_record
 
@@ -576,3 +579,21 @@ def test_a_record_flagged_with_a_draw_of_nothing_is_no_books() -> None:
     slot[SLOT - 4 :] = struct.pack("<I", zlib.crc32(bytes(slot[: SLOT - 4])))
     c = _booted(bytes(slot), "witnessed")
     assert c.state.phase is Phase.JOINING
+
+
+@pytest.mark.parametrize("core", ["python", "c"])
+def test_a_first_resume_with_nonce_0_is_answered_not_taken_for_a_repeat(
+    core: str, tmp_path: Path
+) -> None:
+    """A new session (and one saved and loaded from the state file) has answered no RESUME yet:
+    a node at debit 0 that starts with nonce 0 is confirmed, not sent a cached ADMIT it ignores
+    (which stalled it until its next start)."""
+    path = tmp_path / "s.json"
+    save_state(path, SupervisorState(J, J, 0, (Session(2),)), "witnessed", fsync=False)
+    state = load_state(path, "witnessed", (2,))
+    make = Supervisor if core == "python" else CompiledSupervisor
+    sup = make([2], J, state=state, variant="witnessed")
+    node = Client(2, variant="witnessed", state=ClientState(2))
+    _exchange_py(node.power_loss(0, nonce=0), sup, node, 0)  # type: ignore[arg-type]
+    assert node.state.phase is Phase.IDLE and node.can_spend()
+    assert sup.session(2).returns_credited == 1 == node.state.return_seq

@@ -47,7 +47,8 @@ class Session:
     node (committed, written off, or in the paper variant lost with a reset).
     ``returns_credited`` is the number of the last RETURN credited. ``tries`` and ``deadline``
     are volatile. Witnessed rules: ``resume_*`` is the last RESUME answered (its nonce, the
-    node's debit number and the number it voided), so that a re-sent copy gets the same answer.
+    node's debit number and the number it voided; ``resume_to`` 0: none yet, as no answer voids
+    number 0), so that a re-sent copy gets the same answer.
     """
 
     node: int

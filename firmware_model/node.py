@@ -33,7 +33,6 @@ from canergy.core import (
     Send,
     Timing,
 )
-from canergy.core.inputs import Spend
 from canergy.core.state import Phase
 from canergy.live.intrusions import Intrusions, frame_text
 from canergy.live.policy import quantize
@@ -210,7 +209,7 @@ class FirmwareNode:
             return []
         self.draws += 1
         self.draw_sent_at = now
-        return self._carry_out(self.client._step(Spend(amount), now), now)
+        return self._carry_out(self.client.spend(amount, now), now)
 
     def witness(self, now: int) -> list[Message]:
         """Someone spoke in this node's name: count it and tell the supervisor at the next
@@ -302,7 +301,7 @@ class FirmwareNode:
             self.actuator.run(take, wanted)
             return self._draw_ahead(now)
         take = min(wanted, self.client.state.usable)
-        out = self._carry_out(self.client.spend(take), now) if take else []
+        out = self._carry_out(self.client.spend(take, now), now) if take else []
         self.actuator.run(take, wanted)  # only after the spend is in NV
         return out
 

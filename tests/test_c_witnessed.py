@@ -70,7 +70,9 @@ from test_witnessed import (
     T,
     resume,
 )
+from test_witnessed import _exchange as _exchange_py
 
+from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.codec import DEFAULT_ID_BASE, Codec
 from canergy.core import Client, Supervisor
 from canergy.core import witnessed as W
@@ -84,7 +86,8 @@ from canergy.core.inputs import (
 )
 from canergy.core.state import ClientState, Phase, Session, SupervisorState
 from canergy.core.timing import Timing
-from canergy.messages import COUNTER_END, Admit, Debit, ReturnAck
+from canergy.live.state_file import load_state, save_state
+from canergy.messages import COUNTER_END, Admit, Debit, Join, ReturnAck
 from firmware_model.nvstore import pack_record
 
 CODEC = Codec()
@@ -256,7 +259,7 @@ def witnessed_sessions(draw: Any) -> Session:
         s,
         resume_nonce=draw(st.sampled_from([0, 9]) | st.integers(0, 0xFFFF)),
         resume_from=draw(near | far),
-        resume_to=draw(st.just(s.returns_credited) | near),
+        resume_to=draw(st.just(s.returns_credited) | st.just(0) | near),
     )
 
 
@@ -274,6 +277,7 @@ def test_every_debit_cell_on_drawn_records(s: Session, t: Timing, data: st.DataO
         Debit(s.node, nonce, Debit.START, seq, amount),
         Debit(s.node, nonce, Debit.START | Debit.DRAW, seq, amount),
         Debit(s.node, s.resume_nonce, Debit.START, repeat, amount),
+        Join(s.node, nonce),
     ):
         same(s, t, m, data.draw(st.integers(0, 10**9)), table=W.SUPERVISOR)
 
@@ -414,6 +418,36 @@ def test_a_c_node_restored_from_an_older_copy_creates_no_energy(rules: str) -> N
         assert created <= 0 and node.used == 1_500_000
 
 
+def test_a_c_node_whose_lives_would_share_a_debit_number_creates_no_energy() -> None:
+    """tests/test_witnessed.py's two lives on the C supervisor and C nodes: the books lost while
+    DRAW(C + 1) is unacknowledged, the new life JOINs and draws 5 J, the old life's NV image is
+    put back. The JOIN's admission voided C + 1, so the old image is found behind (when the
+    admission left C + 1 free, the old image was confirmed and this sequence ended 1 J above the
+    books)."""
+    sup, now = _CSup("witnessed", 20 * J), 0
+    node = _Node("witnessed", bytearray(), 0x1111, now)
+    _exchange(node.sent, node, sup, now)
+    _exchange(sup.grant(10 * J, 1), node, sup, 1)
+    node.tick(J, 2)  # DRAW(C + 1) sent, lost
+    image = bytearray(node.raw)
+    new_life = _Node("witnessed", bytearray(), 0x2222, 3)  # no books: JOIN
+    _exchange(new_life.sent, new_life, sup, 3)
+    _exchange(sup.grant(5 * J, 4), new_life, sup, 4)
+    now = 10
+    while new_life.used < 5 * J and now < 1000:
+        _exchange(new_life.tick(5 * J - new_life.used, now), new_life, sup, now)
+        now += 10
+    assert new_life.used == 5 * J
+    old = _Node("witnessed", image, 0x3333, now)  # the old life's image, started again
+    _exchange(old.sent, old, sup, now)
+    assert old.n.client.rec.flags & FLAG_CREDITED_UNKNOWN  # found behind: admitted afresh
+    _exchange(sup.grant(J, now + 1), old, sup, now + 1)
+    for _ in range(4):
+        now += 10
+        _exchange(old.tick(J, now), old, sup, now)
+    assert old.used + old.held() + new_life.used - sup.taken() <= 0
+
+
 # -- the Linux ports --------------------------------------------------------------------------
 
 
@@ -517,9 +551,7 @@ class WitnessedSideBySide(SideBySide):
         self._carry_out(actions, self.c.out)
 
     def _py_spend(self, amount: int) -> list[Any]:
-        # Client.spend passes now=0 (the draw's re-send deadline then counts from 0): the rule
-        # itself is stepped here at the machine's time, as the C draw is.
-        return self.py._step(Spend(amount), self.now)
+        return self.py.spend(amount, self.now)
 
     def _c_spend(self, amount: int) -> int:
         return self.c.do_draw(amount, self.now)
@@ -547,3 +579,21 @@ def test_a_record_flagged_with_a_draw_of_nothing_is_no_books() -> None:
     slot[SLOT - 4 :] = struct.pack("<I", zlib.crc32(bytes(slot[: SLOT - 4])))
     c = _booted(bytes(slot), "witnessed")
     assert c.state.phase is Phase.JOINING
+
+
+@pytest.mark.parametrize("core", ["python", "c"])
+def test_a_first_resume_with_nonce_0_is_answered_not_taken_for_a_repeat(
+    core: str, tmp_path: Path
+) -> None:
+    """A new session (and one saved and loaded from the state file) has answered no RESUME yet:
+    a node at debit 0 that starts with nonce 0 is confirmed, not sent a cached ADMIT it ignores
+    (which stalled it until its next start)."""
+    path = tmp_path / "s.json"
+    save_state(path, SupervisorState(J, J, 0, (Session(2),)), "witnessed", fsync=False)
+    state = load_state(path, "witnessed", (2,))
+    make = Supervisor if core == "python" else CompiledSupervisor
+    sup = make([2], J, state=state, variant="witnessed")
+    node = Client(2, variant="witnessed", state=ClientState(2))
+    _exchange_py(node.power_loss(0, nonce=0), sup, node, 0)  # type: ignore[arg-type]
+    assert node.state.phase is Phase.IDLE and node.can_spend()
+    assert sup.session(2).returns_credited == 1 == node.state.return_seq

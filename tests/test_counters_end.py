@@ -174,6 +174,29 @@ def test_a_client_takes_the_last_transaction_and_no_more_in_both_cores() -> None
         assert len(out.sent()) == len(sent) and c.view() == c_view(py.state)
 
 
+@pytest.mark.parametrize("seq", [COUNTER_END - 2, COUNTER_END - 1, COUNTER_BOUND - 1])
+def test_a_witnessed_client_debits_up_to_the_end_and_no_further_in_both_cores(seq: int) -> None:
+    """No draw or return is numbered ``COUNTER_END`` or beyond (witnessed ``can_debit``)."""
+    start = ClientState(2, usable=5 * J, return_seq=seq)
+    room = seq + 1 < COUNTER_END
+    for amount in (J, 2 * J):
+        py, c = (
+            Client(2, state=start, variant="witnessed"),
+            CClient(2, state=start, rules="witnessed"),
+        )
+        assert py.can_spend() == py.can_give_back() == c.can_give_back() == room
+        assert library().canergy_client_can_draw(c.c) == room
+        for py_debit, c_debit in ((py.spend, c.do_draw), (py.give_back, c.do_give_back)):
+            if room:
+                py_debit(amount, 0)
+                assert c_debit(amount, 0) == 0
+                assert c.view() == c_view(py.state)
+                break
+            with pytest.raises(LocalProtocolError, match="last below"):
+                py_debit(amount, 0)
+            assert c_debit(amount, 0) != 0 and c.view() == c_view(start)
+
+
 # -- loading: client NV records (emulator, C library, C node) ----------------------------------
 
 

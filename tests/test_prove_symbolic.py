@@ -350,7 +350,7 @@ def witnessed_clients(draw: Any) -> ClientState:
 def witnessed_sessions(draw: Any) -> Session:
     """A session with the last RESUME it answered, often the one about to arrive again."""
     s = draw(sessions())
-    to = draw(st.one_of(st.just(s.returns_credited), counters))
+    to = draw(st.one_of(st.just(s.returns_credited), st.just(0), counters))
     near_c = st.integers(-2, 2).map(lambda d: max(0, s.returns_credited + d))
     return replace(
         s,
@@ -439,6 +439,7 @@ def test_witnessed_supervisor_answers_debits(data: st.DataObject) -> None:
         n: getattr(py.session, n) % (1 << 32)
         for n in names  # the core keeps an unwrapped -q
     }
+    same_session(W_SUPERVISOR.step(T, s, Join(1, nonce), 0), sym_w.admit(sym_session(s), args[0]))
 
 
 def test_a_resume_far_behind_a_lifted_count_is_voided_above_the_lift() -> None:
@@ -450,3 +451,31 @@ def test_a_resume_far_behind_a_lifted_count_is_voided_above_the_lift() -> None:
     args = (z3.BitVecVal(0, 16), z3.IntVal(Debit.START), z3.BitVecVal(0x8000, 16), z3.IntVal(0))
     same_session(py, sym_w.on_debit(sym_session(s), *args))
     assert py.session.returns_credited == (1 << 31) + 1
+
+
+@pytest.mark.parametrize(
+    ("s", "msg"),
+    [
+        (Session(1), Debit(1, 0, Debit.START, 0, 0)),  # no RESUME answered yet: resume_to 0
+        (  # a RETURN pending at a RESUME, numbered at the end: not credited
+            Session(1, returns_credited=COUNTER_END - 1),
+            Debit(1, 9, Debit.START, COUNTER_END & 0xFFFF, 2),
+        ),
+    ],
+    ids=["first-resume", "return-at-the-end"],
+)
+def test_witnessed_resumes_at_the_edges(s: Session, msg: Debit) -> None:
+    args = (
+        z3.BitVecVal(msg.nonce, 16),
+        z3.IntVal(msg.flags),
+        z3.BitVecVal(msg.seq, 16),
+        z3.IntVal(msg.amount_mj),
+    )
+    same_session(W_SUPERVISOR.step(T, s, msg, 0), sym_w.on_debit(sym_session(s), *args))
+
+
+@pytest.mark.parametrize("seq", [COUNTER_END - 2, COUNTER_END - 1])
+def test_no_witnessed_debit_is_numbered_at_the_end(seq: int) -> None:
+    c = ClientState(1, usable=5 * QUANTUM_UJ, return_seq=seq)
+    for cell in (sym_w.draw, sym_w.give_back):
+        assert value(cell(sym_client(c), z3.IntVal(QUANTUM_UJ))[2]) == (seq + 1 < COUNTER_END)

@@ -43,9 +43,10 @@ from canergy.core.inputs import (
     Spend,
 )
 from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
-from canergy.core.table import RuleTable, cell
+from canergy.core.table import ANY, STAY, RuleTable, SupervisorTable, cell
 from canergy.core.variants import Variant
 from canergy.messages import (
+    COUNTER_END,
     SYNC_CONFIRMED,
     Abort,
     Aborted,
@@ -62,6 +63,7 @@ from canergy.messages import (
     ReturnAck,
     StatusRequest,
 )
+from canergy.seqnum import wrap
 
 # -- supervisor ------------------------------------------------------------------------------
 ST = Timing(response_timeout_us=100, retries=2)
@@ -138,6 +140,47 @@ SUP_CASES = [
         resume(4),
         resumed(S_OPEN, 4, 5),
         (Send(Admit(3, 9, 6, 5)),),
+    ),
+    Case(
+        "join while idle: admitted with the next debit number voided",
+        S_IDLE,
+        Join(3, 0xBEEF),
+        replace(S_IDLE, returns_credited=5),
+        (Admitted(3, 7, 5), Send(Admit(3, 0xBEEF, 7, 5))),
+    ),
+    *[
+        Case(
+            f"join while {s.phase.name}: written off, admitted with the next number voided",
+            s,
+            Join(3, 0xBEEF),
+            replace(WROTE_OFF, returns_credited=5),
+            (
+                Resolved(3, 7, Outcome.WRITTEN_OFF, TS),
+                Admitted(3, 7, 5),
+                Send(Admit(3, 0xBEEF, 7, 5)),
+            ),
+        )
+        for s in (S_OPEN, S_ACKED, S_WC)
+    ],
+    Case(
+        "no RESUME answered yet (resume_to 0): a first start at 0 with nonce 0 is answered",
+        Session(node=3),
+        Debit(3, 0, START, 0, 0),
+        replace(Session(node=3), returns_credited=1, resume_to=1),
+        (Send(Admit(3, 0, 0, 1)),),
+    ),
+    Case(
+        "a draw numbered next at the end of the numbering is ignored",
+        replace(S_IDLE, returns_credited=COUNTER_END - 1),
+        Debit(3, 0, DRAW, wrap(COUNTER_END, 16), 2),
+        replace(S_IDLE, returns_credited=COUNTER_END - 1),
+    ),
+    Case(
+        "a start with its return pending at the end: not credited, the number after it voided",
+        replace(S_IDLE, returns_credited=COUNTER_END - 1),
+        resume(wrap(COUNTER_END, 16), 2),
+        resumed(S_IDLE, COUNTER_END, COUNTER_END + 1),
+        (Send(Admit(3, 9, 7, wrap(COUNTER_END + 1, 16))),),
     ),
 ]
 SY, SB = Phase.SYNCING, Phase.SYNC_BOOKS
@@ -677,6 +720,62 @@ def test_each_witnessing_rule_is_needed(variant: Variant) -> None:
     assert any(step.kind.value == "client_nv_old_copy" for step, _ in result.counterexample)
 
 
+# -- a debit number issued by two lives of a node ---------------------------------------------
+def _lives_sharing_a_number(sup_table: SupervisorTable) -> int:
+    """µJ created when a node's books are lost while its DRAW(C + 1) is unacknowledged, its new
+    life JOINs and draws, and the old life's image is then restored and RESUMEs: the admission
+    must void C + 1, or the new life's DRAW(C + 1) is held as the old one's and the old image is
+    confirmed, not found behind, and paid again what the new life received."""
+    t, j = Timing(), 1_000_000
+    s, c = Session(1), ClientState(1)
+
+    def deliver(to_client: list[object]) -> None:
+        nonlocal s, c
+        queue = list(to_client)
+        while queue:
+            m = queue.pop(0)
+            if m.TYPE.direction is Direction.TO_CLIENT:  # type: ignore[attr-defined]
+                step = W.CLIENT.step(t, c, m, 0)
+                c = step.client
+            else:
+                sup = sup_table.step(t, s, m, 0)
+                s, step = sup.session, sup  # type: ignore[assignment]
+            queue += [a.message for a in step.actions if isinstance(a, Send)]
+
+    def local(event: object, on_supervisor: bool = False) -> list[object]:
+        nonlocal s, c
+        if on_supervisor:
+            sup = sup_table.step(t, s, event, 0)
+            s, actions = sup.session, sup.actions
+        else:
+            step = W.CLIENT.step(t, c, event, 0)
+            c, actions = step.client, step.actions
+        return [a.message for a in actions if isinstance(a, Send)]
+
+    def grant(amount: int) -> None:
+        deliver(local(Begin(amount), on_supervisor=True))
+        deliver(local(Decide(Decision.COMMIT), on_supervisor=True))
+
+    grant(10 * j)
+    local(Spend(j))  # DRAW(1) lost
+    image = c
+    deliver(local(BooksLost(7)))  # a new life: JOIN, admitted
+    grant(5 * j)
+    deliver(local(Spend(5 * j)))
+    assert c.spent == 5 * j  # the new life's actuator got its draw
+    new_life_used = c.spent
+    c = image  # the old life's image put back
+    deliver(local(PowerLoss(99)))
+    grant(j)
+    return c.usable + c.spent + new_life_used - (s.delivered + s.reserved - s.returned)
+
+
+def test_a_join_voids_the_next_number_so_no_two_lives_share_one() -> None:
+    assert _lives_sharing_a_number(W.SUPERVISOR) <= 0
+    old = W.SUPERVISOR.with_cells(cell(ANY, Join, H.admit, to=(ID, STAY)))
+    assert _lives_sharing_a_number(old) == 4_000_000
+
+
 # -- the issue's scenario through the core objects ---------------------------------------------
 def _exchange(actions: list[object], sup: Supervisor, node: Client, now: int) -> None:
     """Deliver every frame sent, each to its receiver, until nobody sends anything."""
@@ -712,3 +811,13 @@ def test_a_node_started_from_its_copy_before_a_spend(rules: str) -> None:
         assert created == 1_500_000
     else:  # found behind: the 0.5 J the copy still held is lost with its books, nothing created
         assert node.state.credited_unknown and created == -500_000
+
+
+def test_a_draw_through_the_client_is_re_sent_from_the_time_given() -> None:
+    """``Client.spend(x, now)``: the DRAW's re-send deadline counts from ``now``, not from 0."""
+    timing = Timing(return_retry_us=50)
+    node = Client(1, variant="witnessed", timing=timing, state=ClientState(1, usable=3000))
+    node.spend(1000, 10_000)
+    assert node.get_timer() == 10_050
+    assert node.handle_timer(10_049) == []
+    assert node.handle_timer(10_050) == [Send(Debit(1, 0, DRAW, 1, 1))]

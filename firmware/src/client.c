@@ -555,9 +555,11 @@ bool canergy_client_can_give_back(const struct canergy_client *c)
 {
 #ifdef CANERGY_WITNESSED
     if (c != NULL && witnessed(c)) {
-        /* witnessed.can_debit: one numbered debit at a time, books confirmed */
+        /* witnessed.can_debit: one numbered debit at a time, books confirmed, none numbered at
+         * the end */
         return c->rec.return_pending_uj == 0U &&
-               (c->phase == CANERGY_IDLE || c->phase == CANERGY_HOLDING);
+               (c->phase == CANERGY_IDLE || c->phase == CANERGY_HOLDING) &&
+               c->rec.return_seq < CANERGY_COUNTER_END - 1U;
     }
 #endif
     return c != NULL && c->rec.return_pending_uj == 0U && c->phase != CANERGY_JOINING &&

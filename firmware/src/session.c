@@ -172,12 +172,12 @@ static void ack_debit(const struct canergy_session *s, uint16_t seq,
 }
 
 /* DRAW(q, x): hold q as the node's last debit and acknowledge it (nothing to Us); re-ack an old
- * q; ignore one beyond (witnessed.hold_draw). */
+ * q; ignore one beyond, and the next at the end of the numbering (witnessed.hold_draw). */
 static void hold_draw(struct canergy_session *s, const struct canergy_msg *m,
                       struct canergy_session_step *step)
 {
     const int32_t ahead = serial16(m->seq, s->returns_credited);
-    if (ahead > 1) {
+    if (ahead > 1 || (ahead == 1 && s->returns_credited >= CANERGY_COUNTER_END - 1U)) {
         return;
     }
     if (ahead == 1) {
@@ -196,15 +196,26 @@ static void confirmation(const struct canergy_session *s, uint16_t nonce,
     step->msg.seq = (uint16_t)(s->returns_credited & 0xFFFFUL);
 }
 
-/* RESUME(n, q, x) (witnessed.confirm): a repeat gets the same answer; behind (q below the last
- * debit held): write off, lift, admit; otherwise write off what is open and credit a pending
- * RETURN numbered next; then void max(C, q) + 1 and answer ADMIT(n, k, C). */
+/* JOIN(n) (witnessed.admit): the hardened admission, and the number after C voided as at a
+ * RESUME, so that no debit number is issued by both a lost record and the node's new life. */
+static void admit_voiding(struct canergy_session *s, const struct canergy_msg *m,
+                          struct canergy_session_step *step)
+{
+    admit(s, m, step);
+    s->returns_credited += 1U;
+    step->msg.seq = (uint16_t)(s->returns_credited & 0xFFFFUL);
+}
+
+/* RESUME(n, q, x) (witnessed.confirm): a repeat gets the same answer (resume_to 0: none answered
+ * yet, as every answer voids a number above 0); behind (q below the last debit held): write off,
+ * lift, admit; otherwise write off what is open and credit a pending RETURN numbered next (not at
+ * the end of the numbering); then void max(C, q) + 1 and answer ADMIT(n, k, C). */
 static void confirm(struct canergy_session *s, const struct canergy_msg *m,
                     struct canergy_session_step *step)
 {
     const int32_t d = serial16(m->seq, s->returns_credited);
     const uint32_t seq = s->returns_credited + (uint32_t)d;
-    if (s->resume_to == s->returns_credited && s->resume_nonce == m->nonce &&
+    if (s->resume_to != 0U && s->resume_to == s->returns_credited && s->resume_nonce == m->nonce &&
         s->resume_from == seq) {
         confirmation(s, m->nonce, step);
         return;
@@ -217,7 +228,8 @@ static void confirm(struct canergy_session *s, const struct canergy_msg *m,
             resolve(s, CANERGY_RESOLVED_WRITTEN_OFF, step); /* the old record may not know */
         }
         const bool draw = (m->flags & CANERGY_DEBIT_DRAW) != 0U;
-        if (d == 1 && m->amount_mj != 0U && !draw) { /* the one RETURN ever numbered q */
+        const bool room = s->returns_credited < CANERGY_COUNTER_END - 1U;
+        if (d == 1 && m->amount_mj != 0U && !draw && room) { /* the one RETURN numbered q */
             const uint32_t amount = (uint32_t)m->amount_mj * MJ;
             s->returns_credited = seq;
             s->returned_uj += amount;
@@ -263,6 +275,12 @@ void canergy_session_on_msg(struct canergy_session *s, const struct canergy_sess
         credit_return(s, m, step);
         break;
     case CANERGY_JOIN:
+#ifdef CANERGY_WITNESSED
+        if (t->rules == CANERGY_RULES_WITNESSED) {
+            admit_voiding(s, m, step);
+            break;
+        }
+#endif
         admit(s, m, step);
         break;
 #ifdef CANERGY_WITNESSED

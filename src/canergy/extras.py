@@ -37,6 +37,7 @@ NEEDS_EXTRA: dict[str, str] = {
     "canergy.prove.steps": "prove",
     "canergy.prove.symbolic": "prove",
     "canergy.prove.world": "prove",
+    "canergy.prove.witnessed": "prove",
     "canergy.sequence_chart": "plot",
     "canergy.sim.figures": "plot",
 }

@@ -438,7 +438,7 @@ class DriveGuard:
         take = min(drawn, self.usable)
         self.overrun_uj += drawn - take
         self.debt_uj += drawn - take
-        return self._carry_out(self.client.spend(take), now) if take else []
+        return self._carry_out(self.client.spend(take, now), now) if take else []
 
     def _pay_debt(self, now: int) -> list[Message]:
         """New budget pays the debt first."""
@@ -446,7 +446,7 @@ class DriveGuard:
         if not pay:
             return []
         self.debt_uj -= pay
-        return self._carry_out(self.client.spend(pay), now)
+        return self._carry_out(self.client.spend(pay, now), now)
 
     # -- decisions --------------------------------------------------------------------------
     def alive(self, now: int) -> bool:

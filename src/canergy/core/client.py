@@ -59,9 +59,11 @@ class Client:
     def fire_return_timer(self, now: int) -> list[Action]:
         return self._step(RETURN_TIMEOUT, now)
 
-    def spend(self, amount: int) -> list[Action]:
-        """The actuator used ``amount`` µJ; refused beyond the usable budget."""
-        return self._step(Spend(amount), 0)
+    def spend(self, amount: int, now: int = 0) -> list[Action]:
+        """The actuator used (hardened) or asks for (witnessed: a DRAW, re-sent from ``now`` on
+        until acknowledged) ``amount`` µJ; refused beyond the usable budget. ``now`` matters only
+        where a re-send is timed: pass it (0 keeps the hardened callers that have no clock)."""
+        return self._step(Spend(amount), now)
 
     def give_back(self, amount: int, now: int) -> list[Action]:
         """Return ``amount`` µJ of unused energy to the supervisor."""

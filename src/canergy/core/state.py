@@ -54,10 +54,11 @@ class Session:
     node (committed, written off, or in the paper variant lost with a reset).
     ``returns_credited`` is the number of the last RETURN credited. ``tries`` and ``deadline``
     are volatile. Witnessed rules: ``resume_*`` is the last RESUME answered (its nonce, the
-    node's debit number and the number it voided), so that a re-sent copy gets the same answer;
-    ``witness`` is W, the highest transaction the node has shown it persisted (a transaction
-    begins only within ``Timing.window`` of it), and ``sync_nonce`` the nonce of the SYNC this
-    start sent (both volatile: every start sets them again).
+    node's debit number and the number it voided; ``resume_to`` 0: none yet, as no answer voids
+    number 0), so that a re-sent copy gets the same answer; ``witness`` is W, the highest
+    transaction the node has shown it persisted (a transaction begins only within
+    ``Timing.window`` of it), and ``sync_nonce`` the nonce of the SYNC this start sent (both
+    volatile: every start sets them again).
     """
 
     node: int

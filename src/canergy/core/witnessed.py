@@ -15,7 +15,7 @@ from __future__ import annotations
 from canergy.core import common
 from canergy.core import hardened as h
 from canergy.core.actions import Admitted, ReturnCredited, Send
-from canergy.core.common import check_amount, reply_for, resolve, start_return, wire_tx
+from canergy.core.common import at_end, check_amount, reply_for, resolve, start_return, wire_tx
 from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import (
     RETURN_TIMEOUT,
@@ -35,6 +35,7 @@ from canergy.core.table import ANY, STAY, ClientTable, SupervisorTable, cell
 from canergy.core.timing import Timing
 from canergy.frozen import evolve
 from canergy.messages import (
+    COUNTER_END,
     DELIVERED_BITS,
     NONCE_BITS,
     QUANTUM_UJ,
@@ -106,10 +107,11 @@ def on_debit(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
 
 
 def hold_draw(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
-    """DRAW(q, x): hold q as the node's last debit and ack it (nothing to Us); re-ack an old q."""
+    """DRAW(q, x): hold q as the node's last debit and ack it (nothing to Us); re-ack an old q;
+    ignore one beyond, and the next at the end of the numbering (as ``h.credit_return``)."""
     seq = unwrap(msg.seq, s.returns_credited, SEQ_BITS)
     ack = (Send(ReturnAck(s.node, msg.seq)),)
-    if seq == s.returns_credited + 1:
+    if seq == s.returns_credited + 1 and not at_end(s.returns_credited):
         return SessionStep(evolve(s, returns_credited=seq), ack)
     if seq <= s.returns_credited:
         return SessionStep(s, ack)
@@ -118,15 +120,16 @@ def hold_draw(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
 
 def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
     """RESUME(n, q): write off what is open; behind (q below the last debit held): admit; a
-    pending RETURN numbered next is credited; the number after max(C, q) is voided; answer
-    ADMIT(n, k, C) with k the last transaction closed, which the node takes as settled.
+    pending RETURN numbered next is credited (not at the end of the numbering); the number after
+    max(C, q) is voided; answer ADMIT(n, k, C) with k the last transaction closed, which the node
+    takes as settled.
 
     A re-sent copy (same nonce and q, nothing held since) gets the same answer. A SYNC's counts
     also carry the node's ltx: tx moves up to it (never back); their ADMIT carries n with
     ``SYNC_CONFIRMED`` flipped."""
     seq, key = unwrap(msg.seq, s.returns_credited, SEQ_BITS), _answered(msg)
     nonce = msg.nonce ^ SYNC_CONFIRMED if msg.is_counts else msg.nonce
-    if (s.resume_to, s.resume_nonce, s.resume_from) == (s.returns_credited, key, seq):
+    if answered(s, key, seq):
         return SessionStep(s, (Send(_confirmation(s, nonce)),))
     behind = seq < s.returns_credited
     if behind:  # the record lacks a debit the supervisor holds: the node starts afresh
@@ -134,7 +137,8 @@ def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
     else:  # the older record may not hold how the node resolved it
         step = resolve(s, Outcome.WRITTEN_OFF) if s.phase is not IDLE else SessionStep(s)
         s = step.session
-        if seq == s.returns_credited + 1 and msg.pending_mj and not msg.flags & Debit.DRAW:
+        credits = msg.pending_mj and not msg.flags & Debit.DRAW and not at_end(s.returns_credited)
+        if seq == s.returns_credited + 1 and credits:
             amount = msg.pending_mj * QUANTUM_UJ
             s = evolve(s, returns_credited=seq, returned=s.returned + amount)
             credited = (ReturnCredited(s.node, seq, amount),)
@@ -154,6 +158,24 @@ def _answered(msg: Debit) -> int:
     """What the last answer remembers of a start: its nonce, and above it whether the start was
     a SYNC's counts (a stale ADMIT a node took for a SYNC does not replay a RESUME's answer)."""
     return msg.nonce | (1 << NONCE_BITS if msg.is_counts else 0)
+
+
+def answered(s: Session, nonce: int, seq: int) -> bool:
+    """RESUME(nonce, seq) is the last one answered and nothing was held since (``resume_to`` 0:
+    none answered yet; a real answer's is at least 1)."""
+    last = (s.resume_to, s.resume_nonce, s.resume_from)
+    return s.resume_to != 0 and last == (s.returns_credited, nonce, seq)
+
+
+def admit(t: Timing, s: Session, msg: Join, now: int) -> SessionStep:
+    """JOIN(n): the hardened admission, and the number after C voided as at a RESUME (C + 1 held,
+    ADMIT(n, k, C + 1)): a debit the lost record left in flight under it is behind, and no number
+    is issued by both the node's old record and its new life."""
+    step = h.write_off_and_lift(s)
+    s = evolve(step.session, returns_credited=step.session.returns_credited + 1)
+    answer = Admit(s.node, msg.nonce, wire_tx(s.tx), wrap(s.returns_credited, SEQ_BITS))
+    admitted = Admitted(s.node, s.tx, s.returns_credited)
+    return SessionStep(s, (*step.actions, admitted, Send(answer)), step.credit)
 
 
 def _confirmation(s: Session, nonce: int) -> Admit:
@@ -233,7 +255,7 @@ SUPERVISOR = SupervisorTable(
         cell(OPEN, Committed, on_committed, to=(IDLE, STAY)),
         cell(WAIT_CONFIRM, Aborted, on_aborted, to=(IDLE, STAY)),
         cell((IDLE, *OPEN), Return, h.credit_return),
-        cell((IDLE, *OPEN), Join, h.admit, to=(IDLE, STAY)),
+        cell((IDLE, *OPEN), Join, admit, to=(IDLE, STAY)),
         cell((WAIT_ACK, WAIT_CONFIRM), ResponseTimeout, h.resend_or_write_off, to=(IDLE, STAY)),
         cell((IDLE, *OPEN), Debit, on_debit, to=(IDLE, STAY)),
         cell(ANY, PowerLoss, start, to=SYNCING),
@@ -258,9 +280,9 @@ def on_intention(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientS
 
 
 def can_debit(c: ClientState) -> bool:
-    """One numbered debit at a time (a return or a draw), and none before the supervisor has
-    confirmed the node's books."""
-    return c.return_pending == 0 and c.phase in BOOKED
+    """One numbered debit at a time (a return or a draw), none before the supervisor has
+    confirmed the node's books, and none numbered at the end of the numbering."""
+    return c.return_pending == 0 and c.phase in BOOKED and not at_end(c.return_seq)
 
 
 def draw_of(c: ClientState) -> Debit:
@@ -277,10 +299,20 @@ def resume_of(c: ClientState) -> Debit:
     return Debit(c.node, c.nonce, flags, wrap(c.return_seq, SEQ_BITS), pending)
 
 
-def draw(t: Timing, c: ClientState, event: Spend, now: int) -> ClientStep:
-    """Uc -= x as debit q + 1, persist, send DRAW(q + 1, x); the actuator gets x on its ack."""
+def _check_debit(c: ClientState) -> None:
+    """``can_debit``, or a LocalProtocolError saying why not."""
+    if at_end(c.return_seq):
+        raise LocalProtocolError(
+            f"node {c.node}: debit {c.return_seq} is the last below {COUNTER_END:,}: its books "
+            "must start again"
+        )
     if not can_debit(c):
         raise LocalProtocolError("a debit is still waiting for its acknowledgement")
+
+
+def draw(t: Timing, c: ClientState, event: Spend, now: int) -> ClientStep:
+    """Uc -= x as debit q + 1, persist, send DRAW(q + 1, x); the actuator gets x on its ack."""
+    _check_debit(c)
     check_amount(event.amount)
     step = start_return(t, c, event.amount, now)
     c = evolve(step.client, pending_draw=True)
@@ -289,8 +321,7 @@ def draw(t: Timing, c: ClientState, event: Spend, now: int) -> ClientStep:
 
 def give_back(t: Timing, c: ClientState, event: GiveBack, now: int) -> ClientStep:
     """Uc -= x, q += 1, persist, send RETURN(q, x); re-sent until RETURN_ACK(q)."""
-    if not can_debit(c):
-        raise LocalProtocolError("a debit is still waiting for its acknowledgement")
+    _check_debit(c)
     return start_return(t, c, event.amount, now)
 
 

@@ -129,7 +129,7 @@ class DemoRun:
         for n, client in self.clients.items():
             if client.state.usable:
                 spend = min(client.state.usable, self.power_uj_per_tick[n])
-                self.carry_out(self.client_eps[n], client.spend(spend))
+                self.carry_out(self.client_eps[n], client.spend(spend, self.now))
             self.give_back(n, client.state.usable // 2 if self.rng.random() < 0.03 else 0)
         self.begin_transactions()
 

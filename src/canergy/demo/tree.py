@@ -327,7 +327,7 @@ class TreeRun:
         usable = client.state.usable
         need = self.power[key] * TICK_US // US_PER_S
         if usable and need and not self.draining:
-            self.carry_out(key, client.spend(min(usable, need)))
+            self.carry_out(key, client.spend(min(usable, need), self.now))
         usable = client.state.usable
         keep = 0 if self.draining else 2 * self.cfg.node_target
         excess = usable - keep - (usable - keep) % QUANTUM_UJ

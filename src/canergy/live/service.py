@@ -31,6 +31,7 @@ from canergy.core.common import at_end
 from canergy.core.errors import LocalProtocolError
 from canergy.core.state import Outcome, Phase
 from canergy.core.supervisor import SupervisorCore
+from canergy.core.witnessed import answered
 from canergy.live.atomic import write_json_atomic
 from canergy.live.bus_keys import node_name
 from canergy.live.control import ControlServer
@@ -375,8 +376,7 @@ class SupervisorService:
         (its last debit below the books': an older record) and admitted afresh."""
         s = self.core.session(msg.node)
         seq = unwrap(msg.seq, s.returns_credited, SEQ_BITS)
-        last = (s.resume_nonce, s.resume_from, s.resume_to)
-        repeat = last == (msg.nonce, seq, s.returns_credited)  # answered as before: no news
+        repeat = answered(s, msg.nonce, seq)  # answered as before: no news
         self._resuming = msg.node
         try:
             out = self._carry_out(self.core.receive(msg, now), now)

@@ -33,8 +33,9 @@ def _zero16() -> Term:
 
 
 def can_debit(c: Client) -> Term:
-    """One numbered debit at a time, none before the supervisor confirmed the books."""
-    return z3.And(c.return_pending == 0, booked(c))
+    """One numbered debit at a time, none before the supervisor confirmed the books, none
+    numbered at the end of the numbering."""
+    return z3.And(c.return_pending == 0, booked(c), z3.Not(sym.at_end(c.return_seq)))
 
 
 def draw_of(c: Client) -> Sent:
@@ -191,14 +192,16 @@ def timeout_commit(c: Client) -> tuple[Client, Sent]:
 
 
 def hold_draw(s: Session, seq16: Term) -> SessionStep:
-    """DRAW(q, x): hold q as the node's last debit (nothing to Us); re-ack an old q."""
+    """DRAW(q, x): hold q as the node's last debit (nothing to Us); re-ack an old q; ignore one
+    beyond, and the next at the end of the numbering."""
     seq = sym.unwrap(seq16, s.returns_credited, SEQ_BITS)
     ahead = seq - s.returns_credited
     ack = Sent.of(MsgType.RETURN_ACK, seq16)
     held = SessionStep(replace(s, returns_credited=seq), ack, z3.IntVal(0))
     again = SessionStep(s, ack, z3.IntVal(0))
+    next_one = z3.And(ahead == 1, z3.Not(sym.at_end(s.returns_credited)))
     return sym.choose(
-        ahead == 1, held, sym.choose(ahead <= 0, again, SessionStep(s, Sent.none(), z3.IntVal(0)))
+        next_one, held, sym.choose(ahead <= 0, again, SessionStep(s, Sent.none(), z3.IntVal(0)))
     )
 
 
@@ -215,11 +218,15 @@ def _confirmation(s: Session, nonce16: Term) -> Sent:
 
 def confirm(s: Session, nonce16: Term, is_draw: Term, seq16: Term, amount_mj: Term) -> SessionStep:
     """RESUME(n, q, x): write off what is open; behind (q below C): lift as for a JOIN; a
-    pending RETURN numbered C + 1 credited; C = max(C, q) + 1 (voided); ADMIT(n, k, C). A
-    repeat (same nonce and q, C unchanged since) gets the same answer."""
+    pending RETURN numbered C + 1 credited (not at the end); C = max(C, q) + 1 (voided);
+    ADMIT(n, k, C). A repeat (same nonce and q, C unchanged since; ``resume_to`` 0: none
+    answered) gets the same answer."""
     seq = sym.unwrap(seq16, s.returns_credited, SEQ_BITS)
     repeat = z3.And(
-        s.resume_to == s.returns_credited, s.resume_nonce == nonce16, s.resume_from == seq
+        s.resume_to != 0,
+        s.resume_to == s.returns_credited,
+        s.resume_nonce == nonce16,
+        s.resume_from == seq,
     )
     behind = seq - s.returns_credited < 0
     lifted = sym.admit(s, nonce16)
@@ -228,7 +235,8 @@ def confirm(s: Session, nonce16: Term, is_draw: Term, seq16: Term, amount_mj: Te
     )
     t = closed.session
     amount = amount_mj * QUANTUM_UJ
-    credits = z3.And(seq - t.returns_credited == 1, amount_mj != 0, z3.Not(is_draw))
+    room = z3.Not(sym.at_end(t.returns_credited))
+    credits = z3.And(seq - t.returns_credited == 1, amount_mj != 0, z3.Not(is_draw), room)
     credited = SessionStep(
         replace(t, returns_credited=seq, returned=t.returned + amount),
         Sent.none(),
@@ -243,6 +251,19 @@ def confirm(s: Session, nonce16: Term, is_draw: Term, seq16: Term, amount_mj: Te
     t = replace(t, returns_credited=void, resume_nonce=nonce16, resume_from=seq, resume_to=void)
     answered = SessionStep(t, _confirmation(t, nonce16), step.credit)
     return sym.choose(repeat, SessionStep(s, _confirmation(s, nonce16), z3.IntVal(0)), answered)
+
+
+def admit(s: Session, nonce16: Term) -> SessionStep:
+    """JOIN(n): the hardened admission with the number after C voided: C + 1, ADMIT(n, k, C)."""
+    lifted = sym.admit(s, nonce16)
+    t = replace(lifted.session, returns_credited=lifted.session.returns_credited + 1)
+    sent = Sent.of(
+        MsgType.ADMIT,
+        nonce16,
+        z3.BV2Int(sym.low(t.tx, TX_BITS)),
+        z3.BV2Int(sym.low(t.returns_credited, SEQ_BITS)),
+    )
+    return SessionStep(t, sent, lifted.credit)
 
 
 def on_debit(s: Session, nonce16: Term, flags: Term, seq16: Term, amount_mj: Term) -> SessionStep:

@@ -638,8 +638,13 @@ def test_one_debit_at_a_time_and_none_before_the_confirmation() -> None:
 
 
 # -- what the rules are for: the bounded checker ----------------------------------------------
-OLD_COPY = Bounds(old_copies=1, transactions=1, losses=0, duplicates=0, timeouts=4)
-"""One older copy of the node's record, one transaction, a power loss, spending and returns."""
+OLD_COPY = Bounds(old_copies=1, transactions=1, losses=0, duplicates=0, timeouts=4, in_flight=2)
+"""One older copy of the node's record, one transaction, a power loss, spending and returns, two
+frames in flight (13,549 states, 0.4 s; three in flight with these timeouts did not finish in
+3 minutes and took 6 GB, so three are checked with fewer timeouts, ``MORE_IN_FLIGHT``)."""
+MORE_IN_FLIGHT = replace(OLD_COPY, in_flight=3, timeouts=1)
+"""Three frames in flight (a stale debit, a RESUME and its re-send), one timer expiry: 135,168
+states, 5.5 s."""
 NODE_SIDE = Variant(
     "witnessed",
     W.SUPERVISOR.with_cells(
@@ -660,10 +665,12 @@ with SYNC multiplies these bounds (``--variant witnessed --old-copies 1 --transa
 are checked in tests/test_witnessed_supervisor.py."""
 
 
-def test_no_older_copy_of_a_node_record_creates_energy() -> None:
-    result = check(NODE_SIDE, OLD_COPY)
+@pytest.mark.parametrize("bounds", [OLD_COPY, MORE_IN_FLIGHT], ids=["timeouts", "in-flight"])
+def test_no_older_copy_of_a_node_record_creates_energy(bounds: Bounds) -> None:
+    result = check(NODE_SIDE, bounds)
     assert result.complete and result.violations == 0
-    without = check(NODE_SIDE, replace(OLD_COPY, old_copies=0))
+    assert check("hardened", bounds, stop_at_first=True).counterexample is not None
+    without = check(NODE_SIDE, replace(bounds, old_copies=0))
     assert result.states > without.states  # the old copies were explored too
 
 

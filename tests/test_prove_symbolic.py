@@ -328,7 +328,8 @@ def test_a_gateways_forward_and_give_back_from_below(c: ClientState, amount: int
         same_client(CLIENT.step(T, up, GiveBack(amount), 0), (state, sent))
 
 
-# -- the witnessed rules (canergy.prove.witnessed against canergy.core.witnessed) --------------
+# -- the witnessed rules (canergy.prove.witnessed against canergy.core.witnessed): only the cells
+# the terms model (their module docstring says which; SYNC and its answers are not) ----------
 
 
 @st.composite
@@ -381,7 +382,12 @@ def test_witnessed_client_answers(data: st.DataObject) -> None:
     same_client(
         W_CLIENT.step(T, c, ReturnAck(1, seq), 0), sym_w.on_debit_ack(s, z3.BitVecVal(seq, 16))
     )
-    nonce = data.draw(st.one_of(st.just(c.nonce), st.integers(0, 0xFFFF)))
+    if c.phase is Phase.JOINING:
+        nonce = data.draw(st.one_of(st.just(c.nonce), st.integers(0, 0xFFFF)))
+    elif c.phase is Phase.RESUMING:
+        nonce = c.nonce  # another nonce is a SYNC, which the terms do not model
+    else:
+        return  # an ADMIT while booked is a SYNC: not modelled
     q = data.draw(st.one_of(wire_near(c.return_seq + 1), st.integers(0, 0xFFFF)))
     same_client(
         W_CLIENT.step(T, c, Admit(1, nonce, tx, q), 0),

@@ -7,6 +7,13 @@ state as it is) and reuses the hardened terms of ``symbolic`` for the cells the 
 states drawn by hypothesis, as it does the hardened ones.
 
 A DEBIT is sent as ``Sent.of(DEBIT, q, amount_mj, flags, nonce)``.
+
+Not modelled (the comparison draws none of them): the supervisor side of a start, SYNC and its
+answers (the session phases SYNCING and SYNC_BOOKS, the books and counts, a supervisor power
+loss, the window on BEGIN) and the node's answer to a SYNC (its phase SYNCING, and an ADMIT
+that does not answer the node's own start: a SYNC, answered with two frames, which ``Sent``
+cannot carry). The terms cover the node's draws, starts (RESUME) and their confirmation, and
+the supervisor's DRAW, RESUME and JOIN cells.
 """
 
 from __future__ import annotations
@@ -86,8 +93,13 @@ def give_back(c: Client, amount: Term) -> tuple[Client, Sent, Term]:
 
 
 def on_intention(c: Client, tx16: Term, amount_mj: Term, delivered_mj: Term) -> tuple[Client, Sent]:
-    """INTENTION: hardened while booked or joining; RESUMING: RESUME again, nothing moves."""
+    """INTENTION: hardened while booked or joining, but Gs pays back only from a fresh one
+    (k > ltx; an old one only re-replies); RESUMING: RESUME again, nothing moves."""
     taken = sym.on_intention(c, tx16, amount_mj, delivered_mj)
+    tx = sym.unwrap(tx16, c.last_tx, TX_BITS)
+    old = z3.And(booked(c), z3.Not(c.credited_unknown), tx - c.last_tx <= 0)
+    replied = sym.pick(tx == c.last_tx, sym._reply_for(c, tx, c.outcome), Sent.none())
+    taken = (sym.pick(old, c, taken[0]), sym.pick(old, replied, taken[1]))
     resuming = c.phase == sym.RESUMING
     return sym.pick(resuming, c, taken[0]), sym.pick(resuming, resume_of(c), taken[1])
 

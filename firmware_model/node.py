@@ -42,6 +42,7 @@ from canergy.messages import (
     LEVEL_MAX_MJ,
     QUANTUM_UJ,
     SEQ_BITS,
+    Admit,
     Direction,
     Intention,
     Message,
@@ -161,9 +162,21 @@ class FirmwareNode:
             self.refused += 1  # no grants outside OPERATIONAL: left unanswered
             return []
         asked = not self.witnessing.never_asked(msg, self.client.state.return_seq)
+        if self.witnessed_rules and isinstance(msg, Admit) and not self.joining:
+            asked = True  # a supervisor's SYNC (asked by nobody) or the ADMIT answering ours
         out = [] if asked else self.witness(now)
         joining, resuming, before = self.joining, self.resuming, self.client.state
+        syncing = before.phase is Phase.SYNCING
         out += self._carry_out(self.client.receive(msg, now), now)
+        if not syncing and self.client.state.phase is Phase.SYNCING:
+            log.warning(
+                "node %d: the supervisor started (SYNC): books and counts sent; nothing spent "
+                "until it confirms them",
+                self.node,
+            )
+        elif syncing and self.client.state.phase is not Phase.SYNCING:
+            log.info("node %d: books confirmed after the supervisor's start", self.node)
+            self.next_telemetry = now
         if (joining and not self.joining) or (resuming and not self.resuming):
             self.next_telemetry = now  # admitted: tell the supervisor at once
         if resuming and not self.resuming:

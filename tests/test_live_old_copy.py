@@ -105,8 +105,9 @@ def wait(condition: Any, timeout_s: float = 60.0) -> None:
         done.wait(0.02)
 
 
-def bench(tmp: Path, variant: str, auth: Layout | None) -> Bench:
-    channel = f"oldcopy-{uuid.uuid4().hex}"
+def bench(tmp: Path, variant: str, auth: Layout | None, channel: str | None = None) -> Bench:
+    """A supervisor started on ``channel`` (default: a new one), its keys made once."""
+    channel = channel or f"oldcopy-{uuid.uuid4().hex}"
     argv = [
         "supervisor",
         *("-i", "virtual", "-c", channel, "--variant", variant),
@@ -115,10 +116,11 @@ def bench(tmp: Path, variant: str, auth: Layout | None) -> Bench:
         *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
         *("--control", str(tmp / "ctl.sock")),
     ]
-    if auth is not None:
+    if auth is not None and not (tmp / "m.key").exists():
         assert main(["keys", "-o", str(tmp / "m.key")]) == 0
         keys = ["keys", "--master", str(tmp / "m.key"), "--nodes", "1", "-o", str(tmp / "n1.key")]
         assert main(keys) == 0
+    if auth is not None:
         argv += ["--auth", str(tmp / "m.key"), *(["--fd"] if auth is Layout.FD else [])]
     result: list[int] = []
     thread = threading.Thread(target=lambda: result.append(main(argv)), daemon=True)

@@ -21,6 +21,7 @@ from canergy.cli.shared.live import (
     joules,
     rule_timing,
     service_flags,
+    start_without_flag,
     supervisor_flags,
 )
 from canergy.codec import Codec
@@ -66,6 +67,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "bus",
     )
     supervisor_flags(p)
+    start_without_flag(p)
     service_flags(p)
     p.add_argument(
         "--inject",

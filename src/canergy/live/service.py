@@ -124,6 +124,8 @@ class NodeInfo:
     found_behind: int = 0
     """Of them, records older than the books (a debit number below the supervisor's): the node
     was admitted afresh and what that record held was dropped."""
+    synced: int = 0
+    """Supervisor starts this node answered with its books and counts (witnessed rules)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -250,6 +252,10 @@ class SupervisorService:
             self._inject(config.inject_uj)
         if not config.listen_only:
             self._persist()  # an injection is on disk before anything is granted
+        self._waited = self.waiting()
+        """The nodes this start waited for at the last look (witnessed rules)."""
+        if self._waited:
+            log.warning("%s", self._waiting_why(self._waited))
 
     # -- Handler ---------------------------------------------------------------------------
     def on_message(self, msg: Message, now: int) -> Sequence[Message]:
@@ -290,7 +296,9 @@ class SupervisorService:
             return ()
         if isinstance(msg, Return) and self._hold_return(msg, now):
             return self._flush(self._released(msg.node, now))
-        if isinstance(msg, Debit) and msg.is_resume and self.witnessed:
+        if isinstance(msg, Debit) and msg.flags & (Debit.SYNC | Debit.BOOKS) and self.witnessed:
+            out = self._synced(msg, info, now)
+        elif isinstance(msg, Debit) and msg.is_resume and self.witnessed:
             if self._hold_resume(msg, now):
                 return self._flush(self._released(msg.node, now))
             out = self._resume(msg, info, now)
@@ -401,6 +409,42 @@ class SupervisorService:
             log.info("node %s resumed: its books confirmed at debit %d", name, seq)
         return out
 
+    def waiting(self) -> tuple[int, ...]:
+        """The nodes whose books this start waits for before any grant (the core's
+        ``unconfirmed``; none under rules without SYNC, or on a core without it)."""
+        unconfirmed = getattr(self.core, "unconfirmed", None)
+        return () if unconfirmed is None else tuple(unconfirmed())
+
+    def _waiting_why(self, waiting: tuple[int, ...]) -> str:
+        names = ", ".join(str(self.node_name(n)) for n in waiting)
+        return (
+            f"started from the state file: SYNC sent; no grant to any node until node(s) "
+            f"{names} answer with their books (the file may be an older copy: granting before "
+            "would grant again what they hold); --start-without NODES skips a node, at a risk"
+        )
+
+    def _synced(self, msg: Debit, info: NodeInfo, now: int) -> list[Outgoing]:
+        """The books or counts answering this start's SYNC: the core takes them; once the
+        counts are taken the node is confirmed, and once every node is, grants resume."""
+        s = self.core.session(msg.node)
+        if msg.is_counts:  # the node's return numbers start again, as at a RESUME
+            self.witness.hold_resume(msg, s.returns_credited, now, False)
+        out = self._carry_out(self.core.receive(msg, now), now)
+        waiting = self.waiting()
+        if msg.node in self._waited and msg.node not in waiting:
+            info.synced += 1
+            info.ended_at = now  # its level before the answer is stale
+            log.warning(
+                "node %s confirmed its books after this start (tx %d, debit %d)",
+                self.node_name(msg.node),
+                self.core.session(msg.node).tx,
+                self.core.session(msg.node).returns_credited,
+            )
+            if not waiting:
+                log.warning("every node has confirmed its books: granting")
+        self._waited = waiting
+        return out
+
     def _released(self, node: int, now: int) -> list[Outgoing]:
         """The held RETURNs of ``node`` its TELEMETRY has confirmed, credited by the core (and a
         held RESUME it confirmed, answered)."""
@@ -429,6 +473,8 @@ class SupervisorService:
             level = msg.level_mj * QUANTUM_UJ
             if msg.level_mj < LEVEL_MAX_MJ and level > holdable + lagging:
                 return f"reports {format_energy(level)}, its books allow {format_energy(holdable)}"
+        elif isinstance(msg, Debit) and msg.flags & (Debit.SYNC | Debit.BOOKS):
+            return None  # books and counts: no amount the node debits
         elif isinstance(msg, Return | Debit):
             fresh = unwrap(msg.seq, s.returns_credited, SEQ_BITS) == s.returns_credited + 1
             amount = msg.amount_mj * QUANTUM_UJ
@@ -716,6 +762,14 @@ class SupervisorService:
             return []
         todo = list(self.nodes) if nodes is None else sorted(nodes)
         self.ready.clear()
+        if waiting := self.waiting():  # no grant to anyone until every node's books are in
+            why = self._waiting_why(waiting)
+            for node in todo:
+                info = self.nodes[node]
+                for req in info.requests:
+                    req.reply({"node": self.node_name(node), "error": f"refused: {why}"})
+                info.requests.clear()
+            return []
         out: list[Outgoing] = []
         policy = self.config.policy
         for node in todo:
@@ -906,6 +960,7 @@ class SupervisorService:
     # -- status ----------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
         st = self.core.state
+        waiting = self.waiting()
         nodes: dict[str, Any] = {}
         for s in st.sessions:
             info = self.nodes[s.node]
@@ -927,6 +982,7 @@ class SupervisorService:
                 "joins_resent": info.joins_resent,
                 "resumes": info.resumes,
                 "found_behind": info.found_behind,
+                "synced": info.synced,
                 "resume_waiting": self.witness.resume_held(s.node),
                 "returns": info.returns,
                 "decode_errors": info.decode_errors,
@@ -971,6 +1027,8 @@ class SupervisorService:
             "refused": self.refusals.as_json(self.now),
             **({"control_refused": self._control_refused()} if self.control else {}),
             "stopped_by_intrusion": self.stopped_by_intrusion,
+            "waiting_for_books": [self.node_name(n) for n in waiting],
+            "waiting_why": self._waiting_why(waiting) if waiting else None,
             "nodes": nodes,
             **({"cia402": self.extra_status(self.now)} if self.extra_status else {}),
         }

@@ -4,17 +4,18 @@ limits and timing, the service, authenticated mode, the files a run writes."""
 from __future__ import annotations
 
 import argparse
+import secrets
 import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from canergy.argtypes import add_duration, bounded_int, energy, power
+from canergy.argtypes import add_duration, bounded_int, energy, node_ids, power
 from canergy.auth.state_key import state_seal
 from canergy.ccore.supervisor import make_supervisor, missing
 from canergy.codec import Codec
 from canergy.core import Timing
-from canergy.core.supervisor import SupervisorCore
+from canergy.core.supervisor import Supervisor, SupervisorCore
 from canergy.core.variants import RUNNABLE
 from canergy.live.atomic import check_writable_dir, same_file
 from canergy.live.bus_args import add_bus_flags
@@ -156,6 +157,9 @@ def build_core(
     are then session keys); ``key``: ``--auth``'s, which seals the state file."""
     timing = rule_timing(args)
     kind = core_choice(args, buses)  # before the state file is touched
+    without = frozenset(getattr(args, "start_without", None) or ())
+    if without and (kind != "python" or args.variant != "witnessed"):
+        raise ValueError("--start-without: only under --variant witnessed (the Python core)")
     state = None
     seal = None if key is None else state_seal(key)
     if args.state is not None and args.state.exists():
@@ -174,18 +178,45 @@ def build_core(
         )
     if args.state is not None and not getattr(args, "listen_only", False):
         keep_books(args.state, seal, args.auth, fresh=state is None)
-    core = make_supervisor(
-        kind,
-        nodes,
-        args.initial,
-        variant=args.variant,
-        timing=timing,
-        state=state,
-        id_base=args.id_base,
-    )
-    if state is not None:
-        core.power_loss(monotonic_us())  # a start is a restart from the persistent record
+    core: SupervisorCore
+    if kind == "python":
+        core = Supervisor(
+            nodes,
+            args.initial,
+            variant=args.variant,
+            timing=timing,
+            state=state,
+            start_without=without,
+        )
+    else:
+        core = make_supervisor(
+            kind,
+            nodes,
+            args.initial,
+            variant=args.variant,
+            timing=timing,
+            state=state,
+            id_base=args.id_base,
+        )
+    if state is not None:  # a start is a restart from the persistent record
+        if isinstance(core, Supervisor):  # witnessed: SYNC(n) with a nonce no start drew
+            core.power_loss(monotonic_us(), secrets.randbits(16))
+        else:
+            core.power_loss(monotonic_us())
     return core
+
+
+def start_without_flag(p: argparse.ArgumentParser) -> None:
+    """``--start-without``: nodes a witnessed start does not wait for (``Supervisor``)."""
+    p.add_argument(
+        "--start-without",
+        type=node_ids,
+        metavar="NODES",
+        help="--variant witnessed: grant after a start without waiting for these nodes' books "
+        "(e.g. 3,7: nodes that are off for long). RISK: if the state file was put back to an "
+        "older copy, such a node may hold energy the restored books count in the budget again "
+        "(up to all it received since the copy), and that is granted to the other nodes",
+    )
 
 
 def grant_limits(args: argparse.Namespace) -> Limits:

@@ -1,0 +1,83 @@
+"""A supervisor's state file put back to an older copy (a backup, a VM snapshot) after grants,
+on the live stack: `canergy supervisor` as users run it and the emulated node on python-can's
+virtual bus (issue 40, item 5). Under the hardened rules the restored books count in Us again
+what the node received after the copy and grant it once more; under ``--variant witnessed`` the
+restarted supervisor sends SYNC, grants nothing until the node has answered with its books (the
+wait is in the status and on stderr), and Gs moves up to the node's Rc: nothing is created.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from test_live_old_copy import Bench, bench, held, released, wait
+
+from canergy.auth.frames import Layout
+from canergy.units import UJ_PER_J
+
+NODE = 1
+
+
+def restored_books(tmp: Path, variant: str, auth: Layout | None) -> tuple[Bench, int, str]:
+    """The supervisor grants; its state file is copied; it grants 2 J more; the node and the
+    supervisor stop; the copy is put back and the supervisor starts from it, the node off.
+    Returns the new supervisor, what the node's first life's actuator used, and the copy (what
+    the first life still held is in its record, which the second life starts from)."""
+    b = bench(tmp, variant, auth)
+    node, loop = b.start_node()
+    try:
+        wait(lambda: b.node_status().get("committed", 0) >= 2)
+        copy = (tmp / "s.json").read_text()
+        at_copy = b.node_status()["committed_uj"]
+        wait(lambda: b.node_status()["committed_uj"] >= at_copy + 2 * UJ_PER_J)
+    finally:
+        loop.halt()
+    b.stop_supervisor()
+    first = node.actuator.drawn_uj
+    (tmp / "s.json").write_text(copy)
+    (tmp / "status.json").unlink()
+    return bench(tmp, variant, auth, b.channel), first, copy
+
+
+@pytest.mark.parametrize("auth", [None, Layout.CLASSIC], ids=["no key", "auth classic"])
+def test_an_older_copy_of_the_supervisors_books_creates_nothing_under_witnessed(
+    tmp_path: Path, auth: Layout | None, caplog: pytest.LogCaptureFixture
+) -> None:
+    b, first, _ = restored_books(tmp_path, "witnessed", auth)
+    wait(lambda: b.status().get("waiting_for_books") == [NODE])
+    waiting = b.status()
+    assert "no grant to any node until node(s) 1" in waiting["waiting_why"]
+    assert waiting["granted_this_run_uj"] == 0
+    node, loop = b.start_node()  # the node's second life, from its own (current) record
+    try:
+        wait(lambda: b.node_status().get("synced") == 1)
+        assert b.status()["waiting_for_books"] == []
+        wait(lambda: b.node_status()["committed"] >= 3)  # grants go on after the books
+    finally:
+        loop.halt()
+    final = b.stop_supervisor()["nodes"][str(NODE)]
+    used = first + node.actuator.drawn_uj + held(node)
+    assert used <= released(final), (used, released(final))
+    said = caplog.text
+    assert "SYNC sent; no grant to any node until node(s) 1" in said
+    assert "node 1 confirmed its books after this start" in said
+
+
+def test_the_same_restore_under_the_hardened_rules_creates_energy(tmp_path: Path) -> None:
+    """The measurement the witnessed rules answer: the restored books grant again."""
+    b, first, _ = restored_books(tmp_path, "hardened", None)
+    assert b.status().get("waiting_for_books", []) == []
+    node, loop = b.start_node()
+    try:
+
+        def created() -> int:
+            session = b.node_status()
+            if not session:
+                return 0
+            return first + node.actuator.drawn_uj + held(node) - released(session)
+
+        wait(lambda: created() >= UJ_PER_J)
+    finally:
+        loop.halt()
+    b.stop_supervisor()

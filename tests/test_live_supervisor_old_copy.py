@@ -13,7 +13,9 @@ from pathlib import Path
 import pytest
 from test_live_old_copy import Bench, bench, held, released, wait
 
-from canergy.auth.frames import Layout
+from canergy.auth.frames import FrameAuth, Layout, expected_freshness
+from canergy.codec import Codec
+from canergy.messages import Debit, Direction
 from canergy.units import UJ_PER_J
 
 NODE = 1
@@ -81,3 +83,22 @@ def test_the_same_restore_under_the_hardened_rules_creates_energy(tmp_path: Path
     finally:
         loop.halt()
     b.stop_supervisor()
+
+
+@pytest.mark.parametrize("layout", list(Layout))
+def test_the_books_answering_a_sync_are_fresh_by_its_nonce(layout: Layout) -> None:
+    """The books carry Rc (mJ) where a draw carries its number: judged as a debit number they
+    would be stale once Rc's low 16 bits fall below the supervisor's count (after 65.5 J), and
+    the start would wait for ever. Their FV is the SYNC's nonce, as the counts'."""
+    key = bytes(range(16))
+
+    def side(receives: Direction, seq: int) -> FrameAuth:
+        return FrameAuth(
+            Codec(), layout, lambda n: key, receives, lambda m: expected_freshness(m, 0, seq)
+        )
+
+    node, sup = side(Direction.TO_CLIENT, 10_000), side(Direction.TO_SUPERVISOR, 10_000)
+    books = Debit.books(NODE, 0x5A5A, 70_000)  # Rc 70 J: its low 16 bits 4,464, below 10,000
+    counts = Debit.counts(NODE, 0x5A5A, 10_000 & 0xFFFF, 40)
+    for msg in (books, counts):
+        assert [sup.accept(f) for f in node.frames(msg)][-1].message == msg

@@ -5,8 +5,9 @@ MAC input: Data ID ``type << 8 | node`` (2 bytes, big-endian) || freshness value
 big-endian) || the classic frame's data (CRC-8 byte and fields). FV never repeats for a key: the
 full 32-bit transaction number for transaction frames, the full return number for RETURN,
 RETURN_ACK and a DEBIT's draw (numbered as a return), the sender's last resolved transaction for
-TELEMETRY, the nonce for JOIN, RESUME (a DEBIT's start) and ADMIT; a JOIN's and a RESUME's FV
-has a random high half the ADMIT's MAC binds (32 bits for a replayed ADMIT to match, not 16).
+TELEMETRY, the nonce for JOIN, RESUME (a DEBIT's start), a SYNC's books and counts, and ADMIT; a
+JOIN's and a RESUME's FV has a random high half the ADMIT's MAC binds (32 bits for a replayed
+ADMIT to match, not 16).
 The wire carries 16-bit counters; a receiver extends them from its own counters, and a frame
 whose FV is not the one it expects (a replay from 65,536 transactions ago, say) is refused. So
 is, once the side's freshness gives an ``Expected`` (``expected_freshness``), a frame whose FV
@@ -342,6 +343,13 @@ def _older(wanted: int, fv: int) -> bool:
     return isinstance(wanted, Expected) and fv_before(fv, wanted.counter)
 
 
+def _started(msg: Message) -> TypeGuard[Debit]:
+    """A DEBIT whose FV is its nonce: a node's start (RESUME), or the books or counts answering
+    a supervisor's SYNC (bound to that SYNC by its nonce; the books' ``seq`` is Rc, no debit
+    number, so a count would refuse them as stale once Rc's low 16 bits fall below it)."""
+    return isinstance(msg, Debit) and (msg.is_resume or msg.is_books)
+
+
 def low_counter(msg: Message) -> int:
     """The FV's low half, which the frame itself carries (TELEMETRY's is 0)."""
     return freshness(msg, 0, 0) & 0xFFFF
@@ -356,7 +364,7 @@ def wire_half(msg: Message, fv: int) -> int:
 def freshness(msg: Message, tx: int, seq: int) -> int:
     """The FV of ``msg`` for a side whose own counters are ``tx`` and ``seq``: the wire's 16-bit
     counter extended next to them (serial-number arithmetic), 32 bits."""
-    if isinstance(msg, Join) or (isinstance(msg, Debit) and msg.is_resume):
+    if isinstance(msg, Join) or _started(msg):
         return msg.nonce
     if isinstance(msg, Admit):  # the high half its counters share (for the supervisor: tx)
         return (tx >> 16 & 0xFFFF) << 16 | msg.nonce
@@ -373,6 +381,6 @@ def expected_freshness(msg: Message, tx: int, seq: int) -> int:
     frame older than it is refused as stale; for TELEMETRY, the side's transaction ``tx``, the
     newest FV it takes (JOIN and ADMIT: the plain FV)."""
     fv = freshness(msg, tx, seq)
-    if isinstance(msg, Join | Admit) or (isinstance(msg, Debit) and msg.is_resume):
+    if isinstance(msg, Join | Admit) or _started(msg):
         return fv
     return Expected(fv, seq if isinstance(msg, Return | ReturnAck | Debit) else tx)

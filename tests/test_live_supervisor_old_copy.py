@@ -14,8 +14,12 @@ import pytest
 from test_live_old_copy import Bench, bench, held, released, wait
 
 from canergy.auth.frames import FrameAuth, Layout, expected_freshness
+from canergy.cli import main
 from canergy.codec import Codec
-from canergy.messages import Debit, Direction
+from canergy.core import Supervisor, Timing
+from canergy.core.state import Session, SupervisorState
+from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.messages import Debit, Direction, Intention, Telemetry
 from canergy.units import UJ_PER_J
 
 NODE = 1
@@ -102,3 +106,55 @@ def test_the_books_answering_a_sync_are_fresh_by_its_nonce(layout: Layout) -> No
     counts = Debit.counts(NODE, 0x5A5A, 10_000 & 0xFFFF, 40)
     for msg in (books, counts):
         assert [sup.accept(f) for f in node.frames(msg)][-1].message == msg
+
+
+def _restarted(start_without: tuple[int, ...] = ()) -> SupervisorService:
+    """A witnessed supervisor of nodes 1 and 2 restarted from its books (SYNC sent to both)."""
+    timing = Timing(response_timeout_us=100_000)
+    state = SupervisorState(
+        10 * UJ_PER_J, 8 * UJ_PER_J, sessions=(Session(1, delivered=UJ_PER_J), Session(2))
+    )
+    core = Supervisor(
+        [1, 2],
+        10 * UJ_PER_J,
+        variant="witnessed",
+        timing=timing,
+        state=state,
+        start_without=start_without,
+    )
+    core.power_loss(0, 0x1234)
+    service = SupervisorService(core, ServiceConfig(), 0)
+    for node in (1, 2):
+        service.on_message(Telemetry(node, 0, 0, 0, 0), 1)
+    return service
+
+
+def test_no_grant_to_anyone_before_the_nodes_books_and_start_without_skips_one() -> None:
+    s = _restarted()
+    replies: list[dict[str, object]] = []
+    s.request_grant(2, UJ_PER_J // 2, replies.append)
+    assert [m for m in s.on_wakeup(10) if isinstance(m, Intention)] == []
+    assert "until node(s) 1, 2 answer with their books" in str(replies[0]["error"])
+    assert s.status()["waiting_for_books"] == [1, 2]
+    for node, credited_mj in ((1, 1_500), (2, 0)):  # node 1 received 0.5 J after the copy
+        s.on_message(Debit.books(node, 0x1234, credited_mj), 20)
+        s.on_message(Debit.counts(node, 0x1234, 0, 0), 21)
+    assert s.status()["waiting_for_books"] == [] and s.core.session(1).delivered == 1_500_000
+    s.request_grant(2, UJ_PER_J // 2, replies.append)
+    assert [m for m in s.on_wakeup(30) if isinstance(m, Intention)]
+
+    skipping = _restarted(start_without=(1,))  # the operator's override: node 1 not waited for
+    assert skipping.status()["waiting_for_books"] == [2]
+    skipping.on_message(Debit.books(2, 0x1234, 0), 20)
+    skipping.on_message(Debit.counts(2, 0x1234, 0, 0), 21)
+    skipping.request_grant(2, UJ_PER_J // 2, replies.append)
+    assert [m for m in skipping.on_wakeup(30) if isinstance(m, Intention)]
+
+
+def test_start_without_is_refused_outside_the_witnessed_rules(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["supervisor", "-i", "virtual", "-c", "x", "--nodes", "1", "--start-without", "1"]
+    assert main([*argv, "--state", str(tmp_path / "s.json")]) != 0
+    assert "--start-without: only under --variant witnessed" in capsys.readouterr().err
+    assert not (tmp_path / "s.json").exists()

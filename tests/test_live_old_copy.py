@@ -25,13 +25,13 @@ from canergy.auth.frames import AuthFailure, FrameAuth, Layout, expected_freshne
 from canergy.auth.keys import load_key
 from canergy.cli import main
 from canergy.codec import Codec
-from canergy.core import ClientState, Supervisor, Timing
+from canergy.core import ClientState, Send, Supervisor, Timing
 from canergy.core.state import Session, SupervisorState
 from canergy.live.control import request
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.state_file import load_state, save_state
-from canergy.messages import Admit, Debit, Direction, ReturnAck, Telemetry
+from canergy.messages import SYNC_CONFIRMED, Admit, Debit, Direction, ReturnAck, Telemetry
 from canergy.units import UJ_PER_J
 from firmware_model.__main__ import bind_starts
 from firmware_model.actuator import PowerProfile
@@ -246,8 +246,10 @@ def test_a_genuine_resume_with_a_pending_return_is_credited_once_confirmed() -> 
 
 
 def test_the_last_resume_answered_survives_a_supervisor_restart(tmp_path: Path) -> None:
-    """A RESUME re-sent across a supervisor restart gets the same answer: no second void (which
-    would find the node's confirmed books behind and drop them)."""
+    """The last RESUME answered is in the state file; after a restart the supervisor answers
+    nothing before its SYNC is answered (a RESUME re-sent meanwhile waits: the node answers the
+    SYNC), and the node's books, confirmed before the restart, are confirmed again, not found
+    behind (which would drop them)."""
     s = _service()
     s.on_message(Telemetry(NODE, 500, 0, 0, 0), 0)
     first = s.on_message(Debit(NODE, 9, Debit.START, 0, 0), 1_000)
@@ -256,9 +258,13 @@ def test_the_last_resume_answered_survives_a_supervisor_restart(tmp_path: Path) 
     state = load_state(path, "witnessed", (NODE,))
     assert state.sessions == s.core.state.sessions
     again = Supervisor([NODE], 10 * UJ_PER_J, variant="witnessed", timing=TIMING, state=state)
-    again.power_loss(2_000)
-    answer = [a.message for a in again.receive(Debit(NODE, 9, Debit.START, 0, 0), 3_000)]
-    assert answer == first == [Admit(NODE, 9, 0, 1)]
+    again.power_loss(2_000, 0x77)
+    assert first == [Admit(NODE, 9, 0, 1)]
+    assert again.receive(Debit(NODE, 9, Debit.START, 0, 0), 3_000) == []
+    again.receive(Debit.books(NODE, 0x77, 1_000), 3_100)
+    counts = Debit.counts(NODE, 0x77, 1, TIMING.window)  # ltx settled a window ahead
+    answer = [a.message for a in again.receive(counts, 3_200) if isinstance(a, Send)]
+    assert answer == [Admit(NODE, 0x77 ^ SYNC_CONFIRMED, TIMING.window, 2)]  # debit 1 confirmed
     save_state(path, s.core.state, "hardened")
     assert "resume_to" not in path.read_text()
 

@@ -19,7 +19,7 @@ from canergy.codec import Codec
 from canergy.core import Supervisor, Timing
 from canergy.core.state import Session, SupervisorState
 from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.messages import Debit, Direction, Intention, Telemetry
+from canergy.messages import Admit, Debit, Direction, Intention, Telemetry
 from canergy.units import UJ_PER_J
 
 NODE = 1
@@ -127,6 +127,15 @@ def _restarted(start_without: tuple[int, ...] = ()) -> SupervisorService:
     for node in (1, 2):
         service.on_message(Telemetry(node, 0, 0, 0, 0), 1)
     return service
+
+
+def test_sync_is_sent_at_the_start_and_re_sent_until_answered() -> None:
+    s = _restarted()
+    syncs = [m for m in s.on_wakeup(1) if isinstance(m, Admit)]
+    assert {(m.node, m.nonce) for m in syncs} == {(1, 0x1234), (2, 0x1234)}
+    assert [m for m in s.on_wakeup(100_000) if isinstance(m, Admit)] == []
+    again = [m for m in s.on_wakeup(100_001) if isinstance(m, Admit)]
+    assert {(m.node, m.nonce) for m in again} == {(1, 0x1234), (2, 0x1234)}
 
 
 def test_no_grant_to_anyone_before_the_nodes_books_and_start_without_skips_one() -> None:

@@ -130,7 +130,9 @@ def run(args: argparse.Namespace) -> int:
     finally:
         bus.shutdown()
     if not answers:
-        answers.append({"node": args.node, "error": "no answer before --timeout"})
+        waiting = service.waiting()
+        why = f" ({service.waiting_why(waiting)})" if waiting else ""
+        answers.append({"node": args.node, "error": f"no answer before --timeout{why}"})
     return _report_grant(answers[0])
 
 

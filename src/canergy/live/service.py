@@ -255,7 +255,7 @@ class SupervisorService:
         self._waited = self.waiting()
         """The nodes this start waited for at the last look (witnessed rules)."""
         if self._waited:
-            log.warning("%s", self._waiting_why(self._waited))
+            log.warning("%s", self.waiting_why(self._waited))
 
     # -- Handler ---------------------------------------------------------------------------
     def on_message(self, msg: Message, now: int) -> Sequence[Message]:
@@ -415,7 +415,8 @@ class SupervisorService:
         unconfirmed = getattr(self.core, "unconfirmed", None)
         return () if unconfirmed is None else tuple(unconfirmed())
 
-    def _waiting_why(self, waiting: tuple[int, ...]) -> str:
+    def waiting_why(self, waiting: tuple[int, ...]) -> str:
+        """Why nothing is granted while ``waiting`` (``waiting()``) is not empty."""
         names = ", ".join(str(self.node_name(n)) for n in waiting)
         return (
             f"started from the state file: SYNC sent; no grant to any node until node(s) "
@@ -442,6 +443,7 @@ class SupervisorService:
             )
             if not waiting:
                 log.warning("every node has confirmed its books: granting")
+                self.ready.update(n for n, i in self.nodes.items() if i.requests)  # they waited
         self._waited = waiting
         return out
 
@@ -762,14 +764,8 @@ class SupervisorService:
             return []
         todo = list(self.nodes) if nodes is None else sorted(nodes)
         self.ready.clear()
-        if waiting := self.waiting():  # no grant to anyone until every node's books are in
-            why = self._waiting_why(waiting)
-            for node in todo:
-                info = self.nodes[node]
-                for req in info.requests:
-                    req.reply({"node": self.node_name(node), "error": f"refused: {why}"})
-                info.requests.clear()
-            return []
+        if self.waiting():  # no grant to anyone until every node's books are in: requests
+            return []  # wait (the status and stderr say why)
         out: list[Outgoing] = []
         policy = self.config.policy
         for node in todo:
@@ -1028,7 +1024,7 @@ class SupervisorService:
             **({"control_refused": self._control_refused()} if self.control else {}),
             "stopped_by_intrusion": self.stopped_by_intrusion,
             "waiting_for_books": [self.node_name(n) for n in waiting],
-            "waiting_why": self._waiting_why(waiting) if waiting else None,
+            "waiting_why": self.waiting_why(waiting) if waiting else None,
             "nodes": nodes,
             **({"cia402": self.extra_status(self.now)} if self.extra_status else {}),
         }

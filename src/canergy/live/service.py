@@ -253,7 +253,9 @@ class SupervisorService:
         if not config.listen_only:
             self._persist()  # an injection is on disk before anything is granted
         self._waited = self.waiting()
-        """The nodes this start waited for at the last look (witnessed rules)."""
+        """The nodes this start waited for at the last look (witnessed rules; only the counts
+        answering a SYNC, ``_synced``, shrink it, and nothing after the start grows it: empty,
+        no pass looks at every session)."""
         if self._waited:
             log.warning("%s", self.waiting_why(self._waited))
 
@@ -764,8 +766,8 @@ class SupervisorService:
             return []
         todo = list(self.nodes) if nodes is None else sorted(nodes)
         self.ready.clear()
-        if self.waiting():  # no grant to anyone until every node's books are in: requests
-            return []  # wait (the status and stderr say why)
+        if self._waited and self.waiting():  # no grant to anyone until every node's books
+            return []  # are in: requests wait (the status and stderr say why)
         out: list[Outgoing] = []
         policy = self.config.policy
         for node in todo:

@@ -46,7 +46,7 @@ def restored_books(tmp: Path, variant: str, auth: Layout | None) -> tuple[Bench,
     return bench(tmp, variant, auth, b.channel), first, copy
 
 
-@pytest.mark.parametrize("auth", [None, Layout.CLASSIC], ids=["no key", "auth classic"])
+@pytest.mark.parametrize("auth", [None, *Layout], ids=["no key", "auth classic", "auth fd"])
 def test_an_older_copy_of_the_supervisors_books_creates_nothing_under_witnessed(
     tmp_path: Path, auth: Layout | None, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -92,6 +92,7 @@ class CClientState(Structure):
         ("phase", c_uint8),
         ("nv_slot", c_uint8),
         ("rules", c_uint8),
+        ("window", c_uint16),
     ]
 
 
@@ -163,7 +164,12 @@ class SessionStep(Structure):
 
 
 class SessionTiming(Structure):
-    _fields_ = [("response_timeout_us", c_uint32), ("retries", c_uint8), ("rules", c_uint8)]
+    _fields_ = [
+        ("response_timeout_us", c_uint32),
+        ("retries", c_uint8),
+        ("rules", c_uint8),
+        ("window", c_uint16),
+    ]
 
 
 SUPERVISOR_NODES = 16
@@ -229,6 +235,7 @@ class ClientConfig(Structure):
         ("return_retry_us", c_uint32),
         ("node", c_uint8),
         ("rules", c_uint8),
+        ("window", c_uint16),
     ]
 
 
@@ -296,7 +303,13 @@ OK, ERR_ARGUMENT, ERR_PHASE, ERR_AMOUNT, ERR_END = 0, -1, -2, -3, -5
 RX_OTHER_NODE = 16
 EV_COMMITTED, EV_TIMEOUT_COMMIT, EV_ABORTED, EV_CREDITED = 0x01, 0x02, 0x04, 0x08
 EV_RETURN_ACKED, EV_REFUSED, EV_ADMITTED, EV_RELEASED = 0x10, 0x20, 0x40, 0x80
-PHASES = {Phase.IDLE: 0, Phase.AWAIT_COMMAND: 1, Phase.JOINING: 2, Phase.RESUMING: 3}
+PHASES = {
+    Phase.IDLE: 0,
+    Phase.AWAIT_COMMAND: 1,
+    Phase.JOINING: 2,
+    Phase.RESUMING: 3,
+    Phase.SYNCING: 4,
+}
 RULES = {"hardened": 0, "witnessed": 1}
 """enum canergy_rules: the rule sets the C client runs."""
 FLAG_CREDITED_UNKNOWN, FLAG_PENDING_DRAW = 0x01, 0x02
@@ -569,6 +582,7 @@ class CClient:
             self.timing.return_retry_us,
             node,
             RULES[rules],
+            self.timing.window,
         )
         self.c = CClientState()
         self.out = Out()

@@ -49,6 +49,8 @@ struct canergy_session_timing {
     uint32_t response_timeout_us; /* re-send after this long (Python 50 ms) */
     uint8_t retries;              /* N: re-sends before the write-off (Python 3) */
     uint8_t rules;                /* witnessed: DEBIT is taken (on_debit), else ignored */
+    uint16_t window;              /* witnessed: B, a transaction begins only at k <= W + B
+                                   * (Python's Timing.window); 0: CANERGY_DEFAULT_WINDOW */
 };
 
 /* The supervisor's record for one node. 56 bytes. */

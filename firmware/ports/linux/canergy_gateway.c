@@ -397,7 +397,7 @@ static void check_nv(const struct gw_options *o)
     }
     static struct canergy_supervisor down;
     const struct canergy_supervisor_config cfg = {
-        o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules}};
+        o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules, 0U}};
     uint32_t counter = 0U;
     uint8_t slot = 0U;
     if (canergy_supervisor_load(&down, &cfg, o->nodes, o->count, 0U,
@@ -431,10 +431,10 @@ static void start(struct gateway_port *g, uint64_t now)
         exit(EXIT_USAGE);
     }
     const struct canergy_supervisor_config down = {
-        o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules}};
+        o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules, 0U}};
     const struct canergy_client_config up = {o->id_base, (uint32_t)(2U * o->up_response_timeout_us),
                                              (uint32_t)(2U * o->up_response_timeout_us), o->node,
-                                             CANERGY_RULES_HARDENED};
+                                             CANERGY_RULES_HARDENED, 0U};
     uint32_t best = 0U;
     const int newest = newest_slot(o->nv_path, image, &best);
     struct canergy_out out;

@@ -16,6 +16,7 @@ from typing import Any
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis.stateful import initialize, rule
 from support import client_cases
 from support.c_binding import (
     ERR_AMOUNT,
@@ -48,12 +49,11 @@ from support.c_binding import (
 from support.c_session import same
 from support.cells import Case, params
 from support.mem_nv import MemNv, write_slot
+from support.side_by_side import BOOKS as SIDE_BOOKS
 from support.side_by_side import SETTINGS as SIDE_SETTINGS
 from support.side_by_side import TIMING as SIDE_TIMING
 from support.side_by_side import SideBySide
 from test_c_session import sessions, timings, wire_near
-from test_hardened_supervisor import REFUSED as SUP_REFUSED
-from test_hardened_supervisor import STATES as SUP_STATES
 from test_witnessed import (
     CLIENT_CASES,
     CLIENT_IGNORED,
@@ -67,6 +67,8 @@ from test_witnessed import (
     SUP_CASES,
     SUP_EVENTS,
     SUP_IGNORED,
+    SUP_REFUSED,
+    SUP_STATES,
     T,
     resume,
 )
@@ -494,7 +496,26 @@ def test_the_c_gateway_refuses_a_file_of_the_older_supervisor_record(tmp_path: P
     assert run.returncode == 2
     assert run.stderr == (
         "canergy-gateway: error: --nv g.nv: written by an older canergy-gateway (supervisor "
-        "record version 2); this one reads version 3 only\n"
+        "record version 2); this one reads version 4 only\n"
+    )
+
+
+def test_the_c_gateway_refuses_a_file_of_supervisor_record_version_3(tmp_path: Path) -> None:
+    """Version 4 holds a SYNC's counts in the last answer's nonce (bit 16) and Us signed: a file
+    of version 3 (same size) is refused by name before the buses open, never taken as blank."""
+    gateway = _port("build/canergy-gateway")
+    head = struct.pack("<IBBBBIQQQ", 0x534E5243, 3, 1, 0, 0, 1, 0, 0, 0)
+    session = struct.pack("<BBBBIIIQQIIHxx", 2, 0, 0, 0, 9, 4, 0, 0, 0, 0, 0, 0)
+    sup = (head + session + struct.pack("<I", zlib.crc32(head + session))).ljust(40 + 44 * 127)
+    body = struct.pack("<II", 0x47524E43, 1) + pack_record(ClientState(1, last_tx=5)) + sup
+    (tmp_path / "g.nv").write_bytes(body + struct.pack("<I", zlib.crc32(body)))
+    argv = [str(gateway), "--node", "1", "--nodes", "2", "-c", "nosuchcan0"]
+    argv += ["--upstream-channel", "nosuchcan1", "--nv", "g.nv", "--rules", "witnessed"]
+    run = subprocess.run(argv, capture_output=True, text=True, timeout=10, cwd=tmp_path)
+    assert run.returncode == 2
+    assert run.stderr == (
+        "canergy-gateway: error: --nv g.nv: written by an older canergy-gateway (supervisor "
+        "record version 3); this one reads version 4 only\n"
     )
 
 
@@ -524,12 +545,39 @@ class WitnessedMemNv(MemNv):
         return replace(state, pending_draw=bool(flags & FLAG_PENDING_DRAW))
 
 
+def _below_the_end(books: ClientState) -> ClientState:
+    """A record whose ltx leaves room for SYNCs: each lifts it by B (a duplicated ADMIT reads
+    as one too), and neither core checks that lift against the end of the numbering (reported:
+    witnessed.answer_sync), so a record near it would become one no loader takes."""
+    return replace(books, last_tx=min(books.last_tx, COUNTER_END - 0x10000))
+
+
 class WitnessedSideBySide(SideBySide):
     """The Python witnessed client and supervisor and the C client with rules witnessed: every
     start RESUMEs, the actuator draws through DEBIT; same frames, persists, NV bytes, state."""
 
     def _new_supervisor(self, state: SupervisorState) -> Supervisor:
+        """The books agree with the node's record, which it has shown persisted (W = tx)."""
+        sessions = tuple(replace(s, witness=s.tx) for s in state.sessions)
+        state = replace(state, sessions=sessions)
         return Supervisor([1], state.initial, timing=SIDE_TIMING, state=state, variant="witnessed")
+
+    @initialize(
+        initial_mj=st.integers(0, 40_000),
+        nonce=st.integers(0, 0xFFFF),
+        books=st.none() | SIDE_BOOKS.map(_below_the_end),
+    )
+    def start(self, initial_mj: int, nonce: int, books: ClientState | None) -> None:
+        SideBySide.start(self, initial_mj, nonce, books)
+
+    def _may_begin(self, s: Session) -> bool:
+        """Not while a start waits for the books, nor beyond the window."""
+        return not self.sup.unconfirmed() and s.tx + 1 <= s.witness + SIDE_TIMING.window
+
+    @rule(nonce=st.integers(0, 0xFFFF))
+    def supervisor_start(self, nonce: int) -> None:
+        """The supervisor starts again with a fresh nonce: a SYNC the node answers."""
+        self.sup.power_loss(self.now, nonce=nonce)
 
     def _new_client(self) -> CClient:
         return CClient(1, timing=SIDE_TIMING, lib=library(), rules="witnessed")

@@ -352,7 +352,8 @@ static int newest_slot(const char *path, const uint8_t *image, uint32_t *best)
 }
 
 /* Exit 2 when image holds no slot of this layout but one of the layout before the witnessed
- * rules' supervisor record (version 2): never taken as a new, blank file. */
+ * rules' supervisor record (version 2), or a slot of this layout whose supervisor record is of
+ * version 3 (before the supervisor's start was confirmed): never taken as a new, blank file. */
 static void refuse_older_layout(const char *path, const uint8_t *image)
 {
     for (unsigned i = 0U; i < 2U; i++) {
@@ -360,7 +361,17 @@ static void refuse_older_layout(const char *path, const uint8_t *image)
         if (get32(old) == GW_MAGIC &&
             get32(&old[GW_SLOT_V2 - 4U]) == canergy_crc32(0U, old, GW_SLOT_V2 - 4U)) {
             port_usage_error("--nv %s: written by an older canergy-gateway (supervisor record "
-                             "version 2); this one reads version 3 only",
+                             "version 2); this one reads version 4 only",
+                             path);
+        }
+    }
+    for (unsigned i = 0U; i < 2U; i++) {
+        const uint8_t *slot = &image[i * GW_SLOT];
+        const uint8_t version = slot[GW_HEADER + CANERGY_NV_RECORD_SIZE + 4U];
+        if (get32(slot) == GW_MAGIC && version == 3U &&
+            get32(&slot[GW_SLOT - 4U]) == canergy_crc32(0U, slot, GW_SLOT - 4U)) {
+            port_usage_error("--nv %s: written by an older canergy-gateway (supervisor record "
+                             "version 3); this one reads version 4 only",
                              path);
         }
     }
@@ -400,11 +411,15 @@ static void check_nv(const struct gw_options *o)
         o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules, 0U}};
     uint32_t counter = 0U;
     uint8_t slot = 0U;
-    if (canergy_supervisor_load(&down, &cfg, o->nodes, o->count, 0U,
-                                &image[(unsigned)newest * GW_SLOT + GW_HEADER +
-                                       CANERGY_NV_RECORD_SIZE],
-                                CANERGY_SUPERVISOR_SLOT_SIZE, &counter, &slot) == CANERGY_ERR_END) {
+    const int loaded = canergy_supervisor_load(
+        &down, &cfg, o->nodes, o->count, 0U,
+        &image[(unsigned)newest * GW_SLOT + GW_HEADER + CANERGY_NV_RECORD_SIZE],
+        CANERGY_SUPERVISOR_SLOT_SIZE, &counter, &slot);
+    if (loaded == CANERGY_ERR_END) {
         refuse_below_beyond(o->nv_path);
+    }
+    if (loaded == CANERGY_ERR_RECORD) {
+        refuse_older_layout(o->nv_path, image);
     }
 }
 
@@ -460,6 +475,13 @@ static void start(struct gateway_port *g, uint64_t now)
         }
         g->nv_counter = best;
         g->nv_slot = (uint8_t)newest;
+        /* every start is one below (witnessed: what is open written off, SYNC with a fresh
+         * nonce, no grant until the nodes have confirmed their books) */
+        struct canergy_supervisor_out sout;
+        canergy_supervisor_start(&g->gw.down, port_random16(), now, &sout);
+        if (sout.persist != 0U) {
+            save(g);
+        }
     } else {
         (void)canergy_client_start(&g->gw.up, &up, NULL, 0U, port_random16(), now, &out);
         if (canergy_supervisor_init(&g->gw.down, &down, o->nodes, o->count, 0U) != CANERGY_OK) {
@@ -696,6 +718,12 @@ static void receive_down(struct gateway_port *g, uint64_t now)
     }
 }
 
+/* Us below as the grants and returns size it: a debt (below 0, after a witnessed start) is 0. */
+static uint64_t usable_below(const struct gateway_port *g)
+{
+    return g->gw.down.usable_uj < 0 ? 0U : (uint64_t)g->gw.down.usable_uj;
+}
+
 /* Top every node up to --target from its last fresh level, within Us and one frame. */
 static void top_up(struct gateway_port *g, uint64_t now)
 {
@@ -717,7 +745,7 @@ static void top_up(struct gateway_port *g, uint64_t now)
         /* never above what the node's record holds, nor one frame, nor Us */
         const uint64_t room = CANERGY_USABLE_MAX_UJ - least(b->level_uj, CANERGY_USABLE_MAX_UJ);
         uint64_t amount = least(least(least(wanted, room), (uint64_t)CANERGY_AMOUNT_MAX_MJ * MJ),
-                                g->gw.down.usable_uj);
+                                usable_below(g));
         amount -= amount % MJ;
         if (amount == 0U) {
             continue;
@@ -735,10 +763,10 @@ static void top_up(struct gateway_port *g, uint64_t now)
 static void give_back(struct gateway_port *g, uint64_t now)
 {
     if (g->opt.keep_all || !canergy_client_can_give_back(&g->gw.up) ||
-        g->gw.down.usable_uj <= g->opt.return_above_uj) {
+        usable_below(g) <= g->opt.return_above_uj) {
         return;
     }
-    uint64_t excess = least(g->gw.down.usable_uj - g->opt.return_above_uj,
+    uint64_t excess = least(usable_below(g) - g->opt.return_above_uj,
                             (uint64_t)CANERGY_AMOUNT_MAX_MJ * MJ);
     excess -= excess % MJ;
     struct canergy_out out;
@@ -752,7 +780,7 @@ static void give_back(struct gateway_port *g, uint64_t now)
 /* The gateway's level above: what it can still grant below. */
 static void telemetry(struct gateway_port *g)
 {
-    const uint64_t mj = g->gw.down.usable_uj / MJ;
+    const uint64_t mj = usable_below(g) / MJ;
     struct canergy_msg m;
     memset(&m, 0, sizeof m);
     m.type = CANERGY_TELEMETRY;
@@ -795,11 +823,11 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
     }
     (void)fprintf(f,
                   "{\"role\": \"gateway\", \"core\": \"c\", \"variant\": \"hardened\", "
-                  "\"stopping\": %s, \"initial_uj\": 0, \"usable_uj\": %llu, "
+                  "\"stopping\": %s, \"initial_uj\": 0, \"usable_uj\": %lld, "
                   "\"injected_uj\": %llu, \"withdrawn_uj\": %llu, \"reserved_uj\": %llu, "
                   "\"delivered_uj\": %llu, \"returns_credited_uj\": %llu, "
                   "\"link_gap_uj\": %lld, \"state_writes\": %llu, ",
-                  g->stopping ? "true" : "false", (unsigned long long)d->usable_uj,
+                  g->stopping ? "true" : "false", (long long)d->usable_uj,
                   (unsigned long long)d->injected_uj, (unsigned long long)d->withdrawn_uj,
                   (unsigned long long)reserved, (unsigned long long)delivered,
                   (unsigned long long)returned, (long long)canergy_gateway_link_gap(&g->gw),

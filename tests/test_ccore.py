@@ -43,6 +43,7 @@ pytestmark = pytest.mark.skipif(
 )
 
 NODES = (3, 5, 9, 127)
+SYNC_ANSWER = (Debit.BOOKS, Debit.START | Debit.SYNC)
 CODEC = Codec()
 T = Timing(response_timeout_us=1_000, retries=2)
 amounts = st.one_of(
@@ -104,17 +105,25 @@ class SideBySide(RuleBasedStateMachine):
 
     @rule(data=st.data(), fast=st.booleans())
     def debit(self, data: st.DataObject, fast: bool) -> None:
-        """A DRAW or a RESUME near the session's count (the hardened rules ignore both), by
-        ``receive`` or as the fast path hands it back to the caller."""
+        """A DRAW, a RESUME, or a SYNC's books or counts near the session's counts (the hardened
+        rules ignore them all), by ``receive`` or as the fast path hands it back to the
+        caller."""
         node = data.draw(st.sampled_from([*NODES, 4]))
         s = self.py.session(node) if node in NODES else None
-        credited = 0 if s is None else s.returns_credited
+        credited, tx, sync = (0, 0, 0) if s is None else (s.returns_credited, s.tx, s.sync_nonce)
         seq = (credited + data.draw(st.integers(-2, 3))) & 0xFFFF
-        nonce = data.draw(st.sampled_from([0, 7]))
-        flags = data.draw(st.sampled_from([Debit.DRAW, Debit.START, Debit.START | Debit.DRAW]))
+        nonce = data.draw(st.sampled_from([0, 7, sync, sync ^ 1]))
+        kinds = [Debit.DRAW, Debit.START, Debit.START | Debit.DRAW, *SYNC_ANSWER]
+        flags = data.draw(st.sampled_from(kinds))
         amount = data.draw(st.sampled_from([0, 1, 2_000]))
         if flags == Debit.DRAW:
             nonce, amount = 0, max(amount, 1)
+        if flags == Debit.BOOKS:  # Rc near Gs, or far
+            rc = s.delivered // QUANTUM_UJ if s is not None else 0
+            rc = (rc + data.draw(st.integers(-3, 3_000) | st.just(0x7FFFFF))) & 0xFFFFFF
+            seq, amount = rc & 0xFFFF, rc >> 16
+        elif flags == Debit.START | Debit.SYNC:  # ltx near tx, a window ahead, or behind
+            amount = (tx + data.draw(st.integers(-3, 3) | st.sampled_from([64, 0x7FFF]))) & 0xFFFF
         msg = Debit(node, nonce, flags, seq, amount)
         if fast:
             _, actions, _, decoded = self.c.on_answer(
@@ -143,6 +152,18 @@ class SideBySide(RuleBasedStateMachine):
         for action in self.py.receive(msg, self.now):
             if isinstance(action, Acknowledged):
                 (self.py.abort if stopping else self.py.commit)(action.node, self.now)
+
+    @rule(nonce=st.integers(0, 0xFFFF))
+    def start(self, nonce: int) -> None:
+        """A start with a fresh nonce (witnessed: every session SYNCs, no grant until the books
+        are in)."""
+        self.py.power_loss(self.now, nonce=nonce)
+        self.c.power_loss(self.now, nonce=nonce)
+
+    @rule()
+    def waiting(self) -> None:
+        """Both cores wait for the same nodes."""
+        assert self.c.unconfirmed() == self.py.unconfirmed()
 
     @rule(dt=st.integers(0, 3_000))
     def timer(self, dt: int) -> None:

@@ -124,6 +124,7 @@ struct gateway_port {
     int stopping;
     int telemetry_now; /* a commit or pay-back above: report the new level at once */
     uint64_t witnessed; /* frames in its name above that it did not send (not wrapped) */
+    unsigned waiting;   /* nodes below a start waited for when last said (witnessed) */
 };
 
 static volatile sig_atomic_t stop_requested;
@@ -725,6 +726,27 @@ static uint64_t usable_below(const struct gateway_port *g)
 }
 
 /* Top every node up to --target from its last fresh level, within Us and one frame. */
+/* Witnessed rules: say on stderr whom a start below waits for before it grants anything, and
+ * when every node has confirmed its books (each change once). */
+static void say_waiting(struct gateway_port *g)
+{
+    uint8_t waiting[CANERGY_SUPERVISOR_NODES];
+    const uint8_t n = canergy_supervisor_unconfirmed(&g->gw.down, waiting);
+    if (n == g->waiting) {
+        return;
+    }
+    if (n == 0U) {
+        (void)fprintf(stderr, "%s: every node below has confirmed its books: granting\n", PROG);
+    } else {
+        (void)fprintf(stderr, "%s: no grant below before node(s) ", PROG);
+        for (uint8_t i = 0U; i < n; i++) {
+            (void)fprintf(stderr, "%s%u", i == 0U ? "" : ", ", (unsigned)waiting[i]);
+        }
+        (void)fputs(" have confirmed their books after this start (SYNC re-sent)\n", stderr);
+    }
+    g->waiting = n;
+}
+
 static void top_up(struct gateway_port *g, uint64_t now)
 {
     if (!g->opt.has_target || g->stopping) {
@@ -797,7 +819,17 @@ static void telemetry(struct gateway_port *g)
 
 /* ---- the status file (the Python gateway's keys) ---- */
 
-static const char *const PHASE_NAMES[] = {"IDLE", "WAIT_ACK", "ACKED", "WAIT_CONFIRM"};
+static const char *phase_name(uint8_t phase)
+{
+    static const char *const names[] = {"IDLE", "WAIT_ACK", "ACKED", "WAIT_CONFIRM"};
+    if (phase == CANERGY_S_SYNCING) {
+        return "SYNCING";
+    }
+    if (phase == CANERGY_S_SYNC_BOOKS) {
+        return "SYNC_BOOKS";
+    }
+    return phase <= CANERGY_S_WAIT_CONFIRM ? names[phase] : "?";
+}
 
 static void write_counters(FILE *f, const char *name, const struct port_counters *c)
 {
@@ -822,24 +854,31 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
         returned += d->sessions[i].returned_uj;
     }
     (void)fprintf(f,
-                  "{\"role\": \"gateway\", \"core\": \"c\", \"variant\": \"hardened\", "
+                  "{\"role\": \"gateway\", \"core\": \"c\", \"variant\": \"%s\", "
                   "\"stopping\": %s, \"initial_uj\": 0, \"usable_uj\": %lld, "
                   "\"injected_uj\": %llu, \"withdrawn_uj\": %llu, \"reserved_uj\": %llu, "
                   "\"delivered_uj\": %llu, \"returns_credited_uj\": %llu, "
                   "\"link_gap_uj\": %lld, \"state_writes\": %llu, ",
+                  g->opt.rules == CANERGY_RULES_WITNESSED ? "witnessed" : "hardened",
                   g->stopping ? "true" : "false", (long long)d->usable_uj,
                   (unsigned long long)d->injected_uj, (unsigned long long)d->withdrawn_uj,
                   (unsigned long long)reserved, (unsigned long long)delivered,
                   (unsigned long long)returned, (long long)canergy_gateway_link_gap(&g->gw),
                   (unsigned long long)g->nv_writes);
     write_counters(f, "downstream_bus", &g->down_count);
-    (void)fputs(", \"nodes\": {", f);
+    uint8_t waiting[CANERGY_SUPERVISOR_NODES];
+    const uint8_t n = canergy_supervisor_unconfirmed(d, waiting);
+    (void)fputs(", \"unconfirmed\": [", f);
+    for (uint8_t i = 0U; i < n; i++) {
+        (void)fprintf(f, "%s%u", i == 0U ? "" : ", ", (unsigned)waiting[i]);
+    }
+    (void)fputs("], \"nodes\": {", f);
     for (unsigned i = 0U; i < d->count; i++) {
         const struct canergy_session *s = &d->sessions[i];
         const struct below *b = &g->below[i];
         const int lost = !b->heard || now - b->heard_at > 3U * US_PER_S;
         char open_tx[24] = "null";
-        if (s->phase != CANERGY_S_IDLE) {
+        if (s->phase != CANERGY_S_IDLE && !canergy_session_syncing(s)) {
             (void)snprintf(open_tx, sizeof open_tx, "%lu", (unsigned long)s->tx);
         }
         (void)fprintf(f,
@@ -849,7 +888,7 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                       "\"committed\": %llu, \"committed_uj\": %llu, \"aborted\": %llu, "
                       "\"written_off\": %llu, \"admitted\": %llu, \"returns_held\": %u, "
                       "\"returns_refuted\": %llu, \"intrusions\": %llu}",
-                      i == 0U ? "" : ", ", (unsigned)s->node, PHASE_NAMES[s->phase & 3U], open_tx,
+                      i == 0U ? "" : ", ", (unsigned)s->node, phase_name(s->phase), open_tx,
                       (unsigned long)s->reserved_uj,
                       (unsigned long long)s->delivered_uj, (unsigned long long)s->returned_uj,
                       (unsigned long)s->returns_credited, (unsigned long long)b->level_uj,
@@ -977,6 +1016,7 @@ int main(int argc, char **argv)
         if (now >= next_tick) {
             next_tick = now + g.opt.tick_us;
             release_returns(&g, now);
+            say_waiting(&g);
             top_up(&g, now);
             give_back(&g, now);
         }

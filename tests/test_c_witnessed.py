@@ -78,7 +78,9 @@ from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.codec import DEFAULT_ID_BASE, Codec
 from canergy.core import Client, Supervisor
 from canergy.core import witnessed as W
+from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import (
+    Begin,
     BooksLost,
     CommandTimeout,
     GiveBack,
@@ -242,6 +244,26 @@ def test_session_ignored(cell: tuple[Phase, type]) -> None:
 @pytest.mark.parametrize("cell", sorted(SUP_REFUSED, key=str), ids=str)
 def test_session_refused(cell: tuple[Phase, type]) -> None:
     same(SUP_STATES[cell[0]], ST, SUP_EVENTS[cell[1]], 0, table=W.SUPERVISOR)
+
+
+@pytest.mark.parametrize("ahead", [0, 1, 2, 5])
+@pytest.mark.parametrize("window", [1, 64, 0x7FFF])
+def test_a_session_begins_only_within_the_window(ahead: int, window: int) -> None:
+    """k = tx + 1 <= W + B: at the window's end both begin, one beyond both refuse."""
+    s = Session(1, tx=1000 + window - 2 + ahead, witness=1000)
+    same(s, replace(ST, window=window), Begin(1000), 0, table=W.SUPERVISOR)
+
+
+def test_the_compiled_supervisor_refuses_beyond_the_window_in_the_python_words() -> None:
+    t = replace(ST, window=2)
+    state = SupervisorState(J, J, 0, (Session(2, tx=7, witness=5),))
+    errors = []
+    for core in (Supervisor, CompiledSupervisor):
+        sup = core([2], J, timing=t, state=state, variant="witnessed")
+        with pytest.raises(LocalProtocolError) as err:
+            sup.begin(2, 1000, 0)
+        errors.append(str(err.value))
+    assert errors[0] == errors[1] and "beyond the window" in errors[0]
 
 
 def test_the_hardened_session_ignores_a_debit() -> None:

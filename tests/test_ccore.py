@@ -7,6 +7,7 @@ field. The service drives both through this interface, so these are what it sees
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from typing import Any
 
 import can
@@ -62,11 +63,12 @@ def steps(actions: list[Action]) -> tuple[bool, list[Action]]:
 
 class SideBySide(RuleBasedStateMachine):
     variant = "hardened"
+    timing = T
 
     def __init__(self) -> None:
         super().__init__()
-        self.py = Supervisor(NODES, 10_000_000, timing=T, variant=self.variant)
-        self.c = CompiledSupervisor(NODES, 10_000_000, timing=T, variant=self.variant)
+        self.py = Supervisor(NODES, 10_000_000, timing=self.timing, variant=self.variant)
+        self.c = CompiledSupervisor(NODES, 10_000_000, timing=self.timing, variant=self.variant)
         self.now = 0
 
     def _same(self, py: Any, c: Any) -> None:
@@ -174,7 +176,9 @@ class SideBySide(RuleBasedStateMachine):
     def restart(self) -> None:
         """A reset from the saved state, as ``canergy supervisor`` restarts from its file."""
         self.py.power_loss(self.now)
-        self.c = CompiledSupervisor(NODES, 1, timing=T, state=self.c.state, variant=self.variant)
+        self.c = CompiledSupervisor(
+            NODES, 1, timing=self.timing, state=self.c.state, variant=self.variant
+        )
         self.c.power_loss(self.now)
 
     @rule(amount=st.integers(0, 5_000_000))
@@ -212,9 +216,11 @@ TestSideBySide.settings = settings(max_examples=200, stateful_step_count=60, dea
 
 
 class WitnessedSideBySide(SideBySide):
-    """The same under the witnessed rules (``--core c --rules witnessed``'s supervisor)."""
+    """The same under the witnessed rules (``--core c --rules witnessed``'s supervisor), with a
+    window small enough that grants reach its end."""
 
     variant = "witnessed"
+    timing = replace(T, window=3)
 
 
 TestWitnessedSideBySide = WitnessedSideBySide.TestCase

@@ -76,7 +76,7 @@ from test_witnessed import _exchange as _exchange_py
 
 from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.codec import DEFAULT_ID_BASE, Codec
-from canergy.core import Client, Supervisor
+from canergy.core import Client, Send, Supervisor
 from canergy.core import witnessed as W
 from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import (
@@ -91,7 +91,7 @@ from canergy.core.inputs import (
 from canergy.core.state import ClientState, Phase, Session, SupervisorState
 from canergy.core.timing import Timing
 from canergy.live.state_file import load_state, save_state
-from canergy.messages import COUNTER_END, Admit, Debit, Join, ReturnAck
+from canergy.messages import COUNTER_END, SYNC_CONFIRMED, Admit, Debit, Join, ReturnAck
 from firmware_model.nvstore import pack_record
 
 CODEC = Codec()
@@ -264,6 +264,41 @@ def test_the_compiled_supervisor_refuses_beyond_the_window_in_the_python_words()
             sup.begin(2, 1000, 0)
         errors.append(str(err.value))
     assert errors[0] == errors[1] and "beyond the window" in errors[0]
+
+
+@pytest.mark.parametrize("without", [(), (3,)])
+def test_no_grant_before_every_node_has_confirmed_its_books_after_a_start(
+    without: tuple[int, ...],
+) -> None:
+    """A start: node 2 answers its SYNC, node 3 does not; both cores refuse to grant even to
+    node 2 (saying they wait for node 3), unless the operator started without node 3, and
+    neither ever grants to node 3 before its answer. Node 2's books hold 5 mJ more than the
+    restored record: Us goes below zero, and a grant beyond it is refused."""
+    t = replace(ST, window=4)
+    for core in (Supervisor, CompiledSupervisor):
+        sup = core([2, 3], 2000, timing=t, variant="witnessed", start_without=without)
+        sup.power_loss(0, nonce=0x1234)
+        assert sup.unconfirmed() == tuple(n for n in (2, 3) if n not in without)
+        sync = [a.message for a in sup.handle_timer(0) if isinstance(a, Send)]
+        assert [m.node for m in sync] == [2, 3] and {m.nonce for m in sync} == {0x1234}
+        sup.receive(Debit.books(2, 0x1234, 7), 1)  # Rc 7 mJ, Gs 0: Us 2 mJ -> -5 mJ
+        answer = sup.receive(Debit.counts(2, 0x1234, 0, 9), 2)
+        admit = [a.message for a in answer if isinstance(a, Send)]
+        assert admit == [Admit(2, 0x1234 ^ SYNC_CONFIRMED, 9, 1)]
+        assert sup.usable == -5000 and sup.session(2).witness == 9
+        assert sup.unconfirmed() == tuple(n for n in (3,) if n not in without)
+        with pytest.raises(
+            LocalProtocolError, match="waiting for node" if not without else "usable"
+        ):
+            sup.begin(2, 1000, 3)
+        sup.inject(6000)
+        if without:
+            sup.begin(2, 1000, 3)  # within the window W + B = 13: k = 10
+        else:
+            with pytest.raises(LocalProtocolError, match="waiting for node"):
+                sup.begin(2, 1000, 3)
+        with pytest.raises(LocalProtocolError):
+            sup.begin(3, 1000, 3)  # its own session still waits for its books
 
 
 def test_the_hardened_session_ignores_a_debit() -> None:

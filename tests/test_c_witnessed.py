@@ -30,6 +30,7 @@ from support.c_binding import (
     PHASES,
     RULES,
     SLOT,
+    SUPERVISOR_SLOT,
     CClient,
     ClientConfig,
     CNodeState,
@@ -299,6 +300,40 @@ def test_no_grant_before_every_node_has_confirmed_its_books_after_a_start(
                 sup.begin(2, 1000, 3)
         with pytest.raises(LocalProtocolError):
             sup.begin(3, 1000, 3)  # its own session still waits for its books
+
+
+def test_the_supervisor_record_version_4_round_trips_a_debt_and_refuses_version_3() -> None:
+    """Us below zero and a SYNC's counts answered (bit 16 of the nonce) come back from the
+    image; a start's waiting phase is stored as IDLE (every start is one); the same image
+    marked version 3 is refused as another version (CANERGY_ERR_RECORD), not started over."""
+    lib = library()
+    cfg = SupervisorConfig(id_base=DEFAULT_ID_BASE, timing=SessionTiming(50_000, 3, 1, 0))
+    nodes = (ctypes.c_uint8 * 1)(2)
+    sup = CSupervisor()
+    assert lib.canergy_supervisor_init(ctypes.byref(sup), ctypes.byref(cfg), nodes, 1, 1000) == 0
+    sup.usable_uj = -4000
+    sup.sessions[0].phase, sup.sessions[0].resume_nonce = int(Phase.SYNC_BOOKS), 0x1ABCD
+    image = ctypes.create_string_buffer(2 * SUPERVISOR_SLOT)
+    lib.canergy_supervisor_image(ctypes.byref(sup), 1, image)
+    assert image.raw[4] == 4
+
+    def load(raw: bytes) -> tuple[int, CSupervisor]:
+        back, counter, slot = CSupervisor(), ctypes.c_uint32(), ctypes.c_uint8()
+        buf = ctypes.create_string_buffer(raw, len(raw))
+        rc = lib.canergy_supervisor_load(
+            ctypes.byref(back), ctypes.byref(cfg), nodes, 1, 0, buf, len(raw),
+            ctypes.byref(counter), ctypes.byref(slot),
+        )  # fmt: skip
+        return rc, back
+
+    rc, back = load(image.raw)
+    assert rc == 1 and back.usable_uj == -4000 and back.sessions[0].resume_nonce == 0x1ABCD
+    assert back.sessions[0].phase == int(Phase.SYNCING)  # loaded IDLE, then a start
+    used = 40 + 44  # header, one session, CRC
+    old = bytearray(image.raw)
+    old[4] = 3
+    old[used - 4 : used] = struct.pack("<I", zlib.crc32(bytes(old[: used - 4])))
+    assert load(bytes(old))[0] == -4
 
 
 def test_the_hardened_session_ignores_a_debit() -> None:

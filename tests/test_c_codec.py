@@ -29,6 +29,13 @@ from canergy.messages import (
     Telemetry,
 )
 
+DEBIT_KINDS = [
+    Debit.DRAW,
+    Debit.START,
+    Debit.START | Debit.DRAW,
+    Debit.START | Debit.SYNC,
+    Debit.BOOKS,
+]
 BASES = [DEFAULT_ID_BASE, 0, 0x1FFFF000, 0x12345000]
 ALL_MESSAGES = (
     messages
@@ -40,11 +47,11 @@ ALL_MESSAGES = (
         st.integers(0, 0xFFFF),
     )
     | st.builds(Join, st.integers(1, 127), st.integers(0, 0xFFFF))
-    | st.builds(  # draws, resumes and what is neither (Python encodes it, decoding refuses it)
+    | st.builds(  # every DEBIT kind and what is none (Python encodes it, decoding refuses it)
         Debit,
         st.integers(1, 127),
         st.sampled_from([0, 1, 0xFFFF]) | st.integers(0, 0xFFFF),
-        st.sampled_from([Debit.DRAW, Debit.START, Debit.START | Debit.DRAW]) | st.integers(0, 0xFF),
+        st.sampled_from(DEBIT_KINDS) | st.integers(0, 0xFF),
         st.integers(0, 0xFFFF),
         st.sampled_from([0, 1, 0xFFFF]) | st.integers(0, 0xFFFF),
     )
@@ -263,12 +270,18 @@ def test_crcs_agree_with_python_and_zlib(data: bytes) -> None:
         Debit(1, 0, 0, 1, 5),  # neither flag
         Debit(1, 7, Debit.DRAW, 1, 5),  # a draw with a nonce
         Debit(1, 0, Debit.DRAW, 1, 0),  # a draw of nothing
-        Debit(1, 0, Debit.START | 0x04, 1, 5),  # an unknown flag on a resume
+        Debit(1, 0, Debit.START | 0x10, 1, 5),  # an unknown flag on a resume
         Debit(1, 0, 0x80, 1, 5),
+        Debit(1, 3, Debit.SYNC, 1, 5),  # SYNC without START
+        Debit(1, 3, Debit.START | Debit.SYNC | Debit.DRAW, 1, 5),  # counts with a draw
+        Debit(1, 3, Debit.BOOKS | Debit.START, 1, 5),  # books and a resume
+        Debit(1, 3, Debit.BOOKS | Debit.DRAW, 1, 5),
+        Debit(1, 3, Debit.BOOKS, 0xFFFF, 0x100),  # books beyond 24 bits
+        Debit(1, 3, Debit.BOOKS, 0, 0xFFFF),
     ],
     ids=str,
 )
-def test_a_debit_neither_draw_nor_resume_is_refused_by_both(msg: Debit) -> None:
+def test_a_debit_of_no_known_kind_is_refused_by_both(msg: Debit) -> None:
     arbitration_id, data = Codec().encode(msg)
     with pytest.raises(DecodeError) as err:
         Codec().decode(arbitration_id, data)
@@ -279,10 +292,17 @@ def test_a_debit_neither_draw_nor_resume_is_refused_by_both(msg: Debit) -> None:
 
 @pytest.mark.parametrize(
     "msg",
-    [Debit(1, 0, Debit.DRAW, 0xFFFF, 1), Debit(127, 0xBEEF, Debit.START | Debit.DRAW, 3, 0)],
+    [
+        Debit(1, 0, Debit.DRAW, 0xFFFF, 1),
+        Debit(127, 0xBEEF, Debit.START | Debit.DRAW, 3, 0),
+        Debit.books(5, 0x8001, 0xFFFFFF),  # the most books a frame carries
+        Debit.books(5, 0, 0),
+        Debit.counts(5, 0xFFFF, 0xFFFF, 0xFFFF),
+        Debit.counts(5, 0, 0, 0),
+    ],
     ids=str,
 )
-def test_draws_and_resumes_decode_in_c(msg: Debit) -> None:
+def test_every_debit_kind_decodes_in_c(msg: Debit) -> None:
     arbitration_id, data = Codec().encode(msg)
     status, m = c_decode(DEFAULT_ID_BASE, arbitration_id, data, True, False, "to_supervisor")
     assert status == OK and c_fields(m) == fields(msg)

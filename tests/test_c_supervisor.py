@@ -9,6 +9,7 @@ from those bytes alone: so every change it must not lose was asked to be persist
 from __future__ import annotations
 
 import ctypes
+from dataclasses import replace
 from typing import Any
 
 import pytest
@@ -24,6 +25,8 @@ from support.c_binding import (
     ERR_AMOUNT,
     ERR_ARGUMENT,
     ERR_PHASE,
+    ERR_UNCONFIRMED,
+    ERR_WINDOW,
     OK,
     RX_OTHER_NODE,
     SUPERVISOR_SLOT,
@@ -39,9 +42,10 @@ from support.strategies import client_answer
 from canergy.codec import Codec
 from canergy.core.actions import Persist, Send
 from canergy.core.errors import LocalProtocolError
+from canergy.core.state import SYNC_PHASES, Session
 from canergy.core.supervisor import Supervisor
 from canergy.core.timing import Timing
-from canergy.messages import QUANTUM_UJ
+from canergy.messages import QUANTUM_UJ, Debit
 
 NODES = (3, 5, 9)
 T = Timing(response_timeout_us=1_000, retries=2)
@@ -52,10 +56,13 @@ amounts = st.one_of(
 
 
 class SideBySide(RuleBasedStateMachine):
+    variant = "hardened"
+    c_rules = 0  # enum canergy_rules
+
     def __init__(self) -> None:
         super().__init__()
         self.lib = library()
-        self.py = Supervisor(NODES, 10_000_000, timing=T)
+        self.py = Supervisor(NODES, 10_000_000, timing=T, variant=self.variant)
         self.c = CSupervisor()
         self.nv = ctypes.create_string_buffer(2 * SUPERVISOR_SLOT)
         self.nv_counter, self.nv_slot = ctypes.c_uint32(), ctypes.c_uint8()
@@ -64,7 +71,7 @@ class SideBySide(RuleBasedStateMachine):
         self.out = SupervisorOut()
 
     def _load(self) -> int:
-        cfg = SupervisorConfig(id_base=CODEC.id_base, timing=timing_of(T))
+        cfg = SupervisorConfig(id_base=CODEC.id_base, timing=timing_of(T, self.c_rules))
         nodes = (ctypes.c_uint8 * len(NODES))(*NODES)
         return int(
             self.lib.canergy_supervisor_load(
@@ -94,7 +101,7 @@ class SideBySide(RuleBasedStateMachine):
         try:
             actions = py()
         except LocalProtocolError:
-            assert c() in (ERR_AMOUNT, ERR_PHASE, ERR_ARGUMENT)
+            assert c() in (ERR_AMOUNT, ERR_PHASE, ERR_ARGUMENT, ERR_WINDOW, ERR_UNCONFIRMED)
             return
         assert c() == OK
         self._same_actions(actions)
@@ -172,14 +179,76 @@ class SideBySide(RuleBasedStateMachine):
         st_ = self.py.state
         assert (self.c.usable_uj, self.c.injected_uj) == (st_.usable, st_.injected)
         for i, s in enumerate(st_.sessions):
-            assert fields_of(self.c.sessions[i]) == fields_of(s)
+            assert fields_of(self.c.sessions[i]) == fields_of(self._comparable(s))
         deadline = self.py.get_timer()
         expected = (1 << 64) - 1 if deadline is None else deadline
         assert self.lib.canergy_supervisor_deadline(ctypes.byref(self.c)) == expected
 
+    def _comparable(self, s: Session) -> Session:
+        return s
+
 
 TestSideBySide = SideBySide.TestCase
 TestSideBySide.settings = settings(max_examples=150, stateful_step_count=60, deadline=None)
+
+
+class WitnessedSideBySide(SideBySide):
+    """The same under the witnessed rules: every reset is a start with a fresh nonce (the C side
+    from its NV bytes alone), SYNC re-sent by the timer, the node's books (Rc near Gs or far:
+    Us may go below zero) and counts (ltx near tx) with the SYNC's nonce or another; grants
+    refused while a start waits and beyond the window. W is volatile: C starts from its bytes
+    with W 0, Python keeps it in memory; either is overwritten by the counts before it is used,
+    so it is compared from then on."""
+
+    variant = "witnessed"
+    c_rules = 1
+
+    @rule(nonce=st.integers(0, 0xFFFF))
+    def start(self, nonce: int) -> None:
+        self.py.power_loss(self.now, nonce=nonce)
+        assert self._load() == (1 if self.nv_counter.value else 0)
+        self.lib.canergy_supervisor_start(
+            ctypes.byref(self.c), nonce, self.now, ctypes.byref(self.out)
+        )
+        if self.out.persist:
+            self._persist()
+
+    @rule(data=st.data())
+    def sync_answer(self, data: st.DataObject) -> None:
+        node = data.draw(st.sampled_from(NODES))
+        s = self.py.session(node)
+        nonce = data.draw(
+            st.sampled_from([s.sync_nonce, s.sync_nonce ^ 1, s.resume_nonce & 0xFFFF])
+        )
+        if data.draw(st.booleans(), label="books"):
+            near = st.integers(-3, 3) | st.integers(-3, 3_000) | st.just(0x7FFFFF)
+            rc = s.delivered // QUANTUM_UJ + data.draw(near)
+            msg = Debit.books(node, nonce, rc & 0xFFFFFF)
+        else:
+            ltx = s.tx + data.draw(st.integers(-3, 3) | st.sampled_from([64, 0x7FFF]))
+            seq = s.returns_credited + data.draw(st.integers(-2, 2))
+            msg = Debit.counts(node, nonce, seq & 0xFFFF, ltx & 0xFFFF)
+        frame, _buf = rx(*CODEC.encode(msg))
+        status = self.lib.canergy_supervisor_on_frame(
+            ctypes.byref(self.c), ctypes.byref(frame), self.now, ctypes.byref(self.out)
+        )
+        assert status == OK
+        self._same_actions(self.py.receive(msg, self.now))
+
+    @rule()
+    def same_waiting(self) -> None:
+        nodes = (ctypes.c_uint8 * len(NODES))()
+        n = self.lib.canergy_supervisor_unconfirmed(ctypes.byref(self.c), nodes)
+        assert tuple(nodes[:n]) == self.py.unconfirmed()
+
+    def _comparable(self, s: Session) -> Session:
+        if s.phase in SYNC_PHASES:  # W is not used before the counts set it
+            return replace(s, witness=0)
+        return s
+
+
+TestWitnessedSideBySide = WitnessedSideBySide.TestCase
+TestWitnessedSideBySide.settings = settings(max_examples=150, stateful_step_count=60, deadline=None)
 
 
 class AgainstTheBrokenBuild(SideBySide):

@@ -16,6 +16,7 @@ from typing import Any
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis.stateful import initialize, rule
 from support import client_cases
 from support.c_binding import (
     ERR_AMOUNT,
@@ -29,6 +30,7 @@ from support.c_binding import (
     PHASES,
     RULES,
     SLOT,
+    SUPERVISOR_SLOT,
     CClient,
     ClientConfig,
     CNodeState,
@@ -48,12 +50,11 @@ from support.c_binding import (
 from support.c_session import same
 from support.cells import Case, params
 from support.mem_nv import MemNv, write_slot
+from support.side_by_side import BOOKS as SIDE_BOOKS
 from support.side_by_side import SETTINGS as SIDE_SETTINGS
 from support.side_by_side import TIMING as SIDE_TIMING
 from support.side_by_side import SideBySide
 from test_c_session import sessions, timings, wire_near
-from test_hardened_supervisor import REFUSED as SUP_REFUSED
-from test_hardened_supervisor import STATES as SUP_STATES
 from test_witnessed import (
     CLIENT_CASES,
     CLIENT_IGNORED,
@@ -67,6 +68,8 @@ from test_witnessed import (
     SUP_CASES,
     SUP_EVENTS,
     SUP_IGNORED,
+    SUP_REFUSED,
+    SUP_STATES,
     T,
     resume,
 )
@@ -74,9 +77,11 @@ from test_witnessed import _exchange as _exchange_py
 
 from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.codec import DEFAULT_ID_BASE, Codec
-from canergy.core import Client, Supervisor
+from canergy.core import Client, Send, Supervisor
 from canergy.core import witnessed as W
+from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import (
+    Begin,
     BooksLost,
     CommandTimeout,
     GiveBack,
@@ -87,7 +92,7 @@ from canergy.core.inputs import (
 from canergy.core.state import ClientState, Phase, Session, SupervisorState
 from canergy.core.timing import Timing
 from canergy.live.state_file import load_state, save_state
-from canergy.messages import COUNTER_END, Admit, Debit, Join, ReturnAck
+from canergy.messages import COUNTER_END, SYNC_CONFIRMED, Admit, Debit, Join, ReturnAck
 from firmware_model.nvstore import pack_record
 
 CODEC = Codec()
@@ -122,8 +127,8 @@ def assert_same_step(start: ClientState, event: object, now: int) -> Out:
     assert c.view() == c_view(step.client)
     assert out.sent() == frames_of(CODEC, step.actions)
     assert out.events & ~(EV_ADMITTED | EV_RELEASED) == events_of(step.actions)
-    books_from = start.phase in (Phase.JOINING, Phase.RESUMING)
-    admitted = books_from and step.client.phase not in (Phase.JOINING, Phase.RESUMING)
+    starts = (Phase.JOINING, Phase.RESUMING, Phase.SYNCING)
+    admitted = start.phase in starts and step.client.phase not in starts
     assert bool(out.events & EV_ADMITTED) == admitted
     assert bool(out.events & EV_RELEASED) == (step.client.spent > start.spent)
     record_changed = TABLE.persistent(start) != TABLE.persistent(step.client)
@@ -240,6 +245,95 @@ def test_session_ignored(cell: tuple[Phase, type]) -> None:
 @pytest.mark.parametrize("cell", sorted(SUP_REFUSED, key=str), ids=str)
 def test_session_refused(cell: tuple[Phase, type]) -> None:
     same(SUP_STATES[cell[0]], ST, SUP_EVENTS[cell[1]], 0, table=W.SUPERVISOR)
+
+
+@pytest.mark.parametrize("ahead", [0, 1, 2, 5])
+@pytest.mark.parametrize("window", [1, 64, 0x7FFF])
+def test_a_session_begins_only_within_the_window(ahead: int, window: int) -> None:
+    """k = tx + 1 <= W + B: at the window's end both begin, one beyond both refuse."""
+    s = Session(1, tx=1000 + window - 2 + ahead, witness=1000)
+    same(s, replace(ST, window=window), Begin(1000), 0, table=W.SUPERVISOR)
+
+
+def test_the_compiled_supervisor_refuses_beyond_the_window_in_the_python_words() -> None:
+    t = replace(ST, window=2)
+    state = SupervisorState(J, J, 0, (Session(2, tx=7, witness=5),))
+    errors = []
+    for core in (Supervisor, CompiledSupervisor):
+        sup = core([2], J, timing=t, state=state, variant="witnessed")
+        with pytest.raises(LocalProtocolError) as err:
+            sup.begin(2, 1000, 0)
+        errors.append(str(err.value))
+    assert errors[0] == errors[1] and "beyond the window" in errors[0]
+
+
+@pytest.mark.parametrize("without", [(), (3,)])
+def test_no_grant_before_every_node_has_confirmed_its_books_after_a_start(
+    without: tuple[int, ...],
+) -> None:
+    """A start: node 2 answers its SYNC, node 3 does not; both cores refuse to grant even to
+    node 2 (saying they wait for node 3), unless the operator started without node 3, and
+    neither ever grants to node 3 before its answer. Node 2's books hold 5 mJ more than the
+    restored record: Us goes below zero, and a grant beyond it is refused."""
+    t = replace(ST, window=4)
+    for core in (Supervisor, CompiledSupervisor):
+        sup = core([2, 3], 2000, timing=t, variant="witnessed", start_without=without)
+        sup.power_loss(0, nonce=0x1234)
+        assert sup.unconfirmed() == tuple(n for n in (2, 3) if n not in without)
+        sync = [a.message for a in sup.handle_timer(0) if isinstance(a, Send)]
+        assert [m.node for m in sync] == [2, 3] and {m.nonce for m in sync} == {0x1234}
+        sup.receive(Debit.books(2, 0x1234, 7), 1)  # Rc 7 mJ, Gs 0: Us 2 mJ -> -5 mJ
+        answer = sup.receive(Debit.counts(2, 0x1234, 0, 9), 2)
+        admit = [a.message for a in answer if isinstance(a, Send)]
+        assert admit == [Admit(2, 0x1234 ^ SYNC_CONFIRMED, 9, 1)]
+        assert sup.usable == -5000 and sup.session(2).witness == 9
+        assert sup.unconfirmed() == tuple(n for n in (3,) if n not in without)
+        with pytest.raises(
+            LocalProtocolError, match="waiting for node" if not without else "usable"
+        ):
+            sup.begin(2, 1000, 3)
+        sup.inject(6000)
+        if without:
+            sup.begin(2, 1000, 3)  # within the window W + B = 13: k = 10
+        else:
+            with pytest.raises(LocalProtocolError, match="waiting for node"):
+                sup.begin(2, 1000, 3)
+        with pytest.raises(LocalProtocolError):
+            sup.begin(3, 1000, 3)  # its own session still waits for its books
+
+
+def test_the_supervisor_record_version_4_round_trips_a_debt_and_refuses_version_3() -> None:
+    """Us below zero and a SYNC's counts answered (bit 16 of the nonce) come back from the
+    image; a start's waiting phase is stored as IDLE (every start is one); the same image
+    marked version 3 is refused as another version (CANERGY_ERR_RECORD), not started over."""
+    lib = library()
+    cfg = SupervisorConfig(id_base=DEFAULT_ID_BASE, timing=SessionTiming(50_000, 3, 1, 0))
+    nodes = (ctypes.c_uint8 * 1)(2)
+    sup = CSupervisor()
+    assert lib.canergy_supervisor_init(ctypes.byref(sup), ctypes.byref(cfg), nodes, 1, 1000) == 0
+    sup.usable_uj = -4000
+    sup.sessions[0].phase, sup.sessions[0].resume_nonce = int(Phase.SYNC_BOOKS), 0x1ABCD
+    image = ctypes.create_string_buffer(2 * SUPERVISOR_SLOT)
+    lib.canergy_supervisor_image(ctypes.byref(sup), 1, image)
+    assert image.raw[4] == 4
+
+    def load(raw: bytes) -> tuple[int, CSupervisor]:
+        back, counter, slot = CSupervisor(), ctypes.c_uint32(), ctypes.c_uint8()
+        buf = ctypes.create_string_buffer(raw, len(raw))
+        rc = lib.canergy_supervisor_load(
+            ctypes.byref(back), ctypes.byref(cfg), nodes, 1, 0, buf, len(raw),
+            ctypes.byref(counter), ctypes.byref(slot),
+        )  # fmt: skip
+        return rc, back
+
+    rc, back = load(image.raw)
+    assert rc == 1 and back.usable_uj == -4000 and back.sessions[0].resume_nonce == 0x1ABCD
+    assert back.sessions[0].phase == int(Phase.SYNCING)  # loaded IDLE, then a start
+    used = 40 + 44  # header, one session, CRC
+    old = bytearray(image.raw)
+    old[4] = 3
+    old[used - 4 : used] = struct.pack("<I", zlib.crc32(bytes(old[: used - 4])))
+    assert load(bytes(old))[0] == -4
 
 
 def test_the_hardened_session_ignores_a_debit() -> None:
@@ -494,7 +588,26 @@ def test_the_c_gateway_refuses_a_file_of_the_older_supervisor_record(tmp_path: P
     assert run.returncode == 2
     assert run.stderr == (
         "canergy-gateway: error: --nv g.nv: written by an older canergy-gateway (supervisor "
-        "record version 2); this one reads version 3 only\n"
+        "record version 2); this one reads version 4 only\n"
+    )
+
+
+def test_the_c_gateway_refuses_a_file_of_supervisor_record_version_3(tmp_path: Path) -> None:
+    """Version 4 holds a SYNC's counts in the last answer's nonce (bit 16) and Us signed: a file
+    of version 3 (same size) is refused by name before the buses open, never taken as blank."""
+    gateway = _port("build/canergy-gateway")
+    head = struct.pack("<IBBBBIQQQ", 0x534E5243, 3, 1, 0, 0, 1, 0, 0, 0)
+    session = struct.pack("<BBBBIIIQQIIHxx", 2, 0, 0, 0, 9, 4, 0, 0, 0, 0, 0, 0)
+    sup = (head + session + struct.pack("<I", zlib.crc32(head + session))).ljust(40 + 44 * 127)
+    body = struct.pack("<II", 0x47524E43, 1) + pack_record(ClientState(1, last_tx=5)) + sup
+    (tmp_path / "g.nv").write_bytes(body + struct.pack("<I", zlib.crc32(body)))
+    argv = [str(gateway), "--node", "1", "--nodes", "2", "-c", "nosuchcan0"]
+    argv += ["--upstream-channel", "nosuchcan1", "--nv", "g.nv", "--rules", "witnessed"]
+    run = subprocess.run(argv, capture_output=True, text=True, timeout=10, cwd=tmp_path)
+    assert run.returncode == 2
+    assert run.stderr == (
+        "canergy-gateway: error: --nv g.nv: written by an older canergy-gateway (supervisor "
+        "record version 3); this one reads version 4 only\n"
     )
 
 
@@ -524,12 +637,39 @@ class WitnessedMemNv(MemNv):
         return replace(state, pending_draw=bool(flags & FLAG_PENDING_DRAW))
 
 
+def _below_the_end(books: ClientState) -> ClientState:
+    """A record whose ltx leaves room for SYNCs: each lifts it by B (a duplicated ADMIT reads
+    as one too), and neither core checks that lift against the end of the numbering (reported:
+    witnessed.answer_sync), so a record near it would become one no loader takes."""
+    return replace(books, last_tx=min(books.last_tx, COUNTER_END - 0x10000))
+
+
 class WitnessedSideBySide(SideBySide):
     """The Python witnessed client and supervisor and the C client with rules witnessed: every
     start RESUMEs, the actuator draws through DEBIT; same frames, persists, NV bytes, state."""
 
     def _new_supervisor(self, state: SupervisorState) -> Supervisor:
+        """The books agree with the node's record, which it has shown persisted (W = tx)."""
+        sessions = tuple(replace(s, witness=s.tx) for s in state.sessions)
+        state = replace(state, sessions=sessions)
         return Supervisor([1], state.initial, timing=SIDE_TIMING, state=state, variant="witnessed")
+
+    @initialize(
+        initial_mj=st.integers(0, 40_000),
+        nonce=st.integers(0, 0xFFFF),
+        books=st.none() | SIDE_BOOKS.map(_below_the_end),
+    )
+    def start(self, initial_mj: int, nonce: int, books: ClientState | None) -> None:
+        SideBySide.start(self, initial_mj, nonce, books)
+
+    def _may_begin(self, s: Session) -> bool:
+        """Not while a start waits for the books, nor beyond the window."""
+        return not self.sup.unconfirmed() and s.tx + 1 <= s.witness + SIDE_TIMING.window
+
+    @rule(nonce=st.integers(0, 0xFFFF))
+    def supervisor_start(self, nonce: int) -> None:
+        """The supervisor starts again with a fresh nonce: a SYNC the node answers."""
+        self.sup.power_loss(self.now, nonce=nonce)
 
     def _new_client(self) -> CClient:
         return CClient(1, timing=SIDE_TIMING, lib=library(), rules="witnessed")

@@ -7,6 +7,7 @@ field. The service drives both through this interface, so these are what it sees
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from typing import Any
 
 import can
@@ -43,6 +44,7 @@ pytestmark = pytest.mark.skipif(
 )
 
 NODES = (3, 5, 9, 127)
+SYNC_ANSWER = (Debit.BOOKS, Debit.START | Debit.SYNC)
 CODEC = Codec()
 T = Timing(response_timeout_us=1_000, retries=2)
 amounts = st.one_of(
@@ -61,11 +63,12 @@ def steps(actions: list[Action]) -> tuple[bool, list[Action]]:
 
 class SideBySide(RuleBasedStateMachine):
     variant = "hardened"
+    timing = T
 
     def __init__(self) -> None:
         super().__init__()
-        self.py = Supervisor(NODES, 10_000_000, timing=T, variant=self.variant)
-        self.c = CompiledSupervisor(NODES, 10_000_000, timing=T, variant=self.variant)
+        self.py = Supervisor(NODES, 10_000_000, timing=self.timing, variant=self.variant)
+        self.c = CompiledSupervisor(NODES, 10_000_000, timing=self.timing, variant=self.variant)
         self.now = 0
 
     def _same(self, py: Any, c: Any) -> None:
@@ -104,17 +107,25 @@ class SideBySide(RuleBasedStateMachine):
 
     @rule(data=st.data(), fast=st.booleans())
     def debit(self, data: st.DataObject, fast: bool) -> None:
-        """A DRAW or a RESUME near the session's count (the hardened rules ignore both), by
-        ``receive`` or as the fast path hands it back to the caller."""
+        """A DRAW, a RESUME, or a SYNC's books or counts near the session's counts (the hardened
+        rules ignore them all), by ``receive`` or as the fast path hands it back to the
+        caller."""
         node = data.draw(st.sampled_from([*NODES, 4]))
         s = self.py.session(node) if node in NODES else None
-        credited = 0 if s is None else s.returns_credited
+        credited, tx, sync = (0, 0, 0) if s is None else (s.returns_credited, s.tx, s.sync_nonce)
         seq = (credited + data.draw(st.integers(-2, 3))) & 0xFFFF
-        nonce = data.draw(st.sampled_from([0, 7]))
-        flags = data.draw(st.sampled_from([Debit.DRAW, Debit.START, Debit.START | Debit.DRAW]))
+        nonce = data.draw(st.sampled_from([0, 7, sync, sync ^ 1]))
+        kinds = [Debit.DRAW, Debit.START, Debit.START | Debit.DRAW, *SYNC_ANSWER]
+        flags = data.draw(st.sampled_from(kinds))
         amount = data.draw(st.sampled_from([0, 1, 2_000]))
         if flags == Debit.DRAW:
             nonce, amount = 0, max(amount, 1)
+        if flags == Debit.BOOKS:  # Rc near Gs, or far
+            rc = s.delivered // QUANTUM_UJ if s is not None else 0
+            rc = (rc + data.draw(st.integers(-3, 3_000) | st.just(0x7FFFFF))) & 0xFFFFFF
+            seq, amount = rc & 0xFFFF, rc >> 16
+        elif flags == Debit.START | Debit.SYNC:  # ltx near tx, a window ahead, or behind
+            amount = (tx + data.draw(st.integers(-3, 3) | st.sampled_from([64, 0x7FFF]))) & 0xFFFF
         msg = Debit(node, nonce, flags, seq, amount)
         if fast:
             _, actions, _, decoded = self.c.on_answer(
@@ -144,6 +155,18 @@ class SideBySide(RuleBasedStateMachine):
             if isinstance(action, Acknowledged):
                 (self.py.abort if stopping else self.py.commit)(action.node, self.now)
 
+    @rule(nonce=st.integers(0, 0xFFFF))
+    def start(self, nonce: int) -> None:
+        """A start with a fresh nonce (witnessed: every session SYNCs, no grant until the books
+        are in)."""
+        self.py.power_loss(self.now, nonce=nonce)
+        self.c.power_loss(self.now, nonce=nonce)
+
+    @rule()
+    def waiting(self) -> None:
+        """Both cores wait for the same nodes."""
+        assert self.c.unconfirmed() == self.py.unconfirmed()
+
     @rule(dt=st.integers(0, 3_000))
     def timer(self, dt: int) -> None:
         self.now += dt
@@ -153,7 +176,9 @@ class SideBySide(RuleBasedStateMachine):
     def restart(self) -> None:
         """A reset from the saved state, as ``canergy supervisor`` restarts from its file."""
         self.py.power_loss(self.now)
-        self.c = CompiledSupervisor(NODES, 1, timing=T, state=self.c.state, variant=self.variant)
+        self.c = CompiledSupervisor(
+            NODES, 1, timing=self.timing, state=self.c.state, variant=self.variant
+        )
         self.c.power_loss(self.now)
 
     @rule(amount=st.integers(0, 5_000_000))
@@ -191,9 +216,11 @@ TestSideBySide.settings = settings(max_examples=200, stateful_step_count=60, dea
 
 
 class WitnessedSideBySide(SideBySide):
-    """The same under the witnessed rules (``--core c --rules witnessed``'s supervisor)."""
+    """The same under the witnessed rules (``--core c --rules witnessed``'s supervisor), with a
+    window small enough that grants reach its end."""
 
     variant = "witnessed"
+    timing = replace(T, window=3)
 
 
 TestWitnessedSideBySide = WitnessedSideBySide.TestCase

@@ -269,8 +269,8 @@ SUP_SLOT = 40 + 44 * GW_NODES
 
 def _supervisor_slot(node: int, tx: int, seq: int) -> bytes:
     """canergy_supervisor_image for one IDLE session (firmware/src/supervisor.c's layout)."""
-    head = struct.pack("<IBBBBIQQQ", 0x534E5243, 3, 1, 0, 0, 1, 0, 0, 0)
-    session = struct.pack("<BBBBIIIQQIIHxx", node, 0, 0, 0, tx, seq, 0, 0, 0, 0, 0, 0)
+    head = struct.pack("<IBBBBIQQQ", 0x534E5243, 4, 1, 0, 0, 1, 0, 0, 0)
+    session = struct.pack("<BBBBIIIQQIII", node, 0, 0, 0, tx, seq, 0, 0, 0, 0, 0, 0)
     body = head + session
     return (body + struct.pack("<I", zlib.crc32(body))).ljust(SUP_SLOT, b"\0")
 

@@ -70,7 +70,7 @@ int main(int argc, char **argv)
         canergy_nv_slot_encode(1U, rec, sizeof rec, image);
         static struct canergy_client c;
         struct canergy_out out;
-        const struct canergy_client_config cfg = {CANERGY_DEFAULT_ID_BASE, 200000U, 200000U, 5U, CANERGY_RULES_HARDENED};
+        const struct canergy_client_config cfg = {CANERGY_DEFAULT_ID_BASE, 200000U, 200000U, 5U, CANERGY_RULES_HARDENED, 0U};
         (void)canergy_client_start(&c, &cfg, image, sizeof image, 1U, 0U, &out);
         const uint64_t t0 = ns();
         for (unsigned i = 0U; i < n; i++) {

@@ -143,6 +143,20 @@ static bool beyond_end(const struct canergy_client *c, uint16_t wire)
 static void on_intention(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
                          struct canergy_out *out)
 {
+#ifdef CANERGY_WITNESSED
+    /* witnessed.on_intention: Gs pays back only from a fresh intention (k > ltx); one at or
+     * below ltx may be of a supervisor history a SYNC discarded, its Gs held by nobody */
+    if (c->rules == CANERGY_RULES_WITNESSED &&
+        (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) == 0U) {
+        const int32_t old = serial16(m->tx, c->rec.last_tx);
+        if (old == 0) {
+            reply_for(c, c->rec.last_tx, c->rec.outcome, out);
+        }
+        if (old <= 0) {
+            return;
+        }
+    }
+#endif
     if (beyond_end(c, m->tx)) {
         return; /* no supervisor sends one: it would move ltx to the end of the numbering */
     }
@@ -283,15 +297,48 @@ static void send_debit(const struct canergy_client *c, bool start, struct canerg
     canergy_internal_send(c, &m, out);
 }
 
-/* ADMIT(n, k, Q) while RESUMING (witnessed.on_confirm): Q = q + 1 confirms the books (settled up
- * to k, the pending debit settled: a return credited, a draw dropped unreleased); a larger Q
- * finds them behind: admitted afresh at k and Q, what the actuator used still counted. */
+/* The answer to SYNC(n) (witnessed.answer_of): the books (n, Rc: 24 bits), then the counts
+ * (n, q, ltx). */
+static void send_sync_answer(const struct canergy_client *c, struct canergy_out *out)
+{
+    struct canergy_msg m;
+    memset(&m, 0, sizeof m);
+    m.type = CANERGY_DEBIT;
+    m.node = c->node;
+    m.nonce = c->nonce;
+    m.flags = CANERGY_DEBIT_BOOKS;
+    m.seq = (uint16_t)c->rec.credited_mj;
+    m.amount_mj = (uint16_t)((c->rec.credited_mj >> 16) & 0xFFU);
+    canergy_internal_send(c, &m, out);
+    m.flags = CANERGY_DEBIT_COUNTS;
+    m.seq = (uint16_t)c->rec.return_seq;
+    m.amount_mj = (uint16_t)c->rec.last_tx;
+    canergy_internal_send(c, &m, out);
+}
+
+/* SYNC(n) (witnessed.answer_sync): the supervisor started, maybe from an older copy. Settle
+ * the next B transactions (none of a discarded history can be above), drop the held intention,
+ * answer with the books and the counts; nothing moves until ADMIT(n ^ SYNC_CONFIRMED). A
+ * pending debit stays pending: dropped on that ADMIT, never credited. */
+static void answer_sync(struct canergy_client *c, uint16_t nonce, uint64_t now,
+                        struct canergy_out *out)
+{
+    drop_hold(c);
+    c->phase = CANERGY_SYNCING;
+    c->nonce = nonce;
+    c->rec.last_tx += c->window;
+    c->rec.outcome = CANERGY_OUTCOME_SETTLED;
+    c->return_deadline = serial_after(now, c->return_retry_us);
+    send_sync_answer(c, out);
+}
+
+/* ADMIT(n, k, Q) answering this start (witnessed.on_confirm): Q = q + 1 confirms the books
+ * (settled up to k, the pending debit settled: a return credited, a draw dropped unreleased); a
+ * larger Q finds them behind: admitted afresh at k and Q, what the actuator used still
+ * counted; a smaller one changes nothing. */
 static void on_confirm(struct canergy_client *c, const struct canergy_msg *m,
                        struct canergy_out *out)
 {
-    if (m->nonce != c->nonce) {
-        return; /* an answer to another start */
-    }
     const int32_t d = serial16(m->seq, c->rec.return_seq);
     if (d < 1) {
         return;
@@ -320,16 +367,40 @@ static void on_confirm(struct canergy_client *c, const struct canergy_msg *m,
     out->events |= CANERGY_EV_ADMITTED;
 }
 
-static bool resuming_message(struct canergy_client *c, const struct canergy_msg *m,
-                             struct canergy_out *out)
+/* ADMIT while a start waits (witnessed.on_start_answer): the answer to it (a SYNC's answer is
+ * confirmed with CANERGY_SYNC_CONFIRMED flipped), the same SYNC again (answered again), or
+ * another nonce: a supervisor's SYNC. */
+static void on_start_answer(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
+                            struct canergy_out *out)
 {
-    if (c->phase != CANERGY_RESUMING) {
+    const bool syncing = c->phase == CANERGY_SYNCING;
+    const uint16_t expected =
+        (uint16_t)(syncing ? (uint32_t)c->nonce ^ CANERGY_SYNC_CONFIRMED : c->nonce);
+    if (m->nonce == expected) {
+        on_confirm(c, m, out);
+    } else if (syncing && m->nonce == c->nonce) {
+        send_sync_answer(c, out);
+    } else {
+        answer_sync(c, m->nonce, now, out);
+    }
+}
+
+/* RESUMING or SYNCING: an intention moves nothing (the RESUME or the answer again at once), an
+ * ADMIT may answer the start; everything else is ignored. */
+static bool start_message(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
+                          struct canergy_out *out)
+{
+    if (c->phase != CANERGY_RESUMING && c->phase != CANERGY_SYNCING) {
         return false;
     }
     if (m->type == CANERGY_INTENTION) {
-        send_debit(c, true, out); /* moves nothing; RESUME again at once */
+        if (c->phase == CANERGY_RESUMING) {
+            send_debit(c, true, out);
+        } else {
+            send_sync_answer(c, out);
+        }
     } else if (m->type == CANERGY_ADMIT) {
-        on_confirm(c, m, out);
+        on_start_answer(c, m, now, out);
     }
     return true;
 }
@@ -350,7 +421,11 @@ static void rx_message(struct canergy_client *c, const struct canergy_msg *m, ui
                        struct canergy_out *out)
 {
 #ifdef CANERGY_WITNESSED
-    if (resuming_message(c, m, out)) {
+    if (start_message(c, m, now, out)) {
+        return;
+    }
+    if (witnessed(c) && c->phase != CANERGY_JOINING && m->type == CANERGY_ADMIT) {
+        answer_sync(c, m->nonce, now, out); /* with books, an ADMIT is a supervisor's SYNC */
         return;
     }
 #endif
@@ -395,6 +470,9 @@ static void return_timer(struct canergy_client *c, uint64_t now, struct canergy_
     } else if (c->phase == CANERGY_RESUMING) {
         c->return_deadline = serial_after(now, c->return_retry_us);
         send_debit(c, true, out);
+    } else if (c->phase == CANERGY_SYNCING) {
+        c->return_deadline = serial_after(now, c->return_retry_us);
+        send_sync_answer(c, out);
     } else if ((c->rec.flags & CANERGY_RECORD_PENDING_DRAW) != 0U) {
         c->return_deadline = serial_after(now, c->return_retry_us); /* same number until acked */
         send_debit(c, false, out);
@@ -683,7 +761,8 @@ static bool config_ok(const struct canergy_client_config *cfg)
     const uint8_t last_rules = CANERGY_RULES_HARDENED;
 #endif
     return canergy_id_base_valid(cfg->id_base) && cfg->node >= CANERGY_MIN_NODE &&
-           cfg->node <= CANERGY_MAX_NODE && cfg->rules <= last_rules;
+           cfg->node <= CANERGY_MAX_NODE && cfg->rules <= last_rules &&
+           cfg->window <= CANERGY_WINDOW_MAX;
 }
 
 int canergy_internal_start(struct canergy_client *c, const struct canergy_client_config *cfg,
@@ -699,6 +778,7 @@ int canergy_internal_start(struct canergy_client *c, const struct canergy_client
     c->command_timeout_us = cfg->command_timeout_us;
     c->return_retry_us = cfg->return_retry_us;
     c->rules = cfg->rules;
+    c->window = cfg->window != 0U ? cfg->window : (uint16_t)CANERGY_DEFAULT_WINDOW;
     c->deadline = CANERGY_NEVER;
     c->return_deadline = CANERGY_NEVER;
     struct canergy_nv_state nv;

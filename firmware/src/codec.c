@@ -71,16 +71,23 @@ static bool has_amount(uint32_t code)
     return fields[1] == F_AMOUNT; /* a required amount is the second field (DEBIT's: optional) */
 }
 
-/* DEBIT is a draw (DRAW alone, an amount, no nonce) or a resume (START, DRAW optional); no
- * other flags. codec.py's _debit_build. */
+/* DEBIT is a draw (DRAW alone, an amount, no nonce), a resume (START, DRAW optional), or a
+ * SYNC's answer: its counts (START | SYNC) or its books (BOOKS alone, 24 bits of Rc: the
+ * amount's high byte clear); no other flags. codec.py's _debit_build. */
 static bool debit_valid(const struct canergy_msg *m)
 {
-    const uint8_t known = CANERGY_DEBIT_DRAW | CANERGY_DEBIT_START;
-    if ((m->flags & (uint8_t)~known) != 0U) {
+    switch (m->flags) {
+    case CANERGY_DEBIT_DRAW:
+        return m->amount_mj != 0U && m->nonce == 0U;
+    case CANERGY_DEBIT_START:
+    case CANERGY_DEBIT_START | CANERGY_DEBIT_DRAW:
+    case CANERGY_DEBIT_START | CANERGY_DEBIT_SYNC:
+        return true;
+    case CANERGY_DEBIT_BOOKS:
+        return m->amount_mj <= 0xFFU;
+    default:
         return false;
     }
-    return (m->flags & CANERGY_DEBIT_START) != 0U ||
-           (m->flags == CANERGY_DEBIT_DRAW && m->amount_mj != 0U && m->nonce == 0U);
 }
 
 uint8_t canergy_crc8(uint8_t reg, const uint8_t *data, size_t len)

@@ -48,8 +48,8 @@ int canergy_gateway_give_back(struct canergy_gateway *gw, uint32_t uj, uint64_t 
     }
     /* Us below holds only what came from above (link gap 0: spent = injected - withdrawn, and
      * nodes below return only what they were given): never more than spent */
-    CANERGY_ASSERT(gw->down.usable_uj <= gw->up.rec.spent_uj);
-    if (uj == 0U || (uint64_t)uj > gw->down.usable_uj || (uint64_t)uj > gw->up.rec.spent_uj ||
+    CANERGY_ASSERT(gw->down.usable_uj < 0 || (uint64_t)gw->down.usable_uj <= gw->up.rec.spent_uj);
+    if (uj == 0U || (int64_t)uj > gw->down.usable_uj || (uint64_t)uj > gw->up.rec.spent_uj ||
         gw->up.rec.usable_uj > CANERGY_USABLE_MAX_UJ - uj) {
         return CANERGY_ERR_AMOUNT;
     }

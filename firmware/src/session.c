@@ -69,6 +69,34 @@ static bool other_tx(const struct canergy_session *s, uint16_t wire)
     return serial16(wire, s->tx) != 0;
 }
 
+bool canergy_session_syncing(const struct canergy_session *s)
+{
+    return s->phase == CANERGY_S_SYNCING || s->phase == CANERGY_S_SYNC_BOOKS;
+}
+
+#ifdef CANERGY_WITNESSED
+static uint32_t window_of(const struct canergy_session_timing *t)
+{
+    return t->window != 0U ? t->window : CANERGY_DEFAULT_WINDOW;
+}
+
+/* An answer naming transaction k was taken (witnessed._witnessed): W moves up to k. */
+static void witness_up(struct canergy_session *s, const struct canergy_session_timing *t,
+                       int64_t k)
+{
+    if (t->rules == CANERGY_RULES_WITNESSED && k > s->witness) {
+        s->witness = (int32_t)k; /* a transaction number: below CANERGY_COUNTER_BOUND */
+    }
+}
+
+/* A SYNC's ltx (16 bits on the wire) widened against tx, as Python's unwrap (may be below 0
+ * for a node claiming less than nothing: then it moves nothing). */
+static int64_t settled_of(const struct canergy_session *s, uint16_t wire)
+{
+    return (int64_t)s->tx + serial16(wire, s->tx);
+}
+#endif
+
 void canergy_session_init(struct canergy_session *s, uint8_t node)
 {
     memset(s, 0, sizeof *s);
@@ -83,6 +111,12 @@ int canergy_session_begin(struct canergy_session *s, const struct canergy_sessio
     if (s->phase != CANERGY_S_IDLE) {
         return CANERGY_ERR_PHASE;
     }
+#ifdef CANERGY_WITNESSED
+    if (t->rules == CANERGY_RULES_WITNESSED &&
+        (int64_t)s->tx + 1 > (int64_t)s->witness + (int64_t)window_of(t)) {
+        return CANERGY_ERR_WINDOW; /* witnessed.begin: only within the window k <= W + B */
+    }
+#endif
     if (amount_uj == 0U || amount_uj % MJ != 0U || amount_uj > AMOUNT_MAX_UJ) {
         return CANERGY_ERR_AMOUNT;
     }
@@ -209,15 +243,22 @@ static void admit_voiding(struct canergy_session *s, const struct canergy_msg *m
 /* RESUME(n, q, x) (witnessed.confirm): a repeat gets the same answer (resume_to 0: none answered
  * yet, as every answer voids a number above 0); behind (q below the last debit held): write off,
  * lift, admit; otherwise write off what is open and credit a pending RETURN numbered next (not at
- * the end of the numbering); then void max(C, q) + 1 and answer ADMIT(n, k, C). */
+ * the end of the numbering); then void max(C, q) + 1 and answer ADMIT(n, k, C). A SYNC's counts
+ * (n, q, ltx) are taken the same way, with tx and W moved up to ltx (never back), no pending
+ * amount, and n ^ CANERGY_SYNC_CONFIRMED in the answer; what the last answer remembers tells a
+ * RESUME from counts (bit 16 of resume_nonce). */
 static void confirm(struct canergy_session *s, const struct canergy_msg *m,
                     struct canergy_session_step *step)
 {
+    const bool counts = m->flags == CANERGY_DEBIT_COUNTS;
+    const uint32_t key = m->nonce | (counts ? 0x10000UL : 0UL);
+    const uint16_t nonce =
+        (uint16_t)(counts ? (uint32_t)m->nonce ^ CANERGY_SYNC_CONFIRMED : m->nonce);
     const int32_t d = serial16(m->seq, s->returns_credited);
     const uint32_t seq = s->returns_credited + (uint32_t)d;
-    if (s->resume_to != 0U && s->resume_to == s->returns_credited && s->resume_nonce == m->nonce &&
+    if (s->resume_to != 0U && s->resume_to == s->returns_credited && s->resume_nonce == key &&
         s->resume_from == seq) {
-        confirmation(s, m->nonce, step);
+        confirmation(s, nonce, step);
         return;
     }
     const bool behind = d < 0;
@@ -229,19 +270,89 @@ static void confirm(struct canergy_session *s, const struct canergy_msg *m,
         }
         const bool draw = (m->flags & CANERGY_DEBIT_DRAW) != 0U;
         const bool room = s->returns_credited < CANERGY_COUNTER_END - 1U;
-        if (d == 1 && m->amount_mj != 0U && !draw && room) { /* the one RETURN numbered q */
+        if (d == 1 && m->amount_mj != 0U && !draw && !counts && room) { /* the RETURN numbered q */
             const uint32_t amount = (uint32_t)m->amount_mj * MJ;
             s->returns_credited = seq;
             s->returned_uj += amount;
             step->credit_uj += (int64_t)amount;
         }
     }
+    if (counts) { /* the node settled up to its ltx: no transaction begins at or below it */
+        const int64_t settled = settled_of(s, m->amount_mj);
+        if (settled > (int64_t)s->tx) {
+            s->tx = (uint32_t)settled;
+        }
+        if (settled > s->witness) {
+            s->witness = (int32_t)settled;
+        }
+    }
     const uint32_t last = behind ? s->returns_credited : seq; /* max(C, q) */
     s->returns_credited = last + 1U; /* voids any debit in flight from a discarded history */
-    s->resume_nonce = m->nonce;
+    s->resume_nonce = key;
     s->resume_from = seq;
     s->resume_to = s->returns_credited;
-    confirmation(s, m->nonce, step);
+    confirmation(s, nonce, step);
+}
+
+/* SYNC(n, tx, C): an ADMIT the node did not ask for. */
+static void send_sync(const struct canergy_session *s, struct canergy_session_step *step)
+{
+    put_msg(s, CANERGY_ADMIT, step);
+    step->msg.nonce = s->sync_nonce;
+    step->msg.seq = (uint16_t)(s->returns_credited & 0xFFFFUL);
+}
+
+/* The SYNC's books (n, Rc) (witnessed.take_books): Gs moves up to Rc, the difference out of Us
+ * (which may go below zero: a debt); then the counts are awaited. Anything else is ignored. */
+static void take_books(struct canergy_session *s, const struct canergy_msg *m,
+                       struct canergy_session_step *step)
+{
+    if (m->nonce != s->sync_nonce || m->flags != CANERGY_DEBIT_BOOKS) {
+        return;
+    }
+    const uint32_t credited = (uint32_t)m->seq | (uint32_t)m->amount_mj << 16;
+    const int32_t gain = serial24(credited, (uint32_t)(s->delivered_uj / MJ));
+    if (gain > 0) {
+        s->delivered_uj += (uint64_t)(uint32_t)gain * MJ;
+        step->credit_uj = -(int64_t)gain * (int64_t)MJ;
+    }
+    s->phase = CANERGY_S_SYNC_BOOKS;
+}
+
+/* The SYNC's counts (n, q, ltx) after its books (witnessed.take_counts): the start is over
+ * (W = ltx), then as a RESUME; the books again are taken again; anything else is ignored. */
+static void take_counts(struct canergy_session *s, const struct canergy_msg *m,
+                        struct canergy_session_step *step)
+{
+    if (m->nonce != s->sync_nonce) {
+        return;
+    }
+    if (m->flags == CANERGY_DEBIT_BOOKS) {
+        take_books(s, m, step);
+        return;
+    }
+    if (m->flags != CANERGY_DEBIT_COUNTS) {
+        return;
+    }
+    s->phase = CANERGY_S_IDLE;
+    s->sync_nonce = 0U;
+    s->deadline = CANERGY_NEVER;
+    s->witness = (int32_t)settled_of(s, m->amount_mj);
+    confirm(s, m, step);
+}
+
+/* A start's waiting phases: the SYNC's answer, and nothing else, is taken. */
+static void syncing_msg(struct canergy_session *s, const struct canergy_msg *m,
+                        struct canergy_session_step *step)
+{
+    if (m->type != CANERGY_DEBIT) {
+        return; /* a JOIN, a RETURN, an answer: no cell while a start waits */
+    }
+    if (s->phase == CANERGY_S_SYNCING) {
+        take_books(s, m, step);
+    } else {
+        take_counts(s, m, step);
+    }
 }
 #endif
 
@@ -252,23 +363,40 @@ void canergy_session_on_msg(struct canergy_session *s, const struct canergy_sess
     (void)t;
     (void)now;
     step_clear(step);
+#ifdef CANERGY_WITNESSED
+    if (canergy_session_syncing(s)) {
+        if (t->rules == CANERGY_RULES_WITNESSED) {
+            syncing_msg(s, m, step);
+        }
+        return;
+    }
+#endif
     switch (m->type) {
     case CANERGY_ACK:
         if (s->phase == CANERGY_S_WAIT_ACK && !other_tx(s, m->tx)) {
             s->phase = CANERGY_S_ACKED;
             s->deadline = CANERGY_NEVER;
             step->acknowledged = 1U;
+#ifdef CANERGY_WITNESSED
+            witness_up(s, t, (int64_t)s->tx - 1); /* the node has persisted tx - 1 */
+#endif
         }
         break;
     case CANERGY_COMMITTED:
         if (open_phase(s) && !other_tx(s, m->tx)) {
             resolve(s, CANERGY_RESOLVED_COMMITTED, step);
+#ifdef CANERGY_WITNESSED
+            witness_up(s, t, s->tx);
+#endif
         }
         break;
     case CANERGY_ABORTED: /* only after an abort decision: the one way back to Us */
         if (s->phase == CANERGY_S_WAIT_CONFIRM && !other_tx(s, m->tx) &&
             s->decision == CANERGY_DECIDE_ABORT) {
             resolve(s, CANERGY_RESOLVED_ABORTED, step);
+#ifdef CANERGY_WITNESSED
+            witness_up(s, t, s->tx);
+#endif
         }
         break;
     case CANERGY_RETURN:
@@ -288,6 +416,9 @@ void canergy_session_on_msg(struct canergy_session *s, const struct canergy_sess
         if (t->rules != CANERGY_RULES_WITNESSED) {
             break; /* the hardened rules have no cell for it */
         }
+        if (m->flags == CANERGY_DEBIT_BOOKS) {
+            break; /* books outside a start: ignored */
+        }
         if ((m->flags & CANERGY_DEBIT_START) != 0U) {
             confirm(s, m, step);
         } else {
@@ -304,6 +435,15 @@ void canergy_session_timer(struct canergy_session *s, const struct canergy_sessi
                            uint64_t now, struct canergy_session_step *step)
 {
     step_clear(step);
+#ifdef CANERGY_WITNESSED
+    if (canergy_session_syncing(s)) { /* witnessed.resend_sync: the node may be off */
+        if (s->deadline != CANERGY_NEVER && s->deadline <= now) {
+            s->deadline = serial_after(now, t->response_timeout_us);
+            send_sync(s, step);
+        }
+        return;
+    }
+#endif
     if (s->phase != CANERGY_S_WAIT_ACK && s->phase != CANERGY_S_WAIT_CONFIRM) {
         return;
     }
@@ -332,4 +472,24 @@ void canergy_session_restart(struct canergy_session *s, uint64_t now,
     }
     s->tries = 0U;
     s->deadline = open_phase(s) ? now : CANERGY_NEVER;
+}
+
+void canergy_session_start(struct canergy_session *s, const struct canergy_session_timing *t,
+                           uint16_t nonce, uint64_t now, struct canergy_session_step *step)
+{
+#ifdef CANERGY_WITNESSED
+    if (t->rules == CANERGY_RULES_WITNESSED) {
+        step_clear(step);
+        if (open_phase(s)) {
+            resolve(s, CANERGY_RESOLVED_WRITTEN_OFF, step); /* the older copy may not know */
+        }
+        s->phase = CANERGY_S_SYNCING;
+        s->sync_nonce = nonce;
+        s->deadline = now;
+        return;
+    }
+#endif
+    (void)t;
+    (void)nonce;
+    canergy_session_restart(s, now, step);
 }

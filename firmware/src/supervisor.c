@@ -26,9 +26,13 @@ static struct canergy_session *session_of(struct canergy_supervisor *sup, uint8_
     return NULL;
 }
 
-/* What the supervisor persists of a session changed (ACKED is stored as WAIT_ACK). */
+/* What the supervisor persists of a session changed (ACKED is stored as WAIT_ACK, a start's
+ * waiting phases as IDLE: every start is one). */
 static uint8_t stored_phase(const struct canergy_session *s)
 {
+    if (canergy_session_syncing(s)) {
+        return CANERGY_S_IDLE;
+    }
     return s->phase == CANERGY_S_ACKED ? (uint8_t)CANERGY_S_WAIT_ACK : s->phase;
 }
 
@@ -73,11 +77,9 @@ static void apply(struct canergy_supervisor *sup, struct canergy_session *s,
                   const struct canergy_session *after, const struct canergy_session_step *step,
                   const struct canergy_msg *in, struct canergy_supervisor_out *out)
 {
-    if (step->credit_uj != 0) {
-        CANERGY_ASSERT(step->credit_uj > 0 || (uint64_t)(-step->credit_uj) <= sup->usable_uj);
-        sup->usable_uj = step->credit_uj > 0 ? sup->usable_uj + (uint64_t)step->credit_uj
-                                             : sup->usable_uj - (uint64_t)(-step->credit_uj);
-    }
+    /* a grant is checked against Us first; only a start's books take Us below 0 (a debt) */
+    CANERGY_ASSERT(step->credit_uj >= 0 || step->send == 0U || -step->credit_uj <= sup->usable_uj);
+    sup->usable_uj += step->credit_uj;
     if (step->credit_uj != 0 || record_changed(s, after)) {
         out->persist = 1U;
     }
@@ -98,7 +100,8 @@ int canergy_supervisor_init(struct canergy_supervisor *sup,
                             uint8_t count, uint64_t initial_uj)
 {
     if (sup == NULL || cfg == NULL || nodes == NULL || count == 0U ||
-        count > CANERGY_SUPERVISOR_NODES || !canergy_id_base_valid(cfg->id_base)) {
+        count > CANERGY_SUPERVISOR_NODES || !canergy_id_base_valid(cfg->id_base) ||
+        initial_uj > (uint64_t)INT64_MAX) {
         return CANERGY_ERR_ARGUMENT;
     }
     for (uint8_t i = 0U; i < count; i++) {
@@ -112,7 +115,7 @@ int canergy_supervisor_init(struct canergy_supervisor *sup,
         canergy_session_init(&sup->sessions[i], nodes[i]);
     }
     sup->count = count;
-    sup->usable_uj = initial_uj;
+    sup->usable_uj = (int64_t)initial_uj;
     sup->id_base = cfg->id_base;
     sup->timing = cfg->timing;
     return CANERGY_OK;
@@ -126,13 +129,16 @@ int canergy_supervisor_begin(struct canergy_supervisor *sup, uint8_t node, uint3
     if (s == NULL) {
         return CANERGY_ERR_ARGUMENT;
     }
+    if (canergy_supervisor_unconfirmed(sup, NULL) != 0U) {
+        return CANERGY_ERR_UNCONFIRMED; /* no grant before every node has confirmed its books */
+    }
     struct canergy_session next = *s;
     struct canergy_session_step step;
     const int rc = canergy_session_begin(&next, &sup->timing, amount_uj, now, &step);
     if (rc != CANERGY_OK) {
         return rc;
     }
-    if ((uint64_t)amount_uj > sup->usable_uj) { /* the one guard a session cannot see */
+    if ((int64_t)amount_uj > sup->usable_uj) { /* the one guard a session cannot see */
         return CANERGY_ERR_AMOUNT;
     }
     apply(sup, s, &next, &step, NULL, out);
@@ -249,30 +255,68 @@ uint64_t canergy_supervisor_deadline(const struct canergy_supervisor *sup)
     return earliest;
 }
 
+void canergy_supervisor_start(struct canergy_supervisor *sup, uint16_t nonce, uint64_t now,
+                              struct canergy_supervisor_out *out)
+{
+    out_clear(out);
+    for (uint8_t i = 0U; i < sup->count; i++) {
+        struct canergy_session *s = &sup->sessions[i];
+        struct canergy_session next = *s;
+        struct canergy_session_step step;
+        canergy_session_start(&next, &sup->timing, nonce, now, &step);
+        apply(sup, s, &next, &step, NULL, out);
+    }
+}
+
 void canergy_supervisor_restart(struct canergy_supervisor *sup, uint64_t now)
 {
-    struct canergy_session_step step;
-    for (uint8_t i = 0U; i < sup->count; i++) {
-        canergy_session_restart(&sup->sessions[i], now, &step);
+    struct canergy_supervisor_out out;
+    canergy_supervisor_start(sup, 0U, now, &out);
+}
+
+int canergy_supervisor_start_without(struct canergy_supervisor *sup, uint8_t node)
+{
+    if (session_of(sup, node) == NULL) {
+        return CANERGY_ERR_ARGUMENT;
     }
+    sup->start_without[node >> 5] |= (uint32_t)1U << (node & 31U);
+    return CANERGY_OK;
+}
+
+uint8_t canergy_supervisor_unconfirmed(const struct canergy_supervisor *sup,
+                                       uint8_t nodes[CANERGY_SUPERVISOR_NODES])
+{
+    uint8_t n = 0U;
+    for (uint8_t i = 0U; i < sup->count; i++) {
+        const struct canergy_session *s = &sup->sessions[i];
+        const bool without = (sup->start_without[s->node >> 5] >> (s->node & 31U) & 1UL) != 0U;
+        if (canergy_session_syncing(s) && !without) {
+            if (nodes != NULL) {
+                nodes[n] = s->node;
+            }
+            n++;
+        }
+    }
+    return n;
 }
 
 int canergy_supervisor_inject(struct canergy_supervisor *sup, uint64_t amount_uj)
 {
-    if (amount_uj == 0U) {
+    if (amount_uj == 0U || amount_uj > (uint64_t)INT64_MAX ||
+        sup->usable_uj > INT64_MAX - (int64_t)amount_uj) {
         return CANERGY_ERR_AMOUNT;
     }
-    sup->usable_uj += amount_uj;
+    sup->usable_uj += (int64_t)amount_uj;
     sup->injected_uj += amount_uj;
     return CANERGY_OK;
 }
 
 int canergy_supervisor_withdraw(struct canergy_supervisor *sup, uint64_t amount_uj)
 {
-    if (amount_uj == 0U || amount_uj > sup->usable_uj) {
+    if (amount_uj == 0U || sup->usable_uj < 0 || amount_uj > (uint64_t)sup->usable_uj) {
         return CANERGY_ERR_AMOUNT;
     }
-    sup->usable_uj -= amount_uj;
+    sup->usable_uj -= (int64_t)amount_uj;
     sup->withdrawn_uj += amount_uj;
     return CANERGY_OK;
 }
@@ -280,7 +324,8 @@ int canergy_supervisor_withdraw(struct canergy_supervisor *sup, uint64_t amount_
 /* -- the record in NV --------------------------------------------------------------------- */
 
 #define SLOT_MAGIC 0x534E5243UL /* "CNRS" little-endian */
-#define SLOT_VERSION 3U /* 3: the last RESUME answered (witnessed rules) in each session */
+#define SLOT_VERSION 4U /* 3: the last RESUME answered (witnessed rules) in each session; 4: its
+                          * nonce's bit 16 (a SYNC's counts), Us signed */
 #define SLOT_HEADER 36U /* magic, version, count, 2 spare, counter, Us, injected, withdrawn */
 #define SESSION_BYTES 44U
 
@@ -298,7 +343,7 @@ size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t c
     out[6] = 0U;
     out[7] = 0U;
     le_put(&out[8], counter, 4U);
-    le_put64(&out[12], sup->usable_uj);
+    le_put64(&out[12], (uint64_t)sup->usable_uj);
     le_put64(&out[20], sup->injected_uj);
     le_put64(&out[28], sup->withdrawn_uj);
     for (uint8_t i = 0U; i < sup->count; i++) {
@@ -315,9 +360,7 @@ size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t c
         le_put64(&r[24], s->returned_uj);
         le_put(&r[32], s->resume_from, 4U);
         le_put(&r[36], s->resume_to, 4U);
-        le_put(&r[40], s->resume_nonce, 2U);
-        r[42] = 0U;
-        r[43] = 0U;
+        le_put(&r[40], s->resume_nonce, 4U);
     }
     const size_t body = slot_bytes(sup->count) - 4U;
     le_put(&out[body], canergy_crc32(0U, out, body), 4U);
@@ -342,7 +385,7 @@ static bool slot_valid(const struct canergy_supervisor *sup, const uint8_t *p)
             r[1] == CANERGY_S_ACKED || r[2] > CANERGY_DECIDE_ABORT ||
             (confirm != (r[2] != CANERGY_DECIDE_NONE)) || (idle != (reserved == 0U)) ||
             reserved % CANERGY_QUANTUM_UJ != 0U ||
-            reserved > CANERGY_AMOUNT_MAX_MJ * CANERGY_QUANTUM_UJ) {
+            reserved > CANERGY_AMOUNT_MAX_MJ * CANERGY_QUANTUM_UJ || le_get(&r[40], 4U) > 0x1FFFFUL) {
             return false;
         }
     }
@@ -394,7 +437,7 @@ static bool slot_beyond(const struct canergy_supervisor *sup, const uint8_t *p)
 
 static void slot_take(struct canergy_supervisor *sup, const uint8_t *p)
 {
-    sup->usable_uj = le_get64(&p[12]);
+    sup->usable_uj = (int64_t)le_get64(&p[12]);
     sup->injected_uj = le_get64(&p[20]);
     sup->withdrawn_uj = le_get64(&p[28]);
     for (uint8_t i = 0U; i < sup->count; i++) {
@@ -409,7 +452,7 @@ static void slot_take(struct canergy_supervisor *sup, const uint8_t *p)
         s->returned_uj = le_get64(&r[24]);
         s->resume_from = le_get(&r[32], 4U);
         s->resume_to = le_get(&r[36], 4U);
-        s->resume_nonce = (uint16_t)le_get(&r[40], 2U);
+        s->resume_nonce = le_get(&r[40], 4U);
     }
 }
 

@@ -25,8 +25,8 @@ void port_entry(void)
     static const uint8_t nodes[1] = {1U};
     static const uint8_t bytes[8] = {0};
     const struct canergy_rx_frame rx = {0x0CE00101UL, bytes, 8U, true, false};
-    const struct canergy_client_config up = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 9U, CANERGY_RULES_HARDENED};
-    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000UL, 3U, CANERGY_RULES_HARDENED}};
+    const struct canergy_client_config up = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 9U, CANERGY_RULES_HARDENED, 0U};
+    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000UL, 3U, CANERGY_RULES_HARDENED, 0U}};
     volatile uint64_t sink = 0U;
     uint32_t counter = 0U;
     uint8_t slot = 0U;
@@ -54,7 +54,7 @@ void port_entry(void)
     static const uint8_t nodes[1] = {1U};
     static const uint8_t bytes[8] = {0};
     const struct canergy_rx_frame rx = {0x0CE00901UL, bytes, 2U, true, false};
-    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000UL, 3U, CANERGY_RULES_HARDENED}};
+    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000UL, 3U, CANERGY_RULES_HARDENED, 0U}};
     volatile uint64_t sink = 0U;
     uint32_t counter = 0U;
     uint8_t slot = 0U;
@@ -94,7 +94,7 @@ void port_entry(void)
     static const uint8_t bytes[8] = {0};
     struct canergy_out out;
     const struct canergy_rx_frame rx = {0x0CE00105UL, bytes, 8U, true, false};
-    const struct canergy_client_config client = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 1U, CANERGY_RULES_HARDENED};
+    const struct canergy_client_config client = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 1U, CANERGY_RULES_HARDENED, 0U};
     volatile uint64_t sink = 0U;
 #if defined(PORT_NODE) || defined(PORT_AUTH)
     static struct canergy_node n;

@@ -131,7 +131,7 @@ static int deliver(struct canergy_client *c, const struct canergy_msg *m, uint64
 
 static void test_a_node_from_blank_to_books(void)
 {
-    const struct canergy_client_config cfg = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, CANERGY_RULES_HARDENED};
+    const struct canergy_client_config cfg = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, CANERGY_RULES_HARDENED, 0U};
     struct canergy_client c;
     struct canergy_out out;
     uint8_t nv[2U * CANERGY_NV_SLOT_SIZE];
@@ -217,7 +217,7 @@ static long polled_telemetry(struct canergy_node *n, uint64_t now, uint8_t *witn
 static void test_node_witness(void)
 {
     const struct canergy_node_config cfg = {
-        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, CANERGY_RULES_HARDENED}, 1000000UL, 0U, CANERGY_KEEP_ALL};
+        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, CANERGY_RULES_HARDENED, 0U}, 1000000UL, 0U, CANERGY_KEEP_ALL};
     struct canergy_node n;
     struct canergy_out out;
     uint8_t nv[2U * CANERGY_NV_SLOT_SIZE] = {0};
@@ -317,7 +317,7 @@ static void test_node_witness(void)
 /* The client's one frame (a DEBIT) into the session, the session's answer back: the answer. */
 static struct canergy_msg to_session(struct canergy_session *s, const struct canergy_out *out)
 {
-    const struct canergy_session_timing t = {50000U, 1U, CANERGY_RULES_WITNESSED};
+    const struct canergy_session_timing t = {50000U, 1U, CANERGY_RULES_WITNESSED, 0U};
     struct canergy_msg m;
     struct canergy_session_step step;
     const struct canergy_rx_frame rx = {out->frames[0].id, out->frames[0].data,
@@ -336,7 +336,7 @@ static struct canergy_msg to_session(struct canergy_session *s, const struct can
 static void test_witnessed_older_copy(void)
 {
     const struct canergy_client_config cfg = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U,
-                                              CANERGY_RULES_WITNESSED};
+                                              CANERGY_RULES_WITNESSED, 0U};
     struct canergy_record rec;
     memset(&rec, 0, sizeof rec);
     rec.usable_uj = 2000000UL;
@@ -377,7 +377,7 @@ static void test_witnessed_older_copy(void)
 
 static void test_session(void)
 {
-    const struct canergy_session_timing t = {50000U, 1U, CANERGY_RULES_HARDENED};
+    const struct canergy_session_timing t = {50000U, 1U, CANERGY_RULES_HARDENED, 0U};
     struct canergy_session s;
     struct canergy_session_step step;
     struct canergy_msg m = msg(CANERGY_ACK, 5U);
@@ -449,14 +449,14 @@ static void test_session(void)
               step.msg.type == CANERGY_ADMIT && step.msg.nonce == 0xBEEFU &&
               step.msg.tx == 4U && step.msg.seq == 0xFFFFU,
           "JOIN: the open one written off, counters on one high half, ADMIT(n, 4, 0xFFFF)");
-    check(sizeof(struct canergy_session) <= 56U, "session record within 56 bytes");
+    check(sizeof(struct canergy_session) <= 64U, "session record within 64 bytes");
 }
 
 /* The supervisor around the sessions: Us guards a grant, frames go through the codec, a
  * change of the record asks to persist first. */
 static void test_supervisor(void)
 {
-    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U, CANERGY_RULES_HARDENED}};
+    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U, CANERGY_RULES_HARDENED, 0U}};
     const uint8_t nodes[2] = {3U, 5U};
     const uint8_t unsorted[2] = {5U, 3U};
     static struct canergy_supervisor sup;
@@ -498,8 +498,8 @@ static void test_supervisor(void)
               canergy_supervisor_withdraw(&sup, 500U) == CANERGY_OK && sup.usable_uj == 3000U &&
               sup.withdrawn_uj == 500U && canergy_supervisor_inject(&sup, 500U) == CANERGY_OK,
           "withdraw: never more than Us, counted");
-    check(sizeof(struct canergy_supervisor) <= 64U * CANERGY_SUPERVISOR_NODES,
-          "supervisor state within 64 bytes per node");
+    check(sizeof(struct canergy_supervisor) <= 72U * CANERGY_SUPERVISOR_NODES,
+          "supervisor state within 72 bytes per node");
 
     /* Its record in NV: written to slot 0 (counter 1), then 1 (counter 2); the newer wins, a
      * damaged newer one gives way to the older, none at all starts a new supervisor. */
@@ -797,7 +797,7 @@ static void test_auth_refusals(const uint8_t key[16])
 static void test_auth_node(const uint8_t key[16])
 {
     const struct canergy_node_config cfg = {
-        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, CANERGY_RULES_HARDENED}, 1000000UL, 0U, CANERGY_KEEP_ALL};
+        {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, CANERGY_RULES_HARDENED, 0U}, 1000000UL, 0U, CANERGY_KEEP_ALL};
     struct canergy_node n;
     struct canergy_auth node_auth;
     struct canergy_auth sup;
@@ -876,7 +876,7 @@ static void test_supervisor_answers(void)
 {
     static struct canergy_supervisor sup;
     static struct canergy_supervisor_out out;
-    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U, CANERGY_RULES_HARDENED}};
+    const struct canergy_supervisor_config cfg = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U, CANERGY_RULES_HARDENED, 0U}};
     const uint8_t nodes[1] = {3U};
     struct canergy_msg m;
     check(canergy_supervisor_init(&sup, &cfg, nodes, 1U, 5000U) == CANERGY_OK &&
@@ -913,8 +913,8 @@ static void test_gateway(void)
     static struct canergy_gateway gw;
     static struct canergy_out out;
     static struct canergy_supervisor_out sup_out;
-    const struct canergy_client_config up = {CANERGY_DEFAULT_ID_BASE, 100000U, 100000U, 7U, CANERGY_RULES_HARDENED};
-    const struct canergy_supervisor_config down = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U, CANERGY_RULES_HARDENED}};
+    const struct canergy_client_config up = {CANERGY_DEFAULT_ID_BASE, 100000U, 100000U, 7U, CANERGY_RULES_HARDENED, 0U};
+    const struct canergy_supervisor_config down = {CANERGY_DEFAULT_ID_BASE, {50000U, 3U, CANERGY_RULES_HARDENED, 0U}};
     const uint8_t nodes[1] = {3U};
     (void)canergy_client_start(&gw.up, &up, NULL, 0U, 1U, 0U, &out);
     gw.up.phase = CANERGY_IDLE; /* admitted (tests reach in) */

@@ -92,6 +92,7 @@ class CClientState(Structure):
         ("phase", c_uint8),
         ("nv_slot", c_uint8),
         ("rules", c_uint8),
+        ("window", c_uint16),
     ]
 
 
@@ -143,7 +144,9 @@ class CSession(Structure):
         ("reserved_uj", c_uint32),
         ("resume_from", c_uint32),
         ("resume_to", c_uint32),
-        ("resume_nonce", c_uint16),
+        ("resume_nonce", c_uint32),
+        ("witness", ctypes.c_int32),
+        ("sync_nonce", c_uint16),
         ("node", c_uint8),
         ("phase", c_uint8),
         ("decision", c_uint8),
@@ -163,7 +166,12 @@ class SessionStep(Structure):
 
 
 class SessionTiming(Structure):
-    _fields_ = [("response_timeout_us", c_uint32), ("retries", c_uint8), ("rules", c_uint8)]
+    _fields_ = [
+        ("response_timeout_us", c_uint32),
+        ("retries", c_uint8),
+        ("rules", c_uint8),
+        ("window", c_uint16),
+    ]
 
 
 SUPERVISOR_NODES = 16
@@ -174,12 +182,13 @@ SUPERVISOR_SLOT = 40 + 44 * SUPERVISOR_NODES
 
 class CSupervisor(Structure):
     _fields_ = [
-        ("usable_uj", c_uint64),
+        ("usable_uj", ctypes.c_int64),
         ("injected_uj", c_uint64),
         ("withdrawn_uj", c_uint64),
         ("sessions", CSession * SUPERVISOR_NODES),
         ("timing", SessionTiming),
         ("id_base", c_uint32),
+        ("start_without", c_uint32 * 4),
         ("count", c_uint8),
     ]
 
@@ -229,6 +238,7 @@ class ClientConfig(Structure):
         ("return_retry_us", c_uint32),
         ("node", c_uint8),
         ("rules", c_uint8),
+        ("window", c_uint16),
     ]
 
 
@@ -293,10 +303,17 @@ MIRROR: dict[str, type[Structure]] = {
 
 # Constants of the headers the tests use.
 OK, ERR_ARGUMENT, ERR_PHASE, ERR_AMOUNT, ERR_END = 0, -1, -2, -3, -5
+ERR_WINDOW, ERR_UNCONFIRMED = -6, -7
 RX_OTHER_NODE = 16
 EV_COMMITTED, EV_TIMEOUT_COMMIT, EV_ABORTED, EV_CREDITED = 0x01, 0x02, 0x04, 0x08
 EV_RETURN_ACKED, EV_REFUSED, EV_ADMITTED, EV_RELEASED = 0x10, 0x20, 0x40, 0x80
-PHASES = {Phase.IDLE: 0, Phase.AWAIT_COMMAND: 1, Phase.JOINING: 2, Phase.RESUMING: 3}
+PHASES = {
+    Phase.IDLE: 0,
+    Phase.AWAIT_COMMAND: 1,
+    Phase.JOINING: 2,
+    Phase.RESUMING: 3,
+    Phase.SYNCING: 4,
+}
 RULES = {"hardened": 0, "witnessed": 1}
 """enum canergy_rules: the rule sets the C client runs."""
 FLAG_CREDITED_UNKNOWN, FLAG_PENDING_DRAW = 0x01, 0x02
@@ -326,6 +343,10 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
         [POINTER(CSession), POINTER(SessionTiming), c_uint64, POINTER(SessionStep)],
     ),
     "canergy_session_restart": (None, [POINTER(CSession), c_uint64, POINTER(SessionStep)]),
+    "canergy_session_start": (
+        None,
+        [POINTER(CSession), POINTER(SessionTiming), c_uint16, c_uint64, POINTER(SessionStep)],
+    ),
     "canergy_supervisor_init": (
         c_int,
         [POINTER(CSupervisor), POINTER(SupervisorConfig), c_void_p, c_uint8, c_uint64],
@@ -345,6 +366,12 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "canergy_supervisor_on_timer": (None, [POINTER(CSupervisor), c_uint64, POINTER(SupervisorOut)]),
     "canergy_supervisor_deadline": (c_uint64, [POINTER(CSupervisor)]),
     "canergy_supervisor_restart": (None, [POINTER(CSupervisor), c_uint64]),
+    "canergy_supervisor_start": (
+        None,
+        [POINTER(CSupervisor), c_uint16, c_uint64, POINTER(SupervisorOut)],
+    ),
+    "canergy_supervisor_start_without": (c_int, [POINTER(CSupervisor), c_uint8]),
+    "canergy_supervisor_unconfirmed": (c_uint8, [POINTER(CSupervisor), c_void_p]),
     "canergy_supervisor_inject": (c_int, [POINTER(CSupervisor), c_uint64]),
     "canergy_supervisor_withdraw": (c_int, [POINTER(CSupervisor), c_uint64]),
     "canergy_gateway_forward": (c_uint32, [POINTER(CGateway), POINTER(Out)]),
@@ -569,6 +596,7 @@ class CClient:
             self.timing.return_retry_us,
             node,
             RULES[rules],
+            self.timing.window,
         )
         self.c = CClientState()
         self.out = Out()

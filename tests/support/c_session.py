@@ -21,6 +21,7 @@ from support.c_binding import (
     ERR_AMOUNT,
     ERR_END,
     ERR_PHASE,
+    ERR_WINDOW,
     OK,
     CSession,
     Msg,
@@ -45,6 +46,8 @@ def to_c(s: Session) -> CSession:
         resume_from=s.resume_from % MOD,
         resume_to=s.resume_to % MOD,
         resume_nonce=s.resume_nonce,
+        witness=s.witness,
+        sync_nonce=s.sync_nonce,
         node=s.node,
         phase=int(s.phase),
         decision=int(s.decision),
@@ -57,12 +60,15 @@ def fields_of(s: Session | CSession) -> dict[str, int]:
         return fields_of(to_c(s))
     names = ("delivered_uj", "returned_uj", "deadline", "tx", "returns_credited", "reserved_uj")
     names += ("phase", "decision", "tries", "resume_from", "resume_to", "resume_nonce")
+    names += ("witness", "sync_nonce")
     return {n: int(getattr(s, n)) for n in names}
 
 
 def timing_of(t: Timing, rules: int = 0) -> SessionTiming:
     """The C session's timing; ``rules``: enum canergy_rules (1: witnessed)."""
-    return SessionTiming(response_timeout_us=t.response_timeout_us, retries=t.retries, rules=rules)
+    return SessionTiming(
+        response_timeout_us=t.response_timeout_us, retries=t.retries, rules=rules, window=t.window
+    )
 
 
 def sent_of(actions: tuple[Any, ...]) -> dict[str, int] | None:
@@ -104,7 +110,9 @@ def c_call(event: Any, t: Timing, now: int, variant: str = "", rules: int = 0) -
     if isinstance(event, ResponseTimeout):
         return lambda c, step: lib.canergy_session_timer(ref(c), ref(ct), now, ref(step))
     if isinstance(event, PowerLoss):
-        return lambda c, step: lib.canergy_session_restart(ref(c), now, ref(step))
+        return lambda c, step: lib.canergy_session_start(
+            ref(c), ref(ct), event.nonce, now, ref(step)
+        )
     cm = Msg(type=int(event.TYPE), node=event.node)
     for name in ("tx", "seq", "nonce", "amount_mj", "flags"):
         if hasattr(event, name):
@@ -129,7 +137,7 @@ def same(
         py = table.step(t, s, event, now)
     except LocalProtocolError:
         before = fields_of(c)
-        assert call(c, step) in (ERR_PHASE, ERR_AMOUNT, ERR_END)
+        assert call(c, step) in (ERR_PHASE, ERR_AMOUNT, ERR_END, ERR_WINDOW)
         assert fields_of(c) == before
         return
     assert call(c, step) in (OK, None)

@@ -139,6 +139,10 @@ class SideBySide(RuleBasedStateMachine):
     def _c_spend(self, amount: int) -> int:
         return self.c.do_spend(amount)
 
+    def _may_begin(self, s: Session) -> bool:
+        """Whether the rules let the supervisor begin now, beyond phase, Us and the end."""
+        return True
+
     # -- comparing one step ---------------------------------------------------------------
     def _carry_out(self, actions: list[Action], out: Out) -> None:
         """Both sides did one step: same frames, notes and persist; write NV; send once."""
@@ -215,7 +219,8 @@ class SideBySide(RuleBasedStateMachine):
     def begin(self, amount_mj: int) -> None:
         s = self.sup.session(NODE)
         room = s.tx + 1 < COUNTER_END  # else refused (tests/test_counters_end.py)
-        if s.phase is Phase.IDLE and amount_mj * 1000 <= self.sup.state.usable and room:
+        usable = amount_mj * 1000 <= self.sup.state.usable
+        if s.phase is Phase.IDLE and usable and room and self._may_begin(s):
             self._sup_out(self.sup.begin(NODE, amount_mj * 1000, self.now))
 
     @rule(commit=st.booleans())

@@ -7,7 +7,10 @@
  * The witnessed rules (src/canergy/core/witnessed.py, CLIENT; docs/protocol.md, "Records
  * restored from older copies") are chosen at run time by cfg->rules: the actuator's energy is a
  * numbered DRAW the supervisor acknowledges first (canergy_client_draw), and every start with a
- * record is RESUMING until the supervisor's ADMIT confirms the books or finds them behind. A
+ * record is RESUMING until the supervisor's ADMIT confirms the books or finds them behind; an
+ * ADMIT the node did not ask for is a supervisor's start, SYNC(n): the node settles B
+ * transactions ahead (cfg->window), drops its held intention, answers with its books and counts
+ * and is SYNCING (moves nothing) until ADMIT(n ^ CANERGY_SYNC_CONFIRMED). A
  * build with CANERGY_HARDENED_ONLY defined leaves them out (cfg->rules witnessed is then
  * refused as CANERGY_ERR_ARGUMENT).
  *
@@ -44,7 +47,8 @@ enum canergy_phase {
     CANERGY_IDLE = 0,    /* books, no intention held */
     CANERGY_HOLDING = 1, /* an acknowledged intention awaits COMMIT/ABORT or the command timer */
     CANERGY_JOINING = 2, /* no books: JOIN sent, waiting for the ADMIT that echoes the nonce */
-    CANERGY_RESUMING = 3 /* witnessed: started with books, RESUME sent, awaiting its ADMIT */
+    CANERGY_RESUMING = 3, /* witnessed: started with books, RESUME sent, awaiting its ADMIT */
+    CANERGY_SYNCING = 4   /* witnessed: a supervisor's SYNC answered, awaiting its ADMIT */
 };
 
 enum canergy_rules {
@@ -75,7 +79,12 @@ struct canergy_client_config {
     uint32_t return_retry_us;    /* re-send RETURN / JOIN this often (Python 100 ms) */
     uint8_t node;                /* 1..127 */
     uint8_t rules;               /* enum canergy_rules; 0 (zeroed config): hardened */
+    uint16_t window;             /* witnessed: B, the transactions a SYNC's answer settles
+                                  * ahead (Python's Timing.window); 0: CANERGY_DEFAULT_WINDOW */
 };
+
+#define CANERGY_DEFAULT_WINDOW 64U
+#define CANERGY_WINDOW_MAX 0x7FFFU /* the most the 16-bit wire distance tells apart */
 
 /* Opaque in spirit: read it through the accessors below; tests reach in. 80 bytes. */
 struct canergy_client {
@@ -93,6 +102,7 @@ struct canergy_client {
     uint8_t phase;               /* enum canergy_phase */
     uint8_t nv_slot;             /* slot holding the newest record: the next write goes to the other */
     uint8_t rules;               /* enum canergy_rules */
+    uint16_t window;             /* B (witnessed), 1..CANERGY_WINDOW_MAX */
 };
 
 struct canergy_out {

@@ -57,7 +57,7 @@ enum canergy_type {
     CANERGY_RETURN = 0xC,
     CANERGY_TELEMETRY = 0xD,
     CANERGY_JOIN = 0xE,
-    CANERGY_DEBIT = 0xF /* witnessed rules: a numbered draw, or a start (RESUME) */
+    CANERGY_DEBIT = 0xF /* witnessed rules: a numbered draw, a start (RESUME), a SYNC's answer */
 };
 
 #define CANERGY_FROM_CLIENT 0x8U /* the direction bit of a type code */
@@ -68,10 +68,20 @@ enum canergy_type {
 #define CANERGY_TELEMETRY_JOINING 0x04U
 
 /* DEBIT flags: DRAW alone is a draw (an amount, nonce 0); START is a resume (RESUME), DRAW set
- * when its pending amount is a draw rather than a return. Decoding refuses any other mix as
- * CANERGY_DECODE_OUT_OF_RANGE; encoding writes what it is given, as codec.py does. */
+ * when its pending amount is a draw rather than a return; START | SYNC is the counts answering a
+ * supervisor's SYNC (seq the node's last debit number, amount_mj its ltx); BOOKS alone is the
+ * books answering it (Rc in mJ: its low 16 bits in seq, its high 8 in amount_mj). Decoding
+ * refuses any other mix, and books above 24 bits, as CANERGY_DECODE_OUT_OF_RANGE; encoding
+ * writes what it is given, as codec.py does. */
 #define CANERGY_DEBIT_DRAW 0x01U
 #define CANERGY_DEBIT_START 0x02U
+#define CANERGY_DEBIT_SYNC 0x04U
+#define CANERGY_DEBIT_BOOKS 0x08U
+#define CANERGY_DEBIT_COUNTS (CANERGY_DEBIT_START | CANERGY_DEBIT_SYNC)
+
+/* The ADMIT confirming the answer to SYNC(n) carries n with this bit flipped (messages.py's
+ * SYNC_CONFIRMED). */
+#define CANERGY_SYNC_CONFIRMED 0x8000U
 
 enum canergy_direction {
     CANERGY_EITHER_WAY = 0,
@@ -89,7 +99,7 @@ enum canergy_decode_status {
     CANERGY_DECODE_WRONG_DIRECTION = 5,
     CANERGY_DECODE_WRONG_DLC = 6,       /* also any length above 8 */
     CANERGY_DECODE_BAD_CRC = 7,
-    CANERGY_DECODE_OUT_OF_RANGE = 8     /* a zero amount; a DEBIT neither draw nor resume */
+    CANERGY_DECODE_OUT_OF_RANGE = 8     /* a zero amount; a DEBIT of no known kind */
 };
 
 /*

@@ -27,8 +27,15 @@ enum canergy_session_phase {
     CANERGY_S_IDLE = 0,
     CANERGY_S_WAIT_ACK = 1,    /* intention sent */
     CANERGY_S_ACKED = 2,       /* intention acknowledged, awaiting the local decision */
-    CANERGY_S_WAIT_CONFIRM = 3 /* commit or abort sent */
+    CANERGY_S_WAIT_CONFIRM = 3, /* commit or abort sent */
+    CANERGY_S_SYNCING = 9,      /* witnessed: started, SYNC sent, awaiting the node's books (the
+                                 * values of Python's Phase) */
+    CANERGY_S_SYNC_BOOKS = 10   /* witnessed: the node's Rc taken, awaiting its counts */
 };
+
+/* canergy_session_begin under the witnessed rules: tx + 1 is beyond W + B (the node has not
+ * shown it persisted a transaction close enough). */
+#define CANERGY_ERR_WINDOW (-6)
 
 enum canergy_decision {
     CANERGY_DECIDE_NONE = 0,
@@ -49,9 +56,11 @@ struct canergy_session_timing {
     uint32_t response_timeout_us; /* re-send after this long (Python 50 ms) */
     uint8_t retries;              /* N: re-sends before the write-off (Python 3) */
     uint8_t rules;                /* witnessed: DEBIT is taken (on_debit), else ignored */
+    uint16_t window;              /* witnessed: B, a transaction begins only at k <= W + B
+                                   * (Python's Timing.window); 0: CANERGY_DEFAULT_WINDOW */
 };
 
-/* The supervisor's record for one node. 56 bytes. */
+/* The supervisor's record for one node. 64 bytes. */
 struct canergy_session {
     uint64_t delivered_uj;     /* Gs: all energy that left the supervisor's books for the node */
     uint64_t returned_uj;      /* all returns credited */
@@ -61,7 +70,11 @@ struct canergy_session {
     uint32_t reserved_uj;      /* Ts: at most 65,535,000 */
     uint32_t resume_from;      /* witnessed: the last RESUME answered, its q (widened) ... */
     uint32_t resume_to;        /* ... the number it voided ... */
-    uint16_t resume_nonce;     /* ... and its nonce: a repeat gets the same ADMIT */
+    uint32_t resume_nonce;     /* ... and its nonce (bit 16: a SYNC's counts, not a RESUME): a
+                                * repeat gets the same ADMIT */
+    int32_t witness;           /* witnessed: W, the highest tx the node has shown it persisted
+                                * (volatile: a start sets it again) */
+    uint16_t sync_nonce;       /* witnessed: the nonce of the SYNC this start sent (volatile) */
     uint8_t node;
     uint8_t phase;             /* enum canergy_session_phase */
     uint8_t decision;          /* enum canergy_decision */
@@ -80,8 +93,9 @@ struct canergy_session_step {
 /* A new record for node (1..127): IDLE, nothing delivered. */
 void canergy_session_init(struct canergy_session *s, uint8_t node);
 
-/* Begin(a) in IDLE: Us -= a, tx += 1, INTENTION(tx, a, Gs). CANERGY_ERR_AMOUNT unless a is a
- * positive whole number of mJ up to 65,535 mJ; CANERGY_ERR_PHASE outside IDLE; CANERGY_ERR_END
+/* Begin(a) in IDLE: Us -= a, tx += 1, INTENTION(tx, a, Gs). CANERGY_ERR_PHASE outside IDLE;
+ * CANERGY_ERR_WINDOW (witnessed) when tx + 1 > W + B; CANERGY_ERR_AMOUNT unless a is a
+ * positive whole number of mJ up to 65,535 mJ; CANERGY_ERR_END
  * when tx + 1 would reach CANERGY_COUNTER_END. The caller
  * checks a against Us (the one guard a session cannot see). */
 int canergy_session_begin(struct canergy_session *s, const struct canergy_session_timing *t,
@@ -92,14 +106,16 @@ int canergy_session_decide(struct canergy_session *s, const struct canergy_sessi
                            bool commit, uint64_t now, struct canergy_session_step *step);
 
 /* A decoded client message for this node (ACK, COMMITTED, ABORTED, RETURN, JOIN, and under the
- * witnessed rules DEBIT: a DRAW held as the last debit and acknowledged, a RESUME confirmed or
- * found behind, as core/witnessed.py's on_debit; anything else changes nothing). */
+ * witnessed rules DEBIT: a DRAW held as the last debit and acknowledged, a RESUME (or a SYNC's
+ * counts) confirmed or found behind, as core/witnessed.py's on_debit; while a start waits
+ * (SYNCING, SYNC_BOOKS) only the SYNC's books, then its counts, bound to its nonce; anything
+ * else changes nothing). Under the witnessed rules an answer naming a transaction moves W. */
 void canergy_session_on_msg(struct canergy_session *s, const struct canergy_session_timing *t,
                             const struct canergy_msg *m, uint64_t now,
                             struct canergy_session_step *step);
 
 /* The response timer (early calls are harmless): the identical frame again, or after N
- * re-sends the write-off (Gs += Ts). */
+ * re-sends the write-off (Gs += Ts); while a start waits, SYNC again, without end. */
 void canergy_session_timer(struct canergy_session *s, const struct canergy_session_timing *t,
                            uint64_t now, struct canergy_session_step *step);
 
@@ -107,6 +123,16 @@ void canergy_session_timer(struct canergy_session *s, const struct canergy_sessi
  * transaction's frame is due at once. */
 void canergy_session_restart(struct canergy_session *s, uint64_t now,
                              struct canergy_session_step *step);
+
+/* A start (power loss, or a record restored from an older copy: the supervisor cannot tell)
+ * with a fresh nonce. Witnessed rules (witnessed.start): write off what is open, SYNCING, and
+ * SYNC(nonce, tx, C) due at once (at the next timer call); hardened rules:
+ * canergy_session_restart. */
+void canergy_session_start(struct canergy_session *s, const struct canergy_session_timing *t,
+                           uint16_t nonce, uint64_t now, struct canergy_session_step *step);
+
+/* True while a start waits for this node's books (SYNCING or SYNC_BOOKS). */
+bool canergy_session_syncing(const struct canergy_session *s);
 
 #ifdef __cplusplus
 }

@@ -34,14 +34,20 @@ struct canergy_supervisor_config {
 };
 
 struct canergy_supervisor {
-    uint64_t usable_uj;   /* Us */
+    int64_t usable_uj;    /* Us: below 0 (a debt) only after a witnessed start took books that
+                           * hold more than the record (nothing is granted until it is covered) */
     uint64_t injected_uj; /* energy added from outside since start (a gateway's upstream) */
     uint64_t withdrawn_uj; /* energy taken out to outside (a gateway's returns upstream) */
     struct canergy_session sessions[CANERGY_SUPERVISOR_NODES]; /* by node, ascending */
     struct canergy_session_timing timing;
     uint32_t id_base;
+    uint32_t start_without[4]; /* witnessed: bit n set: a start does not wait for node n */
     uint8_t count;        /* sessions in use */
 };
+
+/* canergy_supervisor_begin under the witnessed rules: a start still waits for some node's books
+ * (canergy_supervisor_unconfirmed names them). */
+#define CANERGY_ERR_UNCONFIRMED (-7)
 
 /* What one session's step did, beside its frame: for the port's application (a grant's
  * outcome) and for the host's books (Python's Acknowledged, Resolved, ReturnCredited,
@@ -75,8 +81,9 @@ int canergy_supervisor_init(struct canergy_supervisor *sup,
                             uint8_t count, uint64_t initial_uj);
 
 /* Reserve amount_uj from Us and send node an intention. CANERGY_ERR_ARGUMENT for a node not
- * managed here, CANERGY_ERR_PHASE outside IDLE, CANERGY_ERR_AMOUNT for an amount that is not
- * whole mJ up to 65,535 mJ or exceeds Us. */
+ * managed here, CANERGY_ERR_UNCONFIRMED while a start waits for any node's books (witnessed),
+ * CANERGY_ERR_PHASE outside IDLE, CANERGY_ERR_WINDOW beyond the window (witnessed),
+ * CANERGY_ERR_AMOUNT for an amount that is not whole mJ up to 65,535 mJ or exceeds Us. */
 int canergy_supervisor_begin(struct canergy_supervisor *sup, uint8_t node, uint32_t amount_uj,
                              uint64_t now, struct canergy_supervisor_out *out);
 
@@ -120,8 +127,28 @@ void canergy_supervisor_on_timer(struct canergy_supervisor *sup, uint64_t now,
 /* The earliest armed deadline, CANERGY_NEVER when none. */
 uint64_t canergy_supervisor_deadline(const struct canergy_supervisor *sup);
 
-/* A reset with the record kept: every session restarts (open ones re-send at the next timer). */
+/* A reset with the record kept: every session restarts (open ones re-send at the next timer);
+ * under the witnessed rules, canergy_supervisor_start with nonce 0. */
 void canergy_supervisor_restart(struct canergy_supervisor *sup, uint64_t now);
+
+/* A start with a fresh nonce (draw it from a hardware entropy source). Witnessed rules
+ * (witnessed.start): every session writes off what is open and waits for its node's books,
+ * SYNC(nonce) going out at the next timer call and every response timeout after; nothing is
+ * granted until every node (but those set with canergy_supervisor_start_without) has answered.
+ * Hardened rules: canergy_supervisor_restart. *out tells whether the record changed (a
+ * write-off): write it before the first SYNC leaves. */
+void canergy_supervisor_start(struct canergy_supervisor *sup, uint16_t nonce, uint64_t now,
+                              struct canergy_supervisor_out *out);
+
+/* Witnessed: a start no longer waits for node (the operator's risk: the node may hold energy
+ * the restored books count in Us again, and Us grants it to others); its own session still
+ * waits for its books. CANERGY_ERR_ARGUMENT for a node not managed here. */
+int canergy_supervisor_start_without(struct canergy_supervisor *sup, uint8_t node);
+
+/* The nodes a start still waits for (ascending, into nodes[]; NULL: only count them), those
+ * set with canergy_supervisor_start_without left out: their number. */
+uint8_t canergy_supervisor_unconfirmed(const struct canergy_supervisor *sup,
+                                       uint8_t nodes[CANERGY_SUPERVISOR_NODES]);
 
 /* Energy from outside into Us (counted as injected). CANERGY_ERR_AMOUNT for 0. Write the
  * record after it, before the energy is granted. */
@@ -133,11 +160,13 @@ int canergy_supervisor_withdraw(struct canergy_supervisor *sup, uint64_t amount_
 
 /* -- the record in NV --------------------------------------------------------------------- */
 
-/* One slot: a 12-byte header ("CNRS", version 3, count, counter), Us, injected and withdrawn,
- * 44 bytes per session (node, stored phase, decision, tx, last debit held, Ts, Gs, returned,
- * and the last RESUME answered: its q, the number it voided, its nonce) and a CRC-32 of all
- * that. Two slots of CANERGY_SUPERVISOR_SLOT_SIZE bytes back to back. A slot of version 2
- * (before the witnessed rules) is refused as CANERGY_ERR_RECORD, as another node list is. */
+/* One slot: a 12-byte header ("CNRS", version 4, count, counter), Us (signed), injected and
+ * withdrawn, 44 bytes per session (node, stored phase, decision, tx, last debit held, Ts, Gs,
+ * returned, and the last RESUME answered: its q, the number it voided, its nonce with bit 16
+ * set for a SYNC's counts) and a CRC-32 of all that. Two slots of CANERGY_SUPERVISOR_SLOT_SIZE
+ * bytes back to back. A slot of version 2 or 3 (before the witnessed rules, before the
+ * supervisor's start was confirmed) is refused as CANERGY_ERR_RECORD, as another node list
+ * is. A start's waiting phases are stored as IDLE: every start is one. */
 #define CANERGY_SUPERVISOR_SLOT_SIZE (40U + 44U * CANERGY_SUPERVISOR_NODES)
 
 /* The record as slot bytes with this counter (the slot written before it has counter - 1);

@@ -103,7 +103,7 @@ int main(void);
 int main(void)
 {
     const struct canergy_node_config cfg = {
-        {CANERGY_DEFAULT_ID_BASE, 200000UL, 200000UL, 5U, CANERGY_RULES_HARDENED}, 1000000UL, 50000UL, 2000000UL};
+        {CANERGY_DEFAULT_ID_BASE, 200000UL, 200000UL, 5U, CANERGY_RULES_HARDENED, 0U}, 1000000UL, 50000UL, 2000000UL};
     struct canergy_out out;
     const uint16_t nonce = 0x5A17U; /* BOARD: a hardware entropy source, fresh every start */
     (void)canergy_node_start(&node, &cfg, eeprom, sizeof eeprom, nonce, now_us(), &out);

@@ -124,6 +124,7 @@ struct gateway_port {
     int stopping;
     int telemetry_now; /* a commit or pay-back above: report the new level at once */
     uint64_t witnessed; /* frames in its name above that it did not send (not wrapped) */
+    unsigned waiting;   /* nodes below a start waited for when last said (witnessed) */
 };
 
 static volatile sig_atomic_t stop_requested;
@@ -352,7 +353,8 @@ static int newest_slot(const char *path, const uint8_t *image, uint32_t *best)
 }
 
 /* Exit 2 when image holds no slot of this layout but one of the layout before the witnessed
- * rules' supervisor record (version 2): never taken as a new, blank file. */
+ * rules' supervisor record (version 2), or a slot of this layout whose supervisor record is of
+ * version 3 (before the supervisor's start was confirmed): never taken as a new, blank file. */
 static void refuse_older_layout(const char *path, const uint8_t *image)
 {
     for (unsigned i = 0U; i < 2U; i++) {
@@ -360,7 +362,17 @@ static void refuse_older_layout(const char *path, const uint8_t *image)
         if (get32(old) == GW_MAGIC &&
             get32(&old[GW_SLOT_V2 - 4U]) == canergy_crc32(0U, old, GW_SLOT_V2 - 4U)) {
             port_usage_error("--nv %s: written by an older canergy-gateway (supervisor record "
-                             "version 2); this one reads version 3 only",
+                             "version 2); this one reads version 4 only",
+                             path);
+        }
+    }
+    for (unsigned i = 0U; i < 2U; i++) {
+        const uint8_t *slot = &image[i * GW_SLOT];
+        const uint8_t version = slot[GW_HEADER + CANERGY_NV_RECORD_SIZE + 4U];
+        if (get32(slot) == GW_MAGIC && version == 3U &&
+            get32(&slot[GW_SLOT - 4U]) == canergy_crc32(0U, slot, GW_SLOT - 4U)) {
+            port_usage_error("--nv %s: written by an older canergy-gateway (supervisor record "
+                             "version 3); this one reads version 4 only",
                              path);
         }
     }
@@ -397,14 +409,18 @@ static void check_nv(const struct gw_options *o)
     }
     static struct canergy_supervisor down;
     const struct canergy_supervisor_config cfg = {
-        o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules}};
+        o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules, 0U}};
     uint32_t counter = 0U;
     uint8_t slot = 0U;
-    if (canergy_supervisor_load(&down, &cfg, o->nodes, o->count, 0U,
-                                &image[(unsigned)newest * GW_SLOT + GW_HEADER +
-                                       CANERGY_NV_RECORD_SIZE],
-                                CANERGY_SUPERVISOR_SLOT_SIZE, &counter, &slot) == CANERGY_ERR_END) {
+    const int loaded = canergy_supervisor_load(
+        &down, &cfg, o->nodes, o->count, 0U,
+        &image[(unsigned)newest * GW_SLOT + GW_HEADER + CANERGY_NV_RECORD_SIZE],
+        CANERGY_SUPERVISOR_SLOT_SIZE, &counter, &slot);
+    if (loaded == CANERGY_ERR_END) {
         refuse_below_beyond(o->nv_path);
+    }
+    if (loaded == CANERGY_ERR_RECORD) {
+        refuse_older_layout(o->nv_path, image);
     }
 }
 
@@ -431,10 +447,10 @@ static void start(struct gateway_port *g, uint64_t now)
         exit(EXIT_USAGE);
     }
     const struct canergy_supervisor_config down = {
-        o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules}};
+        o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules, 0U}};
     const struct canergy_client_config up = {o->id_base, (uint32_t)(2U * o->up_response_timeout_us),
                                              (uint32_t)(2U * o->up_response_timeout_us), o->node,
-                                             CANERGY_RULES_HARDENED};
+                                             CANERGY_RULES_HARDENED, 0U};
     uint32_t best = 0U;
     const int newest = newest_slot(o->nv_path, image, &best);
     struct canergy_out out;
@@ -460,6 +476,13 @@ static void start(struct gateway_port *g, uint64_t now)
         }
         g->nv_counter = best;
         g->nv_slot = (uint8_t)newest;
+        /* every start is one below (witnessed: what is open written off, SYNC with a fresh
+         * nonce, no grant until the nodes have confirmed their books) */
+        struct canergy_supervisor_out sout;
+        canergy_supervisor_start(&g->gw.down, port_random16(), now, &sout);
+        if (sout.persist != 0U) {
+            save(g);
+        }
     } else {
         (void)canergy_client_start(&g->gw.up, &up, NULL, 0U, port_random16(), now, &out);
         if (canergy_supervisor_init(&g->gw.down, &down, o->nodes, o->count, 0U) != CANERGY_OK) {
@@ -696,7 +719,34 @@ static void receive_down(struct gateway_port *g, uint64_t now)
     }
 }
 
+/* Us below as the grants and returns size it: a debt (below 0, after a witnessed start) is 0. */
+static uint64_t usable_below(const struct gateway_port *g)
+{
+    return g->gw.down.usable_uj < 0 ? 0U : (uint64_t)g->gw.down.usable_uj;
+}
+
 /* Top every node up to --target from its last fresh level, within Us and one frame. */
+/* Witnessed rules: say on stderr whom a start below waits for before it grants anything, and
+ * when every node has confirmed its books (each change once). */
+static void say_waiting(struct gateway_port *g)
+{
+    uint8_t waiting[CANERGY_SUPERVISOR_NODES];
+    const uint8_t n = canergy_supervisor_unconfirmed(&g->gw.down, waiting);
+    if (n == g->waiting) {
+        return;
+    }
+    if (n == 0U) {
+        (void)fprintf(stderr, "%s: every node below has confirmed its books: granting\n", PROG);
+    } else {
+        (void)fprintf(stderr, "%s: no grant below before node(s) ", PROG);
+        for (uint8_t i = 0U; i < n; i++) {
+            (void)fprintf(stderr, "%s%u", i == 0U ? "" : ", ", (unsigned)waiting[i]);
+        }
+        (void)fputs(" have confirmed their books after this start (SYNC re-sent)\n", stderr);
+    }
+    g->waiting = n;
+}
+
 static void top_up(struct gateway_port *g, uint64_t now)
 {
     if (!g->opt.has_target || g->stopping) {
@@ -717,7 +767,7 @@ static void top_up(struct gateway_port *g, uint64_t now)
         /* never above what the node's record holds, nor one frame, nor Us */
         const uint64_t room = CANERGY_USABLE_MAX_UJ - least(b->level_uj, CANERGY_USABLE_MAX_UJ);
         uint64_t amount = least(least(least(wanted, room), (uint64_t)CANERGY_AMOUNT_MAX_MJ * MJ),
-                                g->gw.down.usable_uj);
+                                usable_below(g));
         amount -= amount % MJ;
         if (amount == 0U) {
             continue;
@@ -735,10 +785,10 @@ static void top_up(struct gateway_port *g, uint64_t now)
 static void give_back(struct gateway_port *g, uint64_t now)
 {
     if (g->opt.keep_all || !canergy_client_can_give_back(&g->gw.up) ||
-        g->gw.down.usable_uj <= g->opt.return_above_uj) {
+        usable_below(g) <= g->opt.return_above_uj) {
         return;
     }
-    uint64_t excess = least(g->gw.down.usable_uj - g->opt.return_above_uj,
+    uint64_t excess = least(usable_below(g) - g->opt.return_above_uj,
                             (uint64_t)CANERGY_AMOUNT_MAX_MJ * MJ);
     excess -= excess % MJ;
     struct canergy_out out;
@@ -752,7 +802,7 @@ static void give_back(struct gateway_port *g, uint64_t now)
 /* The gateway's level above: what it can still grant below. */
 static void telemetry(struct gateway_port *g)
 {
-    const uint64_t mj = g->gw.down.usable_uj / MJ;
+    const uint64_t mj = usable_below(g) / MJ;
     struct canergy_msg m;
     memset(&m, 0, sizeof m);
     m.type = CANERGY_TELEMETRY;
@@ -769,7 +819,17 @@ static void telemetry(struct gateway_port *g)
 
 /* ---- the status file (the Python gateway's keys) ---- */
 
-static const char *const PHASE_NAMES[] = {"IDLE", "WAIT_ACK", "ACKED", "WAIT_CONFIRM"};
+static const char *phase_name(uint8_t phase)
+{
+    static const char *const names[] = {"IDLE", "WAIT_ACK", "ACKED", "WAIT_CONFIRM"};
+    if (phase == CANERGY_S_SYNCING) {
+        return "SYNCING";
+    }
+    if (phase == CANERGY_S_SYNC_BOOKS) {
+        return "SYNC_BOOKS";
+    }
+    return phase <= CANERGY_S_WAIT_CONFIRM ? names[phase] : "?";
+}
 
 static void write_counters(FILE *f, const char *name, const struct port_counters *c)
 {
@@ -794,24 +854,31 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
         returned += d->sessions[i].returned_uj;
     }
     (void)fprintf(f,
-                  "{\"role\": \"gateway\", \"core\": \"c\", \"variant\": \"hardened\", "
-                  "\"stopping\": %s, \"initial_uj\": 0, \"usable_uj\": %llu, "
+                  "{\"role\": \"gateway\", \"core\": \"c\", \"variant\": \"%s\", "
+                  "\"stopping\": %s, \"initial_uj\": 0, \"usable_uj\": %lld, "
                   "\"injected_uj\": %llu, \"withdrawn_uj\": %llu, \"reserved_uj\": %llu, "
                   "\"delivered_uj\": %llu, \"returns_credited_uj\": %llu, "
                   "\"link_gap_uj\": %lld, \"state_writes\": %llu, ",
-                  g->stopping ? "true" : "false", (unsigned long long)d->usable_uj,
+                  g->opt.rules == CANERGY_RULES_WITNESSED ? "witnessed" : "hardened",
+                  g->stopping ? "true" : "false", (long long)d->usable_uj,
                   (unsigned long long)d->injected_uj, (unsigned long long)d->withdrawn_uj,
                   (unsigned long long)reserved, (unsigned long long)delivered,
                   (unsigned long long)returned, (long long)canergy_gateway_link_gap(&g->gw),
                   (unsigned long long)g->nv_writes);
     write_counters(f, "downstream_bus", &g->down_count);
-    (void)fputs(", \"nodes\": {", f);
+    uint8_t waiting[CANERGY_SUPERVISOR_NODES];
+    const uint8_t n = canergy_supervisor_unconfirmed(d, waiting);
+    (void)fputs(", \"unconfirmed\": [", f);
+    for (uint8_t i = 0U; i < n; i++) {
+        (void)fprintf(f, "%s%u", i == 0U ? "" : ", ", (unsigned)waiting[i]);
+    }
+    (void)fputs("], \"nodes\": {", f);
     for (unsigned i = 0U; i < d->count; i++) {
         const struct canergy_session *s = &d->sessions[i];
         const struct below *b = &g->below[i];
         const int lost = !b->heard || now - b->heard_at > 3U * US_PER_S;
         char open_tx[24] = "null";
-        if (s->phase != CANERGY_S_IDLE) {
+        if (s->phase != CANERGY_S_IDLE && !canergy_session_syncing(s)) {
             (void)snprintf(open_tx, sizeof open_tx, "%lu", (unsigned long)s->tx);
         }
         (void)fprintf(f,
@@ -821,7 +888,7 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                       "\"committed\": %llu, \"committed_uj\": %llu, \"aborted\": %llu, "
                       "\"written_off\": %llu, \"admitted\": %llu, \"returns_held\": %u, "
                       "\"returns_refuted\": %llu, \"intrusions\": %llu}",
-                      i == 0U ? "" : ", ", (unsigned)s->node, PHASE_NAMES[s->phase & 3U], open_tx,
+                      i == 0U ? "" : ", ", (unsigned)s->node, phase_name(s->phase), open_tx,
                       (unsigned long)s->reserved_uj,
                       (unsigned long long)s->delivered_uj, (unsigned long long)s->returned_uj,
                       (unsigned long)s->returns_credited, (unsigned long long)b->level_uj,
@@ -949,6 +1016,7 @@ int main(int argc, char **argv)
         if (now >= next_tick) {
             next_tick = now + g.opt.tick_us;
             release_returns(&g, now);
+            say_waiting(&g);
             top_up(&g, now);
             give_back(&g, now);
         }

@@ -98,7 +98,8 @@ static void receive_one(struct port *p, const struct canergy_rx_frame *rx)
     const uint64_t now = port_now_us();
     struct canergy_out out;
     const uint8_t witness = p->node.witness;
-    const bool resuming = p->node.client.phase == CANERGY_RESUMING;
+    const uint8_t phase = p->node.client.phase;
+    const bool starting = phase == CANERGY_RESUMING || phase == CANERGY_SYNCING;
     const uint32_t seq = p->node.client.rec.return_seq; /* confirmed: it moves to seq + 1 */
     const int status = p->opt.auth_path != NULL
                            ? canergy_auth_node_frame(&p->auth, &p->node, rx, now, &out)
@@ -106,7 +107,13 @@ static void receive_one(struct port *p, const struct canergy_rx_frame *rx)
     p->witnessed += (uint8_t)(p->node.witness - witness); /* 0 or 1 per frame */
     port_count_received(p, status, rx, now);
     carry_out(p, &out);
-    if (resuming && p->node.client.phase != CANERGY_RESUMING) {
+    if (p->node.client.phase == CANERGY_SYNCING && phase != CANERGY_SYNCING) {
+        (void)fprintf(stderr,
+                      "%s: node %d: the supervisor started (SYNC): books answered, no energy to "
+                      "the actuator until it confirms them\n",
+                      PROG, p->opt.node);
+    } else if (starting && (p->node.client.phase == CANERGY_IDLE ||
+                            p->node.client.phase == CANERGY_HOLDING)) {
         const bool behind = p->node.client.rec.return_seq != seq + 1U;
         (void)fprintf(stderr, "%s: node %d: %s\n", PROG, p->opt.node,
                       behind ? "the supervisor found this record behind (an older copy): "

@@ -219,9 +219,10 @@ static void write_status(const struct port *p, FILE *f)
                   (unsigned long long)p->nv_writes, p->nv_fallbacks,
                   (unsigned long)p->node.overflow_refused,
                   canergy_client_joining(&p->node.client) ? "true" : "false", p->joins);
-    (void)fprintf(f, "\"rules\": \"%s\", \"resuming\": %s, \"released_uj\": %lu, ",
+    (void)fprintf(f, "\"rules\": \"%s\", \"resuming\": %s, \"syncing\": %s, \"released_uj\": %lu, ",
                   p->opt.rules == CANERGY_RULES_WITNESSED ? "witnessed" : "hardened",
                   p->node.client.phase == CANERGY_RESUMING ? "true" : "false",
+                  p->node.client.phase == CANERGY_SYNCING ? "true" : "false",
                   (unsigned long)p->node.released_uj);
     (void)fprintf(f, "\"witnessed\": %llu, ", (unsigned long long)p->witnessed);
     write_intrusions(p, f);

@@ -31,6 +31,8 @@ CDEF = """
 #define CANERGY_SUP_RETURN_CREDITED ...
 #define CANERGY_SUP_ADMITTED ...
 #define CANERGY_NEVER ...
+#define CANERGY_ERR_WINDOW ...
+#define CANERGY_ERR_UNCONFIRMED ...
 
 struct canergy_msg {
     uint32_t delivered_mj; uint32_t level_mj; uint16_t tx; uint16_t seq; uint16_t nonce;
@@ -40,15 +42,16 @@ struct canergy_frame { uint32_t id; uint8_t dlc; uint8_t data[8]; ...; };
 struct canergy_rx_frame { uint32_t id; const uint8_t *data; size_t len; bool extended;
     bool remote; ...; };
 struct canergy_session_timing { uint32_t response_timeout_us; uint8_t retries; uint8_t rules;
-    ...; };
+    uint16_t window; ...; };
 struct canergy_session {
     uint64_t delivered_uj; uint64_t returned_uj; uint64_t deadline; uint32_t tx;
     uint32_t returns_credited; uint32_t reserved_uj; uint32_t resume_from; uint32_t resume_to;
-    uint16_t resume_nonce; uint8_t node; uint8_t phase; uint8_t decision; uint8_t tries; ...;
+    uint32_t resume_nonce; int32_t witness; uint16_t sync_nonce; uint8_t node; uint8_t phase;
+    uint8_t decision; uint8_t tries; ...;
 };
 struct canergy_supervisor_config { uint32_t id_base; struct canergy_session_timing timing; ...; };
 struct canergy_supervisor {
-    uint64_t usable_uj; uint64_t injected_uj; uint64_t withdrawn_uj;
+    int64_t usable_uj; uint64_t injected_uj; uint64_t withdrawn_uj;
     struct canergy_session sessions[...];
     uint32_t id_base; uint8_t count; ...;
 };
@@ -81,6 +84,10 @@ int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned ki
     const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
     struct canergy_supervisor_out *out, struct canergy_msg *m);
 void canergy_supervisor_restart(struct canergy_supervisor *sup, uint64_t now);
+void canergy_supervisor_start(struct canergy_supervisor *sup, uint16_t nonce, uint64_t now,
+    struct canergy_supervisor_out *out);
+int canergy_supervisor_start_without(struct canergy_supervisor *sup, uint8_t node);
+uint8_t canergy_supervisor_unconfirmed(const struct canergy_supervisor *sup, uint8_t *nodes);
 int canergy_supervisor_inject(struct canergy_supervisor *sup, uint64_t amount_uj);
 """
 

@@ -16,6 +16,7 @@ from collections.abc import Iterable
 from functools import partial
 
 from canergy.codec import Codec
+from canergy.core import witnessed
 from canergy.core.actions import (
     Acknowledged,
     Action,
@@ -27,6 +28,7 @@ from canergy.core.actions import (
 )
 from canergy.core.common import check_counters, check_life
 from canergy.core.errors import LocalProtocolError
+from canergy.core.inputs import Begin
 from canergy.core.state import Decision, Outcome, Phase, Session, SupervisorState
 from canergy.core.supervisor import Supervisor, SupervisorCore
 from canergy.core.timing import Timing
@@ -67,10 +69,11 @@ def missing() -> str | None:
     return _MISSING
 
 
-_SESSION = struct.Struct("<QQQIIIIIHBBBB")
+_SESSION = struct.Struct("<QQQIIIIIIiHBBBB")
 """struct canergy_session: delivered, returned, deadline, tx, returns credited, reserved, the last
-RESUME answered (from, to, nonce: the witnessed rules' fields, which the hardened rules leave at
-0), node, phase, decision, tries (checked against the compiled layout below)."""
+RESUME answered (from, to, nonce), W and the SYNC's nonce (the witnessed rules' fields, which the
+hardened rules leave at 0), node, phase, decision, tries (checked against the compiled layout
+below)."""
 _EVENT = struct.Struct("<IIBBB")
 """struct canergy_supervisor_event: tx, amount, node, resolved, flags."""
 _FRAME = struct.Struct("<IB8s")
@@ -83,8 +86,9 @@ attribute lookups through cffi)."""
 _LAYOUT = {
     "struct canergy_session": {"delivered_uj": 0, "returned_uj": 8, "deadline": 16, "tx": 24,
                                "returns_credited": 28, "reserved_uj": 32, "resume_from": 36,
-                               "resume_to": 40, "resume_nonce": 44, "node": 46, "phase": 47,
-                               "decision": 48, "tries": 49},
+                               "resume_to": 40, "resume_nonce": 44, "witness": 48,
+                               "sync_nonce": 52, "node": 54, "phase": 55, "decision": 56,
+                               "tries": 57},
     "struct canergy_supervisor_event": {"tx": 0, "amount_uj": 4, "node": 8, "resolved": 9,
                                         "flags": 10},
     "struct canergy_frame": {"id": 0, "dlc": 4, "data": 5},
@@ -123,12 +127,13 @@ _ID_LIMIT = 1 << 29
 _NOT_CAN = -1
 """``on_answer``'s status for an identifier no CAN frame carries: taken the usual way."""
 
-_PHASES = tuple(Phase(i) for i in range(4))
+_PHASES = {int(p): p for p in (*(Phase(i) for i in range(4)), Phase.SYNCING, Phase.SYNC_BOOKS)}
+"""The phases a C session holds, by the value C gives them (Python's)."""
 _DECISIONS = tuple(Decision(i) for i in range(3))
 _ACKNOWLEDGED, _RETURN_CREDITED, _ADMITTED = 0x01, 0x02, 0x04
 """CANERGY_SUP_* (checked against the library when the core is built)."""
 _OUTCOMES = {1: Outcome.COMMITTED, 2: Outcome.ABORTED, 4: Outcome.WRITTEN_OFF}
-_ERRORS = {-1: "argument", -2: "phase", -3: "amount", -5: "end of the numbering"}
+_ERRORS = {-1: "argument", -2: "phase", -3: "amount", -5: "end of the numbering", -6: "window"}
 
 
 _RULES = {"hardened": 0, "witnessed": 1}
@@ -149,7 +154,9 @@ class CompiledSupervisor:
         state: SupervisorState | None = None,
         id_base: int | None = None,
         variant: str = "hardened",
+        start_without: Iterable[int] = (),
     ) -> None:
+        """``start_without``: as ``core.Supervisor``'s (the operator's risk, said there)."""
         if _MISSING is not None:
             raise CoreMissing(_MISSING)
         if variant not in _RULES:
@@ -163,6 +170,8 @@ class CompiledSupervisor:
             raise ValueError("initial budget must be >= 0")
         if not 0 <= self.timing.response_timeout_us < 2**32 or not 0 <= self.timing.retries < 256:
             raise ValueError("the C core needs a response timeout below 2^32 µs, retries < 256")
+        if not 0 < self.timing.window < 0x8000:
+            raise ValueError("the C core needs a window of 1-32767 transactions")
         self.codec = Codec() if id_base is None else Codec(id_base)
         self._decode = partial(self.codec.decode, direction=Direction.TO_CLIENT)
         flags = (
@@ -182,6 +191,7 @@ class CompiledSupervisor:
         cfg.timing.response_timeout_us = self.timing.response_timeout_us
         cfg.timing.retries = self.timing.retries
         cfg.timing.rules = _RULES[variant]
+        cfg.timing.window = self.timing.window
         ids = ffi.new("uint8_t[]", node_list)
         rc = lib.canergy_supervisor_init(self._sup, cfg, ids, len(node_list), initial)
         if rc != lib.CANERGY_OK:
@@ -189,6 +199,11 @@ class CompiledSupervisor:
                 f"the C core refused {len(node_list)} nodes (it holds "
                 f"{lib.CANERGY_SUPERVISOR_NODES})"
             )
+        self.start_without = frozenset(start_without)
+        if not self.start_without <= set(node_list):
+            raise ValueError("start_without names nodes this supervisor does not manage")
+        for n in self.start_without:
+            lib.canergy_supervisor_start_without(self._sup, n)
         self._initial = initial
         self._index = {n: i for i, n in enumerate(node_list)}
         self._timer: int | None = None
@@ -225,6 +240,12 @@ class CompiledSupervisor:
     def is_quiescent(self) -> bool:
         return all(s.phase is Phase.IDLE for s in self._sessions)
 
+    def unconfirmed(self) -> tuple[int, ...]:
+        """The nodes whose books this start waits for before any grant (``core.Supervisor``'s),
+        as the C supervisor counts them."""
+        nodes = ffi.new("uint8_t[]", max(1, len(self._sessions)))
+        return tuple(nodes[0 : lib.canergy_supervisor_unconfirmed(self._sup, nodes)])
+
     def _load(self, st: SupervisorState) -> None:
         """Take a saved state (the state file's): Us, injected, withdrawn and every session's
         record."""
@@ -234,7 +255,7 @@ class CompiledSupervisor:
         sup.usable_uj, sup.injected_uj, sup.withdrawn_uj = st.usable, st.injected, st.withdrawn
         self._initial = st.initial
         for i, s in enumerate(st.sessions):
-            if s.phase not in _PHASES:
+            if s.phase not in _PHASES.values():
                 raise ValueError(f"node {s.node}: a record the C core cannot hold")
             check_counters(s)
             c = sup.sessions[i]
@@ -242,7 +263,7 @@ class CompiledSupervisor:
             c.delivered_uj, c.returned_uj, c.decision = s.delivered, s.returned, int(s.decision)
             c.returns_credited, c.tries = s.returns_credited, s.tries
             c.resume_from, c.resume_to = s.resume_from % 2**32, s.resume_to % 2**32
-            c.resume_nonce = s.resume_nonce
+            c.resume_nonce, c.witness, c.sync_nonce = s.resume_nonce, s.witness, s.sync_nonce
             c.deadline = lib.CANERGY_NEVER if s.deadline is None else s.deadline
             self._sessions[i] = self._read(i)
         self._timer_known = False
@@ -250,7 +271,8 @@ class CompiledSupervisor:
     def _read(self, i: int) -> Session:
         fields = _SESSION.unpack_from(self._sup_bytes, _SESSIONS_AT + i * _SESSION_SIZE)
         delivered, returned, deadline, tx, credited, reserved = fields[:6]
-        resume_from, resume_to, resume_nonce, node, phase, decision, tries = fields[6:]
+        resume_from, resume_to, resume_nonce, witness, sync_nonce = fields[6:11]
+        node, phase, decision, tries = fields[11:]
         resume_from = resume_to - (resume_to - resume_from) % 2**32  # Python's: below resume_to
         return Session(
             node,
@@ -266,6 +288,8 @@ class CompiledSupervisor:
             resume_nonce,
             resume_from,
             resume_to,
+            witness,
+            sync_nonce,
         )
 
     # -- requests --------------------------------------------------------------------------
@@ -288,6 +312,13 @@ class CompiledSupervisor:
             raise LocalProtocolError(f"amount {amount} µJ is not a grant one frame carries")
         self._timer_known = False  # deadlines may move
         rc = lib.canergy_supervisor_begin(self._sup, node, amount, now, self._out)
+        if rc == lib.CANERGY_ERR_UNCONFIRMED:
+            raise LocalProtocolError(
+                "no grant before every node has confirmed its books after this start: waiting "
+                f"for node(s) {', '.join(map(str, self.unconfirmed()))}"
+            )
+        if rc == lib.CANERGY_ERR_WINDOW:
+            witnessed.begin(self.timing, self.session(node), Begin(amount), now)  # its words
         if rc == -3 and amount <= self._sup.usable_uj:
             raise LocalProtocolError(f"amount {amount} µJ is not a whole mJ up to 65,535 mJ")
         if rc == -3:
@@ -388,10 +419,11 @@ class CompiledSupervisor:
             raise LocalProtocolError("injected energy must be positive")
         lib.canergy_supervisor_inject(self._sup, amount)
 
-    def power_loss(self, now: int) -> None:
-        """Lose volatile state and restart from the persistent record."""
+    def power_loss(self, now: int, nonce: int = 0) -> None:
+        """Lose volatile state and restart from the persistent record; ``nonce``: as
+        ``core.Supervisor.power_loss`` (witnessed: the SYNC's)."""
         self._timer_known = False  # deadlines may move
-        lib.canergy_supervisor_restart(self._sup, now)
+        lib.canergy_supervisor_start(self._sup, nonce, now, self._out)
         self._sessions = [self._read(i) for i in range(len(self._sessions))]
 
     # -- internals -------------------------------------------------------------------------
@@ -459,13 +491,22 @@ def make_supervisor(
     timing: Timing | None = None,
     state: SupervisorState | None = None,
     id_base: int | None = None,
+    start_without: Iterable[int] = (),
 ) -> SupervisorCore:
     """A supervisor core by name: "python" (``core.Supervisor``, any variant) or "c";
     ``id_base``: the bus's identifier block (the C core encodes and decodes frames itself)."""
     if core == "c":
         return CompiledSupervisor(
-            nodes, initial, timing=timing, state=state, id_base=id_base, variant=variant
+            nodes,
+            initial,
+            timing=timing,
+            state=state,
+            id_base=id_base,
+            variant=variant,
+            start_without=start_without,
         )
     if core != "python":
         raise ValueError(f"unknown core {core!r}: c or python")
-    return Supervisor(nodes, initial, variant=variant, timing=timing, state=state)
+    return Supervisor(
+        nodes, initial, variant=variant, timing=timing, state=state, start_without=start_without
+    )

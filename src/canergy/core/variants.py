@@ -27,9 +27,9 @@ VARIANTS: dict[str, Variant] = {
     "witnessed": Variant("witnessed", witnessed.SUPERVISOR, witnessed.CLIENT, lifts_tx=True),
 }
 RUNNABLE: dict[str, Variant] = {name: VARIANTS[name] for name in ("hardened", "paper")}
-"""What the demo, the simulator and the live service run. ``witnessed`` is for the checker and
-the rules reference only: its actuator spends in acknowledged whole-millijoule draws, which no
-live node, emulator or C port does yet."""
+"""What the demo and the simulator run. ``witnessed`` (its actuator spends in acknowledged
+whole-millijoule draws) runs in the checker, the live supervisor and emulator (``--variant``)
+and the C port, not in the demo or the simulator."""
 
 
 def get_variant(

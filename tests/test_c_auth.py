@@ -250,6 +250,8 @@ ALL_TYPES: list[Message] = [
     Join(NODE, 0xBEEF),
     Debit(NODE, 0, Debit.DRAW, 0xFFFF, 120),
     Debit(NODE, 0xBEEF, Debit.START | Debit.DRAW, 0x8001, 0),
+    Debit.books(NODE, 0xBEEF, 0xA08001),  # a SYNC's answer: fresh by its nonce, not by Rc
+    Debit.counts(NODE, 0xBEEF, 0x8001, 0x7FFF),
 ]
 
 

@@ -36,8 +36,8 @@ uint32_t canergy_auth_freshness(const struct canergy_msg *m, uint32_t last_tx,
     case CANERGY_ADMIT: return (last_tx & 0xFFFF0000UL) | m->nonce;
     case CANERGY_TELEMETRY: return last_tx;
     case CANERGY_DEBIT:
-        if ((m->flags & CANERGY_DEBIT_START) != 0U) {
-            return m->nonce; /* a resume, as a JOIN */
+        if ((m->flags & (CANERGY_DEBIT_START | CANERGY_DEBIT_BOOKS)) != 0U) {
+            return m->nonce; /* a resume, as a JOIN; a SYNC's books and counts, by its nonce */
         }
         return extend16(m->seq, return_seq); /* a draw is numbered as a return */
     case CANERGY_RETURN:

@@ -29,7 +29,7 @@ from canergy.units import UJ_PER_J, format_energy
 LARGEST_GRANT = AMOUNT_MAX_MJ * QUANTUM_UJ
 LIVE_VARIANTS = sorted({*RUNNABLE, "witnessed"})
 """The rules a live supervisor runs: the demo's, and ``witnessed`` (its nodes draw through
-numbered DEBITs and confirm every start: ``python -m firmware_model --variant witnessed``)."""
+numbered DEBITs and confirm every start: the emulator's ``--variant witnessed``)."""
 
 
 def joules(uj: int) -> str:

@@ -108,13 +108,26 @@ class Bench:
         return next(t for t, s in history if t > start and s != "QUICK STOP ACTIVE") - start
 
 
+APP_SDO_PATIENCE_S = 10.0
+"""How long the application's SDO write keeps trying past the guard's transfers."""
+
+
 def app_write(node: canopen.RemoteNode, index: int, value: int) -> None:
     """An application's SDO write, beside the guard's on the drive's one SDO server."""
 
     def transfer() -> None:
         node.sdo[index].raw = value
 
-    shared_sdo(transfer, time.sleep, attempts=10)  # the guard reads back too, once a second
+    # The guard reads back too: once a second, and in bursts after each write it sees. On a
+    # loaded machine a burst can outlast ten tries; an application keeps trying, for a while.
+    deadline = time.monotonic() + APP_SDO_PATIENCE_S
+    while True:
+        try:
+            shared_sdo(transfer, time.sleep, attempts=10)
+            return
+        except canopen.SdoCommunicationError:
+            if time.monotonic() > deadline:
+                raise
 
 
 @contextlib.contextmanager

@@ -23,8 +23,9 @@ from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import load_key
 from canergy.codec import Codec
 from canergy.core import Timing
+from canergy.errors import BusOpenError
 from canergy.live.atomic import check_writable_dir, same_file, write_json_atomic
-from canergy.live.bus_args import BusOpenError, add_bus_flags, open_bus
+from canergy.live.bus_args import add_bus_flags, open_bus
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.serve import serve
 from canergy.live.shared_bus import STANDARD_FRAMES, SharedReader, shared_network

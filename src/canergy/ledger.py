@@ -19,8 +19,8 @@ from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass, replace
 from typing import Any, NamedTuple
 
+from canergy.bus_keys import session_key
 from canergy.core.state import SYNC_PHASES, ClientState, Phase, Session, SupervisorState
-from canergy.live.bus_keys import session_key
 
 
 @dataclass(frozen=True, slots=True)

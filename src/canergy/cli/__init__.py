@@ -1,76 +1,55 @@
 """The ``canergy`` command line: one module per command, named after it (``canergy.cli.dump``
 for ``canergy dump``), each adding its parser and its ``run``; flag groups that several commands
-share are in ``canergy.cli.shared``."""
+share are in ``canergy.cli.shared``. A command's module is imported only when it runs (its
+summary for ``canergy --help`` is in ``canergy.cli.summaries``), so one command's missing extra
+or broken import touches no other."""
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from types import ModuleType
 
 from canergy import __version__
-from canergy.cli import (
-    audit,
-    bench,
-    check,
-    dbc,
-    decode,
-    demo,
-    dump,
-    gateway,
-    grant,
-    keys,
-    ledger,
-    monitor,
-    plot,
-    prove,
-    rules,
-    simulate,
-    supervisor,
-    sweep,
-)
+from canergy.cli.summaries import SUMMARIES
+from canergy.errors import BusOpenError
 from canergy.extras import MissingExtra
-from canergy.live.bus_args import BusOpenError
-
-COMMANDS: tuple[ModuleType, ...] = (
-    demo,
-    check,
-    prove,
-    dbc,
-    rules,
-    supervisor,
-    grant,
-    gateway,
-    ledger,
-    simulate,
-    sweep,
-    dump,
-    decode,
-    audit,
-    monitor,
-    plot,
-    keys,
-    bench,
-)
-"""In the order ``canergy --help`` lists them."""
 
 
-def build_parser() -> argparse.ArgumentParser:
+def command_module(name: str) -> ModuleType:
+    """The module of command ``name`` (``canergy.cli.<name>``), imported now."""
+    return importlib.import_module(f"canergy.cli.{name}")
+
+
+def build_parser(commands: Iterable[str] | None = None) -> argparse.ArgumentParser:
+    """The parser with ``commands`` (default: every one) complete; the others are listed by
+    their summaries only, and their modules are not imported."""
+    full = set(SUMMARIES if commands is None else commands)
     parser = argparse.ArgumentParser(
         prog="canergy",
         description="Passive energy budget transactions over CAN (Groothuis & Stramigioli).",
     )
     parser.add_argument("--version", action="version", version=f"canergy {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for command in COMMANDS:
-        command.add(sub)
+    for name, summary in SUMMARIES.items():
+        if name in full:
+            command_module(name).add(sub)
+        else:
+            sub.add_parser(name, help=summary)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    try:  # only the command named first is imported: `canergy dbc` loads no bus, core or C
+        parser = build_parser(words[:1])
+    except MissingExtra as exc:
+        print(f"canergy {words[0]}: {exc}", file=sys.stderr)
+        return 2
+    args = parser.parse_args(words)
     try:
         return int(args.run(args))
     except BrokenPipeError:  # e.g. `canergy demo | head`: stop quietly like other CLI tools

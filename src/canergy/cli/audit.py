@@ -15,6 +15,7 @@ from canergy.cli.shared.capture import (
     capture_auth,
     capture_frames,
 )
+from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.inspect.audit import Auditor
 from canergy.inspect.captures import CaptureError
@@ -23,7 +24,7 @@ from canergy.inspect.captures import CaptureError
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     a = sub.add_parser(
         "audit",
-        help="rebuild transactions from a capture and check the protocol and passivity",
+        help=SUMMARIES["audit"],
         description="Replay a capture through a passive observer; exit 1 when the capture shows a "
         "protocol or passivity violation, naming the frame.",
     )

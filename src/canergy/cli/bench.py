@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from canergy.argtypes import add_duration, bounded_int
+from canergy.cli.summaries import SUMMARIES
 from canergy.live.atomic import check_writable_dir
 from canergy.live.bus_args import add_bus_flags
 
@@ -22,8 +23,7 @@ def node_counts(text: str) -> tuple[int, ...]:
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "bench",
-        help="benchmarks: codec, core, live stack vs CANopen SDO, wire, memory; with bus flags "
-        "the live stack on that bus against node processes",
+        help=SUMMARIES["bench"],
         description="Without bus flags: every comparison in this process, the live stack on "
         "python-can's virtual bus. With bus flags (-i/-c...): the supervisor in this process on "
         "that bus, the nodes in another process (the registered client emulator, or "

@@ -12,6 +12,7 @@ from canergy.argtypes import (
     COUNT_MAX,
     bounded_int,
 )
+from canergy.cli.summaries import SUMMARIES
 from canergy.core.variants import VARIANTS
 
 CHECK_BOUND_MAX = 10
@@ -27,7 +28,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     d = Bounds()
     p = sub.add_parser(
         "check",
-        help="exhaustively model-check the protocol core within bounds",
+        help=SUMMARIES["check"],
         description=(
             "Breadth-first exploration of one supervisor, K clients and the frames in flight "
             "under every interleaving of deliveries, losses, duplicates, timer expiries, "

@@ -9,10 +9,11 @@ from pathlib import Path
 from canergy.argtypes import (
     id_base,
 )
+from canergy.cli.summaries import SUMMARIES
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    p = sub.add_parser("dbc", help="write the DBC describing canergy's frames")
+    p = sub.add_parser("dbc", help=SUMMARIES["dbc"])
     p.add_argument("-o", "--output", type=Path, help="file to write (default: stdout)")
     p.add_argument(
         "--auth",

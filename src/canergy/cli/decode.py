@@ -13,6 +13,7 @@ from canergy.cli.shared.capture import (
     show,
     view_flags,
 )
+from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.inspect.captures import CaptureError
 
@@ -20,7 +21,7 @@ from canergy.inspect.captures import CaptureError
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     c = sub.add_parser(
         "decode",
-        help="decode a capture: candump text from stdin or any python-can log file",
+        help=SUMMARIES["decode"],
         description="Decode candump output (default, -ta, -L/-l formats) from FILE or stdin "
         "('-'), or .asc/.blf/.csv/.trc/.mf4 files through python-can.",
     )

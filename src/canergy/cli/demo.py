@@ -15,6 +15,7 @@ from canergy.argtypes import (
     probability,
     seed,
 )
+from canergy.cli.summaries import SUMMARIES
 from canergy.core.variants import RUNNABLE
 from canergy.messages import MAX_NODE
 from canergy.units import UJ_PER_J, US_PER_S
@@ -26,7 +27,7 @@ DEMO_TRANSACTIONS_MAX = 1_000_000
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "demo",
-        help="supervisor and clients on python-can's virtual bus under injected faults",
+        help=SUMMARIES["demo"],
         description=(
             "Run a supervisor and several clients on python-can's virtual bus, in virtual time, "
             "through a seeded fault injector; print the per-node and total ledger and a verdict. "

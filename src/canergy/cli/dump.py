@@ -16,6 +16,7 @@ from canergy.cli.shared.capture import (
     show,
     view_flags,
 )
+from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.inspect.candump import ChannelFilters, FrameLog, log_path, open_log
 from canergy.inspect.frames import Described
@@ -34,7 +35,7 @@ def channel_filters(text: str) -> ChannelFilters:
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     d = sub.add_parser(
         "dump",
-        help="candump-style live view with every canergy frame decoded",
+        help=SUMMARIES["dump"],
         description="Print each frame like candump (timestamp, interface, ID, DLC, bytes) and "
         "what it means to canergy. CAN FD frames are received without --fd where the "
         "interface supports FD. Stop with Ctrl-C.",

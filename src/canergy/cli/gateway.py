@@ -23,6 +23,7 @@ from canergy.cli.shared.live import (
     rule_timing,
     service_flags,
 )
+from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.core.gateway import Gateway
 from canergy.core.state import Phase
@@ -45,7 +46,7 @@ UP = "upstream"
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "gateway",
-        help="a client of the supervisor above and the supervisor of the bus below",
+        help=SUMMARIES["gateway"],
         description="Run a gateway: node --node on the upstream bus (--upstream-* flags, e.g. "
         "--upstream-interface zenoh), supervisor of --nodes on the downstream bus (-i/-c ...). "
         "Energy committed to it upstream becomes its downstream budget at once; what it holds "

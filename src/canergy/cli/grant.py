@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from canergy.argtypes import add_duration, bounded_int, grant_amount
+from canergy.bus_keys import parse_node_id
 from canergy.cli.shared.live import (
     auth_key,
     build_core,
@@ -18,9 +19,9 @@ from canergy.cli.shared.live import (
     grant_limits,
     supervisor_flags,
 )
+from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.live.bus_args import open_bus
-from canergy.live.bus_keys import parse_node_id
 from canergy.live.control import NoAnswer, NoSupervisor, request
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.serve import serve_supervisor
@@ -37,7 +38,7 @@ MAX_STATUS = 8 << 20
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     g = sub.add_parser(
         "grant",
-        help="one grant: through a running supervisor (--control) or as a single run",
+        help=SUMMARIES["grant"],
         description="Grant energy to one node. With --control, ask a running supervisor; "
         "otherwise run a supervisor on the bus for this one transaction. Exit 0 when committed.",
     )

@@ -7,12 +7,13 @@ from pathlib import Path
 
 from canergy.argtypes import bounded_int, node_ids
 from canergy.auth.keys import EPOCH_MAX, load_key, new_master, node_key_of, write_key
+from canergy.cli.summaries import SUMMARIES
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "keys",
-        help="create key files for authenticated mode (--auth)",
+        help=SUMMARIES["keys"],
         description="Without --master: create a random master key (the supervisor's --auth). "
         "With --master and --nodes: derive node keys from it (each node's --auth: a node holds "
         "only its own). Files are created with mode 0600 and never replaced; keys are never "

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from canergy.cli.summaries import SUMMARIES
 from canergy.ledger import Ledger, TreeLedger, ledger_from_status
 from canergy.units import format_energy
 
@@ -24,7 +25,7 @@ from canergy.units import format_energy
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "ledger",
-        help="the conservation ledger of a bus or a tree of buses, from status files",
+        help=SUMMARIES["ledger"],
         description="Close the books over one bus or a tree: for each --level give the status "
         "file of its supervisor (or gateway) and of its clients (a gateway's status file counts "
         "as a client of the level above). Exit status 0 when no level and no gateway created "

@@ -16,6 +16,7 @@ from pathlib import Path
 from canergy.argtypes import add_duration, argument, duration, energy
 from canergy.auth.capture import CaptureAuth
 from canergy.auth.keys import load_key
+from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.inspect.captures import read_file
 from canergy.live.bus_args import add_bus_flags, open_receiving_bus
@@ -48,7 +49,7 @@ def node_filter(text: str) -> tuple[str, frozenset[int] | None]:
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "monitor",
-        help="full-screen live view of every node's budget and transactions",
+        help=SUMMARIES["monitor"],
         description="One row per node: level, session, open transaction and its phase, "
         "commits/aborts/write-offs, returns, last outcome, lost and alarm flags; a header with "
         "frames/s, bus load, decode errors and the supervisor's usable budget. Rebuilt from the "

@@ -9,6 +9,7 @@ from pathlib import Path
 from canergy.argtypes import duration_or_zero, id_base, node_ids
 from canergy.auth.capture import CaptureAuth, verified
 from canergy.auth.keys import load_key
+from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.extras import require
 from canergy.inspect.captures import CaptureError, read_file
@@ -23,7 +24,7 @@ MAX_PANELS = 12
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "plot",
-        help="plot a capture: per node granted, returned and holdable energy, and the messages",
+        help=SUMMARIES["plot"],
         description="Rebuild every node's books from a capture (as canergy audit does) and draw, "
         "per node, the energy granted (committed), returned and the most it can hold over "
         "time, with the audit's alarms, above a message-sequence chart. Any capture canergy "

@@ -11,13 +11,14 @@ from collections.abc import Iterable
 from typing import Any
 
 from canergy.argtypes import bounded_int
+from canergy.cli.summaries import SUMMARIES
 from canergy.prove import CONFIRMED_BY, RULE_NAMES, TRACE_IN_TESTS
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "prove",
-        help="prove that the rules never create energy, for any number of transactions",
+        help=SUMMARIES["prove"],
         description=(
             "Check with z3 that an inductive invariant of one supervisor session and its "
             "client, with any set of frames in flight (lost, duplicated, reordered, delayed), "

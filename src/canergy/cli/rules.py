@@ -7,13 +7,14 @@ import argparse
 import sys
 from pathlib import Path
 
+from canergy.cli.summaries import SUMMARIES
 from canergy.extras import require
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "rules",
-        help="print the transition tables; --docs DIR also writes the reference and diagrams",
+        help=SUMMARIES["rules"],
     )
     p.add_argument(
         "--docs",

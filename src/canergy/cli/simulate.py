@@ -16,6 +16,7 @@ from canergy.cli.shared.sim import (
     sim_config,
     strategies,
 )
+from canergy.cli.summaries import SUMMARIES
 from canergy.extras import require
 from canergy.sim.engine import simulate
 
@@ -23,7 +24,7 @@ from canergy.sim.engine import simulate
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "simulate",
-        help="discrete-event simulation of the paper's case study (and more)",
+        help=SUMMARIES["simulate"],
         description="Simulate one supervisor and K clients in virtual time over a channel model "
         "and write DIR/summary.json, DIR/trace.csv and PNG figures.",
     )

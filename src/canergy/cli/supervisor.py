@@ -24,6 +24,7 @@ from canergy.cli.shared.live import (
     start_without_flag,
     supervisor_flags,
 )
+from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.core.supervisor import SupervisorCore
 from canergy.live.bus_args import bus_where, open_bus, open_bus_at
@@ -50,7 +51,7 @@ EXIT_INTRUSION = 3
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
         "supervisor",
-        help="grant energy to client nodes on a CAN bus",
+        help=SUMMARIES["supervisor"],
         description="Run the supervisor: keep nodes topped up and/or serve one-shot grants. "
         "SIGINT/SIGTERM stop it cleanly (open transactions settle or are written off).",
     )

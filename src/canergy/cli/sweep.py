@@ -18,6 +18,7 @@ from canergy.cli.shared.sim import (
     sim_config,
     strategies,
 )
+from canergy.cli.summaries import SUMMARIES
 from canergy.extras import require
 
 SEEDS_MAX = 100_000
@@ -27,7 +28,7 @@ SEEDS_MAX = 100_000
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     s = sub.add_parser(
         "sweep",
-        help="Monte Carlo over loss rates, many seeds per point, all cores",
+        help=SUMMARIES["sweep"],
         description="Run every strategy at every loss rate for --seeds seeds and write "
         "DIR/sweep.csv and DIR/sweep.png (generated and dissipated energy per transaction).",
     )

@@ -11,10 +11,7 @@ import can.cli
 
 from canergy.argtypes import bounded_int, id_base
 from canergy.codec import DEFAULT_ID_BASE, ID_MASK
-
-
-class BusOpenError(RuntimeError):
-    """The bus could not be opened; the message says what to fix."""
+from canergy.errors import BusOpenError
 
 
 def add_bus_flags(

@@ -1,6 +1,6 @@
 """One supervisor over several buses: one usable budget, one core, one ``BusRuntime`` per bus.
 
-The core keys each node's session ``bus index << 8 | node`` (``canergy.live.bus_keys``), so node 5
+The core keys each node's session ``bus index << 8 | node`` (``canergy.bus_keys``), so node 5
 on two buses are two sessions. A ``BusPort`` per bus stands between its runtime and the shared
 ``SupervisorService``: what arrives on bus i is handed over with its node replaced by the key,
 and every message the service returns is sent on the bus its key names, as a plain node id.
@@ -17,8 +17,8 @@ import can
 
 from canergy.argtypes import node_ids
 from canergy.auth.frames import Verdict
+from canergy.bus_keys import bus_of, node_of, session_key
 from canergy.codec import DecodeError
-from canergy.live.bus_keys import bus_of, node_of, session_key
 from canergy.live.runtime import BusRuntime, RawFrame
 from canergy.live.service import SupervisorService
 from canergy.messages import Message

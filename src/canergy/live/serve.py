@@ -73,7 +73,7 @@ def answer_control(
 ) -> None:
     """One request on the control socket: a grant, the status, a stop, or (with CANopen) the
     SDO audit."""
-    from canergy.live.bus_keys import parse_node_name
+    from canergy.bus_keys import parse_node_name
 
     if req.get("audit") is True:
         if manager is None:

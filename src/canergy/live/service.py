@@ -17,6 +17,7 @@ from typing import Any, TextIO, cast
 import can
 
 from canergy.auth.frames import AuthFailure, Verdict, expected_freshness, frame_direction
+from canergy.bus_keys import node_name
 from canergy.codec import DecodeError
 from canergy.core import (
     Acknowledged,
@@ -33,7 +34,6 @@ from canergy.core.state import Outcome, Phase
 from canergy.core.supervisor import SupervisorCore
 from canergy.core.witnessed import answered
 from canergy.live.atomic import write_json_atomic
-from canergy.live.bus_keys import node_name
 from canergy.live.control import ControlServer
 from canergy.live.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps

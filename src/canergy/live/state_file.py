@@ -36,12 +36,12 @@ from typing import Any, NoReturn
 
 from canergy.auth.keys import EPOCH_MAX
 from canergy.auth.state_key import StateSeal, claim
+from canergy.bus_keys import node_name, parse_node_id, session_key
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.core.table import SupervisorTable
 from canergy.core.variants import VARIANTS
 from canergy.frozen import evolve
 from canergy.live.atomic import write_atomic
-from canergy.live.bus_keys import node_name, parse_node_id, session_key
 from canergy.messages import (
     AMOUNT_MAX_MJ,
     COUNTER_BOUND,

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from canergy.bench import alone, live
-from canergy.bench.wire import frame_bits
 from canergy.cli import main
+from canergy.frame_bits import frame_bits
 from firmware_model.nvstore import RECORD_SIZE, SLOT_SIZE
 
 

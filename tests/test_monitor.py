@@ -17,12 +17,12 @@ from support import monitor_scenario as scenario
 from support.live_rig import Rig
 from support.monitor_scenario import cell
 
-from canergy.bench.wire import frame_bits
 from canergy.cli import main
 from canergy.codec import Codec
 from canergy.core import Supervisor
 from canergy.demo import DemoConfig, run_demo
 from canergy.faults import FaultProfile
+from canergy.frame_bits import frame_bits
 from canergy.inspect.captures import read_file
 from canergy.live.control import ControlServer
 from canergy.live.service import ServiceConfig, SupervisorService

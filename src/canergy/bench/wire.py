@@ -1,10 +1,5 @@
-"""Wire model: bits per frame and per transaction from the actual frames, and the bus's limit.
-
-Classic CAN data frame: SOF, arbitration (11-bit: ID + RTR = 12 bits; 29-bit: ID + SRR + IDE +
-18 + RTR = 32), control (6), data (8 per byte), CRC (15) + delimiter, ACK (2), EOF (7) and the
-3-bit intermission: 47 + 8n bits (11-bit) or 67 + 8n (29-bit); an 8-byte 11-bit frame is 111.
-Bit stuffing adds at most one bit per four after the first, over SOF to the end of the CRC:
-worst case 135 bits for an 8-byte 11-bit frame.
+"""Wire model: bits per transaction from the actual frames (``canergy.frame_bits``), and the
+bus's limit.
 """
 
 from __future__ import annotations
@@ -12,19 +7,11 @@ from __future__ import annotations
 from typing import Any
 
 from canergy.codec import Codec
+from canergy.frame_bits import frame_bits
 from canergy.messages import Ack, Commit, Committed, Intention, Message
 
 NOMINAL: list[Message] = [Intention(1, 1, 500, 0), Ack(1, 1), Commit(1, 1, 500), Committed(1, 1)]
 BITRATES = (125_000, 250_000, 500_000, 1_000_000)
-
-
-def frame_bits(data_bytes: int, extended: bool, worst_stuffing: bool) -> int:
-    fixed = 67 if extended else 47
-    bits = fixed + 8 * data_bytes
-    if worst_stuffing:
-        stuffed_span = (54 if extended else 34) + 8 * data_bytes  # SOF .. end of CRC
-        bits += (stuffed_span - 1) // 4
-    return bits
 
 
 def model() -> dict[str, Any]:

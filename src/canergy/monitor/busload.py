@@ -1,6 +1,6 @@
 """Time a frame occupies the bus, for the load shown in the header.
 
-Classic frames use the wire model of ``canergy.bench.wire`` (47 + 8n bits with 11-bit
+Classic frames use the wire model of ``canergy.frame_bits`` (47 + 8n bits with 11-bit
 identifiers, 67 + 8n with 29-bit ones, intermission included). CAN FD frames add their own
 control and CRC fields; with bit rate switching their data phase runs at the data bit rate. Stuff
 bits depend on the bits themselves and are not counted, so the load shown is a lower bound (at
@@ -13,7 +13,7 @@ from functools import cache
 
 import can
 
-from canergy.bench.wire import frame_bits
+from canergy.frame_bits import frame_bits
 
 _FD_TAIL = 1 + 2 + 7 + 3
 """CRC delimiter, ACK slot and delimiter, end of frame, intermission: at the nominal rate."""

@@ -17,7 +17,7 @@ from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.faults import FaultInjector, FaultProfile
 from canergy.live.faulty_bus import FaultyBus
 from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
-from canergy.live.runtime import BusRuntime
+from canergy.live.runtime import BusCounters, BusRuntime, total_counters
 from canergy.live.state_file import StateFileError, load_state, save_state
 from canergy.messages import USABLE_MAX_UJ, Ack, Direction
 
@@ -199,6 +199,50 @@ def test_receive_errors_are_counted_not_fatal() -> None:
         runtime.poll(0.01)
     bus.shutdown()
     assert runtime.counters.receive_errors == 3
+
+
+class _LinkBus(_FullQueueBus):
+    """An interface the test takes down and back up (``ip link set vcan0 down``): while down,
+    every receive and send fails with ENETDOWN; up, a frame is waiting."""
+
+    def __init__(self) -> None:
+        super().__init__(0, can.CanOperationError("Network is down", error_code=errno.ENETDOWN))
+        self.down = False
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.refusals = int(self.down)
+        super().send(msg, timeout)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if self.down:
+            raise self.error
+        return can.Message(arbitration_id=0x123, data=b"\x01"), False
+
+
+@pytest.mark.parametrize("sees", ["receive", "send"])
+def test_a_link_down_is_in_the_status_until_a_frame_passes_again(sees: str) -> None:
+    """python-can's default ``state`` says ``active`` whatever the link does (vcan0 down for 4 s
+    showed ``bus_state: active``): the status says ``down`` from the first receive or send that
+    fails with the interface gone, and what the driver reports once a frame passes again."""
+    bus = _LinkBus()
+    runtime = BusRuntime(bus, _Quiet(), receives=Direction.TO_SUPERVISOR, sleep=lambda s: None)
+    frame = can.Message(arbitration_id=0x1, data=b"")
+    runtime.poll(0)
+    assert runtime.counters.as_json()["bus_state"] == "unknown"  # the driver reports none
+    bus.down = True
+    if sees == "receive":
+        runtime.poll(0)
+    else:
+        runtime._send_frame(frame)
+    assert runtime.counters.as_json()["bus_state"] == "down"
+    assert total_counters([BusCounters(), runtime.counters]).as_json()["bus_state"] == "down"
+    bus.down = False
+    if sees == "receive":
+        runtime.poll(0)
+    else:
+        runtime._send_frame(frame)
+    assert runtime.counters.as_json()["bus_state"] == "unknown"
+    bus.shutdown()
 
 
 class _StatefulBus(_FullQueueBus):

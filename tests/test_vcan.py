@@ -367,3 +367,35 @@ def test_the_c_node_refuses_an_nv_path_that_is_not_an_nv_file(tmp_path: Path, c_
     )
     assert run.returncode == 2 and "is not an NV file" in run.stderr, run.stderr
     assert notes.read_text() == "not a record"
+
+
+def _link(state: str) -> None:
+    subprocess.run(["ip", "link", "set", IFACE, state], check=True, timeout=30)
+
+
+def test_vcan0_down_is_in_the_status_and_grants_resume_when_it_is_back(procs: Procs) -> None:
+    """``ip link set vcan0 down`` for 4 s under a supervisor and a node: the supervisor's status
+    says ``bus_state: down`` (socketcan reports no state of its own; python-can's default said
+    ``active`` throughout), and once the link is back it says so and grants go on."""
+    sup_status = procs.tmp / "sup.json"
+    supervisor(procs, "1", "--lost-after", "10")
+    client(procs, 1)
+
+    def committed() -> int:
+        return int(status(sup_status)["nodes"]["1"]["committed"]) if sup_status.exists() else 0
+
+    wait(lambda: committed() >= 1, "a first grant")
+    assert status(sup_status)["bus_state"] == "unknown"
+    _link("down")
+    try:
+        wait(lambda: status(sup_status)["bus_state"] == "down", "the link seen down", 60)
+        time.sleep(4)
+    finally:
+        _link("up")
+    wait(lambda: status(sup_status)["bus_state"] == "unknown", "the link seen back", 60)
+    before = committed()
+    wait(lambda: committed() > before, "a grant after the link came back")
+    assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
+    assert procs.stop("client1") == 0, procs.stderr("client1")
+    books = ledger_from_status(status(sup_status), [status(procs.tmp / "n1.json")])
+    assert books.dissipated >= 0, books

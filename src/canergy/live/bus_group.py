@@ -46,13 +46,13 @@ class BusGroup:
             try:
                 frame = runtime.bus.recv(timeout=0.1)
             except can.CanError:  # the interface went down: counted by the loop, retried
-                runtime.counters.receive_errors += 1
+                runtime.counters.receive_failed()
                 time.sleep(0.1)
                 continue
             except Exception:  # a bus closed under us at shutdown, or a driver's own error
                 if self._running:
                     log.exception("bus %d: receive failed; retrying", i)
-                    runtime.counters.receive_errors += 1
+                    runtime.counters.receive_failed()
                     time.sleep(0.1)
                 continue
             if frame is None:

@@ -106,6 +106,11 @@ class BusCounters:
     receive_errors: int = 0
     error_frames: int = 0
     bus_state: str = "unknown"
+    """What the interface reports (python-can's ``BusState``), or ``unknown`` where its driver
+    reports nothing (python-can's default answers ``active`` whatever the link does)."""
+    link_down: bool = False
+    """The last receive or send failed and none has succeeded since: the status then says
+    ``bus_state: down`` whatever the driver reports."""
     decode_reasons: dict[str, int] = field(default_factory=dict)
     auth_failures: dict[str, int] = field(default_factory=dict)
     auth: str | None = None
@@ -113,6 +118,12 @@ class BusCounters:
     bus_note: str | None = None
     """Why nothing is heard, when the loop knows (python-can's virtual bus within one process
     only: ``canergy.live.virtual_alone``); in the status only when set."""
+
+    def receive_failed(self) -> None:
+        """A receive raised (the interface went down, a driver's error): counted, and the link
+        taken as down until a frame is sent or received."""
+        self.receive_errors += 1
+        self.link_down = True
 
     def as_json(self) -> dict[str, Any]:
         return {
@@ -125,7 +136,7 @@ class BusCounters:
             "send_failures": self.send_failures,
             "receive_errors": self.receive_errors,
             "error_frames": self.error_frames,
-            "bus_state": self.bus_state,
+            "bus_state": "down" if self.link_down else self.bus_state,
             "auth_failures": dict(self.auth_failures),
             "auth": self.auth,
             **({"bus_note": self.bus_note} if self.bus_note else {}),
@@ -134,6 +145,9 @@ class BusCounters:
 
 _BUS_STATES = ("error", "passive", "active")
 """python-can's bus states, worst first."""
+
+_LINK_DOWN = (errno.ENETDOWN, errno.ENODEV, errno.ENXIO)
+"""What a send fails with when the interface itself is gone (``ip link set vcan0 down``)."""
 
 
 def total_counters(counters: Iterable[BusCounters]) -> BusCounters:
@@ -152,6 +166,7 @@ def total_counters(counters: Iterable[BusCounters]) -> BusCounters:
                 for reason, count in theirs.items():
                     mine[reason] = mine.get(reason, 0) + count
         states.add(c.bus_state)
+        total.link_down = total.link_down or c.link_down
     total.bus_state = next((s for s in _BUS_STATES if s in states), "unknown")
     total.auth = min(layouts, default=None)
     return total
@@ -352,7 +367,7 @@ class BusRuntime:
         try:
             frame = self._recv(wait)
         except can.CanError:  # e.g. the interface went down: count, back off, keep going
-            self.counters.receive_errors += 1
+            self.counters.receive_failed()
             self.sleep(min(wait, 0.1))
             frame = None
         self.begin_pass()
@@ -411,7 +426,7 @@ class BusRuntime:
         try:
             return self._recv(0)
         except can.CanError:
-            self.counters.receive_errors += 1
+            self.counters.receive_failed()
             return None
 
     def run(self, until: Callable[[], bool], max_wait_s: float = 0.1) -> None:
@@ -427,6 +442,7 @@ class BusRuntime:
             self.counters.error_frames += 1
             return
         self.counters.frames_received += 1
+        self.counters.link_down = False
         if self._fast is not None and self._fast(frame, self.clock()):
             return
         try:
@@ -527,15 +543,20 @@ class BusRuntime:
             except can.CanError as exc:
                 if attempt + 1 == policy.attempts or not _retryable(exc):
                     self.counters.send_failures += 1  # lost, as far as the protocol goes
+                    if getattr(exc, "error_code", None) in _LINK_DOWN:
+                        self.counters.link_down = True
                     return
                 self.counters.send_retries += 1
                 self.sleep(backoff)
                 backoff = min(backoff * 2, policy.max_backoff_s)
             else:
                 self.counters.frames_sent += 1
+                self.counters.link_down = False
                 return
 
     def _update_bus_state(self) -> None:
+        if type(self.bus).state is can.BusABC.state:  # the driver reports none: say unknown
+            return
         try:
             state = self.bus.state
         except (NotImplementedError, can.CanError):

@@ -7,6 +7,7 @@ import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import can
 import canopen
@@ -159,6 +160,37 @@ def test_the_sdo_audit_matches_the_books(bench: Bench) -> None:
     bench.manager.start_all()
     bench.wait(lambda: all(n.client.state.credited >= UJ_PER_J for n in bench.host.nodes.values()))
     report = bench.manager.audit(bench.service.books)
+    assert report["consistent"], report
+    assert all(report["nodes"][str(n)]["credited_uj"] > 0 for n in NODES)
+
+
+def test_the_control_sockets_sdo_audit_reads_the_books_on_the_loop_thread(bench: Bench) -> None:
+    """``{"audit": true}``: the SDO reads block, so they run on a thread of their own; the
+    comparison with the books is handed back to the loop thread, the only one that touches
+    them (a C core's sessions are then never read while a frame is handled)."""
+    import queue
+    import threading
+
+    from canergy.live.serve import answer_control
+
+    bench.manager.start_all()
+    bench.wait(lambda: all(n.client.state.credited >= UJ_PER_J for n in bench.host.nodes.values()))
+    posted: queue.SimpleQueue[Any] = queue.SimpleQueue()
+    readers: list[threading.Thread] = []
+    replies: list[dict[str, Any]] = []
+    books = bench.service.books
+
+    def watched_books() -> dict[int, dict[str, int]]:
+        readers.append(threading.current_thread())
+        return books()
+
+    bench.service.books = watched_books  # type: ignore[method-assign]
+    answer_control(bench.service, {"audit": True}, replies.append, bench.manager, posted.put)
+    compare = posted.get(timeout=30)  # the reads done, off this thread
+    assert replies == [] and readers == []
+    compare()
+    assert readers == [threading.current_thread()]
+    (report,) = replies
     assert report["consistent"], report
     assert all(report["nodes"][str(n)]["credited_uj"] > 0 for n in NODES)
 

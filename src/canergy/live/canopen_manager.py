@@ -97,12 +97,15 @@ class CanopenManager:
     def audit(
         self, books: Callable[[], dict[int, dict[str, int]]], timeout_s: float = 2.0
     ) -> dict[str, Any]:
-        """Read each node's energy objects by SDO and compare with the supervisor's books: a
-        node can hold at most what the books released to it (delivered or still reserved), less
-        what it returned. The reads are not atomic: spent is read before usable (spending moves
-        energy from usable to spent) and the books after both (they only grow meanwhile)."""
-        nodes: dict[str, Any] = {}
-        ok = True
+        """Each node's energy objects read by SDO and compared with the supervisor's books (read
+        after them), in one call: ``read_energy`` then ``compare``."""
+        return compare(self.read_energy(timeout_s), books())
+
+    def read_energy(self, timeout_s: float = 2.0) -> dict[int, dict[str, int] | str]:
+        """Each node's credited, spent and usable energy read by SDO (blocking: run it off the
+        loop thread), or why it could not be read. Spent is read before usable (spending moves
+        energy from usable to spent), so the two never count one µJ twice."""
+        readings: dict[int, dict[str, int] | str] = {}
         for n, remote in self.remotes.items():
             remote.sdo.RESPONSE_TIMEOUT = timeout_s
             try:
@@ -110,18 +113,34 @@ class CanopenManager:
                 spent = int(remote.sdo["Spent uJ"].raw)
                 usable = int(remote.sdo["Usable budget uJ"].raw)
             except (canopen.SdoCommunicationError, canopen.SdoAbortedError) as exc:
-                nodes[str(n)] = {"error": str(exc)}
-                ok = False
+                readings[n] = str(exc)
                 continue
-            b = books()[n]
-            allowed = b["delivered_uj"] + b["reserved_uj"] - b["returned_uj"]
-            node_ok = usable + spent <= allowed
-            nodes[str(n)] = {
-                "usable_uj": usable,
-                "spent_uj": spent,
-                "credited_uj": credited,
-                "books_allow_uj": allowed,
-                "consistent": node_ok,
-            }
-            ok = ok and node_ok
-        return {"nodes": nodes, "consistent": ok}
+            readings[n] = {"credited_uj": credited, "spent_uj": spent, "usable_uj": usable}
+        return readings
+
+
+def compare(
+    readings: dict[int, dict[str, int] | str], books: dict[int, dict[str, int]]
+) -> dict[str, Any]:
+    """The SDO audit's verdict: a node can hold at most what the books released to it (delivered
+    or still reserved), less what it returned. ``books`` must be taken after the reads (on the
+    thread that owns them): they only grow meanwhile, so a node found over them is over."""
+    nodes: dict[str, Any] = {}
+    ok = True
+    for n, reading in readings.items():
+        if isinstance(reading, str):
+            nodes[str(n)] = {"error": reading}
+            ok = False
+            continue
+        b = books[n]
+        allowed = b["delivered_uj"] + b["reserved_uj"] - b["returned_uj"]
+        node_ok = reading["usable_uj"] + reading["spent_uj"] <= allowed
+        nodes[str(n)] = {
+            "usable_uj": reading["usable_uj"],
+            "spent_uj": reading["spent_uj"],
+            "credited_uj": reading["credited_uj"],
+            "books_allow_uj": allowed,
+            "consistent": node_ok,
+        }
+        ok = ok and node_ok
+    return {"nodes": nodes, "consistent": ok}

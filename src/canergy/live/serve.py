@@ -4,6 +4,7 @@ between polls each does its own periodic work (control requests, status files)."
 
 from __future__ import annotations
 
+import queue
 import signal
 import threading
 from collections.abc import Callable
@@ -53,13 +54,18 @@ def serve_supervisor(
     request stops it and it has settled; answer control requests; with CANopen (``manager``)
     tell it of rebooted nodes. The last status is written at the end."""
 
+    posted: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
+    """Work other threads hand to this one: only the loop thread touches the books."""
+
     def each(now: int) -> None:
+        while not posted.empty():
+            posted.get_nowait()()
         if manager is not None and not service.config.listen_only:
             for node in manager.rebooted():
                 service.node_rebooted(node, now)
         if control is not None:
             for req, reply in control.pending():
-                answer_control(service, req, reply, manager)
+                answer_control(service, req, reply, manager, posted.put)
         if until is not None and until():
             service.stop(now)
 
@@ -69,19 +75,30 @@ def serve_supervisor(
 
 
 def answer_control(
-    service: SupervisorService, req: dict[str, Any], reply: Any, manager: Any = None
+    service: SupervisorService,
+    req: dict[str, Any],
+    reply: Any,
+    manager: Any = None,
+    post: Callable[[Callable[[], None]], None] | None = None,
 ) -> None:
     """One request on the control socket: a grant, the status, a stop, or (with CANopen) the
-    SDO audit."""
+    SDO audit, whose comparison with the books ``post`` hands back to the loop thread."""
     from canergy.bus_keys import parse_node_name
 
     if req.get("audit") is True:
         if manager is None:
             reply({"error": "the SDO audit needs --canopen"})
             return
-        # SDO reads block: answer from a thread while the loop keeps running
-        audit = manager.audit
-        threading.Thread(target=lambda: reply(audit(service.books)), daemon=True).start()
+        if post is None:
+            reply({"error": "the SDO audit needs the serve loop"})
+            return
+        from canergy.live.canopen_manager import compare
+
+        def read_then_compare() -> None:  # SDO reads block: off the loop, which keeps running
+            readings = manager.read_energy()
+            post(lambda: reply(compare(readings, service.books())))
+
+        threading.Thread(target=read_then_compare, daemon=True).start()
         return
     if req.get("status") is True:
         reply(service.status())

@@ -28,7 +28,15 @@ from canergy.core.inputs import (
     PowerLoss,
     Spend,
 )
-from canergy.core.state import ClientState, Decision, Outcome, Phase, Session, SupervisorState
+from canergy.core.state import (
+    SYNC_PHASES,
+    ClientState,
+    Decision,
+    Outcome,
+    Phase,
+    Session,
+    SupervisorState,
+)
 from canergy.core.steps import ClientStep
 from canergy.core.timing import Timing
 from canergy.core.witnessed import CLIENT as W_CLIENT
@@ -36,6 +44,7 @@ from canergy.core.witnessed import SUPERVISOR as W_SUPERVISOR
 from canergy.messages import (
     COUNTER_END,
     QUANTUM_UJ,
+    SYNC_CONFIRMED,
     USABLE_MAX_UJ,
     Abort,
     Aborted,
@@ -328,15 +337,38 @@ def test_a_gateways_forward_and_give_back_from_below(c: ClientState, amount: int
         same_client(CLIENT.step(T, up, GiveBack(amount), 0), (state, sent))
 
 
-# -- the witnessed rules (canergy.prove.witnessed against canergy.core.witnessed): only the cells
-# the terms model (their module docstring says which; SYNC and its answers are not) ----------
+# -- the witnessed rules (canergy.prove.witnessed against canergy.core.witnessed), both sides'
+# starts included: RESUME, SYNC, its books and counts, the window ------------------------------
+
+
+def frames_python(actions: tuple[Any, ...]) -> list[tuple[int, ...]]:
+    """Every frame a step sends, in order, as (type, fields...)."""
+    return [f for a in actions if isinstance(a, Send) for f in [sent_python((a,))] if f]
+
+
+def frames_symbolic(frames: sym_w.Frames, expected: list[tuple[int, ...]]) -> list[Any]:
+    out = []
+    for i, frame in enumerate(frames):
+        width = len(expected[i]) - 1 if i < len(expected) else 0
+        got = sent_symbolic(frame, width)
+        if got is not None:
+            out.append(got)
+    return out
+
+
+def same_client_w(py: Any, symbolic: tuple[sym.Client, sym_w.Frames]) -> None:
+    state, frames = symbolic
+    assert client_fields(state) == client_fields(py.client)
+    expected = frames_python(py.actions)
+    assert frames_symbolic(frames, expected) == expected
+    assert not value(frames[1].present) or value(frames[0].present)
 
 
 @st.composite
 def witnessed_clients(draw: Any) -> ClientState:
     """A client of the witnessed rules: any phase of their table, a pending draw or return."""
     c = draw(clients())
-    phase = draw(st.sampled_from([c.phase, Phase.RESUMING]))
+    phase = draw(st.sampled_from([c.phase, Phase.RESUMING, Phase.SYNCING]))
     held = phase is Phase.AWAIT_COMMAND
     return replace(
         c,
@@ -349,16 +381,36 @@ def witnessed_clients(draw: Any) -> ClientState:
 
 @st.composite
 def witnessed_sessions(draw: Any) -> Session:
-    """A session with the last RESUME it answered, often the one about to arrive again."""
+    """A session with the last start it answered, often the one about to arrive again, W at
+    most tx, and any phase of the witnessed table (a start's two)."""
     s = draw(sessions())
+    start = draw(st.sampled_from([None, Phase.SYNCING, Phase.SYNC_BOOKS]))
+    if start is not None:
+        s = replace(s, phase=start, reserved=0, decision=Decision.NONE)
+    if s.phase not in (Phase.IDLE, *SYNC_PHASES):
+        s = replace(s, tx=max(1, s.tx))  # an open transaction is numbered from 1
     to = draw(st.one_of(st.just(s.returns_credited), st.just(0), counters))
     near_c = st.integers(-2, 2).map(lambda d: max(0, s.returns_credited + d))
     return replace(
         s,
-        resume_nonce=draw(st.integers(0, 3)),
+        resume_nonce=draw(st.integers(0, 3)) | draw(st.sampled_from([0, 1 << 16])),
         resume_from=draw(st.one_of(near_c, counters)),
         resume_to=to,
+        witness=draw(st.one_of(st.integers(max(0, s.tx - 70), s.tx), st.integers(0, s.tx))),
+        sync_nonce=draw(st.integers(0, 3)) if start is not None else 0,
     )
+
+
+def witnessed_fields(s: Session | sym.Session) -> dict[str, int]:
+    names = ("resume_nonce", "resume_from", "resume_to", "witness", "sync_nonce")
+    if isinstance(s, Session):
+        return {n: getattr(s, n) % (1 << 32) for n in names}  # the core keeps an unwrapped -q
+    return {n: int(value(getattr(s, n))) for n in names}
+
+
+def same_session_w(py: Any, step: sym.SessionStep) -> None:
+    same_session(py, step)
+    assert witnessed_fields(step.session) == witnessed_fields(py.session)
 
 
 @settings(max_examples=400)
@@ -368,30 +420,26 @@ def test_witnessed_client_answers(data: st.DataObject) -> None:
     s = sym_client(c)
     tx, amount = data.draw(wire_near(c.last_tx)), data.draw(amounts)
     delivered = data.draw(st.integers(0, (1 << 24) - 1))
-    same_client(
+    same_client_w(
         W_CLIENT.step(T, c, Intention(1, tx, amount, delivered), 0),
         sym_w.on_intention(s, z3.BitVecVal(tx, 16), z3.IntVal(amount), z3.IntVal(delivered)),
     )
     for commit in (True, False):
         msg = (Commit if commit else Abort)(1, tx, amount)
-        same_client(
+        same_client_w(
             W_CLIENT.step(T, c, msg, 0),
             sym_w.on_command(s, commit, z3.BitVecVal(tx, 16), z3.IntVal(amount)),
         )
     seq = data.draw(wire_near(c.return_seq))
-    same_client(
+    same_client_w(
         W_CLIENT.step(T, c, ReturnAck(1, seq), 0), sym_w.on_debit_ack(s, z3.BitVecVal(seq, 16))
     )
-    if c.phase is Phase.JOINING:
-        nonce = data.draw(st.one_of(st.just(c.nonce), st.integers(0, 0xFFFF)))
-    elif c.phase is Phase.RESUMING:
-        nonce = c.nonce  # another nonce is a SYNC, which the terms do not model
-    else:
-        return  # an ADMIT while booked is a SYNC: not modelled
+    ours = c.nonce ^ SYNC_CONFIRMED if c.phase is Phase.SYNCING else c.nonce
+    nonce = data.draw(st.sampled_from([c.nonce, ours, c.nonce ^ 1, 0]))
     q = data.draw(st.one_of(wire_near(c.return_seq + 1), st.integers(0, 0xFFFF)))
-    same_client(
+    same_client_w(
         W_CLIENT.step(T, c, Admit(1, nonce, tx, q), 0),
-        sym_w.on_admit(s, *(z3.BitVecVal(v, 16) for v in (nonce, tx, q))),
+        sym_w.on_admit(s, *(z3.BitVecVal(v, 16) for v in (nonce, tx, q)), window=T.window),
     )
 
 
@@ -414,15 +462,18 @@ def test_witnessed_client_requests_timers_and_starts(
         else:
             assert value(allowed)
             same_client(py, (state, sent))
-    same_client(W_CLIENT.step(T, due(c), RETURN_TIMEOUT, 0), sym_w.resend(s))
+    same_client_w(W_CLIENT.step(T, due(c), RETURN_TIMEOUT, 0), sym_w.resend(s))
     if c.phase is Phase.AWAIT_COMMAND:
-        same_client(W_CLIENT.step(T, due(c), CommandTimeout(), 0), sym_w.timeout_commit(s))
-    same_client(
+        same_client_w(W_CLIENT.step(T, due(c), CommandTimeout(), 0), sym_w.timeout_commit(s))
+    same_client_w(
         W_CLIENT.step(T, c, PowerLoss(nonce), 0), sym_w.power_loss(s, z3.BitVecVal(nonce, 16))
     )
-    same_client(
+    same_client_w(
         W_CLIENT.step(T, c, BooksLost(nonce), 0), sym_w.books_lost(s, z3.BitVecVal(nonce, 16))
     )
+
+
+DEBIT_FLAGS = [Debit.DRAW, Debit.START, Debit.START | Debit.DRAW, sym_w.COUNTS, Debit.BOOKS]
 
 
 @settings(max_examples=400)
@@ -430,32 +481,69 @@ def test_witnessed_client_requests_timers_and_starts(
 def test_witnessed_supervisor_answers_debits(data: st.DataObject) -> None:
     s = data.draw(witnessed_sessions())
     seq = data.draw(st.one_of(wire_near(s.returns_credited), wire_near(s.resume_from)))
-    nonce = data.draw(st.integers(0, 3))
-    flags = data.draw(st.sampled_from([Debit.DRAW, Debit.START, Debit.START | Debit.DRAW]))
+    nonce = data.draw(st.one_of(st.integers(0, 3), st.just(s.sync_nonce)))
+    flags = data.draw(st.sampled_from(DEBIT_FLAGS))
     amount = 0 if flags == Debit.START and data.draw(st.booleans()) else data.draw(amounts)
+    if flags == sym_w.COUNTS:  # ltx on the wire
+        amount = data.draw(wire_near(s.tx))
+    if flags == Debit.BOOKS:  # Rc: its high 8 bits in the amount field
+        rc = data.draw(
+            near(st.integers(-3, 3).map(lambda d: (s.delivered // 1000 + d) % (1 << 24)), 24)
+        )
+        seq, amount = rc & 0xFFFF, rc >> 16
     if flags == Debit.DRAW:
         nonce = 0
     msg = Debit(1, nonce, flags, seq, amount)
     args = (z3.BitVecVal(nonce, 16), z3.IntVal(flags), z3.BitVecVal(seq, 16), z3.IntVal(amount))
-    step = sym_w.on_debit(sym_session(s), *args)
-    py = W_SUPERVISOR.step(T, s, msg, 0)
-    same_session(py, step)
-    names = ("resume_nonce", "resume_from", "resume_to")
-    assert {n: value(getattr(step.session, n)) for n in names} == {
-        n: getattr(py.session, n) % (1 << 32)
-        for n in names  # the core keeps an unwrapped -q
-    }
-    same_session(W_SUPERVISOR.step(T, s, Join(1, nonce), 0), sym_w.admit(sym_session(s), args[0]))
+    same_session_w(W_SUPERVISOR.step(T, s, msg, 0), sym_w.on_debit(sym_session(s), *args))
+    same_session_w(W_SUPERVISOR.step(T, s, Join(1, nonce), 0), sym_w.admit(sym_session(s), args[0]))
+    same_session_w(
+        W_SUPERVISOR.step(T, s, Return(1, seq, max(1, amount)), 0),
+        sym_w.credit_return(sym_session(s), args[2], z3.IntVal(max(1, amount))),
+    )
+
+
+@settings(max_examples=300)
+@given(witnessed_sessions(), st.data())
+def test_witnessed_supervisor_responses_starts_and_window(s: Session, data: st.DataObject) -> None:
+    tx = data.draw(wire_near(s.tx))
+    bv = z3.BitVecVal(tx, 16)
+    for msg, cell in (
+        (Ack(1, tx), sym_w.on_ack),
+        (Committed(1, tx), sym_w.on_committed),
+        (Aborted(1, tx), sym_w.on_aborted),
+    ):
+        same_session_w(W_SUPERVISOR.step(T, s, msg, 0), cell(sym_session(s), bv))
+    tries = data.draw(st.integers(0, 6))
+    same_session_w(
+        W_SUPERVISOR.step(T, replace(s, tries=tries, deadline=0), RESPONSE_TIMEOUT, 0),
+        sym_w.response_timeout(sym_session(s), z3.BoolVal(tries > T.retries)),
+    )
+    nonce = data.draw(st.integers(0, 0xFFFF))
+    same_session_w(
+        W_SUPERVISOR.step(T, s, PowerLoss(nonce), 0),
+        sym_w.start(sym_session(s), z3.BitVecVal(nonce, 16)),
+    )
+    if s.phase is Phase.IDLE:
+        amount = data.draw(amounts) * QUANTUM_UJ
+        room = value(sym_w.may_begin(sym_session(s), T.window))
+        try:
+            py = W_SUPERVISOR.step(T, s, Begin(amount), 0)
+        except LocalProtocolError:
+            assert not room
+        else:
+            assert room
+            same_session_w(py, sym.begin(sym_session(s), z3.IntVal(amount)))
 
 
 def test_a_resume_far_behind_a_lifted_count_is_voided_above_the_lift() -> None:
     """C lifted to tx's high half lies 2**31 above a q unwrapped below 0: the voided number is
     the lifted C + 1, which a signed comparison of the two would get wrong."""
-    s = Session(1, tx=1 << 31)
+    s = Session(1, tx=1 << 31, witness=1 << 31)
     msg = Debit(1, 0, Debit.START, 0x8000, 0)
     py = W_SUPERVISOR.step(T, s, msg, 0)
     args = (z3.BitVecVal(0, 16), z3.IntVal(Debit.START), z3.BitVecVal(0x8000, 16), z3.IntVal(0))
-    same_session(py, sym_w.on_debit(sym_session(s), *args))
+    same_session_w(py, sym_w.on_debit(sym_session(s), *args))
     assert py.session.returns_credited == (1 << 31) + 1
 
 
@@ -467,8 +555,16 @@ def test_a_resume_far_behind_a_lifted_count_is_voided_above_the_lift() -> None:
             Session(1, returns_credited=COUNTER_END - 1),
             Debit(1, 9, Debit.START, COUNTER_END & 0xFFFF, 2),
         ),
+        (  # a RESUME with the nonce a SYNC's counts were answered under: answered afresh
+            Session(1, returns_credited=5, resume_nonce=9 | 1 << 16, resume_from=4, resume_to=5),
+            Debit(1, 9, Debit.START, 4, 0),
+        ),
+        (  # the counts of that SYNC again: the same answer, nonce flipped
+            Session(1, returns_credited=5, resume_nonce=9 | 1 << 16, resume_from=4, resume_to=5),
+            Debit.counts(1, 9, 4, 0),
+        ),
     ],
-    ids=["first-resume", "return-at-the-end"],
+    ids=["first-resume", "return-at-the-end", "resume-after-counts", "counts-again"],
 )
 def test_witnessed_resumes_at_the_edges(s: Session, msg: Debit) -> None:
     args = (
@@ -477,7 +573,7 @@ def test_witnessed_resumes_at_the_edges(s: Session, msg: Debit) -> None:
         z3.BitVecVal(msg.seq, 16),
         z3.IntVal(msg.amount_mj),
     )
-    same_session(W_SUPERVISOR.step(T, s, msg, 0), sym_w.on_debit(sym_session(s), *args))
+    same_session_w(W_SUPERVISOR.step(T, s, msg, 0), sym_w.on_debit(sym_session(s), *args))
 
 
 @pytest.mark.parametrize("seq", [COUNTER_END - 2, COUNTER_END - 1])

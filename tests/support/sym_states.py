@@ -36,7 +36,9 @@ def sym_session(s: Session) -> sym.Session:
         decision=z3.IntVal(int(s.decision)),
         returns_credited=sym.counter(s.returns_credited),
         returned=z3.IntVal(s.returned),
-        resume_nonce=z3.BitVecVal(s.resume_nonce, 16),
+        resume_nonce=z3.BitVecVal(s.resume_nonce, sym.KEY_BITS),
         resume_from=sym.counter(s.resume_from),
         resume_to=sym.counter(s.resume_to),
+        witness=sym.counter(s.witness),
+        sync_nonce=z3.BitVecVal(s.sync_nonce, 16),
     )

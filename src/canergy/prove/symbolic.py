@@ -298,15 +298,24 @@ class Session:
     returns_credited: Term
     returned: Term
     resume_nonce: Term
-    """The last RESUME answered (witnessed rules; hardened: never moved): its nonce, the node's
-    debit number in it and the number voided."""
+    """The last start answered (witnessed rules; hardened: never moved): its key (17 bits: the
+    nonce, and above it whether it was a SYNC's counts), the node's debit number in it and the
+    number voided."""
     resume_from: Term
     resume_to: Term
+    witness: Term
+    """W, the highest transaction the node has shown it persisted (witnessed rules)."""
+    sync_nonce: Term
+    """The nonce of the supervisor's start, SYNC(n), while it waits (witnessed rules)."""
 
 
 S_IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM = (
     z3.IntVal(int(p)) for p in (Phase.IDLE, Phase.WAIT_ACK, Phase.ACKED, Phase.WAIT_CONFIRM)
 )
+SYNCING, SYNC_BOOKS = z3.IntVal(int(Phase.SYNCING)), z3.IntVal(int(Phase.SYNC_BOOKS))
+"""A start's phases (witnessed rules): the supervisor's, and the node's answering a SYNC."""
+KEY_BITS = 17
+"""``Session.resume_nonce``: a nonce and whether it was a SYNC's counts."""
 NO_DECISION, ABORT = z3.IntVal(int(Decision.NONE)), z3.IntVal(int(Decision.ABORT))
 
 

@@ -1,31 +1,44 @@
 """The witnessed rules (``canergy.core.witnessed``) as z3 terms: the cells they add to or change
-in the hardened tables, and a start from an older image of the node's record.
+in the hardened tables, both sides' starts included.
 
 Each handler dispatches as the witnessed tables do (an event a phase has no cell for leaves the
 state as it is) and reuses the hardened terms of ``symbolic`` for the cells the two share.
 ``tests/test_prove_symbolic.py`` compares every handler with the Python tables on concrete
 states drawn by hypothesis, as it does the hardened ones.
 
-A DEBIT is sent as ``Sent.of(DEBIT, q, amount_mj, flags, nonce)``.
-
-Not modelled (the comparison draws none of them): the supervisor side of a start, SYNC and its
-answers (the session phases SYNCING and SYNC_BOOKS, the books and counts, a supervisor power
-loss, the window on BEGIN) and the node's answer to a SYNC (its phase SYNCING, and an ADMIT
-that does not answer the node's own start: a SYNC, answered with two frames, which ``Sent``
-cannot carry). The terms cover the node's draws, starts (RESUME) and their confirmation, and
-the supervisor's DRAW, RESUME and JOIN cells.
+A DEBIT is sent as ``Sent.of(DEBIT, q, amount_mj, flags, nonce)``; a SYNC's books as a DEBIT
+with Rc's low 16 bits in ``q`` and its high 8 in ``amount_mj``, its counts with ltx's 16 wire
+bits in ``amount_mj``. A client step sends up to two frames (``Frames``: the answer to a SYNC is
+its books, then its counts; every other step sends at most the first). Timers are taken as due;
+deadlines are not modelled.
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
 
-from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, SEQ_BITS, TX_BITS, Debit, MsgType
+from canergy.messages import (
+    AMOUNT_MAX_MJ,
+    DELIVERED_BITS,
+    NONCE_BITS,
+    QUANTUM_UJ,
+    SEQ_BITS,
+    SYNC_CONFIRMED,
+    TX_BITS,
+    Debit,
+    MsgType,
+)
 from canergy.prove import symbolic as sym
 from canergy.prove.symbolic import Client, Sent, Session, SessionStep, Term, z3
 
 BOOKED_PHASES = (sym.IDLE, sym.HOLDING)
-DRAW, START = Debit.DRAW, Debit.START
+DRAW, START, SYNC, BOOKS = Debit.DRAW, Debit.START, Debit.SYNC, Debit.BOOKS
+COUNTS = START | SYNC
+WINDOW = 64
+"""B (``Timing.window``): the handlers take it as a parameter, this default as the core's."""
+
+Frames = tuple[Sent, Sent]
+"""What a client step sends: a frame, and a second one only in a SYNC's answer (its counts)."""
 
 
 def booked(c: Client) -> Term:
@@ -34,6 +47,20 @@ def booked(c: Client) -> Term:
 
 def _zero16() -> Term:
     return z3.BitVecVal(0, 16)
+
+
+def one(sent: Sent) -> Frames:
+    return sent, Sent.none()
+
+
+def pick_frames(cond: Term, yes: Frames, no: Frames) -> Frames:
+    return sym.pick(cond, yes[0], no[0]), sym.pick(cond, yes[1], no[1])
+
+
+def _choose(
+    cond: Term, yes: tuple[Client, Frames], no: tuple[Client, Frames]
+) -> tuple[Client, Frames]:
+    return sym.pick(cond, yes[0], no[0]), pick_frames(cond, yes[1], no[1])
 
 
 # -- the client ----------------------------------------------------------------------------------
@@ -58,6 +85,26 @@ def resume_of(c: Client) -> Sent:
     flags = z3.If(c.pending_draw, START | DRAW, START)
     pending = c.return_pending / QUANTUM_UJ
     return Sent.of(MsgType.DEBIT, sym.low(c.return_seq, SEQ_BITS), pending, flags, c.nonce)
+
+
+def answer_of(c: Client) -> Frames:
+    """The answer to SYNC(n): the books (n, Rc), then the counts (n, q, ltx)."""
+    rc_mj = c.credited / QUANTUM_UJ
+    books = Sent.of(
+        MsgType.DEBIT,
+        z3.Int2BV(rc_mj, 16),
+        (rc_mj / (1 << 16)) % (1 << 8),
+        z3.IntVal(BOOKS),
+        c.nonce,
+    )
+    counts = Sent.of(
+        MsgType.DEBIT,
+        sym.low(c.return_seq, SEQ_BITS),
+        z3.BV2Int(sym.low(c.last_tx, TX_BITS)),
+        z3.IntVal(COUNTS),
+        c.nonce,
+    )
+    return books, counts
 
 
 def _debit(c: Client, amount: Term, is_draw: bool) -> tuple[Client, Term]:
@@ -92,37 +139,40 @@ def give_back(c: Client, amount: Term) -> tuple[Client, Sent, Term]:
     return returned, Sent.of(MsgType.RETURN, seq, amount / QUANTUM_UJ), allowed
 
 
-def on_intention(c: Client, tx16: Term, amount_mj: Term, delivered_mj: Term) -> tuple[Client, Sent]:
+def on_intention(
+    c: Client, tx16: Term, amount_mj: Term, delivered_mj: Term
+) -> tuple[Client, Frames]:
     """INTENTION: hardened while booked or joining, but Gs pays back only from a fresh one
-    (k > ltx; an old one only re-replies); RESUMING: RESUME again, nothing moves."""
+    (k > ltx; an old one only re-replies); RESUMING: RESUME again, SYNCING: the answer again,
+    nothing moves."""
     taken = sym.on_intention(c, tx16, amount_mj, delivered_mj)
     tx = sym.unwrap(tx16, c.last_tx, TX_BITS)
     old = z3.And(booked(c), z3.Not(c.credited_unknown), tx - c.last_tx <= 0)
     replied = sym.pick(tx == c.last_tx, sym._reply_for(c, tx, c.outcome), Sent.none())
-    taken = (sym.pick(old, c, taken[0]), sym.pick(old, replied, taken[1]))
-    resuming = c.phase == sym.RESUMING
-    return sym.pick(resuming, c, taken[0]), sym.pick(resuming, resume_of(c), taken[1])
+    moved = (sym.pick(old, c, taken[0]), one(sym.pick(old, replied, taken[1])))
+    waiting = _choose(c.phase == sym.SYNCING, (c, answer_of(c)), (c, one(resume_of(c))))
+    return _choose(z3.Or(c.phase == sym.RESUMING, c.phase == sym.SYNCING), waiting, moved)
 
 
-def on_command(c: Client, commit: bool, tx16: Term, amount_mj: Term) -> tuple[Client, Sent]:
-    """COMMIT or ABORT: hardened while booked; ignored while joining or resuming."""
+def on_command(c: Client, commit: bool, tx16: Term, amount_mj: Term) -> tuple[Client, Frames]:
+    """COMMIT or ABORT: hardened while booked; ignored while joining or in a start."""
     state, sent = sym.on_command(c, commit, tx16, amount_mj)
     ignored = z3.Not(booked(c))
-    return sym.pick(ignored, c, state), sym.pick(ignored, Sent.none(), sent)
+    return sym.pick(ignored, c, state), one(sym.pick(ignored, Sent.none(), sent))
 
 
-def on_debit_ack(c: Client, seq16: Term) -> tuple[Client, Sent]:
+def on_debit_ack(c: Client, seq16: Term) -> tuple[Client, Frames]:
     """RETURN_ACK(q) for the pending debit: done; a draw goes to the actuator (spent += x)."""
     state, sent = sym.on_return_ack(c, seq16)
     done = z3.And(booked(c), sym.unwrap(seq16, c.return_seq, SEQ_BITS) == c.return_seq)
     done = z3.And(done, c.return_pending != 0)
     released = replace(state, spent=c.spent + c.return_pending, pending_draw=z3.BoolVal(False))
     state = sym.pick(z3.And(done, c.pending_draw), released, state)
-    return sym.pick(booked(c), state, c), sent
+    return sym.pick(booked(c), state, c), one(sent)
 
 
-def resend(c: Client) -> tuple[Client, Sent]:
-    """The retry timer, due: the pending RETURN or DRAW, JOIN, or RESUME again."""
+def resend(c: Client) -> tuple[Client, Frames]:
+    """The retry timer, due: the pending RETURN or DRAW, JOIN, RESUME, or a SYNC's answer again."""
     pending = z3.And(booked(c), c.return_pending != 0)
     debit = sym.pick(
         c.pending_draw,
@@ -134,10 +184,10 @@ def resend(c: Client) -> tuple[Client, Sent]:
         Sent.of(MsgType.JOIN, c.nonce),
         sym.pick(c.phase == sym.RESUMING, resume_of(c), sym.pick(pending, debit, Sent.none())),
     )
-    return c, sent
+    return c, pick_frames(c.phase == sym.SYNCING, answer_of(c), one(sent))
 
 
-def power_loss(c: Client, nonce16: Term) -> tuple[Client, Sent]:
+def power_loss(c: Client, nonce16: Term) -> tuple[Client, Frames]:
     """A start with a record (after a power loss, or from an older image: the node cannot tell):
     the held intention is lost, RESUMING with a new nonce, RESUME; joining: stays joining."""
     resumed = replace(
@@ -148,19 +198,35 @@ def power_loss(c: Client, nonce16: Term) -> tuple[Client, Sent]:
         nonce=nonce16,
     )
     joining = c.phase == sym.JOINING
-    return sym.pick(joining, c, resumed), sym.pick(joining, Sent.none(), resume_of(resumed))
+    return sym.pick(joining, c, resumed), one(sym.pick(joining, Sent.none(), resume_of(resumed)))
 
 
-def books_lost(c: Client, nonce16: Term) -> tuple[Client, Sent]:
+def books_lost(c: Client, nonce16: Term) -> tuple[Client, Frames]:
     """No valid record: the hardened JOIN (any phase)."""
-    return sym.books_lost(c, nonce16)
+    state, sent = sym.books_lost(c, nonce16)
+    return state, one(sent)
 
 
-def on_admit(c: Client, nonce16: Term, tx16: Term, seq16: Term) -> tuple[Client, Sent]:
-    """ADMIT(n, k, Q): joining, the hardened admission; resuming, the confirmation: Q = q + 1
-    keeps the books settled up to k, a larger Q finds them behind (admitted afresh at k and Q,
-    what the actuator used kept), a smaller one is ignored."""
-    admitted = sym.on_admit(c, nonce16, tx16, seq16)[0]
+def answer_sync(c: Client, nonce16: Term, window: int = WINDOW) -> tuple[Client, Frames]:
+    """SYNC(n) (an ADMIT not answering this node's start): settle the next B transactions
+    (ltx += B), drop the held intention, answer with the books and the counts, move nothing
+    until ADMIT(n ^ SYNC_CONFIRMED)."""
+    synced = replace(
+        c,
+        phase=sym.SYNCING,
+        held_tx=sym.counter(0),
+        held_amount=z3.IntVal(0),
+        nonce=nonce16,
+        last_tx=c.last_tx + window,
+        outcome=sym.SETTLED,
+    )
+    return synced, answer_of(synced)
+
+
+def on_confirm(c: Client, tx16: Term, seq16: Term) -> Client:
+    """ADMIT(n, k, Q) answering this start: Q = q + 1 keeps the books settled up to k, a larger
+    Q finds them behind (admitted afresh at k and Q, what the actuator used kept), a smaller one
+    is ignored."""
     q = sym.unwrap(seq16, c.return_seq, SEQ_BITS)
     ahead = q - c.return_seq
     closed = sym.unwrap(tx16, c.last_tx, TX_BITS)
@@ -191,16 +257,146 @@ def on_admit(c: Client, nonce16: Term, tx16: Term, seq16: Term) -> tuple[Client,
         nonce=_zero16(),
         pending_draw=z3.BoolVal(False),
     )
-    answer = sym.pick(ahead == 1, confirmed, sym.pick(ahead <= 0, c, fresh))
-    ours = z3.And(c.phase == sym.RESUMING, nonce16 == c.nonce)
-    return sym.pick(ours, answer, admitted), Sent.none()
+    return sym.pick(ahead == 1, confirmed, sym.pick(ahead <= 0, c, fresh))
 
 
-def timeout_commit(c: Client) -> tuple[Client, Sent]:
-    return sym.timeout_commit(c)
+def on_admit(
+    c: Client, nonce16: Term, tx16: Term, seq16: Term, window: int = WINDOW
+) -> tuple[Client, Frames]:
+    """ADMIT(n, k, Q): joining, the hardened admission; booked, a SYNC (``answer_sync``); in a
+    start, its confirmation (``on_confirm``; a SYNC's answer is confirmed with
+    ``SYNC_CONFIRMED`` flipped in its nonce), the same SYNC again (the answer again), or another
+    SYNC."""
+    admitted = (sym.on_admit(c, nonce16, tx16, seq16)[0], one(Sent.none()))
+    syncing = c.phase == sym.SYNCING
+    expected = z3.If(syncing, c.nonce ^ SYNC_CONFIRMED, c.nonce)
+    confirmed = (on_confirm(c, tx16, seq16), one(Sent.none()))
+    again = z3.And(syncing, nonce16 == c.nonce)
+    starting = _choose(
+        nonce16 == expected,
+        confirmed,
+        _choose(again, (c, answer_of(c)), answer_sync(c, nonce16, window)),
+    )
+    in_start = z3.Or(c.phase == sym.RESUMING, syncing)
+    return _choose(
+        booked(c),
+        answer_sync(c, nonce16, window),
+        _choose(in_start, starting, admitted),
+    )
+
+
+def timeout_commit(c: Client) -> tuple[Client, Frames]:
+    state, sent = sym.timeout_commit(c)
+    return state, one(sent)
 
 
 # -- the supervisor's session ----------------------------------------------------------------------
+
+OPEN = (sym.WAIT_ACK, sym.ACKED, sym.WAIT_CONFIRM)
+
+
+def in_start(s: Session) -> Term:
+    """The supervisor waits for the node's answer to its SYNC."""
+    return z3.Or(s.phase == sym.SYNCING, s.phase == sym.SYNC_BOOKS)
+
+
+def _outside_start(s: Session, step: SessionStep) -> SessionStep:
+    """A cell of IDLE and the open phases: a start's phases ignore the event."""
+    return sym.choose(in_start(s), sym._unchanged(s), step)
+
+
+def _witnessed(s: Session, taken: Term, k: Term, step: SessionStep) -> SessionStep:
+    """A response that names transaction ``k`` and was taken: W moves up to ``k``."""
+    moved = replace(step.session, witness=z3.If(z3.UGT(k, s.witness), k, s.witness))
+    return sym.choose(taken, SessionStep(moved, step.sent, step.credit), step)
+
+
+def _this_tx(s: Session, tx16: Term) -> Term:
+    return z3.Not(sym._other_tx(s, tx16))
+
+
+def on_ack(s: Session, tx16: Term) -> SessionStep:
+    """ACK(tx): as the hardened rules; the node has persisted tx - 1 (W >= tx - 1)."""
+    taken = z3.And(s.phase == sym.WAIT_ACK, _this_tx(s, tx16))
+    return _witnessed(s, taken, s.tx - 1, sym.on_ack(s, tx16))
+
+
+def on_committed(s: Session, tx16: Term) -> SessionStep:
+    """COMMITTED(tx): as the hardened rules; the node has persisted tx (W >= tx)."""
+    taken = z3.And(z3.Or(*(s.phase == p for p in OPEN)), _this_tx(s, tx16))
+    return _witnessed(s, taken, s.tx, sym.on_committed(s, tx16))
+
+
+def on_aborted(s: Session, tx16: Term) -> SessionStep:
+    """ABORTED(tx) after an abort decision: as the hardened rules; W >= tx."""
+    taken = z3.And(s.phase == sym.WAIT_CONFIRM, _this_tx(s, tx16), s.decision == sym.ABORT)
+    return _witnessed(s, taken, s.tx, sym.on_aborted(s, tx16))
+
+
+def credit_return(s: Session, seq16: Term, amount_mj: Term) -> SessionStep:
+    """RETURN: the hardened cell, outside a start."""
+    return _outside_start(s, sym.credit_return(s, seq16, amount_mj))
+
+
+def may_begin(s: Session, window: int = WINDOW) -> Term:
+    """Begin k = tx + 1 only within the window (k <= W + B) and the node's numbering."""
+    return z3.And(z3.ULE(s.tx + 1, s.witness + window), sym.may_begin(s))
+
+
+def response_timeout(s: Session, gives_up: Term) -> SessionStep:
+    """The response timer, due: hardened while open; in a start, SYNC(n) again."""
+    return sym.choose(in_start(s), resend_sync(s), sym.response_timeout(s, gives_up))
+
+
+def _sync(s: Session) -> Sent:
+    """SYNC(n, tx, C): an ADMIT the node did not ask for."""
+    return Sent.of(
+        MsgType.ADMIT,
+        s.sync_nonce,
+        z3.BV2Int(sym.low(s.tx, TX_BITS)),
+        z3.BV2Int(sym.low(s.returns_credited, SEQ_BITS)),
+    )
+
+
+def start(s: Session, nonce16: Term) -> SessionStep:
+    """A start (after a power loss or from an older image): write off what is open, SYNCING
+    with a new nonce (SYNC is sent by ``resend_sync``, its timer due at once)."""
+    open_ = z3.Or(*(s.phase == p for p in OPEN))
+    step = sym.choose(open_, sym._resolve(s, z3.BoolVal(False)), sym._unchanged(s))
+    waiting = replace(step.session, phase=sym.SYNCING, sync_nonce=nonce16)
+    return SessionStep(waiting, Sent.none(), step.credit)
+
+
+def resend_sync(s: Session) -> SessionStep:
+    return SessionStep(s, _sync(s), z3.IntVal(0))
+
+
+def take_books(s: Session, nonce16: Term, flags: Term, seq16: Term, amount_mj: Term) -> SessionStep:
+    """The SYNC's books (n, Rc): Gs moves up to Rc (never back), the difference out of Us."""
+    credited_mj = z3.BV2Int(seq16) + amount_mj * (1 << 16)
+    credited = sym.unwrap_int(credited_mj, s.delivered / QUANTUM_UJ, DELIVERED_BITS) * QUANTUM_UJ
+    gain = z3.If(credited > s.delivered, credited - s.delivered, 0)
+    taken = SessionStep(
+        replace(s, phase=sym.SYNC_BOOKS, delivered=s.delivered + gain), Sent.none(), -gain
+    )
+    ours = z3.And(nonce16 == s.sync_nonce, flags == BOOKS)
+    return sym.choose(ours, taken, sym._unchanged(s))
+
+
+def take_counts(
+    s: Session, nonce16: Term, flags: Term, seq16: Term, amount_mj: Term
+) -> SessionStep:
+    """The SYNC's counts (n, q, ltx) after its books: W = ltx, then as a RESUME (tx up to ltx,
+    C = max(C, q) + 1, ADMIT(n ^ SYNC_CONFIRMED, tx, C)); its books again are taken again."""
+    settled = sym.unwrap(z3.Int2BV(amount_mj, 16), s.tx, TX_BITS)
+    idle = replace(s, phase=sym.S_IDLE, sync_nonce=_zero16(), witness=settled)
+    counted = confirm(idle, nonce16, z3.BoolVal(False), seq16, amount_mj, z3.BoolVal(True))
+    step = sym.choose(
+        flags == BOOKS,
+        take_books(s, nonce16, flags, seq16, amount_mj),
+        sym.choose(flags == COUNTS, counted, sym._unchanged(s)),
+    )
+    return sym.choose(nonce16 == s.sync_nonce, step, sym._unchanged(s))
 
 
 def hold_draw(s: Session, seq16: Term) -> SessionStep:
@@ -228,16 +424,34 @@ def _confirmation(s: Session, nonce16: Term) -> Sent:
     )
 
 
-def confirm(s: Session, nonce16: Term, is_draw: Term, seq16: Term, amount_mj: Term) -> SessionStep:
-    """RESUME(n, q, x): write off what is open; behind (q below C): lift as for a JOIN; a
-    pending RETURN numbered C + 1 credited (not at the end); C = max(C, q) + 1 (voided);
-    ADMIT(n, k, C). A repeat (same nonce and q, C unchanged since; ``resume_to`` 0: none
-    answered) gets the same answer."""
+def key_of(nonce16: Term, counts: Term) -> Term:
+    """What the last answer remembers of a start: its nonce, and above it whether it was a
+    SYNC's counts."""
+    flag = z3.If(counts, z3.BitVecVal(1 << NONCE_BITS, sym.KEY_BITS), z3.BitVecVal(0, sym.KEY_BITS))
+    return z3.ZeroExt(sym.KEY_BITS - NONCE_BITS, nonce16) | flag
+
+
+def confirm(
+    s: Session,
+    nonce16: Term,
+    is_draw: Term,
+    seq16: Term,
+    amount_mj: Term,
+    counts: Term | None = None,
+) -> SessionStep:
+    """RESUME(n, q, x), or a SYNC's counts (n, q, ltx in ``amount_mj``; ``counts``): write off
+    what is open; behind (q below C): lift as for a JOIN; a pending RETURN numbered C + 1
+    credited (not at the end; counts carry none); counts move tx and W up to ltx; C = max(C, q)
+    + 1 (voided); ADMIT(n, k, C), n flipped for counts. A repeat (same key and q, C unchanged
+    since; ``resume_to`` 0: none answered) gets the same answer."""
+    counts = z3.BoolVal(False) if counts is None else counts
     seq = sym.unwrap(seq16, s.returns_credited, SEQ_BITS)
+    key = key_of(nonce16, counts)
+    answer_nonce = z3.If(counts, nonce16 ^ SYNC_CONFIRMED, nonce16)
     repeat = z3.And(
         s.resume_to != 0,
         s.resume_to == s.returns_credited,
-        s.resume_nonce == nonce16,
+        s.resume_nonce == key,
         s.resume_from == seq,
     )
     behind = seq - s.returns_credited < 0
@@ -248,7 +462,8 @@ def confirm(s: Session, nonce16: Term, is_draw: Term, seq16: Term, amount_mj: Te
     t = closed.session
     amount = amount_mj * QUANTUM_UJ
     room = z3.Not(sym.at_end(t.returns_credited))
-    credits = z3.And(seq - t.returns_credited == 1, amount_mj != 0, z3.Not(is_draw), room)
+    pending = z3.And(amount_mj != 0, z3.Not(counts))
+    credits = z3.And(seq - t.returns_credited == 1, pending, z3.Not(is_draw), room)
     credited = SessionStep(
         replace(t, returns_credited=seq, returned=t.returned + amount),
         Sent.none(),
@@ -257,16 +472,28 @@ def confirm(s: Session, nonce16: Term, is_draw: Term, seq16: Term, amount_mj: Te
     kept = sym.choose(credits, credited, closed)
     step = sym.choose(behind, SessionStep(lifted.session, Sent.none(), lifted.credit), kept)
     t = step.session
+    settled = sym.unwrap(z3.Int2BV(amount_mj, 16), t.tx, TX_BITS)
+    t = sym.pick(
+        counts,
+        replace(
+            t,
+            tx=z3.If(settled - t.tx > 0, settled, t.tx),
+            witness=z3.If(settled - t.witness > 0, settled, t.witness),
+        ),
+        t,
+    )
     # behind: seq < C <= the lifted C (which may be 2**31 above seq: no signed comparison)
     later = z3.And(z3.Not(behind), seq - t.returns_credited > 0)
     void = z3.If(later, seq, t.returns_credited) + 1
-    t = replace(t, returns_credited=void, resume_nonce=nonce16, resume_from=seq, resume_to=void)
-    answered = SessionStep(t, _confirmation(t, nonce16), step.credit)
-    return sym.choose(repeat, SessionStep(s, _confirmation(s, nonce16), z3.IntVal(0)), answered)
+    t = replace(t, returns_credited=void, resume_nonce=key, resume_from=seq, resume_to=void)
+    answered = SessionStep(t, _confirmation(t, answer_nonce), step.credit)
+    again = SessionStep(s, _confirmation(s, answer_nonce), z3.IntVal(0))
+    return sym.choose(repeat, again, answered)
 
 
 def admit(s: Session, nonce16: Term) -> SessionStep:
-    """JOIN(n): the hardened admission with the number after C voided: C + 1, ADMIT(n, k, C)."""
+    """JOIN(n) outside a start: the hardened admission with the number after C voided: C + 1,
+    ADMIT(n, k, C)."""
     lifted = sym.admit(s, nonce16)
     t = replace(lifted.session, returns_credited=lifted.session.returns_credited + 1)
     sent = Sent.of(
@@ -275,11 +502,23 @@ def admit(s: Session, nonce16: Term) -> SessionStep:
         z3.BV2Int(sym.low(t.tx, TX_BITS)),
         z3.BV2Int(sym.low(t.returns_credited, SEQ_BITS)),
     )
-    return SessionStep(t, sent, lifted.credit)
+    return _outside_start(s, SessionStep(t, sent, lifted.credit))
 
 
 def on_debit(s: Session, nonce16: Term, flags: Term, seq16: Term, amount_mj: Term) -> SessionStep:
-    """DEBIT in any phase (``flags`` an integer term): a RESUME (START) is confirmed, a draw
-    held."""
-    resume = confirm(s, nonce16, flags % 2 == 1, seq16, amount_mj)
-    return sym.choose((flags / START) % 2 == 1, resume, hold_draw(s, seq16))
+    """DEBIT (``flags`` an integer term): outside a start, a RESUME (START) or a SYNC's counts
+    arriving late is confirmed, a draw held, books ignored; in a start, the SYNC's books, then
+    its counts."""
+    resume = confirm(s, nonce16, flags % 2 == 1, seq16, amount_mj, flags == COUNTS)
+    outside = sym.choose(
+        flags == BOOKS,
+        sym._unchanged(s),
+        sym.choose((flags / START) % 2 == 1, resume, hold_draw(s, seq16)),
+    )
+    return sym.choose(
+        s.phase == sym.SYNCING,
+        take_books(s, nonce16, flags, seq16, amount_mj),
+        sym.choose(
+            s.phase == sym.SYNC_BOOKS, take_counts(s, nonce16, flags, seq16, amount_mj), outside
+        ),
+    )

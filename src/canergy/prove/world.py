@@ -109,9 +109,11 @@ _SESSION = {
     "decision": INT,
     "returns_credited": BV32,
     "returned": INT,
-    "resume_nonce": BV16,
+    "resume_nonce": z3.BitVecSort(sym.KEY_BITS),
     "resume_from": BV32,
     "resume_to": BV32,
+    "witness": BV32,
+    "sync_nonce": BV16,
 }
 _CLIENT = {
     "usable": INT,
@@ -169,9 +171,11 @@ def initial_world() -> World:
     """Both sides new: nothing granted, no message sent, the client's first life admitted."""
     zero, zero32, no = z3.IntVal(0), sym.counter(0), z3.BoolVal(False)
     zero16 = z3.BitVecVal(0, 16)
+    zero_key = z3.BitVecVal(0, sym.KEY_BITS)
     s = sym.Session(
-        sym.S_IDLE, zero32, zero, zero, sym.NO_DECISION, zero32, zero, zero16, zero32, zero32
-    )
+        sym.S_IDLE, zero32, zero, zero, sym.NO_DECISION, zero32, zero, zero_key, zero32, zero32,
+        zero32, zero16,
+    )  # fmt: skip
     c = sym.Client(
         zero,
         zero,

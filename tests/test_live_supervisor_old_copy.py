@@ -25,12 +25,21 @@ from canergy.units import UJ_PER_J
 NODE = 1
 
 
-def restored_books(tmp: Path, variant: str, auth: Layout | None) -> tuple[Bench, int, str]:
+CORES = ("python", "c")
+"""``canergy supervisor --core``: the rules in Python, or firmware/'s C supervisor role."""
+KEYS = [None, *Layout]
+KEY_IDS = ["no key", "auth classic", "auth fd"]
+
+
+def restored_books(
+    tmp: Path, variant: str, auth: Layout | None, core: str = "python", again: tuple[str, ...] = ()
+) -> tuple[Bench, int, str]:
     """The supervisor grants; its state file is copied; it grants 2 J more; the node and the
-    supervisor stop; the copy is put back and the supervisor starts from it, the node off.
-    Returns the new supervisor, what the node's first life's actuator used, and the copy (what
-    the first life still held is in its record, which the second life starts from)."""
-    b = bench(tmp, variant, auth)
+    supervisor stop; the copy is put back and the supervisor starts from it (with the flags
+    ``again``), the node off. Returns the new supervisor, what the node's first life's actuator
+    used, and the copy (what the first life still held is in its record, which the second life
+    starts from)."""
+    b = bench(tmp, variant, auth, core=core)
     node, loop = b.start_node()
     try:
         wait(lambda: b.node_status().get("committed", 0) >= 2)
@@ -43,16 +52,18 @@ def restored_books(tmp: Path, variant: str, auth: Layout | None) -> tuple[Bench,
     first = node.actuator.drawn_uj
     (tmp / "s.json").write_text(copy)
     (tmp / "status.json").unlink()
-    return bench(tmp, variant, auth, b.channel), first, copy
+    return bench(tmp, variant, auth, b.channel, core, again), first, copy
 
 
-@pytest.mark.parametrize("auth", [None, *Layout], ids=["no key", "auth classic", "auth fd"])
+@pytest.mark.parametrize("auth", KEYS, ids=KEY_IDS)
+@pytest.mark.parametrize("core", CORES)
 def test_an_older_copy_of_the_supervisors_books_creates_nothing_under_witnessed(
-    tmp_path: Path, auth: Layout | None, caplog: pytest.LogCaptureFixture
+    tmp_path: Path, core: str, auth: Layout | None, caplog: pytest.LogCaptureFixture
 ) -> None:
-    b, first, _ = restored_books(tmp_path, "witnessed", auth)
+    b, first, _ = restored_books(tmp_path, "witnessed", auth, core)
     wait(lambda: b.status().get("waiting_for_books") == [NODE])
     waiting = b.status()
+    assert waiting["core"] == core
     assert "no grant to any node until node(s) 1" in waiting["waiting_why"]
     assert waiting["granted_this_run_uj"] == 0
     node, loop = b.start_node()  # the node's second life, from its own (current) record
@@ -70,10 +81,37 @@ def test_an_older_copy_of_the_supervisors_books_creates_nothing_under_witnessed(
     assert "node 1 confirmed its books after this start" in said
 
 
-def test_the_same_restore_under_the_hardened_rules_creates_energy(tmp_path: Path) -> None:
+@pytest.mark.parametrize("core", CORES)
+def test_start_without_a_node_grants_at_once_to_others_and_waits_for_its_own_books(
+    tmp_path: Path, core: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """``--start-without 1``: the start does not wait for node 1 (no other node is kept from
+    grants), while node 1's own session still waits for its books: it is granted nothing
+    before them, and then nothing is created."""
+    b, first, _ = restored_books(tmp_path, "witnessed", None, core, ("--start-without", "1"))
+    wait(lambda: b.node_status().get("state") == "SYNCING")
+    assert b.status()["core"] == core
+    assert b.status()["waiting_for_books"] == [] and b.status()["waiting_why"] is None
+    node, loop = b.start_node()
+    try:
+        wait(lambda: b.node_status()["committed"] >= 3)  # from its books confirmed
+    finally:
+        loop.halt()
+    final = b.stop_supervisor()["nodes"][str(NODE)]
+    used = first + node.actuator.drawn_uj + held(node)
+    assert used <= released(final), (used, released(final))
+    assert "SYNC sent; no grant" not in caplog.text
+
+
+@pytest.mark.parametrize("auth", [None, Layout.CLASSIC], ids=KEY_IDS[:2])
+@pytest.mark.parametrize("core", CORES)
+def test_the_same_restore_under_the_hardened_rules_creates_energy(
+    tmp_path: Path, core: str, auth: Layout | None
+) -> None:
     """The measurement the witnessed rules answer: the restored books grant again."""
-    b, first, _ = restored_books(tmp_path, "hardened", None)
-    assert b.status().get("waiting_for_books", []) == []
+    b, first, _ = restored_books(tmp_path, "hardened", auth, core)
+    wait(lambda: b.status().get("core") == core)
+    assert b.status()["waiting_for_books"] == []
     node, loop = b.start_node()
     try:
 

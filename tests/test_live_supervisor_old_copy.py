@@ -14,11 +14,13 @@ import pytest
 from test_live_old_copy import Bench, bench, held, released, wait
 
 from canergy.auth.frames import FrameAuth, Layout, expected_freshness
+from canergy.ccore.supervisor import make_supervisor
 from canergy.cli import main
 from canergy.codec import Codec
 from canergy.core import Supervisor, Timing
 from canergy.core.state import Session, SupervisorState
 from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.state_file import load_state
 from canergy.messages import Admit, Debit, Direction, Intention, Telemetry
 from canergy.units import UJ_PER_J
 
@@ -71,6 +73,11 @@ def test_an_older_copy_of_the_supervisors_books_creates_nothing_under_witnessed(
         wait(lambda: b.node_status().get("synced") == 1)
         assert b.status()["waiting_for_books"] == []
         wait(lambda: b.node_status()["committed"] >= 3)  # grants go on after the books
+        b.stop_supervisor()  # and a restart from its own books, which hold that confirmation
+        (tmp_path / "status.json").unlink()
+        b = bench(tmp_path, "witnessed", auth, b.channel, core)
+        wait(lambda: b.node_status().get("synced") == 1)  # the node on: answered at once
+        wait(lambda: b.node_status()["committed"] >= 1)
     finally:
         loop.halt()
     final = b.stop_supervisor()["nodes"][str(NODE)]
@@ -165,6 +172,36 @@ def _restarted(start_without: tuple[int, ...] = ()) -> SupervisorService:
     for node in (1, 2):
         service.on_message(Telemetry(node, 0, 0, 0, 0), 1)
     return service
+
+
+@pytest.mark.parametrize("core", CORES)
+def test_a_debt_the_books_bring_refuses_every_grant_and_is_kept_across_a_restart(
+    tmp_path: Path, core: str
+) -> None:
+    """The restored books hold Us 0.2 J; the node's books show 1 J more received since: Us goes
+    to -0.8 J (a debt), a grant is refused with the reason, and the state file written in debt
+    starts the supervisor again (the loader refused a negative Us before)."""
+    timing = Timing(response_timeout_us=100_000)
+    state = SupervisorState(UJ_PER_J, UJ_PER_J // 5, sessions=(Session(NODE, delivered=800_000),))
+    restored = make_supervisor(
+        core, [NODE], UJ_PER_J, variant="witnessed", timing=timing, state=state
+    )
+    restored.power_loss(0, 0x1234)
+    path = tmp_path / "s.json"
+    s = SupervisorService(restored, ServiceConfig(state_path=path, fsync=False), 0)
+    s.on_message(Telemetry(NODE, 0, 0, 0, 0), 1)
+    s.on_wakeup(1)
+    s.on_message(Debit.books(NODE, 0x1234, 1_800), 20)
+    s.on_message(Debit.counts(NODE, 0x1234, 0, 0), 21)
+    assert s.status()["waiting_for_books"] == [] and s.status()["usable_uj"] == -800_000
+    replies: list[dict[str, object]] = []
+    s.request_grant(NODE, UJ_PER_J // 10, replies.append)
+    assert not [m for m in s.on_wakeup(30) if isinstance(m, Intention)]
+    assert "nothing allowed" in str(replies[0]["error"]), replies
+    books = load_state(path, "witnessed", (NODE,))
+    assert books.usable == -800_000
+    again = make_supervisor(core, [NODE], UJ_PER_J, variant="witnessed", timing=timing, state=books)
+    assert again.usable == -800_000
 
 
 def test_sync_is_sent_at_the_start_and_re_sent_until_answered() -> None:

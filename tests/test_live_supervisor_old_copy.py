@@ -8,7 +8,10 @@ wait is in the status and on stderr), and Gs moves up to the node's Rc: nothing 
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import pytest
 from test_live_old_copy import Bench, bench, held, released, wait
@@ -17,11 +20,11 @@ from canergy.auth.frames import FrameAuth, Layout, expected_freshness
 from canergy.ccore.supervisor import make_supervisor
 from canergy.cli import main
 from canergy.codec import Codec
-from canergy.core import Supervisor, Timing
+from canergy.core import Timing
 from canergy.core.state import Session, SupervisorState
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.state_file import load_state
-from canergy.messages import Admit, Debit, Direction, Intention, Telemetry
+from canergy.messages import Ack, Admit, Committed, Debit, Direction, Intention, Telemetry
 from canergy.units import UJ_PER_J
 
 NODE = 1
@@ -153,13 +156,15 @@ def test_the_books_answering_a_sync_are_fresh_by_its_nonce(layout: Layout) -> No
         assert [sup.accept(f) for f in node.frames(msg)][-1].message == msg
 
 
-def _restarted(start_without: tuple[int, ...] = ()) -> SupervisorService:
-    """A witnessed supervisor of nodes 1 and 2 restarted from its books (SYNC sent to both)."""
+def _restarted(start_without: tuple[int, ...] = (), core: str = "python") -> SupervisorService:
+    """A witnessed supervisor of nodes 1 and 2 on ``core`` restarted from its books (SYNC sent
+    to both)."""
     timing = Timing(response_timeout_us=100_000)
     state = SupervisorState(
         10 * UJ_PER_J, 8 * UJ_PER_J, sessions=(Session(1, delivered=UJ_PER_J), Session(2))
     )
-    core = Supervisor(
+    restarted = make_supervisor(
+        core,
         [1, 2],
         10 * UJ_PER_J,
         variant="witnessed",
@@ -167,8 +172,8 @@ def _restarted(start_without: tuple[int, ...] = ()) -> SupervisorService:
         state=state,
         start_without=start_without,
     )
-    core.power_loss(0, 0x1234)
-    service = SupervisorService(core, ServiceConfig(), 0)
+    restarted.power_loss(0, 0x1234)
+    service = SupervisorService(restarted, ServiceConfig(), 0)
     for node in (1, 2):
         service.on_message(Telemetry(node, 0, 0, 0, 0), 1)
     return service
@@ -204,8 +209,9 @@ def test_a_debt_the_books_bring_refuses_every_grant_and_is_kept_across_a_restart
     assert again.usable == -800_000
 
 
-def test_sync_is_sent_at_the_start_and_re_sent_until_answered() -> None:
-    s = _restarted()
+@pytest.mark.parametrize("core", CORES)
+def test_sync_is_sent_at_the_start_and_re_sent_until_answered(core: str) -> None:
+    s = _restarted(core=core)
     syncs = [m for m in s.on_wakeup(1) if isinstance(m, Admit)]
     assert {(m.node, m.nonce) for m in syncs} == {(1, 0x1234), (2, 0x1234)}
     assert [m for m in s.on_wakeup(100_000) if isinstance(m, Admit)] == []
@@ -213,8 +219,9 @@ def test_sync_is_sent_at_the_start_and_re_sent_until_answered() -> None:
     assert {(m.node, m.nonce) for m in again} == {(1, 0x1234), (2, 0x1234)}
 
 
-def test_no_grant_to_anyone_before_the_nodes_books_and_start_without_skips_one() -> None:
-    s = _restarted()
+@pytest.mark.parametrize("core", CORES)
+def test_no_grant_to_anyone_before_the_nodes_books_and_start_without_skips_one(core: str) -> None:
+    s = _restarted(core=core)
     replies: list[dict[str, object]] = []
     s.request_grant(2, UJ_PER_J // 2, replies.append)
     assert [m for m in s.on_wakeup(10) if isinstance(m, Intention)] == [] and replies == []
@@ -229,12 +236,55 @@ def test_no_grant_to_anyone_before_the_nodes_books_and_start_without_skips_one()
     assert s.status()["waiting_for_books"] == [] and s.core.session(1).delivered == 1_500_000
     assert [m.node for m in out if isinstance(m, Intention)] == [2]  # the request waited
 
-    skipping = _restarted(start_without=(1,))  # the operator's override: node 1 not waited for
+    skipping = _restarted((1,), core)  # the operator's override: node 1 not waited for
     assert skipping.status()["waiting_for_books"] == [2]
     skipping.on_message(Debit.books(2, 0x1234, 0), 20)
     skipping.on_message(Debit.counts(2, 0x1234, 0, 0), 21)
     skipping.request_grant(2, UJ_PER_J // 2, replies.append)
     assert [m for m in skipping.on_wakeup(30) if isinstance(m, Intention)]
+
+
+def _story(core: str) -> tuple[list[object], list[dict[str, Any]], list[str]]:
+    """A restart on ``core``: SYNC re-sent, a grant asked for while waiting, node 1's books
+    (0.5 J more than the restored books) and counts, node 2's, the grant to node 2 carried out.
+    Returns the frames sent, the status after each step (but the core's name) and the log."""
+    s = _restarted(core=core)
+    replies: list[dict[str, object]] = []
+    s.request_grant(2, UJ_PER_J // 2, replies.append)
+    steps: list[Callable[[], Sequence[object]]] = [
+        lambda: s.on_wakeup(10),
+        lambda: s.on_wakeup(100_011),
+        lambda: s.on_message(Debit.books(1, 0x1234, 1_500), 200_000),
+        lambda: s.on_message(Debit.counts(1, 0x1234, 0, 0), 200_001),
+        lambda: s.on_message(Debit.books(2, 0x1234, 0), 200_002),
+        lambda: s.on_message(Debit.counts(2, 0x1234, 0, 0), 200_003),
+        lambda: s.on_wakeup(200_004),
+        lambda: s.on_message(Ack(2, s.core.session(2).tx), 200_005),
+        lambda: s.on_message(Committed(2, s.core.session(2).tx), 200_006),
+    ]
+    frames: list[object] = []
+    statuses: list[dict[str, Any]] = []
+    logger = logging.getLogger("canergy.live.service")
+    records: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: records.append(record.getMessage())  # type: ignore[method-assign]
+    logger.addHandler(handler)
+    try:
+        for step in steps:
+            frames += step()
+            statuses.append({k: v for k, v in s.status().items() if k != "core"})
+    finally:
+        logger.removeHandler(handler)
+    assert replies and replies[0].get("outcome") == "COMMITTED", replies
+    return frames, statuses, records
+
+
+def test_the_c_core_says_and_sends_what_the_python_core_does_through_a_witnessed_start() -> None:
+    """The service on either core: the same frames, status and log lines at every step."""
+    python, c = _story("python"), _story("c")
+    for what, ours, theirs in zip(("frames", "status", "log"), python, c, strict=True):
+        assert ours == theirs, what
+    assert any("confirmed its books" in line for line in python[2])
 
 
 def test_start_without_is_refused_outside_the_witnessed_rules(

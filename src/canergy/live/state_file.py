@@ -557,10 +557,9 @@ class FieldChecker:
         value, field = obj[name], _at(where, name)
         if type(value) is not int:
             self.refuse(field, _shown(value))
-        if value < low == 0:
-            self.refuse(field, f"{value} is negative")
         if value < low:
-            self.refuse(field, f"{value} is below {low}, the most this field may owe")
+            owes = f"{value} is below {low}, the most this field may owe"
+            self.refuse(field, owes if low else f"{value} is negative")
         if value > high:
             self.refuse(field, f"{value} is above {high}, the most this field may hold")
         return value

@@ -89,7 +89,7 @@ def _run(procs: Procs, c_node: Path, rules: str, core: str, auth: bool) -> dict[
 
     def created() -> int:
         """What the node used and holds beyond what the books let go, as the two status files
-        show it now (they are written apart: off by up to a grant in flight)."""
+        show it now (they are written apart: off by up to ``SKEW_UJ``)."""
         now, ours = node(), books() if sup_status.exists() else {}
         if not now or "committed" not in ours:
             return 0

@@ -45,7 +45,8 @@ settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 @pytest.fixture(params=["python", "c"])
 def both_cores(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
     """Run a test on each supervisor core: for "c", ``Supervisor`` in the test's module and in
-    support.live_rig builds the compiled core (``canergy.ccore``, the hardened rules) instead.
+    support.live_rig builds the compiled core (``canergy.ccore``: the hardened or witnessed
+    rules) instead.
     Use it with ``pytestmark = pytest.mark.usefixtures("both_cores")``."""
     if request.param == "c":
         from canergy.ccore.supervisor import CompiledSupervisor, missing
@@ -54,8 +55,7 @@ def both_cores(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) 
             pytest.skip(str(missing()))
 
         def compiled(nodes: object, initial: int, *, variant: str = "hardened", **kw: object):  # type: ignore[no-untyped-def]
-            assert variant == "hardened", "the compiled core runs the hardened rules only"
-            return CompiledSupervisor(nodes, initial, **kw)  # type: ignore[arg-type]
+            return CompiledSupervisor(nodes, initial, variant=variant, **kw)  # type: ignore[arg-type]
 
         import support.live_rig
 

@@ -177,7 +177,7 @@ def test_supervisor_serves_grants_over_its_control_socket(tmp_path: Path, core: 
                 *("grant", "--node", "1", "--amount", "1J", "-i", "virtual", "--state", "s.json"),
                 *("--core", "c", "--variant", "paper"),
             ],
-            "--core c: it runs the hardened rules only",
+            "--core c: it runs the hardened and witnessed rules only",
         ),
         (["grant", "--node", "1", "--amount", "1J", "-i", "nosuchbus"], "invalid choice"),
         *(

@@ -105,16 +105,25 @@ def wait(condition: Any, timeout_s: float = 60.0) -> None:
         done.wait(0.02)
 
 
-def bench(tmp: Path, variant: str, auth: Layout | None, channel: str | None = None) -> Bench:
-    """A supervisor started on ``channel`` (default: a new one), its keys made once."""
+def bench(
+    tmp: Path,
+    variant: str,
+    auth: Layout | None,
+    channel: str | None = None,
+    core: str = "python",
+    extra: tuple[str, ...] = (),
+) -> Bench:
+    """A supervisor on ``core`` started on ``channel`` (default: a new one) with ``extra``
+    flags, its keys made once."""
     channel = channel or f"oldcopy-{uuid.uuid4().hex}"
     argv = [
         "supervisor",
-        *("-i", "virtual", "-c", channel, "--variant", variant),
+        *("-i", "virtual", "-c", channel, "--variant", variant, "--core", core),
         *("--nodes", str(NODE), "--initial", "50J", "--target", "1J", "--max-grant", "0.5J"),
         *("--state", str(tmp / "s.json"), "--no-fsync", "--response-timeout", "100ms"),
         *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
         *("--control", str(tmp / "ctl.sock")),
+        *extra,
     ]
     if auth is not None and not (tmp / "m.key").exists():
         assert main(["keys", "-o", str(tmp / "m.key")]) == 0
@@ -155,10 +164,11 @@ def restored_older_copy(b: Bench) -> tuple[FirmwareNode, FirmwareNode, Loop]:
 
 
 @pytest.mark.parametrize("auth", [None, *Layout], ids=["no key", "auth classic", "auth fd"])
+@pytest.mark.parametrize("core", ["python", "c"])
 def test_an_older_copy_of_a_nodes_record_creates_nothing_under_witnessed(
-    tmp_path: Path, auth: Layout | None, caplog: pytest.LogCaptureFixture
+    tmp_path: Path, core: str, auth: Layout | None, caplog: pytest.LogCaptureFixture
 ) -> None:
-    b = bench(tmp_path, "witnessed", auth)
+    b = bench(tmp_path, "witnessed", auth, core=core)
     first, second, loop = restored_older_copy(b)
     try:
         assert second.resumes == 1  # started RESUMING (its loop may have its ADMIT already)

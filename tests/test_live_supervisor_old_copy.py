@@ -8,29 +8,43 @@ wait is in the status and on stderr), and Gs moves up to the node's Rc: nothing 
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import pytest
 from test_live_old_copy import Bench, bench, held, released, wait
 
 from canergy.auth.frames import FrameAuth, Layout, expected_freshness
+from canergy.ccore.supervisor import make_supervisor
 from canergy.cli import main
 from canergy.codec import Codec
-from canergy.core import Supervisor, Timing
+from canergy.core import Timing
 from canergy.core.state import Session, SupervisorState
 from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.messages import Admit, Debit, Direction, Intention, Telemetry
+from canergy.live.state_file import load_state
+from canergy.messages import Ack, Admit, Committed, Debit, Direction, Intention, Telemetry
 from canergy.units import UJ_PER_J
 
 NODE = 1
 
 
-def restored_books(tmp: Path, variant: str, auth: Layout | None) -> tuple[Bench, int, str]:
+CORES = ("python", "c")
+"""``canergy supervisor --core``: the rules in Python, or firmware/'s C supervisor role."""
+KEYS = [None, *Layout]
+KEY_IDS = ["no key", "auth classic", "auth fd"]
+
+
+def restored_books(
+    tmp: Path, variant: str, auth: Layout | None, core: str = "python", again: tuple[str, ...] = ()
+) -> tuple[Bench, int, str]:
     """The supervisor grants; its state file is copied; it grants 2 J more; the node and the
-    supervisor stop; the copy is put back and the supervisor starts from it, the node off.
-    Returns the new supervisor, what the node's first life's actuator used, and the copy (what
-    the first life still held is in its record, which the second life starts from)."""
-    b = bench(tmp, variant, auth)
+    supervisor stop; the copy is put back and the supervisor starts from it (with the flags
+    ``again``), the node off. Returns the new supervisor, what the node's first life's actuator
+    used, and the copy (what the first life still held is in its record, which the second life
+    starts from)."""
+    b = bench(tmp, variant, auth, core=core)
     node, loop = b.start_node()
     try:
         wait(lambda: b.node_status().get("committed", 0) >= 2)
@@ -43,16 +57,18 @@ def restored_books(tmp: Path, variant: str, auth: Layout | None) -> tuple[Bench,
     first = node.actuator.drawn_uj
     (tmp / "s.json").write_text(copy)
     (tmp / "status.json").unlink()
-    return bench(tmp, variant, auth, b.channel), first, copy
+    return bench(tmp, variant, auth, b.channel, core, again), first, copy
 
 
-@pytest.mark.parametrize("auth", [None, *Layout], ids=["no key", "auth classic", "auth fd"])
+@pytest.mark.parametrize("auth", KEYS, ids=KEY_IDS)
+@pytest.mark.parametrize("core", CORES)
 def test_an_older_copy_of_the_supervisors_books_creates_nothing_under_witnessed(
-    tmp_path: Path, auth: Layout | None, caplog: pytest.LogCaptureFixture
+    tmp_path: Path, core: str, auth: Layout | None, caplog: pytest.LogCaptureFixture
 ) -> None:
-    b, first, _ = restored_books(tmp_path, "witnessed", auth)
+    b, first, _ = restored_books(tmp_path, "witnessed", auth, core)
     wait(lambda: b.status().get("waiting_for_books") == [NODE])
     waiting = b.status()
+    assert waiting["core"] == core
     assert "no grant to any node until node(s) 1" in waiting["waiting_why"]
     assert waiting["granted_this_run_uj"] == 0
     node, loop = b.start_node()  # the node's second life, from its own (current) record
@@ -60,6 +76,11 @@ def test_an_older_copy_of_the_supervisors_books_creates_nothing_under_witnessed(
         wait(lambda: b.node_status().get("synced") == 1)
         assert b.status()["waiting_for_books"] == []
         wait(lambda: b.node_status()["committed"] >= 3)  # grants go on after the books
+        b.stop_supervisor()  # and a restart from its own books, which hold that confirmation
+        (tmp_path / "status.json").unlink()
+        b = bench(tmp_path, "witnessed", auth, b.channel, core)
+        wait(lambda: b.node_status().get("synced") == 1)  # the node on: answered at once
+        wait(lambda: b.node_status()["committed"] >= 1)
     finally:
         loop.halt()
     final = b.stop_supervisor()["nodes"][str(NODE)]
@@ -70,10 +91,37 @@ def test_an_older_copy_of_the_supervisors_books_creates_nothing_under_witnessed(
     assert "node 1 confirmed its books after this start" in said
 
 
-def test_the_same_restore_under_the_hardened_rules_creates_energy(tmp_path: Path) -> None:
+@pytest.mark.parametrize("core", CORES)
+def test_start_without_a_node_grants_at_once_to_others_and_waits_for_its_own_books(
+    tmp_path: Path, core: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """``--start-without 1``: the start does not wait for node 1 (no other node is kept from
+    grants), while node 1's own session still waits for its books: it is granted nothing
+    before them, and then nothing is created."""
+    b, first, _ = restored_books(tmp_path, "witnessed", None, core, ("--start-without", "1"))
+    wait(lambda: b.node_status().get("state") == "SYNCING")
+    assert b.status()["core"] == core
+    assert b.status()["waiting_for_books"] == [] and b.status()["waiting_why"] is None
+    node, loop = b.start_node()
+    try:
+        wait(lambda: b.node_status()["committed"] >= 3)  # from its books confirmed
+    finally:
+        loop.halt()
+    final = b.stop_supervisor()["nodes"][str(NODE)]
+    used = first + node.actuator.drawn_uj + held(node)
+    assert used <= released(final), (used, released(final))
+    assert "SYNC sent; no grant" not in caplog.text
+
+
+@pytest.mark.parametrize("auth", [None, Layout.CLASSIC], ids=KEY_IDS[:2])
+@pytest.mark.parametrize("core", CORES)
+def test_the_same_restore_under_the_hardened_rules_creates_energy(
+    tmp_path: Path, core: str, auth: Layout | None
+) -> None:
     """The measurement the witnessed rules answer: the restored books grant again."""
-    b, first, _ = restored_books(tmp_path, "hardened", None)
-    assert b.status().get("waiting_for_books", []) == []
+    b, first, _ = restored_books(tmp_path, "hardened", auth, core)
+    wait(lambda: b.status().get("core") == core)
+    assert b.status()["waiting_for_books"] == []
     node, loop = b.start_node()
     try:
 
@@ -108,13 +156,15 @@ def test_the_books_answering_a_sync_are_fresh_by_its_nonce(layout: Layout) -> No
         assert [sup.accept(f) for f in node.frames(msg)][-1].message == msg
 
 
-def _restarted(start_without: tuple[int, ...] = ()) -> SupervisorService:
-    """A witnessed supervisor of nodes 1 and 2 restarted from its books (SYNC sent to both)."""
+def _restarted(start_without: tuple[int, ...] = (), core: str = "python") -> SupervisorService:
+    """A witnessed supervisor of nodes 1 and 2 on ``core`` restarted from its books (SYNC sent
+    to both)."""
     timing = Timing(response_timeout_us=100_000)
     state = SupervisorState(
         10 * UJ_PER_J, 8 * UJ_PER_J, sessions=(Session(1, delivered=UJ_PER_J), Session(2))
     )
-    core = Supervisor(
+    restarted = make_supervisor(
+        core,
         [1, 2],
         10 * UJ_PER_J,
         variant="witnessed",
@@ -122,15 +172,46 @@ def _restarted(start_without: tuple[int, ...] = ()) -> SupervisorService:
         state=state,
         start_without=start_without,
     )
-    core.power_loss(0, 0x1234)
-    service = SupervisorService(core, ServiceConfig(), 0)
+    restarted.power_loss(0, 0x1234)
+    service = SupervisorService(restarted, ServiceConfig(), 0)
     for node in (1, 2):
         service.on_message(Telemetry(node, 0, 0, 0, 0), 1)
     return service
 
 
-def test_sync_is_sent_at_the_start_and_re_sent_until_answered() -> None:
-    s = _restarted()
+@pytest.mark.parametrize("core", CORES)
+def test_a_debt_the_books_bring_refuses_every_grant_and_is_kept_across_a_restart(
+    tmp_path: Path, core: str
+) -> None:
+    """The restored books hold Us 0.2 J; the node's books show 1 J more received since: Us goes
+    to -0.8 J (a debt), a grant is refused with the reason, and the state file written in debt
+    starts the supervisor again (the loader refused a negative Us before)."""
+    timing = Timing(response_timeout_us=100_000)
+    state = SupervisorState(UJ_PER_J, UJ_PER_J // 5, sessions=(Session(NODE, delivered=800_000),))
+    restored = make_supervisor(
+        core, [NODE], UJ_PER_J, variant="witnessed", timing=timing, state=state
+    )
+    restored.power_loss(0, 0x1234)
+    path = tmp_path / "s.json"
+    s = SupervisorService(restored, ServiceConfig(state_path=path, fsync=False), 0)
+    s.on_message(Telemetry(NODE, 0, 0, 0, 0), 1)
+    s.on_wakeup(1)
+    s.on_message(Debit.books(NODE, 0x1234, 1_800), 20)
+    s.on_message(Debit.counts(NODE, 0x1234, 0, 0), 21)
+    assert s.status()["waiting_for_books"] == [] and s.status()["usable_uj"] == -800_000
+    replies: list[dict[str, object]] = []
+    s.request_grant(NODE, UJ_PER_J // 10, replies.append)
+    assert not [m for m in s.on_wakeup(30) if isinstance(m, Intention)]
+    assert "nothing allowed" in str(replies[0]["error"]), replies
+    books = load_state(path, "witnessed", (NODE,))
+    assert books.usable == -800_000
+    again = make_supervisor(core, [NODE], UJ_PER_J, variant="witnessed", timing=timing, state=books)
+    assert again.usable == -800_000
+
+
+@pytest.mark.parametrize("core", CORES)
+def test_sync_is_sent_at_the_start_and_re_sent_until_answered(core: str) -> None:
+    s = _restarted(core=core)
     syncs = [m for m in s.on_wakeup(1) if isinstance(m, Admit)]
     assert {(m.node, m.nonce) for m in syncs} == {(1, 0x1234), (2, 0x1234)}
     assert [m for m in s.on_wakeup(100_000) if isinstance(m, Admit)] == []
@@ -138,8 +219,9 @@ def test_sync_is_sent_at_the_start_and_re_sent_until_answered() -> None:
     assert {(m.node, m.nonce) for m in again} == {(1, 0x1234), (2, 0x1234)}
 
 
-def test_no_grant_to_anyone_before_the_nodes_books_and_start_without_skips_one() -> None:
-    s = _restarted()
+@pytest.mark.parametrize("core", CORES)
+def test_no_grant_to_anyone_before_the_nodes_books_and_start_without_skips_one(core: str) -> None:
+    s = _restarted(core=core)
     replies: list[dict[str, object]] = []
     s.request_grant(2, UJ_PER_J // 2, replies.append)
     assert [m for m in s.on_wakeup(10) if isinstance(m, Intention)] == [] and replies == []
@@ -154,12 +236,55 @@ def test_no_grant_to_anyone_before_the_nodes_books_and_start_without_skips_one()
     assert s.status()["waiting_for_books"] == [] and s.core.session(1).delivered == 1_500_000
     assert [m.node for m in out if isinstance(m, Intention)] == [2]  # the request waited
 
-    skipping = _restarted(start_without=(1,))  # the operator's override: node 1 not waited for
+    skipping = _restarted((1,), core)  # the operator's override: node 1 not waited for
     assert skipping.status()["waiting_for_books"] == [2]
     skipping.on_message(Debit.books(2, 0x1234, 0), 20)
     skipping.on_message(Debit.counts(2, 0x1234, 0, 0), 21)
     skipping.request_grant(2, UJ_PER_J // 2, replies.append)
     assert [m for m in skipping.on_wakeup(30) if isinstance(m, Intention)]
+
+
+def _story(core: str) -> tuple[list[object], list[dict[str, Any]], list[str]]:
+    """A restart on ``core``: SYNC re-sent, a grant asked for while waiting, node 1's books
+    (0.5 J more than the restored books) and counts, node 2's, the grant to node 2 carried out.
+    Returns the frames sent, the status after each step (but the core's name) and the log."""
+    s = _restarted(core=core)
+    replies: list[dict[str, object]] = []
+    s.request_grant(2, UJ_PER_J // 2, replies.append)
+    steps: list[Callable[[], Sequence[object]]] = [
+        lambda: s.on_wakeup(10),
+        lambda: s.on_wakeup(100_011),
+        lambda: s.on_message(Debit.books(1, 0x1234, 1_500), 200_000),
+        lambda: s.on_message(Debit.counts(1, 0x1234, 0, 0), 200_001),
+        lambda: s.on_message(Debit.books(2, 0x1234, 0), 200_002),
+        lambda: s.on_message(Debit.counts(2, 0x1234, 0, 0), 200_003),
+        lambda: s.on_wakeup(200_004),
+        lambda: s.on_message(Ack(2, s.core.session(2).tx), 200_005),
+        lambda: s.on_message(Committed(2, s.core.session(2).tx), 200_006),
+    ]
+    frames: list[object] = []
+    statuses: list[dict[str, Any]] = []
+    logger = logging.getLogger("canergy.live.service")
+    records: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: records.append(record.getMessage())  # type: ignore[method-assign]
+    logger.addHandler(handler)
+    try:
+        for step in steps:
+            frames += step()
+            statuses.append({k: v for k, v in s.status().items() if k != "core"})
+    finally:
+        logger.removeHandler(handler)
+    assert replies and replies[0].get("outcome") == "COMMITTED", replies
+    return frames, statuses, records
+
+
+def test_the_c_core_says_and_sends_what_the_python_core_does_through_a_witnessed_start() -> None:
+    """The service on either core: the same frames, status and log lines at every step."""
+    python, c = _story("python"), _story("c")
+    for what, ours, theirs in zip(("frames", "status", "log"), python, c, strict=True):
+        assert ours == theirs, what
+    assert any("confirmed its books" in line for line in python[2])
 
 
 def test_start_without_is_refused_outside_the_witnessed_rules(

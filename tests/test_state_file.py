@@ -389,3 +389,48 @@ def test_the_writer_saves_what_the_reference_encoding_saves(
         assert books == state_json(state, "hardened", buses)
         assert checksum == books_checksum(books)
         assert load_state(path, "hardened", keys, buses=buses) == state
+
+
+def _witnessed_after_a_start(usable: int) -> SupervisorState:
+    """Witnessed books after a start the node confirmed with its counts (the last answer keeps
+    bit 16 over the SYNC's nonce) and, with ``usable`` below 0, a debt its books brought."""
+    sessions = (
+        Session(1, Phase.IDLE, 70, 0, 3 * J - usable, Decision.NONE, 9, 0),
+        Session(3, resume_nonce=1 << 16 | 0xBEEF, resume_from=0, resume_to=1, returns_credited=1),
+    )
+    return SupervisorState(3 * J, usable, 0, sessions)
+
+
+@pytest.mark.parametrize("usable", [2 * J, -800_000], ids=["in credit", "in debt"])
+def test_a_witnessed_supervisor_starts_again_from_the_books_it_wrote(
+    tmp_path: Path, usable: int
+) -> None:
+    """What a witnessed start writes (a SYNC's counts answered, a debt) loads again: before,
+    the loader refused both, so a second start after a confirmed SYNC failed."""
+    path = tmp_path / "s.json"
+    save_state(path, _witnessed_after_a_start(usable), "witnessed", fsync=False)
+    assert _load(path, "witnessed") == _witnessed_after_a_start(usable)
+
+
+@pytest.mark.parametrize(
+    ("variant", "field", "value", "why"),
+    [
+        ("hardened", "usable_uj", -800_000, "-800000 is negative"),  # no rule there owes
+        ("witnessed", "usable_uj", -(2**63), "is below"),
+        ("witnessed", "sessions.3.resume_nonce", 1 << 17, "is above 131071"),
+    ],
+)
+def test_what_a_witnessed_start_writes_is_bounded_and_refused_elsewhere(
+    tmp_path: Path, variant: str, field: str, value: int, why: str
+) -> None:
+    path = tmp_path / "s.json"
+    save_state(path, _witnessed_after_a_start(-800_000), "witnessed", fsync=False)
+    books = json.loads(path.read_text())
+    books["variant"] = variant
+    if variant == "hardened":
+        for session in books["sessions"].values():
+            for name in ("resume_nonce", "resume_from", "resume_to"):
+                session.pop(name, None)
+    _write(path, _set(books, field, value))
+    with pytest.raises(StateFileError, match=why):
+        _load(path, variant)

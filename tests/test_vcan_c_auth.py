@@ -7,14 +7,13 @@ C node; a frame in its name is reported as an intrusion; the ledger closes.
 from __future__ import annotations
 
 import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
 from support.procs import Procs, status, wait
 from support.procs import procs as procs  # the fixtures
-from support.vcan import IFACE, c_client, supervisor, vcan_up
+from support.vcan import IFACE, c_client, keys, supervisor, vcan_up
 from support.vcan import c_node as c_node
 
 from canergy.codec import Codec
@@ -25,18 +24,6 @@ pytestmark = pytest.mark.vcan
 __all__ = ["vcan_up"]
 
 CODEC = Codec()
-
-
-def _keys(tmp: Path) -> tuple[Path, Path]:
-    canergy = [sys.executable, "-m", "canergy", "keys"]
-    master, node = tmp / "master.key", tmp / "n1.key"
-    subprocess.run([*canergy, "-o", str(master)], check=True, timeout=60, cwd=tmp)
-    subprocess.run(
-        [*canergy, "--master", str(master), "--nodes", "1", "-o", str(node)],
-        check=True,
-        timeout=60,
-    )
-    return master, node
 
 
 def _cansend(frame: str) -> None:
@@ -73,7 +60,7 @@ def test_c_auth_node_is_granted_by_the_python_supervisor_and_refuses_forgeries(
         mtu = int(Path(f"/sys/class/net/{IFACE}/mtu").read_text())
         assert mtu >= 72, f"CAN FD needs {IFACE} at mtu 72: ip link set {IFACE} mtu 72"
     tmp = procs.tmp
-    master, node_key = _keys(tmp)
+    master, node_key = keys(tmp)
     fd_flag = ["--fd"] if fd else []
     sup_status, node_status = tmp / "sup.json", tmp / "n1.json"
     supervisor(procs, "1", *fd_flag, "--auth", str(master), "--status-period", "0.2")
@@ -125,7 +112,7 @@ def test_c_auth_node_is_granted_by_the_python_supervisor_and_refuses_forgeries(
 
 
 def test_c_auth_node_refuses_a_key_file_others_can_read(tmp_path: Path, c_node: Path) -> None:
-    _, node_key = _keys(tmp_path)
+    _, node_key = keys(tmp_path)
     key_text = node_key.read_text()
     secret = next(line for line in key_text.splitlines() if line.startswith("key="))[4:]
     node_key.chmod(0o644)

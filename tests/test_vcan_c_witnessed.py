@@ -1,7 +1,8 @@
 """The C node's NV file put back from an older copy, on vcan0 against ``canergy supervisor``:
 under the hardened rules the older record gets back what its actuator already used; under the
-witnessed rules (``canergy-node --rules witnessed``, ``--variant witnessed``) the supervisor finds
-it behind and admits it afresh, and nothing is created.
+witnessed rules (``canergy-node --rules witnessed``, ``--variant witnessed``; either supervisor
+core, with and without ``--auth``) the supervisor finds it behind and admits it afresh, and
+nothing is created.
 
 What the actuator used is counted over both lives (each life's ``drawn_uj``, stopped by SIGTERM so
 its last status is written): the older record's own ``spent`` went back with it."""
@@ -15,7 +16,7 @@ from typing import Any
 import pytest
 from support.procs import Procs, status, wait
 from support.procs import procs as procs  # the fixture
-from support.vcan import c_client, supervisor
+from support.vcan import c_client, keys, supervisor
 from support.vcan import c_node as c_node  # the fixtures: the C node, built when missing
 from support.vcan import vcan_up as vcan_up  # and vcan0 or a failure
 
@@ -25,12 +26,26 @@ NODE = 6
 USED_PAST_THE_COPY_UJ = 400_000
 
 
-@pytest.mark.parametrize("rules", ["hardened", "witnessed"])
-def test_a_c_node_restored_from_an_older_copy(procs: Procs, c_node: Path, rules: str) -> None:
+@pytest.mark.parametrize(
+    ("rules", "core", "auth"),
+    [
+        ("hardened", "c", False),
+        *(("witnessed", core, auth) for auth in (False, True) for core in ("python", "c")),
+    ],
+    ids=lambda v: {False: "no key", True: "auth"}.get(v, v) if isinstance(v, bool) else v,
+)
+def test_a_c_node_restored_from_an_older_copy(
+    procs: Procs, c_node: Path, rules: str, core: str, auth: bool
+) -> None:
     tmp = procs.tmp
     nv, node_status = tmp / f"n{NODE}.nv", tmp / f"n{NODE}.json"
-    supervisor(procs, str(NODE), "--variant", rules, "--lost-after", "10")
-    node_flags = ("--rules", rules, "--status-period", "0.2")
+    sup_flags = ["--variant", rules, "--core", core, "--lost-after", "10"]
+    node_flags = ["--rules", rules, "--status-period", "0.2"]
+    if auth:  # keys from `canergy keys`, as users make them
+        master, node_key = keys(tmp, NODE)
+        sup_flags += ["--auth", str(master)]
+        node_flags += ["--auth", str(node_key)]
+    supervisor(procs, str(NODE), *sup_flags)
 
     def books() -> dict[str, Any]:
         found: dict[str, Any] = status(tmp / "sup.json")["nodes"][str(NODE)]
@@ -65,6 +80,7 @@ def test_a_c_node_restored_from_an_older_copy(procs: Procs, c_node: Path, rules:
     held = second["usable_uj"] + second["return_pending_uj"] + second["released_uj"]
     let_go = final["delivered_uj"] + final["reserved_uj"] - final["returns_credited_uj"]
     created = used + held - let_go
+    print(f"\n{rules}, core {core}, auth {auth}: created {created} µJ (used {used})")  # pytest -s
     if rules == "witnessed":
         assert created <= 0, (created, first, second, final)
         assert "found this record behind" in procs.stderr(f"client{NODE}")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -56,6 +57,19 @@ def client(
         *extra,
     ]
     return procs.start(f"client{node}", argv)
+
+
+def keys(tmp: Path, node: int = 1) -> tuple[Path, Path]:
+    """``canergy keys``: a master key and node ``node``'s key derived from it, in ``tmp``."""
+    canergy = [sys.executable, "-m", "canergy", "keys"]
+    master, node_key = tmp / "master.key", tmp / f"n{node}.key"
+    subprocess.run([*canergy, "-o", str(master)], check=True, timeout=60, cwd=tmp)
+    subprocess.run(
+        [*canergy, "--master", str(master), "--nodes", str(node), "-o", str(node_key)],
+        check=True,
+        timeout=60,
+    )
+    return master, node_key
 
 
 def supervisor(procs: Procs, nodes: str, *extra: str) -> subprocess.Popen[bytes]:

@@ -37,7 +37,7 @@ from typing import Any, NoReturn
 from canergy.auth.keys import EPOCH_MAX
 from canergy.auth.state_key import StateSeal, claim
 from canergy.bus_keys import node_name, parse_node_id, session_key
-from canergy.core.state import Decision, Phase, Session, SupervisorState
+from canergy.core.state import SYNC_PHASES, Decision, Phase, Session, SupervisorState
 from canergy.core.table import SupervisorTable
 from canergy.core.variants import VARIANTS
 from canergy.frozen import evolve
@@ -47,9 +47,14 @@ from canergy.messages import (
     COUNTER_BOUND,
     MAX_NODE,
     MIN_NODE,
+    NONCE_BITS,
     QUANTUM_UJ,
     counter_beyond,
 )
+
+ANSWERED_MAX = (1 << (NONCE_BITS + 1)) - 1
+"""The last start answered (``resume_nonce``): its 16-bit nonce and, above it, whether it was a
+SYNC's counts (``canergy.core.witnessed``)."""
 
 FORMAT = "canergy-supervisor-state"
 VERSION = 2
@@ -546,12 +551,15 @@ class FieldChecker:
                 self.refuse(_at(where, name), "missing")
         return obj
 
-    def integer(self, obj: dict[str, Any], where: str, name: str, high: int = ENERGY_MAX_UJ) -> int:
+    def integer(
+        self, obj: dict[str, Any], where: str, name: str, high: int = ENERGY_MAX_UJ, low: int = 0
+    ) -> int:
         value, field = obj[name], _at(where, name)
         if type(value) is not int:
             self.refuse(field, _shown(value))
-        if value < 0:
-            self.refuse(field, f"{value} is negative")
+        if value < low:
+            owes = f"{value} is below {low}, the most this field may owe"
+            self.refuse(field, owes if low else f"{value} is negative")
         if value > high:
             self.refuse(field, f"{value} is above {high}, the most this field may hold")
         return value
@@ -589,7 +597,8 @@ class FieldChecker:
         table = VARIANTS[variant].supervisor
         self.fields(data, "", _TOP, optional=(*TOP_OPTIONAL, "withdrawn_uj"))
         initial = self.integer(data, "", "initial_uj")
-        usable = self.integer(data, "", "usable_uj")
+        debt = any(phase in SYNC_PHASES for phase, _ in table.cells)  # books taken at a start
+        usable = self.integer(data, "", "usable_uj", low=-ENERGY_MAX_UJ if debt else 0)
         injected = self.integer(data, "", "injected_uj")
         withdrawn = self.integer(data, "", "withdrawn_uj") if "withdrawn_uj" in data else 0
         raw_sessions = data["sessions"]  # its keys are node ids, checked one by one
@@ -663,7 +672,7 @@ class FieldChecker:
             why = "no decision" if decided else f"decision {decision.name}"
             self.refuse(f"{where}.decision", f"{why} in {phase.name}")
         nonce, start, void = (
-            (self.integer(v, where, "resume_nonce", 0xFFFF) if "resume_nonce" in v else 0),
+            (self.integer(v, where, "resume_nonce", ANSWERED_MAX) if "resume_nonce" in v else 0),
             (self.counter(v, where, "resume_from") if "resume_from" in v else 0),
             (self.counter(v, where, "resume_to") if "resume_to" in v else 0),
         )

@@ -15,7 +15,7 @@ from canergy.auth.state_key import state_seal
 from canergy.ccore.supervisor import make_supervisor, missing
 from canergy.codec import Codec
 from canergy.core import Timing
-from canergy.core.supervisor import Supervisor, SupervisorCore
+from canergy.core.supervisor import SupervisorCore
 from canergy.core.variants import RUNNABLE
 from canergy.live.atomic import check_writable_dir, same_file
 from canergy.live.bus_args import add_bus_flags
@@ -45,8 +45,8 @@ def supervisor_flags(p: argparse.ArgumentParser) -> None:
         "--variant",
         choices=LIVE_VARIANTS,
         default="hardened",
-        help="the rules (default hardened); witnessed: a node's record restored from an older "
-        "copy creates nothing (its nodes must run them too; Python core only)",
+        help="the rules (default hardened); witnessed: a record restored from an older copy "
+        "(a node's or the --state file) creates nothing (its nodes must run them too)",
     )
     p.add_argument("--initial", type=energy, default=10 * UJ_PER_J, help="budget of a new state")
     p.add_argument(
@@ -54,8 +54,8 @@ def supervisor_flags(p: argparse.ArgumentParser) -> None:
         choices=("auto", "c", "python"),
         default="auto",
         help="the rules' implementation: c (firmware/'s supervisor role, compiled at install; "
-        "the hardened rules on one bus), python, or auto (default): c where it is built and "
-        "takes the configuration, python otherwise; the status names the one running",
+        "the hardened or witnessed rules on one bus), python, or auto (default): c where it is "
+        "built and takes the configuration, python otherwise; the status names the one running",
     )
     book_flags(p)
     p.add_argument(
@@ -137,8 +137,8 @@ def core_choice(args: argparse.Namespace, buses: tuple[str, ...] = ()) -> str:
     if wanted == "python":
         return "python"
     why = (
-        "it runs the hardened rules only (--variant hardened)"
-        if args.variant != "hardened"
+        "it runs the hardened and witnessed rules only (--variant)"
+        if args.variant not in ("hardened", "witnessed")
         else "it takes one bus (no --bus)"
         if buses
         else missing()
@@ -158,8 +158,8 @@ def build_core(
     timing = rule_timing(args)
     kind = core_choice(args, buses)  # before the state file is touched
     without = frozenset(getattr(args, "start_without", None) or ())
-    if without and (kind != "python" or args.variant != "witnessed"):
-        raise ValueError("--start-without: only under --variant witnessed (the Python core)")
+    if without and args.variant != "witnessed":
+        raise ValueError("--start-without: only under --variant witnessed")
     state = None
     seal = None if key is None else state_seal(key)
     if args.state is not None and args.state.exists():
@@ -178,36 +178,23 @@ def build_core(
         )
     if args.state is not None and not getattr(args, "listen_only", False):
         keep_books(args.state, seal, args.auth, fresh=state is None)
-    core: SupervisorCore
-    if kind == "python":
-        core = Supervisor(
-            nodes,
-            args.initial,
-            variant=args.variant,
-            timing=timing,
-            state=state,
-            start_without=without,
-        )
-    else:
-        core = make_supervisor(
-            kind,
-            nodes,
-            args.initial,
-            variant=args.variant,
-            timing=timing,
-            state=state,
-            id_base=args.id_base,
-        )
-    if state is not None:  # a start is a restart from the persistent record
-        if isinstance(core, Supervisor):  # witnessed: SYNC(n) with a nonce no start drew
-            core.power_loss(monotonic_us(), secrets.randbits(16))
-        else:
-            core.power_loss(monotonic_us())
+    core = make_supervisor(
+        kind,
+        nodes,
+        args.initial,
+        variant=args.variant,
+        timing=timing,
+        state=state,
+        id_base=args.id_base,
+        start_without=without,
+    )
+    if state is not None:  # a start is a restart from the persistent record; witnessed: SYNC(n)
+        core.power_loss(monotonic_us(), secrets.randbits(16))  # with a nonce no start drew
     return core
 
 
 def start_without_flag(p: argparse.ArgumentParser) -> None:
-    """``--start-without``: nodes a witnessed start does not wait for (``Supervisor``)."""
+    """``--start-without``: nodes a witnessed start does not wait for (either core)."""
     p.add_argument(
         "--start-without",
         type=node_ids,

@@ -14,6 +14,7 @@ from canergy import __version__
 from canergy.cli import (
     audit,
     bench,
+    bridge,
     check,
     dbc,
     decode,
@@ -53,6 +54,7 @@ COMMANDS: tuple[ModuleType, ...] = (
     plot,
     keys,
     bench,
+    bridge,
 )
 """In the order ``canergy --help`` lists them."""
 

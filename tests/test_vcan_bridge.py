@@ -1,6 +1,7 @@
 """``canergy bridge`` between two real SocketCAN buses: the Python supervisor on vcan0, a C node
 (firmware/build/canergy-node) and an emulated node on vcan1, the bridge between with loss and
-duplication both ways. Grants commit through it and `canergy ledger` closes the books."""
+duplication both ways. Grants commit through it and `canergy ledger` closes the books. The same
+with the pytest plugin's fixtures (the supervisor and the node as processes)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from support.vcan import TIMEOUT
 from support.vcan import c_node as c_node  # the fixture: builds canergy-node when missing
 
 pytestmark = pytest.mark.vcan
+pytest_plugins = ["pytester"]
 
 UP, DOWN = "vcan0", "vcan1"
 
@@ -85,3 +87,42 @@ def test_a_c_node_across_a_lossy_duplicating_bridge_closes_the_books(
 
 def _nodes(tmp: Path) -> list[str]:
     return [str(tmp / f"n{n}.json") for n in (1, 2)]
+
+
+USER_TESTS = """
+import pytest
+
+NODE = {node!r}
+
+
+@pytest.mark.canergy(interface="socketcan", channel="vcan0")
+def test_a_c_node_behind_a_faulty_bridge(
+    canergy_bus, canergy_supervisor, canergy_bridge, canergy_spawn
+):
+    below = canergy_bus.sibling("vcan1")
+    bridge = canergy_bridge(canergy_bus, below, loss=0.1, duplicate=0.1, seed=43)
+    canergy_spawn(
+        [NODE, "--node", "1", "-i", "{{interface}}", "-c", "{{channel}}", "--nv", "{{tmp}}/n1.nv",
+         "--power", "0.2W", "--status-file", "{{status}}", "--response-timeout", "0.3"],
+        "node1",
+        bus=below,
+    )
+    sup = canergy_supervisor(
+        "--nodes", "1", "--initial", "20J", "--target", "1J", "--max-grant", "0.5J",
+        "--response-timeout", "0.3",
+    )
+    sup.wait_for(lambda s: s["nodes"]["1"]["committed"] >= 3, "three grants to the C node")
+    assert sup.grant(1, "0.2J")["outcome"] in ("COMMITTED", "ABORTED")
+    assert all(c["forwarded"] for c in bridge.status()["directions"].values())
+"""
+
+
+def test_the_plugin_runs_a_c_node_process_behind_a_bridge_on_vcan(
+    pytester: pytest.Pytester, c_node: Path
+) -> None:
+    """The plugin's process paths: the supervisor as a process on vcan0, the C node spawned on
+    vcan1 with its status file in the books, the bridge between; the books close."""
+    pytester.makepyfile(test_user=USER_TESTS.format(node=str(c_node)))
+    result = pytester.runpytest("-p", "no:cacheprovider", f"--basetemp={pytester.path / 't'}")
+    result.assert_outcomes(passed=1)
+    assert list(pytester.path.rglob("node1-status.json"))

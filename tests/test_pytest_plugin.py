@@ -5,6 +5,7 @@ node breaks the rules, and passes again once it is fixed; ``-p no:canergy`` turn
 from __future__ import annotations
 
 import pytest
+from support.readme import DOCS, python_blocks_of
 
 from canergy.testing.books import creation, terms
 
@@ -82,6 +83,12 @@ def test_grants_across_a_lossy_duplicating_bridge(
     assert sup.grant(2, "0.3J")["outcome"] in ("COMMITTED", "ABORTED")
     assert sum(c["frames"] for c in bridge.status()["directions"].values()) > 0
 '''
+
+
+def test_the_documented_example_passes_as_printed(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(test_docs=python_blocks_of(DOCS / "testing.md")[0])
+    result = pytester.runpytest("-p", "no:cacheprovider", f"--basetemp={pytester.path / 't'}")
+    result.assert_outcomes(passed=1)
 
 
 def _suite(pytester: pytest.Pytester, greedy: bool) -> pytest.RunResult:

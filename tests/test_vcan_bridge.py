@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 from support.procs import Procs, python, status, wait
 from support.procs import procs as procs  # the fixture
+from support.readme import DOCS, python_blocks_of
 from support.vcan import TIMEOUT
 from support.vcan import c_node as c_node  # the fixture: builds canergy-node when missing
 
@@ -89,40 +90,15 @@ def _nodes(tmp: Path) -> list[str]:
     return [str(tmp / f"n{n}.json") for n in (1, 2)]
 
 
-USER_TESTS = """
-import pytest
-
-NODE = {node!r}
-
-
-@pytest.mark.canergy(interface="socketcan", channel="vcan0")
-def test_a_c_node_behind_a_faulty_bridge(
-    canergy_bus, canergy_supervisor, canergy_bridge, canergy_spawn
-):
-    below = canergy_bus.sibling("vcan1")
-    bridge = canergy_bridge(canergy_bus, below, loss=0.1, duplicate=0.1, seed=43)
-    canergy_spawn(
-        [NODE, "--node", "1", "-i", "{{interface}}", "-c", "{{channel}}", "--nv", "{{tmp}}/n1.nv",
-         "--power", "0.2W", "--status-file", "{{status}}", "--response-timeout", "0.3"],
-        "node1",
-        bus=below,
-    )
-    sup = canergy_supervisor(
-        "--nodes", "1", "--initial", "20J", "--target", "1J", "--max-grant", "0.5J",
-        "--response-timeout", "0.3",
-    )
-    sup.wait_for(lambda s: s["nodes"]["1"]["committed"] >= 3, "three grants to the C node")
-    assert sup.grant(1, "0.2J")["outcome"] in ("COMMITTED", "ABORTED")
-    assert all(c["forwarded"] for c in bridge.status()["directions"].values())
-"""
-
-
 def test_the_plugin_runs_a_c_node_process_behind_a_bridge_on_vcan(
     pytester: pytest.Pytester, c_node: Path
 ) -> None:
-    """The plugin's process paths: the supervisor as a process on vcan0, the C node spawned on
-    vcan1 with its status file in the books, the bridge between; the books close."""
-    pytester.makepyfile(test_user=USER_TESTS.format(node=str(c_node)))
+    """docs/testing.md's vcan example, the plugin's process paths: the supervisor as a process on
+    vcan0, the C node spawned on vcan1 with its status file in the books, the bridge between;
+    the books close."""
+    example = python_blocks_of(DOCS / "testing.md")[1]  # as printed, the node's path made whole
+    example = example.replace('"firmware/build/canergy-node"', repr(str(c_node)))
+    pytester.makepyfile(test_user=example)
     result = pytester.runpytest("-p", "no:cacheprovider", f"--basetemp={pytester.path / 't'}")
     result.assert_outcomes(passed=1)
     assert list(pytester.path.rglob("node1-status.json"))

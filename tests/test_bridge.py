@@ -112,10 +112,23 @@ def test_a_partition_drops_both_ways_for_its_window_and_draws_nothing() -> None:
             fate = schedule.fate(direction, b"\x01\x02", t)
             if 2000 <= t < 5000:
                 assert fate == []
-            else:  # the frames after the cut meet the fates the uncut run's next frames meet
-                assert fate == plain.fate(direction, b"\x01\x02", t)
+            else:  # the uncut run's fates, but for copies that would arrive during the cut
+                expected = plain.fate(direction, b"\x01\x02", t)
+                assert fate == [c for c in expected if not cut.covers(c[0])]
     assert [c.partitioned for c in schedule.counts] == [6, 6]
     assert schedule.as_json()["directions"][0]["frames"] == 20  # type: ignore[index]
+
+
+def test_a_copy_delayed_into_a_partition_never_arrives() -> None:
+    """Held back past the cut's start (reordered, 20 ms at most), a copy is in flight when the
+    link is cut: it is dropped and counted, and nothing arrives during the cut."""
+    schedule = FaultSchedule(FaultProfile(reorder=1.0), 2, [Partition(20_000, 100_000)])
+    fates = [schedule.fate(0, b"\x01", t) for t in range(0, 20_000, 100)]
+    dues = [due for fate in fates for due, _ in fate]
+    c = schedule.counts[0]
+    assert c.cut_in_flight > 50 and len(dues) == 200 - c.cut_in_flight
+    assert not any(20_000 <= due < 120_000 for due in dues)
+    assert schedule.as_json()["directions"][0]["cut_in_flight"] == c.cut_in_flight  # type: ignore[index]
 
 
 @pytest.mark.parametrize("text", ["2s", "2s+0s", "x+1s", "-1s+2s", "+"])

@@ -3,9 +3,10 @@
 A ``FaultSchedule`` draws each frame's fate from ``canergy.faults.FaultInjector`` (the demo's
 loss, duplication, reordering, delay and bit flips), one injector per direction, each seeded from
 the schedule's seed and the direction alone. Frames that cross while a ``Partition`` is on are
-dropped without a draw. So the n-th frame of a direction meets the same fate in every run with
-the same seed and the same partitioned frames before it, whatever its data and whatever the
-other direction carries: a run's decisions replay from its seed and its frames. Times are
+dropped without a draw; copies whose delay would deliver them during one are dropped too (in
+flight when the link was cut). So the n-th frame of a direction meets the same fate in every
+run with the same seed and the same partitioned frames before it, whatever its data and whatever
+the other direction carries: a run's decisions replay from its seed and its frames. Times are
 integer µs since the bridge started, passed in.
 """
 
@@ -62,14 +63,16 @@ class DirectionCounts:
 
     faults: FaultCounters = field(default_factory=FaultCounters)
     partitioned: int = 0
+    cut_in_flight: int = 0
+    """Copies delayed into a partition: in flight when the link was cut, never arriving."""
     forwarded: int = 0
     send_errors: int = 0
 
     def as_json(self) -> dict[str, int]:
         counts = asdict(self.faults)
         counts["frames"] += self.partitioned
-        return {**counts, "partitioned": self.partitioned, "forwarded": self.forwarded,
-                "send_errors": self.send_errors}  # fmt: skip
+        counts.update(partitioned=self.partitioned, cut_in_flight=self.cut_in_flight)
+        return {**counts, "forwarded": self.forwarded, "send_errors": self.send_errors}
 
 
 class FaultSchedule:
@@ -91,10 +94,14 @@ class FaultSchedule:
     def fate(self, direction: int, data: bytes, t_us: int) -> list[tuple[int, bytes]]:
         """The copies of a frame that crosses in ``direction`` at ``t_us``: ``(due_us,
         data)`` each, ``due_us >= t_us``; empty when lost or partitioned."""
+        counts = self.counts[direction]
         if self.partitioned(t_us):
-            self.counts[direction].partitioned += 1
+            counts.partitioned += 1
             return []
-        return [(t_us + delay, out) for delay, out in self._injectors[direction].fate(data)]
+        copies = [(t_us + delay, out) for delay, out in self._injectors[direction].fate(data)]
+        arriving = [(due, out) for due, out in copies if not self.partitioned(due)]
+        counts.cut_in_flight += len(copies) - len(arriving)
+        return arriving
 
     def as_json(self) -> dict[str, object]:
         """The seed, the faults and the counts so far, for a status file."""

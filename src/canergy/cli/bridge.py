@@ -143,7 +143,10 @@ def status_line(status: dict[str, Any]) -> str:
     for name, c in status["directions"].items():
         faults = ", ".join(
             f"{k} {c[k]}"
-            for k in ("lost", "duplicated", "reordered", "corrupted", "partitioned", "send_errors")
+            for k in (
+                *("lost", "duplicated", "reordered", "corrupted", "partitioned"),
+                *("cut_in_flight", "send_errors"),
+            )
             if c[k]
         )
         parts.append(

@@ -42,7 +42,7 @@ autodoc_typehints_format = "short"
 nitpicky = True
 nitpick_ignore_regex = [
     # third-party and standard-library types: no intersphinx (the build reaches no network)
-    ("py:.*", r"(can|canopen|cryptography|z3|numpy|matplotlib|cffi)\..*"),
+    ("py:.*", r"(can|canopen|cryptography|z3|numpy|matplotlib|cffi|hypothesis)\..*"),
     ("py:.*", r"(collections\.abc|typing|enum|pathlib|argparse|threading|socket|io|os|random)\..*"),
     ("py:class", r"(Path|Enum|IntEnum|IntFlag|Message|BusABC|Callable|Iterable|Iterator)"),
     # internal types that public signatures name; they are not part of the API reference

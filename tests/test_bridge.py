@@ -4,6 +4,7 @@ python-can buses, and ``canergy bridge`` between a supervisor and its nodes."""
 from __future__ import annotations
 
 import json
+import re
 import signal
 import threading
 import time
@@ -12,16 +13,19 @@ from pathlib import Path
 
 import can
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from support.live_rig import Loop
 
 from canergy.bridge.link import Bridge
-from canergy.bridge.schedule import FaultSchedule, Partition
+from canergy.bridge.schedule import FaultSchedule, Partition, parse_faults
 from canergy.cli import main
 from canergy.codec import Codec
 from canergy.faults import FaultProfile
 from canergy.live.control import request
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.messages import Direction
+from canergy.testing.strategies import fault_schedules
 from firmware_model.__main__ import status as node_status
 from firmware_model.actuator import PowerProfile
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
@@ -135,6 +139,34 @@ def test_a_copy_delayed_into_a_partition_never_arrives() -> None:
 def test_a_bad_partition_is_refused(text: str) -> None:
     with pytest.raises(ValueError):
         Partition.parse(text)
+
+
+def test_faults_as_text() -> None:
+    profile, cuts = parse_faults("loss=0.1, duplicate=0.05,delay=2ms,jitter=1ms,partition=2s+1s")
+    assert (profile.loss, profile.duplicate, profile.delay_us, profile.jitter_us) == (
+        0.1,
+        0.05,
+        2000,
+        1000,
+    )
+    assert cuts == (Partition(2_000_000, 1_000_000),)
+    assert parse_faults("") == (FaultProfile(delay_us=0, jitter_us=0), ())
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("loss=2", "loss probability 2.0 outside 0..1"),
+        ("loss=nan", "outside 0..1"),
+        ("loss", "give KEY=VALUE"),
+        ("drop=0.1", "unknown fault (known: loss, duplicate"),
+        ("delay=1ms,jitter=2ms", "jitter larger than the delay"),
+        ("partition=3s", "AT+FOR"),
+    ],
+)
+def test_bad_faults_as_text_are_named(text: str, message: str) -> None:
+    with pytest.raises(ValueError, match=re.escape(message)):
+        parse_faults(text)
 
 
 class _Clock:
@@ -330,3 +362,16 @@ def test_canergy_bridge_reports_captures_and_stops_on_sigterm(
     assert f"{a}>{b} {forward['frames']} frames, {forward['forwarded']} forwarded" in err
     channels = [line.split()[1] for line in log.read_text().splitlines()]
     assert channels.count(a) == forward["frames"] and channels.count(b) == forward["forwarded"]
+
+
+@given(fault_schedules(), st.lists(st.binary(max_size=8), max_size=60))
+def test_any_drawn_schedule_replays_from_its_seed(
+    schedule: FaultSchedule, frames: list[bytes]
+) -> None:
+    """What the hypothesis strategy draws is a valid schedule, and a second schedule with its
+    profile, seed and partitions makes the same decisions on the same frames."""
+    again = FaultSchedule(schedule.profile, schedule.seed, schedule.partitions)
+    for i, data in enumerate(frames):
+        t = 250_000 * i
+        assert schedule.fate(i % 2, data, t) == again.fate(i % 2, data, t)
+    assert schedule.as_json() == again.as_json()

@@ -148,3 +148,38 @@ def test_the_terms_name_the_party_and_add_up_to_the_ledger() -> None:
     parts = terms(supervisor, greedy)
     assert sum(t.dissipated for t in parts) == -300_000
     assert [t.who for t in parts] == ["the supervisor", "node 1", "node 2"]
+
+
+MARKED = """
+import time
+
+import can
+import pytest
+
+
+@pytest.mark.canergy(faults="loss=1,partition=1s+2s", seed=5)
+def test_the_markers_faults(canergy_bus, canergy_bridge):
+    below = canergy_bus.sibling()
+    bridge = canergy_bridge(canergy_bus, below)
+    status = bridge.status()
+    assert status["seed"] == 5 and status["profile"]["loss"] == 1.0
+    assert status["partitions"] == ["1s+2s"]
+    with canergy_bus.open() as bus, below.open() as far:
+        bus.send(can.Message(arbitration_id=0x123, data=b"x"))
+        deadline = time.monotonic() + 30
+        while list(bridge.status()["directions"].values())[0]["lost"] < 1:
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        assert far.recv(0) is None  # decided lost, as the marker says: never sent
+
+
+@pytest.mark.canergy(faults="loss=2")
+def test_a_bad_marker_is_named(canergy_bus, canergy_bridge):
+    with pytest.raises(ValueError, match="loss probability 2.0 outside 0..1"):
+        canergy_bridge(canergy_bus, canergy_bus.sibling())
+"""
+
+
+def test_the_marker_gives_the_bridge_its_faults(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(test_marked=MARKED)
+    pytester.runpytest("-p", "no:cacheprovider", "-q").assert_outcomes(passed=2)

@@ -113,6 +113,37 @@ class FaultSchedule:
         }
 
 
+PROBABILITIES = ("loss", "duplicate", "reorder", "corrupt")
+DURATIONS = {"delay": "delay_us", "jitter": "jitter_us", "reorder_delay": "reorder_delay_us"}
+
+
+def parse_faults(text: str) -> tuple[FaultProfile, tuple[Partition, ...]]:
+    """``loss=0.1,duplicate=0.05,delay=2ms,jitter=1ms,partition=2s+1s`` as a profile (no delay
+    unless given) and partitions (``partition`` repeatable); ``ValueError`` naming the part."""
+    kwargs: dict[str, object] = {"delay_us": 0, "jitter_us": 0}
+    partitions = []
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        key, eq, value = (x.strip() for x in part.partition("="))
+        try:
+            if not eq:
+                raise ValueError("give KEY=VALUE")
+            if key in PROBABILITIES:
+                kwargs[key] = float(value)
+            elif key in DURATIONS:
+                kwargs[DURATIONS[key]] = parse_duration(value)
+            elif key == "partition":
+                partitions.append(Partition.parse(value))
+            else:
+                known = ", ".join((*PROBABILITIES, *DURATIONS, "partition"))
+                raise ValueError(f"unknown fault (known: {known})")
+        except ValueError as exc:
+            raise ValueError(f"faults {text!r}: {part!r}: {exc}") from None
+    try:
+        return FaultProfile(**kwargs), tuple(partitions)  # type: ignore[arg-type]
+    except ValueError as exc:
+        raise ValueError(f"faults {text!r}: {exc}") from None
+
+
 class Held(Generic[T]):
     """Items waiting for their due time (integer µs), released in due order, ties in the order
     they were held."""

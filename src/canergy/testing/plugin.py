@@ -15,7 +15,9 @@ pytest loads it wherever canergy is installed (entry point ``pytest11``, name ``
   (``SupervisorRun``: ``grant``, ``status``, ``wait_for``, ``intrusions``, ``stop``).
 - ``canergy_bridge``: ``canergy_bridge(bus1, bus2, loss=0.1, duplicate=0.1, seed=7,
   partitions=["2s+1s"])`` carries frames between two buses through seeded faults
-  (``canergy.bridge``), until the end of the test.
+  (``canergy.bridge``), until the end of the test; or ``schedule=`` a ``FaultSchedule`` (e.g.
+  drawn by ``canergy.testing.strategies.fault_schedules()``); given none, the marker's
+  ``faults="loss=0.1,duplicate=0.05"`` and ``seed``.
 - ``canergy_books``: the run's ledger. Register the nodes' statuses with ``add_client`` (a
   status file, or a function returning a status dict); ``spawn(..., "{status}")`` registers
   its own. At teardown every supervisor is stopped (settling its transactions), then the
@@ -57,8 +59,10 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers",
-        "canergy(interface=None, channel=None, fd=False, books=True): canergy_bus's interface "
-        "and channel for this test; books=False: do not close the books at teardown",
+        "canergy(interface=None, channel=None, fd=False, books=True, faults='', seed=0): "
+        "canergy_bus's interface and channel for this test; books=False: do not close the "
+        "books at teardown; faults (e.g. 'loss=0.1,duplicate=0.05,partition=2s+1s') and seed: "
+        "canergy_bridge's when it is given none",
     )
 
 
@@ -205,30 +209,40 @@ def canergy_spawn(
 
 
 @pytest.fixture
-def canergy_bridge(canergy_books: Books) -> Callable[..., Bridge]:
-    """``canergy_bridge(bus1, bus2, seed=0, partitions=(), **faults)``: a running
-    ``canergy.bridge.link.Bridge``; faults as ``canergy.faults.FaultProfile`` takes them
-    (``loss``, ``duplicate``, ``reorder``, ``corrupt``, ``delay_us``...); partitions as
-    ``"AT+FOR"`` (e.g. ``"2s+1s"``)."""
+def canergy_bridge(request: pytest.FixtureRequest, canergy_books: Books) -> Callable[..., Bridge]:
+    """``canergy_bridge(bus1, bus2, schedule=None, seed=0, partitions=(), **faults)``: a
+    running ``canergy.bridge.link.Bridge``. The faults: a ``FaultSchedule`` (e.g. drawn by
+    ``canergy.testing.strategies.fault_schedules()``), or keywords as ``FaultProfile`` takes
+    them (``loss``, ``duplicate``, ``reorder``, ``corrupt``, ``delay_us``...; no delay unless
+    given) with partitions as ``"AT+FOR"`` (e.g. ``"2s+1s"``), or else the marker's
+    ``faults="loss=0.1,duplicate=0.05,partition=2s+1s"`` and ``seed``."""
     import threading
 
     from canergy.bridge.link import Bridge
-    from canergy.bridge.schedule import FaultSchedule, Partition
+    from canergy.bridge.schedule import FaultSchedule, Partition, parse_faults
     from canergy.faults import FaultProfile
+
+    marked = _marker(request)
 
     def start(
         bus1: TestBus,
         bus2: TestBus,
         *,
-        seed: int = 0,
+        schedule: FaultSchedule | None = None,
+        seed: int | None = None,
         partitions: Sequence[str] = (),
         **faults: Any,
     ) -> Bridge:
-        faults.setdefault("delay_us", 0)
-        faults.setdefault("jitter_us", 0)
-        schedule = FaultSchedule(
-            FaultProfile(**faults), seed, [Partition.parse(p) for p in partitions]
-        )
+        if seed is None:
+            seed = int(marked.get("seed", 0))
+        if schedule is None and not faults and not partitions:
+            profile, cuts = parse_faults(str(marked.get("faults", "")))
+            schedule = FaultSchedule(profile, seed, cuts)
+        elif schedule is None:
+            faults.setdefault("delay_us", 0)
+            faults.setdefault("jitter_us", 0)
+            cuts = tuple(Partition.parse(p) for p in partitions)
+            schedule = FaultSchedule(FaultProfile(**faults), seed, cuts)
         buses = (bus1.open(), bus2.open())
         bridge = Bridge(buses, schedule, names=(bus1.channel, bus2.channel))
         stop = threading.Event()

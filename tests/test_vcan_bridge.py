@@ -102,3 +102,46 @@ def test_the_plugin_runs_a_c_node_process_behind_a_bridge_on_vcan(
     result = pytester.runpytest("-p", "no:cacheprovider", f"--basetemp={pytester.path / 't'}")
     result.assert_outcomes(passed=1)
     assert list(pytester.path.rglob("node1-status.json"))
+
+
+POWER_CUT = """
+import pytest
+
+NODE = {node!r}
+
+
+@pytest.mark.canergy(interface="socketcan", channel="vcan0", faults="loss=0.1,duplicate=0.1")
+def test_a_c_node_cut_off_its_power_twice(
+    canergy_bus, canergy_supervisor, canergy_bridge, canergy_spawn
+):
+    below = canergy_bus.sibling("vcan1")
+    canergy_bridge(canergy_bus, below)
+    slow = ["--response-timeout", "0.3"]
+    node = canergy_spawn(
+        [NODE, "--node", "1", "-i", "{{interface}}", "-c", "{{channel}}", "--nv", "{{tmp}}/n1.nv",
+         "--status-file", "{{status}}", "--power", "0.5W", *slow],
+        "node1",
+        bus=below,
+    )
+    sup = canergy_supervisor(
+        "--nodes", "1", "--initial", "20J", "--target", "1J", "--max-grant", "0.3J", *slow
+    )
+    for cut in range(2):
+        done = sup.status()["nodes"]["1"]["committed"]
+        sup.wait_for(lambda s: s["nodes"]["1"]["committed"] >= done + 2, "two more grants")
+        node.power_cut()
+        node.restart()
+    done = sup.status()["nodes"]["1"]["committed"]
+    sup.wait_for(lambda s: s["nodes"]["1"]["committed"] > done, "a grant after the last cut")
+"""
+
+
+def test_the_plugin_cuts_a_c_nodes_power_and_the_books_close(
+    pytester: pytest.Pytester, c_node: Path
+) -> None:
+    """A spawned C node cut off (SIGKILL) twice and restarted from its NV file, behind the
+    marker's faults: grants resume and the books close at teardown."""
+    pytester.makepyfile(test_user=POWER_CUT.format(node=str(c_node)))
+    result = pytester.runpytest("-p", "no:cacheprovider", f"--basetemp={pytester.path / 't'}")
+    result.assert_outcomes(passed=1)
+    assert (pytester.path / "t").exists()

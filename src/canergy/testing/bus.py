@@ -56,10 +56,21 @@ class Process:
     """A process of the test (a node under test), its stderr in ``log``."""
 
     def __init__(self, name: str, argv: Sequence[str], cwd: Path) -> None:
-        self.name, self.argv = name, list(argv)
+        self.name, self.argv, self.cwd = name, list(argv), cwd
         self.log = cwd / f"{name}.stderr"
-        with open(self.log, "wb") as err:
-            self.popen = subprocess.Popen(self.argv, stdout=subprocess.DEVNULL, stderr=err, cwd=cwd)
+        self.log.write_bytes(b"")
+        self.popen = self._start()
+
+    def _start(self) -> subprocess.Popen[bytes]:
+        with open(self.log, "ab") as err:
+            return subprocess.Popen(self.argv, stdout=subprocess.DEVNULL, stderr=err, cwd=self.cwd)
+
+    def restart(self) -> None:
+        """Start it again with the same command (after ``stop`` or ``power_cut``): a node
+        coming back from what its NV file kept. Its stderr goes on in the same file."""
+        if self.popen.poll() is None:
+            raise RuntimeError(f"{self.name} is still running: stop or power_cut it first")
+        self.popen = self._start()
 
     def stderr(self) -> str:
         return self.log.read_text(errors="replace")

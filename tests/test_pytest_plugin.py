@@ -183,3 +183,19 @@ def test_a_bad_marker_is_named(canergy_bus, canergy_bridge):
 def test_the_marker_gives_the_bridge_its_faults(pytester: pytest.Pytester) -> None:
     pytester.makepyfile(test_marked=MARKED)
     pytester.runpytest("-p", "no:cacheprovider", "-q").assert_outcomes(passed=2)
+
+
+UNREGISTERED = """
+def test_nodes_never_registered(canergy_supervisor):
+    canergy_supervisor("--nodes", "1-2", "--initial", "1J")
+"""
+
+
+def test_books_that_cannot_be_closed_say_what_is_missing(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(test_unregistered=UNREGISTERED)
+    result = pytester.runpytest("-p", "no:cacheprovider", "-q")
+    result.assert_outcomes(passed=1, errors=1)
+    result.stdout.fnmatch_lines(
+        ["*cannot close the books (*): the supervisor's nodes are 1, 2, the clients' statuses "
+         "given are of none; register each node's status*"]
+    )  # fmt: skip

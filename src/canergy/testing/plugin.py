@@ -122,7 +122,18 @@ class Books:
         if len(self.supervisors) > 1:
             return None  # several supervisors: which nodes are whose is the test's to say
         status = json.loads(self.supervisors[0].status_file.read_text())
-        return creation(status, self.client_statuses())
+        clients = self.client_statuses()
+        try:
+            return creation(status, clients)
+        except (ValueError, KeyError) as exc:  # statuses that do not match the supervisor's
+            nodes = ", ".join(status.get("nodes", {})) or "none"
+            given = ", ".join(str(c.get("node")) for c in clients) or "none"
+            return (
+                f"cannot close the books ({exc}): the supervisor's nodes are {nodes}, the "
+                f"clients' statuses given are of {given}; register each node's status "
+                "(canergy_books.add_client, or {status} in canergy_spawn's command) or opt out "
+                "with @pytest.mark.canergy(books=False)"
+            )
 
 
 @pytest.fixture

@@ -4,6 +4,8 @@ node breaks the rules, and passes again once it is fixed; ``-p no:canergy`` turn
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 from support.readme import DOCS, python_blocks_of
 
@@ -199,3 +201,21 @@ def test_books_that_cannot_be_closed_say_what_is_missing(pytester: pytest.Pytest
         ["*cannot close the books (*): the supervisor's nodes are 1, 2, the clients' statuses "
          "given are of none; register each node's status*"]
     )  # fmt: skip
+
+
+def test_a_part_that_fails_to_stop_does_not_leave_the_others_running(tmp_path: Path) -> None:
+    from canergy.testing.plugin import Books
+
+    stopped: list[str] = []
+
+    def stuck() -> None:
+        stopped.append("stuck")
+        raise AssertionError("node 1 did not stop")
+
+    books = Books(tmp_path)
+    books.add_client(lambda: {}, stop=stuck)
+    books.add_client(lambda: {}, stop=lambda: stopped.append("node 2"))
+    books.bridges.append(lambda: stopped.append("bridge"))
+    with pytest.raises(AssertionError, match="node 1 did not stop"):
+        books.stop_all()
+    assert stopped == ["stuck", "node 2", "bridge"]

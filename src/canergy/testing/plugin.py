@@ -103,15 +103,23 @@ class Books:
         return out
 
     def stop_all(self) -> None:
-        for supervisor in self.supervisors:
-            supervisor.stop()
-        for process in self.processes:
-            process.stop()
-        for stop in self.stops:
-            stop()
-        for closing in self.bridges:
-            closing()
+        """Stop every part, in order, even when one fails to stop; then raise the first
+        failure."""
+        steps: list[Callable[[], object]] = [
+            *(s.stop for s in self.supervisors),
+            *(p.stop for p in self.processes),
+            *self.stops,
+            *self.bridges,
+        ]
         self.bridges.clear()
+        first: BaseException | None = None
+        for step in steps:
+            try:
+                step()
+            except Exception as exc:  # the others still stop
+                first = first or exc
+        if first is not None:
+            raise first
 
     def verdict(self) -> str | None:
         """Why the books do not close (None: they close, or there is nothing to close)."""

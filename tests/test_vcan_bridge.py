@@ -145,3 +145,41 @@ def test_the_plugin_cuts_a_c_nodes_power_and_the_books_close(
     result = pytester.runpytest("-p", "no:cacheprovider", f"--basetemp={pytester.path / 't'}")
     result.assert_outcomes(passed=1)
     assert (pytester.path / "t").exists()
+
+
+AUTHENTICATED = """
+import pytest
+
+NODE = {node!r}
+
+
+@pytest.mark.canergy(interface="socketcan", channel="vcan0", faults="loss=0.1,duplicate=0.1")
+def test_an_authenticated_c_node_behind_a_faulty_bridge(
+    canergy_bus, canergy_supervisor, canergy_bridge, canergy_spawn
+):
+    below = canergy_bus.sibling("vcan1")
+    canergy_bridge(canergy_bus, below)
+    slow = ["--response-timeout", "0.3"]
+    sup = canergy_supervisor(
+        "--nodes", "1", "--initial", "20J", "--target", "1J", "--max-grant", "0.5J", *slow,
+        auth=True,
+    )
+    canergy_spawn(
+        [NODE, "--node", "1", "-i", "{{interface}}", "-c", "{{channel}}", "--nv", "{{tmp}}/n1.nv",
+         "--status-file", "{{status}}", "--power", "0.2W", "--auth", str(sup.node_key(1)), *slow],
+        "node1",
+        bus=below,
+    )
+    status = sup.wait_for(lambda s: s["nodes"]["1"]["committed"] >= 3, "three grants")
+    # the bridge's losses part frames from their MAC frames (classic layout); none fails its MAC
+    split = {{"frame without a MAC", "MAC frame without its message"}}
+    assert set(status.get("auth_failures", {{}})) <= split, status["auth_failures"]
+"""
+
+
+def test_the_plugin_runs_an_authenticated_c_node(pytester: pytest.Pytester, c_node: Path) -> None:
+    """``canergy_supervisor(auth=True)`` makes a master key and derives the node's: the C node
+    in authenticated mode is granted across the marker's faults and the books close."""
+    pytester.makepyfile(test_user=AUTHENTICATED.format(node=str(c_node)))
+    result = pytester.runpytest("-p", "no:cacheprovider", f"--basetemp={pytester.path / 't'}")
+    result.assert_outcomes(passed=1)

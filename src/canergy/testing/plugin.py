@@ -12,7 +12,8 @@ pytest loads it wherever canergy is installed (entry point ``pytest11``, name ``
   bus, which no other process hears), its status file registered with the books.
 - ``canergy_supervisor``: ``canergy_supervisor("--nodes", "1-3", "--initial", "10J", ...)``
   starts ``canergy supervisor`` on ``canergy_bus`` (or ``bus=``) with those flags
-  (``SupervisorRun``: ``grant``, ``status``, ``wait_for``, ``intrusions``, ``stop``).
+  (``SupervisorRun``: ``grant``, ``status``, ``wait_for``, ``intrusions``, ``stop``);
+  ``auth=True``: authenticated mode with a master key it makes, ``node_key(n)`` each node's.
 - ``canergy_bridge``: ``canergy_bridge(bus1, bus2, loss=0.1, duplicate=0.1, seed=7,
   partitions=["2s+1s"])`` carries frames between two buses through seeded faults
   (``canergy.bridge``), until the end of the test; or ``schedule=`` a ``FaultSchedule`` (e.g.
@@ -187,12 +188,15 @@ def canergy_books(
 def canergy_supervisor(
     canergy_books: Books, canergy_bus: TestBus, tmp_path: Path
 ) -> Callable[..., SupervisorRun]:
-    """``canergy_supervisor(*flags, bus=None, name="supervisor")``: a started supervisor."""
+    """``canergy_supervisor(*flags, bus=None, name="supervisor", auth=False)``: a started
+    supervisor (``auth``: in authenticated mode, with a master key it makes)."""
 
     from canergy.testing.supervisor import SupervisorRun
 
-    def start(*flags: str, bus: TestBus | None = None, name: str = "supervisor") -> SupervisorRun:
-        run = SupervisorRun(bus or canergy_bus, tmp_path, flags, name)
+    def start(
+        *flags: str, bus: TestBus | None = None, name: str = "supervisor", auth: bool = False
+    ) -> SupervisorRun:
+        run = SupervisorRun(bus or canergy_bus, tmp_path, flags, name, auth)
         canergy_books.supervisors.append(run)
         return run
 

@@ -30,10 +30,25 @@ START_S = 30.0
 class SupervisorRun:
     """The supervisor of ``bus`` started with ``flags`` (as ``canergy supervisor`` takes them,
     e.g. ``["--nodes", "1-3", "--initial", "10J", "--target", "1J"]``) plus ``--state``,
-    ``--status-file`` and ``--control`` in ``tmp``."""
+    ``--status-file`` and ``--control`` in ``tmp``; ``auth``: authenticated mode with a master
+    key it makes (``node_key(n)`` for each node's)."""
 
-    def __init__(self, bus: TestBus, tmp: Path, flags: Sequence[str], name: str = "supervisor"):
-        self.bus, self.name = bus, name
+    def __init__(
+        self,
+        bus: TestBus,
+        tmp: Path,
+        flags: Sequence[str],
+        name: str = "supervisor",
+        auth: bool = False,
+    ):
+        self.bus, self.name, self.tmp = bus, name, tmp
+        self.master_key: Path | None = None
+        if auth:  # a master key of its own; node_key(n) derives each node's
+            from canergy.auth.keys import new_master, write_key
+
+            self.master_key = tmp / f"{name}-master.key"
+            write_key(self.master_key, new_master(1))
+            flags = [*flags, "--auth", str(self.master_key)]
         self.state = tmp / f"{name}-state.json"
         self.status_file = tmp / f"{name}-status.json"
         self.control = tmp / f"{name}.sock"
@@ -87,6 +102,18 @@ class SupervisorRun:
             if time.monotonic() > deadline:
                 raise RuntimeError(f"{self.name}: no control socket after {START_S:g} s")
             time.sleep(0.02)
+
+    def node_key(self, node: int) -> Path:
+        """Node ``node``'s key file (``--auth`` of the node), derived from this supervisor's
+        master key (started with ``auth=True``) and written once, mode 0600."""
+        from canergy.auth.keys import load_key, node_key_of, write_key
+
+        if self.master_key is None:
+            raise ValueError(f"{self.name} runs without --auth: start it with auth=True")
+        path = self.tmp / f"{self.name}-node-{node:03d}.key"
+        if not path.exists():
+            write_key(path, node_key_of(load_key(self.master_key), node))
+        return path
 
     def grant(self, node: int | str, amount: int | str, timeout_s: float = 30) -> dict[str, Any]:
         """Grant ``amount`` (µJ, or an energy such as ``"0.5J"``) to ``node``, as ``canergy

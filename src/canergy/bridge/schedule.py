@@ -28,6 +28,11 @@ DIRECTIONS = (0, 1)
 """0: from the first bus to the second, 1: back."""
 
 
+def _shown(text: str, most: int = 40) -> str:
+    """``text`` quoted for an error message, cut short when long."""
+    return repr(text) if len(text) <= most else f"{text[:most]!r}..."
+
+
 @dataclass(frozen=True, slots=True)
 class Partition:
     """The link is cut (both directions) from ``start_us`` for ``length_us``."""
@@ -44,9 +49,12 @@ class Partition:
         """``AT+FOR``, two durations: e.g. ``2s+3s`` cuts the link from 2 s after the start
         for 3 s."""
         at, plus, length = text.partition("+")
-        if not plus:
-            raise ValueError(f"partition {text!r}: give AT+FOR, e.g. 2s+3s")
-        return cls(parse_duration(at.strip()), parse_duration(length.strip()))
+        try:
+            if not plus:
+                raise ValueError("give AT+FOR, e.g. 2s+3s")
+            return cls(parse_duration(at.strip()), parse_duration(length.strip()))
+        except ValueError as exc:
+            raise ValueError(f"partition {_shown(text)}: {exc}") from None
 
     def covers(self, t_us: int) -> bool:
         return self.start_us <= t_us < self.start_us + self.length_us
@@ -137,11 +145,11 @@ def parse_faults(text: str) -> tuple[FaultProfile, tuple[Partition, ...]]:
                 known = ", ".join((*PROBABILITIES, *DURATIONS, "partition"))
                 raise ValueError(f"unknown fault (known: {known})")
         except ValueError as exc:
-            raise ValueError(f"faults {text!r}: {part!r}: {exc}") from None
+            raise ValueError(f"faults {_shown(text)}: {_shown(part)}: {exc}") from None
     try:
         return FaultProfile(**kwargs), tuple(partitions)  # type: ignore[arg-type]
     except ValueError as exc:
-        raise ValueError(f"faults {text!r}: {exc}") from None
+        raise ValueError(f"faults {_shown(text)}: {exc}") from None
 
 
 class Held(Generic[T]):

@@ -175,6 +175,11 @@ def test_the_markers_faults(canergy_bus, canergy_bridge):
         assert far.recv(0) is None  # decided lost, as the marker says: never sent
 
 
+@pytest.mark.canergy(nodes="3-4", books=False)
+def test_the_markers_nodes(canergy_supervisor):
+    assert sorted(canergy_supervisor("--initial", "1J").status()["nodes"]) == ["3", "4"]
+
+
 @pytest.mark.canergy(faults="loss=2")
 def test_a_bad_marker_is_named(canergy_bus, canergy_bridge):
     with pytest.raises(ValueError, match="loss probability 2.0 outside 0..1"):
@@ -182,9 +187,11 @@ def test_a_bad_marker_is_named(canergy_bus, canergy_bridge):
 """
 
 
-def test_the_marker_gives_the_bridge_its_faults(pytester: pytest.Pytester) -> None:
+def test_the_marker_gives_the_bridge_its_faults_and_the_supervisor_its_nodes(
+    pytester: pytest.Pytester,
+) -> None:
     pytester.makepyfile(test_marked=MARKED)
-    pytester.runpytest("-p", "no:cacheprovider", "-q").assert_outcomes(passed=2)
+    pytester.runpytest("-p", "no:cacheprovider", "-q").assert_outcomes(passed=3)
 
 
 UNREGISTERED = """

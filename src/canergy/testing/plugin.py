@@ -60,10 +60,11 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers",
-        "canergy(interface=None, channel=None, fd=False, books=True, faults='', seed=0): "
-        "canergy_bus's interface and channel for this test; books=False: do not close the "
-        "books at teardown; faults (e.g. 'loss=0.1,duplicate=0.05,partition=2s+1s') and seed: "
-        "canergy_bridge's when it is given none",
+        "canergy(interface=None, channel=None, fd=False, books=True, faults='', seed=0, "
+        "nodes=None): canergy_bus's interface and channel for this test; books=False: do not "
+        "close the books at teardown; faults (e.g. 'loss=0.1,duplicate=0.05,partition=2s+1s') "
+        "and seed: canergy_bridge's when it is given none; nodes (e.g. '1-5'): "
+        "canergy_supervisor's --nodes when it is given none",
     )
 
 
@@ -186,16 +187,21 @@ def canergy_books(
 
 @pytest.fixture
 def canergy_supervisor(
-    canergy_books: Books, canergy_bus: TestBus, tmp_path: Path
+    request: pytest.FixtureRequest, canergy_books: Books, canergy_bus: TestBus, tmp_path: Path
 ) -> Callable[..., SupervisorRun]:
     """``canergy_supervisor(*flags, bus=None, name="supervisor", auth=False)``: a started
-    supervisor (``auth``: in authenticated mode, with a master key it makes)."""
+    supervisor (``auth``: in authenticated mode, with a master key it makes); without
+    ``--nodes`` among the flags, the marker's ``nodes`` (e.g. ``nodes="1-5"``)."""
 
     from canergy.testing.supervisor import SupervisorRun
+
+    nodes = _marker(request).get("nodes")
 
     def start(
         *flags: str, bus: TestBus | None = None, name: str = "supervisor", auth: bool = False
     ) -> SupervisorRun:
+        if nodes is not None and "--nodes" not in flags:
+            flags = ("--nodes", str(nodes), *flags)
         run = SupervisorRun(bus or canergy_bus, tmp_path, flags, name, auth)
         canergy_books.supervisors.append(run)
         return run

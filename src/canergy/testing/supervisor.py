@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import shutil
 import sys
 import tempfile
 import threading
@@ -52,8 +53,10 @@ class SupervisorRun:
         self.state = tmp / f"{name}-state.json"
         self.status_file = tmp / f"{name}-status.json"
         self.control = tmp / f"{name}.sock"
+        self._socket_dir: Path | None = None
         if len(str(self.control).encode()) > MAX_SOCKET_PATH:  # a deep tmp_path
-            self.control = Path(tempfile.mkdtemp(prefix="canergy-")) / f"{name}.sock"
+            self._socket_dir = Path(tempfile.mkdtemp(prefix="canergy-"))
+            self.control = self._socket_dir / f"{name}.sock"
         self.argv = [
             *("supervisor", *bus.flags, *flags),
             *("--state", str(self.state), "--status-file", str(self.status_file)),
@@ -162,5 +165,7 @@ class SupervisorRun:
                 raise AssertionError(f"{self.name} did not stop within {timeout_s:g} s")
             if self._error is not None:
                 raise AssertionError(f"{self.name} ended with {self._error!r}")
+        if self._socket_dir is not None:
+            shutil.rmtree(self._socket_dir, ignore_errors=True)
         assert self.exit_status is not None
         return self.exit_status

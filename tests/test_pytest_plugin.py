@@ -197,16 +197,23 @@ def test_the_marker_gives_the_bridge_its_faults_and_the_supervisor_its_nodes(
 UNREGISTERED = """
 def test_nodes_never_registered(canergy_supervisor):
     canergy_supervisor("--nodes", "1-2", "--initial", "1J")
+
+
+def test_two_supervisors(canergy_supervisor, canergy_bus):
+    canergy_supervisor("--nodes", "1", "--initial", "1J")
+    canergy_supervisor("--nodes", "1", "--initial", "1J", bus=canergy_bus.sibling(), name="b")
 """
 
 
-def test_books_that_cannot_be_closed_say_what_is_missing(pytester: pytest.Pytester) -> None:
+def test_books_that_cannot_be_closed_say_why(pytester: pytest.Pytester) -> None:
     pytester.makepyfile(test_unregistered=UNREGISTERED)
     result = pytester.runpytest("-p", "no:cacheprovider", "-q")
-    result.assert_outcomes(passed=1, errors=1)
+    result.assert_outcomes(passed=2, errors=2)
     result.stdout.fnmatch_lines(
         ["*cannot close the books (*): the supervisor's nodes are 1, 2, the clients' statuses "
-         "given are of none; register each node's status*"]
+         "given are of none; register each node's status*",
+         "*2 supervisors in one test: the plugin closes the books of one; close them in the "
+         "test*"]
     )  # fmt: skip
 
 

@@ -42,13 +42,15 @@ autodoc_typehints_format = "short"
 nitpicky = True
 nitpick_ignore_regex = [
     # third-party and standard-library types: no intersphinx (the build reaches no network)
-    ("py:.*", r"(can|canopen|cryptography|z3|numpy|matplotlib|cffi)\..*"),
-    ("py:.*", r"(collections\.abc|typing|enum|pathlib|argparse|threading|socket|io|os)\..*"),
+    ("py:.*", r"(can|canopen|cryptography|z3|numpy|matplotlib|cffi|hypothesis)\..*"),
+    ("py:.*", r"(collections\.abc|typing|enum|pathlib|argparse|threading|socket|io|os|random)\..*"),
     ("py:class", r"(Path|Enum|IntEnum|IntFlag|Message|BusABC|Callable|Iterable|Iterator)"),
     # internal types that public signatures name; they are not part of the API reference
     ("py:class", r"canergy\.core\.table\.RuleTable|Cell|S|Variant|SupervisorCore"),
     ("py:class", r"(canergy\.auth\.frames\.)?(Verdict|FrameAuth)"),
     ("py:class", r"canergy\.live\.control\.ControlServer"),
+    ("py:class", r"(canergy\.inspect\.candump\.)?FrameLog"),
+    ("py:obj", r"canergy\.bridge\.schedule\.T"),  # Held's TypeVar
     ("py:class", r"'dict\[str"),  # a quoted annotation Sphinx splits at its comma
 ]
 

@@ -41,6 +41,7 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 import canergy.bench.run
+import canergy.bridge.link
 import canergy.check
 import canergy.cli.dump
 import canergy.cli.simulate
@@ -89,6 +90,7 @@ OUTPUTS: dict[str, set[str]] = {
     "supervisor": {"state", "status_file", "control", "cia402_capture"},
     "grant": {"state"},
     "keys": {"output"},
+    "bridge": {"status_file", "log"},
     FIRMWARE: {"nv", "status_file"},
     DRIVE: {"status_file"},
 }
@@ -172,8 +174,12 @@ _BUS_WORDS = {
     "timing": TIMINGS[0],
     "bus": ["virtual:fuzz:1-2"],
     "channel_filters": ["fuzz,0CE00100:1FFFFF00,701~7FF"],
+    "bus1_interface": ["virtual"],
+    "bus2_interface": ["virtual"],
+    "partition": ["1s+2s"],
 }
-"""python-can's bus flags that take free text (and ``supervisor --bus``): a value each accepts."""
+"""python-can's bus flags that take free text (and ``supervisor --bus``, ``bridge``'s two buses
+and ``--partition``): a value each accepts."""
 
 
 def _fuzzed(parser: argparse.ArgumentParser) -> list[argparse.Action]:
@@ -317,6 +323,7 @@ def _bounded_commands() -> Iterator[None]:
     patches = [
         mock.patch.object(BusRuntime, "poll", _stop),  # supervisor, grant, firmware_model
         mock.patch.object(BusGroup, "poll", _stop),  # supervisor --bus
+        mock.patch.object(canergy.bridge.link.Bridge, "poll", _stop),  # bridge
         mock.patch.object(DriveFace, "run", _stop),  # firmware_model.drive
         mock.patch.object(canergy.cli.dump, "open_bus", open_bus),
         mock.patch.object(canergy.check, "check", check),

@@ -135,6 +135,17 @@ def ledger_from_status(
 
     A supervisor over several buses names its nodes ``bus/node``: ``clients`` then maps each
     bus name to the statuses of the clients on that bus (whose ``node`` is their plain id)."""
+    sup, states, debt = states_from_status(supervisor, clients)
+    books = ledger(sup, states)
+    return replace(books, drive_debt=debt) if debt else books
+
+
+def states_from_status(
+    supervisor: dict[str, Any],
+    clients: Iterable[dict[str, Any]] | Mapping[str, Iterable[dict[str, Any]]],
+) -> tuple[SupervisorState, list[ClientState], int]:
+    """The supervisor's and the clients' states in ``ledger_from_status``'s status files, and
+    the guarded drives' unpaid debt."""
     guarded = supervisor.get("cia402", {}).get("drives", {}).values()
     buses = list(dict.fromkeys(name.rpartition("/")[0] for name in supervisor["nodes"]))
     if buses == [""]:  # one bus: nodes are plain ids
@@ -180,9 +191,7 @@ def ledger_from_status(
         )
         for node, c in keyed
     ]
-    books = ledger(sup, states)
-    debt = sum(int(d.get("debt_uj", 0)) for d in guarded)
-    return replace(books, drive_debt=debt) if debt else books
+    return sup, states, sum(int(d.get("debt_uj", 0)) for d in guarded)
 
 
 def _split(name: str) -> tuple[str, int]:

@@ -1,10 +1,10 @@
 """Separate processes for a test, and reading what they write.
 
-``Procs`` starts and stops a test's processes, each with its stderr in a file of the test's
-directory; ``procs`` is the fixture (one ``Procs`` in ``tmp_path``, whatever still runs killed
-at the end). ``python`` is an argv for this interpreter, ``status`` reads a status file a
-process writes, ``wait`` polls until a condition holds. The vcan suite and the Zenoh gateway
-test run their processes this way.
+``Procs`` starts and stops a test's processes (the pytest plugin's ``Process``), each with its
+stderr in a file of the test's directory; ``procs`` is the fixture (one ``Procs`` in
+``tmp_path``, whatever still runs killed at the end). ``python`` is an argv for this
+interpreter, ``status`` reads a status file a process writes, ``wait`` polls until a condition
+holds. The vcan suite and the Zenoh gateway test run their processes this way.
 """
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ from typing import Any
 
 import pytest
 
+from canergy.testing.bus import Process
+
 
 class Procs:
     def __init__(self, tmp: Path) -> None:
@@ -27,8 +29,8 @@ class Procs:
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
 
     def start(self, name: str, argv: list[str]) -> subprocess.Popen[bytes]:
-        log = open(self.tmp / f"{name}.stderr", "wb")  # noqa: SIM115 - closed with the process
-        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=log, cwd=self.tmp)
+        """The pytest plugin's ``Process`` (stderr in ``NAME.stderr``, stdout discarded)."""
+        proc = Process(name, argv, self.tmp).popen
         self.procs[name] = proc
         return proc
 

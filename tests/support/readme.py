@@ -36,3 +36,8 @@ def python_blocks() -> list[tuple[bool, str]]:
         blocks = re.findall(r"(<!-- vcan0:[^\n]*\n)?```python\n(.*?)```", page.read_text(), re.S)
         found += [(bool(mark), block) for mark, block in blocks]
     return found
+
+
+def python_blocks_of(page: Path) -> list[str]:
+    """The python blocks of one page, in order (e.g. docs/testing.md's, run with pytester)."""
+    return re.findall(r"```python\n(.*?)```", page.read_text(), re.S)

@@ -21,5 +21,6 @@ SUMMARIES: dict[str, str] = {
     "keys": "create key files for authenticated mode (--auth)",
     "bench": "benchmarks: codec, core, live stack vs CANopen SDO, wire, memory; with bus flags "
     "the live stack on that bus against node processes",
+    "bridge": "a fault-injecting bridge between two CAN buses, for tests and benches",
 }
 """Command -> its summary, in the order ``canergy --help`` lists them."""

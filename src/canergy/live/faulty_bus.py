@@ -2,59 +2,52 @@
 
 For tests and soak runs on a bench: wrap a node's bus and its outgoing frames meet the same
 seeded ``FaultInjector`` the demo uses, on the wall clock. Delayed copies are put on the real
-bus by whichever of ``send``/``recv`` runs after they fall due.
+bus by whichever of ``send``/``recv`` runs after they fall due. (Between two buses, with
+partitions and a capture: ``canergy.bridge``, whose hold queue and frame copy this uses.)
 """
 
 from __future__ import annotations
 
-import heapq
-import itertools
 import threading
-import time
 from typing import Any
 
 import can
 
+from canergy.bridge.link import copy_frame
+from canergy.bridge.schedule import Held
 from canergy.faults import FaultInjector
+from canergy.live.runtime import monotonic_us
 
 
 class FaultyBus(can.BusABC):
     def __init__(self, inner: can.BusABC, injector: FaultInjector, **kwargs: Any) -> None:
         self.inner = inner
         self.injector = injector
-        self._held: list[tuple[float, int, can.Message]] = []
-        self._seq = itertools.count()
+        self._held: Held[can.Message] = Held()
         self._lock = threading.Lock()
         self.channel_info = f"faulty({inner.channel_info})"
         super().__init__(channel=inner.channel_info, can_filters=None, **kwargs)
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        now = time.monotonic()
+        now = monotonic_us()
         with self._lock:
             for delay_us, data in self.injector.fate(bytes(msg.data)):
-                copy = can.Message(
-                    arbitration_id=msg.arbitration_id,
-                    is_extended_id=msg.is_extended_id,
-                    is_remote_frame=msg.is_remote_frame,
-                    data=data,
-                )
-                heapq.heappush(self._held, (now + delay_us / 1e6, next(self._seq), copy))
+                self._held.push(now + delay_us, copy_frame(msg, data))
         self._release(timeout)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         self._release(None)
-        if self._held:  # wake up in time to release what is due
-            wait = max(0.0, self._held[0][0] - time.monotonic())
+        with self._lock:
+            due = self._held.next_due()
+        if due is not None:  # wake up in time to release what is due
+            wait = max(0.0, (due - monotonic_us()) / 1e6)
             timeout = wait if timeout is None else min(timeout, wait)
         return self.inner.recv(timeout), False
 
     def _release(self, timeout: float | None) -> None:
-        now = time.monotonic()
-        while True:
-            with self._lock:
-                if not self._held or self._held[0][0] > now:
-                    return
-                _, _, frame = heapq.heappop(self._held)
+        with self._lock:
+            due = self._held.pop_due(monotonic_us())
+        for frame in due:
             self.inner.send(frame, timeout)
 
     def shutdown(self) -> None:

@@ -1,0 +1,111 @@
+"""A bus for a test and the processes on it: which interface and channel, the flags that name it,
+device-under-test processes started with ``{channel}`` filled in, and a capture of its traffic."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import uuid
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+
+
+@dataclass(frozen=True, slots=True)
+class TestBus:
+    """``interface`` and ``channel`` as python-can takes them; ``fd``: open it for CAN FD."""
+
+    __test__ = False  # not a test class, whatever pytest collects
+
+    interface: str = "virtual"
+    channel: str = ""
+    fd: bool = False
+
+    @classmethod
+    def virtual(cls, fd: bool = False) -> TestBus:
+        """python-can's virtual bus on a channel of its own (it connects only the buses of one
+        process: the supervisor, the bridge and in-process nodes, never another process)."""
+        return cls("virtual", f"canergy-{uuid.uuid4().hex[:12]}", fd)
+
+    def sibling(self, channel: str | None = None) -> TestBus:
+        """Another bus of the same interface: a fresh virtual channel, or ``channel``."""
+        if channel is None:
+            if self.interface != "virtual":
+                raise ValueError(f"a second {self.interface} bus needs its channel name")
+            return TestBus.virtual(self.fd)
+        return TestBus(self.interface, channel, self.fd)
+
+    @property
+    def flags(self) -> list[str]:
+        """The bus flags of a canergy command or the node emulator: ``-i ... -c ...``."""
+        return ["-i", self.interface, "-c", self.channel, *(["--fd"] if self.fd else [])]
+
+    def fill(self, text: str, **more: object) -> str:
+        """``text`` with ``{interface}``, ``{channel}`` (and ``more``) filled in."""
+        return text.format(interface=self.interface, channel=self.channel, **more)
+
+    def open(self, **kwargs: Any) -> can.BusABC:
+        """A python-can bus on this channel (the caller shuts it down)."""
+        return can.Bus(interface=self.interface, channel=self.channel, fd=self.fd, **kwargs)
+
+
+class Process:
+    """A process of the test (a node under test), its stderr in ``log``."""
+
+    def __init__(self, name: str, argv: Sequence[str], cwd: Path) -> None:
+        self.name, self.argv, self.cwd = name, list(argv), cwd
+        self.log = cwd / f"{name}.stderr"
+        self.log.write_bytes(b"")
+        self.popen = self._start()
+
+    def _start(self) -> subprocess.Popen[bytes]:
+        with open(self.log, "ab") as err:
+            return subprocess.Popen(self.argv, stdout=subprocess.DEVNULL, stderr=err, cwd=self.cwd)
+
+    def restart(self) -> None:
+        """Start it again with the same command (after ``stop`` or ``power_cut``): a node
+        coming back from what its NV file kept. Its stderr goes on in the same file."""
+        if self.popen.poll() is None:
+            raise RuntimeError(f"{self.name} is still running: stop or power_cut it first")
+        self.popen = self._start()
+
+    def stderr(self) -> str:
+        return self.log.read_text(errors="replace")
+
+    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 60) -> int:
+        """Ask it to stop (``sig``) and wait; killed when it will not. Its exit status."""
+        if self.popen.poll() is None:
+            self.popen.send_signal(sig)
+            try:
+                return self.popen.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                self.popen.kill()
+        return self.popen.wait(timeout_s)
+
+    def power_cut(self) -> int:
+        """SIGKILL: what survives is what it wrote (its NV file)."""
+        return self.stop(signal.SIGKILL)
+
+
+class Capture:
+    """Every frame on ``bus`` logged to ``path`` (any python-can format by extension) while
+    open; ``close`` ends it."""
+
+    def __init__(self, bus: TestBus, path: Path) -> None:
+        from canergy.inspect.candump import open_log
+
+        self.path = path
+        self._bus = bus.open()
+        self._log, _ = open_log(path, bus.channel)
+        self._notifier = can.Notifier(self._bus, [self._on_frame])
+
+    def _on_frame(self, frame: can.Message) -> None:
+        self._log.on_message_received(frame)
+
+    def close(self) -> None:
+        self._notifier.stop()
+        self._log.stop()
+        self._bus.shutdown()

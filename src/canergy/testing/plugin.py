@@ -1,0 +1,295 @@
+"""canergy's pytest plugin: a supervisor, buses and a fault-injecting bridge for integration tests
+of nodes, and the books closed at teardown.
+
+pytest loads it wherever canergy is installed (entry point ``pytest11``, name ``canergy``);
+``-p no:canergy`` turns it off. Fixtures:
+
+- ``canergy_bus``: the test's bus (``TestBus``): python-can's virtual bus on a fresh channel,
+  or ``--canergy-interface``/``--canergy-channel``, or ``@pytest.mark.canergy(interface=...,
+  channel=..., fd=True)``; ``sibling()`` another (for the far side of a bridge).
+- ``canergy_spawn``: ``canergy_spawn(["./my-node", "-c", "{channel}", "--status-file",
+  "{status}"], "node1", bus=...)`` starts a node under test as a process (not on the virtual
+  bus, which no other process hears), its status file registered with the books.
+- ``canergy_supervisor``: ``canergy_supervisor("--nodes", "1-3", "--initial", "10J", ...)``
+  starts ``canergy supervisor`` on ``canergy_bus`` (or ``bus=``) with those flags
+  (``SupervisorRun``: ``grant``, ``status``, ``wait_for``, ``intrusions``, ``stop``);
+  ``auth=True``: authenticated mode with a master key it makes, ``node_key(n)`` each node's.
+- ``canergy_bridge``: ``canergy_bridge(bus1, bus2, loss=0.1, duplicate=0.1, seed=7,
+  partitions=["2s+1s"])`` carries frames between two buses through seeded faults
+  (``canergy.bridge``), until the end of the test; or ``schedule=`` a ``FaultSchedule`` (e.g.
+  drawn by ``canergy.testing.strategies.fault_schedules()``); given none, the marker's
+  ``faults="loss=0.1,duplicate=0.05"`` and ``seed``.
+- ``canergy_books``: the run's ledger. Register the nodes' statuses with ``add_client`` (a
+  status file, or a function returning a status dict); ``spawn(..., "{status}")`` registers
+  its own. At teardown every supervisor is stopped (settling its transactions), then the
+  processes, then the bridges, and the books are closed over the last statuses: the test fails
+  naming the first party that created energy. ``@pytest.mark.canergy(books=False)`` opts out.
+
+A capture of the bus (``canergy-capture.log``, candump format) is kept in ``tmp_path`` for
+``canergy audit`` and ``canergy plot``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import pytest
+
+if TYPE_CHECKING:  # imported where used: pytest loads this plugin in every run of the venv
+    from canergy.bridge.link import Bridge
+    from canergy.testing.bus import Process, TestBus
+    from canergy.testing.supervisor import SupervisorRun
+
+ClientSource = Path | Callable[[], dict[str, Any]]
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    group = parser.getgroup("canergy", "canergy: supervisor, buses and books for node tests")
+    group.addoption(
+        "--canergy-interface",
+        default=None,
+        help="python-can interface of canergy_bus (default: virtual)",
+    )
+    group.addoption("--canergy-channel", default=None, help="channel of canergy_bus (e.g. vcan0)")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line(
+        "markers",
+        "canergy(interface=None, channel=None, fd=False, books=True, faults='', seed=0, "
+        "nodes=None): canergy_bus's interface and channel for this test; books=False: do not "
+        "close the books at teardown; faults (e.g. 'loss=0.1,duplicate=0.05,partition=2s+1s') "
+        "and seed: canergy_bridge's when it is given none; nodes (e.g. '1-5'): "
+        "canergy_supervisor's --nodes when it is given none",
+    )
+
+
+def _marker(request: pytest.FixtureRequest) -> dict[str, Any]:
+    marker = request.node.get_closest_marker("canergy")
+    return dict(marker.kwargs) if marker is not None else {}
+
+
+class Books:
+    """The run of one test: its supervisors, processes, bridges and clients, torn down in that
+    order, then the books closed."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.tmp = tmp
+        self.supervisors: list[SupervisorRun] = []
+        self.processes: list[Process] = []
+        self.bridges: list[Callable[[], None]] = []
+        self.clients: list[ClientSource] = []
+        self.stops: list[Callable[[], object]] = []
+
+    def add_client(self, source: ClientSource, stop: Callable[[], object] | None = None) -> None:
+        """A node's status: its status file (read at teardown), or a function returning it (a
+        node's, or an emulator's with several under ``nodes``). ``stop``: how to stop the node,
+        called at teardown once the supervisors have stopped (and settled with it)."""
+        self.clients.append(source)
+        if stop is not None:
+            self.stops.append(stop)
+
+    def client_statuses(self) -> list[dict[str, Any]]:
+        out: list[dict[str, Any]] = []
+        for source in self.clients:
+            status = source() if callable(source) else json.loads(Path(source).read_text())
+            nodes = status.get("nodes")  # an emulator serving several nodes
+            if "credited_uj" not in status and isinstance(nodes, dict):
+                out.extend(nodes.values())
+            else:
+                out.append(status)
+        return out
+
+    def stop_all(self) -> None:
+        """Stop every part, in order, even when one fails to stop; then raise the first
+        failure."""
+        steps: list[Callable[[], object]] = [
+            *(s.stop for s in self.supervisors),
+            *(p.stop for p in self.processes),
+            *self.stops,
+            *self.bridges,
+        ]
+        self.bridges.clear()
+        first: BaseException | None = None
+        for step in steps:
+            try:
+                step()
+            except Exception as exc:  # the others still stop
+                first = first or exc
+        if first is not None:
+            raise first
+
+    def verdict(self) -> str | None:
+        """Why the books do not close (None: they close, or there is nothing to close)."""
+        from canergy.testing.books import creation
+
+        if not self.supervisors:
+            return None
+        if len(self.supervisors) > 1:  # which nodes are whose is the test's to say: never silent
+            return (
+                f"{len(self.supervisors)} supervisors in one test: the plugin closes the books "
+                "of one; close them in the test (canergy.cli.ledger.tree_from_files, as "
+                "canergy ledger --level does) and mark it @pytest.mark.canergy(books=False)"
+            )
+        status = json.loads(self.supervisors[0].status_file.read_text())
+        clients = self.client_statuses()
+        try:
+            return creation(status, clients)
+        except (ValueError, KeyError) as exc:  # statuses that do not match the supervisor's
+            nodes = ", ".join(status.get("nodes", {})) or "none"
+            given = ", ".join(str(c.get("node")) for c in clients) or "none"
+            return (
+                f"cannot close the books ({exc}): the supervisor's nodes are {nodes}, the "
+                f"clients' statuses given are of {given}; register each node's status "
+                "(canergy_books.add_client, or {status} in canergy_spawn's command) or opt out "
+                "with @pytest.mark.canergy(books=False)"
+            )
+
+
+@pytest.fixture
+def canergy_bus(request: pytest.FixtureRequest) -> TestBus:
+    """The test's bus: virtual on a fresh channel unless an option or the marker says."""
+    from canergy.testing.bus import TestBus
+
+    marked = _marker(request)
+    interface = marked.get("interface") or request.config.getoption("canergy_interface")
+    channel = marked.get("channel") or request.config.getoption("canergy_channel")
+    fd = bool(marked.get("fd", False))
+    if interface in (None, "virtual"):
+        return TestBus("virtual", channel, fd) if channel else TestBus.virtual(fd)
+    if not channel:
+        raise pytest.UsageError(f"canergy_bus on {interface}: give --canergy-channel")
+    return TestBus(interface, channel, fd)
+
+
+@pytest.fixture
+def canergy_books(
+    request: pytest.FixtureRequest, tmp_path: Path, canergy_bus: TestBus
+) -> Iterator[Books]:
+    """The run's parts and its books; closed at teardown unless ``canergy(books=False)``."""
+    from canergy.testing.bus import Capture
+
+    books = Books(tmp_path)
+    capture = Capture(canergy_bus, tmp_path / "canergy-capture.log")
+    try:
+        yield books
+    finally:
+        try:
+            books.stop_all()
+        finally:
+            capture.close()
+    if not _marker(request).get("books", True):
+        return
+    why = books.verdict()
+    if why is not None:
+        pytest.fail(f"canergy: {why} (capture: {capture.path})", pytrace=False)
+
+
+@pytest.fixture
+def canergy_supervisor(
+    request: pytest.FixtureRequest, canergy_books: Books, canergy_bus: TestBus, tmp_path: Path
+) -> Callable[..., SupervisorRun]:
+    """``canergy_supervisor(*flags, bus=None, name="supervisor", auth=False)``: a started
+    supervisor (``auth``: in authenticated mode, with a master key it makes); without
+    ``--nodes`` among the flags, the marker's ``nodes`` (e.g. ``nodes="1-5"``)."""
+
+    from canergy.testing.supervisor import SupervisorRun
+
+    nodes = _marker(request).get("nodes")
+
+    def start(
+        *flags: str, bus: TestBus | None = None, name: str = "supervisor", auth: bool = False
+    ) -> SupervisorRun:
+        if nodes is not None and "--nodes" not in flags:
+            flags = ("--nodes", str(nodes), *flags)
+        run = SupervisorRun(bus or canergy_bus, tmp_path, flags, name, auth)
+        canergy_books.supervisors.append(run)
+        return run
+
+    return start
+
+
+@pytest.fixture
+def canergy_spawn(
+    canergy_books: Books, canergy_bus: TestBus, tmp_path: Path
+) -> Callable[..., Process]:
+    """``canergy_spawn(argv, name, bus=None)``: a node under test as a process, ``{channel}``,
+    ``{interface}``, ``{tmp}``, ``{python}`` and ``{status}`` (its status file, registered with
+    the books) filled in; stopped with SIGTERM at teardown (``power_cut()`` for SIGKILL)."""
+
+    from canergy.testing.bus import Process
+
+    def spawn(argv: Sequence[str], name: str = "node", bus: TestBus | None = None) -> Process:
+        on = bus or canergy_bus
+        if on.interface == "virtual":
+            raise ValueError(
+                "a process never hears python-can's virtual bus of another process: give "
+                "--canergy-interface socketcan --canergy-channel vcan0 (or the marker)"
+            )
+        status = tmp_path / f"{name}-status.json"
+        filled = [on.fill(a, tmp=tmp_path, python=sys.executable, status=status) for a in argv]
+        if any("{status}" in a for a in argv):
+            canergy_books.add_client(status)
+        process = Process(name, filled, tmp_path)
+        canergy_books.processes.append(process)
+        return process
+
+    return spawn
+
+
+@pytest.fixture
+def canergy_bridge(request: pytest.FixtureRequest, canergy_books: Books) -> Callable[..., Bridge]:
+    """``canergy_bridge(bus1, bus2, schedule=None, seed=0, partitions=(), **faults)``: a
+    running ``canergy.bridge.link.Bridge``. The faults: a ``FaultSchedule`` (e.g. drawn by
+    ``canergy.testing.strategies.fault_schedules()``), or keywords as ``FaultProfile`` takes
+    them (``loss``, ``duplicate``, ``reorder``, ``corrupt``, ``delay_us``...; no delay unless
+    given) with partitions as ``"AT+FOR"`` (e.g. ``"2s+1s"``), or else the marker's
+    ``faults="loss=0.1,duplicate=0.05,partition=2s+1s"`` and ``seed``."""
+    import threading
+
+    from canergy.bridge.link import Bridge
+    from canergy.bridge.schedule import FaultSchedule, Partition, parse_faults
+    from canergy.faults import FaultProfile
+
+    marked = _marker(request)
+
+    def start(
+        bus1: TestBus,
+        bus2: TestBus,
+        *,
+        schedule: FaultSchedule | None = None,
+        seed: int | None = None,
+        partitions: Sequence[str] = (),
+        **faults: Any,
+    ) -> Bridge:
+        if seed is None:
+            seed = int(marked.get("seed", 0))
+        if schedule is None and not faults and not partitions:
+            profile, cuts = parse_faults(str(marked.get("faults", "")))
+            schedule = FaultSchedule(profile, seed, cuts)
+        elif schedule is None:
+            faults.setdefault("delay_us", 0)
+            faults.setdefault("jitter_us", 0)
+            cuts = tuple(Partition.parse(p) for p in partitions)
+            schedule = FaultSchedule(FaultProfile(**faults), seed, cuts)
+        buses = (bus1.open(), bus2.open())
+        bridge = Bridge(buses, schedule, names=(bus1.channel, bus2.channel))
+        stop = threading.Event()
+        thread = threading.Thread(target=bridge.run, args=(stop.is_set,), daemon=True)
+        thread.start()
+
+        def closing() -> None:
+            stop.set()
+            thread.join(10)
+            bridge.close()
+            for bus in buses:
+                bus.shutdown()
+
+        canergy_books.bridges.append(closing)
+        return bridge
+
+    return start

@@ -80,7 +80,14 @@ def book_flags(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--no-fsync", action="store_true", help="skip fsync of the state file (tests)")
     add_duration(p, "--response-timeout", 50_000, "wait this long for a reply")
-    p.add_argument("--retries", type=bounded_int(0, 100), default=3)
+    p.add_argument(
+        "--retries",
+        type=bounded_int(0, 100),
+        default=3,
+        help="re-sends of an unanswered intention or command, each after --response-timeout, "
+        "before the transaction is written off (default 3: 200 ms with the default timeout; "
+        "raise both for a slow or loaded host)",
+    )
     p.add_argument(
         "--max-grant",
         type=energy,

@@ -11,7 +11,6 @@ from typing import Any
 
 from canergy.argtypes import add_duration, energy, node_ids
 from canergy.cli.shared.cia402 import add_cia402_flags, check_cia402, guard_drives
-from canergy.cli.shared.odrive import add_odrive_flags, check_odrive, guard_axes
 from canergy.cli.shared.live import (
     auth_key,
     build_core,
@@ -25,6 +24,7 @@ from canergy.cli.shared.live import (
     start_without_flag,
     supervisor_flags,
 )
+from canergy.cli.shared.odrive import add_odrive_flags, check_odrive, guard_axes
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.core.supervisor import SupervisorCore

@@ -115,10 +115,15 @@ class DeviceGuard(Generic[L]):
         """Sampled mode: the last power reading (when, fW)."""
         self.reaction_max_us = 0
         self.latency_max_us = 0
+        self.confirm_max_us = 0
+        """The longest a limits write took from the guard's decision to its read-back."""
         self.crossing: int | None = None
         """When the clock brings the budget to the stop threshold (envelope mode)."""
         self.last_stop_at = -config.retry_us
         self.rewrite_at: int | None = None
+        self.bound_max_uj = 0
+        """The largest bound the stop threshold held back (limits someone else wrote
+        included): the status's ``bound_uj``, raised, never lowered."""
         self.overrun_uj = 0
         self.debt_uj = 0
         self.stops = 0
@@ -152,10 +157,16 @@ class DeviceGuard(Generic[L]):
         fw = max(self._fw(self.confirmed), self._fw(self.pending), self._fw(self.foreign))
         return max(fw, self.lowered_fw) if now < self.lowered_until else fw
 
+    def latency_us(self) -> int:
+        return max(self.config.latency_us, self.latency_max_us)
+
+    def reaction_us(self) -> int:
+        """From the decision to the device holding the new limits or the stop: the allowance,
+        raised to the longest reaction and limits write (read-back included) seen."""
+        return max(self.config.reaction_us, self.reaction_max_us, self.confirm_max_us)
+
     def notice_us(self) -> int:
-        return max(self.config.reaction_us, self.reaction_max_us) + max(
-            self.config.latency_us, self.latency_max_us
-        )
+        return self.reaction_us() + self.latency_us()
 
     def bound(self, limits: L | None) -> Bound | None:
         """What the device may draw past the moment the guard decides to stop it."""
@@ -174,6 +185,7 @@ class DeviceGuard(Generic[L]):
         for limits in (self.config.limits, self.confirmed, self.pending, self.foreign):
             b = self.bound(limits)
             worst = max(worst, 0 if b is None else b.total_uj)
+        self.bound_max_uj = max(self.bound_max_uj, worst)
         return self.config.reserve_uj + worst
 
     # -- charging -------------------------------------------------------------------------
@@ -226,13 +238,14 @@ class DeviceGuard(Generic[L]):
         self.confirmed = self.profile.closed(want)
         # the full limits were in force from the set-up's start until the closed ones: debt
         self.charged_until, self.charge_fw = started_at, self._fw(want)
-        self.lowered_fw, self.lowered_until = self._fw(want), now + self.notice_us()
+        self.lowered_fw, self.lowered_until = self._fw(want), now + self.latency_us()
         self.charge(now)
 
     def on_limits(self, now: int, wrote: L, read: L | None, at: int) -> list[Message]:
         """The device read back ``read`` after the guard wrote ``wrote`` at ``at`` (None: not
         readable, or no answer)."""
         self.charge(now)
+        self.confirm_max_us = max(self.confirm_max_us, now - at)
         if read is not None and (why := self.profile.mismatch(wrote, read)) is not None:
             self._refuse(f"limits not taken: {why}")
             return self._settled(now)
@@ -247,7 +260,7 @@ class DeviceGuard(Generic[L]):
         if self.foreign_at is not None and at > self.foreign_at:
             self.foreign, self.foreign_at = None, None
         if self.in_force_fw(now) < before:
-            self.lowered_fw, self.lowered_until = before, now + self.notice_us()
+            self.lowered_fw, self.lowered_until = before, now + self.latency_us()
         self._recharge(now)
         return self._settled(now)
 
@@ -368,6 +381,7 @@ class DeviceGuard(Generic[L]):
         heard = self.last_feedback_at
         return (
             heard is not None
+            and self.ready_at is not None
             and now <= heard + self.config.feedback_timeout_us
             and self.refused is None
             and self.stuck is None
@@ -432,7 +446,9 @@ class DeviceGuard(Generic[L]):
         """A stop is confirmed by feedback showing the device powerless after it; else STUCK."""
         if self.phase not in (GuardPhase.STOPPING, GuardPhase.STUCK):
             return
-        heard_since = self.last_feedback_at is not None and self.last_feedback_at > self.phase_at
+        # feedback older than the stop plus the notice the bound allows may predate its effect
+        settled = self.phase_at + self.notice_us()
+        heard_since = self.last_feedback_at is not None and self.last_feedback_at > settled
         if heard_since and self.powered is False:
             self.stuck = None
             self._set_phase(GuardPhase.STOPPED, self.stop_reason, now)
@@ -508,6 +524,7 @@ class DeviceGuard(Generic[L]):
         target = self.pending if self.pending is not None else self.confirmed
         worst = self.bound(self.config.limits)
         now_bound = self.bound(target)
+        bound_uj = None if worst is None else max(worst.total_uj, self.bound_max_uj)
         envelope = self.profile.envelope(target if target is not None else self.config.limits)
         full = self.profile.envelope(self.config.limits)
         return {
@@ -531,7 +548,7 @@ class DeviceGuard(Generic[L]):
             "guarantee": "none" if self.config.sampled else "drawn <= granted + bound_uj",
             "metered_uj": self.metered_uj,
             "uncontained_uj": self.uncontained_uj,
-            "bound_uj": None if worst is None else worst.total_uj,
+            "bound_uj": bound_uj,
             "bound_now_uj": None if now_bound is None else now_bound.total_uj,
             "bound_stop_uj": None if worst is None else worst.stop_uj,
             "envelope_w": round(self.in_force_fw(now) / 1e15, 3) if self.sound else None,
@@ -544,7 +561,7 @@ class DeviceGuard(Generic[L]):
             "limits_verified": self.verified,
             "foreign_limits": None if self.foreign is None else self.profile.fields(self.foreign),
             "bound_timings_us": {
-                "reaction": max(self.config.reaction_us, self.reaction_max_us),
+                "reaction": self.reaction_us(),
                 "latency": max(self.config.latency_us, self.latency_max_us),
                 "stop_timeout": self.config.stop_timeout_us,
             },

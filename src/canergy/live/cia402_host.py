@@ -90,7 +90,8 @@ class GuardedSupervisor:
 
     # -- Handler ---------------------------------------------------------------------------
     def on_message(self, msg: Message, now: int) -> Sequence[Message]:
-        if msg.node in self.drives or msg.node in self.devices:  # only the proxy, in this process, speaks for a drive
+        # only the proxy, in this process, speaks for a drive
+        if msg.node in self.drives or msg.node in self.devices:
             kind = "a drive's frame from the bus"
             if self.service.authenticated:  # it verified: only a key holder could send it
                 self.service.authentic_intrusion(msg.node, repr(msg), kind, now)

@@ -1,8 +1,9 @@
 """One ODrive axis over CAN Simple: set-up, feedback in, limits and stops out.
 
-A ``can.Listener`` on the supervisor's Notifier takes the axis's frames (stamped with the host's
-clock as they arrive) and the frames others send it; a worker thread carries out the guard's
-commands, so a device that does not answer never blocks the supervisor's loop:
+A ``can.Listener`` on the supervisor's Notifier takes the axis's frames and the frames others
+send it, stamped with the host's clock at the driver's receive time (at most 1 s back); a worker
+thread carries out the guard's commands, so a device that does not answer never blocks the
+supervisor's loop:
 
 - ``WriteLimits``: Set_Limits, then on firmware 0.6 with the endpoint ids given, RxSdo reads of
   ``vel_limit`` and ``current_soft_max`` answered by TxSdo (the round trip is the latency
@@ -19,10 +20,12 @@ polls bus voltage and current (0x017) and, on 0.6, the powers (0x01D) by remote 
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import queue
 import struct
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -112,6 +115,8 @@ class OdriveLink:
         if node != self.node:
             return
         at = self.clock()
+        if frame.timestamp > 0:  # received before the Notifier's thread got to it
+            at -= max(0, min(round((time.time() - frame.timestamp) * 1e6), 1_000_000))
         data = bytes(frame.data)
         try:
             self._take(cmd, data, at, frame.is_remote_frame)
@@ -232,8 +237,7 @@ class OdriveLink:
                 self.reaction_max_us = max(self.reaction_max_us, self.clock() - cmd.at)
             else:
                 read = self._write(cmd.limits)
-                wrote, at = cmd.limits, cmd.at
-                self._event(lambda g, now: g.on_limits(now, wrote, read, at))
+                self._event(functools.partial(_limits, cmd.limits, read, cmd.at))
 
     def _poll(self) -> None:
         self._send(Cmd.BUS_VOLTAGE_CURRENT, remote=True)
@@ -275,6 +279,16 @@ class OdriveLink:
                 self.latency_max_us = max(self.latency_max_us, self.clock() - start)
                 return value
         return None
+
+
+def _limits(
+    wrote: OdriveLimits,
+    read: OdriveLimits | None,
+    at: int,
+    guard: DeviceGuard[OdriveLimits],
+    now: int,
+) -> list[Message]:
+    return guard.on_limits(now, wrote, read, at)
 
 
 def _ready(

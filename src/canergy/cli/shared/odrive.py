@@ -50,7 +50,13 @@ def add_odrive_flags(p: argparse.ArgumentParser) -> None:
         "IDLE stop it when its budget runs out; an axis that does not stop is reported STUCK",
     )
     g.add_argument("--odrive", type=node_ids, metavar="IDS", help="axis node ids 1-63, e.g. 3,4")
-    g.add_argument("--odrive-firmware", choices=FIRMWARES, default="0.6", help="(default 0.6)")
+    g.add_argument(
+        "--odrive-firmware",
+        choices=FIRMWARES,
+        default="0.6",
+        help="0.6 reads limits back (--odrive-endpoints) and reports power (0x01D); 0.5 does "
+        "neither (default 0.6)",
+    )
     g.add_argument(
         "--odrive-endpoints",
         type=endpoint_pair,
@@ -112,7 +118,13 @@ def add_odrive_flags(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="take limits that cannot be read back (0.5, or no endpoints) as written",
     )
-    g.add_argument("--odrive-reserve", type=energy, default=0, help="kept on top of the bound")
+    g.add_argument(
+        "--odrive-reserve",
+        type=energy,
+        default=0,
+        metavar="ENERGY",
+        help="kept on top of the bound; the whole margin with sampled metering (default 0)",
+    )
     add_duration(g, "--odrive-feedback-timeout", 300_000, "stop an axis not heard this long")
     add_duration(
         g, "--odrive-reaction", 10_000, "host reaction the bound allows (raised to what is seen)"

@@ -257,7 +257,7 @@ class DeviceGuard(Generic[L]):
         self.confirmed = wrote
         if self.pending == wrote:
             self.pending = None
-        if self.foreign_at is not None and at > self.foreign_at:
+        if self.foreign_at is not None and at >= self.foreign_at:  # written after it
             self.foreign, self.foreign_at = None, None
         if self.in_force_fw(now) < before:
             self.lowered_fw, self.lowered_until = before, now + self.latency_us()

@@ -18,7 +18,7 @@ from typing import Any
 import can
 
 from canergy.cli import main as canergy_main
-from canergy.devices.odrive import AxisState, Cmd, can_id
+from canergy.devices.odrive import AxisState, Cmd, can_id, set_axis_state
 from canergy.live.control import request
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.drive.motor import LoadTorque
@@ -67,7 +67,7 @@ class AxisBench:
     def run_closed_loop(self, torque: float) -> None:
         """The application clears errors, enters closed loop and asks for ``torque``."""
         self.send(Cmd.CLEAR_ERRORS, b"\x00")
-        self.send(Cmd.SET_AXIS_STATE, struct.pack("<I", AxisState.CLOSED_LOOP_CONTROL))
+        self.send(Cmd.SET_AXIS_STATE, set_axis_state(AxisState.CLOSED_LOOP_CONTROL))
         self.send(Cmd.SET_INPUT_TORQUE, struct.pack("<f", torque))
 
     def stop(self) -> dict[str, Any]:

@@ -93,7 +93,9 @@ def set_limits(velocity: float, current: float) -> bytes:
 
 
 def set_axis_state(state: int) -> bytes:
-    return struct.pack("<I", state)
+    """Set_Axis_State's data: the state in 4 bytes, padded to the DBC's 8 (decoders that check
+    the length against the DBC, as cantools does, refuse 4)."""
+    return struct.pack("<I4x", state)
 
 
 def heartbeat(data: bytes | bytearray) -> tuple[int, int]:

@@ -70,6 +70,7 @@ def mocked_axis(tmp: Path, *supervisor_args: str) -> Iterator[tuple[Path, can.Bu
         supervisor.join(timeout=60)
         loop.call_soon_threadsafe(task.cancel)
         thread.join(timeout=10)
+        loop.close()
         mock.notifier.stop()
         mock_bus.shutdown()
         app.shutdown()

@@ -390,7 +390,9 @@ def _run_bus(
         if guarded is not None:
             guarded.halt_all(monotonic_us())  # an exit never leaves a drive running
             guarded.close()
-        for net in {id(n): n for n in (network, manager and manager.network) if n}.values():
+        for net in {
+            id(n): n for n in (network, manager and manager.network) if n is not None
+        }.values():
             net.notifier.stop()
         bus.shutdown()
 

@@ -131,7 +131,8 @@ def ledger_from_status(
 ) -> Ledger:
     """The ledger from the JSON status files of a supervisor and its client emulators (or real
     nodes reporting the same keys), as the processes last wrote them. The proxies of guarded
-    CiA 402 drives are in the supervisor's own status and count as clients.
+    CiA 402 drives and of guarded devices of other profiles (ODrive axes) are in the supervisor's
+    own status and count as clients.
 
     A supervisor over several buses names its nodes ``bus/node``: ``clients`` then maps each
     bus name to the statuses of the clients on that bus (whose ``node`` is their plain id)."""
@@ -145,8 +146,12 @@ def states_from_status(
     clients: Iterable[dict[str, Any]] | Mapping[str, Iterable[dict[str, Any]]],
 ) -> tuple[SupervisorState, list[ClientState], int]:
     """The supervisor's and the clients' states in ``ledger_from_status``'s status files, and
-    the guarded drives' unpaid debt."""
-    guarded = supervisor.get("cia402", {}).get("drives", {}).values()
+    the guarded drives' and devices' unpaid debt."""
+    guarded_status = supervisor.get("cia402", {})
+    guarded = [
+        *guarded_status.get("drives", {}).values(),
+        *(d for profile in guarded_status.get("devices", {}).values() for d in profile.values()),
+    ]
     buses = list(dict.fromkeys(name.rpartition("/")[0] for name in supervisor["nodes"]))
     if buses == [""]:  # one bus: nodes are plain ids
         buses = []

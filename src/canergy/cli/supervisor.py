@@ -24,6 +24,7 @@ from canergy.cli.shared.live import (
     start_without_flag,
     supervisor_flags,
 )
+from canergy.cli.shared.odrive import add_odrive_flags, check_odrive, guard_axes
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.core.supervisor import SupervisorCore
@@ -113,6 +114,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("--eds", type=Path, help="the nodes' EDS (default: canergy's node EDS)")
     add_cia402_flags(p)
+    add_odrive_flags(p)
     p.set_defaults(run=run)
 
 
@@ -161,7 +163,15 @@ def _buses(args: argparse.Namespace) -> tuple[BusSpec, ...]:
         raise ValueError(
             f"--bus names each bus's interface, channel and nodes: not with {', '.join(given)}"
         )
-    single = [flag for flag, on in (("--canopen", args.canopen), ("--cia402", args.cia402)) if on]
+    single = [
+        flag
+        for flag, on in (
+            ("--canopen", args.canopen),
+            ("--cia402", args.cia402),
+            ("--odrive", args.odrive),
+        )
+        if on
+    ]
     if single:
         raise ValueError(f"{' and '.join(single)} work on one bus (-i/-c/--nodes), not with --bus")
     check_buses(specs)
@@ -189,6 +199,10 @@ def _announce(args: argparse.Namespace, service: SupervisorService) -> None:
         )
 
 
+def _report_axis(line: str) -> None:
+    print(f"canergy supervisor: {line}", file=sys.stderr, flush=True)
+
+
 def _exit_status(service: SupervisorService) -> int:
     if not service.stopped_by_intrusion:
         return 0
@@ -210,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
     if buses:
         nodes = session_keys(buses)
     else:
-        nodes = tuple(sorted((*(args.nodes or ()), *(args.cia402 or ()))))
+        nodes = tuple(sorted((*(args.nodes or ()), *(args.cia402 or ()), *(args.odrive or ()))))
     core = build_core(args, nodes, names, key)
     config = _config(args, key, names)
     if buses:
@@ -231,6 +245,7 @@ def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
             "its --state (not --listen-only)"
         )
     if not buses:
+        check_odrive(args)
         check_cia402(args)
     check_state(args, required=not args.listen_only)
     return buses
@@ -253,7 +268,7 @@ def _config(args: argparse.Namespace, key: Any, names: tuple[str, ...]) -> Servi
         inject_uj=args.inject or 0,
         stop_on_intrusion=args.on_intrusion == "stop",
         return_hold_us=None if key is not None else args.return_hold,
-        local_nodes=frozenset(args.cia402 or ()),
+        local_nodes=frozenset((*(args.cia402 or ()), *(args.odrive or ()))),
         bus_names=names,
     )
 
@@ -314,7 +329,7 @@ def _run_bus(
     """One bus (-i/-c/--nodes), with CANopen and guarded CiA 402 drives if asked for."""
     codec = Codec(args.id_base)
     filters = codec.supervisor_watch_filters()
-    if args.canopen or args.cia402:
+    if args.canopen or args.cia402 or args.odrive:
         from canergy.live.shared_bus import STANDARD_FRAMES
 
         filters.append(STANDARD_FRAMES)  # CANopen's 11-bit ids
@@ -342,6 +357,21 @@ def _run_bus(
                 args, network, bus, service, rule_timing(args), now, monotonic_us
             )
             handler = guarded
+        if args.odrive:
+            from canergy.live.cia402_host import GuardedSupervisor
+            from canergy.live.shared_bus import shared_network
+
+            network, reader = shared_network(bus)
+            now = monotonic_us()
+            axes = guard_axes(args, bus, rule_timing(args), now, monotonic_us)
+            guarded = GuardedSupervisor(
+                service, {}, bus, None, now, devices=axes, codec=codec, report=_report_axis
+            )
+            handler = guarded
+            for _, link in axes.values():
+                assert network.notifier is not None
+                network.notifier.add_listener(link)
+                link.start()
         runtime = BusRuntime(
             bus,
             handler,
@@ -360,7 +390,9 @@ def _run_bus(
         if guarded is not None:
             guarded.halt_all(monotonic_us())  # an exit never leaves a drive running
             guarded.close()
-        for net in {id(n): n for n in (network, manager and manager.network) if n}.values():
+        for net in {
+            id(n): n for n in (network, manager and manager.network) if n is not None
+        }.values():
             net.notifier.stop()
         bus.shutdown()
 

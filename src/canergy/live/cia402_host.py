@@ -7,6 +7,11 @@ bus (and written to ``capture`` when given, so ``canergy audit`` reads them). Ev
 drains the drives' TPDO samples into their guards, hands the guards' commands to the links, and
 produces the host's heartbeat (and SYNC, when asked) that the drives' consumers watch: a host
 whose loop stops, or whose process dies, goes silent and its drives fault on their own.
+
+Devices of other profiles (``devices``: ODrive axes, ``canergy.devices``) are proxied the same
+way; their links are pumped in the same pass and their status is under ``devices``, by profile.
+With no CiA 402 drive there is no host heartbeat (``beat`` None): on a CAN Simple bus its
+identifier is some axis's command (0x77F is node 59's Enter_DFU_Mode).
 """
 
 from __future__ import annotations
@@ -21,7 +26,10 @@ import can
 from canergy.auth.frames import Verdict
 from canergy.cia402.guard import DriveGuard
 from canergy.codec import Codec, DecodeError
+from canergy.devices.guard import DeviceGuard
+from canergy.devices.odrive import OdriveLimits
 from canergy.live.cia402_link import DriveLink
+from canergy.live.odrive_link import OdriveLink
 from canergy.live.service import SupervisorService
 from canergy.messages import Direction, Message, ToClient
 
@@ -46,9 +54,10 @@ class GuardedSupervisor:
         service: SupervisorService,
         drives: dict[int, tuple[DriveGuard, DriveLink]],
         bus: can.BusABC,
-        beat: HostBeat,
+        beat: HostBeat | None,
         now: int,
         *,
+        devices: dict[int, tuple[DeviceGuard[OdriveLimits], OdriveLink]] | None = None,
         codec: Codec | None = None,
         capture: can.Listener | None = None,
         report: Callable[[str], None] | None = None,
@@ -58,12 +67,13 @@ class GuardedSupervisor:
         """Told in one line whenever a guard stops or releases its drive."""
         self.reported: dict[int, tuple[str, str | None]] = {}
         self.drives = drives
+        self.devices = devices or {}
         self.bus = bus
         self.beat = beat
         self.codec = codec or Codec()
         self.capture = capture
         self.next_beat = now
-        self.next_sync = now if beat.sync_us else None
+        self.next_sync = now if beat is not None and beat.sync_us else None
         self.beat_failures = 0
         service.liveness = self._alive_with(service.liveness)
         service.extra_status = self.status
@@ -72,13 +82,16 @@ class GuardedSupervisor:
         def alive(node: int, now: int) -> bool:
             if node in self.drives:
                 return self.drives[node][0].alive(now)
+            if node in self.devices:
+                return self.devices[node][0].alive(now)
             return other is None or bool(other(node, now))
 
         return alive
 
     # -- Handler ---------------------------------------------------------------------------
     def on_message(self, msg: Message, now: int) -> Sequence[Message]:
-        if msg.node in self.drives:  # only the proxy, in this process, speaks for a drive
+        # only the proxy, in this process, speaks for a drive
+        if msg.node in self.drives or msg.node in self.devices:
             kind = "a drive's frame from the bus"
             if self.service.authenticated:  # it verified: only a key holder could send it
                 self.service.authentic_intrusion(msg.node, repr(msg), kind, now)
@@ -97,7 +110,7 @@ class GuardedSupervisor:
         self.service.on_auth_failure(verdict, frame, now)
 
     def next_wakeup(self) -> int | None:
-        times = [self.next_beat]
+        times = [self.next_beat] if self.beat is not None else []
         if self.next_sync is not None:
             times.append(self.next_sync)
         if (wakeup := self.service.next_wakeup()) is not None:
@@ -106,7 +119,11 @@ class GuardedSupervisor:
             if link.pending() or (link.ready_at is not None and guard.ready_at is None):
                 return 0
             times.append(guard.next_wakeup())
-        return min(times)
+        for device, device_link in self.devices.values():
+            if device_link.pending():
+                return 0
+            times.append(device.next_wakeup())
+        return min(times) if times else None
 
     def on_wakeup(self, now: int) -> Sequence[Message]:
         up: list[Message] = []
@@ -128,6 +145,14 @@ class GuardedSupervisor:
                 up += guard.on_wakeup(now)
             self._hand_over(guard, link)
             self._tell(guard)
+        for device, device_link in self.devices.values():
+            if self.service.stopping and not device.halted:
+                device.halt(now)
+            up += device_link.pump(device, now)
+            if device.next_wakeup() <= now:
+                up += device.on_wakeup(now)
+            self._hand_over_device(device, device_link)
+            self._tell(device)
         out = self._deliver(up, now)
         wakeup = self.service.next_wakeup()
         if wakeup is not None and wakeup <= now:
@@ -142,11 +167,14 @@ class GuardedSupervisor:
         queue = deque(frames)
         while queue:
             msg = queue.popleft()
-            if msg.node not in self.drives or not isinstance(msg, ToClient):
+            proxied = msg.node in self.drives or msg.node in self.devices
+            if not proxied or not isinstance(msg, ToClient):
                 to_bus.append(msg)
                 continue
             down = self._loop_back(msg, Direction.TO_CLIENT, now)
-            guard = self.drives[msg.node][0]
+            guard: DriveGuard | DeviceGuard[OdriveLimits] = (
+                self.drives[msg.node][0] if msg.node in self.drives else self.devices[msg.node][0]
+            )
             if isinstance(down, ToClient):
                 queue.extend(self._deliver(guard.on_message(down, now), now))
         return to_bus
@@ -167,6 +195,8 @@ class GuardedSupervisor:
         return self.codec.decode(arbitration_id, data, direction=direction)
 
     def _produce(self, now: int) -> None:
+        if self.beat is None:
+            return
         if now >= self.next_beat:
             self.next_beat = now + self.beat.heartbeat_us
             self._send(0x700 + self.beat.host_id, bytes([NMT_OPERATIONAL]))
@@ -182,13 +212,18 @@ class GuardedSupervisor:
             self.beat_failures += 1
 
     def status(self, now: int) -> dict[str, Any]:
+        devices: dict[str, dict[str, Any]] = {}
+        for n, (device, device_link) in self.devices.items():
+            profile = devices.setdefault(device.profile.name, {})
+            profile[str(n)] = {**device.status(now), **device_link.status()}
         return {
-            "host_id": self.beat.host_id,
+            "host_id": None if self.beat is None else self.beat.host_id,
             "heartbeat_failures": self.beat_failures,
             "drives": {
                 str(n): {**guard.status(now), **link.status()}
                 for n, (guard, link) in self.drives.items()
             },
+            "devices": devices,
         }
 
     def halt_all(self, now: int) -> None:
@@ -198,15 +233,28 @@ class GuardedSupervisor:
             if not guard.halted:
                 guard.halt(now)
             self._hand_over(guard, link)
+        for device, device_link in self.devices.values():
+            if not device.halted:
+                device.halt(now)
+            self._hand_over_device(device, device_link)
 
-    def _tell(self, guard: DriveGuard) -> None:
-        seen = (guard.phase.value, guard.stop_reason)
+    def _tell(self, guard: DriveGuard | DeviceGuard[OdriveLimits]) -> None:
+        stuck = getattr(guard, "stuck", None)
+        seen = (guard.phase.value, guard.stop_reason if stuck is None else stuck)
         if self.report is None or self.reported.get(guard.node, seen) == seen:
             self.reported[guard.node] = seen
             return
         self.reported[guard.node] = seen
         left = f"{guard.usable / 1e6:.3f} J left"
-        if guard.stop_reason is None:
+        if isinstance(guard, DeviceGuard):
+            what = f"{guard.profile.name} axis {guard.node}"
+            if stuck is not None:
+                self.report(f"{what}: STUCK ({stuck}; stop repeated; {left})")
+            elif guard.stop_reason is None:
+                self.report(f"{what}: released ({left})")
+            else:
+                self.report(f"{what}: {guard.phase.value} ({guard.stop_reason}; {left})")
+        elif guard.stop_reason is None:
             self.report(f"drive {guard.node}: released ({left})")
         else:
             self.report(f"drive {guard.node}: {guard.phase.value} ({guard.stop_reason}; {left})")
@@ -217,8 +265,16 @@ class GuardedSupervisor:
             link.command(cmd)
         guard.commands.clear()
 
+    @staticmethod
+    def _hand_over_device(device: DeviceGuard[OdriveLimits], link: OdriveLink) -> None:
+        for cmd in device.commands:
+            link.command(cmd)
+        device.commands.clear()
+
     def close(self) -> None:
         for _, link in self.drives.values():
             link.close()
+        for _, device_link in self.devices.values():
+            device_link.close()
         if self.capture is not None:
             self.capture.stop()

@@ -247,7 +247,7 @@ def check_cia402(args: argparse.Namespace) -> None:
     """Everything about the drives that can be judged before the bus is opened."""
     drives = args.cia402 or ()
     nodes = args.nodes or ()
-    if not drives and not nodes:
+    if not drives and not nodes and not getattr(args, "odrive", None):
         raise ValueError("give --nodes, --cia402 or both (or --bus for several buses)")
     if not drives:
         return

@@ -1,0 +1,577 @@
+"""One device under an energy budget, for any ``Profile``: a proxy client, the envelope of the
+limits the guard wrote and read back, charged by the host's clock, and a stop rule. Sans-IO.
+
+As for CiA 402 (``canergy.cia402.guard``), the device never runs canergy: the host keeps a
+hardened ``Client`` as its proxy and charges to it what the device may have drawn. In the sound
+mode (``envelope``) every µs is charged at the largest envelope in force: the limits confirmed,
+the limits being written, and limits someone else wrote on the bus (charged from the moment
+their frame was seen until the guard's own, written after it, is confirmed). A lowered envelope
+counts until the device had its latency to act on it. The guard stops the device when what is
+left falls to the reserve plus the bound (envelope × (reaction + latency) + what the stop may
+draw), waking exactly when the clock gets there; then it writes the closed limits (no current).
+
+In ``sampled`` mode the device's own power readings are integrated between samples: no limits,
+no bound, guarantee "none".
+
+A device that does not show itself powerless within ``stop_timeout_us`` of a stop, or whose
+feedback is gone, is **STUCK**: the stop is repeated, the status and the host's report say so,
+and what it may draw from then on (the envelope in force, by the clock) is booked as
+``uncontained_uj``, not as metered. Limits that do not read back as written refuse the device,
+naming the limit; limits that cannot be read back at all (ODrive 0.5) refuse it unless the
+configuration trusts them (``trust_limits``), which the status shows as ``limits_verified``
+false.
+
+Inputs: ``on_ready``, ``on_limits``, ``on_feedback``, ``on_foreign_limits``,
+``on_foreign_write``, ``on_message``, ``on_wakeup``; outputs: canergy frames to the supervisor
+and ``commands`` (``WriteLimits``, ``Stop``) for the link.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any, Generic
+
+from canergy.cia402.envelope import Bound, ceil_div
+from canergy.cia402.meter import FW_US_PER_UJ
+from canergy.core import Action, Client, ClientCommitted, Credited, Send, Timing
+from canergy.core.state import Phase
+from canergy.devices.profile import L, Profile, Stop, WriteLimits
+from canergy.messages import LEVEL_MAX_MJ, QUANTUM_UJ, Message, Telemetry, ToClient
+
+FOREVER = 2**62
+
+
+class GuardPhase(Enum):
+    RUNNING = "running"
+    STOPPING = "stopping"
+    """Stop sent: waiting for the device to show itself powerless."""
+    STOPPED = "stopped"
+    STUCK = "stuck"
+    """Stopped and not obeying (or not heard): the stop is repeated."""
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceConfig(Generic[L]):
+    limits: L
+    """The full limits the guard writes while the device holds budget."""
+    sampled: bool = False
+    """Meter the device's own power readings (no bound) instead of the envelope."""
+    trust_limits: bool = False
+    """Take limits that cannot be read back as written (reported unverified)."""
+    timing: Timing = field(default_factory=Timing)
+    reaction_us: int = 10_000
+    """Host reaction the bound allows (raised to what is measured)."""
+    latency_us: int = 5_000
+    """Device latency the bound allows (raised to what is measured)."""
+    feedback_timeout_us: int = 300_000
+    """Stop (and latch) when the device was not heard for this long."""
+    stop_timeout_us: int = 500_000
+    """A stopped device must show itself powerless within this, or it is STUCK."""
+    retry_us: int = 100_000
+    reserve_uj: int = 0
+    resume_margin_uj: int = 10 * QUANTUM_UJ
+    telemetry_period_us: int = 50_000
+
+
+class DeviceGuard(Generic[L]):
+    """The budget of one device of ``profile``."""
+
+    def __init__(
+        self, node: int, profile: Profile[L], config: DeviceConfig[L], now: int, nonce: int
+    ) -> None:
+        self.profile = profile
+        self.config = config
+        self.client = Client(node, timing=config.timing)
+        self.commands: list[WriteLimits[L] | Stop] = []
+        self.phase = GuardPhase.STOPPED
+        self.phase_at = now
+        self.stop_reason: str | None = "no budget yet"
+        self.latched = False
+        self.refused: str | None = None
+        self.stuck: str | None = None
+        self.ready_at: int | None = None
+        self.verified: bool | None = None
+        """The limits read back (True), taken on trust (False), not known yet (None)."""
+        self.powered: bool | None = None
+        self.device_state: str | None = None
+        self.last_feedback_at: int | None = None
+        self.confirmed: L | None = None
+        self.pending: L | None = None
+        self.pending_at = now
+        self.foreign: L | None = None
+        """Limits someone else wrote, in force until a write of the guard's after them is
+        confirmed."""
+        self.foreign_at: int | None = None
+        self.lowered_fw = 0
+        self.lowered_until = 0
+        self.charged_until: int | None = None
+        self.charge_fw = 0
+        self.remainder = 0
+        self.unbooked_uj = 0
+        self.metered_uj = 0
+        self.uncontained_uj = 0
+        self.last_sample: tuple[int, int] | None = None
+        """Sampled mode: the last power reading (when, fW)."""
+        self.reaction_max_us = 0
+        self.latency_max_us = 0
+        self.confirm_max_us = 0
+        """The longest a limits write took from the guard's decision to its read-back."""
+        self.crossing: int | None = None
+        """When the clock brings the budget to the stop threshold (envelope mode)."""
+        self.last_stop_at = -config.retry_us
+        self.rewrite_at: int | None = None
+        self.bound_max_uj = 0
+        """The largest bound the stop threshold held back (limits someone else wrote
+        included): the status's ``bound_uj``, raised, never lowered."""
+        self.overrun_uj = 0
+        self.debt_uj = 0
+        self.stops = 0
+        self.restops = 0
+        self.writes_seen = 0
+        self.halted = False
+        self.next_telemetry = now
+        self.outbox = self._carry_out(self.client.books_lost(nonce, now), now)
+
+    @property
+    def node(self) -> int:
+        return self.client.node
+
+    @property
+    def usable(self) -> int:
+        return self.client.state.usable
+
+    @property
+    def joining(self) -> bool:
+        return self.client.state.phase is Phase.JOINING
+
+    @property
+    def sound(self) -> bool:
+        return not self.config.sampled
+
+    # -- envelope and bound ---------------------------------------------------------------
+    def _fw(self, limits: L | None) -> int:
+        return 0 if limits is None else self.profile.envelope(limits).fw
+
+    def in_force_fw(self, now: int) -> int:
+        fw = max(self._fw(self.confirmed), self._fw(self.pending), self._fw(self.foreign))
+        return max(fw, self.lowered_fw) if now < self.lowered_until else fw
+
+    def latency_us(self) -> int:
+        return max(self.config.latency_us, self.latency_max_us)
+
+    def reaction_us(self) -> int:
+        """From the decision to the device holding the new limits or the stop: the allowance,
+        raised to the longest reaction and limits write (read-back included) seen."""
+        return max(self.config.reaction_us, self.reaction_max_us, self.confirm_max_us)
+
+    def notice_us(self) -> int:
+        return self.reaction_us() + self.latency_us()
+
+    def bound(self, limits: L | None) -> Bound | None:
+        """What the device may draw past the moment the guard decides to stop it."""
+        if not self.sound or limits is None:
+            return None
+        fw = self._fw(limits)
+        notice = ceil_div(fw * self.notice_us(), FW_US_PER_UJ)
+        stop_us = self.config.stop_timeout_us
+        stop = ceil_div(self.profile.stop_fw_us(limits, stop_us), FW_US_PER_UJ)
+        return Bound(fw, notice, stop)
+
+    def threshold_uj(self) -> int:
+        if not self.sound:
+            return self.config.reserve_uj
+        worst = 0
+        for limits in (self.config.limits, self.confirmed, self.pending, self.foreign):
+            b = self.bound(limits)
+            worst = max(worst, 0 if b is None else b.total_uj)
+        self.bound_max_uj = max(self.bound_max_uj, worst)
+        return self.config.reserve_uj + worst
+
+    # -- charging -------------------------------------------------------------------------
+    def charge(self, now: int) -> None:
+        if self.charged_until is None:
+            return
+        if self.charged_until < self.lowered_until < now:
+            self._charge_to(self.lowered_until)
+        if now > self.charged_until:
+            self._charge_to(now)
+
+    def _charge_to(self, until: int) -> None:
+        assert self.charged_until is not None
+        self.remainder += self.charge_fw * (until - self.charged_until)
+        drawn, self.remainder = divmod(self.remainder, FW_US_PER_UJ)
+        self.charged_until, self.charge_fw = until, self.in_force_fw(until)
+        if self.phase is GuardPhase.STUCK:
+            self.uncontained_uj += drawn
+        else:
+            self.metered_uj += drawn
+            self.unbooked_uj += drawn
+
+    def _recharge(self, now: int) -> None:
+        """The envelope in force changed at ``now`` (a raise counts from now)."""
+        self.charge_fw = max(self.charge_fw, self.in_force_fw(now))
+
+    # -- inputs ---------------------------------------------------------------------------
+    def on_ready(self, now: int, started_at: int, full: L | None, closed: L | None) -> None:
+        """Set-up: the link wrote the full limits and then the closed ones at ``started_at``,
+        and read each back (None: could not be read back)."""
+        self.ready_at = now
+        if not self.sound:
+            self.verified = False
+            return
+        want = self.config.limits
+        for wrote, read in ((want, full), (self.profile.closed(want), closed)):
+            if read is None:
+                continue
+            if (why := self.profile.mismatch(wrote, read)) is not None:
+                self._refuse(f"limits not taken: {why}")
+        if full is None or closed is None:
+            self.verified = False
+            if not self.config.trust_limits:
+                self._refuse(
+                    f"the {self.profile.name} limits cannot be read back (no answer, or "
+                    "firmware 0.5): trust them as written with --odrive-trust-limits"
+                )
+        elif self.refused is None:
+            self.verified = True
+        self.confirmed = self.profile.closed(want)
+        # the full limits were in force from the set-up's start until the closed ones: debt
+        self.charged_until, self.charge_fw = started_at, self._fw(want)
+        self.lowered_fw, self.lowered_until = self._fw(want), now + self.latency_us()
+        self.charge(now)
+
+    def on_limits(self, now: int, wrote: L, read: L | None, at: int) -> list[Message]:
+        """The device read back ``read`` after the guard wrote ``wrote`` at ``at`` (None: not
+        readable, or no answer)."""
+        self.charge(now)
+        self.confirm_max_us = max(self.confirm_max_us, now - at)
+        if read is not None and (why := self.profile.mismatch(wrote, read)) is not None:
+            self._refuse(f"limits not taken: {why}")
+            return self._settled(now)
+        if read is None and not self.config.trust_limits:
+            if wrote == self.pending:
+                self.rewrite_at = now + self.config.retry_us
+            return self._settled(now)
+        before = self.in_force_fw(now)
+        self.confirmed = wrote
+        if self.pending == wrote:
+            self.pending = None
+        if self.foreign_at is not None and at >= self.foreign_at:  # written after it
+            self.foreign, self.foreign_at = None, None
+        if self.in_force_fw(now) < before:
+            self.lowered_fw, self.lowered_until = before, now + self.latency_us()
+        self._recharge(now)
+        return self._settled(now)
+
+    def on_feedback(
+        self,
+        now: int,
+        at: int,
+        powered: bool | None,
+        state: str | None = None,
+        power_w: float | None = None,
+        measured: dict[str, float] | None = None,
+    ) -> list[Message]:
+        """The device was heard at ``at`` (taken in at ``now``): whether its power stage is on,
+        its state by name, a power reading (sampled mode) and figures that raise the envelope's
+        parts."""
+        self.charge(now)
+        at = min(at, now)
+        self.last_feedback_at = max(at, self.last_feedback_at or at)
+        if powered is not None:
+            self.powered = powered
+        if state is not None:
+            self.device_state = state
+        if measured:
+            self.profile.observe(measured)
+            self._recharge(now)
+        if power_w is not None and not self.sound:
+            fw = max(0, round(power_w * 1e15)) if power_w == power_w else 0
+            if self.last_sample is not None and self.ready_at is not None:
+                since, last = self.last_sample
+                drawn = last * max(0, at - since) // FW_US_PER_UJ
+                self.metered_uj += drawn
+                self.unbooked_uj += drawn
+            self.last_sample = (at, fw)
+        return self._settled(now)
+
+    def on_foreign_limits(self, now: int, at: int, limits: L) -> list[Message]:
+        """Someone else wrote ``limits`` (seen at ``at``): charged from then, written over."""
+        if not self.sound or self.charged_until is None:
+            return []
+        self.writes_seen += 1
+        self.charge(now)
+        early = max(0, self.charged_until - at)
+        if self._fw(limits) > self._fw(self.foreign):
+            self.foreign = limits
+            self.remainder += max(0, self._fw(limits) - self.charge_fw) * early
+        self.foreign_at = at
+        self._recharge(now)
+        self.rewrite_at = now  # the guard's own limits again, at once
+        return self._settled(now)
+
+    def on_foreign_write(self, now: int, what: str) -> list[Message]:
+        """A write behind the guard whose effect it cannot bound: stopped for good."""
+        self.writes_seen += 1
+        self._refuse(f"a write behind the guard: {what}")
+        return self._settled(now)
+
+    def on_message(self, msg: ToClient, now: int) -> list[Message]:
+        self.charge(now)
+        out = self._carry_out(self.client.receive(msg, now), now)
+        return out + self._pay_debt(now) + self._settled(now)
+
+    def watch(self, reaction_us: int, latency_us: int) -> None:
+        self.reaction_max_us = max(self.reaction_max_us, reaction_us)
+        self.latency_max_us = max(self.latency_max_us, latency_us)
+
+    def halt(self, now: int) -> None:
+        self.halted = True
+        self._evaluate(now)
+
+    def next_wakeup(self) -> int:
+        times = [self.next_telemetry]
+        if (timer := self.client.get_timer()) is not None:
+            times.append(timer)
+        if self.crossing is not None:
+            times.append(self.crossing)
+        if self.last_feedback_at is not None and self.phase is GuardPhase.RUNNING:
+            times.append(self.last_feedback_at + self.config.feedback_timeout_us + 1)
+        if self.phase in (GuardPhase.STOPPING, GuardPhase.STUCK):
+            times.append(self.last_stop_at + self.config.retry_us)
+            times.append(self.phase_at + self.config.stop_timeout_us + 1)
+        if self.rewrite_at is not None:
+            times.append(self.rewrite_at)
+        return min(times)
+
+    def on_wakeup(self, now: int) -> list[Message]:
+        out, self.outbox = self.outbox, []
+        if (timer := self.client.get_timer()) is not None and timer <= now:
+            out += self._carry_out(self.client.handle_timer(now), now)
+        self.charge(now)
+        out += self._settled(now)
+        if now >= self.next_telemetry:
+            out.append(self.telemetry(now))
+        return out
+
+    # -- books ----------------------------------------------------------------------------
+    def _settled(self, now: int) -> list[Message]:
+        out = self._book(now)
+        out += self._evaluate(now)
+        return out + self._book(now)
+
+    def _book(self, now: int) -> list[Message]:
+        drawn, self.unbooked_uj = self.unbooked_uj, 0
+        take = min(drawn, self.usable)
+        self.overrun_uj += drawn - take
+        self.debt_uj += drawn - take
+        return self._carry_out(self.client.spend(take, now), now) if take else []
+
+    def _pay_debt(self, now: int) -> list[Message]:
+        pay = min(self.debt_uj, self.usable)
+        if not pay:
+            return []
+        self.debt_uj -= pay
+        return self._carry_out(self.client.spend(pay, now), now)
+
+    # -- decisions ------------------------------------------------------------------------
+    def alive(self, now: int) -> bool:
+        """Grants make sense: set up, heard lately, not refused or stuck."""
+        heard = self.last_feedback_at
+        return (
+            heard is not None
+            and self.ready_at is not None
+            and now <= heard + self.config.feedback_timeout_us
+            and self.refused is None
+            and self.stuck is None
+        )
+
+    def _refuse(self, why: str) -> None:
+        if self.refused is None:
+            self.refused = why
+        self.latched = True
+
+    def _stop_reason(self, now: int) -> str | None:
+        if self.halted:
+            return "supervisor stopping"
+        if self.refused is not None:
+            return self.refused
+        if self.ready_at is None:
+            return "not set up yet"
+        heard = self.last_feedback_at if self.last_feedback_at is not None else self.ready_at
+        if now > heard + self.config.feedback_timeout_us:
+            self.latched = True
+            return "feedback stopped"
+        if self.usable <= self.threshold_uj():
+            if self.crossing is not None and now >= self.crossing:
+                self.reaction_max_us = max(self.reaction_max_us, now - self.crossing)
+            return "budget exhausted"
+        return None
+
+    def _evaluate(self, now: int) -> list[Message]:
+        before = self.phase
+        why = self._stop_reason(now)
+        if why is not None:
+            self._stop(why, now)
+        elif self.phase is GuardPhase.STOPPED and self._may_resume():
+            self._set_phase(GuardPhase.RUNNING, None, now)
+        self._steer_limits(now)
+        self._watch_stop(now)
+        self.crossing = self._crossing()
+        return [self.telemetry(now)] if self.phase is not before else []
+
+    def _crossing(self) -> int | None:
+        """When the clock, at the envelope charged now, brings what is left to the stop
+        threshold (None: not running, or nothing charged)."""
+        if self.phase is not GuardPhase.RUNNING or self.charged_until is None:
+            return None
+        if self.charge_fw <= 0:
+            return None
+        left = self.usable - self.threshold_uj()
+        room = max(0, left * FW_US_PER_UJ - self.remainder)
+        return self.charged_until + ceil_div(room, self.charge_fw)
+
+    def _stop(self, why: str, now: int) -> None:
+        if self.phase is GuardPhase.RUNNING:
+            self.stops += 1
+            self._set_phase(GuardPhase.STOPPING, why, now)
+            self._send_stop(why, now)
+        elif self.phase is GuardPhase.STOPPED and self.powered:
+            self.restops += 1  # powered again behind the guard
+            self._set_phase(GuardPhase.STOPPING, why, now)
+            self._send_stop(f"powered behind the guard ({why})", now)
+
+    def _watch_stop(self, now: int) -> None:
+        """A stop is confirmed by feedback showing the device powerless after it; else STUCK."""
+        if self.phase not in (GuardPhase.STOPPING, GuardPhase.STUCK):
+            return
+        # feedback older than the stop plus the notice the bound allows may predate its effect
+        settled = self.phase_at + self.notice_us()
+        heard_since = self.last_feedback_at is not None and self.last_feedback_at > settled
+        if heard_since and self.powered is False:
+            self.stuck = None
+            self._set_phase(GuardPhase.STOPPED, self.stop_reason, now)
+            return
+        if now >= self.last_stop_at + self.config.retry_us:
+            self._send_stop("not stopped yet: again", now)
+        if self.phase is GuardPhase.STOPPING and now > self.phase_at + self.config.stop_timeout_us:
+            ms = self.config.stop_timeout_us / 1000
+            self.stuck = (
+                f"still powered {ms:g} ms after the stop"
+                if heard_since
+                else f"not heard for {ms:g} ms after the stop"
+            )
+            self.charge(now)
+            self.phase = GuardPhase.STUCK  # keeps phase_at: the stop's time
+
+    def _send_stop(self, why: str, now: int) -> None:
+        self.commands.append(Stop(why, now))
+        self.last_stop_at = now
+
+    def _may_resume(self) -> bool:
+        return (
+            not self.latched
+            and self.usable > self.threshold_uj() + self.config.resume_margin_uj
+            and self.ready_at is not None
+        )
+
+    def _desired(self) -> L | None:
+        if not self.sound or self.ready_at is None:
+            return None
+        if self.phase is GuardPhase.RUNNING:
+            return self.config.limits
+        return self.profile.closed(self.config.limits)
+
+    def _steer_limits(self, now: int) -> None:
+        desired = self._desired()
+        target = self.pending if self.pending is not None else self.confirmed
+        again = self.rewrite_at is not None and now >= self.rewrite_at
+        if desired is None or (desired == target and not again):
+            return
+        self.rewrite_at = None
+        self.charge(now)
+        self.pending, self.pending_at = desired, now
+        self._recharge(now)
+        why = "open" if desired == self.config.limits else "closed"
+        self.commands.append(WriteLimits(desired, why, now))
+
+    def _set_phase(self, phase: GuardPhase, why: str | None, now: int) -> None:
+        self.phase, self.stop_reason, self.phase_at = phase, why, now
+
+    # -- the proxy ------------------------------------------------------------------------
+    def telemetry(self, now: int) -> Telemetry:
+        self.next_telemetry = now + self.config.telemetry_period_us
+        flags = (
+            (Telemetry.LOW if self.usable <= self.threshold_uj() else 0)
+            | (Telemetry.HALTED if self.phase is not GuardPhase.RUNNING else 0)
+            | (Telemetry.JOINING if self.joining else 0)
+        )
+        return Telemetry(self.node, min(self.usable // QUANTUM_UJ, LEVEL_MAX_MJ), flags)
+
+    def _carry_out(self, actions: list[Action], now: int) -> list[Message]:
+        out: list[Message] = []
+        for action in actions:
+            if isinstance(action, Send):
+                out.append(action.message)
+            elif isinstance(action, ClientCommitted | Credited):
+                self.next_telemetry = now
+        return out
+
+    def status(self, now: int) -> dict[str, Any]:
+        """The same fields as a CiA 402 drive's where they mean the same, and the profile's."""
+        c = self.client.state
+        target = self.pending if self.pending is not None else self.confirmed
+        worst = self.bound(self.config.limits)
+        now_bound = self.bound(target)
+        bound_uj = None if worst is None else max(worst.total_uj, self.bound_max_uj)
+        envelope = self.profile.envelope(target if target is not None else self.config.limits)
+        full = self.profile.envelope(self.config.limits)
+        return {
+            "node": self.node,
+            "profile": self.profile.name,
+            "drive_state": self.device_state,
+            "guard": self.phase.value,
+            "stop_reason": self.stop_reason,
+            "stuck": self.stuck,
+            "refused": self.refused,
+            "latched": self.latched,
+            "alive": self.alive(now),
+            "joining": self.joining,
+            "ready": self.ready_at is not None,
+            "usable_uj": c.usable,
+            "spent_uj": c.spent,
+            "credited_uj": c.credited,
+            "return_seq": c.return_seq,
+            "return_pending_uj": c.return_pending,
+            "meter": "sampled" if self.config.sampled else "envelope",
+            "guarantee": "none" if self.config.sampled else "drawn <= granted + bound_uj",
+            "metered_uj": self.metered_uj,
+            "uncontained_uj": self.uncontained_uj,
+            "bound_uj": bound_uj,
+            "bound_now_uj": None if now_bound is None else now_bound.total_uj,
+            "bound_stop_uj": None if worst is None else worst.stop_uj,
+            "envelope_w": round(self.in_force_fw(now) / 1e15, 3) if self.sound else None,
+            "envelope_full_w": round(full.fw / 1e15, 3) if self.sound else None,
+            "envelope_formula": full.formula if self.sound else None,
+            "envelope_parts": full.parts if self.sound else None,
+            "envelope_now_parts": envelope.parts if self.sound else None,
+            "limits": None if target is None else self.profile.fields(target),
+            "limits_confirmed": self.pending is None and self.foreign is None,
+            "limits_verified": self.verified,
+            "foreign_limits": None if self.foreign is None else self.profile.fields(self.foreign),
+            "bound_timings_us": {
+                "reaction": self.reaction_us(),
+                "latency": max(self.config.latency_us, self.latency_max_us),
+                "stop_timeout": self.config.stop_timeout_us,
+            },
+            "stop_at_uj": self.threshold_uj(),
+            "overrun_uj": self.overrun_uj,
+            "debt_uj": self.debt_uj,
+            "stops": self.stops,
+            "restops": self.restops,
+            "writes_seen": self.writes_seen,
+            "feedback_age_us": None
+            if self.last_feedback_at is None
+            else now - self.last_feedback_at,
+        }

@@ -1,0 +1,82 @@
+"""The device-profile interface: what a guard needs to know of one kind of device.
+
+A guard puts a device under a budget by writing limits to it, reading them back, charging the
+power those limits allow (the *envelope*) by the host's clock, and stopping the device before
+what is left no longer covers what it may draw until it stands. Everything in that sentence that
+depends on the device is here; the rest (the proxy client, the books, when to stop) is
+``canergy.devices.guard``, the same for every profile. The I/O side (frames, read-backs, the
+stop's frames) is the profile's link in ``canergy.live``; it talks to the guard in the events and
+commands below.
+
+- ``Profile.envelope``: the most the device can draw from its supply while it honours ``limits``,
+  with the formula's parts (shown in the status);
+- ``Profile.closed``: limits under which it can draw nothing (written while it is stopped);
+- ``Profile.mismatch``: the limit that did not read back as written, named, or None;
+- ``Profile.observe``: figures measured on the device that raise the envelope's parts;
+- ``Profile.stop_fw_us``: what the stop itself may draw (0 for a stop that cuts the power
+  stage and lets the motor coast).
+
+How CiA 402 fits: its ``Limits`` (0x6072, 0x6073, 0x6080) are the limits type; ``envelope`` is
+``Ratings.envelope_fw`` (τ_max·ω_max + R·i_max²), ``closed`` is ``Limits.closed``, ``mismatch``
+compares the three objects read back by SDO, ``stop_fw_us`` is ``Ratings.stop_fw_us`` (quick stop)
+or 0 (disable voltage); ``Stop`` is controlword 0x0002 then 0x0000, ``WriteLimits`` an SDO
+download and upload of the three objects, feedback the TPDOs with the statusword's power state.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Generic, Protocol, TypeVar
+
+L = TypeVar("L")
+
+
+@dataclass(frozen=True, slots=True)
+class Envelope:
+    """The most a device may draw while it honours some limits, fW (rounded up), and how it is
+    made: ``formula`` in words and its ``parts`` in SI units, for the status."""
+
+    fw: int
+    formula: str
+    parts: dict[str, float]
+
+
+class Profile(Protocol[L]):
+    """One kind of device (see the module doc)."""
+
+    name: str
+
+    def envelope(self, limits: L) -> Envelope: ...
+
+    def closed(self, limits: L) -> L: ...
+
+    def mismatch(self, wrote: L, read: L) -> str | None: ...
+
+    def stop_fw_us(self, limits: L, stop_us: int) -> int: ...
+
+    def fields(self, limits: L) -> dict[str, float]:
+        """The limits by name, in SI units (the status's ``limits``)."""
+        ...
+
+    def observe(self, measured: dict[str, float]) -> None:
+        """Figures the link measured (e.g. ``bus_voltage_v``): the envelope's parts are raised
+        to them, never lowered."""
+        ...
+
+
+@dataclass(frozen=True, slots=True)
+class WriteLimits(Generic[L]):
+    """Write ``limits`` to the device and read them back where it can (answer: the guard's
+    ``on_limits``)."""
+
+    limits: L
+    why: str
+    at: int
+
+
+@dataclass(frozen=True, slots=True)
+class Stop:
+    """Stop the device (for an ODrive: Estop and Set_Axis_State IDLE)."""
+
+    why: str
+    at: int

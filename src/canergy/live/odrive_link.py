@@ -1,0 +1,302 @@
+"""One ODrive axis over CAN Simple: set-up, feedback in, limits and stops out.
+
+A ``can.Listener`` on the supervisor's Notifier takes the axis's frames and the frames others
+send it, stamped with the host's clock at the driver's receive time (at most 1 s back); a worker
+thread carries out the guard's commands, so a device that does not answer never blocks the
+supervisor's loop:
+
+- ``WriteLimits``: Set_Limits, then on firmware 0.6 with the endpoint ids given, RxSdo reads of
+  ``vel_limit`` and ``current_soft_max`` answered by TxSdo (the round trip is the latency
+  measured); on 0.5 nothing can be read back (the answer says so: None);
+- ``Stop``: Estop, then Set_Axis_State IDLE.
+
+Set-up writes the guard's full limits and reads them back, then the closed ones (current 0).
+Frames from others that the bound depends on: Set_Limits (its values are in the frame: charged
+as written, then written over), and RxSdo writes, Reboot, Address/Set_Axis_Node_ID and
+Enter_DFU_Mode, whose effect the guard cannot bound (the axis is stopped for good). The link
+polls bus voltage and current (0x017) and, on 0.6, the powers (0x01D) by remote request.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+import queue
+import struct
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import can
+
+from canergy.devices.guard import DeviceGuard
+from canergy.devices.odrive import (
+    AxisState,
+    Cmd,
+    OdriveLimits,
+    can_id,
+    heartbeat,
+    sdo_fields,
+    sdo_read,
+    set_axis_state,
+    set_limits,
+    split_id,
+    two_floats,
+)
+from canergy.devices.profile import Stop, WriteLimits
+from canergy.messages import Message
+
+log = logging.getLogger(__name__)
+
+UNBOUNDED = {
+    Cmd.RX_SDO: "RxSdo write",
+    0x006: "Set_Axis_Node_ID/Address",
+    0x016: "Reboot",
+    0x01F: "Enter_DFU_Mode",
+}
+"""Frames from others whose effect on the limits the guard cannot bound."""
+
+
+@dataclass(frozen=True, slots=True)
+class OdriveLinkConfig:
+    firmware: str = "0.6"
+    endpoints: tuple[int, int] | None = None
+    """0.6: the endpoint ids of ``axis.controller.config.vel_limit`` and
+    ``axis.config.motor.current_soft_max`` (the firmware's ``flat_endpoints.json``)."""
+    sdo_timeout_s: float = 0.2
+    poll_s: float = 0.1
+    """Remote requests for bus voltage and current (and 0.6 powers) this often."""
+    sampled: bool = False
+
+
+class OdriveLink:
+    """The axis ``node`` on ``bus`` (see the module doc); ``clock`` gives host µs."""
+
+    def __init__(
+        self,
+        bus: can.BusABC,
+        node: int,
+        config: OdriveLinkConfig,
+        limits: OdriveLimits | None,
+        clock: Callable[[], int],
+    ) -> None:
+        self.bus = bus
+        self.node = node
+        self.config = config
+        self.limits = limits
+        self.clock = clock
+        self.lock = threading.Lock()
+        self.events: list[Callable[[DeviceGuard[OdriveLimits], int], list[Message]]] = []
+        self.replies: queue.Queue[tuple[int, float]] = queue.Queue()
+        self.work: queue.Queue[WriteLimits[OdriveLimits] | Stop | None] = queue.Queue()
+        self.voltage: float | None = None
+        self.reaction_max_us = 0
+        self.latency_max_us = 0
+        self.send_failures = 0
+        self.frames_in = 0
+        self.bad_frames = 0
+        self.closing = threading.Event()
+        self.worker = threading.Thread(target=self._work, daemon=True, name=f"odrive-{node}")
+
+    def start(self) -> None:
+        """Set up the axis and carry out commands (once the listener hears the bus)."""
+        self.worker.start()
+
+    # -- the listener (Notifier thread) ---------------------------------------------------
+    def __call__(self, frame: can.Message) -> None:
+        self.on_message_received(frame)
+
+    def on_message_received(self, frame: can.Message) -> None:
+        if frame.is_extended_id or frame.is_error_frame:
+            return
+        node, cmd = split_id(frame.arbitration_id)
+        if node != self.node:
+            return
+        at = self.clock()
+        if frame.timestamp > 0:  # received before the Notifier's thread got to it
+            at -= max(0, min(round((time.time() - frame.timestamp) * 1e6), 1_000_000))
+        data = bytes(frame.data)
+        try:
+            self._take(cmd, data, at, frame.is_remote_frame)
+        except (ValueError, struct.error):
+            with self.lock:
+                self.bad_frames += 1
+
+    def on_error(self, exc: Exception) -> None:
+        with self.lock:
+            self.bad_frames += 1
+
+    def _event(self, event: Callable[[DeviceGuard[OdriveLimits], int], list[Message]]) -> None:
+        with self.lock:
+            self.frames_in += 1
+            self.events.append(event)
+
+    def _take(self, cmd: int, data: bytes, at: int, remote: bool) -> None:
+        if remote:
+            return  # someone's request: the answer is the axis's
+        if cmd == Cmd.HEARTBEAT:
+            _, state = heartbeat(data)
+            known = state in AxisState.__members__.values()
+            name = AxisState(state).name if known else f"state {state}"
+            powered = state != AxisState.IDLE
+            self._event(lambda g, now: g.on_feedback(now, at, powered, name))
+        elif cmd == Cmd.BUS_VOLTAGE_CURRENT:
+            volts, amps = two_floats(data)
+            self.voltage = volts
+            power = volts * amps if self.config.firmware == "0.5" else None
+            measured = {"bus_voltage_v": volts}
+            self._event(lambda g, now: g.on_feedback(now, at, None, None, power, measured))
+        elif cmd == Cmd.POWERS and self.config.firmware == "0.6":
+            electrical, _ = two_floats(data)
+            self._event(lambda g, now: g.on_feedback(now, at, None, None, electrical))
+        elif cmd == Cmd.ENCODER_ESTIMATES:
+            two_floats(data)
+            self._event(lambda g, now: g.on_feedback(now, at, None))
+        elif cmd == Cmd.TX_SDO:
+            _, endpoint, value = sdo_fields(data)
+            self.replies.put((endpoint, struct.unpack("<f", value)[0]))
+        elif cmd == Cmd.SET_LIMITS:
+            velocity, current = two_floats(data)
+            seen = OdriveLimits(velocity, current)
+            self._event(lambda g, now: g.on_foreign_limits(now, at, seen))
+        elif cmd in UNBOUNDED and not (cmd == Cmd.RX_SDO and sdo_fields(data)[0] != 1):
+            what = f"{UNBOUNDED[cmd]} ({data.hex() or 'no data'})"
+            self._event(lambda g, now: g.on_foreign_write(now, what))
+
+    # -- the loop's side ------------------------------------------------------------------
+    def pump(self, guard: DeviceGuard[OdriveLimits], now: int) -> list[Message]:
+        """Feed what arrived to ``guard``; hand its commands to the worker."""
+        with self.lock:
+            events, self.events = self.events, []
+        guard.watch(self.reaction_max_us, self.latency_max_us)
+        out: list[Message] = []
+        for event in events:
+            out += event(guard, now)
+        return out
+
+    def command(self, cmd: WriteLimits[OdriveLimits] | Stop) -> None:
+        self.work.put(cmd)
+
+    def pending(self) -> bool:
+        with self.lock:
+            return bool(self.events)
+
+    def status(self) -> dict[str, object]:
+        return {
+            "firmware": self.config.firmware,
+            "reaction_max_us": self.reaction_max_us,
+            "latency_max_us": self.latency_max_us,
+            "bus_voltage_v": self.voltage,
+            "send_failures": self.send_failures,
+            "frames_in": self.frames_in,
+            "bad_frames": self.bad_frames,
+        }
+
+    def close(self) -> None:
+        """Carry out what is queued (a halt's stop), then end the worker."""
+        self.work.put(None)
+        if self.worker.is_alive():
+            self.worker.join(timeout=2)
+        self.closing.set()
+
+    # -- the worker -----------------------------------------------------------------------
+    def _send(self, cmd: int, data: bytes = b"", remote: bool = False) -> bool:
+        frame = can.Message(
+            arbitration_id=can_id(self.node, cmd),
+            data=data,
+            is_extended_id=False,
+            is_remote_frame=remote,
+            dlc=8 if remote else len(data),
+        )
+        try:
+            self.bus.send(frame)
+            return True
+        except can.CanError:
+            self.send_failures += 1
+            return False
+
+    def _work(self) -> None:
+        if self.limits is not None:
+            self._setup(self.limits)
+        else:  # sampled: nothing to write
+            started = self.clock()
+            self._event(lambda g, now: _ready(g, now, started, None, None))
+        while not self.closing.is_set():
+            try:
+                cmd = self.work.get(timeout=self.config.poll_s)
+            except queue.Empty:
+                self._poll()
+                continue
+            if cmd is None:
+                return
+            if isinstance(cmd, Stop):
+                self._send(Cmd.ESTOP)
+                self._send(Cmd.SET_AXIS_STATE, set_axis_state(AxisState.IDLE))
+                self.reaction_max_us = max(self.reaction_max_us, self.clock() - cmd.at)
+            else:
+                read = self._write(cmd.limits)
+                self._event(functools.partial(_limits, cmd.limits, read, cmd.at))
+
+    def _poll(self) -> None:
+        self._send(Cmd.BUS_VOLTAGE_CURRENT, remote=True)
+        if self.config.sampled and self.config.firmware == "0.6":
+            self._send(Cmd.POWERS, remote=True)
+
+    def _setup(self, limits: OdriveLimits) -> None:
+        started = self.clock()
+        full = self._write(limits)
+        closed = self._write(OdriveLimits(limits.velocity, 0.0))
+        self._event(lambda g, now: _ready(g, now, started, full, closed))
+
+    def _write(self, limits: OdriveLimits) -> OdriveLimits | None:
+        """Set_Limits and, where the firmware allows, the limits read back (else None)."""
+        if not self._send(Cmd.SET_LIMITS, set_limits(limits.velocity, limits.current)):
+            return None
+        if self.config.firmware != "0.6" or self.config.endpoints is None:
+            return None
+        values = [self._read(endpoint) for endpoint in self.config.endpoints]
+        velocity, current = values
+        if velocity is None or current is None:
+            return None
+        return OdriveLimits(velocity, current)
+
+    def _read(self, endpoint: int) -> float | None:
+        with contextlib.suppress(queue.Empty):
+            while True:
+                self.replies.get_nowait()  # answers to reads given up on
+        start = self.clock()
+        if not self._send(Cmd.RX_SDO, sdo_read(endpoint)):
+            return None
+        deadline = start + round(self.config.sdo_timeout_s * 1e6)
+        while (left := deadline - self.clock()) > 0:
+            try:
+                got, value = self.replies.get(timeout=left / 1e6)
+            except queue.Empty:
+                break
+            if got == endpoint:
+                self.latency_max_us = max(self.latency_max_us, self.clock() - start)
+                return value
+        return None
+
+
+def _limits(
+    wrote: OdriveLimits,
+    read: OdriveLimits | None,
+    at: int,
+    guard: DeviceGuard[OdriveLimits],
+    now: int,
+) -> list[Message]:
+    return guard.on_limits(now, wrote, read, at)
+
+
+def _ready(
+    guard: DeviceGuard[OdriveLimits],
+    now: int,
+    started: int,
+    full: OdriveLimits | None,
+    closed: OdriveLimits | None,
+) -> list[Message]:
+    guard.on_ready(now, started, full, closed)
+    return []

@@ -1,0 +1,96 @@
+"""The device guard (``canergy.devices.guard``) with the ODrive profile, sans-IO, in explicit
+time: the envelope's formula, limits read back at set-up, limits written behind the guard
+charged from the moment they were seen, and a stop that is not obeyed made STUCK."""
+
+from __future__ import annotations
+
+import math
+from fractions import Fraction
+
+from canergy.devices.guard import DeviceConfig, DeviceGuard, GuardPhase
+from canergy.devices.odrive import MotorConstants, OdriveLimits, OdriveProfile
+from canergy.devices.profile import Stop, WriteLimits
+
+FULL = OdriveLimits(5.0, 2.0)
+MOTOR = MotorConstants(Fraction(1, 20), Fraction(1, 2), Fraction(6, 5), Fraction(24))
+
+
+def guard(trust: bool = False) -> DeviceGuard[OdriveLimits]:
+    config = DeviceConfig(limits=FULL, trust_limits=trust, latency_us=5_000, reaction_us=10_000)
+    return DeviceGuard(3, OdriveProfile(MOTOR), config, 0, 1)
+
+
+def ready(g: DeviceGuard[OdriveLimits]) -> None:
+    g.on_ready(10_000, 0, FULL, OdriveLimits(5.0, 0.0))
+
+
+def test_the_envelope_is_the_smaller_of_motor_and_supply_terms_never_below_the_true_one() -> None:
+    profile = OdriveProfile(MOTOR)
+    e = profile.envelope(FULL)
+    omega = 2 * math.pi * 1.2 * 5.0
+    motor_w = 0.05 * 2.0 * omega + 1.5 * 0.5 * 2.0**2  # 6.7699 W, below 24 V · 2 A
+    assert motor_w * 1e15 <= e.fw <= motor_w * 1e15 * (1 + 1e-6)
+    assert e.parts["supply_term_w"] == 48.0
+    # a low supply bounds a fast motor: V_bus·i_lim
+    low = OdriveProfile(MotorConstants(MOTOR.torque_constant, MOTOR.resistance, bus_voltage=2))
+    assert low.envelope(FULL).fw == 4 * 10**15
+    low.observe({"bus_voltage_v": 3.0})
+    low.observe({"bus_voltage_v": 1.0})  # raised to what was measured, never lowered
+    assert low.envelope(FULL).fw == 6 * 10**15
+
+
+def test_a_limit_that_does_not_read_back_is_refused_by_name() -> None:
+    g = guard()
+    g.on_ready(10_000, 0, OdriveLimits(4.0, 2.0), OdriveLimits(5.0, 0.0))
+    assert g.refused == "limits not taken: velocity limit reads 4 rev/s, written 5"
+    assert g.latched and not g.alive(10_000)
+
+
+def test_limits_that_cannot_be_read_back_need_trust() -> None:
+    g = guard()
+    g.on_ready(10_000, 0, None, None)
+    assert g.refused is not None and "--odrive-trust-limits" in g.refused
+    trusted = guard(trust=True)
+    trusted.on_ready(10_000, 0, None, None)
+    assert trusted.refused is None and trusted.verified is False
+
+
+def test_limits_written_behind_the_guard_are_charged_from_when_they_were_seen() -> None:
+    g = guard()
+    ready(g)
+    g.on_wakeup(50_000)
+    setup_uj = g.metered_uj  # the full limits from the set-up's start to the closed ones
+    assert abs(setup_uj - g.profile.envelope(FULL).fw * 15_000 / 10**15) < 1
+    raised = OdriveLimits(20.0, 20.0)
+    g.on_foreign_limits(100_000, 90_000, raised)
+    (write,) = [c for c in g.commands if isinstance(c, WriteLimits)][-1:]
+    assert write.at == 100_000  # the guard's own limits again, at once
+    g.on_limits(102_000, write.limits, write.limits, write.at)  # read back: the device took them
+    g.on_wakeup(200_000)
+    raised_fw = g.profile.envelope(raised).fw
+    # 90 ms to 102 ms at the raised envelope, then the latency (5 ms) before it counts as lowered
+    expected = setup_uj + raised_fw * (107_000 - 90_000) / 10**15
+    assert abs(g.metered_uj - expected) <= 2
+    assert g.foreign is None and g.bound_max_uj >= g.bound(raised).total_uj  # type: ignore[union-attr]
+
+
+def test_an_axis_powered_after_its_stop_is_stuck_and_the_stop_is_repeated() -> None:
+    g = guard()
+    ready(g)
+    g.on_feedback(20_000, 20_000, True, "CLOSED_LOOP_CONTROL")  # powered: the guard holds it
+    assert g.phase is GuardPhase.STOPPING and isinstance(g.commands[-1], Stop)
+    stop_at = g.phase_at
+    # a heartbeat sent before the stop could act shows nothing
+    g.on_feedback(stop_at + 1_000, stop_at + 1_000, False, "IDLE")
+    assert g.phase is GuardPhase.STOPPING
+    t = stop_at
+    while t < stop_at + 600_000:
+        t += 50_000
+        g.on_feedback(t, t, True, "CLOSED_LOOP_CONTROL")
+        g.on_wakeup(t)
+    assert g.phase is GuardPhase.STUCK
+    assert g.stuck == "still powered 500 ms after the stop"
+    assert sum(isinstance(c, Stop) for c in g.commands) >= 5  # every 100 ms
+    assert not g.alive(t) and g.status(t)["guard"] == "stuck"
+    g.on_feedback(t + 50_000, t + 50_000, False, "IDLE")  # it obeys at last
+    assert g.phase is GuardPhase.STOPPED and g.stuck is None

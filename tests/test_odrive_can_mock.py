@@ -1,0 +1,125 @@
+"""``canergy supervisor --odrive`` against a device nobody here wrote: the ``odrive-can``
+package's ``ODriveCANMock`` (PyPI), on python-can's virtual bus passed to it explicitly, never
+its default transport (its ``get_can_bus`` opens UDP multicast when ``CI`` is ``true``). The mock
+answers no endpoint read, ignores Estop, takes Set_Axis_State only after 0.5 s and reports no
+power: the guard refuses it at set-up, or, trusting its limits, reports it STUCK after the stop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import threading
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+from odrive_can.mock import ODriveCANMock
+
+from canergy.cli import main
+from canergy.devices.odrive import AxisState, Cmd, can_id, set_axis_state
+from canergy.live.control import request
+from firmware_model.odrive.live_bench import LIMITS, MOTOR, wait_for
+
+AXIS = 3
+
+
+@contextlib.contextmanager
+def mocked_axis(tmp: Path, *supervisor_args: str) -> Iterator[tuple[Path, can.BusABC, list[int]]]:
+    """The mock as axis 3, the supervisor guarding it, and the application's bus."""
+    assert os.environ.get("CI") is None  # and the bus is passed: its get_can_bus never runs
+    channel = f"odrive-mock-{uuid.uuid4().hex}"
+    mock_bus = can.Bus(interface="virtual", channel=channel)
+    mock = ODriveCANMock(axis_id=AXIS, can_bus=mock_bus)  # type: ignore[arg-type]
+    assert mock.bus is mock_bus
+    loop = asyncio.new_event_loop()
+    task = loop.create_task(mock.main())
+
+    def run() -> None:
+        with contextlib.suppress(asyncio.CancelledError):
+            loop.run_until_complete(task)
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    app = can.Bus(interface="virtual", channel=channel)
+    control = tmp / "ctl.sock"
+    argv = [
+        "supervisor",
+        *("-i", "virtual", "-c", channel, "--odrive", str(AXIS)),
+        *("--state", str(tmp / "s.json"), "--no-fsync", "--control", str(control)),
+        *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
+        *("--initial", "20J", "--target", "5J", "--max-grant", "500mJ"),
+        *MOTOR,
+        *LIMITS,
+        *("--odrive-feedback-timeout", "2s"),
+        *supervisor_args,
+    ]
+    result: list[int] = []
+    supervisor = threading.Thread(target=lambda: result.append(main(argv)), daemon=True)
+    supervisor.start()
+    try:
+        yield tmp / "status.json", app, result
+    finally:
+        if supervisor.is_alive() and control.exists():
+            request(control, {"stop": True}, 30)
+        supervisor.join(timeout=60)
+        loop.call_soon_threadsafe(task.cancel)
+        thread.join(timeout=10)
+        loop.close()
+        mock.notifier.stop()
+        mock_bus.shutdown()
+        app.shutdown()
+
+
+def axis(status_file: Path) -> dict[str, Any] | None:
+    try:
+        status = json.loads(status_file.read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+    return dict(status["cia402"]["devices"]["odrive"][str(AXIS)])
+
+
+@pytest.fixture(autouse=True)
+def not_ci(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Never the mock's default transport: no ``CI`` in the environment."""
+    monkeypatch.delenv("CI", raising=False)
+
+
+def test_the_mock_answers_no_read_back_and_is_refused_at_set_up(tmp_path: Path) -> None:
+    with mocked_axis(tmp_path, "--odrive-endpoints", "401,178") as (status, _, _):
+        d = wait_for(lambda: (d := axis(status)) and d["refused"] and d, timeout=30)
+    assert d["refused"].startswith("the odrive limits cannot be read back")
+    assert d["usable_uj"] == 0 and d["alive"] is False
+
+
+def test_the_mock_trusted_ignores_the_stop_and_is_reported_stuck(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with mocked_axis(tmp_path, "--odrive-trust-limits", "--odrive-stop-timeout", "300ms") as (
+        status,
+        app,
+        _,
+    ):
+        wait_for(lambda: (d := axis(status)) and d["ready"], timeout=30)
+        closed_loop = set_axis_state(AxisState.CLOSED_LOOP_CONTROL)
+        frame_id = can_id(AXIS, Cmd.SET_AXIS_STATE)
+        frame = can.Message(arbitration_id=frame_id, data=closed_loop, is_extended_id=False)
+
+        def stuck() -> dict[str, Any] | None:
+            app.send(frame)  # the application wants closed loop (the mock takes 0.5 s)
+            d = axis(status)
+            return d if d and d["stuck"] else None
+
+        d = wait_for(stuck, timeout=60)
+    # its heartbeat (every 200 ms) shows it still in closed loop, or comes too late to tell
+    assert d["stuck"] in {
+        f"{how} 300 ms after the stop" for how in ("still powered", "not heard for")
+    }
+    assert d["limits_verified"] is False
+    assert d["bus_voltage_v"] == 0.0  # it reports no power
+    assert f"odrive axis 3: STUCK ({d['stuck']}; stop repeated" in capsys.readouterr().err

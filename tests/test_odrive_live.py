@@ -1,0 +1,161 @@
+"""``canergy supervisor --odrive`` on python-can's virtual bus, black-box: the emulated ODrive
+axis (``firmware_model.odrive``, the CiA 402 drive's motor physics) and an application of our own
+sending CAN Simple frames. Wall clock, generous timeouts; the bound is the guard's own, with the
+reaction and latency it measured in the same run.
+"""
+
+from __future__ import annotations
+
+import struct
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from canergy.cli import main
+from canergy.devices.odrive import Cmd
+from canergy.ledger import ledger_from_status
+from firmware_model.odrive.live_bench import (
+    AXIS,
+    ENDPOINTS,
+    LIMITS,
+    AxisBench,
+    guarded_axis,
+    wait_for,
+)
+
+BUDGET = ("--initial", "20J", "--target", "5J")
+"""The envelope (6.77 W) is charged while the axis runs or may run: 20 J last 3 s."""
+
+
+def exhausted(bench: AxisBench) -> dict[str, Any] | None:
+    d = bench.axis_status()
+    done = (
+        d is not None
+        and d["stop_reason"] == "budget exhausted"
+        and d["guard"] == "stopped"
+        and d["usable_uj"] < d["stop_at_uj"]
+    )
+    return d if done else None
+
+
+def ready(bench: AxisBench) -> bool:
+    """Set up: the closed limits (no current) in force until the guard has budget."""
+    d = bench.axis_status()
+    return d is not None and d["ready"] and d["limits_confirmed"]
+
+
+def granted_and_axis(final: dict[str, Any]) -> tuple[int, dict[str, Any]]:
+    books = final["nodes"][str(AXIS)]
+    axis = final["cia402"]["devices"]["odrive"][str(AXIS)]
+    return books["delivered_uj"] - books["returns_credited_uj"], axis
+
+
+def test_the_budget_runs_out_and_the_axis_stops_inside_the_bound(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with guarded_axis(tmp_path, *LIMITS, *ENDPOINTS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.run_closed_loop(1.0)  # 1 N·m asked: the current limit holds it to 0.1 N·m
+        wait_for(lambda: (d := b.axis_status()) and d["guard"] == "running", timeout=60)
+        wait_for(lambda: exhausted(b), timeout=60)
+        wait_for(lambda: (d := b.axis_status()) and d["drive_state"] == "IDLE")
+        final = b.stop()
+    granted, axis = granted_and_axis(final)
+    # the supervisor's Notifier ends with it (an empty canopen.Network is falsy: it once did not)
+    left = [t.name for t in threading.enumerate() if t.name.startswith("Notifier for bus")]
+    assert not [name for name in left if "odrive-" in name], left
+    assert "CLOSED_LOOP_CONTROL" in [s for _, s in b.model.history]  # it ran ...
+    assert b.model.state.name == "IDLE"  # ... and was stopped
+    assert axis["limits_verified"] is True and axis["stuck"] is None
+    assert axis["credited_uj"] == granted == axis["spent_uj"] + axis["usable_uj"]
+    assert b.drawn() > 0
+    assert b.drawn() <= granted + axis["bound_uj"], (b.drawn(), granted, axis["bound_uj"])
+    assert final["conservation"]["holds"]
+    books = ledger_from_status(final, [])  # charged past the grant: inside the bound
+    assert books.drive_debt <= axis["bound_uj"]
+    assert "odrive axis 3: stopping (budget exhausted" in capsys.readouterr().err
+
+
+def test_an_application_raising_its_own_limits_is_charged_for_them(tmp_path: Path) -> None:
+    """Behind the guard, every 5 ms, the application writes Set_Limits 20 rev/s, 20 A, clears
+    the errors, enters closed loop and asks for ±1 N·m, reversing (20 A: 200 W of copper losses
+    alone). Each Set_Limits is charged at its envelope (450 W) from when it was seen until the
+    guard's own limits, written after it, read back; what the axis drew stays inside granted +
+    bound. Without that charge and the guard's limits written again it drew 578 J of 20 J."""
+    with guarded_axis(tmp_path, *LIMITS, *ENDPOINTS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.run_closed_loop(1.0)
+        wait_for(lambda: (d := b.axis_status()) and d["guard"] == "running", timeout=60)
+        done = threading.Event()
+
+        def attack() -> None:
+            sign = 1.0
+            while not done.wait(0.005):
+                b.send(Cmd.SET_LIMITS, struct.pack("<ff", 20.0, 20.0))
+                b.run_closed_loop(sign)  # back into closed loop after every stop, reversing
+                sign = -sign
+
+        attacker = threading.Thread(target=attack, daemon=True)
+        attacker.start()
+        try:
+            seen = wait_for(lambda: (d := b.axis_status()) and d["writes_seen"] and d, timeout=60)
+            wait_for(  # stopped (or refused) after it had seen the attack
+                lambda: (d := b.axis_status()) and (d["stops"] > seen["stops"] or d["refused"]),
+                timeout=60,
+            )
+        finally:
+            done.set()
+            attacker.join()
+        wait_for(lambda: (d := b.axis_status()) and d["drive_state"] == "IDLE")
+        final = b.stop()
+    granted, axis = granted_and_axis(final)
+    assert axis["writes_seen"] > 0
+    print(
+        f"drawn {b.drawn()} µJ, granted {granted} µJ, bound {axis['bound_uj']} µJ, metered "
+        f"{axis['metered_uj']} µJ, writes seen {axis['writes_seen']}, {axis['stop_reason']}"
+    )
+    assert b.drawn() <= granted + axis["bound_uj"], (b.drawn(), granted, axis["bound_uj"])
+    assert axis["metered_uj"] >= b.drawn()
+
+
+def test_a_limit_that_does_not_read_back_is_refused_at_set_up(tmp_path: Path) -> None:
+    with guarded_axis(tmp_path, *LIMITS, *ENDPOINTS, *BUDGET, current_cap=1.0) as b:
+        d = wait_for(lambda: (d := b.axis_status()) and d["refused"] and d, timeout=30)
+        final = b.stop()
+    assert d["refused"] == "limits not taken: current limit reads 1 A, written 2"
+    assert d["latched"] and d["guard"] != "running"
+    granted, axis = granted_and_axis(final)
+    assert granted == 0 and axis["alive"] is False
+
+
+def test_an_axis_that_ignores_the_stop_is_stuck(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with guarded_axis(tmp_path, *LIMITS, *ENDPOINTS, *BUDGET, ignores_stop=True) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.run_closed_loop(1.0)
+        d = wait_for(lambda: (d := b.axis_status()) and d["guard"] == "stuck" and d, timeout=60)
+        b.stop()
+    assert d["stuck"] == "still powered 2000 ms after the stop"
+    assert d["alive"] is False
+    assert "odrive axis 3: STUCK (still powered 2000 ms after the stop" in capsys.readouterr().err
+
+
+def test_firmware_0_5_limits_are_unverified_and_need_trust(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["supervisor", "-i", "virtual", "-c", "x", "--odrive", "3", "--odrive-firmware"]
+    argv += ["0.5", "--odrive-torque-constant", "0.05", *LIMITS, "--state", str(tmp_path / "s")]
+    assert main(argv) == 2
+    assert "firmware 0.5 has no way to read a limit back" in capsys.readouterr().err
+    trust = ("--odrive-trust-limits", *BUDGET)
+    with guarded_axis(tmp_path, *LIMITS, *trust, firmware="0.5") as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.run_closed_loop(1.0)
+        wait_for(lambda: exhausted(b), timeout=60)
+        final = b.stop()
+    granted, axis = granted_and_axis(final)
+    assert axis["limits_verified"] is False and axis["firmware"] == "0.5"
+    assert b.drawn() <= granted + axis["bound_uj"]

@@ -35,6 +35,7 @@ DEBIT_KINDS = [
     Debit.START | Debit.DRAW,
     Debit.START | Debit.SYNC,
     Debit.BOOKS,
+    Debit.BOOKS | Debit.RC_UNKNOWN,
 ]
 BASES = [DEFAULT_ID_BASE, 0, 0x1FFFF000, 0x12345000]
 ALL_MESSAGES = (
@@ -278,6 +279,9 @@ def test_crcs_agree_with_python_and_zlib(data: bytes) -> None:
         Debit(1, 3, Debit.BOOKS | Debit.DRAW, 1, 5),
         Debit(1, 3, Debit.BOOKS, 0xFFFF, 0x100),  # books beyond 24 bits
         Debit(1, 3, Debit.BOOKS, 0, 0xFFFF),
+        Debit(1, 3, Debit.BOOKS | Debit.RC_UNKNOWN, 1, 0),  # no Rc, yet one carried
+        Debit(1, 3, Debit.BOOKS | Debit.RC_UNKNOWN, 0, 1),
+        Debit(1, 3, Debit.RC_UNKNOWN, 0, 0),  # alone
     ],
     ids=str,
 )
@@ -297,6 +301,7 @@ def test_a_debit_of_no_known_kind_is_refused_by_both(msg: Debit) -> None:
         Debit(127, 0xBEEF, Debit.START | Debit.DRAW, 3, 0),
         Debit.books(5, 0x8001, 0xFFFFFF),  # the most books a frame carries
         Debit.books(5, 0, 0),
+        Debit.books(5, 0x4321, None),  # Rc unknown
         Debit.counts(5, 0xFFFF, 0xFFFF, 0xFFFF),
         Debit.counts(5, 0, 0, 0),
     ],

@@ -56,6 +56,7 @@ from support.side_by_side import TIMING as SIDE_TIMING
 from support.side_by_side import SideBySide
 from test_c_session import sessions, timings, wire_near
 from test_witnessed import (
+    BOOKED_AT_10,
     CLIENT_CASES,
     CLIENT_IGNORED,
     CLIENT_REFUSED,
@@ -64,6 +65,7 @@ from test_witnessed import (
     FRESH,
     RESUMED,
     S_OPEN,
+    SCENE,
     ST,
     SUP_CASES,
     SUP_EVENTS,
@@ -71,7 +73,11 @@ from test_witnessed import (
     SUP_REFUSED,
     SUP_STATES,
     T,
+    admitted_node_answers_a_sync,
     resume,
+    resume_after_a_lost_sync_answer,
+    unknown_rc_supervisor,
+    window_supervisor,
 )
 from test_witnessed import _exchange as _exchange_py
 
@@ -737,3 +743,38 @@ def test_a_first_resume_with_nonce_0_is_answered_not_taken_for_a_repeat(
     _exchange_py(node.power_loss(0, nonce=0), sup, node, 0)  # type: ignore[arg-type]
     assert node.state.phase is Phase.IDLE and node.can_spend()
     assert sup.session(2).returns_credited == 1 == node.state.return_seq
+
+
+# -- the review's two findings on the C cores -------------------------------------------------
+
+
+class _CClientNode:
+    """The C client behind the ``receive``/``power_loss``/``state`` the scenarios use."""
+
+    def __init__(self, state: ClientState) -> None:
+        self.c = CClient(state.node, timing=SCENE, state=state, rules="witnessed")
+
+    def _sends(self, out: Out) -> list[Send]:
+        return [Send(CODEC.decode(*f)) for f in out.sent()]
+
+    def receive(self, msg: Any, now: int) -> list[Send]:
+        return self._sends(self.c.message(msg, now))
+
+    def power_loss(self, now: int, nonce: int) -> list[Send]:
+        return self._sends(self.c.resume(nonce, now))
+
+    @property
+    def state(self) -> ClientState:
+        return self.c.state
+
+
+def test_an_admitted_c_node_answering_a_sync_leaves_the_c_supervisors_gs_alone() -> None:
+    sup = unknown_rc_supervisor(CompiledSupervisor)
+    node = _CClientNode(ClientState(1, phase=Phase.JOINING, nonce=7))
+    admitted_node_answers_a_sync(sup, node)
+
+
+def test_a_c_resume_after_a_lost_sync_answer_keeps_the_c_window_open() -> None:
+    resume_after_a_lost_sync_answer(
+        window_supervisor(CompiledSupervisor), _CClientNode(BOOKED_AT_10)
+    )

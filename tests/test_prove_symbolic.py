@@ -473,7 +473,14 @@ def test_witnessed_client_requests_timers_and_starts(
     )
 
 
-DEBIT_FLAGS = [Debit.DRAW, Debit.START, Debit.START | Debit.DRAW, sym_w.COUNTS, Debit.BOOKS]
+DEBIT_FLAGS = [
+    Debit.DRAW,
+    Debit.START,
+    Debit.START | Debit.DRAW,
+    sym_w.COUNTS,
+    Debit.BOOKS,
+    sym_w.UNKNOWN_BOOKS,
+]
 
 
 @settings(max_examples=400)
@@ -491,6 +498,8 @@ def test_witnessed_supervisor_answers_debits(data: st.DataObject) -> None:
             near(st.integers(-3, 3).map(lambda d: (s.delivered // 1000 + d) % (1 << 24)), 24)
         )
         seq, amount = rc & 0xFFFF, rc >> 16
+    if flags == sym_w.UNKNOWN_BOOKS:  # no Rc
+        seq, amount = 0, 0
     if flags == Debit.DRAW:
         nonce = 0
     msg = Debit(1, nonce, flags, seq, amount)
@@ -581,3 +590,42 @@ def test_no_witnessed_debit_is_numbered_at_the_end(seq: int) -> None:
     c = ClientState(1, usable=5 * QUANTUM_UJ, return_seq=seq)
     for cell in (sym_w.draw, sym_w.give_back):
         assert value(cell(sym_client(c), z3.IntVal(QUANTUM_UJ))[2]) == (seq + 1 < COUNTER_END)
+
+
+@pytest.mark.parametrize(
+    ("c", "msg"),
+    [
+        (  # SYNC to a node admitted without books: its books say Rc unknown
+            ClientState(1, last_tx=5, credited_unknown=True),
+            Admit(1, 0x51, 3, 9),
+        ),
+        (  # a RESUME confirmed below ltx: confirmed, then the counts under its nonce
+            ClientState(1, last_tx=69, phase=Phase.RESUMING, nonce=7, credited=5000),
+            Admit(1, 7, 5, 1),
+        ),
+        (  # the counts confirmed below ltx: taken as they come
+            ClientState(1, last_tx=69, phase=Phase.SYNCING, nonce=7),
+            Admit(1, 7 ^ SYNC_CONFIRMED, 5, 1),
+        ),
+    ],
+    ids=["unknown-rc-books", "resume-below-ltx", "counts-below-ltx"],
+)
+def test_witnessed_client_starts_at_the_edges(c: ClientState, msg: Admit) -> None:
+    same_client_w(
+        W_CLIENT.step(T, c, msg, 0),
+        sym_w.on_admit(
+            sym_client(c),
+            *(z3.BitVecVal(v, 16) for v in (msg.nonce, msg.tx, msg.seq)),
+            window=T.window,
+        ),
+    )
+
+
+@pytest.mark.parametrize("delivered", [2000, (1 << 23) * QUANTUM_UJ + 1000, 10**10])
+def test_witnessed_books_of_an_unknown_rc_leave_gs_alone(delivered: int) -> None:
+    s = Session(1, phase=Phase.SYNCING, sync_nonce=0x51, delivered=delivered)
+    msg = Debit.books(1, 0x51, None)
+    args = (z3.BitVecVal(0x51, 16), z3.IntVal(msg.flags), z3.BitVecVal(0, 16), z3.IntVal(0))
+    py = W_SUPERVISOR.step(T, s, msg, 0)
+    same_session_w(py, sym_w.on_debit(sym_session(s), *args))
+    assert py.session.delivered == delivered and py.credit == 0

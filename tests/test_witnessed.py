@@ -5,6 +5,7 @@ restored from older copies"), where the hardened rules create some."""
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import pytest
 from support import cells, client_cases
@@ -42,7 +43,14 @@ from canergy.core.inputs import (
     PowerLoss,
     Spend,
 )
-from canergy.core.state import ClientState, Decision, Outcome, Phase, Session
+from canergy.core.state import (
+    ClientState,
+    Decision,
+    Outcome,
+    Phase,
+    Session,
+    SupervisorState,
+)
 from canergy.core.table import ANY, STAY, RuleTable, SupervisorTable, cell
 from canergy.core.variants import Variant
 from canergy.messages import (
@@ -280,6 +288,21 @@ SUP_CASES += [
         replace(S_SYNC, phase=SB),
     ),
     Case("books for another nonce are ignored", S_SYNC, Debit.books(3, 0x50, 6), S_SYNC),
+    *(
+        Case(
+            f"books with Rc unknown leave Gs and Us alone ({s.phase.name})",
+            s,
+            Debit.books(3, 0x51, None),
+            replace(s, phase=SB),
+        )
+        for s in (S_SYNC, replace(S_SYNC, delivered=0x800000 * 1000 + 1000), S_BOOKS)
+    ),
+    Case(
+        "books with Rc unknown outside a start are ignored",
+        S_IDLE,
+        Debit.books(3, 0x51, None),
+        S_IDLE,
+    ),
     Case("the counts before the books are ignored", S_SYNC, counts(4, 70), S_SYNC),
     Case(
         "the counts: tx = ltx, W = ltx, C voided past q, ADMIT(n ^ 0x8000, tx, C)",
@@ -603,6 +626,29 @@ CLIENT_CASES += [
         HOLDING,
     ),
 ]
+UNKNOWN = replace(FRESH, usable=0, credited=0, credited_unknown=True)
+CLIENT_CASES += [
+    Case(
+        "SYNC(n) to a node admitted without books: its books say Rc unknown",
+        UNKNOWN,
+        Admit(2, 0x51, 3, 9),
+        replace(ANSWERING, usable=0, credited=0, credited_unknown=True),
+        (Send(Debit.books(2, 0x51, None)), Send(Debit.counts(2, 0x51, 0, 5 + B))),
+    ),
+    Case(
+        "a RESUME confirmed below ltx (a SYNC's counts lost): confirmed, then the counts",
+        replace(RESUMED, last_tx=5 + B, outcome=Outcome.SETTLED),
+        Admit(2, 7, 5, 1),
+        replace(ANSWERING, nonce=7, return_seq=1),
+        (Send(Debit.books(2, 7, 50)), Send(Debit.counts(2, 7, 1, 5 + B))),
+    ),
+    Case(
+        "the counts confirmed below ltx: confirmed all the same (no second round)",
+        replace(ANSWERING, nonce=7),
+        Admit(2, 7 ^ SYNC_CONFIRMED, 5, 1),
+        replace(FRESH, last_tx=5 + B, outcome=Outcome.SETTLED, return_seq=1),
+    ),
+]
 CLIENT_IGNORED = (client_cases.IGNORED - {(ID, Admit), (HO, Admit)}) | {
     *((p, e) for p in (RE, SY) for e in (Commit, Abort, ReturnAck, StatusRequest, FinalAck)),
     (RE, CommandTimeout),
@@ -828,3 +874,79 @@ def test_a_draw_through_the_client_is_re_sent_from_the_time_given() -> None:
     assert node.get_timer() == 10_050
     assert node.handle_timer(10_049) == []
     assert node.handle_timer(10_050) == [Send(Debit(1, 0, DRAW, 1, 1))]
+
+
+# -- two findings of a review of these rules, through the core objects -------------------------
+# Each takes the supervisor and the node as built by the caller (tests/test_c_witnessed.py runs
+# them on the C cores): ``node`` has ``receive(msg, now)``, ``power_loss(now, nonce)`` and
+# ``state``; ``sup`` the ``Supervisor`` interface.
+SCENE = Timing(response_timeout_us=100, retries=2, command_timeout_us=1000, return_retry_us=300)
+KJ = 1_000_000_000
+GS_HIGH = 10 * KJ  # Gs mod 2**24 mJ is 10,000,000 mJ >= 2**23 mJ: a 24-bit 0 unwraps above it
+
+
+def unknown_rc_supervisor(core: type[Supervisor]) -> Supervisor:
+    """A supervisor whose node 1 had Gs = 10 kJ delivered over its history; Us 100 J."""
+    session = Session(1, delivered=GS_HIGH, tx=5, witness=5)
+    state = SupervisorState(100 * 10**6, 100 * 10**6, sessions=(session,))
+    return core([1], 0, variant="witnessed", timing=SCENE, state=state)
+
+
+def admitted_node_answers_a_sync(sup: Supervisor, node: Any) -> None:
+    """A node admitted after a JOIN (Rc unknown, nothing held) answers the supervisor's SYNC
+    before any fresh intention: Gs and Us stay as they are (the old books said Rc = 0, which
+    unwrapped to 16,777.216 J: Us -6,677 J, every grant refused), and the next grant goes
+    through, the node taking Gs as its Rc."""
+    _exchange([Send(Join(1, 7))], sup, node, 0)
+    assert node.state.credited_unknown and node.state.phase is Phase.IDLE
+    sup.power_loss(1, nonce=0x99)
+    _exchange(sup.handle_timer(1), sup, node, 1)
+    assert sup.unconfirmed() == ()
+    assert sup.session(1).delivered == GS_HIGH and sup.usable == 100 * 10**6
+    _exchange(sup.begin(1, 10**6, 2), sup, node, 2)
+    _exchange(sup.commit(1, 2), sup, node, 2)
+    assert node.state.usable == 10**6 and sup.usable == 99 * 10**6
+    assert node.state.credited == sup.session(1).delivered == GS_HIGH + 10**6
+
+
+def test_an_admitted_node_answering_a_sync_leaves_gs_alone() -> None:
+    sup = unknown_rc_supervisor(Supervisor)
+    admitted_node_answers_a_sync(sup, Client(1, variant="witnessed", timing=SCENE))
+
+
+def window_supervisor(core: type[Supervisor]) -> Supervisor:
+    """A supervisor whose node 1 is at transaction 10 (W 10), debit 3; Us 1 J."""
+    session = Session(1, delivered=50_000, tx=10, witness=10, returns_credited=3)
+    return core(
+        [1],
+        0,
+        variant="witnessed",
+        timing=SCENE,
+        state=SupervisorState(0, 10**6, sessions=(session,)),
+    )
+
+
+BOOKED_AT_10 = ClientState(1, credited=50_000, last_tx=10, outcome=Outcome.COMMITTED, return_seq=3)
+
+
+def resume_after_a_lost_sync_answer(sup: Supervisor, node: Any) -> None:
+    """A stale ADMIT reaches the booked node, which takes it as a SYNC (ltx 10 -> 74); its
+    answer is lost; the node restarts and RESUMEs. The confirmation is below its ltx, so it
+    sends its counts: the supervisor's tx and W catch up to 74, and grants go on through two
+    windows (the old rules left tx and W at 10: intentions 11..74 ignored by the node as old,
+    then every begin refused as beyond the window)."""
+    node.receive(Admit(1, 0x1234, 5, 2), 0)  # its answer lost
+    assert node.state.last_tx == 10 + SCENE.window
+    _exchange(node.power_loss(1, nonce=77), sup, node, 1)
+    assert node.state.phase is Phase.IDLE
+    assert sup.session(1).tx == sup.session(1).witness == node.state.last_tx == 74
+    for k in range(1, 2 * SCENE.window + 2):
+        _exchange(sup.begin(1, 1000, 2), sup, node, 2)
+        _exchange(sup.commit(1, 2), sup, node, 2)
+        assert node.state.usable == 1000 * k and node.state.last_tx == 74 + k
+
+
+def test_a_resume_after_a_lost_sync_answer_keeps_the_window_open() -> None:
+    sup = window_supervisor(Supervisor)
+    node = Client(1, variant="witnessed", timing=SCENE, state=BOOKED_AT_10)
+    resume_after_a_lost_sync_answer(sup, node)

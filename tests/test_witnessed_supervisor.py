@@ -45,7 +45,7 @@ def _frame(flags: int, seq: int = 1, amount: int = 1, nonce: int = 7) -> tuple[i
     return CODEC.encode(msg)
 
 
-ACCEPTED = {Debit.DRAW, Debit.START, Debit.START | Debit.DRAW, Debit.START | Debit.SYNC, 0x08}
+ACCEPTED = {Debit.DRAW, Debit.START, Debit.START | Debit.DRAW, Debit.START | Debit.SYNC, 0x08, 0x18}
 
 
 @pytest.mark.parametrize("flags", [f for f in range(256) if f not in ACCEPTED])
@@ -60,10 +60,14 @@ def test_books_beyond_24_bits_and_draws_without_amount_or_with_a_nonce_are_refus
         _frame(Debit.BOOKS, amount=0x100),
         _frame(Debit.DRAW, amount=0, nonce=0),
         _frame(Debit.DRAW, nonce=5),
+        _frame(Debit.BOOKS | Debit.RC_UNKNOWN, seq=1, amount=0),  # no Rc, yet one carried
+        _frame(Debit.BOOKS | Debit.RC_UNKNOWN, seq=0, amount=1),
     ):
         with pytest.raises(DecodeError):
             CODEC.decode(*frame)
     assert CODEC.decode(*_frame(Debit.BOOKS, amount=0xFF)) == Debit.books(3, 7, 0xFF0001)
+    unknown = CODEC.decode(*_frame(Debit.BOOKS | Debit.RC_UNKNOWN, seq=0, amount=0))
+    assert unknown == Debit.books(3, 7, None) and unknown.is_books and unknown.rc_unknown
 
 
 def test_a_sync_is_an_admit_the_node_did_not_ask_for() -> None:

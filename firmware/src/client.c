@@ -297,18 +297,19 @@ static void send_debit(const struct canergy_client *c, bool start, struct canerg
     canergy_internal_send(c, &m, out);
 }
 
-/* The answer to SYNC(n) (witnessed.answer_of): the books (n, Rc: 24 bits), then the counts
- * (n, q, ltx). */
+/* The answer to SYNC(n) (witnessed.answer_of): the books (n, Rc: 24 bits; Rc unknown after an
+ * admission until a fresh intention: flagged, both fields 0), then the counts (n, q, ltx). */
 static void send_sync_answer(const struct canergy_client *c, struct canergy_out *out)
 {
+    const bool unknown = (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U;
     struct canergy_msg m;
     memset(&m, 0, sizeof m);
     m.type = CANERGY_DEBIT;
     m.node = c->node;
     m.nonce = c->nonce;
-    m.flags = CANERGY_DEBIT_BOOKS;
-    m.seq = (uint16_t)c->rec.credited_mj;
-    m.amount_mj = (uint16_t)((c->rec.credited_mj >> 16) & 0xFFU);
+    m.flags = (uint8_t)(CANERGY_DEBIT_BOOKS | (unknown ? CANERGY_DEBIT_RC_UNKNOWN : 0U));
+    m.seq = unknown ? 0U : (uint16_t)c->rec.credited_mj;
+    m.amount_mj = unknown ? 0U : (uint16_t)((c->rec.credited_mj >> 16) & 0xFFU);
     canergy_internal_send(c, &m, out);
     m.flags = CANERGY_DEBIT_COUNTS;
     m.seq = (uint16_t)c->rec.return_seq;
@@ -335,8 +336,11 @@ static void answer_sync(struct canergy_client *c, uint16_t nonce, uint64_t now,
 /* ADMIT(n, k, Q) answering this start (witnessed.on_confirm): Q = q + 1 confirms the books
  * (settled up to k, the pending debit settled: a return credited, a draw dropped unreleased); a
  * larger Q finds them behind: admitted afresh at k and Q, what the actuator used still
- * counted; a smaller one changes nothing. */
-static void on_confirm(struct canergy_client *c, const struct canergy_msg *m,
+ * counted; a smaller one changes nothing. A RESUME confirmed with k below ltx (the node settled
+ * ahead for a SYNC whose counts never arrived) is followed by the counts under its nonce
+ * (witnessed.resync): SYNCING until ADMIT(n ^ SYNC_CONFIRMED) has the supervisor's tx and W
+ * caught up. */
+static void on_confirm(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
                        struct canergy_out *out)
 {
     const int32_t d = serial16(m->seq, c->rec.return_seq);
@@ -344,8 +348,10 @@ static void on_confirm(struct canergy_client *c, const struct canergy_msg *m,
         return;
     }
     const uint32_t q = c->rec.return_seq + (uint32_t)d; /* Q: the supervisor's count */
+    bool behind_ltx = false;
     if (d == 1) {
         const int32_t closed = serial16(m->tx, c->rec.last_tx);
+        behind_ltx = closed < 0 && c->phase == CANERGY_RESUMING;
         if (closed > 0) { /* resolved by the supervisor: never again by this record */
             c->rec.last_tx += (uint32_t)closed;
             c->rec.outcome = CANERGY_OUTCOME_SETTLED;
@@ -361,9 +367,15 @@ static void on_confirm(struct canergy_client *c, const struct canergy_msg *m,
         c->rec.flags = CANERGY_RECORD_CREDITED_UNKNOWN;
     }
     c->rec.return_seq = q;
-    c->nonce = 0U;
+    c->nonce = behind_ltx ? c->nonce : 0U;
     c->return_deadline = CANERGY_NEVER;
     drop_hold(c);
+    if (behind_ltx) { /* the start goes on: nothing moves until the counts are confirmed */
+        c->phase = CANERGY_SYNCING;
+        c->return_deadline = serial_after(now, c->return_retry_us);
+        send_sync_answer(c, out);
+        return;
+    }
     out->events |= CANERGY_EV_ADMITTED;
 }
 
@@ -377,7 +389,7 @@ static void on_start_answer(struct canergy_client *c, const struct canergy_msg *
     const uint16_t expected =
         (uint16_t)(syncing ? (uint32_t)c->nonce ^ CANERGY_SYNC_CONFIRMED : c->nonce);
     if (m->nonce == expected) {
-        on_confirm(c, m, out);
+        on_confirm(c, m, now, out);
     } else if (syncing && m->nonce == c->nonce) {
         send_sync_answer(c, out);
     } else {

@@ -302,12 +302,24 @@ static void send_sync(const struct canergy_session *s, struct canergy_session_st
     step->msg.seq = (uint16_t)(s->returns_credited & 0xFFFFUL);
 }
 
+/* Books answering a SYNC, Rc known or not (witnessed.Debit.is_books). */
+static bool is_books(uint8_t flags)
+{
+    return (flags & (uint8_t)~CANERGY_DEBIT_RC_UNKNOWN) == CANERGY_DEBIT_BOOKS;
+}
+
 /* The SYNC's books (n, Rc) (witnessed.take_books): Gs moves up to Rc, the difference out of Us
- * (which may go below zero: a debt); then the counts are awaited. Anything else is ignored. */
+ * (which may go below zero: a debt); then the counts are awaited. Books with Rc unknown leave
+ * Gs as it is (that node holds nothing and takes its next fresh intention's Gs as its Rc).
+ * Anything else is ignored. */
 static void take_books(struct canergy_session *s, const struct canergy_msg *m,
                        struct canergy_session_step *step)
 {
-    if (m->nonce != s->sync_nonce || m->flags != CANERGY_DEBIT_BOOKS) {
+    if (m->nonce != s->sync_nonce || !is_books(m->flags)) {
+        return;
+    }
+    if (m->flags != CANERGY_DEBIT_BOOKS) {
+        s->phase = CANERGY_S_SYNC_BOOKS;
         return;
     }
     const uint32_t credited = (uint32_t)m->seq | (uint32_t)m->amount_mj << 16;
@@ -327,7 +339,7 @@ static void take_counts(struct canergy_session *s, const struct canergy_msg *m,
     if (m->nonce != s->sync_nonce) {
         return;
     }
-    if (m->flags == CANERGY_DEBIT_BOOKS) {
+    if (is_books(m->flags)) {
         take_books(s, m, step);
         return;
     }
@@ -416,7 +428,7 @@ void canergy_session_on_msg(struct canergy_session *s, const struct canergy_sess
         if (t->rules != CANERGY_RULES_WITNESSED) {
             break; /* the hardened rules have no cell for it */
         }
-        if (m->flags == CANERGY_DEBIT_BOOKS) {
+        if (is_books(m->flags)) {
             break; /* books outside a start: ignored */
         }
         if ((m->flags & CANERGY_DEBIT_START) != 0U) {

@@ -140,17 +140,19 @@ _DEBIT_KINDS = (
     Debit.START | Debit.DRAW,
     Debit.START | Debit.SYNC,
     Debit.BOOKS,
+    Debit.BOOKS | Debit.RC_UNKNOWN,
 )
 
 
 def _debit_build(node: int, f: tuple[int, ...]) -> Message:
     """A draw carries a non-zero amount and no nonce; a resume may carry none; the books carry
-    24 bits of Rc. No other flags."""
+    24 bits of Rc, or none (0) when it is unknown. No other flags."""
     msg = Debit(node, f[0], f[1], f[2], f[3])
     if (
         msg.flags not in _DEBIT_KINDS
         or (msg.flags == Debit.DRAW and (not msg.amount_mj or msg.nonce))
         or (msg.is_books and msg.amount_mj > 0xFF)
+        or (msg.rc_unknown and (msg.seq or msg.amount_mj))
     ):
         raise DecodeError(
             DecodeErrorReason.OUT_OF_RANGE, f"not a draw, a resume nor a SYNC's answer: {msg}"

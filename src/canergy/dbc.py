@@ -63,7 +63,9 @@ _COMMENTS = {
     "DEBIT_FLAGS": (
         "0x01: a draw for the actuator; 0x02: the node's start (RESUME; 0x03: its pending "
         "debit is a draw); 0x06: a SYNC's counts (SEQ, and ltx in AMOUNT's bits); 0x08: a "
-        "SYNC's books (Rc in mJ: low 16 bits in SEQ, high 8 in AMOUNT's bits); nothing else"
+        "SYNC's books (Rc in mJ: low 16 bits in SEQ, high 8 in AMOUNT's bits); 0x18: a SYNC's "
+        "books when the node knows no Rc (admitted, no fresh intention since; SEQ and AMOUNT "
+        "0); nothing else"
     ),
     "FV": "freshness value: the full 32-bit tx (or return number, or nonce) the MAC covers",
     "MAC": "AES-128-CMAC over Data ID, FV and the classic data, truncated (SecOC-like)",

@@ -225,8 +225,10 @@ class Debit:
       set); it moves nothing until ADMIT(``nonce``) confirms them or finds them behind;
     - the two frames that answer a supervisor's start, SYNC(``nonce``), each bound to its nonce:
       *books* (``BOOKS``): the node's Rc in mJ, its low 16 bits in ``seq`` and its high 8 in
-      ``amount_mj``; and *counts* (``START | SYNC``): the node's last debit number ``seq`` and, in
-      ``amount_mj``, the last transaction it has settled (ltx, 16 bits on the wire).
+      ``amount_mj`` (with ``RC_UNKNOWN`` and both 0: the node was admitted without books and has
+      taken no fresh intention since, so it holds nothing and knows no Rc); and *counts*
+      (``START | SYNC``): the node's last debit number ``seq`` and, in ``amount_mj``, the last
+      transaction it has settled (ltx, 16 bits on the wire).
     """
 
     TYPE: ClassVar[MsgType] = MsgType.DEBIT
@@ -244,6 +246,8 @@ class Debit:
     """Flag, with ``START``: the counts answering a supervisor's SYNC (``amount_mj`` is ltx)."""
     BOOKS: ClassVar[int] = 0x08
     """Flag, alone: the books answering a supervisor's SYNC (Rc in ``seq`` and ``amount_mj``)."""
+    RC_UNKNOWN: ClassVar[int] = 0x10
+    """Flag, with ``BOOKS``: the node's Rc is unknown (admitted, no fresh intention since)."""
 
     @property
     def is_resume(self) -> bool:
@@ -256,7 +260,12 @@ class Debit:
 
     @property
     def is_books(self) -> bool:
-        return self.flags == Debit.BOOKS
+        return self.flags & ~Debit.RC_UNKNOWN == Debit.BOOKS
+
+    @property
+    def rc_unknown(self) -> bool:
+        """Books of a node that knows no Rc (and holds nothing): they say nothing of Gs."""
+        return self.flags == Debit.BOOKS | Debit.RC_UNKNOWN
 
     @property
     def pending_mj(self) -> int:
@@ -269,8 +278,10 @@ class Debit:
         return self.seq | self.amount_mj << 16
 
     @staticmethod
-    def books(node: int, nonce: int, credited_mj: int) -> Debit:
-        """The books frame answering SYNC(``nonce``): Rc (24 bits, mJ)."""
+    def books(node: int, nonce: int, credited_mj: int | None) -> Debit:
+        """The books frame answering SYNC(``nonce``): Rc (24 bits, mJ), or None: Rc unknown."""
+        if credited_mj is None:
+            return Debit(node, nonce, Debit.BOOKS | Debit.RC_UNKNOWN, 0, 0)
         return Debit(node, nonce, Debit.BOOKS, credited_mj & 0xFFFF, credited_mj >> 16 & 0xFF)
 
     @staticmethod

@@ -77,6 +77,8 @@ enum canergy_type {
 #define CANERGY_DEBIT_START 0x02U
 #define CANERGY_DEBIT_SYNC 0x04U
 #define CANERGY_DEBIT_BOOKS 0x08U
+/* With BOOKS: the node's Rc is unknown (admitted, no fresh intention since; holds nothing). */
+#define CANERGY_DEBIT_RC_UNKNOWN 0x10U
 #define CANERGY_DEBIT_COUNTS (CANERGY_DEBIT_START | CANERGY_DEBIT_SYNC)
 
 /* The ADMIT confirming the answer to SYNC(n) carries n with this bit flipped (messages.py's

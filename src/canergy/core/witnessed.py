@@ -211,11 +211,15 @@ def resend_sync(t: Timing, s: Session, event: ResponseTimeout, now: int) -> Sess
 
 def take_books(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
     """The SYNC's books (n, Rc): Gs moves up to Rc and the difference leaves Us (which may go
-    below zero: a debt, no grant until it is covered); then the counts are awaited.
+    below zero: a debt, no grant until it is covered); then the counts are awaited. Books with
+    Rc unknown leave Gs as it is: that node holds nothing and takes its next fresh intention's
+    Gs as its Rc, paying nothing back.
 
     The counts before the books are ignored (the node re-sends both), other frames too."""
     if msg.nonce != s.sync_nonce or not msg.is_books:
         return SessionStep(s)
+    if msg.rc_unknown:
+        return SessionStep(evolve(s, phase=SYNC_BOOKS))
     credited = unwrap(msg.credited_mj, s.delivered // QUANTUM_UJ, DELIVERED_BITS) * QUANTUM_UJ
     gain = max(0, credited - s.delivered)
     s = evolve(s, phase=SYNC_BOOKS, delivered=s.delivered + gain)
@@ -363,8 +367,9 @@ def resume_again(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientS
 
 
 def answer_of(c: ClientState) -> tuple[Send, Send]:
-    """The answer to SYNC(n): the books (n, Rc), then the counts (n, q, ltx)."""
-    books = Debit.books(c.node, c.nonce, c.credited // QUANTUM_UJ)
+    """The answer to SYNC(n): the books (n, Rc; Rc unknown after an admission until a fresh
+    intention), then the counts (n, q, ltx)."""
+    books = Debit.books(c.node, c.nonce, None if c.credited_unknown else c.credited // QUANTUM_UJ)
     counts = Debit.counts(c.node, c.nonce, wrap(c.return_seq, SEQ_BITS), wire_tx(c.last_tx))
     return Send(books), Send(counts)
 
@@ -414,7 +419,12 @@ def on_confirm(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
     """ADMIT(n, k, Q) answering this start: Q = q + 1 confirms the books (everything up to k
     settled, the pending debit settled: a return credited, a draw dropped unreleased); a larger
     Q finds them behind: admitted afresh at k and Q, as after JOIN (what the actuator used
-    stays counted)."""
+    stays counted).
+
+    A RESUME confirmed with k below ltx (the node settled ahead for a SYNC whose counts never
+    arrived) is followed by the counts, as a SYNC's answer under the RESUME's nonce: without
+    them the supervisor's tx and W stay behind, the node ignores its next intentions as old and
+    the window closes for good (``resync``)."""
     q = unwrap(msg.seq, c.return_seq, SEQ_BITS)
     if q == c.return_seq + 1:
         closed = unwrap(msg.tx, c.last_tx, TX_BITS)
@@ -429,6 +439,8 @@ def on_confirm(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
             pending_draw=False,
             return_deadline=None,
         )
+        if c.phase is RESUMING and closed < c.last_tx:
+            return resync(t, evolve(confirmed, nonce=c.nonce), now)
         return ClientStep(confirmed)
     if q < c.return_seq + 1:
         return ClientStep(c)
@@ -441,6 +453,14 @@ def on_confirm(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
         credited_unknown=True,
     )
     return ClientStep(fresh)
+
+
+def resync(t: Timing, c: ClientState, now: int) -> ClientStep:
+    """Confirmed books whose ltx is above the supervisor's tx: SYNCING under nonce n, the counts
+    (n, q, ltx) sent (with the books, ignored outside a start) until ADMIT(n ^ SYNC_CONFIRMED),
+    which moves the supervisor's tx and W up to ltx. Nothing moves meanwhile."""
+    c = evolve(c, phase=SYNCING, return_deadline=now + t.return_retry_us)
+    return ClientStep(c, answer_of(c))
 
 
 def client_record(c: ClientState) -> tuple[object, ...]:

@@ -34,6 +34,7 @@ from canergy.prove.symbolic import Client, Sent, Session, SessionStep, Term, z3
 BOOKED_PHASES = (sym.IDLE, sym.HOLDING)
 DRAW, START, SYNC, BOOKS = Debit.DRAW, Debit.START, Debit.SYNC, Debit.BOOKS
 COUNTS = START | SYNC
+UNKNOWN_BOOKS = BOOKS | Debit.RC_UNKNOWN
 WINDOW = 64
 """B (``Timing.window``): the handlers take it as a parameter, this default as the core's."""
 
@@ -88,13 +89,14 @@ def resume_of(c: Client) -> Sent:
 
 
 def answer_of(c: Client) -> Frames:
-    """The answer to SYNC(n): the books (n, Rc), then the counts (n, q, ltx)."""
-    rc_mj = c.credited / QUANTUM_UJ
+    """The answer to SYNC(n): the books (n, Rc; Rc unknown: flagged, both fields 0), then the
+    counts (n, q, ltx)."""
+    rc_mj = z3.If(c.credited_unknown, 0, c.credited / QUANTUM_UJ)
     books = Sent.of(
         MsgType.DEBIT,
         z3.Int2BV(rc_mj, 16),
         (rc_mj / (1 << 16)) % (1 << 8),
-        z3.IntVal(BOOKS),
+        z3.If(c.credited_unknown, UNKNOWN_BOOKS, BOOKS),
         c.nonce,
     )
     counts = Sent.of(
@@ -223,10 +225,11 @@ def answer_sync(c: Client, nonce16: Term, window: int = WINDOW) -> tuple[Client,
     return synced, answer_of(synced)
 
 
-def on_confirm(c: Client, tx16: Term, seq16: Term) -> Client:
+def on_confirm(c: Client, tx16: Term, seq16: Term) -> tuple[Client, Frames]:
     """ADMIT(n, k, Q) answering this start: Q = q + 1 keeps the books settled up to k, a larger
     Q finds them behind (admitted afresh at k and Q, what the actuator used kept), a smaller one
-    is ignored."""
+    is ignored. A RESUME confirmed with k below ltx is followed by the counts: SYNCING under its
+    nonce, the answer sent (``witnessed.resync``)."""
     q = sym.unwrap(seq16, c.return_seq, SEQ_BITS)
     ahead = q - c.return_seq
     closed = sym.unwrap(tx16, c.last_tx, TX_BITS)
@@ -257,7 +260,10 @@ def on_confirm(c: Client, tx16: Term, seq16: Term) -> Client:
         nonce=_zero16(),
         pending_draw=z3.BoolVal(False),
     )
-    return sym.pick(ahead == 1, confirmed, sym.pick(ahead <= 0, c, fresh))
+    resynced = replace(confirmed, phase=sym.SYNCING, nonce=c.nonce)
+    behind_ltx = z3.And(ahead == 1, c.phase == sym.RESUMING, closed - c.last_tx < 0)
+    state = sym.pick(ahead == 1, confirmed, sym.pick(ahead <= 0, c, fresh))
+    return _choose(behind_ltx, (resynced, answer_of(resynced)), (state, one(Sent.none())))
 
 
 def on_admit(
@@ -270,7 +276,7 @@ def on_admit(
     admitted = (sym.on_admit(c, nonce16, tx16, seq16)[0], one(Sent.none()))
     syncing = c.phase == sym.SYNCING
     expected = z3.If(syncing, c.nonce ^ SYNC_CONFIRMED, c.nonce)
-    confirmed = (on_confirm(c, tx16, seq16), one(Sent.none()))
+    confirmed = on_confirm(c, tx16, seq16)
     again = z3.And(syncing, nonce16 == c.nonce)
     starting = _choose(
         nonce16 == expected,
@@ -371,16 +377,27 @@ def resend_sync(s: Session) -> SessionStep:
     return SessionStep(s, _sync(s), z3.IntVal(0))
 
 
+def is_books(flags: Term) -> Term:
+    """A SYNC's books, Rc known or not."""
+    return z3.Or(flags == BOOKS, flags == UNKNOWN_BOOKS)
+
+
 def take_books(s: Session, nonce16: Term, flags: Term, seq16: Term, amount_mj: Term) -> SessionStep:
-    """The SYNC's books (n, Rc): Gs moves up to Rc (never back), the difference out of Us."""
+    """The SYNC's books (n, Rc): Gs moves up to Rc (never back), the difference out of Us;
+    books with Rc unknown leave Gs alone."""
     credited_mj = z3.BV2Int(seq16) + amount_mj * (1 << 16)
     credited = sym.unwrap_int(credited_mj, s.delivered / QUANTUM_UJ, DELIVERED_BITS) * QUANTUM_UJ
     gain = z3.If(credited > s.delivered, credited - s.delivered, 0)
     taken = SessionStep(
         replace(s, phase=sym.SYNC_BOOKS, delivered=s.delivered + gain), Sent.none(), -gain
     )
-    ours = z3.And(nonce16 == s.sync_nonce, flags == BOOKS)
-    return sym.choose(ours, taken, sym._unchanged(s))
+    unknown = SessionStep(replace(s, phase=sym.SYNC_BOOKS), Sent.none(), z3.IntVal(0))
+    ours = nonce16 == s.sync_nonce
+    return sym.choose(
+        z3.And(ours, flags == BOOKS),
+        taken,
+        sym.choose(z3.And(ours, flags == UNKNOWN_BOOKS), unknown, sym._unchanged(s)),
+    )
 
 
 def take_counts(
@@ -392,7 +409,7 @@ def take_counts(
     idle = replace(s, phase=sym.S_IDLE, sync_nonce=_zero16(), witness=settled)
     counted = confirm(idle, nonce16, z3.BoolVal(False), seq16, amount_mj, z3.BoolVal(True))
     step = sym.choose(
-        flags == BOOKS,
+        is_books(flags),
         take_books(s, nonce16, flags, seq16, amount_mj),
         sym.choose(flags == COUNTS, counted, sym._unchanged(s)),
     )
@@ -511,7 +528,7 @@ def on_debit(s: Session, nonce16: Term, flags: Term, seq16: Term, amount_mj: Ter
     its counts."""
     resume = confirm(s, nonce16, flags % 2 == 1, seq16, amount_mj, flags == COUNTS)
     outside = sym.choose(
-        flags == BOOKS,
+        is_books(flags),
         sym._unchanged(s),
         sym.choose((flags / START) % 2 == 1, resume, hold_draw(s, seq16)),
     )

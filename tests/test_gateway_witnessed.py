@@ -147,3 +147,20 @@ def test_the_state_file_keeps_a_pending_draw_and_the_upstream_rules(tmp_path: Pa
     path.write_text(text)
     with pytest.raises(StateFileError, match="pending_draw"):
         load_gateway(path, "hardened", GW, (1,), up_variant="witnessed", accept_edited=True)
+
+
+def test_both_legs_witnessed_a_start_waits_above_and_below() -> None:
+    """``variant="witnessed"`` below too: a start sends RESUME above and SYNC below; nothing is
+    granted below until both are answered (the reason names the wait above first)."""
+    p = Pair("witnessed")
+    p.grant(J)
+    gw = Gateway(GW, [1], variant="witnessed", up_variant="witnessed", state=p.gw.state)
+    p.gw = gw
+    resumed = gw.power_loss(0, 0x55, 0x66)
+    assert gw.down.unconfirmed() == (1,) and gw.upstream_waiting() is not None
+    with pytest.raises(LocalProtocolError, match="supervisor above"):
+        gw.down.begin(1, J // 2, 0)
+    p.pump(resumed)  # confirmed above; below still waits for node 1's books
+    assert gw.upstream_waiting() is None and gw.behind == 0 and gw.down.state.usable == J
+    with pytest.raises(LocalProtocolError, match="waiting for node"):
+        gw.down.begin(1, J // 2, 0)

@@ -33,8 +33,8 @@ GW = 20
 class Rig:
     """The root and the gateway, each a CLI run in a thread, restartable."""
 
-    def __init__(self, tmp: Path, variant: str, auth: bool) -> None:
-        self.tmp, self.variant, self.auth = tmp, variant, auth
+    def __init__(self, tmp: Path, variant: str, auth: bool, below: str = "hardened") -> None:
+        self.tmp, self.variant, self.auth, self.below = tmp, variant, auth, below
         self.up, self.down = f"gwold-up-{uuid.uuid4().hex}", f"gwold-down-{uuid.uuid4().hex}"
         self.threads: dict[str, threading.Thread] = {}
         self.results: dict[str, list[int]] = {}
@@ -64,10 +64,11 @@ class Rig:
         (t / "gw-status.json").unlink(missing_ok=True)
         argv = ["gateway", "--node", str(GW), "--nodes", "1", "-i", "virtual", "-c", self.down]
         argv += ["--upstream-interface", "virtual", "--upstream-channel", self.up]
-        argv += ["--upstream-variant", self.variant, "--state", str(t / "gw.json")]
+        argv += ["--upstream-variant", self.variant, "--variant", self.below]
+        argv += ["--state", str(t / "gw.json")]
         argv += ["--status-file", str(t / "gw-status.json"), "--control", str(t / "gw.sock")]
         argv += ["--no-fsync", "--status-period", "50ms", "--telemetry-period", "50ms"]
-        argv += ["--upstream-response-timeout", "100ms", *extra]
+        argv += ["--upstream-response-timeout", "100ms", "--stop-timeout", "1s", *extra]
         self._start("gw", argv + (["--upstream-auth", str(t / "gw.key")] if self.auth else []))
 
     def stop(self, name: str) -> None:
@@ -113,10 +114,10 @@ def wait(condition: Any, timeout_s: float = 60.0) -> None:
         time.sleep(0.02)
 
 
-def restored(tmp: Path, variant: str, auth: bool) -> Rig:
+def restored(tmp: Path, variant: str, auth: bool, below: str = "hardened") -> Rig:
     """3 J granted and forwarded; the gateway's file copied; 2 J returned upstream in its next
     life; both stopped, the copy put back, the gateway started from it (the root still off)."""
-    rig = Rig(tmp, variant, auth)
+    rig = Rig(tmp, variant, auth, below)
     rig.start_root()
     rig.start_gateway()
     try:
@@ -136,11 +137,15 @@ def restored(tmp: Path, variant: str, auth: bool) -> Rig:
     return rig
 
 
-@pytest.mark.parametrize("auth", [False, True], ids=["no key", "auth"])
+@pytest.mark.parametrize(
+    ("auth", "below"),
+    [(False, "hardened"), (True, "hardened"), (False, "witnessed")],
+    ids=["no key", "auth", "witnessed below too"],
+)
 def test_an_older_copy_of_a_gateways_record_creates_nothing_under_witnessed(
-    tmp_path: Path, auth: bool, caplog: pytest.LogCaptureFixture
+    tmp_path: Path, auth: bool, below: str, caplog: pytest.LogCaptureFixture
 ) -> None:
-    rig = restored(tmp_path, "witnessed", auth)
+    rig = restored(tmp_path, "witnessed", auth, below)
     try:
         wait(lambda: rig.status("gw").get("waiting_for_upstream") is not None)
         waiting = rig.status("gw")

@@ -737,3 +737,23 @@ def test_a_first_resume_with_nonce_0_is_answered_not_taken_for_a_repeat(
     _exchange_py(node.power_loss(0, nonce=0), sup, node, 0)  # type: ignore[arg-type]
     assert node.state.phase is Phase.IDLE and node.can_spend()
     assert sup.session(2).returns_credited == 1 == node.state.return_seq
+
+
+def test_the_c_gateway_takes_rules_above_and_refuses_others(tmp_path: Path) -> None:
+    port = _port("build/canergy-gateway")
+    shown = subprocess.run(
+        [str(port), "--help"], capture_output=True, text=True, timeout=10, check=True
+    ).stdout
+    assert "--upstream-rules hardened|witnessed" in shown
+    run = subprocess.run(
+        [str(port), "--upstream-rules", "trusting", "--node", "1"],
+        capture_output=True,
+        text=True,
+        timeout=10,
+        cwd=tmp_path,
+    )
+    assert run.returncode == 2
+    assert run.stderr == (
+        "canergy-gateway: error: argument --upstream-rules: invalid choice: 'trusting' "
+        "(choose from 'hardened', 'witnessed')\n"
+    )

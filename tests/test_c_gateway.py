@@ -6,6 +6,10 @@ the root. Below, both gateways' supervisors get the same grants, decisions and c
 and the gateway gives energy back upstream. After every step: the same upstream client state, the
 same downstream Us, injected, withdrawn and sessions, the same frames byte for byte, persist
 asked alike, refusals alike, and no energy between the roles (link gap 0 on both).
+
+``WitnessedUpstream`` runs the same machine with the witnessed rules above (root and both
+gateways), and a step more: both gateways' records put back to a copy taken at any earlier
+step, and started from it. There the gateway must never hold more than the root released to it.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from hypothesis.stateful import (
 from support.c_binding import (
     ERR_AMOUNT,
     ERR_PHASE,
+    ERR_UNCONFIRMED,
     OK,
     CClient,
     CGateway,
@@ -42,7 +47,7 @@ from support.c_session import fields_of, timing_of
 from canergy.codec import Codec
 from canergy.core import Acknowledged, Persist, Send, Supervisor, Timing
 from canergy.core.errors import LocalProtocolError
-from canergy.core.gateway import Gateway, link_gap
+from canergy.core.gateway import Gateway, GatewayState, link_gap
 from canergy.messages import QUANTUM_UJ, Aborted, Ack, Committed, Return
 
 UP = 7
@@ -52,14 +57,16 @@ CODEC = Codec()
 
 
 class GatewaySideBySide(RuleBasedStateMachine):
+    UP_RULES = "hardened"
+
     def __init__(self) -> None:
         super().__init__()
         self.lib = library()
         self.now = 0
-        self.root = Supervisor([UP], 10**9, timing=T)
-        self.py = Gateway(UP, BELOW, up_timing=T, down_timing=T)
+        self.root = Supervisor([UP], 10**9, timing=T, variant=self.UP_RULES)
+        self.py = Gateway(UP, BELOW, up_timing=T, down_timing=T, up_variant=self.UP_RULES)
         self.gw = CGateway()
-        client = CClient(UP, timing=T, lib=self.lib)  # started, then given Python's books
+        client = CClient(UP, timing=T, lib=self.lib, rules=self.UP_RULES)  # given Python's books
         ctypes.memmove(
             ctypes.addressof(self.gw.up), ctypes.addressof(client.c), ctypes.sizeof(client.c)
         )
@@ -146,14 +153,20 @@ class GatewaySideBySide(RuleBasedStateMachine):
 
     @rule(node=st.sampled_from(BELOW), amount_mj=st.integers(1, 500))
     def grant_below(self, node: int, amount_mj: int) -> None:
-        code = self.lib.canergy_supervisor_begin(
-            ctypes.byref(self.gw.down), node, amount_mj * QUANTUM_UJ, self.now,
+        code = self.lib.canergy_gateway_begin(
+            ctypes.byref(self.gw), node, amount_mj * QUANTUM_UJ, self.now,
             ctypes.byref(self.sup_out),
         )  # fmt: skip
         try:
             actions = self.py.down.begin(node, amount_mj * QUANTUM_UJ, self.now)
         except LocalProtocolError:
             assert code != OK
+            waiting = self.py.upstream_waiting() is not None
+            assert (
+                waiting
+                == (code == ERR_UNCONFIRMED)
+                == self.lib.canergy_gateway_upstream_waiting(ctypes.byref(self.gw))
+            )
             return
         assert code == OK
         self._down_answer(actions)
@@ -209,6 +222,102 @@ TestGatewaySideBySide.settings = settings(
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow],
 )
+
+
+class WitnessedUpstream(GatewaySideBySide):
+    """Witnessed rules above; both gateways' records can be put back to an older copy."""
+
+    UP_RULES = "witnessed"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.copies: list[tuple[GatewayState, bytes]] = []
+        self.nonce = 0
+
+    @rule()
+    def deliver_everything(self) -> None:
+        """The frames in flight from the root, in order, none lost (so that draws complete);
+        answers answered in turn, ten frames at most."""
+        for _ in range(10):
+            if self.to_gateway:
+                self.deliver_down_from_root(twice=False, lose=False)
+
+    @rule()
+    def copy_records(self) -> None:
+        """A backup of both gateways' records (the C struct's volatile part goes at the start)."""
+        self.copies.append((self.py.state, bytes(self.gw)))
+
+    @rule(data=st.data())
+    def restore_an_older_copy(self, data: st.DataObject) -> None:
+        """Both records put back to a copy and the gateways started from it: RESUME above."""
+        if self.copies:
+            self.restore(*data.draw(st.sampled_from(self.copies)))
+
+    def restore(self, state: GatewayState, raw: bytes) -> None:
+        self.nonce = (self.nonce + 1) & 0xFFFF  # a nonce no earlier start drew
+        self.py = Gateway(
+            UP, BELOW, up_timing=T, down_timing=T, up_variant=self.UP_RULES, state=state
+        )
+        actions = self.py.power_loss(self.now, self.nonce, self.nonce)
+        ctypes.memmove(ctypes.addressof(self.gw), raw, len(raw))
+        self.lib.canergy_client_resume(
+            ctypes.byref(self.gw.up), self.nonce, self.now, ctypes.byref(self.out)
+        )
+        self._up_answer(actions)
+        self.lib.canergy_supervisor_start(
+            ctypes.byref(self.gw.down), self.nonce, self.now, ctypes.byref(self.sup_out)
+        )
+
+    @invariant()
+    def the_gateway_holds_no_more_than_the_root_released(self) -> None:
+        s, up, down = self.root.session(UP), self.py.up.state, self.py.down.state
+        released = s.delivered + s.reserved - s.returned
+        credited_above = s.returns_credited >= up.return_seq and not up.pending_draw
+        pending = 0 if credited_above else up.return_pending
+        below = sum(x.reserved + x.delivered - x.returned for x in down.sessions)
+        held = up.usable + pending + down.usable + below
+        assert held <= released, (held, released)
+
+
+TestWitnessedUpstream = WitnessedUpstream.TestCase
+TestWitnessedUpstream.settings = settings(
+    max_examples=200,
+    stateful_step_count=60,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+
+
+@pytest.mark.parametrize("rules", ["hardened", "witnessed"])
+def test_an_older_copy_of_the_c_gateway_creates_energy_only_under_hardened_rules_above(
+    rules: str,
+) -> None:
+    """Scripted: 3 J forwarded, both records copied, 2 J returned (credited by the root), the
+    copy started again. Hardened above: 3 J below again with 1 J released (the invariant fails);
+    witnessed: found behind by the root, Us below dropped in both gateways alike."""
+    m = WitnessedUpstream()
+    if rules == "hardened":
+        m = type("Hardened", (WitnessedUpstream,), {"UP_RULES": "hardened"})()
+    m.root_grants(3_000)
+    while m.to_gateway:  # the intention, the commit, (witnessed) the draw's acknowledgement
+        m.deliver_down_from_root(twice=False, lose=False)
+    assert m.gw.down.usable_uj == 3_000_000
+    m.copy_records()
+    m.give_back(2_000_000)
+    while m.to_gateway:
+        m.deliver_down_from_root(twice=False, lose=False)
+    assert m.root.session(UP).returned == 2_000_000
+    m.restore(*m.copies[0])
+    while m.to_gateway:
+        m.deliver_down_from_root(twice=False, lose=False)
+    m.same_books_and_nothing_between_the_roles()
+    if rules == "hardened":
+        with pytest.raises(AssertionError):
+            m.the_gateway_holds_no_more_than_the_root_released()
+        return
+    m.the_gateway_holds_no_more_than_the_root_released()
+    assert m.py.behind == 1 and m.gw.down.usable_uj == 0 == m.py.down.state.usable
+    assert m.gw.down.withdrawn_uj == 3_000_000 and m.gw.up.rec.spent_uj == 0
 
 
 def test_energy_reaches_the_nodes_below_and_comes_back() -> None:

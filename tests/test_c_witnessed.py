@@ -778,3 +778,23 @@ def test_a_c_resume_after_a_lost_sync_answer_keeps_the_c_window_open() -> None:
     resume_after_a_lost_sync_answer(
         window_supervisor(CompiledSupervisor), _CClientNode(BOOKED_AT_10)
     )
+
+
+def test_the_c_gateway_takes_rules_above_and_refuses_others(tmp_path: Path) -> None:
+    port = _port("build/canergy-gateway")
+    shown = subprocess.run(
+        [str(port), "--help"], capture_output=True, text=True, timeout=10, check=True
+    ).stdout
+    assert "--upstream-rules hardened|witnessed" in shown
+    run = subprocess.run(
+        [str(port), "--upstream-rules", "trusting", "--node", "1"],
+        capture_output=True,
+        text=True,
+        timeout=10,
+        cwd=tmp_path,
+    )
+    assert run.returncode == 2
+    assert run.stderr == (
+        "canergy-gateway: error: argument --upstream-rules: invalid choice: 'trusting' "
+        "(choose from 'hardened', 'witnessed')\n"
+    )

@@ -632,6 +632,13 @@ int canergy_internal_spend(struct canergy_client *c, uint32_t uj, struct canergy
     return CANERGY_OK;
 }
 
+void canergy_internal_repack(struct canergy_client *c, struct canergy_out *out)
+{
+    uint8_t rec[CANERGY_NV_RECORD_SIZE];
+    canergy_record_pack(&c->rec, rec);
+    persist(c, rec, out);
+}
+
 int canergy_client_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out)
 {
     if (!client_ok(c, out)) {

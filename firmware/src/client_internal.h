@@ -17,6 +17,8 @@ int canergy_internal_frame(struct canergy_client *c, const struct canergy_rx_fra
                            uint64_t now, struct canergy_out *out, struct canergy_msg *m);
 void canergy_internal_timers(struct canergy_client *c, uint64_t now, struct canergy_out *out);
 int canergy_internal_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out);
+/* Write the record as it is now into out (persist): a caller that changed it (the gateway). */
+void canergy_internal_repack(struct canergy_client *c, struct canergy_out *out);
 int canergy_internal_draw(struct canergy_client *c, uint32_t uj, uint64_t now,
                           struct canergy_out *out);
 int canergy_internal_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,

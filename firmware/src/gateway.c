@@ -1,16 +1,19 @@
 /*
- * The gateway rules (canergy/gateway.h), as src/canergy/core/gateway.py's forward and
- * withdraw_for_return.
+ * The gateway rules (canergy/gateway.h), as src/canergy/core/gateway.py's forward,
+ * withdraw_for_return and (witnessed rules upstream) Gateway._drawn.
  */
 #include "canergy/gateway.h"
 
 #include "client_internal.h"
 
+#define GW_MJ 1000U
+
 uint32_t canergy_gateway_forward(struct canergy_gateway *gw, struct canergy_out *out)
 {
     const uint32_t amount = gw->up.rec.usable_uj;
-    if (amount == 0U || gw->up.phase == CANERGY_JOINING) {
-        return 0U;
+    if (amount == 0U || gw->up.phase == CANERGY_JOINING ||
+        gw->up.rules != CANERGY_RULES_HARDENED) {
+        return 0U; /* witnessed upstream: only through an acknowledged draw */
     }
     /* the client spends all of it (its record re-packed into out), the supervisor takes it in */
     const int spent = canergy_internal_spend(&gw->up, amount, out);
@@ -24,9 +27,73 @@ uint32_t canergy_gateway_forward(struct canergy_gateway *gw, struct canergy_out 
     return amount;
 }
 
+bool canergy_gateway_upstream_waiting(const struct canergy_gateway *gw)
+{
+    return gw->up.phase == CANERGY_RESUMING || gw->up.phase == CANERGY_SYNCING;
+}
+
+#ifdef CANERGY_WITNESSED
+/* What the client as it was before a step (phase, debit number, spent) tells about the step. */
+struct up_before {
+    uint64_t spent_uj;
+    uint32_t return_seq;
+    uint8_t phase;
+};
+
+static struct up_before up_before(const struct canergy_gateway *gw)
+{
+    const struct up_before b = {gw->up.rec.spent_uj, gw->up.rec.return_seq, gw->up.phase};
+    return b;
+}
+
+/* Witnessed upstream, after a client step: a draw acknowledged goes below (spent grew: injected
+ * by as much); a start found behind drops Us below, booked as withdrawn and out of spent (that Us
+ * may hold what was returned upstream after an older copy was taken); then what the client holds
+ * usable is drawn, one debit at a time, at most one frame's amount. */
+static void drawn(struct canergy_gateway *gw, const struct up_before *b, uint64_t now,
+                  struct canergy_out *out)
+{
+    struct canergy_client *up = &gw->up;
+    if (up->rec.spent_uj > b->spent_uj) {
+        const int injected = canergy_supervisor_inject(&gw->down, up->rec.spent_uj - b->spent_uj);
+        CANERGY_ASSERT(injected == CANERGY_OK);
+        (void)injected;
+    }
+    const bool starting = b->phase == CANERGY_RESUMING || b->phase == CANERGY_SYNCING;
+    if (starting && up->phase == CANERGY_IDLE && up->rec.return_seq > b->return_seq + 1U) {
+        out->events |= CANERGY_GW_EV_FOUND_BEHIND;
+        const uint64_t us = gw->down.usable_uj > 0 ? (uint64_t)gw->down.usable_uj : 0U;
+        const uint64_t dropped = us < up->rec.spent_uj ? us : up->rec.spent_uj;
+        if (dropped != 0U) {
+            const int withdrawn = canergy_supervisor_withdraw(&gw->down, dropped);
+            CANERGY_ASSERT(withdrawn == CANERGY_OK);
+            (void)withdrawn;
+            up->rec.spent_uj -= dropped;
+            canergy_internal_repack(up, out);
+        }
+    }
+    uint32_t chunk = up->rec.usable_uj / GW_MJ;
+    chunk = (chunk > (uint32_t)CANERGY_AMOUNT_MAX_MJ ? (uint32_t)CANERGY_AMOUNT_MAX_MJ : chunk) *
+            GW_MJ;
+    if (chunk != 0U && canergy_client_can_draw(up)) {
+        const int drew = canergy_internal_draw(up, chunk, now, out);
+        CANERGY_ASSERT(drew == CANERGY_OK);
+        (void)drew;
+    }
+}
+#endif
+
 int canergy_gateway_on_up_frame(struct canergy_gateway *gw, const struct canergy_rx_frame *frame,
                                 uint64_t now, struct canergy_out *out)
 {
+#ifdef CANERGY_WITNESSED
+    if (gw->up.rules == CANERGY_RULES_WITNESSED) {
+        const struct up_before b = up_before(gw);
+        const int status = canergy_client_on_frame(&gw->up, frame, now, out);
+        drawn(gw, &b, now, out);
+        return status;
+    }
+#endif
     const int status = canergy_client_on_frame(&gw->up, frame, now, out);
     (void)canergy_gateway_forward(gw, out);
     return status;
@@ -35,8 +102,28 @@ int canergy_gateway_on_up_frame(struct canergy_gateway *gw, const struct canergy
 void canergy_gateway_on_up_timer(struct canergy_gateway *gw, uint64_t now,
                                  struct canergy_out *out)
 {
+#ifdef CANERGY_WITNESSED
+    if (gw->up.rules == CANERGY_RULES_WITNESSED) {
+        const struct up_before b = up_before(gw);
+        canergy_client_on_timer(&gw->up, now, out);
+        drawn(gw, &b, now, out);
+        return;
+    }
+#endif
     canergy_client_on_timer(&gw->up, now, out);
     (void)canergy_gateway_forward(gw, out);
+}
+
+int canergy_gateway_begin(struct canergy_gateway *gw, uint8_t node, uint32_t amount_uj,
+                          uint64_t now, struct canergy_supervisor_out *out)
+{
+    if (canergy_gateway_upstream_waiting(gw)) {
+        out->frame_count = 0U;
+        out->event_count = 0U;
+        out->persist = 0U;
+        return CANERGY_ERR_UNCONFIRMED;
+    }
+    return canergy_supervisor_begin(&gw->down, node, amount_uj, now, out);
 }
 
 int canergy_gateway_give_back(struct canergy_gateway *gw, uint32_t uj, uint64_t now,

@@ -382,6 +382,11 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "canergy_gateway_on_up_timer": (None, [POINTER(CGateway), c_uint64, POINTER(Out)]),
     "canergy_gateway_give_back": (c_int, [POINTER(CGateway), c_uint32, c_uint64, POINTER(Out)]),
     "canergy_gateway_link_gap": (ctypes.c_int64, [POINTER(CGateway)]),
+    "canergy_gateway_upstream_waiting": (ctypes.c_bool, [POINTER(CGateway)]),
+    "canergy_gateway_begin": (
+        c_int,
+        [POINTER(CGateway), c_uint8, c_uint32, c_uint64, POINTER(SupervisorOut)],
+    ),
     "canergy_supervisor_image": (c_size_t, [POINTER(CSupervisor), c_uint32, c_void_p]),
     "canergy_supervisor_load": (
         c_int,

@@ -10,6 +10,16 @@
  * gateway neither creates nor loses energy between its roles. tests/test_c_gateway.py runs it
  * side by side with the Python Gateway.
  *
+ * Witnessed rules upstream (up's config rules CANERGY_RULES_WITNESSED; docs/gateways.md, "A
+ * gateway's record restored from an older copy"): forwarding is the client's draw. What it is
+ * credited leaves its usable budget as a numbered DRAW (persisted before it leaves) and goes
+ * below only on the supervisor's RETURN_ACK (spent above and injected below in that step). A
+ * start with a record is RESUMING (canergy_client_start sends RESUME); until the supervisor
+ * above confirms it (canergy_gateway_upstream_waiting) nothing is drawn, returned or granted
+ * below (canergy_gateway_begin). A start found behind (CANERGY_GW_EV_FOUND_BEHIND in
+ * out->events) drops the upstream books as a node does and Us below, booked as withdrawn and
+ * out of spent (the link holds).
+ *
  * Persist contract: both roles are one record. Whenever a call reports a persist (the client's
  * out->persist, or the supervisor's), write the client's record and the supervisor's record as
  * one (split-save, two records written apart, is the counterexample of `canergy check
@@ -25,16 +35,23 @@
 extern "C" {
 #endif
 
+/* out->events of canergy_gateway_on_up_frame: the supervisor above found this gateway's record
+ * behind (witnessed rules upstream); Us below was dropped (down.withdrawn grew by it). */
+#define CANERGY_GW_EV_FOUND_BEHIND 0x0100U
+
 struct canergy_gateway {
     struct canergy_client up;       /* node `up.node` of the bus above */
     struct canergy_supervisor down; /* the supervisor of its nodes on the bus below */
 };
 
-/* Move all of the upstream usable budget into the downstream Us; returns the amount (0: none).
+/* Move all of the upstream usable budget into the downstream Us; returns the amount (0: none;
+ * always under the witnessed rules upstream, where only an acknowledged draw goes below).
  * The client's record is re-packed into out (out->persist) when anything moved. */
 uint32_t canergy_gateway_forward(struct canergy_gateway *gw, struct canergy_out *out);
 
-/* A frame from the bus above: the client's rules (canergy_client_on_frame), then forward. */
+/* A frame from the bus above: the client's rules (canergy_client_on_frame), then forward
+ * (witnessed upstream: a released draw goes below, a start found behind drops Us below, and
+ * what is usable is drawn). */
 int canergy_gateway_on_up_frame(struct canergy_gateway *gw, const struct canergy_rx_frame *frame,
                                 uint64_t now, struct canergy_out *out);
 
@@ -48,6 +65,15 @@ void canergy_gateway_on_up_timer(struct canergy_gateway *gw, uint64_t now,
  * on a refusal. */
 int canergy_gateway_give_back(struct canergy_gateway *gw, uint32_t uj, uint64_t now,
                               struct canergy_out *out);
+
+/* Witnessed upstream: the gateway's start is not confirmed by the supervisor above yet
+ * (RESUMING, or answering its SYNC): nothing is granted below. */
+bool canergy_gateway_upstream_waiting(const struct canergy_gateway *gw);
+
+/* canergy_supervisor_begin on the supervisor below, refused (CANERGY_ERR_UNCONFIRMED, nothing
+ * in *out) while canergy_gateway_upstream_waiting. */
+int canergy_gateway_begin(struct canergy_gateway *gw, uint8_t node, uint32_t amount_uj,
+                          uint64_t now, struct canergy_supervisor_out *out);
 
 /* Energy created between the roles: injected - withdrawn - spent (0 unless the rules broke). */
 int64_t canergy_gateway_link_gap(const struct canergy_gateway *gw);

@@ -78,6 +78,7 @@ struct gw_options {
     uint8_t node;
     uint8_t retries;
     uint8_t rules; /* below: enum canergy_rules */
+    uint8_t up_rules; /* above: enum canergy_rules */
     int keep_all;
     int has_target;
 };
@@ -125,6 +126,10 @@ struct gateway_port {
     int telemetry_now; /* a commit or pay-back above: report the new level at once */
     uint64_t witnessed; /* frames in its name above that it did not send (not wrapped) */
     unsigned waiting;   /* nodes below a start waited for when last said (witnessed) */
+    uint64_t found_behind; /* starts the supervisor above found behind (witnessed above) */
+    uint64_t dropped_uj;   /* Us below dropped by them */
+    uint64_t confirmed;    /* starts the supervisor above confirmed or found behind */
+    int up_waiting;        /* the wait for the supervisor above, as last said on stderr */
 };
 
 static volatile sig_atomic_t stop_requested;
@@ -179,12 +184,15 @@ static void usage(void)
                  "       [--telemetry-period T] [--response-timeout T]\n"
                  "       [--upstream-response-timeout T] [--retries N] [--status-period T]\n"
                  "       [--stop-timeout T] [--return-hold T] [--id-base ID]\n"
-                 "       [--rules hardened|witnessed]\n"
+                 "       [--rules hardened|witnessed] [--upstream-rules hardened|witnessed]\n"
                  "A canergy gateway on Linux SocketCAN (the C library's gateway rules): node\n"
                  "--node above (--upstream-channel), supervisor of --nodes below (-c); flags\n"
                  "as canergy gateway's. Energies 0.5J, 250mJ; durations 50ms, 1.5s.\n"
                  "--rules witnessed: the nodes below draw through DEBIT and RESUME at\n"
-                 "every start (the supervisor side below; above, the hardened rules).\n",
+                 "every start (the supervisor side below).\n"
+                 "--upstream-rules witnessed: what goes below is a DRAW the supervisor\n"
+                 "above acknowledges first, and every start waits, granting nothing below,\n"
+                 "until it confirms this gateway's record (an older copy creates nothing).\n",
                  PROG);
     exit(0);
 }
@@ -246,6 +254,8 @@ static void parse_args(int argc, char **argv, struct gw_options *o)
             o->up_response_timeout_us = port_parse_duration(flag, v, UINT32_MAX / 4U);
         } else if (strcmp(flag, "--rules") == 0) {
             o->rules = port_parse_rules(flag, v);
+        } else if (strcmp(flag, "--upstream-rules") == 0) {
+            o->up_rules = port_parse_rules(flag, v);
         } else if (strcmp(flag, "--retries") == 0) {
             o->retries = (uint8_t)port_parse_int(flag, v, 0U, 255U);
         } else if (strcmp(flag, "--status-period") == 0) {
@@ -450,7 +460,7 @@ static void start(struct gateway_port *g, uint64_t now)
         o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules, 0U}};
     const struct canergy_client_config up = {o->id_base, (uint32_t)(2U * o->up_response_timeout_us),
                                              (uint32_t)(2U * o->up_response_timeout_us), o->node,
-                                             CANERGY_RULES_HARDENED, 0U};
+                                             o->up_rules, 0U};
     uint32_t best = 0U;
     const int newest = newest_slot(o->nv_path, image, &best);
     struct canergy_out out;
@@ -588,13 +598,52 @@ static void count_decode(struct port_counters *c, int status)
     }
 }
 
+/* Witnessed rules above: say on stderr when the gateway waits for the supervisor above to
+ * confirm its record, and how the wait ended (each change once). */
+static const char *const UP_WAITING =
+    "no grant below until the supervisor above confirms this gateway's record (RESUME sent "
+    "upstream, or its SYNC answered; the record may be an older copy)";
+
+static void say_up_waiting(struct gateway_port *g, int behind, uint64_t dropped)
+{
+    const int waiting = canergy_gateway_upstream_waiting(&g->gw) ? 1 : 0;
+    if (waiting == g->up_waiting) {
+        return;
+    }
+    g->up_waiting = waiting;
+    if (waiting) {
+        (void)fprintf(stderr, "%s: %s\n", PROG, UP_WAITING);
+        return;
+    }
+    g->confirmed++;
+    if (behind) {
+        (void)fprintf(stderr,
+                      "%s: the supervisor above found this gateway's record behind (an older "
+                      "copy): upstream books dropped, admitted afresh, %llu uJ of the budget "
+                      "below dropped; granting below again\n",
+                      PROG, (unsigned long long)dropped);
+    } else {
+        (void)fprintf(stderr,
+                      "%s: the supervisor above confirmed this gateway's record (debit %lu): "
+                      "granting below again\n",
+                      PROG, (unsigned long)g->gw.up.rec.return_seq);
+    }
+}
+
 static void receive_up(struct gateway_port *g, uint64_t now)
 {
     struct canfd_frame cf;
     struct canergy_rx_frame rx;
     while (port_can_receive(g->up_sock, &g->up_count, &cf, &rx) == 1) {
         struct canergy_out out;
+        const uint64_t withdrawn = g->gw.down.withdrawn_uj;
         const int status = canergy_gateway_on_up_frame(&g->gw, &rx, now, &out);
+        const int behind = (out.events & CANERGY_GW_EV_FOUND_BEHIND) != 0U;
+        if (behind) {
+            g->found_behind++;
+            g->dropped_uj += g->gw.down.withdrawn_uj - withdrawn;
+        }
+        say_up_waiting(g, behind, g->gw.down.withdrawn_uj - withdrawn);
         count_decode(&g->up_count, status);
         if (status == CANERGY_DECODE_WRONG_DIRECTION && (rx.id & 0xFFU) == g->opt.node) {
             g->witnessed++; /* someone speaks in its name above: say so in TELEMETRY at once */
@@ -773,8 +822,7 @@ static void top_up(struct gateway_port *g, uint64_t now)
             continue;
         }
         struct canergy_supervisor_out out;
-        if (canergy_supervisor_begin(&g->gw.down, s->node, (uint32_t)amount, now, &out) ==
-            CANERGY_OK) {
+        if (canergy_gateway_begin(&g->gw, s->node, (uint32_t)amount, now, &out) == CANERGY_OK) {
             b->fresh = 0;
             down_out(g, &out, now);
         }
@@ -872,7 +920,10 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
     for (uint8_t i = 0U; i < n; i++) {
         (void)fprintf(f, "%s%u", i == 0U ? "" : ", ", (unsigned)waiting[i]);
     }
-    (void)fputs("], \"nodes\": {", f);
+    (void)fprintf(f, "], \"waiting_for_upstream\": %s%s%s, \"nodes\": {",
+                  canergy_gateway_upstream_waiting(&g->gw) ? "\"" : "",
+                  canergy_gateway_upstream_waiting(&g->gw) ? UP_WAITING : "null",
+                  canergy_gateway_upstream_waiting(&g->gw) ? "\"" : "");
     for (unsigned i = 0U; i < d->count; i++) {
         const struct canergy_session *s = &d->sessions[i];
         const struct below *b = &g->below[i];
@@ -902,13 +953,20 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                   "}, \"upstream\": {\"node\": %u, \"usable_uj\": %lu, \"spent_uj\": %llu, "
                   "\"credited_uj\": %llu, \"return_pending_uj\": %lu, \"return_seq\": %lu, "
                   "\"last_tx\": %lu, \"joining\": %s, \"joins\": %d, "
-                  "\"returned_this_run_uj\": %llu, \"witnessed\": %llu, ",
+                  "\"returned_this_run_uj\": %llu, \"witnessed\": %llu, \"rules\": \"%s\", "
+                  "\"resuming\": %s, \"pending_draw\": %s, \"confirmed\": %llu, "
+                  "\"found_behind\": %llu, \"dropped_below_uj\": %llu, ",
                   (unsigned)g->opt.node, (unsigned long)r->usable_uj,
                   (unsigned long long)r->spent_uj, (unsigned long long)r->credited_mj * MJ,
                   (unsigned long)r->return_pending_uj, (unsigned long)r->return_seq,
                   (unsigned long)r->last_tx, canergy_client_joining(&g->gw.up) ? "true" : "false",
                   g->joins, (unsigned long long)g->returned_uj,
-                  (unsigned long long)g->witnessed);
+                  (unsigned long long)g->witnessed,
+                  g->opt.up_rules == CANERGY_RULES_WITNESSED ? "witnessed" : "hardened",
+                  canergy_gateway_upstream_waiting(&g->gw) ? "true" : "false",
+                  (r->flags & CANERGY_RECORD_PENDING_DRAW) != 0U ? "true" : "false",
+                  (unsigned long long)g->confirmed, (unsigned long long)g->found_behind,
+                  (unsigned long long)g->dropped_uj);
     write_counters(f, "bus", &g->up_count);
     (void)fputs("}}\n", f);
 }
@@ -975,6 +1033,7 @@ int main(int argc, char **argv)
     (void)sigaction(SIGTERM, &sa, NULL);
     uint64_t now = port_now_us();
     start(&g, now);
+    say_up_waiting(&g, 0, 0U); /* witnessed above: a start with a record waits for its ADMIT */
     uint64_t next_telemetry = now, next_tick = now, next_status = now, stop_at = 0U;
     for (;;) {
         now = port_now_us();

@@ -151,7 +151,7 @@ class EarlyGrantGateway(Gateway):
 
     advanced = 0
 
-    def _forwarded(self, actions: list[Action]) -> list[Action]:
+    def _forwarded(self, before: ClientState, actions: list[Action], now: int) -> list[Action]:
         up, down = self.up.state, self.down.state
         if up.phase is Phase.AWAIT_COMMAND and up.held_amount and not self.advanced:
             self.advanced = up.held_amount

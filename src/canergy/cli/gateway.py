@@ -57,6 +57,22 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     )
     p.add_argument("--node", type=bounded_int(1, 127), required=True, help="its id upstream")
     p.add_argument("--nodes", type=node_ids, required=True, help="downstream node ids, e.g. 1-40")
+    p.add_argument(
+        "--variant",
+        choices=("hardened", "witnessed"),
+        default="hardened",
+        help="the rules below (default hardened); witnessed: its nodes draw through numbered "
+        "DEBITs and every start of the gateway waits for their books (SYNC)",
+    )
+    p.add_argument(
+        "--upstream-variant",
+        choices=("hardened", "witnessed"),
+        default="hardened",
+        help="the rules above (default hardened; the supervisor above must run the same); "
+        "witnessed: what is forwarded below is drawn through a numbered DEBIT the supervisor "
+        "above acknowledges first, and every start waits, granting nothing below, until it "
+        "confirms this gateway's record (one restored from an older copy creates nothing)",
+    )
     add_bus_flags(p)
     add_bus_flags(p, prefix=UP)
     book_flags(p)
@@ -153,8 +169,8 @@ def _load(path: Path, flag: str) -> Key:
         raise KeyFileError(f"{flag} {exc}") from None
 
 
-def _build(args: argparse.Namespace, now: int, key: Key | None = None) -> tuple[Gateway, bool]:
-    """The gateway core from its state file; True when it has no upstream books (a JOIN).
+def _build(args: argparse.Namespace, key: Key | None = None) -> tuple[Gateway, bool]:
+    """The gateway core from its state file; True when there is no file (a new gateway).
     ``key``: the downstream master key (``--auth``), which seals the state file."""
     nodes = tuple(args.nodes)
     state = None
@@ -162,26 +178,25 @@ def _build(args: argparse.Namespace, now: int, key: Key | None = None) -> tuple[
     if args.state.exists():
         state = load_gateway(
             args.state,
-            "hardened",
+            args.variant,
             args.node,
             nodes,
             accept_edited=args.accept_edited_state,
             on_edited=lambda why: print(f"canergy gateway: warning: {why}", file=sys.stderr),
             seal=seal,
+            up_variant=args.upstream_variant,
         )
     keep_books(args.state, seal, args.auth, fresh=state is None)
     gateway = Gateway(
         args.node,
         nodes,
+        variant=args.variant,
+        up_variant=args.upstream_variant,
         up_timing=rule_timing(args, args.upstream_response_timeout),
         down_timing=rule_timing(args),
         state=state,
     )
-    if state is None:
-        return gateway, True
-    joining = state.up.phase is Phase.JOINING
-    gateway.power_loss(now)  # a start is a restart from the one record
-    return gateway, joining
+    return gateway, state is None
 
 
 def _config(args: argparse.Namespace, key: Key | None) -> ServiceConfig:
@@ -204,7 +219,8 @@ def _upstream_auth(
     args: argparse.Namespace, key: Key | None, codec: Codec, uplink: Uplink
 ) -> FrameAuth | None:
     """The upstream leg's authenticator (None without ``--upstream-auth``): the gateway's node
-    key, the FD layout with ``--upstream-fd``; a JOIN gets 16 random bits above its nonce."""
+    key, the FD layout with ``--upstream-fd``; a JOIN (or a RESUME) gets 16 random bits above
+    its nonce."""
     if key is None:
         return None
     layout = Layout.FD if getattr(args, "upstream_fd", False) else Layout.CLASSIC
@@ -212,6 +228,8 @@ def _upstream_auth(
     auth = FrameAuth(codec, layout, keys, Direction.TO_CLIENT, uplink.freshness)
     if uplink.join_nonce is not None:
         auth.join_fv[uplink.node] = secrets.randbits(16) << 16 | uplink.join_nonce
+    elif uplink.gateway.up.state.phase is Phase.RESUMING:  # witnessed: so is a RESUME
+        auth.resume_fv[uplink.node] = secrets.randbits(16) << 16 | uplink.gateway.up.state.nonce
     return auth
 
 
@@ -254,7 +272,7 @@ def run(args: argparse.Namespace) -> int:
     check_state(args)
     up_key, down_key = _keys(args)
     now = monotonic_us()
-    gateway, without_books = _build(args, now, down_key)
+    gateway, new = _build(args, down_key)
     files = GatewayFiles(gateway, args.state, fsync=not args.no_fsync)
     config = _config(args, down_key)
     down_codec, up_codec = Codec(args.id_base), Codec(args.upstream_id_base)
@@ -271,7 +289,9 @@ def run(args: argparse.Namespace) -> int:
             files,
             now,
         )
-        if without_books:  # JOINING before the first save: a blank record is never trusted
+        if not new:  # a start is a restart from the one record (witnessed above: RESUME)
+            uplink.start_with_books(secrets.randbits(16), now, secrets.randbits(16))
+        if new or uplink.joining:  # JOINING before the first save: a blank record is untrusted
             uplink.start_without_books(secrets.randbits(16), now)
         service = DownstreamService(gateway.down, config, now, save=files.save)  # saves once
         service.uplink = uplink

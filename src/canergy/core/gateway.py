@@ -12,22 +12,36 @@ causes it, so the one ``Persist`` of that step covers both records:
 So ``up.spent == down.injected - down.withdrawn`` always holds (``link_gap`` is 0): the gateway
 neither creates nor loses energy between its roles, and the tree's ledger is the sum of its
 levels' ledgers.
+
+Under the witnessed rules upstream (``up_variant="witnessed"``) forwarding is the gateway's spend,
+witnessed as a node's draw is: what the client is credited leaves its budget as a numbered DRAW,
+persisted before it is sent, and goes below only on the supervisor's acknowledgement (the
+client's ``spent`` moves then, and ``injected`` below in the same step). Every start of the
+gateway is a RESUME the supervisor above confirms; until it has (``upstream_waiting``) nothing is
+forwarded, returned or granted below. A record found behind (an older copy: the supervisor above
+holds a debit it lacks) drops its upstream books as a node does, and its downstream Us too
+(``dropped``): that Us may hold what the gateway returned upstream after the copy was taken. The
+drop is booked as a withdrawal below that leaves ``spent`` above, so the link holds and the
+energy counts as lost by the gateway's client role.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 from canergy.core.actions import Action, Persist
 from canergy.core.client import Client
 from canergy.core.errors import LocalProtocolError
-from canergy.core.state import ClientState, SupervisorState
+from canergy.core.state import ClientState, Phase, SupervisorState
 from canergy.core.supervisor import Supervisor, inject_into, withdraw_from
 from canergy.core.timing import Timing
-from canergy.core.variants import Variant
+from canergy.core.variants import Variant, get_variant
 from canergy.frozen import evolve
-from canergy.messages import ToClient
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, ToClient
+
+STARTING = (Phase.RESUMING, Phase.SYNCING)
+"""Upstream phases of a start the supervisor above has not confirmed yet (witnessed rules)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,8 +74,31 @@ def link_gap(up: ClientState, down: SupervisorState) -> int:
     return down.injected - down.withdrawn - up.spent
 
 
+def found_behind(before: ClientState, after: ClientState) -> bool:
+    """The step from ``before`` to ``after`` was the supervisor above finding the record behind
+    (witnessed: a start answered with a debit number above the record's next one)."""
+    return (
+        before.phase in STARTING
+        and after.phase is Phase.IDLE
+        and after.return_seq > before.return_seq + 1
+    )
+
+
+class Below(Supervisor):
+    """The gateway's supervisor role: it grants nothing while ``hold`` says why not (the
+    gateway's own start, not yet confirmed above)."""
+
+    hold: Callable[[], str | None] = staticmethod(lambda: None)
+
+    def begin(self, node: int, amount: int, now: int) -> list[Action]:
+        if (why := self.hold()) is not None:
+            raise LocalProtocolError(why)
+        return super().begin(node, amount, now)
+
+
 class Gateway:
-    """Node ``node`` of the bus above, supervisor of ``nodes`` on the bus below."""
+    """Node ``node`` of the bus above, supervisor of ``nodes`` on the bus below. ``variant``:
+    the rules of both legs, unless ``up_variant`` names the upstream leg's."""
 
     def __init__(
         self,
@@ -69,14 +106,24 @@ class Gateway:
         nodes: Iterable[int],
         *,
         variant: str | Variant = "hardened",
+        up_variant: str | Variant | None = None,
         up_timing: Timing | None = None,
         down_timing: Timing | None = None,
         state: GatewayState | None = None,
     ) -> None:
-        self.up = Client(node, variant=variant, timing=up_timing, state=state.up if state else None)
-        self.down = Supervisor(
+        above = variant if up_variant is None else up_variant
+        above = get_variant(above) if isinstance(above, str) else above
+        self.up = Client(node, variant=above, timing=up_timing, state=state.up if state else None)
+        self.down = Below(
             nodes, 0, variant=variant, timing=down_timing, state=state.down if state else None
         )
+        self.down.hold = self.upstream_waiting
+        self.draws = above.name == "witnessed"
+        """Forwarding is a witnessed DRAW (the witnessed rules upstream)."""
+        self.dropped = 0
+        """µJ of downstream Us dropped by starts found behind above (this run)."""
+        self.behind = 0
+        """Starts found behind above (this run)."""
 
     @property
     def state(self) -> GatewayState:
@@ -84,18 +131,37 @@ class Gateway:
 
     # -- upstream: the gateway as a client ---------------------------------------------------
     def receive_upstream(self, msg: ToClient, now: int) -> list[Action]:
-        """A message of the supervisor above; what it credits goes downstream at once."""
-        return self._forwarded(self.up.receive(msg, now))
+        """A message of the supervisor above; what it credits goes downstream at once (under the
+        witnessed rules: drawn at once, and below on the draw's acknowledgement)."""
+        before = self.up.state
+        return self._forwarded(before, self.up.receive(msg, now), now)
 
     def handle_upstream_timer(self, now: int) -> list[Action]:
         return self.fire_command_timer(now) + self.fire_return_timer(now)
 
     def fire_command_timer(self, now: int) -> list[Action]:
         """No command came for the held intention: the timeout-commit is forwarded too."""
-        return self._forwarded(self.up.fire_command_timer(now))
+        before = self.up.state
+        return self._forwarded(before, self.up.fire_command_timer(now), now)
 
     def fire_return_timer(self, now: int) -> list[Action]:
         return self.up.fire_return_timer(now)
+
+    def upstream_waiting(self) -> str | None:
+        """Why the gateway neither forwards nor grants below (None: it does): its start is not
+        confirmed by the supervisor above yet (witnessed rules upstream)."""
+        phase = self.up.state.phase
+        if phase is Phase.RESUMING:
+            return (
+                "started from the state file: RESUME sent upstream; no grant below until the "
+                "supervisor above confirms this gateway's record (it may be an older copy)"
+            )
+        if phase is Phase.SYNCING:
+            return (
+                "the supervisor above started (SYNC): books and counts sent upstream; no grant "
+                "below until it confirms them"
+            )
+        return None
 
     def books_lost(self, nonce: int, now: int) -> list[Action]:
         """No valid upstream record: JOIN the supervisor above and wait for ADMIT; the
@@ -123,25 +189,63 @@ class Gateway:
             raise
         return _persist_first(actions)
 
-    def power_loss(self, now: int) -> None:
-        """Both roles restart from the one record."""
-        self.up.power_loss(now)
-        self.down.power_loss(now)
+    def power_loss(self, now: int, nonce: int | None = None, sync_nonce: int = 0) -> list[Action]:
+        """Both roles restart from the one record. ``nonce``: a fresh random 16-bit number for
+        the upstream start (witnessed: RESUME is sent, returned here); ``sync_nonce``: the
+        downstream start's (witnessed below: SYNC)."""
+        actions = self.up.power_loss(now, nonce if self.draws else None)
+        self.down.power_loss(now, sync_nonce)
+        return actions
 
     # -- both --------------------------------------------------------------------------------
     def get_timer(self) -> int | None:
         timers = [t for t in (self.up.get_timer(), self.down.get_timer()) if t is not None]
         return min(timers) if timers else None
 
-    def _forwarded(self, actions: list[Action]) -> list[Action]:
+    def _forwarded(self, before: ClientState, actions: list[Action], now: int) -> list[Action]:
+        if self.draws:
+            return self._drawn(before, actions, now)
         if self.up.state.usable <= 0:
             return actions
         self.up.state, self.down.state = forward(self.up.state, self.down.state)
         return _persist_first(actions)
+
+    def _drawn(self, before: ClientState, actions: list[Action], now: int) -> list[Action]:
+        """Witnessed upstream: a released draw goes below; a start found behind drops the Us
+        below (what is owed there stays); what the client holds usable is drawn (one debit at a
+        time, at most one frame's amount)."""
+        up, down = self.up.state, self.down.state
+        released = up.spent - before.spent  # a draw acknowledged (a start found behind keeps it)
+        if released > 0:
+            down = inject_into(down, released)
+        if found_behind(before, up):
+            self.behind += 1
+            dropped = min(max(down.usable, 0), up.spent)
+            if dropped:  # out of Us below and back out of spent above: lost at the gateway
+                self.dropped += dropped
+                down = evolve(
+                    down, usable=down.usable - dropped, withdrawn=down.withdrawn + dropped
+                )
+                up = evolve(up, spent=up.spent - dropped)
+        if down != self.down.state:
+            self.up.state, self.down.state = up, down
+            actions = _persist_first(actions)
+        chunk = min(up.usable // QUANTUM_UJ, AMOUNT_MAX_MJ) * QUANTUM_UJ
+        if chunk and self.up.can_spend():
+            actions = _persist_first([*actions, *self.up.spend(chunk, now)])
+        return actions
 
 
 def _persist_first(actions: list[Action]) -> list[Action]:
     return actions if actions[:1] == [Persist()] else [Persist(), *actions]
 
 
-__all__ = ["Gateway", "GatewayState", "forward", "link_gap", "withdraw_for_return"]
+__all__ = [
+    "Below",
+    "Gateway",
+    "GatewayState",
+    "forward",
+    "found_behind",
+    "link_gap",
+    "withdraw_for_return",
+]

@@ -13,6 +13,10 @@ on. It is also the witness for its own id, as a node is: frames in its name that
 (and answers to what it never asked) are counted in its TELEMETRY's ``witness``, which also
 carries its return number, so a supervisor above without a key credits its RETURNs once its own
 TELEMETRY confirms them (``canergy.live.witness``).
+
+Under the witnessed rules upstream every start is a RESUME the supervisor above confirms; until
+then nothing is granted below (``DownstreamService``): the status says so (``waiting_for_upstream``)
+and so does stderr, at the start and when the record is confirmed or found behind.
 """
 
 from __future__ import annotations
@@ -34,7 +38,7 @@ from canergy.core.state import Phase
 from canergy.live.gateway_state import save_gateway
 from canergy.live.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.policy import quantize
-from canergy.live.runtime import BusCounters
+from canergy.live.runtime import BusCounters, Outgoing
 from canergy.live.service import SupervisorService
 from canergy.live.witness import ClientWitness
 from canergy.messages import (
@@ -42,6 +46,7 @@ from canergy.messages import (
     LEVEL_MAX_MJ,
     QUANTUM_UJ,
     SEQ_BITS,
+    Admit,
     Direction,
     Message,
     Telemetry,
@@ -73,7 +78,11 @@ class GatewayFiles:
     def save(self) -> None:
         if self.path is not None:
             save_gateway(
-                self.path, self.gateway.state, self.gateway.up.variant.name, fsync=self.fsync
+                self.path,
+                self.gateway.state,
+                self.gateway.down.variant.name,
+                fsync=self.fsync,
+                up_variant=self.gateway.up.variant.name,
             )
             self.writes += 1
 
@@ -102,10 +111,23 @@ class Uplink:
         ``witness``)."""
         self.now = now
         self.counters = BusCounters()
+        self._said: str | None = None
+        """The wait last said on stderr (None: not waiting)."""
+        self.confirmed = 0
+        """Starts confirmed by the supervisor above (witnessed rules upstream)."""
 
     @property
     def node(self) -> int:
         return self.gateway.up.node
+
+    def start_with_books(self, nonce: int, now: int, sync_nonce: int = 0) -> None:
+        """A record (a restart, or an older copy: the gateway cannot tell); witnessed upstream:
+        RESUME(``nonce``) goes above, and nothing moves until the supervisor there confirms it;
+        witnessed below: SYNC(``sync_nonce``)."""
+        self.outbox += self._carry_out(self.gateway.power_loss(now, nonce, sync_nonce), now)
+        self._said = self.gateway.upstream_waiting()
+        if self._said is not None:
+            log.warning("gateway %d: %s", self.node, self._said)
 
     def start_without_books(self, nonce: int, now: int) -> None:
         """No record: JOIN the supervisor above (and wait to be admitted)."""
@@ -119,13 +141,43 @@ class Uplink:
             return ()
         self.now = now
         out = []
-        if self.witnessing.never_asked(msg, self.gateway.up.state.return_seq):
+        asked = not self.witnessing.never_asked(msg, self.gateway.up.state.return_seq)
+        if self.gateway.draws and isinstance(msg, Admit) and not self.joining:
+            asked = True  # witnessed: a supervisor's SYNC (asked by nobody) or our RESUME's ADMIT
+        if not asked:
             out += self.witness(now)
-        joining = self.joining
+        joining, behind = self.joining, self.gateway.behind
         out += self._carry_out(self.gateway.receive_upstream(msg, now), now)
         if joining and not self.joining:
             self.next_telemetry = now
+        self._say_wait(behind)
         return out
+
+    def _say_wait(self, behind: int) -> None:
+        """stderr: the upstream wait as it begins, and how it ended (confirmed or behind)."""
+        why = self.gateway.upstream_waiting()
+        if why == self._said:
+            return
+        if why is not None:
+            log.warning("gateway %d: %s", self.node, why)
+        elif self.gateway.behind > behind:
+            self.confirmed += 1
+            log.warning(
+                "gateway %d: the supervisor above found this gateway's record behind (an older "
+                "copy): upstream books dropped, admitted afresh, the budget below dropped (%d µJ "
+                "this run); granting below again",
+                self.node,
+                self.gateway.dropped,
+            )
+        else:
+            self.confirmed += 1
+            log.warning(
+                "gateway %d: the supervisor above confirmed this gateway's record (debit %d): "
+                "granting below again",
+                self.node,
+                self.gateway.up.state.return_seq,
+            )
+        self._said = why
 
     def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
         if frame.arbitration_id & 0xFF == self.node:
@@ -250,6 +302,12 @@ class Uplink:
             "last_tx": c.last_tx,
             "joining": self.joining,
             "joins": self.joins,
+            "rules": self.gateway.up.variant.name,
+            "resuming": self.gateway.upstream_waiting() is not None,
+            "pending_draw": c.pending_draw,
+            "confirmed": self.confirmed,
+            "found_behind": self.gateway.behind,
+            "dropped_below_uj": self.gateway.dropped,
             "returned_this_run_uj": self.returned,
             "intentions_refused": self.refused,
             "decode_errors": self.decode_errors,
@@ -267,6 +325,14 @@ class DownstreamService(SupervisorService):
 
     uplink: Uplink | None = None
 
+    def _start_grants(self, now: int, nodes: set[int] | None) -> list[Outgoing]:
+        """No grant below while the supervisor above has not confirmed this gateway's start
+        (its core refuses one too): requests wait, the status and stderr say why."""
+        if self.uplink is not None and self.uplink.gateway.upstream_waiting() is not None:
+            self.ready.clear()
+            return []
+        return super()._start_grants(now, nodes)
+
     def status(self) -> dict[str, Any]:
         status = super().status()
         if self.uplink is None:
@@ -276,6 +342,7 @@ class DownstreamService(SupervisorService):
             **status,
             "role": "gateway",
             "upstream": self.uplink.status(),
+            "waiting_for_upstream": gateway.upstream_waiting(),
             "link_gap_uj": link_gap(gateway.up.state, gateway.down.state),
             "state_writes": self.uplink.files.writes,
         }

@@ -290,11 +290,23 @@ def test_a_tree_with_the_gateways_record_restored_creates_nothing(
     tree_run(ops, "witnessed")
 
 
-def test_the_same_tree_finds_energy_created_with_the_hardened_rules_above() -> None:
-    @settings(max_examples=1000, deadline=None, database=None, report_multiple_bugs=False)
-    @given(OPS)
-    def hardened(ops: list[tuple[str, int]]) -> None:
-        tree_run(ops, "hardened")
+RESTORED_AFTER_A_GIVE_BACK = [
+    ("grant", 3),
+    ("copy", 1),
+    ("back", 3),
+    ("timers", 1),
+    ("restore", 1),
+    ("timers", 1),
+    ("below", 3),
+    ("spend", 3),
+]
+"""Granted, copied, given back (credited above), the copy started again, granted below, spent."""
 
+
+def test_the_same_tree_finds_energy_created_with_the_hardened_rules_above() -> None:
+    """The teeth of the property above, scripted (a random search needs about 1,000 examples to
+    find it and sometimes does not): under the hardened rules above, the restored gateway grants
+    below what it already gave back; under the witnessed rules it is found behind first."""
     with pytest.raises(AssertionError):
-        hardened()
+        tree_run(RESTORED_AFTER_A_GIVE_BACK, "hardened")
+    tree_run(RESTORED_AFTER_A_GIVE_BACK, "witnessed")

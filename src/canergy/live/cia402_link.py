@@ -14,7 +14,9 @@ last TPDO values, decodes the statusword into a power state and writes the contr
   a drive whose heartbeat was not heard yet: the PDO configuration is read here and the profile
   is set up with ``read_pdos=False``;
 - SDO and RPDO writes happen in a worker thread, so a drive that does not answer never blocks
-  the supervisor's loop.
+  the supervisor's loop. Controlwords go before the next SDO transfer of whatever else it is
+  doing: a stop never waits behind a read-back of the whole configuration (seconds on a loaded
+  venue, beside an application's transfers), which the bound would have to cover.
 
 At set-up the link also writes the guard's limits (0x6072, 0x6073, 0x6080) closed and reads them
 back, reads the quick stop deceleration 0x6085, times one controlword write (the drive's latency),
@@ -214,6 +216,9 @@ class DriveLink:
         self.latency_max_us = 0
         """Longest controlword write by SDO, set-up included (the drive's answer)."""
         self._jobs: queue.Queue[Command | LimitsCommand | VerifyCommand | None] = queue.Queue()
+        self._controlwords: deque[Command] = deque()
+        """Controlwords waiting: written before the next SDO transfer of any other job, so a
+        stop never waits behind a read-back of the whole configuration."""
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._work, name=f"drive-{node_id}", daemon=True)
         self._thread.start()
@@ -252,6 +257,8 @@ class DriveLink:
         return bool(self.samples or self.limit_answers or self.writes or self.verified)
 
     def command(self, cmd: Command | LimitsCommand | VerifyCommand) -> None:
+        if isinstance(cmd, Command):
+            self._controlwords.append(cmd)
         self._jobs.put(cmd)
 
     def close(self) -> None:
@@ -277,12 +284,29 @@ class DriveLink:
         while True:
             cmd = self._jobs.get()
             if cmd is None:
+                self._controlwords_first()  # a stop handed over as the host exits still goes out
                 return
-            try:
-                self._execute(cmd)
-            except Exception as exc:  # never lose the worker: the next stop must still go out
-                self.command_failures += 1
-                log.exception("drive %d: controlword not written: %s", self.node_id, exc)
+            self._controlwords_first()
+            if not isinstance(cmd, Command):  # a controlword's job was done by the line above
+                self._safely(cmd)
+
+    def _controlwords_first(self) -> None:
+        """Write the controlwords waiting, in order (the worker's thread, between transfers;
+        once set up: until then the set-up's own transfers go first)."""
+        while self.ready_at is not None and self._controlwords:
+            self._safely(self._controlwords.popleft())
+
+    def _pause(self, seconds: float) -> None:
+        """Between two tries of a transfer another master garbled: controlwords first."""
+        self._controlwords_first()
+        self._closed.wait(seconds)
+
+    def _safely(self, cmd: Command | LimitsCommand | VerifyCommand) -> None:
+        try:
+            self._execute(cmd)
+        except Exception as exc:  # never lose the worker: the next stop must still go out
+            self.command_failures += 1
+            log.exception("drive %d: controlword not written: %s", self.node_id, exc)
 
     def _explain(self, exc: Exception) -> str:
         """A set-up failure that names the drive's EDS and the object."""
@@ -397,7 +421,7 @@ class DriveLink:
         def transfer() -> int:
             return int(target.raw)
 
-        return shared_sdo(transfer, self._closed.wait)
+        return shared_sdo(transfer, self._pause)
 
     def _watch_rpdos(self, config: dict[Key, int]) -> None:
         """Frames on the drive's enabled RPDOs from others are writes of their mapped objects."""
@@ -434,6 +458,7 @@ class DriveLink:
         for index, sub in keys:
             if index & 0x200 and 0x1600 <= index < 0x1C00 and sub > (read.get((index, 0)) or 0):
                 continue  # past the map's count
+            self._controlwords_first()
             try:
                 read[index, sub] = self._read(index, sub)
             except (*SDO_ERRORS, KeyError):
@@ -478,6 +503,7 @@ class DriveLink:
         """Write each limit object, read it back; (all taken, what went wrong): None when no
         answer came through (the guard writes them again)."""
         for index, value in limits.as_objects().items():
+            self._controlwords_first()
             try:
                 back = self._write_read(index, value)
             except KeyError:
@@ -498,7 +524,7 @@ class DriveLink:
             sdo[index].raw = value
             return int(sdo[index].raw)
 
-        return shared_sdo(transfer, self._closed.wait)
+        return shared_sdo(transfer, self._pause)
 
     def _timed_controlword(self, controlword: int) -> int:
         """Write a controlword by SDO; the µs until the drive answered."""

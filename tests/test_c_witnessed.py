@@ -76,6 +76,7 @@ from test_witnessed import (
     admitted_node_answers_a_sync,
     resume,
     resume_after_a_lost_sync_answer,
+    stale_admits_end_quiet,
     unknown_rc_supervisor,
     window_supervisor,
 )
@@ -778,6 +779,10 @@ def test_a_c_resume_after_a_lost_sync_answer_keeps_the_c_window_open() -> None:
     resume_after_a_lost_sync_answer(
         window_supervisor(CompiledSupervisor), _CClientNode(BOOKED_AT_10)
     )
+
+
+def test_stale_admits_to_a_booked_c_node_end_quiet_with_the_c_supervisor() -> None:
+    stale_admits_end_quiet(window_supervisor(CompiledSupervisor), _CClientNode(BOOKED_AT_10))
 
 
 def test_the_c_gateway_takes_rules_above_and_refuses_others(tmp_path: Path) -> None:

@@ -435,7 +435,10 @@ def test_witnessed_client_answers(data: st.DataObject) -> None:
         W_CLIENT.step(T, c, ReturnAck(1, seq), 0), sym_w.on_debit_ack(s, z3.BitVecVal(seq, 16))
     )
     ours = c.nonce ^ SYNC_CONFIRMED if c.phase is Phase.SYNCING else c.nonce
-    nonce = data.draw(st.sampled_from([c.nonce, ours, c.nonce ^ 1, 0]))
+    # the last: an ADMIT with SYNC_CONFIRMED set that answers nothing (no SYNC: ignored)
+    nonce = data.draw(
+        st.sampled_from([c.nonce, ours, c.nonce ^ 1, 0, c.nonce ^ 1 | SYNC_CONFIRMED])
+    )
     q = data.draw(st.one_of(wire_near(c.return_seq + 1), st.integers(0, 0xFFFF)))
     same_client_w(
         W_CLIENT.step(T, c, Admit(1, nonce, tx, q), 0),

@@ -263,6 +263,12 @@ SUP_CASES += [
         )
         for s in (S_IDLE, S_SYNC, S_BOOKS)
     ),
+    Case(
+        "a start's SYNC nonce has SYNC_CONFIRMED clear: no node takes it for a confirmation",
+        S_IDLE,
+        PowerLoss(0x52 | SYNC_CONFIRMED),
+        replace(S_IDLE, phase=SY, sync_nonce=0x52, deadline=50),
+    ),
     *(
         Case(
             f"SYNC(n, tx, C) is re-sent, without end ({s.phase.name})",
@@ -558,6 +564,16 @@ CLIENT_CASES += [
         Admit(2, 0x52, 3, 9),
         replace(ANSWERING, nonce=0x52, last_tx=5 + 2 * B),
         (Send(Debit.books(2, 0x52, 50)), Send(Debit.counts(2, 0x52, 0, 5 + 2 * B))),
+    ),
+    *(
+        Case(
+            f"an ADMIT with SYNC_CONFIRMED set is no SYNC ({start.phase.name}): ignored (the "
+            "confirmation of earlier counts taken as a SYNC answered it again, without end)",
+            start,
+            Admit(2, 0x52 | SYNC_CONFIRMED, 3, 9),
+            start,
+        )
+        for start in (FRESH, HOLDING, RESUMED, ANSWERING)
     ),
     Case(
         "the answer confirmed (ADMIT(n ^ 0x8000, k, q + 1)): books kept, settled up to k",
@@ -950,3 +966,31 @@ def test_a_resume_after_a_lost_sync_answer_keeps_the_window_open() -> None:
     sup = window_supervisor(Supervisor)
     node = Client(1, variant="witnessed", timing=SCENE, state=BOOKED_AT_10)
     resume_after_a_lost_sync_answer(sup, node)
+
+
+def stale_admits_end_quiet(sup: Supervisor, node: Any) -> None:
+    """Two stale ADMITs reach a booked node (late copies, or forged without a key). It takes
+    them as SYNCs and answers both; the supervisor confirms each answer with the nonce flipped.
+    The old rules took each confirmation, arriving while the node answered the other, as a new
+    SYNC: answers and confirmations went round without end, ltx rising by B and one debit number
+    voided per round. Now the confirmations (SYNC_CONFIRMED set) are no SYNC: quiet after 8
+    frames, and grants go on."""
+    queue: list[Any] = [Admit(1, 1, 0, 0), Admit(1, 2, 0, 0)]
+    delivered = 0
+    while queue and delivered < 40:
+        msg = queue.pop(0)
+        delivered += 1
+        to_node = msg.TYPE.direction is Direction.TO_CLIENT
+        out = node.receive(msg, 0) if to_node else sup.receive(msg, 0)
+        queue += [a.message for a in out if isinstance(a, Send)]
+    assert (delivered, queue) == (8, [])
+    assert node.state.phase is Phase.IDLE and node.state.last_tx == 10 + 2 * SCENE.window
+    assert sup.session(1).returns_credited == node.state.return_seq == 3 + 2
+    _exchange(sup.begin(1, 1000, 1), sup, node, 1)
+    _exchange(sup.commit(1, 1), sup, node, 1)
+    assert node.state.usable == 1000 and node.state.last_tx == 10 + 2 * SCENE.window + 1
+
+
+def test_stale_admits_to_a_booked_node_end_quiet() -> None:
+    sup = window_supervisor(Supervisor)
+    stale_admits_end_quiet(sup, Client(1, variant="witnessed", timing=SCENE, state=BOOKED_AT_10))

@@ -320,10 +320,14 @@ static void send_sync_answer(const struct canergy_client *c, struct canergy_out 
 /* SYNC(n) (witnessed.answer_sync): the supervisor started, maybe from an older copy. Settle
  * the next B transactions (none of a discarded history can be above), drop the held intention,
  * answer with the books and the counts; nothing moves until ADMIT(n ^ SYNC_CONFIRMED). A
- * pending debit stays pending: dropped on that ADMIT, never credited. */
+ * pending debit stays pending: dropped on that ADMIT, never credited. An ADMIT with
+ * SYNC_CONFIRMED set is ignored: taking the confirmation of earlier counts as a SYNC looped. */
 static void answer_sync(struct canergy_client *c, uint16_t nonce, uint64_t now,
                         struct canergy_out *out)
 {
+    if ((nonce & CANERGY_SYNC_CONFIRMED) != 0U) {
+        return; /* no SYNC (its nonce has the bit clear): maybe a confirmation of earlier counts */
+    }
     drop_hold(c);
     c->phase = CANERGY_SYNCING;
     c->nonce = nonce;

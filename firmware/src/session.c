@@ -496,7 +496,7 @@ void canergy_session_start(struct canergy_session *s, const struct canergy_sessi
             resolve(s, CANERGY_RESOLVED_WRITTEN_OFF, step); /* the older copy may not know */
         }
         s->phase = CANERGY_S_SYNCING;
-        s->sync_nonce = nonce;
+        s->sync_nonce = (uint16_t)(nonce & ~CANERGY_SYNC_CONFIRMED); /* never a confirmation */
         s->deadline = now;
         return;
     }

@@ -193,11 +193,13 @@ def start(t: Timing, s: Session, event: PowerLoss, now: int) -> SessionStep:
     """A start (after a power loss or from an older copy: the supervisor cannot tell): write
     off what is open and send SYNC(n) at once (its timer is due), re-sent every response
     timeout without end; grant nothing until the node has answered with its books
-    (``Supervisor.unconfirmed``)."""
+    (``Supervisor.unconfirmed``). The SYNC's nonce has ``SYNC_CONFIRMED`` clear: a node takes
+    no ADMIT with it set as a SYNC (``answer_sync``)."""
     step = SessionStep(s)
     if s.phase not in (IDLE, *SYNC_PHASES):
         step = resolve(s, Outcome.WRITTEN_OFF)
-    s = evolve(step.session, phase=SYNCING, sync_nonce=event.nonce, deadline=now)
+    nonce = event.nonce & ~SYNC_CONFIRMED  # a SYNC never reads as a confirmation of counts
+    s = evolve(step.session, phase=SYNCING, sync_nonce=nonce, deadline=now)
     return SessionStep(s, step.actions, step.credit)
 
 
@@ -378,7 +380,13 @@ def answer_sync(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
     """SYNC(n) (an ADMIT not answering this node's start): the supervisor started, maybe from an
     older copy. Settle the next B transactions (ltx += B: none of a discarded history can be
     above), drop the held intention, persist, answer with the books and the counts, and move
-    nothing until ADMIT(n) (a pending debit is voided: dropped on the answer, never credited)."""
+    nothing until ADMIT(n) (a pending debit is voided: dropped on the answer, never credited).
+
+    An ADMIT with ``SYNC_CONFIRMED`` set is no SYNC (a supervisor's SYNC has it clear) and is
+    ignored: it may confirm counts this node sent earlier, and taking it as a SYNC answered it
+    with counts whose confirmation came back as a SYNC again, without end."""
+    if msg.nonce & SYNC_CONFIRMED:
+        return ClientStep(c)
     c = evolve(
         h._drop_hold(c),
         phase=SYNCING,
@@ -490,7 +498,7 @@ CLIENT = ClientTable(
         cell(JOINING, Intention, h.join_again),
         cell(JOINING, PowerLoss, h.rejoin),
         cell(JOINING, Admit, h.on_admit, to=(IDLE, STAY)),
-        cell(BOOKED, Admit, answer_sync, to=SYNCING),
+        cell(BOOKED, Admit, answer_sync, to=(SYNCING, STAY)),
         cell(RESUMING, ReturnTimeout, resend_resume),
         cell(RESUMING, Intention, resume_again),
         cell(RESUMING, PowerLoss, resume),

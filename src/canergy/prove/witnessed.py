@@ -212,7 +212,7 @@ def books_lost(c: Client, nonce16: Term) -> tuple[Client, Frames]:
 def answer_sync(c: Client, nonce16: Term, window: int = WINDOW) -> tuple[Client, Frames]:
     """SYNC(n) (an ADMIT not answering this node's start): settle the next B transactions
     (ltx += B), drop the held intention, answer with the books and the counts, move nothing
-    until ADMIT(n ^ SYNC_CONFIRMED)."""
+    until ADMIT(n ^ SYNC_CONFIRMED). An ADMIT with ``SYNC_CONFIRMED`` set is no SYNC: ignored."""
     synced = replace(
         c,
         phase=sym.SYNCING,
@@ -222,7 +222,8 @@ def answer_sync(c: Client, nonce16: Term, window: int = WINDOW) -> tuple[Client,
         last_tx=c.last_tx + window,
         outcome=sym.SETTLED,
     )
-    return synced, answer_of(synced)
+    confirmation = z3.Extract(15, 15, nonce16) == 1
+    return _choose(confirmation, (c, one(Sent.none())), (synced, answer_of(synced)))
 
 
 def on_confirm(c: Client, tx16: Term, seq16: Term) -> tuple[Client, Frames]:
@@ -369,7 +370,8 @@ def start(s: Session, nonce16: Term) -> SessionStep:
     with a new nonce (SYNC is sent by ``resend_sync``, its timer due at once)."""
     open_ = z3.Or(*(s.phase == p for p in OPEN))
     step = sym.choose(open_, sym._resolve(s, z3.BoolVal(False)), sym._unchanged(s))
-    waiting = replace(step.session, phase=sym.SYNCING, sync_nonce=nonce16)
+    nonce = nonce16 & (0xFFFF ^ SYNC_CONFIRMED)  # never reads as a confirmation of counts
+    waiting = replace(step.session, phase=sym.SYNCING, sync_nonce=nonce)
     return SessionStep(waiting, Sent.none(), step.credit)
 
 

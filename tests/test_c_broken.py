@@ -44,5 +44,6 @@ def test_the_machine_finds_the_broken_rule() -> None:
             BrokenSideBySide,
             database=None,
             derandomize=True,
+            max_examples=1000,
             phases=[HypothesisPhase.generate],  # no shrinking: finding it is the point
         )

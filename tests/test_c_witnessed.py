@@ -645,10 +645,12 @@ class WitnessedMemNv(MemNv):
 
 
 def _below_the_end(books: ClientState) -> ClientState:
-    """A record whose ltx leaves room for SYNCs: each lifts it by B (a duplicated ADMIT reads
-    as one too), and neither core checks that lift against the end of the numbering (reported:
-    witnessed.answer_sync), so a record near it would become one no loader takes."""
-    return replace(books, last_tx=min(books.last_tx, COUNTER_END - 0x10000))
+    """A record whose counters leave room for starts: a SYNC lifts ltx by B (a duplicated ADMIT
+    reads as one too) and every confirmed start voids one debit number, and neither core checks
+    those lifts against the end of the numbering (reported: witnessed.answer_sync and
+    witnessed.confirm), so a record near it would become one no loader takes."""
+    end = COUNTER_END - 0x10000
+    return replace(books, last_tx=min(books.last_tx, end), return_seq=min(books.return_seq, end))
 
 
 class WitnessedSideBySide(SideBySide):

@@ -34,8 +34,11 @@ from canergy.live.state_file import StateFileError, load_state, save_state
 from canergy.messages import (
     COUNTER_BOUND,
     COUNTER_END,
+    SYNC_CONFIRMED,
     Ack,
+    Admit,
     Committed,
+    Debit,
     Intention,
     Join,
     Return,
@@ -328,3 +331,39 @@ def test_the_live_supervisor_answers_a_grant_at_the_end_and_warns_once(
     ] * 2
     assert len([r for r in caplog.records if "is the last below" in r.getMessage()]) == 1
     assert service.status()["usable_uj"] == 10 * J  # nothing reserved
+
+
+# -- moving: a witnessed start's void and a SYNC's lift at the bound -------------------------
+
+
+@pytest.mark.parametrize("seq", [COUNTER_END - 1, COUNTER_BOUND - 2, COUNTER_BOUND - 1])
+def test_a_witnessed_start_voids_below_the_bound_alike_in_both_cores(seq: int) -> None:
+    """A RESUME's void (max(C, q) + 1) and a JOIN's (C + 1) stay below ``COUNTER_BOUND``: held
+    at 2**30 - 1, where numbers only void, so the state file still loads (the voids above
+    ``COUNTER_END`` were unbounded: a record at 2**30 - 1 confirmed a start to 2**30)."""
+    for first in (Debit(3, 0x1234, Debit.START, seq & 0xFFFF, 0), Join(3, 0x1234)):
+        after = []
+        for core in CORES.values():
+            sup = core([3], 0, state=_books(3, returns_credited=seq), variant="witnessed")
+            sent = _sent(sup.receive(first, 0))
+            after.append((sup.session(3).returns_credited, sent))
+        assert after[0] == after[1]
+        assert after[0][0] == min(seq + 1, COUNTER_BOUND - 1)
+        assert after[0][1][-1].seq == after[0][0] & 0xFFFF
+
+
+def test_a_witnessed_node_at_the_bound_answers_a_sync_below_it_in_both_cores() -> None:
+    """A SYNC lifts ltx by B, held below the bound; a confirmation beyond it is ignored."""
+    start = ClientState(2, usable=J, last_tx=COUNTER_BOUND - 2, return_seq=COUNTER_BOUND - 1)
+    py = Client(2, state=start, variant="witnessed")
+    c = CClient(2, state=start, rules="witnessed")
+    sync = Admit(2, 0x0042, 0, (COUNTER_BOUND - 1) & 0xFFFF)
+    sent = _sent(py.receive(sync, 0))
+    out = c.message(sync, 0)
+    assert py.state.last_tx == COUNTER_BOUND - 1 and len(sent) == len(out.sent()) == 2
+    assert c.view() == c_view(py.state)
+    beyond = Admit(2, 0x0042 ^ SYNC_CONFIRMED, 0, COUNTER_BOUND & 0xFFFF)
+    before = py.state
+    assert _sent(py.receive(beyond, 1)) == [] and py.state == before
+    c.message(beyond, 1)
+    assert c.view() == c_view(before)

@@ -331,7 +331,7 @@ static void answer_sync(struct canergy_client *c, uint16_t nonce, uint64_t now,
     drop_hold(c);
     c->phase = CANERGY_SYNCING;
     c->nonce = nonce;
-    c->rec.last_tx += c->window;
+    c->rec.last_tx = serial_capped(c->rec.last_tx + c->window);
     c->rec.outcome = CANERGY_OUTCOME_SETTLED;
     c->return_deadline = serial_after(now, c->return_retry_us);
     send_sync_answer(c, out);
@@ -352,6 +352,9 @@ static void on_confirm(struct canergy_client *c, const struct canergy_msg *m, ui
         return;
     }
     const uint32_t q = c->rec.return_seq + (uint32_t)d; /* Q: the supervisor's count */
+    if (q >= CANERGY_COUNTER_BOUND) {
+        return; /* no supervisor confirms a number there (serial_capped) */
+    }
     bool behind_ltx = false;
     if (d == 1) {
         const int32_t closed = serial16(m->tx, c->rec.last_tx);

@@ -10,6 +10,8 @@
 #include <stdbool.h>
 #include <stdint.h>
 
+#include "canergy/codec.h"
+
 /* Signed distance of a 16-bit wire value from the reference's position: Python's
  * unwrap(wire, ref, 16) - ref, in [-32768, 32767]. */
 static inline int32_t serial16(uint32_t wire, uint32_t ref)
@@ -35,6 +37,14 @@ static inline bool serial_before(uint32_t a, uint32_t b)
 static inline uint64_t serial_after(uint64_t now, uint32_t delay)
 {
     return now + delay;
+}
+
+/* A counter moved by a start (a void, a SYNC's lift), held below CANERGY_COUNTER_BOUND: above
+ * CANERGY_COUNTER_END numbers only void, and no record leaves what the loaders take
+ * (canergy.core.common.capped). The caller includes canergy/codec.h. */
+static inline uint32_t serial_capped(uint32_t counter)
+{
+    return counter < CANERGY_COUNTER_BOUND - 1UL ? counter : CANERGY_COUNTER_BOUND - 1UL;
 }
 
 #endif /* CANERGY_SERIAL_H */

@@ -236,7 +236,7 @@ static void admit_voiding(struct canergy_session *s, const struct canergy_msg *m
                           struct canergy_session_step *step)
 {
     admit(s, m, step);
-    s->returns_credited += 1U;
+    s->returns_credited = serial_capped(s->returns_credited + 1U);
     step->msg.seq = (uint16_t)(s->returns_credited & 0xFFFFUL);
 }
 
@@ -287,7 +287,7 @@ static void confirm(struct canergy_session *s, const struct canergy_msg *m,
         }
     }
     const uint32_t last = behind ? s->returns_credited : seq; /* max(C, q) */
-    s->returns_credited = last + 1U; /* voids any debit in flight from a discarded history */
+    s->returns_credited = serial_capped(last + 1U); /* voids a debit in flight from an old life */
     s->resume_nonce = key;
     s->resume_from = seq;
     s->resume_to = s->returns_credited;

@@ -87,7 +87,8 @@ BOOKS = st.builds(
     outcome=st.sampled_from(list(Outcome)[:4]),
     return_seq=st.integers(0, COUNTER_BOUND - 1)
     | st.integers(0xFFFB, 0x10004)
-    | st.integers(COUNTER_END - 4, COUNTER_END),
+    | st.integers(COUNTER_END - 4, COUNTER_END)
+    | st.just(COUNTER_BOUND - 1),
 )
 """A record to start from; the supervisor's books for the node then agree with it."""
 

@@ -43,6 +43,13 @@ def at_end(counter: int) -> bool:
     return counter + 1 >= COUNTER_END
 
 
+def capped(counter: int) -> int:
+    """A counter moved by a start (a void, a SYNC's lift), held below ``COUNTER_BOUND``: above
+    ``COUNTER_END`` no number is issued, credited or held, so numbers there only void, and a
+    record never leaves the range every loader takes."""
+    return min(counter, COUNTER_BOUND - 1)
+
+
 def check_life(s: Session) -> None:
     """A transaction may begin: the node's transaction number has room below ``COUNTER_END``."""
     if at_end(s.tx):

@@ -15,7 +15,15 @@ from __future__ import annotations
 from canergy.core import common
 from canergy.core import hardened as h
 from canergy.core.actions import Admitted, ReturnCredited, Send
-from canergy.core.common import at_end, check_amount, reply_for, resolve, start_return, wire_tx
+from canergy.core.common import (
+    at_end,
+    capped,
+    check_amount,
+    reply_for,
+    resolve,
+    start_return,
+    wire_tx,
+)
 from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import (
     RETURN_TIMEOUT,
@@ -35,6 +43,7 @@ from canergy.core.table import ANY, STAY, ClientTable, SupervisorTable, cell
 from canergy.core.timing import Timing
 from canergy.frozen import evolve
 from canergy.messages import (
+    COUNTER_BOUND,
     COUNTER_END,
     DELIVERED_BITS,
     NONCE_BITS,
@@ -147,7 +156,7 @@ def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
     if msg.is_counts:  # the node settled up to its ltx: no transaction begins at or below it
         settled = unwrap(msg.amount_mj, s.tx, TX_BITS)
         s = evolve(s, tx=max(s.tx, settled), witness=max(s.witness, settled))
-    void = max(s.returns_credited, seq) + 1  # any debit in flight from a discarded history
+    void = capped(max(s.returns_credited, seq) + 1)  # any debit in flight from an old history
     s = evolve(s, returns_credited=void, resume_nonce=key, resume_from=seq, resume_to=void)
     admitted = (Admitted(s.node, s.tx, void),) if behind else ()
     answer = Send(_confirmation(s, nonce))
@@ -172,7 +181,7 @@ def admit(t: Timing, s: Session, msg: Join, now: int) -> SessionStep:
     ADMIT(n, k, C + 1)): a debit the lost record left in flight under it is behind, and no number
     is issued by both the node's old record and its new life."""
     step = h.write_off_and_lift(s)
-    s = evolve(step.session, returns_credited=step.session.returns_credited + 1)
+    s = evolve(step.session, returns_credited=capped(step.session.returns_credited + 1))
     answer = Admit(s.node, msg.nonce, wire_tx(s.tx), wrap(s.returns_credited, SEQ_BITS))
     admitted = Admitted(s.node, s.tx, s.returns_credited)
     return SessionStep(s, (*step.actions, admitted, Send(answer)), step.credit)
@@ -391,7 +400,7 @@ def answer_sync(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
         h._drop_hold(c),
         phase=SYNCING,
         nonce=msg.nonce,
-        last_tx=c.last_tx + t.window,
+        last_tx=capped(c.last_tx + t.window),
         outcome=Outcome.SETTLED,
         return_deadline=now + t.return_retry_us,
     )
@@ -434,6 +443,8 @@ def on_confirm(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
     them the supervisor's tx and W stay behind, the node ignores its next intentions as old and
     the window closes for good (``resync``)."""
     q = unwrap(msg.seq, c.return_seq, SEQ_BITS)
+    if q >= COUNTER_BOUND:  # no supervisor confirms a number there (``capped``)
+        return ClientStep(c)
     if q == c.return_seq + 1:
         closed = unwrap(msg.tx, c.last_tx, TX_BITS)
         if closed > c.last_tx:  # resolved by the supervisor: never again by this record

@@ -20,6 +20,7 @@ from typing import Any, TypeVar
 from canergy.core.state import Decision, Outcome, Phase
 from canergy.extras import MissingExtra
 from canergy.messages import (
+    COUNTER_BOUND,
     COUNTER_END,
     DELIVERED_BITS,
     QUANTUM_UJ,
@@ -48,6 +49,12 @@ def counter(value: int) -> Term:
 def at_end(value: Term) -> Term:
     """``core.common.at_end``: the next counter would reach ``COUNTER_END``."""
     return z3.UGE(value, counter(COUNTER_END - 1))
+
+
+def capped(value: Term) -> Term:
+    """``core.common.capped``: a counter a start moved, held below ``COUNTER_BOUND``."""
+    top = counter(COUNTER_BOUND - 1)
+    return z3.If(z3.ULT(value, top), value, top)
 
 
 def beyond_end(tx: Term, last: Term) -> Term:

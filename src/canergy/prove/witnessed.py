@@ -19,6 +19,7 @@ from dataclasses import replace
 
 from canergy.messages import (
     AMOUNT_MAX_MJ,
+    COUNTER_BOUND,
     DELIVERED_BITS,
     NONCE_BITS,
     QUANTUM_UJ,
@@ -219,7 +220,7 @@ def answer_sync(c: Client, nonce16: Term, window: int = WINDOW) -> tuple[Client,
         held_tx=sym.counter(0),
         held_amount=z3.IntVal(0),
         nonce=nonce16,
-        last_tx=c.last_tx + window,
+        last_tx=sym.capped(c.last_tx + window),
         outcome=sym.SETTLED,
     )
     confirmation = z3.Extract(15, 15, nonce16) == 1
@@ -264,6 +265,9 @@ def on_confirm(c: Client, tx16: Term, seq16: Term) -> tuple[Client, Frames]:
     resynced = replace(confirmed, phase=sym.SYNCING, nonce=c.nonce)
     behind_ltx = z3.And(ahead == 1, c.phase == sym.RESUMING, closed - c.last_tx < 0)
     state = sym.pick(ahead == 1, confirmed, sym.pick(ahead <= 0, c, fresh))
+    beyond = z3.UGE(q, sym.counter(COUNTER_BOUND))  # no supervisor confirms there (capped)
+    state = sym.pick(beyond, c, state)
+    behind_ltx = z3.And(behind_ltx, z3.Not(beyond))
     return _choose(behind_ltx, (resynced, answer_of(resynced)), (state, one(Sent.none())))
 
 
@@ -503,7 +507,7 @@ def confirm(
     )
     # behind: seq < C <= the lifted C (which may be 2**31 above seq: no signed comparison)
     later = z3.And(z3.Not(behind), seq - t.returns_credited > 0)
-    void = z3.If(later, seq, t.returns_credited) + 1
+    void = sym.capped(z3.If(later, seq, t.returns_credited) + 1)
     t = replace(t, returns_credited=void, resume_nonce=key, resume_from=seq, resume_to=void)
     answered = SessionStep(t, _confirmation(t, answer_nonce), step.credit)
     again = SessionStep(s, _confirmation(s, answer_nonce), z3.IntVal(0))
@@ -514,7 +518,7 @@ def admit(s: Session, nonce16: Term) -> SessionStep:
     """JOIN(n) outside a start: the hardened admission with the number after C voided: C + 1,
     ADMIT(n, k, C)."""
     lifted = sym.admit(s, nonce16)
-    t = replace(lifted.session, returns_credited=lifted.session.returns_credited + 1)
+    t = replace(lifted.session, returns_credited=sym.capped(lifted.session.returns_credited + 1))
     sent = Sent.of(
         MsgType.ADMIT,
         nonce16,

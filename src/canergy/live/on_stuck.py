@@ -1,0 +1,123 @@
+"""``--on-stuck CMD``: the operator's last resort when a guarded device does not obey its stop.
+
+A device that keeps moving or drawing current after its stop, or whose feedback is gone, is
+STUCK (``canergy.devices.guard``): the guard repeats the stop, but nothing on the bus can make a
+device that ignores its frames stop. Benches cut the actuator's supply with a relay or a power
+distribution unit; ``OnStuck`` runs the command that does it, once each time a device becomes
+STUCK (not again while it stays so), without waiting for it: the loop goes on repeating the stop
+and booking what the device may draw as uncontained.
+
+The command is split as a shell would (``shlex``) but run without one. ``{node}`` and
+``{profile}`` in it are replaced, and the environment carries ``CANERGY_STUCK_NODE``,
+``CANERGY_STUCK_PROFILE`` and ``CANERGY_STUCK_REASON``. Its start and its exit status are told
+on the report line (stderr); a command that cannot start is told, never raised into the loop.
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import subprocess
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+
+class OnStuckError(ValueError):
+    """``--on-stuck`` that cannot be a command line (an empty one, an unclosed quote)."""
+
+
+def parse_on_stuck(text: str) -> str:
+    """The argparse type of ``--on-stuck``: a command line ``shlex`` can split, not empty."""
+    try:
+        words = shlex.split(text)
+    except ValueError as exc:
+        raise OnStuckError(f"not a command line: {exc}") from None
+    if not words:
+        raise OnStuckError("an empty command")
+    return text
+
+
+@dataclass(slots=True)
+class Run:
+    """One run of the command: for whom, and how it ended (None while it runs)."""
+
+    node: int
+    profile: str
+    reason: str
+    pid: int | None = None
+    exit_code: int | None = None
+    error: str | None = None
+
+
+class OnStuck:
+    """Runs ``command`` once per STUCK episode of each device (``__call__`` on every pass with
+    the device's ``stuck`` reason; None clears the episode)."""
+
+    def __init__(
+        self,
+        command: str,
+        report: Callable[[str], None],
+        *,
+        spawn: Callable[..., Any] = subprocess.Popen,
+    ) -> None:
+        self.command = parse_on_stuck(command)
+        self.report = report
+        self.spawn = spawn
+        self.runs: list[Run] = []
+        self._stuck: dict[int, str] = {}
+        self._lock = threading.Lock()
+
+    def __call__(self, profile: str, node: int, stuck: str | None) -> None:
+        if stuck is None:
+            self._stuck.pop(node, None)
+            return
+        if node in self._stuck:
+            return
+        self._stuck[node] = stuck
+        self._start(Run(node, profile, stuck))
+
+    def _start(self, run: Run) -> None:
+        words = [w.replace("{node}", str(run.node)) for w in shlex.split(self.command)]
+        words = [w.replace("{profile}", run.profile) for w in words]
+        env = {
+            **os.environ,
+            "CANERGY_STUCK_NODE": str(run.node),
+            "CANERGY_STUCK_PROFILE": run.profile,
+            "CANERGY_STUCK_REASON": run.reason,
+        }
+        with self._lock:
+            self.runs.append(run)
+        what = f"{run.profile} {run.node}"
+        try:
+            proc = self.spawn(words, env=env, stdin=subprocess.DEVNULL)
+        except OSError as exc:
+            run.error = f"{words[0]}: {exc.strerror or exc}"
+            self.report(f"--on-stuck for {what} could not start: {run.error}")
+            return
+        run.pid = proc.pid
+        self.report(f"--on-stuck for {what}: started {shlex.join(words)} (pid {proc.pid})")
+        threading.Thread(target=self._wait, args=(run, proc), daemon=True).start()
+
+    def _wait(self, run: Run, proc: Any) -> None:
+        code = proc.wait()
+        with self._lock:
+            run.exit_code = code
+        if code:
+            self.report(f"--on-stuck for {run.profile} {run.node} exited {code}")
+
+    def status(self, node: int) -> dict[str, Any] | None:
+        """The last run for ``node`` (the device status's ``on_stuck``), None if none ran."""
+        with self._lock:
+            mine = [r for r in self.runs if r.node == node]
+            if not mine:
+                return None
+            last = mine[-1]
+            return {
+                "runs": len(mine),
+                "reason": last.reason,
+                "pid": last.pid,
+                "exit_code": last.exit_code,
+                "error": last.error,
+            }

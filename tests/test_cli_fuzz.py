@@ -111,6 +111,8 @@ FILES = {
     "profile.csv": "time_s,watts\n0,0.5\n1,0\n",
     "bad.csv": "0,inf\n",
     "sub/inner.log": CAPTURE,
+    "bench.dbc": 'VERSION ""\nBU_:\nBO_ 1 Heartbeat: 8 Vector__XXX\n'
+    ' SG_ Error : 0|32@1+ (1,0) [0|0] "" Vector__XXX\n',
 }
 PATHS = [
     *FILES,
@@ -178,6 +180,7 @@ _BUS_WORDS = {
     "bus1_interface": ["virtual"],
     "bus2_interface": ["virtual"],
     "partition": ["1s+2s"],
+    "dbc": ["bench.dbc"],
 }
 """python-can's bus flags that take free text (and ``supervisor --bus``, ``bridge``'s two buses
 and ``--partition``): a value each accepts."""

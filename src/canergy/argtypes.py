@@ -153,6 +153,16 @@ def id_base(text: str) -> int:
 
 def node_ids(text: str) -> tuple[int, ...]:
     """A node list like ``1-5,9``: ids and inclusive ranges within 1-127."""
+    return id_list(text, MIN_NODE, MAX_NODE)
+
+
+def odrive_ids(text: str) -> tuple[int, ...]:
+    """ODrive CAN Simple node ids, 0-63 (an axis's default is 0)."""
+    return id_list(text, 0, 0x3F)
+
+
+def id_list(text: str, low: int, high: int) -> tuple[int, ...]:
+    """A list like ``1-5,9``: ids and inclusive ranges within ``low``-``high``."""
     nodes: set[int] = set()
     for part in text.split(","):
         part = part.strip()
@@ -162,9 +172,9 @@ def node_ids(text: str) -> tuple[int, ...]:
             hi = int(hi_text) if sep else lo
         except ValueError:
             raise argparse.ArgumentTypeError(f"bad node list {_shown(text)} (e.g. 1-5,9)") from None
-        if not MIN_NODE <= lo <= hi <= MAX_NODE:
+        if not low <= lo <= hi <= high:
             raise argparse.ArgumentTypeError(
-                f"bad node range {_shown(part)}: ids are {MIN_NODE}-{MAX_NODE}, low to high"
+                f"bad node range {_shown(part)}: ids are {low}-{high}, low to high"
             )
         nodes.update(range(lo, hi + 1))
     return tuple(sorted(nodes))

@@ -8,6 +8,7 @@ from typing import Any
 import can
 
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
+from canergy.inspect.others import Named
 from canergy.messages import (
     QUANTUM_UJ,
     Admit,
@@ -37,6 +38,8 @@ class Described:
     """Why the frame is not a valid canergy frame (decode error reason), or None."""
     mac: str | None = None
     """Authenticated frames: ``ok``, ``BAD`` or ``unverified`` (no key given); None: plain."""
+    other: Named | None = None
+    """Another protocol's frame, named (``canergy.inspect.others``)."""
 
     @property
     def ours(self) -> bool:
@@ -86,6 +89,7 @@ class Described:
             "crc_ok": self.crc_ok,
             "problem": self.problem,
             "mac": self.mac,
+            "other": None if self.other is None else self.other.as_json(),
         }
 
 

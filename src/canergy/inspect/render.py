@@ -72,6 +72,8 @@ def decoded_part(d: Described) -> str:
     m = d.message
     if m is None and d.mac is not None:
         return f"{d.problem}  {_MAC[d.mac]}"
+    if m is None and d.other is not None:
+        return d.other.text()
     if m is None:
         return f"!! {d.problem}" if d.ours else ""
     arrow = f"S->{m.node}" if m.TYPE.direction is Direction.TO_CLIENT else f"{m.node}->S"

@@ -13,13 +13,14 @@ from typing import Any, TextIO
 
 import can
 
-from canergy.argtypes import node_ids
+from canergy.argtypes import argument, node_ids, odrive_ids
 from canergy.auth.capture import CaptureAuth
 from canergy.auth.keys import load_key
 from canergy.codec import Codec
 from canergy.inspect.audit import Auditor
 from canergy.inspect.captures import read_file, read_text
 from canergy.inspect.frames import Described
+from canergy.inspect.others import Dbc, Namer
 from canergy.inspect.render import Stamps, line
 
 
@@ -47,6 +48,29 @@ def view_flags(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--nodes", type=node_ids, help="only frames of these node ids, e.g. 1-5,9")
     p.add_argument("--hide-foreign", action="store_true", help="hide frames that are not canergy's")
+    others = p.add_argument_group(
+        "other protocols",
+        "frames that are not canergy's are named by a DBC that defines their identifier, then "
+        "as ODrive CAN Simple for --odrive-names, then by CANopen's predefined connection set",
+    )
+    others.add_argument(
+        "--dbc",
+        action="append",
+        type=lambda text: argument(Dbc.load, text),
+        default=[],
+        metavar="FILE",
+        help="name and decode the frames this DBC defines (cantools; repeatable), e.g. the "
+        "ODrive DBC odrive-can installs",
+    )
+    others.add_argument(
+        "--odrive-names",
+        type=odrive_ids,
+        metavar="IDS",
+        help="name 11-bit frames of these ODrive node ids (0-63) as CAN Simple commands",
+    )
+    others.add_argument(
+        "--no-canopen", action="store_true", help="do not name 11-bit frames as CANopen's"
+    )
     p.add_argument("--json", action="store_true", help="one JSON object per frame")
     p.add_argument(
         "--color",
@@ -77,7 +101,10 @@ def show(
     candump's ``-t`` timestamps instead of the absolute ones, counted over the frames shown."""
     colour = args.color == "always" or (args.color == "auto" and out.isatty())
     auditor = Auditor() if args.audit else None
+    namer = Namer(args.dbc, odrive_nodes=args.odrive_names or (), canopen_names=not args.no_canopen)
     for d in described:
+        if d.message is None and not d.ours and not d.error_frame:
+            d = replace(d, other=namer.name(d.arbitration_id, d.extended, d.remote, d.data))
         flagged = audited(auditor, d)
         if args.hide_foreign and d.message is None and not d.ours:
             continue

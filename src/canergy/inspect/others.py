@@ -1,0 +1,228 @@
+"""Names for the frames on a bench bus that are not canergy's: a user's DBC files, CANopen (the
+CiA 402 drives' NMT, SYNC, EMCY, PDOs, SDOs and heartbeats) and ODrive's CAN Simple, so that
+``canergy dump`` and ``canergy decode`` read a bus with nodes, drives and motors as one stream.
+
+Order: a DBC that defines the identifier names the frame (the user's word wins); then CAN
+Simple for the ODrive node ids given; then CANopen by its predefined connection set (11-bit
+identifiers only). A frame none of them knows stays unnamed. Data a DBC cannot decode (too
+short, a multiplexer value it lacks) gives the message's name with the reason, never an error.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from canergy.devices.odrive import Cmd, split_id
+
+
+@dataclass(frozen=True, slots=True)
+class Named:
+    """What a frame of another protocol is."""
+
+    protocol: str
+    """``canopen``, ``odrive`` or ``dbc:<file name>``."""
+    name: str
+    node: int | None = None
+    fields: dict[str, Any] = field(default_factory=dict)
+    problem: str | None = None
+
+    def text(self) -> str:
+        head = f"{self.name} {self.node}" if self.node is not None else self.name
+        parts = [f"{self.protocol.split(':')[0]}: {head}"]
+        parts += [f"{k} {_show(v)}" for k, v in self.fields.items()]
+        if self.problem:
+            parts.append(f"!! {self.problem}")
+        return "  ".join(parts)
+
+    def as_json(self) -> dict[str, Any]:
+        return {
+            "protocol": self.protocol,
+            "name": self.name,
+            "node": self.node,
+            "fields": {k: _plain(v) for k, v in self.fields.items()},
+            "problem": self.problem,
+        }
+
+
+def _show(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
+
+
+def _plain(value: Any) -> Any:
+    """A JSON value: cantools' named choices become their names."""
+    return value if isinstance(value, int | float | str | bool) or value is None else str(value)
+
+
+class DbcError(ValueError):
+    """A ``--dbc`` file that cantools cannot read."""
+
+
+@dataclass(frozen=True, slots=True)
+class Dbc:
+    """One DBC file, loaded by cantools."""
+
+    path: Path
+    database: Any
+
+    @classmethod
+    def load(cls, text: str) -> Dbc:
+        """The argparse type of ``--dbc FILE``."""
+        import cantools.database  # only where a DBC is given
+
+        path = Path(text)
+        try:
+            database = cantools.database.load_file(str(path), database_format="dbc")
+        except OSError as exc:
+            raise DbcError(f"{path}: {exc.strerror or exc}") from None
+        except Exception as exc:  # cantools raises its parsers' own errors
+            raise DbcError(f"{path}: not a DBC cantools reads ({exc})".splitlines()[0]) from None
+        return cls(path, database)
+
+    def name(self, arbitration_id: int, extended: bool, data: bytes) -> Named | None:
+        try:
+            message = self.database.get_message_by_frame_id(arbitration_id)
+        except KeyError:
+            return None
+        if bool(message.is_extended_frame) != extended:
+            return None
+        protocol = f"dbc:{self.path.name}"
+        try:
+            signals = message.decode(data, decode_choices=True, allow_truncated=False)
+        except Exception as exc:  # cantools: DecodeError, ValueError, KeyError by version
+            return Named(protocol, message.name, problem=f"not decoded: {exc}")
+        return Named(protocol, message.name, fields=dict(signals))
+
+
+# -- CANopen: the predefined connection set -----------------------------------------------------
+
+_NMT = {0x01: "start", 0x02: "stop", 0x80: "pre-operational", 0x81: "reset", 0x82: "reset comm"}
+_STATES = {0x00: "BOOT-UP", 0x04: "STOPPED", 0x05: "OPERATIONAL", 0x7F: "PRE-OPERATIONAL"}
+_PDO_BASES = {
+    0x180: "TPDO1",
+    0x200: "RPDO1",
+    0x280: "TPDO2",
+    0x300: "RPDO2",
+    0x380: "TPDO3",
+    0x400: "RPDO3",
+    0x480: "TPDO4",
+    0x500: "RPDO4",
+}
+_REQUESTS = {0: "download segment", 1: "download", 2: "upload", 3: "upload segment", 4: "abort"}
+_ANSWERS = {0: "upload segment", 1: "download segment ok", 2: "upload", 3: "download ok"}
+_ANSWERS[4] = "abort"
+
+
+def _object(data: bytes) -> str:
+    index, sub = struct.unpack_from("<HB", data, 1)
+    return f"0x{index:04X}:{sub:02X}"
+
+
+def _sdo(data: bytes, request: bool) -> tuple[str, dict[str, Any]]:
+    """An SDO's command and, where the frame carries them, its object and expedited value."""
+    if len(data) != 8:
+        return "SDO", {"dlc": len(data)}
+    command = data[0] >> 5
+    fields: dict[str, Any] = {"command": (_REQUESTS if request else _ANSWERS).get(command, command)}
+    initiate = (request and command in (1, 2)) or (not request and command in (2, 3))
+    if initiate or command == 4:
+        fields["object"] = _object(data)
+    expedited = data[0] & 0x02 and ((request and command == 1) or (not request and command == 2))
+    if expedited:
+        size = 4 - (data[0] >> 2 & 0x03) if data[0] & 0x01 else 4
+        fields["value"] = f"0x{int.from_bytes(data[4 : 4 + size], 'little'):0{2 * size}X}"
+    if command == 4:
+        fields["code"] = f"0x{struct.unpack_from('<I', data, 4)[0]:08X}"
+    return f"SDO {'request' if request else 'answer'}", fields
+
+
+def canopen(arbitration_id: int, data: bytes) -> Named | None:
+    """The frame by CiA 301's predefined connection set, or None."""
+    cob, node = arbitration_id & 0x780, arbitration_id & 0x07F
+    if arbitration_id == 0x000:
+        if len(data) < 2:
+            return Named("canopen", "NMT", problem=f"dlc {len(data)}")
+        target = "all" if data[1] == 0 else data[1]
+        return Named("canopen", "NMT", fields={"command": _NMT.get(data[0], data[0]), "to": target})
+    if arbitration_id == 0x080:
+        return Named("canopen", "SYNC", fields={"counter": data[0]} if data else {})
+    if arbitration_id == 0x100:
+        return Named("canopen", "TIME")
+    if node == 0:
+        return None
+    if cob == 0x080:
+        if len(data) < 3:
+            return Named("canopen", "EMCY", node, problem=f"dlc {len(data)}")
+        fields = {"code": f"0x{data[0] | data[1] << 8:04X}", "register": f"0x{data[2]:02X}"}
+        return Named("canopen", "EMCY", node, fields)
+    if cob in _PDO_BASES:
+        return Named("canopen", _PDO_BASES[cob], node)
+    if cob in (0x580, 0x600):
+        name, fields = _sdo(data, request=cob == 0x600)
+        return Named("canopen", name, node, fields)
+    if cob == 0x700:
+        state = _STATES.get(data[0] & 0x7F, data[0]) if data else "?"
+        return Named("canopen", "heartbeat", node, {"state": state})
+    return None
+
+
+# -- ODrive CAN Simple ---------------------------------------------------------------------------
+
+_TWO_FLOATS = {
+    Cmd.ENCODER_ESTIMATES: ("pos_rev", "vel_rev_s"),
+    Cmd.SET_LIMITS: ("vel_limit_rev_s", "current_limit_a"),
+    Cmd.GET_IQ: ("iq_setpoint_a", "iq_measured_a"),
+    Cmd.BUS_VOLTAGE_CURRENT: ("bus_voltage_v", "bus_current_a"),
+    Cmd.POWERS: ("electrical_w", "mechanical_w"),
+}
+
+
+def odrive(arbitration_id: int, data: bytes, remote: bool) -> Named:
+    """A CAN Simple frame (the caller knows the node is an ODrive's)."""
+    node, cmd = split_id(arbitration_id)
+    try:
+        name = Cmd(cmd).name.lower()
+    except ValueError:
+        name = f"command 0x{cmd:02X}"
+    if remote:
+        return Named("odrive", name, node, {"request": True})
+    fields: dict[str, Any] = {}
+    if cmd in _TWO_FLOATS and len(data) == 8:
+        first, second = struct.unpack("<ff", data)
+        fields = dict(zip(_TWO_FLOATS[Cmd(cmd)], (first, second), strict=True))
+    elif cmd == Cmd.HEARTBEAT and len(data) >= 5:
+        fields = {"axis_error": f"0x{struct.unpack_from('<I', data)[0]:08X}", "state": data[4]}
+    elif cmd == Cmd.SET_AXIS_STATE and len(data) >= 4:
+        fields = {"state": struct.unpack_from("<I", data)[0]}
+    return Named("odrive", name, node, fields)
+
+
+class Namer:
+    """Names the frames canergy's codec does not claim (see the module doc)."""
+
+    def __init__(
+        self,
+        dbcs: Iterable[Dbc] = (),
+        *,
+        odrive_nodes: Iterable[int] = (),
+        canopen_names: bool = True,
+    ) -> None:
+        self.dbcs = tuple(dbcs)
+        self.odrive_nodes = frozenset(odrive_nodes)
+        self.canopen_names = canopen_names
+
+    def name(self, arbitration_id: int, extended: bool, remote: bool, data: bytes) -> Named | None:
+        for dbc in () if remote else self.dbcs:
+            named = dbc.name(arbitration_id, extended, data)
+            if named is not None:
+                return named
+        if extended:
+            return None
+        if split_id(arbitration_id)[0] in self.odrive_nodes:
+            return odrive(arbitration_id, data, remote)
+        return canopen(arbitration_id, data) if self.canopen_names else None

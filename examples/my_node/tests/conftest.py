@@ -59,7 +59,7 @@ def nodes(
         return
     program = request.config.getoption("--c-node")
     if program is None:
-        raise pytest.UsageError("give --c-node: our C node's program (firmware/build/canergy-node)")
+        raise pytest.UsageError("give --c-node=PATH: our C node's program")
     below = canergy_bus.sibling(request.config.getoption("--below"))
     canergy_spawn(my_node.c_node_argv(program.resolve(), 1, timeout), "node1", bus=below)
     canergy_spawn(my_node.emulator_argv(2, timeout), "node2", bus=below)

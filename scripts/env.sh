@@ -21,6 +21,26 @@ need_commands() {
     [ ${#missing[@]} -eq 0 ] || apt_install "${missing[@]}"
 }
 
+# run_on_vcan SECONDS CMD...: CMD, in the current directory, where vcan0 and vcan1 are up: this
+# kernel's when it has them, otherwise inside user-mode Linux (scripts/uml-run, DEVELOPERS.md),
+# which it then gets SECONDS to finish in
+run_on_vcan() {
+    local seconds=$1
+    shift
+    if [ -e /sys/class/net/vcan0 ] && [ -e /sys/class/net/vcan1 ]; then
+        "$@"
+        return
+    fi
+    need_commands linux.uml:user-mode-linux insmod:kmod pgrep:procps ip:iproute2
+    if [ "${UML_RUN_XSTATE_SHIM:-auto}" = 1 ] || grep -qw amx_tile /proc/cpuinfo; then
+        # on an AMX CPU uml-run builds a small ptrace shim for linux.uml 6.1 (DEVELOPERS.md)
+        need_commands cc:gcc
+        [ -e /usr/include/stdio.h ] || apt_install libc6-dev
+    fi
+    echo "$(basename "$0"): no vcan0/vcan1 on this kernel; running in user-mode Linux" >&2
+    "$ROOT/scripts/uml-run" --timeout "$seconds" --vcan vcan0 --vcan vcan1 -- "$@"
+}
+
 if ! command -v python3 >/dev/null; then
     apt_install python3
 fi

@@ -375,3 +375,14 @@ def test_any_drawn_schedule_replays_from_its_seed(
         t = 250_000 * i
         assert schedule.fate(i % 2, data, t) == again.fate(i % 2, data, t)
     assert schedule.as_json() == again.as_json()
+
+
+@given(fault_schedules())
+def test_a_schedule_shows_what_makes_the_same_decisions(schedule: FaultSchedule) -> None:
+    """A failing example's schedule, as hypothesis prints it, rebuilds the schedule that failed."""
+    scope = {"FaultSchedule": FaultSchedule, "FaultProfile": FaultProfile, "Partition": Partition}
+    again = eval(repr(schedule), scope)
+    frames = [bytes([i]) * 8 for i in range(40)]
+    for direction in (0, 1):
+        fates = [schedule.fate(direction, f, i * 50_000) for i, f in enumerate(frames)]
+        assert [again.fate(direction, f, i * 50_000) for i, f in enumerate(frames)] == fates

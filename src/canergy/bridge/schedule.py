@@ -96,6 +96,11 @@ class FaultSchedule:
             for d, c in zip(DIRECTIONS, self.counts, strict=True)
         )
 
+    def __repr__(self) -> str:
+        """What built it (hypothesis prints it for a failing example): the same decisions when
+        evaluated with ``FaultSchedule``, ``FaultProfile`` and ``Partition`` in scope."""
+        return f"FaultSchedule({self.profile!r}, {self.seed!r}, {self.partitions!r})"
+
     def partitioned(self, t_us: int) -> bool:
         return any(p.covers(t_us) for p in self.partitions)
 

@@ -41,6 +41,7 @@ import pytest
 
 if TYPE_CHECKING:  # imported where used: pytest loads this plugin in every run of the venv
     from canergy.bridge.link import Bridge
+    from canergy.bridge.schedule import FaultSchedule
     from canergy.testing.bus import Process, TestBus
     from canergy.testing.supervisor import SupervisorRun
 
@@ -75,7 +76,9 @@ def _marker(request: pytest.FixtureRequest) -> dict[str, Any]:
 
 class Books:
     """The run of one test: its supervisors, processes, bridges and clients, torn down in that
-    order, then the books closed."""
+    order (``stop_all``), then the books closed (``verdict``). The fixtures keep one per test;
+    a property test makes one per example (``Books(tmp)``, then ``supervisor``, ``bridge``,
+    ``add_client``)."""
 
     def __init__(self, tmp: Path) -> None:
         self.tmp = tmp
@@ -92,6 +95,41 @@ class Books:
         self.clients.append(source)
         if stop is not None:
             self.stops.append(stop)
+
+    def supervisor(
+        self, bus: TestBus, flags: Sequence[str], name: str = "supervisor", auth: bool = False
+    ) -> SupervisorRun:
+        """``canergy supervisor`` started on ``bus`` with ``flags`` (``SupervisorRun``), its
+        files in this run's directory; stopped by ``stop_all``, its books closed by
+        ``verdict``."""
+        from canergy.testing.supervisor import SupervisorRun
+
+        run = SupervisorRun(bus, self.tmp, flags, name, auth)
+        self.supervisors.append(run)
+        return run
+
+    def bridge(self, bus1: TestBus, bus2: TestBus, schedule: FaultSchedule) -> Bridge:
+        """A bridge between ``bus1`` and ``bus2`` with ``schedule``'s faults, running in a thread
+        until ``stop_all``."""
+        import threading
+
+        from canergy.bridge.link import Bridge
+
+        buses = (bus1.open(), bus2.open())
+        bridge = Bridge(buses, schedule, names=(bus1.channel, bus2.channel))
+        stop = threading.Event()
+        thread = threading.Thread(target=bridge.run, args=(stop.is_set,), daemon=True)
+        thread.start()
+
+        def closing() -> None:
+            stop.set()
+            thread.join(10)
+            bridge.close()
+            for bus in buses:
+                bus.shutdown()
+
+        self.bridges.append(closing)
+        return bridge
 
     def client_statuses(self) -> list[dict[str, Any]]:
         out: list[dict[str, Any]] = []
@@ -191,14 +229,11 @@ def canergy_books(
 
 @pytest.fixture
 def canergy_supervisor(
-    request: pytest.FixtureRequest, canergy_books: Books, canergy_bus: TestBus, tmp_path: Path
+    request: pytest.FixtureRequest, canergy_books: Books, canergy_bus: TestBus
 ) -> Callable[..., SupervisorRun]:
     """``canergy_supervisor(*flags, bus=None, name="supervisor", auth=False)``: a started
     supervisor (``auth``: in authenticated mode, with a master key it makes); without
     ``--nodes`` among the flags, the marker's ``nodes`` (e.g. ``nodes="1-5"``)."""
-
-    from canergy.testing.supervisor import SupervisorRun
-
     nodes = _marker(request).get("nodes")
 
     def start(
@@ -206,9 +241,7 @@ def canergy_supervisor(
     ) -> SupervisorRun:
         if nodes is not None and "--nodes" not in flags:
             flags = ("--nodes", str(nodes), *flags)
-        run = SupervisorRun(bus or canergy_bus, tmp_path, flags, name, auth)
-        canergy_books.supervisors.append(run)
-        return run
+        return canergy_books.supervisor(bus or canergy_bus, flags, name, auth)
 
     return start
 
@@ -249,9 +282,6 @@ def canergy_bridge(request: pytest.FixtureRequest, canergy_books: Books) -> Call
     them (``loss``, ``duplicate``, ``reorder``, ``corrupt``, ``delay_us``...; no delay unless
     given) with partitions as ``"AT+FOR"`` (e.g. ``"2s+1s"``), or else the marker's
     ``faults="loss=0.1,duplicate=0.05,partition=2s+1s"`` and ``seed``."""
-    import threading
-
-    from canergy.bridge.link import Bridge
     from canergy.bridge.schedule import FaultSchedule, Partition, parse_faults
     from canergy.faults import FaultProfile
 
@@ -276,20 +306,6 @@ def canergy_bridge(request: pytest.FixtureRequest, canergy_books: Books) -> Call
             faults.setdefault("jitter_us", 0)
             cuts = tuple(Partition.parse(p) for p in partitions)
             schedule = FaultSchedule(FaultProfile(**faults), seed, cuts)
-        buses = (bus1.open(), bus2.open())
-        bridge = Bridge(buses, schedule, names=(bus1.channel, bus2.channel))
-        stop = threading.Event()
-        thread = threading.Thread(target=bridge.run, args=(stop.is_set,), daemon=True)
-        thread.start()
-
-        def closing() -> None:
-            stop.set()
-            thread.join(10)
-            bridge.close()
-            for bus in buses:
-                bus.shutdown()
-
-        canergy_books.bridges.append(closing)
-        return bridge
+        return canergy_books.bridge(bus1, bus2, schedule)
 
     return start

@@ -1,6 +1,5 @@
 """Hypothesis strategies for fault schedules, so a property test can search the faults a bridge
-puts between a supervisor and a node (needs hypothesis, which canergy's ``dev`` extra has:
-``pip install hypothesis``)."""
+puts between a supervisor and a node (needs hypothesis: ``pip install 'canergy[testing]'``)."""
 
 from __future__ import annotations
 

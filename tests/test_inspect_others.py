@@ -115,3 +115,17 @@ def test_a_file_that_is_no_dbc_is_a_clear_error(
     assert "bad.dbc: not a DBC cantools reads" in err and "Traceback" not in err
     with pytest.raises(ValueError, match=r"missing\.dbc"):
         Dbc.load(str(tmp_path / "missing.dbc"))
+
+
+def test_audit_and_monitor_count_foreign_frames_by_protocol(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = tmp_path / "bench.log"
+    log.write_text(LOG)
+    assert main(["audit", "--json", "--odrive-names", "3", str(log)]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["foreign_by_protocol"] == {"canopen": 5, "odrive": 2, "unknown": 1}
+    assert main(["audit", str(log)]) == 0
+    assert "8 foreign (canopen 5, unknown 3), " in capsys.readouterr().out
+    assert main(["monitor", "--replay", str(log), "--fast", "--once", "--no-canopen"]) == 0
+    assert "foreign 8 (unknown 8)" in capsys.readouterr().out

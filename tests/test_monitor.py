@@ -278,7 +278,7 @@ def test_the_screen_text() -> None:
     text = [t for t, _ in lines]
     assert text[0].startswith("canergy monitor  replay s.log")
     assert text[0].endswith("replay done: 17 frames") and text[1].startswith("frames 17  ")
-    assert "foreign 1  decode errors 1: crc 1" in text[1] and "of 500 kbit/s" in text[1]
+    assert "foreign 1 (canopen 1)  decode errors 1: crc 1" in text[1] and "of 500 kbit/s" in text[1]
     three = next(t for t in text if t.lstrip().startswith("3 "))
     assert "0.630 J" in three and "commit 0.500 J" in three and "CRC 1" in three
     five = next(t for t in text if t.lstrip().startswith("5 "))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections import Counter
 from typing import Any
 
 from canergy.argtypes import energy, id_base
@@ -14,11 +15,14 @@ from canergy.cli.shared.capture import (
     auth_flag,
     capture_auth,
     capture_frames,
+    namer_of,
+    others_flags,
 )
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.inspect.audit import Auditor
 from canergy.inspect.captures import CaptureError
+from canergy.inspect.others import protocol_of, tally
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -39,6 +43,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     a.add_argument("--id-base", type=id_base, default=Codec().id_base)
     a.add_argument("--json", action="store_true", help="the report as JSON")
     auth_flag(a)
+    others_flags(a)
     a.set_defaults(run=run)
 
 
@@ -59,6 +64,9 @@ def run(args: argparse.Namespace) -> int:
         auditor.feed(d)
     auditor.finish()
     report = auditor.report()
+    namer = namer_of(args)
+    by = Counter(protocol_of(namer.named(d)) for d in described if not d.ours and not d.error_frame)
+    report["foreign_by_protocol"] = dict(sorted(by.items()))
     if args.json:
         print(json.dumps(report, indent=2))
     else:
@@ -69,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
 def _print_audit(report: dict[str, Any]) -> None:
     print(
         f"canergy audit: {report['frames']} frames, "
-        f"{report['foreign_frames']} foreign, {report['damaged_frames']} damaged, "
+        f"{report['foreign_frames']} foreign{tally(report['foreign_by_protocol'])}, "
+        f"{report['damaged_frames']} damaged, "
         f"{report['stale_frames']} stale"
     )
     wide = max([4, *map(len, report["nodes"])])  # can1/5 in a capture of several channels

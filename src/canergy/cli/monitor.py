@@ -16,6 +16,7 @@ from pathlib import Path
 from canergy.argtypes import add_duration, argument, duration, energy
 from canergy.auth.capture import CaptureAuth
 from canergy.auth.keys import load_key
+from canergy.cli.shared.capture import namer_of, others_flags
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.inspect.captures import read_file
@@ -103,6 +104,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="check the MACs of authenticated frames with this key (bad ones count as errors)",
     )
     p.add_argument("--ascii", action="store_true", help="ASCII bars and sparklines only")
+    others_flags(p)
     p.add_argument(
         "--once",
         action="store_true",
@@ -169,6 +171,7 @@ def run(args: argparse.Namespace) -> int:
         lost_after_s=args.lost_after / US_PER_S,
         reordered=args.reordered,
         auth=auth,
+        namer=namer_of(args),
     )
     lock = threading.Lock()
     view = View(sort=args.sort)

@@ -202,6 +202,20 @@ def odrive(arbitration_id: int, data: bytes, remote: bool) -> Named:
     return Named("odrive", name, node, fields)
 
 
+def protocol_of(named: Named | None) -> str:
+    """The protocol a count of foreign frames puts the frame under: ``canopen``, ``odrive``,
+    ``dbc`` (any DBC's), or ``unknown``."""
+    return "unknown" if named is None else named.protocol.split(":")[0]
+
+
+def tally(counts: dict[str, int]) -> str:
+    """``(canopen 1,000, unknown 34)``: the counts by protocol, largest first ("" if none)."""
+    if not counts:
+        return ""
+    parts = sorted(counts.items(), key=lambda kv: (-kv[1], kv[0]))
+    return " (" + ", ".join(f"{k} {v:,}" for k, v in parts) + ")"
+
+
 class Namer:
     """Names the frames canergy's codec does not claim (see the module doc)."""
 
@@ -215,6 +229,10 @@ class Namer:
         self.dbcs = tuple(dbcs)
         self.odrive_nodes = frozenset(odrive_nodes)
         self.canopen_names = canopen_names
+
+    def named(self, frame: Any) -> Named | None:
+        """``name`` of a described frame (``canergy.inspect.frames.Described``)."""
+        return self.name(frame.arbitration_id, frame.extended, frame.remote, frame.data)
 
     def name(self, arbitration_id: int, extended: bool, remote: bool, data: bytes) -> Named | None:
         for dbc in () if remote else self.dbcs:

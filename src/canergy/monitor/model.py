@@ -21,6 +21,7 @@ from canergy.auth.capture import CaptureAuth
 from canergy.codec import Codec, DecodeErrorReason
 from canergy.inspect.audit import Auditor
 from canergy.inspect.frames import Described, describe
+from canergy.inspect.others import Namer, protocol_of
 from canergy.monitor.books import BookNode, Books
 from canergy.monitor.busload import frame_seconds
 from canergy.monitor.sessions import NodeTrack, Outcome, Phase
@@ -100,6 +101,8 @@ class Snapshot:
     """Fraction of the bus's time taken in the last window; None without a bit rate."""
     bitrate: int | None
     foreign: int
+    foreign_by: dict[str, int]
+    """``foreign`` by protocol (``canergy.inspect.others.protocol_of``)."""
     errors: dict[str, int]
     rows: tuple[Row, ...]
     books: Books | None
@@ -121,6 +124,7 @@ class MonitorModel:
         auth: CaptureAuth | None = None,
         window_s: float = 1.0,
         audit_segment: int = AUDIT_SEGMENT,
+        namer: Namer | None = None,
     ) -> None:
         self.codec = codec
         self.bitrate, self.data_bitrate = bitrate, data_bitrate
@@ -136,6 +140,8 @@ class MonitorModel:
         one ``Snapshot``); the feeds' own counters (``ReplayFeed.fed``, ``ModelListener.received``)
         pace the replay and measure the reader, never the screen."""
         self.foreign = 0
+        self.namer = namer or Namer()
+        self.foreign_by: Counter[str] = Counter()
         self.errors: Counter[str] = Counter()
         self.tracks: dict[Key, NodeTrack] = {}
         self.auditor = Auditor(reordered=reordered)
@@ -162,6 +168,7 @@ class MonitorModel:
             self.errors["error frame"] += 1
         elif not d.ours:
             self.foreign += 1
+            self.foreign_by[protocol_of(self.namer.named(d))] += 1
         elif d.mac == "BAD":
             self.errors["mac"] += 1
         elif (d.message is None and d.mac is None) or (d.message is not None and not d.crc_ok):
@@ -227,6 +234,7 @@ class MonitorModel:
             load=self._busy / span if self.bitrate else None,
             bitrate=self.bitrate,
             foreign=self.foreign,
+            foreign_by=dict(self.foreign_by),
             errors=dict(self.errors),
             rows=tuple(self._rows(now)),
             books=self.books,

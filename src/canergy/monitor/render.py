@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from canergy.inspect.frames import Described
+from canergy.inspect.others import tally
 from canergy.inspect.render import line as frame_line
 from canergy.messages import Telemetry
 from canergy.monitor.model import Alarm, Row, Snapshot
@@ -106,7 +107,7 @@ def header(snap: Snapshot, ctx: Context, width: int) -> list[Line]:
     lines.append(
         (
             f"frames {snap.frames:,}  {_rate(snap.frames_per_s)} frames/s  {load}  "
-            f"foreign {snap.foreign:,}  decode errors {errors:,}"
+            f"foreign {snap.foreign:,}{tally(snap.foreign_by)}  decode errors {errors:,}"
             + (f": {reasons}" if errors else ""),
             "warn" if errors else "normal",
         )

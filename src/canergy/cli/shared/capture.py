@@ -48,6 +48,19 @@ def view_flags(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--nodes", type=node_ids, help="only frames of these node ids, e.g. 1-5,9")
     p.add_argument("--hide-foreign", action="store_true", help="hide frames that are not canergy's")
+    others_flags(p)
+    p.add_argument("--json", action="store_true", help="one JSON object per frame")
+    p.add_argument(
+        "--color",
+        choices=["auto", "always", "never"],
+        default="auto",
+        help="colour per transaction (auto: only on a terminal)",
+    )
+
+
+def others_flags(p: argparse.ArgumentParser) -> None:
+    """``--dbc``, ``--odrive-names``, ``--no-canopen``: how frames of other protocols are
+    named (``canergy.inspect.others``)."""
     others = p.add_argument_group(
         "other protocols",
         "frames that are not canergy's are named by a DBC that defines their identifier, then "
@@ -71,13 +84,10 @@ def view_flags(p: argparse.ArgumentParser) -> None:
     others.add_argument(
         "--no-canopen", action="store_true", help="do not name 11-bit frames as CANopen's"
     )
-    p.add_argument("--json", action="store_true", help="one JSON object per frame")
-    p.add_argument(
-        "--color",
-        choices=["auto", "always", "never"],
-        default="auto",
-        help="colour per transaction (auto: only on a terminal)",
-    )
+
+
+def namer_of(args: argparse.Namespace) -> Namer:
+    return Namer(args.dbc, odrive_nodes=args.odrive_names or (), canopen_names=not args.no_canopen)
 
 
 def garbage(number: int, text: str, reason: str) -> None:
@@ -101,10 +111,10 @@ def show(
     candump's ``-t`` timestamps instead of the absolute ones, counted over the frames shown."""
     colour = args.color == "always" or (args.color == "auto" and out.isatty())
     auditor = Auditor() if args.audit else None
-    namer = Namer(args.dbc, odrive_nodes=args.odrive_names or (), canopen_names=not args.no_canopen)
+    namer = namer_of(args)
     for d in described:
-        if d.message is None and not d.ours and not d.error_frame:
-            d = replace(d, other=namer.name(d.arbitration_id, d.extended, d.remote, d.data))
+        if not d.ours and not d.error_frame:
+            d = replace(d, other=namer.named(d))
         flagged = audited(auditor, d)
         if args.hide_foreign and d.message is None and not d.ours:
             continue

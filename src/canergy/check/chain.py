@@ -10,16 +10,34 @@ Two gateway rules can be broken on purpose, each yielding a counterexample: ``ea
 grants downstream what the upstream intention holds before the upstream commit;
 ``split-save`` keeps the two roles in two files written one after the other, and a power loss
 between the two writes (``gateway_torn_write``) restarts the upstream role from its older record.
+
+``old_copies``: the gateway restarts from its record as it was before its last write (a backup
+or a VM snapshot put back, assumption 2 dropped for the gateway): under the hardened rules that
+creates energy, under the witnessed ones (every start a RESUME the root confirms, forwarding a
+numbered DRAW the root acknowledges first) it must not. The ledger keeps what the copy forgets,
+as for a node's old copy (``model.restored_ghost``): the largest Rc and the spent the root saw
+from the gateway's upstream role, and what entered and left the level below after the copy was
+written (it did enter and leave, whatever the copy says). Every start draws a nonce no earlier
+one drew (``model.RESTART_NONCE``...).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from typing import Any
 
-from canergy.check.model import UNIT, Flight, message_key
+from canergy.check.model import (
+    OLD_COPY_NONCE,
+    RESTART_NONCE,
+    SUPERVISOR_NONCE,
+    UNIT,
+    WINDOW,
+    Flight,
+    message_key,
+    restored_ghost,
+)
 from canergy.check.search import breadth_first
 from canergy.core.actions import Action, Send
 from canergy.core.gateway import Gateway, GatewayState, forward, link_gap
@@ -31,6 +49,7 @@ from canergy.core.inputs import (
     Begin,
     Decide,
     GiveBack,
+    PowerLoss,
     Spend,
 )
 from canergy.core.state import ClientState, Decision, Phase, Session, SupervisorState
@@ -39,7 +58,7 @@ from canergy.core.table import Event
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
 from canergy.frozen import evolve
-from canergy.ledger import TreeLedger, ledger
+from canergy.ledger import NOT_LOST, LostRecord, TreeLedger, ledger
 from canergy.messages import Direction, Message, ToClient, ToSupervisor
 
 GATEWAY_NODE = 1
@@ -61,10 +80,16 @@ class ChainBounds:
     """Frames in flight on each leg."""
     units: int = 1
     retries: int = 1
+    old_copies: int = 0
+    """Restarts of the gateway from its record before its last write."""
 
     def timing(self) -> Timing:
         return Timing(
-            response_timeout_us=0, retries=self.retries, command_timeout_us=0, return_retry_us=0
+            response_timeout_us=0,
+            retries=self.retries,
+            command_timeout_us=0,
+            return_retry_us=0,
+            window=WINDOW,
         )
 
 
@@ -85,12 +110,27 @@ class ChainWorld:
     torn: ClientState | None = None
     """``split-save`` only: the upstream record before the latest step that changed both roles'
     records; the downstream file was written first, so a crash in between restarts from it."""
+    older: GatewayState | None = None
+    """With ``old_copies``: the gateway's record before its last write."""
+    old_copied: int = 0
+    ghost_up: LostRecord = NOT_LOST
+    """What the root saw of the gateway's upstream role that restored copies forgot."""
+    ghost_in: int = 0
+    ghost_out: int = 0
+    """Injected into and withdrawn from the level below after the restored copies were
+    written."""
 
     def ledger(self) -> TreeLedger:
         gw = self.gateway
+        below = ledger(gw.down, self.nodes)
+        below = replace(
+            below,
+            injected=below.injected + self.ghost_in,
+            withdrawn=below.withdrawn + self.ghost_out,
+        )
         return TreeLedger(
-            {"root": ledger(self.root, (gw.up,)), "gateway": ledger(gw.down, self.nodes)},
-            {"gateway": link_gap(gw.up, gw.down)},
+            {"root": ledger(self.root, (gw.up,), {GATEWAY_NODE: self.ghost_up}), "gateway": below},
+            {"gateway": link_gap(gw.up, gw.down) + self.ghost_in - self.ghost_out},
         )
 
 
@@ -114,6 +154,7 @@ class Kind(Enum):
     ROOT_POWER_LOSS = "root_power_loss"
     GATEWAY_POWER_LOSS = "gateway_power_loss"
     GATEWAY_TORN_WRITE = "gateway_torn_write"
+    GATEWAY_OLD_COPY = "gateway_old_copy"
     NODE_POWER_LOSS = "node_power_loss"
 
 
@@ -121,6 +162,8 @@ CHANNEL = frozenset({Kind.DELIVER, Kind.LOSE, Kind.DUPLICATE})
 POWER = frozenset(
     {Kind.ROOT_POWER_LOSS, Kind.GATEWAY_POWER_LOSS, Kind.GATEWAY_TORN_WRITE, Kind.NODE_POWER_LOSS}
 )
+GATEWAY_COPY_NONCE = OLD_COPY_NONCE + 0x80
+"""The gateway's n-th old copy starts its upstream role with this nonce + n."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -169,6 +212,7 @@ class ChainModel:
         if broken is not None and broken not in BROKEN_RULES:
             raise ValueError(f"unknown broken rule {broken!r} (one of {', '.join(BROKEN_RULES)})")
         self.variant = variant
+        self.confirmed_starts = variant.name == "witnessed"
         self.bounds = bounds
         self.broken = broken
         self.timing = bounds.timing()
@@ -178,7 +222,9 @@ class ChainModel:
         total = self.bounds.units * UNIT
         root = SupervisorState(total, total, 0, (Session(GATEWAY_NODE),))
         gateway = Gateway(GATEWAY_NODE, self.node_ids, variant=self.variant).state
-        return ChainWorld(root, gateway, tuple(ClientState(n) for n in self.node_ids))
+        nodes = tuple(ClientState(n) for n in self.node_ids)
+        older = gateway if self.bounds.old_copies else None
+        return ChainWorld(root, gateway, nodes, older=older)
 
     # -- enumeration -------------------------------------------------------------------------
     def steps(self, w: ChainWorld) -> Iterator[ChainStep]:
@@ -214,6 +260,8 @@ class ChainModel:
             yield ChainStep(Kind.GATEWAY_POWER_LOSS)
             if w.torn is not None:
                 yield ChainStep(Kind.GATEWAY_TORN_WRITE)
+        if w.old_copied < b.old_copies and w.older not in (None, w.gateway):
+            yield ChainStep(Kind.GATEWAY_OLD_COPY)
             for c in w.nodes:
                 yield ChainStep(Kind.NODE_POWER_LOSS, c.node)
 
@@ -234,6 +282,8 @@ class ChainModel:
         k = step.kind
         if k in POWER:
             w = evolve(w, power_lost=w.power_lost + 1)
+        elif k is Kind.GATEWAY_OLD_COPY:
+            w = evolve(w, old_copied=w.old_copied + 1)
         elif k is Kind.ROOT_BEGIN:
             w = evolve(w, root_started=w.root_started + 1)
         elif k is Kind.GATEWAY_BEGIN:
@@ -248,15 +298,17 @@ class ChainModel:
         if k in CHANNEL:
             return self._channel(w, step)
         if k is Kind.ROOT_POWER_LOSS:
-            return self._to_root(w, POWER_LOSS)
+            return self._to_root(w, self._start(SUPERVISOR_NONCE + w.power_lost))
         if k in (Kind.ROOT_BEGIN, Kind.ROOT_DECIDE, Kind.ROOT_TIMER):
             return self._to_root(w, _event(step))
         if k is Kind.GATEWAY_TORN_WRITE:  # the upstream file still holds the older record
             assert w.torn is not None
             w = evolve(w, gateway=evolve(w.gateway, up=w.torn), torn=None)
-            return self._gateway(w, lambda g: _no_actions(g.power_loss(0)))
+            return self._restart_gateway(w, RESTART_NONCE + w.power_lost)
         if k is Kind.GATEWAY_POWER_LOSS:
-            return self._gateway(w, lambda g: _no_actions(g.power_loss(0)))
+            return self._restart_gateway(w, RESTART_NONCE + w.power_lost)
+        if k is Kind.GATEWAY_OLD_COPY:
+            return self._restart_gateway(self._restored(w), GATEWAY_COPY_NONCE + w.old_copied)
         if k is Kind.GATEWAY_COMMAND_TIMER:
             return self._gateway(w, lambda g: g.fire_command_timer(0))
         if k is Kind.GATEWAY_RETURN_TIMER:
@@ -266,8 +318,31 @@ class ChainModel:
         if k in (Kind.GATEWAY_BEGIN, Kind.GATEWAY_DECIDE, Kind.GATEWAY_TIMER):
             return self._to_session(w, step.node, _event(step))
         if k is Kind.NODE_POWER_LOSS:
-            return self._to_node(w, step.node, POWER_LOSS)
+            return self._to_node(w, step.node, self._start(RESTART_NONCE + w.power_lost))
         return self._to_node(w, step.node, _event(step))
+
+    def _start(self, nonce: int) -> Event:
+        """A power loss; a start the rules confirm (witnessed) draws a nonce no start drew."""
+        return PowerLoss(nonce) if self.confirmed_starts else POWER_LOSS
+
+    def _restart_gateway(self, w: ChainWorld, nonce: int) -> ChainWorld:
+        start = nonce if self.confirmed_starts else None
+        sync = SUPERVISOR_NONCE + 0x40 + (nonce & 0x3F) if self.confirmed_starts else 0
+        return self._gateway(w, lambda g: g.power_loss(0, start, sync))
+
+    def _restored(self, w: ChainWorld) -> ChainWorld:
+        """The gateway's record as it was before its last write comes back; the ledger keeps
+        what the copy forgets."""
+        older, now = w.older, w.gateway
+        assert older is not None
+        return evolve(
+            w,
+            gateway=older,
+            ghost_up=restored_ghost(w.ghost_up, now.up, older.up),
+            ghost_in=w.ghost_in + now.down.injected - older.down.injected,
+            ghost_out=w.ghost_out + now.down.withdrawn - older.down.withdrawn,
+            torn=None,
+        )
 
     def _channel(self, w: ChainWorld, step: ChainStep) -> ChainWorld | None:
         msg = step.message
@@ -309,6 +384,7 @@ class ChainModel:
         down = w.gateway.down
         step = self.variant.supervisor.step(self.timing, down.sessions[node - 1], event, 0)
         gateway = evolve(w.gateway, down=apply_session(down, node - 1, step))
+        w = self._written(w, gateway)
         return _sent(evolve(w, gateway=gateway, torn=None), "down", step.actions)
 
     def _to_node(self, w: ChainWorld, node: int, event: Event) -> ChainWorld:
@@ -334,12 +410,15 @@ class ChainModel:
         if self.broken == "split-save" and g.state.down != w.gateway.down:
             torn = w.gateway.up if g.state.up != w.gateway.up else None
         advanced = g.advanced if isinstance(g, EarlyGrantGateway) else 0
+        w = self._written(w, g.state)
         w = evolve(w, gateway=g.state, advanced=advanced, torn=torn)
         return _sent(w, "up", actions)
 
-
-def _no_actions(_: None) -> list[Action]:
-    return []
+    def _written(self, w: ChainWorld, new: GatewayState) -> ChainWorld:
+        """With ``old_copies``: the record before a change is the copy a restore brings back."""
+        if w.older is None or new == w.gateway:
+            return w
+        return evolve(w, older=w.gateway)
 
 
 def _event(step: ChainStep) -> Event:
@@ -386,6 +465,7 @@ class ChainResult:
     counterexample: list[tuple[ChainStep, ChainWorld]] | None = None
     complete: bool = True
     notes: list[str] = field(default_factory=list)
+    variant: str = "hardened"
 
     def as_json(self) -> dict[str, Any]:
         trace = None
@@ -396,6 +476,7 @@ class ChainResult:
             ]
         return {
             "topology": "chain root -> gateway -> node(s)",
+            "rules": self.variant,
             "broken_rule": self.broken,
             "bounds": {k: getattr(self.bounds, k) for k in self.bounds.__slots__},
             "states": self.states,
@@ -409,11 +490,11 @@ class ChainResult:
         }
 
 
-Counters = tuple[int, int, int, int, int]
+Counters = tuple[int, int, int, int, int, int]
 
 
 def _counters(w: ChainWorld) -> Counters:
-    return (w.root_started, w.gateway_started, w.lost, w.duplicated, w.power_lost)
+    return (w.root_started, w.gateway_started, w.lost, w.duplicated, w.power_lost, w.old_copied)
 
 
 class _Subsumption:
@@ -425,7 +506,9 @@ class _Subsumption:
         self.subsumed = 0
 
     def admit(self, w: ChainWorld) -> bool:
-        key = evolve(w, root_started=0, gateway_started=0, lost=0, duplicated=0, power_lost=0)
+        key = evolve(
+            w, root_started=0, gateway_started=0, lost=0, duplicated=0, power_lost=0, old_copied=0
+        )
         mine = _counters(w)
         stored = self.seen.setdefault(key, [])
         if any(all(a <= b for a, b in zip(old, mine, strict=True)) for old in stored):
@@ -465,6 +548,7 @@ def check_chain(
         progress=progress,
     )
     result = ChainResult(b, broken, search.states, search.transitions, search.depth)
+    result.variant = variant
     result.seconds, result.violations, result.subsumed = (
         search.seconds,
         search.violations,
@@ -479,10 +563,12 @@ def check_chain(
 def format_chain(result: ChainResult, trace: bool = False) -> str:
     b = result.bounds
     rule = f", gateway rule broken: {result.broken}" if result.broken else ""
+    copies = f", {b.old_copies} old cop(ies) of the gateway's record" if b.old_copies else ""
     lines = [
-        f"chain root -> gateway -> {b.clients} node(s){rule}",
+        f"chain root -> gateway -> {b.clients} node(s), {result.variant} rules{rule}",
         f"bounds: {b.transactions} transaction(s) per supervisor, {b.losses} loss(es), "
-        f"{b.duplicates} duplicate(s), {b.power_losses} power loss(es) (root, gateway or node), "
+        f"{b.duplicates} duplicate(s), {b.power_losses} power loss(es) (root, gateway or node)"
+        f"{copies}, "
         f"{b.in_flight} frame(s) in flight per leg, {b.units} unit(s), {b.retries} retries",
         f"{result.states:,} states ({result.subsumed:,} subsumed), {result.transitions:,} "
         f"transitions, depth {result.depth}, {result.seconds:.1f} s"

@@ -197,8 +197,16 @@ def _output_flags(p: argparse.ArgumentParser, broken_rules: Any) -> None:
         "early-grant grants below what the intention above holds before its commit; "
         "split-save writes the two roles to two files, one after the other",
     )
+    p.add_argument(
+        "--gateway-old-copies",
+        type=bounded_int(0, CHECK_BOUND_MAX),
+        default=0,
+        help="--topology chain: the gateway starts from its record before its last write (a "
+        "backup put back; default 0); creates energy under --variant hardened, not witnessed",
+    )
 
 
+CHAIN_VARIANTS = ("hardened", "witnessed")
 _NOT_IN_CHAIN = (
     "engine",
     "workers",
@@ -220,9 +228,13 @@ def _run_chain(args: argparse.Namespace) -> int:
     from canergy.check.chain import ChainBounds, check_chain, format_chain
 
     given = [name for name in _NOT_IN_CHAIN if getattr(args, name)]
-    if args.variant != "hardened" or given:
-        flags = ", ".join("--" + name.replace("_", "-") for name in given) or "--variant"
-        raise ValueError(f"--topology chain checks the hardened rules only; not with {flags}")
+    if given:
+        flags = ", ".join("--" + name.replace("_", "-") for name in given)
+        raise ValueError(f"--topology chain: not with {flags}")
+    if args.variant not in CHAIN_VARIANTS:
+        raise ValueError(f"--topology chain checks the {' and '.join(CHAIN_VARIANTS)} rules")
+    if args.broken_gateway is not None and args.variant != "hardened":
+        raise ValueError("--broken-gateway breaks a rule of the hardened gateway")
     bounds = ChainBounds(
         clients=args.clients,
         transactions=args.transactions,
@@ -232,8 +244,10 @@ def _run_chain(args: argparse.Namespace) -> int:
         in_flight=args.in_flight or ChainBounds().in_flight,
         units=args.units,
         retries=args.retries,
+        old_copies=args.gateway_old_copies,
     )
     result = check_chain(
+        args.variant,
         bounds=bounds,
         broken=args.broken_gateway,
         max_states=args.max_states,
@@ -262,8 +276,8 @@ def run(args: argparse.Namespace) -> int:
 
     if args.topology == "chain":
         return _run_chain(args)
-    if args.broken_gateway is not None:
-        raise ValueError("--broken-gateway needs --topology chain")
+    if args.broken_gateway is not None or args.gateway_old_copies:
+        raise ValueError("--broken-gateway and --gateway-old-copies need --topology chain")
     bounds = Bounds(
         clients=args.clients,
         transactions=args.transactions,

@@ -77,7 +77,8 @@ def test_encode_pads_to_a_can_fd_length_with_nops_and_round_trips() -> None:
 
 def test_the_unset_integer_is_nan_and_values_saturate() -> None:
     (w,), _ = decode(encode(Write(Kind.INT16, Reg.COMMAND_POSITION, (math.nan, 1e9))))
-    assert isinstance(w, Write) and math.isnan(w.values[0]) and w.values[1] == 32767 * 0.00025  # 0x021: velocity
+    assert isinstance(w, Write) and math.isnan(w.values[0])
+    assert w.values[1] == 32767 * 0.00025  # 0x021, a velocity: the largest int16
 
 
 def test_a_malformed_frame_keeps_what_parsed_before_it_and_says_why() -> None:

@@ -72,6 +72,11 @@ class DeviceConfig(Generic[L]):
     reserve_uj: int = 0
     resume_margin_uj: int = 10 * QUANTUM_UJ
     telemetry_period_us: int = 50_000
+    unreadable: str = (
+        "the odrive limits cannot be read back (no answer, or firmware 0.5): trust them as "
+        "written with --odrive-trust-limits"
+    )
+    """Why limits that did not read back refuse the device (the profile's words)."""
 
 
 class DeviceGuard(Generic[L]):
@@ -229,10 +234,7 @@ class DeviceGuard(Generic[L]):
         if full is None or closed is None:
             self.verified = False
             if not self.config.trust_limits:
-                self._refuse(
-                    f"the {self.profile.name} limits cannot be read back (no answer, or "
-                    "firmware 0.5): trust them as written with --odrive-trust-limits"
-                )
+                self._refuse(self.config.unreadable)
         elif self.refused is None:
             self.verified = True
         self.confirmed = self.profile.closed(want)

@@ -87,7 +87,9 @@ class Mode(IntEnum):
     BRAKE = 15
 
 
-UNBOUNDED_MODES = frozenset({Mode.PWM, Mode.VOLTAGE, Mode.VOLTAGE_FOC, Mode.VOLTAGE_DQ, 14})
+UNBOUNDED_MODES = frozenset(
+    {Mode.PWM, Mode.VOLTAGE, Mode.VOLTAGE_FOC, Mode.VOLTAGE_DQ, Mode.MEASURE_INDUCTANCE}
+)
 """Modes that command voltage or PWM directly: the current and power limits do not hold."""
 UNBOUNDED_REGISTERS = {
     Reg.FIXED_VOLTAGE_OVERRIDE: "fixed voltage override (0x02a)",
@@ -138,8 +140,11 @@ SCALES: dict[int, tuple[float, float, float]] = {
 
 # -- identifiers ------------------------------------------------------------------------------
 def can_id(source: int, destination: int, reply: bool = False, prefix: int = 0) -> int:
-    return (prefix & PREFIX_MAX) << 16 | (REPLY if reply else 0) | (source & ID_MAX) << 8 | (
-        destination & ID_MAX
+    return (
+        (prefix & PREFIX_MAX) << 16
+        | (REPLY if reply else 0)
+        | (source & ID_MAX) << 8
+        | (destination & ID_MAX)
     )
 
 
@@ -486,7 +491,7 @@ class MoteusProfile:
 
     def mismatch(self, wrote: MoteusLimits, read: MoteusLimits) -> str | None:
         w = wrote.wire()
-        for (field, name, value), got in zip(w.items(), read.values(), strict=True):
+        for (_, name, value), got in zip(w.items(), read.values(), strict=True):
             same = got == value or (math.isnan(got) and math.isnan(value))
             close = math.isfinite(got) and abs(got - value) <= 1e-6 * max(1.0, abs(value))
             if not (same or close):

@@ -1,0 +1,194 @@
+"""``canergy supervisor --moteus`` on python-can's virtual bus (CAN FD frames), black-box: the
+emulated moteus (``firmware_model.moteus``, the CiA 402 drive's motor physics) and an
+application of our own sending register frames and diagnostic lines. Wall clock, generous
+timeouts; the bound is the guard's own, with the reaction and latency it measured in the run.
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from canergy.cli import main
+from canergy.devices.moteus import Kind, Mode, Reg, Write, encode, write_mode
+from canergy.ledger import ledger_from_status
+from firmware_model.moteus.live_bench import LIMITS, SERVO, ServoBench, guarded_servo, wait_for
+
+BUDGET = ("--initial", "20J", "--target", "5J")
+"""The envelope (8.03 W) is charged while the controller may run: 20 J last about 2.5 s."""
+
+
+def exhausted(bench: ServoBench) -> dict[str, Any] | None:
+    d = bench.servo_status()
+    done = (
+        d is not None
+        and d["stop_reason"] == "budget exhausted"
+        and d["guard"] == "stopped"
+        and d["usable_uj"] < d["stop_at_uj"]
+    )
+    return d if done else None
+
+
+def ready(bench: ServoBench) -> bool:
+    d = bench.servo_status()
+    return d is not None and d["ready"] and d["limits_confirmed"]
+
+
+def granted_and_servo(final: dict[str, Any]) -> tuple[int, dict[str, Any]]:
+    books = final["nodes"][str(SERVO)]
+    servo = final["cia402"]["devices"]["moteus"][str(SERVO)]
+    return books["delivered_uj"] - books["returns_credited_uj"], servo
+
+
+def keep_commanding(b: ServoBench, done: threading.Event, torque: float = 1.0) -> None:
+    """The application: a position command every 20 ms (its watchdog is 100 ms)."""
+    while not done.wait(0.02):
+        b.position(torque)
+
+
+def test_the_budget_runs_out_and_the_controller_stops_inside_the_bound(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        done = threading.Event()
+        app = threading.Thread(target=keep_commanding, args=(b, done), daemon=True)
+        app.start()
+        try:
+            wait_for(lambda: (d := b.servo_status()) and d["guard"] == "running", timeout=60)
+            wait_for(lambda: exhausted(b), timeout=60)
+            wait_for(lambda: (d := b.servo_status()) and d["drive_state"] == "STOPPED")
+        finally:
+            done.set()
+            app.join()
+        final = b.stop()
+    granted, servo = granted_and_servo(final)
+    assert "POSITION" in [s for _, s in b.model.history]  # it ran ...
+    # ... and was stopped (or timed out since: the application's last command came after the
+    # guard's last stop; the emulator's timeout mode has the power stage off)
+    assert b.model.mode in (Mode.STOPPED, Mode.TIMEOUT)
+    assert servo["limits_verified"] is True and servo["stuck"] is None
+    assert servo["credited_uj"] == granted == servo["spent_uj"] + servo["usable_uj"]
+    assert b.drawn() > 0
+    assert b.drawn() <= granted + servo["bound_uj"], (b.drawn(), granted, servo["bound_uj"])
+    assert final["conservation"]["holds"]
+    books = ledger_from_status(final, [])
+    assert books.drive_debt <= servo["bound_uj"]
+    assert "moteus axis 1: stopping (budget exhausted" in capsys.readouterr().err
+
+
+def test_an_application_raising_its_own_limits_is_charged_for_them(tmp_path: Path) -> None:
+    """Behind the guard, every 5 ms, the application sets servo.max_current_A 20 and
+    servo.max_power_W 450 and servo.max_velocity 100 on the diagnostic channel and commands
+    position mode with ±2 N·m feed-forward, reversing, in bursts of three frames. Each conf set
+    is charged at its envelope from when it was seen until the guard's own limits, written after
+    it, read back; what the controller drew stays inside granted + bound."""
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.position(1.0)
+        wait_for(lambda: (d := b.servo_status()) and d["guard"] == "running", timeout=60)
+        done = threading.Event()
+
+        def attack() -> None:
+            sign = 1.0
+            while not done.wait(0.005):
+                b.conf("conf set servo.max_current_A 20")
+                b.conf("conf set servo.max_power_W 450")
+                b.conf("conf set servo.max_velocity 100")
+                for _ in range(3):  # a burst between the guard's queries
+                    b.send(write_mode(Mode.STOPPED))  # leaves a timeout, as an application does
+                    b.position(2.0 * sign)
+                sign = -sign
+
+        before = wait_for(b.servo_status)["stops"]
+        attacker = threading.Thread(target=attack, daemon=True)
+        attacker.start()
+        try:
+            wait_for(lambda: (d := b.servo_status()) and d["writes_seen"], timeout=60)
+            wait_for(
+                lambda: (d := b.servo_status()) and (d["stops"] > before or d["refused"]),
+                timeout=60,
+            )
+        finally:
+            done.set()
+            attacker.join()
+        wait_for(lambda: (d := b.servo_status()) and d["drive_state"] == "STOPPED")
+        final = b.stop()
+    granted, servo = granted_and_servo(final)
+    print(
+        f"drawn {b.drawn()} µJ, granted {granted} µJ, bound {servo['bound_uj']} µJ, metered "
+        f"{servo['metered_uj']} µJ, writes seen {servo['writes_seen']}, {servo['stop_reason']}"
+    )
+    assert servo["writes_seen"] > 0
+    assert b.drawn() <= granted + servo["bound_uj"], (b.drawn(), granted, servo["bound_uj"])
+    assert servo["metered_uj"] >= b.drawn()
+
+
+def test_a_voltage_mode_behind_the_guard_stops_the_controller_for_good(tmp_path: Path) -> None:
+    """Voltage modes bypass the current and power limits: the guard cannot bound them."""
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.send(encode(Write(Kind.INT8, Reg.MODE, (float(Mode.VOLTAGE_FOC),))))
+        d = wait_for(lambda: (d := b.servo_status()) and d["refused"] and d, timeout=30)
+        b.stop()
+    assert d["refused"] == "a write behind the guard: mode 7 (VOLTAGE_FOC)"
+    assert d["latched"] and d["alive"] is False
+
+
+def test_a_limit_that_does_not_read_back_is_refused_at_set_up(tmp_path: Path) -> None:
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET, current_cap=1.0) as b:
+        d = wait_for(lambda: (d := b.servo_status()) and d["refused"] and d, timeout=30)
+        final = b.stop()
+    assert d["refused"] == "limits not taken: servo.max_current_A reads 1, written 2"
+    granted, servo = granted_and_servo(final)
+    assert granted == 0 and servo["alive"] is False
+
+
+def test_a_controller_that_ignores_the_stop_is_stuck(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET, ignores_stop=True) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        done = threading.Event()
+        app = threading.Thread(target=keep_commanding, args=(b, done), daemon=True)
+        app.start()
+        try:
+            d = wait_for(
+                lambda: (d := b.servo_status()) and d["guard"] == "stuck" and d, timeout=60
+            )
+        finally:
+            done.set()
+            app.join()
+        final = b.stop()
+    assert d["stuck"] == "still powered 2000 ms after the stop"
+    assert d["alive"] is False
+    _, servo = granted_and_servo(final)
+    # it ignores mode 0 but took the closed limits (0 W, 0 A): nothing is left to draw, so
+    # nothing is booked uncontained (the guard's books would say so at the envelope in force)
+    assert servo["limits"] == {**servo["limits"], "power_w": 0.0, "current_a": 0.0}
+    assert servo["uncontained_uj"] == 0
+    assert "moteus axis 1: STUCK (still powered 2000 ms after the stop" in capsys.readouterr().err
+
+
+def test_malformed_frames_are_counted_and_dropped(tmp_path: Path) -> None:
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        for junk in (b"\x77", b"\x0c\x05\x20", b"\x40\x01\x30ab", b"\x10\xff\xff\xff\xff\xff"):
+            b.send(junk)
+        d = wait_for(lambda: (d := b.servo_status()) and d["bad_frames"] >= 4 and d, timeout=30)
+        final = b.stop()
+    assert d["refused"] is None and final["conservation"]["holds"]
+
+
+def test_moteus_needs_can_fd_and_its_own_bus(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["supervisor", "-i", "virtual", "-c", "x", "--moteus", "1", *LIMITS]
+    argv += ["--moteus-torque-constant", "0.1", "--state", str(tmp_path / "s")]
+    assert main(argv) == 2
+    assert "moteus speaks CAN FD: give --fd" in capsys.readouterr().err
+    assert main([*argv, "--fd", "--odrive", "3"]) == 2
+    assert "--moteus and --odrive on one bus" in capsys.readouterr().err

@@ -164,7 +164,7 @@ class ServoModel:
 
     def _register(self, register: int) -> float | None:
         m = self.motor
-        values = {
+        values: dict[int, float] = {
             Reg.MODE: float(self.mode),
             Reg.POSITION: m.theta / TWO_PI,
             Reg.VELOCITY: m.omega / TWO_PI,

@@ -66,6 +66,8 @@ def test_the_budget_runs_out_and_the_controller_stops_inside_the_bound(
             app.join()
         final = b.stop()
     granted, servo = granted_and_servo(final)
+    with capsys.disabled():
+        print(f"drawn {b.drawn()} µJ, granted {granted} µJ, bound {servo['bound_uj']} µJ")
     assert "POSITION" in [s for _, s in b.model.history]  # it ran ...
     # ... and was stopped (or timed out since: the application's last command came after the
     # guard's last stop; the emulator's timeout mode has the power stage off)

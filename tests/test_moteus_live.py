@@ -6,14 +6,26 @@ timeouts; the bound is the guard's own, with the reaction and latency it measure
 
 from __future__ import annotations
 
+import math
 import threading
 from pathlib import Path
 from typing import Any
 
+import can
 import pytest
 
 from canergy.cli import main
-from canergy.devices.moteus import Kind, Mode, Reg, Write, encode, write_mode
+from canergy.devices.moteus import (
+    Kind,
+    Mode,
+    Reg,
+    Write,
+    can_id,
+    encode,
+    extended,
+    padded,
+    write_mode,
+)
 from canergy.ledger import ledger_from_status
 from firmware_model.moteus.live_bench import LIMITS, SERVO, ServoBench, guarded_servo, wait_for
 
@@ -194,3 +206,57 @@ def test_moteus_needs_can_fd_and_its_own_bus(
     assert "moteus speaks CAN FD: give --fd" in capsys.readouterr().err
     assert main([*argv, "--fd", "--odrive", "3"]) == 2
     assert "--moteus and --odrive on one bus" in capsys.readouterr().err
+
+
+def test_the_moteus_librarys_own_commands_as_the_application(tmp_path: Path) -> None:
+    """The application is the ``moteus`` package's (PyPI) message encoding, a client nobody here
+    wrote: position commands with 2 N·m feed-forward and queries every 5 ms, the limits raised
+    with its diagnostic writes and its stop, sent as its transport sends them (source 0, NOP
+    padding, extended above 0x7FF). Nothing of it opens a transport."""
+    import moteus
+
+    controller = moteus.Controller(id=SERVO)
+
+    def send(command: Any) -> None:
+        arbitration_id = can_id(command.source, command.destination, command.reply_required)
+        b.app.send(
+            can.Message(
+                arbitration_id=arbitration_id,
+                data=padded(command.data),
+                is_extended_id=extended(arbitration_id),
+                is_fd=True,
+            )
+        )
+
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        done = threading.Event()
+
+        def app() -> None:
+            sign = 1.0
+            while not done.wait(0.005):
+                send(controller.make_diagnostic_write(b"conf set servo.max_current_A 20\n"))
+                send(controller.make_stop())
+                send(
+                    controller.make_position(
+                        position=math.nan, velocity=0.0, feedforward_torque=2 * sign, query=True
+                    )
+                )
+                sign = -sign
+
+        before = wait_for(b.servo_status)["stops"]
+        runner = threading.Thread(target=app, daemon=True)
+        runner.start()
+        try:
+            wait_for(
+                lambda: (d := b.servo_status()) and d["writes_seen"] and d["stops"] > before,
+                timeout=60,
+            )
+        finally:
+            done.set()
+            runner.join()
+        final = b.stop()
+    granted, servo = granted_and_servo(final)
+    assert b.drawn() > 0 and servo["bad_frames"] == 0  # its frames all parse
+    assert b.drawn() <= granted + servo["bound_uj"], (b.drawn(), granted, servo["bound_uj"])
+    assert servo["metered_uj"] >= b.drawn()

@@ -187,14 +187,46 @@ def test_a_controller_that_ignores_the_stop_is_stuck(
     assert "moteus axis 1: STUCK (still powered 2000 ms after the stop" in capsys.readouterr().err
 
 
-def test_malformed_frames_are_counted_and_dropped(tmp_path: Path) -> None:
+def test_malformed_frames_from_the_controller_are_counted_and_dropped(tmp_path: Path) -> None:
     with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
         wait_for(lambda: ready(b), timeout=60)
-        for junk in (b"\x77", b"\x0c\x05\x20", b"\x40\x01\x30ab", b"\x10\xff\xff\xff\xff\xff"):
-            b.send(junk)
+        for junk in (b"\x77", b"\x2c\x05\x00", b"\x41\x01\x30ab", b"\x20\xff\xff\xff\xff\xff"):
+            b.send_as_servo(junk)
         d = wait_for(lambda: (d := b.servo_status()) and d["bad_frames"] >= 4 and d, timeout=30)
         final = b.stop()
     assert d["refused"] is None and final["conservation"]["holds"]
+
+
+@pytest.mark.parametrize(
+    ("data", "why"),
+    [
+        (b"\x01\x00\x0a\x77", "a frame the guard cannot read (unknown subframe 0x77 at byte 4)"),
+        (encode(Write(Kind.FLOAT, Reg.MODE, (7.5,))), "mode 7.5 (mode 7.5)"),
+        (encode(Write(Kind.INT8, Reg.MODE, (99.0,))), "mode 99 (mode 99)"),
+        (encode(Write(Kind.INT16, 0x110, (5.0,))), "multiplex id (0x110)"),
+    ],
+)
+def test_a_frame_to_the_controller_the_guard_cannot_bound_stops_it_for_good(
+    tmp_path: Path, data: bytes, why: str
+) -> None:
+    """The controller acts on what the guard cannot read: a subframe after an unknown one, a
+    mode that is no mode the limits hold in, a change of its id."""
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.send(data)
+        d = wait_for(lambda: (d := b.servo_status()) and d["refused"] and d, timeout=30)
+        b.stop()
+    assert d["refused"] == f"a write behind the guard: {why}"
+
+
+def test_an_application_using_the_guards_source_id_is_still_seen(tmp_path: Path) -> None:
+    """The guard's source id says nothing of who sent a frame: a limit set from it is charged."""
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.conf("conf set servo.max_current_A 20", source=0x7E)
+        d = wait_for(lambda: (d := b.servo_status()) and d["writes_seen"] and d, timeout=30)
+        b.stop()
+    assert d["writes_seen"] >= 1
 
 
 def test_moteus_needs_can_fd_and_its_own_bus(

@@ -69,9 +69,9 @@ class ServoBench:
         with self.face.lock:
             return self.model.drawn_uj
 
-    def send(self, data: bytes, reply: bool = False) -> None:
-        """A frame from the application to the controller."""
-        arbitration_id = can_id(APP, SERVO, reply)
+    def send(self, data: bytes, reply: bool = False, source: int = APP) -> None:
+        """A frame from the application (source id ``source``) to the controller."""
+        arbitration_id = can_id(source, SERVO, reply)
         self.app.send(
             can.Message(
                 arbitration_id=arbitration_id,
@@ -90,9 +90,16 @@ class ServoBench:
             )
         )
 
-    def conf(self, line: str) -> None:
+    def conf(self, line: str, source: int = APP) -> None:
         """A diagnostic line (``conf set ...``) from the application."""
-        self.send(encode(Stream(False, DIAGNOSTIC_CHANNEL, line.encode() + b"\n")))
+        data = encode(Stream(False, DIAGNOSTIC_CHANNEL, line.encode() + b"\n"))
+        self.send(data, source=source)
+
+    def send_as_servo(self, data: bytes) -> None:
+        """A frame in the controller's name, to the application."""
+        arbitration_id = can_id(SERVO, APP)
+        frame = can.Message(arbitration_id=arbitration_id, data=data, is_fd=True)
+        self.app.send(frame)
 
     def stop(self) -> dict[str, Any]:
         request(self.control, {"stop": True}, 30)

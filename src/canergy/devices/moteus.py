@@ -87,13 +87,17 @@ class Mode(IntEnum):
     BRAKE = 15
 
 
-UNBOUNDED_MODES = frozenset(
-    {Mode.PWM, Mode.VOLTAGE, Mode.VOLTAGE_FOC, Mode.VOLTAGE_DQ, Mode.MEASURE_INDUCTANCE}
+BOUNDED_MODES = frozenset(
+    {Mode.STOPPED, Mode.CURRENT, Mode.POSITION, Mode.ZERO_VELOCITY, Mode.STAY_WITHIN, Mode.BRAKE}
 )
-"""Modes that command voltage or PWM directly: the current and power limits do not hold."""
+"""Modes an application may write that the current and power limits hold in; the others
+(PWM, voltage, voltage FOC, voltage DQ, inductance measurement, and any value not a mode) command
+voltage or PWM directly, or mean nothing known."""
 UNBOUNDED_REGISTERS = {
     Reg.FIXED_VOLTAGE_OVERRIDE: "fixed voltage override (0x02a)",
     Reg.FIXED_CURRENT_OVERRIDE: "fixed current override (0x02c)",
+    0x071: "clock trim (0x071)",
+    0x110: "multiplex id (0x110)",
 }
 """Registers whose write bypasses the current limit (moteus: "fixed voltage mode")."""
 UNPOWERED_MODES = frozenset({Mode.STOPPED, Mode.FAULT})
@@ -334,10 +338,18 @@ def decode(data: bytes) -> tuple[list[Subframe], str | None]:
                     raise ValueError("stream data past the frame's end")
                 out.append(Stream(head == 0x41, channel, bytes(data[at : at + size])))
                 at += size
-            elif head == 0x42:
+            elif head in (0x42, 0x44):  # 0x44: a poll with a packet number (flow control)
                 channel, at = read_varuint(data, at)
+                at += 1 if head == 0x44 else 0
                 most, at = read_varuint(data, at)
                 out.append(Poll(channel, most))
+            elif head == 0x43:  # controller data with a packet number (flow control)
+                channel, at = read_varuint(data, at)
+                size, at = read_varuint(data, at + 1)
+                if at + size > len(data):
+                    raise ValueError("stream data past the frame's end")
+                out.append(Stream(True, channel, bytes(data[at : at + size])))
+                at += size
             else:
                 raise ValueError(f"unknown subframe 0x{head:02x}")
     except ValueError as exc:
@@ -372,6 +384,8 @@ UNBOUNDED_CONF = frozenset(
         "servo.fixed_voltage_mode",
         "servo.voltage_mode_control",
         "servo.timeout_mode",
+        "id.id",
+        "can.prefix",
     }
 )
 """Configuration the envelope depends on that the guard does not write (as are ``motor.*`` and

@@ -19,6 +19,7 @@ does not parse is counted; the subframes before the bad one count (the controlle
 
 from __future__ import annotations
 
+import collections
 import functools
 import logging
 import math
@@ -32,12 +33,12 @@ import can
 
 from canergy.devices.guard import DeviceGuard
 from canergy.devices.moteus import (
+    BOUNDED_MODES,
     CONF,
     DIAGNOSTIC_CHANNEL,
     FEEDBACK,
     UNBOUNDED_COMMANDS,
     UNBOUNDED_CONF,
-    UNBOUNDED_MODES,
     UNBOUNDED_REGISTERS,
     UNPOWERED_MODES,
     Mode,
@@ -111,6 +112,10 @@ class MoteusLink:
         self.lines: queue.Queue[str] = queue.Queue()
         self.answers = bytearray()
         self.foreign_stream = bytearray()
+        self.stream_lock = threading.Lock()
+        self.sent: collections.deque[tuple[int, bytes]] = collections.deque(maxlen=64)
+        """What the guard sent lately, for ``_own`` (python-can loops nothing back by default:
+        ``receive_own_messages``)."""
         self.work: queue.Queue[WriteLimits[MoteusLimits] | Stop | None] = queue.Queue()
         self.voltage: float | None = None
         self.mode: str | None = None
@@ -137,7 +142,7 @@ class MoteusLink:
         if prefix != self.config.prefix or (prefix and not frame.is_extended_id):
             return
         from_device = source == self.node and destination != self.node
-        to_device = destination == self.node and source != self.config.source
+        to_device = destination == self.node and not self._own(frame)
         if not (from_device or to_device):
             return
         at = self.clock()
@@ -149,10 +154,22 @@ class MoteusLink:
                 self._from_device(subframes, destination, at)
             else:
                 self._to_device(subframes, at)
+                if error is not None:  # the controller may read what follows: not bounded
+                    self._foreign_write(f"a frame the guard cannot read ({error})")
         finally:
             if error is not None:
                 with self.lock:
                     self.bad_frames += 1
+
+    def _own(self, frame: can.Message) -> bool:
+        """The guard's own frame, looped back (an interface that echoes what it sends): its
+        source id alone says nothing, anyone can use it."""
+        key = (frame.arbitration_id, bytes(frame.data))
+        with self.lock:
+            if key in self.sent:
+                self.sent.remove(key)
+                return True
+        return False
 
     def on_error(self, exc: Exception) -> None:
         with self.lock:
@@ -198,14 +215,16 @@ class MoteusLink:
             if isinstance(s, Write):
                 for register, value in enumerate(s.values, start=s.start):
                     what = None
-                    if register == Reg.MODE and whole(value) in UNBOUNDED_MODES:
+                    if register == Reg.MODE and whole(value) not in BOUNDED_MODES:
                         what = f"mode {value:g} ({mode_name(value)})"
                     elif register in UNBOUNDED_REGISTERS:
-                        what = UNBOUNDED_REGISTERS[Reg(register)]
+                        what = UNBOUNDED_REGISTERS[register]
                     if what is not None:
                         self._foreign_write(what)
             elif isinstance(s, Stream) and not s.server and s.channel == DIAGNOSTIC_CHANNEL:
-                for line in stream_lines(self.foreign_stream, s.data):
+                with self.stream_lock:
+                    lines = stream_lines(self.foreign_stream, s.data)
+                for line in lines:
                     self._foreign_line(line, at)
 
     def _foreign_write(self, what: str) -> None:
@@ -275,6 +294,8 @@ class MoteusLink:
             is_fd=True,
             bitrate_switch=True,
         )
+        with self.lock:
+            self.sent.append((arbitration_id, data))
         try:
             self.bus.send(frame)
             return True
@@ -317,18 +338,32 @@ class MoteusLink:
         answered)."""
         self.held = limits  # others' values set after this add up on these
         for _, name, value in limits.items():
-            if self._ask(conf_set(name, value)) != "OK":
+            if not self._answered(conf_set(name, value), lambda answer: answer == "OK"):
                 return None
-        got = []
+        got: list[float] = []
         for _, name, _ in limits.items():
             start = self.clock()
-            answer = self._ask(conf_get(name))
-            try:
-                got.append(float(answer or ""))
-            except ValueError:
+            if not self._answered(conf_get(name), lambda answer: got.append(float(answer))):
                 return None
             self.latency_max_us = max(self.latency_max_us, self.clock() - start)
         return MoteusLimits(*got)
+
+    def _answered(self, line: bytes, take: Callable[[str], object]) -> bool:
+        """Ask ``line``; True when answered as such a line is (``take`` neither raises nor
+        returns False). Another answer means the controller read something else: a line someone
+        left unfinished on the stream ran with the guard's (it sees the stream's bytes, not
+        their senders), with effects the read-back may not show: stopped for good."""
+        answer = self._ask(line)
+        if answer is None:
+            return False  # no answer in time: not read back (written again later)
+        try:
+            if take(answer) is not False:
+                return True
+        except ValueError:
+            pass
+        said = line.decode(errors="replace").strip()
+        self._foreign_write(f"the controller answered {answer[:40]!r} to '{said}'")
+        return False
 
     def _ask(self, line: bytes) -> str | None:
         """Send one diagnostic line, poll for its one-line answer (None: none in time)."""

@@ -170,3 +170,9 @@ def test_a_controller_powered_after_its_stop_is_stuck() -> None:
         g.on_feedback(t, t, True, "POSITION")
         g.on_wakeup(t)
     assert g.phase is GuardPhase.STUCK and g.stuck == "still powered 500 ms after the stop"
+
+
+def test_flow_controlled_stream_subframes_decode() -> None:
+    """0x43 and 0x44 carry a packet number after the channel (the moteus tools' flow control)."""
+    assert decode(b"\x43\x01\x05\x02ok") == ([Stream(True, 1, b"ok")], None)
+    assert decode(b"\x44\x01\x05\x30") == ([Poll(1, 48)], None)

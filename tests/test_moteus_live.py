@@ -292,3 +292,25 @@ def test_the_moteus_librarys_own_commands_as_the_application(tmp_path: Path) -> 
     assert b.drawn() > 0 and servo["bad_frames"] == 0  # its frames all parse
     assert b.drawn() <= granted + servo["bound_uj"], (b.drawn(), granted, servo["bound_uj"])
     assert servo["metered_uj"] >= b.drawn()
+
+
+def test_sampled_metering_integrates_the_power_register_and_claims_no_bound(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--moteus-meter sampled: no limits written, register 0x007 integrated between queries,
+    guarantee none (the controller keeps its own limits: 450 W here)."""
+    with guarded_servo(tmp_path, "--moteus-meter", "sampled", *BUDGET) as b:
+        wait_for(lambda: (d := b.servo_status()) and d["ready"], timeout=60)
+        done = threading.Event()
+        app = threading.Thread(target=keep_commanding, args=(b, done, 0.5), daemon=True)
+        app.start()
+        try:
+            d = wait_for(lambda: (d := b.servo_status()) and d["metered_uj"] > 0 and d, timeout=60)
+        finally:
+            done.set()
+            app.join()
+        b.stop()
+    assert d["meter"] == "sampled" and d["guarantee"] == "none" and d["bound_uj"] is None
+    assert d["limits"] is None and d["envelope_w"] is None
+    assert b.model.config["servo.max_power_W"] == 450.0  # nothing written
+    assert "warning: --moteus-meter sampled" in capsys.readouterr().err

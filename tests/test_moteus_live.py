@@ -198,22 +198,27 @@ def test_malformed_frames_from_the_controller_are_counted_and_dropped(tmp_path: 
 
 
 @pytest.mark.parametrize(
-    ("data", "why"),
+    ("data", "why", "to"),
     [
-        (b"\x01\x00\x0a\x77", "a frame the guard cannot read (unknown subframe 0x77 at byte 4)"),
-        (encode(Write(Kind.FLOAT, Reg.MODE, (7.5,))), "mode 7.5 (mode 7.5)"),
-        (encode(Write(Kind.INT8, Reg.MODE, (99.0,))), "mode 99 (mode 99)"),
-        (encode(Write(Kind.INT16, 0x110, (5.0,))), "multiplex id (0x110)"),
+        (
+            b"\x01\x00\x0a\x77",
+            "a frame the guard cannot read (unknown subframe 0x77 at byte 4)",
+            SERVO,
+        ),
+        (encode(Write(Kind.FLOAT, Reg.MODE, (7.5,))), "mode 7.5 (mode 7.5)", SERVO),
+        (encode(Write(Kind.INT8, Reg.MODE, (99.0,))), "mode 99 (mode 99)", SERVO),
+        (encode(Write(Kind.INT16, 0x110, (5.0,))), "multiplex id (0x110)", SERVO),
+        (encode(Write(Kind.INT8, Reg.MODE, (7.0,))), "mode 7 (VOLTAGE_FOC)", 0x7F),
     ],
 )
 def test_a_frame_to_the_controller_the_guard_cannot_bound_stops_it_for_good(
-    tmp_path: Path, data: bytes, why: str
+    tmp_path: Path, data: bytes, why: str, to: int
 ) -> None:
     """The controller acts on what the guard cannot read: a subframe after an unknown one, a
     mode that is no mode the limits hold in, a change of its id."""
     with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
         wait_for(lambda: ready(b), timeout=60)
-        b.send(data)
+        b.send(data, destination=to)
         d = wait_for(lambda: (d := b.servo_status()) and d["refused"] and d, timeout=30)
         b.stop()
     assert d["refused"] == f"a write behind the guard: {why}"

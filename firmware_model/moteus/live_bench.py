@@ -69,9 +69,11 @@ class ServoBench:
         with self.face.lock:
             return self.model.drawn_uj
 
-    def send(self, data: bytes, reply: bool = False, source: int = APP) -> None:
+    def send(
+        self, data: bytes, reply: bool = False, source: int = APP, destination: int = SERVO
+    ) -> None:
         """A frame from the application (source id ``source``) to the controller."""
-        arbitration_id = can_id(source, SERVO, reply)
+        arbitration_id = can_id(source, destination, reply)
         self.app.send(
             can.Message(
                 arbitration_id=arbitration_id,

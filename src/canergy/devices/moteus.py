@@ -41,6 +41,9 @@ from canergy.devices.odrive import FW_PER_W, TWO_PI_UP, ceil_fraction, f32
 from canergy.devices.profile import Envelope
 
 ID_MAX = 0x7F
+BROADCAST = 0x7F
+"""The multiplex protocol's broadcast id: a frame to it is taken as addressed to every
+controller."""
 PREFIX_MAX = 0x1FFF
 REPLY = 0x8000
 DIAGNOSTIC_CHANNEL = 1

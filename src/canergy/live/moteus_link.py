@@ -34,6 +34,7 @@ import can
 from canergy.devices.guard import DeviceGuard
 from canergy.devices.moteus import (
     BOUNDED_MODES,
+    BROADCAST,
     CONF,
     DIAGNOSTIC_CHANNEL,
     FEEDBACK,
@@ -142,7 +143,8 @@ class MoteusLink:
         if prefix != self.config.prefix or (prefix and not frame.is_extended_id):
             return
         from_device = source == self.node and destination != self.node
-        to_device = destination == self.node and not self._own(frame)
+        addressed = destination in (self.node, BROADCAST)
+        to_device = addressed and source != self.node and not self._own(frame)
         if not (from_device or to_device):
             return
         at = self.clock()

@@ -114,6 +114,9 @@ class MoteusLink:
         self.answers = bytearray()
         self.foreign_stream = bytearray()
         self.stream_lock = threading.Lock()
+        self.late = False
+        """A line went unanswered in time: its answer may still come (drained first)."""
+        self.drained = threading.Event()
         self.sent: collections.deque[tuple[int, bytes]] = collections.deque(maxlen=64)
         """What the guard sent lately, for ``_own`` (python-can loops nothing back by default:
         ``receive_own_messages``)."""
@@ -195,6 +198,8 @@ class MoteusLink:
             ):
                 for line in stream_lines(self.answers, s.data):
                     self.lines.put(line)
+                if not s.data:
+                    self.drained.set()  # the controller has nothing more to say
         if Reg.MODE not in values:
             return
         mode = values[Reg.MODE]
@@ -369,8 +374,8 @@ class MoteusLink:
 
     def _ask(self, line: bytes) -> str | None:
         """Send one diagnostic line, poll for its one-line answer (None: none in time)."""
-        while not self.lines.empty():
-            self.lines.get_nowait()  # answers given up on
+        if self.late and not self._drain():
+            return None
         if not self._send(encode(Stream(False, DIAGNOSTIC_CHANNEL, line))):
             return None
         deadline = time.monotonic() + self.config.answer_timeout_s
@@ -380,7 +385,24 @@ class MoteusLink:
                 return self.lines.get(timeout=min(left, 0.005))
             except queue.Empty:
                 continue
+        self.late = True  # its answer may still come: not to be taken for the next line's
         return None
+
+    def _drain(self) -> bool:
+        """Poll until the controller has nothing more to say, and drop what it said (answers to
+        lines given up on); False if it kept talking."""
+        deadline = time.monotonic() + self.config.answer_timeout_s
+        while time.monotonic() < deadline:
+            self.drained.clear()
+            self._send(encode(Poll(DIAGNOSTIC_CHANNEL, 48)), reply=True)
+            if self.drained.wait(0.005):
+                break
+        else:
+            return False
+        while not self.lines.empty():
+            self.lines.get_nowait()
+        self.late = False
+        return True
 
 
 def _limits(

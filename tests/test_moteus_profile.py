@@ -125,6 +125,9 @@ def test_mismatch_names_the_configuration_value() -> None:
     assert profile.mismatch(FULL, FULL.with_conf("servo.max_current_A", 3.0)) == (
         "servo.max_current_A reads 3, written 4"
     )
+    fine = MoteusLimits(123.456789, 4.0, 3.0, 0.1)
+    assert profile.mismatch(fine, fine.with_conf("servo.max_power_W", 123.457)) is None  # text
+    assert profile.mismatch(fine, fine.with_conf("servo.max_power_W", 123.46)) is not None
     nan = FULL.with_conf("servo.default_timeout_s", math.nan)
     assert profile.mismatch(FULL, nan) == "servo.default_timeout_s reads nan, written 0.1"
 

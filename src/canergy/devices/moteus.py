@@ -49,6 +49,9 @@ REPLY = 0x8000
 DIAGNOSTIC_CHANNEL = 1
 FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 NOP = 0x50
+READ_BACK_TOLERANCE = 1e-5
+"""``conf get`` answers in text: a value read back within this (relative, or absolute below 1)
+of the one written is the one written (six significant digits)."""
 
 
 class Reg(IntEnum):
@@ -510,7 +513,9 @@ class MoteusProfile:
         w = wrote.wire()
         for (_, name, value), got in zip(w.items(), read.values(), strict=True):
             same = got == value or (math.isnan(got) and math.isnan(value))
-            close = math.isfinite(got) and abs(got - value) <= 1e-6 * max(1.0, abs(value))
+            close = math.isfinite(got) and abs(got - value) <= READ_BACK_TOLERANCE * max(
+                1.0, abs(value)
+            )
             if not (same or close):
                 return f"{name} reads {got:g}, written {value:g}"
         return None

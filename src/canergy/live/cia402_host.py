@@ -8,7 +8,7 @@ drains the drives' TPDO samples into their guards, hands the guards' commands to
 produces the host's heartbeat (and SYNC, when asked) that the drives' consumers watch: a host
 whose loop stops, or whose process dies, goes silent and its drives fault on their own.
 
-Devices of other profiles (``devices``: ODrive axes, moteus controllers, ``canergy.devices``) are proxied the same
+Devices of other profiles (``devices``: ODrive axes, ``canergy.devices``) are proxied the same
 way; their links are pumped in the same pass and their status is under ``devices``, by profile.
 With no CiA 402 drive there is no host heartbeat (``beat`` None): on a CAN Simple bus its
 identifier is some axis's command (0x77F is node 59's Enter_DFU_Mode).

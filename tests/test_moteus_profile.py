@@ -179,3 +179,20 @@ def test_flow_controlled_stream_subframes_decode() -> None:
     """0x43 and 0x44 carry a packet number after the channel (the moteus tools' flow control)."""
     assert decode(b"\x43\x01\x05\x02ok") == ([Stream(True, 1, b"ok")], None)
     assert decode(b"\x44\x01\x05\x30") == ([Poll(1, 48)], None)
+
+
+def test_limits_written_behind_the_guard_during_its_set_up_are_charged_once_it_is_ready() -> None:
+    """A conf set after a value's read-back but before the set-up ended shows in no read-back:
+    the guard takes it in when the set-up is done, charged from when it was seen, and writes its
+    own limits again (they were once dropped: charged nothing, never written over)."""
+    g = guard()
+    raised = FULL.with_conf("servo.max_current_A", 20.0).with_conf("servo.max_power_W", 200.0)
+    assert g.profile.envelope(raised).fw == 200 * 10**15  # P_max binds: 200 W
+    g.on_foreign_limits(8_000, 6_000, raised)
+    g.on_ready(10_000, 0, FULL, g.profile.closed(FULL))
+    assert g.writes_seen == 1 and g.foreign == raised
+    # the full limits' 20 W from the set-up's start, and the raised ones' surplus from 6 ms on
+    surplus = (g.profile.envelope(raised).fw - g.profile.envelope(FULL).fw) * 4_000
+    g.on_wakeup(11_000)  # and the raised ones' 200 W from 10 to 11 ms
+    assert isinstance(g.commands[-1], WriteLimits)  # its own limits again
+    assert g.metered_uj == (20 * 10**15 * 10_000 + surplus + 200 * 10**15 * 1_000) // 10**15

@@ -19,6 +19,7 @@ from canergy.devices.moteus import (
     Kind,
     Mode,
     Reg,
+    Stream,
     Write,
     can_id,
     encode,
@@ -209,6 +210,12 @@ def test_malformed_frames_from_the_controller_are_counted_and_dropped(tmp_path: 
         (encode(Write(Kind.INT8, Reg.MODE, (99.0,))), "mode 99 (mode 99)", SERVO),
         (encode(Write(Kind.INT16, 0x110, (5.0,))), "multiplex id (0x110)", SERVO),
         (encode(Write(Kind.INT8, Reg.MODE, (7.0,))), "mode 7 (VOLTAGE_FOC)", 0x7F),
+        (encode(Stream(False, 1, b"conf  load\n")), "'conf  load'", SERVO),
+        (
+            encode(Stream(False, 1, b"conf set servo.max_current_A 9x\n")),
+            "'conf set servo.max_current_A 9x'",
+            SERVO,
+        ),
     ],
 )
 def test_a_frame_to_the_controller_the_guard_cannot_bound_stops_it_for_good(

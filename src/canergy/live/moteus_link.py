@@ -239,16 +239,17 @@ class MoteusLink:
 
     def _foreign_line(self, line: str, at: int) -> None:
         words = line.split()
-        if line.startswith(UNBOUNDED_COMMANDS):
+        if " ".join(words).startswith(UNBOUNDED_COMMANDS):
             self._foreign_write(f"'{line[:60]}'")
-        if words[:2] != ["conf", "set"] or len(words) < 3:
-            return
+        if words[:2] != ["conf", "set"] or len(words) < 4:
+            return  # with no value, nothing is set
         name = words[2]
         if name in CONF.values() and self.held is not None:
             try:
                 value = float(words[3])
-            except (IndexError, ValueError):
-                return  # the controller refuses it too ("ERR")
+            except ValueError:  # a lenient parser may take its start as a number
+                self._foreign_write(f"'{line[:60]}'")
+                return
             # the values others set add up on the controller until the guard writes its own
             seen = self.held = self.held.with_conf(name, value)
             self._event(lambda g, now: g.on_foreign_limits(now, at, seen))

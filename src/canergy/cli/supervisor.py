@@ -24,6 +24,7 @@ from canergy.cli.shared.live import (
     start_without_flag,
     supervisor_flags,
 )
+from canergy.cli.shared.moteus import add_moteus_flags, check_moteus, guard_moteus, moteus_filters
 from canergy.cli.shared.odrive import add_odrive_flags, check_odrive, guard_axes
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
@@ -115,6 +116,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p.add_argument("--eds", type=Path, help="the nodes' EDS (default: canergy's node EDS)")
     add_cia402_flags(p)
     add_odrive_flags(p)
+    add_moteus_flags(p)
     p.set_defaults(run=run)
 
 
@@ -169,6 +171,7 @@ def _buses(args: argparse.Namespace) -> tuple[BusSpec, ...]:
             ("--canopen", args.canopen),
             ("--cia402", args.cia402),
             ("--odrive", args.odrive),
+            ("--moteus", args.moteus),
         )
         if on
     ]
@@ -225,6 +228,7 @@ def run(args: argparse.Namespace) -> int:
         nodes = session_keys(buses)
     else:
         nodes = tuple(sorted((*(args.nodes or ()), *(args.cia402 or ()), *(args.odrive or ()))))
+        nodes = tuple(sorted((*nodes, *(args.moteus or ()))))
     core = build_core(args, nodes, names, key)
     config = _config(args, key, names)
     if buses:
@@ -245,6 +249,7 @@ def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
             "its --state (not --listen-only)"
         )
     if not buses:
+        check_moteus(args)
         check_odrive(args)
         check_cia402(args)
     check_state(args, required=not args.listen_only)
@@ -268,7 +273,7 @@ def _config(args: argparse.Namespace, key: Any, names: tuple[str, ...]) -> Servi
         inject_uj=args.inject or 0,
         stop_on_intrusion=args.on_intrusion == "stop",
         return_hold_us=None if key is not None else args.return_hold,
-        local_nodes=frozenset((*(args.cia402 or ()), *(args.odrive or ()))),
+        local_nodes=frozenset((*(args.cia402 or ()), *(args.odrive or ()), *(args.moteus or ()))),
         bus_names=names,
     )
 
@@ -333,6 +338,10 @@ def _run_bus(
         from canergy.live.shared_bus import STANDARD_FRAMES
 
         filters.append(STANDARD_FRAMES)  # CANopen's 11-bit ids
+    if args.moteus:
+        from canergy.live.shared_bus import STANDARD_FRAMES
+
+        filters += [STANDARD_FRAMES, *moteus_filters(args)]
     bus = open_bus(args, filters)
     control = None
     manager = None
@@ -372,6 +381,21 @@ def _run_bus(
                 assert network.notifier is not None
                 network.notifier.add_listener(link)
                 link.start()
+        if args.moteus:
+            from canergy.live.cia402_host import GuardedSupervisor
+            from canergy.live.shared_bus import shared_network
+
+            network, reader = shared_network(bus)
+            now = monotonic_us()
+            controllers = guard_moteus(args, bus, rule_timing(args), now, monotonic_us)
+            guarded = GuardedSupervisor(
+                service, {}, bus, None, now, devices=controllers, codec=codec, report=_report_axis
+            )
+            handler = guarded
+            for _, moteus_link in controllers.values():
+                assert network.notifier is not None
+                network.notifier.add_listener(moteus_link)
+                moteus_link.start()
         runtime = BusRuntime(
             bus,
             handler,

@@ -72,6 +72,11 @@ class DeviceConfig(Generic[L]):
     reserve_uj: int = 0
     resume_margin_uj: int = 10 * QUANTUM_UJ
     telemetry_period_us: int = 50_000
+    unreadable: str = (
+        "the odrive limits cannot be read back (no answer, or firmware 0.5): trust them as "
+        "written with --odrive-trust-limits"
+    )
+    """Why limits that did not read back refuse the device (the profile's words)."""
 
 
 class DeviceGuard(Generic[L]):
@@ -103,6 +108,8 @@ class DeviceGuard(Generic[L]):
         """Limits someone else wrote, in force until a write of the guard's after them is
         confirmed."""
         self.foreign_at: int | None = None
+        self.early_foreign: list[tuple[int, L]] = []
+        """Limits someone else wrote before the set-up was done (when, which)."""
         self.lowered_fw = 0
         self.lowered_until = 0
         self.charged_until: int | None = None
@@ -229,10 +236,7 @@ class DeviceGuard(Generic[L]):
         if full is None or closed is None:
             self.verified = False
             if not self.config.trust_limits:
-                self._refuse(
-                    f"the {self.profile.name} limits cannot be read back (no answer, or "
-                    "firmware 0.5): trust them as written with --odrive-trust-limits"
-                )
+                self._refuse(self.config.unreadable)
         elif self.refused is None:
             self.verified = True
         self.confirmed = self.profile.closed(want)
@@ -240,6 +244,10 @@ class DeviceGuard(Generic[L]):
         self.charged_until, self.charge_fw = started_at, self._fw(want)
         self.lowered_fw, self.lowered_until = self._fw(want), now + self.latency_us()
         self.charge(now)
+        # limits someone else wrote while the set-up ran, after a read-back could show them
+        for at, limits in self.early_foreign:
+            self._take_foreign(now, max(at, started_at), limits)
+        self.early_foreign.clear()
 
     def on_limits(self, now: int, wrote: L, read: L | None, at: int) -> list[Message]:
         """The device read back ``read`` after the guard wrote ``wrote`` at ``at`` (None: not
@@ -298,9 +306,17 @@ class DeviceGuard(Generic[L]):
 
     def on_foreign_limits(self, now: int, at: int, limits: L) -> list[Message]:
         """Someone else wrote ``limits`` (seen at ``at``): charged from then, written over."""
-        if not self.sound or self.charged_until is None:
+        if not self.sound:
             return []
         self.writes_seen += 1
+        if self.charged_until is None:  # during the set-up: taken in by ``on_ready``
+            self.early_foreign.append((at, limits))
+            return []
+        self._take_foreign(now, at, limits)
+        return self._settled(now)
+
+    def _take_foreign(self, now: int, at: int, limits: L) -> None:
+        assert self.charged_until is not None
         self.charge(now)
         early = max(0, self.charged_until - at)
         if self._fw(limits) > self._fw(self.foreign):
@@ -309,7 +325,6 @@ class DeviceGuard(Generic[L]):
         self.foreign_at = at
         self._recharge(now)
         self.rewrite_at = now  # the guard's own limits again, at once
-        return self._settled(now)
 
     def on_foreign_write(self, now: int, what: str) -> list[Message]:
         """A write behind the guard whose effect it cannot bound: stopped for good."""

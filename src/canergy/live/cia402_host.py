@@ -17,7 +17,7 @@ identifier is some axis's command (0x77F is node 59's Enter_DFU_Mode).
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -27,9 +27,8 @@ from canergy.auth.frames import Verdict
 from canergy.cia402.guard import DriveGuard
 from canergy.codec import Codec, DecodeError
 from canergy.devices.guard import DeviceGuard
-from canergy.devices.odrive import OdriveLimits
 from canergy.live.cia402_link import DriveLink
-from canergy.live.odrive_link import OdriveLink
+from canergy.live.device_link import Device, DeviceLink
 from canergy.live.service import SupervisorService
 from canergy.messages import Direction, Message, ToClient
 
@@ -57,7 +56,7 @@ class GuardedSupervisor:
         beat: HostBeat | None,
         now: int,
         *,
-        devices: dict[int, tuple[DeviceGuard[OdriveLimits], OdriveLink]] | None = None,
+        devices: Mapping[int, Device] | None = None,
         codec: Codec | None = None,
         capture: can.Listener | None = None,
         report: Callable[[str], None] | None = None,
@@ -172,7 +171,7 @@ class GuardedSupervisor:
                 to_bus.append(msg)
                 continue
             down = self._loop_back(msg, Direction.TO_CLIENT, now)
-            guard: DriveGuard | DeviceGuard[OdriveLimits] = (
+            guard: DriveGuard | DeviceGuard[Any] = (
                 self.drives[msg.node][0] if msg.node in self.drives else self.devices[msg.node][0]
             )
             if isinstance(down, ToClient):
@@ -238,7 +237,7 @@ class GuardedSupervisor:
                 device.halt(now)
             self._hand_over_device(device, device_link)
 
-    def _tell(self, guard: DriveGuard | DeviceGuard[OdriveLimits]) -> None:
+    def _tell(self, guard: DriveGuard | DeviceGuard[Any]) -> None:
         stuck = getattr(guard, "stuck", None)
         seen = (guard.phase.value, guard.stop_reason if stuck is None else stuck)
         if self.report is None or self.reported.get(guard.node, seen) == seen:
@@ -266,7 +265,7 @@ class GuardedSupervisor:
         guard.commands.clear()
 
     @staticmethod
-    def _hand_over_device(device: DeviceGuard[OdriveLimits], link: OdriveLink) -> None:
+    def _hand_over_device(device: DeviceGuard[Any], link: DeviceLink) -> None:
         for cmd in device.commands:
             link.command(cmd)
         device.commands.clear()

@@ -247,7 +247,8 @@ def check_cia402(args: argparse.Namespace) -> None:
     """Everything about the drives that can be judged before the bus is opened."""
     drives = args.cia402 or ()
     nodes = args.nodes or ()
-    if not drives and not nodes and not getattr(args, "odrive", None):
+    devices = getattr(args, "odrive", None) or getattr(args, "moteus", None)
+    if not drives and not nodes and not devices:
         raise ValueError("give --nodes, --cia402 or both (or --bus for several buses)")
     if not drives:
         return

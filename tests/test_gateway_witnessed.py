@@ -167,6 +167,11 @@ def test_both_legs_witnessed_a_start_waits_above_and_below() -> None:
     assert gw.upstream_waiting() is None and gw.behind == 0 and gw.down.state.usable == J
     with pytest.raises(LocalProtocolError, match="waiting for node"):
         gw.down.begin(1, J // 2, 0)
+    # nor returned above: Us may be an older copy's, holding what node 1 was granted since
+    # (found by canergy check --topology chain --variant witnessed --gateway-old-copies 1)
+    assert not gw.can_give_back()
+    with pytest.raises(LocalProtocolError, match="no return upstream .* node.s. 1"):
+        gw.give_back(J // 2, 0)
 
 
 # -- a whole tree, the gateway's record restored at any step ---------------------------------

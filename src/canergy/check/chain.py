@@ -40,7 +40,15 @@ from canergy.check.model import (
 )
 from canergy.check.search import breadth_first
 from canergy.core.actions import Action, Send
-from canergy.core.gateway import Gateway, GatewayState, forward, link_gap
+from canergy.core.errors import LocalProtocolError
+from canergy.core.gateway import (
+    STARTING,
+    Gateway,
+    GatewayState,
+    forward,
+    link_gap,
+    may_give_back,
+)
 from canergy.core.inputs import (
     COMMAND_TIMEOUT,
     POWER_LOSS,
@@ -53,7 +61,7 @@ from canergy.core.inputs import (
     Spend,
 )
 from canergy.core.state import ClientState, Decision, Phase, Session, SupervisorState
-from canergy.core.supervisor import apply_session, inject_into
+from canergy.core.supervisor import apply_session, inject_into, unconfirmed
 from canergy.core.table import Event
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
@@ -119,18 +127,35 @@ class ChainWorld:
     ghost_out: int = 0
     """Injected into and withdrawn from the level below after the restored copies were
     written."""
+    dropped: int = 0
+    """Us below a start found behind dropped (``Gateway.dropped``): the record's withdrawal
+    and its spent above both go down by it, but nothing left the level; the ledger counts it
+    as lost there (a copy's Us whose energy had already left counts then as nothing)."""
+
+    def passive(self) -> bool:
+        """Every level and the gateway between its roles passive; after a restored copy, the
+        tree as a whole: where the energy the copy forgot went (a RETURN it voided still
+        holds it, a withdrawal it undid did not) no observer of the records can tell level by
+        level, but the ghost terms cancel in the tree's sum, which is what the supplies hold
+        against what the root started with."""
+        tree = self.ledger()
+        return tree.passive if not self.old_copied else tree.dissipated >= 0
 
     def ledger(self) -> TreeLedger:
         gw = self.gateway
+        ghost_spent = self.ghost_up.spent
         below = ledger(gw.down, self.nodes)
         below = replace(
             below,
             injected=below.injected + self.ghost_in,
-            withdrawn=below.withdrawn + self.ghost_out,
+            withdrawn=below.withdrawn + self.ghost_out - self.dropped,
         )
+        if gw.up.phase in STARTING:  # Us below counts once the supervisor above confirms it
+            below = replace(below, supervisor_usable=min(gw.down.usable, 0))
+        up = self.ghost_up._replace(spent=self.ghost_up.spent + self.dropped)
         return TreeLedger(
-            {"root": ledger(self.root, (gw.up,), {GATEWAY_NODE: self.ghost_up}), "gateway": below},
-            {"gateway": link_gap(gw.up, gw.down) + self.ghost_in - self.ghost_out},
+            {"root": ledger(self.root, (gw.up,), {GATEWAY_NODE: up}), "gateway": below},
+            {"gateway": link_gap(gw.up, gw.down) + self.ghost_in - self.ghost_out - ghost_spent},
         )
 
 
@@ -229,8 +254,9 @@ class ChainModel:
     # -- enumeration -------------------------------------------------------------------------
     def steps(self, w: ChainWorld) -> Iterator[ChainStep]:
         b = self.bounds
-        yield from self._supervisor_steps(w.root, w.root_started, "ROOT")
-        yield from self._supervisor_steps(w.gateway.down, w.gateway_started, "GATEWAY")
+        yield from self._supervisor_steps(w.root, w.root_started, "ROOT", unconfirmed(w.root))
+        held = w.gateway.up.phase in STARTING or unconfirmed(w.gateway.down)  # Gateway.down.hold
+        yield from self._supervisor_steps(w.gateway.down, w.gateway_started, "GATEWAY", held)
         for leg, flight in (("up", w.up), ("down", w.down)):
             for msg, _ in sorted(flight, key=lambda item: message_key(item[0])):
                 yield ChainStep(Kind.DELIVER, leg=leg, message=msg)
@@ -244,14 +270,14 @@ class ChainModel:
         if up.return_deadline is not None:
             yield ChainStep(Kind.GATEWAY_RETURN_TIMER)
         rules = self.variant.client
-        if w.gateway.down.usable >= UNIT and rules.can_give_back(up):
+        if w.gateway.down.usable >= UNIT and may_give_back(rules, w.gateway):
             yield ChainStep(Kind.GATEWAY_GIVE_BACK)
         for c in w.nodes:
             if c.deadline is not None:
                 yield ChainStep(Kind.NODE_COMMAND_TIMER, c.node)
             if c.return_deadline is not None:
                 yield ChainStep(Kind.NODE_RETURN_TIMER, c.node)
-            if c.usable >= UNIT:
+            if c.usable >= UNIT and rules.can_spend(c):
                 yield ChainStep(Kind.NODE_SPEND, c.node)
                 if rules.can_give_back(c):
                     yield ChainStep(Kind.NODE_GIVE_BACK, c.node)
@@ -265,9 +291,13 @@ class ChainModel:
             for c in w.nodes:
                 yield ChainStep(Kind.NODE_POWER_LOSS, c.node)
 
-    def _supervisor_steps(self, st: SupervisorState, started: int, who: str) -> Iterator[ChainStep]:
+    def _supervisor_steps(
+        self, st: SupervisorState, started: int, who: str, held: object
+    ) -> Iterator[ChainStep]:
+        """Begin (not while ``held``: a start waits for books, the gateway for the supervisor
+        above), decide, time out."""
         for s in st.sessions:
-            if s.phase is Phase.IDLE and started < self.bounds.transactions:
+            if s.phase is Phase.IDLE and started < self.bounds.transactions and not held:
                 for units in range(1, min(st.usable // UNIT, self.bounds.units) + 1):
                     yield ChainStep(Kind[f"{who}_BEGIN"], s.node, units=units)
             if s.phase is Phase.ACKED:
@@ -278,7 +308,7 @@ class ChainModel:
 
     # -- application -------------------------------------------------------------------------
     def apply(self, w: ChainWorld, step: ChainStep) -> ChainWorld | None:
-        """The world after ``step``, or None when it leaves the bounds."""
+        """The world after ``step``, or None when it leaves the bounds (or the rules refuse it)."""
         k = step.kind
         if k in POWER:
             w = evolve(w, power_lost=w.power_lost + 1)
@@ -288,9 +318,14 @@ class ChainModel:
             w = evolve(w, root_started=w.root_started + 1)
         elif k is Kind.GATEWAY_BEGIN:
             w = evolve(w, gateway_started=w.gateway_started + 1)
-        new = self._apply(w, step)
+        try:
+            new = self._apply(w, step)
+        except LocalProtocolError:  # a BEGIN beyond the witnessed rules' window
+            return None
         if new is None or max(_frames(new.up), _frames(new.down)) > self.bounds.in_flight:
             return None
+        if new.older is not None and new.old_copied >= self.bounds.old_copies:
+            new = evolve(new, older=None)  # no copy left to restore: worlds differing in it merge
         return new
 
     def _apply(self, w: ChainWorld, step: ChainStep) -> ChainWorld | None:
@@ -411,7 +446,7 @@ class ChainModel:
             torn = w.gateway.up if g.state.up != w.gateway.up else None
         advanced = g.advanced if isinstance(g, EarlyGrantGateway) else 0
         w = self._written(w, g.state)
-        w = evolve(w, gateway=g.state, advanced=advanced, torn=torn)
+        w = evolve(w, gateway=g.state, advanced=advanced, torn=torn, dropped=w.dropped + g.dropped)
         return _sent(w, "up", actions)
 
     def _written(self, w: ChainWorld, new: GatewayState) -> ChainWorld:
@@ -542,7 +577,7 @@ def check_chain(
         model.initial(),
         successors,
         admit=reducer.admit,
-        violates=lambda world: not world.ledger().passive,
+        violates=lambda world: not world.passive(),
         max_states=max_states,
         stop_at_first=stop_at_first,
         progress=progress,

@@ -29,12 +29,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 from canergy.core.actions import Action, Persist
 from canergy.core.client import Client
 from canergy.core.errors import LocalProtocolError
 from canergy.core.state import ClientState, Phase, SupervisorState
-from canergy.core.supervisor import Supervisor, inject_into, withdraw_from
+from canergy.core.supervisor import Supervisor, inject_into, unconfirmed, withdraw_from
+from canergy.core.table import ClientTable
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
 from canergy.frozen import evolve
@@ -67,6 +69,11 @@ def withdraw_for_return(
     be returned upstream in the same step (pure)."""
     down = withdraw_from(down, amount)
     return evolve(up, usable=up.usable + amount, spent=up.spent - amount), down
+
+
+def may_give_back(rules: ClientTable, state: GatewayState) -> bool:
+    """``Gateway.can_give_back`` of a state (``rules``: the client role's table)."""
+    return bool(rules.can_give_back(state.up)) and not unconfirmed(state.down)
 
 
 def link_gap(up: ClientState, down: SupervisorState) -> int:
@@ -169,10 +176,19 @@ class Gateway:
         return self.up.books_lost(nonce, now)
 
     def can_give_back(self) -> bool:
-        return self.up.can_give_back()
+        """A RETURN upstream may go: the client role can number one, and no start below waits
+        for a node's books (witnessed rules below: Us may be an older copy's, holding what
+        nodes were granted since; returned, it would be counted twice)."""
+        return self.up.can_give_back() and not self.down.unconfirmed()
 
     def give_back(self, amount: int, now: int) -> list[Action]:
         """Return ``amount`` µJ of the downstream usable budget upstream (numbered RETURN)."""
+        waiting = self.down.unconfirmed()
+        if waiting:
+            raise LocalProtocolError(
+                "no return upstream before every node below has confirmed its books after this "
+                f"start: waiting for node(s) {', '.join(map(str, waiting))}"
+            )
         if not self.up.can_give_back():
             raise LocalProtocolError("a return upstream is still waiting for its acknowledgement")
         if amount > self.down.state.usable:

@@ -1,112 +1,29 @@
 """An MIT motor in line on python-can's virtual bus, black-box, on the wall clock: the emulated
 DM4310 (``firmware_model.mit``, the CiA 402 drive's motor physics), ``canergy supervisor`` (its
 real ``main``, in a thread) granting to an ordinary node id, and an application of our own that
-opens ``MitBus`` over its bus instead of the bus itself and sends a burst of the largest gains.
-What the motor drew stays within what was granted plus the bound the proxy's guard showed; the
-motor saw only clamped commands; what was refused is counted."""
+opens ``MitBus`` over its bus instead of the bus itself (or talks through ``canergy inline``'s
+forwarder on a bus of its own) and sends a burst of the largest gains. What the motor drew stays
+within what was granted plus the bound the proxy's guard showed; the motor saw only clamped
+commands; what was refused is counted."""
 
 from __future__ import annotations
 
-import contextlib
-import json
 import threading
 import time
 import uuid
-from collections.abc import Iterator
-from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
-from typing import Any
 
 import can
 
-from canergy.cli import main as canergy_main
-from canergy.devices.mit import ENTER, MODELS, encode, worst_torque
-from canergy.live.control import request
+from canergy.devices.mit import worst_torque
 from canergy.live.mit_bus import MitBus, MitMotor
-from canergy.live.runtime import monotonic_us
+from canergy.live.mit_forward import MitForwarder
 from firmware_model.drive.live_bench import wait_for
-from firmware_model.drive.motor import LoadTorque
-from firmware_model.mit.motor import MitFace, MitMotorModel
+from firmware_model.mit.live_bench import DM, GREEDY, MOTOR, NODE, PUSH, REVERSED, burst, rig
 
-DM = MODELS["DM4310"]
-MOTOR, NODE = 1, 11
 CAP = 0.5
 """N·m: 0.5·30 + 3/2·0.85·(0.5/0.945)² = 15.36 W while the budget lasts."""
-GREEDY = encode(DM, 12.5, 30.0, 500.0, 5.0, 10.0).pack()
-"""The largest gains, the largest feed-forward torque, the farthest set point."""
-REVERSED = encode(DM, -12.5, -30.0, 500.0, 5.0, -10.0).pack()
-PUSH = encode(DM, 0.0, 0.0, 0.0, 0.0, 10.0).pack()
-"""The largest feed-forward torque alone (clamped to the cap, it runs the motor up to speed)."""
-
-
-@dataclass
-class Rig:
-    tmp: Path
-    model: MitMotorModel
-    face: MitFace
-    channel: str
-    control: Path
-    result: list[int]
-    thread: threading.Thread
-
-    def drawn(self) -> int:
-        with self.face.lock:
-            return self.model.drawn_uj
-
-    def books(self) -> dict[str, Any] | None:
-        with contextlib.suppress(FileNotFoundError, json.JSONDecodeError):
-            return dict(json.loads((self.tmp / "status.json").read_text()))
-        return None
-
-    def stop(self) -> dict[str, Any]:
-        request(self.control, {"stop": True}, 30)
-        self.thread.join(timeout=60)
-        final = self.books()
-        assert final is not None and self.result == [0], self.result
-        return final
-
-
-@contextlib.contextmanager
-def rig(tmp: Path, initial: str) -> Iterator[Rig]:
-    channel = f"mit-{uuid.uuid4().hex}"
-    model = MitMotorModel(
-        MOTOR, DM, monotonic_us(), master_id=MOTOR + 0x10, load=LoadTorque.constant(0.02, True)
-    )
-    face = MitFace(model, can.Bus(interface="virtual", channel=channel))
-    face.start()
-    control = tmp / "ctl.sock"
-    argv = [
-        "supervisor",
-        *("-i", "virtual", "-c", channel, "--nodes", str(NODE)),
-        *("--state", str(tmp / "s.json"), "--no-fsync", "--initial", initial),
-        *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
-        *("--control", str(control), "--target", "1J", "--max-grant", "500mJ"),
-    ]
-    result: list[int] = []
-    thread = threading.Thread(target=lambda: result.append(canergy_main(argv)), daemon=True)
-    thread.start()
-    r = Rig(tmp, model, face, channel, control, result, thread)
-    try:
-        yield r
-    finally:
-        if thread.is_alive() and control.exists():
-            request(control, {"stop": True}, 30)
-        thread.join(timeout=60)
-        face.close()
-
-
-def burst(bus: can.BusABC, until: Any, frames: list[bytes], period_s: float = 0.002) -> int:
-    """ENTER, then ``frames`` in turn every ``period_s`` until ``until()``; frames sent."""
-    sent = 0
-    bus.send(can.Message(arbitration_id=MOTOR, data=ENTER, is_extended_id=False))
-    deadline = time.monotonic() + 60
-    while not until() and time.monotonic() < deadline:
-        data = frames[sent % len(frames)]
-        bus.send(can.Message(arbitration_id=MOTOR, data=data, is_extended_id=False))
-        sent += 1
-        time.sleep(period_s)
-    return sent
 
 
 def test_a_burst_of_the_largest_gains_draws_at_most_granted_plus_the_bound(
@@ -162,3 +79,49 @@ def test_the_same_burst_straight_to_the_motor_draws_far_more(tmp_path: Path) -> 
             bus.shutdown()
         r.stop()
     assert r.drawn() > 4_000_000, r.drawn()
+
+
+def test_through_the_forwarder_an_application_on_its_own_bus_is_held_the_same(
+    tmp_path: Path,
+) -> None:
+    """``canergy inline``'s forwarder: the application on a bus of its own, the motor and the
+    supervisor on another; the same burst, the same bound, the motor's replies carried back."""
+    with rig(tmp_path, "3J") as r:
+        app_channel = f"app-{uuid.uuid4().hex}"
+        guarded = MitBus(
+            can.Bus(interface="virtual", channel=r.channel),
+            [MitMotor(MOTOR, node=NODE, model="DM4310", max_torque=CAP)],
+        )
+        forwarder = MitForwarder(can.Bus(interface="virtual", channel=app_channel), guarded)
+        app = can.Bus(interface="virtual", channel=app_channel)
+        stop = threading.Event()
+        thread = threading.Thread(target=forwarder.run, args=(stop.is_set, lambda: None))
+        thread.start()
+        try:
+            wait_for(lambda: guarded.status(MOTOR)["guard"] == "running", timeout=60)
+
+            def exhausted() -> bool:
+                s = guarded.status(MOTOR)
+                return bool(s["stop_reason"] == "budget exhausted" and s["guard"] == "stopped")
+
+            sent = burst(app, exhausted, [PUSH] * 9 + [GREEDY])
+            replies = 0  # the gate's keep-alives are answered too: read 200 frames at most
+            for _ in range(200):
+                frame = app.recv(timeout=0.1)
+                if frame is None:
+                    break
+                replies += frame.arbitration_id == MOTOR + 0x10
+            status = guarded.status(MOTOR)
+        finally:
+            stop.set()
+            thread.join(timeout=10)
+            guarded.shutdown()
+            forwarder.app.shutdown()
+            app.shutdown()
+        final = r.stop()
+    node = final["nodes"][str(NODE)]
+    granted = node["delivered_uj"] - node["returns_credited_uj"]
+    print(f"sent {sent}, drawn {r.drawn()} µJ, granted {granted} µJ, bound {status['bound_uj']}")
+    assert 0 < r.drawn() <= granted + status["bound_uj"]
+    assert status["clamped"] >= 1 and forwarder.to_motors >= sent and replies > 0
+    assert 0 < r.model.torque_max_seen <= CAP + 1e-9

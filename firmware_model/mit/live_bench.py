@@ -25,7 +25,18 @@ from canergy.live.runtime import monotonic_us
 from firmware_model.drive.motor import LoadTorque
 from firmware_model.mit.motor import MitFace, MitMotorModel
 
-__all__ = ["DM", "GREEDY", "MOTOR", "NODE", "PUSH", "REVERSED", "Rig", "burst", "rig"]
+__all__ = [
+    "DM",
+    "GREEDY",
+    "MOTOR",
+    "NODE",
+    "PUSH",
+    "REVERSED",
+    "Rig",
+    "burst",
+    "rig",
+    "send_latency",
+]
 
 DM = MODELS["DM4310"]
 MOTOR, NODE = 1, 11
@@ -103,3 +114,34 @@ def burst(bus: can.BusABC, until: Any, frames: list[bytes], period_s: float = 0.
         sent += 1
         time.sleep(period_s)
     return sent
+
+
+def send_latency(tmp: Path, n: int = 2000, rounds: int = 3) -> dict[str, Any]:
+    """µs per ``send`` of an MIT command: straight to the bus (to an id nobody guards) and
+    through ``MitBus`` (clamped under 0.05 N·m), ``rounds`` alternating rounds of ``n`` each,
+    with the supervisor granting and the motor answering; and the gate's counts."""
+    from canergy.live.mit_bus import MitBus, MitMotor
+    from firmware_model.drive.live_bench import wait_for
+
+    with rig(tmp, "60J") as r:
+        direct = can.Bus(interface="virtual", channel=r.channel)
+        motors = [MitMotor(MOTOR, node=NODE, model="DM4310", max_torque=0.05)]
+        inline = MitBus(can.Bus(interface="virtual", channel=r.channel), motors)
+        times: dict[str, list[float]] = {"direct": [], "inline": []}
+        try:
+            wait_for(lambda: inline.status(MOTOR)["guard"] == "running", timeout=60)
+            inline.send(can.Message(arbitration_id=MOTOR, data=ENTER, is_extended_id=False))
+            for _ in range(rounds):
+                for name, bus, target in (("direct", direct, MOTOR + 1), ("inline", inline, MOTOR)):
+                    frame = can.Message(arbitration_id=target, data=GREEDY, is_extended_id=False)
+                    start = time.perf_counter_ns()
+                    for _ in range(n):
+                        bus.send(frame)
+                    times[name].append((time.perf_counter_ns() - start) / n / 1000)
+            counts = inline.counts(MOTOR)
+            stop_reason = inline.status(MOTOR)["stop_reason"]
+        finally:
+            inline.shutdown()
+            direct.shutdown()
+        r.stop()
+    return {"us": times, "counts": counts, "stop_reason": stop_reason}

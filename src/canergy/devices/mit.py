@@ -31,6 +31,7 @@ symmetric about 0): a cap below its smallest step refuses the command. The power
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from fractions import Fraction
@@ -64,8 +65,12 @@ class Field:
         return -self.span if self.signed else Fraction(0)
 
     def value(self, n: int) -> Fraction:
-        width = 2 * self.span if self.signed else self.span
-        return self.lo + Fraction(n) * width / self.top
+        """``lo + n·width/top``, built as one fraction (this is on every command's path)."""
+        a, b = self.span.numerator, self.span.denominator
+        top = (1 << self.bits) - 1
+        if self.signed:  # -a/b + n·2a/(b·top)
+            return Fraction(a * (2 * n - top), b * top)
+        return Fraction(a * n, b * top)
 
     def code_toward_zero(self, x: Fraction) -> int:
         """The code whose value is nearest ``x`` without exceeding ``|x|`` in magnitude on the
@@ -103,13 +108,18 @@ class MitModel:
     """Reply's first byte: id in the low nibble, state in the high one."""
 
     def fields(self) -> tuple[Field, Field, Field, Field, Field]:
-        return (
-            Field(self.p_max, 16),
-            Field(self.v_max, 12),
-            Field(self.kp_max, 12, signed=False),
-            Field(self.kd_max, 12, signed=False),
-            Field(self.t_max, 12),
-        )
+        return _fields(self)
+
+
+@functools.cache
+def _fields(model: MitModel) -> tuple[Field, Field, Field, Field, Field]:
+    return (
+        Field(model.p_max, 16),
+        Field(model.v_max, 12),
+        Field(model.kp_max, 12, signed=False),
+        Field(model.kd_max, 12, signed=False),
+        Field(model.t_max, 12),
+    )
 
 
 MODELS: dict[str, MitModel] = {

@@ -138,6 +138,7 @@ class MitBus(can.BusABC):
         self.incoming: queue.Queue[can.Message] = queue.Queue()
         self.stopping = threading.Event()
         self.send_failures = 0
+        self.reader_waiting = False
         self.channel_info = f"canergy MIT in line over {bus.channel_info}"
         super().__init__(channel=getattr(bus, "channel", None) or "mit", **kwargs)
         self.thread = threading.Thread(target=self._run, daemon=True, name="canergy-mit-bus")
@@ -149,6 +150,8 @@ class MitBus(can.BusABC):
         if gate is None or msg.is_remote_frame or msg.is_error_frame:
             self.inner.send(msg, timeout)
             return
+        if self.reader_waiting:  # the reader has replies to take in: let it have the lock first
+            time.sleep(0)
         with self.lock:
             verdict = gate.from_app(bytes(msg.data), self.clock())
             self._to_motor(gate)
@@ -188,18 +191,30 @@ class MitBus(can.BusABC):
             with self.lock:
                 wakeup = min(g.next_wakeup() for g in self.gates.values())
             wait = max(0.0, min((wakeup - self.clock()) / 1e6, 0.005))
-            try:
-                frame = self.inner.recv(timeout=wait)
-            except can.CanError:
-                frame = None
+            frames = self._drain(wait)
+            self.reader_waiting = True
             with self.lock:
-                if frame is not None:
+                self.reader_waiting = False
+                for frame in frames:
                     self._take(frame)
                 now = self.clock()
                 for gate in self.gates.values():
                     if gate.next_wakeup() <= now:
                         self._up(gate.on_wakeup(now))
                     self._to_motor(gate)
+
+    def _drain(self, wait: float) -> list[can.Message]:
+        """What the real bus holds: the first frame within ``wait`` s, then all that is there
+        (at most 256), so that replies are never taken in later than they could be."""
+        frames: list[can.Message] = []
+        try:
+            frame = self.inner.recv(timeout=wait)
+            while frame is not None:
+                frames.append(frame)
+                frame = self.inner.recv(timeout=0) if len(frames) < 256 else None
+        except can.CanError:
+            pass
+        return frames
 
     def _take(self, frame: can.Message) -> None:
         now = self.clock()

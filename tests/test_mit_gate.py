@@ -173,3 +173,23 @@ def test_a_frame_from_someone_else_refuses_the_motor_for_good() -> None:
     assert g.from_app(ENTER, pair.now).frame is None
     assert g.status(pair.now)["foreign_frames"] == 1
     assert Fraction(g.status(pair.now)["cap"]["torque_nm"]) == 0
+
+
+def test_a_motor_still_showing_torque_after_its_stop_is_stuck() -> None:
+    """Replies that show torque out of motor mode are a motor that did not obey exit."""
+    pair = Pair(3_000_000)
+    g = pair.gate
+    while g.guard.phase is not GuardPhase.RUNNING and pair.now < 500_000:
+        pair.run_to(pair.now + 1_000)
+    g.from_app(ENTER, pair.now)
+    g.from_app(encode(DM, 0.0, 0.0, 0.0, 0.0, 1.0).pack(), pair.now)
+    while g.guard.stops == 0 and pair.now < 1_000_000:
+        pair.run_to(pair.now + 1_000)
+    pushing = pack_reply(DM, MOTOR, 0x8000, 2048, 2457)  # 2 N·m: it still pushes
+    t = pair.now
+    while t < pair.now + 700_000:
+        t += 10_000
+        pair.route(g.on_wakeup(t), t)
+        pair.route(g.from_motor(pushing, t, t), t)
+    assert g.guard.phase is GuardPhase.STUCK and g.guard.stuck is not None
+    assert "still powered" in g.guard.stuck and g.counts.exits >= 5  # exit repeated

@@ -160,3 +160,14 @@ def test_the_envelope_is_mechanical_plus_copper_rounded_up() -> None:
     with pytest.raises(ValueError, match="no phase resistance"):
         MitProfile(AK)
     assert MitProfile(AK, Fraction(1, 5)).resistance == Fraction(1, 5)
+
+
+def test_frames_that_reach_the_motor_outside_mit_mode_are_named() -> None:
+    from canergy.devices.mit import side_channel
+
+    assert side_channel(DM, 1, 0x201, False) == "Damiao mode frame 0x201 (not MIT)"
+    assert side_channel(DM, 1, 0x7FF, False) == "Damiao parameter frame 0x7FF"
+    assert side_channel(DM, 1, 0x202, False) is None and side_channel(DM, 1, 0x001, False) is None
+    assert side_channel(AK, 3, 0x303, True) == "CubeMars servo-mode frame 0x303 (not MIT)"
+    assert side_channel(AK, 3, 0x0CE00103, True) is None  # a canergy frame
+    assert side_channel(AK, 3, 0x303, False) is None

@@ -171,7 +171,7 @@ def test_a_frame_from_someone_else_refuses_the_motor_for_good() -> None:
     pair.run_to(pair.now + 50_000)
     assert g.guard.refused is not None and "another sender" in g.guard.refused
     assert g.from_app(ENTER, pair.now).frame is None
-    assert g.status(pair.now)["foreign_frames"] == 1
+    assert g.status(pair.now)["commands"]["foreign"] == 1
     assert Fraction(g.status(pair.now)["cap"]["torque_nm"]) == 0
 
 

@@ -133,7 +133,7 @@ def test_through_the_forwarder_an_application_on_its_own_bus_is_held_the_same(
     granted = node["delivered_uj"] - node["returns_credited_uj"]
     print(f"sent {sent}, drawn {r.drawn()} µJ, granted {granted} µJ, bound {status['bound_uj']}")
     assert 0 < r.drawn() <= granted + status["bound_uj"]
-    assert status["clamped"] >= 1 and forwarder.to_motors >= sent and replies > 0
+    assert status["commands"]["clamped"] >= 1 and forwarder.to_motors >= sent and replies > 0
     assert 0 < r.model.torque_max_seen <= CAP + 1e-9
 
 

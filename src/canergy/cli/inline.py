@@ -114,9 +114,10 @@ def motors(args: argparse.Namespace) -> list[MitMotor]:
 def status_line(status: dict[str, Any]) -> str:
     parts = [f"to motors {status['to_motors']}, to app {status['to_app']}"]
     for m, s in status["motors"].items():
+        c = s["commands"]
         parts.append(
             f"motor {m}: {s['guard']} ({s['stop_reason'] or 'running'}), forwarded "
-            f"{s['forwarded']}, clamped {s['clamped']}, refused {s['refused']}, "
+            f"{c['forwarded']}, clamped {c['clamped']}, refused {c['refused']}, "
             f"{s['usable_uj'] / 1e6:.3f} J left"
         )
     return "canergy inline: " + "; ".join(parts)

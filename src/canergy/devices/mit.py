@@ -240,6 +240,23 @@ def unpack_reply(model: MitModel, data: bytes | bytearray) -> Reply:
     return Reply(node, fp.value(d[1] << 8 | d[2]), fv.value(v), ft.value(t), state)
 
 
+def side_channel(model: MitModel, motor_id: int, arbitration_id: int, extended: bool) -> str | None:
+    """Why a frame to ``arbitration_id`` reaches motor ``motor_id`` outside MIT mode, whose
+    effect the clamp cannot bound (None: it does not). Damiao: position-velocity ``0x100 + id``,
+    velocity ``0x200 + id``, force-position ``0x300 + id``, and the parameter frame ``0x7FF``
+    (control mode, limits; whichever motor it names); CubeMars: servo-mode extended frames
+    ``mode << 8 | id`` (modes 0-7: duty, current, brake, velocity, position, origin, ...)."""
+    if model.damiao and not extended:
+        if arbitration_id in (0x100 + motor_id, 0x200 + motor_id, 0x300 + motor_id):
+            return f"Damiao mode frame 0x{arbitration_id:03X} (not MIT)"
+        if arbitration_id == 0x7FF:
+            return "Damiao parameter frame 0x7FF"
+    servo = extended and arbitration_id & 0xFF == motor_id and arbitration_id >> 8 <= 7
+    if not model.damiao and servo:
+        return f"CubeMars servo-mode frame 0x{arbitration_id:X} (not MIT)"
+    return None
+
+
 # -- the envelope and the clamp -------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
 class MitLimits:

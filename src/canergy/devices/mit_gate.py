@@ -118,14 +118,18 @@ class MitGate:
         verdict = self._judge(bytes(data), now)
         c = self.counts
         if verdict.frame is None:
-            c.refused += 1
-            why = verdict.why or "refused"
-            c.refused_why[why] = c.refused_why.get(why, 0) + 1
-        elif verdict.clamped:
+            return self.refuse(verdict.why or "refused")
+        if verdict.clamped:
             c.clamped += 1
         else:
             c.forwarded += 1
         return verdict
+
+    def refuse(self, why: str) -> Verdict:
+        """A frame of the application's for this motor that is never sent (counted)."""
+        self.counts.refused += 1
+        self.counts.refused_why[why] = self.counts.refused_why.get(why, 0) + 1
+        return Verdict(None, why=why)
 
     def _running(self) -> bool:
         return self.guard.phase is GuardPhase.RUNNING and self.cap.torque_unm > 0
@@ -249,6 +253,8 @@ class MitGate:
         return out
 
     def status(self, now: int) -> dict[str, Any]:
+        """The guard's status (as a guarded ODrive axis's), the model, the cap in force and
+        what became of the application's frames (``commands``)."""
         c = self.counts
         return {
             **self.guard.status(now),
@@ -256,12 +262,14 @@ class MitGate:
             "motor_id": self.motor_id,
             "motor_mode": self.motor_mode,
             "cap": self.guard.profile.fields(self.cap),
-            "forwarded": c.forwarded,
-            "clamped": c.clamped,
-            "refused": c.refused,
-            "refused_why": dict(c.refused_why),
-            "resent": c.resent,
-            "exits": c.exits,
-            "replies": c.replies,
-            "foreign_frames": c.foreign,
+            "commands": {
+                "forwarded": c.forwarded,
+                "clamped": c.clamped,
+                "refused": c.refused,
+                "refused_why": dict(c.refused_why),
+                "resent": c.resent,
+                "exits": c.exits,
+                "replies": c.replies,
+                "foreign": c.foreign,
+            },
         }

@@ -43,7 +43,15 @@ import can
 from canergy.codec import Codec, DecodeError
 from canergy.core import Timing
 from canergy.devices.guard import DeviceConfig
-from canergy.devices.mit import EXIT, FW_PER_W, MODELS, UNM_PER_NM, MitLimits, cap_for_power
+from canergy.devices.mit import (
+    EXIT,
+    FW_PER_W,
+    MODELS,
+    UNM_PER_NM,
+    MitLimits,
+    cap_for_power,
+    side_channel,
+)
 from canergy.devices.mit_gate import MitCounts, MitGate
 from canergy.live.runtime import monotonic_us
 from canergy.messages import Direction, Message, ToClient
@@ -145,7 +153,22 @@ class MitBus(can.BusABC):
         self.thread.start()
 
     # -- the application's side ------------------------------------------------------------
+    def _side(self, frame: can.Message) -> tuple[MitGate, str] | None:
+        """The motor a frame reaches outside MIT mode, and how (``mit.side_channel``)."""
+        for gate in self.gates.values():
+            why = side_channel(
+                gate.model, gate.motor_id, frame.arbitration_id, frame.is_extended_id
+            )
+            if why is not None:
+                return gate, why
+        return None
+
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if not msg.is_error_frame and (side := self._side(msg)) is not None:
+            with self.lock:
+                side[0].refuse(side[1])
+            self._refused(side[0], side[1])
+            return
         gate = None if msg.is_extended_id else self.gates.get(msg.arbitration_id)
         if gate is None or msg.is_remote_frame or msg.is_error_frame:
             self.inner.send(msg, timeout)
@@ -228,7 +251,9 @@ class MitBus(can.BusABC):
             if isinstance(msg, ToClient) and msg.node in self.by_node:
                 self._up(self.by_node[msg.node].on_message(msg, now))
                 return
-        elif not frame.is_extended_id and not frame.is_error_frame:
+        if not frame.is_error_frame and (side := self._side(frame)) is not None:
+            self._up(side[0].on_foreign(bytes(frame.data), now))
+        if not frame.is_extended_id and not frame.is_error_frame:
             at = now
             if frame.timestamp > 0:
                 at -= max(0, min(round((time.time() - frame.timestamp) * 1e6), 1_000_000))

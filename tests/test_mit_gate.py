@@ -8,6 +8,9 @@ from __future__ import annotations
 from collections import deque
 from fractions import Fraction
 
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
 from canergy.codec import Codec
 from canergy.core import Supervisor, Timing
 from canergy.devices.guard import DeviceConfig, GuardPhase
@@ -193,3 +196,67 @@ def test_a_motor_still_showing_torque_after_its_stop_is_stuck() -> None:
         pair.route(g.from_motor(pushing, t, t), t)
     assert g.guard.phase is GuardPhase.STUCK and g.guard.stuck is not None
     assert "still powered" in g.guard.stuck and g.counts.exits >= 5  # exit repeated
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.sampled_from(["none", "none", "command", "enter", "exit"]),
+            st.builds(
+                Command,
+                st.one_of(st.integers(0x7F00, 0x8100), st.integers(0, 0xFFFF)),  # near θ too
+                st.integers(0, 0xFFF),
+                st.integers(0, 0xFFF),
+                st.integers(0, 0xFFF),
+                st.integers(0, 0xFFF),
+            ),
+            st.one_of(st.sampled_from([-30, 30]), st.integers(-30, 30)),
+        ),
+        min_size=20,
+        max_size=120,
+    )
+)
+def test_the_torque_in_force_never_exceeds_the_cap_whatever_the_motor_does(
+    steps: list[tuple[str, Command, int]],
+) -> None:
+    """A motor that turns at any speed within the model's range, 1 ms at a time, answering every
+    frame with its true position; the application sends anything. At every instant the command
+    the motor holds asks for at most the cap, with the position and speed it really has."""
+    pair = Pair(60_000_000, 5_000_000)
+    g = pair.gate
+    while g.guard.phase is not GuardPhase.RUNNING:
+        pair.run_to(pair.now + 1_000)
+    fp, fv = DM.fields()[0], DM.fields()[1]
+    theta, in_force, enabled = Fraction(0), None, False
+    cap = Fraction(g.cap.torque_unm, UNM_PER_NM)
+
+    def deliver(frames: list[bytes], now: int) -> None:
+        nonlocal in_force, enabled
+        for data in frames:
+            if data == ENTER:
+                enabled = True
+            elif data == EXIT:
+                enabled, in_force = False, None
+            elif data not in (ZERO,) and enabled:
+                in_force = decode(DM, Command.unpack(data))
+            code = round((theta + fp.span) * fp.top / (2 * fp.span))
+            reply = pack_reply(DM, MOTOR, min(max(code, 0), fp.top), 2048, 2048)
+            pair.route(g.from_motor(reply, now, now), now)
+
+    for action, cmd, omega in steps:
+        now = pair.now + 1_000
+        pair.now = now
+        theta += Fraction(omega, 1000)  # ω rad/s over 1 ms, |ω| <= 30 = Ω
+        if action == "command":
+            v = g.from_app(cmd.pack(), now)
+            deliver([v.frame] if v.frame else [], now)
+        elif action in ("enter", "exit"):
+            v = g.from_app(ENTER if action == "enter" else EXIT, now)
+            deliver([v.frame] if v.frame else [], now)
+        pair.route(g.on_wakeup(now), now)
+        deliver(g.take_frames(), now)
+        if in_force is not None:
+            for w in (Fraction(omega), fv.span, -fv.span):
+                tau = in_force.kp * (in_force.p - theta) + in_force.kd * (in_force.v - w)
+                assert abs(tau + in_force.t) <= cap, (tau + in_force.t, cap)

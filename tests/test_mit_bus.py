@@ -10,7 +10,7 @@ import uuid
 import can
 import pytest
 
-from canergy.devices.mit import EXIT
+from canergy.devices.mit import EXIT, MODELS, pack_reply
 from canergy.live.mit_bus import MitBus, MitMotor, MitRefused
 from firmware_model.drive.live_bench import wait_for
 
@@ -55,3 +55,18 @@ def test_another_sender_reaching_the_motor_refuses_it_for_good() -> None:
     finally:
         bus.shutdown()
         other.shutdown()
+
+
+def test_a_forged_reply_on_the_bus_refuses_the_motor() -> None:
+    channel = f"mitbus-{uuid.uuid4().hex}"
+    forger = can.Bus(interface="virtual", channel=channel)
+    bus = MitBus(can.Bus(interface="virtual", channel=channel), [MitMotor(1, node=11)])
+    try:
+        reply = pack_reply(MODELS["DM4310"], 1, 0x8000, 2048, 2048)
+        for _ in range(3):  # the gate's exit at start may take one of them as its answer
+            forger.send(frame(0x11, reply))
+        wait_for(lambda: bus.status(1)["refused"], timeout=10)
+        assert "asked for" in bus.status(1)["refused"]
+    finally:
+        bus.shutdown()
+        forger.shutdown()

@@ -88,7 +88,7 @@ class Pair:
             self.route(up, t)
             frames = self.gate.take_frames()
             self.sent += frames
-            if reply and frames:
+            for _ in frames if reply else ():  # the motor answers every frame
                 self.route(self.gate.from_motor(pack_reply(DM, MOTOR, 0x8000, 2048, 2048), t, t), t)
 
 
@@ -260,3 +260,16 @@ def test_the_torque_in_force_never_exceeds_the_cap_whatever_the_motor_does(
             for w in (Fraction(omega), fv.span, -fv.span):
                 tau = in_force.kp * (in_force.p - theta) + in_force.kd * (in_force.v - w)
                 assert abs(tau + in_force.t) <= cap, (tau + in_force.t, cap)
+
+
+def test_a_reply_nobody_asked_for_refuses_the_motor() -> None:
+    """Every frame is answered once: a reply beyond them is forged (e.g. a position next to
+    the set point, to buy stiffness) or answers someone else's frame."""
+    pair = Pair(60_000_000, 5_000_000)
+    pair.run_to(200_000)  # every frame of the gate's answered
+    g = pair.gate
+    assert g.guard.refused is None
+    forged = pack_reply(DM, MOTOR, 0x8000, 2048, 2048)
+    pair.route(g.from_motor(forged, pair.now, pair.now), pair.now)
+    assert g.guard.refused is not None and "no frame of the guard's asked for" in g.guard.refused
+    assert g.counts.unasked == 1 and g.from_app(ENTER, pair.now).frame is None

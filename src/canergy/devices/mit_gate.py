@@ -22,6 +22,7 @@ for good: what it asked for is unbounded.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 from fractions import Fraction
 from typing import Any
@@ -43,6 +44,9 @@ from canergy.devices.mit import (
 from canergy.devices.profile import Stop, WriteLimits
 from canergy.messages import Message, ToClient
 
+REPLY_WINDOW_US = 200_000
+"""A frame not answered within this is taken as lost (its answer no longer expected)."""
+
 
 @dataclass
 class MitCounts:
@@ -62,6 +66,8 @@ class MitCounts:
     """Exit motor mode sent by the gate (stops, refused re-clamps, keep-alives)."""
     replies: int = 0
     bad_replies: int = 0
+    unasked: int = 0
+    """Replies with no frame of the gate's left unanswered: forged, or someone else's frame."""
     foreign: int = 0
 
 
@@ -105,6 +111,8 @@ class MitGate:
         self.theta_at = now
         self.next_send = now
         self.to_motor: list[bytes] = [EXIT]  # a known state: the power stage off
+        self.asked: deque[int] = deque([now])
+        """When each frame not answered yet went to the motor (it answers every frame)."""
         self.exit_at: int | None = now
         self.counts.exits += 1
         ft = model.fields()[4]
@@ -123,6 +131,7 @@ class MitGate:
             c.clamped += 1
         else:
             c.forwarded += 1
+        self.asked.append(now)
         return verdict
 
     def refuse(self, why: str) -> Verdict:
@@ -179,6 +188,13 @@ class MitGate:
         if reply.node != self.motor_id & (0xF if self.model.damiao else 0xFF):
             return []
         self.counts.replies += 1
+        while self.asked and self.asked[0] < at - REPLY_WINDOW_US:
+            self.asked.popleft()  # never answered: lost
+        if not self.asked:  # the position and torque it shows cannot be trusted
+            self.counts.unasked += 1
+            why = "a reply no frame of the guard's asked for (forged, or another sender's frame)"
+            return self.guard.on_foreign_write(now, why) + self._carry_out(now)
+        self.asked.popleft()
         p_max = self.model.fields()[0]
         saturated = abs(reply.p) >= p_max.span - 2 * p_max.span / p_max.top
         self.theta, self.theta_at = (None if saturated else reply.p), at
@@ -225,19 +241,23 @@ class MitGate:
             self._exit(now)
             return
         if self.last_cmd is None:
-            self.to_motor.append(ENTER)  # the state, without a command to re-clamp
+            self._send(ENTER, now)  # the state, without a command to re-clamp
             return
         out = self._clamp(self.last_cmd, now)
         if out.command is None:
             self._exit(now)
             return
         self.counts.resent += 1
-        self.to_motor.append(out.command.pack())
+        self._send(out.command.pack(), now)
 
     def _exit(self, now: int) -> None:
         self.motor_mode, self.exit_at = False, now
         self.counts.exits += 1
-        self.to_motor.append(EXIT)
+        self._send(EXIT, now)
+
+    def _send(self, data: bytes, now: int) -> None:
+        self.to_motor.append(data)
+        self.asked.append(now)
 
     def _carry_out(self, now: int) -> list[Message]:
         out: list[Message] = []
@@ -270,6 +290,7 @@ class MitGate:
                 "resent": c.resent,
                 "exits": c.exits,
                 "replies": c.replies,
+                "unasked_replies": c.unasked,
                 "foreign": c.foreign,
             },
         }

@@ -17,7 +17,8 @@ passes. Every ``hold_us`` the gate sends the command in force again, clamped fro
 (position drift is bounded only over ``horizon`` = hold + the reaction and latency allowed), or,
 out of motor mode, exit motor mode again: the motor answers every frame, so its replies keep the
 guard's feedback fresh. A frame to the motor from anyone else (seen on the bus) refuses the motor
-for good: what it asked for is unbounded.
+for good: what it asked for is unbounded; so does a reply that no frame of the gate's asked for
+(the motor answers each frame once): its position and torque cannot be trusted.
 """
 
 from __future__ import annotations

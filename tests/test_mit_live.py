@@ -27,6 +27,7 @@ from firmware_model.mit.live_bench import (
     NODE,
     PUSH,
     REVERSED,
+    SLOW_HOST,
     burst,
     rig,
     send_latency,
@@ -43,6 +44,7 @@ def test_a_burst_of_the_largest_gains_draws_at_most_granted_plus_the_bound(
         bus = MitBus(
             can.Bus(interface="virtual", channel=r.channel),
             [MitMotor(MOTOR, node=NODE, model="DM4310", max_torque=CAP)],
+            guard_config=SLOW_HOST,
         )
         try:
             wait_for(lambda: bus.status(MOTOR)["guard"] == "running", timeout=60)
@@ -101,6 +103,7 @@ def test_through_the_forwarder_an_application_on_its_own_bus_is_held_the_same(
         guarded = MitBus(
             can.Bus(interface="virtual", channel=r.channel),
             [MitMotor(MOTOR, node=NODE, model="DM4310", max_torque=CAP)],
+            guard_config=SLOW_HOST,
         )
         forwarder = MitForwarder(can.Bus(interface="virtual", channel=app_channel), guarded)
         app = can.Bus(interface="virtual", channel=app_channel)

@@ -195,7 +195,7 @@ class MitGate:
             self.counts.unasked += 1
             why = "a reply no frame of the guard's asked for (forged, or another sender's frame)"
             return self.guard.on_foreign_write(now, why) + self._carry_out(now)
-        self.asked.popleft()
+        self.guard.watch(0, max(0, at - self.asked.popleft()))  # the round trip: latency
         p_max = self.model.fields()[0]
         saturated = abs(reply.p) >= p_max.span - 2 * p_max.span / p_max.top
         self.theta, self.theta_at = (None if saturated else reply.p), at
@@ -221,6 +221,7 @@ class MitGate:
         return min(self.guard.next_wakeup(), self.next_send)
 
     def on_wakeup(self, now: int) -> list[Message]:
+        self.guard.watch(max(0, now - self.next_wakeup()), 0)  # how late the host woke
         out = self.guard.on_wakeup(now) if self.guard.next_wakeup() <= now else []
         out += self._carry_out(now)
         if now >= self.next_send:

@@ -26,6 +26,7 @@ def test_other_modes_of_the_motor_are_refused_and_other_ids_pass() -> None:
     try:
         bus.send(frame(0x201))  # Damiao velocity mode, motor 1
         bus.send(frame(0x7FF, bytes([1, 0, 0x55, 10, 3, 0, 0, 0])))  # a parameter write
+        bus.send(can.Message(arbitration_id=1, is_remote_frame=True, is_extended_id=False))
         bus.send(frame(0x123))  # someone else's id
         seen = []
         while (got := watch.recv(timeout=0.2)) is not None and len(seen) < 50:
@@ -34,7 +35,12 @@ def test_other_modes_of_the_motor_are_refused_and_other_ids_pass() -> None:
         assert 0x123 in ids and 0x201 not in ids and 0x7FF not in ids
         assert all(bytes(f.data) == EXIT for f in seen if f.arbitration_id == 1)
         why = bus.counts(1).refused_why
-        assert why == {"Damiao mode frame 0x201 (not MIT)": 1, "Damiao parameter frame 0x7FF": 1}
+        assert why == {
+            "Damiao mode frame 0x201 (not MIT)": 1,
+            "Damiao parameter frame 0x7FF": 1,
+            "remote frame": 1,
+        }
+        assert not [f for f in seen if f.is_remote_frame]
     finally:
         bus.shutdown()
         watch.shutdown()

@@ -170,8 +170,13 @@ class MitBus(can.BusABC):
             self._refused(side[0], side[1])
             return
         gate = None if msg.is_extended_id else self.gates.get(msg.arbitration_id)
-        if gate is None or msg.is_remote_frame or msg.is_error_frame:
+        if gate is None or msg.is_error_frame:
             self.inner.send(msg, timeout)
+            return
+        if msg.is_remote_frame:  # what a firmware makes of one is not documented: not sent
+            with self.lock:
+                gate.refuse("remote frame")
+            self._refused(gate, "remote frame")
             return
         if self.reader_waiting:  # the reader has replies to take in: let it have the lock first
             time.sleep(0)

@@ -76,3 +76,23 @@ def test_a_forged_reply_on_the_bus_refuses_the_motor() -> None:
     finally:
         bus.shutdown()
         forger.shutdown()
+
+
+def test_an_application_that_never_reads_keeps_only_the_newest_frames(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import canergy.live.mit_bus as mit_bus
+
+    monkeypatch.setattr(mit_bus, "INCOMING_MAX", 5)
+    channel = f"mitbus-{uuid.uuid4().hex}"
+    other = can.Bus(interface="virtual", channel=channel)
+    bus = MitBus(can.Bus(interface="virtual", channel=channel), [MitMotor(1, node=11)])
+    try:
+        for n in range(20):
+            other.send(frame(0x123, bytes([n])))
+        wait_for(lambda: bus.dropped == 15, timeout=10)
+        kept = [bytes(f.data)[0] for f in iter(lambda: bus.recv(timeout=0.2), None)]
+        assert kept == list(range(15, 20))
+    finally:
+        bus.shutdown()
+        other.shutdown()

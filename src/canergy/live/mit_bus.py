@@ -28,6 +28,7 @@ go silent; docs/guide/drives.md says what to arm.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import secrets
@@ -57,6 +58,9 @@ from canergy.live.runtime import monotonic_us
 from canergy.messages import Direction, Message, ToClient
 
 log = logging.getLogger(__name__)
+
+INCOMING_MAX = 10_000
+"""Frames kept for an application that does not read them (a socket's buffer drops too)."""
 
 
 class MitRefused(can.CanOperationError):
@@ -143,7 +147,10 @@ class MitBus(can.BusABC):
                 master = m.motor_id + 0x10 if gate.model.damiao else 0
             self.masters.setdefault(master, []).append(gate)
         self.by_node = {g.guard.node: g for g in self.gates.values()}
-        self.incoming: queue.Queue[can.Message] = queue.Queue()
+        self.incoming: queue.Queue[can.Message] = queue.Queue(maxsize=INCOMING_MAX)
+        self.dropped = 0
+        """Frames for the application dropped, oldest first, while it read none (as a socket's
+        receive buffer drops them)."""
         self.stopping = threading.Event()
         self.send_failures = 0
         self.reader_waiting = False
@@ -266,7 +273,14 @@ class MitBus(can.BusABC):
                 self._up(gate.from_motor(bytes(frame.data), at, now))
             if (target := self.gates.get(frame.arbitration_id)) is not None:
                 self._up(target.on_foreign(bytes(frame.data), now))
-        self.incoming.put(frame)
+        while True:
+            try:
+                self.incoming.put_nowait(frame)
+                return
+            except queue.Full:
+                with contextlib.suppress(queue.Empty):
+                    self.incoming.get_nowait()
+                    self.dropped += 1
 
     def _up(self, messages: list[Message]) -> None:
         for msg in messages:

@@ -47,6 +47,7 @@ import canergy.cli.dump
 import canergy.cli.simulate
 import canergy.dbc
 import canergy.demo
+import canergy.live.mit_forward
 import canergy.prove.obligations
 import canergy.rules_doc
 import canergy.sim.sweep
@@ -179,11 +180,12 @@ _BUS_WORDS = {
     "channel_filters": ["fuzz,0CE00100:1FFFFF00,701~7FF"],
     "bus1_interface": ["virtual"],
     "bus2_interface": ["virtual"],
+    "app_interface": ["virtual"],
     "partition": ["1s+2s"],
     "dbc": ["bench.dbc"],
 }
 """python-can's bus flags that take free text (and ``supervisor --bus``, ``bridge``'s two buses
-and ``--partition``): a value each accepts."""
+and ``--partition``, ``inline``'s application bus): a value each accepts."""
 
 
 def _fuzzed(parser: argparse.ArgumentParser) -> list[argparse.Action]:
@@ -328,6 +330,7 @@ def _bounded_commands() -> Iterator[None]:
         mock.patch.object(BusRuntime, "poll", _stop),  # supervisor, grant, firmware_model
         mock.patch.object(BusGroup, "poll", _stop),  # supervisor --bus
         mock.patch.object(canergy.bridge.link.Bridge, "poll", _stop),  # bridge
+        mock.patch.object(canergy.live.mit_forward.MitForwarder, "poll", _stop),  # inline
         mock.patch.object(DriveFace, "run", _stop),  # firmware_model.drive
         mock.patch.object(canergy.cli.dump, "open_bus", open_bus),
         mock.patch.object(canergy.check, "check", check),

@@ -170,7 +170,7 @@ def test_both_legs_witnessed_a_start_waits_above_and_below() -> None:
     # nor returned above: Us may be an older copy's, holding what node 1 was granted since
     # (found by canergy check --topology chain --variant witnessed --gateway-old-copies 1)
     assert not gw.can_give_back()
-    with pytest.raises(LocalProtocolError, match="no return upstream .* node.s. 1"):
+    with pytest.raises(LocalProtocolError, match=r"no return upstream .* node.s. 1"):
         gw.give_back(J // 2, 0)
 
 

@@ -22,5 +22,6 @@ SUMMARIES: dict[str, str] = {
     "bench": "benchmarks: codec, core, live stack vs CANopen SDO, wire, memory; with bus flags "
     "the live stack on that bus against node processes",
     "bridge": "a fault-injecting bridge between two CAN buses, for tests and benches",
+    "inline": "MIT-mode motors in line between two buses: commands clamped under a budget",
 }
 """Command -> its summary, in the order ``canergy --help`` lists them."""

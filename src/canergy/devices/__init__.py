@@ -3,6 +3,8 @@
 ``profile`` is the interface a device type implements (its limits, their envelope, how they are
 compared when read back, what its stop can draw); ``guard`` is the sans-IO guard that works for
 any profile; ``odrive`` is the ODrive CAN Simple profile, ``moteus`` the moteus CAN-FD register
-protocol's. The CiA 402 guard (``canergy.cia402``)
+protocol's; ``mit`` the MIT-mode frames, models and clamp, and ``mit_gate`` an MIT-mode motor
+guarded in line (the application's commands pass through it: ``canergy.live.mit_bus``). The
+CiA 402 guard (``canergy.cia402``)
 predates the interface; docs/guide/drives.md says how it maps onto it.
 """

@@ -1,0 +1,153 @@
+"""An MIT-mode motor on python-can's virtual bus, on the wall clock: the emulated motor
+(``MitFace``) and ``canergy supervisor`` (its real ``main``, in a thread) granting to an ordinary
+node id, which the application's ``MitBus`` (or ``canergy inline``) holds the proxy of; frames
+an application of our own sends (``burst``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+
+from canergy.cli import main as canergy_main
+from canergy.devices.mit import ENTER, MODELS, encode
+from canergy.live.control import request
+from canergy.live.runtime import monotonic_us
+from firmware_model.drive.motor import LoadTorque
+from firmware_model.mit.motor import MitFace, MitMotorModel
+
+SLOW_HOST = {"feedback_timeout_us": 2_000_000, "stop_timeout_us": 2_000_000}
+"""Threads on a loaded machine stall for 300 ms: a feedback gap is not what these runs test."""
+
+__all__ = [
+    "DM",
+    "GREEDY",
+    "MOTOR",
+    "NODE",
+    "PUSH",
+    "REVERSED",
+    "SLOW_HOST",
+    "Rig",
+    "burst",
+    "rig",
+    "send_latency",
+]
+
+DM = MODELS["DM4310"]
+MOTOR, NODE = 1, 11
+GREEDY = encode(DM, 12.5, 30.0, 500.0, 5.0, 10.0).pack()
+"""The largest gains, the largest feed-forward torque, the farthest set point."""
+REVERSED = encode(DM, -12.5, -30.0, 500.0, 5.0, -10.0).pack()
+PUSH = encode(DM, 0.0, 0.0, 0.0, 0.0, 10.0).pack()
+"""The largest feed-forward torque alone (clamped to the cap, it runs the motor up to speed)."""
+
+
+@dataclass
+class Rig:
+    tmp: Path
+    model: MitMotorModel
+    face: MitFace
+    channel: str
+    control: Path
+    result: list[int]
+    thread: threading.Thread
+
+    def drawn(self) -> int:
+        with self.face.lock:
+            return self.model.drawn_uj
+
+    def books(self) -> dict[str, Any] | None:
+        with contextlib.suppress(FileNotFoundError, json.JSONDecodeError):
+            return dict(json.loads((self.tmp / "status.json").read_text()))
+        return None
+
+    def stop(self) -> dict[str, Any]:
+        request(self.control, {"stop": True}, 30)
+        self.thread.join(timeout=60)
+        final = self.books()
+        assert final is not None and self.result == [0], self.result
+        return final
+
+
+@contextlib.contextmanager
+def rig(tmp: Path, initial: str) -> Iterator[Rig]:
+    channel = f"mit-{uuid.uuid4().hex}"
+    model = MitMotorModel(
+        MOTOR, DM, monotonic_us(), master_id=MOTOR + 0x10, load=LoadTorque.constant(0.02, True)
+    )
+    face = MitFace(model, can.Bus(interface="virtual", channel=channel))
+    face.start()
+    control = tmp / "ctl.sock"
+    argv = [
+        "supervisor",
+        *("-i", "virtual", "-c", channel, "--nodes", str(NODE)),
+        *("--state", str(tmp / "s.json"), "--no-fsync", "--initial", initial),
+        *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
+        *("--control", str(control), "--target", initial, "--max-grant", initial),
+    ]
+    result: list[int] = []
+    thread = threading.Thread(target=lambda: result.append(canergy_main(argv)), daemon=True)
+    thread.start()
+    r = Rig(tmp, model, face, channel, control, result, thread)
+    try:
+        yield r
+    finally:
+        if thread.is_alive() and control.exists():
+            request(control, {"stop": True}, 30)
+        thread.join(timeout=60)
+        face.close()
+
+
+def burst(bus: can.BusABC, until: Any, frames: list[bytes], period_s: float = 0.002) -> int:
+    """ENTER, then ``frames`` in turn every ``period_s`` until ``until()``; frames sent."""
+    sent = 0
+    bus.send(can.Message(arbitration_id=MOTOR, data=ENTER, is_extended_id=False))
+    deadline = time.monotonic() + 60
+    while not until() and time.monotonic() < deadline:
+        data = frames[sent % len(frames)]
+        bus.send(can.Message(arbitration_id=MOTOR, data=data, is_extended_id=False))
+        sent += 1
+        time.sleep(period_s)
+    return sent
+
+
+def send_latency(tmp: Path, n: int = 2000, rounds: int = 3) -> dict[str, Any]:
+    """µs per ``send`` of an MIT command: straight to the bus (to an id nobody guards) and
+    through ``MitBus`` (clamped under 0.05 N·m), ``rounds`` alternating rounds of ``n`` each,
+    with the supervisor granting and the motor answering; and the gate's counts."""
+    from canergy.live.mit_bus import MitBus, MitMotor
+    from firmware_model.drive.live_bench import wait_for
+
+    with rig(tmp, "60J") as r:
+        direct = can.Bus(interface="virtual", channel=r.channel)
+        motors = [MitMotor(MOTOR, node=NODE, model="DM4310", max_torque=0.05)]
+        inline = MitBus(
+            can.Bus(interface="virtual", channel=r.channel), motors, guard_config=SLOW_HOST
+        )
+        times: dict[str, list[float]] = {"direct": [], "inline": []}
+        try:
+            wait_for(lambda: inline.status(MOTOR)["guard"] == "running", timeout=60)
+            inline.send(can.Message(arbitration_id=MOTOR, data=ENTER, is_extended_id=False))
+            for _ in range(rounds):
+                for name, bus, target in (("direct", direct, MOTOR + 1), ("inline", inline, MOTOR)):
+                    frame = can.Message(arbitration_id=target, data=GREEDY, is_extended_id=False)
+                    start = time.perf_counter_ns()
+                    for _ in range(n):
+                        bus.send(frame)
+                    times[name].append((time.perf_counter_ns() - start) / n / 1000)
+            counts = inline.counts(MOTOR)
+            stop_reason = inline.status(MOTOR)["stop_reason"]
+        finally:
+            inline.shutdown()
+            direct.shutdown()
+        r.stop()
+    return {"us": times, "counts": counts, "stop_reason": stop_reason}

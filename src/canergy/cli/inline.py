@@ -1,0 +1,159 @@
+"""``canergy inline``: MIT-mode motors guarded in line between two interfaces
+(``canergy.live.mit_forward``)."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from canergy.argtypes import add_duration, node_ids
+from canergy.cli.shared.cia402 import _number
+from canergy.cli.summaries import SUMMARIES
+from canergy.codec import Codec
+from canergy.devices.mit import MODELS
+from canergy.live.atomic import check_writable_dir, write_json_atomic
+from canergy.live.bus_args import add_bus_flags, open_bus
+from canergy.live.mit_bus import MitBus, MitMotor
+from canergy.live.mit_forward import MitForwarder
+from canergy.live.runtime import monotonic_us
+
+APP = "app"
+
+
+def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "inline",
+        help=SUMMARIES["inline"],
+        description="Sit between an application's bus (--app-interface, --app-channel, ...) and "
+        "the motors' bus (-i/-c, where canergy supervisor runs): every frame the application "
+        "sends to a guarded MIT-mode motor is forwarded only while its budget lasts, clamped "
+        "so that the worst-case torque stays under the cap (feed-forward torque, kp·Δp, kd·Δv, "
+        "velocity), or refused; both are counted in the status. Each motor's budget is a proxy "
+        "client of the supervisor, under the canergy node id --mit-nodes gives it (list it in "
+        "the supervisor's --nodes). Other classic frames cross both ways unchanged. Stop with "
+        "Ctrl-C (SIGINT) or SIGTERM: every guarded motor is told to exit motor mode.",
+    )
+    add_bus_flags(p)
+    add_bus_flags(p, id_base_flag=False, prefix=APP)
+    g = p.add_argument_group("MIT-mode motors")
+    g.add_argument("--mit", type=node_ids, metavar="IDS", required=True, help="motor CAN ids")
+    g.add_argument(
+        "--mit-nodes",
+        type=node_ids,
+        metavar="IDS",
+        required=True,
+        help="the proxies' canergy node ids, one per motor, in the same order",
+    )
+    g.add_argument("--mit-model", choices=sorted(MODELS), required=True, help="the motors' model")
+    g.add_argument(
+        "--mit-max-torque",
+        type=_number("N·m", 1000, zero=False),
+        metavar="NM",
+        help="the torque cap while the budget lasts (default: the model's torque range)",
+    )
+    g.add_argument(
+        "--mit-max-power",
+        type=_number("W", 100_000, zero=False),
+        metavar="W",
+        help="instead of --mit-max-torque: the largest cap whose envelope is within it",
+    )
+    g.add_argument(
+        "--mit-max-speed",
+        type=_number("rad/s", 10_000, zero=False),
+        metavar="RAD_S",
+        help="the velocity set point's cap (default: the model's velocity range)",
+    )
+    g.add_argument(
+        "--mit-resistance",
+        type=_number("ohms", 1000, zero=False),
+        metavar="OHMS",
+        help="phase resistance: needed where the model table has none (CubeMars AK)",
+    )
+    add_duration(g, "--mit-hold", 20_000, "the command in force is clamped again this often")
+    p.add_argument("--status-file", type=Path, help="the gates' status as JSON")
+    add_duration(p, "--status-period", 1_000_000, "time between status lines (and files)")
+    p.set_defaults(run=run)
+
+
+def motors(args: argparse.Namespace) -> list[MitMotor]:
+    """The motors the flags describe (``ValueError`` naming the flag)."""
+    if len(args.mit) != len(args.mit_nodes):
+        raise ValueError(f"--mit names {len(args.mit)} motors, --mit-nodes {len(args.mit_nodes)}")
+    if args.mit_max_torque is not None and args.mit_max_power is not None:
+        raise ValueError("--mit-max-torque or --mit-max-power, not both")
+    if MODELS[args.mit_model].resistance is None and args.mit_resistance is None:
+        raise ValueError(f"--mit-model {args.mit_model}: give --mit-resistance (no table figure)")
+    if args.mit_hold <= 0:
+        raise ValueError("--mit-hold must be more than 0")
+    sides = [(getattr(args, f"{p}interface"), getattr(args, f"{p}channel")) for p in ("", "app_")]
+    if sides[0] == sides[1] and sides[0][1] is not None:
+        raise ValueError("-c and --app-channel name the same bus: give the application its own")
+
+    def number(x: Any) -> float | None:
+        return None if x is None else float(x)
+
+    return [
+        MitMotor(
+            motor_id,
+            node=node,
+            model=args.mit_model,
+            max_torque=number(args.mit_max_torque),
+            max_power=number(args.mit_max_power),
+            max_speed=number(args.mit_max_speed),
+            resistance=number(args.mit_resistance),
+            hold_us=args.mit_hold,
+        )
+        for motor_id, node in zip(args.mit, args.mit_nodes, strict=True)
+    ]
+
+
+def status_line(status: dict[str, Any]) -> str:
+    parts = [f"to motors {status['to_motors']}, to app {status['to_app']}"]
+    for m, s in status["motors"].items():
+        c = s["commands"]
+        parts.append(
+            f"motor {m}: {s['guard']} ({s['stop_reason'] or 'running'}), forwarded "
+            f"{c['forwarded']}, clamped {c['clamped']}, refused {c['refused']}, "
+            f"{s['usable_uj'] / 1e6:.3f} J left"
+        )
+    return "canergy inline: " + "; ".join(parts)
+
+
+def run(args: argparse.Namespace) -> int:
+    wanted = motors(args)
+    if args.status_file is not None:
+        check_writable_dir(args.status_file, "--status-file")
+    stop = threading.Event()
+
+    def request_stop(signum: int, frame: object) -> None:
+        stop.set()
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, request_stop)
+        signal.signal(signal.SIGTERM, request_stop)
+    app = open_bus(args, [], prefix=APP)
+    guarded = None
+    try:
+        guarded = MitBus(open_bus(args, []), wanted, codec=Codec(args.id_base))
+        forwarder = MitForwarder(app, guarded)
+        next_at = [monotonic_us()]
+
+        def report() -> None:
+            if monotonic_us() < next_at[0]:
+                return
+            next_at[0] = monotonic_us() + args.status_period
+            status = forwarder.status()
+            print(status_line(status), file=sys.stderr, flush=True)
+            if args.status_file is not None:
+                write_json_atomic(args.status_file, status, fsync=False)
+
+        forwarder.run(stop.is_set, report)
+    finally:
+        if guarded is not None:
+            guarded.shutdown()
+        app.shutdown()
+    return 0

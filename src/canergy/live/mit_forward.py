@@ -1,0 +1,61 @@
+"""MIT-mode motors in line between two interfaces, for an application in another process or
+language: ``canergy inline``. The application's bus (``app``) carries its frames; the motors'
+bus (``motors``, with the supervisor on it) is opened through ``MitBus``, so every frame the
+application sends to a guarded motor is judged by that motor's gate exactly as in process, and
+every other classic frame crosses unchanged. Both ways: the motors' replies and the rest of the
+motors' bus reach the application; canergy's own frames (29-bit, the proxies' business) do not.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import can
+
+from canergy.live.mit_bus import MitBus
+
+
+class MitForwarder:
+    """Frames from ``app`` to ``motors`` (a ``MitBus``) and back, one poll at a time."""
+
+    def __init__(self, app: can.BusABC, motors: MitBus) -> None:
+        self.app = app
+        self.motors = motors
+        self.to_motors = 0
+        self.to_app = 0
+        self.send_failures = 0
+
+    def poll(self, timeout: float = 0.001) -> None:
+        """Carry what is waiting on either side (at most ``timeout`` s for the first frame)."""
+        frame = self.app.recv(timeout=timeout)
+        while frame is not None:
+            if not frame.is_error_frame:
+                self.to_motors += 1
+                self._send(self.motors, frame)
+            frame = self.app.recv(timeout=0)
+        while (back := self.motors.recv(timeout=0)) is not None:
+            canergy = back.is_extended_id and self.motors.codec.is_canergy_id(back.arbitration_id)
+            if not canergy and not back.is_error_frame:
+                self.to_app += 1
+                self._send(self.app, back)
+
+    def _send(self, bus: can.BusABC, frame: can.Message) -> None:
+        try:
+            bus.send(frame)
+        except can.CanError:
+            self.send_failures += 1
+
+    def run(self, stopping: Callable[[], bool], report: Callable[[], None]) -> None:
+        while not stopping():
+            self.poll()
+            report()
+
+    def status(self) -> dict[str, Any]:
+        motors = {str(m): self.motors.status(m) for m in self.motors.gates}
+        return {
+            "to_motors": self.to_motors,
+            "to_app": self.to_app,
+            "send_failures": self.send_failures + self.motors.send_failures,
+            "motors": motors,
+        }

@@ -1,0 +1,275 @@
+"""The in-line MIT gate (``canergy.devices.mit_gate``), sans-IO in explicit time, with a real
+supervisor service granting to its proxy client: nothing reaches the motor without budget,
+commands are clamped under the cap, the command in force is re-clamped when its hold expires,
+the budget's end exits motor mode, and every refusal is counted."""
+
+from __future__ import annotations
+
+from collections import deque
+from fractions import Fraction
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from canergy.codec import Codec
+from canergy.core import Supervisor, Timing
+from canergy.devices.guard import DeviceConfig, GuardPhase
+from canergy.devices.mit import (
+    ENTER,
+    EXIT,
+    MODELS,
+    UNM_PER_NM,
+    ZERO,
+    Command,
+    MitLimits,
+    decode,
+    encode,
+    pack_reply,
+    worst_torque,
+)
+from canergy.devices.mit_gate import MitGate
+from canergy.live.policy import Limits as GrantLimits
+from canergy.live.policy import TopUp
+from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.messages import Direction, Message, ToClient
+
+DM = MODELS["DM4310"]
+NODE, MOTOR = 11, 1
+FULL = MitLimits(2 * UNM_PER_NM, 10 * UNM_PER_NM)
+"""2 N·m: 2·30 + 3/2·0.85·(2/0.945)² = 65.7 W."""
+
+
+class Pair:
+    """A supervisor service and a gate, their frames carried through the codec."""
+
+    def __init__(self, budget_uj: int, target_uj: int | None = None, hold_us: int = 20_000) -> None:
+        timing = Timing(response_timeout_us=20_000)
+        self.codec = Codec()
+        self.service = SupervisorService(
+            Supervisor((NODE,), budget_uj, timing=timing),
+            ServiceConfig(
+                policy=TopUp(target_uj or budget_uj) if budget_uj else None,
+                limits=GrantLimits(max_grant=max(target_uj or budget_uj, 1_000)),
+                fsync=False,
+                status_period_us=10**12,
+                join_hold_us=0,
+            ),
+            0,
+        )
+        config = DeviceConfig(limits=FULL, timing=timing, feedback_timeout_us=10**9)
+        self.gate = MitGate(MOTOR, NODE, DM, config, 0, 7, hold_us=hold_us)
+        self.sent: list[bytes] = []
+
+    def route(self, up: list[Message], now: int) -> None:
+        todo: deque[tuple[Direction, Message]] = deque((Direction.TO_SUPERVISOR, m) for m in up)
+        while todo:
+            direction, msg = todo.popleft()
+            wire = self.codec.decode(*self.codec.encode(msg), direction=direction)
+            if direction is Direction.TO_SUPERVISOR:
+                down = self.service.on_message(wire, now)
+                todo.extend((Direction.TO_CLIENT, m) for m in down)
+            else:
+                assert isinstance(wire, ToClient)
+                todo.extend((Direction.TO_SUPERVISOR, m) for m in self.gate.on_message(wire, now))
+
+    now = 0
+
+    def run_to(self, until: int, step: int = 1_000, reply: bool = True) -> None:
+        t = self.now
+        while t < until:
+            t += step
+            self.now = t
+            up: list[Message] = []
+            if self.gate.next_wakeup() <= t:
+                up += self.gate.on_wakeup(t)
+            wakeup = self.service.next_wakeup()
+            if wakeup is not None and wakeup <= t:
+                self.route(list(self.service.on_wakeup(t)), t)
+            self.route(up, t)
+            frames = self.gate.take_frames()
+            self.sent += frames
+            for _ in frames if reply else ():  # the motor answers every frame
+                self.route(self.gate.from_motor(pack_reply(DM, MOTOR, 0x8000, 2048, 2048), t, t), t)
+
+
+def test_nothing_but_exit_reaches_the_motor_without_budget() -> None:
+    pair = Pair(0)
+    pair.run_to(50_000)
+    assert pair.sent and set(pair.sent) == {EXIT}
+    g = pair.gate
+    assert g.from_app(ENTER, 50_000).frame is None
+    assert g.from_app(encode(DM, 0, 0, 0, 0, 1.0).pack(), 50_000).frame is None
+    assert g.from_app(EXIT, 50_000).frame == EXIT  # always: it makes the motor safer
+    assert g.counts.refused == 2 and g.counts.forwarded == 1
+    assert all(why.startswith("no budget") for why in g.counts.refused_why)
+
+
+def test_with_budget_commands_pass_clamped_under_the_cap() -> None:
+    pair = Pair(60_000_000, 5_000_000)
+    pair.run_to(200_000)
+    g = pair.gate
+    assert g.guard.phase is GuardPhase.RUNNING and g.cap == FULL
+    assert g.from_app(ENTER, pair.now).frame == ENTER
+    small = encode(DM, 0.0, 0.0, 0.0, 0.02, 0.5)  # 0.02·30 + 0.5 = 1.1 N·m at worst
+    assert g.from_app(small.pack(), pair.now).frame == small.pack()
+    greedy = encode(DM, 12.5, 30.0, 500.0, 5.0, 10.0)
+    v = g.from_app(greedy.pack(), pair.now)
+    assert v.clamped and v.frame is not None
+    sent = decode(DM, Command.unpack(v.frame))
+    theta = decode(DM, Command(0x8000, 0, 0, 0, 0)).p
+    horizon = g.hold_us + g.guard.reaction_us() + g.guard.latency_us()
+    assert worst_torque(DM, sent, theta, 1_000, horizon) <= 2
+    assert abs(sent.v) <= 10
+    assert (g.counts.forwarded, g.counts.clamped, g.counts.refused) == (2, 1, 0)
+
+
+def test_the_command_in_force_is_clamped_again_from_a_newer_reply() -> None:
+    """A stiff command at the reply's position: once the motor is heard far off (replies stop
+    moving the bound), the re-sent command carries less stiffness."""
+    pair = Pair(60_000_000, 5_000_000)
+    pair.run_to(200_000)
+    g = pair.gate
+    g.from_app(ENTER, pair.now)
+    cmd = encode(DM, 0.0, 0.0, 20.0, 0.5, 0.0)
+    first = decode(DM, Command.unpack(g.from_app(cmd.pack(), pair.now).frame or b""))
+    far = pack_reply(DM, MOTOR, 0xF000, 2048, 2048)  # 10.9 rad away
+    g.from_motor(far, pair.now, pair.now)
+    pair.run_to(pair.now + g.hold_us + 1_000, reply=False)
+    again = [f for f in pair.sent[-3:] if f not in (EXIT, ENTER)]
+    assert g.counts.resent >= 1 and again
+    assert decode(DM, Command.unpack(again[-1])).kp < first.kp
+
+
+def test_the_budget_running_out_exits_motor_mode_and_refuses() -> None:
+    pair = Pair(3_000_000)  # 3 J, 1 J of it the bound held back: 30 ms at 65.7 W
+    g = pair.gate
+    while g.guard.phase is not GuardPhase.RUNNING and pair.now < 500_000:
+        pair.run_to(pair.now + 1_000)
+    assert g.from_app(ENTER, pair.now).frame == ENTER
+    g.from_app(encode(DM, 0.0, 0.0, 0.0, 0.0, 1.0).pack(), pair.now)
+    pair.sent.clear()
+    pair.run_to(pair.now + 200_000)
+    assert g.guard.stop_reason == "budget exhausted" and not g.motor_mode
+    assert g.guard.stops == 1 and g.guard.phase is GuardPhase.STOPPED
+    assert EXIT in pair.sent
+    assert g.from_app(encode(DM, 0.0, 0.0, 0.0, 0.0, 1.0).pack(), pair.now).frame is None
+    assert g.guard.usable <= g.guard.threshold_uj()
+
+
+def test_a_zeroed_origin_allows_no_stiffness_until_the_next_reply() -> None:
+    pair = Pair(60_000_000, 5_000_000)
+    pair.run_to(200_000)
+    g = pair.gate
+    g.from_app(ENTER, pair.now)
+    assert g.from_app(ZERO, pair.now).frame == ZERO
+    out = g.from_app(encode(DM, 1.0, 0.0, 5.0, 0.1, 0.0).pack(), pair.now).frame
+    assert out is not None and decode(DM, Command.unpack(out)).kp == 0
+
+
+def test_a_frame_from_someone_else_refuses_the_motor_for_good() -> None:
+    pair = Pair(60_000_000, 5_000_000)
+    pair.run_to(200_000)
+    g = pair.gate
+    pair.route(g.on_foreign(encode(DM, 0, 0, 500, 5, 10).pack(), pair.now), pair.now)
+    pair.run_to(pair.now + 50_000)
+    assert g.guard.refused is not None and "another sender" in g.guard.refused
+    assert g.from_app(ENTER, pair.now).frame is None
+    assert g.status(pair.now)["commands"]["foreign"] == 1
+    assert Fraction(g.status(pair.now)["cap"]["torque_nm"]) == 0
+
+
+def test_a_motor_still_showing_torque_after_its_stop_is_stuck() -> None:
+    """Replies that show torque out of motor mode are a motor that did not obey exit."""
+    pair = Pair(3_000_000)
+    g = pair.gate
+    while g.guard.phase is not GuardPhase.RUNNING and pair.now < 500_000:
+        pair.run_to(pair.now + 1_000)
+    g.from_app(ENTER, pair.now)
+    g.from_app(encode(DM, 0.0, 0.0, 0.0, 0.0, 1.0).pack(), pair.now)
+    while g.guard.stops == 0 and pair.now < 1_000_000:
+        pair.run_to(pair.now + 1_000)
+    pushing = pack_reply(DM, MOTOR, 0x8000, 2048, 2457)  # 2 N·m: it still pushes
+    t = pair.now
+    while t < pair.now + 700_000:
+        t += 10_000
+        pair.route(g.on_wakeup(t), t)
+        pair.route(g.from_motor(pushing, t, t), t)
+    assert g.guard.phase is GuardPhase.STUCK and g.guard.stuck is not None
+    assert "still powered" in g.guard.stuck and g.counts.exits >= 5  # exit repeated
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.sampled_from(["none", "none", "command", "enter", "exit"]),
+            st.builds(
+                Command,
+                st.one_of(st.integers(0x7F00, 0x8100), st.integers(0, 0xFFFF)),  # near θ too
+                st.integers(0, 0xFFF),
+                st.integers(0, 0xFFF),
+                st.integers(0, 0xFFF),
+                st.integers(0, 0xFFF),
+            ),
+            st.one_of(st.sampled_from([-30, 30]), st.integers(-30, 30)),
+        ),
+        min_size=20,
+        max_size=120,
+    )
+)
+def test_the_torque_in_force_never_exceeds_the_cap_whatever_the_motor_does(
+    steps: list[tuple[str, Command, int]],
+) -> None:
+    """A motor that turns at any speed within the model's range, 1 ms at a time, answering every
+    frame with its true position; the application sends anything. At every instant the command
+    the motor holds asks for at most the cap, with the position and speed it really has."""
+    pair = Pair(60_000_000, 5_000_000)
+    g = pair.gate
+    while g.guard.phase is not GuardPhase.RUNNING:
+        pair.run_to(pair.now + 1_000)
+    fp, fv = DM.fields()[0], DM.fields()[1]
+    theta, in_force, enabled = Fraction(0), None, False
+    cap = Fraction(g.cap.torque_unm, UNM_PER_NM)
+
+    def deliver(frames: list[bytes], now: int) -> None:
+        nonlocal in_force, enabled
+        for data in frames:
+            if data == ENTER:
+                enabled = True
+            elif data == EXIT:
+                enabled, in_force = False, None
+            elif data not in (ZERO,) and enabled:
+                in_force = decode(DM, Command.unpack(data))
+            code = round((theta + fp.span) * fp.top / (2 * fp.span))
+            reply = pack_reply(DM, MOTOR, min(max(code, 0), fp.top), 2048, 2048)
+            pair.route(g.from_motor(reply, now, now), now)
+
+    for action, cmd, omega in steps:
+        now = pair.now + 1_000
+        pair.now = now
+        theta += Fraction(omega, 1000)  # ω rad/s over 1 ms, |ω| <= 30 = Ω
+        if action == "command":
+            v = g.from_app(cmd.pack(), now)
+            deliver([v.frame] if v.frame else [], now)
+        elif action in ("enter", "exit"):
+            v = g.from_app(ENTER if action == "enter" else EXIT, now)
+            deliver([v.frame] if v.frame else [], now)
+        pair.route(g.on_wakeup(now), now)
+        deliver(g.take_frames(), now)
+        if in_force is not None:
+            for w in (Fraction(omega), fv.span, -fv.span):
+                tau = in_force.kp * (in_force.p - theta) + in_force.kd * (in_force.v - w)
+                assert abs(tau + in_force.t) <= cap, (tau + in_force.t, cap)
+
+
+def test_a_reply_nobody_asked_for_refuses_the_motor() -> None:
+    """Every frame is answered once: a reply beyond them is forged (e.g. a position next to
+    the set point, to buy stiffness) or answers someone else's frame."""
+    pair = Pair(60_000_000, 5_000_000)
+    pair.run_to(200_000)  # every frame of the gate's answered
+    g = pair.gate
+    assert g.guard.refused is None
+    forged = pack_reply(DM, MOTOR, 0x8000, 2048, 2048)
+    pair.route(g.from_motor(forged, pair.now, pair.now), pair.now)
+    assert g.guard.refused is not None and "no frame of the guard's asked for" in g.guard.refused
+    assert g.counts.unasked == 1 and g.from_app(ENTER, pair.now).frame is None

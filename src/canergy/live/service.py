@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO, cast
@@ -182,9 +182,18 @@ class SupervisorService:
         now: int,
         *,
         save: Callable[[], None] | None = None,
+        liveness: Callable[[int, int], bool] | None = None,
+        extra_status: Callable[[int], dict[str, Any]] | None = None,
+        bus_counters: BusCounters | None = None,
+        buses: Mapping[str, BusCounters] | None = None,
+        control: ControlServer | None = None,
     ) -> None:
         """``save``: writes the books instead of ``config.state_path`` (a gateway keeps both of
-        its roles in one file)."""
+        its roles in one file). The rest is what the builder (``canergy.live.build``) hands
+        over: ``liveness``, an extra liveness test (the CANopen heartbeat watchdog, the guarded
+        drives'; False: no grants); ``extra_status``, more status under ``cia402`` (the guarded
+        drives); ``bus_counters``, the bus loop's counters (one bus) or ``buses``, each bus's by
+        name (several); ``control``, the control socket (its refusals are in the status)."""
         self.core = core
         self.save = save
         self.config = config
@@ -225,20 +234,16 @@ class SupervisorService:
         a key took the fast path (``fast_path``): an INTENTION then leaves as C's bytes."""
         self.stop_deadline: int | None = None
         self.status_stream = config.status_stream
-        self.liveness: Callable[[int, int], bool] | None = None
-        """Extra liveness test (the CANopen heartbeat watchdog); False: no grants."""
-        self.extra_status: Callable[[int], dict[str, Any]] | None = None
-        """More status under ``cia402`` (the guarded drives)."""
-        self.bus_counters = BusCounters()
-        """Replaced by the bus loop's own counters when one drives this service."""
-        self.buses: dict[str, BusCounters] = {}
+        self.liveness = liveness
+        self.extra_status = extra_status
+        self.bus_counters = BusCounters() if bus_counters is None else bus_counters
+        self.buses: dict[str, BusCounters] = dict(buses or {})
         """Several buses: each one's counters by name (the status shows them and their sums)."""
         self.injected_this_run = 0
         self.intrusions = Intrusions("supervisor", name=self.node_name)
         self.refusals = Refusals("supervisor", name=self.node_name)
-        self.control: ControlServer | None = None
-        """The control socket, once the serve loop answers it (its refusals are in the status)."""
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
+        self.control = control
         self.stopped_by_intrusion = False
         self.witness = ReturnGate(config.return_hold_us or 0, config.witness_block_us)
         self.witnessed = (Phase.IDLE, Debit) in core.variant.supervisor.cells

@@ -370,7 +370,3 @@ def cia402_drives(args: argparse.Namespace, timing: Timing) -> Cia402Drives:
     )
     beat = HostBeat(args.cia402_host_id, args.cia402_heartbeat, args.cia402_sync)
     return Cia402Drives(tuple(args.cia402), config, link_config, beat, args.cia402_capture or None)
-
-
-def _report(line: str) -> None:
-    print(f"canergy supervisor: {line}", file=sys.stderr, flush=True)

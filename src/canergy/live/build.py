@@ -293,10 +293,6 @@ def _one(
             liveness=None if manager is None else manager.alive,
         )
         made.append(guarded.close)
-        for _, link in devices.values():
-            assert notifier is not None
-            notifier.add_listener(link)
-            link.start()
     counters = BusCounters()
     liveness = guarded.alive if guarded is not None else manager and manager.alive
     given: dict[str, Any] = {
@@ -315,6 +311,11 @@ def _one(
         service = SupervisorService(core, config.service, clock(), **given)
     if manager is not None and not listen_only:
         manager.start_all()
+    if guarded is not None:  # the devices' links start once the service stands, as they did
+        for _, link in guarded.devices.values():
+            assert notifier is not None
+            notifier.add_listener(link)
+            link.start()
     handler: Any = service
     if guarded is not None:
         handler = GuardedSupervisor(service, guarded, codec=codec)

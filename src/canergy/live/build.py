@@ -18,7 +18,7 @@ import secrets
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import can
 
@@ -28,12 +28,14 @@ from canergy.codec import DEFAULT_ID_BASE, Codec
 from canergy.core import Timing
 from canergy.core.supervisor import SupervisorCore
 from canergy.live.bus_group import BusGroup
-from canergy.live.cia402_host import GuardedDevice, GuardedDevices, GuardedSupervisor, HostBeat
 from canergy.live.control import ControlServer
 from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.state_file import keep_books, load_state
 from canergy.messages import Direction
+
+if TYPE_CHECKING:  # the guarded drives' modules load only when a build has some
+    from canergy.live.cia402_host import GuardedDevice, GuardedDevices, HostBeat
 
 Clock = Callable[[], int]
 
@@ -273,6 +275,8 @@ def _one(
         manager = CanopenManager(network, c.nodes, c.eds, c.heartbeat_timeout_us, clock)
     guarded = None
     if config.cia402 is not None or config.devices:
+        from canergy.live.cia402_host import GuardedDevices
+
         now = clock()
         drives: dict[int, tuple[Any, Any]] = {}
         beat = capture = None
@@ -318,6 +322,8 @@ def _one(
             link.start()
     handler: Any = service
     if guarded is not None:
+        from canergy.live.cia402_host import GuardedSupervisor
+
         handler = GuardedSupervisor(service, guarded, codec=codec)
     runtime = None
     if bus is not None:

@@ -1,6 +1,8 @@
 """The supervisor with guarded CiA 402 drives: one loop, one core, proxies in the same books.
 
-``GuardedSupervisor`` wraps the supervisor service as the bus loop's ``Handler``. Frames the
+``GuardedDevices`` holds the guards, their links and the host's heartbeat; it is made before the
+service, which takes its liveness and status through its constructor (``canergy.live.build``).
+``GuardedSupervisor`` wraps the service as the bus loop's ``Handler``. Frames the
 service sends to a guarded drive's id go to that drive's proxy client in this process, and the
 proxy's answers come back to the service, each encoded and decoded by the codec exactly as on the
 bus (and written to ``capture`` when given, so ``canergy audit`` reads them). Every loop pass

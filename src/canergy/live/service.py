@@ -7,7 +7,6 @@ sent, so a ``kill -9`` at any point restarts from books that never owe energy.
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -33,12 +32,12 @@ from canergy.core.errors import LocalProtocolError
 from canergy.core.state import Outcome, Phase
 from canergy.core.supervisor import SupervisorCore
 from canergy.core.witnessed import answered
-from canergy.live.atomic import write_json_atomic
 from canergy.live.control import ControlServer
 from canergy.live.intrusions import Intrusions, Refusals, frame_text
+from canergy.live.outputs import BooksOut, StatusOut
 from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
 from canergy.live.runtime import BusCounters, Outgoing, RawFrame, total_counters
-from canergy.live.state_file import ENERGY_MAX_UJ, BooksWriter
+from canergy.live.state_file import ENERGY_MAX_UJ
 from canergy.live.witness import ReturnGate
 from canergy.messages import (
     LEVEL_MAX_MJ,
@@ -195,7 +194,6 @@ class SupervisorService:
         drives); ``bus_counters``, the bus loop's counters (one bus) or ``buses``, each bus's by
         name (several); ``control``, the control socket (its refusals are in the status)."""
         self.core = core
-        self.save = save
         self.config = config
         self.nodes = {n: NodeInfo() for n in core.nodes}
         self.rate = RateLimiter(config.limits.rate_uj_per_s, config.limits.max_grant)
@@ -212,20 +210,12 @@ class SupervisorService:
         self.stopping = False
         self._dirty = False
         self._passes = 0
-        self.saves = 0
-        """Times the books were written (the state file, or ``save``)."""
         self.telemetry_heard = 0
         """TELEMETRY frames of managed nodes taken (information, not protocol frames)."""
-        self._books = (
-            None
-            if config.state_path is None
-            else BooksWriter(
-                config.state_path,
-                core.variant.name,
-                fsync=config.fsync,
-                buses=config.bus_names,
-            )
+        self.books_out = BooksOut(
+            core, config.state_path, fsync=config.fsync, buses=config.bus_names, save=save
         )
+        self.status_out = StatusOut(config.status_path, config.status_stream, config.status_text)
         self._held: list[Outgoing] = []
         self._answer = getattr(core, "on_answer", None)
         """The compiled core's fast path (``fast_frame``); None on the Python core."""
@@ -233,7 +223,6 @@ class SupervisorService:
         """The compiled core's ``begin`` with its frame as C encoded it, once a bus loop without
         a key took the fast path (``fast_path``): an INTENTION then leaves as C's bytes."""
         self.stop_deadline: int | None = None
-        self.status_stream = config.status_stream
         self.liveness = liveness
         self.extra_status = extra_status
         self.bus_counters = BusCounters() if bus_counters is None else bus_counters
@@ -952,13 +941,12 @@ class SupervisorService:
             self._dirty = False
 
     def _persist(self) -> None:
-        if self.save is not None:
-            self.save()
-        elif self._books is not None:
-            self._books.save(self.core.state)
-        else:
-            return
-        self.saves += 1
+        self.books_out.write()
+
+    @property
+    def saves(self) -> int:
+        """Times the books were written (the state file, or ``save``)."""
+        return self.books_out.saves
 
     # -- status ----------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
@@ -1042,17 +1030,7 @@ class SupervisorService:
         return {str(uid): n for uid, n in sorted(dict(self.control.refused).items())}
 
     def write_status(self) -> None:
-        status = self.status()
-        if self.config.status_path is not None:
-            write_json_atomic(self.config.status_path, status, fsync=False)
-        if self.status_stream is not None:
-            make = self.config.status_text
-            text = json.dumps(status, sort_keys=True) if make is None else make(status)
-            try:
-                self.status_stream.write(text + "\n")
-                self.status_stream.flush()
-            except BrokenPipeError:  # the reader went away (``| head``): keep supervising
-                self.status_stream = None
+        self.status_out.write(self.status())
 
 
 def _own_direction(frame: can.Message) -> bool:

@@ -131,3 +131,15 @@ def test_the_service_shows_the_counters_its_bus_loop_counts_in() -> None:
     finally:
         bus.shutdown()
         node.shutdown()
+
+
+def test_several_buses_take_no_canopen_nor_guarded_drives() -> None:
+    """They work on one bus: a configuration that asks for them over several is refused, not
+    served without them."""
+    config = SupervisorConfig(
+        core=CoreConfig((1 << 8 | 1, 9), J),
+        service=ServiceConfig(bus_names=("a", "b")),
+        cia402=_Drives(),
+    )
+    with pytest.raises(ValueError, match="one bus"):
+        build_supervisor(config, [object(), object()])  # type: ignore[list-item]

@@ -219,6 +219,8 @@ def build_supervisor(
         raise ValueError(f"{len(names)} bus names for {len(buses)} buses")
     if not names and len(buses) > 1:
         raise ValueError("several buses need their names (ServiceConfig.bus_names)")
+    if names and config.shares_bus:
+        raise ValueError("CANopen and guarded drives and devices work on one bus")
     made: list[Any] = []  # what to undo when a later step fails
     control = None
     try:

@@ -35,7 +35,13 @@ from canergy.cli import main
 from canergy.codec import Codec
 from canergy.core import Supervisor
 from canergy.live.control import request as ask
-from canergy.live.runtime import OWN_MAC_WAIT_US, BusRuntime, OwnDirection, monotonic_us
+from canergy.live.runtime import (
+    OWN_MAC_WAIT_US,
+    BusCounters,
+    BusRuntime,
+    OwnDirection,
+    monotonic_us,
+)
 from canergy.live.service import JOIN_HOLD_US, ServiceConfig, SupervisorService
 from canergy.messages import (
     Ack,
@@ -565,12 +571,18 @@ class AuthWire:
             return can.Bus(interface="virtual", channel=channel, fd=fd)
 
         config = ServiceConfig(fsync=False, status_period_us=10**12)
-        self.service = SupervisorService(Supervisor((1,), 10_000_000), config, 0)
+        counters = BusCounters()
+        core = Supervisor((1,), 10_000_000)
+        self.service = SupervisorService(core, config, 0, bus_counters=counters)
         sup_auth = FrameAuth(CODEC, layout, key, Direction.TO_SUPERVISOR, self.service.freshness)
         self.sup = BusRuntime(
-            bus(), self.service, receives=Direction.TO_SUPERVISOR, auth=sup_auth, clock=self.clock
+            bus(),
+            self.service,
+            receives=Direction.TO_SUPERVISOR,
+            auth=sup_auth,
+            clock=self.clock,
+            counters=counters,
         )
-        self.service.bus_counters = self.sup.counters
         nv = NvStore(tmp / "1.nv", 1, fsync=False)
         self.node = FirmwareNode(1, nv, NodeConfig(telemetry_period_us=60_000_000), 0)
         host = NodeHost([self.node])

@@ -407,9 +407,13 @@ def test_the_return_hold_applies_only_without_a_key_below(tmp_path: Path) -> Non
     keys(tmp_path)
     base = ["gateway", "--node", str(GW), "--nodes", str(LEAF), "--state", str(tmp_path / "s")]
     args = build_parser().parse_args([*base, "--return-hold", "300ms"])
-    assert _config(args, None).return_hold_us == 300_000
-    assert _config(build_parser().parse_args(base), None).return_hold_us == 500_000  # default
-    assert _config(args, load_key(tmp_path / "gw.key")).return_hold_us is None  # a MAC instead
+    assert _config(args, None).service.return_hold_us == 300_000
+    assert (
+        _config(build_parser().parse_args(base), None).service.return_hold_us == 500_000
+    )  # default
+    assert (
+        _config(args, load_key(tmp_path / "gw.key")).service.return_hold_us is None
+    )  # a MAC instead
 
 
 def test_a_keyless_tree_holds_returns_and_refutes_a_forged_one(make_tree: Any) -> None:

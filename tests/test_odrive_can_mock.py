@@ -106,6 +106,9 @@ def test_the_mock_trusted_ignores_the_stop_and_is_reported_stuck(
         _,
     ):
         wait_for(lambda: (d := axis(status)) and d["ready"], timeout=30)
+        # its bus voltage read once before the application floods it: the mock answers a poll
+        # only between the 0.5 s it takes over each Set_Axis_State, one after the other
+        wait_for(lambda: (d := axis(status)) and d["bus_voltage_v"] is not None, timeout=30)
         closed_loop = set_axis_state(AxisState.CLOSED_LOOP_CONTROL)
         frame_id = can_id(AXIS, Cmd.SET_AXIS_STATE)
         frame = can.Message(arbitration_id=frame_id, data=closed_loop, is_extended_id=False)

@@ -34,12 +34,13 @@ from canergy.cia402.guard import (
 )
 from canergy.cia402.meter import MeterConfig, MeterKind
 from canergy.cia402.metering import DriveSetup
-from canergy.core import Supervisor, Timing
-from canergy.live.cia402_host import GuardedSupervisor, HostBeat
+from canergy.core import Timing
+from canergy.live.build import CoreConfig, SupervisorConfig, build_supervisor
+from canergy.live.cia402_host import HostBeat
 from canergy.live.cia402_link import enable_step, power_state
 from canergy.live.policy import Limits as GrantLimits
 from canergy.live.policy import TopUp
-from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.service import ServiceConfig
 from canergy.units import UJ_PER_J
 from firmware_model.drive.model import DriveAbort, DriveModel
 from firmware_model.drive.motor import LoadTorque, MotorParams
@@ -180,6 +181,21 @@ class _Link:
         return {"pending_commands": len(self.pending_commands)}
 
 
+@dataclass(frozen=True)
+class _Drives:
+    """The one drive and its simulated link, as the builder takes guarded CiA 402 drives."""
+
+    guard: DriveGuard
+    link: _Link
+    beat: HostBeat
+    nodes: tuple[int, ...] = (NODE,)
+
+    def open(
+        self, network: Any, now: int, clock: Any
+    ) -> tuple[dict[int, tuple[Any, Any]], HostBeat, None]:
+        return {NODE: (self.guard, self.link)}, self.beat, None
+
+
 class _Bus:
     def __init__(self) -> None:
         self.frames: list[Any] = []
@@ -259,22 +275,25 @@ def _setup(sc: Scenario, drive: DriveModel, config: GuardConfig) -> DriveSetup:
 def run(sc: Scenario) -> Result:
     drive = _drive(sc)
     timing = Timing(response_timeout_us=20_000, retries=3)
-    service = SupervisorService(
-        Supervisor((NODE,), sc.budget_uj, timing=timing),
-        ServiceConfig(
-            policy=TopUp(sc.target_uj) if sc.target_uj is not None else TopUp(sc.budget_uj),
-            limits=GrantLimits(max_grant=sc.max_grant_uj),
-            fsync=False,
-            status_period_us=10**12,
-            local_nodes=frozenset({NODE}),
-        ),
-        0,
-    )
     config = _guard_config(sc, drive, timing)
     guard = DriveGuard(NODE, config, 0, nonce=0x1234)
     link, bus = _Link(_setup(sc, drive, config)), _Bus()
-    drives: dict[int, Any] = {NODE: (guard, link)}
-    host = GuardedSupervisor(service, drives, bus, HostBeat(HOST, sc.heartbeat_us), 0)  # type: ignore[arg-type]
+    built = build_supervisor(
+        SupervisorConfig(
+            core=CoreConfig((NODE,), sc.budget_uj, timing=timing),
+            service=ServiceConfig(
+                policy=TopUp(sc.target_uj) if sc.target_uj is not None else TopUp(sc.budget_uj),
+                limits=GrantLimits(max_grant=sc.max_grant_uj),
+                fsync=False,
+                status_period_us=10**12,
+                local_nodes=frozenset({NODE}),
+            ),
+            cia402=_Drives(guard, link, HostBeat(HOST, sc.heartbeat_us)),
+        ),
+        heartbeat_bus=bus,
+        clock=lambda: 0,
+    )
+    service, host = built.service, built.handler
     app = sorted(sc.app)
     in_flight: deque[tuple[int, dict[int, int], str | None, int, int]] = deque()
     seen_drawn, decided_drawn = 0, None

@@ -18,7 +18,7 @@ from canergy.faults import FaultInjector, FaultProfile
 from canergy.ledger import Ledger, ledger
 from canergy.live.faulty_bus import FaultyBus
 from canergy.live.policy import Limits, TopUp
-from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.state_file import load_state
 from canergy.messages import Direction
@@ -101,14 +101,15 @@ class Rig:
             lost_after_us=10_000_000,
             fsync=False,
         )
-        self.service = SupervisorService(core, config, now)
+        counters = BusCounters()
+        self.service = SupervisorService(core, config, now, bus_counters=counters)
         runtime = BusRuntime(
             self._bus(self.codec.supervisor_filters()),
             self.service,
             codec=self.codec,
             receives=Direction.TO_SUPERVISOR,
+            counters=counters,
         )
-        self.service.bus_counters = runtime.counters
         self.sup_loop = Loop(runtime)
         return self.service
 

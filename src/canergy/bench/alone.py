@@ -22,10 +22,10 @@ from typing import Any
 import can
 
 from canergy.bench.live import TIMING, Emulator, NoAnswer
-from canergy.ccore.supervisor import make_supervisor
 from canergy.codec import Codec
+from canergy.live.build import CoreConfig, SupervisorConfig, build_supervisor
 from canergy.live.runtime import BusRuntime, monotonic_us
-from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.service import ServiceConfig
 from canergy.messages import Direction
 
 
@@ -61,11 +61,12 @@ def supervisor_alone(
     sup_end, node_end = _Wire(), _Wire()
     sup_end.peer, node_end.peer = node_end, sup_end
     books = nv_dir / "supervisor.json" if state_file else None
-    config = ServiceConfig(status_period_us=10**12, fsync=False, state_path=books)
-    service = SupervisorService(
-        make_supervisor(core, ids, 10**15, timing=TIMING), config, monotonic_us()
+    config = SupervisorConfig(
+        core=CoreConfig(tuple(ids), 10**15, timing=TIMING, kind=core),
+        service=ServiceConfig(status_period_us=10**12, fsync=False, state_path=books),
     )
-    supervisor = BusRuntime(sup_end, service, codec=Codec(), receives=Direction.TO_SUPERVISOR)
+    built = build_supervisor(config, [sup_end])
+    service, supervisor = built.service, built.loop
     host = emulator.node_host(ids, nv_dir, TIMING, monotonic_us())
     node_loop = BusRuntime(node_end, host, codec=Codec(), receives=Direction.TO_CLIENT)
     committed: set[int] = set()

@@ -29,11 +29,11 @@ from typing import Any, Protocol
 import can
 import canopen
 
-from canergy.ccore.supervisor import make_supervisor
 from canergy.codec import Codec
 from canergy.core import Timing
+from canergy.live.build import CoreConfig, SupervisorConfig, build_supervisor
 from canergy.live.runtime import BusRuntime, Handler, monotonic_us
-from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.service import ServiceConfig
 from canergy.messages import Direction
 
 TIMING = Timing(response_timeout_us=500_000, retries=3, command_timeout_us=1_000_000)
@@ -196,13 +196,15 @@ def drive_grants(
     there, as ``canergy supervisor --state`` does (without fsync: its cost is the disk's).
     ``core``: the supervisor core, "python" or "c" (``canergy supervisor --core``); ``codec``:
     the bus's identifier block (default: canergy's)."""
-    now = monotonic_us()
     codec = codec or Codec()
-    rules = make_supervisor(core, nodes, 10**15, timing=TIMING, id_base=codec.id_base)
-    config = ServiceConfig(status_period_us=10**12, fsync=False, state_path=state_path)
-    service = SupervisorService(rules, config, now)
+    config = SupervisorConfig(
+        core=CoreConfig(tuple(nodes), 10**15, timing=TIMING, kind=core),
+        service=ServiceConfig(status_period_us=10**12, fsync=False, state_path=state_path),
+        id_base=codec.id_base,
+    )
     timed = TimedBus(bus)
-    runtime = BusRuntime(timed, service, codec=codec, receives=Direction.TO_SUPERVISOR)
+    built = build_supervisor(config, [timed])
+    service, runtime = built.service, built.loop
     stop, measuring = threading.Event(), threading.Event()
     latencies: list[float] = []
     warmed: set[int] = set()

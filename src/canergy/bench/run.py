@@ -19,16 +19,16 @@ from canergy.ccore import supervisor as ccore
 
 
 def memory_per_node(nodes: int = 127, emulator: live.Emulator | None = None) -> dict[str, Any]:
-    from canergy.core import Supervisor
-    from canergy.live.service import ServiceConfig, SupervisorService
+    from canergy.live.build import CoreConfig, SupervisorConfig, build_supervisor
 
+    config = SupervisorConfig(core=CoreConfig(tuple(range(1, nodes + 1)), 10**9))
     tracemalloc.start()
     before = tracemalloc.take_snapshot()
-    service = SupervisorService(Supervisor(range(1, nodes + 1), 10**9), ServiceConfig(), 0)
+    built = build_supervisor(config, clock=lambda: 0)  # no bus: the service alone
     after = tracemalloc.take_snapshot()
     tracemalloc.stop()
     used = sum(s.size_diff for s in after.compare_to(before, "filename"))
-    assert service.core.nodes  # keep it alive until measured
+    assert built.service.core.nodes  # keep it alive until measured
     result: dict[str, Any] = {"nodes": nodes, "supervisor_bytes_per_node": used / nodes}
     if emulator is not None:
         result |= {

@@ -15,10 +15,10 @@ from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import Key, KeyFileError, frame_auth_keys, load_key
 from canergy.auth.state_key import state_seal
 from canergy.cli.shared.live import (
+    auth_config,
     book_flags,
     check_state,
     check_widths,
-    frame_auth,
     grant_limits,
     rule_timing,
     service_flags,
@@ -28,13 +28,13 @@ from canergy.codec import Codec
 from canergy.core.gateway import Gateway
 from canergy.core.state import Phase
 from canergy.faults import FaultInjector, FaultProfile
+from canergy.live.build import SupervisorConfig, build_supervisor
 from canergy.live.bus_args import add_bus_flags, open_bus
 from canergy.live.bus_group import BusGroup
-from canergy.live.control import ControlServer
-from canergy.live.gateway import DownstreamService, GatewayFiles, Uplink, UplinkConfig
+from canergy.live.gateway import GatewayFiles, Uplink, UplinkConfig
 from canergy.live.gateway_state import load_gateway
 from canergy.live.policy import TopUp
-from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
 from canergy.live.serve import serve_supervisor
 from canergy.live.service import ServiceConfig
 from canergy.live.state_file import keep_books
@@ -199,10 +199,11 @@ def _build(args: argparse.Namespace, key: Key | None = None) -> tuple[Gateway, b
     return gateway, state is None
 
 
-def _config(args: argparse.Namespace, key: Key | None) -> ServiceConfig:
+def _config(args: argparse.Namespace, key: Key | None) -> SupervisorConfig:
     """The downstream supervisor's configuration; without a key it holds RETURNs for the
-    node's confirmation (``--return-hold``), as ``canergy supervisor`` does."""
-    return ServiceConfig(
+    node's confirmation (``--return-hold``), as ``canergy supervisor`` does. Its core is the
+    gateway's (``_build``)."""
+    service = ServiceConfig(
         policy=TopUp(args.target, args.min_grant) if args.target is not None else None,
         limits=grant_limits(args),
         status_path=args.status_file,
@@ -212,6 +213,12 @@ def _config(args: argparse.Namespace, key: Key | None) -> ServiceConfig:
         stop_timeout_us=args.stop_timeout,
         fsync=not args.no_fsync,
         return_hold_us=None if key is not None else args.return_hold,
+    )
+    return SupervisorConfig(
+        service=service,
+        id_base=args.id_base,
+        auth=auth_config(args, key),
+        control_path=args.control,
     )
 
 
@@ -278,45 +285,41 @@ def run(args: argparse.Namespace) -> int:
     down_codec, up_codec = Codec(args.id_base), Codec(args.upstream_id_base)
     down_bus = open_bus(args, down_codec.supervisor_watch_filters())
     up_bus = None
-    control = None
+    built = None
     group = None
     try:
         up_bus = _upstream_bus(args, up_codec)
-        control = ControlServer(args.control) if args.control is not None else None
+        up_counters = BusCounters()
         uplink = Uplink(
             gateway,
             UplinkConfig(telemetry_period_us=args.telemetry_period, return_above=args.return_above),
             files,
             now,
+            counters=up_counters,
         )
         if not new:  # a start is a restart from the one record (witnessed above: RESUME)
             uplink.start_with_books(secrets.randbits(16), now, secrets.randbits(16))
         if new or uplink.joining:  # JOINING before the first save: a blank record is untrusted
             uplink.start_without_books(secrets.randbits(16), now)
-        service = DownstreamService(gateway.down, config, now, save=files.save)  # saves once
-        service.uplink = uplink
+        # the control socket, then the downstream role, which saves once
+        built = build_supervisor(
+            config, [down_bus], core=gateway.down, save=files.save, uplink=uplink
+        )
         up = BusRuntime(
             up_bus,
             uplink,
             codec=up_codec,
             receives=Direction.TO_CLIENT,
             auth=_upstream_auth(args, up_key, up_codec, uplink),
+            counters=up_counters,
         )
-        down = BusRuntime(
-            down_bus,
-            service,
-            codec=down_codec,
-            receives=Direction.TO_SUPERVISOR,
-            auth=frame_auth(args, down_key, down_codec, service.freshness),
-        )
-        uplink.counters, service.bus_counters = up.counters, down.counters
-        group = BusGroup([up, down])
-        serve_supervisor(group, service, control)
+        group = BusGroup([up, built.loop])
+        serve_supervisor(group, built.service, built.control)
     finally:
         if group is not None:
             group.close()
-        if control is not None:
-            control.close()
+        if built is not None:
+            built.close()
         for bus in (up_bus, down_bus):
             if bus is not None:
                 bus.shutdown()

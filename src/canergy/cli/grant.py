@@ -11,23 +11,23 @@ from typing import Any
 from canergy.argtypes import add_duration, bounded_int, grant_amount
 from canergy.bus_keys import parse_node_id
 from canergy.cli.shared.live import (
+    auth_config,
     auth_key,
-    build_core,
     check_state,
     check_widths,
-    frame_auth,
+    core_config,
     grant_limits,
     supervisor_flags,
 )
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
+from canergy.live.build import SupervisorConfig, build_supervisor, open_core
 from canergy.live.bus_args import open_bus
 from canergy.live.control import NoAnswer, NoSupervisor, request
-from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.runtime import monotonic_us
 from canergy.live.serve import serve_supervisor
-from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.service import ServiceConfig
 from canergy.live.state_file import books_nodes
-from canergy.messages import Direction
 from canergy.units import US_PER_S, format_energy
 
 STATUS_WAIT_S = 5.0
@@ -103,30 +103,17 @@ def run(args: argparse.Namespace) -> int:
     check_state(args)
     key = auth_key(args)
     nodes = tuple(sorted({args.node, *books_nodes(args.state)}))  # every node's books kept
-    core = build_core(args, nodes, key=key)
-    config = ServiceConfig(
-        limits=grant_limits(args),
-        state_path=args.state,
-        stop_timeout_us=args.stop_timeout,
-        status_period_us=10**12,
-        fsync=not args.no_fsync,
-    )
-    codec = Codec(args.id_base)
-    bus = open_bus(args, codec.supervisor_watch_filters())
+    config = _config(args, nodes, key)
+    core = open_core(config)
+    bus = open_bus(args, Codec(args.id_base).supervisor_watch_filters())
     answers: list[dict[str, Any]] = []
     deadline = monotonic_us() + args.timeout
     try:
-        service = SupervisorService(core, config, monotonic_us())
-        runtime = BusRuntime(
-            bus,
-            service,
-            codec=codec,
-            receives=Direction.TO_SUPERVISOR,
-            auth=frame_auth(args, key, codec, service.freshness),
-        )
+        built = build_supervisor(config, [bus], core=core)
+        service = built.service
         service.request_grant(args.node, args.amount, answers.append)
         serve_supervisor(
-            runtime, service, None, until=lambda: bool(answers) or monotonic_us() > deadline
+            built.loop, service, None, until=lambda: bool(answers) or monotonic_us() > deadline
         )
     finally:
         bus.shutdown()
@@ -135,6 +122,23 @@ def run(args: argparse.Namespace) -> int:
         why = f" ({service.waiting_why(waiting)})" if waiting else ""
         answers.append({"node": args.node, "error": f"no answer before --timeout{why}"})
     return _report_grant(answers[0])
+
+
+def _config(args: argparse.Namespace, nodes: tuple[int, ...], key: Any) -> SupervisorConfig:
+    """The flags as the builder takes them: a supervisor for one grant, no status."""
+    service = ServiceConfig(
+        limits=grant_limits(args),
+        state_path=args.state,
+        stop_timeout_us=args.stop_timeout,
+        status_period_us=10**12,
+        fsync=not args.no_fsync,
+    )
+    return SupervisorConfig(
+        core=core_config(args, nodes),
+        service=service,
+        id_base=args.id_base,
+        auth=auth_config(args, key),
+    )
 
 
 def _node_state(control: Path, node: int | str) -> str:

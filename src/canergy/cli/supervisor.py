@@ -10,13 +10,13 @@ from pathlib import Path
 from typing import Any
 
 from canergy.argtypes import add_duration, energy, node_ids
-from canergy.cli.shared.cia402 import add_cia402_flags, check_cia402, guard_drives
+from canergy.cli.shared.cia402 import add_cia402_flags, check_cia402, cia402_drives
 from canergy.cli.shared.live import (
+    auth_config,
     auth_key,
-    build_core,
     check_state,
     check_widths,
-    frame_auth,
+    core_config,
     grant_limits,
     joules,
     rule_timing,
@@ -24,28 +24,35 @@ from canergy.cli.shared.live import (
     start_without_flag,
     supervisor_flags,
 )
-from canergy.cli.shared.moteus import add_moteus_flags, check_moteus, guard_moteus, moteus_filters
-from canergy.cli.shared.odrive import add_odrive_flags, check_odrive, guard_axes
+from canergy.cli.shared.moteus import (
+    add_moteus_flags,
+    check_moteus,
+    moteus_controllers,
+    moteus_filters,
+)
+from canergy.cli.shared.odrive import add_odrive_flags, check_odrive, odrive_axes
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.core.supervisor import SupervisorCore
+from canergy.live.build import (
+    CanopenConfig,
+    DeviceGroup,
+    SupervisorConfig,
+    build_supervisor,
+    open_core,
+)
 from canergy.live.bus_args import bus_where, open_bus, open_bus_at
-from canergy.live.bus_group import BusGroup
-from canergy.live.control import ControlServer
 from canergy.live.multi_bus import (
     BUS_SYNTAX,
-    BusPort,
-    BusRouter,
     BusSpec,
     bus_spec,
     check_buses,
     session_keys,
 )
 from canergy.live.policy import TopUp
-from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.serve import serve_supervisor
 from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.messages import QUANTUM_UJ, Direction
+from canergy.messages import QUANTUM_UJ
 
 EXIT_INTRUSION = 3
 
@@ -132,25 +139,6 @@ def _check_eds(path: Path | None) -> None:
         raise ValueError(f"--eds {path}: not a usable EDS ({exc})") from None
 
 
-def _canopen(args: argparse.Namespace, bus: Any, service: SupervisorService) -> tuple[Any, Any]:
-    from canergy.live.canopen_manager import CanopenManager
-    from canergy.live.shared_bus import EDS, shared_network
-
-    network, reader = shared_network(bus)
-    try:
-        manager = CanopenManager(
-            network, args.nodes, args.eds or EDS, args.heartbeat_timeout, monotonic_us
-        )
-    except BaseException:  # e.g. an --eds that is not an EDS: no Notifier thread left behind
-        if network.notifier is not None:
-            network.notifier.stop()
-        raise
-    service.liveness = manager.alive
-    if not args.listen_only:
-        manager.start_all()
-    return manager, reader
-
-
 def _buses(args: argparse.Namespace) -> tuple[BusSpec, ...]:
     """The ``--bus`` options, checked against each other and the rest (none without --bus)."""
     specs = tuple(args.bus or ())
@@ -223,17 +211,11 @@ def run(args: argparse.Namespace) -> int:
     key = auth_key(args)
     if args.canopen:
         _check_eds(args.eds)
-    names = tuple(spec.name for spec in buses)
+    config = supervisor_config(args, buses, key)
+    core = open_core(config)  # the books are read (or refused) before a bus is opened
     if buses:
-        nodes = session_keys(buses)
-    else:
-        nodes = tuple(sorted((*(args.nodes or ()), *(args.cia402 or ()), *(args.odrive or ()))))
-        nodes = tuple(sorted((*nodes, *(args.moteus or ()))))
-    core = build_core(args, nodes, names, key)
-    config = _config(args, key, names)
-    if buses:
-        return _run_buses(args, buses, core, config, key)
-    return _run_bus(args, core, config, key)
+        return _run_buses(args, buses, config, core)
+    return _run_bus(args, config, core)
 
 
 def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
@@ -256,9 +238,28 @@ def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
     return buses
 
 
-def _config(args: argparse.Namespace, key: Any, names: tuple[str, ...]) -> ServiceConfig:
+def _devices(args: argparse.Namespace) -> tuple[DeviceGroup, ...]:
+    """The guarded device groups asked for, one per profile flag (``--odrive``, ``--moteus``)."""
+    timing = rule_timing(args)
+    groups: list[DeviceGroup] = []
+    if args.odrive:
+        groups.append(odrive_axes(args, timing))
+    if args.moteus:
+        groups.append(moteus_controllers(args, timing))
+    return tuple(groups)
+
+
+def supervisor_config(
+    args: argparse.Namespace, buses: tuple[BusSpec, ...], key: Any
+) -> SupervisorConfig:
+    """The flags, checked, as the builder takes them: the one place they become a
+    ``SupervisorConfig``."""
+    names = tuple(spec.name for spec in buses)
+    devices = _devices(args)
+    guarded = (*(args.cia402 or ()), *(n for group in devices for n in group.nodes))
+    nodes = session_keys(buses) if buses else tuple(sorted((*(args.nodes or ()), *guarded)))
     listening = args.listen_only and args.status_file is None
-    return ServiceConfig(
+    service = ServiceConfig(
         policy=TopUp(args.target, args.min_grant) if args.target is not None else None,
         limits=grant_limits(args),
         state_path=args.state,
@@ -273,8 +274,24 @@ def _config(args: argparse.Namespace, key: Any, names: tuple[str, ...]) -> Servi
         inject_uj=args.inject or 0,
         stop_on_intrusion=args.on_intrusion == "stop",
         return_hold_us=None if key is not None else args.return_hold,
-        local_nodes=frozenset((*(args.cia402 or ()), *(args.odrive or ()), *(args.moteus or ()))),
+        local_nodes=frozenset(guarded),
         bus_names=names,
+    )
+    canopen = None
+    if args.canopen:
+        from canergy.live.shared_bus import EDS
+
+        canopen = CanopenConfig(tuple(args.nodes), args.eds or EDS, args.heartbeat_timeout)
+    return SupervisorConfig(
+        core=core_config(args, nodes, names),
+        service=service,
+        id_base=args.id_base,
+        auth=auth_config(args, key),
+        control_path=args.control,
+        canopen=canopen,
+        cia402=cia402_drives(args, rule_timing(args)) if args.cia402 else None,
+        devices=devices,
+        report=_report_axis,
     )
 
 
@@ -328,13 +345,10 @@ def _names(names: list[str]) -> str:
     )
 
 
-def _run_bus(
-    args: argparse.Namespace, core: SupervisorCore, config: ServiceConfig, key: Any
-) -> int:
-    """One bus (-i/-c/--nodes), with CANopen and guarded CiA 402 drives if asked for."""
-    codec = Codec(args.id_base)
-    filters = codec.supervisor_watch_filters()
-    if args.canopen or args.cia402 or args.odrive:
+def _run_bus(args: argparse.Namespace, config: SupervisorConfig, core: SupervisorCore) -> int:
+    """One bus (-i/-c/--nodes), with CANopen and guarded drives and devices if asked for."""
+    filters = Codec(args.id_base).supervisor_watch_filters()
+    if config.shares_bus:
         from canergy.live.shared_bus import STANDARD_FRAMES
 
         filters.append(STANDARD_FRAMES)  # CANopen's 11-bit ids
@@ -343,124 +357,38 @@ def _run_bus(
 
         filters += [STANDARD_FRAMES, *moteus_filters(args)]
     bus = open_bus(args, filters)
-    control = None
-    manager = None
-    network = None
-    guarded = None
     try:
-        # the socket first: a run that cannot bind it stops before the state file is written
-        control = ControlServer(args.control) if args.control is not None else None
-        service = SupervisorService(core, config, monotonic_us())
-        _announce(args, service)
-        manager, reader = _canopen(args, bus, service) if args.canopen else (None, None)
-        handler: Any = service
-        if args.cia402:
-            from canergy.live.shared_bus import shared_network
-
-            if manager is not None:
-                network = manager.network
-            else:
-                network, reader = shared_network(bus)
-            now = monotonic_us()
-            guarded = guard_drives(
-                args, network, bus, service, rule_timing(args), now, monotonic_us
-            )
-            handler = guarded
-        if args.odrive:
-            from canergy.live.cia402_host import GuardedSupervisor
-            from canergy.live.shared_bus import shared_network
-
-            network, reader = shared_network(bus)
-            now = monotonic_us()
-            axes = guard_axes(args, bus, rule_timing(args), now, monotonic_us)
-            guarded = GuardedSupervisor(
-                service, {}, bus, None, now, devices=axes, codec=codec, report=_report_axis
-            )
-            handler = guarded
-            for _, link in axes.values():
-                assert network.notifier is not None
-                network.notifier.add_listener(link)
-                link.start()
-        if args.moteus:
-            from canergy.live.cia402_host import GuardedSupervisor
-            from canergy.live.shared_bus import shared_network
-
-            network, reader = shared_network(bus)
-            now = monotonic_us()
-            controllers = guard_moteus(args, bus, rule_timing(args), now, monotonic_us)
-            guarded = GuardedSupervisor(
-                service, {}, bus, None, now, devices=controllers, codec=codec, report=_report_axis
-            )
-            handler = guarded
-            for _, moteus_link in controllers.values():
-                assert network.notifier is not None
-                network.notifier.add_listener(moteus_link)
-                moteus_link.start()
-        runtime = BusRuntime(
-            bus,
-            handler,
-            codec=codec,
-            receives=Direction.TO_SUPERVISOR,
-            listen_only=args.listen_only,
-            source=reader,
-            auth=frame_auth(args, key, codec, service.freshness),
-        )
-        service.bus_counters = runtime.counters
-        serve_supervisor(runtime, service, control, manager=manager)
-        return _exit_status(service)
+        built = build_supervisor(config, [bus], core=core)
+        try:
+            _announce(args, built.service)
+            serve_supervisor(built.loop, built.service, built.control, manager=built.manager)
+            return _exit_status(built.service)
+        finally:
+            built.close()
     finally:
-        if control is not None:
-            control.close()
-        if guarded is not None:
-            guarded.halt_all(monotonic_us())  # an exit never leaves a drive running
-            guarded.close()
-        for net in {
-            id(n): n for n in (network, manager and manager.network) if n is not None
-        }.values():
-            net.notifier.stop()
         bus.shutdown()
 
 
 def _run_buses(
     args: argparse.Namespace,
     specs: tuple[BusSpec, ...],
+    config: SupervisorConfig,
     core: SupervisorCore,
-    config: ServiceConfig,
-    key: Any,
 ) -> int:
     """``--bus``: one service over every bus, a runtime per bus, one loop for them all."""
     codec = Codec(args.id_base)
     opened: list[Any] = []
-    control = None
-    group = None
     try:
         for spec in specs:
             filters = codec.supervisor_watch_filters()
             opened.append(open_bus_at(args, spec.interface, spec.channel, filters, spec.name))
-        # the socket first: a run that cannot bind it stops before the state file is written
-        control = ControlServer(args.control) if args.control is not None else None
-        service = SupervisorService(core, config, monotonic_us())
-        _announce(args, service)
-        router = BusRouter()
-        for i, (spec, bus) in enumerate(zip(specs, opened, strict=True)):
-            port = BusPort(service, i, router, deadlines=i == 0)
-            runtime = BusRuntime(
-                bus,
-                port,
-                codec=codec,
-                receives=Direction.TO_SUPERVISOR,
-                listen_only=args.listen_only,
-                auth=frame_auth(args, key, codec, port.freshness),
-            )
-            router.runtimes.append(runtime)
-            service.buses[spec.name] = runtime.counters
-        group = BusGroup(router.runtimes)
-        serve_supervisor(group, service, control)
-        return _exit_status(service)
+        built = build_supervisor(config, opened, core=core)
+        try:
+            _announce(args, built.service)
+            serve_supervisor(built.loop, built.service, built.control)
+            return _exit_status(built.service)
+        finally:
+            built.close()
     finally:
-        if group is not None:
-            group.close()
-        if control is not None:
-            control.close()
         for bus in opened:
             bus.shutdown()

@@ -1,6 +1,8 @@
 """The supervisor with guarded CiA 402 drives: one loop, one core, proxies in the same books.
 
-``GuardedSupervisor`` wraps the supervisor service as the bus loop's ``Handler``. Frames the
+``GuardedDevices`` holds the guards, their links and the host's heartbeat; it is made before the
+service, which takes its liveness and status through its constructor (``canergy.live.build``).
+``GuardedSupervisor`` wraps the service as the bus loop's ``Handler``. Frames the
 service sends to a guarded drive's id go to that drive's proxy client in this process, and the
 proxy's answers come back to the service, each encoded and decoded by the codec exactly as on the
 bus (and written to ``capture`` when given, so ``canergy audit`` reads them). Every loop pass
@@ -17,7 +19,7 @@ identifier is some axis's command (0x77F is node 59's Enter_DFU_Mode).
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -45,23 +47,28 @@ class HostBeat:
     sync_us: int | None = None
 
 
-class GuardedSupervisor:
-    """Implements ``canergy.live.runtime.Handler``."""
+GuardedDevice = Device
+"""A guarded device of another profile than CiA 402: its guard and its link."""
+
+
+class GuardedDevices:
+    """The guarded drives and devices of one host, their links and the host's heartbeat: made
+    before the service, which takes their liveness and status (``alive``, ``status``);
+    ``GuardedSupervisor`` then puts them in front of it."""
 
     def __init__(
         self,
-        service: SupervisorService,
         drives: dict[int, tuple[DriveGuard, DriveLink]],
-        bus: can.BusABC,
+        bus: can.BusABC | None,
         beat: HostBeat | None,
         now: int,
         *,
-        devices: Mapping[int, Device] | None = None,
-        codec: Codec | None = None,
+        devices: dict[int, GuardedDevice] | None = None,
         capture: can.Listener | None = None,
         report: Callable[[str], None] | None = None,
+        liveness: Callable[[int, int], bool] | None = None,
     ) -> None:
-        self.service = service
+        """``liveness``: the test of the other nodes (the CANopen heartbeat watchdog)."""
         self.report = report
         """Told in one line whenever a guard stops or releases its drive."""
         self.reported: dict[int, tuple[str, str | None]] = {}
@@ -69,51 +76,28 @@ class GuardedSupervisor:
         self.devices = devices or {}
         self.bus = bus
         self.beat = beat
-        self.codec = codec or Codec()
         self.capture = capture
         self.next_beat = now
         self.next_sync = now if beat is not None and beat.sync_us else None
         self.beat_failures = 0
-        service.liveness = self._alive_with(service.liveness)
-        service.extra_status = self.status
+        self.other_liveness = liveness
 
-    def _alive_with(self, other: Any) -> Any:
-        def alive(node: int, now: int) -> bool:
-            if node in self.drives:
-                return self.drives[node][0].alive(now)
-            if node in self.devices:
-                return self.devices[node][0].alive(now)
-            return other is None or bool(other(node, now))
+    def guards(self, node: int) -> bool:
+        """Only the proxy in this process speaks for ``node``."""
+        return node in self.drives or node in self.devices
 
-        return alive
-
-    # -- Handler ---------------------------------------------------------------------------
-    def on_message(self, msg: Message, now: int) -> Sequence[Message]:
-        # only the proxy, in this process, speaks for a drive
-        if msg.node in self.drives or msg.node in self.devices:
-            kind = "a drive's frame from the bus"
-            if self.service.authenticated:  # it verified: only a key holder could send it
-                self.service.authentic_intrusion(msg.node, repr(msg), kind, now)
-            else:
-                self.service.intrusion(msg.node, repr(msg), kind, now, stop=True)
-            return ()
-        return self._route(list(self.service.on_message(msg, now)), now)
-
-    def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
-        self.service.on_decode_error(error, frame)
-
-    def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
-        return self.service.on_foreign_direction(frame, now)
-
-    def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
-        self.service.on_auth_failure(verdict, frame, now)
+    def alive(self, node: int, now: int) -> bool:
+        if node in self.drives:
+            return self.drives[node][0].alive(now)
+        if node in self.devices:
+            return self.devices[node][0].alive(now)
+        return self.other_liveness is None or bool(self.other_liveness(node, now))
 
     def next_wakeup(self) -> int | None:
+        """The next time ``pump`` has work; 0: at once."""
         times = [self.next_beat] if self.beat is not None else []
         if self.next_sync is not None:
             times.append(self.next_sync)
-        if (wakeup := self.service.next_wakeup()) is not None:
-            times.append(wakeup)
         for guard, link in self.drives.values():
             if link.pending() or (link.ready_at is not None and guard.ready_at is None):
                 return 0
@@ -124,10 +108,12 @@ class GuardedSupervisor:
             times.append(device.next_wakeup())
         return min(times) if times else None
 
-    def on_wakeup(self, now: int) -> Sequence[Message]:
+    def pump(self, now: int, stopping: bool) -> list[Message]:
+        """The links' news into the guards, their commands to the links (every guard halted
+        when the supervisor is ``stopping``); what the guards send the supervisor."""
         up: list[Message] = []
         for guard, link in self.drives.values():
-            if self.service.stopping and not guard.halted:
+            if stopping and not guard.halted:
                 guard.halt(now)
             if link.ready_at is not None and guard.ready_at is None:
                 guard.on_ready(link.ready_at, link.setup)
@@ -145,55 +131,20 @@ class GuardedSupervisor:
             self._hand_over(guard, link)
             self._tell(guard)
         for device, device_link in self.devices.values():
-            if self.service.stopping and not device.halted:
+            if stopping and not device.halted:
                 device.halt(now)
             up += device_link.pump(device, now)
             if device.next_wakeup() <= now:
                 up += device.on_wakeup(now)
             self._hand_over_device(device, device_link)
             self._tell(device)
-        out = self._deliver(up, now)
-        wakeup = self.service.next_wakeup()
-        if wakeup is not None and wakeup <= now:
-            out += self.service.on_wakeup(now)
-        self._produce(now)
-        return self._route(out, now)
+        return up
 
-    # -- the in-process leg ----------------------------------------------------------------
-    def _route(self, frames: list[Message], now: int) -> list[Message]:
-        """Send on the bus what is not for a proxy; feed proxies until nothing is left."""
-        to_bus: list[Message] = []
-        queue = deque(frames)
-        while queue:
-            msg = queue.popleft()
-            proxied = msg.node in self.drives or msg.node in self.devices
-            if not proxied or not isinstance(msg, ToClient):
-                to_bus.append(msg)
-                continue
-            down = self._loop_back(msg, Direction.TO_CLIENT, now)
-            guard: DriveGuard | DeviceGuard[Any] = (
-                self.drives[msg.node][0] if msg.node in self.drives else self.devices[msg.node][0]
-            )
-            if isinstance(down, ToClient):
-                queue.extend(self._deliver(guard.on_message(down, now), now))
-        return to_bus
+    def guard(self, node: int) -> DriveGuard | DeviceGuard[Any]:
+        return self.drives[node][0] if node in self.drives else self.devices[node][0]
 
-    def _deliver(self, up: list[Message], now: int) -> list[Message]:
-        out: list[Message] = []
-        for msg in up:
-            out += self.service.on_message(self._loop_back(msg, Direction.TO_SUPERVISOR, now), now)
-        return out
-
-    def _loop_back(self, msg: Message, direction: Direction, now: int) -> Message:
-        arbitration_id, data = self.codec.encode(msg)
-        if self.capture is not None:
-            frame = can.Message(
-                timestamp=now / 1e6, arbitration_id=arbitration_id, data=data, channel="proxy"
-            )
-            self.capture.on_message_received(frame)
-        return self.codec.decode(arbitration_id, data, direction=direction)
-
-    def _produce(self, now: int) -> None:
+    def produce(self, now: int) -> None:
+        """The host's heartbeat and SYNC, when due (none without a bus)."""
         if self.beat is None:
             return
         if now >= self.next_beat:
@@ -204,6 +155,8 @@ class GuardedSupervisor:
             self._send(SYNC_ID, b"")
 
     def _send(self, arbitration_id: int, data: bytes) -> None:
+        if self.bus is None:
+            return
         try:
             frame = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False)
             self.bus.send(frame)
@@ -277,3 +230,90 @@ class GuardedSupervisor:
             device_link.close()
         if self.capture is not None:
             self.capture.stop()
+
+
+class GuardedSupervisor:
+    """Implements ``canergy.live.runtime.Handler``: the service behind the guarded devices."""
+
+    def __init__(
+        self,
+        service: SupervisorService,
+        guarded: GuardedDevices,
+        *,
+        codec: Codec | None = None,
+    ) -> None:
+        self.service = service
+        self.guarded = guarded
+        self.codec = codec or Codec()
+
+    # -- Handler ---------------------------------------------------------------------------
+    def on_message(self, msg: Message, now: int) -> Sequence[Message]:
+        # only the proxy, in this process, speaks for a drive
+        if self.guarded.guards(msg.node):
+            kind = "a drive's frame from the bus"
+            if self.service.authenticated:  # it verified: only a key holder could send it
+                self.service.authentic_intrusion(msg.node, repr(msg), kind, now)
+            else:
+                self.service.intrusion(msg.node, repr(msg), kind, now, stop=True)
+            return ()
+        return self._route(list(self.service.on_message(msg, now)), now)
+
+    def on_decode_error(self, error: DecodeError, frame: can.Message) -> None:
+        self.service.on_decode_error(error, frame)
+
+    def on_foreign_direction(self, frame: can.Message, now: int) -> Sequence[Message]:
+        return self.service.on_foreign_direction(frame, now)
+
+    def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
+        self.service.on_auth_failure(verdict, frame, now)
+
+    def next_wakeup(self) -> int | None:
+        times = [
+            t for t in (self.guarded.next_wakeup(), self.service.next_wakeup()) if t is not None
+        ]
+        return min(times) if times else None
+
+    def on_wakeup(self, now: int) -> Sequence[Message]:
+        out = self._deliver(self.guarded.pump(now, self.service.stopping), now)
+        wakeup = self.service.next_wakeup()
+        if wakeup is not None and wakeup <= now:
+            out += self.service.on_wakeup(now)
+        self.guarded.produce(now)
+        return self._route(out, now)
+
+    # -- the in-process leg ----------------------------------------------------------------
+    def _route(self, frames: list[Message], now: int) -> list[Message]:
+        """Send on the bus what is not for a proxy; feed proxies until nothing is left."""
+        to_bus: list[Message] = []
+        queue = deque(frames)
+        while queue:
+            msg = queue.popleft()
+            if not self.guarded.guards(msg.node) or not isinstance(msg, ToClient):
+                to_bus.append(msg)
+                continue
+            down = self._loop_back(msg, Direction.TO_CLIENT, now)
+            if isinstance(down, ToClient):
+                guard = self.guarded.guard(msg.node)
+                queue.extend(self._deliver(guard.on_message(down, now), now))
+        return to_bus
+
+    def _deliver(self, up: list[Message], now: int) -> list[Message]:
+        out: list[Message] = []
+        for msg in up:
+            out += self.service.on_message(self._loop_back(msg, Direction.TO_SUPERVISOR, now), now)
+        return out
+
+    def _loop_back(self, msg: Message, direction: Direction, now: int) -> Message:
+        arbitration_id, data = self.codec.encode(msg)
+        if (capture := self.guarded.capture) is not None:
+            frame = can.Message(
+                timestamp=now / 1e6, arbitration_id=arbitration_id, data=data, channel="proxy"
+            )
+            capture.on_message_received(frame)
+        return self.codec.decode(arbitration_id, data, direction=direction)
+
+    def halt_all(self, now: int) -> None:
+        self.guarded.halt_all(now)
+
+    def close(self) -> None:
+        self.guarded.close()

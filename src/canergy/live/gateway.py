@@ -35,11 +35,12 @@ from canergy.core import Action, Credited, Persist, Send
 from canergy.core.actions import ClientCommitted, IntentionRefused
 from canergy.core.gateway import Gateway, link_gap
 from canergy.core.state import Phase
+from canergy.core.supervisor import SupervisorCore
 from canergy.live.gateway_state import save_gateway
 from canergy.live.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.policy import quantize
 from canergy.live.runtime import BusCounters, Outgoing
-from canergy.live.service import SupervisorService
+from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.witness import ClientWitness
 from canergy.messages import (
     AMOUNT_MAX_MJ,
@@ -91,8 +92,15 @@ class Uplink:
     """The upstream half of a gateway; implements ``canergy.live.runtime.Handler``."""
 
     def __init__(
-        self, gateway: Gateway, config: UplinkConfig, files: GatewayFiles, now: int
+        self,
+        gateway: Gateway,
+        config: UplinkConfig,
+        files: GatewayFiles,
+        now: int,
+        *,
+        counters: BusCounters | None = None,
     ) -> None:
+        """``counters``: the upstream bus loop's (the status shows them)."""
         self.gateway = gateway
         self.config = config
         self.files = files
@@ -110,7 +118,7 @@ class Uplink:
         """Frames seen in this gateway's name upstream that it did not send (TELEMETRY's
         ``witness``)."""
         self.now = now
-        self.counters = BusCounters()
+        self.counters = BusCounters() if counters is None else counters
         self._said: str | None = None
         """The wait last said on stderr (None: not waiting)."""
         self.confirmed = 0
@@ -323,7 +331,19 @@ class DownstreamService(SupervisorService):
     """The gateway's supervisor role; its status also shows the upstream role (``upstream``,
     the keys a node's status has) and the link between the two (``link_gap_uj``, always 0)."""
 
-    uplink: Uplink | None = None
+    def __init__(
+        self,
+        core: SupervisorCore,
+        config: ServiceConfig,
+        now: int,
+        *,
+        uplink: Uplink | None = None,
+        **parts: Any,
+    ) -> None:
+        """``uplink``: the gateway's upstream role, whose confirmation of this gateway's start
+        grants below wait for; the rest as ``SupervisorService`` takes it."""
+        self.uplink = uplink
+        super().__init__(core, config, now, **parts)
 
     def _start_grants(self, now: int, nodes: set[int] | None) -> list[Outgoing]:
         """No grant below while the supervisor above has not confirmed this gateway's start

@@ -324,9 +324,11 @@ class BusRuntime:
         sleep: Callable[[float], None] = time.sleep,
         source: can.BufferedReader | None = None,
         auth: FrameAuth | None = None,
+        counters: BusCounters | None = None,
     ) -> None:
         """``source``: read from this listener instead of ``bus.recv`` when a ``can.Notifier``
-        owns the bus (shared with python-canopen: one Notifier per bus)."""
+        owns the bus (shared with python-canopen: one Notifier per bus). ``counters``: kept in
+        this object (the handler's status shows the same one; default a new one)."""
         self.bus = bus
         self.source = source
         self.handler = handler
@@ -336,7 +338,7 @@ class BusRuntime:
         self.send_policy = send_policy or SendPolicy()
         self.clock = clock
         self.sleep = sleep
-        self.counters = BusCounters()
+        self.counters = BusCounters() if counters is None else counters
         self._bus_state: can.BusState | None = None
         self._bus_state_due = 0
         self._alone_due: int | None = clock() + ALONE_AFTER_US

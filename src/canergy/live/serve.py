@@ -69,7 +69,6 @@ def serve_supervisor(
         if until is not None and until():
             service.stop(now)
 
-    service.control = control
     serve(loop, service.finished, service.stop, each)
     service.write_status()
 

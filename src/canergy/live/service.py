@@ -7,9 +7,8 @@ sent, so a ``kill -9`` at any point restarts from books that never owe energy.
 
 from __future__ import annotations
 
-import json
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO, cast
@@ -33,12 +32,12 @@ from canergy.core.errors import LocalProtocolError
 from canergy.core.state import Outcome, Phase
 from canergy.core.supervisor import SupervisorCore
 from canergy.core.witnessed import answered
-from canergy.live.atomic import write_json_atomic
 from canergy.live.control import ControlServer
 from canergy.live.intrusions import Intrusions, Refusals, frame_text
+from canergy.live.outputs import BooksOut, StatusOut
 from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
 from canergy.live.runtime import BusCounters, Outgoing, RawFrame, total_counters
-from canergy.live.state_file import ENERGY_MAX_UJ, BooksWriter
+from canergy.live.state_file import ENERGY_MAX_UJ
 from canergy.live.witness import ReturnGate
 from canergy.messages import (
     LEVEL_MAX_MJ,
@@ -182,11 +181,19 @@ class SupervisorService:
         now: int,
         *,
         save: Callable[[], None] | None = None,
+        liveness: Callable[[int, int], bool] | None = None,
+        extra_status: Callable[[int], dict[str, Any]] | None = None,
+        bus_counters: BusCounters | None = None,
+        buses: Mapping[str, BusCounters] | None = None,
+        control: ControlServer | None = None,
     ) -> None:
         """``save``: writes the books instead of ``config.state_path`` (a gateway keeps both of
-        its roles in one file)."""
+        its roles in one file). The rest is what the builder (``canergy.live.build``) hands
+        over: ``liveness``, an extra liveness test (the CANopen heartbeat watchdog, the guarded
+        drives'; False: no grants); ``extra_status``, more status under ``cia402`` (the guarded
+        drives); ``bus_counters``, the bus loop's counters (one bus) or ``buses``, each bus's by
+        name (several); ``control``, the control socket (its refusals are in the status)."""
         self.core = core
-        self.save = save
         self.config = config
         self.nodes = {n: NodeInfo() for n in core.nodes}
         self.rate = RateLimiter(config.limits.rate_uj_per_s, config.limits.max_grant)
@@ -203,20 +210,12 @@ class SupervisorService:
         self.stopping = False
         self._dirty = False
         self._passes = 0
-        self.saves = 0
-        """Times the books were written (the state file, or ``save``)."""
         self.telemetry_heard = 0
         """TELEMETRY frames of managed nodes taken (information, not protocol frames)."""
-        self._books = (
-            None
-            if config.state_path is None
-            else BooksWriter(
-                config.state_path,
-                core.variant.name,
-                fsync=config.fsync,
-                buses=config.bus_names,
-            )
+        self.books_out = BooksOut(
+            core, config.state_path, fsync=config.fsync, buses=config.bus_names, save=save
         )
+        self.status_out = StatusOut(config.status_path, config.status_stream, config.status_text)
         self._held: list[Outgoing] = []
         self._answer = getattr(core, "on_answer", None)
         """The compiled core's fast path (``fast_frame``); None on the Python core."""
@@ -224,21 +223,16 @@ class SupervisorService:
         """The compiled core's ``begin`` with its frame as C encoded it, once a bus loop without
         a key took the fast path (``fast_path``): an INTENTION then leaves as C's bytes."""
         self.stop_deadline: int | None = None
-        self.status_stream = config.status_stream
-        self.liveness: Callable[[int, int], bool] | None = None
-        """Extra liveness test (the CANopen heartbeat watchdog); False: no grants."""
-        self.extra_status: Callable[[int], dict[str, Any]] | None = None
-        """More status under ``cia402`` (the guarded drives)."""
-        self.bus_counters = BusCounters()
-        """Replaced by the bus loop's own counters when one drives this service."""
-        self.buses: dict[str, BusCounters] = {}
+        self.liveness = liveness
+        self.extra_status = extra_status
+        self.bus_counters = BusCounters() if bus_counters is None else bus_counters
+        self.buses: dict[str, BusCounters] = dict(buses or {})
         """Several buses: each one's counters by name (the status shows them and their sums)."""
         self.injected_this_run = 0
         self.intrusions = Intrusions("supervisor", name=self.node_name)
         self.refusals = Refusals("supervisor", name=self.node_name)
-        self.control: ControlServer | None = None
-        """The control socket, once the serve loop answers it (its refusals are in the status)."""
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
+        self.control = control
         self.stopped_by_intrusion = False
         self.witness = ReturnGate(config.return_hold_us or 0, config.witness_block_us)
         self.witnessed = (Phase.IDLE, Debit) in core.variant.supervisor.cells
@@ -947,13 +941,12 @@ class SupervisorService:
             self._dirty = False
 
     def _persist(self) -> None:
-        if self.save is not None:
-            self.save()
-        elif self._books is not None:
-            self._books.save(self.core.state)
-        else:
-            return
-        self.saves += 1
+        self.books_out.write()
+
+    @property
+    def saves(self) -> int:
+        """Times the books were written (the state file, or ``save``)."""
+        return self.books_out.saves
 
     # -- status ----------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
@@ -1037,17 +1030,7 @@ class SupervisorService:
         return {str(uid): n for uid, n in sorted(dict(self.control.refused).items())}
 
     def write_status(self) -> None:
-        status = self.status()
-        if self.config.status_path is not None:
-            write_json_atomic(self.config.status_path, status, fsync=False)
-        if self.status_stream is not None:
-            make = self.config.status_text
-            text = json.dumps(status, sort_keys=True) if make is None else make(status)
-            try:
-                self.status_stream.write(text + "\n")
-                self.status_stream.flush()
-            except BrokenPipeError:  # the reader went away (``| head``): keep supervising
-                self.status_stream = None
+        self.status_out.write(self.status())
 
 
 def _own_direction(frame: can.Message) -> bool:

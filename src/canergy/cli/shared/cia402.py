@@ -6,6 +6,7 @@ import argparse
 import math
 import secrets
 import sys
+from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
 from typing import Any
@@ -24,11 +25,9 @@ from canergy.cia402.counter import CounterConfig
 from canergy.cia402.envelope import Limits, StopKind
 from canergy.cia402.guard import DriveGuard, GuardConfig
 from canergy.cia402.meter import MeterConfig, MeterKind
-from canergy.codec import Codec
 from canergy.core import Timing
-from canergy.live.cia402_host import GuardedSupervisor, HostBeat
+from canergy.live.cia402_host import HostBeat
 from canergy.live.cia402_link import EDS, DriveLink, LinkConfig
-from canergy.live.service import SupervisorService
 
 CONSUMER_MAX_US = 65_535_000  # 0x1016 holds milliseconds in 16 bits
 
@@ -300,15 +299,34 @@ def check_cia402(args: argparse.Namespace) -> None:
         raise ValueError(f"--cia402-eds {args.cia402_eds}: not a usable EDS ({exc})") from None
 
 
-def guard_drives(
-    args: argparse.Namespace,
-    network: Any,
-    bus: can.BusABC,
-    service: SupervisorService,
-    timing: Timing,
-    now: int,
-    clock: Any,
-) -> GuardedSupervisor:
+@dataclass(frozen=True, slots=True)
+class Cia402Drives:
+    """``--cia402``: the drives, their guards' and links' configuration, the host's heartbeat,
+    the capture file (``canergy.live.build.Cia402Group``)."""
+
+    nodes: tuple[int, ...]
+    guard: GuardConfig
+    link: LinkConfig
+    beat: HostBeat
+    capture: Path | None
+
+    def open(
+        self, network: Any, now: int, clock: Any
+    ) -> tuple[dict[int, tuple[Any, Any]], HostBeat, can.Listener | None]:
+        # the capture first: a file that cannot be opened leaves no link thread behind
+        capture = can.Logger(str(self.capture)) if self.capture else None
+        drives: dict[int, tuple[Any, Any]] = {
+            n: (
+                DriveGuard(n, self.guard, now, secrets.randbits(16)),
+                DriveLink(network, n, self.link, clock),
+            )
+            for n in self.nodes
+        }
+        return drives, self.beat, capture
+
+
+def cia402_drives(args: argparse.Namespace, timing: Timing) -> Cia402Drives:
+    """The ``--cia402*`` flags as the builder takes them."""
     kind = MeterKind(args.cia402_meter)
     meter = MeterConfig(
         kind=kind,
@@ -351,21 +369,5 @@ def guard_drives(
         consumer_timeout_ms=args.cia402_consumer_timeout // 1000,
         reach=(args.cia402_reach_torque, args.cia402_reach_current, args.cia402_reach_speed),
     )
-    # the capture first: a file that cannot be opened leaves no link thread behind
-    capture = can.Logger(str(args.cia402_capture)) if args.cia402_capture else None
-    drives = {
-        n: (
-            DriveGuard(n, config, now, secrets.randbits(16)),
-            DriveLink(network, n, link_config, clock),
-        )
-        for n in args.cia402
-    }
     beat = HostBeat(args.cia402_host_id, args.cia402_heartbeat, args.cia402_sync)
-    codec = Codec(args.id_base)
-    return GuardedSupervisor(
-        service, drives, bus, beat, now, codec=codec, capture=capture, report=_report
-    )
-
-
-def _report(line: str) -> None:
-    print(f"canergy supervisor: {line}", file=sys.stderr, flush=True)
+    return Cia402Drives(tuple(args.cia402), config, link_config, beat, args.cia402_capture or None)

@@ -4,26 +4,21 @@ limits and timing, the service, authenticated mode, the files a run writes."""
 from __future__ import annotations
 
 import argparse
-import secrets
 import sys
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from canergy.argtypes import add_duration, bounded_int, energy, node_ids, power
-from canergy.auth.state_key import state_seal
-from canergy.ccore.supervisor import make_supervisor, missing
-from canergy.codec import Codec
+from canergy.ccore.supervisor import missing
 from canergy.core import Timing
-from canergy.core.supervisor import SupervisorCore
 from canergy.core.variants import RUNNABLE
 from canergy.live.atomic import check_writable_dir, same_file
+from canergy.live.build import AuthConfig, CoreConfig
 from canergy.live.bus_args import add_bus_flags
 from canergy.live.control import check_control_path
 from canergy.live.policy import Limits, level_room
-from canergy.live.runtime import monotonic_us
-from canergy.live.state_file import ACCEPT_EDITED, keep_books, load_state
-from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ, Direction, Message
+from canergy.live.state_file import ACCEPT_EDITED
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ
 from canergy.units import UJ_PER_J, format_energy
 
 LARGEST_GRANT = AMOUNT_MAX_MJ * QUANTUM_UJ
@@ -157,47 +152,38 @@ def core_choice(args: argparse.Namespace, buses: tuple[str, ...] = ()) -> str:
     return "python"
 
 
-def build_core(
-    args: argparse.Namespace, nodes: tuple[int, ...], buses: tuple[str, ...] = (), key: Any = None
-) -> SupervisorCore:
-    """The core, from ``--state`` when it exists; ``buses``: bus names with ``--bus`` (``nodes``
-    are then session keys); ``key``: ``--auth``'s, which seals the state file."""
-    timing = rule_timing(args)
+def core_config(
+    args: argparse.Namespace, nodes: tuple[int, ...], buses: tuple[str, ...] = ()
+) -> CoreConfig:
+    """The core's flags as the builder takes them (``--core`` resolved, ``--start-without``
+    checked); ``buses``: bus names with ``--bus`` (``nodes`` are then session keys)."""
     kind = core_choice(args, buses)  # before the state file is touched
     without = frozenset(getattr(args, "start_without", None) or ())
     if without and args.variant != "witnessed":
         raise ValueError("--start-without: only under --variant witnessed")
-    state = None
-    seal = None if key is None else state_seal(key)
-    if args.state is not None and args.state.exists():
 
-        def warn(message: str) -> None:
-            print(f"canergy {args.command}: warning: {message}", file=sys.stderr)
+    def warn(message: str) -> None:
+        print(f"canergy {args.command}: warning: {message}", file=sys.stderr)
 
-        state = load_state(
-            args.state,
-            args.variant,
-            nodes,
-            buses=buses,
-            accept_edited=args.accept_edited_state,
-            on_edited=warn,
-            seal=seal,
-        )
-    if args.state is not None and not getattr(args, "listen_only", False):
-        keep_books(args.state, seal, args.auth, fresh=state is None)
-    core = make_supervisor(
-        kind,
-        nodes,
-        args.initial,
+    return CoreConfig(
+        nodes=nodes,
+        initial_uj=args.initial,
         variant=args.variant,
-        timing=timing,
-        state=state,
-        id_base=args.id_base,
+        timing=rule_timing(args),
+        kind=kind,
+        state_path=args.state,
+        accept_edited=args.accept_edited_state,
         start_without=without,
+        keep_books=not getattr(args, "listen_only", False),
+        warn=warn,
     )
-    if state is not None:  # a start is a restart from the persistent record; witnessed: SYNC(n)
-        core.power_loss(monotonic_us(), secrets.randbits(16))  # with a nonce no start drew
-    return core
+
+
+def auth_config(args: argparse.Namespace, key: Any) -> AuthConfig | None:
+    """``--auth`` (and ``--fd``, the frame layout) as the builder takes it; None without."""
+    if key is None:
+        return None
+    return AuthConfig(key, args.auth, bool(getattr(args, "fd", False)))
 
 
 def start_without_flag(p: argparse.ArgumentParser) -> None:
@@ -234,23 +220,6 @@ def auth_key(args: argparse.Namespace) -> Any:
     if args.variant not in ("hardened", "witnessed"):
         raise ValueError("--auth needs the hardened or witnessed rules (--variant)")
     return key
-
-
-def frame_auth(
-    args: argparse.Namespace,
-    key: Any,
-    codec: Codec,
-    freshness: Callable[[Message], int | None],
-) -> Any:
-    """The frame authenticator for ``--auth`` (None without it); ``freshness``: the service's
-    (or its port's, over several buses)."""
-    if key is None:
-        return None
-    from canergy.auth.frames import FrameAuth, Layout
-    from canergy.auth.keys import frame_auth_keys
-
-    layout = Layout.FD if getattr(args, "fd", False) else Layout.CLASSIC
-    return FrameAuth(codec, layout, frame_auth_keys(key), Direction.TO_SUPERVISOR, freshness)
 
 
 def check_state(args: argparse.Namespace, *, required: bool = True) -> None:

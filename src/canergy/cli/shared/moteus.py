@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import secrets
 import sys
+from dataclasses import dataclass
 from fractions import Fraction
 from typing import Any
 
@@ -186,14 +187,33 @@ def moteus_limits(args: argparse.Namespace) -> MoteusLimits:
     ).wire()
 
 
-def guard_moteus(
-    args: argparse.Namespace, bus: can.BusABC, timing: Timing, now: int, clock: Any
-) -> dict[int, tuple[DeviceGuard[MoteusLimits], MoteusLink]]:
-    """A guard and a link per controller (the links' listeners still to be added)."""
+@dataclass(frozen=True, slots=True)
+class MoteusControllers:
+    """``--moteus``: the controllers and their guards' and links' configuration
+    (``canergy.live.build.DeviceGroup``)."""
+
+    nodes: tuple[int, ...]
+    guard: DeviceConfig[MoteusLimits]
+    link: MoteusLinkConfig
+    motor: MoteusMotor
+
+    def open(
+        self, bus: can.BusABC, now: int, clock: Any
+    ) -> dict[int, tuple[DeviceGuard[MoteusLimits], MoteusLink]]:
+        """A guard and a link per controller (the links' listeners still to be added)."""
+        limits = None if self.guard.sampled else self.guard.limits
+        devices = {}
+        for n in self.nodes:
+            guard = DeviceGuard(n, MoteusProfile(self.motor), self.guard, now, secrets.randbits(16))
+            devices[n] = (guard, MoteusLink(bus, n, self.link, limits, clock))
+        return devices
+
+
+def moteus_controllers(args: argparse.Namespace, timing: Timing) -> MoteusControllers:
+    """The ``--moteus*`` flags as the builder takes them."""
     sampled = args.moteus_meter == "sampled"
-    limits = moteus_limits(args)
     config = DeviceConfig(
-        limits=limits,
+        limits=moteus_limits(args),
         sampled=sampled,
         timing=timing,
         reaction_us=args.moteus_reaction,
@@ -203,21 +223,14 @@ def guard_moteus(
         reserve_uj=args.moteus_reserve,
         unreadable=UNREADABLE,
     )
-    link_config = MoteusLinkConfig(
-        source=args.moteus_source, prefix=args.moteus_prefix, sampled=sampled
+    link = MoteusLinkConfig(source=args.moteus_source, prefix=args.moteus_prefix, sampled=sampled)
+    motor = MoteusMotor(
+        torque_constant=args.moteus_torque_constant or Fraction(0),
+        resistance=args.moteus_resistance,
+        velocity_derate=args.moteus_velocity_derate,
+        bus_voltage=args.moteus_bus_voltage,
     )
-    devices = {}
-    for n in args.moteus:
-        motor = MoteusMotor(
-            torque_constant=args.moteus_torque_constant or Fraction(0),
-            resistance=args.moteus_resistance,
-            velocity_derate=args.moteus_velocity_derate,
-            bus_voltage=args.moteus_bus_voltage,
-        )
-        guard = DeviceGuard(n, MoteusProfile(motor), config, now, secrets.randbits(16))
-        link = MoteusLink(bus, n, link_config, None if sampled else limits, clock)
-        devices[n] = (guard, link)
-    return devices
+    return MoteusControllers(tuple(args.moteus), config, link, motor)
 
 
 def moteus_filters(args: argparse.Namespace) -> list[dict[str, int | bool]]:

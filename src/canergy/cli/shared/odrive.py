@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import secrets
 import sys
+from dataclasses import dataclass
 from fractions import Fraction
 from typing import Any
 
@@ -174,10 +175,31 @@ def check_odrive(args: argparse.Namespace) -> None:
         print(UNVERIFIED_WARNING, file=sys.stderr)
 
 
-def guard_axes(
-    args: argparse.Namespace, bus: can.BusABC, timing: Timing, now: int, clock: Any
-) -> dict[int, tuple[DeviceGuard[OdriveLimits], OdriveLink]]:
-    """A guard and a link per axis (the links' listeners still to be added to a Notifier)."""
+@dataclass(frozen=True, slots=True)
+class OdriveAxes:
+    """``--odrive``: the axes and their guards' and links' configuration
+    (``canergy.live.build.DeviceGroup``)."""
+
+    nodes: tuple[int, ...]
+    guard: DeviceConfig[OdriveLimits]
+    link: OdriveLinkConfig
+    motor: MotorConstants
+
+    def open(
+        self, bus: can.BusABC, now: int, clock: Any
+    ) -> dict[int, tuple[DeviceGuard[OdriveLimits], OdriveLink]]:
+        """A guard and a link per axis (the links' listeners still to be added to a Notifier)."""
+        limits = None if self.guard.sampled else self.guard.limits
+        axes = {}
+        for n in self.nodes:
+            guard = DeviceGuard(n, OdriveProfile(self.motor), self.guard, now, secrets.randbits(16))
+            link = OdriveLink(bus, n, self.link, limits, clock)
+            axes[n] = (guard, link)
+        return axes
+
+
+def odrive_axes(args: argparse.Namespace, timing: Timing) -> OdriveAxes:
+    """The ``--odrive*`` flags as the builder takes them."""
     sampled = args.odrive_meter == "sampled"
     limits = OdriveLimits(
         float(args.odrive_max_speed or 0), float(args.odrive_max_current or 0)
@@ -196,15 +218,10 @@ def guard_axes(
     link_config = OdriveLinkConfig(
         firmware=args.odrive_firmware, endpoints=args.odrive_endpoints, sampled=sampled
     )
-    axes = {}
-    for n in args.odrive:
-        motor = MotorConstants(
-            torque_constant=args.odrive_torque_constant or Fraction(0),
-            resistance=args.odrive_resistance,
-            vel_tolerance=args.odrive_vel_tolerance,
-            bus_voltage=args.odrive_bus_voltage,
-        )
-        guard = DeviceGuard(n, OdriveProfile(motor), config, now, secrets.randbits(16))
-        link = OdriveLink(bus, n, link_config, None if sampled else limits, clock)
-        axes[n] = (guard, link)
-    return axes
+    motor = MotorConstants(
+        torque_constant=args.odrive_torque_constant or Fraction(0),
+        resistance=args.odrive_resistance,
+        vel_tolerance=args.odrive_vel_tolerance,
+        bus_voltage=args.odrive_bus_voltage,
+    )
+    return OdriveAxes(tuple(args.odrive), config, link_config, motor)

@@ -1,0 +1,406 @@
+"""The one place a supervisor is put together.
+
+``build_supervisor`` takes a ``SupervisorConfig`` (plain data: no ``argparse`` here; the
+commands make it from their flags in ``canergy.cli``) and the bus or buses it runs on, and
+returns it ready to serve: the core (from its books when they exist), the CANopen manager, the
+guarded drives and devices, the service, its bus loop, each given what it needs through its
+constructor. Nothing is assigned onto a built object afterwards.
+
+A guarded device group (``DeviceGroup``: ODrive axes today) plugs in as one more entry of
+``SupervisorConfig.devices``: it names its nodes and opens a guard and a link per node on the
+bus; the builder adds each link to the bus's one Notifier, starts it and puts the guards in
+front of the service (``canergy.live.cia402_host``).
+"""
+
+from __future__ import annotations
+
+import secrets
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Protocol, cast
+
+import can
+
+from canergy.auth.state_key import state_seal
+from canergy.ccore.supervisor import make_supervisor
+from canergy.codec import DEFAULT_ID_BASE, Codec
+from canergy.core import Timing
+from canergy.core.supervisor import SupervisorCore
+from canergy.live.bus_group import BusGroup
+from canergy.live.control import ControlServer
+from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
+from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.state_file import keep_books, load_state
+from canergy.messages import Direction
+
+if TYPE_CHECKING:  # the guarded drives' modules load only when a build has some
+    from canergy.live.cia402_host import GuardedDevice, GuardedDevices, HostBeat
+
+Clock = Callable[[], int]
+
+
+@dataclass(frozen=True, slots=True)
+class CoreConfig:
+    """The rules and the books: which core runs which rules for which nodes, from which file."""
+
+    nodes: tuple[int, ...]
+    """The nodes (over several buses: session keys, ``canergy.bus_keys``)."""
+    initial_uj: int
+    variant: str = "hardened"
+    timing: Timing | None = None
+    kind: str = "python"
+    """"python" or "c" (already resolved: ``--core auto`` is one of them here)."""
+    state_path: Path | None = None
+    """The books: loaded when the file exists (a start is then a restart)."""
+    accept_edited: bool = False
+    start_without: frozenset[int] = frozenset()
+    keep_books: bool = True
+    """Claim the books for this process (sealed with the key, if any); False: listen-only."""
+    warn: Callable[[str], None] | None = None
+    """Told of an edited state file accepted (``--accept-edited-state``)."""
+
+
+@dataclass(frozen=True, slots=True)
+class AuthConfig:
+    """Authenticated mode (``--auth``): the master key, its file, the frame layout."""
+
+    key: Any
+    """A ``canergy.auth.keys.Key`` (master)."""
+    path: Path | None = None
+    """The key's file: the epochs record of the books it sealed is kept beside it."""
+    fd: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class CanopenConfig:
+    """CANopen on the same bus (``--canopen``): NMT, heartbeat watchdog, SDO audit."""
+
+    nodes: tuple[int, ...]
+    eds: Path
+    heartbeat_timeout_us: int
+
+
+class Cia402Group(Protocol):
+    """Guarded CiA 402 drives (``--cia402``): a guard and a link per drive."""
+
+    @property
+    def nodes(self) -> tuple[int, ...]: ...
+
+    def open(
+        self, network: Any, now: int, clock: Clock
+    ) -> tuple[dict[int, tuple[Any, Any]], HostBeat, can.Listener | None]:
+        """Drives (node: (``DriveGuard``, ``DriveLink``)) on the CANopen ``network``, the
+        host's heartbeat, and the capture of the in-process leg (None: none)."""
+        ...
+
+
+class DeviceGroup(Protocol):
+    """Guarded devices of one profile (``--odrive``): a guard and a link per node."""
+
+    @property
+    def nodes(self) -> tuple[int, ...]: ...
+
+    def open(self, bus: can.BusABC, now: int, clock: Clock) -> Mapping[int, GuardedDevice]:
+        """A guard and a link per node; the builder adds each link to the bus's Notifier and
+        starts it."""
+        ...
+
+
+@dataclass(frozen=True, slots=True)
+class SupervisorConfig:
+    """Everything a supervisor needs but its bus: made from the flags in ``canergy.cli``."""
+
+    core: CoreConfig | None = None
+    """None: the core is handed to the builder (a gateway's downstream role is its
+    ``Gateway``'s)."""
+    service: ServiceConfig = field(default_factory=ServiceConfig)
+    id_base: int = DEFAULT_ID_BASE
+    auth: AuthConfig | None = None
+    control_path: Path | None = None
+    canopen: CanopenConfig | None = None
+    cia402: Cia402Group | None = None
+    devices: tuple[DeviceGroup, ...] = ()
+    report: Callable[[str], None] | None = None
+    """Told in one line whenever a guard stops or releases its drive or device."""
+
+    @property
+    def shares_bus(self) -> bool:
+        """CANopen or guarded drives on the bus: one Notifier owns it (11-bit frames too)."""
+        return self.canopen is not None or self.cia402 is not None or bool(self.devices)
+
+
+def open_core(config: SupervisorConfig, now: int | None = None) -> SupervisorCore:
+    """The core, from its books when the file exists (a start is then a restart: the core is
+    told of the power loss with a fresh nonce)."""
+    c, auth = config.core, config.auth
+    if c is None:
+        raise ValueError("no core configured (SupervisorConfig.core) and none handed over")
+    buses = config.service.bus_names
+    state = None
+    seal = None if auth is None else state_seal(auth.key)
+    if c.state_path is not None and c.state_path.exists():
+        state = load_state(
+            c.state_path,
+            c.variant,
+            c.nodes,
+            buses=buses,
+            accept_edited=c.accept_edited,
+            on_edited=c.warn,
+            seal=seal,
+        )
+    if c.state_path is not None and c.keep_books:
+        keep_books(c.state_path, seal, None if auth is None else auth.path, fresh=state is None)
+    core = make_supervisor(
+        c.kind,
+        c.nodes,
+        c.initial_uj,
+        variant=c.variant,
+        timing=c.timing,
+        state=state,
+        id_base=config.id_base,
+        start_without=c.start_without,
+    )
+    if state is not None:  # a start is a restart from the persistent record; witnessed: SYNC(n)
+        core.power_loss(monotonic_us() if now is None else now, secrets.randbits(16))
+    return core
+
+
+@dataclass(slots=True)
+class RunningSupervisor:
+    """A built supervisor: serve ``loop`` (``canergy.live.serve.serve_supervisor``), then
+    ``close``. ``loop`` is None when it was built without a bus (its handler is then driven
+    directly)."""
+
+    service: SupervisorService
+    handler: Any
+    """The bus loop's ``Handler``: the service, or the guarded devices in front of it."""
+    loop: Any
+    runtimes: tuple[BusRuntime, ...]
+    control: ControlServer | None
+    manager: Any
+    guarded: GuardedDevices | None
+    networks: tuple[Any, ...]
+
+    def close(self, now: int | None = None) -> None:
+        """Halt every guarded drive (an exit never leaves one running), stop the Notifier and
+        the control socket; the buses stay open (their opener shuts them down)."""
+        try:
+            if self.guarded is not None:
+                self.guarded.halt_all(monotonic_us() if now is None else now)
+                self.guarded.close()
+        finally:
+            if isinstance(self.loop, BusGroup):
+                self.loop.close()
+            if self.control is not None:
+                self.control.close()
+            for network in self.networks:
+                network.notifier.stop()
+
+
+def build_supervisor(
+    config: SupervisorConfig,
+    buses: Sequence[can.BusABC] = (),
+    *,
+    core: SupervisorCore | None = None,
+    save: Callable[[], None] | None = None,
+    uplink: Any = None,
+    heartbeat_bus: Any = None,
+    clock: Clock = monotonic_us,
+) -> RunningSupervisor:
+    """The supervisor of ``config`` on ``buses`` (one, or one per ``config.service.bus_names``;
+    none: the service and its handler only, driven by the caller). ``core``: instead of
+    ``open_core(config)`` (a gateway's downstream role, whose core is its ``Gateway``'s);
+    ``save``: writes the books instead of the state file; ``uplink``: the gateway's upstream
+    role (the service is then a ``DownstreamService``); ``heartbeat_bus``: without a bus, where
+    the guarded drives' host sends its heartbeat (a co-simulation's drives hear it there)."""
+    names = config.service.bus_names
+    if names and len(buses) != len(names):
+        raise ValueError(f"{len(names)} bus names for {len(buses)} buses")
+    if not names and len(buses) > 1:
+        raise ValueError("several buses need their names (ServiceConfig.bus_names)")
+    if names and config.shares_bus:
+        raise ValueError("CANopen and guarded drives and devices work on one bus")
+    made: list[Any] = []  # what to undo when a later step fails
+    control = None
+    try:
+        # the socket first: a run that cannot bind it stops before the state file is written
+        if config.control_path is not None:
+            control = ControlServer(config.control_path)
+        if core is None:
+            core = open_core(config, clock())
+        if names:
+            return _several(config, buses, core, control, clock)
+        bus = buses[0] if buses else None
+        parts = _Parts(save, uplink, heartbeat_bus if bus is None else bus, clock)
+        return _one(config, bus, core, control, parts, made)
+    except BaseException:
+        for undo in reversed(made):
+            undo()
+        if control is not None:
+            control.close()
+        raise
+
+
+@dataclass(frozen=True, slots=True)
+class _Parts:
+    save: Callable[[], None] | None
+    uplink: Any
+    beat_bus: Any
+    clock: Clock
+
+
+def _one(
+    config: SupervisorConfig,
+    bus: can.BusABC | None,
+    core: SupervisorCore,
+    control: ControlServer | None,
+    parts: _Parts,
+    made: list[Callable[[], None]],
+) -> RunningSupervisor:
+    clock, save, uplink = parts.clock, parts.save, parts.uplink
+    listen_only = config.service.listen_only
+    codec = Codec(config.id_base)
+    network = reader = manager = notifier = None
+    if bus is not None and config.shares_bus:
+        from canergy.live.shared_bus import shared_network
+
+        network, reader = shared_network(bus)
+        notifier = network.notifier
+        assert notifier is not None
+        made.append(notifier.stop)
+    if config.canopen is not None:
+        from canergy.live.canopen_manager import CanopenManager
+
+        assert network is not None, "CANopen needs a bus"
+        c = config.canopen
+        manager = CanopenManager(network, c.nodes, c.eds, c.heartbeat_timeout_us, clock)
+    guarded = None
+    if config.cia402 is not None or config.devices:
+        from canergy.live.cia402_host import GuardedDevices
+
+        now = clock()
+        drives: dict[int, tuple[Any, Any]] = {}
+        beat = capture = None
+        if config.cia402 is not None:
+            drives, beat, capture = config.cia402.open(network, now, clock)
+        devices: dict[int, GuardedDevice] = {}
+        for group in config.devices:
+            assert bus is not None, "guarded devices need a bus"
+            devices.update(group.open(bus, now, clock))
+        guarded = GuardedDevices(
+            drives,
+            parts.beat_bus,
+            beat,
+            now,
+            devices=devices,
+            capture=capture,
+            report=config.report,
+            liveness=None if manager is None else manager.alive,
+        )
+        made.append(guarded.close)
+    counters = BusCounters()
+    liveness = guarded.alive if guarded is not None else manager and manager.alive
+    given: dict[str, Any] = {
+        "save": save,
+        "liveness": liveness,
+        "extra_status": None if guarded is None else guarded.status,
+        "bus_counters": counters,
+        "control": control,
+    }
+    service: SupervisorService
+    if uplink is not None:
+        from canergy.live.gateway import DownstreamService
+
+        service = DownstreamService(core, config.service, clock(), uplink=uplink, **given)
+    else:
+        service = SupervisorService(core, config.service, clock(), **given)
+    if manager is not None and not listen_only:
+        manager.start_all()
+    if guarded is not None:  # the devices' links start once the service stands, as they did
+        for _, link in guarded.devices.values():
+            assert notifier is not None
+            notifier.add_listener(cast(can.Listener, link))
+            link.start()
+    handler: Any = service
+    if guarded is not None:
+        from canergy.live.cia402_host import GuardedSupervisor
+
+        handler = GuardedSupervisor(service, guarded, codec=codec)
+    runtime = None
+    if bus is not None:
+        runtime = BusRuntime(
+            bus,
+            handler,
+            codec=codec,
+            receives=Direction.TO_SUPERVISOR,
+            listen_only=listen_only,
+            source=reader,
+            auth=_frame_auth(config, codec, service.freshness),
+            counters=counters,
+            clock=clock,
+        )
+    return RunningSupervisor(
+        service=service,
+        handler=handler,
+        loop=runtime,
+        runtimes=() if runtime is None else (runtime,),
+        control=control,
+        manager=manager,
+        guarded=guarded,
+        networks=() if network is None else (network,),
+    )
+
+
+def _several(
+    config: SupervisorConfig,
+    buses: Sequence[can.BusABC],
+    core: SupervisorCore,
+    control: ControlServer | None,
+    clock: Clock,
+) -> RunningSupervisor:
+    """One service over every bus, a port and a runtime per bus, one loop for them all."""
+    from canergy.live.multi_bus import BusPort, BusRouter
+
+    codec = Codec(config.id_base)
+    names = config.service.bus_names
+    counters = {name: BusCounters() for name in names}
+    service = SupervisorService(core, config.service, clock(), buses=counters, control=control)
+    router = BusRouter()
+    for i, (name, bus) in enumerate(zip(names, buses, strict=True)):
+        port = BusPort(service, i, router, deadlines=i == 0)
+        router.runtimes.append(
+            BusRuntime(
+                bus,
+                port,
+                codec=codec,
+                receives=Direction.TO_SUPERVISOR,
+                listen_only=config.service.listen_only,
+                auth=_frame_auth(config, codec, port.freshness),
+                counters=counters[name],
+                clock=clock,
+            )
+        )
+    runtimes = tuple(router.runtimes)
+    return RunningSupervisor(
+        service=service,
+        handler=service,
+        loop=BusGroup(list(runtimes)),
+        runtimes=runtimes,
+        control=control,
+        manager=None,
+        guarded=None,
+        networks=(),
+    )
+
+
+def _frame_auth(config: SupervisorConfig, codec: Codec, freshness: Any) -> Any:
+    """The frame authenticator of authenticated mode (None without a key)."""
+    if config.auth is None:
+        return None
+    from canergy.auth.frames import FrameAuth, Layout
+    from canergy.auth.keys import frame_auth_keys
+
+    layout = Layout.FD if config.auth.fd else Layout.CLASSIC
+    keys = frame_auth_keys(config.auth.key)
+    return FrameAuth(codec, layout, keys, Direction.TO_SUPERVISOR, freshness)

@@ -1,0 +1,145 @@
+"""The supervisor's one front door, ``canergy.live.build``: the rule that nothing else puts a
+supervisor together or patches one once built, and what the builder hands over."""
+
+from __future__ import annotations
+
+import re
+import uuid
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+
+from canergy.codec import Codec
+from canergy.live.build import CoreConfig, SupervisorConfig, build_supervisor
+from canergy.live.cia402_host import HostBeat
+from canergy.live.service import ServiceConfig
+from canergy.messages import Telemetry
+
+ROOT = Path(__file__).resolve().parents[1]
+SOURCES = sorted(
+    [*(ROOT / "src" / "canergy").rglob("*.py"), *(ROOT / "firmware_model").rglob("*.py")]
+)
+BUILDER = ROOT / "src" / "canergy" / "live" / "build.py"
+J = 1_000_000
+
+
+def _where(pattern: str, skip: Path | None = None) -> list[str]:
+    found = []
+    for path in SOURCES:
+        if path == skip:
+            continue
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            if re.search(pattern, line) and not line.lstrip().startswith(("class ", "#")):
+                found.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()}")
+    return found
+
+
+def test_only_the_builder_puts_a_supervisor_together() -> None:
+    """The rule: in canergy and the firmware model, the supervisor service, the gateway's
+    downstream service and the guarded devices in front of them are made in
+    ``canergy.live.build`` and nowhere else (unit tests of the parts may make them)."""
+    made = r"\b(SupervisorService|DownstreamService|GuardedSupervisor|GuardedDevices)\("
+    assert _where(made, skip=BUILDER) == []
+
+
+def test_nothing_is_assigned_onto_a_built_supervisor() -> None:
+    """The rule: a built service, its bus loop and the gateway's uplink get every
+    collaborator through their constructors; no code outside them assigns one afterwards.
+    (A loop's ``max_batch`` is no collaborator: a knob ``canergy bench`` turns mid-run.)"""
+    patched = r"\b(service|runtime|uplink|supervisor|guarded)\.(?!max_batch)\w+(\[[^]]*\])?\s*=[^=]"
+    assert _where(patched) == []
+
+
+class _Link:
+    def __init__(self) -> None:
+        self.closed = False
+
+    def close(self) -> None:
+        self.closed = True
+
+    def status(self) -> dict[str, str]:
+        return {"link": "quiet"}
+
+
+class _Drives:
+    """A CiA 402 group whose one drive's guard is never alive and whose link notes a close."""
+
+    nodes = (9,)
+
+    def __init__(self) -> None:
+        self.link = _Link()
+
+    def open(self, network: Any, now: int, clock: Any) -> tuple[dict[int, Any], HostBeat, None]:
+        class Guard:
+            halted = True
+
+            def alive(self, now: int) -> bool:
+                return False
+
+            def status(self, now: int) -> dict[str, str]:
+                return {"guard": "dead"}
+
+        return {9: (Guard(), self.link)}, HostBeat(), None
+
+
+def test_a_build_that_fails_leaves_no_guarded_drive_open(tmp_path: Path) -> None:
+    """The drives are opened before the service (it takes their liveness and status): a service
+    that refuses its configuration closes them, and the control socket, on the way out."""
+    drives = _Drives()
+    config = SupervisorConfig(
+        core=CoreConfig((9,), J),
+        service=ServiceConfig(listen_only=True, inject_uj=J),  # refused by the service
+        control_path=tmp_path / "ctl",
+        cia402=drives,
+    )
+    with pytest.raises(ValueError, match="--inject"):
+        build_supervisor(config, clock=lambda: 0)
+    assert drives.link.closed
+    assert not (tmp_path / "ctl").exists()
+
+
+def test_the_service_has_the_guarded_drives_liveness_and_status() -> None:
+    """Once assigned by the guarded host onto the service it was given, now handed to the
+    service's constructor: a drive whose guard is not alive is granted nothing, and the
+    status shows the drives."""
+    service = build_supervisor(
+        SupervisorConfig(core=CoreConfig((1, 9), J), cia402=_Drives()), clock=lambda: 0
+    ).service
+    assert service.liveness is not None
+    assert (service.liveness(9, 0), service.liveness(1, 0)) == (False, True)
+    assert service.status()["cia402"]["drives"] == {"9": {"guard": "dead", "link": "quiet"}}
+
+
+def test_the_service_shows_the_counters_its_bus_loop_counts_in() -> None:
+    """Once assigned onto the service after its bus loop was made, now one object both are
+    given: a frame the loop receives is in the service's status."""
+    channel = f"build-{uuid.uuid4().hex}"
+    bus, node = (can.Bus(interface="virtual", channel=channel) for _ in range(2))
+    try:
+        built = build_supervisor(SupervisorConfig(core=CoreConfig((1,), J)), [bus])
+        arbitration_id, data = Codec().encode(Telemetry(1, 5, 0))
+        node.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=True))
+        for _ in range(100):
+            built.loop.poll(0.01)
+            if built.service.status()["frames_received"]:
+                break
+        assert built.service.status()["frames_received"] == 1
+        assert built.runtimes[0].counters is built.service.bus_counters
+        built.close()
+    finally:
+        bus.shutdown()
+        node.shutdown()
+
+
+def test_several_buses_take_no_canopen_nor_guarded_drives() -> None:
+    """They work on one bus: a configuration that asks for them over several is refused, not
+    served without them."""
+    config = SupervisorConfig(
+        core=CoreConfig((1 << 8 | 1, 9), J),
+        service=ServiceConfig(bus_names=("a", "b")),
+        cia402=_Drives(),
+    )
+    with pytest.raises(ValueError, match="one bus"):
+        build_supervisor(config, [object(), object()])  # type: ignore[list-item]

@@ -69,57 +69,47 @@ def missing() -> str | None:
     return _MISSING
 
 
-_SESSION = struct.Struct("<QQQIIIIIIiHBBBB")
-"""struct canergy_session: delivered, returned, deadline, tx, returns credited, reserved, the last
-RESUME answered (from, to, nonce), W and the SYNC's nonce (the witnessed rules' fields, which the
-hardened rules leave at 0), node, phase, decision, tries (checked against the compiled layout
-below)."""
-_EVENT = struct.Struct("<IIBBB")
-"""struct canergy_supervisor_event: tx, amount, node, resolved, flags."""
-_FRAME = struct.Struct("<IB8s")
-"""struct canergy_frame: id, dlc, data."""
-_COUNTS = struct.Struct("<BBB")
-"""struct canergy_supervisor_out's tail: frame_count, event_count, persist (one read, not three
-attribute lookups through cffi)."""
+_CODES = {"uint8_t": "B", "uint16_t": "H", "uint32_t": "I", "int32_t": "i", "uint64_t": "Q"}
 
 
-_LAYOUT = {
-    "struct canergy_session": {"delivered_uj": 0, "returned_uj": 8, "deadline": 16, "tx": 24,
-                               "returns_credited": 28, "reserved_uj": 32, "resume_from": 36,
-                               "resume_to": 40, "resume_nonce": 44, "witness": 48,
-                               "sync_nonce": 52, "node": 54, "phase": 55, "decision": 56,
-                               "tries": 57},
-    "struct canergy_supervisor_event": {"tx": 0, "amount_uj": 4, "node": 8, "resolved": 9,
-                                        "flags": 10},
-    "struct canergy_frame": {"id": 0, "dlc": 4, "data": 5},
-}  # fmt: skip
-"""The offsets the readers above take (a library laid out otherwise is refused, not misread)."""
-_COUNTS_LAYOUT = ("frame_count", "event_count", "persist")
-"""The out struct's fields ``_COUNTS`` reads, in order and adjacent."""
-
-
-def _misread() -> str | None:
-    """Why the built library cannot be read here (a layout that is not ``_LAYOUT``), or None."""
-    for name, fields in _LAYOUT.items():
-        if any(ffi.offsetof(name, field) != at for field, at in fields.items()):
-            return f"the compiled core's {name} is not laid out as canergy reads it: rebuild it"
-    out = "struct canergy_supervisor_out"
-    first = ffi.offsetof(out, _COUNTS_LAYOUT[0])
-    if any(ffi.offsetof(out, f) != first + k for k, f in enumerate(_COUNTS_LAYOUT)):
-        return f"the compiled core's {out} is not laid out as canergy reads it: rebuild it"
-    return None
+def _reader(ctype: str, names: tuple[str, ...]) -> tuple[struct.Struct, int]:
+    """A ``struct.Struct`` that reads ``names`` of ``ctype``, in that order, at the offsets the
+    compiled library gives them (padding skipped), and the first one's offset: one unpack per
+    record instead of an attribute lookup through cffi per field."""
+    fields = dict(ffi.typeof(ctype).fields)
+    start = at = fields[names[0]].offset
+    codes = ["<"]
+    for name in names:
+        field = fields[name]
+        if field.offset < at:
+            raise CoreMissing(f"canergy.ccore: {ctype}.{name} is not after the fields before it")
+        kind = field.type
+        codes.append("x" * (field.offset - at))
+        codes.append(f"{kind.length}s" if kind.kind == "array" else _CODES[kind.cname])
+        at = field.offset + ffi.sizeof(kind)
+    return struct.Struct("".join(codes)), start
 
 
 if _MISSING is None:
-    _MISSING = _misread()
-if _MISSING is None:
+    _SESSION, _ = _reader(
+        "struct canergy_session",
+        ("delivered_uj", "returned_uj", "deadline", "tx", "returns_credited", "reserved_uj",
+         "resume_from", "resume_to", "resume_nonce", "witness", "sync_nonce", "node", "phase",
+         "decision", "tries"),
+    )  # fmt: skip
+    _EVENT, _ = _reader(
+        "struct canergy_supervisor_event", ("tx", "amount_uj", "node", "resolved", "flags")
+    )
+    _FRAME, _ = _reader("struct canergy_frame", ("id", "dlc", "data"))
+    _COUNTS, _COUNTS_AT = _reader(
+        "struct canergy_supervisor_out", ("frame_count", "event_count", "persist")
+    )
     _SESSION_SIZE = ffi.sizeof("struct canergy_session")
     _EVENT_SIZE = ffi.sizeof("struct canergy_supervisor_event")
     _FRAME_SIZE = ffi.sizeof("struct canergy_frame")
     _SESSIONS_AT = ffi.offsetof("struct canergy_supervisor", "sessions")
     _EVENTS_AT = ffi.offsetof("struct canergy_supervisor_out", "events")
     _FRAMES_AT = ffi.offsetof("struct canergy_supervisor_out", "frames")
-    _COUNTS_AT = ffi.offsetof("struct canergy_supervisor_out", _COUNTS_LAYOUT[0])
     _NEVER = lib.CANERGY_NEVER
     _OK = lib.CANERGY_DECODE_OK
     _CALLER = lib.CANERGY_RX_CALLER

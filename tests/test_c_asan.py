@@ -97,7 +97,7 @@ libc = ctypes.CDLL(None)
 libc.malloc.restype = ctypes.c_void_p
 two = libc.malloc(2)  # an ACK needs 3 bytes: the decoder reads one past the end
 frame = RxFrame(0x0CE00905, two, 3, True, False)
-library().canergy_decode(0x0CE00000, ctypes.byref(frame), 0, None)
+library().canergy_decode(0x0CE00000, ref(frame), 0, library().ffi.NULL)
 print("no report")
 """
 

@@ -95,7 +95,7 @@ MIRROR = {"canergy_auth_frame": AuthFrame, "canergy_auth": Auth}
 
 
 @functools.cache
-def lib() -> ctypes.CDLL:
+def lib() -> CLib:
     c = library()
     signatures: dict[str, tuple[Any, list[Any]]] = {
         "canergy_auth_init": (c_int, [POINTER(Auth), c_void_p, c_uint32, c_uint8, c_int, c_int]),
@@ -132,7 +132,7 @@ class CAuth:
     def __init__(self, layout: Layout, receives: Direction, key: bytes = KEY) -> None:
         self.ctx = Auth()
         result = lib().canergy_auth_init(
-            ctypes.byref(self.ctx),
+            ref(self.ctx),
             key,
             DEFAULT_ID_BASE,
             NODE,
@@ -145,21 +145,19 @@ class CAuth:
         arbitration_id, data = CODEC.encode(msg)
         plain = Frame(arbitration_id, len(data), (c_uint8 * 8)(*data))
         out = (AuthFrame * 2)()
-        n = lib().canergy_auth_protect(
-            ctypes.byref(self.ctx), ctypes.byref(plain), tx & U32, seq & U32, out
-        )
+        n = lib().canergy_auth_protect(ref(self.ctx), ref(plain), tx & U32, seq & U32, out)
         assert n in (1, 2)
-        return [_can(f.id, bytes(f.data[: f.len])) for f in list(out)[:n]]
+        return [_can(f.id, bytes(f.data[0 : f.len])) for f in list(out)[0:n]]
 
     def outcome(self, frame: can.Message, tx: int, seq: int) -> str:
         """ "ok" (the verified frame must be the classic one), "pending", or the refusal."""
         r, _buf = rx(frame.arbitration_id, bytes(frame.data))
         verified = Frame()
         status = lib().canergy_auth_accept(
-            ctypes.byref(self.ctx), ctypes.byref(r), tx & U32, seq & U32, ctypes.byref(verified)
+            ref(self.ctx), ref(r), tx & U32, seq & U32, ref(verified)
         )
         if status == 0:
-            self.verified = (verified.id, bytes(verified.data[: verified.dlc]))
+            self.verified = (verified.id, bytes(verified.data[0 : verified.dlc]))
             return "ok"
         if status == PENDING:
             return "pending"
@@ -312,7 +310,7 @@ def _joined(auth: A, msg: Message) -> A:
     """``auth`` with the JOIN FV set, for a TELEMETRY sent without books (bound to its JOIN)."""
     if isinstance(msg, Telemetry) and msg.flags & Telemetry.JOINING:
         if isinstance(auth, CAuth):
-            lib().canergy_auth_set_join(ctypes.byref(auth.ctx), JOIN_FV >> 16, JOIN_FV & 0xFFFF)
+            lib().canergy_auth_set_join(ref(auth.ctx), JOIN_FV >> 16, JOIN_FV & 0xFFFF)
         else:
             auth.join_fv[msg.node] = JOIN_FV
     return auth
@@ -394,13 +392,10 @@ def test_the_freshness_value_is_pythons(layout: Layout, tx: int, seq: int) -> No
         arbitration_id, data = CODEC.encode(msg)
         m = Msg()
         assert (
-            lib().canergy_decode(
-                DEFAULT_ID_BASE, ctypes.byref(rx(arbitration_id, data)[0]), 0, ctypes.byref(m)
-            )
-            == 0
+            lib().canergy_decode(DEFAULT_ID_BASE, ref(rx(arbitration_id, data)[0]), 0, ref(m)) == 0
         )
         assert (
-            lib().canergy_auth_freshness(ctypes.byref(m), tx & U32, seq & U32)
+            lib().canergy_auth_freshness(ref(m), tx & U32, seq & U32)
             == freshness(msg, tx, seq) & U32
         )
 
@@ -431,7 +426,7 @@ def test_a_frame_without_a_mac_and_a_lone_mac_frame(layout: Layout) -> None:
     if layout is Layout.FD:
         assert py_outcomes[0] == AuthFailure.UNAUTHENTICATED.value
     else:
-        assert py_outcomes[:7] == [
+        assert py_outcomes[0:7] == [
             "pending",
             AuthFailure.MAC_BAD.value,
             "pending",
@@ -454,12 +449,7 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
     cfg.client.command_timeout_us = cfg.client.return_retry_us = 100_000
     cfg.telemetry_period_us, cfg.return_above_uj = 1_000_000, U32
     c = lib()
-    assert (
-        c.canergy_node_start(
-            ctypes.byref(node), ctypes.byref(cfg), None, 0, 0x1234, 0, ctypes.byref(out)
-        )
-        == 0
-    )
+    assert c.canergy_node_start(ref(node), ref(cfg), None, 0, 0x1234, 0, ref(out)) == 0
     c_auth = CAuth(layout, Direction.TO_CLIENT)
     sup = {"tx": 0x3_FFFF, "seq": 0x3_0002}
     supervisor = FrameAuth(
@@ -476,24 +466,22 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
             r, _buf = rx(f.arbitration_id, bytes(f.data))
             results.append(
                 c.canergy_auth_node_frame(
-                    ctypes.byref(c_auth.ctx),
-                    ctypes.byref(node),
-                    ctypes.byref(r),
+                    ref(c_auth.ctx),
+                    ref(node),
+                    ref(r),
                     now,
-                    ctypes.byref(out),
+                    ref(out),
                 )
             )
         return results
 
     def replies() -> list[Message]:
         got = []
-        for plain in list(out.frames)[: out.frame_count]:
+        for plain in list(out.frames)[0 : out.frame_count]:
             frames = (AuthFrame * 2)()
-            n = c.canergy_auth_node_protect(
-                ctypes.byref(c_auth.ctx), ctypes.byref(node), ctypes.byref(plain), frames
-            )
-            for f in list(frames)[:n]:
-                v = supervisor.accept(_can(f.id, bytes(f.data[: f.len])))
+            n = c.canergy_auth_node_protect(ref(c_auth.ctx), ref(node), ref(plain), frames)
+            for f in list(frames)[0:n]:
+                v = supervisor.accept(_can(f.id, bytes(f.data[0 : f.len])))
                 assert v.failure is None
                 if v.message is not None:
                     got.append(v.message)
@@ -526,7 +514,7 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
     wrong_way = [REASONS[r].name == "WRONG_DIRECTION" for r in results]
     assert wrong_way == [True, layout is Layout.CLASSIC] and out.frame_count == 0
     assert node.witness == sum(wrong_way) and node.client.rec.usable_uj == before + 700_000
-    assert c.canergy_node_deadline(ctypes.byref(node)) == 50  # its TELEMETRY at the next poll
+    assert c.canergy_node_deadline(ref(node)) == 50  # its TELEMETRY at the next poll
 
 
 @pytest.mark.parametrize("layout", list(Layout))
@@ -535,7 +523,7 @@ def test_a_c_node_joins_with_32_bits_of_freshness(layout: Layout) -> None:
     Python supervisor binds its JOIN FV in the ADMIT's MAC; an ADMIT of an earlier life with
     the same 16-bit nonce fails its MAC at the C node."""
     c_node = CAuth(layout, Direction.TO_CLIENT)
-    lib().canergy_auth_set_join(ctypes.byref(c_node.ctx), 0xBEEF, 7)
+    lib().canergy_auth_set_join(ref(c_node.ctx), 0xBEEF, 7)
     sup = py_auth(layout, Direction.TO_SUPERVISOR, 0, 0)
     join = c_node.frames(Join(NODE, 7), 0, 0)
     assert [py_outcome(sup, f) for f in join][-1] == "ok" and sup.join_fv[NODE] == 0xBEEF0007

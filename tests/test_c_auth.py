@@ -5,20 +5,7 @@ frame without a MAC come to the same outcome on both sides, for counters near ev
 
 from __future__ import annotations
 
-import ctypes
-import functools
 from collections.abc import Callable
-from ctypes import (
-    POINTER,
-    Structure,
-    c_int,
-    c_size_t,
-    c_uint8,
-    c_uint16,
-    c_uint32,
-    c_uint64,
-    c_void_p,
-)
 from typing import Any, TypeVar
 
 import can
@@ -28,15 +15,17 @@ from hypothesis import strategies as st
 from support.c_binding import (
     REASONS,
     RX_OTHER_NODE,
+    CLib,
     CNodeState,
     Frame,
     Msg,
     NodeConfig,
     Out,
+    Struct,
     library,
+    ref,
     rx,
 )
-from support.c_cmac import Cmac
 
 from canergy.auth.frames import AuthFailure, FrameAuth, Layout, freshness
 from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeError
@@ -65,65 +54,22 @@ NODE = 5
 U32 = 0xFFFF_FFFF
 KEY = bytes.fromhex("2b7e151628aed2a6abf7158809cf4f3c")
 CODEC = Codec()
-LAYOUTS = {Layout.FD: 0, Layout.CLASSIC: 1}
-C_DIRECTIONS = {Direction.TO_CLIENT: 1, Direction.TO_SUPERVISOR: 2}
-PENDING, FIRST_FAILURE = 32, 33
-FAILURES = {FIRST_FAILURE + i: f for i, f in enumerate(AuthFailure)}
-"""C result -> Python's AuthFailure: auth.h lists them in the enum's order."""
+_C = library()
+LAYOUTS = {Layout.FD: _C.CANERGY_AUTH_FD, Layout.CLASSIC: _C.CANERGY_AUTH_CLASSIC}
+C_DIRECTIONS = {
+    Direction.TO_CLIENT: _C.CANERGY_TO_CLIENT,
+    Direction.TO_SUPERVISOR: _C.CANERGY_TO_SUPERVISOR,
+}
+PENDING = _C.CANERGY_AUTH_PENDING
+FAILURES = {getattr(_C, f"CANERGY_AUTH_{f.name}"): f for f in AuthFailure}
+"""C result -> Python's AuthFailure, by name."""
 
 
-class AuthFrame(Structure):
-    _fields_ = [("id", c_uint32), ("len", c_uint8), ("data", c_uint8 * 20)]
+AuthFrame, Auth = Struct("auth_frame"), Struct("auth")
 
 
-class Auth(Structure):
-    _fields_ = [
-        ("key", Cmac),
-        ("id_base", c_uint32),
-        ("pending_id", c_uint32),
-        ("join_fv", c_uint32),
-        ("admit_fv", c_uint32),
-        ("pending_data", c_uint8 * 8),
-        ("pending_len", c_uint8),
-        ("node", c_uint8),
-        ("layout", c_uint8),
-        ("receives", c_uint8),
-    ]
-
-
-MIRROR = {"canergy_auth_frame": AuthFrame, "canergy_auth": Auth}
-
-
-@functools.cache
 def lib() -> CLib:
-    c = library()
-    signatures: dict[str, tuple[Any, list[Any]]] = {
-        "canergy_auth_init": (c_int, [POINTER(Auth), c_void_p, c_uint32, c_uint8, c_int, c_int]),
-        "canergy_auth_wipe": (None, [POINTER(Auth)]),
-        "canergy_auth_freshness": (c_uint32, [c_void_p, c_uint32, c_uint32]),
-        "canergy_auth_protect": (
-            c_int,
-            [POINTER(Auth), POINTER(Frame), c_uint32, c_uint32, POINTER(AuthFrame)],
-        ),
-        "canergy_auth_accept": (
-            c_int,
-            [POINTER(Auth), c_void_p, c_uint32, c_uint32, POINTER(Frame)],
-        ),
-        "canergy_auth_node_frame": (
-            c_int,
-            [POINTER(Auth), POINTER(CNodeState), c_void_p, c_uint64, POINTER(Out)],
-        ),
-        "canergy_auth_node_protect": (
-            c_int,
-            [POINTER(Auth), POINTER(CNodeState), POINTER(Frame), POINTER(AuthFrame)],
-        ),
-        "canergy_data_length": (c_size_t, [c_uint32]),
-        "canergy_auth_set_join": (None, [POINTER(Auth), c_uint16, c_uint16]),
-    }
-    for name, (restype, argtypes) in signatures.items():
-        f = getattr(c, name)
-        f.restype, f.argtypes = restype, argtypes
-    return c
+    return library()
 
 
 class CAuth:
@@ -143,8 +89,8 @@ class CAuth:
 
     def frames(self, msg: Message, tx: int, seq: int) -> list[can.Message]:
         arbitration_id, data = CODEC.encode(msg)
-        plain = Frame(arbitration_id, len(data), (c_uint8 * 8)(*data))
-        out = (AuthFrame * 2)()
+        plain = Frame(arbitration_id, len(data), list(data))
+        out = lib().new("struct canergy_auth_frame[2]")
         n = lib().canergy_auth_protect(ref(self.ctx), ref(plain), tx & U32, seq & U32, out)
         assert n in (1, 2)
         return [_can(f.id, bytes(f.data[0 : f.len])) for f in list(out)[0:n]]
@@ -258,15 +204,6 @@ def _receiver(msg: Message) -> Direction:
 
 
 # -- the tests --------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("name", sorted(MIRROR))
-def test_the_ctypes_mirror_matches_the_compiled_layout(name: str) -> None:
-    c = library()
-    struct = MIRROR[name]
-    assert c.canergy_test_sizeof(name.encode()) == ctypes.sizeof(struct)
-    for field, *_ in struct._fields_:
-        assert c.canergy_test_offset(f"{name}.{field}".encode()) == getattr(struct, field).offset
 
 
 def test_data_lengths_are_the_codecs() -> None:
@@ -391,9 +328,8 @@ def test_the_freshness_value_is_pythons(layout: Layout, tx: int, seq: int) -> No
     for msg in ALL_TYPES:
         arbitration_id, data = CODEC.encode(msg)
         m = Msg()
-        assert (
-            lib().canergy_decode(DEFAULT_ID_BASE, ref(rx(arbitration_id, data)[0]), 0, ref(m)) == 0
-        )
+        frame, _buf = rx(arbitration_id, data)  # the buffer outlives the call
+        assert lib().canergy_decode(DEFAULT_ID_BASE, frame, 0, m) == 0
         assert (
             lib().canergy_auth_freshness(ref(m), tx & U32, seq & U32)
             == freshness(msg, tx, seq) & U32
@@ -449,7 +385,7 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
     cfg.client.command_timeout_us = cfg.client.return_retry_us = 100_000
     cfg.telemetry_period_us, cfg.return_above_uj = 1_000_000, U32
     c = lib()
-    assert c.canergy_node_start(ref(node), ref(cfg), None, 0, 0x1234, 0, ref(out)) == 0
+    assert c.canergy_node_start(ref(node), ref(cfg), c.ffi.NULL, 0, 0x1234, 0, ref(out)) == 0
     c_auth = CAuth(layout, Direction.TO_CLIENT)
     sup = {"tx": 0x3_FFFF, "seq": 0x3_0002}
     supervisor = FrameAuth(
@@ -478,7 +414,7 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
     def replies() -> list[Message]:
         got = []
         for plain in list(out.frames)[0 : out.frame_count]:
-            frames = (AuthFrame * 2)()
+            frames = c.new("struct canergy_auth_frame[2]")
             n = c.canergy_auth_node_protect(ref(c_auth.ctx), ref(node), ref(plain), frames)
             for f in list(frames)[0:n]:
                 v = supervisor.accept(_can(f.id, bytes(f.data[0 : f.len])))
@@ -495,7 +431,7 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
     assert replies() == [Ack(NODE, 0)]
     before = node.client.rec.usable_uj
     forged = _can(*CODEC.encode(Commit(NODE, 0, AMOUNT_MAX_MJ)))
-    no_mac = FIRST_FAILURE + 4
+    no_mac = _C.CANERGY_AUTH_UNAUTHENTICATED
     assert deliver([forged], 25)[-1] == (PENDING if layout is Layout.CLASSIC else no_mac)
     assert node.client.rec.usable_uj == before
     assert deliver(supervisor.frames(Commit(NODE, 0, 700)), 30)[-1] == 0
@@ -504,7 +440,7 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
     # the COMMIT again, 65,536 transactions later: the same frames do not verify
     replay = supervisor.frames(Commit(NODE, 0, 700))
     node.client.rec.last_tx += 0x1_0000
-    assert deliver(replay, 40)[-1] == FIRST_FAILURE + 1  # stale
+    assert deliver(replay, 40)[-1] == _C.CANERGY_AUTH_STALE
     assert node.client.rec.usable_uj == before + 700_000
     # a RETURN in its name and (classic) a MAC frame 0x8: witnessed, moving nothing; in the
     # FD layout 0x8 is no MAC frame but an unknown type, as in Python

@@ -91,7 +91,7 @@ class CLib:
         return self.ffi.new(ctype, init)
 
 
-def _compiled(variant: str) -> Path:
+def compiled(variant: str) -> Path:
     """The variant's extension, compiled once for these sources (a directory per fingerprint;
     concurrent runs compile apart and the first to finish is kept)."""
     _need_toolchain()
@@ -117,7 +117,7 @@ def _compiled(variant: str) -> Path:
 def library(variant: str = "") -> CLib:
     """The library as the tests run it; ``variant="broken"``: with deliberately broken rules."""
     name = "broken" if variant == "broken" else ("asan" if SANITIZER == "asan" else "ubsan")
-    path = _compiled(name)
+    path = compiled(name)
     spec = importlib.util.spec_from_file_location(build.VARIANTS[name].module, path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)

@@ -102,6 +102,11 @@ def _compiler() -> list[str]:
     return shlex.split(os.environ.get("CC", "cc"))
 
 
+def _clang() -> bool:
+    run = subprocess.run([*_compiler(), "--version"], capture_output=True, text=True, check=False)
+    return "clang" in run.stdout.lower()
+
+
 def _preprocess(text: str, include: Path, defines: tuple[tuple[str, str], ...], *flags: str) -> str:
     args = [f"-D{name}={value}" for name, value in defines]
     run = subprocess.run(
@@ -158,7 +163,9 @@ def builder(root: Path = ROOT, variant: str = "release") -> FFI:
         include_dirs=[str(firmware / "include")],
         define_macros=list(v.defines),
         extra_compile_args=["-std=c99", *v.cflags],
-        extra_link_args=list(v.ldflags),
+        # clang links its sanitizer runtimes statically unless told otherwise; a module that
+        # CPython loads needs the shared ones (as firmware/Makefile's asan-runtime names).
+        extra_link_args=[*v.ldflags, *(("-shared-libsan",) if v.ldflags and _clang() else ())],
     )
     return ffi
 

@@ -59,7 +59,6 @@ amounts = st.one_of(
 class SideBySide(RuleBasedStateMachine):
     VARIANT = ""
     variant = "hardened"
-    c_rules = 0  # enum canergy_rules
 
     def __init__(self) -> None:
         super().__init__()
@@ -74,7 +73,7 @@ class SideBySide(RuleBasedStateMachine):
 
     def _load(self) -> int:
         cfg = SupervisorConfig(
-            id_base=CODEC.id_base, timing=timing_of(T, self.c_rules, self.lib), lib=self.lib
+            id_base=CODEC.id_base, timing=timing_of(T, self.variant, self.lib), lib=self.lib
         )
         nodes = cbuf(bytes(NODES), lib=self.lib)
         return int(
@@ -209,7 +208,6 @@ class WitnessedSideBySide(SideBySide):
     so it is compared from then on."""
 
     variant = "witnessed"
-    c_rules = 1
 
     @rule(nonce=st.integers(0, 0xFFFF))
     def start(self, nonce: int) -> None:

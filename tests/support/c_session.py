@@ -22,6 +22,7 @@ from support.c_binding import (
     ERR_PHASE,
     ERR_WINDOW,
     OK,
+    RULES,
     CLib,
     CSession,
     Msg,
@@ -66,12 +67,12 @@ def fields_of(s: Session | CSession) -> dict[str, int]:
     return {n: int(getattr(s, n)) for n in names}
 
 
-def timing_of(t: Timing, rules: int = 0, lib: CLib | None = None) -> Any:
-    """The C session's timing; ``rules``: enum canergy_rules (1: witnessed)."""
+def timing_of(t: Timing, rules: str = "hardened", lib: CLib | None = None) -> Any:
+    """The C session's timing; ``rules``: the rule set, "hardened" or "witnessed"."""
     return SessionTiming(
         response_timeout_us=t.response_timeout_us,
         retries=t.retries,
-        rules=rules,
+        rules=RULES[rules],
         window=t.window,
         lib=lib,
     )
@@ -102,7 +103,7 @@ def resolution(actions: tuple[Any, ...]) -> int:
     return int(done[0]) if done else int(Outcome.NONE)
 
 
-def c_call(event: Any, t: Timing, now: int, variant: str = "", rules: int = 0) -> Call:
+def c_call(event: Any, t: Timing, now: int, variant: str = "", rules: str = "hardened") -> Call:
     """The C call for ``event`` (a client message for the node, or a local request or timer)."""
     lib = library(variant)
     ct = timing_of(t, rules, lib)
@@ -153,7 +154,7 @@ def same(
 ) -> None:
     """Step the Python table and the C library from the same record; compare everything
     (``table``: the witnessed one runs the C session with its rules set to witnessed)."""
-    call = call or c_call(event, t, now, rules=int(table.variant == "witnessed"))
+    call = call or c_call(event, t, now, rules=table.variant)
     c = to_c(s)
     step = SessionStep()
     try:

@@ -171,9 +171,15 @@ def builder(root: Path = ROOT, variant: str = "release") -> FFI:
 
 
 def fingerprint(root: Path = ROOT, variant: str = "release") -> str:
-    """A digest of what a variant is built from (sources, headers, flags): a stale build shows."""
+    """A digest of what a variant is built from (sources, headers, flags, the interpreter's
+    extension ABI and cffi): a stale build shows."""
+    import sysconfig
+
+    import cffi
+
     firmware = root / "firmware"
     digest = hashlib.sha256(repr(VARIANTS[variant]).encode() + HOST_SOURCE.encode())
+    digest.update(f"{sysconfig.get_config_var('EXT_SUFFIX')} {cffi.__version__}".encode())
     digest.update(Path(__file__).read_bytes())
     for path in sorted([*(firmware / "include").rglob("*.h"), *(firmware / "src").glob("*.[ch]")]):
         digest.update(path.name.encode() + path.read_bytes())

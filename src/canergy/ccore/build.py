@@ -102,9 +102,20 @@ def _compiler() -> list[str]:
     return shlex.split(os.environ.get("CC", "cc"))
 
 
-def _clang() -> bool:
+def _clang_runtime() -> tuple[str, ...]:
+    """clang links its sanitizer runtimes statically unless told otherwise: a module CPython
+    loads needs the shared ones, found where clang keeps them (firmware/Makefile's SAN_LINK did
+    the same); nothing for gcc."""
     run = subprocess.run([*_compiler(), "--version"], capture_output=True, text=True, check=False)
-    return "clang" in run.stdout.lower()
+    if "clang" not in run.stdout.lower():
+        return ()
+    where = subprocess.run(
+        [*_compiler(), "-print-file-name=libclang_rt.ubsan_standalone-x86_64.so"],
+        capture_output=True,
+        text=True,
+        check=False,
+    ).stdout.strip()
+    return ("-shared-libsan", f"-Wl,-rpath,{Path(where).parent}")
 
 
 def _preprocess(text: str, include: Path, defines: tuple[tuple[str, str], ...], *flags: str) -> str:
@@ -134,10 +145,11 @@ def declarations(root: Path = ROOT, defines: tuple[tuple[str, str], ...] = ()) -
     umbrella = "".join(f'#include "canergy/{h.name}"\n' for h in headers) + HOST_DECLARATIONS
     kept: list[str] = []
     ours = False
+    home = (include / "canergy").resolve()
     for line in _preprocess(umbrella, include, defines).splitlines():
         if marker := _MARKER.match(line):
             name = marker.group(1)
-            ours = name == "<stdin>" or Path(name).parent.name == "canergy"
+            ours = name == "<stdin>" or Path(name).resolve().parent == home
         elif ours and line.strip():
             kept.append(line)
     constants = sorted(
@@ -163,16 +175,14 @@ def builder(root: Path = ROOT, variant: str = "release") -> FFI:
         include_dirs=[str(firmware / "include")],
         define_macros=list(v.defines),
         extra_compile_args=["-std=c99", *v.cflags],
-        # clang links its sanitizer runtimes statically unless told otherwise; a module that
-        # CPython loads needs the shared ones (as firmware/Makefile's asan-runtime names).
-        extra_link_args=[*v.ldflags, *(("-shared-libsan",) if v.ldflags and _clang() else ())],
+        extra_link_args=[*v.ldflags, *(_clang_runtime() if v.ldflags else ())],
     )
     return ffi
 
 
 def fingerprint(root: Path = ROOT, variant: str = "release") -> str:
-    """A digest of what a variant is built from (sources, headers, flags, the interpreter's
-    extension ABI and cffi): a stale build shows."""
+    """A digest of what a variant is built from (sources, headers, flags, the compiler, the
+    interpreter's extension ABI and cffi): a stale build shows."""
     import sysconfig
 
     import cffi
@@ -180,6 +190,7 @@ def fingerprint(root: Path = ROOT, variant: str = "release") -> str:
     firmware = root / "firmware"
     digest = hashlib.sha256(repr(VARIANTS[variant]).encode() + HOST_SOURCE.encode())
     digest.update(f"{sysconfig.get_config_var('EXT_SUFFIX')} {cffi.__version__}".encode())
+    digest.update(" ".join(_compiler()).encode())
     digest.update(Path(__file__).read_bytes())
     for path in sorted([*(firmware / "include").rglob("*.h"), *(firmware / "src").glob("*.[ch]")]):
         digest.update(path.name.encode() + path.read_bytes())

@@ -37,7 +37,21 @@ class OptionalBuildExt(build_ext):
             )
 
 
+def extensions() -> list:  # type: ignore[type-arg]
+    """The release module, its declarations read from the headers by the C preprocessor: none
+    (the Python core) where there is no compiler to read them."""
+    try:
+        return [builder(Path(".")).distutils_extension(tmpdir="build/cffi")]
+    except Exception as exc:
+        print(
+            f"canergy: the C supervisor core was not built ({exc}); "
+            "canergy supervisor will run the Python core",
+            file=sys.stderr,
+        )
+        return []
+
+
 setup(
-    ext_modules=[builder(Path(".")).distutils_extension(tmpdir="build/cffi")],
+    ext_modules=extensions(),
     cmdclass={"build_ext": OptionalBuildExt},
 )

@@ -10,7 +10,6 @@ from hypothesis import HealthCheck, settings
 pytest.register_assert_rewrite(
     "support.blocked_imports",
     "support.c_binding",
-    "support.c_cmac",
     "support.cells",
     "support.client_cases",
     "support.drive_model",

@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from support.c_binding import FIRMWARE, make
+from support.c_binding import FIRMWARE, compiled
 
 TESTS = Path(__file__).resolve().parent
 UNDER_ASAN = [
@@ -36,8 +36,9 @@ UNDER_ASAN = [
 
 
 def asan_runtime() -> str:
-    """Build the ASan object; the runtime library to preload for it (the compiler's own)."""
-    make("build/libcanergy-asan.so")
+    """Build the ASan module (here: the child loads it, and its compiler then runs without the
+    runtime preloaded); the runtime library to preload for it (the compiler's own)."""
+    compiled("asan")
     runtime = subprocess.run(
         ["make", "-s", "-C", str(FIRMWARE), "--no-print-directory", "asan-runtime"],
         capture_output=True,
@@ -90,14 +91,17 @@ def test_the_c_tests_pass_under_address_sanitizer() -> None:
 
 
 PROBE = """
-import ctypes, sys
+import sys
+from cffi import FFI
 sys.path.insert(0, "tests")
 from support.c_binding import RxFrame, library
-libc = ctypes.CDLL(None)
-libc.malloc.restype = ctypes.c_void_p
+c = FFI()
+c.cdef("void *malloc(size_t);")
+libc = c.dlopen(None)
 two = libc.malloc(2)  # an ACK needs 3 bytes: the decoder reads one past the end
-frame = RxFrame(0x0CE00905, two, 3, True, False)
-library().canergy_decode(0x0CE00000, ctypes.byref(frame), 0, None)
+lib = library()
+frame = RxFrame(0x0CE00905, lib.ffi.cast("uint8_t *", int(c.cast("uintptr_t", two))), 3, True)
+lib.canergy_decode(0x0CE00000, frame, 0, lib.ffi.NULL)
 print("no report")
 """
 

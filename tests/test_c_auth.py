@@ -5,20 +5,7 @@ frame without a MAC come to the same outcome on both sides, for counters near ev
 
 from __future__ import annotations
 
-import ctypes
-import functools
 from collections.abc import Callable
-from ctypes import (
-    POINTER,
-    Structure,
-    c_int,
-    c_size_t,
-    c_uint8,
-    c_uint16,
-    c_uint32,
-    c_uint64,
-    c_void_p,
-)
 from typing import Any, TypeVar
 
 import can
@@ -28,15 +15,17 @@ from hypothesis import strategies as st
 from support.c_binding import (
     REASONS,
     RX_OTHER_NODE,
+    CLib,
     CNodeState,
     Frame,
     Msg,
     NodeConfig,
     Out,
+    Struct,
     library,
+    ref,
     rx,
 )
-from support.c_cmac import Cmac
 
 from canergy.auth.frames import AuthFailure, FrameAuth, Layout, freshness
 from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeError
@@ -65,65 +54,22 @@ NODE = 5
 U32 = 0xFFFF_FFFF
 KEY = bytes.fromhex("2b7e151628aed2a6abf7158809cf4f3c")
 CODEC = Codec()
-LAYOUTS = {Layout.FD: 0, Layout.CLASSIC: 1}
-C_DIRECTIONS = {Direction.TO_CLIENT: 1, Direction.TO_SUPERVISOR: 2}
-PENDING, FIRST_FAILURE = 32, 33
-FAILURES = {FIRST_FAILURE + i: f for i, f in enumerate(AuthFailure)}
-"""C result -> Python's AuthFailure: auth.h lists them in the enum's order."""
+_C = library()
+LAYOUTS = {Layout.FD: _C.CANERGY_AUTH_FD, Layout.CLASSIC: _C.CANERGY_AUTH_CLASSIC}
+C_DIRECTIONS = {
+    Direction.TO_CLIENT: _C.CANERGY_TO_CLIENT,
+    Direction.TO_SUPERVISOR: _C.CANERGY_TO_SUPERVISOR,
+}
+PENDING = _C.CANERGY_AUTH_PENDING
+FAILURES = {getattr(_C, f"CANERGY_AUTH_{f.name}"): f for f in AuthFailure}
+"""C result -> Python's AuthFailure, by name."""
 
 
-class AuthFrame(Structure):
-    _fields_ = [("id", c_uint32), ("len", c_uint8), ("data", c_uint8 * 20)]
+AuthFrame, Auth = Struct("auth_frame"), Struct("auth")
 
 
-class Auth(Structure):
-    _fields_ = [
-        ("key", Cmac),
-        ("id_base", c_uint32),
-        ("pending_id", c_uint32),
-        ("join_fv", c_uint32),
-        ("admit_fv", c_uint32),
-        ("pending_data", c_uint8 * 8),
-        ("pending_len", c_uint8),
-        ("node", c_uint8),
-        ("layout", c_uint8),
-        ("receives", c_uint8),
-    ]
-
-
-MIRROR = {"canergy_auth_frame": AuthFrame, "canergy_auth": Auth}
-
-
-@functools.cache
-def lib() -> ctypes.CDLL:
-    c = library()
-    signatures: dict[str, tuple[Any, list[Any]]] = {
-        "canergy_auth_init": (c_int, [POINTER(Auth), c_void_p, c_uint32, c_uint8, c_int, c_int]),
-        "canergy_auth_wipe": (None, [POINTER(Auth)]),
-        "canergy_auth_freshness": (c_uint32, [c_void_p, c_uint32, c_uint32]),
-        "canergy_auth_protect": (
-            c_int,
-            [POINTER(Auth), POINTER(Frame), c_uint32, c_uint32, POINTER(AuthFrame)],
-        ),
-        "canergy_auth_accept": (
-            c_int,
-            [POINTER(Auth), c_void_p, c_uint32, c_uint32, POINTER(Frame)],
-        ),
-        "canergy_auth_node_frame": (
-            c_int,
-            [POINTER(Auth), POINTER(CNodeState), c_void_p, c_uint64, POINTER(Out)],
-        ),
-        "canergy_auth_node_protect": (
-            c_int,
-            [POINTER(Auth), POINTER(CNodeState), POINTER(Frame), POINTER(AuthFrame)],
-        ),
-        "canergy_data_length": (c_size_t, [c_uint32]),
-        "canergy_auth_set_join": (None, [POINTER(Auth), c_uint16, c_uint16]),
-    }
-    for name, (restype, argtypes) in signatures.items():
-        f = getattr(c, name)
-        f.restype, f.argtypes = restype, argtypes
-    return c
+def lib() -> CLib:
+    return library()
 
 
 class CAuth:
@@ -132,7 +78,7 @@ class CAuth:
     def __init__(self, layout: Layout, receives: Direction, key: bytes = KEY) -> None:
         self.ctx = Auth()
         result = lib().canergy_auth_init(
-            ctypes.byref(self.ctx),
+            ref(self.ctx),
             key,
             DEFAULT_ID_BASE,
             NODE,
@@ -143,23 +89,21 @@ class CAuth:
 
     def frames(self, msg: Message, tx: int, seq: int) -> list[can.Message]:
         arbitration_id, data = CODEC.encode(msg)
-        plain = Frame(arbitration_id, len(data), (c_uint8 * 8)(*data))
-        out = (AuthFrame * 2)()
-        n = lib().canergy_auth_protect(
-            ctypes.byref(self.ctx), ctypes.byref(plain), tx & U32, seq & U32, out
-        )
+        plain = Frame(arbitration_id, len(data), list(data))
+        out = lib().new("struct canergy_auth_frame[2]")
+        n = lib().canergy_auth_protect(ref(self.ctx), ref(plain), tx & U32, seq & U32, out)
         assert n in (1, 2)
-        return [_can(f.id, bytes(f.data[: f.len])) for f in list(out)[:n]]
+        return [_can(f.id, bytes(f.data[0 : f.len])) for f in list(out)[0:n]]
 
     def outcome(self, frame: can.Message, tx: int, seq: int) -> str:
         """ "ok" (the verified frame must be the classic one), "pending", or the refusal."""
         r, _buf = rx(frame.arbitration_id, bytes(frame.data))
         verified = Frame()
         status = lib().canergy_auth_accept(
-            ctypes.byref(self.ctx), ctypes.byref(r), tx & U32, seq & U32, ctypes.byref(verified)
+            ref(self.ctx), ref(r), tx & U32, seq & U32, ref(verified)
         )
         if status == 0:
-            self.verified = (verified.id, bytes(verified.data[: verified.dlc]))
+            self.verified = (verified.id, bytes(verified.data[0 : verified.dlc]))
             return "ok"
         if status == PENDING:
             return "pending"
@@ -262,15 +206,6 @@ def _receiver(msg: Message) -> Direction:
 # -- the tests --------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", sorted(MIRROR))
-def test_the_ctypes_mirror_matches_the_compiled_layout(name: str) -> None:
-    c = library()
-    struct = MIRROR[name]
-    assert c.canergy_test_sizeof(name.encode()) == ctypes.sizeof(struct)
-    for field, *_ in struct._fields_:
-        assert c.canergy_test_offset(f"{name}.{field}".encode()) == getattr(struct, field).offset
-
-
 def test_data_lengths_are_the_codecs() -> None:
     for code in range(17):
         try:
@@ -312,7 +247,7 @@ def _joined(auth: A, msg: Message) -> A:
     """``auth`` with the JOIN FV set, for a TELEMETRY sent without books (bound to its JOIN)."""
     if isinstance(msg, Telemetry) and msg.flags & Telemetry.JOINING:
         if isinstance(auth, CAuth):
-            lib().canergy_auth_set_join(ctypes.byref(auth.ctx), JOIN_FV >> 16, JOIN_FV & 0xFFFF)
+            lib().canergy_auth_set_join(ref(auth.ctx), JOIN_FV >> 16, JOIN_FV & 0xFFFF)
         else:
             auth.join_fv[msg.node] = JOIN_FV
     return auth
@@ -393,14 +328,10 @@ def test_the_freshness_value_is_pythons(layout: Layout, tx: int, seq: int) -> No
     for msg in ALL_TYPES:
         arbitration_id, data = CODEC.encode(msg)
         m = Msg()
+        frame, _buf = rx(arbitration_id, data)  # the buffer outlives the call
+        assert lib().canergy_decode(DEFAULT_ID_BASE, frame, 0, m) == 0
         assert (
-            lib().canergy_decode(
-                DEFAULT_ID_BASE, ctypes.byref(rx(arbitration_id, data)[0]), 0, ctypes.byref(m)
-            )
-            == 0
-        )
-        assert (
-            lib().canergy_auth_freshness(ctypes.byref(m), tx & U32, seq & U32)
+            lib().canergy_auth_freshness(ref(m), tx & U32, seq & U32)
             == freshness(msg, tx, seq) & U32
         )
 
@@ -431,7 +362,7 @@ def test_a_frame_without_a_mac_and_a_lone_mac_frame(layout: Layout) -> None:
     if layout is Layout.FD:
         assert py_outcomes[0] == AuthFailure.UNAUTHENTICATED.value
     else:
-        assert py_outcomes[:7] == [
+        assert py_outcomes[0:7] == [
             "pending",
             AuthFailure.MAC_BAD.value,
             "pending",
@@ -454,12 +385,7 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
     cfg.client.command_timeout_us = cfg.client.return_retry_us = 100_000
     cfg.telemetry_period_us, cfg.return_above_uj = 1_000_000, U32
     c = lib()
-    assert (
-        c.canergy_node_start(
-            ctypes.byref(node), ctypes.byref(cfg), None, 0, 0x1234, 0, ctypes.byref(out)
-        )
-        == 0
-    )
+    assert c.canergy_node_start(ref(node), ref(cfg), c.ffi.NULL, 0, 0x1234, 0, ref(out)) == 0
     c_auth = CAuth(layout, Direction.TO_CLIENT)
     sup = {"tx": 0x3_FFFF, "seq": 0x3_0002}
     supervisor = FrameAuth(
@@ -476,24 +402,22 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
             r, _buf = rx(f.arbitration_id, bytes(f.data))
             results.append(
                 c.canergy_auth_node_frame(
-                    ctypes.byref(c_auth.ctx),
-                    ctypes.byref(node),
-                    ctypes.byref(r),
+                    ref(c_auth.ctx),
+                    ref(node),
+                    ref(r),
                     now,
-                    ctypes.byref(out),
+                    ref(out),
                 )
             )
         return results
 
     def replies() -> list[Message]:
         got = []
-        for plain in list(out.frames)[: out.frame_count]:
-            frames = (AuthFrame * 2)()
-            n = c.canergy_auth_node_protect(
-                ctypes.byref(c_auth.ctx), ctypes.byref(node), ctypes.byref(plain), frames
-            )
-            for f in list(frames)[:n]:
-                v = supervisor.accept(_can(f.id, bytes(f.data[: f.len])))
+        for plain in list(out.frames)[0 : out.frame_count]:
+            frames = c.new("struct canergy_auth_frame[2]")
+            n = c.canergy_auth_node_protect(ref(c_auth.ctx), ref(node), ref(plain), frames)
+            for f in list(frames)[0:n]:
+                v = supervisor.accept(_can(f.id, bytes(f.data[0 : f.len])))
                 assert v.failure is None
                 if v.message is not None:
                     got.append(v.message)
@@ -507,7 +431,7 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
     assert replies() == [Ack(NODE, 0)]
     before = node.client.rec.usable_uj
     forged = _can(*CODEC.encode(Commit(NODE, 0, AMOUNT_MAX_MJ)))
-    no_mac = FIRST_FAILURE + 4
+    no_mac = _C.CANERGY_AUTH_UNAUTHENTICATED
     assert deliver([forged], 25)[-1] == (PENDING if layout is Layout.CLASSIC else no_mac)
     assert node.client.rec.usable_uj == before
     assert deliver(supervisor.frames(Commit(NODE, 0, 700)), 30)[-1] == 0
@@ -516,7 +440,7 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
     # the COMMIT again, 65,536 transactions later: the same frames do not verify
     replay = supervisor.frames(Commit(NODE, 0, 700))
     node.client.rec.last_tx += 0x1_0000
-    assert deliver(replay, 40)[-1] == FIRST_FAILURE + 1  # stale
+    assert deliver(replay, 40)[-1] == _C.CANERGY_AUTH_STALE
     assert node.client.rec.usable_uj == before + 700_000
     # a RETURN in its name and (classic) a MAC frame 0x8: witnessed, moving nothing; in the
     # FD layout 0x8 is no MAC frame but an unknown type, as in Python
@@ -526,7 +450,7 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
     wrong_way = [REASONS[r].name == "WRONG_DIRECTION" for r in results]
     assert wrong_way == [True, layout is Layout.CLASSIC] and out.frame_count == 0
     assert node.witness == sum(wrong_way) and node.client.rec.usable_uj == before + 700_000
-    assert c.canergy_node_deadline(ctypes.byref(node)) == 50  # its TELEMETRY at the next poll
+    assert c.canergy_node_deadline(ref(node)) == 50  # its TELEMETRY at the next poll
 
 
 @pytest.mark.parametrize("layout", list(Layout))
@@ -535,7 +459,7 @@ def test_a_c_node_joins_with_32_bits_of_freshness(layout: Layout) -> None:
     Python supervisor binds its JOIN FV in the ADMIT's MAC; an ADMIT of an earlier life with
     the same 16-bit nonce fails its MAC at the C node."""
     c_node = CAuth(layout, Direction.TO_CLIENT)
-    lib().canergy_auth_set_join(ctypes.byref(c_node.ctx), 0xBEEF, 7)
+    lib().canergy_auth_set_join(ref(c_node.ctx), 0xBEEF, 7)
     sup = py_auth(layout, Direction.TO_SUPERVISOR, 0, 0)
     join = c_node.frames(Join(NODE, 7), 0, 0)
     assert [py_outcome(sup, f) for f in join][-1] == "ok" and sup.join_fv[NODE] == 0xBEEF0007

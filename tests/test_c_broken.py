@@ -1,6 +1,6 @@
 """The side-by-side machine has teeth: a C library with one rule broken on purpose is caught.
 
-``libcanergy-broken.so`` is built with ``-DCANERGY_BREAK_REPEATED_TX``: a COMMIT for the
+The ``broken`` build (canergy.ccore.build) has ``-DCANERGY_BREAK_REPEATED_TX``: a COMMIT for the
 transaction the client already resolved is applied a second time (energy created) instead of
 being answered with the recorded reply. The machine of tests/test_c_sidebyside.py
 (``support.side_by_side``) must find a difference with the Python rules within its default
@@ -9,11 +9,9 @@ budget of examples.
 
 from __future__ import annotations
 
-import ctypes
-
 import pytest
 from hypothesis import Phase as HypothesisPhase
-from support.c_binding import CClient, library, make
+from support.c_binding import CClient, CLib, library
 from support.side_by_side import SideBySide, run_side_by_side
 
 from canergy.core import Timing
@@ -21,7 +19,7 @@ from canergy.messages import Admit, Commit, Intention
 
 
 class BrokenSideBySide(SideBySide):
-    lib: ctypes.CDLL | None = None
+    lib: CLib | None = None
 
 
 def test_the_broken_rule_is_really_broken() -> None:
@@ -37,7 +35,6 @@ def test_the_broken_rule_is_really_broken() -> None:
 
 
 def test_the_machine_finds_the_broken_rule() -> None:
-    make("build/libcanergy-broken.so")
     BrokenSideBySide.lib = library("broken")
     with pytest.raises(AssertionError, match="differ"):
         run_side_by_side(

@@ -4,13 +4,12 @@ refuses to encode C refuses too."""
 
 from __future__ import annotations
 
-import ctypes
 import functools
 
 import pytest
 from hypothesis import example, given
 from hypothesis import strategies as st
-from support.c_binding import DIRECTIONS, OK, REASONS, Frame, Msg, library, rx
+from support.c_binding import DIRECTIONS, OK, REASONS, Frame, Msg, cbuf, library, ref, rx
 from support.strategies import messages
 
 from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeError, DecodeErrorReason
@@ -79,7 +78,7 @@ def fields(msg: Message) -> dict[str, int]:
 
 
 def c_fields(m: Msg) -> dict[str, int]:
-    return {name: getattr(m, name) for name, _ in Msg._fields_}
+    return {name: getattr(m, name) for name in Msg.fields}
 
 
 def c_decode(
@@ -87,9 +86,7 @@ def c_decode(
 ) -> tuple[int, Msg]:
     frame, buf = rx(arbitration_id, data, extended, remote)
     m = Msg()
-    status = library().canergy_decode(
-        base, ctypes.byref(frame), DIRECTIONS[direction], ctypes.byref(m)
-    )
+    status = library().canergy_decode(base, ref(frame), DIRECTIONS[direction], ref(m))
     del buf
     return status, m
 
@@ -178,15 +175,15 @@ def test_valid_and_damaged_frames_decode_alike(
     if damage is not None:
         frame[damage[0] % len(frame)] ^= damage[1]
     if length is not None:
-        frame = (frame + bytes(64))[:length]  # CAN FD lengths and short frames
+        frame = (frame + bytes(64))[0:length]  # CAN FD lengths and short frames
     assert_same_decoding(base, arbitration_id, bytes(frame), True, remote, direction)
 
 
 def c_encode(base: int, f: dict[str, int]) -> tuple[int, tuple[int, bytes]]:
     m = Msg(**f)
     out = Frame()
-    status = library().canergy_encode(base, ctypes.byref(m), ctypes.byref(out))
-    return status, (out.id, bytes(out.data[: out.dlc]))
+    status = library().canergy_encode(base, ref(m), ref(out))
+    return status, (out.id, bytes(out.data[0 : out.dlc]))
 
 
 @given(base=st.sampled_from(BASES), msg=ALL_MESSAGES)
@@ -212,7 +209,7 @@ def test_telemetry_is_eight_bytes_in_both_codecs(msg: Telemetry) -> None:
     assert status == OK and frame == (arbitration_id, data)
     status, m = c_decode(DEFAULT_ID_BASE, arbitration_id, data, True, False, "to_supervisor")
     assert status == OK and c_fields(m) == fields(msg)
-    for short in (data[:5], data[:7]):  # the old 5-byte layout, a truncated frame
+    for short in (data[0:5], data[0:7]):  # the old 5-byte layout, a truncated frame
         assert c_decode(DEFAULT_ID_BASE, arbitration_id, short, True, False, None)[0] != OK
 
 
@@ -260,7 +257,7 @@ def test_crcs_agree_with_python_and_zlib(data: bytes) -> None:
 
     from canergy.crc import crc8
 
-    buf = ctypes.create_string_buffer(data, max(len(data), 1))
+    buf = cbuf(data, max(len(data), 1))
     assert library().canergy_crc8(0xFF, buf, len(data)) ^ 0xFF == crc8(data)
     assert library().canergy_crc32(0, buf, len(data)) == zlib.crc32(data)
 

@@ -15,7 +15,6 @@ step, and started from it. There the gateway must never hold more than the root 
 from __future__ import annotations
 
 import contextlib
-import ctypes
 from typing import Any
 
 import pytest
@@ -37,8 +36,11 @@ from support.c_binding import (
     SupervisorConfig,
     SupervisorOut,
     c_view,
+    cbuf,
     frames_of,
     library,
+    out_frames,
+    ref,
     rx,
     struct_view,
 )
@@ -57,29 +59,25 @@ CODEC = Codec()
 
 
 class GatewaySideBySide(RuleBasedStateMachine):
+    VARIANT = ""
     UP_RULES = "hardened"
 
     def __init__(self) -> None:
         super().__init__()
-        self.lib = library()
+        self.lib = library(self.VARIANT)
         self.now = 0
         self.root = Supervisor([UP], 10**9, timing=T, variant=self.UP_RULES)
         self.py = Gateway(UP, BELOW, up_timing=T, down_timing=T, up_variant=self.UP_RULES)
-        self.gw = CGateway()
+        self.gw = CGateway(lib=self.lib)
         client = CClient(UP, timing=T, lib=self.lib, rules=self.UP_RULES)  # given Python's books
-        ctypes.memmove(
-            ctypes.addressof(self.gw.up), ctypes.addressof(client.c), ctypes.sizeof(client.c)
-        )
+        self.gw.up = client.c[0]
         self.out = client.out
-        cfg = SupervisorConfig(CODEC.id_base, timing_of(T))
-        ids = (ctypes.c_uint8 * len(BELOW))(*BELOW)
+        cfg = SupervisorConfig(CODEC.id_base, timing_of(T, lib=self.lib), lib=self.lib)
+        ids = cbuf(bytes(BELOW), lib=self.lib)
         assert (
-            self.lib.canergy_supervisor_init(
-                ctypes.byref(self.gw.down), ctypes.byref(cfg), ids, len(BELOW), 0
-            )
-            == OK
+            self.lib.canergy_supervisor_init(ref(self.gw.down), ref(cfg), ids, len(BELOW), 0) == OK
         )
-        self.sup_out = SupervisorOut()
+        self.sup_out = SupervisorOut(lib=self.lib)
         self.to_gateway: list[tuple[int, bytes]] = []
 
     # -- the bus above ------------------------------------------------------------------------
@@ -94,7 +92,7 @@ class GatewaySideBySide(RuleBasedStateMachine):
 
     def _up_answer(self, actions: list[Any]) -> None:
         """The C gateway answered as the Python one did; the answers reach the root."""
-        assert self.out.sent() == frames_of(CODEC, actions)
+        assert out_frames(self.out) == frames_of(CODEC, actions)
         assert bool(self.out.persist) == any(isinstance(a, Persist) for a in actions)
         for a in actions:
             if isinstance(a, Send):
@@ -111,30 +109,24 @@ class GatewaySideBySide(RuleBasedStateMachine):
             return
         arbitration_id, data = self.to_gateway.pop(0)
         for _ in range(0 if lose else 2 if twice else 1):
-            frame, _buf = rx(arbitration_id, data)
-            self.lib.canergy_gateway_on_up_frame(
-                ctypes.byref(self.gw), ctypes.byref(frame), self.now, ctypes.byref(self.out)
-            )
+            frame, _buf = rx(arbitration_id, data, lib=self.lib)
+            self.lib.canergy_gateway_on_up_frame(ref(self.gw), ref(frame), self.now, ref(self.out))
             self._up_answer(self.py.receive_upstream(CODEC.decode(arbitration_id, data), self.now))
 
     @rule(dt=st.integers(0, 3_000))
     def time_passes(self, dt: int) -> None:
         self.now += dt
         self._root(self.root.handle_timer(self.now))
-        self.lib.canergy_gateway_on_up_timer(
-            ctypes.byref(self.gw), self.now, ctypes.byref(self.out)
-        )
+        self.lib.canergy_gateway_on_up_timer(ref(self.gw), self.now, ref(self.out))
         self._up_answer(self.py.handle_upstream_timer(self.now))
-        self.lib.canergy_supervisor_on_timer(
-            ctypes.byref(self.gw.down), self.now, ctypes.byref(self.sup_out)
-        )
+        self.lib.canergy_supervisor_on_timer(ref(self.gw.down), self.now, ref(self.sup_out))
         self._down_answer(self.py.down.handle_timer(self.now))
 
     @rule(amount=st.one_of(st.integers(1, 2_000).map(lambda mj: mj * QUANTUM_UJ),
                            st.sampled_from([0, 1_500, 10**12])))  # fmt: skip
     def give_back(self, amount: int) -> None:
         code = self.lib.canergy_gateway_give_back(
-            ctypes.byref(self.gw), min(amount, 2**32 - 1), self.now, ctypes.byref(self.out)
+            ref(self.gw), min(amount, 2**32 - 1), self.now, ref(self.out)
         )
         try:
             actions = self.py.give_back(amount, self.now)
@@ -147,15 +139,15 @@ class GatewaySideBySide(RuleBasedStateMachine):
     # -- the bus below ------------------------------------------------------------------------
     def _down_answer(self, actions: list[Any]) -> None:
         out = self.sup_out
-        frames = [(f.id, bytes(f.data[: f.dlc])) for f in out.frames[: out.frame_count]]
+        frames = [(f.id, bytes(f.data[0 : f.dlc])) for f in out.frames[0 : out.frame_count]]
         assert frames == frames_of(CODEC, actions)
         assert bool(out.persist) == any(isinstance(a, Persist) for a in actions)
 
     @rule(node=st.sampled_from(BELOW), amount_mj=st.integers(1, 500))
     def grant_below(self, node: int, amount_mj: int) -> None:
         code = self.lib.canergy_gateway_begin(
-            ctypes.byref(self.gw), node, amount_mj * QUANTUM_UJ, self.now,
-            ctypes.byref(self.sup_out),
+            ref(self.gw), node, amount_mj * QUANTUM_UJ, self.now,
+            ref(self.sup_out),
         )  # fmt: skip
         try:
             actions = self.py.down.begin(node, amount_mj * QUANTUM_UJ, self.now)
@@ -165,7 +157,7 @@ class GatewaySideBySide(RuleBasedStateMachine):
             assert (
                 waiting
                 == (code == ERR_UNCONFIRMED)
-                == self.lib.canergy_gateway_upstream_waiting(ctypes.byref(self.gw))
+                == self.lib.canergy_gateway_upstream_waiting(ref(self.gw))
             )
             return
         assert code == OK
@@ -182,16 +174,16 @@ class GatewaySideBySide(RuleBasedStateMachine):
             amount = data.draw(st.integers(1, min(held_mj, 65_535)))
             msg = Return(node, (s.returns_credited + 1) & 0xFFFF, amount)
         arbitration_id, payload = CODEC.encode(msg)
-        frame, _buf = rx(arbitration_id, payload)
+        frame, _buf = rx(arbitration_id, payload, lib=self.lib)
         self.lib.canergy_supervisor_on_frame(
-            ctypes.byref(self.gw.down), ctypes.byref(frame), self.now, ctypes.byref(self.sup_out)
+            ref(self.gw.down), ref(frame), self.now, ref(self.sup_out)
         )
         actions = self.py.down.receive(msg, self.now)
         for a in actions:  # the gateway commits what its nodes acknowledge
             if isinstance(a, Acknowledged):
                 self._down_answer(actions)
                 self.lib.canergy_supervisor_decide(
-                    ctypes.byref(self.gw.down), node, True, self.now, ctypes.byref(self.sup_out)
+                    ref(self.gw.down), node, True, self.now, ref(self.sup_out)
                 )
                 actions = self.py.down.commit(node, self.now)
                 break
@@ -212,7 +204,7 @@ class GatewaySideBySide(RuleBasedStateMachine):
         for i, s in enumerate(down.sessions):
             assert fields_of(c.sessions[i]) == fields_of(s)
         assert link_gap(up, down) == 0
-        assert self.lib.canergy_gateway_link_gap(ctypes.byref(self.gw)) == 0
+        assert self.lib.canergy_gateway_link_gap(ref(self.gw)) == 0
 
 
 TestGatewaySideBySide = GatewaySideBySide.TestCase
@@ -245,7 +237,7 @@ class WitnessedUpstream(GatewaySideBySide):
     @rule()
     def copy_records(self) -> None:
         """A backup of both gateways' records (the C struct's volatile part goes at the start)."""
-        self.copies.append((self.py.state, bytes(self.gw)))
+        self.copies.append((self.py.state, bytes(self.lib.ffi.buffer(self.gw))))
 
     @rule(data=st.data())
     def restore_an_older_copy(self, data: st.DataObject) -> None:
@@ -259,13 +251,11 @@ class WitnessedUpstream(GatewaySideBySide):
             UP, BELOW, up_timing=T, down_timing=T, up_variant=self.UP_RULES, state=state
         )
         actions = self.py.power_loss(self.now, self.nonce, self.nonce)
-        ctypes.memmove(ctypes.addressof(self.gw), raw, len(raw))
-        self.lib.canergy_client_resume(
-            ctypes.byref(self.gw.up), self.nonce, self.now, ctypes.byref(self.out)
-        )
+        self.lib.ffi.memmove(self.gw, raw, len(raw))
+        self.lib.canergy_client_resume(ref(self.gw.up), self.nonce, self.now, ref(self.out))
         self._up_answer(actions)
         self.lib.canergy_supervisor_start(
-            ctypes.byref(self.gw.down), self.nonce, self.now, ctypes.byref(self.sup_out)
+            ref(self.gw.down), self.nonce, self.now, ref(self.sup_out)
         )
 
     @invariant()
@@ -343,11 +333,12 @@ def test_a_refused_give_back_moves_nothing(amount: int) -> None:
     m.root_grants(2_000)
     for _ in range(2):
         m.deliver_down_from_root(twice=False, lose=False)
-    before = bytes(m.gw)
-    assert m.lib.canergy_gateway_give_back(
-        ctypes.byref(m.gw), amount, m.now, ctypes.byref(m.out)
-    ) in (ERR_AMOUNT, ERR_PHASE)
-    assert bytes(m.gw) == before and m.out.frame_count == 0 and not m.out.persist
+    before = bytes(m.lib.ffi.buffer(m.gw))
+    assert m.lib.canergy_gateway_give_back(ref(m.gw), amount, m.now, ref(m.out)) in (
+        ERR_AMOUNT,
+        ERR_PHASE,
+    )
+    assert bytes(m.lib.ffi.buffer(m.gw)) == before and m.out.frame_count == 0 and not m.out.persist
 
 
 class AgainstTheBrokenBuild(GatewaySideBySide):
@@ -355,9 +346,7 @@ class AgainstTheBrokenBuild(GatewaySideBySide):
     also credits a duplicated COMMIT again (the client's break, tests/test_c_broken.py): no
     frame is delivered twice here, so only the gateway's break can show."""
 
-    def __init__(self) -> None:
-        super().__init__()
-        self.lib = library("broken")
+    VARIANT = "broken"
 
     @rule(twice=st.just(False), lose=st.booleans())
     def deliver_down_from_root(self, twice: bool, lose: bool) -> None:

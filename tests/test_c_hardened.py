@@ -21,6 +21,7 @@ from support.c_binding import (
     c_view,
     events_of,
     frames_of,
+    out_frames,
 )
 from support.cells import Case, check_coverage, params
 from support.client_cases import (
@@ -87,7 +88,7 @@ def assert_same_step(start: ClientState, event: object, now: int) -> None:
     c, out = run_c(start, event, now)
     assert isinstance(out, Out), f"C refused with {out}"
     assert c.view() == c_view(step.client)
-    assert out.sent() == frames_of(CODEC, step.actions)
+    assert out_frames(out) == frames_of(CODEC, step.actions)
     assert out.events & ~EV_ADMITTED == events_of(step.actions)
     admitted = start.phase is Phase.JOINING and step.client.phase is not Phase.JOINING
     assert bool(out.events & EV_ADMITTED) == admitted
@@ -103,7 +104,7 @@ def test_cell(case: Case) -> None:
     c, out = run_c(case.start, case.event, case.now)
     assert isinstance(out, Out)
     assert c.view() == c_view(case.end)  # type: ignore[arg-type]
-    assert out.sent() == frames_of(CODEC, case.actions)
+    assert out_frames(out) == frames_of(CODEC, case.actions)
 
 
 @pytest.mark.parametrize("cell", sorted(IGNORED, key=str), ids=str)
@@ -111,7 +112,7 @@ def test_ignored(cell: tuple[Phase, type]) -> None:
     start, event = STATES[cell[0]], EVENTS[cell[1]]
     c, out = run_c(start, event, 10**9)
     assert isinstance(out, Out)
-    assert c.view() == c_view(start) and out.sent() == [] and not out.persist
+    assert c.view() == c_view(start) and out_frames(out) == [] and not out.persist
     assert out.events == 0
 
 

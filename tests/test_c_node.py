@@ -16,7 +16,6 @@ once per call.)
 
 from __future__ import annotations
 
-import ctypes
 import random
 
 import can
@@ -27,7 +26,10 @@ from support.c_binding import (
     CNodeState,
     NodeConfig,
     Out,
+    cbuf,
     library,
+    out_frames,
+    ref,
     rx,
 )
 from support.mem_nv import MemNv, write_slot
@@ -77,15 +79,15 @@ class CNode:
         self.raw = raw
         self.n = CNodeState()
         self.out = Out()
-        buf = ctypes.create_string_buffer(bytes(raw), max(len(raw), 1))
+        buf = cbuf(bytes(raw), max(len(raw), 1))
         self.lib.canergy_node_start(
-            ctypes.byref(self.n),
-            ctypes.byref(self.cfg),
+            ref(self.n),
+            ref(self.cfg),
             buf,
             len(raw),
             nonce,
             now,
-            ctypes.byref(self.out),
+            ref(self.out),
         )
         self.actuator = Actuator(cfg.power, now, now)
         self.next_tick = now + cfg.tick_us
@@ -94,33 +96,29 @@ class CNode:
     def _done(self) -> list[tuple[int, bytes]]:
         if self.out.persist:
             write_slot(self.raw, self.out.nv_slot, bytes(self.out.nv_image))
-        return self.out.sent()
+        return out_frames(self.out)
 
     def frame(self, arbitration_id: int, data: bytes, now: int) -> list[tuple[int, bytes]]:
         frame, buf = rx(arbitration_id, data)
-        self.lib.canergy_node_on_frame(
-            ctypes.byref(self.n), ctypes.byref(frame), now, ctypes.byref(self.out)
-        )
+        self.lib.canergy_node_on_frame(ref(self.n), ref(frame), now, ref(self.out))
         del buf
         return self._done()
 
     def next_wakeup(self) -> int:
         if self.pending:
             return 0
-        return min(self.next_tick, self.lib.canergy_node_deadline(ctypes.byref(self.n)))
+        return min(self.next_tick, self.lib.canergy_node_deadline(ref(self.n)))
 
     def wakeup(self, now: int) -> list[tuple[int, bytes]]:
         sent, self.pending = self.pending, []
         if now >= self.next_tick:  # the port's actuator period
             self.next_tick = now + self.tick_us
             wanted = self.actuator.need(now)
-            granted = self.lib.canergy_node_draw(
-                ctypes.byref(self.n), wanted, now, ctypes.byref(self.out)
-            )
+            granted = self.lib.canergy_node_draw(ref(self.n), wanted, now, ref(self.out))
             sent += self._done()  # persisted before the actuator runs on it
             self.actuator.run(granted, wanted)
         else:
-            self.lib.canergy_node_poll(ctypes.byref(self.n), now, ctypes.byref(self.out))
+            self.lib.canergy_node_poll(ref(self.n), now, ref(self.out))
             sent += self._done()
         return sent
 

@@ -8,13 +8,22 @@ and the next write goes to the same slot with the same counter.
 
 from __future__ import annotations
 
-import ctypes
 from pathlib import Path
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-from support.c_binding import SLOT, CClient, NvState, Record, c_view, library
+from support.c_binding import (
+    SLOT,
+    CClient,
+    NvState,
+    Record,
+    c_view,
+    cbuf,
+    library,
+    ref,
+    struct_bytes,
+)
 from support.mem_nv import MemNv, write_slot
 
 from canergy.core import Timing
@@ -46,13 +55,13 @@ records = st.builds(
 
 def c_record(s: ClientState) -> Record:
     v = c_view(s)
-    return Record(**{name: v[name] for name, _ in Record._fields_})
+    return Record(**{name: v[name] for name in Record.fields})
 
 
 def c_load(image: bytes) -> NvState:
     state = NvState()
-    buf = ctypes.create_string_buffer(image, max(len(image), 1))
-    library().canergy_nv_load(buf, len(image), ctypes.byref(state))
+    buf = cbuf(image, max(len(image), 1))
+    library().canergy_nv_load(buf, len(image), ref(state))
     return state
 
 
@@ -65,26 +74,26 @@ def assert_same_load(image: bytes) -> None:
     assert c.fallbacks == store.stats.fallbacks
     assert c.books == (loaded is not None)
     if loaded is not None:
-        assert bytes(c.record) == bytes(c_record(loaded))
+        assert struct_bytes(c.record) == struct_bytes(c_record(loaded))
     assert (c.counter, c.newest_slot) == (store._counter, store._newest_slot)
 
 
 @given(records)
 def test_records_pack_alike(s: ClientState) -> None:
-    out = ctypes.create_string_buffer(RECORD_SIZE)
-    library().canergy_record_pack(ctypes.byref(c_record(s)), out)
-    assert out.raw == pack_record(s)
+    out = cbuf(RECORD_SIZE)
+    library().canergy_record_pack(ref(c_record(s)), out)
+    assert bytes(out) == pack_record(s)
     back = Record()
-    assert library().canergy_record_unpack(out, ctypes.byref(back)) == 0
-    assert bytes(back) == bytes(c_record(s))
+    assert library().canergy_record_unpack(out, ref(back)) == 0
+    assert struct_bytes(back) == struct_bytes(c_record(s))
 
 
 @given(records, st.integers(0, U32))
 def test_slots_encode_alike(s: ClientState, counter: int) -> None:
     record = pack_record(s)
-    out = ctypes.create_string_buffer(SLOT)
+    out = cbuf(SLOT)
     library().canergy_nv_slot_encode(counter, record, len(record), out)
-    assert out.raw == encode_slot(counter, record)
+    assert bytes(out) == encode_slot(counter, record)
 
 
 @given(st.lists(records, min_size=1, max_size=5))
@@ -92,7 +101,7 @@ def test_python_written_stores_load_in_c(states: list[ClientState]) -> None:
     raw = bytearray()
     for s in states:
         _save_again(raw, s)
-    assert bytes(c_load(bytes(raw)).record) == bytes(c_record(states[-1]))
+    assert struct_bytes(c_load(bytes(raw)).record) == struct_bytes(c_record(states[-1]))
     assert_same_load(bytes(raw))
 
 

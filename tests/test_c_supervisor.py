@@ -8,7 +8,6 @@ from those bytes alone: so every change it must not lose was asked to be persist
 
 from __future__ import annotations
 
-import ctypes
 from dataclasses import replace
 from typing import Any
 
@@ -33,7 +32,9 @@ from support.c_binding import (
     CSupervisor,
     SupervisorConfig,
     SupervisorOut,
+    cbuf,
     library,
+    ref,
     rx,
 )
 from support.c_session import fields_of, timing_of
@@ -56,44 +57,48 @@ amounts = st.one_of(
 
 
 class SideBySide(RuleBasedStateMachine):
+    VARIANT = ""
     variant = "hardened"
-    c_rules = 0  # enum canergy_rules
 
     def __init__(self) -> None:
         super().__init__()
-        self.lib = library()
+        self.lib = library(self.VARIANT)
         self.py = Supervisor(NODES, 10_000_000, timing=T, variant=self.variant)
-        self.c = CSupervisor()
-        self.nv = ctypes.create_string_buffer(2 * SUPERVISOR_SLOT)
-        self.nv_counter, self.nv_slot = ctypes.c_uint32(), ctypes.c_uint8()
+        self.c = CSupervisor(lib=self.lib)
+        self.nv = cbuf(2 * SUPERVISOR_SLOT, lib=self.lib)
+        self.nv_counter, self.nv_slot = self.lib.new("uint32_t *"), self.lib.new("uint8_t *")
         assert self._load() == 0  # blank NV: a new supervisor
         self.now = 0
-        self.out = SupervisorOut()
+        self.out = SupervisorOut(lib=self.lib)
 
     def _load(self) -> int:
-        cfg = SupervisorConfig(id_base=CODEC.id_base, timing=timing_of(T, self.c_rules))
-        nodes = (ctypes.c_uint8 * len(NODES))(*NODES)
+        cfg = SupervisorConfig(
+            id_base=CODEC.id_base, timing=timing_of(T, self.variant, self.lib), lib=self.lib
+        )
+        nodes = cbuf(bytes(NODES), lib=self.lib)
         return int(
             self.lib.canergy_supervisor_load(
-                ctypes.byref(self.c), ctypes.byref(cfg), nodes, len(NODES), 10_000_000,
-                self.nv, len(self.nv), ctypes.byref(self.nv_counter), ctypes.byref(self.nv_slot),
+                ref(self.c), ref(cfg), nodes, len(NODES), 10_000_000,
+                self.nv, len(self.nv), ref(self.nv_counter), ref(self.nv_slot),
             )
         )  # fmt: skip
 
     def _persist(self) -> None:
         """Write the record to the other slot, as a port does before sending."""
-        self.nv_slot.value ^= 1
-        self.nv_counter.value += 1
-        image = ctypes.create_string_buffer(SUPERVISOR_SLOT)
-        self.lib.canergy_supervisor_image(ctypes.byref(self.c), self.nv_counter.value, image)
-        start = self.nv_slot.value * SUPERVISOR_SLOT
-        ctypes.memmove(ctypes.addressof(self.nv) + start, image, SUPERVISOR_SLOT)
+        self.nv_slot[0] ^= 1
+        self.nv_counter[0] += 1
+        image = cbuf(SUPERVISOR_SLOT, lib=self.lib)
+        self.lib.canergy_supervisor_image(ref(self.c), self.nv_counter[0], image)
+        start = self.nv_slot[0] * SUPERVISOR_SLOT
+        self.nv[start : start + SUPERVISOR_SLOT] = image
 
     def _same_actions(self, actions: list[Any]) -> None:
         if self.out.persist:
             self._persist()
         sent = [CODEC.encode(a.message) for a in actions if isinstance(a, Send)]
-        frames = [(f.id, bytes(f.data[: f.dlc])) for f in self.out.frames[: self.out.frame_count]]
+        frames = [
+            (f.id, bytes(f.data[0 : f.dlc])) for f in self.out.frames[0 : self.out.frame_count]
+        ]
         assert frames == [(i, bytes(d)) for i, d in sent]
         assert bool(self.out.persist) == any(isinstance(a, Persist) for a in actions)
 
@@ -111,7 +116,7 @@ class SideBySide(RuleBasedStateMachine):
         self._request(
             lambda: self.py.begin(node, amount, self.now),
             lambda: self.lib.canergy_supervisor_begin(
-                ctypes.byref(self.c), node, amount, self.now, ctypes.byref(self.out)
+                ref(self.c), node, amount, self.now, ref(self.out)
             ),
         )
 
@@ -120,7 +125,7 @@ class SideBySide(RuleBasedStateMachine):
         self._request(
             lambda: (self.py.commit if commit else self.py.abort)(node, self.now),
             lambda: self.lib.canergy_supervisor_decide(
-                ctypes.byref(self.c), node, commit, self.now, ctypes.byref(self.out)
+                ref(self.c), node, commit, self.now, ref(self.out)
             ),
         )
 
@@ -134,9 +139,11 @@ class SideBySide(RuleBasedStateMachine):
         if data.draw(st.booleans(), label="damage a byte"):
             payload = bytearray(payload)
             payload[0] ^= 0x5A
-        frame, _buf = rx(arbitration_id, bytes(payload))  # the buffer outlives the call
+        frame, _buf = rx(
+            arbitration_id, bytes(payload), lib=self.lib
+        )  # the buffer outlives the call
         status = self.lib.canergy_supervisor_on_frame(
-            ctypes.byref(self.c), ctypes.byref(frame), self.now, ctypes.byref(self.out)
+            ref(self.c), ref(frame), self.now, ref(self.out)
         )
         try:
             decoded = CODEC.decode(arbitration_id, bytes(payload))
@@ -153,19 +160,19 @@ class SideBySide(RuleBasedStateMachine):
     def timer(self, dt: int) -> None:
         self.now += dt
         actions = self.py.handle_timer(self.now)
-        self.lib.canergy_supervisor_on_timer(ctypes.byref(self.c), self.now, ctypes.byref(self.out))
+        self.lib.canergy_supervisor_on_timer(ref(self.c), self.now, ref(self.out))
         self._same_actions(actions)
 
     @rule()
     def restart(self) -> None:
         """A reset: Python keeps its record in memory; C has only what it asked to persist."""
         self.py.power_loss(self.now)
-        assert self._load() == (1 if self.nv_counter.value else 0)
-        self.lib.canergy_supervisor_restart(ctypes.byref(self.c), self.now)
+        assert self._load() == (1 if self.nv_counter[0] else 0)
+        self.lib.canergy_supervisor_restart(ref(self.c), self.now)
 
     @rule(amount=st.integers(0, 5_000_000))
     def inject(self, amount: int) -> None:
-        code = self.lib.canergy_supervisor_inject(ctypes.byref(self.c), amount)
+        code = self.lib.canergy_supervisor_inject(ref(self.c), amount)
         try:
             self.py.inject(amount)
         except LocalProtocolError:
@@ -182,7 +189,7 @@ class SideBySide(RuleBasedStateMachine):
             assert fields_of(self.c.sessions[i]) == fields_of(self._comparable(s))
         deadline = self.py.get_timer()
         expected = (1 << 64) - 1 if deadline is None else deadline
-        assert self.lib.canergy_supervisor_deadline(ctypes.byref(self.c)) == expected
+        assert self.lib.canergy_supervisor_deadline(ref(self.c)) == expected
 
     def _comparable(self, s: Session) -> Session:
         return s
@@ -201,15 +208,12 @@ class WitnessedSideBySide(SideBySide):
     so it is compared from then on."""
 
     variant = "witnessed"
-    c_rules = 1
 
     @rule(nonce=st.integers(0, 0xFFFF))
     def start(self, nonce: int) -> None:
         self.py.power_loss(self.now, nonce=nonce)
-        assert self._load() == (1 if self.nv_counter.value else 0)
-        self.lib.canergy_supervisor_start(
-            ctypes.byref(self.c), nonce, self.now, ctypes.byref(self.out)
-        )
+        assert self._load() == (1 if self.nv_counter[0] else 0)
+        self.lib.canergy_supervisor_start(ref(self.c), nonce, self.now, ref(self.out))
         if self.out.persist:
             self._persist()
 
@@ -228,18 +232,18 @@ class WitnessedSideBySide(SideBySide):
             ltx = s.tx + data.draw(st.integers(-3, 3) | st.sampled_from([64, 0x7FFF]))
             seq = s.returns_credited + data.draw(st.integers(-2, 2))
             msg = Debit.counts(node, nonce, seq & 0xFFFF, ltx & 0xFFFF)
-        frame, _buf = rx(*CODEC.encode(msg))
+        frame, _buf = rx(*CODEC.encode(msg), lib=self.lib)
         status = self.lib.canergy_supervisor_on_frame(
-            ctypes.byref(self.c), ctypes.byref(frame), self.now, ctypes.byref(self.out)
+            ref(self.c), ref(frame), self.now, ref(self.out)
         )
         assert status == OK
         self._same_actions(self.py.receive(msg, self.now))
 
     @rule()
     def same_waiting(self) -> None:
-        nodes = (ctypes.c_uint8 * len(NODES))()
-        n = self.lib.canergy_supervisor_unconfirmed(ctypes.byref(self.c), nodes)
-        assert tuple(nodes[:n]) == self.py.unconfirmed()
+        nodes = cbuf(size=len(NODES))
+        n = self.lib.canergy_supervisor_unconfirmed(ref(self.c), nodes)
+        assert tuple(nodes[0:n]) == self.py.unconfirmed()
 
     def _comparable(self, s: Session) -> Session:
         if s.phase in SYNC_PHASES:  # W is not used before the counts set it
@@ -254,10 +258,7 @@ TestWitnessedSideBySide.settings = settings(max_examples=150, stateful_step_coun
 class AgainstTheBrokenBuild(SideBySide):
     """The same machine on the build that credits a duplicated RETURN again."""
 
-    def __init__(self) -> None:
-        super().__init__()
-        self.lib = library("broken")
-        self._load()
+    VARIANT = "broken"
 
 
 def test_the_machine_catches_a_broken_build() -> None:

@@ -5,7 +5,6 @@ record carries the pending draw; a hardened client refuses a record holding one.
 
 from __future__ import annotations
 
-import ctypes
 import struct
 import subprocess
 import zlib
@@ -41,10 +40,13 @@ from support.c_binding import (
     SupervisorConfig,
     SupervisorOut,
     c_view,
+    cbuf,
     events_of,
     frames_of,
     library,
     make,
+    out_frames,
+    ref,
     rx,
 )
 from support.c_session import same
@@ -140,7 +142,7 @@ def assert_same_step(start: ClientState, event: object, now: int) -> Out:
     c, out = run_c(start, event, now)
     assert isinstance(out, Out), f"C refused with {out}"
     assert c.view() == c_view(step.client)
-    assert out.sent() == frames_of(CODEC, step.actions)
+    assert out_frames(out) == frames_of(CODEC, step.actions)
     assert out.events & ~(EV_ADMITTED | EV_RELEASED) == events_of(step.actions)
     starts = (Phase.JOINING, Phase.RESUMING, Phase.SYNCING)
     admitted = start.phase in starts and step.client.phase not in starts
@@ -159,7 +161,7 @@ def test_cell(case: Case) -> None:
     c, out = run_c(case.start, case.event, case.now)
     assert isinstance(out, Out)
     assert c.view() == c_view(case.end)  # type: ignore[arg-type]
-    assert out.sent() == frames_of(CODEC, case.actions)
+    assert out_frames(out) == frames_of(CODEC, case.actions)
 
 
 @pytest.mark.parametrize("cell", sorted(CLIENT_IGNORED, key=str), ids=str)
@@ -167,7 +169,7 @@ def test_ignored(cell: tuple[Phase, type]) -> None:
     start, event = CLIENT_STATES[cell[0]], client_cases.EVENTS[cell[1]]
     c, out = run_c(start, event, 10**9)
     assert isinstance(out, Out)
-    assert c.view() == c_view(start) and out.sent() == [] and not out.persist
+    assert c.view() == c_view(start) and out_frames(out) == [] and not out.persist
     assert out.events == 0
 
 
@@ -210,13 +212,13 @@ def test_a_pending_draw_survives_a_reset_and_is_resumed_with_it() -> None:
     with the draw pending, and a hardened client refuses that record (it would return it)."""
     c = CClient(FRESH.node, timing=T, state=FRESH, rules="witnessed")
     assert c.do_draw(2000, 5) == OK and c.out.persist
-    assert c.out.sent() == [CODEC.encode(Debit(FRESH.node, 0, Debit.DRAW, 1, 2))]
+    assert out_frames(c.out) == [CODEC.encode(Debit(FRESH.node, 0, Debit.DRAW, 1, 2))]
     assert bytes(c.out.nv_image)[6 + 29] & FLAG_PENDING_DRAW
     image = bytearray()
     write_slot(image, c.out.nv_slot, bytes(c.out.nv_image))
     again = _booted(bytes(image), "witnessed")
     resume = Debit(FRESH.node, 0x77, Debit.START | Debit.DRAW, 1, 2)
-    assert again.out.sent() == [CODEC.encode(resume)]
+    assert out_frames(again.out) == [CODEC.encode(resume)]
     assert again.state.pending_draw and again.state.phase is Phase.RESUMING
     hardened = _booted(bytes(image), "hardened")
     assert hardened.state.phase is Phase.JOINING
@@ -323,31 +325,31 @@ def test_the_supervisor_record_version_4_round_trips_a_debt_and_refuses_version_
     marked version 3 is refused as another version (CANERGY_ERR_RECORD), not started over."""
     lib = library()
     cfg = SupervisorConfig(id_base=DEFAULT_ID_BASE, timing=SessionTiming(50_000, 3, 1, 0))
-    nodes = (ctypes.c_uint8 * 1)(2)
+    nodes = cbuf(bytes([2]))
     sup = CSupervisor()
-    assert lib.canergy_supervisor_init(ctypes.byref(sup), ctypes.byref(cfg), nodes, 1, 1000) == 0
+    assert lib.canergy_supervisor_init(ref(sup), ref(cfg), nodes, 1, 1000) == 0
     sup.usable_uj = -4000
     sup.sessions[0].phase, sup.sessions[0].resume_nonce = int(Phase.SYNC_BOOKS), 0x1ABCD
-    image = ctypes.create_string_buffer(2 * SUPERVISOR_SLOT)
-    lib.canergy_supervisor_image(ctypes.byref(sup), 1, image)
-    assert image.raw[4] == 4
+    image = cbuf(2 * SUPERVISOR_SLOT)
+    lib.canergy_supervisor_image(ref(sup), 1, image)
+    assert bytes(image)[4] == 4
 
     def load(raw: bytes) -> tuple[int, CSupervisor]:
-        back, counter, slot = CSupervisor(), ctypes.c_uint32(), ctypes.c_uint8()
-        buf = ctypes.create_string_buffer(raw, len(raw))
+        back, counter, slot = CSupervisor(), library().new("uint32_t *"), library().new("uint8_t *")
+        buf = cbuf(raw, len(raw))
         rc = lib.canergy_supervisor_load(
-            ctypes.byref(back), ctypes.byref(cfg), nodes, 1, 0, buf, len(raw),
-            ctypes.byref(counter), ctypes.byref(slot),
+            ref(back), ref(cfg), nodes, 1, 0, buf, len(raw),
+            ref(counter), ref(slot),
         )  # fmt: skip
         return rc, back
 
-    rc, back = load(image.raw)
+    rc, back = load(bytes(image))
     assert rc == 1 and back.usable_uj == -4000 and back.sessions[0].resume_nonce == 0x1ABCD
     assert back.sessions[0].phase == int(Phase.SYNCING)  # loaded IDLE, then a start
     used = 40 + 44  # header, one session, CRC
-    old = bytearray(image.raw)
+    old = bytearray(bytes(image))
     old[4] = 3
-    old[used - 4 : used] = struct.pack("<I", zlib.crc32(bytes(old[: used - 4])))
+    old[used - 4 : used] = struct.pack("<I", zlib.crc32(bytes(old[0 : used - 4])))
     assert load(bytes(old))[0] == -4
 
 
@@ -423,18 +425,18 @@ class _Node:
             0xFFFF_FFFF,  # keep all: no return policy
         )
         self.n, self.out, self.used = CNodeState(), Out(), 0
-        buf = ctypes.create_string_buffer(bytes(raw), max(len(raw), 1))
-        self.lib.canergy_node_start(self.n, ctypes.byref(cfg), buf, len(raw), nonce, now, self.out)
+        buf = cbuf(bytes(raw), max(len(raw), 1))
+        self.lib.canergy_node_start(self.n, ref(cfg), buf, len(raw), nonce, now, self.out)
         self.sent = self._done()
 
     def _done(self) -> list[tuple[int, bytes]]:
         if self.out.persist:
             write_slot(self.raw, self.out.nv_slot, bytes(self.out.nv_image))
-        return [f for f in self.out.sent() if f[0] >> 8 & 0xF != 0xD]  # no TELEMETRY
+        return [f for f in out_frames(self.out) if f[0] >> 8 & 0xF != 0xD]  # no TELEMETRY
 
     def frame(self, arbitration_id: int, data: bytes, now: int) -> list[tuple[int, bytes]]:
         frame, buf = rx(arbitration_id, data)
-        self.lib.canergy_node_on_frame(self.n, ctypes.byref(frame), now, self.out)
+        self.lib.canergy_node_on_frame(self.n, ref(frame), now, self.out)
         del buf
         return self._done()
 
@@ -457,12 +459,12 @@ class _CSup:
         self.s, self.out = CSupervisor(), SupervisorOut()
         timing = SessionTiming(SCENARIO.response_timeout_us, SCENARIO.retries, RULES[rules])
         cfg = SupervisorConfig(DEFAULT_ID_BASE, timing)
-        nodes = (ctypes.c_uint8 * 1)(NODE_ID)
-        assert self.lib.canergy_supervisor_init(self.s, ctypes.byref(cfg), nodes, 1, initial) == OK
+        nodes = cbuf(bytes([NODE_ID]))
+        assert self.lib.canergy_supervisor_init(self.s, ref(cfg), nodes, 1, initial) == OK
 
     def _sent(self) -> list[tuple[int, bytes]]:
-        frames = list(self.out.frames)[: self.out.frame_count]
-        return [(f.id, bytes(f.data[: f.dlc])) for f in frames]
+        frames = list(self.out.frames)[0 : self.out.frame_count]
+        return [(f.id, bytes(f.data[0 : f.dlc])) for f in frames]
 
     def grant(self, amount: int, now: int) -> list[tuple[int, bytes]]:
         assert self.lib.canergy_supervisor_begin(self.s, NODE_ID, amount, now, self.out) == OK
@@ -470,10 +472,10 @@ class _CSup:
 
     def frame(self, arbitration_id: int, data: bytes, now: int) -> list[tuple[int, bytes]]:
         frame, buf = rx(arbitration_id, data)
-        self.lib.canergy_supervisor_on_frame(self.s, ctypes.byref(frame), now, self.out)
+        self.lib.canergy_supervisor_on_frame(self.s, ref(frame), now, self.out)
         del buf
         sent = self._sent()
-        for e in list(self.out.events)[: self.out.event_count]:
+        for e in list(self.out.events)[0 : self.out.event_count]:
             if e.flags & 0x01:  # acknowledged: commit it
                 self.lib.canergy_supervisor_decide(self.s, NODE_ID, True, now, self.out)
                 sent += self._sent()
@@ -645,7 +647,7 @@ class WitnessedMemNv(MemNv):
             at = self._newest_slot * SLOT
             slot = bytearray(self.raw[at : at + SLOT])
             slot[self.FLAGS_AT] |= FLAG_PENDING_DRAW
-            slot[SLOT - 4 :] = struct.pack("<I", zlib.crc32(bytes(slot[: SLOT - 4])))
+            slot[SLOT - 4 :] = struct.pack("<I", zlib.crc32(bytes(slot[0 : SLOT - 4])))
             self.raw[at : at + SLOT] = slot
 
     def load(self) -> ClientState | None:
@@ -726,9 +728,9 @@ def test_a_record_flagged_with_a_draw_of_nothing_is_no_books() -> None:
     """No client writes the draw flag without a pending amount: such a record is not books."""
     image = bytearray()
     MemNv(image).save(FRESH)
-    slot = bytearray(image[:SLOT])
+    slot = bytearray(image[0:SLOT])
     slot[WitnessedMemNv.FLAGS_AT] |= FLAG_PENDING_DRAW
-    slot[SLOT - 4 :] = struct.pack("<I", zlib.crc32(bytes(slot[: SLOT - 4])))
+    slot[SLOT - 4 :] = struct.pack("<I", zlib.crc32(bytes(slot[0 : SLOT - 4])))
     c = _booted(bytes(slot), "witnessed")
     assert c.state.phase is Phase.JOINING
 
@@ -761,7 +763,7 @@ class _CClientNode:
         self.c = CClient(state.node, timing=SCENE, state=state, rules="witnessed")
 
     def _sends(self, out: Out) -> list[Send]:
-        return [Send(CODEC.decode(*f)) for f in out.sent()]
+        return [Send(CODEC.decode(*f)) for f in out_frames(out)]
 
     def receive(self, msg: Any, now: int) -> list[Send]:
         return self._sends(self.c.message(msg, now))

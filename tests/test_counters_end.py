@@ -13,7 +13,6 @@ counter moves, alike in the Python and the C core.
 
 from __future__ import annotations
 
-import ctypes
 import logging
 import struct
 import subprocess
@@ -21,7 +20,7 @@ import zlib
 from pathlib import Path
 
 import pytest
-from support.c_binding import CClient, NvState, c_view, library
+from support.c_binding import CClient, NvState, c_view, cbuf, library, out_frames, ref
 
 from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.cli import main
@@ -174,7 +173,7 @@ def test_a_client_takes_the_last_transaction_and_no_more_in_both_cores() -> None
         sent = _sent(py.receive(Intention(2, tx & 0xFFFF, 4, 0), 0))
         out = c.message(Intention(2, tx & 0xFFFF, 4, 0), 0)
         assert sent == ([Ack(2, tx & 0xFFFF)] if acked else [])
-        assert len(out.sent()) == len(sent) and c.view() == c_view(py.state)
+        assert len(out_frames(out)) == len(sent) and c.view() == c_view(py.state)
 
 
 @pytest.mark.parametrize("seq", [COUNTER_END - 2, COUNTER_END - 1, COUNTER_BOUND - 1])
@@ -231,7 +230,7 @@ def test_an_nv_record_beyond_the_bound_is_refused_not_rolled_back(
     assert str(refused.value) == f"--nv {path}: node 1: {field} {_refusal(value)}"
     image = path.read_bytes()
     state = NvState()
-    library().canergy_nv_load(ctypes.create_string_buffer(image), len(image), ctypes.byref(state))
+    library().canergy_nv_load(cbuf(image), len(image), ref(state))
     assert not state.books and state.fallbacks == 1
 
 
@@ -360,7 +359,7 @@ def test_a_witnessed_node_at_the_bound_answers_a_sync_below_it_in_both_cores() -
     sync = Admit(2, 0x0042, 0, (COUNTER_BOUND - 1) & 0xFFFF)
     sent = _sent(py.receive(sync, 0))
     out = c.message(sync, 0)
-    assert py.state.last_tx == COUNTER_BOUND - 1 and len(sent) == len(out.sent()) == 2
+    assert py.state.last_tx == COUNTER_BOUND - 1 and len(sent) == len(out_frames(out)) == 2
     assert c.view() == c_view(py.state)
     beyond = Admit(2, 0x0042 ^ SYNC_CONFIRMED, 0, COUNTER_BOUND & 0xFFFF)
     before = py.state

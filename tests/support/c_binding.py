@@ -1,43 +1,32 @@
-"""The C client library (firmware/) seen from Python: build, ctypes mirror, adapters.
+"""The C client library (firmware/) seen from Python: its cffi builds, adapters.
 
-``library()`` runs ``make`` in ``firmware/`` once per process and loads the shared object: the
-UBSan build in-process (any report aborts the interpreter, so it cannot pass unnoticed), or the
+``library()`` builds the library once per source state with ``canergy.ccore.build`` (the builder
+of ``canergy.ccore._supervisor``, its declarations read from the headers) and loads it: the UBSan
+build in-process (any report aborts the interpreter, so it cannot pass unnoticed), or the
 ASan+UBSan build when ``CANERGY_C_SANITIZER=asan`` (tests/test_c_asan.py re-runs the C-vs-Python
 tests that way in a child pytest with libasan preloaded). A missing compiler fails loudly.
 
-The ctypes structures mirror ``firmware/include/canergy/*.h``; tests/test_c_binding.py checks
-every field's offset and every struct's size against what the compiler laid out, so the mirror
-cannot silently drift. ``CClient`` is the C client behind the interface of ``canergy.core.Client``
-that the harness and the state machines use, and ``c_view`` puts a Python ``ClientState`` into
-the C library's terms (counters modulo 2**32, energy in the record's units).
+There is no copy of the C structs here: ``Msg()``, ``CSession(...)`` and the like make what the
+headers declare through cffi, which checked their layout against the compiler's when it built
+the module. ``CClient`` is the C client behind the interface of ``canergy.core.Client`` that the
+harness and the state machines use, and ``c_view`` puts a Python ``ClientState`` into the C
+library's terms (counters modulo 2**32, energy in the record's units).
 """
 
 from __future__ import annotations
 
-import ctypes
 import functools
+import importlib.util
 import os
 import shutil
 import subprocess
-from ctypes import (
-    POINTER,
-    Structure,
-    c_bool,
-    c_char_p,
-    c_int,
-    c_long,
-    c_size_t,
-    c_uint8,
-    c_uint16,
-    c_uint32,
-    c_uint64,
-    c_void_p,
-)
+import tempfile
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from canergy.ccore import build
 from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeErrorReason
 from canergy.core import (
     Action,
@@ -60,414 +49,10 @@ U32 = 0xFFFF_FFFF
 NEVER = 2**64 - 1
 SANITIZER = os.environ.get("CANERGY_C_SANITIZER", "ubsan")
 
-# -- the ctypes mirror of the headers ---------------------------------------------------------
-
-
-class Record(Structure):
-    _fields_ = [
-        ("spent_uj", c_uint64),
-        ("usable_uj", c_uint32),
-        ("credited_mj", c_uint32),
-        ("last_tx", c_uint32),
-        ("return_seq", c_uint32),
-        ("return_pending_uj", c_uint32),
-        ("outcome", c_uint8),
-        ("flags", c_uint8),
-    ]
-
-
-class CClientState(Structure):
-    _fields_ = [
-        ("rec", Record),
-        ("deadline", c_uint64),
-        ("return_deadline", c_uint64),
-        ("id_base", c_uint32),
-        ("command_timeout_us", c_uint32),
-        ("return_retry_us", c_uint32),
-        ("held_tx", c_uint32),
-        ("nv_counter", c_uint32),
-        ("held_amount_mj", c_uint16),
-        ("nonce", c_uint16),
-        ("node", c_uint8),
-        ("phase", c_uint8),
-        ("nv_slot", c_uint8),
-        ("rules", c_uint8),
-        ("window", c_uint16),
-    ]
-
-
-class Frame(Structure):
-    _fields_ = [("id", c_uint32), ("dlc", c_uint8), ("data", c_uint8 * 8)]
-
-
-OUT_FRAMES = 4
-SLOT = 40
-
-
-class Out(Structure):
-    _fields_ = [
-        ("frames", Frame * OUT_FRAMES),
-        ("nv_image", c_uint8 * SLOT),
-        ("nv_counter", c_uint32),
-        ("events", c_uint16),
-        ("frame_count", c_uint8),
-        ("persist", c_uint8),
-        ("nv_slot", c_uint8),
-    ]
-
-    def sent(self) -> list[tuple[int, bytes]]:
-        return [(f.id, bytes(f.data[: f.dlc])) for f in list(self.frames)[: self.frame_count]]
-
-
-class Msg(Structure):
-    _fields_ = [
-        ("delivered_mj", c_uint32),
-        ("level_mj", c_uint32),
-        ("tx", c_uint16),
-        ("seq", c_uint16),
-        ("nonce", c_uint16),
-        ("amount_mj", c_uint16),
-        ("type", c_uint8),
-        ("node", c_uint8),
-        ("flags", c_uint8),
-        ("witness", c_uint8),
-    ]
-
-
-class CSession(Structure):
-    _fields_ = [
-        ("delivered_uj", c_uint64),
-        ("returned_uj", c_uint64),
-        ("deadline", c_uint64),
-        ("tx", c_uint32),
-        ("returns_credited", c_uint32),
-        ("reserved_uj", c_uint32),
-        ("resume_from", c_uint32),
-        ("resume_to", c_uint32),
-        ("resume_nonce", c_uint32),
-        ("witness", ctypes.c_int32),
-        ("sync_nonce", c_uint16),
-        ("node", c_uint8),
-        ("phase", c_uint8),
-        ("decision", c_uint8),
-        ("tries", c_uint8),
-    ]
-
-
-class SessionStep(Structure):
-    _fields_ = [
-        ("msg", Msg),
-        ("credit_uj", ctypes.c_int64),
-        ("send", c_uint8),
-        ("resolved", c_uint8),
-        ("acknowledged", c_uint8),
-        ("admitted", c_uint8),
-    ]
-
-
-class SessionTiming(Structure):
-    _fields_ = [
-        ("response_timeout_us", c_uint32),
-        ("retries", c_uint8),
-        ("rules", c_uint8),
-        ("window", c_uint16),
-    ]
-
-
-SUPERVISOR_NODES = 16
-"""CANERGY_SUPERVISOR_NODES as the library is built."""
-SUPERVISOR_SLOT = 40 + 44 * SUPERVISOR_NODES
-"""CANERGY_SUPERVISOR_SLOT_SIZE: one of the two slots of the supervisor's NV image."""
-
-
-class CSupervisor(Structure):
-    _fields_ = [
-        ("usable_uj", ctypes.c_int64),
-        ("injected_uj", c_uint64),
-        ("withdrawn_uj", c_uint64),
-        ("sessions", CSession * SUPERVISOR_NODES),
-        ("timing", SessionTiming),
-        ("id_base", c_uint32),
-        ("start_without", c_uint32 * 4),
-        ("count", c_uint8),
-    ]
-
-
-class CGateway(Structure):
-    _fields_ = [("up", CClientState), ("down", CSupervisor)]
-
-
-class SupervisorConfig(Structure):
-    _fields_ = [("id_base", c_uint32), ("timing", SessionTiming)]
-
-
-class SupervisorEvent(Structure):
-    _fields_ = [
-        ("tx", c_uint32),
-        ("amount_uj", c_uint32),
-        ("node", c_uint8),
-        ("resolved", c_uint8),
-        ("flags", c_uint8),
-    ]
-
-
-class SupervisorOut(Structure):
-    _fields_ = [
-        ("frames", Frame * SUPERVISOR_NODES),
-        ("events", SupervisorEvent * SUPERVISOR_NODES),
-        ("frame_count", c_uint8),
-        ("event_count", c_uint8),
-        ("persist", c_uint8),
-    ]
-
-
-class RxFrame(Structure):
-    _fields_ = [
-        ("id", c_uint32),
-        ("data", c_void_p),
-        ("len", c_size_t),
-        ("extended", c_bool),
-        ("remote", c_bool),
-    ]
-
-
-class ClientConfig(Structure):
-    _fields_ = [
-        ("id_base", c_uint32),
-        ("command_timeout_us", c_uint32),
-        ("return_retry_us", c_uint32),
-        ("node", c_uint8),
-        ("rules", c_uint8),
-        ("window", c_uint16),
-    ]
-
-
-class NvState(Structure):
-    _fields_ = [
-        ("record", Record),
-        ("counter", c_uint32),
-        ("newest_slot", c_uint8),
-        ("books", c_bool),
-        ("fallbacks", c_uint8),
-    ]
-
-
-class NodeConfig(Structure):
-    _fields_ = [
-        ("client", ClientConfig),
-        ("telemetry_period_us", c_uint32),
-        ("low_water_uj", c_uint32),
-        ("return_above_uj", c_uint32),
-    ]
-
-
-class CNodeState(Structure):
-    _fields_ = [
-        ("client", CClientState),
-        ("next_telemetry", c_uint64),
-        ("telemetry_period_us", c_uint32),
-        ("low_water_uj", c_uint32),
-        ("return_above_uj", c_uint32),
-        ("decode_errors", c_uint32),
-        ("overflow_refused", c_uint32),
-        ("was_low", c_bool),
-        ("halted", c_bool),
-        ("witness", c_uint8),
-        ("joined", c_bool),
-        ("join_nonce", c_uint16),
-        ("witness_reported", c_uint8),
-        ("released_uj", c_uint32),
-    ]
-
-
-MIRROR: dict[str, type[Structure]] = {
-    "canergy_record": Record,
-    "canergy_client": CClientState,
-    "canergy_frame": Frame,
-    "canergy_out": Out,
-    "canergy_msg": Msg,
-    "canergy_rx_frame": RxFrame,
-    "canergy_client_config": ClientConfig,
-    "canergy_nv_state": NvState,
-    "canergy_node_config": NodeConfig,
-    "canergy_node": CNodeState,
-    "canergy_session": CSession,
-    "canergy_session_step": SessionStep,
-    "canergy_session_timing": SessionTiming,
-    "canergy_supervisor": CSupervisor,
-    "canergy_supervisor_config": SupervisorConfig,
-    "canergy_supervisor_out": SupervisorOut,
-    "canergy_supervisor_event": SupervisorEvent,
-    "canergy_gateway": CGateway,
-}
-
-# Constants of the headers the tests use.
-OK, ERR_ARGUMENT, ERR_PHASE, ERR_AMOUNT, ERR_END = 0, -1, -2, -3, -5
-ERR_WINDOW, ERR_UNCONFIRMED = -6, -7
-RX_OTHER_NODE = 16
-EV_COMMITTED, EV_TIMEOUT_COMMIT, EV_ABORTED, EV_CREDITED = 0x01, 0x02, 0x04, 0x08
-EV_RETURN_ACKED, EV_REFUSED, EV_ADMITTED, EV_RELEASED = 0x10, 0x20, 0x40, 0x80
-PHASES = {
-    Phase.IDLE: 0,
-    Phase.AWAIT_COMMAND: 1,
-    Phase.JOINING: 2,
-    Phase.RESUMING: 3,
-    Phase.SYNCING: 4,
-}
-RULES = {"hardened": 0, "witnessed": 1}
-"""enum canergy_rules: the rule sets the C client runs."""
-FLAG_CREDITED_UNKNOWN, FLAG_PENDING_DRAW = 0x01, 0x02
-DIRECTIONS = {None: 0, "to_client": 1, "to_supervisor": 2}
-REASONS = {i + 1: reason for i, reason in enumerate(DecodeErrorReason)}
-"""C decode status -> Python reason: the C enum lists them in the same order."""
-
-_SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
-    "canergy_test_offset": (c_long, [c_char_p]),
-    "canergy_test_sizeof": (c_long, [c_char_p]),
-    "canergy_id_base_valid": (c_bool, [c_uint32]),
-    "canergy_session_init": (None, [POINTER(CSession), c_uint8]),
-    "canergy_session_begin": (
-        c_int,
-        [POINTER(CSession), POINTER(SessionTiming), c_uint32, c_uint64, POINTER(SessionStep)],
-    ),
-    "canergy_session_decide": (
-        c_int,
-        [POINTER(CSession), POINTER(SessionTiming), c_bool, c_uint64, POINTER(SessionStep)],
-    ),
-    "canergy_session_on_msg": (
-        None,
-        [POINTER(CSession), POINTER(SessionTiming), POINTER(Msg), c_uint64, POINTER(SessionStep)],
-    ),
-    "canergy_session_timer": (
-        None,
-        [POINTER(CSession), POINTER(SessionTiming), c_uint64, POINTER(SessionStep)],
-    ),
-    "canergy_session_restart": (None, [POINTER(CSession), c_uint64, POINTER(SessionStep)]),
-    "canergy_session_start": (
-        None,
-        [POINTER(CSession), POINTER(SessionTiming), c_uint16, c_uint64, POINTER(SessionStep)],
-    ),
-    "canergy_supervisor_init": (
-        c_int,
-        [POINTER(CSupervisor), POINTER(SupervisorConfig), c_void_p, c_uint8, c_uint64],
-    ),
-    "canergy_supervisor_begin": (
-        c_int,
-        [POINTER(CSupervisor), c_uint8, c_uint32, c_uint64, POINTER(SupervisorOut)],
-    ),
-    "canergy_supervisor_decide": (
-        c_int,
-        [POINTER(CSupervisor), c_uint8, c_bool, c_uint64, POINTER(SupervisorOut)],
-    ),
-    "canergy_supervisor_on_frame": (
-        c_int,
-        [POINTER(CSupervisor), POINTER(RxFrame), c_uint64, POINTER(SupervisorOut)],
-    ),
-    "canergy_supervisor_on_timer": (None, [POINTER(CSupervisor), c_uint64, POINTER(SupervisorOut)]),
-    "canergy_supervisor_deadline": (c_uint64, [POINTER(CSupervisor)]),
-    "canergy_supervisor_restart": (None, [POINTER(CSupervisor), c_uint64]),
-    "canergy_supervisor_start": (
-        None,
-        [POINTER(CSupervisor), c_uint16, c_uint64, POINTER(SupervisorOut)],
-    ),
-    "canergy_supervisor_start_without": (c_int, [POINTER(CSupervisor), c_uint8]),
-    "canergy_supervisor_unconfirmed": (c_uint8, [POINTER(CSupervisor), c_void_p]),
-    "canergy_supervisor_inject": (c_int, [POINTER(CSupervisor), c_uint64]),
-    "canergy_supervisor_withdraw": (c_int, [POINTER(CSupervisor), c_uint64]),
-    "canergy_gateway_forward": (c_uint32, [POINTER(CGateway), POINTER(Out)]),
-    "canergy_gateway_on_up_frame": (
-        c_int,
-        [POINTER(CGateway), POINTER(RxFrame), c_uint64, POINTER(Out)],
-    ),
-    "canergy_gateway_on_up_timer": (None, [POINTER(CGateway), c_uint64, POINTER(Out)]),
-    "canergy_gateway_give_back": (c_int, [POINTER(CGateway), c_uint32, c_uint64, POINTER(Out)]),
-    "canergy_gateway_link_gap": (ctypes.c_int64, [POINTER(CGateway)]),
-    "canergy_gateway_upstream_waiting": (ctypes.c_bool, [POINTER(CGateway)]),
-    "canergy_gateway_begin": (
-        c_int,
-        [POINTER(CGateway), c_uint8, c_uint32, c_uint64, POINTER(SupervisorOut)],
-    ),
-    "canergy_supervisor_image": (c_size_t, [POINTER(CSupervisor), c_uint32, c_void_p]),
-    "canergy_supervisor_load": (
-        c_int,
-        [
-            POINTER(CSupervisor),
-            POINTER(SupervisorConfig),
-            c_void_p,
-            c_uint8,
-            c_uint64,
-            c_void_p,
-            c_size_t,
-            POINTER(c_uint32),
-            POINTER(c_uint8),
-        ],
-    ),
-    "canergy_encode": (c_int, [c_uint32, POINTER(Msg), POINTER(Frame)]),
-    "canergy_decode": (c_int, [c_uint32, POINTER(RxFrame), c_int, POINTER(Msg)]),
-    "canergy_crc8": (c_uint8, [c_uint8, c_void_p, c_size_t]),
-    "canergy_crc32": (c_uint32, [c_uint32, c_void_p, c_size_t]),
-    "canergy_record_pack": (None, [POINTER(Record), c_void_p]),
-    "canergy_record_unpack": (c_int, [c_void_p, POINTER(Record)]),
-    "canergy_nv_slot_encode": (None, [c_uint32, c_void_p, c_size_t, c_void_p]),
-    "canergy_nv_load": (None, [c_void_p, c_size_t, POINTER(NvState)]),
-    "canergy_client_start": (
-        c_int,
-        [
-            POINTER(CClientState),
-            POINTER(ClientConfig),
-            c_void_p,
-            c_size_t,
-            c_uint16,
-            c_uint64,
-            POINTER(Out),
-        ],
-    ),
-    "canergy_client_on_frame": (
-        c_int,
-        [POINTER(CClientState), POINTER(RxFrame), c_uint64, POINTER(Out)],
-    ),
-    "canergy_client_on_timer": (None, [POINTER(CClientState), c_uint64, POINTER(Out)]),
-    "canergy_client_command_timer": (None, [POINTER(CClientState), c_uint64, POINTER(Out)]),
-    "canergy_client_return_timer": (None, [POINTER(CClientState), c_uint64, POINTER(Out)]),
-    "canergy_client_deadline": (c_uint64, [POINTER(CClientState)]),
-    "canergy_client_spend": (c_int, [POINTER(CClientState), c_uint32, POINTER(Out)]),
-    "canergy_client_draw": (c_int, [POINTER(CClientState), c_uint32, c_uint64, POINTER(Out)]),
-    "canergy_client_can_draw": (c_bool, [POINTER(CClientState)]),
-    "canergy_client_resume": (
-        None,
-        [POINTER(CClientState), c_uint16, c_uint64, POINTER(Out)],
-    ),
-    "canergy_client_give_back": (c_int, [POINTER(CClientState), c_uint32, c_uint64, POINTER(Out)]),
-    "canergy_client_can_give_back": (c_bool, [POINTER(CClientState)]),
-    "canergy_client_joining": (c_bool, [POINTER(CClientState)]),
-    "canergy_client_restart": (None, [POINTER(CClientState), c_uint64, POINTER(Out)]),
-    "canergy_client_join": (None, [POINTER(CClientState), c_uint16, c_uint64, POINTER(Out)]),
-    "canergy_node_start": (
-        c_int,
-        [
-            POINTER(CNodeState),
-            POINTER(NodeConfig),
-            c_void_p,
-            c_size_t,
-            c_uint16,
-            c_uint64,
-            POINTER(Out),
-        ],
-    ),
-    "canergy_node_on_frame": (
-        c_int,
-        [POINTER(CNodeState), POINTER(RxFrame), c_uint64, POINTER(Out)],
-    ),
-    "canergy_node_poll": (None, [POINTER(CNodeState), c_uint64, POINTER(Out)]),
-    "canergy_node_draw": (c_uint32, [POINTER(CNodeState), c_uint32, c_uint64, POINTER(Out)]),
-    "canergy_node_deadline": (c_uint64, [POINTER(CNodeState)]),
-}
-
 # -- building and loading ---------------------------------------------------------------------
 
 
-def make(*targets: str) -> None:
-    """``make -C firmware TARGET...``; fails the test run loudly when there is no C toolchain."""
+def _need_toolchain() -> None:
     for tool in ("make", os.environ.get("CC", "cc")):
         if shutil.which(tool) is None:
             pytest.fail(
@@ -475,6 +60,11 @@ def make(*targets: str) -> None:
                 "build-essential)",
                 pytrace=False,
             )
+
+
+def make(*targets: str) -> None:
+    """``make -C firmware TARGET...``; fails the test run loudly when there is no C toolchain."""
+    _need_toolchain()
     run = subprocess.run(
         ["make", "-C", str(FIRMWARE), "--no-print-directory", *targets],
         capture_output=True,
@@ -485,21 +75,183 @@ def make(*targets: str) -> None:
         pytest.fail(f"make {' '.join(targets)} failed:\n{run.stdout}\n{run.stderr}", pytrace=False)
 
 
-def _load(name: str) -> ctypes.CDLL:
-    make(f"build/{name}")
-    lib = ctypes.CDLL(str(BUILD / name))
-    for fn, (restype, argtypes) in _SIGNATURES.items():
-        f = getattr(lib, fn)
-        f.restype, f.argtypes = restype, argtypes
-    return lib
+class CLib:
+    """One build of the library: its functions and constants as attributes (``lib.canergy_*``,
+    ``lib.CANERGY_*``) and ``ffi``, which makes what its headers declare."""
+
+    def __init__(self, module: Any) -> None:
+        self.ffi = module.ffi
+        for name in dir(module.lib):
+            setattr(self, name, getattr(module.lib, name))
+
+    def __getattr__(self, name: str) -> Any:  # the functions and constants set above
+        raise AttributeError(name)
+
+    def new(self, ctype: str, init: Any = None) -> Any:
+        return self.ffi.new(ctype, init)
+
+
+def compiled(variant: str) -> Path:
+    """The variant's extension, compiled once for these sources (a directory per fingerprint;
+    concurrent runs compile apart and the first to finish is kept)."""
+    _need_toolchain()
+    home = BUILD / "cffi"
+    home.mkdir(parents=True, exist_ok=True)
+    target = home / f"{variant}-{build.fingerprint(variant=variant)}"
+    if not target.is_dir():
+        work = Path(tempfile.mkdtemp(dir=home, prefix=f".{variant}-"))
+        try:
+            build.compile_to(work, variant)
+        except Exception as exc:
+            shutil.rmtree(work, ignore_errors=True)
+            pytest.fail(f"building the C library ({variant}) failed: {exc}", pytrace=False)
+        try:
+            work.rename(target)
+        except OSError:  # another run finished first
+            shutil.rmtree(work, ignore_errors=True)
+    module = build.VARIANTS[variant].module
+    return next(target.glob(f"{module}.*.so"))
 
 
 @functools.cache
-def library(variant: str = "") -> ctypes.CDLL:
-    """The library as the tests run it; ``variant="broken"``: with a deliberately broken rule."""
-    if variant == "broken":
-        return _load("libcanergy-broken.so")
-    return _load("libcanergy-asan.so" if SANITIZER == "asan" else "libcanergy-test.so")
+def library(variant: str = "") -> CLib:
+    """The library as the tests run it; ``variant="broken"``: with deliberately broken rules."""
+    name = "broken" if variant == "broken" else ("asan" if SANITIZER == "asan" else "ubsan")
+    path = compiled(name)
+    spec = importlib.util.spec_from_file_location(build.VARIANTS[name].module, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return CLib(module)
+
+
+def ref(x: Any) -> Any:
+    """What a C call takes for ``x``: a struct inside another by its address, else ``x``."""
+    ffi = library().ffi
+    return ffi.addressof(x) if ffi.typeof(x).kind == "struct" else x
+
+
+def cbuf(
+    data: bytes | bytearray | int = b"", size: int | None = None, lib: CLib | None = None
+) -> Any:
+    """A ``uint8_t[]`` holding ``data`` (at least one byte, as C needs somewhere to point);
+    ``cbuf(n)``: n zero bytes."""
+    ffi = (lib or library()).ffi
+    if isinstance(data, int):
+        data, size = b"", data
+    buf = ffi.new("uint8_t[]", max(size if size is not None else len(data), len(data), 1))
+    ffi.memmove(buf, bytes(data), len(data))
+    return buf
+
+
+def struct_bytes(x: Any) -> bytes:
+    """The bytes of the struct ``x`` is or points to (or of the array ``x``)."""
+    return bytes(library().ffi.buffer(ref(x)))
+
+
+class Struct:
+    """``struct canergy_<name>`` as the headers declare it: ``Msg()`` a zeroed one, ``Msg(a, b,
+    field=c)`` initialised in the declared order (a pointer owning its memory)."""
+
+    def __init__(self, name: str) -> None:
+        self.ctype = f"struct canergy_{name}"
+
+    @property
+    def fields(self) -> tuple[str, ...]:
+        return tuple(name for name, _ in library().ffi.typeof(self.ctype).fields)
+
+    def __instancecheck__(self, x: Any) -> bool:
+        ffi = library().ffi
+        return isinstance(x, ffi.CData) and ffi.typeof(x).cname in (self.ctype, f"{self.ctype} *")
+
+    def size(self, lib: CLib | None = None) -> int:
+        return int((lib or library()).ffi.sizeof(self.ctype))
+
+    def __call__(self, *args: Any, lib: CLib | None = None, **fields: Any) -> Any:
+        init = dict(zip(self.fields, args, strict=False)) | fields
+        ffi = (lib or library()).ffi
+        for name, value in init.items():  # a struct given by pointer: its value
+            kind = ffi.typeof(value) if isinstance(value, ffi.CData) else None
+            if kind is not None and kind.kind == "pointer" and kind.item.kind == "struct":
+                init[name] = value[0]
+        return (lib or library()).ffi.new(f"{self.ctype} *", init)
+
+
+Record = Struct("record")
+CClientState = Struct("client")
+Frame = Struct("frame")
+Out = Struct("out")
+Msg = Struct("msg")
+CSession = Struct("session")
+SessionStep = Struct("session_step")
+SessionTiming = Struct("session_timing")
+CSupervisor = Struct("supervisor")
+CGateway = Struct("gateway")
+SupervisorConfig = Struct("supervisor_config")
+SupervisorEvent = Struct("supervisor_event")
+SupervisorOut = Struct("supervisor_out")
+RxFrame = Struct("rx_frame")
+ClientConfig = Struct("client_config")
+NvState = Struct("nv_state")
+NodeConfig = Struct("node_config")
+CNodeState = Struct("node")
+
+
+def out_frames(out: Any) -> list[tuple[int, bytes]]:
+    """The frames a ``struct canergy_out`` (or supervisor out) holds, as (identifier, data)."""
+    return [(f.id, bytes(f.data[0 : f.dlc])) for f in out.frames[0 : out.frame_count]]
+
+
+# -- the headers' constants, read from the binding (module attributes, on first use) -----------
+
+PHASE_NAMES = {
+    Phase.IDLE: "IDLE",
+    Phase.AWAIT_COMMAND: "HOLDING",
+    Phase.JOINING: "JOINING",
+    Phase.RESUMING: "RESUMING",
+    Phase.SYNCING: "SYNCING",
+}
+"""Python's client phases by their names in enum canergy_phase."""
+
+
+def _derived(name: str) -> Any:
+    lib = library()
+    if name == "PHASES":
+        return {p: getattr(lib, f"CANERGY_{c}") for p, c in PHASE_NAMES.items()}
+    if name == "RULES":
+        return {"hardened": lib.CANERGY_RULES_HARDENED, "witnessed": lib.CANERGY_RULES_WITNESSED}
+    if name == "DIRECTIONS":
+        return {
+            None: lib.CANERGY_EITHER_WAY,
+            "to_client": lib.CANERGY_TO_CLIENT,
+            "to_supervisor": lib.CANERGY_TO_SUPERVISOR,
+        }
+    if name == "REASONS":  # C decode status -> Python reason, by name
+        return {getattr(lib, f"CANERGY_DECODE_{r.name}"): r for r in DecodeErrorReason}
+    renamed = {
+        "SLOT": "NV_SLOT_SIZE",
+        "SUPERVISOR_SLOT": "SUPERVISOR_SLOT_SIZE",
+        "FLAG_CREDITED_UNKNOWN": "RECORD_CREDITED_UNKNOWN",
+        "FLAG_PENDING_DRAW": "RECORD_PENDING_DRAW",
+    }
+    return getattr(lib, f"CANERGY_{renamed.get(name, name)}")
+
+
+def _c(name: str) -> Any:
+    return __getattr__(name)
+
+
+def __getattr__(name: str) -> Any:
+    """``OK``, ``ERR_*``, ``EV_*``, ``SLOT``, ``PHASES``…: the binding's values of the headers'
+    names (nothing re-typed here)."""
+    if name.startswith("_"):
+        raise AttributeError(name)
+    try:
+        value = _derived(name)
+    except AttributeError:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    globals()[name] = value
+    return value
 
 
 # -- Python state in C terms ------------------------------------------------------------------
@@ -516,8 +268,9 @@ def c_view(s: ClientState) -> dict[str, int]:
         "return_seq": s.return_seq & U32,
         "return_pending_uj": s.return_pending,
         "outcome": int(s.outcome),
-        "flags": int(s.credited_unknown) | (FLAG_PENDING_DRAW if s.pending_draw else 0),
-        "phase": PHASES[s.phase],
+        "flags": (int(s.credited_unknown) and _c("FLAG_CREDITED_UNKNOWN"))
+        | (_c("FLAG_PENDING_DRAW") if s.pending_draw else 0),
+        "phase": _c("PHASES")[s.phase],
         "held_tx": s.held_tx & U32,
         "held_amount_mj": s.held_amount // 1000,
         "nonce": s.nonce,
@@ -526,7 +279,7 @@ def c_view(s: ClientState) -> dict[str, int]:
     }
 
 
-def struct_view(c: CClientState) -> dict[str, int]:
+def struct_view(c: Any) -> dict[str, int]:
     r = c.rec
     return {
         "usable_uj": r.usable_uj,
@@ -551,15 +304,15 @@ def events_of(actions: list[Action] | tuple[Action, ...]) -> int:
     bits = 0
     for a in actions:
         if isinstance(a, ClientCommitted):
-            bits |= EV_TIMEOUT_COMMIT if a.by_timeout else EV_COMMITTED
+            bits |= _c("EV_TIMEOUT_COMMIT") if a.by_timeout else _c("EV_COMMITTED")
         elif isinstance(a, ClientAborted):
-            bits |= EV_ABORTED
+            bits |= _c("EV_ABORTED")
         elif isinstance(a, Credited):
-            bits |= EV_CREDITED
+            bits |= _c("EV_CREDITED")
         elif isinstance(a, ReturnAcknowledged):
-            bits |= EV_RETURN_ACKED
+            bits |= _c("EV_RETURN_ACKED")
         elif isinstance(a, IntentionRefused):
-            bits |= EV_REFUSED
+            bits |= _c("EV_REFUSED")
     return bits
 
 
@@ -567,10 +320,16 @@ def frames_of(codec: Codec, actions: list[Action] | tuple[Action, ...]) -> list[
     return [codec.encode(a.message) for a in actions if isinstance(a, Send)]
 
 
-def rx(arbitration_id: int, data: bytes, extended: bool = True, remote: bool = False) -> Any:
+def rx(
+    arbitration_id: int,
+    data: bytes,
+    extended: bool = True,
+    remote: bool = False,
+    lib: CLib | None = None,
+) -> Any:
     """An rx frame and the buffer it points into (keep both alive for the call)."""
-    buf = ctypes.create_string_buffer(bytes(data), max(len(data), 1))
-    return RxFrame(arbitration_id, ctypes.cast(buf, c_void_p), len(data), extended, remote), buf
+    buf = cbuf(data, lib=lib)
+    return RxFrame(arbitration_id, buf, len(data), extended, remote, lib=lib), buf
 
 
 class CClient:
@@ -588,7 +347,7 @@ class CClient:
         timing: Timing | None = None,
         state: ClientState | None = None,
         id_base: int = DEFAULT_ID_BASE,
-        lib: ctypes.CDLL | None = None,
+        lib: CLib | None = None,
         rules: str = "hardened",
     ) -> None:
         self.lib = lib or library()
@@ -596,20 +355,19 @@ class CClient:
         self.timing = timing or Timing()
         self.codec = Codec(id_base)
         self.config = ClientConfig(
-            id_base,
-            self.timing.command_timeout_us,
-            self.timing.return_retry_us,
-            node,
-            RULES[rules],
-            self.timing.window,
+            lib=self.lib,
+            id_base=id_base,
+            command_timeout_us=self.timing.command_timeout_us,
+            return_retry_us=self.timing.return_retry_us,
+            node=node,
+            rules=_c("RULES")[rules],
+            window=self.timing.window,
         )
-        self.c = CClientState()
-        self.out = Out()
-        self.nv = bytearray(2 * SLOT)
+        self.c = CClientState(lib=self.lib)
+        self.out = Out(lib=self.lib)
+        self.nv = bytearray(2 * _c("SLOT"))
         self.last_status = 0
-        self.lib.canergy_client_start(
-            ctypes.byref(self.c), ctypes.byref(self.config), None, 0, 0, 0, ctypes.byref(self.out)
-        )
+        self.lib.canergy_client_start(self.c, self.config, self.lib.ffi.NULL, 0, 0, 0, self.out)
         self.set_state(state or ClientState(node))
 
     # -- state in and out ---------------------------------------------------------------------
@@ -636,7 +394,7 @@ class CClient:
     @property
     def state(self) -> ClientState:
         v = self.view()
-        phase = {c: p for p, c in PHASES.items()}[v["phase"]]
+        phase = {c: p for p, c in _c("PHASES").items()}[v["phase"]]
         return ClientState(
             self.node,
             usable=v["usable_uj"],
@@ -646,8 +404,8 @@ class CClient:
             outcome=Outcome(v["outcome"]),
             return_seq=v["return_seq"],
             return_pending=v["return_pending_uj"],
-            credited_unknown=bool(v["flags"] & FLAG_CREDITED_UNKNOWN),
-            pending_draw=bool(v["flags"] & FLAG_PENDING_DRAW),
+            credited_unknown=bool(v["flags"] & _c("FLAG_CREDITED_UNKNOWN")),
+            pending_draw=bool(v["flags"] & _c("FLAG_PENDING_DRAW")),
             held_tx=v["held_tx"],
             held_amount=v["held_amount_mj"] * 1000,
             phase=phase,
@@ -657,10 +415,10 @@ class CClient:
         )
 
     # -- the C calls ------------------------------------------------------------------------------
-    def _done(self) -> Out:
+    def _done(self) -> Any:
         out = self.out
         if out.persist:
-            self.nv[out.nv_slot * SLOT : (out.nv_slot + 1) * SLOT] = bytes(out.nv_image)
+            self.nv[out.nv_slot * _c("SLOT") : (out.nv_slot + 1) * _c("SLOT")] = bytes(out.nv_image)
         return out
 
     def frame(
@@ -671,81 +429,73 @@ class CClient:
         *,
         extended: bool = True,
         remote: bool = False,
-    ) -> Out:
-        frame, buf = rx(arbitration_id, data, extended, remote)
-        self.last_status = self.lib.canergy_client_on_frame(
-            ctypes.byref(self.c), ctypes.byref(frame), now, ctypes.byref(self.out)
-        )
+    ) -> Any:
+        frame, buf = rx(arbitration_id, data, extended, remote, lib=self.lib)
+        self.last_status = self.lib.canergy_client_on_frame(self.c, frame, now, self.out)
         del buf
         return self._done()
 
-    def message(self, msg: Message, now: int) -> Out:
+    def message(self, msg: Message, now: int) -> Any:
         return self.frame(*self.codec.encode(msg), now)
 
-    def timers(self, now: int) -> Out:
-        self.lib.canergy_client_on_timer(ctypes.byref(self.c), now, ctypes.byref(self.out))
+    def timers(self, now: int) -> Any:
+        self.lib.canergy_client_on_timer(self.c, now, self.out)
         return self._done()
 
-    def command_timer(self, now: int) -> Out:
-        self.lib.canergy_client_command_timer(ctypes.byref(self.c), now, ctypes.byref(self.out))
+    def command_timer(self, now: int) -> Any:
+        self.lib.canergy_client_command_timer(self.c, now, self.out)
         return self._done()
 
-    def return_timer(self, now: int) -> Out:
-        self.lib.canergy_client_return_timer(ctypes.byref(self.c), now, ctypes.byref(self.out))
+    def return_timer(self, now: int) -> Any:
+        self.lib.canergy_client_return_timer(self.c, now, self.out)
         return self._done()
 
     def do_spend(self, uj: int) -> int:
-        result: int = self.lib.canergy_client_spend(
-            ctypes.byref(self.c), uj, ctypes.byref(self.out)
-        )
+        result: int = self.lib.canergy_client_spend(self.c, uj, self.out)
         self._done()
         return result
 
     def do_draw(self, uj: int, now: int) -> int:
-        result: int = self.lib.canergy_client_draw(
-            ctypes.byref(self.c), uj, now, ctypes.byref(self.out)
-        )
+        result: int = self.lib.canergy_client_draw(self.c, uj, now, self.out)
         self._done()
         return result
 
-    def resume(self, nonce: int, now: int) -> Out:
-        self.lib.canergy_client_resume(ctypes.byref(self.c), nonce, now, ctypes.byref(self.out))
+    def resume(self, nonce: int, now: int) -> Any:
+        self.lib.canergy_client_resume(self.c, nonce, now, self.out)
         return self._done()
 
     def do_give_back(self, uj: int, now: int) -> int:
-        result: int = self.lib.canergy_client_give_back(
-            ctypes.byref(self.c), uj, now, ctypes.byref(self.out)
-        )
+        result: int = self.lib.canergy_client_give_back(self.c, uj, now, self.out)
         self._done()
         return result
 
-    def restart(self, now: int) -> Out:
-        self.lib.canergy_client_restart(ctypes.byref(self.c), now, ctypes.byref(self.out))
+    def restart(self, now: int) -> Any:
+        self.lib.canergy_client_restart(self.c, now, self.out)
         return self._done()
 
-    def join(self, nonce: int, now: int) -> Out:
-        self.lib.canergy_client_join(ctypes.byref(self.c), nonce, now, ctypes.byref(self.out))
+    def join(self, nonce: int, now: int) -> Any:
+        self.lib.canergy_client_join(self.c, nonce, now, self.out)
         return self._done()
 
     def start(self, nv: bytes, nonce: int, now: int) -> int:
         """Reboot from an NV image (the bytes a port would read from offset 0)."""
-        buf = ctypes.create_string_buffer(bytes(nv), max(len(nv), 1))
+        buf = cbuf(nv, lib=self.lib)
         result: int = self.lib.canergy_client_start(
-            ctypes.byref(self.c),
-            ctypes.byref(self.config),
+            self.c,
+            self.config,
             buf,
             len(nv),
             nonce,
             now,
-            ctypes.byref(self.out),
+            self.out,
         )
         self._done()
         return result
 
     # -- canergy.core.Client's interface, for the harness -----------------------------------------
-    def _actions(self, out: Out) -> list[Action]:
+    def _actions(self, out: Any) -> list[Action]:
         actions: list[Action] = [Persist()] if out.persist else []
-        for arbitration_id, data in out.sent():
+        for arbitration_id, data in out_frames(out):
             actions.append(Send(self.codec.decode(arbitration_id, data)))
         return actions
 
@@ -755,7 +505,7 @@ class CClient:
         return self._actions(self.message(msg, now))
 
     def get_timer(self) -> int | None:
-        deadline: int = self.lib.canergy_client_deadline(ctypes.byref(self.c))
+        deadline: int = self.lib.canergy_client_deadline(self.c)
         return None if deadline == NEVER else deadline
 
     def handle_timer(self, now: int) -> list[Action]:
@@ -768,22 +518,24 @@ class CClient:
         return self._actions(self.return_timer(now))
 
     def spend(self, amount: int) -> list[Action]:
-        if not 0 <= amount <= U32 or self.do_spend(amount) != OK:
+        if not 0 <= amount <= U32 or self.do_spend(amount) != _c("OK"):
             raise LocalProtocolError(f"C client refused to spend {amount} µJ")
         return self._actions(self.out)
 
     def give_back(self, amount: int, now: int) -> list[Action]:
-        if not 0 <= amount <= U32 or self.do_give_back(amount, now) != OK:
+        if not 0 <= amount <= U32 or self.do_give_back(amount, now) != _c("OK"):
             raise LocalProtocolError(f"C client refused to give back {amount} µJ")
         return self._actions(self.out)
 
     def can_give_back(self) -> bool:
-        return bool(self.lib.canergy_client_can_give_back(ctypes.byref(self.c)))
+        return bool(self.lib.canergy_client_can_give_back(self.c))
 
     def power_loss(self, now: int) -> None:
         """A reboot: the C client starts again from the NV bytes it asked to be written."""
-        if self.view()["phase"] == PHASES[Phase.JOINING]:
+        if self.view()["phase"] == _c("PHASES")[Phase.JOINING]:
             self.restart(now)  # no record: the rejoin cell (keeps the nonce, as Python does)
         else:
             self.start(bytes(self.nv), 0, now)
-            assert self.view()["phase"] != PHASES[Phase.JOINING], "the record was not persisted"
+            assert self.view()["phase"] != _c("PHASES")[Phase.JOINING], (
+                "the record was not persisted"
+            )

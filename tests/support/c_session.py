@@ -5,7 +5,6 @@ and compares the record, the message sent, the budget moved and the resolution
 
 from __future__ import annotations
 
-import ctypes
 from collections.abc import Callable
 from typing import Any
 
@@ -23,11 +22,15 @@ from support.c_binding import (
     ERR_PHASE,
     ERR_WINDOW,
     OK,
+    RULES,
+    CLib,
     CSession,
     Msg,
     SessionStep,
     SessionTiming,
     library,
+    ref,
+    struct_bytes,
 )
 
 NEVER = (1 << 64) - 1
@@ -64,10 +67,14 @@ def fields_of(s: Session | CSession) -> dict[str, int]:
     return {n: int(getattr(s, n)) for n in names}
 
 
-def timing_of(t: Timing, rules: int = 0) -> SessionTiming:
-    """The C session's timing; ``rules``: enum canergy_rules (1: witnessed)."""
+def timing_of(t: Timing, rules: str = "hardened", lib: CLib | None = None) -> Any:
+    """The C session's timing; ``rules``: the rule set, "hardened" or "witnessed"."""
     return SessionTiming(
-        response_timeout_us=t.response_timeout_us, retries=t.retries, rules=rules, window=t.window
+        response_timeout_us=t.response_timeout_us,
+        retries=t.retries,
+        rules=RULES[rules],
+        window=t.window,
+        lib=lib,
     )
 
 
@@ -96,10 +103,27 @@ def resolution(actions: tuple[Any, ...]) -> int:
     return int(done[0]) if done else int(Outcome.NONE)
 
 
-def c_call(event: Any, t: Timing, now: int, variant: str = "", rules: int = 0) -> Call:
+def c_call(event: Any, t: Timing, now: int, variant: str = "", rules: str = "hardened") -> Call:
     """The C call for ``event`` (a client message for the node, or a local request or timer)."""
-    lib, ct = library(variant), timing_of(t, rules)
-    ref = ctypes.byref
+    lib = library(variant)
+    ct = timing_of(t, rules, lib)
+    call = _c_call(lib, ct, event, now)
+    if lib is library():
+        return call
+
+    def in_variant(c: Any, step: Any) -> Any:  # the record through the variant's own structs
+        vc, vstep = CSession(lib=lib), SessionStep(lib=lib)
+        lib.ffi.memmove(vc, struct_bytes(c), CSession.size())
+        result = call(vc, vstep)
+        ffi = library().ffi
+        ffi.memmove(c, bytes(lib.ffi.buffer(vc)), CSession.size())
+        ffi.memmove(step, bytes(lib.ffi.buffer(vstep)), SessionStep.size())
+        return result
+
+    return in_variant
+
+
+def _c_call(lib: CLib, ct: Any, event: Any, now: int) -> Call:
     if isinstance(event, Begin):
         return lambda c, step: lib.canergy_session_begin(
             ref(c), ref(ct), event.amount, now, ref(step)
@@ -113,7 +137,7 @@ def c_call(event: Any, t: Timing, now: int, variant: str = "", rules: int = 0) -
         return lambda c, step: lib.canergy_session_start(
             ref(c), ref(ct), event.nonce, now, ref(step)
         )
-    cm = Msg(type=int(event.TYPE), node=event.node)
+    cm = Msg(type=int(event.TYPE), node=event.node, lib=lib)
     for name in ("tx", "seq", "nonce", "amount_mj", "flags"):
         if hasattr(event, name):
             setattr(cm, name, getattr(event, name))
@@ -130,7 +154,7 @@ def same(
 ) -> None:
     """Step the Python table and the C library from the same record; compare everything
     (``table``: the witnessed one runs the C session with its rules set to witnessed)."""
-    call = call or c_call(event, t, now, rules=int(table.variant == "witnessed"))
+    call = call or c_call(event, t, now, rules=table.variant)
     c = to_c(s)
     step = SessionStep()
     try:

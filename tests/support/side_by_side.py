@@ -16,7 +16,6 @@ tests/test_c_sidebyside.py runs ``SideBySide`` with these settings, tests/test_c
 
 from __future__ import annotations
 
-import ctypes
 import os
 from typing import Any
 
@@ -53,11 +52,13 @@ from support.c_binding import (
     RX_OTHER_NODE,
     SLOT,
     CClient,
+    CLib,
     Out,
     c_view,
     events_of,
     frames_of,
     library,
+    out_frames,
 )
 from support.mem_nv import MemNv, write_slot
 
@@ -84,7 +85,7 @@ BOOKS = st.builds(
     last_tx=st.integers(0, COUNTER_BOUND - 1)
     | st.integers(COUNTER_END - 5, COUNTER_END + 1)  # the end of the numbering
     | st.just(COUNTER_BOUND - 1),
-    outcome=st.sampled_from(list(Outcome)[:4]),
+    outcome=st.sampled_from(list(Outcome)[0:4]),
     return_seq=st.integers(0, COUNTER_BOUND - 1)
     | st.integers(0xFFFB, 0x10004)
     | st.integers(COUNTER_END - 4, COUNTER_END)
@@ -94,7 +95,7 @@ BOOKS = st.builds(
 
 
 class SideBySide(RuleBasedStateMachine):
-    lib: ctypes.CDLL | None = None  # None: the tested library; a subclass may break it
+    lib: CLib | None = None  # None: the tested library; a subclass may break it
 
     @initialize(
         initial_mj=st.integers(0, 40_000),
@@ -147,7 +148,7 @@ class SideBySide(RuleBasedStateMachine):
     # -- comparing one step ---------------------------------------------------------------
     def _carry_out(self, actions: list[Action], out: Out) -> None:
         """Both sides did one step: same frames, notes and persist; write NV; send once."""
-        assert out.sent() == frames_of(CODEC, actions), "frames differ"
+        assert out_frames(out) == frames_of(CODEC, actions), "frames differ"
         assert out.events & 0x3F == events_of(actions), "notes differ"
         persists = [i for i, a in enumerate(actions) if isinstance(a, Persist)]
         assert persists in ([], [0]), "Python asked to persist after a send"
@@ -158,7 +159,7 @@ class SideBySide(RuleBasedStateMachine):
                 return
             self.py_store.save(self.py.state)
             write_slot(self.c_raw, out.nv_slot, bytes(out.nv_image))
-        for arbitration_id, data in out.sent():
+        for arbitration_id, data in out_frames(out):
             if len(self.to_sup) < MAX_IN_FLIGHT:
                 self.to_sup.append((arbitration_id, data))
         self._same()
@@ -173,7 +174,7 @@ class SideBySide(RuleBasedStateMachine):
             raise AssertionError("NvStore did not tear the write")
         except SimulatedPowerLoss:
             pass
-        write_slot(self.c_raw, out.nv_slot, bytes(out.nv_image)[: SLOT // 2])
+        write_slot(self.c_raw, out.nv_slot, bytes(out.nv_image)[0 : SLOT // 2])
         assert self.py_raw == self.c_raw, "torn images differ"
         self._boot(0x5A5A)
 
@@ -199,7 +200,7 @@ class SideBySide(RuleBasedStateMachine):
         except DecodeError as err:
             out = self.c.frame(arbitration_id, data, self.now)
             assert REASONS.get(self.c.last_status) is err.reason, "decode differs"
-            assert out.sent() == [] and not out.persist
+            assert out_frames(out) == [] and not out.persist
             return
         out = self.c.frame(arbitration_id, data, self.now)
         actions = self.py.receive(msg, self.now)  # type: ignore[arg-type]

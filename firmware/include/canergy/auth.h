@@ -57,16 +57,8 @@ enum canergy_auth_layout {
     CANERGY_AUTH_CLASSIC = 1
 };
 
-/* canergy_auth_accept's results besides CANERGY_DECODE_OK, the decode statuses (1..8, the
- * codec's refusal as without a key) and CANERGY_RX_OTHER_NODE. The refusals are Python's
- * AuthFailure values, named in the comments. */
-#define CANERGY_AUTH_PENDING 32         /* nothing to act on (yet): a classic message waits for its
-                                         * MAC frame, or a JOINING TELEMETRY of a JOIN not seen */
-#define CANERGY_AUTH_MAC_BAD 33         /* "MAC BAD" */
-#define CANERGY_AUTH_STALE 34           /* "freshness not the expected one" */
-#define CANERGY_AUTH_NO_DATA 35         /* "MAC frame without its message" */
-#define CANERGY_AUTH_MALFORMED 36       /* "malformed authenticated frame" */
-#define CANERGY_AUTH_UNAUTHENTICATED 37 /* "frame without a MAC" */
+/* canergy_auth_accept's verdicts, CANERGY_AUTH_PENDING .. CANERGY_AUTH_UNAUTHENTICATED, are in
+ * canergy/status.h with every other status. */
 
 /* A frame to transmit: 29-bit; len above 8 is a CAN FD frame (send it with bit rate switch). */
 struct canergy_auth_frame {

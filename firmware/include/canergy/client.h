@@ -70,8 +70,6 @@ enum canergy_rules {
 #define CANERGY_EV_ADMITTED 0x40U        /* the ADMIT for our JOIN (or RESUME) came */
 #define CANERGY_EV_RELEASED 0x80U        /* witnessed: a DRAW was acknowledged, spent += it */
 
-/* canergy_client_on_frame: a valid frame for another node (nothing happens, not an error). */
-#define CANERGY_RX_OTHER_NODE 16
 
 struct canergy_client_config {
     uint32_t id_base;            /* CANERGY_DEFAULT_ID_BASE unless the bus uses another block */

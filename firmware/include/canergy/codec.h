@@ -15,16 +15,11 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "canergy/status.h" /* CANERGY_OK, CANERGY_ERR_*, the decode statuses */
+
 #ifdef __cplusplus
 extern "C" {
 #endif
-
-/* Results of calls that can refuse (0 is success). */
-#define CANERGY_OK 0
-#define CANERGY_ERR_ARGUMENT (-1) /* NULL pointer, bad configuration, field that does not fit */
-#define CANERGY_ERR_PHASE (-2)    /* not allowed now: joining, or a return still pending */
-#define CANERGY_ERR_AMOUNT (-3)   /* zero, not whole mJ, more than a frame or than usable */
-#define CANERGY_ERR_END (-5) /* a counter at CANERGY_COUNTER_END, or a record beyond the bound */
 
 /* The theorem's bounded life (canergy prove, assumption 4): a record holding a counter (tx,
  * return number) at or beyond CANERGY_COUNTER_BOUND is refused when it is loaded, and no rule
@@ -89,19 +84,6 @@ enum canergy_direction {
     CANERGY_EITHER_WAY = 0,
     CANERGY_TO_CLIENT = 1,
     CANERGY_TO_SUPERVISOR = 2
-};
-
-/* Why a frame was refused, in the order the checks run (Python's DecodeErrorReason). */
-enum canergy_decode_status {
-    CANERGY_DECODE_OK = 0,
-    CANERGY_DECODE_FOREIGN = 1,         /* not in this id block, or an 11-bit identifier */
-    CANERGY_DECODE_UNKNOWN_TYPE = 2,
-    CANERGY_DECODE_BAD_NODE = 3,        /* node 0, bit 7 set, or bits above the 29th */
-    CANERGY_DECODE_REMOTE_FRAME = 4,
-    CANERGY_DECODE_WRONG_DIRECTION = 5,
-    CANERGY_DECODE_WRONG_DLC = 6,       /* also any length above 8 */
-    CANERGY_DECODE_BAD_CRC = 7,
-    CANERGY_DECODE_OUT_OF_RANGE = 8     /* a zero amount; a DEBIT of no known kind */
 };
 
 /*

@@ -33,9 +33,6 @@ enum canergy_session_phase {
     CANERGY_S_SYNC_BOOKS = 10   /* witnessed: the node's Rc taken, awaiting its counts */
 };
 
-/* canergy_session_begin under the witnessed rules: tx + 1 is beyond W + B (the node has not
- * shown it persisted a transaction close enough). */
-#define CANERGY_ERR_WINDOW (-6)
 
 enum canergy_decision {
     CANERGY_DECIDE_NONE = 0,

@@ -45,9 +45,6 @@ struct canergy_supervisor {
     uint8_t count;        /* sessions in use */
 };
 
-/* canergy_supervisor_begin under the witnessed rules: a start still waits for some node's books
- * (canergy_supervisor_unconfirmed names them). */
-#define CANERGY_ERR_UNCONFIRMED (-7)
 
 /* What one session's step did, beside its frame: for the port's application (a grant's
  * outcome) and for the host's books (Python's Acknowledged, Resolved, ReturnCredited,
@@ -104,10 +101,8 @@ int canergy_supervisor_on_frame(struct canergy_supervisor *sup,
 int canergy_supervisor_on_msg(struct canergy_supervisor *sup, const struct canergy_msg *m,
                               uint64_t now, struct canergy_supervisor_out *out);
 
-/* What canergy_supervisor_on_answer leaves to the caller. */
-#define CANERGY_RX_AHEAD 17  /* an answer naming a transaction after the session's: no honest
-                                node sends it (an intrusion to report); nothing applied */
-#define CANERGY_RX_CALLER 18 /* a TELEMETRY, RETURN or JOIN: *m holds it, nothing applied */
+/* What canergy_supervisor_on_answer leaves to the caller: CANERGY_RX_AHEAD, CANERGY_RX_CALLER
+ * (canergy/status.h). */
 
 /* The answers to the supervisor's own frames at once, for a port that decides every
  * acknowledged intention when it comes (a gateway, the host's fast path): the frame decoded
@@ -174,7 +169,6 @@ int canergy_supervisor_withdraw(struct canergy_supervisor *sup, uint64_t amount_
 size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t counter,
                                 uint8_t out[CANERGY_SUPERVISOR_SLOT_SIZE]);
 
-#define CANERGY_ERR_RECORD (-4) /* NV holds a supervisor record of another version or node list */
 
 /* Start: init, then take the valid slot written last in image (len bytes, both slots; NULL/0
  * when blank) whose nodes are these. Returns 1 with *counter and *slot of that record, 0 when

@@ -1,102 +1,56 @@
-"""The cffi builder of ``canergy.ccore._supervisor``: firmware/'s supervisor role, compiled for
-this host with room for every node id (127 sessions).
+"""The cffi builder of firmware/'s C library for Python: ``canergy.ccore._supervisor`` (what
+``canergy supervisor --core c`` runs, room for every node id) and the sanitizer builds the tests
+drive (tests/support/c_binding.py).
 
-setup.py builds it where a C compiler exists (``pip install``); without one canergy installs
-without it and ``canergy supervisor`` runs the Python core. ``python -m canergy.ccore.build``
-builds it in place (a checkout whose install skipped it).
+The declarations are not written here: ``declarations`` runs the C preprocessor on the public
+headers (firmware/include/canergy/*.h) and hands cffi what they declare, so the headers are the
+one description of the C ABI. cffi's API mode then compiles against the same headers and
+checks every struct it was given against the compiler's layout.
+
+setup.py builds the release module where a C compiler exists (``pip install``); without one
+canergy installs without it and ``canergy supervisor`` runs the Python core.
+``python -m canergy.ccore.build`` builds it in place (a checkout whose install skipped it).
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
+import re
+import shlex
+import subprocess
+from dataclasses import dataclass
 from pathlib import Path
 
 from cffi import FFI
 
 ROOT = Path(__file__).resolve().parents[3]
-SOURCES = ("codec.c", "nv.c", "session.c", "supervisor.c")
-"""What the supervisor role links: the codec, CRC-32 (nv.c), the session rules, Us and NV."""
+SOURCES = (
+    "codec.c",
+    "nv.c",
+    "client.c",
+    "node.c",
+    "aes128.c",
+    "cmac.c",
+    "auth.c",
+    "session.c",
+    "supervisor.c",
+    "gateway.c",
+)
+"""The whole library (firmware/Makefile's SRCS)."""
 NODES = 127
 
-CDEF = """
-#define CANERGY_OK ...
-#define CANERGY_ERR_ARGUMENT ...
-#define CANERGY_ERR_PHASE ...
-#define CANERGY_ERR_AMOUNT ...
-#define CANERGY_RX_OTHER_NODE ...
-#define CANERGY_RX_AHEAD ...
-#define CANERGY_RX_CALLER ...
-#define CANERGY_DECODE_OK ...
-#define CANERGY_SUPERVISOR_NODES ...
-#define CANERGY_SUP_ACKNOWLEDGED ...
-#define CANERGY_SUP_RETURN_CREDITED ...
-#define CANERGY_SUP_ADMITTED ...
-#define CANERGY_NEVER ...
-#define CANERGY_ERR_WINDOW ...
-#define CANERGY_ERR_UNCONFIRMED ...
-
-struct canergy_msg {
-    uint32_t delivered_mj; uint32_t level_mj; uint16_t tx; uint16_t seq; uint16_t nonce;
-    uint16_t amount_mj; uint8_t type; uint8_t node; uint8_t flags; uint8_t witness; ...;
-};
-struct canergy_frame { uint32_t id; uint8_t dlc; uint8_t data[8]; ...; };
-struct canergy_rx_frame { uint32_t id; const uint8_t *data; size_t len; bool extended;
-    bool remote; ...; };
-struct canergy_session_timing { uint32_t response_timeout_us; uint8_t retries; uint8_t rules;
-    uint16_t window; ...; };
-struct canergy_session {
-    uint64_t delivered_uj; uint64_t returned_uj; uint64_t deadline; uint32_t tx;
-    uint32_t returns_credited; uint32_t reserved_uj; uint32_t resume_from; uint32_t resume_to;
-    uint32_t resume_nonce; int32_t witness; uint16_t sync_nonce; uint8_t node; uint8_t phase;
-    uint8_t decision; uint8_t tries; ...;
-};
-struct canergy_supervisor_config { uint32_t id_base; struct canergy_session_timing timing; ...; };
-struct canergy_supervisor {
-    int64_t usable_uj; uint64_t injected_uj; uint64_t withdrawn_uj;
-    struct canergy_session sessions[...];
-    uint32_t id_base; uint8_t count; ...;
-};
-struct canergy_supervisor_event {
-    uint32_t tx; uint32_t amount_uj; uint8_t node; uint8_t resolved; uint8_t flags; ...;
-};
-struct canergy_supervisor_out {
-    struct canergy_frame frames[...]; struct canergy_supervisor_event events[...];
-    uint8_t frame_count; uint8_t event_count; uint8_t persist; ...;
-};
-
-int canergy_supervisor_init(struct canergy_supervisor *sup,
-    const struct canergy_supervisor_config *cfg, const uint8_t *nodes, uint8_t count,
-    uint64_t initial_uj);
-int canergy_supervisor_begin(struct canergy_supervisor *sup, uint8_t node, uint32_t amount_uj,
-    uint64_t now, struct canergy_supervisor_out *out);
-int canergy_supervisor_decide(struct canergy_supervisor *sup, uint8_t node, bool commit,
-    uint64_t now, struct canergy_supervisor_out *out);
-int canergy_supervisor_on_frame(struct canergy_supervisor *sup,
-    const struct canergy_rx_frame *frame, uint64_t now, struct canergy_supervisor_out *out);
-int canergy_supervisor_on_msg(struct canergy_supervisor *sup, const struct canergy_msg *m,
-    uint64_t now, struct canergy_supervisor_out *out);
-int canergy_supervisor_on_answer(struct canergy_supervisor *sup,
-    const struct canergy_rx_frame *frame, uint64_t now, bool abort_acks,
-    struct canergy_supervisor_out *out, struct canergy_msg *m);
-void canergy_supervisor_on_timer(struct canergy_supervisor *sup, uint64_t now,
-    struct canergy_supervisor_out *out);
-uint64_t canergy_supervisor_deadline(const struct canergy_supervisor *sup);
+HOST_DECLARATIONS = """
 int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned kind,
     const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
     struct canergy_supervisor_out *out, struct canergy_msg *m);
-void canergy_supervisor_restart(struct canergy_supervisor *sup, uint64_t now);
-void canergy_supervisor_start(struct canergy_supervisor *sup, uint16_t nonce, uint64_t now,
-    struct canergy_supervisor_out *out);
-int canergy_supervisor_start_without(struct canergy_supervisor *sup, uint8_t node);
-uint8_t canergy_supervisor_unconfirmed(const struct canergy_supervisor *sup, uint8_t *nodes);
-int canergy_supervisor_inject(struct canergy_supervisor *sup, uint64_t amount_uj);
 """
+"""What only the host's binding calls: declared once, for cffi and for the compiler."""
 
 HOST_SOURCE = """
-#include "canergy/supervisor.h"
-
 /* The fast path's call with the frame as arguments: one call, no struct filled field by field
    from Python (kind: bit 0 extended identifier, bit 1 remote frame). */
-static int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned kind,
+int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned kind,
     const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
     struct canergy_supervisor_out *out, struct canergy_msg *m)
 {
@@ -109,33 +63,153 @@ static int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsi
     return canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, m);
 }
 """
-"""Compiled with the role: what only the host's binding calls."""
 
 
-def builder(root: Path = ROOT) -> FFI:
-    """The builder, naming firmware/ under ``root`` (setup.py needs paths relative to it)."""
+@dataclass(frozen=True)
+class Variant:
+    """One build of the library: its module name and what it is compiled with."""
+
+    module: str
+    defines: tuple[tuple[str, str], ...] = ()
+    cflags: tuple[str, ...] = ()
+    ldflags: tuple[str, ...] = ()
+
+
+_SANITIZE_FLAGS = ("-DCANERGY_ASSERTS", "-O1", "-g", "-fno-omit-frame-pointer")
+_UBSAN = ("-fsanitize=undefined", "-fno-sanitize-recover=all")
+_ASAN = ("-fsanitize=address,undefined", "-fno-sanitize-recover=all")
+_BREAKS = (
+    ("CANERGY_BREAK_REPEATED_TX", "1"),
+    ("CANERGY_BREAK_RETURN_AGAIN", "1"),
+    ("CANERGY_BREAK_GIVE_BACK_KEEPS", "1"),
+)
+
+VARIANTS = {
+    "release": Variant(
+        "canergy.ccore._supervisor", (("CANERGY_SUPERVISOR_NODES", f"{NODES}U"),), ("-O2",)
+    ),
+    # The tests' builds keep the header's default of 16 sessions, as firmware/'s own tests do.
+    # UBSan in-process: any report aborts the interpreter, so none can pass unnoticed.
+    "ubsan": Variant("_canergy_ubsan", (), (*_SANITIZE_FLAGS, *_UBSAN), _UBSAN),
+    # ASan: only in a process started with the ASan runtime preloaded (tests/test_c_asan.py).
+    "asan": Variant("_canergy_asan", (), (*_SANITIZE_FLAGS, *_ASAN), _ASAN),
+    # Deliberately broken rules that the side-by-side tests must find (tests/test_c_broken.py).
+    "broken": Variant("_canergy_broken", _BREAKS, (*_SANITIZE_FLAGS, *_UBSAN), _UBSAN),
+}
+
+
+def _compiler() -> list[str]:
+    return shlex.split(os.environ.get("CC", "cc"))
+
+
+def _clang_runtime() -> tuple[str, ...]:
+    """clang links its sanitizer runtimes statically unless told otherwise: a module CPython
+    loads needs the shared ones, found where clang keeps them (firmware/Makefile's SAN_LINK did
+    the same); nothing for gcc."""
+    run = subprocess.run([*_compiler(), "--version"], capture_output=True, text=True, check=False)
+    if "clang" not in run.stdout.lower():
+        return ()
+    where = subprocess.run(
+        [*_compiler(), "-print-file-name=libclang_rt.ubsan_standalone-x86_64.so"],
+        capture_output=True,
+        text=True,
+        check=False,
+    ).stdout.strip()
+    return ("-shared-libsan", f"-Wl,-rpath,{Path(where).parent}")
+
+
+def _preprocess(text: str, include: Path, defines: tuple[tuple[str, str], ...], *flags: str) -> str:
+    args = [f"-D{name}={value}" for name, value in defines]
+    run = subprocess.run(
+        [*_compiler(), "-E", "-std=c99", f"-I{include}", *args, *flags, "-x", "c", "-"],
+        input=text,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if run.returncode != 0:
+        raise RuntimeError(f"the C preprocessor failed on the headers:\n{run.stderr}")
+    return run.stdout
+
+
+_MARKER = re.compile(r'^# \d+ "(.*)"')
+_MACRO = re.compile(r"^#define (CANERGY_\w+) (\S.*)$")
+
+
+def declarations(root: Path = ROOT, defines: tuple[tuple[str, str], ...] = ()) -> str:
+    """cffi's cdef for every public header under ``root``: their declarations as the
+    preprocessor leaves them (the system headers' dropped: cffi knows those types) and their
+    object-like ``CANERGY_*`` macros as constants the compiler evaluates (``...``)."""
+    include = root / "firmware" / "include"
+    headers = sorted((include / "canergy").glob("*.h"))
+    umbrella = "".join(f'#include "canergy/{h.name}"\n' for h in headers) + HOST_DECLARATIONS
+    kept: list[str] = []
+    ours = False
+    home = (include / "canergy").resolve()
+    for line in _preprocess(umbrella, include, defines).splitlines():
+        if marker := _MARKER.match(line):
+            name = marker.group(1)
+            ours = name == "<stdin>" or Path(name).resolve().parent == home
+        elif ours and line.strip():
+            kept.append(line)
+    constants = sorted(
+        f"#define {m.group(1)} ..."
+        for line in _preprocess(umbrella, include, defines, "-dM").splitlines()
+        if (m := _MACRO.match(line))
+    )
+    return "\n".join([*constants, *kept]) + "\n"
+
+
+def builder(root: Path = ROOT, variant: str = "release") -> FFI:
+    """The builder of one variant, naming firmware/ under ``root`` (setup.py needs paths
+    relative to it)."""
+    v = VARIANTS[variant]
     firmware = root / "firmware"
     ffi = FFI()
-    ffi.cdef(CDEF)
+    ffi.cdef(declarations(root, v.defines))
+    headers = sorted((firmware / "include" / "canergy").glob("*.h"))
     ffi.set_source(
-        "canergy.ccore._supervisor",
-        HOST_SOURCE,
+        v.module,
+        "".join(f'#include "canergy/{h.name}"\n' for h in headers) + HOST_SOURCE,
         sources=[str(firmware / "src" / name) for name in SOURCES],
         include_dirs=[str(firmware / "include")],
-        define_macros=[("CANERGY_SUPERVISOR_NODES", f"{NODES}U")],
-        extra_compile_args=["-std=c99", "-O2"],
+        define_macros=list(v.defines),
+        extra_compile_args=["-std=c99", *v.cflags],
+        extra_link_args=[*v.ldflags, *(_clang_runtime() if v.ldflags else ())],
     )
     return ffi
 
 
+def fingerprint(root: Path = ROOT, variant: str = "release") -> str:
+    """A digest of what a variant is built from (sources, headers, flags, the compiler, the
+    interpreter's extension ABI and cffi): a stale build shows."""
+    import sysconfig
+
+    import cffi
+
+    firmware = root / "firmware"
+    digest = hashlib.sha256(repr(VARIANTS[variant]).encode() + HOST_SOURCE.encode())
+    digest.update(f"{sysconfig.get_config_var('EXT_SUFFIX')} {cffi.__version__}".encode())
+    digest.update(" ".join(_compiler()).encode())
+    digest.update(Path(__file__).read_bytes())
+    for path in sorted([*(firmware / "include").rglob("*.h"), *(firmware / "src").glob("*.[ch]")]):
+        digest.update(path.name.encode() + path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def compile_to(directory: Path, variant: str = "release") -> Path:
+    """Compile one variant with its objects in ``directory``; returns the extension's path."""
+    return Path(builder(variant=variant).compile(tmpdir=str(directory), verbose=False))
+
+
 def build_in_place() -> Path:
-    """Compile into this checkout's source tree (objects in a temporary directory); returns the
-    extension's path."""
+    """Compile the release module into this checkout's source tree (objects in a temporary
+    directory); returns the extension's path."""
     import shutil
     import tempfile
 
     with tempfile.TemporaryDirectory() as tmp:
-        built = Path(builder().compile(tmpdir=tmp, verbose=False))
+        built = compile_to(Path(tmp))
         target = Path(__file__).parent / built.name
         shutil.copyfile(built, target)
     return target

@@ -69,75 +69,90 @@ def missing() -> str | None:
     return _MISSING
 
 
-_SESSION = struct.Struct("<QQQIIIIIIiHBBBB")
-"""struct canergy_session: delivered, returned, deadline, tx, returns credited, reserved, the last
-RESUME answered (from, to, nonce), W and the SYNC's nonce (the witnessed rules' fields, which the
-hardened rules leave at 0), node, phase, decision, tries (checked against the compiled layout
-below)."""
-_EVENT = struct.Struct("<IIBBB")
-"""struct canergy_supervisor_event: tx, amount, node, resolved, flags."""
-_FRAME = struct.Struct("<IB8s")
-"""struct canergy_frame: id, dlc, data."""
-_COUNTS = struct.Struct("<BBB")
-"""struct canergy_supervisor_out's tail: frame_count, event_count, persist (one read, not three
-attribute lookups through cffi)."""
+_CODES = {"uint8_t": "B", "uint16_t": "H", "uint32_t": "I", "int32_t": "i", "uint64_t": "Q"}
 
 
-_LAYOUT = {
-    "struct canergy_session": {"delivered_uj": 0, "returned_uj": 8, "deadline": 16, "tx": 24,
-                               "returns_credited": 28, "reserved_uj": 32, "resume_from": 36,
-                               "resume_to": 40, "resume_nonce": 44, "witness": 48,
-                               "sync_nonce": 52, "node": 54, "phase": 55, "decision": 56,
-                               "tries": 57},
-    "struct canergy_supervisor_event": {"tx": 0, "amount_uj": 4, "node": 8, "resolved": 9,
-                                        "flags": 10},
-    "struct canergy_frame": {"id": 0, "dlc": 4, "data": 5},
-}  # fmt: skip
-"""The offsets the readers above take (a library laid out otherwise is refused, not misread)."""
-_COUNTS_LAYOUT = ("frame_count", "event_count", "persist")
-"""The out struct's fields ``_COUNTS`` reads, in order and adjacent."""
-
-
-def _misread() -> str | None:
-    """Why the built library cannot be read here (a layout that is not ``_LAYOUT``), or None."""
-    for name, fields in _LAYOUT.items():
-        if any(ffi.offsetof(name, field) != at for field, at in fields.items()):
-            return f"the compiled core's {name} is not laid out as canergy reads it: rebuild it"
-    out = "struct canergy_supervisor_out"
-    first = ffi.offsetof(out, _COUNTS_LAYOUT[0])
-    if any(ffi.offsetof(out, f) != first + k for k, f in enumerate(_COUNTS_LAYOUT)):
-        return f"the compiled core's {out} is not laid out as canergy reads it: rebuild it"
-    return None
+def _reader(ctype: str, names: tuple[str, ...]) -> tuple[struct.Struct, int]:
+    """A ``struct.Struct`` that reads ``names`` of ``ctype``, in that order, at the offsets the
+    compiled library gives them (padding skipped), and the first one's offset: one unpack per
+    record instead of an attribute lookup through cffi per field."""
+    fields = dict(ffi.typeof(ctype).fields)
+    start = at = fields[names[0]].offset
+    codes = ["<"]
+    for name in names:
+        field = fields[name]
+        if field.offset < at:
+            raise CoreMissing(f"canergy.ccore: {ctype}.{name} is not after the fields before it")
+        kind = field.type
+        codes.append("x" * (field.offset - at))
+        codes.append(f"{kind.length}s" if kind.kind == "array" else _CODES[kind.cname])
+        at = field.offset + ffi.sizeof(kind)
+    return struct.Struct("".join(codes)), start
 
 
 if _MISSING is None:
-    _MISSING = _misread()
-if _MISSING is None:
-    _SESSION_SIZE = ffi.sizeof("struct canergy_session")
-    _EVENT_SIZE = ffi.sizeof("struct canergy_supervisor_event")
-    _FRAME_SIZE = ffi.sizeof("struct canergy_frame")
-    _SESSIONS_AT = ffi.offsetof("struct canergy_supervisor", "sessions")
-    _EVENTS_AT = ffi.offsetof("struct canergy_supervisor_out", "events")
-    _FRAMES_AT = ffi.offsetof("struct canergy_supervisor_out", "frames")
-    _COUNTS_AT = ffi.offsetof("struct canergy_supervisor_out", _COUNTS_LAYOUT[0])
-    _NEVER = lib.CANERGY_NEVER
-    _OK = lib.CANERGY_DECODE_OK
-    _CALLER = lib.CANERGY_RX_CALLER
+    try:
+        _SESSION, _ = _reader(
+            "struct canergy_session",
+            ("delivered_uj", "returned_uj", "deadline", "tx", "returns_credited", "reserved_uj",
+             "resume_from", "resume_to", "resume_nonce", "witness", "sync_nonce", "node", "phase",
+             "decision", "tries"),
+        )  # fmt: skip
+        _EVENT, _ = _reader(
+            "struct canergy_supervisor_event", ("tx", "amount_uj", "node", "resolved", "flags")
+        )
+        _FRAME, _ = _reader("struct canergy_frame", ("id", "dlc", "data"))
+        _COUNTS, _COUNTS_AT = _reader(
+            "struct canergy_supervisor_out", ("frame_count", "event_count", "persist")
+        )
+        _SESSION_SIZE = ffi.sizeof("struct canergy_session")
+        _EVENT_SIZE = ffi.sizeof("struct canergy_supervisor_event")
+        _FRAME_SIZE = ffi.sizeof("struct canergy_frame")
+        _SESSIONS_AT = ffi.offsetof("struct canergy_supervisor", "sessions")
+        _EVENTS_AT = ffi.offsetof("struct canergy_supervisor_out", "events")
+        _FRAMES_AT = ffi.offsetof("struct canergy_supervisor_out", "frames")
+        _NEVER = lib.CANERGY_NEVER
+        _OK = lib.CANERGY_DECODE_OK
+        _CALLER = lib.CANERGY_RX_CALLER
+        _NOT_CAN = lib.CANERGY_RX_NOT_CAN
+        """``on_answer``'s status for an identifier no CAN frame carries: taken the usual way."""
+        _HELD = ("IDLE", "WAIT_ACK", "ACKED", "WAIT_CONFIRM", "SYNCING", "SYNC_BOOKS")
+        _PHASES = {getattr(lib, f"CANERGY_S_{name}"): Phase[name] for name in _HELD}
+        """The phases a C session holds, by the value C gives them (enum canergy_session_phase)."""
+        _C_PHASES = {p: c for c, p in _PHASES.items()}
+        _DECISIONS = {
+            lib.CANERGY_DECIDE_NONE: Decision.NONE,
+            lib.CANERGY_DECIDE_COMMIT: Decision.COMMIT,
+            lib.CANERGY_DECIDE_ABORT: Decision.ABORT,
+        }
+        _C_DECISIONS = {d: c for c, d in _DECISIONS.items()}
+        _ACKNOWLEDGED = lib.CANERGY_SUP_ACKNOWLEDGED
+        _RETURN_CREDITED = lib.CANERGY_SUP_RETURN_CREDITED
+        _ADMITTED = lib.CANERGY_SUP_ADMITTED
+        _OUTCOMES = {
+            lib.CANERGY_RESOLVED_COMMITTED: Outcome.COMMITTED,
+            lib.CANERGY_RESOLVED_ABORTED: Outcome.ABORTED,
+            lib.CANERGY_RESOLVED_WRITTEN_OFF: Outcome.WRITTEN_OFF,
+        }
+        _ERRORS = {
+            lib.CANERGY_ERR_ARGUMENT: "argument",
+            lib.CANERGY_ERR_PHASE: "phase",
+            lib.CANERGY_ERR_AMOUNT: "amount",
+            lib.CANERGY_ERR_END: "end of the numbering",
+            lib.CANERGY_ERR_WINDOW: "window",
+        }
+        _C_RULES = {
+            "hardened": lib.CANERGY_RULES_HARDENED,
+            "witnessed": lib.CANERGY_RULES_WITNESSED,
+        }
+        """The rule sets the C supervisor runs (enum canergy_rules)."""
+    except (AttributeError, KeyError, CoreMissing) as exc:  # built from other headers
+        _MISSING = (
+            f"the compiled supervisor core does not match this canergy ({exc}): rebuild it "
+            "(python -m canergy.ccore.build in a checkout)"
+        )
 _ID_LIMIT = 1 << 29
-_NOT_CAN = -1
-"""``on_answer``'s status for an identifier no CAN frame carries: taken the usual way."""
-
-_PHASES = {int(p): p for p in (*(Phase(i) for i in range(4)), Phase.SYNCING, Phase.SYNC_BOOKS)}
-"""The phases a C session holds, by the value C gives them (Python's)."""
-_DECISIONS = tuple(Decision(i) for i in range(3))
-_ACKNOWLEDGED, _RETURN_CREDITED, _ADMITTED = 0x01, 0x02, 0x04
-"""CANERGY_SUP_* (checked against the library when the core is built)."""
-_OUTCOMES = {1: Outcome.COMMITTED, 2: Outcome.ABORTED, 4: Outcome.WRITTEN_OFF}
-_ERRORS = {-1: "argument", -2: "phase", -3: "amount", -5: "end of the numbering", -6: "window"}
-
-
-_RULES = {"hardened": 0, "witnessed": 1}
-"""The rule sets the C supervisor runs (enum canergy_rules)."""
+_RULES = ("hardened", "witnessed")
 
 
 class CompiledSupervisor:
@@ -174,13 +189,6 @@ class CompiledSupervisor:
             raise ValueError("the C core needs a window of 1-32767 transactions")
         self.codec = Codec() if id_base is None else Codec(id_base)
         self._decode = partial(self.codec.decode, direction=Direction.TO_CLIENT)
-        flags = (
-            lib.CANERGY_SUP_ACKNOWLEDGED,
-            lib.CANERGY_SUP_RETURN_CREDITED,
-            lib.CANERGY_SUP_ADMITTED,
-        )
-        if flags != (_ACKNOWLEDGED, _RETURN_CREDITED, _ADMITTED):
-            raise CoreMissing("canergy.ccore: the library's event flags are not this reader's")
         self._sup = ffi.new("struct canergy_supervisor *")
         self._out = ffi.new("struct canergy_supervisor_out *")
         self._sup_bytes = ffi.buffer(self._sup)  # live views of the C memory
@@ -190,7 +198,7 @@ class CompiledSupervisor:
         cfg.id_base = self.codec.id_base
         cfg.timing.response_timeout_us = self.timing.response_timeout_us
         cfg.timing.retries = self.timing.retries
-        cfg.timing.rules = _RULES[variant]
+        cfg.timing.rules = _C_RULES[variant]
         cfg.timing.window = self.timing.window
         ids = ffi.new("uint8_t[]", node_list)
         rc = lib.canergy_supervisor_init(self._sup, cfg, ids, len(node_list), initial)
@@ -259,8 +267,12 @@ class CompiledSupervisor:
                 raise ValueError(f"node {s.node}: a record the C core cannot hold")
             check_counters(s)
             c = sup.sessions[i]
-            c.phase, c.tx, c.reserved_uj = int(s.phase), s.tx, s.reserved
-            c.delivered_uj, c.returned_uj, c.decision = s.delivered, s.returned, int(s.decision)
+            c.phase, c.tx, c.reserved_uj = _C_PHASES[s.phase], s.tx, s.reserved
+            c.delivered_uj, c.returned_uj, c.decision = (
+                s.delivered,
+                s.returned,
+                _C_DECISIONS[s.decision],
+            )
             c.returns_credited, c.tries = s.returns_credited, s.tries
             c.resume_from, c.resume_to = s.resume_from % 2**32, s.resume_to % 2**32
             c.resume_nonce, c.witness, c.sync_nonce = s.resume_nonce, s.witness, s.sync_nonce
@@ -375,7 +387,8 @@ class CompiledSupervisor:
         of a managed node), their actions and the frames to send, encoded. A TELEMETRY, RETURN,
         JOIN or DEBIT of a managed node applies nothing and comes back decoded (by the C codec,
         which the Python one's tests fuzz against) for the caller's usual handling. Any other status
-        (an answer ahead of the session, a decode status, another node) applied nothing and
+        (an answer ahead of the session, a decode status, another node, an identifier no CAN frame
+        carries: CANERGY_RX_NOT_CAN) applied nothing and
         decoded nothing: the caller takes the frame its usual way, where it is judged, counted
         or reported."""
         if not 0 <= arbitration_id < _ID_LIMIT:  # no CAN identifier (another transport's)

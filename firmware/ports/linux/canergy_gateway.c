@@ -50,11 +50,6 @@
 
 const char *const port_prog = "canergy-gateway";
 
-#define GW_MAGIC 0x47524E43UL /* "CNRG" little-endian */
-#define GW_HEADER 8U           /* magic, counter */
-#define GW_SLOT (GW_HEADER + CANERGY_NV_RECORD_SIZE + CANERGY_SUPERVISOR_SLOT_SIZE + 4U)
-/* The slot before the supervisor record's version 3 (32 bytes per node): refused by name. */
-#define GW_SLOT_V2 (GW_HEADER + CANERGY_NV_RECORD_SIZE + 40U + 32U * CANERGY_SUPERVISOR_NODES + 4U)
 #define MJ 1000U
 
 struct gw_options {
@@ -287,30 +282,9 @@ static void parse_args(int argc, char **argv, struct gw_options *o)
     }
 }
 
-/* ---- the one record: both roles in a slot ---- */
+/* ---- the one record: both roles in a slot (canergy_gateway_nv_*, nv.c) ---- */
 
-static void put32(uint8_t *p, uint32_t v)
-{
-    for (unsigned i = 0U; i < 4U; i++) {
-        p[i] = (uint8_t)(v >> (8U * i));
-    }
-}
-
-static uint32_t get32(const uint8_t *p)
-{
-    return (uint32_t)p[0] | (uint32_t)p[1] << 8 | (uint32_t)p[2] << 16 | (uint32_t)p[3] << 24;
-}
-
-static void slot_image(const struct gateway_port *g, uint32_t counter, uint8_t slot[GW_SLOT])
-{
-    memset(slot, 0, GW_SLOT);
-    put32(slot, (uint32_t)GW_MAGIC);
-    put32(&slot[4], counter);
-    canergy_record_pack(&g->gw.up.rec, &slot[GW_HEADER]);
-    (void)canergy_supervisor_image(&g->gw.down, counter,
-                                   &slot[GW_HEADER + CANERGY_NV_RECORD_SIZE]);
-    put32(&slot[GW_SLOT - 4U], canergy_crc32(0U, slot, GW_SLOT - 4U));
-}
+#define GW_SLOT CANERGY_GW_NV_SLOT_SIZE
 
 /* Both records, fsynced, before anything else happens: exit 1 when that fails (nothing of the
  * step is sent). */
@@ -318,7 +292,7 @@ static void save(struct gateway_port *g)
 {
     uint8_t slot[GW_SLOT];
     const uint8_t next = (uint8_t)(1U - g->nv_slot);
-    slot_image(g, g->nv_counter + 1U, slot);
+    canergy_gateway_nv_encode(&g->gw, g->nv_counter + 1U, slot);
     const off_t at = (off_t)next * (off_t)GW_SLOT;
     if (pwrite(g->nv_fd, slot, GW_SLOT, at) != (ssize_t)GW_SLOT || fsync(g->nv_fd) != 0) {
         (void)fprintf(stderr, "%s: NV store: %s: write failed: %s\n", PROG, g->opt.nv_path,
@@ -330,61 +304,27 @@ static void save(struct gateway_port *g)
     g->nv_writes++;
 }
 
-/* The slot of image holding the newest valid record (-1: none; *best its counter). Exit 2 when
- * a valid slot's upstream record holds a counter beyond the bound the proof assumes: neither
- * slot is taken (the other may be an older copy). */
-static int newest_slot(const char *path, const uint8_t *image, uint32_t *best)
+/* The newest valid slot of image; exit 2 when a valid slot's upstream record holds a counter
+ * beyond the bound the proof assumes. */
+static void load_nv(const char *path, const uint8_t *image, size_t len,
+                    struct canergy_gateway_nv *nv)
 {
-    int newest = -1;
-    struct canergy_record rec;
-    for (unsigned i = 0U; i < 2U; i++) {
-        const uint8_t *s = &image[i * GW_SLOT];
-        const uint32_t c = get32(&s[4]);
-        if (get32(s) != GW_MAGIC || get32(&s[GW_SLOT - 4U]) != canergy_crc32(0U, s, GW_SLOT - 4U)) {
-            continue;
-        }
-        const int unpacked = canergy_record_unpack(&s[GW_HEADER], &rec);
-        if (unpacked == CANERGY_ERR_END) {
-            const int tx = rec.last_tx >= CANERGY_COUNTER_BOUND;
-            port_usage_error("--nv %s: upstream: %s %lu is beyond the bound 2^30 - 1 the proof "
-                             "assumes",
-                             path, tx ? "last_tx" : "return_seq",
-                             (unsigned long)(tx ? rec.last_tx : rec.return_seq));
-        }
-        if (unpacked != CANERGY_OK) {
-            continue;
-        }
-        if (newest < 0 || (uint32_t)(c - *best) - 1U < 0x7FFFFFFFUL) {
-            newest = (int)i;
-            *best = c;
-        }
+    if (canergy_gateway_nv_load(image, len, nv) == CANERGY_ERR_END) {
+        const int tx = nv->up.last_tx >= CANERGY_COUNTER_BOUND;
+        port_usage_error("--nv %s: upstream: %s %lu is beyond the bound 2^30 - 1 the proof "
+                         "assumes",
+                         path, tx ? "last_tx" : "return_seq",
+                         (unsigned long)(tx ? nv->up.last_tx : nv->up.return_seq));
     }
-    return newest;
 }
 
-/* Exit 2 when image holds no slot of this layout but one of the layout before the witnessed
- * rules' supervisor record (version 2), or a slot of this layout whose supervisor record is of
- * version 3 (before the supervisor's start was confirmed): never taken as a new, blank file. */
-static void refuse_older_layout(const char *path, const uint8_t *image)
+/* Exit 2 when the image holds a slot of an older layout (never taken as a new, blank file). */
+static void refuse_older_layout(const char *path, const struct canergy_gateway_nv *nv)
 {
-    for (unsigned i = 0U; i < 2U; i++) {
-        const uint8_t *old = &image[i * GW_SLOT_V2];
-        if (get32(old) == GW_MAGIC &&
-            get32(&old[GW_SLOT_V2 - 4U]) == canergy_crc32(0U, old, GW_SLOT_V2 - 4U)) {
-            port_usage_error("--nv %s: written by an older canergy-gateway (supervisor record "
-                             "version 2); this one reads version 4 only",
-                             path);
-        }
-    }
-    for (unsigned i = 0U; i < 2U; i++) {
-        const uint8_t *slot = &image[i * GW_SLOT];
-        const uint8_t version = slot[GW_HEADER + CANERGY_NV_RECORD_SIZE + 4U];
-        if (get32(slot) == GW_MAGIC && version == 3U &&
-            get32(&slot[GW_SLOT - 4U]) == canergy_crc32(0U, slot, GW_SLOT - 4U)) {
-            port_usage_error("--nv %s: written by an older canergy-gateway (supervisor record "
-                             "version 3); this one reads version 4 only",
-                             path);
-        }
+    if (nv->older != 0U) {
+        port_usage_error("--nv %s: written by an older canergy-gateway (supervisor record "
+                         "version %u); this one reads version 4 only",
+                         path, (unsigned)nv->older);
     }
 }
 
@@ -408,13 +348,12 @@ static void check_nv(const struct gw_options *o)
         return;
     }
     static uint8_t image[2U * GW_SLOT];
-    memset(image, 0, sizeof image);
     const ssize_t got = pread(fd, image, sizeof image, 0);
     (void)close(fd);
-    uint32_t best = 0U;
-    const int newest = got > 0 ? newest_slot(o->nv_path, image, &best) : -1;
-    if (newest < 0) {
-        refuse_older_layout(o->nv_path, image);
+    struct canergy_gateway_nv nv;
+    load_nv(o->nv_path, image, got > 0 ? (size_t)got : 0U, &nv);
+    if (nv.slot < 0) {
+        refuse_older_layout(o->nv_path, &nv);
         return;
     }
     static struct canergy_supervisor down;
@@ -422,15 +361,13 @@ static void check_nv(const struct gw_options *o)
         o->id_base, {(uint32_t)o->response_timeout_us, o->retries, o->rules, 0U}};
     uint32_t counter = 0U;
     uint8_t slot = 0U;
-    const int loaded = canergy_supervisor_load(
-        &down, &cfg, o->nodes, o->count, 0U,
-        &image[(unsigned)newest * GW_SLOT + GW_HEADER + CANERGY_NV_RECORD_SIZE],
-        CANERGY_SUPERVISOR_SLOT_SIZE, &counter, &slot);
+    const int loaded = canergy_supervisor_load(&down, &cfg, o->nodes, o->count, 0U, nv.down,
+                                               CANERGY_SUPERVISOR_SLOT_SIZE, &counter, &slot);
     if (loaded == CANERGY_ERR_END) {
         refuse_below_beyond(o->nv_path);
     }
     if (loaded == CANERGY_ERR_RECORD) {
-        refuse_older_layout(o->nv_path, image);
+        refuse_older_layout(o->nv_path, &nv);
     }
 }
 
@@ -445,13 +382,14 @@ static void start(struct gateway_port *g, uint64_t now)
         exit(EXIT_USAGE);
     }
     static uint8_t image[2U * GW_SLOT];
-    memset(image, 0, sizeof image);
     const ssize_t got = pread(g->nv_fd, image, sizeof image, 0);
     if (got < 0) {
         (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, o->nv_path, strerror(errno));
         exit(EXIT_USAGE);
     }
-    if (got > 0 && get32(image) != GW_MAGIC && get32(&image[GW_SLOT]) != GW_MAGIC) {
+    struct canergy_gateway_nv nv;
+    load_nv(o->nv_path, image, (size_t)got, &nv);
+    if (nv.foreign) {
         (void)fprintf(stderr, "%s: error: --nv %s: not a gateway's NV file (a node's?)\n",
                       PROG, o->nv_path);
         exit(EXIT_USAGE);
@@ -461,21 +399,20 @@ static void start(struct gateway_port *g, uint64_t now)
     const struct canergy_client_config up = {o->id_base, (uint32_t)(2U * o->up_response_timeout_us),
                                              (uint32_t)(2U * o->up_response_timeout_us), o->node,
                                              o->up_rules, 0U};
-    uint32_t best = 0U;
-    const int newest = newest_slot(o->nv_path, image, &best);
     struct canergy_out out;
     uint32_t sup_counter = 0U;
     uint8_t sup_slot = 0U;
-    if (newest >= 0) {
-        const uint8_t *s = &image[(unsigned)newest * GW_SLOT];
+    if (nv.slot >= 0) {
         uint8_t client_nv[CANERGY_NV_SLOTS * CANERGY_NV_SLOT_SIZE];
         memset(client_nv, 0, sizeof client_nv);
-        canergy_nv_slot_encode(best, &s[GW_HEADER], CANERGY_NV_RECORD_SIZE, client_nv);
+        uint8_t rec[CANERGY_NV_RECORD_SIZE];
+        canergy_record_pack(&nv.up, rec);
+        canergy_nv_slot_encode(nv.counter, rec, sizeof rec, client_nv);
         (void)canergy_client_start(&g->gw.up, &up, client_nv, sizeof client_nv, port_random16(), now,
                                    &out);
         const int loaded = canergy_supervisor_load(
-            &g->gw.down, &down, o->nodes, o->count, 0U, &s[GW_HEADER + CANERGY_NV_RECORD_SIZE],
-            CANERGY_SUPERVISOR_SLOT_SIZE, &sup_counter, &sup_slot);
+            &g->gw.down, &down, o->nodes, o->count, 0U, nv.down, CANERGY_SUPERVISOR_SLOT_SIZE,
+            &sup_counter, &sup_slot);
         if (loaded == CANERGY_ERR_END) {
             refuse_below_beyond(o->nv_path);
         }
@@ -484,8 +421,8 @@ static void start(struct gateway_port *g, uint64_t now)
                           PROG, o->nv_path);
             exit(EXIT_USAGE);
         }
-        g->nv_counter = best;
-        g->nv_slot = (uint8_t)newest;
+        g->nv_counter = nv.counter;
+        g->nv_slot = (uint8_t)nv.slot;
         /* every start is one below (witnessed: what is open written off, SYNC with a fresh
          * nonce, no grant until the nodes have confirmed their books) */
         struct canergy_supervisor_out sout;

@@ -10,6 +10,7 @@
 #include "canergy/node.h"
 #include "canergy/session.h"
 #include "canergy/supervisor.h"
+#include "canergy/witness.h"
 
 #include <stddef.h>
 #include <string.h>
@@ -25,6 +26,30 @@ struct entry {
 };
 
 static const struct entry offsets[] = {
+    FIELD(canergy_held, seq),
+    FIELD(canergy_held, confirmed_at),
+    FIELD(canergy_held, amount_mj),
+    FIELD(canergy_held, confirmed),
+    FIELD(canergy_witness, held),
+    FIELD(canergy_witness, resume_held),
+    FIELD(canergy_witness, resume),
+    FIELD(canergy_witness, return_seq),
+    FIELD(canergy_witness, confirmed_at),
+    FIELD(canergy_witness, evidence_at),
+    FIELD(canergy_witness, refuted),
+    FIELD(canergy_witness, resynced),
+    FIELD(canergy_witness, resume_nonce),
+    FIELD(canergy_witness, witness),
+    FIELD(canergy_witness, held_count),
+    FIELD(canergy_witness, has_witness),
+    FIELD(canergy_witness, has_return_seq),
+    FIELD(canergy_witness, has_evidence),
+    FIELD(canergy_witness, has_resume),
+    FIELD(canergy_witness, has_resume_nonce),
+    FIELD(canergy_witness_release, returns),
+    FIELD(canergy_witness_release, resume_msg),
+    FIELD(canergy_witness_release, count),
+    FIELD(canergy_witness_release, resume),
     FIELD(canergy_record, spent_uj),
     FIELD(canergy_record, usable_uj),
     FIELD(canergy_record, credited_mj),
@@ -181,6 +206,7 @@ static const struct entry sizes[] = {
     SIZE(canergy_session),       SIZE(canergy_session_step), SIZE(canergy_session_timing),
     SIZE(canergy_supervisor),    SIZE(canergy_supervisor_config), SIZE(canergy_supervisor_out),
     SIZE(canergy_supervisor_event), SIZE(canergy_gateway),
+    SIZE(canergy_held), SIZE(canergy_witness), SIZE(canergy_witness_release),
 };
 
 static long find(const struct entry *table, size_t n, const char *name)

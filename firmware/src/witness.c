@@ -194,3 +194,13 @@ uint64_t canergy_witness_next_release(const struct canergy_witness *w, uint64_t 
     }
     return next;
 }
+
+bool canergy_witness_beyond_books(const struct canergy_session *s, const struct canergy_msg *m)
+{
+    const bool debits = m->type == CANERGY_RETURN ||
+                        (m->type == CANERGY_DEBIT &&
+                         (m->flags & (CANERGY_DEBIT_SYNC | CANERGY_DEBIT_BOOKS)) == 0U);
+    const uint64_t holdable = s->delivered_uj + s->reserved_uj - s->returned_uj;
+    return debits && serial16(m->seq, s->returns_credited) == 1 &&
+           (uint64_t)m->amount_mj * CANERGY_QUANTUM_UJ > holdable;
+}

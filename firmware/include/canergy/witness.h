@@ -22,6 +22,7 @@
 #define CANERGY_WITNESS_H
 
 #include "canergy/codec.h"
+#include "canergy/session.h"
 
 #include <stdbool.h>
 #include <stdint.h>
@@ -124,6 +125,11 @@ void canergy_witness_readmitted(struct canergy_witness *w);
 /* The earliest time a held RETURN or RESUME confirmed may be released (UINT64_MAX, i.e.
  * CANERGY_NEVER: none). */
 uint64_t canergy_witness_next_release(const struct canergy_witness *w, uint64_t hold_us);
+
+/* What no honest node sends, judged by its session's books alone (SupervisorService's check
+ * of a RETURN or DEBIT): a fresh RETURN, or a DEBIT other than a SYNC's answer, numbered next
+ * and for more than the node can hold (delivered + reserved - returned). */
+bool canergy_witness_beyond_books(const struct canergy_session *s, const struct canergy_msg *m);
 
 #ifdef __cplusplus
 }

@@ -15,7 +15,7 @@ import ctypes
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule, run_state_machine_as_test
-from support.c_binding import Msg
+from support.c_binding import CSession, Msg
 from support.c_witness import (
     CONTRADICTED,
     FULL,
@@ -35,7 +35,8 @@ from support.c_witness import (
 from canergy.live.gateway import give_back_amount
 from canergy.live.policy import Limits, TopUp, capped_grant
 from canergy.live.witness import ReturnGate
-from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Debit, Return, Telemetry
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, SEQ_BITS, Debit, Return, Telemetry
+from canergy.seqnum import unwrap
 
 NODE = 4
 HOLD_US = 500_000
@@ -242,3 +243,40 @@ def test_the_top_up_is_the_python_policys(
 def test_the_give_back_is_the_python_uplinks(usable: int, keep: int) -> None:
     expected = give_back_amount(usable, keep)
     assert policy_library().canergy_gateway_give_back_amount(usable, keep) == expected
+
+
+@settings(max_examples=500)
+@given(
+    kind=st.sampled_from([RETURN, DEBIT, TELEMETRY]),
+    flags=st.sampled_from([0, Debit.DRAW, Debit.START, Debit.SYNC, Debit.BOOKS, Debit.START | 4]),
+    credited=st.sampled_from([0, 1, 65_535, 65_536, 2**30 - 2]),
+    ahead=st.integers(-2, 3),
+    amount=st.sampled_from([0, 1, 2, 3, 65_535]),
+    books=st.tuples(st.integers(0, 10**8), st.integers(0, 65_535_000), st.integers(0, 10**8)),
+)
+def test_beyond_the_books_is_the_supervisors_check(
+    kind: int,
+    flags: int,
+    credited: int,
+    ahead: int,
+    amount: int,
+    books: tuple[int, int, int],
+) -> None:
+    """SupervisorService._impossible for a RETURN or DEBIT (the rule restated: it is a method
+    of the service): fresh (numbered next) and more than the books let the node hold."""
+    delivered, reserved, returned = books
+    returned = min(returned, delivered + reserved)
+    session = CSession(
+        delivered_uj=delivered,
+        reserved_uj=reserved,
+        returned_uj=returned,
+        returns_credited=credited,
+    )
+    seq = (credited + ahead) % 65536
+    m = _msg(kind, flags=flags, seq=seq, amount_mj=amount)
+    answers = kind == DEBIT and flags & (Debit.SYNC | Debit.BOOKS)
+    fresh = unwrap(seq, credited, SEQ_BITS) == credited + 1
+    holdable = delivered + reserved - returned
+    expected = kind != TELEMETRY and not answers and fresh and amount * QUANTUM_UJ > holdable
+    lib = policy_library()
+    assert lib.canergy_witness_beyond_books(ctypes.byref(session), ctypes.byref(m)) == expected

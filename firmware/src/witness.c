@@ -3,6 +3,8 @@
  */
 #include "canergy/witness.h"
 
+#include "canergy/client.h"
+
 #include "serial.h"
 
 #include <string.h>
@@ -203,4 +205,38 @@ bool canergy_witness_beyond_books(const struct canergy_session *s, const struct 
     const uint64_t holdable = s->delivered_uj + s->reserved_uj - s->returned_uj;
     return debits && serial16(m->seq, s->returns_credited) == 1 &&
            (uint64_t)m->amount_mj * CANERGY_QUANTUM_UJ > holdable;
+}
+
+enum canergy_witness_route canergy_witness_route(struct canergy_witness *w,
+                                                 const struct canergy_session *s,
+                                                 const struct canergy_msg *m, uint8_t rules,
+                                                 uint64_t now, uint32_t *intrusions)
+{
+    const uint32_t credited = s->returns_credited;
+    if (m->type == CANERGY_TELEMETRY) {
+        const unsigned found = canergy_witness_telemetry(w, m, credited, now);
+        *intrusions += (found & CANERGY_WITNESS_EVIDENCE) != 0U ? 1U : 0U;
+        return CANERGY_WITNESS_TAKEN;
+    }
+    if (canergy_witness_beyond_books(s, m)) {
+        canergy_witness_refute(w, now); /* no honest node sends it: no top-ups for a while */
+        w->refuted++;
+        (*intrusions)++;
+        return CANERGY_WITNESS_DROPPED;
+    }
+    if (m->type == CANERGY_RETURN) {
+        const enum canergy_witness_verdict v = canergy_witness_hold(w, m, credited, now);
+        *intrusions += v == CANERGY_WITNESS_CONTRADICTED ? 1U : 0U;
+        return v == CANERGY_WITNESS_OLD    ? CANERGY_WITNESS_TO_RULES
+               : v == CANERGY_WITNESS_FULL ? CANERGY_WITNESS_DROPPED
+                                           : CANERGY_WITNESS_TAKEN;
+    }
+    const bool resume = (m->flags & CANERGY_DEBIT_START) != 0U &&
+                        (m->flags & (CANERGY_DEBIT_SYNC | CANERGY_DEBIT_BOOKS)) == 0U;
+    const bool counts = (m->flags & CANERGY_DEBIT_COUNTS) == CANERGY_DEBIT_COUNTS;
+    if (rules == CANERGY_RULES_WITNESSED && m->type == CANERGY_DEBIT && (resume || counts) &&
+        canergy_witness_hold_resume(w, m, credited, now, resume)) {
+        return CANERGY_WITNESS_TAKEN;
+    }
+    return CANERGY_WITNESS_TO_RULES;
 }

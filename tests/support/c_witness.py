@@ -19,7 +19,7 @@ from ctypes import (
     c_uint64,
 )
 
-from support.c_binding import Msg, library
+from support.c_binding import CSession, Msg, library
 
 SLOTS = 4
 """CANERGY_WITNESS_SLOTS: return numbers held at once per node."""
@@ -87,6 +87,7 @@ _SIGNATURES = {
     "canergy_witness_blocked": (c_bool, [_W, c_uint64, c_uint64]),
     "canergy_witness_readmitted": (None, [_W]),
     "canergy_witness_next_release": (c_uint64, [_W, c_uint64]),
+    "canergy_witness_beyond_books": (c_bool, [POINTER(CSession), _M]),
     "canergy_gateway_top_up": (c_uint32, [c_uint64, c_uint64, c_uint64, c_int64]),
     "canergy_gateway_give_back_amount": (c_uint32, [c_int64, c_uint64]),
 }

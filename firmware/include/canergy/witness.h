@@ -131,6 +131,24 @@ uint64_t canergy_witness_next_release(const struct canergy_witness *w, uint64_t 
  * and for more than the node can hold (delivered + reserved - returned). */
 bool canergy_witness_beyond_books(const struct canergy_session *s, const struct canergy_msg *m);
 
+/* Where a message of a node below goes (canergy_witness_route). */
+enum canergy_witness_route {
+    CANERGY_WITNESS_TO_RULES = 0, /* to the rules: canergy_supervisor_on_msg */
+    CANERGY_WITNESS_TAKEN = 1,    /* a TELEMETRY, or held: canergy_witness_release says when */
+    CANERGY_WITNESS_DROPPED = 2   /* beyond the books (counted in refuted), or no room */
+};
+
+/* One message of the node whose session is s, as `canergy gateway`'s supervisor below judges
+ * it without a key: a TELEMETRY to canergy_witness_telemetry; a RETURN or DEBIT beyond the books
+ * dropped, with evidence (no top-ups for a while); a fresh RETURN held; under the witnessed
+ * rules (rules, enum canergy_rules) a RESUME owing the next return held, a SYNC's counts
+ * resetting the baseline. *intrusions grows by one for each piece of evidence. The caller then
+ * calls canergy_witness_release (something held may be due). */
+enum canergy_witness_route canergy_witness_route(struct canergy_witness *w,
+                                                 const struct canergy_session *s,
+                                                 const struct canergy_msg *m, uint8_t rules,
+                                                 uint64_t now, uint32_t *intrusions);
+
 #ifdef __cplusplus
 }
 #endif

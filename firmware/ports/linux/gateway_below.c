@@ -103,48 +103,24 @@ static void release(struct gateway_port *g, unsigned i, uint64_t now)
     }
 }
 
-/* A message from below: TELEMETRY to the witness, a fresh RETURN (and, witnessed below, a
- * RESUME owing one) held by it until the node confirms it, the rest to the rules. */
+/* A message from below: a TELEMETRY's level for the top-ups; then the witness's route. */
 static void from_below(struct gateway_port *g, unsigned i, const struct canergy_msg *m,
                        uint64_t now)
 {
     struct below *b = &g->below[i];
-    const struct canergy_session *s = &g->gw.down.sessions[i];
     b->heard = 1;
     b->heard_at = now;
     if (m->type == CANERGY_TELEMETRY) {
         b->level_uj = (uint64_t)m->level_mj * MJ;
         b->joining = (m->flags & CANERGY_TELEMETRY_JOINING) != 0U;
         b->fresh = 1;
-        const unsigned found = canergy_witness_telemetry(&b->witness, m, s->returns_credited, now);
-        b->intrusions += (found & CANERGY_WITNESS_EVIDENCE) != 0U ? 1U : 0U;
-        release(g, i, now);
-        return;
     }
-    if (canergy_witness_beyond_books(s, m)) {
-        b->beyond_books++; /* dropped, and no top-ups for a while */
-        b->intrusions++;
-        canergy_witness_refute(&b->witness, now);
-        return;
+    if (canergy_witness_route(&b->witness, &g->gw.down.sessions[i], m, g->opt.rules, now,
+                              &b->intrusions) == CANERGY_WITNESS_TO_RULES) {
+        to_rules(g, m, now);
+    } else {
+        release(g, i, now); /* what it held may be due now */
     }
-    const int witnessed = g->opt.rules == CANERGY_RULES_WITNESSED && m->type == CANERGY_DEBIT;
-    const int counts = (m->flags & CANERGY_DEBIT_COUNTS) == CANERGY_DEBIT_COUNTS;
-    const int resume = (m->flags & CANERGY_DEBIT_START) != 0U &&
-                       (m->flags & (CANERGY_DEBIT_SYNC | CANERGY_DEBIT_BOOKS)) == 0U;
-    if (m->type == CANERGY_RETURN) {
-        const int v = (int)canergy_witness_hold(&b->witness, m, s->returns_credited, now);
-        b->intrusions += v == (int)CANERGY_WITNESS_CONTRADICTED ? 1U : 0U;
-        if (v != (int)CANERGY_WITNESS_OLD) {
-            release(g, i, now);
-            return;
-        }
-    } else if (witnessed && (resume || counts) &&
-               canergy_witness_hold_resume(&b->witness, m, s->returns_credited, now,
-                                           resume != 0)) {
-        release(g, i, now);
-        return;
-    }
-    to_rules(g, m, now);
 }
 
 void gw_receive_down(struct gateway_port *g, uint64_t now)

@@ -53,8 +53,7 @@ struct below {
     uint64_t aborted;
     uint64_t written_off;
     uint64_t admitted;
-    uint64_t beyond_books; /* fresh RETURNs above what its books let it hold: dropped */
-    uint64_t intrusions;
+    uint32_t intrusions; /* evidence against its reports (canergy_witness_route) */
     int fresh;   /* a level reported since the node's last transaction ended */
     int joining; /* its last TELEMETRY said JOINING */
     int heard;

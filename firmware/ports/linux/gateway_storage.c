@@ -305,8 +305,8 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                       "\"returns_credited\": %lu, \"level_uj\": %llu, \"lost\": %s, "
                       "\"committed\": %llu, \"committed_uj\": %llu, \"aborted\": %llu, "
                       "\"written_off\": %llu, \"admitted\": %llu, \"returns_held\": %u, "
-                      "\"returns_refuted\": %llu, \"returns_resynchronised\": %lu, "
-                      "\"intrusions\": %llu}",
+                      "\"returns_refuted\": %lu, \"returns_resynchronised\": %lu, "
+                      "\"intrusions\": %lu}",
                       i == 0U ? "" : ", ", (unsigned)s->node, phase_name(s->phase), open_tx,
                       (unsigned long)s->reserved_uj,
                       (unsigned long long)s->delivered_uj, (unsigned long long)s->returned_uj,
@@ -315,8 +315,8 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                       (unsigned long long)b->committed_uj, (unsigned long long)b->aborted,
                       (unsigned long long)b->written_off, (unsigned long long)b->admitted,
                       (unsigned)b->witness.held_count,
-                      (unsigned long long)(b->witness.refuted + b->beyond_books),
-                      (unsigned long)b->witness.resynced, (unsigned long long)b->intrusions);
+                      (unsigned long)b->witness.refuted, (unsigned long)b->witness.resynced,
+                      (unsigned long)b->intrusions);
     }
     (void)fprintf(f,
                   "}, \"upstream\": {\"node\": %u, \"usable_uj\": %lu, \"spent_uj\": %llu, "

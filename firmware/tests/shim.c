@@ -26,6 +26,12 @@ struct entry {
 };
 
 static const struct entry offsets[] = {
+    FIELD(canergy_gateway_nv, up),
+    FIELD(canergy_gateway_nv, down),
+    FIELD(canergy_gateway_nv, counter),
+    FIELD(canergy_gateway_nv, slot),
+    FIELD(canergy_gateway_nv, older),
+    FIELD(canergy_gateway_nv, foreign),
     FIELD(canergy_held, seq),
     FIELD(canergy_held, confirmed_at),
     FIELD(canergy_held, amount_mj),
@@ -207,6 +213,7 @@ static const struct entry sizes[] = {
     SIZE(canergy_supervisor),    SIZE(canergy_supervisor_config), SIZE(canergy_supervisor_out),
     SIZE(canergy_supervisor_event), SIZE(canergy_gateway),
     SIZE(canergy_held), SIZE(canergy_witness), SIZE(canergy_witness_release),
+    SIZE(canergy_gateway_nv),
 };
 
 static long find(const struct entry *table, size_t n, const char *name)

@@ -19,7 +19,7 @@ from ctypes import (
     c_uint64,
 )
 
-from support.c_binding import CSession, Msg, library
+from support.c_binding import SUPERVISOR_NODES, CGateway, CSession, Msg, Record, library
 
 SLOTS = 4
 """CANERGY_WITNESS_SLOTS: return numbers held at once per node."""
@@ -70,7 +70,22 @@ class CRelease(Structure):
     ]
 
 
+class CGatewayNv(Structure):
+    _fields_ = [
+        ("up", Record),
+        ("down", ctypes.c_void_p),
+        ("counter", c_uint32),
+        ("slot", ctypes.c_int8),
+        ("older", c_uint8),
+        ("foreign", c_bool),
+    ]
+
+
+GW_NV_SLOT = 8 + 30 + 40 + 44 * SUPERVISOR_NODES + 4
+"""CANERGY_GW_NV_SLOT_SIZE of the test library's build."""
+
 MIRROR = {
+    "canergy_gateway_nv": CGatewayNv,
     "canergy_held": CHeld,
     "canergy_witness": CWitness,
     "canergy_witness_release": CRelease,
@@ -88,6 +103,8 @@ _SIGNATURES = {
     "canergy_witness_readmitted": (None, [_W]),
     "canergy_witness_next_release": (c_uint64, [_W, c_uint64]),
     "canergy_witness_beyond_books": (c_bool, [POINTER(CSession), _M]),
+    "canergy_gateway_nv_encode": (None, [POINTER(CGateway), c_uint32, ctypes.c_char_p]),
+    "canergy_gateway_nv_load": (c_int, [ctypes.c_char_p, ctypes.c_size_t, POINTER(CGatewayNv)]),
     "canergy_gateway_top_up": (c_uint32, [c_uint64, c_uint64, c_uint64, c_int64]),
     "canergy_gateway_give_back_amount": (c_uint32, [c_int64, c_uint64]),
 }

@@ -170,6 +170,28 @@ void canergy_witness_release(struct canergy_witness *w, uint32_t credited, uint6
     }
 }
 
+bool canergy_witness_release_at(const struct canergy_witness_release *r, uint8_t node,
+                                uint32_t n, struct canergy_msg *m)
+{
+    memset(m, 0, sizeof *m);
+    for (unsigned k = 0U; k < r->count; k++) {
+        const uint32_t span = (uint32_t)(r->returns[k].seq - r->returns[k].first_missed) + 1U;
+        if (n < span) {
+            m->type = CANERGY_RETURN;
+            m->node = node;
+            m->seq = (uint16_t)(r->returns[k].first_missed + (int64_t)n);
+            m->amount_mj = n + 1U == span ? r->returns[k].amount_mj : 0U;
+            return true;
+        }
+        n -= span;
+    }
+    if (r->resume && n == 0U) {
+        *m = r->resume_msg;
+        return true;
+    }
+    return false;
+}
+
 bool canergy_witness_blocked(const struct canergy_witness *w, uint64_t now, uint64_t block_us)
 {
     return w->has_evidence && now < w->evidence_at + block_us;

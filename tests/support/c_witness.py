@@ -98,6 +98,7 @@ _SIGNATURES = {
     "canergy_witness_hold": (c_int, [_W, _M, c_uint32, c_uint64]),
     "canergy_witness_hold_resume": (c_bool, [_W, _M, c_uint32, c_uint64, c_bool]),
     "canergy_witness_release": (None, [_W, c_uint32, c_uint64, c_uint64, POINTER(CRelease)]),
+    "canergy_witness_release_at": (c_bool, [POINTER(CRelease), c_uint8, c_uint32, _M]),
     "canergy_witness_refute": (None, [_W, c_uint64]),
     "canergy_witness_blocked": (c_bool, [_W, c_uint64, c_uint64]),
     "canergy_witness_readmitted": (None, [_W]),

@@ -113,6 +113,11 @@ bool canergy_witness_hold_resume(struct canergy_witness *w, const struct canergy
 void canergy_witness_release(struct canergy_witness *w, uint32_t credited, uint64_t now,
                              uint64_t hold_us, struct canergy_witness_release *out);
 
+/* The n-th message (from 0) of a release for node, in the order above: false past the last.
+ * Hand each to the rules as it comes (a 0 mJ RETURN: numbers acknowledged by someone else). */
+bool canergy_witness_release_at(const struct canergy_witness_release *r, uint8_t node,
+                                uint32_t n, struct canergy_msg *m);
+
 /* Evidence against the node's reports: everything held is dropped (counted in refuted). */
 void canergy_witness_refute(struct canergy_witness *w, uint64_t now);
 

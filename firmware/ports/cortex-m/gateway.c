@@ -137,18 +137,8 @@ static void release(unsigned i, uint64_t now)
     struct canergy_witness_release r;
     canergy_witness_release(&witness[i], gw.down.sessions[i].returns_credited, now, HOLD_US, &r);
     struct canergy_msg m;
-    memset(&m, 0, sizeof m);
-    m.type = CANERGY_RETURN;
-    m.node = (uint8_t)(i + 1U);
-    for (unsigned k = 0U; k < r.count; k++) {
-        for (int64_t n = r.returns[k].first_missed; n <= r.returns[k].seq; n++) {
-            m.seq = (uint16_t)n;
-            m.amount_mj = n == r.returns[k].seq ? r.returns[k].amount_mj : 0U;
-            to_rules(&m, now);
-        }
-    }
-    if (r.resume) {
-        to_rules(&r.resume_msg, now);
+    for (uint32_t n = 0U; canergy_witness_release_at(&r, (uint8_t)(i + 1U), n, &m); n++) {
+        to_rules(&m, now);
     }
 }
 

@@ -87,19 +87,10 @@ static void release(struct gateway_port *g, unsigned i, uint64_t now)
     canergy_witness_release(&b->witness, g->gw.down.sessions[i].returns_credited, now,
                             g->opt.return_hold_us, &r);
     struct canergy_msg m;
-    memset(&m, 0, sizeof m);
-    m.type = CANERGY_RETURN;
-    m.node = g->opt.nodes[i];
-    for (unsigned k = 0U; k < r.count; k++) {
-        for (int64_t n = r.returns[k].first_missed; n <= r.returns[k].seq; n++) {
-            m.seq = (uint16_t)n;
-            m.amount_mj = n == r.returns[k].seq ? r.returns[k].amount_mj : 0U;
-            b->intrusions += n == r.returns[k].seq ? 0U : 1U; /* acked in our name */
-            to_rules(g, &m, now);
-        }
-    }
-    if (r.resume) {
-        to_rules(g, &r.resume_msg, now);
+    for (uint32_t n = 0U; canergy_witness_release_at(&r, g->opt.nodes[i], n, &m); n++) {
+        /* a 0 mJ RETURN: a number someone else acknowledged in this gateway's name */
+        b->intrusions += m.type == CANERGY_RETURN && m.amount_mj == 0U ? 1U : 0U;
+        to_rules(g, &m, now);
     }
 }
 

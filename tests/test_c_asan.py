@@ -32,6 +32,8 @@ UNDER_ASAN = [
     "test_c_node.py",
     "test_c_sidebyside.py",
     "test_c_witnessed.py",
+    "test_c_witness.py",
+    "test_c_gateway_nv.py",
 ]
 
 

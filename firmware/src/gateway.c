@@ -163,3 +163,31 @@ int64_t canergy_gateway_link_gap(const struct canergy_gateway *gw)
 {
     return (int64_t)(gw->down.injected_uj - gw->down.withdrawn_uj) - (int64_t)gw->up.rec.spent_uj;
 }
+
+static uint64_t gw_least(uint64_t a, uint64_t b)
+{
+    return a < b ? a : b;
+}
+
+uint32_t canergy_gateway_top_up(uint64_t target_uj, uint64_t min_uj, uint64_t level_uj,
+                                int64_t usable_uj)
+{
+    if (level_uj >= target_uj || target_uj - level_uj < min_uj || usable_uj <= 0) {
+        return 0U;
+    }
+    /* never above what the node's record holds, nor one frame, nor Us */
+    const uint64_t room = CANERGY_USABLE_MAX_UJ - gw_least(level_uj, CANERGY_USABLE_MAX_UJ);
+    uint64_t amount = gw_least(target_uj - level_uj, room);
+    amount = gw_least(amount, gw_least((uint64_t)CANERGY_AMOUNT_MAX_MJ * GW_MJ, (uint64_t)usable_uj));
+    return (uint32_t)(amount - amount % GW_MJ);
+}
+
+uint32_t canergy_gateway_give_back_amount(int64_t usable_uj, uint64_t return_above_uj)
+{
+    if (usable_uj <= 0 || (uint64_t)usable_uj <= return_above_uj) {
+        return 0U;
+    }
+    const uint64_t excess =
+        gw_least((uint64_t)usable_uj - return_above_uj, (uint64_t)CANERGY_AMOUNT_MAX_MJ * GW_MJ);
+    return (uint32_t)(excess - excess % GW_MJ);
+}

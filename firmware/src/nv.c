@@ -8,6 +8,7 @@
 #include "canergy/nv.h"
 
 #include "canergy/codec.h"
+#include "canergy/gateway.h"
 #include "le.h"
 
 #include <string.h>
@@ -153,4 +154,79 @@ void canergy_nv_load(const uint8_t *image, size_t len, struct canergy_nv_state *
     } else {
         out->fallbacks++; /* the newest valid slot holds impossible values: no books */
     }
+}
+
+/* ---- the gateway's slot (canergy/gateway.h) ---- */
+
+#define GW_SLOT CANERGY_GW_NV_SLOT_SIZE
+#define GW_CRC_AT (GW_SLOT - 4U)
+/* The slot before the supervisor record's version 3 (32 bytes per node): refused by name. */
+#define GW_SLOT_V2                                                                                \
+    (CANERGY_GW_NV_HEADER + CANERGY_NV_RECORD_SIZE + 40U + 32U * CANERGY_SUPERVISOR_NODES + 4U)
+
+void canergy_gateway_nv_encode(const struct canergy_gateway *gw, uint32_t counter,
+                               uint8_t out[CANERGY_GW_NV_SLOT_SIZE])
+{
+    memset(out, 0, GW_SLOT);
+    le_put(out, (uint32_t)CANERGY_GW_NV_MAGIC, 4U);
+    le_put(&out[4], counter, 4U);
+    canergy_record_pack(&gw->up.rec, &out[CANERGY_GW_NV_HEADER]);
+    (void)canergy_supervisor_image(&gw->down, counter,
+                                   &out[CANERGY_GW_NV_HEADER + CANERGY_NV_RECORD_SIZE]);
+    le_put(&out[GW_CRC_AT], canergy_crc32(0U, out, GW_CRC_AT), 4U);
+}
+
+/* A slot of size bytes at s (within len bytes from image): its magic and CRC hold. */
+static bool gw_slot_valid(const uint8_t *image, size_t len, size_t at, size_t size)
+{
+    if (len < at + size) {
+        return false;
+    }
+    const uint8_t *s = &image[at];
+    return le_get(s, 4U) == CANERGY_GW_NV_MAGIC &&
+           le_get(&s[size - 4U], 4U) == canergy_crc32(0U, s, size - 4U);
+}
+
+int canergy_gateway_nv_load(const uint8_t *image, size_t len, struct canergy_gateway_nv *out)
+{
+    memset(out, 0, sizeof *out);
+    out->slot = -1;
+    if (image == NULL) {
+        len = 0U;
+    }
+    out->foreign = len > 0U && le_get(image, len < 4U ? len : 4U) != CANERGY_GW_NV_MAGIC &&
+                   (len < GW_SLOT + 4U || le_get(&image[GW_SLOT], 4U) != CANERGY_GW_NV_MAGIC);
+    for (size_t i = 0U; i < 2U; i++) {
+        if (gw_slot_valid(image, len, i * GW_SLOT_V2, GW_SLOT_V2)) {
+            out->older = 2U;
+        } else if (gw_slot_valid(image, len, i * GW_SLOT, GW_SLOT) &&
+                   image[i * GW_SLOT + CANERGY_GW_NV_HEADER + CANERGY_NV_RECORD_SIZE + 4U] == 3U) {
+            out->older = out->older == 0U ? 3U : out->older;
+        }
+    }
+    for (size_t i = 0U; i < 2U; i++) {
+        if (!gw_slot_valid(image, len, i * GW_SLOT, GW_SLOT)) {
+            continue;
+        }
+        const uint8_t *s = &image[i * GW_SLOT];
+        const uint32_t c = le_get(&s[4], 4U);
+        struct canergy_record rec;
+        const int unpacked = canergy_record_unpack(&s[CANERGY_GW_NV_HEADER], &rec);
+        if (unpacked == CANERGY_ERR_END) {
+            out->up = rec;
+            out->slot = -1;
+            out->down = NULL;
+            return CANERGY_ERR_END;
+        }
+        if (unpacked != CANERGY_OK) {
+            continue;
+        }
+        if (out->slot < 0 || (uint32_t)(c - out->counter) - 1U < 0x7FFFFFFFUL) {
+            out->slot = (int8_t)i;
+            out->counter = c;
+            out->up = rec;
+            out->down = &s[CANERGY_GW_NV_HEADER + CANERGY_NV_RECORD_SIZE];
+        }
+    }
+    return CANERGY_OK;
 }

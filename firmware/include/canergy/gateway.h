@@ -78,6 +78,49 @@ int canergy_gateway_begin(struct canergy_gateway *gw, uint8_t node, uint32_t amo
 /* Energy created between the roles: injected - withdrawn - spent (0 unless the rules broke). */
 int64_t canergy_gateway_link_gap(const struct canergy_gateway *gw);
 
+/* ---- the gateway's policy (canergy-gateway's; Python's in canergy.live) ----
+ * Each node's top-up below: TopUp(target_uj, min_uj).wanted(level) capped as capped_grant with
+ * no limits (canergy.live.policy): the shortfall from its reported level when at least min_uj,
+ * within usable (Us below; a debt is 0), one frame's amount and what its record holds above
+ * level; whole mJ, 0 for none. The caller grants only from a fresh level (reported after its last
+ * transaction ended), to a node not JOINING nor blocked by its witness (canergy/witness.h). */
+uint32_t canergy_gateway_top_up(uint64_t target_uj, uint64_t min_uj, uint64_t level_uj,
+                                int64_t usable_uj);
+
+/* What goes back above (canergy.live.gateway.Uplink's return): usable beyond return_above_uj,
+ * whole mJ, at most one frame's amount; 0 for none. */
+uint32_t canergy_gateway_give_back_amount(int64_t usable_uj, uint64_t return_above_uj);
+
+/* ---- the gateway's NV slot (nv.c): both roles in one record ----
+ * A slot: u32 magic "CNRG", u32 counter, the client's 30-byte record (canergy_record_pack), the
+ * supervisor's slot image (canergy_supervisor_image), u32 CRC-32 of all before it; little-endian.
+ * Two slots, at offsets 0 and CANERGY_GW_NV_SLOT_SIZE, written in turn. */
+#define CANERGY_GW_NV_MAGIC 0x47524E43UL /* "CNRG" little-endian */
+#define CANERGY_GW_NV_HEADER 8U
+#define CANERGY_GW_NV_SLOT_SIZE                                                                   \
+    (CANERGY_GW_NV_HEADER + CANERGY_NV_RECORD_SIZE + CANERGY_SUPERVISOR_SLOT_SIZE + 4U)
+
+/* The slot image of both roles' books under counter. */
+void canergy_gateway_nv_encode(const struct canergy_gateway *gw, uint32_t counter,
+                               uint8_t out[CANERGY_GW_NV_SLOT_SIZE]);
+
+/* What canergy_gateway_nv_load found in an image of two slots. */
+struct canergy_gateway_nv {
+    struct canergy_record up; /* the newest valid slot's client record; see the return value */
+    const uint8_t *down;      /* its supervisor slot image (NULL: no valid slot) */
+    uint32_t counter;         /* its counter */
+    int8_t slot;              /* its slot, 0 or 1; -1: none valid */
+    uint8_t older;            /* a slot of an older layout's supervisor record: its version (2,
+                                 3), else 0; only a refusal's reason, never loaded */
+    bool foreign;             /* bytes, but neither slot starts with the magic (a node's file?) */
+};
+
+/* Read an image of len bytes: the valid slot (magic, CRC, a record the client takes) written
+ * last, comparing counters as 32-bit serial numbers. CANERGY_ERR_END (out->up holds that
+ * record, for the caller's message) when a valid slot's client record holds a counter beyond
+ * CANERGY_COUNTER_BOUND: neither slot is taken (the other may be an older copy). */
+int canergy_gateway_nv_load(const uint8_t *image, size_t len, struct canergy_gateway_nv *out);
+
 #ifdef __cplusplus
 }
 #endif

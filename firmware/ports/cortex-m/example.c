@@ -1,10 +1,9 @@
 /*
- * A bare-metal canergy node for Cortex-M4: vector table, reset handler, and a main loop that
- * wires the library's node layer to the four things a board provides: a CAN controller, NV
- * storage, a microsecond clock and the actuator's energy meter. Here they are stubs (a RAM
- * "EEPROM", a software clock, a fixed meter), so the example links and runs
- * anywhere (nothing arrives on this CAN stub; a real port replaces the functions marked BOARD
- * with its drivers).
+ * A bare-metal canergy node for Cortex-M4 (start-up: startup.c): a main loop that wires the
+ * library's node layer to the four things a board provides: a CAN controller, NV storage, a
+ * microsecond clock and the actuator's energy meter. Here they are stubs (a RAM "EEPROM", a
+ * software clock, a fixed meter), so the example links and runs anywhere (nothing arrives on
+ * this CAN stub; a real port replaces the functions marked BOARD with its drivers).
  *
  *   make -C firmware cortex-m      arm-none-eabi-gcc -mcpu=cortex-m4 -mthumb -Os
  */
@@ -130,39 +129,3 @@ int main(void)
         sleep_until(deadline < next_period ? deadline : next_period);
     }
 }
-
-/* ---- start-up: vector table and reset handler ---- */
-
-/* linker script symbols: addresses only */
-extern uint32_t _data_load[], _data_start[], _data_end[], _bss_start[], _bss_end[];
-extern uint32_t _stack_top[];
-void reset_handler(void);
-void default_handler(void);
-
-void default_handler(void)
-{
-    for (;;) {
-    }
-}
-
-void reset_handler(void)
-{
-    /* the linker's symbols are addresses, not objects: work with word counts */
-    const uintptr_t data_words = ((uintptr_t)_data_end - (uintptr_t)_data_start) / 4U;
-    const uintptr_t bss_words = ((uintptr_t)_bss_end - (uintptr_t)_bss_start) / 4U;
-    for (uintptr_t i = 0U; i < data_words; i++) {
-        _data_start[i] = _data_load[i];
-    }
-    for (uintptr_t i = 0U; i < bss_words; i++) {
-        _bss_start[i] = 0U;
-    }
-    (void)main();
-    default_handler();
-}
-
-/* Initial stack pointer, reset, NMI, HardFault, then the faults and system handlers. */
-typedef void (*vector)(void);
-__attribute__((section(".vectors"), used)) static const vector vectors[16] = {
-    (vector)(uintptr_t)_stack_top, reset_handler, default_handler, default_handler,
-    default_handler, default_handler, default_handler, 0, 0, 0, 0, default_handler,
-    default_handler, 0, default_handler, default_handler};

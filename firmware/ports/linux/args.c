@@ -1,11 +1,13 @@
 /*
- * canergy-node's command line (ports/linux): the usage text, the options with their defaults,
- * and the units of firmware_model's flags ("0.5J", "250mJ", "200mW", "1.5s", plain numbers in
- * the kind's base unit), parsed exactly into micro-units. A bad argument exits 2 with one line.
+ * canergy-node's and canergy-gateway's command lines (ports/linux): the usage texts, the
+ * options with their defaults, and the units of firmware_model's flags ("0.5J", "250mJ",
+ * "200mW", "1.5s", plain numbers in the kind's base unit), parsed exactly into micro-units. A
+ * bad argument exits 2 with one line.
  */
 #define _GNU_SOURCE 1
 
 #include "args.h"
+#include "gateway_port.h"
 
 #include <errno.h>
 #include <linux/can.h>
@@ -332,5 +334,152 @@ void port_parse_args(int argc, char **argv, struct port_options *o)
     }
     if (o->interface != NULL && strcmp(o->interface, "socketcan") != 0) {
         port_usage_error("argument -i: this port speaks socketcan only, not '%s'", o->interface);
+    }
+}
+
+/* ---- canergy-gateway's command line ---- */
+
+/* "1-5,9": ascending distinct ids into o->nodes. */
+static void parse_nodes(const char *text, struct gw_options *o)
+{
+    uint8_t seen[CANERGY_MAX_NODE + 1U] = {0};
+    char buf[512];
+    if (strlen(text) >= sizeof buf) {
+        port_usage_error("argument --nodes: too long");
+    }
+    memcpy(buf, text, strlen(text) + 1U);
+    for (char *rest = NULL, *part = strtok_r(buf, ",", &rest); part != NULL;
+         part = strtok_r(NULL, ",", &rest)) {
+        char *dash = strchr(part, '-');
+        if (dash != NULL) {
+            *dash = '\0';
+        }
+        const uint64_t lo = port_parse_int("--nodes", part, CANERGY_MIN_NODE, CANERGY_MAX_NODE);
+        const uint64_t hi = dash == NULL ? lo
+                                         : port_parse_int("--nodes", dash + 1, lo, CANERGY_MAX_NODE);
+        for (uint64_t n = lo; n <= hi; n++) {
+            seen[n] = 1U;
+        }
+    }
+    o->count = 0U;
+    for (unsigned n = CANERGY_MIN_NODE; n <= CANERGY_MAX_NODE; n++) {
+        if (seen[n] != 0U) {
+            if (o->count == CANERGY_SUPERVISOR_NODES) {
+                port_usage_error("argument --nodes: more than %u nodes",
+                                 (unsigned)CANERGY_SUPERVISOR_NODES);
+            }
+            o->nodes[o->count++] = (uint8_t)n;
+        }
+    }
+}
+
+static void gateway_usage(void)
+{
+    (void)printf("usage: %s --node N --nodes 1-5 [-i socketcan] -c CHANNEL\n"
+                 "       --upstream-channel CHANNEL --nv PATH [--status-file PATH]\n"
+                 "       [--target E] [--min-grant E] [--return-above E]\n"
+                 "       [--telemetry-period T] [--response-timeout T]\n"
+                 "       [--upstream-response-timeout T] [--retries N] [--status-period T]\n"
+                 "       [--stop-timeout T] [--return-hold T] [--id-base ID]\n"
+                 "       [--rules hardened|witnessed] [--upstream-rules hardened|witnessed]\n"
+                 "A canergy gateway on Linux SocketCAN (the C library's gateway rules): node\n"
+                 "--node above (--upstream-channel), supervisor of --nodes below (-c); flags\n"
+                 "as canergy gateway's. Energies 0.5J, 250mJ; durations 50ms, 1.5s.\n"
+                 "--rules witnessed: the nodes below draw through DEBIT and RESUME at\n"
+                 "every start (the supervisor side below).\n"
+                 "--upstream-rules witnessed: what goes below is a DRAW the supervisor\n"
+                 "above acknowledges first, and every start waits, granting nothing below,\n"
+                 "until it confirms this gateway's record (an older copy creates nothing).\n",
+                 PROG);
+    exit(0);
+}
+
+void port_parse_gateway_args(int argc, char **argv, struct gw_options *o)
+{
+    memset(o, 0, sizeof *o);
+    o->min_grant_uj = MJ;
+    o->telemetry_period_us = 100000U;
+    o->response_timeout_us = 50000U;
+    o->up_response_timeout_us = 50000U;
+    o->status_period_us = 1000000U;
+    o->stop_timeout_us = 5000000U;
+    o->tick_us = 50000U;
+    o->return_hold_us = 500000U;
+    o->retries = 3U;
+    o->keep_all = 1;
+    o->id_base = (uint32_t)CANERGY_DEFAULT_ID_BASE;
+    for (int i = 1; i < argc; i++) {
+        const char *flag = argv[i];
+        if (strcmp(flag, "-h") == 0 || strcmp(flag, "--help") == 0) {
+            gateway_usage();
+        }
+        if (i + 1 >= argc) {
+            port_usage_error("argument %s: expected one argument", flag);
+        }
+        const char *v = argv[++i];
+        if (strcmp(flag, "--node") == 0) {
+            o->node = (uint8_t)port_parse_int(flag, v, CANERGY_MIN_NODE, CANERGY_MAX_NODE);
+        } else if (strcmp(flag, "--nodes") == 0) {
+            parse_nodes(v, o);
+        } else if (strcmp(flag, "-i") == 0 || strcmp(flag, "--interface") == 0 ||
+                   strcmp(flag, "--upstream-interface") == 0) {
+            if (strcmp(v, "socketcan") != 0) {
+                port_usage_error("argument %s: this port speaks socketcan only, not '%s'", flag,
+                                 v);
+            }
+        } else if (strcmp(flag, "-c") == 0 || strcmp(flag, "--channel") == 0) {
+            o->down_channel = v;
+        } else if (strcmp(flag, "--upstream-channel") == 0) {
+            o->up_channel = v;
+        } else if (strcmp(flag, "--nv") == 0) {
+            o->nv_path = v;
+        } else if (strcmp(flag, "--status-file") == 0) {
+            o->status_path = v;
+        } else if (strcmp(flag, "--target") == 0) {
+            o->target_uj = port_parse_energy(flag, v);
+            o->has_target = 1;
+        } else if (strcmp(flag, "--min-grant") == 0) {
+            o->min_grant_uj = port_parse_energy(flag, v);
+        } else if (strcmp(flag, "--return-above") == 0) {
+            o->return_above_uj = port_parse_energy(flag, v);
+            o->keep_all = 0;
+        } else if (strcmp(flag, "--telemetry-period") == 0) {
+            o->telemetry_period_us = port_parse_duration(flag, v, UINT32_MAX);
+        } else if (strcmp(flag, "--response-timeout") == 0) {
+            o->response_timeout_us = port_parse_duration(flag, v, UINT32_MAX / 2U);
+        } else if (strcmp(flag, "--upstream-response-timeout") == 0) {
+            o->up_response_timeout_us = port_parse_duration(flag, v, UINT32_MAX / 4U);
+        } else if (strcmp(flag, "--rules") == 0) {
+            o->rules = port_parse_rules(flag, v);
+        } else if (strcmp(flag, "--upstream-rules") == 0) {
+            o->up_rules = port_parse_rules(flag, v);
+        } else if (strcmp(flag, "--retries") == 0) {
+            o->retries = (uint8_t)port_parse_int(flag, v, 0U, 255U);
+        } else if (strcmp(flag, "--status-period") == 0) {
+            o->status_period_us = port_parse_duration(flag, v, UINT32_MAX);
+        } else if (strcmp(flag, "--return-hold") == 0) {
+            o->return_hold_us = port_parse_duration(flag, v, UINT32_MAX);
+        } else if (strcmp(flag, "--stop-timeout") == 0) {
+            o->stop_timeout_us = port_parse_duration(flag, v, UINT32_MAX);
+        } else if (strcmp(flag, "--id-base") == 0) {
+            o->id_base = (uint32_t)port_parse_int(flag, v, 0U, 0x1FFFFFFFU);
+            if (!canergy_id_base_valid(o->id_base)) {
+                port_usage_error("argument %s: id base 0x%08X has bits in its low 12", flag,
+                                 (unsigned)o->id_base);
+            }
+        } else {
+            port_usage_error("unrecognized argument: %s", flag);
+        }
+    }
+    if (o->node == 0U || o->count == 0U || o->down_channel == NULL || o->up_channel == NULL ||
+        o->nv_path == NULL) {
+        port_usage_error("the following arguments are required: --node, --nodes, -c, "
+                         "--upstream-channel, --nv");
+    }
+    if (strcmp(o->down_channel, o->up_channel) == 0) {
+        port_usage_error("-c and --upstream-channel name the same bus: a gateway joins two");
+    }
+    if (o->min_grant_uj < MJ) {
+        port_usage_error("argument --min-grant: at least 1 mJ (one frame's unit)");
     }
 }

@@ -1,6 +1,7 @@
 /*
- * canergy-node's command line (args.c): the options and their units, and the one-line error
- * (exit 2) that every refusal of a bad argument, path or setting ends with.
+ * canergy-node's command line (args.c; canergy-gateway's is declared in gateway_port.h): the
+ * options and their units, and the one-line error (exit 2) that every refusal of a bad
+ * argument, path or setting ends with.
  */
 #ifndef CANERGY_PORT_LINUX_ARGS_H
 #define CANERGY_PORT_LINUX_ARGS_H

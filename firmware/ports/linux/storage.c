@@ -260,28 +260,12 @@ static void write_status(const struct port *p, FILE *f)
     (void)fprintf(f, "}}\n");
 }
 
-/* temp file + fsync + rename: a reader sees the old or the new status, never half of one */
+static void write_node_status(const void *ctx, FILE *f)
+{
+    write_status((const struct port *)ctx, f);
+}
+
 void port_save_status(const struct port *p)
 {
-    if (p->opt.status_path == NULL) {
-        write_status(p, stdout);
-        return;
-    }
-    char tmp[PATH_MAX];
-    if (snprintf(tmp, sizeof tmp, "%s.tmp.%ld", p->opt.status_path, (long)getpid()) >=
-        (int)sizeof tmp) {
-        port_usage_error("--status-file %s: path too long", p->opt.status_path);
-    }
-    FILE *f = fopen(tmp, "w");
-    if (f == NULL) {
-        (void)fprintf(stderr, "%s: status file %s: %s\n", PROG, tmp, strerror(errno));
-        return;
-    }
-    write_status(p, f);
-    const int ok = fflush(f) == 0 && fsync(fileno(f)) == 0;
-    if (fclose(f) != 0 || !ok || rename(tmp, p->opt.status_path) != 0) {
-        (void)fprintf(stderr, "%s: status file %s: %s\n", PROG, p->opt.status_path,
-                      strerror(errno));
-        (void)unlink(tmp);
-    }
+    port_save_status_file(p->opt.status_path, write_node_status, p);
 }

@@ -5,6 +5,7 @@
 
 #include "system.h"
 
+#include "args.h"
 #include "port.h"
 
 #include <errno.h>
@@ -13,6 +14,7 @@
 #include <limits.h>
 #include <stdio.h>
 #include <stdlib.h>
+#include <string.h>
 #include <sys/random.h>
 #include <sys/stat.h>
 #include <time.h>
@@ -79,4 +81,28 @@ int port_open_nv(const char *path, mode_t mode)
         return -1;
     }
     return fd;
+}
+
+void port_save_status_file(const char *path, void (*write)(const void *ctx, FILE *f),
+                           const void *ctx)
+{
+    if (path == NULL) {
+        write(ctx, stdout);
+        return;
+    }
+    char tmp[PATH_MAX];
+    if (snprintf(tmp, sizeof tmp, "%s.tmp.%ld", path, (long)getpid()) >= (int)sizeof tmp) {
+        port_usage_error("--status-file %s: path too long", path);
+    }
+    FILE *f = fopen(tmp, "w");
+    if (f == NULL) {
+        (void)fprintf(stderr, "%s: status file %s: %s\n", PROG, tmp, strerror(errno));
+        return;
+    }
+    write(ctx, f);
+    const int ok = fflush(f) == 0 && fsync(fileno(f)) == 0;
+    if (fclose(f) != 0 || !ok || rename(tmp, path) != 0) {
+        (void)fprintf(stderr, "%s: status file %s: %s\n", PROG, path, strerror(errno));
+        (void)unlink(tmp);
+    }
 }

@@ -7,6 +7,7 @@
 #define CANERGY_PORT_LINUX_SYSTEM_H
 
 #include <stdint.h>
+#include <stdio.h>
 #include <sys/types.h>
 
 /* CLOCK_MONOTONIC in microseconds; exits 1 when the clock cannot be read. */
@@ -21,5 +22,12 @@ uint16_t port_random16(void);
  * loss; a filesystem that cannot sync a directory (EINVAL) is taken as it is. -1 with errno
  * set on failure. */
 int port_open_nv(const char *path, mode_t mode);
+
+/* A status file: write(ctx, f) into a temporary file beside path, fsynced and renamed over it
+ * (a reader sees the old or the new status, never half of one); to stdout when path is NULL.
+ * A failure is said on stderr and the old file kept; a path too long for the temporary file
+ * exits 2. */
+void port_save_status_file(const char *path, void (*write)(const void *ctx, FILE *f),
+                           const void *ctx);
 
 #endif /* CANERGY_PORT_LINUX_SYSTEM_H */

@@ -36,6 +36,7 @@ SOURCES = (
     "session.c",
     "supervisor.c",
     "gateway.c",
+    "witness.c",
 )
 """The whole library (firmware/Makefile's SRCS)."""
 NODES = 127

@@ -67,6 +67,13 @@ class UplinkConfig:
     tick_us: int = 50_000
 
 
+def give_back_amount(usable: int, keep: int) -> int:
+    """What goes back above: the downstream budget beyond ``keep``, in whole quanta, at most one
+    frame's amount (0: none). The C gateway's twin: ``canergy_gateway_give_back_amount``."""
+    excess = quantize(usable - keep)
+    return min(excess, AMOUNT_MAX_MJ * QUANTUM_UJ) if excess > 0 else 0
+
+
 class GatewayFiles:
     """Where the gateway's one record goes."""
 
@@ -278,10 +285,9 @@ class Uplink:
         keep = self.config.return_above
         if keep is None or not self.gateway.can_give_back():
             return []
-        excess = quantize(self.gateway.down.state.usable - keep)
-        if excess <= 0:
+        amount = give_back_amount(self.gateway.down.state.usable, keep)
+        if not amount:
             return []
-        amount = min(excess, AMOUNT_MAX_MJ * QUANTUM_UJ)
         self.returned += amount
         return self._carry_out(self.gateway.give_back(amount, now), now)
 

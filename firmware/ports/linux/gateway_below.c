@@ -1,0 +1,157 @@
+/*
+ * canergy-gateway's bus below (gateway_port.h): what its nodes send, through the library's
+ * witness (canergy/witness.h) to the supervisor's rules, what the rules ask carried out, and
+ * the top-ups (canergy_gateway_top_up).
+ */
+#define _GNU_SOURCE 1
+
+#include "gateway_port.h"
+#include "socketcan.h"
+
+#include <string.h>
+
+static struct below *below_of(struct gateway_port *g, uint8_t node)
+{
+    for (unsigned i = 0U; i < g->opt.count; i++) {
+        if (g->opt.nodes[i] == node) {
+            return &g->below[i];
+        }
+    }
+    return NULL;
+}
+
+void gw_down_out(struct gateway_port *g, const struct canergy_supervisor_out *out,
+                 uint64_t now)
+{
+    if (out->persist) {
+        gw_save(g);
+    }
+    for (unsigned i = 0U; i < out->frame_count; i++) {
+        port_can_send(g->down_sock, &g->down_count, out->frames[i].id, out->frames[i].data,
+                      out->frames[i].dlc);
+    }
+    /* an acknowledged intention is committed (aborted when stopping) at once; an ended
+     * transaction makes the node's level stale until it reports again */
+    for (unsigned k = 0U; k < out->event_count; k++) {
+        const struct canergy_supervisor_event *e = &out->events[k];
+        struct below *b = below_of(g, e->node);
+        if (b == NULL) {
+            continue;
+        }
+        if (e->resolved != CANERGY_RESOLVED_NONE) {
+            b->fresh = 0;
+            b->committed += e->resolved == CANERGY_RESOLVED_COMMITTED ? 1U : 0U;
+            b->committed_uj += e->resolved == CANERGY_RESOLVED_COMMITTED ? e->amount_uj : 0U;
+            b->aborted += e->resolved == CANERGY_RESOLVED_ABORTED ? 1U : 0U;
+            b->written_off += e->resolved == CANERGY_RESOLVED_WRITTEN_OFF ? 1U : 0U;
+        }
+        if ((e->flags & CANERGY_SUP_ADMITTED) != 0U) {
+            b->admitted++;
+            b->fresh = 0;
+            canergy_witness_readmitted(&b->witness); /* its return numbers start again */
+        }
+        struct canergy_supervisor_out decided;
+        if ((e->flags & CANERGY_SUP_ACKNOWLEDGED) != 0U &&
+            canergy_supervisor_decide(&g->gw.down, e->node, !g->stopping, now, &decided) ==
+                CANERGY_OK) {
+            gw_down_out(g, &decided, now);
+        }
+    }
+}
+
+static void to_rules(struct gateway_port *g, const struct canergy_msg *m, uint64_t now)
+{
+    struct canergy_supervisor_out out;
+    (void)canergy_supervisor_on_msg(&g->gw.down, m, now, &out);
+    gw_down_out(g, &out, now);
+}
+
+void gw_count_decode(struct port_counters *c, int status)
+{
+    if (status == CANERGY_DECODE_FOREIGN) {
+        c->foreign_frames++;
+    } else if (status != CANERGY_DECODE_OK && status != CANERGY_RX_OTHER_NODE) {
+        c->decode_errors++;
+        if (status > 0 && status <= (int)CANERGY_DECODE_OUT_OF_RANGE) {
+            c->reasons[status]++;
+        }
+    }
+}
+
+/* The node's RETURNs (and RESUMEs) its TELEMETRY has confirmed --return-hold ago with no
+ * evidence since, to the rules in order; each number missed before one as a 0 mJ RETURN. */
+static void release(struct gateway_port *g, unsigned i, uint64_t now)
+{
+    struct below *b = &g->below[i];
+    struct canergy_witness_release r;
+    canergy_witness_release(&b->witness, g->gw.down.sessions[i].returns_credited, now,
+                            g->opt.return_hold_us, &r);
+    struct canergy_msg m;
+    for (uint32_t n = 0U; canergy_witness_release_at(&r, g->opt.nodes[i], n, &m); n++) {
+        /* a 0 mJ RETURN: a number someone else acknowledged in this gateway's name */
+        b->intrusions += m.type == CANERGY_RETURN && m.amount_mj == 0U ? 1U : 0U;
+        to_rules(g, &m, now);
+    }
+}
+
+/* A message from below: a TELEMETRY's level for the top-ups; then the witness's route. */
+static void from_below(struct gateway_port *g, unsigned i, const struct canergy_msg *m,
+                       uint64_t now)
+{
+    struct below *b = &g->below[i];
+    b->heard = 1;
+    b->heard_at = now;
+    if (m->type == CANERGY_TELEMETRY) {
+        b->level_uj = (uint64_t)m->level_mj * MJ;
+        b->joining = (m->flags & CANERGY_TELEMETRY_JOINING) != 0U;
+        b->fresh = 1;
+    }
+    if (canergy_witness_route(&b->witness, &g->gw.down.sessions[i], m, g->opt.rules, now,
+                              &b->intrusions) == CANERGY_WITNESS_TO_RULES) {
+        to_rules(g, m, now);
+    } else {
+        release(g, i, now); /* what it held may be due now */
+    }
+}
+
+void gw_receive_down(struct gateway_port *g, uint64_t now)
+{
+    struct canfd_frame cf;
+    struct canergy_rx_frame rx;
+    while (port_can_receive(g->down_sock, &g->down_count, &cf, &rx) == 1) {
+        struct canergy_msg m;
+        const int status = (int)canergy_decode(g->opt.id_base, &rx, CANERGY_TO_SUPERVISOR, &m);
+        gw_count_decode(&g->down_count, status);
+        const struct below *b = status == CANERGY_DECODE_OK ? below_of(g, m.node) : NULL;
+        if (b != NULL) {
+            from_below(g, (unsigned)(b - g->below), &m, now);
+        }
+    }
+}
+
+void gw_release_all(struct gateway_port *g, uint64_t now)
+{
+    for (unsigned i = 0U; i < g->opt.count; i++) {
+        release(g, i, now);
+    }
+}
+
+void gw_top_up(struct gateway_port *g, uint64_t now)
+{
+    for (unsigned i = 0U; g->opt.has_target && !g->stopping && i < g->opt.count; i++) {
+        struct below *b = &g->below[i];
+        const struct canergy_session *s = &g->gw.down.sessions[i];
+        if (s->phase != CANERGY_S_IDLE || !b->heard || !b->fresh || b->joining ||
+            canergy_witness_blocked(&b->witness, now, WITNESS_BLOCK_US)) {
+            continue;
+        }
+        const uint32_t amount = canergy_gateway_top_up(g->opt.target_uj, g->opt.min_grant_uj,
+                                                       b->level_uj, g->gw.down.usable_uj);
+        struct canergy_supervisor_out out;
+        if (amount != 0U &&
+            canergy_gateway_begin(&g->gw, s->node, amount, now, &out) == CANERGY_OK) {
+            b->fresh = 0;
+            gw_down_out(g, &out, now);
+        }
+    }
+}

@@ -1,0 +1,114 @@
+/*
+ * canergy-gateway's shared state (ports/linux): its options, what it keeps per node below, and
+ * struct gateway_port, which main() owns and hands to the port's other files: args.c (the
+ * command line), gateway_below.c (the bus below), gateway_storage.c (the NV file, the status
+ * file and what stderr is told).
+ * The rules and the policy are the library's (canergy/gateway.h, canergy/witness.h).
+ */
+#ifndef CANERGY_PORT_LINUX_GATEWAY_PORT_H
+#define CANERGY_PORT_LINUX_GATEWAY_PORT_H
+
+#include "port.h"
+
+#include "canergy/gateway.h"
+#include "canergy/witness.h"
+
+#include <stdint.h>
+
+#define MJ 1000U
+#define WITNESS_BLOCK_US (10U * US_PER_S) /* no top-ups after evidence, as `canergy gateway` */
+
+struct gw_options {
+    const char *down_channel;
+    const char *up_channel;
+    const char *nv_path;
+    const char *status_path;
+    uint64_t target_uj;
+    uint64_t min_grant_uj;
+    uint64_t return_above_uj;
+    uint64_t telemetry_period_us;
+    uint64_t response_timeout_us;
+    uint64_t up_response_timeout_us;
+    uint64_t status_period_us;
+    uint64_t stop_timeout_us;
+    uint64_t tick_us;
+    uint64_t return_hold_us;
+    uint32_t id_base;
+    uint8_t nodes[CANERGY_SUPERVISOR_NODES];
+    uint8_t count;
+    uint8_t node;
+    uint8_t retries;
+    uint8_t rules;    /* below: enum canergy_rules */
+    uint8_t up_rules; /* above: enum canergy_rules */
+    int keep_all;
+    int has_target;
+};
+
+struct below {
+    struct canergy_witness witness; /* its RETURNs held until its TELEMETRY confirms them */
+    uint64_t level_uj;
+    uint64_t heard_at;
+    uint64_t committed;
+    uint64_t committed_uj;
+    uint64_t aborted;
+    uint64_t written_off;
+    uint64_t admitted;
+    uint32_t intrusions; /* evidence against its reports (canergy_witness_route) */
+    int fresh;   /* a level reported since the node's last transaction ended */
+    int joining; /* its last TELEMETRY said JOINING */
+    int heard;
+};
+
+struct gateway_port {
+    struct gw_options opt;
+    struct canergy_gateway gw;
+    struct below below[CANERGY_SUPERVISOR_NODES];
+    struct port_counters up_count;
+    struct port_counters down_count;
+    uint64_t nv_writes;
+    uint64_t returned_uj;
+    uint64_t witnessed;    /* frames in its name above that it did not send (not wrapped) */
+    uint64_t found_behind; /* starts the supervisor above found behind (witnessed above) */
+    uint64_t dropped_uj;   /* Us below dropped by them */
+    uint64_t confirmed;    /* starts the supervisor above confirmed or found behind */
+    uint32_t nv_counter;
+    uint8_t nv_slot; /* slot holding the newest record: the next write goes to the other */
+    unsigned waiting; /* nodes below a start waited for when last said (witnessed) */
+    int joins;
+    int up_sock;
+    int down_sock;
+    int nv_fd;
+    int stopping;
+    int telemetry_now; /* a commit or pay-back above: report the new level at once */
+    int up_waiting;    /* the wait for the supervisor above, as last said on stderr */
+};
+
+/* gateway_below.c: carry out a step of the supervisor below (both records saved first, then
+ * its frames; an acknowledged intention decided at once); the nodes' frames; the held RETURNs
+ * due; the top-ups. gw_count_decode counts a decode status on either bus. */
+void gw_down_out(struct gateway_port *g, const struct canergy_supervisor_out *out, uint64_t now);
+void gw_receive_down(struct gateway_port *g, uint64_t now);
+void gw_release_all(struct gateway_port *g, uint64_t now);
+void gw_top_up(struct gateway_port *g, uint64_t now);
+void gw_count_decode(struct port_counters *c, int status);
+
+/* args.c: the options of argv with their defaults; -h prints the usage and exits 0, a bad
+ * argument exits 2. */
+void port_parse_gateway_args(int argc, char **argv, struct gw_options *o);
+
+/* gateway_storage.c. Before the buses are opened: exit 2 when an existing NV file cannot be
+ * taken (a counter beyond the bound in either role, an older layout). */
+void gw_check_nv(const struct gw_options *o);
+/* Open the NV file and start both roles from its newest slot (none: JOIN above, new below),
+ * sending the start's frames above. Exits 2 when the file cannot be taken. */
+void gw_start(struct gateway_port *g, uint64_t now);
+/* Both records, fsynced, before any frame of the step leaves: exits 1 when that fails. */
+void gw_save(struct gateway_port *g);
+/* The status file (the Python gateway's keys; `canergy ledger` reads it). */
+void gw_save_status(const struct gateway_port *g, uint64_t now);
+/* stderr, each change once: whom a start below waits for (witnessed below); the wait for the
+ * supervisor above to confirm this gateway's record, and how it ended (witnessed above). */
+void gw_say_waiting(struct gateway_port *g);
+void gw_say_up_waiting(struct gateway_port *g, int behind, uint64_t dropped);
+
+#endif /* CANERGY_PORT_LINUX_GATEWAY_PORT_H */

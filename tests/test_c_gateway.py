@@ -341,6 +341,23 @@ def test_a_refused_give_back_moves_nothing(amount: int) -> None:
     assert bytes(m.lib.ffi.buffer(m.gw)) == before and m.out.frame_count == 0 and not m.out.persist
 
 
+def test_no_give_back_while_a_start_below_waits_for_the_books() -> None:
+    """Witnessed rules below: Us may be an older copy's, holding what nodes were granted since
+    (``canergy check --topology chain --variant witnessed --gateway-old-copies 1``): nothing
+    goes back up until every node below has confirmed its books, in C as in Python."""
+    m = GatewaySideBySide()
+    m.root_grants(2_000)
+    for _ in range(2):
+        m.deliver_down_from_root(twice=False, lose=False)
+    m.gw.down.sessions[0].phase = m.lib.CANERGY_S_SYNCING
+    before = bytes(m.lib.ffi.buffer(m.gw))
+    code = m.lib.canergy_gateway_give_back(ref(m.gw), 1_000_000, m.now, ref(m.out))
+    assert code == ERR_PHASE and bytes(m.lib.ffi.buffer(m.gw)) == before
+    assert m.out.frame_count == 0
+    m.gw.down.sessions[0].phase = m.lib.CANERGY_S_IDLE
+    assert m.lib.canergy_gateway_give_back(ref(m.gw), 1_000_000, m.now, ref(m.out)) == OK
+
+
 class AgainstTheBrokenBuild(GatewaySideBySide):
     """The same machine on the build whose give-back leaves the energy in Us below. That build
     also credits a duplicated COMMIT again (the client's break, tests/test_c_broken.py): no

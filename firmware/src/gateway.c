@@ -133,6 +133,11 @@ int canergy_gateway_give_back(struct canergy_gateway *gw, uint32_t uj, uint64_t 
     if (!canergy_client_can_give_back(&gw->up)) {
         return CANERGY_ERR_PHASE;
     }
+    /* witnessed below: while a start waits for a node's books, Us may be an older copy's,
+     * holding what nodes were granted since (core/gateway.py, Gateway.give_back) */
+    if (canergy_supervisor_unconfirmed(&gw->down, NULL) != 0U) {
+        return CANERGY_ERR_PHASE;
+    }
     /* Us below holds only what came from above (link gap 0: spent = injected - withdrawn, and
      * nodes below return only what they were given): never more than spent */
     CANERGY_ASSERT(gw->down.usable_uj < 0 || (uint64_t)gw->down.usable_uj <= gw->up.rec.spent_uj);

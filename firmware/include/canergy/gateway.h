@@ -60,7 +60,8 @@ void canergy_gateway_on_up_timer(struct canergy_gateway *gw, uint64_t now,
                                  struct canergy_out *out);
 
 /* Return uj of the downstream Us upstream as the next numbered RETURN: CANERGY_ERR_PHASE while
- * a return awaits its acknowledgement or the client is joining, CANERGY_ERR_AMOUNT for an amount
+ * a return awaits its acknowledgement, the client is joining or a start below waits for a
+ * node's books (witnessed rules below), CANERGY_ERR_AMOUNT for an amount
  * the client cannot return (whole mJ, 1..65,535 mJ) or above the downstream Us. Nothing moves
  * on a refusal. */
 int canergy_gateway_give_back(struct canergy_gateway *gw, uint32_t uj, uint64_t now,

@@ -11,7 +11,9 @@ import asyncio
 import contextlib
 import json
 import os
+import sys
 import threading
+import time
 import uuid
 from collections.abc import Iterator
 from pathlib import Path
@@ -100,11 +102,13 @@ def test_the_mock_answers_no_read_back_and_is_refused_at_set_up(tmp_path: Path) 
 def test_the_mock_trusted_ignores_the_stop_and_is_reported_stuck(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    with mocked_axis(tmp_path, "--odrive-trust-limits", "--odrive-stop-timeout", "300ms") as (
-        status,
-        app,
-        _,
-    ):
+    cut = tmp_path / "relay"  # what --on-stuck ran, one line per run
+    script = tmp_path / "relay.py"
+    script.write_text("import sys\nopen(sys.argv[1], 'a').write(' '.join(sys.argv[2:]) + '\\n')\n")
+    relay = f"{sys.executable} {script} {cut} {{profile}} {{node}}"
+    with mocked_axis(
+        tmp_path, "--odrive-trust-limits", "--odrive-stop-timeout", "300ms", "--on-stuck", relay
+    ) as (status, app, _):
         wait_for(lambda: (d := axis(status)) and d["ready"], timeout=30)
         # its bus voltage read once before the application floods it: the mock answers a poll
         # only between the 0.5 s it takes over each Set_Axis_State, one after the other
@@ -119,6 +123,14 @@ def test_the_mock_trusted_ignores_the_stop_and_is_reported_stuck(
             return d if d and d["stuck"] else None
 
         d = wait_for(stuck, timeout=60)
+        wait_for(lambda: cut.exists() and (a := axis(status)) and a["on_stuck"]["exit_code"] == 0)
+        stuck_for = time.monotonic() + 1.0
+        while time.monotonic() < stuck_for:  # many passes later: still one run
+            app.send(frame)
+            time.sleep(0.05)
+        last = axis(status)
+    assert cut.read_text() == "odrive 3\n"  # run once, the axis named
+    assert last is not None and last["stuck"] and last["on_stuck"]["runs"] == 1
     # its heartbeat (every 200 ms) shows it still in closed loop, or comes too late to tell
     assert d["stuck"] in {
         f"{how} 300 ms after the stop" for how in ("still powered", "not heard for")

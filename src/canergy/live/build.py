@@ -29,6 +29,7 @@ from canergy.core import Timing
 from canergy.core.supervisor import SupervisorCore
 from canergy.live.bus_group import BusGroup
 from canergy.live.control import ControlServer
+from canergy.live.on_stuck import OnStuck
 from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
 from canergy.live.service import ServiceConfig, SupervisorService
 from canergy.live.state_file import keep_books, load_state
@@ -123,6 +124,8 @@ class SupervisorConfig:
     devices: tuple[DeviceGroup, ...] = ()
     report: Callable[[str], None] | None = None
     """Told in one line whenever a guard stops or releases its drive or device."""
+    on_stuck: str | None = None
+    """``--on-stuck``: the command run once each time a guarded device becomes STUCK."""
 
     @property
     def shares_bus(self) -> bool:
@@ -296,6 +299,9 @@ def _one(
             devices=devices,
             capture=capture,
             report=config.report,
+            on_stuck=None
+            if config.on_stuck is None
+            else OnStuck(config.on_stuck, config.report or print),
             liveness=None if manager is None else manager.alive,
         )
         made.append(guarded.close)

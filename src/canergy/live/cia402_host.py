@@ -31,6 +31,7 @@ from canergy.codec import Codec, DecodeError
 from canergy.devices.guard import DeviceGuard
 from canergy.live.cia402_link import DriveLink
 from canergy.live.device_link import Device, DeviceLink
+from canergy.live.on_stuck import OnStuck
 from canergy.live.service import SupervisorService
 from canergy.messages import Direction, Message, ToClient
 
@@ -67,8 +68,11 @@ class GuardedDevices:
         capture: can.Listener | None = None,
         report: Callable[[str], None] | None = None,
         liveness: Callable[[int, int], bool] | None = None,
+        on_stuck: OnStuck | None = None,
     ) -> None:
-        """``liveness``: the test of the other nodes (the CANopen heartbeat watchdog)."""
+        """``liveness``: the test of the other nodes (the CANopen heartbeat watchdog);
+        ``on_stuck``: ``--on-stuck``, run when a device becomes STUCK."""
+        self.on_stuck = on_stuck
         self.report = report
         """Told in one line whenever a guard stops or releases its drive."""
         self.reported: dict[int, tuple[str, str | None]] = {}
@@ -168,6 +172,8 @@ class GuardedDevices:
         for n, (device, device_link) in self.devices.items():
             profile = devices.setdefault(device.profile.name, {})
             profile[str(n)] = {**device.status(now), **device_link.status()}
+            if self.on_stuck is not None:
+                profile[str(n)]["on_stuck"] = self.on_stuck.status(n)
         return {
             "host_id": None if self.beat is None else self.beat.host_id,
             "heartbeat_failures": self.beat_failures,
@@ -192,6 +198,8 @@ class GuardedDevices:
 
     def _tell(self, guard: DriveGuard | DeviceGuard[Any]) -> None:
         stuck = getattr(guard, "stuck", None)
+        if self.on_stuck is not None and isinstance(guard, DeviceGuard):
+            self.on_stuck(guard.profile.name, guard.node, stuck)
         seen = (guard.phase.value, guard.stop_reason if stuck is None else stuck)
         if self.report is None or self.reported.get(guard.node, seen) == seen:
             self.reported[guard.node] = seen

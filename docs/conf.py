@@ -48,7 +48,7 @@ nitpick_ignore_regex = [
     # internal types that public signatures name; they are not part of the API reference
     ("py:class", r"canergy\.core\.table\.RuleTable|Cell|S|Variant|SupervisorCore"),
     ("py:class", r"(canergy\.auth\.frames\.)?(Verdict|FrameAuth)"),
-    ("py:class", r"canergy\.live\.control\.ControlServer"),
+    ("py:class", r"(canergy\.live\.control\.)?ControlServer"),
     ("py:class", r"(canergy\.inspect\.candump\.)?FrameLog"),
     ("py:obj", r"canergy\.bridge\.schedule\.T"),  # Held's TypeVar
     ("py:class", r"'dict\[str"),  # a quoted annotation Sphinx splits at its comma

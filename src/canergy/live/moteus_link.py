@@ -60,11 +60,11 @@ from canergy.devices.moteus import (
     stream_lines,
     write_mode,
 )
-from canergy.devices.profile import Stop, WriteLimits
+from canergy.devices.profile import Stop
+from canergy.live.device_link import GuardLink
 from canergy.messages import Message
 
 log = logging.getLogger(__name__)
-Event = Callable[[DeviceGuard[MoteusLimits], int], list[Message]]
 
 
 @dataclass(frozen=True, slots=True)
@@ -89,7 +89,7 @@ def mode_name(mode: float) -> str:
     return Mode(n).name if n is not None and n in Mode.__members__.values() else f"mode {mode:g}"
 
 
-class MoteusLink:
+class MoteusLink(GuardLink[MoteusLimits]):
     """The controller ``node`` on ``bus`` (see the module doc); ``clock`` gives host µs."""
 
     def __init__(
@@ -100,16 +100,11 @@ class MoteusLink:
         limits: MoteusLimits | None,
         clock: Callable[[], int],
     ) -> None:
-        self.bus = bus
-        self.node = node
+        super().__init__(bus, node, limits, clock, "moteus")
         self.config = config
-        self.limits = limits
         self.held = limits
         """What the controller holds as far as the bus shows: the limits the guard last began
         to write, with the values others set since (a foreign ``conf set`` changes one)."""
-        self.clock = clock
-        self.lock = threading.Lock()
-        self.events: list[Event] = []
         self.lines: queue.Queue[str] = queue.Queue()
         self.answers = bytearray()
         self.foreign_stream = bytearray()
@@ -120,25 +115,10 @@ class MoteusLink:
         self.sent: collections.deque[tuple[int, bytes]] = collections.deque(maxlen=64)
         """What the guard sent lately, for ``_own`` (python-can loops nothing back by default:
         ``receive_own_messages``)."""
-        self.work: queue.Queue[WriteLimits[MoteusLimits] | Stop | None] = queue.Queue()
-        self.voltage: float | None = None
         self.mode: str | None = None
         self.fault: int | None = None
-        self.reaction_max_us = 0
-        self.latency_max_us = 0
-        self.send_failures = 0
-        self.frames_in = 0
-        self.bad_frames = 0
-        self.closing = threading.Event()
-        self.worker = threading.Thread(target=self._work, daemon=True, name=f"moteus-{node}")
-
-    def start(self) -> None:
-        self.worker.start()
 
     # -- the listener (Notifier thread) ---------------------------------------------------
-    def __call__(self, frame: can.Message) -> None:
-        self.on_message_received(frame)
-
     def on_message_received(self, frame: can.Message) -> None:
         if frame.is_error_frame or frame.is_remote_frame:
             return
@@ -150,9 +130,7 @@ class MoteusLink:
         to_device = addressed and source != self.node and not self._own(frame)
         if not (from_device or to_device):
             return
-        at = self.clock()
-        if frame.timestamp > 0:
-            at -= max(0, min(round((time.time() - frame.timestamp) * 1e6), 1_000_000))
+        at = self.received_at(frame)
         subframes, error = decode(bytes(frame.data))
         try:
             if from_device:
@@ -179,11 +157,6 @@ class MoteusLink:
     def on_error(self, exc: Exception) -> None:
         with self.lock:
             self.bad_frames += 1
-
-    def _event(self, event: Event) -> None:
-        with self.lock:
-            self.frames_in += 1
-            self.events.append(event)
 
     def _from_device(self, subframes: list[Subframe], destination: int, at: int) -> None:
         values: dict[int, float] = {}
@@ -257,40 +230,9 @@ class MoteusLink:
             self._foreign_write(f"'{line[:60]}'")
 
     # -- the loop's side ------------------------------------------------------------------
-    def pump(self, guard: DeviceGuard[MoteusLimits], now: int) -> list[Message]:
-        with self.lock:
-            events, self.events = self.events, []
-        guard.watch(self.reaction_max_us, self.latency_max_us)
-        out: list[Message] = []
-        for event in events:
-            out += event(guard, now)
-        return out
-
-    def command(self, cmd: WriteLimits[MoteusLimits] | Stop) -> None:
-        self.work.put(cmd)
-
-    def pending(self) -> bool:
-        with self.lock:
-            return bool(self.events)
-
     def status(self) -> dict[str, object]:
-        return {
-            "source_id": self.config.source,
-            "mode": self.mode,
-            "fault": self.fault,
-            "reaction_max_us": self.reaction_max_us,
-            "latency_max_us": self.latency_max_us,
-            "bus_voltage_v": self.voltage,
-            "send_failures": self.send_failures,
-            "frames_in": self.frames_in,
-            "bad_frames": self.bad_frames,
-        }
-
-    def close(self) -> None:
-        self.work.put(None)
-        if self.worker.is_alive():
-            self.worker.join(timeout=2)
-        self.closing.set()
+        extra = {"source_id": self.config.source, "mode": self.mode, "fault": self.fault}
+        return {**extra, **super().status()}
 
     # -- the worker -----------------------------------------------------------------------
     def _send(self, data: bytes, reply: bool = False) -> bool:

@@ -24,8 +24,6 @@ import functools
 import logging
 import queue
 import struct
-import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -45,7 +43,8 @@ from canergy.devices.odrive import (
     split_id,
     two_floats,
 )
-from canergy.devices.profile import Stop, WriteLimits
+from canergy.devices.profile import Stop
+from canergy.live.device_link import GuardLink
 from canergy.messages import Message
 
 log = logging.getLogger(__name__)
@@ -71,7 +70,7 @@ class OdriveLinkConfig:
     sampled: bool = False
 
 
-class OdriveLink:
+class OdriveLink(GuardLink[OdriveLimits]):
     """The axis ``node`` on ``bus`` (see the module doc); ``clock`` gives host µs."""
 
     def __init__(
@@ -82,41 +81,18 @@ class OdriveLink:
         limits: OdriveLimits | None,
         clock: Callable[[], int],
     ) -> None:
-        self.bus = bus
-        self.node = node
+        super().__init__(bus, node, limits, clock, "odrive")
         self.config = config
-        self.limits = limits
-        self.clock = clock
-        self.lock = threading.Lock()
-        self.events: list[Callable[[DeviceGuard[OdriveLimits], int], list[Message]]] = []
         self.replies: queue.Queue[tuple[int, float]] = queue.Queue()
-        self.work: queue.Queue[WriteLimits[OdriveLimits] | Stop | None] = queue.Queue()
-        self.voltage: float | None = None
-        self.reaction_max_us = 0
-        self.latency_max_us = 0
-        self.send_failures = 0
-        self.frames_in = 0
-        self.bad_frames = 0
-        self.closing = threading.Event()
-        self.worker = threading.Thread(target=self._work, daemon=True, name=f"odrive-{node}")
-
-    def start(self) -> None:
-        """Set up the axis and carry out commands (once the listener hears the bus)."""
-        self.worker.start()
 
     # -- the listener (Notifier thread) ---------------------------------------------------
-    def __call__(self, frame: can.Message) -> None:
-        self.on_message_received(frame)
-
     def on_message_received(self, frame: can.Message) -> None:
         if frame.is_extended_id or frame.is_error_frame:
             return
         node, cmd = split_id(frame.arbitration_id)
         if node != self.node:
             return
-        at = self.clock()
-        if frame.timestamp > 0:  # received before the Notifier's thread got to it
-            at -= max(0, min(round((time.time() - frame.timestamp) * 1e6), 1_000_000))
+        at = self.received_at(frame)
         data = bytes(frame.data)
         try:
             self._take(cmd, data, at, frame.is_remote_frame)
@@ -127,11 +103,6 @@ class OdriveLink:
     def on_error(self, exc: Exception) -> None:
         with self.lock:
             self.bad_frames += 1
-
-    def _event(self, event: Callable[[DeviceGuard[OdriveLimits], int], list[Message]]) -> None:
-        with self.lock:
-            self.frames_in += 1
-            self.events.append(event)
 
     def _take(self, cmd: int, data: bytes, at: int, remote: bool) -> None:
         if remote:
@@ -166,40 +137,8 @@ class OdriveLink:
             self._event(lambda g, now: g.on_foreign_write(now, what))
 
     # -- the loop's side ------------------------------------------------------------------
-    def pump(self, guard: DeviceGuard[OdriveLimits], now: int) -> list[Message]:
-        """Feed what arrived to ``guard``; hand its commands to the worker."""
-        with self.lock:
-            events, self.events = self.events, []
-        guard.watch(self.reaction_max_us, self.latency_max_us)
-        out: list[Message] = []
-        for event in events:
-            out += event(guard, now)
-        return out
-
-    def command(self, cmd: WriteLimits[OdriveLimits] | Stop) -> None:
-        self.work.put(cmd)
-
-    def pending(self) -> bool:
-        with self.lock:
-            return bool(self.events)
-
     def status(self) -> dict[str, object]:
-        return {
-            "firmware": self.config.firmware,
-            "reaction_max_us": self.reaction_max_us,
-            "latency_max_us": self.latency_max_us,
-            "bus_voltage_v": self.voltage,
-            "send_failures": self.send_failures,
-            "frames_in": self.frames_in,
-            "bad_frames": self.bad_frames,
-        }
-
-    def close(self) -> None:
-        """Carry out what is queued (a halt's stop), then end the worker."""
-        self.work.put(None)
-        if self.worker.is_alive():
-            self.worker.join(timeout=2)
-        self.closing.set()
+        return {"firmware": self.config.firmware, **super().status()}
 
     # -- the worker -----------------------------------------------------------------------
     def _send(self, cmd: int, data: bytes = b"", remote: bool = False) -> bool:

@@ -9,7 +9,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from canergy.argtypes import add_duration, argument, energy, node_ids
+from canergy.argtypes import add_duration, energy, node_ids
 from canergy.cli.shared.cia402 import add_cia402_flags, check_cia402, cia402_drives
 from canergy.cli.shared.live import (
     auth_config,
@@ -127,7 +127,6 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     add_moteus_flags(p)
     p.add_argument(
         "--on-stuck",
-        type=lambda text: argument(parse_on_stuck, text),
         metavar="CMD",
         help="run CMD (split as a shell would, run without one; {node} and {profile} filled in, "
         "CANERGY_STUCK_* in its environment) once each time a guarded ODrive axis or moteus "
@@ -231,8 +230,13 @@ def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
     """Every value checked against the others before anything is read, written or opened;
     the ``--bus`` options (none on one bus)."""
     buses = _buses(args)
-    if args.on_stuck is not None and not (args.odrive or args.moteus):
-        raise ValueError("--on-stuck is for guarded ODrive axes or moteus controllers")
+    if args.on_stuck is not None:
+        if not (args.odrive or args.moteus):
+            raise ValueError("--on-stuck is for guarded ODrive axes or moteus controllers")
+        try:
+            parse_on_stuck(args.on_stuck)
+        except ValueError as exc:
+            raise ValueError(f"--on-stuck: {exc}") from None
     if args.target is not None and args.target < QUANTUM_UJ:
         raise ValueError("--target must be at least 1 mJ")
     check_widths(args)

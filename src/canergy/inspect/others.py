@@ -76,12 +76,14 @@ class Dbc:
         import cantools.database  # only where a DBC is given
 
         path = Path(text)
+        named = text if len(text) <= 60 else "..." + text[-57:]
         try:
             database = cantools.database.load_file(str(path), database_format="dbc")
         except OSError as exc:
-            raise DbcError(f"{path}: {exc.strerror or exc}") from None
+            raise DbcError(f"{named}: {exc.strerror or exc}") from None
         except Exception as exc:  # cantools raises its parsers' own errors
-            raise DbcError(f"{path}: not a DBC cantools reads ({exc})".splitlines()[0]) from None
+            why = str(exc).splitlines()[0][:80] if str(exc) else type(exc).__name__
+            raise DbcError(f"{named}: not a DBC cantools reads ({why})") from None
         return cls(path, database)
 
     def name(self, arbitration_id: int, extended: bool, data: bytes) -> Named | None:

@@ -123,3 +123,18 @@ class GuardLink(Generic[L]):
         if self.worker.is_alive():
             self.worker.join(timeout=2)
         self.closing.set()
+
+
+def limits_event(
+    wrote: L, read: L | None, at: int, guard: DeviceGuard[L], now: int
+) -> list[Message]:
+    """A write's read-back for the guard (``functools.partial`` of the first three)."""
+    return guard.on_limits(now, wrote, read, at)
+
+
+def ready_event(
+    guard: DeviceGuard[L], now: int, started: int, full: L | None, closed: L | None
+) -> list[Message]:
+    """Set-up done, for the guard (``functools.partial`` of the last three)."""
+    guard.on_ready(now, started, full, closed)
+    return []

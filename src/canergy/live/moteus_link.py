@@ -31,7 +31,6 @@ from dataclasses import dataclass, replace
 
 import can
 
-from canergy.devices.guard import DeviceGuard
 from canergy.devices.moteus import (
     BOUNDED_MODES,
     BROADCAST,
@@ -62,7 +61,8 @@ from canergy.devices.moteus import (
 )
 from canergy.devices.profile import Stop
 from canergy.live.device_link import GuardLink
-from canergy.messages import Message
+from canergy.live.device_link import limits_event as _limits
+from canergy.live.device_link import ready_event as _ready
 
 log = logging.getLogger(__name__)
 
@@ -346,24 +346,3 @@ class MoteusLink(GuardLink[MoteusLimits]):
             self.lines.get_nowait()
         self.late = False
         return True
-
-
-def _limits(
-    wrote: MoteusLimits,
-    read: MoteusLimits | None,
-    at: int,
-    guard: DeviceGuard[MoteusLimits],
-    now: int,
-) -> list[Message]:
-    return guard.on_limits(now, wrote, read, at)
-
-
-def _ready(
-    guard: DeviceGuard[MoteusLimits],
-    now: int,
-    started: int,
-    full: MoteusLimits | None,
-    closed: MoteusLimits | None,
-) -> list[Message]:
-    guard.on_ready(now, started, full, closed)
-    return []

@@ -29,7 +29,6 @@ from dataclasses import dataclass
 
 import can
 
-from canergy.devices.guard import DeviceGuard
 from canergy.devices.odrive import (
     AxisState,
     Cmd,
@@ -45,7 +44,8 @@ from canergy.devices.odrive import (
 )
 from canergy.devices.profile import Stop
 from canergy.live.device_link import GuardLink
-from canergy.messages import Message
+from canergy.live.device_link import limits_event as _limits
+from canergy.live.device_link import ready_event as _ready
 
 log = logging.getLogger(__name__)
 
@@ -218,24 +218,3 @@ class OdriveLink(GuardLink[OdriveLimits]):
                 self.latency_max_us = max(self.latency_max_us, self.clock() - start)
                 return value
         return None
-
-
-def _limits(
-    wrote: OdriveLimits,
-    read: OdriveLimits | None,
-    at: int,
-    guard: DeviceGuard[OdriveLimits],
-    now: int,
-) -> list[Message]:
-    return guard.on_limits(now, wrote, read, at)
-
-
-def _ready(
-    guard: DeviceGuard[OdriveLimits],
-    now: int,
-    started: int,
-    full: OdriveLimits | None,
-    closed: OdriveLimits | None,
-) -> list[Message]:
-    guard.on_ready(now, started, full, closed)
-    return []

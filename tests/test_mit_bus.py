@@ -5,6 +5,7 @@ pass untouched; ``on_refused="raise"`` raises."""
 
 from __future__ import annotations
 
+import time
 import uuid
 
 import can
@@ -69,9 +70,13 @@ def test_a_forged_reply_on_the_bus_refuses_the_motor() -> None:
     bus = MitBus(can.Bus(interface="virtual", channel=channel), [MitMotor(1, node=11)])
     try:
         reply = pack_reply(MODELS["DM4310"], 1, 0x8000, 2048, 2048)
-        for _ in range(3):  # the gate's exit at start may take one of them as its answer
+        sent = 0  # the gate's frames unanswered (no motor here) take as many as it sent
+        while not bus.status(1)["refused"] and sent < 2000:
             forger.send(frame(0x11, reply))
+            sent += 1
+            time.sleep(0.001)
         wait_for(lambda: bus.status(1)["refused"], timeout=10)
+        assert bus.counts(1).late < sent
         assert "asked for" in bus.status(1)["refused"]
     finally:
         bus.shutdown()

@@ -27,7 +27,7 @@ from canergy.devices.mit import (
     pack_reply,
     worst_torque,
 )
-from canergy.devices.mit_gate import MitGate
+from canergy.devices.mit_gate import LATE_WINDOW_US, REPLY_WINDOW_US, MitGate
 from canergy.live.policy import Limits as GrantLimits
 from canergy.live.policy import TopUp
 from canergy.live.service import ServiceConfig, SupervisorService
@@ -273,3 +273,36 @@ def test_a_reply_nobody_asked_for_refuses_the_motor() -> None:
     pair.route(g.from_motor(forged, pair.now, pair.now), pair.now)
     assert g.guard.refused is not None and "no frame of the guard's asked for" in g.guard.refused
     assert g.counts.unasked == 1 and g.from_app(ENTER, pair.now).frame is None
+
+
+def test_a_late_reply_is_late_not_forged() -> None:
+    """A motor (or a host) stalled 300 ms: the answer comes after its frame counted as lost.
+    It is taken as late, its round trip raises the latency the clamp allows, the motor runs on;
+    one reply beyond every frame sent (lost ones included) still refuses it for good. (60 J
+    covers what 2 N·m may draw over the longer notice; 5 J would not: the guard stops then.)"""
+    pair = Pair(60_000_000)
+    pair.run_to(200_000)
+    g = pair.gate
+    latency = g.guard.latency_us()
+    pair.run_to(500_000, reply=False)  # the motor says nothing for 300 ms
+    waiting = len(g.asked) + len(g.lost)
+    assert waiting > 0
+    reply = pack_reply(DM, MOTOR, 0x8000, 2048, 2048)
+    for _ in range(waiting):
+        pair.route(g.from_motor(reply, pair.now, pair.now), pair.now)
+    assert g.guard.refused is None and g.counts.late > 0 and g.counts.unasked == 0
+    assert g.guard.latency_us() >= REPLY_WINDOW_US > latency
+    assert g.guard.phase is GuardPhase.RUNNING, g.guard.stop_reason
+    pair.route(g.from_motor(reply, pair.now, pair.now), pair.now)
+    assert g.guard.refused is not None and g.counts.unasked == 1
+
+
+def test_a_reply_to_a_frame_lost_long_ago_is_forged() -> None:
+    """Past ``LATE_WINDOW_US`` a lost frame's answer is no longer expected."""
+    pair = Pair(60_000_000, 5_000_000, hold_us=10**7)  # the gate sends nothing more itself
+    pair.run_to(200_000)
+    g = pair.gate
+    g.from_app(ENTER, pair.now)  # not answered
+    at = pair.now + LATE_WINDOW_US + 1
+    pair.route(g.from_motor(pack_reply(DM, MOTOR, 0x8000, 2048, 2048), at, at), at)
+    assert g.guard.refused is not None and g.counts.late == 0 and g.counts.unasked == 1

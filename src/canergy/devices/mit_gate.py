@@ -19,6 +19,12 @@ out of motor mode, exit motor mode again: the motor answers every frame, so its 
 guard's feedback fresh. A frame to the motor from anyone else (seen on the bus) refuses the motor
 for good: what it asked for is unbounded; so does a reply that no frame of the gate's asked for
 (the motor answers each frame once): its position and torque cannot be trusted.
+
+A frame unanswered after ``REPLY_WINDOW_US`` is taken as lost, but kept for ``LATE_WINDOW_US``:
+a reply that finds no frame waiting takes one of those as *late* (counted, its round trip raises
+the latency the guard allows), not as forged. A host or motor stalled for 200 ms (a loaded
+machine, a GC pause) thus slows the motor instead of refusing it for good; a forger still has to
+send more replies than the gate sent frames within 2 s, which the gate counts.
 """
 
 from __future__ import annotations
@@ -47,6 +53,10 @@ from canergy.messages import Message, ToClient
 
 REPLY_WINDOW_US = 200_000
 """A frame not answered within this is taken as lost (its answer no longer expected)."""
+LATE_WINDOW_US = 2_000_000
+"""A lost frame's answer is still taken (as late) within this."""
+LATE_KEPT = 256
+"""At most this many lost frames wait for a late answer (the oldest go first)."""
 
 
 @dataclass
@@ -67,6 +77,8 @@ class MitCounts:
     """Exit motor mode sent by the gate (stops, refused re-clamps, keep-alives)."""
     replies: int = 0
     bad_replies: int = 0
+    late: int = 0
+    """Replies to frames taken as lost (beyond ``REPLY_WINDOW_US``)."""
     unasked: int = 0
     """Replies with no frame of the gate's left unanswered: forged, or someone else's frame."""
     foreign: int = 0
@@ -114,6 +126,8 @@ class MitGate:
         self.to_motor: list[bytes] = [EXIT]  # a known state: the power stage off
         self.asked: deque[int] = deque([now])
         """When each frame not answered yet went to the motor (it answers every frame)."""
+        self.lost: deque[int] = deque(maxlen=LATE_KEPT)
+        """When each frame taken as lost went (a late answer may still come)."""
         self.exit_at: int | None = now
         self.counts.exits += 1
         ft = model.fields()[4]
@@ -190,12 +204,19 @@ class MitGate:
             return []
         self.counts.replies += 1
         while self.asked and self.asked[0] < at - REPLY_WINDOW_US:
-            self.asked.popleft()  # never answered: lost
-        if not self.asked:  # the position and torque it shows cannot be trusted
+            self.lost.append(self.asked.popleft())  # not answered in time: lost, or late
+        while self.lost and self.lost[0] < at - LATE_WINDOW_US:
+            self.lost.popleft()
+        if self.asked:
+            sent = self.asked.popleft()
+        elif self.lost:
+            sent = self.lost.popleft()
+            self.counts.late += 1
+        else:  # the position and torque it shows cannot be trusted
             self.counts.unasked += 1
             why = "a reply no frame of the guard's asked for (forged, or another sender's frame)"
             return self.guard.on_foreign_write(now, why) + self._carry_out(now)
-        self.guard.watch(0, max(0, at - self.asked.popleft()))  # the round trip: latency
+        self.guard.watch(0, max(0, at - sent))  # the round trip: latency
         p_max = self.model.fields()[0]
         saturated = abs(reply.p) >= p_max.span - 2 * p_max.span / p_max.top
         self.theta, self.theta_at = (None if saturated else reply.p), at
@@ -292,6 +313,7 @@ class MitGate:
                 "resent": c.resent,
                 "exits": c.exits,
                 "replies": c.replies,
+                "late_replies": c.late,
                 "unasked_replies": c.unasked,
                 "foreign": c.foreign,
             },

@@ -21,14 +21,14 @@ import can
 from canergy.argtypes import COUNT_MAX, add_duration, bounded_int, energy, node_ids, power
 from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import load_key
+from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.codec import Codec
 from canergy.core import Timing
 from canergy.errors import BusOpenError
 from canergy.live.atomic import check_writable_dir, same_file, write_json_atomic
-from canergy.live.bus_args import add_bus_flags, open_bus
+from canergy.live.canopen.shared_bus import STANDARD_FRAMES, SharedReader, shared_network
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.serve import serve
-from canergy.live.shared_bus import STANDARD_FRAMES, SharedReader, shared_network
 from canergy.messages import Direction
 from firmware_model.actuator import PowerProfile
 from firmware_model.canopen_node import CanopenFace

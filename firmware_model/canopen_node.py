@@ -9,7 +9,7 @@ back), and STOPPED halts the actuator.
 
 canopen and canergy share one bus and one ``can.Notifier``: canopen's listeners plus a
 ``can.BufferedReader`` the canergy loop reads from. Those pieces and the EDS belong to
-``canergy.live.shared_bus`` (the supervisor uses them too).
+``canergy.live.canopen.shared_bus`` (the supervisor uses them too).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import Any
 
 import canopen
 
-from canergy.live.shared_bus import EDS
+from canergy.live.canopen.shared_bus import EDS
 from firmware_model.node import PARAM_INDEXES, FirmwareNode
 
 __all__ = ["CanopenFace"]

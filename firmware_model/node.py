@@ -34,9 +34,9 @@ from canergy.core import (
     Timing,
 )
 from canergy.core.state import Phase
-from canergy.live.intrusions import Intrusions, frame_text
-from canergy.live.policy import quantize
-from canergy.live.witness import ClientWitness
+from canergy.live.supervisor.intrusions import Intrusions, frame_text
+from canergy.live.supervisor.policy import quantize
+from canergy.live.supervisor.witness import ClientWitness
 from canergy.messages import (
     AMOUNT_MAX_MJ,
     LEVEL_MAX_MJ,

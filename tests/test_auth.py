@@ -32,8 +32,8 @@ from canergy.core.actions import Send
 from canergy.core.state import Session, SupervisorState
 from canergy.core.supervisor import Supervisor
 from canergy.ledger import ledger_from_status
-from canergy.live.control import request
 from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.supervisor.control import request
 from canergy.messages import (
     Ack,
     Admit,
@@ -332,7 +332,7 @@ def test_authenticated_traffic_flows_and_forgeries_move_nothing(bench: Bench) ->
 def _capture(tmp: Path, layout: Layout, key_path: Path) -> tuple[Path, list[can.Message]]:
     """Two honest transactions through both cores and authenticators, as a candump -l file."""
     from canergy.core import Client, Send, Supervisor, Timing
-    from canergy.live.service import ServiceConfig, SupervisorService
+    from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 
     master = load_key(key_path)
     timing = Timing(response_timeout_us=10_000, retries=3)
@@ -474,7 +474,7 @@ def test_a_node_that_lost_its_nv_past_transaction_65535_is_granted_again(
     transaction 65,535 could take no grant in authenticated mode (its freshness never met the
     supervisor's). The ADMIT now carries the full counters."""
     from canergy.auth.state_key import state_seal
-    from canergy.live.state_file import save_state
+    from canergy.live.supervisor.state_file import save_state
 
     assert main(["keys", "-o", str(tmp_path / "m.key")]) == 0
     master = load_key(tmp_path / "m.key")

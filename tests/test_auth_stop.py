@@ -34,7 +34,6 @@ from canergy.auth.keys import derive_node_key, load_key
 from canergy.cli import main
 from canergy.codec import Codec
 from canergy.core import Supervisor
-from canergy.live.control import request as ask
 from canergy.live.runtime import (
     OWN_MAC_WAIT_US,
     BusCounters,
@@ -42,7 +41,8 @@ from canergy.live.runtime import (
     OwnDirection,
     monotonic_us,
 )
-from canergy.live.service import JOIN_HOLD_US, ServiceConfig, SupervisorService
+from canergy.live.supervisor.control import request as ask
+from canergy.live.supervisor.service import JOIN_HOLD_US, ServiceConfig, SupervisorService
 from canergy.messages import (
     Ack,
     Admit,
@@ -368,7 +368,7 @@ def test_a_flood_is_rated_and_logged_at_most_once_a_second(
     bench: Bench, caplog: pytest.LogCaptureFixture
 ) -> None:
     b = bench
-    caplog.set_level(logging.WARNING, logger="canergy.live.intrusions")
+    caplog.set_level(logging.WARNING, logger="canergy.live.supervisor.intrusions")
     start = time.monotonic()
     rates = []
     while time.monotonic() - start < 2.5:
@@ -736,7 +736,7 @@ def test_a_node_reports_at_once_a_refused_frame_in_its_name(tmp_path: Path) -> N
 def test_a_gateway_reports_at_once_a_refused_frame_in_its_name_above() -> None:
     """The gateway's upstream leg is a node to the supervisor above: the same rule."""
     from canergy.core.gateway import Gateway
-    from canergy.live.gateway import GatewayFiles, Uplink, UplinkConfig
+    from canergy.live.gateway.process import GatewayFiles, Uplink, UplinkConfig
 
     gateway = Gateway(5, (1, 2))
     up = Uplink(

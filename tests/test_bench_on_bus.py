@@ -9,15 +9,20 @@ from pathlib import Path
 import pytest
 
 from canergy.bench import run
-from canergy.bench.on_bus import bus_argv, node_commands
+from canergy.bench.on_bus import BusTarget, node_commands
 from canergy.cli import main
-from canergy.live.bus_args import add_bus_flags
+from canergy.cli.bench import bus_target
+from canergy.cli.shared.bus_flags import add_bus_flags, bus_argv
 
 
 def _parse(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     add_bus_flags(parser)
     return parser.parse_args(argv)
+
+
+def _target(argv: list[str]) -> BusTarget:
+    return bus_target(_parse(argv))
 
 
 @pytest.mark.parametrize(
@@ -57,20 +62,20 @@ def test_refusals_name_the_flag() -> None:
             )
         )
     with pytest.raises(ValueError, match="SocketCAN only"):
-        node_commands(_parse(["-i", "pcan", "-c", "x"]), 2, Path("/tmp"), Path("/bin/true"))
+        node_commands(_target(["-i", "pcan", "-c", "x"]), 2, Path("/tmp"), Path("/bin/true"))
 
 
 def test_c_nodes_are_one_process_per_node() -> None:
-    args = _parse(["-i", "socketcan", "-c", "vcan0", "--id-base", "0x1000000"])
-    commands = node_commands(args, 3, Path("/nv"), Path("/opt/canergy-node"))
+    target = _target(["-i", "socketcan", "-c", "vcan0", "--id-base", "0x1000000"])
+    commands = node_commands(target, 3, Path("/nv"), Path("/opt/canergy-node"))
     assert [c[c.index("--node") + 1] for c in commands] == ["1", "2", "3"]
     assert all(c[c.index("--id-base") + 1] == "0x01000000" for c in commands)
     assert commands[2][-2:] == ["--nv", "/nv/3.nv"]
 
 
 def test_the_python_emulator_gets_the_node_range_and_the_bus(tmp_path: Path) -> None:
-    args = _parse(["-i", "socketcan", "-c", "vcan0"])
-    (command,) = node_commands(args, 16, tmp_path, None)
+    target = _target(["-i", "socketcan", "-c", "vcan0"])
+    (command,) = node_commands(target, 16, tmp_path, None)
     assert command[1:3] == ["-m", "firmware_model"]
     assert command[command.index("--nodes") + 1] == "1-16"
     assert command[command.index("-c") + 1] == "vcan0"

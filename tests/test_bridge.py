@@ -22,8 +22,8 @@ from canergy.bridge.schedule import FaultSchedule, Partition, parse_faults
 from canergy.cli import main
 from canergy.codec import Codec
 from canergy.faults import FaultProfile
-from canergy.live.control import request
 from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.supervisor.control import request
 from canergy.messages import Direction
 from canergy.testing.strategies import fault_schedules
 from firmware_model.__main__ import status as node_status

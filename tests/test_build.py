@@ -1,5 +1,5 @@
-"""The supervisor's one front door, ``canergy.live.build``: the rule that nothing else puts a
-supervisor together or patches one once built, and what the builder hands over."""
+"""The supervisor's one front door, ``canergy.live.supervisor.build``: the rule that nothing else
+puts a supervisor together or patches one once built, and what the builder hands over."""
 
 from __future__ import annotations
 
@@ -12,16 +12,16 @@ import can
 import pytest
 
 from canergy.codec import Codec
-from canergy.live.build import CoreConfig, SupervisorConfig, build_supervisor
-from canergy.live.cia402_host import HostBeat
-from canergy.live.service import ServiceConfig
+from canergy.live.canopen.cia402_host import HostBeat
+from canergy.live.supervisor.build import CoreConfig, SupervisorConfig, build_supervisor
+from canergy.live.supervisor.service import ServiceConfig
 from canergy.messages import Telemetry
 
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = sorted(
     [*(ROOT / "src" / "canergy").rglob("*.py"), *(ROOT / "firmware_model").rglob("*.py")]
 )
-BUILDER = ROOT / "src" / "canergy" / "live" / "build.py"
+BUILDER = ROOT / "src" / "canergy" / "live" / "supervisor" / "build.py"
 J = 1_000_000
 
 
@@ -39,7 +39,7 @@ def _where(pattern: str, skip: Path | None = None) -> list[str]:
 def test_only_the_builder_puts_a_supervisor_together() -> None:
     """The rule: in canergy and the firmware model, the supervisor service, the gateway's
     downstream service and the guarded devices in front of them are made in
-    ``canergy.live.build`` and nowhere else (unit tests of the parts may make them)."""
+    ``canergy.live.supervisor.build`` and nowhere else (unit tests of the parts may make them)."""
     made = r"\b(SupervisorService|DownstreamService|GuardedSupervisor|GuardedDevices)\("
     assert _where(made, skip=BUILDER) == []
 

@@ -1,8 +1,9 @@
 """The C witness and gateway policy (firmware/src/witness.c, gateway.c's top-up and give-back)
-side by side with their Python twins: ``canergy.live.witness.ReturnGate`` decision for decision
+side by side with their Python twins: ``canergy.live.supervisor.witness.ReturnGate`` decision for
+decision
 (what a TELEMETRY finds, what a RETURN or RESUME becomes, what is released and when, which node
 is blocked, the counts the status shows); ``TopUp`` capped by ``capped_grant``, and
-``canergy.live.gateway.give_back_amount``, for every level, Us and setting.
+``canergy.live.gateway.process.give_back_amount``, for every level, Us and setting.
 
 The C gate holds at most ``SLOTS`` return numbers per node; the machine stays within them (an
 honest node holds one), and ``test_a_return_beyond_the_slots_is_dropped_never_credited`` shows
@@ -30,9 +31,9 @@ from support.c_witness import (
     policy_library,
 )
 
-from canergy.live.gateway import give_back_amount
-from canergy.live.policy import Limits, TopUp, capped_grant
-from canergy.live.witness import ReturnGate
+from canergy.live.gateway.process import give_back_amount
+from canergy.live.supervisor.policy import Limits, TopUp, capped_grant
+from canergy.live.supervisor.witness import ReturnGate
 from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, SEQ_BITS, Debit, Return, Telemetry
 from canergy.seqnum import unwrap
 

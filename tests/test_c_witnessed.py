@@ -100,7 +100,7 @@ from canergy.core.inputs import (
 )
 from canergy.core.state import ClientState, Phase, Session, SupervisorState
 from canergy.core.timing import Timing
-from canergy.live.state_file import load_state, save_state
+from canergy.live.supervisor.state_file import load_state, save_state
 from canergy.messages import (
     COUNTER_BOUND,
     COUNTER_END,

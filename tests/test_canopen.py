@@ -16,11 +16,11 @@ from support.live_rig import TIMING, Loop
 
 from canergy.codec import ID_MASK, Codec
 from canergy.core import Supervisor
-from canergy.live.canopen_manager import CanopenManager
-from canergy.live.policy import Limits, TopUp
+from canergy.live.canopen.manager import CanopenManager
+from canergy.live.canopen.shared_bus import EDS, STANDARD_FRAMES, shared_network
 from canergy.live.runtime import BusRuntime, monotonic_us
-from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.shared_bus import EDS, STANDARD_FRAMES, shared_network
+from canergy.live.supervisor.policy import Limits, TopUp
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.messages import MAX_NODE, MIN_NODE, Direction, MsgType
 from canergy.units import UJ_PER_J
 from firmware_model.actuator import PowerProfile

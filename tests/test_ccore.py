@@ -25,7 +25,7 @@ from canergy.core.errors import LocalProtocolError
 from canergy.core.supervisor import Supervisor
 from canergy.core.timing import Timing
 from canergy.live.runtime import BusRuntime
-from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.messages import (
     QUANTUM_UJ,
     Ack,

@@ -286,7 +286,7 @@ def test_a_drive_enabled_without_budget_is_stopped_and_has_no_torque() -> None:
 
 
 def test_enabling_never_cuts_a_quick_stop_short() -> None:
-    from canergy.live.cia402_link import enable_step
+    from canergy.live.canopen.cia402_link import enable_step
 
     assert enable_step("QUICK STOP ACTIVE") == 0x0000  # disable voltage, not enable operation
     assert enable_step("SWITCH ON DISABLED") == 0x0006  # shutdown
@@ -355,7 +355,7 @@ def _transfers(*outcomes: Exception | int) -> tuple[list[int], Callable[[], int]
 def test_a_shared_sdo_server_abort_is_the_drives_answer_only_when_it_comes_twice() -> None:
     import canopen
 
-    from canergy.live.cia402_link import shared_sdo
+    from canergy.live.canopen.cia402_link import shared_sdo
 
     garbled = canopen.SdoCommunicationError("Unexpected response 0x60")
     another_masters = canopen.SdoAbortedError(0x06090030)

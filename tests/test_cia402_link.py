@@ -11,7 +11,7 @@ import can
 import pytest
 
 from canergy.cia402.guard import CW_DISABLE_VOLTAGE, Command, VerifyCommand
-from canergy.live.cia402_link import DriveLink, LinkConfig
+from canergy.live.canopen.cia402_link import DriveLink, LinkConfig
 from canergy.live.runtime import monotonic_us
 from firmware_model.drive.canopen_face import DriveFace, drive_network
 from firmware_model.drive.live_bench import DRIVE, wait_for

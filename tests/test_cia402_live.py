@@ -16,8 +16,8 @@ import pytest
 
 from canergy.cli import main
 from canergy.ledger import ledger_from_status
-from canergy.live.control import request
 from canergy.live.runtime import monotonic_us
+from canergy.live.supervisor.control import request
 from firmware_model.drive.live_bench import DRIVE, NODE, Bench, exhausted, guarded_bench, wait_for
 
 
@@ -160,7 +160,7 @@ def test_a_drive_the_guard_cannot_meter_is_disabled(
     import can
     import canopen
 
-    from canergy.live.cia402_link import EDS
+    from canergy.live.canopen.cia402_link import EDS
     from firmware_model.drive.canopen_face import DriveFace, drive_network
     from firmware_model.drive.model import EDS as DRIVE_EDS
     from firmware_model.drive.model import DriveModel

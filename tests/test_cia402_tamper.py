@@ -19,7 +19,7 @@ from typing import Any
 import canopen
 import pytest
 
-from canergy.live.cia402_link import shared_sdo
+from canergy.live.canopen.cia402_link import shared_sdo
 from firmware_model.drive.live_bench import DRIVE, Bench, app_write, guarded_bench, wait_for
 
 REACH = ("--cia402-reach-torque", "3000", "--cia402-reach-current", "3000")

@@ -47,7 +47,7 @@ import canergy.cli.dump
 import canergy.cli.simulate
 import canergy.dbc
 import canergy.demo
-import canergy.live.mit_forward
+import canergy.live.devices.mit_forward
 import canergy.prove.obligations
 import canergy.rules_doc
 import canergy.sim.sweep
@@ -330,7 +330,7 @@ def _bounded_commands() -> Iterator[None]:
         mock.patch.object(BusRuntime, "poll", _stop),  # supervisor, grant, firmware_model
         mock.patch.object(BusGroup, "poll", _stop),  # supervisor --bus
         mock.patch.object(canergy.bridge.link.Bridge, "poll", _stop),  # bridge
-        mock.patch.object(canergy.live.mit_forward.MitForwarder, "poll", _stop),  # inline
+        mock.patch.object(canergy.live.devices.mit_forward.MitForwarder, "poll", _stop),  # inline
         mock.patch.object(DriveFace, "run", _stop),  # firmware_model.drive
         mock.patch.object(canergy.cli.dump, "open_bus", open_bus),
         mock.patch.object(canergy.check, "check", check),

@@ -28,8 +28,8 @@ from canergy.cli import supervisor as supervisor_cli
 from canergy.core import Client, LocalProtocolError, Supervisor
 from canergy.core.actions import Send
 from canergy.core.state import ClientState, Phase, Session, SupervisorState
-from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.state_file import StateFileError, load_state, save_state
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.state_file import StateFileError, load_state, save_state
 from canergy.messages import (
     COUNTER_BOUND,
     COUNTER_END,

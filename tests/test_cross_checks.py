@@ -12,7 +12,7 @@ from collections.abc import Sequence
 import pytest
 
 from canergy.core import Client, Send, Supervisor, Timing
-from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.messages import Ack, Committed, Message, Return, Telemetry, ToClient
 from canergy.units import UJ_PER_J
 

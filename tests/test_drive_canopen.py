@@ -25,7 +25,7 @@ from firmware_model.drive.model import DriveModel
 from firmware_model.drive.motor import LoadTorque
 
 NODE, MASTER = 10, 1
-CIA402_EDS = "src/canergy/live/cia402.eds"
+CIA402_EDS = "src/canergy/live/canopen/cia402.eds"
 
 
 @dataclass

@@ -24,7 +24,7 @@ import canergy.cli.dump
 from canergy.cli import main
 from canergy.codec import Codec
 from canergy.inspect.candump import CandumpFilter, ChannelFilters, log_line
-from canergy.live.control import request
+from canergy.live.supervisor.control import request
 from canergy.messages import Ack, Intention, Message, Telemetry
 
 CODEC = Codec()

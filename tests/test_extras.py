@@ -124,5 +124,6 @@ except can.CanInterfaceNotImplementedError as exc:
     out = run_blocked(EXTRAS, code, cwd=tmp_path)
     assert out.returncode == 0, out.stderr
     assert out.stdout == (
-        f"Cannot import module canergy.live.zenoh_bus for CAN interface 'zenoh': {ZENOH}\n"
+        "Cannot import module canergy.live.transports.zenoh_bus for CAN interface "
+        f"'zenoh': {ZENOH}\n"
     )

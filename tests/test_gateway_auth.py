@@ -28,8 +28,8 @@ from canergy.cli import build_parser, main
 from canergy.cli.gateway import _config
 from canergy.codec import Codec
 from canergy.ledger import TreeLedger, ledger_from_status
-from canergy.live.control import request
 from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.supervisor.control import request
 from canergy.messages import Commit, Direction, Intention, Message, Return, ReturnAck
 from firmware_model.actuator import PowerProfile
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost

@@ -26,10 +26,10 @@ from canergy.core.gateway import Gateway, GatewayState
 from canergy.core.hardened import CLIENT, SUPERVISOR
 from canergy.core.state import ClientState, Outcome, Phase, Session, SupervisorState
 from canergy.ledger import TreeLedger, ledger_from_status
-from canergy.live.control import request
-from canergy.live.gateway_state import load_gateway, save_gateway
+from canergy.live.gateway.state import load_gateway, save_gateway
 from canergy.live.runtime import BusRuntime, monotonic_us
-from canergy.live.state_file import StateFileError
+from canergy.live.supervisor.control import request
+from canergy.live.supervisor.state_file import StateFileError
 from canergy.messages import Admit, Commit, Direction, Intention
 from firmware_model.actuator import PowerProfile
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost

@@ -17,8 +17,8 @@ from canergy.core.errors import LocalProtocolError
 from canergy.core.gateway import Gateway, GatewayState, link_gap
 from canergy.core.witnessed import CLIENT
 from canergy.ledger import TreeLedger, ledger
-from canergy.live.gateway_state import load_gateway, save_gateway
-from canergy.live.state_file import StateFileError
+from canergy.live.gateway.state import load_gateway, save_gateway
+from canergy.live.supervisor.state_file import StateFileError
 from canergy.messages import Debit, ReturnAck, ToClient, ToSupervisor
 
 GW = 20

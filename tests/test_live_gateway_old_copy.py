@@ -24,7 +24,7 @@ import pytest
 
 from canergy.cli import main
 from canergy.ledger import TreeLedger, ledger_from_status
-from canergy.live.control import request
+from canergy.live.supervisor.control import request
 from canergy.units import UJ_PER_J
 
 GW = 20

@@ -27,10 +27,10 @@ from canergy.cli import main
 from canergy.codec import Codec
 from canergy.core import ClientState, Send, Supervisor, Timing
 from canergy.core.state import Session, SupervisorState
-from canergy.live.control import request
 from canergy.live.runtime import BusRuntime, monotonic_us
-from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.state_file import load_state, save_state
+from canergy.live.supervisor.control import request
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.state_file import load_state, save_state
 from canergy.messages import SYNC_CONFIRMED, Admit, Debit, Direction, ReturnAck, Telemetry
 from canergy.units import UJ_PER_J
 from firmware_model.__main__ import bind_starts

@@ -22,8 +22,8 @@ from canergy.cli import main
 from canergy.codec import Codec
 from canergy.core import Timing
 from canergy.core.state import Session, SupervisorState
-from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.state_file import load_state
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.state_file import load_state
 from canergy.messages import Ack, Admit, Committed, Debit, Direction, Intention, Telemetry
 from canergy.units import UJ_PER_J
 
@@ -264,7 +264,7 @@ def _story(core: str) -> tuple[list[object], list[dict[str, Any]], list[str]]:
     ]
     frames: list[object] = []
     statuses: list[dict[str, Any]] = []
-    logger = logging.getLogger("canergy.live.service")
+    logger = logging.getLogger("canergy.live.supervisor.service")
     records: list[str] = []
     handler = logging.Handler()
     handler.emit = lambda record: records.append(record.getMessage())  # type: ignore[method-assign]

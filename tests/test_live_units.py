@@ -15,10 +15,10 @@ import pytest
 from canergy.codec import Codec
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.faults import FaultInjector, FaultProfile
-from canergy.live.faulty_bus import FaultyBus
-from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
 from canergy.live.runtime import BusCounters, BusRuntime, total_counters
-from canergy.live.state_file import StateFileError, load_state, save_state
+from canergy.live.supervisor.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
+from canergy.live.supervisor.state_file import StateFileError, load_state, save_state
+from canergy.live.transports.faulty_bus import FaultyBus
 from canergy.messages import USABLE_MAX_UJ, Ack, Direction
 
 

@@ -29,7 +29,7 @@ from typing import Any
 import pytest
 
 from canergy.auth.keys import KEY_FILE_MAX, KeyFileError, load_key, new_master, write_key
-from canergy.live.control import ControlServer, request
+from canergy.live.supervisor.control import ControlServer, request
 
 NOBODY = 65534
 STRANGER = 65533  # a second unprivileged uid (need not exist in /etc/passwd)

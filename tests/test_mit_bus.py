@@ -12,7 +12,7 @@ import can
 import pytest
 
 from canergy.devices.mit import EXIT, MODELS, pack_reply
-from canergy.live.mit_bus import MitBus, MitMotor, MitRefused
+from canergy.live.devices.mit_bus import MitBus, MitMotor, MitRefused
 from firmware_model.drive.live_bench import wait_for
 
 
@@ -86,7 +86,7 @@ def test_a_forged_reply_on_the_bus_refuses_the_motor() -> None:
 def test_an_application_that_never_reads_keeps_only_the_newest_frames(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    import canergy.live.mit_bus as mit_bus
+    import canergy.live.devices.mit_bus as mit_bus
 
     monkeypatch.setattr(mit_bus, "INCOMING_MAX", 5)
     channel = f"mitbus-{uuid.uuid4().hex}"

@@ -28,9 +28,9 @@ from canergy.devices.mit import (
     worst_torque,
 )
 from canergy.devices.mit_gate import LATE_WINDOW_US, REPLY_WINDOW_US, MitGate
-from canergy.live.policy import Limits as GrantLimits
-from canergy.live.policy import TopUp
-from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.policy import Limits as GrantLimits
+from canergy.live.supervisor.policy import TopUp
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.messages import Direction, Message, ToClient
 
 DM = MODELS["DM4310"]

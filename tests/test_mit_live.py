@@ -17,8 +17,8 @@ from pathlib import Path
 import can
 
 from canergy.devices.mit import worst_torque
-from canergy.live.mit_bus import MitBus, MitMotor
-from canergy.live.mit_forward import MitForwarder
+from canergy.live.devices.mit_bus import MitBus, MitMotor
+from canergy.live.devices.mit_forward import MitForwarder
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.mit.live_bench import (
     DM,

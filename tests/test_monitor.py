@@ -24,8 +24,8 @@ from canergy.demo import DemoConfig, run_demo
 from canergy.faults import FaultProfile
 from canergy.frame_bits import frame_bits
 from canergy.inspect.captures import read_file
-from canergy.live.control import ControlServer
-from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.control import ControlServer
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.messages import Intention, Telemetry
 from canergy.monitor.books import from_control, from_status_file, parse_status
 from canergy.monitor.busload import fd_frame_bits, frame_seconds

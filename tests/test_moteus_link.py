@@ -1,6 +1,6 @@
-"""The moteus link's diagnostic-stream exchange (``canergy.live.moteus_link``) against a scripted
-controller on a bus object of our own: an answer that comes after the guard gave up on its line
-is not taken for the next line's."""
+"""The moteus link's diagnostic-stream exchange (``canergy.live.devices.moteus_link``) against a
+scripted controller on a bus object of our own: an answer that comes after the guard gave up on
+its line is not taken for the next line's."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from canergy.devices.moteus import (
     decode,
     encode,
 )
-from canergy.live.moteus_link import MoteusLink, MoteusLinkConfig
+from canergy.live.devices.moteus_link import MoteusLink, MoteusLinkConfig
 
 SERVO, SOURCE = 1, 0x7E
 

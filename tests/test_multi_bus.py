@@ -23,11 +23,11 @@ from canergy.codec import Codec
 from canergy.core import Supervisor
 from canergy.core.state import Session, SupervisorState
 from canergy.ledger import ledger_from_status
-from canergy.live.control import request
-from canergy.live.multi_bus import BusPort, BusRouter, bus_spec
 from canergy.live.runtime import BusRuntime, monotonic_us
-from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.state_file import save_state
+from canergy.live.supervisor.control import request
+from canergy.live.supervisor.multi_bus import BusPort, BusRouter, bus_spec
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.state_file import save_state
 from canergy.messages import Ack, Commit, Committed, Direction, Intention, Message, Telemetry
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
 from firmware_model.nvstore import NvStore

@@ -25,7 +25,7 @@ from odrive_can.mock import ODriveCANMock
 
 from canergy.cli import main
 from canergy.devices.odrive import AxisState, Cmd, can_id, set_axis_state
-from canergy.live.control import request
+from canergy.live.supervisor.control import request
 from firmware_model.odrive.live_bench import LIMITS, MOTOR, wait_for
 
 AXIS = 3

@@ -1,5 +1,5 @@
-"""``--on-stuck CMD`` (canergy.live.on_stuck): the command that cuts a STUCK device's supply runs
-once per episode, with the device named, never blocking or breaking the loop."""
+"""``--on-stuck CMD`` (canergy.live.devices.on_stuck): the command that cuts a STUCK device's
+supply runs once per episode, with the device named, never blocking or breaking the loop."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from canergy.live.on_stuck import OnStuck, OnStuckError, parse_on_stuck
+from canergy.live.devices.on_stuck import OnStuck, OnStuckError, parse_on_stuck
 
 
 def _wait(done: object, timeout: float = 30.0) -> None:

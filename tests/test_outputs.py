@@ -7,8 +7,8 @@ import json
 from pathlib import Path
 
 from canergy.core import Supervisor
-from canergy.live.outputs import BooksOut, StatusOut
-from canergy.live.state_file import load_state
+from canergy.live.supervisor.outputs import BooksOut, StatusOut
+from canergy.live.supervisor.state_file import load_state
 
 J = 1_000_000
 

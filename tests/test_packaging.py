@@ -153,7 +153,7 @@ PROBE = """
 import json
 import canopen
 import canergy
-from canergy.live.shared_bus import EDS
+from canergy.live.canopen.shared_bus import EDS
 try:
     import firmware_model
     emulator = firmware_model.__file__
@@ -196,7 +196,7 @@ def host(tmp_path_factory: pytest.TempPathFactory) -> Install:
 
 def test_the_wheel_carries_every_module_and_the_eds(host: Install) -> None:
     names = set(zipfile.ZipFile(host.wheel).namelist())
-    eds = "canergy/live/canergy_node.eds"
+    eds = "canergy/live/canopen/canergy_node.eds"
     assert {eds, "canergy/py.typed"} <= names
     assert zipfile.ZipFile(host.wheel).read(eds) == (ROOT / "src" / eds).read_bytes()
     sources = {p.relative_to(ROOT / "src").as_posix() for p in (ROOT / "src").rglob("*.py")}

@@ -15,10 +15,10 @@ from canergy.codec import Codec
 from canergy.core import Supervisor
 from canergy.core.state import SupervisorState
 from canergy.live.bus_group import BusGroup
-from canergy.live.multi_bus import BusPort, BusRouter
 from canergy.live.runtime import BusRuntime
-from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.state_file import BooksWriter, state_json
+from canergy.live.supervisor.multi_bus import BusPort, BusRouter
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.state_file import BooksWriter, state_json
 from canergy.messages import Ack, Commit, Committed, Direction, Intention, Message, Telemetry
 
 NODES = tuple(range(1, 17))

@@ -18,7 +18,7 @@ from canergy.cli import grant as grant_cli
 from canergy.cli import main
 from canergy.cli import supervisor as supervisor_cli
 from canergy.core.state import Decision, Phase, Session, SupervisorState
-from canergy.live.state_file import (
+from canergy.live.supervisor.state_file import (
     BooksWriter,
     StateFileError,
     books_checksum,

@@ -22,8 +22,8 @@ from canergy.cli import supervisor as supervisor_cli
 from canergy.core.gateway import Gateway, GatewayState
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.frozen import evolve
-from canergy.live.gateway_state import load_gateway, save_gateway
-from canergy.live.state_file import (
+from canergy.live.gateway.state import load_gateway, save_gateway
+from canergy.live.supervisor.state_file import (
     BooksWriter,
     StateFileError,
     books_checksum,

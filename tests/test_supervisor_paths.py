@@ -20,10 +20,10 @@ from canergy.cli import main
 from canergy.cli import supervisor as supervisor_cli
 from canergy.codec import Codec
 from canergy.core import Supervisor
-from canergy.live.control import ControlServer, request
-from canergy.live.policy import Limits, capped_grant
-from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.state_file import load_state
+from canergy.live.supervisor.control import ControlServer, request
+from canergy.live.supervisor.policy import Limits, capped_grant
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.state_file import load_state
 from canergy.messages import QUANTUM_UJ, USABLE_MAX_UJ, Intention, Telemetry
 
 J = 1_000_000

@@ -23,7 +23,7 @@ from support.vcan import c_node as c_node  # the fixtures: the C node, built whe
 from support.vcan import vcan_up as vcan_up  # and vcan0 or a failure, for every test here
 
 from canergy.ledger import ledger_from_status
-from canergy.live.shared_bus import EDS
+from canergy.live.canopen.shared_bus import EDS
 
 pytestmark = pytest.mark.vcan
 

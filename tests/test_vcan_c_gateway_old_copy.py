@@ -18,7 +18,7 @@ from support.procs import Procs, python, status, wait
 from support.procs import procs as procs  # the fixture
 from support.vcan import TIMEOUT, built
 
-from canergy.live.control import request
+from canergy.live.supervisor.control import request
 from canergy.units import UJ_PER_J
 
 pytestmark = pytest.mark.vcan

@@ -28,7 +28,7 @@ from support.vcan import BUS, IFACE, vcan_up
 from support.venue import Venue, venue
 
 from canergy.ledger import ledger_from_status
-from canergy.live.cia402_link import EDS
+from canergy.live.canopen.cia402_link import EDS
 from firmware_model.drive.live_bench import app_write
 
 pytestmark = pytest.mark.vcan

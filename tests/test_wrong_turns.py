@@ -21,7 +21,7 @@ import pytest
 from support.procs import Procs, python, status, wait
 
 from canergy.live.runtime import BusRuntime
-from canergy.live.virtual_alone import ALONE_AFTER_US
+from canergy.live.transports.virtual_alone import ALONE_AFTER_US
 from canergy.messages import Direction
 
 WHY = "it connects only buses of one process"

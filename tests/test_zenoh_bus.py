@@ -21,10 +21,10 @@ from support.zenoh_loopback import endpoint, free_port, site
 from canergy.cli import main
 from canergy.codec import Codec
 from canergy.faults import FaultInjector, FaultProfile
-from canergy.live.control import request
-from canergy.live.faulty_bus import FaultyBus
 from canergy.live.runtime import BusRuntime, monotonic_us
-from canergy.live.zenoh_bus import (
+from canergy.live.supervisor.control import request
+from canergy.live.transports.faulty_bus import FaultyBus
+from canergy.live.transports.zenoh_bus import (
     MalformedFrame,
     ZenohBus,
     decode_frame,

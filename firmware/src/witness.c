@@ -1,5 +1,5 @@
 /*
- * The witness's RETURN hold (canergy/witness.h), as canergy.live.witness.ReturnGate.
+ * The witness's RETURN hold (canergy/witness.h), as canergy.live.supervisor.witness.ReturnGate.
  */
 #include "canergy/witness.h"
 

@@ -18,11 +18,11 @@ from pathlib import Path
 from typing import Any
 
 from canergy.argtypes import add_duration, bounded_int
+from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.errors import BusOpenError
 from canergy.live.atomic import check_writable_dir, same_file, write_json_atomic
-from canergy.live.bus_args import add_bus_flags, open_bus
+from canergy.live.canopen.shared_bus import STANDARD_FRAMES
 from canergy.live.runtime import monotonic_us
-from canergy.live.shared_bus import STANDARD_FRAMES
 from firmware_model.drive.canopen_face import DriveFace, drive_network
 from firmware_model.drive.model import DriveModel
 from firmware_model.drive.motor import LoadTorque

@@ -35,12 +35,12 @@ from canergy.cia402.guard import (
 from canergy.cia402.meter import MeterConfig, MeterKind
 from canergy.cia402.metering import DriveSetup
 from canergy.core import Timing
-from canergy.live.build import CoreConfig, SupervisorConfig, build_supervisor
-from canergy.live.cia402_host import HostBeat
-from canergy.live.cia402_link import enable_step, power_state
-from canergy.live.policy import Limits as GrantLimits
-from canergy.live.policy import TopUp
-from canergy.live.service import ServiceConfig
+from canergy.live.canopen.cia402_host import HostBeat
+from canergy.live.canopen.cia402_link import enable_step, power_state
+from canergy.live.supervisor.build import CoreConfig, SupervisorConfig, build_supervisor
+from canergy.live.supervisor.policy import Limits as GrantLimits
+from canergy.live.supervisor.policy import TopUp
+from canergy.live.supervisor.service import ServiceConfig
 from canergy.units import UJ_PER_J
 from firmware_model.drive.model import DriveAbort, DriveModel
 from firmware_model.drive.motor import LoadTorque, MotorParams

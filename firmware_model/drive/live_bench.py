@@ -26,9 +26,9 @@ import canopen
 
 from canergy.cli import main as canergy_main
 from canergy.codec import Codec
-from canergy.live.cia402_link import EDS, shared_sdo
-from canergy.live.control import request
+from canergy.live.canopen.cia402_link import EDS, shared_sdo
 from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.supervisor.control import request
 from canergy.messages import Direction
 from firmware_model.actuator import PowerProfile
 from firmware_model.drive.canopen_face import DriveFace, drive_network

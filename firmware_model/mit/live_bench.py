@@ -20,8 +20,8 @@ import can
 
 from canergy.cli import main as canergy_main
 from canergy.devices.mit import ENTER, MODELS, encode
-from canergy.live.control import request
 from canergy.live.runtime import monotonic_us
+from canergy.live.supervisor.control import request
 from firmware_model.drive.motor import LoadTorque
 from firmware_model.mit.motor import MitFace, MitMotorModel
 
@@ -124,7 +124,7 @@ def send_latency(tmp: Path, n: int = 2000, rounds: int = 3) -> dict[str, Any]:
     """µs per ``send`` of an MIT command: straight to the bus (to an id nobody guards) and
     through ``MitBus`` (clamped under 0.05 N·m), ``rounds`` alternating rounds of ``n`` each,
     with the supervisor granting and the motor answering; and the gate's counts."""
-    from canergy.live.mit_bus import MitBus, MitMotor
+    from canergy.live.devices.mit_bus import MitBus, MitMotor
     from firmware_model.drive.live_bench import wait_for
 
     with rig(tmp, "60J") as r:

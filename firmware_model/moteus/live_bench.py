@@ -28,7 +28,7 @@ from canergy.devices.moteus import (
     encode,
     extended,
 )
-from canergy.live.control import request
+from canergy.live.supervisor.control import request
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.drive.motor import LoadTorque
 from firmware_model.moteus.servo import ServoFace, ServoModel

@@ -19,7 +19,7 @@ import can
 
 from canergy.cli import main as canergy_main
 from canergy.devices.odrive import AxisState, Cmd, can_id, set_axis_state
-from canergy.live.control import request
+from canergy.live.supervisor.control import request
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.drive.motor import LoadTorque
 from firmware_model.odrive.axis import CURRENT_LIMIT_EP, VEL_LIMIT_EP, AxisFace, AxisModel

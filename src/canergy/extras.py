@@ -30,7 +30,7 @@ EXTRAS: dict[str, tuple[str, str]] = {
 
 NEEDS_EXTRA: dict[str, str] = {
     "canergy.inspect.capture_plot": "plot",
-    "canergy.live.zenoh_bus": "zenoh",
+    "canergy.live.transports.zenoh_bus": "zenoh",
     "canergy.prove.invariant": "prove",
     "canergy.prove.obligations": "prove",
     "canergy.prove.rules": "prove",

@@ -21,8 +21,8 @@ import can
 
 from canergy.cli import main
 from canergy.codec import Codec
-from canergy.live.control import request
 from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.supervisor.control import request
 from canergy.messages import Direction
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
 from firmware_model.nvstore import NvStore

@@ -16,11 +16,11 @@ from canergy.codec import Codec
 from canergy.core import ClientState, Supervisor, Timing
 from canergy.faults import FaultInjector, FaultProfile
 from canergy.ledger import Ledger, ledger
-from canergy.live.faulty_bus import FaultyBus
-from canergy.live.policy import Limits, TopUp
 from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
-from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.state_file import load_state
+from canergy.live.supervisor.policy import Limits, TopUp
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.state_file import load_state
+from canergy.live.transports.faulty_bus import FaultyBus
 from canergy.messages import Direction
 from canergy.units import UJ_PER_J
 from firmware_model.actuator import PowerProfile

@@ -81,14 +81,14 @@ int64_t canergy_gateway_link_gap(const struct canergy_gateway *gw);
 
 /* ---- the gateway's policy (canergy-gateway's; Python's in canergy.live) ----
  * Each node's top-up below: TopUp(target_uj, min_uj).wanted(level) capped as capped_grant with
- * no limits (canergy.live.policy): the shortfall from its reported level when at least min_uj,
+ * no limits (canergy.live.supervisor.policy): the shortfall from its reported level when at least min_uj,
  * within usable (Us below; a debt is 0), one frame's amount and what its record holds above
  * level; whole mJ, 0 for none. The caller grants only from a fresh level (reported after its last
  * transaction ended), to a node not JOINING nor blocked by its witness (canergy/witness.h). */
 uint32_t canergy_gateway_top_up(uint64_t target_uj, uint64_t min_uj, uint64_t level_uj,
                                 int64_t usable_uj);
 
-/* What goes back above (canergy.live.gateway.Uplink's return): usable beyond return_above_uj,
+/* What goes back above (canergy.live.gateway.process.Uplink's return): usable beyond return_above_uj,
  * whole mJ, at most one frame's amount; 0 for none. */
 uint32_t canergy_gateway_give_back_amount(int64_t usable_uj, uint64_t return_above_uj);
 

@@ -1,5 +1,5 @@
 /*
- * The supervisor's witness without a key (src/canergy/live/witness.py's ReturnGate), sans-IO, one
+ * The supervisor's witness without a key (src/canergy/live/supervisor/witness.py's ReturnGate), sans-IO, one
  * caller-owned struct per node. Anyone can send a RETURN in a node's name on a bus without keys;
  * the node reports in its TELEMETRY the frames it saw in its name that it did not send
  * (``witness``) and its return number. So:

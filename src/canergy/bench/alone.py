@@ -23,9 +23,9 @@ import can
 
 from canergy.bench.live import TIMING, Emulator, NoAnswer
 from canergy.codec import Codec
-from canergy.live.build import CoreConfig, SupervisorConfig, build_supervisor
 from canergy.live.runtime import BusRuntime, monotonic_us
-from canergy.live.service import ServiceConfig
+from canergy.live.supervisor.build import CoreConfig, SupervisorConfig, build_supervisor
+from canergy.live.supervisor.service import ServiceConfig
 from canergy.messages import Direction
 
 

@@ -31,9 +31,9 @@ import canopen
 
 from canergy.codec import Codec
 from canergy.core import Timing
-from canergy.live.build import CoreConfig, SupervisorConfig, build_supervisor
 from canergy.live.runtime import BusRuntime, Handler, monotonic_us
-from canergy.live.service import ServiceConfig
+from canergy.live.supervisor.build import CoreConfig, SupervisorConfig, build_supervisor
+from canergy.live.supervisor.service import ServiceConfig
 from canergy.messages import Direction
 
 TIMING = Timing(response_timeout_us=500_000, retries=3, command_timeout_us=1_000_000)

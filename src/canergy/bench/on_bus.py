@@ -11,51 +11,45 @@ CPU, and the latency ratio against the SDO write.
 
 from __future__ import annotations
 
-import argparse
 import os
 import select
 import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
 
+import can
 import canopen
 
 from canergy.bench import code, live
 from canergy.codec import Codec
-from canergy.live.bus_args import open_bus
 
 SDO_NODE = 5
 """The SDO server's node id (its frames are 11-bit, outside canergy's 29-bit block)."""
 
 
-def bus_argv(args: argparse.Namespace, *, id_base: bool = True) -> list[str]:
-    """The bus flags of ``args`` as a command line for another program taking the same flags."""
-    if getattr(args, "interface", None) == "virtual":
-        raise ValueError(
-            "-i virtual: python-can's virtual bus does not cross processes; run `canergy bench` "
-            "without bus flags for the in-process bench"
-        )
-    if getattr(args, "timing", None) is not None:
-        raise ValueError("--timing is not passed on to the node processes: give -b/--data-bitrate")
-    out = []
-    for flag, name in (("-i", "interface"), ("-c", "channel"), ("-b", "bitrate")):
-        if (value := getattr(args, name, None)) is not None:
-            out += [flag, str(value)]
-    if getattr(args, "fd", False):
-        out.append("--fd")
-    if (data_bitrate := getattr(args, "data_bitrate", None)) is not None:
-        out += ["--data-bitrate", str(data_bitrate)]
-    if kwargs := getattr(args, "bus_kwargs", None):
-        out += ["--bus-kwargs", *(f"{k}={v}" for k, v in kwargs.items())]
-    if id_base:
-        out += ["--id-base", f"0x{args.id_base:08X}"]
-    return out
+@dataclass(frozen=True)
+class BusTarget:
+    """The bus the user named (from ``canergy bench``'s flags): how other programs are told to
+    open it, and how this process opens it."""
+
+    flags: tuple[str, ...]
+    """The bus flags for another program taking python-can's flags (without ``--id-base``)."""
+    interface: str | None
+    channel: str | None
+    id_base: int
+    open: Callable[[list[dict[str, Any]]], can.BusABC]
+    """Open it here with these acceptance filters."""
+
+    def argv(self) -> list[str]:
+        """The flags with ``--id-base``."""
+        return [*self.flags, "--id-base", f"0x{self.id_base:08X}"]
 
 
 def _wait_ready(proc: subprocess.Popen[str], what: str, timeout_s: float) -> None:
@@ -93,16 +87,14 @@ def _process_cpu_s(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def node_commands(
-    args: argparse.Namespace, nodes: int, nv_dir: Path, c_node: Path | None
-) -> list[list[str]]:
+def node_commands(bus: BusTarget, nodes: int, nv_dir: Path, c_node: Path | None) -> list[list[str]]:
     """The processes that put ``nodes`` nodes (ids 1..nodes) on the bus."""
     if c_node is None:
-        return [live.load_emulator().command(f"1-{nodes}", nv_dir, bus_argv(args))]
-    if getattr(args, "interface", None) != "socketcan":
+        return [live.load_emulator().command(f"1-{nodes}", nv_dir, bus.argv())]
+    if bus.interface != "socketcan":
         raise ValueError("--c-node: the C node runs on SocketCAN only (-i socketcan)")
-    base = [str(c_node), "-i", "socketcan", "-c", str(getattr(args, "channel", None))]
-    base += ["--id-base", f"0x{args.id_base:08X}"]
+    base = [str(c_node), "-i", "socketcan", "-c", str(bus.channel)]
+    base += ["--id-base", f"0x{bus.id_base:08X}"]
     return [[*base, "--node", str(n), "--nv", str(nv_dir / f"{n}.nv")] for n in range(1, nodes + 1)]
 
 
@@ -124,7 +116,7 @@ def _processes(commands: list[list[str]], logs: Path) -> Iterator[list[subproces
 
 
 def grants_on_bus(
-    args: argparse.Namespace,
+    bus_target: BusTarget,
     nodes: int,
     duration_s: float,
     c_node: Path | None,
@@ -133,11 +125,11 @@ def grants_on_bus(
 ) -> dict[str, Any]:
     """``live.drive_grants`` on the flags' bus against node processes; ``state_file``: the
     supervisor keeps its books in a file; ``core``: its core ("python", "c")."""
-    codec = Codec(args.id_base)
+    codec = Codec(bus_target.id_base)
     with tempfile.TemporaryDirectory() as tmp:
         logs = Path(tmp)
-        with _processes(node_commands(args, nodes, logs, c_node), logs) as procs:
-            bus = open_bus(args, codec.supervisor_filters())
+        with _processes(node_commands(bus_target, nodes, logs, c_node), logs) as procs:
+            bus = bus_target.open(codec.supervisor_filters())
             clocks = [partial(_process_cpu_s, p.pid) for p in procs]
             try:
                 row = live.drive_grants(
@@ -162,9 +154,9 @@ def grants_on_bus(
     return row
 
 
-def sdo_on_bus(args: argparse.Namespace, count: int) -> dict[str, Any]:
+def sdo_on_bus(bus: BusTarget, count: int) -> dict[str, Any]:
     """SDO expedited writes from this process to an SDO server process on the same bus."""
-    cmd = [sys.executable, "-m", "canergy.bench.sdo_server", *bus_argv(args, id_base=False)]
+    cmd = [sys.executable, "-m", "canergy.bench.sdo_server", *bus.flags]
     server = subprocess.Popen(
         [*cmd, "--node", str(SDO_NODE)],
         stdin=subprocess.PIPE,
@@ -175,7 +167,7 @@ def sdo_on_bus(args: argparse.Namespace, count: int) -> dict[str, Any]:
     try:
         _wait_ready(server, "the SDO server process", 30.0)
         answers = [{"can_id": 0x580 + SDO_NODE, "can_mask": 0x7FF, "extended": False}]
-        network = canopen.Network(open_bus(args, answers))
+        network = canopen.Network(bus.open(answers))
         network.connect()
         try:
             od = live.sdo_dictionary()
@@ -187,7 +179,7 @@ def sdo_on_bus(args: argparse.Namespace, count: int) -> dict[str, Any]:
 
 
 def run_on_bus(
-    args: argparse.Namespace,
+    bus: BusTarget,
     node_counts: Sequence[int],
     seconds: float,
     writes: int,
@@ -207,17 +199,17 @@ def run_on_bus(
     stacks: dict[str, dict[str, Any]] = {}
     for core in cores:
         rows = [
-            grants_on_bus(args, n, seconds, c_node, state_file, core)
+            grants_on_bus(bus, n, seconds, c_node, state_file, core)
             for state_file in (False, True)
             for n in node_counts
         ]
         stacks[core] = {"live": rows, "headroom": supervisor_headroom(rows)}
-    sdo = sdo_on_bus(args, writes)
+    sdo = sdo_on_bus(bus, writes)
     for stack in stacks.values():
         stack["latency_ratio_vs_sdo"] = latency_ratio(stack["live"], sdo)
     first = stacks[cores[0]]
     return {
-        "bus": bus_argv(args),
+        "bus": bus.argv(),
         "code": code.code(),
         "nodes_by": "C node processes" if c_node else live.load_emulator().label,
         **first,

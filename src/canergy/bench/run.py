@@ -19,7 +19,7 @@ from canergy.ccore import supervisor as ccore
 
 
 def memory_per_node(nodes: int = 127, emulator: live.Emulator | None = None) -> dict[str, Any]:
-    from canergy.live.build import CoreConfig, SupervisorConfig, build_supervisor
+    from canergy.live.supervisor.build import CoreConfig, SupervisorConfig, build_supervisor
 
     config = SupervisorConfig(core=CoreConfig(tuple(range(1, nodes + 1)), 10**9))
     tracemalloc.start()

@@ -16,8 +16,8 @@ import canopen
 
 from canergy.argtypes import bounded_int
 from canergy.bench.live import sdo_dictionary
+from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.errors import BusOpenError
-from canergy.live.bus_args import add_bus_flags, open_bus
 
 
 def main(argv: Sequence[str] | None = None) -> int:

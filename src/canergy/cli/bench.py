@@ -5,13 +5,17 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from canergy.argtypes import add_duration, bounded_int
+from canergy.cli.shared.bus_flags import add_bus_flags
 from canergy.cli.summaries import SUMMARIES
 from canergy.live.atomic import check_writable_dir
-from canergy.live.bus_args import add_bus_flags
+
+if TYPE_CHECKING:
+    from canergy.bench.on_bus import BusTarget
 
 
 def node_counts(text: str) -> tuple[int, ...]:
@@ -79,6 +83,20 @@ def _cores(choice: str) -> tuple[str, ...]:
     return ("c",) if choice == "c" else ("python", "c")
 
 
+def bus_target(args: argparse.Namespace) -> BusTarget:
+    """The bus the flags name, for the bench's processes and this one."""
+    from canergy.bench.on_bus import BusTarget
+    from canergy.cli.shared.bus_flags import bus_argv, open_bus
+
+    return BusTarget(
+        tuple(bus_argv(args, id_base=False)),
+        getattr(args, "interface", None),
+        getattr(args, "channel", None),
+        args.id_base,
+        partial(open_bus, args),
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     from canergy.bench.code import line
     from canergy.bench.run import c_core_lines, live_lines, run, table
@@ -98,7 +116,9 @@ def run(args: argparse.Namespace) -> int:
             raise FileNotFoundError(f"--c-node {args.c_node}: no such program")
         seconds = 0.5 if args.quick else args.duration / 1e6
         writes = 50 if args.quick else args.writes
-        results = run_on_bus(args, args.nodes, seconds, writes, args.c_node, _cores(args.core))
+        results = run_on_bus(
+            bus_target(args), args.nodes, seconds, writes, args.c_node, _cores(args.core)
+        )
         where = " ".join(
             str(getattr(args, n, None) or "") for n in ("interface", "channel")
         ).strip()

@@ -13,11 +13,11 @@ from typing import Any
 from canergy.argtypes import add_duration, argument, duration_or_zero, probability, seed
 from canergy.bridge.link import Bridge
 from canergy.bridge.schedule import FaultSchedule, Partition
+from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.cli.summaries import SUMMARIES
 from canergy.faults import FaultProfile
 from canergy.inspect.candump import FrameLog, log_path, open_log
 from canergy.live.atomic import check_writable_dir, same_file, write_json_atomic
-from canergy.live.bus_args import add_bus_flags, open_bus
 from canergy.units import format_duration
 
 SIDES = ("bus1", "bus2")

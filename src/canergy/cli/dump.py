@@ -11,6 +11,10 @@ from datetime import datetime
 from pathlib import Path
 
 from canergy.argtypes import COUNT_MAX, argument, bounded_int
+from canergy.cli.shared.bus_flags import add_bus_flags, bus_where
+
+# dump's bus opens with CAN FD on, or for classic CAN where the interface refuses FD
+from canergy.cli.shared.bus_flags import open_receiving_bus as open_bus
 from canergy.cli.shared.capture import (
     capture_auth,
     show,
@@ -21,10 +25,6 @@ from canergy.codec import Codec
 from canergy.inspect.candump import ChannelFilters, FrameLog, log_path, open_log
 from canergy.inspect.frames import Described
 from canergy.inspect.render import STAMP_MODES, Stamps
-from canergy.live.bus_args import add_bus_flags, bus_where
-
-# dump's bus opens with CAN FD on, or for classic CAN where the interface refuses FD
-from canergy.live.bus_args import open_receiving_bus as open_bus
 
 
 def channel_filters(text: str) -> ChannelFilters:

@@ -14,6 +14,7 @@ from canergy.argtypes import add_duration, bounded_int, energy, node_ids, probab
 from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import Key, KeyFileError, frame_auth_keys, load_key
 from canergy.auth.state_key import state_seal
+from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.cli.shared.live import (
     auth_config,
     book_flags,
@@ -28,16 +29,15 @@ from canergy.codec import Codec
 from canergy.core.gateway import Gateway
 from canergy.core.state import Phase
 from canergy.faults import FaultInjector, FaultProfile
-from canergy.live.build import SupervisorConfig, build_supervisor
-from canergy.live.bus_args import add_bus_flags, open_bus
 from canergy.live.bus_group import BusGroup
-from canergy.live.gateway import GatewayFiles, Uplink, UplinkConfig
-from canergy.live.gateway_state import load_gateway
-from canergy.live.policy import TopUp
+from canergy.live.gateway.process import GatewayFiles, Uplink, UplinkConfig
+from canergy.live.gateway.state import load_gateway
 from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
 from canergy.live.serve import serve_supervisor
-from canergy.live.service import ServiceConfig
-from canergy.live.state_file import keep_books
+from canergy.live.supervisor.build import SupervisorConfig, build_supervisor
+from canergy.live.supervisor.policy import TopUp
+from canergy.live.supervisor.service import ServiceConfig
+from canergy.live.supervisor.state_file import keep_books
 from canergy.messages import QUANTUM_UJ, Direction
 
 UP = "upstream"
@@ -247,7 +247,7 @@ def _upstream_bus(args: argparse.Namespace, codec: Codec) -> Any:
     )
     if not (profile.loss or profile.duplicate or profile.reorder):
         return bus
-    from canergy.live.faulty_bus import FaultyBus
+    from canergy.live.transports.faulty_bus import FaultyBus
 
     return FaultyBus(bus, FaultInjector(profile, random.Random(args.fault_seed)))
 

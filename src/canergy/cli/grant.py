@@ -10,6 +10,7 @@ from typing import Any
 
 from canergy.argtypes import add_duration, bounded_int, grant_amount
 from canergy.bus_keys import parse_node_id
+from canergy.cli.shared.bus_flags import open_bus
 from canergy.cli.shared.live import (
     auth_config,
     auth_key,
@@ -21,13 +22,12 @@ from canergy.cli.shared.live import (
 )
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
-from canergy.live.build import SupervisorConfig, build_supervisor, open_core
-from canergy.live.bus_args import open_bus
-from canergy.live.control import NoAnswer, NoSupervisor, request
 from canergy.live.runtime import monotonic_us
 from canergy.live.serve import serve_supervisor
-from canergy.live.service import ServiceConfig
-from canergy.live.state_file import books_nodes
+from canergy.live.supervisor.build import SupervisorConfig, build_supervisor, open_core
+from canergy.live.supervisor.control import NoAnswer, NoSupervisor, request
+from canergy.live.supervisor.service import ServiceConfig
+from canergy.live.supervisor.state_file import books_nodes
 from canergy.units import US_PER_S, format_energy
 
 STATUS_WAIT_S = 5.0

@@ -1,5 +1,5 @@
 """``canergy inline``: MIT-mode motors guarded in line between two interfaces
-(``canergy.live.mit_forward``)."""
+(``canergy.live.devices.mit_forward``)."""
 
 from __future__ import annotations
 
@@ -11,14 +11,14 @@ from pathlib import Path
 from typing import Any
 
 from canergy.argtypes import add_duration, node_ids
+from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.cli.shared.cia402 import _number
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.devices.mit import MODELS
 from canergy.live.atomic import check_writable_dir, write_json_atomic
-from canergy.live.bus_args import add_bus_flags, open_bus
-from canergy.live.mit_bus import MitBus, MitMotor
-from canergy.live.mit_forward import MitForwarder
+from canergy.live.devices.mit_bus import MitBus, MitMotor
+from canergy.live.devices.mit_forward import MitForwarder
 from canergy.live.runtime import monotonic_us
 
 APP = "app"

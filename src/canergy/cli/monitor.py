@@ -16,11 +16,11 @@ from pathlib import Path
 from canergy.argtypes import add_duration, argument, duration, energy
 from canergy.auth.capture import CaptureAuth
 from canergy.auth.keys import load_key
+from canergy.cli.shared.bus_flags import add_bus_flags, open_receiving_bus
 from canergy.cli.shared.capture import namer_of, others_flags
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.inspect.captures import read_file
-from canergy.live.bus_args import add_bus_flags, open_receiving_bus
 from canergy.monitor.books import Books, BooksPoller, from_control, from_status_file
 from canergy.monitor.feeds import Feed, LiveFeed, ReplayFeed
 from canergy.monitor.model import MonitorModel

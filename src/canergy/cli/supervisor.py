@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from canergy.argtypes import add_duration, energy, node_ids
+from canergy.cli.shared.bus_flags import bus_where, open_bus, open_bus_at
 from canergy.cli.shared.cia402 import add_cia402_flags, check_cia402, cia402_drives
 from canergy.cli.shared.live import (
     auth_config,
@@ -34,25 +35,24 @@ from canergy.cli.shared.odrive import add_odrive_flags, check_odrive, odrive_axe
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.core.supervisor import SupervisorCore
-from canergy.live.build import (
+from canergy.live.devices.on_stuck import parse_on_stuck
+from canergy.live.serve import serve_supervisor
+from canergy.live.supervisor.build import (
     CanopenConfig,
     DeviceGroup,
     SupervisorConfig,
     build_supervisor,
     open_core,
 )
-from canergy.live.bus_args import bus_where, open_bus, open_bus_at
-from canergy.live.multi_bus import (
+from canergy.live.supervisor.multi_bus import (
     BUS_SYNTAX,
     BusSpec,
     bus_spec,
     check_buses,
     session_keys,
 )
-from canergy.live.on_stuck import parse_on_stuck
-from canergy.live.policy import TopUp
-from canergy.live.serve import serve_supervisor
-from canergy.live.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.policy import TopUp
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.messages import QUANTUM_UJ
 
 EXIT_INTRUSION = 3
@@ -139,7 +139,7 @@ def _check_eds(path: Path | None) -> None:
     """The nodes' object dictionary loads, before anything is written or sent."""
     import canopen
 
-    from canergy.live.shared_bus import EDS
+    from canergy.live.canopen.shared_bus import EDS
 
     try:
         canopen.import_od(str(path or EDS))
@@ -294,7 +294,7 @@ def supervisor_config(
     )
     canopen = None
     if args.canopen:
-        from canergy.live.shared_bus import EDS
+        from canergy.live.canopen.shared_bus import EDS
 
         canopen = CanopenConfig(tuple(args.nodes), args.eds or EDS, args.heartbeat_timeout)
     return SupervisorConfig(
@@ -365,11 +365,11 @@ def _run_bus(args: argparse.Namespace, config: SupervisorConfig, core: Superviso
     """One bus (-i/-c/--nodes), with CANopen and guarded drives and devices if asked for."""
     filters = Codec(args.id_base).supervisor_watch_filters()
     if config.shares_bus:
-        from canergy.live.shared_bus import STANDARD_FRAMES
+        from canergy.live.canopen.shared_bus import STANDARD_FRAMES
 
         filters.append(STANDARD_FRAMES)  # CANopen's 11-bit ids
     if args.moteus:
-        from canergy.live.shared_bus import STANDARD_FRAMES
+        from canergy.live.canopen.shared_bus import STANDARD_FRAMES
 
         filters += [STANDARD_FRAMES, *moteus_filters(args)]
     bus = open_bus(args, filters)

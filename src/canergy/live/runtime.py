@@ -33,7 +33,7 @@ from canergy.auth.frames import (
     fv_before,
 )
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
-from canergy.live.virtual_alone import ALONE_AFTER_US, alone_on_virtual, explanation
+from canergy.live.transports.virtual_alone import ALONE_AFTER_US, alone_on_virtual, explanation
 from canergy.messages import Admit, Direction, Join, Message, Return, ReturnAck, Telemetry
 
 Filters = list[dict[str, int | bool]]
@@ -117,7 +117,7 @@ class BusCounters:
     """The authenticated layout (``fd``, ``classic``); None without a key."""
     bus_note: str | None = None
     """Why nothing is heard, when the loop knows (python-can's virtual bus within one process
-    only: ``canergy.live.virtual_alone``); in the status only when set."""
+    only: ``canergy.live.transports.virtual_alone``); in the status only when set."""
 
     def receive_failed(self) -> None:
         """A receive raised (the interface went down, a driver's error): counted, and the link

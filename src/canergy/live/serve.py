@@ -10,9 +10,9 @@ import threading
 from collections.abc import Callable
 from typing import Any, Protocol
 
-from canergy.live.control import ControlServer
 from canergy.live.runtime import monotonic_us
-from canergy.live.service import SupervisorService
+from canergy.live.supervisor.control import ControlServer
+from canergy.live.supervisor.service import SupervisorService
 
 POLL_S = 0.05
 """The longest a poll waits for a frame: the latency of periodic work and of a stop."""
@@ -91,7 +91,7 @@ def answer_control(
         if post is None:
             reply({"error": "the SDO audit needs the serve loop"})
             return
-        from canergy.live.canopen_manager import compare
+        from canergy.live.canopen.manager import compare
 
         def read_then_compare() -> None:  # SDO reads block: off the loop, which keeps running
             readings = manager.read_energy()

@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from canergy.live.control import request
+from canergy.live.supervisor.control import request
 
 MAX_STATUS = 8 << 20
 """Largest status accepted (127 nodes take about 60 kB)."""

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from canergy.cli.grant import MAX_STATUS
-from canergy.live.control import MAX_SOCKET_PATH, NoSupervisor, request
+from canergy.live.supervisor.control import MAX_SOCKET_PATH, NoSupervisor, request
 from canergy.testing.bus import Process, TestBus
 from canergy.units import parse_energy
 

@@ -26,8 +26,8 @@ from canergy.cia402.envelope import Limits, StopKind
 from canergy.cia402.guard import DriveGuard, GuardConfig
 from canergy.cia402.meter import MeterConfig, MeterKind
 from canergy.core import Timing
-from canergy.live.cia402_host import HostBeat
-from canergy.live.cia402_link import EDS, DriveLink, LinkConfig
+from canergy.live.canopen.cia402_host import HostBeat
+from canergy.live.canopen.cia402_link import EDS, DriveLink, LinkConfig
 
 CONSUMER_MAX_US = 65_535_000  # 0x1016 holds milliseconds in 16 bits
 
@@ -302,7 +302,7 @@ def check_cia402(args: argparse.Namespace) -> None:
 @dataclass(frozen=True, slots=True)
 class Cia402Drives:
     """``--cia402``: the drives, their guards' and links' configuration, the host's heartbeat,
-    the capture file (``canergy.live.build.Cia402Group``)."""
+    the capture file (``canergy.live.supervisor.build.Cia402Group``)."""
 
     nodes: tuple[int, ...]
     guard: GuardConfig

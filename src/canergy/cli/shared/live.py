@@ -10,14 +10,14 @@ from typing import Any
 
 from canergy.argtypes import add_duration, bounded_int, energy, node_ids, power
 from canergy.ccore.supervisor import missing
+from canergy.cli.shared.bus_flags import add_bus_flags
 from canergy.core import Timing
 from canergy.core.variants import RUNNABLE
 from canergy.live.atomic import check_writable_dir, same_file
-from canergy.live.build import AuthConfig, CoreConfig
-from canergy.live.bus_args import add_bus_flags
-from canergy.live.control import check_control_path
-from canergy.live.policy import Limits, level_room
-from canergy.live.state_file import ACCEPT_EDITED
+from canergy.live.supervisor.build import AuthConfig, CoreConfig
+from canergy.live.supervisor.control import check_control_path
+from canergy.live.supervisor.policy import Limits, level_room
+from canergy.live.supervisor.state_file import ACCEPT_EDITED
 from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ
 from canergy.units import UJ_PER_J, format_energy
 

@@ -16,7 +16,7 @@ from canergy.cli.shared.cia402 import _number
 from canergy.core import Timing
 from canergy.devices.guard import DeviceConfig, DeviceGuard
 from canergy.devices.moteus import ID_MAX, PREFIX_MAX, MoteusLimits, MoteusMotor, MoteusProfile
-from canergy.live.moteus_link import MoteusLink, MoteusLinkConfig
+from canergy.live.devices.moteus_link import MoteusLink, MoteusLinkConfig
 
 SAMPLED_WARNING = (
     "warning: --moteus-meter sampled integrates the controller's power register (0x007, where "
@@ -190,7 +190,7 @@ def moteus_limits(args: argparse.Namespace) -> MoteusLimits:
 @dataclass(frozen=True, slots=True)
 class MoteusControllers:
     """``--moteus``: the controllers and their guards' and links' configuration
-    (``canergy.live.build.DeviceGroup``)."""
+    (``canergy.live.supervisor.build.DeviceGroup``)."""
 
     nodes: tuple[int, ...]
     guard: DeviceConfig[MoteusLimits]

@@ -16,7 +16,7 @@ from canergy.cli.shared.cia402 import _number
 from canergy.core import Timing
 from canergy.devices.guard import DeviceConfig, DeviceGuard
 from canergy.devices.odrive import FIRMWARES, NODE_MAX, MotorConstants, OdriveLimits, OdriveProfile
-from canergy.live.odrive_link import OdriveLink, OdriveLinkConfig
+from canergy.live.devices.odrive_link import OdriveLink, OdriveLinkConfig
 
 SAMPLED_WARNING = (
     "warning: --odrive-meter sampled integrates the axis's power readings (0x01D on 0.6, bus "
@@ -178,7 +178,7 @@ def check_odrive(args: argparse.Namespace) -> None:
 @dataclass(frozen=True, slots=True)
 class OdriveAxes:
     """``--odrive``: the axes and their guards' and links' configuration
-    (``canergy.live.build.DeviceGroup``)."""
+    (``canergy.live.supervisor.build.DeviceGroup``)."""
 
     nodes: tuple[int, ...]
     guard: DeviceConfig[OdriveLimits]

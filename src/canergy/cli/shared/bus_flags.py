@@ -118,3 +118,27 @@ def open_bus_at(
         return open_bus(one, filters)
     except BusOpenError as exc:
         raise BusOpenError(f"--bus {name}: {exc}") from exc.__cause__
+
+
+def bus_argv(args: argparse.Namespace, *, id_base: bool = True) -> list[str]:
+    """The bus flags of ``args`` as a command line for another program taking the same flags."""
+    if getattr(args, "interface", None) == "virtual":
+        raise ValueError(
+            "-i virtual: python-can's virtual bus does not cross processes; run `canergy bench` "
+            "without bus flags for the in-process bench"
+        )
+    if getattr(args, "timing", None) is not None:
+        raise ValueError("--timing is not passed on to the node processes: give -b/--data-bitrate")
+    out = []
+    for flag, name in (("-i", "interface"), ("-c", "channel"), ("-b", "bitrate")):
+        if (value := getattr(args, name, None)) is not None:
+            out += [flag, str(value)]
+    if getattr(args, "fd", False):
+        out.append("--fd")
+    if (data_bitrate := getattr(args, "data_bitrate", None)) is not None:
+        out += ["--data-bitrate", str(data_bitrate)]
+    if kwargs := getattr(args, "bus_kwargs", None):
+        out += ["--bus-kwargs", *(f"{k}={v}" for k, v in kwargs.items())]
+    if id_base:
+        out += ["--id-base", f"0x{args.id_base:08X}"]
+    return out

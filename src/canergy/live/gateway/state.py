@@ -24,7 +24,7 @@ from canergy.auth.state_key import StateSeal
 from canergy.core.gateway import GatewayState, link_gap
 from canergy.core.state import ClientState, Outcome, Phase, Session
 from canergy.frozen import evolve
-from canergy.live.state_file import (
+from canergy.live.supervisor.state_file import (
     TOP_OPTIONAL,
     FieldChecker,
     StateFileError,

@@ -9,7 +9,7 @@ constructor. Nothing is assigned onto a built object afterwards.
 A guarded device group (``DeviceGroup``: ODrive axes today) plugs in as one more entry of
 ``SupervisorConfig.devices``: it names its nodes and opens a guard and a link per node on the
 bus; the builder adds each link to the bus's one Notifier, starts it and puts the guards in
-front of the service (``canergy.live.cia402_host``).
+front of the service (``canergy.live.canopen.cia402_host``).
 """
 
 from __future__ import annotations
@@ -28,15 +28,15 @@ from canergy.codec import DEFAULT_ID_BASE, Codec
 from canergy.core import Timing
 from canergy.core.supervisor import SupervisorCore
 from canergy.live.bus_group import BusGroup
-from canergy.live.control import ControlServer
-from canergy.live.on_stuck import OnStuck
+from canergy.live.devices.on_stuck import OnStuck
 from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
-from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.state_file import keep_books, load_state
+from canergy.live.supervisor.control import ControlServer
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.state_file import keep_books, load_state
 from canergy.messages import Direction
 
 if TYPE_CHECKING:  # the guarded drives' modules load only when a build has some
-    from canergy.live.cia402_host import GuardedDevice, GuardedDevices, HostBeat
+    from canergy.live.canopen.cia402_host import GuardedDevice, GuardedDevices, HostBeat
 
 Clock = Callable[[], int]
 
@@ -266,21 +266,21 @@ def _one(
     codec = Codec(config.id_base)
     network = reader = manager = notifier = None
     if bus is not None and config.shares_bus:
-        from canergy.live.shared_bus import shared_network
+        from canergy.live.canopen.shared_bus import shared_network
 
         network, reader = shared_network(bus)
         notifier = network.notifier
         assert notifier is not None
         made.append(notifier.stop)
     if config.canopen is not None:
-        from canergy.live.canopen_manager import CanopenManager
+        from canergy.live.canopen.manager import CanopenManager
 
         assert network is not None, "CANopen needs a bus"
         c = config.canopen
         manager = CanopenManager(network, c.nodes, c.eds, c.heartbeat_timeout_us, clock)
     guarded = None
     if config.cia402 is not None or config.devices:
-        from canergy.live.cia402_host import GuardedDevices
+        from canergy.live.canopen.cia402_host import GuardedDevices
 
         now = clock()
         drives: dict[int, tuple[Any, Any]] = {}
@@ -316,7 +316,7 @@ def _one(
     }
     service: SupervisorService
     if uplink is not None:
-        from canergy.live.gateway import DownstreamService
+        from canergy.live.gateway.process import DownstreamService
 
         service = DownstreamService(core, config.service, clock(), uplink=uplink, **given)
     else:
@@ -330,7 +330,7 @@ def _one(
             link.start()
     handler: Any = service
     if guarded is not None:
-        from canergy.live.cia402_host import GuardedSupervisor
+        from canergy.live.canopen.cia402_host import GuardedSupervisor
 
         handler = GuardedSupervisor(service, guarded, codec=codec)
     runtime = None
@@ -366,7 +366,7 @@ def _several(
     clock: Clock,
 ) -> RunningSupervisor:
     """One service over every bus, a port and a runtime per bus, one loop for them all."""
-    from canergy.live.multi_bus import BusPort, BusRouter
+    from canergy.live.supervisor.multi_bus import BusPort, BusRouter
 
     codec = Codec(config.id_base)
     names = config.service.bus_names

@@ -12,7 +12,7 @@ their freshness values from its client counters; frames refused there are counte
 on. It is also the witness for its own id, as a node is: frames in its name that it did not send
 (and answers to what it never asked) are counted in its TELEMETRY's ``witness``, which also
 carries its return number, so a supervisor above without a key credits its RETURNs once its own
-TELEMETRY confirms them (``canergy.live.witness``).
+TELEMETRY confirms them (``canergy.live.supervisor.witness``).
 
 Under the witnessed rules upstream every start is a RESUME the supervisor above confirms; until
 then nothing is granted below (``DownstreamService``): the status says so (``waiting_for_upstream``)
@@ -36,12 +36,12 @@ from canergy.core.actions import ClientCommitted, IntentionRefused
 from canergy.core.gateway import Gateway, link_gap
 from canergy.core.state import Phase
 from canergy.core.supervisor import SupervisorCore
-from canergy.live.gateway_state import save_gateway
-from canergy.live.intrusions import Intrusions, Refusals, frame_text
-from canergy.live.policy import quantize
+from canergy.live.gateway.state import save_gateway
 from canergy.live.runtime import BusCounters, Outgoing
-from canergy.live.service import ServiceConfig, SupervisorService
-from canergy.live.witness import ClientWitness
+from canergy.live.supervisor.intrusions import Intrusions, Refusals, frame_text
+from canergy.live.supervisor.policy import quantize
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.witness import ClientWitness
 from canergy.messages import (
     AMOUNT_MAX_MJ,
     LEVEL_MAX_MJ,

@@ -11,7 +11,7 @@ from typing import Any, TextIO
 
 from canergy.core.supervisor import SupervisorCore
 from canergy.live.atomic import write_json_atomic
-from canergy.live.state_file import BooksWriter
+from canergy.live.supervisor.state_file import BooksWriter
 
 
 class BooksOut:

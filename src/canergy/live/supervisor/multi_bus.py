@@ -20,7 +20,7 @@ from canergy.auth.frames import Verdict
 from canergy.bus_keys import bus_of, node_of, session_key
 from canergy.codec import DecodeError
 from canergy.live.runtime import BusRuntime, RawFrame
-from canergy.live.service import SupervisorService
+from canergy.live.supervisor.service import SupervisorService
 from canergy.messages import Message
 
 BUS_SYNTAX = "[NAME=]INTERFACE:CHANNEL:NODES"

@@ -43,9 +43,9 @@ from canergy.devices.odrive import (
     two_floats,
 )
 from canergy.devices.profile import Stop
-from canergy.live.device_link import GuardLink
-from canergy.live.device_link import limits_event as _limits
-from canergy.live.device_link import ready_event as _ready
+from canergy.live.devices.device_link import GuardLink
+from canergy.live.devices.device_link import limits_event as _limits
+from canergy.live.devices.device_link import ready_event as _ready
 
 log = logging.getLogger(__name__)
 

@@ -1,7 +1,8 @@
 """The supervisor with guarded CiA 402 drives: one loop, one core, proxies in the same books.
 
 ``GuardedDevices`` holds the guards, their links and the host's heartbeat; it is made before the
-service, which takes its liveness and status through its constructor (``canergy.live.build``).
+service, which takes its liveness and status through its constructor
+(``canergy.live.supervisor.build``).
 ``GuardedSupervisor`` wraps the service as the bus loop's ``Handler``. Frames the
 service sends to a guarded drive's id go to that drive's proxy client in this process, and the
 proxy's answers come back to the service, each encoded and decoded by the codec exactly as on the
@@ -29,10 +30,10 @@ from canergy.auth.frames import Verdict
 from canergy.cia402.guard import DriveGuard
 from canergy.codec import Codec, DecodeError
 from canergy.devices.guard import DeviceGuard
-from canergy.live.cia402_link import DriveLink
-from canergy.live.device_link import Device, DeviceLink
-from canergy.live.on_stuck import OnStuck
-from canergy.live.service import SupervisorService
+from canergy.live.canopen.cia402_link import DriveLink
+from canergy.live.devices.device_link import Device, DeviceLink
+from canergy.live.devices.on_stuck import OnStuck
+from canergy.live.supervisor.service import SupervisorService
 from canergy.messages import Direction, Message, ToClient
 
 NMT_OPERATIONAL = 0x05

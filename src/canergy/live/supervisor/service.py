@@ -32,13 +32,13 @@ from canergy.core.errors import LocalProtocolError
 from canergy.core.state import Outcome, Phase
 from canergy.core.supervisor import SupervisorCore
 from canergy.core.witnessed import answered
-from canergy.live.control import ControlServer
-from canergy.live.intrusions import Intrusions, Refusals, frame_text
-from canergy.live.outputs import BooksOut, StatusOut
-from canergy.live.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
 from canergy.live.runtime import BusCounters, Outgoing, RawFrame, total_counters
-from canergy.live.state_file import ENERGY_MAX_UJ
-from canergy.live.witness import ReturnGate
+from canergy.live.supervisor.control import ControlServer
+from canergy.live.supervisor.intrusions import Intrusions, Refusals, frame_text
+from canergy.live.supervisor.outputs import BooksOut, StatusOut
+from canergy.live.supervisor.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
+from canergy.live.supervisor.state_file import ENERGY_MAX_UJ
+from canergy.live.supervisor.witness import ReturnGate
 from canergy.messages import (
     LEVEL_MAX_MJ,
     QUANTUM_UJ,
@@ -152,7 +152,7 @@ class ServiceConfig:
     without a MAC, with a bad one or a stale one are refused and counted, never a reason."""
     return_hold_us: int | None = None
     """Without a key: hold each RETURN until the node's own TELEMETRY confirms it and this long
-    has passed without the node reporting frames in its name (``canergy.live.witness``);
+    has passed without the node reporting frames in its name (``canergy.live.supervisor.witness``);
     None: credit at once (authenticated mode, where a RETURN carries a MAC)."""
     witness_block_us: int = 10_000_000
     """No top-ups for a node this long after evidence against its TELEMETRY."""
@@ -172,7 +172,7 @@ class ServiceConfig:
 
 class SupervisorService:
     """Grants energy to nodes on one bus; implements ``canergy.live.runtime.Handler``. Over
-    several buses, ``canergy.live.multi_bus`` puts one port per bus in front of it."""
+    several buses, ``canergy.live.supervisor.multi_bus`` puts one port per bus in front of it."""
 
     def __init__(
         self,
@@ -188,11 +188,12 @@ class SupervisorService:
         control: ControlServer | None = None,
     ) -> None:
         """``save``: writes the books instead of ``config.state_path`` (a gateway keeps both of
-        its roles in one file). The rest is what the builder (``canergy.live.build``) hands
-        over: ``liveness``, an extra liveness test (the CANopen heartbeat watchdog, the guarded
-        drives'; False: no grants); ``extra_status``, more status under ``cia402`` (the guarded
-        drives); ``bus_counters``, the bus loop's counters (one bus) or ``buses``, each bus's by
-        name (several); ``control``, the control socket (its refusals are in the status)."""
+        its roles in one file). The rest is what the builder (``canergy.live.supervisor.build``)
+        hands over: ``liveness``, an extra liveness test (the CANopen heartbeat watchdog, the
+        guarded drives'; False: no grants); ``extra_status``, more status under ``cia402`` (the
+        guarded drives); ``bus_counters``, the bus loop's counters (one bus) or ``buses``, each
+        bus's by name (several); ``control``, the control socket (its refusals are in the
+        status)."""
         self.core = core
         self.config = config
         self.nodes = {n: NodeInfo() for n in core.nodes}

@@ -1,6 +1,6 @@
 """One moteus controller over CAN FD: set-up, feedback in, limits and stops out.
 
-As ``canergy.live.odrive_link``: a ``can.Listener`` on the supervisor's Notifier takes the
+As ``canergy.live.devices.odrive_link``: a ``can.Listener`` on the supervisor's Notifier takes the
 controller's frames and the frames others send it, stamped with the host's clock; a worker thread
 carries out the guard's commands, so a controller that does not answer never blocks the loop:
 
@@ -60,9 +60,9 @@ from canergy.devices.moteus import (
     write_mode,
 )
 from canergy.devices.profile import Stop
-from canergy.live.device_link import GuardLink
-from canergy.live.device_link import limits_event as _limits
-from canergy.live.device_link import ready_event as _ready
+from canergy.live.devices.device_link import GuardLink
+from canergy.live.devices.device_link import limits_event as _limits
+from canergy.live.devices.device_link import ready_event as _ready
 
 log = logging.getLogger(__name__)
 

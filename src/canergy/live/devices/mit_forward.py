@@ -13,7 +13,7 @@ from typing import Any
 
 import can
 
-from canergy.live.mit_bus import MitBus
+from canergy.live.devices.mit_bus import MitBus
 
 
 class MitForwarder:

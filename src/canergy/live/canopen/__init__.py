@@ -1,0 +1,1 @@
+"""CANopen beside canergy on one bus: NMT, heartbeats, SDO audit, the CiA 402 drives' links."""

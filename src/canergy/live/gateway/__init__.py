@@ -1,0 +1,1 @@
+"""A gateway process: the client above, the supervisor below, one record."""

@@ -1,0 +1,1 @@
+"""The supervisor: its builder, service, books and status files, policy, evidence and control."""

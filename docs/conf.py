@@ -47,10 +47,13 @@ nitpick_ignore_regex = [
     ("py:class", r"(Path|Enum|IntEnum|IntFlag|Message|BusABC|Callable|Iterable|Iterator)"),
     # internal types that public signatures name; they are not part of the API reference
     ("py:class", r"canergy\.core\.table\.RuleTable|Cell|S|Variant|SupervisorCore"),
+    ("py:class", r"canergy\.core\.supervisor\.SupervisorCore"),
+    ("py:class", r"Clock|HostBeat|GuardedDevices|GuardedDevice|Intrusions|Refusals"),
     ("py:class", r"(canergy\.auth\.frames\.)?(Verdict|FrameAuth)"),
-    ("py:class", r"(canergy\.live\.control\.)?ControlServer"),
+    ("py:class", r"(canergy\.live\.supervisor\.control\.)?ControlServer"),
     ("py:class", r"(canergy\.inspect\.candump\.)?FrameLog"),
     ("py:obj", r"canergy\.bridge\.schedule\.T"),  # Held's TypeVar
+    ("py:(obj|class)", r"(canergy\.live\.supervisor\.joins\.)?T"),  # JoinHold's TypeVar
     ("py:class", r"'dict\[str"),  # a quoted annotation Sphinx splits at its comma
 ]
 

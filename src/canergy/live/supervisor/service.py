@@ -15,7 +15,7 @@ from typing import Any, TextIO, cast
 
 import can
 
-from canergy.auth.frames import AuthFailure, Verdict, expected_freshness, frame_direction
+from canergy.auth.frames import Verdict, expected_freshness, frame_direction
 from canergy.bus_keys import node_name
 from canergy.codec import DecodeError
 from canergy.core import (
@@ -34,9 +34,11 @@ from canergy.core.supervisor import SupervisorCore
 from canergy.core.witnessed import answered
 from canergy.live.runtime import BusCounters, Outgoing, RawFrame, total_counters
 from canergy.live.supervisor.control import ControlServer
+from canergy.live.supervisor.grants import Books, GrantCallback, GrantDesk, GrantRequest
 from canergy.live.supervisor.intrusions import Intrusions, Refusals, frame_text
+from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
 from canergy.live.supervisor.outputs import BooksOut, StatusOut
-from canergy.live.supervisor.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
+from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.state_file import ENERGY_MAX_UJ
 from canergy.live.supervisor.witness import ReturnGate
 from canergy.messages import (
@@ -44,7 +46,6 @@ from canergy.messages import (
     QUANTUM_UJ,
     SEQ_BITS,
     TX_BITS,
-    USABLE_MAX_UJ,
     Aborted,
     Ack,
     Committed,
@@ -60,23 +61,9 @@ from canergy.seqnum import unwrap
 from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
-HELD_JOINS = 8
-"""Distinct JOINs held per node until its next TELEMETRY (replays or forgeries beyond it push
-out the oldest, which is then neither admitted nor reported)."""
-JOIN_HOLD_US = 500_000
-"""A held JOIN is admitted this long after the node's TELEMETRY without books confirmed it,
-unless the node shows its books meanwhile (``ServiceConfig.join_hold_us``)."""
 
-GrantCallback = Callable[[dict[str, Any]], None]
 EncodedBegin = Callable[[int, int, int], tuple[list[Action], list[tuple[int, bytes]]]]
 """The compiled core's ``begin_encoded``: actions, and the INTENTION as C encoded it."""
-
-
-@dataclass(slots=True)
-class GrantRequest:
-    node: int
-    amount: int
-    reply: GrantCallback
 
 
 @dataclass(slots=True)
@@ -105,19 +92,6 @@ class NodeInfo:
     recent_returns: list[tuple[int, int]] = field(default_factory=list)
     """(time, µJ) of returns credited lately: a level reported before them may still show them."""
     active_request: GrantRequest | None = None
-    held_joins: list[Join] = field(default_factory=list)
-    """JOINs (verified, in authenticated mode; distinct, the latest last, at most
-    ``HELD_JOINS``) waiting for the node's TELEMETRY to show the latest current (JOINING; with a
-    key bound to it) or each a replay or forgery (the node reports its books)."""
-    admitting: tuple[Join, int] | None = None
-    """The held JOIN a TELEMETRY without books confirmed, and when it is admitted unless the
-    node shows its books before (``ServiceConfig.join_hold_us``); a new JOIN cancels it."""
-    admitted_nonce: int | None = None
-    """The nonce of the JOIN admitted last, until the node's first TELEMETRY with books: a copy
-    of that JOIN held meanwhile is the node's own re-send, sent before the ADMIT reached it, not
-    a replay."""
-    joins_resent: int = 0
-    """Copies of the JOIN just admitted, re-sent before the node heard its ADMIT: dropped."""
     resumes: int = 0
     """Starts with books answered (witnessed rules: RESUME confirmed or found behind)."""
     found_behind: int = 0
@@ -197,7 +171,8 @@ class SupervisorService:
         self.core = core
         self.config = config
         self.nodes = {n: NodeInfo() for n in core.nodes}
-        self.rate = RateLimiter(config.limits.rate_uj_per_s, config.limits.max_grant)
+        self.desk = GrantDesk(config.limits, config.policy)
+        """Sizes one-shot grants and top-ups under the limits and the rate limiter."""
         self.delivered_at_start = sum(s.delivered for s in core.state.sessions)
         self.started_at = now
         self.now = now
@@ -240,9 +215,16 @@ class SupervisorService:
         """Rules that take DEBIT (``witnessed``): draws held, every node start confirmed."""
         self._resuming: int | None = None
         """The node whose RESUME the core is answering (its admission is no JOIN's)."""
-        self._joins_due: set[int] = set()
-        """Nodes with a JOIN confirmed and waiting for its hold (emptied as they are admitted
-        or refused), so the loop's every pass does not look at every node."""
+        self.joins: JoinHold[Outgoing] = JoinHold(
+            core.nodes,
+            config.join_hold_us,
+            config.local_nodes,
+            self.intrusions,
+            self.refusals,
+            lambda: self.authenticated,
+            lambda join, now: self._carry_out(self.core.receive(join, now), now),
+        )
+        """JOINs held until the node's TELEMETRY confirms or refutes them (evidence)."""
         if config.inject_uj:
             self._inject(config.inject_uj)
         if not config.listen_only:
@@ -278,18 +260,12 @@ class SupervisorService:
             for line in notes:
                 log.warning("node %s: %s", self.node_name(msg.node), line)
             self.ready.add(msg.node)
-            out = self._released(msg.node, now) + self._joined(msg, info, now)
+            out = self._released(msg.node, now) + self.joins.on_telemetry(msg, now)
             return self._flush(out + self._start_grants(now, self.ready))
         if self.config.listen_only or not isinstance(msg, ToSupervisor):
             return ()
         if isinstance(msg, Join):  # a replay or forgery looks the same: the node's report tells
-            held = info.held_joins
-            if msg in held:
-                held.remove(msg)
-            else:  # another start (or a replay): only a TELEMETRY after it confirms it
-                info.admitting = None
-            held.append(msg)
-            del held[:-HELD_JOINS]
+            self.joins.on_join(msg)
             return ()
         if isinstance(msg, Return) and self._hold_return(msg, now):
             return self._flush(self._released(msg.node, now))
@@ -304,47 +280,6 @@ class SupervisorService:
         if self.ready:  # a transaction ended: the node's next grant goes out in this step
             out += self._start_grants(now, self.ready)
         return self._flush(out)
-
-    def _joined(self, msg: Telemetry, info: NodeInfo, now: int) -> list[Outgoing]:
-        """The latest held JOIN is admitted ``join_hold_us`` after the node's TELEMETRY shows it
-        without books (JOINING; with a key its FV is that JOIN's, as a replay of an earlier
-        life's JOIN and its TELEMETRY shows too: the hold lets a node that is on object; older
-        ones held are dropped, as a node that restarted twice sends two). A TELEMETRY with
-        books before that shows every held JOIN a replay of an earlier life or a forgery, each
-        refused (nothing written off, nobody admitted), except a copy of the JOIN admitted just
-        before that TELEMETRY: the node re-sent it while its ADMIT was on the way (the same
-        nonce: a replay then moves nothing either)."""
-        if msg.flags & Telemetry.JOINING:
-            if not info.held_joins:
-                return []
-            if info.admitting is None:
-                hold = 0 if msg.node in self.config.local_nodes else self.config.join_hold_us
-                info.admitting = (info.held_joins[-1], now + hold)
-                self._joins_due.add(msg.node)
-            return self._admit(info, now)
-        joins, info.held_joins, info.admitting = info.held_joins, [], None
-        admitted, info.admitted_nonce = info.admitted_nonce, None
-        reason = (
-            f"{AuthFailure.STALE.value} (a JOIN of an earlier life: the node has its books)"
-            if self.authenticated
-            else "a JOIN in its name while the node reports its books: forged or replayed"
-        )
-        for join in joins:
-            if join.nonce == admitted:
-                info.joins_resent += 1
-                continue
-            if self.authenticated:
-                self.refusals.record(msg.node, reason, repr(join), now)
-            self.intrusions.record(msg.node, repr(join), reason, now, quiet=self.authenticated)
-        return []
-
-    def _admit(self, info: NodeInfo, now: int) -> list[Outgoing]:
-        """Admit the confirmed JOIN once its hold is over (the others held are dropped)."""
-        if info.admitting is None or now < info.admitting[1]:
-            return []
-        join = info.admitting[0]
-        info.held_joins, info.admitting, info.admitted_nonce = [], None, join.nonce
-        return self._carry_out(self.core.receive(join, now), now)
 
     def _distrusted(self, node: int, now: int) -> bool:
         """Without a key: no top-ups while the node's TELEMETRY was lately contradicted (with a
@@ -584,10 +519,8 @@ class SupervisorService:
             wakeup = min(wakeup, self.now)
         if (release := self.witness.next_release()) is not None:
             wakeup = min(wakeup, release)
-        for node in self._joins_due:
-            admitting = self.nodes[node].admitting
-            if admitting is not None:
-                wakeup = min(wakeup, admitting[1])
+        if (admission := self.joins.next_wakeup()) is not None:
+            wakeup = min(wakeup, admission)
         timer = self.core.get_timer()
         return wakeup if timer is None else min(wakeup, timer)
 
@@ -600,11 +533,7 @@ class SupervisorService:
                 out += self._carry_out(self.core.handle_timer(now), now)
             for node in self.witness.holding():
                 out += self._released(node, now)
-            for node in sorted(self._joins_due):
-                info = self.nodes[node]
-                out += self._admit(info, now)
-                if info.admitting is None:
-                    self._joins_due.discard(node)
+            out += self.joins.on_wakeup(now)
             out += self._start_grants(now, None if now >= self.next_tick else self.ready)
         if now >= self.next_tick:
             self.next_tick = now + self.config.tick_us
@@ -776,7 +705,7 @@ class SupervisorService:
             if (
                 info.heard_at is None
                 or info.flags & Telemetry.JOINING
-                or info.held_joins
+                or self.joins.holding(node)
                 or self.witness.resume_held(node)
             ):
                 continue  # not heard yet, or no books until admitted: a grant would be lost
@@ -788,58 +717,25 @@ class SupervisorService:
 
     def _one_shot(self, node: int, info: NodeInfo, now: int) -> list[Outgoing]:
         req = info.requests.pop(0)
-        if info.level is not None and info.level + req.amount > USABLE_MAX_UJ:
-            name = self.node_name(node)
-            req.reply(
-                {
-                    "node": name,
-                    "error": f"refused: node {name} reports {format_energy(info.level)}; "
-                    f"{format_energy(req.amount)} more would lift it above "
-                    f"{format_energy(USABLE_MAX_UJ)}, the most its record holds",
-                }
-            )
-            return []
-        amount = self._cap(req.amount, info, now)
-        if amount != req.amount:
-            allowed = f"{format_energy(amount)} allowed" if amount else "nothing allowed"
-            why = "; ".join(self._limiting(req.amount, info, now))
-            req.reply(
-                {
-                    "node": self.node_name(node),
-                    "error": f"refused by limits or budget ({allowed}: {why})",
-                }
-            )
+        amount = self.desk.one_shot(req, self.node_name(node), info.level, self._books(), now)
+        if amount is None:
             return []
         info.active_request = req
         return self._begin(node, amount, now)
 
     def _top_up(self, node: int, info: NodeInfo, now: int) -> list[Outgoing]:
-        policy = self.config.policy
-        assert policy is not None
         if info.level is None or info.level_at is None or info.level_at <= info.ended_at:
             return []  # no report since the last transaction ended: the level is stale
         if self.is_lost(node, now):
             return []
-        amount = self._cap(policy.wanted(info.level), info, now)
+        amount = self.desk.top_up(info.level, self._books(), now)
         return self._begin(node, amount, now) if amount else []
 
-    def _cap(self, wanted: int, info: NodeInfo, now: int) -> int:
-        return capped_grant(wanted, **self._caps(info, now))
-
-    def _limiting(self, wanted: int, info: NodeInfo, now: int) -> list[str]:
-        """What keeps a grant below ``wanted``, one phrase each."""
-        return [why for cap, why in grant_caps(**self._caps(info, now)) if cap < wanted]
-
-    def _caps(self, info: NodeInfo, now: int) -> dict[str, Any]:
-        return {
-            "limits": self.config.limits,
-            "level": info.level,
-            "usable": self.core.usable,
-            "granted_total": (
-                self.granted_total() if self.config.limits.max_total is not None else 0
-            ),
-            "rate_tokens": self.rate.available(now),
-        }
+    def _books(self) -> Books:
+        """What a grant is sized by (what was granted since the start only when a limit
+        needs it: the sum runs over every session)."""
+        total = self.granted_total() if self.config.limits.max_total is not None else 0
+        return Books(self.core.usable, total)
 
     def _begin(self, node: int, amount: int, now: int) -> list[Outgoing]:
         encoded = self._begin_encoded if self._passes else None
@@ -856,7 +752,7 @@ class SupervisorService:
                 self.ended.add(node)
                 log.warning("%s", exc)  # once: the top-up policy asks again each pass
             return []
-        self.rate.take(amount)
+        self.desk.took(amount)
         return frames + self._carry_out(actions, now)
 
     def _carry_out(self, actions: list[Action], now: int) -> list[Outgoing]:
@@ -971,7 +867,7 @@ class SupervisorService:
                 "aborted": info.aborted,
                 "written_off": info.written_off,
                 "admitted": info.admitted,
-                "joins_resent": info.joins_resent,
+                "joins_resent": self.joins.nodes[s.node].resent,
                 "resumes": info.resumes,
                 "found_behind": info.found_behind,
                 "synced": info.synced,

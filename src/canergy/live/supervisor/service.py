@@ -34,6 +34,7 @@ from canergy.core.supervisor import SupervisorCore
 from canergy.core.witnessed import answered
 from canergy.live.runtime import BusCounters, Outgoing, RawFrame, total_counters
 from canergy.live.supervisor.control import ControlServer
+from canergy.live.supervisor.evidence import impossible
 from canergy.live.supervisor.grants import Books, GrantCallback, GrantDesk, GrantRequest
 from canergy.live.supervisor.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
@@ -42,13 +43,8 @@ from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.state_file import ENERGY_MAX_UJ
 from canergy.live.supervisor.witness import ReturnGate
 from canergy.messages import (
-    LEVEL_MAX_MJ,
     QUANTUM_UJ,
     SEQ_BITS,
-    TX_BITS,
-    Aborted,
-    Ack,
-    Committed,
     Debit,
     Direction,
     Join,
@@ -395,29 +391,12 @@ class SupervisorService:
         return out
 
     def _impossible(self, msg: Message, info: NodeInfo, now: int) -> str | None:
-        """What no honest node sends, judged by the books alone (no key needed): a level or a
-        fresh RETURN above what the books let it hold, a transaction the supervisor never began.
-        A level may lag a RETURN credited meanwhile: those of the last ``lost_after`` count."""
-        s = self.core.session(msg.node)
-        holdable = s.delivered + s.reserved - s.returned
+        """What no honest node sends (``evidence.impossible``). A level may lag a RETURN
+        credited meanwhile: those of the last ``lost_after`` count."""
         while info.recent_returns and now - info.recent_returns[0][0] > self.config.lost_after_us:
             del info.recent_returns[0]
-        if isinstance(msg, Telemetry):
-            lagging = sum(amount for _, amount in info.recent_returns)
-            level = msg.level_mj * QUANTUM_UJ
-            if msg.level_mj < LEVEL_MAX_MJ and level > holdable + lagging:
-                return f"reports {format_energy(level)}, its books allow {format_energy(holdable)}"
-        elif isinstance(msg, Debit) and msg.flags & (Debit.SYNC | Debit.BOOKS):
-            return None  # books and counts: no amount the node debits
-        elif isinstance(msg, Return | Debit):
-            fresh = unwrap(msg.seq, s.returns_credited, SEQ_BITS) == s.returns_credited + 1
-            amount = msg.amount_mj * QUANTUM_UJ
-            verb = "returns" if isinstance(msg, Return) else "debits"
-            if fresh and amount > holdable:
-                return f"{verb} {format_energy(amount)}, it can hold {format_energy(holdable)}"
-        elif isinstance(msg, Ack | Committed | Aborted) and unwrap(msg.tx, s.tx, TX_BITS) > s.tx:
-            return f"answers transaction {unwrap(msg.tx, s.tx, TX_BITS)}, never begun"
-        return None
+        lagging = sum(amount for _, amount in info.recent_returns)
+        return impossible(msg, self.core.session(msg.node), lagging)
 
     def on_decode_error(
         self, error: DecodeError, frame: can.Message, node: int | None = None

@@ -10,6 +10,9 @@ from pathlib import Path
 import pytest
 from support.readme import DOCS, python_blocks_of
 
+# imported here, so pytester's runs in this process keep it: zenoh's native module does not
+# import a second time once pytester dropped it after a run
+import canergy.live.zenoh_bus  # noqa: F401
 from canergy.testing.books import creation, terms
 
 pytest_plugins = ["pytester"]
@@ -275,6 +278,12 @@ def test_the_teardown_ended_the_cut():
     node = SEEN["node"]  # started again before the supervisor stopped, then stopped (SIGTERM)
     assert (node.starts, node.popen.returncode) == (2, 0)
 """
+
+
+def test_the_documented_power_cut_passes_as_printed(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(test_docs=python_blocks_of(DOCS / "testing.md")[2])
+    result = pytester.runpytest("-p", "no:cacheprovider", f"--basetemp={pytester.path / 't'}")
+    result.assert_outcomes(passed=1)
 
 
 def test_the_bridge_cuts_a_node_processs_power_and_the_books_close(

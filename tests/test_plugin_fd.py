@@ -6,7 +6,6 @@ teardown."""
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -21,6 +20,7 @@ from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.messages import Direction
 from canergy.testing.bus import TestBus
 from canergy.testing.plugin import Books
+from canergy.testing.run import Loop
 from canergy.testing.supervisor import SupervisorRun
 from firmware_model.__main__ import bind_starts, status
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
@@ -42,16 +42,8 @@ def _fd_node(books: Books, bus: TestBus, key: Path, tmp: Path) -> None:
     auth = FrameAuth(codec, Layout.FD, keys, Direction.TO_CLIENT, host.freshness)
     bind_starts(auth, host)
     runtime = BusRuntime(bus.open(), host, codec=codec, receives=Direction.TO_CLIENT, auth=auth)
-    stop = threading.Event()
-    thread = threading.Thread(target=runtime.run, args=(stop.is_set,), daemon=True)
-    thread.start()
-
-    def halt() -> None:
-        stop.set()
-        thread.join(10)
-        runtime.bus.shutdown()
-
-    books.add_client(lambda: status(host, runtime), stop=halt)
+    loop = Loop(runtime)
+    books.add_client(lambda: status(host, runtime), stop=loop.halt)
 
 
 @pytest.mark.canergy(fd=True)

@@ -18,13 +18,12 @@ from canergy.testing.books import creation, terms
 pytest_plugins = ["pytester"]
 
 USER_TESTS = '''
-import threading
-
 import pytest
 
 from canergy.codec import Codec
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.messages import Direction
+from canergy.testing.run import Loop
 from firmware_model.__main__ import status
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
 from firmware_model.nvstore import NvStore
@@ -45,18 +44,10 @@ def nodes(canergy_bus, canergy_books, tmp_path):
         ]
     )
     runtime = BusRuntime(below.open(), host, codec=Codec(), receives=Direction.TO_CLIENT)
-    stop = threading.Event()
-    thread = threading.Thread(target=runtime.run, args=(stop.is_set,), daemon=True)
-    thread.start()
-
-    def halt():
-        stop.set()
-        thread.join(10)
-        runtime.bus.shutdown()
-
-    canergy_books.add_client(lambda: status(host, runtime), stop=halt)
+    loop = Loop(runtime)
+    canergy_books.add_client(lambda: status(host, runtime), stop=loop.halt)
     yield below
-    halt()
+    loop.halt()
 
 
 def test_grants_across_a_lossy_duplicating_bridge(

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import socket
 import subprocess
 import time
 import uuid
@@ -14,6 +15,18 @@ from pathlib import Path
 from typing import Any
 
 import can
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 free now (the system's pick; free until someone takes it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def loopback(port: int) -> str:
+    """The Zenoh endpoint of ``port`` on 127.0.0.1: nothing leaves this machine."""
+    return f"tcp/127.0.0.1:{port}"
 
 
 @dataclass(frozen=True, slots=True)
@@ -41,12 +54,7 @@ class TestBus:
         (``canergy[zenoh]``) on a fresh site, over TCP on 127.0.0.1 at a free port. One bus of
         the test's process listens there (``open``, e.g. the bridge's side); processes connect
         (``flags``): two buses of the test's process cannot both open it."""
-        import socket
-
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-            sock.bind(("127.0.0.1", 0))
-            port = int(sock.getsockname()[1])
-        return cls("zenoh", f"canergy-{uuid.uuid4().hex[:12]}", fd, f"tcp/127.0.0.1:{port}")
+        return cls("zenoh", f"canergy-{uuid.uuid4().hex[:12]}", fd, loopback(free_port()))
 
     def sibling(self, channel: str | None = None) -> TestBus:
         """Another bus of the same interface: a fresh virtual channel, or ``channel``."""

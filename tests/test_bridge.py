@@ -263,6 +263,16 @@ def test_a_bridge_told_to_cut_power_needs_the_processes() -> None:
     schedule = FaultSchedule(FAULTS, 0, power_cuts=[PowerCut(0, 1)])
     with pytest.raises(ValueError, match="give the bridge them"):
         Bridge((_virtual("x"), _virtual("y")), schedule)
+    channel = uuid.uuid4().hex
+    buses = (_virtual(f"a-{channel}"), _virtual(f"b-{channel}"))
+    bridge = Bridge(buses, schedule, clock=_Clock(), processes={})  # none yet, none ever
+    try:
+        bridge.poll(0)
+        assert bridge.status()["power_errors"] == ["power cut of every node process: there is none"]
+    finally:
+        bridge.close()
+        for bus in buses:
+            bus.shutdown()
 
 
 class _Clock:

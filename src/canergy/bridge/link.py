@@ -171,6 +171,8 @@ class Bridge:
             if self._power_restored:
                 return
             for on, node in self.schedule.power_events(now_us - self.start_us):
+                if not node and not on and not self.processes:
+                    self.power_errors.append("power cut of every node process: there is none")
                 for name in [node] if node else list(self.processes):
                     self._switch(name, on)
 

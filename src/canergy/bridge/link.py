@@ -8,8 +8,8 @@ capture (each frame under its bus's name as channel: what it received there and 
 there).
 
 Given node processes by name (anything with ``power_cut()`` and ``restart()``, such as the pytest
-plugin's ``Process``), it also cuts their power when the schedule's ``PowerCut``s say, counted
-per process.
+plugin's ``Process``), it also cuts their power when the schedule's power cuts (``PowerCut``)
+say, counted per process.
 """
 
 from __future__ import annotations

@@ -17,7 +17,6 @@ from support.intrusion_bench import Bench, bench
 
 from canergy.codec import Codec
 from canergy.core import Supervisor
-from canergy.live.control import request
 from canergy.live.runtime import monotonic_us
 from canergy.live.service import JOIN_HOLD_US, ServiceConfig, SupervisorService
 from canergy.live.witness import WITNESS_REPORT_AT, ReturnGate
@@ -270,7 +269,7 @@ def guarded(tmp_path: Path) -> Iterator[Bench]:
 
 
 def grant(b: Bench, amount_uj: int) -> None:
-    answer = request(b.tmp / "ctl.sock", {"grant": {"node": 1, "amount_uj": amount_uj}}, 30)
+    answer = b.sup.grant(1, amount_uj)
     assert answer.get("outcome") == "COMMITTED", answer
 
 

@@ -229,7 +229,9 @@ def test_the_bridge_cuts_node_processes_power_as_scheduled_and_counts_it() -> No
             "a": {"cuts": 2, "restarts": 2, "off": False},
             "b": {"cuts": 1, "restarts": 1, "off": False},
         }
-        assert status["power_errors"] == ["power cut of 'zz': no such node process (a, b)"]
+        assert status["power_errors"] == [
+            "power cut of 'zz': no such node process (a, b); start it before its cut falls due"
+        ]
         shown = ["a@0s+300ms", "a@100ms+300ms", "500ms+100ms", "zz@700ms+10ms"]
         assert status["power_cuts"] == shown
     finally:

@@ -183,7 +183,10 @@ class Bridge:
         process = self.processes.get(name)
         if process is None:
             have = ", ".join(self.processes) or "none"
-            self.power_errors.append(f"power cut of {name!r}: no such node process ({have})")
+            self.power_errors.append(
+                f"power cut of {name!r}: no such node process ({have}); start it before its "
+                "cut falls due"
+            )
             return
         counts = self.power.setdefault(name, {"cuts": 0, "restarts": 0})
         if off != (1 if on else 0):  # still off under another cut, or off already

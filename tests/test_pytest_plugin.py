@@ -215,6 +215,18 @@ def test_a_part_that_fails_to_stop_does_not_leave_the_others_running(tmp_path: P
     assert stopped == ["stuck", "node 2", "bridge"]
 
 
+def test_a_zenoh_bus_names_its_endpoint_to_processes_and_has_fresh_siblings() -> None:
+    from canergy.testing.bus import TestBus
+
+    bus = TestBus.zenoh(fd=True)
+    assert bus.flags == [
+        *("-i", "zenoh", "-c", bus.channel, "--fd", "--bus-kwargs", f"connect={bus.endpoint}")
+    ]
+    other = bus.sibling()
+    assert (other.interface, other.fd) == ("zenoh", True)
+    assert other.channel != bus.channel and other.endpoint != bus.endpoint
+
+
 POWER_CUTS = """
 import time
 

@@ -57,8 +57,11 @@ class TestBus:
         return cls("zenoh", f"canergy-{uuid.uuid4().hex[:12]}", fd, loopback(free_port()))
 
     def sibling(self, channel: str | None = None) -> TestBus:
-        """Another bus of the same interface: a fresh virtual channel, or ``channel``."""
+        """Another bus of the same interface: a fresh virtual channel (or Zenoh site and
+        port), or ``channel``."""
         if channel is None:
+            if self.interface == "zenoh" and self.endpoint:
+                return TestBus.zenoh(self.fd)
             if self.interface != "virtual":
                 raise ValueError(f"a second {self.interface} bus needs its channel name")
             return TestBus.virtual(self.fd)

@@ -18,14 +18,14 @@ from hypothesis import strategies as st
 from support.live_rig import Loop
 
 from canergy.bridge.link import Bridge
-from canergy.bridge.schedule import FaultSchedule, Partition, parse_faults
+from canergy.bridge.schedule import FaultSchedule, Partition, PowerCut, parse_faults
 from canergy.cli import main
 from canergy.codec import Codec
 from canergy.faults import FaultProfile
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.supervisor.control import request
 from canergy.messages import Direction
-from canergy.testing.strategies import fault_schedules
+from canergy.testing.strategies import fault_schedules, power_cuts
 from firmware_model.__main__ import status as node_status
 from firmware_model.actuator import PowerProfile
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
@@ -142,7 +142,9 @@ def test_a_bad_partition_is_refused(text: str) -> None:
 
 
 def test_faults_as_text() -> None:
-    profile, cuts = parse_faults("loss=0.1, duplicate=0.05,delay=2ms,jitter=1ms,partition=2s+1s")
+    profile, cuts, power = parse_faults(
+        "loss=0.1, duplicate=0.05,delay=2ms,jitter=1ms,partition=2s+1s,cut=n1@3s+1s,cut=4s+50ms"
+    )
     assert (profile.loss, profile.duplicate, profile.delay_us, profile.jitter_us) == (
         0.1,
         0.05,
@@ -150,7 +152,9 @@ def test_faults_as_text() -> None:
         1000,
     )
     assert cuts == (Partition(2_000_000, 1_000_000),)
-    assert parse_faults("") == (FaultProfile(delay_us=0, jitter_us=0), ())
+    assert power == (PowerCut(3_000_000, 1_000_000, "n1"), PowerCut(4_000_000, 50_000))
+    assert [str(c) for c in power] == ["n1@3s+1s", "4s+50ms"]
+    assert parse_faults("") == (FaultProfile(delay_us=0, jitter_us=0), (), ())
 
 
 @pytest.mark.parametrize(
@@ -162,11 +166,115 @@ def test_faults_as_text() -> None:
         ("drop=0.1", "unknown fault (known: loss, duplicate"),
         ("delay=1ms,jitter=2ms", "jitter larger than the delay"),
         ("partition=3s", "AT+FOR"),
+        ("cut=n1@3s", "AT+FOR"),
+        ("cut=@3s+1s", "give NAME@AT+FOR or AT+FOR"),
+        ("cut=n 1@3s+1s", "node name 'n 1': letters, digits"),
+        ("cut=n1@3s+0s", "lasts more than 0"),
     ],
 )
 def test_bad_faults_as_text_are_named(text: str, message: str) -> None:
     with pytest.raises(ValueError, match=re.escape(message)):
         parse_faults(text)
+
+
+def test_power_cuts_fall_due_once_each_in_time_order() -> None:
+    schedule = FaultSchedule(
+        FAULTS, 1, power_cuts=[PowerCut(2_000, 3_000, "b"), PowerCut(1_000, 1_000, "a")]
+    )
+    assert schedule.next_power_event() == 1_000
+    assert schedule.power_events(999) == []
+    assert schedule.power_events(2_000) == [(False, "a"), (False, "b"), (True, "a")]
+    assert schedule.power_events(2_000) == []  # given once
+    assert schedule.next_power_event() == 5_000
+    assert schedule.power_events(10_000) == [(True, "b")]
+    assert schedule.next_power_event() is None
+
+
+class _Node:
+    """A node process as the bridge switches it: what was done to it, in order."""
+
+    def __init__(self, name: str, done: list[str], fail: bool = False) -> None:
+        self.name, self.done, self.fail = name, done, fail
+
+    def power_cut(self) -> None:
+        if self.fail:
+            raise OSError("no such process")
+        self.done.append(f"{self.name} off")
+
+    def restart(self) -> None:
+        self.done.append(f"{self.name} on")
+
+
+def test_the_bridge_cuts_node_processes_power_as_scheduled_and_counts_it() -> None:
+    """Overlapping cuts keep a process off until the last ends (one kill, one restart); a cut
+    without a name switches every process; a name it was not given is reported, not fatal."""
+    clock, done = _Clock(), []
+    nodes = {n: _Node(n, done) for n in ("a", "b")}
+    cuts = [PowerCut(0, 300_000, "a"), PowerCut(100_000, 300_000, "a")]
+    cuts += [PowerCut(500_000, 100_000), PowerCut(700_000, 10_000, "zz")]
+    schedule = FaultSchedule(FaultProfile(delay_us=0, jitter_us=0), 0, power_cuts=cuts)
+    channel = uuid.uuid4().hex
+    buses = (_virtual(f"a-{channel}"), _virtual(f"b-{channel}"))
+    bridge = Bridge(buses, schedule, clock=clock, processes=nodes)
+    try:
+        for t in (0, 150_000, 350_000, 400_000, 550_000, 600_000, 800_000):
+            clock.now = bridge.start_us + t
+            bridge.poll(0)
+            if t == 350_000:
+                assert done == ["a off"]  # still off: the second cut lasts to 400 ms
+                assert bridge.status()["power"]["a"] == {"cuts": 1, "restarts": 0, "off": True}
+        assert done == ["a off", "a on", "a off", "b off", "a on", "b on"]
+        status = bridge.status()
+        assert status["power"] == {
+            "a": {"cuts": 2, "restarts": 2, "off": False},
+            "b": {"cuts": 1, "restarts": 1, "off": False},
+        }
+        assert status["power_errors"] == [
+            "power cut of 'zz': no such node process (a, b); start it before its cut falls due"
+        ]
+        shown = ["a@0s+300ms", "a@100ms+300ms", "500ms+100ms", "zz@700ms+10ms"]
+        assert status["power_cuts"] == shown
+    finally:
+        bridge.close()
+        for bus in buses:
+            bus.shutdown()
+
+
+def test_restoring_power_ends_the_cuts_on_and_makes_no_more() -> None:
+    clock, done = _Clock(), []
+    nodes = {"a": _Node("a", done), "b": _Node("b", done, fail=True)}
+    cuts = [PowerCut(0, 10_000_000, "a"), PowerCut(0, 10_000_000, "b"), PowerCut(20_000_000, 1)]
+    schedule = FaultSchedule(FaultProfile(delay_us=0, jitter_us=0), 0, power_cuts=cuts)
+    channel = uuid.uuid4().hex
+    buses = (_virtual(f"a-{channel}"), _virtual(f"b-{channel}"))
+    bridge = Bridge(buses, schedule, clock=clock, processes=nodes)
+    try:
+        bridge.poll(0)
+        bridge.restore_power()
+        clock.now += 30_000_000
+        bridge.poll(0)
+        assert done == ["a off", "a on"]
+        assert bridge.status()["power_errors"] == ["power off of 'b': OSError('no such process')"]
+    finally:
+        bridge.close()
+        for bus in buses:
+            bus.shutdown()
+
+
+def test_a_bridge_told_to_cut_power_needs_the_processes() -> None:
+    schedule = FaultSchedule(FAULTS, 0, power_cuts=[PowerCut(0, 1)])
+    with pytest.raises(ValueError, match="give the bridge them"):
+        Bridge((_virtual("x"), _virtual("y")), schedule)
+    channel = uuid.uuid4().hex
+    buses = (_virtual(f"a-{channel}"), _virtual(f"b-{channel}"))
+    bridge = Bridge(buses, schedule, clock=_Clock(), processes={})  # none yet, none ever
+    try:
+        bridge.poll(0)
+        assert bridge.status()["power_errors"] == ["power cut of every node process: there is none"]
+    finally:
+        bridge.close()
+        for bus in buses:
+            bus.shutdown()
 
 
 class _Clock:
@@ -370,18 +478,22 @@ def test_any_drawn_schedule_replays_from_its_seed(
 ) -> None:
     """What the hypothesis strategy draws is a valid schedule, and a second schedule with its
     profile, seed and partitions makes the same decisions on the same frames."""
-    again = FaultSchedule(schedule.profile, schedule.seed, schedule.partitions)
+    again = FaultSchedule(schedule.profile, schedule.seed, schedule.partitions, schedule.power_cuts)
     for i, data in enumerate(frames):
         t = 250_000 * i
         assert schedule.fate(i % 2, data, t) == again.fate(i % 2, data, t)
     assert schedule.as_json() == again.as_json()
 
 
-@given(fault_schedules())
+@given(fault_schedules(power=power_cuts(["node1", "node2"])))
 def test_a_schedule_shows_what_makes_the_same_decisions(schedule: FaultSchedule) -> None:
-    """A failing example's schedule, as hypothesis prints it, rebuilds the schedule that failed."""
+    """A failing example's schedule, as hypothesis prints it, rebuilds the schedule that failed,
+    its power cuts too."""
     scope = {"FaultSchedule": FaultSchedule, "FaultProfile": FaultProfile, "Partition": Partition}
-    again = eval(repr(schedule), scope)
+    again = eval(repr(schedule), {**scope, "PowerCut": PowerCut})
+    assert again.power_cuts == schedule.power_cuts
+    events = [schedule.power_events(t) for t in range(0, 12_000_000, 500_000)]
+    assert [again.power_events(t) for t in range(0, 12_000_000, 500_000)] == events
     frames = [bytes([i]) * 8 for i in range(40)]
     for direction in (0, 1):
         fates = [schedule.fate(direction, f, i * 50_000) for i, f in enumerate(frames)]

@@ -62,8 +62,7 @@ def test_stop_on_intrusion_ends_the_supervisor_with_status_3(
 ) -> None:
     for b in bench(tmp_path, "--on-intrusion", "stop"):
         b.forge(Intention(1, 500, 100, 0))
-        b.thread.join(timeout=60)
-        assert b.result == [3]
+        assert b.sup.stop() == 3
         final = b.status()
         assert final["stopped_by_intrusion"] and final["intrusions"] >= 1
     assert "stopped on intrusion" in capsys.readouterr().err

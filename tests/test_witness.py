@@ -270,7 +270,7 @@ def guarded(tmp_path: Path) -> Iterator[Bench]:
 
 
 def grant(b: Bench, amount_uj: int) -> None:
-    answer = request(b.tmp / "ctl.sock", {"grant": {"node": 1, "amount_uj": amount_uj}}, 30)
+    answer = b.sup.grant(1, amount_uj)
     assert answer.get("outcome") == "COMMITTED", answer
 
 

@@ -1,11 +1,10 @@
 """An in-process bench: a supervisor service and firmware node hosts, each on its own python-can
-``virtual`` bus connection and its own loop thread, on the wall clock (timeouts are generous)."""
+``virtual`` bus connection and its own loop thread (the pytest plugin's ``Loop``, re-exported
+here), on the wall clock (timeouts are generous)."""
 
 from __future__ import annotations
 
 import random
-import threading
-import time
 import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -22,35 +21,15 @@ from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.live.supervisor.state_file import load_state
 from canergy.live.transports.faulty_bus import FaultyBus
 from canergy.messages import Direction
+from canergy.testing.run import Loop, until
 from canergy.units import UJ_PER_J
 from firmware_model.actuator import PowerProfile
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
 from firmware_model.nvstore import NvStore
 
+__all__ = ["TIMING", "Loop", "Rig"]
+
 TIMING = Timing(response_timeout_us=100_000, retries=3, command_timeout_us=200_000)
-
-
-class Loop:
-    """One runtime in a thread; ``error`` keeps whatever ended it abnormally."""
-
-    def __init__(self, runtime: BusRuntime) -> None:
-        self.runtime = runtime
-        self.stop = threading.Event()
-        self.error: BaseException | None = None
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
-
-    def _run(self) -> None:
-        try:
-            self.runtime.run(self.stop.is_set, max_wait_s=0.02)
-        except BaseException as exc:  # kept for the test to inspect
-            self.error = exc
-
-    def halt(self) -> None:
-        """Stop between two steps (a power loss after the last completed write)."""
-        self.stop.set()
-        self.thread.join(timeout=30)
-        self.runtime.bus.shutdown()
 
 
 class Rig:
@@ -139,12 +118,11 @@ class Rig:
 
     # -- control -----------------------------------------------------------------------------
     def wait(self, condition: Callable[[], bool], timeout_s: float = 60.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while not condition():
+        def holds() -> bool:
             self.raise_loop_errors()
-            if time.monotonic() > deadline:
-                raise AssertionError(f"condition not met within {timeout_s} s")
-            time.sleep(0.02)
+            return condition()
+
+        until(holds, "the condition", timeout_s)
 
     def raise_loop_errors(self) -> None:
         loops = [loop for _, loop in self.hosts] + ([self.sup_loop] if self.sup_loop else [])

@@ -21,6 +21,7 @@ from typing import Any
 import pytest
 
 from canergy.testing.bus import Process
+from canergy.testing.run import until
 
 
 class Procs:
@@ -75,10 +76,6 @@ def wait(
     timeout_s: float = 120,
     show: Callable[[], object] | None = None,
 ) -> None:
-    """Poll ``condition``; on timeout fail naming ``what`` and what ``show`` returns then."""
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            shown = f"\n{show()}" if show is not None else ""
-            raise AssertionError(f"timed out waiting for {what}{shown}")
-        time.sleep(0.2)
+    """Poll ``condition`` (the pytest plugin's ``until``, every 0.2 s); on timeout fail naming
+    ``what`` and what ``show`` returns then."""
+    until(condition, what, timeout_s, show, period_s=0.2)

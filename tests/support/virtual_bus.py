@@ -1,7 +1,8 @@
 """Watching python-can's ``virtual`` bus from a test: what a master sees, and waiting for it.
 
 ``Frames`` is a listener that keeps every frame with its arrival time; ``wait_for`` polls a
-condition until it holds or fails after a generous timeout (no test depends on tight timing).
+condition (the pytest plugin's ``until``) until it holds or fails after a generous timeout (no
+test depends on tight timing).
 """
 
 from __future__ import annotations
@@ -12,12 +13,11 @@ from collections.abc import Callable
 
 import can
 
+from canergy.testing.run import until
+
 
 def wait_for(condition: Callable[[], bool], timeout: float = 10.0) -> None:
-    end = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < end, "timed out"
-        time.sleep(0.005)
+    until(condition, timeout_s=timeout, period_s=0.005)
 
 
 class Frames(can.Listener):

@@ -9,7 +9,6 @@ line (``emulator_argv``).
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +16,7 @@ from canergy.codec import Codec
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.messages import Direction
 from canergy.testing.bus import TestBus
+from canergy.testing.run import Loop
 from firmware_model.__main__ import status
 from firmware_model.actuator import PowerProfile
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
@@ -44,20 +44,13 @@ class InProcess:
         self.runtime = BusRuntime(
             bus.open(), self.host, codec=Codec(), receives=Direction.TO_CLIENT
         )
-        self._stop = threading.Event()
-        self._thread = threading.Thread(
-            target=self.runtime.run, args=(self._stop.is_set,), daemon=True
-        )
-        self._thread.start()
+        self._loop = Loop(self.runtime)  # in a thread of its own until stop()
 
     def status(self) -> dict[str, Any]:
         return status(self.host, self.runtime)
 
     def stop(self) -> None:
-        if not self._stop.is_set():
-            self._stop.set()
-            self._thread.join(30)
-            self.runtime.bus.shutdown()
+        self._loop.halt()
 
 
 def _node_flags(node: int, timeout: str) -> list[str]:

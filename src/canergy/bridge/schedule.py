@@ -8,6 +8,9 @@ flight when the link was cut). So the n-th frame of a direction meets the same f
 run with the same seed and the same partitioned frames before it, whatever its data and whatever
 the other direction carries: a run's decisions replay from its seed and its frames. Times are
 integer µs since the bridge started, passed in.
+
+A ``PowerCut`` switches a node process off for a time (the bridge kills it and starts it again,
+``canergy.bridge.link``): the schedule says when (``power_events``), in the same times.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import random
+import re
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Generic, TypeVar
@@ -63,6 +67,44 @@ class Partition:
         return f"{format_duration(self.start_us)}+{format_duration(self.length_us)}"
 
 
+NAME = re.compile(r"[A-Za-z0-9_.-]+")
+"""A node process's name in a ``PowerCut``."""
+
+
+@dataclass(frozen=True, slots=True)
+class PowerCut:
+    """Node process ``node`` (by its name; ``""``: every node process the bridge was given)
+    loses its power at ``start_us`` (killed) and gets it back ``length_us`` later (started
+    again from what it kept)."""
+
+    start_us: int
+    length_us: int
+    node: str = ""
+
+    def __post_init__(self) -> None:
+        if self.start_us < 0 or self.length_us <= 0:
+            raise ValueError("a power cut starts at 0 or later and lasts more than 0")
+        if self.node and not NAME.fullmatch(self.node):
+            raise ValueError(f"node name {_shown(self.node)}: letters, digits, '_', '.', '-'")
+
+    @classmethod
+    def parse(cls, text: str) -> PowerCut:
+        """``[NAME@]AT+FOR``: e.g. ``node1@2s+1s`` kills node process ``node1`` 2 s after the
+        start and starts it again 1 s later; without ``NAME@``, every node process."""
+        name, at, times = text.rpartition("@")
+        try:
+            if at and not name.strip():
+                raise ValueError("give NAME@AT+FOR or AT+FOR, e.g. node1@2s+1s")
+            window = Partition.parse(times)
+            return cls(window.start_us, window.length_us, name.strip())
+        except ValueError as exc:
+            raise ValueError(f"power cut {_shown(text)}: {exc}") from None
+
+    def __str__(self) -> str:
+        window = f"{format_duration(self.start_us)}+{format_duration(self.length_us)}"
+        return f"{self.node}@{window}" if self.node else window
+
+
 @dataclass(slots=True)
 class DirectionCounts:
     """What one direction did so far: ``frames`` seen, of which ``partitioned`` were dropped
@@ -87,9 +129,18 @@ class FaultSchedule:
     """The fate of every frame crossing a bridge, per direction."""
 
     def __init__(
-        self, profile: FaultProfile, seed: int, partitions: Sequence[Partition] = ()
+        self,
+        profile: FaultProfile,
+        seed: int,
+        partitions: Sequence[Partition] = (),
+        power_cuts: Sequence[PowerCut] = (),
     ) -> None:
         self.profile, self.seed, self.partitions = profile, seed, tuple(partitions)
+        self.power_cuts = tuple(power_cuts)
+        edges = [(c.start_us, False, c.node) for c in self.power_cuts]
+        edges += [(c.start_us + c.length_us, True, c.node) for c in self.power_cuts]
+        self._edges = sorted(edges, key=lambda e: e[0])  # stable: a cut before its end
+        self._next_edge = 0
         self.counts = tuple(DirectionCounts() for _ in DIRECTIONS)
         self._injectors = tuple(
             FaultInjector(profile, random.Random(f"canergy-bridge:{seed}:{d}"), c.faults)
@@ -99,7 +150,25 @@ class FaultSchedule:
     def __repr__(self) -> str:
         """What built it (hypothesis prints it for a failing example): the same decisions when
         evaluated with ``FaultSchedule``, ``FaultProfile`` and ``Partition`` in scope."""
-        return f"FaultSchedule({self.profile!r}, {self.seed!r}, {self.partitions!r})"
+        return (
+            f"FaultSchedule({self.profile!r}, {self.seed!r}, {self.partitions!r}, "
+            f"{self.power_cuts!r})"
+        )
+
+    def next_power_event(self) -> int | None:
+        """When the next power cut starts or ends (None: no more)."""
+        return self._edges[self._next_edge][0] if self._next_edge < len(self._edges) else None
+
+    def power_events(self, t_us: int) -> list[tuple[bool, str]]:
+        """The power cuts' starts and ends due by ``t_us`` not given before, in time order:
+        ``(on, node)`` each, ``on`` False when the power goes off (``node`` ``""``: every
+        node process)."""
+        out = []
+        while self._next_edge < len(self._edges) and self._edges[self._next_edge][0] <= t_us:
+            _, on, node = self._edges[self._next_edge]
+            out.append((on, node))
+            self._next_edge += 1
+        return out
 
     def partitioned(self, t_us: int) -> bool:
         return any(p.covers(t_us) for p in self.partitions)
@@ -122,6 +191,7 @@ class FaultSchedule:
             "seed": self.seed,
             "profile": asdict(self.profile),
             "partitions": [str(p) for p in self.partitions],
+            "power_cuts": [str(c) for c in self.power_cuts],
             "directions": [c.as_json() for c in self.counts],
         }
 
@@ -130,11 +200,13 @@ PROBABILITIES = ("loss", "duplicate", "reorder", "corrupt")
 DURATIONS = {"delay": "delay_us", "jitter": "jitter_us", "reorder_delay": "reorder_delay_us"}
 
 
-def parse_faults(text: str) -> tuple[FaultProfile, tuple[Partition, ...]]:
-    """``loss=0.1,duplicate=0.05,delay=2ms,jitter=1ms,partition=2s+1s`` as a profile (no delay
-    unless given) and partitions (``partition`` repeatable); ``ValueError`` naming the part."""
+def parse_faults(text: str) -> tuple[FaultProfile, tuple[Partition, ...], tuple[PowerCut, ...]]:
+    """``loss=0.1,duplicate=0.05,delay=2ms,jitter=1ms,partition=2s+1s,cut=node1@3s+1s`` as a
+    profile (no delay unless given), partitions and power cuts (``partition`` and ``cut``
+    repeatable); ``ValueError`` naming the part."""
     kwargs: dict[str, object] = {"delay_us": 0, "jitter_us": 0}
     partitions = []
+    cuts = []
     for part in filter(None, (p.strip() for p in text.split(","))):
         key, eq, value = (x.strip() for x in part.partition("="))
         try:
@@ -146,13 +218,15 @@ def parse_faults(text: str) -> tuple[FaultProfile, tuple[Partition, ...]]:
                 kwargs[DURATIONS[key]] = parse_duration(value)
             elif key == "partition":
                 partitions.append(Partition.parse(value))
+            elif key == "cut":
+                cuts.append(PowerCut.parse(value))
             else:
-                known = ", ".join((*PROBABILITIES, *DURATIONS, "partition"))
+                known = ", ".join((*PROBABILITIES, *DURATIONS, "partition", "cut"))
                 raise ValueError(f"unknown fault (known: {known})")
         except ValueError as exc:
             raise ValueError(f"faults {_shown(text)}: {_shown(part)}: {exc}") from None
     try:
-        return FaultProfile(**kwargs), tuple(partitions)  # type: ignore[arg-type]
+        return FaultProfile(**kwargs), tuple(partitions), tuple(cuts)  # type: ignore[arg-type]
     except ValueError as exc:
         raise ValueError(f"faults {_shown(text)}: {exc}") from None
 

@@ -15,15 +15,20 @@ pytest loads it wherever canergy is installed (entry point ``pytest11``, name ``
   (``SupervisorRun``: ``grant``, ``status``, ``wait_for``, ``intrusions``, ``stop``);
   ``auth=True``: authenticated mode with a master key it makes, ``node_key(n)`` each node's.
 - ``canergy_bridge``: ``canergy_bridge(bus1, bus2, loss=0.1, duplicate=0.1, seed=7,
-  partitions=["2s+1s"])`` carries frames between two buses through seeded faults
-  (``canergy.bridge``), until the end of the test; or ``schedule=`` a ``FaultSchedule`` (e.g.
-  drawn by ``canergy.testing.strategies.fault_schedules()``); given none, the marker's
-  ``faults="loss=0.1,duplicate=0.05"`` and ``seed``.
+  partitions=["2s+1s"], power_cuts=["node1@3s+1s"])`` carries frames between two buses through
+  seeded faults (``canergy.bridge``), until the end of the test, and kills the node process
+  ``canergy_spawn`` named ``node1`` 3 s after its start and starts it again 1 s later; or
+  ``schedule=`` a ``FaultSchedule`` (e.g. drawn by
+  ``canergy.testing.strategies.fault_schedules()``); given none, the marker's
+  ``faults="loss=0.1,duplicate=0.05,cut=node1@3s+1s"`` and ``seed``.
 - ``canergy_books``: the run's ledger. Register the nodes' statuses with ``add_client`` (a
   status file, or a function returning a status dict); ``spawn(..., "{status}")`` registers
-  its own. At teardown every supervisor is stopped (settling its transactions), then the
-  processes, then the bridges, and the books are closed over the last statuses: the test fails
-  naming the first party that created energy. ``@pytest.mark.canergy(books=False)`` opts out.
+  its own. At teardown the bridges' power cuts still on are ended (the processes started
+  again) and no more are made, the node processes that write a status file are given up to
+  30 s to write it since their last start (up), every supervisor is stopped (settling its
+  transactions), then
+  the processes, then the bridges, and the books are closed over the last statuses: the test
+  fails naming the first party that created energy. ``@pytest.mark.canergy(books=False)`` opts out.
 
 A capture of the bus (``canergy-capture.log``, candump format) is kept in ``tmp_path`` for
 ``canergy audit`` and ``canergy plot``.
@@ -63,7 +68,8 @@ def pytest_configure(config: pytest.Config) -> None:
         "markers",
         "canergy(interface=None, channel=None, fd=False, books=True, faults='', seed=0, "
         "nodes=None): canergy_bus's interface and channel for this test; books=False: do not "
-        "close the books at teardown; faults (e.g. 'loss=0.1,duplicate=0.05,partition=2s+1s') "
+        "close the books at teardown; faults (e.g. "
+        "'loss=0.1,duplicate=0.05,partition=2s+1s,cut=node1@3s+1s') "
         "and seed: canergy_bridge's when it is given none; nodes (e.g. '1-5'): "
         "canergy_supervisor's --nodes when it is given none",
     )
@@ -83,7 +89,9 @@ class Books:
     def __init__(self, tmp: Path) -> None:
         self.tmp = tmp
         self.supervisors: list[SupervisorRun] = []
-        self.processes: list[Process] = []
+        self.processes: dict[str, Process] = {}
+        """The node processes by name; a bridge's power cuts switch them by these names."""
+        self.restores: list[Callable[[], None]] = []
         self.bridges: list[Callable[[], None]] = []
         self.clients: list[ClientSource] = []
         self.stops: list[Callable[[], object]] = []
@@ -108,15 +116,29 @@ class Books:
         self.supervisors.append(run)
         return run
 
+    def process(self, name: str, argv: Sequence[str], status: Path | None = None) -> Process:
+        """A node process started in this run's directory (``Process``; ``status``: the status
+        file it writes), stopped by ``stop_all``; a bridge's power cuts name it ``name``."""
+        from canergy.testing.bus import Process
+
+        if name in self.processes:
+            raise ValueError(f"a node process named {name!r} already runs in this test")
+        process = Process(name, argv, self.tmp, status)
+        self.processes[name] = process
+        return process
+
     def bridge(self, bus1: TestBus, bus2: TestBus, schedule: FaultSchedule) -> Bridge:
         """A bridge between ``bus1`` and ``bus2`` with ``schedule``'s faults, running in a thread
-        until ``stop_all``."""
+        until ``stop_all``; its power cuts switch this run's node processes (``process``) by
+        name. ``stop_all`` ends the cuts first, before it stops the supervisors."""
         import threading
 
         from canergy.bridge.link import Bridge
 
         buses = (bus1.open(), bus2.open())
-        bridge = Bridge(buses, schedule, names=(bus1.channel, bus2.channel))
+        bridge = Bridge(
+            buses, schedule, names=(bus1.channel, bus2.channel), processes=self.processes
+        )
         stop = threading.Event()
         thread = threading.Thread(target=bridge.run, args=(stop.is_set,), daemon=True)
         thread.start()
@@ -127,7 +149,10 @@ class Books:
             bridge.close()
             for bus in buses:
                 bus.shutdown()
+            if bridge.power_errors:
+                raise AssertionError(f"the bridge's power cuts: {'; '.join(bridge.power_errors)}")
 
+        self.restores.append(bridge.restore_power)
         self.bridges.append(closing)
         return bridge
 
@@ -146,12 +171,15 @@ class Books:
         """Stop every part, in order, even when one fails to stop; then raise the first
         failure."""
         steps: list[Callable[[], object]] = [
+            *self.restores,  # every node up again, before the supervisors settle with them
+            *(p.wait_started for p in self.processes.values()),
             *(s.stop for s in self.supervisors),
-            *(p.stop for p in self.processes),
+            *(p.stop for p in self.processes.values()),
             *self.stops,
             *self.bridges,
         ]
         self.bridges.clear()
+        self.restores.clear()
         first: BaseException | None = None
         for step in steps:
             try:
@@ -252,23 +280,29 @@ def canergy_spawn(
 ) -> Callable[..., Process]:
     """``canergy_spawn(argv, name, bus=None)``: a node under test as a process, ``{channel}``,
     ``{interface}``, ``{tmp}``, ``{python}`` and ``{status}`` (its status file, registered with
-    the books) filled in; stopped with SIGTERM at teardown (``power_cut()`` for SIGKILL)."""
-
-    from canergy.testing.bus import Process
+    the books) filled in, and an argument ``{bus}`` replaced by the bus's flags; stopped with
+    SIGTERM at teardown (``power_cut()`` for SIGKILL). ``name`` names it to the bridge's power
+    cuts (``cut=NAME@AT+FOR``)."""
 
     def spawn(argv: Sequence[str], name: str = "node", bus: TestBus | None = None) -> Process:
         on = bus or canergy_bus
         if on.interface == "virtual":
             raise ValueError(
                 "a process never hears python-can's virtual bus of another process: give "
-                "--canergy-interface socketcan --canergy-channel vcan0 (or the marker)"
+                "--canergy-interface socketcan --canergy-channel vcan0 (or the marker), or "
+                "spawn it on TestBus.zenoh() behind a bridge"
             )
         status = tmp_path / f"{name}-status.json"
-        filled = [on.fill(a, tmp=tmp_path, python=sys.executable, status=status) for a in argv]
-        if any("{status}" in a for a in argv):
+        filled: list[str] = []
+        for a in argv:
+            if a == "{bus}":
+                filled.extend(on.flags)
+            else:
+                filled.append(on.fill(a, tmp=tmp_path, python=sys.executable, status=status))
+        writes_status = any("{status}" in a for a in argv)
+        process = canergy_books.process(name, filled, status if writes_status else None)
+        if writes_status:
             canergy_books.add_client(status)
-        process = Process(name, filled, tmp_path)
-        canergy_books.processes.append(process)
         return process
 
     return spawn
@@ -276,13 +310,14 @@ def canergy_spawn(
 
 @pytest.fixture
 def canergy_bridge(request: pytest.FixtureRequest, canergy_books: Books) -> Callable[..., Bridge]:
-    """``canergy_bridge(bus1, bus2, schedule=None, seed=0, partitions=(), **faults)``: a
-    running ``canergy.bridge.link.Bridge``. The faults: a ``FaultSchedule`` (e.g. drawn by
-    ``canergy.testing.strategies.fault_schedules()``), or keywords as ``FaultProfile`` takes
-    them (``loss``, ``duplicate``, ``reorder``, ``corrupt``, ``delay_us``...; no delay unless
-    given) with partitions as ``"AT+FOR"`` (e.g. ``"2s+1s"``), or else the marker's
-    ``faults="loss=0.1,duplicate=0.05,partition=2s+1s"`` and ``seed``."""
-    from canergy.bridge.schedule import FaultSchedule, Partition, parse_faults
+    """``canergy_bridge(bus1, bus2, schedule=None, seed=0, partitions=(), power_cuts=(),
+    **faults)``: a running ``canergy.bridge.link.Bridge``. The faults: a ``FaultSchedule`` (e.g.
+    drawn by ``canergy.testing.strategies.fault_schedules()``), or keywords as ``FaultProfile``
+    takes them (``loss``, ``duplicate``, ``reorder``, ``corrupt``, ``delay_us``...; no delay
+    unless given) with partitions as ``"AT+FOR"`` (e.g. ``"2s+1s"``) and power cuts of the
+    test's node processes (``canergy_spawn``) as ``"NAME@AT+FOR"`` (e.g. ``"node1@3s+1s"``), or
+    else the marker's ``faults="loss=0.1,partition=2s+1s,cut=node1@3s+1s"`` and ``seed``."""
+    from canergy.bridge.schedule import FaultSchedule, Partition, PowerCut, parse_faults
     from canergy.faults import FaultProfile
 
     marked = _marker(request)
@@ -294,18 +329,20 @@ def canergy_bridge(request: pytest.FixtureRequest, canergy_books: Books) -> Call
         schedule: FaultSchedule | None = None,
         seed: int | None = None,
         partitions: Sequence[str] = (),
+        power_cuts: Sequence[str] = (),
         **faults: Any,
     ) -> Bridge:
         if seed is None:
             seed = int(marked.get("seed", 0))
-        if schedule is None and not faults and not partitions:
-            profile, cuts = parse_faults(str(marked.get("faults", "")))
-            schedule = FaultSchedule(profile, seed, cuts)
+        if schedule is None and not faults and not partitions and not power_cuts:
+            profile, cuts, power = parse_faults(str(marked.get("faults", "")))
+            schedule = FaultSchedule(profile, seed, cuts, power)
         elif schedule is None:
             faults.setdefault("delay_us", 0)
             faults.setdefault("jitter_us", 0)
             cuts = tuple(Partition.parse(p) for p in partitions)
-            schedule = FaultSchedule(FaultProfile(**faults), seed, cuts)
+            power = tuple(PowerCut.parse(c) for c in power_cuts)
+            schedule = FaultSchedule(FaultProfile(**faults), seed, cuts, power)
         return canergy_books.bridge(bus1, bus2, schedule)
 
     return start

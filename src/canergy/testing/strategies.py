@@ -6,7 +6,7 @@ from __future__ import annotations
 from hypothesis import strategies as st
 
 from canergy.argtypes import SEED_MAX
-from canergy.bridge.schedule import FaultSchedule, Partition
+from canergy.bridge.schedule import FaultSchedule, Partition, PowerCut
 from canergy.faults import FaultProfile
 
 
@@ -43,15 +43,36 @@ def partitions(
     return st.lists(one, max_size=max_count)
 
 
+def power_cuts(
+    nodes: list[str],
+    max_start_us: int = 10_000_000,
+    max_length_us: int = 2_000_000,
+    max_count: int = 2,
+) -> st.SearchStrategy[list[PowerCut]]:
+    """Up to ``max_count`` power cuts of the node processes named ``nodes`` (as
+    ``canergy_spawn`` names them), each starting within ``max_start_us`` of the bridge's start
+    and lasting 1 ms to ``max_length_us``."""
+    one = st.builds(
+        PowerCut,
+        st.integers(0, max_start_us),
+        st.integers(1_000, max(1_000, max_length_us)),
+        st.sampled_from(nodes),
+    )
+    return st.lists(one, max_size=max_count)
+
+
 def fault_schedules(
     profiles: st.SearchStrategy[FaultProfile] | None = None,
     cuts: st.SearchStrategy[list[Partition]] | None = None,
+    power: st.SearchStrategy[list[PowerCut]] | None = None,
 ) -> st.SearchStrategy[FaultSchedule]:
-    """A fresh ``FaultSchedule`` per example: a profile, a seed and partitions (by default
-    ``fault_profiles()`` and ``partitions()``); give it to ``canergy_bridge(schedule=...)``."""
+    """A fresh ``FaultSchedule`` per example: a profile, a seed, partitions and power cuts (by
+    default ``fault_profiles()``, ``partitions()`` and none: give ``power=power_cuts([...])``
+    for node processes); give it to ``canergy_bridge(schedule=...)``."""
     return st.builds(
         FaultSchedule,
         profiles if profiles is not None else fault_profiles(),
         st.integers(0, SEED_MAX),
         cuts if cuts is not None else partitions(),
+        power if power is not None else st.just([]),
     )

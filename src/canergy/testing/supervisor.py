@@ -22,6 +22,7 @@ from typing import Any
 from canergy.cli.grant import MAX_STATUS
 from canergy.live.supervisor.control import MAX_SOCKET_PATH, NoSupervisor, request
 from canergy.testing.bus import Process, TestBus
+from canergy.testing.run import until
 from canergy.units import parse_energy
 
 START_S = 30.0
@@ -136,15 +137,17 @@ class SupervisorRun:
     ) -> dict[str, Any]:
         """Poll the status until ``condition(status)``; the status then. ``AssertionError``
         naming ``what`` (and showing the status) after ``timeout_s``."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            status = self.status()
-            if condition(status):
-                return status
-            if time.monotonic() > deadline:
-                shown = json.dumps(status.get("nodes", status), sort_keys=True)[:2000]
-                raise AssertionError(f"timed out after {timeout_s:g} s waiting for {what}: {shown}")
-            time.sleep(0.05)
+        last: list[dict[str, Any]] = []
+
+        def holds() -> bool:
+            last[:] = [self.status()]
+            return condition(last[0])
+
+        def show() -> str:
+            return json.dumps(last[0].get("nodes", last[0]), sort_keys=True)[:2000]
+
+        until(holds, what, timeout_s, show, period_s=0.05)
+        return last[0]
 
     def intrusions(self) -> dict[str, Any]:
         """Foreign frames seen so far (the status's ``intrusions`` report)."""

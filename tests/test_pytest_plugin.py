@@ -12,7 +12,7 @@ from support.readme import DOCS, python_blocks_of
 
 # imported here, so pytester's runs in this process keep it: zenoh's native module does not
 # import a second time once pytester dropped it after a run
-import canergy.live.zenoh_bus  # noqa: F401
+import canergy.live.transports.zenoh_bus  # noqa: F401
 from canergy.testing.books import creation, terms
 
 pytest_plugins = ["pytester"]

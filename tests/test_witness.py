@@ -18,7 +18,6 @@ from support.intrusion_bench import Bench, bench
 from canergy.codec import Codec
 from canergy.core import Supervisor
 from canergy.live.runtime import monotonic_us
-from canergy.live.supervisor.control import request
 from canergy.live.supervisor.service import JOIN_HOLD_US, ServiceConfig, SupervisorService
 from canergy.live.supervisor.witness import WITNESS_REPORT_AT, ReturnGate
 from canergy.messages import (

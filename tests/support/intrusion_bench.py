@@ -20,7 +20,6 @@ import can
 
 from canergy.codec import Codec
 from canergy.live.runtime import BusRuntime, monotonic_us
-from canergy.live.supervisor.control import request
 from canergy.messages import Direction
 from canergy.testing.bus import TestBus
 from canergy.testing.run import Loop, until

@@ -133,7 +133,9 @@ def _ready(device: dict[str, Any] | None) -> bool:
 def test_the_odrive_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
     (command,) = _commands("odrive")
     args = build_parser().parse_args(command.argv[1:])
-    assert args.odrive == (AXIS,) and args.odrive_reaction + args.odrive_latency == 15_000
+    assert (
+        args.odrive == (AXIS,) and args.odrive_reaction + args.odrive_latency == DEFAULT_NOTICE_US
+    )
     channels: dict[str, str] = {}
     argv = _on_virtual(command.argv[1:], tmp_path, channels)
     (channel,) = channels.values()
@@ -163,7 +165,9 @@ def test_the_odrive_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
 def test_the_moteus_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
     (command,) = _commands("moteus")
     args = build_parser().parse_args(command.argv[1:])
-    assert args.moteus == (SERVO,) and args.moteus_reaction + args.moteus_latency == 15_000
+    assert (
+        args.moteus == (SERVO,) and args.moteus_reaction + args.moteus_latency == DEFAULT_NOTICE_US
+    )
     channels: dict[str, str] = {}
     argv = _on_virtual(command.argv[1:], tmp_path, channels)
     (channel,) = channels.values()

@@ -227,3 +227,12 @@ def test_a_moteus_read_of_many_registers_names_the_range() -> None:
     data = encode(Read(Kind.INT16, Reg.MODE, 5))
     named = Namer(moteus_nodes=[3]).name(can_id(0, 3, True), True, False, data)
     assert named is not None and named.fields["read"] == "mode..q_current (int16)"
+
+
+def test_an_identifier_moteus_never_sends_is_not_named_moteus() -> None:
+    """Bit 7 lies between the source and destination ids: a frame with it set (0x181, a
+    CANopen TPDO of node 1) is not a moteus frame to controller 1."""
+    namer = Namer(moteus_nodes=[1])
+    pdo, stop = (namer.name(i, False, False, b"\x01\x00\x00") for i in (0x181, 0x001))
+    assert pdo is not None and pdo.protocol == "canopen"
+    assert stop is not None and stop.protocol == "moteus"

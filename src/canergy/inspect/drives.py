@@ -96,6 +96,8 @@ def moteus(arbitration_id: int, data: bytes, controllers: frozenset[int]) -> Nam
     """A frame from or to one of the moteus ``controllers`` (ids), its subframes named: the
     registers written, read or replied with their names and values in units, errors, diagnostic
     stream text (None: neither end is one of them)."""
+    if arbitration_id & 0x80:
+        return None  # between the two 7-bit ids: a bit moteus never sets
     source, destination, reply, prefix = moteusdev.split_id(arbitration_id)
     node: int | None
     fields: dict[str, Any]

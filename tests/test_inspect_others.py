@@ -124,7 +124,12 @@ def test_audit_and_monitor_count_foreign_frames_by_protocol(
     log.write_text(LOG)
     assert main(["audit", "--json", "--odrive-names", "3", str(log)]) == 0
     report = json.loads(capsys.readouterr().out)
-    assert report["foreign_by_protocol"] == {"canopen": 5, "odrive": 2, "unknown": 1}
+    assert report["foreign_by_protocol"] == {
+        "canopen": 5,
+        "odrive": 1,
+        "odrive undecodable": 1,
+        "unknown": 1,
+    }
     assert main(["audit", str(log)]) == 0
     assert "8 foreign (canopen 5, unknown 3), " in capsys.readouterr().out
     assert main(["monitor", "--replay", str(log), "--fast", "--once", "--no-canopen"]) == 0

@@ -2,17 +2,18 @@
 as written (``support.readme.pages()``: README.md, then docs/).
 
 A shell block preceded by ``<!-- recipe: SESSION WHERE -->`` is a recipe. WHERE is ``local``
-(python-can's virtual bus or no bus: the normal suite) or ``vcan`` (real SocketCAN on vcan0 and
-vcan1: the vcan suite). The recipes of one session run in page order (README first, then the
-site's pages by path) in one working directory,
-as a user would type them in one shell: each line is a command (``\\`` continues it, ``#``
-starts a comment); a line ending in ``&`` runs in the background, as in another terminal, and is
-waited for until its ``--control`` socket and ``--status-file`` exist (one with neither: until it
-holds a socket, its bus, which it opens after it has set its Ctrl-C handler; a SIGINT during its
-imports would end it with a traceback); any other line must exit 0
-within ``FOREGROUND_S``. When the session ends, or before a recipe marked ``stopped`` (one that
-reads what the processes wrote once they were stopped), its background processes get SIGINT, as
-Ctrl-C would give them, and must exit 0.
+(python-can's virtual bus or no bus: the normal suite), ``vcan`` (real SocketCAN on vcan0 and
+vcan1: the vcan suite) or ``virtual`` (a bench command for a real bus that
+tests/test_drive_recipes.py runs in process on python-can's virtual bus, emulators standing in
+for the devices; not by ``run_session``). The recipes of one session run in page order (README
+first, then the site's pages by path) in one working directory, as a user would type them in one
+shell: each line is a command (``\\`` continues it, ``#`` starts a comment); a line ending in
+``&`` runs in the background, as in another terminal, and is waited for until its ``--control``
+socket and ``--status-file`` exist (one with neither: until it holds a socket, its bus, which it
+opens after it has set its Ctrl-C handler; a SIGINT during its imports would end it with a
+traceback); any other line must exit 0 within ``FOREGROUND_S``. When the session ends, or before
+a recipe marked ``stopped`` (one that reads what the processes wrote once they were stopped),
+its background processes get SIGINT, as Ctrl-C would give them, and must exit 0.
 
 The working directory holds links to the repository's ``dbc``, ``firmware``, ``firmware_model``
 and ``scripts``, so paths in the pages resolve as in a checkout; ``canergy`` and ``python`` are
@@ -37,7 +38,8 @@ from pathlib import Path
 from support.readme import ROOT, page_name, pages
 
 MARK = re.compile(
-    r"^( *)<!-- recipe: (\S+) (local|vcan)( stopped)? -->\n\1```sh\n(.*?)^\1```", re.S | re.M
+    r"^( *)<!-- recipe: (\S+) (local|vcan|virtual)( stopped)? -->\n\1```sh\n(.*?)^\1```",
+    re.S | re.M,
 )
 LINKED = ("dbc", "firmware", "firmware_model", "scripts")
 FOREGROUND_S = 900.0

@@ -228,6 +228,12 @@ def pack_reply(model: MitModel, node: int, p: int, v: int, t: int, state: int = 
     return bytes((first, p >> 8, p & 0xFF, v >> 4, (v & 0xF) << 4 | t >> 8, t & 0xFF, 0, 0))
 
 
+def default_master(model: MitModel, motor_id: int) -> int:
+    """The replies' identifier unless the motor is configured otherwise: 0 for CubeMars,
+    ``motor_id + 0x10`` for Damiao."""
+    return motor_id + 0x10 if model.damiao else 0
+
+
 def unpack_reply(model: MitModel, data: bytes | bytearray) -> Reply:
     """``ValueError`` if shorter than 6 bytes."""
     d = bytes(data)

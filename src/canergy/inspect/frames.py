@@ -8,7 +8,7 @@ from typing import Any
 import can
 
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
-from canergy.inspect.others import Named
+from canergy.inspect.named import Named
 from canergy.messages import (
     QUANTUM_UJ,
     Admit,

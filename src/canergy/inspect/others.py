@@ -1,62 +1,32 @@
-"""Names for the frames on a bench bus that are not canergy's: a user's DBC files, CANopen (the
-CiA 402 drives' NMT, SYNC, EMCY, PDOs, SDOs and heartbeats) and ODrive's CAN Simple, so that
-``canergy dump`` and ``canergy decode`` read a bus with nodes, drives and motors as one stream.
+"""Names for the frames on a bench bus that are not canergy's: a user's DBC files, the drives'
+and motors' protocols (ODrive CAN Simple, moteus, MIT mode: ``canergy.inspect.drives``) and
+CANopen (the CiA 402 drives' NMT, SYNC, EMCY, PDOs, SDOs and heartbeats), so that ``canergy
+dump``, ``decode``, ``audit`` and ``monitor`` read a bus with nodes, drives and motors as one
+stream.
 
 Order: a DBC that defines the identifier names the frame (the user's word wins); then CAN
-Simple for the ODrive node ids given; then CANopen by its predefined connection set (11-bit
-identifiers only). A frame none of them knows stays unnamed. Data a DBC cannot decode (too
-short, a multiplexer value it lacks) gives the message's name with the reason, never an error.
+Simple for the ODrive node ids given; then MIT mode for the motor ids given (commands to them,
+replies on their reply identifiers); then moteus for the controller ids given (frames from or
+to them); then CANopen by its predefined connection set (11-bit identifiers only). A frame none
+of them knows stays unnamed. Data that does not decode (too short, a subframe that does not
+parse, a multiplexer value a DBC lacks) gives the message's name with the reason, never an
+error, and is counted apart (``protocol_of``).
 """
 
 from __future__ import annotations
 
 import struct
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from canergy.devices.odrive import Cmd, split_id
+from canergy.devices.mit import MitModel
+from canergy.devices.odrive import split_id
+from canergy.inspect.drives import MitNames, moteus, odrive
+from canergy.inspect.named import Named
 
-
-@dataclass(frozen=True, slots=True)
-class Named:
-    """What a frame of another protocol is."""
-
-    protocol: str
-    """``canopen``, ``odrive`` or ``dbc:<file name>``."""
-    name: str
-    node: int | None = None
-    fields: dict[str, Any] = field(default_factory=dict)
-    problem: str | None = None
-
-    def text(self) -> str:
-        head = f"{self.name} {self.node}" if self.node is not None else self.name
-        parts = [f"{self.protocol.split(':')[0]}: {head}"]
-        parts += [f"{k} {_show(v)}" for k, v in self.fields.items()]
-        if self.problem:
-            parts.append(f"!! {self.problem}")
-        return "  ".join(parts)
-
-    def as_json(self) -> dict[str, Any]:
-        return {
-            "protocol": self.protocol,
-            "name": self.name,
-            "node": self.node,
-            "fields": {k: _plain(v) for k, v in self.fields.items()},
-            "problem": self.problem,
-        }
-
-
-def _show(value: Any) -> str:
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    return str(value)
-
-
-def _plain(value: Any) -> Any:
-    """A JSON value: cantools' named choices become their names."""
-    return value if isinstance(value, int | float | str | bool) or value is None else str(value)
+__all__ = ["Dbc", "DbcError", "Named", "Namer", "canopen", "protocol_of", "tally"]
 
 
 class DbcError(ValueError):
@@ -173,41 +143,14 @@ def canopen(arbitration_id: int, data: bytes) -> Named | None:
     return None
 
 
-# -- ODrive CAN Simple ---------------------------------------------------------------------------
-
-_TWO_FLOATS = {
-    Cmd.ENCODER_ESTIMATES: ("pos_rev", "vel_rev_s"),
-    Cmd.SET_LIMITS: ("vel_limit_rev_s", "current_limit_a"),
-    Cmd.GET_IQ: ("iq_setpoint_a", "iq_measured_a"),
-    Cmd.BUS_VOLTAGE_CURRENT: ("bus_voltage_v", "bus_current_a"),
-    Cmd.POWERS: ("electrical_w", "mechanical_w"),
-}
-
-
-def odrive(arbitration_id: int, data: bytes, remote: bool) -> Named:
-    """A CAN Simple frame (the caller knows the node is an ODrive's)."""
-    node, cmd = split_id(arbitration_id)
-    try:
-        name = Cmd(cmd).name.lower()
-    except ValueError:
-        name = f"command 0x{cmd:02X}"
-    if remote:
-        return Named("odrive", name, node, {"request": True})
-    fields: dict[str, Any] = {}
-    if cmd in _TWO_FLOATS and len(data) == 8:
-        first, second = struct.unpack("<ff", data)
-        fields = dict(zip(_TWO_FLOATS[Cmd(cmd)], (first, second), strict=True))
-    elif cmd == Cmd.HEARTBEAT and len(data) >= 5:
-        fields = {"axis_error": f"0x{struct.unpack_from('<I', data)[0]:08X}", "state": data[4]}
-    elif cmd == Cmd.SET_AXIS_STATE and len(data) >= 4:
-        fields = {"state": struct.unpack_from("<I", data)[0]}
-    return Named("odrive", name, node, fields)
-
-
 def protocol_of(named: Named | None) -> str:
     """The protocol a count of foreign frames puts the frame under: ``canopen``, ``odrive``,
-    ``dbc`` (any DBC's), or ``unknown``."""
-    return "unknown" if named is None else named.protocol.split(":")[0]
+    ``moteus``, ``mit``, ``dbc`` (any DBC's), each with `` undecodable`` for its frames whose
+    data does not decode, or ``unknown``."""
+    if named is None:
+        return "unknown"
+    protocol = named.protocol.split(":")[0]
+    return protocol if named.problem is None else f"{protocol} undecodable"
 
 
 def tally(counts: dict[str, int]) -> str:
@@ -226,10 +169,18 @@ class Namer:
         dbcs: Iterable[Dbc] = (),
         *,
         odrive_nodes: Iterable[int] = (),
+        moteus_nodes: Iterable[int] = (),
+        mit_nodes: Iterable[int] = (),
+        mit_model: MitModel | None = None,
         canopen_names: bool = True,
     ) -> None:
         self.dbcs = tuple(dbcs)
         self.odrive_nodes = frozenset(odrive_nodes)
+        self.moteus_nodes = frozenset(moteus_nodes)
+        mit = frozenset(mit_nodes)
+        if mit and mit_model is None:
+            raise ValueError("--mit-names needs --mit-model (the motors' ranges)")
+        self.mit = MitNames(mit_model, mit) if mit and mit_model is not None else None
         self.canopen_names = canopen_names
 
     def named(self, frame: Any) -> Named | None:
@@ -241,8 +192,12 @@ class Namer:
             named = dbc.name(arbitration_id, extended, data)
             if named is not None:
                 return named
-        if extended:
-            return None
-        if split_id(arbitration_id)[0] in self.odrive_nodes:
+        if not extended and split_id(arbitration_id)[0] in self.odrive_nodes:
             return odrive(arbitration_id, data, remote)
-        return canopen(arbitration_id, data) if self.canopen_names else None
+        if remote:
+            return None if extended or not self.canopen_names else canopen(arbitration_id, data)
+        if self.mit is not None and (named := self.mit.name(arbitration_id, extended, data)):
+            return named
+        if self.moteus_nodes and (named := moteus(arbitration_id, data, self.moteus_nodes)):
+            return named
+        return canopen(arbitration_id, data) if self.canopen_names and not extended else None

@@ -17,6 +17,7 @@ from canergy.argtypes import argument, node_ids, odrive_ids
 from canergy.auth.capture import CaptureAuth
 from canergy.auth.keys import load_key
 from canergy.codec import Codec
+from canergy.devices.mit import MODELS
 from canergy.inspect.audit import Auditor
 from canergy.inspect.captures import read_file, read_text
 from canergy.inspect.frames import Described
@@ -59,12 +60,14 @@ def view_flags(p: argparse.ArgumentParser) -> None:
 
 
 def others_flags(p: argparse.ArgumentParser) -> None:
-    """``--dbc``, ``--odrive-names``, ``--no-canopen``: how frames of other protocols are
-    named (``canergy.inspect.others``)."""
+    """``--dbc``, ``--odrive-names``, ``--mit-names``, ``--moteus-names``, ``--no-canopen``: how
+    frames of other protocols are named (``canergy.inspect.others``)."""
     others = p.add_argument_group(
         "other protocols",
         "frames that are not canergy's are named by a DBC that defines their identifier, then "
-        "as ODrive CAN Simple for --odrive-names, then by CANopen's predefined connection set",
+        "as ODrive CAN Simple for --odrive-names, MIT mode for --mit-names, moteus for "
+        "--moteus-names, then by CANopen's predefined connection set; a frame of theirs whose "
+        "data does not decode is named with the reason and counted as undecodable",
     )
     others.add_argument(
         "--dbc",
@@ -82,12 +85,38 @@ def others_flags(p: argparse.ArgumentParser) -> None:
         help="name 11-bit frames of these ODrive node ids (0-63) as CAN Simple commands",
     )
     others.add_argument(
+        "--mit-names",
+        type=node_ids,
+        metavar="IDS",
+        help="name 11-bit frames to these MIT-mode motor ids (1-127) as commands (p, v, kp, kd, "
+        "t_ff in units) or enter/exit/zero/clear, and their replies (position, velocity, "
+        "torque) on the model's reply id (CubeMars 0, Damiao id+0x10); give --mit-model",
+    )
+    others.add_argument(
+        "--mit-model", choices=sorted(MODELS), help="the --mit-names motors' model (its ranges)"
+    )
+    others.add_argument(
+        "--moteus-names",
+        type=node_ids,
+        metavar="IDS",
+        help="name frames from and to these moteus controller ids (1-127): registers written, "
+        "read and replied with their names and values, errors, diagnostic stream text",
+    )
+    others.add_argument(
         "--no-canopen", action="store_true", help="do not name 11-bit frames as CANopen's"
     )
 
 
 def namer_of(args: argparse.Namespace) -> Namer:
-    return Namer(args.dbc, odrive_nodes=args.odrive_names or (), canopen_names=not args.no_canopen)
+    """``ValueError``: --mit-names without --mit-model."""
+    return Namer(
+        args.dbc,
+        odrive_nodes=args.odrive_names or (),
+        moteus_nodes=args.moteus_names or (),
+        mit_nodes=args.mit_names or (),
+        mit_model=MODELS[args.mit_model] if args.mit_model else None,
+        canopen_names=not args.no_canopen,
+    )
 
 
 def garbage(number: int, text: str, reason: str) -> None:

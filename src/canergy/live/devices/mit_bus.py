@@ -51,6 +51,7 @@ from canergy.devices.mit import (
     UNM_PER_NM,
     MitLimits,
     cap_for_power,
+    default_master,
     side_channel,
 )
 from canergy.devices.mit_gate import MitCounts, MitGate
@@ -144,7 +145,7 @@ class MitBus(can.BusABC):
             self.gates[m.motor_id] = gate
             master = m.master_id
             if master is None:
-                master = m.motor_id + 0x10 if gate.model.damiao else 0
+                master = default_master(gate.model, m.motor_id)
             self.masters.setdefault(master, []).append(gate)
         self.by_node = {g.guard.node: g for g in self.gates.values()}
         self.incoming: queue.Queue[can.Message] = queue.Queue(maxsize=INCOMING_MAX)

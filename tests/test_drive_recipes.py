@@ -1,0 +1,258 @@
+"""The bench recipes of docs/guide/drives.md (``<!-- recipe: NAME virtual -->``: a budget on an
+ODrive axis, a moteus on CAN FD, an MIT motor in line) run as printed, in process on python-can's
+virtual bus, the project's emulators standing in for the devices; the envelope and the bound the
+page states under each hold.
+
+A recipe's commands are written for a real bus: here ``-i``/``--app-interface`` become
+``virtual``, each channel its own virtual channel, ``--state``/``--status-file`` files of the
+test's directory; a status file, a control socket (to stop it) and feedback and stop timeouts
+of 2 s (a loaded host stalls threads for 300 ms) are added after them. ``canergy supervisor``
+runs its real ``main`` in a thread; ``canergy inline`` (whose ``main`` stops only on a signal)
+runs as the forwarder and ``MitBus`` its flags describe (``canergy.cli.inline.motors``)."""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import re
+import threading
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+from support.readme import DOCS
+from support.recipes import Command, sessions
+
+from canergy.cli import build_parser
+from canergy.cli import main as canergy_main
+from canergy.cli.inline import motors
+from canergy.devices.guard import DeviceConfig
+from canergy.devices.moteus import Mode
+from canergy.live.control import request
+from canergy.live.mit_bus import MitBus
+from canergy.live.mit_forward import MitForwarder
+from canergy.live.runtime import monotonic_us
+from firmware_model.drive.live_bench import wait_for
+from firmware_model.drive.motor import LoadTorque
+from firmware_model.mit.live_bench import DM, GREEDY, MOTOR, PUSH, SLOW_HOST, burst
+from firmware_model.mit.motor import MitFace, MitMotorModel
+from firmware_model.moteus.live_bench import SERVO, ServoBench
+from firmware_model.moteus.servo import ServoFace, ServoModel
+from firmware_model.odrive.axis import AxisFace, AxisModel
+from firmware_model.odrive.live_bench import AXIS, AxisBench
+
+PAGE = DOCS / "guide" / "drives.md"
+DEFAULT_NOTICE_US = 15_000
+"""Reaction 10 ms + latency 5 ms: the defaults the stated bounds are computed with."""
+
+
+def _commands(name: str) -> list[Command]:
+    (recipe,) = sessions("virtual")[name]
+    return list(recipe.commands)
+
+
+def _stated(name: str) -> tuple[float, float]:
+    """The envelope (W) and the least bound (J) the page states after the recipe."""
+    text = PAGE.read_text()
+    after = text[text.index(f"<!-- recipe: {name} virtual -->") :]
+    after = after[after.index("\n```\n") :]
+    paragraph = after[after.index("**Its bound.**") :].split("\n\n")[0]
+    watts = re.search(r"\*\*([\d.]+) W\*\*", paragraph)
+    joules = re.search(r"\*\*([\d.]+) J\*\* or more", paragraph)
+    assert watts and joules, paragraph
+    return float(watts.group(1)), float(joules.group(1))
+
+
+def _on_virtual(argv: list[str], tmp: Path, channels: dict[str, str]) -> list[str]:
+    """``argv`` with its buses virtual (a channel per channel named) and its files in ``tmp``."""
+    out = list(argv)
+    for i, word in enumerate(out[:-1]):
+        if word in ("-i", "--interface", "--app-interface"):
+            out[i + 1] = "virtual"
+        elif word in ("-c", "--channel", "--app-channel"):
+            out[i + 1] = channels.setdefault(out[i + 1], f"recipe-{uuid.uuid4().hex}")
+        elif word in ("--state", "--status-file"):
+            out[i + 1] = str(tmp / out[i + 1])
+    return out
+
+
+@contextlib.contextmanager
+def _supervisor(tmp: Path, argv: list[str], *extra: str) -> Iterator[list[int]]:
+    """``canergy supervisor`` with ``argv`` (already virtual) and the harness's flags, in a
+    thread, stopped through its control socket when the block ends; its exit status is put in
+    the list yielded."""
+    control = tmp / "ctl.sock"
+    full = [*argv, "--no-fsync", "--status-file", str(tmp / "status.json")]
+    full += ["--status-period", "50ms", "--control", str(control), *extra]
+    assert full[0] == "supervisor", full
+    result: list[int] = []
+    thread = threading.Thread(target=lambda: result.append(canergy_main(full)), daemon=True)
+    thread.start()
+    try:
+        yield result
+    finally:
+        if thread.is_alive() and control.exists():
+            request(control, {"stop": True}, 30)
+        thread.join(timeout=60)
+
+
+def _granted(final: dict[str, Any], node: int) -> int:
+    books = final["nodes"][str(node)]
+    return int(books["delivered_uj"] - books["returns_credited_uj"])
+
+
+def _check(device: dict[str, Any], drawn: int, granted: int, name: str) -> None:
+    """The stated envelope and bound are the run's, and what the device drew is inside them."""
+    watts, joules = _stated(name)
+    print(f"{name}: drawn {drawn} µJ, granted {granted} µJ, bound {device['bound_uj']} µJ")
+    assert device["envelope_full_w"] == pytest.approx(watts, abs=5e-4)
+    least_mj = round(watts * 1000) * DEFAULT_NOTICE_US // 1_000_000  # the page's arithmetic,
+    assert least_mj == round(joules * 1000)  # rounded down: "or more" stays true
+    assert device["bound_uj"] >= least_mj * 1000
+    assert device["guarantee"] == "drawn <= granted + bound_uj"
+    assert device["stop_reason"] == "budget exhausted"
+    assert 0 < drawn <= granted + device["bound_uj"], (drawn, granted, device["bound_uj"])
+
+
+def _exhausted(device: dict[str, Any] | None) -> bool:
+    return bool(
+        device
+        and device["stop_reason"] == "budget exhausted"
+        and device["guard"] == "stopped"
+        and device["usable_uj"] < device["stop_at_uj"]
+    )
+
+
+def _ready(device: dict[str, Any] | None) -> bool:
+    return bool(device and device["ready"] and device["limits_confirmed"])
+
+
+def test_the_odrive_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
+    (command,) = _commands("odrive")
+    args = build_parser().parse_args(command.argv[1:])
+    assert (
+        args.odrive == (AXIS,) and args.odrive_reaction + args.odrive_latency == DEFAULT_NOTICE_US
+    )
+    channels: dict[str, str] = {}
+    argv = _on_virtual(command.argv[1:], tmp_path, channels)
+    (channel,) = channels.values()
+    axis = AxisModel(AXIS, monotonic_us(), load=LoadTorque.constant(0.01, opposing=True))
+    face = AxisFace(axis, can.Bus(interface="virtual", channel=channel))
+    face.start()
+    app = can.Bus(interface="virtual", channel=channel)
+    slow = ("--odrive-feedback-timeout", "2s", "--odrive-stop-timeout", "2s")
+    try:
+        with _supervisor(tmp_path, argv, *slow) as result:
+            thread = threading.current_thread()  # AxisBench's own is not used: stop() is ours
+            b = AxisBench(tmp_path, axis, face, app, tmp_path / "ctl.sock", result, thread)
+            wait_for(lambda: _ready(b.axis_status()), timeout=60)
+            b.run_closed_loop(1.0)
+            wait_for(lambda: _exhausted(b.axis_status()), timeout=60)
+            wait_for(lambda: (d := b.axis_status()) and d["drive_state"] == "IDLE")
+        final = b.status()
+    finally:
+        face.close()
+        app.shutdown()
+    assert result == [0] and final is not None
+    device = final["cia402"]["devices"]["odrive"][str(AXIS)]
+    _check(device, b.drawn(), _granted(final, AXIS), "odrive")
+    assert axis.state.name == "IDLE"
+
+
+def test_the_moteus_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
+    (command,) = _commands("moteus")
+    args = build_parser().parse_args(command.argv[1:])
+    assert (
+        args.moteus == (SERVO,) and args.moteus_reaction + args.moteus_latency == DEFAULT_NOTICE_US
+    )
+    channels: dict[str, str] = {}
+    argv = _on_virtual(command.argv[1:], tmp_path, channels)
+    (channel,) = channels.values()
+    servo = ServoModel(SERVO, monotonic_us(), load=LoadTorque.constant(0.01, opposing=True))
+    face = ServoFace(servo, can.Bus(interface="virtual", channel=channel))
+    face.start()
+    app = can.Bus(interface="virtual", channel=channel)
+    slow = ("--moteus-feedback-timeout", "2s", "--moteus-stop-timeout", "2s")
+    done = threading.Event()
+    try:
+        with _supervisor(tmp_path, argv, *slow) as result:
+            thread = threading.current_thread()
+            b = ServoBench(tmp_path, servo, face, app, tmp_path / "ctl.sock", result, thread)
+            wait_for(lambda: _ready(b.servo_status()), timeout=60)
+
+            def application() -> None:  # position, 1 N·m feed-forward, every 20 ms
+                while not done.wait(0.02):
+                    b.position(1.0)
+
+            runner = threading.Thread(target=application, daemon=True)
+            runner.start()
+            wait_for(lambda: _exhausted(b.servo_status()), timeout=60)
+            done.set()
+            runner.join()
+        final = b.status()
+    finally:
+        done.set()
+        face.close()
+        app.shutdown()
+    assert result == [0] and final is not None
+    device = final["cia402"]["devices"]["moteus"][str(SERVO)]
+    _check(device, b.drawn(), _granted(final, SERVO), "moteus")
+    assert servo.mode in (Mode.STOPPED, Mode.TIMEOUT)  # stopped, or timed out since (power off)
+
+
+def test_the_mit_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
+    supervisor, inline = _commands("mit")
+    channels: dict[str, str] = {}
+    sup_argv = _on_virtual(supervisor.argv[1:], tmp_path, channels)
+    inline_args = build_parser().parse_args(_on_virtual(inline.argv[1:], tmp_path, channels))
+    (wanted,) = motors(inline_args)
+    assert (wanted.motor_id, wanted.model) == (MOTOR, DM.name)
+    defaults = {f.name: f.default for f in dataclasses.fields(DeviceConfig)}
+    assert defaults["reaction_us"] + defaults["latency_us"] == DEFAULT_NOTICE_US
+    motor = MitMotorModel(
+        MOTOR, DM, monotonic_us(), master_id=MOTOR + 0x10, load=LoadTorque.constant(0.02, True)
+    )
+    face = MitFace(motor, can.Bus(interface="virtual", channel=inline_args.channel))
+    face.start()
+    app = can.Bus(interface="virtual", channel=inline_args.app_channel)
+    try:
+        with _supervisor(tmp_path, sup_argv) as result:
+            guarded = MitBus(
+                can.Bus(interface="virtual", channel=inline_args.channel),
+                [wanted],
+                guard_config=SLOW_HOST,
+            )
+            forwarder = MitForwarder(
+                can.Bus(interface="virtual", channel=inline_args.app_channel), guarded
+            )
+            stop = threading.Event()
+            thread = threading.Thread(target=forwarder.run, args=(stop.is_set, lambda: None))
+            thread.start()
+            try:
+                wait_for(lambda: guarded.status(MOTOR)["guard"] == "running", timeout=60)
+                burst(app, lambda: _exhausted(guarded.status(MOTOR)), [PUSH] * 9 + [GREEDY])
+                status = guarded.status(MOTOR)
+            finally:
+                stop.set()
+                thread.join(timeout=10)
+                guarded.shutdown()
+                forwarder.app.shutdown()
+        final = _status(tmp_path)
+    finally:
+        face.close()
+        app.shutdown()
+    assert result == [0]
+    with face.lock:
+        drawn = motor.drawn_uj
+    _check(status, drawn, _granted(final, wanted.node), "mit")
+    assert 0 < motor.torque_max_seen <= float(inline_args.mit_max_torque) + 1e-9
+    assert not motor.enabled  # out of motor mode once the budget was gone
+
+
+def _status(tmp: Path) -> dict[str, Any]:
+    import json
+
+    return dict(json.loads((tmp / "status.json").read_text()))

@@ -1,0 +1,110 @@
+"""A guarded moteus on real SocketCAN, CAN FD (``pytest -m vcan``): ``canergy supervisor --fd
+--moteus`` as a separate process on vcan0, the emulated controller (``firmware_model.moteus``)
+and an application of our own in the test's process on their own sockets, as in
+tests/test_moteus_live.py on the virtual bus. The check is the guarantee: what the controller
+drew stays within what it was granted plus the bound the guard showed, and it was stopped.
+
+Inside user-mode Linux a process can be held off for hundreds of milliseconds: the guard's
+feedback and stop timeouts are 3 s, its reaction and latency allowances are raised to what it
+measures (and so is the bound)."""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import can
+import pytest
+from support.procs import Procs, procs, python, status, wait
+from support.vcan import BUS, IFACE, vcan_up
+
+from canergy.devices.moteus import Mode, can_id, extended
+from canergy.ledger import ledger_from_status
+from canergy.live.runtime import monotonic_us
+from firmware_model.drive.motor import LoadTorque
+from firmware_model.moteus.live_bench import LIMITS, MOTOR, SERVO
+from firmware_model.moteus.servo import ServoFace, ServoModel
+
+pytestmark = pytest.mark.vcan
+__all__ = ["procs", "vcan_up"]  # the fixtures of support, used here
+
+
+def _fd_bus() -> can.BusABC:
+    return can.Bus(interface="socketcan", channel=IFACE, fd=True)
+
+
+def _guarded(procs: Procs) -> dict[str, Any]:
+    path = procs.tmp / "sup.json"
+    if not path.exists():
+        return {}
+    return dict(status(path)["cia402"]["devices"]["moteus"][str(SERVO)])
+
+
+def test_a_guarded_moteus_on_vcan0_stays_inside_its_grant_plus_the_bound(procs: Procs) -> None:
+    servo = ServoModel(SERVO, monotonic_us(), load=LoadTorque.constant(0.01, opposing=True))
+    face = ServoFace(servo, _fd_bus())
+    face.start()
+    app = _fd_bus()
+    done = threading.Event()
+
+    def application() -> None:  # position mode, 1 N·m feed-forward, every 20 ms
+        from canergy.devices.moteus import Kind, Reg, Write, encode
+
+        data = encode(
+            Write(Kind.INT8, Reg.MODE, (float(Mode.POSITION),)),
+            Write(Kind.FLOAT, Reg.COMMAND_POSITION, (float("nan"), 0.0, 1.0)),
+        )
+        ident = can_id(0, SERVO)
+        while not done.wait(0.02):
+            frame = can.Message(
+                arbitration_id=ident, data=data, is_extended_id=extended(ident), is_fd=True
+            )
+            app.send(frame)
+
+    runner = threading.Thread(target=application, daemon=True)
+    try:
+        procs.start(
+            "supervisor",
+            python(
+                "-m",
+                "canergy",
+                "supervisor",
+                *BUS,
+                "--fd",
+                *("--moteus", str(SERVO), *LIMITS, *MOTOR),
+                *("--moteus-feedback-timeout", "3s", "--moteus-stop-timeout", "3s"),
+                *("--initial", "10J", "--target", "5J", "--max-grant", "0.5J"),
+                *("--response-timeout", "0.3"),
+                *("--state", str(procs.tmp / "state.json"), "--no-fsync"),
+                *("--status-file", str(procs.tmp / "sup.json"), "--status-period", "0.2"),
+            ),
+        )
+        show = lambda: (_guarded(procs), procs.stderr("supervisor")[-2000:])  # noqa: E731
+        wait(lambda: bool(_guarded(procs).get("limits_confirmed")), "the limits set", show=show)
+        runner.start()
+        wait(
+            lambda: _guarded(procs).get("stop_reason") == "budget exhausted",
+            "the budget running out",
+            show=show,
+        )
+        done.set()
+        runner.join(timeout=30)
+        # stopped by the guard, or timed out since (the power stage off either way)
+        wait(lambda: servo.mode in (Mode.STOPPED, Mode.TIMEOUT), "the stop", show=show)
+        assert procs.stop("supervisor") == 0, procs.stderr("supervisor")
+    finally:
+        done.set()
+        face.close()
+        app.shutdown()
+    sup = status(procs.tmp / "sup.json")
+    guarded = sup["cia402"]["devices"]["moteus"][str(SERVO)]
+    books = sup["nodes"][str(SERVO)]
+    granted = books["delivered_uj"] - books["returns_credited_uj"]
+    with face.lock:
+        drawn = servo.drawn_uj
+    print(f"drawn {drawn} µJ, granted {granted} µJ, bound {guarded['bound_uj']} µJ")
+    assert "POSITION" in [s for _, s in servo.history]  # it ran
+    assert guarded["limits_verified"] is True and guarded["stuck"] is None, guarded
+    assert 0 < drawn <= granted + guarded["bound_uj"], (drawn, granted, guarded)
+    assert sup["conservation"]["holds"]
+    assert ledger_from_status(sup, []).drive_debt <= guarded["bound_uj"]

@@ -31,10 +31,10 @@ from canergy.cli import main as canergy_main
 from canergy.cli.inline import motors
 from canergy.devices.guard import DeviceConfig
 from canergy.devices.moteus import Mode
-from canergy.live.control import request
-from canergy.live.mit_bus import MitBus
-from canergy.live.mit_forward import MitForwarder
+from canergy.live.devices.mit_bus import MitBus
+from canergy.live.devices.mit_forward import MitForwarder
 from canergy.live.runtime import monotonic_us
+from canergy.live.supervisor.control import request
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.drive.motor import LoadTorque
 from firmware_model.mit.live_bench import DM, GREEDY, MOTOR, PUSH, SLOW_HOST, burst

@@ -17,7 +17,7 @@ import pytest
 from support.procs import Procs, procs, python, status, wait
 from support.vcan import BUS, IFACE, vcan_up
 
-from canergy.live.mit_bus import MitBus, MitMotor
+from canergy.live.devices.mit_bus import MitBus, MitMotor
 from canergy.live.runtime import monotonic_us
 from firmware_model.drive.motor import LoadTorque
 from firmware_model.mit.live_bench import DM, GREEDY, MOTOR, NODE, PUSH, SLOW_HOST, burst

@@ -196,3 +196,46 @@ def test_the_c_node_refuses_its_key_file_named_as_its_nv_or_status_file(
     )
     assert key.read_text() == (tmp_path / "hard.key").read_text()
     assert not (tmp_path / "n.nv").exists()
+
+
+# --- the C gateway's --upstream-auth: the node's key file checks, under its own flag ---------
+
+
+@pytest.mark.parametrize("kind", BAD_KEYS)
+def test_the_c_gateway_refuses_an_upstream_key_file_that_is_not_a_small_regular_file(
+    kind: str, c_gateway: Path, tmp_path: Path
+) -> None:
+    make, words = BAD_KEYS[kind]
+    key = make(tmp_path)
+    run = _run(c_gateway, tmp_path, "--nv", "g.nv", "--upstream-auth", str(key))
+    _refused(run, f"canergy-gateway: error: --upstream-auth {key}: {words}")
+    assert not (tmp_path / "g.nv").exists()
+
+
+def test_the_c_gateway_takes_only_its_own_node_key_above(c_gateway: Path, tmp_path: Path) -> None:
+    """Node 1 above: the key of node 1, not another node's nor the master key; a good one gets
+    past the key checks (the bus, which does not exist here, is what stops it); the FD layout
+    only with a key; the key file is no NV or status file."""
+    master = new_master(1)
+    write_key(tmp_path / "root.key", master)
+    write_key(tmp_path / "n2.key", node_key_of(master, 2))
+    for name, words in (
+        ("root.key", "a node takes its own node key, not the master key"),
+        ("n2.key", "a key for node 2 cannot serve node 1"),
+    ):
+        run = _run(c_gateway, tmp_path, "--nv", "g.nv", "--upstream-auth", name)
+        _refused(run, f"canergy-gateway: error: --upstream-auth {name}: {words}")
+    key = _node_key(tmp_path / "n1.key")
+    for layout in ((), ("--upstream-fd",)):
+        run = _run(c_gateway, tmp_path, "--nv", "g.nv", "--upstream-auth", str(key), *layout)
+        assert run.returncode == 2 and "--upstream-auth" not in run.stderr, run.stderr
+        assert "CAN socket" in run.stderr  # past every check: the bus is what stops it
+    _refused(
+        _run(c_gateway, tmp_path, "--nv", "g.nv", "--upstream-fd"),
+        "argument --upstream-fd: only with --upstream-auth",
+    )
+    _refused(
+        _run(c_gateway, tmp_path, "--nv", "n1.key", "--upstream-auth", "n1.key"),
+        "--nv n1.key and --upstream-auth n1.key name the same file",
+    )
+    assert not (tmp_path / "g.nv").exists()

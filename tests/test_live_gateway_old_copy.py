@@ -20,12 +20,21 @@ import uuid
 from pathlib import Path
 from typing import Any
 
+import can
 import pytest
+from support.live_rig import Loop
 
 from canergy.cli import main
+from canergy.codec import Codec
+from canergy.core import Timing
 from canergy.ledger import TreeLedger, ledger_from_status
+from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.supervisor.control import request
+from canergy.messages import Direction
 from canergy.units import UJ_PER_J
+from firmware_model.actuator import PowerProfile
+from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
+from firmware_model.nvstore import NvStore
 
 GW = 20
 
@@ -208,3 +217,72 @@ def test_the_same_restore_with_hardened_rules_upstream_creates_energy(tmp_path: 
     finally:
         rig.stop("gw")
         rig.stop("root")
+
+
+def node_below(rig: Rig) -> tuple[FirmwareNode, Loop]:
+    """Node 1 on the bus below (the emulator, witnessed rules, drawing 0.5 W) from its NV file."""
+    timing = Timing(response_timeout_us=100_000, retries=3, command_timeout_us=200_000)
+    config = NodeConfig(
+        power=PowerProfile.constant(0.5),
+        telemetry_period_us=100_000,
+        timing=timing,
+        variant="witnessed",
+    )
+    nv = NvStore(rig.tmp / "node.nv", 1, fsync=False)
+    node = FirmwareNode(1, nv, config, monotonic_us())
+    codec = Codec()
+    bus = can.Bus(interface="virtual", channel=rig.down, can_filters=codec.client_watch_filters(1))
+    host = NodeHost([node])
+    return node, Loop(BusRuntime(bus, host, codec=codec, receives=Direction.TO_CLIENT))
+
+
+def test_start_without_a_node_that_never_comes_back_lets_the_gateway_return_and_creates_nothing(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Witnessed rules on both legs. Node 1 below is granted and draws; it goes off for good
+    and the gateway restarts. Without ``--start-without 1`` the gateway waits for its books for
+    ever (the test above: nothing returned); with it, the start writes off what node 1's books
+    say it holds (status ``started_without``, stderr) and what the gateway holds above
+    ``--return-above`` goes back up. The tree's books: nothing created (the root let go at least
+    what the gateway holds, node 1 has and its actuator used; `canergy ledger`'s arithmetic)."""
+    rig = Rig(tmp_path, "witnessed", False, "witnessed")
+    below = ("--target", "1J", "--max-grant", "0.5J", "--response-timeout", "100ms")
+    rig.start_root()
+    rig.start_gateway(*below)
+    node, loop = node_below(rig)
+    try:
+        grant = {"grant": {"node": GW, "amount_uj": 3 * UJ_PER_J}}
+        assert request(tmp_path / "root.sock", grant, 30).get("outcome") == "COMMITTED"
+        wait(lambda: node.actuator.drawn_uj >= UJ_PER_J // 4)
+        wait(lambda: rig.status("gw")["nodes"]["1"]["committed"] >= 2)
+    finally:
+        loop.halt()  # node 1 is off, for good
+    try:
+        rig.stop("gw")
+        rig.start_gateway("--response-timeout", "100ms", "--return-above", "1J")
+        rig.stop("gw")  # a start without the flag: waits for node 1, returns nothing
+        assert rig.status("root")["nodes"][str(GW)]["returns_credited_uj"] == 0
+        rig.start_gateway("--response-timeout", "100ms", "--return-above", "1J", *WITHOUT)
+        wait(lambda: rig.status("gw").get("usable_uj") == UJ_PER_J)
+        wait(lambda: rig.status("root")["nodes"][str(GW)]["returns_credited_uj"] > 0)
+        gw = rig.status("gw")
+        s = gw["nodes"]["1"]
+        held_below = s["delivered_uj"] + s["reserved_uj"] - s["returns_credited_uj"]
+        assert held_below > 0 and gw["started_without"] == {"1": held_below}
+        assert gw["waiting_for_books"] == [] and s["state"] == "SYNCING"  # its own session waits
+        c = node.client.state
+        assert node.actuator.drawn_uj + c.usable + c.return_pending + node.ready_uj <= held_below
+        wait(lambda: rig.held() == rig.released())
+        assert rig.held() <= rig.released() <= 3 * UJ_PER_J
+        levels = {"root": ledger_from_status(rig.status("root"), [rig.status("gw")["upstream"]])}
+        levels["gateway"] = ledger_from_status(rig.status("gw"), [node.status()])
+        tree = TreeLedger(levels, {"gateway": rig.status("gw")["link_gap_uj"]})
+        assert tree.passive, tree.as_json()
+    finally:
+        rig.stop("gw")
+        rig.stop("root")
+    said = "started without node(s) 1 (--start-without): not waited for; written off what"
+    assert said in caplog.text
+
+
+WITHOUT = ("--start-without", "1")

@@ -102,6 +102,7 @@ def test_start_without_a_node_grants_at_once_to_others_and_waits_for_its_own_boo
     wait(lambda: b.node_status().get("state") == "SYNCING")
     assert b.status()["core"] == core
     assert b.status()["waiting_for_books"] == [] and b.status()["waiting_why"] is None
+    assert b.status()["started_without"] == {"1": released(b.node_status())} != {"1": 0}
     node, loop = b.start_node()
     try:
         wait(lambda: b.node_status()["committed"] >= 3)  # from its books confirmed
@@ -111,6 +112,7 @@ def test_start_without_a_node_grants_at_once_to_others_and_waits_for_its_own_boo
     used = first + node.actuator.drawn_uj + held(node)
     assert used <= released(final), (used, released(final))
     assert "SYNC sent; no grant" not in caplog.text
+    assert "started without node(s) 1 (--start-without): not waited for" in caplog.text
 
 
 @pytest.mark.parametrize("auth", [None, Layout.CLASSIC], ids=KEY_IDS[:2])
@@ -294,3 +296,20 @@ def test_start_without_is_refused_outside_the_witnessed_rules(
     assert main([*argv, "--state", str(tmp_path / "s.json")]) != 0
     assert "--start-without: only under --variant witnessed" in capsys.readouterr().err
     assert not (tmp_path / "s.json").exists()
+
+
+@pytest.mark.parametrize(
+    ("flags", "why"),
+    [
+        (("--variant", "hardened", "--start-without", "1"), "only under --variant witnessed"),
+        (("--variant", "witnessed", "--start-without", "2"), "node(s) 2 are not nodes it"),
+    ],
+)
+def test_the_gateways_start_without_is_checked_before_its_state_file_is_touched(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], flags: tuple[str, ...], why: str
+) -> None:
+    argv = ["gateway", "--node", "20", "--nodes", "1", "-i", "virtual", "-c", "gw-down"]
+    argv += ["--upstream-interface", "virtual", "--upstream-channel", "gw-up", *flags]
+    assert main([*argv, "--state", str(tmp_path / "g.json")]) != 0
+    assert f"--start-without: {why}" in capsys.readouterr().err
+    assert not (tmp_path / "g.json").exists()

@@ -333,6 +333,15 @@ static bool in_its_name(const struct canergy_node *n, const struct canergy_rx_fr
     return result == CANERGY_DECODE_WRONG_DIRECTION && (f->id & 0xE00000FFUL) == n->client.node;
 }
 
+/* A joining client's ADMIT verified and taken: its full counters, whose high half the ADMIT's
+ * FV carries (before out->persist is carried out). */
+static void admitted_counters(const struct canergy_auth *a, struct canergy_client *c)
+{
+    const uint32_t high = a->admit_fv & 0xFFFF0000UL;
+    c->rec.last_tx = high | (c->rec.last_tx & 0xFFFFU);
+    c->rec.return_seq = high | (c->rec.return_seq & 0xFFFFU);
+}
+
 int canergy_auth_node_frame(struct canergy_auth *a, struct canergy_node *n,
                             const struct canergy_rx_frame *frame, uint64_t now,
                             struct canergy_out *out)
@@ -355,12 +364,44 @@ int canergy_auth_node_frame(struct canergy_auth *a, struct canergy_node *n,
     const bool joining = canergy_client_joining(&n->client); /* not a witnessed RESUME's ADMIT */
     const int taken = canergy_node_on_frame(n, &rx, now, out);
     if (joining && taken == CANERGY_DECODE_OK && (out->events & CANERGY_EV_ADMITTED) != 0U) {
-        /* the full counters: the ADMIT's FV carries their high half (before out->persist) */
-        const uint32_t high = a->admit_fv & 0xFFFF0000UL;
-        n->client.rec.last_tx = high | (n->client.rec.last_tx & 0xFFFFU);
-        n->client.rec.return_seq = high | (n->client.rec.return_seq & 0xFFFFU);
+        admitted_counters(a, &n->client);
     }
     return taken;
+}
+
+int canergy_auth_gateway_up_frame(struct canergy_auth *a, struct canergy_gateway *gw,
+                                  const struct canergy_rx_frame *frame, uint64_t now,
+                                  struct canergy_out *out)
+{
+    if (a == NULL || gw == NULL || out == NULL) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    struct canergy_frame plain;
+    a->admit_fv = 0U;
+    const int result =
+        canergy_auth_accept(a, frame, gw->up.rec.last_tx, gw->up.rec.return_seq, &plain);
+    if (result != CANERGY_DECODE_OK) {
+        canergy_internal_out_clear(out);
+        return result;
+    }
+    const struct canergy_rx_frame rx = {plain.id, plain.data, plain.dlc, true, false};
+    const bool joining = canergy_client_joining(&gw->up);
+    const int taken = canergy_gateway_on_up_frame(gw, &rx, now, out);
+    if (joining && taken == CANERGY_DECODE_OK && (out->events & CANERGY_EV_ADMITTED) != 0U) {
+        admitted_counters(a, &gw->up);
+    }
+    return taken;
+}
+
+int canergy_auth_gateway_up_protect(const struct canergy_auth *a,
+                                    const struct canergy_gateway *gw,
+                                    const struct canergy_frame *plain,
+                                    struct canergy_auth_frame out[2])
+{
+    if (gw == NULL) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    return canergy_auth_protect(a, plain, gw->up.rec.last_tx, gw->up.rec.return_seq, out);
 }
 
 int canergy_auth_node_protect(const struct canergy_auth *a, const struct canergy_node *n,

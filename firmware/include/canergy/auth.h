@@ -38,6 +38,7 @@
 #define CANERGY_AUTH_H
 
 #include "canergy/cmac.h"
+#include "canergy/gateway.h"
 #include "canergy/node.h"
 
 #ifdef __cplusplus
@@ -123,6 +124,19 @@ int canergy_auth_node_frame(struct canergy_auth *a, struct canergy_node *n,
 /* canergy_auth_protect with the node's counters, for each of out->frames in turn. */
 int canergy_auth_node_protect(const struct canergy_auth *a, const struct canergy_node *n,
                               const struct canergy_frame *plain, struct canergy_auth_frame out[2]);
+
+/* A gateway's bus above in authenticated mode, as the node layer's two above with its client
+ * role's counters (a is the gateway's node key, CANERGY_TO_CLIENT): canergy_auth_accept, then
+ * canergy_gateway_on_up_frame with the verified frame (a joining gateway's ADMIT gives its full
+ * counters); canergy_auth_protect for each frame it sends above. A frame refused in the
+ * gateway's own direction with its id is the port's to count, as without a key. */
+int canergy_auth_gateway_up_frame(struct canergy_auth *a, struct canergy_gateway *gw,
+                                  const struct canergy_rx_frame *frame, uint64_t now,
+                                  struct canergy_out *out);
+int canergy_auth_gateway_up_protect(const struct canergy_auth *a,
+                                    const struct canergy_gateway *gw,
+                                    const struct canergy_frame *plain,
+                                    struct canergy_auth_frame out[2]);
 
 #ifdef __cplusplus
 }

@@ -382,6 +382,7 @@ static void gateway_usage(void)
                  "       [--upstream-response-timeout T] [--retries N] [--status-period T]\n"
                  "       [--stop-timeout T] [--return-hold T] [--id-base ID]\n"
                  "       [--rules hardened|witnessed] [--upstream-rules hardened|witnessed]\n"
+                 "       [--upstream-auth NODE.key [--upstream-fd]]\n"
                  "A canergy gateway on Linux SocketCAN (the C library's gateway rules): node\n"
                  "--node above (--upstream-channel), supervisor of --nodes below (-c); flags\n"
                  "as canergy gateway's. Energies 0.5J, 250mJ; durations 50ms, 1.5s.\n"
@@ -389,7 +390,10 @@ static void gateway_usage(void)
                  "every start (the supervisor side below).\n"
                  "--upstream-rules witnessed: what goes below is a DRAW the supervisor\n"
                  "above acknowledges first, and every start waits, granting nothing below,\n"
-                 "until it confirms this gateway's record (an older copy creates nothing).\n",
+                 "until it confirms this gateway's record (an older copy creates nothing).\n"
+                 "--upstream-auth: authenticated mode above with this gateway's node key\n"
+                 "file (canergy keys --master ROOT.key --nodes N; mode 0600); --upstream-fd:\n"
+                 "CAN FD frames with a 64-bit MAC, otherwise each frame and a MAC frame.\n",
                  PROG);
     exit(0);
 }
@@ -413,12 +417,18 @@ void port_parse_gateway_args(int argc, char **argv, struct gw_options *o)
         if (strcmp(flag, "-h") == 0 || strcmp(flag, "--help") == 0) {
             gateway_usage();
         }
+        if (strcmp(flag, "--upstream-fd") == 0) {
+            o->up_fd = 1;
+            continue;
+        }
         if (i + 1 >= argc) {
             port_usage_error("argument %s: expected one argument", flag);
         }
         const char *v = argv[++i];
         if (strcmp(flag, "--node") == 0) {
             o->node = (uint8_t)port_parse_int(flag, v, CANERGY_MIN_NODE, CANERGY_MAX_NODE);
+        } else if (strcmp(flag, "--upstream-auth") == 0) {
+            o->up_auth_path = v;
         } else if (strcmp(flag, "--nodes") == 0) {
             parse_nodes(v, o);
         } else if (strcmp(flag, "-i") == 0 || strcmp(flag, "--interface") == 0 ||
@@ -481,5 +491,8 @@ void port_parse_gateway_args(int argc, char **argv, struct gw_options *o)
     }
     if (o->min_grant_uj < MJ) {
         port_usage_error("argument --min-grant: at least 1 mJ (one frame's unit)");
+    }
+    if (o->up_fd && o->up_auth_path == NULL) {
+        port_usage_error("argument --upstream-fd: only with --upstream-auth (the MAC layout)");
     }
 }

@@ -9,6 +9,7 @@
  *                   [--return-above E] [--telemetry-period T] [--response-timeout T]
  *                   [--upstream-response-timeout T] [--retries N] [--status-period T]
  *                   [--stop-timeout T] [--return-hold T] [--id-base ID]
+ *                   [--upstream-auth NODE.key [--upstream-fd]]
  *
  * One record for both roles (the client's above, the supervisor's below) in two slots of the NV
  * file, written in turn with fsync before any frame of the step leaves: a kill -9 at any instant
@@ -23,7 +24,8 @@
  * SIGINT/SIGTERM (grants nothing more, waits for the open transactions up to --stop-timeout).
  * Above it reports its downstream Us as its level. Its status file is the Python gateway's
  * (role "gateway", the supervisor's keys, "upstream" with the client's record, "link_gap_uj"):
- * `canergy ledger` reads it. Without a key on either bus; no limits besides --target.
+ * `canergy ledger` reads it. --upstream-auth NODE.key [--upstream-fd]: authenticated above, as
+ * canergy-node --auth (canergy/auth.h); below without a key. No limits besides --target.
  *
  * Exit status: 0 after SIGINT/SIGTERM, 1 when the NV file cannot be written, 2 for bad
  * arguments or a socket or file that cannot be opened.
@@ -35,6 +37,7 @@
 
 #include "args.h"
 #include "gateway_port.h"
+#include "keyfile.h"
 #include "paths.h"
 #include "socketcan.h"
 #include "system.h"
@@ -63,14 +66,26 @@ static uint64_t least(uint64_t a, uint64_t b)
 
 /* ---- carrying out what the library asks: both records on disk before any frame ---- */
 
+void gw_send_up(struct gateway_port *g, const struct canergy_frame *f)
+{
+    if (g->opt.up_auth_path == NULL) {
+        port_can_send(g->up_sock, &g->up_count, f->id, f->data, f->dlc);
+        return;
+    }
+    struct canergy_auth_frame frames[2];
+    const int n = canergy_auth_gateway_up_protect(&g->up_auth, &g->gw, f, frames);
+    for (int k = 0; k < n; k++) {
+        port_can_send(g->up_sock, &g->up_count, frames[k].id, frames[k].data, frames[k].len);
+    }
+}
+
 static void up_out(struct gateway_port *g, const struct canergy_out *out)
 {
     if (out->persist) {
         gw_save(g);
     }
     for (unsigned i = 0U; i < out->frame_count; i++) {
-        port_can_send(g->up_sock, &g->up_count, out->frames[i].id, out->frames[i].data,
-                      out->frames[i].dlc);
+        gw_send_up(g, &out->frames[i]);
     }
 }
 
@@ -83,14 +98,20 @@ static void receive_up(struct gateway_port *g, uint64_t now)
     while (port_can_receive(g->up_sock, &g->up_count, &cf, &rx) == 1) {
         struct canergy_out out;
         const uint64_t withdrawn = g->gw.down.withdrawn_uj;
-        const int status = canergy_gateway_on_up_frame(&g->gw, &rx, now, &out);
+        const int status = g->opt.up_auth_path != NULL
+                               ? canergy_auth_gateway_up_frame(&g->up_auth, &g->gw, &rx, now, &out)
+                               : canergy_gateway_on_up_frame(&g->gw, &rx, now, &out);
         const int behind = (out.events & CANERGY_GW_EV_FOUND_BEHIND) != 0U;
         if (behind) {
             g->found_behind++;
             g->dropped_uj += g->gw.down.withdrawn_uj - withdrawn;
         }
         gw_say_up_waiting(g, behind, g->gw.down.withdrawn_uj - withdrawn);
-        gw_count_decode(&g->up_count, status);
+        if (status >= CANERGY_AUTH_MAC_BAD && status <= CANERGY_AUTH_UNAUTHENTICATED) {
+            g->auth_refused++; /* --upstream-auth: refused, nothing acted on */
+        } else if (status != CANERGY_AUTH_PENDING) {
+            gw_count_decode(&g->up_count, status);
+        }
         if (status == CANERGY_DECODE_WRONG_DIRECTION && (rx.id & 0xFFU) == g->opt.node) {
             g->witnessed++; /* someone speaks in its name above: say so in TELEMETRY at once */
             g->telemetry_now = 1;
@@ -131,20 +152,35 @@ static void telemetry(struct gateway_port *g)
     m.witness = (uint8_t)(g->witnessed & 0xFFU);
     struct canergy_frame f;
     if (canergy_encode(g->opt.id_base, &m, &f) == CANERGY_OK) {
-        port_can_send(g->up_sock, &g->up_count, f.id, f.data, f.dlc);
+        gw_send_up(g, &f);
     }
 }
 
 /* ---- main ---- */
 
-static int open_bus(const char *channel, uint32_t id_base, uint8_t node)
+static int open_bus(const char *channel, uint32_t id_base, uint8_t node, int fd)
 {
     struct port_options o;
     memset(&o, 0, sizeof o);
     o.channel = channel;
     o.id_base = id_base;
     o.node = node;
+    o.fd = fd;
     return port_can_open(&o);
+}
+
+/* --upstream-auth: this gateway's node key above (as canergy-node's --auth). */
+static void up_key(struct gateway_port *g)
+{
+    uint8_t key[CANERGY_KDF_KEY_SIZE];
+    port_load_key("--upstream-auth", g->opt.up_auth_path, g->opt.node, key);
+    const int ok = canergy_auth_init(&g->up_auth, key, g->opt.id_base, g->opt.node,
+                                     g->opt.up_fd ? CANERGY_AUTH_FD : CANERGY_AUTH_CLASSIC,
+                                     CANERGY_TO_CLIENT);
+    canergy_wipe(key, sizeof key);
+    if (ok != CANERGY_OK) {
+        port_usage_error("--upstream-auth: bad node or id base");
+    }
 }
 
 static int quiet(const struct canergy_supervisor *d)
@@ -162,11 +198,15 @@ int main(int argc, char **argv)
     static struct gateway_port g;
     port_parse_gateway_args(argc, argv, &g.opt);
     const struct port_file files[] = {{"--nv", g.opt.nv_path},
-                                      {"--status-file", g.opt.status_path}};
+                                      {"--status-file", g.opt.status_path},
+                                      {"--upstream-auth", g.opt.up_auth_path}};
     port_check_distinct(files, sizeof files / sizeof files[0]);
+    if (g.opt.up_auth_path != NULL) {
+        up_key(&g);
+    }
     gw_check_nv(&g.opt);
-    g.up_sock = open_bus(g.opt.up_channel, g.opt.id_base, g.opt.node); /* its own id above */
-    g.down_sock = open_bus(g.opt.down_channel, g.opt.id_base, 1U);
+    g.up_sock = open_bus(g.opt.up_channel, g.opt.id_base, g.opt.node, g.opt.up_fd); /* its id */
+    g.down_sock = open_bus(g.opt.down_channel, g.opt.id_base, 1U, 0);
     port_can_filter(g.down_sock, g.opt.id_base, CANERGY_ID_MASK); /* every node below */
     struct sigaction sa;
     memset(&sa, 0, sizeof sa);
@@ -232,6 +272,7 @@ int main(int argc, char **argv)
         }
     }
     gw_save_status(&g, port_now_us());
+    canergy_auth_wipe(&g.up_auth);
     (void)close(g.nv_fd);
     return 0;
 }

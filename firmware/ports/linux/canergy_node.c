@@ -154,7 +154,7 @@ int main(int argc, char **argv)
     port_check_distinct(files, sizeof files / sizeof files[0]);
     if (p.opt.auth_path != NULL) {
         uint8_t key[CANERGY_KDF_KEY_SIZE];
-        port_load_key(p.opt.auth_path, p.opt.node, key);
+        port_load_key("--auth", p.opt.auth_path, p.opt.node, key);
         const int ok = canergy_auth_init(&p.auth, key, p.opt.id_base, (uint8_t)p.opt.node,
                                          p.opt.fd ? CANERGY_AUTH_FD : CANERGY_AUTH_CLASSIC,
                                          CANERGY_TO_CLIENT);

@@ -10,6 +10,7 @@
 
 #include "port.h"
 
+#include "canergy/auth.h"
 #include "canergy/gateway.h"
 #include "canergy/witness.h"
 
@@ -23,6 +24,7 @@ struct gw_options {
     const char *up_channel;
     const char *nv_path;
     const char *status_path;
+    const char *up_auth_path; /* --upstream-auth: this gateway's node key above */
     uint64_t target_uj;
     uint64_t min_grant_uj;
     uint64_t return_above_uj;
@@ -42,6 +44,7 @@ struct gw_options {
     uint8_t up_rules; /* above: enum canergy_rules */
     int keep_all;
     int has_target;
+    int up_fd; /* --upstream-fd: the FD layout above */
 };
 
 struct below {
@@ -62,6 +65,7 @@ struct below {
 struct gateway_port {
     struct gw_options opt;
     struct canergy_gateway gw;
+    struct canergy_auth up_auth; /* --upstream-auth: the leg above's MACs */
     struct below below[CANERGY_SUPERVISOR_NODES];
     struct port_counters up_count;
     struct port_counters down_count;
@@ -71,6 +75,7 @@ struct gateway_port {
     uint64_t found_behind; /* starts the supervisor above found behind (witnessed above) */
     uint64_t dropped_uj;   /* Us below dropped by them */
     uint64_t confirmed;    /* starts the supervisor above confirmed or found behind */
+    uint64_t auth_refused; /* frames above refused by --upstream-auth's check */
     uint32_t nv_counter;
     uint8_t nv_slot; /* slot holding the newest record: the next write goes to the other */
     unsigned waiting; /* nodes below a start waited for when last said (witnessed) */
@@ -82,6 +87,10 @@ struct gateway_port {
     int telemetry_now; /* a commit or pay-back above: report the new level at once */
     int up_waiting;    /* the wait for the supervisor above, as last said on stderr */
 };
+
+/* canergy_gateway.c: one frame above (with its MAC frame or in the FD layout with
+ * --upstream-auth). */
+void gw_send_up(struct gateway_port *g, const struct canergy_frame *f);
 
 /* gateway_below.c: carry out a step of the supervisor below (both records saved first, then
  * its frames; an acknowledged intention decided at once); the nodes' frames; the held RETURNs

@@ -173,9 +173,11 @@ void gw_start(struct gateway_port *g, uint64_t now)
         g->joins++;
         g->nv_slot = 1U; /* slot 0 is written first */
     }
+    if (canergy_client_joining(&g->gw.up) && o->up_auth_path != NULL) {
+        canergy_auth_set_join(&g->up_auth, port_random16(), g->gw.up.nonce); /* 32-bit FV */
+    }
     for (unsigned i = 0U; i < out.frame_count; i++) { /* the JOIN, when there are no books */
-        port_can_send(g->up_sock, &g->up_count, out.frames[i].id, out.frames[i].data,
-                      out.frames[i].dlc);
+        gw_send_up(g, &out.frames[i]);
     }
 }
 
@@ -324,7 +326,8 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                   "\"last_tx\": %lu, \"joining\": %s, \"joins\": %d, "
                   "\"returned_this_run_uj\": %llu, \"witnessed\": %llu, \"rules\": \"%s\", "
                   "\"resuming\": %s, \"pending_draw\": %s, \"confirmed\": %llu, "
-                  "\"found_behind\": %llu, \"dropped_below_uj\": %llu, ",
+                  "\"found_behind\": %llu, \"dropped_below_uj\": %llu, "
+                  "\"authenticated\": %s, \"auth_refused\": %llu, ",
                   (unsigned)g->opt.node, (unsigned long)r->usable_uj,
                   (unsigned long long)r->spent_uj, (unsigned long long)r->credited_mj * MJ,
                   (unsigned long)r->return_pending_uj, (unsigned long)r->return_seq,
@@ -335,7 +338,9 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                   canergy_gateway_upstream_waiting(&g->gw) ? "true" : "false",
                   (r->flags & CANERGY_RECORD_PENDING_DRAW) != 0U ? "true" : "false",
                   (unsigned long long)g->confirmed, (unsigned long long)g->found_behind,
-                  (unsigned long long)g->dropped_uj);
+                  (unsigned long long)g->dropped_uj,
+                  g->opt.up_auth_path != NULL ? "true" : "false",
+                  (unsigned long long)g->auth_refused);
     write_counters(f, "bus", &g->up_count);
     (void)fputs("}}\n", f);
 }

@@ -22,11 +22,13 @@
 
 #define KEY_FILE_MAX 4096 /* keys.py KEY_FILE_MAX: far above what canergy keys writes */
 
+static const char *key_flag = "--auth"; /* the flag that named the file, for refusals */
+
 static void key_error(const char *path, const char *fmt, ...)
 {
     va_list ap;
     va_start(ap, fmt);
-    (void)fprintf(stderr, "%s: error: --auth %s: ", PROG, path);
+    (void)fprintf(stderr, "%s: error: %s %s: ", PROG, key_flag, path);
     (void)vfprintf(stderr, fmt, ap);
     (void)fputc('\n', stderr);
     va_end(ap);
@@ -176,8 +178,10 @@ static size_t read_key_file(const char *path, char text[KEY_FILE_MAX + 2])
 }
 
 /* The node's key from the key file at path (kind=node, node=for_node). */
-void port_load_key(const char *path, int for_node, uint8_t key[CANERGY_KDF_KEY_SIZE])
+void port_load_key(const char *flag, const char *path, int for_node,
+                   uint8_t key[CANERGY_KDF_KEY_SIZE])
 {
+    key_flag = flag;
     char text[KEY_FILE_MAX + 2];
     const size_t len = read_key_file(path, text);
     for (size_t i = 0U; i < len; i++) {

@@ -1,6 +1,6 @@
 /*
- * canergy-node's key file for --auth (keyfile.c): the node key of `canergy keys`, checked as
- * src/canergy/auth/keys.py checks it.
+ * canergy-node's key file for --auth and canergy-gateway's for --upstream-auth (keyfile.c):
+ * the node key of `canergy keys`, checked as src/canergy/auth/keys.py checks it.
  */
 #ifndef CANERGY_PORT_LINUX_KEYFILE_H
 #define CANERGY_PORT_LINUX_KEYFILE_H
@@ -10,7 +10,9 @@
 #include <stdint.h>
 
 /* key = the key of the node key file at path, which must be for_node's; any refusal exits 2
- * with one line that holds no byte of the key. The caller wipes key after use. */
-void port_load_key(const char *path, int for_node, uint8_t key[CANERGY_KDF_KEY_SIZE]);
+ * with one line that names flag and path and holds no byte of the key. The caller wipes key
+ * after use. */
+void port_load_key(const char *flag, const char *path, int for_node,
+                   uint8_t key[CANERGY_KDF_KEY_SIZE]);
 
 #endif /* CANERGY_PORT_LINUX_KEYFILE_H */

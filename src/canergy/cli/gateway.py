@@ -23,6 +23,8 @@ from canergy.cli.shared.live import (
     grant_limits,
     rule_timing,
     service_flags,
+    start_without,
+    start_without_flag,
 )
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
@@ -73,6 +75,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "above acknowledges first, and every start waits, granting nothing below, until it "
         "confirms this gateway's record (one restored from an older copy creates nothing)",
     )
+    start_without_flag(p, " or returned upstream")
     add_bus_flags(p)
     add_bus_flags(p, prefix=UP)
     book_flags(p)
@@ -195,6 +198,7 @@ def _build(args: argparse.Namespace, key: Key | None = None) -> tuple[Gateway, b
         up_timing=rule_timing(args, args.upstream_response_timeout),
         down_timing=rule_timing(args),
         state=state,
+        start_without=start_without(args, nodes),
     )
     return gateway, state is None
 
@@ -277,6 +281,7 @@ def run(args: argparse.Namespace) -> int:
     _check_buses(args)
     check_widths(args)
     check_state(args)
+    start_without(args, tuple(args.nodes))  # checked before the state file is touched
     up_key, down_key = _keys(args)
     now = monotonic_us()
     gateway, new = _build(args, down_key)

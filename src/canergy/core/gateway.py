@@ -116,12 +116,20 @@ class Gateway:
         up_timing: Timing | None = None,
         down_timing: Timing | None = None,
         state: GatewayState | None = None,
+        start_without: Iterable[int] = (),
     ) -> None:
+        """``start_without``: nodes below a start does not wait for (``Supervisor``'s, with
+        its risk; a return upstream may then carry what such a node holds)."""
         above = variant if up_variant is None else up_variant
         above = get_variant(above) if isinstance(above, str) else above
         self.up = Client(node, variant=above, timing=up_timing, state=state.up if state else None)
         self.down = Below(
-            nodes, 0, variant=variant, timing=down_timing, state=state.down if state else None
+            nodes,
+            0,
+            variant=variant,
+            timing=down_timing,
+            state=state.down if state else None,
+            start_without=start_without,
         )
         self.down.hold = self.upstream_waiting
         self.draws = above.name == "witnessed"

@@ -158,9 +158,7 @@ def core_config(
     """The core's flags as the builder takes them (``--core`` resolved, ``--start-without``
     checked); ``buses``: bus names with ``--bus`` (``nodes`` are then session keys)."""
     kind = core_choice(args, buses)  # before the state file is touched
-    without = frozenset(getattr(args, "start_without", None) or ())
-    if without and args.variant != "witnessed":
-        raise ValueError("--start-without: only under --variant witnessed")
+    without = start_without(args, nodes)
 
     def warn(message: str) -> None:
         print(f"canergy {args.command}: warning: {message}", file=sys.stderr)
@@ -186,16 +184,31 @@ def auth_config(args: argparse.Namespace, key: Any) -> AuthConfig | None:
     return AuthConfig(key, args.auth, bool(getattr(args, "fd", False)))
 
 
-def start_without_flag(p: argparse.ArgumentParser) -> None:
-    """``--start-without``: nodes a witnessed start does not wait for (either core)."""
+def start_without(args: argparse.Namespace, nodes: tuple[int, ...]) -> frozenset[int]:
+    """``--start-without``'s nodes, checked before anything is read or written: only under
+    ``--variant witnessed`` (the rules whose starts wait for books), and among ``nodes``."""
+    without = frozenset(getattr(args, "start_without", None) or ())
+    if without and args.variant != "witnessed":
+        raise ValueError("--start-without: only under --variant witnessed")
+    if stray := sorted(without - set(nodes)):
+        raise ValueError(
+            f"--start-without: node(s) {', '.join(map(str, stray))} are not nodes it supervises"
+        )
+    return without
+
+
+def start_without_flag(p: argparse.ArgumentParser, also: str = "") -> None:
+    """``--start-without``: nodes a witnessed start does not wait for (either core); ``also``:
+    where else the budget goes (a gateway returns it upstream)."""
     p.add_argument(
         "--start-without",
         type=node_ids,
         metavar="NODES",
         help="--variant witnessed: grant after a start without waiting for these nodes' books "
-        "(e.g. 3,7: nodes that are off for long). RISK: if the state file was put back to an "
+        "(e.g. 3,7: nodes that are off for long); what their books say they hold is written "
+        "off (status started_without, stderr). RISK: if the state file was put back to an "
         "older copy, such a node may hold energy the restored books count in the budget again "
-        "(up to all it received since the copy), and that is granted to the other nodes",
+        f"(up to all it received since the copy), and that is granted to the other nodes{also}",
     )
 
 

@@ -29,7 +29,7 @@ from canergy.core import (
 )
 from canergy.core.common import at_end
 from canergy.core.errors import LocalProtocolError
-from canergy.core.state import Outcome, Phase
+from canergy.core.state import SYNC_PHASES, Outcome, Phase
 from canergy.core.supervisor import SupervisorCore
 from canergy.core.witnessed import answered
 from canergy.live.runtime import BusCounters, Outgoing, RawFrame, total_counters
@@ -231,6 +231,11 @@ class SupervisorService:
         no pass looks at every session)."""
         if self._waited:
             log.warning("%s", self.waiting_why(self._waited))
+        self.started_without = self._started_without()
+        """This start's nodes not waited for (``start_without``) and what their books said
+        each held (µJ, by name): written off, out of the budget unless they answer with books."""
+        if self.started_without:
+            log.warning("%s", self.started_without_why())
 
     # -- Handler ---------------------------------------------------------------------------
     def on_message(self, msg: Message, now: int) -> Sequence[Message]:
@@ -350,6 +355,27 @@ class SupervisorService:
             f"started from the state file: SYNC sent; no grant to any node until node(s) "
             f"{names} answer with their books (the file may be an older copy: granting before "
             "would grant again what they hold); --start-without NODES skips a node, at a risk"
+        )
+
+    def _started_without(self) -> dict[str, int]:
+        """The nodes a start skips (the core's ``start_without``) that it would wait for, and
+        what each one's books say it holds: delivered and reserved, less returns credited."""
+        skipped: frozenset[int] = getattr(self.core, "start_without", frozenset())
+        return {
+            str(self.node_name(s.node)): s.delivered + s.reserved - s.returned
+            for s in self.core.state.sessions
+            if s.node in skipped and s.phase in SYNC_PHASES
+        }
+
+    def started_without_why(self) -> str:
+        """What ``started_without`` means, one line."""
+        held = self.started_without
+        each = ", ".join(f"node {name} {uj / 1e6:.3f} J" for name, uj in held.items())
+        return (
+            f"started without node(s) {', '.join(held)} (--start-without): not waited for; "
+            f"written off what their books say they hold, {sum(held.values()) / 1e6:.3f} J "
+            f"({each}); if the state file is an older copy they may hold more, which the "
+            "budget counts again"
         )
 
     def _synced(self, msg: Debit, info: NodeInfo, now: int) -> list[Outgoing]:
@@ -896,6 +922,7 @@ class SupervisorService:
             "stopped_by_intrusion": self.stopped_by_intrusion,
             "waiting_for_books": [self.node_name(n) for n in waiting],
             "waiting_why": self.waiting_why(waiting) if waiting else None,
+            "started_without": self.started_without,
             "nodes": nodes,
             **({"cia402": self.extra_status(self.now)} if self.extra_status else {}),
         }

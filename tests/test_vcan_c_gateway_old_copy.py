@@ -48,8 +48,10 @@ def test_a_c_gateway_restored_from_an_older_copy(procs: Procs, c_gateway: Path, 
         argv += ["--variant", rules, "--initial", "30J", "--state", str(tmp / "root.json")]
         argv += ["--status-file", str(root_status), "--status-period", "0.2"]
         argv += ["--control", str(tmp / "root.sock"), "--lost-after", "10", *TIMEOUT]
+        root_status.unlink(missing_ok=True)  # the last root's would answer for the new one
         procs.start("root", python(*argv))
         wait((tmp / "root.sock").exists, "the root's control socket")
+        wait(root_status.exists, "the root's status: its loop runs (SIGTERM is handled)")
 
     def gateway(*extra: str) -> None:
         gw_status.unlink(missing_ok=True)

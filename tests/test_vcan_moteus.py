@@ -54,12 +54,17 @@ def test_a_guarded_moteus_on_vcan0_stays_inside_its_grant_plus_the_bound(procs: 
             Write(Kind.INT8, Reg.MODE, (float(Mode.POSITION),)),
             Write(Kind.FLOAT, Reg.COMMAND_POSITION, (float("nan"), 0.0, 1.0)),
         )
+        stop = encode(Write(Kind.INT8, Reg.MODE, (float(Mode.STOPPED),)))
         ident = can_id(0, SERVO)
         while not done.wait(0.02):
-            frame = can.Message(
-                arbitration_id=ident, data=data, is_extended_id=extended(ident), is_fd=True
-            )
-            app.send(frame)
+            # held off past the watchdog, the controller latches TIMEOUT: as an application
+            # reading mode 15 in its replies would, leave it with a stop (a run in user-mode
+            # Linux with two kernels on two cores once drew nothing for it)
+            for payload in (stop, data) if servo.mode is Mode.TIMEOUT else (data,):
+                frame = can.Message(
+                    arbitration_id=ident, data=payload, is_extended_id=extended(ident), is_fd=True
+                )
+                app.send(frame)
 
     runner = threading.Thread(target=application, daemon=True)
     try:

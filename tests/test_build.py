@@ -143,3 +143,51 @@ def test_several_buses_take_no_canopen_nor_guarded_drives() -> None:
     )
     with pytest.raises(ValueError, match="one bus"):
         build_supervisor(config, [object(), object()])  # type: ignore[list-item]
+
+
+@pytest.mark.parametrize(
+    ("auth", "listen_only", "path", "off"),
+    [
+        (False, False, "c", None),
+        (True, False, "python", "--auth"),
+        (False, True, "python", "--listen-only"),
+    ],
+)
+def test_the_loop_is_handed_the_compiled_cores_frame_path_and_the_status_says_so(
+    auth: bool, listen_only: bool, path: str, off: str | None
+) -> None:
+    """The frame path is declared: on the compiled core the builder hands the loop its frame
+    path, and the status says which path runs and, where C's cannot, why (a key: MACs are
+    checked and made in Python). A genuine TELEMETRY then goes through C, or does not."""
+    from canergy.auth.keys import new_master
+    from canergy.ccore.supervisor import missing
+    from canergy.live.supervisor.build import AuthConfig
+
+    if missing() is not None:
+        pytest.fail(f"the compiled core is not built: {missing()}")
+    channel = f"build-{uuid.uuid4().hex}"
+    bus, node = (can.Bus(interface="virtual", channel=channel) for _ in range(2))
+    config = SupervisorConfig(
+        core=CoreConfig((1,), J, kind="c", keep_books=not listen_only),
+        service=ServiceConfig(listen_only=listen_only),
+        auth=AuthConfig(new_master(1)) if auth else None,
+    )
+    try:
+        built = build_supervisor(config, [bus])
+        arbitration_id, data = Codec().encode(Telemetry(1, 5, 0))
+        node.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=True))
+        for _ in range(100):
+            built.loop.poll(0.01)
+            if built.service.status()["frames_received"]:
+                break
+        status = built.service.status()
+        built.close()
+    finally:
+        bus.shutdown()
+        node.shutdown()
+    assert status["core"] == "c" and status["frame_path"] == path
+    assert status["frame_path_frames"] == (1 if path == "c" else 0)
+    if off is None:
+        assert "frame_path_off" not in status
+    else:
+        assert status["frame_path_off"].startswith(off)

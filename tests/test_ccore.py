@@ -263,17 +263,8 @@ def _run_script(
     service = SupervisorService(
         make_supervisor(core, [3], 10_000_000, timing=T, id_base=id_base), ServiceConfig(), 0
     )
-    taken = 0
-    fast = service.fast_frame
-
-    def counted(frame: can.Message, t: int) -> bool:
-        nonlocal taken
-        took = fast(frame, t)
-        taken += took
-        return took
-
-    service.fast_frame = counted  # type: ignore[method-assign]
-    loop = BusRuntime(wire, service, codec=codec, receives=Direction.TO_SUPERVISOR)
+    path = service.frame_path()
+    loop = BusRuntime(wire, service, codec=codec, receives=Direction.TO_SUPERVISOR, frame_path=path)
     loop.clock = lambda: now[0]
     service.on_message(Telemetry(3, 0), 0)  # heard: a one-shot grant may begin
     service.request_grant(3, 2_000_000, lambda reply: None)
@@ -298,7 +289,8 @@ def _run_script(
         wire.inbox.append(frame(msg, damage))
         loop.poll(0)
     wire.shutdown()
-    return wire.sent, service.status(), taken
+    status = service.status()
+    return wire.sent, status, status["frame_path_frames"]
 
 
 @pytest.mark.parametrize("id_base", [None, 0x0CF00000])
@@ -319,6 +311,7 @@ def test_the_fast_path_answers_as_the_python_core_does(id_base: int | None) -> N
     assert len(c_sent) == 3  # INTENTION, COMMIT, RETURN_ACK
     # both ACKs, COMMITTED, both TELEMETRY and the RETURN, on the C core only
     assert (py_taken, c_taken) == (0, 6)
+    assert (py_status["frame_path"], c_status["frame_path"]) == ("python", "c")
 
 
 @pytest.mark.parametrize("layout", list(Layout))

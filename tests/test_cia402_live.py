@@ -23,8 +23,9 @@ from firmware_model.drive.live_bench import DRIVE, NODE, Bench, exhausted, guard
 
 @pytest.fixture
 def exhausting(tmp_path: Path) -> Iterator[Bench]:
-    """4 J in all: the drive and the canergy node are topped up to 2 J until it is gone."""
-    with guarded_bench(tmp_path, 10, "--initial", "4J", "--target", "2J") as bench:
+    """4 J in all: the drive and the canergy node are topped up to 2 J until it is gone. On
+    the compiled core: the node's frames take its frame path beside the drive's proxy."""
+    with guarded_bench(tmp_path, 10, "--initial", "4J", "--target", "2J", "--core", "c") as bench:
         yield bench
 
 
@@ -67,6 +68,8 @@ def test_the_budget_runs_out_and_the_drive_stops_inside_the_bound(
     assert granted + node_books["delivered_uj"] == final["initial_uj"]
     books = ledger_from_status(final, [b.node_host.nodes[NODE].status()])
     assert books.passive and books.spent >= drive["spent_uj"], books
+    # the node's answers went through the compiled core's frame path, not around it
+    assert final["frame_path"] == "c" and final["frame_path_frames"] > 0
 
 
 def test_the_proxy_leg_is_captured_and_audits_clean(

@@ -50,6 +50,11 @@ class RawFrame:
 Outgoing = Message | RawFrame
 """What a pass hands the loop to send."""
 
+FramePath = Callable[[can.Message, int], bool]
+"""A core's frame path (``BusRuntime(frame_path=)``): a received frame the loop has not
+decoded, taken in one call (True: the frames it answers are held for the pass's end) or left to
+the usual path (False: decoded here, then ``Handler.on_message``)."""
+
 
 class Handler(Protocol):
     """What the loop drives: the supervisor service or a host of firmware nodes."""
@@ -325,10 +330,13 @@ class BusRuntime:
         source: can.BufferedReader | None = None,
         auth: FrameAuth | None = None,
         counters: BusCounters | None = None,
+        frame_path: FramePath | None = None,
     ) -> None:
         """``source``: read from this listener instead of ``bus.recv`` when a ``can.Notifier``
         owns the bus (shared with python-canopen: one Notifier per bus). ``counters``: kept in
-        this object (the handler's status shows the same one; default a new one)."""
+        this object (the handler's status shows the same one; default a new one).
+        ``frame_path``: every received frame goes there first (the compiled core's, from the
+        builder); it needs a handler that takes passes and a loop without a key."""
         self.bus = bus
         self.source = source
         self.handler = handler
@@ -352,12 +360,9 @@ class BusRuntime:
             self.counters.auth = auth.layout.value
         passes = callable(getattr(handler, "begin_pass", None))
         self._passes = cast(PassHandler, handler) if passes else None
-        fast_path = getattr(handler, "fast_path", None) if auth is None and passes else None
-        self._fast: Callable[[can.Message, int], bool] | None = (
-            None if fast_path is None else fast_path()
-        )
-        """A handler's fast path (``SupervisorService.fast_path`` on the compiled core, never
-        with a key): a received frame before any decoding here; True when it took the frame."""
+        if frame_path is not None and (auth is not None or not passes):
+            raise ValueError("a frame path needs a handler that takes passes and no key")
+        self._fast = frame_path
 
     def poll(self, max_wait_s: float = 0.1) -> None:
         """Wait for one frame (at most until the next deadline or ``max_wait_s``) and run

@@ -33,6 +33,7 @@ from canergy.devices.guard import DeviceGuard
 from canergy.live.canopen.cia402_link import DriveLink
 from canergy.live.devices.device_link import Device, DeviceLink
 from canergy.live.devices.on_stuck import OnStuck
+from canergy.live.runtime import FramePath, Outgoing, RawFrame
 from canergy.live.supervisor.service import SupervisorService
 from canergy.messages import Direction, Message, ToClient
 
@@ -254,9 +255,12 @@ class GuardedSupervisor:
         self.service = service
         self.guarded = guarded
         self.codec = codec or Codec()
+        self._now = service.now
+        """The time of the pass's last frame or deadline: a pass's end routes at it."""
 
     # -- Handler ---------------------------------------------------------------------------
     def on_message(self, msg: Message, now: int) -> Sequence[Message]:
+        self._now = now
         # only the proxy, in this process, speaks for a drive
         if self.guarded.guards(msg.node):
             kind = "a drive's frame from the bus"
@@ -282,7 +286,41 @@ class GuardedSupervisor:
         ]
         return min(times) if times else None
 
+    # -- PassHandler and the frame path -------------------------------------------------------
+    def begin_pass(self) -> None:
+        self.service.begin_pass()
+
+    def end_pass(self) -> list[Outgoing]:
+        """The service's frames of the pass (its books saved first): a proxy's go to it,
+        encoded ones (the compiled core's) decoded for it; the rest to the bus."""
+        out: list[Outgoing] = []
+        messages: list[Message] = []
+        for item in self.service.end_pass():
+            if isinstance(item, RawFrame) and self.guarded.guards(item.arbitration_id & 0xFF):
+                to = Direction.TO_CLIENT
+                messages.append(self.codec.decode(item.arbitration_id, item.data, direction=to))
+            elif isinstance(item, RawFrame):
+                out.append(item)
+            else:
+                messages.append(item)
+        return out + self._route(messages, self._now)
+
+    def frame_path(self, off: str | None = None) -> FramePath | None:
+        """The service's frame path, behind the rule above: a frame in a guarded drive's name
+        never reaches the compiled core (the usual path reports it as an intrusion)."""
+        path = self.service.frame_path(off)
+        if path is None:
+            return None
+        take = path
+
+        def frame(msg: can.Message, now: int) -> bool:
+            self._now = now
+            return not self.guarded.guards(msg.arbitration_id & 0xFF) and take(msg, now)
+
+        return frame
+
     def on_wakeup(self, now: int) -> Sequence[Message]:
+        self._now = now
         out = self._deliver(self.guarded.pump(now, self.service.stopping), now)
         wakeup = self.service.next_wakeup()
         if wakeup is not None and wakeup <= now:

@@ -335,6 +335,7 @@ def _one(
         handler = GuardedSupervisor(service, guarded, codec=codec)
     runtime = None
     if bus is not None:
+        off = _AUTH_OFF if config.auth is not None else _LISTEN_OFF if listen_only else None
         runtime = BusRuntime(
             bus,
             handler,
@@ -345,6 +346,7 @@ def _one(
             auth=_frame_auth(config, codec, service.freshness),
             counters=counters,
             clock=clock,
+            frame_path=handler.frame_path(off),
         )
     return RunningSupervisor(
         service=service,
@@ -398,6 +400,10 @@ def _several(
         guarded=None,
         networks=(),
     )
+
+
+_AUTH_OFF = "--auth: frames are checked and signed in Python (no MAC in the C supervisor yet)"
+_LISTEN_OFF = "--listen-only: every frame is only read, on the usual path"
 
 
 def _frame_auth(config: SupervisorConfig, codec: Codec, freshness: Any) -> Any:

@@ -32,7 +32,7 @@ from canergy.core.errors import LocalProtocolError
 from canergy.core.state import SYNC_PHASES, Outcome, Phase
 from canergy.core.supervisor import SupervisorCore
 from canergy.core.witnessed import answered
-from canergy.live.runtime import BusCounters, Outgoing, RawFrame, total_counters
+from canergy.live.runtime import BusCounters, FramePath, Outgoing, RawFrame, total_counters
 from canergy.live.supervisor.control import ControlServer
 from canergy.live.supervisor.evidence import impossible
 from canergy.live.supervisor.grants import Books, GrantCallback, GrantDesk, GrantRequest
@@ -191,9 +191,16 @@ class SupervisorService:
         self._held: list[Outgoing] = []
         self._answer = getattr(core, "on_answer", None)
         """The compiled core's fast path (``fast_frame``); None on the Python core."""
+        self._path: tuple[str, str | None] = (
+            ("python", None) if self._answer is None else ("python", "no bus loop asked for it")
+        )
+        """Which frame path runs, and why not the compiled core's (``frame_path``)."""
+        self.frames_in_c = 0
+        """Frames the compiled core's frame path took: an answer whole (decode, rules, encode),
+        a TELEMETRY, RETURN or JOIN decoded in C and then handled as usual."""
         self._begin_encoded: EncodedBegin | None = None
         """The compiled core's ``begin`` with its frame as C encoded it, once a bus loop without
-        a key took the fast path (``fast_path``): an INTENTION then leaves as C's bytes."""
+        a key took the fast path (``frame_path``): an INTENTION then leaves as C's bytes."""
         self.stop_deadline: int | None = None
         self.liveness = liveness
         self.extra_status = extra_status
@@ -548,14 +555,21 @@ class SupervisorService:
         self.refusals.tick(now)  # what was refused since the last line, once a second at most
         return self._flush(out)
 
-    def fast_path(self) -> Callable[[can.Message, int], bool] | None:
-        """For a bus loop without a key (``BusRuntime``): the compiled core's fast path
-        (``fast_frame``), or None on the Python core. From then on, in a loop pass, frames the
+    def frame_path(self, off: str | None = None) -> FramePath | None:
+        """The frame path for this service's bus loop (``BusRuntime(frame_path=)``, from the
+        builder): the compiled core's (``fast_frame``), or None where every frame takes the
+        usual path: the Python core, or ``off``, why the compiled core's cannot run here (a
+        key: frames are checked and signed in Python). From then on, in a loop pass, frames the
         C core encoded (COMMIT, ABORT, INTENTION) go to the loop as C's bytes (``RawFrame``),
-        never decoded and encoded again. A loop with a key never calls this: its frames get
-        MACs, so each leaves as a message."""
+        never decoded and encoded again. The status says which path runs (``frame_path``), why
+        not C (``frame_path_off``) and how many frames C took (``frame_path_frames``)."""
         if self._answer is None:
+            self._path = ("python", None)
             return None
+        if off is not None:
+            self._path = ("python", off)
+            return None
+        self._path = ("c", None)
         self._begin_encoded = getattr(self.core, "begin_encoded", None)
         return self.fast_frame
 
@@ -578,10 +592,12 @@ class SupervisorService:
             self.stopping,
         )
         if decoded is not None:  # a TELEMETRY, RETURN or JOIN: as if the loop had decoded it
+            self.frames_in_c += 1
             self.on_message(decoded, now)  # in a pass: its frames are held
             return True
         if status:
             return False
+        self.frames_in_c += 1
         self.now = now
         self.nodes[frame.arbitration_id & 0xFF].heard_at = now
         out: list[Outgoing] = [RawFrame(i, d) for i, d in frames]
@@ -892,6 +908,9 @@ class SupervisorService:
             "role": "supervisor",
             "variant": self.core.variant.name,
             "core": self.core.implementation,
+            "frame_path": self._path[0],
+            **({} if self._path[1] is None else {"frame_path_off": self._path[1]}),
+            "frame_path_frames": self.frames_in_c,
             "uptime_s": round((self.now - self.started_at) / 1e6, 3),
             "stopping": self.stopping,
             "listen_only": self.config.listen_only,

@@ -46,16 +46,9 @@ from canergy.cia402.watch import (
     enables,
     powerless,
 )
-from canergy.core import (
-    Action,
-    Client,
-    ClientCommitted,
-    Credited,
-    Send,
-    Timing,
-)
-from canergy.core.state import Phase
-from canergy.messages import LEVEL_MAX_MJ, QUANTUM_UJ, Message, Telemetry, ToClient
+from canergy.core import Timing
+from canergy.devices.proxy import ProxyBooks
+from canergy.messages import QUANTUM_UJ, Message, ToClient
 
 CW_QUICK_STOP = 0x0002
 CW_DISABLE_VOLTAGE = 0x0000
@@ -156,12 +149,12 @@ def pdo_pair(index: int) -> tuple[int, int]:
     return comm, comm + 0x200
 
 
-class DriveGuard:
+class DriveGuard(ProxyBooks):
     """The budget of one CiA 402 drive."""
 
     def __init__(self, node: int, config: GuardConfig, now: int, nonce: int) -> None:
+        super().__init__(node, config.timing, config.telemetry_period_us, now, nonce)
         self.config = config
-        self.client = Client(node, timing=config.timing)
         self.metering = DriveMeter(
             config.meter.kind,
             config.meter,
@@ -193,13 +186,9 @@ class DriveGuard:
         when to write the same limits again (they are charged as if taken meanwhile)."""
         self.level = 0
         """Taper: torque and current at 1/2**level of the full limits."""
-        self.overrun_uj = 0
-        self.debt_uj = 0
         self.stops = 0
         self.halted = False
         """The supervisor is stopping: stop the drive and keep it stopped."""
-        self.next_telemetry = now
-        self.outbox = self._carry_out(self.client.books_lost(nonce, now), now)
         counter = config.counter
         on_drive = counter is not None and counter.node is None
         self.watched = Watched(
@@ -224,17 +213,8 @@ class DriveGuard:
         self.restops = 0
         self.last_verify_at = now - config.retry_us
 
-    @property
-    def node(self) -> int:
-        return self.client.node
-
-    @property
-    def usable(self) -> int:
-        return self.client.state.usable
-
-    @property
-    def joining(self) -> bool:
-        return self.client.state.phase is Phase.JOINING
+    def running(self) -> bool:
+        return self.phase is GuardPhase.RUNNING
 
     # -- inputs -----------------------------------------------------------------------------
     def on_ready(self, now: int, setup: DriveSetup | None = None) -> None:
@@ -391,11 +371,9 @@ class DriveGuard:
         self.metering.watch(reaction_us, latency_us)
 
     def next_wakeup(self) -> int:
-        times = [self.next_telemetry]
+        times = self._proxy_wakeups()
         if (deadline := self._pdo_deadline()) is not None:
             times.append(deadline + 1)
-        if (timer := self.client.get_timer()) is not None:
-            times.append(timer)
         if self.phase is not GuardPhase.RUNNING or self._wants_enable():
             times.append(self.last_command_at + self.config.retry_us)
         if self.phase is GuardPhase.STOPPING:
@@ -411,9 +389,7 @@ class DriveGuard:
         return min(times)
 
     def on_wakeup(self, now: int) -> list[Message]:
-        out, self.outbox = self.outbox, []
-        if (timer := self.client.get_timer()) is not None and timer <= now:
-            out += self._carry_out(self.client.handle_timer(now), now)
+        out = self._proxy_due(now)
         self.metering.charge(now)
         if self.next_reread is not None and now >= self.next_reread:
             self.next_reread = now + self.config.reread_us
@@ -434,19 +410,7 @@ class DriveGuard:
         return out + self._book(self.metering.take(), now)
 
     def _book(self, drawn: int, now: int) -> list[Message]:
-        """Spend what was drawn; what the budget does not cover becomes debt."""
-        take = min(drawn, self.usable)
-        self.overrun_uj += drawn - take
-        self.debt_uj += drawn - take
-        return self._carry_out(self.client.spend(take, now), now) if take else []
-
-    def _pay_debt(self, now: int) -> list[Message]:
-        """New budget pays the debt first."""
-        pay = min(self.debt_uj, self.usable)
-        if not pay:
-            return []
-        self.debt_uj -= pay
-        return self._carry_out(self.client.spend(pay, now), now)
+        return self._spend_drawn(drawn, now)
 
     # -- decisions --------------------------------------------------------------------------
     def alive(self, now: int) -> bool:
@@ -652,27 +616,7 @@ class DriveGuard:
         b = bound(m.setup.ratings, m.reach, replace(t, gap_us=gap), m.stop, m.setup.deceleration)
         return b.total_uj
 
-    # -- the proxy client -------------------------------------------------------------------
-    def telemetry(self, now: int) -> Telemetry:
-        self.next_telemetry = now + self.config.telemetry_period_us
-        flags = (
-            (Telemetry.LOW if self.usable <= self.threshold_uj() else 0)
-            | (Telemetry.HALTED if self.phase is not GuardPhase.RUNNING else 0)
-            | (Telemetry.JOINING if self.joining else 0)
-        )
-        return Telemetry(self.node, min(self.usable // QUANTUM_UJ, LEVEL_MAX_MJ), flags)
-
-    def _carry_out(self, actions: list[Action], now: int) -> list[Message]:
-        out: list[Message] = []
-        for action in actions:
-            if isinstance(action, Send):
-                out.append(action.message)
-            elif isinstance(action, ClientCommitted | Credited):
-                self.next_telemetry = now  # report the new level at the next wakeup
-        return out
-
     def status(self, now: int) -> dict[str, Any]:
-        c = self.client.state
         return {
             "node": self.node,
             "drive_state": self.state,
@@ -682,11 +626,7 @@ class DriveGuard:
             "latched": self.latched,
             "alive": self.alive(now),
             "joining": self.joining,
-            "usable_uj": c.usable,
-            "spent_uj": c.spent,
-            "credited_uj": c.credited,
-            "return_seq": c.return_seq,
-            "return_pending_uj": c.return_pending,
+            **self.books_status(),
             **self.metering.status(now),
             "bound_unseen_uj": self._unseen_uj(),
             "stop_at_uj": self.threshold_uj(),

@@ -4,7 +4,7 @@
 compared when read back, what its stop can draw); ``guard`` is the sans-IO guard that works for
 any profile; ``odrive`` is the ODrive CAN Simple profile, ``moteus`` the moteus CAN-FD register
 protocol's; ``mit`` the MIT-mode frames, models and clamp, and ``mit_gate`` an MIT-mode motor
-guarded in line (the application's commands pass through it: ``canergy.live.devices.mit_bus``). The
-CiA 402 guard (``canergy.cia402``)
-predates the interface; docs/guide/drives.md says how it maps onto it.
+guarded in line (the application's commands pass through it: ``canergy.live.devices.mit_bus``).
+``proxy`` is the proxy client's books every guard keeps, the CiA 402 guard (``canergy.cia402``)
+included; its metering predates the interface (docs/guide/drives.md says how it maps onto it).
 """

@@ -34,10 +34,10 @@ from typing import Any, Generic
 
 from canergy.cia402.envelope import Bound, ceil_div
 from canergy.cia402.meter import FW_US_PER_UJ
-from canergy.core import Action, Client, ClientCommitted, Credited, Send, Timing
-from canergy.core.state import Phase
+from canergy.core import Timing
 from canergy.devices.profile import L, Profile, Stop, WriteLimits
-from canergy.messages import LEVEL_MAX_MJ, QUANTUM_UJ, Message, Telemetry, ToClient
+from canergy.devices.proxy import ProxyBooks
+from canergy.messages import QUANTUM_UJ, Message, ToClient
 
 FOREVER = 2**62
 
@@ -79,15 +79,15 @@ class DeviceConfig(Generic[L]):
     """Why limits that did not read back refuse the device (the profile's words)."""
 
 
-class DeviceGuard(Generic[L]):
+class DeviceGuard(ProxyBooks, Generic[L]):
     """The budget of one device of ``profile``."""
 
     def __init__(
         self, node: int, profile: Profile[L], config: DeviceConfig[L], now: int, nonce: int
     ) -> None:
+        super().__init__(node, config.timing, config.telemetry_period_us, now, nonce)
         self.profile = profile
         self.config = config
-        self.client = Client(node, timing=config.timing)
         self.commands: list[WriteLimits[L] | Stop] = []
         self.phase = GuardPhase.STOPPED
         self.phase_at = now
@@ -131,26 +131,13 @@ class DeviceGuard(Generic[L]):
         self.bound_max_uj = 0
         """The largest bound the stop threshold held back (limits someone else wrote
         included): the status's ``bound_uj``, raised, never lowered."""
-        self.overrun_uj = 0
-        self.debt_uj = 0
         self.stops = 0
         self.restops = 0
         self.writes_seen = 0
         self.halted = False
-        self.next_telemetry = now
-        self.outbox = self._carry_out(self.client.books_lost(nonce, now), now)
 
-    @property
-    def node(self) -> int:
-        return self.client.node
-
-    @property
-    def usable(self) -> int:
-        return self.client.state.usable
-
-    @property
-    def joining(self) -> bool:
-        return self.client.state.phase is Phase.JOINING
+    def running(self) -> bool:
+        return self.phase is GuardPhase.RUNNING
 
     @property
     def sound(self) -> bool:
@@ -346,9 +333,7 @@ class DeviceGuard(Generic[L]):
         self._evaluate(now)
 
     def next_wakeup(self) -> int:
-        times = [self.next_telemetry]
-        if (timer := self.client.get_timer()) is not None:
-            times.append(timer)
+        times = self._proxy_wakeups()
         if self.crossing is not None:
             times.append(self.crossing)
         if self.last_feedback_at is not None and self.phase is GuardPhase.RUNNING:
@@ -361,9 +346,7 @@ class DeviceGuard(Generic[L]):
         return min(times)
 
     def on_wakeup(self, now: int) -> list[Message]:
-        out, self.outbox = self.outbox, []
-        if (timer := self.client.get_timer()) is not None and timer <= now:
-            out += self._carry_out(self.client.handle_timer(now), now)
+        out = self._proxy_due(now)
         self.charge(now)
         out += self._settled(now)
         if now >= self.next_telemetry:
@@ -378,17 +361,7 @@ class DeviceGuard(Generic[L]):
 
     def _book(self, now: int) -> list[Message]:
         drawn, self.unbooked_uj = self.unbooked_uj, 0
-        take = min(drawn, self.usable)
-        self.overrun_uj += drawn - take
-        self.debt_uj += drawn - take
-        return self._carry_out(self.client.spend(take, now), now) if take else []
-
-    def _pay_debt(self, now: int) -> list[Message]:
-        pay = min(self.debt_uj, self.usable)
-        if not pay:
-            return []
-        self.debt_uj -= pay
-        return self._carry_out(self.client.spend(pay, now), now)
+        return self._spend_drawn(drawn, now)
 
     # -- decisions ------------------------------------------------------------------------
     def alive(self, now: int) -> bool:
@@ -514,28 +487,8 @@ class DeviceGuard(Generic[L]):
     def _set_phase(self, phase: GuardPhase, why: str | None, now: int) -> None:
         self.phase, self.stop_reason, self.phase_at = phase, why, now
 
-    # -- the proxy ------------------------------------------------------------------------
-    def telemetry(self, now: int) -> Telemetry:
-        self.next_telemetry = now + self.config.telemetry_period_us
-        flags = (
-            (Telemetry.LOW if self.usable <= self.threshold_uj() else 0)
-            | (Telemetry.HALTED if self.phase is not GuardPhase.RUNNING else 0)
-            | (Telemetry.JOINING if self.joining else 0)
-        )
-        return Telemetry(self.node, min(self.usable // QUANTUM_UJ, LEVEL_MAX_MJ), flags)
-
-    def _carry_out(self, actions: list[Action], now: int) -> list[Message]:
-        out: list[Message] = []
-        for action in actions:
-            if isinstance(action, Send):
-                out.append(action.message)
-            elif isinstance(action, ClientCommitted | Credited):
-                self.next_telemetry = now
-        return out
-
     def status(self, now: int) -> dict[str, Any]:
         """The same fields as a CiA 402 drive's where they mean the same, and the profile's."""
-        c = self.client.state
         target = self.pending if self.pending is not None else self.confirmed
         worst = self.bound(self.config.limits)
         now_bound = self.bound(target)
@@ -554,11 +507,7 @@ class DeviceGuard(Generic[L]):
             "alive": self.alive(now),
             "joining": self.joining,
             "ready": self.ready_at is not None,
-            "usable_uj": c.usable,
-            "spent_uj": c.spent,
-            "credited_uj": c.credited,
-            "return_seq": c.return_seq,
-            "return_pending_uj": c.return_pending,
+            **self.books_status(),
             "meter": "sampled" if self.config.sampled else "envelope",
             "guarantee": "none" if self.config.sampled else "drawn <= granted + bound_uj",
             "metered_uj": self.metered_uj,

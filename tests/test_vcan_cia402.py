@@ -194,7 +194,12 @@ def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
     books_closed = ledger_from_status(sup, [])
     assert books_closed.dissipated + debt >= 0, books_closed
     assert debt <= guarded["bound_uj"], guarded
-    assert "OPERATION ENABLED" in [h["state"] for h in drive["history"]], (guarded, place)
+    why = ("guard", "stop_reason", "latched", "refused", "unverified", "stops", "tpdo_age_us")
+    assert "OPERATION ENABLED" in [h["state"] for h in drive["history"]], (
+        {k: guarded.get(k) for k in why},
+        drive["history"],
+        place,
+    )
     # all charged but what the drive drew after the guard's last reading, as the supervisor
     # stopped: a count, and the 2.75 W envelope over a TPDO period, a reaction and a latency
     t = guarded["bound_timings_us"]

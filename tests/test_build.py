@@ -115,22 +115,30 @@ def test_the_service_has_the_guarded_drives_liveness_and_status() -> None:
 def test_the_service_shows_the_counters_its_bus_loop_counts_in() -> None:
     """Once assigned onto the service after its bus loop was made, now one object both are
     given: a frame the loop receives is in the service's status."""
+    status, same = _one_telemetry(SupervisorConfig(core=CoreConfig((1,), J)))
+    assert status["frames_received"] == 1 and same
+
+
+def _one_telemetry(config: SupervisorConfig) -> tuple[dict[str, Any], bool]:
+    """Build ``config`` on a virtual bus, send it node 1's TELEMETRY, poll until it counts the
+    frame: its status, and whether its loop and its service count in one object."""
     channel = f"build-{uuid.uuid4().hex}"
     bus, node = (can.Bus(interface="virtual", channel=channel) for _ in range(2))
     try:
-        built = build_supervisor(SupervisorConfig(core=CoreConfig((1,), J)), [bus])
+        built = build_supervisor(config, [bus])
         arbitration_id, data = Codec().encode(Telemetry(1, 5, 0))
         node.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=True))
         for _ in range(100):
             built.loop.poll(0.01)
             if built.service.status()["frames_received"]:
                 break
-        assert built.service.status()["frames_received"] == 1
-        assert built.runtimes[0].counters is built.service.bus_counters
+        status = built.service.status()
+        same = built.runtimes[0].counters is built.service.bus_counters
         built.close()
     finally:
         bus.shutdown()
         node.shutdown()
+    return status, same
 
 
 def test_several_buses_take_no_canopen_nor_guarded_drives() -> None:
@@ -165,26 +173,12 @@ def test_the_loop_is_handed_the_compiled_cores_frame_path_and_the_status_says_so
 
     if missing() is not None:
         pytest.fail(f"the compiled core is not built: {missing()}")
-    channel = f"build-{uuid.uuid4().hex}"
-    bus, node = (can.Bus(interface="virtual", channel=channel) for _ in range(2))
     config = SupervisorConfig(
         core=CoreConfig((1,), J, kind="c", keep_books=not listen_only),
         service=ServiceConfig(listen_only=listen_only),
         auth=AuthConfig(new_master(1)) if auth else None,
     )
-    try:
-        built = build_supervisor(config, [bus])
-        arbitration_id, data = Codec().encode(Telemetry(1, 5, 0))
-        node.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=True))
-        for _ in range(100):
-            built.loop.poll(0.01)
-            if built.service.status()["frames_received"]:
-                break
-        status = built.service.status()
-        built.close()
-    finally:
-        bus.shutdown()
-        node.shutdown()
+    status, _ = _one_telemetry(config)
     assert status["core"] == "c" and status["frame_path"] == path
     assert status["frame_path_frames"] == (1 if path == "c" else 0)
     if off is None:

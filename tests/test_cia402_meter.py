@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from fractions import Fraction
 
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -19,6 +20,7 @@ from canergy.cia402.meter import (
     MeterConfig,
     MeterKind,
 )
+from canergy.cia402.profile import Cia402Profile
 from canergy.units import UJ_PER_J
 
 MECH = MeterConfig(rated_torque_mnm=500, rated_current_ma=5000)
@@ -133,15 +135,15 @@ def test_the_envelope_is_torque_times_speed_plus_copper() -> None:
 def test_the_bound_is_the_envelope_over_the_notice_time_plus_the_stop() -> None:
     limits = Limits(265, 265, 100_500)
     timings = Timings(gap_us=25_000, reaction_us=2_500, latency_us=500, stop_timeout_us=100_000)
-    coast = bound(RATINGS, limits, timings, StopKind.DISABLE)
+    coast = bound(Cia402Profile(RATINGS), limits, timings)
     assert coast.notice_uj == 422_013  # 15.071875 W × 28 ms, rounded up
     assert coast.stop_uj == 0 and coast.total_uj == 422_013
-    quick = bound(RATINGS, limits, timings, StopKind.QUICK, deceleration=2_000_000)
+    quick = bound(Cia402Profile(RATINGS, StopKind.QUICK, 2_000_000), limits, timings)
     # copper 1.755625 W × 103 ms + 0.1325 N·m × (100.5 rad/s)² / (2 × 2,000 rad/s²)
     assert quick.stop_uj == round(1.755625 * 0.103 * 1e6 + 0.1325 * 100.5**2 / 4000 * 1e6) + 1
-    slow = bound(RATINGS, limits, timings, StopKind.QUICK, deceleration=1)
+    slow = bound(Cia402Profile(RATINGS, StopKind.QUICK, 1), limits, timings)
     assert slow.stop_uj == -(-15_071_875 * 103_000 // 10**6)  # never above the envelope
-    counted = bound(RATINGS, limits, timings, StopKind.DISABLE, resolution_uj=1000)
+    counted = bound(Cia402Profile(RATINGS), limits, timings, resolution_uj=1000)
     assert counted.total_uj == coast.total_uj + 1000
 
 
@@ -173,3 +175,24 @@ def test_a_counter_never_charges_less_than_was_drawn(steps: list[int]) -> None:
         t += 1_000_000
         meter.sample(t, drawn // 1000, envelope_fw=70 * 10**15)
     assert drawn - 1000 < meter.metered_uj <= 70 * UJ_PER_J * len(steps)
+
+
+def test_a_cia402_drive_is_a_device_profile() -> None:
+    """The profile interface on CiA 402's objects: the envelope with its parts in SI units
+    (they give its figure back), closed limits allow nothing, a limit read back otherwise is
+    named with both values, a coasting stop draws nothing and a quick stop its ramp."""
+    limits = Limits(265, 265, 100_500)
+    profile = Cia402Profile(RATINGS, StopKind.QUICK, 2_000_000)
+    env = profile.envelope(limits)
+    p = env.parts
+    assert env.fw == RATINGS.envelope_fw(limits)
+    assert p["torque_nm"] * p["speed_rad_s"] + p["resistance_ohm"] * p["current_a"] ** 2 == (
+        pytest.approx(env.fw / 1e15)
+    )
+    assert profile.envelope(profile.closed(limits)).fw == 0
+    assert profile.mismatch(limits, limits) is None
+    assert profile.mismatch(limits, Limits(265, 3000, 100_500)) == (
+        "0x6073 read back 3000, written 265"
+    )
+    assert Cia402Profile(RATINGS).stop_fw_us(limits, 100_000) == 0
+    assert 0 < profile.stop_fw_us(limits, 100_000) < env.fw * 100_000

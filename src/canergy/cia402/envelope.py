@@ -18,6 +18,7 @@ from enum import Enum
 from fractions import Fraction
 
 from canergy.cia402.meter import FW_US_PER_UJ
+from canergy.devices.profile import Profile
 
 MAX_TORQUE = 0x6072
 MAX_CURRENT = 0x6073
@@ -158,18 +159,12 @@ class Bound:
 
 
 def bound(
-    ratings: Ratings,
-    limits: Limits,
-    timings: Timings,
-    stop: StopKind,
-    deceleration: int = 0,
-    resolution_uj: int = 0,
+    profile: Profile[Limits], limits: Limits, timings: Timings, resolution_uj: int = 0
 ) -> Bound:
     """Envelope × (gap + reaction + latency) + the stop: what a drive running at ``limits`` may
-    draw after the last TPDO that showed budget left."""
-    power = ratings.envelope_fw(limits)
+    draw after the last TPDO that showed budget left (``profile``: the drive's ratings and stop,
+    ``canergy.cia402.profile``)."""
+    power = profile.envelope(limits).fw
     notice = ceil_div(power * timings.notice_us, FW_US_PER_UJ)
-    stop_uj = 0
-    if stop is StopKind.QUICK:
-        stop_uj = ceil_div(ratings.stop_fw_us(limits, deceleration, timings.stop_us), FW_US_PER_UJ)
+    stop_uj = ceil_div(profile.stop_fw_us(limits, timings.stop_us), FW_US_PER_UJ)
     return Bound(power, notice, stop_uj, resolution_uj)

@@ -613,7 +613,8 @@ class DriveGuard(ProxyBooks):
             return None
         t = m.timings()
         gap = t.gap_us + self.config.reread_us + self.config.pdo_timeout_us
-        b = bound(m.setup.ratings, m.reach, replace(t, gap_us=gap), m.stop, m.setup.deceleration)
+        assert m.profile is not None
+        b = bound(m.profile, m.reach, replace(t, gap_us=gap))
         return b.total_uj
 
     def status(self, now: int) -> dict[str, Any]:

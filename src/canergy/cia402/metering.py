@@ -29,6 +29,7 @@ from canergy.cia402.envelope import (
     bound,
 )
 from canergy.cia402.meter import FW_US_PER_UJ, EnergyMeter, MeterConfig, MeterKind
+from canergy.cia402.profile import Cia402Profile
 
 
 @dataclass(frozen=True, slots=True)
@@ -84,6 +85,8 @@ class DriveMeter:
         self.sampled = EnergyMeter(sampled)
         self.counter = CounterMeter(counter) if counter is not None else None
         self.setup: DriveSetup | None = None
+        self.profile: Cia402Profile | None = None
+        """The drive as a device profile, once set up (its ratings, its stop, 0x6085)."""
         self.confirmed: Limits | None = None
         """The limits the drive last confirmed (read back)."""
         self.pending: Limits | None = None
@@ -116,6 +119,7 @@ class DriveMeter:
     def ready(self, now: int, setup: DriveSetup) -> None:
         """The drive is set up: its ratings known, its set-up limits confirmed."""
         self.setup = setup
+        self.profile = Cia402Profile(setup.ratings, self.stop, setup.deceleration)
         r = setup.ratings
         self.sampled.config = replace(
             self.sampled.config,
@@ -129,9 +133,9 @@ class DriveMeter:
             self.charge_fw = self.in_force_fw(now)
 
     def envelope_fw(self, limits: Limits | None) -> int:
-        if limits is None or self.setup is None:
+        if limits is None or self.profile is None:
             return 0
-        return self.setup.ratings.envelope_fw(limits)
+        return self.profile.envelope(limits).fw
 
     @property
     def reach(self) -> Limits | None:
@@ -274,14 +278,8 @@ class DriveMeter:
         resolution = 0
         if self.counter is not None and self.kind is MeterKind.COUNTER:
             resolution = self.counter.config.unit_uj
-        return bound(
-            self.setup.ratings,
-            limits,
-            self.timings(),
-            self.stop,
-            self.setup.deceleration,
-            resolution,
-        )
+        assert self.profile is not None
+        return bound(self.profile, limits, self.timings(), resolution)
 
     def status(self, now: int) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -301,6 +299,13 @@ class DriveMeter:
         t = self.timings()
         target = self.target()
         worst = self.bound(self.full)
+        if self.profile is not None and self.full is not None:
+            full = self.profile.envelope(self.full)
+            out |= {
+                "profile": "cia402",
+                "envelope_formula": full.formula,
+                "envelope_parts": full.parts,
+            }
         now_bound = self.bound(target)
         reach = self.bound(self.reach)
         out |= {

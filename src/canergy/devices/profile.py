@@ -44,7 +44,8 @@ class Envelope:
 class Profile(Protocol[L]):
     """One kind of device (see the module doc)."""
 
-    name: str
+    @property
+    def name(self) -> str: ...
 
     def envelope(self, limits: L) -> Envelope: ...
 

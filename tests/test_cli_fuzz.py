@@ -183,7 +183,7 @@ _BUS_WORDS = {
     "app_interface": ["virtual"],
     "partition": ["1s+2s"],
     "dbc": ["bench.dbc"],
-    "mit_model": ["1:AK80-9,DM4310"],
+    "mit_model": ["DM4310"],
 }
 """python-can's bus flags that take free text (and ``supervisor --bus``, ``bridge``'s two buses
 and ``--partition``, ``inline``'s application bus, ``--mit-model``'s ``[IDS:]MODEL`` list): a

@@ -239,6 +239,9 @@ def test_mit_names_without_a_model_is_a_clear_error(
     assert main(["decode", "--mit-names", "1", str(log)]) == 2
     err = capsys.readouterr().err
     assert "--mit-names needs --mit-model" in err and "Traceback" not in err
+    assert main(["decode", "--mit-model", "1:DM4310", str(log)]) == 2  # names no motor listed
+    err = capsys.readouterr().err
+    assert "--mit-model: id 1 is not one of --mit-names's (none)" in err, err
 
 
 @settings(max_examples=300, deadline=None)

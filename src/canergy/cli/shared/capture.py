@@ -108,14 +108,14 @@ def others_flags(p: argparse.ArgumentParser) -> None:
 def namer_of(args: argparse.Namespace) -> Namer:
     """``ValueError``: --mit-names without --mit-model, or a motor id --mit-model names
     that --mit-names does not (or leaves without a model)."""
-    mit = args.mit_names or ()
-    if mit and args.mit_model is None:
+    mit, spec = args.mit_names or (), args.mit_model
+    if mit and spec is None:
         raise ValueError("--mit-names needs --mit-model (the motors' ranges)")
     return Namer(
         args.dbc,
         odrive_nodes=args.odrive_names or (),
         moteus_nodes=args.moteus_names or (),
-        mit_models=models_of(args.mit_model, mit, "--mit-names") if mit else {},
+        mit_models={} if spec is None else models_of(spec, mit, "--mit-names"),
         canopen_names=not args.no_canopen,
     )
 

@@ -81,3 +81,11 @@ def test_a_model_per_id_and_a_plain_one_for_the_rest() -> None:
     wanted = motors(build_parser().parse_args(argv))
     got = [(m.motor_id, m.node, m.model, m.resistance) for m in wanted]
     assert got == [(1, 11, "DM4310", None), (2, 12, "DM4310", None), (3, 13, "AK80-9", 0.2)]
+
+
+def test_buses_left_to_python_cans_configuration_are_not_an_error() -> None:
+    """Without -c or --app-channel (python-can's configuration names them) the flags still
+    describe the motors (the hypothesis fuzz met an AttributeError here)."""
+    argv = ["inline", "-i", "virtual", "--mit", "1", "--mit-nodes", "11", "--mit-model", "DM4310"]
+    (motor,) = motors(build_parser().parse_args(argv))
+    assert (motor.motor_id, motor.node, motor.model) == (1, 11, "DM4310")

@@ -91,7 +91,10 @@ def motors(args: argparse.Namespace) -> list[MitMotor]:
     resistances = resistances_of(args.mit_resistance, models, "--mit")
     if args.mit_hold <= 0:
         raise ValueError("--mit-hold must be more than 0")
-    sides = [(getattr(args, f"{p}interface"), getattr(args, f"{p}channel")) for p in ("", "app_")]
+    sides = [  # a flag not given is not in the namespace (python-can's configuration has it)
+        (getattr(args, f"{p}interface", None), getattr(args, f"{p}channel", None))
+        for p in ("", "app_")
+    ]
     if sides[0] == sides[1] and sides[0][1] is not None:
         raise ValueError("-c and --app-channel name the same bus: give the application its own")
 

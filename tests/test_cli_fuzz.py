@@ -183,9 +183,11 @@ _BUS_WORDS = {
     "app_interface": ["virtual"],
     "partition": ["1s+2s"],
     "dbc": ["bench.dbc"],
+    "mit_model": ["DM4310"],
 }
 """python-can's bus flags that take free text (and ``supervisor --bus``, ``bridge``'s two buses
-and ``--partition``, ``inline``'s application bus): a value each accepts."""
+and ``--partition``, ``inline``'s application bus, ``--mit-model``'s ``[IDS:]MODEL`` list): a
+value each accepts."""
 
 
 def _fuzzed(parser: argparse.ArgumentParser) -> list[argparse.Action]:

@@ -18,6 +18,7 @@ import re
 import threading
 import uuid
 from collections.abc import Iterator
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +31,7 @@ from canergy.cli import build_parser
 from canergy.cli import main as canergy_main
 from canergy.cli.inline import motors
 from canergy.devices.guard import DeviceConfig
+from canergy.devices.mit import MODELS, worst_torque
 from canergy.devices.moteus import Mode
 from canergy.live.devices.mit_bus import MitBus
 from canergy.live.devices.mit_forward import MitForwarder
@@ -56,14 +58,21 @@ def _commands(name: str) -> list[Command]:
 
 def _stated(name: str) -> tuple[float, float]:
     """The envelope (W) and the least bound (J) the page states after the recipe."""
+    (stated,) = _stated_each(name)
+    return stated
+
+
+def _stated_each(name: str) -> list[tuple[float, float]]:
+    """Each envelope (W) and least bound (J) the page states after the recipe, in order (the
+    paragraph starting **Its bound.** or **Its bounds.**)."""
     text = PAGE.read_text()
     after = text[text.index(f"<!-- recipe: {name} virtual -->") :]
     after = after[after.index("\n```\n") :]
-    paragraph = after[after.index("**Its bound.**") :].split("\n\n")[0]
-    watts = re.search(r"\*\*([\d.]+) W\*\*", paragraph)
-    joules = re.search(r"\*\*([\d.]+) J\*\* or more", paragraph)
-    assert watts and joules, paragraph
-    return float(watts.group(1)), float(joules.group(1))
+    paragraph = after[after.index("**Its bound") :].split("\n\n")[0]
+    watts = re.findall(r"\*\*([\d.]+) W\*\*", paragraph)
+    joules = re.findall(r"\*\*([\d.]+) J\*\* or more", paragraph)
+    assert watts and len(watts) == len(joules), paragraph
+    return [(float(w), float(j)) for w, j in zip(watts, joules, strict=True)]
 
 
 def _on_virtual(argv: list[str], tmp: Path, channels: dict[str, str]) -> list[str]:
@@ -104,9 +113,16 @@ def _granted(final: dict[str, Any], node: int) -> int:
     return int(books["delivered_uj"] - books["returns_credited_uj"])
 
 
-def _check(device: dict[str, Any], drawn: int, granted: int, name: str) -> None:
-    """The stated envelope and bound are the run's, and what the device drew is inside them."""
-    watts, joules = _stated(name)
+def _check(
+    device: dict[str, Any],
+    drawn: int,
+    granted: int,
+    name: str,
+    stated: tuple[float, float] | None = None,
+) -> None:
+    """The stated envelope and bound (``stated``, default: the recipe's one) are the run's, and
+    what the device drew is inside them."""
+    watts, joules = stated or _stated(name)
     print(f"{name}: drawn {drawn} µJ, granted {granted} µJ, bound {device['bound_uj']} µJ")
     assert device["envelope_full_w"] == pytest.approx(watts, abs=5e-4)
     least_mj = round(watts * 1000) * DEFAULT_NOTICE_US // 1_000_000  # the page's arithmetic,
@@ -256,3 +272,75 @@ def _status(tmp: Path) -> dict[str, Any]:
     import json
 
     return dict(json.loads((tmp / "status.json").read_text()))
+
+
+def test_the_two_model_recipe_holds_each_stated_bound(tmp_path: Path) -> None:
+    """An AK80-9 on id 1 (replies on id 0) and a DM4310 on id 2 (on 0x12) behind one forwarder:
+    the same frames to both (the DM4310's largest feed-forward torque and gains as wire codes,
+    which ask the AK80-9 for 18 N·m) until both budgets are gone."""
+    supervisor, inline = _commands("mit-two")
+    channels: dict[str, str] = {}
+    sup_argv = _on_virtual(supervisor.argv[1:], tmp_path, channels)
+    inline_args = build_parser().parse_args(_on_virtual(inline.argv[1:], tmp_path, channels))
+    wanted = motors(inline_args)
+    assert [(m.motor_id, m.model) for m in wanted] == [(1, "AK80-9"), (2, "DM4310")]
+    load = LoadTorque.constant(0.02, True)
+    emulated = {
+        1: MitMotorModel(1, MODELS["AK80-9"], monotonic_us(), master_id=0, load=load),
+        2: MitMotorModel(2, DM, monotonic_us(), master_id=0x12, load=load),
+    }
+    faces = [
+        MitFace(m, can.Bus(interface="virtual", channel=inline_args.channel))
+        for m in emulated.values()
+    ]
+    for face in faces:
+        face.start()
+    app = can.Bus(interface="virtual", channel=inline_args.app_channel)
+    try:
+        with _supervisor(tmp_path, sup_argv) as result:
+            guarded = MitBus(
+                can.Bus(interface="virtual", channel=inline_args.channel),
+                wanted,
+                guard_config=SLOW_HOST,
+            )
+            forwarder = MitForwarder(
+                can.Bus(interface="virtual", channel=inline_args.app_channel), guarded
+            )
+            stop = threading.Event()
+            thread = threading.Thread(target=forwarder.run, args=(stop.is_set, lambda: None))
+            thread.start()
+            try:
+                for m in emulated:
+                    wait_for(lambda m=m: guarded.status(m)["guard"] == "running", timeout=60)
+
+                def both() -> bool:
+                    return all(_exhausted(guarded.status(m)) for m in emulated)
+
+                burst(app, both, [PUSH] * 9 + [GREEDY], motors=tuple(emulated))
+                status = {m: guarded.status(m) for m in emulated}
+            finally:
+                stop.set()
+                thread.join(timeout=10)
+                guarded.shutdown()
+                forwarder.app.shutdown()
+        final = _status(tmp_path)
+    finally:
+        for face in faces:
+            face.close()
+        app.shutdown()
+    assert result == [0]
+    cap = Fraction(inline_args.mit_max_torque)
+    for (m, model), motor, stated in zip(
+        emulated.items(), wanted, _stated_each("mit-two"), strict=True
+    ):
+        with faces[m - 1].lock:
+            drawn = model.drawn_uj
+        _check(status[m], drawn, _granted(final, motor.node), "mit-two", stated)
+        assert model.commands and 0 < model.torque_max_seen <= float(cap) + 1e-9
+        for c in model.commands:  # read by the motor's own ranges
+            assert worst_torque(model.model, c, c.p, 0, 0) <= cap  # kd·(|v| + Ω) + |t_ff|
+        assert not model.enabled
+
+
+def test_every_virtual_recipe_of_the_page_is_run_here() -> None:
+    assert set(sessions("virtual")) == {"odrive", "moteus", "mit", "mit-two"}

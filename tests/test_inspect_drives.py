@@ -171,6 +171,42 @@ def test_a_cubemars_reply_on_id_0_is_named_before_canopen_nmt(
     assert got[2]["protocol"] == "canopen"  # motor 7 is none of ours: not an MIT reply
 
 
+def test_two_models_on_one_bus_are_each_named_by_their_own_ranges(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--mit-names 1,2 --mit-model 1:AK80-9,2:DM4310``: the same command bytes ask an AK80-9
+    for 18 N·m and a DM4310 for 10; each motor's reply on its own reply id (CubeMars 0, Damiao
+    id + 0x10) is read by its own ranges; audit and monitor count them all as MIT frames."""
+    command = mit.Command(0x8000, 0x800, 0, 0, 0xFFF).pack()  # the largest feed-forward torque
+    frames = [
+        _frame(0x001, command),
+        _frame(0x002, command),
+        _frame(0x000, mit.pack_reply(AK80, 1, *_codes(AK80, 1.0, 40.0, -15.0))),
+        _frame(0x012, mit.pack_reply(DM4310, 2, *_codes(DM4310, 1.0, 25.0, -8.0), state=1)),
+        _frame(0x302, command),  # Damiao force-position mode: reaches motor 2 outside MIT
+    ]
+    flags = ["--mit-names", "1,2", "--mit-model", "1:AK80-9,2:DM4310"]
+    got = _decoded(tmp_path, capsys, frames, *flags)
+    assert [(g["protocol"], g["name"], g["node"]) for g in got] == [
+        ("mit", "command", 1),
+        ("mit", "command", 2),
+        ("mit", "reply", 1),
+        ("mit", "reply", 2),
+        ("mit", "not MIT", 2),
+    ]
+    assert (got[0]["fields"]["t_ff_nm"], got[1]["fields"]["t_ff_nm"]) == (18.0, 10.0)
+    assert abs(got[2]["fields"]["v_rad_s"] - 40.0) <= 100 / 4095  # past the DM4310's ±30
+    assert (
+        abs(got[2]["fields"]["torque_nm"] + 15.0) <= 36 / 4095 and "state" not in got[2]["fields"]
+    )
+    assert abs(got[3]["fields"]["torque_nm"] + 8.0) <= 20 / 4095 and got[3]["fields"]["state"] == 1
+    log = _log(tmp_path, frames)
+    assert main(["audit", "--json", *flags, str(log)]) == 0
+    assert json.loads(capsys.readouterr().out)["foreign_by_protocol"] == {"mit": 5}
+    assert main(["monitor", "--replay", str(log), "--fast", "--once", *flags]) == 0
+    assert "foreign 5 (mit 5)" in capsys.readouterr().out
+
+
 def test_audit_and_monitor_count_undecodable_frames_apart(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -203,6 +239,9 @@ def test_mit_names_without_a_model_is_a_clear_error(
     assert main(["decode", "--mit-names", "1", str(log)]) == 2
     err = capsys.readouterr().err
     assert "--mit-names needs --mit-model" in err and "Traceback" not in err
+    assert main(["decode", "--mit-model", "1:DM4310", str(log)]) == 2  # names no motor listed
+    err = capsys.readouterr().err
+    assert "--mit-model: id 1 is not one of --mit-names's (none)" in err, err
 
 
 @settings(max_examples=300, deadline=None)

@@ -6,11 +6,14 @@ the budget's end exits motor mode, and every refusal is counted."""
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from fractions import Fraction
 
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from canergy.cli import build_parser
+from canergy.cli.inline import motors
 from canergy.codec import Codec
 from canergy.core import Supervisor, Timing
 from canergy.devices.guard import DeviceConfig, GuardPhase
@@ -18,16 +21,19 @@ from canergy.devices.mit import (
     ENTER,
     EXIT,
     MODELS,
+    SPECIAL,
     UNM_PER_NM,
     ZERO,
     Command,
     MitLimits,
+    clamp,
     decode,
     encode,
     pack_reply,
     worst_torque,
 )
 from canergy.devices.mit_gate import LATE_WINDOW_US, REPLY_WINDOW_US, MitGate
+from canergy.live.devices.mit_bus import gate_for
 from canergy.live.supervisor.policy import Limits as GrantLimits
 from canergy.live.supervisor.policy import TopUp
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
@@ -40,13 +46,24 @@ FULL = MitLimits(2 * UNM_PER_NM, 10 * UNM_PER_NM)
 
 
 class Pair:
-    """A supervisor service and a gate, their frames carried through the codec."""
+    """A supervisor service and a gate (or several: ``gates``, made at time 0 with the same
+    timing), their frames carried through the codec."""
 
-    def __init__(self, budget_uj: int, target_uj: int | None = None, hold_us: int = 20_000) -> None:
+    def __init__(
+        self,
+        budget_uj: int,
+        target_uj: int | None = None,
+        hold_us: int = 20_000,
+        gates: Callable[[Timing], list[MitGate]] | None = None,
+    ) -> None:
         timing = Timing(response_timeout_us=20_000)
+        config = DeviceConfig(limits=FULL, timing=timing, feedback_timeout_us=10**9)
+        made = gates(timing) if gates else [MitGate(MOTOR, NODE, DM, config, 0, 7, hold_us=hold_us)]
+        self.gates = {g.guard.node: g for g in made}
+        self.gate = made[0]
         self.codec = Codec()
         self.service = SupervisorService(
-            Supervisor((NODE,), budget_uj, timing=timing),
+            Supervisor(tuple(self.gates), budget_uj, timing=timing),
             ServiceConfig(
                 policy=TopUp(target_uj or budget_uj) if budget_uj else None,
                 limits=GrantLimits(max_grant=max(target_uj or budget_uj, 1_000)),
@@ -56,9 +73,8 @@ class Pair:
             ),
             0,
         )
-        config = DeviceConfig(limits=FULL, timing=timing, feedback_timeout_us=10**9)
-        self.gate = MitGate(MOTOR, NODE, DM, config, 0, 7, hold_us=hold_us)
         self.sent: list[bytes] = []
+        self.sent_to: dict[int, list[bytes]] = {g.motor_id: [] for g in made}
 
     def route(self, up: list[Message], now: int) -> None:
         todo: deque[tuple[Direction, Message]] = deque((Direction.TO_SUPERVISOR, m) for m in up)
@@ -70,7 +86,8 @@ class Pair:
                 todo.extend((Direction.TO_CLIENT, m) for m in down)
             else:
                 assert isinstance(wire, ToClient)
-                todo.extend((Direction.TO_SUPERVISOR, m) for m in self.gate.on_message(wire, now))
+                gate = self.gates[wire.node]
+                todo.extend((Direction.TO_SUPERVISOR, m) for m in gate.on_message(wire, now))
 
     now = 0
 
@@ -80,16 +97,23 @@ class Pair:
             t += step
             self.now = t
             up: list[Message] = []
-            if self.gate.next_wakeup() <= t:
-                up += self.gate.on_wakeup(t)
+            for gate in self.gates.values():
+                if gate.next_wakeup() <= t:
+                    up += gate.on_wakeup(t)
             wakeup = self.service.next_wakeup()
             if wakeup is not None and wakeup <= t:
                 self.route(list(self.service.on_wakeup(t)), t)
             self.route(up, t)
-            frames = self.gate.take_frames()
-            self.sent += frames
-            for _ in frames if reply else ():  # the motor answers every frame
-                self.route(self.gate.from_motor(pack_reply(DM, MOTOR, 0x8000, 2048, 2048), t, t), t)
+            for gate in self.gates.values():
+                self.deliver(gate, gate.take_frames(), t, reply)
+
+    def deliver(self, gate: MitGate, frames: list[bytes], t: int, reply: bool = True) -> None:
+        """``frames`` reach ``gate``'s motor, which answers each (at rest at 0, no torque)."""
+        self.sent += frames
+        self.sent_to[gate.motor_id] += frames
+        answer = pack_reply(gate.model, gate.motor_id, 0x8000, 2048, 2048)
+        for _ in frames if reply else ():
+            self.route(gate.from_motor(answer, t, t), t)
 
 
 def test_nothing_but_exit_reaches_the_motor_without_budget() -> None:
@@ -306,3 +330,50 @@ def test_a_reply_to_a_frame_lost_long_ago_is_forged() -> None:
     at = pair.now + LATE_WINDOW_US + 1
     pair.route(g.from_motor(pack_reply(DM, MOTOR, 0x8000, 2048, 2048), at, at), at)
     assert g.guard.refused is not None and g.counts.late == 0 and g.counts.unasked == 1
+
+
+def test_two_models_on_one_bus_are_each_clamped_by_their_own_ranges() -> None:
+    """``canergy inline --mit 1,2 --mit-model 1:AK80-9,2:DM4310``: the gates its flags make, in
+    explicit time, granted by one supervisor. The same burst of wire codes (the largest gains,
+    velocity and feed-forward torque: 18 N·m to an AK80-9, 10 N·m to a DM4310) reaches each motor
+    clamped so that, decoded by that motor's own ranges, it asks for at most the cap; clamped by
+    the other model's ranges, what reaches the AK80-9 would ask for more."""
+    argv = ["inline", "-i", "virtual", "-c", "motors"]
+    argv += ["--app-interface", "virtual", "--app-channel", "app"]
+    argv += ["--mit", "1,2", "--mit-nodes", "11,12", "--mit-model", "1:AK80-9,2:DM4310"]
+    argv += ["--mit-resistance", "1:0.2", "--mit-max-torque", "2"]
+    wanted = motors(build_parser().parse_args(argv))
+    assert [(m.motor_id, m.model) for m in wanted] == [(1, "AK80-9"), (2, "DM4310")]
+
+    def gates(timing: Timing) -> list[MitGate]:
+        config = {"feedback_timeout_us": 10**9}
+        return [gate_for(m, 0, timing, config) for m in wanted]
+
+    pair = Pair(60_000_000, 30_000_000, gates=gates)  # 2 N·m: 101.8 W and 65.7 W
+    while any(g.guard.phase is not GuardPhase.RUNNING for g in pair.gates.values()):
+        assert pair.now < 1_000_000
+        pair.run_to(pair.now + 1_000)
+    push = Command(0x8000, 0x800, 0, 0, 0xFFF)  # the largest feed-forward torque alone
+    burst = [push, Command(0xFFFF, 0xFFF, 0xFFF, 0xFFF, 0xFFF), Command(0, 0, 0xFFF, 0xFFF, 0)]
+    for gate in pair.gates.values():
+        pair.deliver(gate, [gate.from_app(ENTER, pair.now).frame or b""], pair.now)
+    for k in range(40):
+        for gate in pair.gates.values():
+            v = gate.from_app(burst[k % 3].pack(), pair.now)
+            assert v.frame is not None and v.clamped
+            pair.deliver(gate, [v.frame], pair.now)
+        pair.run_to(pair.now + 2_000)
+    cap = Fraction(2)
+    theta = Fraction(0)  # every reply: at rest at the middle of the range
+    on_the_bench = {1: MODELS["AK80-9"], 2: DM}  # what each motor decodes its frames with
+    for gate in pair.gates.values():
+        model = on_the_bench[gate.motor_id]
+        horizon = gate.hold_us + gate.guard.reaction_us() + gate.guard.latency_us()
+        sent = pair.sent_to[gate.motor_id]
+        commands = [Command.unpack(f) for f in sent if len(f) == 8 and f not in SPECIAL]
+        assert len(commands) >= 40 and gate.counts.clamped == 40
+        values = [decode(model, c) for c in commands]
+        assert max(worst_torque(model, v, theta, 2_000, horizon) for v in values) <= cap
+        assert max(v.t for v in values) > cap * Fraction(99, 100)  # tight, not timid
+    as_dm = clamp(DM, push, pair.gates[11].cap, theta, 0, 0).command  # 2 N·m in ±10 N·m ...
+    assert as_dm is not None and decode(MODELS["AK80-9"], as_dm).t > 3  # ... 3.6 in ±18 N·m

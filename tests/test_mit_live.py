@@ -16,10 +16,14 @@ from pathlib import Path
 
 import can
 
-from canergy.devices.mit import worst_torque
+from canergy.cli import build_parser
+from canergy.cli.inline import motors
+from canergy.devices.mit import MODELS, worst_torque
 from canergy.live.devices.mit_bus import MitBus, MitMotor
 from canergy.live.devices.mit_forward import MitForwarder
+from canergy.live.runtime import monotonic_us
 from firmware_model.drive.live_bench import wait_for
+from firmware_model.drive.motor import LoadTorque
 from firmware_model.mit.live_bench import (
     DM,
     GREEDY,
@@ -32,6 +36,7 @@ from firmware_model.mit.live_bench import (
     rig,
     send_latency,
 )
+from firmware_model.mit.motor import MitMotorModel
 
 CAP = 0.5
 """N·m: 0.5·30 + 3/2·0.85·(0.5/0.945)² = 15.36 W while the budget lasts."""
@@ -153,3 +158,70 @@ def test_a_flood_of_commands_is_clamped_not_starved_of_replies(tmp_path: Path) -
     print(f"medians: direct {direct:.1f} µs, inline {inline:.1f} µs, ratio {inline / direct:.1f}")
     assert counts.refused == 0 and counts.clamped == 6000, counts
     assert got["stop_reason"] is None
+
+
+def test_two_models_through_the_forwarder_are_each_held_by_their_own_ranges(
+    tmp_path: Path,
+) -> None:
+    """``canergy inline --mit 1,2 --mit-model 1:DM4310,2:AK80-9``, its flags parsed by the real
+    parser into the forwarder and ``MitBus`` they describe: the emulated DM4310 on id 1 and an
+    emulated AK80-9 on id 2 (replies on id 0, as CubeMars's) on one bus, the same burst of wire
+    codes to both (its largest feed-forward torque is 10 N·m to the DM4310, 18 N·m to the
+    AK80-9). Each motor received only commands that, read by its own ranges, ask for at most
+    the cap, and drew at most what its proxy was granted plus its bound."""
+    ak80 = MODELS["AK80-9"]
+    other = MitMotorModel(2, ak80, monotonic_us(), load=LoadTorque.constant(0.02, True))
+    with rig(tmp_path, "6J", others=[(other, 12)], per_node="3J") as r:
+        app_channel = f"app-{uuid.uuid4().hex}"
+        argv = ["inline", "-i", "virtual", "-c", r.channel, "--app-interface", "virtual"]
+        argv += ["--app-channel", app_channel, "--mit", "1,2", "--mit-nodes", f"{NODE},12"]
+        argv += ["--mit-model", "1:DM4310,2:AK80-9", "--mit-resistance", "2:0.2"]
+        argv += ["--mit-max-torque", str(CAP)]
+        wanted = motors(build_parser().parse_args(argv))
+        guarded = MitBus(
+            can.Bus(interface="virtual", channel=r.channel), wanted, guard_config=SLOW_HOST
+        )
+        forwarder = MitForwarder(can.Bus(interface="virtual", channel=app_channel), guarded)
+        app = can.Bus(interface="virtual", channel=app_channel)
+        stop = threading.Event()
+        thread = threading.Thread(target=forwarder.run, args=(stop.is_set, lambda: None))
+        thread.start()
+        try:
+            for m in (MOTOR, 2):
+                wait_for(lambda m=m: guarded.status(m)["guard"] == "running", timeout=60)
+
+            def exhausted() -> bool:
+                return all(
+                    (s := guarded.status(m))["stop_reason"] == "budget exhausted"
+                    and s["guard"] == "stopped"
+                    for m in (MOTOR, 2)
+                )
+
+            sent = burst(app, exhausted, [PUSH] * 9 + [GREEDY], motors=(MOTOR, 2))
+            assert exhausted(), [guarded.status(m) for m in (MOTOR, 2)]
+            status = {m: guarded.status(m) for m in (MOTOR, 2)}
+        finally:
+            stop.set()
+            thread.join(timeout=10)
+            guarded.shutdown()
+            forwarder.app.shutdown()
+            app.shutdown()
+        final = r.stop()
+        (ak_face,) = r.others
+        drawn = {MOTOR: r.drawn(), 2: r.drawn_by(ak_face)}
+    assert sent > 10
+    for m, node, emulated in ((MOTOR, NODE, r.model), (2, 12, other)):
+        books = final["nodes"][str(node)]
+        granted = books["delivered_uj"] - books["returns_credited_uj"]
+        s = status[m]
+        print(
+            f"motor {m} ({s['model']}): drawn {drawn[m]} µJ, granted {granted} µJ, bound "
+            f"{s['bound_uj']} µJ, clamped {s['commands']['clamped']}"
+        )
+        assert s["model"] == emulated.model.name and s["commands"]["clamped"] >= 1
+        assert 0 < drawn[m] <= granted + s["bound_uj"], (m, drawn[m], granted, s)
+        assert 0 < emulated.torque_max_seen <= CAP + 1e-9
+        assert emulated.commands  # each read by its own model's ranges:
+        for c in emulated.commands:
+            assert worst_torque(emulated.model, c, c.p, 0, 0) + c.kp * 25 <= Fraction(CAP)
+        assert not emulated.enabled

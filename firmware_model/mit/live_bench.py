@@ -11,8 +11,8 @@ import json
 import threading
 import time
 import uuid
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -60,10 +60,16 @@ class Rig:
     control: Path
     result: list[int]
     thread: threading.Thread
+    others: list[MitFace] = field(default_factory=list)
+    """The other motors' faces (``rig(others=...)``), in order."""
 
     def drawn(self) -> int:
         with self.face.lock:
             return self.model.drawn_uj
+
+    def drawn_by(self, face: MitFace) -> int:
+        with face.lock:
+            return face.model.drawn_uj
 
     def books(self) -> dict[str, Any] | None:
         with contextlib.suppress(FileNotFoundError, json.JSONDecodeError):
@@ -79,42 +85,67 @@ class Rig:
 
 
 @contextlib.contextmanager
-def rig(tmp: Path, initial: str) -> Iterator[Rig]:
+def rig(
+    tmp: Path,
+    initial: str,
+    others: Sequence[tuple[MitMotorModel, int]] = (),
+    per_node: str | None = None,
+) -> Iterator[Rig]:
+    """The DM4310 ``MOTOR`` (proxy ``NODE``) and ``others`` (each a motor and its proxy's node
+    id) on one virtual channel, the supervisor granting ``initial`` in all, topping each node up
+    to ``per_node`` (default: ``initial``)."""
     channel = f"mit-{uuid.uuid4().hex}"
     model = MitMotorModel(
         MOTOR, DM, monotonic_us(), master_id=MOTOR + 0x10, load=LoadTorque.constant(0.02, True)
     )
-    face = MitFace(model, can.Bus(interface="virtual", channel=channel))
-    face.start()
+    faces = [
+        MitFace(m, can.Bus(interface="virtual", channel=channel))
+        for m in (model, *[o for o, _ in others])
+    ]
+    for face in faces:
+        face.start()
     control = tmp / "ctl.sock"
+    nodes = ",".join(str(n) for n in (NODE, *(n for _, n in others)))
+    target = per_node or initial
     argv = [
         "supervisor",
-        *("-i", "virtual", "-c", channel, "--nodes", str(NODE)),
+        *("-i", "virtual", "-c", channel, "--nodes", nodes),
         *("--state", str(tmp / "s.json"), "--no-fsync", "--initial", initial),
         *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
-        *("--control", str(control), "--target", initial, "--max-grant", initial),
+        *("--control", str(control), "--target", target, "--max-grant", target),
     ]
     result: list[int] = []
     thread = threading.Thread(target=lambda: result.append(canergy_main(argv)), daemon=True)
     thread.start()
-    r = Rig(tmp, model, face, channel, control, result, thread)
+    r = Rig(tmp, model, faces[0], channel, control, result, thread, faces[1:])
     try:
         yield r
     finally:
         if thread.is_alive() and control.exists():
             request(control, {"stop": True}, 30)
         thread.join(timeout=60)
-        face.close()
+        for face in faces:
+            face.close()
 
 
-def burst(bus: can.BusABC, until: Any, frames: list[bytes], period_s: float = 0.002) -> int:
-    """ENTER, then ``frames`` in turn every ``period_s`` until ``until()``; frames sent."""
+def burst(
+    bus: can.BusABC,
+    until: Any,
+    frames: list[bytes],
+    period_s: float = 0.002,
+    motors: Sequence[int] = (MOTOR,),
+    timeout_s: float = 60,
+) -> int:
+    """ENTER, then ``frames`` in turn every ``period_s`` (each to every one of ``motors``) until
+    ``until()`` or ``timeout_s``; rounds sent."""
     sent = 0
-    bus.send(can.Message(arbitration_id=MOTOR, data=ENTER, is_extended_id=False))
-    deadline = time.monotonic() + 60
+    for motor in motors:
+        bus.send(can.Message(arbitration_id=motor, data=ENTER, is_extended_id=False))
+    deadline = time.monotonic() + timeout_s
     while not until() and time.monotonic() < deadline:
         data = frames[sent % len(frames)]
-        bus.send(can.Message(arbitration_id=MOTOR, data=data, is_extended_id=False))
+        for motor in motors:
+            bus.send(can.Message(arbitration_id=motor, data=data, is_extended_id=False))
         sent += 1
         time.sleep(period_s)
     return sent

@@ -11,8 +11,9 @@ from __future__ import annotations
 import argparse
 import math
 import os
-from collections.abc import Callable
-from typing import TypeVar
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 from canergy.codec import MAX_EXTENDED_ID, Codec
 from canergy.core.common import check_amount
@@ -178,3 +179,63 @@ def id_list(text: str, low: int, high: int) -> tuple[int, ...]:
             )
         nodes.update(range(lo, hi + 1))
     return tuple(sorted(nodes))
+
+
+PER_ID_SYNTAX = "[IDS:]VALUE[,IDS:VALUE...]"
+_PER_ID_MAX = 1000
+"""Longest ``[IDS:]VALUE`` list read (a bench has at most 127 ids to name)."""
+
+
+@dataclass(frozen=True, slots=True)
+class PerId(Generic[_T]):
+    """A flag's value per device id, as ``per_id`` reads it: ``default`` for every id not
+    named, ``named`` for the ids named (each once)."""
+
+    default: _T | None
+    named: tuple[tuple[int, _T], ...] = ()
+
+    def resolve(self, ids: Iterable[int], flag: str, ids_flag: str) -> dict[int, _T]:
+        """The value of each of ``ids`` (those without one left out); ``ValueError`` naming
+        ``flag`` for an id named that ``ids_flag`` does not list."""
+        wanted = tuple(ids)
+        for i, _ in self.named:
+            if i not in wanted:
+                listed = ",".join(map(str, wanted)) or "none"
+                raise ValueError(f"{flag}: id {i} is not one of {ids_flag}'s ({listed})")
+        named = dict(self.named)
+        out = {i: named.get(i, self.default) for i in wanted}
+        return {i: v for i, v in out.items() if v is not None}
+
+
+def per_id(
+    value: Callable[[str], _T], low: int, high: int, example: str
+) -> Callable[[str], PerId[_T]]:
+    """The argparse type of a flag that takes one value for all ids or values per id:
+    ``VALUE`` (every id), ``IDS:VALUE`` pairs (``IDS`` as ``id_list`` reads them, within
+    ``low``-``high``), or both, comma-separated, e.g. ``example``. An id named twice, or two
+    plain values, is refused; ``value`` reads each value."""
+
+    def parse(text: str) -> PerId[_T]:
+        if len(text) > _PER_ID_MAX:
+            raise argparse.ArgumentTypeError(f"{_shown(text)}: longer than {_PER_ID_MAX}")
+        default: _T | None = None
+        plain = False
+        named: dict[int, _T] = {}
+        for part in text.split(","):
+            ids_text, sep, value_text = part.strip().rpartition(":")
+            got = value(value_text.strip())
+            if not sep:
+                if plain:
+                    raise argparse.ArgumentTypeError(
+                        f"{_shown(text)}: one plain value at most (the ids not named), "
+                        f"e.g. {example}"
+                    )
+                default, plain = got, True
+                continue
+            for i in id_list(ids_text, low, high):
+                if i in named:
+                    raise argparse.ArgumentTypeError(f"{_shown(text)}: id {i} named twice")
+                named[i] = got
+        return PerId(default, tuple(sorted(named.items())))
+
+    return parse

@@ -13,9 +13,9 @@ from typing import Any
 from canergy.argtypes import add_duration, node_ids
 from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.cli.shared.cia402 import _number
+from canergy.cli.shared.mit import add_model_flag, add_resistance_flag, models_of, resistances_of
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
-from canergy.devices.mit import MODELS
 from canergy.live.atomic import check_writable_dir, write_json_atomic
 from canergy.live.devices.mit_bus import MitBus, MitMotor
 from canergy.live.devices.mit_forward import MitForwarder
@@ -48,7 +48,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         required=True,
         help="the proxies' canergy node ids, one per motor, in the same order",
     )
-    g.add_argument("--mit-model", choices=sorted(MODELS), required=True, help="the motors' model")
+    add_model_flag(g, "the motors' model", required=True)
     g.add_argument(
         "--mit-max-torque",
         type=_number("N·m", 1000, zero=False),
@@ -67,13 +67,15 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         metavar="RAD_S",
         help="the velocity set point's cap (default: the model's velocity range)",
     )
-    g.add_argument(
-        "--mit-resistance",
-        type=_number("ohms", 1000, zero=False),
-        metavar="OHMS",
-        help="phase resistance: needed where the model table has none (CubeMars AK)",
-    )
+    add_resistance_flag(g)
     add_duration(g, "--mit-hold", 20_000, "the command in force is clamped again this often")
+    add_duration(g, "--mit-feedback-timeout", 300_000, "stop a motor not heard this long")
+    add_duration(
+        g,
+        "--mit-stop-timeout",
+        500_000,
+        "a motor still showing torque this long after a stop is STUCK",
+    )
     p.add_argument("--status-file", type=Path, help="the gates' status as JSON")
     add_duration(p, "--status-period", 1_000_000, "time between status lines (and files)")
     p.set_defaults(run=run)
@@ -85,11 +87,14 @@ def motors(args: argparse.Namespace) -> list[MitMotor]:
         raise ValueError(f"--mit names {len(args.mit)} motors, --mit-nodes {len(args.mit_nodes)}")
     if args.mit_max_torque is not None and args.mit_max_power is not None:
         raise ValueError("--mit-max-torque or --mit-max-power, not both")
-    if MODELS[args.mit_model].resistance is None and args.mit_resistance is None:
-        raise ValueError(f"--mit-model {args.mit_model}: give --mit-resistance (no table figure)")
+    models = models_of(args.mit_model, args.mit, "--mit")
+    resistances = resistances_of(args.mit_resistance, models, "--mit")
     if args.mit_hold <= 0:
         raise ValueError("--mit-hold must be more than 0")
-    sides = [(getattr(args, f"{p}interface"), getattr(args, f"{p}channel")) for p in ("", "app_")]
+    sides = [  # a flag not given is not in the namespace (python-can's configuration has it)
+        (getattr(args, f"{p}interface", None), getattr(args, f"{p}channel", None))
+        for p in ("", "app_")
+    ]
     if sides[0] == sides[1] and sides[0][1] is not None:
         raise ValueError("-c and --app-channel name the same bus: give the application its own")
 
@@ -100,11 +105,11 @@ def motors(args: argparse.Namespace) -> list[MitMotor]:
         MitMotor(
             motor_id,
             node=node,
-            model=args.mit_model,
+            model=models[motor_id].name,
             max_torque=number(args.mit_max_torque),
             max_power=number(args.mit_max_power),
             max_speed=number(args.mit_max_speed),
-            resistance=number(args.mit_resistance),
+            resistance=number(resistances.get(motor_id)),
             hold_us=args.mit_hold,
         )
         for motor_id, node in zip(args.mit, args.mit_nodes, strict=True)
@@ -138,7 +143,13 @@ def run(args: argparse.Namespace) -> int:
     app = open_bus(args, [], prefix=APP)
     guarded = None
     try:
-        guarded = MitBus(open_bus(args, []), wanted, codec=Codec(args.id_base))
+        guard_config = {
+            "feedback_timeout_us": args.mit_feedback_timeout,
+            "stop_timeout_us": args.mit_stop_timeout,
+        }
+        guarded = MitBus(
+            open_bus(args, []), wanted, codec=Codec(args.id_base), guard_config=guard_config
+        )
         forwarder = MitForwarder(app, guarded)
         next_at = [monotonic_us()]
 

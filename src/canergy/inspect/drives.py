@@ -8,7 +8,7 @@ its name and says why (``Named.problem``); nothing here raises on a frame's data
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterable
+from collections.abc import Mapping
 from typing import Any
 
 from canergy.devices import mit as mitdev
@@ -124,28 +124,29 @@ def moteus(arbitration_id: int, data: bytes, controllers: frozenset[int]) -> Nam
 
 
 class MitNames:
-    """Names frames to and from MIT-mode motors of one model: commands in units (p rad, v
-    rad/s, kp N·m/rad, kd N·m·s/rad, t_ff N·m), the special frames, and replies (position,
-    velocity, torque; Damiao: the state) on each motor's default reply identifier
+    """Names frames to and from MIT-mode motors, each by its own model's ranges: commands in
+    units (p rad, v rad/s, kp N·m/rad, kd N·m·s/rad, t_ff N·m), the special frames, and replies
+    (position, velocity, torque; Damiao: the state) on each motor's default reply identifier
     (``canergy.devices.mit.default_master``)."""
 
-    def __init__(self, model: mitdev.MitModel, motors: Iterable[int]) -> None:
-        self.model = model
-        self.motors = frozenset(motors)
-        self.masters: dict[int, set[int]] = {}
-        for m in self.motors:
-            self.masters.setdefault(mitdev.default_master(model, m), set()).add(m)
+    def __init__(self, models: Mapping[int, mitdev.MitModel]) -> None:
+        self.models = dict(models)
+        self.motors = frozenset(self.models)
+        self.masters: dict[int, list[int]] = {}
+        for m in sorted(self.motors):
+            self.masters.setdefault(mitdev.default_master(self.models[m], m), []).append(m)
 
     def name(self, arbitration_id: int, extended: bool, data: bytes) -> Named | None:
         if not extended and arbitration_id in self.motors:
             return self._command(arbitration_id, data)
         if not extended and arbitration_id in self.masters and len(data) >= 6:
-            reply = mitdev.unpack_reply(self.model, data)
             for m in self.masters[arbitration_id]:
-                if (m & 0xF if self.model.damiao else m) == reply.node:
+                model = self.models[m]
+                reply = mitdev.unpack_reply(model, data)
+                if (m & 0xF if model.damiao else m) == reply.node:
                     return self._reply(m, reply)
-        for m in self.motors:  # frames that reach a motor outside MIT mode
-            why = mitdev.side_channel(self.model, m, arbitration_id, extended)
+        for m in sorted(self.motors):  # frames that reach a motor outside MIT mode
+            why = mitdev.side_channel(self.models[m], m, arbitration_id, extended)
             if why is not None:
                 return Named("mit", "not MIT", m, {"frame": why})
         return None
@@ -155,7 +156,7 @@ class MitNames:
             return Named("mit", "command", motor, problem=f"dlc {len(data)}, 8 expected")
         if data in mitdev.SPECIAL:
             return Named("mit", mitdev.SPECIAL[data], motor)
-        v = mitdev.decode(self.model, mitdev.Command.unpack(data))
+        v = mitdev.decode(self.models[motor], mitdev.Command.unpack(data))
         fields = {"p_rad": v.p, "v_rad_s": v.v, "kp": v.kp, "kd": v.kd, "t_ff_nm": v.t}
         return Named("mit", "command", motor, {k: float(x) for k, x in fields.items()})
 

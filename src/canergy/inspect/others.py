@@ -16,7 +16,7 @@ error, and is counted apart (``protocol_of``).
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -172,15 +172,21 @@ class Namer:
         moteus_nodes: Iterable[int] = (),
         mit_nodes: Iterable[int] = (),
         mit_model: MitModel | None = None,
+        mit_models: Mapping[int, MitModel] | None = None,
         canopen_names: bool = True,
     ) -> None:
+        """MIT-mode motors: ``mit_models`` (each id's model), or ``mit_nodes`` all of
+        ``mit_model``."""
         self.dbcs = tuple(dbcs)
         self.odrive_nodes = frozenset(odrive_nodes)
         self.moteus_nodes = frozenset(moteus_nodes)
+        models = dict(mit_models or {})
         mit = frozenset(mit_nodes)
         if mit and mit_model is None:
             raise ValueError("--mit-names needs --mit-model (the motors' ranges)")
-        self.mit = MitNames(mit_model, mit) if mit and mit_model is not None else None
+        if mit_model is not None:
+            models.update((m, mit_model) for m in mit)
+        self.mit = MitNames(models) if models else None
         self.canopen_names = canopen_names
 
     def named(self, frame: Any) -> Named | None:

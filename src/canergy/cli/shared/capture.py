@@ -16,8 +16,8 @@ import can
 from canergy.argtypes import argument, node_ids, odrive_ids
 from canergy.auth.capture import CaptureAuth
 from canergy.auth.keys import load_key
+from canergy.cli.shared.mit import add_model_flag, models_of
 from canergy.codec import Codec
-from canergy.devices.mit import MODELS
 from canergy.inspect.audit import Auditor
 from canergy.inspect.captures import read_file, read_text
 from canergy.inspect.frames import Described
@@ -92,9 +92,7 @@ def others_flags(p: argparse.ArgumentParser) -> None:
         "t_ff in units) or enter/exit/zero/clear, and their replies (position, velocity, "
         "torque) on the model's reply id (CubeMars 0, Damiao id+0x10); give --mit-model",
     )
-    others.add_argument(
-        "--mit-model", choices=sorted(MODELS), help="the --mit-names motors' model (its ranges)"
-    )
+    add_model_flag(others, "the --mit-names motors' model (its ranges)")
     others.add_argument(
         "--moteus-names",
         type=node_ids,
@@ -108,13 +106,16 @@ def others_flags(p: argparse.ArgumentParser) -> None:
 
 
 def namer_of(args: argparse.Namespace) -> Namer:
-    """``ValueError``: --mit-names without --mit-model."""
+    """``ValueError``: --mit-names without --mit-model, or a motor id --mit-model names
+    that --mit-names does not (or leaves without a model)."""
+    mit, spec = args.mit_names or (), args.mit_model
+    if mit and spec is None:
+        raise ValueError("--mit-names needs --mit-model (the motors' ranges)")
     return Namer(
         args.dbc,
         odrive_nodes=args.odrive_names or (),
         moteus_nodes=args.moteus_names or (),
-        mit_nodes=args.mit_names or (),
-        mit_model=MODELS[args.mit_model] if args.mit_model else None,
+        mit_models={} if spec is None else models_of(spec, mit, "--mit-names"),
         canopen_names=not args.no_canopen,
     )
 

@@ -331,11 +331,11 @@ class CompiledSupervisor:
             )
         if rc == lib.CANERGY_ERR_WINDOW:
             witnessed.begin(self.timing, self.session(node), Begin(amount), now)  # its words
-        if rc == -3 and amount <= self._sup.usable_uj:
+        if rc == lib.CANERGY_ERR_AMOUNT and amount <= self._sup.usable_uj:
             raise LocalProtocolError(f"amount {amount} µJ is not a whole mJ up to 65,535 mJ")
-        if rc == -3:
+        if rc == lib.CANERGY_ERR_AMOUNT:
             raise LocalProtocolError(f"amount {amount} µJ exceeds usable {self.usable} µJ")
-        if rc == -5:
+        if rc == lib.CANERGY_ERR_END:
             check_life(self.session(node))  # the Python core's words
         self._check(rc, node, "begin")
 

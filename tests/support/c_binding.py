@@ -27,6 +27,7 @@ from typing import Any
 import pytest
 
 from canergy.ccore import build
+from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeErrorReason
 from canergy.core import (
     Action,
@@ -77,9 +78,11 @@ def make(*targets: str) -> None:
 
 class CLib:
     """One build of the library: its functions and constants as attributes (``lib.canergy_*``,
-    ``lib.CANERGY_*``) and ``ffi``, which makes what its headers declare."""
+    ``lib.CANERGY_*``), ``ffi``, which makes what its headers declare, and ``module``, the
+    compiled module itself (what ``canergy.ccore.supervisor.CompiledSupervisor`` runs)."""
 
     def __init__(self, module: Any) -> None:
+        self.module = module
         self.ffi = module.ffi
         for name in dir(module.lib):
             setattr(self, name, getattr(module.lib, name))
@@ -123,6 +126,13 @@ def library(variant: str = "") -> CLib:
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return CLib(module)
+
+
+def compiled_core(*args: Any, build: str = "", **kwargs: Any) -> CompiledSupervisor:
+    """``canergy.ccore``'s ``CompiledSupervisor`` (``--core c``) on the tests' build of the
+    library, ``library(build)`` (16 sessions): under UBSan, or ASan+UBSan in
+    tests/test_c_asan.py's child; ``build="broken"``: with its broken rules."""
+    return CompiledSupervisor(*args, module=library(build).module, **kwargs)
 
 
 def ref(x: Any) -> Any:

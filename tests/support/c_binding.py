@@ -16,11 +16,9 @@ library's terms (counters modulo 2**32, energy in the record's units).
 from __future__ import annotations
 
 import functools
-import importlib.util
 import os
 import shutil
 import subprocess
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +43,6 @@ from canergy.core.state import ClientState, Outcome, Phase
 from canergy.messages import Message, ToClient
 
 FIRMWARE = Path(__file__).resolve().parents[2] / "firmware"
-BUILD = FIRMWARE / "build"
 U32 = 0xFFFF_FFFF
 NEVER = 2**64 - 1
 SANITIZER = os.environ.get("CANERGY_C_SANITIZER", "ubsan")
@@ -95,37 +92,23 @@ class CLib:
 
 
 def compiled(variant: str) -> Path:
-    """The variant's extension, compiled once for these sources (a directory per fingerprint;
-    concurrent runs compile apart and the first to finish is kept)."""
+    """The variant's extension (``canergy.ccore.build.compiled``: once per source state); a
+    missing toolchain or a failed build fails the test run loudly."""
     _need_toolchain()
-    home = BUILD / "cffi"
-    home.mkdir(parents=True, exist_ok=True)
-    target = home / f"{variant}-{build.fingerprint(variant=variant)}"
-    if not target.is_dir():
-        work = Path(tempfile.mkdtemp(dir=home, prefix=f".{variant}-"))
-        try:
-            build.compile_to(work, variant)
-        except Exception as exc:
-            shutil.rmtree(work, ignore_errors=True)
-            pytest.fail(f"building the C library ({variant}) failed: {exc}", pytrace=False)
-        try:
-            work.rename(target)
-        except OSError:  # another run finished first
-            shutil.rmtree(work, ignore_errors=True)
-    module = build.VARIANTS[variant].module
-    return next(target.glob(f"{module}.*.so"))
+    try:
+        return build.compiled(variant)
+    except Exception as exc:
+        pytest.fail(f"building the C library ({variant}) failed: {exc}", pytrace=False)
 
 
 @functools.cache
 def library(variant: str = "") -> CLib:
-    """The library as the tests run it; ``variant="broken"``: with deliberately broken rules."""
+    """The library as the tests run it (``canergy.ccore.build.load``): the UBSan build, the
+    ASan+UBSan one under ``CANERGY_C_SANITIZER=asan``; ``variant="broken"``: with deliberately
+    broken rules."""
     name = "broken" if variant == "broken" else ("asan" if SANITIZER == "asan" else "ubsan")
-    path = compiled(name)
-    spec = importlib.util.spec_from_file_location(build.VARIANTS[name].module, path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return CLib(module)
+    compiled(name)
+    return CLib(build.load(name))
 
 
 def compiled_core(*args: Any, build: str = "", **kwargs: Any) -> CompiledSupervisor:

@@ -44,7 +44,6 @@ from canergy.messages import Message, ToClient
 
 FIRMWARE = Path(__file__).resolve().parents[2] / "firmware"
 U32 = 0xFFFF_FFFF
-NEVER = 2**64 - 1
 SANITIZER = os.environ.get("CANERGY_C_SANITIZER", "ubsan")
 
 # -- building and loading ---------------------------------------------------------------------
@@ -267,8 +266,8 @@ def c_view(s: ClientState) -> dict[str, int]:
         "held_tx": s.held_tx & U32,
         "held_amount_mj": s.held_amount // 1000,
         "nonce": s.nonce,
-        "deadline": NEVER if s.deadline is None else s.deadline,
-        "return_deadline": NEVER if s.return_deadline is None else s.return_deadline,
+        "deadline": _c("NEVER") if s.deadline is None else s.deadline,
+        "return_deadline": _c("NEVER") if s.return_deadline is None else s.return_deadline,
     }
 
 
@@ -403,8 +402,8 @@ class CClient:
             held_amount=v["held_amount_mj"] * 1000,
             phase=phase,
             nonce=v["nonce"],
-            deadline=None if v["deadline"] == NEVER else v["deadline"],
-            return_deadline=None if v["return_deadline"] == NEVER else v["return_deadline"],
+            deadline=None if v["deadline"] == _c("NEVER") else v["deadline"],
+            return_deadline=None if v["return_deadline"] == _c("NEVER") else v["return_deadline"],
         )
 
     # -- the C calls ------------------------------------------------------------------------------
@@ -499,7 +498,7 @@ class CClient:
 
     def get_timer(self) -> int | None:
         deadline: int = self.lib.canergy_client_deadline(self.c)
-        return None if deadline == NEVER else deadline
+        return None if deadline == _c("NEVER") else deadline
 
     def handle_timer(self, now: int) -> list[Action]:
         return self._actions(self.timers(now))

@@ -20,6 +20,7 @@ from support import client_cases
 from support.c_binding import (
     ERR_AMOUNT,
     ERR_PHASE,
+    ERR_RECORD,
     EV_ADMITTED,
     EV_RELEASED,
     FIRMWARE,
@@ -350,7 +351,7 @@ def test_the_supervisor_record_version_4_round_trips_a_debt_and_refuses_version_
     old = bytearray(bytes(image))
     old[4] = 3
     old[used - 4 : used] = struct.pack("<I", zlib.crc32(bytes(old[0 : used - 4])))
-    assert load(bytes(old))[0] == -4
+    assert load(bytes(old))[0] == ERR_RECORD
 
 
 def test_the_hardened_session_ignores_a_debit() -> None:

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
-from support.c_binding import compiled_core
+from support.c_binding import DECODE_OK, RX_NOT_CAN, compiled_core
 from support.strategies import client_answer
 
 from canergy.auth.frames import FrameAuth, Layout, expected_freshness, freshness
@@ -154,7 +154,7 @@ class SideBySide(RuleBasedStateMachine):
         msg = client_answer(data, node, tx, credited, telemetry=True)
         ident, payload = CODEC.encode(msg)
         status, _, _, decoded = self.c.on_answer(ident, payload, True, False, self.now, stopping)
-        if status != 0 and not isinstance(decoded or msg, Telemetry):
+        if status != DECODE_OK and not isinstance(decoded or msg, Telemetry):
             self.c.receive(decoded or msg, self.now)
         if isinstance(msg, Telemetry):
             return  # the service's: no rule of either core takes it
@@ -209,7 +209,7 @@ def test_the_fast_path_moves_deadlines_as_the_python_core_does() -> None:
     deadlines = [c.get_timer()]
     for now, msg in ((300, Ack(3, 1)), (400, Committed(3, 1)), (500, Ack(5, 1))):
         ident, payload = CODEC.encode(msg)
-        assert c.on_answer(ident, payload, True, False, now, False)[0] == 0  # taken
+        assert c.on_answer(ident, payload, True, False, now, False)[0] == DECODE_OK  # taken
         for action in py.receive(msg, now):
             if isinstance(action, Acknowledged):
                 py.commit(action.node, now)
@@ -396,4 +396,4 @@ def test_an_identifier_no_can_frame_carries_takes_the_usual_path(arbitration_id:
     core = compiled_core([3], 10_000_000, timing=T)
     _, data = Codec().encode(Ack(3, 1))
     status, actions, frames, decoded = core.on_answer(arbitration_id, data, True, False, 0, False)
-    assert status != 0 and (actions, frames, decoded) == ([], [], None)
+    assert status == RX_NOT_CAN and (actions, frames, decoded) == ([], [], None)

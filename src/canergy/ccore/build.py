@@ -51,14 +51,15 @@ int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned ki
     const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
     struct canergy_supervisor_out *out, struct canergy_msg *m);
 """
-"""What only the host's binding calls: declared once, for cffi and for the compiler."""
+"""What only the host's binding calls: declared once, for cffi and (its definition's head, below)
+for the compiler."""
 
-HOST_SOURCE = """
+HOST_SOURCE = (
+    """
 /* The fast path's call with the frame as arguments: one call, no struct filled field by field
-   from Python (kind: bit 0 extended identifier, bit 1 remote frame). */
-int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned kind,
-    const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
-    struct canergy_supervisor_out *out, struct canergy_msg *m)
+   from Python (kind: bit 0 extended identifier, bit 1 remote frame). */"""
+    + HOST_DECLARATIONS.rstrip().removesuffix(";")
+    + """
 {
     struct canergy_rx_frame rx = {0};
     rx.id = id;
@@ -69,6 +70,7 @@ int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned ki
     return canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, m);
 }
 """
+)
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import replace
+from types import SimpleNamespace
 from typing import Any
 
 import can
@@ -15,11 +16,11 @@ import pytest
 from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
-from support.c_binding import DECODE_OK, RX_NOT_CAN, compiled_core
+from support.c_binding import DECODE_OK, RX_NOT_CAN, compiled_core, library
 from support.strategies import client_answer
 
 from canergy.auth.frames import FrameAuth, Layout, expected_freshness, freshness
-from canergy.ccore.supervisor import make_supervisor, missing
+from canergy.ccore.supervisor import CompiledSupervisor, CoreMissing, make_supervisor, missing
 from canergy.codec import Codec
 from canergy.core.actions import Acknowledged, Action, Persist
 from canergy.core.errors import LocalProtocolError
@@ -249,6 +250,22 @@ def test_refuses_what_the_c_core_cannot_hold() -> None:
         compiled_core([1], 0).begin(2, 1_000, 0)
     with pytest.raises(ValueError, match="it holds 16"):
         compiled_core(range(1, 18), 0)
+
+
+def test_a_build_from_other_headers_is_refused_by_name() -> None:
+    """A module whose headers lack a value the core reads (here CANERGY_RX_NOT_CAN) is refused
+    with the rebuild to do, before any call into it."""
+    built = library().module
+
+    class OtherLib:
+        def __getattr__(self, name: str) -> Any:
+            if name == "CANERGY_RX_NOT_CAN":
+                raise AttributeError(name)
+            return getattr(built.lib, name)
+
+    other = SimpleNamespace(__name__="other", ffi=built.ffi, lib=OtherLib())
+    with pytest.raises(CoreMissing, match=r"other does not match .*RX_NOT_CAN.*rebuild"):
+        CompiledSupervisor([1], 0, module=other)
 
 
 def test_a_refused_grant_names_its_reason() -> None:

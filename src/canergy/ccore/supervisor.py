@@ -87,6 +87,7 @@ class _Binding:
     module built from other headers."""
 
     def __init__(self, module: Any) -> None:
+        self.module = module  # kept: its id keys _BINDINGS
         self.ffi = ffi = module.ffi
         self.lib = lib = module.lib
         self.session, _ = _reader(
@@ -145,14 +146,14 @@ class _Binding:
         """The rule sets the C supervisor runs (enum canergy_rules)."""
 
 
-_BINDINGS: dict[Any, _Binding] = {}
+_BINDINGS: dict[int, _Binding] = {}
 
 
 def _binding(module: Any) -> _Binding:
     """The module's ``_Binding``, made once per module."""
-    if (known := _BINDINGS.get(module)) is None:
+    if (known := _BINDINGS.get(id(module))) is None:
         try:
-            known = _BINDINGS[module] = _Binding(module)
+            known = _BINDINGS[id(module)] = _Binding(module)
         except (AttributeError, KeyError, CoreMissing) as exc:
             raise CoreMissing(
                 f"the compiled supervisor core {module.__name__} does not match this canergy "

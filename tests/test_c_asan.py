@@ -22,6 +22,7 @@ TESTS = Path(__file__).resolve().parent
 UNDER_ASAN = [
     "test_c_auth.py",
     "test_c_binding.py",
+    "test_ccore.py",
     "test_c_codec.py",
     "test_c_cmac.py",
     "test_c_hardened.py",

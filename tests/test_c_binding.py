@@ -7,10 +7,17 @@ import re
 import shutil
 from pathlib import Path
 
-from support.c_binding import CClientState, CNodeState, library, make
+from support.c_binding import (
+    SANITIZER,
+    CClientState,
+    CNodeState,
+    compiled_core,
+    library,
+    make,
+)
 
 from canergy.auth.frames import AuthFailure
-from canergy.ccore.build import declarations
+from canergy.ccore.build import declarations, fingerprint, load
 
 
 def test_a_header_change_reaches_the_binding(tmp_path: Path) -> None:
@@ -27,6 +34,30 @@ def test_a_header_change_reaches_the_binding(tmp_path: Path) -> None:
     assert "probe_field" not in before and "uint32_t probe_field;" in after
     assert "#define CANERGY_PROBE ..." in after and "#define CANERGY_PROBE ..." not in before
     assert "#define CANERGY_MAX_NODE ..." in before and "#define CANERGY_MAX_NODE ..." not in after
+
+
+def test_a_changed_source_is_built_again(tmp_path: Path) -> None:
+    """The tests' builds are kept per digest of what they are built from: a byte changed in a
+    C source or a header names another build, so a stale one is never loaded."""
+    root = Path(__file__).resolve().parents[1]
+    for part in ("src", "include"):
+        shutil.copytree(root / "firmware" / part, tmp_path / "firmware" / part)
+    assert fingerprint(tmp_path, "ubsan") == fingerprint(root, "ubsan")
+    seen = {fingerprint(root, "ubsan"), fingerprint(root, "broken")}
+    for changed in ("src/session.c", "include/canergy/status.h"):
+        path = tmp_path / "firmware" / changed
+        text = path.read_text()
+        path.write_text(text + "\n")
+        seen.add(fingerprint(tmp_path, "ubsan"))
+        path.write_text(text)
+    assert len(seen) == 4
+
+
+def test_the_tests_drive_the_builders_module() -> None:
+    """``library()`` is ``canergy.ccore.build.load``'s module, the one ``CompiledSupervisor``
+    runs when handed it."""
+    assert library().module is load("asan" if SANITIZER == "asan" else "ubsan")
+    assert compiled_core([1], 0)._lib is library().module.lib
 
 
 def test_every_public_function_is_bound() -> None:

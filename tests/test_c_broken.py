@@ -4,15 +4,20 @@ The ``broken`` build (canergy.ccore.build) has ``-DCANERGY_BREAK_REPEATED_TX``: 
 transaction the client already resolved is applied a second time (energy created) instead of
 being answered with the recorded reply. The machine of tests/test_c_sidebyside.py
 (``support.side_by_side``) must find a difference with the Python rules within its default
-budget of examples.
+budget of examples. It also has ``-DCANERGY_BREAK_RETURN_AGAIN`` (a duplicated RETURN credited
+again by the supervisor's session): tests/test_ccore.py's machine, ``canergy.ccore``'s core on
+that build, must find it.
 """
 
 from __future__ import annotations
 
 import pytest
 from hypothesis import Phase as HypothesisPhase
+from hypothesis import settings
+from hypothesis.stateful import run_state_machine_as_test
 from support.c_binding import CClient, CLib, library
 from support.side_by_side import SideBySide, run_side_by_side
+from test_ccore import SideBySide as CoreSideBySide
 
 from canergy.core import Timing
 from canergy.messages import Admit, Commit, Intention
@@ -43,4 +48,27 @@ def test_the_machine_finds_the_broken_rule() -> None:
             derandomize=True,
             max_examples=1000,
             phases=[HypothesisPhase.generate],  # no shrinking: finding it is the point
+        )
+
+
+class BrokenCoreSideBySide(CoreSideBySide):
+    build = "broken"
+
+
+def test_the_compiled_core_machine_finds_the_broken_session_rule() -> None:
+    """tests/test_ccore.py's machine (``canergy.ccore``'s ``CompiledSupervisor`` beside
+    ``core.Supervisor``) on the broken build: a duplicated RETURN credited again
+    (``CANERGY_BREAK_RETURN_AGAIN``) is found: the cores' actions or states differ (every
+    assertion of the machine compares the two; the report names the machine's failing run)."""
+    with pytest.raises(AssertionError, match="state = BrokenCoreSideBySide"):
+        run_state_machine_as_test(
+            BrokenCoreSideBySide,
+            settings=settings(
+                database=None,
+                derandomize=True,
+                max_examples=1000,
+                stateful_step_count=60,
+                deadline=None,
+                phases=[HypothesisPhase.generate],
+            ),
         )

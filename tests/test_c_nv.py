@@ -14,6 +14,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from support.c_binding import (
+    NEVER,
     SLOT,
     CClient,
     NvState,
@@ -136,8 +137,8 @@ def test_c_written_images_load_in_python(steps: list[str]) -> None:
             "held_tx": 0,
             "held_amount_mj": 0,
             "nonce": 0,
-            "deadline": 2**64 - 1,
-            "return_deadline": 2**64 - 1,
+            "deadline": NEVER,
+            "return_deadline": NEVER,
         }
 
 

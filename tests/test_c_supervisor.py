@@ -188,7 +188,7 @@ class SideBySide(RuleBasedStateMachine):
         for i, s in enumerate(st_.sessions):
             assert fields_of(self.c.sessions[i]) == fields_of(self._comparable(s))
         deadline = self.py.get_timer()
-        expected = (1 << 64) - 1 if deadline is None else deadline
+        expected = self.lib.CANERGY_NEVER if deadline is None else deadline
         assert self.lib.canergy_supervisor_deadline(ref(self.c)) == expected
 
     def _comparable(self, s: Session) -> Session:

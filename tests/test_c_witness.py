@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule, run_state_machine_as_test
-from support.c_binding import CSession, Msg
+from support.c_binding import NEVER, CSession, Msg
 from support.c_witness import (
     CONTRADICTED,
     FULL,
@@ -40,7 +40,6 @@ from canergy.seqnum import unwrap
 NODE = 4
 HOLD_US = 500_000
 BLOCK_US = 10_000_000
-NEVER = 2**64 - 1
 TELEMETRY, RETURN, DEBIT = 0x9, 0xC, 0xF  # enum canergy_msg_type
 FINDINGS = {
     "the node saw": SAW,

@@ -20,6 +20,7 @@ from support import client_cases
 from support.c_binding import (
     ERR_AMOUNT,
     ERR_PHASE,
+    ERR_RECORD,
     EV_ADMITTED,
     EV_RELEASED,
     FIRMWARE,
@@ -41,6 +42,7 @@ from support.c_binding import (
     SupervisorOut,
     c_view,
     cbuf,
+    compiled_core,
     events_of,
     frames_of,
     library,
@@ -84,7 +86,6 @@ from test_witnessed import (
 )
 from test_witnessed import _exchange as _exchange_py
 
-from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.codec import DEFAULT_ID_BASE, Codec
 from canergy.core import Client, Send, Supervisor
 from canergy.core import witnessed as W
@@ -276,7 +277,7 @@ def test_the_compiled_supervisor_refuses_beyond_the_window_in_the_python_words()
     t = replace(ST, window=2)
     state = SupervisorState(J, J, 0, (Session(2, tx=7, witness=5),))
     errors = []
-    for core in (Supervisor, CompiledSupervisor):
+    for core in (Supervisor, compiled_core):
         sup = core([2], J, timing=t, state=state, variant="witnessed")
         with pytest.raises(LocalProtocolError) as err:
             sup.begin(2, 1000, 0)
@@ -293,7 +294,7 @@ def test_no_grant_before_every_node_has_confirmed_its_books_after_a_start(
     neither ever grants to node 3 before its answer. Node 2's books hold 5 mJ more than the
     restored record: Us goes below zero, and a grant beyond it is refused."""
     t = replace(ST, window=4)
-    for core in (Supervisor, CompiledSupervisor):
+    for core in (Supervisor, compiled_core):
         sup = core([2, 3], 2000, timing=t, variant="witnessed", start_without=without)
         sup.power_loss(0, nonce=0x1234)
         assert sup.unconfirmed() == tuple(n for n in (2, 3) if n not in without)
@@ -350,7 +351,7 @@ def test_the_supervisor_record_version_4_round_trips_a_debt_and_refuses_version_
     old = bytearray(bytes(image))
     old[4] = 3
     old[used - 4 : used] = struct.pack("<I", zlib.crc32(bytes(old[0 : used - 4])))
-    assert load(bytes(old))[0] == -4
+    assert load(bytes(old))[0] == ERR_RECORD
 
 
 def test_the_hardened_session_ignores_a_debit() -> None:
@@ -745,7 +746,7 @@ def test_a_first_resume_with_nonce_0_is_answered_not_taken_for_a_repeat(
     path = tmp_path / "s.json"
     save_state(path, SupervisorState(J, J, 0, (Session(2),)), "witnessed", fsync=False)
     state = load_state(path, "witnessed", (2,))
-    make = Supervisor if core == "python" else CompiledSupervisor
+    make = Supervisor if core == "python" else compiled_core
     sup = make([2], J, state=state, variant="witnessed")
     node = Client(2, variant="witnessed", state=ClientState(2))
     _exchange_py(node.power_loss(0, nonce=0), sup, node, 0)  # type: ignore[arg-type]
@@ -777,19 +778,17 @@ class _CClientNode:
 
 
 def test_an_admitted_c_node_answering_a_sync_leaves_the_c_supervisors_gs_alone() -> None:
-    sup = unknown_rc_supervisor(CompiledSupervisor)
+    sup = unknown_rc_supervisor(compiled_core)
     node = _CClientNode(ClientState(1, phase=Phase.JOINING, nonce=7))
     admitted_node_answers_a_sync(sup, node)
 
 
 def test_a_c_resume_after_a_lost_sync_answer_keeps_the_c_window_open() -> None:
-    resume_after_a_lost_sync_answer(
-        window_supervisor(CompiledSupervisor), _CClientNode(BOOKED_AT_10)
-    )
+    resume_after_a_lost_sync_answer(window_supervisor(compiled_core), _CClientNode(BOOKED_AT_10))
 
 
 def test_stale_admits_to_a_booked_c_node_end_quiet_with_the_c_supervisor() -> None:
-    stale_admits_end_quiet(window_supervisor(CompiledSupervisor), _CClientNode(BOOKED_AT_10))
+    stale_admits_end_quiet(window_supervisor(compiled_core), _CClientNode(BOOKED_AT_10))
 
 
 def test_the_c_gateway_takes_rules_above_and_refuses_others(tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import replace
+from types import SimpleNamespace
 from typing import Any
 
 import can
@@ -15,10 +16,11 @@ import pytest
 from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
+from support.c_binding import DECODE_OK, RX_NOT_CAN, compiled_core, library
 from support.strategies import client_answer
 
 from canergy.auth.frames import FrameAuth, Layout, expected_freshness, freshness
-from canergy.ccore.supervisor import CompiledSupervisor, make_supervisor, missing
+from canergy.ccore.supervisor import CompiledSupervisor, CoreMissing, make_supervisor, missing
 from canergy.codec import Codec
 from canergy.core.actions import Acknowledged, Action, Persist
 from canergy.core.errors import LocalProtocolError
@@ -38,10 +40,12 @@ from canergy.messages import (
     Telemetry,
 )
 
-pytestmark = pytest.mark.skipif(
+release = pytest.mark.skipif(
     missing() is not None and not os.environ.get("CANERGY_REQUIRE_CCORE"),
     reason=f"{missing()} (scripts/test builds it and sets CANERGY_REQUIRE_CCORE)",
 )
+"""For the tests of the release module (``canergy supervisor --core c``'s, 127 sessions); the
+others run the core on the tests' sanitizer build of the same builder (``compiled_core``)."""
 
 NODES = (3, 5, 9, 127)
 SYNC_ANSWER = (Debit.BOOKS, Debit.START | Debit.SYNC)
@@ -64,11 +68,15 @@ def steps(actions: list[Action]) -> tuple[bool, list[Action]]:
 class SideBySide(RuleBasedStateMachine):
     variant = "hardened"
     timing = T
+    build = ""
+    """The build of the library the compiled core runs (``compiled_core``)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.py = Supervisor(NODES, 10_000_000, timing=self.timing, variant=self.variant)
-        self.c = CompiledSupervisor(NODES, 10_000_000, timing=self.timing, variant=self.variant)
+        self.c = compiled_core(
+            NODES, 10_000_000, timing=self.timing, variant=self.variant, build=self.build
+        )
         self.now = 0
 
     def _same(self, py: Any, c: Any) -> None:
@@ -147,7 +155,7 @@ class SideBySide(RuleBasedStateMachine):
         msg = client_answer(data, node, tx, credited, telemetry=True)
         ident, payload = CODEC.encode(msg)
         status, _, _, decoded = self.c.on_answer(ident, payload, True, False, self.now, stopping)
-        if status != 0 and not isinstance(decoded or msg, Telemetry):
+        if status != DECODE_OK and not isinstance(decoded or msg, Telemetry):
             self.c.receive(decoded or msg, self.now)
         if isinstance(msg, Telemetry):
             return  # the service's: no rule of either core takes it
@@ -176,8 +184,8 @@ class SideBySide(RuleBasedStateMachine):
     def restart(self) -> None:
         """A reset from the saved state, as ``canergy supervisor`` restarts from its file."""
         self.py.power_loss(self.now)
-        self.c = CompiledSupervisor(
-            NODES, 1, timing=self.timing, state=self.c.state, variant=self.variant
+        self.c = compiled_core(
+            NODES, 1, timing=self.timing, state=self.c.state, variant=self.variant, build=self.build
         )
         self.c.power_loss(self.now)
 
@@ -195,14 +203,14 @@ class SideBySide(RuleBasedStateMachine):
 def test_the_fast_path_moves_deadlines_as_the_python_core_does() -> None:
     """The compiled core keeps its deadline between calls; an answer on the fast path moves it
     (the ACK's COMMIT starts a wait, COMMITTED ends one), as the Python core's does."""
-    py, c = Supervisor(NODES, 10_000_000, timing=T), CompiledSupervisor(NODES, 10_000_000, timing=T)
+    py, c = Supervisor(NODES, 10_000_000, timing=T), compiled_core(NODES, 10_000_000, timing=T)
     for node, now in ((3, 0), (5, 200)):
         py.begin(node, 5 * QUANTUM_UJ, now)
         c.begin(node, 5 * QUANTUM_UJ, now)
     deadlines = [c.get_timer()]
     for now, msg in ((300, Ack(3, 1)), (400, Committed(3, 1)), (500, Ack(5, 1))):
         ident, payload = CODEC.encode(msg)
-        assert c.on_answer(ident, payload, True, False, now, False)[0] == 0  # taken
+        assert c.on_answer(ident, payload, True, False, now, False)[0] == DECODE_OK  # taken
         for action in py.receive(msg, now):
             if isinstance(action, Acknowledged):
                 py.commit(action.node, now)
@@ -211,8 +219,14 @@ def test_the_fast_path_moves_deadlines_as_the_python_core_does() -> None:
     assert deadlines == [1_000, 1_200, 1_200, 1_500]
 
 
+MACHINE = settings(
+    max_examples=int(os.environ.get("CANERGY_SIDE_BY_SIDE_EXAMPLES", "200")),
+    stateful_step_count=60,
+    deadline=None,
+)
+"""200 examples; fewer under ASan (tests/test_c_asan.py's child)."""
 TestSideBySide = SideBySide.TestCase
-TestSideBySide.settings = settings(max_examples=200, stateful_step_count=60, deadline=None)
+TestSideBySide.settings = MACHINE
 
 
 class WitnessedSideBySide(SideBySide):
@@ -224,16 +238,47 @@ class WitnessedSideBySide(SideBySide):
 
 
 TestWitnessedSideBySide = WitnessedSideBySide.TestCase
-TestWitnessedSideBySide.settings = settings(max_examples=200, stateful_step_count=60, deadline=None)
+TestWitnessedSideBySide.settings = MACHINE
 
 
 def test_refuses_what_the_c_core_cannot_hold() -> None:
     with pytest.raises(ValueError, match="node ids"):
-        CompiledSupervisor([1, 1 << 8 | 1], 0)
+        compiled_core([1, 1 << 8 | 1], 0)
     with pytest.raises(ValueError, match="response timeout"):
-        CompiledSupervisor([1], 0, timing=Timing(response_timeout_us=2**32))
+        compiled_core([1], 0, timing=Timing(response_timeout_us=2**32))
     with pytest.raises(LocalProtocolError, match="not managed"):
-        CompiledSupervisor([1], 0).begin(2, 1_000, 0)
+        compiled_core([1], 0).begin(2, 1_000, 0)
+    with pytest.raises(ValueError, match="it holds 16"):
+        compiled_core(range(1, 18), 0)
+
+
+def test_a_build_from_other_headers_is_refused_by_name() -> None:
+    """A module whose headers lack a value the core reads (here CANERGY_RX_NOT_CAN) is refused
+    with the rebuild to do, before any call into it."""
+    built = library().module
+
+    class OtherLib:
+        def __getattr__(self, name: str) -> Any:
+            if name == "CANERGY_RX_NOT_CAN":
+                raise AttributeError(name)
+            return getattr(built.lib, name)
+
+    other = SimpleNamespace(__name__="other", ffi=built.ffi, lib=OtherLib())
+    with pytest.raises(CoreMissing, match=r"other does not match .*RX_NOT_CAN.*rebuild"):
+        CompiledSupervisor([1], 0, module=other)
+
+
+def test_a_refused_grant_names_its_reason() -> None:
+    """The C core's refusals read through the binding's status codes, in the Python core's
+    words where it has them."""
+    c = compiled_core([1], 10_000)
+    with pytest.raises(LocalProtocolError, match="exceeds usable 10000"):
+        c.begin(1, 11_000, 0)
+    with pytest.raises(LocalProtocolError, match="not a whole mJ"):
+        c.begin(1, 1_500, 0)
+    c.begin(1, 1_000, 0)
+    with pytest.raises(LocalProtocolError, match=r"cannot begin node 1 in WAIT_ACK \(phase\)"):
+        c.begin(1, 1_000, 0)
 
 
 class _Wire(can.BusABC):
@@ -294,6 +339,7 @@ def _run_script(
 
 
 @pytest.mark.parametrize("id_base", [None, 0x0CF00000])
+@release
 def test_the_fast_path_answers_as_the_python_core_does(id_base: int | None) -> None:
     """The compiled core's fast path sends the same frames and keeps the same books as the
     Python core's usual path, in the bus's identifier block; the forged ACK is still an
@@ -314,6 +360,7 @@ def test_the_fast_path_answers_as_the_python_core_does(id_base: int | None) -> N
     assert (py_status["frame_path"], c_status["frame_path"]) == ("python", "c")
 
 
+@release
 @pytest.mark.parametrize("layout", list(Layout))
 def test_with_a_key_every_frame_of_the_c_core_leaves_with_its_mac(layout: Layout) -> None:
     """The fast path sends C's bytes as they are, without a MAC: with a key the bus loop must
@@ -356,7 +403,7 @@ def test_with_a_key_every_frame_of_the_c_core_leaves_with_its_mac(layout: Layout
 def test_an_identifier_no_can_frame_carries_takes_the_usual_path(arbitration_id: int) -> None:
     """Transports that are not CAN (zenoh, UDP) can hand over any integer: the fast path
     leaves it to the usual path (which counts it) instead of failing in the C call."""
-    core = CompiledSupervisor([3], 10_000_000, timing=T)
+    core = compiled_core([3], 10_000_000, timing=T)
     _, data = Codec().encode(Ack(3, 1))
     status, actions, frames, decoded = core.on_answer(arbitration_id, data, True, False, 0, False)
-    assert status != 0 and (actions, frames, decoded) == ([], [], None)
+    assert status == RX_NOT_CAN and (actions, frames, decoded) == ([], [], None)

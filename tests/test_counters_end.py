@@ -20,9 +20,17 @@ import zlib
 from pathlib import Path
 
 import pytest
-from support.c_binding import CClient, NvState, c_view, cbuf, library, out_frames, ref
+from support.c_binding import (
+    CClient,
+    NvState,
+    c_view,
+    cbuf,
+    compiled_core,
+    library,
+    out_frames,
+    ref,
+)
 
-from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.cli import main
 from canergy.cli import supervisor as supervisor_cli
 from canergy.core import Client, LocalProtocolError, Supervisor
@@ -49,7 +57,7 @@ from firmware_model.nvstore import NvError, NvStore, encode_slot, pack_record
 FIRMWARE = Path(__file__).resolve().parents[1] / "firmware"
 J = 1_000_000
 U32 = 2**32 - 1
-CORES = {"python": Supervisor, "c": CompiledSupervisor}
+CORES = {"python": Supervisor, "c": compiled_core}
 BEYOND = [COUNTER_BOUND, 2**32 - 1, 2**63 - 1]
 """The bound itself, the C record's 32-bit end, the state loader's old limit."""
 

@@ -16,17 +16,16 @@ library's terms (counters modulo 2**32, energy in the record's units).
 from __future__ import annotations
 
 import functools
-import importlib.util
 import os
 import shutil
 import subprocess
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from canergy.ccore import build
+from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.codec import DEFAULT_ID_BASE, Codec, DecodeErrorReason
 from canergy.core import (
     Action,
@@ -44,9 +43,7 @@ from canergy.core.state import ClientState, Outcome, Phase
 from canergy.messages import Message, ToClient
 
 FIRMWARE = Path(__file__).resolve().parents[2] / "firmware"
-BUILD = FIRMWARE / "build"
 U32 = 0xFFFF_FFFF
-NEVER = 2**64 - 1
 SANITIZER = os.environ.get("CANERGY_C_SANITIZER", "ubsan")
 
 # -- building and loading ---------------------------------------------------------------------
@@ -77,9 +74,11 @@ def make(*targets: str) -> None:
 
 class CLib:
     """One build of the library: its functions and constants as attributes (``lib.canergy_*``,
-    ``lib.CANERGY_*``) and ``ffi``, which makes what its headers declare."""
+    ``lib.CANERGY_*``), ``ffi``, which makes what its headers declare, and ``module``, the
+    compiled module itself (what ``canergy.ccore.supervisor.CompiledSupervisor`` runs)."""
 
     def __init__(self, module: Any) -> None:
+        self.module = module
         self.ffi = module.ffi
         for name in dir(module.lib):
             setattr(self, name, getattr(module.lib, name))
@@ -92,37 +91,30 @@ class CLib:
 
 
 def compiled(variant: str) -> Path:
-    """The variant's extension, compiled once for these sources (a directory per fingerprint;
-    concurrent runs compile apart and the first to finish is kept)."""
+    """The variant's extension (``canergy.ccore.build.compiled``: once per source state); a
+    missing toolchain or a failed build fails the test run loudly."""
     _need_toolchain()
-    home = BUILD / "cffi"
-    home.mkdir(parents=True, exist_ok=True)
-    target = home / f"{variant}-{build.fingerprint(variant=variant)}"
-    if not target.is_dir():
-        work = Path(tempfile.mkdtemp(dir=home, prefix=f".{variant}-"))
-        try:
-            build.compile_to(work, variant)
-        except Exception as exc:
-            shutil.rmtree(work, ignore_errors=True)
-            pytest.fail(f"building the C library ({variant}) failed: {exc}", pytrace=False)
-        try:
-            work.rename(target)
-        except OSError:  # another run finished first
-            shutil.rmtree(work, ignore_errors=True)
-    module = build.VARIANTS[variant].module
-    return next(target.glob(f"{module}.*.so"))
+    try:
+        return build.compiled(variant)
+    except Exception as exc:
+        pytest.fail(f"building the C library ({variant}) failed: {exc}", pytrace=False)
 
 
 @functools.cache
 def library(variant: str = "") -> CLib:
-    """The library as the tests run it; ``variant="broken"``: with deliberately broken rules."""
+    """The library as the tests run it (``canergy.ccore.build.load``): the UBSan build, the
+    ASan+UBSan one under ``CANERGY_C_SANITIZER=asan``; ``variant="broken"``: with deliberately
+    broken rules."""
     name = "broken" if variant == "broken" else ("asan" if SANITIZER == "asan" else "ubsan")
-    path = compiled(name)
-    spec = importlib.util.spec_from_file_location(build.VARIANTS[name].module, path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return CLib(module)
+    compiled(name)
+    return CLib(build.load(name))
+
+
+def compiled_core(*args: Any, build: str = "", **kwargs: Any) -> CompiledSupervisor:
+    """``canergy.ccore``'s ``CompiledSupervisor`` (``--core c``) on the tests' build of the
+    library, ``library(build)`` (16 sessions): under UBSan, or ASan+UBSan in
+    tests/test_c_asan.py's child; ``build="broken"``: with its broken rules."""
+    return CompiledSupervisor(*args, module=library(build).module, **kwargs)
 
 
 def ref(x: Any) -> Any:
@@ -274,8 +266,8 @@ def c_view(s: ClientState) -> dict[str, int]:
         "held_tx": s.held_tx & U32,
         "held_amount_mj": s.held_amount // 1000,
         "nonce": s.nonce,
-        "deadline": NEVER if s.deadline is None else s.deadline,
-        "return_deadline": NEVER if s.return_deadline is None else s.return_deadline,
+        "deadline": _c("NEVER") if s.deadline is None else s.deadline,
+        "return_deadline": _c("NEVER") if s.return_deadline is None else s.return_deadline,
     }
 
 
@@ -410,8 +402,8 @@ class CClient:
             held_amount=v["held_amount_mj"] * 1000,
             phase=phase,
             nonce=v["nonce"],
-            deadline=None if v["deadline"] == NEVER else v["deadline"],
-            return_deadline=None if v["return_deadline"] == NEVER else v["return_deadline"],
+            deadline=None if v["deadline"] == _c("NEVER") else v["deadline"],
+            return_deadline=None if v["return_deadline"] == _c("NEVER") else v["return_deadline"],
         )
 
     # -- the C calls ------------------------------------------------------------------------------
@@ -506,7 +498,7 @@ class CClient:
 
     def get_timer(self) -> int | None:
         deadline: int = self.lib.canergy_client_deadline(self.c)
-        return None if deadline == NEVER else deadline
+        return None if deadline == _c("NEVER") else deadline
 
     def handle_timer(self, now: int) -> list[Action]:
         return self._actions(self.timers(now))

@@ -21,6 +21,7 @@ from support.c_binding import (
     ERR_END,
     ERR_PHASE,
     ERR_WINDOW,
+    NEVER,
     OK,
     RULES,
     CLib,
@@ -33,7 +34,6 @@ from support.c_binding import (
     struct_bytes,
 )
 
-NEVER = (1 << 64) - 1
 MOD = 1 << 32
 Call = Callable[[CSession, SessionStep], Any]
 

@@ -1,6 +1,7 @@
 """The cffi builder of firmware/'s C library for Python: ``canergy.ccore._supervisor`` (what
-``canergy supervisor --core c`` runs, room for every node id) and the sanitizer builds the tests
-drive (tests/support/c_binding.py).
+``canergy supervisor --core c`` runs, room for every node id) and the sanitizer and broken
+builds the tests drive (``load``: tests/support/c_binding.py, and ``CompiledSupervisor`` given
+one of them).
 
 The declarations are not written here: ``declarations`` runs the C preprocessor on the public
 headers (firmware/include/canergy/*.h) and hands cffi what they declare, so the headers are the
@@ -9,11 +10,14 @@ checks every struct it was given against the compiler's layout.
 
 setup.py builds the release module where a C compiler exists (``pip install``); without one
 canergy installs without it and ``canergy supervisor`` runs the Python core.
-``python -m canergy.ccore.build`` builds it in place (a checkout whose install skipped it).
+``python -m canergy.ccore.build`` builds it in place (a checkout whose install skipped it);
+``--variant ubsan`` (``asan``, ``broken``) compiles that build into ``CACHE`` (scripts/test does,
+before the tests).
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import re
@@ -21,6 +25,7 @@ import shlex
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 
 from cffi import FFI
 
@@ -46,14 +51,15 @@ int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned ki
     const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
     struct canergy_supervisor_out *out, struct canergy_msg *m);
 """
-"""What only the host's binding calls: declared once, for cffi and for the compiler."""
+"""What only the host's binding calls: declared once, for cffi and (its definition's head, below)
+for the compiler."""
 
-HOST_SOURCE = """
+HOST_SOURCE = (
+    """
 /* The fast path's call with the frame as arguments: one call, no struct filled field by field
-   from Python (kind: bit 0 extended identifier, bit 1 remote frame). */
-int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned kind,
-    const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
-    struct canergy_supervisor_out *out, struct canergy_msg *m)
+   from Python (kind: bit 0 extended identifier, bit 1 remote frame). */"""
+    + HOST_DECLARATIONS.rstrip().removesuffix(";")
+    + """
 {
     struct canergy_rx_frame rx = {0};
     rx.id = id;
@@ -64,6 +70,7 @@ int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned ki
     return canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, m);
 }
 """
+)
 
 
 @dataclass(frozen=True)
@@ -203,18 +210,80 @@ def compile_to(directory: Path, variant: str = "release") -> Path:
     return Path(builder(variant=variant).compile(tmpdir=str(directory), verbose=False))
 
 
-def build_in_place() -> Path:
-    """Compile the release module into this checkout's source tree (objects in a temporary
-    directory); returns the extension's path."""
+CACHE = ROOT / "firmware" / "build" / "cffi"
+"""Where ``compiled`` keeps each variant, a directory per fingerprint."""
+
+
+def compiled(variant: str, cache: Path = CACHE) -> Path:
+    """The variant's extension, compiled once for these sources in
+    ``cache/<variant>-<fingerprint>/`` (concurrent runs compile apart and the first to finish is
+    kept; a source changed, it is compiled again beside the old one)."""
     import shutil
     import tempfile
 
-    with tempfile.TemporaryDirectory() as tmp:
-        built = compile_to(Path(tmp))
-        target = Path(__file__).parent / built.name
-        shutil.copyfile(built, target)
+    cache.mkdir(parents=True, exist_ok=True)
+    target = cache / f"{variant}-{fingerprint(variant=variant)}"
+    if not target.is_dir():
+        work = Path(tempfile.mkdtemp(dir=cache, prefix=f".{variant}-"))
+        try:
+            compile_to(work, variant)
+            work.rename(target)
+        except OSError:
+            if not target.is_dir():
+                raise
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    return next(target.rglob(f"{VARIANTS[variant].module.rpartition('.')[2]}.*.so"))
+
+
+@functools.cache
+def load(variant: str) -> ModuleType:
+    """The variant's module (``ffi``, ``lib``), compiled if needed (``compiled``) and loaded once
+    per process: what ``supervisor.CompiledSupervisor(module=...)`` runs and what the tests
+    drive."""
+    import importlib.util
+
+    name = VARIANTS[variant].module
+    spec = importlib.util.spec_from_file_location(name, compiled(variant))
+    if spec is None or spec.loader is None:
+        raise ImportError(f"cannot load the {variant} build of the C library")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def build_in_place() -> Path:
+    """Compile the release module (``compiled``) and copy it into this checkout's source tree;
+    returns the extension's path."""
+    import shutil
+
+    built = compiled("release")
+    target = Path(__file__).parent / built.name
+    shutil.copyfile(built, target)
     return target
 
 
+def main(argv: list[str] | None = None) -> None:
+    """``python -m canergy.ccore.build``: the release module in place; ``--variant NAME``
+    (repeatable): those builds in ``CACHE`` (scripts/test builds the tests' ones first)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(
+        prog="python -m canergy.ccore.build",
+        description="Build the release module into the source tree, or with --variant the "
+        f"named builds into {CACHE} (printed).",
+    )
+    parser.add_argument(
+        "--variant",
+        action="append",
+        choices=sorted(VARIANTS),
+        default=[],
+        help="a build to compile into the cache (repeatable)",
+    )
+    args = parser.parse_args(argv)
+    for variant in args.variant or ["in place"]:
+        print(build_in_place() if variant == "in place" else compiled(variant))
+
+
 if __name__ == "__main__":
-    print(build_in_place())
+    main()

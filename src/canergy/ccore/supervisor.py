@@ -6,7 +6,8 @@ reports what each
 session step did; this side turns that into the same actions the Python core returns (``Send``,
 ``Persist``, ``Acknowledged``, ``Resolved``, ``ReturnCredited``, ``Admitted``) and keeps a Python
 copy of the sessions it touched. Books, files, policies and intrusions stay in the service.
-tests/test_ccore.py runs it side by side with ``core.Supervisor``.
+tests/test_ccore.py runs it side by side with ``core.Supervisor``, on the tests' sanitizer builds
+of the library (``CompiledSupervisor(module=...)``).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Iterable
 from functools import partial
+from typing import Any
 
 from canergy.codec import Codec
 from canergy.core import witnessed
@@ -49,30 +51,15 @@ from canergy.messages import (
     ToSupervisor,
 )
 
-try:
-    from canergy.ccore._supervisor import ffi, lib  # type: ignore[import-not-found]
-except ImportError as exc:  # built by pip install where a compiler exists
-    _MISSING: str | None = (
-        f"the compiled supervisor core is not built ({exc}): install canergy where a C compiler "
-        "exists, or run python -m canergy.ccore.build in a checkout"
-    )
-else:
-    _MISSING = None
-
 
 class CoreMissing(RuntimeError):
     """The C core was asked for and is not built here."""
 
 
-def missing() -> str | None:
-    """Why the C core cannot run here, or None when it can."""
-    return _MISSING
-
-
 _CODES = {"uint8_t": "B", "uint16_t": "H", "uint32_t": "I", "int32_t": "i", "uint64_t": "Q"}
 
 
-def _reader(ctype: str, names: tuple[str, ...]) -> tuple[struct.Struct, int]:
+def _reader(ffi: Any, ctype: str, names: tuple[str, ...]) -> tuple[struct.Struct, int]:
     """A ``struct.Struct`` that reads ``names`` of ``ctype``, in that order, at the offsets the
     compiled library gives them (padding skipped), and the first one's offset: one unpack per
     record instead of an attribute lookup through cffi per field."""
@@ -90,67 +77,111 @@ def _reader(ctype: str, names: tuple[str, ...]) -> tuple[struct.Struct, int]:
     return struct.Struct("".join(codes)), start
 
 
-if _MISSING is None:
-    try:
-        _SESSION, _ = _reader(
+_HELD = ("IDLE", "WAIT_ACK", "ACKED", "WAIT_CONFIRM", "SYNCING", "SYNC_BOOKS")
+
+
+class _Binding:
+    """What the core reads off one compiled module of ``canergy.ccore.build`` (``ffi``,
+    ``lib``): the records' readers at the compiled offsets and the headers' values, each
+    mapped to its Python name. Raises ``AttributeError``, ``KeyError`` or ``CoreMissing`` for a
+    module built from other headers."""
+
+    def __init__(self, module: Any) -> None:
+        self.module = module  # kept: its id keys _BINDINGS
+        self.ffi = ffi = module.ffi
+        self.lib = lib = module.lib
+        self.session, _ = _reader(
+            ffi,
             "struct canergy_session",
             ("delivered_uj", "returned_uj", "deadline", "tx", "returns_credited", "reserved_uj",
              "resume_from", "resume_to", "resume_nonce", "witness", "sync_nonce", "node", "phase",
              "decision", "tries"),
         )  # fmt: skip
-        _EVENT, _ = _reader(
-            "struct canergy_supervisor_event", ("tx", "amount_uj", "node", "resolved", "flags")
+        self.event, _ = _reader(
+            ffi, "struct canergy_supervisor_event", ("tx", "amount_uj", "node", "resolved", "flags")
         )
-        _FRAME, _ = _reader("struct canergy_frame", ("id", "dlc", "data"))
-        _COUNTS, _COUNTS_AT = _reader(
-            "struct canergy_supervisor_out", ("frame_count", "event_count", "persist")
+        self.frame, _ = _reader(ffi, "struct canergy_frame", ("id", "dlc", "data"))
+        self.counts, self.counts_at = _reader(
+            ffi, "struct canergy_supervisor_out", ("frame_count", "event_count", "persist")
         )
-        _SESSION_SIZE = ffi.sizeof("struct canergy_session")
-        _EVENT_SIZE = ffi.sizeof("struct canergy_supervisor_event")
-        _FRAME_SIZE = ffi.sizeof("struct canergy_frame")
-        _SESSIONS_AT = ffi.offsetof("struct canergy_supervisor", "sessions")
-        _EVENTS_AT = ffi.offsetof("struct canergy_supervisor_out", "events")
-        _FRAMES_AT = ffi.offsetof("struct canergy_supervisor_out", "frames")
-        _NEVER = lib.CANERGY_NEVER
-        _OK = lib.CANERGY_DECODE_OK
-        _CALLER = lib.CANERGY_RX_CALLER
-        _NOT_CAN = lib.CANERGY_RX_NOT_CAN
+        self.session_size = ffi.sizeof("struct canergy_session")
+        self.event_size = ffi.sizeof("struct canergy_supervisor_event")
+        self.frame_size = ffi.sizeof("struct canergy_frame")
+        self.sessions_at = ffi.offsetof("struct canergy_supervisor", "sessions")
+        self.events_at = ffi.offsetof("struct canergy_supervisor_out", "events")
+        self.frames_at = ffi.offsetof("struct canergy_supervisor_out", "frames")
+        self.never = lib.CANERGY_NEVER
+        self.ok = lib.CANERGY_DECODE_OK
+        self.caller = lib.CANERGY_RX_CALLER
+        self.not_can = lib.CANERGY_RX_NOT_CAN
         """``on_answer``'s status for an identifier no CAN frame carries: taken the usual way."""
-        _HELD = ("IDLE", "WAIT_ACK", "ACKED", "WAIT_CONFIRM", "SYNCING", "SYNC_BOOKS")
-        _PHASES = {getattr(lib, f"CANERGY_S_{name}"): Phase[name] for name in _HELD}
+        self.phases = {getattr(lib, f"CANERGY_S_{name}"): Phase[name] for name in _HELD}
         """The phases a C session holds, by the value C gives them (enum canergy_session_phase)."""
-        _C_PHASES = {p: c for c, p in _PHASES.items()}
-        _DECISIONS = {
+        self.c_phases = {p: c for c, p in self.phases.items()}
+        self.decisions = {
             lib.CANERGY_DECIDE_NONE: Decision.NONE,
             lib.CANERGY_DECIDE_COMMIT: Decision.COMMIT,
             lib.CANERGY_DECIDE_ABORT: Decision.ABORT,
         }
-        _C_DECISIONS = {d: c for c, d in _DECISIONS.items()}
-        _ACKNOWLEDGED = lib.CANERGY_SUP_ACKNOWLEDGED
-        _RETURN_CREDITED = lib.CANERGY_SUP_RETURN_CREDITED
-        _ADMITTED = lib.CANERGY_SUP_ADMITTED
-        _OUTCOMES = {
+        self.c_decisions = {d: c for c, d in self.decisions.items()}
+        self.acknowledged = lib.CANERGY_SUP_ACKNOWLEDGED
+        self.return_credited = lib.CANERGY_SUP_RETURN_CREDITED
+        self.admitted = lib.CANERGY_SUP_ADMITTED
+        self.outcomes = {
             lib.CANERGY_RESOLVED_COMMITTED: Outcome.COMMITTED,
             lib.CANERGY_RESOLVED_ABORTED: Outcome.ABORTED,
             lib.CANERGY_RESOLVED_WRITTEN_OFF: Outcome.WRITTEN_OFF,
         }
-        _ERRORS = {
+        self.errors = {
             lib.CANERGY_ERR_ARGUMENT: "argument",
             lib.CANERGY_ERR_PHASE: "phase",
             lib.CANERGY_ERR_AMOUNT: "amount",
             lib.CANERGY_ERR_END: "end of the numbering",
             lib.CANERGY_ERR_WINDOW: "window",
         }
-        _C_RULES = {
+        self.c_rules = {
             "hardened": lib.CANERGY_RULES_HARDENED,
             "witnessed": lib.CANERGY_RULES_WITNESSED,
         }
         """The rule sets the C supervisor runs (enum canergy_rules)."""
-    except (AttributeError, KeyError, CoreMissing) as exc:  # built from other headers
-        _MISSING = (
-            f"the compiled supervisor core does not match this canergy ({exc}): rebuild it "
-            "(python -m canergy.ccore.build in a checkout)"
-        )
+
+
+_BINDINGS: dict[int, _Binding] = {}
+
+
+def _binding(module: Any) -> _Binding:
+    """The module's ``_Binding``, made once per module."""
+    if (known := _BINDINGS.get(id(module))) is None:
+        try:
+            known = _BINDINGS[id(module)] = _Binding(module)
+        except (AttributeError, KeyError, CoreMissing) as exc:
+            raise CoreMissing(
+                f"the compiled supervisor core {module.__name__} does not match this canergy "
+                f"({exc}): rebuild it (python -m canergy.ccore.build in a checkout)"
+            ) from exc
+    return known
+
+
+try:
+    from canergy.ccore import _supervisor as _RELEASE  # type: ignore[attr-defined]
+except ImportError as exc:  # built by pip install where a compiler exists
+    _MISSING: str | None = (
+        f"the compiled supervisor core is not built ({exc}): install canergy where a C compiler "
+        "exists, or run python -m canergy.ccore.build in a checkout"
+    )
+else:
+    try:
+        _binding(_RELEASE)
+        _MISSING = None
+    except CoreMissing as exc:  # built from other headers
+        _MISSING = str(exc)
+
+
+def missing() -> str | None:
+    """Why the C core cannot run here, or None when it can."""
+    return _MISSING
+
+
 _ID_LIMIT = 1 << 29
 _RULES = ("hardened", "witnessed")
 
@@ -170,10 +201,20 @@ class CompiledSupervisor:
         id_base: int | None = None,
         variant: str = "hardened",
         start_without: Iterable[int] = (),
+        module: Any = None,
     ) -> None:
-        """``start_without``: as ``core.Supervisor``'s (the operator's risk, said there)."""
-        if _MISSING is not None:
-            raise CoreMissing(_MISSING)
+        """``start_without``: as ``core.Supervisor``'s (the operator's risk, said there).
+        ``module``: the build of the library to run, a module of ``canergy.ccore.build`` (its
+        ``ffi`` and ``lib``); by default the release module, ``canergy.ccore._supervisor`` (the
+        tests hand it their sanitizer builds)."""
+        if module is None:
+            if _MISSING is not None:
+                raise CoreMissing(_MISSING)
+            module = _RELEASE
+        self._b = b = _binding(module)
+        ffi, lib = b.ffi, b.lib
+        self._lib = lib
+        self._answer = lib.canergy_host_answer
         if variant not in _RULES:
             raise ValueError(f"the C core runs the rules {', '.join(_RULES)}, not {variant!r}")
         self.variant = get_variant(variant)
@@ -198,7 +239,7 @@ class CompiledSupervisor:
         cfg.id_base = self.codec.id_base
         cfg.timing.response_timeout_us = self.timing.response_timeout_us
         cfg.timing.retries = self.timing.retries
-        cfg.timing.rules = _C_RULES[variant]
+        cfg.timing.rules = b.c_rules[variant]
         cfg.timing.window = self.timing.window
         ids = ffi.new("uint8_t[]", node_list)
         rc = lib.canergy_supervisor_init(self._sup, cfg, ids, len(node_list), initial)
@@ -251,52 +292,53 @@ class CompiledSupervisor:
     def unconfirmed(self) -> tuple[int, ...]:
         """The nodes whose books this start waits for before any grant (``core.Supervisor``'s),
         as the C supervisor counts them."""
-        nodes = ffi.new("uint8_t[]", max(1, len(self._sessions)))
-        return tuple(nodes[0 : lib.canergy_supervisor_unconfirmed(self._sup, nodes)])
+        nodes = self._b.ffi.new("uint8_t[]", max(1, len(self._sessions)))
+        return tuple(nodes[0 : self._lib.canergy_supervisor_unconfirmed(self._sup, nodes)])
 
     def _load(self, st: SupervisorState) -> None:
         """Take a saved state (the state file's): Us, injected, withdrawn and every session's
         record."""
         if tuple(s.node for s in st.sessions) != self.nodes:
             raise ValueError("the state's nodes are not this supervisor's")
-        sup = self._sup
+        sup, b = self._sup, self._b
         sup.usable_uj, sup.injected_uj, sup.withdrawn_uj = st.usable, st.injected, st.withdrawn
         self._initial = st.initial
         for i, s in enumerate(st.sessions):
-            if s.phase not in _PHASES.values():
+            if s.phase not in b.c_phases:
                 raise ValueError(f"node {s.node}: a record the C core cannot hold")
             check_counters(s)
             c = sup.sessions[i]
-            c.phase, c.tx, c.reserved_uj = _C_PHASES[s.phase], s.tx, s.reserved
+            c.phase, c.tx, c.reserved_uj = b.c_phases[s.phase], s.tx, s.reserved
             c.delivered_uj, c.returned_uj, c.decision = (
                 s.delivered,
                 s.returned,
-                _C_DECISIONS[s.decision],
+                b.c_decisions[s.decision],
             )
             c.returns_credited, c.tries = s.returns_credited, s.tries
             c.resume_from, c.resume_to = s.resume_from % 2**32, s.resume_to % 2**32
             c.resume_nonce, c.witness, c.sync_nonce = s.resume_nonce, s.witness, s.sync_nonce
-            c.deadline = lib.CANERGY_NEVER if s.deadline is None else s.deadline
+            c.deadline = b.never if s.deadline is None else s.deadline
             self._sessions[i] = self._read(i)
         self._timer_known = False
 
     def _read(self, i: int) -> Session:
-        fields = _SESSION.unpack_from(self._sup_bytes, _SESSIONS_AT + i * _SESSION_SIZE)
+        b = self._b
+        fields = b.session.unpack_from(self._sup_bytes, b.sessions_at + i * b.session_size)
         delivered, returned, deadline, tx, credited, reserved = fields[:6]
         resume_from, resume_to, resume_nonce, witness, sync_nonce = fields[6:11]
         node, phase, decision, tries = fields[11:]
         resume_from = resume_to - (resume_to - resume_from) % 2**32  # Python's: below resume_to
         return Session(
             node,
-            _PHASES[phase],
+            b.phases[phase],
             tx,
             reserved,
             delivered,
-            _DECISIONS[decision],
+            b.decisions[decision],
             credited,
             returned,
             tries,
-            None if deadline == _NEVER else deadline,
+            None if deadline == b.never else deadline,
             resume_nonce,
             resume_from,
             resume_to,
@@ -323,6 +365,7 @@ class CompiledSupervisor:
         if not 0 < amount < 2**32:
             raise LocalProtocolError(f"amount {amount} µJ is not a grant one frame carries")
         self._timer_known = False  # deadlines may move
+        lib = self._lib
         rc = lib.canergy_supervisor_begin(self._sup, node, amount, now, self._out)
         if rc == lib.CANERGY_ERR_UNCONFIRMED:
             raise LocalProtocolError(
@@ -331,24 +374,24 @@ class CompiledSupervisor:
             )
         if rc == lib.CANERGY_ERR_WINDOW:
             witnessed.begin(self.timing, self.session(node), Begin(amount), now)  # its words
-        if rc == -3 and amount <= self._sup.usable_uj:
+        if rc == lib.CANERGY_ERR_AMOUNT and amount <= self._sup.usable_uj:
             raise LocalProtocolError(f"amount {amount} µJ is not a whole mJ up to 65,535 mJ")
-        if rc == -3:
+        if rc == lib.CANERGY_ERR_AMOUNT:
             raise LocalProtocolError(f"amount {amount} µJ exceeds usable {self.usable} µJ")
-        if rc == -5:
+        if rc == lib.CANERGY_ERR_END:
             check_life(self.session(node))  # the Python core's words
         self._check(rc, node, "begin")
 
     def commit(self, node: int, now: int) -> list[Action]:
         self._managed(node)
         self._timer_known = False  # deadlines may move
-        rc = lib.canergy_supervisor_decide(self._sup, node, True, now, self._out)
+        rc = self._lib.canergy_supervisor_decide(self._sup, node, True, now, self._out)
         return self._checked(rc, node, "commit")
 
     def abort(self, node: int, now: int) -> list[Action]:
         self._managed(node)
         self._timer_known = False  # deadlines may move
-        rc = lib.canergy_supervisor_decide(self._sup, node, False, now, self._out)
+        rc = self._lib.canergy_supervisor_decide(self._sup, node, False, now, self._out)
         return self._checked(rc, node, "abort")
 
     def receive(self, msg: ToSupervisor, now: int) -> list[Action]:
@@ -370,7 +413,7 @@ class CompiledSupervisor:
                 f"{self.variant.name} supervisor: no rule for {type(msg).__name__}"
             )
         self._timer_known = False  # deadlines may move
-        lib.canergy_supervisor_on_msg(self._sup, m, now, self._out)
+        self._lib.canergy_supervisor_on_msg(self._sup, m, now, self._out)
         return self._actions(resumed=isinstance(msg, Debit) and msg.is_resume)
 
     def on_answer(
@@ -392,17 +435,18 @@ class CompiledSupervisor:
         decoded nothing: the caller takes the frame its usual way, where it is judged, counted
         or reported."""
         if not 0 <= arbitration_id < _ID_LIMIT:  # no CAN identifier (another transport's)
-            return _NOT_CAN, [], [], None
+            return self._b.not_can, [], [], None
         m = self._msg
         kind = (1 if extended else 0) | (2 if remote else 0)
         payload = data if type(data) is bytes else bytes(data)  # cffi takes bytes as they are
         self._timer_known = False  # deadlines may move
-        status = lib.canergy_host_answer(
+        status = self._answer(
             self._sup, arbitration_id, kind, payload, len(payload), now, abort, self._out, m
         )
-        if status == _OK:
+        b = self._b
+        if status == b.ok:
             return status, self._actions(fast=True), self._frames(), None
-        if status != _CALLER:
+        if status != b.caller:
             return status, [], [], None
         msg: Message
         if (kind := m.type) == MsgType.TELEMETRY:  # the wire's type code, the same in both codecs
@@ -417,26 +461,26 @@ class CompiledSupervisor:
 
     def get_timer(self) -> int | None:
         if not self._timer_known:
-            deadline: int = lib.canergy_supervisor_deadline(self._sup)
-            self._timer = None if deadline == _NEVER else deadline
+            deadline: int = self._lib.canergy_supervisor_deadline(self._sup)
+            self._timer = None if deadline == self._b.never else deadline
             self._timer_known = True
         return self._timer
 
     def handle_timer(self, now: int) -> list[Action]:
         self._timer_known = False  # deadlines may move
-        lib.canergy_supervisor_on_timer(self._sup, now, self._out)
+        self._lib.canergy_supervisor_on_timer(self._sup, now, self._out)
         return self._actions()
 
     def inject(self, amount: int) -> None:
         if amount <= 0:
             raise LocalProtocolError("injected energy must be positive")
-        lib.canergy_supervisor_inject(self._sup, amount)
+        self._lib.canergy_supervisor_inject(self._sup, amount)
 
     def power_loss(self, now: int, nonce: int = 0) -> None:
         """Lose volatile state and restart from the persistent record; ``nonce``: as
         ``core.Supervisor.power_loss`` (witnessed: the SYNC's)."""
         self._timer_known = False  # deadlines may move
-        lib.canergy_supervisor_start(self._sup, nonce, now, self._out)
+        self._lib.canergy_supervisor_start(self._sup, nonce, now, self._out)
         self._sessions = [self._read(i) for i in range(len(self._sessions))]
 
     # -- internals -------------------------------------------------------------------------
@@ -449,37 +493,39 @@ class CompiledSupervisor:
         return self._actions()
 
     def _check(self, rc: int, node: int, what: str) -> None:
-        if rc != lib.CANERGY_OK:
+        if rc != self._lib.CANERGY_OK:
             phase = self.session(node).phase.name
-            raise LocalProtocolError(f"cannot {what} node {node} in {phase} ({_ERRORS[rc]})")
+            raise LocalProtocolError(f"cannot {what} node {node} in {phase} ({self._b.errors[rc]})")
 
     def _actions(self, *, fast: bool = False, resumed: bool = False) -> list[Action]:
         """The last call's output as the Python core's actions, in its order. ``fast``
         (``on_answer``): no ``Acknowledged`` (decided in C already) and no ``Send`` (the
         frames go out as C encoded them, ``_frames``). ``resumed``: a RESUME, which credits a
         pending return numbered one below the number it then voids."""
-        raw = self._out_bytes
-        frames, events, persist = _COUNTS.unpack_from(raw, _COUNTS_AT)
+        raw, b = self._out_bytes, self._b
+        frames, events, persist = b.counts.unpack_from(raw, b.counts_at)
         actions: list[Action] = [Persist()] if persist else []
         sent = 0
         for k in range(events):
-            tx, amount, node, resolved, flags = _EVENT.unpack_from(
-                raw, _EVENTS_AT + k * _EVENT_SIZE
+            tx, amount, node, resolved, flags = b.event.unpack_from(
+                raw, b.events_at + k * b.event_size
             )
             i = self._index[node]
             before = self._sessions[i]
             s = self._sessions[i] = self._read(i)
-            if flags & _ACKNOWLEDGED and not fast:
+            if flags & b.acknowledged and not fast:
                 actions.append(Acknowledged(node, tx))
             if resolved:
-                actions.append(Resolved(node, tx, _OUTCOMES[resolved], amount))
-            if flags & _RETURN_CREDITED:  # the amount as the session's returned count grew
+                actions.append(Resolved(node, tx, b.outcomes[resolved], amount))
+            if flags & b.return_credited:  # the amount as the session's returned count grew
                 credited = s.returned - before.returned
                 actions.append(ReturnCredited(node, s.returns_credited - resumed, credited))
-            if flags & _ADMITTED:
+            if flags & b.admitted:
                 actions.append(Admitted(node, s.tx, s.returns_credited))
             if sent < frames and not fast:
-                arbitration_id, dlc, data = _FRAME.unpack_from(raw, _FRAMES_AT + sent * _FRAME_SIZE)
+                arbitration_id, dlc, data = b.frame.unpack_from(
+                    raw, b.frames_at + sent * b.frame_size
+                )
                 if arbitration_id & 0xFF == node:  # a step sends at most one frame, its node's
                     actions.append(Send(self._decode(arbitration_id, data[:dlc])))
                     sent += 1
@@ -487,10 +533,10 @@ class CompiledSupervisor:
 
     def _frames(self) -> list[tuple[int, bytes]]:
         """The last call's frames as (identifier, data), encoded by the C codec."""
-        raw = self._out_bytes
+        raw, b = self._out_bytes, self._b
         frames = []
-        for k in range(_COUNTS.unpack_from(raw, _COUNTS_AT)[0]):
-            arbitration_id, dlc, data = _FRAME.unpack_from(raw, _FRAMES_AT + k * _FRAME_SIZE)
+        for k in range(b.counts.unpack_from(raw, b.counts_at)[0]):
+            arbitration_id, dlc, data = b.frame.unpack_from(raw, b.frames_at + k * b.frame_size)
             frames.append((arbitration_id, data[:dlc]))
         return frames
 

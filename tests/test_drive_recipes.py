@@ -235,27 +235,10 @@ def test_the_mit_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
     face.start()
     app = can.Bus(interface="virtual", channel=inline_args.app_channel)
     try:
-        with _supervisor(tmp_path, sup_argv) as result:
-            guarded = MitBus(
-                can.Bus(interface="virtual", channel=inline_args.channel),
-                [wanted],
-                guard_config=SLOW_HOST,
-            )
-            forwarder = MitForwarder(
-                can.Bus(interface="virtual", channel=inline_args.app_channel), guarded
-            )
-            stop = threading.Event()
-            thread = threading.Thread(target=forwarder.run, args=(stop.is_set, lambda: None))
-            thread.start()
-            try:
-                wait_for(lambda: guarded.status(MOTOR)["guard"] == "running", timeout=60)
-                burst(app, lambda: _exhausted(guarded.status(MOTOR)), [PUSH] * 9 + [GREEDY])
-                status = guarded.status(MOTOR)
-            finally:
-                stop.set()
-                thread.join(timeout=10)
-                guarded.shutdown()
-                forwarder.app.shutdown()
+        with _supervisor(tmp_path, sup_argv) as result, _inline(inline_args, [wanted]) as guarded:
+            wait_for(lambda: guarded.status(MOTOR)["guard"] == "running", timeout=60)
+            burst(app, lambda: _exhausted(guarded.status(MOTOR)), [PUSH] * 9 + [GREEDY])
+            status = guarded.status(MOTOR)
         final = _status(tmp_path)
     finally:
         face.close()
@@ -266,6 +249,26 @@ def test_the_mit_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
     _check(status, drawn, _granted(final, wanted.node), "mit")
     assert 0 < motor.torque_max_seen <= float(inline_args.mit_max_torque) + 1e-9
     assert not motor.enabled  # out of motor mode once the budget was gone
+
+
+@contextlib.contextmanager
+def _inline(args: Any, wanted: list[Any]) -> Iterator[MitBus]:
+    """The recipe's ``canergy inline`` in this process, on its parsed flags' channels: the
+    guarded bus to the motors and the forwarder from the application's, until the block ends."""
+    guarded = MitBus(
+        can.Bus(interface="virtual", channel=args.channel), wanted, guard_config=SLOW_HOST
+    )
+    forwarder = MitForwarder(can.Bus(interface="virtual", channel=args.app_channel), guarded)
+    stop = threading.Event()
+    thread = threading.Thread(target=forwarder.run, args=(stop.is_set, lambda: None))
+    thread.start()
+    try:
+        yield guarded
+    finally:
+        stop.set()
+        thread.join(timeout=10)
+        guarded.shutdown()
+        forwarder.app.shutdown()
 
 
 def _status(tmp: Path) -> dict[str, Any]:
@@ -297,32 +300,15 @@ def test_the_two_model_recipe_holds_each_stated_bound(tmp_path: Path) -> None:
         face.start()
     app = can.Bus(interface="virtual", channel=inline_args.app_channel)
     try:
-        with _supervisor(tmp_path, sup_argv) as result:
-            guarded = MitBus(
-                can.Bus(interface="virtual", channel=inline_args.channel),
-                wanted,
-                guard_config=SLOW_HOST,
-            )
-            forwarder = MitForwarder(
-                can.Bus(interface="virtual", channel=inline_args.app_channel), guarded
-            )
-            stop = threading.Event()
-            thread = threading.Thread(target=forwarder.run, args=(stop.is_set, lambda: None))
-            thread.start()
-            try:
-                for m in emulated:
-                    wait_for(lambda m=m: guarded.status(m)["guard"] == "running", timeout=60)
+        with _supervisor(tmp_path, sup_argv) as result, _inline(inline_args, wanted) as guarded:
+            for m in emulated:
+                wait_for(lambda m=m: guarded.status(m)["guard"] == "running", timeout=60)
 
-                def both() -> bool:
-                    return all(_exhausted(guarded.status(m)) for m in emulated)
+            def both() -> bool:
+                return all(_exhausted(guarded.status(m)) for m in emulated)
 
-                burst(app, both, [PUSH] * 9 + [GREEDY], motors=tuple(emulated))
-                status = {m: guarded.status(m) for m in emulated}
-            finally:
-                stop.set()
-                thread.join(timeout=10)
-                guarded.shutdown()
-                forwarder.app.shutdown()
+            burst(app, both, [PUSH] * 9 + [GREEDY], motors=tuple(emulated))
+            status = {m: guarded.status(m) for m in emulated}
         final = _status(tmp_path)
     finally:
         for face in faces:

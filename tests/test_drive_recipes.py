@@ -28,7 +28,6 @@ from support.readme import DOCS
 from support.recipes import Command, sessions
 
 from canergy.cli import build_parser
-from canergy.cli import main as canergy_main
 from canergy.cli.inline import motors
 from canergy.devices.guard import DeviceConfig
 from canergy.devices.mit import MODELS, worst_torque
@@ -36,7 +35,6 @@ from canergy.devices.moteus import Mode
 from canergy.live.devices.mit_bus import MitBus
 from canergy.live.devices.mit_forward import MitForwarder
 from canergy.live.runtime import monotonic_us
-from canergy.live.supervisor.control import request
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.drive.motor import LoadTorque
 from firmware_model.mit.live_bench import DM, GREEDY, MOTOR, PUSH, SLOW_HOST, burst
@@ -45,6 +43,7 @@ from firmware_model.moteus.live_bench import SERVO, ServoBench
 from firmware_model.moteus.servo import ServoFace, ServoModel
 from firmware_model.odrive.axis import AxisFace, AxisModel
 from firmware_model.odrive.live_bench import AXIS, AxisBench
+from firmware_model.supervisor_thread import supervisor_thread
 
 PAGE = DOCS / "guide" / "drives.md"
 DEFAULT_NOTICE_US = 15_000
@@ -75,6 +74,12 @@ def _stated_each(name: str) -> list[tuple[float, float]]:
     return [(float(w), float(j)) for w, j in zip(watts, joules, strict=True)]
 
 
+ROOMY = ("--target", "15J")
+"""The MIT recipes' supervisor keeps 15 J in each gate instead of 5 J: on a loaded test machine
+the gate measures reactions of 100 ms and more, and its bound (65.7 W over them) then needs more
+than 5 J before it releases the motor; it holds it, saying so, as it would on such a bench."""
+
+
 def _on_virtual(argv: list[str], tmp: Path, channels: dict[str, str]) -> list[str]:
     """``argv`` with its buses virtual (a channel per channel named) and its files in ``tmp``."""
     out = list(argv)
@@ -86,26 +91,6 @@ def _on_virtual(argv: list[str], tmp: Path, channels: dict[str, str]) -> list[st
         elif word in ("--state", "--status-file"):
             out[i + 1] = str(tmp / out[i + 1])
     return out
-
-
-@contextlib.contextmanager
-def _supervisor(tmp: Path, argv: list[str], *extra: str) -> Iterator[list[int]]:
-    """``canergy supervisor`` with ``argv`` (already virtual) and the harness's flags, in a
-    thread, stopped through its control socket when the block ends; its exit status is put in
-    the list yielded."""
-    control = tmp / "ctl.sock"
-    full = [*argv, "--no-fsync", "--status-file", str(tmp / "status.json")]
-    full += ["--status-period", "50ms", "--control", str(control), *extra]
-    assert full[0] == "supervisor", full
-    result: list[int] = []
-    thread = threading.Thread(target=lambda: result.append(canergy_main(full)), daemon=True)
-    thread.start()
-    try:
-        yield result
-    finally:
-        if thread.is_alive() and control.exists():
-            request(control, {"stop": True}, 30)
-        thread.join(timeout=60)
 
 
 def _granted(final: dict[str, Any], node: int) -> int:
@@ -161,9 +146,8 @@ def test_the_odrive_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
     app = can.Bus(interface="virtual", channel=channel)
     slow = ("--odrive-feedback-timeout", "2s", "--odrive-stop-timeout", "2s")
     try:
-        with _supervisor(tmp_path, argv, *slow) as result:
-            thread = threading.current_thread()  # AxisBench's own is not used: stop() is ours
-            b = AxisBench(tmp_path, axis, face, app, tmp_path / "ctl.sock", result, thread)
+        with supervisor_thread(tmp_path, *argv[1:], *slow) as sup:
+            b = AxisBench(axis, face, app, sup)
             wait_for(lambda: _ready(b.axis_status()), timeout=60)
             b.run_closed_loop(1.0)
             wait_for(lambda: _exhausted(b.axis_status()), timeout=60)
@@ -172,7 +156,7 @@ def test_the_odrive_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
     finally:
         face.close()
         app.shutdown()
-    assert result == [0] and final is not None
+    assert sup.result == [0] and final is not None
     device = final["cia402"]["devices"]["odrive"][str(AXIS)]
     _check(device, b.drawn(), _granted(final, AXIS), "odrive")
     assert axis.state.name == "IDLE"
@@ -194,9 +178,8 @@ def test_the_moteus_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
     slow = ("--moteus-feedback-timeout", "2s", "--moteus-stop-timeout", "2s")
     done = threading.Event()
     try:
-        with _supervisor(tmp_path, argv, *slow) as result:
-            thread = threading.current_thread()
-            b = ServoBench(tmp_path, servo, face, app, tmp_path / "ctl.sock", result, thread)
+        with supervisor_thread(tmp_path, *argv[1:], *slow) as sup:
+            b = ServoBench(servo, face, app, sup)
             wait_for(lambda: _ready(b.servo_status()), timeout=60)
 
             def application() -> None:  # position, 1 N·m feed-forward, every 20 ms
@@ -213,7 +196,7 @@ def test_the_moteus_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
         done.set()
         face.close()
         app.shutdown()
-    assert result == [0] and final is not None
+    assert sup.result == [0] and final is not None
     device = final["cia402"]["devices"]["moteus"][str(SERVO)]
     _check(device, b.drawn(), _granted(final, SERVO), "moteus")
     assert servo.mode in (Mode.STOPPED, Mode.TIMEOUT)  # stopped, or timed out since (power off)
@@ -235,7 +218,10 @@ def test_the_mit_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
     face.start()
     app = can.Bus(interface="virtual", channel=inline_args.app_channel)
     try:
-        with _supervisor(tmp_path, sup_argv) as result, _inline(inline_args, [wanted]) as guarded:
+        with (
+            supervisor_thread(tmp_path, *sup_argv[1:], *ROOMY) as sup,
+            _inline(inline_args, [wanted]) as guarded,
+        ):
             wait_for(lambda: guarded.status(MOTOR)["guard"] == "running", timeout=60)
             burst(app, lambda: _exhausted(guarded.status(MOTOR)), [PUSH] * 9 + [GREEDY])
             status = guarded.status(MOTOR)
@@ -243,7 +229,7 @@ def test_the_mit_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
     finally:
         face.close()
         app.shutdown()
-    assert result == [0]
+    assert sup.result == [0]
     with face.lock:
         drawn = motor.drawn_uj
     _check(status, drawn, _granted(final, wanted.node), "mit")
@@ -300,7 +286,10 @@ def test_the_two_model_recipe_holds_each_stated_bound(tmp_path: Path) -> None:
         face.start()
     app = can.Bus(interface="virtual", channel=inline_args.app_channel)
     try:
-        with _supervisor(tmp_path, sup_argv) as result, _inline(inline_args, wanted) as guarded:
+        with (
+            supervisor_thread(tmp_path, *sup_argv[1:], *ROOMY) as sup,
+            _inline(inline_args, wanted) as guarded,
+        ):
             for m in emulated:
                 wait_for(lambda m=m: guarded.status(m)["guard"] == "running", timeout=60)
 
@@ -314,7 +303,7 @@ def test_the_two_model_recipe_holds_each_stated_bound(tmp_path: Path) -> None:
         for face in faces:
             face.close()
         app.shutdown()
-    assert result == [0]
+    assert sup.result == [0]
     cap = Fraction(inline_args.mit_max_torque)
     for (m, model), motor, stated in zip(
         emulated.items(), wanted, _stated_each("mit-two"), strict=True

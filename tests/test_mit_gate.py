@@ -377,3 +377,23 @@ def test_two_models_on_one_bus_are_each_clamped_by_their_own_ranges() -> None:
         assert max(v.t for v in values) > cap * Fraction(99, 100)  # tight, not timid
     as_dm = clamp(DM, push, pair.gates[11].cap, theta, 0, 0).command  # 2 N·m in ±10 N·m ...
     assert as_dm is not None and decode(MODELS["AK80-9"], as_dm).t > 3  # ... 3.6 in ±18 N·m
+
+
+def test_a_budget_below_the_bound_holds_the_motor_and_says_so() -> None:
+    """0.6 J granted where the cap's bound needs 0.985 J (65.7 W over 15 ms): the motor is kept
+    out of motor mode, and the stop reason says what is held and needed, not "no budget yet";
+    more budget releases it."""
+    pair = Pair(600_000, 600_000)
+    pair.run_to(200_000)
+    g = pair.gate.guard
+    assert g.phase is GuardPhase.STOPPED and 0 < g.usable < 600_000  # the set-up was charged
+    assert g.stop_reason == (
+        f"held: {g.usable / 1e6:.3f} J in hand, {g.threshold_uj() / 1e6:.3f} J needed to stop "
+        "within the bound "
+        "(raise the supervisor's --target and --max-grant, or lower the limits)"
+    )
+    assert g.threshold_uj() >= 985_000
+    assert pair.gate.from_app(ENTER, 200_000).frame is None
+    more = Pair(60_000_000, 5_000_000)
+    more.run_to(200_000)
+    assert more.gate.guard.phase is GuardPhase.RUNNING and more.gate.guard.stop_reason is None

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import os
 import sys
 import threading
@@ -23,16 +22,15 @@ import can
 import pytest
 from odrive_can.mock import ODriveCANMock
 
-from canergy.cli import main
 from canergy.devices.odrive import AxisState, Cmd, can_id, set_axis_state
-from canergy.live.supervisor.control import request
 from firmware_model.odrive.live_bench import LIMITS, MOTOR, wait_for
+from firmware_model.supervisor_thread import SupervisorThread, supervisor_thread
 
 AXIS = 3
 
 
 @contextlib.contextmanager
-def mocked_axis(tmp: Path, *supervisor_args: str) -> Iterator[tuple[Path, can.BusABC, list[int]]]:
+def mocked_axis(tmp: Path, *supervisor_args: str) -> Iterator[tuple[SupervisorThread, can.BusABC]]:
     """The mock as axis 3, the supervisor guarding it, and the application's bus."""
     assert os.environ.get("CI") is None  # and the bus is passed: its get_can_bus never runs
     channel = f"odrive-mock-{uuid.uuid4().hex}"
@@ -49,27 +47,18 @@ def mocked_axis(tmp: Path, *supervisor_args: str) -> Iterator[tuple[Path, can.Bu
     thread = threading.Thread(target=run, daemon=True)
     thread.start()
     app = can.Bus(interface="virtual", channel=channel)
-    control = tmp / "ctl.sock"
-    argv = [
-        "supervisor",
+    args = (
         *("-i", "virtual", "-c", channel, "--odrive", str(AXIS)),
-        *("--state", str(tmp / "s.json"), "--no-fsync", "--control", str(control)),
-        *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
         *("--initial", "20J", "--target", "5J", "--max-grant", "500mJ"),
         *MOTOR,
         *LIMITS,
         *("--odrive-feedback-timeout", "2s"),
         *supervisor_args,
-    ]
-    result: list[int] = []
-    supervisor = threading.Thread(target=lambda: result.append(main(argv)), daemon=True)
-    supervisor.start()
+    )
     try:
-        yield tmp / "status.json", app, result
+        with supervisor_thread(tmp, *args) as supervisor:
+            yield supervisor, app
     finally:
-        if supervisor.is_alive() and control.exists():
-            request(control, {"stop": True}, 30)
-        supervisor.join(timeout=60)
         loop.call_soon_threadsafe(task.cancel)
         thread.join(timeout=10)
         loop.close()
@@ -78,12 +67,8 @@ def mocked_axis(tmp: Path, *supervisor_args: str) -> Iterator[tuple[Path, can.Bu
         app.shutdown()
 
 
-def axis(status_file: Path) -> dict[str, Any] | None:
-    try:
-        status = json.loads(status_file.read_text())
-    except (FileNotFoundError, json.JSONDecodeError):
-        return None
-    return dict(status["cia402"]["devices"]["odrive"][str(AXIS)])
+def axis(supervisor: SupervisorThread) -> dict[str, Any] | None:
+    return supervisor.device("odrive", AXIS)
 
 
 @pytest.fixture(autouse=True)
@@ -93,8 +78,8 @@ def not_ci(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_the_mock_answers_no_read_back_and_is_refused_at_set_up(tmp_path: Path) -> None:
-    with mocked_axis(tmp_path, "--odrive-endpoints", "401,178") as (status, _, _):
-        d = wait_for(lambda: (d := axis(status)) and d["refused"] and d, timeout=30)
+    with mocked_axis(tmp_path, "--odrive-endpoints", "401,178") as (sup, _):
+        d = wait_for(lambda: (d := axis(sup)) and d["refused"] and d, timeout=30)
     assert d["refused"].startswith("the odrive limits cannot be read back")
     assert d["usable_uj"] == 0 and d["alive"] is False
 
@@ -108,27 +93,27 @@ def test_the_mock_trusted_ignores_the_stop_and_is_reported_stuck(
     relay = f"{sys.executable} {script} {cut} {{profile}} {{node}}"
     with mocked_axis(
         tmp_path, "--odrive-trust-limits", "--odrive-stop-timeout", "300ms", "--on-stuck", relay
-    ) as (status, app, _):
-        wait_for(lambda: (d := axis(status)) and d["ready"], timeout=30)
+    ) as (sup, app):
+        wait_for(lambda: (d := axis(sup)) and d["ready"], timeout=30)
         # its bus voltage read once before the application floods it: the mock answers a poll
         # only between the 0.5 s it takes over each Set_Axis_State, one after the other
-        wait_for(lambda: (d := axis(status)) and d["bus_voltage_v"] is not None, timeout=30)
+        wait_for(lambda: (d := axis(sup)) and d["bus_voltage_v"] is not None, timeout=30)
         closed_loop = set_axis_state(AxisState.CLOSED_LOOP_CONTROL)
         frame_id = can_id(AXIS, Cmd.SET_AXIS_STATE)
         frame = can.Message(arbitration_id=frame_id, data=closed_loop, is_extended_id=False)
 
         def stuck() -> dict[str, Any] | None:
             app.send(frame)  # the application wants closed loop (the mock takes 0.5 s)
-            d = axis(status)
+            d = axis(sup)
             return d if d and d["stuck"] else None
 
         d = wait_for(stuck, timeout=60)
-        wait_for(lambda: cut.exists() and (a := axis(status)) and a["on_stuck"]["exit_code"] == 0)
+        wait_for(lambda: cut.exists() and (a := axis(sup)) and a["on_stuck"]["exit_code"] == 0)
         stuck_for = time.monotonic() + 1.0
         while time.monotonic() < stuck_for:  # many passes later: still one run
             app.send(frame)
             time.sleep(0.05)
-        last = axis(status)
+        last = axis(sup)
     assert cut.read_text() == "odrive 3\n"  # run once, the axis named
     assert last is not None and last["stuck"] and last["on_stuck"]["runs"] == 1
     # its heartbeat (every 200 ms) shows it still in closed loop, or comes too late to tell

@@ -6,8 +6,6 @@ application of our own on a third bus object (register frames, ``send``).
 from __future__ import annotations
 
 import contextlib
-import json
-import threading
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -16,7 +14,6 @@ from typing import Any
 
 import can
 
-from canergy.cli import main as canergy_main
 from canergy.devices.moteus import (
     DIAGNOSTIC_CHANNEL,
     Kind,
@@ -28,10 +25,10 @@ from canergy.devices.moteus import (
     encode,
     extended,
 )
-from canergy.live.supervisor.control import request
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.drive.motor import LoadTorque
 from firmware_model.moteus.servo import ServoFace, ServoModel
+from firmware_model.supervisor_thread import SupervisorThread, supervisor_thread
 
 SERVO = 1
 APP = 0
@@ -45,25 +42,19 @@ __all__ = ["SERVO", "ServoBench", "guarded_servo", "wait_for"]
 
 @dataclass
 class ServoBench:
-    tmp: Path
     model: ServoModel
     face: ServoFace
     app: can.BusABC
-    control: Path
-    result: list[int]
-    thread: threading.Thread
+    supervisor: SupervisorThread
 
     def status(self) -> dict[str, Any] | None:
-        try:
-            return dict(json.loads((self.tmp / "status.json").read_text()))
-        except (FileNotFoundError, json.JSONDecodeError):
-            return None
+        return self.supervisor.status()
 
     def servo_status(self) -> dict[str, Any] | None:
-        status = self.status()
-        if status is None:
-            return None
-        return dict(status["cia402"]["devices"]["moteus"][str(SERVO)])
+        return self.supervisor.device("moteus", SERVO)
+
+    def stop(self) -> dict[str, Any]:
+        return self.supervisor.stop()
 
     def drawn(self) -> int:
         with self.face.lock:
@@ -103,13 +94,6 @@ class ServoBench:
         frame = can.Message(arbitration_id=arbitration_id, data=data, is_fd=True)
         self.app.send(frame)
 
-    def stop(self) -> dict[str, Any]:
-        request(self.control, {"stop": True}, 30)
-        self.thread.join(timeout=60)
-        final = self.status()
-        assert final is not None and self.result == [0], self.result
-        return final
-
 
 @contextlib.contextmanager
 def guarded_servo(tmp: Path, *supervisor_args: str, **model: Any) -> Iterator[ServoBench]:
@@ -123,29 +107,18 @@ def guarded_servo(tmp: Path, *supervisor_args: str, **model: Any) -> Iterator[Se
     face = ServoFace(servo, can.Bus(interface="virtual", channel=channel))
     face.start()
     app = can.Bus(interface="virtual", channel=channel)
-    control = tmp / "ctl.sock"
-    argv = [
-        "supervisor",
+    args = (
         *("-i", "virtual", "-c", channel, "--fd"),
         *("--moteus", str(SERVO)),
-        *("--state", str(tmp / "s.json"), "--no-fsync"),
-        *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
-        *("--control", str(control)),
         *("--max-grant", "500mJ", "--response-timeout", "100ms"),
         *MOTOR,
         # threads on a loaded machine stall for 300 ms: a feedback gap is not what is tested
         *("--moteus-feedback-timeout", "2s", "--moteus-stop-timeout", "2s"),
         *supervisor_args,
-    ]
-    result: list[int] = []
-    thread = threading.Thread(target=lambda: result.append(canergy_main(argv)), daemon=True)
-    thread.start()
-    bench = ServoBench(tmp, servo, face, app, control, result, thread)
+    )
     try:
-        yield bench
+        with supervisor_thread(tmp, *args) as supervisor:
+            yield ServoBench(servo, face, app, supervisor)
     finally:
-        if thread.is_alive() and control.exists():
-            request(control, {"stop": True}, 30)
-        thread.join(timeout=60)
         face.close()
         app.shutdown()

@@ -6,9 +6,7 @@ application of our own on a third bus object (CAN Simple frames, ``send``).
 from __future__ import annotations
 
 import contextlib
-import json
 import struct
-import threading
 import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -17,12 +15,11 @@ from typing import Any
 
 import can
 
-from canergy.cli import main as canergy_main
 from canergy.devices.odrive import AxisState, Cmd, can_id, set_axis_state
-from canergy.live.supervisor.control import request
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.drive.motor import LoadTorque
 from firmware_model.odrive.axis import CURRENT_LIMIT_EP, VEL_LIMIT_EP, AxisFace, AxisModel
+from firmware_model.supervisor_thread import SupervisorThread, supervisor_thread
 
 AXIS = 3
 MOTOR = ("--odrive-torque-constant", "0.05", "--odrive-resistance", "0.5")
@@ -35,25 +32,19 @@ __all__ = ["AXIS", "AxisBench", "guarded_axis", "wait_for"]
 
 @dataclass
 class AxisBench:
-    tmp: Path
     model: AxisModel
     face: AxisFace
     app: can.BusABC
-    control: Path
-    result: list[int]
-    thread: threading.Thread
+    supervisor: SupervisorThread
 
     def status(self) -> dict[str, Any] | None:
-        try:
-            return dict(json.loads((self.tmp / "status.json").read_text()))
-        except (FileNotFoundError, json.JSONDecodeError):
-            return None
+        return self.supervisor.status()
 
     def axis_status(self) -> dict[str, Any] | None:
-        status = self.status()
-        if status is None:
-            return None
-        return dict(status["cia402"]["devices"]["odrive"][str(AXIS)])
+        return self.supervisor.device("odrive", AXIS)
+
+    def stop(self) -> dict[str, Any]:
+        return self.supervisor.stop()
 
     def drawn(self) -> int:
         with self.face.lock:
@@ -69,13 +60,6 @@ class AxisBench:
         self.send(Cmd.CLEAR_ERRORS, b"\x00")
         self.send(Cmd.SET_AXIS_STATE, set_axis_state(AxisState.CLOSED_LOOP_CONTROL))
         self.send(Cmd.SET_INPUT_TORQUE, struct.pack("<f", torque))
-
-    def stop(self) -> dict[str, Any]:
-        request(self.control, {"stop": True}, 30)
-        self.thread.join(timeout=60)
-        final = self.status()
-        assert final is not None and self.result == [0], self.result
-        return final
 
 
 @contextlib.contextmanager
@@ -97,29 +81,18 @@ def guarded_axis(
     face = AxisFace(axis, can.Bus(interface="virtual", channel=channel))
     face.start()
     app = can.Bus(interface="virtual", channel=channel)
-    control = tmp / "ctl.sock"
-    argv = [
-        "supervisor",
+    args = (
         *("-i", "virtual", "-c", channel),
         *("--odrive", str(AXIS), "--odrive-firmware", firmware),
-        *("--state", str(tmp / "s.json"), "--no-fsync"),
-        *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
-        *("--control", str(control)),
         *("--max-grant", "500mJ", "--response-timeout", "100ms"),
         *MOTOR,
         # threads on a loaded machine stall for 300 ms: a feedback gap is not what is tested
         *("--odrive-feedback-timeout", "2s", "--odrive-stop-timeout", "2s"),
         *supervisor_args,
-    ]
-    result: list[int] = []
-    thread = threading.Thread(target=lambda: result.append(canergy_main(argv)), daemon=True)
-    thread.start()
-    bench = AxisBench(tmp, axis, face, app, control, result, thread)
+    )
     try:
-        yield bench
+        with supervisor_thread(tmp, *args) as supervisor:
+            yield AxisBench(axis, face, app, supervisor)
     finally:
-        if thread.is_alive() and control.exists():
-            request(control, {"stop": True}, 30)
-        thread.join(timeout=60)
         face.close()
         app.shutdown()

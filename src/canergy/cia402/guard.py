@@ -47,7 +47,7 @@ from canergy.cia402.watch import (
     powerless,
 )
 from canergy.core import Timing
-from canergy.devices.proxy import ProxyBooks
+from canergy.devices.proxy import EXHAUSTED, NO_BUDGET, ProxyBooks
 from canergy.messages import QUANTUM_UJ, Message, ToClient
 
 CW_QUICK_STOP = 0x0002
@@ -171,7 +171,7 @@ class DriveGuard(ProxyBooks):
         self.last_counter_at: int | None = None
         self.phase = GuardPhase.STOPPED  # nothing granted yet: the drive must not run
         self.phase_at = now
-        self.stop_reason: str | None = "no budget yet"
+        self.stop_reason: str | None = NO_BUDGET
         self.latched = False
         """Stopped for lost TPDOs or refused limits: never re-enabled by the guard."""
         self.refused: str | None = None
@@ -465,7 +465,7 @@ class DriveGuard(ProxyBooks):
             self.metering.gap(now - (deadline - self.config.pdo_timeout_us))
             return "TPDOs stopped"
         if self.usable <= self.threshold_uj():
-            return "budget exhausted" if self.suspect is None else f"written: {self.suspect}"
+            return EXHAUSTED if self.suspect is None else f"written: {self.suspect}"
         if self.metering.sound and self.metering.setup is None:
             return "not set up yet"
         return None
@@ -481,6 +481,8 @@ class DriveGuard(ProxyBooks):
             self._stop(why, now)
         elif self.phase is GuardPhase.STOPPED and self._may_resume():
             self._set_phase(GuardPhase.RUNNING, None, now)
+        if self.phase is GuardPhase.STOPPED:
+            self.stop_reason = self.held_back(self.stop_reason, why)
         elif self.phase is GuardPhase.STOPPING:
             self._advance_stop(now)  # the cause went away (topped up, TPDOs back): finish first
         self._steer_limits(now)

@@ -36,7 +36,7 @@ from canergy.cia402.envelope import Bound, ceil_div
 from canergy.cia402.meter import FW_US_PER_UJ
 from canergy.core import Timing
 from canergy.devices.profile import L, Profile, Stop, WriteLimits
-from canergy.devices.proxy import ProxyBooks
+from canergy.devices.proxy import EXHAUSTED, NO_BUDGET, ProxyBooks
 from canergy.messages import QUANTUM_UJ, Message, ToClient
 
 FOREVER = 2**62
@@ -91,7 +91,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         self.commands: list[WriteLimits[L] | Stop] = []
         self.phase = GuardPhase.STOPPED
         self.phase_at = now
-        self.stop_reason: str | None = "no budget yet"
+        self.stop_reason: str | None = NO_BUDGET
         self.latched = False
         self.refused: str | None = None
         self.stuck: str | None = None
@@ -394,7 +394,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         if self.usable <= self.threshold_uj():
             if self.crossing is not None and now >= self.crossing:
                 self.reaction_max_us = max(self.reaction_max_us, now - self.crossing)
-            return "budget exhausted"
+            return EXHAUSTED
         return None
 
     def _evaluate(self, now: int) -> list[Message]:
@@ -404,6 +404,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             self._stop(why, now)
         elif self.phase is GuardPhase.STOPPED and self._may_resume():
             self._set_phase(GuardPhase.RUNNING, None, now)
+        if self.phase is GuardPhase.STOPPED:
+            self.stop_reason = self.held_back(self.stop_reason, why)
         self._steer_limits(now)
         self._watch_stop(now)
         self.crossing = self._crossing()

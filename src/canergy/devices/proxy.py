@@ -19,6 +19,12 @@ from canergy.core import Action, Client, ClientCommitted, Credited, Send, Timing
 from canergy.core.state import Phase
 from canergy.messages import LEVEL_MAX_MJ, QUANTUM_UJ, Message, Telemetry
 
+NO_BUDGET = "no budget yet"
+"""A guard's stop reason before its device was first released."""
+EXHAUSTED = "budget exhausted"
+HELD = "held: "
+"""The start of the stop reason of a device whose budget does not reach where it would stop."""
+
 
 class ProxyBooks:
     """A guard's proxy client, its debt and its TELEMETRY."""
@@ -86,6 +92,25 @@ class ProxyBooks:
             return []
         self.debt_uj -= pay
         return self._carry_out(self.client.spend(pay, now), now)
+
+    def held_back(self, reason: str | None, why: str | None) -> str | None:
+        """The stop reason of a device not released since it was set up (``reason``) while the
+        guard's rules say nothing but the budget keeps it (``why``: None, or "budget
+        exhausted"): while its proxy holds budget, what it holds against what it needs (where
+        the guard stops: the bound at its limits, with the reaction and latency it measured,
+        and the reserve), so the status and the supervisor's report say why, not "no budget
+        yet". Any other reason is returned as it is."""
+        if reason != NO_BUDGET and not (reason or "").startswith(HELD):
+            return reason
+        if why not in (None, EXHAUSTED):
+            return reason
+        if self.usable <= 0:
+            return NO_BUDGET
+        return (
+            f"{HELD}{self.usable / 1e6:.3f} J in hand, {self.threshold_uj() / 1e6:.3f} J needed "
+            "to stop within the bound (raise the supervisor's --target and --max-grant, or lower "
+            "the limits)"
+        )
 
     def _proxy_due(self, now: int) -> list[Message]:
         """What the proxy sends at a wakeup: the outbox, and its timer's frames when due."""

@@ -7,6 +7,8 @@
  */
 #include "canergy/codec.h"
 
+#include "le.h"
+
 #include <string.h>
 
 enum field {
@@ -21,41 +23,39 @@ enum field {
     F_WITNESS    /* u8 */
 };
 
-#define MAX_FIELDS 4U
+/* A type's fields after the CRC byte, four bits each, the first in the low bits. */
+#define FIELDS(a, b, c, d) ((uint16_t)((a) | (b) << 4 | (c) << 8 | (d) << 12))
 
-/* Indexed by the 4-bit type code; an all-F_END row is an unknown type. */
-static const uint8_t layouts[16][MAX_FIELDS] = {
-    [CANERGY_INTENTION] = {F_TX, F_AMOUNT, F_DELIVERED},
-    [CANERGY_COMMIT] = {F_TX, F_AMOUNT, F_END},
-    [CANERGY_ABORT] = {F_TX, F_AMOUNT, F_END},
-    [CANERGY_RETURN_ACK] = {F_SEQ, F_END, F_END},
-    [CANERGY_STATUS_REQUEST] = {F_TX, F_END, F_END},
-    [CANERGY_FINAL_ACK] = {F_TX, F_END, F_END},
-    [CANERGY_ADMIT] = {F_NONCE, F_TX, F_SEQ},
-    [CANERGY_ACK] = {F_TX, F_END, F_END},
-    [CANERGY_COMMITTED] = {F_TX, F_END, F_END},
-    [CANERGY_ABORTED] = {F_TX, F_END, F_END},
-    [CANERGY_RETURN] = {F_SEQ, F_AMOUNT, F_END},
-    [CANERGY_TELEMETRY] = {F_LEVEL, F_FLAGS, F_SEQ, F_WITNESS},
-    [CANERGY_JOIN] = {F_NONCE, F_END, F_END},
-    [CANERGY_DEBIT] = {F_NONCE, F_FLAGS, F_SEQ, F_AMOUNT},
+/* Indexed by the 4-bit type code; 0 (no field) is an unknown type. */
+static const uint16_t layouts[16] = {
+    [CANERGY_INTENTION] = FIELDS(F_TX, F_AMOUNT, F_DELIVERED, F_END),
+    [CANERGY_COMMIT] = FIELDS(F_TX, F_AMOUNT, F_END, F_END),
+    [CANERGY_ABORT] = FIELDS(F_TX, F_AMOUNT, F_END, F_END),
+    [CANERGY_RETURN_ACK] = FIELDS(F_SEQ, F_END, F_END, F_END),
+    [CANERGY_STATUS_REQUEST] = FIELDS(F_TX, F_END, F_END, F_END),
+    [CANERGY_FINAL_ACK] = FIELDS(F_TX, F_END, F_END, F_END),
+    [CANERGY_ADMIT] = FIELDS(F_NONCE, F_TX, F_SEQ, F_END),
+    [CANERGY_ACK] = FIELDS(F_TX, F_END, F_END, F_END),
+    [CANERGY_COMMITTED] = FIELDS(F_TX, F_END, F_END, F_END),
+    [CANERGY_ABORTED] = FIELDS(F_TX, F_END, F_END, F_END),
+    [CANERGY_RETURN] = FIELDS(F_SEQ, F_AMOUNT, F_END, F_END),
+    [CANERGY_TELEMETRY] = FIELDS(F_LEVEL, F_FLAGS, F_SEQ, F_WITNESS),
+    [CANERGY_JOIN] = FIELDS(F_NONCE, F_END, F_END, F_END),
+    [CANERGY_DEBIT] = FIELDS(F_NONCE, F_FLAGS, F_SEQ, F_AMOUNT),
 };
 
-static size_t field_width(uint8_t f)
-{
-    if (f == F_FLAGS || f == F_WITNESS) {
-        return 1U;
-    }
-    return (f == F_DELIVERED || f == F_LEVEL) ? 3U : 2U;
-}
+/* Bytes on the wire, by field. */
+static const uint8_t widths[] = {
+    [F_TX] = 2U, [F_SEQ] = 2U, [F_NONCE] = 2U, [F_AMOUNT] = 2U, [F_DELIVERED] = 3U,
+    [F_LEVEL] = 3U, [F_FLAGS] = 1U, [F_WITNESS] = 1U,
+};
 
 /* 0 for an unknown type code. */
 static size_t layout_dlc(uint32_t code)
 {
-    const uint8_t *fields = layouts[code & 0xFU];
     size_t dlc = 0U;
-    for (size_t i = 0U; i < MAX_FIELDS && fields[i] != F_END; i++) {
-        dlc += field_width(fields[i]);
+    for (unsigned fields = layouts[code & 0xFU]; fields != 0U; fields >>= 4) {
+        dlc += widths[fields & 0xFU];
     }
     return dlc == 0U ? 0U : dlc + 1U;
 }
@@ -65,10 +65,10 @@ size_t canergy_data_length(uint32_t type)
     return type > 0xFU ? 0U : layout_dlc(type);
 }
 
+/* A required amount is the second field (DEBIT's, the fourth, is optional). */
 static bool has_amount(uint32_t code)
 {
-    const uint8_t *fields = layouts[code & 0xFU];
-    return fields[1] == F_AMOUNT; /* a required amount is the second field (DEBIT's: optional) */
+    return (layouts[code & 0xFU] >> 4 & 0xFU) == F_AMOUNT;
 }
 
 /* DEBIT is a draw (DRAW alone, an amount, no nonce), a resume (START, DRAW optional), or a
@@ -161,16 +161,14 @@ int canergy_encode(uint32_t id_base, const struct canergy_msg *msg, struct caner
     }
     uint8_t data[8] = {0};
     size_t at = 1U;
-    for (size_t i = 0U; i < MAX_FIELDS && layouts[code][i] != F_END; i++) {
-        const uint8_t f = layouts[code][i];
+    for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
+        const uint8_t f = (uint8_t)(fields & 0xFU);
         const uint32_t v = field_value(msg, f);
-        const size_t width = field_width(f);
-        if (width == 3U && v > CANERGY_WIDE_MAX) {
-            return CANERGY_ERR_ARGUMENT;
+        if (v > CANERGY_WIDE_MAX) {
+            return CANERGY_ERR_ARGUMENT; /* only a 24-bit field's value can be wider */
         }
-        for (size_t b = 0U; b < width; b++) {
-            data[at++] = (uint8_t)(v >> (8U * b));
-        }
+        le_put(&data[at], v, widths[f]);
+        at += widths[f];
     }
     data[0] = frame_crc(code, msg->node, &data[1], dlc - 1U);
     out->id = id_base | code << 8 | msg->node;
@@ -234,13 +232,10 @@ enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy
     m.type = (uint8_t)code;
     m.node = (uint8_t)node;
     size_t at = 1U;
-    for (size_t i = 0U; i < MAX_FIELDS && layouts[code][i] != F_END; i++) {
-        const uint8_t f = layouts[code][i];
-        uint32_t v = 0U;
-        for (size_t b = 0U; b < field_width(f); b++) {
-            v |= (uint32_t)d[at++] << (8U * b);
-        }
-        set_field(&m, f, v);
+    for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
+        const uint8_t f = (uint8_t)(fields & 0xFU);
+        set_field(&m, f, le_get(&d[at], widths[f]));
+        at += widths[f];
     }
     if ((has_amount(code) && m.amount_mj == 0U) || (code == CANERGY_DEBIT && !debit_valid(&m))) {
         return CANERGY_DECODE_OUT_OF_RANGE;

@@ -18,6 +18,7 @@
 #include "canergy/assert.h"
 
 #include "client_internal.h"
+#include "codec_internal.h"
 #include "serial.h"
 
 #include <string.h>
@@ -32,33 +33,24 @@ void canergy_internal_out_clear(struct canergy_out *out)
     memset(out, 0, sizeof *out);
 }
 
-void canergy_internal_send(const struct canergy_client *c, const struct canergy_msg *msg,
+void canergy_internal_send(const struct canergy_client *c, uint8_t type, const uint32_t fields[4],
                            struct canergy_out *out)
 {
     /* Never full by construction (CANERGY_OUT_FRAMES counts the worst step); a frame that did
      * not fit would be a lost frame, which the protocol survives. */
     if (out->frame_count < CANERGY_OUT_FRAMES &&
-        canergy_encode(c->id_base, msg, &out->frames[out->frame_count]) == CANERGY_OK) {
+        canergy_internal_encode(c->id_base, type, c->node, fields,
+                                &out->frames[out->frame_count]) == CANERGY_OK) {
         out->frame_count++;
     }
 }
 
+/* JOIN(nonce), RETURN(seq, amount), ACK/COMMITTED/ABORTED(tx): the counter is the first field. */
 static void send(const struct canergy_client *c, uint8_t type, uint16_t counter,
                  uint16_t amount_mj, struct canergy_out *out)
 {
-    struct canergy_msg m;
-    memset(&m, 0, sizeof m);
-    m.type = type;
-    m.node = c->node;
-    if (type == CANERGY_RETURN) {
-        m.seq = counter;
-    } else if (type == CANERGY_JOIN) {
-        m.nonce = counter;
-    } else {
-        m.tx = counter;
-    }
-    m.amount_mj = amount_mj;
-    canergy_internal_send(c, &m, out);
+    const uint32_t fields[4] = {counter, amount_mj, 0U, 0U};
+    canergy_internal_send(c, type, fields, out);
 }
 
 /* The confirmation of a resolved transaction: none when it was settled or written off. */
@@ -286,15 +278,13 @@ static bool witnessed(const struct canergy_client *c)
 static void send_debit(const struct canergy_client *c, bool start, struct canergy_out *out)
 {
     const bool draw = (c->rec.flags & CANERGY_RECORD_PENDING_DRAW) != 0U;
-    struct canergy_msg m;
-    memset(&m, 0, sizeof m);
-    m.type = CANERGY_DEBIT;
-    m.node = c->node;
-    m.nonce = start ? c->nonce : 0U;
-    m.flags = (uint8_t)((start ? CANERGY_DEBIT_START : 0U) | (draw ? CANERGY_DEBIT_DRAW : 0U));
-    m.seq = (uint16_t)c->rec.return_seq;
-    m.amount_mj = (uint16_t)(c->rec.return_pending_uj / MJ);
-    canergy_internal_send(c, &m, out);
+    const uint32_t fields[4] = {
+        start ? c->nonce : 0U,
+        (start ? CANERGY_DEBIT_START : 0U) | (draw ? CANERGY_DEBIT_DRAW : 0U),
+        (uint16_t)c->rec.return_seq,
+        (uint16_t)(c->rec.return_pending_uj / MJ),
+    }; /* DEBIT: nonce, flags, seq, amount */
+    canergy_internal_send(c, CANERGY_DEBIT, fields, out);
 }
 
 /* The answer to SYNC(n) (witnessed.answer_of): the books (n, Rc: 24 bits; Rc unknown after an
@@ -302,19 +292,16 @@ static void send_debit(const struct canergy_client *c, bool start, struct canerg
 static void send_sync_answer(const struct canergy_client *c, struct canergy_out *out)
 {
     const bool unknown = (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U;
-    struct canergy_msg m;
-    memset(&m, 0, sizeof m);
-    m.type = CANERGY_DEBIT;
-    m.node = c->node;
-    m.nonce = c->nonce;
-    m.flags = (uint8_t)(CANERGY_DEBIT_BOOKS | (unknown ? CANERGY_DEBIT_RC_UNKNOWN : 0U));
-    m.seq = unknown ? 0U : (uint16_t)c->rec.credited_mj;
-    m.amount_mj = unknown ? 0U : (uint16_t)((c->rec.credited_mj >> 16) & 0xFFU);
-    canergy_internal_send(c, &m, out);
-    m.flags = CANERGY_DEBIT_COUNTS;
-    m.seq = (uint16_t)c->rec.return_seq;
-    m.amount_mj = (uint16_t)c->rec.last_tx;
-    canergy_internal_send(c, &m, out);
+    const uint32_t books[4] = {
+        c->nonce,
+        CANERGY_DEBIT_BOOKS | (unknown ? CANERGY_DEBIT_RC_UNKNOWN : 0U),
+        unknown ? 0U : (uint16_t)c->rec.credited_mj,
+        unknown ? 0U : (c->rec.credited_mj >> 16) & 0xFFU,
+    };
+    canergy_internal_send(c, CANERGY_DEBIT, books, out);
+    const uint32_t counts[4] = {c->nonce, CANERGY_DEBIT_COUNTS, (uint16_t)c->rec.return_seq,
+                                (uint16_t)c->rec.last_tx};
+    canergy_internal_send(c, CANERGY_DEBIT, counts, out);
 }
 
 /* SYNC(n) (witnessed.answer_sync): the supervisor started, maybe from an older copy. Settle

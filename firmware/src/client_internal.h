@@ -23,7 +23,9 @@ int canergy_internal_draw(struct canergy_client *c, uint32_t uj, uint64_t now,
                           struct canergy_out *out);
 int canergy_internal_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,
                                struct canergy_out *out);
-void canergy_internal_send(const struct canergy_client *c, const struct canergy_msg *msg,
+/* A frame of type from the client's node, its fields in the type's layout order (codec.c):
+ * appended to out (a frame the codec refuses is dropped). */
+void canergy_internal_send(const struct canergy_client *c, uint8_t type, const uint32_t fields[4],
                            struct canergy_out *out);
 
 struct canergy_node;

@@ -7,6 +7,7 @@
  */
 #include "canergy/codec.h"
 
+#include "codec_internal.h"
 #include "le.h"
 
 #include <string.h>
@@ -146,35 +147,47 @@ static void set_field(struct canergy_msg *m, uint8_t f, uint32_t v)
     }
 }
 
+int canergy_internal_encode(uint32_t id_base, uint32_t code, uint32_t node,
+                            const uint32_t values[4], struct canergy_frame *out)
+{
+    const size_t dlc = layout_dlc(code);
+    if (has_amount(code) && values[1] == 0U) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    uint8_t data[8] = {0};
+    size_t at = 1U;
+    const uint32_t *v = values;
+    for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
+        const uint8_t width = widths[fields & 0xFU];
+        if (width == 3U && *v > CANERGY_WIDE_MAX) {
+            return CANERGY_ERR_ARGUMENT;
+        }
+        le_put(&data[at], *v++, width);
+        at += width;
+    }
+    data[0] = frame_crc(code, node, &data[1], dlc - 1U);
+    out->id = id_base | code << 8 | node;
+    out->dlc = (uint8_t)dlc;
+    memcpy(out->data, data, sizeof data);
+    return CANERGY_OK;
+}
+
 int canergy_encode(uint32_t id_base, const struct canergy_msg *msg, struct canergy_frame *out)
 {
     if (msg == NULL || out == NULL || !canergy_id_base_valid(id_base)) {
         return CANERGY_ERR_ARGUMENT;
     }
     const uint32_t code = msg->type;
-    const size_t dlc = layout_dlc(code);
-    if (code > 0xFU || dlc == 0U || msg->node < CANERGY_MIN_NODE || msg->node > CANERGY_MAX_NODE) {
+    if (code > 0xFU || layout_dlc(code) == 0U || msg->node < CANERGY_MIN_NODE ||
+        msg->node > CANERGY_MAX_NODE) {
         return CANERGY_ERR_ARGUMENT;
     }
-    if (has_amount(code) && msg->amount_mj == 0U) {
-        return CANERGY_ERR_ARGUMENT;
-    }
-    uint8_t data[8] = {0};
-    size_t at = 1U;
+    uint32_t values[4] = {0U, 0U, 0U, 0U};
+    uint32_t *v = values;
     for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
-        const uint8_t f = (uint8_t)(fields & 0xFU);
-        const uint32_t v = field_value(msg, f);
-        if (v > CANERGY_WIDE_MAX) {
-            return CANERGY_ERR_ARGUMENT; /* only a 24-bit field's value can be wider */
-        }
-        le_put(&data[at], v, widths[f]);
-        at += widths[f];
+        *v++ = field_value(msg, (uint8_t)(fields & 0xFU));
     }
-    data[0] = frame_crc(code, msg->node, &data[1], dlc - 1U);
-    out->id = id_base | code << 8 | msg->node;
-    out->dlc = (uint8_t)dlc;
-    memcpy(out->data, data, sizeof data);
-    return CANERGY_OK;
+    return canergy_internal_encode(id_base, code, msg->node, values, out);
 }
 
 static bool wrong_way(uint32_t code, enum canergy_direction expect)

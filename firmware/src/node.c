@@ -18,19 +18,16 @@ static bool is_low(const struct canergy_node *n)
 static void send_telemetry(struct canergy_node *n, uint64_t now, struct canergy_out *out)
 {
     const uint32_t level = n->client.rec.usable_uj / MJ;
-    struct canergy_msg m;
-    memset(&m, 0, sizeof m);
-    m.type = CANERGY_TELEMETRY;
-    m.node = n->client.node;
-    m.level_mj = level > CANERGY_WIDE_MAX ? CANERGY_WIDE_MAX : level; /* saturating */
-    m.flags = (uint8_t)((is_low(n) ? CANERGY_TELEMETRY_LOW : 0U) |
-                        (n->halted ? CANERGY_TELEMETRY_HALTED : 0U) |
-                        (canergy_client_joining(&n->client) ? CANERGY_TELEMETRY_JOINING : 0U));
-    m.seq = (uint16_t)n->client.rec.return_seq; /* the number its RETURN frames carry */
-    m.witness = n->witness;
+    const uint32_t fields[4] = {
+        level > CANERGY_WIDE_MAX ? CANERGY_WIDE_MAX : level, /* saturating */
+        (is_low(n) ? CANERGY_TELEMETRY_LOW : 0U) | (n->halted ? CANERGY_TELEMETRY_HALTED : 0U) |
+            (canergy_client_joining(&n->client) ? CANERGY_TELEMETRY_JOINING : 0U),
+        (uint16_t)n->client.rec.return_seq, /* the number its RETURN frames carry */
+        n->witness,
+    }; /* TELEMETRY: level, flags, seq, witness */
     n->witness_reported = n->witness;
     n->next_telemetry = now + n->telemetry_period_us;
-    canergy_internal_send(&n->client, &m, out);
+    canergy_internal_send(&n->client, CANERGY_TELEMETRY, fields, out);
 }
 
 /* What the client's step means for the node: a new level is reported at once. */

@@ -103,6 +103,20 @@ static void drop_hold(struct canergy_client *c)
     c->deadline = CANERGY_NEVER;
 }
 
+static void return_timer(struct canergy_client *c, uint64_t now, struct canergy_out *out);
+
+/* A start waiting for the supervisor (JOINING, RESUMING, SYNCING): the hold dropped, its first
+ * frame at once (the return timer's), again every return_retry_us until the ADMIT. */
+static void wait_for_admit(struct canergy_client *c, uint8_t phase, uint16_t nonce, uint64_t now,
+                           struct canergy_out *out)
+{
+    drop_hold(c);
+    c->phase = phase;
+    c->nonce = nonce;
+    c->return_deadline = now;
+    return_timer(c, now, out);
+}
+
 static void resolved(struct canergy_client *c, uint32_t tx, uint8_t outcome)
 {
     c->rec.last_tx = tx;
@@ -315,13 +329,9 @@ static void answer_sync(struct canergy_client *c, uint16_t nonce, uint64_t now,
     if ((nonce & CANERGY_SYNC_CONFIRMED) != 0U) {
         return; /* no SYNC (its nonce has the bit clear): maybe a confirmation of earlier counts */
     }
-    drop_hold(c);
-    c->phase = CANERGY_SYNCING;
-    c->nonce = nonce;
     c->rec.last_tx = serial_capped(c->rec.last_tx + c->window);
     c->rec.outcome = CANERGY_OUTCOME_SETTLED;
-    c->return_deadline = serial_after(now, c->return_retry_us);
-    send_sync_answer(c, out);
+    wait_for_admit(c, CANERGY_SYNCING, nonce, now, out);
 }
 
 /* ADMIT(n, k, Q) answering this start (witnessed.on_confirm): Q = q + 1 confirms the books
@@ -365,9 +375,7 @@ static void on_confirm(struct canergy_client *c, const struct canergy_msg *m, ui
     c->return_deadline = CANERGY_NEVER;
     drop_hold(c);
     if (behind_ltx) { /* the start goes on: nothing moves until the counts are confirmed */
-        c->phase = CANERGY_SYNCING;
-        c->return_deadline = serial_after(now, c->return_retry_us);
-        send_sync_answer(c, out);
+        wait_for_admit(c, CANERGY_SYNCING, c->nonce, now, out);
         return;
     }
     out->events |= CANERGY_EV_ADMITTED;
@@ -415,11 +423,7 @@ static bool start_message(struct canergy_client *c, const struct canergy_msg *m,
 static void resume(struct canergy_client *c, uint16_t nonce, uint64_t now,
                    struct canergy_out *out)
 {
-    drop_hold(c);
-    c->phase = CANERGY_RESUMING;
-    c->nonce = nonce;
-    c->return_deadline = serial_after(now, c->return_retry_us);
-    send_debit(c, true, out);
+    wait_for_admit(c, CANERGY_RESUMING, nonce, now, out);
 }
 #endif
 
@@ -464,30 +468,29 @@ static void command_timer(struct canergy_client *c, uint64_t now, struct canergy
     send(c, CANERGY_COMMITTED, (uint16_t)tx, 0U, out);
 }
 
+/* JOIN, RESUME, the SYNC's answer or the pending debit again; the same number until acked. */
 static void return_timer(struct canergy_client *c, uint64_t now, struct canergy_out *out)
 {
     if (c->return_deadline > now) {
         return;
     }
     if (c->phase == CANERGY_JOINING) {
-        c->return_deadline = serial_after(now, c->return_retry_us);
         send(c, CANERGY_JOIN, c->nonce, 0U, out);
 #ifdef CANERGY_WITNESSED
     } else if (c->phase == CANERGY_RESUMING) {
-        c->return_deadline = serial_after(now, c->return_retry_us);
         send_debit(c, true, out);
     } else if (c->phase == CANERGY_SYNCING) {
-        c->return_deadline = serial_after(now, c->return_retry_us);
         send_sync_answer(c, out);
     } else if ((c->rec.flags & CANERGY_RECORD_PENDING_DRAW) != 0U) {
-        c->return_deadline = serial_after(now, c->return_retry_us); /* same number until acked */
         send_debit(c, false, out);
 #endif
     } else if (c->rec.return_pending_uj != 0U) {
-        c->return_deadline = serial_after(now, c->return_retry_us); /* same number until acked */
         send(c, CANERGY_RETURN, (uint16_t)c->rec.return_seq,
              (uint16_t)(c->rec.return_pending_uj / MJ), out);
+    } else {
+        return;
     }
+    c->return_deadline = serial_after(now, c->return_retry_us);
 }
 
 static void restart(struct canergy_client *c, uint16_t nonce, uint64_t now,
@@ -512,11 +515,7 @@ static void restart(struct canergy_client *c, uint16_t nonce, uint64_t now,
 static void join(struct canergy_client *c, uint16_t nonce, uint64_t now, struct canergy_out *out)
 {
     memset(&c->rec, 0, sizeof c->rec);
-    drop_hold(c);
-    c->phase = CANERGY_JOINING;
-    c->nonce = nonce;
-    c->return_deadline = now;
-    return_timer(c, now, out);
+    wait_for_admit(c, CANERGY_JOINING, nonce, now, out);
 }
 
 /* -- entry points: each clears *out, or appends for the node layer ------------------------ */

@@ -81,6 +81,14 @@ static void persist(struct canergy_client *c, const uint8_t record[CANERGY_NV_RE
     canergy_nv_slot_encode(out->nv_counter, record, CANERGY_NV_RECORD_SIZE, out->nv_image);
 }
 
+/* Persist the record as it is now: a step that changed it for certain. */
+void canergy_internal_repack(struct canergy_client *c, struct canergy_out *out)
+{
+    uint8_t rec[CANERGY_NV_RECORD_SIZE];
+    canergy_record_pack(&c->rec, rec);
+    persist(c, rec, out);
+}
+
 /* Persist when the step changed the record (Python's client_record before != after). */
 static void persist_if_changed(struct canergy_client *c,
                                const uint8_t before[CANERGY_NV_RECORD_SIZE],
@@ -89,7 +97,7 @@ static void persist_if_changed(struct canergy_client *c,
     uint8_t now_rec[CANERGY_NV_RECORD_SIZE];
     canergy_record_pack(&c->rec, now_rec);
     if (memcmp(before, now_rec, sizeof now_rec) != 0) {
-        persist(c, now_rec, out);
+        canergy_internal_repack(c, out);
     }
 }
 
@@ -464,6 +472,7 @@ static void command_timer(struct canergy_client *c, uint64_t now, struct canergy
     const uint32_t tx = c->held_tx;
     commit_into(c, c->held_amount_mj); /* safe: the intention's id never changes */
     resolved(c, tx, CANERGY_OUTCOME_COMMITTED);
+    canergy_internal_repack(c, out); /* changed for certain: ltx moved up to the held tx */
     out->events |= CANERGY_EV_TIMEOUT_COMMIT;
     send(c, CANERGY_COMMITTED, (uint16_t)tx, 0U, out);
 }
@@ -560,21 +569,12 @@ int canergy_client_on_frame(struct canergy_client *c, const struct canergy_rx_fr
     return canergy_internal_frame(c, frame, now, out, &m);
 }
 
-typedef void (*timer_cell)(struct canergy_client *c, uint64_t now, struct canergy_out *out);
-
-static void timer_step(struct canergy_client *c, timer_cell cell, uint64_t now,
-                       struct canergy_out *out)
-{
-    uint8_t before[CANERGY_NV_RECORD_SIZE];
-    canergy_record_pack(&c->rec, before);
-    cell(c, now, out);
-    persist_if_changed(c, before, out);
-}
-
+/* The command timer persists what it commits; the return timer only re-sends (no record
+ * changes). */
 void canergy_internal_timers(struct canergy_client *c, uint64_t now, struct canergy_out *out)
 {
-    timer_step(c, command_timer, now, out);
-    timer_step(c, return_timer, now, out);
+    command_timer(c, now, out);
+    return_timer(c, now, out);
 }
 
 void canergy_client_on_timer(struct canergy_client *c, uint64_t now, struct canergy_out *out)
@@ -589,7 +589,7 @@ void canergy_client_command_timer(struct canergy_client *c, uint64_t now, struct
 {
     if (client_ok(c, out)) {
         canergy_internal_out_clear(out);
-        timer_step(c, command_timer, now, out);
+        command_timer(c, now, out);
     }
 }
 
@@ -597,7 +597,7 @@ void canergy_client_return_timer(struct canergy_client *c, uint64_t now, struct 
 {
     if (client_ok(c, out)) {
         canergy_internal_out_clear(out);
-        timer_step(c, return_timer, now, out);
+        return_timer(c, now, out);
     }
 }
 
@@ -619,17 +619,8 @@ int canergy_internal_spend(struct canergy_client *c, uint32_t uj, struct canergy
     }
     c->rec.usable_uj -= uj;
     c->rec.spent_uj += uj;
-    uint8_t rec[CANERGY_NV_RECORD_SIZE];
-    canergy_record_pack(&c->rec, rec);
-    persist(c, rec, out);
+    canergy_internal_repack(c, out);
     return CANERGY_OK;
-}
-
-void canergy_internal_repack(struct canergy_client *c, struct canergy_out *out)
-{
-    uint8_t rec[CANERGY_NV_RECORD_SIZE];
-    canergy_record_pack(&c->rec, rec);
-    persist(c, rec, out);
 }
 
 int canergy_client_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out)
@@ -667,8 +658,8 @@ bool canergy_client_can_draw(const struct canergy_client *c)
 }
 
 /* Debit uj as the next numbered RETURN, or (witnessed) DRAW: persisted before it leaves. */
-static int debit(struct canergy_client *c, uint32_t uj, uint64_t now, uint8_t draw,
-                 struct canergy_out *out)
+int canergy_internal_debit(struct canergy_client *c, uint32_t uj, uint64_t now, uint8_t draw,
+                           struct canergy_out *out)
 {
     if (!canergy_client_can_give_back(c)) {
         return CANERGY_ERR_PHASE; /* one numbered debit at a time, none before admission */
@@ -681,9 +672,7 @@ static int debit(struct canergy_client *c, uint32_t uj, uint64_t now, uint8_t dr
     c->rec.return_pending_uj = uj;
     c->rec.flags |= draw;
     c->return_deadline = serial_after(now, c->return_retry_us);
-    uint8_t rec[CANERGY_NV_RECORD_SIZE];
-    canergy_record_pack(&c->rec, rec);
-    persist(c, rec, out);
+    canergy_internal_repack(c, out);
 #ifdef CANERGY_WITNESSED
     if (draw != 0U) {
         send_debit(c, false, out);
@@ -694,18 +683,12 @@ static int debit(struct canergy_client *c, uint32_t uj, uint64_t now, uint8_t dr
     return CANERGY_OK;
 }
 
-int canergy_internal_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,
-                               struct canergy_out *out)
-{
-    return debit(c, uj, now, 0U, out);
-}
-
 int canergy_internal_draw(struct canergy_client *c, uint32_t uj, uint64_t now,
                           struct canergy_out *out)
 {
 #ifdef CANERGY_WITNESSED
     if (witnessed(c)) {
-        return debit(c, uj, now, CANERGY_RECORD_PENDING_DRAW, out);
+        return canergy_internal_debit(c, uj, now, CANERGY_RECORD_PENDING_DRAW, out);
     }
 #endif
     (void)now;
@@ -729,7 +712,7 @@ int canergy_client_give_back(struct canergy_client *c, uint32_t uj, uint64_t now
         return CANERGY_ERR_ARGUMENT;
     }
     canergy_internal_out_clear(out);
-    return canergy_internal_give_back(c, uj, now, out);
+    return canergy_internal_debit(c, uj, now, 0U, out);
 }
 
 bool canergy_client_joining(const struct canergy_client *c)

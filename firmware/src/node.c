@@ -169,7 +169,7 @@ static void return_policy(struct canergy_node *n, uint64_t now, struct canergy_o
         excess = CANERGY_AMOUNT_MAX_MJ * MJ;
     }
     if (excess != 0U) {
-        (void)canergy_internal_give_back(&n->client, excess, now, out);
+        (void)canergy_internal_debit(&n->client, excess, now, 0U, out);
     }
 }
 

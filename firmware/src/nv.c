@@ -15,6 +15,8 @@
 
 #define HEAD_SIZE 6U /* u16 magic, u32 counter */
 #define CRC_AT (HEAD_SIZE + CANERGY_NV_RECORD_SIZE)
+/* The record's seven u32 words (usable, Rc, spent low and high, ltx, q, pending), then two bytes */
+#define RECORD_WORDS 7U
 
 uint32_t canergy_crc32(uint32_t crc, const uint8_t *data, size_t len)
 {
@@ -32,12 +34,16 @@ uint32_t canergy_crc32(uint32_t crc, const uint8_t *data, size_t len)
 
 void canergy_record_pack(const struct canergy_record *rec, uint8_t out[CANERGY_NV_RECORD_SIZE])
 {
-    le_put(&out[0], rec->usable_uj, 4U);
-    le_put(&out[4], rec->credited_mj, 4U);
-    le_put64(&out[8], rec->spent_uj);
-    le_put(&out[16], rec->last_tx, 4U);
-    le_put(&out[20], rec->return_seq, 4U);
-    le_put(&out[24], rec->return_pending_uj, 4U);
+    const uint32_t words[RECORD_WORDS] = {rec->usable_uj,
+                               rec->credited_mj,
+                               (uint32_t)rec->spent_uj,
+                               (uint32_t)(rec->spent_uj >> 32),
+                               rec->last_tx,
+                               rec->return_seq,
+                               rec->return_pending_uj};
+    for (size_t i = 0U; i < RECORD_WORDS; i++) {
+        le_put(&out[4U * i], words[i], 4U);
+    }
     out[28] = rec->outcome;
     out[29] = (uint8_t)(rec->flags & CANERGY_RECORD_FLAGS);
 }
@@ -51,14 +57,18 @@ static bool return_possible(uint32_t pending_uj)
 
 int canergy_record_unpack(const uint8_t in[CANERGY_NV_RECORD_SIZE], struct canergy_record *rec)
 {
+    uint32_t words[RECORD_WORDS];
+    for (size_t i = 0U; i < RECORD_WORDS; i++) {
+        words[i] = le_get(&in[4U * i], 4U);
+    }
     struct canergy_record r;
     memset(&r, 0, sizeof r);
-    r.usable_uj = le_get(&in[0], 4U); /* a u32 never exceeds USABLE_MAX_UJ */
-    r.credited_mj = le_get(&in[4], 4U);
-    r.spent_uj = le_get64(&in[8]);
-    r.last_tx = le_get(&in[16], 4U);
-    r.return_seq = le_get(&in[20], 4U);
-    r.return_pending_uj = le_get(&in[24], 4U);
+    r.usable_uj = words[0]; /* a u32 never exceeds USABLE_MAX_UJ */
+    r.credited_mj = words[1];
+    r.spent_uj = (uint64_t)words[3] << 32 | words[2];
+    r.last_tx = words[4];
+    r.return_seq = words[5];
+    r.return_pending_uj = words[6];
     r.outcome = in[28];
     r.flags = (uint8_t)(in[29] & CANERGY_RECORD_FLAGS);
     const bool draw_of_nothing =

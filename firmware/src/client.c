@@ -632,19 +632,13 @@ int canergy_client_spend(struct canergy_client *c, uint32_t uj, struct canergy_o
     return canergy_internal_spend(c, uj, out);
 }
 
+/* One numbered debit at a time, none numbered at the end, none before admission; witnessed
+ * (witnessed.can_debit), none while a start awaits its ADMIT either: the hardened rules have no
+ * phase beyond JOINING, so IDLE or HOLDING says both. */
 bool canergy_client_can_give_back(const struct canergy_client *c)
 {
-#ifdef CANERGY_WITNESSED
-    if (c != NULL && witnessed(c)) {
-        /* witnessed.can_debit: one numbered debit at a time, books confirmed, none numbered at
-         * the end */
-        return c->rec.return_pending_uj == 0U &&
-               (c->phase == CANERGY_IDLE || c->phase == CANERGY_HOLDING) &&
-               c->rec.return_seq < CANERGY_COUNTER_END - 1U;
-    }
-#endif
-    return c != NULL && c->rec.return_pending_uj == 0U && c->phase != CANERGY_JOINING &&
-           c->rec.return_seq < CANERGY_COUNTER_END - 1U; /* none numbered at the end */
+    return c != NULL && c->rec.return_pending_uj == 0U && c->phase <= CANERGY_HOLDING &&
+           c->rec.return_seq < CANERGY_COUNTER_END - 1U;
 }
 
 bool canergy_client_can_draw(const struct canergy_client *c)

@@ -60,17 +60,6 @@ static bool never_asked(const struct canergy_node *n, const struct canergy_msg *
     return m->type == CANERGY_ADMIT && !(n->joined && m->nonce == n->join_nonce);
 }
 
-/* A frame in the node's name that it did not send. */
-static bool witnessed(const struct canergy_node *n, const struct canergy_rx_frame *f, int result,
-                      const struct canergy_msg *m)
-{
-    if (result == CANERGY_DECODE_WRONG_DIRECTION) {
-        /* the codec checked the id block, the type and the node: is it this node's id? */
-        return (f->id & 0xFFU) == n->client.node;
-    }
-    return result == CANERGY_DECODE_OK && never_asked(n, m);
-}
-
 /* Periodic telemetry, and at once when the level has just fallen below the low-water mark. */
 static void telemetry_due(struct canergy_node *n, uint64_t now, struct canergy_out *out)
 {
@@ -121,18 +110,22 @@ int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame 
     /* an acknowledged DRAW is the actuator's now (spent grew by it) */
     n->released_uj += (uint32_t)(n->client.rec.spent_uj - spent);
 #endif
-    /* Count what was meant for this node: foreign frames and other nodes' replies (seen
-     * without acceptance filters) are no error of ours. */
-    if (result != CANERGY_DECODE_OK && result != CANERGY_RX_OTHER_NODE &&
-        result != CANERGY_DECODE_FOREIGN && result != CANERGY_DECODE_WRONG_DIRECTION &&
-        frame != NULL && (frame->id & 0xFFU) == n->client.node) {
-        n->decode_errors++;
-    }
     if ((out->events & CANERGY_EV_REFUSED) != 0U) {
         n->overflow_refused++;
     }
-    if (witnessed(n, frame, result, &m)) {
+    /* A frame with this node's id: witnessed when it is in the node's own direction (the codec
+     * checked the id block, the type and the node) or answers nothing the node sent; a decode
+     * error when the codec refused it otherwise. Foreign frames and other nodes' (seen without
+     * acceptance filters) are no error of ours. */
+    const bool own_id = frame != NULL && (frame->id & 0xFFU) == n->client.node;
+    const bool witnessed = result == CANERGY_DECODE_WRONG_DIRECTION
+                               ? own_id
+                               : result == CANERGY_DECODE_OK && never_asked(n, &m);
+    if (witnessed) {
         canergy_internal_witness(n, now, out);
+    } else if (own_id && result != CANERGY_DECODE_OK && result != CANERGY_RX_OTHER_NODE &&
+               result != CANERGY_DECODE_FOREIGN) {
+        n->decode_errors++;
     }
     after_client(n, now, out);
     return result;

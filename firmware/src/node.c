@@ -149,45 +149,42 @@ void canergy_node_poll(struct canergy_node *n, uint64_t now, struct canergy_out 
     telemetry_due(n, now, out);
 }
 
-/* Give back what exceeds return_above, in whole mJ, at most one frame's worth. */
+/* uj in whole mJ (rounded down), at most one frame's worth. */
+static uint32_t frame_worth(uint32_t uj)
+{
+    uj -= uj % MJ;
+    return uj < CANERGY_AMOUNT_MAX_MJ * MJ ? uj : CANERGY_AMOUNT_MAX_MJ * MJ;
+}
+
+/* Give back what exceeds return_above, in whole mJ, at most one frame's worth. The debit
+ * refuses, changing nothing, when none may be numbered now (one at a time) or it is 0. */
 static void return_policy(struct canergy_node *n, uint64_t now, struct canergy_out *out)
 {
     const uint32_t usable = n->client.rec.usable_uj;
-    if (!canergy_client_can_give_back(&n->client) || usable <= n->return_above_uj) {
-        return;
-    }
-    uint32_t excess = usable - n->return_above_uj;
-    excess -= excess % MJ;
-    if (excess > CANERGY_AMOUNT_MAX_MJ * MJ) {
-        excess = CANERGY_AMOUNT_MAX_MJ * MJ;
-    }
-    if (excess != 0U) {
-        (void)canergy_internal_debit(&n->client, excess, now, 0U, out);
+    if (usable > n->return_above_uj) {
+        (void)canergy_internal_debit(&n->client, frame_worth(usable - n->return_above_uj), now,
+                                     0U, out);
     }
 }
 
 #ifdef CANERGY_WITNESSED
 /* Witnessed: when what the actuator holds would not cover the next period, DRAW ahead (whole
- * mJ, at most a frame's worth and what usable holds); one debit at a time. */
+ * mJ, at most a frame's worth and what usable holds); the debit refuses, changing nothing,
+ * while one is pending or the books are not confirmed, and a chunk of 0. */
 static void draw_ahead(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
                        struct canergy_out *out)
 {
-    if (n->released_uj >= wanted_uj || !canergy_client_can_draw(&n->client)) {
+    if (n->released_uj >= wanted_uj) {
         return;
     }
-    uint32_t room = n->client.rec.usable_uj - n->client.rec.usable_uj % MJ;
-    if (room > CANERGY_AMOUNT_MAX_MJ * MJ) {
-        room = CANERGY_AMOUNT_MAX_MJ * MJ;
-    }
+    const uint32_t room = frame_worth(n->client.rec.usable_uj);
     uint32_t chunk = room; /* 32-bit only: no 64-bit division linked in */
     if (wanted_uj < room / CANERGY_DRAW_AHEAD) {
         const uint32_t ahead = wanted_uj * CANERGY_DRAW_AHEAD; /* below room: no overflow */
         chunk = (uint32_t)(ahead + (MJ - ahead % MJ) % MJ); /* up to whole mJ */
         chunk = chunk < room ? chunk : room;
     }
-    if (chunk != 0U) {
-        (void)canergy_internal_draw(&n->client, chunk, now, out);
-    }
+    (void)canergy_internal_debit(&n->client, chunk, now, CANERGY_RECORD_PENDING_DRAW, out);
 }
 #endif
 

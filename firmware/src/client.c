@@ -145,10 +145,10 @@ static void commit_into(struct canergy_client *c, uint16_t amount_mj)
 
 /* -- the cells ---------------------------------------------------------------------------- */
 
-/* A transaction ahead of ltx at or beyond CANERGY_COUNTER_END (Python's _beyond_end). */
-static bool beyond_end(const struct canergy_client *c, uint16_t wire)
+/* A transaction d ahead of ltx (serial16 of its wire tx) at or beyond CANERGY_COUNTER_END
+ * (Python's _beyond_end). */
+static bool beyond_end(const struct canergy_client *c, int32_t d)
 {
-    const int32_t d = serial16(wire, c->rec.last_tx);
     return d > 0 && c->rec.last_tx + (uint32_t)d >= CANERGY_COUNTER_END;
 }
 
@@ -157,25 +157,25 @@ static bool beyond_end(const struct canergy_client *c, uint16_t wire)
 static void on_intention(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
                          struct canergy_out *out)
 {
+    const int32_t d = serial16(m->tx, c->rec.last_tx); /* every rule below reads this ltx */
 #ifdef CANERGY_WITNESSED
     /* witnessed.on_intention: Gs pays back only from a fresh intention (k > ltx); one at or
      * below ltx may be of a supervisor history a SYNC discarded, its Gs held by nobody */
     if (c->rules == CANERGY_RULES_WITNESSED &&
         (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) == 0U) {
-        const int32_t old = serial16(m->tx, c->rec.last_tx);
-        if (old == 0) {
+        if (d == 0) {
             reply_for(c, c->rec.last_tx, c->rec.outcome, out);
         }
-        if (old <= 0) {
+        if (d <= 0) {
             return;
         }
     }
 #endif
-    if (beyond_end(c, m->tx)) {
+    if (beyond_end(c, d)) {
         return; /* no supervisor sends one: it would move ltx to the end of the numbering */
     }
     if ((c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U) {
-        if (serial16(m->tx, c->rec.last_tx) <= 0) {
+        if (d <= 0) {
             return; /* a frame of the node's earlier life */
         }
         c->rec.credited_mj = m->delivered_mj; /* admitted without books: Rc = Gs, no pay-back */
@@ -188,7 +188,6 @@ static void on_intention(struct canergy_client *c, const struct canergy_msg *m, 
         usable += (uint64_t)(uint32_t)gs * MJ;
         next.rec.credited_mj += (uint32_t)gs;
     }
-    const int32_t d = serial16(m->tx, c->rec.last_tx);
     const uint32_t tx = c->rec.last_tx + (uint32_t)d;
     if (d > 1) { /* everything below tx is settled by the supervisor */
         next.rec.last_tx = tx - 1U;
@@ -235,7 +234,7 @@ static void on_command(struct canergy_client *c, const struct canergy_msg *m,
         reply_for(c, c->rec.last_tx, c->rec.outcome, out); /* late ABORT after a commit too */
         return;
     }
-    if (d < 0 || beyond_end(c, m->tx)) {
+    if (d < 0 || beyond_end(c, d)) {
         return;
     }
     const uint32_t tx = c->rec.last_tx + (uint32_t)d;

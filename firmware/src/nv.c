@@ -130,36 +130,35 @@ static bool all_zero(const uint8_t *p, size_t n)
 
 void canergy_nv_load(const uint8_t *image, size_t len, struct canergy_nv_state *out)
 {
-    uint8_t payload[CANERGY_NV_SLOTS][CANERGY_NV_RECORD_SIZE];
-    uint32_t counter[CANERGY_NV_SLOTS] = {0U, 0U};
-    bool valid[CANERGY_NV_SLOTS] = {false, false};
-    bool damaged = false;
     memset(out, 0, sizeof *out);
     out->newest_slot = 1U; /* none valid: the first write goes to slot 0 */
     if (image == NULL) {
         len = 0U;
     }
+    bool found = false;
     for (size_t i = 0U; i < CANERGY_NV_SLOTS; i++) {
         const size_t n = slot_bytes(len, i);
         const uint8_t *raw = n != 0U ? &image[i * CANERGY_NV_SLOT_SIZE] : NULL;
-        valid[i] = canergy_nv_slot_decode(raw, n, &counter[i], payload[i]);
-        if (!valid[i] && n != 0U && !all_zero(raw, n)) {
-            damaged = true; /* a torn or corrupted write; an erased slot is not damage */
+        uint32_t counter = 0U;
+        uint8_t payload[CANERGY_NV_RECORD_SIZE];
+        if (!canergy_nv_slot_decode(raw, n, &counter, payload)) {
+            if (n != 0U && !all_zero(raw, n)) {
+                out->fallbacks = 1U; /* a torn or corrupted write; an erased slot is not damage */
+            }
+        } else if (!found || (uint32_t)(counter - out->counter) < 0x80000000UL) {
+            /* Both valid: slot 1 is newer when its counter is at most 2^31 - 1 ahead of slot
+             * 0's (serial-number order, so the choice survives the counter's wrap; equal:
+             * slot 1). */
+            found = true;
+            out->counter = counter;
+            out->newest_slot = (uint8_t)i;
         }
     }
-    out->fallbacks = damaged ? 1U : 0U;
-    if (!valid[0] && !valid[1]) {
+    if (!found) {
         return;
     }
-    /* Both valid: slot 1 is newer when its counter is at most 2^31 - 1 ahead of slot 0's
-     * (serial-number order, so the choice survives the counter's wrap; equal: slot 1). */
-    size_t pick = valid[1] ? 1U : 0U;
-    if (valid[0] && valid[1] && (uint32_t)(counter[1] - counter[0]) >= 0x80000000UL) {
-        pick = 0U;
-    }
-    out->counter = counter[pick];
-    out->newest_slot = (uint8_t)pick;
-    if (canergy_record_unpack(payload[pick], &out->record) == CANERGY_OK) {
+    const uint8_t *newest = &image[out->newest_slot * CANERGY_NV_SLOT_SIZE + HEAD_SIZE];
+    if (canergy_record_unpack(newest, &out->record) == CANERGY_OK) {
         out->books = true;
     } else {
         out->fallbacks++; /* the newest valid slot holds impossible values: no books */

@@ -767,8 +767,6 @@ int canergy_internal_start(struct canergy_client *c, const struct canergy_client
     c->return_retry_us = cfg->return_retry_us;
     c->rules = cfg->rules;
     c->window = cfg->window != 0U ? cfg->window : (uint16_t)CANERGY_DEFAULT_WINDOW;
-    c->deadline = CANERGY_NEVER;
-    c->return_deadline = CANERGY_NEVER;
     struct canergy_nv_state nv;
     canergy_nv_load(nv_image, nv_len, &nv);
     c->nv_counter = nv.counter;
@@ -778,6 +776,7 @@ int canergy_internal_start(struct canergy_client *c, const struct canergy_client
         nv.books = false; /* the witnessed rules' record: not books for these rules */
         nv.fallbacks++;
     }
+    /* Both arm the deadlines (drop_hold, the return timer). */
     if (nv.books) {
         c->rec = nv.record;
         restart(c, nonce, now, out); /* every start is a restart from the record */

@@ -85,11 +85,8 @@ int canergy_node_start(struct canergy_node *n, const struct canergy_node_config 
     n->low_water_uj = cfg->low_water_uj;
     n->return_above_uj = cfg->return_above_uj;
     n->next_telemetry = now; /* announce the level at boot */
-#ifdef CANERGY_WITNESSED
-    n->joined = canergy_client_joining(&n->client) || n->client.phase == CANERGY_RESUMING;
-#else
-    n->joined = canergy_client_joining(&n->client);
-#endif
+    /* JOINING or (witnessed) RESUMING: a start is never SYNCING */
+    n->joined = n->client.phase >= CANERGY_JOINING;
     n->join_nonce = nonce;
     return result;
 }

@@ -313,16 +313,17 @@ static void send_debit(const struct canergy_client *c, bool start, struct canerg
 static void send_sync_answer(const struct canergy_client *c, struct canergy_out *out)
 {
     const bool unknown = (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U;
-    const uint32_t books[4] = {
+    uint32_t fields[4] = {
         c->nonce,
         CANERGY_DEBIT_BOOKS | (unknown ? CANERGY_DEBIT_RC_UNKNOWN : 0U),
         unknown ? 0U : (uint16_t)c->rec.credited_mj,
         unknown ? 0U : (c->rec.credited_mj >> 16) & 0xFFU,
-    };
-    canergy_internal_send(c, CANERGY_DEBIT, books, out);
-    const uint32_t counts[4] = {c->nonce, CANERGY_DEBIT_COUNTS, (uint16_t)c->rec.return_seq,
-                                (uint16_t)c->rec.last_tx};
-    canergy_internal_send(c, CANERGY_DEBIT, counts, out);
+    }; /* DEBIT: nonce, flags, seq, amount */
+    canergy_internal_send(c, CANERGY_DEBIT, fields, out);
+    fields[1] = CANERGY_DEBIT_COUNTS;
+    fields[2] = (uint16_t)c->rec.return_seq;
+    fields[3] = (uint16_t)c->rec.last_tx;
+    canergy_internal_send(c, CANERGY_DEBIT, fields, out);
 }
 
 /* SYNC(n) (witnessed.answer_sync): the supervisor started, maybe from an older copy. Settle

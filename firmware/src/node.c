@@ -128,12 +128,11 @@ int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame 
     return result;
 }
 
+/* Each timer fires only when due (the first step of a call: out holds nothing before). */
 static void timers(struct canergy_node *n, uint64_t now, struct canergy_out *out)
 {
-    if (canergy_client_deadline(&n->client) <= now) {
-        canergy_internal_timers(&n->client, now, out);
-        after_client(n, now, out);
-    }
+    canergy_internal_timers(&n->client, now, out);
+    after_client(n, now, out);
 }
 
 void canergy_node_poll(struct canergy_node *n, uint64_t now, struct canergy_out *out)

@@ -197,42 +197,30 @@ static bool wrong_way(uint32_t code, enum canergy_direction expect)
            (expect == CANERGY_TO_SUPERVISOR && !from_client);
 }
 
-/* The identifier checks, in codec.py's order: only an exact id_base | known type | node 1..127
- * passes; what fails is FOREIGN outside the block, then UNKNOWN_TYPE, then BAD_NODE. */
-static enum canergy_decode_status check_id(uint32_t id_base, const struct canergy_rx_frame *f)
-{
-    if (!f->extended || (f->id & CANERGY_ID_MASK) != id_base) {
-        return CANERGY_DECODE_FOREIGN;
-    }
-    if (layout_dlc(f->id >> 8) == 0U) {
-        return CANERGY_DECODE_UNKNOWN_TYPE;
-    }
-    const uint32_t node = f->id & 0xFFU;
-    if (node < CANERGY_MIN_NODE || node > CANERGY_MAX_NODE || (f->id >> 29) != 0U) {
-        return CANERGY_DECODE_BAD_NODE;
-    }
-    return CANERGY_DECODE_OK;
-}
-
+/* The identifier checks come first, in codec.py's order: only an exact id_base | known type |
+ * node 1..127 passes; what fails is FOREIGN outside the block, then UNKNOWN_TYPE, then
+ * BAD_NODE. */
 enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy_rx_frame *frame,
                                           enum canergy_direction expect, struct canergy_msg *msg)
 {
-    if (frame == NULL) {
+    if (frame == NULL || !frame->extended || (frame->id & CANERGY_ID_MASK) != id_base) {
         return CANERGY_DECODE_FOREIGN;
     }
-    const enum canergy_decode_status id_status = check_id(id_base, frame);
-    if (id_status != CANERGY_DECODE_OK) {
-        return id_status;
-    }
     const uint32_t code = frame->id >> 8 & 0xFU;
+    const size_t dlc = layout_dlc(code);
+    if (dlc == 0U) {
+        return CANERGY_DECODE_UNKNOWN_TYPE;
+    }
     const uint32_t node = frame->id & 0xFFU;
+    if (node < CANERGY_MIN_NODE || node > CANERGY_MAX_NODE || (frame->id >> 29) != 0U) {
+        return CANERGY_DECODE_BAD_NODE;
+    }
     if (frame->remote) {
         return CANERGY_DECODE_REMOTE_FRAME;
     }
     if (wrong_way(code, expect)) {
         return CANERGY_DECODE_WRONG_DIRECTION;
     }
-    const size_t dlc = layout_dlc(code);
     if (frame->len != dlc || frame->data == NULL) {
         return CANERGY_DECODE_WRONG_DLC;
     }

@@ -61,16 +61,16 @@ int canergy_record_unpack(const uint8_t in[CANERGY_NV_RECORD_SIZE], struct caner
     for (size_t i = 0U; i < RECORD_WORDS; i++) {
         words[i] = le_get(&in[4U * i], 4U);
     }
-    struct canergy_record r;
-    memset(&r, 0, sizeof r);
-    r.usable_uj = words[0]; /* a u32 never exceeds USABLE_MAX_UJ */
-    r.credited_mj = words[1];
-    r.spent_uj = (uint64_t)words[3] << 32 | words[2];
-    r.last_tx = words[4];
-    r.return_seq = words[5];
-    r.return_pending_uj = words[6];
-    r.outcome = in[28];
-    r.flags = (uint8_t)(in[29] & CANERGY_RECORD_FLAGS);
+    const struct canergy_record r = {
+        .spent_uj = (uint64_t)words[3] << 32 | words[2],
+        .usable_uj = words[0], /* a u32 never exceeds USABLE_MAX_UJ */
+        .credited_mj = words[1],
+        .last_tx = words[4],
+        .return_seq = words[5],
+        .return_pending_uj = words[6],
+        .outcome = in[28],
+        .flags = (uint8_t)(in[29] & CANERGY_RECORD_FLAGS),
+    };
     const bool draw_of_nothing =
         (r.flags & CANERGY_RECORD_PENDING_DRAW) != 0U && r.return_pending_uj == 0U;
     if (r.outcome > CANERGY_OUTCOME_WRITTEN_OFF || !return_possible(r.return_pending_uj) ||

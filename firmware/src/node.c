@@ -98,7 +98,7 @@ int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame 
         return CANERGY_ERR_ARGUMENT;
     }
     canergy_internal_out_clear(out);
-    struct canergy_msg m;
+    struct canergy_msg m = {0}; /* read only when decoded: gcc -flto cannot tell */
 #ifdef CANERGY_WITNESSED
     const uint64_t spent = n->client.rec.spent_uj;
 #endif

@@ -178,11 +178,11 @@ int canergy_encode(uint32_t id_base, const struct canergy_msg *msg, struct caner
         return CANERGY_ERR_ARGUMENT;
     }
     const uint32_t code = msg->type;
-    if (code > 0xFU || layout_dlc(code) == 0U || msg->node < CANERGY_MIN_NODE ||
+    if (code > 0xFU || layouts[code] == 0U || msg->node < CANERGY_MIN_NODE ||
         msg->node > CANERGY_MAX_NODE) {
         return CANERGY_ERR_ARGUMENT;
     }
-    uint32_t values[4] = {0U, 0U, 0U, 0U};
+    uint32_t values[4]; /* the layout's fields: all that canergy_internal_encode reads */
     uint32_t *v = values;
     for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
         *v++ = field_value(msg, (uint8_t)(fields & 0xFU));

@@ -152,8 +152,9 @@ static bool beyond_end(const struct canergy_client *c, int32_t d)
     return d > 0 && c->rec.last_tx + (uint32_t)d >= CANERGY_COUNTER_END;
 }
 
-/* INTENTION(k, a, Gs). Worked out on a copy: Gs may pay back more than usable can hold, and
- * then nothing at all happens (Python's overflow refusal); usable is summed in 64 bits. */
+/* INTENTION(k, a, Gs). Worked out before anything changes: Gs may pay back more than usable can
+ * hold, and then nothing at all happens (Python's overflow refusal); usable is summed in 64
+ * bits. */
 static void on_intention(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
                          struct canergy_out *out)
 {
@@ -181,38 +182,39 @@ static void on_intention(struct canergy_client *c, const struct canergy_msg *m, 
         c->rec.credited_mj = m->delivered_mj; /* admitted without books: Rc = Gs, no pay-back */
         c->rec.flags &= (uint8_t)~CANERGY_RECORD_CREDITED_UNKNOWN;
     }
-    struct canergy_client next = *c;
-    uint64_t usable = c->rec.usable_uj;
+    /* pay back what the supervisor wrote off but this node never got */
     const int32_t gs = serial24(m->delivered_mj, c->rec.credited_mj);
-    if (gs > 0) { /* pay back what the supervisor wrote off but this node never got */
-        usable += (uint64_t)(uint32_t)gs * MJ;
-        next.rec.credited_mj += (uint32_t)gs;
-    }
+    const uint32_t paid_mj = gs > 0 ? (uint32_t)gs : 0U;
+    const uint64_t usable = c->rec.usable_uj + (uint64_t)paid_mj * MJ;
     const uint32_t tx = c->rec.last_tx + (uint32_t)d;
-    if (d > 1) { /* everything below tx is settled by the supervisor */
-        next.rec.last_tx = tx - 1U;
-        next.rec.outcome = CANERGY_OUTCOME_SETTLED;
-        if (next.phase == CANERGY_HOLDING && serial_before(next.held_tx, tx)) {
-            drop_hold(&next);
-        }
-    }
-    if (d > 0 && !(next.phase == CANERGY_HOLDING && next.held_tx == tx)) {
-        next.phase = CANERGY_HOLDING;
-        next.held_tx = tx;
-        next.held_amount_mj = m->amount_mj;
-        next.deadline = serial_after(now, c->command_timeout_us);
-    }
-    CANERGY_ASSERT(next.phase != CANERGY_HOLDING ||
-                   (uint32_t)(next.held_tx - next.rec.last_tx) - 1U < 0x7FFFUL); /* 1..32767 */
-    if (usable + (uint64_t)next.held_amount_mj * MJ > CANERGY_USABLE_MAX_UJ) {
+    /* held after the step: this intention, unless it is held already (a hold below tx is
+     * dropped when everything below tx is settled); nothing else changes the hold */
+    const bool hold = d > 0 && !(c->phase == CANERGY_HOLDING && c->held_tx == tx);
+    const uint16_t held_mj = hold ? m->amount_mj : c->held_amount_mj; /* 0 when none */
+    if (usable + (uint64_t)held_mj * MJ > CANERGY_USABLE_MAX_UJ) {
         out->events |= CANERGY_EV_REFUSED; /* left unanswered: re-sent, written off, paid later */
         return;
     }
-    next.rec.usable_uj = (uint32_t)usable;
-    *c = next;
-    if (gs > 0) {
+    c->rec.usable_uj = (uint32_t)usable;
+    c->rec.credited_mj += paid_mj;
+    if (paid_mj != 0U) {
         out->events |= CANERGY_EV_CREDITED;
     }
+    if (d > 1) { /* everything below tx is settled by the supervisor */
+        c->rec.last_tx = tx - 1U;
+        c->rec.outcome = CANERGY_OUTCOME_SETTLED;
+        if (c->phase == CANERGY_HOLDING && serial_before(c->held_tx, tx)) {
+            drop_hold(c);
+        }
+    }
+    if (hold) {
+        c->phase = CANERGY_HOLDING;
+        c->held_tx = tx;
+        c->held_amount_mj = m->amount_mj;
+        c->deadline = serial_after(now, c->command_timeout_us);
+    }
+    CANERGY_ASSERT(c->phase != CANERGY_HOLDING ||
+                   (uint32_t)(c->held_tx - c->rec.last_tx) - 1U < 0x7FFFUL); /* 1..32767 */
     if (d > 0) {
         send(c, CANERGY_ACK, m->tx, 0U, out);
     } else if (d == 0) {

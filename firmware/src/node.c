@@ -203,8 +203,8 @@ uint32_t canergy_node_draw(struct canergy_node *n, uint32_t wanted_uj, uint64_t 
     {
         const uint32_t usable = n->client.rec.usable_uj;
         take = wanted_uj < usable ? wanted_uj : usable;
-        if (take != 0U && canergy_internal_spend(&n->client, take, out) != CANERGY_OK) {
-            take = 0U; /* joining: nothing to spend */
+        if (canergy_internal_spend(&n->client, take, out) != CANERGY_OK) {
+            take = 0U; /* joining, or nothing to spend: refused, nothing changed */
         }
     }
     n->halted = take < wanted_uj;

@@ -198,7 +198,7 @@ def live(seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
     nonce = next(nonces)
     monkeypatch.setattr(firmware_node.secrets, "randbits", lambda bits: nonce)
     config = PyNodeConfig(
-        power=PowerProfile.constant(rng.choice([0.05, 0.2, 1.5])),
+        power=PowerProfile.constant(rng.choice([0.05, 0.2, 1.5, 0.0337])),  # 3.37 mJ a tick
         tick_us=100_000,
         telemetry_period_us=rng.choice([300_000, 1_000_000]),
         low_water=rng.choice([0, 50_000, 400_000]),

@@ -18,6 +18,7 @@
 #include "canergy/assert.h"
 
 #include "client_internal.h"
+#include "codec_internal.h"
 #include "serial.h"
 
 #include <string.h>
@@ -32,33 +33,24 @@ void canergy_internal_out_clear(struct canergy_out *out)
     memset(out, 0, sizeof *out);
 }
 
-void canergy_internal_send(const struct canergy_client *c, const struct canergy_msg *msg,
+void canergy_internal_send(const struct canergy_client *c, uint8_t type, const uint32_t fields[4],
                            struct canergy_out *out)
 {
     /* Never full by construction (CANERGY_OUT_FRAMES counts the worst step); a frame that did
      * not fit would be a lost frame, which the protocol survives. */
     if (out->frame_count < CANERGY_OUT_FRAMES &&
-        canergy_encode(c->id_base, msg, &out->frames[out->frame_count]) == CANERGY_OK) {
+        canergy_internal_encode(c->id_base, type, c->node, fields,
+                                &out->frames[out->frame_count]) == CANERGY_OK) {
         out->frame_count++;
     }
 }
 
+/* JOIN(nonce), RETURN(seq, amount), ACK/COMMITTED/ABORTED(tx): the counter is the first field. */
 static void send(const struct canergy_client *c, uint8_t type, uint16_t counter,
                  uint16_t amount_mj, struct canergy_out *out)
 {
-    struct canergy_msg m;
-    memset(&m, 0, sizeof m);
-    m.type = type;
-    m.node = c->node;
-    if (type == CANERGY_RETURN) {
-        m.seq = counter;
-    } else if (type == CANERGY_JOIN) {
-        m.nonce = counter;
-    } else {
-        m.tx = counter;
-    }
-    m.amount_mj = amount_mj;
-    canergy_internal_send(c, &m, out);
+    const uint32_t fields[4] = {counter, amount_mj, 0U, 0U};
+    canergy_internal_send(c, type, fields, out);
 }
 
 /* The confirmation of a resolved transaction: none when it was settled or written off. */
@@ -89,6 +81,14 @@ static void persist(struct canergy_client *c, const uint8_t record[CANERGY_NV_RE
     canergy_nv_slot_encode(out->nv_counter, record, CANERGY_NV_RECORD_SIZE, out->nv_image);
 }
 
+/* Persist the record as it is now: a step that changed it for certain. */
+void canergy_internal_repack(struct canergy_client *c, struct canergy_out *out)
+{
+    uint8_t rec[CANERGY_NV_RECORD_SIZE];
+    canergy_record_pack(&c->rec, rec);
+    persist(c, rec, out);
+}
+
 /* Persist when the step changed the record (Python's client_record before != after). */
 static void persist_if_changed(struct canergy_client *c,
                                const uint8_t before[CANERGY_NV_RECORD_SIZE],
@@ -97,7 +97,7 @@ static void persist_if_changed(struct canergy_client *c,
     uint8_t now_rec[CANERGY_NV_RECORD_SIZE];
     canergy_record_pack(&c->rec, now_rec);
     if (memcmp(before, now_rec, sizeof now_rec) != 0) {
-        persist(c, now_rec, out);
+        canergy_internal_repack(c, out);
     }
 }
 
@@ -109,6 +109,20 @@ static void drop_hold(struct canergy_client *c)
     c->held_tx = 0U;
     c->held_amount_mj = 0U;
     c->deadline = CANERGY_NEVER;
+}
+
+static void return_timer(struct canergy_client *c, uint64_t now, struct canergy_out *out);
+
+/* A start waiting for the supervisor (JOINING, RESUMING, SYNCING): the hold dropped, its first
+ * frame at once (the return timer's), again every return_retry_us until the ADMIT. */
+static void wait_for_admit(struct canergy_client *c, uint8_t phase, uint16_t nonce, uint64_t now,
+                           struct canergy_out *out)
+{
+    drop_hold(c);
+    c->phase = phase;
+    c->nonce = nonce;
+    c->return_deadline = now;
+    return_timer(c, now, out);
 }
 
 static void resolved(struct canergy_client *c, uint32_t tx, uint8_t outcome)
@@ -131,75 +145,76 @@ static void commit_into(struct canergy_client *c, uint16_t amount_mj)
 
 /* -- the cells ---------------------------------------------------------------------------- */
 
-/* A transaction ahead of ltx at or beyond CANERGY_COUNTER_END (Python's _beyond_end). */
-static bool beyond_end(const struct canergy_client *c, uint16_t wire)
+/* A transaction d ahead of ltx (serial16 of its wire tx) at or beyond CANERGY_COUNTER_END
+ * (Python's _beyond_end). */
+static bool beyond_end(const struct canergy_client *c, int32_t d)
 {
-    const int32_t d = serial16(wire, c->rec.last_tx);
     return d > 0 && c->rec.last_tx + (uint32_t)d >= CANERGY_COUNTER_END;
 }
 
-/* INTENTION(k, a, Gs). Worked out on a copy: Gs may pay back more than usable can hold, and
- * then nothing at all happens (Python's overflow refusal); usable is summed in 64 bits. */
+/* INTENTION(k, a, Gs). Worked out before anything changes: Gs may pay back more than usable can
+ * hold, and then nothing at all happens (Python's overflow refusal); usable is summed in 64
+ * bits. */
 static void on_intention(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
                          struct canergy_out *out)
 {
+    const int32_t d = serial16(m->tx, c->rec.last_tx); /* every rule below reads this ltx */
 #ifdef CANERGY_WITNESSED
     /* witnessed.on_intention: Gs pays back only from a fresh intention (k > ltx); one at or
      * below ltx may be of a supervisor history a SYNC discarded, its Gs held by nobody */
     if (c->rules == CANERGY_RULES_WITNESSED &&
         (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) == 0U) {
-        const int32_t old = serial16(m->tx, c->rec.last_tx);
-        if (old == 0) {
+        if (d == 0) {
             reply_for(c, c->rec.last_tx, c->rec.outcome, out);
         }
-        if (old <= 0) {
+        if (d <= 0) {
             return;
         }
     }
 #endif
-    if (beyond_end(c, m->tx)) {
+    if (beyond_end(c, d)) {
         return; /* no supervisor sends one: it would move ltx to the end of the numbering */
     }
     if ((c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U) {
-        if (serial16(m->tx, c->rec.last_tx) <= 0) {
+        if (d <= 0) {
             return; /* a frame of the node's earlier life */
         }
         c->rec.credited_mj = m->delivered_mj; /* admitted without books: Rc = Gs, no pay-back */
         c->rec.flags &= (uint8_t)~CANERGY_RECORD_CREDITED_UNKNOWN;
     }
-    struct canergy_client next = *c;
-    uint64_t usable = c->rec.usable_uj;
+    /* pay back what the supervisor wrote off but this node never got */
     const int32_t gs = serial24(m->delivered_mj, c->rec.credited_mj);
-    if (gs > 0) { /* pay back what the supervisor wrote off but this node never got */
-        usable += (uint64_t)(uint32_t)gs * MJ;
-        next.rec.credited_mj += (uint32_t)gs;
-    }
-    const int32_t d = serial16(m->tx, c->rec.last_tx);
+    const uint32_t paid_mj = gs > 0 ? (uint32_t)gs : 0U;
+    const uint64_t usable = c->rec.usable_uj + (uint64_t)paid_mj * MJ;
     const uint32_t tx = c->rec.last_tx + (uint32_t)d;
-    if (d > 1) { /* everything below tx is settled by the supervisor */
-        next.rec.last_tx = tx - 1U;
-        next.rec.outcome = CANERGY_OUTCOME_SETTLED;
-        if (next.phase == CANERGY_HOLDING && serial_before(next.held_tx, tx)) {
-            drop_hold(&next);
-        }
-    }
-    if (d > 0 && !(next.phase == CANERGY_HOLDING && next.held_tx == tx)) {
-        next.phase = CANERGY_HOLDING;
-        next.held_tx = tx;
-        next.held_amount_mj = m->amount_mj;
-        next.deadline = serial_after(now, c->command_timeout_us);
-    }
-    CANERGY_ASSERT(next.phase != CANERGY_HOLDING ||
-                   (uint32_t)(next.held_tx - next.rec.last_tx) - 1U < 0x7FFFUL); /* 1..32767 */
-    if (usable + (uint64_t)next.held_amount_mj * MJ > CANERGY_USABLE_MAX_UJ) {
+    /* held after the step: this intention, unless it is held already (a hold below tx is
+     * dropped when everything below tx is settled); nothing else changes the hold */
+    const bool hold = d > 0 && !(c->phase == CANERGY_HOLDING && c->held_tx == tx);
+    const uint16_t held_mj = hold ? m->amount_mj : c->held_amount_mj; /* 0 when none */
+    if (usable + (uint64_t)held_mj * MJ > CANERGY_USABLE_MAX_UJ) {
         out->events |= CANERGY_EV_REFUSED; /* left unanswered: re-sent, written off, paid later */
         return;
     }
-    next.rec.usable_uj = (uint32_t)usable;
-    *c = next;
-    if (gs > 0) {
+    c->rec.usable_uj = (uint32_t)usable;
+    c->rec.credited_mj += paid_mj;
+    if (paid_mj != 0U) {
         out->events |= CANERGY_EV_CREDITED;
     }
+    if (d > 1) { /* everything below tx is settled by the supervisor */
+        c->rec.last_tx = tx - 1U;
+        c->rec.outcome = CANERGY_OUTCOME_SETTLED;
+        if (c->phase == CANERGY_HOLDING && serial_before(c->held_tx, tx)) {
+            drop_hold(c);
+        }
+    }
+    if (hold) {
+        c->phase = CANERGY_HOLDING;
+        c->held_tx = tx;
+        c->held_amount_mj = m->amount_mj;
+        c->deadline = serial_after(now, c->command_timeout_us);
+    }
+    CANERGY_ASSERT(c->phase != CANERGY_HOLDING ||
+                   (uint32_t)(c->held_tx - c->rec.last_tx) - 1U < 0x7FFFUL); /* 1..32767 */
     if (d > 0) {
         send(c, CANERGY_ACK, m->tx, 0U, out);
     } else if (d == 0) {
@@ -221,7 +236,7 @@ static void on_command(struct canergy_client *c, const struct canergy_msg *m,
         reply_for(c, c->rec.last_tx, c->rec.outcome, out); /* late ABORT after a commit too */
         return;
     }
-    if (d < 0 || beyond_end(c, m->tx)) {
+    if (d < 0 || beyond_end(c, d)) {
         return;
     }
     const uint32_t tx = c->rec.last_tx + (uint32_t)d;
@@ -286,15 +301,13 @@ static bool witnessed(const struct canergy_client *c)
 static void send_debit(const struct canergy_client *c, bool start, struct canergy_out *out)
 {
     const bool draw = (c->rec.flags & CANERGY_RECORD_PENDING_DRAW) != 0U;
-    struct canergy_msg m;
-    memset(&m, 0, sizeof m);
-    m.type = CANERGY_DEBIT;
-    m.node = c->node;
-    m.nonce = start ? c->nonce : 0U;
-    m.flags = (uint8_t)((start ? CANERGY_DEBIT_START : 0U) | (draw ? CANERGY_DEBIT_DRAW : 0U));
-    m.seq = (uint16_t)c->rec.return_seq;
-    m.amount_mj = (uint16_t)(c->rec.return_pending_uj / MJ);
-    canergy_internal_send(c, &m, out);
+    const uint32_t fields[4] = {
+        start ? c->nonce : 0U,
+        (start ? CANERGY_DEBIT_START : 0U) | (draw ? CANERGY_DEBIT_DRAW : 0U),
+        (uint16_t)c->rec.return_seq,
+        (uint16_t)(c->rec.return_pending_uj / MJ),
+    }; /* DEBIT: nonce, flags, seq, amount */
+    canergy_internal_send(c, CANERGY_DEBIT, fields, out);
 }
 
 /* The answer to SYNC(n) (witnessed.answer_of): the books (n, Rc: 24 bits; Rc unknown after an
@@ -302,19 +315,17 @@ static void send_debit(const struct canergy_client *c, bool start, struct canerg
 static void send_sync_answer(const struct canergy_client *c, struct canergy_out *out)
 {
     const bool unknown = (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U;
-    struct canergy_msg m;
-    memset(&m, 0, sizeof m);
-    m.type = CANERGY_DEBIT;
-    m.node = c->node;
-    m.nonce = c->nonce;
-    m.flags = (uint8_t)(CANERGY_DEBIT_BOOKS | (unknown ? CANERGY_DEBIT_RC_UNKNOWN : 0U));
-    m.seq = unknown ? 0U : (uint16_t)c->rec.credited_mj;
-    m.amount_mj = unknown ? 0U : (uint16_t)((c->rec.credited_mj >> 16) & 0xFFU);
-    canergy_internal_send(c, &m, out);
-    m.flags = CANERGY_DEBIT_COUNTS;
-    m.seq = (uint16_t)c->rec.return_seq;
-    m.amount_mj = (uint16_t)c->rec.last_tx;
-    canergy_internal_send(c, &m, out);
+    uint32_t fields[4] = {
+        c->nonce,
+        CANERGY_DEBIT_BOOKS | (unknown ? CANERGY_DEBIT_RC_UNKNOWN : 0U),
+        unknown ? 0U : (uint16_t)c->rec.credited_mj,
+        unknown ? 0U : (c->rec.credited_mj >> 16) & 0xFFU,
+    }; /* DEBIT: nonce, flags, seq, amount */
+    canergy_internal_send(c, CANERGY_DEBIT, fields, out);
+    fields[1] = CANERGY_DEBIT_COUNTS;
+    fields[2] = (uint16_t)c->rec.return_seq;
+    fields[3] = (uint16_t)c->rec.last_tx;
+    canergy_internal_send(c, CANERGY_DEBIT, fields, out);
 }
 
 /* SYNC(n) (witnessed.answer_sync): the supervisor started, maybe from an older copy. Settle
@@ -328,13 +339,9 @@ static void answer_sync(struct canergy_client *c, uint16_t nonce, uint64_t now,
     if ((nonce & CANERGY_SYNC_CONFIRMED) != 0U) {
         return; /* no SYNC (its nonce has the bit clear): maybe a confirmation of earlier counts */
     }
-    drop_hold(c);
-    c->phase = CANERGY_SYNCING;
-    c->nonce = nonce;
     c->rec.last_tx = serial_capped(c->rec.last_tx + c->window);
     c->rec.outcome = CANERGY_OUTCOME_SETTLED;
-    c->return_deadline = serial_after(now, c->return_retry_us);
-    send_sync_answer(c, out);
+    wait_for_admit(c, CANERGY_SYNCING, nonce, now, out);
 }
 
 /* ADMIT(n, k, Q) answering this start (witnessed.on_confirm): Q = q + 1 confirms the books
@@ -378,9 +385,7 @@ static void on_confirm(struct canergy_client *c, const struct canergy_msg *m, ui
     c->return_deadline = CANERGY_NEVER;
     drop_hold(c);
     if (behind_ltx) { /* the start goes on: nothing moves until the counts are confirmed */
-        c->phase = CANERGY_SYNCING;
-        c->return_deadline = serial_after(now, c->return_retry_us);
-        send_sync_answer(c, out);
+        wait_for_admit(c, CANERGY_SYNCING, c->nonce, now, out);
         return;
     }
     out->events |= CANERGY_EV_ADMITTED;
@@ -428,11 +433,7 @@ static bool start_message(struct canergy_client *c, const struct canergy_msg *m,
 static void resume(struct canergy_client *c, uint16_t nonce, uint64_t now,
                    struct canergy_out *out)
 {
-    drop_hold(c);
-    c->phase = CANERGY_RESUMING;
-    c->nonce = nonce;
-    c->return_deadline = serial_after(now, c->return_retry_us);
-    send_debit(c, true, out);
+    wait_for_admit(c, CANERGY_RESUMING, nonce, now, out);
 }
 #endif
 
@@ -473,34 +474,34 @@ static void command_timer(struct canergy_client *c, uint64_t now, struct canergy
     const uint32_t tx = c->held_tx;
     commit_into(c, c->held_amount_mj); /* safe: the intention's id never changes */
     resolved(c, tx, CANERGY_OUTCOME_COMMITTED);
+    canergy_internal_repack(c, out); /* changed for certain: ltx moved up to the held tx */
     out->events |= CANERGY_EV_TIMEOUT_COMMIT;
     send(c, CANERGY_COMMITTED, (uint16_t)tx, 0U, out);
 }
 
+/* JOIN, RESUME, the SYNC's answer or the pending debit again; the same number until acked. */
 static void return_timer(struct canergy_client *c, uint64_t now, struct canergy_out *out)
 {
     if (c->return_deadline > now) {
         return;
     }
     if (c->phase == CANERGY_JOINING) {
-        c->return_deadline = serial_after(now, c->return_retry_us);
         send(c, CANERGY_JOIN, c->nonce, 0U, out);
 #ifdef CANERGY_WITNESSED
     } else if (c->phase == CANERGY_RESUMING) {
-        c->return_deadline = serial_after(now, c->return_retry_us);
         send_debit(c, true, out);
     } else if (c->phase == CANERGY_SYNCING) {
-        c->return_deadline = serial_after(now, c->return_retry_us);
         send_sync_answer(c, out);
     } else if ((c->rec.flags & CANERGY_RECORD_PENDING_DRAW) != 0U) {
-        c->return_deadline = serial_after(now, c->return_retry_us); /* same number until acked */
         send_debit(c, false, out);
 #endif
     } else if (c->rec.return_pending_uj != 0U) {
-        c->return_deadline = serial_after(now, c->return_retry_us); /* same number until acked */
         send(c, CANERGY_RETURN, (uint16_t)c->rec.return_seq,
              (uint16_t)(c->rec.return_pending_uj / MJ), out);
+    } else {
+        return;
     }
+    c->return_deadline = serial_after(now, c->return_retry_us);
 }
 
 static void restart(struct canergy_client *c, uint16_t nonce, uint64_t now,
@@ -525,11 +526,7 @@ static void restart(struct canergy_client *c, uint16_t nonce, uint64_t now,
 static void join(struct canergy_client *c, uint16_t nonce, uint64_t now, struct canergy_out *out)
 {
     memset(&c->rec, 0, sizeof c->rec);
-    drop_hold(c);
-    c->phase = CANERGY_JOINING;
-    c->nonce = nonce;
-    c->return_deadline = now;
-    return_timer(c, now, out);
+    wait_for_admit(c, CANERGY_JOINING, nonce, now, out);
 }
 
 /* -- entry points: each clears *out, or appends for the node layer ------------------------ */
@@ -574,21 +571,12 @@ int canergy_client_on_frame(struct canergy_client *c, const struct canergy_rx_fr
     return canergy_internal_frame(c, frame, now, out, &m);
 }
 
-typedef void (*timer_cell)(struct canergy_client *c, uint64_t now, struct canergy_out *out);
-
-static void timer_step(struct canergy_client *c, timer_cell cell, uint64_t now,
-                       struct canergy_out *out)
-{
-    uint8_t before[CANERGY_NV_RECORD_SIZE];
-    canergy_record_pack(&c->rec, before);
-    cell(c, now, out);
-    persist_if_changed(c, before, out);
-}
-
+/* The command timer persists what it commits; the return timer only re-sends (no record
+ * changes). */
 void canergy_internal_timers(struct canergy_client *c, uint64_t now, struct canergy_out *out)
 {
-    timer_step(c, command_timer, now, out);
-    timer_step(c, return_timer, now, out);
+    command_timer(c, now, out);
+    return_timer(c, now, out);
 }
 
 void canergy_client_on_timer(struct canergy_client *c, uint64_t now, struct canergy_out *out)
@@ -603,7 +591,7 @@ void canergy_client_command_timer(struct canergy_client *c, uint64_t now, struct
 {
     if (client_ok(c, out)) {
         canergy_internal_out_clear(out);
-        timer_step(c, command_timer, now, out);
+        command_timer(c, now, out);
     }
 }
 
@@ -611,7 +599,7 @@ void canergy_client_return_timer(struct canergy_client *c, uint64_t now, struct 
 {
     if (client_ok(c, out)) {
         canergy_internal_out_clear(out);
-        timer_step(c, return_timer, now, out);
+        return_timer(c, now, out);
     }
 }
 
@@ -633,17 +621,8 @@ int canergy_internal_spend(struct canergy_client *c, uint32_t uj, struct canergy
     }
     c->rec.usable_uj -= uj;
     c->rec.spent_uj += uj;
-    uint8_t rec[CANERGY_NV_RECORD_SIZE];
-    canergy_record_pack(&c->rec, rec);
-    persist(c, rec, out);
+    canergy_internal_repack(c, out);
     return CANERGY_OK;
-}
-
-void canergy_internal_repack(struct canergy_client *c, struct canergy_out *out)
-{
-    uint8_t rec[CANERGY_NV_RECORD_SIZE];
-    canergy_record_pack(&c->rec, rec);
-    persist(c, rec, out);
 }
 
 int canergy_client_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out)
@@ -655,19 +634,13 @@ int canergy_client_spend(struct canergy_client *c, uint32_t uj, struct canergy_o
     return canergy_internal_spend(c, uj, out);
 }
 
+/* One numbered debit at a time, none numbered at the end, none before admission; witnessed
+ * (witnessed.can_debit), none while a start awaits its ADMIT either: the hardened rules have no
+ * phase beyond JOINING, so IDLE or HOLDING says both. */
 bool canergy_client_can_give_back(const struct canergy_client *c)
 {
-#ifdef CANERGY_WITNESSED
-    if (c != NULL && witnessed(c)) {
-        /* witnessed.can_debit: one numbered debit at a time, books confirmed, none numbered at
-         * the end */
-        return c->rec.return_pending_uj == 0U &&
-               (c->phase == CANERGY_IDLE || c->phase == CANERGY_HOLDING) &&
-               c->rec.return_seq < CANERGY_COUNTER_END - 1U;
-    }
-#endif
-    return c != NULL && c->rec.return_pending_uj == 0U && c->phase != CANERGY_JOINING &&
-           c->rec.return_seq < CANERGY_COUNTER_END - 1U; /* none numbered at the end */
+    return c != NULL && c->rec.return_pending_uj == 0U && c->phase <= CANERGY_HOLDING &&
+           c->rec.return_seq < CANERGY_COUNTER_END - 1U;
 }
 
 bool canergy_client_can_draw(const struct canergy_client *c)
@@ -681,8 +654,8 @@ bool canergy_client_can_draw(const struct canergy_client *c)
 }
 
 /* Debit uj as the next numbered RETURN, or (witnessed) DRAW: persisted before it leaves. */
-static int debit(struct canergy_client *c, uint32_t uj, uint64_t now, uint8_t draw,
-                 struct canergy_out *out)
+int canergy_internal_debit(struct canergy_client *c, uint32_t uj, uint64_t now, uint8_t draw,
+                           struct canergy_out *out)
 {
     if (!canergy_client_can_give_back(c)) {
         return CANERGY_ERR_PHASE; /* one numbered debit at a time, none before admission */
@@ -695,9 +668,7 @@ static int debit(struct canergy_client *c, uint32_t uj, uint64_t now, uint8_t dr
     c->rec.return_pending_uj = uj;
     c->rec.flags |= draw;
     c->return_deadline = serial_after(now, c->return_retry_us);
-    uint8_t rec[CANERGY_NV_RECORD_SIZE];
-    canergy_record_pack(&c->rec, rec);
-    persist(c, rec, out);
+    canergy_internal_repack(c, out);
 #ifdef CANERGY_WITNESSED
     if (draw != 0U) {
         send_debit(c, false, out);
@@ -708,18 +679,12 @@ static int debit(struct canergy_client *c, uint32_t uj, uint64_t now, uint8_t dr
     return CANERGY_OK;
 }
 
-int canergy_internal_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,
-                               struct canergy_out *out)
-{
-    return debit(c, uj, now, 0U, out);
-}
-
 int canergy_internal_draw(struct canergy_client *c, uint32_t uj, uint64_t now,
                           struct canergy_out *out)
 {
 #ifdef CANERGY_WITNESSED
     if (witnessed(c)) {
-        return debit(c, uj, now, CANERGY_RECORD_PENDING_DRAW, out);
+        return canergy_internal_debit(c, uj, now, CANERGY_RECORD_PENDING_DRAW, out);
     }
 #endif
     (void)now;
@@ -743,7 +708,7 @@ int canergy_client_give_back(struct canergy_client *c, uint32_t uj, uint64_t now
         return CANERGY_ERR_ARGUMENT;
     }
     canergy_internal_out_clear(out);
-    return canergy_internal_give_back(c, uj, now, out);
+    return canergy_internal_debit(c, uj, now, 0U, out);
 }
 
 bool canergy_client_joining(const struct canergy_client *c)
@@ -805,8 +770,6 @@ int canergy_internal_start(struct canergy_client *c, const struct canergy_client
     c->return_retry_us = cfg->return_retry_us;
     c->rules = cfg->rules;
     c->window = cfg->window != 0U ? cfg->window : (uint16_t)CANERGY_DEFAULT_WINDOW;
-    c->deadline = CANERGY_NEVER;
-    c->return_deadline = CANERGY_NEVER;
     struct canergy_nv_state nv;
     canergy_nv_load(nv_image, nv_len, &nv);
     c->nv_counter = nv.counter;
@@ -816,6 +779,7 @@ int canergy_internal_start(struct canergy_client *c, const struct canergy_client
         nv.books = false; /* the witnessed rules' record: not books for these rules */
         nv.fallbacks++;
     }
+    /* Both arm the deadlines (drop_hold, the return timer). */
     if (nv.books) {
         c->rec = nv.record;
         restart(c, nonce, now, out); /* every start is a restart from the record */

@@ -21,9 +21,13 @@ int canergy_internal_spend(struct canergy_client *c, uint32_t uj, struct canergy
 void canergy_internal_repack(struct canergy_client *c, struct canergy_out *out);
 int canergy_internal_draw(struct canergy_client *c, uint32_t uj, uint64_t now,
                           struct canergy_out *out);
-int canergy_internal_give_back(struct canergy_client *c, uint32_t uj, uint64_t now,
-                               struct canergy_out *out);
-void canergy_internal_send(const struct canergy_client *c, const struct canergy_msg *msg,
+/* Debit uj as the next numbered RETURN (draw 0: a give-back), or with draw
+ * CANERGY_RECORD_PENDING_DRAW (witnessed) as a DRAW: canergy_client_give_back's refusals. */
+int canergy_internal_debit(struct canergy_client *c, uint32_t uj, uint64_t now, uint8_t draw,
+                           struct canergy_out *out);
+/* A frame of type from the client's node, its fields in the type's layout order (codec.c):
+ * appended to out (a frame the codec refuses is dropped). */
+void canergy_internal_send(const struct canergy_client *c, uint8_t type, const uint32_t fields[4],
                            struct canergy_out *out);
 
 struct canergy_node;

@@ -7,6 +7,9 @@
  */
 #include "canergy/codec.h"
 
+#include "codec_internal.h"
+#include "le.h"
+
 #include <string.h>
 
 enum field {
@@ -21,41 +24,39 @@ enum field {
     F_WITNESS    /* u8 */
 };
 
-#define MAX_FIELDS 4U
+/* A type's fields after the CRC byte, four bits each, the first in the low bits. */
+#define FIELDS(a, b, c, d) ((uint16_t)((a) | (b) << 4 | (c) << 8 | (d) << 12))
 
-/* Indexed by the 4-bit type code; an all-F_END row is an unknown type. */
-static const uint8_t layouts[16][MAX_FIELDS] = {
-    [CANERGY_INTENTION] = {F_TX, F_AMOUNT, F_DELIVERED},
-    [CANERGY_COMMIT] = {F_TX, F_AMOUNT, F_END},
-    [CANERGY_ABORT] = {F_TX, F_AMOUNT, F_END},
-    [CANERGY_RETURN_ACK] = {F_SEQ, F_END, F_END},
-    [CANERGY_STATUS_REQUEST] = {F_TX, F_END, F_END},
-    [CANERGY_FINAL_ACK] = {F_TX, F_END, F_END},
-    [CANERGY_ADMIT] = {F_NONCE, F_TX, F_SEQ},
-    [CANERGY_ACK] = {F_TX, F_END, F_END},
-    [CANERGY_COMMITTED] = {F_TX, F_END, F_END},
-    [CANERGY_ABORTED] = {F_TX, F_END, F_END},
-    [CANERGY_RETURN] = {F_SEQ, F_AMOUNT, F_END},
-    [CANERGY_TELEMETRY] = {F_LEVEL, F_FLAGS, F_SEQ, F_WITNESS},
-    [CANERGY_JOIN] = {F_NONCE, F_END, F_END},
-    [CANERGY_DEBIT] = {F_NONCE, F_FLAGS, F_SEQ, F_AMOUNT},
+/* Indexed by the 4-bit type code; 0 (no field) is an unknown type. */
+static const uint16_t layouts[16] = {
+    [CANERGY_INTENTION] = FIELDS(F_TX, F_AMOUNT, F_DELIVERED, F_END),
+    [CANERGY_COMMIT] = FIELDS(F_TX, F_AMOUNT, F_END, F_END),
+    [CANERGY_ABORT] = FIELDS(F_TX, F_AMOUNT, F_END, F_END),
+    [CANERGY_RETURN_ACK] = FIELDS(F_SEQ, F_END, F_END, F_END),
+    [CANERGY_STATUS_REQUEST] = FIELDS(F_TX, F_END, F_END, F_END),
+    [CANERGY_FINAL_ACK] = FIELDS(F_TX, F_END, F_END, F_END),
+    [CANERGY_ADMIT] = FIELDS(F_NONCE, F_TX, F_SEQ, F_END),
+    [CANERGY_ACK] = FIELDS(F_TX, F_END, F_END, F_END),
+    [CANERGY_COMMITTED] = FIELDS(F_TX, F_END, F_END, F_END),
+    [CANERGY_ABORTED] = FIELDS(F_TX, F_END, F_END, F_END),
+    [CANERGY_RETURN] = FIELDS(F_SEQ, F_AMOUNT, F_END, F_END),
+    [CANERGY_TELEMETRY] = FIELDS(F_LEVEL, F_FLAGS, F_SEQ, F_WITNESS),
+    [CANERGY_JOIN] = FIELDS(F_NONCE, F_END, F_END, F_END),
+    [CANERGY_DEBIT] = FIELDS(F_NONCE, F_FLAGS, F_SEQ, F_AMOUNT),
 };
 
-static size_t field_width(uint8_t f)
-{
-    if (f == F_FLAGS || f == F_WITNESS) {
-        return 1U;
-    }
-    return (f == F_DELIVERED || f == F_LEVEL) ? 3U : 2U;
-}
+/* Bytes on the wire, by field. */
+static const uint8_t widths[] = {
+    [F_TX] = 2U, [F_SEQ] = 2U, [F_NONCE] = 2U, [F_AMOUNT] = 2U, [F_DELIVERED] = 3U,
+    [F_LEVEL] = 3U, [F_FLAGS] = 1U, [F_WITNESS] = 1U,
+};
 
 /* 0 for an unknown type code. */
 static size_t layout_dlc(uint32_t code)
 {
-    const uint8_t *fields = layouts[code & 0xFU];
     size_t dlc = 0U;
-    for (size_t i = 0U; i < MAX_FIELDS && fields[i] != F_END; i++) {
-        dlc += field_width(fields[i]);
+    for (unsigned fields = layouts[code & 0xFU]; fields != 0U; fields >>= 4) {
+        dlc += widths[fields & 0xFU];
     }
     return dlc == 0U ? 0U : dlc + 1U;
 }
@@ -65,10 +66,10 @@ size_t canergy_data_length(uint32_t type)
     return type > 0xFU ? 0U : layout_dlc(type);
 }
 
+/* A required amount is the second field (DEBIT's, the fourth, is optional). */
 static bool has_amount(uint32_t code)
 {
-    const uint8_t *fields = layouts[code & 0xFU];
-    return fields[1] == F_AMOUNT; /* a required amount is the second field (DEBIT's: optional) */
+    return (layouts[code & 0xFU] >> 4 & 0xFU) == F_AMOUNT;
 }
 
 /* DEBIT is a draw (DRAW alone, an amount, no nonce), a resume (START, DRAW optional), or a
@@ -146,37 +147,47 @@ static void set_field(struct canergy_msg *m, uint8_t f, uint32_t v)
     }
 }
 
+int canergy_internal_encode(uint32_t id_base, uint32_t code, uint32_t node,
+                            const uint32_t values[4], struct canergy_frame *out)
+{
+    const size_t dlc = layout_dlc(code);
+    if (has_amount(code) && values[1] == 0U) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    uint8_t data[8] = {0};
+    size_t at = 1U;
+    const uint32_t *v = values;
+    for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
+        const uint8_t width = widths[fields & 0xFU];
+        if (width == 3U && *v > CANERGY_WIDE_MAX) {
+            return CANERGY_ERR_ARGUMENT;
+        }
+        le_put(&data[at], *v++, width);
+        at += width;
+    }
+    data[0] = frame_crc(code, node, &data[1], dlc - 1U);
+    out->id = id_base | code << 8 | node;
+    out->dlc = (uint8_t)dlc;
+    memcpy(out->data, data, sizeof data);
+    return CANERGY_OK;
+}
+
 int canergy_encode(uint32_t id_base, const struct canergy_msg *msg, struct canergy_frame *out)
 {
     if (msg == NULL || out == NULL || !canergy_id_base_valid(id_base)) {
         return CANERGY_ERR_ARGUMENT;
     }
     const uint32_t code = msg->type;
-    const size_t dlc = layout_dlc(code);
-    if (code > 0xFU || dlc == 0U || msg->node < CANERGY_MIN_NODE || msg->node > CANERGY_MAX_NODE) {
+    if (code > 0xFU || layouts[code] == 0U || msg->node < CANERGY_MIN_NODE ||
+        msg->node > CANERGY_MAX_NODE) {
         return CANERGY_ERR_ARGUMENT;
     }
-    if (has_amount(code) && msg->amount_mj == 0U) {
-        return CANERGY_ERR_ARGUMENT;
+    uint32_t values[4]; /* the layout's fields: all that canergy_internal_encode reads */
+    uint32_t *v = values;
+    for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
+        *v++ = field_value(msg, (uint8_t)(fields & 0xFU));
     }
-    uint8_t data[8] = {0};
-    size_t at = 1U;
-    for (size_t i = 0U; i < MAX_FIELDS && layouts[code][i] != F_END; i++) {
-        const uint8_t f = layouts[code][i];
-        const uint32_t v = field_value(msg, f);
-        const size_t width = field_width(f);
-        if (width == 3U && v > CANERGY_WIDE_MAX) {
-            return CANERGY_ERR_ARGUMENT;
-        }
-        for (size_t b = 0U; b < width; b++) {
-            data[at++] = (uint8_t)(v >> (8U * b));
-        }
-    }
-    data[0] = frame_crc(code, msg->node, &data[1], dlc - 1U);
-    out->id = id_base | code << 8 | msg->node;
-    out->dlc = (uint8_t)dlc;
-    memcpy(out->data, data, sizeof data);
-    return CANERGY_OK;
+    return canergy_internal_encode(id_base, code, msg->node, values, out);
 }
 
 static bool wrong_way(uint32_t code, enum canergy_direction expect)
@@ -186,42 +197,30 @@ static bool wrong_way(uint32_t code, enum canergy_direction expect)
            (expect == CANERGY_TO_SUPERVISOR && !from_client);
 }
 
-/* The identifier checks, in codec.py's order: only an exact id_base | known type | node 1..127
- * passes; what fails is FOREIGN outside the block, then UNKNOWN_TYPE, then BAD_NODE. */
-static enum canergy_decode_status check_id(uint32_t id_base, const struct canergy_rx_frame *f)
-{
-    if (!f->extended || (f->id & CANERGY_ID_MASK) != id_base) {
-        return CANERGY_DECODE_FOREIGN;
-    }
-    if (layout_dlc(f->id >> 8) == 0U) {
-        return CANERGY_DECODE_UNKNOWN_TYPE;
-    }
-    const uint32_t node = f->id & 0xFFU;
-    if (node < CANERGY_MIN_NODE || node > CANERGY_MAX_NODE || (f->id >> 29) != 0U) {
-        return CANERGY_DECODE_BAD_NODE;
-    }
-    return CANERGY_DECODE_OK;
-}
-
+/* The identifier checks come first, in codec.py's order: only an exact id_base | known type |
+ * node 1..127 passes; what fails is FOREIGN outside the block, then UNKNOWN_TYPE, then
+ * BAD_NODE. */
 enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy_rx_frame *frame,
                                           enum canergy_direction expect, struct canergy_msg *msg)
 {
-    if (frame == NULL) {
+    if (frame == NULL || !frame->extended || (frame->id & CANERGY_ID_MASK) != id_base) {
         return CANERGY_DECODE_FOREIGN;
     }
-    const enum canergy_decode_status id_status = check_id(id_base, frame);
-    if (id_status != CANERGY_DECODE_OK) {
-        return id_status;
-    }
     const uint32_t code = frame->id >> 8 & 0xFU;
+    const size_t dlc = layout_dlc(code);
+    if (dlc == 0U) {
+        return CANERGY_DECODE_UNKNOWN_TYPE;
+    }
     const uint32_t node = frame->id & 0xFFU;
+    if (node < CANERGY_MIN_NODE || node > CANERGY_MAX_NODE || (frame->id >> 29) != 0U) {
+        return CANERGY_DECODE_BAD_NODE;
+    }
     if (frame->remote) {
         return CANERGY_DECODE_REMOTE_FRAME;
     }
     if (wrong_way(code, expect)) {
         return CANERGY_DECODE_WRONG_DIRECTION;
     }
-    const size_t dlc = layout_dlc(code);
     if (frame->len != dlc || frame->data == NULL) {
         return CANERGY_DECODE_WRONG_DLC;
     }
@@ -234,13 +233,10 @@ enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy
     m.type = (uint8_t)code;
     m.node = (uint8_t)node;
     size_t at = 1U;
-    for (size_t i = 0U; i < MAX_FIELDS && layouts[code][i] != F_END; i++) {
-        const uint8_t f = layouts[code][i];
-        uint32_t v = 0U;
-        for (size_t b = 0U; b < field_width(f); b++) {
-            v |= (uint32_t)d[at++] << (8U * b);
-        }
-        set_field(&m, f, v);
+    for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
+        const uint8_t f = (uint8_t)(fields & 0xFU);
+        set_field(&m, f, le_get(&d[at], widths[f]));
+        at += widths[f];
     }
     if ((has_amount(code) && m.amount_mj == 0U) || (code == CANERGY_DEBIT && !debit_valid(&m))) {
         return CANERGY_DECODE_OUT_OF_RANGE;

@@ -149,7 +149,7 @@ int canergy_gateway_give_back(struct canergy_gateway *gw, uint32_t uj, uint64_t 
     struct canergy_client up = gw->up;
     up.rec.usable_uj += uj;
     up.rec.spent_uj -= uj;
-    const int rc = canergy_internal_give_back(&up, uj, now, out);
+    const int rc = canergy_internal_debit(&up, uj, now, 0U, out);
     if (rc != CANERGY_OK) {
         canergy_internal_out_clear(out);
         return rc;

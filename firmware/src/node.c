@@ -18,19 +18,16 @@ static bool is_low(const struct canergy_node *n)
 static void send_telemetry(struct canergy_node *n, uint64_t now, struct canergy_out *out)
 {
     const uint32_t level = n->client.rec.usable_uj / MJ;
-    struct canergy_msg m;
-    memset(&m, 0, sizeof m);
-    m.type = CANERGY_TELEMETRY;
-    m.node = n->client.node;
-    m.level_mj = level > CANERGY_WIDE_MAX ? CANERGY_WIDE_MAX : level; /* saturating */
-    m.flags = (uint8_t)((is_low(n) ? CANERGY_TELEMETRY_LOW : 0U) |
-                        (n->halted ? CANERGY_TELEMETRY_HALTED : 0U) |
-                        (canergy_client_joining(&n->client) ? CANERGY_TELEMETRY_JOINING : 0U));
-    m.seq = (uint16_t)n->client.rec.return_seq; /* the number its RETURN frames carry */
-    m.witness = n->witness;
+    const uint32_t fields[4] = {
+        level > CANERGY_WIDE_MAX ? CANERGY_WIDE_MAX : level, /* saturating */
+        (is_low(n) ? CANERGY_TELEMETRY_LOW : 0U) | (n->halted ? CANERGY_TELEMETRY_HALTED : 0U) |
+            (canergy_client_joining(&n->client) ? CANERGY_TELEMETRY_JOINING : 0U),
+        (uint16_t)n->client.rec.return_seq, /* the number its RETURN frames carry */
+        n->witness,
+    }; /* TELEMETRY: level, flags, seq, witness */
     n->witness_reported = n->witness;
     n->next_telemetry = now + n->telemetry_period_us;
-    canergy_internal_send(&n->client, &m, out);
+    canergy_internal_send(&n->client, CANERGY_TELEMETRY, fields, out);
 }
 
 /* What the client's step means for the node: a new level is reported at once. */
@@ -63,17 +60,6 @@ static bool never_asked(const struct canergy_node *n, const struct canergy_msg *
     return m->type == CANERGY_ADMIT && !(n->joined && m->nonce == n->join_nonce);
 }
 
-/* A frame in the node's name that it did not send. */
-static bool witnessed(const struct canergy_node *n, const struct canergy_rx_frame *f, int result,
-                      const struct canergy_msg *m)
-{
-    if (result == CANERGY_DECODE_WRONG_DIRECTION) {
-        /* the codec checked the id block, the type and the node: is it this node's id? */
-        return (f->id & 0xFFU) == n->client.node;
-    }
-    return result == CANERGY_DECODE_OK && never_asked(n, m);
-}
-
 /* Periodic telemetry, and at once when the level has just fallen below the low-water mark. */
 static void telemetry_due(struct canergy_node *n, uint64_t now, struct canergy_out *out)
 {
@@ -99,11 +85,8 @@ int canergy_node_start(struct canergy_node *n, const struct canergy_node_config 
     n->low_water_uj = cfg->low_water_uj;
     n->return_above_uj = cfg->return_above_uj;
     n->next_telemetry = now; /* announce the level at boot */
-#ifdef CANERGY_WITNESSED
-    n->joined = canergy_client_joining(&n->client) || n->client.phase == CANERGY_RESUMING;
-#else
-    n->joined = canergy_client_joining(&n->client);
-#endif
+    /* JOINING or (witnessed) RESUMING: a start is never SYNCING */
+    n->joined = n->client.phase >= CANERGY_JOINING;
     n->join_nonce = nonce;
     return result;
 }
@@ -115,7 +98,7 @@ int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame 
         return CANERGY_ERR_ARGUMENT;
     }
     canergy_internal_out_clear(out);
-    struct canergy_msg m;
+    struct canergy_msg m = {0}; /* read only when decoded: gcc -flto cannot tell */
 #ifdef CANERGY_WITNESSED
     const uint64_t spent = n->client.rec.spent_uj;
 #endif
@@ -124,29 +107,32 @@ int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame 
     /* an acknowledged DRAW is the actuator's now (spent grew by it) */
     n->released_uj += (uint32_t)(n->client.rec.spent_uj - spent);
 #endif
-    /* Count what was meant for this node: foreign frames and other nodes' replies (seen
-     * without acceptance filters) are no error of ours. */
-    if (result != CANERGY_DECODE_OK && result != CANERGY_RX_OTHER_NODE &&
-        result != CANERGY_DECODE_FOREIGN && result != CANERGY_DECODE_WRONG_DIRECTION &&
-        frame != NULL && (frame->id & 0xFFU) == n->client.node) {
-        n->decode_errors++;
-    }
     if ((out->events & CANERGY_EV_REFUSED) != 0U) {
         n->overflow_refused++;
     }
-    if (witnessed(n, frame, result, &m)) {
+    /* A frame with this node's id: witnessed when it is in the node's own direction (the codec
+     * checked the id block, the type and the node) or answers nothing the node sent; a decode
+     * error when the codec refused it otherwise. Foreign frames and other nodes' (seen without
+     * acceptance filters) are no error of ours. */
+    const bool own_id = frame != NULL && (frame->id & 0xFFU) == n->client.node;
+    const bool witnessed = result == CANERGY_DECODE_WRONG_DIRECTION
+                               ? own_id
+                               : result == CANERGY_DECODE_OK && never_asked(n, &m);
+    if (witnessed) {
         canergy_internal_witness(n, now, out);
+    } else if (own_id && result != CANERGY_DECODE_OK && result != CANERGY_RX_OTHER_NODE &&
+               result != CANERGY_DECODE_FOREIGN) {
+        n->decode_errors++;
     }
     after_client(n, now, out);
     return result;
 }
 
+/* Each timer fires only when due (the first step of a call: out holds nothing before). */
 static void timers(struct canergy_node *n, uint64_t now, struct canergy_out *out)
 {
-    if (canergy_client_deadline(&n->client) <= now) {
-        canergy_internal_timers(&n->client, now, out);
-        after_client(n, now, out);
-    }
+    canergy_internal_timers(&n->client, now, out);
+    after_client(n, now, out);
 }
 
 void canergy_node_poll(struct canergy_node *n, uint64_t now, struct canergy_out *out)
@@ -159,45 +145,42 @@ void canergy_node_poll(struct canergy_node *n, uint64_t now, struct canergy_out 
     telemetry_due(n, now, out);
 }
 
-/* Give back what exceeds return_above, in whole mJ, at most one frame's worth. */
+/* uj in whole mJ (rounded down), at most one frame's worth. */
+static uint32_t frame_worth(uint32_t uj)
+{
+    uj -= uj % MJ;
+    return uj < CANERGY_AMOUNT_MAX_MJ * MJ ? uj : CANERGY_AMOUNT_MAX_MJ * MJ;
+}
+
+/* Give back what exceeds return_above, in whole mJ, at most one frame's worth. The debit
+ * refuses, changing nothing, when none may be numbered now (one at a time) or it is 0. */
 static void return_policy(struct canergy_node *n, uint64_t now, struct canergy_out *out)
 {
     const uint32_t usable = n->client.rec.usable_uj;
-    if (!canergy_client_can_give_back(&n->client) || usable <= n->return_above_uj) {
-        return;
-    }
-    uint32_t excess = usable - n->return_above_uj;
-    excess -= excess % MJ;
-    if (excess > CANERGY_AMOUNT_MAX_MJ * MJ) {
-        excess = CANERGY_AMOUNT_MAX_MJ * MJ;
-    }
-    if (excess != 0U) {
-        (void)canergy_internal_give_back(&n->client, excess, now, out);
+    if (usable > n->return_above_uj) {
+        (void)canergy_internal_debit(&n->client, frame_worth(usable - n->return_above_uj), now,
+                                     0U, out);
     }
 }
 
 #ifdef CANERGY_WITNESSED
 /* Witnessed: when what the actuator holds would not cover the next period, DRAW ahead (whole
- * mJ, at most a frame's worth and what usable holds); one debit at a time. */
+ * mJ, at most a frame's worth and what usable holds); the debit refuses, changing nothing,
+ * while one is pending or the books are not confirmed, and a chunk of 0. */
 static void draw_ahead(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
                        struct canergy_out *out)
 {
-    if (n->released_uj >= wanted_uj || !canergy_client_can_draw(&n->client)) {
+    if (n->released_uj >= wanted_uj) {
         return;
     }
-    uint32_t room = n->client.rec.usable_uj - n->client.rec.usable_uj % MJ;
-    if (room > CANERGY_AMOUNT_MAX_MJ * MJ) {
-        room = CANERGY_AMOUNT_MAX_MJ * MJ;
-    }
+    const uint32_t room = frame_worth(n->client.rec.usable_uj);
     uint32_t chunk = room; /* 32-bit only: no 64-bit division linked in */
     if (wanted_uj < room / CANERGY_DRAW_AHEAD) {
         const uint32_t ahead = wanted_uj * CANERGY_DRAW_AHEAD; /* below room: no overflow */
         chunk = (uint32_t)(ahead + (MJ - ahead % MJ) % MJ); /* up to whole mJ */
         chunk = chunk < room ? chunk : room;
     }
-    if (chunk != 0U) {
-        (void)canergy_internal_draw(&n->client, chunk, now, out);
-    }
+    (void)canergy_internal_debit(&n->client, chunk, now, CANERGY_RECORD_PENDING_DRAW, out);
 }
 #endif
 
@@ -220,8 +203,8 @@ uint32_t canergy_node_draw(struct canergy_node *n, uint32_t wanted_uj, uint64_t 
     {
         const uint32_t usable = n->client.rec.usable_uj;
         take = wanted_uj < usable ? wanted_uj : usable;
-        if (take != 0U && canergy_internal_spend(&n->client, take, out) != CANERGY_OK) {
-            take = 0U; /* joining: nothing to spend */
+        if (canergy_internal_spend(&n->client, take, out) != CANERGY_OK) {
+            take = 0U; /* joining, or nothing to spend: refused, nothing changed */
         }
     }
     n->halted = take < wanted_uj;

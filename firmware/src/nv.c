@@ -15,6 +15,8 @@
 
 #define HEAD_SIZE 6U /* u16 magic, u32 counter */
 #define CRC_AT (HEAD_SIZE + CANERGY_NV_RECORD_SIZE)
+/* The record's seven u32 words (usable, Rc, spent low and high, ltx, q, pending), then two bytes */
+#define RECORD_WORDS 7U
 
 uint32_t canergy_crc32(uint32_t crc, const uint8_t *data, size_t len)
 {
@@ -32,12 +34,16 @@ uint32_t canergy_crc32(uint32_t crc, const uint8_t *data, size_t len)
 
 void canergy_record_pack(const struct canergy_record *rec, uint8_t out[CANERGY_NV_RECORD_SIZE])
 {
-    le_put(&out[0], rec->usable_uj, 4U);
-    le_put(&out[4], rec->credited_mj, 4U);
-    le_put64(&out[8], rec->spent_uj);
-    le_put(&out[16], rec->last_tx, 4U);
-    le_put(&out[20], rec->return_seq, 4U);
-    le_put(&out[24], rec->return_pending_uj, 4U);
+    const uint32_t words[RECORD_WORDS] = {rec->usable_uj,
+                               rec->credited_mj,
+                               (uint32_t)rec->spent_uj,
+                               (uint32_t)(rec->spent_uj >> 32),
+                               rec->last_tx,
+                               rec->return_seq,
+                               rec->return_pending_uj};
+    for (size_t i = 0U; i < RECORD_WORDS; i++) {
+        le_put(&out[4U * i], words[i], 4U);
+    }
     out[28] = rec->outcome;
     out[29] = (uint8_t)(rec->flags & CANERGY_RECORD_FLAGS);
 }
@@ -51,16 +57,20 @@ static bool return_possible(uint32_t pending_uj)
 
 int canergy_record_unpack(const uint8_t in[CANERGY_NV_RECORD_SIZE], struct canergy_record *rec)
 {
-    struct canergy_record r;
-    memset(&r, 0, sizeof r);
-    r.usable_uj = le_get(&in[0], 4U); /* a u32 never exceeds USABLE_MAX_UJ */
-    r.credited_mj = le_get(&in[4], 4U);
-    r.spent_uj = le_get64(&in[8]);
-    r.last_tx = le_get(&in[16], 4U);
-    r.return_seq = le_get(&in[20], 4U);
-    r.return_pending_uj = le_get(&in[24], 4U);
-    r.outcome = in[28];
-    r.flags = (uint8_t)(in[29] & CANERGY_RECORD_FLAGS);
+    uint32_t words[RECORD_WORDS];
+    for (size_t i = 0U; i < RECORD_WORDS; i++) {
+        words[i] = le_get(&in[4U * i], 4U);
+    }
+    const struct canergy_record r = {
+        .spent_uj = (uint64_t)words[3] << 32 | words[2],
+        .usable_uj = words[0], /* a u32 never exceeds USABLE_MAX_UJ */
+        .credited_mj = words[1],
+        .last_tx = words[4],
+        .return_seq = words[5],
+        .return_pending_uj = words[6],
+        .outcome = in[28],
+        .flags = (uint8_t)(in[29] & CANERGY_RECORD_FLAGS),
+    };
     const bool draw_of_nothing =
         (r.flags & CANERGY_RECORD_PENDING_DRAW) != 0U && r.return_pending_uj == 0U;
     if (r.outcome > CANERGY_OUTCOME_WRITTEN_OFF || !return_possible(r.return_pending_uj) ||
@@ -120,36 +130,35 @@ static bool all_zero(const uint8_t *p, size_t n)
 
 void canergy_nv_load(const uint8_t *image, size_t len, struct canergy_nv_state *out)
 {
-    uint8_t payload[CANERGY_NV_SLOTS][CANERGY_NV_RECORD_SIZE];
-    uint32_t counter[CANERGY_NV_SLOTS] = {0U, 0U};
-    bool valid[CANERGY_NV_SLOTS] = {false, false};
-    bool damaged = false;
     memset(out, 0, sizeof *out);
     out->newest_slot = 1U; /* none valid: the first write goes to slot 0 */
     if (image == NULL) {
         len = 0U;
     }
+    bool found = false;
     for (size_t i = 0U; i < CANERGY_NV_SLOTS; i++) {
         const size_t n = slot_bytes(len, i);
         const uint8_t *raw = n != 0U ? &image[i * CANERGY_NV_SLOT_SIZE] : NULL;
-        valid[i] = canergy_nv_slot_decode(raw, n, &counter[i], payload[i]);
-        if (!valid[i] && n != 0U && !all_zero(raw, n)) {
-            damaged = true; /* a torn or corrupted write; an erased slot is not damage */
+        uint32_t counter = 0U;
+        uint8_t payload[CANERGY_NV_RECORD_SIZE];
+        if (!canergy_nv_slot_decode(raw, n, &counter, payload)) {
+            if (n != 0U && !all_zero(raw, n)) {
+                out->fallbacks = 1U; /* a torn or corrupted write; an erased slot is not damage */
+            }
+        } else if (!found || (uint32_t)(counter - out->counter) < 0x80000000UL) {
+            /* Both valid: slot 1 is newer when its counter is at most 2^31 - 1 ahead of slot
+             * 0's (serial-number order, so the choice survives the counter's wrap; equal:
+             * slot 1). */
+            found = true;
+            out->counter = counter;
+            out->newest_slot = (uint8_t)i;
         }
     }
-    out->fallbacks = damaged ? 1U : 0U;
-    if (!valid[0] && !valid[1]) {
+    if (!found) {
         return;
     }
-    /* Both valid: slot 1 is newer when its counter is at most 2^31 - 1 ahead of slot 0's
-     * (serial-number order, so the choice survives the counter's wrap; equal: slot 1). */
-    size_t pick = valid[1] ? 1U : 0U;
-    if (valid[0] && valid[1] && (uint32_t)(counter[1] - counter[0]) >= 0x80000000UL) {
-        pick = 0U;
-    }
-    out->counter = counter[pick];
-    out->newest_slot = (uint8_t)pick;
-    if (canergy_record_unpack(payload[pick], &out->record) == CANERGY_OK) {
+    const uint8_t *newest = &image[out->newest_slot * CANERGY_NV_SLOT_SIZE + HEAD_SIZE];
+    if (canergy_record_unpack(newest, &out->record) == CANERGY_OK) {
         out->books = true;
     } else {
         out->fallbacks++; /* the newest valid slot holds impossible values: no books */

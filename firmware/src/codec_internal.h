@@ -1,0 +1,17 @@
+/*
+ * Library-internal: a frame from its field values, for the client's and the node's own frames
+ * (no struct canergy_msg to fill and read back).
+ */
+#ifndef CANERGY_CODEC_INTERNAL_H
+#define CANERGY_CODEC_INTERNAL_H
+
+#include "canergy/codec.h"
+
+/* The frame of type code (a known one) from node (1..127): values[i] is the type's i-th field in
+ * its layout's order (codec.c; unused ones 0), a 16-bit field's value below 2^16. What
+ * canergy_encode writes, with its refusals of a zero required amount and a 24-bit field that
+ * does not fit (CANERGY_ERR_ARGUMENT, *out untouched). */
+int canergy_internal_encode(uint32_t id_base, uint32_t code, uint32_t node,
+                            const uint32_t values[4], struct canergy_frame *out);
+
+#endif /* CANERGY_CODEC_INTERNAL_H */

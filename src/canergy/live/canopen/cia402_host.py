@@ -26,7 +26,7 @@ from typing import Any
 
 import can
 
-from canergy.auth.frames import Verdict
+from canergy.auth.frames import FrameAuth, Verdict
 from canergy.cia402.guard import DriveGuard
 from canergy.codec import Codec, DecodeError
 from canergy.devices.guard import DeviceGuard
@@ -305,10 +305,10 @@ class GuardedSupervisor:
                 messages.append(item)
         return out + self._route(messages, self._now)
 
-    def frame_path(self, off: str | None = None) -> FramePath | None:
+    def frame_path(self, off: str | None = None, auth: FrameAuth | None = None) -> FramePath | None:
         """The service's frame path, behind the rule above: a frame in a guarded drive's name
         never reaches the compiled core (the usual path reports it as an intrusion)."""
-        path = self.service.frame_path(off)
+        path = self.service.frame_path(off, auth)
         if path is None:
             return None
         take = path

@@ -54,13 +54,18 @@ int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned ki
 """What only the host's binding calls: declared once, for cffi and (its definition's head, below)
 for the compiler."""
 
-HOST_AUTH_DECLARATIONS = """
+_HOST_AUTH_ANSWER = """
 int canergy_host_auth_answer(struct canergy_supervisor *sup, struct canergy_auth *keys,
     uint32_t id, unsigned kind, const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
     struct canergy_supervisor_out *out, struct canergy_auth_frame *sent, uint8_t *sent_count,
-    uint32_t *fv);
-"""
-"""The fast path with ``--auth`` in the FD layout (``CompiledSupervisor.on_auth_answer``)."""
+    uint32_t *fv);"""
+_HOST_AUTH_PROTECT = """
+void canergy_host_auth_protect(const struct canergy_supervisor *sup,
+    const struct canergy_auth *keys, const struct canergy_supervisor_out *out,
+    struct canergy_auth_frame *sent, uint8_t *sent_count);"""
+HOST_AUTH_DECLARATIONS = _HOST_AUTH_ANSWER + _HOST_AUTH_PROTECT + "\n"
+"""The fast path with ``--auth`` in the FD layout (``CompiledSupervisor.on_auth_answer``,
+``begin_protected``)."""
 
 HOST_SOURCE = (
     """
@@ -88,6 +93,23 @@ static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t
     return i;
 }
 
+/* Authenticated mode, FD layout: each of out's frames protected under its node's key (keys:
+   one per session, in the sessions' order) with its session's counters, in order. */"""
+    + _HOST_AUTH_PROTECT.removesuffix(";")
+    + """
+{
+    *sent_count = 0U;
+    for (uint8_t k = 0U; k < out->frame_count; k++) {
+        const uint8_t j = canergy_host_index(sup, out->frames[k].id & 0xFFU);
+        struct canergy_auth_frame two[2];
+        if (j < sup->count &&
+            canergy_auth_protect(&keys[j], &out->frames[k], sup->sessions[j].tx,
+                                 sup->sessions[j].returns_credited, two) == 1) {
+            sent[(*sent_count)++] = two[0];
+        } /* else none: each frame the rules send is a managed node's, encoded by the codec */
+    }
+}
+
 /* Authenticated mode, FD layout (keys: one per session, in the sessions' order, receiving
    CANERGY_TO_SUPERVISOR): an ACK, COMMITTED or ABORTED of a managed node verified as Python's
    FrameAuth verifies it (MAC, then an FV that is the expected one and not before the
@@ -95,7 +117,7 @@ static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t
    that fails any check or that the rules leave to the caller, returns a status other than
    CANERGY_DECODE_OK before anything changed (an FD frame leaves no state in keys): the caller
    takes it the usual way, where a refusal is counted. *fv: the verified frame's FV. */"""
-    + HOST_AUTH_DECLARATIONS.rstrip().removesuffix(";")
+    + _HOST_AUTH_ANSWER.removesuffix(";")
     + """
 {
     *sent_count = 0U;
@@ -132,15 +154,7 @@ static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t
         return status;
     }
     *fv = got;
-    for (uint8_t k = 0U; k < out->frame_count; k++) {
-        const uint8_t j = canergy_host_index(sup, out->frames[k].id & 0xFFU);
-        struct canergy_auth_frame two[2];
-        if (j < sup->count &&
-            canergy_auth_protect(&keys[j], &out->frames[k], sup->sessions[j].tx,
-                                 sup->sessions[j].returns_credited, two) == 1) {
-            sent[(*sent_count)++] = two[0];
-        } /* else none: each frame the rules send is a managed node's, encoded by the codec */
-    }
+    canergy_host_auth_protect(sup, keys, out, sent, sent_count);
     return CANERGY_DECODE_OK;
 }
 """

@@ -509,12 +509,27 @@ class CompiledSupervisor:
         if status != self._b.ok:
             return status, [], [], 0
         self._timer_known = False  # deadlines moved
+        return status, self._actions(fast=True), self._protected(), int(self._fv[0])
+
+    def begin_protected(
+        self, node: int, amount: int, now: int
+    ) -> tuple[list[Action], list[tuple[int, bytes]]]:
+        """``begin_encoded`` in authenticated mode, FD layout (``use_keys`` first): the
+        INTENTION protected in C under the node's key, ready to send."""
+        self._begin(node, amount, now)
+        self._lib.canergy_host_auth_protect(
+            self._sup, self._keys, self._out, self._sent, self._sent_count
+        )
+        return self._actions(fast=True), self._protected()
+
+    def _protected(self) -> list[tuple[int, bytes]]:
+        """The last call's protected frames as (identifier, data): FD frames."""
         b, raw = self._b, self._sent_bytes
         frames = []
         for k in range(self._sent_count[0]):
             ident, length, body = b.auth_frame.unpack_from(raw, k * b.auth_frame_size)
             frames.append((ident, body[:length]))
-        return status, self._actions(fast=True), frames, int(self._fv[0])
+        return frames
 
     def get_timer(self) -> int | None:
         if not self._timer_known:

@@ -209,7 +209,10 @@ class SupervisorService:
         self._frame_auth: FrameAuth | None = None
         self._begin_encoded: EncodedBegin | None = None
         """The compiled core's ``begin`` with its frame as C encoded it, once a bus loop without
-        a key took the fast path (``frame_path``): an INTENTION then leaves as C's bytes."""
+        a key took the fast path (``frame_path``): an INTENTION then leaves as C's bytes (with a
+        key in the FD layout, protected in C)."""
+        self._begin_fd = False
+        """With a key (FD layout) the INTENTION ``_begin_encoded`` gives is protected already."""
         self.stop_deadline: int | None = None
         self.liveness = liveness
         self.extra_status = extra_status
@@ -575,7 +578,7 @@ class SupervisorService:
 
         ``auth``: the bus loop's key (FD layout only; the builder gives ``off`` for the classic
         one): the compiled core then verifies and protects in C (``fast_auth_frame``), and an
-        INTENTION still leaves through the loop's signing."""
+        INTENTION it begins in a loop pass is protected in C too."""
         if self._answer is None:
             self._path = ("python", None)
             return None
@@ -587,6 +590,8 @@ class SupervisorService:
                 raise ValueError("the compiled core's frame path with a key: the FD layout only")
             self.core.use_keys(auth.key_for)  # type: ignore[attr-defined]  # the compiled core
             self._auth_answer = self.core.on_auth_answer  # type: ignore[attr-defined]
+            self._begin_encoded = self.core.begin_protected  # type: ignore[attr-defined]
+            self._begin_fd = True
             self._frame_auth = auth
             self._path = ("c", None)
             return self.fast_auth_frame
@@ -813,7 +818,7 @@ class SupervisorService:
                 actions = self.core.begin(node, amount, now)
             else:
                 actions, raw = encoded(node, amount, now)
-                frames = [RawFrame(i, d) for i, d in raw]
+                frames = [RawFrame(i, d, self._begin_fd) for i, d in raw]
         except LocalProtocolError as exc:  # budget changed under us: report, do not crash
             self._finish_request(node, {"node": self.node_name(node), "error": str(exc)})
             if at_end(self.core.session(node).tx) and node not in self.ended:

@@ -211,3 +211,25 @@ def test_what_the_c_frame_path_sends_is_the_supervisors_own_from_then_on() -> No
     assert list(reasons) == ["freshness not the expected one (in the supervisor's direction)"]
     assert service.intrusions.authentic_by_node == {3: 1}
     wire.shutdown()
+
+
+@release
+def test_a_guarded_drives_intention_protected_in_c_reaches_its_proxy_as_the_message() -> None:
+    """With ``--cia402`` a proxied drive's INTENTION never goes on the bus: the one C protected
+    (FD: the message, padding, FV, MAC) is handed to the proxy as the message it carries."""
+    from types import SimpleNamespace
+
+    from canergy.ccore.supervisor import CompiledSupervisor
+    from canergy.live.canopen.cia402_host import GuardedSupervisor
+    from canergy.live.runtime import RawFrame
+    from canergy.messages import Intention
+
+    core = CompiledSupervisor([3], 10_000_000, timing=T)
+    core.use_keys(key_for)
+    _, frames = core.begin_protected(3, 2_000_000, 0)
+    (ident, data), routed = frames[0], []
+    assert len(data) == 20
+    service = SimpleNamespace(now=0, end_pass=lambda: [RawFrame(ident, data, True)])
+    host = GuardedSupervisor(service, SimpleNamespace(guards=lambda node: True))  # type: ignore[arg-type]
+    host._route = lambda msgs, now: routed.extend(msgs) or []  # type: ignore[method-assign]
+    assert host.end_pass() == [] and routed == [Intention(3, 1, 2_000, 0)]

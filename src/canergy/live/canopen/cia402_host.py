@@ -35,7 +35,7 @@ from canergy.live.devices.device_link import Device, DeviceLink
 from canergy.live.devices.on_stuck import OnStuck
 from canergy.live.runtime import FramePath, Outgoing, RawFrame
 from canergy.live.supervisor.service import SupervisorService
-from canergy.messages import Direction, Message, ToClient
+from canergy.messages import Direction, Message, MsgType, ToClient
 
 NMT_OPERATIONAL = 0x05
 SYNC_ID = 0x080
@@ -297,8 +297,10 @@ class GuardedSupervisor:
         messages: list[Message] = []
         for item in self.service.end_pass():
             if isinstance(item, RawFrame) and self.guarded.guards(item.arbitration_id & 0xFF):
-                to = Direction.TO_CLIENT
-                messages.append(self.codec.decode(item.arbitration_id, item.data, direction=to))
+                to, data = Direction.TO_CLIENT, item.data
+                if item.fd:  # protected in C (--auth, FD layout): the message, MAC left off
+                    data = data[: self.codec.data_length(MsgType(item.arbitration_id >> 8 & 0xF))]
+                messages.append(self.codec.decode(item.arbitration_id, data, direction=to))
             elif isinstance(item, RawFrame):
                 out.append(item)
             else:

@@ -5,12 +5,15 @@ the same bytes, keep the same books and refuse the same frames for the same reas
 
 from __future__ import annotations
 
+import copy
 import os
 from dataclasses import dataclass
 from typing import Any
 
 import can
 import pytest
+from hypothesis import event, given, settings
+from hypothesis import strategies as st
 
 from canergy.auth.frames import FrameAuth, Layout
 from canergy.ccore.supervisor import make_supervisor, missing
@@ -233,3 +236,103 @@ def test_a_guarded_drives_intention_protected_in_c_reaches_its_proxy_as_the_mess
     host = GuardedSupervisor(service, SimpleNamespace(guards=lambda node: True))  # type: ignore[arg-type]
     host._route = lambda msgs, now: routed.extend(msgs) or []  # type: ignore[method-assign]
     assert host.end_pass() == [] and routed == [Intention(3, 1, 2_000, 0)]
+
+
+class _Side:
+    """A service and its bus loop on one path (reference: the Python core, usual path; or the
+    compiled core's frame path with the key), on a clock the test drives."""
+
+    def __init__(self, c_path: bool) -> None:
+        self.wire, self.now = _Wire(), 0
+        core = make_supervisor("c" if c_path else "python", [3, 5], 10**9, timing=T)
+        self.service = SupervisorService(core, ServiceConfig(), 0)
+        auth = FrameAuth(CODEC, Layout.FD, key_for, Direction.TO_SUPERVISOR, self.service.freshness)
+        self.loop = BusRuntime(
+            self.wire,
+            self.service,
+            codec=CODEC,
+            receives=Direction.TO_SUPERVISOR,
+            auth=auth,
+            frame_path=self.service.frame_path(None, auth) if c_path else None,
+            counters=self.service.bus_counters,
+        )
+        self.loop.clock = lambda: self.now
+        for node in (3, 5):  # heard: grants may begin
+            self.step(0, signed(Telemetry(node, 0), 0))
+
+    def step(self, now: int, frame: can.Message | None = None) -> None:
+        self.now = now
+        if frame is not None:
+            self.wire.inbox.append(frame)
+        self.loop.poll(0)
+
+    def seen(self) -> tuple[Any, ...]:
+        status = self.service.status()
+        assert self.loop.auth is not None and self.loop.own is not None
+        return (
+            self.wire.sent,
+            self.service.core.state,
+            {key: status.get(key) for key in _SAME},
+            dict(self.loop.auth.telemetry_floor),
+            dict(self.loop.own.sent),
+            dict(self.service.intrusions.authentic_by_node),
+        )
+
+
+_ANSWERS = (Ack, Committed, Aborted)
+
+
+_ANSWER = st.tuples(
+    st.just("answer"),
+    st.sampled_from([3, 3, 5, 7]),
+    st.sampled_from(_ANSWERS),
+    st.sampled_from([0, 0, 0, -1, -2, 1]),  # the transaction named, from the session's
+    st.sampled_from(["genuine"] * 5 + ["flip", "high", "mac-less"]),
+)
+_STEP = st.one_of(
+    st.tuples(st.just("grant"), st.sampled_from([3, 5]), st.integers(1, 3)),
+    _ANSWER,
+    _ANSWER,
+    _ANSWER,
+    st.tuples(st.just("wait"), st.integers(100, 3_000)),
+    st.tuples(st.just("grant"), st.just(3), st.just(1)),
+    _ANSWER,
+    _ANSWER,
+    st.tuples(st.just("stop")),
+)
+
+
+@release
+@settings(max_examples=80, deadline=None)
+@given(st.lists(_STEP, min_size=5, max_size=40))
+def test_frame_for_frame_the_c_path_with_a_key_is_the_python_path(steps: list[Any]) -> None:
+    """Any run of grants, answers (genuine, forged, with a foreign FV high half, without a MAC,
+    naming the session's transaction or a neighbour), waits and a stop: after every step both
+    sides sent the same bytes and hold the same books, refusals, freshness notes and evidence."""
+    ref, c = _Side(False), _Side(True)
+    now = 0
+    for step in steps:
+        now += 100
+        frame = None
+        if step[0] == "grant":
+            for side in (ref, c):
+                side.service.request_grant(step[1], step[2] * 1_000_000, lambda reply: None)
+        elif step[0] == "answer":
+            _, node, kind, offset, how = step
+            tx = max(0, (ref.service.core.session(node).tx if node != 7 else 1) + offset)
+            msg = kind(node, tx & 0xFFFF)
+            if how == "mac-less":
+                arbitration_id, data = CODEC.encode(msg)
+                frame = can.Message(arbitration_id=arbitration_id, data=data)
+            else:
+                frame = signed(msg, tx | (0x1_0000 if how == "high" else 0), flip=how == "flip")
+        elif step[0] == "wait":
+            now += step[1]
+        else:
+            for side in (ref, c):
+                side.service.stop(now)
+        for side in (ref, c):
+            side.step(now, None if frame is None else copy.copy(frame))
+        assert c.seen() == ref.seen()
+    assert ref.service.frames_in_c == 0 and c.service.status()["frame_path"] == "c"
+    event(f"answers taken in C: {min(c.service.frames_in_c, 3)}+")

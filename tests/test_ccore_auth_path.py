@@ -334,5 +334,7 @@ def test_frame_for_frame_the_c_path_with_a_key_is_the_python_path(steps: list[An
         for side in (ref, c):
             side.step(now, None if frame is None else copy.copy(frame))
         assert c.seen() == ref.seen()
+    ref.wire.shutdown()
+    c.wire.shutdown()
     assert ref.service.frames_in_c == 0 and c.service.status()["frame_path"] == "c"
     event(f"answers taken in C: {min(c.service.frames_in_c, 3)}+")

@@ -153,32 +153,91 @@ def test_several_buses_take_no_canopen_nor_guarded_drives() -> None:
         build_supervisor(config, [object(), object()])  # type: ignore[list-item]
 
 
+def _one_answer(config: SupervisorConfig, layout: Any) -> tuple[dict[str, Any], list[Any]]:
+    """Build ``config`` (authenticated, ``layout``) on a virtual bus; node 1 reports its level,
+    is granted 1 J and acknowledges it, each frame under its key: the status, and what the
+    node heard verified (INTENTION, then COMMIT)."""
+    from canergy.auth.frames import FrameAuth, expected_freshness
+    from canergy.auth.keys import frame_auth_keys
+    from canergy.messages import Ack, Direction
+
+    assert config.auth is not None
+    keys, codec = frame_auth_keys(config.auth.key), Codec()
+    channel = f"build-{uuid.uuid4().hex}"
+    bus, node = (can.Bus(interface="virtual", channel=channel) for _ in range(2))
+    heard: list[Any] = []
+    try:
+        built = build_supervisor(config, [bus])
+
+        def send(msg: Any, fv: int) -> None:
+            for frame in FrameAuth(codec, layout, keys, Direction.TO_CLIENT, lambda m: fv).frames(
+                msg
+            ):
+                node.send(frame)
+
+        def poll(until: Any) -> None:
+            check = FrameAuth(
+                codec, layout, keys, Direction.TO_CLIENT, lambda m: expected_freshness(m, 1, 0)
+            )
+            for _ in range(100):
+                built.loop.poll(0.01)
+                while (frame := node.recv(0)) is not None:
+                    verdict = check.accept(frame)
+                    if verdict.failure is None and verdict.message is not None:
+                        heard.append(verdict.message)
+                if until():
+                    return
+
+        send(Telemetry(1, 5, 0), 0)
+        poll(lambda: built.service.status()["frames_received"])
+        built.service.request_grant(1, J, lambda reply: None)
+        poll(lambda: heard)
+        send(Ack(1, 1), 1)
+        poll(lambda: len(heard) > 1)
+        status = built.service.status()
+        built.close()
+    finally:
+        bus.shutdown()
+        node.shutdown()
+    return status, heard
+
+
 @pytest.mark.parametrize(
     ("auth", "listen_only", "path", "off"),
     [
-        (False, False, "c", None),
-        (True, False, "python", "--auth"),
-        (False, True, "python", "--listen-only"),
+        (None, False, "c", None),
+        ("fd", False, "c", None),
+        ("classic", False, "python", "--auth classic layout"),
+        (None, True, "python", "--listen-only"),
     ],
 )
 def test_the_loop_is_handed_the_compiled_cores_frame_path_and_the_status_says_so(
-    auth: bool, listen_only: bool, path: str, off: str | None
+    auth: str | None, listen_only: bool, path: str, off: str | None
 ) -> None:
     """The frame path is declared: on the compiled core the builder hands the loop its frame
-    path, and the status says which path runs and, where C's cannot, why (a key: MACs are
-    checked and made in Python). A genuine TELEMETRY then goes through C, or does not."""
+    path, and the status says which path runs and, where C's cannot, why (the classic layout:
+    a message and its MAC frame arrive apart). A genuine TELEMETRY (without a key) or ACK (with
+    one: verified, answered and its COMMIT protected in C, FD) then goes through C, or does
+    not."""
+    from canergy.auth.frames import Layout
     from canergy.auth.keys import new_master
     from canergy.ccore.supervisor import missing
     from canergy.live.supervisor.build import AuthConfig
+    from canergy.messages import Commit, Intention
 
     if missing() is not None:
         pytest.fail(f"the compiled core is not built: {missing()}")
     config = SupervisorConfig(
         core=CoreConfig((1,), J, kind="c", keep_books=not listen_only),
         service=ServiceConfig(listen_only=listen_only),
-        auth=AuthConfig(new_master(1)) if auth else None,
+        auth=None if auth is None else AuthConfig(new_master(1), fd=auth == "fd"),
     )
-    status, _ = _one_telemetry(config)
+    if auth is None:
+        status, _ = _one_telemetry(config)
+    else:
+        status, heard = _one_answer(config, Layout(auth))
+        assert heard == [Intention(1, 1, 1_000, 0), Commit(1, 1, 1_000)]
+        assert status["auth"] == auth and not status["auth_failures"]
     assert status["core"] == "c" and status["frame_path"] == path
     assert status["frame_path_frames"] == (1 if path == "c" else 0)
     if off is None:

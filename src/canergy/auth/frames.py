@@ -54,10 +54,7 @@ from canergy.codec import Codec, DecodeError, DecodeErrorReason
 from canergy.messages import (
     SEQ_BITS,
     TX_BITS,
-    Aborted,
-    Ack,
     Admit,
-    Committed,
     Debit,
     Direction,
     Join,
@@ -312,19 +309,25 @@ class FrameAuth:
         """A verified frame that shows how far the node has resolved: TELEMETRY up to its FV,
         ACK to the transaction before, COMMITTED and ABORTED to theirs. Any but a JOIN shows
         the node has its books."""
+        self.took(msg.TYPE, msg.node, fv)
+
+    def took(self, kind: MsgType, node: int, fv: int) -> None:
+        """A verified frame of type ``kind`` from ``node`` with FV ``fv`` was taken (here, or
+        by the compiled core's frame path, which verifies in C): what it shows (``_resolved``)
+        is noted."""
         if self.receives is not Direction.TO_SUPERVISOR:
             return
-        if not isinstance(msg, Join):  # admitted: no TELEMETRY without books is fresh now
-            self.join_fv.pop(msg.node, None)
-        if isinstance(msg, Telemetry | Committed | Aborted):
+        if kind != MsgType.JOIN:  # admitted: no TELEMETRY without books is fresh now
+            self.join_fv.pop(node, None)
+        if kind in (MsgType.TELEMETRY, MsgType.COMMITTED, MsgType.ABORTED):
             resolved = fv
-        elif isinstance(msg, Ack):
+        elif kind == MsgType.ACK:
             resolved = (fv - 1) & FV_MASK
         else:
             return
-        floor = self.telemetry_floor.get(msg.node)
+        floor = self.telemetry_floor.get(node)
         if floor is None or fv_before(floor, resolved):
-            self.telemetry_floor[msg.node] = resolved
+            self.telemetry_floor[node] = resolved
 
 
 def _resume(msg: Message) -> TypeGuard[Debit]:

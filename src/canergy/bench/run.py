@@ -14,7 +14,7 @@ import tracemalloc
 from pathlib import Path
 from typing import Any
 
-from canergy.bench import alone, auth, code, codec, core, live, monitor, tree, wire
+from canergy.bench import alone, auth, auth_path, code, codec, core, live, monitor, tree, wire
 from canergy.ccore import supervisor as ccore
 
 
@@ -226,10 +226,26 @@ def run(quick: bool = False) -> dict[str, Any]:
         "wire": wire.model(),
         "memory": memory_per_node(emulator=emulator),
         "auth": auth.overhead(loops=20 if quick else 500, repeats=3 if quick else 7),
+        "auth_c_frame_path": auth_path.compare(0.3 if quick else 3.0),
         "tree": tree.scale(quick),
         "monitor": monitor.throughput(500 if quick else 50_000),
         "skipped": skipped,
     }
+
+
+def auth_path_lines(c: dict[str, Any] | None) -> list[str]:
+    """The C core's own code per frame on its frame path, plain and with ``--auth`` FD."""
+    if c is None:
+        return []
+    lines = ["", "C core's frame path, its own code per frame: plain vs --auth FD (in C)"]
+    for row in c["rows"]:
+        plain = row["plain"]["supervisor_cpu_us_per_frame"]
+        fd = row["fd"]["supervisor_cpu_us_per_frame"]
+        lines.append(
+            f"  {row['nodes']:>3} nodes: {_n(plain, '.1f')} vs {_n(fd, '.1f')} us/frame "
+            f"({_n(row['ratio'], '.2f')}x, target <= {c['target_ratio']:g}x)"
+        )
+    return lines
 
 
 def _n(value: float | None, spec: str) -> str:
@@ -398,6 +414,7 @@ def table(r: dict[str, Any]) -> str:
             f"  {row['layout']:>7}: {row['us_per_frame']:.1f} us/message{ratio}, "
             f"{row['frames_per_tx']} frames and {row['bytes_per_tx']} data bytes per transaction"
         )
+    lines += auth_path_lines(r.get("auth_c_frame_path"))
     lines += [
         "",
         f"memory: supervisor {m['supervisor_bytes_per_node']:.0f} bytes/node at {m['nodes']} "

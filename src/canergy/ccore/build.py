@@ -54,6 +54,19 @@ int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned ki
 """What only the host's binding calls: declared once, for cffi and (its definition's head, below)
 for the compiler."""
 
+_HOST_AUTH_ANSWER = """
+int canergy_host_auth_answer(struct canergy_supervisor *sup, struct canergy_auth *keys,
+    uint32_t id, unsigned kind, const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
+    struct canergy_supervisor_out *out, struct canergy_auth_frame *sent, uint8_t *sent_count,
+    uint32_t *fv);"""
+_HOST_AUTH_PROTECT = """
+void canergy_host_auth_protect(const struct canergy_supervisor *sup,
+    const struct canergy_auth *keys, const struct canergy_supervisor_out *out,
+    struct canergy_auth_frame *sent, uint8_t *sent_count);"""
+HOST_AUTH_DECLARATIONS = _HOST_AUTH_ANSWER + _HOST_AUTH_PROTECT + "\n"
+"""The fast path with ``--auth`` in the FD layout (``CompiledSupervisor.on_auth_answer``,
+``begin_protected``)."""
+
 HOST_SOURCE = (
     """
 /* The fast path's call with the frame as arguments: one call, no struct filled field by field
@@ -68,6 +81,81 @@ HOST_SOURCE = (
     rx.extended = (kind & 1U) != 0U;
     rx.remote = (kind & 2U) != 0U;
     return canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, m);
+}
+
+/* The session index of node, or sup->count when it is not managed. */
+static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t node)
+{
+    uint8_t i = 0U;
+    while (i < sup->count && sup->sessions[i].node != node) {
+        i++;
+    }
+    return i;
+}
+
+/* Authenticated mode, FD layout: each of out's frames protected under its node's key (keys:
+   one per session, in the sessions' order) with its session's counters, in order. */"""
+    + _HOST_AUTH_PROTECT.removesuffix(";")
+    + """
+{
+    *sent_count = 0U;
+    for (uint8_t k = 0U; k < out->frame_count; k++) {
+        const uint8_t j = canergy_host_index(sup, out->frames[k].id & 0xFFU);
+        struct canergy_auth_frame two[2];
+        if (j < sup->count &&
+            canergy_auth_protect(&keys[j], &out->frames[k], sup->sessions[j].tx,
+                                 sup->sessions[j].returns_credited, two) == 1) {
+            sent[(*sent_count)++] = two[0];
+        } /* else none: each frame the rules send is a managed node's, encoded by the codec */
+    }
+}
+
+/* Authenticated mode, FD layout (keys: one per session, in the sessions' order, receiving
+   CANERGY_TO_SUPERVISOR): an ACK, COMMITTED or ABORTED of a managed node verified as Python's
+   FrameAuth verifies it (MAC, then an FV that is the expected one and not before the
+   session's tx), the rules run and each frame they send protected. Any other frame, or one
+   that fails any check or that the rules leave to the caller, returns a status other than
+   CANERGY_DECODE_OK before anything changed (an FD frame leaves no state in keys): the caller
+   takes it the usual way, where a refusal is counted. *fv: the verified frame's FV. */"""
+    + _HOST_AUTH_ANSWER.removesuffix(";")
+    + """
+{
+    *sent_count = 0U;
+    const uint32_t type = id >> 8 & 0xFU;
+    if ((kind & 3U) != 1U || id > 0x1FFFFFFFUL || (id & CANERGY_ID_MASK) != sup->id_base ||
+        (type != CANERGY_ACK && type != CANERGY_COMMITTED && type != CANERGY_ABORTED)) {
+        return CANERGY_RX_CALLER;
+    }
+    const uint8_t i = canergy_host_index(sup, id & 0xFFU);
+    if (i == sup->count || keys[i].layout != CANERGY_AUTH_FD) {
+        return CANERGY_RX_OTHER_NODE;
+    }
+    const struct canergy_session *s = &sup->sessions[i];
+    struct canergy_rx_frame rx = {0};
+    rx.id = id;
+    rx.data = data;
+    rx.len = len;
+    rx.extended = true;
+    struct canergy_frame plain;
+    int status = canergy_auth_accept(&keys[i], &rx, s->tx, s->returns_credited, &plain);
+    if (status != CANERGY_DECODE_OK) {
+        return status;
+    }
+    const uint8_t *t = &data[len - CANERGY_AUTH_TRAILER];
+    const uint32_t got = (uint32_t)t[0] << 24 | (uint32_t)t[1] << 16 | (uint32_t)t[2] << 8 | t[3];
+    if (got != s->tx && (uint32_t)(s->tx - got) < 0x80000000UL) {
+        return CANERGY_AUTH_STALE; /* before the session's tx: a replay (Python's _older) */
+    }
+    struct canergy_msg m;
+    rx.data = plain.data;
+    rx.len = plain.dlc;
+    status = canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, &m);
+    if (status != CANERGY_DECODE_OK) {
+        return status;
+    }
+    *fv = got;
+    canergy_host_auth_protect(sup, keys, out, sent, sent_count);
+    return CANERGY_DECODE_OK;
 }
 """
 )
@@ -150,7 +238,8 @@ def declarations(root: Path = ROOT, defines: tuple[tuple[str, str], ...] = ()) -
     object-like ``CANERGY_*`` macros as constants the compiler evaluates (``...``)."""
     include = root / "firmware" / "include"
     headers = sorted((include / "canergy").glob("*.h"))
-    umbrella = "".join(f'#include "canergy/{h.name}"\n' for h in headers) + HOST_DECLARATIONS
+    umbrella = "".join(f'#include "canergy/{h.name}"\n' for h in headers)
+    umbrella += HOST_DECLARATIONS + HOST_AUTH_DECLARATIONS
     kept: list[str] = []
     ours = False
     home = (include / "canergy").resolve()

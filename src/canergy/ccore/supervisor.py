@@ -13,7 +13,7 @@ of the library (``CompiledSupervisor(module=...)``).
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from functools import partial
 from typing import Any
 
@@ -101,6 +101,10 @@ class _Binding:
             ffi, "struct canergy_supervisor_event", ("tx", "amount_uj", "node", "resolved", "flags")
         )
         self.frame, _ = _reader(ffi, "struct canergy_frame", ("id", "dlc", "data"))
+        self.auth_frame, _ = _reader(ffi, "struct canergy_auth_frame", ("id", "len", "data"))
+        self.auth_frame_size = ffi.sizeof("struct canergy_auth_frame")
+        self.auth_fd = lib.CANERGY_AUTH_FD
+        self.to_supervisor = lib.CANERGY_TO_SUPERVISOR
         self.counts, self.counts_at = _reader(
             ffi, "struct canergy_supervisor_out", ("frame_count", "event_count", "persist")
         )
@@ -458,6 +462,74 @@ class CompiledSupervisor:
         else:
             msg = Join(m.node, m.nonce)
         return status, [], [], msg
+
+    def use_keys(self, key_for: Callable[[int], bytes]) -> None:
+        """Authenticated mode in the FD layout: each managed node's key (``key_for(node)``,
+        16 bytes, as ``FrameAuth`` takes them) set up in C for ``on_auth_answer``."""
+        b = self._b
+        count = len(self._sessions)
+        keys = b.ffi.new("struct canergy_auth[]", count)
+        for i, node in enumerate(self._index):
+            key = key_for(node)
+            rc = self._lib.canergy_auth_init(
+                keys + i, key, self.codec.id_base, node, b.auth_fd, b.to_supervisor
+            )
+            if rc != self._lib.CANERGY_OK or len(key) != 16:
+                raise ValueError(f"node {node}: no 16-byte key the C library takes")
+        self._keys = keys
+        self._sent = b.ffi.new("struct canergy_auth_frame[]", self._lib.CANERGY_SUPERVISOR_NODES)
+        self._sent_bytes = b.ffi.buffer(self._sent)
+        self._sent_count = b.ffi.new("uint8_t *")
+        self._fv = b.ffi.new("uint32_t *")
+
+    def on_auth_answer(
+        self,
+        arbitration_id: int,
+        data: bytes | bytearray,
+        extended: bool,
+        remote: bool,
+        now: int,
+        abort: bool,
+    ) -> tuple[int, list[Action], list[tuple[int, bytes]], int]:
+        """``on_answer`` in authenticated mode, FD layout (``use_keys`` first), in one C call:
+        an ACK, COMMITTED or ABORTED of a managed node verified as ``FrameAuth`` verifies it
+        (MAC, freshness against the session's counters), the rules, and each frame they send
+        protected (FD frames, ready to send). Status 0: taken, with the actions, the frames and
+        the received frame's FV. Any other status: nothing changed, nothing decoded (any other
+        frame, a refused one, an answer ahead of the session): the caller's usual path judges
+        and counts it."""
+        if not 0 <= arbitration_id < _ID_LIMIT:
+            return self._b.not_can, [], [], 0
+        kind = (1 if extended else 0) | (2 if remote else 0)
+        payload = data if type(data) is bytes else bytes(data)
+        status = self._lib.canergy_host_auth_answer(
+            self._sup, self._keys, arbitration_id, kind, payload, len(payload), now, abort,
+            self._out, self._sent, self._sent_count, self._fv,
+        )  # fmt: skip
+        if status != self._b.ok:
+            return status, [], [], 0
+        self._timer_known = False  # deadlines moved
+        return status, self._actions(fast=True), self._protected(), int(self._fv[0])
+
+    def begin_protected(
+        self, node: int, amount: int, now: int
+    ) -> tuple[list[Action], list[tuple[int, bytes]]]:
+        """``begin_encoded`` in authenticated mode, FD layout (``use_keys`` first): the
+        INTENTION protected in C under the node's key, ready to send."""
+        self._begin(node, amount, now)
+        self._lib.canergy_host_auth_protect(
+            self._sup, self._keys, self._out, self._sent, self._sent_count
+        )
+        return self._actions(fast=True), self._protected()
+
+    def _protected(self) -> list[tuple[int, bytes]]:
+        """The last call's protected frames as (identifier, data): FD frames."""
+        b, raw = self._b, self._sent_bytes
+        frames = []
+        for k in range(self._sent_count[0]):
+            ident, length, body = b.auth_frame.unpack_from(raw, k * b.auth_frame_size)
+            frames.append((ident, body[:length]))
+        return frames
 
     def get_timer(self) -> int | None:
         if not self._timer_known:

@@ -45,6 +45,9 @@ class RawFrame:
 
     arbitration_id: int
     data: bytes
+    fd: bool = False
+    """A CAN FD frame (sent with bit rate switch): protected already in the FD layout of
+    authenticated mode, its FV in its trailer (noted as this side's own, ``OwnDirection``)."""
 
 
 Outgoing = Message | RawFrame
@@ -181,6 +184,11 @@ def monotonic_us() -> int:
     return time.monotonic_ns() // 1000
 
 
+_UNCOUNTED = frozenset(t.TYPE for t in (Join, Admit, Telemetry))
+"""Types whose FV says nothing of this side's counters (``OwnDirection.note_sent``)."""
+_RETURN_COUNTED = frozenset(t.TYPE for t in (Return, ReturnAck))
+"""Types whose FV is a return number, not a transaction."""
+
 OWN_MAC_WAIT_US = 200_000
 """Classic layout: a message in this side's own direction whose MAC frame has not followed it
 within this long is refused as a frame without a MAC (no later message of its node need come:
@@ -235,7 +243,19 @@ class OwnDirection:
         fv = self.auth.freshness(msg)
         if fv is None:
             return
-        key = (msg.node, isinstance(msg, Return | ReturnAck))
+        self._note(msg.node, isinstance(msg, Return | ReturnAck), fv)
+
+    def note_frame(self, arbitration_id: int, data: bytes) -> None:
+        """This side sent an FD frame protected already (the compiled core's frame path: a
+        COMMIT or ABORT): its FV, read from its trailer, is its own from now on."""
+        kind = arbitration_id >> 8 & 0xF
+        if kind in _UNCOUNTED:
+            return
+        fv = int.from_bytes(data[-12:-8], "big")
+        self._note(arbitration_id & 0xFF, kind in _RETURN_COUNTED, fv)
+
+    def _note(self, node: int, returns: bool, fv: int) -> None:
+        key = (node, returns)
         last = self.sent.get(key)
         if last is None or fv_before(last, fv & FV_MASK):
             self.sent[key] = fv & FV_MASK
@@ -336,7 +356,8 @@ class BusRuntime:
         owns the bus (shared with python-canopen: one Notifier per bus). ``counters``: kept in
         this object (the handler's status shows the same one; default a new one).
         ``frame_path``: every received frame goes there first (the compiled core's, from the
-        builder); it needs a handler that takes passes and a loop without a key."""
+        builder); it needs a handler that takes passes and, with a key, the FD layout (what
+        the frame path sends is then protected already)."""
         self.bus = bus
         self.source = source
         self.handler = handler
@@ -360,8 +381,10 @@ class BusRuntime:
             self.counters.auth = auth.layout.value
         passes = callable(getattr(handler, "begin_pass", None))
         self._passes = cast(PassHandler, handler) if passes else None
-        if frame_path is not None and (auth is not None or not passes):
-            raise ValueError("a frame path needs a handler that takes passes and no key")
+        if frame_path is not None and (
+            not passes or (auth is not None and auth.layout is not Layout.FD)
+        ):
+            raise ValueError("a frame path needs a handler that takes passes and no key or FD")
         self._fast = frame_path
 
     def poll(self, max_wait_s: float = 0.1) -> None:
@@ -524,10 +547,18 @@ class BusRuntime:
             return
         for msg in messages:
             if isinstance(msg, RawFrame):
-                data = msg.data
+                fd = msg.fd
                 self._send_frame(
-                    can.Message(arbitration_id=msg.arbitration_id, is_extended_id=True, data=data)
+                    can.Message(
+                        arbitration_id=msg.arbitration_id,
+                        is_extended_id=True,
+                        data=msg.data,
+                        is_fd=fd,
+                        bitrate_switch=fd,
+                    )
                 )
+                if fd and self.own is not None:
+                    self.own.note_frame(msg.arbitration_id, msg.data)
             else:
                 self._send(msg)
 

@@ -26,7 +26,7 @@ from typing import Any
 
 import can
 
-from canergy.auth.frames import Verdict
+from canergy.auth.frames import FrameAuth, Verdict
 from canergy.cia402.guard import DriveGuard
 from canergy.codec import Codec, DecodeError
 from canergy.devices.guard import DeviceGuard
@@ -35,7 +35,7 @@ from canergy.live.devices.device_link import Device, DeviceLink
 from canergy.live.devices.on_stuck import OnStuck
 from canergy.live.runtime import FramePath, Outgoing, RawFrame
 from canergy.live.supervisor.service import SupervisorService
-from canergy.messages import Direction, Message, ToClient
+from canergy.messages import Direction, Message, MsgType, ToClient
 
 NMT_OPERATIONAL = 0x05
 SYNC_ID = 0x080
@@ -297,18 +297,20 @@ class GuardedSupervisor:
         messages: list[Message] = []
         for item in self.service.end_pass():
             if isinstance(item, RawFrame) and self.guarded.guards(item.arbitration_id & 0xFF):
-                to = Direction.TO_CLIENT
-                messages.append(self.codec.decode(item.arbitration_id, item.data, direction=to))
+                to, data = Direction.TO_CLIENT, item.data
+                if item.fd:  # protected in C (--auth, FD layout): the message, MAC left off
+                    data = data[: self.codec.data_length(MsgType(item.arbitration_id >> 8 & 0xF))]
+                messages.append(self.codec.decode(item.arbitration_id, data, direction=to))
             elif isinstance(item, RawFrame):
                 out.append(item)
             else:
                 messages.append(item)
         return out + self._route(messages, self._now)
 
-    def frame_path(self, off: str | None = None) -> FramePath | None:
+    def frame_path(self, off: str | None = None, auth: FrameAuth | None = None) -> FramePath | None:
         """The service's frame path, behind the rule above: a frame in a guarded drive's name
         never reaches the compiled core (the usual path reports it as an intrusion)."""
-        path = self.service.frame_path(off)
+        path = self.service.frame_path(off, auth)
         if path is None:
             return None
         take = path

@@ -335,7 +335,14 @@ def _one(
         handler = GuardedSupervisor(service, guarded, codec=codec)
     runtime = None
     if bus is not None:
-        off = _AUTH_OFF if config.auth is not None else _LISTEN_OFF if listen_only else None
+        auth = _frame_auth(config, codec, service.freshness)
+        off = (
+            _LISTEN_OFF
+            if listen_only
+            else _CLASSIC_OFF
+            if config.auth is not None and not config.auth.fd
+            else None
+        )
         runtime = BusRuntime(
             bus,
             handler,
@@ -343,10 +350,10 @@ def _one(
             receives=Direction.TO_SUPERVISOR,
             listen_only=listen_only,
             source=reader,
-            auth=_frame_auth(config, codec, service.freshness),
+            auth=auth,
             counters=counters,
             clock=clock,
-            frame_path=handler.frame_path(off),
+            frame_path=handler.frame_path(off, auth),
         )
     return RunningSupervisor(
         service=service,
@@ -402,7 +409,10 @@ def _several(
     )
 
 
-_AUTH_OFF = "--auth: frames are checked and signed in Python (no MAC in the C supervisor yet)"
+_CLASSIC_OFF = (
+    "--auth classic layout: frames are checked and signed in Python (a message and its MAC "
+    "frame arrive apart; the C frame path takes the FD layout)"
+)
 _LISTEN_OFF = "--listen-only: every frame is only read, on the usual path"
 
 

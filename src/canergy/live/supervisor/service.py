@@ -15,7 +15,7 @@ from typing import Any, TextIO, cast
 
 import can
 
-from canergy.auth.frames import Verdict, expected_freshness, frame_direction
+from canergy.auth.frames import FrameAuth, Layout, Verdict, expected_freshness, frame_direction
 from canergy.bus_keys import node_name
 from canergy.codec import DecodeError
 from canergy.core import (
@@ -49,6 +49,7 @@ from canergy.messages import (
     Direction,
     Join,
     Message,
+    MsgType,
     Return,
     Telemetry,
     ToSupervisor,
@@ -60,6 +61,11 @@ log = logging.getLogger(__name__)
 
 EncodedBegin = Callable[[int, int, int], tuple[list[Action], list[tuple[int, bytes]]]]
 """The compiled core's ``begin_encoded``: actions, and the INTENTION as C encoded it."""
+AuthAnswer = Callable[
+    [int, bytes | bytearray, bool, bool, int, bool],
+    tuple[int, list[Action], list[tuple[int, bytes]], int],
+]
+"""The compiled core's ``on_auth_answer``."""
 
 
 @dataclass(slots=True)
@@ -198,9 +204,15 @@ class SupervisorService:
         self.frames_in_c = 0
         """Frames the compiled core's frame path took: an answer whole (decode, rules, encode),
         a TELEMETRY, RETURN or JOIN decoded in C and then handled as usual."""
+        self._auth_answer: AuthAnswer | None = None
+        """The compiled core's frame path with a key (``fast_auth_frame``), once set up."""
+        self._frame_auth: FrameAuth | None = None
         self._begin_encoded: EncodedBegin | None = None
         """The compiled core's ``begin`` with its frame as C encoded it, once a bus loop without
-        a key took the fast path (``frame_path``): an INTENTION then leaves as C's bytes."""
+        a key took the fast path (``frame_path``): an INTENTION then leaves as C's bytes (with a
+        key in the FD layout, protected in C)."""
+        self._begin_fd = False
+        """With a key (FD layout) the INTENTION ``_begin_encoded`` gives is protected already."""
         self.stop_deadline: int | None = None
         self.liveness = liveness
         self.extra_status = extra_status
@@ -555,20 +567,34 @@ class SupervisorService:
         self.refusals.tick(now)  # what was refused since the last line, once a second at most
         return self._flush(out)
 
-    def frame_path(self, off: str | None = None) -> FramePath | None:
+    def frame_path(self, off: str | None = None, auth: FrameAuth | None = None) -> FramePath | None:
         """The frame path for this service's bus loop (``BusRuntime(frame_path=)``, from the
         builder): the compiled core's (``fast_frame``), or None where every frame takes the
         usual path: the Python core, or ``off``, why the compiled core's cannot run here (a
         key: frames are checked and signed in Python). From then on, in a loop pass, frames the
         C core encoded (COMMIT, ABORT, INTENTION) go to the loop as C's bytes (``RawFrame``),
         never decoded and encoded again. The status says which path runs (``frame_path``), why
-        not C (``frame_path_off``) and how many frames C took (``frame_path_frames``)."""
+        not C (``frame_path_off``) and how many frames C took (``frame_path_frames``).
+
+        ``auth``: the bus loop's key (FD layout only; the builder gives ``off`` for the classic
+        one): the compiled core then verifies and protects in C (``fast_auth_frame``), and an
+        INTENTION it begins in a loop pass is protected in C too."""
         if self._answer is None:
             self._path = ("python", None)
             return None
         if off is not None:
             self._path = ("python", off)
             return None
+        if auth is not None:
+            if auth.layout is not Layout.FD:
+                raise ValueError("the compiled core's frame path with a key: the FD layout only")
+            self.core.use_keys(auth.key_for)  # type: ignore[attr-defined]  # the compiled core
+            self._auth_answer = self.core.on_auth_answer  # type: ignore[attr-defined]
+            self._begin_encoded = self.core.begin_protected  # type: ignore[attr-defined]
+            self._begin_fd = True
+            self._frame_auth = auth
+            self._path = ("c", None)
+            return self.fast_auth_frame
         self._path = ("c", None)
         self._begin_encoded = getattr(self.core, "begin_encoded", None)
         return self.fast_frame
@@ -597,15 +623,41 @@ class SupervisorService:
             return True
         if status:
             return False
-        self.frames_in_c += 1
+        self._answered(
+            frame.arbitration_id & 0xFF, [RawFrame(i, d) for i, d in frames], actions, now
+        )
+        return True
+
+    def fast_auth_frame(self, frame: can.Message, now: int) -> bool:
+        """``fast_frame`` with a key, FD layout: an ACK, COMMITTED or ABORTED of a managed node
+        is verified (MAC, freshness), taken by the rules and answered with frames protected in
+        one C call; what it shows of the node's freshness is noted (``FrameAuth.took``). False,
+        nothing done: any other frame (TELEMETRY, JOIN, RETURN, DEBIT, the own direction), one
+        refused (the loop's usual path counts and reports it), an answer ahead of the session."""
+        if self.config.listen_only or not self._passes:
+            return False
+        assert self._auth_answer is not None and self._frame_auth is not None
+        ident = frame.arbitration_id
+        status, actions, frames, fv = self._auth_answer(
+            ident, frame.data, frame.is_extended_id, frame.is_remote_frame, now, self.stopping
+        )
+        if status:
+            return False
+        node = ident & 0xFF
+        self._frame_auth.took(MsgType(ident >> 8 & 0xF), node, fv)
+        self._answered(node, [RawFrame(i, d, True) for i, d in frames], actions, now)
+        return True
+
+    def _answered(self, node: int, frames: list[Outgoing], actions: list[Action], now: int) -> None:
+        """An answer the compiled core took: its frames held, then what the books record and
+        the node's next grant (a transaction ended)."""
         self.now = now
-        self.nodes[frame.arbitration_id & 0xFF].heard_at = now
-        out: list[Outgoing] = [RawFrame(i, d) for i, d in frames]
-        out += self._carry_out(actions, now)
+        self.frames_in_c += 1
+        self.nodes[node].heard_at = now
+        out = frames + self._carry_out(actions, now)
         if self.ready:  # a transaction ended: the node's next grant goes out in this pass
             out += self._start_grants(now, self.ready)
         self._held += out
-        return True
 
     # -- loop passes -----------------------------------------------------------------------
     def begin_pass(self) -> None:
@@ -766,7 +818,7 @@ class SupervisorService:
                 actions = self.core.begin(node, amount, now)
             else:
                 actions, raw = encoded(node, amount, now)
-                frames = [RawFrame(i, d) for i, d in raw]
+                frames = [RawFrame(i, d, self._begin_fd) for i, d in raw]
         except LocalProtocolError as exc:  # budget changed under us: report, do not crash
             self._finish_request(node, {"node": self.node_name(node), "error": str(exc)})
             if at_end(self.core.session(node).tx) and node not in self.ended:

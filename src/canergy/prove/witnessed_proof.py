@@ -87,6 +87,7 @@ def _record(c: sym.Client, booked: Term) -> Term:
 def client_books(w: World) -> Term:
     """The node's record (and, while it starts, the one at the start) is well formed."""
     c, p = w.c, pre(w)
+    real, at_start = replace(w, c=c), replace(w, c=p)
     phases = (sym.IDLE, sym.HOLDING, sym.JOINING, sym.RESUMING, sym.SYNCING)
     return z3.And(
         z3.Or(*(c.phase == ph for ph in phases)),
@@ -100,6 +101,9 @@ def client_books(w: World) -> Term:
                 p.held_amount == 0,
                 _record(p, z3.BoolVal(True)),
                 c.spent <= p.spent,  # the record started from is that one or an older image
+                ule(w.off_seq, real.seq),
+                ule(real.seq, at_start.seq),
+                z3.Implies(z3.Not(c.pending_draw), inv.pending_return(real)),
             ),
         ),
     )
@@ -151,8 +155,29 @@ def _msg_on_view(clause: inv.MsgClause) -> inv.MsgClause:
 
 
 def p_debit(m: Msg, w: World) -> Term:
-    """A DEBIT comes from a life of the node (nothing more is claimed yet)."""
-    return z3.And(m.life >= 0, m.life <= w.life)
+    """A DEBIT is one the codec takes (its flags and fields), from a life of the node; a draw,
+    a RESUME or a SYNC's counts carries a debit number at most one past the supervisor's
+    count, and a RESUME's pending return numbered next was debited first (as a RETURN)."""
+    v, f = view(w), m.flags
+    draw, resume, resume_draw = f == wit.DRAW, f == wit.START, f == wit.START | wit.DRAW
+    counts, books, unknown = f == wit.COUNTS, f == wit.BOOKS, f == wit.UNKNOWN_BOOKS
+    numbered = z3.Or(draw, resume, resume_draw, counts)
+    return z3.And(
+        m.life >= 0,
+        m.life <= w.life,
+        z3.Or(numbered, books, unknown),
+        z3.Implies(draw, z3.And(inv.amount_mj(m.amount), m.nonce == 0)),
+        z3.Implies(resume, z3.And(m.amount >= 0, m.amount <= AMOUNT_MAX_MJ)),
+        z3.Implies(resume_draw, inv.amount_mj(m.amount)),
+        z3.Implies(counts, z3.And(m.amount >= 0, m.amount < 1 << 16)),
+        z3.Implies(books, z3.And(m.amount >= 0, m.amount < 1 << 8)),
+        z3.Implies(unknown, z3.And(m.amount == 0, m.w == 0)),
+        z3.Implies(numbered, z3.And(ule(m.k, inv.one(v.rc)), m.w == low16(m.k))),
+        z3.Implies(
+            z3.And(resume, m.amount > 0, m.k == inv.one(v.rc)),
+            v.s.returned + m.amount * Q <= v.given,
+        ),
+    )
 
 
 def p_admit(m: Msg, w: World) -> Term:

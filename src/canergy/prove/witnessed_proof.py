@@ -1,17 +1,20 @@
 """The witnessed rules (``canergy.prove.witnessed``) as steps of a world, with both restore
 steps, and the invariant tried on them (``canergy prove --rules witnessed``).
 
-What the node holds counts in the ledger only once its start is confirmed: while it is RESUMING
-or answering a SYNC, what counts is what it held when the start began (the ghost ``parked``),
-not the Uc of the record it started from, which may be an older image. A confirmation that keeps
-the books counts their Uc (and pending draw) from then on; the difference to ``parked`` is
-received if positive, lost if negative. A pending draw counts as held until the RETURN_ACK
-releases it to the actuator (spent) or a confirmation drops it (lost).
+While the node's start waits for the supervisor's confirmation (RESUMING, or answering a
+SYNC) the invariant speaks of its record as it stood when the start began (the ghost
+``World.pre``), not of the record it started from, which may be an older image: what it holds
+counts in the ledger only from the confirmation on. A confirmation that keeps the books counts
+their Uc (and pending draw) from then on; the difference is received if positive, lost if
+negative. A pending draw counts as held until the RETURN_ACK releases it to the actuator (spent)
+or a confirmation drops it (lost). What the record's ``spent`` grows by in any phase is used.
 
-Not proved: the invariant below is the hardened one with the witnessed phases admitted and the
-energy identity above; ``P`` of a DEBIT says only which life sent it. What it lacks is in
-docs/protocol.md ("Passivity as a theorem", assumption 2); ``canergy prove --rules witnessed
---keep-going`` lists the obligations that fail.
+Not proved: the invariant is the hardened one on that view, with the witnessed phases admitted,
+the energy identity above, the record a start runs from tied to the one at the start, ``P`` of
+a DEBIT (the codec's forms, a number at most one past C) and of an ADMIT that is no JOIN's
+answer. It fails at the supervisor's restore, the node's confirmation and the supervisor's
+DEBIT: docs/protocol.md ("Passivity as a theorem", assumption 2); ``canergy prove --rules
+witnessed --keep-going`` lists the obligations.
 """
 
 from __future__ import annotations

@@ -358,3 +358,21 @@ def test_the_witnessed_proof_is_not_complete_and_says_so(
     assert code == 1 and not results[-1]["proved"]
     assert "the witnessed rules are not proved yet" in err
     assert "the bounded checker finds a real trace" not in err
+
+
+def test_a_node_that_trusts_its_record_at_a_start_fails_the_witnessed_proof(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The hardened start inside the witnessed rules: a node that goes on from the record it
+    started from without waiting for the supervisor's confirmation (it may be an older image,
+    from before a debit the actuator used) fails the restore step."""
+    from canergy.prove import witnessed as wit
+
+    def trusts(c: sym.Client, nonce16: Any) -> Any:
+        state, _ = sym.client_power_loss(c)
+        return state, wit.one(sym.Sent.none())
+
+    step = "client: restored from an older image"
+    assert not {o.clause for o in _witnessed_outcomes(step) if not o.proved}
+    monkeypatch.setattr(wit, "power_loss", trusts)
+    assert "passivity" in {o.clause for o in _witnessed_outcomes(step) if not o.proved}

@@ -263,7 +263,7 @@ def check_step(
 ) -> Iterator[Outcome]:
     """Every obligation of one step."""
     proof = proof_of(rules)
-    before = any_world("before")
+    before = any_world("before", rules.witnessed)
     step, hyps, delivered = case.build(before)
     base = [
         proof.invariant(before),
@@ -358,7 +358,7 @@ def check_initial(proof: Proof = HARDENED_PROOF) -> Iterator[Outcome]:
 def check_conclusion(rules: Rules = HARDENED) -> Iterator[Outcome]:
     """The invariant gives the ledger: the session's books hold at least what the node holds
     and used (dissipation >= 0; under the witnessed rules what counts for the node)."""
-    w = any_world("w")
+    w = any_world("w", rules.witnessed)
     usable = w.c.usable
     if rules.witnessed:
         from canergy.prove.witnessed_proof import counted

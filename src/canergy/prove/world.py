@@ -153,12 +153,13 @@ _GHOST = {
 }
 
 
-def any_world(name: str = "w") -> World:
-    """A world of fresh constants: any state at all."""
+def any_world(name: str = "w", with_pre: bool = True) -> World:
+    """A world of fresh constants: any state at all (``with_pre``: with the node's record at
+    its start, which only the witnessed rules use)."""
     s = sym.Session(**{f: _fresh(f"{name}.s.{f}.", sort) for f, sort in _SESSION.items()})
     c = sym.Client(**{f: _fresh(f"{name}.c.{f}.", sort) for f, sort in _CLIENT.items()})
     ghost = {f: _fresh(f"{name}.{f}.", sort) for f, sort in _GHOST.items()}
-    pre = any_image(f"{name}.pre")
+    pre = any_image(f"{name}.pre") if with_pre else None
     return World(s, c, **ghost, pre=pre)
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass, fields
 from canergy.prove import invariant as inv
 from canergy.prove import steps as st
 from canergy.prove.invariant import ule
-from canergy.prove.rules import HARDENED, Rules
+from canergy.prove.rules import HARDENED, RULES, Rules
 from canergy.prove.symbolic import Term, z3
 from canergy.prove.world import (
     TO_CLIENT,
@@ -76,7 +76,7 @@ def resolved_consistently(before: World, after: World) -> Term:
 
 
 def _terms(w: World) -> list[Term]:
-    records = [w.s, w.c, w]
+    records = [w.s, w.c, w, *([] if w.pre is None else [w.pre])]
     return [
         getattr(r, f.name)
         for r in records
@@ -98,15 +98,41 @@ class Goal:
     assuming: Term | None = None
 
 
-def goals(before: World, step: st.Step) -> Iterator[Goal]:
+@dataclass(frozen=True)
+class Proof:
+    """The invariant a rule set is checked against: its clauses, ``P`` of each kind of message,
+    the assumptions on a message delivered, and what each step can move."""
+
+    state: tuple[tuple[str, inv.Clause], ...]
+    message: dict[Kind, inv.MsgClause]
+    deliverable: Callable[[Msg, World], Term]
+    moves: dict[str, tuple[str, ...]]
+
+    def invariant(self, w: World) -> Term:
+        return z3.And(*(clause(w) for _, clause in self.state))
+
+
+HARDENED_PROOF = Proof(inv.STATE, inv.MESSAGE, inv.deliverable, st.MOVES)
+
+
+def proof_of(rules: Rules) -> Proof:
+    if not rules.witnessed:
+        return HARDENED_PROOF
+    from canergy.prove import witnessed_proof as wp
+
+    return Proof(wp.STATE, wp.MESSAGE, wp.deliverable, wp.MOVES)
+
+
+def goals(before: World, step: st.Step, proof: Proof = HARDENED_PROOF) -> Iterator[Goal]:
     after = step.after
-    for name, clause in inv.STATE:
+    for name, clause in proof.state:
         yield Goal(name, clause(after))
-    for kind, p in inv.MESSAGE.items():
+    for kind, p in proof.message.items():
         m = any_msg(kind, "other")
         yield Goal(f"P({kind.name}) in flight", p(m, after), p(m, before))
     for cond, msg in step.sent:
-        yield Goal(f"P({msg.kind.name}) sent", z3.Implies(cond, inv.MESSAGE[msg.kind](msg, after)))
+        p = proof.message[msg.kind]
+        yield Goal(f"P({msg.kind.name}) sent", z3.Implies(cond, p(msg, after)))
     yield Goal("budget moved = books moved", step.credit == drawn(before) - drawn(after))
 
 
@@ -120,10 +146,12 @@ Built = tuple[st.Step, list[Term], Msg | None]
 """A step, its hypotheses beyond the invariant, and the message it delivers (if any)."""
 
 
-def _delivery(kind: Kind, deliver: st.Deliver) -> Callable[[World], Built]:
+def _delivery(
+    kind: Kind, deliver: st.Deliver, proof: Proof = HARDENED_PROOF
+) -> Callable[[World], Built]:
     def build(w: World) -> Built:
         d = any_msg(kind, "delivered")
-        return deliver(w, d), [inv.MESSAGE[kind](d, w), inv.deliverable(d, w)], d
+        return deliver(w, d), [proof.message[kind](d, w), proof.deliverable(d, w)], d
 
     return build
 
@@ -148,13 +176,40 @@ def _restore_supervisor(rules: Rules) -> Callable[[World], Built]:
     return build
 
 
+RULES_WITNESSED = RULES["witnessed"]
 RESTORE = "client: restored from an older image"
 RESTORE_SUPERVISOR = "supervisor: restored from an older image"
+
+
+def _witnessed_cases() -> list[StepCase]:
+    from canergy.prove import witnessed_proof as wp
+
+    proof = proof_of(RULES_WITNESSED)
+    nonce = z3.BitVec("restore.nonce", 16)
+
+    def restore(w: World) -> Built:
+        image = any_image("image")
+        return wp.restore(w, image, nonce), [wp.p_image(image, w)], None
+
+    def restore_supervisor(w: World) -> Built:
+        image = any_session_image("session_image")
+        step = wp.restore_supervisor(w, image, nonce)
+        return step, [inv.p_session_image(image, wp.view(w))], None
+
+    out = [StepCase(RESTORE, restore), StepCase(RESTORE_SUPERVISOR, restore_supervisor)]
+    for kind, deliver in wp.deliveries().items():
+        receiver = "client" if kind in TO_CLIENT else "supervisor"
+        out.append(StepCase(f"{receiver} receives {kind.name}", _delivery(kind, deliver, proof)))
+    for name, local in wp.local().items():
+        out.append(StepCase(name, _local(local)))
+    return out
 
 
 def cases(rules: Rules = HARDENED) -> list[StepCase]:
     """Every step: each message delivered, each local request and timer (and, when the rules
     say so, a start of either side from an older image of its record, first)."""
+    if rules.witnessed:
+        return _witnessed_cases()
     out = []
     if rules.restores:
         out += [
@@ -187,7 +242,10 @@ def counterexample(model: z3.ModelRef, before: World, step: st.Step, delivered: 
     for label, w in (("before", before), ("after", step.after)):
         lines.append(_describe(model, f"{label}: session", w.s))
         lines.append(_describe(model, f"{label}: client", w.c))
-        ghost = {f.name: getattr(w, f.name) for f in fields(w) if f.name not in ("s", "c")}
+        if w.pre is not None:
+            lines.append(_describe(model, f"{label}: record at the start", w.pre))
+        skip = ("s", "c", "pre")
+        ghost = {f.name: getattr(w, f.name) for f in fields(w) if f.name not in skip}
         lines.append(
             f"  {label}: ghost "
             + ", ".join(f"{k}={model.eval(v, model_completion=True)}" for k, v in ghost.items())
@@ -200,19 +258,22 @@ def counterexample(model: z3.ModelRef, before: World, step: st.Step, delivered: 
     return "\n".join(lines)
 
 
-def check_step(case: StepCase, timeout_ms: int = 120_000) -> Iterator[Outcome]:
+def check_step(
+    case: StepCase, timeout_ms: int = 120_000, rules: Rules = HARDENED
+) -> Iterator[Outcome]:
     """Every obligation of one step."""
-    before = any_world("before")
+    proof = proof_of(rules)
+    before = any_world("before", rules.witnessed)
     step, hyps, delivered = case.build(before)
     base = [
-        inv.invariant(before),
+        proof.invariant(before),
         inv.bounded(before),
         inv.bounded(step.after),
         step.enabled,
         resolved_consistently(before, step.after),
         *hyps,
     ]
-    todo = list(goals(before, step))
+    todo = list(goals(before, step, proof))
     solver = z3.Solver()
     solver.set("timeout", timeout_ms)
     solver.add(*base)
@@ -229,7 +290,7 @@ def check_step(case: StepCase, timeout_ms: int = 120_000) -> Iterator[Outcome]:
         seconds,
         "" if possible == z3.sat else "  the invariant and assumptions rule this step out entirely",
     )
-    for energy in st.MOVES.get(case.name, ()):
+    for energy in proof.moves.get(case.name, ()):
         yield _witness(solver, case.name, energy, before, step)
     for name, lemma in step.lemmas:
         yield _check(solver, case.name, name, lemma, None, before, step, delivered)
@@ -287,20 +348,25 @@ def _check(
     return outcome
 
 
-def check_initial() -> Iterator[Outcome]:
+def check_initial(proof: Proof = HARDENED_PROOF) -> Iterator[Outcome]:
     """The invariant holds for two new nodes (H starts at 0: nothing delivered before)."""
     w = initial_world()
-    for name, clause in inv.STATE:
+    for name, clause in proof.state:
         yield _prove("initial state", name, [H(inv.one(w.tx)) == 0], clause(w))
 
 
-def check_conclusion() -> Iterator[Outcome]:
+def check_conclusion(rules: Rules = HARDENED) -> Iterator[Outcome]:
     """The invariant gives the ledger: the session's books hold at least what the node holds
-    and used (dissipation >= 0)."""
-    w = any_world("w")
-    held = w.c.usable + w.spent
-    hyps = [inv.invariant(w), inv.bounded(w)]
-    yield _prove("invariant", "usable >= 0", hyps, w.c.usable >= 0)
+    and used (dissipation >= 0; under the witnessed rules what counts for the node)."""
+    w = any_world("w", rules.witnessed)
+    usable = w.c.usable
+    if rules.witnessed:
+        from canergy.prove.witnessed_proof import counted
+
+        usable = counted(w)
+    held = usable + w.spent
+    hyps = [proof_of(rules).invariant(w), inv.bounded(w)]
+    yield _prove("invariant", "usable >= 0", hyps, usable >= 0)
     yield _prove("invariant", "dissipation >= 0", hyps, drawn(w) - held >= 0)
 
 
@@ -318,7 +384,7 @@ def _prove(step: str, clause: str, hyps: list[Term], goal: Term) -> Outcome:
 
 def check_all(rules: Rules = HARDENED, timeout_ms: int = 120_000) -> Iterator[Outcome]:
     """Every obligation, in order: the initial state, each step, the conclusion."""
-    yield from check_initial()
+    yield from check_initial(proof_of(rules))
     for case in cases(rules):
-        yield from check_step(case, timeout_ms)
-    yield from check_conclusion()
+        yield from check_step(case, timeout_ms, rules)
+    yield from check_conclusion(rules)

@@ -86,6 +86,8 @@ class Rules:
     restores: bool = False
     """Steps put the node's record, or the supervisor's, back to an older image (assumption 2
     dropped)."""
+    witnessed: bool = False
+    """The witnessed tables (``canergy.prove.witnessed_proof``) replace every cell."""
 
 
 HARDENED = Rules()
@@ -103,6 +105,7 @@ RULES: dict[str, Rules] = {
         Rules("early-grant", spend=spend_held),
         Rules("split-save", client_power_loss=power_loss_split),
         Rules("old-image", restores=True),
+        Rules("witnessed", restores=True, witnessed=True),
     )
 }
 """Every rule set by name; only ``hardened`` is expected to prove."""

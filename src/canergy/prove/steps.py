@@ -53,6 +53,7 @@ def _msg(kind: Kind, **given: Term) -> Msg:
         "k": _ZERO[BV32],
         "q": _ZERO[BV32],
         "life": _ZERO[INT],
+        "flags": _ZERO[INT],
     }
     return Msg(kind, **{**zero, **given})
 

@@ -61,6 +61,11 @@ class World:
     life: Term
     admitted: Term
     admitted_at: Term
+    pre: sym.Client | None = None
+    """Witnessed rules: the node's record as it stood when its start began (the held intention
+    dropped). While the start waits for the supervisor's confirmation this record, not the one
+    the node started from (which may be an older image), is what the invariant speaks of
+    (hardened: unused)."""
 
     # canonical views
     @property
@@ -94,7 +99,8 @@ class World:
 
     @property
     def open(self) -> Term:
-        return self.s.phase != sym.S_IDLE
+        """A transaction is open (a witnessed start's two phases are not)."""
+        return z3.Or(*(self.s.phase == p for p in (sym.WAIT_ACK, sym.ACKED, sym.WAIT_CONFIRM)))
 
     @property
     def booked(self) -> Term:
@@ -147,12 +153,14 @@ _GHOST = {
 }
 
 
-def any_world(name: str = "w") -> World:
-    """A world of fresh constants: any state at all."""
+def any_world(name: str = "w", with_pre: bool = True) -> World:
+    """A world of fresh constants: any state at all (``with_pre``: with the node's record at
+    its start, which only the witnessed rules use)."""
     s = sym.Session(**{f: _fresh(f"{name}.s.{f}.", sort) for f, sort in _SESSION.items()})
     c = sym.Client(**{f: _fresh(f"{name}.c.{f}.", sort) for f, sort in _CLIENT.items()})
     ghost = {f: _fresh(f"{name}.{f}.", sort) for f, sort in _GHOST.items()}
-    return World(s, c, **ghost)
+    pre = any_image(f"{name}.pre") if with_pre else None
+    return World(s, c, **ghost, pre=pre)
 
 
 def any_image(name: str = "image") -> sym.Client:
@@ -193,7 +201,7 @@ def initial_world() -> World:
     )
     return World(
         s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,
-        z3.BoolVal(True), zero32,
+        z3.BoolVal(True), zero32, c,
     )  # fmt: skip
 
 
@@ -210,10 +218,13 @@ class Kind(Enum):
     ABORTED = MsgType.ABORTED
     RETURN = MsgType.RETURN
     JOIN = MsgType.JOIN
+    DEBIT = MsgType.DEBIT
 
 
 TO_CLIENT = (Kind.INTENTION, Kind.COMMIT, Kind.ABORT, Kind.RETURN_ACK, Kind.ADMIT)
 TO_SUPERVISOR = (Kind.ACK, Kind.COMMITTED, Kind.ABORTED, Kind.RETURN, Kind.JOIN)
+W_TO_SUPERVISOR = (*TO_SUPERVISOR, Kind.DEBIT)
+"""The witnessed rules add DEBIT (a draw, a RESUME, a SYNC's books or counts)."""
 
 
 @dataclass(frozen=True)
@@ -224,7 +235,8 @@ class Msg:
     ``nonce``), ``amount`` in mJ, ``gs`` an INTENTION's Gs in mJ modulo 2**24, ``admit_tx`` and
     ``admit_seq`` an ADMIT's counters. Ghost: ``k`` the counter in canonical numbering (an
     ADMIT's transaction), ``q`` an ADMIT's return number, ``life`` the sender's life (client
-    messages, and the JOIN an ADMIT answers)."""
+    messages, and the JOIN an ADMIT answers). A DEBIT (witnessed) has its number or first
+    field in ``w``, its second in ``amount``, its ``flags`` and ``nonce``."""
 
     kind: Kind
     w: Term
@@ -236,6 +248,7 @@ class Msg:
     k: Term
     q: Term
     life: Term
+    flags: Term
 
 
 _MSG = {
@@ -248,6 +261,7 @@ _MSG = {
     "k": BV32,
     "q": BV32,
     "life": INT,
+    "flags": INT,
 }
 
 

@@ -1,0 +1,484 @@
+"""The witnessed rules (``canergy.prove.witnessed``) as steps of a world, with both restore
+steps, and the invariant tried on them (``canergy prove --rules witnessed``).
+
+While the node's start waits for the supervisor's confirmation (RESUMING, or answering a
+SYNC) the invariant speaks of its record as it stood when the start began (the ghost
+``World.pre``), not of the record it started from, which may be an older image: what it holds
+counts in the ledger only from the confirmation on. A confirmation that keeps the books counts
+their Uc (and pending draw) from then on; the difference is received if positive, lost if
+negative. A pending draw counts as held until the RETURN_ACK releases it to the actuator (spent)
+or a confirmation drops it (lost). What the record's ``spent`` grows by in any phase is used.
+
+Not proved: the invariant is the hardened one on that view, with the witnessed phases admitted,
+the energy identity above, the record a start runs from tied to the one at the start, ``P`` of
+a DEBIT (the codec's forms, a number at most one past C) and of an ADMIT that is no JOIN's
+answer. It fails at the supervisor's restore, the node's confirmation and the supervisor's
+DEBIT: docs/protocol.md ("Passivity as a theorem", assumption 2); ``canergy prove --rules
+witnessed --keep-going`` lists the obligations.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from canergy.messages import AMOUNT_MAX_MJ, COUNTER_BOUND, QUANTUM_UJ, SEQ_BITS, SYNC_CONFIRMED
+from canergy.prove import invariant as inv
+from canergy.prove import steps as st
+from canergy.prove import symbolic as sym
+from canergy.prove import witnessed as wit
+from canergy.prove.invariant import COMMITTED, Q, low16, ule, whole
+from canergy.prove.symbolic import Term, z3
+from canergy.prove.world import TO_CLIENT, W_TO_SUPERVISOR, H, Kind, Msg, World
+
+# -- what the node holds ---------------------------------------------------------------------------
+
+
+def starting(c: sym.Client) -> Term:
+    """The node waits for the supervisor to confirm its start (RESUME or a SYNC's answer)."""
+    return z3.Or(c.phase == sym.RESUMING, c.phase == sym.SYNCING)
+
+
+def holds(c: sym.Client) -> Term:
+    """Uc and a pending draw (debited, not yet released to the actuator)."""
+    return c.usable + z3.If(c.pending_draw, c.return_pending, 0)
+
+
+def pre(w: World) -> sym.Client:
+    assert w.pre is not None, "a world of the witnessed proof has the record at the start"
+    return w.pre
+
+
+def view(w: World) -> World:
+    """The world the hardened clauses speak of: while the node's start waits, its record as it
+    stood when the start began."""
+    return replace(w, c=sym.pick(starting(w.c), pre(w), w.c))
+
+
+def counted(w: World) -> Term:
+    """What counts as the node's in the ledger (Uc and a pending draw, of ``view``)."""
+    return holds(view(w).c)
+
+
+# -- the invariant ------------------------------------------------------------------------------
+
+
+def supervisor_books(w: World) -> Term:
+    s = w.s
+    phases = (sym.S_IDLE, sym.WAIT_ACK, sym.ACKED, sym.WAIT_CONFIRM, sym.SYNCING, sym.SYNC_BOOKS)
+    return z3.And(
+        z3.Or(*(s.phase == p for p in phases)),
+        z3.Not(w.open) == (s.reserved == 0),
+        z3.Implies(w.open, z3.And(s.reserved >= Q, s.reserved <= AMOUNT_MAX_MJ * Q)),
+        whole(s.reserved),
+        whole(s.delivered),
+        s.returned >= 0,
+    )
+
+
+def _record(c: sym.Client, booked: Term) -> Term:
+    return z3.And(
+        c.usable >= 0,
+        c.spent >= 0,
+        whole(c.credited),
+        whole(c.return_pending),
+        c.return_pending <= AMOUNT_MAX_MJ * Q,
+        z3.Implies(c.pending_draw, c.return_pending > 0),
+        z3.Implies(z3.Not(booked), z3.And(c.usable == 0, c.spent == 0, z3.Not(c.pending_draw))),
+    )
+
+
+def client_books(w: World) -> Term:
+    """The node's record (and, while it starts, the one at the start) is well formed."""
+    c, p = w.c, pre(w)
+    real, at_start = replace(w, c=c), replace(w, c=p)
+    phases = (sym.IDLE, sym.HOLDING, sym.JOINING, sym.RESUMING, sym.SYNCING)
+    return z3.And(
+        z3.Or(*(c.phase == ph for ph in phases)),
+        _record(c, w.booked),
+        z3.Implies(starting(c), z3.And(c.held_tx == 0, c.held_amount == 0)),
+        z3.Implies(
+            starting(c),
+            z3.And(
+                p.phase == sym.IDLE,
+                p.held_tx == 0,
+                p.held_amount == 0,
+                _record(p, z3.BoolVal(True)),
+                c.spent <= p.spent,  # the record started from is that one or an older image
+                ule(w.off_seq, real.seq),
+                ule(real.seq, at_start.seq),
+                z3.Implies(z3.Not(c.pending_draw), inv.pending_return(real)),
+            ),
+        ),
+    )
+
+
+def energy(w: World) -> Term:
+    """Every µJ credited to the node is held (as counted), spent, given back or lost."""
+    v = view(w)
+    return z3.And(
+        counted(w) + w.spent + w.given + w.lost == w.received,
+        v.c.spent <= w.spent,
+        w.spent >= 0,
+        w.given >= 0,
+        w.lost >= 0,
+    )
+
+
+def pending_return(w: World) -> Term:
+    """A pending return (not a draw) not yet credited was debited first."""
+    v = view(w)
+    return z3.Implies(z3.Not(v.c.pending_draw), inv.pending_return(v))
+
+
+_REPLACED = {
+    "supervisor books": supervisor_books,
+    "client books": client_books,
+    "energy identity": energy,
+    "pending return": pending_return,
+}
+
+
+def _on_view(clause: inv.Clause) -> inv.Clause:
+    return lambda w: clause(view(w))
+
+
+STATE: tuple[tuple[str, inv.Clause], ...] = tuple(
+    (name, _REPLACED.get(name, _on_view(clause))) for name, clause in inv.STATE
+)
+
+
+def p_image(r: sym.Client, w: World) -> Term:
+    """An older image of the node's record: the hardened ``p_image`` against the record the
+    invariant speaks of, and well formed as a witnessed record (a pending draw is pending)."""
+    return z3.And(inv.p_image(r, view(w)), _record(r, z3.BoolVal(True)))
+
+
+def _msg_on_view(clause: inv.MsgClause) -> inv.MsgClause:
+    return lambda m, w: clause(m, view(w))
+
+
+def p_debit(m: Msg, w: World) -> Term:
+    """A DEBIT is one the codec takes (its flags and fields), from a life of the node; a draw,
+    a RESUME or a SYNC's counts carries a debit number at most one past the supervisor's
+    count, and a RESUME's pending return numbered next was debited first (as a RETURN)."""
+    v, f = view(w), m.flags
+    draw, resume, resume_draw = f == wit.DRAW, f == wit.START, f == wit.START | wit.DRAW
+    counts, books, unknown = f == wit.COUNTS, f == wit.BOOKS, f == wit.UNKNOWN_BOOKS
+    numbered = z3.Or(draw, resume, resume_draw, counts)
+    return z3.And(
+        m.life >= 0,
+        m.life <= w.life,
+        z3.Or(numbered, books, unknown),
+        z3.Implies(draw, z3.And(inv.amount_mj(m.amount), m.nonce == 0)),
+        z3.Implies(resume, z3.And(m.amount >= 0, m.amount <= AMOUNT_MAX_MJ)),
+        z3.Implies(resume_draw, inv.amount_mj(m.amount)),
+        z3.Implies(counts, z3.And(m.amount >= 0, m.amount < 1 << 16)),
+        z3.Implies(books, z3.And(m.amount >= 0, m.amount < 1 << 8)),
+        z3.Implies(unknown, z3.And(m.amount == 0, m.w == 0)),
+        z3.Implies(numbered, z3.And(ule(m.k, inv.one(v.rc)), m.w == low16(m.k))),
+        z3.Implies(
+            z3.And(resume, m.amount > 0, m.k == inv.one(v.rc)),
+            v.s.returned + m.amount * Q <= v.given,
+        ),
+    )
+
+
+def p_admit(m: Msg, w: World) -> Term:
+    """An ADMIT answers a JOIN (``life`` the JOIN's: the hardened ``P``), or it is a SYNC or a
+    start's confirmation (``life`` -1): its counters the supervisor's, then or earlier."""
+    v = view(w)
+    ours = z3.And(
+        ule(m.k, v.tx), ule(m.q, v.rc), m.admit_tx == low16(m.k), m.admit_seq == low16(m.q)
+    )
+    return z3.If(m.life == -1, ours, inv.p_admit(m, v))
+
+
+MESSAGE: dict[Kind, inv.MsgClause] = {
+    **{kind: _msg_on_view(p) for kind, p in inv.MESSAGE.items()},
+    Kind.ADMIT: p_admit,
+    Kind.DEBIT: p_debit,
+}
+
+
+def deliverable(m: Msg, w: World) -> Term:
+    """The hardened assumptions (an ADMIT that is a SYNC or a confirmation never matches a
+    joining node's nonce: assumption 5); a DEBIT's debit number within 2**15 of the
+    supervisor's count (books carry Rc instead)."""
+    if m.kind is Kind.DEBIT:
+        return z3.Implies(z3.Not(wit.is_books(m.flags)), inv.near(m.k, view(w).rc))
+    return inv.deliverable(m, view(w))
+
+
+def invariant(w: World) -> Term:
+    return z3.And(*(clause(w) for _, clause in STATE))
+
+
+# -- the steps -----------------------------------------------------------------------------------
+
+
+def client_sent(w: World, frames: wit.Frames) -> tuple[tuple[Term, Msg], ...]:
+    """Both frames a client step sends, a DEBIT among the kinds."""
+    out: list[tuple[Term, Msg]] = []
+    for sent in frames:
+        out += st.client_sent(w, sent)
+        k = sym.unwrap(sent.a, w.c.return_seq, SEQ_BITS) + w.off_seq
+        debit = st._msg(
+            Kind.DEBIT, w=sent.a, amount=sent.b, flags=sent.c, nonce=sent.d, k=k, life=w.life
+        )
+        out.append((st._is(sent, Kind.DEBIT), debit))
+    return tuple(out)
+
+
+def _moved(w: World, c: sym.Client, gave: Term = 0, replaced: bool = False, **ghost: Term) -> World:
+    """The world after a client step: what counts for the node moved by ``net`` (plus what the
+    actuator was released and what was given back); a gain is received, a loss lost. A start
+    keeps the record it began from (``pre``). What the record's ``spent`` grew by is what the
+    actuator used, in any phase (a record ``replaced`` by an older image used nothing)."""
+    began = z3.And(starting(c), z3.Not(starting(w.c)))
+    at_start = sym.client_power_loss(w.c)[0]
+    after = replace(w, c=c, pre=sym.pick(began, at_start, pre(w)), **ghost)
+    grown = c.spent - w.c.spent
+    used = z3.IntVal(0) if replaced else z3.If(grown > 0, grown, 0)
+    net = counted(after) - counted(w) + used + gave
+    after = replace(
+        after,
+        received=w.received + z3.If(net > 0, net, 0),
+        lost=w.lost + z3.If(net < 0, -net, 0),
+        spent=w.spent + used,
+        given=w.given + gave,
+    )
+    v = view(after)
+    committed = z3.And(v.booked, v.last == v.tx, v.c.outcome == COMMITTED)
+    return replace(after, cc=z3.Or(w.cc, committed))
+
+
+def _client(
+    w: World, result: tuple[sym.Client, wit.Frames], replaced: bool = False, **ghost: Term
+) -> st.Step:
+    c, frames = result
+    after = _moved(w, c, replaced=replaced, **ghost)
+    return st.Step(after, client_sent(after, frames), z3.BoolVal(True), z3.IntVal(0))
+
+
+def on_intention(w: World, m: Msg) -> st.Step:
+    c, frames = wit.on_intention(w.c, m.w, m.amount, m.gs)
+    learned = z3.And(w.c.credited_unknown, z3.Not(c.credited_unknown))
+    roff = z3.If(learned, H(m.k) - c.credited, w.roff)
+    step = _client(w, (c, frames), roff=roff)
+    lemmas = [(n, z3.Implies(z3.Not(starting(w.c)), x)) for n, x in st.on_intention(w, m).lemmas]
+    return replace(step, lemmas=tuple(lemmas))
+
+
+def on_admit(w: World, m: Msg) -> st.Step:
+    """A JOIN's admission, a start's confirmation (kept, or found behind: counted afresh), or a
+    SYNC; the ghost numbering follows an admission as under the hardened rules."""
+    c = w.c
+    c2, frames = wit.on_admit(c, m.nonce, m.admit_tx, m.admit_seq)
+    joined = z3.And(c.phase == sym.JOINING, m.nonce == c.nonce)
+    syncing = c.phase == sym.SYNCING
+    expected = z3.If(syncing, c.nonce ^ SYNC_CONFIRMED, c.nonce)
+    q = sym.unwrap(m.admit_seq, c.return_seq, SEQ_BITS)
+    behind = z3.And(
+        starting(c),
+        m.nonce == expected,
+        q - c.return_seq > 1,
+        z3.Not(z3.UGE(q, sym.counter(COUNTER_BOUND))),
+    )
+    fresh = z3.Or(joined, behind)
+    off_tx = z3.If(fresh, m.k - z3.ZeroExt(16, m.admit_tx), w.off_tx)
+    off_seq = z3.If(fresh, m.q - z3.ZeroExt(16, m.admit_seq), w.off_seq)
+    roff = z3.If(fresh, z3.IntVal(0), w.roff)
+    return _client(w, (c2, frames), off_tx=off_tx, off_seq=off_seq, roff=roff)
+
+
+def draw(w: World, amount: Term) -> st.Step:
+    c, sent, allowed = wit.draw(w.c, amount)
+    after = _moved(w, c)
+    return st.Step(after, client_sent(after, wit.one(sent)), allowed, z3.IntVal(0))
+
+
+def give_back(w: World, amount: Term) -> st.Step:
+    c, sent, allowed = wit.give_back(w.c, amount)
+    after = _moved(w, c, gave=amount)
+    return st.Step(after, client_sent(after, wit.one(sent)), allowed, z3.IntVal(0))
+
+
+def books_lost(w: World, nonce: Term) -> st.Step:
+    c, frames = wit.books_lost(w.c, nonce)
+    zero32 = sym.counter(0)
+    after = replace(
+        w,
+        c=c,
+        lost=w.lost + counted(w),
+        life=w.life + 1,
+        admitted=z3.BoolVal(False),
+        off_tx=zero32,
+        off_seq=zero32,
+        roff=z3.IntVal(0),
+    )
+    return st.Step(after, client_sent(after, frames), z3.BoolVal(True), z3.IntVal(0))
+
+
+def restore(w: World, image: sym.Client, nonce: Term) -> st.Step:
+    """The node's record put back to an older ``image`` and the node started from it, as after a
+    power loss: RESUMING, what it held before parked (the image's Uc counts only once the
+    supervisor confirms it)."""
+    return _client(w, wit.power_loss(image, nonce), replaced=True)
+
+
+# -- the supervisor's steps ----------------------------------------------------------------------
+
+
+def _session(w: World, step: sym.SessionStep, life: Term | None = None, **ghost: Term) -> st.Step:
+    """A supervisor step; an ADMIT it sends answers the JOIN of ``life``, or (None) is a SYNC
+    or a start's confirmation (ghost life -1)."""
+    after = replace(w, s=step.session, **ghost)
+    answers = z3.IntVal(-1) if life is None else life
+    sent = st.supervisor_sent(after, step.sent, answers)
+    return st.Step(after, sent, z3.BoolVal(True), step.credit)
+
+
+def _lift(s: sym.Session) -> tuple[Term, Term]:
+    """How far an admission lifts tx and C (the high half, invisible on the wire)."""
+    lifted = sym.admit(s, z3.BitVecVal(0, 16)).session
+    return lifted.tx - s.tx, lifted.returns_credited - s.returns_credited
+
+
+def on_join(w: World, m: Msg) -> st.Step:
+    step = wit.admit(w.s, m.nonce)
+    taken = z3.Not(wit.in_start(w.s))
+    lift_tx, lift_seq = _lift(w.s)
+    zero = sym.counter(0)
+    shift_tx = w.shift_tx + z3.If(taken, lift_tx, zero)
+    shift_seq = w.shift_seq + z3.If(taken, lift_seq, zero)
+    first = z3.And(taken, m.life == w.life, z3.Not(w.admitted))
+    admitted_at = z3.If(first, step.session.tx - shift_tx, w.admitted_at)
+    return _session(
+        w,
+        step,
+        m.life,
+        shift_tx=shift_tx,
+        shift_seq=shift_seq,
+        admitted=z3.Or(w.admitted, first),
+        admitted_at=admitted_at,
+    )
+
+
+def on_debit(w: World, m: Msg) -> st.Step:
+    """A DEBIT: a draw held, a RESUME or a SYNC's counts confirmed (lifted as for a JOIN when
+    the node is behind), a SYNC's books taken."""
+    s = w.s
+    step = wit.on_debit(s, m.nonce, m.flags, m.w, m.amount)
+    counts = m.flags == wit.COUNTS
+    resumes = z3.And(
+        z3.Not(wit.in_start(s)), z3.Not(wit.is_books(m.flags)), (m.flags / wit.START) % 2 == 1
+    )
+    counted_ = z3.And(s.phase == sym.SYNC_BOOKS, m.nonce == s.sync_nonce, counts)
+    seq = sym.unwrap(m.w, s.returns_credited, SEQ_BITS)
+    repeat = z3.And(
+        s.resume_to != 0,
+        s.resume_to == s.returns_credited,
+        s.resume_nonce == wit.key_of(m.nonce, counts),
+        s.resume_from == seq,
+    )
+    lifted = z3.And(z3.Or(resumes, counted_), seq - s.returns_credited < 0, z3.Not(repeat))
+    lift_tx, lift_seq = _lift(s)
+    zero = sym.counter(0)
+    return _session(
+        w,
+        step,
+        shift_tx=w.shift_tx + z3.If(lifted, lift_tx, zero),
+        shift_seq=w.shift_seq + z3.If(lifted, lift_seq, zero),
+    )
+
+
+def begin(w: World, amount: Term) -> st.Step:
+    step = _session(w, sym.begin(w.s, amount), cc=z3.BoolVal(False))
+    most = AMOUNT_MAX_MJ * QUANTUM_UJ
+    valid = z3.And(amount % QUANTUM_UJ == 0, amount >= QUANTUM_UJ, amount <= most)
+    return replace(step, enabled=z3.And(w.s.phase == sym.S_IDLE, valid, wit.may_begin(w.s)))
+
+
+def decide(commit: bool) -> st.Local:
+    def decided(w: World) -> st.Step:
+        step = _session(w, sym.decide(w.s, commit))
+        return replace(step, enabled=w.s.phase == sym.ACKED)
+
+    return decided
+
+
+def restore_supervisor(w: World, image: sym.Session, nonce: Term) -> st.Step:
+    """The supervisor's state file put back to an older ``image`` and started from it (a SYNC
+    start): Us comes back with the file, so the session moves into Us what its books count less
+    in the image."""
+    step = wit.start(image, nonce)
+    after = replace(w, s=step.session, cc=z3.And(w.cc, step.session.tx == w.s.tx))
+    books = image.reserved + image.delivered - image.returned
+    now = w.s.reserved + w.s.delivered - w.s.returned
+    sent = st.supervisor_sent(after, step.sent, z3.IntVal(-1))
+    return st.Step(after, sent, z3.BoolVal(True), now - books + step.credit)
+
+
+def deliveries() -> dict[Kind, st.Deliver]:
+    table: dict[Kind, st.Deliver] = {
+        Kind.INTENTION: on_intention,
+        Kind.COMMIT: lambda w, m: _client(w, wit.on_command(w.c, True, m.w, m.amount)),
+        Kind.ABORT: lambda w, m: _client(w, wit.on_command(w.c, False, m.w, m.amount)),
+        Kind.RETURN_ACK: lambda w, m: _client(w, wit.on_debit_ack(w.c, m.w)),
+        Kind.ADMIT: on_admit,
+        Kind.ACK: lambda w, m: _session(w, wit.on_ack(w.s, m.w)),
+        Kind.COMMITTED: lambda w, m: _session(w, wit.on_committed(w.s, m.w)),
+        Kind.ABORTED: lambda w, m: _session(w, wit.on_aborted(w.s, m.w)),
+        Kind.RETURN: lambda w, m: _session(w, wit.credit_return(w.s, m.w, m.amount)),
+        Kind.JOIN: on_join,
+        Kind.DEBIT: on_debit,
+    }
+    assert set(table) == set(TO_CLIENT) | set(W_TO_SUPERVISOR)
+    return table
+
+
+def local() -> dict[str, st.Local]:
+    """Each local request and timer of the witnessed tables (a gateway's link moves are not
+    steps here: a witnessed gateway forwards by a draw)."""
+    nonce = z3.BitVec("start.nonce", 16)
+    return {
+        "client: command timer (timeout-commit)": lambda w: _client(w, wit.timeout_commit(w.c)),
+        "client: spend (DRAW)": lambda w: draw(w, z3.Int("spend.amount")),
+        "client: give back": lambda w: give_back(w, z3.Int("give_back.amount")),
+        "client: retry timer (RETURN, DRAW, JOIN, RESUME or a SYNC's answer again)": lambda w: (
+            _client(w, wit.resend(w.c))
+        ),
+        "client: power loss (RESUME)": lambda w: _client(w, wit.power_loss(w.c, nonce)),
+        "client: books lost (JOIN)": lambda w: books_lost(w, z3.BitVec("books_lost.nonce", 16)),
+        "supervisor: begin": lambda w: begin(w, z3.Int("begin.amount")),
+        "supervisor: decide commit": decide(True),
+        "supervisor: decide abort": decide(False),
+        "supervisor: response timer (re-send, write off, or SYNC again)": lambda w: _session(
+            w, wit.response_timeout(w.s, z3.Bool("response_timeout.gives_up"))
+        ),
+        "supervisor: power loss (SYNC)": lambda w: _session(w, wit.start(w.s, nonce)),
+    }
+
+
+MOVES: dict[str, tuple[str, ...]] = {
+    "client receives INTENTION": ("Uc", "received"),
+    "client receives COMMIT": ("Uc", "received"),
+    "client receives RETURN_ACK": ("spent",),
+    "client receives ADMIT": ("Uc", "lost"),
+    "supervisor receives COMMITTED": ("Ts", "Gs"),
+    "supervisor receives ABORTED": ("Ts",),
+    "supervisor receives RETURN": ("returned",),
+    "supervisor receives JOIN": ("Ts", "Gs"),
+    "supervisor receives DEBIT": ("Ts", "Gs", "returned"),
+    "client: command timer (timeout-commit)": ("Uc", "received"),
+    "client: spend (DRAW)": ("Uc",),
+    "client: give back": ("Uc", "given"),
+    "client: books lost (JOIN)": ("Uc", "lost"),
+    "client: restored from an older image": ("Uc",),
+    "supervisor: restored from an older image": ("Ts", "Gs"),
+    "supervisor: begin": ("Ts",),
+    "supervisor: response timer (re-send, write off, or SYNC again)": ("Ts", "Gs"),
+    "supervisor: power loss (SYNC)": ("Ts", "Gs"),
+}
+"""The energies each witnessed step's rule moves (the proof's vacuity checks, as for the
+hardened steps)."""

@@ -25,6 +25,7 @@ from canergy.cli.shared.live import (
     start_without_flag,
     supervisor_flags,
 )
+from canergy.cli.shared.mit import SIDE_FILTER, add_supervisor_mit_flags, check_mit, mit_group
 from canergy.cli.shared.moteus import (
     add_moteus_flags,
     check_moteus,
@@ -125,6 +126,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     add_cia402_flags(p)
     add_odrive_flags(p)
     add_moteus_flags(p)
+    add_supervisor_mit_flags(p)
     p.add_argument(
         "--on-stuck",
         metavar="CMD",
@@ -168,6 +170,7 @@ def _buses(args: argparse.Namespace) -> tuple[BusSpec, ...]:
             ("--cia402", args.cia402),
             ("--odrive", args.odrive),
             ("--moteus", args.moteus),
+            ("--mit", args.mit),
         )
         if on
     ]
@@ -246,6 +249,7 @@ def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
             "its --state (not --listen-only)"
         )
     if not buses:
+        check_mit(args)
         check_moteus(args)
         check_odrive(args)
         check_cia402(args)
@@ -254,13 +258,16 @@ def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
 
 
 def _devices(args: argparse.Namespace) -> tuple[DeviceGroup, ...]:
-    """The guarded device groups asked for, one per profile flag (``--odrive``, ``--moteus``)."""
+    """The guarded device groups asked for, one per profile flag (``--odrive``, ``--moteus``,
+    ``--mit``)."""
     timing = rule_timing(args)
     groups: list[DeviceGroup] = []
     if args.odrive:
         groups.append(odrive_axes(args, timing))
     if args.moteus:
         groups.append(moteus_controllers(args, timing))
+    if args.mit:
+        groups.append(mit_group(args, timing))
     return tuple(groups)
 
 
@@ -372,6 +379,8 @@ def _run_bus(args: argparse.Namespace, config: SupervisorConfig, core: Superviso
         from canergy.live.canopen.shared_bus import STANDARD_FRAMES
 
         filters += [STANDARD_FRAMES, *moteus_filters(args)]
+    if args.mit:
+        filters.append(SIDE_FILTER)  # CubeMars servo-mode frames (the 11-bit ones pass above)
     bus = open_bus(args, filters)
     try:
         built = build_supervisor(config, [bus], core=core)

@@ -112,6 +112,8 @@ class GuardedDevices:
             if device_link.pending():
                 return 0
             times.append(device.next_wakeup())
+            if (own := device_link.next_wakeup()) is not None:
+                times.append(own)
         return min(times) if times else None
 
     def pump(self, now: int, stopping: bool) -> list[Message]:

@@ -18,6 +18,7 @@ import can
 import pytest
 
 from canergy.cli import main
+from canergy.codec import DEFAULT_ID_BASE
 from canergy.devices.mit import worst_torque
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.mit.live_bench import DM, GREEDY, MOTOR, PUSH, burst, rig
@@ -87,6 +88,37 @@ def test_a_burst_from_the_application_reaches_the_motor_clamped_and_the_budget_s
         assert worst_torque(DM, cmd, cmd.p, 0, 0) + cmd.kp * 25 <= Fraction(CAP)
     assert not r.model.enabled  # exit motor mode when the budget was gone
     assert str(MOTOR) not in final.get("intrusions_by_node", {})
+
+
+def test_a_supervisor_that_exits_takes_the_motor_out_of_motor_mode(tmp_path: Path) -> None:
+    """Stopped while the motor runs under its budget, the supervisor tells it to exit motor
+    mode; and a frame in canergy's identifier block from the application is not put on the
+    supervisor's bus (it would speak in a proxy's name)."""
+    app_channel = f"app-{uuid.uuid4().hex}"
+    with rig(tmp_path, "60J", hosted=hosted(app_channel)) as r:
+        app = can.Bus(interface="virtual", channel=app_channel)
+        spy = can.Bus(interface="virtual", channel=r.channel)
+
+        def motor() -> dict[str, Any]:
+            books = r.books() or {}
+            return dict(books.get("cia402", {}).get("devices", {}).get("mit", {}).get("1", {}))
+
+        try:
+            wait_for(lambda: motor().get("guard") == "running", timeout=60)
+            end = time.monotonic() + 0.5
+            burst(app, lambda: time.monotonic() > end, [PUSH])
+            wait_for(lambda: r.model.enabled, timeout=30)
+            canergy_id = DEFAULT_ID_BASE | 0x100 | MOTOR  # in canergy's block, node 1
+            app.send(can.Message(arbitration_id=canergy_id, data=bytes(8), is_extended_id=True))
+            wait_for(lambda: motor()["canergy_frames_refused"] == 1, timeout=30)
+            while (frame := spy.recv(timeout=0)) is not None:
+                assert frame.arbitration_id != canergy_id
+            assert r.model.enabled and motor()["guard"] == "running"
+            r.stop()
+            assert not r.model.enabled
+        finally:
+            app.shutdown()
+            spy.shutdown()
 
 
 BASE = ["supervisor", "-i", "virtual", "-c", "motors", "--initial", "1J"]

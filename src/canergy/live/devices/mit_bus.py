@@ -18,12 +18,15 @@ is logged (warning, the first and then every 100th of a motor, with its reason);
 ``on_refused="raise"`` a refused ``send`` raises ``MitRefused`` (a ``can.CanOperationError``).
 ``shutdown`` exits motor mode on every guarded motor before it closes the real bus.
 
-Why the proxy lives here rather than in the supervisor: the application's commands then take one
-function call to reach the clamp (no second process in their path), and the supervisor needs
-nothing new (the proxy is an ordinary client to it). What it costs: if this process dies the
-motor keeps its last command (clamped under the cap, but no longer re-clamped nor stopped) until
-its own timeout (Damiao: ``CAN Timeout``; CubeMars AK: none), and the supervisor sees its proxy
-go silent; docs/guide/drives.md says what to arm.
+Why the proxy lives here: the application's commands then take one function call to reach the
+clamp (no second process in their path), and the supervisor needs nothing new (the proxy is an
+ordinary client to it). What it costs: if this process dies the motor keeps its last command
+(clamped under the cap, but no longer re-clamped nor stopped) until its own timeout (Damiao:
+``CAN Timeout``; CubeMars AK: none), and the supervisor sees its proxy go silent;
+docs/guide/drives.md says what to arm. The other way, ``canergy supervisor --mit``, hosts the
+same gates (``MitGates``) in the supervisor's process, between the application's bus and its own
+(``canergy.live.devices.mit_host``): the proxies are then its guarded devices, shown under
+``mit`` in its status, and the application needs a bus of its own.
 """
 
 from __future__ import annotations

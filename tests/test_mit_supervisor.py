@@ -121,6 +121,40 @@ def test_a_supervisor_that_exits_takes_the_motor_out_of_motor_mode(tmp_path: Pat
             spy.shutdown()
 
 
+def test_a_command_from_the_application_is_forwarded_at_once(tmp_path: Path) -> None:
+    """The application's frames wake the supervisor's loop: a command reaches the motor in a
+    pass of its own, not at the loop's next deadline (the gate's re-clamp every 20 ms hold).
+    Measured here: median 0.46 to 0.84 ms, and 16 ms with the wake taken out; 8 ms allowed."""
+    app_channel = f"app-{uuid.uuid4().hex}"
+    with rig(tmp_path, "60J", hosted=hosted(app_channel)) as r:
+        app = can.Bus(interface="virtual", channel=app_channel)
+
+        def running() -> bool:
+            books = r.books() or {}
+            devices = books.get("cia402", {}).get("devices", {})
+            return bool(devices.get("mit", {}).get("1", {}).get("guard") == "running")
+
+        took: list[float] = []
+        try:
+            wait_for(running, timeout=60)
+            burst(app, lambda: True, [])  # enter motor mode
+            wait_for(lambda: r.model.enabled, timeout=30)
+            for _ in range(50):
+                seen = len(r.model.commands)
+                start = time.perf_counter()
+                app.send(can.Message(arbitration_id=MOTOR, data=PUSH, is_extended_id=False))
+                while len(r.model.commands) == seen and time.perf_counter() - start < 10:
+                    time.sleep(0.0002)  # a busy wait would hold the GIL from the forwarder
+                took.append(time.perf_counter() - start)
+                time.sleep(0.003)
+        finally:
+            app.shutdown()
+        r.stop()
+    took.sort()
+    print(f"forwarded in: median {took[25] * 1e3:.2f} ms, 90% {took[45] * 1e3:.2f} ms")
+    assert took[25] < 0.008, took
+
+
 BASE = ["supervisor", "-i", "virtual", "-c", "motors", "--initial", "1J"]
 MIT = ["--mit", "1,2", "--mit-model", "DM4310", "--mit-app-channel", "app"]
 

@@ -36,7 +36,7 @@ def hosted(app_channel: str) -> list[str]:
 
 
 def test_a_burst_from_the_application_reaches_the_motor_clamped_and_the_budget_stops_it(
-    tmp_path: Path,
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     app_channel = f"app-{uuid.uuid4().hex}"
     with rig(tmp_path, "3J", hosted=hosted(app_channel)) as r:
@@ -67,6 +67,7 @@ def test_a_burst_from_the_application_reaches_the_motor_clamped_and_the_budget_s
         final = r.stop()
     books = final["nodes"][str(MOTOR)]
     granted = books["delivered_uj"] - books["returns_credited_uj"]
+    assert books["intrusions"] == 0  # no frame in the proxy's name came from the bus
     drawn = r.drawn()
     c = status["commands"]
     print(
@@ -87,7 +88,8 @@ def test_a_burst_from_the_application_reaches_the_motor_clamped_and_the_budget_s
     for cmd in r.model.commands:  # each asks for at most the cap at any position within 25 rad
         assert worst_torque(DM, cmd, cmd.p, 0, 0) + cmd.kp * 25 <= Fraction(CAP)
     assert not r.model.enabled  # exit motor mode when the budget was gone
-    assert str(MOTOR) not in final.get("intrusions_by_node", {})
+    said = [line for line in capsys.readouterr().err.splitlines() if "mit motor 1: " in line]
+    assert any("budget exhausted" in line for line in said), said
 
 
 def test_a_supervisor_that_exits_takes_the_motor_out_of_motor_mode(tmp_path: Path) -> None:

@@ -211,7 +211,8 @@ class GuardedDevices:
         self.reported[guard.node] = seen
         left = f"{guard.usable / 1e6:.3f} J left"
         if isinstance(guard, DeviceGuard):
-            what = f"{guard.profile.name} axis {guard.node}"
+            noun = "motor" if guard.profile.name == "mit" else "axis"
+            what = f"{guard.profile.name} {noun} {guard.node}"
             if stuck is not None:
                 self.report(f"{what}: STUCK ({stuck}; stop repeated; {left})")
             elif guard.stop_reason is None:

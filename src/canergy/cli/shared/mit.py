@@ -12,9 +12,15 @@ from collections.abc import Iterable
 from fractions import Fraction
 from typing import Any
 
-from canergy.argtypes import PER_ID_SYNTAX, PerId, _shown, add_duration, per_id
+import can
+
+from canergy.argtypes import PER_ID_SYNTAX, PerId, _shown, add_duration, node_ids, per_id
+from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.cli.shared.cia402 import _number
+from canergy.codec import Codec
+from canergy.core import Timing
 from canergy.devices.mit import MODELS, MitModel
+from canergy.live.devices.mit_host import MitMotors
 from canergy.live.devices.mit_motor import MitMotor
 
 EXAMPLE = "1:AK80-9,2:DM4310"
@@ -174,9 +180,6 @@ SIDE_FILTER: dict[str, int | bool] = {"can_id": 0, "can_mask": 0x1FFFF800, "exte
 
 def add_supervisor_mit_flags(p: argparse.ArgumentParser) -> None:
     """``--mit IDS``, the gates' flags and the application's bus (``--mit-app-*``)."""
-    from canergy.argtypes import node_ids
-    from canergy.cli.shared.bus_flags import add_bus_flags
-
     g = p.add_argument_group(
         "MIT-mode motors",
         "guard MIT-mode motors (CubeMars AK, Damiao DM) in line: the application talks to them "
@@ -229,13 +232,10 @@ def check_mit(args: argparse.Namespace) -> None:
     mit_motors(args, list(motors))
 
 
-def mit_group(args: argparse.Namespace, timing: Any) -> Any:
+def mit_group(args: argparse.Namespace, timing: Timing) -> MitMotors:
     """The ``--mit*`` flags as the builder takes them (``MitMotors``)."""
-    from canergy.cli.shared.bus_flags import open_bus
-    from canergy.codec import Codec
-    from canergy.live.devices.mit_host import MitMotors
 
-    def open_app() -> Any:
+    def open_app() -> can.BusABC:
         return open_bus(args, [], prefix=APP)
 
     return MitMotors(

@@ -189,3 +189,9 @@ def test_an_unknown_model_is_refused_by_the_parser(capsys: pytest.CaptureFixture
         main([*BASE, *MIT, "--mit-model", "AK80"])
     err = capsys.readouterr().err
     assert ended.value.code == 2 and "argument --mit-model: unknown model 'AK80'" in err
+
+
+def test_several_buses_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["supervisor", "--bus", "virtual:a:1", *MIT, "--initial", "1J"]
+    assert main([*argv, "--state", str(tmp_path / "s.json")]) == 2
+    assert "--mit work on one bus (-i/-c/--nodes), not with --bus" in capsys.readouterr().err

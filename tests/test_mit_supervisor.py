@@ -8,6 +8,7 @@ under ``mit`` with the gate's counts. And the flag combinations that cannot work
 
 from __future__ import annotations
 
+import sys
 import time
 import uuid
 from fractions import Fraction
@@ -19,7 +20,7 @@ import pytest
 
 from canergy.cli import main
 from canergy.codec import DEFAULT_ID_BASE
-from canergy.devices.mit import worst_torque
+from canergy.devices.mit import encode, worst_torque
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.mit.live_bench import DM, GREEDY, MOTOR, PUSH, burst, rig
 
@@ -155,6 +156,47 @@ def test_a_command_from_the_application_is_forwarded_at_once(tmp_path: Path) -> 
     took.sort()
     print(f"forwarded in: median {took[25] * 1e3:.2f} ms, 90% {took[45] * 1e3:.2f} ms")
     assert took[25] < 0.008, took
+
+
+STEADY = encode(DM, 0.0, 0.0, 0.0, 0.05, 0.5).pack()
+"""Clamped under 0.5 N·m (kd and t_ff by one factor), it settles near 6 rad/s with some torque
+left: the emulated motor at its top speed (30 rad/s) shows none in some replies, which reads as
+stopped, and then STUCK again (``--on-stuck`` run again; docs/guide/drives.md)."""
+
+
+def test_a_motor_that_ignores_exit_is_stuck_and_on_stuck_runs_once(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A motor that stays in motor mode (still showing torque) after the budget's stop is
+    STUCK: said on stderr and in the status, ``--on-stuck`` run once with the motor named."""
+    cut = tmp_path / "relay"  # what --on-stuck ran, one line per run
+    script = tmp_path / "relay.py"
+    script.write_text("import sys\nopen(sys.argv[1], 'a').write(' '.join(sys.argv[2:]) + '\\n')\n")
+    relay = f"{sys.executable} {script} {cut} {{profile}} {{node}}"
+    app_channel = f"app-{uuid.uuid4().hex}"
+    flags = [*hosted(app_channel), "--mit-stop-timeout", "300ms", "--on-stuck", relay]
+    with rig(tmp_path, "3J", hosted=flags) as r:
+        r.model.ignores_exit = True
+        app = can.Bus(interface="virtual", channel=app_channel)
+
+        def motor() -> dict[str, Any]:
+            books = r.books() or {}
+            return dict(books.get("cia402", {}).get("devices", {}).get("mit", {}).get("1", {}))
+
+        try:
+            wait_for(lambda: motor().get("guard") == "running", timeout=60)
+            burst(app, lambda: bool(motor().get("stuck")), [STEADY])
+            status = wait_for(lambda: (d := motor()).get("stuck") and d, timeout=60)
+            wait_for(lambda: cut.exists() and motor()["on_stuck"]["exit_code"] == 0, timeout=60)
+            time.sleep(0.5)  # many loop passes later: still one run
+            last = motor()
+        finally:
+            app.shutdown()
+        r.stop()
+    assert status["stuck"].endswith("300 ms after the stop"), status["stuck"]
+    assert r.model.enabled  # it did not obey
+    assert cut.read_text() == "mit 1\n" and last["on_stuck"]["runs"] == 1
+    assert "mit motor 1: STUCK (" in capsys.readouterr().err
 
 
 BASE = ["supervisor", "-i", "virtual", "-c", "motors", "--initial", "1J"]

@@ -131,8 +131,9 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "--on-stuck",
         metavar="CMD",
         help="run CMD (split as a shell would, run without one; {node} and {profile} filled in, "
-        "CANERGY_STUCK_* in its environment) once each time a guarded ODrive axis or moteus "
-        "controller becomes STUCK, e.g. a relay cutting its supply; not waited for",
+        "CANERGY_STUCK_* in its environment) once each time a guarded ODrive axis, moteus "
+        "controller or MIT-mode motor becomes STUCK, e.g. a relay cutting its supply; not waited "
+        "for",
     )
     p.set_defaults(run=run)
 
@@ -234,8 +235,10 @@ def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
     the ``--bus`` options (none on one bus)."""
     buses = _buses(args)
     if args.on_stuck is not None:
-        if not (args.odrive or args.moteus):
-            raise ValueError("--on-stuck is for guarded ODrive axes or moteus controllers")
+        if not (args.odrive or args.moteus or args.mit):
+            raise ValueError(
+                "--on-stuck is for guarded ODrive axes, moteus controllers or MIT-mode motors"
+            )
         try:
             parse_on_stuck(args.on_stuck)
         except ValueError as exc:

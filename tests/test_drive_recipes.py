@@ -1,7 +1,7 @@
 """The bench recipes of docs/guide/drives.md (``<!-- recipe: NAME virtual -->``: a budget on an
-ODrive axis, a moteus on CAN FD, an MIT motor in line) run as printed, in process on python-can's
-virtual bus, the project's emulators standing in for the devices; the envelope and the bound the
-page states under each hold.
+ODrive axis, a moteus on CAN FD, an MIT motor in line, through ``canergy inline`` or hosted by
+the supervisor) run as printed, in process on python-can's virtual bus, the project's emulators
+standing in for the devices; the envelope and the bound the page states under each hold.
 
 A recipe's commands are written for a real bus: here ``-i``/``--app-interface`` become
 ``virtual``, each channel its own virtual channel, ``--state``/``--status-file`` files of the
@@ -84,9 +84,9 @@ def _on_virtual(argv: list[str], tmp: Path, channels: dict[str, str]) -> list[st
     """``argv`` with its buses virtual (a channel per channel named) and its files in ``tmp``."""
     out = list(argv)
     for i, word in enumerate(out[:-1]):
-        if word in ("-i", "--interface", "--app-interface"):
+        if word in ("-i", "--interface", "--app-interface", "--mit-app-interface"):
             out[i + 1] = "virtual"
-        elif word in ("-c", "--channel", "--app-channel"):
+        elif word in ("-c", "--channel", "--app-channel", "--mit-app-channel"):
             out[i + 1] = channels.setdefault(out[i + 1], f"recipe-{uuid.uuid4().hex}")
         elif word in ("--state", "--status-file"):
             out[i + 1] = str(tmp / out[i + 1])
@@ -257,6 +257,54 @@ def _inline(args: Any, wanted: list[Any]) -> Iterator[MitBus]:
         forwarder.app.shutdown()
 
 
+def test_the_supervisor_hosted_mit_recipe_holds_its_stated_bound(tmp_path: Path) -> None:
+    """``canergy supervisor --mit``: the gate in the supervisor's process, the application on a
+    bus of its own."""
+    (command,) = _commands("mit-hosted")
+    channels: dict[str, str] = {}
+    argv = _on_virtual(command.argv[1:], tmp_path, channels)
+    args = build_parser().parse_args(argv)
+    assert (tuple(args.mit), args.mit_model.resolve((MOTOR,), "", "")) == (
+        (MOTOR,),
+        {MOTOR: DM.name},
+    )
+    motor = MitMotorModel(
+        MOTOR, DM, monotonic_us(), master_id=MOTOR + 0x10, load=LoadTorque.constant(0.02, True)
+    )
+    face = MitFace(motor, can.Bus(interface="virtual", channel=args.channel))
+    face.start()
+    app = can.Bus(interface="virtual", channel=getattr(args, "mit-app_channel"))
+
+    def device() -> dict[str, Any] | None:
+        with contextlib.suppress(FileNotFoundError, ValueError, KeyError):
+            return dict(_status(tmp_path)["cia402"]["devices"]["mit"][str(MOTOR)])
+        return None
+
+    slow = ("--mit-feedback-timeout", "2s", "--mit-stop-timeout", "2s")
+    try:
+        with supervisor_thread(tmp_path, *argv[1:], *slow) as sup:
+            wait_for(lambda: (d := device()) is not None and d["guard"] == "running", timeout=60)
+
+            def all_spent() -> bool:  # every top-up of the 20 J granted and gone
+                with contextlib.suppress(FileNotFoundError, ValueError, KeyError):
+                    spent = _granted(_status(tmp_path), MOTOR) == args.initial
+                    return spent and _exhausted(device())
+                return False
+
+            burst(app, all_spent, [PUSH] * 9 + [GREEDY])
+            status = device()
+        final = _status(tmp_path)
+    finally:
+        face.close()
+        app.shutdown()
+    assert sup.result == [0] and status is not None
+    with face.lock:
+        drawn = motor.drawn_uj
+    _check(status, drawn, _granted(final, MOTOR), "mit-hosted")
+    assert 0 < motor.torque_max_seen <= float(args.mit_max_torque) + 1e-9
+    assert not motor.enabled
+
+
 def _status(tmp: Path) -> dict[str, Any]:
     import json
 
@@ -318,4 +366,4 @@ def test_the_two_model_recipe_holds_each_stated_bound(tmp_path: Path) -> None:
 
 
 def test_every_virtual_recipe_of_the_page_is_run_here() -> None:
-    assert set(sessions("virtual")) == {"odrive", "moteus", "mit", "mit-two"}
+    assert set(sessions("virtual")) == {"odrive", "moteus", "mit", "mit-two", "mit-hosted"}

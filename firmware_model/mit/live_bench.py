@@ -90,10 +90,12 @@ def rig(
     initial: str,
     others: Sequence[tuple[MitMotorModel, int]] = (),
     per_node: str | None = None,
+    hosted: Sequence[str] = (),
 ) -> Iterator[Rig]:
     """The DM4310 ``MOTOR`` (proxy ``NODE``) and ``others`` (each a motor and its proxy's node
     id) on one virtual channel, the supervisor granting ``initial`` in all, topping each node up
-    to ``per_node`` (default: ``initial``)."""
+    to ``per_node`` (default: ``initial``). ``hosted``: the supervisor hosts the gates itself,
+    these flags (``--mit ...``) instead of ``--nodes``."""
     channel = f"mit-{uuid.uuid4().hex}"
     model = MitMotorModel(
         MOTOR, DM, monotonic_us(), master_id=MOTOR + 0x10, load=LoadTorque.constant(0.02, True)
@@ -109,7 +111,8 @@ def rig(
     target = per_node or initial
     argv = [
         "supervisor",
-        *("-i", "virtual", "-c", channel, "--nodes", nodes),
+        *("-i", "virtual", "-c", channel),
+        *(hosted or ("--nodes", nodes)),
         *("--state", str(tmp / "s.json"), "--no-fsync", "--initial", initial),
         *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
         *("--control", str(control), "--target", target, "--max-grant", target),

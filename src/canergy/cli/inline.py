@@ -12,8 +12,7 @@ from typing import Any
 
 from canergy.argtypes import add_duration, node_ids
 from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
-from canergy.cli.shared.cia402 import _number
-from canergy.cli.shared.mit import add_model_flag, add_resistance_flag, models_of, resistances_of
+from canergy.cli.shared.mit import add_gate_flags, guard_config, mit_motors
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.live.atomic import check_writable_dir, write_json_atomic
@@ -48,34 +47,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         required=True,
         help="the proxies' canergy node ids, one per motor, in the same order",
     )
-    add_model_flag(g, "the motors' model", required=True)
-    g.add_argument(
-        "--mit-max-torque",
-        type=_number("N·m", 1000, zero=False),
-        metavar="NM",
-        help="the torque cap while the budget lasts (default: the model's torque range)",
-    )
-    g.add_argument(
-        "--mit-max-power",
-        type=_number("W", 100_000, zero=False),
-        metavar="W",
-        help="instead of --mit-max-torque: the largest cap whose envelope is within it",
-    )
-    g.add_argument(
-        "--mit-max-speed",
-        type=_number("rad/s", 10_000, zero=False),
-        metavar="RAD_S",
-        help="the velocity set point's cap (default: the model's velocity range)",
-    )
-    add_resistance_flag(g)
-    add_duration(g, "--mit-hold", 20_000, "the command in force is clamped again this often")
-    add_duration(g, "--mit-feedback-timeout", 300_000, "stop a motor not heard this long")
-    add_duration(
-        g,
-        "--mit-stop-timeout",
-        500_000,
-        "a motor still showing torque this long after a stop is STUCK",
-    )
+    add_gate_flags(g, model_required=True)
     p.add_argument("--status-file", type=Path, help="the gates' status as JSON")
     add_duration(p, "--status-period", 1_000_000, "time between status lines (and files)")
     p.set_defaults(run=run)
@@ -85,35 +57,13 @@ def motors(args: argparse.Namespace) -> list[MitMotor]:
     """The motors the flags describe (``ValueError`` naming the flag)."""
     if len(args.mit) != len(args.mit_nodes):
         raise ValueError(f"--mit names {len(args.mit)} motors, --mit-nodes {len(args.mit_nodes)}")
-    if args.mit_max_torque is not None and args.mit_max_power is not None:
-        raise ValueError("--mit-max-torque or --mit-max-power, not both")
-    models = models_of(args.mit_model, args.mit, "--mit")
-    resistances = resistances_of(args.mit_resistance, models, "--mit")
-    if args.mit_hold <= 0:
-        raise ValueError("--mit-hold must be more than 0")
     sides = [  # a flag not given is not in the namespace (python-can's configuration has it)
         (getattr(args, f"{p}interface", None), getattr(args, f"{p}channel", None))
         for p in ("", "app_")
     ]
     if sides[0] == sides[1] and sides[0][1] is not None:
         raise ValueError("-c and --app-channel name the same bus: give the application its own")
-
-    def number(x: Any) -> float | None:
-        return None if x is None else float(x)
-
-    return [
-        MitMotor(
-            motor_id,
-            node=node,
-            model=models[motor_id].name,
-            max_torque=number(args.mit_max_torque),
-            max_power=number(args.mit_max_power),
-            max_speed=number(args.mit_max_speed),
-            resistance=number(resistances.get(motor_id)),
-            hold_us=args.mit_hold,
-        )
-        for motor_id, node in zip(args.mit, args.mit_nodes, strict=True)
-    ]
+    return mit_motors(args, args.mit_nodes)
 
 
 def status_line(status: dict[str, Any]) -> str:
@@ -143,12 +93,8 @@ def run(args: argparse.Namespace) -> int:
     app = open_bus(args, [], prefix=APP)
     guarded = None
     try:
-        guard_config = {
-            "feedback_timeout_us": args.mit_feedback_timeout,
-            "stop_timeout_us": args.mit_stop_timeout,
-        }
         guarded = MitBus(
-            open_bus(args, []), wanted, codec=Codec(args.id_base), guard_config=guard_config
+            open_bus(args, []), wanted, codec=Codec(args.id_base), guard_config=guard_config(args)
         )
         forwarder = MitForwarder(app, guarded)
         next_at = [monotonic_us()]

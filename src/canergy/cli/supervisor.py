@@ -25,6 +25,7 @@ from canergy.cli.shared.live import (
     start_without_flag,
     supervisor_flags,
 )
+from canergy.cli.shared.mit import SIDE_FILTER, add_supervisor_mit_flags, check_mit, mit_group
 from canergy.cli.shared.moteus import (
     add_moteus_flags,
     check_moteus,
@@ -125,12 +126,14 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     add_cia402_flags(p)
     add_odrive_flags(p)
     add_moteus_flags(p)
+    add_supervisor_mit_flags(p)
     p.add_argument(
         "--on-stuck",
         metavar="CMD",
         help="run CMD (split as a shell would, run without one; {node} and {profile} filled in, "
-        "CANERGY_STUCK_* in its environment) once each time a guarded ODrive axis or moteus "
-        "controller becomes STUCK, e.g. a relay cutting its supply; not waited for",
+        "CANERGY_STUCK_* in its environment) once each time a guarded ODrive axis, moteus "
+        "controller or MIT-mode motor becomes STUCK, e.g. a relay cutting its supply; not waited "
+        "for",
     )
     p.set_defaults(run=run)
 
@@ -168,6 +171,7 @@ def _buses(args: argparse.Namespace) -> tuple[BusSpec, ...]:
             ("--cia402", args.cia402),
             ("--odrive", args.odrive),
             ("--moteus", args.moteus),
+            ("--mit", args.mit),
         )
         if on
     ]
@@ -231,8 +235,10 @@ def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
     the ``--bus`` options (none on one bus)."""
     buses = _buses(args)
     if args.on_stuck is not None:
-        if not (args.odrive or args.moteus):
-            raise ValueError("--on-stuck is for guarded ODrive axes or moteus controllers")
+        if not (args.odrive or args.moteus or args.mit):
+            raise ValueError(
+                "--on-stuck is for guarded ODrive axes, moteus controllers or MIT-mode motors"
+            )
         try:
             parse_on_stuck(args.on_stuck)
         except ValueError as exc:
@@ -246,6 +252,7 @@ def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
             "its --state (not --listen-only)"
         )
     if not buses:
+        check_mit(args)
         check_moteus(args)
         check_odrive(args)
         check_cia402(args)
@@ -254,13 +261,16 @@ def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
 
 
 def _devices(args: argparse.Namespace) -> tuple[DeviceGroup, ...]:
-    """The guarded device groups asked for, one per profile flag (``--odrive``, ``--moteus``)."""
+    """The guarded device groups asked for, one per profile flag (``--odrive``, ``--moteus``,
+    ``--mit``)."""
     timing = rule_timing(args)
     groups: list[DeviceGroup] = []
     if args.odrive:
         groups.append(odrive_axes(args, timing))
     if args.moteus:
         groups.append(moteus_controllers(args, timing))
+    if args.mit:
+        groups.append(mit_group(args, timing))
     return tuple(groups)
 
 
@@ -372,6 +382,8 @@ def _run_bus(args: argparse.Namespace, config: SupervisorConfig, core: Superviso
         from canergy.live.canopen.shared_bus import STANDARD_FRAMES
 
         filters += [STANDARD_FRAMES, *moteus_filters(args)]
+    if args.mit:
+        filters.append(SIDE_FILTER)  # CubeMars servo-mode frames (the 11-bit ones pass above)
     bus = open_bus(args, filters)
     try:
         built = build_supervisor(config, [bus], core=core)

@@ -285,22 +285,34 @@ class MitGate:
     def _carry_out(self, now: int) -> list[Message]:
         out: list[Message] = []
         while self.guard.commands:
-            cmd = self.guard.commands.pop(0)
-            if isinstance(cmd, Stop):
-                self._exit(now)
-            elif isinstance(cmd, WriteLimits):
-                self.cap = cmd.limits
-                self.next_send = now  # the command in force, under the new cap, at once
-                self._resend(now)
-                out += self.guard.on_limits(now, cmd.limits, cmd.limits, cmd.at)
+            out += self.execute(self.guard.commands.pop(0), now)
         return out
+
+    def carry_out(self, now: int) -> list[Message]:
+        """Carry out the guard's commands left by a message handed to it directly (the
+        supervisor's in-process leg)."""
+        return self._carry_out(now)
+
+    def execute(self, cmd: Any, now: int) -> list[Message]:
+        """One command of the guard's (``Stop``, ``WriteLimits``)."""
+        if isinstance(cmd, Stop):
+            self._exit(now)
+        elif isinstance(cmd, WriteLimits):
+            self.cap = cmd.limits
+            self.next_send = now  # the command in force, under the new cap, at once
+            self._resend(now)
+            return self.guard.on_limits(now, cmd.limits, cmd.limits, cmd.at)
+        return []
 
     def status(self, now: int) -> dict[str, Any]:
         """The guard's status (as a guarded ODrive axis's), the model, the cap in force and
         what became of the application's frames (``commands``)."""
+        return {**self.guard.status(now), **self.details()}
+
+    def details(self) -> dict[str, Any]:
+        """What the gate adds to its guard's status."""
         c = self.counts
         return {
-            **self.guard.status(now),
             "model": self.model.name,
             "motor_id": self.motor_id,
             "motor_mode": self.motor_mode,

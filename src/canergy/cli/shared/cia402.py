@@ -246,7 +246,7 @@ def check_cia402(args: argparse.Namespace) -> None:
     """Everything about the drives that can be judged before the bus is opened."""
     drives = args.cia402 or ()
     nodes = args.nodes or ()
-    devices = getattr(args, "odrive", None) or getattr(args, "moteus", None)
+    devices = any(getattr(args, flag, None) for flag in ("odrive", "moteus", "mit"))
     if not drives and not nodes and not devices:
         raise ValueError("give --nodes, --cia402 or both (or --bus for several buses)")
     if not drives:

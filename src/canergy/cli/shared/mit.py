@@ -1,17 +1,27 @@
 """``--mit-model`` (and ``--mit-resistance``): one value for every MIT-mode motor, or one per
-motor id, as ``canergy inline`` and ``dump``, ``decode``, ``audit`` and ``monitor``
-(``--mit-names``) take them: ``DM4310``, or ``1:AK80-9,2:DM4310`` (``[IDS:]VALUE``, the way
-``--cia402-counter`` names a node, ``NODE:INDEX``)."""
+motor id, as ``canergy inline``, ``canergy supervisor --mit`` and ``dump``, ``decode``,
+``audit`` and ``monitor`` (``--mit-names``) take them: ``DM4310``, or ``1:AK80-9,2:DM4310``
+(``[IDS:]VALUE``, the way ``--cia402-counter`` names a node, ``NODE:INDEX``); and the gates'
+flags ``canergy inline`` and ``canergy supervisor --mit`` share (``add_gate_flags``,
+``mit_motors``)."""
 
 from __future__ import annotations
 
 import argparse
 from collections.abc import Iterable
 from fractions import Fraction
+from typing import Any
 
-from canergy.argtypes import PER_ID_SYNTAX, PerId, _shown, per_id
+import can
+
+from canergy.argtypes import PER_ID_SYNTAX, PerId, _shown, add_duration, node_ids, per_id
+from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.cli.shared.cia402 import _number
+from canergy.codec import Codec
+from canergy.core import Timing
 from canergy.devices.mit import MODELS, MitModel
+from canergy.live.devices.mit_host import MitMotors
+from canergy.live.devices.mit_motor import MitMotor
 
 EXAMPLE = "1:AK80-9,2:DM4310"
 
@@ -87,3 +97,151 @@ def resistances_of(
                 f"--mit-model {model.name} (motor {i}): give --mit-resistance (no table figure)"
             )
     return given
+
+
+def add_gate_flags(g: argparse._ArgumentGroup, model_required: bool) -> None:
+    """The model and the gates' caps and times, after the group's ``--mit`` (its ids)."""
+    add_model_flag(g, "the motors' model", required=model_required)
+    g.add_argument(
+        "--mit-max-torque",
+        type=_number("N·m", 1000, zero=False),
+        metavar="NM",
+        help="the torque cap while the budget lasts (default: the model's torque range)",
+    )
+    g.add_argument(
+        "--mit-max-power",
+        type=_number("W", 100_000, zero=False),
+        metavar="W",
+        help="instead of --mit-max-torque: the largest cap whose envelope is within it",
+    )
+    g.add_argument(
+        "--mit-max-speed",
+        type=_number("rad/s", 10_000, zero=False),
+        metavar="RAD_S",
+        help="the velocity set point's cap (default: the model's velocity range)",
+    )
+    add_resistance_flag(g)
+    add_duration(g, "--mit-hold", 20_000, "the command in force is clamped again this often")
+    add_duration(g, "--mit-feedback-timeout", 300_000, "stop a motor not heard this long")
+    add_duration(
+        g,
+        "--mit-stop-timeout",
+        500_000,
+        "a motor still showing torque this long after a stop is STUCK",
+    )
+
+
+def guard_config(args: argparse.Namespace) -> dict[str, Any]:
+    """The gates' guards' times the flags give."""
+    return {
+        "feedback_timeout_us": args.mit_feedback_timeout,
+        "stop_timeout_us": args.mit_stop_timeout,
+    }
+
+
+def mit_motors(args: argparse.Namespace, nodes: list[int]) -> list[MitMotor]:
+    """The motors ``--mit`` and the gate flags describe, each with its proxy's canergy node id
+    from ``nodes`` (``ValueError`` naming the flag)."""
+    if args.mit_max_torque is not None and args.mit_max_power is not None:
+        raise ValueError("--mit-max-torque or --mit-max-power, not both")
+    if args.mit_model is None:
+        raise ValueError("--mit needs --mit-model (the motors' model)")
+    models = models_of(args.mit_model, args.mit, "--mit")
+    resistances = resistances_of(args.mit_resistance, models, "--mit")
+    if args.mit_hold <= 0:
+        raise ValueError("--mit-hold must be more than 0")
+
+    def number(x: Any) -> float | None:
+        return None if x is None else float(x)
+
+    return [
+        MitMotor(
+            motor_id,
+            node=node,
+            model=models[motor_id].name,
+            max_torque=number(args.mit_max_torque),
+            max_power=number(args.mit_max_power),
+            max_speed=number(args.mit_max_speed),
+            resistance=number(resistances.get(motor_id)),
+            hold_us=args.mit_hold,
+        )
+        for motor_id, node in zip(args.mit, nodes, strict=True)
+    ]
+
+
+# -- canergy supervisor --mit: the supervisor hosts the gates ------------------------------
+APP = "mit-app"
+"""The application's bus: ``--mit-app-interface``, ``--mit-app-channel``, ... (as ``canergy
+inline``'s ``--app-*``)."""
+
+SIDE_FILTER: dict[str, int | bool] = {"can_id": 0, "can_mask": 0x1FFFF800, "extended": True}
+"""Extended frames with ids below 0x800: CubeMars servo-mode frames, seen to refuse a motor."""
+
+
+def add_supervisor_mit_flags(p: argparse.ArgumentParser) -> None:
+    """``--mit IDS``, the gates' flags and the application's bus (``--mit-app-*``)."""
+    g = p.add_argument_group(
+        "MIT-mode motors",
+        "guard MIT-mode motors (CubeMars AK, Damiao DM) in line: the application talks to them "
+        "on a bus of its own (--mit-app-interface, --mit-app-channel, ...), the supervisor "
+        "forwards each command to the motors on its bus only while the motor's budget lasts, "
+        "clamped so that the worst-case torque stays under the cap, or refuses it (both "
+        "counted in the status); each motor gets a proxy client under its own id, and exits "
+        "motor mode when its budget runs out; other frames cross both ways unchanged",
+    )
+    g.add_argument(
+        "--mit", type=node_ids, metavar="IDS", help="motor CAN ids 1-127 (and proxy node ids)"
+    )
+    add_gate_flags(g, model_required=False)
+    add_bus_flags(p, id_base_flag=False, prefix=APP)
+
+
+def check_mit(args: argparse.Namespace) -> None:
+    """Everything about the motors that can be judged before a bus is opened."""
+    motors = args.mit or ()
+    if not motors:
+        if args.mit_model is not None or getattr(args, "mit-app_channel", None) is not None:
+            raise ValueError("--mit-model and --mit-app-* are for --mit IDS")
+        return
+    others = [f for f, on in (("--cia402", args.cia402), ("--canopen", args.canopen)) if on]
+    if others:
+        raise ValueError(
+            f"--mit and {' and '.join(others)} on one bus: CubeMars motors reply on 0x000 "
+            "(NMT) and Damiao's mode frames 0x100-0x3FF + id are PDO ids; guard them on two buses"
+        )
+    if args.odrive or args.moteus:
+        flag = "--odrive" if args.odrive else "--moteus"
+        raise ValueError(
+            f"--mit and {flag} on one bus: MIT ids are CAN Simple commands and servo-mode "
+            "frames share moteus's extended ids; guard them on two buses"
+        )
+    if clash := sorted(set(motors) & set(args.nodes or ())):
+        raise ValueError(
+            f"--mit {','.join(map(str, clash))}: also in --nodes (a motor's proxy takes its id)"
+        )
+    if args.listen_only:
+        raise ValueError("--mit guards motors and must send: not with --listen-only")
+    app = (getattr(args, "mit-app_interface", None), getattr(args, "mit-app_channel", None))
+    if app[1] is None:
+        raise ValueError(
+            "--mit needs the application's bus: --mit-app-channel (and --mit-app-interface)"
+        )
+    own = (getattr(args, "interface", None), getattr(args, "channel", None))
+    if (own[1] == app[1] and None in (own[0], app[0])) or own == app:
+        raise ValueError("-c and --mit-app-channel name the same bus: give the application its own")
+    mit_motors(args, list(motors))
+
+
+def mit_group(args: argparse.Namespace, timing: Timing) -> MitMotors:
+    """The ``--mit*`` flags as the builder takes them (``MitMotors``)."""
+
+    def open_app() -> can.BusABC:
+        return open_bus(args, [], prefix=APP)
+
+    return MitMotors(
+        tuple(mit_motors(args, list(args.mit))),
+        open_app,
+        timing,
+        guard_config(args),
+        Codec(args.id_base),
+    )

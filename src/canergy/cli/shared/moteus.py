@@ -198,7 +198,7 @@ class MoteusControllers:
     motor: MoteusMotor
 
     def open(
-        self, bus: can.BusABC, now: int, clock: Any
+        self, bus: can.BusABC, now: int, clock: Any, wake: Any = None
     ) -> dict[int, tuple[DeviceGuard[MoteusLimits], MoteusLink]]:
         """A guard and a link per controller (the links' listeners still to be added)."""
         limits = None if self.guard.sampled else self.guard.limits

@@ -186,7 +186,7 @@ class OdriveAxes:
     motor: MotorConstants
 
     def open(
-        self, bus: can.BusABC, now: int, clock: Any
+        self, bus: can.BusABC, now: int, clock: Any, wake: Any = None
     ) -> dict[int, tuple[DeviceGuard[OdriveLimits], OdriveLink]]:
         """A guard and a link per axis (the links' listeners still to be added to a Notifier)."""
         limits = None if self.guard.sampled else self.guard.limits

@@ -112,6 +112,8 @@ class GuardedDevices:
             if device_link.pending():
                 return 0
             times.append(device.next_wakeup())
+            if (own := device_link.next_wakeup()) is not None:
+                times.append(own)
         return min(times) if times else None
 
     def pump(self, now: int, stopping: bool) -> list[Message]:
@@ -209,7 +211,8 @@ class GuardedDevices:
         self.reported[guard.node] = seen
         left = f"{guard.usable / 1e6:.3f} J left"
         if isinstance(guard, DeviceGuard):
-            what = f"{guard.profile.name} axis {guard.node}"
+            noun = "motor" if guard.profile.name == "mit" else "axis"
+            what = f"{guard.profile.name} {noun} {guard.node}"
             if stuck is not None:
                 self.report(f"{what}: STUCK ({stuck}; stop repeated; {left})")
             elif guard.stop_reason is None:

@@ -18,9 +18,15 @@ STANDARD_FRAMES: dict[str, int | bool] = {"can_id": 0, "can_mask": 0, "extended"
 """Acceptance filter passing every 11-bit frame (NMT, SDO, heartbeat, ...)."""
 
 
+_WAKE = can.Message(arbitration_id=0)
+"""Put in the reader's queue by ``wake``: read as no frame."""
+
+
 class SharedReader(can.BufferedReader):
     """canergy's end of a shared Notifier; a receive error is counted, not fatal (without a
-    listener that handles it the Notifier's thread would stop and every node look lost)."""
+    listener that handles it the Notifier's thread would stop and every node look lost).
+    ``wake``: the loop waiting on it returns at once, with no frame (work from elsewhere:
+    frames of the application's bus for supervisor-hosted MIT gates)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -28,6 +34,13 @@ class SharedReader(can.BufferedReader):
 
     def on_error(self, exc: Exception) -> None:
         self.errors += 1
+
+    def wake(self) -> None:
+        self.buffer.put(_WAKE)
+
+    def get_message(self, timeout: float = 0.5) -> can.Message | None:
+        msg = super().get_message(timeout)
+        return None if msg is _WAKE else msg
 
 
 def shared_network(bus: can.BusABC) -> tuple[canopen.Network, SharedReader]:

@@ -30,6 +30,10 @@ class DeviceLink(Protocol):
 
     def pending(self) -> bool: ...
 
+    def next_wakeup(self) -> int | None:
+        """When the link has work of its own (None: only when frames arrive)."""
+        ...
+
     def status(self) -> dict[str, object]: ...
 
     def close(self) -> None: ...
@@ -106,6 +110,9 @@ class GuardLink(Generic[L]):
     def pending(self) -> bool:
         with self.lock:
             return bool(self.events)
+
+    def next_wakeup(self) -> int | None:
+        return None
 
     def status(self) -> dict[str, object]:
         return {

@@ -6,10 +6,10 @@ returns it ready to serve: the core (from its books when they exist), the CANope
 guarded drives and devices, the service, its bus loop, each given what it needs through its
 constructor. Nothing is assigned onto a built object afterwards.
 
-A guarded device group (``DeviceGroup``: ODrive axes today) plugs in as one more entry of
-``SupervisorConfig.devices``: it names its nodes and opens a guard and a link per node on the
-bus; the builder adds each link to the bus's one Notifier, starts it and puts the guards in
-front of the service (``canergy.live.canopen.cia402_host``).
+A guarded device group (``DeviceGroup``: ODrive axes, moteus controllers, MIT-mode motors)
+plugs in as one more entry of ``SupervisorConfig.devices``: it names its nodes and opens a guard
+and a link per node on the bus; the builder adds each link to the bus's one Notifier, starts it
+and puts the guards in front of the service (``canergy.live.canopen.cia402_host``).
 """
 
 from __future__ import annotations
@@ -97,14 +97,18 @@ class Cia402Group(Protocol):
 
 
 class DeviceGroup(Protocol):
-    """Guarded devices of one profile (``--odrive``): a guard and a link per node."""
+    """Guarded devices of one profile (``--odrive``, ``--moteus``, ``--mit``): a guard and a
+    link per node."""
 
     @property
     def nodes(self) -> tuple[int, ...]: ...
 
-    def open(self, bus: can.BusABC, now: int, clock: Clock) -> Mapping[int, GuardedDevice]:
+    def open(
+        self, bus: can.BusABC, now: int, clock: Clock, wake: Callable[[], None]
+    ) -> Mapping[int, GuardedDevice]:
         """A guard and a link per node; the builder adds each link to the bus's Notifier and
-        starts it."""
+        starts it. ``wake``: the bus loop runs a pass at once (a link with work from elsewhere
+        than the bus calls it; the pass pumps the links)."""
         ...
 
 
@@ -289,8 +293,8 @@ def _one(
             drives, beat, capture = config.cia402.open(network, now, clock)
         devices: dict[int, GuardedDevice] = {}
         for group in config.devices:
-            assert bus is not None, "guarded devices need a bus"
-            devices.update(group.open(bus, now, clock))
+            assert bus is not None and reader is not None, "guarded devices need a bus"
+            devices.update(group.open(bus, now, clock, reader.wake))
         guarded = GuardedDevices(
             drives,
             parts.beat_bus,

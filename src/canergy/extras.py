@@ -38,6 +38,7 @@ NEEDS_EXTRA: dict[str, str] = {
     "canergy.prove.symbolic": "prove",
     "canergy.prove.world": "prove",
     "canergy.prove.witnessed": "prove",
+    "canergy.prove.witnessed_proof": "prove",
     "canergy.sequence_chart": "plot",
     "canergy.sim.figures": "plot",
 }

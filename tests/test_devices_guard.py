@@ -94,3 +94,28 @@ def test_an_axis_powered_after_its_stop_is_stuck_and_the_stop_is_repeated() -> N
     assert not g.alive(t) and g.status(t)["guard"] == "stuck"
     g.on_feedback(t + 50_000, t + 50_000, False, "IDLE")  # it obeys at last
     assert g.phase is GuardPhase.STOPPED and g.stuck is None
+
+
+def test_limits_written_behind_the_guard_that_never_read_back_stop_the_device_for_good() -> None:
+    """The guard writes its own limits over an application's at once; while no read-back
+    shows them in force, the application's are charged, and past the feedback timeout (300 ms)
+    the device is stopped for good, the write named."""
+    g = guard()
+    ready(g)
+    g.on_feedback(20_000, 20_000, False, "IDLE")
+    raised = OdriveLimits(20.0, 20.0)
+    g.on_foreign_limits(100_000, 99_000, raised)
+    (write,) = [c for c in g.commands if isinstance(c, WriteLimits)][-1:]
+    assert g.next_wakeup() <= 100_000 + 300_000 + 1
+    t = 100_000
+    while t < 450_000:  # the device answers no read-back
+        t += 50_000
+        g.on_limits(t, write.limits, None, write.at)
+        g.on_feedback(t, t, False, "IDLE")
+        g.on_wakeup(t)
+        assert g.foreign == raised  # charged meanwhile
+    assert g.latched and g.refused == (
+        "a write behind the guard (limits velocity_rev_s 20, current_a 20) not verified in time"
+    )
+    assert g.status(t)["unverified"] == "limits velocity_rev_s 20, current_a 20"
+    assert not g.alive(t) and g.phase is not GuardPhase.RUNNING

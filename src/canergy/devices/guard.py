@@ -5,7 +5,9 @@ As for CiA 402 (``canergy.cia402.guard``), the device never runs canergy: the ho
 hardened ``Client`` as its proxy and charges to it what the device may have drawn. In the sound
 mode (``envelope``) every µs is charged at the largest envelope in force: the limits confirmed,
 the limits being written, and limits someone else wrote on the bus (charged from the moment
-their frame was seen until the guard's own, written after it, is confirmed). A lowered envelope
+their frame was seen until the guard's own, written after it, is confirmed; not confirmed within
+``feedback_timeout_us`` of the first such write, the device is stopped for good, the write named
+in ``unverified`` and the stop reason, as a CiA 402 drive is). A lowered envelope
 counts until the device had its latency to act on it. The guard stops the device when what is
 left falls to the reserve plus the bound (envelope × (reaction + latency) + what the stop may
 draw), waking exactly when the clock gets there; then it writes the closed limits (no current).
@@ -108,6 +110,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         """Limits someone else wrote, in force until a write of the guard's after them is
         confirmed."""
         self.foreign_at: int | None = None
+        self.unverified: str | None = None
+        """The first write behind the guard not yet written over by limits of the guard's that
+        read back; ``unverified_at``: when it was taken in (the device is stopped for good
+        ``feedback_timeout_us`` later if it still is)."""
+        self.unverified_at: int | None = None
         self.early_foreign: list[tuple[int, L]] = []
         """Limits someone else wrote before the set-up was done (when, which)."""
         self.lowered_fw = 0
@@ -254,6 +261,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             self.pending = None
         if self.foreign_at is not None and at >= self.foreign_at:  # written after it
             self.foreign, self.foreign_at = None, None
+            self.unverified, self.unverified_at = None, None
         if self.in_force_fw(now) < before:
             self.lowered_fw, self.lowered_until = before, now + self.latency_us()
         self._recharge(now)
@@ -310,6 +318,9 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             self.foreign = limits
             self.remainder += max(0, self._fw(limits) - self.charge_fw) * early
         self.foreign_at = at
+        if self.unverified_at is None:
+            fields = ", ".join(f"{k} {v:g}" for k, v in self.profile.fields(limits).items())
+            self.unverified, self.unverified_at = f"limits {fields}", now
         self._recharge(now)
         self.rewrite_at = now  # the guard's own limits again, at once
 
@@ -343,6 +354,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             times.append(self.phase_at + self.config.stop_timeout_us + 1)
         if self.rewrite_at is not None:
             times.append(self.rewrite_at)
+        if self.unverified_at is not None:
+            times.append(self.unverified_at + self._verify_us() + 1)
         return min(times)
 
     def on_wakeup(self, now: int) -> list[Message]:
@@ -385,6 +398,10 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             return "supervisor stopping"
         if self.refused is not None:
             return self.refused
+        if self.unverified_at is not None and now > self.unverified_at + self._verify_us():
+            self._refuse(f"a write behind the guard ({self.unverified}) not verified in time")
+            self.rewrite_at = now  # the closed limits, whatever is in force
+            return self.refused
         if self.ready_at is None:
             return "not set up yet"
         heard = self.last_feedback_at if self.last_feedback_at is not None else self.ready_at
@@ -396,6 +413,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
                 self.reaction_max_us = max(self.reaction_max_us, now - self.crossing)
             return EXHAUSTED
         return None
+
+    def _verify_us(self) -> int:
+        """How long limits written behind the guard may stay unverified: the feedback
+        timeout (as a CiA 402 drive's writes get the PDO timeout)."""
+        return self.config.feedback_timeout_us
 
     def _evaluate(self, now: int) -> list[Message]:
         before = self.phase
@@ -537,6 +559,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             "stops": self.stops,
             "restops": self.restops,
             "writes_seen": self.writes_seen,
+            "unverified": self.unverified,
             "feedback_age_us": None
             if self.last_feedback_at is None
             else now - self.last_feedback_at,

@@ -113,7 +113,7 @@ class DriveMeter:
 
     @property
     def sound(self) -> bool:
-        return not self.kind.sampled
+        return self.kind.metering.sound
 
     # -- set-up and limits ------------------------------------------------------------------
     def ready(self, now: int, setup: DriveSetup) -> None:
@@ -284,6 +284,7 @@ class DriveMeter:
     def status(self, now: int) -> dict[str, Any]:
         out: dict[str, Any] = {
             "meter": self.kind.value,
+            "guarantee": self.kind.metering.guarantee,
             "metered_uj": self.metered_uj,
             "stop": self.stop.value,
         }

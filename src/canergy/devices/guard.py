@@ -37,7 +37,7 @@ from typing import Any, Generic
 from canergy.cia402.envelope import Bound, ceil_div
 from canergy.cia402.meter import FW_US_PER_UJ
 from canergy.core import Timing
-from canergy.devices.profile import L, Profile, Stop, WriteLimits
+from canergy.devices.profile import L, Metering, Profile, Stop, WriteLimits
 from canergy.devices.proxy import EXHAUSTED, NO_BUDGET, ProxyBooks
 from canergy.messages import QUANTUM_UJ, Message, ToClient
 
@@ -147,8 +147,12 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         return self.phase is GuardPhase.RUNNING
 
     @property
+    def metering(self) -> Metering:
+        return Metering.SAMPLED if self.config.sampled else Metering.ENVELOPE
+
+    @property
     def sound(self) -> bool:
-        return not self.config.sampled
+        return self.metering.sound
 
     # -- envelope and bound ---------------------------------------------------------------
     def _fw(self, limits: L | None) -> int:
@@ -532,8 +536,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             "joining": self.joining,
             "ready": self.ready_at is not None,
             **self.books_status(),
-            "meter": "sampled" if self.config.sampled else "envelope",
-            "guarantee": "none" if self.config.sampled else "drawn <= granted + bound_uj",
+            "meter": self.metering.value,
+            "guarantee": self.metering.guarantee,
             "metered_uj": self.metered_uj,
             "uncontained_uj": self.uncontained_uj,
             "bound_uj": bound_uj,

@@ -16,6 +16,9 @@ commands below.
 - ``Profile.stop_fw_us``: what the stop itself may draw (0 for a stop that cuts the power
   stage and lets the motor coast).
 
+``Metering`` names the modes a guard charges in, each with the guarantee the status shows
+(``envelope`` and ``counter``: drawn <= granted + bound; ``sampled``: none).
+
 How CiA 402 fits: its ``Limits`` (0x6072, 0x6073, 0x6080) are the limits type; ``envelope`` is
 ``Ratings.envelope_fw`` (τ_max·ω_max + R·i_max²), ``closed`` is ``Limits.closed``, ``mismatch``
 compares the three objects read back by SDO, ``stop_fw_us`` is ``Ratings.stop_fw_us`` (quick stop)
@@ -26,9 +29,34 @@ download and upload of the three objects, feedback the TPDOs with the statusword
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import Enum
 from typing import Generic, Protocol, TypeVar
 
 L = TypeVar("L")
+
+SOUND = "drawn <= granted + bound_uj"
+"""The guarantee of a sound metering mode (the status's ``guarantee``)."""
+
+
+class Metering(Enum):
+    """How a guard charges what a device draws, each with its guarantee."""
+
+    ENVELOPE = "envelope"
+    """The power the limits written and read back allow, by the host's clock: sound."""
+    COUNTER = "counter"
+    """A cumulative energy counter's differences (on the device or a meter node), the limits
+    bounding only what is drawn past the last reading: sound (CiA 402 only)."""
+    SAMPLED = "sampled"
+    """The device's own power readings integrated between samples: what happens between two is
+    not seen, so no bound and no guarantee."""
+
+    @property
+    def sound(self) -> bool:
+        return self is not Metering.SAMPLED
+
+    @property
+    def guarantee(self) -> str:
+        return SOUND if self.sound else "none"
 
 
 @dataclass(frozen=True, slots=True)

@@ -23,8 +23,9 @@ naming the limit; limits that cannot be read back at all (ODrive 0.5) refuse it 
 configuration trusts them (``trust_limits``), which the status shows as ``limits_verified``
 false.
 
-Inputs: ``on_ready``, ``on_limits``, ``on_feedback``, ``on_foreign_limits``,
-``on_foreign_write``, ``on_message``, ``on_wakeup``; outputs: canergy frames to the supervisor
+Inputs: ``on_ready``, ``on_limits``, ``on_feedback``, ``on_watched`` (a frame from someone
+else as the profile reads it: ``on_foreign_limits`` or ``on_foreign_write``), ``on_message``,
+``on_wakeup``; outputs: canergy frames to the supervisor
 and ``commands`` (``WriteLimits``, ``Stop``) for the link.
 """
 
@@ -37,7 +38,16 @@ from typing import Any, Generic
 from canergy.cia402.envelope import Bound, ceil_div
 from canergy.cia402.meter import FW_US_PER_UJ
 from canergy.core import Timing
-from canergy.devices.profile import L, Metering, Profile, Stop, WriteLimits
+from canergy.devices.profile import (
+    L,
+    LimitsWritten,
+    Metering,
+    Profile,
+    Stop,
+    Unbounded,
+    Watched,
+    WriteLimits,
+)
 from canergy.devices.proxy import EXHAUSTED, NO_BUDGET, ProxyBooks
 from canergy.messages import QUANTUM_UJ, Message, ToClient
 
@@ -327,6 +337,14 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             self.unverified, self.unverified_at = f"limits {fields}", now
         self._recharge(now)
         self.rewrite_at = now  # the guard's own limits again, at once
+
+    def on_watched(self, now: int, at: int, seen: Watched[L]) -> list[Message]:
+        """A frame someone else sent the device (at ``at``), as the profile reads it."""
+        if isinstance(seen, LimitsWritten):
+            return self.on_foreign_limits(now, at, seen.limits)
+        if isinstance(seen, Unbounded):
+            return self.on_foreign_write(now, seen.what)
+        return []
 
     def on_foreign_write(self, now: int, what: str) -> list[Message]:
         """A write behind the guard whose effect it cannot bound: stopped for good."""

@@ -16,6 +16,13 @@ commands below.
 - ``Profile.stop_fw_us``: what the stop itself may draw (0 for a stop that cuts the power
   stage and lets the motor coast).
 
+Writes behind the guard: each profile reads the frames others send its device (its module's
+``watch``) into ``LimitsWritten`` (limits whose values the frame carries: charged, written over,
+read back), ``Unbounded`` (an effect the guard cannot bound: stopped for good) or nothing; the
+guard takes them in ``on_watched``. CiA 402's writes carry objects whose values the guard learns
+only by reading the drive back: its profile declares them (``Cia402Profile.watches``), and its
+guard charges them at the drive's reach until read back.
+
 ``Metering`` names the modes a guard charges in, each with the guarantee the status shows
 (``envelope`` and ``counter``: drawn <= granted + bound; ``sampled``: none).
 
@@ -91,6 +98,30 @@ class Profile(Protocol[L]):
         """Figures the link measured (e.g. ``bus_voltage_v``): the envelope's parts are raised
         to them, never lowered."""
         ...
+
+
+@dataclass(frozen=True, slots=True)
+class LimitsWritten(Generic[L]):
+    """A profile's reading of a frame someone else sent the device: it sets the limits to
+    ``limits`` (their values are in the frame). Charged at the largest envelope in force with
+    them from when it was seen, until limits of the guard's written after it read back; not
+    within the guard's deadline: the device is stopped for good."""
+
+    limits: L
+
+
+@dataclass(frozen=True, slots=True)
+class Unbounded:
+    """A profile's reading of a frame someone else sent the device: it changes what the
+    envelope rests on, and the guard can neither bound nor read back what (the device is
+    stopped for good, ``what`` named)."""
+
+    what: str
+
+
+Watched = LimitsWritten[L] | Unbounded | None
+"""What a write behind the guard is to the bound (None: nothing), as the profile's ``watch``
+reads a frame."""
 
 
 @dataclass(frozen=True, slots=True)

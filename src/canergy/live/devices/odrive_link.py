@@ -11,10 +11,10 @@ supervisor's loop:
 - ``Stop``: Estop, then Set_Axis_State IDLE.
 
 Set-up writes the guard's full limits and reads them back, then the closed ones (current 0).
-Frames from others that the bound depends on: Set_Limits (its values are in the frame: charged
-as written, then written over), and RxSdo writes, Reboot, Address/Set_Axis_Node_ID and
-Enter_DFU_Mode, whose effect the guard cannot bound (the axis is stopped for good). The link
-polls bus voltage and current (0x017) and, on 0.6, the powers (0x01D) by remote request.
+Frames from others are read by the profile (``canergy.devices.odrive.watch``: Set_Limits is
+charged as written, then written over; RxSdo writes, Reboot, Address/Set_Axis_Node_ID and
+Enter_DFU_Mode stop the axis for good). The link polls bus voltage and current (0x017) and, on
+0.6, the powers (0x01D) by remote request.
 """
 
 from __future__ import annotations
@@ -41,6 +41,7 @@ from canergy.devices.odrive import (
     set_limits,
     split_id,
     two_floats,
+    watch,
 )
 from canergy.devices.profile import Stop
 from canergy.live.devices.device_link import GuardLink
@@ -48,14 +49,6 @@ from canergy.live.devices.device_link import limits_event as _limits
 from canergy.live.devices.device_link import ready_event as _ready
 
 log = logging.getLogger(__name__)
-
-UNBOUNDED = {
-    Cmd.RX_SDO: "RxSdo write",
-    0x006: "Set_Axis_Node_ID/Address",
-    0x016: "Reboot",
-    0x01F: "Enter_DFU_Mode",
-}
-"""Frames from others whose effect on the limits the guard cannot bound."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,13 +121,8 @@ class OdriveLink(GuardLink[OdriveLimits]):
         elif cmd == Cmd.TX_SDO:
             _, endpoint, value = sdo_fields(data)
             self.replies.put((endpoint, struct.unpack("<f", value)[0]))
-        elif cmd == Cmd.SET_LIMITS:
-            velocity, current = two_floats(data)
-            seen = OdriveLimits(velocity, current)
-            self._event(lambda g, now: g.on_foreign_limits(now, at, seen))
-        elif cmd in UNBOUNDED and not (cmd == Cmd.RX_SDO and sdo_fields(data)[0] != 1):
-            what = f"{UNBOUNDED[cmd]} ({data.hex() or 'no data'})"
-            self._event(lambda g, now: g.on_foreign_write(now, what))
+        elif (seen := watch(cmd, data)) is not None:  # the profile reads the others' frames
+            self._event(lambda g, now: g.on_watched(now, at, seen))
 
     # -- the loop's side ------------------------------------------------------------------
     def status(self) -> dict[str, object]:

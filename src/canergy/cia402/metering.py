@@ -119,7 +119,10 @@ class DriveMeter:
     def ready(self, now: int, setup: DriveSetup) -> None:
         """The drive is set up: its ratings known, its set-up limits confirmed."""
         self.setup = setup
-        self.profile = Cia402Profile(setup.ratings, self.stop, setup.deceleration)
+        counter = self.counter.config if self.counter is not None else None
+        on_drive = None if counter is None or counter.node is not None else counter
+        key = None if on_drive is None else (on_drive.index, on_drive.subindex)
+        self.profile = Cia402Profile(setup.ratings, self.stop, setup.deceleration, counter=key)
         r = setup.ratings
         self.sampled.config = replace(
             self.sampled.config,

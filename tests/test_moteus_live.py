@@ -165,8 +165,10 @@ def test_an_applications_limit_that_never_reads_back_stops_the_controller_for_go
         wait_for(lambda: (d := b.servo_status()) and d["drive_state"] == "STOPPED")
         final = b.stop()
     granted, servo = granted_and_servo(final)
-    assert d["refused"].startswith("a write behind the guard (limits ")
-    assert "current_a 20" in d["refused"] and d["refused"].endswith("not verified in time")
+    assert d["refused"] == (
+        "a write behind the guard (limits power_w 100, current_a 20, velocity_rev_s 2, "
+        "timeout_s 0.1) not verified in time"
+    )
     assert d["latched"] and servo["guard"] != "running" and servo["alive"] is False
     assert b.drawn() <= granted + servo["bound_uj"], (b.drawn(), granted, servo["bound_uj"])
     assert servo["metered_uj"] >= b.drawn()

@@ -174,6 +174,26 @@ def test_an_applications_limit_that_never_reads_back_stops_the_controller_for_go
     assert servo["metered_uj"] >= b.drawn()
 
 
+def test_limits_changed_off_the_bus_are_found_by_the_periodic_read_back(tmp_path: Path) -> None:
+    """servo.max_current_A changes where the guard cannot see it (over the controller's USB,
+    say: set in the emulator directly) while it runs: the guard's read-back every second finds
+    it and stops the controller for good, naming the value."""
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.position(1.0)
+        wait_for(lambda: (d := b.servo_status()) and d["guard"] == "running", timeout=60)
+        with b.face.lock:
+            b.model.config["servo.max_current_A"] = 20.0
+        d = wait_for(lambda: (d := b.servo_status()) and d["refused"] and d, timeout=30)
+        wait_for(lambda: (d := b.servo_status()) and d["drive_state"] == "STOPPED")
+        b.stop()
+    assert d["refused"] == (
+        "limits changed behind the guard (a periodic read-back): servo.max_current_A reads 20, "
+        "written 2"
+    )
+    assert d["latched"] and d["writes_seen"] == 0
+
+
 def test_a_voltage_mode_behind_the_guard_stops_the_controller_for_good(tmp_path: Path) -> None:
     """Voltage modes bypass the current and power limits: the guard cannot bound them."""
     with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:

@@ -43,6 +43,7 @@ from canergy.devices.profile import (
     LimitsWritten,
     Metering,
     Profile,
+    ReadLimits,
     Stop,
     Unbounded,
     Watched,
@@ -52,6 +53,8 @@ from canergy.devices.proxy import EXHAUSTED, NO_BUDGET, ProxyBooks
 from canergy.messages import QUANTUM_UJ, Message, ToClient
 
 FOREVER = 2**62
+REREAD_US = 1_000_000
+"""How often the ODrive and moteus guards read their limits back (a CiA 402 drive's 1 s too)."""
 
 
 class GuardPhase(Enum):
@@ -84,6 +87,9 @@ class DeviceConfig(Generic[L]):
     reserve_uj: int = 0
     resume_margin_uj: int = 10 * QUANTUM_UJ
     telemetry_period_us: int = 50_000
+    reread_us: int = 0
+    """Read the limits back this often where they can be read (0: never): limits changed where
+    the guard cannot see stop the device for good."""
     unreadable: str = (
         "the odrive limits cannot be read back (no answer, or firmware 0.5): trust them as "
         "written with --odrive-trust-limits"
@@ -100,7 +106,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         super().__init__(node, config.timing, config.telemetry_period_us, now, nonce)
         self.profile = profile
         self.config = config
-        self.commands: list[WriteLimits[L] | Stop] = []
+        self.commands: list[WriteLimits[L] | Stop | ReadLimits] = []
         self.phase = GuardPhase.STOPPED
         self.phase_at = now
         self.stop_reason: str | None = NO_BUDGET
@@ -152,6 +158,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         self.restops = 0
         self.writes_seen = 0
         self.halted = False
+        self.next_reread = now + config.reread_us if config.reread_us else None
+        self.rereading: int | None = None
+        """When the periodic read-back in flight was asked."""
+        self.confirmed_at = now
+        """When limits last read back (a periodic read asked before shows nothing)."""
 
     def running(self) -> bool:
         return self.phase is GuardPhase.RUNNING
@@ -270,7 +281,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
                 self.rewrite_at = now + self.config.retry_us
             return self._settled(now)
         before = self.in_force_fw(now)
-        self.confirmed = wrote
+        self.confirmed, self.confirmed_at = wrote, now
         if self.pending == wrote:
             self.pending = None
         if self.foreign_at is not None and at >= self.foreign_at:  # written after it
@@ -279,6 +290,19 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         if self.in_force_fw(now) < before:
             self.lowered_fw, self.lowered_until = before, now + self.latency_us()
         self._recharge(now)
+        return self._settled(now)
+
+    def on_read(self, now: int, read: L | None) -> list[Message]:
+        """The periodic read-back's answer (None: not readable now; asked again next time)."""
+        asked, self.rereading = self.rereading, None
+        self.charge(now)
+        quiet = self.pending is None and self.foreign is None and self.confirmed is not None
+        if read is None or asked is None or not quiet or self.confirmed_at > asked:
+            return self._settled(now)  # a write since, or in flight: its own read-back checks
+        assert self.confirmed is not None
+        if (why := self.profile.mismatch(self.confirmed, read)) is not None:
+            self._refuse(f"limits changed behind the guard (a periodic read-back): {why}")
+            self.rewrite_at = now  # the closed limits, whatever is in force
         return self._settled(now)
 
     def on_feedback(
@@ -378,11 +402,19 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             times.append(self.rewrite_at)
         if self.unverified_at is not None:
             times.append(self.unverified_at + self._verify_us() + 1)
+        if self.next_reread is not None:
+            times.append(self.next_reread)
         return min(times)
 
     def on_wakeup(self, now: int) -> list[Message]:
         out = self._proxy_due(now)
         self.charge(now)
+        if self.next_reread is not None and now >= self.next_reread:
+            self.next_reread = now + self.config.reread_us
+            lost = self.rereading is not None and now - self.rereading > self.config.reread_us
+            if self.verified and (self.rereading is None or lost) and self.refused is None:
+                self.rereading = now
+                self.commands.append(ReadLimits("periodic read-back", now))
         out += self._settled(now)
         if now >= self.next_telemetry:
             out.append(self.telemetry(now))

@@ -135,6 +135,15 @@ class WriteLimits(Generic[L]):
 
 
 @dataclass(frozen=True, slots=True)
+class ReadLimits:
+    """Read the limits back without writing them (answer: the guard's ``on_read``): the periodic
+    read-back that finds limits changed where the guard cannot see (an ODrive's USB, say)."""
+
+    why: str
+    at: int
+
+
+@dataclass(frozen=True, slots=True)
 class Stop:
     """Stop the device (for an ODrive: Estop and Set_Axis_State IDLE)."""
 

@@ -6,6 +6,7 @@ carries out the guard's commands, so a controller that does not answer never blo
 
 - ``WriteLimits``: ``conf set`` of each limit on diagnostic channel 1, then ``conf get`` of each
   (the round trip is the latency measured), answers polled with 0x42;
+- ``ReadLimits`` (the periodic read-back): ``conf get`` of each alone;
 - ``Stop``: mode 0 (stopped).
 
 A moteus sends nothing unasked: the worker queries mode, position, velocity, torque, q current,
@@ -34,6 +35,7 @@ import can
 from canergy.devices.guard import DeviceGuard
 from canergy.devices.moteus import (
     BROADCAST,
+    CONF,
     DIAGNOSTIC_CHANNEL,
     FEEDBACK,
     UNPOWERED_MODES,
@@ -59,9 +61,10 @@ from canergy.devices.moteus import (
     whole,
     write_mode,
 )
-from canergy.devices.profile import LimitsWritten, Stop, Watched
+from canergy.devices.profile import LimitsWritten, ReadLimits, Stop, Watched
 from canergy.live.devices.device_link import GuardLink
 from canergy.live.devices.device_link import limits_event as _limits
+from canergy.live.devices.device_link import read_event as _read
 from canergy.live.devices.device_link import ready_event as _ready
 from canergy.messages import Message
 
@@ -253,6 +256,8 @@ class MoteusLink(GuardLink[MoteusLimits]):
             if isinstance(cmd, Stop):
                 self._send(write_mode(Mode.STOPPED))
                 self.reaction_max_us = max(self.reaction_max_us, self.clock() - cmd.at)
+            elif isinstance(cmd, ReadLimits):
+                self._event(functools.partial(_read, self._read_limits()))
             else:
                 read = self._write(cmd.limits)
                 self._event(functools.partial(_limits, cmd.limits, read, cmd.at))
@@ -270,8 +275,12 @@ class MoteusLink(GuardLink[MoteusLimits]):
         for _, name, value in limits.items():
             if not self._answered(conf_set(name, value), lambda answer: answer == "OK"):
                 return None
+        return self._read_limits()
+
+    def _read_limits(self) -> MoteusLimits | None:
+        """``conf get`` of each limit (None: not all answered)."""
         got: list[float] = []
-        for _, name, _ in limits.items():
+        for name in CONF.values():
             start = self.clock()
             if not self._answered(conf_get(name), lambda answer: got.append(float(answer))):
                 return None

@@ -8,6 +8,7 @@ supervisor's loop:
 - ``WriteLimits``: Set_Limits, then on firmware 0.6 with the endpoint ids given, RxSdo reads of
   ``vel_limit`` and ``current_soft_max`` answered by TxSdo (the round trip is the latency
   measured); on 0.5 nothing can be read back (the answer says so: None);
+- ``ReadLimits`` (the periodic read-back): the two endpoint reads alone (None on 0.5);
 - ``Stop``: Estop, then Set_Axis_State IDLE.
 
 Set-up writes the guard's full limits and reads them back, then the closed ones (current 0).
@@ -43,9 +44,10 @@ from canergy.devices.odrive import (
     two_floats,
     watch,
 )
-from canergy.devices.profile import Stop
+from canergy.devices.profile import ReadLimits, Stop
 from canergy.live.devices.device_link import GuardLink
 from canergy.live.devices.device_link import limits_event as _limits
+from canergy.live.devices.device_link import read_event as _read
 from canergy.live.devices.device_link import ready_event as _ready
 
 log = logging.getLogger(__name__)
@@ -162,6 +164,8 @@ class OdriveLink(GuardLink[OdriveLimits]):
                 self._send(Cmd.ESTOP)
                 self._send(Cmd.SET_AXIS_STATE, set_axis_state(AxisState.IDLE))
                 self.reaction_max_us = max(self.reaction_max_us, self.clock() - cmd.at)
+            elif isinstance(cmd, ReadLimits):
+                self._event(functools.partial(_read, self._read_limits()))
             else:
                 read = self._write(cmd.limits)
                 self._event(functools.partial(_limits, cmd.limits, read, cmd.at))
@@ -181,6 +185,10 @@ class OdriveLink(GuardLink[OdriveLimits]):
         """Set_Limits and, where the firmware allows, the limits read back (else None)."""
         if not self._send(Cmd.SET_LIMITS, set_limits(limits.velocity, limits.current)):
             return None
+        return self._read_limits()
+
+    def _read_limits(self) -> OdriveLimits | None:
+        """The limits the axis holds, where the firmware can say (else None)."""
         if self.config.firmware != "0.6" or self.config.endpoints is None:
             return None
         values = [self._read(endpoint) for endpoint in self.config.endpoints]

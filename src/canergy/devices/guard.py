@@ -38,6 +38,7 @@ from typing import Any, Generic
 from canergy.cia402.envelope import Bound, ceil_div
 from canergy.cia402.meter import FW_US_PER_UJ
 from canergy.core import Timing
+from canergy.devices.clock import ClockCharge
 from canergy.devices.profile import (
     L,
     LimitsWritten,
@@ -133,11 +134,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         self.unverified_at: int | None = None
         self.early_foreign: list[tuple[int, L]] = []
         """Limits someone else wrote before the set-up was done (when, which)."""
-        self.lowered_fw = 0
-        self.lowered_until = 0
-        self.charged_until: int | None = None
-        self.charge_fw = 0
-        self.remainder = 0
+        self.clock = ClockCharge()
+        """Charged by the clock from the set-up's start (envelope mode)."""
         self.unbooked_uj = 0
         self.metered_uj = 0
         self.uncontained_uj = 0
@@ -181,7 +179,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
 
     def in_force_fw(self, now: int) -> int:
         fw = max(self._fw(self.confirmed), self._fw(self.pending), self._fw(self.foreign))
-        return max(fw, self.lowered_fw) if now < self.lowered_until else fw
+        return self.clock.held(fw, now)
 
     def latency_us(self) -> int:
         return max(self.config.latency_us, self.latency_max_us)
@@ -216,18 +214,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
 
     # -- charging -------------------------------------------------------------------------
     def charge(self, now: int) -> None:
-        if self.charged_until is None:
-            return
-        if self.charged_until < self.lowered_until < now:
-            self._charge_to(self.lowered_until)
-        if now > self.charged_until:
-            self._charge_to(now)
-
-    def _charge_to(self, until: int) -> None:
-        assert self.charged_until is not None
-        self.remainder += self.charge_fw * (until - self.charged_until)
-        drawn, self.remainder = divmod(self.remainder, FW_US_PER_UJ)
-        self.charged_until, self.charge_fw = until, self.in_force_fw(until)
+        drawn = self.clock.run(now, self.in_force_fw)
         if self.phase is GuardPhase.STUCK:
             self.uncontained_uj += drawn
         else:
@@ -236,7 +223,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
 
     def _recharge(self, now: int) -> None:
         """The envelope in force changed at ``now`` (a raise counts from now)."""
-        self.charge_fw = max(self.charge_fw, self.in_force_fw(now))
+        self.clock.raise_to(self.in_force_fw(now))
 
     # -- inputs ---------------------------------------------------------------------------
     def on_ready(self, now: int, started_at: int, full: L | None, closed: L | None) -> None:
@@ -260,8 +247,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             self.verified = True
         self.confirmed = self.profile.closed(want)
         # the full limits were in force from the set-up's start until the closed ones: debt
-        self.charged_until, self.charge_fw = started_at, self._fw(want)
-        self.lowered_fw, self.lowered_until = self._fw(want), now + self.latency_us()
+        self.clock.start(started_at, self._fw(want))
+        self.clock.lower(self._fw(want), now + self.latency_us())
         self.charge(now)
         # limits someone else wrote while the set-up ran, after a read-back could show them
         for at, limits in self.early_foreign:
@@ -288,7 +275,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             self.foreign, self.foreign_at = None, None
             self.unverified, self.unverified_at = None, None
         if self.in_force_fw(now) < before:
-            self.lowered_fw, self.lowered_until = before, now + self.latency_us()
+            self.clock.lower(before, now + self.latency_us())
         self._recharge(now)
         return self._settled(now)
 
@@ -342,19 +329,20 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         if not self.sound:
             return []
         self.writes_seen += 1
-        if self.charged_until is None:  # during the set-up: taken in by ``on_ready``
+        if self.clock.until is None:  # during the set-up: taken in by ``on_ready``
             self.early_foreign.append((at, limits))
             return []
         self._take_foreign(now, at, limits)
         return self._settled(now)
 
     def _take_foreign(self, now: int, at: int, limits: L) -> None:
-        assert self.charged_until is not None
+        clock = self.clock
+        assert clock.until is not None
         self.charge(now)
-        early = max(0, self.charged_until - at)
+        early = max(0, clock.until - at)
         if self._fw(limits) > self._fw(self.foreign):
             self.foreign = limits
-            self.remainder += max(0, self._fw(limits) - self.charge_fw) * early
+            clock.remainder += max(0, self._fw(limits) - clock.fw) * early
         self.foreign_at = at
         if self.unverified_at is None:
             fields = ", ".join(f"{k} {v:g}" for k, v in self.profile.fields(limits).items())
@@ -490,13 +478,12 @@ class DeviceGuard(ProxyBooks, Generic[L]):
     def _crossing(self) -> int | None:
         """When the clock, at the envelope charged now, brings what is left to the stop
         threshold (None: not running, or nothing charged)."""
-        if self.phase is not GuardPhase.RUNNING or self.charged_until is None:
-            return None
-        if self.charge_fw <= 0:
+        clock = self.clock
+        if self.phase is not GuardPhase.RUNNING or clock.until is None or clock.fw <= 0:
             return None
         left = self.usable - self.threshold_uj()
-        room = max(0, left * FW_US_PER_UJ - self.remainder)
-        return self.charged_until + ceil_div(room, self.charge_fw)
+        room = max(0, left * FW_US_PER_UJ - clock.remainder)
+        return clock.until + ceil_div(room, clock.fw)
 
     def _stop(self, why: str, now: int) -> None:
         if self.phase is GuardPhase.RUNNING:

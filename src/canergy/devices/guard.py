@@ -40,6 +40,7 @@ from canergy.cia402.meter import FW_US_PER_UJ
 from canergy.core import Timing
 from canergy.devices.clock import ClockCharge
 from canergy.devices.profile import (
+    Foreign,
     L,
     LimitsWritten,
     Metering,
@@ -47,7 +48,6 @@ from canergy.devices.profile import (
     ReadLimits,
     Stop,
     Unbounded,
-    Watched,
     WriteLimits,
 )
 from canergy.devices.proxy import EXHAUSTED, NO_BUDGET, ProxyBooks
@@ -350,7 +350,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         self._recharge(now)
         self.rewrite_at = now  # the guard's own limits again, at once
 
-    def on_watched(self, now: int, at: int, seen: Watched[L]) -> list[Message]:
+    def on_watched(self, now: int, at: int, seen: Foreign[L]) -> list[Message]:
         """A frame someone else sent the device (at ``at``), as the profile reads it."""
         if isinstance(seen, LimitsWritten):
             return self.on_foreign_limits(now, at, seen.limits)

@@ -38,7 +38,7 @@ from enum import IntEnum
 from fractions import Fraction
 
 from canergy.devices.odrive import FW_PER_W, TWO_PI_UP, ceil_fraction, f32
-from canergy.devices.profile import Envelope, LimitsWritten, Unbounded, Watched
+from canergy.devices.profile import Envelope, Foreign, LimitsWritten, Unbounded
 
 ID_MAX = 0x7F
 BROADCAST = 0x7F
@@ -419,13 +419,13 @@ def watch_register(register: int, value: float) -> Unbounded | None:
     return None
 
 
-def watch_line(line: str, held: MoteusLimits | None) -> list[Watched[MoteusLimits]]:
+def watch_line(line: str, held: MoteusLimits | None) -> list[Foreign[MoteusLimits]]:
     """A diagnostic line someone else sent: ``conf set`` of a limit sets ``held`` (what the
     controller holds as far as the bus shows) with its value; ``conf load``, ``conf default``,
     ``d raw``/``pwm``/``cal``/``flash`` and ``conf set`` of what the envelope rests on are not
     bounded."""
     words = line.split()
-    out: list[Watched[MoteusLimits]] = []
+    out: list[Foreign[MoteusLimits]] = []
     if " ".join(words).startswith(UNBOUNDED_COMMANDS):
         out.append(Unbounded(f"'{line[:60]}'"))
     if words[:2] != ["conf", "set"] or len(words) < 4:

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from enum import IntEnum
 from fractions import Fraction
 
-from canergy.devices.profile import Envelope, LimitsWritten, Unbounded, Watched
+from canergy.devices.profile import Envelope, Foreign, LimitsWritten, Unbounded
 
 FW_PER_W = 10**15
 TWO_PI_UP = Fraction(710, 113)
@@ -164,7 +164,7 @@ def ceil_fraction(x: Fraction) -> int:
     return -(-x.numerator // x.denominator)
 
 
-def watch(cmd: int, data: bytes) -> Watched[OdriveLimits]:
+def watch(cmd: int, data: bytes) -> Foreign[OdriveLimits]:
     """A frame someone else sent the axis (not a remote request): Set_Limits carries its
     values; RxSdo writes, Reboot, Set_Axis_Node_ID and Enter_DFU_Mode are not bounded
     (``ValueError``: a Set_Limits or RxSdo frame not 8 bytes long)."""

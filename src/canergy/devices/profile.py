@@ -119,7 +119,7 @@ class Unbounded:
     what: str
 
 
-Watched = LimitsWritten[L] | Unbounded | None
+Foreign = LimitsWritten[L] | Unbounded | None
 """What a write behind the guard is to the bound (None: nothing), as the profile's ``watch``
 reads a frame."""
 

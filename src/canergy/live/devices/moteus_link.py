@@ -61,7 +61,7 @@ from canergy.devices.moteus import (
     whole,
     write_mode,
 )
-from canergy.devices.profile import LimitsWritten, ReadLimits, Stop, Watched
+from canergy.devices.profile import Foreign, LimitsWritten, ReadLimits, Stop
 from canergy.live.devices.device_link import GuardLink
 from canergy.live.devices.device_link import limits_event as _limits
 from canergy.live.devices.device_link import read_event as _read
@@ -72,7 +72,7 @@ log = logging.getLogger(__name__)
 
 
 def _watched(
-    at: int, seen: Watched[MoteusLimits], guard: DeviceGuard[MoteusLimits], now: int
+    at: int, seen: Foreign[MoteusLimits], guard: DeviceGuard[MoteusLimits], now: int
 ) -> list[Message]:
     return guard.on_watched(now, at, seen)
 

@@ -9,7 +9,7 @@ from fractions import Fraction
 
 from canergy.devices.guard import DeviceConfig, DeviceGuard, GuardPhase
 from canergy.devices.odrive import MotorConstants, OdriveLimits, OdriveProfile
-from canergy.devices.profile import Stop, WriteLimits
+from canergy.devices.profile import ReadLimits, Stop, WriteLimits
 
 FULL = OdriveLimits(5.0, 2.0)
 MOTOR = MotorConstants(Fraction(1, 20), Fraction(1, 2), Fraction(6, 5), Fraction(24))
@@ -94,3 +94,54 @@ def test_an_axis_powered_after_its_stop_is_stuck_and_the_stop_is_repeated() -> N
     assert not g.alive(t) and g.status(t)["guard"] == "stuck"
     g.on_feedback(t + 50_000, t + 50_000, False, "IDLE")  # it obeys at last
     assert g.phase is GuardPhase.STOPPED and g.stuck is None
+
+
+def test_limits_written_behind_the_guard_that_never_read_back_stop_the_device_for_good() -> None:
+    """The guard writes its own limits over an application's at once; while no read-back
+    shows them in force, the application's are charged, and past the feedback timeout (300 ms)
+    the device is stopped for good, the write named."""
+    g = guard()
+    ready(g)
+    g.on_feedback(20_000, 20_000, False, "IDLE")
+    raised = OdriveLimits(20.0, 20.0)
+    g.on_foreign_limits(100_000, 99_000, raised)
+    (write,) = [c for c in g.commands if isinstance(c, WriteLimits)][-1:]
+    assert g.next_wakeup() <= 100_000 + 300_000 + 1
+    t = 100_000
+    while t < 450_000:  # the device answers no read-back
+        t += 50_000
+        g.on_limits(t, write.limits, None, write.at)
+        g.on_feedback(t, t, False, "IDLE")
+        g.on_wakeup(t)
+        assert g.foreign == raised  # charged meanwhile
+    assert g.latched and g.refused == (
+        "a write behind the guard (limits velocity_rev_s 20, current_a 20) not verified in time"
+    )
+    assert g.status(t)["unverified"] == "limits velocity_rev_s 20, current_a 20"
+    assert not g.alive(t) and g.phase is not GuardPhase.RUNNING
+
+
+def test_limits_changed_where_the_guard_cannot_see_are_found_by_the_periodic_read_back() -> None:
+    """Every ``reread_us`` the guard reads its limits back without writing them: limits that
+    differ from those it last confirmed stop the device for good, named; a read asked before
+    the guard's own write was confirmed shows nothing."""
+    config = DeviceConfig(limits=FULL, reread_us=1_000_000)
+    g = DeviceGuard(3, OdriveProfile(MOTOR), config, 0, 1)
+    ready(g)
+    closed = OdriveLimits(5.0, 0.0)
+    assert g.next_wakeup() <= 1_000_000
+    g.on_wakeup(1_000_000)
+    (ask,) = [c for c in g.commands if isinstance(c, ReadLimits)]
+    g.on_read(1_002_000, closed)  # as confirmed: nothing
+    assert g.refused is None
+    g.on_wakeup(2_000_000)
+    g.on_limits(2_001_000, closed, closed, 2_000_500)  # confirmed after the read was asked
+    g.on_read(2_002_000, OdriveLimits(5.0, 20.0))  # may predate it: shows nothing
+    assert g.refused is None
+    g.on_wakeup(3_000_000)
+    g.on_read(3_002_000, OdriveLimits(5.0, 20.0))  # changed over USB, say
+    assert g.latched and g.refused == (
+        "limits changed behind the guard (a periodic read-back): current limit reads 20 A, "
+        "written 0"
+    )
+    assert ask.why == "periodic read-back"

@@ -16,6 +16,7 @@ import pytest
 
 from canergy.cli import main
 from canergy.devices.moteus import (
+    DIAGNOSTIC_CHANNEL,
     Kind,
     Mode,
     Reg,
@@ -140,6 +141,57 @@ def test_an_application_raising_its_own_limits_is_charged_for_them(tmp_path: Pat
     assert servo["writes_seen"] > 0
     assert b.drawn() <= granted + servo["bound_uj"], (b.drawn(), granted, servo["bound_uj"])
     assert servo["metered_uj"] >= b.drawn()
+
+
+def test_an_applications_limit_that_never_reads_back_stops_the_controller_for_good(
+    tmp_path: Path,
+) -> None:
+    """The application sets servo.max_current_A 20 behind the guard, and from then the
+    controller answers no ``conf get``: the guard's own limits, written over it at once, never
+    read back. The application's value is charged at its envelope all along, and past the
+    feedback timeout the controller is stopped for good, the write named. Before that deadline
+    the guard wrote its limits again every 100 ms and the controller ran on."""
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.position(1.0)
+        wait_for(lambda: (d := b.servo_status()) and d["guard"] == "running", timeout=60)
+        with b.face.lock:
+            b.model.answers_reads = False
+        # asked with a reply: the controller answers the application, not the guard's poll
+        line = Stream(False, DIAGNOSTIC_CHANNEL, b"conf set servo.max_current_A 20\n")
+        b.send(encode(line), reply=True)
+        b.position(1.0)
+        d = wait_for(lambda: (d := b.servo_status()) and d["refused"] and d, timeout=30)
+        wait_for(lambda: (d := b.servo_status()) and d["drive_state"] == "STOPPED")
+        final = b.stop()
+    granted, servo = granted_and_servo(final)
+    assert d["refused"] == (
+        "a write behind the guard (limits power_w 100, current_a 20, velocity_rev_s 2, "
+        "timeout_s 0.1) not verified in time"
+    )
+    assert d["latched"] and servo["guard"] != "running" and servo["alive"] is False
+    assert b.drawn() <= granted + servo["bound_uj"], (b.drawn(), granted, servo["bound_uj"])
+    assert servo["metered_uj"] >= b.drawn()
+
+
+def test_limits_changed_off_the_bus_are_found_by_the_periodic_read_back(tmp_path: Path) -> None:
+    """servo.max_current_A changes where the guard cannot see it (over the controller's USB,
+    say: set in the emulator directly) while it runs: the guard's read-back every second finds
+    it and stops the controller for good, naming the value."""
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.position(1.0)
+        wait_for(lambda: (d := b.servo_status()) and d["guard"] == "running", timeout=60)
+        with b.face.lock:
+            b.model.config["servo.max_current_A"] = 20.0
+        d = wait_for(lambda: (d := b.servo_status()) and d["refused"] and d, timeout=30)
+        wait_for(lambda: (d := b.servo_status()) and d["drive_state"] == "STOPPED")
+        b.stop()
+    assert d["refused"] == (
+        "limits changed behind the guard (a periodic read-back): servo.max_current_A reads 20, "
+        "written 2"
+    )
+    assert d["latched"] and d["writes_seen"] == 0
 
 
 def test_a_voltage_mode_behind_the_guard_stops_the_controller_for_good(tmp_path: Path) -> None:

@@ -121,6 +121,53 @@ def test_an_application_raising_its_own_limits_is_charged_for_them(tmp_path: Pat
     assert axis["metered_uj"] >= b.drawn()
 
 
+def test_an_applications_limits_that_never_read_back_stop_the_axis_for_good(tmp_path: Path) -> None:
+    """The application writes Set_Limits 20 rev/s, 20 A behind the guard, and from then the
+    axis answers no endpoint read: the guard's own limits, written over the application's at
+    once, never read back. The application's are charged (at their envelope, 450 W) all along,
+    and past the feedback timeout (2 s here) the axis is stopped for good, the write named.
+    Before that deadline the guard wrote its limits again every 100 ms and the axis ran on."""
+    with guarded_axis(tmp_path, *LIMITS, *ENDPOINTS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.run_closed_loop(1.0)
+        wait_for(lambda: (d := b.axis_status()) and d["guard"] == "running", timeout=60)
+        with b.face.lock:
+            b.model.answers_reads = False
+        b.send(Cmd.SET_LIMITS, struct.pack("<ff", 20.0, 20.0))
+        b.run_closed_loop(1.0)
+        d = wait_for(lambda: (d := b.axis_status()) and d["refused"] and d, timeout=30)
+        wait_for(lambda: (d := b.axis_status()) and d["drive_state"] == "IDLE")
+        final = b.stop()
+    granted, axis = granted_and_axis(final)
+    assert d["refused"] == (
+        "a write behind the guard (limits velocity_rev_s 20, current_a 20) not verified in time"
+    )
+    assert d["latched"] and axis["guard"] != "running" and axis["alive"] is False
+    assert axis["writes_seen"] == 1
+    assert b.drawn() <= granted + axis["bound_uj"], (b.drawn(), granted, axis["bound_uj"])
+    assert axis["metered_uj"] >= b.drawn()
+
+
+def test_limits_changed_off_the_bus_are_found_by_the_periodic_read_back(tmp_path: Path) -> None:
+    """The axis's current limit changes where the guard cannot see it (over USB, say: set in
+    the emulator directly) while it runs: the guard's read-back every second finds it and stops
+    the axis for good, naming the limit. Without that read-back the axis ran on at 20 A."""
+    with guarded_axis(tmp_path, *LIMITS, *ENDPOINTS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.run_closed_loop(1.0)
+        wait_for(lambda: (d := b.axis_status()) and d["guard"] == "running", timeout=60)
+        with b.face.lock:
+            b.model.current_limit = 20.0
+        d = wait_for(lambda: (d := b.axis_status()) and d["refused"] and d, timeout=30)
+        wait_for(lambda: (d := b.axis_status()) and d["drive_state"] == "IDLE")
+        b.stop()
+    assert d["refused"] == (
+        "limits changed behind the guard (a periodic read-back): current limit reads 20 A, "
+        "written 2"
+    )
+    assert d["latched"] and d["writes_seen"] == 0
+
+
 def test_a_limit_that_does_not_read_back_is_refused_at_set_up(tmp_path: Path) -> None:
     with guarded_axis(tmp_path, *LIMITS, *ENDPOINTS, *BUDGET, current_cap=1.0) as b:
         d = wait_for(lambda: (d := b.axis_status()) and d["refused"] and d, timeout=30)

@@ -18,7 +18,8 @@ protocol documents it:
   get`` and ``conf set`` (answered ``OK`` or ``ERR``), polled with 0x42.
 
 Quirks for tests: ``current_cap`` (``servo.max_current_A`` is clamped to it: a limit that does not
-read back as written), ``ignores_stop`` (mode 0 does nothing: a controller that does not obey).
+read back as written), ``ignores_stop`` (mode 0 does nothing: a controller that does not obey),
+``answers_reads`` (False: ``conf get`` goes unanswered, set at any time: a read-back that fails).
 
 ``ServoFace`` runs a model on a python-can bus in a thread, advancing it every 1 ms.
 """
@@ -79,6 +80,7 @@ class ServoModel:
     """N·m per rev/s."""
     current_cap: float | None = None
     ignores_stop: bool = False
+    answers_reads: bool = True
     config: dict[str, float] = field(
         default_factory=lambda: {
             "servo.max_power_W": 450.0,
@@ -122,7 +124,9 @@ class ServoModel:
                 out += self._read(s)
             elif isinstance(s, Stream) and not s.server and s.channel == DIAGNOSTIC_CHANNEL:
                 for line in stream_lines(self.diag_in, s.data):
-                    self.diag_out += self._conf(line).encode() + b"\r\n"
+                    answer = self._conf(line)
+                    if answer is not None:
+                        self.diag_out += answer.encode() + b"\r\n"
                 if reply:  # the answer to a 0x40 is a 0x41, data or not
                     out.append(self._stream(48))
             elif isinstance(s, Poll) and s.channel == DIAGNOSTIC_CHANNEL and reply:
@@ -177,8 +181,10 @@ class ServoModel:
         }
         return values.get(register, self.commands.get(register))
 
-    def _conf(self, line: str) -> str:
+    def _conf(self, line: str) -> str | None:
         words = line.split()
+        if words[:2] == ["conf", "get"] and not self.answers_reads:
+            return None
         if words[:2] == ["conf", "get"] and len(words) == 3 and words[2] in self.config:
             return f"{self.config[words[2]]:.6f}"
         if words[:2] == ["conf", "set"] and len(words) == 4 and words[2] in self.config:

@@ -16,7 +16,8 @@ returns the answers, ``advance`` moves the motor on. What it does, as the firmwa
   endpoints it knows (``VEL_LIMIT_EP``, ``CURRENT_LIMIT_EP``) on 0.6.
 
 Quirks for tests: ``current_cap`` (the current limit is clamped to it: a limit that does not read
-back as written), ``ignores_stop`` (Estop and IDLE do nothing: a device that does not obey).
+back as written), ``ignores_stop`` (Estop and IDLE do nothing: a device that does not obey),
+``answers_reads`` (False: RxSdo reads go unanswered, set at any time: a read-back that fails).
 
 ``AxisFace`` runs a model on a python-can bus in a thread, advancing it every 1 ms.
 """
@@ -59,6 +60,7 @@ class AxisModel:
     """N·m per rev/s (velocity control)."""
     current_cap: float | None = None
     ignores_stop: bool = False
+    answers_reads: bool = True
 
     def __post_init__(self) -> None:
         self.motor = Motor(self.params, self.load)
@@ -110,7 +112,7 @@ class AxisModel:
         elif cmd == Cmd.RX_SDO and len(data) == 8 and self.firmware == "0.6":
             opcode, endpoint = struct.unpack_from("<BH", data)
             values = {VEL_LIMIT_EP: self.vel_limit, CURRENT_LIMIT_EP: self.current_limit}
-            if opcode == 0 and endpoint in values:
+            if opcode == 0 and endpoint in values and self.answers_reads:
                 body = struct.pack("<BHBf", 0, endpoint, 0, values[endpoint])
                 return [(Cmd.TX_SDO, body)]
         return []

@@ -15,9 +15,10 @@ Energy charged that the budget no longer covers is a **debt**: the next grant pa
 The proxy's record is volatile: a restarted host has no books for it, so it JOINs and the
 supervisor writes off what it held (the drive was stopped meanwhile by its heartbeat consumer).
 
-Writes by others to what the bound depends on (``watch``) are charged at the drive's reach until
-the guard has read them back (``VerifyCommand``); a read-back that differs, or that does not come
-within the PDO timeout, stops the drive for good (docs/cia402.md).
+Writes by others to what the bound depends on (the profile's ``watches``) are charged at the
+drive's reach until the guard has read them back (``VerifyCommand``, checked by the profile's
+``verify``); a read-back that differs, or that does not come within the PDO timeout, stops the
+drive for good (docs/cia402.md).
 
 Inputs: ``on_ready`` (set-up read from the drive), ``on_values`` (TPDO values with the power state
 decoded by the caller), ``on_limits`` (the drive confirmed or refused limits), ``on_write`` (a
@@ -36,16 +37,7 @@ from canergy.cia402.counter import COUNTER_KEY, CounterConfig
 from canergy.cia402.envelope import LEVELS, LIMIT_OBJECTS, Limits, StopKind, bound
 from canergy.cia402.meter import VELOCITY_ACTUAL, MeterConfig, MeterKind
 from canergy.cia402.metering import Allowances, DriveMeter, DriveSetup
-from canergy.cia402.watch import (
-    CONTROLWORD,
-    PDO_CONFIG,
-    Key,
-    Watched,
-    Write,
-    check,
-    enables,
-    powerless,
-)
+from canergy.cia402.watch import CONTROLWORD, PDO_CONFIG, Key, Write, enables, powerless
 from canergy.core import Timing
 from canergy.devices.proxy import EXHAUSTED, NO_BUDGET, ProxyBooks
 from canergy.messages import QUANTUM_UJ, Message, ToClient
@@ -189,11 +181,6 @@ class DriveGuard(ProxyBooks):
         self.stops = 0
         self.halted = False
         """The supervisor is stopping: stop the drive and keep it stopped."""
-        counter = config.counter
-        on_drive = counter is not None and counter.node is None
-        self.watched = Watched(
-            config.stop, (counter.index, counter.subindex) if counter and on_drive else None
-        )
         self.suspect: str | None = None
         """The first write behind the guard not verified yet."""
         self.suspect_at: int | None = None
@@ -287,7 +274,8 @@ class DriveGuard(ProxyBooks):
         controlword = write.index == CONTROLWORD
         if controlword and not (held and enables(write.value)):
             return []  # the application's to give while the drive may run
-        if not controlword and not self.watched.matters(write):
+        assert m.profile is not None  # set up
+        if not controlword and not m.profile.watches(write):
             return []
         self.writes_seen += 1
         self.seq += 1
@@ -328,8 +316,11 @@ class DriveGuard(ProxyBooks):
                 self.last_verify_at = now - self.config.retry_us  # again (until the deadline)
             return self._settled(now)
         problem = None
+        assert m.profile is not None
         for limits in (m.target(), m.confirmed):
-            problem = check({k: v for k, v in setup.config.items() if k in read}, read, limits)
+            problem = m.profile.verify(
+                {k: v for k, v in setup.config.items() if k in read}, read, limits
+            )
             if problem is None:
                 break
         status = read.get(STATUSWORD_KEY)

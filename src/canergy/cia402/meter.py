@@ -27,6 +27,8 @@ from dataclasses import dataclass
 from enum import Enum
 from fractions import Fraction
 
+from canergy.devices.profile import Metering
+
 FW_US_PER_UJ = 10**15
 
 TORQUE_ACTUAL = 0x6077
@@ -49,6 +51,11 @@ class MeterKind(Enum):
     def sampled(self) -> bool:
         """Power read at TPDO instants only: can be fooled, no bound claimed."""
         return self in (MeterKind.SAMPLED_MECHANICAL, MeterKind.SAMPLED_ELECTRICAL)
+
+    @property
+    def metering(self) -> Metering:
+        """The device-profile metering mode this is (both sampled modes are ``sampled``)."""
+        return Metering.SAMPLED if self.sampled else Metering(self.value)
 
 
 @dataclass(frozen=True, slots=True)

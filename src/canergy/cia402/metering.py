@@ -28,8 +28,9 @@ from canergy.cia402.envelope import (
     Timings,
     bound,
 )
-from canergy.cia402.meter import FW_US_PER_UJ, EnergyMeter, MeterConfig, MeterKind
+from canergy.cia402.meter import EnergyMeter, MeterConfig, MeterKind
 from canergy.cia402.profile import Cia402Profile
+from canergy.devices.clock import ClockCharge
 
 
 @dataclass(frozen=True, slots=True)
@@ -91,13 +92,8 @@ class DriveMeter:
         """The limits the drive last confirmed (read back)."""
         self.pending: Limits | None = None
         """Written, not yet confirmed."""
-        self.lowered_fw = 0
-        self.lowered_until = 0
-        """A lowered envelope still charged until the drive has had time to act on it."""
-        self.charged_until: int | None = None
-        self.charge_fw = 0
-        """The largest envelope in force since ``charged_until``."""
-        self.remainder = 0
+        self.clock = ClockCharge()
+        """Charged by the clock (envelope mode, and after a write behind the guard)."""
         self.metered_uj = 0
         self.unbooked_uj = 0
         """Charged, not yet taken by the guard (``take``): every charge ends up booked."""
@@ -113,13 +109,16 @@ class DriveMeter:
 
     @property
     def sound(self) -> bool:
-        return not self.kind.sampled
+        return self.kind.metering.sound
 
     # -- set-up and limits ------------------------------------------------------------------
     def ready(self, now: int, setup: DriveSetup) -> None:
         """The drive is set up: its ratings known, its set-up limits confirmed."""
         self.setup = setup
-        self.profile = Cia402Profile(setup.ratings, self.stop, setup.deceleration)
+        counter = self.counter.config if self.counter is not None else None
+        on_drive = None if counter is None or counter.node is not None else counter
+        key = None if on_drive is None else (on_drive.index, on_drive.subindex)
+        self.profile = Cia402Profile(setup.ratings, self.stop, setup.deceleration, counter=key)
         r = setup.ratings
         self.sampled.config = replace(
             self.sampled.config,
@@ -129,8 +128,7 @@ class DriveMeter:
         self.latency_us = max(self.latency_us, setup.latency_us)
         self.confirmed, self.pending = setup.limits, None
         if self.sound:
-            self.charged_until = now
-            self.charge_fw = self.in_force_fw(now)
+            self.clock.start(now, self.in_force_fw(now))
 
     def envelope_fw(self, limits: Limits | None) -> int:
         if limits is None or self.profile is None:
@@ -146,13 +144,13 @@ class DriveMeter:
         fw = max(self.envelope_fw(self.confirmed), self.envelope_fw(self.pending))
         if self.suspect_from is not None:
             fw = max(fw, self.envelope_fw(self.reach))
-        return max(fw, self.lowered_fw) if now < self.lowered_until else fw
+        return self.clock.held(fw, now)
 
     def write(self, now: int, limits: Limits) -> None:
         """The guard writes ``limits``: a raise counts from now."""
         self.charge(now)
         self.pending = limits
-        self.charge_fw = max(self.charge_fw, self.in_force_fw(now))
+        self.clock.raise_to(self.in_force_fw(now))
 
     def confirm(self, now: int, limits: Limits) -> None:
         """The drive read back ``limits``."""
@@ -162,8 +160,8 @@ class DriveMeter:
         if self.pending == limits:
             self.pending = None
         if self.in_force_fw(now) < before:
-            self.lowered_fw, self.lowered_until = before, now + self.timings().latency_us
-        self.charge_fw = max(self.charge_fw, self.in_force_fw(now))
+            self.clock.lower(before, now + self.timings().latency_us)
+        self.clock.raise_to(self.in_force_fw(now))
 
     def target(self) -> Limits | None:
         """The limits written or being written."""
@@ -171,21 +169,22 @@ class DriveMeter:
 
     def suspect(self, now: int, since: int) -> None:
         """A write the bound depends on was seen at ``since``: charge the reach from then."""
-        if not self.sound or self.setup is None or self.charged_until is None:
+        clock = self.clock
+        if not self.sound or self.setup is None or clock.until is None:
             return
         self.rebase = False
         if self.suspect_from is not None:
             return
         if self.kind is MeterKind.ENVELOPE:
             self.charge(now)
-            early = max(0, self.charged_until - since)  # charged below the reach meanwhile
+            early = max(0, clock.until - since)  # charged below the reach meanwhile
             self.suspect_from = since
-            self.remainder += self.envelope_fw(self.reach) * early
+            clock.remainder += self.envelope_fw(self.reach) * early
         else:  # the counter may be lying from here: the clock at the reach, from the last reading
             last = self.counter.last_us if self.counter is not None else None
-            self.charged_until = min(since, now if last is None else last)
-            self.suspect_from = self.charged_until
-        self.charge_fw = self.in_force_fw(now)
+            clock.until = min(since, now if last is None else last)
+            self.suspect_from = clock.until
+        clock.fw = self.in_force_fw(now)
         self.charge(now)
 
     def verified(self, now: int) -> None:
@@ -198,7 +197,7 @@ class DriveMeter:
             self.rebase = True
             return
         self.suspect_from = None
-        self.charge_fw = self.in_force_fw(now)
+        self.clock.fw = self.in_force_fw(now)
 
     # -- charging ---------------------------------------------------------------------------
     def take(self) -> int:
@@ -214,19 +213,8 @@ class DriveMeter:
         """Envelope mode: charge what the drive may have drawn up to ``now``, by the host's
         clock (``take`` hands it over); a lowered envelope stops counting when it expired."""
         by_clock = self.kind is MeterKind.ENVELOPE or self.suspect_from is not None
-        if not by_clock or self.charged_until is None:
-            return
-        if self.charged_until < self.lowered_until < now:
-            self._charge_to(self.lowered_until)
-        if now > self.charged_until:
-            self._charge_to(now)
-
-    def _charge_to(self, until: int) -> None:
-        assert self.charged_until is not None
-        self.remainder += self.charge_fw * (until - self.charged_until)
-        drawn, self.remainder = divmod(self.remainder, FW_US_PER_UJ)
-        self.charged_until, self.charge_fw = until, self.in_force_fw(until)
-        self._charged(drawn)
+        if by_clock:
+            self._charged(self.clock.run(now, self.in_force_fw))
 
     def sample(self, now: int, values: dict[int, int], powerless: bool) -> None:
         """TPDO values received at ``now``: charge what was drawn since the last ones."""
@@ -241,8 +229,8 @@ class DriveMeter:
                     return  # not trusted: the clock charges the reach
                 self.suspect_from, self.rebase = None, False
                 self.counter.last_raw = None  # the new baseline
-            fw = max(self.charge_fw, self.in_force_fw(now))
-            self.charge_fw = self.in_force_fw(now)
+            fw = max(self.clock.fw, self.in_force_fw(now))
+            self.clock.fw = self.in_force_fw(now)
             self._charged(self.counter.sample(now, values[COUNTER_KEY], fw))
         else:
             self._charged(self.sampled.sample(now, values, charge=not powerless))
@@ -284,6 +272,7 @@ class DriveMeter:
     def status(self, now: int) -> dict[str, Any]:
         out: dict[str, Any] = {
             "meter": self.kind.value,
+            "guarantee": self.kind.metering.guarantee,
             "metered_uj": self.metered_uj,
             "stop": self.stop.value,
         }

@@ -6,6 +6,14 @@ R·i_max²`` (``Ratings.envelope_fw``); closed, they allow no torque and no curr
 draws what ``Ratings.stop_fw_us`` says over its ramp (0x6085), a disable-voltage stop nothing (the
 motor coasts). The CiA 402 guard's meter charges and bounds through this profile once the drive
 is set up, so the formula and its parts show in the status as a device profile's do.
+
+What the bound depends on beside the limits is declared here too: ``watches`` says which writes
+behind the guard matter (``canergy.cia402.watch.Watched``: the PDO configuration, the limit
+objects, the ratings, the mode, the heartbeat consumer, the counter object on the drive, the
+stop ramps of a quick stop), ``read_back_keys`` which objects are read at set-up and after such
+a write, and ``verify`` what a read-back must show; ``mismatch`` names a limit the link wrote
+that did not read back. A write's value is known only by reading the drive back, so the guard
+charges it at the drive's reach until then.
 """
 
 from __future__ import annotations
@@ -13,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from canergy.cia402.envelope import MAX_CURRENT, MAX_SPEED, MAX_TORQUE, Limits, Ratings, StopKind
+from canergy.cia402.watch import Key, Watched, Write, check, expected_keys
 from canergy.devices.profile import Envelope
 
 FORMULA = "torque_nm * speed_rad_s + resistance_ohm * current_a**2"
@@ -27,6 +36,8 @@ class Cia402Profile:
     deceleration: int = 0
     """0x6085, velocity units per s (0: unknown, a quick stop charged at the whole envelope)."""
     name: str = "cia402"
+    counter: Key | None = None
+    """The counter object on the drive (counter mode), or None: writes to it matter."""
 
     def envelope(self, limits: Limits) -> Envelope:
         parts = {**self.fields(limits), "resistance_ohm": self.ratings.resistance_mohm / 1e3}
@@ -58,3 +69,19 @@ class Cia402Profile:
 
     def observe(self, measured: dict[str, float]) -> None:
         """A CiA 402 drive's ratings come from its objects at set-up; nothing raises them."""
+
+    def watches(self, write: Write) -> bool:
+        """A write behind the guard the bound depends on (the controlword is the guard's)."""
+        return Watched(self.stop, self.counter).matters(write)
+
+    def read_back_keys(self) -> tuple[Key, ...]:
+        """Beside the PDO configuration and the limits: the objects read at set-up that must
+        hold what they held then (``verify``)."""
+        return expected_keys(self.stop)
+
+    def verify(
+        self, setup: dict[Key, int], read: dict[Key, int | None], limits: Limits | None
+    ) -> str | None:
+        """What a read-back shows that the guard does not expect (``setup`` as read then, a
+        stop ramp steeper; ``limits`` as written), every object named; None: all holds."""
+        return check(setup, read, limits)

@@ -6,5 +6,7 @@ any profile; ``odrive`` is the ODrive CAN Simple profile, ``moteus`` the moteus 
 protocol's; ``mit`` the MIT-mode frames, models and clamp, and ``mit_gate`` an MIT-mode motor
 guarded in line (the application's commands pass through it: ``canergy.live.devices.mit_bus``).
 ``proxy`` is the proxy client's books every guard keeps, the CiA 402 guard (``canergy.cia402``)
-included; its metering predates the interface (docs/guide/drives.md says how it maps onto it).
+included. CiA 402 is a profile too (``canergy.cia402.profile``: its envelope, the writes its
+bound depends on and their read-back), with a guard of its own for what only it has (the counter
+mode, object writes charged at the drive's reach until read back, tapering; docs/guide/drives.md).
 """

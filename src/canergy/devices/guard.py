@@ -5,7 +5,9 @@ As for CiA 402 (``canergy.cia402.guard``), the device never runs canergy: the ho
 hardened ``Client`` as its proxy and charges to it what the device may have drawn. In the sound
 mode (``envelope``) every µs is charged at the largest envelope in force: the limits confirmed,
 the limits being written, and limits someone else wrote on the bus (charged from the moment
-their frame was seen until the guard's own, written after it, is confirmed). A lowered envelope
+their frame was seen until the guard's own, written after it, is confirmed; not confirmed within
+``feedback_timeout_us`` of the first such write, the device is stopped for good, the write named
+in ``unverified`` and the stop reason, as a CiA 402 drive is). A lowered envelope
 counts until the device had its latency to act on it. The guard stops the device when what is
 left falls to the reserve plus the bound (envelope × (reaction + latency) + what the stop may
 draw), waking exactly when the clock gets there; then it writes the closed limits (no current).
@@ -21,8 +23,9 @@ naming the limit; limits that cannot be read back at all (ODrive 0.5) refuse it 
 configuration trusts them (``trust_limits``), which the status shows as ``limits_verified``
 false.
 
-Inputs: ``on_ready``, ``on_limits``, ``on_feedback``, ``on_foreign_limits``,
-``on_foreign_write``, ``on_message``, ``on_wakeup``; outputs: canergy frames to the supervisor
+Inputs: ``on_ready``, ``on_limits``, ``on_feedback``, ``on_watched`` (a frame from someone
+else as the profile reads it: ``on_foreign_limits`` or ``on_foreign_write``), ``on_message``,
+``on_wakeup``; outputs: canergy frames to the supervisor
 and ``commands`` (``WriteLimits``, ``Stop``) for the link.
 """
 
@@ -35,11 +38,24 @@ from typing import Any, Generic
 from canergy.cia402.envelope import Bound, ceil_div
 from canergy.cia402.meter import FW_US_PER_UJ
 from canergy.core import Timing
-from canergy.devices.profile import L, Profile, Stop, WriteLimits
+from canergy.devices.clock import ClockCharge
+from canergy.devices.profile import (
+    Foreign,
+    L,
+    LimitsWritten,
+    Metering,
+    Profile,
+    ReadLimits,
+    Stop,
+    Unbounded,
+    WriteLimits,
+)
 from canergy.devices.proxy import EXHAUSTED, NO_BUDGET, ProxyBooks
 from canergy.messages import QUANTUM_UJ, Message, ToClient
 
 FOREVER = 2**62
+REREAD_US = 1_000_000
+"""How often the ODrive and moteus guards read their limits back (a CiA 402 drive's 1 s too)."""
 
 
 class GuardPhase(Enum):
@@ -72,6 +88,9 @@ class DeviceConfig(Generic[L]):
     reserve_uj: int = 0
     resume_margin_uj: int = 10 * QUANTUM_UJ
     telemetry_period_us: int = 50_000
+    reread_us: int = 0
+    """Read the limits back this often where they can be read (0: never): limits changed where
+    the guard cannot see stop the device for good."""
     unreadable: str = (
         "the odrive limits cannot be read back (no answer, or firmware 0.5): trust them as "
         "written with --odrive-trust-limits"
@@ -88,7 +107,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         super().__init__(node, config.timing, config.telemetry_period_us, now, nonce)
         self.profile = profile
         self.config = config
-        self.commands: list[WriteLimits[L] | Stop] = []
+        self.commands: list[WriteLimits[L] | Stop | ReadLimits] = []
         self.phase = GuardPhase.STOPPED
         self.phase_at = now
         self.stop_reason: str | None = NO_BUDGET
@@ -108,13 +127,15 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         """Limits someone else wrote, in force until a write of the guard's after them is
         confirmed."""
         self.foreign_at: int | None = None
+        self.unverified: str | None = None
+        """The first write behind the guard not yet written over by limits of the guard's that
+        read back; ``unverified_at``: when it was taken in (the device is stopped for good
+        ``feedback_timeout_us`` later if it still is)."""
+        self.unverified_at: int | None = None
         self.early_foreign: list[tuple[int, L]] = []
         """Limits someone else wrote before the set-up was done (when, which)."""
-        self.lowered_fw = 0
-        self.lowered_until = 0
-        self.charged_until: int | None = None
-        self.charge_fw = 0
-        self.remainder = 0
+        self.clock = ClockCharge()
+        """Charged by the clock from the set-up's start (envelope mode)."""
         self.unbooked_uj = 0
         self.metered_uj = 0
         self.uncontained_uj = 0
@@ -135,13 +156,22 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         self.restops = 0
         self.writes_seen = 0
         self.halted = False
+        self.next_reread = now + config.reread_us if config.reread_us else None
+        self.rereading: int | None = None
+        """When the periodic read-back in flight was asked."""
+        self.confirmed_at = now
+        """When limits last read back (a periodic read asked before shows nothing)."""
 
     def running(self) -> bool:
         return self.phase is GuardPhase.RUNNING
 
     @property
+    def metering(self) -> Metering:
+        return Metering.SAMPLED if self.config.sampled else Metering.ENVELOPE
+
+    @property
     def sound(self) -> bool:
-        return not self.config.sampled
+        return self.metering.sound
 
     # -- envelope and bound ---------------------------------------------------------------
     def _fw(self, limits: L | None) -> int:
@@ -149,7 +179,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
 
     def in_force_fw(self, now: int) -> int:
         fw = max(self._fw(self.confirmed), self._fw(self.pending), self._fw(self.foreign))
-        return max(fw, self.lowered_fw) if now < self.lowered_until else fw
+        return self.clock.held(fw, now)
 
     def latency_us(self) -> int:
         return max(self.config.latency_us, self.latency_max_us)
@@ -184,18 +214,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
 
     # -- charging -------------------------------------------------------------------------
     def charge(self, now: int) -> None:
-        if self.charged_until is None:
-            return
-        if self.charged_until < self.lowered_until < now:
-            self._charge_to(self.lowered_until)
-        if now > self.charged_until:
-            self._charge_to(now)
-
-    def _charge_to(self, until: int) -> None:
-        assert self.charged_until is not None
-        self.remainder += self.charge_fw * (until - self.charged_until)
-        drawn, self.remainder = divmod(self.remainder, FW_US_PER_UJ)
-        self.charged_until, self.charge_fw = until, self.in_force_fw(until)
+        drawn = self.clock.run(now, self.in_force_fw)
         if self.phase is GuardPhase.STUCK:
             self.uncontained_uj += drawn
         else:
@@ -204,7 +223,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
 
     def _recharge(self, now: int) -> None:
         """The envelope in force changed at ``now`` (a raise counts from now)."""
-        self.charge_fw = max(self.charge_fw, self.in_force_fw(now))
+        self.clock.raise_to(self.in_force_fw(now))
 
     # -- inputs ---------------------------------------------------------------------------
     def on_ready(self, now: int, started_at: int, full: L | None, closed: L | None) -> None:
@@ -228,8 +247,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             self.verified = True
         self.confirmed = self.profile.closed(want)
         # the full limits were in force from the set-up's start until the closed ones: debt
-        self.charged_until, self.charge_fw = started_at, self._fw(want)
-        self.lowered_fw, self.lowered_until = self._fw(want), now + self.latency_us()
+        self.clock.start(started_at, self._fw(want))
+        self.clock.lower(self._fw(want), now + self.latency_us())
         self.charge(now)
         # limits someone else wrote while the set-up ran, after a read-back could show them
         for at, limits in self.early_foreign:
@@ -249,14 +268,28 @@ class DeviceGuard(ProxyBooks, Generic[L]):
                 self.rewrite_at = now + self.config.retry_us
             return self._settled(now)
         before = self.in_force_fw(now)
-        self.confirmed = wrote
+        self.confirmed, self.confirmed_at = wrote, now
         if self.pending == wrote:
             self.pending = None
         if self.foreign_at is not None and at >= self.foreign_at:  # written after it
             self.foreign, self.foreign_at = None, None
+            self.unverified, self.unverified_at = None, None
         if self.in_force_fw(now) < before:
-            self.lowered_fw, self.lowered_until = before, now + self.latency_us()
+            self.clock.lower(before, now + self.latency_us())
         self._recharge(now)
+        return self._settled(now)
+
+    def on_read(self, now: int, read: L | None) -> list[Message]:
+        """The periodic read-back's answer (None: not readable now; asked again next time)."""
+        asked, self.rereading = self.rereading, None
+        self.charge(now)
+        quiet = self.pending is None and self.foreign is None and self.confirmed is not None
+        if read is None or asked is None or not quiet or self.confirmed_at > asked:
+            return self._settled(now)  # a write since, or in flight: its own read-back checks
+        assert self.confirmed is not None
+        if (why := self.profile.mismatch(self.confirmed, read)) is not None:
+            self._refuse(f"limits changed behind the guard (a periodic read-back): {why}")
+            self.rewrite_at = now  # the closed limits, whatever is in force
         return self._settled(now)
 
     def on_feedback(
@@ -296,22 +329,34 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         if not self.sound:
             return []
         self.writes_seen += 1
-        if self.charged_until is None:  # during the set-up: taken in by ``on_ready``
+        if self.clock.until is None:  # during the set-up: taken in by ``on_ready``
             self.early_foreign.append((at, limits))
             return []
         self._take_foreign(now, at, limits)
         return self._settled(now)
 
     def _take_foreign(self, now: int, at: int, limits: L) -> None:
-        assert self.charged_until is not None
+        clock = self.clock
+        assert clock.until is not None
         self.charge(now)
-        early = max(0, self.charged_until - at)
+        early = max(0, clock.until - at)
         if self._fw(limits) > self._fw(self.foreign):
             self.foreign = limits
-            self.remainder += max(0, self._fw(limits) - self.charge_fw) * early
+            clock.remainder += max(0, self._fw(limits) - clock.fw) * early
         self.foreign_at = at
+        if self.unverified_at is None:
+            fields = ", ".join(f"{k} {v:g}" for k, v in self.profile.fields(limits).items())
+            self.unverified, self.unverified_at = f"limits {fields}", now
         self._recharge(now)
         self.rewrite_at = now  # the guard's own limits again, at once
+
+    def on_watched(self, now: int, at: int, seen: Foreign[L]) -> list[Message]:
+        """A frame someone else sent the device (at ``at``), as the profile reads it."""
+        if isinstance(seen, LimitsWritten):
+            return self.on_foreign_limits(now, at, seen.limits)
+        if isinstance(seen, Unbounded):
+            return self.on_foreign_write(now, seen.what)
+        return []
 
     def on_foreign_write(self, now: int, what: str) -> list[Message]:
         """A write behind the guard whose effect it cannot bound: stopped for good."""
@@ -343,11 +388,21 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             times.append(self.phase_at + self.config.stop_timeout_us + 1)
         if self.rewrite_at is not None:
             times.append(self.rewrite_at)
+        if self.unverified_at is not None:
+            times.append(self.unverified_at + self._verify_us() + 1)
+        if self.next_reread is not None:
+            times.append(self.next_reread)
         return min(times)
 
     def on_wakeup(self, now: int) -> list[Message]:
         out = self._proxy_due(now)
         self.charge(now)
+        if self.next_reread is not None and now >= self.next_reread:
+            self.next_reread = now + self.config.reread_us
+            lost = self.rereading is not None and now - self.rereading > self.config.reread_us
+            if self.verified and (self.rereading is None or lost) and self.refused is None:
+                self.rereading = now
+                self.commands.append(ReadLimits("periodic read-back", now))
         out += self._settled(now)
         if now >= self.next_telemetry:
             out.append(self.telemetry(now))
@@ -385,6 +440,10 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             return "supervisor stopping"
         if self.refused is not None:
             return self.refused
+        if self.unverified_at is not None and now > self.unverified_at + self._verify_us():
+            self._refuse(f"a write behind the guard ({self.unverified}) not verified in time")
+            self.rewrite_at = now  # the closed limits, whatever is in force
+            return self.refused
         if self.ready_at is None:
             return "not set up yet"
         heard = self.last_feedback_at if self.last_feedback_at is not None else self.ready_at
@@ -396,6 +455,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
                 self.reaction_max_us = max(self.reaction_max_us, now - self.crossing)
             return EXHAUSTED
         return None
+
+    def _verify_us(self) -> int:
+        """How long limits written behind the guard may stay unverified: the feedback
+        timeout (as a CiA 402 drive's writes get the PDO timeout)."""
+        return self.config.feedback_timeout_us
 
     def _evaluate(self, now: int) -> list[Message]:
         before = self.phase
@@ -414,13 +478,12 @@ class DeviceGuard(ProxyBooks, Generic[L]):
     def _crossing(self) -> int | None:
         """When the clock, at the envelope charged now, brings what is left to the stop
         threshold (None: not running, or nothing charged)."""
-        if self.phase is not GuardPhase.RUNNING or self.charged_until is None:
-            return None
-        if self.charge_fw <= 0:
+        clock = self.clock
+        if self.phase is not GuardPhase.RUNNING or clock.until is None or clock.fw <= 0:
             return None
         left = self.usable - self.threshold_uj()
-        room = max(0, left * FW_US_PER_UJ - self.remainder)
-        return self.charged_until + ceil_div(room, self.charge_fw)
+        room = max(0, left * FW_US_PER_UJ - clock.remainder)
+        return clock.until + ceil_div(room, clock.fw)
 
     def _stop(self, why: str, now: int) -> None:
         if self.phase is GuardPhase.RUNNING:
@@ -510,8 +573,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             "joining": self.joining,
             "ready": self.ready_at is not None,
             **self.books_status(),
-            "meter": "sampled" if self.config.sampled else "envelope",
-            "guarantee": "none" if self.config.sampled else "drawn <= granted + bound_uj",
+            "meter": self.metering.value,
+            "guarantee": self.metering.guarantee,
             "metered_uj": self.metered_uj,
             "uncontained_uj": self.uncontained_uj,
             "bound_uj": bound_uj,
@@ -537,6 +600,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             "stops": self.stops,
             "restops": self.restops,
             "writes_seen": self.writes_seen,
+            "unverified": self.unverified,
             "feedback_age_us": None
             if self.last_feedback_at is None
             else now - self.last_feedback_at,

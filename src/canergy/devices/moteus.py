@@ -38,7 +38,7 @@ from enum import IntEnum
 from fractions import Fraction
 
 from canergy.devices.odrive import FW_PER_W, TWO_PI_UP, ceil_fraction, f32
-from canergy.devices.profile import Envelope
+from canergy.devices.profile import Envelope, Foreign, LimitsWritten, Unbounded
 
 ID_MAX = 0x7F
 BROADCAST = 0x7F
@@ -399,6 +399,49 @@ UNBOUNDED_CONF = frozenset(
 UNBOUNDED_COMMANDS = ("conf load", "conf default", "d raw", "d pwm", "d cal", "d flash")
 
 
+def whole(value: float) -> int | None:
+    """``value`` as an integer, if it is one (a register read or written as a float may not)."""
+    return int(value) if math.isfinite(value) and value == int(value) else None
+
+
+def mode_name(mode: float) -> str:
+    n = whole(mode)
+    return Mode(n).name if n is not None and n in Mode.__members__.values() else f"mode {mode:g}"
+
+
+def watch_register(register: int, value: float) -> Unbounded | None:
+    """A register someone else wrote: a mode the limits do not hold in, or a register that
+    bypasses them, is not bounded."""
+    if register == Reg.MODE and whole(value) not in BOUNDED_MODES:
+        return Unbounded(f"mode {value:g} ({mode_name(value)})")
+    if register in UNBOUNDED_REGISTERS:
+        return Unbounded(UNBOUNDED_REGISTERS[register])
+    return None
+
+
+def watch_line(line: str, held: MoteusLimits | None) -> list[Foreign[MoteusLimits]]:
+    """A diagnostic line someone else sent: ``conf set`` of a limit sets ``held`` (what the
+    controller holds as far as the bus shows) with its value; ``conf load``, ``conf default``,
+    ``d raw``/``pwm``/``cal``/``flash`` and ``conf set`` of what the envelope rests on are not
+    bounded."""
+    words = line.split()
+    out: list[Foreign[MoteusLimits]] = []
+    if " ".join(words).startswith(UNBOUNDED_COMMANDS):
+        out.append(Unbounded(f"'{line[:60]}'"))
+    if words[:2] != ["conf", "set"] or len(words) < 4:
+        return out  # with no value, nothing is set
+    name = words[2]
+    if name in CONF.values() and held is not None:
+        try:
+            value = float(words[3])
+        except ValueError:  # a lenient parser may take its start as a number
+            return [*out, Unbounded(f"'{line[:60]}'")]
+        out.append(LimitsWritten(held.with_conf(name, value)))
+    elif name in UNBOUNDED_CONF or name.startswith(("motor.", "motor_position.")):
+        out.append(Unbounded(f"'{line[:60]}'"))
+    return out
+
+
 def conf_set(name: str, value: float) -> bytes:
     return f"conf set {name} {value:.9g}\n".encode()
 
@@ -469,6 +512,8 @@ class MoteusProfile:
     """``canergy.devices.profile.Profile`` for a moteus controller."""
 
     name = "moteus"
+    watch_register = staticmethod(watch_register)
+    watch_line = staticmethod(watch_line)
 
     def __init__(self, motor: MoteusMotor) -> None:
         self.motor = motor

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from enum import IntEnum
 from fractions import Fraction
 
-from canergy.devices.profile import Envelope
+from canergy.devices.profile import Envelope, Foreign, LimitsWritten, Unbounded
 
 FW_PER_W = 10**15
 TWO_PI_UP = Fraction(710, 113)
@@ -64,6 +64,15 @@ class AxisState(IntEnum):
 
 SDO_READ, SDO_WRITE = 0, 1
 FIRMWARES = ("0.5", "0.6")
+
+
+UNBOUNDED = {
+    Cmd.RX_SDO: "RxSdo write",
+    0x006: "Set_Axis_Node_ID/Address",
+    0x016: "Reboot",
+    0x01F: "Enter_DFU_Mode",
+}
+"""Frames from others whose effect on the limits the guard cannot bound."""
 
 
 def can_id(node: int, cmd: int) -> int:
@@ -155,10 +164,22 @@ def ceil_fraction(x: Fraction) -> int:
     return -(-x.numerator // x.denominator)
 
 
+def watch(cmd: int, data: bytes) -> Foreign[OdriveLimits]:
+    """A frame someone else sent the axis (not a remote request): Set_Limits carries its
+    values; RxSdo writes, Reboot, Set_Axis_Node_ID and Enter_DFU_Mode are not bounded
+    (``ValueError``: a Set_Limits or RxSdo frame not 8 bytes long)."""
+    if cmd == Cmd.SET_LIMITS:
+        return LimitsWritten(OdriveLimits(*two_floats(data)))
+    if cmd in UNBOUNDED and not (cmd == Cmd.RX_SDO and sdo_fields(data)[0] != SDO_WRITE):
+        return Unbounded(f"{UNBOUNDED[cmd]} ({data.hex() or 'no data'})")
+    return None
+
+
 class OdriveProfile:
     """``canergy.devices.profile.Profile`` for an ODrive axis."""
 
     name = "odrive"
+    watch = staticmethod(watch)
 
     def __init__(self, motor: MotorConstants) -> None:
         self.motor = motor

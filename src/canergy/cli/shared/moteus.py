@@ -14,7 +14,7 @@ import can
 from canergy.argtypes import add_duration, bounded_int, energy, node_ids
 from canergy.cli.shared.cia402 import _number
 from canergy.core import Timing
-from canergy.devices.guard import DeviceConfig, DeviceGuard
+from canergy.devices.guard import REREAD_US, DeviceConfig, DeviceGuard
 from canergy.devices.moteus import ID_MAX, PREFIX_MAX, MoteusLimits, MoteusMotor, MoteusProfile
 from canergy.live.devices.moteus_link import MoteusLink, MoteusLinkConfig
 
@@ -221,6 +221,7 @@ def moteus_controllers(args: argparse.Namespace, timing: Timing) -> MoteusContro
         feedback_timeout_us=args.moteus_feedback_timeout,
         stop_timeout_us=args.moteus_stop_timeout,
         reserve_uj=args.moteus_reserve,
+        reread_us=REREAD_US,
         unreadable=UNREADABLE,
     )
     link = MoteusLinkConfig(source=args.moteus_source, prefix=args.moteus_prefix, sampled=sampled)

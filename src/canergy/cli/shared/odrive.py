@@ -14,7 +14,7 @@ import can
 from canergy.argtypes import add_duration, energy, node_ids
 from canergy.cli.shared.cia402 import _number
 from canergy.core import Timing
-from canergy.devices.guard import DeviceConfig, DeviceGuard
+from canergy.devices.guard import REREAD_US, DeviceConfig, DeviceGuard
 from canergy.devices.odrive import FIRMWARES, NODE_MAX, MotorConstants, OdriveLimits, OdriveProfile
 from canergy.live.devices.odrive_link import OdriveLink, OdriveLinkConfig
 
@@ -214,6 +214,7 @@ def odrive_axes(args: argparse.Namespace, timing: Timing) -> OdriveAxes:
         feedback_timeout_us=args.odrive_feedback_timeout,
         stop_timeout_us=args.odrive_stop_timeout,
         reserve_uj=args.odrive_reserve,
+        reread_us=REREAD_US,
     )
     link_config = OdriveLinkConfig(
         firmware=args.odrive_firmware, endpoints=args.odrive_endpoints, sampled=sampled

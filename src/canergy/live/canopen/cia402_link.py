@@ -59,13 +59,13 @@ from canergy.cia402.guard import (
 )
 from canergy.cia402.meter import RATED_CURRENT, RATED_TORQUE, MeterConfig
 from canergy.cia402.metering import DriveSetup
+from canergy.cia402.profile import Cia402Profile
 from canergy.cia402.watch import (
     NMT,
     SDO_REQUEST,
     Key,
     SdoWatch,
     Write,
-    expected_keys,
     nmt_writes,
     pdo_writes,
 )
@@ -207,6 +207,8 @@ class DriveLink:
         network.subscribe(NMT, self._on_nmt)
         self.ready_at: int | None = None
         self.setup: DriveSetup | None = None
+        self.profile: Cia402Profile | None = None
+        """The drive as a profile (from its ratings): what is read back and how it compares."""
         self.error: str | None = None
         self.commands_sent = 0
         self.command_failures = 0
@@ -324,6 +326,11 @@ class DriveLink:
         rated_current = int(sdo[RATED_CURRENT].raw)
         if rated_torque <= 0 or rated_current <= 0:
             raise SetupError(f"rated torque {rated_torque} mNm / current {rated_current} mA")
+        meter = self.config.meter
+        ratings = Ratings(
+            rated_torque, rated_current, meter.velocity_unit_rad_s, meter.resistance_mohm
+        )
+        self.profile = Cia402Profile(ratings, self.config.stop)
         counter = self.config.counter
         if counter is not None:
             target = node if counter.node is None else self.meter_node
@@ -348,7 +355,6 @@ class DriveLink:
             node.setup_402_state_machine(read_pdos=False)
         finally:
             p402_log.setLevel(level)
-        meter = self.config.meter
         mapped = set(node.tpdo_values)
         needed = [STATUSWORD, *meter.needs()]
         if counter is not None and counter.node is None:
@@ -367,9 +373,6 @@ class DriveLink:
         if self.config.stop is StopKind.QUICK and QUICK_STOP_DECELERATION in node.object_dictionary:
             deceleration = int(sdo[QUICK_STOP_DECELERATION].raw)
         latency = self._timed_controlword(CW_DISABLE_VOLTAGE)  # no budget yet: off, and timed
-        ratings = Ratings(
-            rated_torque, rated_current, meter.velocity_unit_rad_s, meter.resistance_mohm
-        )
         config = self._read_config()
         self._watch_rpdos(config)
         node.nmt.state = "OPERATIONAL"
@@ -399,7 +402,8 @@ class DriveLink:
             if index in od:
                 keys += [(index, 1), (index, 2)]
                 keys += [(index + 0x200, sub) for sub in range(9) if index + 0x200 in od]
-        for index, sub in expected_keys(self.config.stop):
+        assert self.profile is not None  # set from the ratings first
+        for index, sub in self.profile.read_back_keys():
             if index in od and (sub == 0 or sub in getattr(od[index], "subindices", {})):
                 keys.append((index, sub))
         return keys
@@ -513,7 +517,9 @@ class DriveLink:
             except (canopen.SdoCommunicationError, can.CanError) as exc:
                 return None, f"0x{index:04X} = {value}: {exc}"
             if back != value:
-                return False, f"0x{index:04X} = {value} written, {back} read back"
+                read = Limits(*{**limits.as_objects(), index: back}.values())
+                assert self.profile is not None  # set from the ratings first
+                return False, self.profile.mismatch(limits, read) or ""
         return True, ""
 
     def _write_read(self, index: int, value: int) -> int:

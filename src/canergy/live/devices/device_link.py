@@ -13,7 +13,7 @@ from typing import Any, Generic, Protocol
 import can
 
 from canergy.devices.guard import DeviceGuard
-from canergy.devices.profile import L, Stop, WriteLimits
+from canergy.devices.profile import L, ReadLimits, Stop, WriteLimits
 from canergy.messages import Message
 
 
@@ -57,7 +57,7 @@ class GuardLink(Generic[L]):
         self.clock = clock
         self.lock = threading.Lock()
         self.events: list[Callable[[DeviceGuard[L], int], list[Message]]] = []
-        self.work: queue.Queue[WriteLimits[L] | Stop | None] = queue.Queue()
+        self.work: queue.Queue[WriteLimits[L] | ReadLimits | Stop | None] = queue.Queue()
         self.voltage: float | None = None
         self.reaction_max_us = 0
         self.latency_max_us = 0
@@ -104,7 +104,7 @@ class GuardLink(Generic[L]):
             out += event(guard, now)
         return out
 
-    def command(self, cmd: WriteLimits[L] | Stop) -> None:
+    def command(self, cmd: WriteLimits[L] | ReadLimits | Stop) -> None:
         self.work.put(cmd)
 
     def pending(self) -> bool:
@@ -137,6 +137,11 @@ def limits_event(
 ) -> list[Message]:
     """A write's read-back for the guard (``functools.partial`` of the first three)."""
     return guard.on_limits(now, wrote, read, at)
+
+
+def read_event(read: L | None, guard: DeviceGuard[L], now: int) -> list[Message]:
+    """A periodic read-back for the guard (``functools.partial`` of the first)."""
+    return guard.on_read(now, read)
 
 
 def ready_event(

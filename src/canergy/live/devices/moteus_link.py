@@ -6,15 +6,17 @@ carries out the guard's commands, so a controller that does not answer never blo
 
 - ``WriteLimits``: ``conf set`` of each limit on diagnostic channel 1, then ``conf get`` of each
   (the round trip is the latency measured), answers polled with 0x42;
+- ``ReadLimits`` (the periodic read-back): ``conf get`` of each alone;
 - ``Stop``: mode 0 (stopped).
 
 A moteus sends nothing unasked: the worker queries mode, position, velocity, torque, q current,
-power, voltage, temperature and fault every ``poll_s`` (reply bit set). Frames from others that
-the bound depends on: ``conf set`` of a limit (charged as written, then written over), and mode
-writes of PWM or voltage modes, the fixed voltage or current override, ``conf set`` of the
-configuration the envelope rests on, ``conf load``, ``conf default``, ``d raw``, ``d pwm``,
-``d cal`` and ``d flash``, whose effect the guard cannot bound (stopped for good). A frame that
-does not parse is counted; the subframes before the bad one count (the controller acts on them).
+power, voltage, temperature and fault every ``poll_s`` (reply bit set). Frames from others are
+read by the profile (``canergy.devices.moteus.watch_register`` and ``watch_line``): ``conf set``
+of a limit is charged as written, then written over; mode writes of PWM or voltage modes, the
+fixed voltage or current override, ``conf set`` of the configuration the envelope rests on,
+``conf load``, ``conf default``, ``d raw``, ``d pwm``, ``d cal`` and ``d flash`` stop the
+controller for good. A frame that does not parse is counted; the subframes before the bad one
+count (the controller acts on them).
 """
 
 from __future__ import annotations
@@ -22,7 +24,6 @@ from __future__ import annotations
 import collections
 import functools
 import logging
-import math
 import queue
 import threading
 import time
@@ -31,15 +32,12 @@ from dataclasses import dataclass, replace
 
 import can
 
+from canergy.devices.guard import DeviceGuard
 from canergy.devices.moteus import (
-    BOUNDED_MODES,
     BROADCAST,
     CONF,
     DIAGNOSTIC_CHANNEL,
     FEEDBACK,
-    UNBOUNDED_COMMANDS,
-    UNBOUNDED_CONF,
-    UNBOUNDED_REGISTERS,
     UNPOWERED_MODES,
     Mode,
     MoteusLimits,
@@ -55,16 +53,28 @@ from canergy.devices.moteus import (
     decode,
     encode,
     extended,
+    mode_name,
     split_id,
     stream_lines,
+    watch_line,
+    watch_register,
+    whole,
     write_mode,
 )
-from canergy.devices.profile import Stop
+from canergy.devices.profile import Foreign, LimitsWritten, ReadLimits, Stop
 from canergy.live.devices.device_link import GuardLink
 from canergy.live.devices.device_link import limits_event as _limits
+from canergy.live.devices.device_link import read_event as _read
 from canergy.live.devices.device_link import ready_event as _ready
+from canergy.messages import Message
 
 log = logging.getLogger(__name__)
+
+
+def _watched(
+    at: int, seen: Foreign[MoteusLimits], guard: DeviceGuard[MoteusLimits], now: int
+) -> list[Message]:
+    return guard.on_watched(now, at, seen)
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,16 +87,6 @@ class MoteusLinkConfig:
     """How long one ``conf`` line may take to be answered."""
     poll_s: float = 0.02
     sampled: bool = False
-
-
-def whole(value: float) -> int | None:
-    """``value`` as an integer, if it is one (a register read or written as a float may not)."""
-    return int(value) if math.isfinite(value) and value == int(value) else None
-
-
-def mode_name(mode: float) -> str:
-    n = whole(mode)
-    return Mode(n).name if n is not None and n in Mode.__members__.values() else f"mode {mode:g}"
 
 
 class MoteusLink(GuardLink[MoteusLimits]):
@@ -194,13 +194,8 @@ class MoteusLink(GuardLink[MoteusLimits]):
         for s in subframes:
             if isinstance(s, Write):
                 for register, value in enumerate(s.values, start=s.start):
-                    what = None
-                    if register == Reg.MODE and whole(value) not in BOUNDED_MODES:
-                        what = f"mode {value:g} ({mode_name(value)})"
-                    elif register in UNBOUNDED_REGISTERS:
-                        what = UNBOUNDED_REGISTERS[register]
-                    if what is not None:
-                        self._foreign_write(what)
+                    if (seen := watch_register(register, value)) is not None:
+                        self._foreign_write(seen.what)
             elif isinstance(s, Stream) and not s.server and s.channel == DIAGNOSTIC_CHANNEL:
                 with self.stream_lock:
                     lines = stream_lines(self.foreign_stream, s.data)
@@ -211,23 +206,11 @@ class MoteusLink(GuardLink[MoteusLimits]):
         self._event(lambda g, now: g.on_foreign_write(now, what))
 
     def _foreign_line(self, line: str, at: int) -> None:
-        words = line.split()
-        if " ".join(words).startswith(UNBOUNDED_COMMANDS):
-            self._foreign_write(f"'{line[:60]}'")
-        if words[:2] != ["conf", "set"] or len(words) < 4:
-            return  # with no value, nothing is set
-        name = words[2]
-        if name in CONF.values() and self.held is not None:
-            try:
-                value = float(words[3])
-            except ValueError:  # a lenient parser may take its start as a number
-                self._foreign_write(f"'{line[:60]}'")
-                return
-            # the values others set add up on the controller until the guard writes its own
-            seen = self.held = self.held.with_conf(name, value)
-            self._event(lambda g, now: g.on_foreign_limits(now, at, seen))
-        elif name in UNBOUNDED_CONF or name.startswith(("motor.", "motor_position.")):
-            self._foreign_write(f"'{line[:60]}'")
+        for seen in watch_line(line, self.held):  # the profile reads it
+            if isinstance(seen, LimitsWritten):
+                # the values others set add up on the controller until the guard writes its own
+                self.held = seen.limits
+            self._event(functools.partial(_watched, at, seen))
 
     # -- the loop's side ------------------------------------------------------------------
     def status(self) -> dict[str, object]:
@@ -273,6 +256,8 @@ class MoteusLink(GuardLink[MoteusLimits]):
             if isinstance(cmd, Stop):
                 self._send(write_mode(Mode.STOPPED))
                 self.reaction_max_us = max(self.reaction_max_us, self.clock() - cmd.at)
+            elif isinstance(cmd, ReadLimits):
+                self._event(functools.partial(_read, self._read_limits()))
             else:
                 read = self._write(cmd.limits)
                 self._event(functools.partial(_limits, cmd.limits, read, cmd.at))
@@ -290,8 +275,12 @@ class MoteusLink(GuardLink[MoteusLimits]):
         for _, name, value in limits.items():
             if not self._answered(conf_set(name, value), lambda answer: answer == "OK"):
                 return None
+        return self._read_limits()
+
+    def _read_limits(self) -> MoteusLimits | None:
+        """``conf get`` of each limit (None: not all answered)."""
         got: list[float] = []
-        for _, name, _ in limits.items():
+        for name in CONF.values():
             start = self.clock()
             if not self._answered(conf_get(name), lambda answer: got.append(float(answer))):
                 return None

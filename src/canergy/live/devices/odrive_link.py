@@ -8,13 +8,14 @@ supervisor's loop:
 - ``WriteLimits``: Set_Limits, then on firmware 0.6 with the endpoint ids given, RxSdo reads of
   ``vel_limit`` and ``current_soft_max`` answered by TxSdo (the round trip is the latency
   measured); on 0.5 nothing can be read back (the answer says so: None);
+- ``ReadLimits`` (the periodic read-back): the two endpoint reads alone (None on 0.5);
 - ``Stop``: Estop, then Set_Axis_State IDLE.
 
 Set-up writes the guard's full limits and reads them back, then the closed ones (current 0).
-Frames from others that the bound depends on: Set_Limits (its values are in the frame: charged
-as written, then written over), and RxSdo writes, Reboot, Address/Set_Axis_Node_ID and
-Enter_DFU_Mode, whose effect the guard cannot bound (the axis is stopped for good). The link
-polls bus voltage and current (0x017) and, on 0.6, the powers (0x01D) by remote request.
+Frames from others are read by the profile (``canergy.devices.odrive.watch``: Set_Limits is
+charged as written, then written over; RxSdo writes, Reboot, Address/Set_Axis_Node_ID and
+Enter_DFU_Mode stop the axis for good). The link polls bus voltage and current (0x017) and, on
+0.6, the powers (0x01D) by remote request.
 """
 
 from __future__ import annotations
@@ -41,21 +42,15 @@ from canergy.devices.odrive import (
     set_limits,
     split_id,
     two_floats,
+    watch,
 )
-from canergy.devices.profile import Stop
+from canergy.devices.profile import ReadLimits, Stop
 from canergy.live.devices.device_link import GuardLink
 from canergy.live.devices.device_link import limits_event as _limits
+from canergy.live.devices.device_link import read_event as _read
 from canergy.live.devices.device_link import ready_event as _ready
 
 log = logging.getLogger(__name__)
-
-UNBOUNDED = {
-    Cmd.RX_SDO: "RxSdo write",
-    0x006: "Set_Axis_Node_ID/Address",
-    0x016: "Reboot",
-    0x01F: "Enter_DFU_Mode",
-}
-"""Frames from others whose effect on the limits the guard cannot bound."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,13 +123,8 @@ class OdriveLink(GuardLink[OdriveLimits]):
         elif cmd == Cmd.TX_SDO:
             _, endpoint, value = sdo_fields(data)
             self.replies.put((endpoint, struct.unpack("<f", value)[0]))
-        elif cmd == Cmd.SET_LIMITS:
-            velocity, current = two_floats(data)
-            seen = OdriveLimits(velocity, current)
-            self._event(lambda g, now: g.on_foreign_limits(now, at, seen))
-        elif cmd in UNBOUNDED and not (cmd == Cmd.RX_SDO and sdo_fields(data)[0] != 1):
-            what = f"{UNBOUNDED[cmd]} ({data.hex() or 'no data'})"
-            self._event(lambda g, now: g.on_foreign_write(now, what))
+        elif (seen := watch(cmd, data)) is not None:  # the profile reads the others' frames
+            self._event(lambda g, now: g.on_watched(now, at, seen))
 
     # -- the loop's side ------------------------------------------------------------------
     def status(self) -> dict[str, object]:
@@ -174,6 +164,8 @@ class OdriveLink(GuardLink[OdriveLimits]):
                 self._send(Cmd.ESTOP)
                 self._send(Cmd.SET_AXIS_STATE, set_axis_state(AxisState.IDLE))
                 self.reaction_max_us = max(self.reaction_max_us, self.clock() - cmd.at)
+            elif isinstance(cmd, ReadLimits):
+                self._event(functools.partial(_read, self._read_limits()))
             else:
                 read = self._write(cmd.limits)
                 self._event(functools.partial(_limits, cmd.limits, read, cmd.at))
@@ -193,6 +185,10 @@ class OdriveLink(GuardLink[OdriveLimits]):
         """Set_Limits and, where the firmware allows, the limits read back (else None)."""
         if not self._send(Cmd.SET_LIMITS, set_limits(limits.velocity, limits.current)):
             return None
+        return self._read_limits()
+
+    def _read_limits(self) -> OdriveLimits | None:
+        """The limits the axis holds, where the firmware can say (else None)."""
         if self.config.firmware != "0.6" or self.config.endpoints is None:
             return None
         values = [self._read(endpoint) for endpoint in self.config.endpoints]

@@ -1,0 +1,63 @@
+"""Charging by the host's clock at the largest envelope in force: the sound meter every guard
+shares (a CiA 402 drive's in envelope mode and after a write behind it, a profile device's).
+Sans-IO, integers: fW, µs, µJ (1 µJ = 1e15 fW·µs).
+
+Each µs is charged at the envelope in force at its start; its owner raises ``fw`` at once when
+an envelope is raised (``raise_to``), and a lowered envelope keeps counting until the device had
+its latency to act on it (``lower``, ``held``). What is below a whole µJ is carried over.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from canergy.cia402.meter import FW_US_PER_UJ
+
+
+@dataclass(slots=True)
+class ClockCharge:
+    """Charged up to ``until`` (None: not charging yet) at ``fw``."""
+
+    until: int | None = None
+    fw: int = 0
+    """The largest envelope in force since ``until``."""
+    remainder: int = 0
+    """fW·µs charged that do not make a whole µJ yet."""
+    lowered_fw: int = 0
+    lowered_until: int = 0
+    """A lowered envelope still charged until the device has had time to act on it."""
+
+    def start(self, at: int, fw: int) -> None:
+        self.until, self.fw = at, fw
+
+    def held(self, fw: int, now: int) -> int:
+        """``fw``, or the lowered envelope while it still counts."""
+        return max(fw, self.lowered_fw) if now < self.lowered_until else fw
+
+    def lower(self, before_fw: int, until: int) -> None:
+        """The envelope was ``before_fw`` and went down: it counts until ``until``."""
+        self.lowered_fw, self.lowered_until = before_fw, until
+
+    def raise_to(self, fw: int) -> None:
+        """An envelope in force went up: charged from now."""
+        self.fw = max(self.fw, fw)
+
+    def run(self, now: int, in_force: Callable[[int], int]) -> int:
+        """Charge up to ``now`` (a lowered envelope's end first); the whole µJ charged.
+        ``in_force(t)``: the envelope in force at ``t``."""
+        if self.until is None:
+            return 0
+        drawn = 0
+        if self.until < self.lowered_until < now:
+            drawn += self._to(self.lowered_until, in_force)
+        if now > self.until:
+            drawn += self._to(now, in_force)
+        return drawn
+
+    def _to(self, until: int, in_force: Callable[[int], int]) -> int:
+        assert self.until is not None
+        self.remainder += self.fw * (until - self.until)
+        drawn, self.remainder = divmod(self.remainder, FW_US_PER_UJ)
+        self.until, self.fw = until, in_force(until)
+        return drawn

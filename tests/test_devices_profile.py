@@ -1,0 +1,49 @@
+"""The device-profile interface (``canergy.devices.profile``) as every guard uses it: one set of
+metering modes with their guarantee, shown alike in a CiA 402 drive's status and a profile
+device's."""
+
+from __future__ import annotations
+
+from fractions import Fraction
+
+import pytest
+
+from canergy.cia402.counter import CounterConfig
+from canergy.cia402.envelope import Limits
+from canergy.cia402.guard import DriveGuard, GuardConfig
+from canergy.cia402.meter import MeterConfig, MeterKind
+from canergy.devices.guard import DeviceConfig, DeviceGuard
+from canergy.devices.odrive import MotorConstants, OdriveLimits, OdriveProfile
+from canergy.devices.profile import Metering
+
+FULL = Limits(265, 265, 100_500)
+
+
+@pytest.mark.parametrize(
+    ("kind", "guarantee"),
+    [
+        (MeterKind.ENVELOPE, "drawn <= granted + bound_uj"),
+        (MeterKind.COUNTER, "drawn <= granted + bound_uj"),
+        (MeterKind.SAMPLED_MECHANICAL, "none"),
+        (MeterKind.SAMPLED_ELECTRICAL, "none"),
+    ],
+)
+def test_a_cia402_drive_shows_its_metering_modes_guarantee(kind: MeterKind, guarantee: str) -> None:
+    counter = CounterConfig(0x2011) if kind is MeterKind.COUNTER else None
+    limits = None if kind.sampled else FULL
+    meter = MeterConfig(kind, bus_current_index=0x2010)
+    g = DriveGuard(10, GuardConfig(meter, limits, counter), 0, 1)
+    status = g.status(0)
+    assert status["guarantee"] == guarantee
+    assert status["meter"] == kind.value  # the CiA 402 names stay
+    assert kind.metering.sound is (not kind.sampled)
+
+
+@pytest.mark.parametrize("sampled", [False, True])
+def test_a_profile_device_shows_the_same_guarantee_for_the_same_mode(sampled: bool) -> None:
+    motor = MotorConstants(Fraction(1, 20), Fraction(1, 2))
+    config = DeviceConfig(limits=OdriveLimits(5.0, 2.0), sampled=sampled)
+    status = DeviceGuard(3, OdriveProfile(motor), config, 0, 1).status(0)
+    mode = Metering.SAMPLED if sampled else Metering.ENVELOPE
+    assert (status["meter"], status["guarantee"]) == (mode.value, mode.guarantee)
+    assert status["guarantee"] == ("none" if sampled else "drawn <= granted + bound_uj")

@@ -19,6 +19,7 @@
 
 #include "client_internal.h"
 #include "codec_internal.h"
+#include "rules.h"
 #include "serial.h"
 
 #include <string.h>
@@ -145,6 +146,11 @@ static void commit_into(struct canergy_client *c, uint16_t amount_mj)
 
 /* -- the cells ---------------------------------------------------------------------------- */
 
+static bool witnessed(const struct canergy_client *c)
+{
+    return rules_witnessed(c->rules);
+}
+
 /* A transaction d ahead of ltx (serial16 of its wire tx) at or beyond CANERGY_COUNTER_END
  * (Python's _beyond_end). */
 static bool beyond_end(const struct canergy_client *c, int32_t d)
@@ -162,8 +168,7 @@ static void on_intention(struct canergy_client *c, const struct canergy_msg *m, 
 #ifdef CANERGY_WITNESSED
     /* witnessed.on_intention: Gs pays back only from a fresh intention (k > ltx); one at or
      * below ltx may be of a supervisor history a SYNC discarded, its Gs held by nobody */
-    if (c->rules == CANERGY_RULES_WITNESSED &&
-        (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) == 0U) {
+    if (witnessed(c) && (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) == 0U) {
         if (d == 0) {
             reply_for(c, c->rec.last_tx, c->rec.outcome, out);
         }
@@ -292,11 +297,6 @@ static void on_admit(struct canergy_client *c, const struct canergy_msg *m,
 }
 
 #ifdef CANERGY_WITNESSED
-static bool witnessed(const struct canergy_client *c)
-{
-    return c->rules == CANERGY_RULES_WITNESSED;
-}
-
 /* DEBIT: the pending draw (DRAW(q, x)), or with start the node's RESUME(n, q, pending). */
 static void send_debit(const struct canergy_client *c, bool start, struct canergy_out *out)
 {
@@ -613,7 +613,7 @@ uint64_t canergy_client_deadline(const struct canergy_client *c)
 
 int canergy_internal_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out)
 {
-    if (c->phase == CANERGY_JOINING || c->rules != CANERGY_RULES_HARDENED) {
+    if (c->phase == CANERGY_JOINING || witnessed(c)) {
         return CANERGY_ERR_PHASE; /* witnessed: only through a draw */
     }
     if (uj == 0U || uj > c->rec.usable_uj) {
@@ -746,13 +746,8 @@ void canergy_client_join(struct canergy_client *c, uint16_t nonce, uint64_t now,
 
 static bool config_ok(const struct canergy_client_config *cfg)
 {
-#ifdef CANERGY_WITNESSED
-    const uint8_t last_rules = CANERGY_RULES_WITNESSED;
-#else
-    const uint8_t last_rules = CANERGY_RULES_HARDENED;
-#endif
     return canergy_id_base_valid(cfg->id_base) && cfg->node >= CANERGY_MIN_NODE &&
-           cfg->node <= CANERGY_MAX_NODE && cfg->rules <= last_rules &&
+           cfg->node <= CANERGY_MAX_NODE && rules_kept(cfg->rules) &&
            cfg->window <= CANERGY_WINDOW_MAX;
 }
 
@@ -775,7 +770,7 @@ int canergy_internal_start(struct canergy_client *c, const struct canergy_client
     c->nv_counter = nv.counter;
     c->nv_slot = nv.newest_slot;
     const bool draw_pending = (nv.record.flags & CANERGY_RECORD_PENDING_DRAW) != 0U;
-    if (nv.books && draw_pending && c->rules == CANERGY_RULES_HARDENED) {
+    if (nv.books && draw_pending && !witnessed(c)) {
         nv.books = false; /* the witnessed rules' record: not books for these rules */
         nv.fallbacks++;
     }

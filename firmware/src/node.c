@@ -5,6 +5,7 @@
 #include "canergy/node.h"
 
 #include "client_internal.h"
+#include "rules.h"
 
 #include <string.h>
 
@@ -194,7 +195,7 @@ uint32_t canergy_node_draw(struct canergy_node *n, uint32_t wanted_uj, uint64_t 
     timers(n, now, out);
     uint32_t take;
 #ifdef CANERGY_WITNESSED
-    if (n->client.rules == CANERGY_RULES_WITNESSED) {
+    if (rules_witnessed(n->client.rules)) {
         take = wanted_uj < n->released_uj ? wanted_uj : n->released_uj;
         n->released_uj -= take;
         draw_ahead(n, wanted_uj, now, out);

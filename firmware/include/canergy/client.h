@@ -10,9 +10,9 @@
  * record is RESUMING until the supervisor's ADMIT confirms the books or finds them behind; an
  * ADMIT the node did not ask for is a supervisor's start, SYNC(n): the node settles B
  * transactions ahead (cfg->window), drops its held intention, answers with its books and counts
- * and is SYNCING (moves nothing) until ADMIT(n ^ CANERGY_SYNC_CONFIRMED). A
- * build with CANERGY_HARDENED_ONLY defined leaves them out (cfg->rules witnessed is then
- * refused as CANERGY_ERR_ARGUMENT).
+ * and is SYNCING (moves nothing) until ADMIT(n ^ CANERGY_SYNC_CONFIRMED). A build may keep
+ * one rule set (CANERGY_RULES_*_ONLY below): cfg->rules naming the other is then refused as
+ * CANERGY_ERR_ARGUMENT.
  *
  * Contract of every call that takes a struct canergy_out *out:
  *   - *out is overwritten (the call starts it empty);
@@ -56,8 +56,23 @@ enum canergy_rules {
     CANERGY_RULES_WITNESSED = 1
 };
 
-#ifndef CANERGY_HARDENED_ONLY
+/* The rule sets compiled in. A host build (the Python binding, the tests) has both, chosen at
+ * run time by cfg->rules; a product port ships one, chosen at build time:
+ * CANERGY_RULES_WITNESSED_ONLY (the node port's default: records restored from older copies
+ * cannot create energy) or CANERGY_RULES_HARDENED_ONLY (CANERGY_HARDENED_ONLY, its earlier
+ * name). A configuration naming a set left out is refused at start (CANERGY_ERR_ARGUMENT):
+ * never run as the other. */
+#if defined(CANERGY_HARDENED_ONLY) && !defined(CANERGY_RULES_HARDENED_ONLY)
+#define CANERGY_RULES_HARDENED_ONLY 1
+#endif
+#if defined(CANERGY_RULES_HARDENED_ONLY) && defined(CANERGY_RULES_WITNESSED_ONLY)
+#error "CANERGY_RULES_HARDENED_ONLY and CANERGY_RULES_WITNESSED_ONLY: a build keeps one set"
+#endif
+#ifndef CANERGY_RULES_HARDENED_ONLY
 #define CANERGY_WITNESSED 1 /* the witnessed rules are compiled in */
+#endif
+#ifndef CANERGY_RULES_WITNESSED_ONLY
+#define CANERGY_HARDENED 1 /* the hardened rules are compiled in */
 #endif
 
 /* out->events bits: the notes of the Python rules (ClientCommitted, ...), one bit each. */

@@ -165,25 +165,21 @@ static void on_intention(struct canergy_client *c, const struct canergy_msg *m, 
                          struct canergy_out *out)
 {
     const int32_t d = serial16(m->tx, c->rec.last_tx); /* every rule below reads this ltx */
-#ifdef CANERGY_WITNESSED
-    /* witnessed.on_intention: Gs pays back only from a fresh intention (k > ltx); one at or
-     * below ltx may be of a supervisor history a SYNC discarded, its Gs held by nobody */
-    if (witnessed(c) && (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) == 0U) {
-        if (d == 0) {
+    const bool unknown = (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U;
+    /* Rc unknown: a frame at or below ltx is of the node's earlier life. witnessed.on_intention:
+     * Gs pays back only from a fresh intention (k > ltx); one at or below ltx may be of a
+     * supervisor history a SYNC discarded, its Gs held by nobody (a duplicate: the recorded
+     * reply). So under the witnessed rules only k > ltx goes on. */
+    if (d <= 0 && (unknown || witnessed(c))) {
+        if (d == 0 && !unknown) {
             reply_for(c, c->rec.last_tx, c->rec.outcome, out);
         }
-        if (d <= 0) {
-            return;
-        }
+        return;
     }
-#endif
     if (beyond_end(c, d)) {
         return; /* no supervisor sends one: it would move ltx to the end of the numbering */
     }
-    if ((c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U) {
-        if (d <= 0) {
-            return; /* a frame of the node's earlier life */
-        }
+    if (unknown) {
         c->rec.credited_mj = m->delivered_mj; /* admitted without books: Rc = Gs, no pay-back */
         c->rec.flags &= (uint8_t)~CANERGY_RECORD_CREDITED_UNKNOWN;
     }

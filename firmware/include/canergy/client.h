@@ -101,31 +101,31 @@ struct canergy_client_config {
 
 /* Opaque in spirit: read it through the accessors below; tests reach in. 80 bytes. */
 struct canergy_client {
+    uint8_t node;
+    uint8_t phase;               /* enum canergy_phase */
+    uint8_t nv_slot;             /* slot holding the newest record: the next write goes to the other */
+    uint8_t rules;               /* enum canergy_rules */
+    uint16_t held_amount_mj;
+    uint16_t nonce;              /* of the pending JOIN or RESUME */
+    uint16_t window;             /* B (witnessed), 1..CANERGY_WINDOW_MAX */
+    uint32_t held_tx;            /* widened tx of the held intention, modulo 2^32 */
     struct canergy_record rec;   /* the books, exactly what the NV slot holds */
     uint64_t deadline;           /* command timer (HOLDING), CANERGY_NEVER when not armed */
     uint64_t return_deadline;    /* return re-send (or JOIN re-send), CANERGY_NEVER if none */
     uint32_t id_base;
     uint32_t command_timeout_us;
     uint32_t return_retry_us;
-    uint32_t held_tx;            /* widened tx of the held intention, modulo 2^32 */
     uint32_t nv_counter;         /* counter of the newest slot written or loaded */
-    uint16_t held_amount_mj;
-    uint16_t nonce;              /* of the pending JOIN or RESUME */
-    uint8_t node;
-    uint8_t phase;               /* enum canergy_phase */
-    uint8_t nv_slot;             /* slot holding the newest record: the next write goes to the other */
-    uint8_t rules;               /* enum canergy_rules */
-    uint16_t window;             /* B (witnessed), 1..CANERGY_WINDOW_MAX */
 };
 
 struct canergy_out {
-    struct canergy_frame frames[CANERGY_OUT_FRAMES];
-    uint8_t nv_image[CANERGY_NV_SLOT_SIZE];
-    uint32_t nv_counter;   /* the counter inside nv_image */
     uint16_t events;       /* CANERGY_EV_* */
     uint8_t frame_count;
     uint8_t persist;       /* 1: write nv_image to nv_slot before anything else */
     uint8_t nv_slot;       /* 0 or 1 */
+    uint32_t nv_counter;   /* the counter inside nv_image */
+    struct canergy_frame frames[CANERGY_OUT_FRAMES];
+    uint8_t nv_image[CANERGY_NV_SLOT_SIZE];
 };
 
 /*

@@ -55,14 +55,14 @@ enum canergy_outcome {
  * README.md, "Counters"): 2^32 is a multiple of the wire's 2^16 and 2^24, so every serial
  * comparison with a wire value comes out as with Python's unbounded integers. */
 struct canergy_record {
-    uint64_t spent_uj;
+    uint8_t outcome;
+    uint8_t flags;
     uint32_t usable_uj;
     uint32_t credited_mj;
     uint32_t last_tx;
     uint32_t return_seq;
     uint32_t return_pending_uj;
-    uint8_t outcome;
-    uint8_t flags;
+    uint64_t spent_uj;
 };
 
 /* What canergy_nv_load found in an image. */

@@ -22,7 +22,7 @@ static void send_telemetry(struct canergy_node *n, uint64_t now, struct canergy_
     const uint32_t fields[4] = {
         level > CANERGY_WIDE_MAX ? CANERGY_WIDE_MAX : level, /* saturating */
         (is_low(n) ? CANERGY_TELEMETRY_LOW : 0U) | (n->halted ? CANERGY_TELEMETRY_HALTED : 0U) |
-            (canergy_client_joining(&n->client) ? CANERGY_TELEMETRY_JOINING : 0U),
+            (n->client.phase == CANERGY_JOINING ? CANERGY_TELEMETRY_JOINING : 0U),
         (uint16_t)n->client.rec.return_seq, /* the number its RETURN frames carry */
         n->witness,
     }; /* TELEMETRY: level, flags, seq, witness */
@@ -136,15 +136,6 @@ static void timers(struct canergy_node *n, uint64_t now, struct canergy_out *out
     after_client(n, now, out);
 }
 
-void canergy_node_poll(struct canergy_node *n, uint64_t now, struct canergy_out *out)
-{
-    if (n == NULL || out == NULL) {
-        return;
-    }
-    canergy_internal_out_clear(out);
-    timers(n, now, out);
-    telemetry_due(n, now, out);
-}
 
 /* uj in whole mJ (rounded down), at most one frame's worth. */
 static uint32_t frame_worth(uint32_t uj)
@@ -185,33 +176,48 @@ static void draw_ahead(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
 }
 #endif
 
-uint32_t canergy_node_draw(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
-                           struct canergy_out *out)
+/* A poll (draw false: timers, telemetry) or an actuator period (timers, the draw of wanted_uj,
+ * the return policy, telemetry): the microjoules the actuator may use. */
+static uint32_t step(struct canergy_node *n, bool draw, uint32_t wanted_uj, uint64_t now,
+                     struct canergy_out *out)
 {
     if (n == NULL || out == NULL) {
         return 0U;
     }
     canergy_internal_out_clear(out);
     timers(n, now, out);
-    uint32_t take;
+    uint32_t take = 0U;
+    if (draw) {
 #ifdef CANERGY_WITNESSED
-    if (rules_witnessed(n->client.rules)) {
-        take = wanted_uj < n->released_uj ? wanted_uj : n->released_uj;
-        n->released_uj -= take;
-        draw_ahead(n, wanted_uj, now, out);
-    } else
+        if (rules_witnessed(n->client.rules)) {
+            take = wanted_uj < n->released_uj ? wanted_uj : n->released_uj;
+            n->released_uj -= take;
+            draw_ahead(n, wanted_uj, now, out);
+        } else
 #endif
-    {
-        const uint32_t usable = n->client.rec.usable_uj;
-        take = wanted_uj < usable ? wanted_uj : usable;
-        if (canergy_internal_spend(&n->client, take, out) != CANERGY_OK) {
-            take = 0U; /* joining, or nothing to spend: refused, nothing changed */
+        {
+            const uint32_t usable = n->client.rec.usable_uj;
+            take = wanted_uj < usable ? wanted_uj : usable;
+            if (canergy_internal_spend(&n->client, take, out) != CANERGY_OK) {
+                take = 0U; /* joining, or nothing to spend: refused, nothing changed */
+            }
         }
+        n->halted = take < wanted_uj;
+        return_policy(n, now, out);
     }
-    n->halted = take < wanted_uj;
-    return_policy(n, now, out);
     telemetry_due(n, now, out);
     return take;
+}
+
+void canergy_node_poll(struct canergy_node *n, uint64_t now, struct canergy_out *out)
+{
+    (void)step(n, false, 0U, now, out);
+}
+
+uint32_t canergy_node_draw(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
+                           struct canergy_out *out)
+{
+    return step(n, true, wanted_uj, now, out);
 }
 
 uint64_t canergy_node_deadline(const struct canergy_node *n)

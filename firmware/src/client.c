@@ -405,26 +405,6 @@ static void on_start_answer(struct canergy_client *c, const struct canergy_msg *
     }
 }
 
-/* RESUMING or SYNCING: an intention moves nothing (the RESUME or the answer again at once), an
- * ADMIT may answer the start; everything else is ignored. */
-static bool start_message(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
-                          struct canergy_out *out)
-{
-    if (c->phase != CANERGY_RESUMING && c->phase != CANERGY_SYNCING) {
-        return false;
-    }
-    if (m->type == CANERGY_INTENTION) {
-        if (c->phase == CANERGY_RESUMING) {
-            send_debit(c, true, out);
-        } else {
-            send_sync_answer(c, out);
-        }
-    } else if (m->type == CANERGY_ADMIT) {
-        on_start_answer(c, m, now, out);
-    }
-    return true;
-}
-
 /* The power-loss cell from the books (or RESUMING): lose the hold, RESUME(n, q, pending). */
 static void resume(struct canergy_client *c, uint16_t nonce, uint64_t now,
                    struct canergy_out *out)
@@ -433,26 +413,47 @@ static void resume(struct canergy_client *c, uint16_t nonce, uint64_t now,
 }
 #endif
 
+/* The frame of a start waiting for its ADMIT (JOIN, RESUME, the SYNC's answer); false when no
+ * start waits. */
+static bool send_start(const struct canergy_client *c, struct canergy_out *out)
+{
+    if (c->phase == CANERGY_JOINING) {
+        send(c, CANERGY_JOIN, c->nonce, 0U, out);
+#ifdef CANERGY_WITNESSED
+    } else if (c->phase == CANERGY_RESUMING) {
+        send_debit(c, true, out);
+    } else if (c->phase == CANERGY_SYNCING) {
+        send_sync_answer(c, out);
+#endif
+    } else {
+        return false;
+    }
+    return true;
+}
+
 static void rx_message(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
                        struct canergy_out *out)
 {
+    if (c->phase >= CANERGY_JOINING) { /* a start waits: JOINING, RESUMING or SYNCING */
+        if (m->type == CANERGY_INTENTION) {
+            (void)send_start(c, out); /* moves nothing; the start's frame again at once */
+        } else if (m->type == CANERGY_ADMIT) {
 #ifdef CANERGY_WITNESSED
-    if (start_message(c, m, now, out)) {
-        return;
+            if (c->phase != CANERGY_JOINING) {
+                on_start_answer(c, m, now, out);
+                return;
+            }
+#endif
+            on_admit(c, m, out);
+        }
+        return; /* everything else is ignored */
     }
-    if (witnessed(c) && c->phase != CANERGY_JOINING && m->type == CANERGY_ADMIT) {
+#ifdef CANERGY_WITNESSED
+    if (witnessed(c) && m->type == CANERGY_ADMIT) {
         answer_sync(c, m->nonce, now, out); /* with books, an ADMIT is a supervisor's SYNC */
         return;
     }
 #endif
-    if (c->phase == CANERGY_JOINING) {
-        if (m->type == CANERGY_INTENTION) {
-            send(c, CANERGY_JOIN, c->nonce, 0U, out); /* moves nothing; JOIN again at once */
-        } else if (m->type == CANERGY_ADMIT) {
-            on_admit(c, m, out);
-        }
-        return;
-    }
     switch (m->type) {
     case CANERGY_INTENTION: on_intention(c, m, now, out); break;
     case CANERGY_COMMIT: /* fall through */
@@ -481,13 +482,8 @@ static void return_timer(struct canergy_client *c, uint64_t now, struct canergy_
     if (c->return_deadline > now) {
         return;
     }
-    if (c->phase == CANERGY_JOINING) {
-        send(c, CANERGY_JOIN, c->nonce, 0U, out);
+    if (send_start(c, out)) {
 #ifdef CANERGY_WITNESSED
-    } else if (c->phase == CANERGY_RESUMING) {
-        send_debit(c, true, out);
-    } else if (c->phase == CANERGY_SYNCING) {
-        send_sync_answer(c, out);
     } else if ((c->rec.flags & CANERGY_RECORD_PENDING_DRAW) != 0U) {
         send_debit(c, false, out);
 #endif

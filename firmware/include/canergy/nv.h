@@ -67,11 +67,11 @@ struct canergy_record {
 
 /* What canergy_nv_load found in an image. */
 struct canergy_nv_state {
-    struct canergy_record record; /* valid when books is true */
     uint32_t counter;             /* counter of the newest valid slot (0 when none) */
     uint8_t newest_slot;          /* slot of that record; 1 when none, so slot 0 comes first */
     bool books;                   /* a record to trust; false: the node must JOIN */
     uint8_t fallbacks;            /* as NvStats.fallbacks: +1 a damaged slot, +1 impossible values */
+    struct canergy_record record; /* valid when books is true */
 };
 
 /* Layout of one record. unpack refuses (CANERGY_ERR_ARGUMENT) values no client writes: an

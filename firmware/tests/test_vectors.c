@@ -550,10 +550,9 @@ static const bool witnessed_kept = false;
 static void test_rules_kept(void)
 {
     static const uint8_t nodes[1] = {5U};
+    const bool sets[3] = {hardened_kept, witnessed_kept, false}; /* by enum canergy_rules */
     for (uint8_t rules = 0U; rules <= 2U; rules++) {
-        const bool kept = rules == CANERGY_RULES_HARDENED    ? hardened_kept
-                          : rules == CANERGY_RULES_WITNESSED ? witnessed_kept
-                                                             : false;
+        const bool kept = sets[rules];
         const struct canergy_node_config cfg = {
             {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, rules, 0U}, 1000000UL, 0U,
             CANERGY_KEEP_ALL};

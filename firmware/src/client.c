@@ -431,6 +431,19 @@ static bool send_start(const struct canergy_client *c, struct canergy_out *out)
     return true;
 }
 
+/* The pending debit's frame: its DRAW (witnessed) or its RETURN. */
+static void send_pending(const struct canergy_client *c, struct canergy_out *out)
+{
+#ifdef CANERGY_WITNESSED
+    if ((c->rec.flags & CANERGY_RECORD_PENDING_DRAW) != 0U) {
+        send_debit(c, false, out);
+        return;
+    }
+#endif
+    send(c, CANERGY_RETURN, (uint16_t)c->rec.return_seq,
+         (uint16_t)(c->rec.return_pending_uj / MJ), out);
+}
+
 static void rx_message(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
                        struct canergy_out *out)
 {
@@ -483,13 +496,8 @@ static void return_timer(struct canergy_client *c, uint64_t now, struct canergy_
         return;
     }
     if (send_start(c, out)) {
-#ifdef CANERGY_WITNESSED
-    } else if ((c->rec.flags & CANERGY_RECORD_PENDING_DRAW) != 0U) {
-        send_debit(c, false, out);
-#endif
-    } else if (c->rec.return_pending_uj != 0U) {
-        send(c, CANERGY_RETURN, (uint16_t)c->rec.return_seq,
-             (uint16_t)(c->rec.return_pending_uj / MJ), out);
+    } else if (c->rec.return_pending_uj != 0U) { /* a draw pending is an amount pending */
+        send_pending(c, out);
     } else {
         return;
     }
@@ -661,13 +669,7 @@ int canergy_internal_debit(struct canergy_client *c, uint32_t uj, uint64_t now, 
     c->rec.flags |= draw;
     c->return_deadline = serial_after(now, c->return_retry_us);
     canergy_internal_repack(c, out);
-#ifdef CANERGY_WITNESSED
-    if (draw != 0U) {
-        send_debit(c, false, out);
-        return CANERGY_OK;
-    }
-#endif
-    send(c, CANERGY_RETURN, (uint16_t)c->rec.return_seq, (uint16_t)(uj / MJ), out);
+    send_pending(c, out);
     return CANERGY_OK;
 }
 

@@ -114,14 +114,14 @@ int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame 
     /* A frame with this node's id: witnessed when it is in the node's own direction (the codec
      * checked the id block, the type and the node) or answers nothing the node sent; a decode
      * error when the codec refused it otherwise. Foreign frames and other nodes' (seen without
-     * acceptance filters) are no error of ours. */
+     * acceptance filters; never with its id) are no error of ours. */
     const bool own_id = frame != NULL && (frame->id & 0xFFU) == n->client.node;
     const bool witnessed = result == CANERGY_DECODE_WRONG_DIRECTION
                                ? own_id
                                : result == CANERGY_DECODE_OK && never_asked(n, &m);
     if (witnessed) {
         canergy_internal_witness(n, now, out);
-    } else if (own_id && result != CANERGY_DECODE_OK && result != CANERGY_RX_OTHER_NODE &&
+    } else if (own_id && result != CANERGY_DECODE_OK &&
                result != CANERGY_DECODE_FOREIGN) {
         n->decode_errors++;
     }

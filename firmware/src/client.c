@@ -241,20 +241,18 @@ static void on_command(struct canergy_client *c, const struct canergy_msg *m,
         return;
     }
     const uint32_t tx = c->rec.last_tx + (uint32_t)d;
-    if (m->type == CANERGY_ABORT) {
-        resolved(c, tx, CANERGY_OUTCOME_ABORTED);
-        out->events |= CANERGY_EV_ABORTED;
-        send(c, CANERGY_ABORTED, m->tx, 0U, out);
-        return;
+    const bool abort = m->type == CANERGY_ABORT;
+    if (!abort) {
+        if ((uint64_t)c->rec.usable_uj + (uint64_t)m->amount_mj * MJ > CANERGY_USABLE_MAX_UJ) {
+            out->events |= CANERGY_EV_REFUSED; /* never acknowledged so */
+            return;
+        }
+        commit_into(c, m->amount_mj);
     }
-    if ((uint64_t)c->rec.usable_uj + (uint64_t)m->amount_mj * MJ > CANERGY_USABLE_MAX_UJ) {
-        out->events |= CANERGY_EV_REFUSED; /* never acknowledged so */
-        return;
-    }
-    commit_into(c, m->amount_mj);
-    resolved(c, tx, CANERGY_OUTCOME_COMMITTED);
-    out->events |= CANERGY_EV_COMMITTED;
-    send(c, CANERGY_COMMITTED, m->tx, 0U, out);
+    const uint8_t outcome = abort ? CANERGY_OUTCOME_ABORTED : CANERGY_OUTCOME_COMMITTED;
+    resolved(c, tx, outcome);
+    out->events |= abort ? CANERGY_EV_ABORTED : CANERGY_EV_COMMITTED;
+    reply_for(c, tx, outcome, out); /* ABORTED or COMMITTED */
 }
 
 static void on_return_ack(struct canergy_client *c, const struct canergy_msg *m,
@@ -605,10 +603,7 @@ void canergy_client_return_timer(struct canergy_client *c, uint64_t now, struct 
 
 uint64_t canergy_client_deadline(const struct canergy_client *c)
 {
-    if (c == NULL) {
-        return CANERGY_NEVER;
-    }
-    return c->deadline < c->return_deadline ? c->deadline : c->return_deadline;
+    return c != NULL ? canergy_internal_deadline(c) : CANERGY_NEVER;
 }
 
 int canergy_internal_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out)

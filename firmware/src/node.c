@@ -225,6 +225,6 @@ uint64_t canergy_node_deadline(const struct canergy_node *n)
     if (n == NULL) {
         return CANERGY_NEVER;
     }
-    const uint64_t client = canergy_client_deadline(&n->client);
+    const uint64_t client = canergy_internal_deadline(&n->client);
     return client < n->next_telemetry ? client : n->next_telemetry;
 }

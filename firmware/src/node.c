@@ -137,44 +137,34 @@ static void timers(struct canergy_node *n, uint64_t now, struct canergy_out *out
 }
 
 
-/* uj in whole mJ (rounded down), at most one frame's worth. */
-static uint32_t frame_worth(uint32_t uj)
-{
-    uj -= uj % MJ;
-    return uj < CANERGY_AMOUNT_MAX_MJ * MJ ? uj : CANERGY_AMOUNT_MAX_MJ * MJ;
-}
-
-/* Give back what exceeds return_above, in whole mJ, at most one frame's worth. The debit
- * refuses, changing nothing, when none may be numbered now (one at a time) or it is 0. */
-static void return_policy(struct canergy_node *n, uint64_t now, struct canergy_out *out)
+/* After an actuator period, at most one debit (the debit refuses, changing nothing, when none
+ * may be numbered now, one at a time, or it is 0). Witnessed: when what the actuator holds would
+ * not cover the next period, a DRAW ahead, CANERGY_DRAW_AHEAD periods' worth up to whole mJ, at
+ * most a frame's worth and what usable holds. Otherwise the return policy: what exceeds
+ * return_above given back, in whole mJ, at most a frame's worth. A DRAW tried either leaves or
+ * is refused for what refuses a give-back too (a debit pending, the books not confirmed, less
+ * than 1 mJ usable), so the return policy has nothing to do after one. */
+static void debit_policy(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
+                         struct canergy_out *out)
 {
     const uint32_t usable = n->client.rec.usable_uj;
-    if (usable > n->return_above_uj) {
-        (void)canergy_internal_debit(&n->client, frame_worth(usable - n->return_above_uj), now,
-                                     0U, out);
-    }
-}
-
+    uint32_t over = usable > n->return_above_uj ? usable - n->return_above_uj : 0U;
+    uint8_t draw = 0U;
 #ifdef CANERGY_WITNESSED
-/* Witnessed: when what the actuator holds would not cover the next period, DRAW ahead (whole
- * mJ, at most a frame's worth and what usable holds); the debit refuses, changing nothing,
- * while one is pending or the books are not confirmed, and a chunk of 0. */
-static void draw_ahead(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
-                       struct canergy_out *out)
-{
-    if (n->released_uj >= wanted_uj) {
-        return;
+    if (rules_witnessed(n->client.rules) && n->released_uj < wanted_uj) {
+        draw = CANERGY_RECORD_PENDING_DRAW;
+        over = usable;
     }
-    const uint32_t room = frame_worth(n->client.rec.usable_uj);
-    uint32_t chunk = room; /* 32-bit only: no 64-bit division linked in */
-    if (wanted_uj < room / CANERGY_DRAW_AHEAD) {
-        const uint32_t ahead = wanted_uj * CANERGY_DRAW_AHEAD; /* below room: no overflow */
-        chunk = (uint32_t)(ahead + (MJ - ahead % MJ) % MJ); /* up to whole mJ */
-        chunk = chunk < room ? chunk : room;
-    }
-    (void)canergy_internal_debit(&n->client, chunk, now, CANERGY_RECORD_PENDING_DRAW, out);
-}
 #endif
+    uint32_t amount = over - over % MJ; /* whole mJ, at most one frame's worth */
+    amount = amount < CANERGY_AMOUNT_MAX_MJ * MJ ? amount : CANERGY_AMOUNT_MAX_MJ * MJ;
+    if (draw != 0U && wanted_uj < amount / CANERGY_DRAW_AHEAD) {
+        /* 32-bit only (no 64-bit division linked in): below amount, no overflow */
+        const uint32_t ahead = wanted_uj * CANERGY_DRAW_AHEAD;
+        amount = (uint32_t)((ahead + MJ - 1U) / MJ * MJ); /* up to whole mJ: at most amount */
+    }
+    (void)canergy_internal_debit(&n->client, amount, now, draw, out);
+}
 
 /* A poll (draw false: timers, telemetry) or an actuator period (timers, the draw of wanted_uj,
  * the return policy, telemetry): the microjoules the actuator may use. */
@@ -192,7 +182,6 @@ static uint32_t step(struct canergy_node *n, bool draw, uint32_t wanted_uj, uint
         if (rules_witnessed(n->client.rules)) {
             take = wanted_uj < n->released_uj ? wanted_uj : n->released_uj;
             n->released_uj -= take;
-            draw_ahead(n, wanted_uj, now, out);
         } else
 #endif
         {
@@ -203,7 +192,7 @@ static uint32_t step(struct canergy_node *n, bool draw, uint32_t wanted_uj, uint
             }
         }
         n->halted = take < wanted_uj;
-        return_policy(n, now, out);
+        debit_policy(n, wanted_uj, now, out);
     }
     telemetry_due(n, now, out);
     return take;

@@ -58,10 +58,9 @@ static void send(const struct canergy_client *c, uint8_t type, uint16_t counter,
 static void reply_for(const struct canergy_client *c, uint32_t tx, uint8_t outcome,
                       struct canergy_out *out)
 {
-    if (outcome == CANERGY_OUTCOME_COMMITTED) {
-        send(c, CANERGY_COMMITTED, (uint16_t)tx, 0U, out);
-    } else if (outcome == CANERGY_OUTCOME_ABORTED) {
-        send(c, CANERGY_ABORTED, (uint16_t)tx, 0U, out);
+    if (outcome == CANERGY_OUTCOME_COMMITTED || outcome == CANERGY_OUTCOME_ABORTED) {
+        send(c, outcome == CANERGY_OUTCOME_COMMITTED ? CANERGY_COMMITTED : CANERGY_ABORTED,
+             (uint16_t)tx, 0U, out);
     }
 }
 

@@ -155,14 +155,18 @@ static void debit_policy(struct canergy_node *n, uint32_t wanted_uj, uint64_t no
         draw = CANERGY_RECORD_PENDING_DRAW;
         over = usable;
     }
+#else
+    (void)wanted_uj;
 #endif
     uint32_t amount = over - over % MJ; /* whole mJ, at most one frame's worth */
     amount = amount < CANERGY_AMOUNT_MAX_MJ * MJ ? amount : CANERGY_AMOUNT_MAX_MJ * MJ;
+#ifdef CANERGY_WITNESSED
     if (draw != 0U && wanted_uj < amount / CANERGY_DRAW_AHEAD) {
         /* 32-bit only (no 64-bit division linked in): below amount, no overflow */
         const uint32_t ahead = wanted_uj * CANERGY_DRAW_AHEAD;
         amount = (uint32_t)((ahead + MJ - 1U) / MJ * MJ); /* up to whole mJ: at most amount */
     }
+#endif
     (void)canergy_internal_debit(&n->client, amount, now, draw, out);
 }
 

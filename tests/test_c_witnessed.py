@@ -1,7 +1,10 @@
 """The C client under the witnessed rules (``cfg.rules = CANERGY_RULES_WITNESSED``) is
 ``canergy.core.witnessed.CLIENT``: every table case of tests/test_witnessed.py, every ignored
 and refused cell, run on the C struct with the same state, frames, notes and persist; the NV
-record carries the pending draw; a hardened client refuses a record holding one."""
+record carries the pending draw; a hardened client refuses a record holding one. The client's
+cells, a node's older copy and the side-by-side machine run again on the build with the witnessed
+rules alone (``CANERGY_RULES_WITNESSED_ONLY``, the node port's), which refuses the hardened
+rules at start."""
 
 from __future__ import annotations
 
@@ -115,11 +118,15 @@ from firmware_model.nvstore import pack_record
 
 CODEC = Codec()
 TABLE = W.CLIENT
+BUILDS = ("", "witnessed_only")
+"""The library with both rule sets (the tests' default) and with the witnessed rules alone."""
 
 
-def run_c(start: ClientState, event: object, now: int) -> tuple[CClient, Out | int]:
-    """The witnessed C client in ``start``, after ``event`` at ``now``."""
-    c = CClient(start.node, timing=T, state=start, rules="witnessed")
+def run_c(
+    start: ClientState, event: object, now: int, build: str = ""
+) -> tuple[CClient, Out | int]:
+    """The witnessed C client (of ``build``) in ``start``, after ``event`` at ``now``."""
+    c = CClient(start.node, timing=T, state=start, lib=library(build), rules="witnessed")
     if isinstance(event, CommandTimeout):
         return c, c.command_timer(now)
     if isinstance(event, ReturnTimeout):
@@ -137,10 +144,10 @@ def run_c(start: ClientState, event: object, now: int) -> tuple[CClient, Out | i
     return c, c.message(event, now)  # type: ignore[arg-type]
 
 
-def assert_same_step(start: ClientState, event: object, now: int) -> Out:
+def assert_same_step(start: ClientState, event: object, now: int, build: str = "") -> Out:
     """The C client and the Python witnessed table agree on this step in every respect."""
     step = TABLE.step(T, start, event, now)
-    c, out = run_c(start, event, now)
+    c, out = run_c(start, event, now, build)
     assert isinstance(out, Out), f"C refused with {out}"
     assert c.view() == c_view(step.client)
     assert out_frames(out) == frames_of(CODEC, step.actions)
@@ -155,35 +162,41 @@ def assert_same_step(start: ClientState, event: object, now: int) -> Out:
     return out
 
 
+@pytest.mark.parametrize("build", BUILDS)
 @pytest.mark.parametrize("case", params(CLIENT_CASES))
-def test_cell(case: Case) -> None:
+def test_cell(case: Case, build: str) -> None:
     assert isinstance(case.start, ClientState)
-    assert_same_step(case.start, case.event, case.now)
-    c, out = run_c(case.start, case.event, case.now)
+    assert_same_step(case.start, case.event, case.now, build)
+    c, out = run_c(case.start, case.event, case.now, build)
     assert isinstance(out, Out)
     assert c.view() == c_view(case.end)  # type: ignore[arg-type]
     assert out_frames(out) == frames_of(CODEC, case.actions)
 
 
+@pytest.mark.parametrize("build", BUILDS)
 @pytest.mark.parametrize("cell", sorted(CLIENT_IGNORED, key=str), ids=str)
-def test_ignored(cell: tuple[Phase, type]) -> None:
+def test_ignored(cell: tuple[Phase, type], build: str) -> None:
     start, event = CLIENT_STATES[cell[0]], client_cases.EVENTS[cell[1]]
-    c, out = run_c(start, event, 10**9)
+    c, out = run_c(start, event, 10**9, build)
     assert isinstance(out, Out)
     assert c.view() == c_view(start) and out_frames(out) == [] and not out.persist
     assert out.events == 0
 
 
+@pytest.mark.parametrize("build", BUILDS)
 @pytest.mark.parametrize("cell", sorted(CLIENT_REFUSED, key=str), ids=str)
-def test_refused(cell: tuple[Phase, type]) -> None:
+def test_refused(cell: tuple[Phase, type], build: str) -> None:
     start, event = CLIENT_STATES[cell[0]], client_cases.EVENTS[cell[1]]
-    c, out = run_c(start, event, 0)
+    c, out = run_c(start, event, 0, build)
     assert out == ERR_PHASE and c.view() == c_view(start)
 
 
+@pytest.mark.parametrize("build", BUILDS)
 @pytest.mark.parametrize("state", [DRAWING, client_cases.RETURNING, RESUMED, FRESH], ids=str)
-def test_one_debit_at_a_time_and_none_before_the_confirmation(state: ClientState) -> None:
-    c = CClient(state.node, timing=T, state=state, rules="witnessed")
+def test_one_debit_at_a_time_and_none_before_the_confirmation(
+    state: ClientState, build: str
+) -> None:
+    c = CClient(state.node, timing=T, state=state, lib=library(build), rules="witnessed")
     assert c.lib.canergy_client_can_draw(c.c) == TABLE.can_spend(state)
     assert c.can_give_back() == TABLE.can_give_back(state)
 
@@ -191,14 +204,16 @@ def test_one_debit_at_a_time_and_none_before_the_confirmation(state: ClientState
 @pytest.mark.parametrize(
     "event", [Spend(0), Spend(1500), Spend(65_536_000), GiveBack(0), GiveBack(11_000)], ids=str
 )
-def test_draws_and_returns_guarded_by_energy(event: object) -> None:
-    c, out = run_c(FRESH, event, 0)
+@pytest.mark.parametrize("build", BUILDS)
+def test_draws_and_returns_guarded_by_energy(event: object, build: str) -> None:
+    c, out = run_c(FRESH, event, 0, build)
     assert out == ERR_AMOUNT and c.view() == c_view(FRESH)
 
 
-def test_spend_is_refused_under_the_witnessed_rules() -> None:
+@pytest.mark.parametrize("build", BUILDS)
+def test_spend_is_refused_under_the_witnessed_rules(build: str) -> None:
     """Energy reaches the actuator only through an acknowledged draw."""
-    c = CClient(FRESH.node, timing=T, state=FRESH, rules="witnessed")
+    c = CClient(FRESH.node, timing=T, state=FRESH, lib=library(build), rules="witnessed")
     assert c.do_spend(1000) == ERR_PHASE and c.view() == c_view(FRESH)
 
 
@@ -410,8 +425,8 @@ SCENARIO = Timing(
 class _Node:
     """The C node as its port drives it (canergy_node_*), NV image kept in bytes."""
 
-    def __init__(self, rules: str, raw: bytearray, nonce: int, now: int) -> None:
-        self.lib = library()
+    def __init__(self, rules: str, raw: bytearray, nonce: int, now: int, build: str = "") -> None:
+        self.lib = lib = library(build)
         self.raw = raw
         cfg = NodeConfig(
             ClientConfig(
@@ -420,13 +435,15 @@ class _Node:
                 SCENARIO.return_retry_us,
                 NODE_ID,
                 RULES[rules],
+                lib=lib,
             ),
             1_000_000,
             0,
             0xFFFF_FFFF,  # keep all: no return policy
+            lib=lib,
         )
-        self.n, self.out, self.used = CNodeState(), Out(), 0
-        buf = cbuf(bytes(raw), max(len(raw), 1))
+        self.n, self.out, self.used = CNodeState(lib=lib), Out(lib=lib), 0
+        buf = cbuf(bytes(raw), max(len(raw), 1), lib=lib)
         self.lib.canergy_node_start(self.n, ref(cfg), buf, len(raw), nonce, now, self.out)
         self.sent = self._done()
 
@@ -436,7 +453,7 @@ class _Node:
         return [f for f in out_frames(self.out) if f[0] >> 8 & 0xF != 0xD]  # no TELEMETRY
 
     def frame(self, arbitration_id: int, data: bytes, now: int) -> list[tuple[int, bytes]]:
-        frame, buf = rx(arbitration_id, data)
+        frame, buf = rx(arbitration_id, data, lib=self.lib)
         self.lib.canergy_node_on_frame(self.n, ref(frame), now, self.out)
         del buf
         return self._done()
@@ -455,12 +472,14 @@ class _Node:
 class _CSup:
     """The C supervisor (canergy_supervisor_*) for the node, its rules set by timing.rules."""
 
-    def __init__(self, rules: str, initial: int) -> None:
-        self.lib = library()
-        self.s, self.out = CSupervisor(), SupervisorOut()
-        timing = SessionTiming(SCENARIO.response_timeout_us, SCENARIO.retries, RULES[rules])
-        cfg = SupervisorConfig(DEFAULT_ID_BASE, timing)
-        nodes = cbuf(bytes([NODE_ID]))
+    def __init__(self, rules: str, initial: int, build: str = "") -> None:
+        self.lib = library(build)
+        self.s, self.out = CSupervisor(lib=self.lib), SupervisorOut(lib=self.lib)
+        timing = SessionTiming(
+            SCENARIO.response_timeout_us, SCENARIO.retries, RULES[rules], lib=self.lib
+        )
+        cfg = SupervisorConfig(DEFAULT_ID_BASE, timing, lib=self.lib)
+        nodes = cbuf(bytes([NODE_ID]), lib=self.lib)
         assert self.lib.canergy_supervisor_init(self.s, ref(cfg), nodes, 1, initial) == OK
 
     def _sent(self) -> list[tuple[int, bytes]]:
@@ -472,7 +491,7 @@ class _CSup:
         return self._sent()
 
     def frame(self, arbitration_id: int, data: bytes, now: int) -> list[tuple[int, bytes]]:
-        frame, buf = rx(arbitration_id, data)
+        frame, buf = rx(arbitration_id, data, lib=self.lib)
         self.lib.canergy_supervisor_on_frame(self.s, ref(frame), now, self.out)
         del buf
         sent = self._sent()
@@ -500,15 +519,17 @@ def _exchange(sent: list[tuple[int, bytes]], node: _Node, sup: _CSup, now: int) 
         )
 
 
-@pytest.mark.parametrize("rules", ["hardened", "witnessed"])
-def test_a_c_node_restored_from_an_older_copy_creates_no_energy(rules: str) -> None:
+@pytest.mark.parametrize(
+    ("rules", "build"), [("hardened", ""), ("witnessed", ""), ("witnessed", "witnessed_only")]
+)
+def test_a_c_node_restored_from_an_older_copy_creates_no_energy(rules: str, build: str) -> None:
     """2 J granted by the C supervisor, the C node's actuator uses 1.5 J, its NV is put back to
     the copy written after the grant and it starts from it: under the hardened rules the node
     uses the 1.5 J again (+1.5 J); under the witnessed rules its RESUME is found behind and
     everything the actuator used, plus what the node still holds, is at most what the books
     count as taken: 0 J created."""
     raw = bytearray()
-    node, sup = _Node(rules, raw, 0x1111, 0), _CSup(rules, 2 * J)
+    node, sup = _Node(rules, raw, 0x1111, 0, build), _CSup(rules, 2 * J, build)
     _exchange(node.sent, node, sup, 0)  # the JOIN of a node without books
     _exchange(sup.grant(2 * J, 1), node, sup, 1)
     assert node.held() == 2 * J
@@ -519,7 +540,7 @@ def test_a_c_node_restored_from_an_older_copy_creates_no_energy(rules: str) -> N
         now += 10
     assert node.used == 1_500_000
     before = node.used
-    node = _Node(rules, copy, 0x2222, now)  # restored from the older copy, started again
+    node = _Node(rules, copy, 0x2222, now, build)  # restored from the older copy, started again
     node.used = before
     _exchange(node.sent, node, sup, now)
     for _ in range(8):
@@ -714,6 +735,34 @@ class WitnessedSideBySide(SideBySide):
 
 TestWitnessedSideBySide = WitnessedSideBySide.TestCase
 TestWitnessedSideBySide.settings = SIDE_SETTINGS
+
+
+class WitnessedOnlySideBySide(WitnessedSideBySide):
+    """The same, the C client built with the witnessed rules alone (the node port's build)."""
+
+    def _new_client(self) -> CClient:
+        return CClient(1, timing=SIDE_TIMING, lib=library("witnessed_only"), rules="witnessed")
+
+
+TestWitnessedOnlySideBySide = WitnessedOnlySideBySide.TestCase
+TestWitnessedOnlySideBySide.settings = SIDE_SETTINGS
+
+
+def test_the_witnessed_only_build_refuses_the_hardened_rules_at_start() -> None:
+    """A node port built with the witnessed rules alone never runs another set: a client, a
+    node or a supervisor configured with the hardened rules is refused at start."""
+    lib = library("witnessed_only")
+    c = CClient(FRESH.node, timing=T, lib=lib, rules="hardened")
+    assert c.start(b"", 0x77, 0) == lib.CANERGY_ERR_ARGUMENT
+    node_cfg = NodeConfig(c.config, 1_000_000, 0, 0xFFFF_FFFF, lib=lib)
+    n, out = CNodeState(lib=lib), Out(lib=lib)
+    buf = cbuf(b"\0", lib=lib)
+    assert lib.canergy_node_start(n, node_cfg, buf, 0, 1, 0, out) == lib.CANERGY_ERR_ARGUMENT
+    timing = SessionTiming(50_000, 3, RULES["hardened"], lib=lib)
+    cfg = SupervisorConfig(DEFAULT_ID_BASE, timing, lib=lib)
+    sup = CSupervisor(lib=lib)
+    nodes = cbuf(bytes([1]), lib=lib)
+    assert lib.canergy_supervisor_init(sup, cfg, nodes, 1, 0) == lib.CANERGY_ERR_ARGUMENT
 
 
 @pytest.mark.parametrize("seq", [0x12344, COUNTER_END - 4])

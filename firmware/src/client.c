@@ -19,6 +19,7 @@
 
 #include "client_internal.h"
 #include "codec_internal.h"
+#include "rules.h"
 #include "serial.h"
 
 #include <string.h>
@@ -57,10 +58,9 @@ static void send(const struct canergy_client *c, uint8_t type, uint16_t counter,
 static void reply_for(const struct canergy_client *c, uint32_t tx, uint8_t outcome,
                       struct canergy_out *out)
 {
-    if (outcome == CANERGY_OUTCOME_COMMITTED) {
-        send(c, CANERGY_COMMITTED, (uint16_t)tx, 0U, out);
-    } else if (outcome == CANERGY_OUTCOME_ABORTED) {
-        send(c, CANERGY_ABORTED, (uint16_t)tx, 0U, out);
+    if (outcome == CANERGY_OUTCOME_COMMITTED || outcome == CANERGY_OUTCOME_ABORTED) {
+        send(c, outcome == CANERGY_OUTCOME_COMMITTED ? CANERGY_COMMITTED : CANERGY_ABORTED,
+             (uint16_t)tx, 0U, out);
     }
 }
 
@@ -145,6 +145,11 @@ static void commit_into(struct canergy_client *c, uint16_t amount_mj)
 
 /* -- the cells ---------------------------------------------------------------------------- */
 
+static bool witnessed(const struct canergy_client *c)
+{
+    return rules_witnessed(c->rules);
+}
+
 /* A transaction d ahead of ltx (serial16 of its wire tx) at or beyond CANERGY_COUNTER_END
  * (Python's _beyond_end). */
 static bool beyond_end(const struct canergy_client *c, int32_t d)
@@ -159,26 +164,21 @@ static void on_intention(struct canergy_client *c, const struct canergy_msg *m, 
                          struct canergy_out *out)
 {
     const int32_t d = serial16(m->tx, c->rec.last_tx); /* every rule below reads this ltx */
-#ifdef CANERGY_WITNESSED
-    /* witnessed.on_intention: Gs pays back only from a fresh intention (k > ltx); one at or
-     * below ltx may be of a supervisor history a SYNC discarded, its Gs held by nobody */
-    if (c->rules == CANERGY_RULES_WITNESSED &&
-        (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) == 0U) {
-        if (d == 0) {
+    const bool unknown = (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U;
+    /* Rc unknown: a frame at or below ltx is of the node's earlier life. witnessed.on_intention:
+     * Gs pays back only from a fresh intention (k > ltx); one at or below ltx may be of a
+     * supervisor history a SYNC discarded, its Gs held by nobody (a duplicate: the recorded
+     * reply). So under the witnessed rules only k > ltx goes on. */
+    if (d <= 0 && (unknown || witnessed(c))) {
+        if (d == 0 && !unknown) {
             reply_for(c, c->rec.last_tx, c->rec.outcome, out);
         }
-        if (d <= 0) {
-            return;
-        }
+        return;
     }
-#endif
     if (beyond_end(c, d)) {
         return; /* no supervisor sends one: it would move ltx to the end of the numbering */
     }
-    if ((c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U) {
-        if (d <= 0) {
-            return; /* a frame of the node's earlier life */
-        }
+    if (unknown) {
         c->rec.credited_mj = m->delivered_mj; /* admitted without books: Rc = Gs, no pay-back */
         c->rec.flags &= (uint8_t)~CANERGY_RECORD_CREDITED_UNKNOWN;
     }
@@ -240,20 +240,18 @@ static void on_command(struct canergy_client *c, const struct canergy_msg *m,
         return;
     }
     const uint32_t tx = c->rec.last_tx + (uint32_t)d;
-    if (m->type == CANERGY_ABORT) {
-        resolved(c, tx, CANERGY_OUTCOME_ABORTED);
-        out->events |= CANERGY_EV_ABORTED;
-        send(c, CANERGY_ABORTED, m->tx, 0U, out);
-        return;
+    const bool abort = m->type == CANERGY_ABORT;
+    if (!abort) {
+        if ((uint64_t)c->rec.usable_uj + (uint64_t)m->amount_mj * MJ > CANERGY_USABLE_MAX_UJ) {
+            out->events |= CANERGY_EV_REFUSED; /* never acknowledged so */
+            return;
+        }
+        commit_into(c, m->amount_mj);
     }
-    if ((uint64_t)c->rec.usable_uj + (uint64_t)m->amount_mj * MJ > CANERGY_USABLE_MAX_UJ) {
-        out->events |= CANERGY_EV_REFUSED; /* never acknowledged so */
-        return;
-    }
-    commit_into(c, m->amount_mj);
-    resolved(c, tx, CANERGY_OUTCOME_COMMITTED);
-    out->events |= CANERGY_EV_COMMITTED;
-    send(c, CANERGY_COMMITTED, m->tx, 0U, out);
+    const uint8_t outcome = abort ? CANERGY_OUTCOME_ABORTED : CANERGY_OUTCOME_COMMITTED;
+    resolved(c, tx, outcome);
+    out->events |= abort ? CANERGY_EV_ABORTED : CANERGY_EV_COMMITTED;
+    reply_for(c, tx, outcome, out); /* ABORTED or COMMITTED */
 }
 
 static void on_return_ack(struct canergy_client *c, const struct canergy_msg *m,
@@ -292,11 +290,6 @@ static void on_admit(struct canergy_client *c, const struct canergy_msg *m,
 }
 
 #ifdef CANERGY_WITNESSED
-static bool witnessed(const struct canergy_client *c)
-{
-    return c->rules == CANERGY_RULES_WITNESSED;
-}
-
 /* DEBIT: the pending draw (DRAW(q, x)), or with start the node's RESUME(n, q, pending). */
 static void send_debit(const struct canergy_client *c, bool start, struct canergy_out *out)
 {
@@ -409,26 +402,6 @@ static void on_start_answer(struct canergy_client *c, const struct canergy_msg *
     }
 }
 
-/* RESUMING or SYNCING: an intention moves nothing (the RESUME or the answer again at once), an
- * ADMIT may answer the start; everything else is ignored. */
-static bool start_message(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
-                          struct canergy_out *out)
-{
-    if (c->phase != CANERGY_RESUMING && c->phase != CANERGY_SYNCING) {
-        return false;
-    }
-    if (m->type == CANERGY_INTENTION) {
-        if (c->phase == CANERGY_RESUMING) {
-            send_debit(c, true, out);
-        } else {
-            send_sync_answer(c, out);
-        }
-    } else if (m->type == CANERGY_ADMIT) {
-        on_start_answer(c, m, now, out);
-    }
-    return true;
-}
-
 /* The power-loss cell from the books (or RESUMING): lose the hold, RESUME(n, q, pending). */
 static void resume(struct canergy_client *c, uint16_t nonce, uint64_t now,
                    struct canergy_out *out)
@@ -437,26 +410,60 @@ static void resume(struct canergy_client *c, uint16_t nonce, uint64_t now,
 }
 #endif
 
+/* The frame of a start waiting for its ADMIT (JOIN, RESUME, the SYNC's answer); false when no
+ * start waits. */
+static bool send_start(const struct canergy_client *c, struct canergy_out *out)
+{
+    if (c->phase == CANERGY_JOINING) {
+        send(c, CANERGY_JOIN, c->nonce, 0U, out);
+#ifdef CANERGY_WITNESSED
+    } else if (c->phase == CANERGY_RESUMING) {
+        send_debit(c, true, out);
+    } else if (c->phase == CANERGY_SYNCING) {
+        send_sync_answer(c, out);
+#endif
+    } else {
+        return false;
+    }
+    return true;
+}
+
+/* The pending debit's frame: its DRAW (witnessed) or its RETURN. */
+static void send_pending(const struct canergy_client *c, struct canergy_out *out)
+{
+#ifdef CANERGY_WITNESSED
+    if ((c->rec.flags & CANERGY_RECORD_PENDING_DRAW) != 0U) {
+        send_debit(c, false, out);
+        return;
+    }
+#endif
+    send(c, CANERGY_RETURN, (uint16_t)c->rec.return_seq,
+         (uint16_t)(c->rec.return_pending_uj / MJ), out);
+}
+
 static void rx_message(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
                        struct canergy_out *out)
 {
+    if (c->phase >= CANERGY_JOINING) { /* a start waits: JOINING, RESUMING or SYNCING */
+        if (m->type == CANERGY_INTENTION) {
+            (void)send_start(c, out); /* moves nothing; the start's frame again at once */
+        } else if (m->type == CANERGY_ADMIT) {
 #ifdef CANERGY_WITNESSED
-    if (start_message(c, m, now, out)) {
-        return;
+            if (c->phase != CANERGY_JOINING) {
+                on_start_answer(c, m, now, out);
+                return;
+            }
+#endif
+            on_admit(c, m, out);
+        }
+        return; /* everything else is ignored */
     }
-    if (witnessed(c) && c->phase != CANERGY_JOINING && m->type == CANERGY_ADMIT) {
+#ifdef CANERGY_WITNESSED
+    if (witnessed(c) && m->type == CANERGY_ADMIT) {
         answer_sync(c, m->nonce, now, out); /* with books, an ADMIT is a supervisor's SYNC */
         return;
     }
 #endif
-    if (c->phase == CANERGY_JOINING) {
-        if (m->type == CANERGY_INTENTION) {
-            send(c, CANERGY_JOIN, c->nonce, 0U, out); /* moves nothing; JOIN again at once */
-        } else if (m->type == CANERGY_ADMIT) {
-            on_admit(c, m, out);
-        }
-        return;
-    }
     switch (m->type) {
     case CANERGY_INTENTION: on_intention(c, m, now, out); break;
     case CANERGY_COMMIT: /* fall through */
@@ -485,19 +492,9 @@ static void return_timer(struct canergy_client *c, uint64_t now, struct canergy_
     if (c->return_deadline > now) {
         return;
     }
-    if (c->phase == CANERGY_JOINING) {
-        send(c, CANERGY_JOIN, c->nonce, 0U, out);
-#ifdef CANERGY_WITNESSED
-    } else if (c->phase == CANERGY_RESUMING) {
-        send_debit(c, true, out);
-    } else if (c->phase == CANERGY_SYNCING) {
-        send_sync_answer(c, out);
-    } else if ((c->rec.flags & CANERGY_RECORD_PENDING_DRAW) != 0U) {
-        send_debit(c, false, out);
-#endif
-    } else if (c->rec.return_pending_uj != 0U) {
-        send(c, CANERGY_RETURN, (uint16_t)c->rec.return_seq,
-             (uint16_t)(c->rec.return_pending_uj / MJ), out);
+    if (send_start(c, out)) {
+    } else if (c->rec.return_pending_uj != 0U) { /* a draw pending is an amount pending */
+        send_pending(c, out);
     } else {
         return;
     }
@@ -605,15 +602,12 @@ void canergy_client_return_timer(struct canergy_client *c, uint64_t now, struct 
 
 uint64_t canergy_client_deadline(const struct canergy_client *c)
 {
-    if (c == NULL) {
-        return CANERGY_NEVER;
-    }
-    return c->deadline < c->return_deadline ? c->deadline : c->return_deadline;
+    return c != NULL ? canergy_internal_deadline(c) : CANERGY_NEVER;
 }
 
 int canergy_internal_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out)
 {
-    if (c->phase == CANERGY_JOINING || c->rules != CANERGY_RULES_HARDENED) {
+    if (c->phase == CANERGY_JOINING || witnessed(c)) {
         return CANERGY_ERR_PHASE; /* witnessed: only through a draw */
     }
     if (uj == 0U || uj > c->rec.usable_uj) {
@@ -669,13 +663,7 @@ int canergy_internal_debit(struct canergy_client *c, uint32_t uj, uint64_t now, 
     c->rec.flags |= draw;
     c->return_deadline = serial_after(now, c->return_retry_us);
     canergy_internal_repack(c, out);
-#ifdef CANERGY_WITNESSED
-    if (draw != 0U) {
-        send_debit(c, false, out);
-        return CANERGY_OK;
-    }
-#endif
-    send(c, CANERGY_RETURN, (uint16_t)c->rec.return_seq, (uint16_t)(uj / MJ), out);
+    send_pending(c, out);
     return CANERGY_OK;
 }
 
@@ -746,13 +734,8 @@ void canergy_client_join(struct canergy_client *c, uint16_t nonce, uint64_t now,
 
 static bool config_ok(const struct canergy_client_config *cfg)
 {
-#ifdef CANERGY_WITNESSED
-    const uint8_t last_rules = CANERGY_RULES_WITNESSED;
-#else
-    const uint8_t last_rules = CANERGY_RULES_HARDENED;
-#endif
     return canergy_id_base_valid(cfg->id_base) && cfg->node >= CANERGY_MIN_NODE &&
-           cfg->node <= CANERGY_MAX_NODE && cfg->rules <= last_rules &&
+           cfg->node <= CANERGY_MAX_NODE && rules_kept(cfg->rules) &&
            cfg->window <= CANERGY_WINDOW_MAX;
 }
 
@@ -775,7 +758,7 @@ int canergy_internal_start(struct canergy_client *c, const struct canergy_client
     c->nv_counter = nv.counter;
     c->nv_slot = nv.newest_slot;
     const bool draw_pending = (nv.record.flags & CANERGY_RECORD_PENDING_DRAW) != 0U;
-    if (nv.books && draw_pending && c->rules == CANERGY_RULES_HARDENED) {
+    if (nv.books && draw_pending && !witnessed(c)) {
         nv.books = false; /* the witnessed rules' record: not books for these rules */
         nv.fallbacks++;
     }

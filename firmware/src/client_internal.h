@@ -16,6 +16,11 @@ int canergy_internal_start(struct canergy_client *c, const struct canergy_client
 int canergy_internal_frame(struct canergy_client *c, const struct canergy_rx_frame *frame,
                            uint64_t now, struct canergy_out *out, struct canergy_msg *m);
 void canergy_internal_timers(struct canergy_client *c, uint64_t now, struct canergy_out *out);
+/* The earliest armed deadline (canergy_client_deadline without its NULL check). */
+static inline uint64_t canergy_internal_deadline(const struct canergy_client *c)
+{
+    return c->deadline < c->return_deadline ? c->deadline : c->return_deadline;
+}
 int canergy_internal_spend(struct canergy_client *c, uint32_t uj, struct canergy_out *out);
 /* Write the record as it is now into out (persist): a caller that changed it (the gateway). */
 void canergy_internal_repack(struct canergy_client *c, struct canergy_out *out);

@@ -77,19 +77,19 @@ static bool has_amount(uint32_t code)
  * amount's high byte clear; with RC_UNKNOWN, none: both fields 0); no other flags. codec.py's _debit_build. */
 static bool debit_valid(const struct canergy_msg *m)
 {
+    /* the resumes and the counts: flags START, START | DRAW, START | SYNC (below 8) */
+    const unsigned starts = 1U << CANERGY_DEBIT_START |
+                            1U << (CANERGY_DEBIT_START | CANERGY_DEBIT_DRAW) |
+                            1U << (CANERGY_DEBIT_START | CANERGY_DEBIT_SYNC);
     switch (m->flags) {
     case CANERGY_DEBIT_DRAW:
         return m->amount_mj != 0U && m->nonce == 0U;
-    case CANERGY_DEBIT_START:
-    case CANERGY_DEBIT_START | CANERGY_DEBIT_DRAW:
-    case CANERGY_DEBIT_START | CANERGY_DEBIT_SYNC:
-        return true;
     case CANERGY_DEBIT_BOOKS:
         return m->amount_mj <= 0xFFU;
     case CANERGY_DEBIT_BOOKS | CANERGY_DEBIT_RC_UNKNOWN:
         return m->seq == 0U && m->amount_mj == 0U;
     default:
-        return false;
+        return m->flags < 8U && (starts >> m->flags & 1U) != 0U;
     }
 }
 

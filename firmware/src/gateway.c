@@ -5,6 +5,7 @@
 #include "canergy/gateway.h"
 
 #include "client_internal.h"
+#include "rules.h"
 
 #define GW_MJ 1000U
 
@@ -12,7 +13,7 @@ uint32_t canergy_gateway_forward(struct canergy_gateway *gw, struct canergy_out 
 {
     const uint32_t amount = gw->up.rec.usable_uj;
     if (amount == 0U || gw->up.phase == CANERGY_JOINING ||
-        gw->up.rules != CANERGY_RULES_HARDENED) {
+        rules_witnessed(gw->up.rules)) {
         return 0U; /* witnessed upstream: only through an acknowledged draw */
     }
     /* the client spends all of it (its record re-packed into out), the supervisor takes it in */
@@ -87,7 +88,7 @@ int canergy_gateway_on_up_frame(struct canergy_gateway *gw, const struct canergy
                                 uint64_t now, struct canergy_out *out)
 {
 #ifdef CANERGY_WITNESSED
-    if (gw->up.rules == CANERGY_RULES_WITNESSED) {
+    if (rules_witnessed(gw->up.rules)) {
         const struct up_before b = up_before(gw);
         const int status = canergy_client_on_frame(&gw->up, frame, now, out);
         drawn(gw, &b, now, out);
@@ -103,7 +104,7 @@ void canergy_gateway_on_up_timer(struct canergy_gateway *gw, uint64_t now,
                                  struct canergy_out *out)
 {
 #ifdef CANERGY_WITNESSED
-    if (gw->up.rules == CANERGY_RULES_WITNESSED) {
+    if (rules_witnessed(gw->up.rules)) {
         const struct up_before b = up_before(gw);
         canergy_client_on_timer(&gw->up, now, out);
         drawn(gw, &b, now, out);

@@ -5,6 +5,7 @@
 #include "canergy/node.h"
 
 #include "client_internal.h"
+#include "rules.h"
 
 #include <string.h>
 
@@ -21,7 +22,7 @@ static void send_telemetry(struct canergy_node *n, uint64_t now, struct canergy_
     const uint32_t fields[4] = {
         level > CANERGY_WIDE_MAX ? CANERGY_WIDE_MAX : level, /* saturating */
         (is_low(n) ? CANERGY_TELEMETRY_LOW : 0U) | (n->halted ? CANERGY_TELEMETRY_HALTED : 0U) |
-            (canergy_client_joining(&n->client) ? CANERGY_TELEMETRY_JOINING : 0U),
+            (n->client.phase == CANERGY_JOINING ? CANERGY_TELEMETRY_JOINING : 0U),
         (uint16_t)n->client.rec.return_seq, /* the number its RETURN frames carry */
         n->witness,
     }; /* TELEMETRY: level, flags, seq, witness */
@@ -113,14 +114,14 @@ int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame 
     /* A frame with this node's id: witnessed when it is in the node's own direction (the codec
      * checked the id block, the type and the node) or answers nothing the node sent; a decode
      * error when the codec refused it otherwise. Foreign frames and other nodes' (seen without
-     * acceptance filters) are no error of ours. */
+     * acceptance filters; never with its id) are no error of ours. */
     const bool own_id = frame != NULL && (frame->id & 0xFFU) == n->client.node;
     const bool witnessed = result == CANERGY_DECODE_WRONG_DIRECTION
                                ? own_id
                                : result == CANERGY_DECODE_OK && never_asked(n, &m);
     if (witnessed) {
         canergy_internal_witness(n, now, out);
-    } else if (own_id && result != CANERGY_DECODE_OK && result != CANERGY_RX_OTHER_NODE &&
+    } else if (own_id && result != CANERGY_DECODE_OK &&
                result != CANERGY_DECODE_FOREIGN) {
         n->decode_errors++;
     }
@@ -135,82 +136,81 @@ static void timers(struct canergy_node *n, uint64_t now, struct canergy_out *out
     after_client(n, now, out);
 }
 
-void canergy_node_poll(struct canergy_node *n, uint64_t now, struct canergy_out *out)
-{
-    if (n == NULL || out == NULL) {
-        return;
-    }
-    canergy_internal_out_clear(out);
-    timers(n, now, out);
-    telemetry_due(n, now, out);
-}
 
-/* uj in whole mJ (rounded down), at most one frame's worth. */
-static uint32_t frame_worth(uint32_t uj)
-{
-    uj -= uj % MJ;
-    return uj < CANERGY_AMOUNT_MAX_MJ * MJ ? uj : CANERGY_AMOUNT_MAX_MJ * MJ;
-}
-
-/* Give back what exceeds return_above, in whole mJ, at most one frame's worth. The debit
- * refuses, changing nothing, when none may be numbered now (one at a time) or it is 0. */
-static void return_policy(struct canergy_node *n, uint64_t now, struct canergy_out *out)
+/* After an actuator period, at most one debit (the debit refuses, changing nothing, when none
+ * may be numbered now, one at a time, or it is 0). Witnessed: when what the actuator holds would
+ * not cover the next period, a DRAW ahead, CANERGY_DRAW_AHEAD periods' worth up to whole mJ, at
+ * most a frame's worth and what usable holds. Otherwise the return policy: what exceeds
+ * return_above given back, in whole mJ, at most a frame's worth. A DRAW tried either leaves or
+ * is refused for what refuses a give-back too (a debit pending, the books not confirmed, less
+ * than 1 mJ usable), so the return policy has nothing to do after one. */
+static void debit_policy(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
+                         struct canergy_out *out)
 {
     const uint32_t usable = n->client.rec.usable_uj;
-    if (usable > n->return_above_uj) {
-        (void)canergy_internal_debit(&n->client, frame_worth(usable - n->return_above_uj), now,
-                                     0U, out);
-    }
-}
-
+    uint32_t over = usable > n->return_above_uj ? usable - n->return_above_uj : 0U;
+    uint8_t draw = 0U;
 #ifdef CANERGY_WITNESSED
-/* Witnessed: when what the actuator holds would not cover the next period, DRAW ahead (whole
- * mJ, at most a frame's worth and what usable holds); the debit refuses, changing nothing,
- * while one is pending or the books are not confirmed, and a chunk of 0. */
-static void draw_ahead(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
-                       struct canergy_out *out)
-{
-    if (n->released_uj >= wanted_uj) {
-        return;
+    if (rules_witnessed(n->client.rules) && n->released_uj < wanted_uj) {
+        draw = CANERGY_RECORD_PENDING_DRAW;
+        over = usable;
     }
-    const uint32_t room = frame_worth(n->client.rec.usable_uj);
-    uint32_t chunk = room; /* 32-bit only: no 64-bit division linked in */
-    if (wanted_uj < room / CANERGY_DRAW_AHEAD) {
-        const uint32_t ahead = wanted_uj * CANERGY_DRAW_AHEAD; /* below room: no overflow */
-        chunk = (uint32_t)(ahead + (MJ - ahead % MJ) % MJ); /* up to whole mJ */
-        chunk = chunk < room ? chunk : room;
-    }
-    (void)canergy_internal_debit(&n->client, chunk, now, CANERGY_RECORD_PENDING_DRAW, out);
-}
+#else
+    (void)wanted_uj;
 #endif
+    uint32_t amount = over - over % MJ; /* whole mJ, at most one frame's worth */
+    amount = amount < CANERGY_AMOUNT_MAX_MJ * MJ ? amount : CANERGY_AMOUNT_MAX_MJ * MJ;
+#ifdef CANERGY_WITNESSED
+    if (draw != 0U && wanted_uj < amount / CANERGY_DRAW_AHEAD) {
+        /* 32-bit only (no 64-bit division linked in): below amount, no overflow */
+        const uint32_t ahead = wanted_uj * CANERGY_DRAW_AHEAD;
+        amount = (uint32_t)((ahead + MJ - 1U) / MJ * MJ); /* up to whole mJ: at most amount */
+    }
+#endif
+    (void)canergy_internal_debit(&n->client, amount, now, draw, out);
+}
 
-uint32_t canergy_node_draw(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
-                           struct canergy_out *out)
+/* A poll (draw false: timers, telemetry) or an actuator period (timers, the draw of wanted_uj,
+ * the return policy, telemetry): the microjoules the actuator may use. */
+static uint32_t step(struct canergy_node *n, bool draw, uint32_t wanted_uj, uint64_t now,
+                     struct canergy_out *out)
 {
     if (n == NULL || out == NULL) {
         return 0U;
     }
     canergy_internal_out_clear(out);
     timers(n, now, out);
-    uint32_t take;
+    uint32_t take = 0U;
+    if (draw) {
 #ifdef CANERGY_WITNESSED
-    if (n->client.rules == CANERGY_RULES_WITNESSED) {
-        take = wanted_uj < n->released_uj ? wanted_uj : n->released_uj;
-        n->released_uj -= take;
-        draw_ahead(n, wanted_uj, now, out);
-    } else
+        if (rules_witnessed(n->client.rules)) {
+            take = wanted_uj < n->released_uj ? wanted_uj : n->released_uj;
+            n->released_uj -= take;
+        } else
 #endif
-    {
-        const uint32_t usable = n->client.rec.usable_uj;
-        take = wanted_uj < usable ? wanted_uj : usable;
-        if (canergy_internal_spend(&n->client, take, out) != CANERGY_OK) {
-            take = 0U; /* joining, or nothing to spend: refused, nothing changed */
+        {
+            const uint32_t usable = n->client.rec.usable_uj;
+            take = wanted_uj < usable ? wanted_uj : usable;
+            if (canergy_internal_spend(&n->client, take, out) != CANERGY_OK) {
+                take = 0U; /* joining, or nothing to spend: refused, nothing changed */
+            }
         }
+        n->halted = take < wanted_uj;
+        debit_policy(n, wanted_uj, now, out);
     }
-    n->halted = take < wanted_uj;
-    return_policy(n, now, out);
     telemetry_due(n, now, out);
     return take;
+}
+
+void canergy_node_poll(struct canergy_node *n, uint64_t now, struct canergy_out *out)
+{
+    (void)step(n, false, 0U, now, out);
+}
+
+uint32_t canergy_node_draw(struct canergy_node *n, uint32_t wanted_uj, uint64_t now,
+                           struct canergy_out *out)
+{
+    return step(n, true, wanted_uj, now, out);
 }
 
 uint64_t canergy_node_deadline(const struct canergy_node *n)
@@ -218,6 +218,6 @@ uint64_t canergy_node_deadline(const struct canergy_node *n)
     if (n == NULL) {
         return CANERGY_NEVER;
     }
-    const uint64_t client = canergy_client_deadline(&n->client);
+    const uint64_t client = canergy_internal_deadline(&n->client);
     return client < n->next_telemetry ? client : n->next_telemetry;
 }

@@ -96,14 +96,23 @@ void canergy_nv_slot_encode(uint32_t counter, const uint8_t *payload, size_t len
     le_put(&out[CRC_AT], canergy_crc32(0U, out, CRC_AT), 4U);
 }
 
-bool canergy_nv_slot_decode(const uint8_t *raw, size_t len, uint32_t *counter,
-                            uint8_t payload[CANERGY_NV_RECORD_SIZE])
+/* A whole slot whose magic and CRC hold: its counter into *counter. */
+static bool slot_valid(const uint8_t *raw, size_t len, uint32_t *counter)
 {
     if (raw == NULL || len != CANERGY_NV_SLOT_SIZE || le_get(raw, 2U) != CANERGY_NV_MAGIC ||
         canergy_crc32(0U, raw, CRC_AT) != le_get(&raw[CRC_AT], 4U)) {
         return false;
     }
     *counter = le_get(&raw[2], 4U);
+    return true;
+}
+
+bool canergy_nv_slot_decode(const uint8_t *raw, size_t len, uint32_t *counter,
+                            uint8_t payload[CANERGY_NV_RECORD_SIZE])
+{
+    if (!slot_valid(raw, len, counter)) {
+        return false;
+    }
     memcpy(payload, &raw[HEAD_SIZE], CANERGY_NV_RECORD_SIZE);
     return true;
 }
@@ -140,8 +149,7 @@ void canergy_nv_load(const uint8_t *image, size_t len, struct canergy_nv_state *
         const size_t n = slot_bytes(len, i);
         const uint8_t *raw = n != 0U ? &image[i * CANERGY_NV_SLOT_SIZE] : NULL;
         uint32_t counter = 0U;
-        uint8_t payload[CANERGY_NV_RECORD_SIZE];
-        if (!canergy_nv_slot_decode(raw, n, &counter, payload)) {
+        if (!slot_valid(raw, n, &counter)) {
             if (n != 0U && !all_zero(raw, n)) {
                 out->fallbacks = 1U; /* a torn or corrupted write; an erased slot is not damage */
             }

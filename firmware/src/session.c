@@ -5,6 +5,7 @@
  */
 #include "canergy/session.h"
 
+#include "rules.h"
 #include "serial.h"
 
 #include <string.h>
@@ -84,7 +85,7 @@ static uint32_t window_of(const struct canergy_session_timing *t)
 static void witness_up(struct canergy_session *s, const struct canergy_session_timing *t,
                        int64_t k)
 {
-    if (t->rules == CANERGY_RULES_WITNESSED && k > s->witness) {
+    if (rules_witnessed(t->rules) && k > s->witness) {
         s->witness = (int32_t)k; /* a transaction number: below CANERGY_COUNTER_BOUND */
     }
 }
@@ -112,7 +113,7 @@ int canergy_session_begin(struct canergy_session *s, const struct canergy_sessio
         return CANERGY_ERR_PHASE;
     }
 #ifdef CANERGY_WITNESSED
-    if (t->rules == CANERGY_RULES_WITNESSED &&
+    if (rules_witnessed(t->rules) &&
         (int64_t)s->tx + 1 > (int64_t)s->witness + (int64_t)window_of(t)) {
         return CANERGY_ERR_WINDOW; /* witnessed.begin: only within the window k <= W + B */
     }
@@ -377,7 +378,7 @@ void canergy_session_on_msg(struct canergy_session *s, const struct canergy_sess
     step_clear(step);
 #ifdef CANERGY_WITNESSED
     if (canergy_session_syncing(s)) {
-        if (t->rules == CANERGY_RULES_WITNESSED) {
+        if (rules_witnessed(t->rules)) {
             syncing_msg(s, m, step);
         }
         return;
@@ -416,7 +417,7 @@ void canergy_session_on_msg(struct canergy_session *s, const struct canergy_sess
         break;
     case CANERGY_JOIN:
 #ifdef CANERGY_WITNESSED
-        if (t->rules == CANERGY_RULES_WITNESSED) {
+        if (rules_witnessed(t->rules)) {
             admit_voiding(s, m, step);
             break;
         }
@@ -425,7 +426,7 @@ void canergy_session_on_msg(struct canergy_session *s, const struct canergy_sess
         break;
 #ifdef CANERGY_WITNESSED
     case CANERGY_DEBIT:
-        if (t->rules != CANERGY_RULES_WITNESSED) {
+        if (!rules_witnessed(t->rules)) {
             break; /* the hardened rules have no cell for it */
         }
         if (is_books(m->flags)) {
@@ -490,7 +491,7 @@ void canergy_session_start(struct canergy_session *s, const struct canergy_sessi
                            uint16_t nonce, uint64_t now, struct canergy_session_step *step)
 {
 #ifdef CANERGY_WITNESSED
-    if (t->rules == CANERGY_RULES_WITNESSED) {
+    if (rules_witnessed(t->rules)) {
         step_clear(step);
         if (open_phase(s)) {
             resolve(s, CANERGY_RESOLVED_WRITTEN_OFF, step); /* the older copy may not know */

@@ -5,6 +5,7 @@
 #include "canergy/supervisor.h"
 
 #include "le.h"
+#include "rules.h"
 #include "serial.h"
 
 #include <string.h>
@@ -101,7 +102,7 @@ int canergy_supervisor_init(struct canergy_supervisor *sup,
 {
     if (sup == NULL || cfg == NULL || nodes == NULL || count == 0U ||
         count > CANERGY_SUPERVISOR_NODES || !canergy_id_base_valid(cfg->id_base) ||
-        initial_uj > (uint64_t)INT64_MAX) {
+        !rules_kept(cfg->timing.rules) || initial_uj > (uint64_t)INT64_MAX) {
         return CANERGY_ERR_ARGUMENT;
     }
     for (uint8_t i = 0U; i < count; i++) {

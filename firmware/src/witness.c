@@ -5,6 +5,7 @@
 
 #include "canergy/client.h"
 
+#include "rules.h"
 #include "serial.h"
 
 #include <string.h>
@@ -256,7 +257,7 @@ enum canergy_witness_route canergy_witness_route(struct canergy_witness *w,
     const bool resume = (m->flags & CANERGY_DEBIT_START) != 0U &&
                         (m->flags & (CANERGY_DEBIT_SYNC | CANERGY_DEBIT_BOOKS)) == 0U;
     const bool counts = (m->flags & CANERGY_DEBIT_COUNTS) == CANERGY_DEBIT_COUNTS;
-    if (rules == CANERGY_RULES_WITNESSED && m->type == CANERGY_DEBIT && (resume || counts) &&
+    if (rules_witnessed(rules) && m->type == CANERGY_DEBIT && (resume || counts) &&
         canergy_witness_hold_resume(w, m, credited, now, resume)) {
         return CANERGY_WITNESS_TAKEN;
     }

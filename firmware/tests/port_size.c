@@ -14,6 +14,13 @@
 
 void port_entry(void);
 
+/* The rule set a node port configures: the one its build keeps (canergy/client.h). */
+#ifdef CANERGY_RULES_WITNESSED_ONLY
+#define PORT_RULES CANERGY_RULES_WITNESSED
+#else
+#define PORT_RULES CANERGY_RULES_HARDENED
+#endif
+
 #ifdef PORT_GATEWAY
 void port_entry(void)
 {
@@ -94,7 +101,7 @@ void port_entry(void)
     static const uint8_t bytes[8] = {0};
     struct canergy_out out;
     const struct canergy_rx_frame rx = {0x0CE00105UL, bytes, 8U, true, false};
-    const struct canergy_client_config client = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 1U, CANERGY_RULES_HARDENED, 0U};
+    const struct canergy_client_config client = {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 1U, PORT_RULES, 0U};
     volatile uint64_t sink = 0U;
 #if defined(PORT_NODE) || defined(PORT_AUTH)
     static struct canergy_node n;

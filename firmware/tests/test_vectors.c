@@ -534,6 +534,44 @@ static void test_supervisor(void)
           "a record of another version: no new start over it");
 }
 
+#ifdef CANERGY_HARDENED
+static const bool hardened_kept = true;
+#else
+static const bool hardened_kept = false;
+#endif
+#ifdef CANERGY_WITNESSED
+static const bool witnessed_kept = true;
+#else
+static const bool witnessed_kept = false;
+#endif
+
+/* A build keeps the rule sets canergy/client.h says: a client, a node or a supervisor
+ * configured with another is refused at start (CANERGY_ERR_ARGUMENT), never run as one kept. */
+static void test_rules_kept(void)
+{
+    static const uint8_t nodes[1] = {5U};
+    const bool sets[3] = {hardened_kept, witnessed_kept, false}; /* by enum canergy_rules */
+    for (uint8_t rules = 0U; rules <= 2U; rules++) {
+        const bool kept = sets[rules];
+        const struct canergy_node_config cfg = {
+            {CANERGY_DEFAULT_ID_BASE, 100000UL, 100000UL, 5U, rules, 0U}, 1000000UL, 0U,
+            CANERGY_KEEP_ALL};
+        const struct canergy_supervisor_config sup_cfg = {CANERGY_DEFAULT_ID_BASE,
+                                                          {50000U, 3U, rules, 0U}};
+        struct canergy_client c;
+        struct canergy_node n;
+        struct canergy_supervisor sup;
+        struct canergy_out out;
+        const int client = canergy_client_start(&c, &cfg.client, NULL, 0U, 1U, 0U, &out);
+        const int node = canergy_node_start(&n, &cfg, NULL, 0U, 1U, 0U, &out);
+        const int supervisor = canergy_supervisor_init(&sup, &sup_cfg, nodes, 1U, 0U);
+        check(kept ? client == 0 && node == 0 && supervisor == CANERGY_OK
+                   : client == CANERGY_ERR_ARGUMENT && node == CANERGY_ERR_ARGUMENT &&
+                         supervisor == CANERGY_ERR_ARGUMENT,
+              kept ? "a rule set the build keeps starts" : "a rule set the build lacks is refused");
+    }
+}
+
 static void test_budgets(void)
 {
     check(sizeof(struct canergy_client) <= 128U, "client state within 128 bytes");
@@ -859,7 +897,7 @@ static void test_auth_node(const uint8_t key[16])
     canergy_auth_wipe(&sup);
 }
 
-static void test_auth(void)
+static void test_auth(bool node)
 {
     uint8_t key[16];
     (void)unhex(rfc4493_key, key, sizeof key);
@@ -867,7 +905,9 @@ static void test_auth(void)
         test_auth_vector(key, &auth_vectors[i]);
     }
     test_auth_refusals(key);
-    test_auth_node(key);
+    if (node) { /* configured with the hardened rules */
+        test_auth_node(key);
+    }
 }
 
 /* The answers at once: an ACK decided in the same out; one naming a transaction never begun
@@ -946,21 +986,24 @@ int main(void)
     test_crcs();
     test_documented_frames();
     test_decode_reasons();
-    test_a_node_from_blank_to_books();
-    test_node_witness();
+    test_rules_kept();
     test_budgets();
-    test_session();
+    if (hardened_kept) { /* configured with the hardened rules */
+        test_a_node_from_blank_to_books();
+        test_node_witness();
+        test_session();
+        test_supervisor();
+        test_supervisor_answers();
+        test_gateway();
+    }
 #ifdef CANERGY_WITNESSED
     test_witnessed_older_copy();
 #endif
-    test_supervisor();
-    test_supervisor_answers();
-    test_gateway();
     test_aes128();
     test_cmac();
     test_mac_equal();
     test_kdf();
-    test_auth();
+    test_auth(hardened_kept);
     printf("sizeof client %u, node %u, out %u bytes\n", (unsigned)sizeof(struct canergy_client),
            (unsigned)sizeof(struct canergy_node), (unsigned)sizeof(struct canergy_out));
     printf("%u passed, %u failed\n", passed, failed);

@@ -104,8 +104,11 @@ def compiled(variant: str) -> Path:
 def library(variant: str = "") -> CLib:
     """The library as the tests run it (``canergy.ccore.build.load``): the UBSan build, the
     ASan+UBSan one under ``CANERGY_C_SANITIZER=asan``; ``variant="broken"``: with deliberately
-    broken rules."""
-    name = "broken" if variant == "broken" else ("asan" if SANITIZER == "asan" else "ubsan")
+    broken rules; ``variant="witnessed_only"``: the witnessed rules alone (the node port's)."""
+    if variant in ("broken", "witnessed_only"):
+        name = variant
+    else:
+        name = "asan" if SANITIZER == "asan" else "ubsan"
     compiled(name)
     return CLib(build.load(name))
 

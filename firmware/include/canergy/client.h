@@ -10,9 +10,9 @@
  * record is RESUMING until the supervisor's ADMIT confirms the books or finds them behind; an
  * ADMIT the node did not ask for is a supervisor's start, SYNC(n): the node settles B
  * transactions ahead (cfg->window), drops its held intention, answers with its books and counts
- * and is SYNCING (moves nothing) until ADMIT(n ^ CANERGY_SYNC_CONFIRMED). A
- * build with CANERGY_HARDENED_ONLY defined leaves them out (cfg->rules witnessed is then
- * refused as CANERGY_ERR_ARGUMENT).
+ * and is SYNCING (moves nothing) until ADMIT(n ^ CANERGY_SYNC_CONFIRMED). A build may keep
+ * one rule set (CANERGY_RULES_*_ONLY below): cfg->rules naming the other is then refused as
+ * CANERGY_ERR_ARGUMENT.
  *
  * Contract of every call that takes a struct canergy_out *out:
  *   - *out is overwritten (the call starts it empty);
@@ -56,8 +56,23 @@ enum canergy_rules {
     CANERGY_RULES_WITNESSED = 1
 };
 
-#ifndef CANERGY_HARDENED_ONLY
+/* The rule sets compiled in. A host build (the Python binding, the tests) has both, chosen at
+ * run time by cfg->rules; a product port ships one, chosen at build time:
+ * CANERGY_RULES_WITNESSED_ONLY (the node port's default: records restored from older copies
+ * cannot create energy) or CANERGY_RULES_HARDENED_ONLY (CANERGY_HARDENED_ONLY, its earlier
+ * name). A configuration naming a set left out is refused at start (CANERGY_ERR_ARGUMENT):
+ * never run as the other. */
+#if defined(CANERGY_HARDENED_ONLY) && !defined(CANERGY_RULES_HARDENED_ONLY)
+#define CANERGY_RULES_HARDENED_ONLY 1
+#endif
+#if defined(CANERGY_RULES_HARDENED_ONLY) && defined(CANERGY_RULES_WITNESSED_ONLY)
+#error "CANERGY_RULES_HARDENED_ONLY and CANERGY_RULES_WITNESSED_ONLY: a build keeps one set"
+#endif
+#ifndef CANERGY_RULES_HARDENED_ONLY
 #define CANERGY_WITNESSED 1 /* the witnessed rules are compiled in */
+#endif
+#ifndef CANERGY_RULES_WITNESSED_ONLY
+#define CANERGY_HARDENED 1 /* the hardened rules are compiled in */
 #endif
 
 /* out->events bits: the notes of the Python rules (ClientCommitted, ...), one bit each. */
@@ -86,31 +101,31 @@ struct canergy_client_config {
 
 /* Opaque in spirit: read it through the accessors below; tests reach in. 80 bytes. */
 struct canergy_client {
+    uint8_t node;
+    uint8_t phase;               /* enum canergy_phase */
+    uint8_t nv_slot;             /* slot holding the newest record: the next write goes to the other */
+    uint8_t rules;               /* enum canergy_rules */
+    uint16_t held_amount_mj;
+    uint16_t nonce;              /* of the pending JOIN or RESUME */
+    uint16_t window;             /* B (witnessed), 1..CANERGY_WINDOW_MAX */
+    uint32_t held_tx;            /* widened tx of the held intention, modulo 2^32 */
     struct canergy_record rec;   /* the books, exactly what the NV slot holds */
     uint64_t deadline;           /* command timer (HOLDING), CANERGY_NEVER when not armed */
     uint64_t return_deadline;    /* return re-send (or JOIN re-send), CANERGY_NEVER if none */
     uint32_t id_base;
     uint32_t command_timeout_us;
     uint32_t return_retry_us;
-    uint32_t held_tx;            /* widened tx of the held intention, modulo 2^32 */
     uint32_t nv_counter;         /* counter of the newest slot written or loaded */
-    uint16_t held_amount_mj;
-    uint16_t nonce;              /* of the pending JOIN or RESUME */
-    uint8_t node;
-    uint8_t phase;               /* enum canergy_phase */
-    uint8_t nv_slot;             /* slot holding the newest record: the next write goes to the other */
-    uint8_t rules;               /* enum canergy_rules */
-    uint16_t window;             /* B (witnessed), 1..CANERGY_WINDOW_MAX */
 };
 
 struct canergy_out {
-    struct canergy_frame frames[CANERGY_OUT_FRAMES];
-    uint8_t nv_image[CANERGY_NV_SLOT_SIZE];
-    uint32_t nv_counter;   /* the counter inside nv_image */
     uint16_t events;       /* CANERGY_EV_* */
     uint8_t frame_count;
     uint8_t persist;       /* 1: write nv_image to nv_slot before anything else */
     uint8_t nv_slot;       /* 0 or 1 */
+    uint32_t nv_counter;   /* the counter inside nv_image */
+    struct canergy_frame frames[CANERGY_OUT_FRAMES];
+    uint8_t nv_image[CANERGY_NV_SLOT_SIZE];
 };
 
 /*

@@ -38,6 +38,12 @@ struct canergy_node_config {
 };
 
 struct canergy_node {
+    bool was_low;
+    bool halted;                /* the last draw got less than it wanted */
+    uint8_t witness;            /* frames in its name it did not send, modulo 256 */
+    bool joined;                /* this start JOINed or RESUMEd: join_nonce is its nonce */
+    uint16_t join_nonce;
+    uint8_t witness_reported;   /* the count its last TELEMETRY carried */
     struct canergy_client client;
     uint64_t next_telemetry;
     uint32_t telemetry_period_us;
@@ -45,12 +51,6 @@ struct canergy_node {
     uint32_t return_above_uj;
     uint32_t decode_errors;     /* frames refused by the codec (any reason but FOREIGN) */
     uint32_t overflow_refused;  /* intentions and commits refused: usable would overflow */
-    bool was_low;
-    bool halted;                /* the last draw got less than it wanted */
-    uint8_t witness;            /* frames in its name it did not send, modulo 256 */
-    bool joined;                /* this start JOINed or RESUMEd: join_nonce is its nonce */
-    uint16_t join_nonce;
-    uint8_t witness_reported;   /* the count its last TELEMETRY carried */
     uint32_t released_uj;       /* witnessed: acknowledged draws the actuator has not used yet
                                  * (volatile: lost, i.e. dissipated, at a reset) */
 };

@@ -55,23 +55,23 @@ enum canergy_outcome {
  * README.md, "Counters"): 2^32 is a multiple of the wire's 2^16 and 2^24, so every serial
  * comparison with a wire value comes out as with Python's unbounded integers. */
 struct canergy_record {
-    uint64_t spent_uj;
+    uint8_t outcome;
+    uint8_t flags;
     uint32_t usable_uj;
     uint32_t credited_mj;
     uint32_t last_tx;
     uint32_t return_seq;
     uint32_t return_pending_uj;
-    uint8_t outcome;
-    uint8_t flags;
+    uint64_t spent_uj;
 };
 
 /* What canergy_nv_load found in an image. */
 struct canergy_nv_state {
-    struct canergy_record record; /* valid when books is true */
     uint32_t counter;             /* counter of the newest valid slot (0 when none) */
     uint8_t newest_slot;          /* slot of that record; 1 when none, so slot 0 comes first */
     bool books;                   /* a record to trust; false: the node must JOIN */
     uint8_t fallbacks;            /* as NvStats.fallbacks: +1 a damaged slot, +1 impossible values */
+    struct canergy_record record; /* valid when books is true */
 };
 
 /* Layout of one record. unpack refuses (CANERGY_ERR_ARGUMENT) values no client writes: an

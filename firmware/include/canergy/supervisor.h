@@ -72,7 +72,8 @@ struct canergy_supervisor_out {
 };
 
 /* Nodes 1..127, ascending and distinct, at most CANERGY_SUPERVISOR_NODES of them; Us starts
- * at initial_uj. CANERGY_ERR_ARGUMENT otherwise (and for a bad id_base). */
+ * at initial_uj. CANERGY_ERR_ARGUMENT otherwise (and for a bad id_base, or timing rules this
+ * build left out: canergy/client.h). */
 int canergy_supervisor_init(struct canergy_supervisor *sup,
                             const struct canergy_supervisor_config *cfg, const uint8_t *nodes,
                             uint8_t count, uint64_t initial_uj);

@@ -11,8 +11,8 @@ checks every struct it was given against the compiler's layout.
 setup.py builds the release module where a C compiler exists (``pip install``); without one
 canergy installs without it and ``canergy supervisor`` runs the Python core.
 ``python -m canergy.ccore.build`` builds it in place (a checkout whose install skipped it);
-``--variant ubsan`` (``asan``, ``broken``) compiles that build into ``CACHE`` (scripts/test does,
-before the tests).
+``--variant ubsan`` (``asan``, ``broken``, ``witnessed_only``) compiles that build into
+``CACHE`` (scripts/test does, before the tests).
 """
 
 from __future__ import annotations
@@ -191,6 +191,13 @@ VARIANTS = {
     "asan": Variant("_canergy_asan", (), (*_SANITIZE_FLAGS, *_ASAN), _ASAN),
     # Deliberately broken rules that the side-by-side tests must find (tests/test_c_broken.py).
     "broken": Variant("_canergy_broken", _BREAKS, (*_SANITIZE_FLAGS, *_UBSAN), _UBSAN),
+    # The witnessed rules alone, as the node port ships them (tests/test_c_witnessed.py).
+    "witnessed_only": Variant(
+        "_canergy_witnessed_only",
+        (("CANERGY_RULES_WITNESSED_ONLY", "1"),),
+        (*_SANITIZE_FLAGS, *_UBSAN),
+        _UBSAN,
+    ),
 }
 
 

@@ -72,6 +72,10 @@ class DeviceConfig(Generic[L]):
     reserve_uj: int = 0
     resume_margin_uj: int = 10 * QUANTUM_UJ
     telemetry_period_us: int = 50_000
+    stuck_limits: L | None = None
+    """What a STUCK device is charged at, where one that ignores its stop may ignore the
+    closed limits too (an MIT motor holds its last command): from the stop's notice on, as
+    uncontained. None: the limits in force."""
     unreadable: str = (
         "the odrive limits cannot be read back (no answer, or firmware 0.5): trust them as "
         "written with --odrive-trust-limits"
@@ -149,6 +153,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
 
     def in_force_fw(self, now: int) -> int:
         fw = max(self._fw(self.confirmed), self._fw(self.pending), self._fw(self.foreign))
+        if self.phase is GuardPhase.STUCK:
+            fw = max(fw, self._fw(self.config.stuck_limits))
         return max(fw, self.lowered_fw) if now < self.lowered_until else fw
 
     def latency_us(self) -> int:
@@ -454,6 +460,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             )
             self.charge(now)
             self.phase = GuardPhase.STUCK  # keeps phase_at: the stop's time
+            if self.config.stuck_limits is not None:  # it did not obey since the notice
+                since = max(0, now - self.phase_at - self.notice_us())
+                fw = self._fw(self.config.stuck_limits)
+                self.uncontained_uj += ceil_div(fw * since, FW_US_PER_UJ)
+            self._recharge(now)
 
     def _send_stop(self, why: str, now: int) -> None:
         self.commands.append(Stop(why, now))

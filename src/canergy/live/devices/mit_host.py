@@ -12,10 +12,18 @@ supervisor's loop: each pass it carries the application's frames to the gates an
 motors' bus (forwarded, clamped or refused), the motors' replies to the gates and on to the
 application, its guard's commands to its gate (enter the cap, exit motor mode), and its gate's
 re-clamp every hold. Everything runs on the loop's thread but the two readers, which only queue.
+
+The application's frames wait for the loop in a queue of at most ``APP_QUEUE_MAX`` frames: a
+frame that finds it full is refused (never sent), counted (``app_overflowed``, and under the
+motor it was for as ``commands.overflowed``) and logged (the first and every 100th), so that a
+flood costs bounded memory and every frame the reader took is accounted for:
+``app_taken`` = the gates' forwarded + clamped + refused + ``app_passed`` (for no guarded motor)
++ ``canergy_frames_refused`` + ``app_error_frames`` + ``app_overflowed``, once the queue is empty.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -34,6 +42,12 @@ from canergy.messages import Message
 
 Clock = Callable[[], int]
 
+APP_QUEUE_MAX = 1_000
+"""The application's frames waiting for the supervisor's loop, at most (a pass takes them all:
+at 1 Mbit/s, 8 frames a ms at most, this is a loop held off for over 100 ms)."""
+
+log = logging.getLogger("canergy.live.devices.mit_host")
+
 
 class MitHost:
     """The application's bus and the gates between it and the supervisor's bus (module doc)."""
@@ -46,8 +60,10 @@ class MitHost:
         codec: Codec,
         wake: Callable[[], None],
         clock: Clock,
+        queue_max: int | None = None,
     ) -> None:
         self.bus = bus
+        self.queue_max = APP_QUEUE_MAX if queue_max is None else queue_max
         self.clock = clock
         self.app = app
         self.route = route
@@ -58,6 +74,14 @@ class MitHost:
         self.from_bus: list[can.Message] = []
         self.to_motors = 0
         self.to_app = 0
+        self.taken = 0
+        """Frames the reader took from the application's bus."""
+        self.overflowed = 0
+        """Of those, refused because the queue was full."""
+        self.overflowed_by_id: dict[int, int] = {}
+        """The same, by the guarded motor each was for."""
+        self.queue_peak = 0
+        self.error_frames = 0
         self.canergy_refused = 0
         """Frames in canergy's identifier block from the application: not put on the bus."""
         self.send_failures = 0
@@ -82,7 +106,25 @@ class MitHost:
             if frame is None:
                 continue
             with self.lock:
-                self.from_app.append(frame)
+                self.taken += 1
+                full = len(self.from_app) >= self.queue_max
+                if full:
+                    self.overflowed += 1
+                    motor = frame.arbitration_id
+                    if not frame.is_extended_id and motor in self.route.gates:
+                        self.overflowed_by_id[motor] = self.overflowed_by_id.get(motor, 0) + 1
+                    n = self.overflowed
+                else:
+                    self.from_app.append(frame)
+                    self.queue_peak = max(self.queue_peak, len(self.from_app))
+            if full and (n == 1 or n % 100 == 0):
+                log.warning(
+                    "MIT: the application's frame to 0x%X refused: %d frames wait already; "
+                    "%d refused so far",
+                    frame.arbitration_id,
+                    self.queue_max,
+                    n,
+                )
             self.wake()
 
     def heard(self, frame: can.Message) -> None:
@@ -110,6 +152,7 @@ class MitHost:
                 self._send(self.app, frame)
         for frame in app:
             if frame.is_error_frame:
+                self.error_frames += 1
                 continue
             if frame.is_extended_id and self.codec.is_canergy_id(frame.arbitration_id):
                 self.canergy_refused += 1
@@ -133,9 +176,17 @@ class MitHost:
             self.send_failures += 1
 
     def status(self) -> dict[str, int]:
+        with self.lock:
+            taken, overflowed, peak = self.taken, self.overflowed, self.queue_peak
         return {
             "to_motors": self.to_motors,
             "to_app": self.to_app,
+            "app_taken": taken,
+            "app_queue_max": self.queue_max,
+            "app_queue_peak": peak,
+            "app_overflowed": overflowed,
+            "app_passed": self.route.passed,
+            "app_error_frames": self.error_frames,
             "canergy_frames_refused": self.canergy_refused,
             "forward_send_failures": self.send_failures,
             "app_receive_failures": self.receive_failures,
@@ -196,7 +247,11 @@ class MitLink:
         return self.gate.next_send
 
     def status(self) -> dict[str, object]:
-        return {**self.gate.details(), **self.host.status()}
+        details = self.gate.details()
+        with self.host.lock:
+            overflowed = self.host.overflowed_by_id.get(self.gate.motor_id, 0)
+        details["commands"]["overflowed"] = overflowed
+        return {**details, **self.host.status()}
 
     def close(self) -> None:
         """Carry out what is queued (a halt's stop), then close the host (once)."""

@@ -18,7 +18,8 @@ frame that finds it full is refused (never sent), counted (``app_overflowed``, a
 motor it was for as ``commands.overflowed``) and logged (the first and every 100th), so that a
 flood costs bounded memory and every frame the reader took is accounted for:
 ``app_taken`` = the gates' forwarded + clamped + refused + ``app_passed`` (for no guarded motor)
-+ ``canergy_frames_refused`` + ``app_error_frames`` + ``app_overflowed``, once the queue is empty.
++ ``canergy_frames_refused`` + ``app_for_other_devices`` (frames another guarded group on the bus
+reads, not sent) + ``app_error_frames`` + ``app_overflowed``, once the queue is empty.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from canergy.live.devices.mit_motor import MitMotor
 from canergy.messages import Message
 
 Clock = Callable[[], int]
+Others = Callable[[bool, int], str | None]
 
 APP_QUEUE_MAX = 1_000
 """The application's frames waiting for the supervisor's loop, at most (a pass takes them all:
@@ -61,7 +63,13 @@ class MitHost:
         wake: Callable[[], None],
         clock: Clock,
         queue_max: int | None = None,
+        others: Others | None = None,
     ) -> None:
+        """``others``: how the other guarded groups on the bus read a frame (None: as none of
+        theirs); the application's frames they would read are not put on the bus: their guards
+        do not hear what this process sends, so a write to their devices would pass unseen."""
+        self.others = others
+        self.for_others = 0
         self.bus = bus
         self.queue_max = APP_QUEUE_MAX if queue_max is None else queue_max
         self.clock = clock
@@ -157,6 +165,18 @@ class MitHost:
             if frame.is_extended_id and self.codec.is_canergy_id(frame.arbitration_id):
                 self.canergy_refused += 1
                 continue
+            if self.others is not None:
+                why = self.others(frame.is_extended_id, frame.arbitration_id)
+                if why is not None:
+                    self.for_others += 1
+                    if self.for_others == 1 or self.for_others % 100 == 0:
+                        log.warning(
+                            "MIT: the application's frame 0x%X refused: %s; %d refused so far",
+                            frame.arbitration_id,
+                            why,
+                            self.for_others,
+                        )
+                    continue
             out, _ = self.route.from_app(frame, now)
             self.send_out()
             if out is not None:
@@ -188,6 +208,7 @@ class MitHost:
             "app_passed": self.route.passed,
             "app_error_frames": self.error_frames,
             "canergy_frames_refused": self.canergy_refused,
+            "app_for_other_devices": self.for_others,
             "forward_send_failures": self.send_failures,
             "app_receive_failures": self.receive_failures,
         }
@@ -276,6 +297,8 @@ class MitMotors:
     timing: Timing
     guard_config: dict[str, Any] = field(default_factory=dict)
     codec: Codec = field(default_factory=Codec)
+    others: Others | None = None
+    """How the other guarded groups on the bus read a frame (``canergy.devices.bus_ids``)."""
 
     @property
     def nodes(self) -> tuple[int, ...]:
@@ -286,7 +309,7 @@ class MitMotors:
     ) -> dict[int, tuple[DeviceGuard[Any], MitLink]]:
         """A gate (its guard the proxy) and a link per motor, around one host."""
         route = MitGates(self.motors, now, self.timing, self.guard_config)
-        host = MitHost(bus, self.open_app(), route, self.codec, wake, clock)
+        host = MitHost(bus, self.open_app(), route, self.codec, wake, clock, others=self.others)
         return {
             gate.guard.node: (gate.guard, MitLink(host, gate, listens=i == 0))
             for i, gate in enumerate(route.gates.values())

@@ -446,8 +446,12 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         settled = self.phase_at + self.notice_us()
         heard_since = self.last_feedback_at is not None and self.last_feedback_at > settled
         if heard_since and self.powered is False:
+            was_stuck = self.phase is GuardPhase.STUCK
+            self.charge(now)  # what a STUCK device may have drawn until now, as uncontained
             self.stuck = None
             self._set_phase(GuardPhase.STOPPED, self.stop_reason, now)
+            if was_stuck and self.charged_until == now:  # no longer at the STUCK rate
+                self.charge_fw = self.in_force_fw(now)
             return
         if now >= self.last_stop_at + self.config.retry_us:
             self._send_stop("not stopped yet: again", now)

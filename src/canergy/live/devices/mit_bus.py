@@ -20,7 +20,7 @@ is logged (warning, the first and then every 100th of a motor, with its reason);
 
 A motor that does not obey (still showing torque ``stop_timeout_us`` after its stop, or not heard
 since) is STUCK: its gate repeats exit motor mode every 100 ms, ``status(motor)`` says so
-(``guard: stuck``, ``stuck``), ``report`` (default: a logged warning) gets
+(``guard: stuck``, ``stuck``), ``report`` (default: logged, a warning) gets
 ``mit motor 1: STUCK (...)`` within one pass of the reader (5 ms, the host willing), ``on_stuck``
 (a command, as ``canergy supervisor --on-stuck``) runs once, and what the motor may draw from the
 stop's notice on is booked as ``uncontained_uj`` at its model's whole envelope.
@@ -66,6 +66,12 @@ INCOMING_MAX = 10_000
 """Frames kept for an application that does not read them (a socket's buffer drops too)."""
 
 
+def _logged(line: str) -> None:
+    """A motor STUCK and ``on_stuck``'s runs as warnings; its stops and releases as info."""
+    stuck = "STUCK" in line or "--on-stuck" in line
+    log.log(logging.WARNING if stuck else logging.INFO, "%s", line)
+
+
 class MitRefused(can.CanOperationError):
     """A frame to a guarded motor was not sent (``on_refused="raise"``)."""
 
@@ -89,10 +95,10 @@ class MitBus(can.BusABC):
     ) -> None:
         """``on_stuck``: a command run once each time a motor becomes STUCK (``{node}`` is the
         motor's CAN id); ``report``: told a line when a motor stops, is released or is STUCK
-        (default: logged as a warning)."""
+        (default: logged, STUCK as a warning, the rest as info)."""
         if on_refused not in ("count", "raise"):
             raise ValueError("on_refused: 'count' or 'raise'")
-        said = report if report is not None else lambda line: log.warning("%s", line)
+        said = report or _logged
         self.on_stuck = None if on_stuck is None else OnStuck(on_stuck, said)
         self.news = DeviceNews(said, self.on_stuck, lambda g: self.route.by_node[g.node].motor_id)
         self.inner = bus

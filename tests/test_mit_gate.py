@@ -222,6 +222,56 @@ def test_a_motor_still_showing_torque_after_its_stop_is_stuck() -> None:
     assert "still powered" in g.guard.stuck and g.counts.exits >= 5  # exit repeated
 
 
+def test_a_stuck_motor_is_booked_uncontained_until_it_obeys_and_then_no_longer() -> None:
+    """While STUCK the motor is charged, as uncontained, at its model's whole envelope (it holds
+    its last command); once a reply shows it powerless it is stopped, and nothing more is booked
+    at that rate, neither uncontained nor metered."""
+    whole = MitLimits(int(DM.t_max * UNM_PER_NM), int(DM.v_max * UNM_PER_NM))
+
+    def made(timing: Timing) -> list[MitGate]:
+        config = DeviceConfig(
+            limits=FULL, timing=timing, feedback_timeout_us=10**9, stuck_limits=whole
+        )
+        return [MitGate(MOTOR, NODE, DM, config, 0, 7)]
+
+    pair = Pair(3_000_000, gates=made)
+    g = pair.gate
+    while g.guard.phase is not GuardPhase.RUNNING and pair.now < 500_000:
+        pair.run_to(pair.now + 1_000)
+    g.from_app(ENTER, pair.now)
+    g.from_app(encode(DM, 0.0, 0.0, 0.0, 0.0, 1.0).pack(), pair.now)
+    while g.guard.stops == 0 and pair.now < 1_000_000:
+        pair.run_to(pair.now + 1_000)
+    pushing = pack_reply(DM, MOTOR, 0x8000, 2048, 2457)  # 2 N·m: it still pushes
+    quiet = pack_reply(DM, MOTOR, 0x8000, 2048, 2048)  # no torque
+
+    def step(reply: bytes) -> None:  # 1 ms on; the motor answers each frame the gate sent
+        pair.now += 1_000
+        if g.next_wakeup() <= pair.now:
+            pair.route(g.on_wakeup(pair.now), pair.now)
+        for _ in g.take_frames():
+            pair.route(g.from_motor(reply, pair.now, pair.now), pair.now)
+
+    while g.guard.phase is not GuardPhase.STUCK and pair.now < 3_000_000:
+        step(pushing)
+    assert g.guard.phase is GuardPhase.STUCK and g.counts.unasked == 0
+    stuck_w = g.guard.profile.envelope(whole).fw / 1e15  # 442.77 W
+    since = pair.now - g.guard.phase_at - g.guard.notice_us()
+    assert g.guard.uncontained_uj >= stuck_w * since - 1  # from the stop's notice on
+    for _ in range(50):
+        step(pushing)
+    booked = g.guard.uncontained_uj + g.guard.metered_uj
+    assert booked - g.guard.metered_uj >= stuck_w * (since + 50_000) - 1
+    while g.guard.phase is GuardPhase.STUCK and pair.now < 4_000_000:
+        step(quiet)  # it obeys at last
+    assert g.guard.phase is GuardPhase.STOPPED and g.guard.stuck is None
+    after = g.guard.uncontained_uj + g.guard.metered_uj
+    assert after - booked <= stuck_w * 20_000 + 1  # until its next reply (a hold)
+    for _ in range(200):
+        step(quiet)
+    assert g.guard.uncontained_uj + g.guard.metered_uj == after
+
+
 @settings(max_examples=100, deadline=None)
 @given(
     st.lists(

@@ -20,9 +20,9 @@ import pytest
 
 from canergy.cli import main
 from canergy.codec import DEFAULT_ID_BASE
-from canergy.devices.mit import encode, worst_torque
+from canergy.devices.mit import worst_torque
 from firmware_model.drive.live_bench import wait_for
-from firmware_model.mit.live_bench import DM, GREEDY, MOTOR, PUSH, burst, rig
+from firmware_model.mit.live_bench import DM, GREEDY, MOTOR, PUSH, STEADY, burst, rig
 
 CAP = 0.5
 """N·m: 0.5·30 + 3/2·0.85·(0.5/0.945)² = 15.36 W while the budget lasts."""
@@ -158,12 +158,6 @@ def test_a_command_from_the_application_is_forwarded_at_once(tmp_path: Path) -> 
     assert took[25] < 0.008, took
 
 
-STEADY = encode(DM, 0.0, 0.0, 0.0, 0.05, 0.5).pack()
-"""Clamped under 0.5 N·m (kd and t_ff by one factor), it settles near 6 rad/s with some torque
-left: the emulated motor at its top speed (30 rad/s) shows none in some replies, which reads as
-stopped, and then STUCK again (``--on-stuck`` run again; docs/guide/drives.md)."""
-
-
 def test_a_motor_that_ignores_exit_is_stuck_and_on_stuck_runs_once(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -196,6 +190,7 @@ def test_a_motor_that_ignores_exit_is_stuck_and_on_stuck_runs_once(
     assert status["stuck"].endswith("300 ms after the stop"), status["stuck"]
     assert r.model.enabled  # it did not obey
     assert cut.read_text() == "mit 1\n" and last["on_stuck"]["runs"] == 1
+    assert last["uncontained_uj"] > 0  # booked at the model's whole envelope
     assert "mit motor 1: STUCK (" in capsys.readouterr().err
 
 
@@ -209,8 +204,8 @@ MIT = ["--mit", "1,2", "--mit-model", "DM4310", "--mit-app-channel", "app"]
         (["--mit", "1", "--mit-model", "DM4310"], "--mit needs the application's bus"),
         (["--mit", "1", "--mit-app-channel", "app"], "--mit needs --mit-model"),
         ([*MIT, "--nodes", "2,3"], "--mit 2: also in --nodes"),
-        ([*MIT, "--cia402", "5"], "--mit and --cia402 on one bus"),
-        ([*MIT, "--odrive", "5"], "--mit and --odrive on one bus"),
+        ([*MIT, "--cia402", "2"], "--cia402 and --mit on one bus: 0x202 is CANopen node 2's"),
+        ([*MIT, "--odrive", "3", "--mit", "97"], "0x061 is MIT motor 97's command, which"),
         ([*MIT, "--mit-app-channel", "motors"], "name the same bus"),
         ([*MIT, "--mit-model", "1:AK80-9,2:DM4310"], "(motor 1): give --mit-resistance"),
         ([*MIT, "--listen-only"], "not with --listen-only"),

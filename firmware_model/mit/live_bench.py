@@ -36,6 +36,7 @@ __all__ = [
     "PUSH",
     "REVERSED",
     "SLOW_HOST",
+    "STEADY",
     "Rig",
     "burst",
     "rig",
@@ -49,6 +50,10 @@ GREEDY = encode(DM, 12.5, 30.0, 500.0, 5.0, 10.0).pack()
 REVERSED = encode(DM, -12.5, -30.0, 500.0, 5.0, -10.0).pack()
 PUSH = encode(DM, 0.0, 0.0, 0.0, 0.0, 10.0).pack()
 """The largest feed-forward torque alone (clamped to the cap, it runs the motor up to speed)."""
+STEADY = encode(DM, 0.0, 0.0, 0.0, 0.05, 0.5).pack()
+"""Clamped under 0.5 N·m (kd and t_ff by one factor), it settles near 6 rad/s with some torque
+left: a motor that ignores exit then shows torque in every reply. (At its top speed, 30 rad/s,
+the emulated motor shows none in some replies, which reads as stopped; docs/guide/drives.md.)"""
 
 
 @dataclass

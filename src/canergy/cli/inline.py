@@ -12,6 +12,7 @@ from typing import Any
 
 from canergy.argtypes import add_duration, node_ids
 from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
+from canergy.cli.shared.live import add_on_stuck_flag, check_on_stuck
 from canergy.cli.shared.mit import add_gate_flags, guard_config, mit_motors
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
@@ -48,6 +49,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         help="the proxies' canergy node ids, one per motor, in the same order",
     )
     add_gate_flags(g, model_required=True)
+    add_on_stuck_flag(g, "motor ({node}: its CAN id)")
     p.add_argument("--status-file", type=Path, help="the gates' status as JSON")
     add_duration(p, "--status-period", 1_000_000, "time between status lines (and files)")
     p.set_defaults(run=run)
@@ -63,6 +65,7 @@ def motors(args: argparse.Namespace) -> list[MitMotor]:
     ]
     if sides[0] == sides[1] and sides[0][1] is not None:
         raise ValueError("-c and --app-channel name the same bus: give the application its own")
+    check_on_stuck(args)
     return mit_motors(args, args.mit_nodes)
 
 
@@ -70,19 +73,26 @@ def status_line(status: dict[str, Any]) -> str:
     parts = [f"to motors {status['to_motors']}, to app {status['to_app']}"]
     for m, s in status["motors"].items():
         c = s["commands"]
+        why = f"STUCK: {s['stuck']}" if s["stuck"] else s["stop_reason"] or "running"
         parts.append(
-            f"motor {m}: {s['guard']} ({s['stop_reason'] or 'running'}), forwarded "
+            f"motor {m}: {s['guard']} ({why}), forwarded "
             f"{c['forwarded']}, clamped {c['clamped']}, refused {c['refused']}, "
             f"{s['usable_uj'] / 1e6:.3f} J left"
         )
     return "canergy inline: " + "; ".join(parts)
 
 
-def run(args: argparse.Namespace) -> int:
+def say(line: str) -> None:
+    """A motor stopped, released or STUCK, and ``--on-stuck``'s runs: on stderr at once."""
+    print(f"canergy inline: {line}", file=sys.stderr, flush=True)
+
+
+def run(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
+    """Forward until SIGINT or SIGTERM (or ``stop``, for a caller that runs it in a thread)."""
     wanted = motors(args)
     if args.status_file is not None:
         check_writable_dir(args.status_file, "--status-file")
-    stop = threading.Event()
+    stop = stop or threading.Event()
 
     def request_stop(signum: int, frame: object) -> None:
         stop.set()
@@ -94,7 +104,12 @@ def run(args: argparse.Namespace) -> int:
     guarded = None
     try:
         guarded = MitBus(
-            open_bus(args, []), wanted, codec=Codec(args.id_base), guard_config=guard_config(args)
+            open_bus(args, []),
+            wanted,
+            codec=Codec(args.id_base),
+            guard_config=guard_config(args),
+            on_stuck=args.on_stuck,
+            report=say,
         )
         forwarder = MitForwarder(app, guarded)
         next_at = [monotonic_us()]

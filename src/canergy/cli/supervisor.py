@@ -13,8 +13,10 @@ from canergy.argtypes import add_duration, energy, node_ids
 from canergy.cli.shared.bus_flags import bus_where, open_bus, open_bus_at
 from canergy.cli.shared.cia402 import add_cia402_flags, check_cia402, cia402_drives
 from canergy.cli.shared.live import (
+    add_on_stuck_flag,
     auth_config,
     auth_key,
+    check_on_stuck,
     check_state,
     check_widths,
     core_config,
@@ -36,7 +38,6 @@ from canergy.cli.shared.odrive import add_odrive_flags, check_odrive, odrive_axe
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.core.supervisor import SupervisorCore
-from canergy.live.devices.on_stuck import parse_on_stuck
 from canergy.live.serve import serve_supervisor
 from canergy.live.supervisor.build import (
     CanopenConfig,
@@ -127,14 +128,7 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     add_odrive_flags(p)
     add_moteus_flags(p)
     add_supervisor_mit_flags(p)
-    p.add_argument(
-        "--on-stuck",
-        metavar="CMD",
-        help="run CMD (split as a shell would, run without one; {node} and {profile} filled in, "
-        "CANERGY_STUCK_* in its environment) once each time a guarded ODrive axis, moteus "
-        "controller or MIT-mode motor becomes STUCK, e.g. a relay cutting its supply; not waited "
-        "for",
-    )
+    add_on_stuck_flag(p, "ODrive axis, moteus controller or MIT-mode motor")
     p.set_defaults(run=run)
 
 
@@ -234,15 +228,11 @@ def _check(args: argparse.Namespace) -> tuple[BusSpec, ...]:
     """Every value checked against the others before anything is read, written or opened;
     the ``--bus`` options (none on one bus)."""
     buses = _buses(args)
-    if args.on_stuck is not None:
-        if not (args.odrive or args.moteus or args.mit):
-            raise ValueError(
-                "--on-stuck is for guarded ODrive axes, moteus controllers or MIT-mode motors"
-            )
-        try:
-            parse_on_stuck(args.on_stuck)
-        except ValueError as exc:
-            raise ValueError(f"--on-stuck: {exc}") from None
+    if args.on_stuck is not None and not (args.odrive or args.moteus or args.mit):
+        raise ValueError(
+            "--on-stuck is for guarded ODrive axes, moteus controllers or MIT-mode motors"
+        )
+    check_on_stuck(args)
     if args.target is not None and args.target < QUANTUM_UJ:
         raise ValueError("--target must be at least 1 mJ")
     check_widths(args)

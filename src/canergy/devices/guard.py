@@ -91,6 +91,10 @@ class DeviceConfig(Generic[L]):
     reread_us: int = 0
     """Read the limits back this often where they can be read (0: never): limits changed where
     the guard cannot see stop the device for good."""
+    stuck_limits: L | None = None
+    """What a STUCK device is charged at, where one that ignores its stop may ignore the
+    closed limits too (an MIT motor holds its last command): from the stop's notice on, as
+    uncontained. None: the limits in force."""
     unreadable: str = (
         "the odrive limits cannot be read back (no answer, or firmware 0.5): trust them as "
         "written with --odrive-trust-limits"
@@ -179,6 +183,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
 
     def in_force_fw(self, now: int) -> int:
         fw = max(self._fw(self.confirmed), self._fw(self.pending), self._fw(self.foreign))
+        if self.phase is GuardPhase.STUCK:
+            fw = max(fw, self._fw(self.config.stuck_limits))
         return self.clock.held(fw, now)
 
     def latency_us(self) -> int:
@@ -503,8 +509,12 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         settled = self.phase_at + self.notice_us()
         heard_since = self.last_feedback_at is not None and self.last_feedback_at > settled
         if heard_since and self.powered is False:
+            was_stuck = self.phase is GuardPhase.STUCK
+            self.charge(now)  # what a STUCK device may have drawn until now, as uncontained
             self.stuck = None
             self._set_phase(GuardPhase.STOPPED, self.stop_reason, now)
+            if was_stuck and self.clock.until == now:  # no longer at the STUCK rate
+                self.clock.fw = self.in_force_fw(now)
             return
         if now >= self.last_stop_at + self.config.retry_us:
             self._send_stop("not stopped yet: again", now)
@@ -517,6 +527,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             )
             self.charge(now)
             self.phase = GuardPhase.STUCK  # keeps phase_at: the stop's time
+            if self.config.stuck_limits is not None:  # it did not obey since the notice
+                since = max(0, now - self.phase_at - self.notice_us())
+                fw = self._fw(self.config.stuck_limits)
+                self.uncontained_uj += ceil_div(fw * since, FW_US_PER_UJ)
+            self._recharge(now)
 
     def _send_stop(self, why: str, now: int) -> None:
         self.commands.append(Stop(why, now))

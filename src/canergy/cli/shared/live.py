@@ -14,6 +14,7 @@ from canergy.cli.shared.bus_flags import add_bus_flags
 from canergy.core import Timing
 from canergy.core.variants import RUNNABLE
 from canergy.live.atomic import check_writable_dir, same_file
+from canergy.live.devices.on_stuck import parse_on_stuck
 from canergy.live.supervisor.build import AuthConfig, CoreConfig
 from canergy.live.supervisor.control import check_control_path
 from canergy.live.supervisor.policy import Limits, level_room
@@ -293,3 +294,24 @@ def check_widths(args: argparse.Namespace) -> None:
                 f"most {joules(USABLE_MAX_UJ)}, and a written-off grant (--max-grant "
                 f"{joules(args.max_grant)}) may be paid back on top"
             )
+
+
+def add_on_stuck_flag(p: argparse.ArgumentParser | argparse._ArgumentGroup, devices: str) -> None:
+    """``--on-stuck CMD`` (``supervisor``, ``inline``): free text, checked by ``check_on_stuck``."""
+    p.add_argument(
+        "--on-stuck",
+        metavar="CMD",
+        help="run CMD (split as a shell would, run without one; {node} and {profile} filled in, "
+        f"CANERGY_STUCK_* in its environment) once each time a guarded {devices} becomes "
+        "STUCK, e.g. a relay cutting its supply; not waited for",
+    )
+
+
+def check_on_stuck(args: argparse.Namespace) -> None:
+    """``--on-stuck``'s command line, if given (``ValueError`` naming the flag)."""
+    if args.on_stuck is None:
+        return
+    try:
+        parse_on_stuck(args.on_stuck)
+    except ValueError as exc:
+        raise ValueError(f"--on-stuck: {exc}") from None

@@ -19,6 +19,7 @@ from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.cli.shared.cia402 import _number
 from canergy.codec import Codec
 from canergy.core import Timing
+from canergy.devices.bus_ids import Ids, canopen_ids, collision, mit_ids, moteus_ids, odrive_ids
 from canergy.devices.mit import MODELS, MitModel
 from canergy.live.devices.mit_host import MitMotors
 from canergy.live.devices.mit_motor import MitMotor
@@ -203,18 +204,13 @@ def check_mit(args: argparse.Namespace) -> None:
         if args.mit_model is not None or getattr(args, "mit-app_channel", None) is not None:
             raise ValueError("--mit-model and --mit-app-* are for --mit IDS")
         return
-    others = [f for f, on in (("--cia402", args.cia402), ("--canopen", args.canopen)) if on]
-    if others:
-        raise ValueError(
-            f"--mit and {' and '.join(others)} on one bus: CubeMars motors reply on 0x000 "
-            "(NMT) and Damiao's mode frames 0x100-0x3FF + id are PDO ids; guard them on two buses"
+    if args.mit_model is not None:  # else refused below, naming the flag
+        mine = mit_ids(
+            (m, model, None) for m, model in models_of(args.mit_model, motors, "--mit").items()
         )
-    if args.odrive or args.moteus:
-        flag = "--odrive" if args.odrive else "--moteus"
-        raise ValueError(
-            f"--mit and {flag} on one bus: MIT ids are CAN Simple commands and servo-mode "
-            "frames share moteus's extended ids; guard them on two buses"
-        )
+        for other in other_ids(args):
+            if (why := collision(mine, other)) is not None:
+                raise ValueError(f"{why}: guard them on two buses, or give other ids")
     if clash := sorted(set(motors) & set(args.nodes or ())):
         raise ValueError(
             f"--mit {','.join(map(str, clash))}: also in --nodes (a motor's proxy takes its id)"
@@ -232,11 +228,35 @@ def check_mit(args: argparse.Namespace) -> None:
     mit_motors(args, list(motors))
 
 
+def other_ids(args: argparse.Namespace) -> list[Ids]:
+    """The identifiers of the other groups the supervisor guards or serves on its bus."""
+    out: list[Ids] = []
+    if args.odrive:
+        out.append(odrive_ids(args.odrive))
+    if args.moteus:
+        out.append(moteus_ids(args.moteus, args.moteus_source, args.moteus_prefix))
+    if args.cia402:
+        counter = getattr(args, "cia402_counter", None)  # a power-meter node, if any
+        meter = () if counter is None or counter[0] is None else (counter[0],)
+        out.append(canopen_ids("--cia402", (*args.cia402, *meter), args.cia402_host_id))
+    if args.canopen:
+        out.append(canopen_ids("--canopen", args.nodes or ()))
+    return out
+
+
 def mit_group(args: argparse.Namespace, timing: Timing) -> MitMotors:
     """The ``--mit*`` flags as the builder takes them (``MitMotors``)."""
 
     def open_app() -> can.BusABC:
         return open_bus(args, [], prefix=APP)
+
+    others = other_ids(args)
+
+    def theirs(extended: bool, arbitration_id: int) -> str | None:
+        for ids in others:
+            if (what := ids.reads(extended, arbitration_id)) is not None:
+                return f"{what} ({ids.name})"
+        return None
 
     return MitMotors(
         tuple(mit_motors(args, list(args.mit))),
@@ -244,4 +264,5 @@ def mit_group(args: argparse.Namespace, timing: Timing) -> MitMotors:
         timing,
         guard_config(args),
         Codec(args.id_base),
+        theirs if others else None,
     )

@@ -32,7 +32,7 @@ from canergy.codec import Codec, DecodeError
 from canergy.devices.guard import DeviceGuard
 from canergy.live.canopen.cia402_link import DriveLink
 from canergy.live.devices.device_link import Device, DeviceLink
-from canergy.live.devices.on_stuck import OnStuck
+from canergy.live.devices.on_stuck import DeviceNews, OnStuck
 from canergy.live.runtime import FramePath, Outgoing, RawFrame
 from canergy.live.supervisor.service import SupervisorService
 from canergy.messages import Direction, Message, MsgType, ToClient
@@ -78,6 +78,8 @@ class GuardedDevices:
         self.report = report
         """Told in one line whenever a guard stops or releases its drive."""
         self.reported: dict[int, tuple[str, str | None]] = {}
+        self.news = DeviceNews(report, on_stuck)
+        """What is said of the guarded devices (and ``--on-stuck``)."""
         self.drives = drives
         self.devices = devices or {}
         self.bus = bus
@@ -201,25 +203,16 @@ class GuardedDevices:
             self._hand_over_device(device, device_link)
 
     def _tell(self, guard: DriveGuard | DeviceGuard[Any]) -> None:
-        stuck = getattr(guard, "stuck", None)
-        if self.on_stuck is not None and isinstance(guard, DeviceGuard):
-            self.on_stuck(guard.profile.name, guard.node, stuck)
-        seen = (guard.phase.value, guard.stop_reason if stuck is None else stuck)
+        if isinstance(guard, DeviceGuard):
+            self.news(guard)
+            return
+        seen = (guard.phase.value, guard.stop_reason)
         if self.report is None or self.reported.get(guard.node, seen) == seen:
             self.reported[guard.node] = seen
             return
         self.reported[guard.node] = seen
         left = f"{guard.usable / 1e6:.3f} J left"
-        if isinstance(guard, DeviceGuard):
-            noun = "motor" if guard.profile.name == "mit" else "axis"
-            what = f"{guard.profile.name} {noun} {guard.node}"
-            if stuck is not None:
-                self.report(f"{what}: STUCK ({stuck}; stop repeated; {left})")
-            elif guard.stop_reason is None:
-                self.report(f"{what}: released ({left})")
-            else:
-                self.report(f"{what}: {guard.phase.value} ({guard.stop_reason}; {left})")
-        elif guard.stop_reason is None:
+        if guard.stop_reason is None:
             self.report(f"drive {guard.node}: released ({left})")
         else:
             self.report(f"drive {guard.node}: {guard.phase.value} ({guard.stop_reason}; {left})")

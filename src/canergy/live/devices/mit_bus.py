@@ -18,6 +18,13 @@ is logged (warning, the first and then every 100th of a motor, with its reason);
 ``on_refused="raise"`` a refused ``send`` raises ``MitRefused`` (a ``can.CanOperationError``).
 ``shutdown`` exits motor mode on every guarded motor before it closes the real bus.
 
+A motor that does not obey (still showing torque ``stop_timeout_us`` after its stop, or not heard
+since) is STUCK: its gate repeats exit motor mode every 100 ms, ``status(motor)`` says so
+(``guard: stuck``, ``stuck``), ``report`` (default: logged, a warning) gets
+``mit motor 1: STUCK (...)`` within one pass of the reader (5 ms, the host willing), ``on_stuck``
+(a command, as ``canergy supervisor --on-stuck``) runs once, and what the motor may draw from the
+stop's notice on is booked as ``uncontained_uj`` at its model's whole envelope.
+
 Why the proxy lives here: the application's commands then take one function call to reach the
 clamp (no second process in their path), and the supervisor needs nothing new (the proxy is an
 ordinary client to it). What it costs: if this process dies the motor keeps its last command
@@ -32,6 +39,7 @@ same gates (``MitGates``) in the supervisor's process, between the application's
 from __future__ import annotations
 
 import contextlib
+import logging
 import queue
 import threading
 import time
@@ -46,13 +54,22 @@ from canergy.devices.mit import EXIT
 from canergy.devices.mit_gate import MitCounts
 from canergy.live.devices.mit_gates import MitGates
 from canergy.live.devices.mit_motor import MitMotor, gate_for
+from canergy.live.devices.on_stuck import DeviceNews, OnStuck
 from canergy.live.runtime import monotonic_us
 from canergy.messages import Direction, Message, ToClient
 
 __all__ = ["INCOMING_MAX", "MitBus", "MitMotor", "MitRefused", "gate_for"]
 
+log = logging.getLogger("canergy.live.devices.mit_bus")
+
 INCOMING_MAX = 10_000
 """Frames kept for an application that does not read them (a socket's buffer drops too)."""
+
+
+def _logged(line: str) -> None:
+    """A motor STUCK and ``on_stuck``'s runs as warnings; its stops and releases as info."""
+    stuck = "STUCK" in line or "--on-stuck" in line
+    log.log(logging.WARNING if stuck else logging.INFO, "%s", line)
 
 
 class MitRefused(can.CanOperationError):
@@ -72,10 +89,18 @@ class MitBus(can.BusABC):
         guard_config: dict[str, Any] | None = None,
         on_refused: str = "count",
         clock: Callable[[], int] = monotonic_us,
+        on_stuck: str | None = None,
+        report: Callable[[str], None] | None = None,
         **kwargs: Any,
     ) -> None:
+        """``on_stuck``: a command run once each time a motor becomes STUCK (``{node}`` is the
+        motor's CAN id); ``report``: told a line when a motor stops, is released or is STUCK
+        (default: logged, STUCK as a warning, the rest as info)."""
         if on_refused not in ("count", "raise"):
             raise ValueError("on_refused: 'count' or 'raise'")
+        said = report or _logged
+        self.on_stuck = None if on_stuck is None else OnStuck(on_stuck, said)
+        self.news = DeviceNews(said, self.on_stuck, lambda g: self.route.by_node[g.node].motor_id)
         self.inner = bus
         self.codec = codec or Codec()
         self.clock = clock
@@ -119,7 +144,11 @@ class MitBus(can.BusABC):
 
     def status(self, motor_id: int) -> dict[str, Any]:
         with self.lock:
-            return self.gates[motor_id].status(self.clock())
+            gate = self.gates[motor_id]
+            status = gate.status(self.clock())
+        if self.on_stuck is not None:
+            status["on_stuck"] = self.on_stuck.status(motor_id)
+        return status
 
     # -- the reader ------------------------------------------------------------------------
     def _run(self) -> None:
@@ -138,6 +167,8 @@ class MitBus(can.BusABC):
                     if gate.next_wakeup() <= now:
                         self._up(gate.on_wakeup(now))
                 self._to_motors()
+                for gate in self.gates.values():
+                    self.news(gate.guard)
 
     def _drain(self, wait: float) -> list[can.Message]:
         """What the real bus holds: the first frame within ``wait`` s, then all that is there

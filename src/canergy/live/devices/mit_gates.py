@@ -8,6 +8,9 @@ one, is refused; anything else passes); ``from_bus`` hands a frame heard on the 
 the gates it concerns (a reply, a frame to the motor from someone else); ``outgoing`` is what the
 gates themselves send to the motors. Refusals are counted by the gate and logged (the first of a
 motor and every 100th, with the reason).
+
+Every frame ``from_app`` judges is counted (``taken``): it is then one of a gate's forwarded,
+clamped or refused, or ``passed`` (not for a guarded motor), so that they add up.
 """
 
 from __future__ import annotations
@@ -51,6 +54,10 @@ class MitGates:
                 default_master(gate.model, m.motor_id) if master is None else master
             )
         self.by_node = {g.guard.node: g for g in self.gates.values()}
+        self.taken = 0
+        """Frames of the application's judged by ``from_app``."""
+        self.passed = 0
+        """Of those, frames for no guarded motor (sent unchanged)."""
 
     def side(self, frame: can.Message, gate: MitGate | None = None) -> tuple[MitGate, str] | None:
         """The motor (of all, or ``gate``) a frame reaches outside MIT mode, and how."""
@@ -63,12 +70,12 @@ class MitGates:
     def from_app(self, frame: can.Message, now: int) -> tuple[can.Message | None, str | None]:
         """What to send for a frame of the application's: itself or clamped, or None and why
         (refused, counted by the motor's gate)."""
-        if frame.is_error_frame:
-            return frame, None
-        if (side := self.side(frame)) is not None:
+        self.taken += 1
+        if (side := self.side(frame)) is not None and not frame.is_error_frame:
             return None, self.refused(side[0], side[1])
         gate = None if frame.is_extended_id else self.gates.get(frame.arbitration_id)
-        if gate is None:
+        if gate is None or frame.is_error_frame:
+            self.passed += 1
             return frame, None
         if frame.is_remote_frame:  # what a firmware makes of one is not documented: not sent
             return None, self.refused(gate, "remote frame")

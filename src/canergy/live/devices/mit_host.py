@@ -12,10 +12,19 @@ supervisor's loop: each pass it carries the application's frames to the gates an
 motors' bus (forwarded, clamped or refused), the motors' replies to the gates and on to the
 application, its guard's commands to its gate (enter the cap, exit motor mode), and its gate's
 re-clamp every hold. Everything runs on the loop's thread but the two readers, which only queue.
+
+The application's frames wait for the loop in a queue of at most ``APP_QUEUE_MAX`` frames: a
+frame that finds it full is refused (never sent), counted (``app_overflowed``, and under the
+motor it was for as ``commands.overflowed``) and logged (the first and every 100th), so that a
+flood costs bounded memory and every frame the reader took is accounted for:
+``app_taken`` = the gates' forwarded + clamped + refused + ``app_passed`` (for no guarded motor)
++ ``canergy_frames_refused`` + ``app_for_other_devices`` (frames another guarded group on the bus
+reads, not sent) + ``app_error_frames`` + ``app_overflowed``, once the queue is empty.
 """
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -33,6 +42,13 @@ from canergy.live.devices.mit_motor import MitMotor
 from canergy.messages import Message
 
 Clock = Callable[[], int]
+Others = Callable[[bool, int], str | None]
+
+APP_QUEUE_MAX = 1_000
+"""The application's frames waiting for the supervisor's loop, at most (a pass takes them all:
+at 1 Mbit/s, 8 frames a ms at most, this is a loop held off for over 100 ms)."""
+
+log = logging.getLogger("canergy.live.devices.mit_host")
 
 
 class MitHost:
@@ -46,8 +62,16 @@ class MitHost:
         codec: Codec,
         wake: Callable[[], None],
         clock: Clock,
+        queue_max: int | None = None,
+        others: Others | None = None,
     ) -> None:
+        """``others``: how the other guarded groups on the bus read a frame (None: as none of
+        theirs); the application's frames they would read are not put on the bus: their guards
+        do not hear what this process sends, so a write to their devices would pass unseen."""
+        self.others = others
+        self.for_others = 0
         self.bus = bus
+        self.queue_max = APP_QUEUE_MAX if queue_max is None else queue_max
         self.clock = clock
         self.app = app
         self.route = route
@@ -58,6 +82,14 @@ class MitHost:
         self.from_bus: list[can.Message] = []
         self.to_motors = 0
         self.to_app = 0
+        self.taken = 0
+        """Frames the reader took from the application's bus."""
+        self.overflowed = 0
+        """Of those, refused because the queue was full."""
+        self.overflowed_by_id: dict[int, int] = {}
+        """The same, by the guarded motor each was for."""
+        self.queue_peak = 0
+        self.error_frames = 0
         self.canergy_refused = 0
         """Frames in canergy's identifier block from the application: not put on the bus."""
         self.send_failures = 0
@@ -82,7 +114,25 @@ class MitHost:
             if frame is None:
                 continue
             with self.lock:
-                self.from_app.append(frame)
+                self.taken += 1
+                full = len(self.from_app) >= self.queue_max
+                if full:
+                    self.overflowed += 1
+                    motor = frame.arbitration_id
+                    if not frame.is_extended_id and motor in self.route.gates:
+                        self.overflowed_by_id[motor] = self.overflowed_by_id.get(motor, 0) + 1
+                    n = self.overflowed
+                else:
+                    self.from_app.append(frame)
+                    self.queue_peak = max(self.queue_peak, len(self.from_app))
+            if full and (n == 1 or n % 100 == 0):
+                log.warning(
+                    "MIT: the application's frame to 0x%X refused: %d frames wait already; "
+                    "%d refused so far",
+                    frame.arbitration_id,
+                    self.queue_max,
+                    n,
+                )
             self.wake()
 
     def heard(self, frame: can.Message) -> None:
@@ -110,10 +160,23 @@ class MitHost:
                 self._send(self.app, frame)
         for frame in app:
             if frame.is_error_frame:
+                self.error_frames += 1
                 continue
             if frame.is_extended_id and self.codec.is_canergy_id(frame.arbitration_id):
                 self.canergy_refused += 1
                 continue
+            if self.others is not None:
+                why = self.others(frame.is_extended_id, frame.arbitration_id)
+                if why is not None:
+                    self.for_others += 1
+                    if self.for_others == 1 or self.for_others % 100 == 0:
+                        log.warning(
+                            "MIT: the application's frame 0x%X refused: %s; %d refused so far",
+                            frame.arbitration_id,
+                            why,
+                            self.for_others,
+                        )
+                    continue
             out, _ = self.route.from_app(frame, now)
             self.send_out()
             if out is not None:
@@ -133,10 +196,19 @@ class MitHost:
             self.send_failures += 1
 
     def status(self) -> dict[str, int]:
+        with self.lock:
+            taken, overflowed, peak = self.taken, self.overflowed, self.queue_peak
         return {
             "to_motors": self.to_motors,
             "to_app": self.to_app,
+            "app_taken": taken,
+            "app_queue_max": self.queue_max,
+            "app_queue_peak": peak,
+            "app_overflowed": overflowed,
+            "app_passed": self.route.passed,
+            "app_error_frames": self.error_frames,
             "canergy_frames_refused": self.canergy_refused,
+            "app_for_other_devices": self.for_others,
             "forward_send_failures": self.send_failures,
             "app_receive_failures": self.receive_failures,
         }
@@ -196,7 +268,11 @@ class MitLink:
         return self.gate.next_send
 
     def status(self) -> dict[str, object]:
-        return {**self.gate.details(), **self.host.status()}
+        details = self.gate.details()
+        with self.host.lock:
+            overflowed = self.host.overflowed_by_id.get(self.gate.motor_id, 0)
+        details["commands"]["overflowed"] = overflowed
+        return {**details, **self.host.status()}
 
     def close(self) -> None:
         """Carry out what is queued (a halt's stop), then close the host (once)."""
@@ -221,6 +297,8 @@ class MitMotors:
     timing: Timing
     guard_config: dict[str, Any] = field(default_factory=dict)
     codec: Codec = field(default_factory=Codec)
+    others: Others | None = None
+    """How the other guarded groups on the bus read a frame (``canergy.devices.bus_ids``)."""
 
     @property
     def nodes(self) -> tuple[int, ...]:
@@ -231,7 +309,7 @@ class MitMotors:
     ) -> dict[int, tuple[DeviceGuard[Any], MitLink]]:
         """A gate (its guard the proxy) and a link per motor, around one host."""
         route = MitGates(self.motors, now, self.timing, self.guard_config)
-        host = MitHost(bus, self.open_app(), route, self.codec, wake, clock)
+        host = MitHost(bus, self.open_app(), route, self.codec, wake, clock, others=self.others)
         return {
             gate.guard.node: (gate.guard, MitLink(host, gate, listens=i == 0))
             for i, gate in enumerate(route.gates.values())

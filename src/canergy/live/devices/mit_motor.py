@@ -52,7 +52,9 @@ def gate_for(
         torque = int(model.t_max * UNM_PER_NM)
     speed = motor.max_speed if motor.max_speed is not None else float(model.v_max)
     limits = MitLimits(torque, min(round(speed * UNM_PER_NM), int(model.v_max * UNM_PER_NM)))
-    device = DeviceConfig(limits=limits, timing=timing, **(config or {}))
+    whole = MitLimits(int(model.t_max * UNM_PER_NM), int(model.v_max * UNM_PER_NM))
+    # a motor that ignores exit holds its last command, whose stiffness term grows as it moves
+    device = DeviceConfig(limits=limits, timing=timing, stuck_limits=whole, **(config or {}))
     nonce = secrets.randbits(16)
     return MitGate(
         motor.motor_id, motor.node, model, device, now, nonce, resistance=r, hold_us=motor.hold_us

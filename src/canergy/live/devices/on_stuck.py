@@ -11,6 +11,10 @@ The command is split as a shell would (``shlex``) but run without one. ``{node}`
 ``{profile}`` in it are replaced, and the environment carries ``CANERGY_STUCK_NODE``,
 ``CANERGY_STUCK_PROFILE`` and ``CANERGY_STUCK_REASON``. Its start and its exit status are told
 on the report line (stderr); a command that cannot start is told, never raised into the loop.
+
+``DeviceNews`` is what a host says of its guarded devices, the one piece the supervisor (its
+ODrive axes, moteus controllers and hosted MIT motors) and ``MitBus`` (``canergy inline``) use:
+a line when a device's phase or stop reason changes, a STUCK one as such, and ``OnStuck`` called.
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
+
+from canergy.devices.guard import DeviceGuard
 
 
 class OnStuckError(ValueError):
@@ -121,3 +127,41 @@ class OnStuck:
                 "exit_code": last.exit_code,
                 "error": last.error,
             }
+
+
+class DeviceNews:
+    """Call on every pass with each guarded device: ``report`` gets a line when its phase or
+    stop reason changes (``mit motor 1: STUCK (...; stop repeated; 0.123 J left)``), and
+    ``on_stuck`` (``--on-stuck``) is told its ``stuck`` reason."""
+
+    def __init__(
+        self,
+        report: Callable[[str], None] | None,
+        on_stuck: OnStuck | None,
+        ident: Callable[[DeviceGuard[Any]], int] | None = None,
+    ) -> None:
+        """``ident``: the number a device goes by (default: its guard's node id; ``MitBus``:
+        the motor's CAN id, its proxy's node id being another)."""
+        self.report = report
+        self.on_stuck = on_stuck
+        self.ident = ident or (lambda guard: guard.node)
+        self.said: dict[int, tuple[str, str | None]] = {}
+
+    def __call__(self, guard: DeviceGuard[Any]) -> None:
+        stuck = guard.stuck
+        number = self.ident(guard)
+        if self.on_stuck is not None:
+            self.on_stuck(guard.profile.name, number, stuck)
+        seen = (guard.phase.value, guard.stop_reason if stuck is None else stuck)
+        if self.report is None or self.said.setdefault(number, seen) == seen:
+            return
+        self.said[number] = seen
+        left = f"{guard.usable / 1e6:.3f} J left"
+        noun = "motor" if guard.profile.name == "mit" else "axis"
+        what = f"{guard.profile.name} {noun} {number}"
+        if stuck is not None:
+            self.report(f"{what}: STUCK ({stuck}; stop repeated; {left})")
+        elif guard.stop_reason is None:
+            self.report(f"{what}: released ({left})")
+        else:
+            self.report(f"{what}: {guard.phase.value} ({guard.stop_reason}; {left})")

@@ -1,0 +1,106 @@
+"""The application's frames before a gate decides: never an unbounded queue, never a frame
+unaccounted for. The supervisor's ``--mit`` (``MitHost``) queues them for its loop, at most
+``APP_QUEUE_MAX``: a flood larger than that is refused past the bound, counted, and the counts
+add up (forwarded + clamped + refused + overflowed = taken). ``canergy inline``'s forwarder and
+``MitBus`` keep no queue (each frame is judged when taken), and their counts add up too."""
+
+from __future__ import annotations
+
+import uuid
+from typing import Any
+
+import can
+import pytest
+
+import canergy.live.devices.mit_host as mit_host
+from canergy.codec import Codec
+from canergy.live.devices.mit_bus import MitBus, MitMotor
+from canergy.live.devices.mit_forward import POLL_MAX, MitForwarder
+from canergy.live.devices.mit_gates import MitGates
+from canergy.live.devices.mit_host import MitHost, MitLink
+from canergy.live.runtime import monotonic_us
+from firmware_model.drive.live_bench import wait_for
+from firmware_model.mit.live_bench import GREEDY, MOTOR
+
+FLOOD = 5_000
+
+
+def to_motor(arbitration_id: int = MOTOR) -> can.Message:
+    return can.Message(arbitration_id=arbitration_id, data=GREEDY, is_extended_id=False)
+
+
+def added(commands: dict[str, Any]) -> int:
+    return int(commands["forwarded"] + commands["clamped"] + commands["refused"])
+
+
+def test_a_flood_on_the_hosted_app_bus_is_held_to_the_bound_and_every_frame_counted(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """5,000 frames wait on the application's bus before the reader starts; the loop takes
+    none until the reader has taken them all (a loop held off): 100 wait, the rest are refused
+    and counted; a pass then judges the 100 (refused: no budget), and the counts add up."""
+    monkeypatch.setattr(mit_host, "APP_QUEUE_MAX", 100)
+    channel, app_channel = f"m-{uuid.uuid4().hex}", f"a-{uuid.uuid4().hex}"
+    bus = can.Bus(interface="virtual", channel=channel)
+    sender = can.Bus(interface="virtual", channel=app_channel)
+    route = MitGates([MitMotor(MOTOR, node=MOTOR)], monotonic_us())
+    app = can.Bus(interface="virtual", channel=app_channel)
+    host = MitHost(bus, app, route, Codec(), lambda: None, monotonic_us)
+    link = MitLink(host, route.gates[MOTOR], listens=True)
+    try:
+        for _ in range(FLOOD - 10):
+            sender.send(to_motor())
+        for _ in range(10):
+            sender.send(to_motor(0x123))  # for no guarded motor
+        host.start()
+        wait_for(lambda: host.status()["app_taken"] == FLOOD, timeout=60)
+        with host.lock:
+            waiting = len(host.from_app)
+        before = link.status()
+        host.pump(monotonic_us())
+        after = link.status()
+    finally:
+        host.close()
+        bus.shutdown()
+        sender.shutdown()
+    assert waiting == 100 and before["app_queue_peak"] == 100 == before["app_queue_max"]
+    assert before["app_overflowed"] == FLOOD - 100 == after["app_overflowed"]
+    assert after["commands"]["overflowed"] == FLOOD - 100 - 10  # the other 10 were for 0x123
+    assert after["commands"]["refused"] == 100  # no budget: judged, refused, counted
+    total = added(after["commands"]) + after["app_passed"] + after["app_overflowed"]
+    assert total == after["app_taken"] == FLOOD
+
+
+def test_the_forwarder_takes_a_bounded_batch_per_poll_and_its_counts_add_up() -> None:
+    channel, app_channel = f"m-{uuid.uuid4().hex}", f"a-{uuid.uuid4().hex}"
+    sender = can.Bus(interface="virtual", channel=app_channel)
+    guarded = MitBus(can.Bus(interface="virtual", channel=channel), [MitMotor(MOTOR, node=11)])
+    forwarder = MitForwarder(can.Bus(interface="virtual", channel=app_channel), guarded)
+    try:
+        for n in range(FLOOD):
+            sender.send(to_motor(MOTOR if n % 5 else 0x123))
+        forwarder.poll()
+        assert forwarder.status()["app_taken"] == POLL_MAX  # then the motors' side
+        while forwarder.status()["app_taken"] < FLOOD:
+            forwarder.poll(timeout=0)
+        status = forwarder.status()
+    finally:
+        guarded.shutdown()
+        forwarder.app.shutdown()
+        sender.shutdown()
+    commands = status["motors"][str(MOTOR)]["commands"]
+    assert status["app_passed"] == FLOOD // 5 and commands["refused"] == FLOOD * 4 // 5
+    assert added(commands) + status["app_passed"] + status["app_error_frames"] == FLOOD
+
+
+def test_mit_bus_judges_every_send_and_its_counts_add_up() -> None:
+    channel = f"m-{uuid.uuid4().hex}"
+    bus = MitBus(can.Bus(interface="virtual", channel=channel), [MitMotor(MOTOR, node=11)])
+    try:
+        for n in range(FLOOD):
+            bus.send(to_motor(MOTOR if n % 5 else 0x123))
+        commands = bus.status(MOTOR)["commands"]
+        taken, passed = bus.route.taken, bus.route.passed
+    finally:
+        bus.shutdown()
+    assert taken == FLOOD and added(commands) + passed == FLOOD

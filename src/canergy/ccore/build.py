@@ -42,14 +42,16 @@ SOURCES = (
     "supervisor.c",
     "gateway.c",
     "witness.c",
+    "telemetry.c",
 )
 """The whole library (firmware/Makefile's SRCS)."""
 NODES = 127
 
 HOST_DECLARATIONS = """
-int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned kind,
-    const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
-    struct canergy_supervisor_out *out, struct canergy_msg *m);
+int canergy_host_answer(struct canergy_supervisor *sup, struct canergy_heard *heard,
+    uint64_t lost_after_us, uint32_t id, unsigned kind, const uint8_t *data, size_t len,
+    uint64_t now, bool abort_acks, struct canergy_supervisor_out *out, struct canergy_msg *m,
+    unsigned *verdict);
 """
 """What only the host's binding calls: declared once, for cffi and (its definition's head, below)
 for the compiler."""
@@ -69,8 +71,21 @@ HOST_AUTH_DECLARATIONS = _HOST_AUTH_ANSWER + _HOST_AUTH_PROTECT + "\n"
 
 HOST_SOURCE = (
     """
+/* The session index of node, or sup->count when it is not managed. */
+static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t node)
+{
+    uint8_t i = 0U;
+    while (i < sup->count && sup->sessions[i].node != node) {
+        i++;
+    }
+    return i;
+}
+
 /* The fast path's call with the frame as arguments: one call, no struct filled field by field
-   from Python (kind: bit 0 extended identifier, bit 1 remote frame). */"""
+   from Python (kind: bit 0 extended identifier, bit 1 remote frame). An ACK, COMMITTED or
+   ABORTED of a managed node as canergy_supervisor_on_answer takes it; a TELEMETRY of one taken
+   by the TELEMETRY table as well (heard: one record per session, in the sessions' order; NULL:
+   none), its verdict in *verdict (0: no TELEMETRY taken). */"""
     + HOST_DECLARATIONS.rstrip().removesuffix(";")
     + """
 {
@@ -80,17 +95,13 @@ HOST_SOURCE = (
     rx.len = len;
     rx.extended = (kind & 1U) != 0U;
     rx.remote = (kind & 2U) != 0U;
-    return canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, m);
-}
-
-/* The session index of node, or sup->count when it is not managed. */
-static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t node)
-{
-    uint8_t i = 0U;
-    while (i < sup->count && sup->sessions[i].node != node) {
-        i++;
+    *verdict = 0U;
+    const int status = canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, m);
+    if (status == CANERGY_RX_CALLER && m->type == CANERGY_TELEMETRY && heard != NULL) {
+        const uint8_t i = canergy_host_index(sup, m->node);
+        *verdict = canergy_heard_telemetry(&heard[i], &sup->sessions[i], m, now, lost_after_us);
     }
-    return i;
+    return status;
 }
 
 /* Authenticated mode, FD layout: each of out's frames protected under its node's key (keys:

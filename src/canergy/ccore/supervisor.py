@@ -38,6 +38,7 @@ from canergy.core.variants import get_variant
 from canergy.messages import (
     MAX_NODE,
     MIN_NODE,
+    QUANTUM_UJ,
     Aborted,
     Ack,
     Committed,
@@ -239,6 +240,10 @@ class CompiledSupervisor:
         self._sup_bytes = ffi.buffer(self._sup)  # live views of the C memory
         self._out_bytes = ffi.buffer(self._out)
         self._msg = ffi.new("struct canergy_msg *")
+        self._verdict = ffi.new("unsigned *")
+        self._heard: Any = ffi.NULL
+        """The TELEMETRY table's records in C, one per session (``heard_table``)."""
+        self._lost_after_us = 0
         cfg = ffi.new("struct canergy_supervisor_config *")
         cfg.id_base = self.codec.id_base
         cfg.timing.response_timeout_us = self.timing.response_timeout_us
@@ -420,6 +425,17 @@ class CompiledSupervisor:
         self._lib.canergy_supervisor_on_msg(self._sup, m, now, self._out)
         return self._actions(resumed=isinstance(msg, Debit) and msg.is_resume)
 
+    def heard_table(self, lost_after_us: int) -> CompiledHeard:
+        """The TELEMETRY table (``canergy.live.supervisor.telemetry``) in C, one record per
+        session, made once: from then on ``on_answer`` takes a TELEMETRY of a managed node into
+        it in the same call that decodes the frame."""
+        if not 0 <= lost_after_us < 2**64:
+            raise ValueError("lost_after_us must fit 64 bits")
+        if self._heard == self._b.ffi.NULL:
+            self._heard = self._b.ffi.new("struct canergy_heard[]", len(self._sessions))
+            self._lost_after_us = lost_after_us
+        return CompiledHeard(self, self._heard, self._lost_after_us)
+
     def on_answer(
         self,
         arbitration_id: int,
@@ -428,30 +444,33 @@ class CompiledSupervisor:
         remote: bool,
         now: int,
         abort: bool,
-    ) -> tuple[int, list[Action], list[tuple[int, bytes]], Message | None]:
+    ) -> tuple[int, list[Action], list[tuple[int, bytes]], Message | None, int]:
         """A received frame on the fast path (one C call: decode, rules, the decision on an ACK,
         encode): its status and, when it was an answer the rules took (ACK, COMMITTED, ABORTED
         of a managed node), their actions and the frames to send, encoded. A TELEMETRY, RETURN,
         JOIN or DEBIT of a managed node applies nothing and comes back decoded (by the C codec,
-        which the Python one's tests fuzz against) for the caller's usual handling. Any other status
-        (an answer ahead of the session, a decode status, another node, an identifier no CAN frame
-        carries: CANERGY_RX_NOT_CAN) applied nothing and
+        which the Python one's tests fuzz against) for the caller's usual handling; a TELEMETRY
+        was taken by the TELEMETRY table in C (``heard_table``, once made) and the last element
+        is its verdict (``telemetry.TAKEN`` and ``BEYOND_BOOKS`` bits; 0 otherwise). Any other
+        status (an answer ahead of the session, a decode status, another node, an identifier no
+        CAN frame carries: CANERGY_RX_NOT_CAN) applied nothing and
         decoded nothing: the caller takes the frame its usual way, where it is judged, counted
         or reported."""
         if not 0 <= arbitration_id < _ID_LIMIT:  # no CAN identifier (another transport's)
-            return self._b.not_can, [], [], None
+            return self._b.not_can, [], [], None, 0
         m = self._msg
         kind = (1 if extended else 0) | (2 if remote else 0)
         payload = data if type(data) is bytes else bytes(data)  # cffi takes bytes as they are
         self._timer_known = False  # deadlines may move
         status = self._answer(
-            self._sup, arbitration_id, kind, payload, len(payload), now, abort, self._out, m
-        )
+            self._sup, self._heard, self._lost_after_us, arbitration_id, kind, payload,
+            len(payload), now, abort, self._out, m, self._verdict,
+        )  # fmt: skip
         b = self._b
         if status == b.ok:
-            return status, self._actions(fast=True), self._frames(), None
+            return status, self._actions(fast=True), self._frames(), None, 0
         if status != b.caller:
-            return status, [], [], None
+            return status, [], [], None, 0
         msg: Message
         if (kind := m.type) == MsgType.TELEMETRY:  # the wire's type code, the same in both codecs
             msg = Telemetry(m.node, m.level_mj, m.flags, m.seq, m.witness)
@@ -461,7 +480,7 @@ class CompiledSupervisor:
             msg = Debit(m.node, m.nonce, m.flags, m.seq, m.amount_mj)
         else:
             msg = Join(m.node, m.nonce)
-        return status, [], [], msg
+        return status, [], [], msg, self._verdict[0]
 
     def use_keys(self, key_for: Callable[[int], bytes]) -> None:
         """Authenticated mode in the FD layout: each managed node's key (``key_for(node)``,
@@ -611,6 +630,88 @@ class CompiledSupervisor:
             arbitration_id, dlc, data = b.frame.unpack_from(raw, b.frames_at + k * b.frame_size)
             frames.append((arbitration_id, data[:dlc]))
         return frames
+
+
+class CompiledHeard:
+    """The compiled core's TELEMETRY table (``CompiledSupervisor.heard_table``): the methods of
+    ``telemetry.HeardTable`` over the records in C."""
+
+    implementation = "c"
+
+    def __init__(self, core: CompiledSupervisor, records: Any, lost_after_us: int) -> None:
+        self._core = core
+        self._records = records
+        self._lost_after_us = lost_after_us
+        self._lib = core._lib
+        self._views = {n: _HeardView(records + i) for n, i in core._index.items()}
+
+    def of(self, node: int) -> _HeardView:
+        return self._views[node]
+
+    def telemetry(self, node: int, s: Session, level_mj: int, flags: int, now: int) -> int:
+        """A TELEMETRY taken the usual way (decoded in Python): into the same table in C."""
+        core = self._core
+        i = core._index[node]
+        m = core._msg
+        m.type, m.node, m.level_mj, m.flags = MsgType.TELEMETRY, node, level_mj, flags
+        sessions = core._sup.sessions
+        return int(
+            self._lib.canergy_heard_telemetry(
+                self._records + i, sessions + i, m, now, self._lost_after_us
+            )
+        )
+
+    def credited(self, node: int, amount_uj: int, now: int) -> None:
+        i = self._core._index[node]
+        self._lib.canergy_heard_credited(self._records + i, amount_uj, now, self._lost_after_us)
+
+
+class _HeardView:
+    """One node's record in C with ``telemetry.Heard``'s attributes."""
+
+    __slots__ = ("_h",)
+
+    def __init__(self, record: Any) -> None:
+        self._h = record
+
+    @property
+    def level(self) -> int | None:
+        h = self._h
+        return int(h.level_mj) * QUANTUM_UJ if h.has_level else None
+
+    @level.setter
+    def level(self, value: int | None) -> None:
+        if value is not None:
+            raise ValueError("a level is only ever set by a TELEMETRY")
+        self._h.has_level = False
+
+    @property
+    def level_at(self) -> int | None:
+        h = self._h
+        return int(h.level_at) if h.has_level_at else None
+
+    @property
+    def flags(self) -> int:
+        return int(self._h.flags)
+
+    @property
+    def heard_at(self) -> int | None:
+        h = self._h
+        return int(h.heard_at) if h.has_heard else None
+
+    @heard_at.setter
+    def heard_at(self, now: int) -> None:
+        h = self._h
+        h.heard_at, h.has_heard = now, True
+
+    @property
+    def telemetry(self) -> int:
+        return int(self._h.telemetry)
+
+    @property
+    def recent(self) -> list[tuple[int, int]]:
+        h = self._h
+        return [(int(h.recent_at[k]), int(h.recent_uj[k])) for k in range(h.recent_count)]
 
 
 def make_supervisor(

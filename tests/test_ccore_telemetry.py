@@ -1,0 +1,310 @@
+"""The TELEMETRY table written twice, side by side: ``canergy.live.supervisor.telemetry`` (the
+Python core's) and firmware/src/telemetry.c (the compiled core's, run on its frame path in the
+call that decodes the frame). Step for step the same verdicts and records; frame for frame a
+service on the Python core's usual path and one on the C core's frame path send the same
+frames, keep the same books and status and report the same intrusions, and the C path takes a
+TELEMETRY without Python's table."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import can
+import pytest
+from hypothesis import event, given, settings
+from hypothesis import strategies as st
+from support.c_binding import compiled_core, library
+
+from canergy.codec import Codec
+from canergy.core.state import Session
+from canergy.core.supervisor import Supervisor
+from canergy.core.timing import Timing
+from canergy.live.runtime import BusRuntime
+from canergy.live.supervisor import telemetry
+from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.telemetry import (
+    BEYOND_BOOKS,
+    RECENT_RETURNS,
+    TAKEN,
+    Heard,
+    credited,
+    take_telemetry,
+)
+from canergy.messages import (
+    LEVEL_MAX_MJ,
+    QUANTUM_UJ,
+    Ack,
+    Committed,
+    Direction,
+    Message,
+    MsgType,
+    Return,
+    Telemetry,
+)
+
+LOST_AFTER_US = 3_000_000
+T = Timing(response_timeout_us=1_000, retries=2)
+CODEC = Codec()
+
+
+# -- the tables, call for call ----------------------------------------------------------------
+class _CTable:
+    """firmware/src/telemetry.c on the tests' sanitizer build: one record, one session."""
+
+    def __init__(self) -> None:
+        module = library().module
+        self.ffi, self.lib = module.ffi, module.lib
+        self.h = self.ffi.new("struct canergy_heard *")
+        self.s = self.ffi.new("struct canergy_session *")
+        self.m = self.ffi.new("struct canergy_msg *")
+        self.lib.canergy_heard_init(self.h)
+        assert self.lib.CANERGY_HEARD_RECENT == RECENT_RETURNS
+        assert (self.lib.CANERGY_HEARD_TAKEN, self.lib.CANERGY_HEARD_BEYOND) == (
+            TAKEN,
+            BEYOND_BOOKS,
+        )
+
+    def telemetry(self, s: Session, level_mj: int, flags: int, now: int) -> int:
+        self.s.delivered_uj, self.s.reserved_uj, self.s.returned_uj = (
+            s.delivered,
+            s.reserved,
+            s.returned,
+        )
+        self.m.type, self.m.level_mj, self.m.flags = MsgType.TELEMETRY, level_mj, flags
+        return int(self.lib.canergy_heard_telemetry(self.h, self.s, self.m, now, LOST_AFTER_US))
+
+    def credited(self, amount_uj: int, now: int) -> None:
+        self.lib.canergy_heard_credited(self.h, amount_uj, now, LOST_AFTER_US)
+
+    def record(self) -> Heard:
+        h = self.h
+        return Heard(
+            int(h.level_mj) * QUANTUM_UJ if h.has_level else None,
+            int(h.level_at) if h.has_level_at else None,
+            int(h.flags),
+            int(h.heard_at) if h.has_heard else None,
+            int(h.telemetry),
+            [(int(h.recent_at[k]), int(h.recent_uj[k])) for k in range(h.recent_count)],
+        )
+
+
+_levels = st.one_of(
+    st.integers(0, 12_000), st.sampled_from([LEVEL_MAX_MJ - 1, LEVEL_MAX_MJ]), st.just(0)
+)
+_table_steps = st.lists(
+    st.one_of(
+        st.tuples(
+            st.just("telemetry"),
+            _levels,
+            st.sampled_from([0, Telemetry.LOW, Telemetry.JOINING, 0xFF]),
+        ),
+        *[st.tuples(st.just("credited"), st.integers(1, 65_535).map(lambda mj: mj * QUANTUM_UJ))]
+        * 3,  # often enough to fill the entries and merge them
+        st.tuples(
+            st.just("books"),
+            st.integers(0, 10**10),
+            st.integers(0, 65_535_000),
+            st.integers(0, 10**10),
+        ),
+        st.tuples(st.just("wait"), st.sampled_from([1, 1, 1_000, LOST_AFTER_US, 1_000_000])),
+    ),
+    min_size=20,
+    max_size=80,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(_table_steps)
+def test_the_c_table_takes_every_step_as_the_python_table(steps: list[tuple[Any, ...]]) -> None:
+    """Every verdict (taken, beyond the books) and the whole record after each step: level,
+    when, flags, when heard, how many, the returns credited lately (pruned after
+    ``lost_after``, merged beyond ``RECENT_RETURNS``)."""
+    c, py = _CTable(), Heard()
+    now, s = 0, Session(4)
+    for step in steps:
+        if step[0] == "telemetry":
+            verdict = take_telemetry(py, s, step[1], step[2], now, LOST_AFTER_US)
+            assert c.telemetry(s, step[1], step[2], now) == verdict, step
+            event(f"verdict {verdict}")
+        elif step[0] == "credited":
+            credited(py, step[1], now, LOST_AFTER_US)
+            c.credited(step[1], now)
+        elif step[0] == "books":  # delivered, open and returned: what it may hold
+            delivered, reserved, returned = step[1:]
+            s = Session(4, delivered=delivered + returned, reserved=reserved, returned=returned)
+        else:
+            now += step[1]
+        assert c.record() == py, step
+
+
+@pytest.mark.parametrize("side", ["python", "c"])
+def test_a_level_above_the_books_and_the_returns_lately_is_beyond_them(side: str) -> None:
+    """The table's own cases, on each side: the books allow 2 J; 1 J returned lately lifts
+    what a level may show for ``lost_after``; nine returns keep eight entries, none lost."""
+    c, py = _CTable(), Heard()
+    s = Session(4, delivered=2_000_000, returned=0)
+
+    def take(level_mj: int, now: int) -> int:
+        if side == "c":
+            return c.telemetry(s, level_mj, 0, now)
+        return take_telemetry(py, s, level_mj, 0, now, LOST_AFTER_US)
+
+    assert take(2_000, 0) == TAKEN
+    assert take(2_001, 0) == TAKEN | BEYOND_BOOKS
+    assert take(LEVEL_MAX_MJ, 0) == TAKEN  # saturated: no judgement
+    for k in range(9):
+        c.credited(100_000, k) if side == "c" else credited(py, 100_000, k, LOST_AFTER_US)
+    recent = c.record().recent if side == "c" else py.recent
+    assert len(recent) == RECENT_RETURNS and sum(uj for _, uj in recent) == 900_000
+    assert recent[0] == (1, 200_000)  # the oldest merged into the next, at the next's time
+    assert take(2_900, 10) == TAKEN  # 0.9 J returned lately still counts
+    assert take(2_900, 8 + LOST_AFTER_US + 1) == TAKEN | BEYOND_BOOKS  # long after: not
+
+
+# -- the service, frame for frame -------------------------------------------------------------
+class _Wire(can.BusABC):
+    def __init__(self) -> None:
+        super().__init__(channel="wire")
+        self.inbox: list[can.Message] = []
+        self.sent: list[tuple[int, bytes]] = []
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        self.sent.append((msg.arbitration_id, bytes(msg.data)))
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return (self.inbox.pop(0) if self.inbox else None), False
+
+
+@dataclass
+class _Bench:
+    wire: _Wire
+    service: SupervisorService
+    loop: BusRuntime
+    now: list[int]
+
+    def feed(self, msg: Message, wait: int = 100) -> None:
+        self.now[0] += wait
+        ident, data = CODEC.encode(msg)
+        self.wire.inbox.append(can.Message(arbitration_id=ident, data=data, is_extended_id=True))
+        self.loop.poll(0)
+
+    def snapshot(self) -> dict[str, Any]:
+        status = self.service.status()
+        for key in ("core", "frame_path", "frame_path_off", "frame_path_frames"):
+            status.pop(key, None)
+        return {"sent": list(self.wire.sent), "status": status}
+
+
+def _bench(core: str) -> _Bench:
+    nodes = [3, 5]
+    wire, now = _Wire(), [0]
+    sup: Any = (
+        Supervisor(nodes, 10_000_000, timing=T)
+        if core == "python"
+        else compiled_core(nodes, 10_000_000, timing=T)
+    )
+    service = SupervisorService(sup, ServiceConfig(lost_after_us=LOST_AFTER_US), 0)
+    path = service.frame_path()
+    loop = BusRuntime(
+        wire,
+        service,
+        codec=CODEC,
+        receives=Direction.TO_SUPERVISOR,
+        frame_path=path,
+        counters=service.bus_counters,
+    )
+    loop.clock = lambda: now[0]
+    return _Bench(wire, service, loop, now)
+
+
+_node = st.sampled_from([3, 5])
+_service_steps = st.lists(
+    st.one_of(
+        st.tuples(st.just("grant"), _node, st.integers(1, 3_000)),
+        st.tuples(st.just("return"), _node, st.integers(1, 1_500)),
+        st.tuples(
+            st.just("telemetry"),
+            _node,
+            st.one_of(st.integers(0, 8_000), st.just(LEVEL_MAX_MJ)),
+            st.sampled_from([0, Telemetry.LOW, Telemetry.JOINING]),
+            st.integers(0, 3),
+        ),
+        st.tuples(st.just("wait"), st.sampled_from([1_000, 1_000_000, LOST_AFTER_US + 1])),
+    ),
+    max_size=25,
+)
+
+
+def _step(b: _Bench, step: tuple[Any, ...]) -> None:
+    kind, *args = step
+    s = b.service
+    if kind == "grant":  # asked for, then answered by the node: ACK, COMMITTED
+        node, mj = args
+        s.request_grant(node, mj * QUANTUM_UJ, lambda reply: None)
+        b.now[0] += 100
+        b.loop.poll(0)
+        tx = s.core.session(node).tx & 0xFFFF
+        b.feed(Ack(node, tx))
+        b.feed(Committed(node, tx))
+    elif kind == "return":  # numbered next: credited, or beyond the books (an intrusion)
+        node, mj = args
+        b.feed(Return(node, (s.core.session(node).returns_credited + 1) & 0xFFFF, mj))
+    elif kind == "telemetry":
+        node, level, flags, witness = args
+        seq = s.core.session(node).returns_credited & 0xFFFF
+        b.feed(Telemetry(node, level, flags, seq, witness))
+    else:
+        b.now[0] += args[0]
+        b.loop.poll(0)
+
+
+@settings(max_examples=100, deadline=None)
+@given(_service_steps)
+def test_the_c_frame_path_takes_telemetry_as_the_python_path(steps: list[tuple[Any, ...]]) -> None:
+    """Frame for frame: the same frames sent, the same books and status (every node's level,
+    whether it is lost, its counts), the same intrusions with the same words (a level beyond
+    the books, a witness count that moved), the same refusals. The C run's TELEMETRY frames
+    were all taken in C."""
+    ref, c = _bench("python"), _bench("c")
+    for b in (ref, c):
+        b.feed(Telemetry(3, 0))
+        b.feed(Telemetry(5, 0))
+    assert c.snapshot() == ref.snapshot()
+    for step in steps:
+        _step(ref, step)
+        _step(c, step)
+        assert c.snapshot() == ref.snapshot(), step
+    telemetry_frames = 2 + sum(step[0] == "telemetry" for step in steps)
+    assert ref.service.telemetry_heard == c.service.telemetry_heard == telemetry_frames
+    assert ref.service.frames_in_c == 0 and c.service.frames_in_c >= telemetry_frames
+    status = c.service.status()
+    event(f"intrusions: {min(status['intrusions'], 3)}+")
+    event(f"returns credited: {min(status['nodes']['3']['returns_credited'], 2)}+")
+    for b in (ref, c):
+        b.wire.shutdown()
+
+
+def test_on_the_c_frame_path_a_telemetry_takes_no_python_table(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A TELEMETRY of a managed node on the C core's frame path is taken by the table in C in
+    the call that decodes it: Python's table, and the entry to C's for a TELEMETRY decoded in
+    Python, are never called; the status counts it among the frames the C path took."""
+
+    def fallback(*args: Any) -> None:
+        raise AssertionError("a TELEMETRY fell back to a table called from Python")
+
+    b = _bench("c")
+    monkeypatch.setattr(telemetry, "take_telemetry", fallback)
+    monkeypatch.setattr(type(b.service.heard), "telemetry", fallback)
+    b.feed(Telemetry(3, 0))
+    b.feed(Telemetry(3, 1))  # above the books (nothing granted): evidence, worded in Python
+    status = b.service.status()
+    assert status["frame_path"] == "c" and status["frame_path_frames"] == 2
+    assert status["nodes"]["3"]["level_uj"] == 1_000 and status["intrusions"] == 1
+    assert (
+        "reports 0.001000 J, its books allow 0.000000 J"
+        in (b.service.intrusions.recent[-1]["kind"])
+    )
+    b.wire.shutdown()

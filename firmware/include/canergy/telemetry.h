@@ -6,7 +6,7 @@
  * lost_after_us, which a level reported before them may still show) is evidence
  * (CANERGY_HEARD_BEYOND); the TELEMETRY is taken all the same. At most CANERGY_HEARD_RECENT
  * returns are kept: one more merges the oldest into the next, as Python's table does.
- * tests/test_ccore_telemetry.py runs both side by side.
+ * tests/test_ccore_tables.py runs both side by side.
  */
 #ifndef CANERGY_TELEMETRY_H
 #define CANERGY_TELEMETRY_H

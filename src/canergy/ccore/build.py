@@ -48,7 +48,9 @@ SOURCES = (
 NODES = 127
 
 HOST_DECLARATIONS = """
+#define CANERGY_HOST_HELD 0x10000U /* canergy_host_answer's verdict: a RETURN the witness took */
 int canergy_host_answer(struct canergy_supervisor *sup, struct canergy_heard *heard,
+    struct canergy_witness *witness, struct canergy_witness *before, bool hold,
     uint64_t lost_after_us, uint32_t id, unsigned kind, const uint8_t *data, size_t len,
     uint64_t now, bool abort_acks, struct canergy_supervisor_out *out, struct canergy_msg *m,
     unsigned *verdict);
@@ -83,9 +85,16 @@ static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t
 
 /* The fast path's call with the frame as arguments: one call, no struct filled field by field
    from Python (kind: bit 0 extended identifier, bit 1 remote frame). An ACK, COMMITTED or
-   ABORTED of a managed node as canergy_supervisor_on_answer takes it; a TELEMETRY of one taken
-   by the TELEMETRY table as well (heard: one record per session, in the sessions' order; NULL:
-   none), its verdict in *verdict (0: no TELEMETRY taken). */"""
+   ABORTED of a managed node as canergy_supervisor_on_answer takes it. With heard and witness
+   (one record each per session, in the sessions' order; NULL: none, and the rest below is the
+   caller's), for a managed node:
+   - a TELEMETRY is taken by the TELEMETRY table, then by the witness: *verdict is the table's
+     verdict with the witness's findings shifted left by 8; status CANERGY_RX_CALLER;
+   - a RETURN the books allow: without hold, or an old number, to the rules (CANERGY_DECODE_OK,
+     out as for an ACK, *verdict 0); else held by the witness, *verdict CANERGY_HOST_HELD with
+     the witness's verdict (CANERGY_RX_CALLER);
+   *before: the node's witness record as it was, whenever the witness took the frame. Anything
+   else (a RETURN beyond the books among it) leaves *verdict 0: the caller's. */"""
     + HOST_DECLARATIONS.rstrip().removesuffix(";")
     + """
 {
@@ -97,11 +106,28 @@ static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t
     rx.remote = (kind & 2U) != 0U;
     *verdict = 0U;
     const int status = canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, m);
-    if (status == CANERGY_RX_CALLER && m->type == CANERGY_TELEMETRY && heard != NULL) {
-        const uint8_t i = canergy_host_index(sup, m->node);
-        *verdict = canergy_heard_telemetry(&heard[i], &sup->sessions[i], m, now, lost_after_us);
+    if (status != CANERGY_RX_CALLER || heard == NULL || witness == NULL) {
+        return status;
     }
-    return status;
+    const uint8_t i = canergy_host_index(sup, m->node);
+    struct canergy_session *s = &sup->sessions[i];
+    if (m->type == CANERGY_TELEMETRY) {
+        *verdict = canergy_heard_telemetry(&heard[i], s, m, now, lost_after_us);
+        *before = witness[i];
+        *verdict |= canergy_witness_telemetry(&witness[i], m, s->returns_credited, now) << 8;
+        return status;
+    }
+    if (m->type != CANERGY_RETURN || canergy_witness_beyond_books(s, m)) {
+        return status;
+    }
+    const uint32_t ahead = (m->seq - s->returns_credited) & 0xFFFFU; /* Python's unwrap - ref */
+    if (hold && ahead != 0U && ahead < 0x8000U) {                      /* not credited yet */
+        *before = witness[i];
+        *verdict = CANERGY_HOST_HELD |
+                   (unsigned)canergy_witness_hold(&witness[i], m, s->returns_credited, now);
+        return status;
+    }
+    return canergy_supervisor_on_msg(sup, m, now, out);
 }
 
 /* Authenticated mode, FD layout: each of out's frames protected under its node's key (keys:

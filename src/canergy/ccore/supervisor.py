@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterable
 from functools import partial
 from typing import Any
 
+from canergy.ccore.witness import CompiledReturnGate
 from canergy.codec import Codec
 from canergy.core import witnessed
 from canergy.core.actions import (
@@ -244,6 +245,11 @@ class CompiledSupervisor:
         self._heard: Any = ffi.NULL
         """The TELEMETRY table's records in C, one per session (``heard_table``)."""
         self._lost_after_us = 0
+        self._gate: CompiledReturnGate | None = None
+        self._witness: Any = ffi.NULL
+        """The witness's records in C, one per session (``return_gate``)."""
+        self._before: Any = ffi.NULL
+        self._hold = False
         cfg = ffi.new("struct canergy_supervisor_config *")
         cfg.id_base = self.codec.id_base
         cfg.timing.response_timeout_us = self.timing.response_timeout_us
@@ -436,6 +442,16 @@ class CompiledSupervisor:
             self._lost_after_us = lost_after_us
         return CompiledHeard(self, self._heard, self._lost_after_us)
 
+    def return_gate(self, hold_us: int, block_us: int, hold: bool) -> CompiledReturnGate:
+        """The witness (``canergy.live.supervisor.witness.ReturnGate``'s interface) in C, one
+        record per session, made once: from then on ``on_answer`` takes a TELEMETRY into it
+        too, and holds a fresh RETURN there (``hold``: detection mode, without a key) or hands
+        it to the rules, in the call that decodes it."""
+        if self._gate is None:
+            self._gate = CompiledReturnGate(self, hold_us, block_us)
+            self._witness, self._before, self._hold = self._gate.records, self._gate.before, hold
+        return self._gate
+
     def on_answer(
         self,
         arbitration_id: int,
@@ -449,9 +465,13 @@ class CompiledSupervisor:
         encode): its status and, when it was an answer the rules took (ACK, COMMITTED, ABORTED
         of a managed node), their actions and the frames to send, encoded. A TELEMETRY, RETURN,
         JOIN or DEBIT of a managed node applies nothing and comes back decoded (by the C codec,
-        which the Python one's tests fuzz against) for the caller's usual handling; a TELEMETRY
-        was taken by the TELEMETRY table in C (``heard_table``, once made) and the last element
-        is its verdict (``telemetry.TAKEN`` and ``BEYOND_BOOKS`` bits; 0 otherwise). Any other
+        which the Python one's tests fuzz against) for the caller's usual handling. Once the
+        TELEMETRY table and the witness are made in C (``heard_table``, ``return_gate``), a
+        TELEMETRY was taken by both (the last element: the table's verdict, ``telemetry.TAKEN``
+        and ``BEYOND_BOOKS`` bits, with the witness's findings shifted left by 8; the record
+        as it was before in ``return_gate().before``), and a RETURN the books allow was ruled
+        (status 0, as an answer) or held by the witness (``HOST_HELD`` with its verdict); 0
+        otherwise. Any other
         status (an answer ahead of the session, a decode status, another node, an identifier no
         CAN frame carries: CANERGY_RX_NOT_CAN) applied nothing and
         decoded nothing: the caller takes the frame its usual way, where it is judged, counted
@@ -463,8 +483,9 @@ class CompiledSupervisor:
         payload = data if type(data) is bytes else bytes(data)  # cffi takes bytes as they are
         self._timer_known = False  # deadlines may move
         status = self._answer(
-            self._sup, self._heard, self._lost_after_us, arbitration_id, kind, payload,
-            len(payload), now, abort, self._out, m, self._verdict,
+            self._sup, self._heard, self._witness, self._before, self._hold,
+            self._lost_after_us, arbitration_id, kind, payload, len(payload), now, abort,
+            self._out, m, self._verdict,
         )  # fmt: skip
         b = self._b
         if status == b.ok:

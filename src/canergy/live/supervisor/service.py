@@ -59,6 +59,9 @@ from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
 
+HOST_HELD = 0x10000
+"""``CompiledSupervisor.on_answer``'s verdict for a RETURN the witness in C took (the C
+library's CANERGY_HOST_HELD, checked by tests/test_ccore_tables.py)."""
 EncodedBegin = Callable[[int, int, int], tuple[list[Action], list[tuple[int, bytes]]]]
 """The compiled core's ``begin_encoded``: actions, and the INTENTION as C encoded it."""
 AuthAnswer = Callable[
@@ -229,7 +232,14 @@ class SupervisorService:
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
         self.control = control
         self.stopped_by_intrusion = False
-        self.witness = ReturnGate(config.return_hold_us or 0, config.witness_block_us)
+        make_gate = getattr(core, "return_gate", None)
+        hold = config.return_hold_us is not None
+        self.witness: Any = (
+            ReturnGate(config.return_hold_us or 0, config.witness_block_us)
+            if make_gate is None
+            else make_gate(config.return_hold_us or 0, config.witness_block_us, hold)
+        )
+        """The witness (``witness.ReturnGate``): the compiled core's in C, else Python's."""
         self.witnessed = (Phase.IDLE, Debit) in core.variant.supervisor.cells
         """Rules that take DEBIT (``witnessed``): draws held, every node start confirmed."""
         self._resuming: int | None = None
@@ -296,9 +306,12 @@ class SupervisorService:
             out += self._start_grants(now, self.ready)
         return self._flush(out)
 
-    def _telemetry(self, msg: Telemetry, verdict: int, now: int) -> list[Outgoing]:
+    def _telemetry(
+        self, msg: Telemetry, verdict: int, now: int, found: int | None = None
+    ) -> list[Outgoing]:
         """A TELEMETRY the table took (``verdict``, its bits): the evidence it carries, RETURNs
-        and JOINs it confirms, and the grants it lets begin."""
+        and JOINs it confirms, and the grants it lets begin. ``found``: what the witness in C
+        found in it already (the frame path), else the witness takes it here."""
         self.telemetry_heard += 1
         # listen-only keeps no books of its own (another supervisor may be granting): no
         # judgement by them, or every level reported would look impossible
@@ -306,7 +319,11 @@ class SupervisorService:
             why = beyond_books(msg.level_mj, self.core.session(msg.node))
             self.intrusion(msg.node, repr(msg), why, now)
         credited = self.core.session(msg.node).returns_credited
-        evidence, notes = self.witness.telemetry(msg, credited, now)
+        evidence, notes = (
+            self.witness.telemetry(msg, credited, now)
+            if found is None
+            else self.witness.telemetry_words(msg, credited, found)
+        )
         for line in evidence:
             self.intrusion(msg.node, repr(msg), line, now, stop=True)
         for line in notes:
@@ -328,6 +345,16 @@ class SupervisorService:
         if (evidence := self.witness.hold(msg, credited, now)) is not None:
             self.intrusion(msg.node, repr(msg), evidence, now, stop=True)
         return True
+
+    def _held_in_c(self, msg: Return, verdict: int, now: int) -> list[Outgoing]:
+        """A RETURN the witness in C held on the frame path (``verdict``: the witness's): as
+        ``_hold_return`` and what follows it on the usual path."""
+        self.now = now
+        self.nodes[msg.node].heard.heard_at = now
+        credited = self.core.session(msg.node).returns_credited
+        if (evidence := self.witness.hold_words(msg, credited, verdict)) is not None:
+            self.intrusion(msg.node, repr(msg), evidence, now, stop=True)
+        return self._released(msg.node, now)
 
     def _hold_resume(self, msg: Debit, now: int) -> bool:
         """A RESUME (witnessed rules): without a key, one whose pending return the core would
@@ -628,10 +655,15 @@ class SupervisorService:
             now,
             self.stopping,
         )
-        if verdict:  # a TELEMETRY the table in C took: what it shows, handled here
+        if verdict & HOST_HELD:  # a RETURN the witness in C held
+            self.frames_in_c += 1
+            self._flush(self._held_in_c(cast(Return, decoded), verdict & ~HOST_HELD, now))
+            return True
+        if verdict:  # a TELEMETRY the table and the witness in C took: what it shows, here
             self.frames_in_c += 1
             self.now = now
-            self._flush(self._telemetry(cast(Telemetry, decoded), verdict, now))  # held
+            msg = cast(Telemetry, decoded)
+            self._flush(self._telemetry(msg, verdict & 0xFF, now, verdict >> 8))  # held
             return True
         if decoded is not None:  # a RETURN, JOIN or DEBIT: as if the loop had decoded it
             self.frames_in_c += 1

@@ -9,7 +9,7 @@ returns credited within ``lost_after_us``) is evidence: no honest node reports i
 
 Written twice, once here and once in C (firmware/src/telemetry.c, canergy/telemetry.h), which
 the compiled core runs on its frame path in the same call that decodes the frame;
-tests/test_ccore_telemetry.py runs both side by side. The returns credited lately are kept in
+tests/test_ccore_tables.py runs both side by side. The returns credited lately are kept in
 at most ``RECENT_RETURNS`` entries: one more merges the oldest into the next (its amount then
 lags as long as that one's), so a level is never judged against less than was credited.
 

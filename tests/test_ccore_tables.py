@@ -1,9 +1,11 @@
-"""The TELEMETRY table written twice, side by side: ``canergy.live.supervisor.telemetry`` (the
-Python core's) and firmware/src/telemetry.c (the compiled core's, run on its frame path in the
-call that decodes the frame). Step for step the same verdicts and records; frame for frame a
-service on the Python core's usual path and one on the C core's frame path send the same
-frames, keep the same books and status and report the same intrusions, and the C path takes a
-TELEMETRY without Python's table."""
+"""The supervisor's tables written twice, side by side. The TELEMETRY table,
+``canergy.live.supervisor.telemetry`` and firmware/src/telemetry.c: step for step the same
+verdicts and records. The witness's RETURN hold, ``canergy.live.supervisor.witness.ReturnGate``
+and firmware/src/witness.c (table for table in tests/test_c_witness.py), here through the
+service. Frame for frame a service on the Python core's usual path and one on the C core's frame
+path (the tables run in the call that decodes the frame) send the same frames, keep the same
+books and status and report the same intrusions in the same words; and on the C path a
+TELEMETRY or a RETURN takes none of Python's tables."""
 
 from __future__ import annotations
 
@@ -196,7 +198,7 @@ class _Bench:
         return {"sent": list(self.wire.sent), "status": status}
 
 
-def _bench(core: str) -> _Bench:
+def _bench(core: str, hold_us: int | None = None) -> _Bench:
     nodes = [3, 5]
     wire, now = _Wire(), [0]
     sup: Any = (
@@ -204,7 +206,8 @@ def _bench(core: str) -> _Bench:
         if core == "python"
         else compiled_core(nodes, 10_000_000, timing=T)
     )
-    service = SupervisorService(sup, ServiceConfig(lost_after_us=LOST_AFTER_US), 0)
+    config = ServiceConfig(lost_after_us=LOST_AFTER_US, return_hold_us=hold_us)
+    service = SupervisorService(sup, config, 0)
     path = service.frame_path()
     loop = BusRuntime(
         wire,
@@ -308,3 +311,120 @@ def test_on_the_c_frame_path_a_telemetry_takes_no_python_table(
         in (b.service.intrusions.recent[-1]["kind"])
     )
     b.wire.shutdown()
+
+
+# -- the witness's RETURN hold, frame for frame -------------------------------------------------
+HOLD_US = 500_000
+_witness_steps = st.lists(
+    st.one_of(
+        st.tuples(st.just("grant"), _node, st.integers(1, 3_000)),
+        st.tuples(st.just("return"), _node, st.integers(1, 3), st.integers(1, 1_500)),
+        st.tuples(
+            st.just("telemetry"),
+            _node,
+            st.integers(0, 6_000),
+            st.integers(-1, 3),
+            st.sampled_from([0, 0, 0, 1, 2]),  # mostly no evidence: returns are released
+        ),
+        st.tuples(st.just("wait"), st.sampled_from([1_000, HOLD_US, HOLD_US + 1, 5_000_000])),
+    ),
+    max_size=30,
+)
+
+
+def _witness_step(b: _Bench, step: tuple[Any, ...], witness: dict[int, int]) -> None:
+    """A RETURN numbered 1-3 past the books' (held, a copy, another amount: evidence); a
+    TELEMETRY reporting a return number -1..3 past them and a witness count moved by 0-2."""
+    kind, *args = step
+    s = b.service
+    if kind == "return":
+        node, ahead, mj = args
+        b.feed(Return(node, (s.core.session(node).returns_credited + ahead) & 0xFFFF, mj))
+    elif kind == "telemetry":
+        node, level, ahead, moved = args
+        witness[node] = (witness[node] + moved) & 0xFF
+        seq = (s.core.session(node).returns_credited + ahead) & 0xFFFF
+        b.feed(Telemetry(node, level, 0, seq, witness[node]))
+    else:
+        _step(b, step)
+
+
+@settings(max_examples=100, deadline=None)
+@given(_witness_steps)
+def test_the_c_frame_path_holds_returns_as_the_python_path(steps: list[tuple[Any, ...]]) -> None:
+    """Without a key (``return_hold_us``): frame for frame the same frames, books and status
+    (returns held, refuted, resynchronised, credited), the same evidence in the same words (a
+    witness count that moved, a return number that went back, two RETURNs under one number)
+    and the same stop-worthy intrusions. The C run took every TELEMETRY and RETURN the books
+    allow in C."""
+    ref, c = _bench("python", HOLD_US), _bench("c", HOLD_US)
+    witness = {"python": {3: 0, 5: 0}, "c": {3: 0, 5: 0}}
+    for b in (ref, c):
+        b.feed(Telemetry(3, 0))
+        b.feed(Telemetry(5, 0))
+    for step in steps:
+        _witness_step(ref, step, witness["python"])
+        _witness_step(c, step, witness["c"])
+        assert c.snapshot() == ref.snapshot(), step
+    assert [r["kind"] for r in c.service.intrusions.recent] == [
+        r["kind"] for r in ref.service.intrusions.recent
+    ]
+    status = c.service.status()
+    held = sum(n.get("returns_refuted", 0) for n in status["nodes"].values())
+    event(f"refuted: {min(held, 2)}+, intrusions: {min(status['intrusions'], 2)}+")
+    event(f"credited: {min(status['nodes']['3']['returns_credited'], 2)}+")
+    for b in (ref, c):
+        b.wire.shutdown()
+
+
+def _no_fallback(*args: Any) -> None:
+    raise AssertionError("fell back to a rule called from Python")
+
+
+def test_on_the_c_frame_path_a_return_takes_no_python_rule(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A RETURN the books allow is held by the witness in C (without a key) in the call that
+    decodes it, or credited by the rules there (an old number; with a key, no hold): neither
+    Python's gate nor the core's ``receive`` (a frame decoded in Python) is called, and the
+    status counts both among the frames the C path took."""
+    for hold in (HOLD_US, None):
+        b = _bench("c", hold)
+        b.feed(Telemetry(3, 0))
+        _step(b, ("grant", 3, 2_000))
+        taken = b.service.frames_in_c
+        monkeypatch.setattr(type(b.service.witness), "hold", _no_fallback)
+        monkeypatch.setattr(type(b.service.core), "receive", _no_fallback)
+        b.feed(Return(3, 1, 500))
+        node = b.service.status()["nodes"]["3"]
+        if hold is None:  # credited at once
+            assert node["returns_credited"] == 1 and node["returns_credited_uj"] == 500_000
+        else:
+            assert node["returns_held"] == 1 and node["returns_credited"] == 0
+        assert b.service.frames_in_c == taken + 1
+        monkeypatch.undo()
+        b.wire.shutdown()
+
+
+def test_on_the_c_frame_path_the_witness_reads_a_telemetry_in_c(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The witness takes a TELEMETRY in C, in the call that decodes it: Python's gate is not
+    called, and what C found is worded as Python words it (a witness count that moved)."""
+    b = _bench("c", HOLD_US)
+    monkeypatch.setattr(type(b.service.witness), "telemetry", _no_fallback)
+    b.feed(Telemetry(3, 0, 0, 0, 0))
+    b.feed(Telemetry(3, 0, 0, 0, 2))
+    status = b.service.status()
+    assert status["frame_path_frames"] == 2 and status["intrusions"] == 1
+    assert b.service.intrusions.recent[-1]["kind"] == (
+        "the node saw 2 frame(s) in its name that it did not send"
+    )
+    b.wire.shutdown()
+
+
+def test_the_verdict_of_a_held_return_is_the_libraries() -> None:
+    """The service reads a RETURN the witness in C held by the library's own value."""
+    from canergy.live.supervisor.service import HOST_HELD
+
+    assert library().module.lib.CANERGY_HOST_HELD == HOST_HELD

@@ -5,7 +5,9 @@ and firmware/src/witness.c (table for table in tests/test_c_witness.py), here th
 service. Frame for frame a service on the Python core's usual path and one on the C core's frame
 path (the tables run in the call that decodes the frame) send the same frames, keep the same
 books and status and report the same intrusions in the same words; and on the C path a
-TELEMETRY or a RETURN takes none of Python's tables."""
+TELEMETRY or a RETURN takes none of Python's tables. The grant caps, ``policy.capped_grant``,
+``RateLimiter`` and ``TopUp.wanted`` and firmware/src/grants.c: call for call, and through a
+service with a top-up policy and limits on each core, frame for frame."""
 
 from __future__ import annotations
 
@@ -18,12 +20,16 @@ from hypothesis import event, given, settings
 from hypothesis import strategies as st
 from support.c_binding import compiled_core, library
 
+from canergy.ccore.grants import CompiledGrantCaps
 from canergy.codec import Codec
 from canergy.core.state import Session
 from canergy.core.supervisor import Supervisor
 from canergy.core.timing import Timing
 from canergy.live.runtime import BusRuntime
+from canergy.live.supervisor import policy as policy_module
 from canergy.live.supervisor import telemetry
+from canergy.live.supervisor.grants import PythonGrantCaps
+from canergy.live.supervisor.policy import Limits, TopUp, level_room
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.live.supervisor.telemetry import (
     BEYOND_BOOKS,
@@ -39,6 +45,7 @@ from canergy.messages import (
     Ack,
     Committed,
     Direction,
+    Intention,
     Message,
     MsgType,
     Return,
@@ -198,7 +205,9 @@ class _Bench:
         return {"sent": list(self.wire.sent), "status": status}
 
 
-def _bench(core: str, hold_us: int | None = None) -> _Bench:
+def _bench(
+    core: str, hold_us: int | None = None, limits: Limits | None = None, policy: TopUp | None = None
+) -> _Bench:
     nodes = [3, 5]
     wire, now = _Wire(), [0]
     sup: Any = (
@@ -206,7 +215,12 @@ def _bench(core: str, hold_us: int | None = None) -> _Bench:
         if core == "python"
         else compiled_core(nodes, 10_000_000, timing=T)
     )
-    config = ServiceConfig(lost_after_us=LOST_AFTER_US, return_hold_us=hold_us)
+    config = ServiceConfig(
+        lost_after_us=LOST_AFTER_US,
+        return_hold_us=hold_us,
+        limits=limits or Limits(),
+        policy=policy,
+    )
     service = SupervisorService(sup, config, 0)
     path = service.frame_path()
     loop = BusRuntime(
@@ -428,3 +442,123 @@ def test_the_verdict_of_a_held_return_is_the_libraries() -> None:
     from canergy.live.supervisor.service import HOST_HELD
 
     assert library().module.lib.CANERGY_HOST_HELD == HOST_HELD
+
+
+# -- the grant caps, call for call and frame for frame ----------------------------------------
+_maybe = st.one_of(st.none(), st.none(), st.integers(0, 20_000_000), st.integers(0, 2**39))
+_limits = st.builds(
+    Limits,
+    max_grant=st.integers(1, 65_535).map(lambda mj: mj * QUANTUM_UJ),
+    max_node_level=st.one_of(st.none(), st.none(), st.integers(0, level_room(65_535_000))),
+    max_total=_maybe,
+    rate_uj_per_s=_maybe,
+)
+_policies = st.one_of(
+    st.none(),
+    st.builds(TopUp, target=st.integers(0, 20_000_000), minimum=st.integers(0, 5_000_000)),
+)
+_cap_steps = st.lists(
+    st.one_of(
+        st.tuples(st.just("wait"), st.integers(0, 3_000_000)),
+        st.tuples(
+            st.just("cap"),
+            st.one_of(st.integers(-10, 70_000_000), st.integers(0, 2**41)),
+            st.one_of(
+                st.none(),
+                st.integers(0, 10_000_000),
+                st.integers(0, LEVEL_MAX_MJ * QUANTUM_UJ),
+            ),
+            st.one_of(st.integers(-5_000_000, 100_000_000), st.integers(0, 2**40)),
+            st.integers(0, 3_000_000),
+        ),
+        st.tuples(st.just("wanted"), st.integers(0, LEVEL_MAX_MJ * QUANTUM_UJ)),
+    ),
+    max_size=40,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(_limits, _policies, _cap_steps)
+def test_the_c_grant_caps_size_every_grant_as_python_does(
+    limits: Limits, policy: TopUp | None, steps: list[tuple[Any, ...]]
+) -> None:
+    """``capped_grant`` with the rate limiter's tokens, and ``TopUp.wanted``, call for call: the
+    same tokens at each look (refilled, taken by each grant sized), the same cap for any
+    wanted amount, level (or none), budget and total granted."""
+    py, c = PythonGrantCaps(limits, policy), CompiledGrantCaps(library().module, limits, policy)
+    now = 0
+    for step in steps:
+        if step[0] == "wait":
+            now += step[1]
+        elif step[0] == "wanted":
+            if policy is not None:
+                assert c.wanted(step[1]) == py.wanted(step[1]), step
+        else:
+            tokens = py.available(now)
+            assert c.available(now) == tokens, step
+            amount = py.cap(step[1], step[2], step[3], step[4], tokens)
+            assert c.cap(step[1], step[2], step[3], step[4], tokens) == amount, step
+            event("capped to 0" if amount == 0 else "a grant")
+            py.take(amount)
+            c.take(amount)
+
+
+def _answer_open(b: _Bench, node: int) -> None:
+    """The node answers an open INTENTION: ACK, then COMMITTED."""
+    s = b.service.core.session(node)
+    if s.phase.name == "WAIT_ACK":
+        b.feed(Ack(node, s.tx & 0xFFFF))
+        b.feed(Committed(node, s.tx & 0xFFFF))
+
+
+_top_up_steps = st.lists(
+    st.one_of(
+        st.tuples(st.just("telemetry"), _node, st.integers(0, 8_000), st.just(0), st.just(0)),
+        st.tuples(st.just("answer"), _node),
+        st.tuples(st.just("grant"), _node, st.integers(1, 3_000)),
+        st.tuples(st.just("wait"), st.sampled_from([1_000, 100_000, 1_000_000])),
+    ),
+    max_size=25,
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(_limits, st.builds(TopUp, target=st.integers(1_000, 8_000_000)), _top_up_steps)
+def test_the_c_core_grants_as_the_python_core(
+    limits: Limits, top_up: TopUp, steps: list[tuple[Any, ...]]
+) -> None:
+    """With a top-up policy and limits, frame for frame: the same INTENTIONs (sized by the caps
+    in C on the C core), the same refusals of one-shot grants, books and status."""
+    ref, c = _bench("python", None, limits, top_up), _bench("c", None, limits, top_up)
+    assert c.service.desk.caps.implementation == "c"
+    for b in (ref, c):
+        b.feed(Telemetry(3, 0))
+        b.feed(Telemetry(5, 0))
+    for step in steps:
+        for b in (ref, c):
+            if step[0] == "answer":
+                _answer_open(b, step[1])
+            else:
+                _step(b, step)
+        assert c.snapshot() == ref.snapshot(), step
+    intentions = sum(ident >> 8 & 0xF == Intention.TYPE for ident, _ in c.wire.sent)
+    event(f"INTENTIONs sent: {min(intentions, 3)}+")
+    for b in (ref, c):
+        b.wire.shutdown()
+
+
+def test_the_c_core_sizes_grants_without_pythons_caps(monkeypatch: pytest.MonkeyPatch) -> None:
+    """On the C core the grant desk sizes a top-up and a one-shot grant in C: Python's
+    ``capped_grant`` and ``RateLimiter`` are never called."""
+    monkeypatch.setattr(policy_module, "capped_grant", _no_fallback)
+    monkeypatch.setattr(policy_module.RateLimiter, "available", _no_fallback)
+    monkeypatch.setattr(PythonGrantCaps, "cap", _no_fallback)
+    b = _bench("c", None, Limits(rate_uj_per_s=5_000_000), TopUp(3_000_000))
+    b.feed(Telemetry(3, 1_000))  # 2 J short: a top-up
+    assert b.service.core.session(3).reserved == 2_000_000
+    _answer_open(b, 3)
+    replies: list[dict[str, Any]] = []
+    b.service.request_grant(5, 1_000_000, replies.append)
+    b.feed(Telemetry(5, 3_000))  # at the target: the one-shot grant only
+    assert b.service.core.session(5).reserved == 1_000_000 and not replies
+    b.wire.shutdown()

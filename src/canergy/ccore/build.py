@@ -43,6 +43,7 @@ SOURCES = (
     "gateway.c",
     "witness.c",
     "telemetry.c",
+    "grants.c",
 )
 """The whole library (firmware/Makefile's SRCS)."""
 NODES = 127

@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterable
 from functools import partial
 from typing import Any
 
+from canergy.ccore.grants import CompiledGrantCaps, fits
 from canergy.ccore.witness import CompiledReturnGate
 from canergy.codec import Codec
 from canergy.core import witnessed
@@ -36,6 +37,7 @@ from canergy.core.state import Decision, Outcome, Phase, Session, SupervisorStat
 from canergy.core.supervisor import Supervisor, SupervisorCore
 from canergy.core.timing import Timing
 from canergy.core.variants import get_variant
+from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.messages import (
     MAX_NODE,
     MIN_NODE,
@@ -451,6 +453,11 @@ class CompiledSupervisor:
             self._gate = CompiledReturnGate(self, hold_us, block_us)
             self._witness, self._before, self._hold = self._gate.records, self._gate.before, hold
         return self._gate
+
+    def grant_caps(self, limits: Limits, policy: TopUp | None) -> CompiledGrantCaps | None:
+        """The grant caps (``canergy.live.supervisor.grants.GrantCaps``) in C, or None for
+        limits beyond what they take exactly (``canergy.ccore.grants.fits``)."""
+        return CompiledGrantCaps(self._b.module, limits, policy) if fits(limits, policy) else None
 
     def on_answer(
         self,

@@ -180,7 +180,9 @@ class SupervisorService:
         )
         """The TELEMETRY table (``telemetry``): the compiled core's in C, else Python's."""
         self.nodes = {n: NodeInfo(self.heard.of(n)) for n in core.nodes}
-        self.desk = GrantDesk(config.limits, config.policy)
+        make_caps = getattr(core, "grant_caps", None)
+        caps = None if make_caps is None else make_caps(config.limits, config.policy)
+        self.desk = GrantDesk(config.limits, config.policy, caps)
         """Sizes one-shot grants and top-ups under the limits and the rate limiter."""
         self.delivered_at_start = sum(s.delivered for s in core.state.sessions)
         self.started_at = now

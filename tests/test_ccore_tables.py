@@ -16,7 +16,7 @@ from typing import Any
 
 import can
 import pytest
-from hypothesis import event, given, settings
+from hypothesis import event, example, given, settings
 from hypothesis import strategies as st
 from support.c_binding import compiled_core, library
 
@@ -29,6 +29,7 @@ from canergy.live.runtime import BusRuntime
 from canergy.live.supervisor import policy as policy_module
 from canergy.live.supervisor import telemetry
 from canergy.live.supervisor.grants import PythonGrantCaps
+from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
 from canergy.live.supervisor.policy import Limits, TopUp, level_room
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.live.supervisor.telemetry import (
@@ -46,6 +47,7 @@ from canergy.messages import (
     Committed,
     Direction,
     Intention,
+    Join,
     Message,
     MsgType,
     Return,
@@ -437,11 +439,13 @@ def test_on_the_c_frame_path_the_witness_reads_a_telemetry_in_c(
     b.wire.shutdown()
 
 
-def test_the_verdict_of_a_held_return_is_the_libraries() -> None:
-    """The service reads a RETURN the witness in C held by the library's own value."""
-    from canergy.live.supervisor.service import HOST_HELD
+def test_the_verdicts_of_a_held_return_and_join_are_the_libraries() -> None:
+    """The service reads a RETURN the witness in C held, and a JOIN held in C, by the library's
+    own values."""
+    from canergy.live.supervisor.service import HOST_HELD, HOST_JOIN
 
-    assert library().module.lib.CANERGY_HOST_HELD == HOST_HELD
+    lib = library().module.lib
+    assert (lib.CANERGY_HOST_HELD, lib.CANERGY_HOST_JOIN) == (HOST_HELD, HOST_JOIN)
 
 
 # -- the grant caps, call for call and frame for frame ----------------------------------------
@@ -561,4 +565,92 @@ def test_the_c_core_sizes_grants_without_pythons_caps(monkeypatch: pytest.Monkey
     b.service.request_grant(5, 1_000_000, replies.append)
     b.feed(Telemetry(5, 3_000))  # at the target: the one-shot grant only
     assert b.service.core.session(5).reserved == 1_000_000 and not replies
+    b.wire.shutdown()
+
+
+# -- the held JOINs, frame for frame ----------------------------------------------------------
+_join_steps = st.lists(
+    st.one_of(
+        st.tuples(st.just("join"), _node, st.integers(1, 3)),
+        st.tuples(
+            st.just("telemetry"),
+            _node,
+            st.integers(0, 3_000),
+            st.sampled_from([0, Telemetry.JOINING]),
+            st.just(0),
+        ),
+        st.tuples(st.just("grant"), _node, st.integers(1, 2_000)),
+        st.tuples(st.just("answer"), _node),
+        st.tuples(
+            st.just("wait"), st.sampled_from([1_000, JOIN_HOLD_US - 1_000, JOIN_HOLD_US + 1])
+        ),
+    ),
+    max_size=30,
+)
+
+
+_JOINING = Telemetry.JOINING
+_HELD = JOIN_HOLD_US + 1
+
+
+@settings(max_examples=200, deadline=None)
+@given(_join_steps)
+@example(  # a JOIN after the one confirmed cancels its admission
+    [("join", 3, 1), ("telemetry", 3, 0, _JOINING, 0), ("join", 3, 2), ("wait", _HELD)]
+)
+@example(  # admitted, then the node shows its books: the same JOIN again is a replay
+    [
+        ("join", 3, 1),
+        ("telemetry", 3, 0, _JOINING, 0),
+        ("wait", _HELD),
+        ("telemetry", 3, 0, 0, 0),
+        ("join", 3, 1),
+        ("telemetry", 3, 0, 0, 0),
+    ]
+)
+def test_the_c_frame_path_holds_joins_as_the_python_path(steps: list[tuple[Any, ...]]) -> None:
+    """JOINs held in C as in Python, frame for frame: confirmed by a TELEMETRY without books
+    and admitted after the hold (the same ADMIT, the same write-off), refused by one with books
+    (the same intrusions in the same words), a copy of the JOIN just admitted counted as
+    re-sent; the same books and status. The C run took every JOIN in C."""
+    ref, c = _bench("python"), _bench("c")
+    for b in (ref, c):
+        b.feed(Telemetry(3, 0))
+        b.feed(Telemetry(5, 0))
+    for step in steps:
+        for b in (ref, c):
+            if step[0] == "join":
+                b.feed(Join(step[1], step[2]))
+            elif step[0] == "answer":
+                _answer_open(b, step[1])
+            else:
+                _step(b, step)
+        assert c.snapshot() == ref.snapshot(), step
+    assert [r["kind"] for r in c.service.intrusions.recent] == [
+        r["kind"] for r in ref.service.intrusions.recent
+    ]
+    status = c.service.status()
+    admitted = sum(n["admitted"] for n in status["nodes"].values())
+    event(f"admitted: {min(admitted, 2)}+, intrusions: {min(status['intrusions'], 2)}+")
+    for b in (ref, c):
+        b.wire.shutdown()
+
+
+def test_on_the_c_frame_path_a_join_takes_no_python_table(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A JOIN is held in C in the call that decodes it, and the TELEMETRY that confirms it
+    is taken there too: neither Python's ``JoinHold`` nor the entries to C's for frames decoded
+    in Python are called; the JOIN is admitted after the hold and counted among the frames
+    the C path took."""
+    b = _bench("c")
+    for table in (JoinHold, type(b.service.joins)):
+        monkeypatch.setattr(table, "on_join", _no_fallback)
+        monkeypatch.setattr(table, "on_telemetry", _no_fallback)
+    b.feed(Join(3, 7))
+    b.feed(Telemetry(3, 0, Telemetry.JOINING))
+    assert b.service.frames_in_c == 2 and b.service.joins.holding(3)
+    b.now[0] += JOIN_HOLD_US
+    b.loop.poll(0)
+    assert b.service.status()["nodes"]["3"]["admitted"] == 1
     b.wire.shutdown()

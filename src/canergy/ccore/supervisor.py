@@ -15,9 +15,10 @@ from __future__ import annotations
 import struct
 from collections.abc import Callable, Iterable
 from functools import partial
-from typing import Any
+from typing import Any, TypeVar, cast
 
 from canergy.ccore.grants import CompiledGrantCaps, fits
+from canergy.ccore.joins import CompiledJoinHold
 from canergy.ccore.witness import CompiledReturnGate
 from canergy.codec import Codec
 from canergy.core import witnessed
@@ -37,6 +38,7 @@ from canergy.core.state import Decision, Outcome, Phase, Session, SupervisorStat
 from canergy.core.supervisor import Supervisor, SupervisorCore
 from canergy.core.timing import Timing
 from canergy.core.variants import get_variant
+from canergy.live.supervisor.intrusions import Intrusions, Refusals
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.messages import (
     MAX_NODE,
@@ -54,6 +56,8 @@ from canergy.messages import (
     Telemetry,
     ToSupervisor,
 )
+
+T = TypeVar("T")
 
 
 class CoreMissing(RuntimeError):
@@ -243,15 +247,13 @@ class CompiledSupervisor:
         self._sup_bytes = ffi.buffer(self._sup)  # live views of the C memory
         self._out_bytes = ffi.buffer(self._out)
         self._msg = ffi.new("struct canergy_msg *")
-        self._verdict = ffi.new("unsigned *")
-        self._heard: Any = ffi.NULL
-        """The TELEMETRY table's records in C, one per session (``heard_table``)."""
-        self._lost_after_us = 0
+        self.tables: Any = ffi.new("struct canergy_host_tables *")
+        """The service's tables in C (``heard_table``, ``return_gate``, ``join_hold``), which
+        ``on_answer`` runs once all three are made; their records are kept alive here."""
+        self._kept: list[Any] = []
+        self._tables: Any = ffi.NULL
         self._gate: CompiledReturnGate | None = None
-        self._witness: Any = ffi.NULL
-        """The witness's records in C, one per session (``return_gate``)."""
-        self._before: Any = ffi.NULL
-        self._hold = False
+        self._joins: Any = None
         cfg = ffi.new("struct canergy_supervisor_config *")
         cfg.id_base = self.codec.id_base
         cfg.timing.response_timeout_us = self.timing.response_timeout_us
@@ -439,10 +441,12 @@ class CompiledSupervisor:
         it in the same call that decodes the frame."""
         if not 0 <= lost_after_us < 2**64:
             raise ValueError("lost_after_us must fit 64 bits")
-        if self._heard == self._b.ffi.NULL:
-            self._heard = self._b.ffi.new("struct canergy_heard[]", len(self._sessions))
-            self._lost_after_us = lost_after_us
-        return CompiledHeard(self, self._heard, self._lost_after_us)
+        t = self.tables
+        if t.heard == self._b.ffi.NULL:
+            self._kept.append(self._b.ffi.new("struct canergy_heard[]", len(self._sessions)))
+            t.heard, t.lost_after_us = self._kept[-1], lost_after_us
+            self._ready()
+        return CompiledHeard(self, t.heard, int(t.lost_after_us))
 
     def return_gate(self, hold_us: int, block_us: int, hold: bool) -> CompiledReturnGate:
         """The witness (``canergy.live.supervisor.witness.ReturnGate``'s interface) in C, one
@@ -450,9 +454,41 @@ class CompiledSupervisor:
         too, and holds a fresh RETURN there (``hold``: detection mode, without a key) or hands
         it to the rules, in the call that decodes it."""
         if self._gate is None:
-            self._gate = CompiledReturnGate(self, hold_us, block_us)
-            self._witness, self._before, self._hold = self._gate.records, self._gate.before, hold
+            t = self.tables
+            before = self._b.ffi.addressof(t, "witness_before")
+            self._gate = CompiledReturnGate(self, hold_us, block_us, before)
+            t.witness, t.hold = self._gate.records, hold
+            self._ready()
         return self._gate
+
+    def join_hold(
+        self,
+        hold_us: int,
+        local_nodes: frozenset[int],
+        intrusions: Intrusions,
+        refusals: Refusals,
+        authenticated: Callable[[], bool],
+        admit: Callable[[Join, int], list[T]],
+    ) -> CompiledJoinHold[T]:
+        """The held JOINs (``canergy.live.supervisor.joins.JoinHold``'s interface) in C, one
+        record per session, made once: from then on ``on_answer`` holds a JOIN there and takes
+        a TELEMETRY into them too, in the call that decodes it."""
+        if self._joins is None:
+            t = self.tables
+            self._joins = CompiledJoinHold(
+                self, hold_us, local_nodes, intrusions, refusals, authenticated, admit
+            )
+            holds = [self._joins.hold_for(n) for n in self._index]
+            self._kept.append(self._b.ffi.new("uint64_t[]", holds))
+            t.joins, t.join_hold_us = self._joins.records, self._kept[-1]
+            self._ready()
+        return cast("CompiledJoinHold[T]", self._joins)
+
+    def _ready(self) -> None:
+        """``on_answer`` runs the tables once every one of them is made."""
+        t, null = self.tables, self._b.ffi.NULL
+        if null not in (t.heard, t.witness, t.joins):
+            self._tables = t
 
     def grant_caps(self, limits: Limits, policy: TopUp | None) -> CompiledGrantCaps | None:
         """The grant caps (``canergy.live.supervisor.grants.GrantCaps``) in C, or None for
@@ -489,11 +525,10 @@ class CompiledSupervisor:
         kind = (1 if extended else 0) | (2 if remote else 0)
         payload = data if type(data) is bytes else bytes(data)  # cffi takes bytes as they are
         self._timer_known = False  # deadlines may move
+        t = self._tables
         status = self._answer(
-            self._sup, self._heard, self._witness, self._before, self._hold,
-            self._lost_after_us, arbitration_id, kind, payload, len(payload), now, abort,
-            self._out, m, self._verdict,
-        )  # fmt: skip
+            self._sup, t, arbitration_id, kind, payload, len(payload), now, abort, self._out, m
+        )
         b = self._b
         if status == b.ok:
             return status, self._actions(fast=True), self._frames(), None, 0
@@ -508,7 +543,7 @@ class CompiledSupervisor:
             msg = Debit(m.node, m.nonce, m.flags, m.seq, m.amount_mj)
         else:
             msg = Join(m.node, m.nonce)
-        return status, [], [], msg, self._verdict[0]
+        return status, [], [], msg, 0 if t == self._b.ffi.NULL else t.verdict
 
     def use_keys(self, key_for: Callable[[int], bytes]) -> None:
         """Authenticated mode in the FD layout: each managed node's key (``key_for(node)``,

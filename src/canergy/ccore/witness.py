@@ -25,15 +25,15 @@ class CompiledReturnGate:
 
     implementation = "c"
 
-    def __init__(self, core: CompiledSupervisor, hold_us: int, block_us: int) -> None:
+    def __init__(self, core: CompiledSupervisor, hold_us: int, block_us: int, before: Any) -> None:
+        """``before``: where the frame path's call leaves the record it changed, as it was."""
         b = core._b
         self.hold_us = hold_us
         self.block_us = block_us
         self._core = core
         self._ffi, self._lib = b.ffi, b.lib
         self.records: Any = b.ffi.new("struct canergy_witness[]", len(core.nodes))
-        self.before: Any = b.ffi.new("struct canergy_witness *")
-        """The frame path's call leaves here the node's record as it was (for the words)."""
+        self.before = before
         self._release = b.ffi.new("struct canergy_witness_release *")
         self._msg = b.ffi.new("struct canergy_msg *")
         self._index = dict(core._index)

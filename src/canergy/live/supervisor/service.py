@@ -59,9 +59,11 @@ from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
 
-HOST_HELD = 0x10000
+HOST_HELD = 0x1000000
 """``CompiledSupervisor.on_answer``'s verdict for a RETURN the witness in C took (the C
 library's CANERGY_HOST_HELD, checked by tests/test_ccore_tables.py)."""
+HOST_JOIN = 0x2000000
+"""Its verdict for a JOIN held in C (CANERGY_HOST_JOIN)."""
 EncodedBegin = Callable[[int, int, int], tuple[list[Action], list[tuple[int, bytes]]]]
 """The compiled core's ``begin_encoded``: actions, and the INTENTION as C encoded it."""
 AuthAnswer = Callable[
@@ -211,8 +213,9 @@ class SupervisorService:
         )
         """Which frame path runs, and why not the compiled core's (``frame_path``)."""
         self.frames_in_c = 0
-        """Frames the compiled core's frame path took: an answer whole (decode, rules, encode),
-        a TELEMETRY, RETURN or JOIN decoded in C and then handled as usual."""
+        """Frames the compiled core's frame path took: an answer or a RETURN whole (decode,
+        rules, encode), a TELEMETRY (its tables), a RETURN held or a JOIN held, in C; a RETURN
+        beyond the books or a DEBIT decoded in C and then handled as usual."""
         self._auth_answer: AuthAnswer | None = None
         """The compiled core's frame path with a key (``fast_auth_frame``), once set up."""
         self._frame_auth: FrameAuth | None = None
@@ -246,14 +249,17 @@ class SupervisorService:
         """Rules that take DEBIT (``witnessed``): draws held, every node start confirmed."""
         self._resuming: int | None = None
         """The node whose RESUME the core is answering (its admission is no JOIN's)."""
-        self.joins: JoinHold[Outgoing] = JoinHold(
-            core.nodes,
+        joining = (
             config.join_hold_us,
             config.local_nodes,
             self.intrusions,
             self.refusals,
             lambda: self.authenticated,
             lambda join, now: self._carry_out(self.core.receive(join, now), now),
+        )
+        make_joins = getattr(core, "join_hold", None)
+        self.joins: Any = (
+            JoinHold[Outgoing](core.nodes, *joining) if make_joins is None else make_joins(*joining)
         )
         """JOINs held until the node's TELEMETRY confirms or refutes them (evidence)."""
         if config.inject_uj:
@@ -324,14 +330,18 @@ class SupervisorService:
         evidence, notes = (
             self.witness.telemetry(msg, credited, now)
             if found is None
-            else self.witness.telemetry_words(msg, credited, found)
+            else self.witness.telemetry_words(msg, credited, found & 0xFF)
         )
         for line in evidence:
             self.intrusion(msg.node, repr(msg), line, now, stop=True)
         for line in notes:
             log.warning("node %s: %s", self.node_name(msg.node), line)
         self.ready.add(msg.node)
-        out = self._released(msg.node, now) + self.joins.on_telemetry(msg, now)
+        out: list[Outgoing] = self._released(msg.node, now) + (
+            self.joins.on_telemetry(msg, now)
+            if found is None
+            else self.joins.telemetry_taken(msg, now, found >> 8)
+        )
         return out + self._start_grants(now, self.ready)
 
     def _distrusted(self, node: int, now: int) -> bool:
@@ -643,9 +653,12 @@ class SupervisorService:
         """The compiled core's fast path, for a frame the bus loop has not decoded: an ACK,
         COMMITTED or ABORTED of a managed node goes through decode, rules, the decision on an
         ACK (commit, abort when stopping) and encode in one C call, and only what it did comes
-        back here (books, replies, the next grant). False, nothing done: any other frame, one
-        that names a transaction never begun (judged on the usual path, an intrusion), the
-        Python core, listen-only, outside a loop pass. The bus loop then takes it as usual."""
+        back here (books, replies, the next grant). In the same call a TELEMETRY is taken by the
+        tables in C (``telemetry``, the witness, the held JOINs: here only the words of what
+        they found, and what follows), a RETURN is held by the witness or ruled, a JOIN held.
+        False, nothing done: any other frame, one that names a transaction never begun (judged
+        on the usual path, an intrusion), the Python core, listen-only, outside a loop pass. The
+        bus loop then takes it as usual."""
         answer = self._answer
         if answer is None or self.config.listen_only or not self._passes:
             return False
@@ -657,6 +670,11 @@ class SupervisorService:
             now,
             self.stopping,
         )
+        if verdict & HOST_JOIN:  # a JOIN held in C
+            self.frames_in_c += 1
+            self.now = now
+            self.nodes[frame.arbitration_id & 0xFF].heard.heard_at = now
+            return True
         if verdict & HOST_HELD:  # a RETURN the witness in C held
             self.frames_in_c += 1
             self._flush(self._held_in_c(cast(Return, decoded), verdict & ~HOST_HELD, now))
@@ -993,7 +1011,7 @@ class SupervisorService:
                 "aborted": info.aborted,
                 "written_off": info.written_off,
                 "admitted": info.admitted,
-                "joins_resent": self.joins.nodes[s.node].resent,
+                "joins_resent": self.joins.resent(s.node),
                 "resumes": info.resumes,
                 "found_behind": info.found_behind,
                 "synced": info.synced,

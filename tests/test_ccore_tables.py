@@ -654,3 +654,31 @@ def test_on_the_c_frame_path_a_join_takes_no_python_table(
     b.loop.poll(0)
     assert b.service.status()["nodes"]["3"]["admitted"] == 1
     b.wire.shutdown()
+
+
+def test_a_new_service_over_the_same_c_core_gets_tables_of_its_own() -> None:
+    """The tables in C are made anew for each service built over a core: a JOIN the second
+    service's frame path holds is admitted by the second service, with nothing left over from
+    the first one's."""
+    core = compiled_core([3, 5], 10_000_000, timing=T)
+    first = SupervisorService(core, ServiceConfig(lost_after_us=LOST_AFTER_US), 0)
+    first.on_message(Join(3, 1), 0)  # held by the first service's table
+    b = _bench("c")
+    b.service = SupervisorService(core, ServiceConfig(lost_after_us=LOST_AFTER_US), 0)
+    b.loop = BusRuntime(
+        b.wire,
+        b.service,
+        codec=CODEC,
+        receives=Direction.TO_SUPERVISOR,
+        frame_path=b.service.frame_path(),
+        counters=b.service.bus_counters,
+    )
+    b.loop.clock = lambda: b.now[0]
+    assert not b.service.joins.holding(3)
+    b.feed(Join(3, 2))
+    b.feed(Telemetry(3, 0, Telemetry.JOINING))
+    b.now[0] += JOIN_HOLD_US
+    b.loop.poll(0)
+    assert b.service.status()["nodes"]["3"]["admitted"] == 1
+    assert first.status()["nodes"]["3"]["admitted"] == 0 and b.service.frames_in_c == 2
+    b.wire.shutdown()

@@ -41,7 +41,8 @@ class CompiledJoinHold(Generic[T]):
         self.before: Any = b.ffi.addressof(core.tables, "joins_before")
         """The frame path's call leaves here the node's record as it was (for the words)."""
         self._nonce = b.ffi.new("uint16_t *")
-        self._index = dict(core._index)
+        self._recs = {n: self.records + i for n, i in core._index.items()}
+        """Each node's record (a pointer made once: the frame path reads them every pass)."""
         self.hold_us = hold_us
         self.local_nodes = local_nodes
         self.intrusions = intrusions
@@ -56,7 +57,7 @@ class CompiledJoinHold(Generic[T]):
         }
 
     def _rec(self, node: int) -> Any:
-        return self.records + self._index[node]
+        return self._recs[node]
 
     def hold_for(self, node: int) -> int:
         """How long a confirmed JOIN of ``node`` waits (0: a node only this process speaks for)."""
@@ -123,5 +124,7 @@ class CompiledJoinHold(Generic[T]):
         return out
 
     def next_wakeup(self) -> int | None:
+        if not self.due:
+            return None
         times = [int(r.admit_at) for n in self.due if (r := self._rec(n)).has_admitting]
         return min(times, default=None)

@@ -250,10 +250,8 @@ class CompiledSupervisor:
         self.tables: Any = ffi.new("struct canergy_host_tables *")
         """The service's tables in C (``heard_table``, ``return_gate``, ``join_hold``), which
         ``on_answer`` runs once all three are made; their records are kept alive here."""
-        self._kept: list[Any] = []
+        self._kept: dict[str, Any] = {}
         self._tables: Any = ffi.NULL
-        self._gate: CompiledReturnGate | None = None
-        self._joins: Any = None
         cfg = ffi.new("struct canergy_supervisor_config *")
         cfg.id_base = self.codec.id_base
         cfg.timing.response_timeout_us = self.timing.response_timeout_us
@@ -437,29 +435,29 @@ class CompiledSupervisor:
 
     def heard_table(self, lost_after_us: int) -> CompiledHeard:
         """The TELEMETRY table (``canergy.live.supervisor.telemetry``) in C, one record per
-        session, made once: from then on ``on_answer`` takes a TELEMETRY of a managed node into
-        it in the same call that decodes the frame."""
+        session, new at each call: from then on ``on_answer`` takes a TELEMETRY of a managed
+        node into it in the same call that decodes the frame."""
         if not 0 <= lost_after_us < 2**64:
             raise ValueError("lost_after_us must fit 64 bits")
         t = self.tables
-        if t.heard == self._b.ffi.NULL:
-            self._kept.append(self._b.ffi.new("struct canergy_heard[]", len(self._sessions)))
-            t.heard, t.lost_after_us = self._kept[-1], lost_after_us
-            self._ready()
-        return CompiledHeard(self, t.heard, int(t.lost_after_us))
+        records = self._keep(
+            "heard", self._b.ffi.new("struct canergy_heard[]", len(self._sessions))
+        )
+        t.heard, t.lost_after_us = records, lost_after_us
+        self._ready()
+        return CompiledHeard(self, records, lost_after_us)
 
     def return_gate(self, hold_us: int, block_us: int, hold: bool) -> CompiledReturnGate:
         """The witness (``canergy.live.supervisor.witness.ReturnGate``'s interface) in C, one
-        record per session, made once: from then on ``on_answer`` takes a TELEMETRY into it
+        record per session, new at each call: from then on ``on_answer`` takes a TELEMETRY into it
         too, and holds a fresh RETURN there (``hold``: detection mode, without a key) or hands
         it to the rules, in the call that decodes it."""
-        if self._gate is None:
-            t = self.tables
-            before = self._b.ffi.addressof(t, "witness_before")
-            self._gate = CompiledReturnGate(self, hold_us, block_us, before)
-            t.witness, t.hold = self._gate.records, hold
-            self._ready()
-        return self._gate
+        t = self.tables
+        before = self._b.ffi.addressof(t, "witness_before")
+        gate = self._keep("witness", CompiledReturnGate(self, hold_us, block_us, before))
+        t.witness, t.hold = gate.records, hold
+        self._ready()
+        return cast(CompiledReturnGate, gate)
 
     def join_hold(
         self,
@@ -471,18 +469,23 @@ class CompiledSupervisor:
         admit: Callable[[Join, int], list[T]],
     ) -> CompiledJoinHold[T]:
         """The held JOINs (``canergy.live.supervisor.joins.JoinHold``'s interface) in C, one
-        record per session, made once: from then on ``on_answer`` holds a JOIN there and takes
-        a TELEMETRY into them too, in the call that decodes it."""
-        if self._joins is None:
-            t = self.tables
-            self._joins = CompiledJoinHold(
-                self, hold_us, local_nodes, intrusions, refusals, authenticated, admit
-            )
-            holds = [self._joins.hold_for(n) for n in self._index]
-            self._kept.append(self._b.ffi.new("uint64_t[]", holds))
-            t.joins, t.join_hold_us = self._joins.records, self._kept[-1]
-            self._ready()
-        return cast("CompiledJoinHold[T]", self._joins)
+        record per session, new at each call: from then on ``on_answer`` holds a JOIN there and
+        takes a TELEMETRY into them too, in the call that decodes it."""
+        t = self.tables
+        joins = CompiledJoinHold(
+            self, hold_us, local_nodes, intrusions, refusals, authenticated, admit
+        )
+        holds = self._b.ffi.new("uint64_t[]", [joins.hold_for(n) for n in self._index])
+        self._keep("joins", (joins, holds))
+        t.joins, t.join_hold_us = joins.records, holds
+        self._ready()
+        return joins
+
+    def _keep(self, table: str, records: Any) -> Any:
+        """Keep a table's records alive while C points at them (a table made again, for a
+        new service over this core, replaces the one before)."""
+        self._kept[table] = records
+        return records
 
     def _ready(self) -> None:
         """``on_answer`` runs the tables once every one of them is made."""

@@ -36,7 +36,8 @@ class CompiledReturnGate:
         self.before = before
         self._release = b.ffi.new("struct canergy_witness_release *")
         self._msg = b.ffi.new("struct canergy_msg *")
-        self._index = dict(core._index)
+        self._recs = {n: self.records + i for n, i in core._index.items()}
+        """Each node's record (a pointer made once: the frame path reads them every pass)."""
         self._holding: set[int] = set()
         self._known: set[int] = set()
         """Nodes a TELEMETRY, RETURN or RESUME was seen of (Python's gate shows only them)."""
@@ -52,7 +53,7 @@ class CompiledReturnGate:
         self.old_verdict = int(b.lib.CANERGY_WITNESS_OLD)
 
     def _rec(self, node: int) -> Any:
-        return self.records + self._index[node]
+        return self._recs[node]
 
     # -- TELEMETRY -------------------------------------------------------------------------
     def telemetry(self, msg: Telemetry, credited: int, now: int) -> tuple[list[str], list[str]]:

@@ -136,7 +136,7 @@ class SideBySide(RuleBasedStateMachine):
             amount = (tx + data.draw(st.integers(-3, 3) | st.sampled_from([64, 0x7FFF]))) & 0xFFFF
         msg = Debit(node, nonce, flags, seq, amount)
         if fast:
-            _, actions, _, decoded = self.c.on_answer(
+            _, actions, _, decoded, _ = self.c.on_answer(
                 *CODEC.encode(msg), True, False, self.now, False
             )
             assert actions == [] and (decoded == msg or node not in NODES)
@@ -154,7 +154,7 @@ class SideBySide(RuleBasedStateMachine):
         tx, credited = (0, 0) if s is None else (s.tx, s.returns_credited)
         msg = client_answer(data, node, tx, credited, telemetry=True)
         ident, payload = CODEC.encode(msg)
-        status, _, _, decoded = self.c.on_answer(ident, payload, True, False, self.now, stopping)
+        status, _, _, decoded, _ = self.c.on_answer(ident, payload, True, False, self.now, stopping)
         if status != DECODE_OK and not isinstance(decoded or msg, Telemetry):
             self.c.receive(decoded or msg, self.now)
         if isinstance(msg, Telemetry):
@@ -405,5 +405,7 @@ def test_an_identifier_no_can_frame_carries_takes_the_usual_path(arbitration_id:
     leaves it to the usual path (which counts it) instead of failing in the C call."""
     core = compiled_core([3], 10_000_000, timing=T)
     _, data = Codec().encode(Ack(3, 1))
-    status, actions, frames, decoded = core.on_answer(arbitration_id, data, True, False, 0, False)
-    assert status == RX_NOT_CAN and (actions, frames, decoded) == ([], [], None)
+    status, actions, frames, decoded, verdict = core.on_answer(
+        arbitration_id, data, True, False, 0, False
+    )
+    assert status == RX_NOT_CAN and (actions, frames, decoded, verdict) == ([], [], None, 0)

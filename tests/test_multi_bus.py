@@ -330,7 +330,7 @@ def test_ports_map_nodes_to_session_keys_and_back() -> None:
     assert second.next_wakeup() is None and second.on_wakeup(now) == ()
     assert first.next_wakeup() is not None
     assert second.on_message(Telemetry(1, 0, 0), now) == ()
-    assert service.nodes[257].heard_at == now and service.nodes[1].heard_at is None
+    assert service.nodes[257].heard.heard_at == now and service.nodes[1].heard.heard_at is None
     answers: list[dict[str, Any]] = []
     service.request_grant(257, J, answers.append)
     first.on_wakeup(now)

@@ -47,9 +47,10 @@ static bool record_changed(const struct canergy_session *a, const struct canergy
 }
 
 /* What a step did besides its frame (in: the client message it handled, NULL for the
- * supervisor's own calls). */
-static void record_event(const struct canergy_session *s, const struct canergy_session_step *step,
-                         const struct canergy_msg *in, struct canergy_supervisor_out *out)
+ * supervisor's own calls; s the session before the step, after it after). */
+static void record_event(const struct canergy_session *s, const struct canergy_session *after,
+                         const struct canergy_session_step *step, const struct canergy_msg *in,
+                         struct canergy_supervisor_out *out)
 {
     if (out->event_count >= CANERGY_SUPERVISOR_NODES) {
         return;
@@ -61,7 +62,11 @@ static void record_event(const struct canergy_session *s, const struct canergy_s
     e->flags = step->acknowledged != 0U ? CANERGY_SUP_ACKNOWLEDGED : 0U;
     e->amount_uj = step->resolved != CANERGY_RESOLVED_NONE ? s->reserved_uj : 0U;
     const bool debit = in != NULL && (in->type == CANERGY_RETURN || in->type == CANERGY_DEBIT);
-    if (debit && step->credit_uj > 0) { /* a RETURN, or one pending at a RESUME */
+    /* a RETURN credited (a witness's 0 mJ one too, as Python's ReturnCredited), or one pending
+     * at a RESUME */
+    const bool numbered = in != NULL && in->type == CANERGY_RETURN &&
+                          after->returns_credited != s->returns_credited;
+    if ((debit && step->credit_uj > 0) || numbered) {
         e->flags |= CANERGY_SUP_RETURN_CREDITED;
         if (step->resolved == CANERGY_RESOLVED_NONE) { /* else the session's returned tells */
             e->amount_uj = (uint32_t)step->credit_uj;
@@ -92,7 +97,7 @@ static void apply(struct canergy_supervisor *sup, struct canergy_session *s,
             out->frame_count++;
         }
     }
-    record_event(s, step, in, out);
+    record_event(s, after, step, in, out);
     *s = *after;
 }
 

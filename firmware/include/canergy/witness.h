@@ -16,7 +16,8 @@
  *
  * One difference from Python, by design: at most CANERGY_WITNESS_SLOTS return numbers are held
  * per node (an honest node has one outstanding); a RETURN with a further number is dropped
- * (CANERGY_WITNESS_FULL), never credited. tests/test_c_witness.py runs both side by side.
+ * (CANERGY_WITNESS_FULL), never credited. tests/test_c_witness.py runs both side by side, and
+ * tests/test_ccore_tables.py the host C core's frame path, which runs it, against the Python path.
  */
 #ifndef CANERGY_WITNESS_H
 #define CANERGY_WITNESS_H

@@ -42,13 +42,30 @@ SOURCES = (
     "supervisor.c",
     "gateway.c",
     "witness.c",
+    "telemetry.c",
+    "grants.c",
+    "joins.c",
 )
 """The whole library (firmware/Makefile's SRCS)."""
 NODES = 127
 
 HOST_DECLARATIONS = """
-int canergy_host_answer(struct canergy_supervisor *sup, uint32_t id, unsigned kind,
-    const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
+#define CANERGY_HOST_HELD 0x1000000U /* canergy_host_answer's verdict: a RETURN the witness took */
+#define CANERGY_HOST_JOIN 0x2000000U /* canergy_host_answer's verdict: a JOIN held */
+struct canergy_host_tables { /* the service's tables in C, one record per session each */
+    struct canergy_heard *heard;
+    struct canergy_witness *witness;
+    struct canergy_joins *joins;
+    const uint64_t *join_hold_us; /* per session: how long a confirmed JOIN waits */
+    struct canergy_witness witness_before; /* the record the last call changed, as it was */
+    struct canergy_joins joins_before;
+    uint64_t lost_after_us;
+    unsigned verdict;
+    uint16_t admit; /* verdict's CANERGY_JOINS_ADMIT: the JOIN to admit */
+    bool hold;      /* hold fresh RETURNs (no key) */
+};
+int canergy_host_answer(struct canergy_supervisor *sup, struct canergy_host_tables *t,
+    uint32_t id, unsigned kind, const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
     struct canergy_supervisor_out *out, struct canergy_msg *m);
 """
 """What only the host's binding calls: declared once, for cffi and (its definition's head, below)
@@ -69,8 +86,29 @@ HOST_AUTH_DECLARATIONS = _HOST_AUTH_ANSWER + _HOST_AUTH_PROTECT + "\n"
 
 HOST_SOURCE = (
     """
+/* The session index of node, or sup->count when it is not managed. */
+static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t node)
+{
+    uint8_t i = 0U;
+    while (i < sup->count && sup->sessions[i].node != node) {
+        i++;
+    }
+    return i;
+}
+
 /* The fast path's call with the frame as arguments: one call, no struct filled field by field
-   from Python (kind: bit 0 extended identifier, bit 1 remote frame). */"""
+   from Python (kind: bit 0 extended identifier, bit 1 remote frame). An ACK, COMMITTED or
+   ABORTED of a managed node as canergy_supervisor_on_answer takes it. With the tables (t NULL:
+   none, and the rest below is the caller's), for a managed node:
+   - a TELEMETRY is taken by the TELEMETRY table, the witness and the held JOINs: t->verdict is
+     the table's verdict, the witness's findings shifted left by 8 and the JOINs' by 16 (the
+     JOIN to admit in t->admit); status CANERGY_RX_CALLER;
+   - a RETURN the books allow: without hold, or an old number, to the rules (CANERGY_DECODE_OK,
+     out as for an ACK, verdict 0); else held by the witness, verdict CANERGY_HOST_HELD with the
+     witness's verdict (CANERGY_RX_CALLER);
+   - a JOIN is held: verdict CANERGY_HOST_JOIN (CANERGY_RX_CALLER);
+   the records as they were before, in t->witness_before and t->joins_before. Anything else (a
+   RETURN beyond the books among it) leaves the verdict 0: the caller's. */"""
     + HOST_DECLARATIONS.rstrip().removesuffix(";")
     + """
 {
@@ -80,17 +118,41 @@ HOST_SOURCE = (
     rx.len = len;
     rx.extended = (kind & 1U) != 0U;
     rx.remote = (kind & 2U) != 0U;
-    return canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, m);
-}
-
-/* The session index of node, or sup->count when it is not managed. */
-static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t node)
-{
-    uint8_t i = 0U;
-    while (i < sup->count && sup->sessions[i].node != node) {
-        i++;
+    const int status = canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, m);
+    if (t == NULL) {
+        return status;
     }
-    return i;
+    t->verdict = 0U;
+    if (status != CANERGY_RX_CALLER) {
+        return status;
+    }
+    const uint8_t i = canergy_host_index(sup, m->node);
+    struct canergy_session *s = &sup->sessions[i];
+    if (m->type == CANERGY_TELEMETRY) {
+        t->verdict = canergy_heard_telemetry(&t->heard[i], s, m, now, t->lost_after_us);
+        t->witness_before = t->witness[i];
+        t->verdict |= canergy_witness_telemetry(&t->witness[i], m, s->returns_credited, now) << 8;
+        t->joins_before = t->joins[i];
+        t->verdict |= canergy_joins_telemetry(&t->joins[i], m->flags, now, t->join_hold_us[i],
+                                              &t->admit) << 16;
+        return status;
+    }
+    if (m->type == CANERGY_JOIN) {
+        canergy_joins_join(&t->joins[i], m->nonce);
+        t->verdict = CANERGY_HOST_JOIN;
+        return status;
+    }
+    if (m->type != CANERGY_RETURN || canergy_witness_beyond_books(s, m)) {
+        return status;
+    }
+    const uint32_t ahead = (m->seq - s->returns_credited) & 0xFFFFU; /* Python's unwrap - ref */
+    if (t->hold && ahead != 0U && ahead < 0x8000U) {                   /* not credited yet */
+        t->witness_before = t->witness[i];
+        t->verdict = CANERGY_HOST_HELD |
+                     (unsigned)canergy_witness_hold(&t->witness[i], m, s->returns_credited, now);
+        return status;
+    }
+    return canergy_supervisor_on_msg(sup, m, now, out);
 }
 
 /* Authenticated mode, FD layout: each of out's frames protected under its node's key (keys:

@@ -15,8 +15,11 @@ from __future__ import annotations
 import struct
 from collections.abc import Callable, Iterable
 from functools import partial
-from typing import Any
+from typing import Any, TypeVar, cast
 
+from canergy.ccore.grants import CompiledGrantCaps, fits
+from canergy.ccore.joins import CompiledJoinHold
+from canergy.ccore.witness import CompiledReturnGate
 from canergy.codec import Codec
 from canergy.core import witnessed
 from canergy.core.actions import (
@@ -35,9 +38,12 @@ from canergy.core.state import Decision, Outcome, Phase, Session, SupervisorStat
 from canergy.core.supervisor import Supervisor, SupervisorCore
 from canergy.core.timing import Timing
 from canergy.core.variants import get_variant
+from canergy.live.supervisor.intrusions import Intrusions, Refusals
+from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.messages import (
     MAX_NODE,
     MIN_NODE,
+    QUANTUM_UJ,
     Aborted,
     Ack,
     Committed,
@@ -50,6 +56,8 @@ from canergy.messages import (
     Telemetry,
     ToSupervisor,
 )
+
+T = TypeVar("T")
 
 
 class CoreMissing(RuntimeError):
@@ -239,6 +247,11 @@ class CompiledSupervisor:
         self._sup_bytes = ffi.buffer(self._sup)  # live views of the C memory
         self._out_bytes = ffi.buffer(self._out)
         self._msg = ffi.new("struct canergy_msg *")
+        self.tables: Any = ffi.new("struct canergy_host_tables *")
+        """The service's tables in C (``heard_table``, ``return_gate``, ``join_hold``), which
+        ``on_answer`` runs once all three are made; their records are kept alive here."""
+        self._kept: dict[str, Any] = {}
+        self._tables: Any = ffi.NULL
         cfg = ffi.new("struct canergy_supervisor_config *")
         cfg.id_base = self.codec.id_base
         cfg.timing.response_timeout_us = self.timing.response_timeout_us
@@ -420,6 +433,71 @@ class CompiledSupervisor:
         self._lib.canergy_supervisor_on_msg(self._sup, m, now, self._out)
         return self._actions(resumed=isinstance(msg, Debit) and msg.is_resume)
 
+    def heard_table(self, lost_after_us: int) -> CompiledHeard:
+        """The TELEMETRY table (``canergy.live.supervisor.telemetry``) in C, one record per
+        session, new at each call: from then on ``on_answer`` takes a TELEMETRY of a managed
+        node into it in the same call that decodes the frame."""
+        if not 0 <= lost_after_us < 2**64:
+            raise ValueError("lost_after_us must fit 64 bits")
+        t = self.tables
+        records = self._keep(
+            "heard", self._b.ffi.new("struct canergy_heard[]", len(self._sessions))
+        )
+        t.heard, t.lost_after_us = records, lost_after_us
+        self._ready()
+        return CompiledHeard(self, records, lost_after_us)
+
+    def return_gate(self, hold_us: int, block_us: int, hold: bool) -> CompiledReturnGate:
+        """The witness (``canergy.live.supervisor.witness.ReturnGate``'s interface) in C, one
+        record per session, new at each call: from then on ``on_answer`` takes a TELEMETRY into it
+        too, and holds a fresh RETURN there (``hold``: detection mode, without a key) or hands
+        it to the rules, in the call that decodes it."""
+        t = self.tables
+        before = self._b.ffi.addressof(t, "witness_before")
+        gate = self._keep("witness", CompiledReturnGate(self, hold_us, block_us, before))
+        t.witness, t.hold = gate.records, hold
+        self._ready()
+        return cast(CompiledReturnGate, gate)
+
+    def join_hold(
+        self,
+        hold_us: int,
+        local_nodes: frozenset[int],
+        intrusions: Intrusions,
+        refusals: Refusals,
+        authenticated: Callable[[], bool],
+        admit: Callable[[Join, int], list[T]],
+    ) -> CompiledJoinHold[T]:
+        """The held JOINs (``canergy.live.supervisor.joins.JoinHold``'s interface) in C, one
+        record per session, new at each call: from then on ``on_answer`` holds a JOIN there and
+        takes a TELEMETRY into them too, in the call that decodes it."""
+        t = self.tables
+        joins = CompiledJoinHold(
+            self, hold_us, local_nodes, intrusions, refusals, authenticated, admit
+        )
+        holds = self._b.ffi.new("uint64_t[]", [joins.hold_for(n) for n in self._index])
+        self._keep("joins", (joins, holds))
+        t.joins, t.join_hold_us = joins.records, holds
+        self._ready()
+        return joins
+
+    def _keep(self, table: str, records: Any) -> Any:
+        """Keep a table's records alive while C points at them (a table made again, for a
+        new service over this core, replaces the one before)."""
+        self._kept[table] = records
+        return records
+
+    def _ready(self) -> None:
+        """``on_answer`` runs the tables once every one of them is made."""
+        t, null = self.tables, self._b.ffi.NULL
+        if null not in (t.heard, t.witness, t.joins):
+            self._tables = t
+
+    def grant_caps(self, limits: Limits, policy: TopUp | None) -> CompiledGrantCaps | None:
+        """The grant caps (``canergy.live.supervisor.grants.GrantCaps``) in C, or None for
+        limits beyond what they take exactly (``canergy.ccore.grants.fits``)."""
+        return CompiledGrantCaps(self._b.module, limits, policy) if fits(limits, policy) else None
+
     def on_answer(
         self,
         arbitration_id: int,
@@ -428,30 +506,37 @@ class CompiledSupervisor:
         remote: bool,
         now: int,
         abort: bool,
-    ) -> tuple[int, list[Action], list[tuple[int, bytes]], Message | None]:
+    ) -> tuple[int, list[Action], list[tuple[int, bytes]], Message | None, int]:
         """A received frame on the fast path (one C call: decode, rules, the decision on an ACK,
         encode): its status and, when it was an answer the rules took (ACK, COMMITTED, ABORTED
         of a managed node), their actions and the frames to send, encoded. A TELEMETRY, RETURN,
         JOIN or DEBIT of a managed node applies nothing and comes back decoded (by the C codec,
-        which the Python one's tests fuzz against) for the caller's usual handling. Any other status
-        (an answer ahead of the session, a decode status, another node, an identifier no CAN frame
-        carries: CANERGY_RX_NOT_CAN) applied nothing and
+        which the Python one's tests fuzz against) for the caller's usual handling. Once the
+        TELEMETRY table and the witness are made in C (``heard_table``, ``return_gate``), a
+        TELEMETRY was taken by both (the last element: the table's verdict, ``telemetry.TAKEN``
+        and ``BEYOND_BOOKS`` bits, with the witness's findings shifted left by 8; the record
+        as it was before in ``return_gate().before``), and a RETURN the books allow was ruled
+        (status 0, as an answer) or held by the witness (``HOST_HELD`` with its verdict); 0
+        otherwise. Any other
+        status (an answer ahead of the session, a decode status, another node, an identifier no
+        CAN frame carries: CANERGY_RX_NOT_CAN) applied nothing and
         decoded nothing: the caller takes the frame its usual way, where it is judged, counted
         or reported."""
         if not 0 <= arbitration_id < _ID_LIMIT:  # no CAN identifier (another transport's)
-            return self._b.not_can, [], [], None
+            return self._b.not_can, [], [], None, 0
         m = self._msg
         kind = (1 if extended else 0) | (2 if remote else 0)
         payload = data if type(data) is bytes else bytes(data)  # cffi takes bytes as they are
         self._timer_known = False  # deadlines may move
+        t = self._tables
         status = self._answer(
-            self._sup, arbitration_id, kind, payload, len(payload), now, abort, self._out, m
+            self._sup, t, arbitration_id, kind, payload, len(payload), now, abort, self._out, m
         )
         b = self._b
         if status == b.ok:
-            return status, self._actions(fast=True), self._frames(), None
+            return status, self._actions(fast=True), self._frames(), None, 0
         if status != b.caller:
-            return status, [], [], None
+            return status, [], [], None, 0
         msg: Message
         if (kind := m.type) == MsgType.TELEMETRY:  # the wire's type code, the same in both codecs
             msg = Telemetry(m.node, m.level_mj, m.flags, m.seq, m.witness)
@@ -461,7 +546,7 @@ class CompiledSupervisor:
             msg = Debit(m.node, m.nonce, m.flags, m.seq, m.amount_mj)
         else:
             msg = Join(m.node, m.nonce)
-        return status, [], [], msg
+        return status, [], [], msg, 0 if t == self._b.ffi.NULL else t.verdict
 
     def use_keys(self, key_for: Callable[[int], bytes]) -> None:
         """Authenticated mode in the FD layout: each managed node's key (``key_for(node)``,
@@ -611,6 +696,88 @@ class CompiledSupervisor:
             arbitration_id, dlc, data = b.frame.unpack_from(raw, b.frames_at + k * b.frame_size)
             frames.append((arbitration_id, data[:dlc]))
         return frames
+
+
+class CompiledHeard:
+    """The compiled core's TELEMETRY table (``CompiledSupervisor.heard_table``): the methods of
+    ``telemetry.HeardTable`` over the records in C."""
+
+    implementation = "c"
+
+    def __init__(self, core: CompiledSupervisor, records: Any, lost_after_us: int) -> None:
+        self._core = core
+        self._records = records
+        self._lost_after_us = lost_after_us
+        self._lib = core._lib
+        self._views = {n: _HeardView(records + i) for n, i in core._index.items()}
+
+    def of(self, node: int) -> _HeardView:
+        return self._views[node]
+
+    def telemetry(self, node: int, s: Session, level_mj: int, flags: int, now: int) -> int:
+        """A TELEMETRY taken the usual way (decoded in Python): into the same table in C."""
+        core = self._core
+        i = core._index[node]
+        m = core._msg
+        m.type, m.node, m.level_mj, m.flags = MsgType.TELEMETRY, node, level_mj, flags
+        sessions = core._sup.sessions
+        return int(
+            self._lib.canergy_heard_telemetry(
+                self._records + i, sessions + i, m, now, self._lost_after_us
+            )
+        )
+
+    def credited(self, node: int, amount_uj: int, now: int) -> None:
+        i = self._core._index[node]
+        self._lib.canergy_heard_credited(self._records + i, amount_uj, now, self._lost_after_us)
+
+
+class _HeardView:
+    """One node's record in C with ``telemetry.Heard``'s attributes."""
+
+    __slots__ = ("_h",)
+
+    def __init__(self, record: Any) -> None:
+        self._h = record
+
+    @property
+    def level(self) -> int | None:
+        h = self._h
+        return int(h.level_mj) * QUANTUM_UJ if h.has_level else None
+
+    @level.setter
+    def level(self, value: int | None) -> None:
+        if value is not None:
+            raise ValueError("a level is only ever set by a TELEMETRY")
+        self._h.has_level = False
+
+    @property
+    def level_at(self) -> int | None:
+        h = self._h
+        return int(h.level_at) if h.has_level_at else None
+
+    @property
+    def flags(self) -> int:
+        return int(self._h.flags)
+
+    @property
+    def heard_at(self) -> int | None:
+        h = self._h
+        return int(h.heard_at) if h.has_heard else None
+
+    @heard_at.setter
+    def heard_at(self, now: int) -> None:
+        h = self._h
+        h.heard_at, h.has_heard = now, True
+
+    @property
+    def telemetry(self) -> int:
+        return int(self._h.telemetry)
+
+    @property
+    def recent(self) -> list[tuple[int, int]]:
+        h = self._h
+        return [(int(h.recent_at[k]), int(h.recent_uj[k])) for k in range(h.recent_count)]
 
 
 def make_supervisor(

@@ -10,9 +10,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 
-from canergy.live.supervisor.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
+from canergy.live.supervisor.policy import (
+    Limits,
+    RateLimiter,
+    TopUp,
+    capped_grant,
+    grant_caps,
+)
 from canergy.messages import USABLE_MAX_UJ
 from canergy.units import format_energy
 
@@ -35,14 +41,64 @@ class Books:
     granted_total: int
 
 
-class GrantDesk:
-    """Sizes grants: ``one_shot`` for a queued request, ``top_up`` for the policy; ``took``
-    once a transaction began (the rate limiter's tokens)."""
+class GrantCaps(Protocol):
+    """The grant caps as a table (``policy``'s functions, or their twin in C:
+    ``canergy.ccore.grants.CompiledGrantCaps``): the rate limiter's tokens, the cap on one
+    grant, what the top-up policy wants."""
+
+    def available(self, now: int) -> int | None: ...
+
+    def take(self, amount: int) -> None: ...
+
+    def cap(
+        self, wanted: int, level: int | None, usable: int, granted_total: int, tokens: int | None
+    ) -> int: ...
+
+    def wanted(self, level: int) -> int: ...
+
+
+class PythonGrantCaps:
+    """``GrantCaps`` in Python: ``RateLimiter``, ``capped_grant``, ``TopUp.wanted``."""
+
+    implementation = "python"
 
     def __init__(self, limits: Limits, policy: TopUp | None) -> None:
         self.limits = limits
         self.policy = policy
         self.rate = RateLimiter(limits.rate_uj_per_s, limits.max_grant)
+
+    def available(self, now: int) -> int | None:
+        return self.rate.available(now)
+
+    def take(self, amount: int) -> None:
+        self.rate.take(amount)
+
+    def cap(
+        self, wanted: int, level: int | None, usable: int, granted_total: int, tokens: int | None
+    ) -> int:
+        return capped_grant(
+            wanted,
+            limits=self.limits,
+            level=level,
+            usable=usable,
+            granted_total=granted_total,
+            rate_tokens=tokens,
+        )
+
+    def wanted(self, level: int) -> int:
+        assert self.policy is not None
+        return self.policy.wanted(level)
+
+
+class GrantDesk:
+    """Sizes grants: ``one_shot`` for a queued request, ``top_up`` for the policy; ``took``
+    once a transaction began (the rate limiter's tokens). ``caps``: the table that sizes them
+    (default Python's; the compiled core's service hands its twin in C)."""
+
+    def __init__(self, limits: Limits, policy: TopUp | None, caps: GrantCaps | None = None) -> None:
+        self.limits = limits
+        self.policy = policy
+        self.caps: GrantCaps = PythonGrantCaps(limits, policy) if caps is None else caps
 
     def one_shot(
         self, req: GrantRequest, name: int | str, level: int | None, books: Books, now: int
@@ -69,13 +125,14 @@ class GrantDesk:
     def top_up(self, level: int, books: Books, now: int) -> int:
         """What the policy wants for a node at ``level``, capped (0: nothing)."""
         assert self.policy is not None
-        return self.cap(self.policy.wanted(level), level, books, now)
+        return self.cap(self.caps.wanted(level), level, books, now)
 
     def took(self, amount: int) -> None:
-        self.rate.take(amount)
+        self.caps.take(amount)
 
     def cap(self, wanted: int, level: int | None, books: Books, now: int) -> int:
-        return capped_grant(wanted, **self._caps(level, books, now))
+        tokens = self.caps.available(now)
+        return self.caps.cap(wanted, level, books.usable, books.granted_total, tokens)
 
     def limiting(self, wanted: int, level: int | None, books: Books, now: int) -> list[str]:
         """What keeps a grant below ``wanted``, one phrase each."""
@@ -87,5 +144,5 @@ class GrantDesk:
             "level": level,
             "usable": books.usable,
             "granted_total": books.granted_total,
-            "rate_tokens": self.rate.available(now),
+            "rate_tokens": self.caps.available(now),
         }

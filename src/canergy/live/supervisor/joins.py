@@ -87,6 +87,10 @@ class JoinHold(Generic[T]):
         """JOINs wait for this node's TELEMETRY (no grant meanwhile: it would be lost)."""
         return bool(self.nodes[node].held)
 
+    def resent(self, node: int) -> int:
+        """Copies of the JOIN just admitted that ``node`` re-sent (dropped)."""
+        return self.nodes[node].resent
+
     def on_telemetry(self, msg: Telemetry, now: int) -> list[T]:
         """The node's report: without books it confirms the latest held JOIN (admitted after
         the hold), with books it refutes every held one."""

@@ -34,16 +34,16 @@ from canergy.core.supervisor import SupervisorCore
 from canergy.core.witnessed import answered
 from canergy.live.runtime import BusCounters, FramePath, Outgoing, RawFrame, total_counters
 from canergy.live.supervisor.control import ControlServer
-from canergy.live.supervisor.evidence import impossible
+from canergy.live.supervisor.evidence import beyond_books, impossible
 from canergy.live.supervisor.grants import Books, GrantCallback, GrantDesk, GrantRequest
 from canergy.live.supervisor.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
 from canergy.live.supervisor.outputs import BooksOut, StatusOut
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.state_file import ENERGY_MAX_UJ
+from canergy.live.supervisor.telemetry import BEYOND_BOOKS, Heard, HeardTable
 from canergy.live.supervisor.witness import ReturnGate
 from canergy.messages import (
-    QUANTUM_UJ,
     SEQ_BITS,
     Debit,
     Direction,
@@ -59,6 +59,11 @@ from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
 
+HOST_HELD = 0x1000000
+"""``CompiledSupervisor.on_answer``'s verdict for a RETURN the witness in C took (the C
+library's CANERGY_HOST_HELD, checked by tests/test_ccore_tables.py)."""
+HOST_JOIN = 0x2000000
+"""Its verdict for a JOIN held in C (CANERGY_HOST_JOIN)."""
 EncodedBegin = Callable[[int, int, int], tuple[list[Action], list[tuple[int, bytes]]]]
 """The compiled core's ``begin_encoded``: actions, and the INTENTION as C encoded it."""
 AuthAnswer = Callable[
@@ -72,10 +77,9 @@ AuthAnswer = Callable[
 class NodeInfo:
     """What the service knows about a node besides the core's session."""
 
-    level: int | None = None
-    level_at: int | None = None
-    flags: int = 0
-    heard_at: int | None = None
+    heard: Heard | Any
+    """What its TELEMETRY said and when it was heard (``telemetry.Heard``, or the compiled
+    core's record of it in C: the same attributes)."""
     ended_at: int = -1
     committed: int = 0
     committed_uj: int = 0
@@ -91,8 +95,6 @@ class NodeInfo:
     requests: list[GrantRequest] = field(default_factory=list)
     """Grants asked for and not begun, oldest first (lists: a node holds few, and an empty
     deque takes 760 bytes against a list's 56)."""
-    recent_returns: list[tuple[int, int]] = field(default_factory=list)
-    """(time, µJ) of returns credited lately: a level reported before them may still show them."""
     active_request: GrantRequest | None = None
     resumes: int = 0
     """Starts with books answered (witnessed rules: RESUME confirmed or found behind)."""
@@ -172,8 +174,17 @@ class SupervisorService:
         status)."""
         self.core = core
         self.config = config
-        self.nodes = {n: NodeInfo() for n in core.nodes}
-        self.desk = GrantDesk(config.limits, config.policy)
+        make_table = getattr(core, "heard_table", None)
+        self.heard: Any = (
+            HeardTable(core.nodes, config.lost_after_us)
+            if make_table is None
+            else make_table(config.lost_after_us)
+        )
+        """The TELEMETRY table (``telemetry``): the compiled core's in C, else Python's."""
+        self.nodes = {n: NodeInfo(self.heard.of(n)) for n in core.nodes}
+        make_caps = getattr(core, "grant_caps", None)
+        caps = None if make_caps is None else make_caps(config.limits, config.policy)
+        self.desk = GrantDesk(config.limits, config.policy, caps)
         """Sizes one-shot grants and top-ups under the limits and the rate limiter."""
         self.delivered_at_start = sum(s.delivered for s in core.state.sessions)
         self.started_at = now
@@ -202,8 +213,9 @@ class SupervisorService:
         )
         """Which frame path runs, and why not the compiled core's (``frame_path``)."""
         self.frames_in_c = 0
-        """Frames the compiled core's frame path took: an answer whole (decode, rules, encode),
-        a TELEMETRY, RETURN or JOIN decoded in C and then handled as usual."""
+        """Frames the compiled core's frame path took: an answer or a RETURN whole (decode,
+        rules, encode), a TELEMETRY (its tables), a RETURN held or a JOIN held, in C; a RETURN
+        beyond the books or a DEBIT decoded in C and then handled as usual."""
         self._auth_answer: AuthAnswer | None = None
         """The compiled core's frame path with a key (``fast_auth_frame``), once set up."""
         self._frame_auth: FrameAuth | None = None
@@ -225,19 +237,29 @@ class SupervisorService:
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
         self.control = control
         self.stopped_by_intrusion = False
-        self.witness = ReturnGate(config.return_hold_us or 0, config.witness_block_us)
+        make_gate = getattr(core, "return_gate", None)
+        hold = config.return_hold_us is not None
+        self.witness: Any = (
+            ReturnGate(config.return_hold_us or 0, config.witness_block_us)
+            if make_gate is None
+            else make_gate(config.return_hold_us or 0, config.witness_block_us, hold)
+        )
+        """The witness (``witness.ReturnGate``): the compiled core's in C, else Python's."""
         self.witnessed = (Phase.IDLE, Debit) in core.variant.supervisor.cells
         """Rules that take DEBIT (``witnessed``): draws held, every node start confirmed."""
         self._resuming: int | None = None
         """The node whose RESUME the core is answering (its admission is no JOIN's)."""
-        self.joins: JoinHold[Outgoing] = JoinHold(
-            core.nodes,
+        joining = (
             config.join_hold_us,
             config.local_nodes,
             self.intrusions,
             self.refusals,
             lambda: self.authenticated,
             lambda join, now: self._carry_out(self.core.receive(join, now), now),
+        )
+        make_joins = getattr(core, "join_hold", None)
+        self.joins: Any = (
+            JoinHold[Outgoing](core.nodes, *joining) if make_joins is None else make_joins(*joining)
         )
         """JOINs held until the node's TELEMETRY confirms or refutes them (evidence)."""
         if config.inject_uj:
@@ -262,28 +284,19 @@ class SupervisorService:
         info = self.nodes.get(msg.node)
         if info is None:
             return ()
-        # listen-only keeps no books of its own (another supervisor may be granting): no
-        # judgement by them, or every level reported would look impossible
-        listening = self.config.listen_only
-        if not listening and (impossible := self._impossible(msg, info, now)) is not None:
-            self.intrusion(msg.node, repr(msg), impossible, now)
-            if not isinstance(msg, Telemetry):
-                return ()  # moves nothing: no honest node sends it
-        info.heard_at = now
         if isinstance(msg, Telemetry):
-            self.telemetry_heard += 1
-            info.level, info.level_at, info.flags = msg.level_mj * QUANTUM_UJ, now, msg.flags
-            credited = self.core.session(msg.node).returns_credited
-            evidence, notes = self.witness.telemetry(msg, credited, now)
-            for line in evidence:
-                self.intrusion(msg.node, repr(msg), line, now, stop=True)
-            for line in notes:
-                log.warning("node %s: %s", self.node_name(msg.node), line)
-            self.ready.add(msg.node)
-            out = self._released(msg.node, now) + self.joins.on_telemetry(msg, now)
-            return self._flush(out + self._start_grants(now, self.ready))
+            s = self.core.session(msg.node)
+            verdict = self.heard.telemetry(msg.node, s, msg.level_mj, msg.flags, now)
+            return self._flush(self._telemetry(msg, verdict, now))
+        # listen-only keeps no books of its own (another supervisor may be granting): no
+        # judgement by them, or every answer would look impossible
         if self.config.listen_only or not isinstance(msg, ToSupervisor):
+            info.heard.heard_at = now
             return ()
+        if (impossible := self._impossible(msg)) is not None:
+            self.intrusion(msg.node, repr(msg), impossible, now)
+            return ()  # moves nothing: no honest node sends it
+        info.heard.heard_at = now
         if isinstance(msg, Join):  # a replay or forgery looks the same: the node's report tells
             self.joins.on_join(msg)
             return ()
@@ -301,6 +314,36 @@ class SupervisorService:
             out += self._start_grants(now, self.ready)
         return self._flush(out)
 
+    def _telemetry(
+        self, msg: Telemetry, verdict: int, now: int, found: int | None = None
+    ) -> list[Outgoing]:
+        """A TELEMETRY the table took (``verdict``, its bits): the evidence it carries, RETURNs
+        and JOINs it confirms, and the grants it lets begin. ``found``: what the witness in C
+        found in it already (the frame path), else the witness takes it here."""
+        self.telemetry_heard += 1
+        # listen-only keeps no books of its own (another supervisor may be granting): no
+        # judgement by them, or every level reported would look impossible
+        if verdict & BEYOND_BOOKS and not self.config.listen_only:
+            why = beyond_books(msg.level_mj, self.core.session(msg.node))
+            self.intrusion(msg.node, repr(msg), why, now)
+        credited = self.core.session(msg.node).returns_credited
+        evidence, notes = (
+            self.witness.telemetry(msg, credited, now)
+            if found is None
+            else self.witness.telemetry_words(msg, credited, found & 0xFF)
+        )
+        for line in evidence:
+            self.intrusion(msg.node, repr(msg), line, now, stop=True)
+        for line in notes:
+            log.warning("node %s: %s", self.node_name(msg.node), line)
+        self.ready.add(msg.node)
+        out: list[Outgoing] = self._released(msg.node, now) + (
+            self.joins.on_telemetry(msg, now)
+            if found is None
+            else self.joins.telemetry_taken(msg, now, found >> 8)
+        )
+        return out + self._start_grants(now, self.ready)
+
     def _distrusted(self, node: int, now: int) -> bool:
         """Without a key: no top-ups while the node's TELEMETRY was lately contradicted (with a
         key, anyone could make the node count frames in its name: that is no reason)."""
@@ -314,6 +357,16 @@ class SupervisorService:
         if (evidence := self.witness.hold(msg, credited, now)) is not None:
             self.intrusion(msg.node, repr(msg), evidence, now, stop=True)
         return True
+
+    def _held_in_c(self, msg: Return, verdict: int, now: int) -> list[Outgoing]:
+        """A RETURN the witness in C held on the frame path (``verdict``: the witness's): as
+        ``_hold_return`` and what follows it on the usual path."""
+        self.now = now
+        self.nodes[msg.node].heard.heard_at = now
+        credited = self.core.session(msg.node).returns_credited
+        if (evidence := self.witness.hold_words(msg, credited, verdict)) is not None:
+            self.intrusion(msg.node, repr(msg), evidence, now, stop=True)
+        return self._released(msg.node, now)
 
     def _hold_resume(self, msg: Debit, now: int) -> bool:
         """A RESUME (witnessed rules): without a key, one whose pending return the core would
@@ -435,13 +488,10 @@ class SupervisorService:
             out += self._carry_out(self.core.receive(ret, now), now)
         return out
 
-    def _impossible(self, msg: Message, info: NodeInfo, now: int) -> str | None:
-        """What no honest node sends (``evidence.impossible``). A level may lag a RETURN
-        credited meanwhile: those of the last ``lost_after`` count."""
-        while info.recent_returns and now - info.recent_returns[0][0] > self.config.lost_after_us:
-            del info.recent_returns[0]
-        lagging = sum(amount for _, amount in info.recent_returns)
-        return impossible(msg, self.core.session(msg.node), lagging)
+    def _impossible(self, msg: Message) -> str | None:
+        """What no honest node sends (``evidence.impossible``; a level: the TELEMETRY table's
+        verdict)."""
+        return impossible(msg, self.core.session(msg.node))
 
     def on_decode_error(
         self, error: DecodeError, frame: can.Message, node: int | None = None
@@ -603,13 +653,16 @@ class SupervisorService:
         """The compiled core's fast path, for a frame the bus loop has not decoded: an ACK,
         COMMITTED or ABORTED of a managed node goes through decode, rules, the decision on an
         ACK (commit, abort when stopping) and encode in one C call, and only what it did comes
-        back here (books, replies, the next grant). False, nothing done: any other frame, one
-        that names a transaction never begun (judged on the usual path, an intrusion), the
-        Python core, listen-only, outside a loop pass. The bus loop then takes it as usual."""
+        back here (books, replies, the next grant). In the same call a TELEMETRY is taken by the
+        tables in C (``telemetry``, the witness, the held JOINs: here only the words of what
+        they found, and what follows), a RETURN is held by the witness or ruled, a JOIN held.
+        False, nothing done: any other frame, one that names a transaction never begun (judged
+        on the usual path, an intrusion), the Python core, listen-only, outside a loop pass. The
+        bus loop then takes it as usual."""
         answer = self._answer
         if answer is None or self.config.listen_only or not self._passes:
             return False
-        status, actions, frames, decoded = answer(
+        status, actions, frames, decoded, verdict = answer(
             frame.arbitration_id,
             frame.data,
             frame.is_extended_id,
@@ -617,7 +670,22 @@ class SupervisorService:
             now,
             self.stopping,
         )
-        if decoded is not None:  # a TELEMETRY, RETURN or JOIN: as if the loop had decoded it
+        if verdict & HOST_JOIN:  # a JOIN held in C
+            self.frames_in_c += 1
+            self.now = now
+            self.nodes[frame.arbitration_id & 0xFF].heard.heard_at = now
+            return True
+        if verdict & HOST_HELD:  # a RETURN the witness in C held
+            self.frames_in_c += 1
+            self._flush(self._held_in_c(cast(Return, decoded), verdict & ~HOST_HELD, now))
+            return True
+        if verdict:  # a TELEMETRY the table and the witness in C took: what it shows, here
+            self.frames_in_c += 1
+            self.now = now
+            msg = cast(Telemetry, decoded)
+            self._flush(self._telemetry(msg, verdict & 0xFF, now, verdict >> 8))  # held
+            return True
+        if decoded is not None:  # a RETURN, JOIN or DEBIT: as if the loop had decoded it
             self.frames_in_c += 1
             self.on_message(decoded, now)  # in a pass: its frames are held
             return True
@@ -653,7 +721,7 @@ class SupervisorService:
         the node's next grant (a transaction ended)."""
         self.now = now
         self.frames_in_c += 1
-        self.nodes[node].heard_at = now
+        self.nodes[node].heard.heard_at = now
         out = frames + self._carry_out(actions, now)
         if self.ready:  # a transaction ended: the node's next grant goes out in this pass
             out += self._start_grants(now, self.ready)
@@ -699,7 +767,7 @@ class SupervisorService:
             for info in self.nodes.values():
                 why = (
                     "supervisor stopping"
-                    if info.heard_at is not None and not info.flags & Telemetry.JOINING
+                    if info.heard.heard_at is not None and not info.heard.flags & Telemetry.JOINING
                     else "node never heard from (or still joining): nothing granted"
                 )
                 for req in [*info.requests]:
@@ -742,7 +810,7 @@ class SupervisorService:
         }
 
     def is_lost(self, node: int, now: int) -> bool:
-        heard = self.nodes[node].heard_at
+        heard = self.nodes[node].heard.heard_at
         if self.liveness is not None and not self.liveness(node, now):
             return True
         return heard is None or now - heard > self.config.lost_after_us
@@ -753,7 +821,7 @@ class SupervisorService:
         supervisor's next re-send settles it (the rules were model-checked with power losses)."""
         info = self.nodes.get(node)
         if info is not None:
-            info.level = None
+            info.heard.level = None
             info.ended_at = now
 
     def _start_grants(self, now: int, nodes: set[int] | None) -> list[Outgoing]:
@@ -776,8 +844,8 @@ class SupervisorService:
             if self.liveness is not None and not self.liveness(node, now):
                 continue  # heartbeat lost or not OPERATIONAL: nothing for it, not even one-shots
             if (
-                info.heard_at is None
-                or info.flags & Telemetry.JOINING
+                info.heard.heard_at is None
+                or info.heard.flags & Telemetry.JOINING
                 or self.joins.holding(node)
                 or self.witness.resume_held(node)
             ):
@@ -790,18 +858,21 @@ class SupervisorService:
 
     def _one_shot(self, node: int, info: NodeInfo, now: int) -> list[Outgoing]:
         req = info.requests.pop(0)
-        amount = self.desk.one_shot(req, self.node_name(node), info.level, self._books(), now)
+        level = info.heard.level
+        amount = self.desk.one_shot(req, self.node_name(node), level, self._books(), now)
         if amount is None:
             return []
         info.active_request = req
         return self._begin(node, amount, now)
 
     def _top_up(self, node: int, info: NodeInfo, now: int) -> list[Outgoing]:
-        if info.level is None or info.level_at is None or info.level_at <= info.ended_at:
+        heard = info.heard
+        level, level_at = heard.level, heard.level_at
+        if level is None or level_at is None or level_at <= info.ended_at:
             return []  # no report since the last transaction ended: the level is stale
         if self.is_lost(node, now):
             return []
-        amount = self.desk.top_up(info.level, self._books(), now)
+        amount = self.desk.top_up(level, self._books(), now)
         return self._begin(node, amount, now) if amount else []
 
     def _books(self) -> Books:
@@ -846,7 +917,7 @@ class SupervisorService:
                 self._resolved(action, now)
             elif isinstance(action, ReturnCredited):
                 self.nodes[action.node].returns += 1
-                self.nodes[action.node].recent_returns.append((now, action.amount))
+                self.heard.credited(action.node, action.amount, now)
             elif isinstance(action, Admitted):
                 self._admitted(action)
         return out
@@ -933,14 +1004,14 @@ class SupervisorService:
                 "returns_credited_uj": s.returned,
                 "returns_credited": s.returns_credited,
                 **self.witness.status(s.node),
-                "level_uj": info.level,
+                "level_uj": info.heard.level,
                 "lost": self.is_lost(s.node, self.now),
                 "committed": info.committed,
                 "committed_uj": info.committed_uj,
                 "aborted": info.aborted,
                 "written_off": info.written_off,
                 "admitted": info.admitted,
-                "joins_resent": self.joins.nodes[s.node].resent,
+                "joins_resent": self.joins.resent(s.node),
                 "resumes": info.resumes,
                 "found_behind": info.found_behind,
                 "synced": info.synced,

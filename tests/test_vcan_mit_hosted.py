@@ -19,36 +19,33 @@ from __future__ import annotations
 import contextlib
 import json
 import time
-from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
 import can
 import pytest
+from support.mit_vcan import (
+    CAP,
+    SLOW,
+    burst_until_spent,
+    interfaces_up,
+    motor_on,
+    received_within_the_cap,
+)
 from support.procs import Procs, python, status, wait
 from support.procs import procs as procs  # the fixture
 from support.vcan import TIMEOUT
 
-from canergy.devices.mit import ENTER, worst_torque
-from canergy.live.runtime import monotonic_us
-from firmware_model.drive.motor import LoadTorque
-from firmware_model.mit.live_bench import DM, GREEDY, MOTOR, PUSH, burst
-from firmware_model.mit.motor import MitFace, MitMotorModel
+from firmware_model.mit.live_bench import MOTOR
 
 pytestmark = pytest.mark.vcan
 
 MOTORS, APP = "vcan0", "vcan1"
-CAP = 0.5
-"""N·m: 0.5·30 + 3/2·0.85·(0.5/0.945)² = 15.36 W, charged by the clock from the grant on."""
-SLOW = ("--mit-feedback-timeout", "2s", "--mit-stop-timeout", "2s")
 
 
 @pytest.fixture(scope="module", autouse=True)
 def _both_up() -> None:
-    for iface in (APP, MOTORS):
-        assert Path(f"/sys/class/net/{iface}/operstate").exists(), (
-            f"{iface} missing: ip link add dev {iface} type vcan; ip link set up {iface}"
-        )
+    interfaces_up(APP, MOTORS)
 
 
 def _motor(path: Path) -> dict[str, Any] | None:
@@ -61,11 +58,7 @@ def _motor(path: Path) -> dict[str, Any] | None:
 def test_canergy_supervisor_mit_as_a_process_holds_a_burst_to_the_budget(procs: Procs) -> None:
     tmp = procs.tmp
     sup_status = tmp / "sup.json"
-    motor = MitMotorModel(
-        MOTOR, DM, monotonic_us(), master_id=MOTOR + 0x10, load=LoadTorque.constant(0.02, True)
-    )
-    face = MitFace(motor, can.Bus(interface="socketcan", channel=MOTORS))
-    face.start()
+    motor, face = motor_on(MOTORS)
     started = time.monotonic()
     sup = ["-m", "canergy", "supervisor", "-i", "socketcan", "-c", MOTORS]
     sup += ["--initial", "20J", "--target", "20J", "--max-grant", "20J", *TIMEOUT]
@@ -79,10 +72,6 @@ def test_canergy_supervisor_mit_as_a_process_holds_a_burst_to_the_budget(procs: 
     def show() -> object:
         return _motor(sup_status), procs.stderr("supervisor")[-1500:]
 
-    def exhausted() -> bool:
-        s = _motor(sup_status)
-        return bool(s and s["stop_reason"] == "budget exhausted" and s["guard"] == "stopped")
-
     try:
         # the supervisor up and the motor known before the burst (its frames before then would
         # go nowhere: no process reads vcan1 yet)
@@ -90,18 +79,7 @@ def test_canergy_supervisor_mit_as_a_process_holds_a_burst_to_the_budget(procs: 
         # from then (the grant may come before or after the first frame: refused, counted)
         # until the status shows the budget gone; enter motor mode every tenth frame too, so
         # that the first one granted takes effect
-        rounds = burst(app, exhausted, [ENTER, *[PUSH] * 8, GREEDY], timeout_s=300)
-        assert exhausted(), show()
-        wait(lambda: not motor.enabled, "the motor out of motor mode", show=show)
-        after = (_motor(sup_status) or {})["commands"]["refused_why"]
-        last = "no budget (budget exhausted)"
-        app.send(can.Message(arbitration_id=MOTOR, data=GREEDY, is_extended_id=False))
-
-        def counted() -> bool:
-            s = _motor(sup_status)
-            return bool(s and s["commands"]["refused_why"].get(last, 0) > after.get(last, 0))
-
-        wait(counted, "the command after the budget refused and counted", show=show)
+        rounds = burst_until_spent(app, lambda: _motor(sup_status), motor, show)
         gate = _motor(sup_status)
     finally:
         app.shutdown()
@@ -114,14 +92,12 @@ def test_canergy_supervisor_mit_as_a_process_holds_a_burst_to_the_budget(procs: 
     books = status(sup_status)["nodes"][str(MOTOR)]
     granted = books["delivered_uj"] - books["returns_credited_uj"]
     c = gate["commands"]
-    with face.lock:
-        drawn = motor.drawn_uj
-        received = list(motor.commands)
+    drawn, received = received_within_the_cap(motor, face)
     print(
         f"rounds {rounds}, taken {gate['app_taken']}, to motors {gate['to_motors']}, forwarded "
         f"{c['forwarded']}, clamped {c['clamped']}, refused {c['refused']} {c['refused_why']}, "
         f"overflowed {gate['app_overflowed']} (peak {gate['app_queue_peak']}); motor received "
-        f"{len(received)} commands; drawn {drawn} µJ, granted {granted} µJ, bound "
+        f"{received} commands; drawn {drawn} µJ, granted {granted} µJ, bound "
         f"{gate['bound_uj']} µJ, reaction {gate['bound_timings_us']}; {took:.1f} s"
     )
     # every frame the supervisor took from the application is accounted for, in one snapshot
@@ -133,10 +109,4 @@ def test_canergy_supervisor_mit_as_a_process_holds_a_burst_to_the_budget(procs: 
     assert gate["app_taken"] >= rounds and gate["forward_send_failures"] == 0
     assert c["clamped"] >= 1 and c["refused"] >= 1
     assert "mit motor 1: stopping (budget exhausted" in procs.stderr("supervisor")
-    # the motor only ever applied torque under the cap, and every command it received asks at
-    # most the cap through its velocity and feed-forward terms (kd·(|v| + Ω) + |t_ff|); the
-    # stiffness term is clamped from the newest reply's position (tests/test_vcan_mit_inline.py)
-    assert received and 0 < motor.torque_max_seen <= CAP + 1e-9
-    for command in received:
-        assert worst_torque(DM, command, command.p, 0, 0) <= Fraction(CAP)
     assert 0 < drawn <= granted + gate["bound_uj"], (drawn, granted, gate)

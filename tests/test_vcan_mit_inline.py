@@ -19,37 +19,33 @@ from __future__ import annotations
 import contextlib
 import json
 import re
-from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
 import can
 import pytest
-from support.procs import Procs, python, status, wait
+from support.mit_vcan import (
+    CAP,
+    SLOW,
+    burst_until_spent,
+    interfaces_up,
+    motor_on,
+    received_within_the_cap,
+)
+from support.procs import Procs, python, status
 from support.procs import procs as procs  # the fixture
 from support.vcan import TIMEOUT
 
-from canergy.devices.mit import ENTER, worst_torque
-from canergy.live.runtime import monotonic_us
-from firmware_model.drive.motor import LoadTorque
-from firmware_model.mit.live_bench import DM, GREEDY, MOTOR, NODE, PUSH, burst
-from firmware_model.mit.motor import MitFace, MitMotorModel
+from firmware_model.mit.live_bench import MOTOR, NODE
 
 pytestmark = pytest.mark.vcan
 
 APP, MOTORS = "vcan0", "vcan1"
-CAP = 0.5
-"""N·m: 0.5·30 + 3/2·0.85·(0.5/0.945)² = 15.36 W, charged by the clock from the grant on: the
-20 J granted last 1.3 s, commanded or not (a held-off application must still get commands in)."""
-SLOW = ("--mit-feedback-timeout", "2s", "--mit-stop-timeout", "2s")
 
 
 @pytest.fixture(scope="module", autouse=True)
 def _both_up() -> None:
-    for iface in (APP, MOTORS):
-        assert Path(f"/sys/class/net/{iface}/operstate").exists(), (
-            f"{iface} missing: ip link add dev {iface} type vcan; ip link set up {iface}"
-        )
+    interfaces_up(APP, MOTORS)
 
 
 def _read(path: Path) -> dict[str, Any] | None:
@@ -67,11 +63,7 @@ def _motor(path: Path) -> dict[str, Any] | None:
 def test_canergy_inline_as_a_process_holds_a_burst_to_the_budget(procs: Procs) -> None:
     tmp = procs.tmp
     inline_status = tmp / "inline.json"
-    motor = MitMotorModel(
-        MOTOR, DM, monotonic_us(), master_id=MOTOR + 0x10, load=LoadTorque.constant(0.02, True)
-    )
-    face = MitFace(motor, can.Bus(interface="socketcan", channel=MOTORS))
-    face.start()
+    motor, face = motor_on(MOTORS)
     sup = ["-m", "canergy", "supervisor", "-i", "socketcan", "-c", MOTORS, "--nodes", str(NODE)]
     sup += ["--initial", "20J", "--target", "20J", "--max-grant", "20J", *TIMEOUT]
     sup += ["--state", str(tmp / "state.json"), "--no-fsync"]
@@ -88,25 +80,10 @@ def test_canergy_inline_as_a_process_holds_a_burst_to_the_budget(procs: Procs) -
     def show() -> object:
         return _read(inline_status), procs.stderr("inline")[-1500:]
 
-    def exhausted() -> bool:
-        s = _motor(inline_status)
-        return bool(s and s["stop_reason"] == "budget exhausted" and s["guard"] == "stopped")
-
     try:
         # from before the grant (refused, counted) until the status shows the budget gone;
         # enter motor mode every tenth frame too, so that the first one granted takes effect
-        rounds = burst(app, exhausted, [ENTER, *[PUSH] * 8, GREEDY], timeout_s=300)
-        assert exhausted(), show()
-        wait(lambda: not motor.enabled, "the motor out of motor mode", show=show)
-        after = (_motor(inline_status) or {})["commands"]["refused_why"]
-        last = "no budget (budget exhausted)"
-        app.send(can.Message(arbitration_id=MOTOR, data=GREEDY, is_extended_id=False))
-
-        def counted() -> bool:
-            s = _motor(inline_status)
-            return bool(s and s["commands"]["refused_why"].get(last, 0) > after.get(last, 0))
-
-        wait(counted, "the command after the budget refused and counted", show=show)
+        rounds = burst_until_spent(app, lambda: _motor(inline_status), motor, show)
         forwarder = _read(inline_status)
     finally:
         app.shutdown()
@@ -120,13 +97,11 @@ def test_canergy_inline_as_a_process_holds_a_burst_to_the_budget(procs: Procs) -
     granted = books["delivered_uj"] - books["returns_credited_uj"]
     gate = forwarder["motors"][str(MOTOR)]
     c = gate["commands"]
-    with face.lock:
-        drawn = motor.drawn_uj
-        received = list(motor.commands)
+    drawn, received = received_within_the_cap(motor, face)
     print(
         f"rounds {rounds}, to motors {forwarder['to_motors']}, forwarded {c['forwarded']}, "
         f"clamped {c['clamped']}, refused {c['refused']} {c['refused_why']}; motor received "
-        f"{len(received)} commands; drawn {drawn} µJ, granted {granted} µJ, bound "
+        f"{received} commands; drawn {drawn} µJ, granted {granted} µJ, bound "
         f"{gate['bound_uj']} µJ"
     )
     # every frame the forwarder took from the application is accounted for, in one snapshot
@@ -134,12 +109,4 @@ def test_canergy_inline_as_a_process_holds_a_burst_to_the_budget(procs: Procs) -
     assert c["clamped"] >= 1 and c["refused"] >= 1 and forwarder["send_failures"] == 0
     lines = re.findall(r"clamped (\d+), refused (\d+)", procs.stderr("inline"))
     assert lines and min(map(int, lines[-1])) >= 1  # its last status line on stderr says so too
-    # the motor only ever applied torque under the cap, and every command it received asks at
-    # most the cap through its velocity and feed-forward terms (kd·(|v| + Ω) + |t_ff|); its
-    # stiffness term is clamped from the position in the newest reply, so the gate lets one kp
-    # step through near the set point (kp·25 rad, the worst position, is not what it bounds: a
-    # series run met 100/819 · 25 = 3.05 N·m that way, with the torque applied under the cap)
-    assert received and 0 < motor.torque_max_seen <= CAP + 1e-9
-    for command in received:
-        assert worst_torque(DM, command, command.p, 0, 0) <= Fraction(CAP)
     assert 0 < drawn <= granted + gate["bound_uj"], (drawn, granted, gate)

@@ -267,6 +267,21 @@ def test_a_report_that_cannot_be_written_fails_at_once(
     assert err.startswith("canergy prove: error: ") and "proved" not in out
 
 
+def test_step_checks_only_the_steps_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--step NAME`` checks that step's obligations alone (no initial state, no conclusion);
+    a name the rules have no step for is refused with the list of their steps."""
+    step = "supervisor receives ACK"
+    code, results = _prove(tmp_path, "--step", step)
+    assert code == 0 and results and {r["step"] for r in results} == {step}
+    assert "obligations of 1 step(s) proved" in capsys.readouterr().out
+    assert main(["prove", "--step", "client: spend (DRAW)"]) == 2  # a witnessed step's name
+    err = capsys.readouterr().err
+    assert "no step 'client: spend (DRAW)' in the hardened rules" in err
+    assert f"  {step}\n" in err
+
+
 # -- the witnessed rules with both restore steps: the proof as far as it goes ---------------------
 
 WITNESSED = rules.RULES["witnessed"]

@@ -245,7 +245,11 @@ def counterexample(model: z3.ModelRef, before: World, step: st.Step, delivered: 
         if w.pre is not None:
             lines.append(_describe(model, f"{label}: record at the start", w.pre))
         skip = ("s", "c", "pre")
-        ghost = {f.name: getattr(w, f.name) for f in fields(w) if f.name not in skip}
+        ghost = {
+            f.name: getattr(w, f.name)
+            for f in fields(w)
+            if f.name not in skip and getattr(w, f.name) is not None
+        }
         lines.append(
             f"  {label}: ghost "
             + ", ".join(f"{k}={model.eval(v, model_completion=True)}" for k, v in ghost.items())

@@ -107,6 +107,8 @@ class Proof:
     message: dict[Kind, inv.MsgClause]
     deliverable: Callable[[Msg, World], Term]
     moves: dict[str, tuple[str, ...]]
+    bounded: Callable[[World], Term] = inv.bounded
+    """Bounded life (assumption 4), of the world before and after each step."""
 
     def invariant(self, w: World) -> Term:
         return z3.And(*(clause(w) for _, clause in self.state))
@@ -120,7 +122,7 @@ def proof_of(rules: Rules) -> Proof:
         return HARDENED_PROOF
     from canergy.prove import witnessed_proof as wp
 
-    return Proof(wp.STATE, wp.MESSAGE, wp.deliverable, wp.MOVES)
+    return Proof(wp.STATE, wp.MESSAGE, wp.deliverable, wp.MOVES, wp.bounded)
 
 
 def goals(before: World, step: st.Step, proof: Proof = HARDENED_PROOF) -> Iterator[Goal]:
@@ -271,8 +273,8 @@ def check_step(
     step, hyps, delivered = case.build(before)
     base = [
         proof.invariant(before),
-        inv.bounded(before),
-        inv.bounded(step.after),
+        proof.bounded(before),
+        proof.bounded(step.after),
         step.enabled,
         resolved_consistently(before, step.after),
         *hyps,
@@ -369,7 +371,7 @@ def check_conclusion(rules: Rules = HARDENED) -> Iterator[Outcome]:
 
         usable = counted(w)
     held = usable + w.spent
-    hyps = [proof_of(rules).invariant(w), inv.bounded(w)]
+    hyps = [proof_of(rules).invariant(w), proof_of(rules).bounded(w)]
     yield _prove("invariant", "usable >= 0", hyps, usable >= 0)
     yield _prove("invariant", "dissipation >= 0", hyps, drawn(w) - held >= 0)
 

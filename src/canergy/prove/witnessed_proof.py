@@ -50,6 +50,11 @@ def pre(w: World) -> sym.Client:
     return w.pre
 
 
+def starts(w: World) -> Term:
+    assert w.starts is not None, "a world of the witnessed proof counts the node's starts"
+    return w.starts
+
+
 def top(w: World) -> Term:
     assert w.top is not None, "a world of the witnessed proof has the highest number"
     return w.top
@@ -76,17 +81,36 @@ def start_seq(w: World) -> Term:
     return pre(w).return_seq + w.off_seq
 
 
+def _voided(image_seq: Term, later: sym.Client, later_seq: Term) -> Term:
+    """The ``later`` record holds a debit numbered one past an image's, not acknowledged (its
+    amount; else 0): a confirmation of the image voids it."""
+    pending = z3.And(one(image_seq) == later_seq, later.return_pending > 0)
+    return z3.If(pending, later.return_pending, 0)
+
+
+def _confirmable(image_seq: Term, later: sym.Client, later_seq: Term) -> Term:
+    """An image may be confirmed in place of the ``later`` record: it has every debit of it
+    but one not acknowledged (so the actuator used nothing it lacks)."""
+    return z3.Or(image_seq == later_seq, _voided(image_seq, later, later_seq) > 0)
+
+
+def _lacks(image: sym.Client, image_seq: Term, later: sym.Client, later_seq: Term) -> Term:
+    """An image that may be confirmed holds no more than the ``later`` record, less the credits
+    it lacks, plus the one debit it lacks."""
+    return z3.Implies(
+        _confirmable(image_seq, later, later_seq),
+        image.usable + (later.credited - image.credited)
+        <= later.usable + _voided(image_seq, later, later_seq),
+    )
+
+
 def voided(w: World) -> Term:
-    """The record at the start holds a debit numbered one past the record started from, not
-    acknowledged (its amount; else 0): a confirmation of that record voids it."""
-    p = pre(w)
-    return z3.If(z3.And(one(image_seq(w)) == start_seq(w), p.return_pending > 0), p.return_pending, 0)
+    """What a confirmation of the record started from voids of the record at the start."""
+    return _voided(image_seq(w), pre(w), start_seq(w))
 
 
 def confirmable(w: World) -> Term:
-    """The record started from may be confirmed: it has every debit of the record at the start
-    but one not acknowledged (so the actuator used nothing it lacks)."""
-    return z3.Or(image_seq(w) == start_seq(w), voided(w) > 0)
+    return _confirmable(image_seq(w), pre(w), start_seq(w))
 
 
 def expected(c: sym.Client) -> Term:
@@ -95,7 +119,7 @@ def expected(c: sym.Client) -> Term:
 
 
 def this_start(m: Msg, w: World) -> Term:
-    return z3.And(starting(w.c), m.start == w.starts)
+    return z3.And(starting(w.c), m.start == starts(w))
 
 
 def confirms(m: Msg, c: sym.Client) -> Term:
@@ -121,6 +145,7 @@ def supervisor_books(w: World) -> Term:
 
 def _record(c: sym.Client, booked: Term) -> Term:
     return z3.And(
+        z3.Or(*(c.outcome == int(o) for o in Outcome)),
         c.usable >= 0,
         c.spent >= 0,
         whole(c.credited),
@@ -139,7 +164,7 @@ def client_books(w: World) -> Term:
     return z3.And(
         z3.Or(*(c.phase == ph for ph in phases)),
         _record(c, w.booked),
-        w.starts >= 0,
+        starts(w) >= 0,
         ule(top(w), one(view(w).rc)),
         z3.Implies(view(w).booked, ule(top(w), view(w).seq)),
         z3.Implies(starting(c), z3.And(c.held_tx == 0, c.held_amount == 0)),
@@ -152,26 +177,13 @@ def client_books(w: World) -> Term:
                 _record(p, z3.BoolVal(True)),
                 c.spent <= p.spent,  # the record started from is that one or an older image
                 c.credited <= p.credited,
-                z3.Or(*(c.outcome == int(o) for o in Outcome)),
-                z3.Implies(
-                    c.phase == sym.RESUMING,
-                    z3.And(
-                        ule(w.admitted_at, real.last),
-                        ule(real.last, at_start.last),
-                        z3.Implies(real.last == at_start.last, c.outcome == p.outcome),
-                    ),
+                z3.Or(
+                    c.outcome == sym.SETTLED,
+                    z3.Implies(real.last == at_start.last, c.outcome == p.outcome),
                 ),
-                z3.Implies(
-                    c.phase == sym.SYNCING,
-                    z3.Or(
-                        c.outcome == sym.SETTLED,
-                        z3.And(real.last == at_start.last, c.outcome == p.outcome),
-                    ),
-                ),
+                z3.Implies(z3.ULT(w.tx, real.last), c.outcome == sym.SETTLED),
                 c.credited_unknown == p.credited_unknown,
-                z3.Implies(
-                    confirmable(w), c.usable + (p.credited - c.credited) <= p.usable + voided(w)
-                ),
+                _lacks(c, image_seq(w), p, start_seq(w)),
                 ule(w.off_seq, real.seq),
                 ule(real.seq, at_start.seq),
                 z3.Implies(z3.Not(c.pending_draw), inv.pending_return(real)),
@@ -198,7 +210,19 @@ def pending_return(w: World) -> Term:
     return z3.Implies(z3.Not(v.c.pending_draw), inv.pending_return(v))
 
 
+def numbering(w: World) -> Term:
+    """The hardened clause on ``view``, but while a start waits the record at its start may be
+    ahead of the supervisor's tx: a start confirmed with k below the ltx of the record it
+    started from (settled ahead for a SYNC whose counts the supervisor never took) goes on
+    answering with that record until its counts move tx (its outcome: settled)."""
+    v = view(w)
+    ahead = replace(v, s=replace(v.s, tx=v.c.last_tx + v.off_tx + v.shift_tx))
+    settled_ahead = z3.And(starting(w.c), v.c.outcome == sym.SETTLED)
+    return z3.If(settled_ahead, inv.numbering(ahead), inv.numbering(v))
+
+
 _REPLACED = {
+    "numbering": numbering,
     "supervisor books": supervisor_books,
     "client books": client_books,
     "energy identity": energy,
@@ -217,17 +241,17 @@ STATE: tuple[tuple[str, inv.Clause], ...] = tuple(
 
 def p_image(r: sym.Client, w: World) -> Term:
     """An older image of the node's record: the hardened ``p_image`` against the record the
-    invariant speaks of, and well formed as a witnessed record (a pending draw is pending)."""
+    invariant speaks of, well formed as a witnessed record (a pending draw is pending), with
+    the outcome of the record at the same last transaction, and, when it has every debit of the
+    record but one not acknowledged, no more than it holds less the credits since."""
     v = view(w)
     then = replace(v, c=r)
     return z3.And(
         inv.p_image(r, v),
         _record(r, z3.BoolVal(True)),
         z3.Implies(then.last == v.last, r.outcome == v.c.outcome),
-        r.usable + (v.c.credited - r.credited) <= v.c.usable + z3.If(
-            z3.And(one(then.seq) == v.seq, v.c.return_pending > 0), v.c.return_pending, 0
-        )
-        + z3.If(z3.Or(then.seq == v.seq, z3.And(one(then.seq) == v.seq, v.c.return_pending > 0)), 0, 1 << 62),
+        z3.Implies(z3.ULT(v.tx, then.last), r.outcome == sym.SETTLED),
+        _lacks(r, then.seq, v.c, v.seq),
     )
 
 
@@ -247,7 +271,7 @@ def p_debit(m: Msg, w: World) -> Term:
         m.life >= 0,
         m.life <= w.life,
         m.start >= 0,
-        m.start <= w.starts,
+        m.start <= starts(w),
         z3.Or(numbered, books, unknown),
         z3.Implies(draw, z3.And(inv.amount_mj(m.amount), m.nonce == 0)),
         z3.Implies(resume, z3.And(m.amount >= 0, m.amount <= AMOUNT_MAX_MJ)),
@@ -292,11 +316,15 @@ def p_admit(m: Msg, w: World) -> Term:
         m.admit_tx == low16(m.k),
         m.admit_seq == low16(m.q),
         m.start >= -1,
-        m.start <= w.starts,
+        m.start <= starts(w),
         z3.Implies(m.k == v.tx, z3.Not(v.open)),
         z3.Implies(
             this_start(m, w),
-            z3.And(ule(start_seq(w), m.q), ule(v.last, m.k), ule(w.last, m.k)),
+            z3.And(
+                ule(start_seq(w), m.q),
+                ule(v.last, m.k),
+                z3.Implies(w.c.phase == sym.SYNCING, ule(w.last, m.k)),
+            ),
         ),
         z3.Implies(
             z3.And(this_start(m, w), confirms(m, w.c)),
@@ -312,9 +340,7 @@ def p_admit(m: Msg, w: World) -> Term:
         ),
     )
     answers_this_life = z3.And(m.life == w.life, z3.Not(v.booked))
-    join = z3.And(
-        inv.p_admit(m, v), m.start == -1, z3.Implies(answers_this_life, ule(top(w), m.q))
-    )
+    join = z3.And(inv.p_admit(m, v), m.start == -1, z3.Implies(answers_this_life, ule(top(w), m.q)))
     return z3.If(m.life == -1, ours, join)
 
 
@@ -335,9 +361,16 @@ def deliverable(m: Msg, w: World) -> Term:
         return z3.Implies(z3.Not(wit.is_books(m.flags)), inv.near(m.k, view(w).rc))
     if m.kind is Kind.ADMIT:
         ours = z3.And(starting(w.c), m.nonce == expected(w.c))
-        real = z3.And(m.start == w.starts, inv.near(m.k, w.last))
+        real = z3.And(m.start == starts(w), inv.near(m.k, w.last))
         return z3.And(inv.deliverable(m, view(w)), z3.Implies(ours, real))
     return inv.deliverable(m, view(w))
+
+
+def bounded(w: World) -> Term:
+    """Bounded life (assumption 4), and the supervisor's C below the cap 2**30 - 1 where a
+    start's void stops moving it (reached only after 2**16 voids past the end of the
+    numbering)."""
+    return z3.And(inv.bounded(w), z3.ULT(w.s.returns_credited, sym.counter(COUNTER_BOUND - 1)))
 
 
 def invariant(w: World) -> Term:
@@ -361,7 +394,7 @@ def client_sent(w: World, frames: wit.Frames) -> tuple[tuple[Term, Msg], ...]:
             nonce=sent.d,
             k=k,
             life=w.life,
-            start=w.starts,
+            start=starts(w),
         )
         out.append((st._is(sent, Kind.DEBIT), debit))
     return tuple(out)
@@ -444,9 +477,7 @@ def on_admit(w: World, m: Msg) -> st.Step:
     )
     fresh = z3.Or(joined, behind)
     off_tx = z3.If(fresh, m.k - z3.ZeroExt(16, m.admit_tx), w.off_tx)
-    off_seq = z3.If(
-        joined, m.q - z3.ZeroExt(16, m.admit_seq), z3.If(behind, m.q - q, w.off_seq)
-    )
+    off_seq = z3.If(joined, m.q - z3.ZeroExt(16, m.admit_seq), z3.If(behind, m.q - q, w.off_seq))
     roff = z3.If(fresh, z3.IntVal(0), w.roff)
     kept = z3.And(
         starting(c),

@@ -109,6 +109,8 @@ class Proof:
     moves: dict[str, tuple[str, ...]]
     bounded: Callable[[World], Term] = inv.bounded
     """Bounded life (assumption 4), of the world before and after each step."""
+    resolved: Callable[[World, World], Term] = resolved_consistently
+    """How the prophecy ``H`` agrees with a step of the run."""
 
     def invariant(self, w: World) -> Term:
         return z3.And(*(clause(w) for _, clause in self.state))
@@ -122,7 +124,7 @@ def proof_of(rules: Rules) -> Proof:
         return HARDENED_PROOF
     from canergy.prove import witnessed_proof as wp
 
-    return Proof(wp.STATE, wp.MESSAGE, wp.deliverable, wp.MOVES, wp.bounded)
+    return Proof(wp.STATE, wp.MESSAGE, wp.deliverable, wp.MOVES, wp.bounded, wp.resolved)
 
 
 def goals(before: World, step: st.Step, proof: Proof = HARDENED_PROOF) -> Iterator[Goal]:
@@ -276,7 +278,7 @@ def check_step(
         proof.bounded(before),
         proof.bounded(step.after),
         step.enabled,
-        resolved_consistently(before, step.after),
+        proof.resolved(before, step.after),
         *hyps,
     ]
     todo = list(goals(before, step, proof))

@@ -140,6 +140,7 @@ def supervisor_books(w: World) -> Term:
         whole(s.reserved),
         whole(s.delivered),
         s.returned >= 0,
+        z3.Implies(s.resume_to != 0, z3.UGT(s.resume_to, s.resume_from)),
     )
 
 
@@ -373,6 +374,19 @@ def bounded(w: World) -> Term:
     return z3.And(inv.bounded(w), z3.ULT(w.s.returns_credited, sym.counter(COUNTER_BOUND - 1)))
 
 
+def resolved(before: World, after: World) -> Term:
+    """The prophecy agrees with the run: when a transaction closes, or a SYNC's counts move tx
+    up over numbers no transaction took, ``H`` of the next number, and of every number skipped,
+    is Gs then (a number skipped is never begun: its ``H`` is fixed by the skip)."""
+    skips = z3.And(z3.Not(after.open), z3.ULT(before.tx, after.tx))
+    closes = z3.And(before.open, z3.Not(after.open))
+    gs = after.s.delivered
+    return z3.And(
+        z3.Implies(closes, gs == H(one(after.tx))),
+        z3.Implies(skips, z3.And(gs == H(one(after.tx)), gs == H(one(before.tx)))),
+    )
+
+
 def invariant(w: World) -> Term:
     return z3.And(*(clause(w) for _, clause in STATE))
 
@@ -555,9 +569,11 @@ def _session(
     after = replace(w, s=step.session, **ghost)
     answers = z3.IntVal(-1) if life is None else life
     sent = st.supervisor_sent(after, step.sent, answers)
-    if start is not None:
+    if start is not None:  # a confirmation: k the last transaction closed
+        closed = z3.If(after.s.phase == sym.S_IDLE, after.tx, after.tx - 1)
         sent = tuple(
-            (cond, replace(m, start=start) if m.kind is Kind.ADMIT else m) for cond, m in sent
+            (cond, replace(m, start=start, k=closed) if m.kind is Kind.ADMIT else m)
+            for cond, m in sent
         )
     return st.Step(after, sent, z3.BoolVal(True), step.credit)
 

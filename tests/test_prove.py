@@ -18,7 +18,7 @@ from canergy.core import common, paper
 from canergy.core.inputs import POWER_LOSS, BooksLost
 from canergy.core.state import ClientState, Decision, Phase, Session
 from canergy.core.timing import Timing
-from canergy.messages import Return
+from canergy.messages import COUNTER_BOUND, Return
 
 z3 = pytest.importorskip("z3")  # the prove extra: in dev, so CI runs this
 from support.sym_states import sym_client, sym_session  # noqa: E402
@@ -290,6 +290,7 @@ NODE_START_STEPS = (
     "client: power loss (RESUME)",
     "client: spend (DRAW)",
     "client receives RETURN_ACK",
+    "client receives ADMIT",
 )
 
 
@@ -337,6 +338,28 @@ def test_a_node_that_releases_a_draw_while_its_start_waits_fails_the_witnessed_p
     monkeypatch.setattr(wit, "on_debit_ack", releases_early)
     failed = {o.clause for o in _witnessed_outcomes(step) if not o.proved}
     assert "passivity" in failed
+
+
+def test_a_node_that_keeps_its_books_when_found_behind_fails_the_witnessed_proof(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The confirmation of a start: Q = q + 1 keeps the books, a larger Q finds the record
+    behind (it lacks a debit the supervisor holds, which the actuator may have used). A node
+    that keeps its books on any Q above its q fails the confirmation step."""
+    from canergy.prove import witnessed as wit
+
+    original = wit.on_confirm
+
+    def keeps_behind(c: sym.Client, tx16: Any, seq16: Any) -> Any:
+        q = sym.unwrap(seq16, c.return_seq, 16)
+        ahead = z3.And(q - c.return_seq > 1, z3.Not(z3.UGE(q, sym.counter(COUNTER_BOUND))))
+        one_past = replace(c, return_seq=q - 1)
+        return wit._choose(ahead, original(one_past, tx16, seq16), original(c, tx16, seq16))
+
+    step = "client receives ADMIT"
+    monkeypatch.setattr(wit, "on_confirm", keeps_behind)
+    failed = {o.clause for o in _witnessed_outcomes(step) if not o.proved}
+    assert {"passivity", "received <= Rc"} & failed, failed
 
 
 def test_a_start_that_hands_the_pending_draw_to_the_actuator_fails_the_witnessed_proof(

@@ -5,16 +5,23 @@ While the node's start waits for the supervisor's confirmation (RESUMING, or ans
 SYNC) the invariant speaks of its record as it stood when the start began (the ghost
 ``World.pre``), not of the record it started from, which may be an older image: what it holds
 counts in the ledger only from the confirmation on. A confirmation that keeps the books counts
-their Uc (and pending draw) from then on; the difference is received if positive, lost if
-negative. A pending draw counts as held until the RETURN_ACK releases it to the actuator (spent)
-or a confirmation drops it (lost). What the record's ``spent`` grows by in any phase is used.
+their Uc (and pending draw) from then on: the credits that record lacks are no longer received
+(Gs pays them back), a return of the record at the start that the confirmation voids was given
+back and came back, and the rest of the difference is lost. A pending draw counts as held until
+the RETURN_ACK releases it to the actuator (spent) or a confirmation drops it (lost). What the
+record's ``spent`` grows by in any phase is used.
 
-Not proved: the invariant is the hardened one on that view, with the witnessed phases admitted,
-the energy identity above, the record a start runs from tied to the one at the start, ``P`` of
-a DEBIT (the codec's forms, a number at most one past C) and of an ADMIT that is no JOIN's
-answer. It fails at the supervisor's restore, the node's confirmation and the supervisor's
-DEBIT: docs/protocol.md ("Passivity as a theorem", assumption 2); ``canergy prove --rules
-witnessed --keep-going`` lists the obligations.
+Two more ghosts, each a pure function of the history: ``World.starts`` (the node's starts; a
+DEBIT carries the start it was sent in, a confirmation the start it answers) and ``World.top``
+(the highest return number any record of the node held). ``P`` of a confirmation of the current
+start states what the supervisor saw when it answered: C was at most the number of the record
+started from, so with Q one past it that record has every debit of the record at the start but
+one not acknowledged, and Q and k are at least the record at the start's.
+
+Not proved: it fails at the supervisor's restore and at the supervisor's DEBIT (a SYNC's books,
+a start answered again, a record at the start settled ahead of tx): docs/protocol.md
+("Passivity as a theorem", assumption 2); ``canergy prove --rules witnessed --keep-going``
+lists the obligations, ``--step NAME`` checks one step.
 """
 
 from __future__ import annotations
@@ -140,8 +147,13 @@ def supervisor_books(w: World) -> Term:
         whole(s.reserved),
         whole(s.delivered),
         s.returned >= 0,
-        z3.Implies(s.resume_to != 0, z3.UGT(s.resume_to, s.resume_from)),
+        answered(s),
     )
+
+
+def answered(s: sym.Session) -> Term:
+    """The last start answered was answered above its number (C = max(C, q) + 1)."""
+    return z3.Implies(s.resume_to != 0, z3.UGT(s.resume_to, s.resume_from))
 
 
 def _record(c: sym.Client, booked: Term) -> Term:
@@ -254,6 +266,12 @@ def p_image(r: sym.Client, w: World) -> Term:
         z3.Implies(z3.ULT(v.tx, then.last), r.outcome == sym.SETTLED),
         _lacks(r, then.seq, v.c, v.seq),
     )
+
+
+def p_session_image(r: sym.Session, w: World) -> Term:
+    """An older image of the supervisor's record: the hardened ``p_session_image`` against
+    ``view``, its last start answered above its number."""
+    return z3.And(inv.p_session_image(r, view(w)), answered(r))
 
 
 def _msg_on_view(clause: inv.MsgClause) -> inv.MsgClause:

@@ -18,7 +18,7 @@ from canergy.core import common, paper
 from canergy.core.inputs import POWER_LOSS, BooksLost
 from canergy.core.state import ClientState, Decision, Phase, Session
 from canergy.core.timing import Timing
-from canergy.messages import Return
+from canergy.messages import COUNTER_BOUND, Return
 
 z3 = pytest.importorskip("z3")  # the prove extra: in dev, so CI runs this
 from support.sym_states import sym_client, sym_session  # noqa: E402
@@ -267,6 +267,21 @@ def test_a_report_that_cannot_be_written_fails_at_once(
     assert err.startswith("canergy prove: error: ") and "proved" not in out
 
 
+def test_step_checks_only_the_steps_named(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--step NAME`` checks that step's obligations alone (no initial state, no conclusion);
+    a name the rules have no step for is refused with the list of their steps."""
+    step = "supervisor receives ACK"
+    code, results = _prove(tmp_path, "--step", step)
+    assert code == 0 and results and {r["step"] for r in results} == {step}
+    assert "obligations of 1 step(s) proved" in capsys.readouterr().out
+    assert main(["prove", "--step", "client: spend (DRAW)"]) == 2  # a witnessed step's name
+    err = capsys.readouterr().err
+    assert "no step 'client: spend (DRAW)' in the hardened rules" in err
+    assert f"  {step}\n" in err
+
+
 # -- the witnessed rules with both restore steps: the proof as far as it goes ---------------------
 
 WITNESSED = rules.RULES["witnessed"]
@@ -275,6 +290,7 @@ NODE_START_STEPS = (
     "client: power loss (RESUME)",
     "client: spend (DRAW)",
     "client receives RETURN_ACK",
+    "client receives ADMIT",
 )
 
 
@@ -322,6 +338,28 @@ def test_a_node_that_releases_a_draw_while_its_start_waits_fails_the_witnessed_p
     monkeypatch.setattr(wit, "on_debit_ack", releases_early)
     failed = {o.clause for o in _witnessed_outcomes(step) if not o.proved}
     assert "passivity" in failed
+
+
+def test_a_node_that_keeps_its_books_when_found_behind_fails_the_witnessed_proof(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The confirmation of a start: Q = q + 1 keeps the books, a larger Q finds the record
+    behind (it lacks a debit the supervisor holds, which the actuator may have used). A node
+    that keeps its books on any Q above its q fails the confirmation step."""
+    from canergy.prove import witnessed as wit
+
+    original = wit.on_confirm
+
+    def keeps_behind(c: sym.Client, tx16: Any, seq16: Any) -> Any:
+        q = sym.unwrap(seq16, c.return_seq, 16)
+        ahead = z3.And(q - c.return_seq > 1, z3.Not(z3.UGE(q, sym.counter(COUNTER_BOUND))))
+        one_past = replace(c, return_seq=q - 1)
+        return wit._choose(ahead, original(one_past, tx16, seq16), original(c, tx16, seq16))
+
+    step = "client receives ADMIT"
+    monkeypatch.setattr(wit, "on_confirm", keeps_behind)
+    failed = {o.clause for o in _witnessed_outcomes(step) if not o.proved}
+    assert {"passivity", "received <= Rc"} & failed, failed
 
 
 def test_a_start_that_hands_the_pending_draw_to_the_actuator_fails_the_witnessed_proof(

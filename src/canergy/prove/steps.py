@@ -54,6 +54,7 @@ def _msg(kind: Kind, **given: Term) -> Msg:
         "q": _ZERO[BV32],
         "life": _ZERO[INT],
         "flags": _ZERO[INT],
+        "start": z3.IntVal(-1),
     }
     return Msg(kind, **{**zero, **given})
 

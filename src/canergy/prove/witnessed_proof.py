@@ -5,28 +5,37 @@ While the node's start waits for the supervisor's confirmation (RESUMING, or ans
 SYNC) the invariant speaks of its record as it stood when the start began (the ghost
 ``World.pre``), not of the record it started from, which may be an older image: what it holds
 counts in the ledger only from the confirmation on. A confirmation that keeps the books counts
-their Uc (and pending draw) from then on; the difference is received if positive, lost if
-negative. A pending draw counts as held until the RETURN_ACK releases it to the actuator (spent)
-or a confirmation drops it (lost). What the record's ``spent`` grows by in any phase is used.
+their Uc (and pending draw) from then on: the credits that record lacks are no longer received
+(Gs pays them back), a return of the record at the start that the confirmation voids was given
+back and came back, and the rest of the difference is lost. A pending draw counts as held until
+the RETURN_ACK releases it to the actuator (spent) or a confirmation drops it (lost). What the
+record's ``spent`` grows by in any phase is used.
 
-Not proved: the invariant is the hardened one on that view, with the witnessed phases admitted,
-the energy identity above, the record a start runs from tied to the one at the start, ``P`` of
-a DEBIT (the codec's forms, a number at most one past C) and of an ADMIT that is no JOIN's
-answer. It fails at the supervisor's restore, the node's confirmation and the supervisor's
-DEBIT: docs/protocol.md ("Passivity as a theorem", assumption 2); ``canergy prove --rules
-witnessed --keep-going`` lists the obligations.
+Two more ghosts, each a pure function of the history: ``World.starts`` (the node's starts; a
+DEBIT carries the start it was sent in, a confirmation the start it answers) and ``World.top``
+(the highest return number any record of the node held). ``P`` of a confirmation of the current
+start states what the supervisor saw when it answered: C was at most the number of the record
+started from, so with Q one past it that record has every debit of the record at the start but
+one not acknowledged, and Q and k are at least the record at the start's.
+
+Not proved: it fails at the supervisor's restore and at the supervisor's DEBIT (a SYNC's books,
+a start answered again, a record at the start settled ahead of tx): docs/protocol.md
+("Passivity as a theorem", assumption 2); ``canergy prove --rules witnessed --keep-going``
+lists the obligations, ``--step NAME`` checks one step.
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
+from canergy.core.state import Outcome
 from canergy.messages import AMOUNT_MAX_MJ, COUNTER_BOUND, QUANTUM_UJ, SEQ_BITS, SYNC_CONFIRMED
 from canergy.prove import invariant as inv
 from canergy.prove import steps as st
 from canergy.prove import symbolic as sym
 from canergy.prove import witnessed as wit
-from canergy.prove.invariant import COMMITTED, Q, low16, ule, whole
+from canergy.prove.invariant import COMMITTED, Q, low16, one, ule, whole
 from canergy.prove.symbolic import Term, z3
 from canergy.prove.world import TO_CLIENT, W_TO_SUPERVISOR, H, Kind, Msg, World
 
@@ -48,6 +57,16 @@ def pre(w: World) -> sym.Client:
     return w.pre
 
 
+def starts(w: World) -> Term:
+    assert w.starts is not None, "a world of the witnessed proof counts the node's starts"
+    return w.starts
+
+
+def top(w: World) -> Term:
+    assert w.top is not None, "a world of the witnessed proof has the highest number"
+    return w.top
+
+
 def view(w: World) -> World:
     """The world the hardened clauses speak of: while the node's start waits, its record as it
     stood when the start began."""
@@ -57,6 +76,62 @@ def view(w: World) -> World:
 def counted(w: World) -> Term:
     """What counts as the node's in the ledger (Uc and a pending draw, of ``view``)."""
     return holds(view(w).c)
+
+
+def image_seq(w: World) -> Term:
+    """The return number of the record the node started from (canonical)."""
+    return w.c.return_seq + w.off_seq
+
+
+def start_seq(w: World) -> Term:
+    """The return number of the record at the start (canonical)."""
+    return pre(w).return_seq + w.off_seq
+
+
+def _voided(image_seq: Term, later: sym.Client, later_seq: Term) -> Term:
+    """The ``later`` record holds a debit numbered one past an image's, not acknowledged (its
+    amount; else 0): a confirmation of the image voids it."""
+    pending = z3.And(one(image_seq) == later_seq, later.return_pending > 0)
+    return z3.If(pending, later.return_pending, 0)
+
+
+def _confirmable(image_seq: Term, later: sym.Client, later_seq: Term) -> Term:
+    """An image may be confirmed in place of the ``later`` record: it has every debit of it
+    but one not acknowledged (so the actuator used nothing it lacks)."""
+    return z3.Or(image_seq == later_seq, _voided(image_seq, later, later_seq) > 0)
+
+
+def _lacks(image: sym.Client, image_seq: Term, later: sym.Client, later_seq: Term) -> Term:
+    """An image that may be confirmed holds no more than the ``later`` record, less the credits
+    it lacks, plus the one debit it lacks."""
+    return z3.Implies(
+        _confirmable(image_seq, later, later_seq),
+        image.usable + (later.credited - image.credited)
+        <= later.usable + _voided(image_seq, later, later_seq),
+    )
+
+
+def voided(w: World) -> Term:
+    """What a confirmation of the record started from voids of the record at the start."""
+    return _voided(image_seq(w), pre(w), start_seq(w))
+
+
+def confirmable(w: World) -> Term:
+    return _confirmable(image_seq(w), pre(w), start_seq(w))
+
+
+def expected(c: sym.Client) -> Term:
+    """The nonce of the ADMIT that confirms the node's start."""
+    return z3.If(c.phase == sym.SYNCING, c.nonce ^ SYNC_CONFIRMED, c.nonce)
+
+
+def this_start(m: Msg, w: World) -> Term:
+    return z3.And(starting(w.c), m.start == starts(w))
+
+
+def confirms(m: Msg, c: sym.Client) -> Term:
+    """The node reads the ADMIT's Q as one past its own number: books kept."""
+    return sym.unwrap(m.admit_seq, c.return_seq, SEQ_BITS) - c.return_seq == 1
 
 
 # -- the invariant ------------------------------------------------------------------------------
@@ -72,11 +147,18 @@ def supervisor_books(w: World) -> Term:
         whole(s.reserved),
         whole(s.delivered),
         s.returned >= 0,
+        answered(s),
     )
+
+
+def answered(s: sym.Session) -> Term:
+    """The last start answered was answered above its number (C = max(C, q) + 1)."""
+    return z3.Implies(s.resume_to != 0, z3.UGT(s.resume_to, s.resume_from))
 
 
 def _record(c: sym.Client, booked: Term) -> Term:
     return z3.And(
+        z3.Or(*(c.outcome == int(o) for o in Outcome)),
         c.usable >= 0,
         c.spent >= 0,
         whole(c.credited),
@@ -95,6 +177,9 @@ def client_books(w: World) -> Term:
     return z3.And(
         z3.Or(*(c.phase == ph for ph in phases)),
         _record(c, w.booked),
+        starts(w) >= 0,
+        ule(top(w), one(view(w).rc)),
+        z3.Implies(view(w).booked, ule(top(w), view(w).seq)),
         z3.Implies(starting(c), z3.And(c.held_tx == 0, c.held_amount == 0)),
         z3.Implies(
             starting(c),
@@ -104,6 +189,14 @@ def client_books(w: World) -> Term:
                 p.held_amount == 0,
                 _record(p, z3.BoolVal(True)),
                 c.spent <= p.spent,  # the record started from is that one or an older image
+                c.credited <= p.credited,
+                z3.Or(
+                    c.outcome == sym.SETTLED,
+                    z3.Implies(real.last == at_start.last, c.outcome == p.outcome),
+                ),
+                z3.Implies(z3.ULT(w.tx, real.last), c.outcome == sym.SETTLED),
+                c.credited_unknown == p.credited_unknown,
+                _lacks(c, image_seq(w), p, start_seq(w)),
                 ule(w.off_seq, real.seq),
                 ule(real.seq, at_start.seq),
                 z3.Implies(z3.Not(c.pending_draw), inv.pending_return(real)),
@@ -130,7 +223,19 @@ def pending_return(w: World) -> Term:
     return z3.Implies(z3.Not(v.c.pending_draw), inv.pending_return(v))
 
 
+def numbering(w: World) -> Term:
+    """The hardened clause on ``view``, but while a start waits the record at its start may be
+    ahead of the supervisor's tx: a start confirmed with k below the ltx of the record it
+    started from (settled ahead for a SYNC whose counts the supervisor never took) goes on
+    answering with that record until its counts move tx (its outcome: settled)."""
+    v = view(w)
+    ahead = replace(v, s=replace(v.s, tx=v.c.last_tx + v.off_tx + v.shift_tx))
+    settled_ahead = z3.And(starting(w.c), v.c.outcome == sym.SETTLED)
+    return z3.If(settled_ahead, inv.numbering(ahead), inv.numbering(v))
+
+
 _REPLACED = {
+    "numbering": numbering,
     "supervisor books": supervisor_books,
     "client books": client_books,
     "energy identity": energy,
@@ -149,8 +254,24 @@ STATE: tuple[tuple[str, inv.Clause], ...] = tuple(
 
 def p_image(r: sym.Client, w: World) -> Term:
     """An older image of the node's record: the hardened ``p_image`` against the record the
-    invariant speaks of, and well formed as a witnessed record (a pending draw is pending)."""
-    return z3.And(inv.p_image(r, view(w)), _record(r, z3.BoolVal(True)))
+    invariant speaks of, well formed as a witnessed record (a pending draw is pending), with
+    the outcome of the record at the same last transaction, and, when it has every debit of the
+    record but one not acknowledged, no more than it holds less the credits since."""
+    v = view(w)
+    then = replace(v, c=r)
+    return z3.And(
+        inv.p_image(r, v),
+        _record(r, z3.BoolVal(True)),
+        z3.Implies(then.last == v.last, r.outcome == v.c.outcome),
+        z3.Implies(z3.ULT(v.tx, then.last), r.outcome == sym.SETTLED),
+        _lacks(r, then.seq, v.c, v.seq),
+    )
+
+
+def p_session_image(r: sym.Session, w: World) -> Term:
+    """An older image of the supervisor's record: the hardened ``p_session_image`` against
+    ``view``, its last start answered above its number."""
+    return z3.And(inv.p_session_image(r, view(w)), answered(r))
 
 
 def _msg_on_view(clause: inv.MsgClause) -> inv.MsgClause:
@@ -168,6 +289,8 @@ def p_debit(m: Msg, w: World) -> Term:
     return z3.And(
         m.life >= 0,
         m.life <= w.life,
+        m.start >= 0,
+        m.start <= starts(w),
         z3.Or(numbered, books, unknown),
         z3.Implies(draw, z3.And(inv.amount_mj(m.amount), m.nonce == 0)),
         z3.Implies(resume, z3.And(m.amount >= 0, m.amount <= AMOUNT_MAX_MJ)),
@@ -176,6 +299,10 @@ def p_debit(m: Msg, w: World) -> Term:
         z3.Implies(books, z3.And(m.amount >= 0, m.amount < 1 << 8)),
         z3.Implies(unknown, z3.And(m.amount == 0, m.w == 0)),
         z3.Implies(numbered, z3.And(ule(m.k, inv.one(v.rc)), m.w == low16(m.k))),
+        z3.Implies(numbered, ule(m.k, top(w))),
+        z3.Implies(
+            z3.And(this_start(m, w), z3.Or(resume, resume_draw, counts)), m.k == image_seq(w)
+        ),
         z3.Implies(
             z3.And(resume, m.amount > 0, m.k == inv.one(v.rc)),
             v.s.returned + m.amount * Q <= v.given,
@@ -183,19 +310,64 @@ def p_debit(m: Msg, w: World) -> Term:
     )
 
 
+def p_return(m: Msg, w: World) -> Term:
+    """The hardened ``P``, and numbered at most the node's number (of ``view``) while it has
+    books: a confirmation that moves C to it leaves no RETURN to credit."""
+    v = view(w)
+    return z3.And(inv.p_return(m, v), ule(m.k, top(w)))
+
+
+def p_aborted(m: Msg, w: World) -> Term:
+    """The hardened ``P``, where the node's last transaction may also have been settled by a
+    confirmation (found behind: admitted at it) rather than aborted."""
+    v = view(w)
+    settled = z3.And(m.life == w.life, m.k == v.last, v.c.outcome == sym.SETTLED)
+    return inv.p_aborted(m, replace(v, c=sym.pick(settled, replace(v.c, outcome=inv.ABORTED), v.c)))
+
+
 def p_admit(m: Msg, w: World) -> Term:
     """An ADMIT answers a JOIN (``life`` the JOIN's: the hardened ``P``), or it is a SYNC or a
     start's confirmation (``life`` -1): its counters the supervisor's, then or earlier."""
     v = view(w)
     ours = z3.And(
-        ule(m.k, v.tx), ule(m.q, v.rc), m.admit_tx == low16(m.k), m.admit_seq == low16(m.q)
+        ule(m.k, v.tx),
+        ule(m.q, v.rc),
+        m.admit_tx == low16(m.k),
+        m.admit_seq == low16(m.q),
+        m.start >= -1,
+        m.start <= starts(w),
+        z3.Implies(m.k == v.tx, z3.Not(v.open)),
+        z3.Implies(
+            this_start(m, w),
+            z3.And(
+                ule(start_seq(w), m.q),
+                ule(v.last, m.k),
+                z3.Implies(w.c.phase == sym.SYNCING, ule(w.last, m.k)),
+            ),
+        ),
+        z3.Implies(
+            z3.And(this_start(m, w), confirms(m, w.c)),
+            z3.And(
+                confirmable(w),
+                m.q == one(image_seq(w)),
+                w.received - (pre(w).credited - w.c.credited) <= H(one(m.k)),
+                z3.Implies(
+                    z3.And(voided(w) > 0, z3.Not(pre(w).pending_draw)),
+                    w.s.returned + voided(w) <= w.given,
+                ),
+            ),
+        ),
     )
-    return z3.If(m.life == -1, ours, inv.p_admit(m, v))
+    answers_this_life = z3.And(m.life == w.life, z3.Not(v.booked))
+    join = z3.And(inv.p_admit(m, v), m.start == -1, z3.Implies(answers_this_life, ule(top(w), m.q)))
+    return z3.If(m.life == -1, ours, join)
 
 
 MESSAGE: dict[Kind, inv.MsgClause] = {
     **{kind: _msg_on_view(p) for kind, p in inv.MESSAGE.items()},
     Kind.ADMIT: p_admit,
+    Kind.RETURN: p_return,
+    Kind.ABORTED: p_aborted,
     Kind.DEBIT: p_debit,
 }
 
@@ -206,7 +378,31 @@ def deliverable(m: Msg, w: World) -> Term:
     supervisor's count (books carry Rc instead)."""
     if m.kind is Kind.DEBIT:
         return z3.Implies(z3.Not(wit.is_books(m.flags)), inv.near(m.k, view(w).rc))
+    if m.kind is Kind.ADMIT:
+        ours = z3.And(starting(w.c), m.nonce == expected(w.c))
+        real = z3.And(m.start == starts(w), inv.near(m.k, w.last))
+        return z3.And(inv.deliverable(m, view(w)), z3.Implies(ours, real))
     return inv.deliverable(m, view(w))
+
+
+def bounded(w: World) -> Term:
+    """Bounded life (assumption 4), and the supervisor's C below the cap 2**30 - 1 where a
+    start's void stops moving it (reached only after 2**16 voids past the end of the
+    numbering)."""
+    return z3.And(inv.bounded(w), z3.ULT(w.s.returns_credited, sym.counter(COUNTER_BOUND - 1)))
+
+
+def resolved(before: World, after: World) -> Term:
+    """The prophecy agrees with the run: when a transaction closes, or a SYNC's counts move tx
+    up over numbers no transaction took, ``H`` of the next number, and of every number skipped,
+    is Gs then (a number skipped is never begun: its ``H`` is fixed by the skip)."""
+    skips = z3.And(z3.Not(after.open), z3.ULT(before.tx, after.tx))
+    closes = z3.And(before.open, z3.Not(after.open))
+    gs = after.s.delivered
+    return z3.And(
+        z3.Implies(closes, gs == H(one(after.tx))),
+        z3.Implies(skips, z3.And(gs == H(one(after.tx)), gs == H(one(before.tx)))),
+    )
 
 
 def invariant(w: World) -> Term:
@@ -223,26 +419,53 @@ def client_sent(w: World, frames: wit.Frames) -> tuple[tuple[Term, Msg], ...]:
         out += st.client_sent(w, sent)
         k = sym.unwrap(sent.a, w.c.return_seq, SEQ_BITS) + w.off_seq
         debit = st._msg(
-            Kind.DEBIT, w=sent.a, amount=sent.b, flags=sent.c, nonce=sent.d, k=k, life=w.life
+            Kind.DEBIT,
+            w=sent.a,
+            amount=sent.b,
+            flags=sent.c,
+            nonce=sent.d,
+            k=k,
+            life=w.life,
+            start=starts(w),
         )
         out.append((st._is(sent, Kind.DEBIT), debit))
     return tuple(out)
 
 
-def _moved(w: World, c: sym.Client, gave: Term = 0, replaced: bool = False, **ghost: Term) -> World:
+def _moved(
+    w: World,
+    c: sym.Client,
+    gave: Term = 0,
+    replaced: bool = False,
+    unreceived: Term = 0,
+    restarted: Term | None = None,
+    confirmed: Term | None = None,
+    **ghost: Term,
+) -> World:
     """The world after a client step: what counts for the node moved by ``net`` (plus what the
-    actuator was released and what was given back); a gain is received, a loss lost. A start
-    keeps the record it began from (``pre``). What the record's ``spent`` grew by is what the
-    actuator used, in any phase (a record ``replaced`` by an older image used nothing)."""
+    actuator was released and what was given back, less what was ``unreceived``); a gain is
+    received, a loss lost. A start keeps the record it began from (``pre``; a confirmation
+    followed by the counts, ``confirmed``, starts again from the confirmed record) and counts
+    as one more start (``restarted``, default: a start begun). What the record's ``spent``
+    grew by is what the actuator used, in any phase (a record ``replaced`` by an older image
+    used nothing)."""
     began = z3.And(starting(c), z3.Not(starting(w.c)))
     at_start = sym.client_power_loss(w.c)[0]
-    after = replace(w, c=c, pre=sym.pick(began, at_start, pre(w)), **ghost)
+    again = z3.BoolVal(False) if confirmed is None else confirmed
+    confirmed_record = replace(c, phase=sym.IDLE, nonce=z3.BitVecVal(0, 16))
+    new_pre = sym.pick(began, at_start, sym.pick(again, confirmed_record, pre(w)))
+    more = z3.Or(began, again) if restarted is None else z3.Or(began, again, restarted)
+    assert w.starts is not None and w.top is not None
+    after = replace(w, c=c, pre=new_pre, starts=w.starts + z3.If(more, 1, 0), **ghost)
+    held_seq = c.return_seq + after.off_seq
+    higher = z3.And(c.phase != sym.JOINING, z3.UGT(held_seq, w.top))
+    after = replace(after, top=z3.If(higher, held_seq, w.top))
     grown = c.spent - w.c.spent
     used = z3.IntVal(0) if replaced else z3.If(grown > 0, grown, 0)
-    net = counted(after) - counted(w) + used + gave
+    net = counted(after) - counted(w) + used + gave + unreceived
     after = replace(
         after,
-        received=w.received + z3.If(net > 0, net, 0),
+        received=w.received + z3.If(net > 0, net, 0) - unreceived,
         lost=w.lost + z3.If(net < 0, -net, 0),
         spent=w.spent + used,
         given=w.given + gave,
@@ -253,7 +476,7 @@ def _moved(w: World, c: sym.Client, gave: Term = 0, replaced: bool = False, **gh
 
 
 def _client(
-    w: World, result: tuple[sym.Client, wit.Frames], replaced: bool = False, **ghost: Term
+    w: World, result: tuple[sym.Client, wit.Frames], replaced: bool = False, **ghost: Any
 ) -> st.Step:
     c, frames = result
     after = _moved(w, c, replaced=replaced, **ghost)
@@ -286,9 +509,32 @@ def on_admit(w: World, m: Msg) -> st.Step:
     )
     fresh = z3.Or(joined, behind)
     off_tx = z3.If(fresh, m.k - z3.ZeroExt(16, m.admit_tx), w.off_tx)
-    off_seq = z3.If(fresh, m.q - z3.ZeroExt(16, m.admit_seq), w.off_seq)
+    off_seq = z3.If(joined, m.q - z3.ZeroExt(16, m.admit_seq), z3.If(behind, m.q - q, w.off_seq))
     roff = z3.If(fresh, z3.IntVal(0), w.roff)
-    return _client(w, (c2, frames), off_tx=off_tx, off_seq=off_seq, roff=roff)
+    kept = z3.And(
+        starting(c),
+        m.nonce == expected,
+        q - c.return_seq == 1,
+        z3.Not(z3.UGE(q, sym.counter(COUNTER_BOUND))),
+    )
+    # kept: the credits the record started from lacks are no longer received (the supervisor
+    # pays them back from Gs), and a return of the record at the start that this
+    # confirmation voids was given back and came back
+    p = pre(w)
+    returned_back = z3.And(kept, voided(w) > 0, z3.Not(p.pending_draw))
+    return _client(
+        w,
+        (c2, frames),
+        gave=z3.If(returned_back, -voided(w), 0),
+        unreceived=z3.If(kept, p.credited - c.credited, 0),
+        restarted=z3.And(
+            starting(c2), z3.Or(c2.phase != c.phase, c2.nonce != c.nonce, z3.Not(starting(c)))
+        ),
+        confirmed=z3.And(kept, starting(c2)),
+        off_tx=off_tx,
+        off_seq=off_seq,
+        roff=roff,
+    )
 
 
 def draw(w: World, amount: Term) -> st.Step:
@@ -323,18 +569,30 @@ def restore(w: World, image: sym.Client, nonce: Term) -> st.Step:
     """The node's record put back to an older ``image`` and the node started from it, as after a
     power loss: RESUMING, what it held before parked (the image's Uc counts only once the
     supervisor confirms it)."""
-    return _client(w, wit.power_loss(image, nonce), replaced=True)
+    return _client(w, wit.power_loss(image, nonce), replaced=True, restarted=z3.BoolVal(True))
 
 
 # -- the supervisor's steps ----------------------------------------------------------------------
 
 
-def _session(w: World, step: sym.SessionStep, life: Term | None = None, **ghost: Term) -> st.Step:
+def _session(
+    w: World,
+    step: sym.SessionStep,
+    life: Term | None = None,
+    start: Term | None = None,
+    **ghost: Term,
+) -> st.Step:
     """A supervisor step; an ADMIT it sends answers the JOIN of ``life``, or (None) is a SYNC
-    or a start's confirmation (ghost life -1)."""
+    or a start's confirmation (ghost life -1), that of the node's ``start`` (None: -1)."""
     after = replace(w, s=step.session, **ghost)
     answers = z3.IntVal(-1) if life is None else life
     sent = st.supervisor_sent(after, step.sent, answers)
+    if start is not None:  # a confirmation: k the last transaction closed
+        closed = z3.If(after.s.phase == sym.S_IDLE, after.tx, after.tx - 1)
+        sent = tuple(
+            (cond, replace(m, start=start, k=closed) if m.kind is Kind.ADMIT else m)
+            for cond, m in sent
+        )
     return st.Step(after, sent, z3.BoolVal(True), step.credit)
 
 
@@ -387,6 +645,7 @@ def on_debit(w: World, m: Msg) -> st.Step:
     return _session(
         w,
         step,
+        start=m.start,
         shift_tx=w.shift_tx + z3.If(lifted, lift_tx, zero),
         shift_seq=w.shift_seq + z3.If(lifted, lift_seq, zero),
     )
@@ -448,7 +707,9 @@ def local() -> dict[str, st.Local]:
         "client: retry timer (RETURN, DRAW, JOIN, RESUME or a SYNC's answer again)": lambda w: (
             _client(w, wit.resend(w.c))
         ),
-        "client: power loss (RESUME)": lambda w: _client(w, wit.power_loss(w.c, nonce)),
+        "client: power loss (RESUME)": lambda w: _client(
+            w, wit.power_loss(w.c, nonce), restarted=z3.BoolVal(True)
+        ),
         "client: books lost (JOIN)": lambda w: books_lost(w, z3.BitVec("books_lost.nonce", 16)),
         "supervisor: begin": lambda w: begin(w, z3.Int("begin.amount")),
         "supervisor: decide commit": decide(True),

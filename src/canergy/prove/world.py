@@ -66,6 +66,14 @@ class World:
     dropped). While the start waits for the supervisor's confirmation this record, not the one
     the node started from (which may be an older image), is what the invariant speaks of
     (hardened: unused)."""
+    starts: Term | None = None
+    """Witnessed rules: how many starts the node has made (each draws a nonce: a power loss, a
+    restore, a SYNC answered, a confirmation followed by the counts), a pure function of the
+    history; a frame of a start carries its number (``Msg.start``). Hardened: unused."""
+    top: Term | None = None
+    """Witnessed rules: the highest return number any record of the node has held (canonical,
+    over every life and image), a pure function of the history: no debit is numbered above it.
+    Hardened: unused."""
 
     # canonical views
     @property
@@ -160,7 +168,9 @@ def any_world(name: str = "w", with_pre: bool = True) -> World:
     c = sym.Client(**{f: _fresh(f"{name}.c.{f}.", sort) for f, sort in _CLIENT.items()})
     ghost = {f: _fresh(f"{name}.{f}.", sort) for f, sort in _GHOST.items()}
     pre = any_image(f"{name}.pre") if with_pre else None
-    return World(s, c, **ghost, pre=pre)
+    starts = _fresh(f"{name}.starts.", INT) if with_pre else None
+    top = _fresh(f"{name}.top.", BV32) if with_pre else None
+    return World(s, c, **ghost, pre=pre, starts=starts, top=top)
 
 
 def any_image(name: str = "image") -> sym.Client:
@@ -201,7 +211,7 @@ def initial_world() -> World:
     )
     return World(
         s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,
-        z3.BoolVal(True), zero32, c,
+        z3.BoolVal(True), zero32, c, zero, zero32,
     )  # fmt: skip
 
 
@@ -249,6 +259,9 @@ class Msg:
     q: Term
     life: Term
     flags: Term
+    start: Term
+    """Ghost (witnessed rules): the node's start a DEBIT was sent in, or an ADMIT answers
+    (``World.starts``; -1: no start's, a SYNC or a JOIN's answer)."""
 
 
 _MSG = {
@@ -262,6 +275,7 @@ _MSG = {
     "q": BV32,
     "life": INT,
     "flags": INT,
+    "start": INT,
 }
 
 

@@ -370,6 +370,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         self._refuse(f"a write behind the guard: {what}")
         return self._settled(now)
 
+    def on_unseen(self, now: int, why: str) -> list[Message]:
+        """Frames to the device may have passed unseen (``why``): stopped for good."""
+        self._refuse(why)
+        return self._settled(now)
+
     def on_message(self, msg: ToClient, now: int) -> list[Message]:
         self.charge(now)
         out = self._carry_out(self.client.receive(msg, now), now)

@@ -119,6 +119,14 @@ class MitGates:
                 out += g.on_foreign(bytes(frame.data), now)
         return out
 
+    def unseen(self, why: str, now: int) -> list[Message]:
+        """Frames of the motors' bus were lost before the gates saw them (``why``): every
+        motor stopped for good, as for a frame from another sender."""
+        out: list[Message] = []
+        for g in self.gates.values():
+            out += g.on_unseen(why, now)
+        return out
+
     def outgoing(self, gate: MitGate | None = None) -> list[can.Message]:
         """The frames the gates (or ``gate``) send the motors themselves, in order."""
         return [

@@ -145,3 +145,42 @@ def test_limits_changed_where_the_guard_cannot_see_are_found_by_the_periodic_rea
         "written 0"
     )
     assert ask.why == "periodic read-back"
+
+
+def test_limits_the_periodic_read_back_finds_are_charged_from_the_read_on() -> None:
+    """Found changed, the limits read are in force (since the read was asked at the latest)
+    until the guard's own, written at once, read back: charged at their envelope and in the
+    bound, not at the closed limits the guard last confirmed (0 W)."""
+    config = DeviceConfig(limits=FULL, reread_us=1_000_000)
+    g = DeviceGuard(3, OdriveProfile(MOTOR), config, 0, 1)
+    ready(g)
+    usb = OdriveLimits(50.0, 40.0)
+    g.on_wakeup(1_000_000)
+    g.on_read(1_002_000, usb)
+    assert g.latched and g.refused is not None
+    assert g.in_force_fw(1_002_000) >= g.profile.envelope(usb).fw > 0
+    before = g.metered_uj + g.uncontained_uj
+    g.charge(1_012_000)  # 12 ms on, not read back yet: charged from the read's ask on
+    charged = g.metered_uj + g.uncontained_uj - before
+    assert charged * 10**15 >= g.profile.envelope(usb).fw * 12_000
+    bound = g.status(1_012_000)["bound_uj"]
+    assert bound is not None and bound >= g.bound(usb).total_uj  # type: ignore[union-attr]
+
+
+def test_a_periodic_read_back_left_unanswered_stops_the_device_for_good() -> None:
+    """Reads the device never answers (firmware with other endpoints, a read filtered away):
+    past the feedback timeout from the first unanswered one, the device is stopped for good,
+    as an unverified write is; before, the guard asked every second for ever, still
+    ``limits_verified``."""
+    config = DeviceConfig(limits=FULL, reread_us=1_000_000, feedback_timeout_us=300_000)
+    g = DeviceGuard(3, OdriveProfile(MOTOR), config, 0, 1)
+    ready(g)
+    t = 1_000_000
+    while t <= 5_000_000:
+        g.on_feedback(t, t, powered=True)
+        if t % 1_000_000 == 0:
+            g.on_wakeup(t)
+            g.on_read(t + 2_000, None)  # the link found no answer
+        t += 50_000
+    assert g.latched and g.refused is not None
+    assert "periodic read-back unanswered" in g.refused, g.refused

@@ -38,6 +38,10 @@ TWO = ["--mit", "1,2", "--mit-nodes", "11,12"]
             [*TWO, "--mit-model", "AK80-9", "--mit-resistance", "3:0.2"],
             "--mit-resistance: id 3 is not one of --mit's",
         ),
+        (  # a DM4310's replies go out on its id + 0x10: motor 17's commands
+            ["--mit", "1,17", "--mit-nodes", "11,12", "--mit-model", "DM4310"],
+            "--mit: MIT motor 1's replies go out on 0x011, motor 17's command identifier",
+        ),
     ],
 )
 def test_bad_combinations_are_refused_naming_the_flag(
@@ -89,3 +93,16 @@ def test_buses_left_to_python_cans_configuration_are_not_an_error() -> None:
     argv = ["inline", "-i", "virtual", "--mit", "1", "--mit-nodes", "11", "--mit-model", "DM4310"]
     (motor,) = motors(build_parser().parse_args(argv))
     assert (motor.motor_id, motor.node, motor.model) == (1, 11, "DM4310")
+
+
+def test_gates_refuse_a_motor_whose_replies_are_another_motors_commands() -> None:
+    """In the library too (``MitBus``, the supervisor's gates): motor 1's replies on 0x011
+    would reach motor 17 as a command its gate never clamped."""
+    from canergy.live.devices.mit_bus import MitMotor
+    from canergy.live.devices.mit_gates import MitGates
+
+    with pytest.raises(ValueError, match="motor 17's command identifier"):
+        MitGates([MitMotor(1, node=11), MitMotor(17, node=12)], 0)
+    with pytest.raises(ValueError, match="0x005, its own command identifier"):
+        MitGates([MitMotor(5, node=11, master_id=5)], 0)
+    assert set(MitGates([MitMotor(1, node=11), MitMotor(18, node=12)], 0).gates) == {1, 18}

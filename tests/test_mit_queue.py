@@ -104,3 +104,36 @@ def test_mit_bus_judges_every_send_and_its_counts_add_up() -> None:
     finally:
         bus.shutdown()
     assert taken == FLOOD and added(commands) + passed == FLOOD
+
+
+def test_a_flood_on_the_motors_bus_is_held_to_the_bound_and_stops_every_motor_for_good(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The motors' bus brings more frames than the loop takes (a pass held off): past
+    ``BUS_QUEUE_MAX`` they are not kept, and since one of them could have been another
+    sender's command to a motor, the next pass stops every motor for good, the loss named.
+    Before, the queue grew without bound and nothing was said."""
+    monkeypatch.setattr(mit_host, "BUS_QUEUE_MAX", 50)
+    channel, app_channel = f"m-{uuid.uuid4().hex}", f"a-{uuid.uuid4().hex}"
+    bus = can.Bus(interface="virtual", channel=channel)
+    route = MitGates([MitMotor(MOTOR, node=MOTOR)], monotonic_us())
+    app = can.Bus(interface="virtual", channel=app_channel)
+    host = MitHost(bus, app, route, Codec(), lambda: None, monotonic_us)
+    link = MitLink(host, route.gates[MOTOR], listens=True)
+    try:
+        for _ in range(FLOOD):
+            host.heard(to_motor(0x123))  # the Notifier's thread, while the loop is held off
+        with host.lock:
+            waiting = len(host.from_bus)
+        guard = route.gates[MOTOR].guard
+        before, refused_before = link.status(), guard.refused
+        host.pump(monotonic_us())
+        after = link.status()
+        host.pump(monotonic_us())  # told once: nothing more without a new loss
+    finally:
+        host.close()
+        bus.shutdown()
+    assert waiting == 50 and before["bus_overflowed"] == FLOOD - 50 == after["bus_overflowed"]
+    assert refused_before is None
+    assert guard.latched and "frames of the motors' bus lost" in str(guard.refused)
+    assert host.bus_overflowed_told == host.bus_overflowed

@@ -94,7 +94,10 @@ def run(args: argparse.Namespace) -> int:
         if report is not None:
             json.dump([vars(o) for o in done], report, indent=1)
     if not failed and args.step:
-        print(f"{len(done)} obligations of {len(args.step)} step(s) proved in {elapsed:.1f} s")
+        print(
+            f"{len(done)} obligations of {len(set(args.step))} step(s) proved in "
+            f"{elapsed:.1f} s: these steps only, not the theorem (run without --step for it)"
+        )
         return 0
     if not failed:
         print(f"{len(done)} obligations proved in {elapsed:.1f} s: no step creates energy")

@@ -165,6 +165,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         """When the periodic read-back in flight was asked."""
         self.confirmed_at = now
         """When limits last read back (a periodic read asked before shows nothing)."""
+        self.unread_since: int | None = None
+        """When the oldest periodic read-back still without an answer was asked."""
 
     def running(self) -> bool:
         return self.phase is GuardPhase.RUNNING
@@ -289,13 +291,20 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         """The periodic read-back's answer (None: not readable now; asked again next time)."""
         asked, self.rereading = self.rereading, None
         self.charge(now)
+        if read is None:  # unanswered: past the feedback timeout, stopped for good
+            if asked is not None and self.unread_since is None:
+                self.unread_since = asked
+            return self._settled(now)
+        self.unread_since = None
         quiet = self.pending is None and self.foreign is None and self.confirmed is not None
-        if read is None or asked is None or not quiet or self.confirmed_at > asked:
+        if asked is None or not quiet or self.confirmed_at > asked:
             return self._settled(now)  # a write since, or in flight: its own read-back checks
         assert self.confirmed is not None
         if (why := self.profile.mismatch(self.confirmed, read)) is not None:
             self._refuse(f"limits changed behind the guard (a periodic read-back): {why}")
-            self.rewrite_at = now  # the closed limits, whatever is in force
+            # in force since the read was asked at the latest: charged at their envelope from
+            # then until the guard's own limits (written at once) read back
+            self._take_foreign(now, asked, read)
         return self._settled(now)
 
     def on_feedback(
@@ -354,6 +363,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             fields = ", ".join(f"{k} {v:g}" for k, v in self.profile.fields(limits).items())
             self.unverified, self.unverified_at = f"limits {fields}", now
         self._recharge(now)
+        self.threshold_uj()  # the status's bound raised to them, refused or not
         self.rewrite_at = now  # the guard's own limits again, at once
 
     def on_watched(self, now: int, at: int, seen: Foreign[L]) -> list[Message]:
@@ -368,6 +378,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         """A write behind the guard whose effect it cannot bound: stopped for good."""
         self.writes_seen += 1
         self._refuse(f"a write behind the guard: {what}")
+        return self._settled(now)
+
+    def on_unseen(self, now: int, why: str) -> list[Message]:
+        """Frames to the device may have passed unseen (``why``): stopped for good."""
+        self._refuse(why)
         return self._settled(now)
 
     def on_message(self, msg: ToClient, now: int) -> list[Message]:
@@ -396,6 +411,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             times.append(self.rewrite_at)
         if self.unverified_at is not None:
             times.append(self.unverified_at + self._verify_us() + 1)
+        if self.unread_since is not None:
+            times.append(self.unread_since + self._verify_us() + 1)
         if self.next_reread is not None:
             times.append(self.next_reread)
         return min(times)
@@ -406,6 +423,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         if self.next_reread is not None and now >= self.next_reread:
             self.next_reread = now + self.config.reread_us
             lost = self.rereading is not None and now - self.rereading > self.config.reread_us
+            if lost and self.unread_since is None:
+                self.unread_since = self.rereading
             if self.verified and (self.rereading is None or lost) and self.refused is None:
                 self.rereading = now
                 self.commands.append(ReadLimits("periodic read-back", now))
@@ -445,6 +464,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         if self.halted:
             return "supervisor stopping"
         if self.refused is not None:
+            return self.refused
+        if self.unread_since is not None and now > self.unread_since + self._verify_us():
+            ms = (now - self.unread_since) // 1000
+            self._refuse(f"limits not read back for {ms} ms (the periodic read-back unanswered)")
+            self.rewrite_at = now
             return self.refused
         if self.unverified_at is not None and now > self.unverified_at + self._verify_us():
             self._refuse(f"a write behind the guard ({self.unverified}) not verified in time")

@@ -234,6 +234,21 @@ def default_master(model: MitModel, motor_id: int) -> int:
     return motor_id + 0x10 if model.damiao else 0
 
 
+def reply_collision(replies: dict[int, int]) -> str | None:
+    """Why motors whose replies go out on ``replies[motor id]`` cannot share a bus (None: they
+    can): a motor's replies on another's (or its own) command identifier would reach that motor
+    as a command no gate clamped."""
+    for motor_id, reply in sorted(replies.items()):
+        if reply in replies:
+            whose = "its own" if reply == motor_id else f"motor {reply}'s"
+            return (
+                f"MIT motor {motor_id}'s replies go out on 0x{reply:03X}, {whose} command "
+                "identifier: it would take them as commands no gate clamped (give the motors "
+                "ids whose replies land on no motor's id)"
+            )
+    return None
+
+
 def unpack_reply(model: MitModel, data: bytes | bytearray) -> Reply:
     """``ValueError`` if shorter than 6 bytes."""
     d = bytes(data)

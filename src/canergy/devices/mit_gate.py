@@ -234,6 +234,10 @@ class MitGate:
         out = self.guard.on_foreign_write(now, f"MIT frame {data.hex()} from another sender")
         return out + self._carry_out(now)
 
+    def on_unseen(self, why: str, now: int) -> list[Message]:
+        """Frames to or from the motor may have been lost unseen (``why``): stopped for good."""
+        return self.guard.on_unseen(now, why) + self._carry_out(now)
+
     # -- the supervisor's side and the clock ----------------------------------------------
     def on_message(self, msg: ToClient, now: int) -> list[Message]:
         return self.guard.on_message(msg, now) + self._carry_out(now)

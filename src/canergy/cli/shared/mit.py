@@ -20,7 +20,7 @@ from canergy.cli.shared.cia402 import _number
 from canergy.codec import Codec
 from canergy.core import Timing
 from canergy.devices.bus_ids import Ids, canopen_ids, collision, mit_ids, moteus_ids, odrive_ids
-from canergy.devices.mit import MODELS, MitModel
+from canergy.devices.mit import MODELS, MitModel, default_master, reply_collision
 from canergy.live.devices.mit_host import MitMotors
 from canergy.live.devices.mit_motor import MitMotor
 
@@ -155,6 +155,9 @@ def mit_motors(args: argparse.Namespace, nodes: list[int]) -> list[MitMotor]:
     def number(x: Any) -> float | None:
         return None if x is None else float(x)
 
+    replies = {i: default_master(models[i], i) for i in args.mit}
+    if (why := reply_collision(replies)) is not None:
+        raise ValueError(f"--mit: {why}")
     return [
         MitMotor(
             motor_id,

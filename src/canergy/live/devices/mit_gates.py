@@ -23,7 +23,7 @@ from typing import Any
 import can
 
 from canergy.core import Timing
-from canergy.devices.mit import default_master, side_channel
+from canergy.devices.mit import default_master, reply_collision, side_channel
 from canergy.devices.mit_gate import MitGate
 from canergy.live.devices.mit_motor import MitMotor, gate_for
 from canergy.messages import Message
@@ -53,6 +53,8 @@ class MitGates:
             self.master[m.motor_id] = (
                 default_master(gate.model, m.motor_id) if master is None else master
             )
+        if (why := reply_collision(self.master)) is not None:
+            raise ValueError(why)
         self.by_node = {g.guard.node: g for g in self.gates.values()}
         self.taken = 0
         """Frames of the application's judged by ``from_app``."""
@@ -117,6 +119,14 @@ class MitGates:
                 out += g.from_motor(bytes(frame.data), at, now)
             if frame.arbitration_id == g.motor_id:
                 out += g.on_foreign(bytes(frame.data), now)
+        return out
+
+    def unseen(self, why: str, now: int) -> list[Message]:
+        """Frames of the motors' bus were lost before the gates saw them (``why``): every
+        motor stopped for good, as for a frame from another sender."""
+        out: list[Message] = []
+        for g in self.gates.values():
+            out += g.on_unseen(why, now)
         return out
 
     def outgoing(self, gate: MitGate | None = None) -> list[can.Message]:

@@ -20,6 +20,12 @@ flood costs bounded memory and every frame the reader took is accounted for:
 ``app_taken`` = the gates' forwarded + clamped + refused + ``app_passed`` (for no guarded motor)
 + ``canergy_frames_refused`` + ``app_for_other_devices`` (frames another guarded group on the bus
 reads, not sent) + ``app_error_frames`` + ``app_overflowed``, once the queue is empty.
+
+The motors' bus's frames wait for the loop too, at most ``BUS_QUEUE_MAX``. One dropped there could
+be another sender's command to a motor, which the gate must see (it stops that motor for good), so
+a frame that finds that queue full is not dropped quietly: it is counted (``bus_overflowed``) and
+at the next pass every motor is stopped for good, the reason named, as for a frame from another
+sender (a bus flooded faster than the loop reads it cannot be watched).
 """
 
 from __future__ import annotations
@@ -48,6 +54,10 @@ APP_QUEUE_MAX = 1_000
 """The application's frames waiting for the supervisor's loop, at most (a pass takes them all:
 at 1 Mbit/s, 8 frames a ms at most, this is a loop held off for over 100 ms)."""
 
+BUS_QUEUE_MAX = 4_000
+"""The motors' bus's frames waiting for the loop, at most (past it: every motor stopped for
+good, see the module's doc)."""
+
 log = logging.getLogger("canergy.live.devices.mit_host")
 
 
@@ -72,6 +82,7 @@ class MitHost:
         self.for_others = 0
         self.bus = bus
         self.queue_max = APP_QUEUE_MAX if queue_max is None else queue_max
+        self.bus_queue_max = BUS_QUEUE_MAX
         self.clock = clock
         self.app = app
         self.route = route
@@ -89,6 +100,10 @@ class MitHost:
         self.overflowed_by_id: dict[int, int] = {}
         """The same, by the guarded motor each was for."""
         self.queue_peak = 0
+        self.bus_overflowed = 0
+        """Frames of the motors' bus not kept: the queue was full."""
+        self.bus_overflowed_told = 0
+        """Of those, what the gates were told of (at a pass)."""
         self.error_frames = 0
         self.canergy_refused = 0
         """Frames in canergy's identifier block from the application: not put on the bus."""
@@ -140,7 +155,10 @@ class MitHost:
         if frame.is_extended_id and self.codec.is_canergy_id(frame.arbitration_id):
             return
         with self.lock:
-            self.from_bus.append(frame)
+            if len(self.from_bus) < self.bus_queue_max:
+                self.from_bus.append(frame)
+            else:
+                self.bus_overflowed += 1
 
     # -- the loop's side ------------------------------------------------------------------
     def waiting(self) -> bool:
@@ -152,7 +170,16 @@ class MitHost:
         with self.lock:
             app, self.from_app = self.from_app, []
             heard, self.from_bus = self.from_bus, []
+            lost = self.bus_overflowed - self.bus_overflowed_told
+            self.bus_overflowed_told = self.bus_overflowed
         up: list[Message] = []
+        if lost:
+            lost_why = (
+                f"{lost} frames of the motors' bus lost ({self.bus_queue_max} waiting already): "
+                "one may have been another sender's to the motor"
+            )
+            log.warning("MIT: %s; every motor stopped for good", lost_why)
+            up += self.route.unseen(lost_why, now)
         for frame in heard:
             up += self.route.from_bus(frame, now)
             if not frame.is_error_frame:
@@ -205,6 +232,7 @@ class MitHost:
             "app_queue_max": self.queue_max,
             "app_queue_peak": peak,
             "app_overflowed": overflowed,
+            "bus_overflowed": self.bus_overflowed,
             "app_passed": self.route.passed,
             "app_error_frames": self.error_frames,
             "canergy_frames_refused": self.canergy_refused,

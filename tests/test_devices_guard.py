@@ -92,7 +92,9 @@ def test_an_axis_powered_after_its_stop_is_stuck_and_the_stop_is_repeated() -> N
     assert g.stuck == "still powered 500 ms after the stop"
     assert sum(isinstance(c, Stop) for c in g.commands) >= 5  # every 100 ms
     assert not g.alive(t) and g.status(t)["guard"] == "stuck"
-    g.on_feedback(t + 50_000, t + 50_000, False, "IDLE")  # it obeys at last
+    g.on_feedback(t + 50_000, t + 50_000, False, "IDLE")  # it obeys at last, it seems
+    assert g.phase is GuardPhase.STUCK  # one quiet reply: not yet (a whole notice quiet)
+    g.on_feedback(t + 100_000, t + 100_000, False, "IDLE")
     assert g.phase is GuardPhase.STOPPED and g.stuck is None
 
 
@@ -184,3 +186,35 @@ def test_a_periodic_read_back_left_unanswered_stops_the_device_for_good() -> Non
         t += 50_000
     assert g.latched and g.refused is not None
     assert "periodic read-back unanswered" in g.refused, g.refused
+
+
+def _stuck_for(quiet_every_other: bool) -> tuple[DeviceGuard[OdriveLimits], int]:
+    """An axis powered behind the guard that ignores the stop for 5 s (feedback every 50 ms),
+    or, ``quiet_every_other``, shows its power stage off in one reply of two once STUCK."""
+    g = DeviceGuard(3, OdriveProfile(MOTOR), DeviceConfig(limits=FULL, stuck_limits=WHOLE), 0, 1)
+    ready(g)
+    g.on_feedback(20_000, 20_000, powered=True)  # powered behind the guard: stopped
+    t, end = 20_000, 5_000_000
+    while t < end:
+        t += 50_000
+        quiet = quiet_every_other and g.phase is GuardPhase.STUCK and (t // 50_000) % 2 == 0
+        g.on_feedback(t, t, powered=not quiet)
+        g.on_wakeup(t)
+    g.charge(end)
+    return g, end
+
+
+WHOLE = OdriveLimits(50.0, 40.0)
+
+
+def test_a_stuck_device_that_shows_its_power_off_for_a_moment_is_still_stuck() -> None:
+    """One quiet reply between powered ones is no stop: the device stays STUCK, booked
+    uncontained at its whole envelope all along, as one that never showed it off. Before, each
+    quiet reply booked it STOPPED and each return to STUCK restarted the booking later (about
+    12 % less in the review's run)."""
+    flicker, end = _stuck_for(True)
+    steady, _ = _stuck_for(False)
+    assert flicker.phase is GuardPhase.STUCK and steady.phase is GuardPhase.STUCK
+    assert flicker.uncontained_uj == steady.uncontained_uj > 0
+    fw = flicker.profile.envelope(WHOLE).fw
+    assert flicker.uncontained_uj * 10**15 >= fw * (end - 20_000 - flicker.notice_us())

@@ -224,8 +224,8 @@ def test_a_motor_still_showing_torque_after_its_stop_is_stuck() -> None:
 
 def test_a_stuck_motor_is_booked_uncontained_until_it_obeys_and_then_no_longer() -> None:
     """While STUCK the motor is charged, as uncontained, at its model's whole envelope (it holds
-    its last command); once a reply shows it powerless it is stopped, and nothing more is booked
-    at that rate, neither uncontained nor metered."""
+    its last command); once its replies show it powerless for a whole notice it is stopped, and
+    nothing more is booked at that rate, neither uncontained nor metered."""
     whole = MitLimits(int(DM.t_max * UNM_PER_NM), int(DM.v_max * UNM_PER_NM))
 
     def made(timing: Timing) -> list[MitGate]:
@@ -258,15 +258,20 @@ def test_a_stuck_motor_is_booked_uncontained_until_it_obeys_and_then_no_longer()
     stuck_w = g.guard.profile.envelope(whole).fw / 1e15  # 442.77 W
     since = pair.now - g.guard.phase_at - g.guard.notice_us()
     assert g.guard.uncontained_uj >= stuck_w * since - 1  # from the stop's notice on
+    notice = g.guard.notice_us()
     for _ in range(50):
         step(pushing)
+    # the stop's time, long past, is no wake-up while STUCK: before, the gate took each pass as
+    # a late one and raised the reaction (and the bound) 1 ms per ms
+    assert g.guard.notice_us() == notice
     booked = g.guard.uncontained_uj + g.guard.metered_uj
     assert booked - g.guard.metered_uj >= stuck_w * (since + 50_000) - 1
     while g.guard.phase is GuardPhase.STUCK and pair.now < 4_000_000:
         step(quiet)  # it obeys at last
     assert g.guard.phase is GuardPhase.STOPPED and g.guard.stuck is None
     after = g.guard.uncontained_uj + g.guard.metered_uj
-    assert after - booked <= stuck_w * 20_000 + 1  # until its next reply (a hold)
+    # until it has shown itself powerless for a whole notice, and its next reply (a hold)
+    assert after - booked <= stuck_w * (g.guard.notice_us() + 20_000) + 1
     for _ in range(200):
         step(quiet)
     assert g.guard.uncontained_uj + g.guard.metered_uj == after

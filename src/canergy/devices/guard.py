@@ -122,6 +122,9 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         self.verified: bool | None = None
         """The limits read back (True), taken on trust (False), not known yet (None)."""
         self.powered: bool | None = None
+        self.unpowered_since: int | None = None
+        """Since when every feedback has shown the power stage off (None: the last showed it
+        on, or none yet)."""
         self.device_state: str | None = None
         self.last_feedback_at: int | None = None
         self.confirmed: L | None = None
@@ -324,6 +327,10 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         self.last_feedback_at = max(at, self.last_feedback_at or at)
         if powered is not None:
             self.powered = powered
+            if powered:
+                self.unpowered_since = None
+            elif self.unpowered_since is None:
+                self.unpowered_since = at
         if state is not None:
             self.device_state = state
         if measured:
@@ -406,7 +413,10 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             times.append(self.last_feedback_at + self.config.feedback_timeout_us + 1)
         if self.phase in (GuardPhase.STOPPING, GuardPhase.STUCK):
             times.append(self.last_stop_at + self.config.retry_us)
+        if self.phase is GuardPhase.STOPPING:  # STUCK keeps the stop's time: long past
             times.append(self.phase_at + self.config.stop_timeout_us + 1)
+        if self.phase is GuardPhase.STUCK and self.unpowered_since is not None:
+            times.append(self.unpowered_since + self.notice_us())
         if self.rewrite_at is not None:
             times.append(self.rewrite_at)
         if self.unverified_at is not None:
@@ -532,8 +542,15 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         # feedback older than the stop plus the notice the bound allows may predate its effect
         settled = self.phase_at + self.notice_us()
         heard_since = self.last_feedback_at is not None and self.last_feedback_at > settled
-        if heard_since and self.powered is False:
-            was_stuck = self.phase is GuardPhase.STUCK
+        was_stuck = self.phase is GuardPhase.STUCK
+        # a STUCK device is taken as stopped only once it has shown its power stage off for a
+        # whole notice: one quiet reply between powered ones (an MIT motor that ignores exit
+        # but shows little torque for a moment) would book it STOPPED and stop the uncontained
+        # booking, and each time it went STUCK again the booking would restart later
+        quiet = self.unpowered_since is not None and (
+            not was_stuck or now - self.unpowered_since >= self.notice_us()
+        )
+        if heard_since and self.powered is False and quiet:
             self.charge(now)  # what a STUCK device may have drawn until now, as uncontained
             self.stuck = None
             self._set_phase(GuardPhase.STOPPED, self.stop_reason, now)

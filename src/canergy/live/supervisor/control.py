@@ -112,6 +112,10 @@ class ControlServer:
         self.refused: dict[int, int] = {}
         """Connections refused, by peer uid (-1: credentials unreadable)."""
         self._refused_lock = threading.Lock()
+        self._closed = False
+        self._closed_lock = threading.Lock()
+        """Held while a request is queued and while the server closes: a request taken in as
+        the supervisor ends is answered, never left waiting for a loop that has stopped."""
         if check_control_path(path):
             with contextlib.suppress(FileNotFoundError):
                 path.unlink()
@@ -145,7 +149,11 @@ class ControlServer:
         except (OSError, ValueError) as exc:
             _answer(conn, refusal or {"error": f"bad request: {exc}"})
             return
-        self.requests.put((request, _replier(conn)))
+        with self._closed_lock:
+            if not self._closed:
+                self.requests.put((request, _replier(conn)))
+                return
+        _answer(conn, STOPPED)
 
     def _refusal(self, conn: socket.socket) -> dict[str, Any] | None:
         """None for the supervisor's user or root; for anyone else the answer, counted, and
@@ -180,6 +188,11 @@ class ControlServer:
                 return out
 
     def close(self) -> None:
+        """Stop listening; every request taken in and not answered gets ``STOPPED``."""
+        with self._closed_lock:
+            self._closed = True
+        for _, reply in self.pending():
+            reply(STOPPED)
         with contextlib.suppress(OSError):
             self._sock.shutdown(socket.SHUT_RDWR)  # wakes the blocked accept()
         self._sock.close()
@@ -191,6 +204,10 @@ class ControlServer:
         if stat.S_ISSOCK(st.st_mode) and (st.st_dev, st.st_ino) == self._made:
             with contextlib.suppress(FileNotFoundError):
                 self.path.unlink()  # ours; anything that replaced it stays
+
+
+STOPPED: dict[str, Any] = {"error": "the supervisor has stopped"}
+"""The answer to a request the supervisor took in as it ended."""
 
 
 def _replier(conn: socket.socket) -> Reply:

@@ -22,7 +22,7 @@ from canergy.cli import build_parser
 from canergy.cli.inline import run as run_inline
 from canergy.live.devices.mit_bus import MitBus, MitMotor
 from firmware_model.drive.live_bench import wait_for
-from firmware_model.mit.live_bench import MOTOR, NODE, STEADY, burst, rig
+from firmware_model.mit.live_bench import BUDGET, MOTOR, NODE, STEADY, burst, rig
 
 TIMES = {"feedback_timeout_us": 2_000_000, "stop_timeout_us": 300_000}
 
@@ -50,7 +50,7 @@ def test_mit_bus_reports_a_motor_that_ignores_exit_stuck_and_runs_on_stuck_once(
 ) -> None:
     command, cut = relay(tmp_path)
     said: list[str] = []
-    with rig(tmp_path, "3J") as r:
+    with rig(tmp_path, BUDGET) as r:
         r.model.ignores_exit = True
         bus = MitBus(
             can.Bus(interface="virtual", channel=r.channel),
@@ -60,7 +60,7 @@ def test_mit_bus_reports_a_motor_that_ignores_exit_stuck_and_runs_on_stuck_once(
             report=said.append,
         )
         try:
-            wait_for(lambda: bus.status(MOTOR)["guard"] == "running", timeout=60)
+            wait_for(lambda: bus.status(MOTOR)["guard"] == "running", 60, lambda: bus.status(MOTOR))
             burst(bus, lambda: bus.status(MOTOR)["guard"] == "stuck", [STEADY])
             wait_for(lambda: (bus.status(MOTOR)["on_stuck"] or {}).get("exit_code") == 0, 60)
             exits = bus.counts(MOTOR).exits
@@ -81,7 +81,7 @@ def test_canergy_inline_reports_a_motor_that_ignores_exit_stuck_and_runs_on_stuc
 ) -> None:
     command, cut = relay(tmp_path)
     status_file = tmp_path / "inline.json"
-    with rig(tmp_path, "3J") as r:
+    with rig(tmp_path, BUDGET) as r:
         r.model.ignores_exit = True
         app_channel = f"app-{uuid.uuid4().hex}"
         argv = ["inline", "-i", "virtual", "-c", r.channel, "--app-interface", "virtual"]
@@ -102,7 +102,7 @@ def test_canergy_inline_reports_a_motor_that_ignores_exit_stuck_and_runs_on_stuc
             return {}
 
         try:
-            wait_for(lambda: motor().get("guard") == "running", timeout=60)
+            wait_for(lambda: motor().get("guard") == "running", 60, motor)
             burst(app, lambda: motor().get("guard") == "stuck", [STEADY], period_s=0.005)
             wait_for(lambda: (motor().get("on_stuck") or {}).get("exit_code") == 0, timeout=60)
             end = time.monotonic() + 0.5

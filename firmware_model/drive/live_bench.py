@@ -56,12 +56,15 @@ def metering(mode: str, pdo_ms: int, gap_ms: int | None = None) -> tuple[str, ..
     return flags
 
 
-def wait_for(condition: Callable[[], Any], timeout: float = 60.0) -> Any:
-    """Poll until ``condition()`` is truthy and return it; AssertionError after ``timeout``."""
+def wait_for(
+    condition: Callable[[], Any], timeout: float = 60.0, show: Callable[[], Any] | None = None
+) -> Any:
+    """Poll until ``condition()`` is truthy and return it; AssertionError after ``timeout``
+    (saying what ``show()`` returns then, if given)."""
     end = time.monotonic() + timeout
     while not (value := condition()):
         if time.monotonic() > end:
-            raise AssertionError("timed out")
+            raise AssertionError("timed out" if show is None else f"timed out: {show()}")
         time.sleep(0.02)
     return value
 

@@ -13,22 +13,30 @@ import time
 import uuid
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
 import can
 
 from canergy.cli import main as canergy_main
-from canergy.devices.mit import ENTER, MODELS, encode
+from canergy.devices.mit import ENTER, MODELS, encode, worst_torque
 from canergy.live.runtime import monotonic_us
 from canergy.live.supervisor.control import request
 from firmware_model.drive.motor import LoadTorque
 from firmware_model.mit.motor import MitFace, MitMotorModel
 
+BUDGET = "20J"
+"""What the runs grant a motor: at the 0.5 N·m cap's 15.36 W it covers a host that stalls 1.2 s.
+The guard keeps the worst reaction and latency it has seen, and holds a motor whose budget cannot
+stop it within them: with 3 J, one 0.3 s stall as the gate started held the motor for good
+("held: 2.923 J in hand, 4.401 J needed"), and a run waiting for ``running`` timed out (a
+fresh-clone CI run of 30fdafd)."""
 SLOW_HOST = {"feedback_timeout_us": 2_000_000, "stop_timeout_us": 2_000_000}
 """Threads on a loaded machine stall for 300 ms: a feedback gap is not what these runs test."""
 
 __all__ = [
+    "BUDGET",
     "DM",
     "GREEDY",
     "MOTOR",
@@ -38,6 +46,7 @@ __all__ = [
     "SLOW_HOST",
     "STEADY",
     "Rig",
+    "asked_at_most",
     "burst",
     "rig",
     "send_latency",
@@ -157,6 +166,17 @@ def burst(
         sent += 1
         time.sleep(period_s)
     return sent
+
+
+def asked_at_most(model: MitMotorModel, cap: float) -> int:
+    """Check that every command ``model`` received asked, where the motor was as it came, for
+    at most ``cap`` N·m (its kp term from that position, its kd term at any speed); how many.
+    (The gate bounds kp's term from the newest reply plus the drift since: a command is not
+    bounded at every position, and with a longer budget the motor does get ones with kp.)"""
+    assert model.commands and len(model.positions) == len(model.commands)
+    for c, at in zip(model.commands, model.positions, strict=True):
+        assert worst_torque(model.model, c, Fraction(at), 0, 0) <= Fraction(cap), (c, at)
+    return len(model.commands)
 
 
 def send_latency(tmp: Path, n: int = 2000, rounds: int = 3) -> dict[str, Any]:

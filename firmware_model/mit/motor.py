@@ -67,6 +67,8 @@ class MitMotorModel:
         self.frames = 0
         self.commands: list[Values] = []
         """Every command received in motor mode (what the motor was asked for)."""
+        self.positions: list[float] = []
+        """Where the motor was (rad, from its origin) as each of ``commands`` came."""
         self.torque_max_seen = 0.0
 
     @property
@@ -90,6 +92,7 @@ class MitMotorModel:
                 pass
             else:
                 self.commands.append(self.command)
+                self.positions.append(self.motor.theta - self.origin)
         return self.reply()
 
     def reply(self) -> bytes:

@@ -6,6 +6,7 @@ add up (forwarded + clamped + refused + overflowed = taken). ``canergy inline``'
 
 from __future__ import annotations
 
+import time
 import uuid
 from typing import Any
 
@@ -19,6 +20,7 @@ from canergy.live.devices.mit_forward import POLL_MAX, MitForwarder
 from canergy.live.devices.mit_gates import MitGates
 from canergy.live.devices.mit_host import MitHost, MitLink
 from canergy.live.runtime import monotonic_us
+from canergy.messages import Return, Telemetry
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.mit.live_bench import GREEDY, MOTOR
 
@@ -91,6 +93,42 @@ def test_the_forwarder_takes_a_bounded_batch_per_poll_and_its_counts_add_up() ->
     commands = status["motors"][str(MOTOR)]["commands"]
     assert status["app_passed"] == FLOOD // 5 and commands["refused"] == FLOOD * 4 // 5
     assert added(commands) + status["app_passed"] + status["app_error_frames"] == FLOOD
+
+
+def test_the_forwarder_puts_no_canergy_frame_of_the_application_on_the_motors_bus() -> None:
+    """A RETURN and a TELEMETRY in the name of the motor's proxy (node 11), sent on the
+    application's bus, would reach the supervisor as the proxy's if forwarded: refused and
+    counted; another 29-bit frame and a command still cross, and the counts add up."""
+    channel, app_channel = f"m-{uuid.uuid4().hex}", f"a-{uuid.uuid4().hex}"
+    codec = Codec()
+    sender = can.Bus(interface="virtual", channel=app_channel)
+    seen = can.Bus(interface="virtual", channel=channel)
+    guarded = MitBus(can.Bus(interface="virtual", channel=channel), [MitMotor(MOTOR, node=11)])
+    forwarder = MitForwarder(can.Bus(interface="virtual", channel=app_channel), guarded)
+    forged = [codec.encode(Return(node=11, seq=1, amount_mj=5))]
+    forged.append(codec.encode(Telemetry(node=11, level_mj=0, witness=9)))
+    try:
+        for arbitration_id, data in forged:
+            sender.send(can.Message(arbitration_id=arbitration_id, data=data))
+        sender.send(can.Message(arbitration_id=0x1ABCDE, data=b"\x01"))
+        sender.send(to_motor())
+        while forwarder.status()["app_taken"] < 4:
+            forwarder.poll(timeout=0.1)
+        status = forwarder.status()
+        crossed = set()  # the gate's keep-alives never end: what crossed within 0.5 s
+        end = time.monotonic() + 0.5
+        while time.monotonic() < end and (frame := seen.recv(timeout=0.1)) is not None:
+            crossed.add((frame.arbitration_id, bytes(frame.data)))
+    finally:
+        guarded.shutdown()
+        forwarder.app.shutdown()
+        sender.shutdown()
+        seen.shutdown()
+    assert status["canergy_frames_refused"] == 2 and status["app_passed"] == 1
+    assert (0x1ABCDE, b"\x01") in crossed  # the proxy's own frames cross too, not these:
+    assert not any((i, bytes(d)) in crossed for i, d in forged), crossed
+    commands = status["motors"][str(MOTOR)]["commands"]
+    assert added(commands) + status["app_passed"] + status["canergy_frames_refused"] == 4
 
 
 def test_mit_bus_judges_every_send_and_its_counts_add_up() -> None:

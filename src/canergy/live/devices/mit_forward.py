@@ -2,15 +2,18 @@
 language: ``canergy inline``. The application's bus (``app``) carries its frames; the motors'
 bus (``motors``, with the supervisor on it) is opened through ``MitBus``, so every frame the
 application sends to a guarded motor is judged by that motor's gate exactly as in process, and
-every other classic frame crosses unchanged. Both ways: the motors' replies and the rest of the
-motors' bus reach the application; canergy's own frames (29-bit, the proxies' business) do not.
+every other frame crosses unchanged. Both ways: the motors' replies and the rest of the motors'
+bus reach the application; canergy's own frames (29-bit, the proxies' business) cross neither
+way: from the application they are refused and counted (``canergy_frames_refused``), so the
+application's bus gives nobody a way to speak for a node on the supervisor's bus (as the
+supervisor's ``--mit`` refuses them).
 
 The forwarder keeps no queue of its own: each frame it takes from the application's bus is
 judged at once (``MitBus.send``), so what waits is in that bus's receive buffer (SocketCAN: the
 socket's, which the kernel bounds and drops from). It takes at most ``POLL_MAX`` of them before
 it carries the motors' side back, so a flood does not hold the replies up. Every frame taken is
 counted (``app_taken`` = the gates' forwarded + clamped + refused + ``app_passed`` +
-``app_error_frames``).
+``canergy_frames_refused`` + ``app_error_frames``).
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ class MitForwarder:
         self.to_motors = 0
         self.to_app = 0
         self.error_frames = 0
+        self.canergy_refused = 0
+        """Frames in canergy's identifier block from the application: not put on the bus."""
         self.send_failures = 0
 
     def poll(self, timeout: float = 0.001) -> None:
@@ -45,6 +50,8 @@ class MitForwarder:
             taken += 1
             if frame.is_error_frame:
                 self.error_frames += 1
+            elif frame.is_extended_id and self.motors.codec.is_canergy_id(frame.arbitration_id):
+                self.canergy_refused += 1
             else:
                 self.to_motors += 1
                 self._send(self.motors, frame)
@@ -73,8 +80,9 @@ class MitForwarder:
             "to_motors": self.to_motors,
             "to_app": self.to_app,
             "to_app_dropped": self.motors.dropped,
-            "app_taken": self.to_motors + self.error_frames,
+            "app_taken": self.to_motors + self.error_frames + self.canergy_refused,
             "app_passed": route.passed,
+            "canergy_frames_refused": self.canergy_refused,
             "app_error_frames": self.error_frames,
             "send_failures": self.send_failures + self.motors.send_failures,
             "motors": motors,

@@ -53,6 +53,13 @@ MODES = {
 }
 
 
+INITIAL = {"envelope": 8_000_000}
+"""µJ granted in all (default 2 J). The envelope is charged by the clock from the first grant,
+through the guard's enabling: in user-mode Linux, its SDO transfers beside the application's,
+2 J at 2.75 W (0.73 s) ran out once before the drive left SWITCH ON DISABLED (a fresh-clone CI
+run of 53dc6b7); 8 J leave 2.9 s."""
+
+
 @pytest.fixture(scope="module")
 def place() -> Venue:
     return venue(IFACE)
@@ -170,7 +177,8 @@ def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
 ) -> None:
     _drive(procs, 20, meter=mode == "counter-on-meter-node")
     network = _application(procs, place)
-    _guard(procs, place, mode, "--initial", "2J")
+    initial = INITIAL.get(mode, 2_000_000)
+    _guard(procs, place, mode, "--initial", f"{initial}uJ")
     _ready(procs)
     done = threading.Event()
     pulser = threading.Thread(target=_pulse, args=(network, done), daemon=True)
@@ -186,7 +194,7 @@ def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
         pulser.join(timeout=30)
         network.disconnect()
     sup, drive, guarded, granted = _stopped(procs)
-    assert granted == 2_000_000 and sup["conservation"]["holds"], (sup["nodes"], guarded, place)
+    assert granted == initial and sup["conservation"]["holds"], (sup["nodes"], guarded, place)
     # the books close over the drive's proxy, but for a debt: what a host held off past its
     # reaction allowance (seen in user-mode Linux) let the drive be charged past its budget,
     # which its bound covers and the next grant would pay

@@ -199,9 +199,11 @@ static bool wrong_way(uint32_t code, enum canergy_direction expect)
 
 /* The identifier checks come first, in codec.py's order: only an exact id_base | known type |
  * node 1..127 passes; what fails is FOREIGN outside the block, then UNKNOWN_TYPE, then
- * BAD_NODE. */
-enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy_rx_frame *frame,
-                                          enum canergy_direction expect, struct canergy_msg *msg)
+ * BAD_NODE. A DEBIT's flag checks are canergy_decode's (codec_internal.h). */
+enum canergy_decode_status canergy_internal_decode(uint32_t id_base,
+                                                   const struct canergy_rx_frame *frame,
+                                                   enum canergy_direction expect,
+                                                   struct canergy_msg *msg)
 {
     if (frame == NULL || !frame->extended || (frame->id & CANERGY_ID_MASK) != id_base) {
         return CANERGY_DECODE_FOREIGN;
@@ -238,11 +240,23 @@ enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy
         set_field(&m, f, le_get(&d[at], widths[f]));
         at += widths[f];
     }
-    if ((has_amount(code) && m.amount_mj == 0U) || (code == CANERGY_DEBIT && !debit_valid(&m))) {
+    if (has_amount(code) && m.amount_mj == 0U) {
         return CANERGY_DECODE_OUT_OF_RANGE;
     }
-    if (msg != NULL) {
+    *msg = m;
+    return CANERGY_DECODE_OK;
+}
+
+enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy_rx_frame *frame,
+                                          enum canergy_direction expect, struct canergy_msg *msg)
+{
+    struct canergy_msg m;
+    enum canergy_decode_status status = canergy_internal_decode(id_base, frame, expect, &m);
+    if (status == CANERGY_DECODE_OK && m.type == CANERGY_DEBIT && !debit_valid(&m)) {
+        status = CANERGY_DECODE_OUT_OF_RANGE;
+    }
+    if (status == CANERGY_DECODE_OK && msg != NULL) {
         *msg = m;
     }
-    return CANERGY_DECODE_OK;
+    return status;
 }

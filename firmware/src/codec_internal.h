@@ -14,4 +14,12 @@
 int canergy_internal_encode(uint32_t id_base, uint32_t code, uint32_t node,
                             const uint32_t values[4], struct canergy_frame *out);
 
+/* canergy_decode without a DEBIT's flag checks, msg not NULL: for the client, which refuses
+ * the client's direction, so that a DEBIT is CANERGY_DECODE_WRONG_DIRECTION before those checks
+ * (which a node port then does not link) would be reached. */
+enum canergy_decode_status canergy_internal_decode(uint32_t id_base,
+                                                   const struct canergy_rx_frame *frame,
+                                                   enum canergy_direction expect,
+                                                   struct canergy_msg *msg);
+
 #endif /* CANERGY_CODEC_INTERNAL_H */

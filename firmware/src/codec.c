@@ -154,21 +154,17 @@ int canergy_internal_encode(uint32_t id_base, uint32_t code, uint32_t node,
     if (has_amount(code) && values[1] == 0U) {
         return CANERGY_ERR_ARGUMENT;
     }
-    uint8_t data[8] = {0};
+    memset(out->data, 0, sizeof out->data);
     size_t at = 1U;
     const uint32_t *v = values;
     for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
         const uint8_t width = widths[fields & 0xFU];
-        if (width == 3U && *v > CANERGY_WIDE_MAX) {
-            return CANERGY_ERR_ARGUMENT;
-        }
-        le_put(&data[at], *v++, width);
+        le_put(&out->data[at], *v++, width);
         at += width;
     }
-    data[0] = frame_crc(code, node, &data[1], dlc - 1U);
+    out->data[0] = frame_crc(code, node, &out->data[1], dlc - 1U);
     out->id = id_base | code << 8 | node;
     out->dlc = (uint8_t)dlc;
-    memcpy(out->data, data, sizeof data);
     return CANERGY_OK;
 }
 
@@ -185,7 +181,12 @@ int canergy_encode(uint32_t id_base, const struct canergy_msg *msg, struct caner
     uint32_t values[4]; /* the layout's fields: all that canergy_internal_encode reads */
     uint32_t *v = values;
     for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
-        *v++ = field_value(msg, (uint8_t)(fields & 0xFU));
+        const uint8_t f = (uint8_t)(fields & 0xFU);
+        *v = field_value(msg, f);
+        if (widths[f] == 3U && *v > CANERGY_WIDE_MAX) {
+            return CANERGY_ERR_ARGUMENT; /* a 24-bit field that does not fit */
+        }
+        v++;
     }
     return canergy_internal_encode(id_base, code, msg->node, values, out);
 }

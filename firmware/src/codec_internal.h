@@ -8,9 +8,10 @@
 #include "canergy/codec.h"
 
 /* The frame of type code (a known one) from node (1..127): values[i] is the type's i-th field in
- * its layout's order (codec.c; unused ones 0), a 16-bit field's value below 2^16. What
- * canergy_encode writes, with its refusals of a zero required amount and a 24-bit field that
- * does not fit (CANERGY_ERR_ARGUMENT, *out untouched). */
+ * its layout's order (codec.c; unused ones 0), a 16-bit field's value below 2^16, a 24-bit
+ * one's at most CANERGY_WIDE_MAX (canergy_encode refuses one that does not fit; the client's
+ * only 24-bit field, TELEMETRY's level, is saturated). What canergy_encode writes, with its
+ * refusal of a zero required amount (CANERGY_ERR_ARGUMENT, *out untouched). */
 int canergy_internal_encode(uint32_t id_base, uint32_t code, uint32_t node,
                             const uint32_t values[4], struct canergy_frame *out);
 

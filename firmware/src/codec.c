@@ -231,21 +231,17 @@ enum canergy_decode_status canergy_internal_decode(uint32_t id_base,
     if (frame_crc(code, node, &d[1], dlc - 1U) != d[0]) {
         return CANERGY_DECODE_BAD_CRC;
     }
-    struct canergy_msg m;
-    memset(&m, 0, sizeof m);
-    m.type = (uint8_t)code;
-    m.node = (uint8_t)node;
+    memset(msg, 0, sizeof *msg);
+    msg->type = (uint8_t)code;
+    msg->node = (uint8_t)node;
     size_t at = 1U;
     for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
         const uint8_t f = (uint8_t)(fields & 0xFU);
-        set_field(&m, f, le_get(&d[at], widths[f]));
+        set_field(msg, f, le_get(&d[at], widths[f]));
         at += widths[f];
     }
-    if (has_amount(code) && m.amount_mj == 0U) {
-        return CANERGY_DECODE_OUT_OF_RANGE;
-    }
-    *msg = m;
-    return CANERGY_DECODE_OK;
+    return has_amount(code) && msg->amount_mj == 0U ? CANERGY_DECODE_OUT_OF_RANGE
+                                                    : CANERGY_DECODE_OK;
 }
 
 enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy_rx_frame *frame,

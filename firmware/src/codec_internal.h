@@ -17,7 +17,8 @@ int canergy_internal_encode(uint32_t id_base, uint32_t code, uint32_t node,
 
 /* canergy_decode without a DEBIT's flag checks, msg not NULL: for the client, which refuses
  * the client's direction, so that a DEBIT is CANERGY_DECODE_WRONG_DIRECTION before those checks
- * (which a node port then does not link) would be reached. */
+ * (which a node port then does not link) would be reached. The message is decoded in place:
+ * *msg holds it on CANERGY_DECODE_OK, and is written but means nothing on OUT_OF_RANGE. */
 enum canergy_decode_status canergy_internal_decode(uint32_t id_base,
                                                    const struct canergy_rx_frame *frame,
                                                    enum canergy_direction expect,

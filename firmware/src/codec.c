@@ -133,20 +133,6 @@ static uint32_t field_value(const struct canergy_msg *m, uint8_t f)
     }
 }
 
-static void set_field(struct canergy_msg *m, uint8_t f, uint32_t v)
-{
-    switch (f) {
-    case F_TX: m->tx = (uint16_t)v; break;
-    case F_SEQ: m->seq = (uint16_t)v; break;
-    case F_NONCE: m->nonce = (uint16_t)v; break;
-    case F_AMOUNT: m->amount_mj = (uint16_t)v; break;
-    case F_DELIVERED: m->delivered_mj = v; break;
-    case F_LEVEL: m->level_mj = v; break;
-    case F_WITNESS: m->witness = (uint8_t)v; break;
-    default: m->flags = (uint8_t)v; break;
-    }
-}
-
 int canergy_internal_encode(uint32_t id_base, uint32_t code, uint32_t node,
                             const uint32_t values[4], struct canergy_frame *out)
 {
@@ -231,15 +217,23 @@ enum canergy_decode_status canergy_internal_decode(uint32_t id_base,
     if (frame_crc(code, node, &d[1], dlc - 1U) != d[0]) {
         return CANERGY_DECODE_BAD_CRC;
     }
-    memset(msg, 0, sizeof *msg);
-    msg->type = (uint8_t)code;
-    msg->node = (uint8_t)node;
+    uint32_t v[F_WITNESS + 1U] = {0}; /* by field (enum field): 0 where the type has none */
     size_t at = 1U;
     for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
         const uint8_t f = (uint8_t)(fields & 0xFU);
-        set_field(msg, f, le_get(&d[at], widths[f]));
+        v[f] = le_get(&d[at], widths[f]);
         at += widths[f];
     }
+    msg->delivered_mj = v[F_DELIVERED];
+    msg->level_mj = v[F_LEVEL];
+    msg->tx = (uint16_t)v[F_TX];
+    msg->seq = (uint16_t)v[F_SEQ];
+    msg->nonce = (uint16_t)v[F_NONCE];
+    msg->amount_mj = (uint16_t)v[F_AMOUNT];
+    msg->type = (uint8_t)code;
+    msg->node = (uint8_t)node;
+    msg->flags = (uint8_t)v[F_FLAGS];
+    msg->witness = (uint8_t)v[F_WITNESS];
     return has_amount(code) && msg->amount_mj == 0U ? CANERGY_DECODE_OUT_OF_RANGE
                                                     : CANERGY_DECODE_OK;
 }

@@ -550,7 +550,7 @@ int canergy_internal_frame(struct canergy_client *c, const struct canergy_rx_fra
                            uint64_t now, struct canergy_out *out, struct canergy_msg *m)
 {
     const enum canergy_decode_status status =
-        canergy_decode(c->id_base, frame, CANERGY_TO_CLIENT, m);
+        canergy_internal_decode(c->id_base, frame, CANERGY_TO_CLIENT, m);
     if (status != CANERGY_DECODE_OK) {
         return (int)status;
     }

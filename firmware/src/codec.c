@@ -133,20 +133,6 @@ static uint32_t field_value(const struct canergy_msg *m, uint8_t f)
     }
 }
 
-static void set_field(struct canergy_msg *m, uint8_t f, uint32_t v)
-{
-    switch (f) {
-    case F_TX: m->tx = (uint16_t)v; break;
-    case F_SEQ: m->seq = (uint16_t)v; break;
-    case F_NONCE: m->nonce = (uint16_t)v; break;
-    case F_AMOUNT: m->amount_mj = (uint16_t)v; break;
-    case F_DELIVERED: m->delivered_mj = v; break;
-    case F_LEVEL: m->level_mj = v; break;
-    case F_WITNESS: m->witness = (uint8_t)v; break;
-    default: m->flags = (uint8_t)v; break;
-    }
-}
-
 int canergy_internal_encode(uint32_t id_base, uint32_t code, uint32_t node,
                             const uint32_t values[4], struct canergy_frame *out)
 {
@@ -154,21 +140,17 @@ int canergy_internal_encode(uint32_t id_base, uint32_t code, uint32_t node,
     if (has_amount(code) && values[1] == 0U) {
         return CANERGY_ERR_ARGUMENT;
     }
-    uint8_t data[8] = {0};
+    memset(out->data, 0, sizeof out->data);
     size_t at = 1U;
     const uint32_t *v = values;
     for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
         const uint8_t width = widths[fields & 0xFU];
-        if (width == 3U && *v > CANERGY_WIDE_MAX) {
-            return CANERGY_ERR_ARGUMENT;
-        }
-        le_put(&data[at], *v++, width);
+        le_put(&out->data[at], *v++, width);
         at += width;
     }
-    data[0] = frame_crc(code, node, &data[1], dlc - 1U);
+    out->data[0] = frame_crc(code, node, &out->data[1], dlc - 1U);
     out->id = id_base | code << 8 | node;
     out->dlc = (uint8_t)dlc;
-    memcpy(out->data, data, sizeof data);
     return CANERGY_OK;
 }
 
@@ -185,7 +167,12 @@ int canergy_encode(uint32_t id_base, const struct canergy_msg *msg, struct caner
     uint32_t values[4]; /* the layout's fields: all that canergy_internal_encode reads */
     uint32_t *v = values;
     for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
-        *v++ = field_value(msg, (uint8_t)(fields & 0xFU));
+        const uint8_t f = (uint8_t)(fields & 0xFU);
+        *v = field_value(msg, f);
+        if (widths[f] == 3U && *v > CANERGY_WIDE_MAX) {
+            return CANERGY_ERR_ARGUMENT; /* a 24-bit field that does not fit */
+        }
+        v++;
     }
     return canergy_internal_encode(id_base, code, msg->node, values, out);
 }
@@ -199,9 +186,11 @@ static bool wrong_way(uint32_t code, enum canergy_direction expect)
 
 /* The identifier checks come first, in codec.py's order: only an exact id_base | known type |
  * node 1..127 passes; what fails is FOREIGN outside the block, then UNKNOWN_TYPE, then
- * BAD_NODE. */
-enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy_rx_frame *frame,
-                                          enum canergy_direction expect, struct canergy_msg *msg)
+ * BAD_NODE. A DEBIT's flag checks are canergy_decode's (codec_internal.h). */
+enum canergy_decode_status canergy_internal_decode(uint32_t id_base,
+                                                   const struct canergy_rx_frame *frame,
+                                                   enum canergy_direction expect,
+                                                   struct canergy_msg *msg)
 {
     if (frame == NULL || !frame->extended || (frame->id & CANERGY_ID_MASK) != id_base) {
         return CANERGY_DECODE_FOREIGN;
@@ -228,21 +217,37 @@ enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy
     if (frame_crc(code, node, &d[1], dlc - 1U) != d[0]) {
         return CANERGY_DECODE_BAD_CRC;
     }
-    struct canergy_msg m;
-    memset(&m, 0, sizeof m);
-    m.type = (uint8_t)code;
-    m.node = (uint8_t)node;
+    uint32_t v[F_WITNESS + 1U] = {0}; /* by field (enum field): 0 where the type has none */
     size_t at = 1U;
     for (unsigned fields = layouts[code]; fields != 0U; fields >>= 4) {
         const uint8_t f = (uint8_t)(fields & 0xFU);
-        set_field(&m, f, le_get(&d[at], widths[f]));
+        v[f] = le_get(&d[at], widths[f]);
         at += widths[f];
     }
-    if ((has_amount(code) && m.amount_mj == 0U) || (code == CANERGY_DEBIT && !debit_valid(&m))) {
-        return CANERGY_DECODE_OUT_OF_RANGE;
+    msg->delivered_mj = v[F_DELIVERED];
+    msg->level_mj = v[F_LEVEL];
+    msg->tx = (uint16_t)v[F_TX];
+    msg->seq = (uint16_t)v[F_SEQ];
+    msg->nonce = (uint16_t)v[F_NONCE];
+    msg->amount_mj = (uint16_t)v[F_AMOUNT];
+    msg->type = (uint8_t)code;
+    msg->node = (uint8_t)node;
+    msg->flags = (uint8_t)v[F_FLAGS];
+    msg->witness = (uint8_t)v[F_WITNESS];
+    return has_amount(code) && msg->amount_mj == 0U ? CANERGY_DECODE_OUT_OF_RANGE
+                                                    : CANERGY_DECODE_OK;
+}
+
+enum canergy_decode_status canergy_decode(uint32_t id_base, const struct canergy_rx_frame *frame,
+                                          enum canergy_direction expect, struct canergy_msg *msg)
+{
+    struct canergy_msg m;
+    enum canergy_decode_status status = canergy_internal_decode(id_base, frame, expect, &m);
+    if (status == CANERGY_DECODE_OK && m.type == CANERGY_DEBIT && !debit_valid(&m)) {
+        status = CANERGY_DECODE_OUT_OF_RANGE;
     }
-    if (msg != NULL) {
+    if (status == CANERGY_DECODE_OK && msg != NULL) {
         *msg = m;
     }
-    return CANERGY_DECODE_OK;
+    return status;
 }

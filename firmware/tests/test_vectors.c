@@ -117,6 +117,46 @@ static void test_decode_reasons(void)
           "an 11-bit frame is foreign");
 }
 
+/* Byte 0 of a frame of type from node 5: the CRC of its Data ID and body (codec.h). */
+static void put_crc(uint8_t type, uint8_t *data, size_t len)
+{
+    const uint8_t data_id[2] = {5U, type};
+    data[0] = (uint8_t)(canergy_crc8(canergy_crc8(0xFFU, data_id, 2U), &data[1], len - 1U) ^ 0xFFU);
+}
+
+/* A refusal writes nothing: *msg only on CANERGY_DECODE_OK, *out only on CANERGY_OK (the client
+ * decodes in place and encodes in place, behind canergy_decode and canergy_encode). */
+static void test_refusals_write_nothing(void)
+{
+    const struct canergy_msg kept = msg(CANERGY_ACK, 9U);
+    struct canergy_msg m = kept;
+    uint8_t commit[5] = {0U, 0x01U, 0x00U, 0x00U, 0x00U}; /* tx 1, amount 0 */
+    put_crc(CANERGY_COMMIT, commit, sizeof commit);
+    const struct canergy_rx_frame zero = {0x0CE00205UL, commit, sizeof commit, true, false};
+    check(canergy_decode(CANERGY_DEFAULT_ID_BASE, &zero, CANERGY_TO_CLIENT, &m) ==
+              CANERGY_DECODE_OUT_OF_RANGE && memcmp(&m, &kept, sizeof m) == 0,
+          "a COMMIT of 0 is out of range, *msg untouched");
+    uint8_t debit[8] = {0U, 0x00U, 0x00U, CANERGY_DEBIT_SYNC, 0x00U, 0x00U, 0x00U, 0x00U};
+    put_crc(CANERGY_DEBIT, debit, sizeof debit);
+    const struct canergy_rx_frame sync = {0x0CE00F05UL, debit, sizeof debit, true, false};
+    check(canergy_decode(CANERGY_DEFAULT_ID_BASE, &sync, CANERGY_TO_SUPERVISOR, &m) ==
+              CANERGY_DECODE_OUT_OF_RANGE && memcmp(&m, &kept, sizeof m) == 0,
+          "a DEBIT of SYNC alone is out of range, *msg untouched");
+    debit[3] = CANERGY_DEBIT_COUNTS;
+    put_crc(CANERGY_DEBIT, debit, sizeof debit);
+    check(canergy_decode(CANERGY_DEFAULT_ID_BASE, &sync, CANERGY_TO_SUPERVISOR, &m) ==
+              CANERGY_DECODE_OK && m.type == CANERGY_DEBIT && m.flags == CANERGY_DEBIT_COUNTS,
+          "a DEBIT of the counts decodes");
+    struct canergy_frame f;
+    memset(&f, 0xA5, sizeof f);
+    const struct canergy_frame before = f;
+    m = msg(CANERGY_TELEMETRY, 5U);
+    m.level_mj = CANERGY_WIDE_MAX + 1U;
+    check(canergy_encode(CANERGY_DEFAULT_ID_BASE, &m, &f) == CANERGY_ERR_ARGUMENT &&
+              memcmp(&f, &before, sizeof f) == 0,
+          "a level of 2^24 does not encode, *out untouched");
+}
+
 /* Feed the client a supervisor message through the real codec. */
 static int deliver(struct canergy_client *c, const struct canergy_msg *m, uint64_t now,
                    struct canergy_out *out)
@@ -986,6 +1026,7 @@ int main(void)
     test_crcs();
     test_documented_frames();
     test_decode_reasons();
+    test_refusals_write_nothing();
     test_rules_kept();
     test_budgets();
     if (hardened_kept) { /* configured with the hardened rules */

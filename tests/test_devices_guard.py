@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from fractions import Fraction
 
+from canergy.devices.clock import STRETCHES_KEPT, ClockCharge
 from canergy.devices.guard import DeviceConfig, DeviceGuard, GuardPhase
 from canergy.devices.odrive import MotorConstants, OdriveLimits, OdriveProfile
 from canergy.devices.profile import ReadLimits, Stop, WriteLimits
@@ -218,3 +219,41 @@ def test_a_stuck_device_that_shows_its_power_off_for_a_moment_is_still_stuck() -
     assert flicker.uncontained_uj == steady.uncontained_uj > 0
     fw = flicker.profile.envelope(WHOLE).fw
     assert flicker.uncontained_uj * 10**15 >= fw * (end - 20_000 - flicker.notice_us())
+
+
+def test_limits_seen_late_are_charged_back_against_what_each_stretch_was_charged_at() -> None:
+    """A write behind the guard seen at 90 ms and taken in at 100 ms, after another one (lower)
+    seen and taken in at 95 ms had raised the envelope in force: 90-95 ms was charged at the
+    closed limits, not at the envelope in force at 100 ms, and is charged back from there (as
+    a guard that never saw the lower write charges it)."""
+    first, second = OdriveLimits(20.0, 10.0), OdriveLimits(20.0, 20.0)
+    both, alone = guard(), guard()
+    for g in (both, alone):
+        ready(g)
+        g.on_wakeup(50_000)
+    both.on_foreign_limits(95_000, 95_000, first)
+    for g in (both, alone):
+        g.on_foreign_limits(100_000, 90_000, second)
+        g.on_wakeup(101_000)
+    assert both.metered_uj >= alone.metered_uj > 0
+    # 90-101 ms at the higher write's envelope at least, over the closed limits' charge
+    closed_fw = alone.profile.envelope(OdriveLimits(5.0, 0.0)).fw
+    lacking = (alone.profile.envelope(second).fw - closed_fw) * 11_000 // 10**15
+    assert both.metered_uj >= lacking
+
+
+def test_a_late_finding_older_than_the_stretches_kept_counts_that_time_as_charged_at_nothing() -> (
+    None
+):
+    clock = ClockCharge()
+    clock.start(0, 1)
+    for t in range(1, STRETCHES_KEPT + 11):  # an envelope of 1 or 2 fW, changed every µs
+        clock.run(t, lambda t: 1 + t % 2)
+    oldest = clock.charged[0][0]
+    assert len(clock.charged) == STRETCHES_KEPT and oldest == 10
+    clock.remainder = 0
+    clock.back_charge(0, 5)
+    end = STRETCHES_KEPT + 10
+    # kept: (5 - 1 or 2) each µs from 10 on; before them: all 5
+    lacking = sum(5 - (1 + t % 2) for t in range(oldest, end))
+    assert clock.remainder == lacking + 5 * oldest

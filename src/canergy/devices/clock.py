@@ -4,15 +4,22 @@ Sans-IO, integers: fW, µs, µJ (1 µJ = 1e15 fW·µs).
 
 Each µs is charged at the envelope in force at its start; its owner raises ``fw`` at once when
 an envelope is raised (``raise_to``), and a lowered envelope keeps counting until the device had
-its latency to act on it (``lower``, ``held``). What is below a whole µJ is carried over.
+its latency to act on it (``lower``, ``held``). What is below a whole µJ is carried over. An
+envelope found out late (a write behind the guard seen at a time already charged) is charged
+back over that time (``back_charge``), against what each stretch of it was charged at.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from canergy.cia402.meter import FW_US_PER_UJ
+
+STRETCHES_KEPT = 64
+"""Stretches of charged time at one envelope kept for ``back_charge`` (the oldest go first; a
+stretch lasts until the envelope changes, so these cover far more than any late finding)."""
 
 
 @dataclass(slots=True)
@@ -27,6 +34,9 @@ class ClockCharge:
     lowered_fw: int = 0
     lowered_until: int = 0
     """A lowered envelope still charged until the device has had time to act on it."""
+    charged: deque[tuple[int, int]] = field(default_factory=lambda: deque(maxlen=STRETCHES_KEPT))
+    """Where each recent stretch of charged time began and its envelope (it ends where the next
+    begins, the last at ``until``)."""
 
     def start(self, at: int, fw: int) -> None:
         self.until, self.fw = at, fw
@@ -55,8 +65,26 @@ class ClockCharge:
             drawn += self._to(now, in_force)
         return drawn
 
+    def back_charge(self, since: int, fw: int) -> None:
+        """Envelope ``fw`` was in force from ``since`` on, found out only now: the time from
+        ``since`` to ``until`` is charged again up to ``fw``, each stretch by what it lacks (time
+        older than the stretches kept counts as charged at nothing)."""
+        if self.until is None or since >= self.until:
+            return
+        end = self.until
+        for begin, charged_fw in reversed(self.charged):
+            if end <= since:
+                return
+            start = max(begin, since)
+            self.remainder += max(0, fw - charged_fw) * (end - start)
+            end = start
+        if end > since:
+            self.remainder += fw * (end - since)
+
     def _to(self, until: int, in_force: Callable[[int], int]) -> int:
         assert self.until is not None
+        if not self.charged or self.charged[-1][1] != self.fw:
+            self.charged.append((self.until, self.fw))
         self.remainder += self.fw * (until - self.until)
         drawn, self.remainder = divmod(self.remainder, FW_US_PER_UJ)
         self.until, self.fw = until, in_force(until)

@@ -361,10 +361,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         clock = self.clock
         assert clock.until is not None
         self.charge(now)
-        early = max(0, clock.until - at)
+        # the time since ``at`` already charged, each stretch up to these limits' envelope (the
+        # envelope in force now may have been raised within it: not what it was charged at)
+        clock.back_charge(at, self._fw(limits))
         if self._fw(limits) > self._fw(self.foreign):
             self.foreign = limits
-            clock.remainder += max(0, self._fw(limits) - clock.fw) * early
         self.foreign_at = at
         if self.unverified_at is None:
             fields = ", ".join(f"{k} {v:g}" for k, v in self.profile.fields(limits).items())

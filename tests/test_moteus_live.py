@@ -293,6 +293,17 @@ def test_an_application_using_the_guards_source_id_is_still_seen(tmp_path: Path)
     assert d["writes_seen"] >= 1
 
 
+def test_a_frame_to_the_controller_in_its_own_name_is_still_seen(tmp_path: Path) -> None:
+    """The controller acts on what is addressed to it, whatever the source id: a frame from
+    the controller's own id to itself is a command, not a reply."""
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.send(encode(Write(Kind.INT8, Reg.MODE, (7.0,))), source=SERVO)
+        d = wait_for(lambda: (d := b.servo_status()) and d["refused"] and d, timeout=30)
+        b.stop()
+    assert d["refused"] == "a write behind the guard: mode 7 (VOLTAGE_FOC)"
+
+
 def test_moteus_needs_can_fd_and_its_own_bus(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -302,6 +313,8 @@ def test_moteus_needs_can_fd_and_its_own_bus(
     assert "moteus speaks CAN FD: give --fd" in capsys.readouterr().err
     assert main([*argv, "--fd", "--odrive", "3"]) == 2
     assert "--moteus and --odrive on one bus" in capsys.readouterr().err
+    assert main([*argv, "--fd", "--moteus-source", "127"]) == 2
+    assert "--moteus-source 127 is the broadcast id" in capsys.readouterr().err
 
 
 def test_the_moteus_librarys_own_commands_as_the_application(tmp_path: Path) -> None:

@@ -15,7 +15,14 @@ from canergy.argtypes import add_duration, bounded_int, energy, node_ids
 from canergy.cli.shared.cia402 import _number
 from canergy.core import Timing
 from canergy.devices.guard import REREAD_US, DeviceConfig, DeviceGuard
-from canergy.devices.moteus import ID_MAX, PREFIX_MAX, MoteusLimits, MoteusMotor, MoteusProfile
+from canergy.devices.moteus import (
+    BROADCAST,
+    ID_MAX,
+    PREFIX_MAX,
+    MoteusLimits,
+    MoteusMotor,
+    MoteusProfile,
+)
 from canergy.live.devices.moteus_link import MoteusLink, MoteusLinkConfig
 
 SAMPLED_WARNING = (
@@ -155,6 +162,11 @@ def check_moteus(args: argparse.Namespace) -> None:
         raise ValueError("a node id is either a canergy node (--nodes) or a moteus (--moteus)")
     if args.moteus_source in ids:
         raise ValueError(f"--moteus-source {args.moteus_source} is also a controller id")
+    if args.moteus_source == BROADCAST:
+        raise ValueError(
+            f"--moteus-source {BROADCAST} is the broadcast id: every controller takes a frame to "
+            "it as its own, so the answers to the guard's queries would read as commands"
+        )
     if args.id_base >> 16 == args.moteus_prefix:
         raise ValueError(
             f"--moteus-prefix {args.moteus_prefix}: its identifiers are canergy's "

@@ -125,9 +125,11 @@ class MoteusLink(GuardLink[MoteusLimits]):
         source, destination, _, prefix = split_id(frame.arbitration_id)
         if prefix != self.config.prefix or (prefix and not frame.is_extended_id):
             return
-        from_device = source == self.node and destination != self.node
+        # the controller acts on what is addressed to it, whatever the source: a frame to it
+        # in its own name is a command (its replies go to the asker, never to itself)
         addressed = destination in (self.node, BROADCAST)
-        to_device = addressed and source != self.node and not self._own(frame)
+        from_device = source == self.node and not addressed
+        to_device = addressed and not self._own(frame)
         if not (from_device or to_device):
             return
         at = self.received_at(frame)

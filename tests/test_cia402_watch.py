@@ -159,3 +159,27 @@ def test_a_write_that_cannot_be_read_back_in_time_stops_the_drive_for_good() -> 
     g.on_write(0, Write(0x1A00, 3, 0x6084_0020), 0)
     g.on_wakeup(g.config.pdo_timeout_us + 1)
     assert g.latched and g.refused is not None and "not verified in time" in g.refused
+
+
+def test_a_periodic_read_back_asked_before_the_guards_own_write_is_judged_as_asked() -> None:
+    """The read-back asked at 1 s reads the closed limits; the guard's own full limits, written
+    and read back meanwhile, are taken in first (the host drains limits answers before
+    read-backs): what the read-back shows was in force when it was asked, no change behind the
+    guard. A value nobody wrote still stops the drive for good."""
+    config = GuardConfig(MeterConfig(MeterKind.ENVELOPE), FULL, pdo_timeout_us=10_000_000)
+    for closed_read, refused in ((FULL.closed(), False), (Limits(3000, 0, 0), True)):
+        g = DriveGuard(10, config, 0, 1)  # TPDOs may pause 10 s: none here
+        g.on_ready(0, DriveSetup(RATINGS, 0, 0, FULL.closed(), REACH, {(0x1A00, 3): 0x2011_0020}))
+        g.metering.confirm(0, FULL.closed())
+        g.on_wakeup(1_000_000)
+        (ask,) = verifies(g)
+        assert ask.why == "periodic read-back"
+        g.phase = g.phase.RUNNING  # as a grant would leave it: the full limits written
+        g.metering.write(1_005_000, FULL)
+        g.metering.confirm(1_010_000, FULL)  # and read back, taken in before the read-back
+        read = {(0x6041, 0): 0x0640, (0x6072, 0): closed_read.torque_permille}
+        read |= {(0x6073, 0): closed_read.current_permille, (0x6080, 0): closed_read.speed}
+        read |= {(0x1A00, 3): 0x2011_0020}
+        g.on_verified(1_020_000, ask.seq, read)
+        assert (g.refused is not None) is refused, g.refused
+        assert g.latched is refused

@@ -189,6 +189,9 @@ class DriveGuard(ProxyBooks):
         self.seq = 0
         """Bumped at each write seen: a read-back answers the writes seen before it was sent."""
         self.verifying: int | None = None
+        self.asked_limits: tuple[Limits | None, ...] = ()
+        """The limits written and in force when the read-back in flight was asked: what it may
+        still read (the guard's own writes since may be taken in before its answer)."""
         self.controlword_seq = 0
         """``seq`` of the last enabling controlword seen: a read-back older shows nothing."""
         self.config_seq = 0
@@ -317,7 +320,7 @@ class DriveGuard(ProxyBooks):
             return self._settled(now)
         problem = None
         assert m.profile is not None
-        for limits in (m.target(), m.confirmed):
+        for limits in (m.target(), m.confirmed, *self.asked_limits):
             problem = m.profile.verify(
                 {k: v for k, v in setup.config.items() if k in read}, read, limits
             )
@@ -589,6 +592,7 @@ class DriveGuard(ProxyBooks):
         scope = self.scope
         keys = tuple(k for k in config if scope is None or k[0] in scope)
         self.verifying, self.last_verify_at = self.seq, now
+        self.asked_limits = (self.metering.target(), self.metering.confirmed)
         self.commands.append(VerifyCommand(self.seq, keys, why, now))
 
     def _set_phase(self, phase: GuardPhase, why: str | None, now: int) -> None:

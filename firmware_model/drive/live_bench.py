@@ -189,6 +189,9 @@ def guarded_bench(
         *("--status-file", str(tmp / "status.json"), "--status-period", "50ms"),
         *("--control", str(control)),
         *("--max-grant", "500mJ", "--response-timeout", "100ms"),
+        # the drive faults 2 s without the host's heartbeat, not 0.5 s: a loaded machine stalls
+        # threads for 300-500 ms, and a faulted drive neither runs nor spends its budget
+        *("--cia402-consumer-timeout", "2s"),
         *metering(mode, pdo_ms, gap_ms),
         "--cia402-enable",
         *("--cia402-capture", str(tmp / "proxy.log")),

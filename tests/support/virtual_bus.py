@@ -16,8 +16,10 @@ import can
 from canergy.testing.run import until
 
 
-def wait_for(condition: Callable[[], bool], timeout: float = 10.0) -> None:
-    until(condition, timeout_s=timeout, period_s=0.005)
+def wait_for(
+    condition: Callable[[], bool], timeout: float = 60.0, show: Callable[[], object] | None = None
+) -> None:
+    until(condition, timeout_s=timeout, show=show, period_s=0.005)
 
 
 class Frames(can.Listener):

@@ -33,11 +33,12 @@ from canergy.core.actions import (
 )
 from canergy.core.common import check_counters, check_life
 from canergy.core.errors import LocalProtocolError
+from canergy.core.gateway import MakeDown, no_hold
 from canergy.core.inputs import Begin
 from canergy.core.state import Decision, Outcome, Phase, Session, SupervisorState
 from canergy.core.supervisor import Supervisor, SupervisorCore
 from canergy.core.timing import Timing
-from canergy.core.variants import get_variant
+from canergy.core.variants import Variant, get_variant
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.messages import (
@@ -631,7 +632,14 @@ class CompiledSupervisor:
     def inject(self, amount: int) -> None:
         if amount <= 0:
             raise LocalProtocolError("injected energy must be positive")
-        self._lib.canergy_supervisor_inject(self._sup, amount)
+        if self._lib.canergy_supervisor_inject(self._sup, amount) != self._lib.CANERGY_OK:
+            raise LocalProtocolError(f"cannot inject {amount} µJ into {self.usable} µJ usable")
+
+    def withdraw(self, amount: int) -> None:
+        """Take energy out of Us to outside (counted as withdrawn): a gateway's return
+        upstream (``core.Supervisor.withdraw``)."""
+        if self._lib.canergy_supervisor_withdraw(self._sup, max(amount, 0)) != self._lib.CANERGY_OK:
+            raise LocalProtocolError(f"cannot withdraw {amount} µJ of {self.usable} µJ usable")
 
     def power_loss(self, now: int, nonce: int = 0) -> None:
         """Lose volatile state and restart from the persistent record; ``nonce``: as
@@ -696,6 +704,42 @@ class CompiledSupervisor:
             arbitration_id, dlc, data = b.frame.unpack_from(raw, b.frames_at + k * b.frame_size)
             frames.append((arbitration_id, data[:dlc]))
         return frames
+
+
+class CompiledBelow(CompiledSupervisor):
+    """A gateway's supervisor role on the compiled core (``core.gateway.Below``'s twin, for
+    ``canergy gateway --core c``): no grant begins, on any path, while ``hold`` says why not
+    (the gateway's own start, not yet confirmed above)."""
+
+    def __init__(
+        self,
+        nodes: Iterable[int],
+        initial: int,
+        *,
+        variant: str | Variant = "hardened",
+        timing: Timing | None = None,
+        state: SupervisorState | None = None,
+        start_without: Iterable[int] = (),
+        id_base: int | None = None,
+        module: Any = None,
+    ) -> None:
+        """As ``CompiledSupervisor``; ``variant`` by name or as a ``Variant``."""
+        super().__init__(
+            nodes,
+            initial,
+            timing=timing,
+            state=state,
+            id_base=id_base,
+            variant=variant if isinstance(variant, str) else variant.name,
+            start_without=start_without,
+            module=module,
+        )
+        self.hold: Callable[[], str | None] = no_hold
+
+    def _begin(self, node: int, amount: int, now: int) -> None:
+        if (why := self.hold()) is not None:
+            raise LocalProtocolError(why)
+        super()._begin(node, amount, now)
 
 
 class CompiledHeard:
@@ -808,3 +852,14 @@ def make_supervisor(
     return Supervisor(
         nodes, initial, variant=variant, timing=timing, state=state, start_without=start_without
     )
+
+
+def make_below(core: str, id_base: int | None = None) -> MakeDown | None:
+    """What makes a gateway's supervisor role (``core.gateway.Gateway(below=)``) by core name:
+    "c" (``CompiledBelow`` on the bus's identifier block ``id_base``) or "python" (None: the
+    gateway's own ``Below``)."""
+    if core == "c":
+        return partial(CompiledBelow, id_base=id_base)
+    if core != "python":
+        raise ValueError(f"unknown core {core!r}: c or python")
+    return None

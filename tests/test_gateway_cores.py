@@ -15,14 +15,16 @@ from __future__ import annotations
 import os
 import tempfile
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from support.c_binding import library
 
-from canergy.ccore.supervisor import CompiledBelow, make_below, missing
+from canergy.ccore.supervisor import CompiledBelow, missing
 from canergy.codec import Codec
 from canergy.core import Action, Client, Persist, Send, Supervisor
 from canergy.core.errors import LocalProtocolError
@@ -43,6 +45,12 @@ INITIAL = 40 * J
 CODEC = Codec()
 RULES = [("hardened", "hardened"), ("witnessed", "witnessed"), ("witnessed", "hardened")]
 """(below, above): the gateway's downstream rules and the rules of the bus above."""
+
+
+def c_below() -> MakeDown:
+    """The compiled role on the tests' build of the library (``support.c_binding.library``:
+    UBSan in-process, ASan+UBSan in tests/test_c_asan.py's child)."""
+    return partial(CompiledBelow, module=library().module)
 
 
 class Tree:
@@ -163,7 +171,7 @@ class Tree:
 
 def twins(down: str, up: str) -> tuple[Tree, Tree]:
     """The same tree on the Python core and on the compiled one, both joined."""
-    py, c = Tree(None, down, up), Tree(make_below("c"), down, up)
+    py, c = Tree(None, down, up), Tree(c_below(), down, up)
     assert isinstance(py.gw.down, Below) and isinstance(c.gw.down, CompiledBelow)
     assert (py.gw.down.implementation, c.gw.down.implementation) == ("python", "c")
     for t in (py, c):
@@ -247,7 +255,7 @@ OPS = st.lists(
 )
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=int(os.environ.get("CANERGY_SIDE_BY_SIDE_EXAMPLES", "200")), deadline=None)
 @given(ops=OPS, rules=st.sampled_from(RULES))
 def test_any_gateway_run_is_the_same_on_both_cores(
     ops: list[tuple[str, int]], rules: tuple[str, str]
@@ -263,7 +271,7 @@ def test_the_compiled_role_holds_grants_while_the_start_waits_above() -> None:
     path = Path(tempfile.mkdtemp()) / "gw.json"
     c.save(path)
     state = load_gateway(path, "hardened", GW, NODES, up_variant="witnessed")
-    gw = Gateway(GW, NODES, up_variant="witnessed", state=state, below=make_below("c"))
+    gw = Gateway(GW, NODES, up_variant="witnessed", state=state, below=c_below())
     resume = gw.power_loss(0, 0x55)
     down = gw.down
     assert isinstance(down, CompiledBelow) and gw.upstream_waiting() is not None
@@ -277,10 +285,11 @@ def test_the_compiled_role_holds_grants_while_the_start_waits_above() -> None:
     assert any(isinstance(a, Send) for a in down.begin(1, J, 0))
 
 
-@pytest.mark.parametrize("make", [Below, CompiledBelow])
-def test_either_role_withdraws_only_what_it_holds(make: MakeDown) -> None:
+@pytest.mark.parametrize("core", ["python", "c"])
+def test_either_role_withdraws_only_what_it_holds(core: str) -> None:
     """``withdraw`` (a return upward) takes energy out of Us counted as withdrawn, and refuses
     what Us does not hold in the same words on both cores, changing nothing."""
+    make = c_below() if core == "c" else Below
     sup = make([1, 2], 0, variant="hardened", timing=None, state=None, start_without=())
     sup.inject(2 * J)
     for amount in (3 * J, 0, -1):

@@ -333,21 +333,23 @@ def _c_core() -> None:
 def test_the_gateway_runs_below_on_the_compiled_core_and_its_frame_path(tmp_path: Path) -> None:
     """By default (``--core auto``) the downstream role runs on the C core: the status says so,
     C's frame path takes the nodes' frames (``frame_path_frames`` grows), energy comes from
-    above and goes back up as RETURNs, and a restart on either core takes the file the other
-    wrote; the tree creates nothing."""
+    above and goes back up as RETURNs, the nodes' RETURNs are held and credited, and a restart
+    on either core takes the file the other wrote; the tree creates nothing."""
     _c_core()
     with tree(tmp_path) as t:
         t.start_root()
-        t.start_gateway("--return-above", "2J")
+        t.start_gateway("--return-above", "2J", "--target", "3J")  # above what nodes keep
         t.wait(lambda: t.status("gw")["upstream"]["return_seq"] >= 1)  # a RETURN went up
         first = t.status("gw")
         assert (first["core"], first["frame_path"]) == ("c", "c")
         assert "frame_path_off" not in first and first["link_gap_uj"] == 0
         t.wait(lambda: t.status("gw")["frame_path_frames"] > first["frame_path_frames"] > 0)
+        # the nodes' RETURNs, held for their TELEMETRY (--return-hold) in C, then credited
+        t.wait(lambda: sum(n["returns_credited"] for n in t.status("gw")["nodes"].values()) > 0)
         t.stop("gateway")
         for core in ("python", "c"):  # the file the C core wrote, on the Python one, and back
             credited = json.loads((tmp_path / "gw.json").read_text())["upstream"]["credited_uj"]
-            t.start_gateway("--return-above", "2J", "--core", core)
+            t.start_gateway("--return-above", "2J", "--target", "3J", "--core", core)
             t.wait(lambda c=credited: t.status("gw")["upstream"]["credited_uj"] > c)
             gw = t.status("gw")
             assert (gw["core"], gw["frame_path"], gw["upstream"]["joins"]) == (core, core, 0)

@@ -113,6 +113,7 @@ class _Binding:
         self.auth_frame, _ = _reader(ffi, "struct canergy_auth_frame", ("id", "len", "data"))
         self.auth_frame_size = ffi.sizeof("struct canergy_auth_frame")
         self.auth_fd = lib.CANERGY_AUTH_FD
+        self.auth_classic = lib.CANERGY_AUTH_CLASSIC
         self.to_supervisor = lib.CANERGY_TO_SUPERVISOR
         self.counts, self.counts_at = _reader(
             ffi, "struct canergy_supervisor_out", ("frame_count", "event_count", "persist")
@@ -549,21 +550,24 @@ class CompiledSupervisor:
             msg = Join(m.node, m.nonce)
         return status, [], [], msg, 0 if t == self._b.ffi.NULL else t.verdict
 
-    def use_keys(self, key_for: Callable[[int], bytes]) -> None:
-        """Authenticated mode in the FD layout: each managed node's key (``key_for(node)``,
-        16 bytes, as ``FrameAuth`` takes them) set up in C for ``on_auth_answer``."""
+    def use_keys(self, key_for: Callable[[int], bytes], *, classic: bool = False) -> None:
+        """Authenticated mode: each managed node's key (``key_for(node)``, 16 bytes, as
+        ``FrameAuth`` takes them) set up in C for ``on_auth_answer`` (FD layout) or, with
+        ``classic``, ``on_auth_pair`` (classic layout); ``begin_protected`` in either."""
         b = self._b
         count = len(self._sessions)
         keys = b.ffi.new("struct canergy_auth[]", count)
+        layout = b.auth_classic if classic else b.auth_fd
         for i, node in enumerate(self._index):
             key = key_for(node)
             rc = self._lib.canergy_auth_init(
-                keys + i, key, self.codec.id_base, node, b.auth_fd, b.to_supervisor
+                keys + i, key, self.codec.id_base, node, layout, b.to_supervisor
             )
             if rc != self._lib.CANERGY_OK or len(key) != 16:
                 raise ValueError(f"node {node}: no 16-byte key the C library takes")
         self._keys = keys
-        self._sent = b.ffi.new("struct canergy_auth_frame[]", self._lib.CANERGY_SUPERVISOR_NODES)
+        frames = 2 * self._lib.CANERGY_SUPERVISOR_NODES  # classic: each frame and its MAC frame
+        self._sent = b.ffi.new("struct canergy_auth_frame[]", frames)
         self._sent_bytes = b.ffi.buffer(self._sent)
         self._sent_count = b.ffi.new("uint8_t *")
         self._fv = b.ffi.new("uint32_t *")
@@ -597,11 +601,44 @@ class CompiledSupervisor:
         self._timer_known = False  # deadlines moved
         return status, self._actions(fast=True), self._protected(), int(self._fv[0])
 
+    def on_auth_pair(
+        self,
+        data_id: int,
+        data: bytes,
+        mac_id: int,
+        mac: bytes | bytearray,
+        extended: bool,
+        remote: bool,
+        now: int,
+        abort: bool,
+    ) -> tuple[int, list[Action], list[tuple[int, bytes]], int]:
+        """``on_auth_answer`` in the classic layout (``use_keys(classic=True)`` first): a
+        message (``data_id``, ``data``: the data frame ``FrameAuth`` keeps until its MAC frame)
+        and the MAC frame that came for it (``mac_id``, ``mac``, its flags), in one C call. An
+        ACK, COMMITTED or ABORTED of a managed node verified as ``FrameAuth`` verifies the
+        pair, the rules, and each frame they send protected (the classic frame, then its MAC
+        frame). Status 0: taken, with the actions, the frames and the pair's FV. Any other
+        status: nothing changed (C keeps no message waiting): the caller's usual path judges
+        and counts the pair."""
+        if not 0 <= mac_id < _ID_LIMIT:
+            return self._b.not_can, [], [], 0
+        kind = (1 if extended else 0) | (2 if remote else 0)
+        payload = mac if type(mac) is bytes else bytes(mac)
+        status = self._lib.canergy_host_auth_pair(
+            self._sup, self._keys, data_id, data, len(data), mac_id, kind, payload, len(payload),
+            now, abort, self._out, self._sent, self._sent_count, self._fv,
+        )  # fmt: skip
+        if status != self._b.ok:
+            return status, [], [], 0
+        self._timer_known = False  # deadlines moved
+        return status, self._actions(fast=True), self._protected(), int(self._fv[0])
+
     def begin_protected(
         self, node: int, amount: int, now: int
     ) -> tuple[list[Action], list[tuple[int, bytes]]]:
-        """``begin_encoded`` in authenticated mode, FD layout (``use_keys`` first): the
-        INTENTION protected in C under the node's key, ready to send."""
+        """``begin_encoded`` in authenticated mode (``use_keys`` first): the INTENTION
+        protected in C under the node's key, ready to send (FD: one frame; classic: the frame,
+        then its MAC frame)."""
         self._begin(node, amount, now)
         self._lib.canergy_host_auth_protect(
             self._sup, self._keys, self._out, self._sent, self._sent_count
@@ -609,7 +646,8 @@ class CompiledSupervisor:
         return self._actions(fast=True), self._protected()
 
     def _protected(self) -> list[tuple[int, bytes]]:
-        """The last call's protected frames as (identifier, data): FD frames."""
+        """The last call's protected frames as (identifier, data): FD frames, or classic
+        frames each followed by its MAC frame."""
         b, raw = self._b, self._sent_bytes
         frames = []
         for k in range(self._sent_count[0]):

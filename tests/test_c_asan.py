@@ -23,6 +23,7 @@ UNDER_ASAN = [
     "test_c_auth.py",
     "test_c_binding.py",
     "test_ccore.py",
+    "test_ccore_buses.py",
     "test_c_codec.py",
     "test_c_cmac.py",
     "test_c_hardened.py",

@@ -59,6 +59,11 @@ from canergy.messages import (
 )
 
 T = TypeVar("T")
+Answer = Callable[
+    [int, bytes | bytearray, bool, bool, int, bool],
+    tuple[int, list[Action], list[tuple[int, bytes]], Message | None, int],
+]
+"""``CompiledSupervisor.on_answer``'s signature: one bus's frame path into the C core."""
 
 
 class CoreMissing(RuntimeError):
@@ -305,6 +310,14 @@ class CompiledSupervisor:
     def session(self, node: int) -> Session:
         return self._sessions[self._index[node]]
 
+    def hand_usable(self, other: CompiledSupervisor) -> None:
+        """Move all of Us (a debt too) into ``other``'s: one pool over several buses
+        (``canergy.ccore.buses``). Nothing else changes: the two Us summed stay as they were."""
+        if other is not self:
+            moved = int(self._sup.usable_uj)
+            self._sup.usable_uj = 0
+            other._sup.usable_uj += moved
+
     def is_quiescent(self) -> bool:
         return all(s.phase is Phase.IDLE for s in self._sessions)
 
@@ -549,6 +562,12 @@ class CompiledSupervisor:
         else:
             msg = Join(m.node, m.nonce)
         return status, [], [], msg, 0 if t == self._b.ffi.NULL else t.verdict
+
+    def answer_on(self, bus: int) -> Answer:
+        """The frame path of bus ``bus`` (``on_answer``): this supervisor has one bus, 0."""
+        if bus:
+            raise ValueError(f"the C core on one bus has no bus {bus}")
+        return self.on_answer
 
     def use_keys(self, key_for: Callable[[int], bytes], *, classic: bool = False) -> None:
         """Authenticated mode: each managed node's key (``key_for(node)``, 16 bytes, as
@@ -872,9 +891,24 @@ def make_supervisor(
     state: SupervisorState | None = None,
     id_base: int | None = None,
     start_without: Iterable[int] = (),
+    buses: bool = False,
 ) -> SupervisorCore:
     """A supervisor core by name: "python" (``core.Supervisor``, any variant) or "c";
-    ``id_base``: the bus's identifier block (the C core encodes and decodes frames itself)."""
+    ``id_base``: the bus's identifier block (the C core encodes and decodes frames itself);
+    ``buses``: ``nodes`` are session keys of named buses (``canergy.bus_keys``), for the C core
+    one C supervisor per bus (``canergy.ccore.buses``)."""
+    if core == "c" and buses:
+        from canergy.ccore.buses import CompiledBuses
+
+        return CompiledBuses(
+            nodes,
+            initial,
+            timing=timing,
+            state=state,
+            id_base=id_base,
+            variant=variant,
+            start_without=start_without,
+        )
     if core == "c":
         return CompiledSupervisor(
             nodes,

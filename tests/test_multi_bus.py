@@ -18,6 +18,7 @@ from support.live_rig import Loop
 
 from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import Key, load_key
+from canergy.ccore.supervisor import missing
 from canergy.cli import main
 from canergy.codec import Codec
 from canergy.core import Supervisor
@@ -176,6 +177,32 @@ def test_one_budget_serves_two_buses_and_restarts_from_its_file(tmp_path: Path) 
         assert buses.node("chanA", 2).client.state.credited == 0
     finally:
         buses.halt()
+
+
+@pytest.mark.parametrize("core", ["c", "auto"])
+def test_the_compiled_core_runs_over_several_buses(tmp_path: Path, core: str) -> None:
+    """``--core c`` (and ``auto``, where it is built) with two ``--bus``: the C core runs, no
+    fallback to Python, and its frame path takes each bus's answers."""
+    if missing() is not None:
+        pytest.fail(f"the compiled core is not built: {missing()}")
+    buses = Buses(tmp_path)
+    status = tmp_path / "status.json"
+    argv = [*buses.bus_args(), "--core", core, "--state", str(tmp_path / "s.json")]
+    argv += ["--status-file", str(status), "--no-fsync"]
+    try:
+        with _supervisor(tmp_path, argv) as control:
+            taken = []
+            for node, amount in (("chanA/2", 700_000), ("chanB/2", 300_000)):
+                assert _grant(control, node, amount)["outcome"] == "COMMITTED"
+                taken.append(request(control, {"status": True}, 30)["frame_path_frames"])
+    finally:
+        buses.halt()
+    final = json.loads(status.read_text())
+    assert (final["core"], final["frame_path"]) == ("c", "c") and "frame_path_off" not in final
+    assert 2 <= taken[0] < taken[1] <= final["frame_path_frames"], taken  # ACK, COMMITTED each
+    assert buses.node("chanA", 2).client.state.usable == 700_000
+    assert buses.node("chanB", 2).client.state.usable == 300_000
+    assert final["usable_uj"] == 9_000_000 and final["conservation"]["holds"]
 
 
 def test_one_bus_given_with_bus_takes_a_plain_node_id_too(tmp_path: Path) -> None:

@@ -298,7 +298,7 @@ def supervisor_config(
 
         canopen = CanopenConfig(tuple(args.nodes), args.eds or EDS, args.heartbeat_timeout)
     return SupervisorConfig(
-        core=core_config(args, nodes, names),
+        core=core_config(args, nodes),
         service=service,
         id_base=args.id_base,
         auth=auth_config(args, key),

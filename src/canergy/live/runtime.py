@@ -50,6 +50,9 @@ class RawFrame:
     authenticated mode, its FV in its trailer (noted as this side's own, ``OwnDirection``). In
     the classic layout a protected frame is followed by its MAC frame, both classic (the FV
     they carry noted as well)."""
+    bus: int = 0
+    """Over several buses: the index of the bus it is for (``canergy.live.supervisor.multi_bus``
+    sends it there)."""
 
 
 Outgoing = Message | RawFrame
@@ -473,7 +476,7 @@ class BusRuntime:
         while not until():
             self.poll(max_wait_s)
 
-    def send_messages(self, messages: Sequence[Message]) -> None:
+    def send_messages(self, messages: Sequence[Outgoing]) -> None:
         self._send_all(messages)
 
     def receive(self, frame: can.Message) -> None:

@@ -50,8 +50,9 @@ def supervisor_flags(p: argparse.ArgumentParser) -> None:
         choices=("auto", "c", "python"),
         default="auto",
         help="the rules' implementation: c (firmware/'s supervisor role, compiled at install; "
-        "the hardened or witnessed rules on one bus), python, or auto (default): c where it is "
-        "built and takes the configuration, python otherwise; the status names the one running",
+        "the hardened or witnessed rules; over several buses one C supervisor per bus), "
+        "python, or auto (default): c where it is built and takes the configuration, python "
+        "otherwise; the status names the one running",
     )
     book_flags(p)
     p.add_argument(
@@ -133,17 +134,16 @@ def rule_timing(args: argparse.Namespace, response_timeout_us: int | None = None
     )
 
 
-def core_choice(args: argparse.Namespace, buses: tuple[str, ...] = ()) -> str:
+def core_choice(args: argparse.Namespace) -> str:
     """``--core`` resolved: "c" or "python". ``--core c`` where the C core cannot run is an
-    error that says why; ``auto`` then takes the Python core."""
+    error that says why; ``auto`` then takes the Python core. On one bus or several
+    (``--bus``): over several, one C supervisor per bus (``canergy.ccore.buses``)."""
     wanted = getattr(args, "core", "python")
     if wanted == "python":
         return "python"
     why = (
         "it runs the hardened and witnessed rules only (--variant)"
         if args.variant not in ("hardened", "witnessed")
-        else "it takes one bus (no --bus)"
-        if buses
         else missing()
     )
     if why is None:
@@ -153,12 +153,10 @@ def core_choice(args: argparse.Namespace, buses: tuple[str, ...] = ()) -> str:
     return "python"
 
 
-def core_config(
-    args: argparse.Namespace, nodes: tuple[int, ...], buses: tuple[str, ...] = ()
-) -> CoreConfig:
+def core_config(args: argparse.Namespace, nodes: tuple[int, ...]) -> CoreConfig:
     """The core's flags as the builder takes them (``--core`` resolved, ``--start-without``
-    checked); ``buses``: bus names with ``--bus`` (``nodes`` are then session keys)."""
-    kind = core_choice(args, buses)  # before the state file is touched
+    checked); with ``--bus`` ``nodes`` are session keys (``canergy.bus_keys``)."""
+    kind = core_choice(args)  # before the state file is touched
     without = start_without(args, nodes)
 
     def warn(message: str) -> None:

@@ -167,6 +167,7 @@ def open_core(config: SupervisorConfig, now: int | None = None) -> SupervisorCor
         state=state,
         id_base=config.id_base,
         start_without=c.start_without,
+        buses=bool(buses),
     )
     if state is not None:  # a start is a restart from the persistent record; witnessed: SYNC(n)
         core.power_loss(monotonic_us() if now is None else now, secrets.randbits(16))
@@ -380,6 +381,13 @@ def _several(
     counters = {name: BusCounters() for name in names}
     service = SupervisorService(core, config.service, clock(), buses=counters, control=control)
     router = BusRouter()
+    off = (
+        _LISTEN_OFF
+        if config.service.listen_only
+        else None
+        if config.auth is None
+        else _SEVERAL_AUTH_OFF
+    )
     for i, (name, bus) in enumerate(zip(names, buses, strict=True)):
         port = BusPort(service, i, router, deadlines=i == 0)
         router.runtimes.append(
@@ -392,6 +400,7 @@ def _several(
                 auth=_frame_auth(config, codec, port.freshness),
                 counters=counters[name],
                 clock=clock,
+                frame_path=service.frame_path(off, None, i),
             )
         )
     runtimes = tuple(router.runtimes)
@@ -408,6 +417,10 @@ def _several(
 
 
 _LISTEN_OFF = "--listen-only: every frame is only read, on the usual path"
+_SEVERAL_AUTH_OFF = (
+    "--auth over several buses: frames are checked and signed in Python (the C frame path "
+    "takes a key on one bus only)"
+)
 
 
 def _frame_auth(config: SupervisorConfig, codec: Codec, freshness: Any) -> Any:

@@ -4,7 +4,10 @@ The core keys each node's session ``bus index << 8 | node`` (``canergy.bus_keys`
 on two buses are two sessions. A ``BusPort`` per bus stands between its runtime and the shared
 ``SupervisorService``: what arrives on bus i is handed over with its node replaced by the key,
 and every message the service returns is sent on the bus its key names, as a plain node id.
-Only the first port runs the service's deadlines (``BusGroup`` asks every runtime).
+Only the first port runs the service's deadlines (``BusGroup`` asks every runtime). On the
+compiled core (``canergy.ccore.buses``) each bus's runtime has that bus's frame path
+(``SupervisorService.frame_path(bus=)``), and the frames C encoded name their bus
+(``RawFrame.bus``).
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from canergy.argtypes import node_ids
 from canergy.auth.frames import Verdict
 from canergy.bus_keys import bus_of, node_of, session_key
 from canergy.codec import DecodeError
-from canergy.live.runtime import BusRuntime, RawFrame
+from canergy.live.runtime import BusRuntime, Outgoing, RawFrame
 from canergy.live.supervisor.service import SupervisorService
 from canergy.messages import Message
 
@@ -88,9 +91,13 @@ class BusRouter:
         self.runtimes: list[BusRuntime] = []
         """One per bus, in bus order: filled in once the runtimes exist."""
 
-    def send(self, messages: Sequence[Message]) -> Sequence[Message]:
-        """Send ``messages``; returns nothing left for the caller's own bus to send."""
+    def send(self, messages: Sequence[Outgoing]) -> Sequence[Message]:
+        """Send ``messages``; returns nothing left for the caller's own bus to send. A frame
+        the compiled core encoded (``RawFrame``) goes to the bus it names, as it is."""
         for msg in messages:
+            if isinstance(msg, RawFrame):
+                self.runtimes[msg.bus].send_messages([msg])
+                continue
             plain = replace(msg, node=node_of(msg.node))
             self.runtimes[bus_of(msg.node)].send_messages([plain])
         return ()
@@ -139,12 +146,9 @@ class BusPort:
 
     def end_pass(self) -> Sequence[Message]:
         """What the service held through the pass (all buses' frames, once the outermost pass
-        ends), each sent on its own bus."""
-        held = self.service.end_pass()
-        messages = [m for m in held if not isinstance(m, RawFrame)]
-        if len(messages) != len(held):  # never: the fast path runs on one bus only
-            raise RuntimeError("frames encoded by the compiled core reached a multi-bus port")
-        return self.router.send(messages)
+        ends), each sent on its own bus (the compiled core's encoded frames on the bus they
+        name)."""
+        return self.router.send(self.service.end_pass())
 
     def next_wakeup(self) -> int | None:
         return self.service.next_wakeup() if self.deadlines else None

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, TextIO, cast
 
@@ -37,7 +38,7 @@ from canergy.core import (
 from canergy.core.common import at_end
 from canergy.core.errors import LocalProtocolError
 from canergy.core.state import SYNC_PHASES, Outcome, Phase
-from canergy.core.supervisor import SupervisorCore
+from canergy.core.supervisor import BUS_SHIFT, SupervisorCore
 from canergy.core.witnessed import answered
 from canergy.live.runtime import BusCounters, FramePath, Outgoing, RawFrame, total_counters
 from canergy.live.supervisor.control import ControlServer
@@ -73,6 +74,11 @@ HOST_JOIN = 0x2000000
 """Its verdict for a JOIN held in C (CANERGY_HOST_JOIN)."""
 EncodedBegin = Callable[[int, int, int], tuple[list[Action], list[tuple[int, bytes]]]]
 """The compiled core's ``begin_encoded``: actions, and the INTENTION as C encoded it."""
+Answer = Callable[
+    [int, bytes | bytearray, bool, bool, int, bool],
+    tuple[int, list[Action], list[tuple[int, bytes]], Message | None, int],
+]
+"""The compiled core's ``on_answer`` (of one bus: ``answer_on``)."""
 AuthAnswer = Callable[
     [int, bytes | bytearray, bool, bool, int, bool],
     tuple[int, list[Action], list[tuple[int, bytes]], int],
@@ -221,8 +227,12 @@ class SupervisorService:
         )
         self.status_out = StatusOut(config.status_path, config.status_stream, config.status_text)
         self._held: list[Outgoing] = []
-        self._answer = getattr(core, "on_answer", None)
+        self._answer_on: Callable[[int], Answer] | None = getattr(core, "answer_on", None)
+        """The compiled core's fast path of a bus by its index; None on the Python core."""
+        self._answer = None if self._answer_on is None else self._answer_on(0)
         """The compiled core's fast path (``fast_frame``); None on the Python core."""
+        self._answers: dict[int, Answer] = {} if self._answer is None else {0: self._answer}
+        """Over several buses: each bus's (``frame_path(bus=)``), by bus index."""
         self._path: tuple[str, str | None] = (
             ("python", None) if self._answer is None else ("python", "no bus loop asked for it")
         )
@@ -635,7 +645,9 @@ class SupervisorService:
         self.refusals.tick(now)  # what was refused since the last line, once a second at most
         return self._flush(out)
 
-    def frame_path(self, off: str | None = None, auth: FrameAuth | None = None) -> FramePath | None:
+    def frame_path(
+        self, off: str | None = None, auth: FrameAuth | None = None, bus: int = 0
+    ) -> FramePath | None:
         """The frame path for this service's bus loop (``BusRuntime(frame_path=)``, from the
         builder): the compiled core's (``fast_frame``), or None where every frame takes the
         usual path: the Python core, or ``off``, why the compiled core's cannot run here
@@ -646,14 +658,19 @@ class SupervisorService:
 
         ``auth``: the bus loop's key: the compiled core then verifies and protects in C
         (``fast_auth_frame``; classic layout: ``fast_auth_pair``), and an INTENTION it begins
-        in a loop pass is protected in C too."""
-        if self._answer is None:
+        in a loop pass is protected in C too.
+
+        ``bus``: over several buses, the index of the bus whose loop asks (each asks with the
+        same ``off`` and no key): that bus's frames go to its own supervisor in C."""
+        if self._answer_on is None:
             self._path = ("python", None)
             return None
         if off is not None:
             self._path = ("python", off)
             return None
         if auth is not None:
+            if bus:
+                raise ValueError("the compiled core's frame path with a key: on one bus only")
             classic = auth.layout is Layout.CLASSIC
             core: Any = self.core  # the compiled core
             core.use_keys(auth.key_for, classic=classic)
@@ -668,9 +685,12 @@ class SupervisorService:
             return self.fast_auth_frame
         self._path = ("c", None)
         self._begin_encoded = getattr(self.core, "begin_encoded", None)
-        return self.fast_frame
+        if not bus:
+            return self.fast_frame
+        self._answers[bus] = self._answer_on(bus)
+        return partial(self.fast_frame, bus=bus)
 
-    def fast_frame(self, frame: can.Message, now: int) -> bool:
+    def fast_frame(self, frame: can.Message, now: int, bus: int = 0) -> bool:
         """The compiled core's fast path, for a frame the bus loop has not decoded: an ACK,
         COMMITTED or ABORTED of a managed node goes through decode, rules, the decision on an
         ACK (commit, abort when stopping) and encode in one C call, and only what it did comes
@@ -679,8 +699,9 @@ class SupervisorService:
         they found, and what follows), a RETURN is held by the witness or ruled, a JOIN held.
         False, nothing done: any other frame, one that names a transaction never begun (judged
         on the usual path, an intrusion), the Python core, listen-only, outside a loop pass. The
-        bus loop then takes it as usual."""
-        answer = self._answer
+        bus loop then takes it as usual. ``bus``: the index of the bus it arrived on (several
+        buses: ``frame_path(bus=)``); its frames go to that bus's supervisor only."""
+        answer = self._answers.get(bus) if bus else self._answer
         if answer is None or self.config.listen_only or not self._passes:
             return False
         status, actions, frames, decoded, verdict = answer(
@@ -691,10 +712,11 @@ class SupervisorService:
             now,
             self.stopping,
         )
+        node = frame.arbitration_id & 0xFF | bus << BUS_SHIFT  # its session key
         if verdict & HOST_JOIN:  # a JOIN held in C
             self.frames_in_c += 1
             self.now = now
-            self.nodes[frame.arbitration_id & 0xFF].heard.heard_at = now
+            self.nodes[node].heard.heard_at = now
             return True
         if verdict & HOST_HELD:  # a RETURN the witness in C held
             self.frames_in_c += 1
@@ -712,9 +734,7 @@ class SupervisorService:
             return True
         if status:
             return False
-        self._answered(
-            frame.arbitration_id & 0xFF, [RawFrame(i, d) for i, d in frames], actions, now
-        )
+        self._answered(node, [RawFrame(i, d, False, bus) for i, d in frames], actions, now)
         return True
 
     def fast_auth_frame(self, frame: can.Message, now: int) -> bool:
@@ -940,7 +960,8 @@ class SupervisorService:
                 actions = self.core.begin(node, amount, now)
             else:
                 actions, raw = encoded(node, amount, now)
-                frames = [RawFrame(i, d, self._begin_fd) for i, d in raw]
+                bus = node >> BUS_SHIFT  # over several buses: the node's
+                frames = [RawFrame(i, d, self._begin_fd, bus) for i, d in raw]
         except LocalProtocolError as exc:  # budget changed under us: report, do not crash
             self._finish_request(node, {"node": self.node_name(node), "error": str(exc)})
             if at_end(self.core.session(node).tx) and node not in self.ended:

@@ -243,10 +243,14 @@ static void sup_took(struct canergy_auth *a, const struct canergy_msg *m, uint32
     }
 }
 
-/* The counters of a supervisor's judgement (NULL: the plain one of canergy_auth_accept). */
+/* A supervisor's judgement: its counters and the two functions above (NULL: the plain one of
+ * canergy_auth_accept; called through pointers, so that a node's image links neither). */
 struct sup_counters {
     uint32_t tx;
     uint32_t credited;
+    bool (*stale)(const struct canergy_auth *a, const struct canergy_msg *m, uint32_t fv,
+                  uint32_t tx, uint32_t credited);
+    void (*took)(struct canergy_auth *a, const struct canergy_msg *m, uint32_t fv);
 };
 
 /* The MAC, then (but for TELEMETRY) the FV the receiver expects; the verified classic frame.
@@ -276,7 +280,7 @@ static int verdict(struct canergy_auth *a, const struct canergy_msg *m, uint32_t
     if (joining) {
         stale = false; /* its JOIN's, checked above */
     } else if (sup != NULL) {
-        stale = sup_stale(a, m, fv, sup->tx, sup->credited);
+        stale = sup->stale(a, m, fv, sup->tx, sup->credited);
     } else if (m->type == CANERGY_ADMIT) {
         stale = (fv & 0xFFFFU) != m->nonce; /* any high half: the counters the node starts from */
     } else {
@@ -289,7 +293,7 @@ static int verdict(struct canergy_auth *a, const struct canergy_msg *m, uint32_t
         a->admit_fv = fv;
     }
     if (sup != NULL && !joining) {
-        sup_took(a, m, fv);
+        sup->took(a, m, fv);
     }
     memset(verified, 0, sizeof *verified);
     verified->id = id;
@@ -533,7 +537,7 @@ int canergy_auth_gateway_down_frame(struct canergy_auth *keys, const struct cane
         return status == CANERGY_DECODE_OK ? CANERGY_RX_OTHER_NODE : status;
     }
     const struct canergy_session *s = &gw->down.sessions[i];
-    const struct sup_counters sup = {s->tx, s->returns_credited};
+    const struct sup_counters sup = {s->tx, s->returns_credited, sup_stale, sup_took};
     return accept(&keys[i], frame, s->tx, s->returns_credited, &sup, verified);
 }
 

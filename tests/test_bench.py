@@ -143,15 +143,17 @@ def test_the_live_bench_runs_in_another_identifier_block(tmp_path: Path, core: s
     assert row["transactions"] > 0 and row["core"] == core
 
 
-@pytest.mark.parametrize("auth", [False, True])
-def test_the_auth_frame_path_bench_measures_the_c_path(auth: bool) -> None:
-    """``canergy bench``'s plain against ``--auth`` FD figure runs the C core's frame path in
-    both (answers taken in C, nothing refused), so its ratio compares what it says."""
+@pytest.mark.parametrize(("auth", "layout"), [(False, "fd"), (True, "fd"), (True, "classic")])
+def test_the_auth_frame_path_bench_measures_the_c_path(auth: bool, layout: str) -> None:
+    """``canergy bench``'s plain against ``--auth`` FD figure (and the classic layout's)
+    runs the C core's frame path in both (answers taken in C, nothing refused), so its ratio
+    compares what it says."""
+    from canergy.auth.frames import Layout
     from canergy.bench.auth_path import supervisor_cpu
     from canergy.ccore.supervisor import missing
 
     if missing() is not None:
         pytest.skip(missing())
-    row = supervisor_cpu(4, 0.05, auth=auth)
+    row = supervisor_cpu(4, 0.05, auth=auth, layout=Layout(layout))
     assert row["frame_path"] == "c" and row["refused"] == 0
     assert row["frames_in_c"] > 0 and row["frames"] > 0

@@ -207,7 +207,7 @@ def _one_answer(config: SupervisorConfig, layout: Any) -> tuple[dict[str, Any], 
     [
         (None, False, "c", None),
         ("fd", False, "c", None),
-        ("classic", False, "python", "--auth classic layout"),
+        ("classic", False, "c", None),
         (None, True, "python", "--listen-only"),
     ],
 )
@@ -215,10 +215,9 @@ def test_the_loop_is_handed_the_compiled_cores_frame_path_and_the_status_says_so
     auth: str | None, listen_only: bool, path: str, off: str | None
 ) -> None:
     """The frame path is declared: on the compiled core the builder hands the loop its frame
-    path, and the status says which path runs and, where C's cannot, why (the classic layout:
-    a message and its MAC frame arrive apart). A genuine TELEMETRY (without a key) or ACK (with
-    one: verified, answered and its COMMIT protected in C, FD) then goes through C, or does
-    not."""
+    path, and the status says which path runs and, where C's cannot, why (listen-only). A
+    genuine TELEMETRY (without a key) or ACK (with one, either layout: verified, answered and
+    its COMMIT protected in C) then goes through C, or does not."""
     from canergy.auth.frames import Layout
     from canergy.auth.keys import new_master
     from canergy.ccore.supervisor import missing

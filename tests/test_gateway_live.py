@@ -319,3 +319,64 @@ def test_the_file_keeps_every_field_the_rules_persist(
         injected,
         withdrawn,
     )
+
+
+def _c_core() -> None:
+    """These tests are about the compiled core: one not built fails them (as tests/test_build's
+    frame-path test), never falls back to Python unnoticed."""
+    from canergy.ccore.supervisor import missing
+
+    if missing() is not None:
+        pytest.fail(f"the compiled core is not built: {missing()}")
+
+
+def test_the_gateway_runs_below_on_the_compiled_core_and_its_frame_path(tmp_path: Path) -> None:
+    """By default (``--core auto``) the downstream role runs on the C core: the status says so,
+    C's frame path takes the nodes' frames (``frame_path_frames`` grows), energy comes from
+    above and goes back up as RETURNs, the nodes' RETURNs are held and credited, and a restart
+    on either core takes the file the other wrote; the tree creates nothing."""
+    _c_core()
+    with tree(tmp_path) as t:
+        t.start_root()
+        t.start_gateway("--return-above", "2J", "--target", "3J")  # above what nodes keep
+        t.wait(lambda: t.status("gw")["upstream"]["return_seq"] >= 1)  # a RETURN went up
+        first = t.status("gw")
+        assert (first["core"], first["frame_path"]) == ("c", "c")
+        assert "frame_path_off" not in first and first["link_gap_uj"] == 0
+        t.wait(lambda: t.status("gw")["frame_path_frames"] > first["frame_path_frames"] > 0)
+        # the nodes' RETURNs, held for their TELEMETRY (--return-hold) in C, then credited
+        t.wait(lambda: sum(n["returns_credited"] for n in t.status("gw")["nodes"].values()) > 0)
+        t.stop("gateway")
+        for core in ("python", "c"):  # the file the C core wrote, on the Python one, and back
+            credited = json.loads((tmp_path / "gw.json").read_text())["upstream"]["credited_uj"]
+            t.start_gateway("--return-above", "2J", "--target", "3J", "--core", core)
+            t.wait(lambda c=credited: t.status("gw")["upstream"]["credited_uj"] > c)
+            gw = t.status("gw")
+            assert (gw["core"], gw["frame_path"], gw["upstream"]["joins"]) == (core, core, 0)
+            t.stop("gateway")
+        t.stop("root")
+        books = t.tree()
+        assert t.status("root")["nodes"][str(GW)]["returns_credited"] >= 1
+    assert books.passive, books.as_json()
+
+
+def test_gateway_core_c_is_refused_where_the_compiled_core_cannot_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--core c`` without the compiled core is an error naming why, before the state file is
+    written; ``--core auto`` then runs the Python core."""
+    import canergy.cli.shared.live
+
+    monkeypatch.setattr(canergy.cli.shared.live, "missing", lambda: "not built here (a test)")
+    argv = ["gateway", "--node", str(GW), "--nodes", "1-3", "-i", "virtual", "-c", "gw-down"]
+    argv += ["--upstream-interface", "virtual", "--upstream-channel", "gw-up"]
+    argv += ["--state", str(tmp_path / "gw.json"), "--core", "c"]
+    assert main(argv) == 2
+    assert "canergy gateway: error: --core c: not built here (a test)" in capsys.readouterr().err
+    assert not (tmp_path / "gw.json").exists()
+    with tree(tmp_path) as t:
+        t.start_gateway("--core", "auto")
+        t.wait(lambda: t.status("gw")["upstream"]["joining"])
+        gw = t.status("gw")
+        assert (gw["core"], gw["frame_path"]) == ("python", "python")
+        t.stop("gateway")

@@ -80,9 +80,15 @@ _HOST_AUTH_PROTECT = """
 void canergy_host_auth_protect(const struct canergy_supervisor *sup,
     const struct canergy_auth *keys, const struct canergy_supervisor_out *out,
     struct canergy_auth_frame *sent, uint8_t *sent_count);"""
-HOST_AUTH_DECLARATIONS = _HOST_AUTH_ANSWER + _HOST_AUTH_PROTECT + "\n"
-"""The fast path with ``--auth`` in the FD layout (``CompiledSupervisor.on_auth_answer``,
-``begin_protected``)."""
+_HOST_AUTH_PAIR = """
+int canergy_host_auth_pair(struct canergy_supervisor *sup, struct canergy_auth *keys,
+    uint32_t data_id, const uint8_t *data, size_t data_len, uint32_t mac_id, unsigned mac_kind,
+    const uint8_t *mac, size_t mac_len, uint64_t now, bool abort_acks,
+    struct canergy_supervisor_out *out, struct canergy_auth_frame *sent, uint8_t *sent_count,
+    uint32_t *fv);"""
+HOST_AUTH_DECLARATIONS = _HOST_AUTH_ANSWER + _HOST_AUTH_PROTECT + _HOST_AUTH_PAIR + "\n"
+"""The fast path with ``--auth``: FD layout (``CompiledSupervisor.on_auth_answer``), classic
+layout (``on_auth_pair``), and ``begin_protected`` in either."""
 
 HOST_SOURCE = (
     """
@@ -155,8 +161,9 @@ static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t
     return canergy_supervisor_on_msg(sup, m, now, out);
 }
 
-/* Authenticated mode, FD layout: each of out's frames protected under its node's key (keys:
-   one per session, in the sessions' order) with its session's counters, in order. */"""
+/* Authenticated mode: each of out's frames protected under its node's key (keys: one per
+   session, in the sessions' order) with its session's counters, in order: one FD frame each,
+   or in the classic layout two (the frame, then its MAC frame). */"""
     + _HOST_AUTH_PROTECT.removesuffix(";")
     + """
 {
@@ -164,11 +171,14 @@ static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t
     for (uint8_t k = 0U; k < out->frame_count; k++) {
         const uint8_t j = canergy_host_index(sup, out->frames[k].id & 0xFFU);
         struct canergy_auth_frame two[2];
-        if (j < sup->count &&
-            canergy_auth_protect(&keys[j], &out->frames[k], sup->sessions[j].tx,
-                                 sup->sessions[j].returns_credited, two) == 1) {
-            sent[(*sent_count)++] = two[0];
-        } /* else none: each frame the rules send is a managed node's, encoded by the codec */
+        const int made = j < sup->count ? canergy_auth_protect(&keys[j], &out->frames[k],
+                                                                sup->sessions[j].tx,
+                                                                sup->sessions[j].returns_credited,
+                                                                two)
+                                         : 0;
+        for (int f = 0; f < made; f++) { /* none: each frame the rules send is a managed */
+            sent[(*sent_count)++] = two[f]; /* node's, encoded by the codec */
+        }
     }
 }
 
@@ -211,6 +221,73 @@ static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t
     struct canergy_msg m;
     rx.data = plain.data;
     rx.len = plain.dlc;
+    status = canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, &m);
+    if (status != CANERGY_DECODE_OK) {
+        return status;
+    }
+    *fv = got;
+    canergy_host_auth_protect(sup, keys, out, sent, sent_count);
+    return CANERGY_DECODE_OK;
+}
+
+/* Authenticated mode, classic layout (keys as above, each CANERGY_AUTH_CLASSIC): a message and
+   the MAC frame that completes it (the caller pairs them and keeps the message until its MAC
+   frame, as Python's FrameAuth does; mac_kind as canergy_host_answer's kind). An ACK, COMMITTED
+   or ABORTED of a managed node verified as FrameAuth verifies the pair (MAC, then an FV that is
+   the expected one and not before the session's tx), the rules run and each frame they send
+   protected (two frames each). Any other pair, or one that fails any check or that the rules
+   leave to the caller, returns a status other than CANERGY_DECODE_OK before anything changed
+   (the key's waiting slot is empty again): the caller takes the MAC frame the usual way, where
+   the pair is judged and a refusal counted. *fv: the verified pair's FV. */"""
+    + _HOST_AUTH_PAIR.removesuffix(";")
+    + """
+{
+    *sent_count = 0U;
+    const uint32_t type = data_id >> 8 & 0xFU;
+    const uint32_t mac_of = (data_id & ~0xF00UL) | (uint32_t)CANERGY_AUTH_MAC_TO_SUPERVISOR << 8;
+    if ((mac_kind & 3U) != 1U || data_id > 0x1FFFFFFFUL ||
+        (data_id & CANERGY_ID_MASK) != sup->id_base || mac_id != mac_of ||
+        (type != CANERGY_ACK && type != CANERGY_COMMITTED && type != CANERGY_ABORTED)) {
+        return CANERGY_RX_CALLER;
+    }
+    const uint8_t i = canergy_host_index(sup, data_id & 0xFFU);
+    if (i == sup->count || keys[i].layout != CANERGY_AUTH_CLASSIC) {
+        return CANERGY_RX_OTHER_NODE;
+    }
+    struct canergy_auth *a = &keys[i];
+    const struct canergy_session *s = &sup->sessions[i];
+    struct canergy_rx_frame rx = {0};
+    rx.id = data_id;
+    rx.data = data;
+    rx.len = data_len;
+    rx.extended = true;
+    struct canergy_frame plain;
+    a->pending_len = 0U;
+    int status = canergy_auth_accept(a, &rx, s->tx, s->returns_credited, &plain);
+    if (status != CANERGY_AUTH_PENDING) {
+        a->pending_len = 0U;
+        return status == CANERGY_DECODE_OK ? CANERGY_RX_CALLER : status;
+    }
+    rx.id = mac_id;
+    rx.data = mac;
+    rx.len = mac_len;
+    status = canergy_auth_accept(a, &rx, s->tx, s->returns_credited, &plain);
+    a->pending_len = 0U; /* taken by the MAC frame whatever it was */
+    if (status != CANERGY_DECODE_OK) {
+        return status;
+    }
+    struct canergy_msg m;
+    rx.id = plain.id;
+    rx.data = plain.data;
+    rx.len = plain.dlc;
+    if (canergy_decode(sup->id_base, &rx, CANERGY_TO_SUPERVISOR, &m) != CANERGY_DECODE_OK) {
+        return CANERGY_RX_CALLER; /* it was verified, so it decoded: not reached */
+    }
+    const uint32_t got = ((uint32_t)mac[1] << 8 | mac[2]) << 16 |
+                         (canergy_auth_freshness(&m, 0U, 0U) & 0xFFFFUL);
+    if (got != s->tx && (uint32_t)(s->tx - got) < 0x80000000UL) {
+        return CANERGY_AUTH_STALE; /* before the session's tx: a replay (Python's _older) */
+    }
     status = canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, &m);
     if (status != CANERGY_DECODE_OK) {
         return status;

@@ -33,11 +33,12 @@ from canergy.core.actions import (
 )
 from canergy.core.common import check_counters, check_life
 from canergy.core.errors import LocalProtocolError
+from canergy.core.gateway import MakeDown, no_hold
 from canergy.core.inputs import Begin
 from canergy.core.state import Decision, Outcome, Phase, Session, SupervisorState
 from canergy.core.supervisor import Supervisor, SupervisorCore
 from canergy.core.timing import Timing
-from canergy.core.variants import get_variant
+from canergy.core.variants import Variant, get_variant
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.messages import (
@@ -112,6 +113,7 @@ class _Binding:
         self.auth_frame, _ = _reader(ffi, "struct canergy_auth_frame", ("id", "len", "data"))
         self.auth_frame_size = ffi.sizeof("struct canergy_auth_frame")
         self.auth_fd = lib.CANERGY_AUTH_FD
+        self.auth_classic = lib.CANERGY_AUTH_CLASSIC
         self.to_supervisor = lib.CANERGY_TO_SUPERVISOR
         self.counts, self.counts_at = _reader(
             ffi, "struct canergy_supervisor_out", ("frame_count", "event_count", "persist")
@@ -548,21 +550,24 @@ class CompiledSupervisor:
             msg = Join(m.node, m.nonce)
         return status, [], [], msg, 0 if t == self._b.ffi.NULL else t.verdict
 
-    def use_keys(self, key_for: Callable[[int], bytes]) -> None:
-        """Authenticated mode in the FD layout: each managed node's key (``key_for(node)``,
-        16 bytes, as ``FrameAuth`` takes them) set up in C for ``on_auth_answer``."""
+    def use_keys(self, key_for: Callable[[int], bytes], *, classic: bool = False) -> None:
+        """Authenticated mode: each managed node's key (``key_for(node)``, 16 bytes, as
+        ``FrameAuth`` takes them) set up in C for ``on_auth_answer`` (FD layout) or, with
+        ``classic``, ``on_auth_pair`` (classic layout); ``begin_protected`` in either."""
         b = self._b
         count = len(self._sessions)
         keys = b.ffi.new("struct canergy_auth[]", count)
+        layout = b.auth_classic if classic else b.auth_fd
         for i, node in enumerate(self._index):
             key = key_for(node)
             rc = self._lib.canergy_auth_init(
-                keys + i, key, self.codec.id_base, node, b.auth_fd, b.to_supervisor
+                keys + i, key, self.codec.id_base, node, layout, b.to_supervisor
             )
             if rc != self._lib.CANERGY_OK or len(key) != 16:
                 raise ValueError(f"node {node}: no 16-byte key the C library takes")
         self._keys = keys
-        self._sent = b.ffi.new("struct canergy_auth_frame[]", self._lib.CANERGY_SUPERVISOR_NODES)
+        frames = 2 * self._lib.CANERGY_SUPERVISOR_NODES  # classic: each frame and its MAC frame
+        self._sent = b.ffi.new("struct canergy_auth_frame[]", frames)
         self._sent_bytes = b.ffi.buffer(self._sent)
         self._sent_count = b.ffi.new("uint8_t *")
         self._fv = b.ffi.new("uint32_t *")
@@ -596,11 +601,44 @@ class CompiledSupervisor:
         self._timer_known = False  # deadlines moved
         return status, self._actions(fast=True), self._protected(), int(self._fv[0])
 
+    def on_auth_pair(
+        self,
+        data_id: int,
+        data: bytes,
+        mac_id: int,
+        mac: bytes | bytearray,
+        extended: bool,
+        remote: bool,
+        now: int,
+        abort: bool,
+    ) -> tuple[int, list[Action], list[tuple[int, bytes]], int]:
+        """``on_auth_answer`` in the classic layout (``use_keys(classic=True)`` first): a
+        message (``data_id``, ``data``: the data frame ``FrameAuth`` keeps until its MAC frame)
+        and the MAC frame that came for it (``mac_id``, ``mac``, its flags), in one C call. An
+        ACK, COMMITTED or ABORTED of a managed node verified as ``FrameAuth`` verifies the
+        pair, the rules, and each frame they send protected (the classic frame, then its MAC
+        frame). Status 0: taken, with the actions, the frames and the pair's FV. Any other
+        status: nothing changed (C keeps no message waiting): the caller's usual path judges
+        and counts the pair."""
+        if not 0 <= mac_id < _ID_LIMIT:
+            return self._b.not_can, [], [], 0
+        kind = (1 if extended else 0) | (2 if remote else 0)
+        payload = mac if type(mac) is bytes else bytes(mac)
+        status = self._lib.canergy_host_auth_pair(
+            self._sup, self._keys, data_id, data, len(data), mac_id, kind, payload, len(payload),
+            now, abort, self._out, self._sent, self._sent_count, self._fv,
+        )  # fmt: skip
+        if status != self._b.ok:
+            return status, [], [], 0
+        self._timer_known = False  # deadlines moved
+        return status, self._actions(fast=True), self._protected(), int(self._fv[0])
+
     def begin_protected(
         self, node: int, amount: int, now: int
     ) -> tuple[list[Action], list[tuple[int, bytes]]]:
-        """``begin_encoded`` in authenticated mode, FD layout (``use_keys`` first): the
-        INTENTION protected in C under the node's key, ready to send."""
+        """``begin_encoded`` in authenticated mode (``use_keys`` first): the INTENTION
+        protected in C under the node's key, ready to send (FD: one frame; classic: the frame,
+        then its MAC frame)."""
         self._begin(node, amount, now)
         self._lib.canergy_host_auth_protect(
             self._sup, self._keys, self._out, self._sent, self._sent_count
@@ -608,7 +646,8 @@ class CompiledSupervisor:
         return self._actions(fast=True), self._protected()
 
     def _protected(self) -> list[tuple[int, bytes]]:
-        """The last call's protected frames as (identifier, data): FD frames."""
+        """The last call's protected frames as (identifier, data): FD frames, or classic
+        frames each followed by its MAC frame."""
         b, raw = self._b, self._sent_bytes
         frames = []
         for k in range(self._sent_count[0]):
@@ -631,7 +670,14 @@ class CompiledSupervisor:
     def inject(self, amount: int) -> None:
         if amount <= 0:
             raise LocalProtocolError("injected energy must be positive")
-        self._lib.canergy_supervisor_inject(self._sup, amount)
+        if self._lib.canergy_supervisor_inject(self._sup, amount) != self._lib.CANERGY_OK:
+            raise LocalProtocolError(f"cannot inject {amount} µJ into {self.usable} µJ usable")
+
+    def withdraw(self, amount: int) -> None:
+        """Take energy out of Us to outside (counted as withdrawn): a gateway's return
+        upstream (``core.Supervisor.withdraw``)."""
+        if self._lib.canergy_supervisor_withdraw(self._sup, max(amount, 0)) != self._lib.CANERGY_OK:
+            raise LocalProtocolError(f"cannot withdraw {amount} µJ of {self.usable} µJ usable")
 
     def power_loss(self, now: int, nonce: int = 0) -> None:
         """Lose volatile state and restart from the persistent record; ``nonce``: as
@@ -696,6 +742,42 @@ class CompiledSupervisor:
             arbitration_id, dlc, data = b.frame.unpack_from(raw, b.frames_at + k * b.frame_size)
             frames.append((arbitration_id, data[:dlc]))
         return frames
+
+
+class CompiledBelow(CompiledSupervisor):
+    """A gateway's supervisor role on the compiled core (``core.gateway.Below``'s twin, for
+    ``canergy gateway --core c``): no grant begins, on any path, while ``hold`` says why not
+    (the gateway's own start, not yet confirmed above)."""
+
+    def __init__(
+        self,
+        nodes: Iterable[int],
+        initial: int,
+        *,
+        variant: str | Variant = "hardened",
+        timing: Timing | None = None,
+        state: SupervisorState | None = None,
+        start_without: Iterable[int] = (),
+        id_base: int | None = None,
+        module: Any = None,
+    ) -> None:
+        """As ``CompiledSupervisor``; ``variant`` by name or as a ``Variant``."""
+        super().__init__(
+            nodes,
+            initial,
+            timing=timing,
+            state=state,
+            id_base=id_base,
+            variant=variant if isinstance(variant, str) else variant.name,
+            start_without=start_without,
+            module=module,
+        )
+        self.hold: Callable[[], str | None] = no_hold
+
+    def _begin(self, node: int, amount: int, now: int) -> None:
+        if (why := self.hold()) is not None:
+            raise LocalProtocolError(why)
+        super()._begin(node, amount, now)
 
 
 class CompiledHeard:
@@ -808,3 +890,14 @@ def make_supervisor(
     return Supervisor(
         nodes, initial, variant=variant, timing=timing, state=state, start_without=start_without
     )
+
+
+def make_below(core: str, id_base: int | None = None) -> MakeDown | None:
+    """What makes a gateway's supervisor role (``core.gateway.Gateway(below=)``) by core name:
+    "c" (``CompiledBelow`` on the bus's identifier block ``id_base``) or "python" (None: the
+    gateway's own ``Below``)."""
+    if core == "c":
+        return partial(CompiledBelow, id_base=id_base)
+    if core != "python":
+        raise ValueError(f"unknown core {core!r}: c or python")
+    return None

@@ -43,6 +43,7 @@ from canergy.core.actions import Action, Send
 from canergy.core.errors import LocalProtocolError
 from canergy.core.gateway import (
     STARTING,
+    Below,
     Gateway,
     GatewayState,
     forward,
@@ -228,6 +229,7 @@ class EarlyGrantGateway(Gateway):
         if paid:
             self.advanced -= paid
             up = evolve(up, usable=up.usable - paid, spent=up.spent + paid)
+        assert isinstance(self.down, Below)  # the model's gateways run the Python core
         self.up.state, self.down.state = forward(up, down)
         return actions
 

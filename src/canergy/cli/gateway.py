@@ -14,12 +14,14 @@ from canergy.argtypes import add_duration, bounded_int, energy, node_ids, probab
 from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import Key, KeyFileError, frame_auth_keys, load_key
 from canergy.auth.state_key import state_seal
+from canergy.ccore.supervisor import make_below
 from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.cli.shared.live import (
     auth_config,
     book_flags,
     check_state,
     check_widths,
+    core_choice,
     grant_limits,
     rule_timing,
     service_flags,
@@ -74,6 +76,15 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         "witnessed: what is forwarded below is drawn through a numbered DEBIT the supervisor "
         "above acknowledges first, and every start waits, granting nothing below, until it "
         "confirms this gateway's record (one restored from an older copy creates nothing)",
+    )
+    p.add_argument(
+        "--core",
+        choices=("auto", "c", "python"),
+        default="auto",
+        help="the downstream supervisor role's implementation: c (firmware/'s supervisor role, "
+        "compiled at install, and its frame path), python, or auto (default): c where it is "
+        "built, python otherwise; the status names the one running. The upstream client role "
+        "and the gateway's rules between the two are the same on either",
     )
     start_without_flag(p, " or returned upstream")
     add_bus_flags(p)
@@ -172,9 +183,12 @@ def _load(path: Path, flag: str) -> Key:
         raise KeyFileError(f"{flag} {exc}") from None
 
 
-def _build(args: argparse.Namespace, key: Key | None = None) -> tuple[Gateway, bool]:
+def _build(
+    args: argparse.Namespace, key: Key | None = None, core: str = "python"
+) -> tuple[Gateway, bool]:
     """The gateway core from its state file; True when there is no file (a new gateway).
-    ``key``: the downstream master key (``--auth``), which seals the state file."""
+    ``key``: the downstream master key (``--auth``), which seals the state file; ``core``:
+    its supervisor role's ("c" or "python", ``--core`` resolved)."""
     nodes = tuple(args.nodes)
     state = None
     seal = None if key is None else state_seal(key, args.node)
@@ -199,6 +213,7 @@ def _build(args: argparse.Namespace, key: Key | None = None) -> tuple[Gateway, b
         down_timing=rule_timing(args),
         state=state,
         start_without=start_without(args, nodes),
+        below=make_below(core, args.id_base),
     )
     return gateway, state is None
 
@@ -282,9 +297,10 @@ def run(args: argparse.Namespace) -> int:
     check_widths(args)
     check_state(args)
     start_without(args, tuple(args.nodes))  # checked before the state file is touched
+    core = core_choice(args)  # so is --core c where the C core cannot run
     up_key, down_key = _keys(args)
     now = monotonic_us()
-    gateway, new = _build(args, down_key)
+    gateway, new = _build(args, down_key, core)
     files = GatewayFiles(gateway, args.state, fsync=not args.no_fsync)
     config = _config(args, down_key)
     down_codec, up_codec = Codec(args.id_base), Codec(args.upstream_id_base)

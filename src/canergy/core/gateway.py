@@ -13,6 +13,12 @@ So ``up.spent == down.injected - down.withdrawn`` always holds (``link_gap`` is 
 neither creates nor loses energy between its roles, and the tree's ledger is the sum of its
 levels' ledgers.
 
+The downstream role is any ``GatewayDown`` (``core.supervisor.SupervisorCore`` with ``withdraw``
+and the ``hold`` below): ``Below`` here, or the compiled one (``canergy.ccore.supervisor.
+CompiledBelow``, for ``canergy gateway --core c``), made by the ``below`` factory from the same
+record. The gateway moves energy across only through ``inject`` and ``withdraw``, so either core
+books it alike.
+
 Under the witnessed rules upstream (``up_variant="witnessed"``) forwarding is the gateway's spend,
 witnessed as a node's draw is: what the client is credited leaves its budget as a numbered DRAW,
 persisted before it is sent, and goes below only on the supervisor's acknowledgement (the
@@ -29,12 +35,19 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Protocol
 
 from canergy.core.actions import Action, Persist
 from canergy.core.client import Client
 from canergy.core.errors import LocalProtocolError
 from canergy.core.state import ClientState, Phase, SupervisorState
-from canergy.core.supervisor import Supervisor, inject_into, unconfirmed, withdraw_from
+from canergy.core.supervisor import (
+    Supervisor,
+    SupervisorCore,
+    inject_into,
+    unconfirmed,
+    withdraw_from,
+)
 from canergy.core.table import ClientTable
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
@@ -90,11 +103,45 @@ def found_behind(before: ClientState, after: ClientState) -> bool:
     )
 
 
+def no_hold() -> str | None:
+    """``GatewayDown.hold`` of a role that never waits (None: grants may go)."""
+    return None
+
+
+class GatewayDown(SupervisorCore, Protocol):
+    """What the gateway needs of its supervisor role, beside what the service drives: energy
+    taken out to above, the nodes a start waits for, and the hold it sets on grants."""
+
+    hold: Callable[[], str | None]
+    """Why no grant may begin below (None: it may); set by the gateway."""
+
+    def withdraw(self, amount: int) -> None:
+        """Take ``amount`` µJ out of Us to outside (counted as withdrawn)."""
+        ...
+
+    def unconfirmed(self) -> tuple[int, ...]: ...
+
+
+class MakeDown(Protocol):
+    """Makes a gateway's supervisor role (``Below`` takes these arguments)."""
+
+    def __call__(
+        self,
+        nodes: Iterable[int],
+        initial: int,
+        *,
+        variant: str | Variant,
+        timing: Timing | None,
+        state: SupervisorState | None,
+        start_without: Iterable[int],
+    ) -> GatewayDown: ...
+
+
 class Below(Supervisor):
     """The gateway's supervisor role: it grants nothing while ``hold`` says why not (the
     gateway's own start, not yet confirmed above)."""
 
-    hold: Callable[[], str | None] = staticmethod(lambda: None)
+    hold: Callable[[], str | None] = staticmethod(no_hold)
 
     def begin(self, node: int, amount: int, now: int) -> list[Action]:
         if (why := self.hold()) is not None:
@@ -117,13 +164,16 @@ class Gateway:
         down_timing: Timing | None = None,
         state: GatewayState | None = None,
         start_without: Iterable[int] = (),
+        below: MakeDown | None = None,
     ) -> None:
         """``start_without``: nodes below a start does not wait for (``Supervisor``'s, with
-        its risk; a return upstream may then carry what such a node holds)."""
+        its risk; a return upstream may then carry what such a node holds). ``below``: makes
+        the supervisor role (default ``Below``, the Python core)."""
         above = variant if up_variant is None else up_variant
         above = get_variant(above) if isinstance(above, str) else above
         self.up = Client(node, variant=above, timing=up_timing, state=state.up if state else None)
-        self.down = Below(
+        make: MakeDown = Below if below is None else below
+        self.down: GatewayDown = make(
             nodes,
             0,
             variant=variant,
@@ -202,14 +252,16 @@ class Gateway:
             raise LocalProtocolError(
                 f"cannot return {amount} µJ: {self.down.state.usable} µJ usable downstream"
             )
-        before = self.state
-        up, down = withdraw_for_return(self.up.state, self.down.state, amount)
-        self.up.state, self.down.state = up, down
+        if amount <= 0:
+            raise LocalProtocolError(f"cannot withdraw {amount} µJ of {self.down.usable} µJ usable")
+        before = self.up.state  # ``withdraw_for_return``: the client's half first, then below
+        self.up.state = evolve(before, usable=before.usable + amount, spent=before.spent - amount)
         try:
             actions = self.up.give_back(amount, now)
         except LocalProtocolError:
-            self.up.state, self.down.state = before.up, before.down
+            self.up.state = before
             raise
+        self.down.withdraw(amount)
         return _persist_first(actions)
 
     def power_loss(self, now: int, nonce: int | None = None, sync_nonce: int = 0) -> list[Action]:
@@ -228,30 +280,32 @@ class Gateway:
     def _forwarded(self, before: ClientState, actions: list[Action], now: int) -> list[Action]:
         if self.draws:
             return self._drawn(before, actions, now)
-        if self.up.state.usable <= 0:
+        up = self.up.state
+        if up.usable <= 0:
             return actions
-        self.up.state, self.down.state = forward(self.up.state, self.down.state)
+        self.up.state = evolve(up, usable=0, spent=up.spent + up.usable)  # ``forward``
+        self.down.inject(up.usable)
         return _persist_first(actions)
 
     def _drawn(self, before: ClientState, actions: list[Action], now: int) -> list[Action]:
         """Witnessed upstream: a released draw goes below; a start found behind drops the Us
         below (what is owed there stays); what the client holds usable is drawn (one debit at a
         time, at most one frame's amount)."""
-        up, down = self.up.state, self.down.state
+        up = self.up.state
+        moved = False
         released = up.spent - before.spent  # a draw acknowledged (a start found behind keeps it)
         if released > 0:
-            down = inject_into(down, released)
+            self.down.inject(released)
+            moved = True
         if found_behind(before, up):
             self.behind += 1
-            dropped = min(max(down.usable, 0), up.spent)
+            dropped = min(max(self.down.usable, 0), up.spent)
             if dropped:  # out of Us below and back out of spent above: lost at the gateway
                 self.dropped += dropped
-                down = evolve(
-                    down, usable=down.usable - dropped, withdrawn=down.withdrawn + dropped
-                )
-                up = evolve(up, spent=up.spent - dropped)
-        if down != self.down.state:
-            self.up.state, self.down.state = up, down
+                self.down.withdraw(dropped)
+                self.up.state = up = evolve(up, spent=up.spent - dropped)
+                moved = True
+        if moved:
             actions = _persist_first(actions)
         chunk = min(up.usable // QUANTUM_UJ, AMOUNT_MAX_MJ) * QUANTUM_UJ
         if chunk and self.up.can_spend():
@@ -266,7 +320,9 @@ def _persist_first(actions: list[Action]) -> list[Action]:
 __all__ = [
     "Below",
     "Gateway",
+    "GatewayDown",
     "GatewayState",
+    "MakeDown",
     "forward",
     "found_behind",
     "link_gap",

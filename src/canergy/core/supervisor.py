@@ -212,6 +212,11 @@ class Supervisor:
         """Add energy from outside the system to Us (counted as injected)."""
         self.state = inject_into(self.state, amount)
 
+    def withdraw(self, amount: int) -> None:
+        """Take energy out of Us to outside the system (counted as withdrawn): a gateway's
+        return upstream."""
+        self.state = withdraw_from(self.state, amount)
+
     def power_loss(self, now: int, nonce: int = 0) -> None:
         """Lose volatile state and restart from the persistent record. ``nonce``: a fresh
         random number for rules that have every start confirmed (witnessed: the SYNC's)."""

@@ -274,7 +274,11 @@ class TreeRun:
         self.seen[(bus, a.node)].ended_at = self.now
 
     def supervisor(self, bus: int) -> Supervisor:
-        return self.root if bus == ROOT else self.gateways[bus].down
+        if bus == ROOT:
+            return self.root
+        down = self.gateways[bus].down
+        assert isinstance(down, Supervisor)  # the demo's gateways run the Python core
+        return down
 
     # -- timers: one event per armed deadline ----------------------------------------------------
     def timer_of(self, who: Key) -> int | None:

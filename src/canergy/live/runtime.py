@@ -47,7 +47,9 @@ class RawFrame:
     data: bytes
     fd: bool = False
     """A CAN FD frame (sent with bit rate switch): protected already in the FD layout of
-    authenticated mode, its FV in its trailer (noted as this side's own, ``OwnDirection``)."""
+    authenticated mode, its FV in its trailer (noted as this side's own, ``OwnDirection``). In
+    the classic layout a protected frame is followed by its MAC frame, both classic (the FV
+    they carry noted as well)."""
 
 
 Outgoing = Message | RawFrame
@@ -254,6 +256,16 @@ class OwnDirection:
         fv = int.from_bytes(data[-12:-8], "big")
         self._note(arbitration_id & 0xFF, kind in _RETURN_COUNTED, fv)
 
+    def note_pair(self, arbitration_id: int, data: bytes, mac: bytes) -> None:
+        """``note_frame`` in the classic layout: a transaction's frame the compiled core
+        protected (INTENTION, COMMIT, ABORT; its 16-bit counter first after the CRC byte) and
+        its MAC frame, which carries the FV's high half."""
+        kind = arbitration_id >> 8 & 0xF
+        if kind in _UNCOUNTED or len(data) < 3 or len(mac) < 3:
+            return
+        fv = int.from_bytes(mac[1:3], "big") << 16 | int.from_bytes(data[1:3], "little")
+        self._note(arbitration_id & 0xFF, kind in _RETURN_COUNTED, fv)
+
     def _note(self, node: int, returns: bool, fv: int) -> None:
         key = (node, returns)
         last = self.sent.get(key)
@@ -356,8 +368,8 @@ class BusRuntime:
         owns the bus (shared with python-canopen: one Notifier per bus). ``counters``: kept in
         this object (the handler's status shows the same one; default a new one).
         ``frame_path``: every received frame goes there first (the compiled core's, from the
-        builder); it needs a handler that takes passes and, with a key, the FD layout (what
-        the frame path sends is then protected already)."""
+        builder); it needs a handler that takes passes (with a key, what the frame path sends
+        is protected already)."""
         self.bus = bus
         self.source = source
         self.handler = handler
@@ -381,10 +393,8 @@ class BusRuntime:
             self.counters.auth = auth.layout.value
         passes = callable(getattr(handler, "begin_pass", None))
         self._passes = cast(PassHandler, handler) if passes else None
-        if frame_path is not None and (
-            not passes or (auth is not None and auth.layout is not Layout.FD)
-        ):
-            raise ValueError("a frame path needs a handler that takes passes and no key or FD")
+        if frame_path is not None and not passes:
+            raise ValueError("a frame path needs a handler that takes passes")
         self._fast = frame_path
 
     def poll(self, max_wait_s: float = 0.1) -> None:
@@ -545,6 +555,7 @@ class BusRuntime:
     def _send_all(self, messages: Sequence[Outgoing]) -> None:
         if self.listen_only:
             return
+        before: RawFrame | None = None  # classic: the frame a MAC frame follows
         for msg in messages:
             if isinstance(msg, RawFrame):
                 fd = msg.fd
@@ -557,8 +568,16 @@ class BusRuntime:
                         bitrate_switch=fd,
                     )
                 )
-                if fd and self.own is not None:
-                    self.own.note_frame(msg.arbitration_id, msg.data)
+                if self.own is not None:
+                    if fd:
+                        self.own.note_frame(msg.arbitration_id, msg.data)
+                    elif msg.arbitration_id >> 8 & 0xF == MAC_TYPE[self.own.mirror.receives]:
+                        if before is not None:
+                            self.own.note_pair(before.arbitration_id, before.data, msg.data)
+                    else:
+                        before = msg
+                        continue
+                before = None
             else:
                 self._send(msg)
 

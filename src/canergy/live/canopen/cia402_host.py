@@ -26,7 +26,7 @@ from typing import Any
 
 import can
 
-from canergy.auth.frames import FrameAuth, Verdict
+from canergy.auth.frames import MAC_TYPE, FrameAuth, Verdict
 from canergy.cia402.guard import DriveGuard
 from canergy.codec import Codec, DecodeError
 from canergy.devices.guard import DeviceGuard
@@ -293,6 +293,8 @@ class GuardedSupervisor:
         messages: list[Message] = []
         for item in self.service.end_pass():
             if isinstance(item, RawFrame) and self.guarded.guards(item.arbitration_id & 0xFF):
+                if item.arbitration_id >> 8 & 0xF == MAC_TYPE[Direction.TO_CLIENT]:
+                    continue  # protected in C (--auth, classic): the message alone goes on
                 to, data = Direction.TO_CLIENT, item.data
                 if item.fd:  # protected in C (--auth, FD layout): the message, MAC left off
                     data = data[: self.codec.data_length(MsgType(item.arbitration_id >> 8 & 0xF))]

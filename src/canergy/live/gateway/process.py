@@ -267,7 +267,7 @@ class Uplink:
 
     def level(self) -> int:
         """What the gateway reports upstream: the budget it can still grant below."""
-        return self.gateway.down.state.usable
+        return self.gateway.down.usable
 
     def telemetry(self, now: int) -> Telemetry:
         self.next_telemetry = now + self.config.telemetry_period_us
@@ -285,7 +285,7 @@ class Uplink:
         keep = self.config.return_above
         if keep is None or not self.gateway.can_give_back():
             return []
-        amount = give_back_amount(self.gateway.down.state.usable, keep)
+        amount = give_back_amount(self.gateway.down.usable, keep)
         if not amount:
             return []
         self.returned += amount

@@ -340,13 +340,7 @@ def _one(
     runtime = None
     if bus is not None:
         auth = _frame_auth(config, codec, service.freshness)
-        off = (
-            _LISTEN_OFF
-            if listen_only
-            else _CLASSIC_OFF
-            if config.auth is not None and not config.auth.fd
-            else None
-        )
+        off = _LISTEN_OFF if listen_only else None
         runtime = BusRuntime(
             bus,
             handler,
@@ -413,10 +407,6 @@ def _several(
     )
 
 
-_CLASSIC_OFF = (
-    "--auth classic layout: frames are checked and signed in Python (a message and its MAC "
-    "frame arrive apart; the C frame path takes the FD layout)"
-)
 _LISTEN_OFF = "--listen-only: every frame is only read, on the usual path"
 
 

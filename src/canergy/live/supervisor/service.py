@@ -15,7 +15,14 @@ from typing import Any, TextIO, cast
 
 import can
 
-from canergy.auth.frames import FrameAuth, Layout, Verdict, expected_freshness, frame_direction
+from canergy.auth.frames import (
+    MAC_TYPE,
+    FrameAuth,
+    Layout,
+    Verdict,
+    expected_freshness,
+    frame_direction,
+)
 from canergy.bus_keys import node_name
 from canergy.codec import DecodeError
 from canergy.core import (
@@ -71,6 +78,14 @@ AuthAnswer = Callable[
     tuple[int, list[Action], list[tuple[int, bytes]], int],
 ]
 """The compiled core's ``on_auth_answer``."""
+AuthPair = Callable[
+    [int, bytes, int, bytes | bytearray, bool, bool, int, bool],
+    tuple[int, list[Action], list[tuple[int, bytes]], int],
+]
+"""The compiled core's ``on_auth_pair`` (classic layout)."""
+_MAC_TO_SUPERVISOR = MAC_TYPE[Direction.TO_SUPERVISOR]
+_ANSWERS = frozenset((MsgType.ACK, MsgType.COMMITTED, MsgType.ABORTED))
+"""What the compiled core's frame path takes with a key: a node's answers."""
 
 
 @dataclass(slots=True)
@@ -215,16 +230,19 @@ class SupervisorService:
         self.frames_in_c = 0
         """Frames the compiled core's frame path took: an answer or a RETURN whole (decode,
         rules, encode), a TELEMETRY (its tables), a RETURN held or a JOIN held, in C; a RETURN
-        beyond the books or a DEBIT decoded in C and then handled as usual."""
+        beyond the books or a DEBIT decoded in C and then handled as usual. With a key in the
+        classic layout an answer counts once (its message and its MAC frame)."""
         self._auth_answer: AuthAnswer | None = None
         """The compiled core's frame path with a key (``fast_auth_frame``), once set up."""
+        self._auth_pair: AuthPair | None = None
+        """Its classic layout's (``fast_auth_pair``), once set up."""
         self._frame_auth: FrameAuth | None = None
         self._begin_encoded: EncodedBegin | None = None
         """The compiled core's ``begin`` with its frame as C encoded it, once a bus loop without
         a key took the fast path (``frame_path``): an INTENTION then leaves as C's bytes (with a
-        key in the FD layout, protected in C)."""
+        key, protected in C)."""
         self._begin_fd = False
-        """With a key (FD layout) the INTENTION ``_begin_encoded`` gives is protected already."""
+        """With a key in the FD layout the INTENTION ``_begin_encoded`` gives is an FD frame."""
         self.stop_deadline: int | None = None
         self.liveness = liveness
         self.extra_status = extra_status
@@ -620,15 +638,15 @@ class SupervisorService:
     def frame_path(self, off: str | None = None, auth: FrameAuth | None = None) -> FramePath | None:
         """The frame path for this service's bus loop (``BusRuntime(frame_path=)``, from the
         builder): the compiled core's (``fast_frame``), or None where every frame takes the
-        usual path: the Python core, or ``off``, why the compiled core's cannot run here (a
-        key: frames are checked and signed in Python). From then on, in a loop pass, frames the
+        usual path: the Python core, or ``off``, why the compiled core's cannot run here
+        (listen-only). From then on, in a loop pass, frames the
         C core encoded (COMMIT, ABORT, INTENTION) go to the loop as C's bytes (``RawFrame``),
         never decoded and encoded again. The status says which path runs (``frame_path``), why
         not C (``frame_path_off``) and how many frames C took (``frame_path_frames``).
 
-        ``auth``: the bus loop's key (FD layout only; the builder gives ``off`` for the classic
-        one): the compiled core then verifies and protects in C (``fast_auth_frame``), and an
-        INTENTION it begins in a loop pass is protected in C too."""
+        ``auth``: the bus loop's key: the compiled core then verifies and protects in C
+        (``fast_auth_frame``; classic layout: ``fast_auth_pair``), and an INTENTION it begins
+        in a loop pass is protected in C too."""
         if self._answer is None:
             self._path = ("python", None)
             return None
@@ -636,14 +654,17 @@ class SupervisorService:
             self._path = ("python", off)
             return None
         if auth is not None:
-            if auth.layout is not Layout.FD:
-                raise ValueError("the compiled core's frame path with a key: the FD layout only")
-            self.core.use_keys(auth.key_for)  # type: ignore[attr-defined]  # the compiled core
-            self._auth_answer = self.core.on_auth_answer  # type: ignore[attr-defined]
-            self._begin_encoded = self.core.begin_protected  # type: ignore[attr-defined]
-            self._begin_fd = True
+            classic = auth.layout is Layout.CLASSIC
+            core: Any = self.core  # the compiled core
+            core.use_keys(auth.key_for, classic=classic)
+            self._begin_encoded = core.begin_protected
+            self._begin_fd = not classic
             self._frame_auth = auth
             self._path = ("c", None)
+            if classic:
+                self._auth_pair = core.on_auth_pair
+                return self.fast_auth_pair
+            self._auth_answer = core.on_auth_answer
             return self.fast_auth_frame
         self._path = ("c", None)
         self._begin_encoded = getattr(self.core, "begin_encoded", None)
@@ -714,6 +735,36 @@ class SupervisorService:
         node = ident & 0xFF
         self._frame_auth.took(MsgType(ident >> 8 & 0xF), node, fv)
         self._answered(node, [RawFrame(i, d, True) for i, d in frames], actions, now)
+        return True
+
+    def fast_auth_pair(self, frame: can.Message, now: int) -> bool:
+        """``fast_auth_frame`` in the classic layout: the MAC frame of an ACK, COMMITTED or
+        ABORTED of a managed node, with the message the loop's ``FrameAuth`` keeps for it,
+        goes to C, where the pair is verified, taken by the rules and answered with frames
+        protected (each followed by its MAC frame) in one call; the message then waits no
+        more. False, nothing done (the message still waits): any other frame (a message
+        waits for its MAC frame on the usual path), a MAC frame without such a message, one
+        refused (the usual path pairs, counts and reports it as ever), an answer ahead of the
+        session."""
+        ident = frame.arbitration_id
+        if ident >> 8 & 0xF != _MAC_TO_SUPERVISOR or self.config.listen_only or not self._passes:
+            return False
+        auth = self._frame_auth
+        assert self._auth_pair is not None and auth is not None
+        node = ident & 0xFF
+        waiting = auth.pending.get(node)
+        if waiting is None or waiting[0].TYPE not in _ANSWERS:
+            return False
+        msg, data = waiting
+        status, actions, frames, fv = self._auth_pair(
+            auth.codec.arbitration_id(msg.TYPE, node), data, ident, frame.data,
+            frame.is_extended_id, frame.is_remote_frame, now, self.stopping,
+        )  # fmt: skip
+        if status:
+            return False
+        del auth.pending[node]
+        auth.took(msg.TYPE, node, fv)
+        self._answered(node, [RawFrame(i, d) for i, d in frames], actions, now)
         return True
 
     def _answered(self, node: int, frames: list[Outgoing], actions: list[Action], now: int) -> None:

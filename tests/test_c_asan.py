@@ -36,6 +36,7 @@ UNDER_ASAN = [
     "test_c_witnessed.py",
     "test_c_witness.py",
     "test_c_gateway_nv.py",
+    "test_c_gateway_down_auth.py",
     "test_gateway_cores.py",
 ]
 

@@ -239,3 +239,62 @@ def test_the_c_gateway_takes_only_its_own_node_key_above(c_gateway: Path, tmp_pa
         "--nv n1.key and --upstream-auth n1.key name the same file",
     )
     assert not (tmp_path / "g.nv").exists()
+
+
+# --- the C gateway's --auth: a master key of its own below, the same file checks ---------------
+
+
+@pytest.mark.parametrize("kind", BAD_KEYS)
+def test_the_c_gateway_refuses_a_master_key_file_below_that_is_not_a_small_regular_file(
+    kind: str, c_gateway: Path, tmp_path: Path
+) -> None:
+    make, words = BAD_KEYS[kind]
+    key = make(tmp_path)
+    run = _run(c_gateway, tmp_path, "--nv", "g.nv", "--auth", str(key))
+    _refused(run, f"canergy-gateway: error: --auth {key}: {words}")
+    assert not (tmp_path / "g.nv").exists()
+
+
+def test_the_c_gateway_takes_a_master_key_of_its_own_below(c_gateway: Path, tmp_path: Path) -> None:
+    """Below: a master key, not a node key, and not the root's master key the key above was
+    derived from; a good one, with either layout on either leg, gets past the key checks; --fd
+    only with a key; the key file is no NV file; a loose mode is refused."""
+    root, own = new_master(1), new_master(1)
+    write_key(tmp_path / "root.key", root)
+    write_key(tmp_path / "own.key", own)
+    write_key(tmp_path / "n1.key", node_key_of(root, 1))
+    write_key(tmp_path / "g2.key", node_key_of(own, 2))
+    _refused(
+        _run(c_gateway, tmp_path, "--nv", "g.nv", "--auth", "g2.key"),
+        "canergy-gateway: error: --auth g2.key: a node key; downstream the gateway is a "
+        "supervisor and needs a master key of its own",
+    )
+    _refused(
+        _run(
+            c_gateway, tmp_path, "--nv", "g.nv", "--auth", "root.key", "--upstream-auth", "n1.key"
+        ),
+        "canergy-gateway: error: --auth root.key: the master key --upstream-auth n1.key was "
+        "derived from",
+    )
+    for layout in ((), ("--fd",), ("--fd", "--upstream-fd")):
+        run = _run(
+            c_gateway,
+            tmp_path,
+            "--nv",
+            "g.nv",
+            "--auth",
+            "own.key",
+            "--upstream-auth",
+            "n1.key",
+            *layout,
+        )
+        assert run.returncode == 2 and "CAN socket" in run.stderr, run.stderr  # past every check
+    _refused(_run(c_gateway, tmp_path, "--nv", "g.nv", "--fd"), "argument --fd: only with --auth")
+    _refused(
+        _run(c_gateway, tmp_path, "--nv", "own.key", "--auth", "own.key"),
+        "--nv own.key and --auth own.key name the same file",
+    )
+    (tmp_path / "own.key").chmod(0o640)
+    run = _run(c_gateway, tmp_path, "--nv", "g.nv", "--auth", "own.key")
+    _refused(run, "canergy-gateway: error: --auth own.key: mode 0640 lets others read it")
+    assert not (tmp_path / "g.nv").exists()

@@ -51,9 +51,14 @@ void canergy_auth_set_join(struct canergy_auth *a, uint16_t random_high, uint16_
     a->join_fv = (uint32_t)random_high << 16 | nonce;
 }
 
-/* The FV of the JOIN that m (a JOIN or an ADMIT) belongs to: set_join's, or the nonce alone. */
+/* The FV of the JOIN that m (a JOIN or an ADMIT) belongs to: set_join's, or the nonce alone; a
+ * supervisor's ADMIT binds first the RESUME it kept, then the JOIN (Python's _join_fv). */
 static uint32_t join_fv_of(const struct canergy_auth *a, const struct canergy_msg *m)
 {
+    if (m->type == CANERGY_ADMIT && (a->kept & CANERGY_AUTH_KEPT_RESUME) != 0U &&
+        (a->resume_fv & 0xFFFFU) == m->nonce) {
+        return a->resume_fv;
+    }
     return (a->join_fv & 0xFFFFU) == m->nonce ? a->join_fv : m->nonce;
 }
 
@@ -172,20 +177,98 @@ int canergy_auth_protect(const struct canergy_auth *a, const struct canergy_fram
     return 2;
 }
 
-/* The MAC, then (but for TELEMETRY) the FV the receiver expects; the verified classic frame. */
+/* FV a comes before b (serial-number order on 32 bits: Python's fv_before). */
+static bool fv_before(uint32_t a, uint32_t b)
+{
+    return a != b && (uint32_t)(b - a) < 0x80000000UL;
+}
+
+static bool is_joining(const struct canergy_msg *m)
+{
+    return m->type == CANERGY_TELEMETRY && (m->flags & CANERGY_TELEMETRY_JOINING) != 0U;
+}
+
+/* A supervisor's JOINING TELEMETRY is bound to the JOIN it took last (when it kept one). */
+static bool sup_join(const struct canergy_auth *a, uint32_t *fv)
+{
+    *fv = a->join_fv;
+    return (a->kept & CANERGY_AUTH_KEPT_JOIN) != 0U;
+}
+
+/* A supervisor's judgement of a verified m (Python's FrameAuth._verdict with the supervisor's
+ * expected_freshness, counters tx and credited): true when stale. */
+static bool sup_stale(const struct canergy_auth *a, const struct canergy_msg *m, uint32_t fv,
+                      uint32_t tx, uint32_t credited)
+{
+    const bool debit = m->type == CANERGY_DEBIT;
+    if (m->type == CANERGY_JOIN || (debit && (m->flags & CANERGY_DEBIT_START) != 0U)) {
+        return (fv & 0xFFFFU) != m->nonce; /* any fresh nonce, kept for the ADMIT */
+    }
+    if (debit && (m->flags & ~CANERGY_DEBIT_RC_UNKNOWN) == CANERGY_DEBIT_BOOKS) {
+        return fv != m->nonce; /* a SYNC's books: bound to its nonce */
+    }
+    if (m->type == CANERGY_TELEMETRY) { /* the window: resolved .. the session's tx */
+        const uint32_t floor = (a->kept & CANERGY_AUTH_KEPT_FLOOR) != 0U ? a->floor : tx - 1U;
+        return fv_before(fv, floor) || fv_before(tx, fv);
+    }
+    const bool numbered = m->type == CANERGY_RETURN || m->type == CANERGY_RETURN_ACK || debit;
+    return canergy_auth_freshness(m, tx, credited) != fv || fv_before(fv, numbered ? credited : tx);
+}
+
+/* What a verified m taken by a supervisor shows (Python's FrameAuth._verdict and took): the
+ * JOIN or RESUME kept, the JOIN dropped by anything else, how far the node has resolved. */
+static void sup_took(struct canergy_auth *a, const struct canergy_msg *m, uint32_t fv)
+{
+    if (m->type == CANERGY_JOIN) {
+        a->join_fv = fv;
+        a->kept = (uint8_t)((a->kept | CANERGY_AUTH_KEPT_JOIN) & ~CANERGY_AUTH_KEPT_RESUME);
+        return;
+    }
+    if (m->type == CANERGY_DEBIT && (m->flags & CANERGY_DEBIT_START) != 0U) {
+        a->resume_fv = fv;
+        a->kept |= CANERGY_AUTH_KEPT_RESUME;
+    }
+    a->join_fv = 0U; /* admitted: no TELEMETRY without books is fresh now */
+    a->kept &= (uint8_t)~CANERGY_AUTH_KEPT_JOIN;
+    uint32_t resolved = fv;
+    if (m->type == CANERGY_ACK) {
+        resolved = fv - 1U;
+    } else if (m->type != CANERGY_TELEMETRY && m->type != CANERGY_COMMITTED &&
+               m->type != CANERGY_ABORTED) {
+        return;
+    }
+    if ((a->kept & CANERGY_AUTH_KEPT_FLOOR) == 0U || fv_before(a->floor, resolved)) {
+        a->floor = resolved;
+        a->kept |= CANERGY_AUTH_KEPT_FLOOR;
+    }
+}
+
+/* A supervisor's judgement: its counters and the two functions above (NULL: the plain one of
+ * canergy_auth_accept; called through pointers, so that a node's image links neither). */
+struct sup_counters {
+    uint32_t tx;
+    uint32_t credited;
+    bool (*stale)(const struct canergy_auth *a, const struct canergy_msg *m, uint32_t fv,
+                  uint32_t tx, uint32_t credited);
+    void (*took)(struct canergy_auth *a, const struct canergy_msg *m, uint32_t fv);
+};
+
+/* The MAC, then (but for TELEMETRY) the FV the receiver expects; the verified classic frame.
+ * With sup, a supervisor's judgement instead (sup_stale, sup_took). */
 static int verdict(struct canergy_auth *a, const struct canergy_msg *m, uint32_t id,
                    const uint8_t *body, size_t len, uint32_t fv, const uint8_t *tag,
                    size_t tag_len, uint32_t last_tx, uint32_t return_seq,
-                   struct canergy_frame *verified)
+                   const struct sup_counters *sup, struct canergy_frame *verified)
 {
     uint8_t expected[CANERGY_CMAC_SIZE];
     mac(a, m, fv, body, len, expected);
     const bool good = canergy_mac_equal(expected, tag, tag_len);
     canergy_wipe(expected, sizeof expected);
-    const bool joining =
-        m->type == CANERGY_TELEMETRY && (m->flags & CANERGY_TELEMETRY_JOINING) != 0U;
+    const bool joining = is_joining(m);
+    uint32_t bound = a->join_fv;
+    const bool has_join = sup != NULL ? sup_join(a, &bound) : a->join_fv != 0U;
     if (joining && (good || a->layout == CANERGY_AUTH_CLASSIC) &&
-        !(good && a->join_fv != 0U && a->join_fv == fv)) {
+        !(good && has_join && bound == fv)) {
         /* bound to a JOIN not seen (or a classic MAC extended next to another): moves nothing,
          * proves nothing, as in Python */
         return CANERGY_AUTH_PENDING;
@@ -196,16 +279,21 @@ static int verdict(struct canergy_auth *a, const struct canergy_msg *m, uint32_t
     bool stale;
     if (joining) {
         stale = false; /* its JOIN's, checked above */
+    } else if (sup != NULL) {
+        stale = sup->stale(a, m, fv, sup->tx, sup->credited);
     } else if (m->type == CANERGY_ADMIT) {
         stale = (fv & 0xFFFFU) != m->nonce; /* any high half: the counters the node starts from */
     } else {
         stale = m->type != CANERGY_TELEMETRY && fv_of(a, m, last_tx, return_seq) != fv;
     }
     if (stale) {
-        return CANERGY_AUTH_STALE; /* TELEMETRY's window is the supervisor's to judge */
+        return CANERGY_AUTH_STALE; /* without sup, TELEMETRY's window is the supervisor's */
     }
     if (m->type == CANERGY_ADMIT) {
         a->admit_fv = fv;
+    }
+    if (sup != NULL && !joining) {
+        sup->took(a, m, fv);
     }
     memset(verified, 0, sizeof *verified);
     verified->id = id;
@@ -216,7 +304,8 @@ static int verdict(struct canergy_auth *a, const struct canergy_msg *m, uint32_t
 
 /* Classic: a MAC frame of the direction this side receives completes the waiting message. */
 static int mac_frame(struct canergy_auth *a, const struct canergy_rx_frame *f, uint32_t last_tx,
-                     uint32_t return_seq, struct canergy_frame *verified)
+                     uint32_t return_seq, const struct sup_counters *sup,
+                     struct canergy_frame *verified)
 {
     if ((f->id & 0xFFU) != a->node) {
         return CANERGY_RX_OTHER_NODE;
@@ -234,11 +323,15 @@ static int mac_frame(struct canergy_auth *a, const struct canergy_rx_frame *f, u
     struct canergy_msg m;
     (void)canergy_decode(a->id_base, &rx, CANERGY_EITHER_WAY, &m); /* it decoded when it came */
     const uint32_t half = (uint32_t)f->data[1] << 8 | f->data[2];
+    uint32_t near = fv_of(a, &m, last_tx, return_seq); /* a TELEMETRY's low half extends */
+    if (sup != NULL && !(is_joining(&m) && sup_join(a, &near))) {
+        near = sup->tx; /* next to the JOIN taken last, or the session's tx */
+    }
     const uint32_t fv = m.type == CANERGY_TELEMETRY
-                            ? extend16(half, fv_of(a, &m, last_tx, return_seq))
+                            ? extend16(half, near)
                             : half << 16 | (canergy_auth_freshness(&m, 0U, 0U) & 0xFFFFUL);
     return verdict(a, &m, a->pending_id, a->pending_data, waiting, fv, &f->data[3],
-                   CANERGY_AUTH_CLASSIC_MAC, last_tx, return_seq, verified);
+                   CANERGY_AUTH_CLASSIC_MAC, last_tx, return_seq, sup, verified);
 }
 
 /* Classic: a data frame waits (replacing any other) until its MAC frame comes. */
@@ -272,7 +365,8 @@ static bool all_zero(const uint8_t *p, size_t n)
 
 /* FD: data || zero padding || FV || MAC in one frame of exactly the type's length. */
 static int fd_frame(struct canergy_auth *a, const struct canergy_rx_frame *f,
-                    uint32_t last_tx, uint32_t return_seq, struct canergy_frame *verified)
+                    uint32_t last_tx, uint32_t return_seq, const struct sup_counters *sup,
+                    struct canergy_frame *verified)
 {
     const enum canergy_direction dir = (enum canergy_direction)a->receives;
     const size_t length = canergy_data_length(f->id >> 8 & 0xFU);
@@ -296,11 +390,12 @@ static int fd_frame(struct canergy_auth *a, const struct canergy_rx_frame *f,
     }
     const uint8_t *trailer = &f->data[f->len - CANERGY_AUTH_TRAILER];
     return verdict(a, &m, f->id, f->data, length, get_be32(trailer), &trailer[4],
-                   CANERGY_AUTH_FD_MAC, last_tx, return_seq, verified);
+                   CANERGY_AUTH_FD_MAC, last_tx, return_seq, sup, verified);
 }
 
-int canergy_auth_accept(struct canergy_auth *a, const struct canergy_rx_frame *frame,
-                        uint32_t last_tx, uint32_t return_seq, struct canergy_frame *verified)
+static int accept(struct canergy_auth *a, const struct canergy_rx_frame *frame,
+                  uint32_t last_tx, uint32_t return_seq, const struct sup_counters *sup,
+                  struct canergy_frame *verified)
 {
     if (a == NULL || frame == NULL || verified == NULL || !frame->extended ||
         (frame->id & CANERGY_ID_MASK) != a->id_base) {
@@ -313,7 +408,7 @@ int canergy_auth_accept(struct canergy_auth *a, const struct canergy_rx_frame *f
         return CANERGY_DECODE_WRONG_DLC;
     }
     if (a->layout == CANERGY_AUTH_FD) {
-        return fd_frame(a, frame, last_tx, return_seq, verified);
+        return fd_frame(a, frame, last_tx, return_seq, sup, verified);
     }
     const uint32_t kind = frame->id >> 8 & 0xFU;
     if (kind == CANERGY_AUTH_MAC_TO_CLIENT || kind == CANERGY_AUTH_MAC_TO_SUPERVISOR) {
@@ -322,9 +417,15 @@ int canergy_auth_accept(struct canergy_auth *a, const struct canergy_rx_frame *f
         if (kind != mine) {
             return CANERGY_DECODE_WRONG_DIRECTION;
         }
-        return mac_frame(a, frame, last_tx, return_seq, verified);
+        return mac_frame(a, frame, last_tx, return_seq, sup, verified);
     }
     return data_frame(a, frame);
+}
+
+int canergy_auth_accept(struct canergy_auth *a, const struct canergy_rx_frame *frame,
+                        uint32_t last_tx, uint32_t return_seq, struct canergy_frame *verified)
+{
+    return accept(a, frame, last_tx, return_seq, NULL, verified);
 }
 
 /* Refused as the node's own direction (MAC frames 0x8 too) with its id: sent in its name. */
@@ -411,4 +512,56 @@ int canergy_auth_node_protect(const struct canergy_auth *a, const struct canergy
         return CANERGY_ERR_ARGUMENT;
     }
     return canergy_auth_protect(a, plain, n->client.rec.last_tx, n->client.rec.return_seq, out);
+}
+
+/* The session index of node in gw->down (gw->down.count: none). */
+static unsigned down_index(const struct canergy_gateway *gw, uint32_t node)
+{
+    unsigned i = 0U;
+    while (i < gw->down.count && gw->down.sessions[i].node != node) {
+        i++;
+    }
+    return i;
+}
+
+int canergy_auth_gateway_down_frame(struct canergy_auth *keys, const struct canergy_gateway *gw,
+                                    const struct canergy_rx_frame *frame,
+                                    struct canergy_frame *verified)
+{
+    if (keys == NULL || gw == NULL || frame == NULL || verified == NULL || gw->down.count == 0U) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    const unsigned i = down_index(gw, frame->id & 0xFFU);
+    if (i == gw->down.count) { /* the codec's refusal, else another node's (no key of ours) */
+        const int status = accept(&keys[0], frame, 0U, 0U, NULL, verified);
+        return status == CANERGY_DECODE_OK ? CANERGY_RX_OTHER_NODE : status;
+    }
+    const struct canergy_session *s = &gw->down.sessions[i];
+    const struct sup_counters sup = {s->tx, s->returns_credited, sup_stale, sup_took};
+    return accept(&keys[i], frame, s->tx, s->returns_credited, &sup, verified);
+}
+
+int canergy_auth_gateway_down_protect(const struct canergy_auth *keys,
+                                      const struct canergy_gateway *gw,
+                                      const struct canergy_frame *plain,
+                                      struct canergy_auth_frame out[2])
+{
+    if (keys == NULL || gw == NULL || plain == NULL) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    const unsigned i = down_index(gw, plain->id & 0xFFU);
+    if (i == gw->down.count) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    const struct canergy_session *s = &gw->down.sessions[i];
+    return canergy_auth_protect(&keys[i], plain, s->tx, s->returns_credited, out);
+}
+
+void canergy_auth_node_key(const uint8_t master[CANERGY_KDF_KEY_SIZE], uint8_t node,
+                           uint32_t epoch, uint8_t key[CANERGY_KDF_KEY_SIZE])
+{
+    static const uint8_t label[] = "canergy node key";
+    const uint8_t context[5] = {node, (uint8_t)(epoch >> 24), (uint8_t)(epoch >> 16),
+                                (uint8_t)(epoch >> 8), (uint8_t)epoch};
+    canergy_kdf_cmac_ctr(master, label, sizeof label - 1U, context, sizeof context, key);
 }

@@ -230,10 +230,10 @@ bool canergy_witness_beyond_books(const struct canergy_session *s, const struct 
            (uint64_t)m->amount_mj * CANERGY_QUANTUM_UJ > holdable;
 }
 
-enum canergy_witness_route canergy_witness_route(struct canergy_witness *w,
-                                                 const struct canergy_session *s,
-                                                 const struct canergy_msg *m, uint8_t rules,
-                                                 uint64_t now, uint32_t *intrusions)
+static enum canergy_witness_route route(struct canergy_witness *w,
+                                        const struct canergy_session *s,
+                                        const struct canergy_msg *m, uint8_t rules, uint64_t now,
+                                        uint32_t *intrusions, bool hold)
 {
     const uint32_t credited = s->returns_credited;
     if (m->type == CANERGY_TELEMETRY) {
@@ -247,6 +247,9 @@ enum canergy_witness_route canergy_witness_route(struct canergy_witness *w,
         (*intrusions)++;
         return CANERGY_WITNESS_DROPPED;
     }
+    if (m->type == CANERGY_RETURN && !hold) {
+        return CANERGY_WITNESS_TO_RULES; /* it carries a MAC: credited at once */
+    }
     if (m->type == CANERGY_RETURN) {
         const enum canergy_witness_verdict v = canergy_witness_hold(w, m, credited, now);
         *intrusions += v == CANERGY_WITNESS_CONTRADICTED ? 1U : 0U;
@@ -258,8 +261,25 @@ enum canergy_witness_route canergy_witness_route(struct canergy_witness *w,
                         (m->flags & (CANERGY_DEBIT_SYNC | CANERGY_DEBIT_BOOKS)) == 0U;
     const bool counts = (m->flags & CANERGY_DEBIT_COUNTS) == CANERGY_DEBIT_COUNTS;
     if (rules_witnessed(rules) && m->type == CANERGY_DEBIT && (resume || counts) &&
-        canergy_witness_hold_resume(w, m, credited, now, resume)) {
+        canergy_witness_hold_resume(w, m, credited, now, hold && resume)) {
         return CANERGY_WITNESS_TAKEN;
     }
     return CANERGY_WITNESS_TO_RULES;
+}
+
+enum canergy_witness_route canergy_witness_route(struct canergy_witness *w,
+                                                 const struct canergy_session *s,
+                                                 const struct canergy_msg *m, uint8_t rules,
+                                                 uint64_t now, uint32_t *intrusions)
+{
+    return route(w, s, m, rules, now, intrusions, true);
+}
+
+enum canergy_witness_route canergy_witness_route_keyed(struct canergy_witness *w,
+                                                       const struct canergy_session *s,
+                                                       const struct canergy_msg *m,
+                                                       uint8_t rules, uint64_t now,
+                                                       uint32_t *intrusions)
+{
+    return route(w, s, m, rules, now, intrusions, false);
 }

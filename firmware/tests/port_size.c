@@ -50,6 +50,22 @@ void port_entry(void)
     sink += canergy_supervisor_image(&gw.down, counter + 1U, sup_nv);
     sink += canergy_client_deadline(&gw.up) + canergy_supervisor_deadline(&gw.down);
     sink += (uint64_t)canergy_gateway_link_gap(&gw) + out.frames[0].data[0];
+#ifdef PORT_AUTH /* authenticated on both legs: a node key above, a master key below */
+    static struct canergy_auth up_auth, down_auth[1];
+    static uint8_t key[16]; /* in RAM: only the library's flash is counted */
+    struct canergy_auth_frame frames[2];
+    struct canergy_frame verified;
+    canergy_auth_node_key(key, 1U, 1U, key);
+    sink += (uint64_t)canergy_auth_init(&up_auth, key, CANERGY_DEFAULT_ID_BASE, 7U,
+                                        CANERGY_AUTH_CLASSIC, CANERGY_TO_CLIENT);
+    sink += (uint64_t)canergy_auth_init(&down_auth[0], key, CANERGY_DEFAULT_ID_BASE, 1U,
+                                        CANERGY_AUTH_CLASSIC, CANERGY_TO_SUPERVISOR);
+    sink += (uint64_t)canergy_auth_gateway_up_frame(&up_auth, &gw, &rx, 8U, &out);
+    sink += (uint64_t)canergy_auth_gateway_up_protect(&up_auth, &gw, &out.frames[0], frames);
+    sink += (uint64_t)canergy_auth_gateway_down_frame(down_auth, &gw, &rx, &verified);
+    sink += (uint64_t)canergy_auth_gateway_down_protect(down_auth, &gw, &down.frames[0], frames);
+    sink += frames[0].data[0] + verified.data[0];
+#endif
     (void)sink;
 }
 #elif defined(PORT_SUPERVISOR)

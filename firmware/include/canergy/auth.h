@@ -69,19 +69,28 @@ struct canergy_auth_frame {
 };
 
 /* One node's key and, in the classic layout, the data frame waiting for its MAC frame
- * (232 bytes on Cortex-M4; key material: canergy_auth_wipe when done). */
+ * (248 bytes on Cortex-M4; key material: canergy_auth_wipe when done). */
 struct canergy_auth {
     struct canergy_cmac key;
     uint32_t id_base;
     uint32_t pending_id;
     uint32_t join_fv;     /* FV of this node's JOIN (0: the nonce alone); see set_join */
     uint32_t admit_fv;    /* FV of the ADMIT just verified: its high half is the counters' */
+    uint32_t resume_fv;   /* a supervisor's: FV of the node's RESUME (kept: _KEPT_RESUME) */
+    uint32_t floor;       /* a supervisor's: the oldest TELEMETRY FV still fresh (_KEPT_FLOOR) */
     uint8_t pending_data[8];
     uint8_t pending_len;  /* 0: nothing waits */
     uint8_t node;
     uint8_t layout;       /* enum canergy_auth_layout */
     uint8_t receives;     /* enum canergy_direction: CANERGY_TO_CLIENT on a node */
+    uint8_t kept;         /* a supervisor's: CANERGY_AUTH_KEPT_* of what it holds */
 };
+
+/* What a supervisor's side keeps of a node (struct canergy_auth's kept), as Python's FrameAuth
+ * keeps join_fv, resume_fv and telemetry_floor per node. */
+#define CANERGY_AUTH_KEPT_JOIN 0x01U
+#define CANERGY_AUTH_KEPT_RESUME 0x02U
+#define CANERGY_AUTH_KEPT_FLOOR 0x04U
 
 /* CANERGY_ERR_ARGUMENT for a bad id base, node, layout or a direction that is not one way. */
 int canergy_auth_init(struct canergy_auth *a, const uint8_t key[CANERGY_KDF_KEY_SIZE],
@@ -137,6 +146,42 @@ int canergy_auth_gateway_up_protect(const struct canergy_auth *a,
                                     const struct canergy_gateway *gw,
                                     const struct canergy_frame *plain,
                                     struct canergy_auth_frame out[2]);
+
+/* A gateway's bus below in authenticated mode (canergy gateway --auth): the supervisor's side
+ * of Python's FrameAuth (receiving CANERGY_TO_SUPERVISOR), with the freshness judgement of
+ * canergy supervisor --auth, for the session of the frame's node in gw->down. keys: one per
+ * session, in the sessions' order, each initialised with that node's key (derived from the
+ * master key: canergy_auth_node_key) receiving CANERGY_TO_SUPERVISOR.
+ *   JOIN, RESUME (a DEBIT with START): any FV whose low half is the nonce, kept for the ADMIT
+ *     that answers it (its MAC binds it); a SYNC's books: the nonce alone;
+ *   TELEMETRY without books (JOINING): taken only bound to the JOIN taken last, any other moves
+ *     nothing and proves nothing (CANERGY_AUTH_PENDING, not a refusal);
+ *   TELEMETRY: fresh from the last transaction the node is known to have resolved (its
+ *     TELEMETRY, COMMITTED or ABORTED taken, its ACK of the next; until one is known, the
+ *     session's tx - 1) up to the session's tx;
+ *   every other frame: the FV the session's counters give (canergy_auth_freshness) and not
+ *     before its counter (tx, or returns_credited for RETURN and DEBIT).
+ * CANERGY_DECODE_OK: *verified is the verified classic frame, for canergy_decode and the rules.
+ * Otherwise canergy_auth_accept's statuses: a refusal (CANERGY_AUTH_MAC_BAD ..
+ * _UNAUTHENTICATED, the frame's node is id & 0xFF), CANERGY_AUTH_PENDING, a decode status, or
+ * CANERGY_RX_OTHER_NODE for a node gw->down does not manage. A refused frame changes nothing
+ * but the classic layout's waiting slot. */
+int canergy_auth_gateway_down_frame(struct canergy_auth *keys, const struct canergy_gateway *gw,
+                                    const struct canergy_rx_frame *frame,
+                                    struct canergy_frame *verified);
+
+/* The frames that carry plain, a frame gw->down sends (struct canergy_supervisor_out), under
+ * its node's key with its session's counters: an ADMIT binds the FV of the JOIN or RESUME it
+ * answers. As canergy_auth_protect; CANERGY_ERR_ARGUMENT for a node not managed. */
+int canergy_auth_gateway_down_protect(const struct canergy_auth *keys,
+                                      const struct canergy_gateway *gw,
+                                      const struct canergy_frame *plain,
+                                      struct canergy_auth_frame out[2]);
+
+/* A node's key from the master key (src/canergy/auth/keys.py's derive_node_key): the KDF of
+ * canergy/cmac.h with label "canergy node key" and context node || epoch (4 bytes, BE). */
+void canergy_auth_node_key(const uint8_t master[CANERGY_KDF_KEY_SIZE], uint8_t node,
+                           uint32_t epoch, uint8_t key[CANERGY_KDF_KEY_SIZE]);
 
 #ifdef __cplusplus
 }

@@ -155,6 +155,15 @@ enum canergy_witness_route canergy_witness_route(struct canergy_witness *w,
                                                  const struct canergy_msg *m, uint8_t rules,
                                                  uint64_t now, uint32_t *intrusions);
 
+/* canergy_witness_route in authenticated mode (`canergy gateway --auth`: a RETURN and a RESUME
+ * carry a MAC): nothing is held; a RETURN or DEBIT beyond the books is still dropped, with
+ * evidence, and a TELEMETRY, a RESUME and a SYNC's counts are still noted. */
+enum canergy_witness_route canergy_witness_route_keyed(struct canergy_witness *w,
+                                                       const struct canergy_session *s,
+                                                       const struct canergy_msg *m,
+                                                       uint8_t rules, uint64_t now,
+                                                       uint32_t *intrusions);
+
 #ifdef __cplusplus
 }
 #endif

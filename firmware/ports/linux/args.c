@@ -382,7 +382,7 @@ static void gateway_usage(void)
                  "       [--upstream-response-timeout T] [--retries N] [--status-period T]\n"
                  "       [--stop-timeout T] [--return-hold T] [--id-base ID]\n"
                  "       [--rules hardened|witnessed] [--upstream-rules hardened|witnessed]\n"
-                 "       [--upstream-auth NODE.key [--upstream-fd]]\n"
+                 "       [--upstream-auth NODE.key [--upstream-fd]] [--auth MASTER.key [--fd]]\n"
                  "A canergy gateway on Linux SocketCAN (the C library's gateway rules): node\n"
                  "--node above (--upstream-channel), supervisor of --nodes below (-c); flags\n"
                  "as canergy gateway's. Energies 0.5J, 250mJ; durations 50ms, 1.5s.\n"
@@ -393,7 +393,10 @@ static void gateway_usage(void)
                  "until it confirms this gateway's record (an older copy creates nothing).\n"
                  "--upstream-auth: authenticated mode above with this gateway's node key\n"
                  "file (canergy keys --master ROOT.key --nodes N; mode 0600); --upstream-fd:\n"
-                 "CAN FD frames with a 64-bit MAC, otherwise each frame and a MAC frame.\n",
+                 "CAN FD frames with a 64-bit MAC, otherwise each frame and a MAC frame.\n"
+                 "--auth: authenticated mode below with the gateway's own master key file\n"
+                 "(canergy keys -o GATEWAY.key; mode 0600): its nodes' keys are derived from\n"
+                 "it (canergy keys --master GATEWAY.key --nodes 1-5); --fd: the FD layout.\n",
                  PROG);
     exit(0);
 }
@@ -421,6 +424,10 @@ void port_parse_gateway_args(int argc, char **argv, struct gw_options *o)
             o->up_fd = 1;
             continue;
         }
+        if (strcmp(flag, "--fd") == 0) {
+            o->fd = 1;
+            continue;
+        }
         if (i + 1 >= argc) {
             port_usage_error("argument %s: expected one argument", flag);
         }
@@ -429,6 +436,8 @@ void port_parse_gateway_args(int argc, char **argv, struct gw_options *o)
             o->node = (uint8_t)port_parse_int(flag, v, CANERGY_MIN_NODE, CANERGY_MAX_NODE);
         } else if (strcmp(flag, "--upstream-auth") == 0) {
             o->up_auth_path = v;
+        } else if (strcmp(flag, "--auth") == 0) {
+            o->auth_path = v;
         } else if (strcmp(flag, "--nodes") == 0) {
             parse_nodes(v, o);
         } else if (strcmp(flag, "-i") == 0 || strcmp(flag, "--interface") == 0 ||
@@ -494,5 +503,8 @@ void port_parse_gateway_args(int argc, char **argv, struct gw_options *o)
     }
     if (o->up_fd && o->up_auth_path == NULL) {
         port_usage_error("argument --upstream-fd: only with --upstream-auth (the MAC layout)");
+    }
+    if (o->fd && o->auth_path == NULL) {
+        port_usage_error("argument --fd: only with --auth (the MAC layout)");
     }
 }

@@ -9,7 +9,7 @@
  *                   [--return-above E] [--telemetry-period T] [--response-timeout T]
  *                   [--upstream-response-timeout T] [--retries N] [--status-period T]
  *                   [--stop-timeout T] [--return-hold T] [--id-base ID]
- *                   [--upstream-auth NODE.key [--upstream-fd]]
+ *                   [--upstream-auth NODE.key [--upstream-fd]] [--auth MASTER.key [--fd]]
  *
  * One record for both roles (the client's above, the supervisor's below) in two slots of the NV
  * file, written in turn with fsync before any frame of the step leaves: a kill -9 at any instant
@@ -25,7 +25,8 @@
  * Above it reports its downstream Us as its level. Its status file is the Python gateway's
  * (role "gateway", the supervisor's keys, "upstream" with the client's record, "link_gap_uj"):
  * `canergy ledger` reads it. --upstream-auth NODE.key [--upstream-fd]: authenticated above, as
- * canergy-node --auth (canergy/auth.h); below without a key. No limits besides --target.
+ * canergy-node --auth (canergy/auth.h); --auth MASTER.key [--fd]: below, as canergy supervisor
+ * --auth (no RETURN held then: each carries a MAC). No limits besides --target.
  *
  * Exit status: 0 after SIGINT/SIGTERM, 1 when the NV file cannot be written, 2 for bad
  * arguments or a socket or file that cannot be opened.
@@ -199,14 +200,18 @@ int main(int argc, char **argv)
     port_parse_gateway_args(argc, argv, &g.opt);
     const struct port_file files[] = {{"--nv", g.opt.nv_path},
                                       {"--status-file", g.opt.status_path},
-                                      {"--upstream-auth", g.opt.up_auth_path}};
+                                      {"--upstream-auth", g.opt.up_auth_path},
+                                      {"--auth", g.opt.auth_path}};
     port_check_distinct(files, sizeof files / sizeof files[0]);
     if (g.opt.up_auth_path != NULL) {
         up_key(&g);
     }
+    if (g.opt.auth_path != NULL) {
+        gw_down_keys(&g);
+    }
     gw_check_nv(&g.opt);
     g.up_sock = open_bus(g.opt.up_channel, g.opt.id_base, g.opt.node, g.opt.up_fd); /* its id */
-    g.down_sock = open_bus(g.opt.down_channel, g.opt.id_base, 1U, 0);
+    g.down_sock = open_bus(g.opt.down_channel, g.opt.id_base, 1U, g.opt.fd);
     port_can_filter(g.down_sock, g.opt.id_base, CANERGY_ID_MASK); /* every node below */
     struct sigaction sa;
     memset(&sa, 0, sizeof sa);
@@ -273,6 +278,9 @@ int main(int argc, char **argv)
     }
     gw_save_status(&g, port_now_us());
     canergy_auth_wipe(&g.up_auth);
+    for (unsigned i = 0U; i < g.opt.count; i++) {
+        canergy_auth_wipe(&g.down_auth[i]);
+    }
     (void)close(g.nv_fd);
     return 0;
 }

@@ -1,14 +1,62 @@
 /*
  * canergy-gateway's bus below (gateway_port.h): what its nodes send, through the library's
  * witness (canergy/witness.h) to the supervisor's rules, what the rules ask carried out, and
- * the top-ups (canergy_gateway_top_up).
+ * the top-ups (canergy_gateway_top_up). With --auth every frame below is verified and signed
+ * under its node's key (canergy_auth_gateway_down_frame and _down_protect, canergy/auth.h).
  */
 #define _GNU_SOURCE 1
 
+#include "args.h"
 #include "gateway_port.h"
+#include "keyfile.h"
 #include "socketcan.h"
 
 #include <string.h>
+
+void gw_down_keys(struct gateway_port *g)
+{
+    uint8_t master[CANERGY_KDF_KEY_SIZE], key[CANERGY_KDF_KEY_SIZE];
+    uint32_t epoch = 0U;
+    port_load_master_key("--auth", g->opt.auth_path, master, &epoch);
+    if (g->opt.up_auth_path != NULL) { /* the key above derived from it: the root's master */
+        static const uint8_t probe[1] = {0U};
+        struct canergy_cmac derived;
+        uint8_t a[CANERGY_CMAC_SIZE], b[CANERGY_CMAC_SIZE];
+        canergy_auth_node_key(master, g->opt.node, epoch, key);
+        canergy_cmac_init(&derived, key);
+        canergy_cmac(&derived, probe, sizeof probe, a);
+        canergy_cmac(&g->up_auth.key, probe, sizeof probe, b);
+        canergy_cmac_wipe(&derived);
+        if (canergy_mac_equal(a, b, sizeof a)) {
+            port_usage_error("--auth %s: the master key --upstream-auth %s was derived from "
+                             "(the supervisor above's): give the gateway a master key of its "
+                             "own (canergy keys -o GATEWAY.key)",
+                             g->opt.auth_path, g->opt.up_auth_path);
+        }
+    }
+    for (unsigned i = 0U; i < g->opt.count; i++) {
+        canergy_auth_node_key(master, g->opt.nodes[i], epoch, key);
+        (void)canergy_auth_init(&g->down_auth[i], key, g->opt.id_base, g->opt.nodes[i],
+                                g->opt.fd ? CANERGY_AUTH_FD : CANERGY_AUTH_CLASSIC,
+                                CANERGY_TO_SUPERVISOR);
+    }
+    canergy_wipe(key, sizeof key);
+    canergy_wipe(master, sizeof master);
+}
+
+/* One frame below (with --auth: its MAC frame too, or in the FD layout). */
+static void send_down(struct gateway_port *g, const struct canergy_frame *f)
+{
+    if (g->opt.auth_path == NULL) {
+        port_can_send(g->down_sock, &g->down_count, f->id, f->data, f->dlc);
+        return;
+    }
+    struct canergy_auth_frame frames[2];
+    const int n = canergy_auth_gateway_down_protect(g->down_auth, &g->gw, f, frames);
+    for (int k = 0; k < n; k++) {
+        port_can_send(g->down_sock, &g->down_count, frames[k].id, frames[k].data, frames[k].len);
+    }
+}
 
 static struct below *below_of(struct gateway_port *g, uint8_t node)
 {
@@ -27,8 +75,7 @@ void gw_down_out(struct gateway_port *g, const struct canergy_supervisor_out *ou
         gw_save(g);
     }
     for (unsigned i = 0U; i < out->frame_count; i++) {
-        port_can_send(g->down_sock, &g->down_count, out->frames[i].id, out->frames[i].data,
-                      out->frames[i].dlc);
+        send_down(g, &out->frames[i]);
     }
     /* an acknowledged intention is committed (aborted when stopping) at once; an ended
      * transaction makes the node's level stale until it reports again */
@@ -106,8 +153,13 @@ static void from_below(struct gateway_port *g, unsigned i, const struct canergy_
         b->joining = (m->flags & CANERGY_TELEMETRY_JOINING) != 0U;
         b->fresh = 1;
     }
-    if (canergy_witness_route(&b->witness, &g->gw.down.sessions[i], m, g->opt.rules, now,
-                              &b->intrusions) == CANERGY_WITNESS_TO_RULES) {
+    const enum canergy_witness_route r =
+        g->opt.auth_path != NULL /* a RETURN carries a MAC: credited at once */
+            ? canergy_witness_route_keyed(&b->witness, &g->gw.down.sessions[i], m, g->opt.rules,
+                                          now, &b->intrusions)
+            : canergy_witness_route(&b->witness, &g->gw.down.sessions[i], m, g->opt.rules, now,
+                                    &b->intrusions);
+    if (r == CANERGY_WITNESS_TO_RULES) {
         to_rules(g, m, now);
     } else {
         release(g, i, now); /* what it held may be due now */
@@ -120,7 +172,28 @@ void gw_receive_down(struct gateway_port *g, uint64_t now)
     struct canergy_rx_frame rx;
     while (port_can_receive(g->down_sock, &g->down_count, &cf, &rx) == 1) {
         struct canergy_msg m;
-        const int status = (int)canergy_decode(g->opt.id_base, &rx, CANERGY_TO_SUPERVISOR, &m);
+        struct canergy_frame plain;
+        int status = g->opt.auth_path != NULL
+                         ? canergy_auth_gateway_down_frame(g->down_auth, &g->gw, &rx, &plain)
+                         : CANERGY_DECODE_OK;
+        struct below *by = below_of(g, (uint8_t)(rx.id & 0xFFU));
+        if (status >= CANERGY_AUTH_MAC_BAD && status <= CANERGY_AUTH_UNAUTHENTICATED) {
+            if (by != NULL) { /* a managed node's (the only ones refused): nothing moves */
+                by->refused[status - CANERGY_AUTH_MAC_BAD]++;
+            }
+            continue;
+        }
+        if (status == CANERGY_AUTH_PENDING) {
+            continue; /* a classic message waits for its MAC frame, or proves nothing */
+        }
+        if (status == CANERGY_DECODE_OK && g->opt.auth_path != NULL) {
+            rx.id = plain.id; /* the verified classic frame */
+            rx.data = plain.data;
+            rx.len = plain.dlc;
+        }
+        if (status == CANERGY_DECODE_OK) {
+            status = (int)canergy_decode(g->opt.id_base, &rx, CANERGY_TO_SUPERVISOR, &m);
+        }
         gw_count_decode(&g->down_count, status);
         const struct below *b = status == CANERGY_DECODE_OK ? below_of(g, m.node) : NULL;
         if (b != NULL) {
@@ -142,7 +215,8 @@ void gw_top_up(struct gateway_port *g, uint64_t now)
         struct below *b = &g->below[i];
         const struct canergy_session *s = &g->gw.down.sessions[i];
         if (s->phase != CANERGY_S_IDLE || !b->heard || !b->fresh || b->joining ||
-            canergy_witness_blocked(&b->witness, now, WITNESS_BLOCK_US)) {
+            (g->opt.auth_path == NULL && /* with a key, no reason: anyone can make it count */
+             canergy_witness_blocked(&b->witness, now, WITNESS_BLOCK_US))) {
             continue;
         }
         const uint32_t amount = canergy_gateway_top_up(g->opt.target_uj, g->opt.min_grant_uj,

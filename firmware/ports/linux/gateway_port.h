@@ -18,6 +18,7 @@
 
 #define MJ 1000U
 #define WITNESS_BLOCK_US (10U * US_PER_S) /* no top-ups after evidence, as `canergy gateway` */
+#define AUTH_REASONS (CANERGY_AUTH_UNAUTHENTICATED - CANERGY_AUTH_MAC_BAD + 1)
 
 struct gw_options {
     const char *down_channel;
@@ -25,6 +26,7 @@ struct gw_options {
     const char *nv_path;
     const char *status_path;
     const char *up_auth_path; /* --upstream-auth: this gateway's node key above */
+    const char *auth_path;    /* --auth: its own master key, its nodes' keys below */
     uint64_t target_uj;
     uint64_t min_grant_uj;
     uint64_t return_above_uj;
@@ -45,6 +47,7 @@ struct gw_options {
     int keep_all;
     int has_target;
     int up_fd; /* --upstream-fd: the FD layout above */
+    int fd;    /* --fd: the FD layout below */
 };
 
 struct below {
@@ -57,6 +60,7 @@ struct below {
     uint64_t written_off;
     uint64_t admitted;
     uint32_t intrusions; /* evidence against its reports (canergy_witness_route) */
+    uint32_t refused[AUTH_REASONS]; /* --auth: refused, by reason (CANERGY_AUTH_MAC_BAD + i) */
     int fresh;   /* a level reported since the node's last transaction ended */
     int joining; /* its last TELEMETRY said JOINING */
     int heard;
@@ -66,6 +70,7 @@ struct gateway_port {
     struct gw_options opt;
     struct canergy_gateway gw;
     struct canergy_auth up_auth; /* --upstream-auth: the leg above's MACs */
+    struct canergy_auth down_auth[CANERGY_SUPERVISOR_NODES]; /* --auth: each node's, below */
     struct below below[CANERGY_SUPERVISOR_NODES];
     struct port_counters up_count;
     struct port_counters down_count;
@@ -91,6 +96,10 @@ struct gateway_port {
 /* canergy_gateway.c: one frame above (with its MAC frame or in the FD layout with
  * --upstream-auth). */
 void gw_send_up(struct gateway_port *g, const struct canergy_frame *f);
+
+/* gateway_below.c: --auth's keys below, one per node derived from the master key (exits 2 for
+ * a key file refused, or the master key the key above was derived from). */
+void gw_down_keys(struct gateway_port *g);
 
 /* gateway_below.c: carry out a step of the supervisor below (both records saved first, then
  * its frames; an acknowledged intention decided at once); the nodes' frames; the held RETURNs

@@ -260,6 +260,56 @@ static void write_counters(FILE *f, const char *name, const struct port_counters
                   (unsigned long long)c->error_frames);
 }
 
+static const char *const refusal_names[AUTH_REASONS] = {
+    "MAC BAD", "freshness not the expected one", "MAC frame without its message",
+    "malformed authenticated frame", "frame without a MAC"}; /* Python's AuthFailure */
+
+static uint32_t refused_of(const struct below *b)
+{
+    uint32_t n = 0U;
+    for (unsigned k = 0U; k < AUTH_REASONS; k++) {
+        n += b->refused[k];
+    }
+    return n;
+}
+
+/* --auth: frames refused below, as canergy supervisor's status shows them: "auth" (the layout),
+ * "auth_failures" (by reason), "refused" (a total, by node and reason). */
+static void write_refused(const struct gateway_port *g, FILE *f)
+{
+    uint32_t total = 0U;
+    (void)fprintf(f, "\"auth\": %s, \"auth_failures\": {",
+                  g->opt.auth_path == NULL ? "null" : g->opt.fd ? "\"fd\"" : "\"classic\"");
+    for (unsigned k = 0U, n = 0U; k < AUTH_REASONS; k++) {
+        uint32_t count = 0U;
+        for (unsigned i = 0U; i < g->opt.count; i++) {
+            count += g->below[i].refused[k];
+        }
+        total += count;
+        if (count != 0U) {
+            (void)fprintf(f, "%s\"%s\": %lu", n++ == 0U ? "" : ", ", refusal_names[k],
+                          (unsigned long)count);
+        }
+    }
+    (void)fprintf(f, "}, \"refused\": {\"total\": %lu, \"by_node\": {", (unsigned long)total);
+    for (unsigned i = 0U, n = 0U; i < g->opt.count; i++) {
+        const struct below *b = &g->below[i];
+        if (refused_of(b) == 0U) {
+            continue;
+        }
+        (void)fprintf(f, "%s\"%u\": {\"total\": %lu, \"reasons\": {", n++ == 0U ? "" : ", ",
+                      (unsigned)g->opt.nodes[i], (unsigned long)refused_of(b));
+        for (unsigned k = 0U, r = 0U; k < AUTH_REASONS; k++) {
+            if (b->refused[k] != 0U) {
+                (void)fprintf(f, "%s\"%s\": {\"count\": %lu}", r++ == 0U ? "" : ", ",
+                              refusal_names[k], (unsigned long)b->refused[k]);
+            }
+        }
+        (void)fputs("}}", f);
+    }
+    (void)fputs("}}, ", f);
+}
+
 static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
 {
     const struct canergy_supervisor *d = &g->gw.down;
@@ -282,6 +332,7 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                   (unsigned long long)reserved, (unsigned long long)delivered,
                   (unsigned long long)returned, (long long)canergy_gateway_link_gap(&g->gw),
                   (unsigned long long)g->nv_writes);
+    write_refused(g, f);
     write_counters(f, "downstream_bus", &g->down_count);
     uint8_t waiting[CANERGY_SUPERVISOR_NODES];
     const uint8_t n = canergy_supervisor_unconfirmed(d, waiting);
@@ -308,7 +359,7 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                       "\"committed\": %llu, \"committed_uj\": %llu, \"aborted\": %llu, "
                       "\"written_off\": %llu, \"admitted\": %llu, \"returns_held\": %u, "
                       "\"returns_refuted\": %lu, \"returns_resynchronised\": %lu, "
-                      "\"intrusions\": %lu}",
+                      "\"intrusions\": %lu, \"refused\": %lu}",
                       i == 0U ? "" : ", ", (unsigned)s->node, phase_name(s->phase), open_tx,
                       (unsigned long)s->reserved_uj,
                       (unsigned long long)s->delivered_uj, (unsigned long long)s->returned_uj,
@@ -318,7 +369,7 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                       (unsigned long long)b->written_off, (unsigned long long)b->admitted,
                       (unsigned)b->witness.held_count,
                       (unsigned long)b->witness.refuted, (unsigned long)b->witness.resynced,
-                      (unsigned long)b->intrusions);
+                      (unsigned long)b->intrusions, (unsigned long)refused_of(b));
     }
     (void)fprintf(f,
                   "}, \"upstream\": {\"node\": %u, \"usable_uj\": %lu, \"spent_uj\": %llu, "

@@ -1,5 +1,6 @@
 /*
- * canergy-node's key file for --auth (ports/linux), as src/canergy/auth/keys.py reads one: a
+ * canergy-node's key file for --auth, canergy-gateway's for --upstream-auth (a node key) and
+ * --auth (a master key) (ports/linux), as src/canergy/auth/keys.py reads one: a
  * regular file of mode 0600 or stricter and at most KEY_FILE_MAX bytes, checked before it is
  * opened and again once open, opened non-blocking and read to exactly its size; then the text
  * (kind=node, node=, epoch=, key=) for this node. A refusal exits 2 with one line; no message
@@ -177,9 +178,10 @@ static size_t read_key_file(const char *path, char text[KEY_FILE_MAX + 2])
     return len;
 }
 
-/* The node's key from the key file at path (kind=node, node=for_node). */
-void port_load_key(const char *flag, const char *path, int for_node,
-                   uint8_t key[CANERGY_KDF_KEY_SIZE])
+/* The key of the key file at path: kind=node, node=for_node; for_node 0: kind=master, its epoch
+ * in *epoch. */
+static void load_key(const char *flag, const char *path, int for_node,
+                     uint8_t key[CANERGY_KDF_KEY_SIZE], uint32_t *epoch_out)
 {
     key_flag = flag;
     char text[KEY_FILE_MAX + 2];
@@ -228,17 +230,33 @@ void port_load_key(const char *flag, const char *path, int for_node,
     if (epoch > 0xFFFFFFFFULL) {
         key_error(path, "epoch must be 0 to 4294967295");
     }
-    if (!is_node) {
+    if (for_node == 0 && is_node) {
+        key_error(path, "a node key; downstream the gateway is a supervisor and needs a master "
+                        "key of its own (canergy keys -o GATEWAY.key)");
+    }
+    if (for_node == 0) {
+        *epoch_out = (uint32_t)epoch;
+    } else if (!is_node) {
         key_error(path, "a node takes its own node key, not the master key");
-    }
-    if (node < CANERGY_MIN_NODE || node > CANERGY_MAX_NODE) {
+    } else if (node < CANERGY_MIN_NODE || node > CANERGY_MAX_NODE) {
         key_error(path, "node must be %u to %u", CANERGY_MIN_NODE, CANERGY_MAX_NODE);
-    }
-    if (node != (unsigned long long)for_node) {
+    } else if (node != (unsigned long long)for_node) {
         key_error(path, "a key for node %llu cannot serve node %d", node, for_node);
     }
     for (size_t i = 0U; i < CANERGY_KDF_KEY_SIZE; i++) {
         key[i] = (uint8_t)(hex_value(k.key[2U * i]) << 4 | hex_value(k.key[2U * i + 1U]));
     }
     canergy_wipe(text, sizeof text);
+}
+
+void port_load_key(const char *flag, const char *path, int for_node,
+                   uint8_t key[CANERGY_KDF_KEY_SIZE])
+{
+    load_key(flag, path, for_node, key, NULL); /* a node id: 1 or more */
+}
+
+void port_load_master_key(const char *flag, const char *path, uint8_t key[CANERGY_KDF_KEY_SIZE],
+                          uint32_t *epoch)
+{
+    load_key(flag, path, 0, key, epoch);
 }

@@ -238,8 +238,14 @@ def test_energy_moves_end_to_end_with_a_mac_on_every_bus(
         power=PowerProfile.constant(1.0), return_above=600_000, telemetry_period_us=100_000
     )
     t: AuthTree = make_tree(up, down, leaf)
-    t.start_root()
-    t.start_gateway("--target", "1J", "--max-grant", "0.5J", "--return-above", "3.5J")
+    # nothing may be refused: a reply later than a 100 ms response timeout (a loaded host) has
+    # its command sent again and the copy's answer refused as stale, so wait 1 s on both legs
+    patient = ("--response-timeout", "1s")
+    t.start_root(*patient)
+    t.start_gateway(
+        "--target", "1J", "--max-grant", "0.5J", "--return-above", "3.5J",
+        *patient, "--upstream-response-timeout", "1s",
+    )  # fmt: skip
     granted = t.grant("root", GW, 5_000_000)
     assert granted["outcome"] == "COMMITTED", granted
     # the gateway passes what it holds above 3.5 J back up, grants to the leaf; the leaf

@@ -281,7 +281,9 @@ def _msg_on_view(clause: inv.MsgClause) -> inv.MsgClause:
 def p_debit(m: Msg, w: World) -> Term:
     """A DEBIT is one the codec takes (its flags and fields), from a life of the node; a draw,
     a RESUME or a SYNC's counts carries a debit number at most one past the supervisor's
-    count, and a RESUME's pending return numbered next was debited first (as a RETURN)."""
+    count, and a RESUME's pending return numbered next was debited first (as a RETURN). A
+    RESUME or counts of the node's current start carries the start's number, nonce and phase
+    (RESUMING, SYNCING), counts the ltx of the record that answers."""
     v, f = view(w), m.flags
     draw, resume, resume_draw = f == wit.DRAW, f == wit.START, f == wit.START | wit.DRAW
     counts, books, unknown = f == wit.COUNTS, f == wit.BOOKS, f == wit.UNKNOWN_BOOKS
@@ -301,7 +303,13 @@ def p_debit(m: Msg, w: World) -> Term:
         z3.Implies(numbered, z3.And(ule(m.k, inv.one(v.rc)), m.w == low16(m.k))),
         z3.Implies(numbered, ule(m.k, top(w))),
         z3.Implies(
-            z3.And(this_start(m, w), z3.Or(resume, resume_draw, counts)), m.k == image_seq(w)
+            z3.And(this_start(m, w), z3.Or(resume, resume_draw, counts)),
+            z3.And(m.k == image_seq(w), m.nonce == w.c.nonce),
+        ),
+        z3.Implies(z3.And(this_start(m, w), z3.Or(resume, resume_draw)), w.c.phase == sym.RESUMING),
+        z3.Implies(
+            z3.And(this_start(m, w), counts),
+            z3.And(w.c.phase == sym.SYNCING, z3.Int2BV(m.amount, 16) == low16(w.c.last_tx)),
         ),
         z3.Implies(
             z3.And(resume, m.amount > 0, m.k == inv.one(v.rc)),
@@ -375,9 +383,12 @@ MESSAGE: dict[Kind, inv.MsgClause] = {
 def deliverable(m: Msg, w: World) -> Term:
     """The hardened assumptions (an ADMIT that is a SYNC or a confirmation never matches a
     joining node's nonce: assumption 5); a DEBIT's debit number within 2**15 of the
-    supervisor's count (books carry Rc instead)."""
+    supervisor's count (books carry Rc instead), and the ltx that counts of the node's current
+    start carry within 2**15 of the supervisor's tx."""
     if m.kind is Kind.DEBIT:
-        return z3.Implies(z3.Not(wit.is_books(m.flags)), inv.near(m.k, view(w).rc))
+        age = z3.Implies(z3.Not(wit.is_books(m.flags)), inv.near(m.k, view(w).rc))
+        counts = z3.And(this_start(m, w), m.flags == wit.COUNTS)  # its ltx, as for a RESUME's q
+        return z3.And(age, z3.Implies(counts, inv.near(w.last, w.tx)))
     if m.kind is Kind.ADMIT:
         ours = z3.And(starting(w.c), m.nonce == expected(w.c))
         real = z3.And(m.start == starts(w), inv.near(m.k, w.last))
@@ -642,13 +653,19 @@ def on_debit(w: World, m: Msg) -> st.Step:
     lifted = z3.And(z3.Or(resumes, counted_), seq - s.returns_credited < 0, z3.Not(repeat))
     lift_tx, lift_seq = _lift(s)
     zero = sym.counter(0)
-    return _session(
+    taken = _session(
         w,
         step,
         start=m.start,
         shift_tx=w.shift_tx + z3.If(lifted, lift_tx, zero),
         shift_seq=w.shift_seq + z3.If(lifted, lift_seq, zero),
     )
+    after = taken.after
+    lemmas = (
+        ("lemma: C does not go back", ule(w.rc, after.rc)),
+        ("lemma: tx does not go back", ule(w.tx, after.tx)),
+    )
+    return replace(taken, lemmas=lemmas)
 
 
 def begin(w: World, amount: Term) -> st.Step:

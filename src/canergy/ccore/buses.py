@@ -164,8 +164,7 @@ class CompiledBuses:
     def _granting(self, node: int) -> CompiledSupervisor:
         """The supervisor of ``node``'s bus, holding the whole pool, once every bus's nodes
         have confirmed their books (``LocalProtocolError`` otherwise)."""
-        if node not in self._managed:
-            raise LocalProtocolError(f"node {node} is not managed by this supervisor")
+        self._check(node)
         if waiting := self.unconfirmed():
             raise LocalProtocolError(
                 "no grant before every node has confirmed its books after this start: waiting "

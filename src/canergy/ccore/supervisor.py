@@ -218,11 +218,12 @@ class CompiledSupervisor:
         timing: Timing | None = None,
         state: SupervisorState | None = None,
         id_base: int | None = None,
-        variant: str = "hardened",
+        variant: str | Variant = "hardened",
         start_without: Iterable[int] = (),
         module: Any = None,
     ) -> None:
-        """``start_without``: as ``core.Supervisor``'s (the operator's risk, said there).
+        """``variant``: by name or as a ``Variant``; ``start_without``: as
+        ``core.Supervisor``'s (the operator's risk, said there).
         ``module``: the build of the library to run, a module of ``canergy.ccore.build`` (its
         ``ffi`` and ``lib``); by default the release module, ``canergy.ccore._supervisor`` (the
         tests hand it their sanitizer builds)."""
@@ -234,6 +235,7 @@ class CompiledSupervisor:
         ffi, lib = b.ffi, b.lib
         self._lib = lib
         self._answer = lib.canergy_host_answer
+        variant = variant if isinstance(variant, str) else variant.name
         if variant not in _RULES:
             raise ValueError(f"the C core runs the rules {', '.join(_RULES)}, not {variant!r}")
         self.variant = get_variant(variant)
@@ -768,30 +770,8 @@ class CompiledBelow(CompiledSupervisor):
     ``canergy gateway --core c``): no grant begins, on any path, while ``hold`` says why not
     (the gateway's own start, not yet confirmed above)."""
 
-    def __init__(
-        self,
-        nodes: Iterable[int],
-        initial: int,
-        *,
-        variant: str | Variant = "hardened",
-        timing: Timing | None = None,
-        state: SupervisorState | None = None,
-        start_without: Iterable[int] = (),
-        id_base: int | None = None,
-        module: Any = None,
-    ) -> None:
-        """As ``CompiledSupervisor``; ``variant`` by name or as a ``Variant``."""
-        super().__init__(
-            nodes,
-            initial,
-            timing=timing,
-            state=state,
-            id_base=id_base,
-            variant=variant if isinstance(variant, str) else variant.name,
-            start_without=start_without,
-            module=module,
-        )
-        self.hold: Callable[[], str | None] = no_hold
+    hold: Callable[[], str | None] = staticmethod(no_hold)
+    """Why no grant may begin below (None: it may); set by the gateway."""
 
     def _begin(self, node: int, amount: int, now: int) -> None:
         if (why := self.hold()) is not None:
@@ -897,20 +877,13 @@ def make_supervisor(
     ``id_base``: the bus's identifier block (the C core encodes and decodes frames itself);
     ``buses``: ``nodes`` are session keys of named buses (``canergy.bus_keys``), for the C core
     one C supervisor per bus (``canergy.ccore.buses``)."""
-    if core == "c" and buses:
-        from canergy.ccore.buses import CompiledBuses
-
-        return CompiledBuses(
-            nodes,
-            initial,
-            timing=timing,
-            state=state,
-            id_base=id_base,
-            variant=variant,
-            start_without=start_without,
-        )
     if core == "c":
-        return CompiledSupervisor(
+        compiled: Callable[..., SupervisorCore] = CompiledSupervisor
+        if buses:
+            from canergy.ccore.buses import CompiledBuses
+
+            compiled = CompiledBuses
+        return compiled(
             nodes,
             initial,
             timing=timing,

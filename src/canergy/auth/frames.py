@@ -311,6 +311,13 @@ class FrameAuth:
         the node has its books."""
         self.took(msg.TYPE, msg.node, fv)
 
+    def took_waiting(self, node: int, fv: int) -> None:
+        """The classic layout: the message waiting for ``node``'s MAC frame was verified with
+        FV ``fv`` and taken elsewhere (the compiled core's frame path): it waits no more, and
+        what it shows is noted (``took``)."""
+        msg, _ = self.pending.pop(node)
+        self.took(msg.TYPE, node, fv)
+
     def took(self, kind: MsgType, node: int, fv: int) -> None:
         """A verified frame of type ``kind`` from ``node`` with FV ``fv`` was taken (here, or
         by the compiled core's frame path, which verifies in C): what it shows (``_resolved``)

@@ -782,8 +782,7 @@ class SupervisorService:
         )  # fmt: skip
         if status:
             return False
-        del auth.pending[node]
-        auth.took(msg.TYPE, node, fv)
+        auth.took_waiting(node, fv)
         self._answered(node, [RawFrame(i, d) for i, d in frames], actions, now)
         return True
 

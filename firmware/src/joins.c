@@ -67,3 +67,51 @@ unsigned canergy_joins_telemetry(struct canergy_joins *j, uint8_t flags, uint64_
     j->has_admitted = false;
     return any ? CANERGY_JOINS_REFUSED : 0U;
 }
+
+static void join_of(uint8_t node, uint16_t nonce, struct canergy_msg *join)
+{
+    memset(join, 0, sizeof *join);
+    join->type = CANERGY_JOIN;
+    join->node = node;
+    join->nonce = nonce;
+}
+
+unsigned canergy_joins_route(struct canergy_joins *j, const struct canergy_msg *m, uint64_t now,
+                             uint64_t hold_us, struct canergy_msg *to_rules,
+                             struct canergy_joins_refuted *refuted)
+{
+    refuted->count = 0U;
+    if (m->type == CANERGY_JOIN) {
+        canergy_joins_join(j, m->nonce);
+        return 0U;
+    }
+    if (m->type != CANERGY_TELEMETRY) {
+        *to_rules = *m;
+        return CANERGY_JOINS_PASS;
+    }
+    for (unsigned k = 0U; k < j->held_count; k++) { /* what a TELEMETRY with books refuses */
+        if (!(j->has_admitted && j->held[k] == j->admitted)) {
+            refuted->nonces[refuted->count++] = j->held[k];
+        }
+    }
+    uint16_t nonce = 0U;
+    const unsigned found = canergy_joins_telemetry(j, m->flags, now, hold_us, &nonce);
+    if ((found & CANERGY_JOINS_ADMIT) != 0U) {
+        join_of(m->node, nonce, to_rules);
+    }
+    if ((found & CANERGY_JOINS_REFUSED) == 0U) {
+        refuted->count = 0U;
+    }
+    return found;
+}
+
+bool canergy_joins_due_join(struct canergy_joins *j, uint8_t node, uint64_t now,
+                            struct canergy_msg *join)
+{
+    uint16_t nonce = 0U;
+    if (!canergy_joins_due(j, now, &nonce)) {
+        return false;
+    }
+    join_of(node, nonce, join);
+    return true;
+}

@@ -4,11 +4,12 @@
  * PORT_NODE selects the node layer's API, PORT_AUTH the node layer in authenticated mode
  * (canergy/auth.h), PORT_CMAC AES-CMAC and the KDF alone, PORT_SUPERVISOR the supervisor
  * (canergy/supervisor.h), PORT_GATEWAY a gateway (canergy/gateway.h: the client above, the
- * supervisor below), otherwise the bare client's.
+ * supervisor below with its JOIN hold, canergy/joins.h), otherwise the bare client's.
  */
 #include "canergy/auth.h"
 #include "canergy/cmac.h"
 #include "canergy/gateway.h"
+#include "canergy/joins.h"
 #include "canergy/node.h"
 #include "canergy/supervisor.h"
 
@@ -50,6 +51,12 @@ void port_entry(void)
     sink += canergy_supervisor_image(&gw.down, counter + 1U, sup_nv);
     sink += canergy_client_deadline(&gw.up) + canergy_supervisor_deadline(&gw.down);
     sink += (uint64_t)canergy_gateway_link_gap(&gw) + out.frames[0].data[0];
+    static struct canergy_joins joins; /* JOINs held below until the node's TELEMETRY */
+    static struct canergy_msg msg, rules;
+    struct canergy_joins_refuted refuted;
+    sink += canergy_joins_route(&joins, &msg, 8U, 500000U, &rules, &refuted) + refuted.count;
+    sink += canergy_joins_due_join(&joins, 1U, 9U, &rules) ? 1U : 0U;
+    sink += (uint64_t)canergy_supervisor_on_msg(&gw.down, &rules, 10U, &down);
 #ifdef PORT_AUTH /* authenticated on both legs: a node key above, a master key below */
     static struct canergy_auth up_auth, down_auth[1];
     static uint8_t key[16]; /* in RAM: only the library's flash is counted */

@@ -32,7 +32,8 @@
  * arguments or a socket or file that cannot be opened.
  *
  * This file: main(), its loop and the bus above; gateway_below.c the bus below, args.c the
- * command line, gateway_storage.c the NV and status files (gateway_port.h: the shared state).
+ * command line, gateway_storage.c the NV and status files, gateway_report.c intrusions and
+ * refusals below (gateway_port.h: the shared state).
  */
 #define _GNU_SOURCE 1
 
@@ -234,6 +235,7 @@ int main(int argc, char **argv)
         uint64_t wake = least(least(next_telemetry, next_tick), next_status);
         wake = least(wake, least(canergy_client_deadline(&g.gw.up),
                                        canergy_supervisor_deadline(&g.gw.down)));
+        wake = least(wake, gw_joins_deadline(&g)); /* a JOIN held below, due */
         int timeout_ms = 0;
         if (wake > now) {
             const uint64_t ms = (wake - now + 999U) / 1000U;

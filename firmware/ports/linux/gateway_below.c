@@ -1,8 +1,11 @@
 /*
  * canergy-gateway's bus below (gateway_port.h): what its nodes send, through the library's
- * witness (canergy/witness.h) to the supervisor's rules, what the rules ask carried out, and
- * the top-ups (canergy_gateway_top_up). With --auth every frame below is verified and signed
- * under its node's key (canergy_auth_gateway_down_frame and _down_protect, canergy/auth.h).
+ * witness (canergy/witness.h) and JOIN hold (canergy_joins_route, canergy/joins.h) to the
+ * supervisor's rules, what the rules ask carried out, and the top-ups (canergy_gateway_top_up).
+ * With --auth every frame below is verified and signed under its node's key
+ * (canergy_auth_gateway_down_frame and _down_protect, canergy/auth.h). Frames in the
+ * supervisor's own direction for its nodes are someone else's: an intrusion (with --auth,
+ * refused: the C gateway does not verify them).
  */
 #define _GNU_SOURCE 1
 
@@ -11,6 +14,7 @@
 #include "keyfile.h"
 #include "socketcan.h"
 
+#include <stdio.h>
 #include <string.h>
 
 void gw_down_keys(struct gateway_port *g)
@@ -141,7 +145,41 @@ static void release(struct gateway_port *g, unsigned i, uint64_t now)
     }
 }
 
-/* A message from below: a TELEMETRY's level for the top-ups; then the witness's route. */
+/* The JOINs a TELEMETRY of the node with its books refused: intrusions (with --auth, refusals:
+ * replays of an earlier life), as `canergy gateway` reports them. */
+static void joins_refuted(struct gateway_port *g, unsigned i,
+                          const struct canergy_joins_refuted *refuted, uint64_t now)
+{
+    for (unsigned k = 0U; k < refuted->count; k++) {
+        char what[48];
+        (void)snprintf(what, sizeof what, "Join(node=%u, nonce=%u)", (unsigned)g->opt.nodes[i],
+                       (unsigned)refuted->nonces[k]);
+        if (g->opt.auth_path != NULL) {
+            gw_refused(g, i, REFUSED_OLD_JOIN, what, now);
+        } else {
+            gw_intrusion(g, i, what,
+                         "a JOIN in its name while the node reports its books: forged or replayed",
+                         0, now);
+        }
+    }
+}
+
+/* The message for the rules past the JOIN hold: a JOIN held, a TELEMETRY judging those held. */
+static void past_joins(struct gateway_port *g, unsigned i, const struct canergy_msg *m,
+                       uint64_t now)
+{
+    struct canergy_msg rules;
+    struct canergy_joins_refuted refuted;
+    const unsigned found =
+        canergy_joins_route(&g->below[i].joins, m, now, JOIN_HOLD_US, &rules, &refuted);
+    joins_refuted(g, i, &refuted, now);
+    if ((found & (CANERGY_JOINS_PASS | CANERGY_JOINS_ADMIT)) != 0U) {
+        to_rules(g, &rules, now);
+    }
+}
+
+/* A message from below: a TELEMETRY's level for the top-ups; then the witness's route, and the
+ * JOIN hold's. */
 static void from_below(struct gateway_port *g, unsigned i, const struct canergy_msg *m,
                        uint64_t now)
 {
@@ -159,11 +197,47 @@ static void from_below(struct gateway_port *g, unsigned i, const struct canergy_
                                           now, &b->intrusions)
             : canergy_witness_route(&b->witness, &g->gw.down.sessions[i], m, g->opt.rules, now,
                                     &b->intrusions);
-    if (r == CANERGY_WITNESS_TO_RULES) {
-        to_rules(g, m, now);
-    } else {
+    if (r != CANERGY_WITNESS_TO_RULES) {
         release(g, i, now); /* what it held may be due now */
     }
+    if (r == CANERGY_WITNESS_TO_RULES || m->type == CANERGY_TELEMETRY) {
+        past_joins(g, i, m, now);
+    }
+}
+
+/* A frame in the supervisor's own direction for node i below: someone else's (a second
+ * supervisor, a spoofer). Without a key an intrusion; with one refused (not verified here). */
+static void own_direction(struct gateway_port *g, unsigned i, const struct canergy_rx_frame *rx,
+                          uint64_t now)
+{
+    char what[GW_FRAME_TEXT];
+    gw_frame_text(what, rx);
+    if (g->opt.auth_path != NULL) {
+        gw_refused(g, i, REFUSED_OWN_DIRECTION, what, now);
+    } else {
+        gw_intrusion(g, i, what, "a frame only this supervisor sends", 0, now);
+    }
+}
+
+/* The JOINs held whose hold is over, admitted. */
+static void admit_due(struct gateway_port *g, uint64_t now)
+{
+    for (unsigned i = 0U; i < g->opt.count; i++) {
+        struct canergy_msg join;
+        if (canergy_joins_due_join(&g->below[i].joins, g->opt.nodes[i], now, &join)) {
+            to_rules(g, &join, now);
+        }
+    }
+}
+
+uint64_t gw_joins_deadline(const struct gateway_port *g)
+{
+    uint64_t at = UINT64_MAX;
+    for (unsigned i = 0U; i < g->opt.count; i++) {
+        const struct canergy_joins *j = &g->below[i].joins;
+        at = j->has_admitting && j->admit_at < at ? j->admit_at : at;
+    }
+    return at;
 }
 
 void gw_receive_down(struct gateway_port *g, uint64_t now)
@@ -176,10 +250,13 @@ void gw_receive_down(struct gateway_port *g, uint64_t now)
         int status = g->opt.auth_path != NULL
                          ? canergy_auth_gateway_down_frame(g->down_auth, &g->gw, &rx, &plain)
                          : CANERGY_DECODE_OK;
-        struct below *by = below_of(g, (uint8_t)(rx.id & 0xFFU));
+        const struct below *by = below_of(g, (uint8_t)(rx.id & 0xFFU));
+        const unsigned at = by == NULL ? 0U : (unsigned)(by - g->below);
         if (status >= CANERGY_AUTH_MAC_BAD && status <= CANERGY_AUTH_UNAUTHENTICATED) {
             if (by != NULL) { /* a managed node's (the only ones refused): nothing moves */
-                by->refused[status - CANERGY_AUTH_MAC_BAD]++;
+                char what[GW_FRAME_TEXT];
+                gw_frame_text(what, &rx);
+                gw_refused(g, at, (unsigned)(status - CANERGY_AUTH_MAC_BAD), what, now);
             }
             continue;
         }
@@ -194,12 +271,19 @@ void gw_receive_down(struct gateway_port *g, uint64_t now)
         if (status == CANERGY_DECODE_OK) {
             status = (int)canergy_decode(g->opt.id_base, &rx, CANERGY_TO_SUPERVISOR, &m);
         }
+        if (status == CANERGY_DECODE_WRONG_DIRECTION) { /* no decode error, as in Python */
+            if (by != NULL) {
+                own_direction(g, at, &rx, now);
+            }
+            continue;
+        }
         gw_count_decode(&g->down_count, status);
         const struct below *b = status == CANERGY_DECODE_OK ? below_of(g, m.node) : NULL;
         if (b != NULL) {
             from_below(g, (unsigned)(b - g->below), &m, now);
         }
     }
+    admit_due(g, now);
 }
 
 void gw_release_all(struct gateway_port *g, uint64_t now)
@@ -207,6 +291,7 @@ void gw_release_all(struct gateway_port *g, uint64_t now)
     for (unsigned i = 0U; i < g->opt.count; i++) {
         release(g, i, now);
     }
+    gw_refusals_tick(g, now);
 }
 
 void gw_top_up(struct gateway_port *g, uint64_t now)
@@ -215,6 +300,7 @@ void gw_top_up(struct gateway_port *g, uint64_t now)
         struct below *b = &g->below[i];
         const struct canergy_session *s = &g->gw.down.sessions[i];
         if (s->phase != CANERGY_S_IDLE || !b->heard || !b->fresh || b->joining ||
+            b->joins.held_count != 0U || /* JOINs wait for its TELEMETRY: a grant is lost */
             (g->opt.auth_path == NULL && /* with a key, no reason: anyone can make it count */
              canergy_witness_blocked(&b->witness, now, WITNESS_BLOCK_US))) {
             continue;

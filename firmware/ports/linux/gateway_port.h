@@ -12,13 +12,26 @@
 
 #include "canergy/auth.h"
 #include "canergy/gateway.h"
+#include "canergy/joins.h"
 #include "canergy/witness.h"
 
 #include <stdint.h>
 
 #define MJ 1000U
 #define WITNESS_BLOCK_US (10U * US_PER_S) /* no top-ups after evidence, as `canergy gateway` */
+#define JOIN_HOLD_US 500000U /* a confirmed JOIN admitted this long after, as `canergy gateway` */
 #define AUTH_REASONS (CANERGY_AUTH_UNAUTHENTICATED - CANERGY_AUTH_MAC_BAD + 1)
+/* Refusal reasons below: AUTH_REASONS (CANERGY_AUTH_MAC_BAD + k), then these two. */
+#define REFUSED_OLD_JOIN ((unsigned)AUTH_REASONS)
+#define REFUSED_OWN_DIRECTION ((unsigned)AUTH_REASONS + 1U)
+#define REFUSAL_REASONS (AUTH_REASONS + 2)
+#define GW_FRAME_TEXT 140U /* "0CE00D05#" and 64 bytes in hex */
+
+struct gw_rate { /* events per second over a sliding window (Python's Rate) */
+    uint64_t index;
+    uint32_t current;
+    uint32_t previous;
+};
 
 struct gw_options {
     const char *down_channel;
@@ -52,6 +65,8 @@ struct gw_options {
 
 struct below {
     struct canergy_witness witness; /* its RETURNs held until its TELEMETRY confirms them */
+    struct canergy_joins joins;     /* its JOINs held until its TELEMETRY judges them */
+    struct gw_rate rates[REFUSAL_REASONS];
     uint64_t level_uj;
     uint64_t heard_at;
     uint64_t committed;
@@ -59,8 +74,11 @@ struct below {
     uint64_t aborted;
     uint64_t written_off;
     uint64_t admitted;
-    uint32_t intrusions; /* evidence against its reports (canergy_witness_route) */
-    uint32_t refused[AUTH_REASONS]; /* --auth: refused, by reason (CANERGY_AUTH_MAC_BAD + i) */
+    uint32_t intrusions; /* evidence against it (canergy_witness_route, JOINs refuted, frames
+                          * in the supervisor's direction, refused frames) */
+    uint32_t loud;       /* of them, those told on stderr (the first, then one in 100) */
+    uint32_t refused[REFUSAL_REASONS];  /* refused, by reason (gw_refusal_names) */
+    uint32_t unlogged[REFUSAL_REASONS]; /* of them, not told on stderr yet */
     int fresh;   /* a level reported since the node's last transaction ended */
     int joining; /* its last TELEMETRY said JOINING */
     int heard;
@@ -81,6 +99,14 @@ struct gateway_port {
     uint64_t dropped_uj;   /* Us below dropped by them */
     uint64_t confirmed;    /* starts the supervisor above confirmed or found behind */
     uint64_t auth_refused; /* frames above refused by --upstream-auth's check */
+    uint64_t intrusions_first_at; /* intrusions_seen */
+    uint64_t refused_total;       /* frames refused below */
+    uint64_t refused_first_at;    /* refused_total != 0 */
+    uint64_t refused_last_at;
+    uint64_t refusals_logged_at;  /* refusals_logged */
+    struct gw_rate refusal_rate;
+    int intrusions_seen;
+    int refusals_logged;
     uint32_t nv_counter;
     uint8_t nv_slot; /* slot holding the newest record: the next write goes to the other */
     unsigned waiting; /* nodes below a start waited for when last said (witnessed) */
@@ -109,6 +135,21 @@ void gw_receive_down(struct gateway_port *g, uint64_t now);
 void gw_release_all(struct gateway_port *g, uint64_t now);
 void gw_top_up(struct gateway_port *g, uint64_t now);
 void gw_count_decode(struct port_counters *c, int status);
+/* gateway_below.c: the earliest time a JOIN held below is due (UINT64_MAX: none). */
+uint64_t gw_joins_deadline(const struct gateway_port *g);
+
+/* gateway_report.c: an intrusion for the node of g->below[i] (quiet: counted, not told); a
+ * frame refused for it (reason: an index of gw_refusal_names; counted as a quiet intrusion,
+ * told on stderr at once the first time, then at most once a second by gw_refusals_tick); a
+ * received frame as candump shows it; a rate now. */
+extern const char *const gw_refusal_names[REFUSAL_REASONS];
+void gw_intrusion(struct gateway_port *g, unsigned i, const char *what, const char *kind,
+                  int quiet, uint64_t now);
+void gw_refused(struct gateway_port *g, unsigned i, unsigned reason, const char *what,
+                uint64_t now);
+void gw_refusals_tick(struct gateway_port *g, uint64_t now);
+void gw_frame_text(char out[GW_FRAME_TEXT], const struct canergy_rx_frame *rx);
+double gw_rate_per_s(const struct gw_rate *r, uint64_t now);
 
 /* args.c: the options of argv with their defaults; -h prints the usage and exits 0, a bad
  * argument exits 2. */

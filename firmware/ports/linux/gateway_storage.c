@@ -260,24 +260,39 @@ static void write_counters(FILE *f, const char *name, const struct port_counters
                   (unsigned long long)c->error_frames);
 }
 
-static const char *const refusal_names[AUTH_REASONS] = {
-    "MAC BAD", "freshness not the expected one", "MAC frame without its message",
-    "malformed authenticated frame", "frame without a MAC"}; /* Python's AuthFailure */
-
 static uint32_t refused_of(const struct below *b)
 {
     uint32_t n = 0U;
-    for (unsigned k = 0U; k < AUTH_REASONS; k++) {
+    for (unsigned k = 0U; k < REFUSAL_REASONS; k++) {
         n += b->refused[k];
     }
     return n;
 }
 
-/* --auth: frames refused below, as canergy supervisor's status shows them: "auth" (the layout),
- * "auth_failures" (by reason), "refused" (a total, by node and reason). */
-static void write_refused(const struct gateway_port *g, FILE *f)
+static double node_rate(const struct below *b, uint64_t now)
 {
-    uint32_t total = 0U;
+    double per_s = 0.0;
+    for (unsigned k = 0U; k < REFUSAL_REASONS; k++) {
+        per_s += gw_rate_per_s(&b->rates[k], now);
+    }
+    return per_s;
+}
+
+static void write_time(FILE *f, const char *key, int known, uint64_t at)
+{
+    if (known) {
+        (void)fprintf(f, "\"%s\": %llu", key, (unsigned long long)at);
+    } else {
+        (void)fprintf(f, "\"%s\": null", key);
+    }
+}
+
+/* Frames refused below, as canergy supervisor's status shows them: "auth" (the layout),
+ * "auth_failures" (the MAC and freshness check's, by reason), "refused" (a total and a rate, by
+ * node and reason: those too, JOINs of an earlier life and frames in the supervisor's
+ * direction); "intrusions", a total (each node's in "nodes"). */
+static void write_refused(const struct gateway_port *g, FILE *f, uint64_t now)
+{
     (void)fprintf(f, "\"auth\": %s, \"auth_failures\": {",
                   g->opt.auth_path == NULL ? "null" : g->opt.fd ? "\"fd\"" : "\"classic\"");
     for (unsigned k = 0U, n = 0U; k < AUTH_REASONS; k++) {
@@ -285,29 +300,41 @@ static void write_refused(const struct gateway_port *g, FILE *f)
         for (unsigned i = 0U; i < g->opt.count; i++) {
             count += g->below[i].refused[k];
         }
-        total += count;
         if (count != 0U) {
-            (void)fprintf(f, "%s\"%s\": %lu", n++ == 0U ? "" : ", ", refusal_names[k],
+            (void)fprintf(f, "%s\"%s\": %lu", n++ == 0U ? "" : ", ", gw_refusal_names[k],
                           (unsigned long)count);
         }
     }
-    (void)fprintf(f, "}, \"refused\": {\"total\": %lu, \"by_node\": {", (unsigned long)total);
+    (void)fprintf(f, "}, \"refused\": {\"total\": %llu, \"per_s\": %.1f, \"by_node\": {",
+                  (unsigned long long)g->refused_total, gw_rate_per_s(&g->refusal_rate, now));
     for (unsigned i = 0U, n = 0U; i < g->opt.count; i++) {
         const struct below *b = &g->below[i];
         if (refused_of(b) == 0U) {
             continue;
         }
-        (void)fprintf(f, "%s\"%u\": {\"total\": %lu, \"reasons\": {", n++ == 0U ? "" : ", ",
-                      (unsigned)g->opt.nodes[i], (unsigned long)refused_of(b));
-        for (unsigned k = 0U, r = 0U; k < AUTH_REASONS; k++) {
+        (void)fprintf(f, "%s\"%u\": {\"total\": %lu, \"per_s\": %.1f, \"reasons\": {",
+                      n++ == 0U ? "" : ", ", (unsigned)g->opt.nodes[i],
+                      (unsigned long)refused_of(b), node_rate(b, now));
+        for (unsigned k = 0U, r = 0U; k < REFUSAL_REASONS; k++) {
             if (b->refused[k] != 0U) {
-                (void)fprintf(f, "%s\"%s\": {\"count\": %lu}", r++ == 0U ? "" : ", ",
-                              refusal_names[k], (unsigned long)b->refused[k]);
+                (void)fprintf(f, "%s\"%s\": {\"count\": %lu, \"per_s\": %.1f}",
+                              r++ == 0U ? "" : ", ", gw_refusal_names[k],
+                              (unsigned long)b->refused[k], gw_rate_per_s(&b->rates[k], now));
             }
         }
         (void)fputs("}}", f);
     }
-    (void)fputs("}}, ", f);
+    (void)fputs("}, ", f);
+    write_time(f, "first_at_us", g->refused_total != 0U, g->refused_first_at);
+    (void)fputs(", ", f);
+    write_time(f, "last_at_us", g->refused_total != 0U, g->refused_last_at);
+    uint64_t intrusions = 0U;
+    for (unsigned i = 0U; i < g->opt.count; i++) {
+        intrusions += g->below[i].intrusions;
+    }
+    (void)fprintf(f, "}, \"intrusions\": %llu, ", (unsigned long long)intrusions);
+    write_time(f, "intrusions_first_at_us", g->intrusions_seen, g->intrusions_first_at);
+    (void)fputs(", ", f);
 }
 
 static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
@@ -332,7 +359,7 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                   (unsigned long long)reserved, (unsigned long long)delivered,
                   (unsigned long long)returned, (long long)canergy_gateway_link_gap(&g->gw),
                   (unsigned long long)g->nv_writes);
-    write_refused(g, f);
+    write_refused(g, f, now);
     write_counters(f, "downstream_bus", &g->down_count);
     uint8_t waiting[CANERGY_SUPERVISOR_NODES];
     const uint8_t n = canergy_supervisor_unconfirmed(d, waiting);
@@ -359,7 +386,8 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                       "\"committed\": %llu, \"committed_uj\": %llu, \"aborted\": %llu, "
                       "\"written_off\": %llu, \"admitted\": %llu, \"returns_held\": %u, "
                       "\"returns_refuted\": %lu, \"returns_resynchronised\": %lu, "
-                      "\"intrusions\": %lu, \"refused\": %lu}",
+                      "\"intrusions\": %lu, \"refused\": %lu, \"joins_resent\": %lu, "
+                      "\"joins_held\": %u}",
                       i == 0U ? "" : ", ", (unsigned)s->node, phase_name(s->phase), open_tx,
                       (unsigned long)s->reserved_uj,
                       (unsigned long long)s->delivered_uj, (unsigned long long)s->returned_uj,
@@ -369,7 +397,8 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                       (unsigned long long)b->written_off, (unsigned long long)b->admitted,
                       (unsigned)b->witness.held_count,
                       (unsigned long)b->witness.refuted, (unsigned long)b->witness.resynced,
-                      (unsigned long)b->intrusions, (unsigned long)refused_of(b));
+                      (unsigned long)b->intrusions, (unsigned long)refused_of(b),
+                      (unsigned long)b->joins.resent, (unsigned)b->joins.held_count);
     }
     (void)fprintf(f,
                   "}, \"upstream\": {\"node\": %u, \"usable_uj\": %lu, \"spent_uj\": %llu, "

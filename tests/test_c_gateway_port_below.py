@@ -1,0 +1,184 @@
+"""canergy-gateway's bus below as the port wires it (ports/linux/gateway_below.c,
+gateway_report.c, gateway_storage.c), on this kernel without SocketCAN: the port's files with a
+harness for main() (tests/support/gateway_below_harness.c: the bus below on a socketpair, time
+given here). What the vcan suite (tests/test_vcan_c_gateway*.py) cannot show on this machine:
+a JOIN below held until the node's TELEMETRY, a replayed or forged JOIN refused while the node
+reports its books (nothing written off), frames in the supervisor's own direction reported,
+refused frames told on stderr at most once a second, and a status file that is JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from canergy.codec import Codec
+from canergy.live.supervisor.joins import JOIN_HOLD_US
+from canergy.messages import Commit, Join, Message, Return, Telemetry
+
+ROOT = Path(__file__).resolve().parents[1]
+FIRMWARE = ROOT / "firmware"
+WARN = ["-std=c99", "-Wall", "-Wextra", "-Wpedantic", "-Wconversion", "-Wshadow", "-Wcast-qual"]
+WARN += ["-Wstrict-prototypes", "-Wmissing-prototypes", "-Wundef", "-Werror"]
+"""firmware/Makefile's WARN."""
+PORT = ["gateway_below.c", "gateway_report.c", "gateway_storage.c", "args.c", "keyfile.c"]
+PORT += ["paths.c", "socketcan.c", "system.c"]
+CODEC = Codec()
+
+
+@pytest.fixture(scope="module")
+def harness(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The harness built with the library and the port's warnings."""
+    binary = tmp_path_factory.mktemp("harness") / "gateway-below"
+    sources = [str(ROOT / "tests/support/gateway_below_harness.c")]
+    sources += [str(FIRMWARE / "ports/linux" / name) for name in PORT]
+    sources += sorted(str(p) for p in (FIRMWARE / "src").glob("*.c"))
+    include = ["-I", str(FIRMWARE / "include"), "-I", str(FIRMWARE / "ports/linux")]
+    cmd = ["cc", *WARN, "-O1", "-DCANERGY_SUPERVISOR_NODES=127U", *include, *sources]
+    built = subprocess.run([*cmd, "-o", str(binary)], capture_output=True, text=True, timeout=300)
+    assert built.returncode == 0, built.stderr
+    return binary
+
+
+def rx(msg: Message) -> str:
+    arbitration_id, data = CODEC.encode(msg)
+    return f"rx {arbitration_id:08X}#{data.hex().upper()}"
+
+
+class Run:
+    """One harness run: its script's frames out, stderr, and the status written last."""
+
+    def __init__(self, harness: Path, tmp: Path, script: list[str], *extra: str) -> None:
+        tmp = Path(tempfile.mkdtemp(dir=tmp))  # a new NV file each run
+        self.status_path = tmp / "gw.json"
+        args = [str(harness), "--node", "20", "--nodes", "1-2", "-c", "down"]
+        args += ["--upstream-channel", "up", "--nv", str(tmp / "gw.nv")]
+        args += ["--status-file", str(self.status_path), "--target", "0.5J"]
+        args += ["--response-timeout", "30", *extra]  # a grant stays in flight
+        done = subprocess.run(
+            args, input="\n".join([*script, "status"]) + "\n", capture_output=True, text=True
+        )
+        assert done.returncode == 0, done.stderr
+        self.lines = done.stdout.splitlines()
+        self.stderr = done.stderr
+
+    def sent(self, type_code: int) -> list[str]:
+        return [
+            x
+            for x in self.lines
+            if x.startswith("tx ") and int(x[3:11], 16) >> 8 & 0xF == type_code
+        ]
+
+    def status(self) -> dict[str, Any]:
+        loaded: dict[str, Any] = json.loads(self.status_path.read_text())
+        return loaded
+
+
+ADMIT, INTENTION = 0x7, 0x1
+
+
+def _started(node: int = 1) -> list[str]:
+    """Node 1 starts without books: its JOIN and JOINING TELEMETRY, admitted after the hold;
+    then it reports its books (level 0) and the tick tops it up."""
+    return [
+        "inject 5000000",
+        "at 1000",
+        rx(Join(node, 0x0042)),
+        rx(Telemetry(node, 0, Telemetry.JOINING, 0)),
+        f"at {1000 + JOIN_HOLD_US - 1}",
+        f"at {1000 + JOIN_HOLD_US}",
+        rx(Telemetry(node, 0, 0, 0)),
+        "tick",
+    ]
+
+
+def test_a_join_below_waits_the_hold_and_a_replay_while_the_node_reports_is_refused(
+    harness: Path, tmp_path: Path
+) -> None:
+    t = 1000 + JOIN_HOLD_US
+    script = _started()
+    script += [
+        rx(Join(1, 0x0007)),  # an earlier life's, with its TELEMETRY without books
+        rx(Telemetry(1, 0, Telemetry.JOINING, 0)),
+        f"at {t + 100_000}",
+        rx(Telemetry(1, 0, 0, 0)),  # the node, with its books, at once
+        f"at {t + 10 * JOIN_HOLD_US}",
+    ]
+    run = Run(harness, tmp_path, script)
+    assert len(run.sent(ADMIT)) == 1  # at its start only
+    assert len(run.sent(INTENTION)) == 1  # the top-up, in flight all along
+    node = run.status()["nodes"]["1"]
+    assert node["admitted"] == 1 and node["written_off"] == 0 and node["intrusions"] == 1
+    assert node["open_tx"] == 1 and node["reserved_uj"] == 500_000
+    assert "intrusion #1 for node 1 below: Join(node=1, nonce=7) (a JOIN in its name" in run.stderr
+    held = Run(harness, tmp_path, _started()[:5])  # up to 1 µs before the hold is over
+    assert held.lines == [] and held.status()["nodes"]["1"]["joins_held"] == 1
+
+
+def test_a_replay_while_the_node_stays_silent_is_admitted_after_the_hold(
+    harness: Path, tmp_path: Path
+) -> None:
+    """The residual (docs/gateways.md): nobody objects within 500 ms, the JOIN is admitted and
+    the grant in flight written off (never created)."""
+    t = 1000 + JOIN_HOLD_US
+    script = _started()
+    script += [rx(Join(1, 0x0007)), rx(Telemetry(1, 0, Telemetry.JOINING, 0))]
+    script += [f"at {t + JOIN_HOLD_US - 1}", f"at {t + JOIN_HOLD_US}"]
+    early = Run(harness, tmp_path, script[:-1])  # 1 µs before the hold is over: held
+    assert len(early.sent(ADMIT)) == 1 and early.status()["nodes"]["1"]["written_off"] == 0
+    run = Run(harness, tmp_path, script)
+    assert len(run.sent(ADMIT)) == 2
+    node = run.status()["nodes"]["1"]
+    assert node["admitted"] == 2 and node["written_off"] == 1 and node["intrusions"] == 0
+
+
+def test_frames_in_the_supervisors_direction_below_are_intrusions(
+    harness: Path, tmp_path: Path
+) -> None:
+    """Someone else's INTENTION for node 1 below (a second supervisor, a spoofer): reported as
+    an intrusion on stderr and in the status, no decode error, nothing moves."""
+    run = Run(harness, tmp_path, _started())
+    intention = run.sent(INTENTION)[0][3:]
+    again = Run(harness, tmp_path, [*_started(), f"rx {intention}"])
+    status = again.status()
+    assert status["nodes"]["1"]["intrusions"] == 1 and status["intrusions"] == 1
+    assert status["downstream_bus"]["decode_errors"] == 0
+    assert "(a frame only this supervisor sends)" in again.stderr
+    assert status["nodes"]["1"]["reserved_uj"] == 500_000
+
+
+def test_refusals_below_are_rated_and_told_at_most_once_a_second(
+    harness: Path, tmp_path: Path
+) -> None:
+    """--auth (classic): keyless RETURNs in node 1's name, each refused when the next one
+    displaces it without its MAC frame; the first told at once with its frame, then one line a
+    second with what was refused since; the status rates them per node and reason; a frame in the
+    supervisor's direction is refused too (not verified here)."""
+    master = tmp_path / "master.key"
+    keys = [sys.executable, "-m", "canergy", "keys", "-o", str(master)]
+    made = subprocess.run(keys, capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert made.returncode == 0, made.stderr
+    forged = rx(Return(1, 1, 5))
+    script = ["at 1000"] + [forged] * 3 + ["at 600000", forged, "tick", "at 1200000"]
+    script += [forged, "tick", rx(Commit(1, 1, 100))]  # the supervisor's direction
+    script += ["at 1300000"]
+    run = Run(harness, tmp_path, script, "--auth", str(master))
+    lines = [x for x in run.stderr.splitlines() if "refused" in x]
+    assert len(lines) == 2, run.stderr
+    assert "refused a frame for node 1 below: frame without a MAC" in lines[0]
+    assert "refused 3 frame(s) below in the last 1.2 s" in lines[1], lines[1]
+    assert "node 1: frame without a MAC 3); 4 since start, none acted on" in lines[1]
+    refused = run.status()["refused"]
+    assert refused["total"] == 5 and refused["by_node"]["1"]["total"] == 5
+    reasons = refused["by_node"]["1"]["reasons"]
+    assert reasons["frame without a MAC"]["count"] == 4
+    assert reasons["a frame in the supervisor's direction (not verified)"]["count"] == 1
+    assert refused["per_s"] > 0 and refused["first_at_us"] == 1000
+    assert run.status()["nodes"]["1"]["refused"] == 5
+    assert run.status()["auth_failures"] == {"frame without a MAC": 4}

@@ -51,6 +51,23 @@ def test_a_damaged_newest_slot_falls_back_to_the_older() -> None:
     newer[SUP_AT - 5] ^= 0x01  # a bit of its record: the CRC fails
     rc, nv = _load(_slot(8, usable=1_000) + bytes(newer))
     assert (rc, nv.slot, nv.counter, nv.up.usable_uj) == (OK, 0, 8, 1_000)
+    assert nv.damaged == 0b10  # the port says so, and takes the older
+
+
+def test_damaged_and_cut_short_slots_are_named_blank_ones_are_not() -> None:
+    """``damaged``: the slots that start as one does (the magic) but do not hold (the CRC, or cut
+    short): the port refuses a file with such a slot and no valid one."""
+    older, newer = _slot(8), bytearray(_slot(9))
+    newer[SUP_AT + 10] ^= 0x80
+    assert _load(older + bytes(newer))[1].damaged == 0b10
+    edited = bytearray(older)
+    edited[20] ^= 0x02
+    rc, nv = _load(bytes(edited) + bytes(newer))
+    assert (rc, nv.slot, nv.damaged) == (OK, -1, 0b11)
+    assert _load(older[: GW_NV_SLOT // 2])[1].damaged == 0b01  # cut within the first slot
+    assert _load(older + _slot(9)[:100])[1].damaged == 0b10  # the second's write cut short
+    assert _load(older)[1].damaged == 0 and _load(bytes(2 * GW_NV_SLOT))[1].damaged == 0
+    assert _load(b"")[1].damaged == 0
 
 
 def test_a_record_beyond_the_bound_refuses_both_slots() -> None:

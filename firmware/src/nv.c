@@ -214,11 +214,15 @@ int canergy_gateway_nv_load(const uint8_t *image, size_t len, struct canergy_gat
     out->foreign = len > 0U && le_get(image, len < 4U ? len : 4U) != CANERGY_GW_NV_MAGIC &&
                    (len < GW_SLOT + 4U || le_get(&image[GW_SLOT], 4U) != CANERGY_GW_NV_MAGIC);
     for (size_t i = 0U; i < 2U; i++) {
+        const bool current = gw_slot_valid(image, len, i * GW_SLOT, GW_SLOT);
         if (gw_slot_valid(image, len, i * GW_SLOT_V2, GW_SLOT_V2)) {
             out->older = 2U;
-        } else if (gw_slot_valid(image, len, i * GW_SLOT, GW_SLOT) &&
+        } else if (current &&
                    image[i * GW_SLOT + CANERGY_GW_NV_HEADER + CANERGY_NV_RECORD_SIZE + 4U] == 3U) {
             out->older = out->older == 0U ? 3U : out->older;
+        } else if (!current && len >= i * GW_SLOT + 4U &&
+                   le_get(&image[i * GW_SLOT], 4U) == CANERGY_GW_NV_MAGIC) {
+            out->damaged |= (uint8_t)(1U << i);
         }
     }
     for (size_t i = 0U; i < 2U; i++) {

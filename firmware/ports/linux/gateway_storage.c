@@ -39,9 +39,12 @@ void gw_save(struct gateway_port *g)
     g->nv_writes++;
 }
 
-/* The newest valid slot of image; exit 2 when a valid slot's upstream record holds a counter
- * beyond the bound the proof assumes. */
-static void load_nv(const char *path, const uint8_t *image, size_t len,
+/* The newest valid slot of image (len bytes read of a file of size bytes); exit 2 when a valid
+ * slot's upstream record holds a counter beyond the bound the proof assumes, when the file is
+ * longer than two slots (not this gateway's), or when no slot holds but one starts as a slot
+ * does (cut short, or its CRC does not hold: damaged or edited). A slot so beside a valid one
+ * is a write the gateway did not finish: the valid one is taken, and stderr says so (tell). */
+static void load_nv(const char *path, const uint8_t *image, size_t len, long long size, int tell,
                     struct canergy_gateway_nv *nv)
 {
     if (canergy_gateway_nv_load(image, len, nv) == CANERGY_ERR_END) {
@@ -50,6 +53,27 @@ static void load_nv(const char *path, const uint8_t *image, size_t len,
                          "assumes",
                          path, tx ? "last_tx" : "return_seq",
                          (unsigned long)(tx ? nv->up.last_tx : nv->up.return_seq));
+    }
+    if (nv->foreign || nv->older != 0U) {
+        return; /* refused by name below */
+    }
+    if (size > 2LL * (long long)GW_SLOT) {
+        port_usage_error("--nv %s: %lld bytes is not a canergy-gateway NV file (two slots of %u "
+                         "bytes at most); nothing taken",
+                         path, size, (unsigned)GW_SLOT);
+    }
+    if (nv->damaged != 0U && nv->slot < 0) {
+        port_usage_error("--nv %s: slot %s: cut short or its CRC does not hold (the record "
+                         "damaged or edited), and no valid slot: nothing taken. Move the file "
+                         "away to start without books (what they held is then lost, never "
+                         "created)",
+                         path, nv->damaged == 3U ? "0 and 1" : nv->damaged == 1U ? "0" : "1");
+    }
+    if (nv->damaged != 0U && tell) {
+        (void)fprintf(stderr,
+                      "%s: --nv %s: slot %u cut short or its CRC does not hold (a write not "
+                      "finished?): the other slot, counter %lu, taken\n",
+                      PROG, path, nv->damaged == 1U ? 0U : 1U, (unsigned long)nv->counter);
     }
 }
 
@@ -86,7 +110,7 @@ void gw_check_nv(const struct gw_options *o)
     const ssize_t got = pread(fd, image, sizeof image, 0);
     (void)close(fd);
     struct canergy_gateway_nv nv;
-    load_nv(o->nv_path, image, got > 0 ? (size_t)got : 0U, &nv);
+    load_nv(o->nv_path, image, got > 0 ? (size_t)got : 0U, (long long)st.st_size, 0, &nv);
     if (nv.slot < 0) {
         refuse_older_layout(o->nv_path, &nv);
         return;
@@ -122,8 +146,10 @@ void gw_start(struct gateway_port *g, uint64_t now)
         (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, o->nv_path, strerror(errno));
         exit(EXIT_USAGE);
     }
+    struct stat st;
     struct canergy_gateway_nv nv;
-    load_nv(o->nv_path, image, (size_t)got, &nv);
+    const long long size = fstat(g->nv_fd, &st) == 0 ? (long long)st.st_size : 0;
+    load_nv(o->nv_path, image, (size_t)got, size, 1, &nv);
     if (nv.foreign) {
         (void)fprintf(stderr, "%s: error: --nv %s: not a gateway's NV file (a node's?)\n",
                       PROG, o->nv_path);

@@ -2,7 +2,8 @@
  * A bare-metal canergy gateway for Cortex-M4 (start-up: startup.c), the Linux canergy-gateway's
  * loop on a board: node GW_NODE of the bus above, supervisor of nodes 1..NODES below, one NV
  * record for both roles (canergy_gateway_nv_*), each fresh RETURN below held until the node's
- * TELEMETRY confirms it (canergy/witness.h), every node topped up to TARGET_UJ
+ * TELEMETRY confirms it (canergy/witness.h), each JOIN until the node's TELEMETRY judges it
+ * (canergy_joins_route, canergy/joins.h), every node topped up to TARGET_UJ
  * (canergy_gateway_top_up), Us beyond RETURN_ABOVE_UJ given back above. What a board provides
  * (two CAN controllers, NV storage, a microsecond clock) is stubbed here so that it links and
  * runs anywhere; a real port replaces the functions marked BOARD with its drivers.
@@ -10,6 +11,7 @@
  *   make -C firmware cortex-m      arm-none-eabi-gcc -mcpu=cortex-m4 -mthumb -Os
  */
 #include "canergy/gateway.h"
+#include "canergy/joins.h"
 #include "canergy/witness.h"
 
 #include <string.h>
@@ -20,6 +22,7 @@
 #define MIN_GRANT_UJ 100000U
 #define RETURN_ABOVE_UJ 20000000U
 #define HOLD_US 500000U
+#define JOIN_HOLD_US 500000U
 #define BLOCK_US 10000000U
 #define TICK_US 50000U
 #define TELEMETRY_US 100000U
@@ -70,6 +73,7 @@ static void sleep_until(uint64_t t)
 
 static struct canergy_gateway gw;
 static struct canergy_witness witness[NODES];
+static struct canergy_joins joins[NODES]; /* each node's JOINs held */
 static uint64_t level_uj[NODES];
 static uint8_t fresh[NODES]; /* a level reported since the node's last transaction ended */
 static uint32_t intrusions;
@@ -155,11 +159,20 @@ static void from_below(const struct canergy_rx_frame *f, uint64_t now)
         level_uj[i] = (uint64_t)m.level_mj * 1000U;
         fresh[i] = (m.flags & CANERGY_TELEMETRY_JOINING) == 0U;
     }
-    if (canergy_witness_route(&witness[i], &gw.down.sessions[i], &m, CANERGY_RULES_HARDENED, now,
-                              &intrusions) == CANERGY_WITNESS_TO_RULES) {
-        to_rules(&m, now);
-    } else {
+    const enum canergy_witness_route r = canergy_witness_route(
+        &witness[i], &gw.down.sessions[i], &m, CANERGY_RULES_HARDENED, now, &intrusions);
+    if (r != CANERGY_WITNESS_TO_RULES) {
         release(i, now);
+    }
+    if (r == CANERGY_WITNESS_TO_RULES || m.type == CANERGY_TELEMETRY) { /* the JOIN hold's turn */
+        struct canergy_msg rules;
+        struct canergy_joins_refuted refuted;
+        const unsigned found =
+            canergy_joins_route(&joins[i], &m, now, JOIN_HOLD_US, &rules, &refuted);
+        intrusions += refuted.count; /* JOINs in its name while it reports its books */
+        if ((found & (CANERGY_JOINS_PASS | CANERGY_JOINS_ADMIT)) != 0U) {
+            to_rules(&rules, now);
+        }
     }
 }
 
@@ -167,10 +180,15 @@ static void tick(uint64_t now)
 {
     for (unsigned i = 0U; i < NODES; i++) {
         release(i, now);
+        struct canergy_msg join;
+        if (canergy_joins_due_join(&joins[i], (uint8_t)(i + 1U), now, &join)) {
+            to_rules(&join, now); /* confirmed, and nobody objected within the hold */
+        }
         const uint32_t amount =
             canergy_gateway_top_up(TARGET_UJ, MIN_GRANT_UJ, level_uj[i], gw.down.usable_uj);
         struct canergy_supervisor_out out;
         if (fresh[i] != 0U && gw.down.sessions[i].phase == CANERGY_S_IDLE && amount != 0U &&
+            joins[i].held_count == 0U &&
             !canergy_witness_blocked(&witness[i], now, BLOCK_US) &&
             canergy_gateway_begin(&gw, (uint8_t)(i + 1U), amount, now, &out) == CANERGY_OK) {
             fresh[i] = 0U;

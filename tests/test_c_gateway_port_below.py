@@ -228,3 +228,19 @@ def test_a_damaged_cut_short_or_oversize_nv_file_is_refused_by_name(
     assert f"--nv {cut.nv}: slot 0: cut short" in cut.stderr
     long = run(image + b"{}", 2)
     assert f"{2 * slot + 2} bytes is not a canergy-gateway NV file" in long.stderr
+
+
+def test_the_witnesss_evidence_below_is_told_on_stderr(harness: Path, tmp_path: Path) -> None:
+    """No key: a RETURN forged in node 1's name for more than its books let it hold is refuted
+    (``returns_refuted``) and told as an intrusion on stderr, as ``canergy gateway`` tells it; a
+    TELEMETRY whose witness count moved is counted too (told only as a node's 100th)."""
+    script = [*_started(), rx(Return(1, 1, 60_000)), rx(Telemetry(1, 0, 0, 0, witness=1))]
+    run = Run(harness, tmp_path, script)
+    node = run.status()["nodes"]["1"]
+    assert node["returns_refuted"] == 1 and node["intrusions"] == 2
+    assert (
+        "intrusion #1 for node 1 below: Return(node=1, seq=1, amount_mj=60000) (no honest node"
+        in run.stderr
+    )
+    assert "intrusion #2" not in run.stderr  # a node's first is told, then one in 100
+    assert run.status()["intrusions_first_at_us"] == 1000 + JOIN_HOLD_US

@@ -139,8 +139,13 @@ static void release(struct gateway_port *g, unsigned i, uint64_t now)
                             g->opt.return_hold_us, &r);
     struct canergy_msg m;
     for (uint32_t n = 0U; canergy_witness_release_at(&r, g->opt.nodes[i], n, &m); n++) {
-        /* a 0 mJ RETURN: a number someone else acknowledged in this gateway's name */
-        b->intrusions += m.type == CANERGY_RETURN && m.amount_mj == 0U ? 1U : 0U;
+        if (m.type == CANERGY_RETURN && m.amount_mj == 0U) { /* a number someone else acked */
+            char what[GW_MSG_TEXT];
+            gw_msg_text(what, &m);
+            gw_intrusion(g, i, what,
+                         "return numbers acknowledged by someone else: resynchronised at 0 mJ", 0,
+                         now);
+        }
         to_rules(g, &m, now);
     }
 }
@@ -191,12 +196,24 @@ static void from_below(struct gateway_port *g, unsigned i, const struct canergy_
         b->joining = (m->flags & CANERGY_TELEMETRY_JOINING) != 0U;
         b->fresh = 1;
     }
+    uint32_t evidence = 0U;
     const enum canergy_witness_route r =
         g->opt.auth_path != NULL /* a RETURN carries a MAC: credited at once */
             ? canergy_witness_route_keyed(&b->witness, &g->gw.down.sessions[i], m, g->opt.rules,
-                                          now, &b->intrusions)
+                                          now, &evidence)
             : canergy_witness_route(&b->witness, &g->gw.down.sessions[i], m, g->opt.rules, now,
-                                    &b->intrusions);
+                                    &evidence);
+    if (evidence != 0U) {
+        char what[GW_MSG_TEXT];
+        gw_msg_text(what, m);
+        gw_intrusion(g, i, what,
+                     m->type == CANERGY_TELEMETRY
+                         ? "evidence in its TELEMETRY: frames in its name it did not send, or "
+                           "its return number went back"
+                         : "no honest node sends it: beyond what its books let it hold, or "
+                           "another amount under a return number held",
+                     0, now);
+    }
     if (r != CANERGY_WITNESS_TO_RULES) {
         release(g, i, now); /* what it held may be due now */
     }

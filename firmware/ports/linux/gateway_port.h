@@ -26,6 +26,7 @@
 #define REFUSED_OWN_DIRECTION ((unsigned)AUTH_REASONS + 1U)
 #define REFUSAL_REASONS (AUTH_REASONS + 2)
 #define GW_FRAME_TEXT 140U /* "0CE00D05#" and 64 bytes in hex */
+#define GW_MSG_TEXT 96U
 
 struct gw_rate { /* events per second over a sliding window (Python's Rate) */
     uint64_t index;
@@ -141,7 +142,7 @@ uint64_t gw_joins_deadline(const struct gateway_port *g);
 /* gateway_report.c: an intrusion for the node of g->below[i] (quiet: counted, not told); a
  * frame refused for it (reason: an index of gw_refusal_names; counted as a quiet intrusion,
  * told on stderr at once the first time, then at most once a second by gw_refusals_tick); a
- * received frame as candump shows it; a rate now. */
+ * received frame as candump shows it; a message as Python's repr shows it; a rate now. */
 extern const char *const gw_refusal_names[REFUSAL_REASONS];
 void gw_intrusion(struct gateway_port *g, unsigned i, const char *what, const char *kind,
                   int quiet, uint64_t now);
@@ -149,6 +150,7 @@ void gw_refused(struct gateway_port *g, unsigned i, unsigned reason, const char 
                 uint64_t now);
 void gw_refusals_tick(struct gateway_port *g, uint64_t now);
 void gw_frame_text(char out[GW_FRAME_TEXT], const struct canergy_rx_frame *rx);
+void gw_msg_text(char out[GW_MSG_TEXT], const struct canergy_msg *m); /* as Python's repr */
 double gw_rate_per_s(const struct gw_rate *r, uint64_t now);
 
 /* args.c: the options of argv with their defaults; -h prints the usage and exits 0, a bad

@@ -32,6 +32,23 @@ void gw_frame_text(char out[GW_FRAME_TEXT], const struct canergy_rx_frame *rx)
     }
 }
 
+void gw_msg_text(char out[GW_MSG_TEXT], const struct canergy_msg *m)
+{
+    if (m->type == CANERGY_TELEMETRY) {
+        (void)snprintf(out, GW_MSG_TEXT, "Telemetry(node=%u, level_mj=%lu, flags=%u, seq=%u, "
+                                         "witness=%u)",
+                       (unsigned)m->node, (unsigned long)m->level_mj, (unsigned)m->flags,
+                       (unsigned)m->seq, (unsigned)m->witness);
+    } else if (m->type == CANERGY_RETURN || m->type == CANERGY_DEBIT) {
+        (void)snprintf(out, GW_MSG_TEXT, "%s(node=%u, seq=%u, amount_mj=%u)",
+                       m->type == CANERGY_RETURN ? "Return" : "Debit", (unsigned)m->node,
+                       (unsigned)m->seq, (unsigned)m->amount_mj);
+    } else {
+        (void)snprintf(out, GW_MSG_TEXT, "type 0x%X (node=%u)", (unsigned)m->type,
+                       (unsigned)m->node);
+    }
+}
+
 /* Python's Rate: the current window's count plus the previous one's, weighted by how much of it
  * still lies within the last second. */
 static void rate_roll(struct gw_rate *r, uint64_t now)

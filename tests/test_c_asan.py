@@ -37,6 +37,7 @@ UNDER_ASAN = [
     "test_c_witness.py",
     "test_c_gateway_nv.py",
     "test_c_gateway_down_auth.py",
+    "test_c_gateway_joins.py",
     "test_gateway_cores.py",
 ]
 

@@ -34,13 +34,14 @@ CODEC = Codec()
 
 @pytest.fixture(scope="module")
 def harness(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The harness built with the library and the port's warnings."""
+    """The harness built with the library and the port's warnings, under ASan and UBSan."""
     binary = tmp_path_factory.mktemp("harness") / "gateway-below"
     sources = [str(ROOT / "tests/support/gateway_below_harness.c")]
     sources += [str(FIRMWARE / "ports/linux" / name) for name in PORT]
     sources += sorted(str(p) for p in (FIRMWARE / "src").glob("*.c"))
     include = ["-I", str(FIRMWARE / "include"), "-I", str(FIRMWARE / "ports/linux")]
-    cmd = ["cc", *WARN, "-O1", "-DCANERGY_SUPERVISOR_NODES=127U", *include, *sources]
+    asan = ["-g", "-fsanitize=address,undefined", "-fno-sanitize-recover=all"]
+    cmd = ["cc", *WARN, "-O1", *asan, "-DCANERGY_SUPERVISOR_NODES=127U", *include, *sources]
     built = subprocess.run([*cmd, "-o", str(binary)], capture_output=True, text=True, timeout=300)
     assert built.returncode == 0, built.stderr
     return binary

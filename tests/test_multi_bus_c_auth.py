@@ -487,19 +487,26 @@ def test_each_bus_in_c_verifies_and_signs_under_the_keys_its_bus_was_given(fd: b
     assert frames == signed_under(1, intention, Direction.TO_SUPERVISOR)
     assert frames != signed_under(0, intention, Direction.TO_SUPERVISOR)
 
-    def answer(msg: Message, bus: int) -> tuple[int, list[Any]]:
-        sent = signed_under(bus, msg, Direction.TO_CLIENT)
+    def answer(msg: Message, key: int, on: int) -> tuple[int, list[Any]]:
+        """``msg`` signed under bus ``key``'s keys, on bus ``on``."""
+        sent = signed_under(key, msg, Direction.TO_CLIENT)
         if fd:
-            status, actions, _, _ = core.auth_answer_on(1)(*sent[0], True, False, 100, False)
+            status, actions, _, _ = core.auth_answer_on(on)(*sent[0], True, False, 100, False)
         else:
             (data_id, data), (mac_id, mac) = sent
-            pair = core.auth_pair_on(1)
+            pair = core.auth_pair_on(on)
             status, actions, _, _ = pair(data_id, data, mac_id, mac, True, False, 100, False)
         return status, actions
 
-    assert answer(Ack(1, 1), 0)[0] != 0 and core.session(right1).phase is Phase.WAIT_ACK
-    assert answer(Ack(1, 1), 1)[0] == 0 and core.session(right1).phase is Phase.WAIT_CONFIRM
-    assert answer(Committed(1, 1), 0)[0] != 0
-    status, actions = answer(Committed(1, 1), 1)
+    assert answer(Ack(1, 1), 0, 1)[0] != 0 and core.session(right1).phase is Phase.WAIT_ACK
+    assert answer(Ack(1, 1), 1, 1)[0] == 0 and core.session(right1).phase is Phase.WAIT_CONFIRM
+    assert answer(Committed(1, 1), 0, 1)[0] != 0
+    status, actions = answer(Committed(1, 1), 1, 1)
     assert status == 0 and [a.node for a in actions if isinstance(a, Resolved)] == [right1]
     assert core.session(right1).delivered == J and core.session(session_key(0, 1)).tx == 0
+    left1 = session_key(0, 1)  # and the left bus's node 1 under the left bus's keys only
+    assert core.begin_protected(left1, J, 200)[1] == signed_under(
+        0, intention, Direction.TO_SUPERVISOR
+    )
+    assert answer(Ack(1, 1), 1, 0)[0] != 0 and core.session(left1).phase is Phase.WAIT_ACK
+    assert answer(Ack(1, 1), 0, 0)[0] == 0 and core.session(left1).phase is Phase.WAIT_CONFIRM

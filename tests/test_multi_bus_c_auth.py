@@ -203,6 +203,17 @@ def _scenario(tmp: Path, kind: str, fd: bool) -> tuple[dict[str, Any], Any, Any,
     return status, books, saved, run, counts
 
 
+def notes(run: _Run) -> list[tuple[Any, ...]]:
+    """Each bus's freshness notes: its ``FrameAuth``'s TELEMETRY floors, messages waiting for
+    their MAC frames and JOINs' FVs, and the FVs its ``OwnDirection`` noted as sent."""
+    out = []
+    for runtime in run.built.runtimes:
+        assert runtime.auth is not None and runtime.own is not None
+        auth = runtime.auth
+        out.append((auth.telemetry_floor, auth.pending, auth.join_fv, runtime.own.sent))
+    return out
+
+
 @release
 @pytest.mark.parametrize("fd", [True, False], ids=["fd", "classic"])
 def test_with_a_key_two_buses_on_the_c_frame_path_match_the_python_path(
@@ -217,6 +228,8 @@ def test_with_a_key_two_buses_on_the_c_frame_path_match_the_python_path(
     assert kinds["left"] == [Intention.TYPE, Commit.TYPE, Intention.TYPE, Abort.TYPE]
     assert kinds["right"] == [Intention.TYPE, Commit.TYPE] + [Intention.TYPE] * 3
     assert c_books == py_books
+    assert notes(c_run) == notes(py_run)
+    assert notes(c_run)[0][3] == {(1, False): 1, (2, False): 1}  # the FVs sent, left bus
     assert c_saved == py_saved and list(c_saved["sessions"]) == [
         "left/1",
         "left/2",

@@ -4,8 +4,9 @@ The C library is one supervisor per bus, as on a microcontroller: its sessions a
 the node id a frame carries. ``CompiledBuses`` holds one ``CompiledSupervisor`` per bus and
 takes the service's session keys (``bus << 8 | node``, ``canergy.bus_keys``), handing each call
 to the bus's supervisor with the plain node id and keying what comes back. A frame is only ever
-handed to the supervisor of the bus it arrived on (``answer_on``): node 5 on bus A never reaches
-bus B's session of node 5.
+handed to the supervisor of the bus it arrived on (``answer_on``; with a key ``auth_answer_on``,
+``auth_pair_on``, each bus's supervisor holding its bus's node keys, ``use_keys``): node 5 on
+bus A never reaches bus B's session of node 5.
 
 The usable budget Us is one pool. The supervisors' Us summed is Us: the state file stores the
 sum (``state``), a start loads it into the first bus's supervisor, and a grant on a bus first

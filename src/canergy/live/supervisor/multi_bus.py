@@ -6,8 +6,9 @@ on two buses are two sessions. A ``BusPort`` per bus stands between its runtime 
 and every message the service returns is sent on the bus its key names, as a plain node id.
 Only the first port runs the service's deadlines (``BusGroup`` asks every runtime). On the
 compiled core (``canergy.ccore.buses``) each bus's runtime has that bus's frame path
-(``SupervisorService.frame_path(bus=)``), and the frames C encoded name their bus
-(``RawFrame.bus``).
+(``SupervisorService.frame_path(bus=)``; with a key, verified and protected in that bus's
+supervisor in C under the keys of that bus's ``FrameAuth``), and the frames C encoded name
+their bus (``RawFrame.bus``).
 """
 
 from __future__ import annotations

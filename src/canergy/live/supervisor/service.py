@@ -766,11 +766,9 @@ class SupervisorService:
         ``bus``: as ``fast_frame``'s (its keys and counters are that bus's)."""
         if self.config.listen_only or not self._passes:
             return False
-        if bus:
-            answer, auth = self._auth_answers[bus], self._frame_auths[bus]
-        else:
-            answer, auth = self._auth_answer, self._frame_auth  # type: ignore[assignment]
-            assert answer is not None and auth is not None
+        answer = self._auth_answers[bus] if bus else self._auth_answer
+        auth = self._frame_auths[bus] if bus else self._frame_auth
+        assert answer is not None and auth is not None
         ident = frame.arbitration_id
         status, actions, frames, fv = answer(
             ident, frame.data, frame.is_extended_id, frame.is_remote_frame, now, self.stopping
@@ -795,11 +793,9 @@ class SupervisorService:
         ident = frame.arbitration_id
         if ident >> 8 & 0xF != _MAC_TO_SUPERVISOR or self.config.listen_only or not self._passes:
             return False
-        if bus:
-            pair, auth = self._auth_pairs[bus], self._frame_auths[bus]
-        else:
-            pair, auth = self._auth_pair, self._frame_auth  # type: ignore[assignment]
-            assert pair is not None and auth is not None
+        pair = self._auth_pairs[bus] if bus else self._auth_pair
+        auth = self._frame_auths[bus] if bus else self._frame_auth
+        assert pair is not None and auth is not None
         node = ident & 0xFF
         waiting = auth.pending.get(node)
         if waiting is None or waiting[0].TYPE not in _ANSWERS:

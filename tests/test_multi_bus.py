@@ -220,8 +220,14 @@ def test_one_bus_given_with_bus_takes_a_plain_node_id_too(tmp_path: Path) -> Non
     assert host.nodes[3].client.state.usable == 1_000_000
 
 
-def test_authenticated_buses_check_each_node_with_its_own_counters(tmp_path: Path) -> None:
-    """--auth over two buses: each port finds its node's freshness under its session key."""
+@pytest.mark.parametrize("core", ["python", "c"])
+def test_authenticated_buses_check_each_node_with_its_own_counters(
+    tmp_path: Path, core: str
+) -> None:
+    """--auth over two buses: each port finds its node's freshness under its session key. On
+    the C core each bus's answers are verified, ruled and signed in C (no fallback)."""
+    if core == "c" and missing() is not None:
+        pytest.fail(f"the compiled core is not built: {missing()}")
     assert main(["keys", "-o", str(tmp_path / "m.key")]) == 0
     master = load_key(tmp_path / "m.key")
     channels = {name: f"auth-{name}-{uuid.uuid4().hex}" for name in ("a", "b")}
@@ -231,11 +237,14 @@ def test_authenticated_buses_check_each_node_with_its_own_counters(tmp_path: Pat
     }
     argv = [f"--bus=a=virtual:{channels['a']}:1", f"--bus=b=virtual:{channels['b']}:2"]
     argv += ["--auth", str(tmp_path / "m.key"), "--state", str(tmp_path / "s.json")]
+    argv += ["--core", core]
     status = tmp_path / "status.json"
+    taken = []
     try:
         with _supervisor(tmp_path, [*argv, "--status-file", str(status), "--no-fsync"]) as ctl:
-            assert _grant(ctl, "a/1", 700_000)["outcome"] == "COMMITTED"
-            assert _grant(ctl, "b/2", 300_000)["outcome"] == "COMMITTED"
+            for node, amount in (("a/1", 700_000), ("b/2", 300_000)):
+                assert _grant(ctl, node, amount)["outcome"] == "COMMITTED"
+                taken.append(request(ctl, {"status": True}, 30)["frame_path_frames"])
     finally:
         for _, loop in hosts.values():
             loop.halt()
@@ -243,6 +252,11 @@ def test_authenticated_buses_check_each_node_with_its_own_counters(tmp_path: Pat
     assert hosts["b"][0].nodes[2].client.state.usable == 300_000
     final = json.loads(status.read_text())
     assert final["intrusions"] == 0 and final["auth_failures"] == {}, final["auth_failures"]
+    assert (final["core"], final["frame_path"]) == (core, core)
+    if core == "c":  # each bus's ACK and COMMITTED at least
+        assert taken[0] >= 2 and taken[0] + 2 <= taken[1] <= final["frame_path_frames"], taken
+    else:
+        assert taken == [0, 0]
 
 
 def _books(sessions: tuple[Session, ...]) -> SupervisorState:

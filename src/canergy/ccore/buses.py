@@ -4,8 +4,9 @@ The C library is one supervisor per bus, as on a microcontroller: its sessions a
 the node id a frame carries. ``CompiledBuses`` holds one ``CompiledSupervisor`` per bus and
 takes the service's session keys (``bus << 8 | node``, ``canergy.bus_keys``), handing each call
 to the bus's supervisor with the plain node id and keying what comes back. A frame is only ever
-handed to the supervisor of the bus it arrived on (``answer_on``): node 5 on bus A never reaches
-bus B's session of node 5.
+handed to the supervisor of the bus it arrived on (``answer_on``; with a key ``auth_answer_on``,
+``auth_pair_on``, each bus's supervisor holding its bus's node keys, ``use_keys``): node 5 on
+bus A never reaches bus B's session of node 5.
 
 The usable budget Us is one pool. The supervisors' Us summed is Us: the state file stores the
 sum (``state``), a start loads it into the first bus's supervisor, and a grant on a bus first
@@ -26,7 +27,13 @@ from typing import Any, Generic, TypeVar, cast
 from canergy.bus_keys import bus_of, node_of, session_key
 from canergy.ccore.grants import CompiledGrantCaps
 from canergy.ccore.joins import CompiledJoinHold
-from canergy.ccore.supervisor import Answer, CompiledHeard, CompiledSupervisor
+from canergy.ccore.supervisor import (
+    Answer,
+    AuthAnswer,
+    AuthPair,
+    CompiledHeard,
+    CompiledSupervisor,
+)
 from canergy.ccore.witness import CompiledReturnGate
 from canergy.core.actions import (
     Acknowledged,
@@ -161,6 +168,15 @@ class CompiledBuses:
         actions, frames = part.begin_encoded(node_of(node), amount, now)
         return self._keyed_actions(bus_of(node), actions), frames
 
+    def begin_protected(
+        self, node: int, amount: int, now: int
+    ) -> tuple[list[Action], list[tuple[int, bytes]]]:
+        """``begin`` with its INTENTION protected in C under the node's key (``use_keys``),
+        to send on the node's bus (``CompiledSupervisor.begin_protected``)."""
+        part = self._granting(node)
+        actions, frames = part.begin_protected(node_of(node), amount, now)
+        return self._keyed_actions(bus_of(node), actions), frames
+
     def _granting(self, node: int) -> CompiledSupervisor:
         """The supervisor of ``node``'s bus, holding the whole pool, once every bus's nodes
         have confirmed their books (``LocalProtocolError`` otherwise)."""
@@ -219,6 +235,55 @@ class CompiledBuses:
             if msg is not None:
                 msg = replace(msg, node=session_key(bus, msg.node))
             return status, actions, frames, msg, verdict
+
+        return on_bus
+
+    def use_keys(
+        self, key_for: Callable[[int], bytes], *, classic: bool = False, bus: int | None = None
+    ) -> None:
+        """Authenticated mode (``CompiledSupervisor.use_keys``): the keys of bus ``bus``'s
+        nodes (None: every bus's) set up in its supervisor, ``key_for`` taking the plain node
+        id as that bus's ``FrameAuth`` does."""
+        for part in self._parts if bus is None else [self._parts[bus]]:
+            part.use_keys(key_for, classic=classic)
+
+    def auth_answer_on(self, bus: int) -> AuthAnswer:
+        """Bus ``bus``'s frame path with a key, FD layout, into its own supervisor
+        (``CompiledSupervisor.on_auth_answer``, what it does keyed): verified under that bus's
+        keys against that bus's sessions' counters."""
+        answer = self._parts[bus].on_auth_answer
+
+        def on_bus(
+            arbitration_id: int,
+            data: bytes | bytearray,
+            extended: bool,
+            remote: bool,
+            now: int,
+            abort: bool,
+        ) -> tuple[int, list[Action], list[tuple[int, bytes]], int]:
+            status, actions, frames, fv = answer(arbitration_id, data, extended, remote, now, abort)
+            return status, self._keyed_actions(bus, actions) if actions else actions, frames, fv
+
+        return on_bus
+
+    def auth_pair_on(self, bus: int) -> AuthPair:
+        """``auth_answer_on`` in the classic layout (``CompiledSupervisor.on_auth_pair``)."""
+        pair = self._parts[bus].on_auth_pair
+
+        def on_bus(
+            data_id: int,
+            data: bytes,
+            mac_id: int,
+            mac: bytes | bytearray,
+            extended: bool,
+            remote: bool,
+            now: int,
+            abort: bool,
+        ) -> tuple[int, list[Action], list[tuple[int, bytes]], int]:
+            status, actions, frames, fv = pair(
+                data_id, data, mac_id, mac, extended, remote, now, abort
+            )
+            return status, self._keyed_actions(bus, actions) if actions else actions, frames, fv
 
         return on_bus
 

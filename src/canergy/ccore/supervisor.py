@@ -64,6 +64,16 @@ Answer = Callable[
     tuple[int, list[Action], list[tuple[int, bytes]], Message | None, int],
 ]
 """``CompiledSupervisor.on_answer``'s signature: one bus's frame path into the C core."""
+AuthAnswer = Callable[
+    [int, bytes | bytearray, bool, bool, int, bool],
+    tuple[int, list[Action], list[tuple[int, bytes]], int],
+]
+"""``CompiledSupervisor.on_auth_answer``'s: one bus's frame path with a key (FD layout)."""
+AuthPair = Callable[
+    [int, bytes, int, bytes | bytearray, bool, bool, int, bool],
+    tuple[int, list[Action], list[tuple[int, bytes]], int],
+]
+"""``CompiledSupervisor.on_auth_pair``'s: one bus's frame path with a key (classic layout)."""
 
 
 class CoreMissing(RuntimeError):
@@ -571,10 +581,29 @@ class CompiledSupervisor:
             raise ValueError(f"the C core on one bus has no bus {bus}")
         return self.on_answer
 
-    def use_keys(self, key_for: Callable[[int], bytes], *, classic: bool = False) -> None:
+    def auth_answer_on(self, bus: int) -> AuthAnswer:
+        """The frame path with a key of bus ``bus`` (``on_auth_answer``): this supervisor has
+        one bus, 0."""
+        if bus:
+            raise ValueError(f"the C core on one bus has no bus {bus}")
+        return self.on_auth_answer
+
+    def auth_pair_on(self, bus: int) -> AuthPair:
+        """The classic layout's frame path with a key of bus ``bus`` (``on_auth_pair``): this
+        supervisor has one bus, 0."""
+        if bus:
+            raise ValueError(f"the C core on one bus has no bus {bus}")
+        return self.on_auth_pair
+
+    def use_keys(
+        self, key_for: Callable[[int], bytes], *, classic: bool = False, bus: int | None = None
+    ) -> None:
         """Authenticated mode: each managed node's key (``key_for(node)``, 16 bytes, as
         ``FrameAuth`` takes them) set up in C for ``on_auth_answer`` (FD layout) or, with
-        ``classic``, ``on_auth_pair`` (classic layout); ``begin_protected`` in either."""
+        ``classic``, ``on_auth_pair`` (classic layout); ``begin_protected`` in either.
+        ``bus``: as ``CompiledBuses.use_keys`` takes it (this supervisor has one bus, 0)."""
+        if bus:
+            raise ValueError(f"the C core on one bus has no bus {bus}")
         b = self._b
         count = len(self._sessions)
         keys = b.ffi.new("struct canergy_auth[]", count)

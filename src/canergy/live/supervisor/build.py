@@ -381,15 +381,10 @@ def _several(
     counters = {name: BusCounters() for name in names}
     service = SupervisorService(core, config.service, clock(), buses=counters, control=control)
     router = BusRouter()
-    off = (
-        _LISTEN_OFF
-        if config.service.listen_only
-        else None
-        if config.auth is None
-        else _SEVERAL_AUTH_OFF
-    )
+    off = _LISTEN_OFF if config.service.listen_only else None
     for i, (name, bus) in enumerate(zip(names, buses, strict=True)):
         port = BusPort(service, i, router, deadlines=i == 0)
+        auth = _frame_auth(config, codec, port.freshness)
         router.runtimes.append(
             BusRuntime(
                 bus,
@@ -397,10 +392,10 @@ def _several(
                 codec=codec,
                 receives=Direction.TO_SUPERVISOR,
                 listen_only=config.service.listen_only,
-                auth=_frame_auth(config, codec, port.freshness),
+                auth=auth,
                 counters=counters[name],
                 clock=clock,
-                frame_path=service.frame_path(off, None, i),
+                frame_path=service.frame_path(off, auth, i),
             )
         )
     runtimes = tuple(router.runtimes)
@@ -417,10 +412,6 @@ def _several(
 
 
 _LISTEN_OFF = "--listen-only: every frame is only read, on the usual path"
-_SEVERAL_AUTH_OFF = (
-    "--auth over several buses: frames are checked and signed in Python (the C frame path "
-    "takes a key on one bus only)"
-)
 
 
 def _frame_auth(config: SupervisorConfig, codec: Codec, freshness: Any) -> Any:

@@ -6,8 +6,9 @@ on two buses are two sessions. A ``BusPort`` per bus stands between its runtime 
 and every message the service returns is sent on the bus its key names, as a plain node id.
 Only the first port runs the service's deadlines (``BusGroup`` asks every runtime). On the
 compiled core (``canergy.ccore.buses``) each bus's runtime has that bus's frame path
-(``SupervisorService.frame_path(bus=)``), and the frames C encoded name their bus
-(``RawFrame.bus``).
+(``SupervisorService.frame_path(bus=)``; with a key, verified and protected in that bus's
+supervisor in C under the keys of that bus's ``FrameAuth``), and the frames C encoded name
+their bus (``RawFrame.bus``).
 """
 
 from __future__ import annotations
@@ -93,13 +94,24 @@ class BusRouter:
 
     def send(self, messages: Sequence[Outgoing]) -> Sequence[Message]:
         """Send ``messages``; returns nothing left for the caller's own bus to send. A frame
-        the compiled core encoded (``RawFrame``) goes to the bus it names, as it is."""
+        the compiled core encoded (``RawFrame``) goes to the bus it names, as it is. Each run
+        of messages for one bus goes to its runtime in one call, in order: a classic frame C
+        protected and the MAC frame after it are sent (and noted as this side's) together."""
+        run: list[Outgoing] = []
+        run_bus = 0
         for msg in messages:
+            out: Outgoing
             if isinstance(msg, RawFrame):
-                self.runtimes[msg.bus].send_messages([msg])
-                continue
-            plain = replace(msg, node=node_of(msg.node))
-            self.runtimes[bus_of(msg.node)].send_messages([plain])
+                bus, out = msg.bus, msg
+            else:
+                bus, out = bus_of(msg.node), replace(msg, node=node_of(msg.node))
+            if run and bus != run_bus:
+                self.runtimes[run_bus].send_messages(run)
+                run = []
+            run_bus = bus
+            run.append(out)
+        if run:
+            self.runtimes[run_bus].send_messages(run)
         return ()
 
 

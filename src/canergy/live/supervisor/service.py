@@ -247,6 +247,14 @@ class SupervisorService:
         self._auth_pair: AuthPair | None = None
         """Its classic layout's (``fast_auth_pair``), once set up."""
         self._frame_auth: FrameAuth | None = None
+        """The bus loop's ``FrameAuth`` (bus 0's over several buses): what C verified is
+        noted there."""
+        self._auth_answers: dict[int, AuthAnswer] = {}
+        self._auth_pairs: dict[int, AuthPair] = {}
+        self._frame_auths: dict[int, FrameAuth] = {}
+        """With a key, by bus index (over several buses; bus 0's also above): each bus's
+        frame path into its own supervisor in C (FD or classic layout) and its bus loop's
+        ``FrameAuth``."""
         self._begin_encoded: EncodedBegin | None = None
         """The compiled core's ``begin`` with its frame as C encoded it, once a bus loop without
         a key took the fast path (``frame_path``): an INTENTION then leaves as C's bytes (with a
@@ -661,7 +669,9 @@ class SupervisorService:
         in a loop pass is protected in C too.
 
         ``bus``: over several buses, the index of the bus whose loop asks (each asks with the
-        same ``off`` and no key): that bus's frames go to its own supervisor in C."""
+        same ``off`` and, with a key, its own ``FrameAuth`` in the same layout): that bus's
+        frames go to its own supervisor in C, verified under the keys that bus's ``FrameAuth``
+        gives. An INTENTION is protected in C once every bus's loop has asked."""
         if self._answer_on is None:
             self._path = ("python", None)
             return None
@@ -669,26 +679,36 @@ class SupervisorService:
             self._path = ("python", off)
             return None
         if auth is not None:
-            if bus:
-                raise ValueError("the compiled core's frame path with a key: on one bus only")
-            classic = auth.layout is Layout.CLASSIC
-            core: Any = self.core  # the compiled core
-            core.use_keys(auth.key_for, classic=classic)
-            self._begin_encoded = core.begin_protected
-            self._begin_fd = not classic
-            self._frame_auth = auth
-            self._path = ("c", None)
-            if classic:
-                self._auth_pair = core.on_auth_pair
-                return self.fast_auth_pair
-            self._auth_answer = core.on_auth_answer
-            return self.fast_auth_frame
+            return self._keyed_path(auth, bus)
         self._path = ("c", None)
         self._begin_encoded = getattr(self.core, "begin_encoded", None)
         if not bus:
             return self.fast_frame
         self._answers[bus] = self._answer_on(bus)
         return partial(self.fast_frame, bus=bus)
+
+    def _keyed_path(self, auth: FrameAuth, bus: int) -> FramePath:
+        """``frame_path`` with a key, for bus ``bus``'s loop and its ``auth``."""
+        classic = auth.layout is Layout.CLASSIC
+        if self._frame_auths and self._begin_fd == classic:
+            raise ValueError("the compiled core's frame path with a key: one layout on every bus")
+        core: Any = self.core  # the compiled core
+        core.use_keys(auth.key_for, classic=classic, bus=bus)
+        self._frame_auths[bus] = auth
+        if classic:
+            self._auth_pairs[bus] = core.auth_pair_on(bus)
+        else:
+            self._auth_answers[bus] = core.auth_answer_on(bus)
+        self._begin_fd = not classic
+        if len(self._frame_auths) == max(1, len(self.config.bus_names)):
+            self._begin_encoded = core.begin_protected  # every bus's nodes have their keys
+        self._path = ("c", None)
+        if not bus:
+            self._frame_auth = auth
+            self._auth_pair = self._auth_pairs.get(0)
+            self._auth_answer = self._auth_answers.get(0)
+        fast = self.fast_auth_pair if classic else self.fast_auth_frame
+        return fast if not bus else partial(fast, bus=bus)
 
     def fast_frame(self, frame: can.Message, now: int, bus: int = 0) -> bool:
         """The compiled core's fast path, for a frame the bus loop has not decoded: an ACK,
@@ -737,27 +757,31 @@ class SupervisorService:
         self._answered(node, [RawFrame(i, d, False, bus) for i, d in frames], actions, now)
         return True
 
-    def fast_auth_frame(self, frame: can.Message, now: int) -> bool:
+    def fast_auth_frame(self, frame: can.Message, now: int, bus: int = 0) -> bool:
         """``fast_frame`` with a key, FD layout: an ACK, COMMITTED or ABORTED of a managed node
         is verified (MAC, freshness), taken by the rules and answered with frames protected in
         one C call; what it shows of the node's freshness is noted (``FrameAuth.took``). False,
         nothing done: any other frame (TELEMETRY, JOIN, RETURN, DEBIT, the own direction), one
-        refused (the loop's usual path counts and reports it), an answer ahead of the session."""
+        refused (the loop's usual path counts and reports it), an answer ahead of the session.
+        ``bus``: as ``fast_frame``'s (its keys and counters are that bus's)."""
         if self.config.listen_only or not self._passes:
             return False
-        assert self._auth_answer is not None and self._frame_auth is not None
+        answer = self._auth_answers[bus] if bus else self._auth_answer
+        auth = self._frame_auths[bus] if bus else self._frame_auth
+        assert answer is not None and auth is not None
         ident = frame.arbitration_id
-        status, actions, frames, fv = self._auth_answer(
+        status, actions, frames, fv = answer(
             ident, frame.data, frame.is_extended_id, frame.is_remote_frame, now, self.stopping
         )
         if status:
             return False
         node = ident & 0xFF
-        self._frame_auth.took(MsgType(ident >> 8 & 0xF), node, fv)
-        self._answered(node, [RawFrame(i, d, True) for i, d in frames], actions, now)
+        auth.took(MsgType(ident >> 8 & 0xF), node, fv)
+        sent: list[Outgoing] = [RawFrame(i, d, True, bus) for i, d in frames]
+        self._answered(node | bus << BUS_SHIFT, sent, actions, now)
         return True
 
-    def fast_auth_pair(self, frame: can.Message, now: int) -> bool:
+    def fast_auth_pair(self, frame: can.Message, now: int, bus: int = 0) -> bool:
         """``fast_auth_frame`` in the classic layout: the MAC frame of an ACK, COMMITTED or
         ABORTED of a managed node, with the message the loop's ``FrameAuth`` keeps for it,
         goes to C, where the pair is verified, taken by the rules and answered with frames
@@ -765,25 +789,27 @@ class SupervisorService:
         more. False, nothing done (the message still waits): any other frame (a message
         waits for its MAC frame on the usual path), a MAC frame without such a message, one
         refused (the usual path pairs, counts and reports it as ever), an answer ahead of the
-        session."""
+        session. ``bus``: as ``fast_frame``'s (its loop's ``FrameAuth`` keeps the message)."""
         ident = frame.arbitration_id
         if ident >> 8 & 0xF != _MAC_TO_SUPERVISOR or self.config.listen_only or not self._passes:
             return False
-        auth = self._frame_auth
-        assert self._auth_pair is not None and auth is not None
+        pair = self._auth_pairs[bus] if bus else self._auth_pair
+        auth = self._frame_auths[bus] if bus else self._frame_auth
+        assert pair is not None and auth is not None
         node = ident & 0xFF
         waiting = auth.pending.get(node)
         if waiting is None or waiting[0].TYPE not in _ANSWERS:
             return False
         msg, data = waiting
-        status, actions, frames, fv = self._auth_pair(
+        status, actions, frames, fv = pair(
             auth.codec.arbitration_id(msg.TYPE, node), data, ident, frame.data,
             frame.is_extended_id, frame.is_remote_frame, now, self.stopping,
         )  # fmt: skip
         if status:
             return False
         auth.took_waiting(node, fv)
-        self._answered(node, [RawFrame(i, d) for i, d in frames], actions, now)
+        sent: list[Outgoing] = [RawFrame(i, d, False, bus) for i, d in frames]
+        self._answered(node | bus << BUS_SHIFT, sent, actions, now)
         return True
 
     def _answered(self, node: int, frames: list[Outgoing], actions: list[Action], now: int) -> None:

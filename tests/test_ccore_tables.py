@@ -367,6 +367,11 @@ def _witness_step(b: _Bench, step: tuple[Any, ...], witness: dict[int, int]) -> 
 
 @settings(max_examples=100, deadline=None)
 @given(_witness_steps)
+@example(  # a RETURN credited that the books never gave (a silent node's, confirmed by a forged
+    # TELEMETRY): the books then let the node hold less than nothing, and its next RETURN is
+    # evidence on both paths (C once compared unsigned, wrapped, and saw none)
+    [("return", 3, 2, 1), ("telemetry", 3, 0, 2, 0), ("wait", HOLD_US), ("return", 3, 1, 1)]
+)
 def test_the_c_frame_path_holds_returns_as_the_python_path(steps: list[tuple[Any, ...]]) -> None:
     """Without a key (``return_hold_us``): frame for frame the same frames, books and status
     (returns held, refuted, resynchronised, credited), the same evidence in the same words (a

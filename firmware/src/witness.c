@@ -225,9 +225,12 @@ bool canergy_witness_beyond_books(const struct canergy_session *s, const struct 
     const bool debits = m->type == CANERGY_RETURN ||
                         (m->type == CANERGY_DEBIT &&
                          (m->flags & (CANERGY_DEBIT_SYNC | CANERGY_DEBIT_BOOKS)) == 0U);
-    const uint64_t holdable = s->delivered_uj + s->reserved_uj - s->returned_uj;
+    /* books returned past what they gave (a forged RETURN credited while the node was off)
+     * let it hold less than nothing: any debit is beyond them (no unsigned wrap) */
+    const uint64_t given = s->delivered_uj + s->reserved_uj;
     return debits && serial16(m->seq, s->returns_credited) == 1 &&
-           (uint64_t)m->amount_mj * CANERGY_QUANTUM_UJ > holdable;
+           (s->returned_uj > given ||
+            (uint64_t)m->amount_mj * CANERGY_QUANTUM_UJ > given - s->returned_uj);
 }
 
 static enum canergy_witness_route route(struct canergy_witness *w,

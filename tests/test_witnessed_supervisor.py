@@ -15,6 +15,7 @@ from canergy.check import Bounds, check
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
 from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing
 from canergy.core import witnessed as W
+from canergy.core.inputs import RESPONSE_TIMEOUT, Begin, PowerLoss
 from canergy.core.state import ClientState, Phase, Session
 from canergy.core.steps import ClientStep, SessionStep
 from canergy.core.table import cell
@@ -216,3 +217,77 @@ def test_each_supervisor_witnessing_rule_is_needed(variant: Variant) -> None:
     result = check(variant, SUP_COPY, stop_at_first=True, engine="compact")
     assert result.counterexample is not None
     assert any(step.kind.value == "supervisor_old_copy" for step, _ in result.counterexample)
+
+
+def _sent(step: SessionStep | ClientStep) -> list[Message]:
+    return [a.message for a in step.actions if isinstance(a, Send)]
+
+
+def _two_starts_with_one_sync_nonce() -> tuple[Session, ClientState]:
+    """A SYNC re-sent by its timer, one copy answered and its counts taken; the node loses
+    power while it waits and the other copy reaches its RESUME: a second start of the node with
+    the supervisor's nonce, its counts ``B`` further. The supervisor takes them for the first
+    start's counts again (same nonce and q, C unchanged) and answers again with its tx; the
+    node takes that answer as its own."""
+    t = Timing()
+    s = Session(node=1, tx=10, witness=10, returns_credited=3)
+    c = ClientState(node=1, last_tx=10, return_seq=3, usable=5000, credited=5000)
+    s = W.SUPERVISOR.step(t, s, PowerLoss(0x1234), 0).session
+    step = W.SUPERVISOR.step(t, s, RESPONSE_TIMEOUT, 0)
+    s, (first,) = step.session, _sent(step)
+    step = W.SUPERVISOR.step(t, s, RESPONSE_TIMEOUT, t.response_timeout_us)
+    s, (second,) = step.session, _sent(step)
+    assert first == second
+    answer = W.CLIENT.step(t, c, first, 0)
+    c, (books, counts) = answer.client, _sent(answer)
+    s = W.SUPERVISOR.step(t, s, books, 0).session
+    step = W.SUPERVISOR.step(t, s, counts, 0)
+    s, (confirmation,) = step.session, _sent(step)
+    assert s.phase is Phase.IDLE and s.tx == s.witness == 10 + t.window
+    c = W.CLIENT.step(t, c, PowerLoss(0x5678), 0).client
+    answer = W.CLIENT.step(t, c, second, 0)
+    c, (_, counts) = answer.client, _sent(answer)
+    assert c.phase is Phase.SYNCING and c.nonce == 0x1234 and c.last_tx == 10 + 2 * t.window
+    step = W.SUPERVISOR.step(t, s, counts, 0)
+    assert step.session == s and _sent(step) == [confirmation]  # the same answer again
+    c = W.CLIENT.step(t, c, confirmation, 0).client
+    assert c.phase is Phase.IDLE and c.usable == 5000  # confirmed: nothing moved
+    return s, c
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 40: a second start of a node with the supervisor's SYNC nonce takes the "
+    "repeated answer to the first; its ltx stays ahead of the supervisor's tx and W, and the "
+    "window's transactions are written off until the node starts again (canergy prove "
+    "--rules witnessed: 'supervisor receives DEBIT: P(ADMIT) sent')",
+)
+def test_a_repeated_answer_confirms_no_start_whose_ltx_is_ahead_of_tx() -> None:
+    """The witnessed invariant's numbering (a node with books is never ahead of the
+    supervisor's tx) in a trace of the tables: false today, so the proof's assumption that an
+    ADMIT with the nonce the node's current start expects answers that start is not a fact."""
+    s, c = _two_starts_with_one_sync_nonce()
+    assert c.last_tx <= s.tx
+
+
+def test_the_start_that_took_a_repeated_answer_creates_no_energy() -> None:
+    """The same trace today: the node takes none of the window's transactions (at or below its
+    ltx: old), each is written off (the supervisor loses it, the node holds no more), then no
+    grant begins (beyond the window) until the node starts again."""
+    t = Timing()
+    s, c = _two_starts_with_one_sync_nonce()
+    written_off, now = 0, t.response_timeout_us
+    while True:
+        try:
+            step = W.SUPERVISOR.step(t, s, Begin(1000), now)
+        except LocalProtocolError:
+            break
+        s, (intention,) = step.session, _sent(step)
+        assert not _sent(W.CLIENT.step(t, c, intention, now))
+        while s.phase is not Phase.IDLE:
+            now += t.response_timeout_us
+            s = W.SUPERVISOR.step(t, s, RESPONSE_TIMEOUT, now).session
+        written_off += 1
+    assert written_off == t.window and s.tx == c.last_tx == s.witness + t.window
+    assert c.usable == c.credited == 5000  # the books took Gs up to Rc, then the write-offs
+    assert s.delivered == c.credited + written_off * 1000

@@ -21,7 +21,7 @@ from canergy.core.steps import ClientStep, SessionStep
 from canergy.core.table import cell
 from canergy.core.variants import Variant
 from canergy.frozen import evolve
-from canergy.messages import Admit, Debit, Direction, Message
+from canergy.messages import SYNC_CONFIRMED, Admit, Debit, Direction, Message
 
 CODEC = Codec()
 nodes = st.integers(1, 127)
@@ -223,12 +223,16 @@ def _sent(step: SessionStep | ClientStep) -> list[Message]:
     return [a.message for a in step.actions if isinstance(a, Send)]
 
 
-def _two_starts_with_one_sync_nonce() -> tuple[Session, ClientState]:
+def test_a_start_that_answered_a_copy_of_the_same_sync_is_confirmed_at_its_ltx() -> None:
     """A SYNC re-sent by its timer, one copy answered and its counts taken; the node loses
     power while it waits and the other copy reaches its RESUME: a second start of the node with
-    the supervisor's nonce, its counts ``B`` further. The supervisor takes them for the first
-    start's counts again (same nonce and q, C unchanged) and answers again with its tx; the
-    node takes that answer as its own."""
+    the supervisor's nonce, its counts ``B`` further, and otherwise a repeat of the first
+    (same nonce and q, C unchanged). The supervisor moves tx and W up to their ltx and answers
+    with the same C: the node keeps its books at tx and takes the next intention. Before, the
+    same answer came again (k ``B`` below that ltx): the node stayed ahead of tx and W, the
+    window's 64 transactions were written off and then every begin refused until the node
+    started again; the witnessed proof's counterexample to 'supervisor receives DEBIT: P(ADMIT)
+    sent'."""
     t = Timing()
     s = Session(node=1, tx=10, witness=10, returns_credited=3)
     c = ClientState(node=1, last_tx=10, return_seq=3, usable=5000, credited=5000)
@@ -249,45 +253,34 @@ def _two_starts_with_one_sync_nonce() -> tuple[Session, ClientState]:
     c, (_, counts) = answer.client, _sent(answer)
     assert c.phase is Phase.SYNCING and c.nonce == 0x1234 and c.last_tx == 10 + 2 * t.window
     step = W.SUPERVISOR.step(t, s, counts, 0)
-    assert step.session == s and _sent(step) == [confirmation]  # the same answer again
-    c = W.CLIENT.step(t, c, confirmation, 0).client
-    assert c.phase is Phase.IDLE and c.usable == 5000  # confirmed: nothing moved
-    return s, c
+    s, (again,) = step.session, _sent(step)
+    assert isinstance(again, Admit) and isinstance(confirmation, Admit)
+    assert s.tx == s.witness == c.last_tx and step.credit == 0
+    assert (again.nonce, again.seq) == (confirmation.nonce, confirmation.seq)  # C unchanged
+    assert again.tx == c.last_tx != confirmation.tx
+    c = W.CLIENT.step(t, c, again, 0).client
+    assert c.phase is Phase.IDLE and c.usable == 5000 and c.last_tx == s.tx
+    step = W.SUPERVISOR.step(t, s, Begin(1000), t.response_timeout_us)
+    (intention,) = _sent(step)
+    assert _sent(W.CLIENT.step(t, c, intention, t.response_timeout_us))  # taken: ACK
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="issue 40: a second start of a node with the supervisor's SYNC nonce takes the "
-    "repeated answer to the first; its ltx stays ahead of the supervisor's tx and W, and the "
-    "window's transactions are written off until the node starts again (canergy prove "
-    "--rules witnessed: 'supervisor receives DEBIT: P(ADMIT) sent')",
-)
-def test_a_repeated_answer_confirms_no_start_whose_ltx_is_ahead_of_tx() -> None:
-    """The witnessed invariant's numbering (a node with books is never ahead of the
-    supervisor's tx) in a trace of the tables: false today, so the proof's assumption that an
-    ADMIT with the nonce the node's current start expects answers that start is not a fact."""
-    s, c = _two_starts_with_one_sync_nonce()
-    assert c.last_tx <= s.tx
-
-
-def test_the_start_that_took_a_repeated_answer_creates_no_energy() -> None:
-    """The same trace today: the node takes none of the window's transactions (at or below its
-    ltx: old), each is written off (the supervisor loses it, the node holds no more), then no
-    grant begins (beyond the window) until the node starts again."""
+def test_counts_repeated_with_an_ltx_above_tx_write_off_what_is_open() -> None:
+    """The repeat with a higher ltx while a transaction is open: written off (Gs += Ts, the
+    node settled it), tx and W up to the ltx, C and the remembered answer unchanged."""
     t = Timing()
-    s, c = _two_starts_with_one_sync_nonce()
-    written_off, now = 0, t.response_timeout_us
-    while True:
-        try:
-            step = W.SUPERVISOR.step(t, s, Begin(1000), now)
-        except LocalProtocolError:
-            break
-        s, (intention,) = step.session, _sent(step)
-        assert not _sent(W.CLIENT.step(t, c, intention, now))
-        while s.phase is not Phase.IDLE:
-            now += t.response_timeout_us
-            s = W.SUPERVISOR.step(t, s, RESPONSE_TIMEOUT, now).session
-        written_off += 1
-    assert written_off == t.window and s.tx == c.last_tx == s.witness + t.window
-    assert c.usable == c.credited == 5000  # the books took Gs up to Rc, then the write-offs
-    assert s.delivered == c.credited + written_off * 1000
+    s = Session(
+        node=1, phase=Phase.WAIT_ACK, tx=75, reserved=2000, delivered=5000, witness=74,
+        returns_credited=4, resume_nonce=0x11234, resume_from=3, resume_to=4,
+    )  # fmt: skip
+    counts = Debit.counts(1, 0x1234, 3, 138)
+    step = W.SUPERVISOR.step(t, s, counts, 0)
+    after = step.session
+    assert after.phase is Phase.IDLE and after.delivered == 7000 and after.reserved == 0
+    assert after.tx == after.witness == 138 and step.credit == 0
+    assert (after.returns_credited, after.resume_to, after.resume_from) == (4, 4, 3)
+    assert _sent(step) == [Admit(1, 0x1234 ^ SYNC_CONFIRMED, 138, 4)]
+    lower = W.SUPERVISOR.step(
+        t, replace(s, phase=Phase.IDLE, reserved=0), Debit.counts(1, 0x1234, 3, 70), 0
+    )
+    assert lower.session.tx == 75 and _sent(lower) == [Admit(1, 0x1234 ^ SYNC_CONFIRMED, 75, 4)]

@@ -413,6 +413,31 @@ def test_every_debit_cell_on_drawn_records(s: Session, t: Timing, data: st.DataO
         same(s, t, m, data.draw(st.integers(0, 10**9)), table=W.SUPERVISOR)
 
 
+@pytest.mark.parametrize("phase", [Phase.IDLE, Phase.WAIT_ACK])
+@pytest.mark.parametrize("ltx", [3, 4, 70, 0x8003, 0xFFF0])
+def test_counts_repeated_from_a_later_start_move_tx_up_in_c_as_in_python(
+    phase: Phase, ltx: int
+) -> None:
+    """The last answered counts again (same nonce and q, C unchanged) with an ltx above tx: C
+    moves tx and W up to it, what is open written off, as witnessed.py (below or at tx: the
+    same answer)."""
+    open_ = phase is not Phase.IDLE
+    s = Session(
+        1,
+        phase=phase,
+        tx=4,
+        reserved=2000 if open_ else 0,
+        delivered=3000,
+        returns_credited=5,
+        resume_nonce=9 | 1 << 16,
+        resume_from=4,
+        resume_to=5,
+        witness=3,
+        deadline=0 if open_ else None,
+    )
+    same(s, ST, Debit.counts(1, 9, 4, ltx), 0, table=W.SUPERVISOR)
+
+
 # -- issue 40, item 6: a C node restored from an older NV copy ---------------------------------
 
 J = 1_000_000

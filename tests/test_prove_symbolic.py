@@ -581,8 +581,35 @@ def test_a_resume_far_behind_a_lifted_count_is_voided_above_the_lift(tx: int) ->
             Session(1, returns_credited=5, resume_nonce=9 | 1 << 16, resume_from=4, resume_to=5),
             Debit.counts(1, 9, 4, 0),
         ),
+        (  # those counts again from a later start, ltx above tx: tx and W up, C kept
+            Session(
+                1, tx=3, returns_credited=5, resume_nonce=9 | 1 << 16, resume_from=4, resume_to=5
+            ),
+            Debit.counts(1, 9, 4, 70),
+        ),
+        (  # the same while a transaction is open: written off first
+            Session(
+                1,
+                phase=Phase.WAIT_ACK,
+                tx=4,
+                reserved=2000,
+                delivered=3000,
+                returns_credited=5,
+                resume_nonce=9 | 1 << 16,
+                resume_from=4,
+                resume_to=5,
+            ),
+            Debit.counts(1, 9, 4, 70),
+        ),
     ],
-    ids=["first-resume", "return-at-the-end", "resume-after-counts", "counts-again"],
+    ids=[
+        "first-resume",
+        "return-at-the-end",
+        "resume-after-counts",
+        "counts-again",
+        "counts-again-ahead",
+        "counts-again-ahead-open",
+    ],
 )
 def test_witnessed_resumes_at_the_edges(s: Session, msg: Debit) -> None:
     args = (

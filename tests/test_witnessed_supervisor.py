@@ -15,12 +15,13 @@ from canergy.check import Bounds, check
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
 from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing
 from canergy.core import witnessed as W
+from canergy.core.inputs import RESPONSE_TIMEOUT, Begin, PowerLoss
 from canergy.core.state import ClientState, Phase, Session
 from canergy.core.steps import ClientStep, SessionStep
 from canergy.core.table import cell
 from canergy.core.variants import Variant
 from canergy.frozen import evolve
-from canergy.messages import Admit, Debit, Direction, Message
+from canergy.messages import SYNC_CONFIRMED, Admit, Debit, Direction, Message
 
 CODEC = Codec()
 nodes = st.integers(1, 127)
@@ -216,3 +217,70 @@ def test_each_supervisor_witnessing_rule_is_needed(variant: Variant) -> None:
     result = check(variant, SUP_COPY, stop_at_first=True, engine="compact")
     assert result.counterexample is not None
     assert any(step.kind.value == "supervisor_old_copy" for step, _ in result.counterexample)
+
+
+def _sent(step: SessionStep | ClientStep) -> list[Message]:
+    return [a.message for a in step.actions if isinstance(a, Send)]
+
+
+def test_a_start_that_answered_a_copy_of_the_same_sync_is_confirmed_at_its_ltx() -> None:
+    """A SYNC re-sent by its timer, one copy answered and its counts taken; the node loses
+    power while it waits and the other copy reaches its RESUME: a second start of the node with
+    the supervisor's nonce, its counts ``B`` further, and otherwise a repeat of the first
+    (same nonce and q, C unchanged). The supervisor moves tx and W up to their ltx and answers
+    with the same C: the node keeps its books at tx and takes the next intention. Before, the
+    same answer came again (k ``B`` below that ltx): the node stayed ahead of tx and W, the
+    window's 64 transactions were written off and then every begin refused until the node
+    started again; the witnessed proof's counterexample to 'supervisor receives DEBIT: P(ADMIT)
+    sent'."""
+    t = Timing()
+    s = Session(node=1, tx=10, witness=10, returns_credited=3)
+    c = ClientState(node=1, last_tx=10, return_seq=3, usable=5000, credited=5000)
+    s = W.SUPERVISOR.step(t, s, PowerLoss(0x1234), 0).session
+    step = W.SUPERVISOR.step(t, s, RESPONSE_TIMEOUT, 0)
+    s, (first,) = step.session, _sent(step)
+    step = W.SUPERVISOR.step(t, s, RESPONSE_TIMEOUT, t.response_timeout_us)
+    s, (second,) = step.session, _sent(step)
+    assert first == second
+    answer = W.CLIENT.step(t, c, first, 0)
+    c, (books, counts) = answer.client, _sent(answer)
+    s = W.SUPERVISOR.step(t, s, books, 0).session
+    step = W.SUPERVISOR.step(t, s, counts, 0)
+    s, (confirmation,) = step.session, _sent(step)
+    assert s.phase is Phase.IDLE and s.tx == s.witness == 10 + t.window
+    c = W.CLIENT.step(t, c, PowerLoss(0x5678), 0).client
+    answer = W.CLIENT.step(t, c, second, 0)
+    c, (_, counts) = answer.client, _sent(answer)
+    assert c.phase is Phase.SYNCING and c.nonce == 0x1234 and c.last_tx == 10 + 2 * t.window
+    step = W.SUPERVISOR.step(t, s, counts, 0)
+    s, (again,) = step.session, _sent(step)
+    assert isinstance(again, Admit) and isinstance(confirmation, Admit)
+    assert s.tx == s.witness == c.last_tx and step.credit == 0
+    assert (again.nonce, again.seq) == (confirmation.nonce, confirmation.seq)  # C unchanged
+    assert again.tx == c.last_tx != confirmation.tx
+    c = W.CLIENT.step(t, c, again, 0).client
+    assert c.phase is Phase.IDLE and c.usable == 5000 and c.last_tx == s.tx
+    step = W.SUPERVISOR.step(t, s, Begin(1000), t.response_timeout_us)
+    (intention,) = _sent(step)
+    assert _sent(W.CLIENT.step(t, c, intention, t.response_timeout_us))  # taken: ACK
+
+
+def test_counts_repeated_with_an_ltx_above_tx_write_off_what_is_open() -> None:
+    """The repeat with a higher ltx while a transaction is open: written off (Gs += Ts, the
+    node settled it), tx and W up to the ltx, C and the remembered answer unchanged."""
+    t = Timing()
+    s = Session(
+        node=1, phase=Phase.WAIT_ACK, tx=75, reserved=2000, delivered=5000, witness=74,
+        returns_credited=4, resume_nonce=0x11234, resume_from=3, resume_to=4,
+    )  # fmt: skip
+    counts = Debit.counts(1, 0x1234, 3, 138)
+    step = W.SUPERVISOR.step(t, s, counts, 0)
+    after = step.session
+    assert after.phase is Phase.IDLE and after.delivered == 7000 and after.reserved == 0
+    assert after.tx == after.witness == 138 and step.credit == 0
+    assert (after.returns_credited, after.resume_to, after.resume_from) == (4, 4, 3)
+    assert _sent(step) == [Admit(1, 0x1234 ^ SYNC_CONFIRMED, 138, 4)]
+    lower = W.SUPERVISOR.step(
+        t, replace(s, phase=Phase.IDLE, reserved=0), Debit.counts(1, 0x1234, 3, 70), 0
+    )
+    assert lower.session.tx == 75 and _sent(lower) == [Admit(1, 0x1234 ^ SYNC_CONFIRMED, 75, 4)]

@@ -247,7 +247,8 @@ static void admit_voiding(struct canergy_session *s, const struct canergy_msg *m
  * the end of the numbering); then void max(C, q) + 1 and answer ADMIT(n, k, C). A SYNC's counts
  * (n, q, ltx) are taken the same way, with tx and W moved up to ltx (never back), no pending
  * amount, and n ^ CANERGY_SYNC_CONFIRMED in the answer; what the last answer remembers tells a
- * RESUME from counts (bit 16 of resume_nonce). */
+ * RESUME from counts (bit 16 of resume_nonce). Counts that repeat the last answered with an ltx
+ * above tx (another start answering a copy of the same SYNC) move tx and W up first. */
 static void confirm(struct canergy_session *s, const struct canergy_msg *m,
                     struct canergy_session_step *step)
 {
@@ -259,6 +260,18 @@ static void confirm(struct canergy_session *s, const struct canergy_msg *m,
     const uint32_t seq = s->returns_credited + (uint32_t)d;
     if (s->resume_to != 0U && s->resume_to == s->returns_credited && s->resume_nonce == key &&
         s->resume_from == seq) {
+        /* counts again from a later start that answered a copy of the same SYNC: their ltx may
+         * be above tx; tx and W move up to it (what is open written off), C stays */
+        const int64_t settled = counts ? settled_of(s, m->amount_mj) : (int64_t)s->tx;
+        if (settled > (int64_t)s->tx) {
+            if (s->phase != CANERGY_S_IDLE) {
+                resolve(s, CANERGY_RESOLVED_WRITTEN_OFF, step);
+            }
+            s->tx = (uint32_t)settled;
+            if (settled > s->witness) {
+                s->witness = (int32_t)settled;
+            }
+        }
         confirmation(s, nonce, step);
         return;
     }

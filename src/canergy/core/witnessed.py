@@ -135,11 +135,14 @@ def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
 
     A re-sent copy (same nonce and q, nothing held since) gets the same answer. A SYNC's counts
     also carry the node's ltx: tx moves up to it (never back); their ADMIT carries n with
-    ``SYNC_CONFIRMED`` flipped."""
+    ``SYNC_CONFIRMED`` flipped. Counts that repeat the last answered but carry an ltx above tx
+    come from another start of the node with the same SYNC's nonce (a copy of the SYNC reached
+    it after a restart): tx and W move up to that ltx first (what is open written off), C stays,
+    so the answer does not leave the node's ltx ahead of tx (``repeat_counts``)."""
     seq, key = unwrap(msg.seq, s.returns_credited, SEQ_BITS), _answered(msg)
     nonce = msg.nonce ^ SYNC_CONFIRMED if msg.is_counts else msg.nonce
     if answered(s, key, seq):
-        return SessionStep(s, (Send(_confirmation(s, nonce)),))
+        return repeat_counts(s, msg, nonce) if msg.is_counts else _repeat(s, nonce)
     behind = seq < s.returns_credited
     if behind:  # the record lacks a debit the supervisor holds: the node starts afresh
         step = h.write_off_and_lift(s)
@@ -161,6 +164,24 @@ def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
     admitted = (Admitted(s.node, s.tx, void),) if behind else ()
     answer = Send(_confirmation(s, nonce))
     return SessionStep(s, (*step.actions, *admitted, answer), step.credit)
+
+
+def _repeat(s: Session, nonce: int) -> SessionStep:
+    return SessionStep(s, (Send(_confirmation(s, nonce)),))
+
+
+def repeat_counts(s: Session, msg: Debit, nonce: int) -> SessionStep:
+    """The last answered counts again (same nonce and q, C unchanged): the same answer, but with
+    tx and W moved up to their ltx when it is above tx (the open transaction written off): the
+    ltx of a later start of the node that answered a copy of the same SYNC. Without it that
+    start took the old answer, its ltx stayed B above tx and W, the next B intentions were
+    written off as old and every later begin refused until the node started again."""
+    settled = unwrap(msg.amount_mj, s.tx, TX_BITS)
+    if settled <= s.tx:
+        return _repeat(s, nonce)
+    step = resolve(s, Outcome.WRITTEN_OFF) if s.phase is not IDLE else SessionStep(s)
+    s = evolve(step.session, tx=settled, witness=max(step.session.witness, settled))
+    return SessionStep(s, (*step.actions, Send(_confirmation(s, nonce))), step.credit)
 
 
 def _answered(msg: Debit) -> int:

@@ -466,7 +466,7 @@ def confirm(
     what is open; behind (q below C): lift as for a JOIN; a pending RETURN numbered C + 1
     credited (not at the end; counts carry none); counts move tx and W up to ltx; C = max(C, q)
     + 1 (voided); ADMIT(n, k, C), n flipped for counts. A repeat (same key and q, C unchanged
-    since; ``resume_to`` 0: none answered) gets the same answer."""
+    since; ``resume_to`` 0: none answered) gets the same answer (``repeat_counts``)."""
     counts = z3.BoolVal(False) if counts is None else counts
     seq = sym.unwrap(seq16, s.returns_credited, SEQ_BITS)
     key = key_of(nonce16, counts)
@@ -510,8 +510,23 @@ def confirm(
     void = sym.capped(z3.If(later, seq, t.returns_credited) + 1)
     t = replace(t, returns_credited=void, resume_nonce=key, resume_from=seq, resume_to=void)
     answered = SessionStep(t, _confirmation(t, answer_nonce), step.credit)
-    again = SessionStep(s, _confirmation(s, answer_nonce), z3.IntVal(0))
-    return sym.choose(repeat, again, answered)
+    return sym.choose(repeat, repeat_counts(s, counts, amount_mj, answer_nonce), answered)
+
+
+def repeat_counts(s: Session, counts: Term, amount_mj: Term, answer_nonce: Term) -> SessionStep:
+    """The same answer again; for counts with an ltx above tx (another start of the node that
+    answered a copy of the same SYNC) first what is open written off and tx and W moved up to
+    it, C unchanged."""
+    settled = sym.unwrap(z3.Int2BV(amount_mj, 16), s.tx, TX_BITS)
+    higher = z3.And(counts, settled - s.tx > 0)
+    closed = sym.choose(
+        s.phase != sym.S_IDLE, sym._resolve(s, z3.BoolVal(False)), sym._unchanged(s)
+    )
+    t = closed.session
+    t = replace(t, tx=settled, witness=z3.If(settled - t.witness > 0, settled, t.witness))
+    moved = SessionStep(t, _confirmation(t, answer_nonce), closed.credit)
+    same = SessionStep(s, _confirmation(s, answer_nonce), z3.IntVal(0))
+    return sym.choose(higher, moved, same)
 
 
 def admit(s: Session, nonce16: Term) -> SessionStep:

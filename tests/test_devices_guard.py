@@ -257,3 +257,26 @@ def test_a_late_finding_older_than_the_stretches_kept_counts_that_time_as_charge
     # kept: (5 - 1 or 2) each µs from 10 on; before them: all 5
     lacking = sum(5 - (1 + t % 2) for t in range(oldest, end))
     assert clock.remainder == lacking + 5 * oldest
+
+
+def test_time_charged_back_is_not_charged_back_again_by_a_later_finding_over_it() -> None:
+    """Writes behind the guard queued behind one stall are taken in one after another, each
+    found late over the same time: the second charges only what the first left lacking (before,
+    each charged it again: 10.9 kJ metered for 111 J drawn after a 0.5 s stall)."""
+    clock = ClockCharge()
+    clock.start(0, 1)
+    clock.run(100, lambda t: 1)
+    clock.remainder = 0  # what the run charged: only what is charged back counts below
+    clock.back_charge(10, 5)
+    once = clock.remainder
+    assert once == 4 * 90
+    clock.back_charge(20, 5)  # the same envelope again, over time already charged back
+    assert clock.remainder == once
+    clock.back_charge(50, 7)  # a higher one: what 5 lacks from 50 on
+    assert clock.remainder == once + 2 * 50
+    clock.back_charge(0, 7)  # before 10 (charged at 1) and 10-50 (charged at 5)
+    total = once + 2 * 50 + 6 * 10 + 2 * 40
+    assert clock.remainder == total
+    clock.run(150, lambda t: 1)  # charged on at 1, then found late again over all of it
+    clock.back_charge(0, 7)
+    assert clock.remainder == total + 50 + 6 * 50

@@ -8,13 +8,15 @@ from __future__ import annotations
 
 import struct
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
+import can
 import pytest
 
 from canergy.cli import main
-from canergy.devices.odrive import Cmd
+from canergy.devices.odrive import Cmd, can_id, set_limits
 from canergy.ledger import ledger_from_status
 from firmware_model.odrive.live_bench import (
     AXIS,
@@ -207,3 +209,63 @@ def test_firmware_0_5_limits_are_unverified_and_need_trust(
     granted, axis = granted_and_axis(final)
     assert axis["limits_verified"] is False and axis["firmware"] == "0.5"
     assert b.drawn() <= granted + axis["bound_uj"]
+
+
+def test_a_supervisor_held_off_as_a_write_behind_it_arrives_stays_inside_the_bound(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The attack of tests/test_vcan_odrive.py (Set_Limits 20 rev/s, 20 A, closed loop, ±1 N·m
+    every 5 ms) on a supervisor held off as a host under load holds it: its frames wait 0.5 s
+    before it takes in the first write behind it (the Notifier's thread stalled, as user-mode
+    Linux stalls a process), the axis running at 20 A meanwhile. The bound includes that wait.
+    Without it (reaction and latency alone: 450 W × 15 ms) the axis drew 34.6 J of 10 J granted
+    and a 6.8 J bound with two such stalls of 0.12 and 0.06 s."""
+    from canergy.live.devices.odrive_link import OdriveLink
+
+    stalls: list[float] = []
+    take = OdriveLink.on_message_received
+
+    def held_off(link: OdriveLink, frame: can.Message) -> None:
+        limits = frame.arbitration_id == can_id(AXIS, Cmd.SET_LIMITS)
+        if limits and bytes(frame.data) == set_limits(20.0, 20.0) and not stalls:  # theirs
+            stalls.append(0.5)
+            time.sleep(0.5)  # the link's Notifier held off: the write waits to be taken in
+        take(link, frame)
+
+    monkeypatch.setattr(OdriveLink, "on_message_received", held_off)
+    with guarded_axis(tmp_path, *LIMITS, *ENDPOINTS, "--initial", "10J", "--target", "5J") as b:
+        wait_for(lambda: ready(b), timeout=60)
+        wait_for(lambda: (d := b.axis_status()) and d["guard"] == "running", timeout=60)
+        done = threading.Event()
+        sent = [0]
+
+        def attack() -> None:
+            sign = 1.0
+            while not done.wait(0.005):
+                b.send(Cmd.SET_LIMITS, struct.pack("<ff", 20.0, 20.0))
+                sent[0] += 1
+                b.run_closed_loop(sign)
+                sign = -sign
+
+        attacker = threading.Thread(target=attack, daemon=True)
+        attacker.start()
+        try:
+            wait_for(lambda: (d := b.axis_status()) and d["writes_seen"], timeout=60)
+            wait_for(lambda: (d := b.axis_status()) and d["stops"] > 0, timeout=60)
+        finally:
+            done.set()
+            attacker.join()
+        # every write taken in, then the axis stopped
+        wait_for(lambda: (d := b.axis_status()) and d["writes_seen"] == sent[0], timeout=30)
+        wait_for(lambda: (d := b.axis_status()) and d["drive_state"] == "IDLE", timeout=30)
+        final = b.stop()
+    granted, axis = granted_and_axis(final)
+    print(
+        f"drawn {b.drawn()} µJ, granted {granted} µJ, bound {axis['bound_uj']} µJ, metered "
+        f"{axis['metered_uj']} µJ, writes seen {axis['writes_seen']}, timings "
+        f"{axis['bound_timings_us']}"
+    )
+    assert stalls and axis["bound_timings_us"]["intake"] >= 500_000
+    assert b.drawn() > 20 * 200_000  # it ran at 20 A (200 W) for part of the stall at least
+    assert b.drawn() <= granted + axis["bound_uj"], (b.drawn(), granted, axis["bound_uj"])
+    assert axis["metered_uj"] >= b.drawn()

@@ -7,7 +7,8 @@ axis drew stays within what it was granted plus the bound the guard showed, and 
 
 Inside user-mode Linux a process can be held off for hundreds of milliseconds: the guard's
 feedback and stop timeouts are 3 s, its reaction and latency allowances are raised to what it
-measures (and so is the bound)."""
+measures, and the bound includes the intake (the longest a write behind the guard waited to be
+taken in: one run drew 43.2 J on 7.7 J granted against 11.0 J before it did)."""
 
 from __future__ import annotations
 
@@ -97,7 +98,8 @@ def test_an_odrive_axis_on_vcan0_attacked_behind_the_guard_stays_inside_the_boun
         drawn = axis.drawn_uj
     print(
         f"drawn {drawn} µJ, granted {granted} µJ, bound {guarded['bound_uj']} µJ, writes seen "
-        f"{guarded['writes_seen']}, {guarded['stop_reason']}"
+        f"{guarded['writes_seen']}, {guarded['stop_reason']}, metered {guarded['metered_uj']} µJ, "
+        f"timings {guarded['bound_timings_us']}"
     )
     assert "CLOSED_LOOP_CONTROL" in [s for _, s in axis.history]  # it ran
     assert guarded["limits_verified"] is True and guarded["stuck"] is None, guarded

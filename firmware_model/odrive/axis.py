@@ -19,7 +19,10 @@ Quirks for tests: ``current_cap`` (the current limit is clamped to it: a limit t
 back as written), ``ignores_stop`` (Estop and IDLE do nothing: a device that does not obey),
 ``answers_reads`` (False: RxSdo reads go unanswered, set at any time: a read-back that fails).
 
-``AxisFace`` runs a model on a python-can bus in a thread, advancing it every 1 ms.
+``AxisFace`` runs a model on a python-can bus in a thread, advancing it every 1 ms and, for a
+frame, to the frame's arrival (its timestamp, at most 1 s back) before taking it in: a thread
+held off on a loaded host does not run the motor on at the old state past frames that had
+arrived (a real axis takes them in within its control cycle).
 """
 
 from __future__ import annotations
@@ -192,6 +195,11 @@ class AxisFace:
         while not self.stopping.is_set():
             frame = self.bus.recv(timeout=0.001)
             now = time.monotonic_ns() // 1000
+            if frame is not None and frame.timestamp > 0:
+                # a frame takes effect when it arrived (a drive's controller is not held off
+                # as this thread may be): the motor runs on at the state it found until then
+                waited = round((time.time() - frame.timestamp) * 1e6)
+                now -= max(0, min(waited, 1_000_000))
             with self.lock:
                 out = self.model.advance(now)
                 if frame is not None and not frame.is_extended_id:

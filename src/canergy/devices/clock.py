@@ -74,12 +74,37 @@ class ClockCharge:
         end = self.until
         for begin, charged_fw in reversed(self.charged):
             if end <= since:
-                return
+                break
             start = max(begin, since)
             self.remainder += max(0, fw - charged_fw) * (end - start)
             end = start
-        if end > since:
-            self.remainder += fw * (end - since)
+        else:
+            if end > since:
+                self.remainder += fw * (end - since)
+        self._charged_up_to(since, fw)
+
+    def _charged_up_to(self, since: int, fw: int) -> None:
+        """The stretches from ``since`` on are charged at ``fw`` at least now: a later finding
+        over the same time charges only what they still lack (each write behind the guard
+        taken in after one stall is not charged over it again)."""
+        kept: list[tuple[int, int]] = []
+        for i, (begin, charged_fw) in enumerate(self.charged):
+            end = self.charged[i + 1][0] if i + 1 < len(self.charged) else self.until
+            assert end is not None
+            if end <= since:
+                kept.append((begin, charged_fw))
+            elif begin < since:
+                kept += [(begin, charged_fw), (since, max(charged_fw, fw))]
+            else:
+                kept.append((begin, max(charged_fw, fw)))
+        if not kept or kept[0][0] > since:
+            kept.insert(0, (since, fw))
+        merged: list[tuple[int, int]] = []
+        for begin, charged_fw in kept:
+            if not merged or merged[-1][1] != charged_fw:
+                merged.append((begin, charged_fw))
+        self.charged.clear()
+        self.charged.extend(merged[-STRETCHES_KEPT:])
 
     def _to(self, until: int, in_force: Callable[[int], int]) -> int:
         assert self.until is not None

@@ -9,8 +9,10 @@ their frame was seen until the guard's own, written after it, is confirmed; not 
 ``feedback_timeout_us`` of the first such write, the device is stopped for good, the write named
 in ``unverified`` and the stop reason, as a CiA 402 drive is). A lowered envelope
 counts until the device had its latency to act on it. The guard stops the device when what is
-left falls to the reserve plus the bound (envelope × (reaction + latency) + what the stop may
-draw), waking exactly when the clock gets there; then it writes the closed limits (no current).
+left falls to the reserve plus the bound (envelope × (reaction + latency + intake) + what the
+stop may draw; the intake is the longest a write behind the guard waited, from its frame's
+arrival, to be taken in: a host held off lengthens it, the device running at the writer's limits
+meanwhile), waking exactly when the clock gets there; then it writes the closed limits.
 
 In ``sampled`` mode the device's own power readings are integrated between samples: no limits,
 no bound, guarantee "none".
@@ -152,6 +154,12 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         self.latency_max_us = 0
         self.confirm_max_us = 0
         """The longest a limits write took from the guard's decision to its read-back."""
+        self.intake_max_us = 0
+        """The longest a write behind the guard waited, from its frame's arrival, before the
+        guard took it in (a host held off: the device runs at the writer's limits meanwhile)."""
+        self.foreign_worst: L | None = None
+        """The limits with the largest envelope someone else wrote (the status's bound is
+        raised to theirs at the timings measured since, the last write's too)."""
         self.crossing: int | None = None
         """When the clock brings the budget to the stop threshold (envelope mode)."""
         self.last_stop_at = -config.retry_us
@@ -201,7 +209,9 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         return max(self.config.reaction_us, self.reaction_max_us, self.confirm_max_us)
 
     def notice_us(self) -> int:
-        return self.reaction_us() + self.latency_us()
+        """What the bound allows from a decision (or a write behind the guard) to its effect:
+        reaction and latency, and the longest a write behind the guard waited to be taken in."""
+        return self.reaction_us() + self.latency_us() + self.intake_max_us
 
     def bound(self, limits: L | None) -> Bound | None:
         """What the device may draw past the moment the guard decides to stop it."""
@@ -220,8 +230,14 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         for limits in (self.config.limits, self.confirmed, self.pending, self.foreign):
             b = self.bound(limits)
             worst = max(worst, 0 if b is None else b.total_uj)
-        self.bound_max_uj = max(self.bound_max_uj, worst)
+        self.bound_max_uj = max(self.bound_max_uj, worst, self._foreign_bound_uj())
         return self.config.reserve_uj + worst
+
+    def _foreign_bound_uj(self) -> int:
+        """The bound at the largest limits someone else wrote, at the timings measured now (a
+        reaction or intake measured after their write was over is in it)."""
+        b = self.bound(self.foreign_worst)
+        return 0 if b is None else b.total_uj
 
     # -- charging -------------------------------------------------------------------------
     def charge(self, now: int) -> None:
@@ -351,6 +367,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         if not self.sound:
             return []
         self.writes_seen += 1
+        self.intake_max_us = max(self.intake_max_us, now - at)
         if self.clock.until is None:  # during the set-up: taken in by ``on_ready``
             self.early_foreign.append((at, limits))
             return []
@@ -366,6 +383,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         clock.back_charge(at, self._fw(limits))
         if self._fw(limits) > self._fw(self.foreign):
             self.foreign = limits
+        if self._fw(limits) > self._fw(self.foreign_worst):
+            self.foreign_worst = limits
         self.foreign_at = at
         if self.unverified_at is None:
             fields = ", ".join(f"{k} {v:g}" for k, v in self.profile.fields(limits).items())
@@ -614,7 +633,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         target = self.pending if self.pending is not None else self.confirmed
         worst = self.bound(self.config.limits)
         now_bound = self.bound(target)
-        bound_uj = None if worst is None else max(worst.total_uj, self.bound_max_uj)
+        bound_uj = (
+            None
+            if worst is None
+            else max(worst.total_uj, self.bound_max_uj, self._foreign_bound_uj())
+        )
         envelope = self.profile.envelope(target if target is not None else self.config.limits)
         full = self.profile.envelope(self.config.limits)
         return {
@@ -649,6 +672,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             "bound_timings_us": {
                 "reaction": self.reaction_us(),
                 "latency": max(self.config.latency_us, self.latency_max_us),
+                "intake": self.intake_max_us,
                 "stop_timeout": self.config.stop_timeout_us,
             },
             "stop_at_uj": self.threshold_uj(),

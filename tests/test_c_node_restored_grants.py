@@ -152,13 +152,16 @@ class _Bench:
         ]
         config = supervisor_config(build_parser(["supervisor"]).parse_args(argv), (), None)
         self.end = _End(self.wire)
-        clock = lambda: self.wire.now  # noqa: E731
-        built = build_supervisor(config, [self.end], core=open_core(config, clock()), clock=clock)
+        core = open_core(config, self.clock())
+        built = build_supervisor(config, [self.end], core=core, clock=self.clock)
         self.service, self.loop = built.service, built.loop
         self.raw = bytearray()
         self.node: _Node | None = None
         self.held_off = held_off
         self.off_until = {"sup": 0, "node": 0}
+
+    def clock(self) -> int:
+        return self.wire.now
 
     def start_node(self) -> _Node:
         self.node = _Node(self.raw, self.rng.randrange(1, 1 << 16), self.wire.now)

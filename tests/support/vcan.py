@@ -25,6 +25,10 @@ TIMEOUT = ["--response-timeout", "0.3"]
 BUDGET = "100J"
 """The supervisor's budget: three 0.2 W nodes spend 10 J in about 17 s, which a slow run (a
 busy CI machine, user-mode Linux) could pass before its last step, and then nothing is granted."""
+POWER_UW = 200_000
+"""Each node's constant power, µW (``client``'s ``--power 0.2W``)."""
+TARGET_UJ = 1_000_000
+"""The level the supervisor tops each node up to, µJ (``supervisor``'s ``--target 1J``)."""
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -22,7 +22,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable
 from dataclasses import replace
 from functools import partial
-from typing import Any, Generic, TypeVar, cast
+from typing import Any, Generic, ParamSpec, TypeVar, cast
 
 from canergy.bus_keys import bus_of, node_of, session_key
 from canergy.ccore.grants import CompiledGrantCaps
@@ -52,6 +52,7 @@ from canergy.messages import Debit, Join, Message, Return, Telemetry, ToSupervis
 
 T = TypeVar("T")
 M = TypeVar("M", bound=Message)
+_P = ParamSpec("_P")
 
 
 class CompiledBuses:
@@ -251,38 +252,21 @@ class CompiledBuses:
         """Bus ``bus``'s frame path with a key, FD layout, into its own supervisor
         (``CompiledSupervisor.on_auth_answer``, what it does keyed): verified under that bus's
         keys against that bus's sessions' counters."""
-        answer = self._parts[bus].on_auth_answer
-
-        def on_bus(
-            arbitration_id: int,
-            data: bytes | bytearray,
-            extended: bool,
-            remote: bool,
-            now: int,
-            abort: bool,
-        ) -> tuple[int, list[Action], list[tuple[int, bytes]], int]:
-            status, actions, frames, fv = answer(arbitration_id, data, extended, remote, now, abort)
-            return status, self._keyed_actions(bus, actions) if actions else actions, frames, fv
-
-        return on_bus
+        return self._keyed_path(bus, self._parts[bus].on_auth_answer)
 
     def auth_pair_on(self, bus: int) -> AuthPair:
         """``auth_answer_on`` in the classic layout (``CompiledSupervisor.on_auth_pair``)."""
-        pair = self._parts[bus].on_auth_pair
+        return self._keyed_path(bus, self._parts[bus].on_auth_pair)
+
+    def _keyed_path(
+        self, bus: int, call: Callable[_P, tuple[int, list[Action], list[tuple[int, bytes]], int]]
+    ) -> Callable[_P, tuple[int, list[Action], list[tuple[int, bytes]], int]]:
+        """``call``, one bus's keyed frame path, with its actions keyed by session."""
 
         def on_bus(
-            data_id: int,
-            data: bytes,
-            mac_id: int,
-            mac: bytes | bytearray,
-            extended: bool,
-            remote: bool,
-            now: int,
-            abort: bool,
+            *args: _P.args, **kwargs: _P.kwargs
         ) -> tuple[int, list[Action], list[tuple[int, bytes]], int]:
-            status, actions, frames, fv = pair(
-                data_id, data, mac_id, mac, extended, remote, now, abort
-            )
+            status, actions, frames, fv = call(*args, **kwargs)
             return status, self._keyed_actions(bus, actions) if actions else actions, frames, fv
 
         return on_bus

@@ -17,10 +17,11 @@ from hypothesis import settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, invariant, rule
 from support.c_binding import DECODE_OK, RX_NOT_CAN, compiled_core, library
+from support.ccore_built import release
 from support.strategies import client_answer
 
 from canergy.auth.frames import FrameAuth, Layout, expected_freshness, freshness
-from canergy.ccore.supervisor import CompiledSupervisor, CoreMissing, make_supervisor, missing
+from canergy.ccore.supervisor import CompiledSupervisor, CoreMissing, make_supervisor
 from canergy.codec import Codec
 from canergy.core.actions import Acknowledged, Action, Persist
 from canergy.core.errors import LocalProtocolError
@@ -40,10 +41,6 @@ from canergy.messages import (
     Telemetry,
 )
 
-release = pytest.mark.skipif(
-    missing() is not None and not os.environ.get("CANERGY_REQUIRE_CCORE"),
-    reason=f"{missing()} (scripts/test builds it and sets CANERGY_REQUIRE_CCORE)",
-)
 """For the tests of the release module (``canergy supervisor --core c``'s, 127 sessions); the
 others run the core on the tests' sanitizer build of the same builder (``compiled_core``)."""
 

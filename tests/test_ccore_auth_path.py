@@ -6,17 +6,16 @@ the same bytes, keep the same books and refuse the same frames for the same reas
 from __future__ import annotations
 
 import copy
-import os
 from dataclasses import dataclass
 from typing import Any
 
 import can
-import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
+from support.ccore_built import release
 
 from canergy.auth.frames import FrameAuth, Layout
-from canergy.ccore.supervisor import make_supervisor, missing
+from canergy.ccore.supervisor import make_supervisor
 from canergy.codec import Codec
 from canergy.core.timing import Timing
 from canergy.live.runtime import BusRuntime
@@ -33,10 +32,6 @@ from canergy.messages import (
     Telemetry,
 )
 
-release = pytest.mark.skipif(
-    missing() is not None and not os.environ.get("CANERGY_REQUIRE_CCORE"),
-    reason=f"{missing()} (scripts/test builds it and sets CANERGY_REQUIRE_CCORE)",
-)
 T = Timing(response_timeout_us=1_000, retries=2)
 CODEC = Codec()
 

@@ -23,8 +23,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from support.c_binding import library
+from support.ccore_built import release
 
-from canergy.ccore.supervisor import CompiledBelow, missing
+from canergy.ccore.supervisor import CompiledBelow
 from canergy.codec import Codec
 from canergy.core import Action, Client, Persist, Send, Supervisor
 from canergy.core.errors import LocalProtocolError
@@ -33,10 +34,7 @@ from canergy.ledger import TreeLedger, ledger
 from canergy.live.gateway.state import gateway_json, load_gateway, save_gateway
 from canergy.messages import ToClient, ToSupervisor
 
-pytestmark = pytest.mark.skipif(
-    missing() is not None and not os.environ.get("CANERGY_REQUIRE_CCORE"),
-    reason=f"{missing()} (scripts/test builds it and sets CANERGY_REQUIRE_CCORE)",
-)
+pytestmark = release
 
 GW = 20
 NODES = (1, 2)

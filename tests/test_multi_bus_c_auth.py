@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 import json
-import os
 import tempfile
 import time
 import uuid
@@ -23,11 +22,12 @@ import can
 import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
+from support.ccore_built import release
 
 from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import Key
 from canergy.bus_keys import session_key
-from canergy.ccore.supervisor import make_supervisor, missing
+from canergy.ccore.supervisor import make_supervisor
 from canergy.codec import Codec
 from canergy.core.supervisor import SupervisorCore
 from canergy.core.timing import Timing
@@ -51,10 +51,6 @@ from canergy.messages import (
     Telemetry,
 )
 
-release = pytest.mark.skipif(
-    missing() is not None and not os.environ.get("CANERGY_REQUIRE_CCORE"),
-    reason=f"{missing()} (scripts/test builds it and sets CANERGY_REQUIRE_CCORE)",
-)
 J = 1_000_000
 NAMES = ("left", "right")
 NODES = {"left": (1, 2), "right": (1, 3)}

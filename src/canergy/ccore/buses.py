@@ -25,15 +25,10 @@ from functools import partial
 from typing import Any, Generic, ParamSpec, TypeVar, cast
 
 from canergy.bus_keys import bus_of, node_of, session_key
+from canergy.ccore.calls import Answer, AuthAnswer, AuthPair
 from canergy.ccore.grants import CompiledGrantCaps
 from canergy.ccore.joins import CompiledJoinHold
-from canergy.ccore.supervisor import (
-    Answer,
-    AuthAnswer,
-    AuthPair,
-    CompiledHeard,
-    CompiledSupervisor,
-)
+from canergy.ccore.supervisor import CompiledHeard, CompiledSupervisor
 from canergy.ccore.witness import CompiledReturnGate
 from canergy.core.actions import (
     Acknowledged,

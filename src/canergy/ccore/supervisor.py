@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterable
 from functools import partial
 from typing import Any, TypeVar, cast
 
+from canergy.ccore.calls import Answer, AuthAnswer, AuthPair
 from canergy.ccore.grants import CompiledGrantCaps, fits
 from canergy.ccore.joins import CompiledJoinHold
 from canergy.ccore.witness import CompiledReturnGate
@@ -59,21 +60,6 @@ from canergy.messages import (
 )
 
 T = TypeVar("T")
-Answer = Callable[
-    [int, bytes | bytearray, bool, bool, int, bool],
-    tuple[int, list[Action], list[tuple[int, bytes]], Message | None, int],
-]
-"""``CompiledSupervisor.on_answer``'s signature: one bus's frame path into the C core."""
-AuthAnswer = Callable[
-    [int, bytes | bytearray, bool, bool, int, bool],
-    tuple[int, list[Action], list[tuple[int, bytes]], int],
-]
-"""``CompiledSupervisor.on_auth_answer``'s: one bus's frame path with a key (FD layout)."""
-AuthPair = Callable[
-    [int, bytes, int, bytes | bytearray, bool, bool, int, bool],
-    tuple[int, list[Action], list[tuple[int, bytes]], int],
-]
-"""``CompiledSupervisor.on_auth_pair``'s: one bus's frame path with a key (classic layout)."""
 
 
 class CoreMissing(RuntimeError):

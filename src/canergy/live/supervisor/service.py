@@ -25,6 +25,7 @@ from canergy.auth.frames import (
     frame_direction,
 )
 from canergy.bus_keys import node_name
+from canergy.ccore.calls import Answer, AuthAnswer, AuthPair, EncodedBegin
 from canergy.codec import DecodeError
 from canergy.core import (
     Acknowledged,
@@ -72,23 +73,6 @@ HOST_HELD = 0x1000000
 library's CANERGY_HOST_HELD, checked by tests/test_ccore_tables.py)."""
 HOST_JOIN = 0x2000000
 """Its verdict for a JOIN held in C (CANERGY_HOST_JOIN)."""
-EncodedBegin = Callable[[int, int, int], tuple[list[Action], list[tuple[int, bytes]]]]
-"""The compiled core's ``begin_encoded``: actions, and the INTENTION as C encoded it."""
-Answer = Callable[
-    [int, bytes | bytearray, bool, bool, int, bool],
-    tuple[int, list[Action], list[tuple[int, bytes]], Message | None, int],
-]
-"""The compiled core's ``on_answer`` (of one bus: ``answer_on``)."""
-AuthAnswer = Callable[
-    [int, bytes | bytearray, bool, bool, int, bool],
-    tuple[int, list[Action], list[tuple[int, bytes]], int],
-]
-"""The compiled core's ``on_auth_answer``."""
-AuthPair = Callable[
-    [int, bytes, int, bytes | bytearray, bool, bool, int, bool],
-    tuple[int, list[Action], list[tuple[int, bytes]], int],
-]
-"""The compiled core's ``on_auth_pair`` (classic layout)."""
 _MAC_TO_SUPERVISOR = MAC_TYPE[Direction.TO_SUPERVISOR]
 _ANSWERS = frozenset((MsgType.ACK, MsgType.COMMITTED, MsgType.ABORTED))
 """What the compiled core's frame path takes with a key: a node's answers."""

@@ -249,3 +249,67 @@ def test_a_write_the_guard_cannot_see_is_found_by_the_periodic_read_back(tmp_pat
     assert drive["latched"] and "periodic read-back" in drive["refused"]
     assert "0x1016:1 = 0" in drive["refused"]
     assert b.model.state == "SWITCH ON DISABLED"
+
+
+@pytest.mark.parametrize(
+    ("mode", "stall_s"), [("envelope", 0.3), ("envelope", 0.5), ("counter", 0.5)]
+)
+def test_a_guard_held_off_as_a_write_behind_it_arrives_stays_inside_the_bound(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, mode: str, stall_s: float
+) -> None:
+    """Item 2 on a host held off (tests/test_odrive_live.py's stall, for the CiA 402 guard): the
+    shared Notifier's thread, which takes in the drive's TPDOs and every frame addressed to it,
+    waits ``stall_s`` at the application's first write of 0x6072, the drive running at the
+    limits it opens meanwhile. The guard charges the reach from the frame's arrival (its age).
+    Its bound needs no intake of its own (the ODrive and moteus guards' term): the TPDOs queued
+    behind the same wait are taken in late and old, so the gap measured between two of them
+    plus their age cover it, and past the PDO timeout the supervisor's loop, not held off,
+    stops the drive (TPDOs stopped) and measures the gap to the next. With the TPDOs stamped at
+    their arrival instead (as the ODrive link stamps its feedback) the 0.3 s wait left the
+    notice: worst gap 105 ms, age 0. The bound at the reach (450 W) is far above what the
+    emulated drive draws, so that check is the one that bites: 22-34 J drawn on 5 J granted,
+    bounds 320-520 J with the wait, 197-238 J without it."""
+    from canergy.live.canopen.cia402_link import DriveLink
+
+    stalls: list[float] = []
+    take = DriveLink._on_sdo_request
+
+    def held_off(link: DriveLink, can_id: int, data: bytearray, stamp: float) -> None:
+        writes_6072 = len(data) >= 4 and data[0] >> 5 == 1 and data[1:4] == b"\x72\x60\x00"
+        if writes_6072 and not stalls:
+            stalls.append(stall_s)
+            time.sleep(stall_s)  # the Notifier held off: the write waits to be taken in
+        take(link, can_id, data, stamp)
+
+    monkeypatch.setattr(DriveLink, "_on_sdo_request", held_off)
+    with guarded_bench(
+        tmp_path,
+        10,
+        *("--initial", "5J", "--target", "2J", *REACH_FLAGS),
+        with_node=False,
+        mode=mode,
+        gap_ms=GAP_MS,
+    ) as b:
+        wait_for(lambda: b.model.state == "OPERATION ENABLED", show=b.drive_status)
+        before = b.drawn()
+        swing(b, time.monotonic() + ATTACK_S, lambda: open_limits(b.app))
+        final = b.stop()
+    granted, drive = books(final)
+    timings = drive["bound_timings_us"]
+    print(
+        f"{mode}, stall {stall_s} s: drawn {b.drawn()} µJ ({b.drawn() - before} µJ since enabled), "
+        f"granted {granted} µJ, bound at the reach {drive['bound_reach_uj']} µJ, metered "
+        f"{drive['metered_uj']} µJ, writes seen {drive['writes_seen']}, worst gap "
+        f"{drive['worst_gap_us']} µs, timings {timings}, stop {drive['stop_reason']!r}"
+    )
+    assert stalls and drive["writes_seen"]
+    # the wait is in the notice: the TPDOs behind it were taken in late (the gap between two,
+    # measured) and old (their age)
+    assert drive["worst_gap_us"] + timings["age"] >= stall_s * 1e6
+    assert b.drawn() <= granted + drive["bound_reach_uj"], (
+        b.drawn(),
+        granted,
+        drive["bound_reach_uj"],
+    )
+    assert drive["metered_uj"] >= b.drawn()
+    assert drive["latched"] and b.model.state == "SWITCH ON DISABLED"

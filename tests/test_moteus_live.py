@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -139,6 +140,72 @@ def test_an_application_raising_its_own_limits_is_charged_for_them(tmp_path: Pat
         f"{servo['metered_uj']} µJ, writes seen {servo['writes_seen']}, {servo['stop_reason']}"
     )
     assert servo["writes_seen"] > 0
+    assert b.drawn() <= granted + servo["bound_uj"], (b.drawn(), granted, servo["bound_uj"])
+    assert servo["metered_uj"] >= b.drawn()
+
+
+def test_a_supervisor_held_off_as_a_write_behind_it_arrives_stays_inside_the_bound(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The attack above on a supervisor held off (tests/test_odrive_live.py's stall): the
+    Notifier's thread waits 0.5 s at the first ``conf set servo.max_current_A 20`` before the
+    link takes it in, the controller running at the application's limits meanwhile. The link
+    stamps the frame at its arrival and ``DeviceGuard`` takes the wait as its intake, in the
+    bound (the ODrive guard's code: 108 J drawn on 10.2 J granted, bound 371 J, intake 0.52 s).
+    The intake is the check that bites here: with the frames stamped when taken in it read
+    0.16 s; with the intake left out of the bound, 112-118 J drawn on 9.8-9.9 J granted still
+    kept inside 123-135 J, the wait having lengthened the reaction measured as well (0.27-0.28
+    s: the stop queued behind ``conf get`` answers that came through the held thread)."""
+    from canergy.live.devices.moteus_link import MoteusLink
+
+    stalls: list[float] = []
+    take = MoteusLink.on_message_received
+
+    def held_off(link: MoteusLink, frame: can.Message) -> None:
+        if b"max_current_A 20" in bytes(frame.data) and not stalls:  # theirs
+            stalls.append(0.5)
+            time.sleep(0.5)  # the link's Notifier held off: the write waits to be taken in
+        take(link, frame)
+
+    monkeypatch.setattr(MoteusLink, "on_message_received", held_off)
+    with guarded_servo(tmp_path, *LIMITS, *BUDGET) as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.position(1.0)
+        wait_for(lambda: (d := b.servo_status()) and d["guard"] == "running", timeout=60)
+        done = threading.Event()
+        sent = [0]
+
+        def attack() -> None:
+            sign = 1.0
+            while not done.wait(0.005):
+                b.conf("conf set servo.max_current_A 20")
+                b.conf("conf set servo.max_power_W 450")
+                b.conf("conf set servo.max_velocity 100")
+                sent[0] += 3
+                for _ in range(3):
+                    b.send(write_mode(Mode.STOPPED))
+                    b.position(2.0 * sign)
+                sign = -sign
+
+        attacker = threading.Thread(target=attack, daemon=True)
+        attacker.start()
+        try:
+            wait_for(lambda: (d := b.servo_status()) and d["writes_seen"], timeout=60)
+            wait_for(lambda: (d := b.servo_status()) and (d["stops"] or d["refused"]), timeout=60)
+        finally:
+            done.set()
+            attacker.join()
+        # every write taken in, then the controller stopped
+        wait_for(lambda: (d := b.servo_status()) and d["writes_seen"] >= sent[0], timeout=30)
+        wait_for(lambda: (d := b.servo_status()) and d["drive_state"] == "STOPPED", timeout=30)
+        final = b.stop()
+    granted, servo = granted_and_servo(final)
+    print(
+        f"drawn {b.drawn()} µJ, granted {granted} µJ, bound {servo['bound_uj']} µJ, metered "
+        f"{servo['metered_uj']} µJ, writes seen {servo['writes_seen']} of {sent[0]}, timings "
+        f"{servo['bound_timings_us']}, {servo['stop_reason']}"
+    )
+    assert stalls and servo["bound_timings_us"]["intake"] >= 500_000
     assert b.drawn() <= granted + servo["bound_uj"], (b.drawn(), granted, servo["bound_uj"])
     assert servo["metered_uj"] >= b.drawn()
 

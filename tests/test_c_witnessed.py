@@ -438,6 +438,26 @@ def test_counts_repeated_from_a_later_start_move_tx_up_in_c_as_in_python(
     same(s, ST, Debit.counts(1, 9, 4, ltx), 0, table=W.SUPERVISOR)
 
 
+@pytest.mark.parametrize("repeat", [True, False])
+@pytest.mark.parametrize("tx", [COUNTER_BOUND - 30_000, COUNTER_BOUND - 5])
+def test_counts_move_tx_no_further_than_the_bound_in_c_as_in_python(repeat: bool, tx: int) -> None:
+    """Counts carry a 16-bit ltx, widened against tx: up to 32,767 ahead. Repeated without a
+    key (the last answered again, or another nonce each time) they walked tx and W past
+    COUNTER_BOUND (a record no loader takes), C's int32 W negative at 2^31 and its tx back to 0
+    at 2^32 (begins allowed again where Python refuses them). A counter moved by a start stays
+    below the bound (``common.capped``), in both cores."""
+    s = Session(
+        1, tx=tx, witness=tx, delivered=3000, returns_credited=5,
+        resume_nonce=9 | 1 << 16 if repeat else 0, resume_from=4, resume_to=5 if repeat else 0,
+    )  # fmt: skip
+    counts = Debit.counts(1, 9, 4, (tx + 0x7FFF) & 0xFFFF)
+    after = W.SUPERVISOR.step(ST, s, counts, 0).session
+    assert after.tx == after.witness == COUNTER_BOUND - 1
+    same(s, ST, counts, 0, table=W.SUPERVISOR)
+    again = W.SUPERVISOR.step(ST, after, counts, 0).session
+    assert again.tx == again.witness == COUNTER_BOUND - 1
+
+
 # -- issue 40, item 6: a C node restored from an older NV copy ---------------------------------
 
 J = 1_000_000

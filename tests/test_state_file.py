@@ -7,6 +7,7 @@ import json
 import re
 import uuid
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -17,7 +18,9 @@ from hypothesis import strategies as st
 from canergy.cli import grant as grant_cli
 from canergy.cli import main
 from canergy.cli import supervisor as supervisor_cli
+from canergy.core import witnessed as W
 from canergy.core.state import Decision, Phase, Session, SupervisorState
+from canergy.core.timing import Timing
 from canergy.live.supervisor.state_file import (
     BooksWriter,
     StateFileError,
@@ -26,6 +29,7 @@ from canergy.live.supervisor.state_file import (
     save_state,
     state_json,
 )
+from canergy.messages import Debit
 
 J = 1_000_000
 RAW = "@@raw@@"
@@ -410,6 +414,26 @@ def test_a_witnessed_supervisor_starts_again_from_the_books_it_wrote(
     path = tmp_path / "s.json"
     save_state(path, _witnessed_after_a_start(usable), "witnessed", fsync=False)
     assert _load(path, "witnessed") == _witnessed_after_a_start(usable)
+
+
+@pytest.mark.parametrize("flags", [Debit.START, Debit.START | Debit.SYNC], ids=["resume", "counts"])
+@pytest.mark.parametrize("q", [0xFFF0, 0x800A])
+def test_a_start_numbered_far_behind_leaves_books_that_load_again(
+    tmp_path: Path, flags: int, q: int
+) -> None:
+    """A RESUME or counts whose 16-bit q widens below 0 next to C (anyone can send one without
+    a key; C below 2^15, as early in a node's life): the rules find it behind and remember
+    its q as answered (resume_from below 0, as the compiled core gives it back too). Before,
+    the loader refused that ('resume_from: -16 is negative'): the supervisor wrote books its
+    next start refused."""
+    s = Session(1, tx=70, witness=70, returns_credited=9, delivered=3 * J)
+    step = W.SUPERVISOR.step(Timing(), s, Debit(1, 0x0505, flags, q, 0), 0)
+    assert step.session.resume_from < 0
+    books = replace(step.session, witness=0)  # W is not in the books (a start SYNCs)
+    state = SupervisorState(3 * J, 0, 0, (books, Session(3)))
+    path = tmp_path / "s.json"
+    save_state(path, state, "witnessed", fsync=False)
+    assert _load(path, "witnessed") == state
 
 
 @pytest.mark.parametrize(

@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from canergy.auth.frames import FrameAuth, Layout
 from canergy.check import Bounds, check
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
 from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing
@@ -284,3 +285,30 @@ def test_counts_repeated_with_an_ltx_above_tx_write_off_what_is_open() -> None:
         t, replace(s, phase=Phase.IDLE, reserved=0), Debit.counts(1, 0x1234, 3, 70), 0
     )
     assert lower.session.tx == 75 and _sent(lower) == [Admit(1, 0x1234 ^ SYNC_CONFIRMED, 75, 4)]
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="review of e6bed6d: a SYNC's counts outside a start (IDLE) are confirmed whatever "
+    "their nonce, and with --auth their FV is their nonce, so a genuine counts frame of an "
+    "earlier SYNC verifies for the whole epoch; its 16-bit ltx, widened against a tx that has "
+    "moved on more than 2^15, lands up to 2^15 - 1 ahead of it: tx and W jump, what is open is "
+    "written off, a debit number voided. Three such frames, ltx spread over 2^16, walk tx to the "
+    "end of the numbering (a replayed DoS, never energy)",
+)
+def test_a_replayed_counts_frame_of_an_earlier_sync_moves_no_tx() -> None:
+    """A node confirmed at tx 100,000; a counts frame it sent at an earlier SYNC (ltx 60,000),
+    replayed with its MAC: verified, then taken by the rules."""
+    key = bytes(range(16))
+    node_side = FrameAuth(CODEC, Layout.FD, lambda n: key, Direction.TO_CLIENT, lambda m: None)
+    sup_side = FrameAuth(CODEC, Layout.FD, lambda n: key, Direction.TO_SUPERVISOR, lambda m: 0)
+    old = Debit.counts(1, 0x0303, 10, 60_000)
+    (frame,) = node_side.frames(old)
+    verdict = sup_side.accept(frame)
+    assert verdict.message == old and verdict.failure is None  # the key does not stop it
+    s = Session(
+        node=1, tx=100_000, witness=100_000, returns_credited=50, delivered=9000,
+        resume_nonce=0x10707, resume_from=49, resume_to=50,
+    )  # fmt: skip
+    step = W.SUPERVISOR.step(Timing(), s, old, 0)
+    assert step.session.tx == s.tx and step.session.witness == s.witness

@@ -91,10 +91,14 @@ static void witness_up(struct canergy_session *s, const struct canergy_session_t
 }
 
 /* A SYNC's ltx (16 bits on the wire) widened against tx, as Python's unwrap (may be below 0
- * for a node claiming less than nothing: then it moves nothing). */
+ * for a node claiming less than nothing: then it moves nothing), held below
+ * CANERGY_COUNTER_BOUND as witnessed.ltx_of: counts repeated without a key walked tx past the
+ * bound, W (int32) negative at 2^31 and tx back to 0 at 2^32. */
 static int64_t settled_of(const struct canergy_session *s, uint16_t wire)
 {
-    return (int64_t)s->tx + serial16(wire, s->tx);
+    const int64_t settled = (int64_t)s->tx + serial16(wire, s->tx);
+    return settled < (int64_t)CANERGY_COUNTER_BOUND - 1 ? settled
+                                                       : (int64_t)CANERGY_COUNTER_BOUND - 1;
 }
 #endif
 

@@ -157,7 +157,7 @@ def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
             step = SessionStep(s, (*step.actions, *credited), step.credit + amount)
     s = step.session
     if msg.is_counts:  # the node settled up to its ltx: no transaction begins at or below it
-        settled = unwrap(msg.amount_mj, s.tx, TX_BITS)
+        settled = ltx_of(s, msg)
         s = evolve(s, tx=max(s.tx, settled), witness=max(s.witness, settled))
     void = capped(max(s.returns_credited, seq) + 1)  # any debit in flight from an old history
     s = evolve(s, returns_credited=void, resume_nonce=key, resume_from=seq, resume_to=void)
@@ -176,12 +176,18 @@ def repeat_counts(s: Session, msg: Debit, nonce: int) -> SessionStep:
     ltx of a later start of the node that answered a copy of the same SYNC. Without it that
     start took the old answer, its ltx stayed B above tx and W, the next B intentions were
     written off as old and every later begin refused until the node started again."""
-    settled = unwrap(msg.amount_mj, s.tx, TX_BITS)
+    settled = ltx_of(s, msg)
     if settled <= s.tx:
         return _repeat(s, nonce)
     step = resolve(s, Outcome.WRITTEN_OFF) if s.phase is not IDLE else SessionStep(s)
     s = evolve(step.session, tx=settled, witness=max(step.session.witness, settled))
     return SessionStep(s, (*step.actions, Send(_confirmation(s, nonce))), step.credit)
+
+
+def ltx_of(s: Session, msg: Debit) -> int:
+    """The counts' ltx (16 bits) widened against tx, held below ``COUNTER_BOUND`` (``capped``):
+    up to 2^15 - 1 ahead each, counts repeated without a key walked tx and W past the bound."""
+    return capped(unwrap(msg.amount_mj, s.tx, TX_BITS))
 
 
 def _answered(msg: Debit) -> int:
@@ -268,7 +274,7 @@ def take_counts(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
         return take_books(t, s, msg, now)
     if not msg.is_counts:
         return SessionStep(s)
-    settled = unwrap(msg.amount_mj, s.tx, TX_BITS)
+    settled = ltx_of(s, msg)
     s = evolve(s, phase=IDLE, sync_nonce=0, deadline=None, witness=settled)
     return confirm(t, s, msg, now)
 

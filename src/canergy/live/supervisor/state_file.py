@@ -49,12 +49,18 @@ from canergy.messages import (
     MIN_NODE,
     NONCE_BITS,
     QUANTUM_UJ,
+    SEQ_BITS,
     counter_beyond,
 )
 
 ANSWERED_MAX = (1 << (NONCE_BITS + 1)) - 1
 """The last start answered (``resume_nonce``): its 16-bit nonce and, above it, whether it was a
 SYNC's counts (``canergy.core.witnessed``)."""
+
+ANSWERED_BEHIND = 1 << (SEQ_BITS - 1)
+"""How far below 0 the last start answered may be numbered (``resume_from``): its 16-bit q
+widened next to C finds it up to 2^15 behind, below 0 while C is below 2^15 (a start no honest
+node sends, found behind)."""
 
 FORMAT = "canergy-supervisor-state"
 VERSION = 2
@@ -572,6 +578,11 @@ class FieldChecker:
             self.refuse(_at(where, name), counter_beyond(value))
         return value
 
+    def answered_from(self, obj: dict[str, Any], where: str) -> int:
+        """The debit number of the last start answered (``resume_from``): a counter, or below 0
+        by at most ``ANSWERED_BEHIND`` (a start found behind early in the node's life)."""
+        return self.integer(obj, where, "resume_from", COUNTER_BOUND - 1, -ANSWERED_BEHIND)
+
     def name(self, obj: dict[str, Any], where: str, name: str, choices: Iterable[str]) -> str:
         value, allowed = obj[name], tuple(choices)
         if value not in allowed:  # also every non-string
@@ -673,7 +684,7 @@ class FieldChecker:
             self.refuse(f"{where}.decision", f"{why} in {phase.name}")
         nonce, start, void = (
             (self.integer(v, where, "resume_nonce", ANSWERED_MAX) if "resume_nonce" in v else 0),
-            (self.counter(v, where, "resume_from") if "resume_from" in v else 0),
+            (self.answered_from(v, where) if "resume_from" in v else 0),
             (self.counter(v, where, "resume_to") if "resume_to" in v else 0),
         )
         if resumes and void > returns_credited:

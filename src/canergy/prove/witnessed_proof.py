@@ -18,10 +18,17 @@ start states what the supervisor saw when it answered: C was at most the number 
 started from, so with Q one past it that record has every debit of the record at the start but
 one not acknowledged, and Q and k are at least the record at the start's.
 
-Not proved: it fails at the supervisor's restore and at the supervisor's DEBIT (a SYNC's books,
-a start answered again, a record at the start settled ahead of tx): docs/protocol.md
-("Passivity as a theorem", assumption 2); ``canergy prove --rules witnessed --keep-going``
-lists the obligations, ``--step NAME`` checks one step.
+The supervisor's start has its ghost too, ``World.spre``: the session as it stood when the
+start began (what was open written off). While the start waits for the node's books and counts
+the invariant speaks of it, not of the record the supervisor started from (which may be an
+older image); the record started from is no further in any counter. A restore or a power loss
+of the supervisor then keeps every clause.
+
+Not proved: it fails at the supervisor's DEBIT, where a SYNC's counts end the supervisor's
+start and the invariant speaks of the record started from again (its tx, C and Gs are not yet
+shown to dominate the session at the start's): docs/protocol.md ("Passivity as a theorem",
+assumption 2); ``canergy prove --rules witnessed --keep-going`` lists the obligations,
+``--step NAME`` checks one step.
 """
 
 from __future__ import annotations

@@ -315,6 +315,45 @@ def test_the_witnessed_node_starts_draws_and_releases_keeping_the_invariant(step
     assert {"passivity", "energy identity", "can happen (changes the world or sends)"} <= clauses
 
 
+SUPERVISOR_START_STEPS = (
+    "supervisor: restored from an older image",
+    "supervisor: power loss (SYNC)",
+)
+
+
+@pytest.mark.parametrize("step", SUPERVISOR_START_STEPS)
+def test_the_witnessed_supervisor_starts_keeping_the_invariant(step: str) -> None:
+    """Under the witnessed rules a supervisor's start, from its own record or from any older
+    image of it, keeps every clause: while the start waits for the node's books and counts the
+    invariant speaks of the session as it stood when the start began (``World.spre``), and the
+    session grants nothing. Each step can move what its rule moves (no vacuous proof)."""
+    outcomes = _witnessed_outcomes(step)
+    failed = [f"{o.clause}\n{o.counterexample}" for o in outcomes if not o.proved]
+    assert not failed, failed[0]
+    from canergy.prove.witnessed_proof import MOVES as W_MOVES
+
+    clauses = {o.clause for o in outcomes}
+    assert {f"can move {e}" for e in W_MOVES.get(step, ())} <= clauses
+    assert {"passivity", "Gs = H", "P(INTENTION) in flight"} <= clauses
+
+
+def test_a_supervisor_restore_without_the_session_at_its_start_fails_the_witnessed_proof(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The ghost carries the supervisor's restore: an invariant that speaks of the record the
+    supervisor started from (an older image: tx, C and Gs behind the node's books and the
+    frames in flight) fails the step, passivity and ``Gs = H`` among the clauses."""
+    from canergy.prove import witnessed_proof as wp
+
+    monkeypatch.setattr(wp, "spre", lambda w: w.s)
+    failed = {
+        o.clause
+        for o in _witnessed_outcomes("supervisor: restored from an older image")
+        if not o.proved
+    }
+    assert {"passivity", "Gs = H", "numbering"} <= failed
+
+
 def test_a_node_that_releases_a_draw_while_its_start_waits_fails_the_witnessed_proof(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

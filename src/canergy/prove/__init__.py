@@ -7,7 +7,8 @@ of transactions.
 - ``invariant``: the clauses, ``P(m, world)`` of messages in flight, the assumptions;
 - ``steps``: every cell as a step of a world; ``rules``: the hardened set and unsound ones;
 - ``witnessed``, ``witnessed_proof``: the witnessed cells as terms, then as steps with both
-  restore steps, and the invariant tried on them (not inductive yet);
+  restore steps, and the invariant tried on them (not inductive yet: the SYNC's counts that
+  end a supervisor's start fail);
 - ``obligations``: each (step, clause) checked by z3, with counterexamples to induction.
 
 ``canergy prove`` runs it. The names below need no z3.

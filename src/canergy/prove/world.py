@@ -74,6 +74,11 @@ class World:
     """Witnessed rules: the highest return number any record of the node has held (canonical,
     over every life and image), a pure function of the history: no debit is numbered above it.
     Hardened: unused."""
+    spre: sym.Session | None = None
+    """Witnessed rules: the supervisor's session record as it stood when its current start
+    began (what was open written off). While the start waits for the node's books and counts
+    this record, not the one it started from (which may be an older image), is what the
+    invariant speaks of (hardened: unused)."""
 
     # canonical views
     @property
@@ -170,7 +175,8 @@ def any_world(name: str = "w", with_pre: bool = True) -> World:
     pre = any_image(f"{name}.pre") if with_pre else None
     starts = _fresh(f"{name}.starts.", INT) if with_pre else None
     top = _fresh(f"{name}.top.", BV32) if with_pre else None
-    return World(s, c, **ghost, pre=pre, starts=starts, top=top)
+    spre = any_session_image(f"{name}.spre") if with_pre else None
+    return World(s, c, **ghost, pre=pre, starts=starts, top=top, spre=spre)
 
 
 def any_image(name: str = "image") -> sym.Client:
@@ -211,7 +217,7 @@ def initial_world() -> World:
     )
     return World(
         s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,
-        z3.BoolVal(True), zero32, c, zero, zero32,
+        z3.BoolVal(True), zero32, c, zero, zero32, s,
     )  # fmt: skip
 
 

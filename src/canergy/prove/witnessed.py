@@ -411,7 +411,7 @@ def take_counts(
 ) -> SessionStep:
     """The SYNC's counts (n, q, ltx) after its books: W = ltx, then as a RESUME (tx up to ltx,
     C = max(C, q) + 1, ADMIT(n ^ SYNC_CONFIRMED, tx, C)); its books again are taken again."""
-    settled = sym.unwrap(z3.Int2BV(amount_mj, 16), s.tx, TX_BITS)
+    settled = _ltx_of(amount_mj, s.tx)
     idle = replace(s, phase=sym.S_IDLE, sync_nonce=_zero16(), witness=settled)
     counted = confirm(idle, nonce16, z3.BoolVal(False), seq16, amount_mj, z3.BoolVal(True))
     step = sym.choose(
@@ -495,7 +495,7 @@ def confirm(
     kept = sym.choose(credits, credited, closed)
     step = sym.choose(behind, SessionStep(lifted.session, Sent.none(), lifted.credit), kept)
     t = step.session
-    settled = sym.unwrap(z3.Int2BV(amount_mj, 16), t.tx, TX_BITS)
+    settled = _ltx_of(amount_mj, t.tx)
     t = sym.pick(
         counts,
         replace(
@@ -513,11 +513,19 @@ def confirm(
     return sym.choose(repeat, repeat_counts(s, counts, amount_mj, answer_nonce), answered)
 
 
+def _ltx_of(amount_mj: Term, tx: Term) -> Term:
+    """``witnessed.ltx_of``: the counts' ltx (16 bits) widened against ``tx``, one ahead of it
+    held below ``COUNTER_BOUND`` (one behind, below 0 too, as it is)."""
+    settled = sym.unwrap(z3.Int2BV(amount_mj, 16), tx, TX_BITS)
+    top = sym.counter(COUNTER_BOUND - 1)
+    return z3.If(z3.And(settled - tx > 0, z3.UGE(settled, top)), top, settled)
+
+
 def repeat_counts(s: Session, counts: Term, amount_mj: Term, answer_nonce: Term) -> SessionStep:
     """The same answer again; for counts with an ltx above tx (another start of the node that
     answered a copy of the same SYNC) first what is open written off and tx and W moved up to
     it, C unchanged."""
-    settled = sym.unwrap(z3.Int2BV(amount_mj, 16), s.tx, TX_BITS)
+    settled = _ltx_of(amount_mj, s.tx)
     higher = z3.And(counts, settled - s.tx > 0)
     closed = sym.choose(
         s.phase != sym.S_IDLE, sym._resolve(s, z3.BoolVal(False)), sym._unchanged(s)

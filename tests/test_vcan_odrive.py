@@ -2,8 +2,16 @@
 as a separate process on vcan0, the emulated axis (``firmware_model.odrive``) and an application
 of our own in the test's process on their own sockets, as in tests/test_odrive_live.py on the
 virtual bus. The application attacks the meter: behind the guard it raises the axis's limits
-(Set_Limits 20 rev/s, 20 A) and re-enters closed loop every 5 ms, reversing its torque. What the
-axis drew stays within what it was granted plus the bound the guard showed, and it was stopped.
+(Set_Limits 20 rev/s, 20 A) and re-enters closed loop every 5 ms, reversing its torque. Every
+joule the axis drew was metered (charged to its books, as debt beyond the grant), each stretch
+the writer opened drew at most the bound the guard showed, and the axis was stopped.
+
+The writer goes on until the test sees the stop in the status file, so it re-raises the limits
+after the guard's stop, each time opening a stretch at its limits until the guard's own are in
+force again (docs/guide/drives.md: the guard writes over the writer, it cannot silence it). How
+many depends on the venue: 6 to 35 writes were seen in user-mode Linux, and a run with 34 drew
+17.9 J on 6.7 J granted against a 9.4 J bound (91.4 J metered). One bound over the whole attack
+is not what the guard states, so the test does not claim it.
 
 Inside user-mode Linux a process can be held off for hundreds of milliseconds: the guard's
 feedback and stop timeouts are 3 s, its reaction and latency allowances are raised to what it
@@ -103,6 +111,8 @@ def test_an_odrive_axis_on_vcan0_attacked_behind_the_guard_stays_inside_the_boun
     )
     assert "CLOSED_LOOP_CONTROL" in [s for _, s in axis.history]  # it ran
     assert guarded["limits_verified"] is True and guarded["stuck"] is None, guarded
-    assert 0 < drawn <= granted + guarded["bound_uj"], (drawn, granted, guarded)
+    assert 0 < drawn <= guarded["metered_uj"] + guarded["uncontained_uj"], (drawn, guarded)
+    stretches = max(1, guarded["writes_seen"])  # each write seen opens one stretch at most
+    assert drawn <= granted + stretches * guarded["bound_uj"], (drawn, granted, guarded)
     assert guarded["metered_uj"] >= drawn  # charged at least what it drew (writes seen at
     assert sup["conservation"]["holds"]  # their envelope: the debt may exceed the bound)

@@ -153,9 +153,8 @@ class Below:
             assert fields_of(self.gw.down.sessions[i]) == fields_of(self.py.session(node))
         assert self.gw.down.usable_uj == self.py.usable
 
-    def receive(self, frame: can.Message) -> Verdict:
-        """One frame from below to both supervisors: the same verdict, frames and books; what
-        they send goes to the nodes."""
+    def _judged(self, frame: can.Message) -> Verdict:
+        """``frame`` checked by C's and Python's authentication below: the same verdict."""
         r, _buf = rx(frame.arbitration_id, bytes(frame.data), lib=self.lib)
         status = self.lib.canergy_auth_gateway_down_frame(
             self.keys, ref(self.gw), ref(r), self.verified
@@ -167,6 +166,12 @@ class Below:
             assert status == self.lib.CANERGY_AUTH_PENDING
         else:
             assert status == OK
+        return verdict
+
+    def receive(self, frame: can.Message) -> Verdict:
+        """One frame from below to both supervisors: the same verdict, frames and books; what
+        they send goes to the nodes."""
+        verdict = self._judged(frame)
         c_sent: list[tuple[int, bytes]] = []
         py_sent: list[can.Message] = []
         if verdict.message is not None and not isinstance(verdict.message, Telemetry):

@@ -22,7 +22,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from support.c_binding import OK, CGateway, SupervisorConfig, cbuf, library, ref, rx
 from support.c_session import fields_of, timing_of
-from test_c_gateway_down_auth import CODEC, INITIAL, NODES, REFUSALS, Below, T, taken
+from test_c_gateway_down_auth import CODEC, INITIAL, NODES, Below, T, taken
 
 from canergy.auth.frames import Layout, Verdict
 from canergy.core import Acknowledged, Send, Supervisor
@@ -59,17 +59,7 @@ class JoinsBelow(Below):
         return self._c_sent(out)
 
     def receive(self, frame: can.Message) -> Verdict:
-        r, _buf = rx(frame.arbitration_id, bytes(frame.data), lib=self.lib)
-        status = self.lib.canergy_auth_gateway_down_frame(
-            self.keys, ref(self.gw), ref(r), self.verified
-        )
-        verdict = self.py_auth.accept(frame)
-        if verdict.failure is not None:
-            assert status == getattr(self.lib, REFUSALS[verdict.failure])
-        elif verdict.message is None:
-            assert status == self.lib.CANERGY_AUTH_PENDING
-        else:
-            assert status == OK
+        verdict = self._judged(frame)
         c_sent: list[tuple[int, bytes]] = []
         py_sent: list[can.Message] = []
         msg = verdict.message

@@ -153,6 +153,53 @@ def test_several_buses_take_no_canopen_nor_guarded_drives() -> None:
         build_supervisor(config, [object(), object()])  # type: ignore[list-item]
 
 
+def _keyed(keys: tuple[Any, ...], bus_keys: tuple[Any, ...], tmp: Path) -> SupervisorConfig:
+    """Node 1 on buses a and b, node 2 on b; the books at ``tmp``/s.json, a control socket."""
+    from canergy.live.supervisor.build import AuthConfig
+
+    sessions = (1, 1 << 8 | 1, 1 << 8 | 2)
+    return SupervisorConfig(
+        core=CoreConfig(sessions, J, state_path=tmp / "s.json"),
+        service=ServiceConfig(bus_names=("a", "b"), state_path=tmp / "s.json", fsync=False),
+        auth=AuthConfig(keys[0], bus_keys=bus_keys),
+        control_path=tmp / "c.sock",
+    )
+
+
+def test_a_node_id_on_two_buses_under_one_key_is_refused_by_the_builder(tmp_path: Path) -> None:
+    """A node's key comes from the master key and its id alone: with one key for both buses
+    node 1's two sessions would share it (a frame of a/1 would verify as b/1). Every caller of
+    the builder is refused, with the core opened from the config or handed over, before the
+    books are claimed or the control socket bound; with a key per bus (``bus_keys``) it builds.
+    """
+    from canergy.auth.keys import Key, new_master
+    from canergy.ccore.supervisor import make_supervisor
+
+    one = new_master(1)
+    same = Key("master", 1, one.secret)  # another key object, the same key
+    buses = [can.Bus(interface="virtual", channel=f"keys-{uuid.uuid4().hex}") for _ in "ab"]
+    try:
+        for bus_keys in ((), (one, same)):
+            config = _keyed((one,), bus_keys, tmp_path)
+            with pytest.raises(ValueError, match="node 1 is on bus a and on bus b under the same"):
+                build_supervisor(config, buses)
+            assert config.core is not None
+            core = make_supervisor("python", config.core.nodes, J, buses=True)
+            with pytest.raises(ValueError, match="node 1 is on bus a and on bus b under the same"):
+                build_supervisor(config, buses, core=core)
+            assert not list(tmp_path.iterdir())  # no books claimed, no socket bound
+        with pytest.raises(ValueError, match="1 bus keys for 2 buses"):
+            build_supervisor(_keyed((one,), (one,), tmp_path), buses)
+        built = build_supervisor(_keyed((one,), (one, new_master(1)), tmp_path), buses)
+        assert set(built.service.status()["nodes"]) == {"a/1", "b/1", "b/2"}
+        left, right = (r.auth.key_for(1) for r in built.runtimes if r.auth is not None)
+        assert left == one.node_key(1) != right  # each bus's frames under its own key
+        built.close()
+    finally:
+        for bus in buses:
+            bus.shutdown()
+
+
 def _one_answer(config: SupervisorConfig, layout: Any) -> tuple[dict[str, Any], list[Any]]:
     """Build ``config`` (authenticated, ``layout``) on a virtual bus; node 1 reports its level,
     is granted 1 J and acknowledges it, each frame under its key: the status, and what the

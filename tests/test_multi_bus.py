@@ -259,6 +259,23 @@ def test_authenticated_buses_check_each_node_with_its_own_counters(
         assert taken == [0, 0]
 
 
+def test_with_a_key_a_node_id_on_two_buses_is_refused_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--auth derives each node's key from the one master key and its id: node 1 on two buses
+    would be two sessions under one key. Refused by the builder's check (``check_session_keys``)
+    before the state file is written, in the builder's words."""
+    assert main(["keys", "-o", str(tmp_path / "m.key")]) == 0
+    capsys.readouterr()
+    state = tmp_path / "s.json"
+    argv = ["supervisor", "--bus=a=virtual:x:1-2", "--bus=b=virtual:y:1", "--state", str(state)]
+    assert main([*argv, "--auth", str(tmp_path / "m.key")]) == 2
+    err = capsys.readouterr().err
+    assert "node 1 is on bus a and on bus b under the same key" in err, err
+    assert "give every node a different id" in err and len(err.splitlines()) == 1, err
+    assert not state.exists()
+
+
 def _books(sessions: tuple[Session, ...]) -> SupervisorState:
     return SupervisorState(10 * J, 10 * J - sum(s.delivered for s in sessions), 0, sessions)
 

@@ -194,12 +194,13 @@ def test_with_a_key_over_several_buses_the_status_says_the_c_frame_path_runs(fd:
     from canergy.auth.keys import new_master
     from canergy.live.supervisor.build import AuthConfig
 
+    masters = (new_master(1), new_master(1))
     buses = [can.Bus(interface="virtual", channel=f"mbk-{uuid.uuid4().hex}") for _ in NAMES]
     try:
         config = SupervisorConfig(
             core=CoreConfig(KEYS, J, kind="c"),
             service=ServiceConfig(bus_names=NAMES),
-            auth=AuthConfig(new_master(1), fd=fd),
+            auth=AuthConfig(masters[0], fd=fd, bus_keys=masters),  # node 1 on both: two keys
         )
         built = build_supervisor(config, buses)
         status = built.service.status()

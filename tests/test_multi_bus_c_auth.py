@@ -54,23 +54,25 @@ from canergy.messages import (
 J = 1_000_000
 NAMES = ("left", "right")
 NODES = {"left": (1, 2), "right": (1, 3)}
-"""Node 1 on both buses (two sessions, the same node key), 2 on the left only, 3 on the right
-only."""
+"""Node 1 on both buses (two sessions, each under its bus's key), 2 on the left only, 3 on the
+right only."""
 KEYS = tuple(session_key(i, n) for i, name in enumerate(NAMES) for n in NODES[name])
-MASTER = Key("master", 1, bytes(range(16)))
+MASTERS = (Key("master", 1, bytes(range(16))), Key("master", 1, bytes(range(16, 32))))
+"""Each bus's master key (``AuthConfig.bus_keys``): node 1 has a key on each bus, and a frame of
+one session does not verify as the other's (the builder refuses one key for both)."""
 T = Timing(response_timeout_us=1_000, retries=2)
 CODEC = Codec()
 CHANGES = ("core", "frame_path", "frame_path_frames")
 """What the status says differently on the two paths."""
 
 
-def signed(msg: Message, fv: int, fd: bool, *, flip: bool = False) -> list[can.Message]:
-    """``msg`` from its node with freshness value ``fv`` under its key (``MASTER``'s): one FD
-    frame, or the classic frame and its MAC frame; ``flip``: one bit of the MAC flipped."""
+def signed(msg: Message, fv: int, fd: bool, bus: int, *, flip: bool = False) -> list[can.Message]:
+    """``msg`` from its node on bus index ``bus`` with freshness value ``fv`` under its key
+    (``MASTERS[bus]``'s): one FD frame, or the classic frame and its MAC frame; ``flip``: one
+    bit of the MAC flipped."""
     layout = Layout.FD if fd else Layout.CLASSIC
-    frames = FrameAuth(CODEC, layout, MASTER.node_key, Direction.TO_CLIENT, lambda m: fv).frames(
-        msg
-    )
+    key = MASTERS[bus].node_key
+    frames = FrameAuth(CODEC, layout, key, Direction.TO_CLIENT, lambda m: fv).frames(msg)
     if flip:
         frames[-1].data[-1] ^= 0x01
     return frames
@@ -97,7 +99,7 @@ class _Run:
         config = SupervisorConfig(
             core=CoreConfig(KEYS, 3 * J, kind=kind, timing=T, state_path=self.state),
             service=ServiceConfig(state_path=self.state, fsync=False, bus_names=NAMES),
-            auth=AuthConfig(MASTER, fd=fd),
+            auth=AuthConfig(MASTERS[0], fd=fd, bus_keys=MASTERS),
         )
         self.built = build_supervisor(config, self.sup_buses, clock=lambda: self.now)
         self.service = self.built.service
@@ -131,7 +133,7 @@ class _Run:
         self.poll(lambda: self.received() >= before + len(frames))
 
     def answer(self, bus: str, msg: Message, fv: int, *, flip: bool = False) -> None:
-        self.send(bus, signed(msg, fv, self.fd, flip=flip))
+        self.send(bus, signed(msg, fv, self.fd, NAMES.index(bus), flip=flip))
 
     def grant(self, bus: str, node: int, amount: int) -> None:
         """A one-shot grant; returns once its INTENTION was heard on ``bus``."""
@@ -302,7 +304,7 @@ class _Side:
             core = make_supervisor("python", KEYS, 10**9, timing=T, buses=True)
         config = SupervisorConfig(
             service=ServiceConfig(state_path=self.state, fsync=False, bus_names=NAMES),
-            auth=AuthConfig(MASTER, fd=fd),
+            auth=AuthConfig(MASTERS[0], fd=fd, bus_keys=MASTERS),
         )
         self.built: RunningSupervisor = build_supervisor(
             config, self.wires, core=core, clock=lambda: self.now
@@ -350,7 +352,8 @@ class _Side:
             wire.shutdown()
 
 
-_HOW = ["genuine"] * 8 + ["flip", "high", "mac-less", "lone-mac", "cut", "split"]
+_HOW = ["genuine"] * 8 + ["flip", "high", "mac-less", "lone-mac", "cut", "split", "other-key"]
+"""How an answer is sent; ``other-key``: signed under the other bus's key (refused)."""
 _ANSWER = st.tuples(
     st.sampled_from([0, 1]),  # the bus it is sent on
     st.sampled_from([False, False, False, True]),  # its counters: the other bus's session's
@@ -381,7 +384,8 @@ def _answer(
     if how == "mac-less":
         ident, data = CODEC.encode(msg)
         return [(bus, can.Message(arbitration_id=ident, data=data))], []
-    frames = signed(msg, tx | (0x1_0000 if how == "high" else 0), fd, flip=how == "flip")
+    fv = tx | (0x1_0000 if how == "high" else 0)
+    frames = signed(msg, fv, fd, 1 - bus if how == "other-key" else bus, flip=how == "flip")
     if fd:
         return [(bus, frames[0])], []
     data, mac = frames
@@ -404,7 +408,12 @@ def _side_by_side(fd: bool, steps: list[Any]) -> None:
             now = 1_000_000
             for side in (ref, c):  # every node heard: grants may begin
                 side.step(
-                    now, [(k >> 8, f) for k in KEYS for f in signed(Telemetry(k & 0xFF, 0), 0, fd)]
+                    now,
+                    [
+                        (k >> 8, f)
+                        for k in KEYS
+                        for f in signed(Telemetry(k & 0xFF, 0), 0, fd, k >> 8)
+                    ],
                 )
             later: list[tuple[int, can.Message]] = []
             for step in steps:
@@ -421,7 +430,8 @@ def _side_by_side(fd: bool, steps: list[Any]) -> None:
                 elif step[0] == "telemetry":
                     key = step[1]
                     tx = ref.service.core.session(key).tx
-                    frames += [(key >> 8, f) for f in signed(Telemetry(key & 0xFF, 500), tx, fd)]
+                    telemetry = Telemetry(key & 0xFF, 500)
+                    frames += [(key >> 8, f) for f in signed(telemetry, tx, fd, key >> 8)]
                 elif step[0] == "wait":
                     now += step[1]
                 else:
@@ -445,10 +455,10 @@ def test_fd_frame_for_frame_two_buses_on_the_c_path_with_a_key_are_the_python_pa
     steps: list[Any],
 ) -> None:
     """Any run of grants, passes of answers on either bus or both (genuine, forged, with a
-    foreign FV high half, without a MAC, with the counters of the other bus's session of the
-    same node or of a node the bus does not have), TELEMETRY, waits and a stop: after every
-    pass both sides sent the same bytes on each bus and hold the same books, state file,
-    status, freshness notes and evidence."""
+    foreign FV high half, without a MAC, under the other bus's key, with the counters of the
+    other bus's session of the same node or of a node the bus does not have), TELEMETRY, waits
+    and a stop: after every pass both sides sent the same bytes on each bus and hold the same
+    books, state file, status, freshness notes and evidence."""
     _side_by_side(True, steps)
 
 

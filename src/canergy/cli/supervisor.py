@@ -44,6 +44,7 @@ from canergy.live.supervisor.build import (
     DeviceGroup,
     SupervisorConfig,
     build_supervisor,
+    check_session_keys,
     open_core,
 )
 from canergy.live.supervisor.multi_bus import (
@@ -172,18 +173,15 @@ def _buses(args: argparse.Namespace) -> tuple[BusSpec, ...]:
     if single:
         raise ValueError(f"{' and '.join(single)} work on one bus (-i/-c/--nodes), not with --bus")
     check_buses(specs)
-    if args.auth is not None:
-        seen: dict[int, str] = {}
-        for spec in specs:
-            for node in spec.nodes:
-                if node in seen:
-                    raise ValueError(
-                        f"--auth: node {node} is on bus {seen[node]} and on bus {spec.name}, and "
-                        "a node's key comes from its id alone: one could pass for the other; "
-                        "give every node a different id"
-                    )
-                seen[node] = spec.name
+    if args.auth is not None:  # the builder's refusal (one master key: a node's key is its id's)
+        check_session_keys([spec.name for spec in specs], session_keys(specs), _by_id)
     return specs
+
+
+def _by_id(bus: int, node: int) -> bytes:
+    """A node's key under ``--auth``, as far as telling two apart goes: one master key on every
+    bus, so its id alone (checked before the key file is read)."""
+    return bytes([node])
 
 
 def _announce(args: argparse.Namespace, service: SupervisorService) -> None:

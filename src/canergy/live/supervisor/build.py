@@ -15,7 +15,7 @@ and puts the guards in front of the service (``canergy.live.canopen.cia402_host`
 from __future__ import annotations
 
 import secrets
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, cast
@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any, Protocol, cast
 import can
 
 from canergy.auth.state_key import state_seal
+from canergy.bus_keys import bus_of, node_of
 from canergy.ccore.supervisor import make_supervisor
 from canergy.codec import DEFAULT_ID_BASE, Codec
 from canergy.core import Timing
@@ -67,10 +68,19 @@ class AuthConfig:
     """Authenticated mode (``--auth``): the master key, its file, the frame layout."""
 
     key: Any
-    """A ``canergy.auth.keys.Key`` (master)."""
+    """A ``canergy.auth.keys.Key`` (master): it seals the books, and every bus's frames but
+    where ``bus_keys`` names another."""
     path: Path | None = None
     """The key's file: the epochs record of the books it sealed is kept beside it."""
     fd: bool = False
+    bus_keys: tuple[Any, ...] = ()
+    """Over several buses: each bus's master key, in ``ServiceConfig.bus_names``' order (empty:
+    ``key`` on every bus). A node id on two buses needs two different keys there
+    (``check_keys``)."""
+
+    def key_of(self, bus: int) -> Any:
+        """The master key of the bus at index ``bus``."""
+        return self.bus_keys[bus] if self.bus_keys else self.key
 
 
 @dataclass(frozen=True, slots=True)
@@ -137,12 +147,44 @@ class SupervisorConfig:
         return self.canopen is not None or self.cia402 is not None or bool(self.devices)
 
 
+def check_keys(config: SupervisorConfig, sessions: Sequence[int]) -> None:
+    """Refuse (``ValueError``) two ``sessions`` (session keys, ``canergy.bus_keys``) of one
+    node id on two buses under the same node key: a frame of one would verify as the other's
+    on either bus. A node's key comes from its bus's master key and its id alone
+    (``AuthConfig.key_of``), so with one master key a node id may be on one bus only."""
+    auth, names = config.auth, config.service.bus_names
+    if auth is None or not names:
+        return
+    if auth.bus_keys and len(auth.bus_keys) != len(names):
+        raise ValueError(f"{len(auth.bus_keys)} bus keys for {len(names)} buses")
+    check_session_keys(names, sessions, lambda bus, node: auth.key_of(bus).node_key(node))
+
+
+def check_session_keys(
+    names: Sequence[str], sessions: Iterable[int], node_key: Callable[[int, int], bytes]
+) -> None:
+    """``check_keys`` with each session's node key given: ``node_key(bus index, node id)``."""
+    seen: dict[tuple[int, bytes], int] = {}
+    for session in sessions:
+        bus, node = bus_of(session), node_of(session)
+        key = (node, node_key(bus, node))
+        if key in seen:
+            raise ValueError(
+                f"node {node} is on bus {names[seen[key]]} and on bus {names[bus]} under the "
+                "same key (a node's key comes from the master key and its id alone): a frame "
+                "of one would verify as the other's; give every node a different id"
+            )
+        seen[key] = bus
+
+
 def open_core(config: SupervisorConfig, now: int | None = None) -> SupervisorCore:
     """The core, from its books when the file exists (a start is then a restart: the core is
-    told of the power loss with a fresh nonce)."""
+    told of the power loss with a fresh nonce). Refused before anything is read or written
+    when two of its sessions would share a key (``check_keys``)."""
     c, auth = config.core, config.auth
     if c is None:
         raise ValueError("no core configured (SupervisorConfig.core) and none handed over")
+    check_keys(config, c.nodes)
     buses = config.service.bus_names
     state = None
     seal = None if auth is None else state_seal(auth.key)
@@ -229,6 +271,8 @@ def build_supervisor(
         raise ValueError("several buses need their names (ServiceConfig.bus_names)")
     if names and config.shares_bus:
         raise ValueError("CANopen and guarded drives and devices work on one bus")
+    sessions = core.nodes if core is not None else config.core and config.core.nodes
+    check_keys(config, sessions or ())  # before the socket is bound
     made: list[Any] = []  # what to undo when a later step fails
     control = None
     try:
@@ -384,7 +428,7 @@ def _several(
     off = _LISTEN_OFF if config.service.listen_only else None
     for i, (name, bus) in enumerate(zip(names, buses, strict=True)):
         port = BusPort(service, i, router, deadlines=i == 0)
-        auth = _frame_auth(config, codec, port.freshness)
+        auth = _frame_auth(config, codec, port.freshness, i)
         router.runtimes.append(
             BusRuntime(
                 bus,
@@ -414,13 +458,14 @@ def _several(
 _LISTEN_OFF = "--listen-only: every frame is only read, on the usual path"
 
 
-def _frame_auth(config: SupervisorConfig, codec: Codec, freshness: Any) -> Any:
-    """The frame authenticator of authenticated mode (None without a key)."""
+def _frame_auth(config: SupervisorConfig, codec: Codec, freshness: Any, bus: int = 0) -> Any:
+    """The frame authenticator of authenticated mode on the bus at index ``bus`` (None without
+    a key)."""
     if config.auth is None:
         return None
     from canergy.auth.frames import FrameAuth, Layout
     from canergy.auth.keys import frame_auth_keys
 
     layout = Layout.FD if config.auth.fd else Layout.CLASSIC
-    keys = frame_auth_keys(config.auth.key)
+    keys = frame_auth_keys(config.auth.key_of(bus))
     return FrameAuth(codec, layout, keys, Direction.TO_SUPERVISOR, freshness)

@@ -14,7 +14,7 @@ from canergy.cia402.guard import DriveGuard, GuardConfig
 from canergy.cia402.meter import MeterConfig, MeterKind
 from canergy.devices.guard import DeviceConfig, DeviceGuard
 from canergy.devices.odrive import MotorConstants, OdriveLimits, OdriveProfile
-from canergy.devices.profile import Metering
+from canergy.devices.profile import PER_STRETCH, LimitsWritten, Metering
 
 FULL = Limits(265, 265, 100_500)
 
@@ -45,5 +45,22 @@ def test_a_profile_device_shows_the_same_guarantee_for_the_same_mode(sampled: bo
     config = DeviceConfig(limits=OdriveLimits(5.0, 2.0), sampled=sampled)
     status = DeviceGuard(3, OdriveProfile(motor), config, 0, 1).status(0)
     mode = Metering.SAMPLED if sampled else Metering.ENVELOPE
-    assert (status["meter"], status["guarantee"]) == (mode.value, mode.guarantee)
-    assert status["guarantee"] == ("none" if sampled else "drawn <= granted + bound_uj")
+    assert status["meter"] == mode.value
+    assert status["guarantee"] == (mode.guarantee if sampled else PER_STRETCH)
+    assert status["guarantee"] == ("none" if sampled else "drawn <= granted + stretches * bound_uj")
+    assert status["stretches"] == (None if sampled else 1)
+
+
+def test_a_profile_devices_guarantee_counts_a_bound_per_stretch_a_write_opened() -> None:
+    """A writer behind the guard that raises the limits again after each of the guard's
+    writes opens a stretch at its limits each time (docs/guide/drives.md): the status's
+    guarantee names the stretches, the guard's own stop and one per write seen, not one bound
+    over the whole attack."""
+    motor = MotorConstants(Fraction(1, 20), Fraction(1, 2))
+    g = DeviceGuard(3, OdriveProfile(motor), DeviceConfig(limits=OdriveLimits(5.0, 2.0)), 0, 1)
+    g.on_ready(10_000, 0, OdriveLimits(5.0, 2.0), OdriveLimits(5.0, 0.0))
+    for i in range(3):
+        g.on_watched(20_000 + i, 20_000 + i, LimitsWritten(OdriveLimits(20.0, 20.0)))
+    status = g.status(30_000)
+    assert status["writes_seen"] == 3 and status["stretches"] == 4
+    assert status["guarantee"] == "drawn <= granted + stretches * bound_uj"

@@ -115,7 +115,8 @@ def _check(
     least_mj = round(watts * 1000) * DEFAULT_NOTICE_US // 1_000_000  # the page's arithmetic,
     assert least_mj == round(joules * 1000)  # rounded down: "or more" stays true
     assert device["bound_uj"] >= least_mj * 1000
-    assert device["guarantee"] == "drawn <= granted + bound_uj"
+    assert device["guarantee"] == "drawn <= granted + stretches * bound_uj"
+    assert device["stretches"] == 1  # no write behind the guard: its own stop only
     assert device["stop_reason"] == "budget exhausted"
     assert 0 < drawn <= granted + device["bound_uj"], (drawn, granted, device["bound_uj"])
 

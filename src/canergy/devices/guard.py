@@ -14,6 +14,11 @@ stop may draw; the intake is the longest a write behind the guard waited, from i
 arrival, to be taken in: a host held off lengthens it, the device running at the writer's limits
 meanwhile), waking exactly when the clock gets there; then it writes the closed limits.
 
+The guarantee (``PER_STRETCH``): drawn <= granted + stretches × bound, ``stretches`` being 1 (the
+guard's own stop) plus the writes behind the guard seen: a writer that raises the limits again
+after the stop runs the device at them until the guard's own are in force again, one stretch of
+at most one bound each time (charged as debt).
+
 In ``sampled`` mode the device's own power readings are integrated between samples: no limits,
 no bound, guarantee "none".
 
@@ -42,6 +47,7 @@ from canergy.cia402.meter import FW_US_PER_UJ
 from canergy.core import Timing
 from canergy.devices.clock import ClockCharge
 from canergy.devices.profile import (
+    PER_STRETCH,
     Foreign,
     L,
     LimitsWritten,
@@ -181,6 +187,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
 
     def running(self) -> bool:
         return self.phase is GuardPhase.RUNNING
+
+    def stretches(self) -> int:
+        """How many bounds the device may have drawn past its grant (``PER_STRETCH``): one for
+        the guard's own stop, one more per write behind the guard seen."""
+        return 1 + self.writes_seen
 
     @property
     def metering(self) -> Metering:
@@ -654,7 +665,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             "ready": self.ready_at is not None,
             **self.books_status(),
             "meter": self.metering.value,
-            "guarantee": self.metering.guarantee,
+            "guarantee": PER_STRETCH if self.sound else self.metering.guarantee,
+            "stretches": self.stretches() if self.sound else None,
             "metered_uj": self.metered_uj,
             "uncontained_uj": self.uncontained_uj,
             "bound_uj": bound_uj,

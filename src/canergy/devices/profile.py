@@ -24,7 +24,8 @@ only by reading the drive back: its profile declares them (``Cia402Profile.watch
 guard charges them at the drive's reach until read back.
 
 ``Metering`` names the modes a guard charges in, each with the guarantee the status shows
-(``envelope`` and ``counter``: drawn <= granted + bound; ``sampled``: none).
+(``envelope`` and ``counter``: drawn <= granted + bound; ``sampled``: none; a profile device's
+guard: one bound per stretch, ``PER_STRETCH``).
 
 How CiA 402 fits: its ``Limits`` (0x6072, 0x6073, 0x6080) are the limits type; ``envelope`` is
 ``Ratings.envelope_fw`` (τ_max·ω_max + R·i_max²), ``closed`` is ``Limits.closed``, ``mismatch``
@@ -42,7 +43,13 @@ from typing import Generic, Protocol, TypeVar
 L = TypeVar("L")
 
 SOUND = "drawn <= granted + bound_uj"
-"""The guarantee of a sound metering mode (the status's ``guarantee``)."""
+"""The guarantee of a sound metering mode (the status's ``guarantee``) where a write behind the
+guard opens no stretch of its own (a CiA 402 drive's)."""
+PER_STRETCH = "drawn <= granted + stretches * bound_uj"
+"""The guarantee of a profile device's guard in a sound mode (``DeviceGuard``): at most one bound
+per stretch, the guard's own stop one and each write behind the guard seen one more (a writer
+that raises the limits again after the stop runs the device at them until the guard's own are
+in force again: the guard writes over it, it cannot silence it). The status's ``stretches``."""
 
 
 class Metering(Enum):

@@ -12,9 +12,11 @@ from canergy.cia402.counter import CounterConfig
 from canergy.cia402.envelope import Limits
 from canergy.cia402.guard import DriveGuard, GuardConfig
 from canergy.cia402.meter import MeterConfig, MeterKind
+from canergy.core import Timing
 from canergy.devices.guard import DeviceConfig, DeviceGuard
 from canergy.devices.odrive import MotorConstants, OdriveLimits, OdriveProfile
 from canergy.devices.profile import PER_STRETCH, LimitsWritten, Metering
+from canergy.devices.proxy import EXHAUSTED, ProxyBooks
 
 FULL = Limits(265, 265, 100_500)
 
@@ -64,3 +66,37 @@ def test_a_profile_devices_guarantee_counts_a_bound_per_stretch_a_write_opened()
     status = g.status(30_000)
     assert status["writes_seen"] == 3 and status["stretches"] == 4
     assert status["guarantee"] == "drawn <= granted + stretches * bound_uj"
+
+
+class _Held(ProxyBooks):
+    """A proxy holding ``usable`` µJ whose guard stops at ``needed``."""
+
+    def __init__(self, usable: int, needed: int) -> None:
+        super().__init__(3, Timing(), 1_000_000, 0, 1)
+        self.held, self.needed = usable, needed
+
+    @property
+    def usable(self) -> int:
+        return self.held
+
+    def running(self) -> bool:
+        return False
+
+    def threshold_uj(self) -> int:
+        return self.needed
+
+
+def test_a_proxy_the_top_up_never_lifts_above_its_stop_is_held_not_exhausted() -> None:
+    """``ProxyBooks.parked``: stopped for its budget with budget in hand, under a top-up to
+    ``--target`` that cannot lift it above where its guard stops (the target not above it, or a
+    shortfall below ``--min-grant``): held, with the figures and what to raise."""
+    parked = _Held(78_000, 120_000).parked(EXHAUSTED, 50_000, 1_000)
+    assert parked == (
+        "held: 0.078 J in hand, 0.120 J needed to stop within the bound; the supervisor tops up "
+        "to --target 0.050 J only (raise --target above 0.120 J, or lower the limits)"
+    )
+    assert _Held(78_000, 120_000).parked(EXHAUSTED, 120_000, 1_000) is not None  # to it: held
+    assert _Held(78_000, 120_000).parked(EXHAUSTED, 121_000, 1_000) is None  # above: released
+    assert _Held(119_500, 120_000).parked(EXHAUSTED, 130_000, 20_000) is not None  # 11 mJ short
+    assert _Held(78_000, 120_000).parked("feedback stopped", 50_000, 1_000) is None
+    assert _Held(0, 120_000).parked(EXHAUSTED, 50_000, 1_000) is None  # exhausted, for now

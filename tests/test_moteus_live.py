@@ -30,6 +30,7 @@ from canergy.devices.moteus import (
     write_mode,
 )
 from canergy.ledger import ledger_from_status
+from canergy.live.supervisor.control import request
 from firmware_model.moteus.live_bench import LIMITS, SERVO, ServoBench, guarded_servo, wait_for
 
 BUDGET = ("--initial", "20J", "--target", "5J")
@@ -95,6 +96,38 @@ def test_the_budget_runs_out_and_the_controller_stops_inside_the_bound(
     books = ledger_from_status(final, [])
     assert books.drive_debt <= servo["bound_uj"]
     assert "moteus axis 1: stopping (budget exhausted" in capsys.readouterr().err
+
+
+def test_a_target_below_where_the_guard_stops_parks_the_controller_and_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--target`` 50 mJ, below where the guard stops the controller (the bound at its limits,
+    about 0.12 J): the supervisor warns at the start. A one-shot grant releases it; once it ran
+    that down the guard holds it with budget in hand, and the supervisor, which sees it at its
+    target, tops it up no more. The status says so (``held: ... J in hand, ... J needed``,
+    naming ``--target``), not "budget exhausted", and stderr says it is parked."""
+    with guarded_servo(tmp_path, *LIMITS, "--initial", "20J", "--target", "50mJ") as b:
+        wait_for(lambda: ready(b), timeout=60)
+        answer = request(b.supervisor.control, {"grant": {"node": SERVO, "amount_uj": 450_000}}, 30)
+        assert answer["outcome"] == "COMMITTED", answer
+        wait_for(lambda: (d := b.servo_status()) and d["stops"] >= 1, timeout=60)
+        wait_for(
+            lambda: (
+                (d := b.servo_status())
+                and d["guard"] == "stopped"
+                and "--target 0.050 J only" in (d["stop_reason"] or "")
+            ),
+            timeout=60,
+        )
+        servo = b.servo_status()
+        assert servo is not None
+        final = b.stop()
+    assert servo["stop_reason"].startswith("held: "), servo["stop_reason"]
+    assert 50_000 <= servo["usable_uj"] <= servo["stop_at_uj"], servo
+    assert final["conservation"]["holds"]
+    err = capsys.readouterr().err
+    assert "moteus axis 1: --target 0.050 J is not above where its guard stops it" in err, err
+    assert "moteus axis 1: parked (held: " in err, err
 
 
 def test_an_application_raising_its_own_limits_is_charged_for_them(tmp_path: Path) -> None:

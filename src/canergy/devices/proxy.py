@@ -112,6 +112,30 @@ class ProxyBooks:
             "the limits)"
         )
 
+    def parked(self, reason: str | None, target: int, minimum: int) -> str | None:
+        """The stop reason of a device its guard stopped for its budget (``reason`` "budget
+        exhausted") under a supervisor whose top-up keeps a node's level at ``target`` with
+        grants of at least ``minimum`` (``--target``, ``--min-grant``), when that top-up can
+        never lift what the proxy holds above where the guard stops: the budget is not
+        exhausted but held, with what it holds against what it needs and what to raise. None
+        otherwise (the supervisor tops it up and the guard releases it, or it stopped for
+        another reason). TELEMETRY's LOW says the same to the supervisor, whose top-up does not
+        read it: it sees the level at its target."""
+        if reason != EXHAUSTED or self.usable <= 0:
+            return None
+        level = min(self.usable, LEVEL_MAX_MJ * QUANTUM_UJ)
+        level -= level % QUANTUM_UJ  # as TELEMETRY reports it
+        short = target - level
+        topped = self.usable + (short if short >= minimum else 0)
+        needed = self.threshold_uj()
+        if topped > needed:
+            return None
+        return (
+            f"{HELD}{self.usable / 1e6:.3f} J in hand, {needed / 1e6:.3f} J needed to stop within "
+            f"the bound; the supervisor tops up to --target {target / 1e6:.3f} J only (raise "
+            f"--target above {needed / 1e6:.3f} J, or lower the limits)"
+        )
+
     def _proxy_due(self, now: int) -> list[Message]:
         """What the proxy sends at a wakeup: the outbox, and its timer's frames when due."""
         out, self.outbox = self.outbox, []

@@ -34,10 +34,21 @@ from canergy.live.canopen.cia402_link import DriveLink
 from canergy.live.devices.device_link import Device, DeviceLink
 from canergy.live.devices.on_stuck import DeviceNews, OnStuck
 from canergy.live.runtime import FramePath, Outgoing, RawFrame
+from canergy.live.supervisor.policy import TopUp
 from canergy.live.supervisor.service import SupervisorService
 from canergy.messages import Direction, Message, MsgType, ToClient
 
 NMT_OPERATIONAL = 0x05
+
+
+def _name(guard: DriveGuard | DeviceGuard[Any]) -> str:
+    """How the host's reports name a guarded drive or device (``moteus axis 1``, ``drive 9``)."""
+    if isinstance(guard, DeviceGuard):
+        noun = "motor" if guard.profile.name == "mit" else "axis"
+        return f"{guard.profile.name} {noun} {guard.node}"
+    return f"drive {guard.node}"
+
+
 SYNC_ID = 0x080
 
 
@@ -71,12 +82,19 @@ class GuardedDevices:
         report: Callable[[str], None] | None = None,
         liveness: Callable[[int, int], bool] | None = None,
         on_stuck: OnStuck | None = None,
+        top_up: TopUp | None = None,
     ) -> None:
         """``liveness``: the test of the other nodes (the CANopen heartbeat watchdog);
-        ``on_stuck``: ``--on-stuck``, run when a device becomes STUCK."""
+        ``on_stuck``: ``--on-stuck``, run when a device becomes STUCK; ``top_up``: the
+        supervisor's grant policy (``--target``): a guard whose stop threshold it never tops
+        its proxy above holds its device with budget in hand (said at the start, when it
+        happens, and in the status's ``stop_reason``, ``ProxyBooks.parked``)."""
         self.on_stuck = on_stuck
         self.report = report
         """Told in one line whenever a guard stops or releases its drive."""
+        self.top_up = top_up
+        self.parked_said: set[int] = set()
+        """The nodes whose parking was reported (until the guard releases them)."""
         self.reported: dict[int, tuple[str, str | None]] = {}
         self.news = DeviceNews(report, on_stuck)
         """What is said of the guarded devices (and ``--on-stuck``)."""
@@ -89,6 +107,45 @@ class GuardedDevices:
         self.next_sync = now if beat is not None and beat.sync_us else None
         self.beat_failures = 0
         self.other_liveness = liveness
+        self._warn_target()
+
+    def _guards(self) -> list[DriveGuard | DeviceGuard[Any]]:
+        return [g for g, _ in self.drives.values()] + [d for d, _ in self.devices.values()]
+
+    def _warn_target(self) -> None:
+        """A guard that stops at or above ``--target`` at its full limits: the supervisor's
+        top-up never releases it (said once, at the start)."""
+        if self.top_up is None or self.report is None:
+            return
+        target = self.top_up.target
+        for guard in self._guards():
+            if (needed := guard.threshold_uj()) >= target:
+                self.report(
+                    f"{_name(guard)}: --target {target / 1e6:.3f} J is not above where its guard "
+                    f"stops it ({needed / 1e6:.3f} J: the bound at its limits and the reserve): "
+                    "the top-up alone never releases it; raise --target above that, or lower "
+                    "the limits"
+                )
+
+    def _parked(self, guard: DriveGuard | DeviceGuard[Any]) -> str | None:
+        """``ProxyBooks.parked`` under this supervisor's top-up (None: no top-up)."""
+        if self.top_up is None:
+            return None
+        return guard.parked(guard.stop_reason, self.top_up.target, self.top_up.minimum)
+
+    def _tell_parked(self, guard: DriveGuard | DeviceGuard[Any]) -> None:
+        """One line when the top-up leaves a stopped guard holding budget (again after each
+        release)."""
+        why = self._parked(guard)
+        if why is None:
+            if guard.stop_reason is None:
+                self.parked_said.discard(guard.node)
+            return
+        if guard.node in self.parked_said:
+            return
+        self.parked_said.add(guard.node)
+        if self.report is not None:
+            self.report(f"{_name(guard)}: parked ({why})")
 
     def guards(self, node: int) -> bool:
         """Only the proxy in this process speaks for ``node``."""
@@ -140,6 +197,7 @@ class GuardedDevices:
                 up += guard.on_wakeup(now)
             self._hand_over(guard, link)
             self._tell(guard)
+            self._tell_parked(guard)
         for device, device_link in self.devices.values():
             if stopping and not device.halted:
                 device.halt(now)
@@ -148,6 +206,7 @@ class GuardedDevices:
                 up += device.on_wakeup(now)
             self._hand_over_device(device, device_link)
             self._tell(device)
+            self._tell_parked(device)
         return up
 
     def guard(self, node: int) -> DriveGuard | DeviceGuard[Any]:
@@ -178,17 +237,23 @@ class GuardedDevices:
         for n, (device, device_link) in self.devices.items():
             profile = devices.setdefault(device.profile.name, {})
             profile[str(n)] = {**device.status(now), **device_link.status()}
+            if (why := self._parked(device)) is not None:
+                profile[str(n)]["stop_reason"] = why
             if self.on_stuck is not None:
                 profile[str(n)]["on_stuck"] = self.on_stuck.status(n)
         return {
             "host_id": None if self.beat is None else self.beat.host_id,
             "heartbeat_failures": self.beat_failures,
             "drives": {
-                str(n): {**guard.status(now), **link.status()}
+                str(n): {**guard.status(now), **link.status(), **self._parked_reason(guard)}
                 for n, (guard, link) in self.drives.items()
             },
             "devices": devices,
         }
+
+    def _parked_reason(self, guard: DriveGuard) -> dict[str, str]:
+        why = self._parked(guard)
+        return {} if why is None else {"stop_reason": why}
 
     def halt_all(self, now: int) -> None:
         """Quick stop every drive that may still run (the supervisor is exiting); the links

@@ -352,6 +352,7 @@ def _one(
             if config.on_stuck is None
             else OnStuck(config.on_stuck, config.report or print),
             liveness=None if manager is None else manager.alive,
+            top_up=config.service.policy,
         )
         made.append(guarded.close)
     counters = BusCounters()

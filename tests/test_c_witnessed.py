@@ -388,7 +388,7 @@ def witnessed_sessions(draw: Any) -> Session:
     far = st.sampled_from([-0x10000, 0x10000, 0x8000]).map(lambda d: s.returns_credited + d)
     return replace(
         s,
-        resume_nonce=draw(st.sampled_from([0, 9]) | st.integers(0, 0xFFFF)),
+        resume_nonce=draw(st.sampled_from([0, 9, 9 | 1 << 16]) | st.integers(0, 0x1FFFF)),
         resume_from=draw(near | far),
         resume_to=draw(st.just(s.returns_credited) | st.just(0) | near),
     )
@@ -397,17 +397,21 @@ def witnessed_sessions(draw: Any) -> Session:
 @settings(max_examples=400)
 @given(witnessed_sessions(), timings, st.data())
 def test_every_debit_cell_on_drawn_records(s: Session, t: Timing, data: st.DataObject) -> None:
-    """Draws and resumes near the session's counters (a repeat of the last RESUME answered
-    included) give in C the record, the frame, the budget, the resolution of witnessed.py."""
+    """Draws, resumes and a SYNC's counts near the session's counters (a repeat of the last
+    start answered included, counts under its nonce or another) give in C the record, the frame,
+    the budget, the resolution of witnessed.py."""
     seq = data.draw(wire_near(s.returns_credited))
     amount = data.draw(st.sampled_from([0, 1, 0xFFFF]) | st.integers(0, 0xFFFF))
-    nonce = data.draw(st.just(s.resume_nonce) | st.integers(0, 0xFFFF))
+    last = s.resume_nonce & 0xFFFF
+    nonce = data.draw(st.just(last) | st.integers(0, 0xFFFF))
     repeat = (s.resume_from & 0xFFFF) if data.draw(st.booleans()) else seq
     for m in (
         Debit(s.node, 0, Debit.DRAW, seq, max(amount, 1)),
         Debit(s.node, nonce, Debit.START, seq, amount),
         Debit(s.node, nonce, Debit.START | Debit.DRAW, seq, amount),
-        Debit(s.node, s.resume_nonce, Debit.START, repeat, amount),
+        Debit(s.node, last, Debit.START, repeat, amount),
+        Debit.counts(s.node, nonce, seq, amount),
+        Debit.counts(s.node, last, repeat, amount),
         Join(s.node, nonce),
     ):
         same(s, t, m, data.draw(st.integers(0, 10**9)), table=W.SUPERVISOR)
@@ -442,13 +446,13 @@ def test_counts_repeated_from_a_later_start_move_tx_up_in_c_as_in_python(
 @pytest.mark.parametrize("tx", [COUNTER_BOUND - 30_000, COUNTER_BOUND - 5])
 def test_counts_move_tx_no_further_than_the_bound_in_c_as_in_python(repeat: bool, tx: int) -> None:
     """Counts carry a 16-bit ltx, widened against tx: up to 32,767 ahead. Repeated without a
-    key (the last answered again, or another nonce each time) they walked tx and W past
+    key (the last answered again, or a RESUME's under its nonce) they walked tx and W past
     COUNTER_BOUND (a record no loader takes), C's int32 W negative at 2^31 and its tx back to 0
     at 2^32 (begins allowed again where Python refuses them). A counter moved by a start stays
     below the bound (``common.capped``), in both cores."""
     s = Session(
         1, tx=tx, witness=tx, delivered=3000, returns_credited=5,
-        resume_nonce=9 | 1 << 16 if repeat else 0, resume_from=4, resume_to=5 if repeat else 0,
+        resume_nonce=9 | 1 << 16 if repeat else 9, resume_from=4, resume_to=5,
     )  # fmt: skip
     counts = Debit.counts(1, 9, 4, (tx + 0x7FFF) & 0xFFFF)
     after = W.SUPERVISOR.step(ST, s, counts, 0).session
@@ -456,6 +460,27 @@ def test_counts_move_tx_no_further_than_the_bound_in_c_as_in_python(repeat: bool
     same(s, ST, counts, 0, table=W.SUPERVISOR)
     again = W.SUPERVISOR.step(ST, after, counts, 0).session
     assert again.tx == again.witness == COUNTER_BOUND - 1
+
+
+@pytest.mark.parametrize("phase", [Phase.IDLE, Phase.WAIT_ACK])
+@pytest.mark.parametrize("ltx", [0x0000, 0x5555, 60_000, 0xAAAA])
+def test_an_earlier_starts_counts_move_no_tx_in_c_as_in_python(phase: Phase, ltx: int) -> None:
+    """Counts outside a start under a nonce that is not the last start's (a replay of an
+    earlier SYNC's, which verifies with a key for the whole epoch) are ignored in C as in
+    witnessed.py: their ltx widened against a tx moved on by more than 2^15 moved tx and W up
+    to 2^15 - 1 ahead, wrote off what was open and found the node behind."""
+    open_ = phase is not Phase.IDLE
+    s = Session(
+        1, phase=phase, tx=100_000, reserved=2000 if open_ else 0, delivered=9000,
+        returns_credited=50, resume_nonce=0x0707 | 1 << 16, resume_from=49, resume_to=50,
+        witness=100_000, deadline=0 if open_ else None,
+    )  # fmt: skip
+    replayed = Debit.counts(1, 0x0303, 10, ltx)
+    assert W.SUPERVISOR.step(ST, s, replayed, 0).session is s
+    same(s, ST, replayed, 0, table=W.SUPERVISOR)
+    same(
+        replace(s, resume_to=0, resume_nonce=0x0303 | 1 << 16), ST, replayed, 0, table=W.SUPERVISOR
+    )
 
 
 # -- issue 40, item 6: a C node restored from an older NV copy ---------------------------------

@@ -250,6 +250,23 @@ def test_no_grant_to_anyone_before_the_nodes_books_and_start_without_skips_one(c
     assert [m for m in skipping.on_wakeup(30) if isinstance(m, Intention)]
 
 
+@pytest.mark.parametrize("core", CORES)
+def test_an_earlier_starts_counts_are_counted_and_move_nothing(core: str) -> None:
+    """Once the start is over, counts of another nonce whose ltx is not within B of tx (an
+    earlier SYNC's, replayed: with a key they verify) are ignored by the rules and counted in
+    the node's ``counts_ignored``; the last start's counts again are answered, not counted."""
+    s = _restarted(core=core)
+    for node in (1, 2):
+        s.on_message(Debit.books(node, 0x1234, 0), 20)
+        s.on_message(Debit.counts(node, 0x1234, 0, 0), 21)
+    before = s.core.session(1)
+    assert not s.on_message(Debit.counts(1, 0x0303, 0, 0x4000), 30)
+    assert s.core.session(1) == before and s.status()["nodes"]["1"]["counts_ignored"] == 1
+    again = s.on_message(Debit.counts(1, 0x1234, 0, 0), 31)
+    assert [m for m in again if isinstance(m, Admit)] == [Admit(1, 0x1234 ^ 0x8000, 0, 1)]
+    assert s.status()["nodes"]["1"]["counts_ignored"] == 1
+
+
 def _story(core: str) -> tuple[list[object], list[dict[str, Any]], list[str]]:
     """A restart on ``core``: SYNC re-sent, a grant asked for while waiting, node 1's books
     (0.5 J more than the restored books) and counts, node 2's, the grant to node 2 carried out.

@@ -601,6 +601,26 @@ def test_a_resume_far_behind_a_lifted_count_is_voided_above_the_lift(tx: int) ->
             ),
             Debit.counts(1, 9, 4, 70),
         ),
+        (  # an earlier start's counts (another nonce), ltx ahead once widened: ignored
+            Session(
+                1,
+                tx=100_000,
+                witness=100_000,
+                returns_credited=50,
+                resume_nonce=9 | 1 << 16,
+                resume_from=49,
+                resume_to=50,
+            ),
+            Debit.counts(1, 3, 10, 60_000),
+        ),
+        *(  # another nonce, ltx at tx + B (a node that took a late ADMIT for a SYNC: taken)
+            # and one past it (ignored)
+            (
+                Session(1, tx=7, returns_credited=4, resume_nonce=9, resume_from=3, resume_to=4),
+                Debit.counts(1, 3, 4, 7 + 64 + d),
+            )
+            for d in (0, 1)
+        ),
     ],
     ids=[
         "first-resume",
@@ -609,6 +629,9 @@ def test_a_resume_far_behind_a_lifted_count_is_voided_above_the_lift(tx: int) ->
         "counts-again",
         "counts-again-ahead",
         "counts-again-ahead-open",
+        "counts-of-an-earlier-start",
+        "counts-of-another-nonce-at-tx-plus-b",
+        "counts-of-another-nonce-past-tx-plus-b",
     ],
 )
 def test_witnessed_resumes_at_the_edges(s: Session, msg: Debit) -> None:

@@ -238,11 +238,36 @@ SUP_CASES += [
     ),
     Case("books outside a start are ignored", S_IDLE, Debit.books(3, 0x51, 99), S_IDLE),
     Case(
-        "counts outside a start (a SYNC the node answered late): confirmed, tx lifted to ltx",
+        "counts outside a start under another nonce, ltx within B of tx (a node that took a late "
+        "ADMIT for a SYNC): confirmed, tx lifted to ltx",
         S_IDLE,
-        counts(4, 70),
-        replace(resumed(S_IDLE, 4, 5), tx=70, witness=70, resume_nonce=0x51 | 0x10000),
-        (Send(Admit(3, 0x51 ^ SYNC_CONFIRMED, 70, 5)),),
+        counts(4, 71),
+        replace(resumed(S_IDLE, 4, 5), tx=71, witness=71, resume_nonce=0x51 | 0x10000),
+        (Send(Admit(3, 0x51 ^ SYNC_CONFIRMED, 71, 5)),),
+    ),
+    Case(
+        "counts outside a start under the last RESUME's nonce (its resync), ltx beyond B: "
+        "confirmed, tx lifted to ltx",
+        resumed(S_IDLE, 3, 4),
+        counts(4, 200, nonce=9),
+        replace(resumed(S_IDLE, 4, 5), tx=200, witness=200, resume_nonce=9 | 0x10000),
+        (Send(Admit(3, 9 ^ SYNC_CONFIRMED, 200, 5)),),
+    ),
+    *(
+        Case(
+            f"counts outside a start under another nonce than the last start's ({why}), ltx "
+            f"{ltx} beyond B of tx or behind it (an earlier start's): ignored",
+            s,
+            counts(4, ltx),
+            s,
+        )
+        for why, s in (
+            ("none answered yet", S_IDLE),
+            ("an earlier RESUME's", resumed(S_IDLE, 3, 4)),
+            ("an earlier SYNC's", replace(resumed(S_IDLE, 3, 4), resume_nonce=0x52 | 0x10000)),
+            ("an open transaction", replace(resumed(S_OPEN, 3, 4), resume_nonce=0x50)),
+        )
+        for ltx in (72, 6, 0xFFFF)
     ),
     *(
         Case(

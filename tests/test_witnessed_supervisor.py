@@ -287,18 +287,11 @@ def test_counts_repeated_with_an_ltx_above_tx_write_off_what_is_open() -> None:
     assert lower.session.tx == 75 and _sent(lower) == [Admit(1, 0x1234 ^ SYNC_CONFIRMED, 75, 4)]
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="review of e6bed6d: a SYNC's counts outside a start (IDLE) are confirmed whatever "
-    "their nonce, and with --auth their FV is their nonce, so a genuine counts frame of an "
-    "earlier SYNC verifies for the whole epoch; its 16-bit ltx, widened against a tx that has "
-    "moved on more than 2^15, lands up to 2^15 - 1 ahead of it: tx and W jump, what is open is "
-    "written off, a debit number voided. Three such frames, ltx spread over 2^16, walk tx to the "
-    "end of the numbering (a replayed DoS, never energy)",
-)
 def test_a_replayed_counts_frame_of_an_earlier_sync_moves_no_tx() -> None:
     """A node confirmed at tx 100,000; a counts frame it sent at an earlier SYNC (ltx 60,000),
-    replayed with its MAC: verified, then taken by the rules."""
+    replayed with its MAC: verified (the key does not stop it), then ignored by the rules, which
+    take counts outside a start only under the nonce of the last start answered, or with an ltx
+    from tx to tx + B."""
     key = bytes(range(16))
     node_side = FrameAuth(CODEC, Layout.FD, lambda n: key, Direction.TO_CLIENT, lambda m: None)
     sup_side = FrameAuth(CODEC, Layout.FD, lambda n: key, Direction.TO_SUPERVISOR, lambda m: 0)
@@ -311,4 +304,15 @@ def test_a_replayed_counts_frame_of_an_earlier_sync_moves_no_tx() -> None:
         resume_nonce=0x10707, resume_from=49, resume_to=50,
     )  # fmt: skip
     step = W.SUPERVISOR.step(Timing(), s, old, 0)
-    assert step.session.tx == s.tx and step.session.witness == s.witness
+    assert step.session is s and step.actions == ()  # ignored: not the last start's nonce
+    # the last start's counts (its answer lost) and a RESUME's resync are still taken
+    again = W.SUPERVISOR.step(Timing(), s, Debit.counts(1, 0x0707, 49, 100_000 & 0xFFFF), 0)
+    assert _sent(again) == [Admit(1, 0x0707 ^ SYNC_CONFIRMED, 100_000 & 0xFFFF, 50)]
+    resumed = replace(s, resume_nonce=0x0707)  # RESUME(0x0707, 49) answered: C 50
+    resync = W.SUPERVISOR.step(Timing(), resumed, Debit.counts(1, 0x0707, 50, 100_200 & 0xFFFF), 0)
+    assert resync.session.tx == resync.session.witness == 100_200  # beyond B: by its nonce
+    assert _sent(resync) == [Admit(1, 0x0707 ^ SYNC_CONFIRMED, 100_200 & 0xFFFF, 51)]
+    walked = s  # three earlier SYNCs' counts, ltx spread over 2^16: tx stays
+    for ltx in (0x0000, 0x5555, 0xAAAA):
+        walked = W.SUPERVISOR.step(Timing(), walked, Debit.counts(1, 0x0303, 10, ltx), 0).session
+    assert walked is s

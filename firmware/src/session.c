@@ -312,6 +312,22 @@ static void confirm(struct canergy_session *s, const struct canergy_msg *m,
     confirmation(s, nonce, step);
 }
 
+/* A SYNC's counts outside a start (witnessed.counts_taken): under the nonce of the last start
+ * answered (resume_to 0: none), whatever their ltx; under another only with an ltx from tx to
+ * tx + B (a node with books answering an ADMIT it took for a SYNC). Other counts are an earlier
+ * start's: with a key they verify for the whole epoch, and their 16-bit ltx widened against a
+ * tx moved on by more than 2^15 moved tx and W up to 2^15 - 1 ahead and wrote off what was
+ * open, or found the node behind. */
+static bool counts_taken(const struct canergy_session *s,
+                         const struct canergy_session_timing *t, const struct canergy_msg *m)
+{
+    if (s->resume_to != 0U && (uint16_t)(s->resume_nonce & 0xFFFFUL) == m->nonce) {
+        return true;
+    }
+    const int64_t settled = settled_of(s, m->amount_mj);
+    return settled >= (int64_t)s->tx && settled <= (int64_t)s->tx + (int64_t)window_of(t);
+}
+
 /* SYNC(n, tx, C): an ADMIT the node did not ask for. */
 static void send_sync(const struct canergy_session *s, struct canergy_session_step *step)
 {
@@ -448,6 +464,9 @@ void canergy_session_on_msg(struct canergy_session *s, const struct canergy_sess
         }
         if (is_books(m->flags)) {
             break; /* books outside a start: ignored */
+        }
+        if (m->flags == CANERGY_DEBIT_COUNTS && !counts_taken(s, t, m)) {
+            break; /* an earlier start's counts (a replay verifies with a key): ignored */
         }
         if ((m->flags & CANERGY_DEBIT_START) != 0U) {
             confirm(s, m, step);

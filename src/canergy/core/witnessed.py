@@ -108,11 +108,28 @@ def on_aborted(t: Timing, s: Session, msg: Aborted, now: int) -> SessionStep:
 
 
 def on_debit(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
-    """DEBIT: a draw is held as the node's last debit; a resume (or a SYNC's counts arriving
-    after this start's) confirms the node's start; books outside a start are ignored."""
-    if msg.is_books:
+    """DEBIT: a draw is held as the node's last debit; a RESUME confirms the node's start, and
+    so do a SYNC's counts arriving after the start they answer (``counts_taken``); books
+    outside a start are ignored."""
+    if msg.is_books or (msg.is_counts and not counts_taken(t, s, msg)):
         return SessionStep(s)
     return confirm(t, s, msg, now) if msg.is_resume else hold_draw(t, s, msg, now)
+
+
+def counts_taken(t: Timing, s: Session, msg: Debit) -> bool:
+    """A SYNC's counts outside a start are taken under the nonce of the last start answered
+    (``resume_to`` 0: none), whatever their ltx: the last counts again (their answer lost, or a
+    later start of the node answering a copy of the same SYNC: ``repeat_counts``) or those a
+    RESUME's answer asks for under its nonce (``resync``); under another nonce only with an ltx
+    from tx to tx + B: a node with books answering an ADMIT it took for a SYNC (a late copy, or
+    a JOIN's answer) settled B past its ltx, and its ltx is at least W, which is at least
+    tx - B. Other counts are an earlier start's: with a key they verify for the whole epoch
+    (their FV is their nonce), and their 16-bit ltx, widened against a tx moved on by more than
+    2^15, lands up to 2^15 - 1 ahead of it (taken, each moved tx and W there and wrote off what
+    was open) or behind it (taken, found behind: written off, C lifted). They are ignored."""
+    if s.resume_to != 0 and wrap(s.resume_nonce, NONCE_BITS) == msg.nonce:
+        return True
+    return s.tx <= ltx_of(s, msg) <= s.tx + t.window
 
 
 def hold_draw(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:

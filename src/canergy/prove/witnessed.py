@@ -551,13 +551,22 @@ def admit(s: Session, nonce16: Term) -> SessionStep:
     return _outside_start(s, SessionStep(t, sent, lifted.credit))
 
 
+def counts_taken(s: Session, nonce16: Term, amount_mj: Term, window: int = WINDOW) -> Term:
+    """``witnessed.counts_taken``: counts outside a start under the last start's nonce, or
+    with an ltx from tx to tx + B."""
+    last = z3.And(s.resume_to != 0, z3.Extract(NONCE_BITS - 1, 0, s.resume_nonce) == nonce16)
+    ahead = _ltx_of(amount_mj, s.tx) - s.tx  # from -2^15 to 2^15 - 1: no wrap on 32 bits
+    return z3.Or(last, z3.And(ahead >= 0, ahead <= window))
+
+
 def on_debit(s: Session, nonce16: Term, flags: Term, seq16: Term, amount_mj: Term) -> SessionStep:
     """DEBIT (``flags`` an integer term): outside a start, a RESUME (START) or a SYNC's counts
-    arriving late is confirmed, a draw held, books ignored; in a start, the SYNC's books, then
-    its counts."""
+    arriving late (``counts_taken``) is confirmed, a draw held, books and other counts ignored;
+    in a start, the SYNC's books, then its counts."""
     resume = confirm(s, nonce16, flags % 2 == 1, seq16, amount_mj, flags == COUNTS)
+    earlier = z3.And(flags == COUNTS, z3.Not(counts_taken(s, nonce16, amount_mj)))
     outside = sym.choose(
-        is_books(flags),
+        z3.Or(is_books(flags), earlier),
         sym._unchanged(s),
         sym.choose((flags / START) % 2 == 1, resume, hold_draw(s, seq16)),
     )

@@ -40,7 +40,7 @@ from canergy.core.common import at_end
 from canergy.core.errors import LocalProtocolError
 from canergy.core.state import SYNC_PHASES, Outcome, Phase
 from canergy.core.supervisor import BUS_SHIFT, SupervisorCore
-from canergy.core.witnessed import answered
+from canergy.core.witnessed import answered, counts_taken
 from canergy.live.runtime import BusCounters, FramePath, Outgoing, RawFrame, total_counters
 from canergy.live.supervisor.control import ControlServer
 from canergy.live.supervisor.evidence import beyond_books, impossible
@@ -108,6 +108,9 @@ class NodeInfo:
     was admitted afresh and what that record held was dropped."""
     synced: int = 0
     """Supervisor starts this node answered with its books and counts (witnessed rules)."""
+    counts_ignored: int = 0
+    """Counts outside a start the rules ignored (witnessed.counts_taken): an earlier start's,
+    replayed or late; they move nothing."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -474,6 +477,10 @@ class SupervisorService:
         """The books or counts answering this start's SYNC: the core takes them; once the
         counts are taken the node is confirmed, and once every node is, grants resume."""
         s = self.core.session(msg.node)
+        outside = msg.is_counts and s.phase not in SYNC_PHASES
+        if outside and not counts_taken(self.core.timing, s, msg):  # an earlier start's
+            info.counts_ignored += 1  # the rules ignore it; the witness's baseline stays
+            return self._carry_out(self.core.receive(msg, now), now)
         if msg.is_counts:  # the node's return numbers start again, as at a RESUME
             self.witness.hold_resume(msg, s.returns_credited, now, False)
         out = self._carry_out(self.core.receive(msg, now), now)
@@ -1096,6 +1103,7 @@ class SupervisorService:
                 "resumes": info.resumes,
                 "found_behind": info.found_behind,
                 "synced": info.synced,
+                "counts_ignored": info.counts_ignored,
                 "resume_waiting": self.witness.resume_held(s.node),
                 "returns": info.returns,
                 "decode_errors": info.decode_errors,

@@ -33,12 +33,14 @@ from canergy.auth.frames import (
     fv_before,
 )
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
+from canergy.frozen import fast_init
 from canergy.live.transports.virtual_alone import ALONE_AFTER_US, alone_on_virtual, explanation
 from canergy.messages import Admit, Direction, Join, Message, Return, ReturnAck, Telemetry
 
 Filters = list[dict[str, int | bool]]
 
 
+@fast_init  # made for every frame the compiled core sends
 @dataclass(frozen=True, slots=True)
 class RawFrame:
     """A frame encoded already (the compiled core's fast path): sent as it is."""

@@ -577,7 +577,8 @@ class SupervisorService:
 
     def node_name(self, node: int) -> int | str:
         """A node as status, replies and the state file name it: its id, or ``bus/node``."""
-        return node_name(self.config.bus_names, node)
+        buses = self.config.bus_names
+        return node_name(buses, node) if buses else node  # one bus: its id (every reply)
 
     def intrusion(self, node: int, what: str, kind: str, now: int, *, stop: bool = False) -> None:
         """Report what no honest participant sends. ``stop``: evidence that ``--on-intrusion

@@ -353,10 +353,11 @@ class CompiledSupervisor:
 
     def _read(self, i: int) -> Session:
         b = self._b
-        fields = b.session.unpack_from(self._sup_bytes, b.sessions_at + i * b.session_size)
-        delivered, returned, deadline, tx, credited, reserved = fields[:6]
-        resume_from, resume_to, resume_nonce, witness, sync_nonce = fields[6:11]
-        node, phase, decision, tries = fields[11:]
+        (
+            delivered, returned, deadline, tx, credited, reserved,
+            resume_from, resume_to, resume_nonce, witness, sync_nonce,
+            node, phase, decision, tries,
+        ) = b.session.unpack_from(self._sup_bytes, b.sessions_at + i * b.session_size)  # fmt: skip
         resume_from = resume_to - (resume_to - resume_from) % 2**32  # Python's: below resume_to
         return Session(
             node,
@@ -388,7 +389,7 @@ class CompiledSupervisor:
         """``begin`` with its INTENTION as the C codec encoded it (``_frames``) instead of a
         ``Send``: the fast path's loop sends those bytes as they are."""
         self._begin(node, amount, now)
-        return self._actions(fast=True), self._frames()
+        return self._fast_out()
 
     def _begin(self, node: int, amount: int, now: int) -> None:
         self._managed(node)
@@ -547,7 +548,8 @@ class CompiledSupervisor:
         )
         b = self._b
         if status == b.ok:
-            return status, self._actions(fast=True), self._frames(), None, 0
+            actions, frames = self._fast_out()
+            return status, actions, frames, None, 0
         if status != b.caller:
             return status, [], [], None, 0
         msg: Message
@@ -736,13 +738,34 @@ class CompiledSupervisor:
             phase = self.session(node).phase.name
             raise LocalProtocolError(f"cannot {what} node {node} in {phase} ({self._b.errors[rc]})")
 
-    def _actions(self, *, fast: bool = False, resumed: bool = False) -> list[Action]:
+    def _fast_out(self) -> tuple[list[Action], list[tuple[int, bytes]]]:
+        """``_actions(fast=True)`` and ``_frames()`` with the output's counts read once (the
+        frame path's every answer and grant)."""
+        raw, b = self._out_bytes, self._b
+        counts = b.counts.unpack_from(raw, b.counts_at)
+        frame, at, size = b.frame.unpack_from, b.frames_at, b.frame_size
+        frames = []
+        for k in range(counts[0]):
+            arbitration_id, dlc, data = frame(raw, at + k * size)
+            frames.append((arbitration_id, data[:dlc]))
+        return self._actions(fast=True, counts=counts), frames
+
+    def _actions(
+        self,
+        *,
+        fast: bool = False,
+        resumed: bool = False,
+        counts: tuple[int, int, int] | None = None,
+    ) -> list[Action]:
         """The last call's output as the Python core's actions, in its order. ``fast``
         (``on_answer``): no ``Acknowledged`` (decided in C already) and no ``Send`` (the
         frames go out as C encoded them, ``_frames``). ``resumed``: a RESUME, which credits a
-        pending return numbered one below the number it then voids."""
+        pending return numbered one below the number it then voids. ``counts``: the output's
+        counts, read already."""
         raw, b = self._out_bytes, self._b
-        frames, events, persist = b.counts.unpack_from(raw, b.counts_at)
+        frames, events, persist = (
+            b.counts.unpack_from(raw, b.counts_at) if counts is None else counts
+        )
         actions: list[Action] = [Persist()] if persist else []
         sent = 0
         for k in range(events):

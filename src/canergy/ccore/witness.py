@@ -129,6 +129,8 @@ class CompiledReturnGate:
 
     def release(self, node: int, credited: int, now: int) -> list[Return | Debit]:
         rec = self._rec(node)
+        if not (rec.held_count or rec.has_resume):  # nothing held: C would release nothing
+            return []
         r = self._release
         self._lib.canergy_witness_release(rec, credited % 2**32, now, self.hold_us, r)
         out: list[Return | Debit] = []

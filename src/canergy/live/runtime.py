@@ -33,12 +33,14 @@ from canergy.auth.frames import (
     fv_before,
 )
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
+from canergy.frozen import fast_init
 from canergy.live.transports.virtual_alone import ALONE_AFTER_US, alone_on_virtual, explanation
 from canergy.messages import Admit, Direction, Join, Message, Return, ReturnAck, Telemetry
 
 Filters = list[dict[str, int | bool]]
 
 
+@fast_init  # made for every frame the compiled core sends
 @dataclass(frozen=True, slots=True)
 class RawFrame:
     """A frame encoded already (the compiled core's fast path): sent as it is."""
@@ -413,7 +415,9 @@ class BusRuntime:
             self.counters.receive_failed()
             self.sleep(min(wait, 0.1))
             frame = None
-        self.begin_pass()
+        passes = self._passes  # begin_pass and end_pass, written out: every pass runs them
+        if passes is not None:
+            passes.begin_pass()
         try:
             batch = 0
             while frame is not None:  # drain what is queued before judging any timeout
@@ -422,7 +426,8 @@ class BusRuntime:
                 frame = self._recv_now() if batch < self.max_batch else None
             self.run_due()
         finally:
-            self.end_pass()
+            if passes is not None:
+                self._send_all(passes.end_pass())
 
     def begin_pass(self) -> None:
         """Tell a handler that takes passes (``PassHandler``) that a loop pass begins."""

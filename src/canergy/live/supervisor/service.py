@@ -360,12 +360,14 @@ class SupervisorService:
         for line in notes:
             log.warning("node %s: %s", self.node_name(msg.node), line)
         self.ready.add(msg.node)
-        out: list[Outgoing] = self._released(msg.node, now) + (
+        out = self._released(msg.node, now)  # grown in place: no list made per step
+        out += (
             self.joins.on_telemetry(msg, now)
             if found is None
             else self.joins.telemetry_taken(msg, now, found >> 8)
         )
-        return out + self._start_grants(now, self.ready)
+        out += self._start_grants(now, self.ready)
+        return out
 
     def _distrusted(self, node: int, now: int) -> bool:
         """Without a key: no top-ups while the node's TELEMETRY was lately contradicted (with a
@@ -582,7 +584,8 @@ class SupervisorService:
 
     def node_name(self, node: int) -> int | str:
         """A node as status, replies and the state file name it: its id, or ``bus/node``."""
-        return node_name(self.config.bus_names, node)
+        buses = self.config.bus_names
+        return node_name(buses, node) if buses else node  # one bus: its id (every reply)
 
     def intrusion(self, node: int, what: str, kind: str, now: int, *, stop: bool = False) -> None:
         """Report what no honest participant sends. ``stop``: evidence that ``--on-intrusion
@@ -615,15 +618,17 @@ class SupervisorService:
             self.stop(now)
 
     def next_wakeup(self) -> int | None:
-        wakeup = min(self.next_status, self.next_tick)
-        if self.ready and not self.stopping:
-            wakeup = min(wakeup, self.now)
-        if (release := self.witness.next_release()) is not None:
-            wakeup = min(wakeup, release)
-        if (admission := self.joins.next_wakeup()) is not None:
-            wakeup = min(wakeup, admission)
+        wakeup = self.next_status  # the earliest of these (compared, no min(): every pass)
+        if self.next_tick < wakeup:
+            wakeup = self.next_tick
+        if self.ready and not self.stopping and self.now < wakeup:
+            wakeup = self.now
+        if (release := self.witness.next_release()) is not None and release < wakeup:
+            wakeup = release
+        if (admission := self.joins.next_wakeup()) is not None and admission < wakeup:
+            wakeup = admission
         timer = self.core.get_timer()
-        return wakeup if timer is None else min(wakeup, timer)
+        return wakeup if timer is None or wakeup <= timer else timer
 
     def on_wakeup(self, now: int) -> Sequence[Message]:
         self.now = now
@@ -724,6 +729,9 @@ class SupervisorService:
             self.stopping,
         )
         node = frame.arbitration_id & 0xFF | bus << BUS_SHIFT  # its session key
+        if not status:  # an answer the rules took (nothing decoded, no verdict)
+            self._answered(node, [RawFrame(i, d, False, bus) for i, d in frames], actions, now)
+            return True
         if verdict & HOST_JOIN:  # a JOIN held in C
             self.frames_in_c += 1
             self.now = now
@@ -743,10 +751,7 @@ class SupervisorService:
             self.frames_in_c += 1
             self.on_message(decoded, now)  # in a pass: its frames are held
             return True
-        if status:
-            return False
-        self._answered(node, [RawFrame(i, d, False, bus) for i, d in frames], actions, now)
-        return True
+        return False
 
     def fast_auth_frame(self, frame: can.Message, now: int, bus: int = 0) -> bool:
         """``fast_frame`` with a key, FD layout: an ACK, COMMITTED or ABORTED of a managed node
@@ -809,10 +814,11 @@ class SupervisorService:
         self.now = now
         self.frames_in_c += 1
         self.nodes[node].heard.heard_at = now
-        out = frames + self._carry_out(actions, now)
+        held = self._held  # in this order: the frames, what the books record, the next grant
+        held += frames
+        held += self._carry_out(actions, now)
         if self.ready:  # a transaction ended: the node's next grant goes out in this pass
-            out += self._start_grants(now, self.ready)
-        self._held += out
+            held += self._start_grants(now, self.ready)
 
     # -- loop passes -----------------------------------------------------------------------
     def begin_pass(self) -> None:

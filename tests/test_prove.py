@@ -497,3 +497,27 @@ def test_the_supervisors_debit_proves_that_its_counters_never_go_back() -> None:
         "lemma: tx does not go back",
     }
     assert all(o.proved for o in lemmas), [o.counterexample for o in lemmas if not o.proved]
+
+
+def _debit_clause(clause: str) -> Any:
+    """One obligation of the supervisor's DEBIT (the step's checks stop once it is reached)."""
+    (case,) = [c for c in cases(WITNESSED) if c.name == "supervisor receives DEBIT"]
+    for outcome in check_step(case, 60_000, WITNESSED):
+        if outcome.clause == clause:
+            return outcome
+    raise AssertionError(f"no obligation {clause!r}")
+
+
+def test_counts_ending_a_supervisor_start_keep_returned_within_given(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Counts that end a supervisor's start from an older image bring the image's ``returned``
+    back into ``returned <= given``: the invariant says it is at most the session at the
+    start's while the start waits (``credited_back``). Without that clause z3 finds an image
+    that credited back more than the node gave."""
+    from canergy.prove import witnessed_proof as wp
+
+    outcome = _debit_clause("returned <= given")
+    assert outcome.proved, outcome.counterexample
+    monkeypatch.setattr(wp, "credited_back", lambda w: z3.BoolVal(True))
+    assert not _debit_clause("returned <= given").proved

@@ -26,9 +26,12 @@ of the supervisor then keeps every clause.
 
 Not proved: it fails at the supervisor's DEBIT, where a SYNC's counts end the supervisor's
 start and the invariant speaks of the record started from again (its tx, C and Gs are not yet
-shown to dominate the session at the start's): docs/protocol.md ("Passivity as a theorem",
-assumption 2); ``canergy prove --rules witnessed --keep-going`` lists the obligations,
-``--step NAME`` checks one step.
+shown to dominate the session at the start's; 18 of its 39 obligations): docs/protocol.md
+("Passivity as a theorem", assumption 2, items (a) to (d)); ``canergy prove --rules witnessed
+--keep-going`` lists the obligations, ``--step NAME`` checks one step. Counts that end a start
+are read against the record started from, so ``deliverable`` asks their q within 2**15 of its
+C (assumption 3 of the receiver's counter), and ``bounded`` its tx below the cap where their
+ltx is held (assumption 4).
 """
 
 from __future__ import annotations
@@ -173,7 +176,8 @@ def supervisor_books(w: World) -> Term:
 
 def waiting(w: World) -> Term:
     """A supervisor's start waits: the session at its start is idle, nothing open, and the
-    record it started from no further in any counter than it."""
+    record it started from no further in any counter than it, nor in what it credited back
+    (``credited_back``)."""
     at_start = replace(w, s=spre(w))
     r = spre(w)
     return z3.And(
@@ -181,8 +185,17 @@ def waiting(w: World) -> Term:
         inv.supervisor_books(at_start),
         ule(w.tx, at_start.tx),
         ule(w.rc, at_start.rc),
+        credited_back(w),
         answered(r),
     )
+
+
+def credited_back(w: World) -> Term:
+    """While a start waits, the record started from has credited back no more returns than the
+    session at the start: an image holds at most what was credited then (``p_session_image``),
+    and a start's books and counts credit none. When the counts end the start, ``returned <=
+    given`` and ``pending return`` speak of the image's again."""
+    return w.s.returned <= spre(w).returned
 
 
 def answered(s: sym.Session) -> Term:
@@ -422,7 +435,16 @@ def deliverable(m: Msg, w: World) -> Term:
     if m.kind is Kind.DEBIT:
         age = z3.Implies(z3.Not(wit.is_books(m.flags)), inv.near(m.k, view(w).rc))
         counts = z3.And(this_start(m, w), m.flags == wit.COUNTS)  # its ltx, as for a RESUME's q
-        return z3.And(age, z3.Implies(counts, inv.near(w.last, w.tx)))
+        # counts that end a supervisor's start are read against the record it started from,
+        # maybe an older image: their q within 2**15 of its C too (assumption 3 for an image)
+        ending = z3.And(
+            w.s.phase == sym.SYNC_BOOKS, m.nonce == w.s.sync_nonce, m.flags == wit.COUNTS
+        )
+        return z3.And(
+            age,
+            z3.Implies(counts, inv.near(w.last, w.tx)),
+            z3.Implies(ending, inv.near(m.k, w.rc)),
+        )
     if m.kind is Kind.ADMIT:
         ours = z3.And(starting(w.c), m.nonce == expected(w.c))
         real = z3.And(m.start == starts(w), inv.near(m.k, w.last))
@@ -433,9 +455,16 @@ def deliverable(m: Msg, w: World) -> Term:
 def bounded(w: World) -> Term:
     """Bounded life (assumption 4), and the supervisor's C below the cap 2**30 - 1 where a
     start's void stops moving it (reached only after 2**16 voids past the end of the
-    numbering)."""
+    numbering), its tx below the same cap, where a SYNC's counts' ltx is held
+    (``witnessed.ltx_of``): a lift at counts that find the node behind would otherwise move the
+    proof's numbering back."""
     at_end = sym.counter(COUNTER_BOUND - 1)
-    return z3.And(inv.bounded(w), inv.bounded(view(w)), z3.ULT(w.s.returns_credited, at_end))
+    return z3.And(
+        inv.bounded(w),
+        inv.bounded(view(w)),
+        z3.ULT(w.s.returns_credited, at_end),
+        z3.ULT(w.s.tx, at_end),
+    )
 
 
 def resolved(before: World, after: World) -> Term:

@@ -100,3 +100,21 @@ def test_a_proxy_the_top_up_never_lifts_above_its_stop_is_held_not_exhausted() -
     assert _Held(119_500, 120_000).parked(EXHAUSTED, 130_000, 20_000) is not None  # 11 mJ short
     assert _Held(78_000, 120_000).parked("feedback stopped", 50_000, 1_000) is None
     assert _Held(0, 120_000).parked(EXHAUSTED, 50_000, 1_000) is None  # exhausted, for now
+
+
+def test_a_write_found_by_the_periodic_read_back_counts_as_a_stretch() -> None:
+    """Review rv2: limits raised behind the guard that only the periodic read-back finds (a
+    write on another interface, or one the watcher did not see) run the device at them until
+    the guard's own are in force again: a stretch like a write seen (the guard charges it from
+    the read's ask, ``_take_foreign``), so ``stretches`` counts it, or the claim
+    ``drawn <= granted + stretches * bound_uj`` leaves one bound out."""
+    motor = MotorConstants(Fraction(1, 20), Fraction(1, 2))
+    config = DeviceConfig(limits=OdriveLimits(5.0, 2.0), reread_us=1_000)
+    g = DeviceGuard(3, OdriveProfile(motor), config, 0, 1)
+    g.on_ready(10_000, 0, OdriveLimits(5.0, 2.0), OdriveLimits(5.0, 0.0))
+    g.on_wakeup(g.next_reread or 0)  # the periodic read-back asked
+    assert g.rereading is not None
+    g.on_read(g.rereading + 10, OdriveLimits(20.0, 20.0))  # raised behind the guard
+    status = g.status(30_000)
+    assert status["guarantee"] == "drawn <= granted + stretches * bound_uj"
+    assert status["stretches"] == 2

@@ -17,6 +17,8 @@ from canergy.devices.guard import DeviceConfig, DeviceGuard
 from canergy.devices.odrive import MotorConstants, OdriveLimits, OdriveProfile
 from canergy.devices.profile import PER_STRETCH, LimitsWritten, Metering
 from canergy.devices.proxy import EXHAUSTED, ProxyBooks
+from canergy.live.canopen.cia402_host import GuardedDevices
+from canergy.live.supervisor.policy import TopUp
 
 FULL = Limits(265, 265, 100_500)
 
@@ -118,3 +120,33 @@ def test_a_write_found_by_the_periodic_read_back_counts_as_a_stretch() -> None:
     status = g.status(30_000)
     assert status["guarantee"] == "drawn <= granted + stretches * bound_uj"
     assert status["stretches"] == 2
+
+
+class _HeldGuard(DeviceGuard[OdriveLimits]):
+    """An ODrive axis's guard whose proxy holds ``held`` µJ."""
+
+    held = 0
+
+    @property
+    def usable(self) -> int:
+        return self.held
+
+
+def test_a_top_up_within_the_resume_margin_leaves_the_device_held() -> None:
+    """Review rv2: the guard releases its device only above its stop threshold plus
+    ``resume_margin_uj`` (10 mJ). A --target 5 mJ above the threshold tops the proxy up to a
+    level where the guard keeps the device stopped for ever, so ``parked`` says held (not
+    'budget exhausted', which a top-up would end), and the start-up warning is given."""
+    motor = MotorConstants(Fraction(1, 20), Fraction(1, 2))
+    g = _HeldGuard(3, OdriveProfile(motor), DeviceConfig(limits=OdriveLimits(5.0, 2.0)), 0, 1)
+    g.on_ready(10_000, 0, OdriveLimits(5.0, 2.0), OdriveLimits(5.0, 0.0))
+    target = g.threshold_uj() - g.threshold_uj() % 1000 + 5_000
+    g.held = target  # topped up to --target: the level the supervisor keeps it at
+    assert not g._may_resume()  # the guard keeps it stopped
+    g.held = 1_000  # stopped with 1 mJ in hand: the top-up brings it to target, no further
+    parked = g.parked(EXHAUSTED, target, 1_000)
+    assert parked is not None and parked.startswith("held: ")
+    reports: list[str] = []
+    devices = {3: (g, None)}
+    GuardedDevices({}, None, None, 0, devices=devices, report=reports.append, top_up=TopUp(target))  # type: ignore[dict-item]
+    assert any("--target" in r for r in reports)

@@ -612,12 +612,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         self.commands.append(Stop(why, now))
         self.last_stop_at = now
 
+    def release_uj(self) -> int:
+        return self.threshold_uj() + self.config.resume_margin_uj
+
     def _may_resume(self) -> bool:
-        return (
-            not self.latched
-            and self.usable > self.threshold_uj() + self.config.resume_margin_uj
-            and self.ready_at is not None
-        )
+        return not self.latched and self.usable > self.release_uj() and self.ready_at is not None
 
     def _desired(self) -> L | None:
         if not self.sound or self.ready_at is None:

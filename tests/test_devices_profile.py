@@ -150,3 +150,13 @@ def test_a_top_up_within_the_resume_margin_leaves_the_device_held() -> None:
     devices = {3: (g, None)}
     GuardedDevices({}, None, None, 0, devices=devices, report=reports.append, top_up=TopUp(target))  # type: ignore[dict-item]
     assert any("--target" in r for r in reports)
+
+
+def test_a_top_up_below_a_whole_quantum_leaves_the_device_held() -> None:
+    """Review rv2: grants are whole mJ (``policy.quantize``), --target and --min-grant need not
+    be. At 130 mJ under --target 130.5 mJ and --min-grant 0.5 mJ the top-up wants 0.5 mJ and
+    grants nothing, so a guard releasing above 130.2 mJ stays stopped for ever: held, not
+    'budget exhausted'; from 1 mJ the top-up grants 129 mJ and gets it there."""
+    assert _Held(130_000, 130_200).parked(EXHAUSTED, 130_500, 500) is not None
+    assert _Held(1_000, 130_200).parked(EXHAUSTED, 130_500, 500) is not None
+    assert _Held(1_000, 130_200).parked(EXHAUSTED, 131_500, 500) is None  # 131 mJ: released

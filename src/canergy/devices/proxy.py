@@ -131,7 +131,8 @@ class ProxyBooks:
         level = min(self.usable, LEVEL_MAX_MJ * QUANTUM_UJ)
         level -= level % QUANTUM_UJ  # as TELEMETRY reports it
         short = target - level
-        topped = self.usable + (short if short >= minimum else 0)
+        grant = short - short % QUANTUM_UJ if short >= minimum else 0  # whole quanta (quantize)
+        topped = self.usable + grant
         needed, release = self.threshold_uj(), self.release_uj()
         if topped > release:
             return None

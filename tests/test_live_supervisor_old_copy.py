@@ -336,3 +336,18 @@ def test_the_gateways_start_without_is_checked_before_its_state_file_is_touched(
     assert main([*argv, "--state", str(tmp_path / "g.json")]) != 0
     assert f"--start-without: {why}" in capsys.readouterr().err
     assert not (tmp_path / "g.json").exists()
+
+
+@pytest.mark.parametrize("core", CORES)
+def test_counts_a_start_ignores_leave_the_witness_alone(core: str) -> None:
+    """Review rv2: during a start the core ignores counts under another nonce than its SYNC's
+    (an earlier start's, replayed, or forged without a key), as it ignores them after it; the
+    service's witness keeps its return-number baseline then too (a loss changes nothing)."""
+    s = _restarted(core=core)
+    s.on_message(Telemetry(1, 0, 0, 2, 0), 5)  # the node's return number: 2
+    w = s.witness.nodes[1]
+    before = (w.resume_nonce, w.return_seq)
+    session = s.core.session(1)
+    assert not s.on_message(Debit.counts(1, 0x0303, 0, 0x4000), 10)  # not the SYNC's nonce
+    assert s.core.session(1) == session
+    assert (w.resume_nonce, w.return_seq) == before

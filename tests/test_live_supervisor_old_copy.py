@@ -339,15 +339,25 @@ def test_the_gateways_start_without_is_checked_before_its_state_file_is_touched(
 
 
 @pytest.mark.parametrize("core", CORES)
-def test_counts_a_start_ignores_leave_the_witness_alone(core: str) -> None:
+def test_counts_a_start_ignores_leave_the_witness_alone(
+    core: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Review rv2: during a start the core ignores counts under another nonce than its SYNC's
     (an earlier start's, replayed, or forged without a key), as it ignores them after it; the
-    service's witness keeps its return-number baseline then too (a loss changes nothing)."""
+    service's witness (Python's or C's) then keeps its return-number baseline too, which
+    ``hold_resume`` resets (a loss changes nothing)."""
     s = _restarted(core=core)
-    s.on_message(Telemetry(1, 0, 0, 2, 0), 5)  # the node's return number: 2
-    w = s.witness.nodes[1]
-    before = (w.resume_nonce, w.return_seq)
+    reset: list[Debit] = []
+    hold_resume = s.witness.hold_resume
+
+    def spy(msg: Debit, credited: int, now: int, hold: bool) -> bool:
+        reset.append(msg)
+        return hold_resume(msg, credited, now, hold)
+
+    monkeypatch.setattr(s.witness, "hold_resume", spy)
     session = s.core.session(1)
     assert not s.on_message(Debit.counts(1, 0x0303, 0, 0x4000), 10)  # not the SYNC's nonce
-    assert s.core.session(1) == session
-    assert (w.resume_nonce, w.return_seq) == before
+    assert s.core.session(1) == session and reset == []
+    s.on_message(Debit.books(1, 0x1234, 0), 20)
+    s.on_message(Debit.counts(1, 0x1234, 0, 0), 21)  # this start's: the baseline starts again
+    assert reset == [Debit.counts(1, 0x1234, 0, 0)]

@@ -336,3 +336,28 @@ def test_the_gateways_start_without_is_checked_before_its_state_file_is_touched(
     assert main([*argv, "--state", str(tmp_path / "g.json")]) != 0
     assert f"--start-without: {why}" in capsys.readouterr().err
     assert not (tmp_path / "g.json").exists()
+
+
+@pytest.mark.parametrize("core", CORES)
+def test_counts_a_start_ignores_leave_the_witness_alone(
+    core: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Review rv2: during a start the core ignores counts under another nonce than its SYNC's
+    (an earlier start's, replayed, or forged without a key), as it ignores them after it; the
+    service's witness (Python's or C's) then keeps its return-number baseline too, which
+    ``hold_resume`` resets (a loss changes nothing)."""
+    s = _restarted(core=core)
+    reset: list[Debit] = []
+    hold_resume = s.witness.hold_resume
+
+    def spy(msg: Debit, credited: int, now: int, hold: bool) -> bool:
+        reset.append(msg)
+        return hold_resume(msg, credited, now, hold)
+
+    monkeypatch.setattr(s.witness, "hold_resume", spy)
+    session = s.core.session(1)
+    assert not s.on_message(Debit.counts(1, 0x0303, 0, 0x4000), 10)  # not the SYNC's nonce
+    assert s.core.session(1) == session and reset == []
+    s.on_message(Debit.books(1, 0x1234, 0), 20)
+    s.on_message(Debit.counts(1, 0x1234, 0, 0), 21)  # this start's: the baseline starts again
+    assert reset == [Debit.counts(1, 0x1234, 0, 0)]

@@ -1019,3 +1019,30 @@ def stale_admits_end_quiet(sup: Supervisor, node: Any) -> None:
 def test_stale_admits_to_a_booked_node_end_quiet() -> None:
     sup = window_supervisor(Supervisor)
     stale_admits_end_quiet(sup, Client(1, variant="witnessed", timing=SCENE, state=BOOKED_AT_10))
+
+
+def answers_lost_then_stale_admits(sup: Supervisor, node: Any) -> None:
+    """Review rv2: three stale ADMITs (SC clear, nonces of no start answered last: late SYNC
+    copies or keyed replays) reach a booked node, and its answers to the first two are lost
+    (two frames destroyed). Each raised its ltx by B: the counts of the third carry 10 + 3B,
+    more than B past the supervisor's tx (10). The old rules took them (tx and W moved up,
+    ADMIT(n ^ SYNC_CONFIRMED) freed the node); ignoring them leaves the node answering for ever:
+    its re-sent counts stay ignored, and the supervisor's begins stop at W + B = 74, so tx never
+    comes within B of 202."""
+    node.receive(Admit(1, 1, 0, 0), 0)  # its books and counts lost
+    node.receive(Admit(1, 2, 0, 0), 0)  # its books and counts lost
+    _exchange(node.receive(Admit(1, 3, 0, 0), 0), sup, node, 0)  # its re-sends: the same
+    assert node.state.phase is Phase.IDLE, "the node still waits for its counts' confirmation"
+    _exchange(sup.begin(1, 1000, 1), sup, node, 1)
+    _exchange(sup.commit(1, 1), sup, node, 1)
+    assert node.state.usable == 1000
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="review rv2: honest counts over B past tx ignored for ever (liveness)",
+)
+def test_a_node_whose_sync_answers_were_lost_is_not_left_waiting() -> None:
+    sup = window_supervisor(Supervisor)
+    node = Client(1, variant="witnessed", timing=SCENE, state=BOOKED_AT_10)
+    answers_lost_then_stale_admits(sup, node)

@@ -431,6 +431,9 @@ class DriveGuard(ProxyBooks):
         self.halted = True
         self._evaluate(now)
 
+    def release_uj(self) -> int:
+        return self.threshold_uj() + self.config.resume_margin_uj
+
     def threshold_uj(self) -> int:
         """Stop when the budget falls to this: the reserve, plus in the sound modes the bound
         of the limits in force or being tapered to (whichever is larger)."""
@@ -530,7 +533,7 @@ class DriveGuard(ProxyBooks):
             not self.latched
             and self.suspect is None
             and self.state not in FAULT_STATES
-            and self.usable > self.threshold_uj() + self.config.resume_margin_uj
+            and self.usable > self.release_uj()
         )
 
     def _wants_enable(self) -> bool:

@@ -15,9 +15,9 @@ arrival, to be taken in: a host held off lengthens it, the device running at the
 meanwhile), waking exactly when the clock gets there; then it writes the closed limits.
 
 The guarantee (``PER_STRETCH``): drawn <= granted + stretches × bound, ``stretches`` being 1 (the
-guard's own stop) plus the writes behind the guard seen: a writer that raises the limits again
-after the stop runs the device at them until the guard's own are in force again, one stretch of
-at most one bound each time (charged as debt).
+guard's own stop) plus the writes behind the guard seen or found by a periodic read-back: a
+writer that raises the limits again after the stop runs the device at them until the guard's own
+are in force again, one stretch of at most one bound each time (charged as debt).
 
 In ``sampled`` mode the device's own power readings are integrated between samples: no limits,
 no bound, guarantee "none".
@@ -176,6 +176,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         self.stops = 0
         self.restops = 0
         self.writes_seen = 0
+        self.writes_found = 0
+        """Limits changed behind the guard that only a periodic read-back found (no frame seen)."""
         self.halted = False
         self.next_reread = now + config.reread_us if config.reread_us else None
         self.rereading: int | None = None
@@ -190,8 +192,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
 
     def stretches(self) -> int:
         """How many bounds the device may have drawn past its grant (``PER_STRETCH``): one for
-        the guard's own stop, one more per write behind the guard seen."""
-        return 1 + self.writes_seen
+        the guard's own stop, one more per write behind the guard seen or found by a read-back."""
+        return 1 + self.writes_seen + self.writes_found
 
     @property
     def metering(self) -> Metering:
@@ -331,6 +333,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             return self._settled(now)  # a write since, or in flight: its own read-back checks
         assert self.confirmed is not None
         if (why := self.profile.mismatch(self.confirmed, read)) is not None:
+            self.writes_found += 1  # a write behind the guard no frame showed: a stretch too
             self._refuse(f"limits changed behind the guard (a periodic read-back): {why}")
             # in force since the read was asked at the latest: charged at their envelope from
             # then until the guard's own limits (written at once) read back
@@ -609,12 +612,11 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         self.commands.append(Stop(why, now))
         self.last_stop_at = now
 
+    def release_uj(self) -> int:
+        return self.threshold_uj() + self.config.resume_margin_uj
+
     def _may_resume(self) -> bool:
-        return (
-            not self.latched
-            and self.usable > self.threshold_uj() + self.config.resume_margin_uj
-            and self.ready_at is not None
-        )
+        return not self.latched and self.usable > self.release_uj() and self.ready_at is not None
 
     def _desired(self) -> L | None:
         if not self.sound or self.ready_at is None:

@@ -60,6 +60,11 @@ class ProxyBooks:
         """Where the guard stops the device (TELEMETRY's LOW at or below it)."""
         raise NotImplementedError
 
+    def release_uj(self) -> int:
+        """The level its guard releases a device stopped for its budget above: the stop
+        threshold, and the resume margin of a guard that has one."""
+        return self.threshold_uj()
+
     def telemetry(self, now: int) -> Telemetry:
         self.next_telemetry = now + self.telemetry_period_us
         flags = (
@@ -126,14 +131,15 @@ class ProxyBooks:
         level = min(self.usable, LEVEL_MAX_MJ * QUANTUM_UJ)
         level -= level % QUANTUM_UJ  # as TELEMETRY reports it
         short = target - level
-        topped = self.usable + (short if short >= minimum else 0)
-        needed = self.threshold_uj()
-        if topped > needed:
+        grant = short - short % QUANTUM_UJ if short >= minimum else 0  # whole quanta (quantize)
+        topped = self.usable + grant
+        needed, release = self.threshold_uj(), self.release_uj()
+        if topped > release:
             return None
         return (
             f"{HELD}{self.usable / 1e6:.3f} J in hand, {needed / 1e6:.3f} J needed to stop within "
             f"the bound; the supervisor tops up to --target {target / 1e6:.3f} J only (raise "
-            f"--target above {needed / 1e6:.3f} J, or lower the limits)"
+            f"--target above {release / 1e6:.3f} J, or lower the limits)"
         )
 
     def _proxy_due(self, now: int) -> list[Message]:

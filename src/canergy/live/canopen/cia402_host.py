@@ -119,10 +119,11 @@ class GuardedDevices:
             return
         target = self.top_up.target
         for guard in self._guards():
-            if (needed := guard.threshold_uj()) >= target:
+            if (needed := guard.release_uj()) >= target:
                 self.report(
                     f"{_name(guard)}: --target {target / 1e6:.3f} J is not above where its guard "
-                    f"stops it ({needed / 1e6:.3f} J: the bound at its limits and the reserve): "
+                    f"stops it ({needed / 1e6:.3f} J: the bound at its limits, the reserve and "
+                    "the margin above it to release it): "
                     "the top-up alone never releases it; raise --target above that, or lower "
                     "the limits"
                 )

@@ -483,7 +483,8 @@ class SupervisorService:
         if outside and not counts_taken(self.core.timing, s, msg):  # an earlier start's
             info.counts_ignored += 1  # the rules ignore it; the witness's baseline stays
             return self._carry_out(self.core.receive(msg, now), now)
-        if msg.is_counts:  # the node's return numbers start again, as at a RESUME
+        other = s.phase in SYNC_PHASES and msg.nonce != s.sync_nonce  # ignored: not this start's
+        if msg.is_counts and not other:  # the node's return numbers start again, as at a RESUME
             self.witness.hold_resume(msg, s.returns_credited, now, False)
         out = self._carry_out(self.core.receive(msg, now), now)
         waiting = self.waiting()

@@ -16,6 +16,7 @@ from typing import Any
 
 import can
 import pytest
+from support.stops import budget_stop
 
 from canergy.cli import main
 from canergy.codec import DEFAULT_ID_BASE
@@ -56,7 +57,7 @@ def test_a_burst_from_the_application_reaches_the_motor_clamped_and_the_budget_s
 
         def exhausted() -> bool:
             s = motor()
-            return s.get("stop_reason") == "budget exhausted" and s.get("guard") == "stopped"
+            return budget_stop(s.get("stop_reason")) and s.get("guard") == "stopped"
 
         try:
             wait_for(lambda: motor().get("guard") == "running", 60, motor)

@@ -14,6 +14,7 @@ from typing import Any
 
 import can
 import pytest
+from support.stops import budget_stop
 
 from canergy.cli import main
 from canergy.devices.odrive import Cmd, can_id, set_limits
@@ -35,7 +36,7 @@ def exhausted(bench: AxisBench) -> dict[str, Any] | None:
     d = bench.axis_status()
     done = (
         d is not None
-        and d["stop_reason"] == "budget exhausted"
+        and budget_stop(d["stop_reason"])
         and d["guard"] == "stopped"
         and d["usable_uj"] < d["stop_at_uj"]
     )

@@ -24,6 +24,7 @@ import canopen
 import pytest
 from support.procs import Procs, procs, python, status, wait
 from support.readme import python_blocks
+from support.stops import budget_stop
 from support.vcan import BUS, IFACE, vcan_up
 from support.venue import Venue, venue
 
@@ -144,7 +145,7 @@ def _stopped(procs: Procs) -> tuple[dict[str, Any], dict[str, Any], dict[str, An
 def _spent(procs: Procs) -> bool:
     """The budget ran out after the drive ran: a stop while the first grants were arriving
     (the bound above the first 0.5 J) is not the end of the pulse."""
-    if _guarded(procs).get("stop_reason") != "budget exhausted":
+    if not budget_stop(_guarded(procs).get("stop_reason")):
         return False
     return any(
         h["state"] == "OPERATION ENABLED" for h in status(procs.tmp / "drive.json")["history"]

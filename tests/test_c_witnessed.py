@@ -937,3 +937,19 @@ def test_the_c_gateway_takes_rules_above_and_refuses_others(tmp_path: Path) -> N
         "canergy-gateway: error: argument --upstream-rules: invalid choice: 'trusting' "
         "(choose from 'hardened', 'witnessed')\n"
     )
+
+
+@pytest.mark.parametrize(
+    "frame",
+    [Join(1, 0x33), Debit(1, 0x34, Debit.START, 69_999 & 0xFFFF, 0)],
+    ids=["join", "resume found behind"],
+)
+def test_an_admission_lifting_tx_moves_w_in_c_as_in_python(frame: Join | Debit) -> None:
+    """tx 10, W 10, C 70,000: a JOIN or a RESUME found behind lifts tx to 10 + 2^16 and moves W
+    up to it in both cores (before, W stayed at 10 and C refused the next begin with
+    CANERGY_ERR_WINDOW, as Python did), and the next begin is the same in both."""
+    s = Session(1, tx=10, witness=10, returns_credited=70_000)
+    admitted = W.SUPERVISOR.step(ST, s, frame, 0).session
+    assert admitted.witness == admitted.tx == 10 + (1 << 16)
+    same(s, ST, frame, 0, table=W.SUPERVISOR)
+    same(admitted, ST, Begin(1_000_000), 0, table=W.SUPERVISOR)

@@ -29,10 +29,11 @@ from canergy.ccore.supervisor import CompiledBelow
 from canergy.codec import Codec
 from canergy.core import Action, Client, Persist, Send, Supervisor
 from canergy.core.errors import LocalProtocolError
-from canergy.core.gateway import Below, Gateway, MakeDown, link_gap
+from canergy.core.gateway import Below, Gateway, GatewayState, MakeDown, link_gap
+from canergy.core.state import ClientState, Session, SupervisorState
 from canergy.ledger import TreeLedger, ledger
 from canergy.live.gateway.state import gateway_json, load_gateway, save_gateway
-from canergy.messages import ToClient, ToSupervisor
+from canergy.messages import Intention, Join, ToClient, ToSupervisor
 
 pytestmark = release
 
@@ -295,3 +296,22 @@ def test_either_role_withdraws_only_what_it_holds(core: str) -> None:
             sup.withdraw(amount)
     sup.withdraw(J // 2)
     assert (sup.usable, sup.state.injected, sup.state.withdrawn) == (3 * J // 2, 2 * J, J // 2)
+
+
+@pytest.mark.parametrize("core", ["python", "c"])
+def test_a_gateways_node_admitted_into_cs_higher_block_gets_its_next_grant(core: str) -> None:
+    """The gateway's supervisor role runs the same session rules: tx 10, W 10, C 70,000, a
+    JOIN lifts tx to 10 + 2^16 and moves W with it, and the next grant below begins (before,
+    "beyond the window" until the gateway restarted), on either core."""
+    lifted = Session(1, tx=10, witness=10, returns_credited=70_000)
+    down = SupervisorState(5 * J, 5 * J, sessions=(lifted,))
+    gw = Gateway(
+        GW,
+        [1],
+        variant="witnessed",
+        state=GatewayState(ClientState(GW), down),
+        below=c_below() if core == "c" else None,
+    )
+    gw.down.receive(Join(1, 0x33), 0)
+    sent = [a.message for a in gw.down.begin(1, J, 1) if isinstance(a, Send)]
+    assert sent == [Intention(1, (11 + (1 << 16)) & 0xFFFF, 1000, 0)]

@@ -139,7 +139,7 @@ SUP_CASES = [
         "a start behind the last debit held: written off and admitted afresh",
         S_WC,
         resume(3),
-        resumed(WROTE_OFF, 3, 5),
+        replace(resumed(WROTE_OFF, 3, 5), witness=7),  # admitted at tx: W moves up to it
         (Resolved(3, 7, Outcome.WRITTEN_OFF, TS), Admitted(3, 7, 5), Send(Admit(3, 9, 7, 5))),
     ),
     Case(
@@ -153,7 +153,7 @@ SUP_CASES = [
         "join while idle: admitted with the next debit number voided",
         S_IDLE,
         Join(3, 0xBEEF),
-        replace(S_IDLE, returns_credited=5),
+        replace(S_IDLE, returns_credited=5, witness=7),  # admitted at tx: W moves up to it
         (Admitted(3, 7, 5), Send(Admit(3, 0xBEEF, 7, 5))),
     ),
     *[
@@ -161,7 +161,7 @@ SUP_CASES = [
             f"join while {s.phase.name}: written off, admitted with the next number voided",
             s,
             Join(3, 0xBEEF),
-            replace(WROTE_OFF, returns_credited=5),
+            replace(WROTE_OFF, returns_credited=5, witness=7),
             (
                 Resolved(3, 7, Outcome.WRITTEN_OFF, TS),
                 Admitted(3, 7, 5),

@@ -17,12 +17,12 @@ from canergy.codec import Codec, DecodeError, DecodeErrorReason
 from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing
 from canergy.core import witnessed as W
 from canergy.core.inputs import RESPONSE_TIMEOUT, Begin, PowerLoss
-from canergy.core.state import ClientState, Phase, Session
+from canergy.core.state import ClientState, Phase, Session, SupervisorState
 from canergy.core.steps import ClientStep, SessionStep
 from canergy.core.table import cell
 from canergy.core.variants import Variant
 from canergy.frozen import evolve
-from canergy.messages import SYNC_CONFIRMED, Admit, Debit, Direction, Message
+from canergy.messages import SYNC_CONFIRMED, Admit, Debit, Direction, Join, Message
 
 CODEC = Codec()
 nodes = st.integers(1, 127)
@@ -316,3 +316,37 @@ def test_a_replayed_counts_frame_of_an_earlier_sync_moves_no_tx() -> None:
     for ltx in (0x0000, 0x5555, 0xAAAA):
         walked = W.SUPERVISOR.step(Timing(), walked, Debit.counts(1, 0x0303, 10, ltx), 0).session
     assert walked is s
+
+
+# -- an admission into C's higher 2^16 block --------------------------------------------------
+LIFTED = Session(1, tx=10, witness=10, returns_credited=70_000)
+"""C ran 65,536 numbers past tx's block (witnessed draws): tx 10, W 10, C 70,000."""
+
+
+@pytest.mark.parametrize(
+    "frame",
+    [Join(1, 0x33), Debit(1, 0x34, Debit.START, 69_999 & 0xFFFF, 0)],
+    ids=["join", "resume found behind"],
+)
+def test_an_admission_lifting_tx_moves_the_window_with_it(frame: Join | Debit) -> None:
+    """A JOIN, or a RESUME found behind, lifts tx into C's block (10 + 2^16) and the node
+    settles at it: W moves up to tx, and the next transaction begins. Before, W stayed at 10
+    and every begin was refused as beyond the window until a supervisor start."""
+    admitted = W.SUPERVISOR.step(TIMING, LIFTED, frame, 0).session
+    assert admitted.tx == admitted.witness == 10 + (1 << 16)
+    begun = W.SUPERVISOR.step(TIMING, admitted, Begin(1_000_000), 0).session
+    assert begun.tx == admitted.tx + 1
+
+
+def test_a_node_that_lost_its_books_gets_its_next_grant_after_a_lifting_join() -> None:
+    """End to end: the node loses its books (JOIN), is admitted at tx = 10 + 2^16, and takes
+    and commits the next grant."""
+    state = SupervisorState(5_000_000, 5_000_000, sessions=(LIFTED,))
+    sup = Supervisor([1], 5_000_000, variant="witnessed", timing=TIMING, state=state)
+    node = Client(1, variant="witnessed", timing=TIMING)
+    _exchange(node.books_lost(0x33, 0), sup, {1: node}, 0)
+    assert node.state.phase is Phase.IDLE and sup.state.sessions[0].tx == 10 + (1 << 16)
+    _exchange(sup.begin(1, 1_000_000, 1), sup, {1: node}, 1)
+    _exchange(sup.commit(1, 2), sup, {1: node}, 2)
+    assert sup.state.sessions[0].phase is Phase.IDLE
+    assert sup.state.sessions[0].delivered == 1_000_000 and sup.state.usable == 4_000_000

@@ -235,12 +235,25 @@ static void confirmation(const struct canergy_session *s, uint16_t nonce,
     step->msg.seq = (uint16_t)(s->returns_credited & 0xFFFFUL);
 }
 
-/* JOIN(n) (witnessed.admit): the hardened admission, and the number after C voided as at a
+/* A node admitted without books (JOIN, or a RESUME found behind; witnessed.admitted_afresh):
+ * the hardened admission, and W moved up to the lifted tx. The node takes k = tx as settled, so
+ * it holds nothing between the old W and tx; left below, a lift into C's higher 2^16 block put
+ * tx 2^16 past W + B and every begin was refused until a supervisor start. */
+static void admit_afresh(struct canergy_session *s, const struct canergy_msg *m,
+                         struct canergy_session_step *step)
+{
+    admit(s, m, step);
+    if ((int64_t)s->tx > (int64_t)s->witness) {
+        s->witness = (int32_t)s->tx; /* a transaction number: below CANERGY_COUNTER_BOUND */
+    }
+}
+
+/* JOIN(n) (witnessed.admit): the admission afresh, and the number after C voided as at a
  * RESUME, so that no debit number is issued by both a lost record and the node's new life. */
 static void admit_voiding(struct canergy_session *s, const struct canergy_msg *m,
                           struct canergy_session_step *step)
 {
-    admit(s, m, step);
+    admit_afresh(s, m, step);
     s->returns_credited = serial_capped(s->returns_credited + 1U);
     step->msg.seq = (uint16_t)(s->returns_credited & 0xFFFFUL);
 }
@@ -281,7 +294,7 @@ static void confirm(struct canergy_session *s, const struct canergy_msg *m,
     }
     const bool behind = d < 0;
     if (behind) {
-        admit(s, m, step); /* the record lacks a debit held here: the node starts afresh */
+        admit_afresh(s, m, step); /* the record lacks a debit held here: start afresh */
     } else {
         if (s->phase != CANERGY_S_IDLE) {
             resolve(s, CANERGY_RESOLVED_WRITTEN_OFF, step); /* the old record may not know */

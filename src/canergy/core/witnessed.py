@@ -162,7 +162,7 @@ def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
         return repeat_counts(s, msg, nonce) if msg.is_counts else _repeat(s, nonce)
     behind = seq < s.returns_credited
     if behind:  # the record lacks a debit the supervisor holds: the node starts afresh
-        step = h.write_off_and_lift(s)
+        step = admitted_afresh(s)
     else:  # the older record may not hold how the node resolved it
         step = resolve(s, Outcome.WRITTEN_OFF) if s.phase is not IDLE else SessionStep(s)
         s = step.session
@@ -220,11 +220,22 @@ def answered(s: Session, nonce: int, seq: int) -> bool:
     return s.resume_to != 0 and last == (s.returns_credited, nonce, seq)
 
 
+def admitted_afresh(s: Session) -> SessionStep:
+    """A node admitted without books (a JOIN, or a RESUME found behind): the hardened write-off
+    and lift, and W moved up to the lifted tx. The node takes the answer's k = tx as settled,
+    so it holds no transaction between the old W and tx; W left below, a lift into C's higher
+    2^16 block put tx 2^16 past W + B and every begin was refused until a supervisor start."""
+    step = h.write_off_and_lift(s)
+    if step.session.tx <= step.session.witness:
+        return step
+    return SessionStep(evolve(step.session, witness=step.session.tx), step.actions, step.credit)
+
+
 def admit(t: Timing, s: Session, msg: Join, now: int) -> SessionStep:
     """JOIN(n): the hardened admission, and the number after C voided as at a RESUME (C + 1 held,
     ADMIT(n, k, C + 1)): a debit the lost record left in flight under it is behind, and no number
     is issued by both the node's old record and its new life."""
-    step = h.write_off_and_lift(s)
+    step = admitted_afresh(s)
     s = evolve(step.session, returns_credited=capped(step.session.returns_credited + 1))
     answer = Admit(s.node, msg.nonce, wire_tx(s.tx), wrap(s.returns_credited, SEQ_BITS))
     admitted = Admitted(s.node, s.tx, s.returns_credited)

@@ -478,7 +478,7 @@ def confirm(
         s.resume_from == seq,
     )
     behind = seq - s.returns_credited < 0
-    lifted = sym.admit(s, nonce16)
+    lifted = admitted_afresh(s, nonce16)
     closed = sym.choose(
         s.phase != sym.S_IDLE, sym._resolve(s, z3.BoolVal(False)), sym._unchanged(s)
     )
@@ -537,10 +537,18 @@ def repeat_counts(s: Session, counts: Term, amount_mj: Term, answer_nonce: Term)
     return sym.choose(higher, moved, same)
 
 
-def admit(s: Session, nonce16: Term) -> SessionStep:
-    """JOIN(n) outside a start: the hardened admission with the number after C voided: C + 1,
-    ADMIT(n, k, C)."""
+def admitted_afresh(s: Session, nonce16: Term) -> SessionStep:
+    """``witnessed.admitted_afresh``: the hardened admission, W moved up to the lifted tx."""
     lifted = sym.admit(s, nonce16)
+    t = lifted.session
+    t = replace(t, witness=z3.If(z3.UGT(t.tx, t.witness), t.tx, t.witness))
+    return SessionStep(t, lifted.sent, lifted.credit)
+
+
+def admit(s: Session, nonce16: Term) -> SessionStep:
+    """JOIN(n) outside a start: the admission afresh with the number after C voided: C + 1,
+    ADMIT(n, k, C)."""
+    lifted = admitted_afresh(s, nonce16)
     t = replace(lifted.session, returns_credited=sym.capped(lifted.session.returns_credited + 1))
     sent = Sent.of(
         MsgType.ADMIT,

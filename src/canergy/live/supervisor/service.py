@@ -37,7 +37,7 @@ from canergy.core.errors import LocalProtocolError
 from canergy.core.state import SYNC_PHASES, Outcome, Phase
 from canergy.core.supervisor import BUS_SHIFT, SupervisorCore
 from canergy.core.witnessed import answered, counts_taken
-from canergy.live.runtime import BusCounters, FramePath, Outgoing, RawFrame, total_counters
+from canergy.live.runtime import BusCounters, FramePath, Outgoing, RawFrame
 from canergy.live.supervisor.control import ControlServer
 from canergy.live.supervisor.evidence import beyond_books, impossible
 from canergy.live.supervisor.frame_path import CFramePath, Pass
@@ -47,6 +47,7 @@ from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
 from canergy.live.supervisor.outputs import BooksOut, StatusOut
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.state_file import ENERGY_MAX_UJ
+from canergy.live.supervisor.status import Run, StatusReport
 from canergy.live.supervisor.telemetry import BEYOND_BOOKS, Heard, HeardTable
 from canergy.live.supervisor.witness import ReturnGate
 from canergy.messages import (
@@ -203,7 +204,6 @@ class SupervisorService:
         self.status_out = StatusOut(config.status_path, config.status_stream, config.status_text)
         self.stop_deadline: int | None = None
         self.liveness = liveness
-        self.extra_status = extra_status
         self.bus_counters = BusCounters() if bus_counters is None else bus_counters
         self.buses: dict[str, BusCounters] = dict(buses or {})
         """Several buses: each one's counters by name (the status shows them and their sums)."""
@@ -211,7 +211,6 @@ class SupervisorService:
         self.intrusions = Intrusions("supervisor", name=self.node_name)
         self.refusals = Refusals("supervisor", name=self.node_name)
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
-        self.control = control
         self.stopped_by_intrusion = False
         make_gate = getattr(core, "return_gate", None)
         hold = config.return_hold_us is not None
@@ -250,6 +249,22 @@ class SupervisorService:
             decoded=self.on_message,
         )
         """The compiled core's frame path (``frame_path``); it takes nothing on the Python core."""
+        self.report = StatusReport(
+            core,
+            self.nodes,
+            self.witness,
+            self.joins,
+            self.intrusions,
+            self.refusals,
+            self.path,
+            node_name=self.node_name,
+            is_lost=self.is_lost,
+            bus_counters=self.bus_counters,
+            buses=self.buses,
+            control=control,
+            extra_status=extra_status,
+        )
+        """Makes the status from the parts it reads (``status``)."""
         if config.inject_uj:
             self._inject(config.inject_uj)
         if not config.listen_only:
@@ -923,87 +938,20 @@ class SupervisorService:
 
     # -- status ----------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
-        st = self.core.state
         waiting = self.waiting()
-        nodes: dict[str, Any] = {}
-        for s in st.sessions:
-            info = self.nodes[s.node]
-            nodes[str(self.node_name(s.node))] = {
-                "state": s.phase.name,
-                "open_tx": s.tx if s.phase is not Phase.IDLE else None,
-                "reserved_uj": s.reserved,
-                "delivered_uj": s.delivered,
-                "returns_credited_uj": s.returned,
-                "returns_credited": s.returns_credited,
-                **self.witness.status(s.node),
-                "level_uj": info.heard.level,
-                "lost": self.is_lost(s.node, self.now),
-                "committed": info.committed,
-                "committed_uj": info.committed_uj,
-                "aborted": info.aborted,
-                "written_off": info.written_off,
-                "admitted": info.admitted,
-                "joins_resent": self.joins.resent(s.node),
-                "resumes": info.resumes,
-                "found_behind": info.found_behind,
-                "synced": info.synced,
-                "counts_ignored": info.counts_ignored,
-                "resume_waiting": self.witness.resume_held(s.node),
-                "returns": info.returns,
-                "decode_errors": info.decode_errors,
-                "supervisor_frames": info.supervisor_frames,
-                "intrusions": self.intrusions.by_node.get(s.node, 0),
-                "refused": self.refusals.of_node(s.node),
-            }
-        reserved = sum(s.reserved for s in st.sessions)
-        delivered = sum(s.delivered for s in st.sessions)
-        returned = sum(s.returned for s in st.sessions)
-        counters = total_counters(self.buses.values()) if self.buses else self.bus_counters
-        buses = {name: c.as_json() for name, c in self.buses.items()}
-        return {
-            "role": "supervisor",
-            "variant": self.core.variant.name,
-            "core": self.core.implementation,
-            **self.path.status(),
-            "uptime_s": round((self.now - self.started_at) / 1e6, 3),
-            "stopping": self.stopping,
-            "listen_only": self.config.listen_only,
-            "initial_uj": st.initial,
-            "injected_uj": st.injected,
-            "injected_this_run_uj": self.injected_this_run,
-            "withdrawn_uj": st.withdrawn,
-            "usable_uj": st.usable,
-            "reserved_uj": reserved,
-            "delivered_uj": delivered,
-            "returns_credited_uj": returned,
-            "granted_this_run_uj": self.granted_total(),
-            "conservation": {
-                "supervisor_side_uj": st.usable + reserved,
-                "out_net_uj": delivered - returned,
-                "in_uj": st.initial + st.injected - st.withdrawn,
-                "identity": "usable + reserved + (delivered - returned) = "
-                "initial + injected - withdrawn",
-                "holds": st.usable + reserved + delivered - returned
-                == st.initial + st.injected - st.withdrawn,
-            },
-            **counters.as_json(),
-            **({"buses": buses} if buses else {}),
-            "intrusions": self.intrusions.total,
-            "intrusion_report": self.intrusions.as_json(),
-            "refused": self.refusals.as_json(self.now),
-            **({"control_refused": self._control_refused()} if self.control else {}),
-            "stopped_by_intrusion": self.stopped_by_intrusion,
-            "waiting_for_books": [self.node_name(n) for n in waiting],
-            "waiting_why": self.waiting_why(waiting) if waiting else None,
-            "started_without": self.started_without,
-            "nodes": nodes,
-            **({"cia402": self.extra_status(self.now)} if self.extra_status else {}),
-        }
-
-    def _control_refused(self) -> dict[str, int]:
-        """Connections to the control socket refused, by peer uid (-1: unreadable)."""
-        assert self.control is not None
-        return {str(uid): n for uid, n in sorted(dict(self.control.refused).items())}
+        run = Run(
+            now=self.now,
+            uptime_us=self.now - self.started_at,
+            stopping=self.stopping,
+            listen_only=self.config.listen_only,
+            injected_this_run=self.injected_this_run,
+            granted_this_run=self.granted_total(),
+            stopped_by_intrusion=self.stopped_by_intrusion,
+            waiting_for_books=[self.node_name(n) for n in waiting],
+            waiting_why=self.waiting_why(waiting) if waiting else None,
+            started_without=self.started_without,
+        )
+        return self.report.status(run)
 
     def write_status(self) -> None:
         self.status_out.write(self.status())

@@ -44,11 +44,12 @@ from canergy.live.supervisor.frame_path import CFramePath, Pass
 from canergy.live.supervisor.grants import Books, GrantCallback, GrantDesk, GrantRequest
 from canergy.live.supervisor.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
+from canergy.live.supervisor.nodes import NodeInfo
 from canergy.live.supervisor.outputs import BooksOut, StatusOut
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.state_file import ENERGY_MAX_UJ
 from canergy.live.supervisor.status import Run, StatusReport
-from canergy.live.supervisor.telemetry import BEYOND_BOOKS, Heard, HeardTable
+from canergy.live.supervisor.telemetry import BEYOND_BOOKS, HeardTable
 from canergy.live.supervisor.witness import ReturnGate
 from canergy.messages import (
     SEQ_BITS,
@@ -64,41 +65,6 @@ from canergy.seqnum import unwrap
 from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(slots=True)
-class NodeInfo:
-    """What the service knows about a node besides the core's session."""
-
-    heard: Heard | Any
-    """What its TELEMETRY said and when it was heard (``telemetry.Heard``, or the compiled
-    core's record of it in C: the same attributes)."""
-    ended_at: int = -1
-    committed: int = 0
-    committed_uj: int = 0
-    aborted: int = 0
-    written_off: int = 0
-    admitted: int = 0
-    """JOINs answered: the node started without books (new, wiped or corrupted NV)."""
-    returns: int = 0
-    decode_errors: int = 0
-    supervisor_frames: int = 0
-    """Listen-only: frames in the supervisor's direction for this node (another supervisor's:
-    what listen-only watches, no intrusion)."""
-    requests: list[GrantRequest] = field(default_factory=list)
-    """Grants asked for and not begun, oldest first (lists: a node holds few, and an empty
-    deque takes 760 bytes against a list's 56)."""
-    active_request: GrantRequest | None = None
-    resumes: int = 0
-    """Starts with books answered (witnessed rules: RESUME confirmed or found behind)."""
-    found_behind: int = 0
-    """Of them, records older than the books (a debit number below the supervisor's): the node
-    was admitted afresh and what that record held was dropped."""
-    synced: int = 0
-    """Supervisor starts this node answered with its books and counts (witnessed rules)."""
-    counts_ignored: int = 0
-    """Counts outside a start the rules ignored (witnessed.counts_taken): an earlier start's,
-    replayed or late; they move nothing."""
 
 
 @dataclass(frozen=True, slots=True)

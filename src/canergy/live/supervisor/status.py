@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from canergy.core.state import Phase
 from canergy.core.supervisor import SupervisorCore
@@ -17,9 +17,7 @@ from canergy.live.runtime import BusCounters, total_counters
 from canergy.live.supervisor.control import ControlServer
 from canergy.live.supervisor.frame_path import CFramePath
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
-
-if TYPE_CHECKING:
-    from canergy.live.supervisor.service import NodeInfo
+from canergy.live.supervisor.nodes import NodeInfo
 
 
 @dataclass(frozen=True, slots=True)

@@ -447,7 +447,7 @@ def test_on_the_c_frame_path_the_witness_reads_a_telemetry_in_c(
 def test_the_verdicts_of_a_held_return_and_join_are_the_libraries() -> None:
     """The service reads a RETURN the witness in C held, and a JOIN held in C, by the library's
     own values."""
-    from canergy.live.supervisor.service import HOST_HELD, HOST_JOIN
+    from canergy.live.supervisor.frame_path import HOST_HELD, HOST_JOIN
 
     lib = library().module.lib
     assert (lib.CANERGY_HOST_HELD, lib.CANERGY_HOST_JOIN) == (HOST_HELD, HOST_JOIN)

@@ -10,22 +10,18 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from functools import partial
 from pathlib import Path
 from typing import Any, TextIO, cast
 
 import can
 
 from canergy.auth.frames import (
-    MAC_TYPE,
     FrameAuth,
-    Layout,
     Verdict,
     expected_freshness,
     frame_direction,
 )
 from canergy.bus_keys import node_name
-from canergy.ccore.calls import Answer, AuthAnswer, AuthPair, EncodedBegin
 from canergy.codec import DecodeError
 from canergy.core import (
     Acknowledged,
@@ -41,16 +37,19 @@ from canergy.core.errors import LocalProtocolError
 from canergy.core.state import SYNC_PHASES, Outcome, Phase
 from canergy.core.supervisor import BUS_SHIFT, SupervisorCore
 from canergy.core.witnessed import answered, counts_taken
-from canergy.live.runtime import BusCounters, FramePath, Outgoing, RawFrame, total_counters
+from canergy.live.runtime import BusCounters, FramePath, Outgoing, RawFrame
 from canergy.live.supervisor.control import ControlServer
 from canergy.live.supervisor.evidence import beyond_books, impossible
+from canergy.live.supervisor.frame_path import CFramePath, Pass
 from canergy.live.supervisor.grants import Books, GrantCallback, GrantDesk, GrantRequest
 from canergy.live.supervisor.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
+from canergy.live.supervisor.nodes import NodeInfo
 from canergy.live.supervisor.outputs import BooksOut, StatusOut
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.state_file import ENERGY_MAX_UJ
-from canergy.live.supervisor.telemetry import BEYOND_BOOKS, Heard, HeardTable
+from canergy.live.supervisor.status import Run, StatusReport
+from canergy.live.supervisor.telemetry import BEYOND_BOOKS, HeardTable
 from canergy.live.supervisor.witness import ReturnGate
 from canergy.messages import (
     SEQ_BITS,
@@ -58,7 +57,6 @@ from canergy.messages import (
     Direction,
     Join,
     Message,
-    MsgType,
     Return,
     Telemetry,
     ToSupervisor,
@@ -67,50 +65,6 @@ from canergy.seqnum import unwrap
 from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
-
-HOST_HELD = 0x1000000
-"""``CompiledSupervisor.on_answer``'s verdict for a RETURN the witness in C took (the C
-library's CANERGY_HOST_HELD, checked by tests/test_ccore_tables.py)."""
-HOST_JOIN = 0x2000000
-"""Its verdict for a JOIN held in C (CANERGY_HOST_JOIN)."""
-_MAC_TO_SUPERVISOR = MAC_TYPE[Direction.TO_SUPERVISOR]
-_ANSWERS = frozenset((MsgType.ACK, MsgType.COMMITTED, MsgType.ABORTED))
-"""What the compiled core's frame path takes with a key: a node's answers."""
-
-
-@dataclass(slots=True)
-class NodeInfo:
-    """What the service knows about a node besides the core's session."""
-
-    heard: Heard | Any
-    """What its TELEMETRY said and when it was heard (``telemetry.Heard``, or the compiled
-    core's record of it in C: the same attributes)."""
-    ended_at: int = -1
-    committed: int = 0
-    committed_uj: int = 0
-    aborted: int = 0
-    written_off: int = 0
-    admitted: int = 0
-    """JOINs answered: the node started without books (new, wiped or corrupted NV)."""
-    returns: int = 0
-    decode_errors: int = 0
-    supervisor_frames: int = 0
-    """Listen-only: frames in the supervisor's direction for this node (another supervisor's:
-    what listen-only watches, no intrusion)."""
-    requests: list[GrantRequest] = field(default_factory=list)
-    """Grants asked for and not begun, oldest first (lists: a node holds few, and an empty
-    deque takes 760 bytes against a list's 56)."""
-    active_request: GrantRequest | None = None
-    resumes: int = 0
-    """Starts with books answered (witnessed rules: RESUME confirmed or found behind)."""
-    found_behind: int = 0
-    """Of them, records older than the books (a debit number below the supervisor's): the node
-    was admitted afresh and what that record held was dropped."""
-    synced: int = 0
-    """Supervisor starts this node answered with its books and counts (witnessed rules)."""
-    counts_ignored: int = 0
-    """Counts outside a start the rules ignored (witnessed.counts_taken): an earlier start's,
-    replayed or late; they move nothing."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -206,51 +160,16 @@ class SupervisorService:
         ended); every node is tried at each tick."""
         self.stopping = False
         self._dirty = False
-        self._passes = 0
+        self._pass = Pass()
+        """The bus loop's passes: frames held until the outermost one ends."""
         self.telemetry_heard = 0
         """TELEMETRY frames of managed nodes taken (information, not protocol frames)."""
         self.books_out = BooksOut(
             core, config.state_path, fsync=config.fsync, buses=config.bus_names, save=save
         )
         self.status_out = StatusOut(config.status_path, config.status_stream, config.status_text)
-        self._held: list[Outgoing] = []
-        self._answer_on: Callable[[int], Answer] | None = getattr(core, "answer_on", None)
-        """The compiled core's fast path of a bus by its index; None on the Python core."""
-        self._answer = None if self._answer_on is None else self._answer_on(0)
-        """The compiled core's fast path (``fast_frame``); None on the Python core."""
-        self._answers: dict[int, Answer] = {} if self._answer is None else {0: self._answer}
-        """Over several buses: each bus's (``frame_path(bus=)``), by bus index."""
-        self._path: tuple[str, str | None] = (
-            ("python", None) if self._answer is None else ("python", "no bus loop asked for it")
-        )
-        """Which frame path runs, and why not the compiled core's (``frame_path``)."""
-        self.frames_in_c = 0
-        """Frames the compiled core's frame path took: an answer or a RETURN whole (decode,
-        rules, encode), a TELEMETRY (its tables), a RETURN held or a JOIN held, in C; a RETURN
-        beyond the books or a DEBIT decoded in C and then handled as usual. With a key in the
-        classic layout an answer counts once (its message and its MAC frame)."""
-        self._auth_answer: AuthAnswer | None = None
-        """The compiled core's frame path with a key (``fast_auth_frame``), once set up."""
-        self._auth_pair: AuthPair | None = None
-        """Its classic layout's (``fast_auth_pair``), once set up."""
-        self._frame_auth: FrameAuth | None = None
-        """The bus loop's ``FrameAuth`` (bus 0's over several buses): what C verified is
-        noted there."""
-        self._auth_answers: dict[int, AuthAnswer] = {}
-        self._auth_pairs: dict[int, AuthPair] = {}
-        self._frame_auths: dict[int, FrameAuth] = {}
-        """With a key, by bus index (over several buses; bus 0's also above): each bus's
-        frame path into its own supervisor in C (FD or classic layout) and its bus loop's
-        ``FrameAuth``."""
-        self._begin_encoded: EncodedBegin | None = None
-        """The compiled core's ``begin`` with its frame as C encoded it, once a bus loop without
-        a key took the fast path (``frame_path``): an INTENTION then leaves as C's bytes (with a
-        key, protected in C)."""
-        self._begin_fd = False
-        """With a key in the FD layout the INTENTION ``_begin_encoded`` gives is an FD frame."""
         self.stop_deadline: int | None = None
         self.liveness = liveness
-        self.extra_status = extra_status
         self.bus_counters = BusCounters() if bus_counters is None else bus_counters
         self.buses: dict[str, BusCounters] = dict(buses or {})
         """Several buses: each one's counters by name (the status shows them and their sums)."""
@@ -258,7 +177,6 @@ class SupervisorService:
         self.intrusions = Intrusions("supervisor", name=self.node_name)
         self.refusals = Refusals("supervisor", name=self.node_name)
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
-        self.control = control
         self.stopped_by_intrusion = False
         make_gate = getattr(core, "return_gate", None)
         hold = config.return_hold_us is not None
@@ -285,6 +203,34 @@ class SupervisorService:
             JoinHold[Outgoing](core.nodes, *joining) if make_joins is None else make_joins(*joining)
         )
         """JOINs held until the node's TELEMETRY confirms or refutes them (evidence)."""
+        self.path = CFramePath(
+            core,
+            max(1, len(config.bus_names)),
+            config.listen_only,
+            self._pass,
+            answered=self._answered,
+            held=self._held_in_c,
+            telemetry=self._telemetry,
+            join_held=self._join_held,
+            decoded=self.on_message,
+        )
+        """The compiled core's frame path (``frame_path``); it takes nothing on the Python core."""
+        self.report = StatusReport(
+            core,
+            self.nodes,
+            self.witness,
+            self.joins,
+            self.intrusions,
+            self.refusals,
+            self.path,
+            node_name=self.node_name,
+            is_lost=self.is_lost,
+            bus_counters=self.bus_counters,
+            buses=self.buses,
+            control=control,
+            extra_status=extra_status,
+        )
+        """Makes the status from the parts it reads (``status``)."""
         if config.inject_uj:
             self._inject(config.inject_uj)
         if not config.listen_only:
@@ -343,6 +289,7 @@ class SupervisorService:
         """A TELEMETRY the table took (``verdict``, its bits): the evidence it carries, RETURNs
         and JOINs it confirms, and the grants it lets begin. ``found``: what the witness in C
         found in it already (the frame path), else the witness takes it here."""
+        self.now = now
         self.telemetry_heard += 1
         # listen-only keeps no books of its own (another supervisor may be granting): no
         # judgement by them, or every level reported would look impossible
@@ -654,12 +601,12 @@ class SupervisorService:
         self, off: str | None = None, auth: FrameAuth | None = None, bus: int = 0
     ) -> FramePath | None:
         """The frame path for this service's bus loop (``BusRuntime(frame_path=)``, from the
-        builder): the compiled core's (``fast_frame``), or None where every frame takes the
-        usual path: the Python core, or ``off``, why the compiled core's cannot run here
-        (listen-only). From then on, in a loop pass, frames the
-        C core encoded (COMMIT, ABORT, INTENTION) go to the loop as C's bytes (``RawFrame``),
-        never decoded and encoded again. The status says which path runs (``frame_path``), why
-        not C (``frame_path_off``) and how many frames C took (``frame_path_frames``).
+        builder): the compiled core's (``CFramePath.fast_frame``), or None where every frame
+        takes the usual path: the Python core, or ``off``, why the compiled core's cannot run
+        here (listen-only). From then on, in a loop pass, frames the C core encoded (COMMIT,
+        ABORT, INTENTION) go to the loop as C's bytes (``RawFrame``), never decoded and encoded
+        again. The status says which path runs (``frame_path``), why not C
+        (``frame_path_off``) and how many frames C took (``frame_path_frames``).
 
         ``auth``: the bus loop's key: the compiled core then verifies and protects in C
         (``fast_auth_frame``; classic layout: ``fast_auth_pair``), and an INTENTION it begins
@@ -669,174 +616,45 @@ class SupervisorService:
         same ``off`` and, with a key, its own ``FrameAuth`` in the same layout): that bus's
         frames go to its own supervisor in C, verified under the keys that bus's ``FrameAuth``
         gives. An INTENTION is protected in C once every bus's loop has asked."""
-        if self._answer_on is None:
-            self._path = ("python", None)
-            return None
-        if off is not None:
-            self._path = ("python", off)
-            return None
-        if auth is not None:
-            return self._keyed_path(auth, bus)
-        self._path = ("c", None)
-        self._begin_encoded = getattr(self.core, "begin_encoded", None)
-        if not bus:
-            return self.fast_frame
-        self._answers[bus] = self._answer_on(bus)
-        return partial(self.fast_frame, bus=bus)
+        return self.path.frame_path(off, auth, bus)
 
-    def _keyed_path(self, auth: FrameAuth, bus: int) -> FramePath:
-        """``frame_path`` with a key, for bus ``bus``'s loop and its ``auth``."""
-        classic = auth.layout is Layout.CLASSIC
-        if self._frame_auths and self._begin_fd == classic:
-            raise ValueError("the compiled core's frame path with a key: one layout on every bus")
-        core: Any = self.core  # the compiled core
-        core.use_keys(auth.key_for, classic=classic, bus=bus)
-        self._frame_auths[bus] = auth
-        if classic:
-            self._auth_pairs[bus] = core.auth_pair_on(bus)
-        else:
-            self._auth_answers[bus] = core.auth_answer_on(bus)
-        self._begin_fd = not classic
-        if len(self._frame_auths) == max(1, len(self.config.bus_names)):
-            self._begin_encoded = core.begin_protected  # every bus's nodes have their keys
-        self._path = ("c", None)
-        if not bus:
-            self._frame_auth = auth
-            self._auth_pair = self._auth_pairs.get(0)
-            self._auth_answer = self._auth_answers.get(0)
-        fast = self.fast_auth_pair if classic else self.fast_auth_frame
-        return fast if not bus else partial(fast, bus=bus)
+    @property
+    def frames_in_c(self) -> int:
+        """Frames the compiled core's frame path took (``CFramePath.frames``)."""
+        return self.path.frames
 
-    def fast_frame(self, frame: can.Message, now: int, bus: int = 0) -> bool:
-        """The compiled core's fast path, for a frame the bus loop has not decoded: an ACK,
-        COMMITTED or ABORTED of a managed node goes through decode, rules, the decision on an
-        ACK (commit, abort when stopping) and encode in one C call, and only what it did comes
-        back here (books, replies, the next grant). In the same call a TELEMETRY is taken by the
-        tables in C (``telemetry``, the witness, the held JOINs: here only the words of what
-        they found, and what follows), a RETURN is held by the witness or ruled, a JOIN held.
-        False, nothing done: any other frame, one that names a transaction never begun (judged
-        on the usual path, an intrusion), the Python core, listen-only, outside a loop pass. The
-        bus loop then takes it as usual. ``bus``: the index of the bus it arrived on (several
-        buses: ``frame_path(bus=)``); its frames go to that bus's supervisor only."""
-        answer = self._answers.get(bus) if bus else self._answer
-        if answer is None or self.config.listen_only or not self._passes:
-            return False
-        status, actions, frames, decoded, verdict = answer(
-            frame.arbitration_id,
-            frame.data,
-            frame.is_extended_id,
-            frame.is_remote_frame,
-            now,
-            self.stopping,
-        )
-        node = frame.arbitration_id & 0xFF | bus << BUS_SHIFT  # its session key
-        if not status:  # an answer the rules took (nothing decoded, no verdict)
-            self._answered(node, [RawFrame(i, d, False, bus) for i, d in frames], actions, now)
-            return True
-        if verdict & HOST_JOIN:  # a JOIN held in C
-            self.frames_in_c += 1
-            self.now = now
-            self.nodes[node].heard.heard_at = now
-            return True
-        if verdict & HOST_HELD:  # a RETURN the witness in C held
-            self.frames_in_c += 1
-            self._flush(self._held_in_c(cast(Return, decoded), verdict & ~HOST_HELD, now))
-            return True
-        if verdict:  # a TELEMETRY the table and the witness in C took: what it shows, here
-            self.frames_in_c += 1
-            self.now = now
-            msg = cast(Telemetry, decoded)
-            self._flush(self._telemetry(msg, verdict & 0xFF, now, verdict >> 8))  # held
-            return True
-        if decoded is not None:  # a RETURN, JOIN or DEBIT: as if the loop had decoded it
-            self.frames_in_c += 1
-            self.on_message(decoded, now)  # in a pass: its frames are held
-            return True
-        return False
-
-    def fast_auth_frame(self, frame: can.Message, now: int, bus: int = 0) -> bool:
-        """``fast_frame`` with a key, FD layout: an ACK, COMMITTED or ABORTED of a managed node
-        is verified (MAC, freshness), taken by the rules and answered with frames protected in
-        one C call; what it shows of the node's freshness is noted (``FrameAuth.took``). False,
-        nothing done: any other frame (TELEMETRY, JOIN, RETURN, DEBIT, the own direction), one
-        refused (the loop's usual path counts and reports it), an answer ahead of the session.
-        ``bus``: as ``fast_frame``'s (its keys and counters are that bus's)."""
-        if self.config.listen_only or not self._passes:
-            return False
-        answer = self._auth_answers[bus] if bus else self._auth_answer
-        auth = self._frame_auths[bus] if bus else self._frame_auth
-        assert answer is not None and auth is not None
-        ident = frame.arbitration_id
-        status, actions, frames, fv = answer(
-            ident, frame.data, frame.is_extended_id, frame.is_remote_frame, now, self.stopping
-        )
-        if status:
-            return False
-        node = ident & 0xFF
-        auth.took(MsgType(ident >> 8 & 0xF), node, fv)
-        sent: list[Outgoing] = [RawFrame(i, d, True, bus) for i, d in frames]
-        self._answered(node | bus << BUS_SHIFT, sent, actions, now)
-        return True
-
-    def fast_auth_pair(self, frame: can.Message, now: int, bus: int = 0) -> bool:
-        """``fast_auth_frame`` in the classic layout: the MAC frame of an ACK, COMMITTED or
-        ABORTED of a managed node, with the message the loop's ``FrameAuth`` keeps for it,
-        goes to C, where the pair is verified, taken by the rules and answered with frames
-        protected (each followed by its MAC frame) in one call; the message then waits no
-        more. False, nothing done (the message still waits): any other frame (a message
-        waits for its MAC frame on the usual path), a MAC frame without such a message, one
-        refused (the usual path pairs, counts and reports it as ever), an answer ahead of the
-        session. ``bus``: as ``fast_frame``'s (its loop's ``FrameAuth`` keeps the message)."""
-        ident = frame.arbitration_id
-        if ident >> 8 & 0xF != _MAC_TO_SUPERVISOR or self.config.listen_only or not self._passes:
-            return False
-        pair = self._auth_pairs[bus] if bus else self._auth_pair
-        auth = self._frame_auths[bus] if bus else self._frame_auth
-        assert pair is not None and auth is not None
-        node = ident & 0xFF
-        waiting = auth.pending.get(node)
-        if waiting is None or waiting[0].TYPE not in _ANSWERS:
-            return False
-        msg, data = waiting
-        status, actions, frames, fv = pair(
-            auth.codec.arbitration_id(msg.TYPE, node), data, ident, frame.data,
-            frame.is_extended_id, frame.is_remote_frame, now, self.stopping,
-        )  # fmt: skip
-        if status:
-            return False
-        auth.took_waiting(node, fv)
-        sent: list[Outgoing] = [RawFrame(i, d, False, bus) for i, d in frames]
-        self._answered(node | bus << BUS_SHIFT, sent, actions, now)
-        return True
-
-    def _answered(self, node: int, frames: list[Outgoing], actions: list[Action], now: int) -> None:
-        """An answer the compiled core took: its frames held, then what the books record and
-        the node's next grant (a transaction ended)."""
+    def _answered(self, node: int, actions: list[Action], now: int) -> list[Outgoing]:
+        """An answer the compiled core took (its frames already held): what the books record
+        and the node's next grant (a transaction ended)."""
         self.now = now
-        self.frames_in_c += 1
         self.nodes[node].heard.heard_at = now
-        held = self._held  # in this order: the frames, what the books record, the next grant
-        held += frames
-        held += self._carry_out(actions, now)
+        out = self._carry_out(actions, now)
         if self.ready:  # a transaction ended: the node's next grant goes out in this pass
-            held += self._start_grants(now, self.ready)
+            out += self._start_grants(now, self.ready)
+        return out
+
+    def _join_held(self, node: int, now: int) -> None:
+        """A JOIN the compiled core's frame path held: the node was heard."""
+        self.now = now
+        self.nodes[node].heard.heard_at = now
 
     # -- loop passes -----------------------------------------------------------------------
     def begin_pass(self) -> None:
         """Hold every frame until ``end_pass``: the state file is then written once for the
         whole pass (a drained batch of frames and the deadlines then due) before any of the
         pass's frames leaves. Passes nest (several buses' runtimes open one each)."""
-        self._passes += 1
+        self._pass.depth += 1
 
     def end_pass(self) -> list[Outgoing]:
         """Close a pass; the outermost one writes the state file if anything changed and returns
         every frame held since the pass began, in order, for the caller to send."""
-        if not self._passes:
+        passes = self._pass
+        if not passes.depth:
             raise RuntimeError("end_pass without begin_pass")
-        self._passes -= 1
-        if self._passes:
+        passes.depth -= 1
+        if passes.depth:
             return []
-        held, self._held = self._held, []
+        held, passes.held = passes.held, []
         self._save_if_dirty()
         return held
 
@@ -857,6 +675,7 @@ class SupervisorService:
         """Start no more transactions; open ones settle or are written off by the rules."""
         if not self.stopping:
             self.stopping = True
+            self.path.stop()
             self.stop_deadline = now + self.config.stop_timeout_us
             for info in self.nodes.values():
                 why = (
@@ -976,7 +795,7 @@ class SupervisorService:
         return Books(self.core.usable, total)
 
     def _begin(self, node: int, amount: int, now: int) -> list[Outgoing]:
-        encoded = self._begin_encoded if self._passes else None
+        encoded = self.path.begin_encoded if self._pass.depth else None
         frames: list[Outgoing] = []
         try:
             if encoded is None:
@@ -984,7 +803,7 @@ class SupervisorService:
             else:
                 actions, raw = encoded(node, amount, now)
                 bus = node >> BUS_SHIFT  # over several buses: the node's
-                frames = [RawFrame(i, d, self._begin_fd, bus) for i, d in raw]
+                frames = [RawFrame(i, d, self.path.begin_fd, bus) for i, d in raw]
         except LocalProtocolError as exc:  # budget changed under us: report, do not crash
             self._finish_request(node, {"node": self.node_name(node), "error": str(exc)})
             if at_end(self.core.session(node).tx) and node not in self.ended:
@@ -1063,8 +882,8 @@ class SupervisorService:
         """Write the state file once for everything decided in this step, before any of the
         step's frames leave (the caller sends ``out`` only after this returns). In a pass, hold
         them: ``end_pass`` writes and returns them."""
-        if self._passes:
-            self._held += out
+        if self._pass.depth:
+            self._pass.held += out
             return []
         self._save_if_dirty()
         if any(isinstance(m, RawFrame) for m in out):  # ``_begin`` makes them in a pass only
@@ -1086,89 +905,20 @@ class SupervisorService:
 
     # -- status ----------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
-        st = self.core.state
         waiting = self.waiting()
-        nodes: dict[str, Any] = {}
-        for s in st.sessions:
-            info = self.nodes[s.node]
-            nodes[str(self.node_name(s.node))] = {
-                "state": s.phase.name,
-                "open_tx": s.tx if s.phase is not Phase.IDLE else None,
-                "reserved_uj": s.reserved,
-                "delivered_uj": s.delivered,
-                "returns_credited_uj": s.returned,
-                "returns_credited": s.returns_credited,
-                **self.witness.status(s.node),
-                "level_uj": info.heard.level,
-                "lost": self.is_lost(s.node, self.now),
-                "committed": info.committed,
-                "committed_uj": info.committed_uj,
-                "aborted": info.aborted,
-                "written_off": info.written_off,
-                "admitted": info.admitted,
-                "joins_resent": self.joins.resent(s.node),
-                "resumes": info.resumes,
-                "found_behind": info.found_behind,
-                "synced": info.synced,
-                "counts_ignored": info.counts_ignored,
-                "resume_waiting": self.witness.resume_held(s.node),
-                "returns": info.returns,
-                "decode_errors": info.decode_errors,
-                "supervisor_frames": info.supervisor_frames,
-                "intrusions": self.intrusions.by_node.get(s.node, 0),
-                "refused": self.refusals.of_node(s.node),
-            }
-        reserved = sum(s.reserved for s in st.sessions)
-        delivered = sum(s.delivered for s in st.sessions)
-        returned = sum(s.returned for s in st.sessions)
-        counters = total_counters(self.buses.values()) if self.buses else self.bus_counters
-        buses = {name: c.as_json() for name, c in self.buses.items()}
-        return {
-            "role": "supervisor",
-            "variant": self.core.variant.name,
-            "core": self.core.implementation,
-            "frame_path": self._path[0],
-            **({} if self._path[1] is None else {"frame_path_off": self._path[1]}),
-            "frame_path_frames": self.frames_in_c,
-            "uptime_s": round((self.now - self.started_at) / 1e6, 3),
-            "stopping": self.stopping,
-            "listen_only": self.config.listen_only,
-            "initial_uj": st.initial,
-            "injected_uj": st.injected,
-            "injected_this_run_uj": self.injected_this_run,
-            "withdrawn_uj": st.withdrawn,
-            "usable_uj": st.usable,
-            "reserved_uj": reserved,
-            "delivered_uj": delivered,
-            "returns_credited_uj": returned,
-            "granted_this_run_uj": self.granted_total(),
-            "conservation": {
-                "supervisor_side_uj": st.usable + reserved,
-                "out_net_uj": delivered - returned,
-                "in_uj": st.initial + st.injected - st.withdrawn,
-                "identity": "usable + reserved + (delivered - returned) = "
-                "initial + injected - withdrawn",
-                "holds": st.usable + reserved + delivered - returned
-                == st.initial + st.injected - st.withdrawn,
-            },
-            **counters.as_json(),
-            **({"buses": buses} if buses else {}),
-            "intrusions": self.intrusions.total,
-            "intrusion_report": self.intrusions.as_json(),
-            "refused": self.refusals.as_json(self.now),
-            **({"control_refused": self._control_refused()} if self.control else {}),
-            "stopped_by_intrusion": self.stopped_by_intrusion,
-            "waiting_for_books": [self.node_name(n) for n in waiting],
-            "waiting_why": self.waiting_why(waiting) if waiting else None,
-            "started_without": self.started_without,
-            "nodes": nodes,
-            **({"cia402": self.extra_status(self.now)} if self.extra_status else {}),
-        }
-
-    def _control_refused(self) -> dict[str, int]:
-        """Connections to the control socket refused, by peer uid (-1: unreadable)."""
-        assert self.control is not None
-        return {str(uid): n for uid, n in sorted(dict(self.control.refused).items())}
+        run = Run(
+            now=self.now,
+            uptime_us=self.now - self.started_at,
+            stopping=self.stopping,
+            listen_only=self.config.listen_only,
+            injected_this_run=self.injected_this_run,
+            granted_this_run=self.granted_total(),
+            stopped_by_intrusion=self.stopped_by_intrusion,
+            waiting_for_books=[self.node_name(n) for n in waiting],
+            waiting_why=self.waiting_why(waiting) if waiting else None,
+            started_without=self.started_without,
+        )
+        return self.report.status(run)
 
     def write_status(self) -> None:
         self.status_out.write(self.status())

@@ -1,0 +1,268 @@
+"""The compiled core's frame path: frames the bus loop has not decoded, taken in C.
+
+``CFramePath`` asks the compiled core for each bus's path (without a key, with a key in the FD
+or the classic layout), runs it per frame and hands what C did to the service's handlers, given
+once at construction. Frames are taken only inside a loop pass (``Pass``), where everything the
+service decides is held until the pass ends and the books are written.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Any, cast
+
+import can
+
+from canergy.auth.frames import MAC_TYPE, FrameAuth, Layout
+from canergy.ccore.calls import Answer, AuthAnswer, AuthPair, EncodedBegin
+from canergy.core import Action
+from canergy.core.supervisor import BUS_SHIFT
+from canergy.live.runtime import FramePath, Outgoing, RawFrame
+from canergy.messages import Direction, Message, MsgType, Return, Telemetry
+
+HOST_HELD = 0x1000000
+"""``CompiledSupervisor.on_answer``'s verdict for a RETURN the witness in C took (the C
+library's CANERGY_HOST_HELD, checked by tests/test_ccore_tables.py)."""
+HOST_JOIN = 0x2000000
+"""Its verdict for a JOIN held in C (CANERGY_HOST_JOIN)."""
+_MAC_TO_SUPERVISOR = MAC_TYPE[Direction.TO_SUPERVISOR]
+_ANSWERS = frozenset((MsgType.ACK, MsgType.COMMITTED, MsgType.ABORTED))
+"""What the compiled core's frame path takes with a key: a node's answers."""
+
+
+@dataclass(slots=True)
+class Pass:
+    """The bus loop's passes, shared by the service and its frame path: how deep they nest and
+    the frames held until the outermost one ends."""
+
+    depth: int = 0
+    held: list[Outgoing] = field(default_factory=list)
+
+
+class CFramePath:
+    """The compiled core's frame path for the service's bus loops (``frame_path``)."""
+
+    def __init__(
+        self,
+        core: Any,
+        buses: int,
+        listen_only: bool,
+        passes: Pass,
+        *,
+        answered: Callable[[int, list[Action], int], list[Outgoing]],
+        held: Callable[[Return, int, int], list[Outgoing]],
+        telemetry: Callable[[Telemetry, int, int, int], list[Outgoing]],
+        join_held: Callable[[int, int], None],
+        decoded: Callable[[Message, int], Sequence[Message]],
+    ) -> None:
+        """``core``: the service's (the Python core's has no path); ``buses``: how many
+        the service serves; ``passes``: the service's. What C took goes to the handlers, each
+        given ``now``: ``answered`` (a node's answer: its session key and the core's actions;
+        returns what follows), ``held`` (a RETURN the witness in C held, with its verdict),
+        ``telemetry`` (a TELEMETRY the tables in C took: its verdict's bits and what the witness
+        and the held JOINs found), ``join_held`` (a JOIN held, by session key) and ``decoded``
+        (a message only decoded in C, for the usual path)."""
+        self._core = core
+        self._buses = buses
+        self._listen_only = listen_only
+        self._pass = passes
+        self._answered = answered
+        self._held_return = held
+        self._telemetry = telemetry
+        self._join_held = join_held
+        self._decoded = decoded
+        self.stopping = False
+        """The service is stopping (``stop``): C aborts what it would commit."""
+        self._answer_on: Callable[[int], Answer] | None = getattr(core, "answer_on", None)
+        self._answer = None if self._answer_on is None else self._answer_on(0)
+        """Bus 0's path without a key (``fast_frame``); None on the Python core."""
+        self._answers: dict[int, Answer] = {} if self._answer is None else {0: self._answer}
+        """Over several buses: each bus's (``frame_path(bus=)``), by bus index."""
+        self._path: tuple[str, str | None] = (
+            ("python", None) if self._answer is None else ("python", "no bus loop asked for it")
+        )
+        """Which frame path runs, and why not the compiled core's."""
+        self.frames = 0
+        """Frames C took: an answer or a RETURN whole (decode, rules, encode), a TELEMETRY (its
+        tables), a RETURN held or a JOIN held, in C; a RETURN beyond the books or a DEBIT
+        decoded in C and then handled as usual. With a key in the classic layout an answer
+        counts once (its message and its MAC frame)."""
+        self._auth_answer: AuthAnswer | None = None
+        self._auth_pair: AuthPair | None = None
+        self._frame_auth: FrameAuth | None = None
+        """Bus 0's path with a key (FD or classic layout) and its bus loop's ``FrameAuth``,
+        where what C verified is noted."""
+        self._auth_answers: dict[int, AuthAnswer] = {}
+        self._auth_pairs: dict[int, AuthPair] = {}
+        self._frame_auths: dict[int, FrameAuth] = {}
+        """With a key, by bus index (bus 0's also above)."""
+        self.begin_encoded: EncodedBegin | None = None
+        """The compiled core's ``begin`` with its frame as C encoded it, once a bus loop took
+        the path: an INTENTION begun in a pass then leaves as C's bytes (with a key, protected
+        in C, once every bus's loop has asked)."""
+        self.begin_fd = False
+        """With a key in the FD layout the INTENTION ``begin_encoded`` gives is an FD frame."""
+
+    def stop(self) -> None:
+        """The service stops: from now on C aborts an acknowledged transaction."""
+        self.stopping = True
+
+    def status(self) -> dict[str, Any]:
+        """Which path runs, why not C's, and how many frames C took."""
+        path, off = self._path
+        return {
+            "frame_path": path,
+            **({} if off is None else {"frame_path_off": off}),
+            "frame_path_frames": self.frames,
+        }
+
+    def frame_path(
+        self, off: str | None = None, auth: FrameAuth | None = None, bus: int = 0
+    ) -> FramePath | None:
+        """``SupervisorService.frame_path``: this path for bus ``bus``'s loop, or None."""
+        if self._answer_on is None:
+            self._path = ("python", None)
+            return None
+        if off is not None:
+            self._path = ("python", off)
+            return None
+        if auth is not None:
+            return self._keyed_path(auth, bus)
+        self._path = ("c", None)
+        self.begin_encoded = self._core.begin_encoded
+        if not bus:
+            return self.fast_frame
+        self._answers[bus] = self._answer_on(bus)
+        return partial(self.fast_frame, bus=bus)
+
+    def _keyed_path(self, auth: FrameAuth, bus: int) -> FramePath:
+        """``frame_path`` with a key, for bus ``bus``'s loop and its ``auth``."""
+        classic = auth.layout is Layout.CLASSIC
+        if self._frame_auths and self.begin_fd == classic:
+            raise ValueError("the compiled core's frame path with a key: one layout on every bus")
+        core = self._core
+        core.use_keys(auth.key_for, classic=classic, bus=bus)
+        self._frame_auths[bus] = auth
+        if classic:
+            self._auth_pairs[bus] = core.auth_pair_on(bus)
+        else:
+            self._auth_answers[bus] = core.auth_answer_on(bus)
+        self.begin_fd = not classic
+        if len(self._frame_auths) == self._buses:
+            self.begin_encoded = core.begin_protected  # every bus's nodes have their keys
+        self._path = ("c", None)
+        if not bus:
+            self._frame_auth = auth
+            self._auth_pair = self._auth_pairs.get(0)
+            self._auth_answer = self._auth_answers.get(0)
+        fast = self.fast_auth_pair if classic else self.fast_auth_frame
+        return fast if not bus else partial(fast, bus=bus)
+
+    def fast_frame(self, frame: can.Message, now: int, bus: int = 0) -> bool:
+        """For a frame the bus loop has not decoded: an ACK, COMMITTED or ABORTED of a managed
+        node goes through decode, rules, the decision on an ACK (commit, abort when stopping)
+        and encode in one C call, and only what it did goes to the service (books, replies, the
+        next grant). In the same call a TELEMETRY is taken by the tables in C (``telemetry``,
+        the witness, the held JOINs: the service gets only the words of what they found), a
+        RETURN is held by the witness or ruled, a JOIN held. False, nothing done: any other
+        frame, one that names a transaction never begun (judged on the usual path, an
+        intrusion), listen-only, outside a loop pass. The bus loop then takes it as usual.
+        ``bus``: the index of the bus it arrived on; its frames go to that bus's supervisor."""
+        answer = self._answers.get(bus) if bus else self._answer
+        passes = self._pass
+        if answer is None or self._listen_only or not passes.depth:
+            return False
+        status, actions, frames, decoded, verdict = answer(
+            frame.arbitration_id,
+            frame.data,
+            frame.is_extended_id,
+            frame.is_remote_frame,
+            now,
+            self.stopping,
+        )
+        node = frame.arbitration_id & 0xFF | bus << BUS_SHIFT  # its session key
+        if not status:  # an answer the rules took (nothing decoded, no verdict)
+            self.frames += 1
+            held = passes.held  # in this order: the frames, what the books record, next grant
+            held += [RawFrame(i, d, False, bus) for i, d in frames]
+            held += self._answered(node, actions, now)
+            return True
+        if verdict & HOST_JOIN:  # a JOIN held in C
+            self.frames += 1
+            self._join_held(node, now)
+            return True
+        if verdict & HOST_HELD:  # a RETURN the witness in C held
+            self.frames += 1
+            passes.held += self._held_return(cast(Return, decoded), verdict & ~HOST_HELD, now)
+            return True
+        if verdict:  # a TELEMETRY the table and the witness in C took: what it shows, there
+            self.frames += 1
+            msg = cast(Telemetry, decoded)
+            passes.held += self._telemetry(msg, verdict & 0xFF, now, verdict >> 8)
+            return True
+        if decoded is not None:  # a RETURN, JOIN or DEBIT: as if the loop had decoded it
+            self.frames += 1
+            self._decoded(decoded, now)  # in a pass: its frames are held
+            return True
+        return False
+
+    def fast_auth_frame(self, frame: can.Message, now: int, bus: int = 0) -> bool:
+        """``fast_frame`` with a key, FD layout: an ACK, COMMITTED or ABORTED of a managed node
+        is verified (MAC, freshness), taken by the rules and answered with frames protected in
+        one C call; what it shows of the node's freshness is noted (``FrameAuth.took``). False,
+        nothing done: any other frame (TELEMETRY, JOIN, RETURN, DEBIT, the own direction), one
+        refused (the loop's usual path counts and reports it), an answer ahead of the session.
+        ``bus``: as ``fast_frame``'s (its keys and counters are that bus's)."""
+        if self._listen_only or not self._pass.depth:
+            return False
+        answer = self._auth_answers[bus] if bus else self._auth_answer
+        auth = self._frame_auths[bus] if bus else self._frame_auth
+        assert answer is not None and auth is not None
+        ident = frame.arbitration_id
+        status, actions, frames, fv = answer(
+            ident, frame.data, frame.is_extended_id, frame.is_remote_frame, now, self.stopping
+        )
+        if status:
+            return False
+        node = ident & 0xFF
+        auth.took(MsgType(ident >> 8 & 0xF), node, fv)
+        self.frames += 1
+        held = self._pass.held
+        held += [RawFrame(i, d, True, bus) for i, d in frames]
+        held += self._answered(node | bus << BUS_SHIFT, actions, now)
+        return True
+
+    def fast_auth_pair(self, frame: can.Message, now: int, bus: int = 0) -> bool:
+        """``fast_auth_frame`` in the classic layout: the MAC frame of an ACK, COMMITTED or
+        ABORTED of a managed node, with the message the loop's ``FrameAuth`` keeps for it,
+        goes to C, where the pair is verified, taken by the rules and answered with frames
+        protected (each followed by its MAC frame) in one call; the message then waits no
+        more. False, nothing done (the message still waits): any other frame (a message
+        waits for its MAC frame on the usual path), a MAC frame without such a message, one
+        refused (the usual path pairs, counts and reports it as ever), an answer ahead of the
+        session. ``bus``: as ``fast_frame``'s (its loop's ``FrameAuth`` keeps the message)."""
+        ident = frame.arbitration_id
+        if ident >> 8 & 0xF != _MAC_TO_SUPERVISOR or self._listen_only or not self._pass.depth:
+            return False
+        pair = self._auth_pairs[bus] if bus else self._auth_pair
+        auth = self._frame_auths[bus] if bus else self._frame_auth
+        assert pair is not None and auth is not None
+        node = ident & 0xFF
+        waiting = auth.pending.get(node)
+        if waiting is None or waiting[0].TYPE not in _ANSWERS:
+            return False
+        msg, data = waiting
+        status, actions, frames, fv = pair(
+            auth.codec.arbitration_id(msg.TYPE, node), data, ident, frame.data,
+            frame.is_extended_id, frame.is_remote_frame, now, self.stopping,
+        )  # fmt: skip
+        if status:
+            return False
+        auth.took_waiting(node, fv)
+        self.frames += 1
+        held = self._pass.held
+        held += [RawFrame(i, d, False, bus) for i, d in frames]
+        held += self._answered(node | bus << BUS_SHIFT, actions, now)
+        return True

@@ -1,0 +1,45 @@
+"""What the supervisor service keeps per node besides the core's session: what was heard of it,
+its counters for the status and the grants it was asked for."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from canergy.live.supervisor.grants import GrantRequest
+from canergy.live.supervisor.telemetry import Heard
+
+
+@dataclass(slots=True)
+class NodeInfo:
+    """What the service knows about a node besides the core's session."""
+
+    heard: Heard | Any
+    """What its TELEMETRY said and when it was heard (``telemetry.Heard``, or the compiled
+    core's record of it in C: the same attributes)."""
+    ended_at: int = -1
+    committed: int = 0
+    committed_uj: int = 0
+    aborted: int = 0
+    written_off: int = 0
+    admitted: int = 0
+    """JOINs answered: the node started without books (new, wiped or corrupted NV)."""
+    returns: int = 0
+    decode_errors: int = 0
+    supervisor_frames: int = 0
+    """Listen-only: frames in the supervisor's direction for this node (another supervisor's:
+    what listen-only watches, no intrusion)."""
+    requests: list[GrantRequest] = field(default_factory=list)
+    """Grants asked for and not begun, oldest first (lists: a node holds few, and an empty
+    deque takes 760 bytes against a list's 56)."""
+    active_request: GrantRequest | None = None
+    resumes: int = 0
+    """Starts with books answered (witnessed rules: RESUME confirmed or found behind)."""
+    found_behind: int = 0
+    """Of them, records older than the books (a debit number below the supervisor's): the node
+    was admitted afresh and what that record held was dropped."""
+    synced: int = 0
+    """Supervisor starts this node answered with its books and counts (witnessed rules)."""
+    counts_ignored: int = 0
+    """Counts outside a start the rules ignored (witnessed.counts_taken): an earlier start's,
+    replayed or late; they move nothing."""

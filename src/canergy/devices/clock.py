@@ -85,7 +85,12 @@ class ClockCharge:
             if end > since:
                 self.remainder += fw * (end - since)
         self._charged_up_to(since, fw)
-        drawn, self.remainder = divmod(self.remainder, FW_US_PER_UJ)
+        return self.owed(0)
+
+    def owed(self, fw_us: int) -> int:
+        """``fw_us`` fW·µs found owed now (time already charged, charged again): their whole µJ
+        and the remainder's, for the owner to meter at once; what is below a µJ carried over."""
+        drawn, self.remainder = divmod(self.remainder + fw_us, FW_US_PER_UJ)
         return drawn
 
     def _charged_up_to(self, since: int, fw: int) -> None:

@@ -132,6 +132,24 @@ def test_a_limit_written_while_the_drive_may_run_is_charged_at_the_reach_until_r
     assert [c.controlword for c in g.commands if isinstance(c, Command)] == [CW_DISABLE_VOLTAGE]
 
 
+def test_a_limit_written_long_before_it_is_taken_in_is_metered_at_the_reach_at_once() -> None:
+    """Taken in 80 ms after it was on the bus: those 80 ms at the reach are metered and booked
+    in that same call, not left in the clock's remainder until the clock next runs (a host
+    that exits first never meters them)."""
+    g = guard()
+    g.phase = g.phase.RUNNING
+    g.metering.confirm(0, FULL)
+    g.on_wakeup(20_000)
+    before = g.metering.metered_uj
+    g.on_write(100_000, Write(0x6072, 0, 3000), age_us=80_000)
+    charged_fw = max(RATINGS.envelope_fw(FULL), RATINGS.envelope_fw(FULL.closed()))
+    lacking = (RATINGS.envelope_fw(REACH) - charged_fw) * 80_000 // 10**15
+    assert lacking > 0
+    assert g.metering.metered_uj - before >= lacking
+    assert g.metering.clock.remainder < 10**15
+    assert g.client.state.spent + g.debt_uj == g.metering.metered_uj  # booked
+
+
 def test_an_enabling_controlword_to_a_drive_held_stopped_is_answered_at_once() -> None:
     """By SDO, whatever carries the controlword otherwise; charged at the reach only while a
     write to the configuration is not read back yet (else the limits it holds bound it)."""

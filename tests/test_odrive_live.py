@@ -270,3 +270,55 @@ def test_a_supervisor_held_off_as_a_write_behind_it_arrives_stays_inside_the_bou
     assert b.drawn() > 20 * 200_000  # it ran at 20 A (200 W) for part of the stall at least
     assert b.drawn() <= granted + axis["bound_uj"], (b.drawn(), granted, axis["bound_uj"])
     assert axis["metered_uj"] >= b.drawn()
+
+
+def test_a_write_taken_in_late_is_metered_in_the_pass_that_takes_it_in(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """One burst behind the guard (Set_Limits 20 rev/s, 20 A, closed loop, 1 N·m) whose frames
+    wait 0.3 s to be taken in (the Notifier held off), the axis at 20 A meanwhile; the
+    supervisor stops at the end of the pass that takes them in (a SIGTERM that found it held
+    off: nothing runs the guard's clock again before the last status). What the intake
+    charges back over that wait is metered in that pass: it once stayed in the clock's
+    remainder until the clock next ran, so the last status (tests/test_vcan_odrive.py, user-mode
+    Linux) showed 3.1 J metered of 16.8 J drawn, the writer's limits still in force."""
+    from canergy.live.canopen.cia402_host import GuardedSupervisor
+    from canergy.live.devices.odrive_link import OdriveLink
+
+    theirs = set_limits(20.0, 20.0)
+    take = OdriveLink.on_message_received
+    wake = GuardedSupervisor.on_wakeup
+
+    def held_off(link: OdriveLink, frame: can.Message) -> None:
+        limits = frame.arbitration_id == can_id(AXIS, Cmd.SET_LIMITS)
+        if limits and bytes(frame.data) == theirs:
+            time.sleep(0.3)  # the link's Notifier held off: the write waits to be taken in
+        take(link, frame)
+
+    def stopped_after_intake(handler: GuardedSupervisor, now: int) -> Any:
+        out = wake(handler, now)
+        if any(device.writes_seen for device, _ in handler.guarded.devices.values()):
+            handler.service.stop(now)  # quiescent: the loop ends before it runs the guard again
+        return out
+
+    monkeypatch.setattr(OdriveLink, "on_message_received", held_off)
+    monkeypatch.setattr(GuardedSupervisor, "on_wakeup", stopped_after_intake)
+    with guarded_axis(tmp_path, *LIMITS, *ENDPOINTS, "--initial", "10J", "--target", "5J") as b:
+        wait_for(lambda: ready(b), timeout=60)
+        wait_for(lambda: (d := b.axis_status()) and d["guard"] == "running", timeout=60)
+        b.send(Cmd.SET_LIMITS, theirs)
+        b.run_closed_loop(1.0)
+        b.supervisor.thread.join(timeout=60)
+        assert b.supervisor.result == [0]
+        final = b.status()
+        assert final is not None
+        wait_for(lambda: b.model.state.name == "IDLE", timeout=30)  # the exit's stop
+    granted, axis = granted_and_axis(final)
+    print(
+        f"drawn {b.drawn()} µJ, granted {granted} µJ, metered {axis['metered_uj']} µJ, writes "
+        f"seen {axis['writes_seen']}, timings {axis['bound_timings_us']}"
+    )
+    assert axis["writes_seen"] == 1 and axis["bound_timings_us"]["intake"] >= 300_000
+    assert b.drawn() > 1_000_000  # it ran at 20 A (up to the velocity limit) meanwhile
+    assert b.drawn() <= axis["metered_uj"] + axis["uncontained_uj"], (b.drawn(), axis)
+    assert final["conservation"]["holds"]

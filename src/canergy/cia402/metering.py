@@ -179,7 +179,8 @@ class DriveMeter:
             self.charge(now)
             early = max(0, clock.until - since)  # charged below the reach meanwhile
             self.suspect_from = since
-            clock.remainder += self.envelope_fw(self.reach) * early
+            # metered now, not when the clock next runs: the host may exit before it does
+            self._charged(clock.owed(self.envelope_fw(self.reach) * early))
         else:  # the counter may be lying from here: the clock at the reach, from the last reading
             last = self.counter.last_us if self.counter is not None else None
             clock.until = min(since, now if last is None else last)

@@ -6,7 +6,8 @@ Each µs is charged at the envelope in force at its start; its owner raises ``fw
 an envelope is raised (``raise_to``), and a lowered envelope keeps counting until the device had
 its latency to act on it (``lower``, ``held``). What is below a whole µJ is carried over. An
 envelope found out late (a write behind the guard seen at a time already charged) is charged
-back over that time (``back_charge``), against what each stretch of it was charged at.
+back over that time (``back_charge``), against what each stretch of it was charged at, and its
+whole µJ are the owner's to meter at once.
 """
 
 from __future__ import annotations
@@ -65,12 +66,14 @@ class ClockCharge:
             drawn += self._to(now, in_force)
         return drawn
 
-    def back_charge(self, since: int, fw: int) -> None:
+    def back_charge(self, since: int, fw: int) -> int:
         """Envelope ``fw`` was in force from ``since`` on, found out only now: the time from
         ``since`` to ``until`` is charged again up to ``fw``, each stretch by what it lacks (time
-        older than the stretches kept counts as charged at nothing)."""
+        older than the stretches kept counts as charged at nothing); the whole µJ charged, at
+        once (left in the remainder, they would count only when the clock next runs, and a host
+        that exits first would never meter them)."""
         if self.until is None or since >= self.until:
-            return
+            return 0
         end = self.until
         for begin, charged_fw in reversed(self.charged):
             if end <= since:
@@ -82,6 +85,13 @@ class ClockCharge:
             if end > since:
                 self.remainder += fw * (end - since)
         self._charged_up_to(since, fw)
+        return self.owed(0)
+
+    def owed(self, fw_us: int) -> int:
+        """``fw_us`` fW·µs found owed now (time already charged, charged again): their whole µJ
+        and the remainder's, for the owner to meter at once; what is below a µJ carried over."""
+        drawn, self.remainder = divmod(self.remainder + fw_us, FW_US_PER_UJ)
+        return drawn
 
     def _charged_up_to(self, since: int, fw: int) -> None:
         """The stretches from ``since`` on are charged at ``fw`` at least now: a later finding

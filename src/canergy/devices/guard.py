@@ -254,7 +254,10 @@ class DeviceGuard(ProxyBooks, Generic[L]):
 
     # -- charging -------------------------------------------------------------------------
     def charge(self, now: int) -> None:
-        drawn = self.clock.run(now, self.in_force_fw)
+        self._meter(self.clock.run(now, self.in_force_fw))
+
+    def _meter(self, drawn: int) -> None:
+        """What the clock charged: uncontained while STUCK, else metered (and booked next)."""
         if self.phase is GuardPhase.STUCK:
             self.uncontained_uj += drawn
         else:
@@ -394,7 +397,8 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         self.charge(now)
         # the time since ``at`` already charged, each stretch up to these limits' envelope (the
         # envelope in force now may have been raised within it: not what it was charged at)
-        clock.back_charge(at, self._fw(limits))
+        # metered now, not when the clock next runs: the host may exit before it does
+        self._meter(clock.back_charge(at, self._fw(limits)))
         if self._fw(limits) > self._fw(self.foreign):
             self.foreign = limits
         if self._fw(limits) > self._fw(self.foreign_worst):

@@ -705,7 +705,10 @@ def on_debit(w: World, m: Msg) -> st.Step:
     step = wit.on_debit(s, m.nonce, m.flags, m.w, m.amount)
     counts = m.flags == wit.COUNTS
     resumes = z3.And(
-        z3.Not(wit.in_start(s)), z3.Not(wit.is_books(m.flags)), (m.flags / wit.START) % 2 == 1
+        z3.Not(wit.in_start(s)),
+        z3.Not(wit.is_books(m.flags)),
+        (m.flags / wit.START) % 2 == 1,
+        z3.Or(z3.Not(counts), wit.counts_taken(s, m.nonce, m.amount)),  # ignored: no lift
     )
     counted_ = z3.And(s.phase == sym.SYNC_BOOKS, m.nonce == s.sync_nonce, counts)
     seq = sym.unwrap(m.w, s.returns_credited, SEQ_BITS)

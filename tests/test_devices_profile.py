@@ -153,7 +153,7 @@ def test_a_top_up_within_the_resume_margin_leaves_the_device_held() -> None:
 
 
 def test_a_top_up_below_a_whole_quantum_leaves_the_device_held() -> None:
-    """Review rv2: grants are whole mJ (``policy.quantize``), --target and --min-grant need not
+    """Review rv2: grants are whole mJ (``messages.quantize``), --target and --min-grant need not
     be. At 130 mJ under --target 130.5 mJ and --min-grant 0.5 mJ the top-up wants 0.5 mJ and
     grants nothing, so a guard releasing above 130.2 mJ stays stopped for ever: held, not
     'budget exhausted'; from 1 mJ the top-up grants 129 mJ and gets it there."""

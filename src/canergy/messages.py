@@ -16,6 +16,12 @@ from canergy.frozen import fast_init
 QUANTUM_UJ = 1000
 """One wire energy unit: amounts and the delivered count travel in millijoules."""
 
+
+def quantize(amount: int) -> int:
+    """``amount`` µJ rounded down to whole wire quanta (what a grant can carry)."""
+    return amount - amount % QUANTUM_UJ
+
+
 TX_BITS = 16
 SEQ_BITS = 16
 DELIVERED_BITS = 24

@@ -17,7 +17,7 @@ from typing import Any
 
 from canergy.core import Action, Client, ClientCommitted, Credited, Send, Timing
 from canergy.core.state import Phase
-from canergy.messages import LEVEL_MAX_MJ, QUANTUM_UJ, Message, Telemetry
+from canergy.messages import LEVEL_MAX_MJ, QUANTUM_UJ, Message, Telemetry, quantize
 
 NO_BUDGET = "no budget yet"
 """A guard's stop reason before its device was first released."""
@@ -129,9 +129,9 @@ class ProxyBooks:
         if reason != EXHAUSTED or self.usable <= 0:
             return None
         level = min(self.usable, LEVEL_MAX_MJ * QUANTUM_UJ)
-        level -= level % QUANTUM_UJ  # as TELEMETRY reports it
+        level = quantize(level)  # as TELEMETRY reports it
         short = target - level
-        grant = short - short % QUANTUM_UJ if short >= minimum else 0  # whole quanta (quantize)
+        grant = quantize(short) if short >= minimum else 0
         topped = self.usable + grant
         needed, release = self.threshold_uj(), self.release_uj()
         if topped > release:

@@ -39,7 +39,6 @@ from canergy.core.supervisor import SupervisorCore
 from canergy.live.gateway.state import save_gateway
 from canergy.live.runtime import BusCounters, Outgoing
 from canergy.live.supervisor.intrusions import Intrusions, Refusals, frame_text
-from canergy.live.supervisor.policy import quantize
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.live.supervisor.witness import ClientWitness
 from canergy.messages import (
@@ -52,6 +51,7 @@ from canergy.messages import (
     Message,
     Telemetry,
     ToClient,
+    quantize,
 )
 
 log = logging.getLogger(__name__)

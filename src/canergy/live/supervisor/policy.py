@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, USABLE_MAX_UJ, quantize
 from canergy.units import format_energy
 
 
@@ -69,11 +69,6 @@ class RateLimiter:
     def take(self, amount: int) -> None:
         if self.rate is not None:
             self.tokens -= amount
-
-
-def quantize(amount: int) -> int:
-    """Round down to whole wire quanta."""
-    return amount - amount % QUANTUM_UJ
 
 
 _Cap = tuple[int, str, tuple[int, ...]]

@@ -55,6 +55,7 @@ import firmware_model.__main__ as firmware
 import firmware_model.drive.__main__ as drive
 from canergy.cli import build_parser
 from canergy.cli import main as canergy_main
+from canergy.live.atomic import lock_path
 from canergy.live.bus_group import BusGroup
 from canergy.live.runtime import BusRuntime
 from firmware_model.drive.canopen_face import DriveFace
@@ -411,7 +412,8 @@ def _outputs(name: str, argv: Sequence[str], root: Path) -> list[Path]:
 
 
 def _allowed(path: Path, outputs: list[Path]) -> bool:
-    return any(path == o or o in path.parents for o in outputs)
+    """An output, in one, or the lock file a record's keeper holds beside it."""
+    return any(path in (o, lock_path(o)) or o in path.parents for o in outputs)
 
 
 @contextlib.contextmanager

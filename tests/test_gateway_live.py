@@ -145,11 +145,19 @@ def test_a_tree_through_a_lossy_upstream_leg_creates_nothing(tmp_path: Path) -> 
     assert root["nodes"][str(GW)]["delivered_uj"] >= t.status("gw")["upstream"]["credited_uj"]
 
 
-def test_a_restarted_gateway_continues_from_its_one_file(tmp_path: Path) -> None:
+def test_a_restarted_gateway_continues_from_its_one_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     with tree(tmp_path) as t:
         t.start_root()
         t.start_gateway()
         t.wait(lambda: t.status("gw")["upstream"]["credited_uj"] >= 4_000_000)
+        # a second gateway on the same file while the first keeps it (review rv3): refused
+        # before it reads the file, or both would spend one record
+        bus = ["-i", "virtual", "-c", t.down, "--upstream-interface", "virtual"]
+        second = ["gateway", "--node", str(GW), "--nodes", "1-3", *bus, "--upstream-channel"]
+        assert main([*second, t.up, "--state", str(tmp_path / "gw.json"), "--no-fsync"]) == 2
+        assert "is kept by another holder" in capsys.readouterr().err
         t.stop("gateway")
         before = json.loads((tmp_path / "gw.json").read_text())
         # its first start's JOIN (re-sent when the ADMIT is slow, each copy admitted), read from

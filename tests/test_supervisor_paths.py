@@ -14,6 +14,8 @@ from typing import Any
 
 import can
 import pytest
+from support.procs import Procs, python, wait
+from support.procs import procs as procs  # the fixture
 
 from canergy.cli import grant as grant_cli
 from canergy.cli import main
@@ -378,3 +380,45 @@ def test_capped_grant_keeps_a_known_level_within_the_record() -> None:
 
 pytestmark = pytest.mark.usefixtures("both_cores")
 """Each test on the Python core and on the compiled one (tests/conftest.py)."""
+
+
+# -- one keeper per record (review rv3) -------------------------------------------------------
+
+
+def test_a_grant_on_the_state_file_of_a_running_supervisor_is_refused(
+    tmp_path: Path, run: RunMain, procs: Procs, started: list[dict[str, Any]]
+) -> None:
+    """rv3: ``canergy grant --state`` beside a supervisor that keeps the same file granted from
+    the same Us (1.9 J created on 5 J); each save overwrote the other's books. Now the second
+    keeper is refused before it reads the file, and the file is as the first keeps it."""
+    state = tmp_path / "s.json"
+    bus = ["-i", "virtual", "-c", f"paths-{uuid.uuid4().hex}"]
+    argv = ["supervisor", *bus, "--nodes", "1", "--no-fsync", "--state", str(state)]
+    sup = procs.start("sup", python("-m", "canergy", *argv, "--initial", "5J"))
+    wait(state.exists, "the supervisor's first save", 60, lambda: procs.stderr("sup"))
+    books = state.read_bytes()
+    code, err = run(["grant", *bus, "--node", "1", "--amount", "2J", "--state", str(state)])
+    _refused(code, err, f"state file {state} is kept by another holder (pid {sup.pid}")
+    _refused(*run([*argv, "--initial", "5J"]), "is kept by another holder")
+    assert state.read_bytes() == books
+    assert procs.stop("sup") == 0
+    assert run([*argv, "--initial", "5J"]) == (0, "") and len(started) == 1  # the lock is free
+
+
+def test_in_one_process_a_second_core_on_the_books_is_refused_until_the_first_is_gone(
+    tmp_path: Path,
+) -> None:
+    """Two cores of one process on one state file (two supervisors built by a library user):
+    the second is refused while the first lives, and taken once it is collected."""
+    from canergy.live.atomic import RecordInUse
+    from canergy.live.supervisor.build import CoreConfig, SupervisorConfig, open_core
+
+    config = SupervisorConfig(core=CoreConfig((1,), 5 * J, state_path=tmp_path / "s.json"))
+    first = open_core(config, 0)
+    with pytest.raises(RecordInUse, match="is kept by another holder"):
+        open_core(config, 0)
+    cycle: list[Any] = [first]
+    cycle.append(cycle)  # held only by a cycle: gone at the next collection
+    del first, cycle
+    second = open_core(config, 0)
+    assert second.usable == 5 * J

@@ -7,6 +7,7 @@ import hmac
 import random
 import secrets
 import sys
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +34,7 @@ from canergy.codec import Codec
 from canergy.core.gateway import Gateway
 from canergy.core.state import Phase
 from canergy.faults import FaultInjector, FaultProfile
+from canergy.live.atomic import kept_by
 from canergy.live.bus_group import BusGroup
 from canergy.live.gateway.process import GatewayFiles, Uplink, UplinkConfig
 from canergy.live.gateway.state import load_gateway
@@ -188,7 +190,14 @@ def _build(
 ) -> tuple[Gateway, bool]:
     """The gateway core from its state file; True when there is no file (a new gateway).
     ``key``: the downstream master key (``--auth``), which seals the state file; ``core``:
-    its supervisor role's ("c" or "python", ``--core`` resolved)."""
+    its supervisor role's ("c" or "python", ``--core`` resolved). The state file's lock is
+    held as long as the gateway lives (``kept_by``)."""
+    fresh = not args.state.exists()  # read under the lock: nobody else writes it meanwhile
+    made = partial(_from_books, args, key, core)
+    return kept_by(args.state, "state file", made), fresh
+
+
+def _from_books(args: argparse.Namespace, key: Key | None, core: str) -> Gateway:
     nodes = tuple(args.nodes)
     state = None
     seal = None if key is None else state_seal(key, args.node)
@@ -204,7 +213,7 @@ def _build(
             up_variant=args.upstream_variant,
         )
     keep_books(args.state, seal, args.auth, fresh=state is None)
-    gateway = Gateway(
+    return Gateway(
         args.node,
         nodes,
         variant=args.variant,
@@ -215,7 +224,6 @@ def _build(
         start_without=start_without(args, nodes),
         below=make_below(core, args.id_base),
     )
-    return gateway, state is None
 
 
 def _config(args: argparse.Namespace, key: Key | None) -> SupervisorConfig:

@@ -4,10 +4,16 @@ directory. A reader sees the old content or the new, never a mix."""
 from __future__ import annotations
 
 import contextlib
+import fcntl
+import gc
 import json
 import os
+import weakref
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
+
+T = TypeVar("T")
 
 
 def check_writable_dir(path: Path, what: str) -> None:
@@ -60,3 +66,69 @@ def write_atomic(path: Path, data: bytes, *, fsync: bool = True, mode: int | Non
 
 def write_json_atomic(path: Path, obj: Any, *, fsync: bool = True) -> None:
     write_atomic(path, (json.dumps(obj, indent=1, sort_keys=True) + "\n").encode(), fsync=fsync)
+
+
+class RecordInUse(OSError):
+    """Another holder keeps the record: two writers of one record would both spend it."""
+
+
+def lock_path(path: Path) -> Path:
+    """The lock file of the record ``path``: beside it, never replaced (the record is, by each
+    atomic write, so a lock on the record itself would guard a file already gone)."""
+    return path.with_name(f".{path.name}.lock")
+
+
+class RecordLock:
+    """An exclusive ``flock`` on a record's lock file, taken before the record is read and
+    held until ``release`` or until the object that keeps the record (``bind``) is collected.
+    ``flock`` locks conflict between two opens of the file, so a second holder is refused in
+    another process and in this one."""
+
+    def __init__(self, path: Path, what: str) -> None:
+        self.path = lock_path(path)
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+        except OSError as exc:
+            raise RecordInUse(f"cannot lock {what} {path}: {self.path}: {exc.strerror}") from exc
+        if not _flock(fd):
+            gc.collect()  # a holder in this process no longer referenced lets go when collected
+            if not _flock(fd):
+                holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "unknown"
+                os.close(fd)
+                raise RecordInUse(
+                    f"{what} {path} is kept by another holder (pid {holder}; lock {self.path}): "
+                    "two holders of one record would both spend what it holds. Stop the other, "
+                    "or ask it through its --control socket"
+                )
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        self._fd = fd
+
+    def bind(self, owner: object) -> None:
+        """Hold the lock as long as ``owner`` (what keeps the record) lives."""
+        weakref.finalize(owner, os.close, self._fd)
+
+    def release(self) -> None:
+        """Let go of the record now (before ``bind``: the record was not taken)."""
+        os.close(self._fd)
+
+
+def kept_by(path: Path, what: str, make: Callable[[], T]) -> T:
+    """``make()``, which reads the record ``path`` and returns what keeps it, under the
+    record's lock (``RecordLock``), then held as long as what it returned lives."""
+    lock = RecordLock(path, what)
+    try:
+        owner = make()
+    except BaseException:
+        lock.release()
+        raise
+    lock.bind(owner)
+    return owner
+
+
+def _flock(fd: int) -> bool:
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True

@@ -17,6 +17,7 @@ from __future__ import annotations
 import secrets
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol, cast
 
@@ -28,6 +29,7 @@ from canergy.ccore.supervisor import make_supervisor
 from canergy.codec import DEFAULT_ID_BASE, Codec
 from canergy.core import Timing
 from canergy.core.supervisor import SupervisorCore
+from canergy.live.atomic import kept_by
 from canergy.live.bus_group import BusGroup
 from canergy.live.devices.on_stuck import OnStuck
 from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
@@ -180,14 +182,22 @@ def check_session_keys(
 def open_core(config: SupervisorConfig, now: int | None = None) -> SupervisorCore:
     """The core, from its books when the file exists (a start is then a restart: the core is
     told of the power loss with a fresh nonce). Refused before anything is read or written
-    when two of its sessions would share a key (``check_keys``)."""
-    c, auth = config.core, config.auth
+    when two of its sessions would share a key (``check_keys``), or while another core keeps
+    the books (``kept_by``: in this process or another, until that core is collected)."""
+    c = config.core
     if c is None:
         raise ValueError("no core configured (SupervisorConfig.core) and none handed over")
     check_keys(config, c.nodes)
-    buses = config.service.bus_names
-    state = None
+    kept = c.state_path if c.keep_books else None
+    opened = partial(_from_books, config, c, now)
+    return opened() if kept is None else kept_by(kept, "state file", opened)
+
+
+def _from_books(config: SupervisorConfig, c: CoreConfig, now: int | None) -> SupervisorCore:
+    """``open_core``'s core (the state file's lock, if kept, is already held)."""
+    auth, buses = config.auth, config.service.bus_names
     seal = None if auth is None else state_seal(auth.key)
+    state = None
     if c.state_path is not None and c.state_path.exists():
         state = load_state(
             c.state_path,

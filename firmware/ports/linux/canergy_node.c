@@ -169,7 +169,7 @@ int main(int argc, char **argv)
     }
     port_nv_check(&p);
     p.sock = port_can_open(&p.opt);
-    uint8_t image[NV_READ_BYTES];
+    uint8_t image[NV_READ_BYTES] = {0}; /* a short read leaves no stale seal bytes */
     size_t image_len = 0U;
     port_nv_open(&p, image, &image_len);
 

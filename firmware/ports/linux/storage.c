@@ -127,7 +127,7 @@ void port_nv_check(const struct port *p)
     if (fd < 0) {
         return;
     }
-    uint8_t image[NV_READ_BYTES];
+    uint8_t image[NV_READ_BYTES] = {0}; /* a short read leaves no stale seal bytes */
     const ssize_t n = pread(fd, image, sizeof image, 0);
     (void)close(fd);
     if (n > 0) {

@@ -33,7 +33,7 @@ from canergy.messages import Direction
 from firmware_model.actuator import PowerProfile
 from firmware_model.canopen_node import CanopenFace
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
-from firmware_model.nvstore import NV_FILE_SIZES, NvError, NvStore, SimulatedPowerLoss
+from firmware_model.nvstore import NV_FILE_SIZES, NvError, NvSeal, NvStore, SimulatedPowerLoss
 
 EXIT_POWER_LOSS = 3
 
@@ -164,7 +164,9 @@ def _host(args: argparse.Namespace, ids: tuple[int, ...]) -> NodeHost:
 
 def _nv_store(args: argparse.Namespace, node: int, several: bool) -> NvStore:
     path = _nv_path(args, node, several)
-    return NvStore(path, node, fsync=not args.no_fsync, crash_after=args.crash_after)
+    keys: dict[int, bytes] | None = getattr(args, "node_keys", None)
+    seal = None if keys is None else NvSeal(keys[node], node)  # --auth: the record sealed
+    return NvStore(path, node, fsync=not args.no_fsync, crash_after=args.crash_after, seal=seal)
 
 
 def _check_nv_file(path: Path) -> None:

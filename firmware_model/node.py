@@ -94,6 +94,14 @@ class FirmwareNode:
         self.config = config
         self.nv = nv
         record = nv.load()
+        if nv.set_aside:  # sealed store: a slot whose seal did not hold, as a damaged one
+            log.warning(
+                "node %d: --nv %s: slot %s: the seal does not hold (a write not finished, or the "
+                "record edited): set aside, the other slot taken",
+                node,
+                nv.path,
+                " and ".join(map(str, nv.set_aside)),
+            )
         self.client = Client(
             node, variant=config.variant, timing=config.timing, state=record or ClientState(node)
         )

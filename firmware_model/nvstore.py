@@ -22,10 +22,20 @@ so a power loss mid-write (torn or corrupted slot) leaves the previous record re
 picks the valid slot written last (counters compare as 32-bit serial numbers, so the choice
 survives the wrap). Nothing is acted on before its write completes, so the fallback record never
 holds more energy than was committed.
+
+Sealed store (a node run with its key, ``--auth``): the same slots, then a seal per record slot
+after the parameter slot, 8 bytes each at offset 120 + 8 i (a 136-byte file): the first 8 bytes
+of AES-CMAC over the whole slot under the **NV seal key**, derived from the node key by the
+project's KDF with label ``canergy node nv seal`` and context the node id (1 byte); the C node's
+``canergy_nv_seal`` (firmware/include/canergy/nv.h) makes the same bytes. A slot whose seal does
+not hold is a damaged slot (the other is taken); none left, or a record never sealed, is refused
+(``NvError``). The seal proves a key holder wrote the slot; it cannot tell a genuine older
+sealed record put back from the newest (the witnessed rules' RESUME finds that behind).
 """
 
 from __future__ import annotations
 
+import hmac
 import os
 import struct
 import weakref
@@ -33,6 +43,10 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
+from cryptography.hazmat.primitives import cmac
+from cryptography.hazmat.primitives.ciphers import algorithms
+
+from canergy.auth.state_key import derive
 from canergy.core.state import ClientState, Outcome
 from canergy.messages import (
     AMOUNT_MAX_MJ,
@@ -53,8 +67,13 @@ _CREDITED_UNKNOWN = 0x01
 _PENDING_DRAW = 0x02
 _CRC = struct.Struct("<I")
 SLOT_SIZE = _HEAD.size + _PAD + _CRC.size
-NV_FILE_SIZES = (0, 2 * SLOT_SIZE, 3 * SLOT_SIZE)
-"""Sizes an NV file can have: new, two record slots, and the CANopen parameter slot too."""
+SEAL_SIZE = 8
+SEALS_AT = 3 * SLOT_SIZE
+SEALED_SIZE = SEALS_AT + 2 * SEAL_SIZE
+SEAL_LABEL = b"canergy node nv seal"
+NV_FILE_SIZES = (0, 2 * SLOT_SIZE, 3 * SLOT_SIZE, SEALED_SIZE)
+"""Sizes an NV file can have: new, two record slots, the CANopen parameter slot too, and the
+seals after it (a sealed store)."""
 U32 = 0xFFFFFFFF
 PARAM_SLOT = 2
 PARAMS = struct.Struct("<IIIB")
@@ -142,6 +161,33 @@ def decode_slot(raw: bytes) -> tuple[int, bytes] | None:
     return counter, body[_HEAD.size : _HEAD.size + RECORD_SIZE]
 
 
+class NvSeal:
+    """Seals a node's record slots under its NV seal key (the key itself never shown)."""
+
+    __slots__ = ("_keyed", "node")
+
+    def __init__(self, node_key: bytes, node: int) -> None:
+        self._keyed = cmac.CMAC(algorithms.AES(derive(node_key, SEAL_LABEL, bytes([node]))))
+        self.node = node
+
+    def __repr__(self) -> str:
+        return f"NvSeal(node={self.node})"
+
+    def seal(self, slot: bytes) -> bytes:
+        """The seal of one slot image: 8 bytes of its AES-CMAC."""
+        c = self._keyed.copy()
+        c.update(slot)
+        return c.finalize()[:SEAL_SIZE]
+
+    def holds(self, slot: bytes, found: bytes) -> bool:
+        """``found`` is ``slot``'s seal (compared in constant time)."""
+        return hmac.compare_digest(self.seal(slot), found)
+
+
+def _names(slots: list[int]) -> str:
+    return " and ".join(map(str, slots))
+
+
 @dataclass(slots=True)
 class NvStats:
     writes: int = 0
@@ -153,10 +199,20 @@ class NvStore:
     """Two slots in one file; ``crash_after=N`` tears the N-th write and raises."""
 
     def __init__(
-        self, path: Path, node: int, *, fsync: bool = True, crash_after: int | None = None
+        self,
+        path: Path,
+        node: int,
+        *,
+        fsync: bool = True,
+        crash_after: int | None = None,
+        seal: NvSeal | None = None,
     ) -> None:
         self.path = path
         self.node = node
+        self.seal = seal
+        """With a key: each record slot sealed, and only sealed records taken."""
+        self.set_aside: list[int] = []
+        """Slots the last load set aside because their seal did not hold."""
         self.fsync = fsync
         self.crash_after = crash_after
         self.stats = NvStats()
@@ -177,6 +233,7 @@ class NvStore:
             raise NvError(f"{self.path}: {exc}") from exc
         chunks = [raw[i * SLOT_SIZE : (i + 1) * SLOT_SIZE] for i in (0, 1)]
         slots = [decode_slot(chunk) for chunk in chunks]
+        slots = self._unseal(raw, chunks, slots)
         valid = [(s[0], i, s[1]) for i, s in enumerate(slots) if s is not None]
         if any(s is None and chunk.strip(b"\0") for s, chunk in zip(slots, chunks, strict=True)):
             self.stats.fallbacks += 1  # a torn or corrupted slot: its write never completed
@@ -191,6 +248,44 @@ class NvStore:
         except NvError:
             self.stats.fallbacks += 1
             return None  # a checksum collision over garbage: no books, not a crash
+
+    def _unseal(
+        self, raw: bytes, chunks: list[bytes], slots: list[tuple[int, bytes] | None]
+    ) -> list[tuple[int, bytes] | None]:
+        """The slots a sealed store may take (those whose seal holds); refuses a sealed file
+        without a key, a record never sealed with one, and a file where no seal holds."""
+        where = f"--nv {self.path}: node {self.node}"
+        self.set_aside = []
+        if self.seal is None:
+            if len(raw) == SEALED_SIZE:
+                raise NvError(
+                    f"{where}: sealed by a node with a key (--auth): without that key its seals "
+                    "cannot be checked; run with --auth and this node's key file"
+                )
+            return slots
+        again = ": nothing taken. Move the file away to JOIN afresh (what it held is then lost, "
+        again += "never created)"
+        if len(raw) != SEALED_SIZE:
+            found = [i for i, s in enumerate(slots) if s is not None]
+            if found:
+                raise NvError(
+                    f"{where}: slot {_names(found)} holds a record that is not sealed (written "
+                    "without --auth, or its seals cut off): a node with a key takes sealed "
+                    f"records only{again}"
+                )
+            return slots
+        seals = [raw[SEALS_AT + i * SEAL_SIZE : SEALS_AT + (i + 1) * SEAL_SIZE] for i in (0, 1)]
+        for i, chunk in enumerate(chunks):
+            if chunk.strip(b"\0") and not self.seal.holds(chunk, seals[i]):
+                self.set_aside.append(i)
+                slots[i] = None  # a damaged slot
+        if self.set_aside and all(s is None for s in slots):
+            raise NvError(
+                f"{where}: slot {_names(self.set_aside)}: the seal does not hold (the record "
+                "edited, or sealed under another node's key), and no other slot holds a sealed "
+                f"record{again}"
+            )
+        return slots
 
     def save(self, c: ClientState) -> None:
         record = pack_record(c)
@@ -219,16 +314,23 @@ class NvStore:
         return None if slot is None else PARAMS.unpack(slot[1][: PARAMS.size])
 
     def _write(self, slot: int, data: bytes) -> None:
-        """Write one slot through the file kept open from the first write on (a flash driver
-        set up once), grown to hold the slot if it is shorter."""
+        """Write one slot (a whole record slot in a sealed store: then its seal; torn between
+        the two, this slot is not taken) through the file kept open from the first write on (a
+        flash driver set up once), grown to hold the slot, and with a key the seals, if it is
+        shorter."""
         if self._fd is None:
             self._fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             self._closer = weakref.finalize(self, os.close, self._fd)
             self._size = os.fstat(self._fd).st_size
-        if self._size < max(2, slot + 1) * SLOT_SIZE:
-            self._size = max(2, slot + 1) * SLOT_SIZE
+        least = max(2, slot + 1) * SLOT_SIZE
+        if self.seal is not None:
+            least = max(least, SEALED_SIZE)
+        if self._size < least:
+            self._size = least
             os.ftruncate(self._fd, self._size)
         os.pwrite(self._fd, data, slot * SLOT_SIZE)
+        if self.seal is not None and slot < PARAM_SLOT and len(data) == SLOT_SIZE:
+            os.pwrite(self._fd, self.seal.seal(data), SEALS_AT + slot * SEAL_SIZE)
         if self.fsync:
             os.fsync(self._fd)
 

@@ -13,11 +13,13 @@ import json
 import subprocess
 import sys
 import tempfile
+import zlib
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from canergy.auth.keys import new_master, write_key
 from canergy.codec import Codec
 from canergy.live.supervisor.joins import JOIN_HOLD_US
 from canergy.messages import Commit, Join, Message, Return, Telemetry
@@ -229,6 +231,53 @@ def test_a_damaged_cut_short_or_oversize_nv_file_is_refused_by_name(
     assert f"--nv {cut.nv}: slot 0: cut short" in cut.stderr
     long = run(image + b"{}", 2)
     assert f"{2 * slot + 2} bytes is not a canergy-gateway NV file" in long.stderr
+
+
+def test_with_a_key_its_nv_slots_are_sealed_and_an_edited_one_is_set_aside(
+    harness: Path, tmp_path: Path
+) -> None:
+    """``--auth``: each slot sealed under a key derived from the gateway's master key
+    (canergy/nv.h, "Sealed image"). Its upstream usable raised in the newest slot, the CRC
+    recomputed (what a local user without the key can do): that slot is set aside and the older,
+    genuine one taken (its books, not 900 J); both edited: refused, the file left as it was."""
+    master = tmp_path / "gw.key"
+    write_key(master, new_master(1))
+    auth = ("--auth", str(master))
+    first = Run(harness, tmp_path, ["inject 5000000", "inject 5000000"], *auth)
+    image = first.nv.read_bytes()
+    slot = (len(image) - 16) // 2
+    assert len(image) == 2 * slot + 16 and first.status()["injected_uj"] == 10_000_000
+    assert Run(harness, tmp_path, [], *auth, nv=first.nv).status()["injected_uj"] == 10_000_000
+    image = first.nv.read_bytes()  # that start saved again (a start below)
+    counters = [int.from_bytes(image[k * slot + 4 : k * slot + 8], "little") for k in (0, 1)]
+    newest = counters.index(max(counters))
+
+    def edited(data: bytes, k: int) -> bytes:
+        at = k * slot
+        body = (
+            data[at : at + 8] + (900_000_000).to_bytes(4, "little") + data[at + 12 : at + slot - 4]
+        )
+        return data[:at] + body + zlib.crc32(body).to_bytes(4, "little") + data[at + slot :]
+
+    nv = tmp_path / "edited.nv"
+    nv.write_bytes(edited(image, newest))
+    taken = Run(harness, tmp_path, [], *auth, nv=nv)
+    assert f"slot {newest}: the seal does not hold" in taken.stderr, taken.stderr
+    assert taken.status()["upstream"]["usable_uj"] == 0  # the genuine record's
+    both = edited(edited(image, 0), 1)
+    nv.write_bytes(both)
+    refused = Run(harness, tmp_path, [], *auth, nv=nv, code=2)
+    assert f"--nv {nv}: slot 0 and 1: the seal does not hold" in refused.stderr
+    assert nv.read_bytes() == both
+    assert "not sealed" in Run(harness, tmp_path, [], *auth, nv=_plain(first), code=2).stderr
+
+
+def _plain(run: Run) -> Path:
+    """The slots of ``run``'s NV file without their seals: a record never sealed."""
+    image = run.nv.read_bytes()
+    plain = run.nv.with_name("plain.nv")
+    plain.write_bytes(image[:-16])
+    return plain
 
 
 def test_the_witnesss_evidence_below_is_told_on_stderr(harness: Path, tmp_path: Path) -> None:

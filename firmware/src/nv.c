@@ -7,6 +7,7 @@
  */
 #include "canergy/nv.h"
 
+#include "canergy/cmac.h"
 #include "canergy/codec.h"
 #include "canergy/gateway.h"
 #include "le.h"
@@ -171,6 +172,48 @@ void canergy_nv_load(const uint8_t *image, size_t len, struct canergy_nv_state *
     } else {
         out->fallbacks++; /* the newest valid slot holds impossible values: no books */
     }
+}
+
+/* ---- the seal of a keyed node's or gateway's slots (canergy/nv.h) ---- */
+
+void canergy_nv_seal_key(struct canergy_cmac *seal, const uint8_t key[16], uint8_t node,
+                         bool gateway)
+{
+    static const char node_label[] = "canergy node nv seal";
+    static const char gateway_label[] = "canergy gateway nv seal";
+    uint8_t derived[CANERGY_KDF_KEY_SIZE];
+    const char *label = gateway ? gateway_label : node_label;
+    const size_t len = gateway ? sizeof gateway_label - 1U : sizeof node_label - 1U;
+    canergy_kdf_cmac_ctr(key, (const uint8_t *)label, len, &node, 1U, derived);
+    canergy_cmac_init(seal, derived);
+    canergy_wipe(derived, sizeof derived);
+}
+
+void canergy_nv_seal(const struct canergy_cmac *seal, const uint8_t *slot, size_t len,
+                     uint8_t out[CANERGY_NV_SEAL_SIZE])
+{
+    uint8_t tag[CANERGY_CMAC_SIZE];
+    canergy_cmac(seal, slot, len, tag);
+    memcpy(out, tag, CANERGY_NV_SEAL_SIZE);
+}
+
+unsigned canergy_nv_unseal(const struct canergy_cmac *seal, uint8_t *image, size_t image_len,
+                           size_t slot_size, unsigned count, const uint8_t *seals)
+{
+    unsigned spoilt = 0U;
+    for (unsigned i = 0U; i < count; i++) {
+        uint8_t *slot = &image[i * slot_size];
+        if (image_len < (i + 1U) * slot_size || all_zero(slot, slot_size)) {
+            continue; /* absent or erased: no record to take, nothing to check */
+        }
+        uint8_t tag[CANERGY_NV_SEAL_SIZE];
+        canergy_nv_seal(seal, slot, slot_size, tag);
+        if (!canergy_mac_equal(tag, &seals[i * CANERGY_NV_SEAL_SIZE], CANERGY_NV_SEAL_SIZE)) {
+            slot[slot_size - 1U] ^= 0xFFU; /* its CRC no longer holds: a damaged slot */
+            spoilt |= 1U << i;
+        }
+    }
+    return spoilt;
 }
 
 /* ---- the gateway's slot (canergy/gateway.h) ---- */

@@ -72,6 +72,12 @@ void port_entry(void)
     sink += (uint64_t)canergy_auth_gateway_down_frame(down_auth, &gw, &rx, &verified);
     sink += (uint64_t)canergy_auth_gateway_down_protect(down_auth, &gw, &down.frames[0], frames);
     sink += frames[0].data[0] + verified.data[0];
+    static struct canergy_cmac seal; /* the NV seal: checked at start, made on each write */
+    static uint8_t image[2U * CANERGY_GW_NV_SLOT_SIZE + 2U * CANERGY_NV_SEAL_SIZE];
+    canergy_nv_seal_key(&seal, key, 7U, true);
+    sink += canergy_nv_unseal(&seal, image, sizeof image, CANERGY_GW_NV_SLOT_SIZE, 2U,
+                              &image[2U * CANERGY_GW_NV_SLOT_SIZE]);
+    canergy_nv_seal(&seal, image, CANERGY_GW_NV_SLOT_SIZE, &image[2U * CANERGY_GW_NV_SLOT_SIZE]);
 #endif
     (void)sink;
 }
@@ -120,7 +126,9 @@ void port_entry(void)
 #else
 void port_entry(void)
 {
+#ifndef PORT_AUTH /* the authenticated node reads a sealed image (below) */
     static uint8_t nv[2U * CANERGY_NV_SLOT_SIZE];
+#endif
     static const uint8_t bytes[8] = {0};
     struct canergy_out out;
     const struct canergy_rx_frame rx = {0x0CE00105UL, bytes, 8U, true, false};
@@ -129,10 +137,20 @@ void port_entry(void)
 #if defined(PORT_NODE) || defined(PORT_AUTH)
     static struct canergy_node n;
     const struct canergy_node_config cfg = {client, 1000000UL, 0U, CANERGY_KEEP_ALL};
-    sink += (uint64_t)canergy_node_start(&n, &cfg, nv, sizeof nv, 1U, 0U, &out);
 #ifdef PORT_AUTH
     static struct canergy_auth auth;
     static uint8_t key[16]; /* in RAM: only the library's flash is counted */
+    static struct canergy_cmac seal; /* the NV seal: the image checked at start, each write's */
+    static uint8_t sealed[CANERGY_NV_SEALED_SIZE];
+    canergy_nv_seal_key(&seal, key, 1U, false);
+    sink += canergy_nv_unseal(&seal, sealed, sizeof sealed, CANERGY_NV_SLOT_SIZE, 2U,
+                              &sealed[CANERGY_NV_SEALS_AT]);
+    sink += (uint64_t)canergy_node_start(&n, &cfg, sealed, sizeof sealed, 1U, 0U, &out);
+    canergy_nv_seal(&seal, out.nv_image, CANERGY_NV_SLOT_SIZE, &sealed[CANERGY_NV_SEALS_AT]);
+#else
+    sink += (uint64_t)canergy_node_start(&n, &cfg, nv, sizeof nv, 1U, 0U, &out);
+#endif
+#ifdef PORT_AUTH
     struct canergy_auth_frame frames[2];
     sink += (uint64_t)canergy_auth_init(&auth, key, CANERGY_DEFAULT_ID_BASE, 1U,
                                         CANERGY_AUTH_CLASSIC, CANERGY_TO_CLIENT);

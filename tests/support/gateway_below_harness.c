@@ -68,7 +68,7 @@ int main(int argc, char **argv)
     if (g.opt.auth_path != NULL) {
         gw_down_keys(&g);
     }
-    gw_check_nv(&g.opt);
+    gw_check_nv(&g);
     int pair[2];
     if (socketpair(AF_UNIX, SOCK_SEQPACKET, 0, pair) != 0) {
         return 3;

@@ -15,6 +15,17 @@
  *
  * The library never writes storage itself: it hands the port a complete slot image and the slot
  * to put it in (see canergy_out in client.h). The port only reads the image back at start.
+ *
+ * Sealed image (a node or gateway that holds a key: docs/security.md, "The NV seal"): the same
+ * slots, then one seal per record slot after everything else, 8 bytes each: the first 8 bytes
+ * of AES-CMAC(seal key, the whole slot image). A node's image is then 136 bytes (seals at 120
+ * and 128, after the parameter slot, which is configuration and not sealed); a gateway's
+ * 2 * CANERGY_GW_NV_SLOT_SIZE + 16. The seal key is derived from the node's key (or the
+ * gateway's) by the KDF of canergy/cmac.h, label "canergy node nv seal" (a gateway's:
+ * "canergy gateway nv seal"), context the node id (1 byte): never the key of a frame MAC, so
+ * no MAC on the bus verifies as a seal nor a seal as a frame's MAC. A port writes the slot,
+ * then its seal, then syncs: a write torn between the two leaves that slot unsealed, which is
+ * the slot not holding the newest record (the one the load falls back to).
  */
 #ifndef CANERGY_NV_H
 #define CANERGY_NV_H
@@ -22,6 +33,8 @@
 #include <stdbool.h>
 #include <stddef.h>
 #include <stdint.h>
+
+#include "canergy/cmac.h"
 
 #ifdef __cplusplus
 extern "C" {
@@ -93,6 +106,26 @@ bool canergy_nv_slot_decode(const uint8_t *raw, size_t len, uint32_t *counter,
 /* Read an image of len bytes (what the port read from offset 0; shorter images simply lack
  * slots). Picks the valid slot written last, comparing counters as 32-bit serial numbers. */
 void canergy_nv_load(const uint8_t *image, size_t len, struct canergy_nv_state *out);
+
+#define CANERGY_NV_SEAL_SIZE 8U     /* seal bytes per slot: a truncated AES-CMAC */
+#define CANERGY_NV_SEALS_AT 120U    /* a node's seals: slot i's at 120 + 8 i */
+#define CANERGY_NV_SEALED_SIZE 136U /* a node's sealed image: 3 slots and 2 seals */
+
+/* The seal key of a node's record (gateway false) or of a gateway's (true) from key (the node's
+ * key, or the gateway's), into seal; the caller wipes it (canergy_cmac_wipe) when done. */
+void canergy_nv_seal_key(struct canergy_cmac *seal, const uint8_t key[16], uint8_t node,
+                         bool gateway);
+
+/* out = the seal of the len bytes of one slot image. */
+void canergy_nv_seal(const struct canergy_cmac *seal, const uint8_t *slot, size_t len,
+                     uint8_t out[CANERGY_NV_SEAL_SIZE]);
+
+/* Check count slots of slot_size bytes at image (image_len bytes read) against seals (count
+ * seals of CANERGY_NV_SEAL_SIZE bytes). A slot neither erased (all zero) nor absent whose seal
+ * does not hold is spoilt in place (its last byte, in the CRC, inverted): the loads then take it
+ * as a damaged slot. Returns the mask of those slots (bit i: slot i). */
+unsigned canergy_nv_unseal(const struct canergy_cmac *seal, uint8_t *image, size_t image_len,
+                           size_t slot_size, unsigned count, const uint8_t *seals);
 
 /* CRC-32 as zlib computes it: canergy_crc32(0, p, n) == zlib.crc32(p[:n]). */
 uint32_t canergy_crc32(uint32_t crc, const uint8_t *data, size_t len);

@@ -26,7 +26,10 @@
  * (role "gateway", the supervisor's keys, "upstream" with the client's record, "link_gap_uj"):
  * `canergy ledger` reads it. --upstream-auth NODE.key [--upstream-fd]: authenticated above, as
  * canergy-node --auth (canergy/auth.h); --auth MASTER.key [--fd]: below, as canergy supervisor
- * --auth (no RETURN held then: each carries a MAC). No limits besides --target.
+ * --auth (no RETURN held then: each carries a MAC). No limits besides --target. With either key
+ * the NV slots are sealed (canergy/nv.h, "Sealed image"), under a key derived from
+ * --upstream-auth's when given, else from --auth's: a slot whose seal does not hold is a
+ * damaged slot, a record never sealed is refused.
  *
  * Exit status: 0 after SIGINT/SIGTERM, 1 when the NV file cannot be written, 2 for bad
  * arguments or a socket or file that cannot be opened.
@@ -179,6 +182,8 @@ static void up_key(struct gateway_port *g)
     const int ok = canergy_auth_init(&g->up_auth, key, g->opt.id_base, g->opt.node,
                                      g->opt.up_fd ? CANERGY_AUTH_FD : CANERGY_AUTH_CLASSIC,
                                      CANERGY_TO_CLIENT);
+    canergy_nv_seal_key(&g->seal, key, g->opt.node, true); /* the NV seal: this key first */
+    g->sealed = 1;
     canergy_wipe(key, sizeof key);
     if (ok != CANERGY_OK) {
         port_usage_error("--upstream-auth: bad node or id base");
@@ -210,7 +215,7 @@ int main(int argc, char **argv)
     if (g.opt.auth_path != NULL) {
         gw_down_keys(&g);
     }
-    gw_check_nv(&g.opt);
+    gw_check_nv(&g);
     g.up_sock = open_bus(g.opt.up_channel, g.opt.id_base, g.opt.node, g.opt.up_fd); /* its id */
     g.down_sock = open_bus(g.opt.down_channel, g.opt.id_base, 1U, g.opt.fd);
     port_can_filter(g.down_sock, g.opt.id_base, CANERGY_ID_MASK); /* every node below */
@@ -280,6 +285,7 @@ int main(int argc, char **argv)
     }
     gw_save_status(&g, port_now_us());
     canergy_auth_wipe(&g.up_auth);
+    canergy_cmac_wipe(&g.seal);
     for (unsigned i = 0U; i < g.opt.count; i++) {
         canergy_auth_wipe(&g.down_auth[i]);
     }

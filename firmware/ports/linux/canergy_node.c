@@ -18,7 +18,9 @@
  *
  * --auth: authenticated mode (canergy/auth.h) with the node's key file (src/canergy/auth/keys.py:
  * mode 0600, kind=node, this node's id; the key is never printed); --fd: CAN FD frames with a
- * 64-bit MAC, otherwise the classic layout (each frame followed by a MAC frame).
+ * 64-bit MAC, otherwise the classic layout (each frame followed by a MAC frame). With --auth the
+ * NV slots are sealed too (canergy/nv.h, "Sealed image"): a record whose seal does not hold is
+ * a damaged slot, one never sealed is refused.
  *
  * Exit status: 0 after SIGINT/SIGTERM (final status written), 1 when the NV file cannot be
  * written (the node stops without sending what that step produced), 2 for bad arguments or a
@@ -158,14 +160,16 @@ int main(int argc, char **argv)
         const int ok = canergy_auth_init(&p.auth, key, p.opt.id_base, (uint8_t)p.opt.node,
                                          p.opt.fd ? CANERGY_AUTH_FD : CANERGY_AUTH_CLASSIC,
                                          CANERGY_TO_CLIENT);
+        canergy_nv_seal_key(&p.seal, key, (uint8_t)p.opt.node, false); /* the NV seal */
+        p.sealed = 1;
         canergy_wipe(key, sizeof key);
         if (ok != CANERGY_OK) {
             port_usage_error("--auth: bad node or id base");
         }
     }
-    port_nv_check(&p.opt);
+    port_nv_check(&p);
     p.sock = port_can_open(&p.opt);
-    uint8_t image[NV_IMAGE_BYTES];
+    uint8_t image[NV_READ_BYTES] = {0}; /* a short read leaves no stale seal bytes */
     size_t image_len = 0U;
     port_nv_open(&p, image, &image_len);
 
@@ -233,6 +237,7 @@ int main(int argc, char **argv)
     }
     port_save_status(&p);
     canergy_auth_wipe(&p.auth);
+    canergy_cmac_wipe(&p.seal);
     (void)close(p.sock);
     (void)close(p.nv_fd);
     return 0;

@@ -44,6 +44,10 @@ void gw_down_keys(struct gateway_port *g)
                                 g->opt.fd ? CANERGY_AUTH_FD : CANERGY_AUTH_CLASSIC,
                                 CANERGY_TO_SUPERVISOR);
     }
+    if (!g->sealed) { /* no key above: the NV seal's key comes from this master key */
+        canergy_nv_seal_key(&g->seal, master, g->opt.node, true);
+        g->sealed = 1;
+    }
     canergy_wipe(key, sizeof key);
     canergy_wipe(master, sizeof master);
 }

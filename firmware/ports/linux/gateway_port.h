@@ -90,6 +90,8 @@ struct gateway_port {
     struct canergy_gateway gw;
     struct canergy_auth up_auth; /* --upstream-auth: the leg above's MACs */
     struct canergy_auth down_auth[CANERGY_SUPERVISOR_NODES]; /* --auth: each node's, below */
+    struct canergy_cmac seal; /* with a key: the NV seal key (--upstream-auth's, else --auth's) */
+    int sealed;               /* with a key: NV slots sealed (canergy/nv.h, "Sealed image") */
     struct below below[CANERGY_SUPERVISOR_NODES];
     struct port_counters up_count;
     struct port_counters down_count;
@@ -125,7 +127,8 @@ struct gateway_port {
 void gw_send_up(struct gateway_port *g, const struct canergy_frame *f);
 
 /* gateway_below.c: --auth's keys below, one per node derived from the master key (exits 2 for
- * a key file refused, or the master key the key above was derived from). */
+ * a key file refused, or the master key the key above was derived from); the NV seal key from
+ * the master key when --upstream-auth gave none. */
 void gw_down_keys(struct gateway_port *g);
 
 /* gateway_below.c: carry out a step of the supervisor below (both records saved first, then
@@ -158,8 +161,9 @@ double gw_rate_per_s(const struct gw_rate *r, uint64_t now);
 void port_parse_gateway_args(int argc, char **argv, struct gw_options *o);
 
 /* gateway_storage.c. Before the buses are opened: exit 2 when an existing NV file cannot be
- * taken (a counter beyond the bound in either role, an older layout). */
-void gw_check_nv(const struct gw_options *o);
+ * taken (a counter beyond the bound in either role, an older layout; with a key, no slot whose
+ * seal holds or a record never sealed; without one, a sealed file). */
+void gw_check_nv(const struct gateway_port *g);
 /* Open the NV file and start both roles from its newest slot (none: JOIN above, new below),
  * sending the start's frames above. Exits 2 when the file cannot be taken. */
 void gw_start(struct gateway_port *g, uint64_t now);

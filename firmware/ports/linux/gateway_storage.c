@@ -18,6 +18,8 @@
 #include <unistd.h>
 
 #define GW_SLOT CANERGY_GW_NV_SLOT_SIZE
+#define GW_SEALS_AT (2U * GW_SLOT) /* with a key: slot i's seal at GW_SEALS_AT + 8 i */
+#define GW_SEALED (GW_SEALS_AT + 2U * CANERGY_NV_SEAL_SIZE)
 
 /* ---- the NV file ---- */
 
@@ -29,7 +31,14 @@ void gw_save(struct gateway_port *g)
     const uint8_t next = (uint8_t)(1U - g->nv_slot);
     canergy_gateway_nv_encode(&g->gw, g->nv_counter + 1U, slot);
     const off_t at = (off_t)next * (off_t)GW_SLOT;
-    if (pwrite(g->nv_fd, slot, GW_SLOT, at) != (ssize_t)GW_SLOT || fsync(g->nv_fd) != 0) {
+    int ok = pwrite(g->nv_fd, slot, GW_SLOT, at) == (ssize_t)GW_SLOT;
+    if (ok && g->sealed) { /* then its seal: torn between the two, this slot is not taken */
+        uint8_t seal[CANERGY_NV_SEAL_SIZE];
+        canergy_nv_seal(&g->seal, slot, GW_SLOT, seal);
+        const off_t seal_at = (off_t)GW_SEALS_AT + (off_t)next * (off_t)CANERGY_NV_SEAL_SIZE;
+        ok = pwrite(g->nv_fd, seal, sizeof seal, seal_at) == (ssize_t)sizeof seal;
+    }
+    if (!ok || fsync(g->nv_fd) != 0) {
         (void)fprintf(stderr, "%s: NV store: %s: write failed: %s\n", PROG, g->opt.nv_path,
                       strerror(errno));
         exit(EXIT_NV);
@@ -45,9 +54,11 @@ void gw_save(struct gateway_port *g)
  * does (cut short, or its CRC does not hold: damaged or edited). A slot so beside a valid one
  * is a write the gateway did not finish: the valid one is taken, and stderr says so (tell). */
 static void load_nv(const char *path, const uint8_t *image, size_t len, long long size, int tell,
-                    struct canergy_gateway_nv *nv)
+                    unsigned spoilt, struct canergy_gateway_nv *nv)
 {
-    if (canergy_gateway_nv_load(image, len, nv) == CANERGY_ERR_END) {
+    const int end = canergy_gateway_nv_load(image, len, nv);
+    nv->damaged &= (uint8_t)~spoilt; /* set aside for its seal: told by check_seals */
+    if (end == CANERGY_ERR_END) {
         const int tx = nv->up.last_tx >= CANERGY_COUNTER_BOUND;
         port_usage_error("--nv %s: upstream: %s %lu is beyond the bound 2^30 - 1 the proof "
                          "assumes",
@@ -57,9 +68,9 @@ static void load_nv(const char *path, const uint8_t *image, size_t len, long lon
     if (nv->foreign || nv->older != 0U) {
         return; /* refused by name below */
     }
-    if (size > 2LL * (long long)GW_SLOT) {
+    if (size > 2LL * (long long)GW_SLOT && size != (long long)GW_SEALED) {
         port_usage_error("--nv %s: %lld bytes is not a canergy-gateway NV file (two slots of %u "
-                         "bytes at most); nothing taken",
+                         "bytes at most, and their seals); nothing taken",
                          path, size, (unsigned)GW_SLOT);
     }
     if (nv->damaged != 0U && nv->slot < 0) {
@@ -75,6 +86,61 @@ static void load_nv(const char *path, const uint8_t *image, size_t len, long lon
                       "finished?): the other slot, counter %lu, taken\n",
                       PROG, path, nv->damaged == 1U ? 0U : 1U, (unsigned long)nv->counter);
     }
+}
+
+static const char *slot_names(unsigned mask)
+{
+    return mask == 3U ? "0 and 1" : mask == 1U ? "0" : "1";
+}
+
+/* The seals of an image of len bytes read from a file of size bytes (canergy/nv.h, "Sealed
+ * image"), as canergy-node checks its own: without a key a sealed file is refused; with one a
+ * record in a file without seals is refused (never sealed), and a slot whose seal does not hold
+ * is spoilt in image (a damaged slot), refused when no slot is left, else told on stderr (tell).
+ * Returns the mask of the slots spoilt. */
+static unsigned check_seals(const struct gateway_port *g, uint8_t *image, size_t len,
+                            long long size, int tell)
+{
+    const char *path = g->opt.nv_path;
+    struct canergy_gateway_nv nv;
+    if (!g->sealed) {
+        if (size == (long long)GW_SEALED) {
+            port_usage_error("--nv %s: sealed by a gateway with a key (--upstream-auth or "
+                             "--auth): without that key its seals cannot be checked; run with it",
+                             path);
+        }
+        return 0U;
+    }
+    if (size != (long long)GW_SEALED) {
+        const int end = canergy_gateway_nv_load(image, len, &nv);
+        if (nv.older == 0U && (end == CANERGY_ERR_END || nv.slot >= 0)) {
+            port_usage_error("--nv %s: a record that is not sealed (written without a key, or "
+                             "its seals cut off): a gateway with a key takes sealed records "
+                             "only, so nothing taken. Move the file away to start without books "
+                             "(what they held is then lost, never created)",
+                             path);
+        }
+        return 0U;
+    }
+    const unsigned spoilt =
+        canergy_nv_unseal(&g->seal, image, len, GW_SLOT, 2U, &image[GW_SEALS_AT]);
+    if (spoilt == 0U) {
+        return 0U;
+    }
+    if (canergy_gateway_nv_load(image, len, &nv) != CANERGY_ERR_END && nv.slot < 0) {
+        port_usage_error("--nv %s: slot %s: the seal does not hold (the record edited, or "
+                         "sealed under another key), and no other slot holds a sealed record: "
+                         "nothing taken. Move the file away to start without books (what they "
+                         "held is then lost, never created)",
+                         path, slot_names(spoilt));
+    }
+    if (tell) {
+        (void)fprintf(stderr,
+                      "%s: --nv %s: slot %s: the seal does not hold (a write not finished, or "
+                      "the record edited): set aside, the other slot taken\n",
+                      PROG, path, slot_names(spoilt));
+    }
+    return spoilt;
 }
 
 /* Exit 2 when the image holds a slot of an older layout (never taken as a new, blank file). */
@@ -96,8 +162,9 @@ static void refuse_below_beyond(const char *path)
 
 /* Before the buses are opened: exit 2 when an existing NV file holds a counter beyond the bound
  * in either role (reads only). */
-void gw_check_nv(const struct gw_options *o)
+void gw_check_nv(const struct gateway_port *g)
 {
+    const struct gw_options *o = &g->opt;
     struct stat st;
     if (stat(o->nv_path, &st) != 0 || !S_ISREG(st.st_mode)) {
         return; /* new, or not a file: start() says so */
@@ -106,11 +173,13 @@ void gw_check_nv(const struct gw_options *o)
     if (fd < 0) {
         return;
     }
-    static uint8_t image[2U * GW_SLOT];
+    static uint8_t image[GW_SEALED];
     const ssize_t got = pread(fd, image, sizeof image, 0);
     (void)close(fd);
     struct canergy_gateway_nv nv;
-    load_nv(o->nv_path, image, got > 0 ? (size_t)got : 0U, (long long)st.st_size, 0, &nv);
+    const size_t len = got > 0 ? (size_t)got : 0U;
+    const unsigned spoilt = check_seals(g, image, len, (long long)st.st_size, 0);
+    load_nv(o->nv_path, image, len, (long long)st.st_size, 0, spoilt, &nv);
     if (nv.slot < 0) {
         refuse_older_layout(o->nv_path, &nv);
         return;
@@ -140,7 +209,7 @@ void gw_start(struct gateway_port *g, uint64_t now)
         (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, o->nv_path, strerror(errno));
         exit(EXIT_USAGE);
     }
-    static uint8_t image[2U * GW_SLOT];
+    static uint8_t image[GW_SEALED];
     const ssize_t got = pread(g->nv_fd, image, sizeof image, 0);
     if (got < 0) {
         (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, o->nv_path, strerror(errno));
@@ -149,7 +218,12 @@ void gw_start(struct gateway_port *g, uint64_t now)
     struct stat st;
     struct canergy_gateway_nv nv;
     const long long size = fstat(g->nv_fd, &st) == 0 ? (long long)st.st_size : 0;
-    load_nv(o->nv_path, image, (size_t)got, size, 1, &nv);
+    const unsigned spoilt = check_seals(g, image, (size_t)got, size, 1);
+    load_nv(o->nv_path, image, (size_t)got, size, 1, spoilt, &nv);
+    if (g->sealed && size < (long long)GW_SEALED && ftruncate(g->nv_fd, (off_t)GW_SEALED) != 0) {
+        (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, o->nv_path, strerror(errno));
+        exit(EXIT_USAGE);
+    }
     if (nv.foreign) {
         (void)fprintf(stderr, "%s: error: --nv %s: not a gateway's NV file (a node's?)\n",
                       PROG, o->nv_path);

@@ -17,6 +17,7 @@ extern const char *const port_prog; /* the program's name in its messages */
 #define EXIT_USAGE 2
 #define US_PER_S 1000000ULL
 #define NV_IMAGE_BYTES (CANERGY_NV_SLOTS * CANERGY_NV_SLOT_SIZE)
+#define NV_READ_BYTES CANERGY_NV_SEALED_SIZE /* what is read: the sealed image at most */
 
 struct port_options {
     const char *interface;
@@ -74,6 +75,8 @@ struct port {
     struct port_counters count;
     struct port_intrusions intrusions;
     struct canergy_auth auth; /* with --auth */
+    struct canergy_cmac seal; /* with --auth: the NV seal key (canergy_nv_seal_key) */
+    int sealed;               /* with --auth: NV slots sealed (canergy/nv.h, "Sealed image") */
     uint64_t drawn_uj;
     uint64_t remainder_pj; /* energy owed below 1 uJ, in uW*us, as firmware_model's actuator */
     uint64_t last_draw_us;

@@ -46,25 +46,97 @@ static void check_counters(const struct port_options *o, const uint8_t *image, s
                      (unsigned long)(tx ? rec.last_tx : rec.return_seq));
 }
 
-void port_nv_check(const struct port_options *o)
+/* Record slots of image (len bytes) whose magic and CRC hold, as a mask (bit i: slot i). */
+static unsigned valid_slots(const uint8_t *image, size_t len)
 {
-    struct stat st;
-    if (stat(o->nv_path, &st) != 0 || !S_ISREG(st.st_mode)) {
-        return; /* new, or not a file: port_nv_open says so */
+    unsigned mask = 0U;
+    for (unsigned i = 0U; i < CANERGY_NV_SLOTS; i++) {
+        uint32_t counter;
+        uint8_t payload[CANERGY_NV_RECORD_SIZE];
+        const size_t at = (size_t)i * CANERGY_NV_SLOT_SIZE;
+        if (len >= at + CANERGY_NV_SLOT_SIZE &&
+            canergy_nv_slot_decode(&image[at], CANERGY_NV_SLOT_SIZE, &counter, payload)) {
+            mask |= 1U << i;
+        }
     }
-    const int fd = open(o->nv_path, O_RDONLY | O_CLOEXEC);
-    if (fd < 0) {
+    return mask;
+}
+
+static const char *slot_names(unsigned mask)
+{
+    return mask == 3U ? "0 and 1" : mask == 1U ? "0" : "1";
+}
+
+/* The seals of an image of len bytes read from a file of size bytes (canergy/nv.h, "Sealed
+ * image"). Without a key: a sealed file is refused (its seals cannot be checked). With one: a
+ * record slot that holds a record in a file without seals is refused (never sealed: written
+ * without a key, or its seals cut off); a slot whose seal does not hold is spoilt in image (a
+ * damaged slot: the library falls back to the other) and, when no slot is left, refused; with
+ * tell, stderr names the slot set aside. */
+static void check_seals(const struct port *p, uint8_t *image, size_t len, long long size, int tell)
+{
+    const char *path = p->opt.nv_path;
+    if (!p->sealed) {
+        if (size == (long long)CANERGY_NV_SEALED_SIZE) {
+            port_usage_error("--nv %s: node %d: sealed by a node with a key (--auth): without "
+                             "that key its seals cannot be checked; run with --auth and this "
+                             "node's key file",
+                             path, p->opt.node);
+        }
         return;
     }
-    uint8_t image[NV_IMAGE_BYTES];
-    const ssize_t n = pread(fd, image, sizeof image, 0);
-    (void)close(fd);
-    if (n > 0) {
-        check_counters(o, image, (size_t)n);
+    if (size != (long long)CANERGY_NV_SEALED_SIZE) {
+        const unsigned found = valid_slots(image, len);
+        if (found != 0U) {
+            port_usage_error("--nv %s: node %d: slot %s holds a record that is not sealed "
+                             "(written without --auth, or its seals cut off): a node with a key "
+                             "takes sealed records only, so nothing taken. Move the file away "
+                             "to JOIN afresh (what it held is then lost, never created)",
+                             path, p->opt.node, slot_names(found));
+        }
+        return; /* new, erased or damaged: no books either way */
+    }
+    const unsigned spoilt = canergy_nv_unseal(&p->seal, image, len, CANERGY_NV_SLOT_SIZE,
+                                              CANERGY_NV_SLOTS, &image[CANERGY_NV_SEALS_AT]);
+    if (spoilt == 0U) {
+        return;
+    }
+    const unsigned left = valid_slots(image, len);
+    if (left == 0U) {
+        port_usage_error("--nv %s: node %d: slot %s: the seal does not hold (the record edited, "
+                         "or sealed under another node's key), and no other slot holds a sealed "
+                         "record: nothing taken. Move the file away to JOIN afresh (what it held "
+                         "is then lost, never created)",
+                         path, p->opt.node, slot_names(spoilt));
+    }
+    if (tell) {
+        (void)fprintf(stderr,
+                      "%s: --nv %s: node %d: slot %s: the seal does not hold (a write not "
+                      "finished, or the record edited): set aside, slot %s taken\n",
+                      PROG, path, p->opt.node, slot_names(spoilt), slot_names(left));
     }
 }
 
-void port_nv_open(struct port *p, uint8_t image[NV_IMAGE_BYTES], size_t *len)
+void port_nv_check(const struct port *p)
+{
+    struct stat st;
+    if (stat(p->opt.nv_path, &st) != 0 || !S_ISREG(st.st_mode)) {
+        return; /* new, or not a file: port_nv_open says so */
+    }
+    const int fd = open(p->opt.nv_path, O_RDONLY | O_CLOEXEC);
+    if (fd < 0) {
+        return;
+    }
+    uint8_t image[NV_READ_BYTES] = {0}; /* a short read leaves no stale seal bytes */
+    const ssize_t n = pread(fd, image, sizeof image, 0);
+    (void)close(fd);
+    if (n > 0) {
+        check_seals(p, image, (size_t)n, (long long)st.st_size, 0);
+        check_counters(&p->opt, image, (size_t)n);
+    }
+}
+
+void port_nv_open(struct port *p, uint8_t image[NV_READ_BYTES], size_t *len)
 {
     p->nv_fd = port_open_nv(p->opt.nv_path, 0644);
     if (p->nv_fd < 0) {
@@ -72,42 +144,55 @@ void port_nv_open(struct port *p, uint8_t image[NV_IMAGE_BYTES], size_t *len)
         exit(EXIT_USAGE);
     }
     /* an existing file of another size is not an NV file: the first record would overwrite it
-     * (0: new; two slots; three with firmware_model's CANopen parameter slot) */
+     * (0: new; two slots; three with firmware_model's CANopen parameter slot; three and the
+     * seals) */
     struct stat size;
     if (fstat(p->nv_fd, &size) == 0 && size.st_size != 0 &&
         size.st_size != (off_t)NV_IMAGE_BYTES &&
-        size.st_size != (off_t)(NV_IMAGE_BYTES + CANERGY_NV_SLOT_SIZE)) {
+        size.st_size != (off_t)(NV_IMAGE_BYTES + CANERGY_NV_SLOT_SIZE) &&
+        size.st_size != (off_t)CANERGY_NV_SEALED_SIZE) {
         (void)fprintf(stderr, "%s: error: --nv %s: %lld bytes is not an NV file of canergy\n",
                       PROG, p->opt.nv_path, (long long)size.st_size);
         exit(EXIT_USAGE);
     }
     ssize_t n;
     do {
-        n = pread(p->nv_fd, image, NV_IMAGE_BYTES, 0);
+        n = pread(p->nv_fd, image, NV_READ_BYTES, 0);
     } while (n < 0 && errno == EINTR);
     if (n < 0) {
         (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, p->opt.nv_path, strerror(errno));
         exit(EXIT_USAGE);
     }
     *len = (size_t)n;
+    check_seals(p, image, *len, (long long)size.st_size, 1);
     check_counters(&p->opt, image, *len);
-    /* as firmware_model: the file always holds both record slots (never shrunk: the
-     * parameter slot at 80 stays as it is) */
+    /* as firmware_model: the file always holds both record slots, and sealed the seals after
+     * the parameter slot (never shrunk: the parameter slot at 80 stays as it is) */
+    const off_t least = p->sealed ? (off_t)CANERGY_NV_SEALED_SIZE : (off_t)NV_IMAGE_BYTES;
     struct stat st;
-    if (fstat(p->nv_fd, &st) == 0 && st.st_size < (off_t)NV_IMAGE_BYTES &&
-        ftruncate(p->nv_fd, (off_t)NV_IMAGE_BYTES) != 0) {
+    if (fstat(p->nv_fd, &st) == 0 && st.st_size < least && ftruncate(p->nv_fd, least) != 0) {
         (void)fprintf(stderr, "%s: error: --nv %s: %s\n", PROG, p->opt.nv_path, strerror(errno));
         exit(EXIT_USAGE);
     }
 }
 
-/* The persist half of the contract: the slot image is on disk before any frame of its step
- * leaves; a failed write ends the process at once (exit 1). */
+/* The persist half of the contract: the slot image (then its seal) is on disk before any frame
+ * of its step leaves; a failed write ends the process at once (exit 1). A write torn between
+ * slot and seal leaves that slot unsealed: it is the slot not holding the newest record. */
 void port_nv_write(struct port *p, const struct canergy_out *out)
 {
     const off_t at = (off_t)out->nv_slot * (off_t)CANERGY_NV_SLOT_SIZE;
-    const ssize_t n = pwrite(p->nv_fd, out->nv_image, CANERGY_NV_SLOT_SIZE, at);
-    if (n != (ssize_t)CANERGY_NV_SLOT_SIZE || fsync(p->nv_fd) != 0) {
+    ssize_t n = pwrite(p->nv_fd, out->nv_image, CANERGY_NV_SLOT_SIZE, at);
+    int ok = n == (ssize_t)CANERGY_NV_SLOT_SIZE;
+    if (ok && p->sealed) {
+        uint8_t seal[CANERGY_NV_SEAL_SIZE];
+        canergy_nv_seal(&p->seal, out->nv_image, CANERGY_NV_SLOT_SIZE, seal);
+        const off_t seal_at =
+            (off_t)CANERGY_NV_SEALS_AT + (off_t)out->nv_slot * (off_t)CANERGY_NV_SEAL_SIZE;
+        n = pwrite(p->nv_fd, seal, sizeof seal, seal_at);
+        ok = n == (ssize_t)sizeof seal;
+    }
+    if (!ok || fsync(p->nv_fd) != 0) {
         (void)fprintf(stderr, "%s: NV store: %s: write failed: %s\n", PROG, p->opt.nv_path,
                       n < 0 ? strerror(errno) : "short write or fsync");
         _exit(EXIT_NV); /* reset: never send what this step produced */

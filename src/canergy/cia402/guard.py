@@ -427,9 +427,17 @@ class DriveGuard(ProxyBooks):
 
     def halt(self, now: int) -> None:
         """Stop the drive for good (the supervisor is shutting down); what it charged is
-        booked at the next input."""
+        booked at the next input (the last: ``on_exit``)."""
         self.halted = True
         self._evaluate(now)
+
+    def on_exit(self, now: int) -> list[Message]:
+        """The host exits, its stop written by ``now`` (``halt``, then the link closed) and the
+        TPDOs it heard taken in: charged by the clock up to the drive's latency past ``now``
+        (envelope mode, or a write behind the guard not read back yet; a meter or a power
+        reading counts what the TPDOs said), and booked. Nothing charges it after this."""
+        self.metering.charge(now + self.metering.timings().latency_us)
+        return self._settled(now)
 
     def release_uj(self) -> int:
         return self.threshold_uj() + self.config.resume_margin_uj

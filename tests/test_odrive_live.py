@@ -392,4 +392,7 @@ def test_the_exit_halts_the_axis_and_meters_what_its_link_still_holds_before_the
     assert drawn <= axis["metered_uj"] + axis["uncontained_uj"], (drawn, axis)
     assert halted_at_writes[-1], "the last status was written before the axis was halted"
     assert axis["writes_seen"] == 1 and axis["stop_reason"] == "supervisor stopping"
+    assert axis["feedback_age_us"] >= 0  # the status at the exit's time, not the last pass's
+    level = final["nodes"][str(AXIS)]["level_uj"]  # its last TELEMETRY, at the exit
+    assert level <= axis["usable_uj"] < level + 1000, (level, axis["usable_uj"])
     assert final["conservation"]["holds"]

@@ -300,13 +300,14 @@ class GuardedDevices:
         """The supervisor exits, before its last status: every guard halted and its stop handed
         to its link; the links closed (each carries out what it holds first: the stops are on
         the bus); then what they heard until then taken in, each guard charged up to its
-        device's latency past that moment, and booked. What the guards send the supervisor."""
+        device's latency past that moment, and booked. What the guards send the supervisor,
+        each one's last TELEMETRY (HALTED, its level) at the end."""
         self.halt_all(clock())
         self._close_links()
         now = clock()
         up = self.pump(now, stopping=True)  # commands it makes now are not carried out
         for guard in self._guards():
-            up += guard.on_exit(now)
+            up += [*guard.on_exit(now), guard.telemetry(now)]
         return up
 
     def _close_links(self) -> None:

@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import json
 import re
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -253,3 +255,68 @@ def test_pulses_between_tpdos_on_the_virtual_bus_stay_inside_grant_plus_bound(
     t = drive["bound_timings_us"]
     after_last = 1_000 + 15.07 * (20_000 + t["reaction"] + t["latency"])
     assert drive["metered_uj"] >= min(b.drawn(), granted) - after_last
+
+
+def test_the_exit_disables_the_drive_and_meters_what_its_link_still_holds_before_the_last_status(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The supervisor's loop is held off (its passes run no guard: a loaded host) while the
+    application reverses the drive from 100 rad/s, its TPDOs waiting in the link's queue; then the
+    supervisor is told to stop. Its exit disables the drive (by SDO: answered before the link
+    closes) and charges the envelope over the time held, up to the drive's latency past the
+    halt, before it writes the last status. It once wrote that status first, the drive still
+    enabled and nothing charged since the hold, and disabled it after."""
+    from canergy.live.canopen.cia402_host import GuardedSupervisor
+    from canergy.live.supervisor.service import SupervisorService
+    from firmware_model.drive.live_bench import app_write
+
+    held, holding = threading.Event(), threading.Event()
+    handlers: list[GuardedSupervisor] = []
+    wake = GuardedSupervisor.on_wakeup
+    write = SupervisorService.write_status
+    states_at_writes: list[str] = []
+
+    def held_off(handler: GuardedSupervisor, now: int) -> Any:
+        if handler not in handlers:
+            handlers.append(handler)
+        if held.is_set():
+            holding.set()
+            return ()
+        return wake(handler, now)
+
+    def written(service: SupervisorService) -> None:
+        if held.is_set():  # the bench is up
+            with b.face.lock:
+                states_at_writes.append(b.model.state)
+        write(service)
+
+    monkeypatch.setattr(GuardedSupervisor, "on_wakeup", held_off)
+    monkeypatch.setattr(SupervisorService, "write_status", written)
+    flags = ("--initial", "200J", "--target", "20J")
+    with guarded_bench(tmp_path, 10, *flags, with_node=False, mode="envelope", gap_ms=1000) as b:
+        wait_for(lambda: b.model.state == "OPERATION ENABLED", show=b.drive_status)
+        wait_for(lambda: (d := b.drive_status()) and d["guard"] == "running", timeout=60)
+        wait_for(lambda: b.model.velocity_rad_s > 50, timeout=60)  # the guard's taper opened
+        (handler,) = handlers
+        guard, link = handler.guarded.drives[DRIVE]
+        held.set()
+        wait_for(holding.is_set, timeout=30)
+        metered, start = guard.metering.metered_uj, b.drawn()
+        app_write(b.app, 0x60FF, -100_000)  # reversing: 0.2 s at the acceleration's torque
+        wait_for(  # 0.1 J, not charged yet
+            lambda: b.drawn() - start > 100_000,
+            timeout=30,
+            show=lambda: (b.model.state, b.drawn() - start, guard.phase, guard.stop_reason),
+        )
+        assert link.pending()  # TPDOs waiting to be taken in
+        final = b.stop()
+        drawn = b.drawn()
+    drive = final["cia402"]["drives"][str(DRIVE)]
+    print(
+        f"held: drawn {drawn - start} µJ, metered {drive['metered_uj'] - metered} µJ; guard "
+        f"{drive['guard']}, drive {states_at_writes[-1]}"
+    )
+    assert states_at_writes[-1] != "OPERATION ENABLED", states_at_writes[-3:]
+    assert drive["stop_reason"] == "supervisor stopping"
+    assert drive["metered_uj"] - metered >= drawn - start
+    assert final["conservation"]["holds"]

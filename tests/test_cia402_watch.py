@@ -201,3 +201,31 @@ def test_a_periodic_read_back_asked_before_the_guards_own_write_is_judged_as_ask
         g.on_verified(1_020_000, ask.seq, read)
         assert (g.refused is not None) is refused, g.refused
         assert g.latched is refused
+
+
+def test_the_exit_charges_a_quick_stop_under_way_at_the_bounds_stop_part() -> None:
+    """The host exits while the drive's quick stop runs: past the last reading, charged up to
+    the latency and what the stop may draw (no reading will show the ramp); a stop that
+    disabled the drive is charged no stop part."""
+    for stop in StopKind.QUICK, StopKind.DISABLE:
+        g = DriveGuard(10, GuardConfig(MeterConfig(MeterKind.ENVELOPE), FULL, stop=stop), 0, 1)
+        g.on_ready(0, DriveSetup(RATINGS, 0, 0, FULL.closed(), REACH, {}))
+        g.phase = g.phase.RUNNING  # as a grant would leave it
+        g.metering.confirm(0, FULL)
+        g.state = "OPERATION ENABLED"
+        g.on_wakeup(1_000)
+        g.halt(1_000)
+        before = g.metering.metered_uj
+        g.on_exit(2_000)
+        charged = g.metering.metered_uj - before
+        bound = g.metering.bound(FULL)
+        assert bound is not None
+        latency = g.metering.timings().latency_us
+        clock = RATINGS.envelope_fw(FULL) * (1_000 + latency) // 10**15
+        if stop is StopKind.QUICK:
+            assert g.phase is g.phase.STOPPING and bound.stop_uj > clock
+            assert charged >= clock + bound.stop_uj
+        else:
+            assert g.phase is g.phase.STOPPED and bound.stop_uj == 0
+            assert clock <= charged <= clock + 1
+        assert g.client.state.spent + g.debt_uj == g.metering.metered_uj  # booked

@@ -299,3 +299,31 @@ def test_limits_seen_late_are_metered_and_booked_when_taken_in() -> None:
     assert g.metered_uj - before >= lacking
     assert g.clock.remainder < 10**15  # no whole µJ left for later
     assert g.client.state.spent + g.debt_uj == g.metered_uj  # booked: spent, or debt
+
+
+def test_the_exit_charges_up_to_the_latency_past_the_stop_and_books_it() -> None:
+    """The host exits at 160 ms, its stop on the bus, an application's limits taken in late and
+    not written over yet: charged at their envelope up to the device's latency (5 ms) past
+    then, and booked; nothing would charge it after (the last status is written next)."""
+    g = guard()
+    ready(g)
+    g.on_wakeup(50_000)
+    before = g.metered_uj
+    raised = OdriveLimits(20.0, 20.0)
+    g.on_foreign_limits(150_000, 90_000, raised)  # seen at 90 ms, taken in at 150 ms
+    g.halt(150_000)
+    g.on_exit(160_000)
+    raised_fw = g.profile.envelope(raised).fw
+    assert g.metered_uj - before >= raised_fw * (165_000 - 90_000) // 10**15
+    assert g.clock.until == 165_000 and g.unbooked_uj == 0
+    assert g.client.state.spent + g.debt_uj == g.metered_uj  # booked: spent, or debt
+
+
+def test_the_exit_charges_the_last_power_reading_up_to_the_stop() -> None:
+    g = DeviceGuard(3, OdriveProfile(MOTOR), DeviceConfig(limits=FULL, sampled=True), 0, 1)
+    g.on_ready(10_000, 0, None, None)
+    g.on_feedback(20_000, 20_000, True, None, 100.0)  # 100 W from 20 ms on
+    g.halt(40_000)
+    g.on_exit(50_000)
+    assert g.metered_uj == 3_000_000  # 100 W × 30 ms
+    assert g.client.state.spent + g.debt_uj == g.metered_uj

@@ -322,3 +322,77 @@ def test_a_write_taken_in_late_is_metered_in_the_pass_that_takes_it_in(
     assert b.drawn() > 1_000_000  # it ran at 20 A (up to the velocity limit) meanwhile
     assert b.drawn() <= axis["metered_uj"] + axis["uncontained_uj"], (b.drawn(), axis)
     assert final["conservation"]["holds"]
+
+
+def test_the_exit_halts_the_axis_and_meters_what_its_link_still_holds_before_the_last_status(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The supervisor's loop is held off (its passes run no guard: a loaded host) while an
+    application writes Set_Limits 20 rev/s, 20 A behind the guard and runs the axis at 1 N·m:
+    its frames wait in the link's queue, the axis drawing at 20 A. Then the supervisor is told
+    to stop. Its exit halts the axis (Estop on the bus) and meters what the link held, up to the
+    halt, before it writes the last status. It once wrote that status first, with the axis still
+    running and the queue never taken in, and halted the axis after it (tests/test_vcan_odrive.py
+    under load: 11.2 J metered of 16.3 J drawn)."""
+    from canergy.live.canopen.cia402_host import GuardedSupervisor
+    from canergy.live.devices.odrive_link import OdriveLink
+    from canergy.live.supervisor.service import SupervisorService
+
+    held = threading.Event()
+    links: list[OdriveLink] = []
+    wake = GuardedSupervisor.on_wakeup
+    take = OdriveLink.on_message_received
+    write = SupervisorService.write_status
+    estop = can_id(AXIS, Cmd.ESTOP)
+    seen: list[int] = []  # the frames the application's bus heard (the supervisor's too)
+    halted_at_writes: list[bool] = []
+
+    def held_off(handler: GuardedSupervisor, now: int) -> Any:
+        return () if held.is_set() else wake(handler, now)
+
+    def listened(link: OdriveLink, frame: can.Message) -> None:
+        if link not in links:
+            links.append(link)
+        take(link, frame)
+
+    def written(service: SupervisorService) -> None:
+        if held.is_set():  # the bench is up
+            while (frame := b.app.recv(0)) is not None:
+                seen.append(frame.arbitration_id)
+            halted_at_writes.append(estop in seen)
+        write(service)
+
+    monkeypatch.setattr(GuardedSupervisor, "on_wakeup", held_off)
+    monkeypatch.setattr(OdriveLink, "on_message_received", listened)
+    monkeypatch.setattr(SupervisorService, "write_status", written)
+    with guarded_axis(tmp_path, *LIMITS, *ENDPOINTS, "--initial", "10J", "--target", "5J") as b:
+        wait_for(lambda: ready(b), timeout=60)
+        b.run_closed_loop(1.0)
+        wait_for(lambda: (d := b.axis_status()) and d["guard"] == "running", timeout=60)
+        held.set()
+        while b.app.recv(0) is not None:  # the guard's own stops so far (a restop at set-up)
+            pass
+        (link,) = links
+        frames = link.frames_in
+        start = b.drawn()
+        b.send(Cmd.SET_LIMITS, set_limits(20.0, 20.0))
+        b.run_closed_loop(1.0)
+        wait_for(lambda: b.drawn() - start > 2_000_000, timeout=60)  # 2 J at 20 A, not metered
+        assert link.pending() and link.frames_in > frames  # waiting to be taken in
+        final = b.stop()
+        assert final is not None
+        wait_for(lambda: b.model.state.name == "IDLE", timeout=30)
+        drawn = b.drawn()
+    granted, axis = granted_and_axis(final)
+    print(
+        f"drawn {drawn} µJ ({drawn - start} µJ while held), granted {granted} µJ, metered "
+        f"{axis['metered_uj']} µJ, uncontained {axis['uncontained_uj']} µJ, guard "
+        f"{axis['guard']}, writes seen {axis['writes_seen']}"
+    )
+    assert drawn <= axis["metered_uj"] + axis["uncontained_uj"], (drawn, axis)
+    assert halted_at_writes[-1], "the last status was written before the axis was halted"
+    assert axis["writes_seen"] == 1 and axis["stop_reason"] == "supervisor stopping"
+    assert axis["feedback_age_us"] >= 0  # the status at the exit's time, not the last pass's
+    level = final["nodes"][str(AXIS)]["level_uj"]  # its last TELEMETRY, at the exit
+    assert level <= axis["usable_uj"] < level + 1000, (level, axis["usable_uj"])
+    assert final["conservation"]["holds"]

@@ -427,9 +427,22 @@ class DriveGuard(ProxyBooks):
 
     def halt(self, now: int) -> None:
         """Stop the drive for good (the supervisor is shutting down); what it charged is
-        booked at the next input."""
+        booked at the next input (the last: ``on_exit``)."""
         self.halted = True
         self._evaluate(now)
+
+    def on_exit(self, now: int) -> list[Message]:
+        """The host exits, its stop written by ``now`` (``halt``, then the link closed) and the
+        TPDOs it heard taken in: charged by the clock up to the drive's latency past ``now``
+        (envelope mode, or a write behind the guard not read back yet; a meter or a power
+        reading counts what the TPDOs said); a quick stop under way, what it may draw (the
+        bound's stop part: no reading will show it); and booked. Nothing charges it after this."""
+        m = self.metering
+        m.charge(now + m.timings().latency_us)
+        if self.phase is GuardPhase.STOPPING:
+            stops = [b.stop_uj for lim in (m.confirmed, m.pending) if (b := m.bound(lim))]
+            m.owe(max(stops, default=0))
+        return self._settled(now)
 
     def release_uj(self) -> int:
         return self.threshold_uj() + self.config.resume_margin_uj

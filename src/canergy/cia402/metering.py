@@ -206,6 +206,11 @@ class DriveMeter:
         drawn, self.unbooked_uj = self.unbooked_uj, 0
         return drawn
 
+    def owe(self, uj: int) -> None:
+        """``uj`` the drive may draw that no reading will show (a quick stop under way as the
+        host exits): charged now."""
+        self._charged(uj)
+
     def _charged(self, drawn: int) -> None:
         self.metered_uj += drawn
         self.unbooked_uj += drawn

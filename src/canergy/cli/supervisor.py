@@ -377,7 +377,9 @@ def _run_bus(args: argparse.Namespace, config: SupervisorConfig, core: Superviso
         built = build_supervisor(config, [bus], core=core)
         try:
             _announce(args, built.service)
-            serve_supervisor(built.loop, built.service, built.control, manager=built.manager)
+            serve_supervisor(
+                built.loop, built.service, built.control, manager=built.manager, exit=built.exit
+            )
             return _exit_status(built.service)
         finally:
             built.close()

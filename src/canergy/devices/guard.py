@@ -371,13 +371,20 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             self._recharge(now)
         if power_w is not None and not self.sound:
             fw = max(0, round(power_w * 1e15)) if power_w == power_w else 0
-            if self.last_sample is not None and self.ready_at is not None:
-                since, last = self.last_sample
-                drawn = last * max(0, at - since) // FW_US_PER_UJ
-                self.metered_uj += drawn
-                self.unbooked_uj += drawn
+            self._sample_to(at)
             self.last_sample = (at, fw)
         return self._settled(now)
+
+    def _sample_to(self, at: int) -> None:
+        """Sampled mode: the last power reading charged up to ``at`` (and from ``at`` on)."""
+        if self.last_sample is None:
+            return
+        since, fw = self.last_sample
+        if self.ready_at is not None:
+            drawn = fw * max(0, at - since) // FW_US_PER_UJ
+            self.metered_uj += drawn
+            self.unbooked_uj += drawn
+        self.last_sample = (max(since, at), fw)
 
     def on_foreign_limits(self, now: int, at: int, limits: L) -> list[Message]:
         """Someone else wrote ``limits`` (seen at ``at``): charged from then, written over."""
@@ -442,6 +449,15 @@ class DeviceGuard(ProxyBooks, Generic[L]):
     def halt(self, now: int) -> None:
         self.halted = True
         self._evaluate(now)
+
+    def on_exit(self, now: int) -> list[Message]:
+        """The host exits, its stop on the bus at ``now`` (``halt``, then the link closed) and
+        what the link heard taken in: charged up to the device's latency past ``now`` (until
+        it acts on the stop; a STUCK device's as uncontained), or its last power reading up to
+        ``now`` (sampled), and booked. Nothing charges it after this."""
+        self.charge(now + self.latency_us())
+        self._sample_to(now)
+        return self._settled(now)
 
     def next_wakeup(self) -> int:
         times = self._proxy_wakeups()

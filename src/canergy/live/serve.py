@@ -49,10 +49,12 @@ def serve_supervisor(
     control: ControlServer | None,
     until: Callable[[], bool] | None = None,
     manager: Any = None,
+    exit: Callable[[], None] | None = None,
 ) -> None:
     """A supervisor (or a gateway's downstream): serve until a signal, ``until()`` or a control
     request stops it and it has settled; answer control requests; with CANopen (``manager``)
-    tell it of rebooted nodes. The last status is written at the end."""
+    tell it of rebooted nodes. Then ``exit()`` (``RunningSupervisor.exit``: the guarded
+    devices halted and metered) and the last status."""
 
     posted: queue.SimpleQueue[Callable[[], None]] = queue.SimpleQueue()
     """Work other threads hand to this one: only the loop thread touches the books."""
@@ -70,6 +72,8 @@ def serve_supervisor(
             service.stop(now)
 
     serve(loop, service.finished, service.stop, each)
+    if exit is not None:
+        exit()
     service.write_status()
 
 

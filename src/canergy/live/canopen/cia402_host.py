@@ -107,6 +107,7 @@ class GuardedDevices:
         self.next_sync = now if beat is not None and beat.sync_us else None
         self.beat_failures = 0
         self.other_liveness = liveness
+        self.links_closed = False
         self._warn_target()
 
     def _guards(self) -> list[DriveGuard | DeviceGuard[Any]]:
@@ -295,11 +296,31 @@ class GuardedDevices:
             link.command(cmd)
         device.commands.clear()
 
-    def close(self) -> None:
+    def exit(self, clock: Callable[[], int]) -> list[Message]:
+        """The supervisor exits, before its last status: every guard halted and its stop handed
+        to its link; the links closed (each carries out what it holds first: the stops are on
+        the bus); then what they heard until then taken in, each guard charged up to its
+        device's latency past that moment, and booked. What the guards send the supervisor,
+        each one's last TELEMETRY (HALTED, its level) at the end."""
+        self.halt_all(clock())
+        self._close_links()
+        now = clock()
+        up = self.pump(now, stopping=True)  # commands it makes now are not carried out
+        for guard in self._guards():
+            up += [*guard.on_exit(now), guard.telemetry(now)]
+        return up
+
+    def _close_links(self) -> None:
+        if self.links_closed:
+            return
+        self.links_closed = True
         for _, link in self.drives.values():
             link.close()
         for _, device_link in self.devices.values():
             device_link.close()
+
+    def close(self) -> None:
+        self._close_links()
         if self.capture is not None:
             self.capture.stop()
 
@@ -427,6 +448,13 @@ class GuardedSupervisor:
 
     def halt_all(self, now: int) -> None:
         self.guarded.halt_all(now)
+
+    def exit(self, clock: Callable[[], int]) -> list[Message]:
+        """``GuardedDevices.exit``, what the guards send taken by the service (the proxies'
+        books end in its books); what is left for the bus."""
+        up = self.guarded.exit(clock)
+        now = clock()
+        return self._route(self._deliver(up, now), now)
 
     def close(self) -> None:
         self.guarded.close()

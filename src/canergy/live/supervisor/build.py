@@ -241,10 +241,22 @@ class RunningSupervisor:
     manager: Any
     guarded: GuardedDevices | None
     networks: tuple[Any, ...]
+    clock: Clock = monotonic_us
+
+    def exit(self) -> None:
+        """Before the last status: every guarded drive and device halted, its stop on the bus,
+        and what its link heard until then metered and booked (``GuardedSupervisor.exit``);
+        what that leaves for the bus sent."""
+        if self.guarded is None:
+            return
+        out = self.handler.exit(self.clock)
+        if self.loop is not None:
+            self.loop.send_messages(out)
 
     def close(self, now: int | None = None) -> None:
-        """Halt every guarded drive (an exit never leaves one running), stop the Notifier and
-        the control socket; the buses stay open (their opener shuts them down)."""
+        """Halt every guarded drive (an exit never leaves one running; ``exit`` did, unless
+        the run ended on an error), stop the Notifier and the control socket; the buses stay
+        open (their opener shuts them down)."""
         try:
             if self.guarded is not None:
                 self.guarded.halt_all(monotonic_us() if now is None else now)
@@ -418,6 +430,7 @@ def _one(
         manager=manager,
         guarded=guarded,
         networks=() if network is None else (network,),
+        clock=clock,
     )
 
 

@@ -85,6 +85,8 @@ from test_witnessed import (
     resume,
     resume_after_a_lost_sync_answer,
     stale_admits_end_quiet,
+    stale_sync_after_taken_counts_and_a_begin,
+    stale_sync_taken_then_supervisor_image,
     unknown_rc_supervisor,
     window_supervisor,
 )
@@ -917,6 +919,18 @@ def test_stale_admits_to_a_booked_c_node_end_quiet_with_the_c_supervisor() -> No
 )
 def test_a_c_node_whose_sync_answers_were_lost_is_not_left_waiting_by_the_c_supervisor() -> None:
     answers_lost_then_stale_admits(window_supervisor(compiled_core), _CClientNode(BOOKED_AT_10))
+
+
+def test_a_c_node_answering_a_stale_sync_settles_past_its_counts_for_a_restored_c_supervisor() -> (
+    None
+):
+    sup = window_supervisor(compiled_core)
+    stale_sync_taken_then_supervisor_image(compiled_core, sup, _CClientNode(BOOKED_AT_10))
+
+
+def test_a_c_node_answering_a_second_stale_sync_after_a_c_begin_is_not_left_waiting() -> None:
+    sup = window_supervisor(compiled_core)
+    stale_sync_after_taken_counts_and_a_begin(sup, _CClientNode(BOOKED_AT_10))
 
 
 def test_the_c_gateway_takes_rules_above_and_refuses_others(tmp_path: Path) -> None:

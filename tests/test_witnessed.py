@@ -1046,3 +1046,60 @@ def test_a_node_whose_sync_answers_were_lost_is_not_left_waiting() -> None:
     sup = window_supervisor(Supervisor)
     node = Client(1, variant="witnessed", timing=SCENE, state=BOOKED_AT_10)
     answers_lost_then_stale_admits(sup, node)
+
+
+def _sends(actions: list[Any]) -> list[Any]:
+    return [a.message for a in actions if isinstance(a, Send)]
+
+
+def stale_sync_taken_then_supervisor_image(core: Any, sup: Supervisor, node: Any) -> None:
+    """What any fix of review rv2 must keep (it constrains the fix in view): a booked node
+    takes a stale ADMIT for a SYNC (ltx 10 -> 74) and its counts are taken (tx and W 74), the
+    confirmation is lost; the supervisor begins 75 (its INTENTION delayed) and is then put back
+    to its image before that begin; its SYNC reaches the node, still answering the stale one.
+    The node has shown 74, so the discarded history ran up to 74 + B: it must settle past 75
+    when it answers again (it does: ltx += B), else it takes the late INTENTION(75) of the
+    discarded history as fresh and commits it by its timeout, energy the restored supervisor
+    never reserved."""
+    _, counts = _sends(node.receive(Admit(1, 1, 0, 0), 0))
+    _sends(sup.receive(counts, 0))  # the confirmation is lost
+    assert sup.session(1).tx == sup.session(1).witness == node.state.last_tx == 74
+    image = sup.state
+    late = [m for m in _sends(sup.begin(1, 1000, 1)) if isinstance(m, Intention)]
+    restored = core([1], 0, variant="witnessed", timing=SCENE, state=image)
+    restored.power_loss(2, nonce=0x55)
+    _exchange(restored.handle_timer(2), restored, node, 2)
+    assert node.state.phase is Phase.IDLE and restored.unconfirmed() == ()
+    assert _sends(node.receive(late[0], 3)) == []  # an old transaction: settled, ignored
+    assert node.state.phase is Phase.IDLE and node.state.last_tx >= 75
+    assert restored.session(1).tx >= node.state.last_tx
+
+
+def test_a_node_answering_a_stale_sync_settles_past_its_counts_for_a_restored_supervisor() -> None:
+    sup = window_supervisor(Supervisor)
+    node = Client(1, variant="witnessed", timing=SCENE, state=BOOKED_AT_10)
+    stale_sync_taken_then_supervisor_image(Supervisor, sup, node)
+
+
+def stale_sync_after_taken_counts_and_a_begin(sup: Supervisor, node: Any) -> None:
+    """What any fix of review rv2 must keep (it constrains the fix in view): a booked node's
+    counts for a stale ADMIT are taken (tx and W 74), their confirmation lost; the supervisor
+    begins 75 (its INTENTION not yet delivered) and a second stale ADMIT reaches the node.
+    Its counts must land at or above tx (75): they do (ltx += B: 138, taken, tx and W 138);
+    counts at 74 would be ignored for ever (below tx, under a nonce never answered)."""
+    _, counts = _sends(node.receive(Admit(1, 1, 0, 0), 0))
+    _sends(sup.receive(counts, 0))  # the confirmation is lost
+    assert sup.session(1).tx == 74
+    sup.begin(1, 1000, 1)  # its INTENTION not delivered yet
+    _exchange(node.receive(Admit(1, 2, 0, 0), 1), sup, node, 1)
+    assert node.state.phase is Phase.IDLE, "the node still waits for its counts' confirmation"
+    assert sup.session(1).phase is Phase.IDLE and sup.session(1).tx == node.state.last_tx
+    _exchange(sup.begin(1, 1000, 2), sup, node, 2)
+    _exchange(sup.commit(1, 2), sup, node, 2)
+    assert node.state.usable == 1000
+
+
+def test_a_node_answering_a_second_stale_sync_after_a_begin_is_not_left_waiting() -> None:
+    sup = window_supervisor(Supervisor)
+    node = Client(1, variant="witnessed", timing=SCENE, state=BOOKED_AT_10)
+    stale_sync_after_taken_counts_and_a_begin(sup, node)

@@ -13,6 +13,7 @@ import secrets
 import signal
 import sys
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +26,7 @@ from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.codec import Codec
 from canergy.core import Timing
 from canergy.errors import BusOpenError
-from canergy.live.atomic import check_writable_dir, same_file, write_json_atomic
+from canergy.live.atomic import check_writable_dir, kept_by, same_file, write_json_atomic
 from canergy.live.canopen.shared_bus import STANDARD_FRAMES, SharedReader, shared_network
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.serve import serve
@@ -166,7 +167,10 @@ def _nv_store(args: argparse.Namespace, node: int, several: bool) -> NvStore:
     path = _nv_path(args, node, several)
     keys: dict[int, bytes] | None = getattr(args, "node_keys", None)
     seal = None if keys is None else NvSeal(keys[node], node)  # --auth: the record sealed
-    return NvStore(path, node, fsync=not args.no_fsync, crash_after=args.crash_after, seal=seal)
+    fsync, crash_after = not args.no_fsync, args.crash_after
+    # one keeper per record: a second process on this file would spend it again
+    store = partial(NvStore, path, node, fsync=fsync, crash_after=crash_after, seal=seal)
+    return kept_by(path, "NV record", store, in_place=True)
 
 
 def _check_nv_file(path: Path) -> None:

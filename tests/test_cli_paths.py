@@ -235,16 +235,22 @@ def test_a_bus_that_cannot_open_leaves_no_nv_directory(
     assert not (tmp_path / "nodes").exists()
 
 
+NODE_FILES = ("nodes", "nodes/node-001.nv", "nodes/node-002.nv")
+
+
 @pytest.mark.usefixtures("emulator")
 @pytest.mark.parametrize(
     ("argv", "made"),
     [
-        (["--node", "1", "--nv", "n.nv", "--status-file", "s.json"], []),
-        (["--nodes", "1-2", "--nv", "nodes", "--status-file", "nodes.json"], ["nodes"]),
-        (["--nodes", "1-2", "--nv", "nodes"], ["nodes"]),
+        (["--node", "1", "--nv", "n.nv", "--status-file", "s.json"], ["n.nv"]),
+        (["--nodes", "1-2", "--nv", "nodes", "--status-file", "nodes.json"], [*NODE_FILES]),
+        (["--nodes", "1-2", "--nv", "nodes"], [*NODE_FILES]),
     ],
 )
 def test_good_paths_start(argv: list[str], made: list[str], tmp_path: Path) -> None:
+    """Each node's NV file is there (empty: a new record) once it starts, locked while it runs
+    (``tests/test_record_keepers.py``), as the C node's; nothing else is written before the
+    loop runs."""
     with pytest.raises(_Served):
         firmware.main([*argv, "-i", "virtual", "--no-fsync"])
     assert _tree(tmp_path) == made

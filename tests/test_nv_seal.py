@@ -369,15 +369,18 @@ def _emulate(
     monkeypatch.setattr(firmware, "_serve", serve)
     monkeypatch.chdir(tmp)
     handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)}
+    nodes: list[FirmwareNode] = []  # the caller's alone (monkeypatch keeps ``serve``)
     try:
         firmware.main(["--node", "1", *args, "-i", "virtual", "--no-fsync"])
     except SystemExit as exc:
-        return exc.code, built
+        return exc.code, nodes
     except _Served:
-        return None, built
+        return None, nodes
     finally:
         for number, handler in handlers.items():
             signal.signal(number, handler)
+        nodes += built
+        built.clear()
     raise AssertionError("neither served nor exited")
 
 
@@ -389,6 +392,7 @@ def test_the_emulator_with_its_key_takes_the_genuine_record_and_refuses_edits(
     _edit(path, 1, usable=900_000_000)
     code, nodes = _emulate(monkeypatch, tmp_path, "--nv", "n.nv", "--auth", key)
     assert code is None and nodes[0].client.state.usable == 3_000_000  # the older, genuine
+    del nodes  # the node that keeps the record (its NV file locked) is gone
     _edit(path, 0, last_tx=1)
     code, nodes = _emulate(monkeypatch, tmp_path, "--nv", "n.nv", "--auth", key)
     err = capsys.readouterr().err

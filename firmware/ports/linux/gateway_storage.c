@@ -14,6 +14,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/file.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -173,6 +174,7 @@ void gw_check_nv(const struct gateway_port *g)
     if (fd < 0) {
         return;
     }
+    port_nv_keep(fd, o->nv_path, LOCK_SH); /* kept by another: refused before the buses */
     static uint8_t image[GW_SEALED];
     const ssize_t got = pread(fd, image, sizeof image, 0);
     (void)close(fd);

@@ -19,6 +19,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/file.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -127,6 +128,7 @@ void port_nv_check(const struct port *p)
     if (fd < 0) {
         return;
     }
+    port_nv_keep(fd, p->opt.nv_path, LOCK_SH); /* kept by another: refused before the bus */
     uint8_t image[NV_READ_BYTES] = {0}; /* a short read leaves no stale seal bytes */
     const ssize_t n = pread(fd, image, sizeof image, 0);
     (void)close(fd);

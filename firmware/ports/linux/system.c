@@ -15,6 +15,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/file.h>
 #include <sys/random.h>
 #include <sys/stat.h>
 #include <time.h>
@@ -65,12 +66,24 @@ static int sync_directory_of(const char *path)
     return rc;
 }
 
+void port_nv_keep(int fd, const char *path, int how)
+{
+    /* One keeper per record: a second process on this file (or firmware_model, which locks it
+     * alike) would spend what it holds again. */
+    if (flock(fd, how | LOCK_NB) != 0) {
+        port_usage_error("--nv %s is kept by another holder (%s): two holders of one record "
+                         "would both spend what it holds; stop the other",
+                         path, errno == EWOULDBLOCK ? "locked" : strerror(errno));
+    }
+}
+
 int port_open_nv(const char *path, mode_t mode)
 {
     const int fd = open(path, O_RDWR | O_CREAT | O_CLOEXEC, mode);
     if (fd < 0) {
         return -1;
     }
+    port_nv_keep(fd, path, LOCK_EX); /* held until the process ends */
     /* An empty file may be new, or one whose creator stopped before syncing its directory:
      * sync it now (a file holding a record had its directory synced before the record). */
     struct stat st;

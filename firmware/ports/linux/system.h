@@ -21,6 +21,9 @@ uint16_t port_random16(void);
  * records fsynced into it later cannot vanish with an unwritten directory entry on a power
  * loss; a filesystem that cannot sync a directory (EINVAL) is taken as it is. -1 with errno
  * set on failure. */
+/* Exit 2 naming --nv PATH when another holder keeps the file open as fd is (flock: LOCK_EX to
+ * keep it, LOCK_SH to look before the bus is opened). */
+void port_nv_keep(int fd, const char *path, int how);
 int port_open_nv(const char *path, mode_t mode);
 
 /* A status file: write(ctx, f) into a temporary file beside path, fsynced and renamed over it

@@ -40,7 +40,7 @@ from canergy.live.gateway.process import GatewayFiles, Uplink, UplinkConfig
 from canergy.live.gateway.state import load_gateway
 from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
 from canergy.live.serve import serve_supervisor
-from canergy.live.supervisor.build import SupervisorConfig, build_supervisor
+from canergy.live.supervisor.build import ASK_IT, SupervisorConfig, build_supervisor
 from canergy.live.supervisor.policy import TopUp
 from canergy.live.supervisor.service import ServiceConfig
 from canergy.live.supervisor.state_file import keep_books
@@ -194,7 +194,7 @@ def _build(
     held as long as the gateway lives (``kept_by``)."""
     fresh = not args.state.exists()  # read under the lock: nobody else writes it meanwhile
     made = partial(_from_books, args, key, core)
-    return kept_by(args.state, "state file", made), fresh
+    return kept_by(args.state, "state file", made, hint=ASK_IT), fresh
 
 
 def _from_books(args: argparse.Namespace, key: Key | None, core: str) -> Gateway:

@@ -84,8 +84,10 @@ class RecordLock:
     ``flock`` locks conflict between two opens of the file, so a second holder is refused in
     another process and in this one."""
 
-    def __init__(self, path: Path, what: str) -> None:
-        self.path = lock_path(path)
+    def __init__(self, path: Path, what: str, *, in_place: bool = False, hint: str = "") -> None:
+        """``in_place``: the record is written in place, never replaced (an NV file): its
+        own file is locked, as the C ports lock theirs. ``hint``: what the refusal adds."""
+        self.path = path if in_place else lock_path(path)
         try:
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
         except OSError as exc:
@@ -93,15 +95,16 @@ class RecordLock:
         if not _flock(fd):
             gc.collect()  # a holder in this process no longer referenced lets go when collected
             if not _flock(fd):
-                holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "unknown"
+                holder = "" if in_place else os.pread(fd, 32, 0).decode("ascii", "replace")
                 os.close(fd)
+                who = f"pid {holder.strip()}; " if holder.strip() else ""
                 raise RecordInUse(
-                    f"{what} {path} is kept by another holder (pid {holder}; lock {self.path}): "
-                    "two holders of one record would both spend what it holds. Stop the other, "
-                    "or ask it through its --control socket"
+                    f"{what} {path} is kept by another holder ({who}lock {self.path}): two "
+                    f"holders of one record would both spend what it holds; stop the other{hint}"
                 )
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        if not in_place:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         self._fd = fd
 
     def bind(self, owner: object) -> None:
@@ -113,10 +116,13 @@ class RecordLock:
         os.close(self._fd)
 
 
-def kept_by(path: Path, what: str, make: Callable[[], T]) -> T:
+def kept_by(
+    path: Path, what: str, make: Callable[[], T], *, in_place: bool = False, hint: str = ""
+) -> T:
     """``make()``, which reads the record ``path`` and returns what keeps it, under the
-    record's lock (``RecordLock``), then held as long as what it returned lives."""
-    lock = RecordLock(path, what)
+    record's lock (``RecordLock``: ``in_place``, ``hint``), then held as long as what it
+    returned lives."""
+    lock = RecordLock(path, what, in_place=in_place, hint=hint)
     try:
         owner = make()
     except BaseException:

@@ -4,9 +4,11 @@ between polls each does its own periodic work (control requests, status files)."
 
 from __future__ import annotations
 
+import inspect
 import queue
 import signal
 import threading
+import weakref
 from collections.abc import Callable
 from typing import Any, Protocol
 
@@ -29,10 +31,15 @@ def serve(
     each: Callable[[int], None] | None = None,
 ) -> None:
     """Poll ``loop`` until ``done(now)``. SIGINT and SIGTERM call ``stop(now)`` (when this runs
-    in the main thread); ``each(now)`` runs after every poll."""
+    in the main thread; they stay set after, a second signal harmless while the caller winds
+    up, but hold a bound ``stop`` weakly: a handler keeps nothing served alive, such as a
+    core that keeps a state file locked); ``each(now)`` runs after every poll."""
+    stop_ref = weakref.WeakMethod(stop) if inspect.ismethod(stop) else lambda: stop
 
     def on_signal(signum: int, frame: object) -> None:
-        stop(monotonic_us())
+        live = stop_ref()
+        if live is not None:
+            live(monotonic_us())
 
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, on_signal)

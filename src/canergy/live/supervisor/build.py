@@ -179,6 +179,10 @@ def check_session_keys(
         seen[key] = bus
 
 
+ASK_IT = " (a running supervisor or gateway takes grants through its --control socket)"
+"""What a refusal to keep a state file another keeper holds adds."""
+
+
 def open_core(config: SupervisorConfig, now: int | None = None) -> SupervisorCore:
     """The core, from its books when the file exists (a start is then a restart: the core is
     told of the power loss with a fresh nonce). Refused before anything is read or written
@@ -190,7 +194,7 @@ def open_core(config: SupervisorConfig, now: int | None = None) -> SupervisorCor
     check_keys(config, c.nodes)
     kept = c.state_path if c.keep_books else None
     opened = partial(_from_books, config, c, now)
-    return opened() if kept is None else kept_by(kept, "state file", opened)
+    return opened() if kept is None else kept_by(kept, "state file", opened, hint=ASK_IT)
 
 
 def _from_books(config: SupervisorConfig, c: CoreConfig, now: int | None) -> SupervisorCore:

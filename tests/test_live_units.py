@@ -6,6 +6,7 @@ import errno
 import json
 import random
 import re
+import time
 import uuid
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import pytest
 from canergy.codec import Codec
 from canergy.core.state import Decision, Phase, Session, SupervisorState
 from canergy.faults import FaultInjector, FaultProfile
-from canergy.live.runtime import BusCounters, BusRuntime, total_counters
+from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us, total_counters
 from canergy.live.supervisor.policy import Limits, RateLimiter, TopUp, capped_grant, grant_caps
 from canergy.live.supervisor.state_file import StateFileError, load_state, save_state
 from canergy.live.transports.faulty_bus import FaultyBus
@@ -276,3 +277,20 @@ def test_a_bus_state_change_is_counted_within_its_period() -> None:
     runtime.poll(0)
     assert runtime.counters.bus_state == "passive" and bus.reads == 2
     bus.shutdown()
+
+
+@pytest.mark.skipif(not hasattr(time, "CLOCK_BOOTTIME"), reason="Linux's clock")
+def test_time_the_host_spent_suspended_counts(monkeypatch: pytest.MonkeyPatch) -> None:
+    """review rv3 (F7): the live clock stopped while the host was suspended (CLOCK_MONOTONIC),
+    so a drive that ran on meanwhile (an ODrive without its watchdog) was never charged for it.
+    A suspend of 60 s, as the two clocks then differ, moves the live clock by 60 s."""
+    read = time.clock_gettime_ns
+    slept = 60 * 10**9
+
+    def after_a_suspend(clock: int) -> int:
+        return read(clock) + (slept if clock == time.CLOCK_BOOTTIME else 0)
+
+    before = monotonic_us()
+    monkeypatch.setattr(time, "clock_gettime_ns", after_a_suspend)
+    monkeypatch.setattr(time, "monotonic_ns", lambda: read(time.CLOCK_MONOTONIC))
+    assert monotonic_us() - before >= slept // 1000

@@ -155,7 +155,7 @@ int port_can_receive(int sock, struct port_counters *count, struct canfd_frame *
     }
 }
 
-/* Sleep in poll() until a frame comes on sock or wake (us, CLOCK_MONOTONIC, now being now), at
+/* Sleep in poll() until a frame comes on sock or wake (us of port_now_us, now being now), at
  * most a second: 1 when frames wait. A signal ends it early; a poll() error is counted. */
 int port_can_wait(int sock, struct port_counters *count, uint64_t wake, uint64_t now)
 {

@@ -10,7 +10,7 @@
 #include <stdio.h>
 #include <sys/types.h>
 
-/* CLOCK_MONOTONIC in microseconds; exits 1 when the clock cannot be read. */
+/* CLOCK_BOOTTIME in microseconds (suspended time counts); exits 1 when it cannot be read. */
 uint64_t port_now_us(void);
 
 /* 16 random bits from getrandom() (/dev/urandom when that fails); exits 2 without entropy. */

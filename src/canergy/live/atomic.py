@@ -4,7 +4,6 @@ directory. A reader sees the old content or the new, never a mix."""
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import gc
 import json
 import os
@@ -133,6 +132,10 @@ def kept_by(
 
 
 def _flock(fd: int) -> bool:
+    """Lock ``fd`` exclusively without waiting (False: another holder has it). POSIX: the
+    records' folders, modes and locks are (``write_atomic`` sets modes with ``fchmod`` too)."""
+    import fcntl  # here: importing this module needs no POSIX
+
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:

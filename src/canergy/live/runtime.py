@@ -187,8 +187,18 @@ def total_counters(counters: Iterable[BusCounters]) -> BusCounters:
     return total
 
 
+CLOCK: int | None = getattr(time, "CLOCK_BOOTTIME", getattr(time, "CLOCK_MONOTONIC", None))
+"""The clock ``monotonic_us`` reads: Linux's ``CLOCK_BOOTTIME`` (it never goes back and keeps
+counting while the host is suspended), else ``CLOCK_MONOTONIC`` (which stops meanwhile); None
+where there is no ``clock_gettime`` (``time.monotonic``)."""
+
+
 def monotonic_us() -> int:
-    return time.monotonic_ns() // 1000
+    """The live stack's clock, in µs (``CLOCK``): time the host spent suspended counts, so a
+    guarded drive that ran on meanwhile is charged it and every deadline then due fires."""
+    if CLOCK is None:
+        return time.monotonic_ns() // 1000
+    return time.clock_gettime_ns(CLOCK) // 1000
 
 
 _UNCOUNTED = frozenset(t.TYPE for t in (Join, Admit, Telemetry))

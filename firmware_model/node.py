@@ -36,7 +36,7 @@ from canergy.core import (
 from canergy.core.state import Phase
 from canergy.live.supervisor.intrusions import Intrusions, frame_text
 from canergy.live.supervisor.policy import quantize
-from canergy.live.supervisor.witness import ClientWitness
+from canergy.live.supervisor.witness import WITNESS_GAP_US, ClientWitness
 from canergy.messages import (
     AMOUNT_MAX_MJ,
     LEVEL_MAX_MJ,
@@ -148,6 +148,9 @@ class FirmwareNode:
         self.actuator = Actuator(config.power, now, now)
         self.next_tick = now + config.tick_us
         self.next_telemetry = now  # announce the level at boot
+        self.early_telemetry = 0
+        """The earliest a frame in its name brings the next TELEMETRY forward to: the last one's
+        time + ``WITNESS_GAP_US`` (two nodes on one id would answer each other's at once)."""
         self.decode_errors = 0
         self.telemetry_sent = 0
         self.was_low = False
@@ -234,8 +237,9 @@ class FirmwareNode:
 
     def witness(self, now: int) -> list[Message]:
         """Someone spoke in this node's name: count it and tell the supervisor at the next
-        wakeup, or now (``ClientWitness.seen``)."""
-        self.next_telemetry = now
+        wakeup but no sooner than ``WITNESS_GAP_US`` after the last TELEMETRY, or now
+        (``ClientWitness.seen``)."""
+        self.next_telemetry = min(self.next_telemetry, self.early_telemetry)
         return [self.telemetry(now)] if self.witnessing.seen() else []
 
     @property
@@ -296,6 +300,7 @@ class FirmwareNode:
 
     def telemetry(self, now: int) -> Telemetry:
         self.next_telemetry = now + self.config.telemetry_period_us
+        self.early_telemetry = now + WITNESS_GAP_US
         self.telemetry_sent += 1
         usable = self.client.state.usable
         flags = (

@@ -450,7 +450,7 @@ def test_a_c_node_is_granted_through_python_frames_and_refuses_forgeries(layout:
     wrong_way = [REASONS[r].name == "WRONG_DIRECTION" for r in results]
     assert wrong_way == [True, layout is Layout.CLASSIC] and out.frame_count == 0
     assert node.witness == sum(wrong_way) and node.client.rec.usable_uj == before + 700_000
-    assert c.canergy_node_deadline(ref(node)) == 50  # its TELEMETRY at the next poll
+    assert c.canergy_node_deadline(ref(node)) <= 50  # due: its TELEMETRY at the next poll
 
 
 @pytest.mark.parametrize("layout", list(Layout))

@@ -37,6 +37,7 @@ from support.mem_nv import MemNv, write_slot
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
 from canergy.core import Acknowledged, Send, Supervisor, Timing
 from canergy.core.state import Phase
+from canergy.live.supervisor.witness import WITNESS_GAP_US
 from canergy.messages import (
     Aborted,
     Ack,
@@ -296,6 +297,7 @@ def test_frames_in_its_name_are_witnessed_and_reported_at_the_next_poll() -> Non
     config = PyNodeConfig(telemetry_period_us=1_000_000, timing=TIMING)
     c = CNode(config, bytearray(), 0x1234, 0)
     c.wakeup(0)
+    t = WITNESS_GAP_US  # its boot report at 0: the next one a gap later at the soonest
 
     def telemetry(now: int) -> Telemetry:
         (frame,) = [f for f in c.wakeup(now) if f[0] >> 8 & 0xF == 0xD]
@@ -308,19 +310,19 @@ def test_frames_in_its_name_are_witnessed_and_reported_at_the_next_poll() -> Non
         assert c.frame(*CODEC.encode(msg), now) == []
         return (c.n.witness - before) & 0xFF
 
-    assert witnessed(Admit(NODE, 0x4321, 40, 7), 10) == 1  # joining: not its nonce
-    assert witnessed(ReturnAck(NODE, 1), 11) == 1  # a return it never made
-    assert witnessed(ReturnAck(NODE, 0), 12) == 0  # its own number: no answer to nothing
-    assert telemetry(12) == Telemetry(NODE, 0, Telemetry.JOINING, 0, 2)
-    assert witnessed(Admit(NODE, 0x1234, 40, 7), 20) == 0 and c.n.client.phase == 0
-    assert witnessed(Admit(NODE, 0x1234, 40, 7), 21) == 0  # a duplicate of its answer
-    assert witnessed(Admit(NODE, 0x1235, 40, 7), 22) == 1
-    assert witnessed(ReturnAck(NODE, 8), 23) == 1 and witnessed(ReturnAck(NODE, 7), 23) == 0
-    assert witnessed(Ack(NODE, 41), 24) == 1  # its own direction, its id
-    assert witnessed(Ack(NODE + 1, 41), 25) == 0  # another node's
+    assert witnessed(Admit(NODE, 0x4321, 40, 7), t + 10) == 1  # joining: not its nonce
+    assert witnessed(ReturnAck(NODE, 1), t + 11) == 1  # a return it never made
+    assert witnessed(ReturnAck(NODE, 0), t + 12) == 0  # its own number: no answer to nothing
+    assert telemetry(t + 12) == Telemetry(NODE, 0, Telemetry.JOINING, 0, 2)
+    assert witnessed(Admit(NODE, 0x1234, 40, 7), t + 20) == 0 and c.n.client.phase == 0
+    assert witnessed(Admit(NODE, 0x1234, 40, 7), t + 21) == 0  # a duplicate of its answer
+    assert witnessed(Admit(NODE, 0x1235, 40, 7), t + 22) == 1
+    assert witnessed(ReturnAck(NODE, 8), t + 23) == 1 and witnessed(ReturnAck(NODE, 7), t + 23) == 0
+    assert witnessed(Ack(NODE, 41), t + 24) == 1  # its own direction, its id
+    assert witnessed(Ack(NODE + 1, 41), t + 25) == 0  # another node's
     usable = c.n.client.rec.usable_uj
-    assert witnessed(Return(NODE, 8, 65535), 26) == 1 and c.n.client.rec.usable_uj == usable
-    assert telemetry(26) == Telemetry(NODE, 0, 0, 7, 6)
+    assert witnessed(Return(NODE, 8, 65535), t + 26) == 1 and c.n.client.rec.usable_uj == usable
+    assert telemetry(t + 26) == Telemetry(NODE, 0, 0, 7, 6)
 
 
 @pytest.mark.parametrize("return_seq", [0xFFFF, 0x1_0000, 0x1_2345, 0xFFFF_FFFF])

@@ -19,7 +19,7 @@ from canergy.codec import Codec
 from canergy.core import Supervisor
 from canergy.live.runtime import monotonic_us
 from canergy.live.supervisor.service import JOIN_HOLD_US, ServiceConfig, SupervisorService
-from canergy.live.supervisor.witness import WITNESS_REPORT_AT, ReturnGate
+from canergy.live.supervisor.witness import WITNESS_GAP_US, WITNESS_REPORT_AT, ReturnGate
 from canergy.messages import (
     Intention,
     Join,
@@ -199,8 +199,10 @@ class Wire:
 def test_a_forged_join_is_refuted_on_the_frame_and_writes_nothing_off(tmp_path: Path) -> None:
     """Issue 40, item 11: a forged JOIN (and a forged TELEMETRY without books confirming it)
     wrote off the grant in flight at once. The JOIN is now held: the node sees both frames in
-    its name and reports at once, with its books, which drops the JOIN; the intrusion is raised
-    at the very time of the forgery, not a telemetry period later."""
+    its name and reports with its books, which drops the JOIN; the intrusion is raised at once,
+    or here ``WITNESS_GAP_US`` later (the node's periodic report left at the very time of the
+    forgery: two nodes on one id must not answer each other's reports with no pause), not a
+    telemetry period later, and well inside the JOIN's hold."""
     w = Wire(tmp_path)
     w.run(0)  # the new node's JOIN and its TELEMETRY without books: held ...
     assert w.node.joining and w.node_status()["admitted"] == 0
@@ -215,10 +217,15 @@ def test_a_forged_join_is_refuted_on_the_frame_and_writes_nothing_off(tmp_path: 
     t = 2_000_000
     w.run(t)
     assert [type(m) for m in w.held] == [Intention]
+    assert w.node.telemetry_sent == 3 and w.node.next_telemetry == t + 1_000_000  # one at t
     w.forge(Join(1, 0x1234), t)
     w.forge(Telemetry(1, 0, Telemetry.JOINING, 0, 0), t)
+    assert w.service.intrusions.as_json()["first_at_us"] is None
+    w.run(t + WITNESS_GAP_US - 1)
+    assert w.service.intrusions.as_json()["first_at_us"] is None
+    w.run(t + WITNESS_GAP_US)
     report = w.service.intrusions.as_json()
-    assert report["first_at_us"] == t  # raised on the forged frame itself
+    assert report["first_at_us"] == t + WITNESS_GAP_US  # a gap after its last report
     assert any("frame(s) in its name" in e["kind"] for e in report["recent"])
     assert any("forged or replayed" in e["kind"] for e in report["recent"])
     w.run(t + 10 * JOIN_HOLD_US)

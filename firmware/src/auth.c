@@ -457,7 +457,7 @@ int canergy_auth_node_frame(struct canergy_auth *a, struct canergy_node *n,
     if (result != CANERGY_DECODE_OK) {
         canergy_internal_out_clear(out);
         if (in_its_name(n, frame, result)) {
-            canergy_internal_witness(n, now, out);
+            canergy_internal_witness(n, out, now);
         }
         return result;
     }

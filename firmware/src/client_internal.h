@@ -36,11 +36,14 @@ void canergy_internal_send(const struct canergy_client *c, uint8_t type, const u
                            struct canergy_out *out);
 
 struct canergy_node;
-/* A frame seen in the node's name that it did not send: counted, reported at the next poll. */
-/* A frame in the node's name: count it, report it at the next poll, or at once (into out) when
+/* A frame in the node's name that it did not send: count it, report it at the next poll but
+ * no sooner than CANERGY_WITNESS_GAP_US after the last TELEMETRY (two nodes on one id would
+ * otherwise answer each other's reports with no pause: a storm), or at once (into out) when
  * CANERGY_WITNESS_REPORT_AT frames have gone unreported, so that no report is ever 256 frames
- * (a whole turn of the 8-bit count) after the last. */
+ * (a whole turn of the 8-bit count) after the last. The gap keeps a refutation well inside the
+ * supervisor's RETURN and JOIN holds (500 ms by default). */
 #define CANERGY_WITNESS_REPORT_AT 128U
-void canergy_internal_witness(struct canergy_node *n, uint64_t now, struct canergy_out *out);
+#define CANERGY_WITNESS_GAP_US 10000U
+void canergy_internal_witness(struct canergy_node *n, struct canergy_out *out, uint64_t now);
 
 #endif /* CANERGY_CLIENT_INTERNAL_H */

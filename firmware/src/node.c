@@ -16,7 +16,7 @@ static bool is_low(const struct canergy_node *n)
     return n->client.rec.usable_uj < n->low_water_uj;
 }
 
-static void send_telemetry(struct canergy_node *n, uint64_t now, struct canergy_out *out)
+static void send_telemetry(struct canergy_node *n, struct canergy_out *out, uint64_t now)
 {
     const uint32_t level = n->client.rec.usable_uj / MJ;
     const uint32_t fields[4] = {
@@ -28,6 +28,7 @@ static void send_telemetry(struct canergy_node *n, uint64_t now, struct canergy_
     }; /* TELEMETRY: level, flags, seq, witness */
     n->witness_reported = n->witness;
     n->next_telemetry = now + n->telemetry_period_us;
+    n->early_telemetry = now + CANERGY_WITNESS_GAP_US;
     canergy_internal_send(&n->client, CANERGY_TELEMETRY, fields, out);
 }
 
@@ -41,12 +42,15 @@ static void after_client(struct canergy_node *n, uint64_t now, const struct cane
     }
 }
 
-void canergy_internal_witness(struct canergy_node *n, uint64_t now, struct canergy_out *out)
+void canergy_internal_witness(struct canergy_node *n, struct canergy_out *out, uint64_t now)
 {
     n->witness = (uint8_t)(n->witness + 1U); /* modulo 256, as on the wire */
-    n->next_telemetry = now;                 /* the supervisor hears of it at the next poll */
+    /* due at the next poll, but no sooner than a gap after the last TELEMETRY */
+    if (n->early_telemetry < n->next_telemetry) {
+        n->next_telemetry = n->early_telemetry;
+    }
     if ((uint8_t)(n->witness - n->witness_reported) >= CANERGY_WITNESS_REPORT_AT) {
-        send_telemetry(n, now, out); /* at once: the count never moves 256 between reports */
+        send_telemetry(n, out, now); /* at once: the count never moves 256 between reports */
     }
 }
 
@@ -66,7 +70,7 @@ static void telemetry_due(struct canergy_node *n, uint64_t now, struct canergy_o
 {
     const bool low = is_low(n);
     if (now >= n->next_telemetry || (low && !n->was_low)) {
-        send_telemetry(n, now, out);
+        send_telemetry(n, out, now);
     }
     n->was_low = low;
 }
@@ -120,7 +124,7 @@ int canergy_node_on_frame(struct canergy_node *n, const struct canergy_rx_frame 
                                ? own_id
                                : result == CANERGY_DECODE_OK && never_asked(n, &m);
     if (witnessed) {
-        canergy_internal_witness(n, now, out);
+        canergy_internal_witness(n, out, now);
     } else if (own_id && result != CANERGY_DECODE_OK &&
                result != CANERGY_DECODE_FOREIGN) {
         n->decode_errors++;

@@ -8,7 +8,9 @@
  *   - the return policy: after each draw, give back whatever exceeds return_above (whole mJ);
  *   - the witness (firmware_model's FirmwareNode.witnessed): frames seen in the node's name
  *     that it did not send, counted modulo 256 and carried in every TELEMETRY (a change is
- *     reported at the next poll, as a new level is): a frame in its own direction with its id
+ *     reported at the next poll, as a new level is, but no sooner than 10 ms after the last
+ *     TELEMETRY, so that two nodes on one id cannot answer each other's reports with no pause;
+ *     at once at 128 unreported): a frame in its own direction with its id
  *     (a node never receives its own frames back), a RETURN_ACK for a return number it has not
  *     reached (ahead of its own), an ADMIT whose nonce is not its JOIN's of this start (any
  *     ADMIT when it started with books). Duplicates of genuine answers, which a lossy bus
@@ -46,6 +48,8 @@ struct canergy_node {
     uint8_t witness_reported;   /* the count its last TELEMETRY carried */
     struct canergy_client client;
     uint64_t next_telemetry;
+    uint64_t early_telemetry;   /* the earliest a witnessed frame brings the next TELEMETRY
+                                 * forward to: the last one's time + CANERGY_WITNESS_GAP_US */
     uint32_t telemetry_period_us;
     uint32_t low_water_uj;
     uint32_t return_above_uj;

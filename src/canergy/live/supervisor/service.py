@@ -343,7 +343,7 @@ class SupervisorService:
             return
         info.rules = said
         if other:
-            log.warning("node %s: %s", self.node_name(msg.node), self.mismatch_why(msg.node))
+            log.warning("%s", self.mismatch_why(msg.node))
         elif info.variant_mismatch:
             log.warning(
                 "node %s now runs the %s rules, as this supervisor: granting",

@@ -307,6 +307,7 @@ class FirmwareNode:
             (Telemetry.LOW if usable < self.config.low_water else 0)
             | (Telemetry.HALTED if self.actuator.halted else 0)
             | (Telemetry.JOINING if self.joining else 0)
+            | (Telemetry.WITNESSED if self.witnessed_rules else 0)
         )
         return Telemetry(
             self.node,

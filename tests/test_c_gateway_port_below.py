@@ -14,6 +14,7 @@ import subprocess
 import sys
 import tempfile
 import zlib
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -294,3 +295,31 @@ def test_the_witnesss_evidence_below_is_told_on_stderr(harness: Path, tmp_path: 
     )
     assert "intrusion #2" not in run.stderr  # a node's first is told, then one in 100
     assert run.status()["intrusions_first_at_us"] == 1000 + JOIN_HOLD_US
+
+
+def _started_saying(rules: int) -> list[str]:
+    """``_started()`` with every TELEMETRY of node 1 carrying the rules flag ``rules``."""
+    said = {rx(t): rx(replace(t, flags=t.flags | rules)) for t in _STARTED_TELEMETRY}
+    return [said.get(line, line) for line in _started()]
+
+
+_STARTED_TELEMETRY = (Telemetry(1, 0, Telemetry.JOINING, 0), Telemetry(1, 0, 0, 0))
+
+
+@pytest.mark.parametrize("below", ["hardened", "witnessed"])
+def test_a_node_below_with_other_rules_is_granted_nothing_and_told_once(
+    harness: Path, tmp_path: Path, below: str
+) -> None:
+    """Review rv3, F3: a TELEMETRY saying other client rules than ``--rules`` (its WITNESSED
+    flag) stops the node's top-ups; told once on stderr, counted in the status. The same node
+    saying the gateway's rules is topped up."""
+    other = Telemetry.WITNESSED if below == "hardened" else 0
+    ours = Telemetry.WITNESSED - other
+    script = [*_started_saying(other), rx(Telemetry(1, 0, other, 0)), "tick"]
+    run = Run(harness, tmp_path, script, "--rules", below)
+    assert run.sent(INTENTION) == []
+    assert run.status()["nodes"]["1"]["variant_mismatch"] == 3
+    said = f"node 1 below runs the {'witnessed' if other else 'hardened'} rules, this gateway the"
+    assert run.stderr.count(said) == 1
+    run = Run(harness, tmp_path, _started_saying(ours), "--rules", below)
+    assert len(run.sent(INTENTION)) == 1 and run.status()["nodes"]["1"]["variant_mismatch"] == 0

@@ -114,8 +114,10 @@ from canergy.messages import (
     SYNC_CONFIRMED,
     Admit,
     Debit,
+    Direction,
     Join,
     ReturnAck,
+    Telemetry,
 )
 from firmware_model.nvstore import pack_record
 
@@ -540,6 +542,21 @@ class _Node:
         rec = self.n.client.rec
         pending = rec.return_pending_uj if rec.flags & FLAG_PENDING_DRAW else 0
         return rec.usable_uj + self.n.released_uj + pending
+
+
+@pytest.mark.parametrize(
+    ("rules", "build"), [("hardened", ""), ("witnessed", ""), ("witnessed", "witnessed_only")]
+)
+def test_the_c_nodes_telemetry_says_its_rules(rules: str, build: str) -> None:
+    """Every TELEMETRY carries WITNESSED exactly under the witnessed rules (review rv3, F3: a
+    supervisor with other rules then grants the node nothing)."""
+    node = _Node(rules, bytearray(), 0x55, 0, build)
+    for now in (0, 1_000_000, 2_000_000):  # joining, then each period
+        node.lib.canergy_node_poll(node.n, now, node.out)
+        (frame,) = [f for f in out_frames(node.out) if f[0] >> 8 & 0xF == 0xD]
+        msg = CODEC.decode(*frame, direction=Direction.TO_SUPERVISOR)
+        assert isinstance(msg, Telemetry) and msg.flags & Telemetry.JOINING
+        assert bool(msg.flags & Telemetry.WITNESSED) == (rules == "witnessed")
 
 
 class _CSup:

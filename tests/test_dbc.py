@@ -141,3 +141,19 @@ def _auth_db(layout: str) -> cantools.database.can.Database:
         path = DBC_PATH.with_name(f"canergy-auth-{layout}.dbc")
         _auth_dbs[layout] = cantools.database.load_file(str(path))
     return _auth_dbs[layout]
+
+
+def test_cantools_reads_the_rules_flag_of_a_witnessed_nodes_telemetry(tmp_path: Path) -> None:
+    """FLAGS bit 3 (``Telemetry.WITNESSED``): set by a node under the witnessed rules, named in
+    the signal's comment (review rv3, F3)."""
+    from firmware_model.node import FirmwareNode, NodeConfig
+    from firmware_model.nvstore import NvStore
+
+    db = _db()
+    for variant, flag in (("witnessed", Telemetry.WITNESSED), ("hardened", 0)):
+        nv = NvStore(tmp_path / f"{variant}.nv", 3, fsync=False)
+        node = FirmwareNode(3, nv, NodeConfig(variant=variant), 0)
+        arbitration_id, data = CODEC.encode(node.telemetry(0))
+        assert db.decode_message(arbitration_id, data)["FLAGS"] & 0x08 == flag
+    comment = db.get_message_by_frame_id(arbitration_id).get_signal_by_name("FLAGS").comment
+    assert "bit 3: the witnessed client rules" in comment

@@ -181,7 +181,7 @@ def _restarted(start_without: tuple[int, ...] = (), core: str = "python") -> Sup
     restarted.power_loss(0, 0x1234)
     service = SupervisorService(restarted, ServiceConfig(), 0)
     for node in (1, 2):
-        service.on_message(Telemetry(node, 0, 0, 0, 0), 1)
+        service.on_message(Telemetry(node, 0, Telemetry.WITNESSED, 0, 0), 1)
     return service
 
 
@@ -200,7 +200,7 @@ def test_a_debt_the_books_bring_refuses_every_grant_and_is_kept_across_a_restart
     restored.power_loss(0, 0x1234)
     path = tmp_path / "s.json"
     s = SupervisorService(restored, ServiceConfig(state_path=path, fsync=False), 0)
-    s.on_message(Telemetry(NODE, 0, 0, 0, 0), 1)
+    s.on_message(Telemetry(NODE, 0, Telemetry.WITNESSED, 0, 0), 1)
     s.on_wakeup(1)
     s.on_message(Debit.books(NODE, 0x1234, 1_800), 20)
     s.on_message(Debit.counts(NODE, 0x1234, 0, 0), 21)

@@ -22,7 +22,8 @@ static void send_telemetry(struct canergy_node *n, struct canergy_out *out, uint
     const uint32_t fields[4] = {
         level > CANERGY_WIDE_MAX ? CANERGY_WIDE_MAX : level, /* saturating */
         (is_low(n) ? CANERGY_TELEMETRY_LOW : 0U) | (n->halted ? CANERGY_TELEMETRY_HALTED : 0U) |
-            (n->client.phase == CANERGY_JOINING ? CANERGY_TELEMETRY_JOINING : 0U),
+            (n->client.phase == CANERGY_JOINING ? CANERGY_TELEMETRY_JOINING : 0U) |
+            (rules_witnessed(n->client.rules) ? CANERGY_TELEMETRY_WITNESSED : 0U),
         (uint16_t)n->client.rec.return_seq, /* the number its RETURN frames carry */
         n->witness,
     }; /* TELEMETRY: level, flags, seq, witness */

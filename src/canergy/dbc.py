@@ -53,7 +53,10 @@ _COMMENTS = {
     "AMOUNT": "energy in whole millijoules",
     "DELIVERED": "Gs: energy counted as delivered to this node, 24-bit wrapping mJ",
     "LEVEL": "client's usable energy in mJ, saturating at 16777.215 J (information only)",
-    "FLAGS": "bit 0: level low; bit 1: actuator halted; bit 2: no books, joining",
+    "FLAGS": (
+        "bit 0: level low; bit 1: actuator halted; bit 2: no books, joining; bit 3: the "
+        "witnessed client rules (absent: hardened; a supervisor with other rules grants nothing)"
+    ),
     "RETURN_SEQ": "the node's current return number (as its RETURN frames carry it)",
     "WITNESS": "frames the node saw in its own name that it did not send, modulo 256",
     "NONCE": (

@@ -318,6 +318,10 @@ class Telemetry:
     """Flag: the actuator is halted (budget exhausted or not operational)."""
     JOINING: ClassVar[int] = 0x04
     """Flag: the node has no books yet and waits to be admitted."""
+    WITNESSED: ClassVar[int] = 0x08
+    """Flag: the node runs the witnessed client rules (a gateway: its rules above); absent, the
+    hardened ones. A supervisor whose rules differ grants it nothing (the status and stderr say
+    why). It moves no energy: one forged without a key can only withhold grants."""
 
 
 LEVEL_MAX_MJ = (1 << 24) - 1

@@ -61,6 +61,9 @@ enum canergy_type {
 #define CANERGY_TELEMETRY_LOW 0x01U
 #define CANERGY_TELEMETRY_HALTED 0x02U
 #define CANERGY_TELEMETRY_JOINING 0x04U
+/* the sender runs the witnessed client rules (a node; a gateway: its rules above). A supervisor
+ * whose rules differ grants it nothing: it moves no energy, so one forged only withholds grants */
+#define CANERGY_TELEMETRY_WITNESSED 0x08U
 
 /* DEBIT flags: DRAW alone is a draw (an amount, nonce 0); START is a resume (RESUME), DRAW set
  * when its pending amount is a draw rather than a return; START | SYNC is the counts answering a

@@ -152,7 +152,8 @@ static void telemetry(struct gateway_port *g)
     m.type = CANERGY_TELEMETRY;
     m.node = g->opt.node;
     m.level_mj = mj > CANERGY_WIDE_MAX ? (uint32_t)CANERGY_WIDE_MAX : (uint32_t)mj;
-    m.flags = canergy_client_joining(&g->gw.up) ? CANERGY_TELEMETRY_JOINING : 0U;
+    m.flags = (canergy_client_joining(&g->gw.up) ? CANERGY_TELEMETRY_JOINING : 0U) |
+              (g->gw.up.rules == CANERGY_RULES_WITNESSED ? CANERGY_TELEMETRY_WITNESSED : 0U);
     m.seq = (uint16_t)(g->gw.up.rec.return_seq & 0xFFFFU);
     m.witness = (uint8_t)(g->witnessed & 0xFFU);
     struct canergy_frame f;

@@ -187,6 +187,28 @@ static void past_joins(struct gateway_port *g, unsigned i, const struct canergy_
     }
 }
 
+/* The client rules a node's TELEMETRY says (CANERGY_TELEMETRY_WITNESSED; without it the
+ * hardened ones): other than the gateway's (--rules), it is granted nothing, told once per
+ * change on stderr and counted. The flag moves no energy: a forged one only withholds the node's grants. */
+static void rules_said(struct gateway_port *g, struct below *b, const struct canergy_msg *m)
+{
+    const int witnessed = (m->flags & CANERGY_TELEMETRY_WITNESSED) != 0U;
+    const int ours = g->opt.rules == CANERGY_RULES_WITNESSED;
+    const int other = witnessed != ours;
+    if (other) {
+        b->variant_mismatch++;
+        if (!b->other_rules) {
+            (void)fprintf(stderr,
+                          "%s: node %u below runs the %s rules, this gateway the %s: nothing "
+                          "granted to it (run both with the same rules; a node without the "
+                          "rules flag in its TELEMETRY counts as hardened)\n",
+                          PROG, (unsigned)m->node, witnessed ? "witnessed" : "hardened",
+                          ours ? "witnessed" : "hardened");
+        }
+    }
+    b->other_rules = other;
+}
+
 /* A message from below: a TELEMETRY's level for the top-ups; then the witness's route, and the
  * JOIN hold's. */
 static void from_below(struct gateway_port *g, unsigned i, const struct canergy_msg *m,
@@ -199,6 +221,7 @@ static void from_below(struct gateway_port *g, unsigned i, const struct canergy_
         b->level_uj = (uint64_t)m->level_mj * MJ;
         b->joining = (m->flags & CANERGY_TELEMETRY_JOINING) != 0U;
         b->fresh = 1;
+        rules_said(g, b, m);
     }
     uint32_t evidence = 0U;
     const enum canergy_witness_route r =
@@ -321,6 +344,7 @@ void gw_top_up(struct gateway_port *g, uint64_t now)
         struct below *b = &g->below[i];
         const struct canergy_session *s = &g->gw.down.sessions[i];
         if (s->phase != CANERGY_S_IDLE || !b->heard || !b->fresh || b->joining ||
+            b->other_rules || /* other client rules: one side would wait on the other */
             b->joins.held_count != 0U || /* JOINs wait for its TELEMETRY: a grant is lost */
             (g->opt.auth_path == NULL && /* with a key, no reason: anyone can make it count */
              canergy_witness_blocked(&b->witness, now, WITNESS_BLOCK_US))) {

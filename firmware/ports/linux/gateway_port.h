@@ -82,6 +82,8 @@ struct below {
     uint32_t unlogged[REFUSAL_REASONS]; /* of them, not told on stderr yet */
     int fresh;   /* a level reported since the node's last transaction ended */
     int joining; /* its last TELEMETRY said JOINING */
+    int other_rules; /* its last TELEMETRY said other client rules than --rules: no grant */
+    uint32_t variant_mismatch; /* its TELEMETRY frames that said other rules */
     int heard;
 };
 

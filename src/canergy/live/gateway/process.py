@@ -272,7 +272,9 @@ class Uplink:
     def telemetry(self, now: int) -> Telemetry:
         self.next_telemetry = now + self.config.telemetry_period_us
         level = self.level()
-        flags = Telemetry.JOINING if self.joining else 0
+        flags = (Telemetry.JOINING if self.joining else 0) | (
+            Telemetry.WITNESSED if self.gateway.up.variant.name == "witnessed" else 0
+        )  # a node above: the rules it runs there
         return Telemetry(
             self.node,
             min(level // QUANTUM_UJ, LEVEL_MAX_MJ),

@@ -40,6 +40,11 @@ class NodeInfo:
     was admitted afresh and what that record held was dropped."""
     synced: int = 0
     """Supervisor starts this node answered with its books and counts (witnessed rules)."""
+    rules: str | None = None
+    """The client rules its last TELEMETRY said it runs (``Telemetry.WITNESSED``; None: none
+    heard yet)."""
+    variant_mismatch: int = 0
+    """Its TELEMETRY frames that said other rules than the supervisor's: granted nothing."""
     counts_ignored: int = 0
     """Counts outside a start the rules ignored (witnessed.counts_taken): an earlier start's,
     replayed or late; they move nothing."""

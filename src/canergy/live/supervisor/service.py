@@ -291,6 +291,7 @@ class SupervisorService:
         found in it already (the frame path), else the witness takes it here."""
         self.now = now
         self.telemetry_heard += 1
+        self._rules_said(msg)
         # listen-only keeps no books of its own (another supervisor may be granting): no
         # judgement by them, or every level reported would look impossible
         if verdict & BEYOND_BOOKS and not self.config.listen_only:
@@ -315,6 +316,53 @@ class SupervisorService:
         )
         out += self._start_grants(now, self.ready)
         return out
+
+    @property
+    def rules(self) -> str:
+        """This supervisor's rules (its ``--variant``); its nodes' TELEMETRY must say the
+        witnessed ones exactly when these are."""
+        name: str = self.core.variant.name
+        return name
+
+    def _other_rules(self, said: str | None) -> bool:
+        """Whether rules a node's TELEMETRY said (None: none yet) differ from this
+        supervisor's: the flag tells witnessed from the rest."""
+        return said is not None and (said == "witnessed") != (self.rules == "witnessed")
+
+    def _rules_said(self, msg: Telemetry) -> None:
+        """The rules the node's TELEMETRY says it runs (``Telemetry.WITNESSED``; without it: the
+        hardened ones, as a node older than the flag). Other than this supervisor's: it is
+        granted nothing (``mismatched``), said once on stderr per change and counted. The flag
+        moves no energy: a forged one can only withhold grants from the node."""
+        info = self.nodes[msg.node]
+        said = "witnessed" if msg.flags & Telemetry.WITNESSED else "hardened"
+        other = self._other_rules(said)
+        if other:
+            info.variant_mismatch += 1
+        if said == info.rules:
+            return
+        info.rules = said
+        if other:
+            log.warning("%s", self.mismatch_why(msg.node))
+        elif info.variant_mismatch:
+            log.warning(
+                "node %s now runs the %s rules, as this supervisor: granting",
+                self.node_name(msg.node),
+                said,
+            )
+
+    def mismatched(self, node: int) -> bool:
+        """Whether the node's last TELEMETRY said other client rules than this supervisor's."""
+        return self._other_rules(self.nodes[node].rules)
+
+    def mismatch_why(self, node: int) -> str:
+        """Why a node whose rules differ (``mismatched``) is granted nothing, one line."""
+        said = self.nodes[node].rules
+        return (
+            f"node {self.node_name(node)} runs the {said} rules, this supervisor the "
+            f"{self.rules}: nothing granted to it (run both with the same --variant; a node "
+            "without the rules flag in its TELEMETRY counts as hardened)"
+        )
 
     def _distrusted(self, node: int, now: int) -> bool:
         """Without a key: no top-ups while the node's TELEMETRY was lately contradicted (with a
@@ -763,6 +811,11 @@ class SupervisorService:
                 or self.witness.resume_held(node)
             ):
                 continue  # not heard yet, or no books until admitted: a grant would be lost
+            if self._other_rules(info.rules):  # ``mismatched``
+                for req in info.requests:
+                    req.reply({"node": self.node_name(node), "error": self.mismatch_why(node)})
+                info.requests.clear()
+                continue  # other rules: one side would spend or wait on what the other lacks
             if info.requests:
                 out += self._one_shot(node, info, now)
             elif policy is not None and not self._distrusted(node, now):
@@ -917,6 +970,11 @@ class SupervisorService:
             waiting_for_books=[self.node_name(n) for n in waiting],
             waiting_why=self.waiting_why(waiting) if waiting else None,
             started_without=self.started_without,
+            variant_mismatch={
+                str(self.node_name(n)): self.mismatch_why(n)
+                for n in self.nodes
+                if self.mismatched(n)
+            },
         )
         return self.report.status(run)
 

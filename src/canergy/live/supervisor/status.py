@@ -34,6 +34,8 @@ class Run:
     waiting_for_books: list[int | str]
     waiting_why: str | None
     started_without: dict[str, int]
+    variant_mismatch: dict[str, str]
+    """The nodes granted nothing because their TELEMETRY says other client rules: why, by name."""
 
 
 class StatusReport:
@@ -120,6 +122,7 @@ class StatusReport:
             "waiting_for_books": run.waiting_for_books,
             "waiting_why": run.waiting_why,
             "started_without": run.started_without,
+            "variant_mismatch": run.variant_mismatch,
             "nodes": nodes,
             **({"cia402": self._extra(now)} if self._extra else {}),
         }
@@ -151,6 +154,8 @@ class StatusReport:
                 "found_behind": info.found_behind,
                 "synced": info.synced,
                 "counts_ignored": info.counts_ignored,
+                "rules": info.rules,
+                "variant_mismatch": info.variant_mismatch,
                 "resume_waiting": witness.resume_held(s.node),
                 "returns": info.returns,
                 "decode_errors": info.decode_errors,

@@ -20,6 +20,7 @@ from test_live_old_copy import NODE, bench, wait
 from canergy.live.supervisor.control import request
 from canergy.messages import Telemetry
 from canergy.units import UJ_PER_J
+from firmware_model.odrive.live_bench import AXIS, ENDPOINTS, LIMITS, guarded_axis, wait_for
 
 MIXES = [("witnessed", "hardened"), ("hardened", "witnessed")]
 
@@ -89,3 +90,16 @@ def test_a_gateway_says_its_rules_above(tmp_path: Path, root: str, above: str) -
         why = f"node {GW} runs the {above} rules, this supervisor the {root}: nothing granted"
         assert why in asked["error"] and why in final["variant_mismatch"][str(GW)]
         assert final["nodes"][str(GW)]["delivered_uj"] == 0
+
+
+def test_a_guarded_devices_proxy_is_granted_under_either_rules(tmp_path: Path) -> None:
+    """A guarded ODrive axis's proxy runs inside the supervisor (its TELEMETRY has no rules
+    flag): a witnessed supervisor still grants it, and the axis runs (with the flag checked
+    for every node the axis timed out at 'running', granted nothing)."""
+    argv = (*LIMITS, *ENDPOINTS, "--initial", "20J", "--target", "5J", "--variant", "witnessed")
+    with guarded_axis(tmp_path, *argv) as b:
+        wait_for(lambda: (d := b.axis_status()) is not None and d["ready"], timeout=60)
+        b.run_closed_loop(1.0)
+        wait_for(lambda: (d := b.axis_status()) and d["guard"] == "running", timeout=60)
+        final = b.stop()
+    assert final["variant_mismatch"] == {} and final["nodes"][str(AXIS)]["delivered_uj"] > 0

@@ -16,12 +16,17 @@ static bool is_low(const struct canergy_node *n)
     return n->client.rec.usable_uj < n->low_water_uj;
 }
 
+/* The flags' two lowest bits are the booleans themselves (2 bytes of the node's flash budget). */
+#if CANERGY_TELEMETRY_LOW != 1U || CANERGY_TELEMETRY_HALTED != 2U
+#error "send_telemetry shifts is_low and halted into LOW and HALTED"
+#endif
+
 static void send_telemetry(struct canergy_node *n, struct canergy_out *out, uint64_t now)
 {
     const uint32_t level = n->client.rec.usable_uj / MJ;
     const uint32_t fields[4] = {
         level > CANERGY_WIDE_MAX ? CANERGY_WIDE_MAX : level, /* saturating */
-        (is_low(n) ? CANERGY_TELEMETRY_LOW : 0U) | (n->halted ? CANERGY_TELEMETRY_HALTED : 0U) |
+        (uint32_t)is_low(n) | (uint32_t)n->halted << 1U | /* LOW, HALTED: checked above */
             (n->client.phase == CANERGY_JOINING ? CANERGY_TELEMETRY_JOINING : 0U) |
             (rules_witnessed(n->client.rules) ? CANERGY_TELEMETRY_WITNESSED : 0U),
         (uint16_t)n->client.rec.return_seq, /* the number its RETURN frames carry */

@@ -333,7 +333,11 @@ class SupervisorService:
         """The rules the node's TELEMETRY says it runs (``Telemetry.WITNESSED``; without it: the
         hardened ones, as a node older than the flag). Other than this supervisor's: it is
         granted nothing (``mismatched``), said once on stderr per change and counted. The flag
-        moves no energy: a forged one can only withhold grants from the node."""
+        moves no energy: a forged one can only withhold grants from the node. A guarded
+        device's proxy (``local_nodes``) runs in this process on the rules it is given: its
+        TELEMETRY says nothing to check."""
+        if msg.node in self.config.local_nodes:
+            return
         info = self.nodes[msg.node]
         said = "witnessed" if msg.flags & Telemetry.WITNESSED else "hardened"
         other = self._other_rules(said)

@@ -44,6 +44,7 @@ from canergy.live.supervisor.build import ASK_IT, SupervisorConfig, build_superv
 from canergy.live.supervisor.policy import TopUp
 from canergy.live.supervisor.service import ServiceConfig
 from canergy.live.supervisor.state_file import keep_books
+from canergy.live.supervisor.witness import RETURN_HOLD_MIN_US
 from canergy.messages import QUANTUM_UJ, Direction
 
 UP = "upstream"
@@ -138,7 +139,8 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         500_000,
         "without --auth: credit a node's RETURN only once its own TELEMETRY confirms it and this "
         "long has passed with no report of frames in its name (a forged RETURN is refuted, "
-        "never credited)",
+        "never credited; shorter, the node could not refute one in time)",
+        low_us=RETURN_HOLD_MIN_US,
     )
     p.set_defaults(run=run)
 

@@ -56,6 +56,7 @@ from canergy.live.supervisor.multi_bus import (
 )
 from canergy.live.supervisor.policy import TopUp
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.witness import RETURN_HOLD_MIN_US
 from canergy.messages import QUANTUM_UJ
 
 EXIT_INTRUSION = 3
@@ -111,7 +112,8 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         500_000,
         "without --auth: credit a RETURN only once the node's own TELEMETRY confirms it and this "
         "long has passed with no report of frames in its name (a forged RETURN is refuted, "
-        "never credited)",
+        "never credited; shorter, the node could not refute one in time)",
+        low_us=RETURN_HOLD_MIN_US,
     )
     p.add_argument(
         "--canopen",

@@ -45,6 +45,14 @@ WITNESS_REPORT_AT = 128
 differ by a whole turn of the 8-bit count; a count that moved by more went back: the node
 restarted (its count starts at 0 again)."""
 
+RETURN_HOLD_MIN_US = 100_000
+"""The least hold (``--return-hold``, ``ServiceConfig.return_hold_us``): the node must have the
+time to refute a forged RETURN, or a forged TELEMETRY confirming it. It reports at the frame that
+reveals the forgery (the emulated node in the loop pass that took it, the C node at its next
+poll): 0.2-40 ms on python-can's virtual bus on a loaded 2-core machine (docs/security.md). 100 ms
+is 2.5 times that, and twice the default response timeout (50 ms). A shorter hold lets a forged
+RETURN through before the genuine report arrives."""
+
 
 @dataclass(slots=True)
 class ClientWitness:

@@ -31,6 +31,7 @@ from canergy.live.atomic import (
     check_writable_dir,
     kept_by,
     same_file,
+    warn_no_fsync,
     write_json_atomic,
 )
 from canergy.live.canopen.shared_bus import STANDARD_FRAMES, SharedReader, shared_network
@@ -133,9 +134,10 @@ def _config(args: argparse.Namespace) -> NodeConfig:
     )
 
 
-def status(host: NodeHost, runtime: BusRuntime) -> dict[str, Any]:
+def status(host: NodeHost, runtime: BusRuntime, fsync: bool = True) -> dict[str, Any]:
+    """The nodes' status and the bus's counters; ``fsync``: False under ``--no-fsync``."""
     nodes = [n.status() for n in host.nodes.values()]
-    bus = runtime.counters.as_json()
+    bus = {**runtime.counters.as_json(), "fsync": fsync}
     if len(nodes) == 1:
         return {**nodes[0], **bus}  # the bus's decode errors cover the node's and foreign ids
     return {"nodes": {str(n["node"]): n for n in nodes}, **bus}
@@ -305,7 +307,9 @@ def _serve(
 
     def each(now: int) -> None:
         if args.status_file is not None and now >= next_status[0]:
-            write_json_atomic(args.status_file, status(host, runtime), fsync=False)
+            write_json_atomic(
+                args.status_file, status(host, runtime, not args.no_fsync), fsync=False
+            )
             next_status[0] = now + args.status_period
 
     serve(runtime, lambda now: signals.stop, signals.request_stop, each)
@@ -319,7 +323,7 @@ def _close(bus: can.BusABC, notifier: can.Notifier | None) -> None:
 
 
 def _report(args: argparse.Namespace, host: NodeHost, runtime: BusRuntime) -> None:
-    final = status(host, runtime)
+    final = status(host, runtime, not args.no_fsync)
     if args.status_file is not None:
         write_json_atomic(args.status_file, final, fsync=False)
     else:
@@ -335,6 +339,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         host, codec, bus = _start(args, ids)
     except (ValueError, OSError, BusOpenError) as exc:  # NvError is a ValueError
         parser.exit(2, f"{parser.prog}: error: {exc}\n")
+    warn_no_fsync(parser.prog, args.no_fsync)
     reader, notifier = _canopen(bus, host) if args.canopen else (None, None)
     runtime = BusRuntime(
         bus,

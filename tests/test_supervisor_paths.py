@@ -16,6 +16,7 @@ import can
 import pytest
 from support.procs import Procs, python, wait
 from support.procs import procs as procs  # the fixture
+from support.stderr import without_no_fsync
 
 from canergy.cli import grant as grant_cli
 from canergy.cli import main
@@ -51,7 +52,7 @@ def started(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[dict[str, Any]]]:
 def run(capsys: pytest.CaptureFixture[str]) -> RunMain:
     def run_main(argv: list[str]) -> tuple[int, str]:
         code = main(argv)
-        return code, capsys.readouterr().err
+        return code, without_no_fsync(capsys.readouterr().err)
 
     return run_main
 

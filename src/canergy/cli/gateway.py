@@ -34,7 +34,7 @@ from canergy.codec import Codec
 from canergy.core.gateway import Gateway
 from canergy.core.state import Phase
 from canergy.faults import FaultInjector, FaultProfile
-from canergy.live.atomic import kept_by
+from canergy.live.atomic import kept_by, warn_no_fsync
 from canergy.live.bus_group import BusGroup
 from canergy.live.gateway.process import GatewayFiles, Uplink, UplinkConfig
 from canergy.live.gateway.state import load_gateway
@@ -345,6 +345,7 @@ def run(args: argparse.Namespace) -> int:
             counters=up_counters,
         )
         group = BusGroup([up, built.loop])
+        warn_no_fsync("canergy gateway", args.no_fsync)
         serve_supervisor(group, built.service, built.control)
     finally:
         if group is not None:

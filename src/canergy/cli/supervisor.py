@@ -38,6 +38,7 @@ from canergy.cli.shared.odrive import add_odrive_flags, check_odrive, odrive_axe
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.core.supervisor import SupervisorCore
+from canergy.live.atomic import warn_no_fsync
 from canergy.live.serve import serve_supervisor
 from canergy.live.supervisor.build import (
     CanopenConfig,
@@ -187,6 +188,7 @@ def _by_id(bus: int, node: int) -> bytes:
 
 
 def _announce(args: argparse.Namespace, service: SupervisorService) -> None:
+    warn_no_fsync("canergy supervisor", args.no_fsync)
     if service.injected_this_run:
         st, added = service.core.state, joules(service.injected_this_run)
         print(

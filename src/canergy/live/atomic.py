@@ -9,6 +9,7 @@ import gc
 import json
 import os
 import stat
+import sys
 import weakref
 from collections.abc import Callable
 from pathlib import Path
@@ -27,6 +28,18 @@ def check_writable_dir(path: Path, what: str) -> None:
         raise PermissionError(f"cannot write {what} {path}: directory {folder} is not writable")
     if path.is_dir():
         raise IsADirectoryError(f"cannot write {what} {path}: it is a directory")
+
+
+NO_FSYNC_WARNING = (
+    "--no-fsync: records are not synced to disk; a power cut can leave an older image of them, "
+    "which this run's promises no longer cover (for tests only)"
+)
+
+
+def warn_no_fsync(prog: str, no_fsync: bool) -> None:
+    """Say on stderr, once at start, that this run's records are not synced (``--no-fsync``)."""
+    if no_fsync:
+        print(f"{prog}: warning: {NO_FSYNC_WARNING}", file=sys.stderr, flush=True)
 
 
 def check_private_dir(path: Path, what: str) -> None:

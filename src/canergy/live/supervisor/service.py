@@ -920,6 +920,7 @@ class SupervisorService:
             uptime_us=self.now - self.started_at,
             stopping=self.stopping,
             listen_only=self.config.listen_only,
+            fsync=self.config.fsync,
             injected_this_run=self.injected_this_run,
             granted_this_run=self.granted_total(),
             stopped_by_intrusion=self.stopped_by_intrusion,

@@ -26,7 +26,14 @@ from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.codec import Codec
 from canergy.core import Timing
 from canergy.errors import BusOpenError
-from canergy.live.atomic import check_writable_dir, kept_by, same_file, write_json_atomic
+from canergy.live.atomic import (
+    check_private_dir,
+    check_writable_dir,
+    kept_by,
+    same_file,
+    warn_no_fsync,
+    write_json_atomic,
+)
 from canergy.live.canopen.shared_bus import STANDARD_FRAMES, SharedReader, shared_network
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.serve import serve
@@ -127,9 +134,10 @@ def _config(args: argparse.Namespace) -> NodeConfig:
     )
 
 
-def status(host: NodeHost, runtime: BusRuntime) -> dict[str, Any]:
+def status(host: NodeHost, runtime: BusRuntime, fsync: bool = True) -> dict[str, Any]:
+    """The nodes' status and the bus's counters; ``fsync``: False under ``--no-fsync``."""
     nodes = [n.status() for n in host.nodes.values()]
-    bus = runtime.counters.as_json()
+    bus = {**runtime.counters.as_json(), "fsync": fsync}
     if len(nodes) == 1:
         return {**nodes[0], **bus}  # the bus's decode errors cover the node's and foreign ids
     return {"nodes": {str(n["node"]): n for n in nodes}, **bus}
@@ -184,9 +192,10 @@ def _check_nv_file(path: Path) -> None:
 
 
 def _check_paths(args: argparse.Namespace, ids: tuple[int, ...]) -> None:
-    """Before anything is read or written: every file the run writes can be written, and no two
+    """Before anything is read or written: every file the run writes can be written, no two
     options name one file (the NV records, the status and the power profile would overwrite each
-    other)."""
+    other), and no one but root and this user can replace an NV record or a key
+    (``check_private_dir``)."""
     several = len(ids) > 1 or args.nodes is not None
     nv = Path(args.nv)
     if several and nv.exists() and not nv.is_dir():
@@ -197,6 +206,7 @@ def _check_paths(args: argparse.Namespace, ids: tuple[int, ...]) -> None:
     made = several and not nv.exists()  # the --nodes directory, made at start in its parent
     for path in [nv] if made else records:
         check_writable_dir(path, "--nv")
+        check_private_dir(path, "--nv")  # whoever can write its folder can roll a record back
     files = [("--nv", path) for path in ([nv, *records] if several else records)]
     if args.status_file is not None:
         check_writable_dir(args.status_file, "--status-file")
@@ -208,6 +218,7 @@ def _check_paths(args: argparse.Namespace, ids: tuple[int, ...]) -> None:
     if args.auth is not None:  # a key read at start, then written over: lost
         keys = [args.auth / f"node-{n:03d}.key" for n in ids] if several else [args.auth]
         files += [("--auth", key) for key in keys]
+        check_private_dir(keys[0], "--auth")
     for i, (option, path) in enumerate(files):
         for other, other_path in files[:i]:
             if option != other and same_file(path, other_path):
@@ -296,7 +307,9 @@ def _serve(
 
     def each(now: int) -> None:
         if args.status_file is not None and now >= next_status[0]:
-            write_json_atomic(args.status_file, status(host, runtime), fsync=False)
+            write_json_atomic(
+                args.status_file, status(host, runtime, not args.no_fsync), fsync=False
+            )
             next_status[0] = now + args.status_period
 
     serve(runtime, lambda now: signals.stop, signals.request_stop, each)
@@ -310,7 +323,7 @@ def _close(bus: can.BusABC, notifier: can.Notifier | None) -> None:
 
 
 def _report(args: argparse.Namespace, host: NodeHost, runtime: BusRuntime) -> None:
-    final = status(host, runtime)
+    final = status(host, runtime, not args.no_fsync)
     if args.status_file is not None:
         write_json_atomic(args.status_file, final, fsync=False)
     else:
@@ -326,6 +339,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         host, codec, bus = _start(args, ids)
     except (ValueError, OSError, BusOpenError) as exc:  # NvError is a ValueError
         parser.exit(2, f"{parser.prog}: error: {exc}\n")
+    warn_no_fsync(parser.prog, args.no_fsync)
     reader, notifier = _canopen(bus, host) if args.canopen else (None, None)
     runtime = BusRuntime(
         bus,

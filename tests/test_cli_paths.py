@@ -314,3 +314,23 @@ def test_a_long_check_reports_progress_on_a_terminal_unless_told_not_to(
     assert shown() and shown("--progress") and not shown("--no-progress")
     monkeypatch.setattr(sys, "stderr", io.StringIO())  # a pipe or a file: quiet by default
     assert not shown() and shown("--progress")
+
+
+@pytest.mark.usefixtures("emulator")
+@pytest.mark.parametrize(
+    "argv", [["--node", "1", "--nv", "d/n.nv"], ["--nodes", "1-2", "--nv", "d/nodes"]]
+)
+def test_an_nv_record_in_a_folder_others_may_write_is_refused(
+    argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """rv3 F6: whoever can write the folder of a node's NV record can roll it back. The emulator
+    refuses it, naming the folder and the fix, and writes nothing; sticky (as /tmp) it starts."""
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d").chmod(0o777)
+    line = _refused(argv, capsys)
+    folder = tmp_path / "d"
+    assert f"directory {folder} (mode 0777)" in line and f"chmod go-w {folder}" in line, line
+    assert _tree(tmp_path) == ["d"]
+    (tmp_path / "d").chmod(0o1777)
+    with pytest.raises(_Served):
+        firmware.main([*argv, "-i", "virtual", "--no-fsync"])

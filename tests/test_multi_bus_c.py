@@ -23,6 +23,7 @@ from canergy.codec import Codec
 from canergy.core.state import Phase
 from canergy.live.supervisor.build import CoreConfig, SupervisorConfig, build_supervisor
 from canergy.live.supervisor.service import ServiceConfig
+from canergy.live.supervisor.witness import RETURN_HOLD_MIN_US
 from canergy.messages import Ack, Committed, Message, Return, Telemetry
 
 J = 1_000_000
@@ -51,7 +52,7 @@ class _Run:
                 state_path=self.state,
                 fsync=False,
                 bus_names=NAMES,
-                return_hold_us=0 if hold else None,
+                return_hold_us=RETURN_HOLD_MIN_US if hold else None,
             ),
         )
         self.built = build_supervisor(config, self.sup_buses, clock=lambda: self.now)
@@ -123,6 +124,7 @@ def _scenario(
         run.send("right", Committed(1, 1))
         run.send("left", Return(1, 1, 1_000))  # 1 J back, into the left bus's Us
         run.send("left", Telemetry(1, 1_000, 0, 1))  # it confirms return 1 (the witness)
+        run.now += RETURN_HOLD_MIN_US if hold else 0  # the hold has passed: it is credited
         run.grant("right", 3, J // 2, 6)  # all of Us was granted: this needs the return
         run.send("left", Ack(3, 1))  # node 3 is the right bus's: nothing on the left takes it
         assert run.phase("right", 3) is Phase.WAIT_ACK

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from support.stderr import without_no_fsync
 
 from canergy.auth.keys import Key, derive_node_key, load_key, new_master
 from canergy.auth.state_key import StateKeyError, StateSeal, claim, epochs_record, state_seal
@@ -400,7 +401,7 @@ class Cli:
         bus = ["-i", "virtual", "-c", f"mac-{uuid.uuid4().hex}", "--nodes", "1-3"]
         self.capsys.readouterr()
         code = main(["supervisor", *bus, "--state", str(self.tmp / state), "--no-fsync", *extra])
-        return code, self.capsys.readouterr().err
+        return code, without_no_fsync(self.capsys.readouterr().err)
 
 
 @pytest.fixture

@@ -16,6 +16,7 @@ import can
 import pytest
 from support.procs import Procs, python, wait
 from support.procs import procs as procs  # the fixture
+from support.stderr import without_no_fsync
 
 from canergy.cli import grant as grant_cli
 from canergy.cli import main
@@ -51,7 +52,7 @@ def started(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[dict[str, Any]]]:
 def run(capsys: pytest.CaptureFixture[str]) -> RunMain:
     def run_main(argv: list[str]) -> tuple[int, str]:
         code = main(argv)
-        return code, capsys.readouterr().err
+        return code, without_no_fsync(capsys.readouterr().err)
 
     return run_main
 
@@ -422,3 +423,68 @@ def test_in_one_process_a_second_core_on_the_books_is_refused_until_the_first_is
     del first, cycle
     second = open_core(config, 0)
     assert second.usable == 5 * J
+
+
+# -- who may write the books' folder (review rv3, F6) -------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("mode", "refused"),
+    [(0o777, True), (0o770, True), (0o757, True), (0o1777, False), (0o755, False), (0o700, False)],
+)
+def test_a_state_file_in_a_folder_others_may_write_is_refused(
+    tmp_path: Path, run: RunMain, started: list[dict[str, Any]], mode: int, refused: bool
+) -> None:
+    """rv3 F6: ``--state d/s.json`` with ``d`` mode 0777 started silently, and whoever can write
+    ``d`` can rename an older copy over the books. Group or others may write it: refused, naming
+    the folder and the fix, nothing written; sticky (as /tmp) or private: it starts."""
+    folder = tmp_path / "d"
+    folder.mkdir()
+    folder.chmod(mode)
+    state = folder / "s.json"
+    code, err = run(_supervisor("--state", str(state), "--initial", "3J"))
+    if refused:
+        _refused(code, err, f"directory {folder} (mode {mode:04o})", f"chmod go-w {folder}")
+        assert not state.exists() and not started
+    else:
+        assert code == 0 and state.exists() and len(started) == 1, err
+
+
+def test_a_folder_above_others_may_write_is_refused_too(
+    tmp_path: Path, run: RunMain, started: list[dict[str, Any]]
+) -> None:
+    """A writer of the folder above can rename the books' folder away and put another there."""
+    (tmp_path / "open").mkdir()
+    (tmp_path / "open").chmod(0o777)
+    (tmp_path / "open" / "d").mkdir(mode=0o700)
+    state = tmp_path / "open" / "d" / "s.json"
+    _refused(*run(_supervisor("--state", str(state))), f"directory {tmp_path / 'open'} (mode")
+    assert not started
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="giving a folder away needs root")
+def test_a_state_file_in_another_users_folder_is_refused(
+    tmp_path: Path, run: RunMain, started: list[dict[str, Any]]
+) -> None:
+    folder = tmp_path / "theirs"
+    folder.mkdir(mode=0o755)
+    os.chown(folder, 54321, -1)
+    state = folder / "s.json"
+    _refused(*run(_supervisor("--state", str(state))), f"directory {folder} belongs to user 54321")
+    assert not started
+
+
+def test_a_key_file_in_a_folder_others_may_write_is_refused(
+    tmp_path: Path, run: RunMain, started: list[dict[str, Any]]
+) -> None:
+    """The master key (and its epochs record beside it) no one else may replace either; and
+    ``canergy grant`` checks its --state as the supervisor does."""
+    keys = tmp_path / "keys"
+    keys.mkdir()
+    assert run(["keys", "-o", str(keys / "m.key")])[0] == 0
+    keys.chmod(0o777)
+    state = str(tmp_path / "s.json")
+    _refused(*run(_supervisor("--state", state, "--auth", str(keys / "m.key"))), f"--auth {keys}")
+    grant = ["grant", "-i", "virtual", "-c", "g", "--node", "1", "--amount", "1J", "--no-fsync"]
+    _refused(*run([*grant, "--state", str(keys / "s.json")]), f"chmod go-w {keys}")
+    assert not started

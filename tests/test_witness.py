@@ -15,11 +15,17 @@ import pytest
 from support.harness import Harness
 from support.intrusion_bench import Bench, bench
 
+from canergy.cli import build_parser
 from canergy.codec import Codec
 from canergy.core import Supervisor
 from canergy.live.runtime import monotonic_us
 from canergy.live.supervisor.service import JOIN_HOLD_US, ServiceConfig, SupervisorService
-from canergy.live.supervisor.witness import WITNESS_GAP_US, WITNESS_REPORT_AT, ReturnGate
+from canergy.live.supervisor.witness import (
+    RETURN_HOLD_MIN_US,
+    WITNESS_GAP_US,
+    WITNESS_REPORT_AT,
+    ReturnGate,
+)
 from canergy.messages import (
     Intention,
     Join,
@@ -120,6 +126,42 @@ def test_returns_acknowledged_by_someone_else_resynchronise_at_0_mj() -> None:
     gate.telemetry(tel(3), 1, 10_000)
     assert gate.release(1, 1, 10_000 + HOLD) == [Return(1, 2, 0), Return(1, 3, 800)]
     assert gate.status(1)["returns_resynchronised"] == 1
+
+
+@pytest.mark.parametrize(
+    "command", [["supervisor", "--nodes", "1"], ["gateway", "--node", "9", "--nodes", "1"]]
+)
+def test_a_return_hold_too_short_for_the_node_to_refute_is_refused(
+    command: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """rv3 F4: ``--return-hold 1ms`` credited a forged RETURN before the node's report (3 ms
+    later) arrived. Below ``RETURN_HOLD_MIN_US`` (100 ms) the flag and the typed config refuse."""
+    base = [*command, "--state", "s.json"]
+    for short in ("1ms", "99.999ms"):
+        with pytest.raises(SystemExit) as exit_:
+            build_parser().parse_args([*base, "--return-hold", short])
+        assert exit_.value.code == 2
+        err = capsys.readouterr().err.splitlines()[-1]
+        assert "--return-hold" in err and "less than 100ms" in err, err
+    args = build_parser().parse_args([*base, "--return-hold", "100ms"])
+    assert args.return_hold == RETURN_HOLD_MIN_US == 100_000
+    with pytest.raises(ValueError, match="less than 100000"):
+        ServiceConfig(return_hold_us=RETURN_HOLD_MIN_US - 1)
+    assert ServiceConfig(return_hold_us=RETURN_HOLD_MIN_US).return_hold_us == 100_000
+    assert ServiceConfig().return_hold_us is None  # with a key: no hold
+
+
+def test_the_least_hold_outlasts_the_refutation_of_rv3() -> None:
+    """rv3's experiment: a forged RETURN of 65.535 J and a forged TELEMETRY confirming it, the
+    node's refutation 3 ms later. The least hold still holds it at the supervisor's next passes,
+    and the refutation drops it."""
+    gate = ReturnGate(RETURN_HOLD_MIN_US, 10_000_000)
+    gate.telemetry(tel(0), 0, 0)
+    gate.hold(Return(1, 1, 65_535), 0, 1_000)  # forged
+    gate.telemetry(tel(1), 0, 2_000)  # forged confirmation
+    assert gate.release(1, 0, 3_000) == []
+    evidence, _ = gate.telemetry(tel(0, witness=2), 0, 5_000)  # the node's refutation
+    assert evidence and gate.release(1, 0, 10 * RETURN_HOLD_MIN_US) == []
 
 
 def test_the_service_credits_a_resynchronised_return_and_reports_the_gap() -> None:

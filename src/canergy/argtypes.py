@@ -89,19 +89,40 @@ def milliseconds(text: str) -> int:
     return _positive(argument(lambda t: parse_duration(t, plain="ms"), text), text)
 
 
+def duration_at_least(low_us: int) -> Callable[[str], int]:
+    """A duration as for ``duration``, at least ``low_us``."""
+
+    def parse(text: str) -> int:
+        value = duration(text)
+        if value < low_us:
+            raise argparse.ArgumentTypeError(
+                f"{_shown(text)} is less than {format_duration(low_us)}, the least allowed"
+            )
+        return value
+
+    return parse
+
+
 _DURATION_SYNTAX = "e.g. 50ms, 1.5s, 2min or plain seconds, at most a week"
 
 
 def add_duration(
-    parser: argparse.ArgumentParser | argparse._ArgumentGroup, flag: str, default_us: int, what: str
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    flag: str,
+    default_us: int,
+    what: str,
+    *,
+    low_us: int | None = None,
 ) -> None:
-    """A duration option (µs in the namespace) whose help shows its default with its unit."""
+    """A duration option (µs in the namespace) whose help shows its default with its unit;
+    ``low_us``: the least it may be (shown in the help too)."""
+    least = "" if low_us is None else f"at least {format_duration(low_us)}, "
     parser.add_argument(
         flag,
-        type=duration,
+        type=duration if low_us is None else duration_at_least(low_us),
         default=default_us,
         metavar="TIME",
-        help=f"{what} (default {format_duration(default_us)}; {_DURATION_SYNTAX})",
+        help=f"{what} (default {format_duration(default_us)}; {least}{_DURATION_SYNTAX})",
     )
 
 

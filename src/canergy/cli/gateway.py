@@ -34,7 +34,7 @@ from canergy.codec import Codec
 from canergy.core.gateway import Gateway
 from canergy.core.state import Phase
 from canergy.faults import FaultInjector, FaultProfile
-from canergy.live.atomic import kept_by
+from canergy.live.atomic import kept_by, warn_no_fsync
 from canergy.live.bus_group import BusGroup
 from canergy.live.gateway.process import GatewayFiles, Uplink, UplinkConfig
 from canergy.live.gateway.state import load_gateway
@@ -44,6 +44,7 @@ from canergy.live.supervisor.build import ASK_IT, SupervisorConfig, build_superv
 from canergy.live.supervisor.policy import TopUp
 from canergy.live.supervisor.service import ServiceConfig
 from canergy.live.supervisor.state_file import keep_books
+from canergy.live.supervisor.witness import RETURN_HOLD_MIN_US
 from canergy.messages import QUANTUM_UJ, Direction
 
 UP = "upstream"
@@ -138,7 +139,8 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         500_000,
         "without --auth: credit a node's RETURN only once its own TELEMETRY confirms it and this "
         "long has passed with no report of frames in its name (a forged RETURN is refuted, "
-        "never credited)",
+        "never credited; shorter, the node could not refute one in time)",
+        low_us=RETURN_HOLD_MIN_US,
     )
     p.set_defaults(run=run)
 
@@ -343,6 +345,7 @@ def run(args: argparse.Namespace) -> int:
             counters=up_counters,
         )
         group = BusGroup([up, built.loop])
+        warn_no_fsync("canergy gateway", args.no_fsync)
         serve_supervisor(group, built.service, built.control)
     finally:
         if group is not None:

@@ -22,6 +22,7 @@ from canergy.cli.shared.live import (
 )
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
+from canergy.live.atomic import warn_no_fsync
 from canergy.live.runtime import monotonic_us
 from canergy.live.serve import serve_supervisor
 from canergy.live.supervisor.build import SupervisorConfig, build_supervisor, open_core
@@ -112,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
         built = build_supervisor(config, [bus], core=core)
         service = built.service
         service.request_grant(args.node, args.amount, answers.append)
+        warn_no_fsync("canergy grant", args.no_fsync)
         serve_supervisor(
             built.loop, service, None, until=lambda: bool(answers) or monotonic_us() > deadline
         )

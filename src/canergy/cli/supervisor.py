@@ -38,6 +38,7 @@ from canergy.cli.shared.odrive import add_odrive_flags, check_odrive, odrive_axe
 from canergy.cli.summaries import SUMMARIES
 from canergy.codec import Codec
 from canergy.core.supervisor import SupervisorCore
+from canergy.live.atomic import warn_no_fsync
 from canergy.live.serve import serve_supervisor
 from canergy.live.supervisor.build import (
     CanopenConfig,
@@ -56,6 +57,7 @@ from canergy.live.supervisor.multi_bus import (
 )
 from canergy.live.supervisor.policy import TopUp
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.witness import RETURN_HOLD_MIN_US
 from canergy.messages import QUANTUM_UJ
 
 EXIT_INTRUSION = 3
@@ -111,7 +113,8 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         500_000,
         "without --auth: credit a RETURN only once the node's own TELEMETRY confirms it and this "
         "long has passed with no report of frames in its name (a forged RETURN is refuted, "
-        "never credited)",
+        "never credited; shorter, the node could not refute one in time)",
+        low_us=RETURN_HOLD_MIN_US,
     )
     p.add_argument(
         "--canopen",
@@ -185,6 +188,7 @@ def _by_id(bus: int, node: int) -> bytes:
 
 
 def _announce(args: argparse.Namespace, service: SupervisorService) -> None:
+    warn_no_fsync("canergy supervisor", args.no_fsync)
     if service.injected_this_run:
         st, added = service.core.state, joules(service.injected_this_run)
         print(

@@ -7,6 +7,8 @@ import contextlib
 import gc
 import json
 import os
+import stat
+import sys
 import weakref
 from collections.abc import Callable
 from pathlib import Path
@@ -25,6 +27,45 @@ def check_writable_dir(path: Path, what: str) -> None:
         raise PermissionError(f"cannot write {what} {path}: directory {folder} is not writable")
     if path.is_dir():
         raise IsADirectoryError(f"cannot write {what} {path}: it is a directory")
+
+
+NO_FSYNC_WARNING = (
+    "--no-fsync: records are not synced to disk; a power cut can leave an older image of them, "
+    "which this run's promises no longer cover (for tests only)"
+)
+
+
+def warn_no_fsync(prog: str, no_fsync: bool) -> None:
+    """Say on stderr, once at start, that this run's records are not synced (``--no-fsync``)."""
+    if no_fsync:
+        print(f"{prog}: warning: {NO_FSYNC_WARNING}", file=sys.stderr, flush=True)
+
+
+def check_private_dir(path: Path, what: str) -> None:
+    """Fail, naming ``what`` and the directory, if someone other than root and this user could
+    replace or roll back ``path`` (as sshd's StrictModes): its directory, or one above it, is
+    writable by group or others without the sticky bit (``/tmp`` is fine), or belongs to another
+    user. A writer of the directory can rename an old copy over the file, or (without a key) an
+    edited one."""
+    me = os.geteuid()
+    folder = Path(os.path.abspath(path)).parent
+    seen: set[Path] = set()
+    for top in (folder, folder.resolve()):
+        for d in (top, *top.parents):
+            if d in seen:
+                continue
+            seen.add(d)
+            st = os.stat(d)
+            if st.st_uid not in (0, me):
+                raise PermissionError(
+                    f"{what} {path}: directory {d} belongs to user {st.st_uid}, who can replace "
+                    "or roll back the file; use a directory of root's or your own"
+                )
+            if st.st_mode & (stat.S_IWGRP | stat.S_IWOTH) and not st.st_mode & stat.S_ISVTX:
+                raise PermissionError(
+                    f"{what} {path}: directory {d} (mode {stat.S_IMODE(st.st_mode):04o}) is "
+                    f"writable by others, who can replace or roll back the file; chmod go-w {d}"
+                )
 
 
 def same_file(a: Path, b: Path) -> bool:

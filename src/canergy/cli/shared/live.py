@@ -13,7 +13,7 @@ from canergy.ccore.supervisor import missing
 from canergy.cli.shared.bus_flags import add_bus_flags
 from canergy.core import Timing
 from canergy.core.variants import RUNNABLE
-from canergy.live.atomic import check_writable_dir, same_file
+from canergy.live.atomic import check_private_dir, check_writable_dir, same_file
 from canergy.live.devices.on_stuck import parse_on_stuck
 from canergy.live.supervisor.build import AuthConfig, CoreConfig
 from canergy.live.supervisor.control import check_control_path
@@ -236,8 +236,9 @@ def auth_key(args: argparse.Namespace) -> Any:
 
 def check_state(args: argparse.Namespace, *, required: bool = True) -> None:
     """``--state`` is given (when ``required``); every file the run writes can be written, none
-    is another under a second name (nor a key file it reads), and ``--control`` replaces
-    nothing but a stale socket. Reads and writes nothing."""
+    is another under a second name (nor a key file it reads), ``--control`` replaces nothing but
+    a stale socket, and no one but root and this user can replace the state or a key file
+    (``check_private_dir``). Reads and writes nothing."""
     if args.state is None and required:
         raise ValueError(
             "--state PATH is required: without its non-volatile record a restarted supervisor "
@@ -272,6 +273,9 @@ def check_state(args: argparse.Namespace, *, required: bool = True) -> None:
         check_writable_dir(path, option)
         if option == "--control":
             check_control_path(path, option)
+    books = [("--state", args.state)] if args.state is not None else []
+    for option, path in (*books, *keys):  # the books and the keys that seal them
+        check_private_dir(path, option)
 
 
 def check_widths(args: argparse.Namespace) -> None:

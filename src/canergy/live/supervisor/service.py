@@ -50,7 +50,7 @@ from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.state_file import ENERGY_MAX_UJ
 from canergy.live.supervisor.status import Run, StatusReport
 from canergy.live.supervisor.telemetry import BEYOND_BOOKS, HeardTable
-from canergy.live.supervisor.witness import ReturnGate
+from canergy.live.supervisor.witness import RETURN_HOLD_MIN_US, ReturnGate
 from canergy.messages import (
     SEQ_BITS,
     Debit,
@@ -92,8 +92,9 @@ class ServiceConfig:
     without a MAC, with a bad one or a stale one are refused and counted, never a reason."""
     return_hold_us: int | None = None
     """Without a key: hold each RETURN until the node's own TELEMETRY confirms it and this long
-    has passed without the node reporting frames in its name (``canergy.live.supervisor.witness``);
-    None: credit at once (authenticated mode, where a RETURN carries a MAC)."""
+    has passed without the node reporting frames in its name (``canergy.live.supervisor.witness``),
+    at least ``RETURN_HOLD_MIN_US`` (less is a ``ValueError``: the node could not refute a forged
+    one in time); None: credit at once (authenticated mode, where a RETURN carries a MAC)."""
     witness_block_us: int = 10_000_000
     """No top-ups for a node this long after evidence against its TELEMETRY."""
     join_hold_us: int = JOIN_HOLD_US
@@ -108,6 +109,14 @@ class ServiceConfig:
     bus_names: tuple[str, ...] = ()
     """Several buses (``canergy supervisor --bus``): their names in order. The core's session
     keys are then ``bus index << 8 | node``, shown and saved as ``bus/node``."""
+
+    def __post_init__(self) -> None:
+        hold = self.return_hold_us
+        if hold is not None and hold < RETURN_HOLD_MIN_US:
+            raise ValueError(
+                f"return_hold_us {hold} is less than {RETURN_HOLD_MIN_US}: the node could not "
+                "refute a forged RETURN in time"
+            )
 
 
 class SupervisorService:
@@ -968,6 +977,7 @@ class SupervisorService:
             uptime_us=self.now - self.started_at,
             stopping=self.stopping,
             listen_only=self.config.listen_only,
+            fsync=self.config.fsync,
             injected_this_run=self.injected_this_run,
             granted_this_run=self.granted_total(),
             stopped_by_intrusion=self.stopped_by_intrusion,

@@ -28,6 +28,7 @@ class Run:
     uptime_us: int
     stopping: bool
     listen_only: bool
+    fsync: bool
     injected_this_run: int
     granted_this_run: int
     stopped_by_intrusion: bool
@@ -94,6 +95,7 @@ class StatusReport:
             "uptime_s": round(run.uptime_us / 1e6, 3),
             "stopping": run.stopping,
             "listen_only": run.listen_only,
+            "fsync": run.fsync,
             "initial_uj": st.initial,
             "injected_uj": st.injected,
             "injected_this_run_uj": run.injected_this_run,

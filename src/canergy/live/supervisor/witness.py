@@ -54,6 +54,15 @@ a 500 kbit/s bus carries). With the gap each sends at most one early report per 
 refutation still reaches the supervisor 10 ms after the forgery at the latest, well inside its
 RETURN and JOIN holds (500 ms by default)."""
 
+RETURN_HOLD_MIN_US = 100_000
+"""The least hold (``--return-hold``, ``ServiceConfig.return_hold_us``): the node must have the
+time to refute a forged RETURN, or a forged TELEMETRY confirming it. It reports at the frame that
+reveals the forgery (the emulated node in the loop pass that took it, the C node at its next
+poll), 0.2-40 ms on python-can's virtual bus on a loaded 2-core machine (docs/security.md), and
+at most ``WITNESS_GAP_US`` later after a report of its own: 100 ms is twice that, and twice the
+default response timeout (50 ms). A shorter hold lets a forged
+RETURN through before the genuine report arrives."""
+
 
 @dataclass(slots=True)
 class ClientWitness:

@@ -205,8 +205,13 @@ def test_supervisor_serves_grants_over_its_control_socket(tmp_path: Path, core: 
     ],
 )
 def test_bad_values_get_clear_errors(
-    argv: list[str], message: str, capsys: pytest.CaptureFixture[str]
+    argv: list[str],
+    message: str,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
 ) -> None:
+    monkeypatch.chdir(tmp_path)  # a refusal after the books are taken leaves their lock file
     try:
         code = main(argv)
     except SystemExit as exc:

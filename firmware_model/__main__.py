@@ -107,7 +107,9 @@ def build_parser() -> argparse.ArgumentParser:
 def _nv_path(args: argparse.Namespace, node: int, several: bool) -> Path:
     if not several:
         return Path(args.nv)
-    Path(args.nv).mkdir(parents=True, exist_ok=True)
+    # 0755 whatever the umask (a 002 umask would make it group-writable: refused as not private
+    # at the next start); the folders above it are the user's
+    Path(args.nv).mkdir(mode=0o755, parents=True, exist_ok=True)
     return Path(args.nv) / f"node-{node:03d}.nv"
 
 

@@ -334,3 +334,17 @@ def test_an_nv_record_in_a_folder_others_may_write_is_refused(
     (tmp_path / "d").chmod(0o1777)
     with pytest.raises(_Served):
         firmware.main([*argv, "-i", "virtual", "--no-fsync"])
+
+
+@pytest.mark.usefixtures("emulator")
+def test_the_nodes_folder_it_makes_is_private_whatever_the_umask(tmp_path: Path) -> None:
+    """Under a 002 umask (Ubuntu's for users) ``--nv nodes`` was made 0775, and the next start
+    refused its own folder as others may write it (rv3 F6's check)."""
+    old = os.umask(0o002)
+    try:
+        for _ in range(2):  # the second start takes the folder the first made
+            with pytest.raises(_Served):
+                firmware.main(["--nodes", "1-2", "--nv", "nodes", "-i", "virtual", "--no-fsync"])
+    finally:
+        os.umask(old)
+    assert (tmp_path / "nodes").stat().st_mode & 0o777 == 0o755

@@ -175,3 +175,47 @@ def test_a_flood_on_the_motors_bus_is_held_to_the_bound_and_stops_every_motor_fo
     assert refused_before is None
     assert guard.latched and "frames of the motors' bus lost" in str(guard.refused)
     assert host.bus_overflowed_told == host.bus_overflowed
+
+
+class _ShutBus(can.BusABC):
+    """An application's bus as SocketCAN's is once shut down: a send raises ValueError (its
+    socket's descriptor is -1), not a CanError."""
+
+    def __init__(self) -> None:
+        super().__init__(channel="shut")
+        self.shut = False
+        self.sent: list[can.Message] = []
+
+    def send(self, msg: can.Message, timeout: float | None = None) -> None:
+        if self.shut:
+            raise ValueError("file descriptor cannot be a negative integer (-1)")
+        self.sent.append(msg)
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        return None, False
+
+    def shutdown(self) -> None:
+        self.shut = True
+        super().shutdown()
+
+
+def test_what_the_motors_bus_brings_after_the_host_closed_is_not_forwarded() -> None:
+    """The supervisor's exit closes the links (the app's bus shut down) and then takes in what
+    they heard: forwarding a motor's reply to the shut bus ended a vcan run with 'error: file
+    descriptor cannot be a negative integer (-1)', exit 2, after the budget stop."""
+    bus = can.Bus(interface="virtual", channel=f"m-{uuid.uuid4().hex}")
+    app = _ShutBus()
+    route = MitGates([MitMotor(MOTOR, node=MOTOR)], monotonic_us())
+    host = MitHost(bus, app, route, Codec(), lambda: None, monotonic_us)
+    try:
+        reply = can.Message(arbitration_id=0x0, data=bytes(8), is_extended_id=False)
+        host.heard(reply)
+        host.pump(monotonic_us())
+        assert len(app.sent) == 1  # open: forwarded to the application
+        host.close()
+        host.heard(reply)
+        host.pump(monotonic_us())  # closed: kept from the shut bus
+    finally:
+        host.close()
+        bus.shutdown()
+    assert len(app.sent) == 1 and host.status()["to_app"] == 1

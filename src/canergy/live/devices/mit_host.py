@@ -182,7 +182,7 @@ class MitHost:
             up += self.route.unseen(lost_why, now)
         for frame in heard:
             up += self.route.from_bus(frame, now)
-            if not frame.is_error_frame:
+            if not frame.is_error_frame and not self.closed:  # closed: the app's bus is shut
                 self.to_app += 1
                 self._send(self.app, frame)
         for frame in app:

@@ -35,7 +35,6 @@ from canergy.core import (
 )
 from canergy.core.state import Phase
 from canergy.live.supervisor.intrusions import Intrusions, frame_text
-from canergy.live.supervisor.policy import quantize
 from canergy.live.supervisor.witness import WITNESS_GAP_US, ClientWitness
 from canergy.messages import (
     AMOUNT_MAX_MJ,
@@ -48,6 +47,7 @@ from canergy.messages import (
     Message,
     Telemetry,
     ToClient,
+    quantize,
 )
 from firmware_model.actuator import Actuator, PowerProfile
 from firmware_model.nvstore import NvStore

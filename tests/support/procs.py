@@ -39,9 +39,16 @@ class Procs:
         return (self.tmp / f"{name}.stderr").read_text(errors="replace")
 
     def stop(self, name: str, sig: int = signal.SIGTERM, timeout: float = 60) -> int:
+        """Signal it and wait; one that outlives ``timeout`` is killed before the test fails
+        (left running, a supervisor bridging two buses doubled the next test's frames)."""
         proc = self.procs.pop(name)
         proc.send_signal(sig)
-        return proc.wait(timeout)
+        try:
+            return proc.wait(timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(30)
+            raise
 
     def close(self) -> None:
         for proc in self.procs.values():

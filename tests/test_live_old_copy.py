@@ -23,6 +23,7 @@ from support.live_rig import Loop
 
 from canergy.auth.frames import AuthFailure, FrameAuth, Layout, expected_freshness
 from canergy.auth.keys import load_key
+from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.cli import main
 from canergy.codec import Codec
 from canergy.core import ClientState, Send, Supervisor, Timing
@@ -240,6 +241,28 @@ def test_a_forged_resume_is_refuted_by_the_nodes_report_and_credits_nothing() ->
     assert s.core.session(NODE).returned == 0 and s.core.session(NODE).returns_credited == 0
     assert s.intrusions.total >= 1
     assert s.status()["nodes"]["1"]["resume_waiting"] is False  # refuted: grants go on
+
+
+@pytest.mark.parametrize("core", ["python", "c"])
+def test_a_hardened_supervisor_takes_a_debit_for_what_its_rules_make_of_it(core: str) -> None:
+    """The hardened rules have no DEBIT (their table ignores it). A RESUME or a SYNC's counts
+    sent to a hardened supervisor, by a node on other rules or by anyone, must not be held as a
+    witnessed one is (which withheld the node's grants and reset the return number its reports
+    are judged by), nor counted as a resume or a node found behind: nothing moves."""
+    state = SupervisorState(
+        10 * UJ_PER_J, 9 * UJ_PER_J, sessions=(Session(NODE, delivered=UJ_PER_J),)
+    )
+    kind = Supervisor if core == "python" else CompiledSupervisor
+    rules = kind([NODE], 10 * UJ_PER_J, variant="hardened", timing=TIMING, state=state)
+    s = SupervisorService(rules, ServiceConfig(return_hold_us=HOLD), 0)
+    s.on_message(Telemetry(NODE, 1000, 0, 0, 0), 0)
+    before = s.core.session(NODE)
+    for now, debit in enumerate((resume(500), resume(0, 9), Debit.counts(NODE, 5, 1, 64)), 1):
+        assert s.on_message(debit, now * 1_000) == []
+    node = s.status()["nodes"]["1"]
+    assert node["resume_waiting"] is False and node["resumes"] == 0
+    assert node["found_behind"] == 0 and node["counts_ignored"] == 0
+    assert s.core.session(NODE) == before and s.intrusions.total == 0
 
 
 def test_a_genuine_resume_with_a_pending_return_is_credited_once_confirmed() -> None:

@@ -195,8 +195,9 @@ class SupervisorService:
             else make_gate(config.return_hold_us or 0, config.witness_block_us, hold)
         )
         """The witness (``witness.ReturnGate``): the compiled core's in C, else Python's."""
-        self.witnessed = (Phase.IDLE, Debit) in core.variant.supervisor.cells
-        """Rules that take DEBIT (``witnessed``): draws held, every node start confirmed."""
+        self.witnessed = core.variant.name == "witnessed"
+        """Rules that take DEBIT (``witnessed``): draws held, every node start confirmed. Every
+        table has a cell for DEBIT (tables are total); the others ignore it, and so does this."""
         self._resuming: int | None = None
         """The node whose RESUME the core is answering (its admission is no JOIN's)."""
         joining = (

@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from canergy.auth.keys import KEY_FILE_MAX, new_master, node_key_of, write_key
+from canergy.live.atomic import check_private_dir
 
 FIRMWARE = Path(__file__).resolve().parents[1] / "firmware"
 
@@ -298,3 +299,96 @@ def test_the_c_gateway_takes_a_master_key_of_its_own_below(c_gateway: Path, tmp_
     run = _run(c_gateway, tmp_path, "--nv", "g.nv", "--auth", "own.key")
     _refused(run, "canergy-gateway: error: --auth own.key: mode 0640 lets others read it")
     assert not (tmp_path / "g.nv").exists()
+
+
+# --- the --nv folder: no one else may replace or roll back the record -------------------------
+
+
+def _world_writable(tmp: Path) -> str:
+    (tmp / "d").mkdir(mode=0o700)
+    (tmp / "d").chmod(0o777)
+    return "d/n.nv"
+
+
+def _group_writable(tmp: Path) -> str:
+    (tmp / "d").mkdir(mode=0o700)
+    (tmp / "d").chmod(0o770)
+    return str(tmp / "d" / "n.nv")
+
+
+def _writable_above(tmp: Path) -> str:
+    (tmp / "open").mkdir(mode=0o700)
+    (tmp / "open").chmod(0o777)
+    (tmp / "open" / "d").mkdir(mode=0o700)
+    return str(tmp / "open" / "d" / "n.nv")
+
+
+def _writable_above_the_link_target(tmp: Path) -> str:
+    """The folder is private as written (a link in a private folder to a private folder), but
+    the link's target lies in a folder others may write: found once the link is resolved."""
+    _writable_above(tmp)
+    (tmp / "link").symlink_to(tmp / "open" / "d")
+    return "link/n.nv"
+
+
+def _writable_through_dot_dot(tmp: Path) -> str:
+    _world_writable(tmp)
+    return "nosuchdir/../d/n.nv"  # lexically tmp/d, as os.path.abspath makes it
+
+
+OPEN_FOLDERS = [
+    _world_writable,
+    _group_writable,
+    _writable_above,
+    _writable_above_the_link_target,
+    _writable_through_dot_dot,
+]
+
+
+def _python_refusal(nv: str, tmp: Path, monkeypatch: pytest.MonkeyPatch) -> str:
+    """What ``check_private_dir`` says of ``nv`` (relative to ``tmp``): the C line's text."""
+    monkeypatch.chdir(tmp)
+    with pytest.raises(PermissionError) as refused:
+        check_private_dir(Path(nv), "--nv")
+    return str(refused.value)
+
+
+@pytest.mark.parametrize("program", ["canergy-node", "canergy-gateway"])
+@pytest.mark.parametrize("folder", OPEN_FOLDERS, ids=lambda f: f.__name__[1:])
+def test_the_c_programs_refuse_an_nv_folder_others_may_write_as_python_does(
+    folder: Callable[[Path], str], program: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A writer of the folder (or of one above it) can rename an older record over the NV file:
+    refused before the bus is opened, in Python's words (``check_private_dir``)."""
+    binary = _built(f"build/{program}")
+    nv = folder(tmp_path)
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    run = _run(binary, tmp_path, "--nv", nv)
+    _refused(run, "is writable by others, who can replace or roll back the file; chmod go-w")
+    assert run.stderr == f"{program}: error: {_python_refusal(nv, tmp_path, monkeypatch)}\n"
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before  # nothing created
+
+
+@pytest.mark.parametrize("program", ["canergy-node", "canergy-gateway"])
+def test_the_c_programs_take_a_sticky_or_private_nv_folder(program: str, tmp_path: Path) -> None:
+    """A sticky folder (as /tmp) lets no one else rename over the file; a private one neither."""
+    binary = _built(f"build/{program}")
+    for name, mode in (("sticky", 0o1777), ("private", 0o700), ("readable", 0o755)):
+        (tmp_path / name).mkdir(mode=0o700)
+        (tmp_path / name).chmod(mode)
+        run = _run(binary, tmp_path, "--nv", f"{name}/n.nv")
+        assert run.returncode == 2 and "CAN socket" in run.stderr, run.stderr  # the bus
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="giving a folder away needs root")
+@pytest.mark.parametrize("program", ["canergy-node", "canergy-gateway"])
+def test_the_c_programs_refuse_an_nv_folder_of_another_user(
+    program: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    binary = _built(f"build/{program}")
+    (tmp_path / "theirs").mkdir(mode=0o755)
+    os.chown(tmp_path / "theirs", 54321, -1)
+    run = _run(binary, tmp_path, "--nv", "theirs/n.nv")
+    _refused(run, f"directory {tmp_path / 'theirs'} belongs to user 54321")
+    expected = _python_refusal("theirs/n.nv", tmp_path, monkeypatch)
+    assert run.stderr == f"{program}: error: {expected}\n"

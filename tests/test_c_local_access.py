@@ -14,33 +14,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from support.firmware_build import built
+from support.firmware_build import c_gateway as c_gateway  # the fixtures
+from support.firmware_build import c_node as c_node
 
 from canergy.auth.keys import KEY_FILE_MAX, new_master, node_key_of, write_key
 from canergy.live.atomic import check_private_dir
-
-FIRMWARE = Path(__file__).resolve().parents[1] / "firmware"
-
-
-def _built(target: str) -> Path:
-    """A binary, rebuilt when its sources changed (make); a failed build fails loudly."""
-    build = subprocess.run(
-        ["make", "-s", "-C", str(FIRMWARE), target],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert build.returncode == 0, f"make {target} failed:\n{build.stdout}{build.stderr}"
-    return FIRMWARE / target
-
-
-@pytest.fixture(scope="module")
-def c_node() -> Path:
-    return _built("build/canergy-node")
-
-
-@pytest.fixture(scope="module")
-def c_gateway() -> Path:
-    return _built("build/canergy-gateway")
 
 
 def _run(binary: Path, tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
@@ -158,7 +137,7 @@ SAME = [
 def test_the_c_programs_refuse_nv_and_status_file_naming_one_file(
     same: Callable[[Path], tuple[str, str]], program: str, tmp_path: Path
 ) -> None:
-    binary = _built(f"build/{program}")
+    binary = built(f"build/{program}")
     nv, status = same(tmp_path)
     before = sorted(p.name for p in tmp_path.rglob("*"))
     run = _run(binary, tmp_path, "--nv", nv, "--status-file", status)
@@ -168,7 +147,7 @@ def test_the_c_programs_refuse_nv_and_status_file_naming_one_file(
 
 @pytest.mark.parametrize("program", ["canergy-node", "canergy-gateway"])
 def test_the_c_programs_accept_two_files_that_only_look_alike(program: str, tmp_path: Path) -> None:
-    binary = _built(f"build/{program}")
+    binary = built(f"build/{program}")
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     (tmp_path / "a" / "n.nv").write_bytes(b"")
@@ -360,7 +339,7 @@ def test_the_c_programs_refuse_an_nv_folder_others_may_write_as_python_does(
 ) -> None:
     """A writer of the folder (or of one above it) can rename an older record over the NV file:
     refused before the bus is opened, in Python's words (``check_private_dir``)."""
-    binary = _built(f"build/{program}")
+    binary = built(f"build/{program}")
     nv = folder(tmp_path)
     before = sorted(p.name for p in tmp_path.rglob("*"))
     run = _run(binary, tmp_path, "--nv", nv)
@@ -372,7 +351,7 @@ def test_the_c_programs_refuse_an_nv_folder_others_may_write_as_python_does(
 @pytest.mark.parametrize("program", ["canergy-node", "canergy-gateway"])
 def test_the_c_programs_take_a_sticky_or_private_nv_folder(program: str, tmp_path: Path) -> None:
     """A sticky folder (as /tmp) lets no one else rename over the file; a private one neither."""
-    binary = _built(f"build/{program}")
+    binary = built(f"build/{program}")
     for name, mode in (("sticky", 0o1777), ("private", 0o700), ("readable", 0o755)):
         (tmp_path / name).mkdir(mode=0o700)
         (tmp_path / name).chmod(mode)
@@ -385,7 +364,7 @@ def test_the_c_programs_take_a_sticky_or_private_nv_folder(program: str, tmp_pat
 def test_the_c_programs_refuse_an_nv_folder_of_another_user(
     program: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    binary = _built(f"build/{program}")
+    binary = built(f"build/{program}")
     (tmp_path / "theirs").mkdir(mode=0o755)
     os.chown(tmp_path / "theirs", 54321, -1)
     run = _run(binary, tmp_path, "--nv", "theirs/n.nv")

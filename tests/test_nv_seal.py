@@ -21,6 +21,8 @@ import pytest
 from cryptography.hazmat.primitives.ciphers import algorithms
 from cryptography.hazmat.primitives.cmac import CMAC
 from support.c_binding import NvState, Struct, cbuf, library, ref, struct_bytes
+from support.firmware_build import c_gateway as c_gateway  # the fixtures
+from support.firmware_build import c_node as c_node
 
 import firmware_model.__main__ as firmware
 from canergy.auth.keys import Key, new_master, node_key_of, write_key
@@ -38,7 +40,6 @@ from firmware_model.nvstore import (
     pack_record,
 )
 
-FIRMWARE = Path(__file__).resolve().parents[1] / "firmware"
 Cmac = Struct("cmac")
 MASTER = new_master(1)
 KEY1, KEY2 = node_key_of(MASTER, 1), node_key_of(MASTER, 2)
@@ -190,24 +191,6 @@ def test_without_a_key_nothing_changes_and_a_sealed_file_is_refused(tmp_path: Pa
 
 
 # --- the C node's and gateway's processes -----------------------------------------------------
-
-
-def _built(target: str) -> Path:
-    build = subprocess.run(
-        ["make", "-s", "-C", str(FIRMWARE), target], capture_output=True, text=True, timeout=600
-    )
-    assert build.returncode == 0, f"make {target} failed:\n{build.stdout}{build.stderr}"
-    return FIRMWARE / target
-
-
-@pytest.fixture(scope="module")
-def c_node() -> Path:
-    return _built("build/canergy-node")
-
-
-@pytest.fixture(scope="module")
-def c_gateway() -> Path:
-    return _built("build/canergy-gateway")
 
 
 def _key_file(tmp: Path, key: Key, name: str = "n1.key") -> str:

@@ -34,3 +34,20 @@ def c_node() -> Path:
 @pytest.fixture(scope="module")
 def c_gateway() -> Path:
     return built("build/canergy-gateway")
+
+
+def run_without_bus(binary: Path, tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
+    """The node (node 1) or the gateway (node 1 above, node 2 below) run in ``tmp`` on buses
+    that do not exist: what it refuses before it opens one, or (exit 2) the CAN socket."""
+    if binary.name == "canergy-gateway":
+        bus = ["--nodes", "2", "-c", "nosuchcan0", "--upstream-channel", "nosuchcan1"]
+    else:
+        bus = ["-i", "socketcan", "-c", "nosuchcan0"]
+    argv = [str(binary), "--node", "1", *bus, *args]
+    return subprocess.run(argv, capture_output=True, text=True, timeout=10, cwd=tmp)
+
+
+def refused(run: subprocess.CompletedProcess[str], words: str) -> None:
+    """``run`` ended with exit 2 and one line on stderr that says ``words``."""
+    assert run.returncode == 2, run.stderr
+    assert run.stderr.count("\n") == 1 and words in run.stderr, run.stderr

@@ -13,17 +13,18 @@ from __future__ import annotations
 
 import subprocess
 from collections.abc import Sequence
-from itertools import pairwise
 from pathlib import Path
 
 import can
 import pytest
-from test_c_gateway_port_below import FIRMWARE, ROOT, WARN, rx
+from support.firmware_build import GATEWAY_PORT
+from support.firmware_build import harness as built_harness
+from test_c_gateway_port_below import rx
+from test_duplicate_id import DURATION_US, LATENCY_US, PERIOD_US, at_the_bound, storm
 from test_witness import Wire
 
 from canergy.codec import Codec
-from canergy.core import Supervisor
-from canergy.core.gateway import Gateway
+from canergy.core import Supervisor, gateway
 from canergy.live.gateway.process import GatewayFiles, Uplink, UplinkConfig
 from canergy.live.supervisor.service import JOIN_HOLD_US, ServiceConfig, SupervisorService
 from canergy.live.supervisor.witness import (
@@ -36,22 +37,15 @@ from canergy.messages import Join, Message, Return, Telemetry
 CODEC = Codec()
 UP = 20
 """The gateways' id above."""
-PERIOD_US = 100_000
-LATENCY_US = 250
-"""A frame reaches the other gateway this long after it left (about one frame at 500 kbit/s)."""
-DURATION_US = 2_000_000
-TELEMETRY = 0xD
 
 
 def _uplink(node: int = UP) -> Uplink:
-    gateway = Gateway(node, (1, 2))
-    return Uplink(
-        gateway, UplinkConfig(telemetry_period_us=PERIOD_US), GatewayFiles(gateway, None), 0
-    )
+    core = gateway.Gateway(node, (1, 2))
+    return Uplink(core, UplinkConfig(telemetry_period_us=PERIOD_US), GatewayFiles(core, None), 0)
 
 
-class Board:
-    """One Python gateway's leg above, every frame it sends kept with its time."""
+class Gateway:
+    """One Python gateway's leg above, every frame it sends kept with its time (a ``Board``)."""
 
     def __init__(self, nonce: int) -> None:
         self.up = _uplink()
@@ -80,35 +74,16 @@ class Board:
         return [t for t, m in self.sent if isinstance(m, Telemetry)]
 
 
-def storm(a: Board, b: Board, until: int) -> None:
-    """Every frame one gateway sends reaches the other ``LATENCY_US`` later; time jumps from
-    one event to the next."""
-    wire: list[tuple[int, Board, Message]] = []
-    now = 0
-    while now <= until:
-        for item in [w for w in wire if w[0] <= now]:
-            wire.remove(item)
-            to = item[1]
-            other = b if to is a else a
-            wire += [(now + LATENCY_US, other, m) for m in to.frame(item[2], now)]
-        for board, other in ((a, b), (b, a)):
-            if board.next_wakeup() <= now:
-                wire += [(now + LATENCY_US, other, m) for m in board.wakeup(now)]
-        now = max(now + 1, min([w[0] for w in wire] + [a.next_wakeup(), b.next_wakeup()]))
-
-
 def test_two_python_gateways_on_one_id_report_at_most_once_a_gap() -> None:
     """Each gateway reports the other's frames as frames in its name, a gap after its own last
     TELEMETRY: the storm runs at its bound (one TELEMETRY per ``WITNESS_GAP_US`` a gateway),
     no faster; without the gap it ran at one frame per ``LATENCY_US`` (4,000/s a gateway)."""
-    a, b = Board(0x1111), Board(0x2222)
+    a, b = Gateway(0x1111), Gateway(0x2222)
     storm(a, b, DURATION_US)
-    bound = DURATION_US // WITNESS_GAP_US + 1  # + its boot report
-    for board in (a, b):
-        times = board.telemetry_times()
-        assert bound * 9 // 10 <= len(times) <= bound  # the storm, held at its bound
-        assert min(t1 - t0 for t0, t1 in pairwise(times)) >= WITNESS_GAP_US
-        assert board.up.witnessing.count > len(times) // 2  # it did see the other's frames
+    bound = at_the_bound(a.telemetry_times())
+    assert a.up.witnessing.count > bound // 2  # it did see the other's frames
+    at_the_bound(b.telemetry_times())
+    assert b.up.witnessing.count > bound // 2
     assert len(a.sent) + len(b.sent) <= 3 * bound  # its JOINs besides
 
 
@@ -188,23 +163,12 @@ def test_a_forged_join_right_after_the_gateways_report_writes_nothing_off() -> N
 
 # --- the C gateway's leg above ------------------------------------------------------------------
 
-PORT = ["gateway_above.c", "gateway_below.c", "gateway_report.c", "gateway_storage.c"]
-PORT += ["args.c", "keyfile.c", "paths.c", "socketcan.c", "system.c"]
-
 
 @pytest.fixture(scope="module")
 def harness(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The harness built with the library and the port's warnings, under ASan and UBSan."""
-    binary = tmp_path_factory.mktemp("harness") / "gateway-above"
-    sources = [str(ROOT / "tests/support/gateway_above_harness.c")]
-    sources += [str(FIRMWARE / "ports/linux" / name) for name in PORT]
-    sources += sorted(str(p) for p in (FIRMWARE / "src").glob("*.c"))
-    include = ["-I", str(FIRMWARE / "include"), "-I", str(FIRMWARE / "ports/linux")]
-    asan = ["-g", "-fsanitize=address,undefined", "-fno-sanitize-recover=all"]
-    cmd = ["cc", *WARN, "-O1", *asan, "-DCANERGY_SUPERVISOR_NODES=127U", *include, *sources]
-    built = subprocess.run([*cmd, "-o", str(binary)], capture_output=True, text=True, timeout=300)
-    assert built.returncode == 0, built.stderr
-    return binary
+    """The harness (the bus above) built under ASan and UBSan."""
+    port = ["gateway_above.c", "gateway_below.c", *GATEWAY_PORT]
+    return built_harness("gateway_above_harness", tmp_path_factory.mktemp("harness"), port)
 
 
 def _c_reports(harness: Path, tmp: Path, script: list[str]) -> list[tuple[int, Telemetry]]:
@@ -240,10 +204,7 @@ def test_the_c_gateway_answers_a_storm_in_its_name_at_most_once_a_gap(
     for k in range(DURATION_US // LATENCY_US):
         script += [f"at {1 + LATENCY_US * (k + 1)}", _forged_telemetry()]
     reports = _c_reports(harness, tmp_path, script)
-    times = [t for t, _ in reports]
-    bound = DURATION_US // WITNESS_GAP_US + 1  # + its boot report
-    assert bound * 9 // 10 <= len(times) <= bound
-    assert min(t1 - t0 for t0, t1 in pairwise(times)) >= WITNESS_GAP_US
+    at_the_bound([t for t, _ in reports])
     assert all(m.witness for _, m in reports[1:])  # each one reports the storm
 
 

@@ -51,3 +51,28 @@ def refused(run: subprocess.CompletedProcess[str], words: str) -> None:
     """``run`` ended with exit 2 and one line on stderr that says ``words``."""
     assert run.returncode == 2, run.stderr
     assert run.stderr.count("\n") == 1 and words in run.stderr, run.stderr
+
+
+WARN = ["-std=c99", "-Wall", "-Wextra", "-Wpedantic", "-Wconversion", "-Wshadow", "-Wcast-qual"]
+WARN += ["-Wstrict-prototypes", "-Wmissing-prototypes", "-Wundef", "-Werror"]
+"""firmware/Makefile's WARN."""
+GATEWAY_PORT = ["gateway_report.c", "gateway_storage.c", "args.c", "keyfile.c", "paths.c"]
+GATEWAY_PORT += ["socketcan.c", "system.c"]
+"""canergy-gateway's files (ports/linux) but main's (canergy_gateway.c) and its two buses'."""
+
+
+def harness(name: str, directory: Path, port: list[str]) -> Path:
+    """``directory/NAME``: tests/support/NAME.c, a main() for the port's files ``port``
+    (ports/linux) with harness_can.c, built with the library (room for 127 nodes below) and the
+    port's warnings under ASan and UBSan; a build that fails fails the test loudly."""
+    support = FIRMWARE.parent / "tests" / "support"
+    sources = [str(support / f"{name}.c"), str(support / "harness_can.c")]
+    sources += [str(FIRMWARE / "ports/linux" / file) for file in port]
+    sources += sorted(str(p) for p in (FIRMWARE / "src").glob("*.c"))
+    include = ["-I", str(FIRMWARE / "include"), "-I", str(FIRMWARE / "ports/linux")]
+    asan = ["-g", "-fsanitize=address,undefined", "-fno-sanitize-recover=all"]
+    cmd = ["cc", *WARN, "-O1", *asan, "-DCANERGY_SUPERVISOR_NODES=127U", *include, *sources]
+    binary = directory / name
+    build = subprocess.run([*cmd, "-o", str(binary)], capture_output=True, text=True, timeout=300)
+    assert build.returncode == 0, build.stderr
+    return binary

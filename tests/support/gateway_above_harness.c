@@ -13,8 +13,8 @@
 #define _GNU_SOURCE 1
 
 #include "gateway_port.h"
+#include "harness_can.h"
 
-#include <linux/can.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -22,38 +22,6 @@
 #include <unistd.h>
 
 const char *const port_prog = "canergy-gateway";
-
-static void sent_above(int sock, uint64_t now)
-{
-    struct canfd_frame cf;
-    ssize_t n;
-    while ((n = recv(sock, &cf, sizeof cf, MSG_DONTWAIT)) > 0) {
-        const unsigned id = (unsigned)(cf.can_id & CAN_EFF_MASK);
-        (void)printf("tx %llu %08X#", (unsigned long long)now, id);
-        for (unsigned i = 0U; i < cf.len; i++) {
-            (void)printf("%02X", (unsigned)cf.data[i]);
-        }
-        (void)printf("\n");
-    }
-}
-
-static void frame_in(int sock, const char *text)
-{
-    struct canfd_frame cf;
-    memset(&cf, 0, sizeof cf);
-    char *end = NULL;
-    cf.can_id = (canid_t)strtoul(text, &end, 16) | CAN_EFF_FLAG;
-    const char *hex = end != NULL && *end == '#' ? end + 1 : "";
-    while (cf.len < CANFD_MAX_DLEN && hex[0] != '\0' && hex[0] != '\n' && hex[1] != '\0') {
-        const char byte[3] = {hex[0], hex[1], '\0'};
-        cf.data[cf.len++] = (uint8_t)strtoul(byte, NULL, 16);
-        hex += 2;
-    }
-    const size_t size = cf.len > CAN_MAX_DLEN ? CANFD_MTU : CAN_MTU;
-    if (send(sock, &cf, size, 0) != (ssize_t)size) {
-        exit(3);
-    }
-}
 
 /* What main()'s loop does above on each pass: the frames from above, the client's timer, the
  * TELEMETRY when due; then what left is printed. */
@@ -64,7 +32,9 @@ static void pass(struct gateway_port *g, int peer, uint64_t now)
     if (now >= g->next_telemetry) {
         gw_telemetry(g, now);
     }
-    sent_above(peer, now);
+    char label[32];
+    (void)snprintf(label, sizeof label, "tx %llu", (unsigned long long)now);
+    harness_print_sent(peer, label);
 }
 
 int main(int argc, char **argv)
@@ -89,7 +59,7 @@ int main(int argc, char **argv)
         if (strncmp(line, "at ", 3U) == 0) {
             now = strtoull(&line[3], NULL, 10);
         } else if (strncmp(line, "rx ", 3U) == 0) {
-            frame_in(up[1], &line[3]);
+            harness_frame_in(up[1], &line[3]);
         }
         pass(&g, up[1], now);
     }

@@ -19,35 +19,25 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from support.firmware_build import GATEWAY_PORT
+from support.firmware_build import harness as built_harness
 
 from canergy.auth.keys import new_master, write_key
 from canergy.codec import Codec
 from canergy.live.supervisor.joins import JOIN_HOLD_US
 from canergy.messages import Commit, Join, Message, Return, Telemetry
 
-ROOT = Path(__file__).resolve().parents[1]
-FIRMWARE = ROOT / "firmware"
-WARN = ["-std=c99", "-Wall", "-Wextra", "-Wpedantic", "-Wconversion", "-Wshadow", "-Wcast-qual"]
-WARN += ["-Wstrict-prototypes", "-Wmissing-prototypes", "-Wundef", "-Werror"]
-"""firmware/Makefile's WARN."""
-PORT = ["gateway_below.c", "gateway_report.c", "gateway_storage.c", "args.c", "keyfile.c"]
-PORT += ["paths.c", "socketcan.c", "system.c"]
 CODEC = Codec()
 
 
 @pytest.fixture(scope="module")
 def harness(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The harness built with the library and the port's warnings, under ASan and UBSan."""
-    binary = tmp_path_factory.mktemp("harness") / "gateway-below"
-    sources = [str(ROOT / "tests/support/gateway_below_harness.c")]
-    sources += [str(FIRMWARE / "ports/linux" / name) for name in PORT]
-    sources += sorted(str(p) for p in (FIRMWARE / "src").glob("*.c"))
-    include = ["-I", str(FIRMWARE / "include"), "-I", str(FIRMWARE / "ports/linux")]
-    asan = ["-g", "-fsanitize=address,undefined", "-fno-sanitize-recover=all"]
-    cmd = ["cc", *WARN, "-O1", *asan, "-DCANERGY_SUPERVISOR_NODES=127U", *include, *sources]
-    built = subprocess.run([*cmd, "-o", str(binary)], capture_output=True, text=True, timeout=300)
-    assert built.returncode == 0, built.stderr
-    return binary
+    """The harness (the bus below) built under ASan and UBSan."""
+    return built_harness(
+        "gateway_below_harness",
+        tmp_path_factory.mktemp("harness"),
+        ["gateway_below.c", *GATEWAY_PORT],
+    )
 
 
 def rx(msg: Message) -> str:

@@ -9,54 +9,16 @@ the key). Everything here is refused before the bus is opened: no vcan0.
 from __future__ import annotations
 
 import os
-import subprocess
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from support.firmware_build import built, refused, run_without_bus
+from support.firmware_build import c_gateway as c_gateway  # the fixtures
+from support.firmware_build import c_node as c_node
 
 from canergy.auth.keys import KEY_FILE_MAX, new_master, node_key_of, write_key
-
-FIRMWARE = Path(__file__).resolve().parents[1] / "firmware"
-
-
-def _built(target: str) -> Path:
-    """A binary, rebuilt when its sources changed (make); a failed build fails loudly."""
-    build = subprocess.run(
-        ["make", "-s", "-C", str(FIRMWARE), target],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert build.returncode == 0, f"make {target} failed:\n{build.stdout}{build.stderr}"
-    return FIRMWARE / target
-
-
-@pytest.fixture(scope="module")
-def c_node() -> Path:
-    return _built("build/canergy-node")
-
-
-@pytest.fixture(scope="module")
-def c_gateway() -> Path:
-    return _built("build/canergy-gateway")
-
-
-def _run(binary: Path, tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    """The node (node 1) or the gateway (node 1 above, node 2 below) on buses that do not
-    exist."""
-    if binary.name == "canergy-gateway":
-        bus = ["--nodes", "2", "-c", "nosuchcan0", "--upstream-channel", "nosuchcan1"]
-    else:
-        bus = ["-i", "socketcan", "-c", "nosuchcan0"]
-    argv = [str(binary), "--node", "1", *bus, *args]
-    return subprocess.run(argv, capture_output=True, text=True, timeout=10, cwd=tmp)
-
-
-def _refused(run: subprocess.CompletedProcess[str], words: str) -> None:
-    assert run.returncode == 2, run.stderr
-    assert run.stderr.count("\n") == 1 and words in run.stderr, run.stderr
-
+from canergy.live.atomic import check_private_dir
 
 # --- item 11: key files -----------------------------------------------------------------------
 
@@ -95,8 +57,8 @@ def test_the_c_node_refuses_a_key_file_that_is_not_a_small_regular_file(
 ) -> None:
     make, words = BAD_KEYS[kind]
     key = make(tmp_path)
-    run = _run(c_node, tmp_path, "--nv", "n.nv", "--auth", str(key))
-    _refused(run, f"canergy-node: error: --auth {key}: {words}")
+    run = run_without_bus(c_node, tmp_path, "--nv", "n.nv", "--auth", str(key))
+    refused(run, f"canergy-node: error: --auth {key}: {words}")
     assert not (tmp_path / "n.nv").exists()
 
 
@@ -106,10 +68,10 @@ def test_the_c_node_still_reads_a_key_file_of_the_largest_size(
     """Past the key checks (the bus, which does not exist here, is what stops it)."""
     key = _node_key(tmp_path / "n1.key", KEY_FILE_MAX)
     assert key.stat().st_size == KEY_FILE_MAX
-    run = _run(c_node, tmp_path, "--nv", "n.nv", "--auth", str(key))
+    run = run_without_bus(c_node, tmp_path, "--nv", "n.nv", "--auth", str(key))
     assert run.returncode == 2 and "--auth" not in run.stderr, run.stderr
     key.chmod(0o640)
-    _refused(_run(c_node, tmp_path, "--nv", "n.nv", "--auth", str(key)), "chmod 600")
+    refused(run_without_bus(c_node, tmp_path, "--nv", "n.nv", "--auth", str(key)), "chmod 600")
 
 
 # --- item 12: --nv and --status-file ----------------------------------------------------------
@@ -157,24 +119,24 @@ SAME = [
 def test_the_c_programs_refuse_nv_and_status_file_naming_one_file(
     same: Callable[[Path], tuple[str, str]], program: str, tmp_path: Path
 ) -> None:
-    binary = _built(f"build/{program}")
+    binary = built(f"build/{program}")
     nv, status = same(tmp_path)
     before = sorted(p.name for p in tmp_path.rglob("*"))
-    run = _run(binary, tmp_path, "--nv", nv, "--status-file", status)
-    _refused(run, f"{program}: error: --nv {nv} and --status-file {status} name the same file")
+    run = run_without_bus(binary, tmp_path, "--nv", nv, "--status-file", status)
+    refused(run, f"{program}: error: --nv {nv} and --status-file {status} name the same file")
     assert sorted(p.name for p in tmp_path.rglob("*")) == before  # nothing created
 
 
 @pytest.mark.parametrize("program", ["canergy-node", "canergy-gateway"])
 def test_the_c_programs_accept_two_files_that_only_look_alike(program: str, tmp_path: Path) -> None:
-    binary = _built(f"build/{program}")
+    binary = built(f"build/{program}")
     (tmp_path / "a").mkdir()
     (tmp_path / "b").mkdir()
     (tmp_path / "a" / "n.nv").write_bytes(b"")
     (tmp_path / "b" / "n.nv").write_bytes(b"")  # same name, another directory
     (tmp_path / "dangling").symlink_to("elsewhere.json")
     for nv, status in (("a/n.nv", "b/n.nv"), ("n.nv", "dangling"), ("a/n.nv", "a/new.json")):
-        run = _run(binary, tmp_path, "--nv", nv, "--status-file", status)
+        run = run_without_bus(binary, tmp_path, "--nv", nv, "--status-file", status)
         assert run.returncode == 2 and "same file" not in run.stderr, run.stderr  # the bus
 
 
@@ -186,12 +148,14 @@ def test_the_c_node_refuses_its_key_file_named_as_its_nv_or_status_file(
     key = _node_key(tmp_path / "n1.key")
     (tmp_path / "alias.key").symlink_to("n1.key")
     os.link(key, tmp_path / "hard.key")
-    _refused(
-        _run(c_node, tmp_path, "--nv", "alias.key", "--auth", str(key)),
+    refused(
+        run_without_bus(c_node, tmp_path, "--nv", "alias.key", "--auth", str(key)),
         f"--nv alias.key and --auth {key} name the same file",
     )
-    _refused(
-        _run(c_node, tmp_path, "--nv", "n.nv", "--status-file", "hard.key", "--auth", "n1.key"),
+    refused(
+        run_without_bus(
+            c_node, tmp_path, "--nv", "n.nv", "--status-file", "hard.key", "--auth", "n1.key"
+        ),
         "--status-file hard.key and --auth n1.key name the same file",
     )
     assert key.read_text() == (tmp_path / "hard.key").read_text()
@@ -207,8 +171,8 @@ def test_the_c_gateway_refuses_an_upstream_key_file_that_is_not_a_small_regular_
 ) -> None:
     make, words = BAD_KEYS[kind]
     key = make(tmp_path)
-    run = _run(c_gateway, tmp_path, "--nv", "g.nv", "--upstream-auth", str(key))
-    _refused(run, f"canergy-gateway: error: --upstream-auth {key}: {words}")
+    run = run_without_bus(c_gateway, tmp_path, "--nv", "g.nv", "--upstream-auth", str(key))
+    refused(run, f"canergy-gateway: error: --upstream-auth {key}: {words}")
     assert not (tmp_path / "g.nv").exists()
 
 
@@ -223,19 +187,21 @@ def test_the_c_gateway_takes_only_its_own_node_key_above(c_gateway: Path, tmp_pa
         ("root.key", "a node takes its own node key, not the master key"),
         ("n2.key", "a key for node 2 cannot serve node 1"),
     ):
-        run = _run(c_gateway, tmp_path, "--nv", "g.nv", "--upstream-auth", name)
-        _refused(run, f"canergy-gateway: error: --upstream-auth {name}: {words}")
+        run = run_without_bus(c_gateway, tmp_path, "--nv", "g.nv", "--upstream-auth", name)
+        refused(run, f"canergy-gateway: error: --upstream-auth {name}: {words}")
     key = _node_key(tmp_path / "n1.key")
     for layout in ((), ("--upstream-fd",)):
-        run = _run(c_gateway, tmp_path, "--nv", "g.nv", "--upstream-auth", str(key), *layout)
+        run = run_without_bus(
+            c_gateway, tmp_path, "--nv", "g.nv", "--upstream-auth", str(key), *layout
+        )
         assert run.returncode == 2 and "--upstream-auth" not in run.stderr, run.stderr
         assert "CAN socket" in run.stderr  # past every check: the bus is what stops it
-    _refused(
-        _run(c_gateway, tmp_path, "--nv", "g.nv", "--upstream-fd"),
+    refused(
+        run_without_bus(c_gateway, tmp_path, "--nv", "g.nv", "--upstream-fd"),
         "argument --upstream-fd: only with --upstream-auth",
     )
-    _refused(
-        _run(c_gateway, tmp_path, "--nv", "n1.key", "--upstream-auth", "n1.key"),
+    refused(
+        run_without_bus(c_gateway, tmp_path, "--nv", "n1.key", "--upstream-auth", "n1.key"),
         "--nv n1.key and --upstream-auth n1.key name the same file",
     )
     assert not (tmp_path / "g.nv").exists()
@@ -250,8 +216,8 @@ def test_the_c_gateway_refuses_a_master_key_file_below_that_is_not_a_small_regul
 ) -> None:
     make, words = BAD_KEYS[kind]
     key = make(tmp_path)
-    run = _run(c_gateway, tmp_path, "--nv", "g.nv", "--auth", str(key))
-    _refused(run, f"canergy-gateway: error: --auth {key}: {words}")
+    run = run_without_bus(c_gateway, tmp_path, "--nv", "g.nv", "--auth", str(key))
+    refused(run, f"canergy-gateway: error: --auth {key}: {words}")
     assert not (tmp_path / "g.nv").exists()
 
 
@@ -264,20 +230,20 @@ def test_the_c_gateway_takes_a_master_key_of_its_own_below(c_gateway: Path, tmp_
     write_key(tmp_path / "own.key", own)
     write_key(tmp_path / "n1.key", node_key_of(root, 1))
     write_key(tmp_path / "g2.key", node_key_of(own, 2))
-    _refused(
-        _run(c_gateway, tmp_path, "--nv", "g.nv", "--auth", "g2.key"),
+    refused(
+        run_without_bus(c_gateway, tmp_path, "--nv", "g.nv", "--auth", "g2.key"),
         "canergy-gateway: error: --auth g2.key: a node key; downstream the gateway is a "
         "supervisor and needs a master key of its own",
     )
-    _refused(
-        _run(
+    refused(
+        run_without_bus(
             c_gateway, tmp_path, "--nv", "g.nv", "--auth", "root.key", "--upstream-auth", "n1.key"
         ),
         "canergy-gateway: error: --auth root.key: the master key --upstream-auth n1.key was "
         "derived from",
     )
     for layout in ((), ("--fd",), ("--fd", "--upstream-fd")):
-        run = _run(
+        run = run_without_bus(
             c_gateway,
             tmp_path,
             "--nv",
@@ -289,12 +255,108 @@ def test_the_c_gateway_takes_a_master_key_of_its_own_below(c_gateway: Path, tmp_
             *layout,
         )
         assert run.returncode == 2 and "CAN socket" in run.stderr, run.stderr  # past every check
-    _refused(_run(c_gateway, tmp_path, "--nv", "g.nv", "--fd"), "argument --fd: only with --auth")
-    _refused(
-        _run(c_gateway, tmp_path, "--nv", "own.key", "--auth", "own.key"),
+    refused(
+        run_without_bus(c_gateway, tmp_path, "--nv", "g.nv", "--fd"),
+        "argument --fd: only with --auth",
+    )
+    refused(
+        run_without_bus(c_gateway, tmp_path, "--nv", "own.key", "--auth", "own.key"),
         "--nv own.key and --auth own.key name the same file",
     )
     (tmp_path / "own.key").chmod(0o640)
-    run = _run(c_gateway, tmp_path, "--nv", "g.nv", "--auth", "own.key")
-    _refused(run, "canergy-gateway: error: --auth own.key: mode 0640 lets others read it")
+    run = run_without_bus(c_gateway, tmp_path, "--nv", "g.nv", "--auth", "own.key")
+    refused(run, "canergy-gateway: error: --auth own.key: mode 0640 lets others read it")
     assert not (tmp_path / "g.nv").exists()
+
+
+# --- the --nv folder: no one else may replace or roll back the record -------------------------
+
+
+def _world_writable(tmp: Path) -> str:
+    (tmp / "d").mkdir(mode=0o700)
+    (tmp / "d").chmod(0o777)
+    return "d/n.nv"
+
+
+def _group_writable(tmp: Path) -> str:
+    (tmp / "d").mkdir(mode=0o700)
+    (tmp / "d").chmod(0o770)
+    return str(tmp / "d" / "n.nv")
+
+
+def _writable_above(tmp: Path) -> str:
+    (tmp / "open").mkdir(mode=0o700)
+    (tmp / "open").chmod(0o777)
+    (tmp / "open" / "d").mkdir(mode=0o700)
+    return str(tmp / "open" / "d" / "n.nv")
+
+
+def _writable_above_the_link_target(tmp: Path) -> str:
+    """The folder is private as written (a link in a private folder to a private folder), but
+    the link's target lies in a folder others may write: found once the link is resolved."""
+    _writable_above(tmp)
+    (tmp / "link").symlink_to(tmp / "open" / "d")
+    return "link/n.nv"
+
+
+def _writable_through_dot_dot(tmp: Path) -> str:
+    _world_writable(tmp)
+    return "nosuchdir/../d/n.nv"  # lexically tmp/d, as os.path.abspath makes it
+
+
+OPEN_FOLDERS = [
+    _world_writable,
+    _group_writable,
+    _writable_above,
+    _writable_above_the_link_target,
+    _writable_through_dot_dot,
+]
+
+
+def _python_refusal(nv: str, tmp: Path, monkeypatch: pytest.MonkeyPatch) -> str:
+    """What ``check_private_dir`` says of ``nv`` (relative to ``tmp``): the C line's text."""
+    monkeypatch.chdir(tmp)
+    with pytest.raises(PermissionError) as refused:
+        check_private_dir(Path(nv), "--nv")
+    return str(refused.value)
+
+
+@pytest.mark.parametrize("program", ["canergy-node", "canergy-gateway"])
+@pytest.mark.parametrize("folder", OPEN_FOLDERS, ids=lambda f: f.__name__[1:])
+def test_the_c_programs_refuse_an_nv_folder_others_may_write_as_python_does(
+    folder: Callable[[Path], str], program: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A writer of the folder (or of one above it) can rename an older record over the NV file:
+    refused before the bus is opened, in Python's words (``check_private_dir``)."""
+    binary = built(f"build/{program}")
+    nv = folder(tmp_path)
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    run = run_without_bus(binary, tmp_path, "--nv", nv)
+    refused(run, "is writable by others, who can replace or roll back the file; chmod go-w")
+    assert run.stderr == f"{program}: error: {_python_refusal(nv, tmp_path, monkeypatch)}\n"
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before  # nothing created
+
+
+@pytest.mark.parametrize("program", ["canergy-node", "canergy-gateway"])
+def test_the_c_programs_take_a_sticky_or_private_nv_folder(program: str, tmp_path: Path) -> None:
+    """A sticky folder (as /tmp) lets no one else rename over the file; a private one neither."""
+    binary = built(f"build/{program}")
+    for name, mode in (("sticky", 0o1777), ("private", 0o700), ("readable", 0o755)):
+        (tmp_path / name).mkdir(mode=0o700)
+        (tmp_path / name).chmod(mode)
+        run = run_without_bus(binary, tmp_path, "--nv", f"{name}/n.nv")
+        assert run.returncode == 2 and "CAN socket" in run.stderr, run.stderr  # the bus
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="giving a folder away needs root")
+@pytest.mark.parametrize("program", ["canergy-node", "canergy-gateway"])
+def test_the_c_programs_refuse_an_nv_folder_of_another_user(
+    program: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    binary = built(f"build/{program}")
+    (tmp_path / "theirs").mkdir(mode=0o755)
+    os.chown(tmp_path / "theirs", 54321, -1)
+    run = run_without_bus(binary, tmp_path, "--nv", "theirs/n.nv")
+    refused(run, f"directory {tmp_path / 'theirs'} belongs to user 54321")
+    expected = _python_refusal("theirs/n.nv", tmp_path, monkeypatch)
+    assert run.stderr == f"{program}: error: {expected}\n"

@@ -21,6 +21,9 @@ import pytest
 from cryptography.hazmat.primitives.ciphers import algorithms
 from cryptography.hazmat.primitives.cmac import CMAC
 from support.c_binding import NvState, Struct, cbuf, library, ref, struct_bytes
+from support.firmware_build import c_gateway as c_gateway  # the fixtures
+from support.firmware_build import c_node as c_node
+from support.firmware_build import refused, run_without_bus
 
 import firmware_model.__main__ as firmware
 from canergy.auth.keys import Key, new_master, node_key_of, write_key
@@ -38,7 +41,6 @@ from firmware_model.nvstore import (
     pack_record,
 )
 
-FIRMWARE = Path(__file__).resolve().parents[1] / "firmware"
 Cmac = Struct("cmac")
 MASTER = new_master(1)
 KEY1, KEY2 = node_key_of(MASTER, 1), node_key_of(MASTER, 2)
@@ -192,41 +194,9 @@ def test_without_a_key_nothing_changes_and_a_sealed_file_is_refused(tmp_path: Pa
 # --- the C node's and gateway's processes -----------------------------------------------------
 
 
-def _built(target: str) -> Path:
-    build = subprocess.run(
-        ["make", "-s", "-C", str(FIRMWARE), target], capture_output=True, text=True, timeout=600
-    )
-    assert build.returncode == 0, f"make {target} failed:\n{build.stdout}{build.stderr}"
-    return FIRMWARE / target
-
-
-@pytest.fixture(scope="module")
-def c_node() -> Path:
-    return _built("build/canergy-node")
-
-
-@pytest.fixture(scope="module")
-def c_gateway() -> Path:
-    return _built("build/canergy-gateway")
-
-
 def _key_file(tmp: Path, key: Key, name: str = "n1.key") -> str:
     write_key(tmp / name, key)
     return str(tmp / name)
-
-
-def _run(binary: Path, tmp: Path, *args: str) -> subprocess.CompletedProcess[str]:
-    if binary.name == "canergy-gateway":
-        bus = ["--nodes", "2", "-c", "nosuchcan0", "--upstream-channel", "nosuchcan1"]
-    else:
-        bus = ["-i", "socketcan", "-c", "nosuchcan0"]
-    argv = [str(binary), "--node", "1", *bus, *args]
-    return subprocess.run(argv, capture_output=True, text=True, timeout=10, cwd=tmp)
-
-
-def _refused(run: subprocess.CompletedProcess[str], words: str) -> None:
-    assert run.returncode == 2, run.stderr
-    assert run.stderr.count("\n") == 1 and words in run.stderr, run.stderr
 
 
 def _past_the_nv_checks(run: subprocess.CompletedProcess[str]) -> None:
@@ -241,13 +211,13 @@ def test_the_c_node_refuses_a_record_edited_without_the_key(
 ) -> None:
     key = _key_file(tmp_path, KEY1)
     path = _sealed_file(tmp_path / "n.nv")
-    _past_the_nv_checks(_run(c_node, tmp_path, "--nv", "n.nv", "--auth", key))
+    _past_the_nv_checks(run_without_bus(c_node, tmp_path, "--nv", "n.nv", "--auth", key))
     _edit(path, 1, **edit)  # the other genuine: taken (past the checks, to the bus)
-    _past_the_nv_checks(_run(c_node, tmp_path, "--nv", "n.nv", "--auth", key))
+    _past_the_nv_checks(run_without_bus(c_node, tmp_path, "--nv", "n.nv", "--auth", key))
     _edit(path, 0, **edit)
     before = path.read_bytes()
-    run = _run(c_node, tmp_path, "--nv", "n.nv", "--auth", key)
-    _refused(run, "canergy-node: error: --nv n.nv: node 1: slot 0 and 1: the seal does not hold")
+    run = run_without_bus(c_node, tmp_path, "--nv", "n.nv", "--auth", key)
+    refused(run, "canergy-node: error: --nv n.nv: node 1: slot 0 and 1: the seal does not hold")
     assert "nothing taken" in run.stderr and path.read_bytes() == before
 
 
@@ -255,8 +225,8 @@ def test_the_c_node_takes_no_record_sealed_under_another_nodes_key(
     c_node: Path, tmp_path: Path
 ) -> None:
     _sealed_file(tmp_path / "n.nv", KEY2.secret, 1)
-    run = _run(c_node, tmp_path, "--nv", "n.nv", "--auth", _key_file(tmp_path, KEY1))
-    _refused(run, "slot 0 and 1: the seal does not hold (the record edited, or sealed under")
+    run = run_without_bus(c_node, tmp_path, "--nv", "n.nv", "--auth", _key_file(tmp_path, KEY1))
+    refused(run, "slot 0 and 1: the seal does not hold (the record edited, or sealed under")
 
 
 def test_the_c_node_with_a_key_refuses_an_unsealed_record_and_without_one_a_sealed(
@@ -264,11 +234,14 @@ def test_the_c_node_with_a_key_refuses_an_unsealed_record_and_without_one_a_seal
 ) -> None:
     NvStore(tmp_path / "plain.nv", 1, fsync=False).save(_record(2_000_000, 7))
     key = _key_file(tmp_path, KEY1)
-    run = _run(c_node, tmp_path, "--nv", "plain.nv", "--auth", key)
-    _refused(run, "--nv plain.nv: node 1: slot 0 holds a record that is not sealed")
-    _past_the_nv_checks(_run(c_node, tmp_path, "--nv", "plain.nv"))  # no key: as before
+    run = run_without_bus(c_node, tmp_path, "--nv", "plain.nv", "--auth", key)
+    refused(run, "--nv plain.nv: node 1: slot 0 holds a record that is not sealed")
+    _past_the_nv_checks(run_without_bus(c_node, tmp_path, "--nv", "plain.nv"))  # no key: as before
     _sealed_file(tmp_path / "sealed.nv")
-    _refused(_run(c_node, tmp_path, "--nv", "sealed.nv"), "sealed by a node with a key (--auth)")
+    refused(
+        run_without_bus(c_node, tmp_path, "--nv", "sealed.nv"),
+        "sealed by a node with a key (--auth)",
+    )
 
 
 GW_NODES = 127  # CANERGY_SUPERVISOR_NODES of canergy-gateway's build
@@ -315,14 +288,14 @@ def test_the_c_gateway_seals_under_its_key_and_refuses_edits(
     key = _key_file(tmp_path, KEY1)
     up = ("--upstream-auth", key)
     path = _gateway_file(tmp_path / "g.nv", KEY1.secret)
-    _past_the_nv_checks(_run(c_gateway, tmp_path, "--nv", "g.nv", *up))
+    _past_the_nv_checks(run_without_bus(c_gateway, tmp_path, "--nv", "g.nv", *up))
     _gw_edit(path, 1)
-    _past_the_nv_checks(_run(c_gateway, tmp_path, "--nv", "g.nv", *up))  # slot 0 genuine
+    _past_the_nv_checks(run_without_bus(c_gateway, tmp_path, "--nv", "g.nv", *up))  # slot 0 genuine
     _gw_edit(path, 0)
-    run = _run(c_gateway, tmp_path, "--nv", "g.nv", *up)
-    _refused(run, "canergy-gateway: error: --nv g.nv: slot 0 and 1: the seal does not hold")
+    run = run_without_bus(c_gateway, tmp_path, "--nv", "g.nv", *up)
+    refused(run, "canergy-gateway: error: --nv g.nv: slot 0 and 1: the seal does not hold")
     _gateway_file(path, KEY2.secret)  # another key's seal
-    _refused(_run(c_gateway, tmp_path, "--nv", "g.nv", *up), "the seal does not hold")
+    refused(run_without_bus(c_gateway, tmp_path, "--nv", "g.nv", *up), "the seal does not hold")
 
 
 def test_the_c_gateway_with_a_key_refuses_an_unsealed_record_and_without_one_a_sealed(
@@ -330,11 +303,15 @@ def test_the_c_gateway_with_a_key_refuses_an_unsealed_record_and_without_one_a_s
 ) -> None:
     key = _key_file(tmp_path, KEY1)
     _gateway_file(tmp_path / "plain.nv", None)
-    run = _run(c_gateway, tmp_path, "--nv", "plain.nv", "--upstream-auth", key)
-    _refused(run, "--nv plain.nv: a record that is not sealed")
-    _past_the_nv_checks(_run(c_gateway, tmp_path, "--nv", "plain.nv"))  # no key: as before
+    run = run_without_bus(c_gateway, tmp_path, "--nv", "plain.nv", "--upstream-auth", key)
+    refused(run, "--nv plain.nv: a record that is not sealed")
+    _past_the_nv_checks(
+        run_without_bus(c_gateway, tmp_path, "--nv", "plain.nv")
+    )  # no key: as before
     _gateway_file(tmp_path / "sealed.nv", KEY1.secret)
-    _refused(_run(c_gateway, tmp_path, "--nv", "sealed.nv"), "sealed by a gateway with a key")
+    refused(
+        run_without_bus(c_gateway, tmp_path, "--nv", "sealed.nv"), "sealed by a gateway with a key"
+    )
 
 
 def test_the_c_gateway_seals_with_its_master_key_below_when_no_key_above(
@@ -343,9 +320,12 @@ def test_the_c_gateway_seals_with_its_master_key_below_when_no_key_above(
     master, own = tmp_path / "gw.key", new_master(1)
     write_key(master, own)
     _gateway_file(tmp_path / "g.nv", own.secret)
-    _past_the_nv_checks(_run(c_gateway, tmp_path, "--nv", "g.nv", "--auth", str(master)))
+    _past_the_nv_checks(run_without_bus(c_gateway, tmp_path, "--nv", "g.nv", "--auth", str(master)))
     _gateway_file(tmp_path / "g.nv", KEY1.secret)
-    _refused(_run(c_gateway, tmp_path, "--nv", "g.nv", "--auth", str(master)), "seal does not hold")
+    refused(
+        run_without_bus(c_gateway, tmp_path, "--nv", "g.nv", "--auth", str(master)),
+        "seal does not hold",
+    )
 
 
 # --- python -m firmware_model --auth ----------------------------------------------------------

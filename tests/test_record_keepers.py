@@ -16,8 +16,8 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from support.firmware_build import built
 from support.procs import wait
-from support.vcan import built
 
 _HOLD = (
     "import fcntl, os, sys, time\n"

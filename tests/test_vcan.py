@@ -16,10 +16,10 @@ from typing import Any
 
 import cantools
 import pytest
+from support.firmware_build import c_node as c_node  # the fixtures: the C node, made up to date
 from support.procs import Procs, python, status, wait
 from support.procs import procs as procs  # the fixture
 from support.vcan import BUDGET, BUS, IFACE, c_client, client, supervisor
-from support.vcan import c_node as c_node  # the fixtures: the C node, built when missing
 from support.vcan import vcan_up as vcan_up  # and vcan0 or a failure, for every test here
 
 from canergy.ledger import ledger_from_status

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from support.vcan import c_node as c_node  # the fixture (builds firmware/build/canergy-node)
+from support.firmware_build import c_node as c_node  # the fixture: makes canergy-node
 
 pytestmark = pytest.mark.vcan
 

@@ -10,11 +10,11 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from support.firmware_build import c_node as c_node  # the fixture: makes canergy-node
 from support.procs import Procs, python, status, wait
 from support.procs import procs as procs  # the fixture
 from support.readme import DOCS, python_blocks_of
 from support.vcan import TIMEOUT
-from support.vcan import c_node as c_node  # the fixture: builds canergy-node when missing
 
 pytestmark = pytest.mark.vcan
 pytest_plugins = ["pytester"]

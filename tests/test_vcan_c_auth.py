@@ -11,10 +11,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from support.firmware_build import c_node as c_node
 from support.procs import Procs, status, wait
 from support.procs import procs as procs  # the fixtures
 from support.vcan import IFACE, c_client, keys, supervisor, vcan_up
-from support.vcan import c_node as c_node
 
 from canergy.codec import Codec
 from canergy.ledger import ledger_from_status

@@ -10,10 +10,11 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from support.firmware_build import c_gateway as c_gateway  # the fixtures: make the gateway
+from support.firmware_build import c_node as c_node  # and the node
 from support.procs import Procs, python, status, wait
 from support.procs import procs as procs  # the fixture
-from support.vcan import TIMEOUT, built
-from support.vcan import c_node as c_node  # the fixture: builds canergy-node when missing
+from support.vcan import TIMEOUT
 
 from canergy.codec import Codec
 from canergy.messages import Return
@@ -22,11 +23,6 @@ pytestmark = pytest.mark.vcan
 
 UP, DOWN = "vcan0", "vcan1"
 GW = 20
-
-
-@pytest.fixture(scope="module")
-def c_gateway() -> Path:
-    return built("build/canergy-gateway")
 
 
 @pytest.fixture(scope="module", autouse=True)

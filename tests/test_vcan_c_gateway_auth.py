@@ -13,10 +13,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from support.firmware_build import c_gateway as c_gateway  # the fixtures: make the gateway
+from support.firmware_build import c_node as c_node  # and the node
 from support.procs import Procs, python, status, wait
 from support.procs import procs as procs  # the fixture
-from support.vcan import TIMEOUT, built, keys
-from support.vcan import c_node as c_node  # the fixture: builds canergy-node when missing
+from support.vcan import TIMEOUT, keys
 
 from canergy.codec import Codec
 from canergy.live.supervisor.control import request
@@ -28,11 +29,6 @@ pytestmark = pytest.mark.vcan
 UP, DOWN = "vcan0", "vcan1"
 GW = 20
 CODEC = Codec()
-
-
-@pytest.fixture(scope="module")
-def c_gateway() -> Path:
-    return built("build/canergy-gateway")
 
 
 def _forgeries(fd: bool, tx: int) -> list[str]:

@@ -14,9 +14,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from support.firmware_build import c_gateway as c_gateway  # the fixture: makes the gateway
 from support.procs import Procs, python, status, wait
 from support.procs import procs as procs  # the fixture
-from support.vcan import TIMEOUT, built
+from support.vcan import TIMEOUT
 
 from canergy.live.supervisor.control import request
 from canergy.units import UJ_PER_J
@@ -25,11 +26,6 @@ pytestmark = pytest.mark.vcan
 
 UP, DOWN = "vcan0", "vcan1"
 GW = 20
-
-
-@pytest.fixture(scope="module")
-def c_gateway() -> Path:
-    return built("build/canergy-gateway")
 
 
 @pytest.fixture(scope="module", autouse=True)

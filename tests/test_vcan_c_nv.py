@@ -11,8 +11,9 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from support.vcan import IFACE, built
-from support.vcan import c_node as c_node  # the fixture: builds canergy-node when missing
+from support.firmware_build import built
+from support.firmware_build import c_node as c_node  # the fixture: makes canergy-node
+from support.vcan import IFACE
 from support.vcan import vcan_up as vcan_up  # the fixture: fails when vcan0 is missing
 
 pytestmark = pytest.mark.vcan

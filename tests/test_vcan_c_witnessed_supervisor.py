@@ -20,10 +20,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from support.firmware_build import c_node as c_node  # the fixtures: the C node, made up to date
 from support.procs import Procs, status, wait
 from support.procs import procs as procs  # the fixture
 from support.vcan import c_client, keys, supervisor
-from support.vcan import c_node as c_node  # the fixtures: the C node, built when missing
 from support.vcan import vcan_up as vcan_up  # and vcan0 or a failure
 
 from canergy.units import UJ_PER_J

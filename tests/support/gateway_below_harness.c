@@ -13,8 +13,8 @@
 #define _GNU_SOURCE 1
 
 #include "gateway_port.h"
+#include "harness_can.h"
 
-#include <linux/can.h>
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
@@ -27,38 +27,6 @@ void gw_send_up(struct gateway_port *g, const struct canergy_frame *f)
 {
     (void)g;
     (void)f; /* the bus above is not this harness's */
-}
-
-static void sent_below(int sock)
-{
-    struct canfd_frame cf;
-    ssize_t n;
-    while ((n = recv(sock, &cf, sizeof cf, MSG_DONTWAIT)) > 0) {
-        (void)printf("tx %08X#", (unsigned)(cf.can_id & CAN_EFF_MASK));
-        for (unsigned i = 0U; i < cf.len; i++) {
-            (void)printf("%02X", (unsigned)cf.data[i]);
-        }
-        (void)printf("\n");
-    }
-    (void)fflush(stdout);
-}
-
-static void frame_in(int sock, const char *text)
-{
-    struct canfd_frame cf;
-    memset(&cf, 0, sizeof cf);
-    char *end = NULL;
-    cf.can_id = (canid_t)strtoul(text, &end, 16) | CAN_EFF_FLAG;
-    const char *hex = end != NULL && *end == '#' ? end + 1 : "";
-    while (cf.len < CANFD_MAX_DLEN && hex[0] != '\0' && hex[0] != '\n' && hex[1] != '\0') {
-        const char byte[3] = {hex[0], hex[1], '\0'};
-        cf.data[cf.len++] = (uint8_t)strtoul(byte, NULL, 16);
-        hex += 2;
-    }
-    const size_t size = cf.len > CAN_MAX_DLEN ? CANFD_MTU : CAN_MTU;
-    if (send(sock, &cf, size, 0) != (ssize_t)size) {
-        exit(3);
-    }
 }
 
 int main(int argc, char **argv)
@@ -82,7 +50,7 @@ int main(int argc, char **argv)
         if (strncmp(line, "at ", 3U) == 0) {
             now = strtoull(&line[3], NULL, 10);
         } else if (strncmp(line, "rx ", 3U) == 0) {
-            frame_in(pair[1], &line[3]);
+            harness_frame_in(pair[1], &line[3]);
         } else if (strncmp(line, "inject ", 7U) == 0) {
             (void)canergy_supervisor_inject(&g.gw.down, strtoull(&line[7], NULL, 10));
             gw_save(&g);
@@ -98,7 +66,7 @@ int main(int argc, char **argv)
             canergy_supervisor_on_timer(&g.gw.down, now, &out);
             gw_down_out(&g, &out, now);
         }
-        sent_below(pair[1]);
+        harness_print_sent(pair[1], "tx");
     }
     (void)close(g.nv_fd);
     return 0;

@@ -2,8 +2,9 @@
 
 ``vcan_up`` is an autouse module fixture: a test module that imports it fails (never skips) when
 the interface is missing. ``client`` starts a node (``python -m firmware_model``, or the C node
-through ``c_client``, built by the ``c_node`` fixture) and ``supervisor`` a supervisor, both with
-the flags the vcan tests share, as processes of a ``support.procs.Procs``.
+through ``c_client``, made by ``support.firmware_build``'s ``c_node`` fixture) and
+``supervisor`` a supervisor, both with the flags the vcan tests share, as processes of a
+``support.procs.Procs``.
 """
 
 from __future__ import annotations
@@ -102,30 +103,7 @@ def supervisor(procs: Procs, nodes: str, *extra: str) -> subprocess.Popen[bytes]
 
 
 # The C node (firmware/ports/linux): the same process model, flags, NV file and status file as
-# firmware_model --node, so the tests carry over with the binary in its place.
-FIRMWARE = ROOT / "firmware"
-
-
-def built(target: str) -> Path:
-    """``firmware/build/TARGET``, built when missing (make); a build that fails fails the test
-    loudly."""
-    binary = FIRMWARE / target
-    if not binary.exists():
-        build = subprocess.run(
-            ["make", "-C", str(FIRMWARE), target],
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
-        assert build.returncode == 0, f"make {target} failed:\n{build.stdout}{build.stderr}"
-    assert os.access(binary, os.X_OK), f"{binary} was not built"
-    return binary
-
-
-@pytest.fixture(scope="module")
-def c_node() -> Path:
-    return built("build/canergy-node")
-
-
+# firmware_model --node, so the tests carry over with the binary (support.firmware_build's
+# c_node fixture) in its place.
 def c_client(procs: Procs, binary: Path, node: int, *extra: str) -> subprocess.Popen[bytes]:
     return client(procs, node, *extra, program=[str(binary)])

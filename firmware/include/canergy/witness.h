@@ -36,6 +36,10 @@ extern "C" {
 #define CANERGY_WITNESS_SLOTS 4U
 #endif
 #define CANERGY_WITNESS_REPORT_AT 128U /* a count that moved by more went back: a restart */
+/* A client (the node, client_internal.h, the same value; the gateway port's leg above) brings
+ * its next TELEMETRY forward for a frame in its name no sooner than this after its last one: two
+ * clients on one id would otherwise answer each other's reports with no pause. */
+#define CANERGY_WITNESS_GAP_US 10000U
 
 /* canergy_witness_telemetry's findings (bits): evidence, or a note that is no evidence. */
 #define CANERGY_WITNESS_SAW 0x01U       /* evidence: it saw frames in its name it did not send */

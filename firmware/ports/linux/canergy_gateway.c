@@ -34,9 +34,9 @@
  * Exit status: 0 after SIGINT/SIGTERM, 1 when the NV file cannot be written, 2 for bad
  * arguments or a socket or file that cannot be opened.
  *
- * This file: main(), its loop and the bus above; gateway_below.c the bus below, args.c the
- * command line, gateway_storage.c the NV and status files, gateway_report.c intrusions and
- * refusals below (gateway_port.h: the shared state).
+ * This file: main() and its loop; gateway_above.c the bus above, gateway_below.c the bus below,
+ * args.c the command line, gateway_storage.c the NV and status files, gateway_report.c
+ * intrusions and refusals below (gateway_port.h: the shared state).
  */
 #define _GNU_SOURCE 1
 
@@ -67,99 +67,6 @@ static void on_stop_signal(int signum)
 static uint64_t least(uint64_t a, uint64_t b)
 {
     return a < b ? a : b;
-}
-
-/* ---- carrying out what the library asks: both records on disk before any frame ---- */
-
-void gw_send_up(struct gateway_port *g, const struct canergy_frame *f)
-{
-    if (g->opt.up_auth_path == NULL) {
-        port_can_send(g->up_sock, &g->up_count, f->id, f->data, f->dlc);
-        return;
-    }
-    struct canergy_auth_frame frames[2];
-    const int n = canergy_auth_gateway_up_protect(&g->up_auth, &g->gw, f, frames);
-    for (int k = 0; k < n; k++) {
-        port_can_send(g->up_sock, &g->up_count, frames[k].id, frames[k].data, frames[k].len);
-    }
-}
-
-static void up_out(struct gateway_port *g, const struct canergy_out *out)
-{
-    if (out->persist) {
-        gw_save(g);
-    }
-    for (unsigned i = 0U; i < out->frame_count; i++) {
-        gw_send_up(g, &out->frames[i]);
-    }
-}
-
-/* ---- the bus above ---- */
-
-static void receive_up(struct gateway_port *g, uint64_t now)
-{
-    struct canfd_frame cf;
-    struct canergy_rx_frame rx;
-    while (port_can_receive(g->up_sock, &g->up_count, &cf, &rx) == 1) {
-        struct canergy_out out;
-        const uint64_t withdrawn = g->gw.down.withdrawn_uj;
-        const int status = g->opt.up_auth_path != NULL
-                               ? canergy_auth_gateway_up_frame(&g->up_auth, &g->gw, &rx, now, &out)
-                               : canergy_gateway_on_up_frame(&g->gw, &rx, now, &out);
-        const int behind = (out.events & CANERGY_GW_EV_FOUND_BEHIND) != 0U;
-        if (behind) {
-            g->found_behind++;
-            g->dropped_uj += g->gw.down.withdrawn_uj - withdrawn;
-        }
-        gw_say_up_waiting(g, behind, g->gw.down.withdrawn_uj - withdrawn);
-        if (status >= CANERGY_AUTH_MAC_BAD && status <= CANERGY_AUTH_UNAUTHENTICATED) {
-            g->auth_refused++; /* --upstream-auth: refused, nothing acted on */
-        } else if (status != CANERGY_AUTH_PENDING) {
-            gw_count_decode(&g->up_count, status);
-        }
-        if (status == CANERGY_DECODE_WRONG_DIRECTION && (rx.id & 0xFFU) == g->opt.node) {
-            g->witnessed++; /* someone speaks in its name above: say so in TELEMETRY at once */
-            g->telemetry_now = 1;
-        }
-        up_out(g, &out);
-        if ((out.events & (CANERGY_EV_COMMITTED | CANERGY_EV_TIMEOUT_COMMIT | CANERGY_EV_CREDITED |
-                           CANERGY_EV_ADMITTED)) != 0U) {
-            g->telemetry_now = 1;
-        }
-    }
-}
-
-/* ---- the policy above (the library's): returns, the level reported ---- */
-
-static void give_back(struct gateway_port *g, uint64_t now)
-{
-    const uint32_t excess = canergy_gateway_give_back_amount(g->gw.down.usable_uj,
-                                                             g->opt.return_above_uj);
-    struct canergy_out out;
-    if (!g->opt.keep_all && excess != 0U && canergy_client_can_give_back(&g->gw.up) &&
-        canergy_gateway_give_back(&g->gw, excess, now, &out) == CANERGY_OK) {
-        g->returned_uj += excess;
-        up_out(g, &out);
-    }
-}
-
-/* The gateway's level above: what it can still grant below. */
-static void telemetry(struct gateway_port *g)
-{
-    const uint64_t mj = g->gw.down.usable_uj < 0 ? 0U : (uint64_t)g->gw.down.usable_uj / MJ;
-    struct canergy_msg m;
-    memset(&m, 0, sizeof m);
-    m.type = CANERGY_TELEMETRY;
-    m.node = g->opt.node;
-    m.level_mj = mj > CANERGY_WIDE_MAX ? (uint32_t)CANERGY_WIDE_MAX : (uint32_t)mj;
-    m.flags = (canergy_client_joining(&g->gw.up) ? CANERGY_TELEMETRY_JOINING : 0U) |
-              (g->gw.up.rules == CANERGY_RULES_WITNESSED ? CANERGY_TELEMETRY_WITNESSED : 0U);
-    m.seq = (uint16_t)(g->gw.up.rec.return_seq & 0xFFFFU);
-    m.witness = (uint8_t)(g->witnessed & 0xFFU);
-    struct canergy_frame f;
-    if (canergy_encode(g->opt.id_base, &m, &f) == CANERGY_OK) {
-        gw_send_up(g, &f);
-    }
 }
 
 /* ---- main ---- */
@@ -210,6 +117,7 @@ int main(int argc, char **argv)
                                       {"--upstream-auth", g.opt.up_auth_path},
                                       {"--auth", g.opt.auth_path}};
     port_check_distinct(files, sizeof files / sizeof files[0]);
+    port_check_private_dir("--nv", g.opt.nv_path);
     if (g.opt.up_auth_path != NULL) {
         up_key(&g);
     }
@@ -228,7 +136,8 @@ int main(int argc, char **argv)
     uint64_t now = port_now_us();
     gw_start(&g, now);
     gw_say_up_waiting(&g, 0, 0U); /* witnessed above: a start with a record waits for its ADMIT */
-    uint64_t next_telemetry = now, next_tick = now, next_status = now, stop_at = 0U;
+    g.next_telemetry = now;
+    uint64_t next_tick = now, next_status = now, stop_at = 0U;
     for (;;) {
         now = port_now_us();
         if (stop_requested && !g.stopping) {
@@ -238,7 +147,7 @@ int main(int argc, char **argv)
         if (g.stopping && (quiet(&g.gw.down) || now >= stop_at)) {
             break;
         }
-        uint64_t wake = least(least(next_telemetry, next_tick), next_status);
+        uint64_t wake = least(least(g.next_telemetry, next_tick), next_status);
         wake = least(wake, least(canergy_client_deadline(&g.gw.up),
                                        canergy_supervisor_deadline(&g.gw.down)));
         wake = least(wake, gw_joins_deadline(&g)); /* a JOIN held below, due */
@@ -252,16 +161,9 @@ int main(int argc, char **argv)
             g.down_count.receive_errors++;
         }
         now = port_now_us();
-        receive_up(&g, now);
+        gw_receive_up(&g, now);
         gw_receive_down(&g, now);
-        if (canergy_client_deadline(&g.gw.up) <= now) {
-            struct canergy_out out;
-            canergy_gateway_on_up_timer(&g.gw, now, &out);
-            up_out(&g, &out);
-            if ((out.events & (CANERGY_EV_TIMEOUT_COMMIT | CANERGY_EV_CREDITED)) != 0U) {
-                g.telemetry_now = 1;
-            }
-        }
+        gw_up_timer(&g, now);
         if (canergy_supervisor_deadline(&g.gw.down) <= now) {
             struct canergy_supervisor_out out;
             canergy_supervisor_on_timer(&g.gw.down, now, &out);
@@ -272,12 +174,10 @@ int main(int argc, char **argv)
             gw_release_all(&g, now);
             gw_say_waiting(&g);
             gw_top_up(&g, now);
-            give_back(&g, now);
+            gw_give_back(&g, now);
         }
-        if (now >= next_telemetry || g.telemetry_now) {
-            g.telemetry_now = 0;
-            next_telemetry = now + g.opt.telemetry_period_us;
-            telemetry(&g);
+        if (now >= g.next_telemetry) {
+            gw_telemetry(&g, now);
         }
         if (now >= next_status) {
             next_status = now + g.opt.status_period_us;

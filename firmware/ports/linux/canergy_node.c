@@ -154,6 +154,7 @@ int main(int argc, char **argv)
                                       {"--status-file", p.opt.status_path},
                                       {"--auth", p.opt.auth_path}};
     port_check_distinct(files, sizeof files / sizeof files[0]);
+    port_check_private_dir("--nv", p.opt.nv_path);
     if (p.opt.auth_path != NULL) {
         uint8_t key[CANERGY_KDF_KEY_SIZE];
         port_load_key("--auth", p.opt.auth_path, p.opt.node, key);

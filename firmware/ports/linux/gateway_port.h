@@ -120,13 +120,24 @@ struct gateway_port {
     int down_sock;
     int nv_fd;
     int stopping;
-    int telemetry_now; /* a commit or pay-back above: report the new level at once */
+    uint64_t next_telemetry;   /* the next TELEMETRY above: now when the level moved */
+    uint64_t early_telemetry;  /* the soonest a frame in its name brings it forward to: the
+                                * last one's time + CANERGY_WITNESS_GAP_US, as a node's */
+    uint64_t witness_reported; /* witnessed as the last TELEMETRY carried it */
     int up_waiting;    /* the wait for the supervisor above, as last said on stderr */
 };
 
-/* canergy_gateway.c: one frame above (with its MAC frame or in the FD layout with
- * --upstream-auth). */
+/* gateway_above.c: one frame above (with its MAC frame or in the FD layout with
+ * --upstream-auth); a step of the client role above carried out (the record saved first, then
+ * its frames); the frames from above; the client's timer when due; what it holds above
+ * --return-above given back; its TELEMETRY, the level it can still grant below (the next one a
+ * period later). */
 void gw_send_up(struct gateway_port *g, const struct canergy_frame *f);
+void gw_up_out(struct gateway_port *g, const struct canergy_out *out);
+void gw_receive_up(struct gateway_port *g, uint64_t now);
+void gw_up_timer(struct gateway_port *g, uint64_t now);
+void gw_give_back(struct gateway_port *g, uint64_t now);
+void gw_telemetry(struct gateway_port *g, uint64_t now);
 
 /* gateway_below.c: --auth's keys below, one per node derived from the master key (exits 2 for
  * a key file refused, or the master key the key above was derived from); the NV seal key from

@@ -1,6 +1,7 @@
 /*
  * Two names for one file (ports/linux, both programs), as canergy.live.atomic.same_file: the same
  * inode when both exist (hard links too), otherwise the same path once symlinks are resolved.
+ * A file's folders no one else may write, as canergy.live.atomic.check_private_dir.
  */
 #define _GNU_SOURCE 1
 
@@ -8,6 +9,7 @@
 
 #include "args.h"
 
+#include <errno.h>
 #include <libgen.h>
 #include <limits.h>
 #include <stdio.h>
@@ -103,5 +105,88 @@ void port_check_distinct(const struct port_file *files, size_t count)
                                  files[j].flag, files[j].path, files[i].flag, files[i].path);
             }
         }
+    }
+}
+
+/* out = path made absolute and normalized as written, as Python's os.path.abspath: "." and
+ * empty parts dropped, ".." taking the part before it away (symlinks are not followed). */
+static void absolute(const char *path, char out[PATH_MAX])
+{
+    char whole[PATH_MAX];
+    if (path[0] == '/') {
+        copy_path(whole, path);
+    } else {
+        char cwd[PATH_MAX];
+        if (getcwd(cwd, sizeof cwd) == NULL) {
+            port_usage_error("%s: cannot read the current directory: %s", path, strerror(errno));
+        }
+        join_path(whole, cwd, path);
+    }
+    size_t len = 0U;
+    out[0] = '\0';
+    for (char *save = NULL, *part = strtok_r(whole, "/", &save); part != NULL;
+         part = strtok_r(NULL, "/", &save)) {
+        if (strcmp(part, ".") == 0) {
+            continue;
+        }
+        if (strcmp(part, "..") == 0) {
+            while (len > 0U && out[len - 1U] != '/') {
+                len--;
+            }
+            len = len > 0U ? len - 1U : 0U; /* the '/' before it */
+            out[len] = '\0';
+            continue;
+        }
+        const size_t n = strlen(part);
+        if (len + 1U + n >= PATH_MAX) {
+            port_usage_error("path too long: %.64s...", path);
+        }
+        out[len++] = '/';
+        memcpy(&out[len], part, n + 1U);
+        len += n;
+    }
+    if (len == 0U) {
+        copy_path(out, "/");
+    }
+}
+
+/* folder and every directory above it, checked in turn (see port_check_private_dir). */
+static void check_folders(const char *flag, const char *path, const char *folder)
+{
+    char d[PATH_MAX];
+    copy_path(d, folder);
+    for (;;) {
+        struct stat st;
+        if (stat(d, &st) == 0) {
+            if (st.st_uid != 0U && st.st_uid != geteuid()) {
+                port_usage_error("%s %s: directory %s belongs to user %lu, who can replace or "
+                                 "roll back the file; use a directory of root's or your own",
+                                 flag, path, d, (unsigned long)st.st_uid);
+            }
+            if ((st.st_mode & (S_IWGRP | S_IWOTH)) != 0U && (st.st_mode & S_ISVTX) == 0U) {
+                port_usage_error("%s %s: directory %s (mode %04o) is writable by others, who can "
+                                 "replace or roll back the file; chmod go-w %s",
+                                 flag, path, d, (unsigned)(st.st_mode & 07777U), d);
+            }
+        }
+        if (strcmp(d, "/") == 0) {
+            return;
+        }
+        char up[PATH_MAX];
+        copy_path(up, d);
+        copy_path(d, dirname(up));
+    }
+}
+
+void port_check_private_dir(const char *flag, const char *path)
+{
+    char abs[PATH_MAX];
+    absolute(path, abs);
+    char folder[PATH_MAX];
+    copy_path(folder, dirname(abs));
+    check_folders(flag, path, folder);
+    char real[PATH_MAX];
+    if (realpath(folder, real) != NULL) {
+        check_folders(flag, path, real);
     }
 }

@@ -1,5 +1,6 @@
 /*
- * The files a Linux program of the port is given (paths.c): no two flags may name one file.
+ * The files a Linux program of the port is given (paths.c): no two flags may name one file, and
+ * no one but root and this user may replace the NV record.
  */
 #ifndef CANERGY_PORT_LINUX_PATHS_H
 #define CANERGY_PORT_LINUX_PATHS_H
@@ -16,5 +17,13 @@ struct port_file {
  * a symlink (dangling too, or through a linked directory) or a hard link. Reads nothing else and
  * creates nothing. */
 void port_check_distinct(const struct port_file *files, size_t count);
+
+/* Exit 2 (port_usage_error, naming flag, path, the directory and the fix) when someone other
+ * than root and this user could replace or roll back path, as canergy.live.atomic's
+ * check_private_dir (sshd's StrictModes): its directory, or one above it (as written, made
+ * absolute, then once symlinks are resolved), is writable by group or others without the sticky
+ * bit (/tmp is fine), or belongs to another user. A directory that cannot be read is passed
+ * over (the file's open fails later). Reads nothing else and creates nothing. */
+void port_check_private_dir(const char *flag, const char *path);
 
 #endif /* CANERGY_PORT_LINUX_PATHS_H */

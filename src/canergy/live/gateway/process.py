@@ -40,7 +40,7 @@ from canergy.live.gateway.state import save_gateway
 from canergy.live.runtime import BusCounters, Outgoing
 from canergy.live.supervisor.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
-from canergy.live.supervisor.witness import ClientWitness
+from canergy.live.supervisor.witness import WITNESS_GAP_US, ClientWitness
 from canergy.messages import (
     AMOUNT_MAX_MJ,
     LEVEL_MAX_MJ,
@@ -112,6 +112,9 @@ class Uplink:
         self.config = config
         self.files = files
         self.next_telemetry = now
+        self.early_telemetry = 0
+        """The earliest a frame in its name brings the next TELEMETRY forward to: the last one's
+        time + ``WITNESS_GAP_US`` (two gateways on one id would answer each other's at once)."""
         self.next_tick = now
         self.outbox: list[Message] = []
         self.decode_errors = 0
@@ -201,7 +204,7 @@ class Uplink:
     def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
         """Authenticated mode: a frame for this gateway without a MAC, with a bad one or a stale
         one. Counted by reason (``refused``) and among the intrusions, never acted on; one in its
-        own direction (in its name) is witnessed and reported at once, as a node does."""
+        own direction (in its name) is witnessed and reported as a node does (``witness``)."""
         if verdict.node != self.node or verdict.failure is None:
             return
         if frame_direction(frame.arbitration_id) is Direction.TO_SUPERVISOR:
@@ -229,9 +232,10 @@ class Uplink:
         return ()
 
     def witness(self, now: int) -> list[Message]:
-        """Someone spoke in this gateway's name upstream: count it, report it at the next
-        wakeup, or now (``ClientWitness.seen``)."""
-        self.next_telemetry = now
+        """Someone spoke in this gateway's name upstream: count it and report it at the next
+        wakeup but no sooner than ``WITNESS_GAP_US`` after the last TELEMETRY, or now
+        (``ClientWitness.seen``), as a node does."""
+        self.next_telemetry = min(self.next_telemetry, self.early_telemetry)
         return [self.telemetry(now)] if self.witnessing.seen() else []
 
     @property
@@ -271,6 +275,7 @@ class Uplink:
 
     def telemetry(self, now: int) -> Telemetry:
         self.next_telemetry = now + self.config.telemetry_period_us
+        self.early_telemetry = now + WITNESS_GAP_US
         level = self.level()
         flags = (Telemetry.JOINING if self.joining else 0) | (
             Telemetry.WITNESSED if self.gateway.up.variant.name == "witnessed" else 0

@@ -47,12 +47,12 @@ restarted (its count starts at 0 again)."""
 
 WITNESS_GAP_US = 10_000
 """A node brings its next TELEMETRY forward for a frame in its name no sooner than this after
-its last one (the C node: ``CANERGY_WITNESS_GAP_US``; a gateway's upstream leg does not apply it
-yet). Two nodes on one id see each other's reports in their own name: reported at once, they
-would answer each other with no pause (rv3 measured 9,102 frames/s on the virtual bus, more than
-a 500 kbit/s bus carries). With the gap each sends at most one early report per 10 ms, and a
-refutation still reaches the supervisor 10 ms after the forgery at the latest, well inside its
-RETURN and JOIN holds (500 ms by default)."""
+its last one (the C node: ``CANERGY_WITNESS_GAP_US``; a gateway's upstream leg, Python's and
+the C port's, the same). Two nodes on one id see each other's reports in their own name:
+reported at once, they would answer each other with no pause (rv3 measured 9,102 frames/s on
+the virtual bus, more than a 500 kbit/s bus carries). With the gap each sends at most one early
+report per 10 ms, and a refutation still reaches the supervisor 10 ms after the forgery at the
+latest, well inside its RETURN and JOIN holds (500 ms by default)."""
 
 RETURN_HOLD_MIN_US = 100_000
 """The least hold (``--return-hold``, ``ServiceConfig.return_hold_us``): the node must have the

@@ -10,8 +10,9 @@ from typing import Any
 
 from canergy.core import Timing
 from canergy.devices.guard import DeviceConfig
-from canergy.devices.mit import FW_PER_W, MODELS, UNM_PER_NM, MitLimits, cap_for_power
+from canergy.devices.mit import FW_PER_W, MODELS, UNM_PER_NM, MitLimits, MitModel, cap_for_power
 from canergy.devices.mit_gate import MitGate
+from canergy.devices.watchdog import WatchdogPolicy
 
 
 @dataclass(frozen=True, slots=True)
@@ -34,6 +35,29 @@ class MitMotor:
     hold_us: int = 20_000
 
 
+DAMIAO_TIMEOUT_RID = 9
+"""Damiao's ``CAN Timeout`` register (``TIMEOUT``, uint32): read over CAN with a frame to
+0x7FF ``[id low, id high, 0x33, RID, 0, 0, 0, 0]``, answered on the master id with the value in
+bytes 4-7 (little-endian); written with 0x55, saved to flash with 0xAA (Damiao's register table,
+as the open Damiao drivers list it). The gate does not read it yet."""
+
+
+def mit_watchdog(model: MitModel) -> WatchdogPolicy:
+    """What the status says of the motor's own watchdog: Damiao's ``CAN Timeout``, not read
+    yet; CubeMars AK firmware has none."""
+    if not model.damiao:
+        return WatchdogPolicy(
+            kind=f"{model.name}: the firmware has no watchdog (a relay on its supply)",
+            read=False,
+            exists=False,
+        )
+    return WatchdogPolicy(
+        kind=f"{model.name}: the CAN Timeout register (RID {DAMIAO_TIMEOUT_RID})",
+        read=False,
+        unread="the MIT gate does not read Damiao registers yet: set CAN Timeout yourself",
+    )
+
+
 def gate_for(
     motor: MitMotor, now: int, timing: Timing, config: dict[str, Any] | None = None
 ) -> MitGate:
@@ -54,7 +78,8 @@ def gate_for(
     limits = MitLimits(torque, min(round(speed * UNM_PER_NM), int(model.v_max * UNM_PER_NM)))
     whole = MitLimits(int(model.t_max * UNM_PER_NM), int(model.v_max * UNM_PER_NM))
     # a motor that ignores exit holds its last command, whose stiffness term grows as it moves
-    device = DeviceConfig(limits=limits, timing=timing, stuck_limits=whole, **(config or {}))
+    config = {"watchdog": mit_watchdog(model), **(config or {})}
+    device = DeviceConfig(limits=limits, timing=timing, stuck_limits=whole, **config)
     nonce = secrets.randbits(16)
     return MitGate(
         motor.motor_id, motor.node, model, device, now, nonce, resistance=r, hold_us=motor.hold_us

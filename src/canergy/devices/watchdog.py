@@ -73,6 +73,8 @@ class WatchdogPolicy:
     allow: bool = False
     """Take a watchdog that reads off, too long or unanswered (reported) instead of refusing."""
     allow_flag: str = "--odrive-allow-unwatched"
+    remedy: str = "accept it with --odrive-allow-unwatched"
+    """What the refusal tells the user to do."""
     unread: str = ""
     """Why it is not read (``read`` False), for the status and stderr."""
     exists: bool = True
@@ -137,7 +139,7 @@ class WatchdogCheck:
                 f"watchdog changed behind the guard (a periodic read-back): {self.problem}, "
                 f"was {was}"
             )
-        return f"watchdog {self.problem} ({p.kind}); accept it with {p.allow_flag}"
+        return f"watchdog {self.problem} ({p.kind}); {p.remedy}"
 
     def note(self) -> str | None:
         """A line for stderr when a watchdog read leaves the device unbounded after the

@@ -10,7 +10,15 @@ from typing import Any
 
 from canergy.core import Timing
 from canergy.devices.guard import DeviceConfig
-from canergy.devices.mit import FW_PER_W, MODELS, UNM_PER_NM, MitLimits, MitModel, cap_for_power
+from canergy.devices.mit import (
+    FW_PER_W,
+    MODELS,
+    TIMEOUT_RID,
+    UNM_PER_NM,
+    MitLimits,
+    MitModel,
+    cap_for_power,
+)
 from canergy.devices.mit_gate import MitGate
 from canergy.devices.watchdog import WatchdogPolicy
 
@@ -35,16 +43,11 @@ class MitMotor:
     hold_us: int = 20_000
 
 
-DAMIAO_TIMEOUT_RID = 9
-"""Damiao's ``CAN Timeout`` register (``TIMEOUT``, uint32): read over CAN with a frame to
-0x7FF ``[id low, id high, 0x33, RID, 0, 0, 0, 0]``, answered on the master id with the value in
-bytes 4-7 (little-endian); written with 0x55, saved to flash with 0xAA (Damiao's register table,
-as the open Damiao drivers list it). The gate does not read it yet."""
-
-
-def mit_watchdog(model: MitModel) -> WatchdogPolicy:
-    """What the status says of the motor's own watchdog: Damiao's ``CAN Timeout``, not read
-    yet; CubeMars AK firmware has none."""
+def mit_watchdog(model: MitModel, max_us: int | None = None) -> WatchdogPolicy:
+    """How the motor's own watchdog is judged: Damiao's ``CAN Timeout`` register, read at
+    set-up (``canergy.devices.mit.TIMEOUT_RID``) when ``max_us`` is given (``--mit-max-watchdog``:
+    off, longer or unanswered refuses the motor), else not read; CubeMars AK firmware has
+    none."""
     if not model.damiao:
         return WatchdogPolicy(
             kind=f"{model.name}: the firmware has no watchdog (a relay on its supply)",
@@ -52,9 +55,11 @@ def mit_watchdog(model: MitModel) -> WatchdogPolicy:
             exists=False,
         )
     return WatchdogPolicy(
-        kind=f"{model.name}: the CAN Timeout register (RID {DAMIAO_TIMEOUT_RID})",
-        read=False,
-        unread="the MIT gate does not read Damiao registers yet: set CAN Timeout yourself",
+        kind=f"{model.name}: the CAN Timeout register (RID {TIMEOUT_RID})",
+        read=max_us is not None,
+        max_us=max_us or 0,
+        remedy="set its CAN Timeout, or leave out --mit-max-watchdog (then not read)",
+        unread="give --mit-max-watchdog to read it",
     )
 
 
@@ -78,7 +83,8 @@ def gate_for(
     limits = MitLimits(torque, min(round(speed * UNM_PER_NM), int(model.v_max * UNM_PER_NM)))
     whole = MitLimits(int(model.t_max * UNM_PER_NM), int(model.v_max * UNM_PER_NM))
     # a motor that ignores exit holds its last command, whose stiffness term grows as it moves
-    config = {"watchdog": mit_watchdog(model), **(config or {})}
+    config = dict(config or {})
+    config.setdefault("watchdog", mit_watchdog(model, config.pop("max_watchdog_us", None)))
     device = DeviceConfig(limits=limits, timing=timing, stuck_limits=whole, **config)
     nonce = secrets.randbits(16)
     return MitGate(

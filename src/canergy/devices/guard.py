@@ -679,6 +679,12 @@ class DeviceGuard(ProxyBooks, Generic[L]):
     def _set_phase(self, phase: GuardPhase, why: str | None, now: int) -> None:
         self.phase, self.stop_reason, self.phase_at = phase, why, now
 
+    def _after_exit_fw(self) -> int:
+        """What the device may run at once the host is gone: the full limits, or what a STUCK
+        device is charged at where that is more (an MIT motor's last command, no longer
+        re-clamped, may ask up to the model's whole range as it moves)."""
+        return max(self._fw(self.config.limits), self._fw(self.config.stuck_limits))
+
     def status(self, now: int) -> dict[str, Any]:
         """The same fields as a CiA 402 drive's where they mean the same, and the profile's."""
         target = self.pending if self.pending is not None else self.confirmed
@@ -739,5 +745,5 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             else now - self.last_feedback_at,
             "watchdog": None
             if self.watchdog is None
-            else self.watchdog.status(full.fw if self.sound else None),
+            else self.watchdog.status(self._after_exit_fw() if self.sound else None),
         }

@@ -41,7 +41,9 @@ def set_up(bench: AxisBench) -> dict[str, Any]:
     )
 
 
-def test_a_watchdog_that_is_off_refuses_the_axis(tmp_path: Path) -> None:
+def test_a_watchdog_that_is_off_refuses_the_axis(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """A new ODrive's watchdog is off: the axis would run on at its last limits after the
     supervisor died. Without the read-back the guard took it and granted it budget."""
     with guarded_axis(tmp_path, *LIMITS, *ENDPOINTS, *WATCHDOG, *BUDGET) as b:
@@ -55,6 +57,7 @@ def test_a_watchdog_that_is_off_refuses_the_axis(tmp_path: Path) -> None:
     assert w["after_exit"] == "unbounded" and w["after_exit_uj"] is None
     axis = final["cia402"]["devices"]["odrive"]["3"]
     assert axis["alive"] is False and final["nodes"]["3"]["delivered_uj"] == 0
+    assert f"odrive axis 3: refused: {d['refused']}" in capsys.readouterr().err
 
 
 def test_an_armed_watchdog_is_shown_with_what_the_axis_may_draw_after_the_exit(
@@ -82,7 +85,7 @@ def test_an_armed_watchdog_is_shown_with_what_the_axis_may_draw_after_the_exit(
 
 
 def test_a_watchdog_turned_off_behind_the_guard_is_found_by_the_periodic_read_back(
-    tmp_path: Path,
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Disabled where the guard cannot see (over USB: set in the emulator directly) after the
     set-up: the read-back every second finds it and stops the axis for good."""
@@ -106,6 +109,7 @@ def test_a_watchdog_turned_off_behind_the_guard_is_found_by_the_periodic_read_ba
     )
     assert d["latched"] and d["watchdog"]["changes"] == 1
     assert d["watchdog"]["state"] == "off"
+    assert "odrive axis 3: refused: watchdog changed behind the guard" in capsys.readouterr().err
 
 
 def test_a_watchdog_too_long_is_accepted_only_on_request_and_reported(

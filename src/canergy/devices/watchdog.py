@@ -115,6 +115,8 @@ class WatchdogCheck:
         self.problem: str | None = None
         self.changes = 0
         """Periodic read-backs that showed another watchdog than the one read before."""
+        self.refusal: str | None = None
+        """Why the device was refused for its watchdog (said on stderr by ``note``)."""
 
     def take(self, now: int, reading: WatchdogReading | None, periodic: bool) -> str | None:
         """A read-back (None: unanswered); the reason to refuse the device, if the policy
@@ -135,16 +137,21 @@ class WatchdogCheck:
             return None
         if changed:
             was = "not read" if before is None else describe(before)
-            return (
+            self.refusal = (
                 f"watchdog changed behind the guard (a periodic read-back): {self.problem}, "
                 f"was {was}"
             )
-        return f"watchdog {self.problem} ({p.kind}); {p.remedy}"
+        else:
+            self.refusal = f"watchdog {self.problem} ({p.kind}); {p.remedy}"
+        return self.refusal
 
     def note(self) -> str | None:
-        """A line for stderr when a watchdog read leaves the device unbounded after the
-        supervisor's exit and the policy takes it (None: nothing to say)."""
+        """A line for stderr when the device was refused for its watchdog, or a watchdog read
+        leaves it unbounded after the supervisor's exit and the policy takes it (None: nothing
+        to say)."""
         p = self.policy
+        if self.refusal is not None:
+            return f"refused: {self.refusal}"
         if not p.exists or not p.read:
             return None  # said once for all the devices where the flags are read
         if self.problem is None or not p.allow or not self.asked:

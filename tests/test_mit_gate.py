@@ -452,3 +452,16 @@ def test_a_budget_below_the_bound_holds_the_motor_and_says_so() -> None:
     more = Pair(60_000_000, 5_000_000)
     more.run_to(200_000)
     assert more.gate.guard.phase is GuardPhase.RUNNING and more.gate.guard.stop_reason is None
+
+
+def test_the_status_says_what_watchdog_the_motor_has() -> None:
+    """CubeMars AK firmware has no watchdog; Damiao's CAN Timeout is not read by the gate yet:
+    both leave the motor unbounded after the gate's process died, and the status says so."""
+    from canergy.live.devices.mit_motor import MitMotor
+
+    ak = gate_for(MitMotor(1, 5, "AK80-9", resistance=0.2), 0, Timing()).status(0)["watchdog"]
+    assert ak["state"] == "none" and ak["after_exit"] == "unbounded"
+    assert ak["kind"] == "AK80-9: the firmware has no watchdog (a relay on its supply)"
+    dm = gate_for(MitMotor(2, 6, "DM4310"), 0, Timing()).status(0)["watchdog"]
+    assert dm["state"] == "not read" and dm["after_exit"] == "unbounded"
+    assert dm["kind"] == "DM4310: the CAN Timeout register (RID 9)"

@@ -238,3 +238,44 @@ def test_several_buses_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture
     argv = ["supervisor", "--bus", "virtual:a:1", *MIT, "--initial", "1J"]
     assert main([*argv, "--state", str(tmp_path / "s.json")]) == 2
     assert "--mit work on one bus (-i/-c/--nodes), not with --bus" in capsys.readouterr().err
+
+
+def watched_motor(r: Any) -> dict[str, Any]:
+    books = r.books() or {}
+    return dict(books.get("cia402", {}).get("devices", {}).get("mit", {}).get("1", {}))
+
+
+def test_a_damiao_can_timeout_that_is_off_refuses_the_motor(tmp_path: Path) -> None:
+    """--mit-max-watchdog: the gate reads the CAN Timeout register (RID 9) over 0x7FF at
+    set-up; the emulated motor's is off (0): refused, the budget never granted to it."""
+    flags = [*hosted(f"app-{uuid.uuid4().hex}"), "--mit-max-watchdog", "1s"]
+    with rig(tmp_path, BUDGET, hosted=flags) as r:
+        d = wait_for(lambda: (d := watched_motor(r)) and d.get("refused") and d, 60)
+        r.stop()
+    assert d["refused"] == (
+        "watchdog off (disabled) (DM4310: the CAN Timeout register (RID 9)); set its CAN "
+        "Timeout, or leave out --mit-max-watchdog (then not read)"
+    )
+    assert d["watchdog"]["state"] == "off" and d["watchdog"]["after_exit"] == "unbounded"
+
+
+def test_a_damiao_can_timeout_read_back_is_shown_with_what_the_motor_may_draw_after(
+    tmp_path: Path,
+) -> None:
+    flags = [*hosted(f"app-{uuid.uuid4().hex}"), "--mit-max-watchdog", "1s"]
+    with rig(tmp_path, BUDGET, hosted=flags, can_timeout=2000) as r:  # 2000 × 50 µs
+        d = wait_for(lambda: (d := watched_motor(r)) and d["watchdog"]["verified"] and d, 60)
+        r.stop()
+    w = d["watchdog"]
+    assert d["refused"] is None and w["state"] == "armed" and w["timeout_s"] == 0.1
+    # the last command, no longer re-clamped, may ask the model's whole range as the motor
+    # moves: 10 N·m · 30 rad/s + 3/2 · 0.85 Ω · (10 / 0.945 A)² = 442.77 W, for 0.1 s
+    assert w["after_exit_uj"] == pytest.approx(442.77e6 * 0.1, rel=1e-3)
+    assert w["after_exit_uj"] > d["envelope_full_w"] * 0.1e6
+
+
+def test_without_the_flag_the_damiao_can_timeout_is_not_read(tmp_path: Path) -> None:
+    with rig(tmp_path, BUDGET, hosted=hosted(f"app-{uuid.uuid4().hex}")) as r:
+        d = wait_for(lambda: (d := watched_motor(r)) and d.get("guard") and d, 60)
+        r.stop()
+    assert d["watchdog"]["state"] == "not read" and d["refused"] is None

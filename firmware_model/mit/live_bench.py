@@ -105,14 +105,20 @@ def rig(
     others: Sequence[tuple[MitMotorModel, int]] = (),
     per_node: str | None = None,
     hosted: Sequence[str] = (),
+    **motor: Any,
 ) -> Iterator[Rig]:
     """The DM4310 ``MOTOR`` (proxy ``NODE``) and ``others`` (each a motor and its proxy's node
     id) on one virtual channel, the supervisor granting ``initial`` in all, topping each node up
     to ``per_node`` (default: ``initial``). ``hosted``: the supervisor hosts the gates itself,
-    these flags (``--mit ...``) instead of ``--nodes``."""
+    these flags (``--mit ...``) instead of ``--nodes``; ``motor``: ``MitMotorModel``'s fields."""
     channel = f"mit-{uuid.uuid4().hex}"
     model = MitMotorModel(
-        MOTOR, DM, monotonic_us(), master_id=MOTOR + 0x10, load=LoadTorque.constant(0.02, True)
+        MOTOR,
+        DM,
+        monotonic_us(),
+        master_id=MOTOR + 0x10,
+        load=LoadTorque.constant(0.02, True),
+        **motor,
     )
     faces = [
         MitFace(m, can.Bus(interface="virtual", channel=channel))

@@ -13,6 +13,10 @@ on in 1 ms steps. What it does:
 - the reply: position, velocity and torque over the model's ranges (saturated), from the
   reply's identifier ``master_id``.
 
+Damiao models answer a register read on 0x7FF (``canergy.devices.mit.read_register``) for the
+CAN Timeout (RID 9: ``can_timeout``, in 50 µs units, 0 off; held, not enforced) from the master
+id.
+
 Quirk for tests: ``ignores_exit`` (exit motor mode does nothing: a motor that does not obey).
 ``MitFace`` runs a model on a python-can bus in a thread, advancing it every 1 ms.
 """
@@ -28,6 +32,9 @@ import can
 from canergy.devices.mit import (
     ENTER,
     EXIT,
+    PARAMETER_ID,
+    READ_REGISTER,
+    TIMEOUT_RID,
     ZERO,
     Command,
     MitModel,
@@ -50,6 +57,8 @@ class MitMotorModel:
     inertia: float = 2e-3
     damping: float = 5e-3
     ignores_exit: bool = False
+    can_timeout: int = 0
+    """Damiao's CAN Timeout register, 50 µs units (0: off)."""
 
     def __post_init__(self) -> None:
         r = self.model.resistance if self.model.resistance is not None else 0.2
@@ -94,6 +103,15 @@ class MitMotorModel:
                 self.commands.append(self.command)
                 self.positions.append(self.motor.theta - self.origin)
         return self.reply()
+
+    def register(self, data: bytes) -> bytes | None:
+        """A 0x7FF frame: the answer to a read of the CAN Timeout addressed to this motor
+        (Damiao only; None: not one)."""
+        m = self.motor_id
+        head = bytes([m & 0xFF, m >> 8 & 0x07, READ_REGISTER, TIMEOUT_RID])
+        if not self.model.damiao or len(data) != 8 or data[:4] != head:
+            return None
+        return head + self.can_timeout.to_bytes(4, "little")
 
     def reply(self) -> bytes:
         fp, fv, _, _, ft = self.model.fields()
@@ -151,6 +169,8 @@ class MitFace:
                 ours = frame is not None and not frame.is_extended_id
                 if ours and frame is not None and frame.arbitration_id == self.model.motor_id:
                     reply = self.model.receive(bytes(frame.data))
+                elif ours and frame is not None and frame.arbitration_id == PARAMETER_ID:
+                    reply = self.model.register(bytes(frame.data))
             if reply is not None:
                 out = can.Message(
                     arbitration_id=self.model.master_id, data=reply, is_extended_id=False

@@ -12,8 +12,13 @@ returns the answers, ``advance`` moves the motor on. What it does, as the firmwa
   motoring past the velocity limit (``enable_torque_mode_vel_limit``); past ``vel_tolerance`` ×
   the limit the axis faults and goes IDLE (overspeed);
 - heartbeat every 100 ms, encoder estimates every 10 ms; remote requests for 0x017 (bus voltage
-  and current) and, on 0.6, 0x01D (electrical and mechanical power); RxSdo reads of the two
-  endpoints it knows (``VEL_LIMIT_EP``, ``CURRENT_LIMIT_EP``) on 0.6.
+  and current) and, on 0.6, 0x01D (electrical and mechanical power); RxSdo reads of the four
+  endpoints it knows (``VEL_LIMIT_EP``, ``CURRENT_LIMIT_EP``, ``ENABLE_WATCHDOG_EP`` a bool in
+  byte 4, ``WATCHDOG_TIMEOUT_EP`` float32 s) on 0.6;
+- the watchdog (``enable_watchdog``, ``watchdog_timeout``, off by default as on a new ODrive):
+  armed with a timeout above 0, an axis in closed loop not fed for the timeout latches
+  WATCHDOG_TIMER_EXPIRED and goes IDLE; it is fed by the setpoints (Set_Input_Torque,
+  Set_Input_Vel) and by entering closed loop, as ODrive's CAN examples describe it.
 
 Quirks for tests: ``current_cap`` (the current limit is clamped to it: a limit that does not read
 back as written), ``ignores_stop`` (Estop and IDLE do nothing: a device that does not obey),
@@ -38,10 +43,19 @@ import can
 from canergy.devices.odrive import AxisState, Cmd, can_id, f32, split_id
 from firmware_model.drive.motor import LoadTorque, Motor, MotorParams
 
-__all__ = ["CURRENT_LIMIT_EP", "VEL_LIMIT_EP", "AxisFace", "AxisModel"]
+__all__ = [
+    "CURRENT_LIMIT_EP",
+    "ENABLE_WATCHDOG_EP",
+    "VEL_LIMIT_EP",
+    "WATCHDOG_TIMEOUT_EP",
+    "AxisFace",
+    "AxisModel",
+]
 
 VEL_LIMIT_EP, CURRENT_LIMIT_EP = 401, 178
+ENABLE_WATCHDOG_EP, WATCHDOG_TIMEOUT_EP = 215, 216
 """The emulator's endpoint ids (a real firmware's come from its flat_endpoints.json)."""
+WATCHDOG_EXPIRED = {"0.5": 0x800, "0.6": 0x1000000}
 ESTOP_REQUESTED = 0x4000
 OVERSPEED = 0x1000
 HEARTBEAT_US, ESTIMATES_US = 100_000, 10_000
@@ -64,6 +78,9 @@ class AxisModel:
     current_cap: float | None = None
     ignores_stop: bool = False
     answers_reads: bool = True
+    enable_watchdog: bool = False
+    watchdog_timeout: float = 0.0
+    """s (0: off even when enabled)."""
 
     def __post_init__(self) -> None:
         self.motor = Motor(self.params, self.load)
@@ -73,6 +90,7 @@ class AxisModel:
         self.input_torque = 0.0
         self.input_vel = 0.0
         self.started_us = self.now_us
+        self.fed_us = self.now_us
         self.next_heartbeat = self.now_us
         self.next_estimates = self.now_us
         self.history: list[tuple[int, str]] = [(self.now_us, self.state.name)]
@@ -98,6 +116,7 @@ class AxisModel:
             if want == AxisState.IDLE and not self.ignores_stop:
                 self._set_state(AxisState.IDLE)
             elif want == AxisState.CLOSED_LOOP_CONTROL and not self.error:
+                self.fed_us = self.now_us
                 self._set_state(AxisState.CLOSED_LOOP_CONTROL)
         elif cmd == Cmd.CLEAR_ERRORS:
             self.error = 0
@@ -109,14 +128,21 @@ class AxisModel:
         elif cmd == Cmd.SET_INPUT_TORQUE and len(data) >= 4:
             (self.input_torque,) = struct.unpack_from("<f", data)
             self.control_mode = CONTROL_TORQUE
+            self.fed_us = self.now_us
         elif cmd == Cmd.SET_INPUT_VEL and len(data) == 8:
             self.input_vel, _ = struct.unpack("<ff", data)
             self.control_mode = CONTROL_VELOCITY
+            self.fed_us = self.now_us
         elif cmd == Cmd.RX_SDO and len(data) == 8 and self.firmware == "0.6":
             opcode, endpoint = struct.unpack_from("<BH", data)
-            values = {VEL_LIMIT_EP: self.vel_limit, CURRENT_LIMIT_EP: self.current_limit}
+            values = {
+                VEL_LIMIT_EP: struct.pack("<f", self.vel_limit),
+                CURRENT_LIMIT_EP: struct.pack("<f", self.current_limit),
+                ENABLE_WATCHDOG_EP: struct.pack("<?3x", self.enable_watchdog),
+                WATCHDOG_TIMEOUT_EP: struct.pack("<f", self.watchdog_timeout),
+            }
             if opcode == 0 and endpoint in values and self.answers_reads:
-                body = struct.pack("<BHBf", 0, endpoint, 0, values[endpoint])
+                body = struct.pack("<BHB", 0, endpoint, 0) + values[endpoint]
                 return [(Cmd.TX_SDO, body)]
         return []
 
@@ -158,6 +184,11 @@ class AxisModel:
         w_limit = 2 * math.pi * abs(self.vel_limit)
         if abs(m.omega) > self.vel_tolerance * w_limit:
             self.error |= OVERSPEED
+            self._set_state(AxisState.IDLE)
+        armed = self.enable_watchdog and self.watchdog_timeout > 0
+        starved = self.now_us - self.fed_us > self.watchdog_timeout * 1e6
+        if armed and starved and self.state is AxisState.CLOSED_LOOP_CONTROL:
+            self.error |= WATCHDOG_EXPIRED[self.firmware]
             self._set_state(AxisState.IDLE)
         if self.state is AxisState.CLOSED_LOOP_CONTROL:
             if self.control_mode == CONTROL_VELOCITY:

@@ -18,7 +18,14 @@ import can
 from canergy.devices.odrive import AxisState, Cmd, can_id, set_axis_state
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.drive.motor import LoadTorque
-from firmware_model.odrive.axis import CURRENT_LIMIT_EP, VEL_LIMIT_EP, AxisFace, AxisModel
+from firmware_model.odrive.axis import (
+    CURRENT_LIMIT_EP,
+    ENABLE_WATCHDOG_EP,
+    VEL_LIMIT_EP,
+    WATCHDOG_TIMEOUT_EP,
+    AxisFace,
+    AxisModel,
+)
 from firmware_model.supervisor_thread import SupervisorThread, supervisor_thread
 
 AXIS = 3
@@ -26,8 +33,9 @@ MOTOR = ("--odrive-torque-constant", "0.05", "--odrive-resistance", "0.5")
 LIMITS = ("--odrive-max-speed", "5", "--odrive-max-current", "2")
 """With the motor: min(0.05·2·2π·1.2·5 + 3/2·0.5·2², 24·2) = 6.77 W."""
 ENDPOINTS = ("--odrive-endpoints", f"{VEL_LIMIT_EP},{CURRENT_LIMIT_EP}")
+WATCHDOG = ("--odrive-watchdog-endpoints", f"{ENABLE_WATCHDOG_EP},{WATCHDOG_TIMEOUT_EP}")
 
-__all__ = ["AXIS", "AxisBench", "guarded_axis", "wait_for"]
+__all__ = ["AXIS", "ENDPOINTS", "LIMITS", "WATCHDOG", "AxisBench", "guarded_axis", "wait_for"]
 
 
 @dataclass

@@ -59,6 +59,7 @@ from canergy.devices.profile import (
     WriteLimits,
 )
 from canergy.devices.proxy import EXHAUSTED, NO_BUDGET, ProxyBooks
+from canergy.devices.watchdog import WatchdogCheck, WatchdogPolicy, WatchdogReading
 from canergy.messages import QUANTUM_UJ, Message, ToClient
 
 FOREVER = 2**62
@@ -108,6 +109,9 @@ class DeviceConfig(Generic[L]):
         "written with --odrive-trust-limits"
     )
     """Why limits that did not read back refuse the device (the profile's words)."""
+    watchdog: WatchdogPolicy | None = None
+    """How the device's own watchdog is judged (``canergy.devices.watchdog``; None: the
+    status has no ``watchdog``)."""
 
 
 class DeviceGuard(ProxyBooks, Generic[L]):
@@ -186,6 +190,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         """When limits last read back (a periodic read asked before shows nothing)."""
         self.unread_since: int | None = None
         """When the oldest periodic read-back still without an answer was asked."""
+        self.watchdog = None if config.watchdog is None else WatchdogCheck(config.watchdog)
 
     def running(self) -> bool:
         return self.phase is GuardPhase.RUNNING
@@ -426,6 +431,19 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             return self.on_foreign_write(now, seen.what)
         return []
 
+    def on_watchdog(
+        self, now: int, reading: WatchdogReading | None, periodic: bool
+    ) -> list[Message]:
+        """The device's watchdog read back (None: unanswered), at set-up or with a periodic
+        read-back: one the policy does not take refuses the device (stopped for good)."""
+        if self.watchdog is None:
+            return []
+        why = self.watchdog.take(now, reading, periodic)
+        if why is None:
+            return []
+        self._refuse(why)
+        return self._settled(now)
+
     def on_foreign_write(self, now: int, what: str) -> list[Message]:
         """A write behind the guard whose effect it cannot bound: stopped for good."""
         self.writes_seen += 1
@@ -661,6 +679,12 @@ class DeviceGuard(ProxyBooks, Generic[L]):
     def _set_phase(self, phase: GuardPhase, why: str | None, now: int) -> None:
         self.phase, self.stop_reason, self.phase_at = phase, why, now
 
+    def _after_exit_fw(self) -> int:
+        """What the device may run at once the host is gone: the full limits, or what a STUCK
+        device is charged at where that is more (an MIT motor's last command, no longer
+        re-clamped, may ask up to the model's whole range as it moves)."""
+        return max(self._fw(self.config.limits), self._fw(self.config.stuck_limits))
+
     def status(self, now: int) -> dict[str, Any]:
         """The same fields as a CiA 402 drive's where they mean the same, and the profile's."""
         target = self.pending if self.pending is not None else self.confirmed
@@ -719,4 +743,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             "feedback_age_us": None
             if self.last_feedback_at is None
             else now - self.last_feedback_at,
+            "watchdog": None
+            if self.watchdog is None
+            else self.watchdog.status(self._after_exit_fw() if self.sound else None),
         }

@@ -278,6 +278,33 @@ def side_channel(model: MitModel, motor_id: int, arbitration_id: int, extended: 
     return None
 
 
+PARAMETER_ID = 0x7FF
+"""Damiao's parameter frames: ``[id low, id high, op, RID, value (4 bytes, little-endian)]``,
+op 0x33 read, 0x55 write, 0xAA save to flash; answered from the motor's master id with the
+same layout (Damiao's register table, as the open Damiao drivers list it)."""
+READ_REGISTER = 0x33
+TIMEOUT_RID = 9
+"""``TIMEOUT``, the CAN Timeout: uint32 in units of 50 µs (0: off); a motor that receives no
+frame for that long disables itself."""
+TIMEOUT_UNIT_US = 50
+
+
+def read_register(motor_id: int, rid: int) -> bytes:
+    """The 0x7FF frame that asks Damiao motor ``motor_id`` for register ``rid``."""
+    return bytes([motor_id & 0xFF, motor_id >> 8 & 0x07, READ_REGISTER, rid, 0, 0, 0, 0])
+
+
+def register_reply(motor_id: int, rid: int, data: bytes | bytearray) -> int | None:
+    """The value of register ``rid`` if ``data`` is motor ``motor_id``'s answer to its read
+    (None: it is not; an MIT reply of the same motor may look like one only with byte 1, its
+    position's high byte, equal to the id's high byte and bytes 2-3 equal to 0x33, ``rid``)."""
+    d = bytes(data)
+    head = bytes([motor_id & 0xFF, motor_id >> 8 & 0x07, READ_REGISTER, rid])
+    if len(d) != 8 or d[:4] != head:
+        return None
+    return int.from_bytes(d[4:8], "little")
+
+
 # -- the envelope and the clamp -------------------------------------------------------------
 @dataclass(frozen=True, slots=True)
 class MitLimits:

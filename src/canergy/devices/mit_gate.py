@@ -40,15 +40,20 @@ from canergy.devices.mit import (
     ENTER,
     EXIT,
     SPECIAL,
+    TIMEOUT_RID,
+    TIMEOUT_UNIT_US,
     ZERO,
     Command,
     MitLimits,
     MitModel,
     MitProfile,
     clamp,
+    read_register,
+    register_reply,
     unpack_reply,
 )
 from canergy.devices.profile import Stop, WriteLimits
+from canergy.devices.watchdog import WatchdogReading
 from canergy.messages import Message, ToClient
 
 REPLY_WINDOW_US = 200_000
@@ -134,6 +139,14 @@ class MitGate:
         self.torque_step = 2 * ft.span / ft.top
         closed = MitProfile(model, resistance).closed(config.limits)
         self.guard.on_ready(now, now, config.limits, closed)
+        self.parameters: list[bytes] = []
+        """Frames for Damiao's parameter identifier 0x7FF (``take_parameter_frames``)."""
+        self.register_asked: int | None = None
+        """When the CAN Timeout register was asked (None: not, or answered)."""
+        policy = config.watchdog
+        if model.damiao and policy is not None and policy.read:
+            self.parameters.append(read_register(motor_id, TIMEOUT_RID))
+            self.register_asked = now
 
     # -- the application's side ------------------------------------------------------------
     def from_app(self, data: bytes, now: int) -> Verdict:
@@ -195,6 +208,13 @@ class MitGate:
     # -- the motor's side ------------------------------------------------------------------
     def from_motor(self, data: bytes, at: int, now: int) -> list[Message]:
         """A reply of the motor, received at ``at``."""
+        if self.register_asked is not None:
+            value = register_reply(self.motor_id, TIMEOUT_RID, data)
+            if value is not None:
+                self.register_asked = None
+                timeout_s = value * TIMEOUT_UNIT_US / 1e6
+                reading = WatchdogReading(value > 0, timeout_s)
+                return self.guard.on_watchdog(now, reading, False) + self._carry_out(now)
         try:
             reply = unpack_reply(self.model, data)
         except ValueError:
@@ -243,12 +263,18 @@ class MitGate:
         return self.guard.on_message(msg, now) + self._carry_out(now)
 
     def next_wakeup(self) -> int:
-        return min(self.guard.next_wakeup(), self.next_send)
+        times = [self.guard.next_wakeup(), self.next_send]
+        if self.register_asked is not None:
+            times.append(self.register_asked + LATE_WINDOW_US)
+        return min(times)
 
     def on_wakeup(self, now: int) -> list[Message]:
         self.guard.watch(max(0, now - self.next_wakeup()), 0)  # how late the host woke
         out = self.guard.on_wakeup(now) if self.guard.next_wakeup() <= now else []
         out += self._carry_out(now)
+        if self.register_asked is not None and now >= self.register_asked + LATE_WINDOW_US:
+            self.register_asked = None  # unanswered: the policy refuses the motor, or says so
+            out += self.guard.on_watchdog(now, None, False) + self._carry_out(now)
         if now >= self.next_send:
             self._resend(now)
         return out
@@ -256,6 +282,11 @@ class MitGate:
     def halt(self, now: int) -> list[Message]:
         self.guard.halt(now)
         return self._carry_out(now)
+
+    def take_parameter_frames(self) -> list[bytes]:
+        """Frames the gate sends to Damiao's parameter identifier 0x7FF (a register read)."""
+        out, self.parameters = self.parameters, []
+        return out
 
     def take_frames(self) -> list[bytes]:
         """Frames the gate itself sends to the motor (in order)."""

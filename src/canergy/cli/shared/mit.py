@@ -14,7 +14,7 @@ from typing import Any
 
 import can
 
-from canergy.argtypes import PER_ID_SYNTAX, PerId, _shown, add_duration, node_ids, per_id
+from canergy.argtypes import PER_ID_SYNTAX, PerId, _shown, add_duration, duration, node_ids, per_id
 from canergy.cli.shared.bus_flags import add_bus_flags, open_bus
 from canergy.cli.shared.cia402 import _number
 from canergy.codec import Codec
@@ -124,6 +124,13 @@ def add_gate_flags(g: argparse._ArgumentGroup, model_required: bool) -> None:
     add_resistance_flag(g)
     add_duration(g, "--mit-hold", 20_000, "the command in force is clamped again this often")
     add_duration(g, "--mit-feedback-timeout", 300_000, "stop a motor not heard this long")
+    g.add_argument(
+        "--mit-max-watchdog",
+        type=duration,
+        metavar="TIME",
+        help="Damiao: read each motor's CAN Timeout register (RID 9) at set-up; off, longer "
+        "than TIME or unanswered refuses the motor (default: not read, the status says so)",
+    )
     add_duration(
         g,
         "--mit-stop-timeout",
@@ -137,6 +144,7 @@ def guard_config(args: argparse.Namespace) -> dict[str, Any]:
     return {
         "feedback_timeout_us": args.mit_feedback_timeout,
         "stop_timeout_us": args.mit_stop_timeout,
+        "max_watchdog_us": args.mit_max_watchdog,
     }
 
 

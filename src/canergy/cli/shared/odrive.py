@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import secrets
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from fractions import Fraction
 from typing import Any
@@ -16,6 +17,7 @@ from canergy.cli.shared.cia402 import _number
 from canergy.core import Timing
 from canergy.devices.guard import REREAD_US, DeviceConfig, DeviceGuard
 from canergy.devices.odrive import FIRMWARES, NODE_MAX, MotorConstants, OdriveLimits, OdriveProfile
+from canergy.devices.watchdog import WatchdogPolicy
 from canergy.live.devices.odrive_link import OdriveLink, OdriveLinkConfig
 
 SAMPLED_WARNING = (
@@ -29,17 +31,34 @@ UNVERIFIED_WARNING = (
 )
 
 
-def endpoint_pair(text: str) -> tuple[int, int]:
-    """``VEL,CURRENT``: two endpoint ids (0-65535)."""
-    try:
-        vel, current = (int(part, 0) for part in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"{text[:40]!r}: VEL_ID,CURRENT_ID, e.g. 401,178 (from flat_endpoints.json)"
-        ) from None
-    if not (0 <= vel <= 0xFFFF and 0 <= current <= 0xFFFF):
-        raise argparse.ArgumentTypeError(f"{text[:40]!r}: endpoint ids are 0-65535")
-    return vel, current
+UNWATCHED_WARNING = (
+    "warning: --odrive: the axes' watchdog is not read ({why}): if the supervisor dies an "
+    "axis runs on at the limits it last wrote, unguarded, for as long as nothing else stops it "
+    "(the status's watchdog says unbounded)"
+)
+
+
+def _endpoints(names: str, example: str) -> Callable[[str], tuple[int, int]]:
+    """A parser of ``names``: two endpoint ids (0-65535)."""
+
+    def parse(text: str) -> tuple[int, int]:
+        try:
+            first, second = (int(part, 0) for part in text.split(","))
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{text[:40]!r}: {names}, e.g. {example} (from flat_endpoints.json)"
+            ) from None
+        if not (0 <= first <= 0xFFFF and 0 <= second <= 0xFFFF):
+            raise argparse.ArgumentTypeError(f"{text[:40]!r}: endpoint ids are 0-65535")
+        return first, second
+
+    return parse
+
+
+endpoint_pair = _endpoints("VEL_ID,CURRENT_ID", "401,178")
+"""``VEL,CURRENT``: two endpoint ids (0-65535)."""
+watchdog_pair = _endpoints("ENABLE_ID,TIMEOUT_ID", "215,216")
+"""``ENABLE,TIMEOUT``: the watchdog's two endpoint ids (0-65535)."""
 
 
 def add_odrive_flags(p: argparse.ArgumentParser) -> None:
@@ -65,6 +84,29 @@ def add_odrive_flags(p: argparse.ArgumentParser) -> None:
         help="0.6: endpoint ids of axis.controller.config.vel_limit and "
         "axis.config.motor.current_soft_max (flat_endpoints.json of the firmware): the limits "
         "are read back through them",
+    )
+    g.add_argument(
+        "--odrive-watchdog-endpoints",
+        type=watchdog_pair,
+        metavar="ENABLE,TIMEOUT",
+        help="0.6: endpoint ids of axis.config.enable_watchdog and axis.config.watchdog_timeout "
+        "(flat_endpoints.json): the watchdog is read at set-up and with every read-back of the "
+        "limits; one that is off, longer than --odrive-max-watchdog or unanswered refuses the "
+        "axis (without them the status says the watchdog is not read)",
+    )
+    add_duration(
+        g,
+        "--odrive-max-watchdog",
+        1_000_000,
+        "the longest watchdog timeout an axis is taken with (what it may draw after the "
+        "supervisor died: its envelope times that)",
+        low_us=1_000,
+    )
+    g.add_argument(
+        "--odrive-allow-unwatched",
+        action="store_true",
+        help="take an axis whose watchdog reads off, too long or unanswered (reported on stderr "
+        "and in the status: after the supervisor's exit unbounded)",
     )
     g.add_argument(
         "--odrive-meter",
@@ -156,6 +198,12 @@ def check_odrive(args: argparse.Namespace) -> None:
         raise ValueError("a node id is either a canergy node (--nodes) or an axis (--odrive)")
     if args.listen_only:
         raise ValueError("--odrive guards axes and must send: not with --listen-only")
+    if args.odrive_watchdog_endpoints is not None and args.odrive_firmware != "0.6":
+        raise ValueError(
+            "--odrive-watchdog-endpoints: firmware 0.5 has no way to read an endpoint over CAN"
+        )
+    if args.odrive_watchdog_endpoints is None:
+        print(UNWATCHED_WARNING.format(why=_unread(args)), file=sys.stderr)
     if args.odrive_meter == "sampled":
         print(SAMPLED_WARNING, file=sys.stderr)
         return
@@ -198,6 +246,24 @@ class OdriveAxes:
         return axes
 
 
+def odrive_watchdog(args: argparse.Namespace) -> WatchdogPolicy:
+    """How the axes' own watchdog is judged (``--odrive-watchdog-endpoints`` and the rest)."""
+    return WatchdogPolicy(
+        kind="odrive axis.config.enable_watchdog, watchdog_timeout",
+        read=args.odrive_watchdog_endpoints is not None,
+        max_us=args.odrive_max_watchdog,
+        allow=args.odrive_allow_unwatched,
+        allow_flag="--odrive-allow-unwatched",
+        unread=_unread(args),
+    )
+
+
+def _unread(args: argparse.Namespace) -> str:
+    if args.odrive_firmware != "0.6":
+        return "firmware 0.5 has no way to read it over CAN"
+    return "give --odrive-watchdog-endpoints ENABLE,TIMEOUT to read it"
+
+
 def odrive_axes(args: argparse.Namespace, timing: Timing) -> OdriveAxes:
     """The ``--odrive*`` flags as the builder takes them."""
     sampled = args.odrive_meter == "sampled"
@@ -215,9 +281,13 @@ def odrive_axes(args: argparse.Namespace, timing: Timing) -> OdriveAxes:
         stop_timeout_us=args.odrive_stop_timeout,
         reserve_uj=args.odrive_reserve,
         reread_us=REREAD_US,
+        watchdog=odrive_watchdog(args),
     )
     link_config = OdriveLinkConfig(
-        firmware=args.odrive_firmware, endpoints=args.odrive_endpoints, sampled=sampled
+        firmware=args.odrive_firmware,
+        endpoints=args.odrive_endpoints,
+        watchdog_endpoints=args.odrive_watchdog_endpoints,
+        sampled=sampled,
     )
     motor = MotorConstants(
         torque_constant=args.odrive_torque_constant or Fraction(0),

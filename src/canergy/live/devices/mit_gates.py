@@ -23,7 +23,7 @@ from typing import Any
 import can
 
 from canergy.core import Timing
-from canergy.devices.mit import default_master, reply_collision, side_channel
+from canergy.devices.mit import PARAMETER_ID, default_master, reply_collision, side_channel
 from canergy.devices.mit_gate import MitGate
 from canergy.live.devices.mit_motor import MitMotor, gate_for
 from canergy.messages import Message
@@ -130,9 +130,15 @@ class MitGates:
         return out
 
     def outgoing(self, gate: MitGate | None = None) -> list[can.Message]:
-        """The frames the gates (or ``gate``) send the motors themselves, in order."""
+        """The frames the gates (or ``gate``) send the motors themselves, in order (a
+        register read to Damiao's 0x7FF first)."""
+        gates = list(self.gates.values() if gate is None else (gate,))
         return [
+            can.Message(arbitration_id=PARAMETER_ID, data=data, is_extended_id=False)
+            for g in gates
+            for data in g.take_parameter_frames()
+        ] + [
             can.Message(arbitration_id=g.motor_id, data=data, is_extended_id=False)
-            for g in (self.gates.values() if gate is None else (gate,))
+            for g in gates
             for data in g.take_frames()
         ]

@@ -10,8 +10,17 @@ from typing import Any
 
 from canergy.core import Timing
 from canergy.devices.guard import DeviceConfig
-from canergy.devices.mit import FW_PER_W, MODELS, UNM_PER_NM, MitLimits, cap_for_power
+from canergy.devices.mit import (
+    FW_PER_W,
+    MODELS,
+    TIMEOUT_RID,
+    UNM_PER_NM,
+    MitLimits,
+    MitModel,
+    cap_for_power,
+)
 from canergy.devices.mit_gate import MitGate
+from canergy.devices.watchdog import WatchdogPolicy
 
 
 @dataclass(frozen=True, slots=True)
@@ -34,6 +43,26 @@ class MitMotor:
     hold_us: int = 20_000
 
 
+def mit_watchdog(model: MitModel, max_us: int | None = None) -> WatchdogPolicy:
+    """How the motor's own watchdog is judged: Damiao's ``CAN Timeout`` register, read at
+    set-up (``canergy.devices.mit.TIMEOUT_RID``) when ``max_us`` is given (``--mit-max-watchdog``:
+    off, longer or unanswered refuses the motor), else not read; CubeMars AK firmware has
+    none."""
+    if not model.damiao:
+        return WatchdogPolicy(
+            kind=f"{model.name}: the firmware has no watchdog (a relay on its supply)",
+            read=False,
+            exists=False,
+        )
+    return WatchdogPolicy(
+        kind=f"{model.name}: the CAN Timeout register (RID {TIMEOUT_RID})",
+        read=max_us is not None,
+        max_us=max_us or 0,
+        remedy="set its CAN Timeout, or leave out --mit-max-watchdog (then not read)",
+        unread="give --mit-max-watchdog to read it",
+    )
+
+
 def gate_for(
     motor: MitMotor, now: int, timing: Timing, config: dict[str, Any] | None = None
 ) -> MitGate:
@@ -54,7 +83,9 @@ def gate_for(
     limits = MitLimits(torque, min(round(speed * UNM_PER_NM), int(model.v_max * UNM_PER_NM)))
     whole = MitLimits(int(model.t_max * UNM_PER_NM), int(model.v_max * UNM_PER_NM))
     # a motor that ignores exit holds its last command, whose stiffness term grows as it moves
-    device = DeviceConfig(limits=limits, timing=timing, stuck_limits=whole, **(config or {}))
+    config = dict(config or {})
+    config.setdefault("watchdog", mit_watchdog(model, config.pop("max_watchdog_us", None)))
+    device = DeviceConfig(limits=limits, timing=timing, stuck_limits=whole, **config)
     nonce = secrets.randbits(16)
     return MitGate(
         motor.motor_id, motor.node, model, device, now, nonce, resistance=r, hold_us=motor.hold_us

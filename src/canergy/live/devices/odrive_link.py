@@ -8,10 +8,13 @@ supervisor's loop:
 - ``WriteLimits``: Set_Limits, then on firmware 0.6 with the endpoint ids given, RxSdo reads of
   ``vel_limit`` and ``current_soft_max`` answered by TxSdo (the round trip is the latency
   measured); on 0.5 nothing can be read back (the answer says so: None);
-- ``ReadLimits`` (the periodic read-back): the two endpoint reads alone (None on 0.5);
+- ``ReadLimits`` (the periodic read-back): the two endpoint reads alone (None on 0.5), and
+  the watchdog's two (``axis.config.enable_watchdog``, ``watchdog_timeout``) where their ids
+  are given: unanswered, the whole read-back is;
 - ``Stop``: Estop, then Set_Axis_State IDLE.
 
-Set-up writes the guard's full limits and reads them back, then the closed ones (current 0).
+Set-up writes the guard's full limits and reads them back, then the closed ones (current 0),
+then reads the watchdog (``canergy.devices.watchdog``: the guard judges it).
 Frames from others are read by the profile (``canergy.devices.odrive.watch``: Set_Limits is
 charged as written, then written over; RxSdo writes, Reboot, Address/Set_Axis_Node_ID and
 Enter_DFU_Mode stop the axis for good). The link polls bus voltage and current (0x017) and, on
@@ -45,6 +48,7 @@ from canergy.devices.odrive import (
     watch,
 )
 from canergy.devices.profile import ReadLimits, Stop
+from canergy.devices.watchdog import WatchdogReading
 from canergy.live.devices.device_link import GuardLink
 from canergy.live.devices.device_link import limits_event as _limits
 from canergy.live.devices.device_link import read_event as _read
@@ -59,6 +63,10 @@ class OdriveLinkConfig:
     endpoints: tuple[int, int] | None = None
     """0.6: the endpoint ids of ``axis.controller.config.vel_limit`` and
     ``axis.config.motor.current_soft_max`` (the firmware's ``flat_endpoints.json``)."""
+    watchdog_endpoints: tuple[int, int] | None = None
+    """0.6: the endpoint ids of ``axis.config.enable_watchdog`` (bool) and
+    ``axis.config.watchdog_timeout`` (float32, s): read at set-up and with each periodic
+    read-back (None: not read)."""
     sdo_timeout_s: float = 0.2
     poll_s: float = 0.1
     """Remote requests for bus voltage and current (and 0.6 powers) this often."""
@@ -78,7 +86,7 @@ class OdriveLink(GuardLink[OdriveLimits]):
     ) -> None:
         super().__init__(bus, node, limits, clock, "odrive")
         self.config = config
-        self.replies: queue.Queue[tuple[int, float]] = queue.Queue()
+        self.replies: queue.Queue[tuple[int, bytes]] = queue.Queue()
 
     # -- the listener (Notifier thread) ---------------------------------------------------
     def on_message_received(self, frame: can.Message) -> None:
@@ -122,7 +130,7 @@ class OdriveLink(GuardLink[OdriveLimits]):
             self._event(lambda g, now: g.on_feedback(now, at, None))
         elif cmd == Cmd.TX_SDO:
             _, endpoint, value = sdo_fields(data)
-            self.replies.put((endpoint, struct.unpack("<f", value)[0]))
+            self.replies.put((endpoint, value))
         elif (seen := watch(cmd, data)) is not None:  # the profile reads the others' frames
             self._event(lambda g, now: g.on_watched(now, at, seen))
 
@@ -151,6 +159,7 @@ class OdriveLink(GuardLink[OdriveLimits]):
             self._setup(self.limits)
         else:  # sampled: nothing to write
             started = self.clock()
+            self._watchdog(periodic=False)
             self._event(lambda g, now: _ready(g, now, started, None, None))
         while not self.closing.is_set():
             try:
@@ -165,7 +174,10 @@ class OdriveLink(GuardLink[OdriveLimits]):
                 self._send(Cmd.SET_AXIS_STATE, set_axis_state(AxisState.IDLE))
                 self.reaction_max_us = max(self.reaction_max_us, self.clock() - cmd.at)
             elif isinstance(cmd, ReadLimits):
-                self._event(functools.partial(_read, self._read_limits()))
+                read = self._read_limits()
+                if read is not None and not self._watchdog(periodic=True):
+                    read = None  # the watchdog unanswered: the read-back is
+                self._event(functools.partial(_read, read))
             else:
                 read = self._write(cmd.limits)
                 self._event(functools.partial(_limits, cmd.limits, read, cmd.at))
@@ -179,7 +191,20 @@ class OdriveLink(GuardLink[OdriveLimits]):
         started = self.clock()
         full = self._write(limits)
         closed = self._write(OdriveLimits(limits.velocity, 0.0))
+        self._watchdog(periodic=False)
         self._event(lambda g, now: _ready(g, now, started, full, closed))
+
+    def _watchdog(self, periodic: bool) -> bool:
+        """Read the watchdog's endpoints, where given, for the guard; False: unanswered."""
+        endpoints = self.config.watchdog_endpoints
+        if self.config.firmware != "0.6" or endpoints is None:
+            return True
+        enabled, timeout = (self._read(endpoint) for endpoint in endpoints)
+        reading = None
+        if enabled is not None and timeout is not None:
+            reading = WatchdogReading(enabled[0] != 0, struct.unpack("<f", timeout)[0])
+        self._event(lambda g, now: g.on_watchdog(now, reading, periodic))
+        return reading is not None
 
     def _write(self, limits: OdriveLimits) -> OdriveLimits | None:
         """Set_Limits and, where the firmware allows, the limits read back (else None)."""
@@ -191,13 +216,13 @@ class OdriveLink(GuardLink[OdriveLimits]):
         """The limits the axis holds, where the firmware can say (else None)."""
         if self.config.firmware != "0.6" or self.config.endpoints is None:
             return None
-        values = [self._read(endpoint) for endpoint in self.config.endpoints]
-        velocity, current = values
+        velocity, current = (self._read(endpoint) for endpoint in self.config.endpoints)
         if velocity is None or current is None:
             return None
-        return OdriveLimits(velocity, current)
+        return OdriveLimits(*(struct.unpack("<f", v)[0] for v in (velocity, current)))
 
-    def _read(self, endpoint: int) -> float | None:
+    def _read(self, endpoint: int) -> bytes | None:
+        """The 4 value bytes of ``endpoint`` (None: no answer within the SDO timeout)."""
         with contextlib.suppress(queue.Empty):
             while True:
                 self.replies.get_nowait()  # answers to reads given up on

@@ -146,12 +146,14 @@ class DeviceNews:
         self.on_stuck = on_stuck
         self.ident = ident or (lambda guard: guard.node)
         self.said: dict[int, tuple[str, str | None]] = {}
+        self.watchdog_said: dict[int, str | None] = {}
 
     def __call__(self, guard: DeviceGuard[Any]) -> None:
         stuck = guard.stuck
         number = self.ident(guard)
         if self.on_stuck is not None:
             self.on_stuck(guard.profile.name, number, stuck)
+        self._watchdog(guard, number)
         seen = (guard.phase.value, guard.stop_reason if stuck is None else stuck)
         if self.report is None or self.said.setdefault(number, seen) == seen:
             return
@@ -165,3 +167,14 @@ class DeviceNews:
             self.report(f"{what}: released ({left})")
         else:
             self.report(f"{what}: {guard.phase.value} ({guard.stop_reason}; {left})")
+
+    def _watchdog(self, guard: DeviceGuard[Any], number: int) -> None:
+        """A line when the device's watchdog, read, leaves it unbounded after the exit and
+        the policy took it (``WatchdogCheck.note``), once per change."""
+        note = None if guard.watchdog is None else guard.watchdog.note()
+        if self.report is None or self.watchdog_said.get(number) == note:
+            return
+        self.watchdog_said[number] = note
+        if note is not None:
+            noun = "motor" if guard.profile.name == "mit" else "axis"
+            self.report(f"{guard.profile.name} {noun} {number}: {note}")

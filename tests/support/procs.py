@@ -23,6 +23,9 @@ import pytest
 from canergy.testing.bus import Process
 from canergy.testing.run import until
 
+DUMP_S = 10
+"""How long a process that would not stop has to write its stacks (SIGABRT) before SIGKILL."""
+
 
 class Procs:
     def __init__(self, tmp: Path) -> None:
@@ -40,15 +43,24 @@ class Procs:
 
     def stop(self, name: str, sig: int = signal.SIGTERM, timeout: float = 60) -> int:
         """Signal it and wait; one that outlives ``timeout`` is killed before the test fails
-        (left running, a supervisor bridging two buses doubled the next test's frames)."""
+        (left running, a supervisor bridging two buses doubled the next test's frames), by
+        SIGABRT first: ``python`` runs it under faulthandler, which then writes every thread's
+        stack to its stderr, and the failure shows it."""
         proc = self.procs.pop(name)
         proc.send_signal(sig)
         try:
             return proc.wait(timeout)
         except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(30)
-            raise
+            proc.send_signal(signal.SIGABRT)
+            try:
+                proc.wait(DUMP_S)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(30)
+        raise AssertionError(
+            f"{name} did not end within {timeout} s of signal {sig}; its stderr (the stacks: "
+            f"faulthandler on SIGABRT):\n{self.stderr(name)[-6000:]}"
+        )
 
     def close(self) -> None:
         for proc in self.procs.values():
@@ -64,7 +76,9 @@ def procs(tmp_path: Path) -> Iterator[Procs]:
 
 
 def python(*args: str) -> list[str]:
-    return [sys.executable, *args]
+    """This interpreter, under faulthandler (a fatal signal, SIGABRT from ``Procs.stop`` too,
+    writes every thread's stack to stderr)."""
+    return [sys.executable, "-X", "faulthandler", *args]
 
 
 def status(path: Path) -> dict[str, Any]:

@@ -6,6 +6,7 @@ Both ends use these: the supervisor (``canergy supervisor --canopen``) and emula
 
 from __future__ import annotations
 
+import queue
 from pathlib import Path
 
 import can
@@ -26,20 +27,41 @@ class SharedReader(can.BufferedReader):
     """canergy's end of a shared Notifier; a receive error is counted, not fatal (without a
     listener that handles it the Notifier's thread would stop and every node look lost).
     ``wake``: the loop waiting on it returns at once, with no frame (work from elsewhere:
-    frames of the application's bus for supervisor-hosted MIT gates)."""
+    frames of the application's bus for supervisor-hosted MIT gates).
+
+    Frames wait in a ``queue.Queue``, not in ``can.BufferedReader``'s ``SimpleQueue``: the
+    lock-based ``SimpleQueue`` of CPython 3.11 (3.13 has another) waits without end, until the
+    next ``put``, once ``get(timeout=t)`` goes round its loop after ``t`` ran out (a signal
+    handler that outlasts ``t`` in its wait; or a tiny ``t`` spent before its first check,
+    as where reading the clock is a system call, in user-mode Linux). A supervisor whose loop
+    waited here for a frame of its bus, where the guarded motor answers only what that loop
+    sends, then never ended, not even on SIGTERM (``test_vcan_mit_hosted``: faulthandler
+    showed its main thread in ``get_message``). ``queue.Queue`` waits on a
+    ``threading.Condition``, whose lock gives up once the time is over."""
 
     def __init__(self) -> None:
         super().__init__()
         self.errors = 0
+        self.frames: queue.Queue[can.Message] = queue.Queue()
+
+    def on_message_received(self, msg: can.Message) -> None:
+        if self.is_stopped:
+            raise RuntimeError("reader has already been stopped")
+        self.frames.put(msg)
 
     def on_error(self, exc: Exception) -> None:
         self.errors += 1
 
     def wake(self) -> None:
-        self.buffer.put(_WAKE)
+        self.frames.put(_WAKE)
 
     def get_message(self, timeout: float = 0.5) -> can.Message | None:
-        msg = super().get_message(timeout)
+        """The oldest frame, waiting at most ``timeout`` s (not at all once stopped); None
+        when none came, or a ``wake``."""
+        try:
+            msg = self.frames.get(block=not self.is_stopped and timeout > 0, timeout=timeout)
+        except queue.Empty:
+            return None
         return None if msg is _WAKE else msg
 
 

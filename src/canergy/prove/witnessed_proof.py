@@ -24,6 +24,11 @@ the invariant speaks of it, not of the record the supervisor started from (which
 older image); the record started from is no further in any counter. A restore or a power loss
 of the supervisor then keeps every clause.
 
+A third pair of ghosts names the supervisor's starts: ``World.sstarts`` counts them, a SYNC
+carries the start it was sent in, the node's books and counts the start whose SYNC they
+answer (``World.answering`` while it answers one); books and counts a start takes (its nonce)
+are of that start (``deliverable``: assumption 5 for the supervisor's nonces).
+
 Not proved: it fails at the supervisor's DEBIT, where a SYNC's counts end the supervisor's
 start and the invariant speaks of the record started from again (its tx, C and Gs are not yet
 shown to dominate the session at the start's; 18 of its 39 obligations): docs/protocol.md

@@ -540,3 +540,16 @@ def test_only_the_counts_of_the_supervisors_current_start_end_it() -> None:
     solver = z3.Solver()
     solver.add(wp.p_debit(m, w), wp.current_sync(m, w), m.nonce != w.s.sync_nonce)
     assert solver.check() == z3.unsat
+
+
+def test_no_record_of_the_node_holds_a_number_above_top() -> None:
+    """``top`` is the highest return number any record of the node held: the invariant says
+    the node's record (not joining) holds none above it, so a draw or a RESUME that moves it
+    leaves counts in flight at or above it (the window's (b), docs/protocol.md)."""
+    from canergy.prove import witnessed_proof as wp
+    from canergy.prove.world import any_world
+
+    w = any_world("w")
+    solver = z3.Solver()
+    solver.add(wp.client_books(w), w.c.phase != sym.JOINING, inv.ult(wp.top(w), w.seq))
+    assert solver.check() == z3.unsat

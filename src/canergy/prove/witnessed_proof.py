@@ -254,6 +254,7 @@ def client_books(w: World) -> Term:
             c.nonce == w.s.sync_nonce,
         ),
         ule(top(w), one(view(w).rc)),
+        z3.Implies(c.phase != sym.JOINING, ule(w.seq, top(w))),  # no record holds more
         z3.Implies(view(w).booked, ule(top(w), view(w).seq)),
         z3.Implies(starting(c), z3.And(c.held_tx == 0, c.held_amount == 0)),
         z3.Implies(

@@ -521,3 +521,35 @@ def test_counts_ending_a_supervisor_start_keep_returned_within_given(
     assert outcome.proved, outcome.counterexample
     monkeypatch.setattr(wp, "credited_back", lambda w: z3.BoolVal(True))
     assert not _debit_clause("returned <= given").proved
+
+
+def test_only_the_counts_of_the_supervisors_current_start_end_it() -> None:
+    """A SYNC carries the supervisor's start it was sent in (``World.sstarts``), the node's
+    books and counts the start whose SYNC they answer: counts or books a start takes (its nonce)
+    are of that start (assumption 5 for the supervisor's nonces), and they carry its nonce."""
+    from canergy.prove import witnessed as wit
+    from canergy.prove import witnessed_proof as wp
+    from canergy.prove.world import Kind, any_msg, any_world
+
+    w, m = any_world("w"), any_msg(Kind.DEBIT, "m")
+    for phase, flags in ((sym.SYNC_BOOKS, wit.COUNTS), (sym.SYNCING, wit.BOOKS)):
+        ends = [w.s.phase == phase, m.nonce == w.s.sync_nonce, m.flags == flags]
+        solver = z3.Solver()
+        solver.add(wp.deliverable(m, w), *ends, m.sstart != wp.sstarts(w))
+        assert solver.check() == z3.unsat, (phase, flags)
+    solver = z3.Solver()
+    solver.add(wp.p_debit(m, w), wp.current_sync(m, w), m.nonce != w.s.sync_nonce)
+    assert solver.check() == z3.unsat
+
+
+def test_no_record_of_the_node_holds_a_number_above_top() -> None:
+    """``top`` is the highest return number any record of the node held: the invariant says
+    the node's record (not joining) holds none above it, so a draw or a RESUME that moves it
+    leaves counts in flight at or above it (the window's (b), docs/protocol.md)."""
+    from canergy.prove import witnessed_proof as wp
+    from canergy.prove.world import any_world
+
+    w = any_world("w")
+    solver = z3.Solver()
+    solver.add(wp.client_books(w), w.c.phase != sym.JOINING, inv.ult(wp.top(w), w.seq))
+    assert solver.check() == z3.unsat

@@ -55,6 +55,7 @@ def _msg(kind: Kind, **given: Term) -> Msg:
         "life": _ZERO[INT],
         "flags": _ZERO[INT],
         "start": z3.IntVal(-1),
+        "sstart": z3.IntVal(-1),
     }
     return Msg(kind, **{**zero, **given})
 

@@ -24,6 +24,11 @@ the invariant speaks of it, not of the record the supervisor started from (which
 older image); the record started from is no further in any counter. A restore or a power loss
 of the supervisor then keeps every clause.
 
+A third pair of ghosts names the supervisor's starts: ``World.sstarts`` counts them, a SYNC
+carries the start it was sent in, the node's books and counts the start whose SYNC they
+answer (``World.answering`` while it answers one); books and counts a start takes (its nonce)
+are of that start (``deliverable``: assumption 5 for the supervisor's nonces).
+
 Not proved: it fails at the supervisor's DEBIT, where a SYNC's counts end the supervisor's
 start and the invariant speaks of the record started from again (its tx, C and Gs are not yet
 shown to dominate the session at the start's; 18 of its 39 obligations): docs/protocol.md
@@ -80,6 +85,22 @@ def top(w: World) -> Term:
 def spre(w: World) -> sym.Session:
     assert w.spre is not None, "a world of the witnessed proof has the session at its start"
     return w.spre
+
+
+def sstarts(w: World) -> Term:
+    assert w.sstarts is not None, "a world of the witnessed proof counts the supervisor's starts"
+    return w.sstarts
+
+
+def answering(w: World) -> Term:
+    assert w.answering is not None, "a world of the witnessed proof has the SYNC answered"
+    return w.answering
+
+
+def current_sync(m: Msg, w: World) -> Term:
+    """``m`` is a SYNC of the supervisor's current start, or a DEBIT answering one, and that
+    start waits."""
+    return z3.And(m.sstart == sstarts(w), wit.in_start(w.s))
 
 
 def view(w: World) -> World:
@@ -171,6 +192,7 @@ def supervisor_books(w: World) -> Term:
         inv.decision(w),
         inv.lifts(w),
         z3.Implies(wit.in_start(s), waiting(w)),
+        sstarts(w) >= 0,
     )
 
 
@@ -225,7 +247,14 @@ def client_books(w: World) -> Term:
         z3.Or(*(c.phase == ph for ph in phases)),
         _record(c, w.booked),
         starts(w) >= 0,
+        answering(w) >= -1,
+        answering(w) <= sstarts(w),
+        z3.Implies(
+            z3.And(c.phase == sym.SYNCING, answering(w) == sstarts(w), wit.in_start(w.s)),
+            c.nonce == w.s.sync_nonce,
+        ),
         ule(top(w), one(view(w).rc)),
+        z3.Implies(c.phase != sym.JOINING, ule(w.seq, top(w))),  # no record holds more
         z3.Implies(view(w).booked, ule(top(w), view(w).seq)),
         z3.Implies(starting(c), z3.And(c.held_tx == 0, c.held_amount == 0)),
         z3.Implies(
@@ -340,6 +369,10 @@ def p_debit(m: Msg, w: World) -> Term:
         m.life <= w.life,
         m.start >= 0,
         m.start <= starts(w),
+        m.sstart >= -1,
+        m.sstart <= sstarts(w),
+        z3.Implies(m.sstart >= 0, z3.Or(counts, books, unknown)),
+        z3.Implies(current_sync(m, w), m.nonce == w.s.sync_nonce),
         z3.Or(numbered, books, unknown),
         z3.Implies(draw, z3.And(inv.amount_mj(m.amount), m.nonce == 0)),
         z3.Implies(resume, z3.And(m.amount >= 0, m.amount <= AMOUNT_MAX_MJ)),
@@ -391,6 +424,13 @@ def p_admit(m: Msg, w: World) -> Term:
         m.admit_seq == low16(m.q),
         m.start >= -1,
         m.start <= starts(w),
+        m.sstart >= -1,
+        m.sstart <= sstarts(w),
+        z3.Implies(m.sstart >= 0, m.start == -1),
+        z3.Implies(
+            current_sync(m, w),
+            z3.And(m.nonce == w.s.sync_nonce, m.k == w.tx, m.q == w.rc),
+        ),
         z3.Implies(m.k == v.tx, z3.Not(v.open)),
         z3.Implies(
             this_start(m, w),
@@ -414,7 +454,12 @@ def p_admit(m: Msg, w: World) -> Term:
         ),
     )
     answers_this_life = z3.And(m.life == w.life, z3.Not(v.booked))
-    join = z3.And(inv.p_admit(m, v), m.start == -1, z3.Implies(answers_this_life, ule(top(w), m.q)))
+    join = z3.And(
+        inv.p_admit(m, v),
+        m.start == -1,
+        m.sstart == -1,
+        z3.Implies(answers_this_life, ule(top(w), m.q)),
+    )
     return z3.If(m.life == -1, ours, join)
 
 
@@ -440,10 +485,14 @@ def deliverable(m: Msg, w: World) -> Term:
         ending = z3.And(
             w.s.phase == sym.SYNC_BOOKS, m.nonce == w.s.sync_nonce, m.flags == wit.COUNTS
         )
+        # the books and counts a start takes answer its own SYNC: the nonces of the
+        # supervisor's starts differ, and from the node's (as assumption 5 asks of JOINs)
+        books = z3.And(w.s.phase == sym.SYNCING, m.nonce == w.s.sync_nonce, wit.is_books(m.flags))
         return z3.And(
             age,
             z3.Implies(counts, inv.near(w.last, w.tx)),
             z3.Implies(ending, inv.near(m.k, w.rc)),
+            z3.Implies(z3.Or(ending, books), m.sstart == sstarts(w)),
         )
     if m.kind is Kind.ADMIT:
         ours = z3.And(starting(w.c), m.nonce == expected(w.c))
@@ -503,6 +552,7 @@ def client_sent(w: World, frames: wit.Frames) -> tuple[tuple[Term, Msg], ...]:
             k=k,
             life=w.life,
             start=starts(w),
+            sstart=z3.If(w.c.phase == sym.SYNCING, answering(w), -1),
         )
         out.append((st._is(sent, Kind.DEBIT), debit))
     return tuple(out)
@@ -516,6 +566,7 @@ def _moved(
     unreceived: Term = 0,
     restarted: Term | None = None,
     confirmed: Term | None = None,
+    answers: Term | None = None,
     **ghost: Term,
 ) -> World:
     """The world after a client step: what counts for the node moved by ``net`` (plus what the
@@ -524,7 +575,8 @@ def _moved(
     followed by the counts, ``confirmed``, starts again from the confirmed record) and counts
     as one more start (``restarted``, default: a start begun). What the record's ``spent``
     grew by is what the actuator used, in any phase (a record ``replaced`` by an older image
-    used nothing)."""
+    used nothing). ``answers``: the supervisor's start whose SYNC the node answers now (None:
+    the one it answered, while it still answers one)."""
     began = z3.And(starting(c), z3.Not(starting(w.c)))
     at_start = sym.client_power_loss(w.c)[0]
     again = z3.BoolVal(False) if confirmed is None else confirmed
@@ -532,7 +584,11 @@ def _moved(
     new_pre = sym.pick(began, at_start, sym.pick(again, confirmed_record, pre(w)))
     more = z3.Or(began, again) if restarted is None else z3.Or(began, again, restarted)
     assert w.starts is not None and w.top is not None
-    after = replace(w, c=c, pre=new_pre, starts=w.starts + z3.If(more, 1, 0), **ghost)
+    sync = answering(w) if answers is None else answers
+    answered = z3.If(c.phase == sym.SYNCING, sync, -1)
+    after = replace(
+        w, c=c, pre=new_pre, starts=w.starts + z3.If(more, 1, 0), answering=answered, **ghost
+    )
     held_seq = c.return_seq + after.off_seq
     higher = z3.And(c.phase != sym.JOINING, z3.UGT(held_seq, w.top))
     after = replace(after, top=z3.If(higher, held_seq, w.top))
@@ -598,6 +654,13 @@ def on_admit(w: World, m: Msg) -> st.Step:
     # confirmation voids was given back and came back
     p = pre(w)
     returned_back = z3.And(kept, voided(w) > 0, z3.Not(p.pending_draw))
+    # a SYNC answered now (not the same one again, not a confirmation's counts)
+    again = z3.And(syncing, m.nonce == c.nonce)
+    new_sync = z3.And(
+        z3.Extract(15, 15, m.nonce) == 0,
+        z3.Or(wit.booked(c), z3.And(starting(c), m.nonce != expected, z3.Not(again))),
+    )
+    answers = z3.If(new_sync, m.sstart, z3.If(z3.And(kept, starting(c2)), -1, answering(w)))
     return _client(
         w,
         (c2, frames),
@@ -607,6 +670,7 @@ def on_admit(w: World, m: Msg) -> st.Step:
             starting(c2), z3.Or(c2.phase != c.phase, c2.nonce != c.nonce, z3.Not(starting(c)))
         ),
         confirmed=z3.And(kept, starting(c2)),
+        answers=answers,
         off_tx=off_tx,
         off_seq=off_seq,
         roff=roff,
@@ -663,6 +727,8 @@ def _session(
     after = replace(w, s=step.session, **ghost)
     answers = z3.IntVal(-1) if life is None else life
     sent = st.supervisor_sent(after, step.sent, answers)
+    sync = z3.If(wit.in_start(after.s), sstarts(after), -1)  # a SYNC: the start it is sent in
+    sent = tuple((cond, replace(m, sstart=sync) if m.kind is Kind.ADMIT else m) for cond, m in sent)
     if start is not None:  # a confirmation: k the last transaction closed
         closed = z3.If(after.s.phase == sym.S_IDLE, after.tx, after.tx - 1)
         sent = tuple(
@@ -760,7 +826,13 @@ def restore_supervisor(w: World, image: sym.Session, nonce: Term) -> st.Step:
     idle = {"phase": sym.S_IDLE, "sync_nonce": z3.BitVecVal(0, 16)}
     latest = replace(wit.start(w.s, nonce).session, **idle)
     at_start = sym.pick(wit.in_start(w.s), spre(w), latest)
-    after = replace(w, s=step.session, spre=at_start, cc=z3.And(w.cc, step.session.tx == w.s.tx))
+    after = replace(
+        w,
+        s=step.session,
+        spre=at_start,
+        cc=z3.And(w.cc, step.session.tx == w.s.tx),
+        sstarts=sstarts(w) + 1,
+    )
     books = image.reserved + image.delivered - image.returned
     now = w.s.reserved + w.s.delivered - w.s.returned
     sent = st.supervisor_sent(after, step.sent, z3.IntVal(-1))

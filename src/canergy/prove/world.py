@@ -79,6 +79,14 @@ class World:
     began (what was open written off). While the start waits for the node's books and counts
     this record, not the one it started from (which may be an older image), is what the
     invariant speaks of (hardened: unused)."""
+    sstarts: Term | None = None
+    """Witnessed rules: how many starts the supervisor has made (each draws a SYNC nonce: a
+    power loss, a restore), a pure function of the history; a SYNC carries the start it was
+    sent in, a SYNC's books and counts the start whose SYNC they answer (``Msg.sstart``).
+    Hardened: unused."""
+    answering: Term | None = None
+    """Witnessed rules: the supervisor's start whose SYNC the node's answer (while SYNCING)
+    answers; -1: none (counts that follow a RESUME's confirmation). Hardened: unused."""
 
     # canonical views
     @property
@@ -176,7 +184,12 @@ def any_world(name: str = "w", with_pre: bool = True) -> World:
     starts = _fresh(f"{name}.starts.", INT) if with_pre else None
     top = _fresh(f"{name}.top.", BV32) if with_pre else None
     spre = any_session_image(f"{name}.spre") if with_pre else None
-    return World(s, c, **ghost, pre=pre, starts=starts, top=top, spre=spre)
+    sstarts = _fresh(f"{name}.sstarts.", INT) if with_pre else None
+    answering = _fresh(f"{name}.answering.", INT) if with_pre else None
+    return World(
+        s, c, **ghost, pre=pre, starts=starts, top=top, spre=spre, sstarts=sstarts,
+        answering=answering,
+    )  # fmt: skip
 
 
 def any_image(name: str = "image") -> sym.Client:
@@ -217,7 +230,7 @@ def initial_world() -> World:
     )
     return World(
         s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,
-        z3.BoolVal(True), zero32, c, zero, zero32, s,
+        z3.BoolVal(True), zero32, c, zero, zero32, s, zero, z3.IntVal(-1),
     )  # fmt: skip
 
 
@@ -268,6 +281,9 @@ class Msg:
     start: Term
     """Ghost (witnessed rules): the node's start a DEBIT was sent in, or an ADMIT answers
     (``World.starts``; -1: no start's, a SYNC or a JOIN's answer)."""
+    sstart: Term
+    """Ghost (witnessed rules): the supervisor's start a SYNC was sent in, or whose SYNC a
+    DEBIT (books or counts) answers (``World.sstarts``; -1: none)."""
 
 
 _MSG = {
@@ -282,6 +298,7 @@ _MSG = {
     "life": INT,
     "flags": INT,
     "start": INT,
+    "sstart": INT,
 }
 
 

@@ -16,6 +16,7 @@ from test_hardened_supervisor import IGNORED as H_SUP_IGNORED
 from test_hardened_supervisor import REFUSED as H_SUP_REFUSED
 from test_hardened_supervisor import STATES as H_SUP_STATES
 
+from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.check import Bounds, check
 from canergy.core import (
     Acknowledged,
@@ -1103,3 +1104,63 @@ def test_a_node_answering_a_second_stale_sync_after_a_begin_is_not_left_waiting(
     sup = window_supervisor(Supervisor)
     node = Client(1, variant="witnessed", timing=SCENE, state=BOOKED_AT_10)
     stale_sync_after_taken_counts_and_a_begin(sup, node)
+
+
+def join_admitted_twice_then_a_supervisor_image(core: type[Supervisor]) -> tuple[int, int]:
+    """Found by the proof's work on assumption 2 (the window: W at most the node's ltx), and
+    confirmed here: a JOIN delivered twice is admitted twice. Between the two admissions the
+    supervisor began transaction 1 (its INTENTION lost, closed by its timeouts); the second
+    admission moves W to 1, but its ADMIT is lost and the node took the first (ltx 0). The
+    supervisor then begins up to W + B = 3, whose INTENTIONs are delayed. Put back to its image
+    from right after the first admission, it starts: the node answers its SYNC settling B past
+    its ltx (2), which does not reach the discarded history's 3; the late INTENTION(3) is
+    fresh to the node, which commits it by its timeout: energy the restored books never
+    reserved. Returns the restored supervisor's Us and what the node holds, in uJ."""
+    timing = replace(SCENE, window=2)
+    sup = core([1], 10**6, variant="witnessed", timing=timing)
+    node = Client(1, variant="witnessed", timing=timing)
+    (join,) = _sends(node.books_lost(7, 0))
+    admit = _sends(sup.receive(join, 0))
+    image = sup.state  # the state file as written after the first admission
+    now = 0
+
+    def lose_until_closed(now: int) -> int:
+        """Every frame the supervisor sends is lost; its timers run until it closes."""
+        while (due := sup.get_timer()) is not None:
+            now = max(now, due)
+            sup.handle_timer(now)
+        return now
+
+    sup.begin(1, 1000, now)  # INTENTION(1) lost
+    now = lose_until_closed(now)
+    assert _sends(sup.receive(join, now)) != []  # the copy of the JOIN: admitted again, lost
+    assert sup.session(1).witness == 1
+    assert _sends(node.receive(admit[0], now)) == [] and node.state.last_tx == 0
+    late: list[Intention] = []
+    while sup.session(1).tx < sup.session(1).witness + timing.window:
+        late += [m for m in _sends(sup.begin(1, 1000, now)) if isinstance(m, Intention)]
+        now = lose_until_closed(now)
+    restored = core([1], 0, variant="witnessed", timing=timing, state=image)
+    restored.power_loss(now, nonce=0x55)
+    _exchange(restored.handle_timer(now), restored, node, now)
+    assert restored.unconfirmed() == () and node.state.phase is Phase.IDLE
+    for intention in late:  # the discarded history's, delivered late
+        for reply in _sends(node.receive(intention, now)):
+            restored.receive(reply, now)
+    while (due := node.get_timer()) is not None:
+        now = max(now, due)
+        node.handle_timer(now)
+    return restored.state.usable, node.state.usable
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="a JOIN admitted twice moves W past the node's ltx: a supervisor image then lets a "
+    "late INTENTION of the discarded history be taken as fresh (1 mJ created; not fixed)",
+)
+@pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])
+def test_a_join_admitted_twice_then_a_supervisor_image_creates_nothing(
+    core: type[Supervisor],
+) -> None:
+    usable, held = join_admitted_twice_then_a_supervisor_image(core)
+    assert usable + held <= 10**6, f"Us {usable} + held by the node {held} uJ > 1 J"

@@ -42,7 +42,7 @@ ltx is held (assumption 4).
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
+from typing import Any, TypeVar
 
 from canergy.core.state import Outcome
 from canergy.messages import AMOUNT_MAX_MJ, COUNTER_BOUND, QUANTUM_UJ, SEQ_BITS, SYNC_CONFIRMED
@@ -53,6 +53,8 @@ from canergy.prove import witnessed as wit
 from canergy.prove.invariant import COMMITTED, Q, low16, one, ule, whole
 from canergy.prove.symbolic import Term, z3
 from canergy.prove.world import TO_CLIENT, W_TO_SUPERVISOR, H, Kind, Msg, World
+
+T = TypeVar("T")
 
 # -- what the node holds ---------------------------------------------------------------------------
 
@@ -67,34 +69,34 @@ def holds(c: sym.Client) -> Term:
     return c.usable + z3.If(c.pending_draw, c.return_pending, 0)
 
 
+def _ghost(value: T | None, what: str) -> T:
+    """A ghost of the witnessed proof's world (None only in the hardened proof's worlds)."""
+    assert value is not None, f"a world of the witnessed proof {what}"
+    return value
+
+
 def pre(w: World) -> sym.Client:
-    assert w.pre is not None, "a world of the witnessed proof has the record at the start"
-    return w.pre
+    return _ghost(w.pre, "has the record at the start")
 
 
 def starts(w: World) -> Term:
-    assert w.starts is not None, "a world of the witnessed proof counts the node's starts"
-    return w.starts
+    return _ghost(w.starts, "counts the node's starts")
 
 
 def top(w: World) -> Term:
-    assert w.top is not None, "a world of the witnessed proof has the highest number"
-    return w.top
+    return _ghost(w.top, "has the highest number")
 
 
 def spre(w: World) -> sym.Session:
-    assert w.spre is not None, "a world of the witnessed proof has the session at its start"
-    return w.spre
+    return _ghost(w.spre, "has the session at its start")
 
 
 def sstarts(w: World) -> Term:
-    assert w.sstarts is not None, "a world of the witnessed proof counts the supervisor's starts"
-    return w.sstarts
+    return _ghost(w.sstarts, "counts the supervisor's starts")
 
 
 def answering(w: World) -> Term:
-    assert w.answering is not None, "a world of the witnessed proof has the SYNC answered"
-    return w.answering
+    return _ghost(w.answering, "has the SYNC answered")
 
 
 def current_sync(m: Msg, w: World) -> Term:

@@ -541,7 +541,7 @@ def admitted_afresh(s: Session, nonce16: Term) -> SessionStep:
     """``witnessed.admitted_afresh``: the hardened admission, W moved up to the lifted tx."""
     lifted = sym.admit(s, nonce16)
     t = lifted.session
-    t = replace(t, witness=z3.If(z3.UGT(t.tx, t.witness), t.tx, t.witness))
+    t = replace(t, witness=z3.If(t.tx - t.witness > 0, t.tx, t.witness))  # signed, as the cores
     return SessionStep(t, lifted.sent, lifted.credit)
 
 

@@ -7,6 +7,7 @@
 #define CANERGY_CLIENT_INTERNAL_H
 
 #include "canergy/client.h"
+#include "canergy/witness.h" /* CANERGY_WITNESS_REPORT_AT, CANERGY_WITNESS_GAP_US */
 
 void canergy_internal_out_clear(struct canergy_out *out);
 int canergy_internal_start(struct canergy_client *c, const struct canergy_client_config *cfg,
@@ -42,8 +43,6 @@ struct canergy_node;
  * CANERGY_WITNESS_REPORT_AT frames have gone unreported, so that no report is ever 256 frames
  * (a whole turn of the 8-bit count) after the last. The gap keeps a refutation well inside the
  * supervisor's RETURN and JOIN holds (500 ms by default). */
-#define CANERGY_WITNESS_REPORT_AT 128U
-#define CANERGY_WITNESS_GAP_US 10000U
 void canergy_internal_witness(struct canergy_node *n, struct canergy_out *out, uint64_t now);
 
 #endif /* CANERGY_CLIENT_INTERNAL_H */

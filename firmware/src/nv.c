@@ -265,6 +265,9 @@ int canergy_gateway_nv_load(const uint8_t *image, size_t len, struct canergy_gat
         const bool current = gw_slot_valid(image, len, i * GW_SLOT, GW_SLOT);
         if (gw_slot_valid(image, len, i * GW_SLOT_V2, GW_SLOT_V2)) {
             out->older = 2U;
+        } else if (current && (image[i * GW_SLOT + GW_VERSION_AT] == 3U ||
+                               image[i * GW_SLOT + GW_VERSION_AT] == 4U)) {
+            out->older = out->older == 0U ? image[i * GW_SLOT + GW_VERSION_AT] : out->older;
         } else if (!current && gw_slot_valid(image, len, i * GW_SLOT_V4, GW_SLOT_V4) &&
                    (image[i * GW_SLOT_V4 + GW_VERSION_AT] == 3U ||
                     image[i * GW_SLOT_V4 + GW_VERSION_AT] == 4U)) {

@@ -84,3 +84,14 @@ def test_no_books_an_older_layout_and_a_nodes_file_are_told_apart() -> None:
     v3[SUP_AT + 4] = 3  # the supervisor record's version
     rc, nv = _load(_resealed(bytes(v3)) + bytes(GW_NV_SLOT))
     assert (rc, nv.older) == (OK, 3)
+
+
+@pytest.mark.parametrize("version", [3, 4])
+def test_a_slot_of_the_44_byte_layout_is_told_as_older(version: int) -> None:
+    """Versions 3 and 4 of the supervisor record held 44 bytes per node (version 5 keeps the last
+    JOIN admitted: 56): a gateway slot of that size and version is an older layout, named."""
+    nodes = (GW_NV_SLOT - SUP_AT - 40 - 4) // 56
+    head = struct.pack("<IBBBBIQQQ", 0x534E5243, version, 0, 0, 0, 1, 0, 0, 0)
+    below = (head + b"\0" * 4).ljust(40 + 44 * nodes, b"\0")
+    rc, nv = _load(_resealed(_slot(3)[:SUP_AT] + below + bytes(4)))
+    assert (rc, nv.older, nv.slot) == (OK, version, -1)

@@ -340,10 +340,11 @@ def test_no_grant_before_every_node_has_confirmed_its_books_after_a_start(
             sup.begin(3, 1000, 3)  # its own session still waits for its books
 
 
-def test_the_supervisor_record_version_4_round_trips_a_debt_and_refuses_version_3() -> None:
-    """Us below zero and a SYNC's counts answered (bit 16 of the nonce) come back from the
-    image; a start's waiting phase is stored as IDLE (every start is one); the same image
-    marked version 3 is refused as another version (CANERGY_ERR_RECORD), not started over."""
+def test_the_supervisor_record_version_5_round_trips_a_debt_and_refuses_version_4() -> None:
+    """Us below zero, a SYNC's counts answered (bit 16 of the nonce) and the last JOIN admitted
+    (its nonce, the k and C of its ADMIT) come back from the image; a start's waiting phase is
+    stored as IDLE (every start is one); the same image marked version 4 is refused as another
+    version (CANERGY_ERR_RECORD), not started over."""
     lib = library()
     cfg = SupervisorConfig(id_base=DEFAULT_ID_BASE, timing=SessionTiming(50_000, 3, 1, 0))
     nodes = cbuf(bytes([2]))
@@ -351,9 +352,12 @@ def test_the_supervisor_record_version_4_round_trips_a_debt_and_refuses_version_
     assert lib.canergy_supervisor_init(ref(sup), ref(cfg), nodes, 1, 1000) == 0
     sup.usable_uj = -4000
     sup.sessions[0].phase, sup.sessions[0].resume_nonce = int(Phase.SYNC_BOOKS), 0x1ABCD
+    sup.sessions[0].tx, sup.sessions[0].returns_credited = 70_000, 70_002
+    sup.sessions[0].join_nonce, sup.sessions[0].join_tx = 0xBEEF, 65_540
+    sup.sessions[0].join_seq = 70_001
     image = cbuf(2 * SUPERVISOR_SLOT)
     lib.canergy_supervisor_image(ref(sup), 1, image)
-    assert bytes(image)[4] == 4
+    assert bytes(image)[4] == 5
 
     def load(raw: bytes) -> tuple[int, CSupervisor]:
         back, counter, slot = CSupervisor(), library().new("uint32_t *"), library().new("uint8_t *")
@@ -366,10 +370,12 @@ def test_the_supervisor_record_version_4_round_trips_a_debt_and_refuses_version_
 
     rc, back = load(bytes(image))
     assert rc == 1 and back.usable_uj == -4000 and back.sessions[0].resume_nonce == 0x1ABCD
+    joined = back.sessions[0].join_nonce, back.sessions[0].join_tx, back.sessions[0].join_seq
+    assert joined == (0xBEEF, 65_540, 70_001)
     assert back.sessions[0].phase == int(Phase.SYNCING)  # loaded IDLE, then a start
-    used = 40 + 44  # header, one session, CRC
+    used = 40 + 56  # header, one session, CRC
     old = bytearray(bytes(image))
-    old[4] = 3
+    old[4] = 4
     old[used - 4 : used] = struct.pack("<I", zlib.crc32(bytes(old[0 : used - 4])))
     assert load(bytes(old))[0] == ERR_RECORD
 
@@ -721,15 +727,19 @@ def test_the_c_gateway_refuses_a_file_of_the_older_supervisor_record(tmp_path: P
     assert run.returncode == 2
     assert run.stderr == (
         "canergy-gateway: error: --nv g.nv: written by an older canergy-gateway (supervisor "
-        "record version 2); this one reads version 4 only\n"
+        "record version 2); this one reads version 5 only\n"
     )
 
 
-def test_the_c_gateway_refuses_a_file_of_supervisor_record_version_3(tmp_path: Path) -> None:
-    """Version 4 holds a SYNC's counts in the last answer's nonce (bit 16) and Us signed: a file
-    of version 3 (same size) is refused by name before the buses open, never taken as blank."""
+@pytest.mark.parametrize("version", [3, 4])
+def test_the_c_gateway_refuses_a_file_of_supervisor_record_version_3_or_4(
+    tmp_path: Path, version: int
+) -> None:
+    """Version 5 keeps the last JOIN admitted (12 bytes more per node), version 4 a SYNC's counts
+    in the last answer's nonce (bit 16) and Us signed: a file of version 3 or 4 (44 bytes per
+    node) is refused by name before the buses open, never taken as blank."""
     gateway = _port("build/canergy-gateway")
-    head = struct.pack("<IBBBBIQQQ", 0x534E5243, 3, 1, 0, 0, 1, 0, 0, 0)
+    head = struct.pack("<IBBBBIQQQ", 0x534E5243, version, 1, 0, 0, 1, 0, 0, 0)
     session = struct.pack("<BBBBIIIQQIIHxx", 2, 0, 0, 0, 9, 4, 0, 0, 0, 0, 0, 0)
     sup = (head + session + struct.pack("<I", zlib.crc32(head + session))).ljust(40 + 44 * 127)
     body = struct.pack("<II", 0x47524E43, 1) + pack_record(ClientState(1, last_tx=5)) + sup
@@ -740,7 +750,7 @@ def test_the_c_gateway_refuses_a_file_of_supervisor_record_version_3(tmp_path: P
     assert run.returncode == 2
     assert run.stderr == (
         "canergy-gateway: error: --nv g.nv: written by an older canergy-gateway (supervisor "
-        "record version 3); this one reads version 4 only\n"
+        f"record version {version}); this one reads version 5 only\n"
     )
 
 

@@ -274,13 +274,13 @@ def test_the_c_node_refuses_such_a_record_before_the_bus(
 # -- loading: the C gateway's NV file (both roles in one slot) ---------------------------------
 
 GW_NODES = 127  # CANERGY_SUPERVISOR_NODES of the gateway's build
-SUP_SLOT = 40 + 44 * GW_NODES
+SUP_SLOT = 40 + 56 * GW_NODES
 
 
 def _supervisor_slot(node: int, tx: int, seq: int) -> bytes:
     """canergy_supervisor_image for one IDLE session (firmware/src/supervisor.c's layout)."""
-    head = struct.pack("<IBBBBIQQQ", 0x534E5243, 4, 1, 0, 0, 1, 0, 0, 0)
-    session = struct.pack("<BBBBIIIQQIII", node, 0, 0, 0, tx, seq, 0, 0, 0, 0, 0, 0)
+    head = struct.pack("<IBBBBIQQQ", 0x534E5243, 5, 1, 0, 0, 1, 0, 0, 0)
+    session = struct.pack("<BBBBIIIQQ6I", node, 0, 0, 0, tx, seq, 0, 0, 0, 0, 0, 0, 0, 0, 0)
     body = head + session
     return (body + struct.pack("<I", zlib.crc32(body))).ljust(SUP_SLOT, b"\0")
 

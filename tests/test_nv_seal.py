@@ -245,15 +245,15 @@ def test_the_c_node_with_a_key_refuses_an_unsealed_record_and_without_one_a_seal
 
 
 GW_NODES = 127  # CANERGY_SUPERVISOR_NODES of canergy-gateway's build
-GW_SLOT = 8 + 30 + 40 + 44 * GW_NODES + 4
+GW_SLOT = 8 + 30 + 40 + 56 * GW_NODES + 4
 
 
 def _gateway_slot(counter: int, usable: int) -> bytes:
     """A canergy-gateway slot: its record above, the supervisor's image below with node 2 idle
-    (firmware/src/supervisor.c's layout, version 4), each with its CRC."""
-    head = struct.pack("<IBBBBIQQQ", 0x534E5243, 4, 1, 0, 0, 1, 0, 0, 0)
-    body = head + struct.pack("<BBBBIIIQQIII", 2, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
-    below = (body + struct.pack("<I", zlib.crc32(body))).ljust(40 + 44 * GW_NODES, b"\0")
+    (firmware/src/supervisor.c's layout, version 5), each with its CRC."""
+    head = struct.pack("<IBBBBIQQQ", 0x534E5243, 5, 1, 0, 0, 1, 0, 0, 0)
+    body = head + struct.pack("<BBBBIIIQQ6I", 2, 0, 0, 0, 0, 0, 0, 0, 0, *[0] * 6)
+    below = (body + struct.pack("<I", zlib.crc32(body))).ljust(40 + 56 * GW_NODES, b"\0")
     slot = struct.pack("<II", 0x47524E43, counter) + pack_record(_record(usable, 4)) + below
     return slot + struct.pack("<I", zlib.crc32(slot))
 

@@ -402,11 +402,15 @@ def witnessed_sessions(draw: Any) -> Session:
         resume_to=to,
         witness=draw(st.one_of(st.integers(max(0, s.tx - 70), s.tx), st.integers(0, s.tx))),
         sync_nonce=draw(st.integers(0, 3)) if start is not None else 0,
+        join_nonce=draw(st.integers(0, 3)),
+        join_tx=draw(st.integers(max(0, s.tx - 70), s.tx)),
+        join_seq=draw(st.one_of(st.just(0), st.integers(0, s.returns_credited))),
     )
 
 
 def witnessed_fields(s: Session | sym.Session) -> dict[str, int]:
     names = ("resume_nonce", "resume_from", "resume_to", "witness", "sync_nonce")
+    names += ("join_nonce", "join_tx", "join_seq")
     if isinstance(s, Session):
         return {n: getattr(s, n) % (1 << 32) for n in names}  # the core keeps an unwrapped -q
     return {n: int(value(getattr(s, n))) for n in names}

@@ -29,7 +29,7 @@ from canergy.live.supervisor.state_file import (
     save_state,
     state_json,
 )
-from canergy.messages import Debit
+from canergy.messages import COUNTER_BOUND, Debit
 
 J = 1_000_000
 RAW = "@@raw@@"
@@ -397,9 +397,11 @@ def test_the_writer_saves_what_the_reference_encoding_saves(
 
 def _witnessed_after_a_start(usable: int) -> SupervisorState:
     """Witnessed books after a start the node confirmed with its counts (the last answer keeps
-    bit 16 over the SYNC's nonce) and, with ``usable`` below 0, a debt its books brought."""
+    bit 16 over the SYNC's nonce) and, with ``usable`` below 0, a debt its books brought; node
+    1 admitted after a JOIN at tx 65 (C 8) and gone on since."""
+    joined = {"join_nonce": 0xFFFF, "join_tx": 65, "join_seq": 8}
     sessions = (
-        Session(1, Phase.IDLE, 70, 0, 3 * J - usable, Decision.NONE, 9, 0),
+        Session(1, Phase.IDLE, 70, 0, 3 * J - usable, Decision.NONE, 9, 0, **joined),
         Session(3, resume_nonce=1 << 16 | 0xBEEF, resume_from=0, resume_to=1, returns_credited=1),
     )
     return SupervisorState(3 * J, usable, 0, sessions)
@@ -414,6 +416,25 @@ def test_a_witnessed_supervisor_starts_again_from_the_books_it_wrote(
     path = tmp_path / "s.json"
     save_state(path, _witnessed_after_a_start(usable), "witnessed", fsync=False)
     assert _load(path, "witnessed") == _witnessed_after_a_start(usable)
+
+
+def test_witnessed_books_written_before_the_last_join_was_kept_load_with_none(
+    tmp_path: Path,
+) -> None:
+    """A file without ``join_*`` (written before they were kept) loads with no JOIN admitted
+    (0): the next copy of that JOIN is admitted afresh, as the rules before did."""
+    path = tmp_path / "s.json"
+    save_state(path, _witnessed_after_a_start(2 * J), "witnessed", fsync=False)
+    books = json.loads(path.read_text())
+    for session in books["sessions"].values():
+        for name in ("join_nonce", "join_tx", "join_seq"):
+            del session[name]
+    _write(path, books)
+    sessions = tuple(
+        replace(s, join_nonce=0, join_tx=0, join_seq=0)
+        for s in _witnessed_after_a_start(2 * J).sessions
+    )
+    assert _load(path, "witnessed").sessions == sessions
 
 
 @pytest.mark.parametrize("flags", [Debit.START, Debit.START | Debit.SYNC], ids=["resume", "counts"])
@@ -443,6 +464,10 @@ def test_a_start_numbered_far_behind_leaves_books_that_load_again(
         ("hardened", "usable_uj", -800_000, "-800000 is negative"),  # no rule there owes
         ("witnessed", "usable_uj", -(2**63), "is below"),
         ("witnessed", "sessions.3.resume_nonce", 1 << 17, "is above 131071"),
+        ("witnessed", "sessions.1.join_nonce", 1 << 16, "is above 65535"),
+        ("witnessed", "sessions.1.join_tx", 71, "join_tx: 71: above tx 70"),
+        ("witnessed", "sessions.1.join_seq", 10, "join_seq: 10: above returns_credited 9"),
+        ("witnessed", "sessions.1.join_seq", COUNTER_BOUND, "join_seq"),
     ],
 )
 def test_what_a_witnessed_start_writes_is_bounded_and_refused_elsewhere(
@@ -455,6 +480,8 @@ def test_what_a_witnessed_start_writes_is_bounded_and_refused_elsewhere(
     if variant == "hardened":
         for session in books["sessions"].values():
             for name in ("resume_nonce", "resume_from", "resume_to"):
+                session.pop(name, None)
+            for name in ("join_nonce", "join_tx", "join_seq"):
                 session.pop(name, None)
     _write(path, _set(books, field, value))
     with pytest.raises(StateFileError, match=why):

@@ -223,6 +223,11 @@ unsigned canergy_nv_unseal(const struct canergy_cmac *seal, uint8_t *image, size
 /* The slot before the supervisor record's version 3 (32 bytes per node): refused by name. */
 #define GW_SLOT_V2                                                                                \
     (CANERGY_GW_NV_HEADER + CANERGY_NV_RECORD_SIZE + 40U + 32U * CANERGY_SUPERVISOR_NODES + 4U)
+/* The slot of the supervisor record's versions 3 and 4 (44 bytes per node, before the last JOIN
+ * admitted was kept): refused by name. */
+#define GW_SLOT_V4                                                                                \
+    (CANERGY_GW_NV_HEADER + CANERGY_NV_RECORD_SIZE + 40U + 44U * CANERGY_SUPERVISOR_NODES + 4U)
+#define GW_VERSION_AT (CANERGY_GW_NV_HEADER + CANERGY_NV_RECORD_SIZE + 4U)
 
 void canergy_gateway_nv_encode(const struct canergy_gateway *gw, uint32_t counter,
                                uint8_t out[CANERGY_GW_NV_SLOT_SIZE])
@@ -260,9 +265,13 @@ int canergy_gateway_nv_load(const uint8_t *image, size_t len, struct canergy_gat
         const bool current = gw_slot_valid(image, len, i * GW_SLOT, GW_SLOT);
         if (gw_slot_valid(image, len, i * GW_SLOT_V2, GW_SLOT_V2)) {
             out->older = 2U;
-        } else if (current &&
-                   image[i * GW_SLOT + CANERGY_GW_NV_HEADER + CANERGY_NV_RECORD_SIZE + 4U] == 3U) {
-            out->older = out->older == 0U ? 3U : out->older;
+        } else if (current && (image[i * GW_SLOT + GW_VERSION_AT] == 3U ||
+                               image[i * GW_SLOT + GW_VERSION_AT] == 4U)) {
+            out->older = out->older == 0U ? image[i * GW_SLOT + GW_VERSION_AT] : out->older;
+        } else if (!current && gw_slot_valid(image, len, i * GW_SLOT_V4, GW_SLOT_V4) &&
+                   (image[i * GW_SLOT_V4 + GW_VERSION_AT] == 3U ||
+                    image[i * GW_SLOT_V4 + GW_VERSION_AT] == 4U)) {
+            out->older = out->older == 0U ? image[i * GW_SLOT_V4 + GW_VERSION_AT] : out->older;
         } else if (!current && len >= i * GW_SLOT + 4U &&
                    le_get(&image[i * GW_SLOT], 4U) == CANERGY_GW_NV_MAGIC) {
             out->damaged |= (uint8_t)(1U << i);

@@ -249,13 +249,27 @@ static void admit_afresh(struct canergy_session *s, const struct canergy_msg *m,
 }
 
 /* JOIN(n) (witnessed.admit): the admission afresh, and the number after C voided as at a
- * RESUME, so that no debit number is issued by both a lost record and the node's new life. */
+ * RESUME, so that no debit number is issued by both a lost record and the node's new life; the
+ * admission remembered (join_*). A JOIN with the nonce of the last one admitted (join_seq 0:
+ * none) is a copy of it: the same ADMIT again (same n, k and C) and nothing moves, as if the
+ * first ADMIT had been duplicated. Admitted afresh, it moved W up to a tx that begins had moved
+ * on since, past the ltx of a node that took the first ADMIT and lost the second. */
 static void admit_voiding(struct canergy_session *s, const struct canergy_msg *m,
                           struct canergy_session_step *step)
 {
+    if (s->join_seq != 0U && s->join_nonce == m->nonce) {
+        put_msg(s, CANERGY_ADMIT, step);
+        step->msg.tx = (uint16_t)(s->join_tx & 0xFFFFUL);
+        step->msg.nonce = m->nonce;
+        step->msg.seq = (uint16_t)(s->join_seq & 0xFFFFUL);
+        return;
+    }
     admit_afresh(s, m, step);
     s->returns_credited = serial_capped(s->returns_credited + 1U);
     step->msg.seq = (uint16_t)(s->returns_credited & 0xFFFFUL);
+    s->join_nonce = m->nonce;
+    s->join_tx = s->tx;
+    s->join_seq = s->returns_credited;
 }
 
 /* RESUME(n, q, x) (witnessed.confirm): a repeat gets the same answer (resume_to 0: none answered

@@ -43,7 +43,8 @@ static bool record_changed(const struct canergy_session *a, const struct canergy
            a->reserved_uj != b->reserved_uj || a->delivered_uj != b->delivered_uj ||
            a->decision != b->decision || a->returns_credited != b->returns_credited ||
            a->resume_from != b->resume_from || a->resume_to != b->resume_to ||
-           a->resume_nonce != b->resume_nonce;
+           a->resume_nonce != b->resume_nonce || a->join_tx != b->join_tx ||
+           a->join_seq != b->join_seq || a->join_nonce != b->join_nonce;
 }
 
 /* What a step did besides its frame (in: the client message it handled, NULL for the
@@ -330,10 +331,11 @@ int canergy_supervisor_withdraw(struct canergy_supervisor *sup, uint64_t amount_
 /* -- the record in NV --------------------------------------------------------------------- */
 
 #define SLOT_MAGIC 0x534E5243UL /* "CNRS" little-endian */
-#define SLOT_VERSION 4U /* 3: the last RESUME answered (witnessed rules) in each session; 4: its
-                          * nonce's bit 16 (a SYNC's counts), Us signed */
+#define SLOT_VERSION 5U /* 3: the last RESUME answered (witnessed rules) in each session; 4: its
+                          * nonce's bit 16 (a SYNC's counts), Us signed; 5: the last JOIN
+                          * admitted */
 #define SLOT_HEADER 36U /* magic, version, count, 2 spare, counter, Us, injected, withdrawn */
-#define SESSION_BYTES 44U
+#define SESSION_BYTES 56U
 
 static size_t slot_bytes(uint8_t count)
 {
@@ -367,6 +369,9 @@ size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t c
         le_put(&r[32], s->resume_from, 4U);
         le_put(&r[36], s->resume_to, 4U);
         le_put(&r[40], s->resume_nonce, 4U);
+        le_put(&r[44], s->join_tx, 4U);
+        le_put(&r[48], s->join_seq, 4U);
+        le_put(&r[52], s->join_nonce, 4U);
     }
     const size_t body = slot_bytes(sup->count) - 4U;
     le_put(&out[body], canergy_crc32(0U, out, body), 4U);
@@ -391,7 +396,8 @@ static bool slot_valid(const struct canergy_supervisor *sup, const uint8_t *p)
             r[1] == CANERGY_S_ACKED || r[2] > CANERGY_DECIDE_ABORT ||
             (confirm != (r[2] != CANERGY_DECIDE_NONE)) || (idle != (reserved == 0U)) ||
             reserved % CANERGY_QUANTUM_UJ != 0U ||
-            reserved > CANERGY_AMOUNT_MAX_MJ * CANERGY_QUANTUM_UJ || le_get(&r[40], 4U) > 0x1FFFFUL) {
+            reserved > CANERGY_AMOUNT_MAX_MJ * CANERGY_QUANTUM_UJ || le_get(&r[40], 4U) > 0x1FFFFUL ||
+            le_get(&r[52], 4U) > 0xFFFFUL) {
             return false;
         }
     }
@@ -434,7 +440,9 @@ static bool slot_beyond(const struct canergy_supervisor *sup, const uint8_t *p)
     for (uint8_t i = 0U; i < sup->count; i++) {
         const uint8_t *r = &p[SLOT_HEADER + SESSION_BYTES * (size_t)i];
         if (le_get(&r[4], 4U) >= CANERGY_COUNTER_BOUND ||
-            le_get(&r[8], 4U) >= CANERGY_COUNTER_BOUND) {
+            le_get(&r[8], 4U) >= CANERGY_COUNTER_BOUND ||
+            le_get(&r[44], 4U) >= CANERGY_COUNTER_BOUND ||
+            le_get(&r[48], 4U) >= CANERGY_COUNTER_BOUND) {
             return true;
         }
     }
@@ -459,6 +467,9 @@ static void slot_take(struct canergy_supervisor *sup, const uint8_t *p)
         s->resume_from = le_get(&r[32], 4U);
         s->resume_to = le_get(&r[36], 4U);
         s->resume_nonce = le_get(&r[40], 4U);
+        s->join_tx = le_get(&r[44], 4U);
+        s->join_seq = le_get(&r[48], 4U);
+        s->join_nonce = (uint16_t)le_get(&r[52], 4U);
     }
 }
 

@@ -50,6 +50,9 @@ def to_c(s: Session) -> CSession:
         resume_to=s.resume_to % MOD,
         resume_nonce=s.resume_nonce,
         witness=s.witness,
+        join_tx=s.join_tx % MOD,
+        join_seq=s.join_seq % MOD,
+        join_nonce=s.join_nonce,
         sync_nonce=s.sync_nonce,
         node=s.node,
         phase=int(s.phase),
@@ -63,7 +66,7 @@ def fields_of(s: Session | CSession) -> dict[str, int]:
         return fields_of(to_c(s))
     names = ("delivered_uj", "returned_uj", "deadline", "tx", "returns_credited", "reserved_uj")
     names += ("phase", "decision", "tries", "resume_from", "resume_to", "resume_nonce")
-    names += ("witness", "sync_nonce")
+    names += ("witness", "sync_nonce", "join_tx", "join_seq", "join_nonce")
     return {n: int(getattr(s, n)) for n in names}
 
 

@@ -41,4 +41,7 @@ def sym_session(s: Session) -> sym.Session:
         resume_to=sym.counter(s.resume_to),
         witness=sym.counter(s.witness),
         sync_nonce=z3.BitVecVal(s.sync_nonce, 16),
+        join_nonce=z3.BitVecVal(s.join_nonce, 16),
+        join_tx=sym.counter(s.join_tx),
+        join_seq=sym.counter(s.join_seq),
     )

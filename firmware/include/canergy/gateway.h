@@ -112,7 +112,7 @@ struct canergy_gateway_nv {
     uint32_t counter;         /* its counter */
     int8_t slot;              /* its slot, 0 or 1; -1: none valid */
     uint8_t older;            /* a slot of an older layout's supervisor record: its version (2,
-                                 3), else 0; only a refusal's reason, never loaded */
+                                 3, 4), else 0; only a refusal's reason, never loaded */
     bool foreign;             /* bytes, but neither slot starts with the magic (a node's file?) */
     uint8_t damaged;          /* slots (bit 0: the first, bit 1: the second) that start with the
                                  magic but whose CRC does not hold or that are cut short: a write

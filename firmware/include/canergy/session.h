@@ -57,7 +57,7 @@ struct canergy_session_timing {
                                    * (Python's Timing.window); 0: CANERGY_DEFAULT_WINDOW */
 };
 
-/* The supervisor's record for one node. 64 bytes. */
+/* The supervisor's record for one node. 72 bytes. */
 struct canergy_session {
     uint64_t delivered_uj;     /* Gs: all energy that left the supervisor's books for the node */
     uint64_t returned_uj;      /* all returns credited */
@@ -71,6 +71,9 @@ struct canergy_session {
                                 * repeat gets the same ADMIT */
     int32_t witness;           /* witnessed: W, the highest tx the node has shown it persisted
                                 * (volatile: a start sets it again) */
+    uint32_t join_tx;          /* witnessed: the last JOIN admitted, the k of its ADMIT ... */
+    uint32_t join_seq;         /* ... the C it carried (0: none admitted yet) ... */
+    uint16_t join_nonce;       /* ... and its nonce: a copy gets the same ADMIT */
     uint16_t sync_nonce;       /* witnessed: the nonce of the SYNC this start sent (volatile) */
     uint8_t node;
     uint8_t phase;             /* enum canergy_session_phase */

@@ -156,17 +156,18 @@ int canergy_supervisor_withdraw(struct canergy_supervisor *sup, uint64_t amount_
 
 /* -- the record in NV --------------------------------------------------------------------- */
 
-/* One slot: a 12-byte header ("CNRS", version 4, count, counter), Us (signed), injected and
- * withdrawn, 44 bytes per session (node, stored phase, decision, tx, last debit held, Ts, Gs,
- * returned, and the last RESUME answered: its q, the number it voided, its nonce with bit 16
- * set for a SYNC's counts) and a CRC-32 of all that. Two slots of CANERGY_SUPERVISOR_SLOT_SIZE
- * bytes back to back. A slot of version 2 or 3 (before the witnessed rules, before the
- * supervisor's start was confirmed) is refused as CANERGY_ERR_RECORD, as another node list
- * is. A start's waiting phases are stored as IDLE: every start is one. */
-#define CANERGY_SUPERVISOR_SLOT_SIZE (40U + 44U * CANERGY_SUPERVISOR_NODES)
+/* One slot: a 12-byte header ("CNRS", version 5, count, counter), Us (signed), injected and
+ * withdrawn, 56 bytes per session (node, stored phase, decision, tx, last debit held, Ts, Gs,
+ * returned, the last RESUME answered: its q, the number it voided, its nonce with bit 16 set
+ * for a SYNC's counts, and the last JOIN admitted: its ADMIT's k and C, its nonce) and a CRC-32
+ * of all that. Two slots of CANERGY_SUPERVISOR_SLOT_SIZE bytes back to back. A slot of version
+ * 2 to 4 (before the witnessed rules, before the supervisor's start was confirmed, before the
+ * last JOIN was remembered) is refused as CANERGY_ERR_RECORD, as another node list is. A
+ * start's waiting phases are stored as IDLE: every start is one. */
+#define CANERGY_SUPERVISOR_SLOT_SIZE (40U + 56U * CANERGY_SUPERVISOR_NODES)
 
 /* The record as slot bytes with this counter (the slot written before it has counter - 1);
- * returns the bytes used, 40 + 44 per session (the rest of the slot is left as it is). */
+ * returns the bytes used, 40 + 56 per session (the rest of the slot is left as it is). */
 size_t canergy_supervisor_image(const struct canergy_supervisor *sup, uint32_t counter,
                                 uint8_t out[CANERGY_SUPERVISOR_SLOT_SIZE]);
 

@@ -149,7 +149,7 @@ static void refuse_older_layout(const char *path, const struct canergy_gateway_n
 {
     if (nv->older != 0U) {
         port_usage_error("--nv %s: written by an older canergy-gateway (supervisor record "
-                         "version %u); this one reads version 4 only",
+                         "version %u); this one reads version 5 only",
                          path, (unsigned)nv->older);
     }
 }

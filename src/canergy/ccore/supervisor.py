@@ -104,8 +104,8 @@ class _Binding:
             ffi,
             "struct canergy_session",
             ("delivered_uj", "returned_uj", "deadline", "tx", "returns_credited", "reserved_uj",
-             "resume_from", "resume_to", "resume_nonce", "witness", "sync_nonce", "node", "phase",
-             "decision", "tries"),
+             "resume_from", "resume_to", "resume_nonce", "witness", "join_tx", "join_seq",
+             "join_nonce", "sync_nonce", "node", "phase", "decision", "tries"),
         )  # fmt: skip
         self.event, _ = _reader(
             ffi, "struct canergy_supervisor_event", ("tx", "amount_uj", "node", "resolved", "flags")
@@ -347,6 +347,7 @@ class CompiledSupervisor:
             c.returns_credited, c.tries = s.returns_credited, s.tries
             c.resume_from, c.resume_to = s.resume_from % 2**32, s.resume_to % 2**32
             c.resume_nonce, c.witness, c.sync_nonce = s.resume_nonce, s.witness, s.sync_nonce
+            c.join_tx, c.join_seq, c.join_nonce = s.join_tx, s.join_seq, s.join_nonce
             c.deadline = b.never if s.deadline is None else s.deadline
             self._sessions[i] = self._read(i)
         self._timer_known = False
@@ -355,8 +356,8 @@ class CompiledSupervisor:
         b = self._b
         (
             delivered, returned, deadline, tx, credited, reserved,
-            resume_from, resume_to, resume_nonce, witness, sync_nonce,
-            node, phase, decision, tries,
+            resume_from, resume_to, resume_nonce, witness, join_tx, join_seq, join_nonce,
+            sync_nonce, node, phase, decision, tries,
         ) = b.session.unpack_from(self._sup_bytes, b.sessions_at + i * b.session_size)  # fmt: skip
         resume_from = resume_to - (resume_to - resume_from) % 2**32  # Python's: below resume_to
         return Session(
@@ -375,6 +376,9 @@ class CompiledSupervisor:
             resume_to,
             witness,
             sync_nonce,
+            join_nonce,
+            join_tx,
+            join_seq,
         )
 
     # -- requests --------------------------------------------------------------------------

@@ -58,7 +58,9 @@ class Session:
     number 0), so that a re-sent copy gets the same answer; ``witness`` is W, the highest
     transaction the node has shown it persisted (a transaction begins only within
     ``Timing.window`` of it), and ``sync_nonce`` the nonce of the SYNC this start sent (both
-    volatile: every start sets them again).
+    volatile: every start sets them again); ``join_*`` is the last JOIN admitted (its nonce and
+    the k and C its ADMIT carried; ``join_seq`` 0: none yet, as every admission voids a number
+    above 0), so that a copy of it gets the same ADMIT rather than a second admission.
     """
 
     node: int
@@ -76,6 +78,9 @@ class Session:
     resume_to: int = 0
     witness: int = 0
     sync_nonce: int = 0
+    join_nonce: int = 0
+    join_tx: int = 0
+    join_seq: int = 0
 
 
 @fast_init

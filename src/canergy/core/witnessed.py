@@ -234,9 +234,22 @@ def admitted_afresh(s: Session) -> SessionStep:
 def admit(t: Timing, s: Session, msg: Join, now: int) -> SessionStep:
     """JOIN(n): the hardened admission, and the number after C voided as at a RESUME (C + 1 held,
     ADMIT(n, k, C + 1)): a debit the lost record left in flight under it is behind, and no number
-    is issued by both the node's old record and its new life."""
+    is issued by both the node's old record and its new life. The admission is remembered
+    (``join_*``).
+
+    A JOIN with the nonce of the last one admitted (``join_seq`` 0: none) is a copy of it (the
+    node re-sent it, its ADMIT lost, or a duplicate): it gets the same ADMIT again (same n, k
+    and C) and nothing moves, as if the first ADMIT had been duplicated on the bus. Admitted
+    afresh, it moved W up to a tx that transactions begun since had moved on: a node that took
+    the first ADMIT and lost the second held an ltx below W, the supervisor began up to W + B,
+    and an image of it from before those begins, started, took the node's SYNC answer settled
+    only B past that ltx: a late INTENTION of the discarded history was fresh to the node."""
+    if s.join_seq != 0 and s.join_nonce == msg.nonce:
+        again = Admit(s.node, msg.nonce, wire_tx(s.join_tx), wrap(s.join_seq, SEQ_BITS))
+        return SessionStep(s, (Send(again),))
     step = admitted_afresh(s)
     s = evolve(step.session, returns_credited=capped(step.session.returns_credited + 1))
+    s = evolve(s, join_nonce=msg.nonce, join_tx=s.tx, join_seq=s.returns_credited)
     answer = Admit(s.node, msg.nonce, wire_tx(s.tx), wrap(s.returns_credited, SEQ_BITS))
     admitted = Admitted(s.node, s.tx, s.returns_credited)
     return SessionStep(s, (*step.actions, admitted, Send(answer)), step.credit)
@@ -308,10 +321,11 @@ def take_counts(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
 
 
 def supervisor_record(s: Session) -> tuple[object, ...]:
-    """The hardened record and the last RESUME answered (a start's phases are stored as IDLE:
-    every start is one)."""
+    """The hardened record, the last RESUME answered and the last JOIN admitted (a start's
+    phases are stored as IDLE: every start is one)."""
     stored = evolve(s, phase=IDLE) if s.phase in SYNC_PHASES else s
-    return (*h.supervisor_record(stored), s.resume_nonce, s.resume_from, s.resume_to)
+    answered = (s.resume_nonce, s.resume_from, s.resume_to)
+    return (*h.supervisor_record(stored), *answered, s.join_nonce, s.join_tx, s.join_seq)
 
 
 OPEN = (WAIT_ACK, ACKED, WAIT_CONFIRM)

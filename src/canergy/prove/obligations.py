@@ -198,7 +198,7 @@ def _witnessed_cases() -> list[StepCase]:
 
     def restore_supervisor(w: World) -> Built:
         image = any_session_image("session_image")
-        step = wp.restore_supervisor(w, image, nonce)
+        step = wp.restore_supervisor(w, image, nonce, wp.IMAGE_JOIN)
         return step, [wp.p_session_image(image, w)], None
 
     out = [StepCase(RESTORE, restore), StepCase(RESTORE_SUPERVISOR, restore_supervisor)]

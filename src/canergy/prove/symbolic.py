@@ -314,6 +314,11 @@ class Session:
     """W, the highest transaction the node has shown it persisted (witnessed rules)."""
     sync_nonce: Term
     """The nonce of the supervisor's start, SYNC(n), while it waits (witnessed rules)."""
+    join_nonce: Term
+    """The last JOIN admitted (witnessed rules; hardened: never moved): its nonce (16 bits) and
+    the k and C of its ADMIT (``join_seq`` 0: none), so that a copy gets the same ADMIT."""
+    join_tx: Term
+    join_seq: Term
 
 
 S_IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM = (

@@ -547,16 +547,26 @@ def admitted_afresh(s: Session, nonce16: Term) -> SessionStep:
 
 def admit(s: Session, nonce16: Term) -> SessionStep:
     """JOIN(n) outside a start: the admission afresh with the number after C voided: C + 1,
-    ADMIT(n, k, C)."""
+    ADMIT(n, k, C), remembered (``join_*``); a copy of the last JOIN admitted (its nonce,
+    ``join_seq`` not 0) gets the same ADMIT again and moves nothing."""
     lifted = admitted_afresh(s, nonce16)
     t = replace(lifted.session, returns_credited=sym.capped(lifted.session.returns_credited + 1))
+    t = replace(t, join_nonce=nonce16, join_tx=t.tx, join_seq=t.returns_credited)
     sent = Sent.of(
         MsgType.ADMIT,
         nonce16,
         z3.BV2Int(sym.low(t.tx, TX_BITS)),
         z3.BV2Int(sym.low(t.returns_credited, SEQ_BITS)),
     )
-    return _outside_start(s, SessionStep(t, sent, lifted.credit))
+    fresh = SessionStep(t, sent, lifted.credit)
+    again = Sent.of(
+        MsgType.ADMIT,
+        nonce16,
+        z3.BV2Int(sym.low(s.join_tx, TX_BITS)),
+        z3.BV2Int(sym.low(s.join_seq, SEQ_BITS)),
+    )
+    copy = z3.And(s.join_seq != 0, s.join_nonce == nonce16)
+    return _outside_start(s, sym.choose(copy, SessionStep(s, again, z3.IntVal(0)), fresh))
 
 
 def counts_taken(s: Session, nonce16: Term, amount_mj: Term, window: int = WINDOW) -> Term:

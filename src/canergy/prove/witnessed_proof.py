@@ -312,6 +312,38 @@ def numbering(w: World) -> Term:
     return z3.If(settled_ahead, inv.numbering(ahead), inv.numbering(v))
 
 
+def remembered(s: sym.Session, k: Term, q: Term, life: Term) -> Msg:
+    """The ADMIT of the last JOIN admitted (``Session.join_*``) with its ghosts."""
+    zero = z3.IntVal(0)
+    return Msg(
+        Kind.ADMIT,
+        w=z3.BitVecVal(0, 16),
+        amount=zero,
+        gs=zero,
+        nonce=s.join_nonce,
+        admit_tx=low16(s.join_tx),
+        admit_seq=low16(s.join_seq),
+        k=k,
+        q=q,
+        life=life,
+        flags=zero,
+        start=z3.IntVal(-1),
+        sstart=z3.IntVal(-1),
+    )
+
+
+def joined(w: World) -> Msg:
+    """The ADMIT a copy of the last JOIN admitted gets again, with its ghosts (``World.jk``)."""
+    assert w.jk is not None and w.jq is not None and w.jlife is not None
+    return remembered(w.s, w.jk, w.jq, w.jlife)
+
+
+def join_remembered(w: World) -> Term:
+    """The ADMIT of the last JOIN admitted (``join_seq`` 0: none) is one the supervisor sent,
+    and a copy of that JOIN sends it again: its ``P`` holds, as of a frame in flight."""
+    return z3.Implies(w.s.join_seq != 0, p_admit(joined(w), w))
+
+
 _REPLACED = {
     "numbering": numbering,
     "supervisor books": supervisor_books,
@@ -325,8 +357,9 @@ def _on_view(clause: inv.Clause) -> inv.Clause:
     return lambda w: clause(view(w))
 
 
-STATE: tuple[tuple[str, inv.Clause], ...] = tuple(
-    (name, _REPLACED.get(name, _on_view(clause))) for name, clause in inv.STATE
+STATE: tuple[tuple[str, inv.Clause], ...] = (
+    *((name, _REPLACED.get(name, _on_view(clause))) for name, clause in inv.STATE),
+    ("remembered JOIN", join_remembered),
 )
 
 
@@ -346,10 +379,21 @@ def p_image(r: sym.Client, w: World) -> Term:
     )
 
 
+IMAGE_JOIN = (
+    z3.BitVec("session_image.join_k", sym.COUNTER),
+    z3.BitVec("session_image.join_q", sym.COUNTER),
+    z3.Int("session_image.join_life"),
+)
+"""The ghosts of the ADMIT that an older image of the supervisor's record remembers as its last
+JOIN's (``World.jk``): any, of an ADMIT it sent."""
+
+
 def p_session_image(r: sym.Session, w: World) -> Term:
     """An older image of the supervisor's record: the hardened ``p_session_image`` against
-    ``view``, its last start answered above its number."""
-    return z3.And(inv.p_session_image(r, view(w)), answered(r))
+    ``view``, its last start answered above its number, and the ADMIT of its last JOIN
+    admitted one that was sent (``P`` holds of it now, as of every ADMIT sent)."""
+    sent = z3.Implies(r.join_seq != 0, p_admit(remembered(r, *IMAGE_JOIN), w))
+    return z3.And(inv.p_session_image(r, view(w)), answered(r), sent)
 
 
 def _msg_on_view(clause: inv.MsgClause) -> inv.MsgClause:
@@ -747,15 +791,19 @@ def _lift(s: sym.Session) -> tuple[Term, Term]:
 
 
 def on_join(w: World, m: Msg) -> st.Step:
+    """A JOIN outside a start: admitted afresh (its ADMIT remembered with its ghosts), or, a
+    copy of the last JOIN admitted, that ADMIT sent again (its ghosts the remembered ones)."""
     step = wit.admit(w.s, m.nonce)
-    taken = z3.Not(wit.in_start(w.s))
+    copy = z3.And(w.s.join_seq != 0, w.s.join_nonce == m.nonce)
+    taken = z3.And(z3.Not(wit.in_start(w.s)), z3.Not(copy))
     lift_tx, lift_seq = _lift(w.s)
     zero = sym.counter(0)
     shift_tx = w.shift_tx + z3.If(taken, lift_tx, zero)
     shift_seq = w.shift_seq + z3.If(taken, lift_seq, zero)
     first = z3.And(taken, m.life == w.life, z3.Not(w.admitted))
     admitted_at = z3.If(first, step.session.tx - shift_tx, w.admitted_at)
-    return _session(
+    again = joined(w)
+    out = _session(
         w,
         step,
         m.life,
@@ -763,7 +811,25 @@ def on_join(w: World, m: Msg) -> st.Step:
         shift_seq=shift_seq,
         admitted=z3.Or(w.admitted, first),
         admitted_at=admitted_at,
+        jk=z3.If(taken, step.session.tx - shift_tx, again.k),
+        jq=z3.If(taken, step.session.returns_credited - shift_seq, again.q),
+        jlife=z3.If(taken, m.life, again.life),
     )
+    sent = tuple(
+        (
+            cond,
+            replace(
+                msg,
+                k=z3.If(copy, again.k, msg.k),
+                q=z3.If(copy, again.q, msg.q),
+                life=z3.If(copy, again.life, msg.life),
+            )
+            if msg.kind is Kind.ADMIT
+            else msg,
+        )
+        for cond, msg in out.sent
+    )
+    return replace(out, sent=sent)
 
 
 def on_debit(w: World, m: Msg) -> st.Step:
@@ -819,11 +885,14 @@ def decide(commit: bool) -> st.Local:
     return decided
 
 
-def restore_supervisor(w: World, image: sym.Session, nonce: Term) -> st.Step:
+def restore_supervisor(
+    w: World, image: sym.Session, nonce: Term, join: tuple[Term, Term, Term] | None = None
+) -> st.Step:
     """The supervisor's state file put back to an older ``image`` and started from it (a SYNC
     start): Us comes back with the file, so the session moves into Us what its books count less
     in the image. The session as it stood (what was open written off) is kept as the one at
-    the start, unless a start already waits."""
+    the start, unless a start already waits. ``join``: the ghosts of the ADMIT the image
+    remembers as its last JOIN's (None: the record's own, a power loss)."""
     step = wit.start(image, nonce)
     idle = {"phase": sym.S_IDLE, "sync_nonce": z3.BitVecVal(0, 16)}
     latest = replace(wit.start(w.s, nonce).session, **idle)
@@ -835,6 +904,8 @@ def restore_supervisor(w: World, image: sym.Session, nonce: Term) -> st.Step:
         cc=z3.And(w.cc, step.session.tx == w.s.tx),
         sstarts=sstarts(w) + 1,
     )
+    if join is not None:
+        after = replace(after, jk=join[0], jq=join[1], jlife=join[2])
     books = image.reserved + image.delivered - image.returned
     now = w.s.reserved + w.s.delivered - w.s.returned
     sent = st.supervisor_sent(after, step.sent, z3.IntVal(-1))

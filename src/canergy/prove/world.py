@@ -87,6 +87,12 @@ class World:
     answering: Term | None = None
     """Witnessed rules: the supervisor's start whose SYNC the node's answer (while SYNCING)
     answers; -1: none (counts that follow a RESUME's confirmation). Hardened: unused."""
+    jk: Term | None = None
+    """Witnessed rules: the ghosts of the ADMIT of the last JOIN admitted (``Session.join_*``),
+    which a copy of that JOIN gets again: its k and q in canonical numbering (``jk``, ``jq``)
+    and the life of the JOIN it answers (``jlife``). Hardened: unused."""
+    jq: Term | None = None
+    jlife: Term | None = None
 
     # canonical views
     @property
@@ -141,6 +147,9 @@ _SESSION = {
     "resume_to": BV32,
     "witness": BV32,
     "sync_nonce": BV16,
+    "join_nonce": BV16,
+    "join_tx": BV32,
+    "join_seq": BV32,
 }
 _CLIENT = {
     "usable": INT,
@@ -186,9 +195,12 @@ def any_world(name: str = "w", with_pre: bool = True) -> World:
     spre = any_session_image(f"{name}.spre") if with_pre else None
     sstarts = _fresh(f"{name}.sstarts.", INT) if with_pre else None
     answering = _fresh(f"{name}.answering.", INT) if with_pre else None
+    jk = _fresh(f"{name}.jk.", BV32) if with_pre else None
+    jq = _fresh(f"{name}.jq.", BV32) if with_pre else None
+    jlife = _fresh(f"{name}.jlife.", INT) if with_pre else None
     return World(
         s, c, **ghost, pre=pre, starts=starts, top=top, spre=spre, sstarts=sstarts,
-        answering=answering,
+        answering=answering, jk=jk, jq=jq, jlife=jlife,
     )  # fmt: skip
 
 
@@ -211,7 +223,7 @@ def initial_world() -> World:
     zero_key = z3.BitVecVal(0, sym.KEY_BITS)
     s = sym.Session(
         sym.S_IDLE, zero32, zero, zero, sym.NO_DECISION, zero32, zero, zero_key, zero32, zero32,
-        zero32, zero16,
+        zero32, zero16, zero16, zero32, zero32,
     )  # fmt: skip
     c = sym.Client(
         zero,
@@ -230,7 +242,7 @@ def initial_world() -> World:
     )
     return World(
         s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,
-        z3.BoolVal(True), zero32, c, zero, zero32, s, zero, z3.IntVal(-1),
+        z3.BoolVal(True), zero32, c, zero, zero32, s, zero, z3.IntVal(-1), zero32, zero32, zero,
     )  # fmt: skip
 
 

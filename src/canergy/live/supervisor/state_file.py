@@ -57,6 +57,9 @@ ANSWERED_MAX = (1 << (NONCE_BITS + 1)) - 1
 """The last start answered (``resume_nonce``): its 16-bit nonce and, above it, whether it was a
 SYNC's counts (``canergy.core.witnessed``)."""
 
+JOIN_NONCE_MAX = (1 << NONCE_BITS) - 1
+"""The last JOIN admitted (``join_nonce``): its 16-bit nonce."""
+
 ANSWERED_BEHIND = 1 << (SEQ_BITS - 1)
 """How far below 0 the last start answered may be numbered (``resume_from``): its 16-bit q
 widened next to C finds it up to 2^15 behind, below 0 while C is below 2^15 (a start no honest
@@ -87,9 +90,11 @@ _SESSION = (
     "returns_credited",
     "returned_uj",
 )
-_RESUME = ("resume_nonce", "resume_from", "resume_to")
+_RESUME = ("resume_nonce", "resume_from", "resume_to", "join_nonce", "join_tx", "join_seq")
 """Witnessed rules: the last RESUME answered (its nonce, the node's debit number, the number
-it voided), so that a copy re-sent after a restart gets the same answer, not a second void."""
+it voided), so that a copy re-sent after a restart gets the same answer, not a second void; and
+the last JOIN admitted (its nonce, the k and C of its ADMIT), so that a copy gets the same ADMIT,
+not a second admission. Each optional: a file written before holds none (0)."""
 _DECIDED = (Phase.WAIT_CONFIRM, Phase.WAIT_STATUS)
 """Phases a session reaches only after sending its decision (COMMIT or ABORT)."""
 
@@ -187,7 +192,7 @@ def write_private(path: Path, data: bytes, *, fsync: bool = True) -> None:
 
 def session_json(table: SupervisorTable | None, s: Session) -> dict[str, Any]:
     """One session as saved (``table``: the variant's, to store phases as its record does;
-    the witnessed rules' also the last RESUME answered)."""
+    the witnessed rules' also the last RESUME answered and the last JOIN admitted)."""
     saved = {
         "phase": (s.phase if table is None else stored_phase(table, s.phase)).name,
         "tx": s.tx,
@@ -202,6 +207,9 @@ def session_json(table: SupervisorTable | None, s: Session) -> dict[str, Any]:
             "resume_nonce": s.resume_nonce,
             "resume_from": s.resume_from,
             "resume_to": s.resume_to,
+            "join_nonce": s.join_nonce,
+            "join_tx": s.join_tx,
+            "join_seq": s.join_seq,
         }
     return saved
 
@@ -583,6 +591,22 @@ class FieldChecker:
         by at most ``ANSWERED_BEHIND`` (a start found behind early in the node's life)."""
         return self.integer(obj, where, "resume_from", COUNTER_BOUND - 1, -ANSWERED_BEHIND)
 
+    def last_join(
+        self, obj: dict[str, Any], where: str, tx: int, returns_credited: int
+    ) -> tuple[int, int, int]:
+        """The last JOIN admitted (witnessed rules; absent: none): its nonce, and the k and C of
+        its ADMIT, neither above the session's own (tx and C never go back)."""
+        nonce = self.integer(obj, where, "join_nonce", JOIN_NONCE_MAX) if "join_nonce" in obj else 0
+        k = self.counter(obj, where, "join_tx") if "join_tx" in obj else 0
+        c = self.counter(obj, where, "join_seq") if "join_seq" in obj else 0
+        for name, value, own, limit in (
+            ("join_tx", k, "tx", tx),
+            ("join_seq", c, "returns_credited", returns_credited),
+        ):
+            if value > limit:
+                self.refuse(_at(where, name), f"{value}: above {own} {limit}")
+        return nonce, k, c
+
     def name(self, obj: dict[str, Any], where: str, name: str, choices: Iterable[str]) -> str:
         value, allowed = obj[name], tuple(choices)
         if value not in allowed:  # also every non-string
@@ -689,6 +713,7 @@ class FieldChecker:
         )
         if resumes and void > returns_credited:
             self.refuse(f"{where}.resume_to", f"{void}: above returns_credited {returns_credited}")
+        join_nonce, join_tx, join_seq = self.last_join(v, where, tx, returns_credited)
         return Session(
             node,
             phase,
@@ -701,4 +726,7 @@ class FieldChecker:
             resume_nonce=nonce,
             resume_from=start,
             resume_to=void,
+            join_nonce=join_nonce,
+            join_tx=join_tx,
+            join_seq=join_seq,
         )

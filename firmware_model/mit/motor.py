@@ -14,8 +14,22 @@ on in 1 ms steps. What it does:
   reply's identifier ``master_id``.
 
 Damiao models answer a register read on 0x7FF (``canergy.devices.mit.read_register``) for the
-CAN Timeout (RID 9: ``can_timeout``, in 50 µs units, 0 off; held, not enforced) from the master
-id.
+CAN Timeout (RID 9: ``can_timeout``, in 50 µs units, 0 off) from the master id, and enforce it:
+an enabled motor that receives no frame for longer than the timeout disables itself with the
+fault ``LOST_COMM`` (0xD) in its replies' state, held until clear error (``FF×7 FB``).
+
+What the real firmware does, as modelled here (no text copied): the DM4310 firmware as
+reconstructed in the public repository umeow0716/damiao_firmware (``app/src/safety.c``, the
+fault monitor; ``app/src/motor_control.c``, the trip) counts the time since the last frame in
+its 50 µs control ticks only while the motor is enabled (the count restarts at 0 otherwise),
+restarts it on every frame whose identifier's low byte is the motor's id (before the command
+family is looked at: a mode frame 0x100 + id counts too, 0x7FF does not), and latches the fault
+once the count is above the register (above, not equal), which disarms the power stage (neutral
+PWM: the motor coasts); only clear error unlatches it. The status code 0xD (``LOST_COMM``, tied
+to register 9 ``TIMEOUT``) is as jia-xie/python-damiao-driver's protocol notes list it. Assumed
+here, not found in either: enter motor mode while the fault is latched leaves the motor off. The
+model counts in µs, checked every 1 ms step (so it disables within one step of the timeout),
+and hears only frames on the motor's own id (``MitFace``).
 
 Quirk for tests: ``ignores_exit`` (exit motor mode does nothing: a motor that does not obey).
 ``MitFace`` runs a model on a python-can bus in a thread, advancing it every 1 ms.
@@ -30,11 +44,13 @@ from dataclasses import dataclass, field
 import can
 
 from canergy.devices.mit import (
+    CLEAR_ERROR,
     ENTER,
     EXIT,
     PARAMETER_ID,
     READ_REGISTER,
     TIMEOUT_RID,
+    TIMEOUT_UNIT_US,
     ZERO,
     Command,
     MitModel,
@@ -44,7 +60,10 @@ from canergy.devices.mit import (
 )
 from firmware_model.drive.motor import LoadTorque, Motor, MotorParams
 
-__all__ = ["MitFace", "MitMotorModel"]
+__all__ = ["LOST_COMM", "MitFace", "MitMotorModel"]
+
+LOST_COMM = 0xD
+"""Damiao's reply state for a motor its CAN Timeout disabled."""
 
 
 @dataclass
@@ -58,7 +77,7 @@ class MitMotorModel:
     damping: float = 5e-3
     ignores_exit: bool = False
     can_timeout: int = 0
-    """Damiao's CAN Timeout register, 50 µs units (0: off)."""
+    """Damiao's CAN Timeout register, 50 µs units (0: off; Damiao models only)."""
 
     def __post_init__(self) -> None:
         r = self.model.resistance if self.model.resistance is not None else 0.2
@@ -70,6 +89,12 @@ class MitMotorModel:
         )
         self.motor = Motor(params, self.load)
         self.enabled = False
+        self.fault = 0
+        """A latched fault's state code (0: none; ``LOST_COMM``: the CAN Timeout ran out)."""
+        self.quiet_since = self.now_us
+        """The last frame on the motor's id (or its enabling, if later)."""
+        self.timeouts = 0
+        """How often the CAN Timeout disabled the motor."""
         self.command: Values | None = None
         self.origin = 0.0
         self.started_us = self.now_us
@@ -87,8 +112,12 @@ class MitMotorModel:
     def receive(self, data: bytes) -> bytes:
         """One frame for this motor; its reply."""
         self.frames += 1
+        if not self.fault:
+            self.quiet_since = self.now_us
         if data == ENTER:
-            self.enabled = True
+            self.enabled = self.enabled or not self.fault
+        elif data == CLEAR_ERROR:
+            self.fault = 0
         elif data == EXIT:
             if not self.ignores_exit:
                 self.enabled, self.command = False, None
@@ -120,15 +149,27 @@ class MitMotorModel:
         for f, x in ((fp, m.theta - self.origin), (fv, m.omega), (ft, m.torque)):
             n = round((x - float(f.lo)) * f.top / float(2 * f.span))
             codes.append(min(max(n, 0), f.top))
-        state = 1 if self.enabled else 0
+        state = self.fault or (1 if self.enabled else 0)
         p, v, t = codes
         return pack_reply(self.model, self.motor_id, p, v, t, state=state)
 
     def advance(self, now_us: int) -> None:
         while self.now_us < now_us:
+            self._watch_timeout()
             dt_us = min(1000, now_us - self.now_us)
             self._step(dt_us / 1e6)
             self.now_us += dt_us
+        self._watch_timeout()
+
+    def _watch_timeout(self) -> None:
+        """Damiao's CAN Timeout (module doc): counted only while enabled."""
+        if not self.enabled:
+            self.quiet_since = max(self.quiet_since, self.now_us)
+            return
+        limit = self.can_timeout * TIMEOUT_UNIT_US
+        if self.model.damiao and limit and self.now_us - self.quiet_since > limit:
+            self.enabled, self.command, self.fault = False, None, LOST_COMM
+            self.timeouts += 1
 
     def _step(self, dt: float) -> None:
         m = self.motor

@@ -64,7 +64,8 @@ from canergy.messages import QUANTUM_UJ, Message, ToClient
 
 FOREVER = 2**62
 REREAD_US = 1_000_000
-"""How often the ODrive and moteus guards read their limits back (a CiA 402 drive's 1 s too)."""
+"""How often the ODrive and moteus guards read their limits back (a CiA 402 drive's 1 s too),
+and the MIT gate a Damiao motor's CAN Timeout register."""
 
 
 class GuardPhase(Enum):
@@ -432,13 +433,14 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         return []
 
     def on_watchdog(
-        self, now: int, reading: WatchdogReading | None, periodic: bool
+        self, now: int, reading: WatchdogReading | None, periodic: bool, alone: bool = False
     ) -> list[Message]:
         """The device's watchdog read back (None: unanswered), at set-up or with a periodic
-        read-back: one the policy does not take refuses the device (stopped for good)."""
+        read-back: one the policy does not take refuses the device (stopped for good).
+        ``alone``: a periodic read-back of the watchdog alone (``WatchdogCheck.take``)."""
         if self.watchdog is None:
             return []
-        why = self.watchdog.take(now, reading, periodic)
+        why = self.watchdog.take(now, reading, periodic, alone)
         if why is None:
             return []
         self._refuse(why)
@@ -745,5 +747,5 @@ class DeviceGuard(ProxyBooks, Generic[L]):
             else now - self.last_feedback_at,
             "watchdog": None
             if self.watchdog is None
-            else self.watchdog.status(self._after_exit_fw() if self.sound else None),
+            else self.watchdog.status(self._after_exit_fw() if self.sound else None, now),
         }

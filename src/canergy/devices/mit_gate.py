@@ -25,6 +25,18 @@ a reply that finds no frame waiting takes one of those as *late* (counted, its r
 the latency the guard allows), not as forged. A host or motor stalled for 200 ms (a loaded
 machine, a GC pause) thus slows the motor instead of refusing it for good; a forger still has to
 send more replies than the gate sent frames within 2 s, which the gate counts.
+
+A Damiao motor's own watchdog, its CAN Timeout register (``TIMEOUT_RID``), is read over 0x7FF
+when the policy reads it (``--mit-max-watchdog``): at set-up and again every ``REREAD_US`` while
+the motor is not refused (a USB tool, or another master on another bus, can change it behind
+the gate; one read in flight at a time). A value the policy refuses, or a read not answered
+within ``LATE_WINDOW_US``, refuses the motor for good (``DeviceGuard.on_watchdog``: the stop of
+every refusal). The answer comes from the master id, as the replies do, and a reply of the same
+motor out of motor mode near −12.5 rad can look like it (``register_reply``). So every frame
+shaped as the answer within ``LATE_WINDOW_US`` of a read is judged as one (the first answers
+the read, a later one counts as a periodic read-back): a look-alike taken first does not hide
+the real answer behind it, and a look-alike whose bytes the policy refuses stops the motor
+(failing safe). A look-alike is not counted as a reply; the frame it answered is taken as lost.
 """
 
 from __future__ import annotations
@@ -34,7 +46,7 @@ from dataclasses import dataclass, field
 from fractions import Fraction
 from typing import Any
 
-from canergy.devices.guard import DeviceConfig, DeviceGuard, GuardPhase
+from canergy.devices.guard import REREAD_US, DeviceConfig, DeviceGuard, GuardPhase
 from canergy.devices.mit import (
     CLEAR_ERROR,
     ENTER,
@@ -143,10 +155,15 @@ class MitGate:
         """Frames for Damiao's parameter identifier 0x7FF (``take_parameter_frames``)."""
         self.register_asked: int | None = None
         """When the CAN Timeout register was asked (None: not, or answered)."""
+        self.register_periodic = False
+        """The read in flight is a periodic one (not the set-up's)."""
+        self.register_until: int | None = None
+        """Frames shaped as the register's answer received until then are judged as one."""
+        self.register_next: int | None = None
+        """When the register is read again (None: never)."""
         policy = config.watchdog
         if model.damiao and policy is not None and policy.read:
-            self.parameters.append(read_register(motor_id, TIMEOUT_RID))
-            self.register_asked = now
+            self._read_register(now, periodic=False)
 
     # -- the application's side ------------------------------------------------------------
     def from_app(self, data: bytes, now: int) -> Verdict:
@@ -208,13 +225,8 @@ class MitGate:
     # -- the motor's side ------------------------------------------------------------------
     def from_motor(self, data: bytes, at: int, now: int) -> list[Message]:
         """A reply of the motor, received at ``at``."""
-        if self.register_asked is not None:
-            value = register_reply(self.motor_id, TIMEOUT_RID, data)
-            if value is not None:
-                self.register_asked = None
-                timeout_s = value * TIMEOUT_UNIT_US / 1e6
-                reading = WatchdogReading(value > 0, timeout_s)
-                return self.guard.on_watchdog(now, reading, False) + self._carry_out(now)
+        if (answer := self._register_answer(data, at, now)) is not None:
+            return answer
         try:
             reply = unpack_reply(self.model, data)
         except ValueError:
@@ -248,6 +260,33 @@ class MitGate:
         out = self.guard.on_feedback(now, at, powered, state)
         return out + self._carry_out(now)
 
+    def _register_answer(self, data: bytes, at: int, now: int) -> list[Message] | None:
+        """``data`` judged as the CAN Timeout register's answer (None: not shaped as one, or
+        not within ``LATE_WINDOW_US`` of a read; module doc)."""
+        if self.register_until is None or at > self.register_until:
+            return None
+        value = register_reply(self.motor_id, TIMEOUT_RID, data)
+        if value is None:
+            return None
+        # none in flight: a second answer within the window (the first a look-alike, or this)
+        periodic = self.register_periodic or self.register_asked is None
+        self.register_asked = None
+        reading = WatchdogReading(value > 0, value * TIMEOUT_UNIT_US / 1e6)
+        return self.guard.on_watchdog(now, reading, periodic) + self._carry_out(now)
+
+    def _read_register(self, now: int, periodic: bool) -> None:
+        """Ask the CAN Timeout register (unless the motor is refused: stopped for good, or a
+        read is still in flight: its own deadline holds), and again ``REREAD_US`` on."""
+        self.register_next = now + REREAD_US
+        if self.guard.refused is not None:
+            self.register_next = None
+            return
+        if self.register_asked is not None:
+            return
+        self.parameters.append(read_register(self.motor_id, TIMEOUT_RID))
+        self.register_asked, self.register_periodic = now, periodic
+        self.register_until = now + LATE_WINDOW_US
+
     def on_foreign(self, data: bytes, now: int) -> list[Message]:
         """A frame to the motor from someone else."""
         self.counts.foreign += 1
@@ -266,6 +305,8 @@ class MitGate:
         times = [self.guard.next_wakeup(), self.next_send]
         if self.register_asked is not None:
             times.append(self.register_asked + LATE_WINDOW_US)
+        if self.register_next is not None:
+            times.append(self.register_next)
         return min(times)
 
     def on_wakeup(self, now: int) -> list[Message]:
@@ -273,8 +314,13 @@ class MitGate:
         out = self.guard.on_wakeup(now) if self.guard.next_wakeup() <= now else []
         out += self._carry_out(now)
         if self.register_asked is not None and now >= self.register_asked + LATE_WINDOW_US:
-            self.register_asked = None  # unanswered: the policy refuses the motor, or says so
-            out += self.guard.on_watchdog(now, None, False) + self._carry_out(now)
+            # unanswered: at set-up the policy refuses the motor (or says so); a periodic
+            # read-back, stopped for good
+            periodic, self.register_asked = self.register_periodic, None
+            out += self.guard.on_watchdog(now, None, periodic, alone=True)
+            out += self._carry_out(now)
+        if self.register_next is not None and now >= self.register_next:
+            self._read_register(now, periodic=True)
         if now >= self.next_send:
             self._resend(now)
         return out

@@ -19,7 +19,9 @@ refuses the device unless ``allow`` (an explicit flag, as ``--odrive-trust-limit
 limits); then it is reported (the status's ``problem``, a line on stderr). A watchdog that is not
 read at all (no endpoint ids given) is reported, never refused. A periodic read-back that shows
 another watchdog than the last one read (changed behind the guard, over USB or UART) counts in
-``changes``; one the policy would refuse stops the device for good.
+``changes``; one the policy would refuse stops the device for good. A periodic read-back left
+unanswered stops the device too: the ODrive guard's through its limits' read-back (unanswered
+with it), the MIT gate's, which reads the watchdog alone (``alone``), here.
 """
 
 from __future__ import annotations
@@ -117,25 +119,33 @@ class WatchdogCheck:
         """Periodic read-backs that showed another watchdog than the one read before."""
         self.refusal: str | None = None
         """Why the device was refused for its watchdog (said on stderr by ``note``)."""
+        self.reads = 0
+        """Read-backs answered (the set-up's and the periodic ones)."""
 
-    def take(self, now: int, reading: WatchdogReading | None, periodic: bool) -> str | None:
+    def take(
+        self, now: int, reading: WatchdogReading | None, periodic: bool, alone: bool = False
+    ) -> str | None:
         """A read-back (None: unanswered); the reason to refuse the device, if the policy
-        does."""
+        does. ``alone``: the periodic read-back reads the watchdog alone (no limits read with
+        it whose silence stops the device): unanswered, it refuses the device itself."""
         p = self.policy
-        if periodic and reading is None:
+        if periodic and reading is None and not alone:
             return None  # the limits' read-back is unanswered too: the guard stops it for that
-        changed = periodic and self.asked and reading != self.reading
+        changed = periodic and self.asked and reading is not None and reading != self.reading
         before = self.reading
         self.asked = True
         self.reading = reading
         if reading is not None:
             self.read_at = now
+            self.reads += 1
         self.problem = problem(p, reading)
         if changed:
             self.changes += 1
         if self.problem is None or p.allow:
             return None
-        if changed:
+        if periodic and reading is None:
+            self.refusal = f"watchdog not read back: a periodic read-back unanswered ({p.kind})"
+        elif changed:
             was = "not read" if before is None else describe(before)
             self.refusal = (
                 f"watchdog changed behind the guard (a periodic read-back): {self.problem}, "
@@ -163,9 +173,10 @@ class WatchdogCheck:
         )
         return f"watchdog {self.problem}, accepted ({p.allow_flag}): {after}"
 
-    def status(self, envelope_fw: int | None) -> dict[str, object]:
+    def status(self, envelope_fw: int | None, now: int | None = None) -> dict[str, object]:
         """The status's ``watchdog``; ``envelope_fw``: the most the guard lets the device run
-        at (its full limits; None: no envelope, sampled metering)."""
+        at (its full limits; None: no envelope, sampled metering); ``now``: for the age of the
+        last answered read-back (``verified_age_us``)."""
         p = self.policy
         r = self.reading
         if not p.exists:
@@ -190,6 +201,10 @@ class WatchdogCheck:
             "problem": p.unread if state == UNREAD else self.problem,
             "accepted": p.allow if self.problem is not None else None,
             "changes": self.changes,
+            "reads": self.reads,
+            "verified_age_us": None
+            if self.read_at is None or now is None
+            else max(0, now - self.read_at),
             "after_exit_uj": after,
             "after_exit": FED_BY if after is not None else "unbounded",
         }

@@ -128,8 +128,9 @@ def add_gate_flags(g: argparse._ArgumentGroup, model_required: bool) -> None:
         "--mit-max-watchdog",
         type=duration,
         metavar="TIME",
-        help="Damiao: read each motor's CAN Timeout register (RID 9) at set-up; off, longer "
-        "than TIME or unanswered refuses the motor (default: not read, the status says so)",
+        help="Damiao: read each motor's CAN Timeout register (RID 9) at set-up and every "
+        "second; off, longer than TIME or unanswered refuses the motor for good (default: not "
+        "read, the status says so)",
     )
     add_duration(
         g,

@@ -45,9 +45,9 @@ class MitMotor:
 
 def mit_watchdog(model: MitModel, max_us: int | None = None) -> WatchdogPolicy:
     """How the motor's own watchdog is judged: Damiao's ``CAN Timeout`` register, read at
-    set-up (``canergy.devices.mit.TIMEOUT_RID``) when ``max_us`` is given (``--mit-max-watchdog``:
-    off, longer or unanswered refuses the motor), else not read; CubeMars AK firmware has
-    none."""
+    set-up and every second (``canergy.devices.mit.TIMEOUT_RID``, ``canergy.devices.mit_gate``)
+    when ``max_us`` is given (``--mit-max-watchdog``: off, longer or unanswered refuses the
+    motor), else not read; CubeMars AK firmware has none."""
     if not model.damiao:
         return WatchdogPolicy(
             kind=f"{model.name}: the firmware has no watchdog (a relay on its supply)",

@@ -71,6 +71,10 @@ class Bench:
         """What the motor's side answers a 0x7FF frame with (default: the emulator)."""
         self.pushed = False
         self.refused_at: int | None = None
+        self.held: list[bytes] = []
+        """Frames from the master id held back until after the motor's next reply."""
+        self.next_reply: bytes | None = None
+        """What the motor's next reply is replaced with (once)."""
 
     def register(self, data: bytes) -> list[bytes]:
         reply = self.motor.register(data)
@@ -88,7 +92,13 @@ class Bench:
                 todo.extend((Direction.TO_SUPERVISOR, m) for m in self.gate.on_message(wire, now))
 
     def to_motor(self, data: bytes, t: int) -> None:
-        self.route(self.gate.from_motor(self.motor.receive(data), t, t), t)
+        reply = self.motor.receive(data)
+        if self.next_reply is not None:
+            reply, self.next_reply = self.next_reply, None
+        self.route(self.gate.from_motor(reply, t, t), t)
+        held, self.held = self.held, []
+        for frame in held:
+            self.route(self.gate.from_motor(frame, t, t), t)
 
     def run_to(self, until: int) -> None:
         gate = self.gate
@@ -180,8 +190,10 @@ def test_a_register_read_left_unanswered_stops_the_motor_two_seconds_after_it() 
 
 def test_a_reply_that_looks_like_the_answer_does_not_hide_the_answer_behind_it() -> None:
     """A reply of the motor out of motor mode near -12.5 rad can start as the register's
-    answer does (id, 0x33, 9): taken for it, its bytes read as an armed 400 µs timeout; the
-    real answer after it (the register set to 0) is still judged, and stops the motor."""
+    answer does (id, 0x33, 9). Here the motor's reply to the gate's next frame after a read is
+    one, and the register's answer (set to 0 behind the gate) comes after it: the look-alike
+    is taken for the answer (its bytes an armed 400 µs timeout), and the real answer is still
+    judged, not taken as the reply to that frame: the motor is stopped."""
     look_alike = pack_reply(DM, MOTOR, 0x0033, 0x090, 0x800)
     assert look_alike[:4] == read_register(MOTOR, TIMEOUT_RID)[:4]
     assert int.from_bytes(look_alike[4:], "little") == 8  # 8 × 50 µs
@@ -189,8 +201,14 @@ def test_a_reply_that_looks_like_the_answer_does_not_hide_the_answer_behind_it()
     bench = Bench()
     running(bench)
     bench.motor.can_timeout = 0
-    bench.answer = lambda data: [look_alike, *bench.register(data)]
-    bench.run_to(bench.now + REREAD_US)
+
+    def behind_a_look_alike(data: bytes) -> list[bytes]:
+        bench.held += bench.register(data)
+        bench.next_reply = look_alike
+        return []
+
+    bench.answer = behind_a_look_alike
+    bench.run_to(bench.now + REREAD_US + 100_000)
     g = bench.gate.guard
     assert g.refused is not None and g.refused.startswith(
         "watchdog changed behind the guard (a periodic read-back): off (disabled), was enabled"

@@ -279,3 +279,26 @@ def test_without_the_flag_the_damiao_can_timeout_is_not_read(tmp_path: Path) -> 
         d = wait_for(lambda: (d := watched_motor(r)) and d.get("guard") and d, 60)
         r.stop()
     assert d["watchdog"]["state"] == "not read" and d["refused"] is None
+
+
+def test_a_damiao_can_timeout_set_to_off_behind_the_supervisor_stops_the_motor(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The register read back at set-up, then set to 0 behind the gates (a USB tool): the next
+    periodic read (every second) shows it, and the motor is refused for good, said once."""
+    flags = [*hosted(f"app-{uuid.uuid4().hex}"), "--mit-max-watchdog", "1s"]
+    with rig(tmp_path, BUDGET, hosted=flags, can_timeout=2000) as r:
+        wait_for(lambda: (d := watched_motor(r)) and d["watchdog"]["verified"] and d, 60)
+        with r.face.lock:
+            r.model.can_timeout = 0
+        d = wait_for(lambda: (d := watched_motor(r)) and d.get("refused") and d, 60)
+        r.stop()
+    assert d["refused"] == (
+        "watchdog changed behind the guard (a periodic read-back): off (disabled), was "
+        "enabled, timeout 0.1 s"
+    )
+    w = d["watchdog"]
+    assert w["state"] == "off" and w["changes"] == 1 and w["reads"] >= 2
+    assert d["latched"] and d["guard"] in ("stopping", "stopped")
+    err = capsys.readouterr().err
+    assert err.count(f"mit motor 1: refused: {d['refused']}") == 1, err

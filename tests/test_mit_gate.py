@@ -455,8 +455,9 @@ def test_a_budget_below_the_bound_holds_the_motor_and_says_so() -> None:
 
 
 def test_the_status_says_what_watchdog_the_motor_has() -> None:
-    """CubeMars AK firmware has no watchdog; Damiao's CAN Timeout is not read by the gate yet:
-    both leave the motor unbounded after the gate's process died, and the status says so."""
+    """CubeMars AK firmware has no watchdog; Damiao's CAN Timeout is not read without a policy
+    that reads it (--mit-max-watchdog): both leave the motor unbounded after the gate's process
+    died, and the status says so."""
     from canergy.live.devices.mit_motor import MitMotor
 
     ak = gate_for(MitMotor(1, 5, "AK80-9", resistance=0.2), 0, Timing()).status(0)["watchdog"]

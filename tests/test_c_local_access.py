@@ -3,12 +3,15 @@
 bounded size, read without blocking (a FIFO, ``/dev/zero`` or a huge file is refused at once, as
 in Python), and no two file flags (``--nv``, ``--status-file``, the node's ``--auth``) may name
 one file, through symlinks and hard links too (the status JSON would replace the NV record or
-the key). Everything here is refused before the bus is opened: no vcan0.
+the key); no folder of the NV record's or a key file's, nor a key file's mode, may let others
+replace or read it, refused as Python refuses it, in its words (issue 40). Everything here is
+refused before the bus is opened: no vcan0.
 """
 
 from __future__ import annotations
 
 import os
+import subprocess
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,7 +20,14 @@ from support.firmware_build import built, refused, run_without_bus
 from support.firmware_build import c_gateway as c_gateway  # the fixtures
 from support.firmware_build import c_node as c_node
 
-from canergy.auth.keys import KEY_FILE_MAX, new_master, node_key_of, write_key
+from canergy.auth.keys import (
+    KEY_FILE_MAX,
+    KeyFileError,
+    load_key,
+    new_master,
+    node_key_of,
+    write_key,
+)
 from canergy.live.atomic import check_private_dir
 
 # --- item 11: key files -----------------------------------------------------------------------
@@ -360,3 +370,142 @@ def test_the_c_programs_refuse_an_nv_folder_of_another_user(
     refused(run, f"directory {tmp_path / 'theirs'} belongs to user 54321")
     expected = _python_refusal("theirs/n.nv", tmp_path, monkeypatch)
     assert run.stderr == f"{program}: error: {expected}\n"
+
+
+# --- the key files' folders and modes: refused where Python refuses them, in its words --------
+
+KEY_FLAGS = [("canergy-node", "--auth"), ("canergy-gateway", "--upstream-auth")]
+KEY_FLAGS += [("canergy-gateway", "--auth")]
+"""Each C program and flag that reads a key file: node 1's key, the gateway's own master key
+below (``--auth``)."""
+KEY_IDS = [f"{program}{flag}" for program, flag in KEY_FLAGS]
+
+
+def _key_for(flag: str, program: str, tmp: Path, key: str) -> None:
+    """A key ``flag`` of ``program`` takes, written at ``key`` (relative to ``tmp``, mode 0600)."""
+    path = tmp / os.path.normpath(key)  # lexically, as written: nosuchdir/.. is no folder
+    master = new_master(1)
+    write_key(
+        path, master if (program, flag) == ("canergy-gateway", "--auth") else node_key_of(master, 1)
+    )
+
+
+def _python_key_verdict(flag: str, key: str, tmp: Path, monkeypatch: pytest.MonkeyPatch) -> str:
+    """What Python says of the key file ``key`` (relative to ``tmp``) given for ``flag``: its
+    folders (``check_private_dir``, as ``canergy gateway``, ``supervisor`` and ``python -m
+    firmware_model`` check them), then the file (``load_key``, its refusal after the flag as
+    ``canergy gateway`` words it); "" when it takes it."""
+    monkeypatch.chdir(tmp)
+    try:
+        check_private_dir(Path(key), flag)
+        load_key(Path(key))
+    except PermissionError as exc:
+        return str(exc)
+    except KeyFileError as exc:
+        return f"{flag} {exc}"
+    return ""
+
+
+def _run_with_key(program: str, flag: str, tmp: Path, key: str) -> subprocess.CompletedProcess[str]:
+    return run_without_bus(built(f"build/{program}"), tmp, "--nv", "rec.nv", flag, key)
+
+
+def _refused_as_python(
+    program: str, flag: str, tmp: Path, key: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Python refuses ``key``, and the C program refuses it in the same words, byte for byte,
+    exit 2, before anything is created or the bus opened."""
+    words = _python_key_verdict(flag, key, tmp, monkeypatch)
+    assert words, f"Python takes {flag} {key}"
+    before = sorted(p.name for p in tmp.rglob("*"))
+    run = _run_with_key(program, flag, tmp, key)
+    assert run.returncode == 2, run.stderr
+    assert run.stderr == f"{program}: error: {words}\n"
+    assert sorted(p.name for p in tmp.rglob("*")) == before  # no NV record
+
+
+@pytest.mark.parametrize(("program", "flag"), KEY_FLAGS, ids=KEY_IDS)
+@pytest.mark.parametrize("folder", OPEN_FOLDERS, ids=lambda f: f.__name__[1:])
+def test_the_c_programs_refuse_a_key_folder_others_may_write_as_python_does(
+    folder: Callable[[Path], str],
+    program: str,
+    flag: str,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A writer of the key's folder (or of one above it, as written or once symlinks are
+    resolved) can put another key there: refused as ``check_private_dir`` refuses it."""
+    key = folder(tmp_path)
+    _key_for(flag, program, tmp_path, key)
+    _refused_as_python(program, flag, tmp_path, key, monkeypatch)
+    assert "is writable by others" in _python_key_verdict(flag, key, tmp_path, monkeypatch)
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="giving a folder away needs root")
+@pytest.mark.parametrize(("program", "flag"), KEY_FLAGS, ids=KEY_IDS)
+def test_the_c_programs_refuse_a_key_folder_of_another_user(
+    program: str, flag: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / "theirs").mkdir(mode=0o755)
+    _key_for(flag, program, tmp_path, "theirs/k.key")
+    os.chown(tmp_path / "theirs", 54321, -1)
+    _refused_as_python(program, flag, tmp_path, "theirs/k.key", monkeypatch)
+    assert "belongs to user 54321" in _python_key_verdict(
+        flag, "theirs/k.key", tmp_path, monkeypatch
+    )
+
+
+@pytest.mark.parametrize(("program", "flag"), KEY_FLAGS, ids=KEY_IDS)
+@pytest.mark.parametrize("mode", [0o640, 0o604, 0o620, 0o602, 0o610, 0o601], ids=oct)
+def test_the_c_programs_refuse_a_key_file_others_may_read_or_write_as_python_does(
+    mode: int, program: str, flag: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _key_for(flag, program, tmp_path, "k.key")
+    (tmp_path / "k.key").chmod(mode)
+    _refused_as_python(program, flag, tmp_path, "k.key", monkeypatch)
+    assert f"mode {mode:04o} lets others read it" in _python_key_verdict(
+        flag, "k.key", tmp_path, monkeypatch
+    )
+
+
+@pytest.mark.parametrize(("program", "flag"), KEY_FLAGS, ids=KEY_IDS)
+def test_the_c_programs_take_a_key_where_python_does(
+    program: str, flag: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A sticky folder (as /tmp), a private or a readable one, a key file of mode 0600, 0400 or
+    0700, and (as root) one another user owns, 0600: Python takes each, and so does the C
+    program (the bus, which does not exist here, is what stops it)."""
+    keys = []
+    for name, mode in (("sticky", 0o1777), ("private", 0o700), ("readable", 0o755)):
+        (tmp_path / name).mkdir(mode=0o700)
+        (tmp_path / name).chmod(mode)
+        keys.append(f"{name}/k.key")
+        _key_for(flag, program, tmp_path, keys[-1])
+    for mode in (0o400, 0o700):
+        keys.append(f"private/{mode:o}.key")
+        _key_for(flag, program, tmp_path, keys[-1])
+        (tmp_path / keys[-1]).chmod(mode)
+    if os.geteuid() == 0:
+        keys.append("private/theirs.key")
+        _key_for(flag, program, tmp_path, keys[-1])
+        os.chown(tmp_path / keys[-1], 54321, -1)
+    for key in keys:
+        assert _python_key_verdict(flag, key, tmp_path, monkeypatch) == "", key
+        run = _run_with_key(program, flag, tmp_path, key)
+        assert run.returncode == 2 and "CAN socket" in run.stderr, (key, run.stderr)
+
+
+def test_the_c_gateway_checks_its_key_folders_in_pythons_order(
+    c_gateway: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Both keys in a folder others may write: ``--auth``'s is named first, as ``canergy
+    gateway``'s ``check_state`` names it (the books' key before the key above)."""
+    key = _world_writable(tmp_path)
+    _key_for("--upstream-auth", "canergy-gateway", tmp_path, key)
+    _key_for("--auth", "canergy-gateway", tmp_path, "d/own.key")
+    run = run_without_bus(
+        c_gateway, tmp_path, "--nv", "g.nv", "--upstream-auth", key, "--auth", "d/own.key"
+    )
+    words = _python_key_verdict("--auth", "d/own.key", tmp_path, monkeypatch)
+    assert words.startswith(f"--auth d/own.key: directory {tmp_path / 'd'} (mode 0777)"), words
+    assert run.returncode == 2 and run.stderr == f"canergy-gateway: error: {words}\n"

@@ -117,7 +117,9 @@ int main(int argc, char **argv)
                                       {"--upstream-auth", g.opt.up_auth_path},
                                       {"--auth", g.opt.auth_path}};
     port_check_distinct(files, sizeof files / sizeof files[0]);
-    port_check_private_dir("--nv", g.opt.nv_path);
+    port_check_private_dir("--nv", g.opt.nv_path); /* then the keys, as canergy gateway */
+    port_check_private_dir("--auth", g.opt.auth_path);
+    port_check_private_dir("--upstream-auth", g.opt.up_auth_path);
     if (g.opt.up_auth_path != NULL) {
         up_key(&g);
     }

@@ -28,7 +28,8 @@
  *
  * This file: main(), its loop and the glue between the library and the port's other files:
  * port.h (shared state), args.c (options, units), keyfile.c (--auth key file), paths.c (no two
- * file flags naming one file), storage.c (NV file, status file), socketcan.c (the CAN socket).
+ * file flags naming one file; no folder of the NV file's or the key's that others may write),
+ * storage.c (NV file, status file), socketcan.c (the CAN socket).
  */
 #define _GNU_SOURCE 1
 
@@ -155,6 +156,7 @@ int main(int argc, char **argv)
                                       {"--auth", p.opt.auth_path}};
     port_check_distinct(files, sizeof files / sizeof files[0]);
     port_check_private_dir("--nv", p.opt.nv_path);
+    port_check_private_dir("--auth", p.opt.auth_path); /* as python -m firmware_model */
     if (p.opt.auth_path != NULL) {
         uint8_t key[CANERGY_KDF_KEY_SIZE];
         port_load_key("--auth", p.opt.auth_path, p.opt.node, key);

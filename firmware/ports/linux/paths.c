@@ -1,7 +1,8 @@
 /*
  * Two names for one file (ports/linux, both programs), as canergy.live.atomic.same_file: the same
  * inode when both exist (hard links too), otherwise the same path once symlinks are resolved.
- * A file's folders no one else may write, as canergy.live.atomic.check_private_dir.
+ * A file's folders no one else may write, as canergy.live.atomic.check_private_dir: the NV
+ * record's and the key files'.
  */
 #define _GNU_SOURCE 1
 
@@ -180,6 +181,9 @@ static void check_folders(const char *flag, const char *path, const char *folder
 
 void port_check_private_dir(const char *flag, const char *path)
 {
+    if (path == NULL) { /* the flag was not given */
+        return;
+    }
     char abs[PATH_MAX];
     absolute(path, abs);
     char folder[PATH_MAX];

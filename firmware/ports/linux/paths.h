@@ -1,6 +1,6 @@
 /*
  * The files a Linux program of the port is given (paths.c): no two flags may name one file, and
- * no one but root and this user may replace the NV record.
+ * no one but root and this user may replace the NV record or a key file.
  */
 #ifndef CANERGY_PORT_LINUX_PATHS_H
 #define CANERGY_PORT_LINUX_PATHS_H
@@ -23,7 +23,9 @@ void port_check_distinct(const struct port_file *files, size_t count);
  * check_private_dir (sshd's StrictModes): its directory, or one above it (as written, made
  * absolute, then once symlinks are resolved), is writable by group or others without the sticky
  * bit (/tmp is fine), or belongs to another user. A directory that cannot be read is passed
- * over (the file's open fails later). Reads nothing else and creates nothing. */
+ * over (the file's open fails later), and so is a NULL path (a flag not given). Only the
+ * folders: the file itself is not looked at (a key file's mode is keyfile.c's, as keys.py's is
+ * load_key's). Reads nothing else and creates nothing. */
 void port_check_private_dir(const char *flag, const char *path);
 
 #endif /* CANERGY_PORT_LINUX_PATHS_H */

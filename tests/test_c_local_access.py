@@ -509,3 +509,45 @@ def test_the_c_gateway_checks_its_key_folders_in_pythons_order(
     words = _python_key_verdict("--auth", "d/own.key", tmp_path, monkeypatch)
     assert words.startswith(f"--auth d/own.key: directory {tmp_path / 'd'} (mode 0777)"), words
     assert run.returncode == 2 and run.stderr == f"canergy-gateway: error: {words}\n"
+
+
+def _linked_into_an_open_folder(tmp: Path, target: str) -> str:
+    """A private folder ``p`` holding a symlink ``p/file`` to ``open/<target>``, ``open`` a
+    folder anyone may write: the file's folder as written and resolved is private, its
+    target's is not. Returns the link, relative to ``tmp``."""
+    (tmp / "open").mkdir(mode=0o700)
+    (tmp / "open").chmod(0o777)
+    (tmp / "p").mkdir(mode=0o700)
+    (tmp / "p" / "file").symlink_to(Path("..") / "open" / target)
+    return "p/file"
+
+
+@pytest.mark.parametrize(("program", "flag"), KEY_FLAGS, ids=KEY_IDS)
+def test_the_c_programs_refuse_a_key_linked_into_a_folder_others_may_write_as_python_does(
+    program: str, flag: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Anyone who may write the target's folder can swap the key the link points at: the
+    link's own folder being private does not make the key private."""
+    key = _linked_into_an_open_folder(tmp_path, "real.key")
+    _key_for(flag, program, tmp_path, "open/real.key")
+    words = _python_key_verdict(flag, key, tmp_path, monkeypatch)
+    assert f"directory {tmp_path / 'open'} (mode 0777) is writable by others" in words, words
+    _refused_as_python(program, flag, tmp_path, key, monkeypatch)
+
+
+@pytest.mark.parametrize("program", ["canergy-node", "canergy-gateway"])
+@pytest.mark.parametrize("dangling", [False, True], ids=["existing", "dangling"])
+def test_the_c_programs_refuse_an_nv_record_linked_into_a_folder_others_may_write(
+    program: str, dangling: bool, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The NV record a symlink to a file (or to no file yet) in a folder anyone may write:
+    refused in Python's words, before anything is created."""
+    nv = _linked_into_an_open_folder(tmp_path, "n.nv")
+    if not dangling:
+        (tmp_path / "open" / "n.nv").write_bytes(b"")
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    run = run_without_bus(built(f"build/{program}"), tmp_path, "--nv", nv)
+    words = _python_refusal(nv, tmp_path, monkeypatch)
+    assert f"directory {tmp_path / 'open'} (mode 0777)" in words, words
+    assert run.returncode == 2 and run.stderr == f"{program}: error: {words}\n"
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before

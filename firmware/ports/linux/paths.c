@@ -186,11 +186,14 @@ void port_check_private_dir(const char *flag, const char *path)
     }
     char abs[PATH_MAX];
     absolute(path, abs);
+    char file[PATH_MAX]; /* the file's own symlinks followed: a key linked into an open folder */
+    resolve(abs, file);
     char folder[PATH_MAX];
-    copy_path(folder, dirname(abs));
+    copy_path(folder, dirname(abs)); /* abs is the folder from here on (libgen's dirname) */
     check_folders(flag, path, folder);
     char real[PATH_MAX];
     if (realpath(folder, real) != NULL) {
         check_folders(flag, path, real);
     }
+    check_folders(flag, path, dirname(file));
 }

@@ -21,7 +21,8 @@ void port_check_distinct(const struct port_file *files, size_t count);
 /* Exit 2 (port_usage_error, naming flag, path, the directory and the fix) when someone other
  * than root and this user could replace or roll back path, as canergy.live.atomic's
  * check_private_dir (sshd's StrictModes): its directory, or one above it (as written, made
- * absolute, then once symlinks are resolved), is writable by group or others without the sticky
+ * absolute, then once symlinks are resolved, then the directories of the file's own target when
+ * path is a symlink), is writable by group or others without the sticky
  * bit (/tmp is fine), or belongs to another user. A directory that cannot be read is passed
  * over (the file's open fails later), and so is a NULL path (a flag not given). Only the
  * folders: the file itself is not looked at (a key file's mode is keyfile.c's, as keys.py's is

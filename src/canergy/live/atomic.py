@@ -46,11 +46,14 @@ def check_private_dir(path: Path, what: str) -> None:
     replace or roll back ``path`` (as sshd's StrictModes): its directory, or one above it, is
     writable by group or others without the sticky bit (``/tmp`` is fine), or belongs to another
     user. A writer of the directory can rename an old copy over the file, or (without a key) an
-    edited one."""
+    edited one. The directories are checked as written, with their symlinks resolved, and those
+    of the file's own target when ``path`` is a symlink (a key linked from a private folder into
+    an open one is as open as its target's folder)."""
     me = os.geteuid()
-    folder = Path(os.path.abspath(path)).parent
+    whole = Path(os.path.abspath(path))
+    folder = whole.parent
     seen: set[Path] = set()
-    for top in (folder, folder.resolve()):
+    for top in (folder, folder.resolve(), Path(os.path.realpath(whole)).parent):
         for d in (top, *top.parents):
             if d in seen:
                 continue

@@ -19,7 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import initialize, rule
-from support import client_cases
+from support import c_session, client_cases
 from support.c_binding import (
     ERR_AMOUNT,
     ERR_PHASE,
@@ -991,3 +991,34 @@ def test_an_admission_lifting_tx_leaves_w_in_c_as_in_python(frame: Join | Debit)
     assert (admitted.tx, admitted.witness) == (10 + (1 << 16), 10)
     same(s, ST, frame, 0, table=W.SUPERVISOR)
     same(admitted, ST, Begin(1_000_000), 0, table=W.SUPERVISOR)
+
+
+@pytest.mark.parametrize("nonce", [0x0707, 0x8707, 0])
+@pytest.mark.parametrize(
+    "s",
+    [
+        Session(1, tx=10 + (1 << 16), witness=10, returns_credited=70_001),
+        Session(1, tx=5, witness=5, phase=Phase.WAIT_ACK, reserved=1000, tries=1, deadline=9),
+        Session(1, tx=5, witness=5, phase=Phase.SYNCING, sync_nonce=0x51, deadline=9),
+        Session(1, tx=5, witness=5, phase=Phase.SYNC_BOOKS, sync_nonce=0x51, resync=True),
+    ],
+    ids=["idle", "open", "start", "re-sync"],
+)
+def test_a_resync_in_c_as_in_python(s: Session, nonce: int) -> None:
+    """``canergy_session_resync`` as ``witnessed.resync_session``: from IDLE the session waits
+    in SYNCING under the nonce with SYNC_CONFIRMED cleared, its timer a response timeout on,
+    SYNC(n, tx, C) sent; refused (CANERGY_ERR_PHASE, nothing changed) in any other phase."""
+    lib = c_session.library()
+    timing = c_session.timing_of(ST, "witnessed", lib)
+    c, step = c_session.to_c(s), c_session.SessionStep()
+    rc = lib.canergy_session_resync(
+        c_session.ref(c), c_session.ref(timing), nonce, 5, c_session.ref(step)
+    )
+    try:
+        py = W.resync_session(ST, s, nonce, 5)
+    except LocalProtocolError:
+        assert rc == ERR_PHASE and c_session.fields_of(c) == c_session.fields_of(s)
+        return
+    assert rc == OK and c_session.fields_of(c) == c_session.fields_of(py.session)
+    expected = c_session.sent_of(py.actions)
+    assert expected is not None and c_session.c_sent(step, expected) == expected

@@ -233,6 +233,22 @@ def counts(seq: int, ltx: int, nonce: int = 0x51) -> Debit:
 
 
 SUP_CASES += [
+    *[
+        Case(f"join while a start waits ({s.phase.name}): ignored", s, Join(3, 0xBEEF), s)
+        for s in (S_SYNC, S_BOOKS)
+    ],
+    *[
+        Case(
+            f"join while a re-sync waits ({s.phase.name}): the re-sync ends, admitted as in IDLE",
+            replace(s, resync=True),
+            Join(3, 0xBEEF),
+            replace(
+                s, phase=Phase.IDLE, sync_nonce=0, deadline=None, returns_credited=5, **JOIN_7_5
+            ),
+            (Admitted(3, 7, 5), Send(Admit(3, 0xBEEF, 7, 5))),
+        )
+        for s in (S_SYNC, S_BOOKS)
+    ],
     Case(
         "begin within the window: as the hardened rules",
         replace(S_IDLE, witness=7 - 64 + 1),
@@ -408,7 +424,7 @@ SUP_CASES += [
     Case("a RESUME while the counts are awaited is ignored", S_BOOKS, resume(4), S_BOOKS),
 ]
 SUP_IGNORED = (H_SUP_IGNORED - {(p, Debit) for p in W.SUPERVISOR.phases}) | {
-    *((p, e) for p in (SY, SB) for e in (Ack, Committed, Aborted, Return, Join)),
+    *((p, e) for p in (SY, SB) for e in (Ack, Committed, Aborted, Return)),
 }
 SUP_REFUSED = H_SUP_REFUSED | {(p, e) for p in (SY, SB) for e in (Begin, Decide)}
 SUP_STATES = {**H_SUP_STATES, SY: S_SYNC, SB: S_BOOKS}

@@ -51,3 +51,5 @@ class NodeInfo:
     resyncs: int = 0
     """Re-syncs of this node alone (witnessed rules): its window used up, or its counts
     ignored."""
+    resynced_at: int | None = None
+    """When the last of them began (µs)."""

@@ -67,6 +67,11 @@ from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
 
+RESYNC_GAP_US = 1_000_000
+"""Witnessed rules: a node whose counts are ignored is re-synced at most once in this long (a
+node left answering re-sends them every retry period; a replayed counts frame, which verifies
+for its key epoch, costs the node at most one re-sync a second)."""
+
 
 @dataclass(frozen=True, slots=True)
 class ServiceConfig:
@@ -493,6 +498,8 @@ class SupervisorService:
         if outside and not counts_taken(self.core.timing, s, msg):  # an earlier start's
             info.counts_ignored += 1  # the rules ignore it; the witness's baseline stays
             out = self._carry_out(self.core.receive(msg, now), now)
+            if (last := info.resynced_at) is not None and now - last < RESYNC_GAP_US:
+                return out
             return out + self._resync(msg.node, "its counts were ignored", now)
         other = s.phase in SYNC_PHASES and msg.nonce != s.sync_nonce  # ignored: not this start's
         if msg.is_counts and not other:  # the node's return numbers start again, as at a RESUME
@@ -891,7 +898,7 @@ class SupervisorService:
         if self.core.session(node).phase is not Phase.IDLE:
             return []
         info = self.nodes[node]
-        info.resyncs += 1
+        info.resyncs, info.resynced_at = info.resyncs + 1, now
         log.warning("node %s: re-synced, %s", self.node_name(node), why)
         return self._carry_out(self.core.resync(node, now, secrets.randbits(16)), now)
 

@@ -19,7 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import initialize, rule
-from support import client_cases
+from support import c_session, client_cases
 from support.c_binding import (
     ERR_AMOUNT,
     ERR_PHASE,
@@ -466,11 +466,12 @@ def test_counts_move_tx_no_further_than_the_bound_in_c_as_in_python(repeat: bool
         resume_nonce=9 | 1 << 16 if repeat else 9, resume_from=4, resume_to=5,
     )  # fmt: skip
     counts = Debit.counts(1, 9, 4, (tx + 0x7FFF) & 0xFFFF)
+    w = COUNTER_BOUND - 1 if repeat else tx  # counts found behind (q 4, C 5) move no W
     after = W.SUPERVISOR.step(ST, s, counts, 0).session
-    assert after.tx == after.witness == COUNTER_BOUND - 1
+    assert (after.tx, after.witness) == (COUNTER_BOUND - 1, w)
     same(s, ST, counts, 0, table=W.SUPERVISOR)
     again = W.SUPERVISOR.step(ST, after, counts, 0).session
-    assert again.tx == again.witness == COUNTER_BOUND - 1
+    assert (again.tx, again.witness) == (COUNTER_BOUND - 1, w)
 
 
 @pytest.mark.parametrize("phase", [Phase.IDLE, Phase.WAIT_ACK])
@@ -940,10 +941,6 @@ def test_stale_admits_to_a_booked_c_node_end_quiet_with_the_c_supervisor() -> No
     stale_admits_end_quiet(window_supervisor(compiled_core), _CClientNode(BOOKED_AT_10))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="review rv2: honest counts over B past tx ignored for ever (liveness)",
-)
 def test_a_c_node_whose_sync_answers_were_lost_is_not_left_waiting_by_the_c_supervisor() -> None:
     answers_lost_then_stale_admits(window_supervisor(compiled_core), _CClientNode(BOOKED_AT_10))
 
@@ -985,12 +982,43 @@ def test_the_c_gateway_takes_rules_above_and_refuses_others(tmp_path: Path) -> N
     [Join(1, 0x33), Debit(1, 0x34, Debit.START, 69_999 & 0xFFFF, 0)],
     ids=["join", "resume found behind"],
 )
-def test_an_admission_lifting_tx_moves_w_in_c_as_in_python(frame: Join | Debit) -> None:
-    """tx 10, W 10, C 70,000: a JOIN or a RESUME found behind lifts tx to 10 + 2^16 and moves W
-    up to it in both cores (before, W stayed at 10 and C refused the next begin with
-    CANERGY_ERR_WINDOW, as Python did), and the next begin is the same in both."""
+def test_an_admission_lifting_tx_leaves_w_in_c_as_in_python(frame: Join | Debit) -> None:
+    """tx 10, W 10, C 70,000: a JOIN or a RESUME found behind lifts tx to 10 + 2^16 and leaves
+    W at 10 in both cores (the admission is no evidence of the node's ltx), and both refuse the
+    next begin as beyond the window (C: CANERGY_ERR_WINDOW) until a re-sync."""
     s = Session(1, tx=10, witness=10, returns_credited=70_000)
     admitted = W.SUPERVISOR.step(ST, s, frame, 0).session
-    assert admitted.witness == admitted.tx == 10 + (1 << 16)
+    assert (admitted.tx, admitted.witness) == (10 + (1 << 16), 10)
     same(s, ST, frame, 0, table=W.SUPERVISOR)
     same(admitted, ST, Begin(1_000_000), 0, table=W.SUPERVISOR)
+
+
+@pytest.mark.parametrize("nonce", [0x0707, 0x8707, 0])
+@pytest.mark.parametrize(
+    "s",
+    [
+        Session(1, tx=10 + (1 << 16), witness=10, returns_credited=70_001),
+        Session(1, tx=5, witness=5, phase=Phase.WAIT_ACK, reserved=1000, tries=1, deadline=9),
+        Session(1, tx=5, witness=5, phase=Phase.SYNCING, sync_nonce=0x51, deadline=9),
+        Session(1, tx=5, witness=5, phase=Phase.SYNC_BOOKS, sync_nonce=0x51, resync=True),
+    ],
+    ids=["idle", "open", "start", "re-sync"],
+)
+def test_a_resync_in_c_as_in_python(s: Session, nonce: int) -> None:
+    """``canergy_session_resync`` as ``witnessed.resync_session``: from IDLE the session waits
+    in SYNCING under the nonce with SYNC_CONFIRMED cleared, its timer a response timeout on,
+    SYNC(n, tx, C) sent; refused (CANERGY_ERR_PHASE, nothing changed) in any other phase."""
+    lib = c_session.library()
+    timing = c_session.timing_of(ST, "witnessed", lib)
+    c, step = c_session.to_c(s), c_session.SessionStep()
+    rc = lib.canergy_session_resync(
+        c_session.ref(c), c_session.ref(timing), nonce, 5, c_session.ref(step)
+    )
+    try:
+        py = W.resync_session(ST, s, nonce, 5)
+    except LocalProtocolError:
+        assert rc == ERR_PHASE and c_session.fields_of(c) == c_session.fields_of(s)
+        return
+    assert rc == OK and c_session.fields_of(c) == c_session.fields_of(py.session)
+    expected = c_session.sent_of(py.actions)
+    assert expected is not None and c_session.c_sent(step, expected) == expected

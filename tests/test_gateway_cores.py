@@ -28,12 +28,12 @@ from support.ccore_built import release
 from canergy.ccore.supervisor import CompiledBelow
 from canergy.codec import Codec
 from canergy.core import Action, Client, Persist, Send, Supervisor
-from canergy.core.errors import LocalProtocolError
+from canergy.core.errors import LocalProtocolError, WindowClosed
 from canergy.core.gateway import Below, Gateway, GatewayState, MakeDown, link_gap
 from canergy.core.state import ClientState, Session, SupervisorState
 from canergy.ledger import TreeLedger, ledger
 from canergy.live.gateway.state import gateway_json, load_gateway, save_gateway
-from canergy.messages import Intention, Join, ToClient, ToSupervisor
+from canergy.messages import Admit, Debit, Intention, Join, ToClient, ToSupervisor
 
 pytestmark = release
 
@@ -301,8 +301,9 @@ def test_either_role_withdraws_only_what_it_holds(core: str) -> None:
 @pytest.mark.parametrize("core", ["python", "c"])
 def test_a_gateways_node_admitted_into_cs_higher_block_gets_its_next_grant(core: str) -> None:
     """The gateway's supervisor role runs the same session rules: tx 10, W 10, C 70,000, a
-    JOIN lifts tx to 10 + 2^16 and moves W with it, and the next grant below begins (before,
-    "beyond the window" until the gateway restarted), on either core."""
+    JOIN lifts tx to 10 + 2^16 and leaves W at 10, so the next grant below is refused as beyond
+    the window; one re-sync of the node (its books and counts taken under the re-sync's nonce)
+    and the next grant begins, on either core."""
     lifted = Session(1, tx=10, witness=10, returns_credited=70_000)
     down = SupervisorState(5 * J, 5 * J, sessions=(lifted,))
     gw = Gateway(
@@ -313,5 +314,13 @@ def test_a_gateways_node_admitted_into_cs_higher_block_gets_its_next_grant(core:
         below=c_below() if core == "c" else None,
     )
     gw.down.receive(Join(1, 0x33), 0)
-    sent = [a.message for a in gw.down.begin(1, J, 1) if isinstance(a, Send)]
-    assert sent == [Intention(1, (11 + (1 << 16)) & 0xFFFF, 1000, 0)]
+    with pytest.raises(WindowClosed):
+        gw.down.begin(1, J, 1)
+    q = 70_001 & 0xFFFF  # the JOIN voided C + 1: the node's q
+    sync = [a.message for a in gw.down.resync(1, 1, 0x0707) if isinstance(a, Send)]
+    assert sync == [Admit(1, 0x0707, 10, q)]  # SYNC(n, tx, C): tx 10 + 2^16 on the wire
+    ltx = 10 + (1 << 16) + 64  # the node settled B past the ADMIT's k
+    gw.down.receive(Debit.books(1, 0x0707, None), 1)
+    gw.down.receive(Debit.counts(1, 0x0707, q, ltx & 0xFFFF), 1)
+    sent = [a.message for a in gw.down.begin(1, J, 2) if isinstance(a, Send)]
+    assert sent == [Intention(1, (ltx + 1) & 0xFFFF, 1000, 0)]

@@ -254,17 +254,30 @@ def test_no_grant_to_anyone_before_the_nodes_books_and_start_without_skips_one(c
 def test_an_earlier_starts_counts_are_counted_and_move_nothing(core: str) -> None:
     """Once the start is over, counts of another nonce whose ltx is not within B of tx (an
     earlier SYNC's, replayed: with a key they verify) are ignored by the rules and counted in
-    the node's ``counts_ignored``; the last start's counts again are answered, not counted."""
+    the node's ``counts_ignored``; the last start's counts again are answered, not counted. The
+    ignored counts move no tx, W, C or Gs; the node, which may be left answering a SYNC, is
+    re-synced (``resyncs``: a SYNC of its own, nobody else waits), at most once a second."""
     s = _restarted(core=core)
     for node in (1, 2):
         s.on_message(Debit.books(node, 0x1234, 0), 20)
         s.on_message(Debit.counts(node, 0x1234, 0, 0), 21)
-    before = s.core.session(1)
-    assert not s.on_message(Debit.counts(1, 0x0303, 0, 0x4000), 30)
-    assert s.core.session(1) == before and s.status()["nodes"]["1"]["counts_ignored"] == 1
-    again = s.on_message(Debit.counts(1, 0x1234, 0, 0), 31)
+    again = s.on_message(Debit.counts(1, 0x1234, 0, 0), 22)
     assert [m for m in again if isinstance(m, Admit)] == [Admit(1, 0x1234 ^ 0x8000, 0, 1)]
-    assert s.status()["nodes"]["1"]["counts_ignored"] == 1
+    before = s.core.session(1)
+    (sync,) = s.on_message(Debit.counts(1, 0x0303, 0, 0x4000), 30)
+    after = s.core.session(1)
+    assert isinstance(sync, Admit) and sync.nonce == after.sync_nonce and after.resync
+    kept = ("tx", "witness", "returns_credited", "delivered", "returned")
+    assert all(getattr(after, name) == getattr(before, name) for name in kept)
+    shown = s.status()["nodes"]["1"]
+    assert (shown["counts_ignored"], shown["resyncs"], s.waiting()) == (1, 1, ())
+    s.on_message(Debit.counts(1, sync.nonce, 0, 0), 31)  # its counts before its books: ignored
+    s.on_message(Debit.books(1, sync.nonce, 0), 32)
+    s.on_message(Debit.counts(1, sync.nonce, 1, 64), 33)
+    assert s.core.session(1).phase.name == "IDLE" and s.core.session(1).witness == 64
+    assert not s.on_message(Debit.counts(1, 0x0404, 0, 0x4000), 40)  # within a second
+    shown = s.status()["nodes"]["1"]
+    assert (shown["counts_ignored"], shown["resyncs"]) == (2, 1)
 
 
 def _story(core: str) -> tuple[list[object], list[dict[str, Any]], list[str]]:

@@ -35,6 +35,7 @@ from canergy.core import (
 from canergy.core import hardened as H
 from canergy.core import witnessed as W
 from canergy.core.actions import Resolved
+from canergy.core.errors import WindowClosed
 from canergy.core.inputs import (
     RESPONSE_TIMEOUT,
     RETURN_TIMEOUT,
@@ -86,7 +87,7 @@ S_WC = replace(S_OPEN, phase=Phase.WAIT_CONFIRM, decision=1)
 WROTE_OFF = replace(S_IDLE, delivered=2000 + TS)
 JOIN_7_5 = {"join_nonce": 0xBEEF, "join_tx": 7, "join_seq": 5}
 """JOIN(3, 0xBEEF) admitted at tx 7 with C 5 (the number after 4 voided)."""
-JOINED = replace(S_IDLE, returns_credited=5, witness=7, **JOIN_7_5)
+JOINED = replace(S_IDLE, returns_credited=5, **JOIN_7_5)
 START, DRAW = Debit.START, Debit.DRAW
 
 
@@ -145,7 +146,7 @@ SUP_CASES = [
         "a start behind the last debit held: written off and admitted afresh",
         S_WC,
         resume(3),
-        replace(resumed(WROTE_OFF, 3, 5), witness=7),  # admitted at tx: W moves up to it
+        resumed(WROTE_OFF, 3, 5),  # admitted at tx: W stays (no evidence of the node's ltx)
         (Resolved(3, 7, Outcome.WRITTEN_OFF, TS), Admitted(3, 7, 5), Send(Admit(3, 9, 7, 5))),
     ),
     Case(
@@ -159,7 +160,7 @@ SUP_CASES = [
         "join while idle: admitted with the next debit number voided",
         S_IDLE,
         Join(3, 0xBEEF),
-        JOINED,  # admitted at tx: W moves up to it; the admission remembered
+        JOINED,  # admitted at tx (W stays: the ADMIT may be lost); the admission remembered
         (Admitted(3, 7, 5), Send(Admit(3, 0xBEEF, 7, 5))),
     ),
     *[
@@ -167,7 +168,7 @@ SUP_CASES = [
             f"join while {s.phase.name}: written off, admitted with the next number voided",
             s,
             Join(3, 0xBEEF),
-            replace(WROTE_OFF, returns_credited=5, witness=7, **JOIN_7_5),
+            replace(WROTE_OFF, returns_credited=5, **JOIN_7_5),
             (
                 Resolved(3, 7, Outcome.WRITTEN_OFF, TS),
                 Admitted(3, 7, 5),
@@ -196,7 +197,7 @@ SUP_CASES = [
         replace(JOINED, tx=9, witness=8),
         Join(3, 0xBEF0),
         replace(
-            JOINED, tx=9, returns_credited=6, witness=9, join_nonce=0xBEF0, join_tx=9, join_seq=6
+            JOINED, tx=9, returns_credited=6, witness=8, join_nonce=0xBEF0, join_tx=9, join_seq=6
         ),
         (Admitted(3, 9, 6), Send(Admit(3, 0xBEF0, 9, 6))),
     ),
@@ -232,6 +233,22 @@ def counts(seq: int, ltx: int, nonce: int = 0x51) -> Debit:
 
 
 SUP_CASES += [
+    *[
+        Case(f"join while a start waits ({s.phase.name}): ignored", s, Join(3, 0xBEEF), s)
+        for s in (S_SYNC, S_BOOKS)
+    ],
+    *[
+        Case(
+            f"join while a re-sync waits ({s.phase.name}): the re-sync ends, admitted as in IDLE",
+            replace(s, resync=True),
+            Join(3, 0xBEEF),
+            replace(
+                s, phase=Phase.IDLE, sync_nonce=0, deadline=None, returns_credited=5, **JOIN_7_5
+            ),
+            (Admitted(3, 7, 5), Send(Admit(3, 0xBEEF, 7, 5))),
+        )
+        for s in (S_SYNC, S_BOOKS)
+    ],
     Case(
         "begin within the window: as the hardened rules",
         replace(S_IDLE, witness=7 - 64 + 1),
@@ -407,7 +424,7 @@ SUP_CASES += [
     Case("a RESUME while the counts are awaited is ignored", S_BOOKS, resume(4), S_BOOKS),
 ]
 SUP_IGNORED = (H_SUP_IGNORED - {(p, Debit) for p in W.SUPERVISOR.phases}) | {
-    *((p, e) for p in (SY, SB) for e in (Ack, Committed, Aborted, Return, Join)),
+    *((p, e) for p in (SY, SB) for e in (Ack, Committed, Aborted, Return)),
 }
 SUP_REFUSED = H_SUP_REFUSED | {(p, e) for p in (SY, SB) for e in (Begin, Decide)}
 SUP_STATES = {**H_SUP_STATES, SY: S_SYNC, SB: S_BOOKS}
@@ -1041,9 +1058,14 @@ def stale_admits_end_quiet(sup: Supervisor, node: Any) -> None:
     assert (delivered, queue) == (8, [])
     assert node.state.phase is Phase.IDLE and node.state.last_tx == 10 + 2 * SCENE.window
     assert sup.session(1).returns_credited == node.state.return_seq == 3 + 2
+    # the second counts were found behind (the first confirmation voided their q): tx moved to
+    # their ltx, W stayed at the first's (74), so the window is used up until a re-sync
+    with pytest.raises(WindowClosed):
+        sup.begin(1, 1000, 1)
+    _exchange(sup.resync(1, 1, nonce=0x0707), sup, node, 1)
     _exchange(sup.begin(1, 1000, 1), sup, node, 1)
     _exchange(sup.commit(1, 1), sup, node, 1)
-    assert node.state.usable == 1000 and node.state.last_tx == 10 + 2 * SCENE.window + 1
+    assert node.state.usable == 1000 and node.state.last_tx == 10 + 3 * SCENE.window + 1
 
 
 def test_stale_admits_to_a_booked_node_end_quiet() -> None:
@@ -1055,23 +1077,25 @@ def answers_lost_then_stale_admits(sup: Supervisor, node: Any) -> None:
     """Review rv2: three stale ADMITs (SC clear, nonces of no start answered last: late SYNC
     copies or keyed replays) reach a booked node, and its answers to the first two are lost
     (two frames destroyed). Each raised its ltx by B: the counts of the third carry 10 + 3B,
-    more than B past the supervisor's tx (10). The old rules took them (tx and W moved up,
-    ADMIT(n ^ SYNC_CONFIRMED) freed the node); ignoring them leaves the node answering for ever:
-    its re-sent counts stay ignored, and the supervisor's begins stop at W + B = 74, so tx never
-    comes within B of 202."""
+    more than B past the supervisor's tx (10), and are ignored (an earlier start's, for all the
+    supervisor can tell). Its caller re-syncs the node on ignored counts (``Supervisor.resync``,
+    as the live service does): SYNC(0x0707) is answered (ltx 10 + 4B), those counts are taken
+    under their own nonce (tx and W 266), the node is confirmed and grants go on. Before, the
+    node answered for ever: its re-sent counts stayed ignored, and the supervisor's begins
+    stopped at W + B = 74, so tx never came within B of 202."""
     node.receive(Admit(1, 1, 0, 0), 0)  # its books and counts lost
     node.receive(Admit(1, 2, 0, 0), 0)  # its books and counts lost
     _exchange(node.receive(Admit(1, 3, 0, 0), 0), sup, node, 0)  # its re-sends: the same
+    assert node.state.phase is Phase.SYNCING and sup.session(1).tx == 10  # ignored
+    _exchange(sup.resync(1, 1, nonce=0x0707), sup, node, 1)
     assert node.state.phase is Phase.IDLE, "the node still waits for its counts' confirmation"
+    assert sup.session(1).tx == sup.session(1).witness == node.state.last_tx == 10 + 4 * 64
+    assert sup.unconfirmed() == () and sup.session(1).phase is Phase.IDLE
     _exchange(sup.begin(1, 1000, 1), sup, node, 1)
     _exchange(sup.commit(1, 1), sup, node, 1)
     assert node.state.usable == 1000
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="review rv2: honest counts over B past tx ignored for ever (liveness)",
-)
 def test_a_node_whose_sync_answers_were_lost_is_not_left_waiting() -> None:
     sup = window_supervisor(Supervisor)
     node = Client(1, variant="witnessed", timing=SCENE, state=BOOKED_AT_10)
@@ -1115,8 +1139,10 @@ def stale_sync_after_taken_counts_and_a_begin(sup: Supervisor, node: Any) -> Non
     """What any fix of review rv2 must keep (it constrains the fix in view): a booked node's
     counts for a stale ADMIT are taken (tx and W 74), their confirmation lost; the supervisor
     begins 75 (its INTENTION not yet delivered) and a second stale ADMIT reaches the node.
-    Its counts must land at or above tx (75): they do (ltx += B: 138, taken, tx and W 138);
-    counts at 74 would be ignored for ever (below tx, under a nonce never answered)."""
+    Its counts must land at or above tx (75): they do (ltx += B: 138, taken, tx 138; found
+    behind, since the first confirmation voided their q, so W stays at 74 and the node is
+    admitted at 138: a re-sync opens the window); counts at 74 would be ignored (below tx,
+    under a nonce never answered)."""
     _, counts = _sends(node.receive(Admit(1, 1, 0, 0), 0))
     _sends(sup.receive(counts, 0))  # the confirmation is lost
     assert sup.session(1).tx == 74
@@ -1124,6 +1150,9 @@ def stale_sync_after_taken_counts_and_a_begin(sup: Supervisor, node: Any) -> Non
     _exchange(node.receive(Admit(1, 2, 0, 0), 1), sup, node, 1)
     assert node.state.phase is Phase.IDLE, "the node still waits for its counts' confirmation"
     assert sup.session(1).phase is Phase.IDLE and sup.session(1).tx == node.state.last_tx
+    with pytest.raises(WindowClosed):
+        sup.begin(1, 1000, 2)
+    _exchange(sup.resync(1, 2, nonce=0x0707), sup, node, 2)
     _exchange(sup.begin(1, 1000, 2), sup, node, 2)
     _exchange(sup.commit(1, 2), sup, node, 2)
     assert node.state.usable == 1000
@@ -1151,7 +1180,9 @@ def join_admitted_twice_then_a_supervisor_image(
 
     ``earlier_life``: the late JOIN is not a copy of the one admitted but the JOIN of the node's
     earlier start without books (another nonce: lost its books again, or, in firmware, a power
-    loss while joining draws a new nonce), delayed: it is admitted afresh, as a new life is."""
+    loss while joining draws a new nonce), delayed: it is admitted afresh, as a new life is, and
+    moved W up to tx with the rule before; now an admission leaves W where it is (0), so begins
+    stop at B and the SYNC settles past them."""
     timing = replace(SCENE, window=2)
     sup = core([1], 10**6, variant="witnessed", timing=timing)
     node = Client(1, variant="witnessed", timing=timing)
@@ -1201,12 +1232,6 @@ def test_a_join_admitted_twice_then_a_supervisor_image_creates_nothing(
     assert usable + held <= 10**6, f"Us {usable} + held by the node {held} uJ > 1 J"
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="not fixed: a late JOIN of the node's earlier life (another nonce) is admitted "
-    "afresh, as a new life is, and moves W past the ltx of the node that went on from the "
-    "later one; a supervisor image then lets a late INTENTION be taken as fresh (1 mJ)",
-)
 @pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])
 def test_a_late_join_of_an_earlier_life_then_a_supervisor_image_creates_nothing(
     core: type[Supervisor],
@@ -1222,7 +1247,8 @@ def resume_copy_after_a_draw_then_a_supervisor_image(core: type[Supervisor]) -> 
     afresh, W moved to 2, its ADMIT lost (the node's ltx 1). Begins up to W + B = 4, delayed;
     the supervisor put back to its image from right after the confirmation starts, the node
     settles to 3 answering its SYNC and takes the late INTENTION(4) as fresh, with its Gs:
-    the restored books never reserved it nor wrote off what it pays back. Returns the
+    the restored books never reserved it nor wrote off what it pays back (the rule before; now
+    the admission leaves W at 1, begins stop at 3 and the SYNC settles past them). Returns the
     restored supervisor's Us and what the node holds and spent, in uJ."""
     timing = replace(SCENE, window=2)
     sup = core([1], 10**6, variant="witnessed", timing=timing)
@@ -1263,12 +1289,6 @@ def resume_copy_after_a_draw_then_a_supervisor_image(core: type[Supervisor]) -> 
     return restored.state.usable, node.state.usable + node.state.spent
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="not fixed: a late copy of a RESUME answered before the node's draw is found "
-    "behind and admitted afresh, W past the node's ltx; a supervisor image then lets a late "
-    "INTENTION (and its Gs) be taken as fresh (3 mJ created)",
-)
 @pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])
 def test_a_late_resume_copy_after_a_draw_then_a_supervisor_image_creates_nothing(
     core: type[Supervisor],
@@ -1325,3 +1345,117 @@ def test_copies_of_a_join_keep_w_and_every_begin_within_the_nodes_window(
             ltx = node.state.last_tx
             assert sup.session(1).witness <= ltx, f"W {sup.session(1).witness} > ltx {ltx}"
             assert begun <= ltx + timing.window, f"began {begun} > ltx {ltx} + B"
+
+
+LIVES = (*MOVES, "books lost", "node restart", "late start frame", "resync")
+
+
+@settings(max_examples=150, deadline=None)
+@given(data=st.data())
+@pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])
+def test_starts_of_earlier_lives_and_resyncs_keep_w_within_the_nodes_ltx(
+    core: type[Supervisor], data: st.DataObject
+) -> None:
+    """W at most the node's ltx under any interleaving of the moves above and: the node loses
+    its books (a JOIN with a fresh nonce) or restarts (a RESUME with a fresh nonce), any JOIN or
+    RESUME it ever sent arrives again late, and the supervisor re-syncs the node (a fresh
+    nonce) whenever its session is idle. Once the node has books, W is at most its ltx and every
+    transaction begun at most its ltx + B. Before, an admission moved W up to tx: a late JOIN
+    of an earlier life, or a late RESUME found behind, took W past the ltx of a node that never
+    took that ADMIT."""
+    timing = replace(SCENE, window=2)
+    sup = core([1], 10**6, variant="witnessed", timing=timing)
+    node = Client(1, variant="witnessed", timing=timing)
+    nonces = iter(range(0x100, 0x8000))
+    flight: list[Any] = _sends(node.books_lost(next(nonces), 0))
+    starts: list[Any] = list(flight)  # every JOIN and RESUME the node sent
+    now, begun = 0, 0
+    for _ in range(data.draw(st.integers(10, 60), label="steps")):
+        move = data.draw(st.sampled_from(LIVES), label="move")
+        sent: list[object] = []
+        if move in ("deliver", "duplicate", "lose") and flight:
+            i = data.draw(st.integers(0, len(flight) - 1), label="frame")
+            frame = flight[i] if move == "duplicate" else flight.pop(i)
+            if move != "lose":
+                to_node = frame.TYPE.direction is Direction.TO_CLIENT
+                sent = node.receive(frame, now) if to_node else sup.receive(frame, now)
+        elif move == "late start frame":
+            sent = sup.receive(data.draw(st.sampled_from(starts), label="start frame"), now)
+        elif move == "books lost":
+            sent = node.books_lost(next(nonces), now)
+        elif move == "node restart" and node.state.phase in (Phase.IDLE, Phase.AWAIT_COMMAND):
+            sent = node.power_loss(now, next(nonces))
+        elif move == "resync" and sup.session(1).phase is Phase.IDLE:
+            sent = sup.resync(1, now, next(nonces))
+        elif move == "begin":
+            try:
+                sent = sup.begin(1, 1000, now)
+                begun = sup.session(1).tx
+            except LocalProtocolError:
+                pass
+        elif move == "commit" and sup.session(1).phase is Phase.ACKED:
+            sent = sup.commit(1, now)
+        elif move == "supervisor timer" and (due := sup.get_timer()) is not None:
+            now = max(now, due)
+            sent = sup.handle_timer(now)
+        elif move == "node timer" and (due := node.get_timer()) is not None:
+            now = max(now, due)
+            sent = node.handle_timer(now)
+        frames = _sends(sent)
+        flight += frames
+        starts += [m for m in frames if isinstance(m, Join) or getattr(m, "is_resume", False)]
+        if node.state.phase in (Phase.IDLE, Phase.AWAIT_COMMAND):
+            ltx = node.state.last_tx
+            assert sup.session(1).witness <= ltx, f"W {sup.session(1).witness} > ltx {ltx}"
+            assert begun <= ltx + timing.window, f"began {begun} > ltx {ltx} + B"
+
+
+def late_counts_of_a_life_before_a_join_then_a_supervisor_image(
+    core: type[Supervisor],
+) -> tuple[int, int]:
+    """Found by the hypothesis test above: counts the node sent before it lost its books arrive
+    after its new life was admitted. The node takes a copy of its JOIN's ADMIT for a SYNC and
+    answers it (ltx 0 -> B = 2, the counts delayed), then loses its books: JOIN(8) is admitted at
+    tx 0 (C 2) and the node settles at 0. The late counts (q 1, ltx 2; another nonce, within B of
+    tx) are taken and found behind: tx moves to 2, and with the rule before W too, past the
+    node's ltx 0; begins then ran to W + B = 4, delayed, and a supervisor image from before them,
+    started, took the node's SYNC answer settled only to 2: the late INTENTIONs 3 and 4 were
+    fresh to the node, which committed them by its timeout. Counts found behind move no W now
+    (``witnessed.witness_of``): the window is used up at tx 2 and nothing begins. Returns the
+    restored supervisor's Us and what the node holds, in uJ."""
+    timing = replace(SCENE, window=2)
+    sup = core([1], 10**6, variant="witnessed", timing=timing)
+    node = Client(1, variant="witnessed", timing=timing)
+    (admit,) = _sends(sup.receive(_sends(node.books_lost(7, 0))[0], 0))
+    node.receive(admit, 0)
+    _, counts = _sends(node.receive(admit, 0))  # a copy taken for a SYNC; its answer delayed
+    _exchange(node.books_lost(8, 0), sup, node, 0)
+    assert node.state.phase is Phase.IDLE and node.state.last_tx == 0
+    image = sup.state  # the state file as written after the second admission
+    sup.receive(counts, 0)  # late; its answer lost
+    assert sup.session(1).witness <= node.state.last_tx
+    now, late = 0, []
+    while sup.session(1).tx < sup.session(1).witness + timing.window:
+        late += [m for m in _sends(sup.begin(1, 1000, now)) if isinstance(m, Intention)]
+        while (due := sup.get_timer()) is not None:  # every frame lost: closed by its timers
+            now = max(now, due)
+            sup.handle_timer(now)
+    restored = core([1], 0, variant="witnessed", timing=timing, state=image)
+    restored.power_loss(now, nonce=0x55)
+    _exchange(restored.handle_timer(now), restored, node, now)
+    assert restored.unconfirmed() == () and node.state.phase is Phase.IDLE
+    for intention in late:  # the discarded history's, delivered late
+        for reply in _sends(node.receive(intention, now)):
+            restored.receive(reply, now)
+    while (due := node.get_timer()) is not None:
+        now = max(now, due)
+        node.handle_timer(now)
+    return restored.state.usable, node.state.usable
+
+
+@pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])
+def test_late_counts_of_a_life_before_a_join_then_a_supervisor_image_create_nothing(
+    core: type[Supervisor],
+) -> None:
+    usable, held = late_counts_of_a_life_before_a_join_then_a_supervisor_image(core)
+    assert usable + held <= 10**6, f"Us {usable} + held by the node {held} uJ > 1 J"

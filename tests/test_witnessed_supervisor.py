@@ -12,10 +12,12 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from canergy.auth.frames import FrameAuth, Layout
+from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.check import Bounds, check
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
 from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing
 from canergy.core import witnessed as W
+from canergy.core.errors import WindowClosed
 from canergy.core.inputs import RESPONSE_TIMEOUT, Begin, PowerLoss
 from canergy.core.state import ClientState, Phase, Session, SupervisorState
 from canergy.core.steps import ClientStep, SessionStep
@@ -328,25 +330,58 @@ LIFTED = Session(1, tx=10, witness=10, returns_credited=70_000)
     [Join(1, 0x33), Debit(1, 0x34, Debit.START, 69_999 & 0xFFFF, 0)],
     ids=["join", "resume found behind"],
 )
-def test_an_admission_lifting_tx_moves_the_window_with_it(frame: Join | Debit) -> None:
-    """A JOIN, or a RESUME found behind, lifts tx into C's block (10 + 2^16) and the node
-    settles at it: W moves up to tx, and the next transaction begins. Before, W stayed at 10
-    and every begin was refused as beyond the window until a supervisor start."""
+def test_an_admission_lifting_tx_leaves_w_and_a_resync_opens_the_window(
+    frame: Join | Debit,
+) -> None:
+    """A JOIN, or a RESUME found behind, lifts tx into C's block (10 + 2^16); W stays at 10 (the
+    admission is no evidence: its ADMIT may be lost, the frame a late one of an earlier start),
+    so the next begin is refused as beyond the window (``WindowClosed``). A re-sync of the node
+    takes its counts under the re-sync's nonce: tx and W move to the ltx the node settled, and
+    the next transaction begins."""
     admitted = W.SUPERVISOR.step(TIMING, LIFTED, frame, 0).session
-    assert admitted.tx == admitted.witness == 10 + (1 << 16)
-    begun = W.SUPERVISOR.step(TIMING, admitted, Begin(1_000_000), 0).session
-    assert begun.tx == admitted.tx + 1
+    assert (admitted.tx, admitted.witness) == (10 + (1 << 16), 10)
+    with pytest.raises(WindowClosed, match="beyond the window"):
+        W.SUPERVISOR.step(TIMING, admitted, Begin(1_000_000), 0)
+    syncing = W.resync_session(TIMING, admitted, 0x8707, 5)  # SYNC_CONFIRMED cleared
+    assert syncing.session.phase is Phase.SYNCING and syncing.session.resync
+    assert syncing.actions == (Send(Admit(1, 0x0707, 10, 70_001 & 0xFFFF)),)
+    ltx = admitted.tx + TIMING.window  # the node settled B past the ADMIT's k
+    books = W.SUPERVISOR.step(TIMING, syncing.session, Debit.books(1, 0x0707, None), 5).session
+    q = 70_001 & 0xFFFF
+    done = W.SUPERVISOR.step(TIMING, books, Debit.counts(1, 0x0707, q, ltx & 0xFFFF), 5)
+    assert (done.session.phase, done.session.tx, done.session.witness) == (Phase.IDLE, ltx, ltx)
+    assert not done.session.resync
+    assert _sent(done) == [Admit(1, 0x0707 ^ SYNC_CONFIRMED, ltx & 0xFFFF, 70_002 & 0xFFFF)]
+    begun = W.SUPERVISOR.step(TIMING, done.session, Begin(1_000_000), 0).session
+    assert begun.tx == ltx + 1
 
 
-def test_a_node_that_lost_its_books_gets_its_next_grant_after_a_lifting_join() -> None:
-    """End to end: the node loses its books (JOIN), is admitted at tx = 10 + 2^16, and takes
-    and commits the next grant."""
-    state = SupervisorState(5_000_000, 5_000_000, sessions=(LIFTED,))
-    sup = Supervisor([1], 5_000_000, variant="witnessed", timing=TIMING, state=state)
+@pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])
+def test_a_node_that_lost_its_books_gets_its_next_grant_after_a_lifting_join_and_a_resync(
+    core: type[Supervisor],
+) -> None:
+    """End to end, both cores: the node loses its books (JOIN), is admitted at tx = 10 + 2^16
+    with W left at 10; the next begin is refused as beyond the window; one re-sync (SYNC, the
+    node's books and counts, the confirmation) and the node takes and commits the next grant.
+    Another node meanwhile is not held up by the re-sync (``unconfirmed`` leaves it out)."""
+    state = SupervisorState(5_000_000, 5_000_000, sessions=(LIFTED, Session(2)))
+    sup = core([1, 2], 5_000_000, variant="witnessed", timing=TIMING, state=state)
     node = Client(1, variant="witnessed", timing=TIMING)
-    _exchange(node.books_lost(0x33, 0), sup, {1: node}, 0)
+    other = Client(2, variant="witnessed", timing=TIMING, state=ClientState(2))
+    nodes_ = {1: node, 2: other}
+    _exchange(node.books_lost(0x33, 0), sup, nodes_, 0)
     assert node.state.phase is Phase.IDLE and sup.state.sessions[0].tx == 10 + (1 << 16)
-    _exchange(sup.begin(1, 1_000_000, 1), sup, {1: node}, 1)
-    _exchange(sup.commit(1, 2), sup, {1: node}, 2)
-    assert sup.state.sessions[0].phase is Phase.IDLE
-    assert sup.state.sessions[0].delivered == 1_000_000 and sup.state.usable == 4_000_000
+    with pytest.raises(WindowClosed):
+        sup.begin(1, 1_000_000, 1)
+    sync = sup.resync(1, 1, nonce=0x0707)
+    assert sup.unconfirmed() == () and sup.session(1).phase is Phase.SYNCING
+    _exchange(sup.begin(2, 1_000_000, 1), sup, nodes_, 1)  # node 2 does not wait for node 1
+    _exchange(sup.commit(2, 1), sup, nodes_, 1)
+    _exchange(sync, sup, nodes_, 1)
+    assert sup.session(1).phase is Phase.IDLE and node.state.phase is Phase.IDLE
+    assert sup.session(1).witness == sup.session(1).tx == 10 + (1 << 16) + TIMING.window
+    assert node.state.last_tx == 10 + TIMING.window  # the node counts from the ADMIT's 16 bits
+    _exchange(sup.begin(1, 1_000_000, 2), sup, nodes_, 2)
+    _exchange(sup.commit(1, 2), sup, nodes_, 2)
+    assert sup.state.sessions[0].phase is Phase.IDLE and node.state.usable == 1_000_000
+    assert sup.state.sessions[0].delivered == 1_000_000 and sup.state.usable == 3_000_000

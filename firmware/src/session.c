@@ -236,16 +236,14 @@ static void confirmation(const struct canergy_session *s, uint16_t nonce,
 }
 
 /* A node admitted without books (JOIN, or a RESUME found behind; witnessed.admitted_afresh):
- * the hardened admission, and W moved up to the lifted tx. The node takes k = tx as settled, so
- * it holds nothing between the old W and tx; left below, a lift into C's higher 2^16 block put
- * tx 2^16 past W + B and every begin was refused until a supervisor start. */
+ * the hardened admission; W stays where it is. The admission is no evidence of what the node
+ * holds (its ADMIT may be lost, the JOIN or RESUME a late frame of an earlier start): W moved up
+ * to tx let begins run past the node's ltx + B, and a supervisor image from before them created
+ * energy. A lift past W + B closes the window until a re-sync (canergy_session_resync). */
 static void admit_afresh(struct canergy_session *s, const struct canergy_msg *m,
                          struct canergy_session_step *step)
 {
     admit(s, m, step);
-    if ((int64_t)s->tx > (int64_t)s->witness) {
-        s->witness = (int32_t)s->tx; /* a transaction number: below CANERGY_COUNTER_BOUND */
-    }
 }
 
 /* JOIN(n) (witnessed.admit): the admission afresh, and the number after C voided as at a
@@ -327,7 +325,7 @@ static void confirm(struct canergy_session *s, const struct canergy_msg *m,
         if (settled > (int64_t)s->tx) {
             s->tx = (uint32_t)settled;
         }
-        if (settled > s->witness) {
+        if (settled > s->witness && !behind) { /* witnessed.witness_of: not a voided record's */
             s->witness = (int32_t)settled;
         }
     }
@@ -410,6 +408,7 @@ static void take_counts(struct canergy_session *s, const struct canergy_msg *m,
     s->phase = CANERGY_S_IDLE;
     s->sync_nonce = 0U;
     s->deadline = CANERGY_NEVER;
+    s->resync = 0U;
     s->witness = (int32_t)settled_of(s, m->amount_mj);
     confirm(s, m, step);
 }
@@ -418,6 +417,14 @@ static void take_counts(struct canergy_session *s, const struct canergy_msg *m,
 static void syncing_msg(struct canergy_session *s, const struct canergy_msg *m,
                         struct canergy_session_step *step)
 {
+    if (m->type == CANERGY_JOIN && s->resync != 0U) { /* witnessed.join_while_syncing */
+        s->phase = CANERGY_S_IDLE; /* the re-sync ends; the JOIN is taken as in IDLE */
+        s->sync_nonce = 0U;
+        s->deadline = CANERGY_NEVER;
+        s->resync = 0U;
+        admit_voiding(s, m, step);
+        return;
+    }
     if (m->type != CANERGY_DEBIT) {
         return; /* a JOIN, a RETURN, an answer: no cell while a start waits */
     }
@@ -562,10 +569,32 @@ void canergy_session_start(struct canergy_session *s, const struct canergy_sessi
         s->phase = CANERGY_S_SYNCING;
         s->sync_nonce = (uint16_t)(nonce & ~CANERGY_SYNC_CONFIRMED); /* never a confirmation */
         s->deadline = now;
+        s->resync = 0U;
         return;
     }
 #endif
     (void)t;
     (void)nonce;
     canergy_session_restart(s, now, step);
+}
+
+int canergy_session_resync(struct canergy_session *s, const struct canergy_session_timing *t,
+                           uint16_t nonce, uint64_t now, struct canergy_session_step *step)
+{
+    step_clear(step);
+#ifdef CANERGY_WITNESSED
+    if (rules_witnessed(t->rules) && s->phase == CANERGY_S_IDLE) {
+        s->phase = CANERGY_S_SYNCING;
+        s->sync_nonce = (uint16_t)(nonce & ~CANERGY_SYNC_CONFIRMED); /* never a confirmation */
+        s->deadline = serial_after(now, t->response_timeout_us);
+        s->resync = 1U;
+        send_sync(s, step);
+        return CANERGY_OK;
+    }
+#endif
+    (void)s;
+    (void)t;
+    (void)nonce;
+    (void)now;
+    return CANERGY_ERR_PHASE;
 }

@@ -281,6 +281,23 @@ void canergy_supervisor_restart(struct canergy_supervisor *sup, uint64_t now)
     canergy_supervisor_start(sup, 0U, now, &out);
 }
 
+int canergy_supervisor_resync(struct canergy_supervisor *sup, uint8_t node, uint16_t nonce,
+                              uint64_t now, struct canergy_supervisor_out *out)
+{
+    out_clear(out);
+    struct canergy_session *s = session_of(sup, node);
+    if (s == NULL) {
+        return CANERGY_ERR_ARGUMENT;
+    }
+    struct canergy_session next = *s;
+    struct canergy_session_step step;
+    const int rc = canergy_session_resync(&next, &sup->timing, nonce, now, &step);
+    if (rc == CANERGY_OK) {
+        apply(sup, s, &next, &step, NULL, out);
+    }
+    return rc;
+}
+
 int canergy_supervisor_start_without(struct canergy_supervisor *sup, uint8_t node)
 {
     if (session_of(sup, node) == NULL) {
@@ -297,7 +314,7 @@ uint8_t canergy_supervisor_unconfirmed(const struct canergy_supervisor *sup,
     for (uint8_t i = 0U; i < sup->count; i++) {
         const struct canergy_session *s = &sup->sessions[i];
         const bool without = (sup->start_without[s->node >> 5] >> (s->node & 31U) & 1UL) != 0U;
-        if (canergy_session_syncing(s) && !without) {
+        if (canergy_session_syncing(s) && s->resync == 0U && !without) {
             if (nodes != NULL) {
                 nodes[n] = s->node;
             }

@@ -58,6 +58,7 @@ def to_c(s: Session) -> CSession:
         phase=int(s.phase),
         decision=int(s.decision),
         tries=s.tries,
+        resync=int(s.resync),
     )
 
 
@@ -66,7 +67,7 @@ def fields_of(s: Session | CSession) -> dict[str, int]:
         return fields_of(to_c(s))
     names = ("delivered_uj", "returned_uj", "deadline", "tx", "returns_credited", "reserved_uj")
     names += ("phase", "decision", "tries", "resume_from", "resume_to", "resume_nonce")
-    names += ("witness", "sync_nonce", "join_tx", "join_seq", "join_nonce")
+    names += ("witness", "sync_nonce", "join_tx", "join_seq", "join_nonce", "resync")
     return {n: int(getattr(s, n)) for n in names}
 
 

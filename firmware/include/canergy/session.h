@@ -79,6 +79,8 @@ struct canergy_session {
     uint8_t phase;             /* enum canergy_session_phase */
     uint8_t decision;          /* enum canergy_decision */
     uint8_t tries;             /* sends of the frame awaiting an answer (volatile) */
+    uint8_t resync;            /* witnessed: 1 while the SYNC is a re-sync of this session alone
+                                * (canergy_session_resync; volatile): no other waits for it */
 };
 
 struct canergy_session_step {
@@ -129,6 +131,15 @@ void canergy_session_restart(struct canergy_session *s, uint64_t now,
  * SYNC(nonce, tx, C) due at once (at the next timer call); hardened rules:
  * canergy_session_restart. */
 void canergy_session_start(struct canergy_session *s, const struct canergy_session_timing *t,
+                           uint16_t nonce, uint64_t now, struct canergy_session_step *step);
+
+/* Witnessed rules (witnessed.resync_session): a re-sync of this node alone, from IDLE:
+ * SYNC(nonce, tx, C) sent now and every response timeout after, its books then its counts
+ * taken as at a start (tx = max(tx, ltx), W = ltx, C voided, ADMIT(nonce ^
+ * CANERGY_SYNC_CONFIRMED)); nothing written off, no other session waits for it; a JOIN
+ * meanwhile ends it and is taken as in IDLE. For a node whose window is used up (CANERGY_ERR_WINDOW) or whose counts are ignored.
+ * CANERGY_ERR_PHASE outside IDLE or under other rules. */
+int canergy_session_resync(struct canergy_session *s, const struct canergy_session_timing *t,
                            uint16_t nonce, uint64_t now, struct canergy_session_step *step);
 
 /* True while a start waits for this node's books (SYNCING or SYNC_BOOKS). */

@@ -136,13 +136,21 @@ void canergy_supervisor_restart(struct canergy_supervisor *sup, uint64_t now);
 void canergy_supervisor_start(struct canergy_supervisor *sup, uint16_t nonce, uint64_t now,
                               struct canergy_supervisor_out *out);
 
+/* Witnessed: re-sync node alone (canergy_session_resync) with a fresh nonce: SYNC(nonce) in
+ * *out; no grant to other nodes waits for it. For a node refused with CANERGY_ERR_WINDOW, or
+ * whose counts the rules ignore. CANERGY_ERR_ARGUMENT for a node not managed here,
+ * CANERGY_ERR_PHASE unless its session is IDLE (or under the hardened rules). */
+int canergy_supervisor_resync(struct canergy_supervisor *sup, uint8_t node, uint16_t nonce,
+                              uint64_t now, struct canergy_supervisor_out *out);
+
 /* Witnessed: a start no longer waits for node (the operator's risk: the node may hold energy
  * the restored books count in Us again, and Us grants it to others); its own session still
  * waits for its books. CANERGY_ERR_ARGUMENT for a node not managed here. */
 int canergy_supervisor_start_without(struct canergy_supervisor *sup, uint8_t node);
 
 /* The nodes a start still waits for (ascending, into nodes[]; NULL: only count them), those
- * set with canergy_supervisor_start_without left out: their number. */
+ * set with canergy_supervisor_start_without and those in a re-sync of their own left out:
+ * their number. */
 uint8_t canergy_supervisor_unconfirmed(const struct canergy_supervisor *sup,
                                        uint8_t nodes[CANERGY_SUPERVISOR_NODES]);
 

@@ -13,6 +13,7 @@
 #include "gateway_port.h"
 #include "keyfile.h"
 #include "socketcan.h"
+#include "system.h"
 
 #include <stdio.h>
 #include <string.h>
@@ -353,9 +354,14 @@ void gw_top_up(struct gateway_port *g, uint64_t now)
         const uint32_t amount = canergy_gateway_top_up(g->opt.target_uj, g->opt.min_grant_uj,
                                                        b->level_uj, g->gw.down.usable_uj);
         struct canergy_supervisor_out out;
-        if (amount != 0U &&
-            canergy_gateway_begin(&g->gw, s->node, amount, now, &out) == CANERGY_OK) {
+        const int rc = amount != 0U ? canergy_gateway_begin(&g->gw, s->node, amount, now, &out)
+                                    : CANERGY_ERR_AMOUNT;
+        if (rc == CANERGY_OK) {
             b->fresh = 0;
+            gw_down_out(g, &out, now);
+        } else if (rc == CANERGY_ERR_WINDOW && /* witnessed below: re-sync that node alone */
+                   canergy_supervisor_resync(&g->gw.down, s->node, port_random16(), now, &out) ==
+                       CANERGY_OK) {
             gw_down_out(g, &out, now);
         }
     }

@@ -200,6 +200,13 @@ class CompiledBuses:
             bus_of(node), self._parts[bus_of(node)].abort(node_of(node), now)
         )
 
+    def resync(self, node: int, now: int, nonce: int) -> list[Action]:
+        """Re-sync one node (its session key) on its bus's supervisor."""
+        self._check(node)
+        return self._keyed_actions(
+            bus_of(node), self._parts[bus_of(node)].resync(node_of(node), now, nonce)
+        )
+
     def receive(self, msg: ToSupervisor, now: int) -> list[Action]:
         """Feed a decoded client message (node: its session key); unknown nodes are ignored."""
         if msg.node not in self._managed:

@@ -105,7 +105,7 @@ class _Binding:
             "struct canergy_session",
             ("delivered_uj", "returned_uj", "deadline", "tx", "returns_credited", "reserved_uj",
              "resume_from", "resume_to", "resume_nonce", "witness", "join_tx", "join_seq",
-             "join_nonce", "sync_nonce", "node", "phase", "decision", "tries"),
+             "join_nonce", "sync_nonce", "node", "phase", "decision", "tries", "resync"),
         )  # fmt: skip
         self.event, _ = _reader(
             ffi, "struct canergy_supervisor_event", ("tx", "amount_uj", "node", "resolved", "flags")
@@ -349,6 +349,7 @@ class CompiledSupervisor:
             c.resume_nonce, c.witness, c.sync_nonce = s.resume_nonce, s.witness, s.sync_nonce
             c.join_tx, c.join_seq, c.join_nonce = s.join_tx, s.join_seq, s.join_nonce
             c.deadline = b.never if s.deadline is None else s.deadline
+            c.resync = s.resync
             self._sessions[i] = self._read(i)
         self._timer_known = False
 
@@ -357,7 +358,7 @@ class CompiledSupervisor:
         (
             delivered, returned, deadline, tx, credited, reserved,
             resume_from, resume_to, resume_nonce, witness, join_tx, join_seq, join_nonce,
-            sync_nonce, node, phase, decision, tries,
+            sync_nonce, node, phase, decision, tries, resync,
         ) = b.session.unpack_from(self._sup_bytes, b.sessions_at + i * b.session_size)  # fmt: skip
         resume_from = resume_to - (resume_to - resume_from) % 2**32  # Python's: below resume_to
         return Session(
@@ -379,6 +380,7 @@ class CompiledSupervisor:
             join_nonce,
             join_tx,
             join_seq,
+            bool(resync),
         )
 
     # -- requests --------------------------------------------------------------------------
@@ -727,6 +729,17 @@ class CompiledSupervisor:
         self._timer_known = False  # deadlines may move
         self._lib.canergy_supervisor_start(self._sup, nonce, now, self._out)
         self._sessions = [self._read(i) for i in range(len(self._sessions))]
+
+    def resync(self, node: int, now: int, nonce: int) -> list[Action]:
+        """``core.Supervisor.resync``: re-sync node ``node`` alone, SYNC(``nonce``) sent."""
+        self._managed(node)
+        if not self.variant.lifts_tx:
+            raise LocalProtocolError(f"the {self.variant.name} rules have no re-sync")
+        self._timer_known = False  # deadlines may move
+        rc = self._lib.canergy_supervisor_resync(self._sup, node, nonce, now, self._out)
+        if rc == self._lib.CANERGY_ERR_PHASE:
+            witnessed.resync_session(self.timing, self.session(node), nonce, now)  # its words
+        return self._checked(rc, node, "re-sync")
 
     # -- internals -------------------------------------------------------------------------
     def _managed(self, node: int) -> None:

@@ -58,9 +58,11 @@ class Session:
     number 0), so that a re-sent copy gets the same answer; ``witness`` is W, the highest
     transaction the node has shown it persisted (a transaction begins only within
     ``Timing.window`` of it), and ``sync_nonce`` the nonce of the SYNC this start sent (both
-    volatile: every start sets them again); ``join_*`` is the last JOIN admitted (its nonce and
-    the k and C its ADMIT carried; ``join_seq`` 0: none yet, as every admission voids a number
-    above 0), so that a copy of it gets the same ADMIT rather than a second admission.
+    volatile: every start sets them again); ``resync`` (volatile): the SYNC is a re-sync of this
+    one session (``witnessed.resync_session``), which no other session waits for; ``join_*`` is the
+    last JOIN admitted (its nonce and the k and C its ADMIT carried; ``join_seq`` 0: none yet,
+    as every admission voids a number above 0), so that a copy of it gets the same ADMIT
+    rather than a second admission.
     """
 
     node: int
@@ -81,6 +83,7 @@ class Session:
     join_nonce: int = 0
     join_tx: int = 0
     join_seq: int = 0
+    resync: bool = False
 
 
 @fast_init

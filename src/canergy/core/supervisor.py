@@ -11,6 +11,7 @@ import heapq
 from collections.abc import Iterable
 from typing import Protocol
 
+from canergy.core import witnessed
 from canergy.core.actions import Action, Persist
 from canergy.core.common import check_counters
 from canergy.core.errors import LocalProtocolError
@@ -42,9 +43,14 @@ def apply_session(st: SupervisorState, i: int, step: SessionStep) -> SupervisorS
 
 def unconfirmed(st: SupervisorState, without: Iterable[int] = ()) -> tuple[int, ...]:
     """The nodes whose books this start still waits for (witnessed rules), but those in
-    ``without``: while any is left the supervisor grants nothing to anyone."""
+    ``without`` and those in a re-sync of their own (``Session.resync``): while any is left the
+    supervisor grants nothing to anyone."""
     skip = frozenset(without)
-    return tuple(s.node for s in st.sessions if s.phase in SYNC_PHASES and s.node not in skip)
+    return tuple(
+        s.node
+        for s in st.sessions
+        if s.phase in SYNC_PHASES and not s.resync and s.node not in skip
+    )
 
 
 def inject_into(st: SupervisorState, amount: int) -> SupervisorState:
@@ -89,6 +95,10 @@ class SupervisorCore(Protocol):
     def inject(self, amount: int) -> None: ...
     def power_loss(self, now: int, nonce: int = 0) -> None:
         """A start from the persistent record; ``nonce``: the SYNC's (witnessed rules)."""
+        ...
+
+    def resync(self, node: int, now: int, nonce: int) -> list[Action]:
+        """Witnessed rules: re-sync one idle node (``witnessed.resync_session``)."""
         ...
 
     def is_quiescent(self) -> bool: ...
@@ -223,6 +233,17 @@ class Supervisor:
         event = PowerLoss(nonce)
         for s in self.state.sessions:
             self._step(s, event, now)
+
+    def resync(self, node: int, now: int, nonce: int) -> list[Action]:
+        """Witnessed rules: re-sync node ``node`` alone (``witnessed.resync_session``:
+        SYNC(``nonce``) sent, its books and counts taken as at a start; no other node waits for
+        it), e.g. when a begin is refused as beyond its window (``WindowClosed``). ``nonce``:
+        fresh, random. Refused (``LocalProtocolError``) under other rules and unless the
+        session is IDLE."""
+        s = self._session_or_error(node)
+        if not self.variant.lifts_tx:  # rules without SYNC
+            raise LocalProtocolError(f"the {self.variant.name} rules have no re-sync")
+        return self._apply(s, witnessed.resync_session(self.timing, s, nonce, now))
 
     def is_quiescent(self) -> bool:
         return all(s.phase is Phase.IDLE for s in self.state.sessions)

@@ -24,7 +24,7 @@ from canergy.core.common import (
     start_return,
     wire_tx,
 )
-from canergy.core.errors import LocalProtocolError
+from canergy.core.errors import LocalProtocolError, WindowClosed
 from canergy.core.inputs import (
     RETURN_TIMEOUT,
     Begin,
@@ -75,14 +75,20 @@ SYNCING, SYNC_BOOKS = Phase.SYNCING, Phase.SYNC_BOOKS
 def begin(t: Timing, s: Session, event: Begin, now: int) -> SessionStep:
     """Begin k = tx + 1 only within the window: k <= W + B (W: the highest transaction the
     node has shown it persisted), so every transaction of a discarded history is at most the
-    node's ltx + B."""
-    if s.tx + 1 > s.witness + t.window:
-        raise LocalProtocolError(
+    node's ltx + B. Refused otherwise (``WindowClosed``): a re-sync of the node
+    (``resync_session``) opens the window again."""
+    if window_closed(t, s):
+        raise WindowClosed(
             f"node {s.node}: transaction {s.tx + 1} is beyond the window: the node has shown "
             f"transaction {s.witness} persisted, and no transaction begins more than "
-            f"{t.window} past it"
+            f"{t.window} past it (a re-sync of the node opens it again)"
         )
     return common.begin(t, s, event, now)
+
+
+def window_closed(t: Timing, s: Session) -> bool:
+    """The next transaction is beyond the window: tx + 1 > W + B."""
+    return s.tx + 1 > s.witness + t.window
 
 
 def _witnessed(s: Session, k: int, step: SessionStep) -> SessionStep:
@@ -174,13 +180,22 @@ def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
             step = SessionStep(s, (*step.actions, *credited), step.credit + amount)
     s = step.session
     if msg.is_counts:  # the node settled up to its ltx: no transaction begins at or below it
-        settled = ltx_of(s, msg)
-        s = evolve(s, tx=max(s.tx, settled), witness=max(s.witness, settled))
+        settled = ltx_of(s, msg)  # W only for counts of the books held (below: ``witness_of``)
+        s = evolve(s, tx=max(s.tx, settled), witness=witness_of(s, settled, behind))
     void = capped(max(s.returns_credited, seq) + 1)  # any debit in flight from an old history
     s = evolve(s, returns_credited=void, resume_nonce=key, resume_from=seq, resume_to=void)
     admitted = (Admitted(s.node, s.tx, void),) if behind else ()
     answer = Send(_confirmation(s, nonce))
     return SessionStep(s, (*step.actions, *admitted, answer), step.credit)
+
+
+def witness_of(s: Session, settled: int, behind: bool) -> int:
+    """W after counts outside a start showing ltx ``settled``: moved up to it, but not by counts
+    found behind (q below C): they come from a record the supervisor has since voided past (the
+    node's life before a JOIN, or before a later start's confirmation), whose ltx the node may
+    no longer hold (a JOIN's admission sets it to k, below a SYNC it answered before). A start's
+    own counts (``take_counts``) set W first, under its nonce."""
+    return s.witness if behind else max(s.witness, settled)
 
 
 def _repeat(s: Session, nonce: int) -> SessionStep:
@@ -222,13 +237,13 @@ def answered(s: Session, nonce: int, seq: int) -> bool:
 
 def admitted_afresh(s: Session) -> SessionStep:
     """A node admitted without books (a JOIN, or a RESUME found behind): the hardened write-off
-    and lift, and W moved up to the lifted tx. The node takes the answer's k = tx as settled,
-    so it holds no transaction between the old W and tx; W left below, a lift into C's higher
-    2^16 block put tx 2^16 past W + B and every begin was refused until a supervisor start."""
-    step = h.write_off_and_lift(s)
-    if step.session.tx <= step.session.witness:
-        return step
-    return SessionStep(evolve(step.session, witness=step.session.tx), step.actions, step.credit)
+    and lift; W stays where it is. The admission is no evidence of what the node holds: its
+    ADMIT may be lost, or the JOIN or RESUME may be a late frame of an earlier start, and the
+    node then holds an ltx below tx. Moving W up to tx let the supervisor begin past that
+    ltx + B, and a supervisor image from before those begins, started, created energy from
+    their late INTENTIONs. A lift that leaves tx + 1 beyond W + B closes the window until a
+    re-sync of the node (``resync_session``)."""
+    return h.write_off_and_lift(s)
 
 
 def admit(t: Timing, s: Session, msg: Join, now: int) -> SessionStep:
@@ -239,11 +254,9 @@ def admit(t: Timing, s: Session, msg: Join, now: int) -> SessionStep:
 
     A JOIN with the nonce of the last one admitted (``join_seq`` 0: none) is a copy of it (the
     node re-sent it, its ADMIT lost, or a duplicate): it gets the same ADMIT again (same n, k
-    and C) and nothing moves, as if the first ADMIT had been duplicated on the bus. Admitted
-    afresh, it moved W up to a tx that transactions begun since had moved on: a node that took
-    the first ADMIT and lost the second held an ltx below W, the supervisor began up to W + B,
-    and an image of it from before those begins, started, took the node's SYNC answer settled
-    only B past that ltx: a late INTENTION of the discarded history was fresh to the node."""
+    and C) and nothing moves, as if the first ADMIT had been duplicated on the bus (a second
+    admission would void another number and lift tx again, for a node that may hold the
+    first)."""
     if s.join_seq != 0 and s.join_nonce == msg.nonce:
         again = Admit(s.node, msg.nonce, wire_tx(s.join_tx), wrap(s.join_seq, SEQ_BITS))
         return SessionStep(s, (Send(again),))
@@ -276,8 +289,40 @@ def start(t: Timing, s: Session, event: PowerLoss, now: int) -> SessionStep:
     if s.phase not in (IDLE, *SYNC_PHASES):
         step = resolve(s, Outcome.WRITTEN_OFF)
     nonce = event.nonce & ~SYNC_CONFIRMED  # a SYNC never reads as a confirmation of counts
-    s = evolve(step.session, phase=SYNCING, sync_nonce=nonce, deadline=now)
+    s = evolve(step.session, phase=SYNCING, sync_nonce=nonce, deadline=now, resync=False)
     return SessionStep(s, step.actions, step.credit)
+
+
+def resync_session(t: Timing, s: Session, nonce: int, now: int) -> SessionStep:
+    """A re-sync of this one node: what a start does for it (SYNC(n) sent at once and re-sent
+    every response timeout, its books then its counts taken under n whatever their ltx: tx =
+    max(tx, ltx), W = ltx, C voided, ADMIT(n ^ ``SYNC_CONFIRMED``)), with nothing restored,
+    nothing written off (only from IDLE) and no other session waiting for it (``resync`` set:
+    ``Supervisor.unconfirmed`` skips it). For a node whose window is used up (tx + 1 > W + B:
+    an admission lifted tx, or its answers were ignored) or whose counts are ignored: the SYNC
+    only makes the node settle B further and void its pending debit, a loss, never a gain.
+    ``nonce``: fresh and random, from the caller (the core draws none)."""
+    if s.phase is not IDLE:
+        raise LocalProtocolError(
+            f"node {s.node}: a re-sync starts only with no transaction open and no start waiting"
+        )
+    nonce &= ~SYNC_CONFIRMED  # as a start's: never a confirmation of counts
+    deadline = now + t.response_timeout_us
+    s = evolve(s, phase=SYNCING, sync_nonce=nonce, deadline=deadline, resync=True)
+    return SessionStep(s, (Send(_sync(s)),))
+
+
+def join_while_syncing(t: Timing, s: Session, msg: Join, now: int) -> SessionStep:
+    """JOIN while a SYNC waits: ignored at a start (a node without books cannot bound what a
+    restored supervisor's discarded history sent); a re-sync ends (counts the node sent before
+    it lost its books would show an ltx it no longer holds) and the JOIN is taken as in IDLE
+    (``admit``): with nothing restored, every transaction the node can see is at most tx, at or
+    below the k it is admitted at. Without it a node whose ADMIT was lost re-sent its JOIN,
+    ignored, while it ignored the SYNC (not its nonce), for ever."""
+    if not s.resync:
+        return SessionStep(s)
+    idle = evolve(s, phase=IDLE, sync_nonce=0, deadline=None, resync=False)
+    return admit(t, idle, msg, now)
 
 
 def resend_sync(t: Timing, s: Session, event: ResponseTimeout, now: int) -> SessionStep:
@@ -316,7 +361,7 @@ def take_counts(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
     if not msg.is_counts:
         return SessionStep(s)
     settled = ltx_of(s, msg)
-    s = evolve(s, phase=IDLE, sync_nonce=0, deadline=None, witness=settled)
+    s = evolve(s, phase=IDLE, sync_nonce=0, deadline=None, witness=settled, resync=False)
     return confirm(t, s, msg, now)
 
 
@@ -346,6 +391,7 @@ SUPERVISOR = SupervisorTable(
         cell((SYNCING, SYNC_BOOKS), ResponseTimeout, resend_sync),
         cell(SYNCING, Debit, take_books, to=(SYNC_BOOKS, STAY)),
         cell(SYNC_BOOKS, Debit, take_counts, to=(IDLE, STAY)),
+        cell((SYNCING, SYNC_BOOKS), Join, join_while_syncing, to=(IDLE, STAY)),
     ],
     supervisor_record,
 )

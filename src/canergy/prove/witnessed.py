@@ -464,9 +464,10 @@ def confirm(
 ) -> SessionStep:
     """RESUME(n, q, x), or a SYNC's counts (n, q, ltx in ``amount_mj``; ``counts``): write off
     what is open; behind (q below C): lift as for a JOIN; a pending RETURN numbered C + 1
-    credited (not at the end; counts carry none); counts move tx and W up to ltx; C = max(C, q)
-    + 1 (voided); ADMIT(n, k, C), n flipped for counts. A repeat (same key and q, C unchanged
-    since; ``resume_to`` 0: none answered) gets the same answer (``repeat_counts``)."""
+    credited (not at the end; counts carry none); counts move tx (and W, unless behind) up to
+    ltx; C = max(C, q) + 1 (voided); ADMIT(n, k, C), n flipped for counts. A repeat (same key
+    and q, C unchanged since; ``resume_to`` 0: none answered) gets the same answer
+    (``repeat_counts``)."""
     counts = z3.BoolVal(False) if counts is None else counts
     seq = sym.unwrap(seq16, s.returns_credited, SEQ_BITS)
     key = key_of(nonce16, counts)
@@ -501,7 +502,7 @@ def confirm(
         replace(
             t,
             tx=z3.If(settled - t.tx > 0, settled, t.tx),
-            witness=z3.If(settled - t.witness > 0, settled, t.witness),
+            witness=z3.If(z3.And(z3.Not(behind), settled - t.witness > 0), settled, t.witness),
         ),
         t,
     )
@@ -538,11 +539,8 @@ def repeat_counts(s: Session, counts: Term, amount_mj: Term, answer_nonce: Term)
 
 
 def admitted_afresh(s: Session, nonce16: Term) -> SessionStep:
-    """``witnessed.admitted_afresh``: the hardened admission, W moved up to the lifted tx."""
-    lifted = sym.admit(s, nonce16)
-    t = lifted.session
-    t = replace(t, witness=z3.If(t.tx - t.witness > 0, t.tx, t.witness))  # signed, as the cores
-    return SessionStep(t, lifted.sent, lifted.credit)
+    """``witnessed.admitted_afresh``: the hardened admission; W stays (no evidence)."""
+    return sym.admit(s, nonce16)
 
 
 def admit(s: Session, nonce16: Term) -> SessionStep:

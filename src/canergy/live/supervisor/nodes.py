@@ -48,3 +48,8 @@ class NodeInfo:
     counts_ignored: int = 0
     """Counts outside a start the rules ignored (witnessed.counts_taken): an earlier start's,
     replayed or late; they move nothing."""
+    resyncs: int = 0
+    """Re-syncs of this node alone (witnessed rules): its window used up, or its counts
+    ignored."""
+    resynced_at: int | None = None
+    """When the last of them began (µs)."""

@@ -8,6 +8,7 @@ sent, so a ``kill -9`` at any point restarts from books that never owe energy.
 from __future__ import annotations
 
 import logging
+import secrets
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,7 +34,7 @@ from canergy.core import (
     Send,
 )
 from canergy.core.common import at_end
-from canergy.core.errors import LocalProtocolError
+from canergy.core.errors import LocalProtocolError, WindowClosed
 from canergy.core.state import SYNC_PHASES, Outcome, Phase
 from canergy.core.supervisor import BUS_SHIFT, SupervisorCore
 from canergy.core.witnessed import answered, counts_taken
@@ -65,6 +66,11 @@ from canergy.seqnum import unwrap
 from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
+
+RESYNC_GAP_US = 1_000_000
+"""Witnessed rules: a node whose counts are ignored is re-synced at most once in this long (a
+node left answering re-sends them every retry period; a replayed counts frame, which verifies
+for its key epoch, costs the node at most one re-sync a second)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -491,7 +497,10 @@ class SupervisorService:
         outside = msg.is_counts and s.phase not in SYNC_PHASES
         if outside and not counts_taken(self.core.timing, s, msg):  # an earlier start's
             info.counts_ignored += 1  # the rules ignore it; the witness's baseline stays
-            return self._carry_out(self.core.receive(msg, now), now)
+            out = self._carry_out(self.core.receive(msg, now), now)
+            if (last := info.resynced_at) is not None and now - last < RESYNC_GAP_US:
+                return out
+            return out + self._resync(msg.node, "its counts were ignored", now)
         other = s.phase in SYNC_PHASES and msg.nonce != s.sync_nonce  # ignored: not this start's
         if msg.is_counts and not other:  # the node's return numbers start again, as at a RESUME
             self.witness.hold_resume(msg, s.returns_credited, now, False)
@@ -873,12 +882,25 @@ class SupervisorService:
                 frames = [RawFrame(i, d, self.path.begin_fd, bus) for i, d in raw]
         except LocalProtocolError as exc:  # budget changed under us: report, do not crash
             self._finish_request(node, {"node": self.node_name(node), "error": str(exc)})
+            if isinstance(exc, WindowClosed):
+                return self._resync(node, "its window is used up", now)
             if at_end(self.core.session(node).tx) and node not in self.ended:
                 self.ended.add(node)
                 log.warning("%s", exc)  # once: the top-up policy asks again each pass
             return []
         self.desk.took(amount)
         return frames + self._carry_out(actions, now)
+
+    def _resync(self, node: int, why: str, now: int) -> list[Outgoing]:
+        """Witnessed rules: re-sync ``node`` alone (``Supervisor.resync``, SYNC with a fresh
+        random nonce) when ``why`` (its window used up, or its counts ignored: a node left
+        answering a SYNC); only while its session is IDLE. Nobody else waits for it."""
+        if self.core.session(node).phase is not Phase.IDLE:
+            return []
+        info = self.nodes[node]
+        info.resyncs, info.resynced_at = info.resyncs + 1, now
+        log.warning("node %s: re-synced, %s", self.node_name(node), why)
+        return self._carry_out(self.core.resync(node, now, secrets.randbits(16)), now)
 
     def _carry_out(self, actions: list[Action], now: int) -> list[Outgoing]:
         out: list[Outgoing] = []

@@ -156,6 +156,7 @@ class StatusReport:
                 "found_behind": info.found_behind,
                 "synced": info.synced,
                 "counts_ignored": info.counts_ignored,
+                "resyncs": info.resyncs,
                 "rules": info.rules,
                 "variant_mismatch": info.variant_mismatch,
                 "resume_waiting": witness.resume_held(s.node),

@@ -47,6 +47,7 @@ from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
 from canergy.live.supervisor.nodes import NodeInfo
 from canergy.live.supervisor.outputs import BooksOut, StatusOut
 from canergy.live.supervisor.policy import Limits, TopUp
+from canergy.live.supervisor.rules_said import RulesSaid
 from canergy.live.supervisor.state_file import ENERGY_MAX_UJ
 from canergy.live.supervisor.status import Run, StatusReport
 from canergy.live.supervisor.telemetry import BEYOND_BOOKS, HeardTable
@@ -153,6 +154,10 @@ class SupervisorService:
         )
         """The TELEMETRY table (``telemetry``): the compiled core's in C, else Python's."""
         self.nodes = {n: NodeInfo(self.heard.of(n)) for n in core.nodes}
+        self.rules_said = RulesSaid(
+            core.variant.name, self.nodes, config.local_nodes, self.node_name
+        )
+        """Which rules each node's TELEMETRY says (``rules_said``): other than these, no grant."""
         make_caps = getattr(core, "grant_caps", None)
         caps = None if make_caps is None else make_caps(config.limits, config.policy)
         self.desk = GrantDesk(config.limits, config.policy, caps)
@@ -301,7 +306,7 @@ class SupervisorService:
         found in it already (the frame path), else the witness takes it here."""
         self.now = now
         self.telemetry_heard += 1
-        self._rules_said(msg)
+        self.rules_said.telemetry(msg)
         # listen-only keeps no books of its own (another supervisor may be granting): no
         # judgement by them, or every level reported would look impossible
         if verdict & BEYOND_BOOKS and not self.config.listen_only:
@@ -326,57 +331,6 @@ class SupervisorService:
         )
         out += self._start_grants(now, self.ready)
         return out
-
-    @property
-    def rules(self) -> str:
-        """This supervisor's rules (its ``--variant``); its nodes' TELEMETRY must say the
-        witnessed ones exactly when these are."""
-        name: str = self.core.variant.name
-        return name
-
-    def _other_rules(self, said: str | None) -> bool:
-        """Whether rules a node's TELEMETRY said (None: none yet) differ from this
-        supervisor's: the flag tells witnessed from the rest."""
-        return said is not None and (said == "witnessed") != (self.rules == "witnessed")
-
-    def _rules_said(self, msg: Telemetry) -> None:
-        """The rules the node's TELEMETRY says it runs (``Telemetry.WITNESSED``; without it: the
-        hardened ones, as a node older than the flag). Other than this supervisor's: it is
-        granted nothing (``mismatched``), said once on stderr per change and counted. The flag
-        moves no energy: a forged one can only withhold grants from the node. A guarded
-        device's proxy (``local_nodes``) runs in this process on the rules it is given: its
-        TELEMETRY says nothing to check."""
-        if msg.node in self.config.local_nodes:
-            return
-        info = self.nodes[msg.node]
-        said = "witnessed" if msg.flags & Telemetry.WITNESSED else "hardened"
-        other = self._other_rules(said)
-        if other:
-            info.variant_mismatch += 1
-        if said == info.rules:
-            return
-        info.rules = said
-        if other:
-            log.warning("%s", self.mismatch_why(msg.node))
-        elif info.variant_mismatch:
-            log.warning(
-                "node %s now runs the %s rules, as this supervisor: granting",
-                self.node_name(msg.node),
-                said,
-            )
-
-    def mismatched(self, node: int) -> bool:
-        """Whether the node's last TELEMETRY said other client rules than this supervisor's."""
-        return self._other_rules(self.nodes[node].rules)
-
-    def mismatch_why(self, node: int) -> str:
-        """Why a node whose rules differ (``mismatched``) is granted nothing, one line."""
-        said = self.nodes[node].rules
-        return (
-            f"node {self.node_name(node)} runs the {said} rules, this supervisor the "
-            f"{self.rules}: nothing granted to it (run both with the same --variant; a node "
-            "without the rules flag in its TELEMETRY counts as hardened)"
-        )
 
     def _distrusted(self, node: int, now: int) -> bool:
         """Without a key: no top-ups while the node's TELEMETRY was lately contradicted (with a
@@ -825,9 +779,9 @@ class SupervisorService:
                 or self.witness.resume_held(node)
             ):
                 continue  # not heard yet, or no books until admitted: a grant would be lost
-            if self._other_rules(info.rules):  # ``mismatched``
+            if self.rules_said.other(info.rules):  # ``RulesSaid.mismatched``
                 for req in info.requests:
-                    req.reply({"node": self.node_name(node), "error": self.mismatch_why(node)})
+                    req.reply({"node": self.node_name(node), "error": self.rules_said.why(node)})
                 info.requests.clear()
                 continue  # other rules: one side would spend or wait on what the other lacks
             if info.requests:
@@ -985,11 +939,7 @@ class SupervisorService:
             waiting_for_books=[self.node_name(n) for n in waiting],
             waiting_why=self.waiting_why(waiting) if waiting else None,
             started_without=self.started_without,
-            variant_mismatch={
-                str(self.node_name(n)): self.mismatch_why(n)
-                for n in self.nodes
-                if self.mismatched(n)
-            },
+            variant_mismatch=self.rules_said.by_name(),
         )
         return self.report.status(run)
 

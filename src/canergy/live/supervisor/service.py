@@ -15,12 +15,7 @@ from typing import Any, TextIO, cast
 
 import can
 
-from canergy.auth.frames import (
-    FrameAuth,
-    Verdict,
-    expected_freshness,
-    frame_direction,
-)
+from canergy.auth.frames import FrameAuth, Verdict
 from canergy.bus_keys import node_name
 from canergy.codec import DecodeError
 from canergy.core import (
@@ -42,7 +37,7 @@ from canergy.live.supervisor.control import ControlServer
 from canergy.live.supervisor.evidence import beyond_books, impossible
 from canergy.live.supervisor.frame_path import CFramePath, Pass
 from canergy.live.supervisor.grants import Books, GrantCallback, GrantDesk, GrantRequest
-from canergy.live.supervisor.intrusions import Intrusions, Refusals, frame_text
+from canergy.live.supervisor.intrusions import Intrusions, Refusals
 from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
 from canergy.live.supervisor.nodes import NodeInfo
 from canergy.live.supervisor.outputs import BooksOut, StatusOut
@@ -51,11 +46,11 @@ from canergy.live.supervisor.rules_said import RulesSaid
 from canergy.live.supervisor.state_file import ENERGY_MAX_UJ
 from canergy.live.supervisor.status import Run, StatusReport
 from canergy.live.supervisor.telemetry import BEYOND_BOOKS, HeardTable
+from canergy.live.supervisor.watch import BusWatch
 from canergy.live.supervisor.witness import RETURN_HOLD_MIN_US, ReturnGate
 from canergy.messages import (
     SEQ_BITS,
     Debit,
-    Direction,
     Join,
     Message,
     Return,
@@ -191,7 +186,18 @@ class SupervisorService:
         self.intrusions = Intrusions("supervisor", name=self.node_name)
         self.refusals = Refusals("supervisor", name=self.node_name)
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
-        self.stopped_by_intrusion = False
+        self.watch = BusWatch(
+            core,
+            self.nodes,
+            self.intrusions,
+            self.refusals,
+            tuple(self.buses.values()) or (self.bus_counters,),
+            listen_only=config.listen_only,
+            stop_on_intrusion=config.stop_on_intrusion,
+            stop=self.stop,
+            stopping=lambda: self.stopping,
+        )
+        """Refusals and intrusions, and the stop they may call for (``watch``)."""
         make_gate = getattr(core, "return_gate", None)
         hold = config.return_hold_us is not None
         self.witness: Any = (
@@ -278,7 +284,7 @@ class SupervisorService:
             info.heard.heard_at = now
             return ()
         if (impossible := self._impossible(msg)) is not None:
-            self.intrusion(msg.node, repr(msg), impossible, now)
+            self.watch.intrusion(msg.node, repr(msg), impossible, now)
             return ()  # moves nothing: no honest node sends it
         info.heard.heard_at = now
         if isinstance(msg, Join):  # a replay or forgery looks the same: the node's report tells
@@ -311,7 +317,7 @@ class SupervisorService:
         # judgement by them, or every level reported would look impossible
         if verdict & BEYOND_BOOKS and not self.config.listen_only:
             why = beyond_books(msg.level_mj, self.core.session(msg.node))
-            self.intrusion(msg.node, repr(msg), why, now)
+            self.watch.intrusion(msg.node, repr(msg), why, now)
         credited = self.core.session(msg.node).returns_credited
         evidence, notes = (
             self.witness.telemetry(msg, credited, now)
@@ -319,7 +325,7 @@ class SupervisorService:
             else self.witness.telemetry_words(msg, credited, found & 0xFF)
         )
         for line in evidence:
-            self.intrusion(msg.node, repr(msg), line, now, stop=True)
+            self.watch.intrusion(msg.node, repr(msg), line, now, stop=True)
         for line in notes:
             log.warning("node %s: %s", self.node_name(msg.node), line)
         self.ready.add(msg.node)
@@ -335,7 +341,7 @@ class SupervisorService:
     def _distrusted(self, node: int, now: int) -> bool:
         """Without a key: no top-ups while the node's TELEMETRY was lately contradicted (with a
         key, anyone could make the node count frames in its name: that is no reason)."""
-        return not self.authenticated and self.witness.blocked(node, now)
+        return not self.watch.authenticated and self.witness.blocked(node, now)
 
     def _hold_return(self, msg: Return, now: int) -> bool:
         """Detection mode: a fresh RETURN waits for the node's confirmation (``witness``)."""
@@ -343,7 +349,7 @@ class SupervisorService:
         if self.config.return_hold_us is None or self.witness.old(msg, credited):
             return False
         if (evidence := self.witness.hold(msg, credited, now)) is not None:
-            self.intrusion(msg.node, repr(msg), evidence, now, stop=True)
+            self.watch.intrusion(msg.node, repr(msg), evidence, now, stop=True)
         return True
 
     def _held_in_c(self, msg: Return, verdict: int, now: int) -> list[Outgoing]:
@@ -353,7 +359,7 @@ class SupervisorService:
         self.nodes[msg.node].heard.heard_at = now
         credited = self.core.session(msg.node).returns_credited
         if (evidence := self.witness.hold_words(msg, credited, verdict)) is not None:
-            self.intrusion(msg.node, repr(msg), evidence, now, stop=True)
+            self.watch.intrusion(msg.node, repr(msg), evidence, now, stop=True)
         return self._released(msg.node, now)
 
     def _hold_resume(self, msg: Debit, now: int) -> bool:
@@ -477,7 +483,7 @@ class SupervisorService:
                 continue
             if ret.amount_mj == 0:
                 kind = "return numbers acknowledged by someone else: resynchronised at 0 mJ"
-                self.intrusion(node, repr(ret), kind, now, stop=True)
+                self.watch.intrusion(node, repr(ret), kind, now, stop=True)
             out += self._carry_out(self.core.receive(ret, now), now)
         return out
 
@@ -490,61 +496,35 @@ class SupervisorService:
         self, error: DecodeError, frame: can.Message, node: int | None = None
     ) -> None:
         """``node``: the session key of the frame's node (default: its node id)."""
-        node = frame.arbitration_id & 0xFF if node is None else node
-        if node in self.nodes:
-            self.nodes[node].decode_errors += 1
+        self.watch.decode_error(frame, node)
 
     def on_foreign_direction(
         self, frame: can.Message, now: int, node: int | None = None
     ) -> Sequence[Message]:
-        """A frame only this supervisor sends, from someone else. Authenticated mode: the bus
-        loop hands over only one verified under the node's key with a freshness value this
-        supervisor never used (``canergy.live.runtime.OwnDirection``): authentic evidence."""
-        node = frame.arbitration_id & 0xFF if node is None else node
-        if node not in self.nodes:
-            return ()
-        if self.config.listen_only:  # it sends nothing: they are the supervisor's it watches
-            self.nodes[node].supervisor_frames += 1
-            return ()
-        if self.authenticated:
-            kind = (
-                "a frame only this supervisor sends, verified under the node's key and newer "
-                "than any it sent: a second supervisor holds the master key"
-            )
-            self.authentic_intrusion(node, frame_text(frame), kind, now)
-        else:
-            kind = "a frame only this supervisor sends"
-            self.intrusion(node, frame_text(frame), kind, now, stop=True)
+        """A frame only this supervisor sends, from someone else (``BusWatch.foreign_direction``;
+        ``node`` as in ``on_decode_error``)."""
+        self.watch.foreign_direction(frame, now, node)
         return ()
 
     def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
-        """A refused frame (no MAC, a bad one, a stale one...): counted per node and reason
-        with a rate, reported (an intrusion, logged at most once a second), never acted on:
-        anyone on the bus can send one."""
-        node, failure = verdict.node, verdict.failure
-        if node not in self.nodes or failure is None:
-            return
-        reason = failure.value
-        if _own_direction(frame):
-            reason += " (in the supervisor's direction)"
-        what = frame_text(frame)
-        self.refusals.record(node, reason, what, now)
-        self.intrusions.record(node, what, reason, now, quiet=True)
+        """A refused frame: counted and reported, never acted on (``BusWatch.auth_failure``)."""
+        self.watch.auth_failure(verdict, frame, now)
 
-    def freshness(self, msg: Message) -> int | None:
-        """Authenticated mode: the freshness value of a frame to or from ``msg.node``, from this
-        supervisor's counters for it (None: not a node it manages). A frame older than them (a
-        replay of an earlier transaction or return) is refused as stale."""
-        if msg.node not in self.nodes:
-            return None
-        s = self.core.session(msg.node)
-        return expected_freshness(msg, s.tx, s.returns_credited)
+    @property
+    def freshness(self) -> Callable[[Message], int | None]:
+        """Authenticated mode: the freshness value of a frame to or from ``msg.node``
+        (``BusWatch.freshness``; the bus loop calls it per frame: no call of the service's)."""
+        return self.watch.freshness
 
     @property
     def authenticated(self) -> bool:
         """Whether the bus loop checks MACs (``--auth``): it marks the counters it shares."""
-        counters = self.buses.values() if self.buses else (self.bus_counters,)
-        return any(c.auth is not None for c in counters)
+        return self.watch.authenticated
+
+    @property
+    def stopped_by_intrusion(self) -> bool:
+        """Whether evidence stopped the supervisor (``--on-intrusion stop``)."""
+        return self.watch.stopped_by_intrusion
 
     def node_name(self, node: int) -> int | str:
         """A node as status, replies and the state file name it: its id, or ``bus/node``."""
@@ -552,34 +532,13 @@ class SupervisorService:
         return node_name(buses, node) if buses else node  # one bus: its id (every reply)
 
     def intrusion(self, node: int, what: str, kind: str, now: int, *, stop: bool = False) -> None:
-        """Report what no honest participant sends. ``stop``: evidence that ``--on-intrusion
-        stop`` acts on without a key (a frame in this supervisor's own direction: a second
-        supervisor or a spoofer); failed cross-checks are reported only (a replayed TELEMETRY or
-        a duplicated classic frame must not be able to stop the supervisor). In authenticated
-        mode anyone can still send such frames without a MAC: only ``authentic_intrusion``
-        stops then, and ``stop`` here is reported only."""
-        self.intrusions.record(node, what, kind, now)
-        if stop and not self.authenticated:
-            self._stop_on_intrusion(now)
+        """Report what no honest participant sends (``BusWatch.intrusion``)."""
+        self.watch.intrusion(node, what, kind, now, stop=stop)
 
     def authentic_intrusion(self, node: int, what: str, kind: str, now: int) -> None:
-        """Authentic evidence of intrusion for node ``node``: what only a holder of a key could
-        have sent, checked under that key. ``--on-intrusion stop`` acts on it, in authenticated
-        mode as without a key. The bus loop calls it (through ``on_foreign_direction``) for a
-        frame in this supervisor's own direction verified under the node's key with a freshness
-        value this supervisor never used: a second supervisor holding the master key.
-
-        The hook for a node's own report: call it for a MAC-verified message whose content says
-        the node saw an intrusion (say a TELEMETRY flag), and only once that content is known
-        to be fresh: a TELEMETRY's freshness value is only the high half of the node's
-        transaction, so a recorded one verifies again when replayed."""
-        self.intrusions.record(node, what, kind, now, authentic=True)
-        self._stop_on_intrusion(now)
-
-    def _stop_on_intrusion(self, now: int) -> None:
-        if self.config.stop_on_intrusion and not self.stopping:
-            self.stopped_by_intrusion = True
-            self.stop(now)
+        """Authentic evidence of intrusion: what only a holder of a key could have sent, checked
+        under that key; ``--on-intrusion stop`` acts on it (``BusWatch.authentic_intrusion``)."""
+        self.watch.authentic_intrusion(node, what, kind, now)
 
     def next_wakeup(self) -> int | None:
         wakeup = self.next_status  # the earliest of these (compared, no min(): every pass)
@@ -945,8 +904,3 @@ class SupervisorService:
 
     def write_status(self) -> None:
         self.status_out.write(self.status())
-
-
-def _own_direction(frame: can.Message) -> bool:
-    """A frame (or classic MAC frame) in the supervisor's own direction, to a node."""
-    return frame_direction(frame.arbitration_id) is Direction.TO_CLIENT

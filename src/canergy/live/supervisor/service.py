@@ -39,11 +39,11 @@ from canergy.live.supervisor.frame_path import CFramePath, Pass
 from canergy.live.supervisor.grants import Books, GrantCallback, GrantDesk, GrantRequest
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
 from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
+from canergy.live.supervisor.ledger import Ledger
 from canergy.live.supervisor.nodes import NodeInfo
 from canergy.live.supervisor.outputs import BooksOut, StatusOut
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.rules_said import RulesSaid
-from canergy.live.supervisor.state_file import ENERGY_MAX_UJ
 from canergy.live.supervisor.status import Run, StatusReport
 from canergy.live.supervisor.telemetry import BEYOND_BOOKS, HeardTable
 from canergy.live.supervisor.watch import BusWatch
@@ -58,7 +58,6 @@ from canergy.messages import (
     ToSupervisor,
 )
 from canergy.seqnum import unwrap
-from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
 
@@ -157,7 +156,6 @@ class SupervisorService:
         caps = None if make_caps is None else make_caps(config.limits, config.policy)
         self.desk = GrantDesk(config.limits, config.policy, caps)
         """Sizes one-shot grants and top-ups under the limits and the rate limiter."""
-        self.delivered_at_start = sum(s.delivered for s in core.state.sessions)
         self.started_at = now
         self.now = now
         self.next_status = now
@@ -173,16 +171,17 @@ class SupervisorService:
         """The bus loop's passes: frames held until the outermost one ends."""
         self.telemetry_heard = 0
         """TELEMETRY frames of managed nodes taken (information, not protocol frames)."""
-        self.books_out = BooksOut(
+        books_out = BooksOut(
             core, config.state_path, fsync=config.fsync, buses=config.bus_names, save=save
         )
+        self.ledger = Ledger(core, books_out, listen_only=config.listen_only)
+        """The books of this run: granted since the start, an injection, their writing."""
         self.status_out = StatusOut(config.status_path, config.status_stream, config.status_text)
         self.stop_deadline: int | None = None
         self.liveness = liveness
         self.bus_counters = BusCounters() if bus_counters is None else bus_counters
         self.buses: dict[str, BusCounters] = dict(buses or {})
         """Several buses: each one's counters by name (the status shows them and their sums)."""
-        self.injected_this_run = 0
         self.intrusions = Intrusions("supervisor", name=self.node_name)
         self.refusals = Refusals("supervisor", name=self.node_name)
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
@@ -670,32 +669,7 @@ class SupervisorService:
 
     # -- internals -------------------------------------------------------------------------
     def _inject(self, amount: int) -> None:
-        if self.config.listen_only:
-            raise ValueError("--inject needs a supervisor that writes its state: not --listen-only")
-        st = self.core.state
-        if amount <= 0 or st.initial + st.injected + amount > ENERGY_MAX_UJ:
-            raise ValueError(
-                f"--inject {format_energy(amount)}: must be more than 0 and keep initial + "
-                f"injected at most {ENERGY_MAX_UJ} µJ"
-            )
-        self.core.inject(amount)
-        self.injected_this_run = amount
-
-    def granted_total(self) -> int:
-        """Energy committed, written off or reserved since start (the books, not telemetry)."""
-        st = self.core.state
-        return sum(s.delivered + s.reserved for s in st.sessions) - self.delivered_at_start
-
-    def books(self) -> dict[int, dict[str, int]]:
-        """Per node what the books released and got back (a consistent snapshot)."""
-        return {
-            s.node: {
-                "delivered_uj": s.delivered,
-                "reserved_uj": s.reserved,
-                "returned_uj": s.returned,
-            }
-            for s in self.core.state.sessions
-        }
+        self.ledger.inject(amount)  # the books are written next (``__init__``), before any grant
 
     def is_lost(self, node: int, now: int) -> bool:
         heard = self.nodes[node].heard.heard_at
@@ -771,7 +745,7 @@ class SupervisorService:
     def _books(self) -> Books:
         """What a grant is sized by (what was granted since the start only when a limit
         needs it: the sum runs over every session)."""
-        total = self.granted_total() if self.config.limits.max_total is not None else 0
+        total = self.ledger.granted_total() if self.config.limits.max_total is not None else 0
         return Books(self.core.usable, total)
 
     def _begin(self, node: int, amount: int, now: int) -> list[Outgoing]:
@@ -871,17 +845,13 @@ class SupervisorService:
         return cast(list[Message], out)
 
     def _save_if_dirty(self) -> None:
+        """Write the books if the core's persistent record changed (``_carry_out`` marks it)."""
         if self._dirty:
-            self._persist()
+            self.ledger.write()
             self._dirty = False
 
     def _persist(self) -> None:
-        self.books_out.write()
-
-    @property
-    def saves(self) -> int:
-        """Times the books were written (the state file, or ``save``)."""
-        return self.books_out.saves
+        self.ledger.write()
 
     # -- status ----------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
@@ -892,8 +862,8 @@ class SupervisorService:
             stopping=self.stopping,
             listen_only=self.config.listen_only,
             fsync=self.config.fsync,
-            injected_this_run=self.injected_this_run,
-            granted_this_run=self.granted_total(),
+            injected_this_run=self.ledger.injected_this_run,
+            granted_this_run=self.ledger.granted_total(),
             stopped_by_intrusion=self.stopped_by_intrusion,
             waiting_for_books=[self.node_name(n) for n in waiting],
             waiting_why=self.waiting_why(waiting) if waiting else None,

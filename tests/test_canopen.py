@@ -159,7 +159,7 @@ def test_nmt_stop_halts_the_actuator_and_refuses_grants(bench: Bench) -> None:
 def test_the_sdo_audit_matches_the_books(bench: Bench) -> None:
     bench.manager.start_all()
     bench.wait(lambda: all(n.client.state.credited >= UJ_PER_J for n in bench.host.nodes.values()))
-    report = bench.manager.audit(bench.service.books)
+    report = bench.manager.audit(bench.service.ledger.books)
     assert report["consistent"], report
     assert all(report["nodes"][str(n)]["credited_uj"] > 0 for n in NODES)
 
@@ -178,13 +178,13 @@ def test_the_control_sockets_sdo_audit_reads_the_books_on_the_loop_thread(bench:
     posted: queue.SimpleQueue[Any] = queue.SimpleQueue()
     readers: list[threading.Thread] = []
     replies: list[dict[str, Any]] = []
-    books = bench.service.books
+    books = bench.service.ledger.books
 
     def watched_books() -> dict[int, dict[str, int]]:
         readers.append(threading.current_thread())
         return books()
 
-    bench.service.books = watched_books  # type: ignore[method-assign]
+    bench.service.ledger.books = watched_books  # type: ignore[method-assign]
     answer_control(bench.service, {"audit": True}, replies.append, bench.manager, posted.put)
     compare = posted.get(timeout=30)  # the reads done, off this thread
     assert replies == [] and readers == []

@@ -254,7 +254,7 @@ def drive_grants(
             counters.frames_sent,
             counters.frames_received,
             service.telemetry_heard,
-            service.saves,
+            service.ledger.saves,
         )
         cpu0, bus0 = [_thread_cpu(t) for t in threads], timed.spent
         nodes0 = [clock() for clock in node_clocks]
@@ -275,7 +275,7 @@ def drive_grants(
         sent, received = counters.frames_sent - sent0, counters.frames_received - received0
         frames = sent + received
         telemetry = service.telemetry_heard - telemetry0
-        saves = service.saves - saves0
+        saves = service.ledger.saves - saves0
         done = len(latencies)
     finally:
         stop.set()

@@ -189,8 +189,8 @@ def _by_id(bus: int, node: int) -> bytes:
 
 def _announce(args: argparse.Namespace, service: SupervisorService) -> None:
     warn_no_fsync("canergy supervisor", args.no_fsync)
-    if service.injected_this_run:
-        st, added = service.core.state, joules(service.injected_this_run)
+    if service.ledger.injected_this_run:
+        st, added = service.core.state, joules(service.ledger.injected_this_run)
         print(
             f"canergy supervisor: injected {added} into the budget, saved in {args.state}: "
             f"usable {joules(st.usable)}, injected in all {joules(st.injected)}",

@@ -106,7 +106,7 @@ def answer_control(
 
         def read_then_compare() -> None:  # SDO reads block: off the loop, which keeps running
             readings = manager.read_energy()
-            post(lambda: reply(compare(readings, service.books())))
+            post(lambda: reply(compare(readings, service.ledger.books())))
 
         threading.Thread(target=read_then_compare, daemon=True).start()
         return

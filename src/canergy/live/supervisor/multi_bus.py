@@ -125,6 +125,7 @@ class BusPort:
         self, service: SupervisorService, bus: int, router: BusRouter, *, deadlines: bool
     ) -> None:
         self.service = service
+        self._freshness = service.freshness  # per frame: the service's part's, called directly
         self.bus = bus
         self.router = router
         self.deadlines = deadlines
@@ -151,7 +152,7 @@ class BusPort:
 
     def freshness(self, msg: Message) -> int | None:
         """Authenticated mode: the service's freshness for this bus's node ``msg.node``."""
-        return self.service.freshness(replace(msg, node=self.key(msg.node)))
+        return self._freshness(replace(msg, node=self.key(msg.node)))
 
     def begin_pass(self) -> None:
         self.service.begin_pass()

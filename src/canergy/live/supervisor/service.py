@@ -16,12 +16,7 @@ from typing import Any, TextIO, cast
 
 import can
 
-from canergy.auth.frames import (
-    FrameAuth,
-    Verdict,
-    expected_freshness,
-    frame_direction,
-)
+from canergy.auth.frames import FrameAuth, Verdict
 from canergy.bus_keys import node_name
 from canergy.codec import DecodeError
 from canergy.core import (
@@ -43,19 +38,20 @@ from canergy.live.supervisor.control import ControlServer
 from canergy.live.supervisor.evidence import beyond_books, impossible
 from canergy.live.supervisor.frame_path import CFramePath, Pass
 from canergy.live.supervisor.grants import Books, GrantCallback, GrantDesk, GrantRequest
-from canergy.live.supervisor.intrusions import Intrusions, Refusals, frame_text
+from canergy.live.supervisor.intrusions import Intrusions, Refusals
 from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
+from canergy.live.supervisor.ledger import Ledger
 from canergy.live.supervisor.nodes import NodeInfo
 from canergy.live.supervisor.outputs import BooksOut, StatusOut
 from canergy.live.supervisor.policy import Limits, TopUp
-from canergy.live.supervisor.state_file import ENERGY_MAX_UJ
+from canergy.live.supervisor.rules_said import RulesSaid
 from canergy.live.supervisor.status import Run, StatusReport
 from canergy.live.supervisor.telemetry import BEYOND_BOOKS, HeardTable
+from canergy.live.supervisor.watch import BusWatch
 from canergy.live.supervisor.witness import RETURN_HOLD_MIN_US, ReturnGate
 from canergy.messages import (
     SEQ_BITS,
     Debit,
-    Direction,
     Join,
     Message,
     Return,
@@ -63,7 +59,6 @@ from canergy.messages import (
     ToSupervisor,
 )
 from canergy.seqnum import unwrap
-from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
 
@@ -159,11 +154,14 @@ class SupervisorService:
         )
         """The TELEMETRY table (``telemetry``): the compiled core's in C, else Python's."""
         self.nodes = {n: NodeInfo(self.heard.of(n)) for n in core.nodes}
+        self.rules_said = RulesSaid(
+            core.variant.name, self.nodes, config.local_nodes, self.node_name
+        )
+        """Which rules each node's TELEMETRY says (``rules_said``): other than these, no grant."""
         make_caps = getattr(core, "grant_caps", None)
         caps = None if make_caps is None else make_caps(config.limits, config.policy)
         self.desk = GrantDesk(config.limits, config.policy, caps)
         """Sizes one-shot grants and top-ups under the limits and the rate limiter."""
-        self.delivered_at_start = sum(s.delivered for s in core.state.sessions)
         self.started_at = now
         self.now = now
         self.next_status = now
@@ -179,20 +177,32 @@ class SupervisorService:
         """The bus loop's passes: frames held until the outermost one ends."""
         self.telemetry_heard = 0
         """TELEMETRY frames of managed nodes taken (information, not protocol frames)."""
-        self.books_out = BooksOut(
+        books_out = BooksOut(
             core, config.state_path, fsync=config.fsync, buses=config.bus_names, save=save
         )
+        self.ledger = Ledger(core, books_out, listen_only=config.listen_only)
+        """The books of this run: granted since the start, an injection, their writing."""
         self.status_out = StatusOut(config.status_path, config.status_stream, config.status_text)
         self.stop_deadline: int | None = None
         self.liveness = liveness
         self.bus_counters = BusCounters() if bus_counters is None else bus_counters
         self.buses: dict[str, BusCounters] = dict(buses or {})
         """Several buses: each one's counters by name (the status shows them and their sums)."""
-        self.injected_this_run = 0
         self.intrusions = Intrusions("supervisor", name=self.node_name)
         self.refusals = Refusals("supervisor", name=self.node_name)
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
-        self.stopped_by_intrusion = False
+        self.watch = BusWatch(
+            core,
+            self.nodes,
+            self.intrusions,
+            self.refusals,
+            tuple(self.buses.values()) or (self.bus_counters,),
+            listen_only=config.listen_only,
+            stop_on_intrusion=config.stop_on_intrusion,
+            stop=self.stop,
+            stopping=lambda: self.stopping,
+        )
+        """Refusals and intrusions, and the stop they may call for (``watch``)."""
         make_gate = getattr(core, "return_gate", None)
         hold = config.return_hold_us is not None
         self.witness: Any = (
@@ -279,7 +289,7 @@ class SupervisorService:
             info.heard.heard_at = now
             return ()
         if (impossible := self._impossible(msg)) is not None:
-            self.intrusion(msg.node, repr(msg), impossible, now)
+            self.watch.intrusion(msg.node, repr(msg), impossible, now)
             return ()  # moves nothing: no honest node sends it
         info.heard.heard_at = now
         if isinstance(msg, Join):  # a replay or forgery looks the same: the node's report tells
@@ -307,12 +317,12 @@ class SupervisorService:
         found in it already (the frame path), else the witness takes it here."""
         self.now = now
         self.telemetry_heard += 1
-        self._rules_said(msg)
+        self.rules_said.telemetry(msg)
         # listen-only keeps no books of its own (another supervisor may be granting): no
         # judgement by them, or every level reported would look impossible
         if verdict & BEYOND_BOOKS and not self.config.listen_only:
             why = beyond_books(msg.level_mj, self.core.session(msg.node))
-            self.intrusion(msg.node, repr(msg), why, now)
+            self.watch.intrusion(msg.node, repr(msg), why, now)
         credited = self.core.session(msg.node).returns_credited
         evidence, notes = (
             self.witness.telemetry(msg, credited, now)
@@ -320,7 +330,7 @@ class SupervisorService:
             else self.witness.telemetry_words(msg, credited, found & 0xFF)
         )
         for line in evidence:
-            self.intrusion(msg.node, repr(msg), line, now, stop=True)
+            self.watch.intrusion(msg.node, repr(msg), line, now, stop=True)
         for line in notes:
             log.warning("node %s: %s", self.node_name(msg.node), line)
         self.ready.add(msg.node)
@@ -333,61 +343,10 @@ class SupervisorService:
         out += self._start_grants(now, self.ready)
         return out
 
-    @property
-    def rules(self) -> str:
-        """This supervisor's rules (its ``--variant``); its nodes' TELEMETRY must say the
-        witnessed ones exactly when these are."""
-        name: str = self.core.variant.name
-        return name
-
-    def _other_rules(self, said: str | None) -> bool:
-        """Whether rules a node's TELEMETRY said (None: none yet) differ from this
-        supervisor's: the flag tells witnessed from the rest."""
-        return said is not None and (said == "witnessed") != (self.rules == "witnessed")
-
-    def _rules_said(self, msg: Telemetry) -> None:
-        """The rules the node's TELEMETRY says it runs (``Telemetry.WITNESSED``; without it: the
-        hardened ones, as a node older than the flag). Other than this supervisor's: it is
-        granted nothing (``mismatched``), said once on stderr per change and counted. The flag
-        moves no energy: a forged one can only withhold grants from the node. A guarded
-        device's proxy (``local_nodes``) runs in this process on the rules it is given: its
-        TELEMETRY says nothing to check."""
-        if msg.node in self.config.local_nodes:
-            return
-        info = self.nodes[msg.node]
-        said = "witnessed" if msg.flags & Telemetry.WITNESSED else "hardened"
-        other = self._other_rules(said)
-        if other:
-            info.variant_mismatch += 1
-        if said == info.rules:
-            return
-        info.rules = said
-        if other:
-            log.warning("%s", self.mismatch_why(msg.node))
-        elif info.variant_mismatch:
-            log.warning(
-                "node %s now runs the %s rules, as this supervisor: granting",
-                self.node_name(msg.node),
-                said,
-            )
-
-    def mismatched(self, node: int) -> bool:
-        """Whether the node's last TELEMETRY said other client rules than this supervisor's."""
-        return self._other_rules(self.nodes[node].rules)
-
-    def mismatch_why(self, node: int) -> str:
-        """Why a node whose rules differ (``mismatched``) is granted nothing, one line."""
-        said = self.nodes[node].rules
-        return (
-            f"node {self.node_name(node)} runs the {said} rules, this supervisor the "
-            f"{self.rules}: nothing granted to it (run both with the same --variant; a node "
-            "without the rules flag in its TELEMETRY counts as hardened)"
-        )
-
     def _distrusted(self, node: int, now: int) -> bool:
         """Without a key: no top-ups while the node's TELEMETRY was lately contradicted (with a
         key, anyone could make the node count frames in its name: that is no reason)."""
-        return not self.authenticated and self.witness.blocked(node, now)
+        return not self.watch.authenticated and self.witness.blocked(node, now)
 
     def _hold_return(self, msg: Return, now: int) -> bool:
         """Detection mode: a fresh RETURN waits for the node's confirmation (``witness``)."""
@@ -395,7 +354,7 @@ class SupervisorService:
         if self.config.return_hold_us is None or self.witness.old(msg, credited):
             return False
         if (evidence := self.witness.hold(msg, credited, now)) is not None:
-            self.intrusion(msg.node, repr(msg), evidence, now, stop=True)
+            self.watch.intrusion(msg.node, repr(msg), evidence, now, stop=True)
         return True
 
     def _held_in_c(self, msg: Return, verdict: int, now: int) -> list[Outgoing]:
@@ -405,7 +364,7 @@ class SupervisorService:
         self.nodes[msg.node].heard.heard_at = now
         credited = self.core.session(msg.node).returns_credited
         if (evidence := self.witness.hold_words(msg, credited, verdict)) is not None:
-            self.intrusion(msg.node, repr(msg), evidence, now, stop=True)
+            self.watch.intrusion(msg.node, repr(msg), evidence, now, stop=True)
         return self._released(msg.node, now)
 
     def _hold_resume(self, msg: Debit, now: int) -> bool:
@@ -532,7 +491,7 @@ class SupervisorService:
                 continue
             if ret.amount_mj == 0:
                 kind = "return numbers acknowledged by someone else: resynchronised at 0 mJ"
-                self.intrusion(node, repr(ret), kind, now, stop=True)
+                self.watch.intrusion(node, repr(ret), kind, now, stop=True)
             out += self._carry_out(self.core.receive(ret, now), now)
         return out
 
@@ -545,61 +504,35 @@ class SupervisorService:
         self, error: DecodeError, frame: can.Message, node: int | None = None
     ) -> None:
         """``node``: the session key of the frame's node (default: its node id)."""
-        node = frame.arbitration_id & 0xFF if node is None else node
-        if node in self.nodes:
-            self.nodes[node].decode_errors += 1
+        self.watch.decode_error(frame, node)
 
     def on_foreign_direction(
         self, frame: can.Message, now: int, node: int | None = None
     ) -> Sequence[Message]:
-        """A frame only this supervisor sends, from someone else. Authenticated mode: the bus
-        loop hands over only one verified under the node's key with a freshness value this
-        supervisor never used (``canergy.live.runtime.OwnDirection``): authentic evidence."""
-        node = frame.arbitration_id & 0xFF if node is None else node
-        if node not in self.nodes:
-            return ()
-        if self.config.listen_only:  # it sends nothing: they are the supervisor's it watches
-            self.nodes[node].supervisor_frames += 1
-            return ()
-        if self.authenticated:
-            kind = (
-                "a frame only this supervisor sends, verified under the node's key and newer "
-                "than any it sent: a second supervisor holds the master key"
-            )
-            self.authentic_intrusion(node, frame_text(frame), kind, now)
-        else:
-            kind = "a frame only this supervisor sends"
-            self.intrusion(node, frame_text(frame), kind, now, stop=True)
+        """A frame only this supervisor sends, from someone else (``BusWatch.foreign_direction``;
+        ``node`` as in ``on_decode_error``)."""
+        self.watch.foreign_direction(frame, now, node)
         return ()
 
     def on_auth_failure(self, verdict: Verdict, frame: can.Message, now: int) -> None:
-        """A refused frame (no MAC, a bad one, a stale one...): counted per node and reason
-        with a rate, reported (an intrusion, logged at most once a second), never acted on:
-        anyone on the bus can send one."""
-        node, failure = verdict.node, verdict.failure
-        if node not in self.nodes or failure is None:
-            return
-        reason = failure.value
-        if _own_direction(frame):
-            reason += " (in the supervisor's direction)"
-        what = frame_text(frame)
-        self.refusals.record(node, reason, what, now)
-        self.intrusions.record(node, what, reason, now, quiet=True)
+        """A refused frame: counted and reported, never acted on (``BusWatch.auth_failure``)."""
+        self.watch.auth_failure(verdict, frame, now)
 
-    def freshness(self, msg: Message) -> int | None:
-        """Authenticated mode: the freshness value of a frame to or from ``msg.node``, from this
-        supervisor's counters for it (None: not a node it manages). A frame older than them (a
-        replay of an earlier transaction or return) is refused as stale."""
-        if msg.node not in self.nodes:
-            return None
-        s = self.core.session(msg.node)
-        return expected_freshness(msg, s.tx, s.returns_credited)
+    @property
+    def freshness(self) -> Callable[[Message], int | None]:
+        """Authenticated mode: the freshness value of a frame to or from ``msg.node``
+        (``BusWatch.freshness``; the bus loop calls it per frame: no call of the service's)."""
+        return self.watch.freshness
 
     @property
     def authenticated(self) -> bool:
         """Whether the bus loop checks MACs (``--auth``): it marks the counters it shares."""
-        counters = self.buses.values() if self.buses else (self.bus_counters,)
-        return any(c.auth is not None for c in counters)
+        return self.watch.authenticated
+
+    @property
+    def stopped_by_intrusion(self) -> bool:
+        """Whether evidence stopped the supervisor (``--on-intrusion stop``)."""
+        return self.watch.stopped_by_intrusion
 
     def node_name(self, node: int) -> int | str:
         """A node as status, replies and the state file name it: its id, or ``bus/node``."""
@@ -607,34 +540,13 @@ class SupervisorService:
         return node_name(buses, node) if buses else node  # one bus: its id (every reply)
 
     def intrusion(self, node: int, what: str, kind: str, now: int, *, stop: bool = False) -> None:
-        """Report what no honest participant sends. ``stop``: evidence that ``--on-intrusion
-        stop`` acts on without a key (a frame in this supervisor's own direction: a second
-        supervisor or a spoofer); failed cross-checks are reported only (a replayed TELEMETRY or
-        a duplicated classic frame must not be able to stop the supervisor). In authenticated
-        mode anyone can still send such frames without a MAC: only ``authentic_intrusion``
-        stops then, and ``stop`` here is reported only."""
-        self.intrusions.record(node, what, kind, now)
-        if stop and not self.authenticated:
-            self._stop_on_intrusion(now)
+        """Report what no honest participant sends (``BusWatch.intrusion``)."""
+        self.watch.intrusion(node, what, kind, now, stop=stop)
 
     def authentic_intrusion(self, node: int, what: str, kind: str, now: int) -> None:
-        """Authentic evidence of intrusion for node ``node``: what only a holder of a key could
-        have sent, checked under that key. ``--on-intrusion stop`` acts on it, in authenticated
-        mode as without a key. The bus loop calls it (through ``on_foreign_direction``) for a
-        frame in this supervisor's own direction verified under the node's key with a freshness
-        value this supervisor never used: a second supervisor holding the master key.
-
-        The hook for a node's own report: call it for a MAC-verified message whose content says
-        the node saw an intrusion (say a TELEMETRY flag), and only once that content is known
-        to be fresh: a TELEMETRY's freshness value is only the high half of the node's
-        transaction, so a recorded one verifies again when replayed."""
-        self.intrusions.record(node, what, kind, now, authentic=True)
-        self._stop_on_intrusion(now)
-
-    def _stop_on_intrusion(self, now: int) -> None:
-        if self.config.stop_on_intrusion and not self.stopping:
-            self.stopped_by_intrusion = True
-            self.stop(now)
+        """Authentic evidence of intrusion: what only a holder of a key could have sent, checked
+        under that key; ``--on-intrusion stop`` acts on it (``BusWatch.authentic_intrusion``)."""
+        self.watch.authentic_intrusion(node, what, kind, now)
 
     def next_wakeup(self) -> int | None:
         wakeup = self.next_status  # the earliest of these (compared, no min(): every pass)
@@ -766,32 +678,7 @@ class SupervisorService:
 
     # -- internals -------------------------------------------------------------------------
     def _inject(self, amount: int) -> None:
-        if self.config.listen_only:
-            raise ValueError("--inject needs a supervisor that writes its state: not --listen-only")
-        st = self.core.state
-        if amount <= 0 or st.initial + st.injected + amount > ENERGY_MAX_UJ:
-            raise ValueError(
-                f"--inject {format_energy(amount)}: must be more than 0 and keep initial + "
-                f"injected at most {ENERGY_MAX_UJ} µJ"
-            )
-        self.core.inject(amount)
-        self.injected_this_run = amount
-
-    def granted_total(self) -> int:
-        """Energy committed, written off or reserved since start (the books, not telemetry)."""
-        st = self.core.state
-        return sum(s.delivered + s.reserved for s in st.sessions) - self.delivered_at_start
-
-    def books(self) -> dict[int, dict[str, int]]:
-        """Per node what the books released and got back (a consistent snapshot)."""
-        return {
-            s.node: {
-                "delivered_uj": s.delivered,
-                "reserved_uj": s.reserved,
-                "returned_uj": s.returned,
-            }
-            for s in self.core.state.sessions
-        }
+        self.ledger.inject(amount)  # the books are written next (``__init__``), before any grant
 
     def is_lost(self, node: int, now: int) -> bool:
         heard = self.nodes[node].heard.heard_at
@@ -834,9 +721,9 @@ class SupervisorService:
                 or self.witness.resume_held(node)
             ):
                 continue  # not heard yet, or no books until admitted: a grant would be lost
-            if self._other_rules(info.rules):  # ``mismatched``
+            if self.rules_said.other(info.rules):  # ``RulesSaid.mismatched``
                 for req in info.requests:
-                    req.reply({"node": self.node_name(node), "error": self.mismatch_why(node)})
+                    req.reply({"node": self.node_name(node), "error": self.rules_said.why(node)})
                 info.requests.clear()
                 continue  # other rules: one side would spend or wait on what the other lacks
             if info.requests:
@@ -867,7 +754,7 @@ class SupervisorService:
     def _books(self) -> Books:
         """What a grant is sized by (what was granted since the start only when a limit
         needs it: the sum runs over every session)."""
-        total = self.granted_total() if self.config.limits.max_total is not None else 0
+        total = self.ledger.granted_total() if self.config.limits.max_total is not None else 0
         return Books(self.core.usable, total)
 
     def _begin(self, node: int, amount: int, now: int) -> list[Outgoing]:
@@ -980,17 +867,13 @@ class SupervisorService:
         return cast(list[Message], out)
 
     def _save_if_dirty(self) -> None:
+        """Write the books if the core's persistent record changed (``_carry_out`` marks it)."""
         if self._dirty:
-            self._persist()
+            self.ledger.write()
             self._dirty = False
 
     def _persist(self) -> None:
-        self.books_out.write()
-
-    @property
-    def saves(self) -> int:
-        """Times the books were written (the state file, or ``save``)."""
-        return self.books_out.saves
+        self.ledger.write()
 
     # -- status ----------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:
@@ -1001,24 +884,15 @@ class SupervisorService:
             stopping=self.stopping,
             listen_only=self.config.listen_only,
             fsync=self.config.fsync,
-            injected_this_run=self.injected_this_run,
-            granted_this_run=self.granted_total(),
+            injected_this_run=self.ledger.injected_this_run,
+            granted_this_run=self.ledger.granted_total(),
             stopped_by_intrusion=self.stopped_by_intrusion,
             waiting_for_books=[self.node_name(n) for n in waiting],
             waiting_why=self.waiting_why(waiting) if waiting else None,
             started_without=self.started_without,
-            variant_mismatch={
-                str(self.node_name(n)): self.mismatch_why(n)
-                for n in self.nodes
-                if self.mismatched(n)
-            },
+            variant_mismatch=self.rules_said.by_name(),
         )
         return self.report.status(run)
 
     def write_status(self) -> None:
         self.status_out.write(self.status())
-
-
-def _own_direction(frame: can.Message) -> bool:
-    """A frame (or classic MAC frame) in the supervisor's own direction, to a node."""
-    return frame_direction(frame.arbitration_id) is Direction.TO_CLIENT

@@ -311,7 +311,7 @@ def run(sc: Scenario) -> Result:
         if not states or states[-1] != drive.state:
             states.append(drive.state)
         if t % 50_000 == 0:
-            b = service.books()[NODE]
+            b = service.ledger.books()[NODE]
             timeline.append((t, b["delivered_uj"] - b["returned_uj"], guard.usable, drive.state))
         if t % sc.pdo_period_us == 0:
             if pdo_number not in sc.pdo_lost:
@@ -338,7 +338,7 @@ def run(sc: Scenario) -> Result:
         for _frame in bus.frames:
             drive.host_heartbeat(HOST, t)
         bus.frames.clear()
-    books = service.books()[NODE]
+    books = service.ledger.books()[NODE]
     status = guard.status(sc.duration_us)
     return Result(
         drawn_uj=drive.drawn_uj,

@@ -464,6 +464,8 @@ class SupervisorService:
         if msg.is_counts and not other:  # the node's return numbers start again, as at a RESUME
             self.witness.hold_resume(msg, s.returns_credited, now, False)
         out = self._carry_out(self.core.receive(msg, now), now)
+        if s.resync and self.core.session(msg.node).phase is Phase.IDLE and info.requests:
+            self.ready.add(msg.node)  # a re-sync ended: the grant that waited for it is tried
         waiting = self.waiting()
         if msg.node in self._waited and msg.node not in waiting:
             info.synced += 1
@@ -768,15 +770,23 @@ class SupervisorService:
                 bus = node >> BUS_SHIFT  # over several buses: the node's
                 frames = [RawFrame(i, d, self.path.begin_fd, bus) for i, d in raw]
         except LocalProtocolError as exc:  # budget changed under us: report, do not crash
-            self._finish_request(node, {"node": self.node_name(node), "error": str(exc)})
-            if isinstance(exc, WindowClosed):
+            if isinstance(exc, WindowClosed):  # a one-shot grant waits for the re-sync
+                self._requeue(node)  # as it waits for a node not heard yet
                 return self._resync(node, "its window is used up", now)
+            self._finish_request(node, {"node": self.node_name(node), "error": str(exc)})
             if at_end(self.core.session(node).tx) and node not in self.ended:
                 self.ended.add(node)
                 log.warning("%s", exc)  # once: the top-up policy asks again each pass
             return []
         self.desk.took(amount)
         return frames + self._carry_out(actions, now)
+
+    def _requeue(self, node: int) -> None:
+        """The one-shot grant being begun goes back to the head of the node's queue."""
+        info = self.nodes[node]
+        if info.active_request is not None:
+            info.requests.insert(0, info.active_request)
+            info.active_request = None
 
     def _resync(self, node: int, why: str, now: int) -> list[Outgoing]:
         """Witnessed rules: re-sync ``node`` alone (``Supervisor.resync``, SYNC with a fresh

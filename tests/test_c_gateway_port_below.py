@@ -313,3 +313,32 @@ def test_a_node_below_with_other_rules_is_granted_nothing_and_told_once(
     assert run.stderr.count(said) == 1
     run = Run(harness, tmp_path, _started_saying(ours), "--rules", below)
     assert len(run.sent(INTENTION)) == 1 and run.status()["nodes"]["1"]["variant_mismatch"] == 0
+
+
+def test_a_witnessed_node_below_whose_window_is_used_up_is_resynced(
+    harness: Path, tmp_path: Path
+) -> None:
+    """--rules witnessed: node 1 below answers none of its top-ups' INTENTIONs (lost, closed by
+    their timeouts), so W stays at 0 while tx runs on; the 65th begin is beyond the window
+    (tx + 1 > W + B, B = 64) and the port re-syncs that node alone: one SYNC (an ADMIT with a
+    nonce the node did not send) and no further INTENTION until the node answers."""
+    witnessed = Telemetry.WITNESSED
+    script = [*_started_saying(witnessed), "inject 100000000"]  # each lost grant written off
+    t = 1000 + JOIN_HOLD_US
+    for _ in range(700):
+        t += 500_000  # past a response timeout: the INTENTION re-sent, then closed
+        script += [f"at {t}", rx(Telemetry(1, 0, witnessed, 0)), "tick"]
+    run = Run(harness, tmp_path, script, "--rules", "witnessed", "--response-timeout", "10ms")
+    begun = {CODEC.decode(*_frame(x)).tx for x in run.sent(INTENTION)}
+    assert begun == set(range(1, 65)), (run.stderr[-3000:], run.status()["nodes"]["1"])
+    admits = run.sent(ADMIT)
+    assert len(admits) >= 2, run.lines[-5:]  # the JOIN's ADMIT, then the re-sync's SYNC
+    joins_nonce = CODEC.decode(*_frame(admits[0])).nonce
+    sync = CODEC.decode(*_frame(admits[1]))
+    assert sync.node == 1 and sync.nonce != joins_nonce
+
+
+def _frame(line: str) -> tuple[int, bytes]:
+    """A harness output line ``tx IIIIIIII#DATA`` as an identifier and bytes."""
+    ident, data = line[3:].split("#")
+    return int(ident, 16), bytes.fromhex(data)

@@ -336,6 +336,7 @@ def test_a_witnessed_node_below_whose_window_is_used_up_is_resynced(
     joins_nonce = CODEC.decode(*_frame(admits[0])).nonce
     sync = CODEC.decode(*_frame(admits[1]))
     assert sync.node == 1 and sync.nonce != joins_nonce
+    assert run.status()["nodes"]["1"]["resyncs"] == 1
 
 
 def _frame(line: str) -> tuple[int, bytes]:

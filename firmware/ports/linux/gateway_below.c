@@ -362,6 +362,7 @@ void gw_top_up(struct gateway_port *g, uint64_t now)
         } else if (rc == CANERGY_ERR_WINDOW && /* witnessed below: re-sync that node alone */
                    canergy_supervisor_resync(&g->gw.down, s->node, port_random16(), now, &out) ==
                        CANERGY_OK) {
+            b->resyncs++;
             gw_down_out(g, &out, now);
         }
     }

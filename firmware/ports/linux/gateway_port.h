@@ -84,6 +84,7 @@ struct below {
     int joining; /* its last TELEMETRY said JOINING */
     int other_rules; /* its last TELEMETRY said other client rules than --rules: no grant */
     uint32_t variant_mismatch; /* its TELEMETRY frames that said other rules */
+    uint32_t resyncs; /* re-syncs of it alone (--rules witnessed: its window used up) */
     int heard;
 };
 

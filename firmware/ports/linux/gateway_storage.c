@@ -489,7 +489,7 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                       "\"written_off\": %llu, \"admitted\": %llu, \"returns_held\": %u, "
                       "\"returns_refuted\": %lu, \"returns_resynchronised\": %lu, "
                       "\"intrusions\": %lu, \"refused\": %lu, \"joins_resent\": %lu, "
-                      "\"joins_held\": %u, \"variant_mismatch\": %lu}",
+                      "\"joins_held\": %u, \"variant_mismatch\": %lu, \"resyncs\": %lu}",
                       i == 0U ? "" : ", ", (unsigned)s->node, phase_name(s->phase), open_tx,
                       (unsigned long)s->reserved_uj,
                       (unsigned long long)s->delivered_uj, (unsigned long long)s->returned_uj,
@@ -501,7 +501,7 @@ static void write_status(const struct gateway_port *g, FILE *f, uint64_t now)
                       (unsigned long)b->witness.refuted, (unsigned long)b->witness.resynced,
                       (unsigned long)b->intrusions, (unsigned long)refused_of(b),
                       (unsigned long)b->joins.resent, (unsigned)b->joins.held_count,
-                      (unsigned long)b->variant_mismatch);
+                      (unsigned long)b->variant_mismatch, (unsigned long)b->resyncs);
     }
     (void)fprintf(f,
                   "}, \"upstream\": {\"node\": %u, \"usable_uj\": %lu, \"spent_uj\": %llu, "

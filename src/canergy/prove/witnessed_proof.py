@@ -39,7 +39,8 @@ admitted as in IDLE (``join_while_syncing``), its counts end it as a start's.
 
 Not proved: it fails at the supervisor's DEBIT, where a SYNC's counts end the supervisor's
 start and the invariant speaks of the record started from again (its tx, C and Gs are not yet
-shown to dominate the session at the start's; 18 of its 39 obligations): docs/protocol.md
+shown to dominate the session at the start's; 19 of its 40 obligations, and ``supervisor
+books`` at a re-sync's books, whose Rc ``P`` of a DEBIT does not bound by Gs): docs/protocol.md
 ("Passivity as a theorem", assumption 2, items (a) to (d)); ``canergy prove --rules witnessed
 --keep-going`` lists the obligations, ``--step NAME`` checks one step. Counts that end a start
 are read against the record started from, so ``deliverable`` asks their q within 2**15 of its

@@ -33,8 +33,8 @@ A re-sync of the node (``supervisor re-syncs a node``: the supervisor's choice, 
 start of this one session without restore and without write-off, and the clauses of a start
 mean the same of it: ``World.spre`` is the session as it stood (idle, nothing open),
 ``World.sstarts`` counts it (its nonce is drawn fresh, as a start's: assumption 5), its SYNC
-phases are a start's. While it waits the session is the one at its start but for its phase,
-its nonce (``resyncing``: Gs too, not proved at its books); a JOIN ends it and is
+phases are a start's. While it waits the session is the one at its start but for its phase
+and nonce, Gs included (``resyncing``; not proved at its books); a JOIN ends it and is
 admitted as in IDLE (``join_while_syncing``), its counts end it as a start's.
 
 Not proved: it fails at the supervisor's DEBIT, where a SYNC's counts end the supervisor's

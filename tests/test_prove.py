@@ -318,15 +318,17 @@ def test_the_witnessed_node_starts_draws_and_releases_keeping_the_invariant(step
 SUPERVISOR_START_STEPS = (
     "supervisor: restored from an older image",
     "supervisor: power loss (SYNC)",
+    "supervisor re-syncs a node",
 )
 
 
 @pytest.mark.parametrize("step", SUPERVISOR_START_STEPS)
 def test_the_witnessed_supervisor_starts_keeping_the_invariant(step: str) -> None:
     """Under the witnessed rules a supervisor's start, from its own record or from any older
-    image of it, keeps every clause: while the start waits for the node's books and counts the
-    invariant speaks of the session as it stood when the start began (``World.spre``), and the
-    session grants nothing. Each step can move what its rule moves (no vacuous proof)."""
+    image of it, and a re-sync of the node (a start of its session alone, from IDLE) keep every
+    clause: while the start waits for the node's books and counts the invariant speaks of the
+    session as it stood when the start began (``World.spre``), and the session grants nothing.
+    Each step can move what its rule moves (no vacuous proof)."""
     outcomes = _witnessed_outcomes(step)
     failed = [f"{o.clause}\n{o.counterexample}" for o in outcomes if not o.proved]
     assert not failed, failed[0]

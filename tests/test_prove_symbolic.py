@@ -41,6 +41,7 @@ from canergy.core.steps import ClientStep
 from canergy.core.timing import Timing
 from canergy.core.witnessed import CLIENT as W_CLIENT
 from canergy.core.witnessed import SUPERVISOR as W_SUPERVISOR
+from canergy.core.witnessed import resync_session
 from canergy.messages import (
     COUNTER_BOUND,
     COUNTER_END,
@@ -386,7 +387,7 @@ def witnessed_clients(draw: Any) -> ClientState:
 @st.composite
 def witnessed_sessions(draw: Any) -> Session:
     """A session with the last start it answered, often the one about to arrive again, W at
-    most tx, and any phase of the witnessed table (a start's two)."""
+    most tx, and any phase of the witnessed table (a start's two, a re-sync's or not)."""
     s = draw(sessions())
     start = draw(st.sampled_from([None, Phase.SYNCING, Phase.SYNC_BOOKS]))
     if start is not None:
@@ -405,12 +406,13 @@ def witnessed_sessions(draw: Any) -> Session:
         join_nonce=draw(st.integers(0, 3)),
         join_tx=draw(st.integers(max(0, s.tx - 70), s.tx)),
         join_seq=draw(st.one_of(st.just(0), st.integers(0, s.returns_credited))),
+        resync=start is not None and draw(st.booleans()),
     )
 
 
 def witnessed_fields(s: Session | sym.Session) -> dict[str, int]:
     names = ("resume_nonce", "resume_from", "resume_to", "witness", "sync_nonce")
-    names += ("join_nonce", "join_tx", "join_seq")
+    names += ("join_nonce", "join_tx", "join_seq", "resync")
     if isinstance(s, Session):
         return {n: getattr(s, n) % (1 << 32) for n in names}  # the core keeps an unwrapped -q
     return {n: int(value(getattr(s, n))) for n in names}
@@ -544,6 +546,14 @@ def test_witnessed_supervisor_responses_starts_and_window(s: Session, data: st.D
         W_SUPERVISOR.step(T, s, PowerLoss(nonce), 0),
         sym_w.start(sym_session(s), z3.BitVecVal(nonce, 16)),
     )
+    may_resync = value(sym_w.may_resync(sym_session(s)))
+    try:
+        py = resync_session(T, s, nonce, 0)
+    except LocalProtocolError:
+        assert not may_resync
+    else:
+        assert may_resync
+        same_session_w(py, sym_w.resync_session(sym_session(s), z3.BitVecVal(nonce, 16)))
     if s.phase is Phase.IDLE:
         amount = data.draw(amounts) * QUANTUM_UJ
         room = value(sym_w.may_begin(sym_session(s), T.window))

@@ -44,4 +44,5 @@ def sym_session(s: Session) -> sym.Session:
         join_nonce=z3.BitVecVal(s.join_nonce, 16),
         join_tx=sym.counter(s.join_tx),
         join_seq=sym.counter(s.join_seq),
+        resync=z3.BoolVal(s.resync),
     )

@@ -319,6 +319,9 @@ class Session:
     the k and C of its ADMIT (``join_seq`` 0: none), so that a copy gets the same ADMIT."""
     join_tx: Term
     join_seq: Term
+    resync: Term
+    """The SYNC is a re-sync of this idle session alone (witnessed rules,
+    ``witnessed.resync_session``; volatile: a start and a re-sync's counts clear it)."""
 
 
 S_IDLE, WAIT_ACK, ACKED, WAIT_CONFIRM = (

@@ -371,12 +371,26 @@ def _sync(s: Session) -> Sent:
 
 def start(s: Session, nonce16: Term) -> SessionStep:
     """A start (after a power loss or from an older image): write off what is open, SYNCING
-    with a new nonce (SYNC is sent by ``resend_sync``, its timer due at once)."""
+    with a new nonce (SYNC is sent by ``resend_sync``, its timer due at once); no re-sync."""
     open_ = z3.Or(*(s.phase == p for p in OPEN))
     step = sym.choose(open_, sym._resolve(s, z3.BoolVal(False)), sym._unchanged(s))
     nonce = nonce16 & (0xFFFF ^ SYNC_CONFIRMED)  # never reads as a confirmation of counts
-    waiting = replace(step.session, phase=sym.SYNCING, sync_nonce=nonce)
+    waiting = replace(step.session, phase=sym.SYNCING, sync_nonce=nonce, resync=z3.BoolVal(False))
     return SessionStep(waiting, Sent.none(), step.credit)
+
+
+def may_resync(s: Session) -> Term:
+    """A re-sync starts only from IDLE (nothing open, no start waiting)."""
+    return s.phase == sym.S_IDLE
+
+
+def resync_session(s: Session, nonce16: Term) -> SessionStep:
+    """``witnessed.resync_session`` (from IDLE, ``may_resync``): SYNCING under the fresh nonce
+    (``SYNC_CONFIRMED`` cleared), ``resync`` set, SYNC(n, tx, C) sent at once; nothing else
+    moves."""
+    nonce = nonce16 & (0xFFFF ^ SYNC_CONFIRMED)
+    waiting = replace(s, phase=sym.SYNCING, sync_nonce=nonce, resync=z3.BoolVal(True))
+    return SessionStep(waiting, _sync(waiting), z3.IntVal(0))
 
 
 def resend_sync(s: Session) -> SessionStep:
@@ -413,6 +427,7 @@ def take_counts(
     C = max(C, q) + 1, ADMIT(n ^ SYNC_CONFIRMED, tx, C)); its books again are taken again."""
     settled = _ltx_of(amount_mj, s.tx)
     idle = replace(s, phase=sym.S_IDLE, sync_nonce=_zero16(), witness=settled)
+    idle = replace(idle, resync=z3.BoolVal(False))
     counted = confirm(idle, nonce16, z3.BoolVal(False), seq16, amount_mj, z3.BoolVal(True))
     step = sym.choose(
         is_books(flags),
@@ -544,6 +559,15 @@ def admitted_afresh(s: Session, nonce16: Term) -> SessionStep:
 
 
 def admit(s: Session, nonce16: Term) -> SessionStep:
+    """JOIN(n): outside a start, ``admit_idle``; at a start, ignored; in a re-sync
+    (``join_while_syncing``), the re-sync ends (IDLE, no nonce, ``resync`` clear) and the JOIN
+    is taken as in IDLE."""
+    ended = replace(s, phase=sym.S_IDLE, sync_nonce=_zero16(), resync=z3.BoolVal(False))
+    waits = sym.choose(s.resync, admit_idle(ended, nonce16), sym._unchanged(s))
+    return sym.choose(in_start(s), waits, admit_idle(s, nonce16))
+
+
+def admit_idle(s: Session, nonce16: Term) -> SessionStep:
     """JOIN(n) outside a start: the admission afresh with the number after C voided: C + 1,
     ADMIT(n, k, C), remembered (``join_*``); a copy of the last JOIN admitted (its nonce,
     ``join_seq`` not 0) gets the same ADMIT again and moves nothing."""
@@ -564,7 +588,7 @@ def admit(s: Session, nonce16: Term) -> SessionStep:
         z3.BV2Int(sym.low(s.join_seq, SEQ_BITS)),
     )
     copy = z3.And(s.join_seq != 0, s.join_nonce == nonce16)
-    return _outside_start(s, sym.choose(copy, SessionStep(s, again, z3.IntVal(0)), fresh))
+    return sym.choose(copy, SessionStep(s, again, z3.IntVal(0)), fresh)
 
 
 def counts_taken(s: Session, nonce16: Term, amount_mj: Term, window: int = WINDOW) -> Term:

@@ -29,9 +29,18 @@ carries the start it was sent in, the node's books and counts the start whose SY
 answer (``World.answering`` while it answers one); books and counts a start takes (its nonce)
 are of that start (``deliverable``: assumption 5 for the supervisor's nonces).
 
+A re-sync of the node (``supervisor re-syncs a node``: the supervisor's choice, from IDLE) is a
+start of this one session without restore and without write-off, and the clauses of a start
+mean the same of it: ``World.spre`` is the session as it stood (idle, nothing open),
+``World.sstarts`` counts it (its nonce is drawn fresh, as a start's: assumption 5), its SYNC
+phases are a start's. While it waits the session is the one at its start but for its phase
+and nonce, Gs included (``resyncing``; not proved at its books); a JOIN ends it and is
+admitted as in IDLE (``join_while_syncing``), its counts end it as a start's.
+
 Not proved: it fails at the supervisor's DEBIT, where a SYNC's counts end the supervisor's
 start and the invariant speaks of the record started from again (its tx, C and Gs are not yet
-shown to dominate the session at the start's; 18 of its 39 obligations): docs/protocol.md
+shown to dominate the session at the start's; 19 of its 40 obligations, and ``supervisor
+books`` at a re-sync's books, whose Rc ``P`` of a DEBIT does not bound by Gs): docs/protocol.md
 ("Passivity as a theorem", assumption 2, items (a) to (d)); ``canergy prove --rules witnessed
 --keep-going`` lists the obligations, ``--step NAME`` checks one step. Counts that end a start
 are read against the record started from, so ``deliverable`` asks their q within 2**15 of its
@@ -194,7 +203,40 @@ def supervisor_books(w: World) -> Term:
         inv.decision(w),
         inv.lifts(w),
         z3.Implies(wit.in_start(s), waiting(w)),
+        z3.Implies(s.resync, resyncing(w)),
         sstarts(w) >= 0,
+    )
+
+
+RESYNC_KEPT = (
+    "tx",
+    "reserved",
+    "decision",
+    "returns_credited",
+    "returned",
+    "resume_nonce",
+    "resume_from",
+    "resume_to",
+    "witness",
+    "join_nonce",
+    "join_tx",
+    "join_seq",
+    "delivered",
+)
+"""What a re-sync leaves as it stood at its start until its counts (or a JOIN) end it."""
+
+
+def resyncing(w: World) -> Term:
+    """A re-sync waits (``Session.resync``): a start of this session without restore, so the
+    session at its start (``World.spre``) is the session itself but for the start's phase and
+    nonce. Gs too: the books answering the re-sync's SYNC carry the node's Rc, at most Gs
+    with nothing restored, and move no Gs (not proved: the supervisor's DEBIT, where ``P`` of
+    the books does not bound their Rc by Gs; with Gs allowed up instead, the JOIN that ends a
+    re-sync after its books fails ``Gs = H``)."""
+    s, r = w.s, spre(w)
+    return z3.And(
+        wit.in_start(s),
+        *(getattr(s, f) == getattr(r, f) for f in RESYNC_KEPT),
     )
 
 
@@ -791,11 +833,12 @@ def _lift(s: sym.Session) -> tuple[Term, Term]:
 
 
 def on_join(w: World, m: Msg) -> st.Step:
-    """A JOIN outside a start: admitted afresh (its ADMIT remembered with its ghosts), or, a
-    copy of the last JOIN admitted, that ADMIT sent again (its ghosts the remembered ones)."""
+    """A JOIN outside a start, or in a re-sync (which it ends): admitted afresh (its ADMIT
+    remembered with its ghosts), or, a copy of the last JOIN admitted, that ADMIT sent again
+    (its ghosts the remembered ones); at a start: ignored."""
     step = wit.admit(w.s, m.nonce)
     copy = z3.And(w.s.join_seq != 0, w.s.join_nonce == m.nonce)
-    taken = z3.And(z3.Not(wit.in_start(w.s)), z3.Not(copy))
+    taken = z3.And(z3.Or(z3.Not(wit.in_start(w.s)), w.s.resync), z3.Not(copy))
     lift_tx, lift_seq = _lift(w.s)
     zero = sym.counter(0)
     shift_tx = w.shift_tx + z3.If(taken, lift_tx, zero)
@@ -912,6 +955,22 @@ def restore_supervisor(
     return st.Step(after, sent, z3.BoolVal(True), now - books + step.credit)
 
 
+RESYNC = "supervisor re-syncs a node"
+
+
+def resync(w: World, nonce: Term) -> st.Step:
+    """The supervisor re-syncs the node (its choice, from IDLE, any fresh nonce): a start of
+    this session alone, without restore and without write-off. Its ghosts are a start's: the
+    session at the start is the session as it stands (``World.spre``), and the re-sync counts
+    as one more of the supervisor's starts (``World.sstarts``): its SYNC carries it, so only
+    the books and counts answering this SYNC are taken (``deliverable``, assumption 5: the
+    nonce is drawn fresh, as a start's)."""
+    step = wit.resync_session(w.s, nonce)
+    at_start = replace(w.s, sync_nonce=z3.BitVecVal(0, 16), resync=z3.BoolVal(False))
+    out = _session(w, step, spre=at_start, sstarts=sstarts(w) + 1)
+    return replace(out, enabled=wit.may_resync(w.s))
+
+
 def deliveries() -> dict[Kind, st.Deliver]:
     table: dict[Kind, st.Deliver] = {
         Kind.INTENTION: on_intention,
@@ -952,6 +1011,7 @@ def local() -> dict[str, st.Local]:
             w, wit.response_timeout(w.s, z3.Bool("response_timeout.gives_up"))
         ),
         "supervisor: power loss (SYNC)": lambda w: restore_supervisor(w, w.s, nonce),
+        RESYNC: lambda w: resync(w, z3.BitVec("resync.nonce", 16)),
     }
 
 

@@ -76,14 +76,14 @@ class World:
     Hardened: unused."""
     spre: sym.Session | None = None
     """Witnessed rules: the supervisor's session record as it stood when its current start
-    began (what was open written off). While the start waits for the node's books and counts
-    this record, not the one it started from (which may be an older image), is what the
-    invariant speaks of (hardened: unused)."""
+    (or re-sync) began (what was open written off). While the start waits for the node's books
+    and counts this record, not the one it started from (which may be an older image), is what
+    the invariant speaks of (hardened: unused)."""
     sstarts: Term | None = None
     """Witnessed rules: how many starts the supervisor has made (each draws a SYNC nonce: a
-    power loss, a restore), a pure function of the history; a SYNC carries the start it was
-    sent in, a SYNC's books and counts the start whose SYNC they answer (``Msg.sstart``).
-    Hardened: unused."""
+    power loss, a restore, a re-sync of the node), a pure function of the history; a SYNC
+    carries the start it was sent in, a SYNC's books and counts the start whose SYNC they
+    answer (``Msg.sstart``). Hardened: unused."""
     answering: Term | None = None
     """Witnessed rules: the supervisor's start whose SYNC the node's answer (while SYNCING)
     answers; -1: none (counts that follow a RESUME's confirmation). Hardened: unused."""
@@ -150,6 +150,7 @@ _SESSION = {
     "join_nonce": BV16,
     "join_tx": BV32,
     "join_seq": BV32,
+    "resync": BOOL,
 }
 _CLIENT = {
     "usable": INT,
@@ -223,7 +224,7 @@ def initial_world() -> World:
     zero_key = z3.BitVecVal(0, sym.KEY_BITS)
     s = sym.Session(
         sym.S_IDLE, zero32, zero, zero, sym.NO_DECISION, zero32, zero, zero_key, zero32, zero32,
-        zero32, zero16, zero16, zero32, zero32,
+        zero32, zero16, zero16, zero32, zero32, no,
     )  # fmt: skip
     c = sym.Client(
         zero,

@@ -10,6 +10,7 @@ canonical form, the subsumption or a rule's bookkeeping changes at least one of 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from typing import Any
 
 import pytest
@@ -99,6 +100,18 @@ CASES: list[tuple[str, str, Bounds, dict[str, Any]]] = [
         "backups, 2 clients",
         "witnessed",
         Bounds(clients=2, transactions=1, old_copies=1, backups=True, losses=0, duplicates=0),
+        {"max_states": 20000},
+    ),
+    (
+        "re-syncs, 2 clients",
+        "witnessed",
+        Bounds(clients=2, transactions=1, duplicates=0, power_losses=0, timeouts=2, resyncs=1),
+        {"max_states": 20000},
+    ),
+    (
+        "re-syncs, the supervisor's old copy",
+        "witnessed",
+        replace(SUP_COPY, resyncs=2),
         {"max_states": 20000},
     ),
     ("3 clients", "hardened", Bounds(clients=3, transactions=1, losses=0, in_flight=2), {}),

@@ -74,6 +74,8 @@ def step_json(step: Step) -> dict[str, Any]:
         out["units"] = step.units
     if step.kind is StepKind.DECIDE:
         out["commit"] = step.commit
+    if step.kind is StepKind.RESYNC:
+        out["nonce"] = step.nonce
     if step.message is not None:
         out["message"] = {"type": step.message.TYPE.name, **_fields(step.message)}
     return out
@@ -92,6 +94,7 @@ def step_from_json(data: dict[str, Any]) -> Step:
         data.get("units", 0),
         data.get("commit", False),
         message,
+        data.get("nonce", 0),
     )
 
 

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from enum import Enum
 
 from canergy.check.attacker import forgeable
+from canergy.core import witnessed
 from canergy.core.actions import Send
 from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import (
@@ -30,7 +31,7 @@ from canergy.core.inputs import (
     Spend,
 )
 from canergy.core.state import ClientState, Decision, Phase, Session, SupervisorState
-from canergy.core.steps import Actions
+from canergy.core.steps import Actions, SessionStep
 from canergy.core.supervisor import apply_session, unconfirmed
 from canergy.core.table import Event
 from canergy.core.timing import Timing
@@ -51,6 +52,9 @@ SUPERVISOR_NONCE = 0x300
 copy) sends SYNC with nonce ``SUPERVISOR_NONCE + n``: no earlier start drew it (rules that have
 every start confirmed, ``witnessed``, use it)."""
 SUPERVISOR_COPY_NONCE = 0x380
+RESYNC_NONCE = 0x3C0
+"""The supervisor's n-th re-sync of a node in a run sends SYNC with nonce ``RESYNC_NONCE + n``
+(the live supervisor draws a fresh random one for each): no start or other re-sync drew it."""
 WINDOW = 1
 """The checker's window B (``Timing.window``): 1, so that it binds within the bounds."""
 Flight = frozenset[tuple[Message, int]]
@@ -85,6 +89,11 @@ class Bounds:
     """Frames a keyless attacker builds and sends (``attacker.forgeable``; the codec is public)."""
     replays: int = 0
     """Copies of frames seen earlier on the bus an attacker sends again (authenticated mode)."""
+    resyncs: int = 0
+    """Re-syncs of one idle node by the supervisor (``witnessed.resync_session``, what the live
+    supervisor does when a begin is refused as beyond the window or a node's counts are
+    ignored), each with a fresh SYNC nonce; at any moment the node's session is IDLE, window
+    closed or not (witnessed rules only)."""
     returns: bool = True
     spending: bool = True
     extra_ids: int = 2
@@ -118,6 +127,7 @@ class World:
     """The supervisor's state before its last record write (kept only when its old copies are
     on)."""
     sup_old_copied: int = 0
+    resynced: int = 0
     lost_records: tuple[tuple[int, LostRecord], ...] = ()
     """Nodes that lost their record, and what the observer saw it hold (for the ledger)."""
     forged: int = 0
@@ -165,12 +175,13 @@ class StepKind(Enum):
     SUPERVISOR_OLD_COPY = "supervisor_old_copy"
     FORGE = "forge"
     REPLAY = "replay"
+    RESYNC = "resync"
 
 
 K = StepKind
 CHANNEL_KINDS = frozenset({K.DELIVER, K.LOSE, K.DUPLICATE})
 TIMER_KINDS = frozenset({K.SUPERVISOR_TIMER, K.COMMAND_TIMER, K.RETURN_TIMER})
-SUPERVISOR_KINDS = frozenset({K.BEGIN, K.DECIDE, K.SUPERVISOR_TIMER})
+SUPERVISOR_KINDS = frozenset({K.BEGIN, K.DECIDE, K.SUPERVISOR_TIMER, K.RESYNC})
 POWER_LOSS_KINDS = frozenset({K.CLIENT_POWER_LOSS, K.SUPERVISOR_POWER_LOSS})
 ATTACKER_KINDS = frozenset({K.FORGE, K.REPLAY})
 
@@ -194,6 +205,7 @@ class Step:
             K.BEGIN: f" {self.units} unit(s)",
             K.DECIDE: " commit" if self.commit else " abort",
             K.NV_LOST: f" (nonce {self.nonce})",
+            K.RESYNC: f" (nonce {self.nonce:#x})",
         }
         where = f" node {self.node}" if self.node else ""
         return f"{kind}{where}{extra.get(self.kind, '')}"
@@ -226,6 +238,7 @@ class Model:
         that lift it at a start (``witnessed``) one window per start or frame that lifts it."""
         if variant.lifts_tx:
             lifts = b.power_losses + b.supervisor_old_copies + b.old_copies + b.duplicates + 1
+            lifts += b.resyncs  # a re-synced node settles B further: tx moves up to its ltx
             self.tx_limit += self.timing.window * lifts
 
     # -- enumeration -----------------------------------------------------------------
@@ -234,6 +247,7 @@ class Model:
         may_time_out = b.timeouts is None or w.timed_out < b.timeouts
         may_lose_power = w.power_lost < b.power_losses
         waiting = bool(unconfirmed(w.sup))
+        may_resync = w.resynced < b.resyncs and self.variant.lifts_tx
         for s in w.sup.sessions:
             if s.phase is Phase.IDLE and w.started < b.transactions and not waiting:
                 for units in range(1, min(w.sup.usable // UNIT, b.units) + 1):
@@ -243,6 +257,8 @@ class Model:
                 yield Step(K.DECIDE, s.node, commit=False)
             if s.deadline is not None and may_time_out:
                 yield Step(K.SUPERVISOR_TIMER, s.node)
+            if s.phase is Phase.IDLE and may_resync:
+                yield Step(K.RESYNC, s.node, nonce=RESYNC_NONCE + w.resynced + 1)
         for msg, _ in sorted(w.flight, key=_flight_key):
             yield Step(K.DELIVER, message=msg)
             if w.lost < b.losses:
@@ -312,6 +328,8 @@ class Model:
             return evolve(w, forged=w.forged + 1)
         if kind is K.REPLAY:
             return evolve(w, replayed=w.replayed + 1)
+        if kind is K.RESYNC:
+            return evolve(w, resynced=w.resynced + 1)
         return w
 
     def _apply(self, w: World, step: Step) -> World | None:
@@ -340,12 +358,16 @@ class Model:
             return self._to_client(w, i, PowerLoss(step.nonce))
         if step.kind in SUPERVISOR_KINDS:
             return self._to_session(w, i, self.event(step))
-        return self._to_client(w, i, self.event(step))
+        event = self.event(step)
+        assert not isinstance(event, Resync)  # a supervisor's step
+        return self._to_client(w, i, event)
 
     @staticmethod
-    def event(step: Step) -> Event:
+    def event(step: Step) -> Event | Resync:
         """The event a step that is neither the channel's nor the attacker's feeds its node."""
         kind = step.kind
+        if kind is K.RESYNC:
+            return Resync(step.nonce)
         if kind is K.BEGIN:
             return Begin(step.units * UNIT)
         if kind is K.DECIDE:
@@ -420,10 +442,10 @@ class Model:
         """Session ``i``'s share of a supervisor start (it touches no other node)."""
         return self._to_session(w, i, PowerLoss(nonce) if nonce else POWER_LOSS)
 
-    def _to_session(self, w: World, i: int, event: Event) -> World:
+    def _to_session(self, w: World, i: int, event: Event | Resync) -> World:
         rules = self.variant.supervisor
         old = w.sup.sessions[i]
-        step = rules.step(self.timing, old, event, 0)
+        step = session_step(self.variant, self.timing, old, event)
         if w.sup_older is not None and (
             step.credit or rules.persistent(old) != rules.persistent(step.session)
         ):
@@ -449,6 +471,21 @@ class Model:
         if self.bounds.replays:
             w = evolve(w, seen=w.seen.union(sends))
         return evolve(w, flight=frozenset(counts.items()))
+
+
+@dataclass(frozen=True, slots=True)
+class Resync:
+    """The supervisor re-syncs one idle node with SYNC nonce ``nonce``: a call of its own
+    (``Supervisor.resync``, ``witnessed.resync_session``), not a cell of the table."""
+
+    nonce: int
+
+
+def session_step(variant: Variant, t: Timing, s: Session, event: Event | Resync) -> SessionStep:
+    """What the supervisor does with ``event`` for session ``s`` (no time: ``now = 0``)."""
+    if isinstance(event, Resync):
+        return witnessed.resync_session(t, s, event.nonce, 0)
+    return variant.supervisor.step(t, s, event, 0)
 
 
 _DATALESS: dict[StepKind, Event] = {

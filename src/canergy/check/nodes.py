@@ -24,9 +24,11 @@ from canergy.check.model import (
     CHANNEL_KINDS,
     OLD_COPY_NONCE,
     RESTART_NONCE,
+    RESYNC_NONCE,
     SUPERVISOR_KINDS,
     UNIT,
     Model,
+    Resync,
     Step,
     StepKind,
     World,
@@ -80,7 +82,7 @@ Keyed = tuple[tuple[int, str], int, Move]
 """A move ordered by its frame's ``message_key`` (then its place among that frame's moves)."""
 Listed = tuple[tuple[int, str], StepKind, int]
 """A step of one part, for any content holding it: (its frame's key, kind, argument)."""
-Spec = tuple[tuple[int, str], int, StepKind, int, int, "Event | int | None", int]
+Spec = tuple[tuple[int, str], int, StepKind, int, int, "Event | Resync | int | None", int]
 """The same with what applying it needs: (frame's key, guard, kind, argument, counters charged
 (packed), the event it feeds (a number: a frame), the side it goes to (``SESSION``...))."""
 CHANNEL, SESSION, CLIENT = range(3)
@@ -139,8 +141,10 @@ class NodeTable:
         less the overlap): the ledger is a sum over nodes plus Us."""
         self.quiet: list[bool] = []
         self.syncing: list[bool] = []
-        """The node's session waits for its books after a start (witnessed): no grant to anyone,
-        and the ledger counts none of Us (``ledger.supervisor_usable``)."""
+        """The node's session waits for its books (witnessed, a start or a re-sync): the ledger
+        counts none of Us (``ledger.supervisor_usable``)."""
+        self.holding: list[bool] = []
+        """The same after a start, not a re-sync: no grant to anyone (``unconfirmed``)."""
         self.frames: list[int] = []
         self.bare: list[int] = []
         """The same content with nothing seen (subsumption compares what was seen apart)."""
@@ -183,7 +187,9 @@ class NodeTable:
         held, quiet = self._held_and_quiet(c.session, c.client, c.ghost)
         self.held.append(held)
         self.quiet.append(quiet and not frames)
-        self.syncing.append(self.parts.objects[c.session].phase in SYNC_PHASES)
+        session = self.parts.objects[c.session]
+        self.syncing.append(session.phase in SYNC_PHASES)
+        self.holding.append(session.phase in SYNC_PHASES and not session.resync)
         self.frames.append(frames)
         mask = 0
         for frame in self.parts.seens[c.seen]:
@@ -267,7 +273,7 @@ class NodeTable:
         """The reference model's world with these contents at these positions (and ``older``:
         the supervisor's older state, its Us and each position's session part)."""
         xs = [self.objects(c, p + 1) for p, c in enumerate(nodes)]
-        started, lost, dup, power, timed, nv, old, forged, replayed, sup_old = counted
+        started, lost, dup, power, timed, nv, old, forged, replayed, sup_old, resynced = counted
         sup_older = None
         if older is not None:
             named = self.parts.named
@@ -291,6 +297,7 @@ class NodeTable:
             seen=frozenset(m for x in xs for m in x.seen),
             sup_older=sup_older,
             sup_old_copied=sup_old,
+            resynced=resynced,
         )
 
     # -- listing moves -----------------------------------------------------------------
@@ -332,7 +339,7 @@ class NodeTable:
         return out
 
     def _spec(self, key: tuple[int, str], kind: StepKind, arg: int) -> Spec:
-        event: Event | int | None = None
+        event: Event | Resync | int | None = None
         side = CHANNEL
         if kind is K.DELIVER or kind in ATTACKER_KINDS:
             event = arg
@@ -364,6 +371,9 @@ class NodeTable:
             out += [(NO_KEY, K.DECIDE, 1), (NO_KEY, K.DECIDE, 0)]
         if s.deadline is not None:
             out.append((NO_KEY, K.SUPERVISOR_TIMER, 0))
+        if s.phase is Phase.IDLE and self.model.variant.lifts_tx:
+            resyncs = range(RESYNC_NONCE + 1, RESYNC_NONCE + self.bounds.resyncs + 1)
+            out += [(NO_KEY, K.RESYNC, nonce) for nonce in resyncs]
         return out
 
     def _flight_steps(self, flight: int, n: int) -> list[Listed]:

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 from canergy.check.model import (
     OLD_COPY_NONCE,
     RESTART_NONCE,
+    RESYNC_NONCE,
     UNIT,
     Bounds,
     Model,
@@ -47,6 +48,7 @@ class Layout:
             bounds.forgeries,
             bounds.replays,
             bounds.supervisor_old_copies,
+            bounds.resyncs,
         )
         self.offsets: list[int] = []
         self.widths: list[int] = []
@@ -127,7 +129,9 @@ class Guards:
         self._restart = self._nv + bounds.nv_losses + 1
         self._old_copy = self._restart + bounds.power_losses
         self.sup_copy = self._old_copy + bounds.old_copies
-        self.size = self.sup_copy + 1
+        # then one per re-sync nonce (the re-sync it is the next one of)
+        self._resync = self.sup_copy + 1
+        self.size = self._resync + bounds.resyncs
         self.power = power
         self._by_kind = {
             K.DECIDE: self.always,
@@ -159,6 +163,8 @@ class Guards:
             return self._restart + arg - RESTART_NONCE - 1
         if kind is K.NV_OLD_COPY:
             return self._old_copy + arg - OLD_COPY_NONCE - 1
+        if kind is K.RESYNC:
+            return self._resync + arg - RESYNC_NONCE - 1
         return self._by_kind[kind]
 
     def table(
@@ -172,7 +178,7 @@ class Guards:
         if table is None:
             b = self.bounds
             cap = min(max(usable // UNIT, 0), b.units)
-            started, lost, dup, power, timed, nv, old, forged, replayed, sup_old = (
+            started, lost, dup, power, timed, nv, old, forged, replayed, sup_old, resynced = (
                 self.layout.unpack_counters(packed)
             )
             k = self._by_kind
@@ -194,6 +200,8 @@ class Guards:
             for n in range(b.old_copies):
                 ok[self._old_copy + n] = old == n
             ok[self.sup_copy] = sup_old < b.supervisor_old_copies
+            for n in range(b.resyncs):
+                ok[self._resync + n] = resynced == n
             table = self._tables[key] = tuple(ok)
         return table
 

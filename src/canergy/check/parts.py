@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any, TypeVar, cast
 
-from canergy.check.model import Model
+from canergy.check.model import Model, Resync, session_step
 from canergy.core.actions import Send
 from canergy.core.state import ClientState, Session
 from canergy.core.table import Event
@@ -120,12 +120,14 @@ class Parts:
         """An event as node ``node``'s (a number stands for a frame)."""
         return cast(Event, self.named(event, node)) if isinstance(event, int) else event
 
-    def session_step(self, session: int, node: int, event: Event | int) -> SessionResult:
+    def session_step(self, session: int, node: int, event: Event | Resync | int) -> SessionResult:
         key = (session, node, event)
         out = self._session_steps.get(key)
         if out is None:
             s = cast(Session, self.named(session, node))
-            step = self.variant.supervisor.step(self.timing, s, self.event(event, node), 0)
+            if not isinstance(event, Resync):
+                event = self.event(event, node)
+            step = session_step(self.variant, self.timing, s, event)
             sends = self._sent(step.actions, node)
             out = self._session_steps[key] = (self.part(step.session), step.credit, sends)
         return out

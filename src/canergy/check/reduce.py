@@ -5,11 +5,11 @@ same world with node ids permuted (sessions, clients and frames alike) have mirr
 Only one representative of each class is stored: the one with nodes sorted by what they hold.
 
 **Subsumption.** The run counters (transactions started, frames lost and duplicated, power
-losses, timer expiries, forgeries and replays) are budgets: a world that has used less of every
-budget can do everything the same world with more used can do, and so can one whose replayer has
-seen more frames. A world is skipped when the same protocol state has been stored with every
-counter lower or equal and every frame it has seen seen too. Breadth-first order stores the
-cheaper one no later than at the same depth, so counterexamples stay shortest.
+losses, timer expiries, forgeries, replays and re-syncs) are budgets: a world that has used less
+of every budget can do everything the same world with more used can do, and so can one whose
+replayer has seen more frames. A world is skipped when the same protocol state has been stored
+with every counter lower or equal and every frame it has seen seen too. Breadth-first order
+stores the cheaper one no later than at the same depth, so counterexamples stay shortest.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from canergy.ledger import LostRecord
 from canergy.messages import Message
 
 T = TypeVar("T")
-Counters = tuple[int, int, int, int, int, int, int, int, int, int]
+Counters = tuple[int, int, int, int, int, int, int, int, int, int, int]
 Perm = tuple[int, ...]
 
 
@@ -40,6 +40,7 @@ def counters(w: World) -> Counters:
         w.forged,
         w.replayed,
         w.sup_old_copied,
+        w.resynced,
     )
 
 
@@ -229,6 +230,7 @@ class Reducer:
             nv_lost=0,
             old_copied=0,
             sup_old_copied=0,
+            resynced=0,
             forged=0,
             replayed=0,
             seen=frozenset(),

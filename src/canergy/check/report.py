@@ -19,6 +19,7 @@ def format_summary(r: CheckResult) -> str:
         + (f", supervisor old copies {b.supervisor_old_copies}" if b.supervisor_old_copies else "")
         + (f", forgeries {b.forgeries}" if b.forgeries else "")
         + (f", replays {b.replays}" if b.replays else "")
+        + (f", re-syncs {b.resyncs}" if b.resyncs else "")
     )
     lines = [
         f"canergy check: variant {r.variant}; {bounds}",

@@ -94,6 +94,13 @@ def _bound_flags(p: argparse.ArgumentParser, d: Any, chain_in_flight: int) -> No
         "back; default 0)",
     )
     p.add_argument(
+        "--resyncs",
+        type=count,
+        default=d.resyncs,
+        help="--variant witnessed: re-syncs of one idle node by the supervisor (a SYNC with a "
+        "fresh nonce, as when a begin is refused as beyond the window; default 0)",
+    )
+    p.add_argument(
         "--forgeries",
         type=count,
         default=d.forgeries,
@@ -214,6 +221,7 @@ _NOT_IN_CHAIN = (
     "old_copies",
     "backups",
     "supervisor_old_copies",
+    "resyncs",
     "forgeries",
     "replays",
     "timeouts",
@@ -278,6 +286,8 @@ def run(args: argparse.Namespace) -> int:
         return _run_chain(args)
     if args.broken_gateway is not None or args.gateway_old_copies:
         raise ValueError("--broken-gateway and --gateway-old-copies need --topology chain")
+    if args.resyncs and not VARIANTS[args.variant].lifts_tx:
+        raise ValueError(f"--resyncs: the {args.variant} rules have no re-sync")
     bounds = Bounds(
         clients=args.clients,
         transactions=args.transactions,
@@ -290,6 +300,7 @@ def run(args: argparse.Namespace) -> int:
         supervisor_old_copies=args.supervisor_old_copies,
         forgeries=args.forgeries,
         replays=args.replays,
+        resyncs=args.resyncs,
         in_flight=args.in_flight or Bounds().in_flight,
         units=args.units,
         retries=args.retries,

@@ -161,3 +161,17 @@ def test_cli_resyncs(capsys: pytest.CaptureFixture[str]) -> None:
     assert "no re-sync" in capsys.readouterr().err
     assert main(["check", "--topology", "chain", "--variant", "witnessed", "--resyncs", "1"]) == 2
     assert "--resyncs" in capsys.readouterr().err
+
+
+def test_the_ledger_counts_us_while_a_node_is_only_resynced() -> None:
+    """While a start waits for books, Us is left out of the ledger (it may be an older
+    copy's); a re-sync restores nothing and grants to others go on, so Us counts: energy
+    created during a re-sync shows at once, not only when it ends."""
+    from canergy.core.state import Phase, Session, SupervisorState
+    from canergy.ledger import supervisor_usable
+
+    def us(resync: bool) -> int:
+        s = Session(1, phase=Phase.SYNCING, tx=3, witness=3, sync_nonce=7, resync=resync)
+        return supervisor_usable(SupervisorState(9000, 9000, sessions=(s,)))
+
+    assert (us(resync=True), us(resync=False)) == (9000, 0)

@@ -97,8 +97,9 @@ def node_usable(c: ClientState) -> int:
 def supervisor_usable(sup: SupervisorState) -> int:
     """Us, but none of it while a start waits for a node's books (witnessed rules: the books
     may be an older copy's, and grant nothing meanwhile): it counts from the moment every node
-    has confirmed them. A debt (Us below zero) always counts."""
-    if any(s.phase in SYNC_PHASES for s in sup.sessions):
+    has confirmed them. A debt (Us below zero) always counts, and so does Us while a node is
+    only re-synced (``Session.resync``: nothing restored, grants to others go on)."""
+    if any(s.phase in SYNC_PHASES and not s.resync for s in sup.sessions):
         return min(sup.usable, 0)
     return sup.usable
 

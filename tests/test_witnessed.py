@@ -1164,6 +1164,43 @@ def test_a_node_answering_a_second_stale_sync_after_a_begin_is_not_left_waiting(
     stale_sync_after_taken_counts_and_a_begin(sup, node)
 
 
+def _lose_until_closed(sup: Supervisor, now: int) -> int:
+    """Every frame the supervisor sends is lost; its timers run until it closes."""
+    while (due := sup.get_timer()) is not None:
+        now = max(now, due)
+        sup.handle_timer(now)
+    return now
+
+
+def _window_run_out(sup: Supervisor, timing: Timing, now: int) -> tuple[list[Intention], int]:
+    """Begins up to W + B, every frame lost and closed by the timers: their INTENTIONs, kept
+    to be delivered late, and the time."""
+    late: list[Intention] = []
+    while sup.session(1).tx < sup.session(1).witness + timing.window:
+        late += [m for m in _sends(sup.begin(1, 1000, now)) if isinstance(m, Intention)]
+        now = _lose_until_closed(sup, now)
+    return late, now
+
+
+def _image_started_then_late(
+    core: type[Supervisor], image: Any, timing: Timing, node: Any, late: list[Intention], now: int
+) -> int:
+    """The supervisor put back to ``image`` starts (the node answers its SYNC and is
+    confirmed); then the discarded history's ``late`` INTENTIONs reach the node and its timers
+    run out. Returns the restored supervisor's Us."""
+    restored = core([1], 0, variant="witnessed", timing=timing, state=image)
+    restored.power_loss(now, nonce=0x55)
+    _exchange(restored.handle_timer(now), restored, node, now)
+    assert restored.unconfirmed() == () and node.state.phase is Phase.IDLE
+    for intention in late:
+        for reply in _sends(node.receive(intention, now)):
+            restored.receive(reply, now)
+    while (due := node.get_timer()) is not None:
+        now = max(now, due)
+        node.handle_timer(now)
+    return restored.state.usable
+
+
 def join_admitted_twice_then_a_supervisor_image(
     core: type[Supervisor], earlier_life: bool = False
 ) -> tuple[int, int]:
@@ -1194,34 +1231,14 @@ def join_admitted_twice_then_a_supervisor_image(
     admit = _sends(sup.receive(join, 0))
     image = sup.state  # the state file as written after the first admission
     now = 0
-
-    def lose_until_closed(now: int) -> int:
-        """Every frame the supervisor sends is lost; its timers run until it closes."""
-        while (due := sup.get_timer()) is not None:
-            now = max(now, due)
-            sup.handle_timer(now)
-        return now
-
     sup.begin(1, 1000, now)  # INTENTION(1) lost
-    now = lose_until_closed(now)
+    now = _lose_until_closed(sup, now)
     again = _sends(sup.receive(late_join, now))  # the copy of the JOIN: answered again, lost
     assert again != []
     assert _sends(node.receive(admit[0], now)) == [] and node.state.last_tx == 0
-    late: list[Intention] = []
-    while sup.session(1).tx < sup.session(1).witness + timing.window:
-        late += [m for m in _sends(sup.begin(1, 1000, now)) if isinstance(m, Intention)]
-        now = lose_until_closed(now)
-    restored = core([1], 0, variant="witnessed", timing=timing, state=image)
-    restored.power_loss(now, nonce=0x55)
-    _exchange(restored.handle_timer(now), restored, node, now)
-    assert restored.unconfirmed() == () and node.state.phase is Phase.IDLE
-    for intention in late:  # the discarded history's, delivered late
-        for reply in _sends(node.receive(intention, now)):
-            restored.receive(reply, now)
-    while (due := node.get_timer()) is not None:
-        now = max(now, due)
-        node.handle_timer(now)
-    return restored.state.usable, node.state.usable
+    late, now = _window_run_out(sup, timing, now)
+    usable = _image_started_then_late(core, image, timing, node, late, now)
+    return usable, node.state.usable
 
 
 @pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])
@@ -1261,32 +1278,12 @@ def resume_copy_after_a_draw_then_a_supervisor_image(core: type[Supervisor]) -> 
     assert node.state.phase is Phase.IDLE and sup.session(1).returns_credited == 2
     image = sup.state  # the state file as written after the confirmation
     _exchange(node.spend(1000), sup, node, 0)  # a draw: C 3
-    now = 0
-
-    def lose_until_closed(now: int) -> int:
-        while (due := sup.get_timer()) is not None:
-            now = max(now, due)
-            sup.handle_timer(now)
-        return now
-
-    sup.begin(1, 1000, now)  # INTENTION(2) lost
-    now = lose_until_closed(now)
+    sup.begin(1, 1000, 0)  # INTENTION(2) lost
+    now = _lose_until_closed(sup, 0)
     assert _sends(sup.receive(resume, now)) != []  # the late copy: found behind, answer lost
-    late: list[Intention] = []
-    while sup.session(1).tx < sup.session(1).witness + timing.window:
-        late += [m for m in _sends(sup.begin(1, 1000, now)) if isinstance(m, Intention)]
-        now = lose_until_closed(now)
-    restored = core([1], 0, variant="witnessed", timing=timing, state=image)
-    restored.power_loss(now, nonce=0x55)
-    _exchange(restored.handle_timer(now), restored, node, now)
-    assert restored.unconfirmed() == () and node.state.phase is Phase.IDLE
-    for intention in late:
-        for reply in _sends(node.receive(intention, now)):
-            restored.receive(reply, now)
-    while (due := node.get_timer()) is not None:
-        now = max(now, due)
-        node.handle_timer(now)
-    return restored.state.usable, node.state.usable + node.state.spent
+    late, now = _window_run_out(sup, timing, now)
+    usable = _image_started_then_late(core, image, timing, node, late, now)
+    return usable, node.state.usable + node.state.spent
 
 
 @pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])
@@ -1434,23 +1431,9 @@ def late_counts_of_a_life_before_a_join_then_a_supervisor_image(
     image = sup.state  # the state file as written after the second admission
     sup.receive(counts, 0)  # late; its answer lost
     assert sup.session(1).witness <= node.state.last_tx
-    now, late = 0, []
-    while sup.session(1).tx < sup.session(1).witness + timing.window:
-        late += [m for m in _sends(sup.begin(1, 1000, now)) if isinstance(m, Intention)]
-        while (due := sup.get_timer()) is not None:  # every frame lost: closed by its timers
-            now = max(now, due)
-            sup.handle_timer(now)
-    restored = core([1], 0, variant="witnessed", timing=timing, state=image)
-    restored.power_loss(now, nonce=0x55)
-    _exchange(restored.handle_timer(now), restored, node, now)
-    assert restored.unconfirmed() == () and node.state.phase is Phase.IDLE
-    for intention in late:  # the discarded history's, delivered late
-        for reply in _sends(node.receive(intention, now)):
-            restored.receive(reply, now)
-    while (due := node.get_timer()) is not None:
-        now = max(now, due)
-        node.handle_timer(now)
-    return restored.state.usable, node.state.usable
+    late, now = _window_run_out(sup, timing, 0)
+    usable = _image_started_then_late(core, image, timing, node, late, now)
+    return usable, node.state.usable
 
 
 @pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])

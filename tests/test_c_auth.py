@@ -49,6 +49,7 @@ from canergy.messages import (
     StatusRequest,
     Telemetry,
 )
+from canergy.seqnum import unwrap
 
 NODE = 5
 U32 = 0xFFFF_FFFF
@@ -266,8 +267,8 @@ def _both_ways(layout: Layout, msg: Message, tx: int, seq: int) -> None:
     python = _joined(py_auth(layout, receiver, tx, seq), msg)
     verdicts = [python.accept(f) for f in c_frames]
     taken = msg
-    if isinstance(msg, Admit):  # the full counters: the FV's high half (the sender's tx's)
-        high = tx & 0xFFFF_0000
+    if isinstance(msg, Admit):  # the full counters: the FV's high half (its k's, next to tx)
+        high = unwrap(msg.tx, tx, 16) & 0xFFFF_0000
         taken = Admit(msg.node, msg.nonce, high | msg.tx, high | msg.seq)
     assert verdicts[-1].message == taken and all(v.failure is None for v in verdicts)
     c_side = _joined(CAuth(layout, receiver), msg)

@@ -33,7 +33,7 @@ uint32_t canergy_auth_freshness(const struct canergy_msg *m, uint32_t last_tx,
 {
     switch (m->type) {
     case CANERGY_JOIN: return m->nonce;
-    case CANERGY_ADMIT: return (last_tx & 0xFFFF0000UL) | m->nonce;
+    case CANERGY_ADMIT: return (extend16(m->tx, last_tx) & 0xFFFF0000UL) | m->nonce;
     case CANERGY_TELEMETRY: return last_tx;
     case CANERGY_DEBIT:
         if ((m->flags & (CANERGY_DEBIT_START | CANERGY_DEBIT_BOOKS)) != 0U) {

@@ -900,7 +900,7 @@ static void test_auth_node(const uint8_t key[16])
     m.tx = 0xFFFFU;
     m.seq = 3U;
     (void)canergy_encode(CANERGY_DEFAULT_ID_BASE, &m, &plain);
-    n_frames = canergy_auth_protect(&sup, &plain, 0U, 0U, frames);
+    n_frames = canergy_auth_protect(&sup, &plain, 0xFFFFUL, 0U, frames); /* the sender's tx: k */
     struct canergy_rx_frame f = {frames[0].id, frames[0].data, frames[0].len, true, false};
     int first = canergy_auth_node_frame(&node_auth, &n, &f, 10U, &out);
     f = (struct canergy_rx_frame){frames[1].id, frames[1].data, frames[1].len, true, false};

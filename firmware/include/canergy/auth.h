@@ -8,8 +8,10 @@
  *
  *   FV (canergy_auth_freshness), from the receiver's or sender's own counters:
  *     JOIN                 the nonce (with set_join: 16 random bits above it)
- *     ADMIT                last_tx's high half << 16 | the nonce: the supervisor's counters
- *                          share that high half; a node takes any, and its counters from it.
+ *     ADMIT                the high half of its k (the wire tx extended next to last_tx)
+ *                          << 16 | the nonce: k and C share it, so a JOIN answered again after
+ *                          last_tx crossed a 2^16 block is signed as the first answer was; a
+ *                          node takes any, and its counters from it.
  *                          Its MAC input ends with the FV of the JOIN it answers (4, BE).
  *     TELEMETRY            last_tx, the sender's last resolved transaction (the supervisor takes
  *                          it from the last one it knows the node resolved to its own tx);

@@ -376,8 +376,8 @@ def freshness(msg: Message, tx: int, seq: int) -> int:
     counter extended next to them (serial-number arithmetic), 32 bits."""
     if isinstance(msg, Join) or _started(msg):
         return msg.nonce
-    if isinstance(msg, Admit):  # the high half its counters share (for the supervisor: tx)
-        return (tx >> 16 & 0xFFFF) << 16 | msg.nonce
+    if isinstance(msg, Admit):  # the high half its counters share: k's, extended next to tx
+        return unwrap(msg.tx, tx, TX_BITS) & 0xFFFF_0000 | msg.nonce
     if isinstance(msg, Telemetry):
         return tx & FV_MASK
     if isinstance(msg, Return | ReturnAck | Debit):  # a draw is numbered as a return

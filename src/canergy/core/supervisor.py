@@ -29,6 +29,7 @@ if TYPE_CHECKING:  # the types of the service's parts a compiled core makes in C
     from canergy.live.supervisor.grants import GrantCaps
     from canergy.live.supervisor.intrusions import Intrusions, Refusals
     from canergy.live.supervisor.policy import Limits, TopUp
+    from canergy.live.supervisor.telemetry import TelemetryTable
 
 BUS_SHIFT = 8
 """A supervisor over several buses keys its sessions ``bus << BUS_SHIFT | node``; bus 0's keys
@@ -117,9 +118,9 @@ class SupervisorCore(Protocol):
         """The nodes whose books this start waits for before any grant."""
         ...
 
-    def heard_table(self, lost_after_us: int) -> Any | None:
-        """The TELEMETRY table (``canergy.live.supervisor.telemetry.HeardTable``'s interface)
-        in C, or None: the service keeps Python's."""
+    def heard_table(self, lost_after_us: int) -> TelemetryTable | None:
+        """The TELEMETRY table in C, or None: the service keeps Python's
+        (``canergy.live.supervisor.telemetry.HeardTable``)."""
         ...
 
     def return_gate(self, hold_us: int, block_us: int, hold: bool) -> Any | None:

@@ -42,7 +42,7 @@ from canergy.live.supervisor.outputs import BooksOut, StatusOut
 from canergy.live.supervisor.rules_said import RulesSaid
 from canergy.live.supervisor.service import ServiceConfig, ServiceParts, SupervisorService
 from canergy.live.supervisor.state_file import keep_books, load_state
-from canergy.live.supervisor.telemetry import HeardTable
+from canergy.live.supervisor.telemetry import HeardTable, TelemetryTable
 from canergy.live.supervisor.witness import ReturnGate
 from canergy.messages import Direction
 
@@ -253,7 +253,7 @@ def service_parts(
     instead of ``config.state_path`` (a gateway keeps both of its roles in one file);
     ``bus_counters``: the bus loop's counters (one bus), or ``buses``: each bus's by name."""
     name = partial(name_of, config.bus_names)
-    heard = core.heard_table(config.lost_after_us)
+    heard: TelemetryTable | None = core.heard_table(config.lost_after_us)
     if heard is None:
         heard = HeardTable(core.nodes, config.lost_after_us)
     nodes = {n: NodeInfo(heard.of(n)) for n in core.nodes}

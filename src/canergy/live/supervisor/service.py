@@ -45,7 +45,7 @@ from canergy.live.supervisor.outputs import StatusOut
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.rules_said import RulesSaid
 from canergy.live.supervisor.status import Run, StatusReport
-from canergy.live.supervisor.telemetry import BEYOND_BOOKS
+from canergy.live.supervisor.telemetry import BEYOND_BOOKS, TelemetryTable
 from canergy.live.supervisor.watch import BusWatch
 from canergy.live.supervisor.witness import RETURN_HOLD_MIN_US
 from canergy.messages import (
@@ -124,7 +124,7 @@ class ServiceParts:
     """The service's parts that need nothing of the service itself, made by the builder
     (``canergy.live.supervisor.build.service_parts``); the core's own in C where it has them."""
 
-    heard: Any
+    heard: TelemetryTable
     """The TELEMETRY table (``telemetry.HeardTable``, or the compiled core's in C)."""
     nodes: dict[int, NodeInfo]
     rules_said: RulesSaid

@@ -332,11 +332,12 @@ def test_authenticated_traffic_flows_and_forgeries_move_nothing(bench: Bench) ->
 def _capture(tmp: Path, layout: Layout, key_path: Path) -> tuple[Path, list[can.Message]]:
     """Two honest transactions through both cores and authenticators, as a candump -l file."""
     from canergy.core import Client, Send, Supervisor, Timing
-    from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+    from canergy.live.supervisor.build import build_service
+    from canergy.live.supervisor.service import ServiceConfig
 
     master = load_key(key_path)
     timing = Timing(response_timeout_us=10_000, retries=3)
-    service = SupervisorService(
+    service = build_service(
         Supervisor((1,), 10_000_000, timing=timing),
         ServiceConfig(fsync=False, status_period_us=10**12),
         0,

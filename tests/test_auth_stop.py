@@ -41,6 +41,7 @@ from canergy.live.runtime import (
     OwnDirection,
     monotonic_us,
 )
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.control import request as ask
 from canergy.live.supervisor.service import JOIN_HOLD_US, ServiceConfig, SupervisorService
 from canergy.messages import (
@@ -224,7 +225,7 @@ def test_own_direction_frames_are_refused_unless_authentic_and_new(layout: Layou
 def test_without_a_key_stop_evidence_still_stops_and_with_one_only_authentic_evidence() -> None:
     def service() -> SupervisorService:
         core = Supervisor((1,), 10_000_000)
-        return SupervisorService(core, ServiceConfig(stop_on_intrusion=True, fsync=False), 0)
+        return build_service(core, ServiceConfig(stop_on_intrusion=True, fsync=False), 0)
 
     plain = service()
     plain.intrusion(1, "f", "a frame only this supervisor sends", 0, stop=True)
@@ -575,7 +576,7 @@ class AuthWire:
         config = ServiceConfig(fsync=False, status_period_us=10**12)
         counters = BusCounters()
         core = Supervisor((1,), 10_000_000)
-        self.service = SupervisorService(core, config, 0, bus_counters=counters)
+        self.service = build_service(core, config, 0, bus_counters=counters)
         sup_auth = FrameAuth(CODEC, layout, key, Direction.TO_SUPERVISOR, self.service.freshness)
         self.sup = BusRuntime(
             bus(),
@@ -762,7 +763,7 @@ def test_a_join_resent_while_its_admit_was_on_the_way_is_no_replay() -> None:
     ADMIT was lost) is admitted again."""
     core = Supervisor((1,), 10_000_000)
     config = ServiceConfig(fsync=False, status_period_us=10**12, join_hold_us=0)  # no hold here
-    service = SupervisorService(core, config, 0)
+    service = build_service(core, config, 0)
     service.bus_counters.auth = Layout.FD.value
     joining, books = Telemetry(1, 0, flags=Telemetry.JOINING), Telemetry(1, 0)
 

@@ -46,10 +46,17 @@ def test_only_the_builder_puts_a_supervisor_together() -> None:
 
 def test_nothing_is_assigned_onto_a_built_supervisor() -> None:
     """The rule: a built service, its bus loop and the gateway's uplink get every
-    collaborator through their constructors; no code outside them assigns one afterwards.
-    (A loop's ``max_batch`` is no collaborator: a knob ``canergy bench`` turns mid-run.)"""
-    patched = r"\b(service|runtime|uplink|supervisor|guarded)\.(?!max_batch)\w+(\[[^]]*\])?\s*=[^=]"
+    collaborator through their constructors; no code outside them assigns one afterwards (a
+    loop's ``max_batch`` neither: ``SupervisorConfig.max_batch``)."""
+    patched = r"\b(service|runtime|uplink|supervisor|guarded|node_loop)\.\w+(\[[^]]*\])?\s*=[^=]"
     assert _where(patched) == []
+
+
+def test_a_core_s_parts_are_declared_not_discovered() -> None:
+    """The rule: what the service asks of a core (its tables in C, the nodes a start waits for,
+    its frame path) is declared in ``SupervisorCore``, None where a core has none in C; nothing
+    looks it up by name on the core."""
+    assert _where(r"getattr\(\s*(self\.)?_?core\b") == []
 
 
 class _Link:

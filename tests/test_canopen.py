@@ -19,6 +19,7 @@ from canergy.core import Supervisor
 from canergy.live.canopen.manager import CanopenManager
 from canergy.live.canopen.shared_bus import EDS, STANDARD_FRAMES, shared_network
 from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.messages import MAX_NODE, MIN_NODE, Direction, MsgType
@@ -71,7 +72,7 @@ def bench(tmp_path: Path) -> Iterator[Bench]:
     )
     sup_net, sup_reader = shared_network(sup_bus)
     manager = CanopenManager(sup_net, NODES, EDS, 500_000, monotonic_us)
-    service = SupervisorService(
+    service = build_service(
         Supervisor(NODES, 100 * UJ_PER_J, timing=TIMING),
         ServiceConfig(policy=TopUp(UJ_PER_J), limits=Limits(max_grant=UJ_PER_J), fsync=False),
         now,

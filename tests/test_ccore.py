@@ -28,7 +28,8 @@ from canergy.core.errors import LocalProtocolError
 from canergy.core.supervisor import Supervisor
 from canergy.core.timing import Timing
 from canergy.live.runtime import BusRuntime
-from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.build import build_service
+from canergy.live.supervisor.service import ServiceConfig
 from canergy.messages import (
     QUANTUM_UJ,
     Ack,
@@ -302,7 +303,7 @@ def _run_script(
     codec = Codec() if id_base is None else Codec(id_base)
     wire = _Wire()
     now = [0]
-    service = SupervisorService(
+    service = build_service(
         make_supervisor(core, [3], 10_000_000, timing=T, id_base=id_base), ServiceConfig(), 0
     )
     path = service.frame_path()
@@ -366,7 +367,7 @@ def test_with_a_key_every_frame_of_the_c_core_leaves_with_its_mac(layout: Layout
     key = bytes(range(16))
     codec, fd = Codec(), layout is Layout.FD
     wire = _Wire()
-    service = SupervisorService(make_supervisor("c", [3], 10_000_000, timing=T), ServiceConfig(), 0)
+    service = build_service(make_supervisor("c", [3], 10_000_000, timing=T), ServiceConfig(), 0)
     auth = FrameAuth(codec, layout, lambda n: key, Direction.TO_SUPERVISOR, service.freshness)
     loop = BusRuntime(wire, service, codec=codec, receives=Direction.TO_SUPERVISOR, auth=auth)
     loop.clock = lambda: 0

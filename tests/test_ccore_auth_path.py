@@ -19,6 +19,7 @@ from canergy.ccore.supervisor import make_supervisor
 from canergy.codec import Codec
 from canergy.core.timing import Timing
 from canergy.live.runtime import BusRuntime
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.messages import (
     Abort,
@@ -79,9 +80,7 @@ def _run(core: str, frame_path: bool) -> Run:
     supervisor's own direction (a replay of the COMMIT it sent, a verified one it never
     sent)."""
     wire, now = _Wire(), [0]
-    service = SupervisorService(
-        make_supervisor(core, [3, 5], 10_000_000, timing=T), ServiceConfig(), 0
-    )
+    service = build_service(make_supervisor(core, [3, 5], 10_000_000, timing=T), ServiceConfig(), 0)
     auth = FrameAuth(CODEC, Layout.FD, key_for, Direction.TO_SUPERVISOR, service.freshness)
     path = service.frame_path(None, auth) if frame_path else None
     loop = BusRuntime(
@@ -188,7 +187,7 @@ def test_what_the_c_frame_path_sends_is_the_supervisors_own_from_then_on() -> No
     replay is refused as stale, never taken as a second supervisor's; a verified COMMIT with an
     FV it never used is authentic evidence."""
     wire, now = _Wire(), [0]
-    service = SupervisorService(make_supervisor("c", [3], 10_000_000, timing=T), ServiceConfig(), 0)
+    service = build_service(make_supervisor("c", [3], 10_000_000, timing=T), ServiceConfig(), 0)
     auth = FrameAuth(CODEC, Layout.FD, key_for, Direction.TO_SUPERVISOR, service.freshness)
     loop = BusRuntime(
         wire,
@@ -250,7 +249,7 @@ class _Side:
     def __init__(self, c_path: bool) -> None:
         self.wire, self.now = _Wire(), 0
         core = make_supervisor("c" if c_path else "python", [3, 5], 10**9, timing=T)
-        self.service = SupervisorService(core, ServiceConfig(), 0)
+        self.service = build_service(core, ServiceConfig(), 0)
         auth = FrameAuth(CODEC, Layout.FD, key_for, Direction.TO_SUPERVISOR, self.service.freshness)
         self.loop = BusRuntime(
             self.wire,
@@ -366,9 +365,7 @@ def _classic_run(core: str, frame_path: bool) -> Run:
     session (verified, then judged by the rules), its own COMMIT and a COMMIT it never sent
     (both a data frame and its MAC frame)."""
     wire, now = _Wire(), [0]
-    service = SupervisorService(
-        make_supervisor(core, [3, 5], 10_000_000, timing=T), ServiceConfig(), 0
-    )
+    service = build_service(make_supervisor(core, [3, 5], 10_000_000, timing=T), ServiceConfig(), 0)
     auth = FrameAuth(CODEC, Layout.CLASSIC, key_for, Direction.TO_SUPERVISOR, service.freshness)
     loop = BusRuntime(
         wire,
@@ -477,7 +474,7 @@ def test_classic_what_the_c_frame_path_sends_is_the_supervisors_own_from_then_on
     ``FrameAuth`` sends, byte for byte, and noted as this side's: the COMMIT's replay is
     refused as stale; a verified COMMIT with an FV it never used is authentic evidence."""
     wire, now = _Wire(), [0]
-    service = SupervisorService(make_supervisor("c", [3], 10_000_000, timing=T), ServiceConfig(), 0)
+    service = build_service(make_supervisor("c", [3], 10_000_000, timing=T), ServiceConfig(), 0)
     auth = FrameAuth(CODEC, Layout.CLASSIC, key_for, Direction.TO_SUPERVISOR, service.freshness)
     loop = BusRuntime(
         wire,
@@ -553,7 +550,7 @@ class _ClassicSide(_Side):
             if c_path
             else make_supervisor("python", [3, 5], 10**9, timing=T)
         )
-        self.service = SupervisorService(core, ServiceConfig(), 0)
+        self.service = build_service(core, ServiceConfig(), 0)
         auth = FrameAuth(
             CODEC, Layout.CLASSIC, key_for, Direction.TO_SUPERVISOR, self.service.freshness
         )

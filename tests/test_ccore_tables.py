@@ -28,6 +28,7 @@ from canergy.core.timing import Timing
 from canergy.live.runtime import BusRuntime
 from canergy.live.supervisor import policy as policy_module
 from canergy.live.supervisor import telemetry
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.grants import PythonGrantCaps
 from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
 from canergy.live.supervisor.policy import Limits, TopUp, level_room
@@ -223,7 +224,7 @@ def _bench(
         limits=limits or Limits(),
         policy=policy,
     )
-    service = SupervisorService(sup, config, 0)
+    service = build_service(sup, config, 0)
     path = service.frame_path()
     loop = BusRuntime(
         wire,
@@ -666,10 +667,10 @@ def test_a_new_service_over_the_same_c_core_gets_tables_of_its_own() -> None:
     service's frame path holds is admitted by the second service, with nothing left over from
     the first one's."""
     core = compiled_core([3, 5], 10_000_000, timing=T)
-    first = SupervisorService(core, ServiceConfig(lost_after_us=LOST_AFTER_US), 0)
+    first = build_service(core, ServiceConfig(lost_after_us=LOST_AFTER_US), 0)
     first.on_message(Join(3, 1), 0)  # held by the first service's table
     b = _bench("c")
-    b.service = SupervisorService(core, ServiceConfig(lost_after_us=LOST_AFTER_US), 0)
+    b.service = build_service(core, ServiceConfig(lost_after_us=LOST_AFTER_US), 0)
     b.loop = BusRuntime(
         b.wire,
         b.service,

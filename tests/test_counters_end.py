@@ -36,7 +36,8 @@ from canergy.cli import supervisor as supervisor_cli
 from canergy.core import Client, LocalProtocolError, Supervisor
 from canergy.core.actions import Send
 from canergy.core.state import ClientState, Phase, Session, SupervisorState
-from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.build import build_service
+from canergy.live.supervisor.service import ServiceConfig
 from canergy.live.supervisor.state_file import StateFileError, load_state, save_state
 from canergy.messages import (
     COUNTER_BOUND,
@@ -324,7 +325,7 @@ def test_the_live_supervisor_answers_a_grant_at_the_end_and_warns_once(
     core: str, caplog: pytest.LogCaptureFixture
 ) -> None:
     sup = CORES[core]([4], 0, state=_books(4, tx=COUNTER_END - 1))
-    service = SupervisorService(sup, ServiceConfig(), 0)
+    service = build_service(sup, ServiceConfig(), 0)
     service.on_message(Telemetry(4, 0), 1)
     replies: list[dict[str, object]] = []
     with caplog.at_level(logging.WARNING, logger="canergy"):

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 import pytest
 
 from canergy.core import Client, Send, Supervisor, Timing
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.messages import Ack, Committed, Message, Return, Telemetry, ToClient
 from canergy.units import UJ_PER_J
@@ -32,7 +33,7 @@ def pump(service: SupervisorService, client: Client, out: Sequence[Message], now
 
 def granted(amount: int) -> tuple[SupervisorService, Client]:
     """A node that was granted ``amount`` µJ and reported its level."""
-    service = SupervisorService(
+    service = build_service(
         Supervisor((1,), 10 * UJ_PER_J, timing=TIMING),
         ServiceConfig(fsync=False, status_period_us=10**12),
         0,

@@ -26,7 +26,8 @@ from test_witness import Wire
 from canergy.codec import Codec
 from canergy.core import Supervisor, gateway
 from canergy.live.gateway.process import GatewayFiles, Uplink, UplinkConfig
-from canergy.live.supervisor.service import JOIN_HOLD_US, ServiceConfig, SupervisorService
+from canergy.live.supervisor.build import build_service
+from canergy.live.supervisor.service import JOIN_HOLD_US, ServiceConfig
 from canergy.live.supervisor.witness import (
     RETURN_HOLD_MIN_US,
     WITNESS_GAP_US,
@@ -108,7 +109,7 @@ class GatewayWire(Wire):
         config = ServiceConfig(
             return_hold_us=RETURN_HOLD_MIN_US, fsync=False, status_period_us=10**12
         )
-        self.service = SupervisorService(Supervisor((1,), 10_000_000), config, 0)
+        self.service = build_service(Supervisor((1,), 10_000_000), config, 0)
         self.uplink = _uplink(1)
         self.uplink.start_without_books(0x4242, 0)
         self.host = self.uplink  # type: ignore[assignment]

@@ -29,6 +29,7 @@ from canergy.codec import Codec
 from canergy.core import ClientState, Send, Supervisor, Timing
 from canergy.core.state import Session, SupervisorState
 from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.control import request
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.live.supervisor.state_file import load_state, save_state
@@ -220,7 +221,7 @@ def _service() -> SupervisorService:
         10 * UJ_PER_J, 9 * UJ_PER_J, sessions=(Session(NODE, delivered=UJ_PER_J),)
     )
     core = Supervisor([NODE], 10 * UJ_PER_J, variant="witnessed", timing=TIMING, state=state)
-    return SupervisorService(core, ServiceConfig(return_hold_us=HOLD), 0)
+    return build_service(core, ServiceConfig(return_hold_us=HOLD), 0)
 
 
 def resume(amount_mj: int, nonce: int = 7) -> Debit:
@@ -254,7 +255,7 @@ def test_a_hardened_supervisor_takes_a_debit_for_what_its_rules_make_of_it(core:
     )
     kind = Supervisor if core == "python" else CompiledSupervisor
     rules = kind([NODE], 10 * UJ_PER_J, variant="hardened", timing=TIMING, state=state)
-    s = SupervisorService(rules, ServiceConfig(return_hold_us=HOLD), 0)
+    s = build_service(rules, ServiceConfig(return_hold_us=HOLD), 0)
     s.on_message(Telemetry(NODE, 1000, 0, 0, 0), 0)
     before = s.core.session(NODE)
     for now, debit in enumerate((resume(500), resume(0, 9), Debit.counts(NODE, 5, 1, 64)), 1):

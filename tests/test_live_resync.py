@@ -12,6 +12,7 @@ import pytest
 from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.core import Client, Supervisor, Timing
 from canergy.core.state import ClientState, Outcome, Phase, Session, SupervisorState
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.service import RESYNC_GAP_US, ServiceConfig, SupervisorService
 from canergy.messages import Admit, Direction, Message, Telemetry
 
@@ -35,7 +36,7 @@ def _booked(core: Any, tx: int) -> tuple[Any, SupervisorService, Client]:
     session = Session(1, tx=tx, witness=10, returns_credited=3, delivered=5000)
     state = SupervisorState(10**7, 10**7, sessions=(session,))
     sup = core([1], 10**7, variant="witnessed", timing=TIMING, state=state)
-    service = SupervisorService(sup, ServiceConfig(fsync=False), 0)
+    service = build_service(sup, ServiceConfig(fsync=False), 0)
     booked = ClientState(1, credited=5000, last_tx=tx, outcome=Outcome.COMMITTED, return_seq=3)
     node = Client(1, variant="witnessed", timing=TIMING, state=booked)
     _pump(service, node, [Telemetry(1, 5, Telemetry.WITNESSED)], 0)

@@ -22,6 +22,7 @@ from canergy.cli import main
 from canergy.codec import Codec
 from canergy.core import Timing
 from canergy.core.state import Session, SupervisorState
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.live.supervisor.state_file import load_state
 from canergy.messages import Ack, Admit, Committed, Debit, Direction, Intention, Telemetry
@@ -179,7 +180,7 @@ def _restarted(start_without: tuple[int, ...] = (), core: str = "python") -> Sup
         start_without=start_without,
     )
     restarted.power_loss(0, 0x1234)
-    service = SupervisorService(restarted, ServiceConfig(), 0)
+    service = build_service(restarted, ServiceConfig(), 0)
     for node in (1, 2):
         service.on_message(Telemetry(node, 0, Telemetry.WITNESSED, 0, 0), 1)
     return service
@@ -199,7 +200,7 @@ def test_a_debt_the_books_bring_refuses_every_grant_and_is_kept_across_a_restart
     )
     restored.power_loss(0, 0x1234)
     path = tmp_path / "s.json"
-    s = SupervisorService(restored, ServiceConfig(state_path=path, fsync=False), 0)
+    s = build_service(restored, ServiceConfig(state_path=path, fsync=False), 0)
     s.on_message(Telemetry(NODE, 0, Telemetry.WITNESSED, 0, 0), 1)
     s.on_wakeup(1)
     s.on_message(Debit.books(NODE, 0x1234, 1_800), 20)

@@ -34,9 +34,10 @@ from canergy.devices.mit import (
 )
 from canergy.devices.mit_gate import LATE_WINDOW_US, REPLY_WINDOW_US, MitGate
 from canergy.live.devices.mit_bus import gate_for
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.policy import Limits as GrantLimits
 from canergy.live.supervisor.policy import TopUp
-from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.service import ServiceConfig
 from canergy.messages import Direction, Message, ToClient
 
 DM = MODELS["DM4310"]
@@ -62,7 +63,7 @@ class Pair:
         self.gates = {g.guard.node: g for g in made}
         self.gate = made[0]
         self.codec = Codec()
-        self.service = SupervisorService(
+        self.service = build_service(
             Supervisor(tuple(self.gates), budget_uj, timing=timing),
             ServiceConfig(
                 policy=TopUp(target_uj or budget_uj) if budget_uj else None,

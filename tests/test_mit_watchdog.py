@@ -26,9 +26,10 @@ from canergy.devices.mit import (
 )
 from canergy.devices.mit_gate import LATE_WINDOW_US, MitGate
 from canergy.live.devices.mit_motor import MitMotor, gate_for
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.policy import Limits as GrantLimits
 from canergy.live.supervisor.policy import TopUp
-from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.service import ServiceConfig
 from canergy.messages import Direction, Message, ToClient
 from firmware_model.mit.motor import LOST_COMM, MitMotorModel
 
@@ -53,7 +54,7 @@ class Bench:
         self.gate: MitGate = gate_for(MitMotor(MOTOR, NODE, max_torque=0.5), 0, timing, config)
         self.motor = MitMotorModel(MOTOR, DM, 0, master_id=MOTOR + 0x10, can_timeout=can_timeout)
         self.codec = Codec()
-        self.service = SupervisorService(
+        self.service = build_service(
             Supervisor((NODE,), 10**9, timing=timing),
             ServiceConfig(
                 policy=TopUp(5_000_000),

@@ -24,8 +24,9 @@ from canergy.demo import DemoConfig, run_demo
 from canergy.faults import FaultProfile
 from canergy.frame_bits import frame_bits
 from canergy.inspect.captures import read_file
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.control import ControlServer
-from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.service import ServiceConfig
 from canergy.messages import Intention, Telemetry
 from canergy.monitor.books import from_control, from_status_file, parse_status
 from canergy.monitor.busload import fd_frame_bits, frame_seconds
@@ -136,7 +137,7 @@ def test_frame_times_classic_and_fd() -> None:
 
 # -- the books ------------------------------------------------------------------------------
 def _status() -> dict[str, object]:
-    service = SupervisorService(Supervisor([3, 5], 10 * J), ServiceConfig(), 0)
+    service = build_service(Supervisor([3, 5], 10 * J), ServiceConfig(), 0)
     return service.status()
 
 

@@ -25,9 +25,10 @@ from canergy.core import Supervisor
 from canergy.core.state import Session, SupervisorState
 from canergy.ledger import ledger_from_status
 from canergy.live.runtime import BusRuntime, monotonic_us
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.control import request
 from canergy.live.supervisor.multi_bus import BusPort, BusRouter, bus_spec
-from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.service import ServiceConfig
 from canergy.live.supervisor.state_file import save_state
 from canergy.messages import Ack, Commit, Committed, Direction, Intention, Message, Telemetry
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
@@ -380,7 +381,7 @@ def test_ports_map_nodes_to_session_keys_and_back() -> None:
     it leaves on bus 1 as node 1; only the first port runs the deadlines."""
     core = Supervisor((1, 257), 10 * J)
     now = monotonic_us()
-    service = SupervisorService(core, ServiceConfig(bus_names=("a", "b")), now)
+    service = build_service(core, ServiceConfig(bus_names=("a", "b")), now)
     router = BusRouter()
     sent = [_Sent(), _Sent()]
     router.runtimes = sent  # type: ignore[assignment]

@@ -16,6 +16,7 @@ from canergy.core import Supervisor
 from canergy.core.state import SupervisorState
 from canergy.live.bus_group import BusGroup
 from canergy.live.runtime import BusRuntime
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.multi_bus import BusPort, BusRouter
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.live.supervisor.state_file import BooksWriter, state_json
@@ -54,7 +55,7 @@ class _CheckedBus(can.BusABC):
 
 def _service(tmp_path: Path, nodes: tuple[int, ...] = NODES) -> SupervisorService:
     config = ServiceConfig(state_path=tmp_path / "books.json", fsync=False)
-    return SupervisorService(Supervisor(nodes, 10**12), config, 0)
+    return build_service(Supervisor(nodes, 10**12), config, 0)
 
 
 def _count_saves(monkeypatch: pytest.MonkeyPatch) -> list[int]:

@@ -6,9 +6,14 @@ from __future__ import annotations
 
 from typing import Any
 
+import pytest
+
+from canergy.core import Supervisor
 from canergy.live.supervisor.grants import Books, GrantDesk, GrantRequest
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
 from canergy.live.supervisor.joins import HELD_JOINS, JoinHold
+from canergy.live.supervisor.ledger import Ledger
+from canergy.live.supervisor.outputs import BooksOut
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.messages import Join, Telemetry
 
@@ -149,3 +154,37 @@ def test_the_rate_limiter_counts_what_began() -> None:
     desk.took(J)
     assert desk.top_up(0, books, 0) == 0
     assert desk.top_up(0, books, 500_000) == J // 2
+
+
+def _ledger(saved: list[int], *, listen_only: bool = False) -> Ledger:
+    core = Supervisor((1,), 10**6)
+    out = BooksOut(core, None, save=lambda: saved.append(core.state.injected))
+    return Ledger(core, out, listen_only=listen_only)
+
+
+def test_the_ledger_writes_an_injection_before_anything_else() -> None:
+    saved: list[int] = []
+    ledger = _ledger(saved)
+    ledger.open(5)
+    assert saved == [5] and ledger.injected_this_run == 5 and ledger.saves == 1
+
+
+def test_the_ledger_writes_once_a_step_and_only_when_the_record_changed() -> None:
+    saved: list[int] = []
+    ledger = _ledger(saved)
+    ledger.open(0)
+    ledger.save_if_dirty()
+    assert saved == [0]  # nothing changed: nothing written
+    ledger.dirty = True  # the step's Persist actions (the service sets it for each)
+    ledger.save_if_dirty()
+    ledger.save_if_dirty()
+    assert saved == [0, 0] and not ledger.dirty
+
+
+def test_a_listen_only_ledger_writes_nothing_and_takes_no_injection() -> None:
+    saved: list[int] = []
+    ledger = _ledger(saved, listen_only=True)
+    ledger.open(0)
+    assert saved == []
+    with pytest.raises(ValueError, match="listen-only"):
+        ledger.open(5)

@@ -23,6 +23,7 @@ from canergy.cli import main
 from canergy.cli import supervisor as supervisor_cli
 from canergy.codec import Codec
 from canergy.core import Supervisor
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.control import ControlServer, request
 from canergy.live.supervisor.policy import Limits, capped_grant
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
@@ -274,12 +275,12 @@ def test_the_service_saves_an_injection_before_its_first_frame(tmp_path: Path) -
     state = tmp_path / "s.json"
     core = Supervisor((1,), 2 * J)
     config = ServiceConfig(state_path=state, fsync=False, inject_uj=3 * J)
-    service = SupervisorService(core, config, 0)
+    service = build_service(core, config, 0)
     books = load_state(state, "hardened", (1,))
     assert (books.usable, books.injected) == (5 * J, 3 * J)
     assert service.status()["injected_this_run_uj"] == 3 * J
     with pytest.raises(ValueError, match="--inject"):
-        SupervisorService(Supervisor((1,), J), ServiceConfig(listen_only=True, inject_uj=J), 0)
+        build_service(Supervisor((1,), J), ServiceConfig(listen_only=True, inject_uj=J), 0)
 
 
 def test_a_listener_counts_a_supervisors_frames_and_calls_none_an_intrusion() -> None:
@@ -288,8 +289,8 @@ def test_a_listener_counts_a_supervisors_frames_and_calls_none_an_intrusion() ->
     frame is someone else speaking in its name."""
     arbitration_id, data = Codec().encode(Intention(1, 5, 100, 0))
     frame = can.Message(arbitration_id=arbitration_id, data=data)
-    listener = SupervisorService(Supervisor((1,), J), ServiceConfig(listen_only=True), 0)
-    granting = SupervisorService(Supervisor((1,), J), ServiceConfig(), 0)
+    listener = build_service(Supervisor((1,), J), ServiceConfig(listen_only=True), 0)
+    granting = build_service(Supervisor((1,), J), ServiceConfig(), 0)
     for service in (listener, granting):
         service.on_foreign_direction(frame, 10)
     heard, judged = listener.status(), granting.status()
@@ -352,7 +353,7 @@ def test_the_help_names_the_limits(
 
 
 def _service_hearing(level_uj: int) -> tuple[SupervisorService, list[dict[str, Any]]]:
-    service = SupervisorService(Supervisor((4,), 100 * J), ServiceConfig(), 0)
+    service = build_service(Supervisor((4,), 100 * J), ServiceConfig(), 0)
     service.on_message(Telemetry(4, level_uj // QUANTUM_UJ), 1)
     return service, []
 

@@ -19,7 +19,8 @@ from canergy.cli import build_parser
 from canergy.codec import Codec
 from canergy.core import Supervisor
 from canergy.live.runtime import monotonic_us
-from canergy.live.supervisor.service import JOIN_HOLD_US, ServiceConfig, SupervisorService
+from canergy.live.supervisor.build import build_service
+from canergy.live.supervisor.service import JOIN_HOLD_US, ServiceConfig
 from canergy.live.supervisor.witness import (
     RETURN_HOLD_MIN_US,
     WITNESS_GAP_US,
@@ -170,7 +171,7 @@ def test_the_service_credits_a_resynchronised_return_and_reports_the_gap() -> No
     rig.settle()  # 1 J delivered to node 1
     core = rig.sup
     config = ServiceConfig(return_hold_us=HOLD, fsync=False, status_period_us=10**12)
-    service = SupervisorService(core, config, 0)
+    service = build_service(core, config, 0)
     service.on_message(tel(0), 0)
     service.on_message(Return(1, 2, 400), 1_000)  # return 1 was acked in its name meanwhile
     service.on_message(tel(2), 2_000)
@@ -189,7 +190,7 @@ class Wire:
 
     def __init__(self, tmp: Path) -> None:
         config = ServiceConfig(return_hold_us=HOLD, fsync=False, status_period_us=10**12)
-        self.service = SupervisorService(Supervisor((1,), 10_000_000), config, 0)
+        self.service = build_service(Supervisor((1,), 10_000_000), config, 0)
         nv = NvStore(tmp / "1.nv", 1, fsync=False)
         self.node = FirmwareNode(1, nv, NodeConfig(telemetry_period_us=1_000_000), 0)
         self.host = NodeHost([self.node])

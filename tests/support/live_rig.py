@@ -16,6 +16,7 @@ from canergy.core import ClientState, Supervisor, Timing
 from canergy.faults import FaultInjector, FaultProfile
 from canergy.ledger import Ledger, ledger
 from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
+from canergy.live.supervisor.build import build_service
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.live.supervisor.state_file import load_state
@@ -81,7 +82,7 @@ class Rig:
             fsync=False,
         )
         counters = BusCounters()
-        self.service = SupervisorService(core, config, now, bus_counters=counters)
+        self.service = build_service(core, config, now, bus_counters=counters)
         runtime = BusRuntime(
             self._bus(self.codec.supervisor_filters()),
             self.service,

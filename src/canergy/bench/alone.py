@@ -56,19 +56,24 @@ def supervisor_alone(
 ) -> dict[str, Any]:
     """One grant of 1 mJ kept in flight to each of ``nodes`` for ``duration_s`` after every node
     completed one; the supervisor's CPU per frame it sent or received. ``pace_s``: one frame per
-    loop pass on both sides, and a sleep of that long between turns. ``core``: "python" or "c"."""
+    loop pass on both sides (from the start: each loop is built so), and a sleep of that long
+    between turns once measuring. ``core``: "python" or "c"."""
     ids = list(range(1, nodes + 1))
+    batch = 512 if pace_s is None else 1
     sup_end, node_end = _Wire(), _Wire()
     sup_end.peer, node_end.peer = node_end, sup_end
     books = nv_dir / "supervisor.json" if state_file else None
     config = SupervisorConfig(
         core=CoreConfig(tuple(ids), 10**15, timing=TIMING, kind=core),
         service=ServiceConfig(status_period_us=10**12, fsync=False, state_path=books),
+        max_batch=batch,
     )
     built = build_supervisor(config, [sup_end])
     service, supervisor = built.service, built.loop
     host = emulator.node_host(ids, nv_dir, TIMING, monotonic_us())
-    node_loop = BusRuntime(node_end, host, codec=Codec(), receives=Direction.TO_CLIENT)
+    node_loop = BusRuntime(
+        node_end, host, codec=Codec(), receives=Direction.TO_CLIENT, max_batch=batch
+    )
     committed: set[int] = set()
 
     def ask(node: int) -> None:
@@ -88,8 +93,6 @@ def supervisor_alone(
             node_loop.poll(0)
         if len(committed) < nodes:
             raise NoAnswer(f"{nodes - len(committed)} of {nodes} node(s) never committed")
-        if pace_s is not None:
-            supervisor.max_batch = node_loop.max_batch = 1
         counters = supervisor.counters
         frames0 = counters.frames_sent + counters.frames_received
         received0 = counters.frames_received

@@ -110,7 +110,8 @@ def no_hold() -> str | None:
 
 class GatewayDown(SupervisorCore, Protocol):
     """What the gateway needs of its supervisor role, beside what the service drives: energy
-    taken out to above, the nodes a start waits for, and the hold it sets on grants."""
+    taken out to above and the hold it sets on grants (the nodes a start waits for:
+    ``SupervisorCore.unconfirmed``)."""
 
     hold: Callable[[], str | None]
     """Why no grant may begin below (None: it may); set by the gateway."""
@@ -118,8 +119,6 @@ class GatewayDown(SupervisorCore, Protocol):
     def withdraw(self, amount: int) -> None:
         """Take ``amount`` µJ out of Us to outside (counted as withdrawn)."""
         ...
-
-    def unconfirmed(self) -> tuple[int, ...]: ...
 
 
 class MakeDown(Protocol):

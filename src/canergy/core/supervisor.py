@@ -8,8 +8,8 @@ every energy movement comes from the variant's transition table.
 from __future__ import annotations
 
 import heapq
-from collections.abc import Iterable
-from typing import Protocol
+from collections.abc import Callable, Iterable
+from typing import TYPE_CHECKING, Any, Protocol
 
 from canergy.core import witnessed
 from canergy.core.actions import Action, Persist
@@ -22,7 +22,14 @@ from canergy.core.table import Event
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
 from canergy.frozen import evolve
-from canergy.messages import MAX_NODE, MIN_NODE, ToSupervisor
+from canergy.messages import MAX_NODE, MIN_NODE, Join, ToSupervisor
+
+if TYPE_CHECKING:  # the types of the service's parts a compiled core makes in C (names only)
+    from canergy.ccore.calls import Answer
+    from canergy.live.supervisor.grants import GrantCaps
+    from canergy.live.supervisor.intrusions import Intrusions, Refusals
+    from canergy.live.supervisor.policy import Limits, TopUp
+    from canergy.live.supervisor.telemetry import TelemetryTable
 
 BUS_SHIFT = 8
 """A supervisor over several buses keys its sessions ``bus << BUS_SHIFT | node``; bus 0's keys
@@ -103,6 +110,46 @@ class SupervisorCore(Protocol):
 
     def is_quiescent(self) -> bool: ...
 
+    # -- what the service asks of a core: declared by each (None: no version in C) -------------
+    start_without: frozenset[int]
+    """Nodes a start does not wait for (witnessed rules)."""
+
+    def unconfirmed(self) -> tuple[int, ...]:
+        """The nodes whose books this start waits for before any grant."""
+        ...
+
+    def heard_table(self, lost_after_us: int) -> TelemetryTable | None:
+        """The TELEMETRY table in C, or None: the service keeps Python's
+        (``canergy.live.supervisor.telemetry.HeardTable``)."""
+        ...
+
+    def return_gate(self, hold_us: int, block_us: int, hold: bool) -> Any | None:
+        """The witness (``canergy.live.supervisor.witness.ReturnGate``'s interface) in C, or
+        None: the service keeps Python's."""
+        ...
+
+    def join_hold(
+        self,
+        hold_us: int,
+        local_nodes: frozenset[int],
+        intrusions: Intrusions,
+        refusals: Refusals,
+        authenticated: Callable[[], bool],
+        admit: Callable[[Join, int], list[Any]],
+    ) -> Any | None:
+        """The held JOINs (``canergy.live.supervisor.joins.JoinHold``'s interface) in C, or
+        None: the service keeps Python's."""
+        ...
+
+    def grant_caps(self, limits: Limits, policy: TopUp | None) -> GrantCaps | None:
+        """The grant caps in C, or None: the service sizes grants in Python."""
+        ...
+
+    def answer_on(self, bus: int) -> Answer | None:
+        """The frame path of bus ``bus`` in C (``canergy.live.supervisor.frame_path``), or
+        None: every frame takes the usual path."""
+        ...
+
 
 class Supervisor:
     """Grants energy from its usable budget to client nodes."""
@@ -164,6 +211,23 @@ class Supervisor:
         """The nodes whose books this start waits for before any grant (witnessed rules; never
         any under the others): what a runtime prints while it waits."""
         return unconfirmed(self.state, self.start_without)
+
+    # -- the service's parts: none in C here (``SupervisorCore``) ------------------------------
+    def heard_table(self, lost_after_us: int) -> None:
+        return None
+
+    def return_gate(self, hold_us: int, block_us: int, hold: bool) -> None:
+        return None
+
+    def join_hold(self, *args: Any, **kwargs: Any) -> None:
+        """None, as ``SupervisorCore.join_hold`` is asked (its arguments: the service's)."""
+        return None
+
+    def grant_caps(self, limits: Limits, policy: TopUp | None) -> None:
+        return None
+
+    def answer_on(self, bus: int) -> None:
+        return None
 
     def begin(self, node: int, amount: int, now: int) -> list[Action]:
         """Reserve ``amount`` µJ from Us and send node ``node`` an intention; refused while a

@@ -378,6 +378,7 @@ class BusRuntime:
         auth: FrameAuth | None = None,
         counters: BusCounters | None = None,
         frame_path: FramePath | None = None,
+        max_batch: int = 512,
     ) -> None:
         """``source``: read from this listener instead of ``bus.recv`` when a ``can.Notifier``
         owns the bus (shared with python-canopen: one Notifier per bus). ``counters``: kept in
@@ -399,7 +400,8 @@ class BusRuntime:
         self._bus_state_due = 0
         self._alone_due: int | None = clock() + ALONE_AFTER_US
         """When to look whether this is a virtual bus no other bus of this process shares."""
-        self.max_batch = 512
+        self.max_batch = max_batch
+        """The most frames one pass takes (``canergy bench --pace``: 1)."""
         self.auth = auth
         """Authenticated mode: MACs added to what is sent and checked on what is received."""
         self.own = None if auth is None else OwnDirection(auth)

@@ -39,7 +39,7 @@ from canergy.core.supervisor import SupervisorCore
 from canergy.live.gateway.state import save_gateway
 from canergy.live.runtime import BusCounters, Outgoing
 from canergy.live.supervisor.intrusions import Intrusions, Refusals, frame_text
-from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.service import ServiceConfig, ServiceParts, SupervisorService
 from canergy.live.supervisor.witness import WITNESS_GAP_US, ClientWitness
 from canergy.messages import (
     AMOUNT_MAX_MJ,
@@ -349,14 +349,15 @@ class DownstreamService(SupervisorService):
         core: SupervisorCore,
         config: ServiceConfig,
         now: int,
+        parts: ServiceParts,
         *,
         uplink: Uplink | None = None,
-        **parts: Any,
+        **given: Any,
     ) -> None:
         """``uplink``: the gateway's upstream role, whose confirmation of this gateway's start
         grants below wait for; the rest as ``SupervisorService`` takes it."""
         self.uplink = uplink
-        super().__init__(core, config, now, **parts)
+        super().__init__(core, config, now, parts, **given)
 
     def _start_grants(self, now: int, nodes: set[int] | None) -> list[Outgoing]:
         """No grant below while the supervisor above has not confirmed this gateway's start

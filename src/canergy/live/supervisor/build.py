@@ -34,8 +34,16 @@ from canergy.live.bus_group import BusGroup
 from canergy.live.devices.on_stuck import OnStuck
 from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
 from canergy.live.supervisor.control import ControlServer
-from canergy.live.supervisor.service import ServiceConfig, SupervisorService
+from canergy.live.supervisor.grants import GrantDesk
+from canergy.live.supervisor.intrusions import Intrusions, Refusals
+from canergy.live.supervisor.ledger import Ledger
+from canergy.live.supervisor.nodes import NodeInfo, name_of
+from canergy.live.supervisor.outputs import BooksOut, StatusOut
+from canergy.live.supervisor.rules_said import RulesSaid
+from canergy.live.supervisor.service import ServiceConfig, ServiceParts, SupervisorService
 from canergy.live.supervisor.state_file import keep_books, load_state
+from canergy.live.supervisor.telemetry import HeardTable, TelemetryTable
+from canergy.live.supervisor.witness import ReturnGate
 from canergy.messages import Direction
 
 if TYPE_CHECKING:  # the guarded drives' modules load only when a build has some
@@ -142,6 +150,8 @@ class SupervisorConfig:
     """Told in one line whenever a guard stops or releases its drive or device."""
     on_stuck: str | None = None
     """``--on-stuck``: the command run once each time a guarded device becomes STUCK."""
+    max_batch: int = 512
+    """The most frames a pass of the bus loop takes (``canergy bench --pace``: 1)."""
 
     @property
     def shares_bus(self) -> bool:
@@ -228,6 +238,74 @@ def _from_books(config: SupervisorConfig, c: CoreConfig, now: int | None) -> Sup
     if state is not None:  # a start is a restart from the persistent record; witnessed: SYNC(n)
         core.power_loss(monotonic_us() if now is None else now, secrets.randbits(16))
     return core
+
+
+def service_parts(
+    core: SupervisorCore,
+    config: ServiceConfig,
+    *,
+    save: Callable[[], None] | None = None,
+    bus_counters: BusCounters | None = None,
+    buses: Mapping[str, BusCounters] | None = None,
+) -> ServiceParts:
+    """The service's parts that need nothing of it, the core's own in C where it has them
+    (``SupervisorCore.heard_table``, ``return_gate``, ``grant_caps``). ``save``: writes the books
+    instead of ``config.state_path`` (a gateway keeps both of its roles in one file);
+    ``bus_counters``: the bus loop's counters (one bus), or ``buses``: each bus's by name."""
+    name = partial(name_of, config.bus_names)
+    heard: TelemetryTable | None = core.heard_table(config.lost_after_us)
+    if heard is None:
+        heard = HeardTable(core.nodes, config.lost_after_us)
+    nodes = {n: NodeInfo(heard.of(n)) for n in core.nodes}
+    hold_us, block_us = config.return_hold_us or 0, config.witness_block_us
+    witness = core.return_gate(hold_us, block_us, config.return_hold_us is not None)
+    if witness is None:
+        witness = ReturnGate(hold_us, block_us)
+    books = BooksOut(core, config.state_path, fsync=config.fsync, buses=config.bus_names, save=save)
+    caps = core.grant_caps(config.limits, config.policy)
+    return ServiceParts(
+        heard=heard,
+        nodes=nodes,
+        rules_said=RulesSaid(core.variant.name, nodes, config.local_nodes, name),
+        desk=GrantDesk(config.limits, config.policy, caps),
+        ledger=Ledger(core, books, listen_only=config.listen_only),
+        status_out=StatusOut(config.status_path, config.status_stream, config.status_text),
+        intrusions=Intrusions("supervisor", name=name),
+        refusals=Refusals("supervisor", name=name),
+        witness=witness,
+        bus_counters=BusCounters() if bus_counters is None else bus_counters,
+        buses=dict(buses or {}),
+    )
+
+
+def build_service(
+    core: SupervisorCore,
+    config: ServiceConfig,
+    now: int,
+    *,
+    save: Callable[[], None] | None = None,
+    liveness: Callable[[int, int], bool] | None = None,
+    extra_status: Callable[[int], dict[str, Any]] | None = None,
+    bus_counters: BusCounters | None = None,
+    buses: Mapping[str, BusCounters] | None = None,
+    control: ControlServer | None = None,
+    uplink: Any = None,
+) -> SupervisorService:
+    """The service of ``core`` under ``config`` with its parts (``service_parts``), started at
+    ``now``: the builder's, and the one unit tests make without a bus. ``uplink``: the gateway's
+    upstream role (the service is then a ``DownstreamService``); ``liveness``, ``extra_status``
+    and ``control`` as ``SupervisorService`` takes them."""
+    parts = service_parts(core, config, save=save, bus_counters=bus_counters, buses=buses)
+    given: dict[str, Any] = {
+        "liveness": liveness,
+        "extra_status": extra_status,
+        "control": control,
+    }
+    if uplink is not None:
+        from canergy.live.gateway.process import DownstreamService
+
+        return DownstreamService(core, config, now, parts, uplink=uplink, **given)
+    return SupervisorService(core, config, now, parts, **given)
 
 
 @dataclass(slots=True)
@@ -382,21 +460,18 @@ def _one(
         )
         made.append(guarded.close)
     counters = BusCounters()
-    liveness = guarded.alive if guarded is not None else manager and manager.alive
-    given: dict[str, Any] = {
-        "save": save,
-        "liveness": liveness,
-        "extra_status": None if guarded is None else guarded.status,
-        "bus_counters": counters,
-        "control": control,
-    }
-    service: SupervisorService
-    if uplink is not None:
-        from canergy.live.gateway.process import DownstreamService
-
-        service = DownstreamService(core, config.service, clock(), uplink=uplink, **given)
-    else:
-        service = SupervisorService(core, config.service, clock(), **given)
+    liveness = guarded.alive if guarded is not None else None if manager is None else manager.alive
+    service = build_service(
+        core,
+        config.service,
+        clock(),
+        save=save,
+        liveness=liveness,
+        extra_status=None if guarded is None else guarded.status,
+        bus_counters=counters,
+        control=control,
+        uplink=uplink,
+    )
     if manager is not None and not listen_only:
         manager.start_all()
     if guarded is not None:  # the devices' links start once the service stands, as they did
@@ -424,6 +499,7 @@ def _one(
             counters=counters,
             clock=clock,
             frame_path=handler.frame_path(off, auth),
+            max_batch=config.max_batch,
         )
     return RunningSupervisor(
         service=service,
@@ -451,7 +527,7 @@ def _several(
     codec = Codec(config.id_base)
     names = config.service.bus_names
     counters = {name: BusCounters() for name in names}
-    service = SupervisorService(core, config.service, clock(), buses=counters, control=control)
+    service = build_service(core, config.service, clock(), buses=counters, control=control)
     router = BusRouter()
     off = _LISTEN_OFF if config.service.listen_only else None
     for i, (name, bus) in enumerate(zip(names, buses, strict=True)):
@@ -468,13 +544,14 @@ def _several(
                 counters=counters[name],
                 clock=clock,
                 frame_path=service.frame_path(off, auth, i),
+                max_batch=config.max_batch,
             )
         )
     runtimes = tuple(router.runtimes)
     return RunningSupervisor(
         service=service,
         handler=service,
-        loop=BusGroup(list(runtimes)),
+        loop=BusGroup(list(runtimes), config.max_batch),
         runtimes=runtimes,
         control=control,
         manager=None,

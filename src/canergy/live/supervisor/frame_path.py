@@ -18,7 +18,7 @@ import can
 from canergy.auth.frames import MAC_TYPE, FrameAuth, Layout
 from canergy.ccore.calls import Answer, AuthAnswer, AuthPair, EncodedBegin
 from canergy.core import Action
-from canergy.core.supervisor import BUS_SHIFT
+from canergy.core.supervisor import BUS_SHIFT, SupervisorCore
 from canergy.live.runtime import FramePath, Outgoing, RawFrame
 from canergy.messages import Direction, Message, MsgType, Return, Telemetry
 
@@ -46,7 +46,7 @@ class CFramePath:
 
     def __init__(
         self,
-        core: Any,
+        core: SupervisorCore,
         buses: int,
         listen_only: bool,
         passes: Pass,
@@ -64,7 +64,9 @@ class CFramePath:
         ``telemetry`` (a TELEMETRY the tables in C took: its verdict's bits and what the witness
         and the held JOINs found), ``join_held`` (a JOIN held, by session key) and ``decoded``
         (a message only decoded in C, for the usual path)."""
-        self._core = core
+        self._core: Any = core
+        """The compiled core's calls beyond ``SupervisorCore`` (``begin_encoded``, with a key
+        ``auth_answer_on``) are asked of it only once ``answer_on`` gave a path."""
         self._buses = buses
         self._listen_only = listen_only
         self._pass = passes
@@ -75,8 +77,8 @@ class CFramePath:
         self._decoded = decoded
         self.stopping = False
         """The service is stopping (``stop``): C aborts what it would commit."""
-        self._answer_on: Callable[[int], Answer] | None = getattr(core, "answer_on", None)
-        self._answer = None if self._answer_on is None else self._answer_on(0)
+        self._answer_on = core.answer_on
+        self._answer = self._answer_on(0)
         """Bus 0's path without a key (``fast_frame``); None on the Python core."""
         self._answers: dict[int, Answer] = {} if self._answer is None else {0: self._answer}
         """Over several buses: each bus's (``frame_path(bus=)``), by bus index."""
@@ -122,7 +124,7 @@ class CFramePath:
         self, off: str | None = None, auth: FrameAuth | None = None, bus: int = 0
     ) -> FramePath | None:
         """``SupervisorService.frame_path``: this path for bus ``bus``'s loop, or None."""
-        if self._answer_on is None:
+        if self._answer is None:
             self._path = ("python", None)
             return None
         if off is not None:
@@ -134,7 +136,9 @@ class CFramePath:
         self.begin_encoded = self._core.begin_encoded
         if not bus:
             return self.fast_frame
-        self._answers[bus] = self._answer_on(bus)
+        answer = self._answer_on(bus)
+        assert answer is not None  # bus 0's is (above): a compiled core's
+        self._answers[bus] = answer
         return partial(self.fast_frame, bus=bus)
 
     def _keyed_path(self, auth: FrameAuth, bus: int) -> FramePath:

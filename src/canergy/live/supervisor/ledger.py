@@ -1,6 +1,7 @@
 """The books as one run of the supervisor sees them: what it granted since its start, each node's
-share, an injection into the budget, and their writing (``outputs.BooksOut``). The service
-decides when the books are written (once per step, before the step's frames leave)."""
+share, an injection into the budget, and their writing (``outputs.BooksOut``): at the start, and
+then once per step in which the core's persistent record changed (``dirty``), before the
+step's frames leave (the service says when a step ends: ``save_if_dirty``)."""
 
 from __future__ import annotations
 
@@ -23,10 +24,27 @@ class Ledger:
         self.delivered_at_start = sum(s.delivered for s in core.state.sessions)
         self.injected_this_run = 0
         """Energy this run added to Us (``inject``), µJ."""
+        self.dirty = False
+        """The core's persistent record changed since the books were last written (the
+        service sets it for each ``Persist`` action)."""
+
+    def open(self, inject_uj: int) -> None:
+        """The run's start: ``inject_uj`` µJ injected (0: none; ``inject``), and the books
+        written (not listen-only), so an injection is on disk before anything is granted."""
+        if inject_uj:
+            self.inject(inject_uj)
+        if not self.listen_only:
+            self.write()
+
+    def save_if_dirty(self) -> None:
+        """A step ends: the books written if the record changed in it."""
+        if self.dirty:
+            self.write()
+            self.dirty = False
 
     def inject(self, amount: int) -> None:
         """Add ``amount`` µJ to Us, counted as injected (``--inject``): refused (``ValueError``)
-        listen-only, for nothing, or past ``ENERGY_MAX_UJ``. The caller writes the books."""
+        listen-only, for nothing, or past ``ENERGY_MAX_UJ``. ``open`` writes the books next."""
         if self.listen_only:
             raise ValueError("--inject needs a supervisor that writes its state: not --listen-only")
         st = self.core.state

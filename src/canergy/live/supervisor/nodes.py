@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+from canergy.bus_keys import node_name
 from canergy.live.supervisor.grants import GrantRequest
 from canergy.live.supervisor.telemetry import Heard
 
@@ -53,3 +54,9 @@ class NodeInfo:
     ignored."""
     resynced_at: int | None = None
     """When the last of them began (µs)."""
+
+
+def name_of(buses: tuple[str, ...], node: int) -> int | str:
+    """A node as status, replies and the state file name it: its id on one bus (every reply),
+    or ``bus/node`` over the buses ``buses`` names."""
+    return node_name(buses, node) if buses else node

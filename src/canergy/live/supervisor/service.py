@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import secrets
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO, cast
@@ -17,7 +17,6 @@ from typing import Any, TextIO, cast
 import can
 
 from canergy.auth.frames import FrameAuth, Verdict
-from canergy.bus_keys import node_name
 from canergy.codec import DecodeError
 from canergy.core import (
     Acknowledged,
@@ -41,14 +40,14 @@ from canergy.live.supervisor.grants import Books, GrantCallback, GrantDesk, Gran
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
 from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
 from canergy.live.supervisor.ledger import Ledger
-from canergy.live.supervisor.nodes import NodeInfo
-from canergy.live.supervisor.outputs import BooksOut, StatusOut
+from canergy.live.supervisor.nodes import NodeInfo, name_of
+from canergy.live.supervisor.outputs import StatusOut
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.rules_said import RulesSaid
 from canergy.live.supervisor.status import Run, StatusReport
-from canergy.live.supervisor.telemetry import BEYOND_BOOKS, HeardTable
+from canergy.live.supervisor.telemetry import BEYOND_BOOKS, TelemetryTable
 from canergy.live.supervisor.watch import BusWatch
-from canergy.live.supervisor.witness import RETURN_HOLD_MIN_US, ReturnGate
+from canergy.live.supervisor.witness import RETURN_HOLD_MIN_US
 from canergy.messages import (
     SEQ_BITS,
     Debit,
@@ -120,6 +119,26 @@ class ServiceConfig:
             )
 
 
+@dataclass(frozen=True, slots=True)
+class ServiceParts:
+    """The service's parts that need nothing of the service itself, made by the builder
+    (``canergy.live.supervisor.build.service_parts``); the core's own in C where it has them."""
+
+    heard: TelemetryTable
+    """The TELEMETRY table (``telemetry.HeardTable``, or the compiled core's in C)."""
+    nodes: dict[int, NodeInfo]
+    rules_said: RulesSaid
+    desk: GrantDesk
+    ledger: Ledger
+    status_out: StatusOut
+    intrusions: Intrusions
+    refusals: Refusals
+    witness: Any
+    """The witness (``witness.ReturnGate``, or the compiled core's in C)."""
+    bus_counters: BusCounters
+    buses: dict[str, BusCounters]
+
+
 class SupervisorService:
     """Grants energy to nodes on one bus; implements ``canergy.live.runtime.Handler``. Over
     several buses, ``canergy.live.supervisor.multi_bus`` puts one port per bus in front of it."""
@@ -129,67 +148,50 @@ class SupervisorService:
         core: SupervisorCore,
         config: ServiceConfig,
         now: int,
+        parts: ServiceParts,
         *,
-        save: Callable[[], None] | None = None,
         liveness: Callable[[int, int], bool] | None = None,
         extra_status: Callable[[int], dict[str, Any]] | None = None,
-        bus_counters: BusCounters | None = None,
-        buses: Mapping[str, BusCounters] | None = None,
         control: ControlServer | None = None,
     ) -> None:
-        """``save``: writes the books instead of ``config.state_path`` (a gateway keeps both of
-        its roles in one file). The rest is what the builder (``canergy.live.supervisor.build``)
-        hands over: ``liveness``, an extra liveness test (the CANopen heartbeat watchdog, the
-        guarded drives'; False: no grants); ``extra_status``, more status under ``cia402`` (the
-        guarded drives); ``bus_counters``, the bus loop's counters (one bus) or ``buses``, each
-        bus's by name (several); ``control``, the control socket (its refusals are in the
-        status)."""
+        """Made by the builder (``canergy.live.supervisor.build``), which hands over ``parts``
+        and: ``liveness``, an extra liveness test (the CANopen heartbeat watchdog, the guarded
+        drives'; False: no grants); ``extra_status``, more status under ``cia402`` (the guarded
+        drives); ``control``, the control socket (its refusals are in the status). The parts
+        that call back into the service (the watch, the held JOINs, the frame path, the status
+        report) are made here."""
         self.core = core
         self.config = config
-        make_table = getattr(core, "heard_table", None)
-        self.heard: Any = (
-            HeardTable(core.nodes, config.lost_after_us)
-            if make_table is None
-            else make_table(config.lost_after_us)
-        )
-        """The TELEMETRY table (``telemetry``): the compiled core's in C, else Python's."""
-        self.nodes = {n: NodeInfo(self.heard.of(n)) for n in core.nodes}
-        self.rules_said = RulesSaid(
-            core.variant.name, self.nodes, config.local_nodes, self.node_name
-        )
+        self.heard = parts.heard
+        self.nodes = parts.nodes
+        self.rules_said = parts.rules_said
         """Which rules each node's TELEMETRY says (``rules_said``): other than these, no grant."""
-        make_caps = getattr(core, "grant_caps", None)
-        caps = None if make_caps is None else make_caps(config.limits, config.policy)
-        self.desk = GrantDesk(config.limits, config.policy, caps)
+        self.desk = parts.desk
         """Sizes one-shot grants and top-ups under the limits and the rate limiter."""
         self.started_at = now
         self.now = now
         self.next_status = now
         self.next_tick = now
         self.ready: set[int] = set()
-        self.ended: set[int] = set()
-        """Nodes at the end of their numbering (``COUNTER_END``): granted nothing more."""
         """Nodes to try a grant for at the loop's next pass (a request queued, a transaction
         ended); every node is tried at each tick."""
+        self.ended: set[int] = set()
+        """Nodes at the end of their numbering (``COUNTER_END``): granted nothing more."""
         self.stopping = False
-        self._dirty = False
         self._pass = Pass()
         """The bus loop's passes: frames held until the outermost one ends."""
         self.telemetry_heard = 0
         """TELEMETRY frames of managed nodes taken (information, not protocol frames)."""
-        books_out = BooksOut(
-            core, config.state_path, fsync=config.fsync, buses=config.bus_names, save=save
-        )
-        self.ledger = Ledger(core, books_out, listen_only=config.listen_only)
+        self.ledger = parts.ledger
         """The books of this run: granted since the start, an injection, their writing."""
-        self.status_out = StatusOut(config.status_path, config.status_stream, config.status_text)
+        self.status_out = parts.status_out
         self.stop_deadline: int | None = None
         self.liveness = liveness
-        self.bus_counters = BusCounters() if bus_counters is None else bus_counters
-        self.buses: dict[str, BusCounters] = dict(buses or {})
+        self.bus_counters = parts.bus_counters
+        self.buses = parts.buses
         """Several buses: each one's counters by name (the status shows them and their sums)."""
-        self.intrusions = Intrusions("supervisor", name=self.node_name)
-        self.refusals = Refusals("supervisor", name=self.node_name)
+        self.intrusions = parts.intrusions
+        self.refusals = parts.refusals
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
         self.watch = BusWatch(
             core,
@@ -203,14 +205,7 @@ class SupervisorService:
             stopping=lambda: self.stopping,
         )
         """Refusals and intrusions, and the stop they may call for (``watch``)."""
-        make_gate = getattr(core, "return_gate", None)
-        hold = config.return_hold_us is not None
-        self.witness: Any = (
-            ReturnGate(config.return_hold_us or 0, config.witness_block_us)
-            if make_gate is None
-            else make_gate(config.return_hold_us or 0, config.witness_block_us, hold)
-        )
-        """The witness (``witness.ReturnGate``): the compiled core's in C, else Python's."""
+        self.witness = parts.witness
         self.witnessed = core.variant.name == "witnessed"
         """Rules that take DEBIT (``witnessed``): draws held, every node start confirmed. Every
         table has a cell for DEBIT (tables are total); the others ignore it, and so does this."""
@@ -224,11 +219,11 @@ class SupervisorService:
             lambda: self.authenticated,
             lambda join, now: self._carry_out(self.core.receive(join, now), now),
         )
-        make_joins = getattr(core, "join_hold", None)
-        self.joins: Any = (
-            JoinHold[Outgoing](core.nodes, *joining) if make_joins is None else make_joins(*joining)
-        )
-        """JOINs held until the node's TELEMETRY confirms or refutes them (evidence)."""
+        self.joins: Any = core.join_hold(*joining)
+        """JOINs held until the node's TELEMETRY confirms or refutes them (evidence): the
+        compiled core's in C, else Python's."""
+        if self.joins is None:
+            self.joins = JoinHold[Outgoing](core.nodes, *joining)
         self.path = CFramePath(
             core,
             max(1, len(config.bus_names)),
@@ -257,10 +252,7 @@ class SupervisorService:
             extra_status=extra_status,
         )
         """Makes the status from the parts it reads (``status``)."""
-        if config.inject_uj:
-            self._inject(config.inject_uj)
-        if not config.listen_only:
-            self._persist()  # an injection is on disk before anything is granted
+        self.ledger.open(config.inject_uj)  # an injection is on disk before anything is granted
         self._waited = self.waiting()
         """The nodes this start waited for at the last look (witnessed rules; only the counts
         answering a SYNC, ``_synced``, shrink it, and nothing after the start grows it: empty,
@@ -415,9 +407,8 @@ class SupervisorService:
 
     def waiting(self) -> tuple[int, ...]:
         """The nodes whose books this start waits for before any grant (the core's
-        ``unconfirmed``; none under rules without SYNC, or on a core without it)."""
-        unconfirmed = getattr(self.core, "unconfirmed", None)
-        return () if unconfirmed is None else tuple(unconfirmed())
+        ``unconfirmed``; none under rules without SYNC)."""
+        return tuple(self.core.unconfirmed())
 
     def waiting_why(self, waiting: tuple[int, ...]) -> str:
         """Why nothing is granted while ``waiting`` (``waiting()``) is not empty."""
@@ -431,7 +422,7 @@ class SupervisorService:
     def _started_without(self) -> dict[str, int]:
         """The nodes a start skips (the core's ``start_without``) that it would wait for, and
         what each one's books say it holds: delivered and reserved, less returns credited."""
-        skipped: frozenset[int] = getattr(self.core, "start_without", frozenset())
+        skipped = self.core.start_without
         return {
             str(self.node_name(s.node)): s.delivered + s.reserved - s.returned
             for s in self.core.state.sessions
@@ -538,8 +529,7 @@ class SupervisorService:
 
     def node_name(self, node: int) -> int | str:
         """A node as status, replies and the state file name it: its id, or ``bus/node``."""
-        buses = self.config.bus_names
-        return node_name(buses, node) if buses else node  # one bus: its id (every reply)
+        return name_of(self.config.bus_names, node)
 
     def intrusion(self, node: int, what: str, kind: str, now: int, *, stop: bool = False) -> None:
         """Report what no honest participant sends (``BusWatch.intrusion``)."""
@@ -640,7 +630,7 @@ class SupervisorService:
         if passes.depth:
             return []
         held, passes.held = passes.held, []
-        self._save_if_dirty()
+        self.ledger.save_if_dirty()
         return held
 
     # -- control ---------------------------------------------------------------------------
@@ -679,9 +669,6 @@ class SupervisorService:
         return self.core.is_quiescent() or now >= self.stop_deadline
 
     # -- internals -------------------------------------------------------------------------
-    def _inject(self, amount: int) -> None:
-        self.ledger.inject(amount)  # the books are written next (``__init__``), before any grant
-
     def is_lost(self, node: int, now: int) -> bool:
         heard = self.nodes[node].heard.heard_at
         if self.liveness is not None and not self.liveness(node, now):
@@ -809,7 +796,7 @@ class SupervisorService:
             if isinstance(action, Send):
                 out.append(action.message)
             elif isinstance(action, Persist):
-                self._dirty = True
+                self.ledger.dirty = True  # written once, at the step's end
             elif isinstance(action, Acknowledged):
                 decide = self.core.abort if self.stopping else self.core.commit
                 queue.extend(decide(action.node, now))
@@ -871,19 +858,10 @@ class SupervisorService:
         if self._pass.depth:
             self._pass.held += out
             return []
-        self._save_if_dirty()
+        self.ledger.save_if_dirty()
         if any(isinstance(m, RawFrame) for m in out):  # ``_begin`` makes them in a pass only
             raise RuntimeError("frames encoded by the C core outside a loop pass")
         return cast(list[Message], out)
-
-    def _save_if_dirty(self) -> None:
-        """Write the books if the core's persistent record changed (``_carry_out`` marks it)."""
-        if self._dirty:
-            self.ledger.write()
-            self._dirty = False
-
-    def _persist(self) -> None:
-        self.ledger.write()
 
     # -- status ----------------------------------------------------------------------------
     def status(self) -> dict[str, Any]:

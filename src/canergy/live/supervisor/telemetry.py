@@ -19,6 +19,7 @@ Times in µs from the caller.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any, Protocol
 
 from canergy.core.state import Session
 from canergy.messages import LEVEL_MAX_MJ, QUANTUM_UJ
@@ -78,6 +79,23 @@ def credited(h: Heard, amount_uj: int, now: int, lost_after_us: int) -> None:
         recent[1] = (recent[1][0], recent[0][1] + recent[1][1])
         del recent[0]
     recent.append((now, amount_uj))
+
+
+class TelemetryTable(Protocol):
+    """The TELEMETRY table the service keeps: ``HeardTable``, or the compiled core's in C
+    (``SupervisorCore.heard_table``)."""
+
+    def of(self, node: int) -> Any:
+        """The node's record: a ``Heard``, or the record in C with its attributes."""
+        ...
+
+    def telemetry(self, node: int, s: Session, level_mj: int, flags: int, now: int) -> int:
+        """A TELEMETRY taken: the verdict's bits (``TAKEN``, ``BEYOND_BOOKS``)."""
+        ...
+
+    def credited(self, node: int, amount_uj: int, now: int) -> None:
+        """A return credited by the books (a level reported before it may still show it)."""
+        ...
 
 
 class HeardTable:

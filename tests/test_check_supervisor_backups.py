@@ -95,7 +95,29 @@ def test_a_backup_from_before_a_node_lost_its_books_creates_energy_under_witness
     assert result.states > last_write.states // 2
 
 
-def test_supervisor_backups_create_nothing_under_witnessed_without_a_loss_of_books() -> None:
+def test_a_backup_from_before_a_late_resume_was_found_behind_creates_energy_under_witnessed() -> (
+    None
+):
+    """The same without a loss of books (found by this move, docs/protocol.md): the node is
+    granted 1 mJ and loses power; its RESUME, re-sent by its timer, is answered once, the node
+    draws 1 mJ, and the late copy is found behind: the node is admitted afresh, its Rc unknown.
+    The state file put back to its first copy ends its start on books that cannot say what the
+    node received: Us 1 mJ again. No frame lost or duplicated, no record lost."""
+    bounds = replace(NV_BACKUP, nv_losses=0, power_losses=1, timeouts=3)
+    engine = "compact"  # the reference engine agrees, in 8 s
+    result = check("witnessed", bounds, stop_at_first=True, engine=engine)
+    assert result.counterexample is not None
+    kinds = [step.kind for step, _ in result.counterexample]
+    assert kinds.count(K.RETURN_TIMER) == 1 and K.CLIENT_POWER_LOSS in kinds
+    assert kinds.index(K.SUPERVISOR_OLD_COPY) == 17 and len(kinds) == 22
+    last = result.counterexample[-1][1]
+    assert last.clients[0].credited_unknown and last.ledger().dissipated == -1000
+    last_write = check("witnessed", replace(bounds, supervisor_backups=False), engine=engine)
+    assert last_write.complete and last_write.violations == 0
+
+
+def test_supervisor_backups_create_nothing_under_witnessed_without_a_node_restart() -> None:
+    """Two nodes, one transaction, no power loss: no node is admitted afresh."""
     engine = "compact"  # the reference engine agrees (tests/test_check_engine.py)
     witnessed = check("witnessed", TWO_NODES, engine=engine)
     assert witnessed.complete and witnessed.violations == 0

@@ -65,6 +65,8 @@ class Engine:
         self.power_offset, width = layout.offsets[3], layout.widths[3]
         self.power_mask = (1 << width) - 1
         self.copies = b.supervisor_old_copies > 0
+        self.backups = b.supervisor_backups
+        """The supervisor's old copy is a backup taken by a step of its own: writes keep it."""
         self.olders: list[tuple[int, tuple[int, ...]]] = []
         """The supervisor's older states (its Us, each position's session part), numbered."""
         self._older_ids: dict[tuple[int, tuple[int, ...]], int] = {}
@@ -153,8 +155,9 @@ class Engine:
 
     def _successors_with_copies(self, code: int) -> list[int]:
         """``successors`` when the supervisor's state file has an older copy: every step that
-        writes it keeps the state before as that copy, and the copy may come back (no symmetry:
-        the copy holds every session)."""
+        writes it keeps the state before as that copy (with backups: a step of its own copies
+        the state as it is), and the copy may come back (no symmetry: the copy holds every
+        session)."""
         table, layout, in_flight = self.table, self.layout, self.model.bounds.in_flight
         usable, cs, packed = layout.unpack(code)
         older = layout.older(code)
@@ -167,7 +170,7 @@ class Engine:
         out: list[int] = []
 
         def add(new: list[int], credit: int, delta: int, wrote: bool, keep: int) -> None:
-            mine = self.older(usable, sessions) if wrote else keep
+            mine = self.older(usable, sessions) if wrote and not self.backups else keep
             out.append(layout.pack(usable + credit, new, packed + delta, mine))
 
         moves = [mv for nm in nms for mv in nm.session] + _merged(nms)
@@ -193,6 +196,8 @@ class Engine:
                 credit = sum(r[1] for r in rs)
                 new = [r[0] for r in rs]
                 out.append(layout.pack(back_usable + credit, new, packed + self.copy_charge, older))
+            if self.backups:  # the state file copied as it is now
+                out.append(layout.pack(usable, cs, packed, self.older(usable, sessions)))
         after = [mv for nm in nms for mv in nm.forge] + _merged(nms, replays=True)
         for mv in after:
             if ok[mv[1]]:

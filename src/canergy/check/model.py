@@ -84,7 +84,11 @@ class Bounds:
     own, ``client_nv_backup``), not the record before the node's last write."""
     supervisor_old_copies: int = 0
     """Supervisor starts from its state file as it was before its last write (a backup or a
-    snapshot put back; reference engine only)."""
+    snapshot put back)."""
+    supervisor_backups: bool = False
+    """With ``supervisor_old_copies``: the old state file is a backup taken at any earlier moment
+    (a step of its own, ``supervisor_backup``, offered while a restore is left), not the state
+    before the supervisor's last write."""
     forgeries: int = 0
     """Frames a keyless attacker builds and sends (``attacker.forgeable``; the codec is public)."""
     replays: int = 0
@@ -173,6 +177,7 @@ class StepKind(Enum):
     NV_OLD_COPY = "client_nv_old_copy"
     NV_BACKUP = "client_nv_backup"
     SUPERVISOR_OLD_COPY = "supervisor_old_copy"
+    SUPERVISOR_BACKUP = "supervisor_backup"
     FORGE = "forge"
     REPLAY = "replay"
     RESYNC = "resync"
@@ -286,6 +291,8 @@ class Model:
             yield Step(K.SUPERVISOR_POWER_LOSS)
         if w.sup_old_copied < b.supervisor_old_copies and w.sup_older not in (None, w.sup):
             yield Step(K.SUPERVISOR_OLD_COPY)
+            if b.supervisor_backups:
+                yield Step(K.SUPERVISOR_BACKUP)
         if w.forged < b.forgeries:
             for msg in forgeable(self.variant, w.sup.sessions, w.clients, b.units):
                 yield Step(K.FORGE, message=msg)
@@ -338,6 +345,8 @@ class Model:
             return self._channel(w, step)
         if step.kind in ATTACKER_KINDS:
             return self._attack(w, step)
+        if step.kind is K.SUPERVISOR_BACKUP:  # a copy of the state file as it is now
+            return evolve(w, sup_older=w.sup)
         if step.kind is K.SUPERVISOR_OLD_COPY and w.sup_older is not None:
             w = evolve(w, sup=w.sup_older)  # the old state file comes back; it restarts from it
         if step.kind in (K.SUPERVISOR_POWER_LOSS, K.SUPERVISOR_OLD_COPY):
@@ -425,11 +434,11 @@ class Model:
 
     def restart(self, w: World, nonce: int) -> World:
         """A supervisor start: every session restarts; the state file is written once, after
-        them all (the copy before it is kept when it changed)."""
+        them all (the copy before it is kept when it changed, unless copies are backups)."""
         before, older = w.sup, w.sup_older
         for i in range(len(w.sup.sessions)):
             w = self.restart_session(w, i, nonce)
-        if older is None:
+        if older is None or self.bounds.supervisor_backups:
             return w
         rules = self.variant.supervisor
         wrote = w.sup.usable != before.usable or any(
@@ -446,8 +455,10 @@ class Model:
         rules = self.variant.supervisor
         old = w.sup.sessions[i]
         step = session_step(self.variant, self.timing, old, event)
-        if w.sup_older is not None and (
-            step.credit or rules.persistent(old) != rules.persistent(step.session)
+        if (
+            w.sup_older is not None
+            and not self.bounds.supervisor_backups
+            and (step.credit or rules.persistent(old) != rules.persistent(step.session))
         ):
             w = evolve(w, sup_older=w.sup)
         return self._out(evolve(w, sup=apply_session(w.sup, i, step)), step.actions)

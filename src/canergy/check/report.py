@@ -17,6 +17,11 @@ def format_summary(r: CheckResult) -> str:
         + (f", old copies {b.old_copies}" if b.old_copies else "")
         + (" (backups taken at any moment)" if b.backups and b.old_copies else "")
         + (f", supervisor old copies {b.supervisor_old_copies}" if b.supervisor_old_copies else "")
+        + (
+            " (supervisor backups taken at any moment)"
+            if b.supervisor_backups and b.supervisor_old_copies
+            else ""
+        )
         + (f", forgeries {b.forgeries}" if b.forgeries else "")
         + (f", replays {b.replays}" if b.replays else "")
         + (f", re-syncs {b.resyncs}" if b.resyncs else "")

@@ -94,6 +94,12 @@ def _bound_flags(p: argparse.ArgumentParser, d: Any, chain_in_flight: int) -> No
         "back; default 0)",
     )
     p.add_argument(
+        "--supervisor-backups",
+        action="store_true",
+        help="with --supervisor-old-copies: the supervisor's old copy is a backup of its state "
+        "taken at any earlier moment (a step of its own), not its state before its last write",
+    )
+    p.add_argument(
         "--resyncs",
         type=count,
         default=d.resyncs,
@@ -221,6 +227,7 @@ _NOT_IN_CHAIN = (
     "old_copies",
     "backups",
     "supervisor_old_copies",
+    "supervisor_backups",
     "resyncs",
     "forgeries",
     "replays",
@@ -298,6 +305,7 @@ def run(args: argparse.Namespace) -> int:
         old_copies=args.old_copies,
         backups=args.backups,
         supervisor_old_copies=args.supervisor_old_copies,
+        supervisor_backups=args.supervisor_backups,
         forgeries=args.forgeries,
         replays=args.replays,
         resyncs=args.resyncs,

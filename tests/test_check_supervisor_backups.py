@@ -1,0 +1,145 @@
+"""The checker's backups of the supervisor's state file (``--supervisor-backups``, issue 40):
+with ``--supervisor-old-copies`` the old copy that may come back is one taken at any earlier
+moment (a step of its own, ``supervisor_backup``), not the state before the supervisor's last
+write. Both engines; docs/protocol.md, "Records restored from older copies"."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import pytest
+
+from canergy.check import Bounds, check
+from canergy.check.model import Model, Step, StepKind, World, initial_world
+from canergy.cli import main
+from canergy.core.variants import VARIANTS
+
+K = StepKind
+NV_BACKUP = Bounds(
+    clients=1,
+    transactions=1,
+    nv_losses=1,
+    supervisor_old_copies=1,
+    supervisor_backups=True,
+    power_losses=0,
+    losses=0,
+    duplicates=0,
+    retries=0,
+    timeouts=2,
+    in_flight=2,
+)
+"""One node that may lose its books, one backup of the supervisor's state file put back."""
+TWO_NODES = Bounds(
+    clients=2,
+    transactions=1,
+    supervisor_old_copies=1,
+    supervisor_backups=True,
+    losses=0,
+    duplicates=0,
+    power_losses=0,
+    timeouts=2,
+)
+"""Two nodes, one transaction, one backup of the supervisor's state file put back."""
+
+
+def _take(model: Model, w: World, step: Step) -> World:
+    assert step in list(model.steps(w)), step.describe()
+    nxt = model.apply(w, step)
+    assert nxt is not None
+    return nxt
+
+
+def test_a_backup_outlives_later_writes_and_is_what_comes_back() -> None:
+    bounds = replace(TWO_NODES, transactions=3, units=2)
+    model = Model(VARIANTS["hardened"], bounds)
+    last_write = Model(VARIANTS["hardened"], replace(bounds, supervisor_backups=False))
+    start = initial_world(bounds)
+    assert Step(K.SUPERVISOR_BACKUP) not in list(model.steps(start))  # nothing new to copy
+    w = _take(model, start, Step(K.BEGIN, 1, units=1))
+    assert w.sup_older == start.sup  # a write keeps the backup
+    assert _take(last_write, start, Step(K.BEGIN, 1, units=1)).sup_older == start.sup
+    w = _take(model, w, Step(K.SUPERVISOR_BACKUP))
+    backup = w.sup
+    assert w.sup_older == backup and Step(K.SUPERVISOR_BACKUP) not in list(model.steps(w))
+    before = w
+    w = _take(model, w, Step(K.BEGIN, 2, units=1))
+    assert _take(last_write, before, Step(K.BEGIN, 2, units=1)).sup_older == before.sup
+    assert w.sup_older == backup and w.sup != backup  # a write later, still the backup
+    w = _take(model, w, Step(K.SUPERVISOR_OLD_COPY))
+    assert w.sup.usable == backup.usable and w.sup.sessions[1].tx == backup.sessions[1].tx
+    assert w.sup_old_copied == 1 and w.sup_older == backup
+    steps = list(model.steps(w))
+    assert Step(K.SUPERVISOR_BACKUP) not in steps and Step(K.SUPERVISOR_OLD_COPY) not in steps
+
+
+@pytest.mark.parametrize("engine", ["compact", "reference"])
+def test_a_backup_from_before_a_node_lost_its_books_creates_energy_under_witnessed(
+    engine: str,
+) -> None:
+    """The residual of docs/protocol.md: a supervisor image from before a node lost its books.
+    The node is granted and spends 1 mJ, loses its books and is admitted afresh; the state
+    file put back to its first copy (Us 1 mJ) ends its start on books that cannot say what the
+    node received: Us 1 mJ again. The copy before the last write cannot reach it."""
+    result = check("witnessed", NV_BACKUP, stop_at_first=True, engine=engine)
+    assert result.counterexample is not None and result.violations == 1
+    kinds = [step.kind for step, _ in result.counterexample]
+    assert K.NV_LOST in kinds and K.SUPERVISOR_OLD_COPY in kinds
+    restored = kinds.index(K.SUPERVISOR_OLD_COPY)
+    worlds = [w for _, w in result.counterexample]
+    assert worlds[restored].sup.sessions[0].tx == 0  # the image from before the grant
+    assert worlds[restored - 1].sup.sessions[0].tx == 1
+    assert worlds[-1].ledger().dissipated == -1000 and len(kinds) == 16
+    last_write = check("witnessed", replace(NV_BACKUP, supervisor_backups=False), engine=engine)
+    assert last_write.complete and last_write.violations == 0
+    assert result.states > last_write.states // 2
+
+
+def test_a_backup_from_before_a_late_resume_was_found_behind_creates_energy_under_witnessed() -> (
+    None
+):
+    """The same without a loss of books (found by this move, docs/protocol.md): the node is
+    granted 1 mJ and loses power; its RESUME, re-sent by its timer, is answered once, the node
+    draws 1 mJ, and the late copy is found behind: the node is admitted afresh, its Rc unknown.
+    The state file put back to its first copy ends its start on books that cannot say what the
+    node received: Us 1 mJ again. No frame lost or duplicated, no record lost."""
+    bounds = replace(NV_BACKUP, nv_losses=0, power_losses=1, timeouts=3)
+    engine = "compact"  # the reference engine agrees, in 8 s
+    result = check("witnessed", bounds, stop_at_first=True, engine=engine)
+    assert result.counterexample is not None
+    kinds = [step.kind for step, _ in result.counterexample]
+    assert kinds.count(K.RETURN_TIMER) == 1 and K.CLIENT_POWER_LOSS in kinds
+    assert kinds.index(K.SUPERVISOR_OLD_COPY) == 17 and len(kinds) == 22
+    last = result.counterexample[-1][1]
+    assert last.clients[0].credited_unknown and last.ledger().dissipated == -1000
+    last_write = check("witnessed", replace(bounds, supervisor_backups=False), engine=engine)
+    assert last_write.complete and last_write.violations == 0
+
+
+def test_supervisor_backups_create_nothing_under_witnessed_without_a_node_restart() -> None:
+    """Two nodes, one transaction, no power loss: no node is admitted afresh."""
+    engine = "compact"  # the reference engine agrees (tests/test_check_engine.py)
+    witnessed = check("witnessed", TWO_NODES, engine=engine)
+    assert witnessed.complete and witnessed.violations == 0
+    last_write = check("witnessed", replace(TWO_NODES, supervisor_backups=False), engine=engine)
+    assert last_write.violations == 0 and witnessed.states > last_write.states
+    hardened = check("hardened", TWO_NODES, stop_at_first=True, engine=engine)
+    assert hardened.counterexample is not None
+    assert hardened.counterexample[-1][0].kind is K.SUPERVISOR_OLD_COPY
+
+
+def test_cli_supervisor_backups(capsys: pytest.CaptureFixture[str]) -> None:
+    argv = ["check", "--variant", "witnessed", "--nv-losses", "1", "--supervisor-old-copies", "1"]
+    argv += ["--transactions", "1", "--power-losses", "0", "--losses", "0", "--duplicates", "0"]
+    argv += ["--retries", "0", "--timeouts", "2", "--in-flight", "2", "--workers", "1"]
+    assert main([*argv, "--json"]) == 0
+    without = json.loads(capsys.readouterr().out)
+    assert main([*argv, "--supervisor-backups", "--json"]) == 1
+    backups = json.loads(capsys.readouterr().out)
+    assert not without["bounds"]["supervisor_backups"] and backups["bounds"]["supervisor_backups"]
+    assert main([*argv, "--supervisor-backups", "--trace"]) == 1
+    out = capsys.readouterr().out
+    assert "(supervisor backups taken at any moment)" in out and "supervisor_old_copy" in out
+    chain = ["check", "--topology", "chain", "--supervisor-backups"]
+    assert main(chain) == 2
+    assert "--supervisor-backups" in capsys.readouterr().err

@@ -325,8 +325,17 @@ def test_limits_opened_behind_the_guard_on_vcan0_stop_the_drive(procs: Procs, pl
     # Either the read-back finds the limits opened and latches the drive off, or, on a slow venue,
     # the reach charged from the write on exhausts the budget first: the guard stops the drive
     # and writes its own limits over the application's (a drive held off either way)
+    seen: dict[str, Any] = {}  # the guard's view when it stopped the drive for the write
+
+    def stopped_for_the_write() -> bool:
+        guarded = _guarded(procs)
+        if guarded.get("latched") or _budget_stop(guarded):
+            seen.update(guarded)
+            return True
+        return False
+
     wait(
-        lambda: bool(_guarded(procs).get("latched")) or _budget_stop(_guarded(procs)),
+        stopped_for_the_write,
         "the guard latching the drive off after the limits were opened",
         show=lambda: _guarded(procs),
     )
@@ -342,10 +351,12 @@ def test_limits_opened_behind_the_guard_on_vcan0_stop_the_drive(procs: Procs, pl
         f"reach {guarded['bound_reach_uj']} µJ, refused {guarded['refused']!r}"
     )
     assert guarded["writes_seen"] >= 1, guarded
-    if guarded["latched"]:
+    if seen["latched"]:  # for good: still latched at the end, the write named
+        assert guarded["latched"], guarded
         assert any(f"0x{i:04X}" in (guarded["refused"] or "") for i in (0x6072, 0x6073, 0x6080))
-    else:
-        assert _budget_stop(guarded), guarded
+    else:  # stopped by the reach it charged; its own limits written back and verified, the
+        # guard may run the drive again at them before the end (seen once in five runs)
+        assert _budget_stop(seen), seen
     assert guarded["bound_reach_uj"] is not None
     assert drive["drawn_uj"] <= granted + guarded["bound_reach_uj"]
     # the reach's bound over a 1 s PDO timeout is hundreds of joules in user-mode Linux; what the

@@ -82,6 +82,7 @@ from test_witnessed import (
     T,
     admitted_node_answers_a_sync,
     answers_lost_then_stale_admits,
+    late_resume_found_behind_then_the_first_image,
     resume,
     resume_after_a_lost_sync_answer,
     stale_admits_end_quiet,
@@ -922,6 +923,10 @@ class _CClientNode:
     def power_loss(self, now: int, nonce: int) -> list[Send]:
         return self._sends(self.c.resume(nonce, now))
 
+    def spend(self, amount: int, now: int) -> list[Send]:
+        assert self.c.do_draw(amount, now) == OK
+        return self._sends(self.c.out)
+
     @property
     def state(self) -> ClientState:
         return self.c.state
@@ -931,6 +936,14 @@ def test_an_admitted_c_node_answering_a_sync_leaves_the_c_supervisors_gs_alone()
     sup = unknown_rc_supervisor(compiled_core)
     node = _CClientNode(ClientState(1, phase=Phase.JOINING, nonce=7))
     admitted_node_answers_a_sync(sup, node)
+
+
+def test_a_late_resume_found_behind_then_the_first_c_image_creates_nothing() -> None:
+    """S8 with the C node and the C supervisor: the node found behind reports its Rc as a floor."""
+    sup = compiled_core([1], 10**6, variant="witnessed", timing=SCENE)
+    node = _CClientNode(ClientState(1))
+    usable, held = late_resume_found_behind_then_the_first_image(compiled_core, sup, node)
+    assert usable + held <= 10**6, f"Us {usable} + held and spent by the node {held} uJ > 1 J"
 
 
 def test_a_c_resume_after_a_lost_sync_answer_keeps_the_c_window_open() -> None:

@@ -572,11 +572,13 @@ CLIENT_CASES = [
         replace(FRESH, usable=8000, last_tx=9, outcome=Outcome.SETTLED, return_seq=2),
     ),
     Case(
-        "found behind: admitted afresh (what the actuator used stays counted)",
+        "found behind: admitted afresh (what the actuator used stays counted, Rc kept as the "
+        "books' floor)",
         RESUMED,
         Admit(2, 7, 9, 3),
         ClientState(
             2,
+            credited=50_000,
             spent=40_000,
             last_tx=9,
             outcome=Outcome.SETTLED,
@@ -654,11 +656,12 @@ CLIENT_CASES += [
         replace(FRESH, last_tx=80, outcome=Outcome.SETTLED, return_seq=1),
     ),
     Case(
-        "the answer found behind: admitted afresh",
+        "the answer found behind: admitted afresh (Rc kept as the books' floor)",
         ANSWERING,
         Admit(2, 0x51 ^ SYNC_CONFIRMED, 80, 4),
         ClientState(
             2,
+            credited=50_000,
             spent=40_000,
             last_tx=80,
             outcome=Outcome.SETTLED,
@@ -1291,6 +1294,46 @@ def test_a_late_resume_copy_after_a_draw_then_a_supervisor_image_creates_nothing
     core: type[Supervisor],
 ) -> None:
     usable, held = resume_copy_after_a_draw_then_a_supervisor_image(core)
+    assert usable + held <= 10**6, f"Us {usable} + held and spent by the node {held} uJ > 1 J"
+
+
+def late_resume_found_behind_then_the_first_image(
+    core: type[Supervisor], sup: Supervisor, node: Any
+) -> tuple[int, int]:
+    """The checker's S8 (``tests/test_check_supervisor_backups.py``), ``sup`` a supervisor of
+    node 1 with Us 1 J and nothing else: 1 J granted and committed; the node loses power, its
+    RESUME is answered (C 1) and it draws the 1 J (C 2); a late copy of the RESUME is found
+    behind (C 3), its ADMIT reaches the node as a SYNC and the confirmation of the node's
+    counts (C 4) finds its books behind: admitted afresh. The supervisor is put back to its
+    first state file (Us 1 J, Gs 0) and starts: the node's books report the Rc it kept as a
+    floor (1 J) and Gs moves up to it. (Before: Rc unknown, Gs left at 0, and Us counted the
+    1 J the node had spent again.) ``node`` also has ``spend(x, now)``. Returns the restored
+    supervisor's Us and what the node holds and spent, in uJ."""
+    image = sup.state  # the first state file
+    _exchange(sup.begin(1, 10**6, 0), sup, node, 0)
+    _exchange(sup.commit(1, 0), sup, node, 0)
+    assert node.state.usable == node.state.credited == 10**6
+    (resume,) = _sends(node.power_loss(0, nonce=0x101))
+    _exchange(sup.receive(resume, 0), sup, node, 0)
+    _exchange(node.spend(10**6, 0), sup, node, 0)
+    assert node.state.spent == 10**6 and sup.session(1).returns_credited == 2
+    _exchange(sup.receive(resume, 0), sup, node, 0)  # the late copy: found behind
+    assert node.state.credited_unknown and node.state.usable == 0
+    restored = core([1], 0, variant="witnessed", timing=SCENE, state=image)
+    restored.power_loss(1, nonce=0x55)
+    _exchange(restored.handle_timer(1), restored, node, 1)
+    assert restored.unconfirmed() == () and node.state.phase is Phase.IDLE
+    assert restored.session(1).delivered == 10**6
+    return restored.state.usable, node.state.usable + node.state.spent
+
+
+@pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])
+def test_a_late_resume_found_behind_then_the_first_image_creates_nothing(
+    core: type[Supervisor],
+) -> None:
+    sup = core([1], 10**6, variant="witnessed", timing=SCENE)
+    node = Client(1, variant="witnessed", timing=SCENE)
+    usable, held = late_resume_found_behind_then_the_first_image(core, sup, node)
     assert usable + held <= 10**6, f"Us {usable} + held and spent by the node {held} uJ > 1 J"
 
 

@@ -303,11 +303,13 @@ static void send_debit(const struct canergy_client *c, bool start, struct canerg
     canergy_internal_send(c, CANERGY_DEBIT, fields, out);
 }
 
-/* The answer to SYNC(n) (witnessed.answer_of): the books (n, Rc: 24 bits; Rc unknown after an
- * admission until a fresh intention: flagged, both fields 0), then the counts (n, q, ltx). */
+/* The answer to SYNC(n) (witnessed.answer_of): the books (n, Rc: 24 bits; after an admission
+ * until a fresh intention, the floor kept when found behind; without one (0) Rc unknown:
+ * flagged, both fields 0), then the counts (n, q, ltx). */
 static void send_sync_answer(const struct canergy_client *c, struct canergy_out *out)
 {
-    const bool unknown = (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U;
+    const bool unknown =
+        (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) != 0U && c->rec.credited_mj == 0U;
     uint32_t fields[4] = {
         c->nonce,
         CANERGY_DEBIT_BOOKS | (unknown ? CANERGY_DEBIT_RC_UNKNOWN : 0U),
@@ -363,16 +365,14 @@ static void on_confirm(struct canergy_client *c, const struct canergy_msg *m, ui
             c->rec.last_tx += (uint32_t)closed;
             c->rec.outcome = CANERGY_OUTCOME_SETTLED;
         }
-        c->rec.return_pending_uj = 0U;
         c->rec.flags &= (uint8_t)~CANERGY_RECORD_PENDING_DRAW;
-    } else {
-        const uint64_t spent = c->rec.spent_uj;
-        memset(&c->rec, 0, sizeof c->rec);
-        c->rec.spent_uj = spent;
+    } else { /* a record as after JOIN, but spent kept and Rc kept as the books' floor */
+        c->rec.usable_uj = 0U;
         c->rec.last_tx = m->tx;
         c->rec.outcome = CANERGY_OUTCOME_SETTLED;
         c->rec.flags = CANERGY_RECORD_CREDITED_UNKNOWN;
     }
+    c->rec.return_pending_uj = 0U;
     c->rec.return_seq = q;
     c->nonce = behind_ltx ? c->nonce : 0U;
     c->return_deadline = CANERGY_NEVER;

@@ -107,8 +107,10 @@ class ClientState:
     ``credited`` is Rc, all energy ever added to ``usable`` by the protocol (commits, write-off
     paybacks; paper: minus roll-backs). ``last_tx``/``outcome`` is the last transaction resolved
     or settled. ``credited_unknown``: admitted without books, Rc is taken from the next fresh
-    intention. ``held_*``, ``phase``, ``nonce`` (of the pending JOIN or RESUME),
-    ``timeout_commit`` and the deadlines are volatile. ``pending_draw`` (witnessed rules): the
+    intention (nothing paid back); until then ``credited`` is 0 after a JOIN, and under the
+    witnessed rules the Rc a record found behind held, a floor its SYNC books report.
+    ``held_*``, ``phase``, ``nonce`` (of the pending JOIN or RESUME), ``timeout_commit`` and the
+    deadlines are volatile. ``pending_draw`` (witnessed rules): the
     pending debit is a draw for the actuator, not a return.
     """
 

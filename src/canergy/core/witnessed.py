@@ -492,10 +492,19 @@ def resume_again(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientS
     return ClientStep(c, (Send(resume_of(c)),))
 
 
+def books_of(c: ClientState) -> int | None:
+    """The Rc a node's books report, in mJ: its Rc; after an admission afresh and until a fresh
+    intention, the Rc its record held when it was found behind (a floor: only what it took), or
+    unknown (``None``) without one (after a JOIN: 0 would be unwrapped near Gs, above it when
+    Gs mod 2^24 mJ >= 2^23 mJ)."""
+    if c.credited_unknown and not c.credited:
+        return None
+    return c.credited // QUANTUM_UJ
+
+
 def answer_of(c: ClientState) -> tuple[Send, Send]:
-    """The answer to SYNC(n): the books (n, Rc; Rc unknown after an admission until a fresh
-    intention), then the counts (n, q, ltx)."""
-    books = Debit.books(c.node, c.nonce, None if c.credited_unknown else c.credited // QUANTUM_UJ)
+    """The answer to SYNC(n): the books (n, Rc: ``books_of``), then the counts (n, q, ltx)."""
+    books = Debit.books(c.node, c.nonce, books_of(c))
     counts = Debit.counts(c.node, c.nonce, wrap(c.return_seq, SEQ_BITS), wire_tx(c.last_tx))
     return Send(books), Send(counts)
 
@@ -551,7 +560,8 @@ def on_confirm(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
     """ADMIT(n, k, Q) answering this start: Q = q + 1 confirms the books (everything up to k
     settled, the pending debit settled: a return credited, a draw dropped unreleased); a larger
     Q finds them behind: admitted afresh at k and Q, as after JOIN (what the actuator used
-    stays counted).
+    stays counted), but its Rc kept as a floor its books report (``books_of``): a supervisor
+    started from a copy older than the admission moves Gs up to what the node took.
 
     A RESUME confirmed with k below ltx (the node settled ahead for a SYNC whose counts never
     arrived) is followed by the counts, as a SYNC's answer under the RESUME's nonce: without
@@ -580,6 +590,7 @@ def on_confirm(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
         return ClientStep(c)
     fresh = ClientState(
         c.node,
+        credited=c.credited,  # a floor for the books only (``books_of``): nothing paid back
         spent=c.spent,
         last_tx=msg.tx,
         outcome=Outcome.SETTLED,

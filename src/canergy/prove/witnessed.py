@@ -90,14 +90,16 @@ def resume_of(c: Client) -> Sent:
 
 
 def answer_of(c: Client) -> Frames:
-    """The answer to SYNC(n): the books (n, Rc; Rc unknown: flagged, both fields 0), then the
-    counts (n, q, ltx)."""
-    rc_mj = z3.If(c.credited_unknown, 0, c.credited / QUANTUM_UJ)
+    """The answer to SYNC(n): the books (n, Rc; unknown, flagged with both fields 0, only
+    after an admission afresh without a floor: ``witnessed.books_of``), then the counts
+    (n, q, ltx)."""
+    unknown = z3.And(c.credited_unknown, c.credited == 0)
+    rc_mj = z3.If(unknown, 0, c.credited / QUANTUM_UJ)
     books = Sent.of(
         MsgType.DEBIT,
         z3.Int2BV(rc_mj, 16),
         (rc_mj / (1 << 16)) % (1 << 8),
-        z3.If(c.credited_unknown, UNKNOWN_BOOKS, BOOKS),
+        z3.If(unknown, UNKNOWN_BOOKS, BOOKS),
         c.nonce,
     )
     counts = Sent.of(
@@ -249,7 +251,7 @@ def on_confirm(c: Client, tx16: Term, seq16: Term) -> tuple[Client, Frames]:
     zero = z3.IntVal(0)
     fresh = Client(
         usable=zero,
-        credited=zero,
+        credited=c.credited,  # a floor for its books only (``witnessed.on_confirm``)
         spent=c.spent,
         last_tx=z3.ZeroExt(sym.COUNTER - TX_BITS, tx16),
         outcome=sym.SETTLED,

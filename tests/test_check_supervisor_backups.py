@@ -139,3 +139,16 @@ def test_cli_supervisor_backups(capsys: pytest.CaptureFixture[str]) -> None:
     chain = ["check", "--topology", "chain", "--supervisor-backups"]
     assert main(chain) == 2
     assert "--supervisor-backups" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("engine", ["compact", "reference"])
+def test_a_pending_return_a_start_will_void_is_not_counted_while_it_waits(engine: str) -> None:
+    """The node returned 1 mJ (credited) and was granted it again; the state file put back to its
+    first copy (nothing credited) while the RETURN_ACK is in flight. While the start waits for
+    the node's books, the ledger leaves Us out; it counted the node's pending return as in
+    flight beside what the node holds (2 mJ of an initial 1 mJ: a violation in 11 steps), though
+    the start voids it (C moves past it) and the supervisor can credit nothing meanwhile. Left
+    out as Us is, the bound is complete with none."""
+    bounds = replace(NV_BACKUP, transactions=2, nv_losses=0)
+    result = check("witnessed", bounds, engine=engine)
+    assert result.complete and result.violations == 0, result.counterexample

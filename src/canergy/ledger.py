@@ -83,8 +83,18 @@ def node_overlap(s: Session, c: ClientState, lost: LostRecord = NOT_LOST) -> int
 
 
 def node_return_in_flight(s: Session, c: ClientState) -> int:
-    """The pending return not yet credited (a pending draw goes to nobody: it is not counted)."""
-    return c.return_pending if c.return_seq > s.returns_credited and not c.pending_draw else 0
+    """The pending return not yet credited (a pending draw goes to nobody: it is not counted),
+    none while the node's session waits for its books in a start (witnessed rules: the start
+    voids it, as it leaves Us out meanwhile: ``supervisor_usable``)."""
+    if c.pending_draw or c.return_seq <= s.returns_credited:
+        return 0
+    return 0 if start_waits(s) else c.return_pending
+
+
+def start_waits(s: Session) -> bool:
+    """Whether the session waits for its node's books in a supervisor's start (witnessed rules;
+    a re-sync of one node is no start: nothing restored, grants to others go on)."""
+    return s.phase in SYNC_PHASES and not s.resync
 
 
 def node_usable(c: ClientState) -> int:
@@ -99,7 +109,7 @@ def supervisor_usable(sup: SupervisorState) -> int:
     may be an older copy's, and grant nothing meanwhile): it counts from the moment every node
     has confirmed them. A debt (Us below zero) always counts, and so does Us while a node is
     only re-synced (``Session.resync``: nothing restored, grants to others go on)."""
-    if any(s.phase in SYNC_PHASES and not s.resync for s in sup.sessions):
+    if any(start_waits(s) for s in sup.sessions):
         return min(sup.usable, 0)
     return sup.usable
 

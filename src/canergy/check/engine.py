@@ -124,8 +124,8 @@ class Engine:
         frames = 0
         for c in cs:
             frames += table.frames[c]
-        holding = self.table.holding
-        waiting = self.lifts and any(holding[c] for c in cs)
+        syncing = self.table.syncing
+        waiting = self.lifts and any(syncing[c] for c in cs)
         ok = self.guards.table(packed, usable, frames < in_flight, waiting)
         nms = [table.moves[p][c] or table.moves_of(c, p) for p, c in enumerate(cs)]
         if len(nms) == 2:  # the common case, with fewer steps
@@ -163,7 +163,7 @@ class Engine:
         older = layout.older(code)
         frames = sum(table.frames[c] for c in cs)
         room = in_flight - frames
-        waiting = self.lifts and any(table.holding[c] for c in cs)
+        waiting = self.lifts and any(table.syncing[c] for c in cs)
         ok = self.guards.table(packed, usable, frames < in_flight, waiting)
         nms = [table.moves[p][c] or table.moves_of(c, p) for p, c in enumerate(cs)]
         sessions = tuple(table.contents[c].session for c in cs)

@@ -48,9 +48,9 @@ from canergy.check.reduce import (
 )
 from canergy.core.errors import LocalProtocolError
 from canergy.core.inputs import POWER_LOSS, PowerLoss
-from canergy.core.state import SYNC_PHASES, ClientState, Phase, SupervisorState
+from canergy.core.state import ClientState, Phase, SupervisorState
 from canergy.core.table import Event
-from canergy.ledger import NOT_LOST, LostRecord
+from canergy.ledger import NOT_LOST, LostRecord, start_waits
 
 K = StepKind
 
@@ -141,10 +141,9 @@ class NodeTable:
         less the overlap): the ledger is a sum over nodes plus Us."""
         self.quiet: list[bool] = []
         self.syncing: list[bool] = []
-        """The node's session waits for its books (witnessed, a start or a re-sync): the ledger
-        counts none of Us (``ledger.supervisor_usable``)."""
-        self.holding: list[bool] = []
-        """The same after a start, not a re-sync: no grant to anyone (``unconfirmed``)."""
+        """The node's session waits for its books in a start (witnessed; not a re-sync): the
+        ledger counts none of Us (``ledger.supervisor_usable``) and no grant goes to anyone
+        (``unconfirmed``)."""
         self.frames: list[int] = []
         self.bare: list[int] = []
         """The same content with nothing seen (subsumption compares what was seen apart)."""
@@ -188,8 +187,7 @@ class NodeTable:
         self.held.append(held)
         self.quiet.append(quiet and not frames)
         session = self.parts.objects[c.session]
-        self.syncing.append(session.phase in SYNC_PHASES)
-        self.holding.append(session.phase in SYNC_PHASES and not session.resync)
+        self.syncing.append(start_waits(session))
         self.frames.append(frames)
         mask = 0
         for frame in self.parts.seens[c.seen]:

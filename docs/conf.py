@@ -49,6 +49,7 @@ nitpick_ignore_regex = [
     ("py:class", r"canergy\.core\.table\.RuleTable|Cell|S|Variant|SupervisorCore"),
     ("py:class", r"canergy\.core\.supervisor\.SupervisorCore"),
     ("py:class", r"Clock|HostBeat|GuardedDevices|GuardedDevice|Intrusions|Refusals"),
+    ("py:class", r"canergy\.live\.supervisor\.intrusions\.(Intrusions|Refusals)"),
     ("py:class", r"(canergy\.auth\.frames\.)?(Verdict|FrameAuth)"),
     ("py:class", r"(canergy\.live\.supervisor\.control\.)?ControlServer"),
     ("py:class", r"(canergy\.inspect\.candump\.)?FrameLog"),

@@ -152,3 +152,16 @@ def test_a_pending_return_a_start_will_void_is_not_counted_while_it_waits(engine
     bounds = replace(NV_BACKUP, transactions=2, nv_losses=0)
     result = check("witnessed", bounds, engine=engine)
     assert result.complete and result.violations == 0, result.counterexample
+
+
+@pytest.mark.parametrize(
+    ("flag", "needs"),
+    [("--supervisor-backups", "--supervisor-old-copies"), ("--backups", "--old-copies")],
+)
+def test_a_backup_flag_without_its_old_copies_is_refused(
+    flag: str, needs: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A backup that can never come back checks nothing: a clear error, not a run that looks
+    like it covered backups."""
+    assert main(["check", "--variant", "witnessed", flag]) == 2
+    assert f"{flag} needs {needs}" in capsys.readouterr().err

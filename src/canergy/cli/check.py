@@ -295,6 +295,17 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError("--broken-gateway and --gateway-old-copies need --topology chain")
     if args.resyncs and not VARIANTS[args.variant].lifts_tx:
         raise ValueError(f"--resyncs: the {args.variant} rules have no re-sync")
+    for backups, copies, flag, copies_flag in (
+        (args.backups, args.old_copies, "--backups", "--old-copies"),
+        (
+            args.supervisor_backups,
+            args.supervisor_old_copies,
+            "--supervisor-backups",
+            "--supervisor-old-copies",
+        ),
+    ):  # a backup that can never come back checks nothing: refused, not ignored
+        if backups and not copies:
+            raise ValueError(f"{flag} needs {copies_flag} 1 or more (a copy that can come back)")
     bounds = Bounds(
         clients=args.clients,
         transactions=args.transactions,

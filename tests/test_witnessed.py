@@ -1485,3 +1485,23 @@ def test_late_counts_of_a_life_before_a_join_then_a_supervisor_image_create_noth
 ) -> None:
     usable, held = late_counts_of_a_life_before_a_join_then_a_supervisor_image(core)
     assert usable + held <= 10**6, f"Us {usable} + held by the node {held} uJ > 1 J"
+
+
+@pytest.mark.parametrize("behind_mj", [1, 2**23, 2**23 + 1, 2**24 - 1, 2**24 + 5])
+def test_a_floor_far_below_gs_books_a_bounded_debt_never_energy(behind_mj: int) -> None:
+    """protocol.md, step 4: books carry a floor 24 bits wide, read next to Gs. A floor within
+    2^23 mJ of Gs is read as sent; one further below (a record found behind that old) is read
+    2^24 mJ higher: Gs moves up and Us pays at most 2^23 - 1 mJ for nothing (a debt until
+    returns cover it), and never gains (books only move Gs up)."""
+    gs_mj = GS_HIGH // 1000
+    floor_mj = gs_mj - behind_mj
+    s = Session(1, phase=Phase.SYNCING, delivered=GS_HIGH, tx=5, witness=5, sync_nonce=7)
+    step = W.take_books(SCENE, s, Debit.books(1, 7, floor_mj), 0)
+    paid_mj = -step.credit // 1000
+    assert step.credit <= 0 and step.session.delivered - GS_HIGH == -step.credit
+    if behind_mj <= 2**23:
+        assert paid_mj == 0  # read as the floor it is: below Gs, nothing moves
+    elif behind_mj < 2**24:
+        assert paid_mj == 2**24 - behind_mj and paid_mj < 2**23  # the misread, bounded
+    else:
+        assert paid_mj < 2**23  # read near Gs again: bounded all the same

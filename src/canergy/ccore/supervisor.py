@@ -283,9 +283,14 @@ class CompiledSupervisor:
         side scans every session for it, on data gone cold since the last pass). The loop's
         thread alone asks for it, as it alone makes those calls."""
         self._sessions = [Session(n) for n in node_list]
-        """Python copies of the C sessions, each read whole right after the call that changed
-        it, on the loop's thread: another thread (the SDO audit's ``books``) reads only these,
-        never C memory a call may be changing, and never stores into them."""
+        """Python copies of the C sessions, read whole only when asked for (``session``,
+        ``state``): a call that changed one marks it stale. The loop's thread alone makes
+        both (the SDO audit's comparison is posted to it, ``canergy.live.serve``)."""
+        self._stale: set[int] = set()
+        """Indexes of the sessions a call changed since they were last read."""
+        self._returned = [0] * len(node_list)
+        """Each session's returned µJ as the last event of its node left it: a RETURN credited
+        is the growth from there (a RESUME's event carries its Ts, not the credit)."""
         if state is not None:
             self._load(state)
 
@@ -297,6 +302,7 @@ class CompiledSupervisor:
     @property
     def state(self) -> SupervisorState:
         sup = self._sup
+        self._read_stale()
         return SupervisorState(
             self._initial, sup.usable_uj, sup.injected_uj, tuple(self._sessions), sup.withdrawn_uj
         )
@@ -306,7 +312,18 @@ class CompiledSupervisor:
         return int(self._sup.usable_uj)
 
     def session(self, node: int) -> Session:
-        return self._sessions[self._index[node]]
+        i = self._index[node]
+        if i in self._stale:
+            self._stale.discard(i)
+            self._sessions[i] = self._read(i)
+        return self._sessions[i]
+
+    def _read_stale(self) -> None:
+        """Read every session a call changed since it was last read."""
+        stale, sessions = self._stale, self._sessions
+        while stale:
+            i = stale.pop()
+            sessions[i] = self._read(i)
 
     def hand_usable(self, other: CompiledSupervisor) -> None:
         """Move all of Us (a debt too) into ``other``'s: one pool over several buses
@@ -317,6 +334,7 @@ class CompiledSupervisor:
             other._sup.usable_uj += moved
 
     def is_quiescent(self) -> bool:
+        self._read_stale()
         return all(s.phase is Phase.IDLE for s in self._sessions)
 
     def unconfirmed(self) -> tuple[int, ...]:
@@ -351,6 +369,8 @@ class CompiledSupervisor:
             c.deadline = b.never if s.deadline is None else s.deadline
             c.resync = s.resync
             self._sessions[i] = self._read(i)
+            self._returned[i] = s.returned
+        self._stale.clear()
         self._timer_known = False
 
     def _read(self, i: int) -> Session:
@@ -729,6 +749,8 @@ class CompiledSupervisor:
         self._timer_known = False  # deadlines may move
         self._lib.canergy_supervisor_start(self._sup, nonce, now, self._out)
         self._sessions = [self._read(i) for i in range(len(self._sessions))]
+        self._returned = [s.returned for s in self._sessions]
+        self._stale.clear()
 
     def resync(self, node: int, now: int, nonce: int) -> list[Action]:
         """``core.Supervisor.resync``: re-sync node ``node`` alone, SYNC(``nonce``) sent."""
@@ -785,22 +807,24 @@ class CompiledSupervisor:
         )
         actions: list[Action] = [Persist()] if persist else []
         sent = 0
+        sessions = self._sup.sessions
         for k in range(events):
             tx, amount, node, resolved, flags = b.event.unpack_from(
                 raw, b.events_at + k * b.event_size
             )
             i = self._index[node]
-            before = self._sessions[i]
-            s = self._sessions[i] = self._read(i)
+            self._stale.add(i)  # read when asked for (``session``)
+            c = sessions[i]
             if flags & b.acknowledged and not fast:
                 actions.append(Acknowledged(node, tx))
             if resolved:
                 actions.append(Resolved(node, tx, b.outcomes[resolved], amount))
+            returned, self._returned[i] = self._returned[i], int(c.returned_uj)
             if flags & b.return_credited:  # the amount as the session's returned count grew
-                credited = s.returned - before.returned
-                actions.append(ReturnCredited(node, s.returns_credited - resumed, credited))
+                credited = self._returned[i] - returned
+                actions.append(ReturnCredited(node, c.returns_credited - resumed, credited))
             if flags & b.admitted:
-                actions.append(Admitted(node, s.tx, s.returns_credited))
+                actions.append(Admitted(node, c.tx, c.returns_credited))
             if sent < frames and not fast:
                 arbitration_id, dlc, data = b.frame.unpack_from(
                     raw, b.frames_at + sent * b.frame_size

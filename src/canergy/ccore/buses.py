@@ -131,6 +131,9 @@ class CompiledBuses:
     def usable(self) -> int:
         return sum(part.usable for part in self._parts)
 
+    def idle(self, node: int) -> bool:
+        return self._parts[bus_of(node)].idle(node_of(node))
+
     def session(self, node: int) -> Session:
         inner = self._parts[bus_of(node)].session(node_of(node))
         known = self._keyed.get(node)
@@ -432,7 +435,7 @@ class BusesReturnGate:
         return self.gates[bus].telemetry(plain, credited, now)
 
     def telemetry_words(
-        self, msg: Telemetry, credited: int, found: int
+        self, msg: Telemetry, credited: Callable[[], int], found: int
     ) -> tuple[list[str], list[str]]:
         bus, plain = _plain(msg)
         return self.gates[bus].telemetry_words(plain, credited, found)

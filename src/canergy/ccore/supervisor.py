@@ -133,6 +133,7 @@ class _Binding:
         self.phases = {getattr(lib, f"CANERGY_S_{name}"): Phase[name] for name in _HELD}
         """The phases a C session holds, by the value C gives them (enum canergy_session_phase)."""
         self.c_phases = {p: c for c, p in self.phases.items()}
+        self.idle = self.c_phases[Phase.IDLE]
         self.decisions = {
             lib.CANERGY_DECIDE_NONE: Decision.NONE,
             lib.CANERGY_DECIDE_COMMIT: Decision.COMMIT,
@@ -317,6 +318,9 @@ class CompiledSupervisor:
             self._stale.discard(i)
             self._sessions[i] = self._read(i)
         return self._sessions[i]
+
+    def idle(self, node: int) -> bool:
+        return bool(self._sup.sessions[self._index[node]].phase == self._b.idle)
 
     def _read_stale(self) -> None:
         """Read every session a call changed since it was last read."""

@@ -10,6 +10,7 @@ is dropped, never credited.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from canergy.live.supervisor.witness import WITNESS_REPORT_AT
@@ -63,12 +64,14 @@ class CompiledReturnGate:
         m = self._msg
         m.node, m.flags, m.seq, m.witness = msg.node, msg.flags, msg.return_seq, msg.witness
         found = self._lib.canergy_witness_telemetry(rec, m, credited % 2**32, now)
-        return self.telemetry_words(msg, credited, found)
+        return self.telemetry_words(msg, lambda: credited, found)
 
     def telemetry_words(
-        self, msg: Telemetry, credited: int, found: int
+        self, msg: Telemetry, credited: Callable[[], int], found: int
     ) -> tuple[list[str], list[str]]:
-        """The words of C's findings on ``msg``, the record before it in ``before``."""
+        """The words of C's findings on ``msg``, the record before it in ``before``;
+        ``credited`` gives the number of the node's last debit credited (read only for the
+        words of a return number gone back)."""
         self._known.add(msg.node)
         if not found:
             return [], []
@@ -84,7 +87,7 @@ class CompiledReturnGate:
             evidence.append(f"the node saw {seen} frame(s) in its name that it did not send")
         if found & f["went_back"]:
             last = int(w.return_seq)
-            seq = unwrap(msg.return_seq, max(credited, last), SEQ_BITS)
+            seq = unwrap(msg.return_seq, max(credited(), last), SEQ_BITS)
             evidence.append(f"its TELEMETRY contradicts itself: return {seq} after {last}")
         return evidence, notes
 

@@ -93,6 +93,11 @@ class SupervisorCore(Protocol):
         ...
 
     def session(self, node: int) -> Session: ...
+    def idle(self, node: int) -> bool:
+        """No transaction of ``node`` is open (``session(node).phase`` is IDLE, without the
+        whole session: the grant policy asks it of every node it looks at)."""
+        ...
+
     def begin(self, node: int, amount: int, now: int) -> list[Action]: ...
     def commit(self, node: int, now: int) -> list[Action]: ...
     def abort(self, node: int, now: int) -> list[Action]: ...
@@ -206,6 +211,9 @@ class Supervisor:
 
     def session(self, node: int) -> Session:
         return self.state.sessions[self._index[node]]
+
+    def idle(self, node: int) -> bool:
+        return self.state.sessions[self._index[node]].phase is Phase.IDLE
 
     def unconfirmed(self) -> tuple[int, ...]:
         """The nodes whose books this start waits for before any grant (witnessed rules; never

@@ -29,7 +29,7 @@ from canergy.core import (
 )
 from canergy.core.common import at_end
 from canergy.core.errors import LocalProtocolError, WindowClosed
-from canergy.core.state import SYNC_PHASES, Outcome, Phase
+from canergy.core.state import SYNC_PHASES, Outcome
 from canergy.core.supervisor import BUS_SHIFT, SupervisorCore
 from canergy.core.witnessed import answered, counts_taken
 from canergy.live.runtime import BusCounters, FramePath, Outgoing, RawFrame
@@ -315,11 +315,10 @@ class SupervisorService:
         if verdict & BEYOND_BOOKS and not self.config.listen_only:
             why = beyond_books(msg.level_mj, self.core.session(msg.node))
             self.watch.intrusion(msg.node, repr(msg), why, now)
-        credited = self.core.session(msg.node).returns_credited
         evidence, notes = (
-            self.witness.telemetry(msg, credited, now)
+            self.witness.telemetry(msg, self.core.session(msg.node).returns_credited, now)
             if found is None
-            else self.witness.telemetry_words(msg, credited, found & 0xFF)
+            else self.witness.telemetry_words(msg, self._credited(msg.node), found & 0xFF)
         )
         for line in evidence:
             self.watch.intrusion(msg.node, repr(msg), line, now, stop=True)
@@ -334,6 +333,10 @@ class SupervisorService:
         )
         out += self._start_grants(now, self.ready)
         return out
+
+    def _credited(self, node: int) -> Callable[[], int]:
+        """The number of ``node``'s last debit credited, read when asked for."""
+        return lambda: self.core.session(node).returns_credited
 
     def _distrusted(self, node: int, now: int) -> bool:
         """Without a key: no top-ups while the node's TELEMETRY was lately contradicted (with a
@@ -455,7 +458,7 @@ class SupervisorService:
         if msg.is_counts and not other:  # the node's return numbers start again, as at a RESUME
             self.witness.hold_resume(msg, s.returns_credited, now, False)
         out = self._carry_out(self.core.receive(msg, now), now)
-        if s.resync and self.core.session(msg.node).phase is Phase.IDLE and info.requests:
+        if s.resync and self.core.idle(msg.node) and info.requests:
             self.ready.add(msg.node)  # a re-sync ended: the grant that waited for it is tried
         waiting = self.waiting()
         if msg.node in self._waited and msg.node not in waiting:
@@ -699,7 +702,7 @@ class SupervisorService:
             info = self.nodes[node]
             if not info.requests and policy is None:
                 continue  # nothing asked for, no policy: nothing to begin (the cheap test first)
-            if self.core.session(node).phase is not Phase.IDLE:
+            if not self.core.idle(node):
                 continue
             if self.liveness is not None and not self.liveness(node, now):
                 continue  # heartbeat lost or not OPERATIONAL: nothing for it, not even one-shots
@@ -779,7 +782,7 @@ class SupervisorService:
         """Witnessed rules: re-sync ``node`` alone (``Supervisor.resync``, SYNC with a fresh
         random nonce) when ``why`` (its window used up, or its counts ignored: a node left
         answering a SYNC); only while its session is IDLE. Nobody else waits for it."""
-        if self.core.session(node).phase is not Phase.IDLE:
+        if not self.core.idle(node):
             return []
         info = self.nodes[node]
         info.resyncs, info.resynced_at = info.resyncs + 1, now

@@ -445,15 +445,6 @@ def test_on_the_c_frame_path_the_witness_reads_a_telemetry_in_c(
     b.wire.shutdown()
 
 
-def test_the_verdicts_of_a_held_return_and_join_are_the_libraries() -> None:
-    """The service reads a RETURN the witness in C held, and a JOIN held in C, by the library's
-    own values."""
-    from canergy.live.supervisor.frame_path import HOST_HELD, HOST_JOIN
-
-    lib = library().module.lib
-    assert (lib.CANERGY_HOST_HELD, lib.CANERGY_HOST_JOIN) == (HOST_HELD, HOST_JOIN)
-
-
 # -- the grant caps, call for call and frame for frame ----------------------------------------
 _maybe = st.one_of(st.none(), st.none(), st.integers(0, 20_000_000), st.integers(0, 2**39))
 _limits = st.builds(

@@ -218,6 +218,11 @@ class CompiledBuses:
         plain = replace(msg, node=node_of(msg.node))
         return self._keyed_actions(bus, self._parts[bus].receive(plain, now))
 
+    @property
+    def verdicts(self) -> tuple[int, int]:
+        """``CompiledSupervisor.verdicts``: every bus's supervisor is of one library."""
+        return self._parts[0].verdicts
+
     def answer_on(self, bus: int) -> Answer:
         """Bus ``bus``'s frame path into its own supervisor (``CompiledSupervisor.on_answer``,
         what it decodes and does keyed): a frame from that bus reaches no other bus's
@@ -455,6 +460,9 @@ class BusesReturnGate:
     def hold_resume(self, msg: Debit, credited: int, now: int, hold: bool) -> bool:
         bus, plain = _plain(msg)
         return self.gates[bus].hold_resume(plain, credited, now, hold)
+
+    def holds(self, node: int) -> bool:
+        return self.gates[bus_of(node)].holds(node_of(node))
 
     def release(self, node: int, credited: int, now: int) -> list[Return | Debit]:
         bus = bus_of(node)

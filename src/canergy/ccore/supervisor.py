@@ -130,6 +130,9 @@ class _Binding:
         self.caller = lib.CANERGY_RX_CALLER
         self.not_can = lib.CANERGY_RX_NOT_CAN
         """``on_answer``'s status for an identifier no CAN frame carries: taken the usual way."""
+        self.verdicts = (int(lib.CANERGY_HOST_HELD), int(lib.CANERGY_HOST_JOIN))
+        """``on_answer``'s verdict bits for a RETURN the witness in C held and a JOIN held in C
+        (canergy/host.h)."""
         self.phases = {getattr(lib, f"CANERGY_S_{name}"): Phase[name] for name in _HELD}
         """The phases a C session holds, by the value C gives them (enum canergy_session_phase)."""
         self.c_phases = {p: c for c, p in self.phases.items()}
@@ -537,6 +540,11 @@ class CompiledSupervisor:
         if null not in (t.heard, t.witness, t.joins):
             self._tables = t
 
+    @property
+    def verdicts(self) -> tuple[int, int]:
+        """The verdict bits ``on_answer`` gives a RETURN held and a JOIN held (canergy/host.h)."""
+        return self._b.verdicts
+
     def grant_caps(self, limits: Limits, policy: TopUp | None) -> CompiledGrantCaps | None:
         """The grant caps (``canergy.live.supervisor.grants.GrantCaps``) in C, or None for
         limits beyond what they take exactly (``canergy.ccore.grants.fits``)."""
@@ -560,7 +568,7 @@ class CompiledSupervisor:
         TELEMETRY was taken by both (the last element: the table's verdict, ``telemetry.TAKEN``
         and ``BEYOND_BOOKS`` bits, with the witness's findings shifted left by 8; the record
         as it was before in ``return_gate().before``), and a RETURN the books allow was ruled
-        (status 0, as an answer) or held by the witness (``HOST_HELD`` with its verdict); 0
+        (status 0, as an answer) or held by the witness (``verdicts[0]`` with its verdict); 0
         otherwise. Any other
         status (an answer ahead of the session, a decode status, another node, an identifier no
         CAN frame carries: CANERGY_RX_NOT_CAN) applied nothing and

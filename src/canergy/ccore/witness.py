@@ -149,10 +149,10 @@ class CompiledReturnGate:
 
     # -- the rest of ReturnGate's -----------------------------------------------------------
     def holding(self) -> list[int]:
-        self._holding = {n for n in self._holding if self._holds(n)}
+        self._holding = {n for n in self._holding if self.holds(n)}
         return sorted(self._holding)
 
-    def _holds(self, node: int) -> bool:
+    def holds(self, node: int) -> bool:
         rec = self._rec(node)
         return bool(rec.held_count or rec.has_resume)
 

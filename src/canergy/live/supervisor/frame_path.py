@@ -22,11 +22,6 @@ from canergy.core.supervisor import BUS_SHIFT, SupervisorCore
 from canergy.live.runtime import FramePath, Outgoing, RawFrame
 from canergy.messages import Direction, Message, MsgType, Return, Telemetry
 
-HOST_HELD = 0x1000000
-"""``CompiledSupervisor.on_answer``'s verdict for a RETURN the witness in C took (the C
-library's CANERGY_HOST_HELD, checked by tests/test_ccore_tables.py)."""
-HOST_JOIN = 0x2000000
-"""Its verdict for a JOIN held in C (CANERGY_HOST_JOIN)."""
 _MAC_TO_SUPERVISOR = MAC_TYPE[Direction.TO_SUPERVISOR]
 _ANSWERS = frozenset((MsgType.ACK, MsgType.COMMITTED, MsgType.ABORTED))
 """What the compiled core's frame path takes with a key: a node's answers."""
@@ -82,6 +77,10 @@ class CFramePath:
         """Bus 0's path without a key (``fast_frame``); None on the Python core."""
         self._answers: dict[int, Answer] = {} if self._answer is None else {0: self._answer}
         """Over several buses: each bus's (``frame_path(bus=)``), by bus index."""
+        verdicts: tuple[int, int] = (0, 0) if self._answer is None else cast(Any, core).verdicts
+        self._held_bit, self._join_bit = verdicts
+        """The verdict bits of a RETURN the witness in C held and of a JOIN held in C
+        (``CompiledSupervisor.verdicts``, canergy/host.h)."""
         self._path: tuple[str, str | None] = (
             ("python", None) if self._answer is None else ("python", "no bus loop asked for it")
         )
@@ -193,13 +192,14 @@ class CFramePath:
             held += [RawFrame(i, d, False, bus) for i, d in frames]
             held += self._answered(node, actions, now)
             return True
-        if verdict & HOST_JOIN:  # a JOIN held in C
+        if verdict & self._join_bit:  # a JOIN held in C
             self.frames += 1
             self._join_held(node, now)
             return True
-        if verdict & HOST_HELD:  # a RETURN the witness in C held
+        if verdict & self._held_bit:  # a RETURN the witness in C held
             self.frames += 1
-            passes.held += self._held_return(cast(Return, decoded), verdict & ~HOST_HELD, now)
+            ret = cast(Return, decoded)
+            passes.held += self._held_return(ret, verdict & ~self._held_bit, now)
             return True
         if verdict:  # a TELEMETRY the table and the witness in C took: what it shows, there
             self.frames += 1

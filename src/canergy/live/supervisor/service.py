@@ -480,6 +480,8 @@ class SupervisorService:
         """The held RETURNs of ``node`` its TELEMETRY has confirmed, credited by the core (and a
         held RESUME it confirmed, answered)."""
         out: list[Outgoing] = []
+        if not self.witness.holds(node):
+            return out
         credited = self.core.session(node).returns_credited
         for ret in self.witness.release(node, credited, now):
             if isinstance(ret, Debit):

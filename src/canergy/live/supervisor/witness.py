@@ -210,6 +210,11 @@ class ReturnGate:
         """A RETURN the core has credited already (its re-ack is harmless)."""
         return unwrap(msg.seq, credited, SEQ_BITS) <= credited
 
+    def holds(self, node: int) -> bool:
+        """A RETURN or a RESUME of ``node`` is held (``release`` may give something)."""
+        w = self.nodes.get(node)
+        return w is not None and bool(w.held or w.resume is not None)
+
     def release(self, node: int, credited: int, now: int) -> list[Return | Debit]:
         """The held RETURNs the node has confirmed and no evidence contradicts, in order, each
         missed number before them as a 0 mJ RETURN; then a held RESUME it has confirmed."""

@@ -763,8 +763,7 @@ def test_a_join_resent_while_its_admit_was_on_the_way_is_no_replay() -> None:
     ADMIT was lost) is admitted again."""
     core = Supervisor((1,), 10_000_000)
     config = ServiceConfig(fsync=False, status_period_us=10**12, join_hold_us=0)  # no hold here
-    service = build_service(core, config, 0)
-    service.bus_counters.auth = Layout.FD.value
+    service = build_service(core, config, 0, bus_counters=BusCounters(auth=Layout.FD.value))
     joining, books = Telemetry(1, 0, flags=Telemetry.JOINING), Telemetry(1, 0)
 
     def node_status() -> Any:

@@ -21,13 +21,14 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCES = sorted(
     [*(ROOT / "src" / "canergy").rglob("*.py"), *(ROOT / "firmware_model").rglob("*.py")]
 )
+TESTS = sorted([*(ROOT / "tests").rglob("*.py"), *(ROOT / "examples").rglob("*.py")])
 BUILDER = ROOT / "src" / "canergy" / "live" / "supervisor" / "build.py"
 J = 1_000_000
 
 
-def _where(pattern: str, skip: Path | None = None) -> list[str]:
+def _where(pattern: str, skip: Path | None = None, paths: list[Path] = SOURCES) -> list[str]:
     found = []
-    for path in SOURCES:
+    for path in paths:
         if path == skip:
             continue
         for number, line in enumerate(path.read_text().splitlines(), 1):
@@ -47,9 +48,13 @@ def test_only_the_builder_puts_a_supervisor_together() -> None:
 def test_nothing_is_assigned_onto_a_built_supervisor() -> None:
     """The rule: a built service, its bus loop and the gateway's uplink get every
     collaborator through their constructors; no code outside them assigns one afterwards (a
-    loop's ``max_batch`` neither: ``SupervisorConfig.max_batch``)."""
-    patched = r"\b(service|runtime|uplink|supervisor|guarded|node_loop)\.\w+(\[[^]]*\])?\s*=[^=]"
+    loop's ``max_batch`` neither: ``SupervisorConfig.max_batch``; nor its clock), in the tests
+    and examples either (a test that must watch a part patches its class, for that test)."""
+    patched = (
+        r"\b(service|runtime|uplink|supervisor|guarded|node_loop|loop)\.\w+(\[[^]]*\])?\s*=[^=]"
+    )
     assert _where(patched) == []
+    assert _where(patched, paths=TESTS) == []
 
 
 def test_a_core_s_parts_are_declared_not_discovered() -> None:

@@ -20,6 +20,7 @@ from canergy.live.canopen.manager import CanopenManager
 from canergy.live.canopen.shared_bus import EDS, STANDARD_FRAMES, shared_network
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.supervisor.build import build_service
+from canergy.live.supervisor.ledger import Ledger
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.messages import MAX_NODE, MIN_NODE, Direction, MsgType
@@ -76,8 +77,8 @@ def bench(tmp_path: Path) -> Iterator[Bench]:
         Supervisor(NODES, 100 * UJ_PER_J, timing=TIMING),
         ServiceConfig(policy=TopUp(UJ_PER_J), limits=Limits(max_grant=UJ_PER_J), fsync=False),
         now,
+        liveness=manager.alive,
     )
-    service.liveness = manager.alive
     loops = [
         Loop(
             BusRuntime(
@@ -165,7 +166,9 @@ def test_the_sdo_audit_matches_the_books(bench: Bench) -> None:
     assert all(report["nodes"][str(n)]["credited_uj"] > 0 for n in NODES)
 
 
-def test_the_control_sockets_sdo_audit_reads_the_books_on_the_loop_thread(bench: Bench) -> None:
+def test_the_control_sockets_sdo_audit_reads_the_books_on_the_loop_thread(
+    bench: Bench, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """``{"audit": true}``: the SDO reads block, so they run on a thread of their own; the
     comparison with the books is handed back to the loop thread, the only one that touches
     them (a C core's sessions are then never read while a frame is handled)."""
@@ -179,13 +182,13 @@ def test_the_control_sockets_sdo_audit_reads_the_books_on_the_loop_thread(bench:
     posted: queue.SimpleQueue[Any] = queue.SimpleQueue()
     readers: list[threading.Thread] = []
     replies: list[dict[str, Any]] = []
-    books = bench.service.ledger.books
+    books = Ledger.books
 
-    def watched_books() -> dict[int, dict[str, int]]:
+    def watched_books(ledger: Ledger) -> dict[int, dict[str, int]]:
         readers.append(threading.current_thread())
-        return books()
+        return books(ledger)
 
-    bench.service.ledger.books = watched_books  # type: ignore[method-assign]
+    monkeypatch.setattr(Ledger, "books", watched_books)  # the class's: nothing of the service
     answer_control(bench.service, {"audit": True}, replies.append, bench.manager, posted.put)
     compare = posted.get(timeout=30)  # the reads done, off this thread
     assert replies == [] and readers == []

@@ -307,8 +307,14 @@ def _run_script(
         make_supervisor(core, [3], 10_000_000, timing=T, id_base=id_base), ServiceConfig(), 0
     )
     path = service.frame_path()
-    loop = BusRuntime(wire, service, codec=codec, receives=Direction.TO_SUPERVISOR, frame_path=path)
-    loop.clock = lambda: now[0]
+    loop = BusRuntime(
+        wire,
+        service,
+        codec=codec,
+        receives=Direction.TO_SUPERVISOR,
+        frame_path=path,
+        clock=lambda: now[0],
+    )
     service.on_message(Telemetry(3, 0), 0)  # heard: a one-shot grant may begin
     service.request_grant(3, 2_000_000, lambda reply: None)
     loop.poll(0)
@@ -369,8 +375,9 @@ def test_with_a_key_every_frame_of_the_c_core_leaves_with_its_mac(layout: Layout
     wire = _Wire()
     service = build_service(make_supervisor("c", [3], 10_000_000, timing=T), ServiceConfig(), 0)
     auth = FrameAuth(codec, layout, lambda n: key, Direction.TO_SUPERVISOR, service.freshness)
-    loop = BusRuntime(wire, service, codec=codec, receives=Direction.TO_SUPERVISOR, auth=auth)
-    loop.clock = lambda: 0
+    loop = BusRuntime(
+        wire, service, codec=codec, receives=Direction.TO_SUPERVISOR, auth=auth, clock=lambda: 0
+    )
     service.on_message(Telemetry(3, 0), 0)
     service.request_grant(3, 2_000_000, lambda reply: None)
     loop.poll(0)

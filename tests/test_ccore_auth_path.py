@@ -91,8 +91,8 @@ def _run(core: str, frame_path: bool) -> Run:
         auth=auth,
         frame_path=path,
         counters=service.bus_counters,
+        clock=lambda: now[0],
     )
-    loop.clock = lambda: now[0]
 
     def feed(*frames: can.Message, wait: int = 100) -> None:
         for frame in frames:
@@ -197,8 +197,8 @@ def test_what_the_c_frame_path_sends_is_the_supervisors_own_from_then_on() -> No
         auth=auth,
         frame_path=service.frame_path(None, auth),
         counters=service.bus_counters,
+        clock=lambda: now[0],
     )
-    loop.clock = lambda: now[0]
     service.on_message(Telemetry(3, 0), 0)
     service.request_grant(3, 2_000_000, lambda reply: None)
     loop.poll(0)
@@ -259,8 +259,8 @@ class _Side:
             auth=auth,
             frame_path=self.service.frame_path(None, auth) if c_path else None,
             counters=self.service.bus_counters,
+            clock=lambda: self.now,
         )
-        self.loop.clock = lambda: self.now
         for node in (3, 5):  # heard: grants may begin
             self.step(0, signed(Telemetry(node, 0), 0))
 
@@ -375,8 +375,8 @@ def _classic_run(core: str, frame_path: bool) -> Run:
         auth=auth,
         frame_path=service.frame_path(None, auth) if frame_path else None,
         counters=service.bus_counters,
+        clock=lambda: now[0],
     )
-    loop.clock = lambda: now[0]
 
     def feed(*frames: can.Message, wait: int = 100) -> None:
         now[0] += wait
@@ -484,8 +484,8 @@ def test_classic_what_the_c_frame_path_sends_is_the_supervisors_own_from_then_on
         auth=auth,
         frame_path=service.frame_path(None, auth),
         counters=service.bus_counters,
+        clock=lambda: now[0],
     )
-    loop.clock = lambda: now[0]
     service.on_message(Telemetry(3, 0), 0)
     service.request_grant(3, 2_000_000, lambda reply: None)
     loop.poll(0)
@@ -562,8 +562,8 @@ class _ClassicSide(_Side):
             auth=auth,
             frame_path=self.service.frame_path(None, auth) if c_path else None,
             counters=self.service.bus_counters,
+            clock=lambda: self.now,
         )
-        self.loop.clock = lambda: self.now
         for node in (3, 5):  # heard: grants may begin
             for frame in classic(Telemetry(node, 0), 0):
                 self.step(0, frame)

@@ -233,8 +233,8 @@ def _bench(
         receives=Direction.TO_SUPERVISOR,
         frame_path=path,
         counters=service.bus_counters,
+        clock=lambda: now[0],
     )
-    loop.clock = lambda: now[0]
     return _Bench(wire, service, loop, now)
 
 
@@ -669,8 +669,8 @@ def test_a_new_service_over_the_same_c_core_gets_tables_of_its_own() -> None:
         receives=Direction.TO_SUPERVISOR,
         frame_path=b.service.frame_path(),
         counters=b.service.bus_counters,
+        clock=lambda: b.now[0],
     )
-    b.loop.clock = lambda: b.now[0]
     assert not b.service.joins.holding(3)
     b.feed(Join(3, 2))
     b.feed(Telemetry(3, 0, Telemetry.JOINING))

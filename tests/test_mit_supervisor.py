@@ -132,10 +132,12 @@ def test_a_supervisor_that_exits_takes_the_motor_out_of_motor_mode(tmp_path: Pat
 
 def test_a_command_from_the_application_is_forwarded_at_once(tmp_path: Path) -> None:
     """The application's frames wake the supervisor's loop: a command reaches the motor in a
-    pass of its own, not at the loop's next deadline (the gate's re-clamp every 20 ms hold).
-    Measured here: median 0.46 to 0.84 ms, and 16 ms with the wake taken out; 8 ms allowed."""
+    pass of its own, not at the loop's next deadline. The gate's re-clamp (``--mit-hold``) is
+    2 s here, so a command left to a deadline waits for the service's tick (50 ms): a median
+    of 47 ms measured with the wake taken out, 0.7 to 0.8 ms with it. 25 ms allowed: what is
+    judged is which pass carries the command, not a speed."""
     app_channel = f"app-{uuid.uuid4().hex}"
-    with rig(tmp_path, "60J", hosted=hosted(app_channel)) as r:
+    with rig(tmp_path, "60J", hosted=[*hosted(app_channel), "--mit-hold", "2s"]) as r:
         app = can.Bus(interface="virtual", channel=app_channel)
 
         def running() -> bool:
@@ -161,7 +163,7 @@ def test_a_command_from_the_application_is_forwarded_at_once(tmp_path: Path) -> 
         r.stop()
     took.sort()
     print(f"forwarded in: median {took[25] * 1e3:.2f} ms, 90% {took[45] * 1e3:.2f} ms")
-    assert took[25] < 0.008, took
+    assert took[25] < 0.025, took
 
 
 def test_a_motor_that_ignores_exit_is_stuck_and_on_stuck_runs_once(

@@ -24,6 +24,7 @@ from support.live_rig import Loop
 
 from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import load_key
+from canergy.ccore.supervisor import missing
 from canergy.cli import build_parser, main
 from canergy.cli.gateway import _config
 from canergy.codec import Codec
@@ -262,6 +263,11 @@ def test_energy_moves_end_to_end_with_a_mac_on_every_bus(
     t.loop.halt()
     root, gw = t.status("root"), t.status("gw")
     assert root["auth"] == gw["upstream"]["auth"] == up.value and gw["auth"] == down.value
+    # below, the gateway runs the compiled core (--core auto) and its frame path with the key:
+    # the leaf's answers verified, ruled and answered in C
+    assert missing() is None, missing()
+    assert (gw["core"], gw["frame_path"]) == ("c", "c") and "frame_path_off" not in gw, gw
+    assert gw["frame_path_frames"] >= 3  # at least the leaf's answers of its three commits
     assert refused(root) == refused(gw) == refused(gw["upstream"]) == 0  # nothing refused
     assert gw["upstream"]["credited_uj"] == 5_000_000
     assert root["nodes"][str(GW)]["returns_credited_uj"] > 0  # what it held above 3.5 J

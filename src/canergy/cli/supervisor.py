@@ -11,6 +11,7 @@ from typing import Any
 
 from canergy.argtypes import add_duration, energy, node_ids
 from canergy.cli.shared.bus_flags import bus_where, open_bus, open_bus_at
+from canergy.cli.shared.buses import BUS_SYNTAX, bus_spec, check_buses
 from canergy.cli.shared.cia402 import add_cia402_flags, check_cia402, cia402_drives
 from canergy.cli.shared.live import (
     add_on_stuck_flag,
@@ -48,13 +49,7 @@ from canergy.live.supervisor.build import (
     check_session_keys,
     open_core,
 )
-from canergy.live.supervisor.multi_bus import (
-    BUS_SYNTAX,
-    BusSpec,
-    bus_spec,
-    check_buses,
-    session_keys,
-)
+from canergy.live.supervisor.multi_bus import BusSpec, session_keys
 from canergy.live.supervisor.policy import TopUp
 from canergy.live.supervisor.service import ServiceConfig, SupervisorService
 from canergy.live.supervisor.witness import RETURN_HOLD_MIN_US

@@ -292,9 +292,6 @@ class CompiledSupervisor:
         both (the SDO audit's comparison is posted to it, ``canergy.live.serve``)."""
         self._stale: set[int] = set()
         """Indexes of the sessions a call changed since they were last read."""
-        self._returned = [0] * len(node_list)
-        """Each session's returned µJ as the last event of its node left it: a RETURN credited
-        is the growth from there (a RESUME's event carries its Ts, not the credit)."""
         if state is not None:
             self._load(state)
 
@@ -376,7 +373,6 @@ class CompiledSupervisor:
             c.deadline = b.never if s.deadline is None else s.deadline
             c.resync = s.resync
             self._sessions[i] = self._read(i)
-            self._returned[i] = s.returned
         self._stale.clear()
         self._timer_known = False
 
@@ -477,8 +473,11 @@ class CompiledSupervisor:
                 f"{self.variant.name} supervisor: no rule for {type(msg).__name__}"
             )
         self._timer_known = False  # deadlines may move
+        c = self._sup.sessions[self._index[msg.node]]
+        returned = int(c.returned_uj)  # a RESUME's credit: what it grew by
         self._lib.canergy_supervisor_on_msg(self._sup, m, now, self._out)
-        return self._actions(resumed=isinstance(msg, Debit) and msg.is_resume)
+        resumed = isinstance(msg, Debit) and msg.is_resume
+        return self._actions(resumed=resumed, returned=returned)
 
     def heard_table(self, lost_after_us: int) -> CompiledHeard:
         """The TELEMETRY table (``canergy.live.supervisor.telemetry``) in C, one record per
@@ -761,7 +760,6 @@ class CompiledSupervisor:
         self._timer_known = False  # deadlines may move
         self._lib.canergy_supervisor_start(self._sup, nonce, now, self._out)
         self._sessions = [self._read(i) for i in range(len(self._sessions))]
-        self._returned = [s.returned for s in self._sessions]
         self._stale.clear()
 
     def resync(self, node: int, now: int, nonce: int) -> list[Action]:
@@ -806,13 +804,15 @@ class CompiledSupervisor:
         *,
         fast: bool = False,
         resumed: bool = False,
+        returned: int | None = None,
         counts: tuple[int, int, int] | None = None,
     ) -> list[Action]:
         """The last call's output as the Python core's actions, in its order. ``fast``
         (``on_answer``): no ``Acknowledged`` (decided in C already) and no ``Send`` (the
         frames go out as C encoded them, ``_frames``). ``resumed``: a RESUME, which credits a
-        pending return numbered one below the number it then voids. ``counts``: the output's
-        counts, read already."""
+        pending return numbered one below the number it then voids; ``returned``: its node's
+        returned µJ before the call (an event that resolves and credits carries the Ts, and
+        the credit is what returned grew by). ``counts``: the output's counts, read already."""
         raw, b = self._out_bytes, self._b
         frames, events, persist = (
             b.counts.unpack_from(raw, b.counts_at) if counts is None else counts
@@ -826,16 +826,19 @@ class CompiledSupervisor:
             )
             i = self._index[node]
             self._stale.add(i)  # read when asked for (``session``)
-            c = sessions[i]
             if flags & b.acknowledged and not fast:
                 actions.append(Acknowledged(node, tx))
             if resolved:
                 actions.append(Resolved(node, tx, b.outcomes[resolved], amount))
-            returned, self._returned[i] = self._returned[i], int(c.returned_uj)
-            if flags & b.return_credited:  # the amount as the session's returned count grew
-                credited = self._returned[i] - returned
+            if flags & b.return_credited:  # the event's amount, or what returned grew by
+                c = sessions[i]
+                credited = amount
+                if resolved:
+                    assert returned is not None, "a RESUME's credit needs returned before it"
+                    credited = int(c.returned_uj) - returned
                 actions.append(ReturnCredited(node, c.returns_credited - resumed, credited))
             if flags & b.admitted:
+                c = sessions[i]
                 actions.append(Admitted(node, c.tx, c.returns_credited))
             if sent < frames and not fast:
                 arbitration_id, dlc, data = b.frame.unpack_from(

@@ -16,9 +16,9 @@ static uint8_t canergy_host_index(const struct canergy_supervisor *sup, uint32_t
     return i;
 }
 
-int canergy_host_answer(struct canergy_supervisor *sup, struct canergy_host_tables *t,
-    uint32_t id, unsigned kind, const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
-    struct canergy_supervisor_out *out, struct canergy_msg *m)
+/* A received frame as the library takes it. */
+static struct canergy_rx_frame canergy_host_rx(uint32_t id, const uint8_t *data, size_t len,
+                                               unsigned kind)
 {
     struct canergy_rx_frame rx = {0};
     rx.id = id;
@@ -26,6 +26,14 @@ int canergy_host_answer(struct canergy_supervisor *sup, struct canergy_host_tabl
     rx.len = len;
     rx.extended = (kind & 1U) != 0U;
     rx.remote = (kind & 2U) != 0U;
+    return rx;
+}
+
+int canergy_host_answer(struct canergy_supervisor *sup, struct canergy_host_tables *t,
+    uint32_t id, unsigned kind, const uint8_t *data, size_t len, uint64_t now, bool abort_acks,
+    struct canergy_supervisor_out *out, struct canergy_msg *m)
+{
+    struct canergy_rx_frame rx = canergy_host_rx(id, data, len, kind);
     const int status = canergy_supervisor_on_answer(sup, &rx, now, abort_acks, out, m);
     if (t == NULL) {
         return status;
@@ -98,11 +106,7 @@ int canergy_host_auth_answer(struct canergy_supervisor *sup, struct canergy_auth
         return CANERGY_RX_OTHER_NODE;
     }
     const struct canergy_session *s = &sup->sessions[i];
-    struct canergy_rx_frame rx = {0};
-    rx.id = id;
-    rx.data = data;
-    rx.len = len;
-    rx.extended = true;
+    struct canergy_rx_frame rx = canergy_host_rx(id, data, len, 1U);
     struct canergy_frame plain;
     int status = canergy_auth_accept(&keys[i], &rx, s->tx, s->returns_credited, &plain);
     if (status != CANERGY_DECODE_OK) {
@@ -145,11 +149,7 @@ int canergy_host_auth_pair(struct canergy_supervisor *sup, struct canergy_auth *
     }
     struct canergy_auth *a = &keys[i];
     const struct canergy_session *s = &sup->sessions[i];
-    struct canergy_rx_frame rx = {0};
-    rx.id = data_id;
-    rx.data = data;
-    rx.len = data_len;
-    rx.extended = true;
+    struct canergy_rx_frame rx = canergy_host_rx(data_id, data, data_len, 1U);
     struct canergy_frame plain;
     a->pending_len = 0U;
     int status = canergy_auth_accept(a, &rx, s->tx, s->returns_credited, &plain);

@@ -54,7 +54,6 @@ nitpick_ignore_regex = [
     ("py:class", r"(canergy\.live\.supervisor\.control\.)?ControlServer"),
     ("py:class", r"(canergy\.inspect\.candump\.)?FrameLog"),
     ("py:obj", r"canergy\.bridge\.schedule\.T"),  # Held's TypeVar
-    ("py:(obj|class)", r"(canergy\.live\.supervisor\.joins\.)?T"),  # JoinHold's TypeVar
     ("py:class", r"'dict\[str"),  # a quoted annotation Sphinx splits at its comma
 ]
 

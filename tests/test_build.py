@@ -64,6 +64,37 @@ def test_a_core_s_parts_are_declared_not_discovered() -> None:
     assert _where(r"getattr\(\s*(self\.)?_?core\b") == []
 
 
+def test_the_service_makes_none_of_its_parts() -> None:
+    """The rule: every part of the service (the watch, the held JOINs, the frame path, the
+    status report, the loop pass, the stop they share) is made by the builder and handed over
+    in ``ServiceParts``; none is made in ``service.py`` nor calls back into the service."""
+    service = ROOT / "src" / "canergy" / "live" / "supervisor" / "service.py"
+    parts = r"\b(BusWatch|JoinHold|CFramePath|StatusReport|Pass|Stopping|ReturnGate|Ledger)\("
+    assert _where(parts, paths=[service]) == []
+    assert _where(r"\b(admit|stop|answered|held|telemetry|join_held|decoded)=self\.") == []
+
+
+def test_a_stop_the_watch_asks_for_answers_the_requests_that_wait() -> None:
+    """Evidence under ``--on-intrusion stop`` stops the supervisor through the ``Stopping`` its
+    parts share: nothing more begins, and the one-shot grants still queued are answered at the
+    next tick with why (before, the watch called the service's ``stop``)."""
+    from canergy.core import Supervisor
+    from canergy.live.supervisor.build import build_service
+
+    config = ServiceConfig(stop_on_intrusion=True, fsync=False, status_period_us=10**12)
+    service = build_service(Supervisor((3,), 10 * J), config, 0)
+    replies: list[dict[str, Any]] = []
+    service.request_grant(3, J, replies.append)  # waits: node 3 was never heard
+    service.authentic_intrusion(3, "a frame", "authentic evidence", 10)
+    assert service.stopping and service.stopped_by_intrusion and replies == []
+    assert service.stop_deadline == 10 + config.stop_timeout_us
+    service.on_wakeup(config.tick_us)
+    assert replies == [
+        {"node": 3, "error": "node never heard from (or still joining): nothing granted"}
+    ]
+    assert service.status()["stopping"] and service.finished(11)  # nothing open
+
+
 class _Link:
     def __init__(self) -> None:
         self.closed = False

@@ -43,14 +43,8 @@ class JoinsBelow(Below):
         self.c_refused = 0
         self.intrusions = Intrusions("gateway")
         self.refusals = Refusals("gateway")
-        self.hold = JoinHold[can.Message](
-            NODES,
-            JOIN_HOLD_US,
-            frozenset(),
-            self.intrusions,
-            self.refusals,
-            lambda: True,
-            lambda join, now: self._py_sent(self.py.receive(join, now)),
+        self.hold = JoinHold(
+            NODES, JOIN_HOLD_US, frozenset(), self.intrusions, self.refusals, lambda: True
         )
 
     def _c_rules(self, msg: Any) -> list[tuple[int, bytes]]:
@@ -89,8 +83,12 @@ class JoinsBelow(Below):
             self.hold.on_join(msg)
             return []
         if isinstance(msg, Telemetry):
-            return self.hold.on_telemetry(msg, self.now)
+            return self._py_admit(self.hold.on_telemetry(msg, self.now))
         return self._py_sent(self.py.receive(msg, self.now))  # type: ignore[arg-type]
+
+    def _py_admit(self, joins: list[Join]) -> list[can.Message]:
+        """The JOINs the held JOINs confirmed, answered by the Python rules."""
+        return [m for join in joins for m in self._py_sent(self.py.receive(join, self.now))]
 
     def advance(self, us: int) -> list[can.Message]:
         """Time goes on: the JOINs whose hold is over, admitted on both; their frames (to the
@@ -100,7 +98,7 @@ class JoinsBelow(Below):
         for i, node in enumerate(NODES):
             if self.lib.canergy_joins_due_join(ref(self.c_joins[i]), node, self.now, self.msg):
                 c_sent += self._c_rules(self.msg)
-        py_sent = self.hold.on_wakeup(self.now)
+        py_sent = self._py_admit(self.hold.on_wakeup(self.now))
         self._same(c_sent, py_sent)
         self.to_nodes(py_sent)
         return py_sent
@@ -196,14 +194,8 @@ class Keyless:
         self.out = lib.new("struct canergy_supervisor_out *")
         self.c_refused = 0
         self.intrusions = Intrusions("gateway")
-        self.hold = JoinHold[tuple[int, bytes]](
-            NODES,
-            JOIN_HOLD_US,
-            frozenset(),
-            self.intrusions,
-            Refusals("gateway"),
-            lambda: False,
-            lambda join, now: self._py(self.py.receive(join, now)),
+        self.hold = JoinHold(
+            NODES, JOIN_HOLD_US, frozenset(), self.intrusions, Refusals("gateway"), lambda: False
         )
 
     def _py(self, actions: list[Any]) -> list[tuple[int, bytes]]:
@@ -254,7 +246,7 @@ class Keyless:
             self.hold.on_join(msg)
             py_sent: list[tuple[int, bytes]] = []
         else:
-            py_sent = self.hold.on_telemetry(msg, self.now)
+            py_sent = self._admit(self.hold.on_telemetry(msg, self.now))
         self.same(c_sent, py_sent)
 
     def wait(self, us: int) -> None:
@@ -263,7 +255,11 @@ class Keyless:
         for i, node in enumerate(NODES):
             if self.lib.canergy_joins_due_join(ref(self.joins[i]), node, self.now, self.msg):
                 c_sent += self._c_rules(self.msg)
-        self.same(c_sent, self.hold.on_wakeup(self.now))
+        self.same(c_sent, self._admit(self.hold.on_wakeup(self.now)))
+
+    def _admit(self, joins: list[Join]) -> list[tuple[int, bytes]]:
+        """The JOINs the held JOINs confirmed, answered by the Python rules."""
+        return [f for join in joins for f in self._py(self.py.receive(join, self.now))]
 
     def begin(self, node: int, amount_mj: int) -> None:
         if self.py.session(node).phase.name != "IDLE":

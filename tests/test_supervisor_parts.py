@@ -21,26 +21,41 @@ HOLD = 500_000
 J = 1_000_000
 
 
+class Noted:
+    """A ``JoinHold`` whose admissions are noted (the nonce admitted and when): what it returns
+    to admit, by nonce."""
+
+    def __init__(self, hold: JoinHold) -> None:
+        self._hold = hold
+        self.admitted: list[tuple[int, int]] = []
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._hold, name)
+
+    def on_telemetry(self, msg: Telemetry, now: int) -> list[int]:
+        return self._note(self._hold.on_telemetry(msg, now), now)
+
+    def on_wakeup(self, now: int) -> list[int]:
+        return self._note(self._hold.on_wakeup(now), now)
+
+    def _note(self, joins: list[Join], now: int) -> list[int]:
+        self.admitted += [(join.nonce, now) for join in joins]
+        return [join.nonce for join in joins]
+
+
 class Desk:
-    """A ``JoinHold`` whose admissions are noted (the nonce admitted and when)."""
+    """A ``JoinHold`` whose admissions are noted (``Noted``)."""
 
     def __init__(self, authenticated: bool = False, local: frozenset[int] = frozenset()) -> None:
-        self.admitted: list[tuple[int, int]] = []
         self.intrusions = Intrusions("supervisor")
         self.refusals = Refusals("supervisor")
-        self.hold: JoinHold[int] = JoinHold(
-            (3, 4),
-            HOLD,
-            local,
-            self.intrusions,
-            self.refusals,
-            lambda: authenticated,
-            self._admit,
+        self.hold = Noted(
+            JoinHold((3, 4), HOLD, local, self.intrusions, self.refusals, lambda: authenticated)
         )
 
-    def _admit(self, join: Join, now: int) -> list[int]:
-        self.admitted.append((join.nonce, now))
-        return [join.nonce]
+    @property
+    def admitted(self) -> list[tuple[int, int]]:
+        return self.hold.admitted
 
 
 def joining(node: int) -> Telemetry:

@@ -21,8 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable
 from dataclasses import replace
-from functools import partial
-from typing import Any, Generic, ParamSpec, TypeVar, cast
+from typing import Any, ParamSpec, TypeVar, cast
 
 from canergy.bus_keys import bus_of, node_of, session_key
 from canergy.ccore.calls import Answer, AuthAnswer, AuthPair
@@ -45,7 +44,6 @@ from canergy.live.supervisor.intrusions import Intrusions, Refusals
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.messages import Debit, Join, Message, Return, Telemetry, ToSupervisor
 
-T = TypeVar("T")
 M = TypeVar("M", bound=Message)
 _P = ParamSpec("_P")
 
@@ -297,10 +295,9 @@ class CompiledBuses:
         intrusions: Intrusions,
         refusals: Refusals,
         authenticated: Callable[[], bool],
-        admit: Callable[[Join, int], list[T]],
-    ) -> BusesJoinHold[T]:
+    ) -> BusesJoinHold:
         """The held JOINs in C (``CompiledSupervisor.join_hold``), one per bus's supervisor;
-        what each reports and admits is keyed by its bus."""
+        what each reports and returns to admit is keyed by its bus."""
         holds = []
         for bus, part in enumerate(self._parts):
             local = frozenset(node_of(k) for k in local_nodes if bus_of(k) == bus)
@@ -311,7 +308,6 @@ class CompiledBuses:
                     cast(Intrusions, _Keyed(intrusions, bus)),
                     cast(Refusals, _Keyed(refusals, bus)),
                     authenticated,
-                    partial(_admit_keyed, admit, bus),
                 )
             )
         return BusesJoinHold(holds)
@@ -389,11 +385,6 @@ def _plain(msg: M) -> tuple[int, M]:
 
 def _keyed(bus: int, msg: M) -> M:
     return replace(msg, node=session_key(bus, msg.node)) if bus else msg
-
-
-def _admit_keyed(admit: Callable[[Join, int], list[T]], bus: int, join: Join, now: int) -> list[T]:
-    """A bus's held JOIN admitted: the service's ``admit`` given it keyed."""
-    return admit(_keyed(bus, join), now)
 
 
 class _Keyed:
@@ -488,12 +479,12 @@ class BusesReturnGate:
         return self.gates[bus_of(node)].status(node_of(node))
 
 
-class BusesJoinHold(Generic[T]):
+class BusesJoinHold:
     """The held JOINs of every bus (``CompiledJoinHold``), by session key."""
 
     implementation = "c"
 
-    def __init__(self, holds: list[CompiledJoinHold[T]]) -> None:
+    def __init__(self, holds: list[CompiledJoinHold]) -> None:
         self.holds = holds
 
     def on_join(self, join: Join) -> None:
@@ -506,20 +497,21 @@ class BusesJoinHold(Generic[T]):
     def resent(self, node: int) -> int:
         return self.holds[bus_of(node)].resent(node_of(node))
 
-    def on_telemetry(self, msg: Telemetry, now: int) -> list[T]:
+    def on_telemetry(self, msg: Telemetry, now: int) -> list[Join]:
         bus, plain = _plain(msg)
-        return self.holds[bus].on_telemetry(plain, now)
+        return [_keyed(bus, join) for join in self.holds[bus].on_telemetry(plain, now)]
 
     def telemetry_taken(
         self, msg: Telemetry, now: int, found: int, nonce: int | None = None
-    ) -> list[T]:
+    ) -> list[Join]:
         bus, plain = _plain(msg)
-        return self.holds[bus].telemetry_taken(plain, now, found, nonce)
+        taken = self.holds[bus].telemetry_taken(plain, now, found, nonce)
+        return [_keyed(bus, join) for join in taken]
 
-    def on_wakeup(self, now: int) -> list[T]:
-        out: list[T] = []
-        for hold in self.holds:
-            out += hold.on_wakeup(now)
+    def on_wakeup(self, now: int) -> list[Join]:
+        out: list[Join] = []
+        for bus, hold in enumerate(self.holds):
+            out += [_keyed(bus, join) for join in hold.on_wakeup(now)]
         return out
 
     def next_wakeup(self) -> int | None:

@@ -1,13 +1,13 @@
 """The compiled core's held JOINs: ``canergy.live.supervisor.joins.JoinHold``'s interface over
 firmware/src/joins.c, one ``struct canergy_joins`` per session in C memory the frame path's call
 reaches (``CompiledSupervisor.on_answer`` holds a JOIN and reads a TELEMETRY there). Python adds
-the words of the JOINs a TELEMETRY refutes, read from the record as it was, and has the core
-admit a confirmed one (``admit``)."""
+the words of the JOINs a TELEMETRY refutes, read from the record as it was, and returns a
+confirmed one for the caller to have the core admit."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Generic, TypeVar
+from typing import TYPE_CHECKING, Any
 
 from canergy.auth.frames import AuthFailure
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
@@ -16,10 +16,8 @@ from canergy.messages import Join, Telemetry
 if TYPE_CHECKING:
     from canergy.ccore.supervisor import CompiledSupervisor
 
-T = TypeVar("T")
 
-
-class CompiledJoinHold(Generic[T]):
+class CompiledJoinHold:
     """``JoinHold`` in C (``CompiledSupervisor.join_hold``)."""
 
     implementation = "c"
@@ -32,7 +30,6 @@ class CompiledJoinHold(Generic[T]):
         intrusions: Intrusions,
         refusals: Refusals,
         authenticated: Callable[[], bool],
-        admit: Callable[[Join, int], list[T]],
     ) -> None:
         b = core._b
         self._ffi, self._lib = b.ffi, b.lib
@@ -48,7 +45,6 @@ class CompiledJoinHold(Generic[T]):
         self.intrusions = intrusions
         self.refusals = refusals
         self.authenticated = authenticated
-        self.admit = admit
         self.due: set[int] = set()
         self.bits = {
             "due": int(b.lib.CANERGY_JOINS_DUE),
@@ -72,7 +68,7 @@ class CompiledJoinHold(Generic[T]):
     def resent(self, node: int) -> int:
         return int(self._rec(node).resent)
 
-    def on_telemetry(self, msg: Telemetry, now: int) -> list[T]:
+    def on_telemetry(self, msg: Telemetry, now: int) -> list[Join]:
         """As ``JoinHold.on_telemetry``, for a TELEMETRY decoded in Python."""
         rec = self._rec(msg.node)
         self._ffi.memmove(self.before, rec, self._ffi.sizeof("struct canergy_joins"))
@@ -83,7 +79,7 @@ class CompiledJoinHold(Generic[T]):
 
     def telemetry_taken(
         self, msg: Telemetry, now: int, found: int, nonce: int | None = None
-    ) -> list[T]:
+    ) -> list[Join]:
         """What C's table did with ``msg`` (``found``, its bits; ``nonce``: the JOIN to admit,
         by default the frame path's), the record before it in ``before``: refusals worded, a
         due node noted, an admission carried out."""
@@ -92,7 +88,7 @@ class CompiledJoinHold(Generic[T]):
             self.due.add(msg.node)
         if found & bits["admit"]:
             admitted = int(self.tables.admit) if nonce is None else nonce
-            return self.admit(Join(msg.node, admitted), now)
+            return [Join(msg.node, admitted)]
         if found & bits["refused"]:
             self._refused(msg.node, now)
         return []
@@ -114,11 +110,11 @@ class CompiledJoinHold(Generic[T]):
                 self.refusals.record(node, reason, repr(join), now)
             self.intrusions.record(node, repr(join), reason, now, quiet=authenticated)
 
-    def on_wakeup(self, now: int) -> list[T]:
-        out: list[T] = []
+    def on_wakeup(self, now: int) -> list[Join]:
+        out: list[Join] = []
         for node in sorted(self.due):
             if self._lib.canergy_joins_due(self._rec(node), now, self._nonce):
-                out += self.admit(Join(node, int(self._nonce[0])), now)
+                out.append(Join(node, int(self._nonce[0])))
             if not self._rec(node).has_admitting:
                 self.due.discard(node)
         return out

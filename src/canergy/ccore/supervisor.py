@@ -15,7 +15,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Callable, Iterable
 from functools import partial
-from typing import Any, TypeVar, cast
+from typing import Any, cast
 
 from canergy.ccore.calls import Answer, AuthAnswer, AuthPair
 from canergy.ccore.grants import CompiledGrantCaps, fits
@@ -58,8 +58,6 @@ from canergy.messages import (
     Telemetry,
     ToSupervisor,
 )
-
-T = TypeVar("T")
 
 
 class CoreMissing(RuntimeError):
@@ -512,15 +510,12 @@ class CompiledSupervisor:
         intrusions: Intrusions,
         refusals: Refusals,
         authenticated: Callable[[], bool],
-        admit: Callable[[Join, int], list[T]],
-    ) -> CompiledJoinHold[T]:
+    ) -> CompiledJoinHold:
         """The held JOINs (``canergy.live.supervisor.joins.JoinHold``'s interface) in C, one
         record per session, new at each call: from then on ``on_answer`` holds a JOIN there and
         takes a TELEMETRY into them too, in the call that decodes it."""
         t = self.tables
-        joins = CompiledJoinHold(
-            self, hold_us, local_nodes, intrusions, refusals, authenticated, admit
-        )
+        joins = CompiledJoinHold(self, hold_us, local_nodes, intrusions, refusals, authenticated)
         holds = self._b.ffi.new("uint64_t[]", [joins.hold_for(n) for n in self._index])
         self._keep("joins", (joins, holds))
         t.joins, t.join_hold_us = joins.records, holds

@@ -22,7 +22,7 @@ from canergy.core.table import Event
 from canergy.core.timing import Timing
 from canergy.core.variants import Variant, get_variant
 from canergy.frozen import evolve
-from canergy.messages import MAX_NODE, MIN_NODE, Join, ToSupervisor
+from canergy.messages import MAX_NODE, MIN_NODE, ToSupervisor
 
 if TYPE_CHECKING:  # the types of the service's parts a compiled core makes in C (names only)
     from canergy.ccore.calls import Answer
@@ -140,7 +140,6 @@ class SupervisorCore(Protocol):
         intrusions: Intrusions,
         refusals: Refusals,
         authenticated: Callable[[], bool],
-        admit: Callable[[Join, int], list[Any]],
     ) -> Any | None:
         """The held JOINs (``canergy.live.supervisor.joins.JoinHold``'s interface) in C, or
         None: the service keeps Python's."""

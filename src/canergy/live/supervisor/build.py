@@ -34,15 +34,20 @@ from canergy.live.bus_group import BusGroup
 from canergy.live.devices.on_stuck import OnStuck
 from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
 from canergy.live.supervisor.control import ControlServer
+from canergy.live.supervisor.frame_path import CFramePath, Pass
 from canergy.live.supervisor.grants import GrantDesk
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
+from canergy.live.supervisor.joins import JoinHold
 from canergy.live.supervisor.ledger import Ledger
-from canergy.live.supervisor.nodes import NodeInfo, name_of
+from canergy.live.supervisor.nodes import NodeInfo, lost, name_of
 from canergy.live.supervisor.outputs import BooksOut, StatusOut
 from canergy.live.supervisor.rules_said import RulesSaid
 from canergy.live.supervisor.service import ServiceConfig, ServiceParts, SupervisorService
 from canergy.live.supervisor.state_file import keep_books, load_state
+from canergy.live.supervisor.status import StatusReport
+from canergy.live.supervisor.stopping import Stopping
 from canergy.live.supervisor.telemetry import HeardTable, TelemetryTable
+from canergy.live.supervisor.watch import BusWatch
 from canergy.live.supervisor.witness import ReturnGate
 from canergy.messages import Direction
 
@@ -247,11 +252,17 @@ def service_parts(
     save: Callable[[], None] | None = None,
     bus_counters: BusCounters | None = None,
     buses: Mapping[str, BusCounters] | None = None,
+    liveness: Callable[[int, int], bool] | None = None,
+    extra_status: Callable[[int], dict[str, Any]] | None = None,
+    control: ControlServer | None = None,
 ) -> ServiceParts:
-    """The service's parts that need nothing of it, the core's own in C where it has them
-    (``SupervisorCore.heard_table``, ``return_gate``, ``grant_caps``). ``save``: writes the books
-    instead of ``config.state_path`` (a gateway keeps both of its roles in one file);
-    ``bus_counters``: the bus loop's counters (one bus), or ``buses``: each bus's by name."""
+    """The service's parts, the core's own in C where it has them (``SupervisorCore.heard_table``,
+    ``return_gate``, ``join_hold``, ``grant_caps``). ``save``: writes the books instead of
+    ``config.state_path`` (a gateway keeps both of its roles in one file); ``bus_counters``: the
+    bus loop's counters (one bus), or ``buses``: each bus's by name; ``liveness``: an extra
+    liveness test (the CANopen heartbeat watchdog, the guarded drives'); ``extra_status``: more
+    status under ``cia402`` (the guarded drives); ``control``: the control socket (its refusals
+    are in the status)."""
     name = partial(name_of, config.bus_names)
     heard: TelemetryTable | None = core.heard_table(config.lost_after_us)
     if heard is None:
@@ -263,6 +274,47 @@ def service_parts(
         witness = ReturnGate(hold_us, block_us)
     books = BooksOut(core, config.state_path, fsync=config.fsync, buses=config.bus_names, save=save)
     caps = core.grant_caps(config.limits, config.policy)
+    counters = BusCounters() if bus_counters is None else bus_counters
+    by_bus = dict(buses or {})
+    intrusions = Intrusions("supervisor", name=name)
+    refusals = Refusals("supervisor", name=name)
+    stopping = Stopping()
+    watch = BusWatch(
+        core,
+        nodes,
+        intrusions,
+        refusals,
+        tuple(by_bus.values()) or (counters,),
+        listen_only=config.listen_only,
+        stop_on_intrusion=config.stop_on_intrusion,
+        stopping=stopping,
+    )
+    joining = (config.join_hold_us, config.local_nodes, intrusions, refusals)
+
+    def authenticated() -> bool:
+        return watch.authenticated
+
+    joins = core.join_hold(*joining, authenticated)
+    if joins is None:
+        joins = JoinHold(core.nodes, *joining, authenticated)
+    passes = Pass()
+    path = CFramePath(core, max(1, len(config.bus_names)), config.listen_only, passes, stopping)
+    is_lost = partial(lost, nodes, liveness, config.lost_after_us)
+    report = StatusReport(
+        core,
+        nodes,
+        witness,
+        joins,
+        intrusions,
+        refusals,
+        path,
+        node_name=name,
+        is_lost=is_lost,
+        bus_counters=counters,
+        buses=by_bus,
+        control=control,
+        extra_status=extra_status,
+    )
     return ServiceParts(
         heard=heard,
         nodes=nodes,
@@ -270,11 +322,18 @@ def service_parts(
         desk=GrantDesk(config.limits, config.policy, caps),
         ledger=Ledger(core, books, listen_only=config.listen_only),
         status_out=StatusOut(config.status_path, config.status_stream, config.status_text),
-        intrusions=Intrusions("supervisor", name=name),
-        refusals=Refusals("supervisor", name=name),
+        intrusions=intrusions,
+        refusals=refusals,
         witness=witness,
-        bus_counters=BusCounters() if bus_counters is None else bus_counters,
-        buses=dict(buses or {}),
+        joins=joins,
+        bus_counters=counters,
+        buses=by_bus,
+        passes=passes,
+        stopping=stopping,
+        watch=watch,
+        path=path,
+        report=report,
+        is_lost=is_lost,
     )
 
 
@@ -295,17 +354,21 @@ def build_service(
     ``now``: the builder's, and the one unit tests make without a bus. ``uplink``: the gateway's
     upstream role (the service is then a ``DownstreamService``); ``liveness``, ``extra_status``
     and ``control`` as ``SupervisorService`` takes them."""
-    parts = service_parts(core, config, save=save, bus_counters=bus_counters, buses=buses)
-    given: dict[str, Any] = {
-        "liveness": liveness,
-        "extra_status": extra_status,
-        "control": control,
-    }
+    parts = service_parts(
+        core,
+        config,
+        save=save,
+        bus_counters=bus_counters,
+        buses=buses,
+        liveness=liveness,
+        extra_status=extra_status,
+        control=control,
+    )
     if uplink is not None:
         from canergy.live.gateway.process import DownstreamService
 
-        return DownstreamService(core, config, now, parts, uplink=uplink, **given)
-    return SupervisorService(core, config, now, parts, **given)
+        return DownstreamService(core, config, now, parts, uplink=uplink, liveness=liveness)
+    return SupervisorService(core, config, now, parts, liveness=liveness)
 
 
 @dataclass(slots=True)

@@ -1,14 +1,16 @@
 """The compiled core's frame path: frames the bus loop has not decoded, taken in C.
 
 ``CFramePath`` asks the compiled core for each bus's path (without a key, with a key in the FD
-or the classic layout), runs it per frame and hands what C did to the service's handlers, given
-once at construction. Frames are taken only inside a loop pass (``Pass``), where everything the
-service decides is held until the pass ends and the books are written.
+or the classic layout) and runs it per frame: the frames C encoded are held in the loop pass
+(``Pass``), and what C did is returned (``Taken``) for the service to record. Frames are taken
+only inside a pass, where everything the service decides is held until the pass ends and the
+books are written. It calls nothing of the service: the builder makes it, with the pass and the
+``Stopping`` the service shares.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Any, cast
@@ -17,14 +19,26 @@ import can
 
 from canergy.auth.frames import MAC_TYPE, FrameAuth, Layout
 from canergy.ccore.calls import Answer, AuthAnswer, AuthPair, EncodedBegin
-from canergy.core import Action
 from canergy.core.supervisor import BUS_SHIFT, SupervisorCore
-from canergy.live.runtime import FramePath, Outgoing, RawFrame
-from canergy.messages import Direction, Message, MsgType, Return, Telemetry
+from canergy.live.runtime import Outgoing, RawFrame
+from canergy.live.supervisor.stopping import Stopping
+from canergy.messages import Direction, MsgType
 
 _MAC_TO_SUPERVISOR = MAC_TYPE[Direction.TO_SUPERVISOR]
 _ANSWERS = frozenset((MsgType.ACK, MsgType.COMMITTED, MsgType.ABORTED))
 """What the compiled core's frame path takes with a key: a node's answers."""
+
+ANSWERED, HELD, TELEMETRY, JOIN_HELD, DECODED = range(5)
+Taken = tuple[int, int, Any, int]
+"""What C took of a frame, for the service: (what, the node's session key, payload, verdict).
+``ANSWERED``: an answer the rules took, payload the core's actions (its frames already held in
+the pass). ``HELD``: a RETURN the witness in C held, payload the RETURN, verdict the witness's.
+``TELEMETRY``: a TELEMETRY the tables in C took, payload the message, verdict the table's bits
+with what the witness and the held JOINs found shifted left by 8. ``JOIN_HELD``: a JOIN held in
+C. ``DECODED``: a message only decoded in C (a RETURN beyond the books, a JOIN or a DEBIT),
+payload the message, for the usual path."""
+FastFrame = Callable[[can.Message, int], "Taken | None"]
+"""A bus loop's frame through the compiled core: what C took, or None (the usual path)."""
 
 
 @dataclass(slots=True)
@@ -40,38 +54,18 @@ class CFramePath:
     """The compiled core's frame path for the service's bus loops (``frame_path``)."""
 
     def __init__(
-        self,
-        core: SupervisorCore,
-        buses: int,
-        listen_only: bool,
-        passes: Pass,
-        *,
-        answered: Callable[[int, list[Action], int], list[Outgoing]],
-        held: Callable[[Return, int, int], list[Outgoing]],
-        telemetry: Callable[[Telemetry, int, int, int], list[Outgoing]],
-        join_held: Callable[[int, int], None],
-        decoded: Callable[[Message, int], Sequence[Message]],
+        self, core: SupervisorCore, buses: int, listen_only: bool, passes: Pass, stopping: Stopping
     ) -> None:
-        """``core``: the service's (the Python core's has no path); ``buses``: how many
-        the service serves; ``passes``: the service's. What C took goes to the handlers, each
-        given ``now``: ``answered`` (a node's answer: its session key and the core's actions;
-        returns what follows), ``held`` (a RETURN the witness in C held, with its verdict),
-        ``telemetry`` (a TELEMETRY the tables in C took: its verdict's bits and what the witness
-        and the held JOINs found), ``join_held`` (a JOIN held, by session key) and ``decoded``
-        (a message only decoded in C, for the usual path)."""
+        """``core``: the service's (the Python core's has no path); ``buses``: how many the
+        service serves; ``passes`` and ``stopping``: the service's (shared, never called)."""
         self._core: Any = core
         """The compiled core's calls beyond ``SupervisorCore`` (``begin_encoded``, with a key
         ``auth_answer_on``) are asked of it only once ``answer_on`` gave a path."""
         self._buses = buses
         self._listen_only = listen_only
         self._pass = passes
-        self._answered = answered
-        self._held_return = held
-        self._telemetry = telemetry
-        self._join_held = join_held
-        self._decoded = decoded
-        self.stopping = False
-        """The service is stopping (``stop``): C aborts what it would commit."""
+        self._stopping = stopping
+        """Once the service stops, C aborts what it would commit."""
         self._answer_on = core.answer_on
         self._answer = self._answer_on(0)
         """Bus 0's path without a key (``fast_frame``); None on the Python core."""
@@ -106,10 +100,6 @@ class CFramePath:
         self.begin_fd = False
         """With a key in the FD layout the INTENTION ``begin_encoded`` gives is an FD frame."""
 
-    def stop(self) -> None:
-        """The service stops: from now on C aborts an acknowledged transaction."""
-        self.stopping = True
-
     def status(self) -> dict[str, Any]:
         """Which path runs, why not C's, and how many frames C took."""
         path, off = self._path
@@ -121,7 +111,7 @@ class CFramePath:
 
     def frame_path(
         self, off: str | None = None, auth: FrameAuth | None = None, bus: int = 0
-    ) -> FramePath | None:
+    ) -> FastFrame | None:
         """``SupervisorService.frame_path``: this path for bus ``bus``'s loop, or None."""
         if self._answer is None:
             self._path = ("python", None)
@@ -140,7 +130,7 @@ class CFramePath:
         self._answers[bus] = answer
         return partial(self.fast_frame, bus=bus)
 
-    def _keyed_path(self, auth: FrameAuth, bus: int) -> FramePath:
+    def _keyed_path(self, auth: FrameAuth, bus: int) -> FastFrame:
         """``frame_path`` with a key, for bus ``bus``'s loop and its ``auth``."""
         classic = auth.layout is Layout.CLASSIC
         if self._frame_auths and self.begin_fd == classic:
@@ -163,110 +153,100 @@ class CFramePath:
         fast = self.fast_auth_pair if classic else self.fast_auth_frame
         return fast if not bus else partial(fast, bus=bus)
 
-    def fast_frame(self, frame: can.Message, now: int, bus: int = 0) -> bool:
+    def fast_frame(self, frame: can.Message, now: int, bus: int = 0) -> Taken | None:
         """For a frame the bus loop has not decoded: an ACK, COMMITTED or ABORTED of a managed
         node goes through decode, rules, the decision on an ACK (commit, abort when stopping)
-        and encode in one C call, and only what it did goes to the service (books, replies, the
-        next grant). In the same call a TELEMETRY is taken by the tables in C (``telemetry``,
-        the witness, the held JOINs: the service gets only the words of what they found), a
-        RETURN is held by the witness or ruled, a JOIN held. False, nothing done: any other
-        frame, one that names a transaction never begun (judged on the usual path, an
-        intrusion), listen-only, outside a loop pass. The bus loop then takes it as usual.
-        ``bus``: the index of the bus it arrived on; its frames go to that bus's supervisor."""
+        and encode in one C call, its frames are held in the pass and what it did is returned
+        (``ANSWERED``: the books, replies, the next grant are the service's). In the same call
+        a TELEMETRY is taken by the tables in C (the TELEMETRY table, the witness, the held
+        JOINs: the service gets only the words of what they found), a RETURN is held by the
+        witness or ruled, a JOIN held. None, nothing done: any other frame, one that names a
+        transaction never begun (judged on the usual path, an intrusion), listen-only, outside
+        a loop pass. The bus loop then takes it as usual. ``bus``: the index of the bus it
+        arrived on; its frames go to that bus's supervisor."""
         answer = self._answers.get(bus) if bus else self._answer
         passes = self._pass
         if answer is None or self._listen_only or not passes.depth:
-            return False
+            return None
         status, actions, frames, decoded, verdict = answer(
             frame.arbitration_id,
             frame.data,
             frame.is_extended_id,
             frame.is_remote_frame,
             now,
-            self.stopping,
+            self._stopping.since is not None,
         )
         node = frame.arbitration_id & 0xFF | bus << BUS_SHIFT  # its session key
         if not status:  # an answer the rules took (nothing decoded, no verdict)
             self.frames += 1
-            held = passes.held  # in this order: the frames, what the books record, next grant
-            held += [RawFrame(i, d, False, bus) for i, d in frames]
-            held += self._answered(node, actions, now)
-            return True
+            passes.held += [RawFrame(i, d, False, bus) for i, d in frames]  # first, in order
+            return ANSWERED, node, actions, 0
         if verdict & self._join_bit:  # a JOIN held in C
             self.frames += 1
-            self._join_held(node, now)
-            return True
+            return JOIN_HELD, node, None, 0
         if verdict & self._held_bit:  # a RETURN the witness in C held
             self.frames += 1
-            ret = cast(Return, decoded)
-            passes.held += self._held_return(ret, verdict & ~self._held_bit, now)
-            return True
+            return HELD, node, decoded, verdict & ~self._held_bit
         if verdict:  # a TELEMETRY the table and the witness in C took: what it shows, there
             self.frames += 1
-            msg = cast(Telemetry, decoded)
-            passes.held += self._telemetry(msg, verdict & 0xFF, now, verdict >> 8)
-            return True
+            return TELEMETRY, node, decoded, verdict
         if decoded is not None:  # a RETURN, JOIN or DEBIT: as if the loop had decoded it
             self.frames += 1
-            self._decoded(decoded, now)  # in a pass: its frames are held
-            return True
-        return False
+            return DECODED, node, decoded, 0
+        return None
 
-    def fast_auth_frame(self, frame: can.Message, now: int, bus: int = 0) -> bool:
+    def fast_auth_frame(self, frame: can.Message, now: int, bus: int = 0) -> Taken | None:
         """``fast_frame`` with a key, FD layout: an ACK, COMMITTED or ABORTED of a managed node
         is verified (MAC, freshness), taken by the rules and answered with frames protected in
-        one C call; what it shows of the node's freshness is noted (``FrameAuth.took``). False,
+        one C call; what it shows of the node's freshness is noted (``FrameAuth.took``). None,
         nothing done: any other frame (TELEMETRY, JOIN, RETURN, DEBIT, the own direction), one
         refused (the loop's usual path counts and reports it), an answer ahead of the session.
         ``bus``: as ``fast_frame``'s (its keys and counters are that bus's)."""
         if self._listen_only or not self._pass.depth:
-            return False
+            return None
         answer = self._auth_answers[bus] if bus else self._auth_answer
         auth = self._frame_auths[bus] if bus else self._frame_auth
         assert answer is not None and auth is not None
         ident = frame.arbitration_id
         status, actions, frames, fv = answer(
-            ident, frame.data, frame.is_extended_id, frame.is_remote_frame, now, self.stopping
-        )
+            ident, frame.data, frame.is_extended_id, frame.is_remote_frame, now,
+            self._stopping.since is not None,
+        )  # fmt: skip
         if status:
-            return False
+            return None
         node = ident & 0xFF
         auth.took(MsgType(ident >> 8 & 0xF), node, fv)
         self.frames += 1
-        held = self._pass.held
-        held += [RawFrame(i, d, True, bus) for i, d in frames]
-        held += self._answered(node | bus << BUS_SHIFT, actions, now)
-        return True
+        self._pass.held += [RawFrame(i, d, True, bus) for i, d in frames]
+        return ANSWERED, node | bus << BUS_SHIFT, actions, 0
 
-    def fast_auth_pair(self, frame: can.Message, now: int, bus: int = 0) -> bool:
+    def fast_auth_pair(self, frame: can.Message, now: int, bus: int = 0) -> Taken | None:
         """``fast_auth_frame`` in the classic layout: the MAC frame of an ACK, COMMITTED or
         ABORTED of a managed node, with the message the loop's ``FrameAuth`` keeps for it,
         goes to C, where the pair is verified, taken by the rules and answered with frames
         protected (each followed by its MAC frame) in one call; the message then waits no
-        more. False, nothing done (the message still waits): any other frame (a message
+        more. None, nothing done (the message still waits): any other frame (a message
         waits for its MAC frame on the usual path), a MAC frame without such a message, one
         refused (the usual path pairs, counts and reports it as ever), an answer ahead of the
         session. ``bus``: as ``fast_frame``'s (its loop's ``FrameAuth`` keeps the message)."""
         ident = frame.arbitration_id
         if ident >> 8 & 0xF != _MAC_TO_SUPERVISOR or self._listen_only or not self._pass.depth:
-            return False
+            return None
         pair = self._auth_pairs[bus] if bus else self._auth_pair
         auth = self._frame_auths[bus] if bus else self._frame_auth
         assert pair is not None and auth is not None
         node = ident & 0xFF
         waiting = auth.pending.get(node)
         if waiting is None or waiting[0].TYPE not in _ANSWERS:
-            return False
+            return None
         msg, data = waiting
         status, actions, frames, fv = pair(
             auth.codec.arbitration_id(msg.TYPE, node), data, ident, frame.data,
-            frame.is_extended_id, frame.is_remote_frame, now, self.stopping,
+            frame.is_extended_id, frame.is_remote_frame, now, self._stopping.since is not None,
         )  # fmt: skip
         if status:
-            return False
+            return None
         auth.took_waiting(node, fv)
         self.frames += 1
-        held = self._pass.held
-        held += [RawFrame(i, d, False, bus) for i, d in frames]
-        held += self._answered(node | bus << BUS_SHIFT, actions, now)
-        return True
+        self._pass.held += [RawFrame(i, d, False, bus) for i, d in frames]
+        return ANSWERED, node | bus << BUS_SHIFT, actions, 0

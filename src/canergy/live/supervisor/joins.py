@@ -7,14 +7,14 @@ Without books (JOINING; with a key bound to that JOIN) the latest held JOIN is a
 replay or a forgery and is refused (nothing written off, nobody admitted), except a copy of the
 JOIN admitted just before: the node re-sent it while its ADMIT was on the way.
 
-Sans-IO: times in µs from the caller, the admission itself is the caller's (``admit``).
+Sans-IO: times in µs from the caller; what is to be admitted is returned, the admission itself
+(the core's answer) is the caller's.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Generic, TypeVar
 
 from canergy.auth.frames import AuthFailure
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
@@ -26,8 +26,6 @@ out the oldest, which is then neither admitted nor reported)."""
 JOIN_HOLD_US = 500_000
 """A held JOIN is admitted this long after the node's TELEMETRY without books confirmed it,
 unless the node shows its books meanwhile (``ServiceConfig.join_hold_us``)."""
-
-T = TypeVar("T")
 
 
 @dataclass(slots=True)
@@ -46,9 +44,9 @@ class HeldJoins:
     """Copies of the JOIN just admitted, re-sent before the node heard its ADMIT: dropped."""
 
 
-class JoinHold(Generic[T]):
-    """The held JOINs of every node. ``admit(join, now)`` has the core answer one (its
-    outputs, of type ``T``, are handed back); ``authenticated()`` tells the mode."""
+class JoinHold:
+    """The held JOINs of every node; ``authenticated()`` tells the mode. What a TELEMETRY or
+    a deadline confirms is returned: the JOINs for the caller to have the core admit."""
 
     def __init__(
         self,
@@ -58,7 +56,6 @@ class JoinHold(Generic[T]):
         intrusions: Intrusions,
         refusals: Refusals,
         authenticated: Callable[[], bool],
-        admit: Callable[[Join, int], list[T]],
     ) -> None:
         """``local_nodes``: nodes only this process speaks for (a guarded drive's proxy): no
         hold for their JOINs."""
@@ -68,7 +65,6 @@ class JoinHold(Generic[T]):
         self.intrusions = intrusions
         self.refusals = refusals
         self.authenticated = authenticated
-        self.admit = admit
         self.due: set[int] = set()
         """Nodes with a JOIN confirmed and waiting for its hold (emptied as they are admitted
         or refused), so the loop's every pass does not look at every node."""
@@ -91,7 +87,7 @@ class JoinHold(Generic[T]):
         """Copies of the JOIN just admitted that ``node`` re-sent (dropped)."""
         return self.nodes[node].resent
 
-    def on_telemetry(self, msg: Telemetry, now: int) -> list[T]:
+    def on_telemetry(self, msg: Telemetry, now: int) -> list[Join]:
         """The node's report: without books it confirms the latest held JOIN (admitted after
         the hold), with books it refutes every held one."""
         h = self.nodes[msg.node]
@@ -120,9 +116,9 @@ class JoinHold(Generic[T]):
             self.intrusions.record(msg.node, repr(join), reason, now, quiet=authenticated)
         return []
 
-    def on_wakeup(self, now: int) -> list[T]:
+    def on_wakeup(self, now: int) -> list[Join]:
         """The confirmed JOINs whose hold is over, admitted."""
-        out: list[T] = []
+        out: list[Join] = []
         for node in sorted(self.due):
             out += self._admit_due(node, now)
             if self.nodes[node].admitting is None:
@@ -133,11 +129,11 @@ class JoinHold(Generic[T]):
         times = [a[1] for n in self.due if (a := self.nodes[n].admitting) is not None]
         return min(times, default=None)
 
-    def _admit_due(self, node: int, now: int) -> list[T]:
+    def _admit_due(self, node: int, now: int) -> list[Join]:
         """Admit the confirmed JOIN once its hold is over (the others held are dropped)."""
         h = self.nodes[node]
         if h.admitting is None or now < h.admitting[1]:
             return []
         join = h.admitting[0]
         h.held, h.admitting, h.admitted_nonce = [], None, join.nonce
-        return self.admit(join, now)
+        return [join]

@@ -3,6 +3,7 @@ its counters for the status and the grants it was asked for."""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -60,3 +61,18 @@ def name_of(buses: tuple[str, ...], node: int) -> int | str:
     """A node as status, replies and the state file name it: its id on one bus (every reply),
     or ``bus/node`` over the buses ``buses`` names."""
     return node_name(buses, node) if buses else node
+
+
+def lost(
+    nodes: Mapping[int, NodeInfo],
+    liveness: Callable[[int, int], bool] | None,
+    lost_after_us: int,
+    node: int,
+    now: int,
+) -> bool:
+    """Whether ``node`` is lost at ``now``: ``liveness`` (the CANopen heartbeat watchdog, the
+    guarded drives') says so, or it was not heard for ``lost_after_us``."""
+    if liveness is not None and not liveness(node, now):
+        return True
+    heard = nodes[node].heard.heard_at
+    return heard is None or now - heard > lost_after_us

@@ -11,6 +11,7 @@ import logging
 import secrets
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, TextIO, cast
 
@@ -33,18 +34,26 @@ from canergy.core.state import SYNC_PHASES, Outcome
 from canergy.core.supervisor import BUS_SHIFT, SupervisorCore
 from canergy.core.witnessed import answered, counts_taken
 from canergy.live.runtime import BusCounters, FramePath, Outgoing, RawFrame
-from canergy.live.supervisor.control import ControlServer
 from canergy.live.supervisor.evidence import beyond_books, impossible
-from canergy.live.supervisor.frame_path import CFramePath, Pass
+from canergy.live.supervisor.frame_path import (
+    ANSWERED,
+    HELD,
+    JOIN_HELD,
+    TELEMETRY,
+    CFramePath,
+    FastFrame,
+    Pass,
+)
 from canergy.live.supervisor.grants import Books, GrantCallback, GrantDesk, GrantRequest
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
-from canergy.live.supervisor.joins import JOIN_HOLD_US, JoinHold
+from canergy.live.supervisor.joins import JOIN_HOLD_US
 from canergy.live.supervisor.ledger import Ledger
 from canergy.live.supervisor.nodes import NodeInfo, name_of
 from canergy.live.supervisor.outputs import StatusOut
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.live.supervisor.rules_said import RulesSaid
 from canergy.live.supervisor.status import Run, StatusReport
+from canergy.live.supervisor.stopping import Stopping
 from canergy.live.supervisor.telemetry import BEYOND_BOOKS, TelemetryTable
 from canergy.live.supervisor.watch import BusWatch
 from canergy.live.supervisor.witness import RETURN_HOLD_MIN_US
@@ -121,8 +130,10 @@ class ServiceConfig:
 
 @dataclass(frozen=True, slots=True)
 class ServiceParts:
-    """The service's parts that need nothing of the service itself, made by the builder
-    (``canergy.live.supervisor.build.service_parts``); the core's own in C where it has them."""
+    """The service's parts, made by the builder (``canergy.live.supervisor.build.service_parts``;
+    the core's own in C where it has them). None calls back into the service: they share the
+    loop pass (``passes``) and the stop (``stopping``) with it, and return what the service is
+    to do."""
 
     heard: TelemetryTable
     """The TELEMETRY table (``telemetry.HeardTable``, or the compiled core's in C)."""
@@ -135,8 +146,21 @@ class ServiceParts:
     refusals: Refusals
     witness: Any
     """The witness (``witness.ReturnGate``, or the compiled core's in C)."""
+    joins: Any
+    """The held JOINs (``joins.JoinHold``, or the compiled core's in C)."""
     bus_counters: BusCounters
     buses: dict[str, BusCounters]
+    passes: Pass
+    """The bus loop's passes: frames held until the outermost one ends."""
+    stopping: Stopping
+    watch: BusWatch
+    """Refusals and intrusions, and the stop they may ask for."""
+    path: CFramePath
+    """The compiled core's frame path (``frame_path``); it takes nothing on the Python core."""
+    report: StatusReport
+    """Makes the status from the parts it reads (``status``)."""
+    is_lost: Callable[[int, int], bool]
+    """``nodes.lost`` for these nodes, the liveness test and ``lost_after_us``."""
 
 
 class SupervisorService:
@@ -151,15 +175,10 @@ class SupervisorService:
         parts: ServiceParts,
         *,
         liveness: Callable[[int, int], bool] | None = None,
-        extra_status: Callable[[int], dict[str, Any]] | None = None,
-        control: ControlServer | None = None,
     ) -> None:
         """Made by the builder (``canergy.live.supervisor.build``), which hands over ``parts``
-        and: ``liveness``, an extra liveness test (the CANopen heartbeat watchdog, the guarded
-        drives'; False: no grants); ``extra_status``, more status under ``cia402`` (the guarded
-        drives); ``control``, the control socket (its refusals are in the status). The parts
-        that call back into the service (the watch, the held JOINs, the frame path, the status
-        report) are made here."""
+        and ``liveness``, an extra liveness test (the CANopen heartbeat watchdog, the guarded
+        drives'; False: no grants)."""
         self.core = core
         self.config = config
         self.heard = parts.heard
@@ -177,15 +196,15 @@ class SupervisorService:
         ended); every node is tried at each tick."""
         self.ended: set[int] = set()
         """Nodes at the end of their numbering (``COUNTER_END``): granted nothing more."""
-        self.stopping = False
-        self._pass = Pass()
+        self._stopping = parts.stopping
+        """Set by ``stop`` or by the watch on evidence; shared with the frame path."""
+        self._pass = parts.passes
         """The bus loop's passes: frames held until the outermost one ends."""
         self.telemetry_heard = 0
         """TELEMETRY frames of managed nodes taken (information, not protocol frames)."""
         self.ledger = parts.ledger
         """The books of this run: granted since the start, an injection, their writing."""
         self.status_out = parts.status_out
-        self.stop_deadline: int | None = None
         self.liveness = liveness
         self.bus_counters = parts.bus_counters
         self.buses = parts.buses
@@ -193,65 +212,18 @@ class SupervisorService:
         self.intrusions = parts.intrusions
         self.refusals = parts.refusals
         """Authenticated mode: frames refused by the MAC or freshness check, with rates."""
-        self.watch = BusWatch(
-            core,
-            self.nodes,
-            self.intrusions,
-            self.refusals,
-            tuple(self.buses.values()) or (self.bus_counters,),
-            listen_only=config.listen_only,
-            stop_on_intrusion=config.stop_on_intrusion,
-            stop=self.stop,
-            stopping=lambda: self.stopping,
-        )
-        """Refusals and intrusions, and the stop they may call for (``watch``)."""
+        self.watch = parts.watch
         self.witness = parts.witness
         self.witnessed = core.variant.name == "witnessed"
         """Rules that take DEBIT (``witnessed``): draws held, every node start confirmed. Every
         table has a cell for DEBIT (tables are total); the others ignore it, and so does this."""
         self._resuming: int | None = None
         """The node whose RESUME the core is answering (its admission is no JOIN's)."""
-        joining = (
-            config.join_hold_us,
-            config.local_nodes,
-            self.intrusions,
-            self.refusals,
-            lambda: self.authenticated,
-            lambda join, now: self._carry_out(self.core.receive(join, now), now),
-        )
-        self.joins: Any = core.join_hold(*joining)
-        """JOINs held until the node's TELEMETRY confirms or refutes them (evidence): the
-        compiled core's in C, else Python's."""
-        if self.joins is None:
-            self.joins = JoinHold[Outgoing](core.nodes, *joining)
-        self.path = CFramePath(
-            core,
-            max(1, len(config.bus_names)),
-            config.listen_only,
-            self._pass,
-            answered=self._answered,
-            held=self._held_in_c,
-            telemetry=self._telemetry,
-            join_held=self._join_held,
-            decoded=self.on_message,
-        )
-        """The compiled core's frame path (``frame_path``); it takes nothing on the Python core."""
-        self.report = StatusReport(
-            core,
-            self.nodes,
-            self.witness,
-            self.joins,
-            self.intrusions,
-            self.refusals,
-            self.path,
-            node_name=self.node_name,
-            is_lost=self.is_lost,
-            bus_counters=self.bus_counters,
-            buses=self.buses,
-            control=control,
-            extra_status=extra_status,
-        )
-        """Makes the status from the parts it reads (``status``)."""
+        self.joins = parts.joins
+        """JOINs held until the node's TELEMETRY confirms or refutes them (evidence)."""
+        self.path = parts.path
+        self.report = parts.report
+        self.is_lost = parts.is_lost
         self.ledger.open(config.inject_uj)  # an injection is on disk before anything is granted
         self._waited = self.waiting()
         """The nodes this start waited for at the last look (witnessed rules; only the counts
@@ -264,6 +236,17 @@ class SupervisorService:
         each held (µJ, by name): written off, out of the budget unless they answer with books."""
         if self.started_without:
             log.warning("%s", self.started_without_why())
+
+    @property
+    def stopping(self) -> bool:
+        """No more transactions begin (``stop``, or evidence under ``--on-intrusion stop``)."""
+        return self._stopping.since is not None
+
+    @property
+    def stop_deadline(self) -> int | None:
+        """When the stop writes off what is still open (``finished``)."""
+        since = self._stopping.since
+        return None if since is None else since + self.config.stop_timeout_us
 
     # -- Handler ---------------------------------------------------------------------------
     def on_message(self, msg: Message, now: int) -> Sequence[Message]:
@@ -326,12 +309,21 @@ class SupervisorService:
             log.warning("node %s: %s", self.node_name(msg.node), line)
         self.ready.add(msg.node)
         out = self._released(msg.node, now)  # grown in place: no list made per step
-        out += (
+        admit = (
             self.joins.on_telemetry(msg, now)
             if found is None
             else self.joins.telemetry_taken(msg, now, found >> 8)
         )
+        if admit:
+            out += self._admit(admit, now)
         out += self._start_grants(now, self.ready)
+        return out
+
+    def _admit(self, joins: list[Join], now: int) -> list[Outgoing]:
+        """The JOINs the held JOINs confirmed (``joins``), answered by the core."""
+        out: list[Outgoing] = []
+        for join in joins:
+            out += self._carry_out(self.core.receive(join, now), now)
         return out
 
     def _credited(self, node: int) -> Callable[[], int]:
@@ -567,7 +559,7 @@ class SupervisorService:
                 out += self._carry_out(self.core.handle_timer(now), now)
             for node in self.witness.holding():
                 out += self._released(node, now)
-            out += self.joins.on_wakeup(now)
+            out += self._admit(self.joins.on_wakeup(now), now)
             out += self._start_grants(now, None if now >= self.next_tick else self.ready)
         if now >= self.next_tick:
             self.next_tick = now + self.config.tick_us
@@ -581,7 +573,8 @@ class SupervisorService:
         self, off: str | None = None, auth: FrameAuth | None = None, bus: int = 0
     ) -> FramePath | None:
         """The frame path for this service's bus loop (``BusRuntime(frame_path=)``, from the
-        builder): the compiled core's (``CFramePath.fast_frame``), or None where every frame
+        builder): the compiled core's (``CFramePath.fast_frame``, what it took recorded here,
+        ``_took``), or None where every frame
         takes the usual path: the Python core, or ``off``, why the compiled core's cannot run
         here (listen-only). From then on, in a loop pass, frames the C core encoded (COMMIT,
         ABORT, INTENTION) go to the loop as C's bytes (``RawFrame``), never decoded and encoded
@@ -596,7 +589,27 @@ class SupervisorService:
         same ``off`` and, with a key, its own ``FrameAuth`` in the same layout): that bus's
         frames go to its own supervisor in C, verified under the keys that bus's ``FrameAuth``
         gives. An INTENTION is protected in C once every bus's loop has asked."""
-        return self.path.frame_path(off, auth, bus)
+        fast = self.path.frame_path(off, auth, bus)
+        return None if fast is None else partial(self._took, fast)
+
+    def _took(self, fast: FastFrame, frame: can.Message, now: int) -> bool:
+        """A frame through the compiled core's path (``fast``): what C took of it recorded
+        here, in the loop pass; False, nothing done, for the loop's usual path."""
+        taken = fast(frame, now)
+        if taken is None:
+            return False
+        what, node, payload, verdict = taken
+        if what == ANSWERED:  # its frames are held already: what the books record follows
+            self._pass.held += self._answered(node, payload, now)
+        elif what == TELEMETRY:  # what the table and the witness in C found in it
+            self._pass.held += self._telemetry(payload, verdict & 0xFF, now, verdict >> 8)
+        elif what == HELD:  # a RETURN the witness in C held
+            self._pass.held += self._held_in_c(payload, verdict, now)
+        elif what == JOIN_HELD:
+            self._join_held(node, now)
+        else:  # DECODED: a RETURN, JOIN or DEBIT, as if the loop had decoded it
+            self.on_message(payload, now)  # in a pass: its frames are held
+        return True
 
     @property
     def frames_in_c(self) -> int:
@@ -653,19 +666,23 @@ class SupervisorService:
 
     def stop(self, now: int) -> None:
         """Start no more transactions; open ones settle or are written off by the rules."""
-        if not self.stopping:
-            self.stopping = True
-            self.path.stop()
-            self.stop_deadline = now + self.config.stop_timeout_us
-            for info in self.nodes.values():
-                why = (
-                    "supervisor stopping"
-                    if info.heard.heard_at is not None and not info.heard.flags & Telemetry.JOINING
-                    else "node never heard from (or still joining): nothing granted"
-                )
-                for req in [*info.requests]:
-                    req.reply({"node": self.node_name(req.node), "error": why})
-                info.requests.clear()
+        self._stopping.ask(now)
+        self._refuse_requests()
+
+    def _refuse_requests(self) -> None:
+        """Stopping: the one-shot grants still queued are answered with why nothing is granted
+        (at the stop, or at the next pass when the watch stopped the supervisor)."""
+        for info in self.nodes.values():
+            if not info.requests:
+                continue
+            why = (
+                "supervisor stopping"
+                if info.heard.heard_at is not None and not info.heard.flags & Telemetry.JOINING
+                else "node never heard from (or still joining): nothing granted"
+            )
+            for req in [*info.requests]:
+                req.reply({"node": self.node_name(req.node), "error": why})
+            info.requests.clear()
 
     def finished(self, now: int) -> bool:
         if not self.stopping:
@@ -674,12 +691,6 @@ class SupervisorService:
         return self.core.is_quiescent() or now >= self.stop_deadline
 
     # -- internals -------------------------------------------------------------------------
-    def is_lost(self, node: int, now: int) -> bool:
-        heard = self.nodes[node].heard.heard_at
-        if self.liveness is not None and not self.liveness(node, now):
-            return True
-        return heard is None or now - heard > self.config.lost_after_us
-
     def node_rebooted(self, node: int, now: int) -> None:
         """The node restarted (CANopen boot-up): no grant until it reports its level again.
         An open transaction needs nothing special: the node restarts from its NV record and the
@@ -693,6 +704,8 @@ class SupervisorService:
         """Begin what ``nodes`` (None: every node) may get now; they leave ``ready``."""
         if self.stopping or self.config.listen_only:
             self.ready.clear()
+            if self.stopping and nodes is None:  # at each tick: what waited is answered
+                self._refuse_requests()
             return []
         todo = list(self.nodes) if nodes is None else sorted(nodes)
         self.ready.clear()

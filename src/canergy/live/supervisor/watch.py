@@ -8,7 +8,7 @@ and reported; only evidence that cannot be forged without the key in use stops t
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import can
 
@@ -17,6 +17,7 @@ from canergy.core.supervisor import SupervisorCore
 from canergy.live.runtime import BusCounters
 from canergy.live.supervisor.intrusions import Intrusions, Refusals, frame_text
 from canergy.live.supervisor.nodes import NodeInfo
+from canergy.live.supervisor.stopping import Stopping
 from canergy.messages import Direction, Message
 
 
@@ -24,8 +25,8 @@ class BusWatch:
     """The refusals and intrusions of the nodes ``nodes`` (their records) of ``core``, recorded
     in ``intrusions`` and ``refusals``. ``counters``: the bus loops' counters (one per bus),
     which tell authenticated mode; ``listen_only``: frames in the supervisor's direction are
-    another supervisor's, watched; ``stop_on_intrusion``: ``stop(now)`` on evidence, unless
-    ``stopping()`` already."""
+    another supervisor's, watched; ``stop_on_intrusion``: evidence asks ``stopping`` (the
+    supervisor's ``Stopping``, shared) to stop, unless it is stopping already."""
 
     def __init__(
         self,
@@ -37,8 +38,7 @@ class BusWatch:
         *,
         listen_only: bool,
         stop_on_intrusion: bool,
-        stop: Callable[[int], None],
-        stopping: Callable[[], bool],
+        stopping: Stopping,
     ) -> None:
         self.core = core
         self.nodes = nodes
@@ -47,7 +47,6 @@ class BusWatch:
         self.counters = counters
         self.listen_only = listen_only
         self.stop_on_intrusion = stop_on_intrusion
-        self.stop = stop
         self.stopping = stopping
         self.stopped_by_intrusion = False
         """Whether evidence stopped the supervisor (``--on-intrusion stop``)."""
@@ -134,6 +133,5 @@ class BusWatch:
         self._stop(now)
 
     def _stop(self, now: int) -> None:
-        if self.stop_on_intrusion and not self.stopping():
+        if self.stop_on_intrusion and self.stopping.ask(now):
             self.stopped_by_intrusion = True
-            self.stop(now)

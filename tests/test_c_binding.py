@@ -38,19 +38,21 @@ def test_a_header_change_reaches_the_binding(tmp_path: Path) -> None:
 
 def test_a_changed_source_is_built_again(tmp_path: Path) -> None:
     """The tests' builds are kept per digest of what they are built from: a byte changed in a
-    C source or a header names another build, so a stale one is never loaded."""
+    C source, a header or the Makefile (whose SRCS the extension compiles) names another
+    build, so a stale one is never loaded."""
     root = Path(__file__).resolve().parents[1]
     for part in ("src", "include"):
         shutil.copytree(root / "firmware" / part, tmp_path / "firmware" / part)
+    shutil.copy2(root / "firmware" / "Makefile", tmp_path / "firmware" / "Makefile")
     assert fingerprint(tmp_path, "ubsan") == fingerprint(root, "ubsan")
     seen = {fingerprint(root, "ubsan"), fingerprint(root, "broken")}
-    for changed in ("src/session.c", "include/canergy/status.h"):
+    for changed in ("src/session.c", "include/canergy/status.h", "Makefile"):
         path = tmp_path / "firmware" / changed
         text = path.read_text()
         path.write_text(text + "\n")
         seen.add(fingerprint(tmp_path, "ubsan"))
         path.write_text(text)
-    assert len(seen) == 4
+    assert len(seen) == 5
 
 
 def test_the_tests_drive_the_builders_module() -> None:

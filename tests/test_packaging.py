@@ -105,6 +105,7 @@ def _build_wheel(tmp: Path) -> Path:
     shutil.copytree(ROOT / "firmware_model", tree / "firmware_model", ignore=skip)
     for part in ("src", "include"):
         shutil.copytree(ROOT / "firmware" / part, tree / "firmware" / part, ignore=skip)
+    shutil.copy2(ROOT / "firmware" / "Makefile", tree / "firmware" / "Makefile")  # its SRCS
     for name in ("pyproject.toml", "setup.py", "MANIFEST.in", "README.md", "LICENSE"):
         shutil.copy2(ROOT / name, tree / name)
     pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "--no-input"]

@@ -131,9 +131,9 @@ class CompiledReturnGate:
         return held
 
     def release(self, node: int, credited: int, now: int) -> list[Return | Debit]:
-        rec = self._rec(node)
-        if not (rec.held_count or rec.has_resume):  # nothing held: C would release nothing
+        if not self.holds(node):  # nothing held: C would release nothing
             return []
+        rec = self._rec(node)
         r = self._release
         self._lib.canergy_witness_release(rec, credited % 2**32, now, self.hold_us, r)
         out: list[Return | Debit] = []

@@ -174,7 +174,7 @@ class CFramePath:
             frame.is_extended_id,
             frame.is_remote_frame,
             now,
-            self._stopping.since is not None,
+            self._stopping.asked,
         )
         node = frame.arbitration_id & 0xFF | bus << BUS_SHIFT  # its session key
         if not status:  # an answer the rules took (nothing decoded, no verdict)
@@ -210,7 +210,7 @@ class CFramePath:
         ident = frame.arbitration_id
         status, actions, frames, fv = answer(
             ident, frame.data, frame.is_extended_id, frame.is_remote_frame, now,
-            self._stopping.since is not None,
+            self._stopping.asked,
         )  # fmt: skip
         if status:
             return None
@@ -242,7 +242,7 @@ class CFramePath:
         msg, data = waiting
         status, actions, frames, fv = pair(
             auth.codec.arbitration_id(msg.TYPE, node), data, ident, frame.data,
-            frame.is_extended_id, frame.is_remote_frame, now, self._stopping.since is not None,
+            frame.is_extended_id, frame.is_remote_frame, now, self._stopping.asked,
         )  # fmt: skip
         if status:
             return None

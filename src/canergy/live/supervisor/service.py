@@ -240,7 +240,7 @@ class SupervisorService:
     @property
     def stopping(self) -> bool:
         """No more transactions begin (``stop``, or evidence under ``--on-intrusion stop``)."""
-        return self._stopping.since is not None
+        return self._stopping.asked
 
     @property
     def stop_deadline(self) -> int | None:

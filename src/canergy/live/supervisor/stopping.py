@@ -17,7 +17,9 @@ class Stopping:
     since: int | None = None
     """When the stop was asked (µs of the loop's clock), or None: running."""
 
-    def __bool__(self) -> bool:
+    @property
+    def asked(self) -> bool:
+        """The supervisor stops."""
         return self.since is not None
 
     def ask(self, now: int) -> bool:

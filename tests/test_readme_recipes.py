@@ -50,7 +50,12 @@ def test_recipes_are_read_from_the_readme_and_the_sites_pages() -> None:
 
 
 def test_a_background_command_that_does_not_stop_cleanly_fails(tmp_path: Path) -> None:
-    loop = "bash -c 'trap \"exit 3\" INT; while :; do sleep 0.05; done' &"
+    # ends 3 on SIGINT, and is up (holds a socket, as a bus's program does) once it would
+    loop = (
+        "python -c 'import signal, socket, sys, time; "
+        "signal.signal(signal.SIGINT, lambda *_: sys.exit(3)); "
+        "s = socket.socket(); time.sleep(300)' &"
+    )
     text = f"<!-- recipe: s local -->\n```sh\n{loop}\n```\n"
     with pytest.raises(AssertionError, match="exit 3"):
         run_session(recipes(text), tmp_path)

@@ -152,10 +152,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     next_status = 0
 
     def status() -> dict[str, Any]:
-        out = face.status()
-        if meter is not None:
-            out["power_meter"] = meter.status()
-        return out
+        if meter is None:
+            return face.status()
+        with face.lock:  # the meter advances the drive as it reads it: both of one instant
+            metered = meter.status()
+            return {**face.status(advance=False), "power_meter": metered}
 
     def every(now: int) -> None:
         nonlocal next_status

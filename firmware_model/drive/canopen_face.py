@@ -230,9 +230,13 @@ class NodeFace(Generic[M]):
         if self.network.notifier is not None:
             self.network.notifier.remove_listener(self.frames)
 
-    def status(self) -> dict[str, Any]:
+    def status(self, advance: bool = True) -> dict[str, Any]:
+        """The model's figures, advanced to now; ``advance=False``: as the model stands (a
+        reader holding ``lock`` has just advanced it: its figures and these are of one
+        instant)."""
         with self.lock:
-            self.model.advance(self.clock())
+            if advance:
+                self.model.advance(self.clock())
             return {
                 **self.model.status(),
                 "send_errors": self.send_errors,

@@ -43,7 +43,7 @@ MARK = re.compile(
 )
 LINKED = ("dbc", "firmware", "firmware_model", "scripts")
 FOREGROUND_S = 900.0
-"""The README's sweep takes about 4 minutes on two cores."""
+"""The longest recipe (prove) takes about a minute on a loaded 2-core machine."""
 READY_S = 60.0
 STOP_S = 60.0
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import statistics
+import subprocess
+import sys
 import threading
 import time
 import uuid
@@ -231,3 +233,62 @@ def test_the_drive_runs_a_meter_of_its_energy(
     assert meter["energy_mj"] > 0
     sent = [int.from_bytes(data, "little") for _, data in frames.of(TPDO1)]
     assert len(sent) >= 20 and sent == sorted(sent) and 0 < sent[-1] <= meter["energy_mj"]
+
+
+_LOCKS_SCRIPT = """
+import os, signal, sys, threading, time
+import can, canopen
+import firmware_model.drive.__main__ as drive_main
+from firmware_model.drive.canopen_face import drive_network
+from firmware_model.drive.power_meter import METER_EDS
+
+sys.setswitchinterval(1e-6)  # threads switch as often as they can: any lock order shows
+channel, status, meter_id = sys.argv[1], sys.argv[2], int(sys.argv[3])
+network = drive_network(can.Bus(interface="virtual", channel=channel))
+meter = canopen.RemoteNode(meter_id, str(METER_EDS))
+meter.sdo.RESPONSE_TIMEOUT = 5.0
+network.add_node(meter)
+seen = {0x700 + meter_id: 0, 0x70A: 0, 0x180 + meter_id: 0}
+for cob_id in seen:
+    network.subscribe(cob_id, lambda cob_id, data, ts: seen.__setitem__(cob_id, seen[cob_id] + 1))
+
+def application():
+    try:
+        while not (seen[0x700 + meter_id] and seen[0x70A]):
+            time.sleep(0.01)
+        network.nmt.state = "OPERATIONAL"
+        reads, end = 0, time.monotonic() + 2.5
+        while time.monotonic() < end:
+            meter.sdo[0x2100].raw
+            reads += 1
+        print("reads", reads, "tpdos", seen[0x180 + meter_id], flush=True)
+    except Exception as exc:
+        print("failed:", repr(exc), flush=True)
+    os.kill(os.getpid(), signal.SIGINT)
+
+threading.Thread(target=application, daemon=True).start()
+argv = ["--node", "10", "-i", "virtual", "-c", channel, "--power-meter", str(meter_id)]
+argv += ["--pdo-period", "1ms", "--status-file", status, "--status-period", "1ms"]
+sys.exit(drive_main.main(argv))
+"""
+
+
+def test_the_status_and_the_meters_own_reads_never_wait_on_each_other(tmp_path: Path) -> None:
+    """The status (written every tick here) reads the meter and the drive at one instant while
+    the meter's TPDO (every 1 ms) and its SDO server read the drive from their own threads:
+    locks taken in opposite orders deadlock the process (the vcan suite caught one). A process
+    of its own: a deadlocked one is ended by the timeout."""
+    status = tmp_path / "status.json"
+    argv = [sys.executable, "-c", _LOCKS_SCRIPT, f"locks-{uuid.uuid4().hex}", str(status)]
+    try:
+        run = subprocess.run(
+            [*argv, str(METER)], capture_output=True, text=True, timeout=120, cwd=tmp_path
+        )
+    except subprocess.TimeoutExpired as exc:
+        hang = "the drive's process hangs (its threads wait on each other)"
+        raise AssertionError(f"{hang}: {exc}") from None
+    assert run.returncode == 0, run.stdout + run.stderr
+    words = run.stdout.split()
+    assert words[:1] == ["reads"], run.stdout + run.stderr
+    assert int(words[1]) > 20 and int(words[3]) > 100, run.stdout
+    assert json.loads(status.read_text())["power_meter"]["node"] == METER

@@ -154,7 +154,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     def status() -> dict[str, Any]:
         if meter is None:
             return face.status()
-        with face.lock:  # the meter advances the drive as it reads it: both of one instant
+        # the meter advances the drive as it reads it: both figures of one instant. The locks
+        # in the order the meter's own reads take them (its, then the drive's), or the two
+        # would deadlock on each other
+        with meter.lock, face.lock:
             metered = meter.status()
             return {**face.status(advance=False), "power_meter": metered}
 

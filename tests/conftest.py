@@ -41,6 +41,15 @@ settings.register_profile(
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 
+@pytest.fixture(autouse=True)
+def _no_terminal_size_in_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A screen a test prints (``canergy monitor --once``) is as wide as the terminal running
+    the tests, or 160 columns without one, whatever COLUMNS and LINES say: pytest-xdist's
+    workers set COLUMNS=80 (scripts/test runs two), and a shell may export its own."""
+    for name in ("COLUMNS", "LINES"):
+        monkeypatch.delenv(name, raising=False)
+
+
 @pytest.fixture(params=["python", "c"])
 def both_cores(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
     """Run a test on each supervisor core: for "c", ``Supervisor`` in the test's module and in

@@ -279,11 +279,10 @@ def test_the_status_and_the_meters_own_reads_never_wait_on_each_other(tmp_path: 
     locks taken in opposite orders deadlock the process (the vcan suite caught one). A process
     of its own: a deadlocked one is ended by the timeout."""
     status = tmp_path / "status.json"
-    argv = [sys.executable, "-c", _LOCKS_SCRIPT, f"locks-{uuid.uuid4().hex}", str(status)]
+    channel = f"locks-{uuid.uuid4().hex}"
+    argv = [sys.executable, "-c", _LOCKS_SCRIPT, channel, str(status), str(METER)]
     try:
-        run = subprocess.run(
-            [*argv, str(METER)], capture_output=True, text=True, timeout=120, cwd=tmp_path
-        )
+        run = subprocess.run(argv, capture_output=True, text=True, timeout=120, cwd=tmp_path)
     except subprocess.TimeoutExpired as exc:
         hang = "the drive's process hangs (its threads wait on each other)"
         raise AssertionError(f"{hang}: {exc}") from None

@@ -72,7 +72,7 @@ FAILS_AT = {
     "split-save": "client: power loss",
     "old-image": "client: restored from an older image",
 }
-"""The step where each unsound set's proof fails first (a whole run reaches it in 40-60 s)."""
+"""The step where each unsound set's proof fails first (measured by whole runs: 1-60 s each)."""
 
 
 @pytest.mark.parametrize("name", [n for n in RULE_NAMES if n not in ("hardened", *UNPROVED)])

@@ -50,7 +50,7 @@ def test_recipes_are_read_from_the_readme_and_the_sites_pages() -> None:
 
 
 def test_a_background_command_that_does_not_stop_cleanly_fails(tmp_path: Path) -> None:
-    # ends 3 on SIGINT, and is up (holds a socket, as a bus's program does) once it would
+    # ends 3 on SIGINT; the harness sees it up once it holds a socket (as a bus's program does)
     loop = (
         "python -c 'import signal, socket, sys, time; "
         "signal.signal(signal.SIGINT, lambda *_: sys.exit(3)); "

@@ -43,7 +43,8 @@ MARK = re.compile(
 )
 LINKED = ("dbc", "firmware", "firmware_model", "scripts")
 FOREGROUND_S = 900.0
-"""The longest recipe (prove) takes about a minute on a loaded 2-core machine."""
+"""The longest recipes (prove, sweep) took 41-63 s each in the suite on a 2-core machine: room
+for a far slower one."""
 READY_S = 60.0
 STOP_S = 60.0
 

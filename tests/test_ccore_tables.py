@@ -623,6 +623,7 @@ def test_the_c_frame_path_holds_joins_as_the_python_path(steps: list[tuple[Any, 
             else:
                 _step(b, step)
         assert c.snapshot() == ref.snapshot(), step
+        _due_are_the_waiting(ref, c, step)
     assert [r["kind"] for r in c.service.intrusions.recent] == [
         r["kind"] for r in ref.service.intrusions.recent
     ]
@@ -631,6 +632,20 @@ def test_the_c_frame_path_holds_joins_as_the_python_path(steps: list[tuple[Any, 
     event(f"admitted: {min(admitted, 2)}+, intrusions: {min(status['intrusions'], 2)}+")
     for b in (ref, c):
         b.wire.shutdown()
+
+
+def _due_are_the_waiting(ref: _Bench, c: _Bench, step: tuple[Any, ...]) -> None:
+    """The nodes each side looks at every loop pass (``due``) are the nodes whose confirmed
+    JOIN waits for its hold, not every node that ever joined: exactly in Python; in C a JOIN
+    its frame path held may leave a node there until its next TELEMETRY, whose report then
+    sets it right."""
+    waiting = {n for n, h in ref.service.joins.nodes.items() if h.admitting is not None}
+    assert ref.service.joins.due == waiting, step
+    joins = c.service.joins
+    in_c = {n for n in (3, 5) if joins._rec(n).has_admitting}
+    assert in_c == waiting and in_c <= joins.due, step
+    if step[0] == "telemetry":
+        assert (step[1] in joins.due) == (step[1] in in_c), step
 
 
 def test_on_the_c_frame_path_a_join_takes_no_python_table(

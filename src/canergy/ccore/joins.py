@@ -60,7 +60,10 @@ class CompiledJoinHold:
         return 0 if node in self.local_nodes else self.hold_us
 
     def on_join(self, join: Join) -> None:
-        self._lib.canergy_joins_join(self._rec(join.node), join.nonce)
+        rec = self._rec(join.node)
+        self._lib.canergy_joins_join(rec, join.nonce)
+        if not rec.has_admitting:  # another start: only a TELEMETRY after it confirms it
+            self.due.discard(join.node)
 
     def holding(self, node: int) -> bool:
         return bool(self._rec(node).held_count)
@@ -86,6 +89,8 @@ class CompiledJoinHold:
         bits = self.bits
         if found & bits["due"]:
             self.due.add(msg.node)
+        if not self._rec(msg.node).has_admitting:  # admitted or refused: nothing waits
+            self.due.discard(msg.node)
         if found & bits["admit"]:
             admitted = int(self.tables.admit) if nonce is None else nonce
             return [Join(msg.node, admitted)]

@@ -66,8 +66,9 @@ class JoinHold:
         self.refusals = refusals
         self.authenticated = authenticated
         self.due: set[int] = set()
-        """Nodes with a JOIN confirmed and waiting for its hold (emptied as they are admitted
-        or refused), so the loop's every pass does not look at every node."""
+        """Exactly the nodes with a JOIN confirmed and waiting for its hold (a node leaves as
+        it is admitted, refused or cancelled), so the loop's every pass does not look at every
+        node that ever joined."""
 
     def on_join(self, join: Join) -> None:
         """A JOIN in a node's name: held (a replay or forgery looks the same)."""
@@ -76,6 +77,7 @@ class JoinHold:
             h.held.remove(join)
         else:  # another start (or a replay): only a TELEMETRY after it confirms it
             h.admitting = None
+            self.due.discard(join.node)
         h.held.append(join)
         del h.held[:-HELD_JOINS]
 
@@ -100,6 +102,7 @@ class JoinHold:
                 self.due.add(msg.node)
             return self._admit_due(msg.node, now)
         joins, h.held, h.admitting = h.held, [], None
+        self.due.discard(msg.node)
         admitted, h.admitted_nonce = h.admitted_nonce, None
         authenticated = self.authenticated()
         reason = (
@@ -121,8 +124,6 @@ class JoinHold:
         out: list[Join] = []
         for node in sorted(self.due):
             out += self._admit_due(node, now)
-            if self.nodes[node].admitting is None:
-                self.due.discard(node)
         return out
 
     def next_wakeup(self) -> int | None:
@@ -136,4 +137,5 @@ class JoinHold:
             return []
         join = h.admitting[0]
         h.held, h.admitting, h.admitted_nonce = [], None, join.nonce
+        self.due.discard(node)
         return [join]

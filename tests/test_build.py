@@ -69,7 +69,7 @@ def test_the_service_makes_none_of_its_parts() -> None:
     status report, the loop pass, the stop they share) is made by the builder and handed over
     in ``ServiceParts``; none is made in ``service.py`` nor calls back into the service."""
     service = ROOT / "src" / "canergy" / "live" / "supervisor" / "service.py"
-    parts = r"\b(BusWatch|JoinHold|CFramePath|StatusReport|Pass|Stopping|ReturnGate|Ledger)\("
+    parts = r"\b(BusWatch|JoinHold|CoreFramePath|StatusReport|Pass|Stopping|ReturnGate|Ledger)\("
     assert _where(parts, paths=[service]) == []
     assert _where(r"\b(admit|stop|answered|held|telemetry|join_held|decoded)=self\.") == []
 
@@ -290,6 +290,30 @@ def _one_answer(config: SupervisorConfig, layout: Any) -> tuple[dict[str, Any], 
         bus.shutdown()
         node.shutdown()
     return status, heard
+
+
+@pytest.mark.parametrize("auth", [None, "fd"])
+def test_the_loop_is_handed_the_python_cores_frame_path_and_the_status_says_so(
+    auth: str | None,
+) -> None:
+    """On the Python core the builder hands the loop that core's frame path
+    (``canergy.core.frame_answers``): a TELEMETRY goes through it; with a key the bus loop
+    verifies and decodes each frame instead, and the status says why."""
+    from canergy.auth.frames import Layout
+    from canergy.auth.keys import new_master
+    from canergy.live.supervisor.build import AuthConfig
+
+    config = SupervisorConfig(
+        core=CoreConfig((1,), J, kind="python"),
+        auth=None if auth is None else AuthConfig(new_master(1), fd=True),
+    )
+    status = _one_telemetry(config)[0] if auth is None else _one_answer(config, Layout(auth))[0]
+    assert (status["core"], status["frame_path"]) == ("python", "python")
+    if auth is None:
+        assert status["frame_path_frames"] == 1 and "frame_path_off" not in status
+    else:
+        assert status["frame_path_frames"] == 0
+        assert status["frame_path_off"] == "with a key the bus loop verifies and decodes each frame"
 
 
 @pytest.mark.parametrize(

@@ -2,9 +2,10 @@
 ``canergy.live.supervisor.telemetry`` and firmware/src/telemetry.c: step for step the same
 verdicts and records. The witness's RETURN hold, ``canergy.live.supervisor.witness.ReturnGate``
 and firmware/src/witness.c (table for table in tests/test_c_witness.py), here through the
-service. Frame for frame a service on the Python core's usual path and one on the C core's frame
-path (the tables run in the call that decodes the frame) send the same frames, keep the same
-books and status and report the same intrusions in the same words; and on the C path a
+service. Frame for frame a service on the Python core's usual path, one on the Python core's frame
+path (``canergy.core.frame_answers``) and one on the C core's frame path (the tables run in the
+call that decodes the frame) send the same frames, keep the same books and status and report
+the same intrusions in the same words; and on the C path a
 TELEMETRY or a RETURN takes none of Python's tables. The grant caps, ``policy.capped_grant``,
 ``RateLimiter`` and ``TopUp.wanted`` and firmware/src/grants.c: call for call, and through a
 service with a top-up policy and limits on each core, frame for frame."""
@@ -19,6 +20,7 @@ import pytest
 from hypothesis import event, example, given, settings
 from hypothesis import strategies as st
 from support.c_binding import compiled_core, library
+from support.wire import Wire
 
 from canergy.ccore.grants import CompiledGrantCaps
 from canergy.codec import Codec
@@ -175,22 +177,11 @@ def test_a_level_above_the_books_and_the_returns_lately_is_beyond_them(side: str
 
 
 # -- the service, frame for frame -------------------------------------------------------------
-class _Wire(can.BusABC):
-    def __init__(self) -> None:
-        super().__init__(channel="wire")
-        self.inbox: list[can.Message] = []
-        self.sent: list[tuple[int, bytes]] = []
-
-    def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        self.sent.append((msg.arbitration_id, bytes(msg.data)))
-
-    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
-        return (self.inbox.pop(0) if self.inbox else None), False
 
 
 @dataclass
 class _Bench:
-    wire: _Wire
+    wire: Wire
     service: SupervisorService
     loop: BusRuntime
     now: list[int]
@@ -209,10 +200,16 @@ class _Bench:
 
 
 def _bench(
-    core: str, hold_us: int | None = None, limits: Limits | None = None, policy: TopUp | None = None
+    core: str,
+    hold_us: int | None = None,
+    limits: Limits | None = None,
+    policy: TopUp | None = None,
+    path: bool = True,
 ) -> _Bench:
+    """A service on ``core`` with its frame path, or (``path`` False) every frame decoded by
+    the bus loop and handed to the service (the usual path)."""
     nodes = [3, 5]
-    wire, now = _Wire(), [0]
+    wire, now = Wire(), [0]
     sup: Any = (
         Supervisor(nodes, 10_000_000, timing=T)
         if core == "python"
@@ -225,13 +222,12 @@ def _bench(
         policy=policy,
     )
     service = build_service(sup, config, 0)
-    path = service.frame_path()
     loop = BusRuntime(
         wire,
         service,
         codec=CODEC,
         receives=Direction.TO_SUPERVISOR,
-        frame_path=path,
+        frame_path=service.frame_path() if path else None,
         counters=service.bus_counters,
         clock=lambda: now[0],
     )
@@ -286,22 +282,22 @@ def test_the_c_frame_path_takes_telemetry_as_the_python_path(steps: list[tuple[A
     whether it is lost, its counts), the same intrusions with the same words (a level beyond
     the books, a witness count that moved), the same refusals. The C run's TELEMETRY frames
     were all taken in C."""
-    ref, c = _bench("python"), _bench("c")
-    for b in (ref, c):
+    ref, py, c = _bench("python", path=False), _bench("python"), _bench("c")
+    for b in (ref, py, c):
         b.feed(Telemetry(3, 0))
         b.feed(Telemetry(5, 0))
-    assert c.snapshot() == ref.snapshot()
+    assert c.snapshot() == ref.snapshot() == py.snapshot()
     for step in steps:
-        _step(ref, step)
-        _step(c, step)
-        assert c.snapshot() == ref.snapshot(), step
+        for b in (ref, py, c):
+            _step(b, step)
+        assert c.snapshot() == ref.snapshot() == py.snapshot(), step
     telemetry_frames = 2 + sum(step[0] == "telemetry" for step in steps)
     assert ref.service.telemetry_heard == c.service.telemetry_heard == telemetry_frames
     assert ref.service.frames_in_c == 0 and c.service.frames_in_c >= telemetry_frames
     status = c.service.status()
     event(f"intrusions: {min(status['intrusions'], 3)}+")
     event(f"returns credited: {min(status['nodes']['3']['returns_credited'], 2)}+")
-    for b in (ref, c):
+    for b in (ref, py, c):
         b.wire.shutdown()
 
 
@@ -379,15 +375,20 @@ def test_the_c_frame_path_holds_returns_as_the_python_path(steps: list[tuple[Any
     witness count that moved, a return number that went back, two RETURNs under one number)
     and the same stop-worthy intrusions. The C run took every TELEMETRY and RETURN the books
     allow in C."""
-    ref, c = _bench("python", HOLD_US), _bench("c", HOLD_US)
-    witness = {"python": {3: 0, 5: 0}, "c": {3: 0, 5: 0}}
-    for b in (ref, c):
+    ref, py, c = (
+        _bench("python", HOLD_US, path=False),
+        _bench("python", HOLD_US),
+        _bench("c", HOLD_US),
+    )
+    witness = {"python": {3: 0, 5: 0}, "path": {3: 0, 5: 0}, "c": {3: 0, 5: 0}}
+    for b in (ref, py, c):
         b.feed(Telemetry(3, 0))
         b.feed(Telemetry(5, 0))
     for step in steps:
         _witness_step(ref, step, witness["python"])
+        _witness_step(py, step, witness["path"])
         _witness_step(c, step, witness["c"])
-        assert c.snapshot() == ref.snapshot(), step
+        assert c.snapshot() == ref.snapshot() == py.snapshot(), step
     assert [r["kind"] for r in c.service.intrusions.recent] == [
         r["kind"] for r in ref.service.intrusions.recent
     ]
@@ -395,7 +396,7 @@ def test_the_c_frame_path_holds_returns_as_the_python_path(steps: list[tuple[Any
     held = sum(n.get("returns_refuted", 0) for n in status["nodes"].values())
     event(f"refuted: {min(held, 2)}+, intrusions: {min(status['intrusions'], 2)}+")
     event(f"credited: {min(status['nodes']['3']['returns_credited'], 2)}+")
-    for b in (ref, c):
+    for b in (ref, py, c):
         b.wire.shutdown()
 
 
@@ -530,21 +531,22 @@ def test_the_c_core_grants_as_the_python_core(
 ) -> None:
     """With a top-up policy and limits, frame for frame: the same INTENTIONs (sized by the caps
     in C on the C core), the same refusals of one-shot grants, books and status."""
-    ref, c = _bench("python", None, limits, top_up), _bench("c", None, limits, top_up)
+    ref, c = _bench("python", None, limits, top_up, False), _bench("c", None, limits, top_up)
+    py = _bench("python", None, limits, top_up)
     assert c.service.desk.caps.implementation == "c"
-    for b in (ref, c):
+    for b in (ref, py, c):
         b.feed(Telemetry(3, 0))
         b.feed(Telemetry(5, 0))
     for step in steps:
-        for b in (ref, c):
+        for b in (ref, py, c):
             if step[0] == "answer":
                 _answer_open(b, step[1])
             else:
                 _step(b, step)
-        assert c.snapshot() == ref.snapshot(), step
+        assert c.snapshot() == ref.snapshot() == py.snapshot(), step
     intentions = sum(ident >> 8 & 0xF == Intention.TYPE for ident, _ in c.wire.sent)
     event(f"INTENTIONs sent: {min(intentions, 3)}+")
-    for b in (ref, c):
+    for b in (ref, py, c):
         b.wire.shutdown()
 
 
@@ -610,19 +612,19 @@ def test_the_c_frame_path_holds_joins_as_the_python_path(steps: list[tuple[Any, 
     and admitted after the hold (the same ADMIT, the same write-off), refused by one with books
     (the same intrusions in the same words), a copy of the JOIN just admitted counted as
     re-sent; the same books and status. The C run took every JOIN in C."""
-    ref, c = _bench("python"), _bench("c")
-    for b in (ref, c):
+    ref, py, c = _bench("python", path=False), _bench("python"), _bench("c")
+    for b in (ref, py, c):
         b.feed(Telemetry(3, 0))
         b.feed(Telemetry(5, 0))
     for step in steps:
-        for b in (ref, c):
+        for b in (ref, py, c):
             if step[0] == "join":
                 b.feed(Join(step[1], step[2]))
             elif step[0] == "answer":
                 _answer_open(b, step[1])
             else:
                 _step(b, step)
-        assert c.snapshot() == ref.snapshot(), step
+        assert c.snapshot() == ref.snapshot() == py.snapshot(), step
         _due_are_the_waiting(ref, c, step)
     assert [r["kind"] for r in c.service.intrusions.recent] == [
         r["kind"] for r in ref.service.intrusions.recent
@@ -630,7 +632,7 @@ def test_the_c_frame_path_holds_joins_as_the_python_path(steps: list[tuple[Any, 
     status = c.service.status()
     admitted = sum(n["admitted"] for n in status["nodes"].values())
     event(f"admitted: {min(admitted, 2)}+, intrusions: {min(status['intrusions'], 2)}+")
-    for b in (ref, c):
+    for b in (ref, py, c):
         b.wire.shutdown()
 
 

@@ -21,7 +21,7 @@ from canergy.ccore.calls import Answer, AuthAnswer, AuthPair
 from canergy.ccore.grants import CompiledGrantCaps, fits
 from canergy.ccore.joins import CompiledJoinHold
 from canergy.ccore.witness import CompiledReturnGate
-from canergy.codec import Codec
+from canergy.codec import DEFAULT_ID_BASE, Codec
 from canergy.core import witnessed
 from canergy.core.actions import (
     Acknowledged,
@@ -34,7 +34,7 @@ from canergy.core.actions import (
 )
 from canergy.core.common import check_counters, check_life
 from canergy.core.errors import LocalProtocolError
-from canergy.core.gateway import MakeDown, no_hold
+from canergy.core.gateway import Below, MakeDown, no_hold
 from canergy.core.inputs import Begin
 from canergy.core.state import Decision, Outcome, Phase, Session, SupervisorState
 from canergy.core.supervisor import Supervisor, SupervisorCore
@@ -984,16 +984,22 @@ def make_supervisor(
     if core != "python":
         raise ValueError(f"unknown core {core!r}: c or python")
     return Supervisor(
-        nodes, initial, variant=variant, timing=timing, state=state, start_without=start_without
+        nodes,
+        initial,
+        variant=variant,
+        timing=timing,
+        state=state,
+        start_without=start_without,
+        id_base=DEFAULT_ID_BASE if id_base is None else id_base,
     )
 
 
 def make_below(core: str, id_base: int | None = None) -> MakeDown | None:
     """What makes a gateway's supervisor role (``core.gateway.Gateway(below=)``) by core name:
-    "c" (``CompiledBelow`` on the bus's identifier block ``id_base``) or "python" (None: the
-    gateway's own ``Below``)."""
+    "c" (``CompiledBelow``) or "python" (the gateway's own ``Below``; None: on the default
+    block), each on the bus's identifier block ``id_base`` (its frame path's)."""
     if core == "c":
         return partial(CompiledBelow, id_base=id_base)
     if core != "python":
         raise ValueError(f"unknown core {core!r}: c or python")
-    return None
+    return None if id_base is None else partial(Below, id_base=id_base)

@@ -11,6 +11,7 @@ import heapq
 from collections.abc import Callable, Iterable
 from typing import TYPE_CHECKING, Any, Protocol
 
+from canergy.codec import DEFAULT_ID_BASE, Codec
 from canergy.core import witnessed
 from canergy.core.actions import Action, Persist
 from canergy.core.common import check_counters
@@ -26,6 +27,7 @@ from canergy.messages import MAX_NODE, MIN_NODE, ToSupervisor
 
 if TYPE_CHECKING:  # the types of the service's parts a compiled core makes in C (names only)
     from canergy.ccore.calls import Answer
+    from canergy.core.frame_answers import FrameAnswers
     from canergy.live.supervisor.grants import GrantCaps
     from canergy.live.supervisor.intrusions import Intrusions, Refusals
     from canergy.live.supervisor.policy import Limits, TopUp
@@ -169,8 +171,10 @@ class Supervisor:
         timing: Timing | None = None,
         state: SupervisorState | None = None,
         start_without: Iterable[int] = (),
+        id_base: int = DEFAULT_ID_BASE,
     ) -> None:
-        """``start_without``: nodes a start does not wait for (witnessed rules). The risk the
+        """``id_base``: the identifier block of the frames ``answer_on`` takes.
+        ``start_without``: nodes a start does not wait for (witnessed rules). The risk the
         operator takes: such a node may hold energy the restored books count in Us again (up
         to all it received after the copy was taken; nobody can know how much), and Us grants
         it to the other nodes. The node's own session still waits for its books."""
@@ -191,6 +195,7 @@ class Supervisor:
         for s in self.state.sessions:
             check_counters(s)
         self._index = {s.node: i for i, s in enumerate(self.state.sessions)}
+        self.id_base = id_base
         self.start_without = frozenset(start_without)
         if not self.start_without <= set(self._index):
             raise ValueError("start_without names nodes this supervisor does not manage")
@@ -233,8 +238,12 @@ class Supervisor:
     def grant_caps(self, limits: Limits, policy: TopUp | None) -> None:
         return None
 
-    def answer_on(self, bus: int) -> None:
-        return None
+    def answer_on(self, bus: int) -> FrameAnswers:
+        """Bus ``bus``'s frame path (``canergy.core.frame_answers``), on the identifier block
+        ``id_base``."""
+        from canergy.core.frame_answers import FrameAnswers  # it reads this module's sessions
+
+        return FrameAnswers(self, Codec(self.id_base), bus)
 
     def begin(self, node: int, amount: int, now: int) -> list[Action]:
         """Reserve ``amount`` µJ from Us and send node ``node`` an intention; refused while a

@@ -34,7 +34,7 @@ from canergy.live.bus_group import BusGroup
 from canergy.live.devices.on_stuck import OnStuck
 from canergy.live.runtime import BusCounters, BusRuntime, monotonic_us
 from canergy.live.supervisor.control import ControlServer
-from canergy.live.supervisor.frame_path import CFramePath, Pass
+from canergy.live.supervisor.frame_path import CoreFramePath, Pass
 from canergy.live.supervisor.grants import GrantDesk
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
 from canergy.live.supervisor.joins import JoinHold
@@ -298,7 +298,7 @@ def service_parts(
     if joins is None:
         joins = JoinHold(core.nodes, *joining, authenticated)
     passes = Pass()
-    path = CFramePath(core, max(1, len(config.bus_names)), config.listen_only, passes, stopping)
+    path = CoreFramePath(core, max(1, len(config.bus_names)), config.listen_only, passes, stopping)
     is_lost = partial(lost, nodes, liveness, config.lost_after_us)
     report = StatusReport(
         core,

@@ -1,11 +1,12 @@
-"""The compiled core's frame path: frames the bus loop has not decoded, taken in C.
+"""The core's frame path: frames the bus loop has not decoded, taken in one call of the core.
 
-``CFramePath`` asks the compiled core for each bus's path (without a key, with a key in the FD
-or the classic layout) and runs it per frame: the frames C encoded are held in the loop pass
-(``Pass``), and what C did is returned (``Taken``) for the service to record. Frames are taken
-only inside a pass, where everything the service decides is held until the pass ends and the
-books are written. It calls nothing of the service: the builder makes it, with the pass and the
-``Stopping`` the service shares.
+``CoreFramePath`` asks the core for each bus's path (``SupervisorCore.answer_on``: the compiled
+core's, without a key or with one in the FD or the classic layout, or the Python core's,
+``canergy.core.frame_answers``, without a key) and runs it per frame: the frames the core
+encoded are held in the loop pass (``Pass``), and what it did is returned (``Taken``) for the
+service to record. Frames are taken only inside a pass, where everything the service decides is
+held until the pass ends and the books are written. It calls nothing of the service: the builder
+makes it, with the pass and the ``Stopping`` the service shares.
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ _ANSWERS = frozenset((MsgType.ACK, MsgType.COMMITTED, MsgType.ABORTED))
 
 ANSWERED, HELD, TELEMETRY, JOIN_HELD, DECODED = range(5)
 Taken = tuple[int, int, Any, int]
-"""What C took of a frame, for the service: (what, the node's session key, payload, verdict).
+"""What the core took of a frame (said here of C; the Python core's path gives only
+``ANSWERED`` and ``DECODED``), for the service: (what, the node's session key, payload, verdict).
 ``ANSWERED``: an answer the rules took, payload the core's actions (its frames already held in
 the pass). ``HELD``: a RETURN the witness in C held, payload the RETURN, verdict the witness's.
 ``TELEMETRY``: a TELEMETRY the tables in C took, payload the message, verdict the table's bits
@@ -38,7 +40,7 @@ with what the witness and the held JOINs found shifted left by 8. ``JOIN_HELD``:
 C. ``DECODED``: a message only decoded in C (a RETURN beyond the books, a JOIN or a DEBIT),
 payload the message, for the usual path."""
 FastFrame = Callable[[can.Message, int], "Taken | None"]
-"""A bus loop's frame through the compiled core: what C took, or None (the usual path)."""
+"""A bus loop's frame through the core's path: what the core took, or None (the usual path)."""
 
 
 @dataclass(slots=True)
@@ -50,17 +52,20 @@ class Pass:
     held: list[Outgoing] = field(default_factory=list)
 
 
-class CFramePath:
-    """The compiled core's frame path for the service's bus loops (``frame_path``)."""
+class CoreFramePath:
+    """The core's frame path for the service's bus loops (``frame_path``)."""
 
     def __init__(
         self, core: SupervisorCore, buses: int, listen_only: bool, passes: Pass, stopping: Stopping
     ) -> None:
-        """``core``: the service's (the Python core's has no path); ``buses``: how many the
-        service serves; ``passes`` and ``stopping``: the service's (shared, never called)."""
+        """``core``: the service's; ``buses``: how many the service serves; ``passes`` and
+        ``stopping``: the service's (shared, never called)."""
         self._core: Any = core
         """The compiled core's calls beyond ``SupervisorCore`` (``begin_encoded``, with a key
-        ``auth_answer_on``) are asked of it only once ``answer_on`` gave a path."""
+        ``auth_answer_on``) are asked of it only when it is the compiled core."""
+        self.core = core.implementation
+        """Whose path runs when one does: "c" or "python"."""
+        compiled = self.core == "c"
         self._buses = buses
         self._listen_only = listen_only
         self._pass = passes
@@ -68,22 +73,22 @@ class CFramePath:
         """Once the service stops, C aborts what it would commit."""
         self._answer_on = core.answer_on
         self._answer = self._answer_on(0)
-        """Bus 0's path without a key (``fast_frame``); None on the Python core."""
+        """Bus 0's path without a key (``fast_frame``)."""
         self._answers: dict[int, Answer] = {} if self._answer is None else {0: self._answer}
         """Over several buses: each bus's (``frame_path(bus=)``), by bus index."""
-        verdicts: tuple[int, int] = (0, 0) if self._answer is None else cast(Any, core).verdicts
+        verdicts: tuple[int, int] = cast(Any, core).verdicts if compiled else (0, 0)
         self._held_bit, self._join_bit = verdicts
         """The verdict bits of a RETURN the witness in C held and of a JOIN held in C
-        (``CompiledSupervisor.verdicts``, canergy/host.h)."""
-        self._path: tuple[str, str | None] = (
-            ("python", None) if self._answer is None else ("python", "no bus loop asked for it")
-        )
-        """Which frame path runs, and why not the compiled core's."""
+        (``CompiledSupervisor.verdicts``, canergy/host.h; none in Python)."""
+        self._path: tuple[str, str | None] = ("python", "no bus loop asked for it")
+        """Which frame path runs ("python" also where the bus loop decodes), and why not the
+        core's."""
         self.frames = 0
-        """Frames C took: an answer or a RETURN whole (decode, rules, encode), a TELEMETRY (its
-        tables), a RETURN held or a JOIN held, in C; a RETURN beyond the books or a DEBIT
-        decoded in C and then handled as usual. With a key in the classic layout an answer
-        counts once (its message and its MAC frame)."""
+        """Frames the core's path took. In C: an answer or a RETURN whole (decode, rules,
+        encode), a TELEMETRY (its tables), a RETURN held or a JOIN held, in C; a RETURN beyond
+        the books or a DEBIT decoded in C and then handled as usual. With a key in the classic
+        layout an answer counts once (its message and its MAC frame). In Python: an answer
+        whole, a TELEMETRY, RETURN, JOIN or DEBIT decoded and then handled as usual."""
         self._auth_answer: AuthAnswer | None = None
         self._auth_pair: AuthPair | None = None
         self._frame_auth: FrameAuth | None = None
@@ -101,7 +106,7 @@ class CFramePath:
         """With a key in the FD layout the INTENTION ``begin_encoded`` gives is an FD frame."""
 
     def status(self) -> dict[str, Any]:
-        """Which path runs, why not C's, and how many frames C took."""
+        """Which path runs, why not the core's, and how many frames the core's took."""
         path, off = self._path
         return {
             "frame_path": path,
@@ -113,20 +118,21 @@ class CFramePath:
         self, off: str | None = None, auth: FrameAuth | None = None, bus: int = 0
     ) -> FastFrame | None:
         """``SupervisorService.frame_path``: this path for bus ``bus``'s loop, or None."""
-        if self._answer is None:
-            self._path = ("python", None)
-            return None
         if off is not None:
             self._path = ("python", off)
             return None
+        if auth is not None and self.core == "python":
+            self._path = ("python", "with a key the bus loop verifies and decodes each frame")
+            return None
         if auth is not None:
             return self._keyed_path(auth, bus)
-        self._path = ("c", None)
-        self.begin_encoded = self._core.begin_encoded
+        self._path = (self.core, None)
+        if self.core == "c":
+            self.begin_encoded = self._core.begin_encoded
         if not bus:
             return self.fast_frame
         answer = self._answer_on(bus)
-        assert answer is not None  # bus 0's is (above): a compiled core's
+        assert answer is not None  # bus 0's is (above)
         self._answers[bus] = answer
         return partial(self.fast_frame, bus=bus)
 

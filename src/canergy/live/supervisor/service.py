@@ -40,7 +40,7 @@ from canergy.live.supervisor.frame_path import (
     HELD,
     JOIN_HELD,
     TELEMETRY,
-    CFramePath,
+    CoreFramePath,
     FastFrame,
     Pass,
 )
@@ -155,8 +155,8 @@ class ServiceParts:
     stopping: Stopping
     watch: BusWatch
     """Refusals and intrusions, and the stop they may ask for."""
-    path: CFramePath
-    """The compiled core's frame path (``frame_path``); it takes nothing on the Python core."""
+    path: CoreFramePath
+    """The core's frame path (``frame_path``), the compiled core's or the Python core's."""
     report: StatusReport
     """Makes the status from the parts it reads (``status``)."""
     is_lost: Callable[[int, int], bool]
@@ -573,13 +573,13 @@ class SupervisorService:
         self, off: str | None = None, auth: FrameAuth | None = None, bus: int = 0
     ) -> FramePath | None:
         """The frame path for this service's bus loop (``BusRuntime(frame_path=)``, from the
-        builder): the compiled core's (``CFramePath.fast_frame``, what it took recorded here,
-        ``_took``), or None where every frame
-        takes the usual path: the Python core, or ``off``, why the compiled core's cannot run
-        here (listen-only). From then on, in a loop pass, frames the C core encoded (COMMIT,
-        ABORT, INTENTION) go to the loop as C's bytes (``RawFrame``), never decoded and encoded
-        again. The status says which path runs (``frame_path``), why not C
-        (``frame_path_off``) and how many frames C took (``frame_path_frames``).
+        builder): the core's (``CoreFramePath.fast_frame``, what it took recorded here,
+        ``_took``), or None where every frame takes the usual path: ``off``, why the core's
+        cannot run here (listen-only), or the Python core with a key. From then on, in a loop
+        pass, frames the core encoded (COMMIT, ABORT; the C core's INTENTION too) go to the
+        loop as its bytes (``RawFrame``), never decoded and encoded again. The status says
+        which path runs (``frame_path``), why not the core's (``frame_path_off``) and how many
+        frames it took (``frame_path_frames``).
 
         ``auth``: the bus loop's key: the compiled core then verifies and protects in C
         (``fast_auth_frame``; classic layout: ``fast_auth_pair``), and an INTENTION it begins
@@ -593,7 +593,7 @@ class SupervisorService:
         return None if fast is None else partial(self._took, fast)
 
     def _took(self, fast: FastFrame, frame: can.Message, now: int) -> bool:
-        """A frame through the compiled core's path (``fast``): what C took of it recorded
+        """A frame through the core's path (``fast``): what the core took of it recorded
         here, in the loop pass; False, nothing done, for the loop's usual path."""
         taken = fast(frame, now)
         if taken is None:
@@ -613,11 +613,12 @@ class SupervisorService:
 
     @property
     def frames_in_c(self) -> int:
-        """Frames the compiled core's frame path took (``CFramePath.frames``)."""
-        return self.path.frames
+        """Frames the compiled core's frame path took (``CoreFramePath.frames``; 0 on the
+        Python core, whose path counts its own in the status)."""
+        return self.path.frames if self.path.core == "c" else 0
 
     def _answered(self, node: int, actions: list[Action], now: int) -> list[Outgoing]:
-        """An answer the compiled core took (its frames already held): what the books record
+        """An answer the core's path took (its frames already held): what the books record
         and the node's next grant (a transaction ended)."""
         self.now = now
         self.nodes[node].heard.heard_at = now

@@ -15,7 +15,7 @@ from canergy.core.state import Phase
 from canergy.core.supervisor import SupervisorCore
 from canergy.live.runtime import BusCounters, total_counters
 from canergy.live.supervisor.control import ControlServer
-from canergy.live.supervisor.frame_path import CFramePath
+from canergy.live.supervisor.frame_path import CoreFramePath
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
 from canergy.live.supervisor.nodes import NodeInfo
 
@@ -50,7 +50,7 @@ class StatusReport:
         joins: Any,
         intrusions: Intrusions,
         refusals: Refusals,
-        path: CFramePath,
+        path: CoreFramePath,
         *,
         node_name: Callable[[int], int | str],
         is_lost: Callable[[int, int], bool],

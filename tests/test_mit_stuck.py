@@ -24,7 +24,10 @@ from canergy.live.devices.mit_bus import MitBus, MitMotor
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.mit.live_bench import BUDGET, MOTOR, NODE, STEADY, burst, rig
 
-TIMES = {"feedback_timeout_us": 2_000_000, "stop_timeout_us": 300_000}
+STOP_MS = 1000
+TIMES = {"feedback_timeout_us": 2_000_000, "stop_timeout_us": STOP_MS * 1000}
+"""The stop's timeout: a loaded machine once left the emulated motor unheard for 300 ms after
+the stop (then STUCK as "not heard", where it is heard powered as long as it runs)."""
 
 
 def relay(tmp: Path) -> tuple[str, Path]:
@@ -37,12 +40,13 @@ def relay(tmp: Path) -> tuple[str, Path]:
 
 def check_stuck(status: dict[str, Any], said: list[str], cut: Path) -> None:
     assert status["guard"] == "stuck", status
-    assert status["stuck"] == "still powered 300 ms after the stop", status["stuck"]
+    assert status["stuck"] == f"still powered {STOP_MS} ms after the stop", status["stuck"]
     assert status["on_stuck"]["runs"] == 1 and status["on_stuck"]["exit_code"] == 0
     assert cut.read_text() == "mit 1\n"  # once, the motor's CAN id filled in
     assert status["uncontained_uj"] > 0  # booked, not metered
     assert status["envelope_w"] > 15.36  # the model's whole envelope, not the closed cap's 0 W
-    assert any("mit motor 1: STUCK (still powered 300 ms after the stop" in s for s in said), said
+    stuck = f"mit motor 1: STUCK (still powered {STOP_MS} ms after the stop"
+    assert any(stuck in s for s in said), said
 
 
 def test_mit_bus_reports_a_motor_that_ignores_exit_stuck_and_runs_on_stuck_once(
@@ -87,7 +91,7 @@ def test_canergy_inline_reports_a_motor_that_ignores_exit_stuck_and_runs_on_stuc
         argv = ["inline", "-i", "virtual", "-c", r.channel, "--app-interface", "virtual"]
         argv += ["--app-channel", app_channel, "--mit", str(MOTOR), "--mit-nodes", str(NODE)]
         argv += ["--mit-model", "DM4310", "--mit-max-torque", "0.5", "--on-stuck", command]
-        argv += ["--mit-feedback-timeout", "2s", "--mit-stop-timeout", "300ms"]
+        argv += ["--mit-feedback-timeout", "2s", "--mit-stop-timeout", f"{STOP_MS}ms"]
         argv += ["--status-file", str(status_file), "--status-period", "50ms"]
         stop = threading.Event()
         result: list[int] = []

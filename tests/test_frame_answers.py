@@ -14,7 +14,7 @@ from support.wire import Wire
 
 from canergy.codec import DEFAULT_ID_BASE, Codec
 from canergy.core.actions import Action, Persist, Resolved, Send
-from canergy.core.frame_answers import DECODED, LEFT, TAKEN
+from canergy.core.frame_answers import LEFT, TAKEN
 from canergy.core.state import Outcome
 from canergy.core.supervisor import Supervisor
 from canergy.core.timing import Timing
@@ -79,11 +79,13 @@ def test_a_committed_resolves_the_transaction() -> None:
     assert core.idle(3)
 
 
-def test_what_is_no_answer_comes_back_decoded_with_nothing_applied() -> None:
+def test_what_is_no_answer_is_left_to_the_bus_loop_undecoded() -> None:
+    """A TELEMETRY (C decodes it in its call for the tables it keeps there): left, nothing
+    applied, for the bus loop to decode with the same codec and hand to the service."""
     core, _ = _begun()
     before = core.state
     status, actions, frames, decoded, _ = _answer(core, Telemetry(3, 1_000))
-    assert (status, actions, frames, decoded) == (DECODED, [], [], Telemetry(3, 1_000))
+    assert (status, actions, frames, decoded) == (LEFT, [], [], None)
     assert core.state is before
 
 
@@ -121,8 +123,8 @@ def test_a_remote_or_standard_frame_is_left() -> None:
 
 
 def test_on_a_second_bus_the_session_key_inside_the_node_id_on_the_wire() -> None:
-    """Bus 1's path: node 3 there is session 0x103; the actions and a decoded message name the
-    key, the frames encoded name node 3."""
+    """Bus 1's path: node 3 there is session 0x103; the actions name the key, the frames
+    encoded name node 3."""
     key = 1 << 8 | 3
     core = Supervisor([3, key], 10_000_000, timing=T)
     (intention,) = [a.message for a in core.begin(key, 1_000, 0) if isinstance(a, Send)]
@@ -130,8 +132,9 @@ def test_on_a_second_bus_the_session_key_inside_the_node_id_on_the_wire() -> Non
     status, _, frames, _, _ = core.answer_on(1)(ident, data, True, False, 10, False)
     assert status == TAKEN and frames == [CODEC.encode(Commit(3, intention.tx, 1))]
     assert core.session(3).tx == 0 and not core.idle(key)
-    ident, data = CODEC.encode(Telemetry(3, 5))
-    assert core.answer_on(1)(ident, data, True, False, 20, False)[3] == Telemetry(key, 5)
+    ident, data = CODEC.encode(Committed(3, intention.tx))
+    status, actions, _, _, _ = core.answer_on(1)(ident, data, True, False, 20, False)
+    assert status == TAKEN and [a.node for a in actions if isinstance(a, Resolved)] == [key]
 
 
 def test_a_core_on_another_identifier_block_takes_its_own_frames() -> None:
@@ -187,9 +190,9 @@ def test_on_the_python_core_answers_never_reach_the_usual_path(
     assert CODEC.decode(*wire.sent[-1]) == Commit(3, intention.tx, 1_000)
     feed(Committed(3, intention.tx))
     assert replies and replies[0]["outcome"] == "COMMITTED"
-    assert usual == [Telemetry(3, 0)]
+    assert usual == [Telemetry(3, 0)]  # decoded by the bus loop
     status = service.status()
-    assert (status["frame_path"], status["frame_path_frames"]) == ("python", 3)
+    assert (status["frame_path"], status["frame_path_frames"]) == ("python", 2)
     assert "frame_path_off" not in status and service.frames_in_c == 0
     feed(Aborted(3, intention.tx + 1))  # ahead of the books: the usual path judges it
     assert usual[-1] == Aborted(3, intention.tx + 1) and service.status()["intrusions"] == 1

@@ -163,9 +163,9 @@ def test_two_buses_on_the_c_core_match_the_python_core(tmp_path: Path, hold: boo
     assert (py_status["core"], py_status["frame_path"]) == ("python", "python")
     assert (c_status["core"], c_status["frame_path"]) == ("c", "c")
     assert "frame_path_off" not in c_status
-    # each core's path took the same frames: the answers whole, the rest decoded
+    # C took the answers whole and decoded the rest, Python's path the answers
     assert c_status["frame_path_frames"] >= 12
-    assert py_status["frame_path_frames"] == c_status["frame_path_frames"]
+    assert 4 <= py_status["frame_path_frames"] < c_status["frame_path_frames"]
     for key in CHANGES:
         del py_status[key], c_status[key]
     assert c_status == py_status

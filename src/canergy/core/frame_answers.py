@@ -1,13 +1,14 @@
 """The Python core's frame path: a received frame taken in one call, as the compiled core's.
 
 ``FrameAnswers`` is one bus's ``SupervisorCore.answer_on`` for ``Supervisor``: given a frame's
-identifier and bytes it does what C's ``canergy_supervisor_on_answer`` does, with the Python
-codec and rules. An ACK, COMMITTED or ABORTED of a managed node that names no transaction
-ahead of its session is decoded, ruled, decided (an ACK committed, or aborted when the caller
-says it stops) and its replies encoded: the caller gets the other actions and the frames. A
-TELEMETRY, RETURN, JOIN or DEBIT of a managed node comes back decoded, nothing applied, for the
-caller's usual handling; anything else (not decodable here, another node, an answer ahead of
-the books) comes back untouched, for the bus loop to decode and judge its usual way.
+identifier and bytes it does for an answer what C's ``canergy_supervisor_on_answer`` does, with
+the Python codec and rules: an ACK, COMMITTED or ABORTED of a managed node that names no
+transaction ahead of its session is decoded, ruled, decided (an ACK committed, or aborted when
+the caller says it stops) and its replies encoded; the caller gets the other actions and the
+frames. Anything else comes back untouched (``LEFT``): a TELEMETRY, RETURN, JOIN or DEBIT,
+which C decodes in its call for the tables it keeps there, is decoded by the bus loop with the
+same codec and handed to the service's tables as before; a frame not decodable here, of another
+node or ahead of the books is judged there its usual way.
 
 Sans-IO: identifiers, bytes and times from the caller.
 """
@@ -22,15 +23,16 @@ from canergy.core.supervisor import BUS_SHIFT, Supervisor
 from canergy.messages import TX_BITS, Aborted, Ack, Committed, Direction, Message
 from canergy.seqnum import unwrap
 
-TAKEN, DECODED, LEFT = 0, 1, 2
-"""An answer's status: taken (its actions and frames given), decoded for the caller, or left
-(nothing done: the bus loop takes the frame its usual way)."""
+TAKEN, LEFT = 0, 2
+"""A frame's status: taken (its actions and frames given), or left (nothing done: the bus loop
+takes the frame its usual way)."""
 
 Answered = tuple[int, list[Action], list[tuple[int, bytes]], Message | None, int]
-"""(status, actions but the frames, the frames encoded, the message decoded, a verdict: 0, no
-table of the service's is kept in the Python core)."""
+"""(status, actions but the frames, the frames encoded, None: nothing is given back decoded, a
+verdict: 0, no table of the service's is kept in the Python core): ``Answer``'s shape."""
 
-_ANSWERS = (Ack, Committed, Aborted)
+_ANSWERS = frozenset(int(t.TYPE) for t in (Ack, Committed, Aborted))
+"""The type codes of the frames taken (an identifier's bits 8-11)."""
 
 
 class FrameAnswers:
@@ -52,6 +54,8 @@ class FrameAnswers:
         abort: bool,
     ) -> Answered:
         """The frame's status and what was done (``Answered``)."""
+        if arbitration_id >> 8 & 0xF not in _ANSWERS:  # the bus loop decodes it as ever
+            return LEFT, [], [], None, 0
         try:
             msg = self._codec.decode(
                 arbitration_id,
@@ -68,8 +72,7 @@ class FrameAnswers:
             return LEFT, [], [], None, 0
         if key != msg.node:
             msg = replace(msg, node=key)
-        if not isinstance(msg, _ANSWERS):
-            return DECODED, [], [], msg, 0
+        assert isinstance(msg, Ack | Committed | Aborted)  # by its type code, decoded
         tx = core.state.sessions[core._index[key]].tx
         if unwrap(msg.tx, tx, TX_BITS) > tx:  # never begun: judged the usual way
             return LEFT, [], [], None, 0

@@ -32,7 +32,7 @@ _ANSWERS = frozenset((MsgType.ACK, MsgType.COMMITTED, MsgType.ABORTED))
 ANSWERED, HELD, TELEMETRY, JOIN_HELD, DECODED = range(5)
 Taken = tuple[int, int, Any, int]
 """What the core took of a frame (said here of C; the Python core's path gives only
-``ANSWERED`` and ``DECODED``), for the service: (what, the node's session key, payload, verdict).
+``ANSWERED``), for the service: (what, the node's session key, payload, verdict).
 ``ANSWERED``: an answer the rules took, payload the core's actions (its frames already held in
 the pass). ``HELD``: a RETURN the witness in C held, payload the RETURN, verdict the witness's.
 ``TELEMETRY``: a TELEMETRY the tables in C took, payload the message, verdict the table's bits
@@ -88,7 +88,7 @@ class CoreFramePath:
         encode), a TELEMETRY (its tables), a RETURN held or a JOIN held, in C; a RETURN beyond
         the books or a DEBIT decoded in C and then handled as usual. With a key in the classic
         layout an answer counts once (its message and its MAC frame). In Python: an answer
-        whole, a TELEMETRY, RETURN, JOIN or DEBIT decoded and then handled as usual."""
+        whole (the bus loop decodes the rest with the same codec, as ever)."""
         self._auth_answer: AuthAnswer | None = None
         self._auth_pair: AuthPair | None = None
         self._frame_auth: FrameAuth | None = None

@@ -149,6 +149,20 @@ def test_a_core_on_another_identifier_block_takes_its_own_frames() -> None:
     assert status == TAKEN and frames == [other.encode(Commit(3, intention.tx, 1))]
 
 
+def test_a_python_gateways_supervisor_role_takes_the_frames_of_its_own_block() -> None:
+    """``canergy gateway --core python --id-base``: the role below (``make_below``'s
+    ``Below``) takes answers on the block it was given, not on the default one."""
+    from canergy.ccore.supervisor import make_below
+
+    block = DEFAULT_ID_BASE + (2 << 12)
+    make = make_below("python", block)
+    assert make is not None
+    core = make([3], 10_000_000, variant="hardened", timing=T, state=None, start_without=())
+    (intention,) = [a.message for a in core.begin(3, 1_000, 0) if isinstance(a, Send)]
+    assert _answer(core, Ack(3, intention.tx))[0] == LEFT
+    assert _answer(core, Ack(3, intention.tx), codec=Codec(block))[0] == TAKEN
+
+
 def test_on_the_python_core_answers_never_reach_the_usual_path(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

@@ -26,7 +26,7 @@ from canergy.messages import (
     Return,
     counter_beyond,
 )
-from canergy.seqnum import wrap
+from canergy.seqnum import unwrap, wrap
 
 
 def check_amount(amount: int) -> None:
@@ -65,6 +65,12 @@ def check_counters(s: Session) -> None:
     for name, value in (("tx", s.tx), ("returns_credited", s.returns_credited)):
         if value >= COUNTER_BOUND:
             raise ValueError(f"node {s.node}: {name} {counter_beyond(value)}")
+
+
+def never_begun(tx16: int, s: Session) -> bool:
+    """An answer naming transaction ``tx16`` (the wire's 16 bits) names one the session ``s``
+    never began: ahead of its books. No honest node sends it."""
+    return unwrap(tx16, s.tx, TX_BITS) > s.tx
 
 
 def wire_tx(tx: int) -> int:

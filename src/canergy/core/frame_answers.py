@@ -19,9 +19,9 @@ from dataclasses import replace
 
 from canergy.codec import Codec, DecodeError
 from canergy.core.actions import Acknowledged, Action, Send
+from canergy.core.common import never_begun
 from canergy.core.supervisor import BUS_SHIFT, Supervisor
-from canergy.messages import TX_BITS, Aborted, Ack, Committed, Direction, Message
-from canergy.seqnum import unwrap
+from canergy.messages import Aborted, Ack, Committed, Direction, Message
 
 TAKEN, LEFT = 0, 2
 """A frame's status: taken (its actions and frames given), or left (nothing done: the bus loop
@@ -73,8 +73,7 @@ class FrameAnswers:
         if key != msg.node:
             msg = replace(msg, node=key)
         assert isinstance(msg, Ack | Committed | Aborted)  # by its type code, decoded
-        tx = core.state.sessions[core._index[key]].tx
-        if unwrap(msg.tx, tx, TX_BITS) > tx:  # never begun: judged the usual way
+        if never_begun(msg.tx, core.state.sessions[core._index[key]]):  # judged the usual way
             return LEFT, [], [], None, 0
         actions = core.receive(msg, now)
         kept: list[Action] = []
@@ -91,7 +90,7 @@ class FrameAnswers:
                 frames.append(encode(sent))
             elif isinstance(action, Acknowledged):
                 decide = core.abort if abort else core.commit
-                actions = [*actions, *decide(action.node, now)]
+                actions.extend(decide(action.node, now))
             else:
                 kept.append(action)
         return TAKEN, kept, frames, None, 0

@@ -151,9 +151,9 @@ class SupervisorCore(Protocol):
         """The grant caps in C, or None: the service sizes grants in Python."""
         ...
 
-    def answer_on(self, bus: int) -> Answer | None:
-        """The frame path of bus ``bus`` in C (``canergy.live.supervisor.frame_path``), or
-        None: every frame takes the usual path."""
+    def answer_on(self, bus: int) -> Answer:
+        """The frame path of bus ``bus`` (``canergy.live.supervisor.frame_path``): C's, or the
+        Python core's (``canergy.core.frame_answers``)."""
         ...
 
 

@@ -6,6 +6,7 @@ Sans-IO: the session's books, the message."""
 
 from __future__ import annotations
 
+from canergy.core.common import never_begun
 from canergy.core.state import Session
 from canergy.messages import (
     QUANTUM_UJ,
@@ -44,6 +45,6 @@ def impossible(msg: Message, s: Session) -> str | None:
         verb = "returns" if isinstance(msg, Return) else "debits"
         if fresh and amount > (held := holdable(s)):
             return f"{verb} {format_energy(amount)}, it can hold {format_energy(held)}"
-    elif isinstance(msg, Ack | Committed | Aborted) and unwrap(msg.tx, s.tx, TX_BITS) > s.tx:
+    elif isinstance(msg, Ack | Committed | Aborted) and never_begun(msg.tx, s):
         return f"answers transaction {unwrap(msg.tx, s.tx, TX_BITS)}, never begun"
     return None

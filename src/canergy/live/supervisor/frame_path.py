@@ -74,7 +74,7 @@ class CoreFramePath:
         self._answer_on = core.answer_on
         self._answer = self._answer_on(0)
         """Bus 0's path without a key (``fast_frame``)."""
-        self._answers: dict[int, Answer] = {} if self._answer is None else {0: self._answer}
+        self._answers: dict[int, Answer] = {0: self._answer}
         """Over several buses: each bus's (``frame_path(bus=)``), by bus index."""
         verdicts: tuple[int, int] = cast(Any, core).verdicts if compiled else (0, 0)
         self._held_bit, self._join_bit = verdicts
@@ -131,9 +131,7 @@ class CoreFramePath:
             self.begin_encoded = self._core.begin_encoded
         if not bus:
             return self.fast_frame
-        answer = self._answer_on(bus)
-        assert answer is not None  # bus 0's is (above)
-        self._answers[bus] = answer
+        self._answers[bus] = self._answer_on(bus)
         return partial(self.fast_frame, bus=bus)
 
     def _keyed_path(self, auth: FrameAuth, bus: int) -> FastFrame:
@@ -170,9 +168,9 @@ class CoreFramePath:
         transaction never begun (judged on the usual path, an intrusion), listen-only, outside
         a loop pass. The bus loop then takes it as usual. ``bus``: the index of the bus it
         arrived on; its frames go to that bus's supervisor."""
-        answer = self._answers.get(bus) if bus else self._answer
+        answer = self._answers[bus] if bus else self._answer
         passes = self._pass
-        if answer is None or self._listen_only or not passes.depth:
+        if self._listen_only or not passes.depth:
             return None
         status, actions, frames, decoded, verdict = answer(
             frame.arbitration_id,

@@ -492,6 +492,23 @@ def test_a_debit_of_the_current_start_carries_its_nonce_phase_and_ltx() -> None:
         assert solver.check() == z3.unsat, name
 
 
+def test_a_begin_keeps_the_window_and_a_begin_past_it_breaks_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The window (a) is a clause: a begin keeps W at most the node's ltx and tx at most that
+    ltx + B, and every other clause. A supervisor that begins past W + B (the hardened begin,
+    no window) fails ``window``: the clause is what the begin's rule gives, not a tautology."""
+    from canergy.prove import witnessed as wit
+
+    step = "supervisor: begin"
+    outcomes = _witnessed_outcomes(step)
+    assert {"window", "witness", "window at a start"} <= {o.clause for o in outcomes}
+    failed = [f"{o.clause}\n{o.counterexample}" for o in outcomes if not o.proved]
+    assert not failed, failed[0]
+    monkeypatch.setattr(wit, "may_begin", lambda s, window=wit.WINDOW: sym.may_begin(s))
+    assert "window" in {o.clause for o in _witnessed_outcomes(step) if not o.proved}
+
+
 def test_the_supervisors_debit_proves_that_its_counters_never_go_back() -> None:
     """The supervisor's DEBIT proves first that C and tx, in the proof's numbering, never go
     back (lifts, voids, credits, a draw held, counts), then takes both as facts (its slowest

@@ -194,12 +194,14 @@ def _witnessed_cases() -> list[StepCase]:
 
     def restore(w: World) -> Built:
         image = any_image("image")
-        return wp.restore(w, image, nonce), [wp.p_image(image, w)], None
+        step = wp.restore(w, image, nonce)
+        return step, [wp.p_image(image, w), z3.Not(wp.far_behind(step.after))], None
 
     def restore_supervisor(w: World) -> Built:
         image = any_session_image("session_image")
         step = wp.restore_supervisor(w, image, nonce, wp.IMAGE_JOIN)
-        return step, [wp.p_session_image(image, w)], None
+        hyps = [wp.p_session_image(image, w), wp.not_from_an_image(w)]
+        return step, hyps, None
 
     out = [StepCase(RESTORE, restore), StepCase(RESTORE_SUPERVISOR, restore_supervisor)]
     for kind, deliver in wp.deliveries().items():

@@ -37,10 +37,18 @@ phases are a start's. While it waits the session is the one at its start but for
 and nonce, Gs included (``resyncing``; not proved at its books); a JOIN ends it and is
 admitted as in IDLE (``join_while_syncing``), its counts end it as a start's.
 
+The window (a) is four clauses (``witnessed``, ``window``, ``window at a start``, ``records of
+the start``): W at most tx and the node's ``reach``, tx at most ``reach`` + B, and while a start
+of the supervisor's from an older image waits, the node's record within B of the session at
+that start; residual (d) is a hypothesis of both restore steps (``not_from_an_image``,
+``far_behind``).
+
 Not proved: it fails at the supervisor's DEBIT, where a SYNC's counts end the supervisor's
 start and the invariant speaks of the record started from again (its tx, C and Gs are not yet
-shown to dominate the session at the start's; 19 of its 40 obligations, and ``supervisor
-books`` at a re-sync's books, whose Rc ``P`` of a DEBIT does not bound by Gs): docs/protocol.md
+shown to dominate the session at the start's; 19 of its 42 obligations, ``supervisor books``
+at a re-sync's books, whose Rc ``P`` of a DEBIT does not bound by Gs, and ``window`` and
+``witness`` at counts: late ones move tx above the window, and counts ending a start move W to
+an ltx ``P`` does not bound by the node's reach): docs/protocol.md
 ("Passivity as a theorem", assumption 2, items (a) to (d)); ``canergy prove --rules witnessed
 --keep-going`` lists the obligations, ``--step NAME`` checks one step. Counts that end a start
 are read against the record started from, so ``deliverable`` asks their q within 2**15 of its
@@ -102,6 +110,10 @@ def spre(w: World) -> sym.Session:
 
 def sstarts(w: World) -> Term:
     return _ghost(w.sstarts, "counts the supervisor's starts")
+
+
+def lhi(w: World) -> Term:
+    return _ghost(w.lhi, "has the highest ltx of the start")
 
 
 def answering(w: World) -> Term:
@@ -399,9 +411,90 @@ def _on_view(clause: inv.Clause) -> inv.Clause:
     return lambda w: clause(view(w))
 
 
+B = wit.WINDOW
+
+
+def real_last(w: World) -> Term:
+    """The ltx of the record the node holds (canonical), not of ``view``."""
+    return w.c.last_tx + w.off_tx
+
+
+def reach(w: World) -> Term:
+    """The highest ltx the supervisor may count on the node holding (canonical): of the record
+    it holds, or while it starts the highest of the start's records (``World.lhi``); a node
+    without books, the transaction its life was admitted at."""
+    return z3.If(
+        w.c.phase == sym.JOINING, w.admitted_at, z3.If(starting(w.c), lhi(w), real_last(w))
+    )
+
+
+def behind(w: World) -> Term:
+    """A supervisor's start waits from a record behind the session at its start (an older
+    image: its tx below)."""
+    return z3.And(wit.in_start(w.s), z3.ULT(w.tx, replace(w, s=spre(w)).tx))
+
+
+def far_behind(w: World) -> Term:
+    """Residual (d): both records rolled back past the same event. A start of the supervisor's
+    from an older image waits while the record the node holds is more than B behind the
+    session at that start."""
+    v = view(w)
+    return z3.And(behind(w), w.c.phase != sym.JOINING, z3.Not(ule(v.tx, real_last(w) + B)))
+
+
+def answers_this_start(w: World) -> Term:
+    """The node has answered the SYNC of the supervisor's current start (settled B ahead)."""
+    return z3.And(w.c.phase == sym.SYNCING, answering(w) == sstarts(w))
+
+
+def not_from_an_image(w: World) -> Term:
+    """Residual (d), as the supervisor's restore takes it: the node is not in a start from an
+    older image behind the records of that start (in ltx)."""
+    return z3.Implies(starting(w.c), ule(lhi(w), real_last(w)))
+
+
+def start_records(w: World) -> Term:
+    """``World.lhi`` is below the end of the numbering and, while the node starts, at least
+    the ltx of the record at the start and of the record it holds."""
+    at_start = z3.And(ule(view(w).last, lhi(w)), ule(real_last(w), lhi(w)))
+    return z3.And(z3.ULT(lhi(w), inv.LIFE), z3.Implies(starting(w.c), at_start))
+
+
+def witnessed(w: World) -> Term:
+    """(a) W (raw) at most tx, and at most the node's ``reach`` once its life is admitted;
+    an open transaction is numbered from 1."""
+    s = view(w).s
+    known = z3.Or(w.c.phase != sym.JOINING, w.admitted)
+    return z3.And(
+        z3.Implies(w.open, w.s.tx != 0),
+        ule(s.witness, s.tx),
+        z3.Implies(known, ule(s.witness, reach(w) + w.shift_tx)),
+    )
+
+
+def window(w: World) -> Term:
+    """(a) The window: the supervisor's tx (of ``view``) at most ``reach`` + B."""
+    v = view(w)
+    known = z3.Or(w.c.phase != sym.JOINING, w.admitted)
+    return z3.Implies(known, ule(v.tx, reach(w) + B))
+
+
+def window_at_start(w: World) -> Term:
+    """(a) While a supervisor's start from an older image waits, the record the node holds is
+    at most B behind the session at the start (residual (d) for the rest), and at or above it
+    once the node answered that start's SYNC."""
+    v = view(w)
+    answered = z3.Implies(z3.And(behind(w), answers_this_start(w)), ule(v.tx, real_last(w)))
+    return z3.And(z3.Not(far_behind(w)), answered)
+
+
 STATE: tuple[tuple[str, inv.Clause], ...] = (
     *((name, _REPLACED.get(name, _on_view(clause))) for name, clause in inv.STATE),
     ("remembered JOIN", join_remembered),
+    ("records of the start", start_records),
+    ("witness", witnessed),
+    ("window", window),
+    ("window at a start", window_at_start),
 )
 
 
@@ -483,6 +576,28 @@ def p_debit(m: Msg, w: World) -> Term:
             z3.And(resume, m.amount > 0, m.k == inv.one(v.rc)),
             v.s.returned + m.amount * Q <= v.given,
         ),
+        z3.Implies(counts, z3.Int2BV(m.amount, 16) == low16(m.q)),
+        z3.Implies(z3.And(current_sync(m, w), counts, m.life == w.life), w.c.phase != sym.JOINING),
+        # a life that began after its answer began in this start, whose JOIN waits for its end
+        z3.Implies(z3.And(current_sync(m, w), counts, m.life < w.life), z3.Not(w.admitted)),
+        z3.Implies(z3.And(current_sync(m, w), counts, behind(w)), ule(v.tx, m.q)),
+    )
+
+
+def _evidence(m: Msg, w: World, ahead: int) -> Term:
+    """An ACK (``ahead`` 1) or a COMMITTED (0) names a transaction at most ``ahead`` past the
+    node's ``reach`` (this life), or at most the admission of this life (an earlier one)."""
+    v = view(w)
+    most = reach(w) + ahead
+    return z3.And(
+        inv.p_ack(m, v),
+        m.life >= 0,
+        m.life <= w.life,
+        z3.Implies(m.life == w.life, z3.And(w.c.phase != sym.JOINING, ule(m.k, most))),
+        # a node in a start sends none: sent before it, by a record at most the one at the
+        # start (whose ltx a confirmation of the start does not go below)
+        z3.Implies(z3.And(m.life == w.life, starting(w.c)), ule(m.k, v.last + ahead)),
+        z3.Implies(z3.And(m.life < w.life, w.admitted), ule(m.k, w.admitted_at)),
     )
 
 
@@ -525,6 +640,8 @@ def p_admit(m: Msg, w: World) -> Term:
             z3.And(
                 ule(start_seq(w), m.q),
                 ule(v.last, m.k),
+                ule(v.s.witness, m.k + w.shift_tx),  # the window: nothing witnessed
+                ule(v.tx, m.k + B),  # since it was sent, nor begun past it
                 z3.Implies(w.c.phase == sym.SYNCING, ule(w.last, m.k)),
             ),
         ),
@@ -557,6 +674,8 @@ MESSAGE: dict[Kind, inv.MsgClause] = {
     Kind.RETURN: p_return,
     Kind.ABORTED: p_aborted,
     Kind.DEBIT: p_debit,
+    Kind.ACK: lambda m, w: _evidence(m, w, 1),
+    Kind.COMMITTED: lambda m, w: _evidence(m, w, 0),
 }
 
 
@@ -639,6 +758,7 @@ def client_sent(w: World, frames: wit.Frames) -> tuple[tuple[Term, Msg], ...]:
             nonce=sent.d,
             k=k,
             life=w.life,
+            q=w.c.last_tx + w.off_tx,  # counts: the ltx they carry, canonical
             start=starts(w),
             sstart=z3.If(w.c.phase == sym.SYNCING, answering(w), -1),
         )
@@ -680,6 +800,13 @@ def _moved(
     held_seq = c.return_seq + after.off_seq
     higher = z3.And(c.phase != sym.JOINING, z3.UGT(held_seq, w.top))
     after = replace(after, top=z3.If(higher, held_seq, w.top))
+    # the highest ltx of the start's records: from the record at the start on, each record
+    # the node answered or was put back to since; a confirmation followed by the counts
+    # starts again from the confirmed record
+    base = z3.If(z3.And(starting(w.c), z3.Not(again)), lhi(w), real_last(w))
+    base = z3.If(again, real_last(after), base)
+    now = real_last(after)
+    after = replace(after, lhi=z3.If(z3.UGT(now, base), now, base))
     grown = c.spent - w.c.spent
     used = z3.IntVal(0) if replaced else z3.If(grown > 0, grown, 0)
     net = counted(after) - counted(w) + used + gave + unreceived

@@ -93,6 +93,10 @@ class World:
     and the life of the JOIN it answers (``jlife``). Hardened: unused."""
     jq: Term | None = None
     jlife: Term | None = None
+    lhi: Term | None = None
+    """Witnessed rules: the highest ltx of the records of the node's current start (canonical):
+    the record at the start and every record it answered from since (a SYNC's answer settles B
+    ahead); outside a start, the ltx of the record it holds. Hardened: unused."""
 
     # canonical views
     @property
@@ -199,9 +203,10 @@ def any_world(name: str = "w", with_pre: bool = True) -> World:
     jk = _fresh(f"{name}.jk.", BV32) if with_pre else None
     jq = _fresh(f"{name}.jq.", BV32) if with_pre else None
     jlife = _fresh(f"{name}.jlife.", INT) if with_pre else None
+    lhi = _fresh(f"{name}.lhi.", BV32) if with_pre else None
     return World(
         s, c, **ghost, pre=pre, starts=starts, top=top, spre=spre, sstarts=sstarts,
-        answering=answering, jk=jk, jq=jq, jlife=jlife,
+        answering=answering, jk=jk, jq=jq, jlife=jlife, lhi=lhi,
     )  # fmt: skip
 
 
@@ -244,6 +249,7 @@ def initial_world() -> World:
     return World(
         s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,
         z3.BoolVal(True), zero32, c, zero, zero32, s, zero, z3.IntVal(-1), zero32, zero32, zero,
+        zero32,
     )  # fmt: skip
 
 

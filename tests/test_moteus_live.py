@@ -110,7 +110,9 @@ def test_a_target_below_where_the_guard_stops_parks_the_controller_and_says_so(
         wait_for(lambda: ready(b), timeout=60)
         answer = request(b.supervisor.control, {"grant": {"node": SERVO, "amount_uj": 450_000}}, 30)
         assert answer["outcome"] == "COMMITTED", answer
-        wait_for(lambda: (d := b.servo_status()) and d["stops"] >= 1, timeout=60)
+        wait_for(
+            lambda: (d := b.servo_status()) and d["stops"] >= 1, timeout=60, show=b.servo_status
+        )
         wait_for(
             lambda: (
                 (d := b.servo_status())

@@ -414,18 +414,11 @@ def _on_view(clause: inv.Clause) -> inv.Clause:
 B = wit.WINDOW
 
 
-def real_last(w: World) -> Term:
-    """The ltx of the record the node holds (canonical), not of ``view``."""
-    return w.c.last_tx + w.off_tx
-
-
 def reach(w: World) -> Term:
     """The highest ltx the supervisor may count on the node holding (canonical): of the record
     it holds, or while it starts the highest of the start's records (``World.lhi``); a node
     without books, the transaction its life was admitted at."""
-    return z3.If(
-        w.c.phase == sym.JOINING, w.admitted_at, z3.If(starting(w.c), lhi(w), real_last(w))
-    )
+    return z3.If(w.c.phase == sym.JOINING, w.admitted_at, z3.If(starting(w.c), lhi(w), w.last))
 
 
 def behind(w: World) -> Term:
@@ -439,7 +432,7 @@ def far_behind(w: World) -> Term:
     from an older image waits while the record the node holds is more than B behind the
     session at that start."""
     v = view(w)
-    return z3.And(behind(w), w.c.phase != sym.JOINING, z3.Not(ule(v.tx, real_last(w) + B)))
+    return z3.And(behind(w), w.c.phase != sym.JOINING, z3.Not(ule(v.tx, w.last + B)))
 
 
 def answers_this_start(w: World) -> Term:
@@ -450,33 +443,35 @@ def answers_this_start(w: World) -> Term:
 def not_from_an_image(w: World) -> Term:
     """Residual (d), as the supervisor's restore takes it: the node is not in a start from an
     older image behind the records of that start (in ltx)."""
-    return z3.Implies(starting(w.c), ule(lhi(w), real_last(w)))
+    return z3.Implies(starting(w.c), ule(lhi(w), w.last))
 
 
 def start_records(w: World) -> Term:
     """``World.lhi`` is below the end of the numbering and, while the node starts, at least
     the ltx of the record at the start and of the record it holds."""
-    at_start = z3.And(ule(view(w).last, lhi(w)), ule(real_last(w), lhi(w)))
+    at_start = z3.And(ule(view(w).last, lhi(w)), ule(w.last, lhi(w)))
     return z3.And(z3.ULT(lhi(w), inv.LIFE), z3.Implies(starting(w.c), at_start))
+
+
+def known(w: World) -> Term:
+    """The node has books, or its life was admitted: its ``reach`` means something."""
+    return z3.Or(w.c.phase != sym.JOINING, w.admitted)
 
 
 def witnessed(w: World) -> Term:
     """(a) W (raw) at most tx, and at most the node's ``reach`` once its life is admitted;
     an open transaction is numbered from 1."""
     s = view(w).s
-    known = z3.Or(w.c.phase != sym.JOINING, w.admitted)
     return z3.And(
         z3.Implies(w.open, w.s.tx != 0),
         ule(s.witness, s.tx),
-        z3.Implies(known, ule(s.witness, reach(w) + w.shift_tx)),
+        z3.Implies(known(w), ule(s.witness, reach(w) + w.shift_tx)),
     )
 
 
 def window(w: World) -> Term:
     """(a) The window: the supervisor's tx (of ``view``) at most ``reach`` + B."""
-    v = view(w)
-    known = z3.Or(w.c.phase != sym.JOINING, w.admitted)
-    return z3.Implies(known, ule(v.tx, reach(w) + B))
+    return z3.Implies(known(w), ule(view(w).tx, reach(w) + B))
 
 
 def window_at_start(w: World) -> Term:
@@ -484,7 +479,7 @@ def window_at_start(w: World) -> Term:
     at most B behind the session at the start (residual (d) for the rest), and at or above it
     once the node answered that start's SYNC."""
     v = view(w)
-    answered = z3.Implies(z3.And(behind(w), answers_this_start(w)), ule(v.tx, real_last(w)))
+    answered = z3.Implies(z3.And(behind(w), answers_this_start(w)), ule(v.tx, w.last))
     return z3.And(z3.Not(far_behind(w)), answered)
 
 
@@ -758,7 +753,7 @@ def client_sent(w: World, frames: wit.Frames) -> tuple[tuple[Term, Msg], ...]:
             nonce=sent.d,
             k=k,
             life=w.life,
-            q=w.c.last_tx + w.off_tx,  # counts: the ltx they carry, canonical
+            q=w.last,  # counts: the ltx they carry, canonical
             start=starts(w),
             sstart=z3.If(w.c.phase == sym.SYNCING, answering(w), -1),
         )
@@ -803,9 +798,8 @@ def _moved(
     # the highest ltx of the start's records: from the record at the start on, each record
     # the node answered or was put back to since; a confirmation followed by the counts
     # starts again from the confirmed record
-    base = z3.If(z3.And(starting(w.c), z3.Not(again)), lhi(w), real_last(w))
-    base = z3.If(again, real_last(after), base)
-    now = real_last(after)
+    base = z3.If(again, after.last, z3.If(starting(w.c), lhi(w), w.last))
+    now = after.last
     after = replace(after, lhi=z3.If(z3.UGT(now, base), now, base))
     grown = c.spent - w.c.spent
     used = z3.IntVal(0) if replaced else z3.If(grown > 0, grown, 0)

@@ -458,16 +458,16 @@ def test_counts_repeated_from_a_later_start_move_tx_up_in_c_as_in_python(
 @pytest.mark.parametrize("tx", [COUNTER_BOUND - 30_000, COUNTER_BOUND - 5])
 def test_counts_move_tx_no_further_than_the_bound_in_c_as_in_python(repeat: bool, tx: int) -> None:
     """Counts carry a 16-bit ltx, widened against tx: up to 32,767 ahead. Repeated without a
-    key (the last answered again, or a RESUME's under its nonce) they walked tx and W past
-    COUNTER_BOUND (a record no loader takes), C's int32 W negative at 2^31 and its tx back to 0
-    at 2^32 (begins allowed again where Python refuses them). A counter moved by a start stays
-    below the bound (``common.capped``), in both cores."""
+    key (the last answered again, or a RESUME's under its nonce) they walked tx (and W, when
+    they moved it) past COUNTER_BOUND (a record no loader takes), C's int32 W negative at 2^31
+    and its tx back to 0 at 2^32 (begins allowed again where Python refuses them). A counter
+    moved by a start stays below the bound (``common.capped``), in both cores."""
     s = Session(
         1, tx=tx, witness=tx, delivered=3000, returns_credited=5,
         resume_nonce=9 | 1 << 16 if repeat else 9, resume_from=4, resume_to=5,
     )  # fmt: skip
     counts = Debit.counts(1, 9, 4, (tx + 0x7FFF) & 0xFFFF)
-    w = COUNTER_BOUND - 1 if repeat else tx  # counts found behind (q 4, C 5) move no W
+    w = tx  # counts outside a start move no W (the repeat's), nor found behind (q 4, C 5)
     after = W.SUPERVISOR.step(ST, s, counts, 0).session
     assert (after.tx, after.witness) == (COUNTER_BOUND - 1, w)
     same(s, ST, counts, 0, table=W.SUPERVISOR)
@@ -946,7 +946,7 @@ def test_a_late_resume_found_behind_then_the_first_c_image_creates_nothing() -> 
     assert usable + held <= 10**6, f"Us {usable} + held and spent by the node {held} uJ > 1 J"
 
 
-def test_a_c_resume_after_a_lost_sync_answer_keeps_the_c_window_open() -> None:
+def test_a_c_resume_after_a_lost_sync_answer_catches_tx_up_and_a_resync_opens_the_window() -> None:
     resume_after_a_lost_sync_answer(window_supervisor(compiled_core), _CClientNode(BOOKED_AT_10))
 
 

@@ -509,6 +509,43 @@ def test_a_begin_keeps_the_window_and_a_begin_past_it_breaks_it(
     assert "window" in {o.clause for o in _witnessed_outcomes(step) if not o.proved}
 
 
+def test_late_counts_keep_the_window_on_the_transactions_begun(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Counts taken outside a start (``counts_taken``) move tx up to their ltx over numbers no
+    transaction took, and W not when they find the node behind: the window bounds the highest
+    transaction begun (``World.begun``), which they keep. Read on tx, as it was, the window
+    fails there."""
+    from canergy.prove import witnessed as wit
+    from canergy.prove import witnessed_proof as wp
+    from canergy.prove.obligations import StepCase
+
+    (case,) = [c for c in cases(WITNESSED) if c.name == "supervisor receives DEBIT"]
+
+    def late_counts(w: Any) -> Any:
+        step, hyps, d = case.build(w)
+        late = z3.And(
+            z3.Not(wit.in_start(w.s)),
+            d.flags == wit.COUNTS,
+            wit.counts_taken(w.s, d.nonce, d.amount),
+        )
+        return step, [*hyps, late], d
+
+    late = StepCase(f"{case.name} (late counts)", late_counts)
+    (outcome,) = [
+        o for o in check_step(late, 120_000, WITNESSED, ("window",)) if o.clause == "window"
+    ]
+    assert outcome.proved, outcome.counterexample
+
+    def on_tx(w: Any) -> Any:
+        return z3.Implies(wp.known(w), inv.ule(wp.view(w).tx, wp.reach(w) + wp.B))
+
+    state = tuple((n, on_tx if n == "window" else c) for n, c in wp.STATE)
+    monkeypatch.setattr(wp, "STATE", state)
+    outcomes = list(check_step(late, 120_000, WITNESSED, ("window",)))
+    assert "window" in {o.clause for o in outcomes if not o.proved}
+
+
 def test_the_supervisors_debit_proves_that_its_counters_never_go_back() -> None:
     """The supervisor's DEBIT proves first that C and tx, in the proof's numbering, never go
     back (lifts, voids, credits, a draw held, counts), then takes both as facts (its slowest

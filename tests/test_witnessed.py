@@ -286,18 +286,20 @@ SUP_CASES += [
     Case("books outside a start are ignored", S_IDLE, Debit.books(3, 0x51, 99), S_IDLE),
     Case(
         "counts outside a start under another nonce, ltx within B of tx (a node that took a late "
-        "ADMIT for a SYNC): confirmed, tx lifted to ltx",
+        "ADMIT for a SYNC): confirmed, tx lifted to ltx, W not (late counts may be a record's "
+        "the node no longer holds)",
         S_IDLE,
         counts(4, 71),
-        replace(resumed(S_IDLE, 4, 5), tx=71, witness=71, resume_nonce=0x51 | 0x10000),
+        replace(resumed(S_IDLE, 4, 5), tx=71, resume_nonce=0x51 | 0x10000),
         (Send(Admit(3, 0x51 ^ SYNC_CONFIRMED, 71, 5)),),
     ),
     Case(
         "counts outside a start under the last RESUME's nonce (its resync), ltx beyond B: "
-        "confirmed, tx lifted to ltx",
+        "confirmed, tx lifted to ltx, W not (a late RESUME of an earlier life, answered, arms "
+        "its nonce too)",
         resumed(S_IDLE, 3, 4),
         counts(4, 200, nonce=9),
-        replace(resumed(S_IDLE, 4, 5), tx=200, witness=200, resume_nonce=9 | 0x10000),
+        replace(resumed(S_IDLE, 4, 5), tx=200, resume_nonce=9 | 0x10000),
         (Send(Admit(3, 9 ^ SYNC_CONFIRMED, 200, 5)),),
     ),
     *(
@@ -1023,21 +1025,27 @@ BOOKED_AT_10 = ClientState(1, credited=50_000, last_tx=10, outcome=Outcome.COMMI
 def resume_after_a_lost_sync_answer(sup: Supervisor, node: Any) -> None:
     """A stale ADMIT reaches the booked node, which takes it as a SYNC (ltx 10 -> 74); its
     answer is lost; the node restarts and RESUMEs. The confirmation is below its ltx, so it
-    sends its counts: the supervisor's tx and W catch up to 74, and grants go on through two
-    windows (the old rules left tx and W at 10: intentions 11..74 ignored by the node as old,
-    then every begin refused as beyond the window)."""
+    sends its counts: the supervisor's tx catches up to 74 (the old rules left tx at 10:
+    intentions 11..74 ignored by the node as old). W stays at 10 (counts outside a start are
+    no evidence: ``witnessed.repeat_counts``), so the window is used up; a re-sync of the node,
+    as the live service does on ``WindowClosed``, opens it (tx and W 138), and grants go on
+    through two windows."""
     node.receive(Admit(1, 0x1234, 5, 2), 0)  # its answer lost
     assert node.state.last_tx == 10 + SCENE.window
     _exchange(node.power_loss(1, nonce=77), sup, node, 1)
     assert node.state.phase is Phase.IDLE
-    assert sup.session(1).tx == sup.session(1).witness == node.state.last_tx == 74
+    assert sup.session(1).tx == node.state.last_tx == 74 and sup.session(1).witness == 10
+    with pytest.raises(WindowClosed):
+        sup.begin(1, 1000, 2)
+    _exchange(sup.resync(1, 2, nonce=0x0707), sup, node, 2)
+    assert sup.session(1).tx == sup.session(1).witness == node.state.last_tx == 138
     for k in range(1, 2 * SCENE.window + 2):
         _exchange(sup.begin(1, 1000, 2), sup, node, 2)
         _exchange(sup.commit(1, 2), sup, node, 2)
-        assert node.state.usable == 1000 * k and node.state.last_tx == 74 + k
+        assert node.state.usable == 1000 * k and node.state.last_tx == 138 + k
 
 
-def test_a_resume_after_a_lost_sync_answer_keeps_the_window_open() -> None:
+def test_a_resume_after_a_lost_sync_answer_catches_tx_up_and_a_resync_opens_the_window() -> None:
     sup = window_supervisor(Supervisor)
     node = Client(1, variant="witnessed", timing=SCENE, state=BOOKED_AT_10)
     resume_after_a_lost_sync_answer(sup, node)
@@ -1111,16 +1119,22 @@ def _sends(actions: list[Any]) -> list[Any]:
 
 def stale_sync_taken_then_supervisor_image(core: Any, sup: Supervisor, node: Any) -> None:
     """What any fix of review rv2 must keep (it constrains the fix in view): a booked node
-    takes a stale ADMIT for a SYNC (ltx 10 -> 74) and its counts are taken (tx and W 74), the
-    confirmation is lost; the supervisor begins 75 (its INTENTION delayed) and is then put back
-    to its image before that begin; its SYNC reaches the node, still answering the stale one.
-    The node has shown 74, so the discarded history ran up to 74 + B: it must settle past 75
-    when it answers again (it does: ltx += B), else it takes the late INTENTION(75) of the
-    discarded history as fresh and commits it by its timeout, energy the restored supervisor
-    never reserved."""
+    takes a stale ADMIT for a SYNC (ltx 10 -> 74) and its counts are taken late (tx 74; W
+    stays at 10: late counts under another nonce are no evidence, ``repeat_counts``), the
+    confirmation is lost; the begin is refused (the window used up) and the node re-synced,
+    as the live service does (tx and W 138); the supervisor begins 139 (its INTENTION delayed)
+    and is then put back to its image before that begin; its SYNC reaches the node. The node
+    has shown 138, so the discarded history ran up to 138 + B: it must settle past 139 when it
+    answers again (it does: ltx += B), else it takes the late INTENTION(139) of the discarded
+    history as fresh and commits it by its timeout, energy the restored supervisor never
+    reserved."""
     _, counts = _sends(node.receive(Admit(1, 1, 0, 0), 0))
     _sends(sup.receive(counts, 0))  # the confirmation is lost
-    assert sup.session(1).tx == sup.session(1).witness == node.state.last_tx == 74
+    assert sup.session(1).tx == node.state.last_tx == 74 and sup.session(1).witness == 10
+    with pytest.raises(WindowClosed):
+        sup.begin(1, 1000, 1)
+    _exchange(sup.resync(1, 1, nonce=0x0707), sup, node, 1)
+    assert sup.session(1).tx == sup.session(1).witness == node.state.last_tx == 138
     image = sup.state
     late = [m for m in _sends(sup.begin(1, 1000, 1)) if isinstance(m, Intention)]
     restored = core([1], 0, variant="witnessed", timing=SCENE, state=image)
@@ -1128,7 +1142,7 @@ def stale_sync_taken_then_supervisor_image(core: Any, sup: Supervisor, node: Any
     _exchange(restored.handle_timer(2), restored, node, 2)
     assert node.state.phase is Phase.IDLE and restored.unconfirmed() == ()
     assert _sends(node.receive(late[0], 3)) == []  # an old transaction: settled, ignored
-    assert node.state.phase is Phase.IDLE and node.state.last_tx >= 75
+    assert node.state.phase is Phase.IDLE and node.state.last_tx >= 139
     assert restored.session(1).tx >= node.state.last_tx
 
 
@@ -1140,22 +1154,24 @@ def test_a_node_answering_a_stale_sync_settles_past_its_counts_for_a_restored_su
 
 def stale_sync_after_taken_counts_and_a_begin(sup: Supervisor, node: Any) -> None:
     """What any fix of review rv2 must keep (it constrains the fix in view): a booked node's
-    counts for a stale ADMIT are taken (tx and W 74), their confirmation lost; the supervisor
-    begins 75 (its INTENTION not yet delivered) and a second stale ADMIT reaches the node.
-    Its counts must land at or above tx (75): they do (ltx += B: 138, taken, tx 138; found
-    behind, since the first confirmation voided their q, so W stays at 74 and the node is
-    admitted at 138: a re-sync opens the window); counts at 74 would be ignored (below tx,
-    under a nonce never answered)."""
+    counts for a stale ADMIT are taken (tx 74, W 10), their confirmation lost; the window used
+    up, the node is re-synced (tx and W 138) and the supervisor begins 139 (its INTENTION not
+    yet delivered); a second stale ADMIT reaches the node. Its counts must land at or above tx
+    (139): they do (ltx += B: 202, taken, tx 202; W stays at 138, and the window, used up, is
+    opened by a re-sync again); counts below tx would be ignored (under a nonce never
+    answered)."""
     _, counts = _sends(node.receive(Admit(1, 1, 0, 0), 0))
     _sends(sup.receive(counts, 0))  # the confirmation is lost
     assert sup.session(1).tx == 74
+    _exchange(sup.resync(1, 1, nonce=0x0707), sup, node, 1)
     sup.begin(1, 1000, 1)  # its INTENTION not delivered yet
     _exchange(node.receive(Admit(1, 2, 0, 0), 1), sup, node, 1)
     assert node.state.phase is Phase.IDLE, "the node still waits for its counts' confirmation"
     assert sup.session(1).phase is Phase.IDLE and sup.session(1).tx == node.state.last_tx
+    assert sup.session(1).tx == 202 and sup.session(1).witness == 138
     with pytest.raises(WindowClosed):
         sup.begin(1, 1000, 2)
-    _exchange(sup.resync(1, 2, nonce=0x0707), sup, node, 2)
+    _exchange(sup.resync(1, 2, nonce=0x0808), sup, node, 2)
     _exchange(sup.begin(1, 1000, 2), sup, node, 2)
     _exchange(sup.commit(1, 2), sup, node, 2)
     assert node.state.usable == 1000

@@ -274,10 +274,11 @@ static void admit_voiding(struct canergy_session *s, const struct canergy_msg *m
  * yet, as every answer voids a number above 0); behind (q below the last debit held): write off,
  * lift, admit; otherwise write off what is open and credit a pending RETURN numbered next (not at
  * the end of the numbering); then void max(C, q) + 1 and answer ADMIT(n, k, C). A SYNC's counts
- * (n, q, ltx) are taken the same way, with tx and W moved up to ltx (never back), no pending
- * amount, and n ^ CANERGY_SYNC_CONFIRMED in the answer; what the last answer remembers tells a
- * RESUME from counts (bit 16 of resume_nonce). Counts that repeat the last answered with an ltx
- * above tx (another start answering a copy of the same SYNC) move tx and W up first. */
+ * (n, q, ltx) are taken the same way, with tx moved up to ltx (never back; W not: late counts
+ * may be a record's the node no longer holds), no pending amount, and n ^ CANERGY_SYNC_CONFIRMED
+ * in the answer; what the last answer remembers tells a RESUME from counts (bit 16 of
+ * resume_nonce). Counts that repeat the last answered with an ltx above tx (another start
+ * answering a copy of the same SYNC) move tx up first. */
 static void confirm(struct canergy_session *s, const struct canergy_msg *m,
                     struct canergy_session_step *step)
 {
@@ -290,16 +291,13 @@ static void confirm(struct canergy_session *s, const struct canergy_msg *m,
     if (s->resume_to != 0U && s->resume_to == s->returns_credited && s->resume_nonce == key &&
         s->resume_from == seq) {
         /* counts again from a later start that answered a copy of the same SYNC: their ltx may
-         * be above tx; tx and W move up to it (what is open written off), C stays */
+         * be above tx; tx moves up to it (what is open written off), C and W stay */
         const int64_t settled = counts ? settled_of(s, m->amount_mj) : (int64_t)s->tx;
         if (settled > (int64_t)s->tx) {
             if (s->phase != CANERGY_S_IDLE) {
                 resolve(s, CANERGY_RESOLVED_WRITTEN_OFF, step);
             }
             s->tx = (uint32_t)settled;
-            if (settled > s->witness) {
-                s->witness = (int32_t)settled;
-            }
         }
         confirmation(s, nonce, step);
         return;
@@ -324,9 +322,6 @@ static void confirm(struct canergy_session *s, const struct canergy_msg *m,
         const int64_t settled = settled_of(s, m->amount_mj);
         if (settled > (int64_t)s->tx) {
             s->tx = (uint32_t)settled;
-        }
-        if (settled > s->witness && !behind) { /* witnessed.witness_of: not a voided record's */
-            s->witness = (int32_t)settled;
         }
     }
     const uint32_t last = behind ? s->returns_credited : seq; /* max(C, q) */

@@ -160,8 +160,9 @@ def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
     also carry the node's ltx: tx moves up to it (never back); their ADMIT carries n with
     ``SYNC_CONFIRMED`` flipped. Counts that repeat the last answered but carry an ltx above tx
     come from another start of the node with the same SYNC's nonce (a copy of the SYNC reached
-    it after a restart): tx and W move up to that ltx first (what is open written off), C stays,
-    so the answer does not leave the node's ltx ahead of tx (``repeat_counts``)."""
+    it after a restart): tx moves up to that ltx first (what is open written off), C stays, so
+    the answer does not leave the node's ltx ahead of tx (``repeat_counts``). Counts here move
+    no W (``repeat_counts`` says why)."""
     seq, key = unwrap(msg.seq, s.returns_credited, SEQ_BITS), _answered(msg)
     nonce = msg.nonce ^ SYNC_CONFIRMED if msg.is_counts else msg.nonce
     if answered(s, key, seq):
@@ -180,22 +181,12 @@ def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
             step = SessionStep(s, (*step.actions, *credited), step.credit + amount)
     s = step.session
     if msg.is_counts:  # the node settled up to its ltx: no transaction begins at or below it
-        settled = ltx_of(s, msg)  # W only for counts of the books held (below: ``witness_of``)
-        s = evolve(s, tx=max(s.tx, settled), witness=witness_of(s, settled, behind))
+        s = evolve(s, tx=max(s.tx, ltx_of(s, msg)))  # W stays: see ``repeat_counts``
     void = capped(max(s.returns_credited, seq) + 1)  # any debit in flight from an old history
     s = evolve(s, returns_credited=void, resume_nonce=key, resume_from=seq, resume_to=void)
     admitted = (Admitted(s.node, s.tx, void),) if behind else ()
     answer = Send(_confirmation(s, nonce))
     return SessionStep(s, (*step.actions, *admitted, answer), step.credit)
-
-
-def witness_of(s: Session, settled: int, behind: bool) -> int:
-    """W after counts outside a start showing ltx ``settled``: moved up to it, but not by counts
-    found behind (q below C): they come from a record the supervisor has since voided past (the
-    node's life before a JOIN, or before a later start's confirmation), whose ltx the node may
-    no longer hold (a JOIN's admission sets it to k, below a SYNC it answered before). A start's
-    own counts (``take_counts``) set W first, under its nonce."""
-    return s.witness if behind else max(s.witness, settled)
 
 
 def _repeat(s: Session, nonce: int) -> SessionStep:
@@ -204,15 +195,24 @@ def _repeat(s: Session, nonce: int) -> SessionStep:
 
 def repeat_counts(s: Session, msg: Debit, nonce: int) -> SessionStep:
     """The last answered counts again (same nonce and q, C unchanged): the same answer, but with
-    tx and W moved up to their ltx when it is above tx (the open transaction written off): the
-    ltx of a later start of the node that answered a copy of the same SYNC. Without it that
-    start took the old answer, its ltx stayed B above tx and W, the next B intentions were
-    written off as old and every later begin refused until the node started again."""
+    tx moved up to their ltx when it is above tx (the open transaction written off): the ltx of
+    a later start of the node that answered a copy of the same SYNC. Without it that start took
+    the old answer, its ltx stayed B above tx, and the next B intentions were written off as
+    old.
+
+    Counts outside a start move no W, here or in ``confirm``: they may come from a record the
+    node no longer holds (a life before a JOIN whose number the admission voided to C, a start
+    since found behind, another start of an earlier life answering the same SYNC, or a late
+    RESUME of an earlier life answered after the JOIN, whose nonce its counts then carry), and
+    on the wire nothing tells them apart. W moved to such an
+    ltx let begins run past the node's own ltx + B (``canergy prove --rules witnessed`` found
+    it: clause ``witness``). A window so used up is opened by a re-sync of the node
+    (``resync_session``), whose counts come under its own fresh nonce (``take_counts``)."""
     settled = ltx_of(s, msg)
     if settled <= s.tx:
         return _repeat(s, nonce)
     step = resolve(s, Outcome.WRITTEN_OFF) if s.phase is not IDLE else SessionStep(s)
-    s = evolve(step.session, tx=settled, witness=max(step.session.witness, settled))
+    s = evolve(step.session, tx=settled)
     return SessionStep(s, (*step.actions, Send(_confirmation(s, nonce))), step.credit)
 
 

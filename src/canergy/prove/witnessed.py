@@ -481,10 +481,10 @@ def confirm(
 ) -> SessionStep:
     """RESUME(n, q, x), or a SYNC's counts (n, q, ltx in ``amount_mj``; ``counts``): write off
     what is open; behind (q below C): lift as for a JOIN; a pending RETURN numbered C + 1
-    credited (not at the end; counts carry none); counts move tx (and W, unless behind) up to
-    ltx; C = max(C, q) + 1 (voided); ADMIT(n, k, C), n flipped for counts. A repeat (same key
-    and q, C unchanged since; ``resume_to`` 0: none answered) gets the same answer
-    (``repeat_counts``)."""
+    credited (not at the end; counts carry none); counts move tx up to ltx (not W: late counts may
+    be a record's the node no longer holds); C = max(C, q) + 1 (voided); ADMIT(n, k,
+    C), n flipped for counts. A repeat (same key and q, C unchanged since; ``resume_to`` 0:
+    none answered) gets the same answer (``repeat_counts``)."""
     counts = z3.BoolVal(False) if counts is None else counts
     seq = sym.unwrap(seq16, s.returns_credited, SEQ_BITS)
     key = key_of(nonce16, counts)
@@ -516,11 +516,7 @@ def confirm(
     settled = _ltx_of(amount_mj, t.tx)
     t = sym.pick(
         counts,
-        replace(
-            t,
-            tx=z3.If(settled - t.tx > 0, settled, t.tx),
-            witness=z3.If(z3.And(z3.Not(behind), settled - t.witness > 0), settled, t.witness),
-        ),
+        replace(t, tx=z3.If(settled - t.tx > 0, settled, t.tx)),
         t,
     )
     # behind: seq < C <= the lifted C (which may be 2**31 above seq: no signed comparison)
@@ -541,7 +537,7 @@ def _ltx_of(amount_mj: Term, tx: Term) -> Term:
 
 def repeat_counts(s: Session, counts: Term, amount_mj: Term, answer_nonce: Term) -> SessionStep:
     """The same answer again; for counts with an ltx above tx (another start of the node that
-    answered a copy of the same SYNC) first what is open written off and tx and W moved up to
+    answered a copy of the same SYNC) first what is open written off and tx moved up to
     it, C unchanged."""
     settled = _ltx_of(amount_mj, s.tx)
     higher = z3.And(counts, settled - s.tx > 0)
@@ -549,7 +545,7 @@ def repeat_counts(s: Session, counts: Term, amount_mj: Term, answer_nonce: Term)
         s.phase != sym.S_IDLE, sym._resolve(s, z3.BoolVal(False)), sym._unchanged(s)
     )
     t = closed.session
-    t = replace(t, tx=settled, witness=z3.If(settled - t.witness > 0, settled, t.witness))
+    t = replace(t, tx=settled)
     moved = SessionStep(t, _confirmation(t, answer_nonce), closed.credit)
     same = SessionStep(s, _confirmation(s, answer_nonce), z3.IntVal(0))
     return sym.choose(higher, moved, same)

@@ -38,17 +38,19 @@ and nonce, Gs included (``resyncing``; not proved at its books); a JOIN ends it 
 admitted as in IDLE (``join_while_syncing``), its counts end it as a start's.
 
 The window (a) is four clauses (``witnessed``, ``window``, ``window at a start``, ``records of
-the start``): W at most tx and the node's ``reach``, tx at most ``reach`` + B, and while a start
-of the supervisor's from an older image waits, the node's record within B of the session at
-that start; residual (d) is a hypothesis of both restore steps (``not_from_an_image``,
-``far_behind``).
+the start``): W at most tx and the node's ``reach``, the highest transaction begun
+(``World.begun``) at most tx and ``reach`` + B, and while a start of the supervisor's from an
+older image waits, the node's record within B of what was begun; residual (d) is a hypothesis
+of both restore steps (``not_from_an_image``, ``far_behind``). The supervisor's last answer to
+a start is remembered with its ghosts (``World.rk``), as the last JOIN's ADMIT is, and ``P``
+holds of it while a repeat can happen.
 
-Not proved: it fails at the supervisor's DEBIT, where a SYNC's counts end the supervisor's
-start and the invariant speaks of the record started from again (its tx, C and Gs are not yet
-shown to dominate the session at the start's; 19 of its 42 obligations, ``supervisor books``
-at a re-sync's books, whose Rc ``P`` of a DEBIT does not bound by Gs, and ``window`` and
-``witness`` at counts: late ones move tx above the window, and counts ending a start move W to
-an ltx ``P`` does not bound by the node's reach): docs/protocol.md
+Not proved: it fails at the supervisor's DEBIT (23 of its 45 obligations), mostly where a
+SYNC's counts end the supervisor's start and the invariant speaks of the record started from
+again (its tx, C and Gs are not yet shown to dominate the session at the start's); a RESUME
+and late counts fail ``P`` of the ADMIT they send for a node whose record at the start settled
+ahead of tx, a re-sync's counts also at a re-sync nonce equal to the last answered start's,
+and a re-sync's books ``supervisor books`` (their Rc not bounded by Gs): docs/protocol.md
 ("Passivity as a theorem", assumption 2, items (a) to (d)); ``canergy prove --rules witnessed
 --keep-going`` lists the obligations, ``--step NAME`` checks one step. Counts that end a start
 are read against the record started from, so ``deliverable`` asks their q within 2**15 of its
@@ -110,6 +112,10 @@ def spre(w: World) -> sym.Session:
 
 def sstarts(w: World) -> Term:
     return _ghost(w.sstarts, "counts the supervisor's starts")
+
+
+def begun(w: World) -> Term:
+    return _ghost(w.begun, "has the highest transaction begun")
 
 
 def lhi(w: World) -> Term:
@@ -277,8 +283,12 @@ def credited_back(w: World) -> Term:
 
 
 def answered(s: sym.Session) -> Term:
-    """The last start answered was answered above its number (C = max(C, q) + 1)."""
-    return z3.Implies(s.resume_to != 0, z3.UGT(s.resume_to, s.resume_from))
+    """The last start answered was answered above its number (C = max(C, q) + 1), and C has
+    not gone back below that answer since."""
+    return z3.Implies(
+        s.resume_to != 0,
+        z3.And(z3.UGT(s.resume_to, s.resume_from), z3.ULE(s.resume_to, s.returns_credited)),
+    )
 
 
 def _record(c: sym.Client, booked: Term) -> Term:
@@ -392,6 +402,44 @@ def joined(w: World) -> Msg:
     return remembered(w.s, w.jk, w.jq, w.jlife)
 
 
+def answer_of(s: sym.Session, rk: Term, rstart: Term, shift_seq: Term) -> Msg:
+    """The supervisor's last answer to a start (``Session.resume_*``) with its ghosts: the
+    nonce answered (flipped for a SYNC's counts), k the last transaction closed then (``rk``),
+    Q the C it set (``resume_to``), the node's start it answered (``rstart``)."""
+    zero = z3.IntVal(0)
+    counts = z3.Extract(sym.KEY_BITS - 1, 16, s.resume_nonce) != 0
+    nonce = z3.Extract(15, 0, s.resume_nonce)
+    return Msg(
+        Kind.ADMIT,
+        w=z3.BitVecVal(0, 16),
+        amount=zero,
+        gs=zero,
+        nonce=z3.If(counts, nonce ^ SYNC_CONFIRMED, nonce),
+        admit_tx=low16(rk),
+        admit_seq=low16(s.resume_to),
+        k=rk,
+        q=s.resume_to - shift_seq,
+        life=z3.IntVal(-1),
+        flags=zero,
+        start=rstart,
+        sstart=z3.IntVal(-1),
+    )
+
+
+def last_answer(w: World) -> Msg:
+    """The supervisor's last answer to a start, with its ghosts (``World.rk``)."""
+    return answer_of(w.s, _ghost(w.rk, "has the last answer"), _ghost(w.rstart, "too"), w.shift_seq)
+
+
+def answer_remembered(w: World) -> Term:
+    """While a repeat of the supervisor's last answer to a start can happen (``resume_to`` not
+    0, and C where that answer left it), that answer is one it sent, and a repeat of the
+    start's frame gets it again (with k the same or later): its ``P`` holds, as of a frame in
+    flight."""
+    repeats = z3.And(w.s.resume_to != 0, w.s.resume_to == w.s.returns_credited)
+    return z3.Implies(repeats, p_admit(last_answer(w), w))
+
+
 def join_remembered(w: World) -> Term:
     """The ADMIT of the last JOIN admitted (``join_seq`` 0: none) is one the supervisor sent,
     and a copy of that JOIN sends it again: its ``P`` holds, as of a frame in flight."""
@@ -431,8 +479,7 @@ def far_behind(w: World) -> Term:
     """Residual (d): both records rolled back past the same event. A start of the supervisor's
     from an older image waits while the record the node holds is more than B behind the
     session at that start."""
-    v = view(w)
-    return z3.And(behind(w), w.c.phase != sym.JOINING, z3.Not(ule(v.tx, w.last + B)))
+    return z3.And(behind(w), w.c.phase != sym.JOINING, z3.Not(ule(begun(w), w.last + B)))
 
 
 def answers_this_start(w: World) -> Term:
@@ -470,22 +517,27 @@ def witnessed(w: World) -> Term:
 
 
 def window(w: World) -> Term:
-    """(a) The window: the supervisor's tx (of ``view``) at most ``reach`` + B."""
-    return z3.Implies(known(w), ule(view(w).tx, reach(w) + B))
+    """(a) The window: the highest transaction begun at most the supervisor's tx (of ``view``)
+    and at most ``reach`` + B (counts move tx over numbers nothing took)."""
+    return z3.And(
+        ule(begun(w), view(w).tx),
+        z3.Implies(w.open, begun(w) == w.tx),
+        z3.Implies(known(w), ule(begun(w), reach(w) + B)),
+    )
 
 
 def window_at_start(w: World) -> Term:
     """(a) While a supervisor's start from an older image waits, the record the node holds is
     at most B behind the session at the start (residual (d) for the rest), and at or above it
     once the node answered that start's SYNC."""
-    v = view(w)
-    answered = z3.Implies(z3.And(behind(w), answers_this_start(w)), ule(v.tx, w.last))
+    answered = z3.Implies(z3.And(behind(w), answers_this_start(w)), ule(begun(w), w.last))
     return z3.And(z3.Not(far_behind(w)), answered)
 
 
 STATE: tuple[tuple[str, inv.Clause], ...] = (
     *((name, _REPLACED.get(name, _on_view(clause))) for name, clause in inv.STATE),
     ("remembered JOIN", join_remembered),
+    ("remembered answer", answer_remembered),
     ("records of the start", start_records),
     ("witness", witnessed),
     ("window", window),
@@ -518,12 +570,24 @@ IMAGE_JOIN = (
 JOIN's (``World.jk``): any, of an ADMIT it sent."""
 
 
+IMAGE_ANSWER = (
+    z3.BitVec("session_image.answer_k", sym.COUNTER),
+    z3.Int("session_image.answer_start"),
+)
+"""The ghosts of the last answer to a start that an older image of the supervisor's record
+remembers (``World.rk``): any, of an ADMIT it sent."""
+
+
 def p_session_image(r: sym.Session, w: World) -> Term:
     """An older image of the supervisor's record: the hardened ``p_session_image`` against
-    ``view``, its last start answered above its number, and the ADMIT of its last JOIN
-    admitted one that was sent (``P`` holds of it now, as of every ADMIT sent)."""
+    ``view``, its last start answered above its number, and the ADMITs of its last JOIN
+    admitted and its last start answered ones that were sent (``P`` holds of them now, as of
+    every ADMIT sent)."""
     sent = z3.Implies(r.join_seq != 0, p_admit(remembered(r, *IMAGE_JOIN), w))
-    return z3.And(inv.p_session_image(r, view(w)), answered(r), sent)
+    answer = answer_of(r, *IMAGE_ANSWER, w.shift_seq)
+    repeats = z3.And(r.resume_to != 0, r.resume_to == r.returns_credited)
+    answer_sent = z3.Implies(repeats, p_admit(answer, w))
+    return z3.And(inv.p_session_image(r, view(w)), answered(r), sent, answer_sent)
 
 
 def _msg_on_view(clause: inv.MsgClause) -> inv.MsgClause:
@@ -573,9 +637,12 @@ def p_debit(m: Msg, w: World) -> Term:
         ),
         z3.Implies(counts, z3.Int2BV(m.amount, 16) == low16(m.q)),
         z3.Implies(z3.And(current_sync(m, w), counts, m.life == w.life), w.c.phase != sym.JOINING),
+        z3.Implies(m.life == w.life, w.c.phase != sym.JOINING),  # a life joining sends none
+        # a start of this life began after every frame of an earlier life
+        z3.Implies(z3.And(m.life < w.life, starting(w.c)), m.start < starts(w)),
         # a life that began after its answer began in this start, whose JOIN waits for its end
         z3.Implies(z3.And(current_sync(m, w), counts, m.life < w.life), z3.Not(w.admitted)),
-        z3.Implies(z3.And(current_sync(m, w), counts, behind(w)), ule(v.tx, m.q)),
+        z3.Implies(z3.And(current_sync(m, w), counts, behind(w)), ule(begun(w), m.q)),
     )
 
 
@@ -636,7 +703,7 @@ def p_admit(m: Msg, w: World) -> Term:
                 ule(start_seq(w), m.q),
                 ule(v.last, m.k),
                 ule(v.s.witness, m.k + w.shift_tx),  # the window: nothing witnessed
-                ule(v.tx, m.k + B),  # since it was sent, nor begun past it
+                ule(begun(w), m.k + B),  # since it was sent, nor begun past it
                 z3.Implies(w.c.phase == sym.SYNCING, ule(w.last, m.k)),
             ),
         ),
@@ -663,8 +730,14 @@ def p_admit(m: Msg, w: World) -> Term:
     return z3.If(m.life == -1, ours, join)
 
 
+def _begun(clause: inv.MsgClause) -> inv.MsgClause:
+    """An INTENTION, COMMIT or ABORT names a transaction begun (``World.begun``)."""
+    return lambda m, w: z3.And(clause(m, view(w)), ule(m.k, begun(w)))
+
+
 MESSAGE: dict[Kind, inv.MsgClause] = {
     **{kind: _msg_on_view(p) for kind, p in inv.MESSAGE.items()},
+    **{kind: _begun(inv.MESSAGE[kind]) for kind in (Kind.INTENTION, Kind.COMMIT, Kind.ABORT)},
     Kind.ADMIT: p_admit,
     Kind.RETURN: p_return,
     Kind.ABORTED: p_aborted,
@@ -690,7 +763,18 @@ def deliverable(m: Msg, w: World) -> Term:
         # the books and counts a start takes answer its own SYNC: the nonces of the
         # supervisor's starts differ, and from the node's (as assumption 5 asks of JOINs)
         books = z3.And(w.s.phase == sym.SYNCING, m.nonce == w.s.sync_nonce, wit.is_books(m.flags))
+        # a RESUME the supervisor's last answer answered (its key and number) is of the start
+        # that answer answered: a node's starts draw distinct nonces (assumption 5)
+        resume = z3.Or(m.flags == wit.START, m.flags == wit.START | wit.DRAW)
+        seq = sym.unwrap(m.w, w.s.returns_credited, SEQ_BITS)
+        again = z3.And(
+            resume,
+            w.s.resume_to != 0,
+            w.s.resume_nonce == wit.key_of(m.nonce, z3.BoolVal(False)),
+            w.s.resume_from == seq,
+        )
         return z3.And(
+            z3.Implies(again, m.start == _ghost(w.rstart, "has the last answer")),
             age,
             z3.Implies(counts, inv.near(w.last, w.tx)),
             z3.Implies(ending, inv.near(m.k, w.rc)),
@@ -1027,6 +1111,13 @@ def on_debit(w: World, m: Msg) -> st.Step:
         shift_seq=w.shift_seq + z3.If(lifted, lift_seq, zero),
     )
     after = taken.after
+    fresh_answer = z3.And(z3.Or(resumes, counted_), z3.Not(repeat))
+    after = replace(
+        after,
+        rk=z3.If(fresh_answer, after.tx, _ghost(w.rk, "has the last answer")),
+        rstart=z3.If(fresh_answer, m.start, _ghost(w.rstart, "has the last answer")),
+    )
+    taken = replace(taken, after=after)
     lemmas = (
         ("lemma: C does not go back", ule(w.rc, after.rc)),
         ("lemma: tx does not go back", ule(w.tx, after.tx)),
@@ -1036,6 +1127,7 @@ def on_debit(w: World, m: Msg) -> st.Step:
 
 def begin(w: World, amount: Term) -> st.Step:
     step = _session(w, sym.begin(w.s, amount), cc=z3.BoolVal(False))
+    step = replace(step, after=replace(step.after, begun=step.after.tx))
     most = AMOUNT_MAX_MJ * QUANTUM_UJ
     valid = z3.And(amount % QUANTUM_UJ == 0, amount >= QUANTUM_UJ, amount <= most)
     return replace(step, enabled=z3.And(w.s.phase == sym.S_IDLE, valid, wit.may_begin(w.s)))
@@ -1050,7 +1142,11 @@ def decide(commit: bool) -> st.Local:
 
 
 def restore_supervisor(
-    w: World, image: sym.Session, nonce: Term, join: tuple[Term, Term, Term] | None = None
+    w: World,
+    image: sym.Session,
+    nonce: Term,
+    join: tuple[Term, Term, Term] | None = None,
+    answer: tuple[Term, Term] | None = None,
 ) -> st.Step:
     """The supervisor's state file put back to an older ``image`` and started from it (a SYNC
     start): Us comes back with the file, so the session moves into Us what its books count less
@@ -1070,6 +1166,8 @@ def restore_supervisor(
     )
     if join is not None:
         after = replace(after, jk=join[0], jq=join[1], jlife=join[2])
+    if answer is not None:
+        after = replace(after, rk=answer[0], rstart=answer[1])
     books = image.reserved + image.delivered - image.returned
     now = w.s.reserved + w.s.delivered - w.s.returned
     sent = st.supervisor_sent(after, step.sent, z3.IntVal(-1))

@@ -97,6 +97,16 @@ class World:
     """Witnessed rules: the highest ltx of the records of the node's current start (canonical):
     the record at the start and every record it answered from since (a SYNC's answer settles B
     ahead); outside a start, the ltx of the record it holds. Hardened: unused."""
+    rk: Term | None = None
+    """Witnessed rules: the ghosts of the supervisor's last answer to a start (a RESUME or a
+    SYNC's counts; ``Session.resume_*``), which a repeat of that start's frame gets again with
+    the same or a later k: its k in canonical numbering (``rk``) and the node's start it
+    answered (``rstart``). Hardened: unused."""
+    rstart: Term | None = None
+    begun: Term | None = None
+    """Witnessed rules: the highest transaction begun (canonical) in any history of the
+    supervisor's, a pure function of the run: every INTENTION, COMMIT and ABORT names one at
+    most it (a SYNC's counts move tx over numbers no transaction took). Hardened: unused."""
 
     # canonical views
     @property
@@ -204,9 +214,13 @@ def any_world(name: str = "w", with_pre: bool = True) -> World:
     jq = _fresh(f"{name}.jq.", BV32) if with_pre else None
     jlife = _fresh(f"{name}.jlife.", INT) if with_pre else None
     lhi = _fresh(f"{name}.lhi.", BV32) if with_pre else None
+    rk = _fresh(f"{name}.rk.", BV32) if with_pre else None
+    rstart = _fresh(f"{name}.rstart.", INT) if with_pre else None
+    begun = _fresh(f"{name}.begun.", BV32) if with_pre else None
     return World(
         s, c, **ghost, pre=pre, starts=starts, top=top, spre=spre, sstarts=sstarts,
-        answering=answering, jk=jk, jq=jq, jlife=jlife, lhi=lhi,
+        answering=answering, jk=jk, jq=jq, jlife=jlife, lhi=lhi, rk=rk, rstart=rstart,
+        begun=begun,
     )  # fmt: skip
 
 
@@ -249,7 +263,7 @@ def initial_world() -> World:
     return World(
         s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,
         z3.BoolVal(True), zero32, c, zero, zero32, s, zero, z3.IntVal(-1), zero32, zero32, zero,
-        zero32,
+        zero32, zero32, z3.IntVal(-1), zero32,
     )  # fmt: skip
 
 

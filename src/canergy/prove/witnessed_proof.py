@@ -426,18 +426,30 @@ def answer_of(s: sym.Session, rk: Term, rstart: Term, shift_seq: Term) -> Msg:
     )
 
 
+def rk(w: World) -> Term:
+    return _ghost(w.rk, "has the last answer's k")
+
+
+def rstart(w: World) -> Term:
+    return _ghost(w.rstart, "has the start the last answer answered")
+
+
 def last_answer(w: World) -> Msg:
     """The supervisor's last answer to a start, with its ghosts (``World.rk``)."""
-    return answer_of(w.s, _ghost(w.rk, "has the last answer"), _ghost(w.rstart, "too"), w.shift_seq)
+    return answer_of(w.s, rk(w), rstart(w), w.shift_seq)
+
+
+def may_repeat(s: sym.Session) -> Term:
+    """A repeat of the last answer to a start can happen: one was given (``resume_to`` not 0)
+    and C is where it left it."""
+    return z3.And(s.resume_to != 0, s.resume_to == s.returns_credited)
 
 
 def answer_remembered(w: World) -> Term:
-    """While a repeat of the supervisor's last answer to a start can happen (``resume_to`` not
-    0, and C where that answer left it), that answer is one it sent, and a repeat of the
-    start's frame gets it again (with k the same or later): its ``P`` holds, as of a frame in
-    flight."""
-    repeats = z3.And(w.s.resume_to != 0, w.s.resume_to == w.s.returns_credited)
-    return z3.Implies(repeats, p_admit(last_answer(w), w))
+    """While a repeat of the supervisor's last answer to a start can happen, that answer is
+    one it sent, and a repeat of the start's frame gets it again (with k the same or later):
+    its ``P`` holds, as of a frame in flight."""
+    return z3.Implies(may_repeat(w.s), p_admit(last_answer(w), w))
 
 
 def join_remembered(w: World) -> Term:
@@ -478,7 +490,7 @@ def behind(w: World) -> Term:
 def far_behind(w: World) -> Term:
     """Residual (d): both records rolled back past the same event. A start of the supervisor's
     from an older image waits while the record the node holds is more than B behind the
-    session at that start."""
+    highest transaction begun (``World.begun``)."""
     return z3.And(behind(w), w.c.phase != sym.JOINING, z3.Not(ule(begun(w), w.last + B)))
 
 
@@ -585,8 +597,7 @@ def p_session_image(r: sym.Session, w: World) -> Term:
     every ADMIT sent)."""
     sent = z3.Implies(r.join_seq != 0, p_admit(remembered(r, *IMAGE_JOIN), w))
     answer = answer_of(r, *IMAGE_ANSWER, w.shift_seq)
-    repeats = z3.And(r.resume_to != 0, r.resume_to == r.returns_credited)
-    answer_sent = z3.Implies(repeats, p_admit(answer, w))
+    answer_sent = z3.Implies(may_repeat(r), p_admit(answer, w))
     return z3.And(inv.p_session_image(r, view(w)), answered(r), sent, answer_sent)
 
 
@@ -774,7 +785,7 @@ def deliverable(m: Msg, w: World) -> Term:
             w.s.resume_from == seq,
         )
         return z3.And(
-            z3.Implies(again, m.start == _ghost(w.rstart, "has the last answer")),
+            z3.Implies(again, m.start == rstart(w)),
             age,
             z3.Implies(counts, inv.near(w.last, w.tx)),
             z3.Implies(ending, inv.near(m.k, w.rc)),
@@ -1114,8 +1125,8 @@ def on_debit(w: World, m: Msg) -> st.Step:
     fresh_answer = z3.And(z3.Or(resumes, counted_), z3.Not(repeat))
     after = replace(
         after,
-        rk=z3.If(fresh_answer, after.tx, _ghost(w.rk, "has the last answer")),
-        rstart=z3.If(fresh_answer, m.start, _ghost(w.rstart, "has the last answer")),
+        rk=z3.If(fresh_answer, after.tx, rk(w)),
+        rstart=z3.If(fresh_answer, m.start, rstart(w)),
     )
     taken = replace(taken, after=after)
     lemmas = (

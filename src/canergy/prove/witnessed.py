@@ -489,12 +489,7 @@ def confirm(
     seq = sym.unwrap(seq16, s.returns_credited, SEQ_BITS)
     key = key_of(nonce16, counts)
     answer_nonce = z3.If(counts, nonce16 ^ SYNC_CONFIRMED, nonce16)
-    repeat = z3.And(
-        s.resume_to != 0,
-        s.resume_to == s.returns_credited,
-        s.resume_nonce == key,
-        s.resume_from == seq,
-    )
+    repeat = repeats(s, key, seq)
     behind = seq - s.returns_credited < 0
     lifted = admitted_afresh(s, nonce16)
     closed = sym.choose(
@@ -525,6 +520,18 @@ def confirm(
     t = replace(t, returns_credited=void, resume_nonce=key, resume_from=seq, resume_to=void)
     answered = SessionStep(t, _confirmation(t, answer_nonce), step.credit)
     return sym.choose(repeat, repeat_counts(s, counts, amount_mj, answer_nonce), answered)
+
+
+def may_repeat(s: Session) -> Term:
+    """A repeat of the last answer to a start can happen: one was given (``resume_to`` not 0)
+    and C is where it left it."""
+    return z3.And(s.resume_to != 0, s.resume_to == s.returns_credited)
+
+
+def repeats(s: Session, key: Term, seq: Term) -> Term:
+    """``witnessed.answered``: the start's frame (its ``key`` and number ``seq``) is the last
+    one answered, and C has not moved since."""
+    return z3.And(may_repeat(s), s.resume_nonce == key, s.resume_from == seq)
 
 
 def _ltx_of(amount_mj: Term, tx: Term) -> Term:

@@ -439,17 +439,11 @@ def last_answer(w: World) -> Msg:
     return answer_of(w.s, rk(w), rstart(w), w.shift_seq)
 
 
-def may_repeat(s: sym.Session) -> Term:
-    """A repeat of the last answer to a start can happen: one was given (``resume_to`` not 0)
-    and C is where it left it."""
-    return z3.And(s.resume_to != 0, s.resume_to == s.returns_credited)
-
-
 def answer_remembered(w: World) -> Term:
     """While a repeat of the supervisor's last answer to a start can happen, that answer is
     one it sent, and a repeat of the start's frame gets it again (with k the same or later):
     its ``P`` holds, as of a frame in flight."""
-    return z3.Implies(may_repeat(w.s), p_admit(last_answer(w), w))
+    return z3.Implies(wit.may_repeat(w.s), p_admit(last_answer(w), w))
 
 
 def join_remembered(w: World) -> Term:
@@ -597,7 +591,7 @@ def p_session_image(r: sym.Session, w: World) -> Term:
     every ADMIT sent)."""
     sent = z3.Implies(r.join_seq != 0, p_admit(remembered(r, *IMAGE_JOIN), w))
     answer = answer_of(r, *IMAGE_ANSWER, w.shift_seq)
-    answer_sent = z3.Implies(may_repeat(r), p_admit(answer, w))
+    answer_sent = z3.Implies(wit.may_repeat(r), p_admit(answer, w))
     return z3.And(inv.p_session_image(r, view(w)), answered(r), sent, answer_sent)
 
 
@@ -774,16 +768,11 @@ def deliverable(m: Msg, w: World) -> Term:
         # the books and counts a start takes answer its own SYNC: the nonces of the
         # supervisor's starts differ, and from the node's (as assumption 5 asks of JOINs)
         books = z3.And(w.s.phase == sym.SYNCING, m.nonce == w.s.sync_nonce, wit.is_books(m.flags))
-        # a RESUME the supervisor's last answer answered (its key and number) is of the start
-        # that answer answered: a node's starts draw distinct nonces (assumption 5)
+        # a RESUME that repeats the supervisor's last answered is of the start that answer
+        # answered: a node's starts draw distinct nonces (assumption 5)
         resume = z3.Or(m.flags == wit.START, m.flags == wit.START | wit.DRAW)
         seq = sym.unwrap(m.w, w.s.returns_credited, SEQ_BITS)
-        again = z3.And(
-            resume,
-            w.s.resume_to != 0,
-            w.s.resume_nonce == wit.key_of(m.nonce, z3.BoolVal(False)),
-            w.s.resume_from == seq,
-        )
+        again = z3.And(resume, wit.repeats(w.s, wit.key_of(m.nonce, z3.BoolVal(False)), seq))
         return z3.And(
             z3.Implies(again, m.start == rstart(w)),
             age,
@@ -1105,12 +1094,7 @@ def on_debit(w: World, m: Msg) -> st.Step:
     )
     counted_ = z3.And(s.phase == sym.SYNC_BOOKS, m.nonce == s.sync_nonce, counts)
     seq = sym.unwrap(m.w, s.returns_credited, SEQ_BITS)
-    repeat = z3.And(
-        s.resume_to != 0,
-        s.resume_to == s.returns_credited,
-        s.resume_nonce == wit.key_of(m.nonce, counts),
-        s.resume_from == seq,
-    )
+    repeat = wit.repeats(s, wit.key_of(m.nonce, counts), seq)
     lifted = z3.And(z3.Or(resumes, counted_), seq - s.returns_credited < 0, z3.Not(repeat))
     lift_tx, lift_seq = _lift(s)
     zero = sym.counter(0)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import socket
+import stat
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -222,6 +223,48 @@ def test_the_server_removes_only_the_socket_it_made(tmp_path: Path) -> None:
     ctl.write_text("someone else's file")  # the path was taken over while it ran
     server.close()
     assert ctl.read_text() == "someone else's file"
+
+
+def test_the_control_socket_appears_only_once_it_listens(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A client that connects as soon as the file is there (what scripts and tests do) is never
+    refused: between the bind and the listen nothing is at the path yet."""
+    ctl = tmp_path / "ctl.sock"
+    seen: list[bool] = []
+    listen = socket.socket.listen
+
+    def watched(sock: socket.socket, backlog: int) -> None:
+        seen.append(ctl.exists())
+        listen(sock, backlog)
+
+    monkeypatch.setattr(socket.socket, "listen", watched)
+    server = ControlServer(ctl)
+    try:
+        assert seen == [False]
+        assert _ask_status(ctl, server) == {"status": "ok"}
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["ctl.sock"]  # no temporary left
+        assert stat.S_IMODE(os.lstat(ctl).st_mode) == 0o600
+    finally:
+        server.close()
+    assert not ctl.exists()
+
+
+def test_a_path_taken_between_the_check_and_the_rename_is_left_alone(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    ctl = tmp_path / "ctl.sock"
+    listen = socket.socket.listen
+
+    def racing(sock: socket.socket, backlog: int) -> None:
+        listen(sock, backlog)
+        ctl.write_text("another process's file")  # after the check, before the rename
+
+    monkeypatch.setattr(socket.socket, "listen", racing)
+    with pytest.raises(ValueError, match="another process took it"):
+        ControlServer(ctl)
+    assert ctl.read_text() == "another process's file"
+    assert [p.name for p in tmp_path.iterdir()] == ["ctl.sock"]
 
 
 # -- --inject --------------------------------------------------------------------------------

@@ -19,10 +19,13 @@ once per uid. (Where the platform has no ``SO_PEERCRED`` the mode alone guards i
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import errno
 import json
 import logging
 import os
 import queue
+import secrets
 import socket
 import stat
 import struct
@@ -75,24 +78,52 @@ _UMASK = threading.Lock()
 def _listening(path: Path) -> socket.socket:
     """A socket listening at ``path``, mode 0600 whatever the umask: umask 077 during bind (it
     is the process's: a file another thread creates in that instant comes out narrower, never
-    wider), so no one else can connect at any moment; it listens right after the bind (a client
-    that connects as soon as the file appears is refused only in that instant), and chmod then
-    clears the owner's x bit. Bound at ``path`` itself: clients were refused at a socket
-    hard-linked into place in user-mode Linux (hostfs)."""
+    wider), so no one else can connect at any moment. It is bound and listening under a
+    temporary name in the same directory and then renamed to ``path`` without replacing
+    anything there, so a client that connects as soon as the file appears is never refused
+    (where the temporary name would be too long for a socket, it is bound at ``path`` itself).
+    ``FileExistsError`` when something took ``path`` meanwhile."""
+    temp = path.with_name(f".canergy-{secrets.token_hex(4)}")
+    if len(os.fsencode(temp)) > MAX_SOCKET_PATH:
+        temp = path
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         with _UMASK:
             old = os.umask(0o077)
             try:
-                sock.bind(str(path))
+                sock.bind(str(temp))
                 sock.listen(8)
             finally:
                 os.umask(old)
-        os.chmod(path, 0o600)
+        os.chmod(temp, 0o600)
+        if temp != path:
+            try:
+                rename_no_replace(temp, path)
+            finally:
+                with contextlib.suppress(FileNotFoundError):
+                    temp.unlink()
     except OSError:
         sock.close()
         raise
     return sock
+
+
+def rename_no_replace(src: Path, dst: Path) -> None:
+    """Rename ``src`` to ``dst``, ``FileExistsError`` where ``dst`` exists: renameat2 with
+    RENAME_NOREPLACE where the C library has it, else a hard link and an unlink of ``src``
+    (which leaves ``src`` in place when ``dst`` exists)."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    renameat2 = getattr(libc, "renameat2", None)
+    if renameat2 is not None:
+        at_fdcwd, noreplace = -100, 1
+        renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p] * 2 + [ctypes.c_uint]
+        if renameat2(at_fdcwd, os.fsencode(src), at_fdcwd, os.fsencode(dst), noreplace) == 0:
+            return
+        err = ctypes.get_errno()
+        if err not in (errno.EINVAL, errno.ENOSYS):  # the file system or kernel lacks the flag
+            raise OSError(err, os.strerror(err), str(dst))
+    os.link(src, dst)
+    os.unlink(src)
 
 
 def peer_credentials(conn: socket.socket) -> tuple[int, int] | None:
@@ -119,7 +150,13 @@ class ControlServer:
         if check_control_path(path):
             with contextlib.suppress(FileNotFoundError):
                 path.unlink()
-        self._sock = _listening(path)
+        try:
+            self._sock = _listening(path)
+        except OSError as exc:
+            if isinstance(exc, FileExistsError) or exc.errno == errno.EADDRINUSE:
+                taken = f"--control {path}: another process took it as it started"
+                raise ValueError(taken) from exc
+            raise
         st = os.lstat(path)
         self._made = (st.st_dev, st.st_ino)
         self._thread = threading.Thread(target=self._serve, name="canergy-control", daemon=True)

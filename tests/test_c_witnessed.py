@@ -1014,8 +1014,9 @@ def test_an_admission_lifting_tx_leaves_w_in_c_as_in_python(frame: Join | Debit)
         Session(1, tx=5, witness=5, phase=Phase.WAIT_ACK, reserved=1000, tries=1, deadline=9),
         Session(1, tx=5, witness=5, phase=Phase.SYNCING, sync_nonce=0x51, deadline=9),
         Session(1, tx=5, witness=5, phase=Phase.SYNC_BOOKS, sync_nonce=0x51, resync=True),
+        Session(1, tx=10, witness=10, returns_credited=50, resume_nonce=0x10707, resume_to=50),
     ],
-    ids=["idle", "open", "start", "re-sync"],
+    ids=["idle", "open", "start", "re-sync", "idle after an answer to 0x0707"],
 )
 def test_a_resync_in_c_as_in_python(s: Session, nonce: int) -> None:
     """``canergy_session_resync`` as ``witnessed.resync_session``: from IDLE the session waits

@@ -322,6 +322,55 @@ def test_a_replayed_counts_frame_of_an_earlier_sync_moves_no_tx() -> None:
     assert walked is s
 
 
+ANSWERED = Session(
+    node=1, tx=10, witness=10, returns_credited=50, resume_nonce=0x10707, resume_from=49,
+    resume_to=50,
+)  # fmt: skip
+"""Idle after a start answered: the counts (0x0707, q 49) got ADMIT(0x8707, 10, 50)."""
+
+
+@pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])
+@pytest.mark.parametrize("how", ["re-sync", "start"])
+def test_a_sync_never_takes_the_nonce_of_the_last_start_answered(
+    core: type[Supervisor], how: str
+) -> None:
+    """A re-sync or a start handed the nonce of the last start answered (0x0707, or 0x8707
+    with SYNC_CONFIRMED set) sends its SYNC under another (0x0706): counts under it with the
+    same q would read as a repeat of that answer (the same ADMIT, C not voided, nothing
+    taken). The node's counts under the SYNC's nonce are then taken afresh: found behind (q 49
+    below C 50), C lifted, the answer remembered under the new nonce."""
+    sup = core(
+        [1],
+        0,
+        variant="witnessed",
+        timing=TIMING,
+        state=SupervisorState(0, 0, sessions=(ANSWERED,)),
+    )
+    if how == "re-sync":
+        sent = [a.message for a in sup.resync(1, 0, nonce=0x8707) if isinstance(a, Send)]
+        assert sent == [Admit(1, 0x0706, 10, 50)]
+    else:
+        sup.power_loss(0, nonce=0x0707)
+    assert sup.session(1).sync_nonce == 0x0706
+    sup.receive(Debit.books(1, 0x0706, 0), 1)
+    answer = [
+        a.message for a in sup.receive(Debit.counts(1, 0x0706, 49, 10), 1) if isinstance(a, Send)
+    ]
+    done = sup.session(1)
+    assert done.phase is Phase.IDLE and done.resume_nonce == 0x10706
+    assert done.returns_credited > 50 and len(answer) == 1
+    assert answer[0].nonce == 0x0706 ^ SYNC_CONFIRMED  # type: ignore[union-attr]
+    other = core(
+        [1],
+        0,
+        variant="witnessed",
+        timing=TIMING,
+        state=SupervisorState(0, 0, sessions=(ANSWERED,)),
+    )
+    other.resync(1, 0, nonce=0x0708)
+    assert other.session(1).sync_nonce == 0x0708  # any other nonce as drawn
+
+
 # -- an admission into C's higher 2^16 block --------------------------------------------------
 LIFTED = Session(1, tx=10, witness=10, returns_credited=70_000)
 """C ran 65,536 numbers past tx's block (witnessed draws): tx 10, W 10, C 70,000."""

@@ -552,6 +552,20 @@ void canergy_session_restart(struct canergy_session *s, uint64_t now,
     s->deadline = open_phase(s) ? now : CANERGY_NEVER;
 }
 
+#ifdef CANERGY_WITNESSED
+/* The nonce of a start's or a re-sync's SYNC (witnessed.sync_nonce_for): SYNC_CONFIRMED clear,
+ * and never the nonce of the last start answered (its lowest bit flipped then): counts under
+ * it with the same q would read as a repeat of that answer. */
+static uint16_t sync_nonce_for(const struct canergy_session *s, uint16_t nonce)
+{
+    uint16_t n = (uint16_t)(nonce & ~CANERGY_SYNC_CONFIRMED);
+    if (s->resume_to != 0U && (uint16_t)(s->resume_nonce & 0xFFFFUL) == n) {
+        n = (uint16_t)(n ^ 1U);
+    }
+    return n;
+}
+#endif
+
 void canergy_session_start(struct canergy_session *s, const struct canergy_session_timing *t,
                            uint16_t nonce, uint64_t now, struct canergy_session_step *step)
 {
@@ -562,7 +576,7 @@ void canergy_session_start(struct canergy_session *s, const struct canergy_sessi
             resolve(s, CANERGY_RESOLVED_WRITTEN_OFF, step); /* the older copy may not know */
         }
         s->phase = CANERGY_S_SYNCING;
-        s->sync_nonce = (uint16_t)(nonce & ~CANERGY_SYNC_CONFIRMED); /* never a confirmation */
+        s->sync_nonce = sync_nonce_for(s, nonce);
         s->deadline = now;
         s->resync = 0U;
         return;
@@ -580,7 +594,7 @@ int canergy_session_resync(struct canergy_session *s, const struct canergy_sessi
 #ifdef CANERGY_WITNESSED
     if (rules_witnessed(t->rules) && s->phase == CANERGY_S_IDLE) {
         s->phase = CANERGY_S_SYNCING;
-        s->sync_nonce = (uint16_t)(nonce & ~CANERGY_SYNC_CONFIRMED); /* never a confirmation */
+        s->sync_nonce = sync_nonce_for(s, nonce);
         s->deadline = serial_after(now, t->response_timeout_us);
         s->resync = 1U;
         send_sync(s, step);

@@ -283,14 +283,25 @@ def start(t: Timing, s: Session, event: PowerLoss, now: int) -> SessionStep:
     """A start (after a power loss or from an older copy: the supervisor cannot tell): write
     off what is open and send SYNC(n) at once (its timer is due), re-sent every response
     timeout without end; grant nothing until the node has answered with its books
-    (``Supervisor.unconfirmed``). The SYNC's nonce has ``SYNC_CONFIRMED`` clear: a node takes
-    no ADMIT with it set as a SYNC (``answer_sync``)."""
+    (``Supervisor.unconfirmed``). The SYNC's nonce: ``sync_nonce_for``."""
     step = SessionStep(s)
     if s.phase not in (IDLE, *SYNC_PHASES):
         step = resolve(s, Outcome.WRITTEN_OFF)
-    nonce = event.nonce & ~SYNC_CONFIRMED  # a SYNC never reads as a confirmation of counts
+    nonce = sync_nonce_for(step.session, event.nonce)
     s = evolve(step.session, phase=SYNCING, sync_nonce=nonce, deadline=now, resync=False)
     return SessionStep(s, step.actions, step.credit)
+
+
+def sync_nonce_for(s: Session, nonce: int) -> int:
+    """The nonce of a start's or a re-sync's SYNC, from the caller's fresh one:
+    ``SYNC_CONFIRMED`` clear (a node takes no ADMIT with it set as a SYNC: ``answer_sync``),
+    and never the nonce of the last start answered (``resume_nonce``; its lowest bit flipped
+    then): counts under it with the same q would read as a repeat of that answer and get it
+    again instead of being taken."""
+    nonce &= 0xFFFF & ~SYNC_CONFIRMED
+    if s.resume_to != 0 and nonce == wrap(s.resume_nonce, NONCE_BITS):
+        nonce ^= 1
+    return nonce
 
 
 def resync_session(t: Timing, s: Session, nonce: int, now: int) -> SessionStep:
@@ -306,7 +317,7 @@ def resync_session(t: Timing, s: Session, nonce: int, now: int) -> SessionStep:
         raise LocalProtocolError(
             f"node {s.node}: a re-sync starts only with no transaction open and no start waiting"
         )
-    nonce &= ~SYNC_CONFIRMED  # as a start's: never a confirmation of counts
+    nonce = sync_nonce_for(s, nonce)
     deadline = now + t.response_timeout_us
     s = evolve(s, phase=SYNCING, sync_nonce=nonce, deadline=deadline, resync=True)
     return SessionStep(s, (Send(_sync(s)),))

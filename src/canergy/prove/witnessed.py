@@ -376,9 +376,17 @@ def start(s: Session, nonce16: Term) -> SessionStep:
     with a new nonce (SYNC is sent by ``resend_sync``, its timer due at once); no re-sync."""
     open_ = z3.Or(*(s.phase == p for p in OPEN))
     step = sym.choose(open_, sym._resolve(s, z3.BoolVal(False)), sym._unchanged(s))
-    nonce = nonce16 & (0xFFFF ^ SYNC_CONFIRMED)  # never reads as a confirmation of counts
+    nonce = sync_nonce_for(step.session, nonce16)
     waiting = replace(step.session, phase=sym.SYNCING, sync_nonce=nonce, resync=z3.BoolVal(False))
     return SessionStep(waiting, Sent.none(), step.credit)
+
+
+def sync_nonce_for(s: Session, nonce16: Term) -> Term:
+    """``witnessed.sync_nonce_for``: ``SYNC_CONFIRMED`` clear, and not the nonce of the last
+    start answered (its lowest bit flipped then)."""
+    nonce = nonce16 & (0xFFFF ^ SYNC_CONFIRMED)
+    last = z3.And(s.resume_to != 0, z3.Extract(NONCE_BITS - 1, 0, s.resume_nonce) == nonce)
+    return z3.If(last, nonce ^ 1, nonce)
 
 
 def may_resync(s: Session) -> Term:
@@ -390,7 +398,7 @@ def resync_session(s: Session, nonce16: Term) -> SessionStep:
     """``witnessed.resync_session`` (from IDLE, ``may_resync``): SYNCING under the fresh nonce
     (``SYNC_CONFIRMED`` cleared), ``resync`` set, SYNC(n, tx, C) sent at once; nothing else
     moves."""
-    nonce = nonce16 & (0xFFFF ^ SYNC_CONFIRMED)
+    nonce = sync_nonce_for(s, nonce16)
     waiting = replace(s, phase=sym.SYNCING, sync_nonce=nonce, resync=z3.BoolVal(True))
     return SessionStep(waiting, _sync(waiting), z3.IntVal(0))
 

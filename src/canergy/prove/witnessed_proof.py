@@ -49,13 +49,12 @@ Not proved: it fails at the supervisor's DEBIT (23 of its 45 obligations), mostl
 SYNC's counts end the supervisor's start and the invariant speaks of the record started from
 again (its tx, C and Gs are not yet shown to dominate the session at the start's); a RESUME
 and late counts fail ``P`` of the ADMIT they send for a node whose record at the start settled
-ahead of tx, a re-sync's counts also at a re-sync nonce equal to the last answered start's,
-and a re-sync's books ``supervisor books`` (their Rc not bounded by Gs): docs/protocol.md
-("Passivity as a theorem", assumption 2, items (a) to (d)); ``canergy prove --rules witnessed
---keep-going`` lists the obligations, ``--step NAME`` checks one step. Counts that end a start
-are read against the record started from, so ``deliverable`` asks their q within 2**15 of its
-C (assumption 3 of the receiver's counter), and ``bounded`` its tx below the cap where their
-ltx is held (assumption 4).
+ahead of tx, a re-sync's counts there too, and a re-sync's books ``supervisor books`` (their
+Rc not bounded by Gs): docs/protocol.md ("Passivity as a theorem", assumption 2, items (a) to
+(d)); ``canergy prove --rules witnessed --keep-going`` lists the obligations, ``--step NAME``
+checks one step. Counts that end a start are read against the record started from, so
+``deliverable`` asks their q within 2**15 of its C (assumption 3 of the receiver's counter),
+and ``bounded`` its tx below the cap where their ltx is held (assumption 4).
 """
 
 from __future__ import annotations
@@ -220,10 +219,16 @@ def supervisor_books(w: World) -> Term:
         answered(s),
         inv.decision(w),
         inv.lifts(w),
-        z3.Implies(wit.in_start(s), waiting(w)),
+        z3.Implies(wit.in_start(s), z3.And(waiting(w), fresh_sync(s))),
         z3.Implies(s.resync, resyncing(w)),
         sstarts(w) >= 0,
     )
+
+
+def fresh_sync(s: sym.Session) -> Term:
+    """A start's SYNC waits under a nonce not the last start answered's (``sync_nonce_for``):
+    its counts are never read as a repeat of that answer."""
+    return wit.sync_nonce_for(s, s.sync_nonce) == s.sync_nonce
 
 
 RESYNC_KEPT = (

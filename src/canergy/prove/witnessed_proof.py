@@ -45,11 +45,17 @@ of both restore steps (``not_from_an_image``, ``far_behind``). The supervisor's 
 a start is remembered with its ghosts (``World.rk``), as the last JOIN's ADMIT is, and ``P``
 holds of it while a repeat can happen.
 
-Not proved: it fails at the supervisor's DEBIT (23 of its 45 obligations), mostly where a
+A confirmation of the node's start may carry a k below the ltx of the record at the start (that
+record settled ahead for SYNCs whose counts were never taken): what it must be at least is
+every transaction the node took (``World.taken``: an intention held, a COMMIT, an ABORT or a
+timeout-commit resolved), and ``P`` of an INTENTION reads "the node may still take it" against
+that, not against the ltx.
+
+Not proved: it fails at the supervisor's DEBIT (23 of its 46 obligations), mostly where a
 SYNC's counts end the supervisor's start and the invariant speaks of the record started from
-again (its tx, C and Gs are not yet shown to dominate the session at the start's); a RESUME
-and late counts fail ``P`` of the ADMIT they send for a node whose record at the start settled
-ahead of tx, a re-sync's counts there too, and a re-sync's books ``supervisor books`` (their
+again (its tx, C and Gs are not yet shown to dominate the session at the start's); late counts
+and a re-sync's counts fail ``P`` of the ADMIT they send (a repeat answered with k = tx - 1
+while a transaction the node took is open), and a re-sync's books ``supervisor books`` (their
 Rc not bounded by Gs): docs/protocol.md ("Passivity as a theorem", assumption 2, items (a) to
 (d)); ``canergy prove --rules witnessed --keep-going`` lists the obligations, ``--step NAME``
 checks one step. Counts that end a start are read against the record started from, so
@@ -115,6 +121,19 @@ def sstarts(w: World) -> Term:
 
 def begun(w: World) -> Term:
     return _ghost(w.begun, "has the highest transaction begun")
+
+
+def umax(a: Term, b: Term) -> Term:
+    """The higher of two counters (unsigned)."""
+    return z3.If(z3.UGT(a, b), a, b)
+
+
+def taken(w: World) -> Term:
+    return _ghost(w.taken, "has the highest transaction taken")
+
+
+def took(w: World) -> Term:
+    return _ghost(w.took, "has how the highest transaction taken ended")
 
 
 def lhi(w: World) -> Term:
@@ -298,7 +317,7 @@ def answered(s: sym.Session) -> Term:
 
 def _record(c: sym.Client, booked: Term) -> Term:
     return z3.And(
-        z3.Or(*(c.outcome == int(o) for o in Outcome)),
+        z3.Or(*(c.outcome == int(o) for o in Outcome if o is not Outcome.WRITTEN_OFF)),  # its own
         c.usable >= 0,
         c.spent >= 0,
         whole(c.credited),
@@ -328,6 +347,11 @@ def client_books(w: World) -> Term:
         z3.Implies(c.phase != sym.JOINING, ule(w.seq, top(w))),  # no record holds more
         z3.Implies(view(w).booked, ule(top(w), view(w).seq)),
         z3.Implies(starting(c), z3.And(c.held_tx == 0, c.held_amount == 0)),
+        # a SYNC answered settles B ahead (SETTLED); counts that follow a confirmation come
+        # from the record confirmed, the record at this start
+        z3.Implies(
+            z3.And(c.phase == sym.SYNCING, c.outcome != sym.SETTLED), c.last_tx == p.last_tx
+        ),
         z3.Implies(
             starting(c),
             z3.And(
@@ -504,6 +528,36 @@ def not_from_an_image(w: World) -> Term:
     return z3.Implies(starting(w.c), ule(lhi(w), w.last))
 
 
+def taken_records(w: World) -> Term:
+    """The transactions the node took (``World.taken``) were begun; the intention it holds it
+    took, and the ltx of each of its records that resolved one (not settled ahead)."""
+    v = view(w)
+    return z3.And(
+        ule(taken(w), begun(w)),
+        z3.Implies(holding(w.c), ule(w.held, taken(w))),
+        resolved_taken(w.c, w.last, w),
+        z3.Implies(starting(w.c), resolved_taken(pre(w), v.last, w)),
+    )
+
+
+def holding(c: sym.Client) -> Term:
+    """The node's record holds an intention's number (HOLDING, or kept after it)."""
+    return z3.And(c.phase != sym.JOINING, c.held_tx != 0)
+
+
+def resolved_taken(r: sym.Client, last: Term, w: World) -> Term:
+    """A record whose ltx a COMMIT, an ABORT or a timeout-commit set (``last``, canonical) has
+    it at most ``World.taken``, and at it the outcome the node gave it (``World.took``)."""
+    resolved = r.outcome != sym.SETTLED  # or the first record's, at 0
+    decided = z3.Or(r.outcome == COMMITTED, r.outcome == inv.ABORTED)
+    booked = r.phase != sym.JOINING
+    return z3.And(
+        z3.Implies(z3.And(booked, resolved), ule(last, taken(w))),
+        z3.Implies(z3.And(booked, decided), last != 0),  # transactions are numbered from 1
+        z3.Implies(z3.And(booked, decided, last == taken(w)), r.outcome == took(w)),
+    )
+
+
 def start_records(w: World) -> Term:
     """``World.lhi`` is below the end of the numbering and, while the node starts, at least
     the ltx of the record at the start and of the record it holds."""
@@ -550,6 +604,7 @@ STATE: tuple[tuple[str, inv.Clause], ...] = (
     ("remembered JOIN", join_remembered),
     ("remembered answer", answer_remembered),
     ("records of the start", start_records),
+    ("transactions taken", taken_records),
     ("witness", witnessed),
     ("window", window),
     ("window at a start", window_at_start),
@@ -569,6 +624,7 @@ def p_image(r: sym.Client, w: World) -> Term:
         z3.Implies(then.last == v.last, r.outcome == v.c.outcome),
         z3.Implies(z3.ULT(v.tx, then.last), r.outcome == sym.SETTLED),
         _lacks(r, then.seq, v.c, v.seq),
+        resolved_taken(r, then.last, w),
     )
 
 
@@ -666,6 +722,7 @@ def _evidence(m: Msg, w: World, ahead: int) -> Term:
         m.life >= 0,
         m.life <= w.life,
         z3.Implies(m.life == w.life, z3.And(w.c.phase != sym.JOINING, ule(m.k, most))),
+        z3.Implies(m.life == w.life, ule(m.k, taken(w))),
         # a node in a start sends none: sent before it, by a record at most the one at the
         # start (whose ltx a confirmation of the start does not go below)
         z3.Implies(z3.And(m.life == w.life, starting(w.c)), ule(m.k, v.last + ahead)),
@@ -682,10 +739,15 @@ def p_return(m: Msg, w: World) -> Term:
 
 def p_aborted(m: Msg, w: World) -> Term:
     """The hardened ``P``, where the node's last transaction may also have been settled by a
-    confirmation (found behind: admitted at it) rather than aborted."""
+    confirmation (found behind: admitted at it; or the first record's, confirmed at it) rather
+    than aborted; of this life, a transaction the node took (``World.taken``)."""
     v = view(w)
-    settled = z3.And(m.life == w.life, m.k == v.last, v.c.outcome == sym.SETTLED)
-    return inv.p_aborted(m, replace(v, c=sym.pick(settled, replace(v.c, outcome=inv.ABORTED), v.c)))
+    unresolved = z3.Or(v.c.outcome == sym.SETTLED, v.c.outcome == int(Outcome.NONE))
+    settled = z3.And(m.life == w.life, m.k == v.last, unresolved)
+    marked = replace(v, c=sym.pick(settled, replace(v.c, outcome=inv.ABORTED), v.c))
+    aborted = z3.Implies(m.k == taken(w), took(w) == inv.ABORTED)
+    taken_ = z3.And(ule(m.k, taken(w)), m.k != 0, aborted)
+    return z3.And(inv.p_aborted(m, marked), z3.Implies(m.life == w.life, taken_))
 
 
 def p_admit(m: Msg, w: World) -> Term:
@@ -711,7 +773,9 @@ def p_admit(m: Msg, w: World) -> Term:
             this_start(m, w),
             z3.And(
                 ule(start_seq(w), m.q),
-                ule(v.last, m.k),
+                ule(taken(w), m.k),  # below the record at the start's ltx only settled ahead
+                z3.Implies(w.admitted, ule(w.admitted_at, m.k)),
+                w.received <= H(one(m.k)),
                 ule(v.s.witness, m.k + w.shift_tx),  # the window: nothing witnessed
                 ule(begun(w), m.k + B),  # since it was sent, nor begun past it
                 z3.Implies(w.c.phase == sym.SYNCING, ule(w.last, m.k)),
@@ -735,9 +799,21 @@ def p_admit(m: Msg, w: World) -> Term:
         inv.p_admit(m, v),
         m.start == -1,
         m.sstart == -1,
-        z3.Implies(answers_this_life, ule(top(w), m.q)),
+        z3.Implies(answers_this_life, z3.And(ule(top(w), m.q), ule(taken(w), m.k))),
     )
     return z3.If(m.life == -1, ours, join)
+
+
+def p_intention(m: Msg, w: World) -> Term:
+    """The hardened ``P`` with "the node may still take it" read against the lower of its ltx
+    and the higher of ``World.taken`` and this life's admission: an ltx settled ahead (a
+    SYNC's answer) took nothing, and a confirmation of a start may set it back to the k it
+    carries, at least both."""
+    v = view(w)
+    since = umax(taken(w), z3.If(w.admitted, w.admitted_at, sym.counter(0)))
+    least = z3.If(ule(since, v.last), since, v.last)
+    by_taken = replace(v, c=replace(v.c, last_tx=least - v.off_tx))
+    return z3.And(inv.p_intention(m, by_taken), ule(m.k, begun(w)))
 
 
 def _begun(clause: inv.MsgClause) -> inv.MsgClause:
@@ -747,7 +823,8 @@ def _begun(clause: inv.MsgClause) -> inv.MsgClause:
 
 MESSAGE: dict[Kind, inv.MsgClause] = {
     **{kind: _msg_on_view(p) for kind, p in inv.MESSAGE.items()},
-    **{kind: _begun(inv.MESSAGE[kind]) for kind in (Kind.INTENTION, Kind.COMMIT, Kind.ABORT)},
+    **{kind: _begun(inv.MESSAGE[kind]) for kind in (Kind.COMMIT, Kind.ABORT)},
+    Kind.INTENTION: p_intention,
     Kind.ADMIT: p_admit,
     Kind.RETURN: p_return,
     Kind.ABORTED: p_aborted,
@@ -859,6 +936,7 @@ def _moved(
     restarted: Term | None = None,
     confirmed: Term | None = None,
     answers: Term | None = None,
+    resolves: bool = False,
     **ghost: Term,
 ) -> World:
     """The world after a client step: what counts for the node moved by ``net`` (plus what the
@@ -889,7 +967,16 @@ def _moved(
     # starts again from the confirmed record
     base = z3.If(again, after.last, z3.If(starting(w.c), lhi(w), w.last))
     now = after.last
-    after = replace(after, lhi=z3.If(z3.UGT(now, base), now, base))
+    after = replace(after, lhi=umax(now, base))
+    # the highest transaction taken: an intention held, and the ltx a step that ``resolves``
+    # (a COMMIT, an ABORT, a timeout-commit) moves to
+    most, how = taken(w), took(w)
+    if resolves:
+        moved = z3.And(c.last_tx != w.c.last_tx, z3.UGE(after.last, most))
+        most, how = z3.If(moved, after.last, most), z3.If(moved, c.outcome, how)
+    held = z3.And(holding(c), z3.UGT(after.held, most))
+    none = z3.IntVal(int(Outcome.NONE))
+    after = replace(after, taken=z3.If(held, after.held, most), took=z3.If(held, none, how))
     grown = c.spent - w.c.spent
     used = z3.IntVal(0) if replaced else z3.If(grown > 0, grown, 0)
     net = counted(after) - counted(w) + used + gave + unreceived
@@ -906,10 +993,14 @@ def _moved(
 
 
 def _client(
-    w: World, result: tuple[sym.Client, wit.Frames], replaced: bool = False, **ghost: Any
+    w: World,
+    result: tuple[sym.Client, wit.Frames],
+    replaced: bool = False,
+    resolves: bool = False,
+    **ghost: Any,
 ) -> st.Step:
     c, frames = result
-    after = _moved(w, c, replaced=replaced, **ghost)
+    after = _moved(w, c, replaced=replaced, resolves=resolves, **ghost)
     return st.Step(after, client_sent(after, frames), z3.BoolVal(True), z3.IntVal(0))
 
 
@@ -1193,8 +1284,12 @@ def resync(w: World, nonce: Term) -> st.Step:
 def deliveries() -> dict[Kind, st.Deliver]:
     table: dict[Kind, st.Deliver] = {
         Kind.INTENTION: on_intention,
-        Kind.COMMIT: lambda w, m: _client(w, wit.on_command(w.c, True, m.w, m.amount)),
-        Kind.ABORT: lambda w, m: _client(w, wit.on_command(w.c, False, m.w, m.amount)),
+        Kind.COMMIT: lambda w, m: _client(
+            w, wit.on_command(w.c, True, m.w, m.amount), resolves=True
+        ),
+        Kind.ABORT: lambda w, m: _client(
+            w, wit.on_command(w.c, False, m.w, m.amount), resolves=True
+        ),
         Kind.RETURN_ACK: lambda w, m: _client(w, wit.on_debit_ack(w.c, m.w)),
         Kind.ADMIT: on_admit,
         Kind.ACK: lambda w, m: _session(w, wit.on_ack(w.s, m.w)),
@@ -1213,7 +1308,9 @@ def local() -> dict[str, st.Local]:
     steps here: a witnessed gateway forwards by a draw)."""
     nonce = z3.BitVec("start.nonce", 16)
     return {
-        "client: command timer (timeout-commit)": lambda w: _client(w, wit.timeout_commit(w.c)),
+        "client: command timer (timeout-commit)": lambda w: _client(
+            w, wit.timeout_commit(w.c), resolves=True
+        ),
         "client: spend (DRAW)": lambda w: draw(w, z3.Int("spend.amount")),
         "client: give back": lambda w: give_back(w, z3.Int("give_back.amount")),
         "client: retry timer (RETURN, DRAW, JOIN, RESUME or a SYNC's answer again)": lambda w: (

@@ -107,6 +107,14 @@ class World:
     """Witnessed rules: the highest transaction begun (canonical) in any history of the
     supervisor's, a pure function of the run: every INTENTION, COMMIT and ABORT names one at
     most it (a SYNC's counts move tx over numbers no transaction took). Hardened: unused."""
+    taken: Term | None = None
+    """Witnessed rules: the highest transaction the node has taken (canonical, over every life
+    and image), a pure function of the history: an INTENTION it held, a COMMIT, an ABORT or a
+    timeout-commit it resolved. Settling ahead (a SYNC's answer, a confirmation, an admission)
+    moves its ltx and not this. Hardened: unused."""
+    took: Term | None = None
+    """Witnessed rules: how the node resolved ``taken`` (COMMITTED or ABORTED; NONE while it
+    holds its intention). Hardened: unused."""
 
     # canonical views
     @property
@@ -217,10 +225,12 @@ def any_world(name: str = "w", with_pre: bool = True) -> World:
     rk = _fresh(f"{name}.rk.", BV32) if with_pre else None
     rstart = _fresh(f"{name}.rstart.", INT) if with_pre else None
     begun = _fresh(f"{name}.begun.", BV32) if with_pre else None
+    taken = _fresh(f"{name}.taken.", BV32) if with_pre else None
+    took = _fresh(f"{name}.took.", INT) if with_pre else None
     return World(
         s, c, **ghost, pre=pre, starts=starts, top=top, spre=spre, sstarts=sstarts,
         answering=answering, jk=jk, jq=jq, jlife=jlife, lhi=lhi, rk=rk, rstart=rstart,
-        begun=begun,
+        begun=begun, taken=taken, took=took,
     )  # fmt: skip
 
 
@@ -263,7 +273,7 @@ def initial_world() -> World:
     return World(
         s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,
         z3.BoolVal(True), zero32, c, zero, zero32, s, zero, z3.IntVal(-1), zero32, zero32, zero,
-        zero32, zero32, z3.IntVal(-1), zero32,
+        zero32, zero32, z3.IntVal(-1), zero32, zero32, zero,
     )  # fmt: skip
 
 

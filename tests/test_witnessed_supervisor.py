@@ -339,13 +339,12 @@ def test_a_sync_never_takes_the_nonce_of_the_last_start_answered(
     same q would read as a repeat of that answer (the same ADMIT, C not voided, nothing
     taken). The node's counts under the SYNC's nonce are then taken afresh: found behind (q 49
     below C 50), C lifted, the answer remembered under the new nonce."""
-    sup = core(
-        [1],
-        0,
-        variant="witnessed",
-        timing=TIMING,
-        state=SupervisorState(0, 0, sessions=(ANSWERED,)),
-    )
+
+    def answered() -> Supervisor:
+        state = SupervisorState(0, 0, sessions=(ANSWERED,))
+        return core([1], 0, variant="witnessed", timing=TIMING, state=state)
+
+    sup = answered()
     if how == "re-sync":
         sent = [a.message for a in sup.resync(1, 0, nonce=0x8707) if isinstance(a, Send)]
         assert sent == [Admit(1, 0x0706, 10, 50)]
@@ -360,13 +359,7 @@ def test_a_sync_never_takes_the_nonce_of_the_last_start_answered(
     assert done.phase is Phase.IDLE and done.resume_nonce == 0x10706
     assert done.returns_credited > 50 and len(answer) == 1
     assert answer[0].nonce == 0x0706 ^ SYNC_CONFIRMED  # type: ignore[union-attr]
-    other = core(
-        [1],
-        0,
-        variant="witnessed",
-        timing=TIMING,
-        state=SupervisorState(0, 0, sessions=(ANSWERED,)),
-    )
+    other = answered()
     other.resync(1, 0, nonce=0x0708)
     assert other.session(1).sync_nonce == 0x0708  # any other nonce as drawn
 

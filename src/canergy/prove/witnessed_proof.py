@@ -54,8 +54,9 @@ that, not against the ltx.
 Not proved: it fails at the supervisor's DEBIT (23 of its 46 obligations), mostly where a
 SYNC's counts end the supervisor's start and the invariant speaks of the record started from
 again (its tx, C and Gs are not yet shown to dominate the session at the start's); late counts
-and a re-sync's counts fail ``P`` of the ADMIT they send (a repeat answered with k = tx - 1
-while a transaction the node took is open), and a re-sync's books ``supervisor books`` (their
+fail ``P`` of the ADMIT they send (a repeat answered with k = tx - 1 while a transaction the
+node took is open), a re-sync's counts ``witness`` and ``P`` of an ADMIT in flight, and a
+re-sync's books ``supervisor books`` (their
 Rc not bounded by Gs): docs/protocol.md ("Passivity as a theorem", assumption 2, items (a) to
 (d)); ``canergy prove --rules witnessed --keep-going`` lists the obligations, ``--step NAME``
 checks one step. Counts that end a start are read against the record started from, so
@@ -746,8 +747,8 @@ def p_aborted(m: Msg, w: World) -> Term:
     settled = z3.And(m.life == w.life, m.k == v.last, unresolved)
     marked = replace(v, c=sym.pick(settled, replace(v.c, outcome=inv.ABORTED), v.c))
     aborted = z3.Implies(m.k == taken(w), took(w) == inv.ABORTED)
-    taken_ = z3.And(ule(m.k, taken(w)), m.k != 0, aborted)
-    return z3.And(inv.p_aborted(m, marked), z3.Implies(m.life == w.life, taken_))
+    took_it = z3.And(ule(m.k, taken(w)), m.k != 0, aborted)
+    return z3.And(inv.p_aborted(m, marked), z3.Implies(m.life == w.life, took_it))
 
 
 def p_admit(m: Msg, w: World) -> Term:

@@ -98,7 +98,7 @@ def _listening(path: Path) -> socket.socket:
         os.chmod(temp, 0o600)
         if temp != path:
             try:
-                rename_no_replace(temp, path)
+                _rename_no_replace(temp, path)
             finally:
                 with contextlib.suppress(FileNotFoundError):
                     temp.unlink()
@@ -108,7 +108,7 @@ def _listening(path: Path) -> socket.socket:
     return sock
 
 
-def rename_no_replace(src: Path, dst: Path) -> None:
+def _rename_no_replace(src: Path, dst: Path) -> None:
     """Rename ``src`` to ``dst``, ``FileExistsError`` where ``dst`` exists: renameat2 with
     RENAME_NOREPLACE where the C library has it, else a hard link and an unlink of ``src``
     (which leaves ``src`` in place when ``dst`` exists)."""

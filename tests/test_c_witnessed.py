@@ -434,9 +434,9 @@ def test_every_debit_cell_on_drawn_records(s: Session, t: Timing, data: st.DataO
 def test_counts_repeated_from_a_later_start_move_tx_up_in_c_as_in_python(
     phase: Phase, ltx: int
 ) -> None:
-    """The last answered counts again (same nonce and q, C unchanged) with an ltx above tx: C
-    moves tx and W up to it, what is open written off, as witnessed.py (below or at tx: the
-    same answer)."""
+    """The last answered counts again (same nonce and q, C unchanged): C writes off what is
+    open and moves tx (not W) up to an ltx above it, as witnessed.py (below or at tx and
+    nothing open: the same answer)."""
     open_ = phase is not Phase.IDLE
     s = Session(
         1,

@@ -18,7 +18,7 @@ from canergy.codec import Codec, DecodeError, DecodeErrorReason
 from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing
 from canergy.core import witnessed as W
 from canergy.core.errors import WindowClosed
-from canergy.core.inputs import RESPONSE_TIMEOUT, Begin, PowerLoss
+from canergy.core.inputs import COMMAND_TIMEOUT, RESPONSE_TIMEOUT, Begin, PowerLoss
 from canergy.core.state import ClientState, Phase, Session, SupervisorState
 from canergy.core.steps import ClientStep, SessionStep
 from canergy.core.table import cell
@@ -266,6 +266,49 @@ def test_a_start_that_answered_a_copy_of_the_same_sync_is_confirmed_at_its_ltx()
     assert c.phase is Phase.IDLE and c.usable == 5000 and c.last_tx == s.tx
     with pytest.raises(WindowClosed):  # a re-sync of the node opens it (the live service's)
         W.SUPERVISOR.step(t, s, Begin(1000), t.response_timeout_us)
+
+
+def test_counts_repeated_by_an_older_image_while_a_grant_is_open_write_it_off() -> None:
+    """The node answers one copy of a SYNC, is confirmed and takes the grant begun next; put
+    back to its record from before the SYNC, it answers the other copy: the same counts (same
+    nonce, q and ltx), a repeat. Answered as before (k = tx - 1 while tx is open), the image
+    took a copy of INTENTION(tx) as fresh and received again what its earlier record had
+    received once: over the node's records, twice what the supervisor delivered (the witnessed
+    proof's counterexample to 'supervisor receives DEBIT: P(ADMIT) sent'). Now what is open is
+    written off first and the answer's k is tx: the copy is old to the image."""
+    t = Timing()
+    s = Session(node=1, tx=10, witness=10, returns_credited=3, delivered=5000)
+    image = ClientState(node=1, last_tx=10, return_seq=3, usable=5000, credited=5000)
+    s = W.SUPERVISOR.step(t, s, PowerLoss(0x1234), 0).session
+    step = W.SUPERVISOR.step(t, s, RESPONSE_TIMEOUT, 0)
+    s, (first,) = step.session, _sent(step)
+    step = W.SUPERVISOR.step(t, s, RESPONSE_TIMEOUT, t.response_timeout_us)
+    s, (second,) = step.session, _sent(step)
+    answer = W.CLIENT.step(t, image, first, 0)
+    c, (books, counts) = answer.client, _sent(answer)
+    s = W.SUPERVISOR.step(t, s, books, 0).session
+    step = W.SUPERVISOR.step(t, s, counts, 0)
+    s, (confirmation,) = step.session, _sent(step)
+    c = W.CLIENT.step(t, c, confirmation, 0).client
+    step = W.SUPERVISOR.step(t, evolve(s, witness=s.tx), Begin(1000), 0)  # a re-sync's W
+    s, (intention,) = step.session, _sent(step)
+    c = W.CLIENT.step(t, c, intention, 0).client
+    assert c.deadline is not None
+    earlier = W.CLIENT.step(t, c, COMMAND_TIMEOUT, c.deadline).client  # its timeout-commit
+    assert earlier.usable == 6000 and s.phase is Phase.WAIT_ACK
+    c = W.CLIENT.step(t, image, PowerLoss(0x5678), 0).client  # the image, started
+    answer = W.CLIENT.step(t, c, second, 0)
+    c, (_, again_counts) = answer.client, _sent(answer)
+    assert again_counts == counts  # a repeat: nothing tells it from the first start's retry
+    step = W.SUPERVISOR.step(t, s, again_counts, 0)
+    s, (again,) = step.session, _sent(step)
+    assert isinstance(again, Admit) and isinstance(intention, Message)
+    assert s.phase is Phase.IDLE and s.delivered == 6000 and step.credit == 0  # written off
+    assert (again.nonce, again.seq) == (confirmation.nonce, confirmation.seq)
+    assert again.tx == s.tx == intention.tx
+    c = W.CLIENT.step(t, c, again, 0).client
+    late = W.CLIENT.step(t, c, intention, 0)
+    assert _sent(late) == [] and late.client == c  # old to the image: not taken again
 
 
 def test_counts_repeated_with_an_ltx_above_tx_write_off_what_is_open() -> None:

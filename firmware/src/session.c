@@ -277,8 +277,8 @@ static void admit_voiding(struct canergy_session *s, const struct canergy_msg *m
  * (n, q, ltx) are taken the same way, with tx moved up to ltx (never back; W not: late counts
  * may be a record's the node no longer holds), no pending amount, and n ^ CANERGY_SYNC_CONFIRMED
  * in the answer; what the last answer remembers tells a RESUME from counts (bit 16 of
- * resume_nonce). Counts that repeat the last answered with an ltx above tx (another start
- * answering a copy of the same SYNC) move tx up first. */
+ * resume_nonce). Counts that repeat the last answered write off what is open and move tx up
+ * to an ltx above it first (another start answering a copy of the same SYNC). */
 static void confirm(struct canergy_session *s, const struct canergy_msg *m,
                     struct canergy_session_step *step)
 {
@@ -290,14 +290,17 @@ static void confirm(struct canergy_session *s, const struct canergy_msg *m,
     const uint32_t seq = s->returns_credited + (uint32_t)d;
     if (s->resume_to != 0U && s->resume_to == s->returns_credited && s->resume_nonce == key &&
         s->resume_from == seq) {
-        /* counts again from a later start that answered a copy of the same SYNC: their ltx may
-         * be above tx; tx moves up to it (what is open written off), C and W stay */
-        const int64_t settled = counts ? settled_of(s, m->amount_mj) : (int64_t)s->tx;
-        if (settled > (int64_t)s->tx) {
+        /* counts again, from a later start that answered a copy of the same SYNC (maybe an
+         * older image's, which may not hold what its earlier record took): what is open is
+         * written off, tx moves up to their ltx when it is above, C and W stay */
+        if (counts) {
+            const int64_t settled = settled_of(s, m->amount_mj);
             if (s->phase != CANERGY_S_IDLE) {
                 resolve(s, CANERGY_RESOLVED_WRITTEN_OFF, step);
             }
-            s->tx = (uint32_t)settled;
+            if (settled > (int64_t)s->tx) {
+                s->tx = (uint32_t)settled;
+            }
         }
         confirmation(s, nonce, step);
         return;

@@ -158,10 +158,10 @@ def confirm(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
 
     A re-sent copy (same nonce and q, nothing held since) gets the same answer. A SYNC's counts
     also carry the node's ltx: tx moves up to it (never back); their ADMIT carries n with
-    ``SYNC_CONFIRMED`` flipped. Counts that repeat the last answered but carry an ltx above tx
-    come from another start of the node with the same SYNC's nonce (a copy of the SYNC reached
-    it after a restart): tx moves up to that ltx first (what is open written off), C stays, so
-    the answer does not leave the node's ltx ahead of tx (``repeat_counts``). Counts here move
+    ``SYNC_CONFIRMED`` flipped. Counts that repeat the last answered may come from another
+    start of the node with the same SYNC's nonce (a copy of the SYNC reached it after a
+    restart): what is open is written off and tx moves up to an ltx above it first, C stays
+    (``repeat_counts``). Counts here move
     no W (``repeat_counts`` says why)."""
     seq, key = unwrap(msg.seq, s.returns_credited, SEQ_BITS), _answered(msg)
     nonce = msg.nonce ^ SYNC_CONFIRMED if msg.is_counts else msg.nonce
@@ -195,10 +195,15 @@ def _repeat(s: Session, nonce: int) -> SessionStep:
 
 def repeat_counts(s: Session, msg: Debit, nonce: int) -> SessionStep:
     """The last answered counts again (same nonce and q, C unchanged): the same answer, but with
-    tx moved up to their ltx when it is above tx (the open transaction written off): the ltx of
-    a later start of the node that answered a copy of the same SYNC. Without it that start took
-    the old answer, its ltx stayed B above tx, and the next B intentions were written off as
-    old.
+    what is open written off first and tx moved up to their ltx when it is above tx: the ltx of
+    a later start of the node that answered a copy of the same SYNC. Without the move that start
+    took the old answer, its ltx stayed B above tx, and the next B intentions were written off
+    as old. Without the write-off, counts of a start from an older image (same q, an ltx at
+    most tx) were answered with k = tx - 1 while tx was open, though the node's earlier record
+    may have taken tx: the image took INTENTION(tx) again, received twice what was delivered
+    once (``canergy prove --rules witnessed``: ``P`` of the ADMIT sent). An honest node's
+    retry that crosses its confirmation so costs the grant begun since: written off, which the
+    node, holding it, still commits by its timeout.
 
     Counts outside a start move no W, here or in ``confirm``: they may come from a record the
     node no longer holds (a life before a JOIN whose number the admission voided to C, a start
@@ -209,10 +214,10 @@ def repeat_counts(s: Session, msg: Debit, nonce: int) -> SessionStep:
     it: clause ``witness``). A window so used up is opened by a re-sync of the node
     (``resync_session``), whose counts come under its own fresh nonce (``take_counts``)."""
     settled = ltx_of(s, msg)
-    if settled <= s.tx:
+    if settled <= s.tx and s.phase is IDLE:
         return _repeat(s, nonce)
     step = resolve(s, Outcome.WRITTEN_OFF) if s.phase is not IDLE else SessionStep(s)
-    s = evolve(step.session, tx=settled)
+    s = evolve(step.session, tx=max(step.session.tx, settled))
     return SessionStep(s, (*step.actions, Send(_confirmation(s, nonce))), step.credit)
 
 

@@ -551,16 +551,16 @@ def _ltx_of(amount_mj: Term, tx: Term) -> Term:
 
 
 def repeat_counts(s: Session, counts: Term, amount_mj: Term, answer_nonce: Term) -> SessionStep:
-    """The same answer again; for counts with an ltx above tx (another start of the node that
-    answered a copy of the same SYNC) first what is open written off and tx moved up to
-    it, C unchanged."""
+    """The same answer again; for counts while a transaction is open, or with an ltx above tx
+    (another start of the node that answered a copy of the same SYNC), first what is open
+    written off and tx moved up to the ltx (never back), C unchanged."""
     settled = _ltx_of(amount_mj, s.tx)
-    higher = z3.And(counts, settled - s.tx > 0)
+    higher = z3.And(counts, z3.Or(settled - s.tx > 0, s.phase != sym.S_IDLE))
     closed = sym.choose(
         s.phase != sym.S_IDLE, sym._resolve(s, z3.BoolVal(False)), sym._unchanged(s)
     )
     t = closed.session
-    t = replace(t, tx=settled)
+    t = replace(t, tx=z3.If(settled - t.tx > 0, settled, t.tx))
     moved = SessionStep(t, _confirmation(t, answer_nonce), closed.credit)
     same = SessionStep(s, _confirmation(s, answer_nonce), z3.IntVal(0))
     return sym.choose(higher, moved, same)

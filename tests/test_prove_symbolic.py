@@ -401,7 +401,14 @@ def witnessed_sessions(draw: Any) -> Session:
         resume_nonce=draw(st.integers(0, 3)) | draw(st.sampled_from([0, 1 << 16])),
         resume_from=draw(st.one_of(near_c, counters)),
         resume_to=to,
-        witness=draw(st.one_of(st.integers(max(0, s.tx - 70), s.tx), st.integers(0, s.tx))),
+        # below 0: counts whose ltx reads there set W there (``witnessed.ltx_of``)
+        witness=draw(
+            st.one_of(
+                st.integers(max(0, s.tx - 70), s.tx),
+                st.integers(0, s.tx),
+                st.integers(-0x8000, -1),
+            )
+        ),
         sync_nonce=draw(st.integers(0, 3)) if start is not None else 0,
         join_nonce=draw(st.integers(0, 3)),
         join_tx=draw(st.integers(max(0, s.tx - 70), s.tx)),

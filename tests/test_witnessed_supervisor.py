@@ -17,14 +17,24 @@ from canergy.check import Bounds, check
 from canergy.codec import Codec, DecodeError, DecodeErrorReason
 from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing
 from canergy.core import witnessed as W
+from canergy.core.actions import Admitted
 from canergy.core.errors import WindowClosed
-from canergy.core.inputs import COMMAND_TIMEOUT, RESPONSE_TIMEOUT, Begin, PowerLoss
+from canergy.core.inputs import COMMAND_TIMEOUT, RESPONSE_TIMEOUT, Begin, GiveBack, PowerLoss
 from canergy.core.state import ClientState, Phase, Session, SupervisorState
 from canergy.core.steps import ClientStep, SessionStep
 from canergy.core.table import cell
 from canergy.core.variants import Variant
 from canergy.frozen import evolve
-from canergy.messages import SYNC_CONFIRMED, Admit, Debit, Direction, Join, Message
+from canergy.messages import (
+    SYNC_CONFIRMED,
+    Admit,
+    Debit,
+    Direction,
+    Join,
+    Message,
+    Return,
+    ReturnAck,
+)
 
 CODEC = Codec()
 nodes = st.integers(1, 127)
@@ -311,10 +321,51 @@ def test_counts_repeated_by_an_older_image_while_a_grant_is_open_write_it_off() 
     assert _sent(late) == [] and late.client == c  # old to the image: not taken again
 
 
+def test_a_return_of_the_record_an_image_repeats_the_counts_of_is_not_credited() -> None:
+    """The node answers one copy of a SYNC, is confirmed (C = q + 1) and gives 1 mJ back as
+    RETURN(q + 2), still in flight when it loses power; put back to its record from before the
+    SYNC it answers the other copy: a repeat, the same answer, which confirms the image (Q one
+    past its q) with the 1 mJ it still holds. Then the RETURN arrives: credited, as before, the
+    supervisor held back what the image still spends (1 mJ created). The repeat voids C + 1:
+    acknowledged, not credited, and the same counts once more are no repeat (found behind)."""
+    t = Timing()
+    s = Session(node=1, tx=10, witness=10, returns_credited=3, delivered=5000)
+    image = ClientState(node=1, last_tx=10, return_seq=3, usable=5000, credited=5000)
+    s = W.SUPERVISOR.step(t, s, PowerLoss(0x1234), 0).session
+    step = W.SUPERVISOR.step(t, s, RESPONSE_TIMEOUT, 0)
+    s, (first,) = step.session, _sent(step)
+    step = W.SUPERVISOR.step(t, s, RESPONSE_TIMEOUT, t.response_timeout_us)
+    s, (second,) = step.session, _sent(step)
+    answer = W.CLIENT.step(t, image, first, 0)
+    c, (books, counts) = answer.client, _sent(answer)
+    s = W.SUPERVISOR.step(t, s, books, 0).session
+    step = W.SUPERVISOR.step(t, s, counts, 0)
+    s, (confirmation,) = step.session, _sent(step)
+    c = W.CLIENT.step(t, c, confirmation, 0).client
+    gave = W.CLIENT.step(t, c, GiveBack(1000), 0)
+    (returned,) = _sent(gave)
+    assert isinstance(returned, Return) and gave.client.usable == 4000
+    answer = W.CLIENT.step(t, W.CLIENT.step(t, image, PowerLoss(0x5678), 0).client, second, 0)
+    c, (_, again_counts) = answer.client, _sent(answer)
+    assert again_counts == counts
+    step = W.SUPERVISOR.step(t, s, again_counts, 0)
+    s, (again,) = step.session, _sent(step)
+    assert again == confirmation and s.returns_credited == returned.seq
+    c = W.CLIENT.step(t, c, again, 0).client
+    assert c.phase is Phase.IDLE and c.usable == 5000 and c.return_seq == returned.seq - 1
+    step = W.SUPERVISOR.step(t, s, returned, 0)
+    assert step.credit == 0 and step.session.returned == 0
+    assert _sent(step) == [ReturnAck(1, returned.seq)]
+    once_more = W.SUPERVISOR.step(t, step.session, again_counts, 0)
+    assert any(isinstance(a, Admitted) for a in once_more.actions)  # found behind
+    (fresh,) = _sent(once_more)
+    assert isinstance(fresh, Admit) and fresh.seq != again.seq
+
+
 def test_counts_repeated_with_an_ltx_above_tx_write_off_what_is_open() -> None:
     """The repeat with a higher ltx while a transaction is open: written off (Gs += Ts, the
-    node settled it), tx up to the ltx (W not: counts outside a start are no evidence), C and
-    the remembered answer unchanged."""
+    node settled it), tx up to the ltx (W not: counts outside a start are no evidence), the
+    answer's C and the remembered answer unchanged, C + 1 voided after it."""
     t = Timing()
     s = Session(
         node=1, phase=Phase.WAIT_ACK, tx=75, reserved=2000, delivered=5000, witness=74,
@@ -325,7 +376,7 @@ def test_counts_repeated_with_an_ltx_above_tx_write_off_what_is_open() -> None:
     after = step.session
     assert after.phase is Phase.IDLE and after.delivered == 7000 and after.reserved == 0
     assert after.tx == 138 and after.witness == 74 and step.credit == 0
-    assert (after.returns_credited, after.resume_to, after.resume_from) == (4, 4, 3)
+    assert (after.returns_credited, after.resume_to, after.resume_from) == (5, 4, 3)
     assert _sent(step) == [Admit(1, 0x1234 ^ SYNC_CONFIRMED, 138, 4)]
     lower = W.SUPERVISOR.step(
         t, replace(s, phase=Phase.IDLE, reserved=0), Debit.counts(1, 0x1234, 3, 70), 0

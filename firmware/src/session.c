@@ -278,7 +278,8 @@ static void admit_voiding(struct canergy_session *s, const struct canergy_msg *m
  * may be a record's the node no longer holds), no pending amount, and n ^ CANERGY_SYNC_CONFIRMED
  * in the answer; what the last answer remembers tells a RESUME from counts (bit 16 of
  * resume_nonce). Counts that repeat the last answered write off what is open and move tx up
- * to an ltx above it first (another start answering a copy of the same SYNC). */
+ * to an ltx above it first (another start answering a copy of the same SYNC), and void C + 1
+ * after the answer. */
 static void confirm(struct canergy_session *s, const struct canergy_msg *m,
                     struct canergy_session_step *step)
 {
@@ -301,6 +302,10 @@ static void confirm(struct canergy_session *s, const struct canergy_msg *m,
             if (settled > (int64_t)s->tx) {
                 s->tx = (uint32_t)settled;
             }
+            confirmation(s, nonce, step);
+            /* a RETURN C + 1 of the record that adopted the first answer may be in flight */
+            s->returns_credited = serial_capped(s->returns_credited + 1U);
+            return;
         }
         confirmation(s, nonce, step);
         return;

@@ -205,6 +205,15 @@ def repeat_counts(s: Session, msg: Debit, nonce: int) -> SessionStep:
     retry that crosses its confirmation so costs the grant begun since: written off, which the
     node, holding it, still commits by its timeout.
 
+    The number after C is voided too (C + 1, the answer's Q unchanged): the later record may
+    have adopted the first answer and numbered a RETURN C + 1, still in flight when the image,
+    confirmed by the repeat, holds what it returned; credited, it gave the supervisor back
+    what the image still spends (1 mJ in
+    ``test_a_return_of_the_record_an_image_repeats_the_counts_of_is_not_credited``). The next
+    repeat is none (C moved): counts again are answered afresh, found behind. An honest node
+    whose two answers both arrived so loses its first RETURN after the confirmation
+    (acknowledged, not credited); its draw is acknowledged as ever.
+
     Counts outside a start move no W, here or in ``confirm``: they may come from a record the
     node no longer holds (a life before a JOIN whose number the admission voided to C, a start
     since found behind, another start of an earlier life answering the same SYNC, or a late
@@ -213,12 +222,11 @@ def repeat_counts(s: Session, msg: Debit, nonce: int) -> SessionStep:
     ltx let begins run past the node's own ltx + B (``canergy prove --rules witnessed`` found
     it: clause ``witness``). A window so used up is opened by a re-sync of the node
     (``resync_session``), whose counts come under its own fresh nonce (``take_counts``)."""
-    settled = ltx_of(s, msg)
-    if settled <= s.tx and s.phase is IDLE:
-        return _repeat(s, nonce)
     step = resolve(s, Outcome.WRITTEN_OFF) if s.phase is not IDLE else SessionStep(s)
-    s = evolve(step.session, tx=max(step.session.tx, settled))
-    return SessionStep(s, (*step.actions, Send(_confirmation(s, nonce))), step.credit)
+    s = evolve(step.session, tx=max(step.session.tx, ltx_of(s, msg)))
+    answer = Send(_confirmation(s, nonce))
+    s = evolve(s, returns_credited=capped(s.returns_credited + 1))  # a debit in flight voided
+    return SessionStep(s, (*step.actions, answer), step.credit)
 
 
 def ltx_of(s: Session, msg: Debit) -> int:

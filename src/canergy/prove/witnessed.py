@@ -319,8 +319,9 @@ def _outside_start(s: Session, step: SessionStep) -> SessionStep:
 
 
 def _witnessed(s: Session, taken: Term, k: Term, step: SessionStep) -> SessionStep:
-    """A response that names transaction ``k`` and was taken: W moves up to ``k``."""
-    moved = replace(step.session, witness=z3.If(z3.UGT(k, s.witness), k, s.witness))
+    """A response that names transaction ``k`` and was taken: W moves up to ``k`` (W signed:
+    counts whose ltx reads below 0 set it there, ``_ltx_of``)."""
+    moved = replace(step.session, witness=z3.If(k > s.witness, k, s.witness))
     return sym.choose(taken, SessionStep(moved, step.sent, step.credit), step)
 
 
@@ -352,8 +353,9 @@ def credit_return(s: Session, seq16: Term, amount_mj: Term) -> SessionStep:
 
 
 def may_begin(s: Session, window: int = WINDOW) -> Term:
-    """Begin k = tx + 1 only within the window (k <= W + B) and the node's numbering."""
-    return z3.And(z3.ULE(s.tx + 1, s.witness + window), sym.may_begin(s))
+    """Begin k = tx + 1 only within the window (k <= W + B, W signed: below 0 closes it) and
+    the node's numbering."""
+    return z3.And(s.tx + 1 <= s.witness + window, sym.may_begin(s))
 
 
 def response_timeout(s: Session, gives_up: Term) -> SessionStep:
@@ -551,19 +553,20 @@ def _ltx_of(amount_mj: Term, tx: Term) -> Term:
 
 
 def repeat_counts(s: Session, counts: Term, amount_mj: Term, answer_nonce: Term) -> SessionStep:
-    """The same answer again; for counts while a transaction is open, or with an ltx above tx
-    (another start of the node that answered a copy of the same SYNC), first what is open
-    written off and tx moved up to the ltx (never back), C unchanged."""
+    """The same answer again; for counts (maybe another start of the node that answered a
+    copy of the same SYNC), first what is open written off and tx moved up to their ltx
+    (never back), and after the answer C + 1 voided."""
     settled = _ltx_of(amount_mj, s.tx)
-    higher = z3.And(counts, z3.Or(settled - s.tx > 0, s.phase != sym.S_IDLE))
     closed = sym.choose(
         s.phase != sym.S_IDLE, sym._resolve(s, z3.BoolVal(False)), sym._unchanged(s)
     )
     t = closed.session
     t = replace(t, tx=z3.If(settled - t.tx > 0, settled, t.tx))
-    moved = SessionStep(t, _confirmation(t, answer_nonce), closed.credit)
+    answer = _confirmation(t, answer_nonce)
+    t = replace(t, returns_credited=sym.capped(t.returns_credited + 1))
+    moved = SessionStep(t, answer, closed.credit)
     same = SessionStep(s, _confirmation(s, answer_nonce), z3.IntVal(0))
-    return sym.choose(higher, moved, same)
+    return sym.choose(counts, moved, same)
 
 
 def admitted_afresh(s: Session, nonce16: Term) -> SessionStep:

@@ -51,12 +51,17 @@ every transaction the node took (``World.taken``: an intention held, a COMMIT, a
 timeout-commit resolved), and ``P`` of an INTENTION reads "the node may still take it" against
 that, not against the ltx.
 
-Not proved: it fails at the supervisor's DEBIT (23 of its 46 obligations), mostly where a
-SYNC's counts end the supervisor's start and the invariant speaks of the record started from
-again (its tx, C and Gs are not yet shown to dominate the session at the start's); late counts
-fail ``P`` of the ADMIT they send (a repeat answered with k = tx - 1 while a transaction the
-node took is open), a re-sync's counts ``witness`` and ``P`` of an ADMIT in flight, and a
-re-sync's books ``supervisor books`` (their
+``World.sbegan`` (the node's first start after the supervisor's current one began) says no
+confirmation of such a start is in flight while the supervisor's start waits; counts answering
+it come from such a start, with an ltx within 2**15 of tx (assumption 3) that no record of this
+life has gone below since. W is signed, as in both cores (counts whose ltx reads below 0 set it
+there and close the window).
+
+Not proved: it fails at the supervisor's DEBIT, mostly where a SYNC's counts end the
+supervisor's start and the invariant speaks of the record started from again (its tx, C and
+Gs are not yet shown to dominate the session at the start's); z3 gives up (300 s) on
+``remembered answer`` at late and a re-sync's counts and on ``P`` of the ADMIT late counts
+send; a re-sync's books fail ``supervisor books`` (their
 Rc not bounded by Gs): docs/protocol.md ("Passivity as a theorem", assumption 2, items (a) to
 (d)); ``canergy prove --rules witnessed --keep-going`` lists the obligations, ``--step NAME``
 checks one step. Counts that end a start are read against the record started from, so
@@ -118,6 +123,10 @@ def spre(w: World) -> sym.Session:
 
 def sstarts(w: World) -> Term:
     return _ghost(w.sstarts, "counts the supervisor's starts")
+
+
+def sbegan(w: World) -> Term:
+    return _ghost(w.sbegan, "has the node's first start since the supervisor's")
 
 
 def begun(w: World) -> Term:
@@ -346,7 +355,14 @@ def client_books(w: World) -> Term:
         ),
         ule(top(w), one(view(w).rc)),
         z3.Implies(c.phase != sym.JOINING, ule(w.seq, top(w))),  # no record holds more
-        z3.Implies(view(w).booked, ule(top(w), view(w).seq)),
+        # no record holds more, but one number past it that C voided (a repeat's answer)
+        z3.Implies(
+            view(w).booked,
+            z3.Or(
+                ule(top(w), view(w).seq),
+                z3.And(top(w) == one(view(w).seq), ule(top(w), view(w).rc)),
+            ),
+        ),
         z3.Implies(starting(c), z3.And(c.held_tx == 0, c.held_amount == 0)),
         # a SYNC answered settles B ahead (SETTLED); counts that follow a confirmation come
         # from the record confirmed, the record at this start
@@ -561,9 +577,16 @@ def resolved_taken(r: sym.Client, last: Term, w: World) -> Term:
 
 def start_records(w: World) -> Term:
     """``World.lhi`` is below the end of the numbering and, while the node starts, at least
-    the ltx of the record at the start and of the record it holds."""
+    the ltx of the record at the start and of the record it holds; a start of the node that
+    answers the SYNC of the supervisor's waiting start began after it (``World.sbegan``)."""
     at_start = z3.And(ule(view(w).last, lhi(w)), ule(w.last, lhi(w)))
-    return z3.And(z3.ULT(lhi(w), inv.LIFE), z3.Implies(starting(w.c), at_start))
+    answers_now = z3.And(answers_this_start(w), wit.in_start(w.s))
+    return z3.And(
+        z3.ULT(lhi(w), inv.LIFE),
+        z3.Implies(starting(w.c), at_start),
+        z3.Implies(answers_now, starts(w) >= sbegan(w)),  # the SYNC came first
+        sbegan(w) <= starts(w) + 1,
+    )
 
 
 def known(w: World) -> Term:
@@ -577,8 +600,8 @@ def witnessed(w: World) -> Term:
     s = view(w).s
     return z3.And(
         z3.Implies(w.open, w.s.tx != 0),
-        ule(s.witness, s.tx),
-        z3.Implies(known(w), ule(s.witness, reach(w) + w.shift_tx)),
+        s.witness <= s.tx,  # signed: counts whose ltx reads below 0 set W there
+        z3.Implies(known(w), s.witness <= reach(w) + w.shift_tx),
     )
 
 
@@ -710,6 +733,11 @@ def p_debit(m: Msg, w: World) -> Term:
         # a life that began after its answer began in this start, whose JOIN waits for its end
         z3.Implies(z3.And(current_sync(m, w), counts, m.life < w.life), z3.Not(w.admitted)),
         z3.Implies(z3.And(current_sync(m, w), counts, behind(w)), ule(begun(w), m.q)),
+        # books and counts answering the supervisor's current start: of a start since it began
+        z3.Implies(current_sync(m, w), m.start >= sbegan(w)),
+        # counts answering the supervisor's current start: no record of this life has since
+        # gone below their ltx (a confirmation waits for them; a restart keeps World.lhi)
+        z3.Implies(z3.And(current_sync(m, w), counts, m.life == w.life), ule(m.q, reach(w))),
     )
 
 
@@ -765,6 +793,9 @@ def p_admit(m: Msg, w: World) -> Term:
         m.sstart >= -1,
         m.sstart <= sstarts(w),
         z3.Implies(m.sstart >= 0, m.start == -1),
+        # no confirmation of a start of the node's since the supervisor's began is sent while
+        # that start waits
+        z3.Implies(z3.And(m.start >= 0, wit.in_start(w.s)), m.start < sbegan(w)),
         z3.Implies(
             current_sync(m, w),
             z3.And(m.nonce == w.s.sync_nonce, m.k == w.tx, m.q == w.rc),
@@ -773,11 +804,14 @@ def p_admit(m: Msg, w: World) -> Term:
         z3.Implies(
             this_start(m, w),
             z3.And(
-                ule(start_seq(w), m.q),
+                # Q at most one below any number a record of the node held, which C has
+                # passed (a repeat of counts answers with Q and voids Q + 1)
+                ule(top(w), one(m.q)),
+                ule(top(w), v.rc),
                 ule(taken(w), m.k),  # below the record at the start's ltx only settled ahead
                 z3.Implies(w.admitted, ule(w.admitted_at, m.k)),
                 w.received <= H(one(m.k)),
-                ule(v.s.witness, m.k + w.shift_tx),  # the window: nothing witnessed
+                v.s.witness <= m.k + w.shift_tx,  # the window: nothing witnessed (signed)
                 ule(begun(w), m.k + B),  # since it was sent, nor begun past it
                 z3.Implies(w.c.phase == sym.SYNCING, ule(w.last, m.k)),
             ),
@@ -843,6 +877,9 @@ def deliverable(m: Msg, w: World) -> Term:
     if m.kind is Kind.DEBIT:
         age = z3.Implies(z3.Not(wit.is_books(m.flags)), inv.near(m.k, view(w).rc))
         counts = z3.And(this_start(m, w), m.flags == wit.COUNTS)  # its ltx, as for a RESUME's q
+        # counts answering the supervisor's current start, of any start of the node: their
+        # ltx within 2**15 of its tx (assumption 3; the SYNC was sent at that tx)
+        answering_now = z3.And(current_sync(m, w), m.flags == wit.COUNTS)
         # counts that end a supervisor's start are read against the record it started from,
         # maybe an older image: their q within 2**15 of its C too (assumption 3 for an image)
         ending = z3.And(
@@ -860,6 +897,7 @@ def deliverable(m: Msg, w: World) -> Term:
             z3.Implies(again, m.start == rstart(w)),
             age,
             z3.Implies(counts, inv.near(w.last, w.tx)),
+            z3.Implies(answering_now, inv.near(m.q, w.tx)),
             z3.Implies(ending, inv.near(m.k, w.rc)),
             z3.Implies(z3.Or(ending, books), m.sstart == sstarts(w)),
         )
@@ -1119,13 +1157,21 @@ def _session(
     sent = st.supervisor_sent(after, step.sent, answers)
     sync = z3.If(wit.in_start(after.s), sstarts(after), -1)  # a SYNC: the start it is sent in
     sent = tuple((cond, replace(m, sstart=sync) if m.kind is Kind.ADMIT else m) for cond, m in sent)
-    if start is not None:  # a confirmation: k the last transaction closed
+    if start is not None:  # a confirmation: k the last transaction closed, Q as sent (a
+        # repeat of counts voids C + 1 after its answer)
         closed = z3.If(after.s.phase == sym.S_IDLE, after.tx, after.tx - 1)
         sent = tuple(
-            (cond, replace(m, start=start, k=closed) if m.kind is Kind.ADMIT else m)
+            (cond, replace(m, start=start, k=closed, q=_sent_q(m, after)))
+            if m.kind is Kind.ADMIT
+            else (cond, m)
             for cond, m in sent
         )
     return st.Step(after, sent, z3.BoolVal(True), step.credit)
+
+
+def _sent_q(m: Msg, w: World) -> Term:
+    """The C an ADMIT carries (canonical): within 2**15 below the session's."""
+    return sym.unwrap(m.admit_seq, w.s.returns_credited, SEQ_BITS) - w.shift_seq
 
 
 def _lift(s: sym.Session) -> tuple[Term, Term]:
@@ -1255,6 +1301,7 @@ def restore_supervisor(
         spre=at_start,
         cc=z3.And(w.cc, step.session.tx == w.s.tx),
         sstarts=sstarts(w) + 1,
+        sbegan=starts(w) + 1,
     )
     if join is not None:
         after = replace(after, jk=join[0], jq=join[1], jlife=join[2])
@@ -1278,7 +1325,7 @@ def resync(w: World, nonce: Term) -> st.Step:
     nonce is drawn fresh, as a start's)."""
     step = wit.resync_session(w.s, nonce)
     at_start = replace(w.s, sync_nonce=z3.BitVecVal(0, 16), resync=z3.BoolVal(False))
-    out = _session(w, step, spre=at_start, sstarts=sstarts(w) + 1)
+    out = _session(w, step, spre=at_start, sstarts=sstarts(w) + 1, sbegan=starts(w) + 1)
     return replace(out, enabled=wit.may_resync(w.s))
 
 

@@ -115,6 +115,10 @@ class World:
     took: Term | None = None
     """Witnessed rules: how the node resolved ``taken`` (COMMITTED or ABORTED; NONE while it
     holds its intention). Hardened: unused."""
+    sbegan: Term | None = None
+    """Witnessed rules: the first of the node's starts (``starts``) that began after the
+    supervisor's current start (or re-sync) did: a start answering its SYNC is one of them,
+    and no confirmation of one is sent while it waits. Hardened: unused."""
 
     # canonical views
     @property
@@ -227,10 +231,11 @@ def any_world(name: str = "w", with_pre: bool = True) -> World:
     begun = _fresh(f"{name}.begun.", BV32) if with_pre else None
     taken = _fresh(f"{name}.taken.", BV32) if with_pre else None
     took = _fresh(f"{name}.took.", INT) if with_pre else None
+    sbegan = _fresh(f"{name}.sbegan.", INT) if with_pre else None
     return World(
         s, c, **ghost, pre=pre, starts=starts, top=top, spre=spre, sstarts=sstarts,
         answering=answering, jk=jk, jq=jq, jlife=jlife, lhi=lhi, rk=rk, rstart=rstart,
-        begun=begun, taken=taken, took=took,
+        begun=begun, taken=taken, took=took, sbegan=sbegan,
     )  # fmt: skip
 
 
@@ -273,7 +278,7 @@ def initial_world() -> World:
     return World(
         s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,
         z3.BoolVal(True), zero32, c, zero, zero32, s, zero, z3.IntVal(-1), zero32, zero32, zero,
-        zero32, zero32, z3.IntVal(-1), zero32, zero32, zero,
+        zero32, zero32, z3.IntVal(-1), zero32, zero32, zero, zero,
     )  # fmt: skip
 
 

@@ -37,7 +37,7 @@ run_on_vcan() {
         need_commands cc:gcc
         [ -e /usr/include/stdio.h ] || apt_install libc6-dev
     fi
-    echo "$(basename "$0"): no vcan0/vcan1 on this kernel; running in user-mode Linux" >&2
+    echo "$(basename "$0"): no vcan0/vcan1 on this kernel; running in user-mode Linux (limit ${seconds} s)" >&2
     "$ROOT/scripts/uml-run" --timeout "$seconds" --vcan vcan0 --vcan vcan1 -- "$@"
 }
 

@@ -5,7 +5,7 @@ and the bounded checker on both rule sets. The table's cells are in tests/test_w
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import pytest
 from hypothesis import given
@@ -278,14 +278,21 @@ def test_a_start_that_answered_a_copy_of_the_same_sync_is_confirmed_at_its_ltx()
         W.SUPERVISOR.step(t, s, Begin(1000), t.response_timeout_us)
 
 
-def test_counts_repeated_by_an_older_image_while_a_grant_is_open_write_it_off() -> None:
-    """The node answers one copy of a SYNC, is confirmed and takes the grant begun next; put
-    back to its record from before the SYNC, it answers the other copy: the same counts (same
-    nonce, q and ltx), a repeat. Answered as before (k = tx - 1 while tx is open), the image
-    took a copy of INTENTION(tx) as fresh and received again what its earlier record had
-    received once: over the node's records, twice what the supervisor delivered (the witnessed
-    proof's counterexample to 'supervisor receives DEBIT: P(ADMIT) sent'). Now what is open is
-    written off first and the answer's k is tx: the copy is old to the image."""
+@dataclass(frozen=True)
+class _OneCopyAnswered:
+    """A SYNC sent twice (its timer); the node, from ``image``, answered the first copy and was
+    confirmed (``c``, ``s``); ``second`` is the other copy, still in flight."""
+
+    t: Timing
+    s: Session
+    image: ClientState
+    c: ClientState
+    second: Message
+    counts: Message
+    confirmation: Message
+
+
+def _one_copy_answered() -> _OneCopyAnswered:
     t = Timing()
     s = Session(node=1, tx=10, witness=10, returns_credited=3, delivered=5000)
     image = ClientState(node=1, last_tx=10, return_seq=3, usable=5000, credited=5000)
@@ -300,6 +307,20 @@ def test_counts_repeated_by_an_older_image_while_a_grant_is_open_write_it_off() 
     step = W.SUPERVISOR.step(t, s, counts, 0)
     s, (confirmation,) = step.session, _sent(step)
     c = W.CLIENT.step(t, c, confirmation, 0).client
+    return _OneCopyAnswered(t, s, image, c, second, counts, confirmation)
+
+
+def test_counts_repeated_by_an_older_image_while_a_grant_is_open_write_it_off() -> None:
+    """The node answers one copy of a SYNC, is confirmed and takes the grant begun next; put
+    back to its record from before the SYNC, it answers the other copy: the same counts (same
+    nonce, q and ltx), a repeat. Answered as before (k = tx - 1 while tx is open), the image
+    took a copy of INTENTION(tx) as fresh and received again what its earlier record had
+    received once: over the node's records, twice what the supervisor delivered (the witnessed
+    proof's counterexample to 'supervisor receives DEBIT: P(ADMIT) sent'). Now what is open is
+    written off first and the answer's k is tx: the copy is old to the image."""
+    run = _one_copy_answered()
+    t, s, image, c = run.t, run.s, run.image, run.c
+    second, counts, confirmation = run.second, run.counts, run.confirmation
     step = W.SUPERVISOR.step(t, evolve(s, witness=s.tx), Begin(1000), 0)  # a re-sync's W
     s, (intention,) = step.session, _sent(step)
     c = W.CLIENT.step(t, c, intention, 0).client
@@ -328,20 +349,9 @@ def test_a_return_of_the_record_an_image_repeats_the_counts_of_is_not_credited()
     past its q) with the 1 mJ it still holds. Then the RETURN arrives: credited, as before, the
     supervisor held back what the image still spends (1 mJ created). The repeat voids C + 1:
     acknowledged, not credited, and the same counts once more are no repeat (found behind)."""
-    t = Timing()
-    s = Session(node=1, tx=10, witness=10, returns_credited=3, delivered=5000)
-    image = ClientState(node=1, last_tx=10, return_seq=3, usable=5000, credited=5000)
-    s = W.SUPERVISOR.step(t, s, PowerLoss(0x1234), 0).session
-    step = W.SUPERVISOR.step(t, s, RESPONSE_TIMEOUT, 0)
-    s, (first,) = step.session, _sent(step)
-    step = W.SUPERVISOR.step(t, s, RESPONSE_TIMEOUT, t.response_timeout_us)
-    s, (second,) = step.session, _sent(step)
-    answer = W.CLIENT.step(t, image, first, 0)
-    c, (books, counts) = answer.client, _sent(answer)
-    s = W.SUPERVISOR.step(t, s, books, 0).session
-    step = W.SUPERVISOR.step(t, s, counts, 0)
-    s, (confirmation,) = step.session, _sent(step)
-    c = W.CLIENT.step(t, c, confirmation, 0).client
+    run = _one_copy_answered()
+    t, s, image, c = run.t, run.s, run.image, run.c
+    second, counts, confirmation = run.second, run.counts, run.confirmation
     gave = W.CLIENT.step(t, c, GiveBack(1000), 0)
     (returned,) = _sent(gave)
     assert isinstance(returned, Return) and gave.client.usable == 4000

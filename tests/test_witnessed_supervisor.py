@@ -19,7 +19,7 @@ from canergy.core import Client, LocalProtocolError, Send, Supervisor, Timing
 from canergy.core import witnessed as W
 from canergy.core.actions import Admitted
 from canergy.core.errors import WindowClosed
-from canergy.core.inputs import COMMAND_TIMEOUT, RESPONSE_TIMEOUT, Begin, GiveBack, PowerLoss
+from canergy.core.inputs import COMMAND_TIMEOUT, RESPONSE_TIMEOUT, Begin, GiveBack, PowerLoss, Spend
 from canergy.core.state import ClientState, Phase, Session, SupervisorState
 from canergy.core.steps import ClientStep, SessionStep
 from canergy.core.table import cell
@@ -366,6 +366,15 @@ def test_a_return_of_the_record_an_image_repeats_the_counts_of_is_not_credited()
     step = W.SUPERVISOR.step(t, s, returned, 0)
     assert step.credit == 0 and step.session.returned == 0
     assert _sent(step) == [ReturnAck(1, returned.seq)]
+    # the image's own debit numbered C + 1 is acknowledged too: a draw reaches its actuator
+    drawing = W.CLIENT.step(t, c, Spend(1000), 0)
+    (draw,) = _sent(drawing)
+    assert isinstance(draw, Debit) and draw.seq == returned.seq
+    held = W.SUPERVISOR.step(t, step.session, draw, 0)
+    assert held.credit == 0 and held.session == step.session
+    (ack,) = _sent(held)
+    released = W.CLIENT.step(t, drawing.client, ack, 0).client
+    assert released.spent == c.spent + 1000 and released.usable == 4000
     once_more = W.SUPERVISOR.step(t, step.session, again_counts, 0)
     assert any(isinstance(a, Admitted) for a in once_more.actions)  # found behind
     (fresh,) = _sent(once_more)

@@ -99,6 +99,29 @@ def test_an_axis_powered_after_its_stop_is_stuck_and_the_stop_is_repeated() -> N
     assert g.phase is GuardPhase.STOPPED and g.stuck is None
 
 
+def test_a_stop_heard_only_within_its_notice_is_stuck_as_such_not_as_unheard() -> None:
+    """A notice longer than the stop timeout (a slow reaction) leaves every reply that comes
+    before the timeout too early to show the stop's effect: STUCK, named for what was heard."""
+    config = DeviceConfig(limits=FULL, latency_us=5_000, reaction_us=600_000)
+    g = DeviceGuard(3, OdriveProfile(MOTOR), config, 0, 1)
+    ready(g)
+    g.on_feedback(20_000, 20_000, True, "CLOSED_LOOP_CONTROL")
+    stop_at = g.phase_at
+    t = stop_at
+    while g.phase is GuardPhase.STOPPING:
+        t += 50_000
+        g.on_feedback(t, t, False, "IDLE")  # powerless, but within the notice
+        g.on_wakeup(t)
+    assert t == stop_at + 550_000 and g.notice_us() > 500_000
+    notice = g.notice_us() / 1000
+    assert g.stuck == f"heard 500 ms after the stop only within its notice ({notice:g} ms)"
+    unheard = guard()
+    ready(unheard)
+    unheard.on_feedback(20_000, 20_000, True, "CLOSED_LOOP_CONTROL")
+    unheard.on_wakeup(unheard.phase_at + 600_000)
+    assert unheard.stuck == "not heard for 500 ms after the stop"
+
+
 def test_limits_written_behind_the_guard_that_never_read_back_stop_the_device_for_good() -> None:
     """The guard writes its own limits over an application's at once; while no read-back
     shows them in force, the application's are charged, and past the feedback timeout (300 ms)

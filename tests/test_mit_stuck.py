@@ -24,15 +24,15 @@ from canergy.live.devices.mit_bus import MitBus, MitMotor
 from firmware_model.drive.live_bench import wait_for
 from firmware_model.mit.live_bench import MOTOR, NODE, STEADY, burst, rig
 
-STOP_MS = 1000
+STOP_MS = 3000
 TIMES = {"feedback_timeout_us": 2_000_000, "stop_timeout_us": STOP_MS * 1000}
-"""The stop's timeout: a loaded machine once left the emulated motor unheard for 300 ms after
-the stop (then STUCK as "not heard", where it is heard powered as long as it runs)."""
+"""The stop's timeout: only a reply later than the stop plus the notice the guard has measured
+can show the motor powered. A fresh-clone CI run under load measured a notice near 1.4 s (the
+motor stopped with 22.5 J of 40 J left) and with a 1 s timeout heard nothing past it in time."""
 BUDGET = "40J"
-"""What the runs grant the motor: the guard's bound counts the stop's timeout at the 0.5 N·m
-cap's 15.36 W (15.4 J of it at 1 s) and the worst reaction and latency it has measured; with the
-bench's usual 20 J a host that stalled 0.3 s (1.2 s once, beside three proofs) left the motor
-held with budget in hand, never running into STUCK. 40 J covers stalls of 1.6 s."""
+"""What the runs grant the motor: the guard's bound counts the worst reaction and latency it
+has measured at the 0.5 N·m cap's 15.36 W; 40 J covers a notice of 2 s and more (with the
+bench's usual 20 J a host that stalled 1.2 s left the motor held with budget in hand)."""
 
 
 def relay(tmp: Path) -> tuple[str, Path]:
@@ -45,7 +45,8 @@ def relay(tmp: Path) -> tuple[str, Path]:
 
 def check_stuck(status: dict[str, Any], said: list[str], cut: Path) -> None:
     assert status["guard"] == "stuck", status
-    assert status["stuck"] == f"still powered {STOP_MS} ms after the stop", status["stuck"]
+    want = f"still powered {STOP_MS} ms after the stop"
+    assert status["stuck"] == want, (status["stuck"], status.get("bound_timings_us"))
     assert status["on_stuck"]["runs"] == 1 and status["on_stuck"]["exit_code"] == 0
     assert cut.read_text() == "mit 1\n"  # once, the motor's CAN id filled in
     assert status["uncontained_uj"] > 0  # booked, not metered

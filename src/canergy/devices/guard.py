@@ -634,12 +634,7 @@ class DeviceGuard(ProxyBooks, Generic[L]):
         if now >= self.last_stop_at + self.config.retry_us:
             self._send_stop("not stopped yet: again", now)
         if self.phase is GuardPhase.STOPPING and now > self.phase_at + self.config.stop_timeout_us:
-            ms = self.config.stop_timeout_us / 1000
-            self.stuck = (
-                f"still powered {ms:g} ms after the stop"
-                if heard_since
-                else f"not heard for {ms:g} ms after the stop"
-            )
+            self.stuck = self._stuck_why(heard_since)
             self.charge(now)
             self.phase = GuardPhase.STUCK  # keeps phase_at: the stop's time
             if self.config.stuck_limits is not None:  # it did not obey since the notice
@@ -647,6 +642,19 @@ class DeviceGuard(ProxyBooks, Generic[L]):
                 fw = self._fw(self.config.stuck_limits)
                 self.uncontained_uj += ceil_div(fw * since, FW_US_PER_UJ)
             self._recharge(now)
+
+    def _stuck_why(self, heard_since: bool) -> str:
+        """Why a stop is not confirmed by its timeout: feedback showed the device powered, none
+        came, or all that came fell within the notice (which may predate the stop's effect:
+        a stop timeout no longer than the notice the guard has measured confirms nothing)."""
+        ms = self.config.stop_timeout_us / 1000
+        if heard_since:
+            return f"still powered {ms:g} ms after the stop"
+        heard = self.last_feedback_at is not None and self.last_feedback_at > self.phase_at
+        if heard:
+            notice = self.notice_us() / 1000
+            return f"heard {ms:g} ms after the stop only within its notice ({notice:g} ms)"
+        return f"not heard for {ms:g} ms after the stop"
 
     def _send_stop(self, why: str, now: int) -> None:
         self.commands.append(Stop(why, now))

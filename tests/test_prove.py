@@ -644,3 +644,26 @@ def test_no_record_of_the_node_holds_a_number_above_top() -> None:
     solver = z3.Solver()
     solver.add(wp.client_books(w), w.c.phase != sym.JOINING, inv.ult(wp.top(w), w.seq))
     assert solver.check() == z3.unsat
+
+
+def test_a_node_put_back_below_top_while_a_start_behind_in_c_waits_is_the_residual() -> None:
+    """Residual (d) in return numbers: while a start of the supervisor's from an image behind
+    in C waits, the node is not put back to an image more than one number below the highest
+    any record of it held (``far_behind_c``, a hypothesis of the node's restore): counts from
+    such an image would end the start with C below numbers a RETURN in flight may carry. The
+    restore without that hypothesis breaks ``window at a start``, which says so."""
+    from canergy.prove import witnessed_proof as wp
+    from canergy.prove.obligations import StepCase
+    from canergy.prove.world import any_image
+
+    nonce = z3.BitVec("restore.nonce", 16)
+
+    def tx_only(w: Any) -> Any:
+        image = any_image("image")
+        step = wp.restore(w, image, nonce)
+        return step, [wp.p_image(image, w), z3.Not(wp.far_behind(step.after))], None
+
+    case = StepCase("client: restored from an older image (tx only)", tx_only)
+    outcomes = list(check_step(case, 120_000, WITNESSED, ("window at a start",)))
+    (window,) = [o for o in outcomes if o.clause == "window at a start"]
+    assert not window.proved and "counterexample" in window.counterexample

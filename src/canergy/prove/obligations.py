@@ -195,7 +195,8 @@ def _witnessed_cases() -> list[StepCase]:
     def restore(w: World) -> Built:
         image = any_image("image")
         step = wp.restore(w, image, nonce)
-        return step, [wp.p_image(image, w), z3.Not(wp.far_behind(step.after))], None
+        behind = z3.Or(wp.far_behind(step.after), wp.far_behind_c(step.after))
+        return step, [wp.p_image(image, w), z3.Not(behind)], None
 
     def restore_supervisor(w: World) -> Built:
         image = any_session_image("session_image")

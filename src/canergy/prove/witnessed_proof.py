@@ -355,6 +355,7 @@ def client_books(w: World) -> Term:
         ),
         ule(top(w), one(view(w).rc)),
         z3.Implies(c.phase != sym.JOINING, ule(w.seq, top(w))),  # no record holds more
+        z3.Implies(starting(c), ule(start_seq(w), top(w))),  # the record at the start neither
         # no record holds more, but one number past it that C voided (a repeat's answer)
         z3.Implies(
             view(w).booked,
@@ -489,13 +490,17 @@ def answer_remembered(w: World) -> Term:
     """While a repeat of the supervisor's last answer to a start can happen, that answer is
     one it sent, and a repeat of the start's frame gets it again (with k the same or later):
     its ``P`` holds, as of a frame in flight."""
-    return z3.Implies(wit.may_repeat(w.s), p_admit(last_answer(w), w))
+    own = z3.And(ule(rk(w), w.tx), rstart(w) >= 0)  # of the session's own record (an image's)
+    return z3.Implies(wit.may_repeat(w.s), z3.And(own, p_admit(last_answer(w), w)))
 
 
 def join_remembered(w: World) -> Term:
     """The ADMIT of the last JOIN admitted (``join_seq`` 0: none) is one the supervisor sent,
     and a copy of that JOIN sends it again: its ``P`` holds, as of a frame in flight."""
-    return z3.Implies(w.s.join_seq != 0, p_admit(joined(w), w))
+    assert w.jlife is not None and w.jk is not None and w.jq is not None
+    # of the session's own record (an image's too): no further than its counters
+    own = z3.And(ule(w.jk, w.tx), ule(w.jq, w.rc))
+    return z3.Implies(w.s.join_seq != 0, z3.And(w.jlife >= 0, own, p_admit(joined(w), w)))
 
 
 _REPLACED = {
@@ -527,6 +532,19 @@ def behind(w: World) -> Term:
     return z3.And(wit.in_start(w.s), z3.ULT(w.tx, replace(w, s=spre(w)).tx))
 
 
+def behind_c(w: World) -> Term:
+    """A supervisor's start waits from a record behind the session at its start in C (an older
+    image: its C below)."""
+    return z3.And(wit.in_start(w.s), z3.ULT(w.rc, replace(w, s=spre(w)).rc))
+
+
+def far_behind_c(w: World) -> Term:
+    """Residual (d) in return numbers: a start of the supervisor's from an image behind in C
+    waits while the node's record is more than one number below the highest any record of it
+    held (``World.top``): both rolled back past the same debit."""
+    return z3.And(behind_c(w), w.c.phase != sym.JOINING, z3.Not(ule(top(w), one(w.seq))))
+
+
 def far_behind(w: World) -> Term:
     """Residual (d): both records rolled back past the same event. A start of the supervisor's
     from an older image waits while the record the node holds is more than B behind the
@@ -542,7 +560,7 @@ def answers_this_start(w: World) -> Term:
 def not_from_an_image(w: World) -> Term:
     """Residual (d), as the supervisor's restore takes it: the node is not in a start from an
     older image behind the records of that start (in ltx)."""
-    return z3.Implies(starting(w.c), ule(lhi(w), w.last))
+    return z3.Implies(starting(w.c), z3.And(ule(lhi(w), w.last), ule(top(w), one(w.seq))))
 
 
 def taken_records(w: World) -> Term:
@@ -586,7 +604,16 @@ def start_records(w: World) -> Term:
         z3.Implies(starting(w.c), at_start),
         z3.Implies(answers_now, starts(w) >= sbegan(w)),  # the SYNC came first
         sbegan(w) <= starts(w) + 1,
+        sbegan(w) >= 0,
+        # no start of the node's since the supervisor's began is confirmed while it waits, and
+        # a life begun since is not admitted (a JOIN at a start is ignored): a node with books
+        # and out of a start is in a start, or a life, from before
+        z3.Implies(z3.And(wit.in_start(w.s), booked_out_of_start(w.c)), starts(w) < sbegan(w)),
     )
+
+
+def booked_out_of_start(c: sym.Client) -> Term:
+    return z3.And(z3.Not(starting(c)), c.phase != sym.JOINING)
 
 
 def known(w: World) -> Term:
@@ -620,7 +647,7 @@ def window_at_start(w: World) -> Term:
     at most B behind the session at the start (residual (d) for the rest), and at or above it
     once the node answered that start's SYNC."""
     answered = z3.Implies(z3.And(behind(w), answers_this_start(w)), ule(begun(w), w.last))
-    return z3.And(z3.Not(far_behind(w)), answered)
+    return z3.And(z3.Not(far_behind(w)), z3.Not(far_behind_c(w)), answered)
 
 
 STATE: tuple[tuple[str, inv.Clause], ...] = (
@@ -649,6 +676,7 @@ def p_image(r: sym.Client, w: World) -> Term:
         z3.Implies(z3.ULT(v.tx, then.last), r.outcome == sym.SETTLED),
         _lacks(r, then.seq, v.c, v.seq),
         resolved_taken(r, then.last, w),
+        ule(then.seq, top(w)),  # a number a record of the node held
     )
 
 
@@ -674,9 +702,14 @@ def p_session_image(r: sym.Session, w: World) -> Term:
     ``view``, its last start answered above its number, and the ADMITs of its last JOIN
     admitted and its last start answered ones that were sent (``P`` holds of them now, as of
     every ADMIT sent)."""
-    sent = z3.Implies(r.join_seq != 0, p_admit(remembered(r, *IMAGE_JOIN), w))
+    then = replace(w, s=r)
+    joined_life = IMAGE_JOIN[2] >= 0
+    own = z3.And(ule(IMAGE_JOIN[0], then.tx), ule(IMAGE_JOIN[1], then.rc))
+    remembered_join = p_admit(remembered(r, *IMAGE_JOIN), w)
+    sent = z3.Implies(r.join_seq != 0, z3.And(joined_life, own, remembered_join))
     answer = answer_of(r, *IMAGE_ANSWER, w.shift_seq)
-    answer_sent = z3.Implies(wit.may_repeat(r), p_admit(answer, w))
+    answer_own = z3.And(ule(IMAGE_ANSWER[0], then.tx), IMAGE_ANSWER[1] >= 0)
+    answer_sent = z3.Implies(wit.may_repeat(r), z3.And(answer_own, p_admit(answer, w)))
     return z3.And(inv.p_session_image(r, view(w)), answered(r), sent, answer_sent)
 
 
@@ -725,7 +758,8 @@ def p_debit(m: Msg, w: World) -> Term:
             z3.And(resume, m.amount > 0, m.k == inv.one(v.rc)),
             v.s.returned + m.amount * Q <= v.given,
         ),
-        z3.Implies(counts, z3.Int2BV(m.amount, 16) == low16(m.q)),
+        z3.Implies(counts, z3.And(z3.Int2BV(m.amount, 16) == low16(m.q), z3.ULT(m.q, inv.LIFE))),
+        z3.Implies(numbered, z3.ULT(m.k, inv.LIFE)),  # a record's numbers (assumption 4)
         z3.Implies(z3.And(current_sync(m, w), counts, m.life == w.life), w.c.phase != sym.JOINING),
         z3.Implies(m.life == w.life, w.c.phase != sym.JOINING),  # a life joining sends none
         # a start of this life began after every frame of an earlier life
@@ -733,6 +767,7 @@ def p_debit(m: Msg, w: World) -> Term:
         # a life that began after its answer began in this start, whose JOIN waits for its end
         z3.Implies(z3.And(current_sync(m, w), counts, m.life < w.life), z3.Not(w.admitted)),
         z3.Implies(z3.And(current_sync(m, w), counts, behind(w)), ule(begun(w), m.q)),
+        z3.Implies(z3.And(current_sync(m, w), counts, behind_c(w)), ule(top(w), one(m.k))),
         # books and counts answering the supervisor's current start: of a start since it began
         z3.Implies(current_sync(m, w), m.start >= sbegan(w)),
         # counts answering the supervisor's current start: no record of this life has since
@@ -751,7 +786,7 @@ def _evidence(m: Msg, w: World, ahead: int) -> Term:
         m.life >= 0,
         m.life <= w.life,
         z3.Implies(m.life == w.life, z3.And(w.c.phase != sym.JOINING, ule(m.k, most))),
-        z3.Implies(m.life == w.life, ule(m.k, taken(w))),
+        ule(m.k, taken(w)),  # of any life: a transaction the node took
         # a node in a start sends none: sent before it, by a record at most the one at the
         # start (whose ltx a confirmation of the start does not go below)
         z3.Implies(z3.And(m.life == w.life, starting(w.c)), ule(m.k, v.last + ahead)),
@@ -766,6 +801,11 @@ def p_return(m: Msg, w: World) -> Term:
     return z3.And(inv.p_return(m, v), ule(m.k, top(w)))
 
 
+def p_return_ack(m: Msg, w: World) -> Term:
+    """The hardened ``P``, and numbered at most ``World.top``: it acknowledges a debit."""
+    return z3.And(inv.p_return_ack(m, view(w)), ule(m.k, top(w)))
+
+
 def p_aborted(m: Msg, w: World) -> Term:
     """The hardened ``P``, where the node's last transaction may also have been settled by a
     confirmation (found behind: admitted at it; or the first record's, confirmed at it) rather
@@ -776,16 +816,26 @@ def p_aborted(m: Msg, w: World) -> Term:
     marked = replace(v, c=sym.pick(settled, replace(v.c, outcome=inv.ABORTED), v.c))
     aborted = z3.Implies(m.k == taken(w), took(w) == inv.ABORTED)
     took_it = z3.And(ule(m.k, taken(w)), m.k != 0, aborted)
-    return z3.And(inv.p_aborted(m, marked), z3.Implies(m.life == w.life, took_it))
+    any_life = z3.And(ule(m.k, taken(w)), m.k != 0)  # of any life: a transaction it took
+    return z3.And(inv.p_aborted(m, marked), any_life, z3.Implies(m.life == w.life, took_it))
 
 
 def p_admit(m: Msg, w: World) -> Term:
     """An ADMIT answers a JOIN (``life`` the JOIN's: the hardened ``P``), or it is a SYNC or a
     start's confirmation (``life`` -1): its counters the supervisor's, then or earlier."""
     v = view(w)
+    # a confirmation of a start the node has left: no node takes it (its nonce is that start's,
+    # assumption 5), its counters as sent (a start of the supervisor's from an older image may
+    # end below them)
+    # a SYNC of a start of the supervisor's that has ended: the node answers a SYNC by its
+    # nonce alone
+    stale = z3.Or(
+        z3.And(m.start >= 0, z3.Not(this_start(m, w))),
+        z3.And(m.sstart >= 0, z3.Not(current_sync(m, w))),
+    )
     ours = z3.And(
-        ule(m.k, v.tx),
-        ule(m.q, v.rc),
+        z3.Or(m.start >= 0, m.sstart >= 0),  # a confirmation or a SYNC
+        z3.Implies(z3.Not(stale), z3.And(ule(m.k, v.tx), ule(m.q, v.rc))),
         m.admit_tx == low16(m.k),
         m.admit_seq == low16(m.q),
         m.start >= -1,
@@ -800,7 +850,7 @@ def p_admit(m: Msg, w: World) -> Term:
             current_sync(m, w),
             z3.And(m.nonce == w.s.sync_nonce, m.k == w.tx, m.q == w.rc),
         ),
-        z3.Implies(m.k == v.tx, z3.Not(v.open)),
+        z3.Implies(z3.And(m.k == v.tx, z3.Not(stale)), z3.Not(v.open)),
         z3.Implies(
             this_start(m, w),
             z3.And(
@@ -830,8 +880,20 @@ def p_admit(m: Msg, w: World) -> Term:
         ),
     )
     answers_this_life = z3.And(m.life == w.life, z3.Not(v.booked))
+    # an answer to a JOIN of an earlier life, or of this one once it has books: no node takes
+    # it (assumption 5; a node with books reads it as a SYNC, by its nonce alone), its counters
+    # on the wire as sent (a supervisor's start from an older image may end below them)
+    wire = z3.And(m.admit_tx == low16(m.k), m.admit_seq == low16(m.q), m.life >= 0)
+    inert = z3.Or(m.life < w.life, v.booked)
+    # an answer to the JOIN of this life while a start of the supervisor's waits was sent
+    # before it began, to a life from before it
+    before_start = z3.Implies(
+        z3.And(wit.in_start(w.s), m.life == w.life, w.c.phase == sym.JOINING),
+        starts(w) < sbegan(w),
+    )
     join = z3.And(
-        inv.p_admit(m, v),
+        z3.If(inert, z3.And(wire, m.life <= w.life), inv.p_admit(m, v)),
+        before_start,
         m.start == -1,
         m.sstart == -1,
         z3.Implies(answers_this_life, z3.And(ule(top(w), m.q), ule(taken(w), m.k))),
@@ -862,6 +924,7 @@ MESSAGE: dict[Kind, inv.MsgClause] = {
     Kind.INTENTION: p_intention,
     Kind.ADMIT: p_admit,
     Kind.RETURN: p_return,
+    Kind.RETURN_ACK: p_return_ack,
     Kind.ABORTED: p_aborted,
     Kind.DEBIT: p_debit,
     Kind.ACK: lambda m, w: _evidence(m, w, 1),
@@ -1250,10 +1313,14 @@ def on_debit(w: World, m: Msg) -> st.Step:
     )
     after = taken.after
     fresh_answer = z3.And(z3.Or(resumes, counted_), z3.Not(repeat))
+    # counts that end a start from an older image may set tx below this life's admission (both
+    # records from before it): the life counts as admitted at the confirmation's k then
+    lowered = z3.And(counted_, w.admitted, z3.ULT(after.tx, w.admitted_at))
     after = replace(
         after,
         rk=z3.If(fresh_answer, after.tx, rk(w)),
         rstart=z3.If(fresh_answer, m.start, rstart(w)),
+        admitted_at=z3.If(lowered, after.tx, w.admitted_at),
     )
     taken = replace(taken, after=after)
     lemmas = (

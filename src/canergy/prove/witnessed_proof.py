@@ -605,15 +605,7 @@ def start_records(w: World) -> Term:
         z3.Implies(answers_now, starts(w) >= sbegan(w)),  # the SYNC came first
         sbegan(w) <= starts(w) + 1,
         sbegan(w) >= 0,
-        # no start of the node's since the supervisor's began is confirmed while it waits, and
-        # a life begun since is not admitted (a JOIN at a start is ignored): a node with books
-        # and out of a start is in a start, or a life, from before
-        z3.Implies(z3.And(wit.in_start(w.s), booked_out_of_start(w.c)), starts(w) < sbegan(w)),
     )
-
-
-def booked_out_of_start(c: sym.Client) -> Term:
-    return z3.And(z3.Not(starting(c)), c.phase != sym.JOINING)
 
 
 def known(w: World) -> Term:
@@ -768,6 +760,9 @@ def p_debit(m: Msg, w: World) -> Term:
         z3.Implies(z3.And(current_sync(m, w), counts, m.life < w.life), z3.Not(w.admitted)),
         z3.Implies(z3.And(current_sync(m, w), counts, behind(w)), ule(begun(w), m.q)),
         z3.Implies(z3.And(current_sync(m, w), counts, behind_c(w)), ule(top(w), one(m.k))),
+        # counts of this life answering the supervisor's current start: the node is still in
+        # a start (none of its starts since that start began is confirmed while it waits)
+        z3.Implies(z3.And(current_sync(m, w), counts, m.life == w.life), starting(w.c)),
         # books and counts answering the supervisor's current start: of a start since it began
         z3.Implies(current_sync(m, w), m.start >= sbegan(w)),
         # counts answering the supervisor's current start: no record of this life has since
@@ -885,15 +880,8 @@ def p_admit(m: Msg, w: World) -> Term:
     # on the wire as sent (a supervisor's start from an older image may end below them)
     wire = z3.And(m.admit_tx == low16(m.k), m.admit_seq == low16(m.q), m.life >= 0)
     inert = z3.Or(m.life < w.life, v.booked)
-    # an answer to the JOIN of this life while a start of the supervisor's waits was sent
-    # before it began, to a life from before it
-    before_start = z3.Implies(
-        z3.And(wit.in_start(w.s), m.life == w.life, w.c.phase == sym.JOINING),
-        starts(w) < sbegan(w),
-    )
     join = z3.And(
         z3.If(inert, z3.And(wire, m.life <= w.life), inv.p_admit(m, v)),
-        before_start,
         m.start == -1,
         m.sstart == -1,
         z3.Implies(answers_this_life, z3.And(ule(top(w), m.q), ule(taken(w), m.k))),

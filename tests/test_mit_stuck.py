@@ -27,8 +27,9 @@ from firmware_model.mit.live_bench import MOTOR, NODE, STEADY, burst, rig
 STOP_MS = 3000
 TIMES = {"feedback_timeout_us": 2_000_000, "stop_timeout_us": STOP_MS * 1000}
 """The stop's timeout: only a reply later than the stop plus the notice the guard has measured
-can show the motor powered. A fresh-clone CI run under load measured a notice near 1.4 s (the
-motor stopped with 22.5 J of 40 J left) and with a 1 s timeout heard nothing past it in time."""
+can show the motor powered. A fresh-clone CI run under load stopped the motor with 22.5 J of
+40 J left (a bound that, at 15.36 W, allows a notice near 1.4 s: derived, the status was not
+printed) and with a 1 s timeout heard nothing past it in time."""
 BUDGET = "40J"
 """What the runs grant the motor: the guard's bound counts the worst reaction and latency it
 has measured at the 0.5 N·m cap's 15.36 W; 40 J covers a notice of 2 s and more (with the

@@ -573,9 +573,11 @@ def test_a_confirmation_below_the_record_at_the_start_keeps_intentions_by_what_w
 
 def test_the_supervisors_debit_proves_that_its_counters_never_go_back() -> None:
     """The supervisor's DEBIT proves first that C and tx, in the proof's numbering, never go
-    back (lifts, voids, credits, a draw held, counts), then takes both as facts (its slowest
-    obligations, ``client books`` and ``numbering``, went from 87 s and 101 s to 27 s and
-    12 s)."""
+    back (lifts, voids, credits, a draw held, counts), and that counts ending a start leave tx
+    at or above every transaction begun, then takes them as facts (its slowest obligations,
+    ``client books`` and ``numbering``, went from 87 s and 101 s to 27 s and 12 s; ``P`` of an
+    INTENTION in flight at counts ending a start from an image, from z3's 200 s limit to
+    24 s)."""
     (case,) = [c for c in cases(WITNESSED) if c.name == "supervisor receives DEBIT"]
     lemmas = []
     for outcome in check_step(case, 120_000, WITNESSED):  # 60 s fell short beside CI
@@ -586,6 +588,7 @@ def test_the_supervisors_debit_proves_that_its_counters_never_go_back() -> None:
     assert {o.clause for o in lemmas} == {
         "lemma: C does not go back",
         "lemma: tx does not go back",
+        "lemma: counts that end a start leave tx at or above begun",
     }
     assert all(o.proved for o in lemmas), [o.counterexample for o in lemmas if not o.proved]
 
@@ -667,3 +670,20 @@ def test_a_node_put_back_below_top_while_a_start_behind_in_c_waits_is_the_residu
     outcomes = list(check_step(case, 120_000, WITNESSED, ("window at a start",)))
     (window,) = [o for o in outcomes if o.clause == "window at a start"]
     assert not window.proved and "counterexample" in window.counterexample
+
+
+def test_counts_ending_a_supervisor_start_begin_an_epoch_of_h(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Counts that end a supervisor's start may leave a Gs (an older image's, raised by the
+    books) below the one the discarded history fixed for the numbers taken again: they begin
+    an epoch of ``H`` (``World.epoch``), equal to that Gs up to one past the tx they leave, and
+    ``Gs = H`` holds after them. With one ``H`` over the whole run (the epoch kept) z3 finds
+    the discarded history's ``H`` above that Gs."""
+    from canergy.prove import witnessed_proof as wp
+    from canergy.prove.world import epoch_of
+
+    outcome = _debit_clause("Gs = H")
+    assert outcome.proved, outcome.counterexample
+    monkeypatch.setattr(wp, "next_epoch", lambda w, ends: epoch_of(w))
+    assert not _debit_clause("Gs = H").proved

@@ -17,7 +17,7 @@ from canergy.messages import (
 )
 from canergy.prove import symbolic as sym
 from canergy.prove.symbolic import Term, z3
-from canergy.prove.world import H, Kind, Msg, World
+from canergy.prove.world import H, Kind, Msg, World, epoch_of, msg_epoch
 
 Clause = Callable[[World], Term]
 MsgClause = Callable[[Msg, World], Term]
@@ -92,7 +92,8 @@ def decision(w: World) -> Term:
 
 def prophecy(w: World) -> Term:
     """Gs is H of the open transaction, or of the next one when none is open."""
-    return w.s.delivered == z3.If(w.open, H(w.tx), H(one(w.tx)))
+    e = epoch_of(w)
+    return w.s.delivered == z3.If(w.open, H(e, w.tx), H(e, one(w.tx)))
 
 
 def lifts(w: World) -> Term:
@@ -147,7 +148,7 @@ def returns(w: World) -> Term:
 def held(w: World) -> Term:
     """A held intention: after the client's last, from the supervisor, its amount Ts while
     open; once the supervisor resolved it, it was delivered (H grew by its amount)."""
-    c = w.c
+    c, e = w.c, epoch_of(w)
     current = z3.And(w.held == w.tx, w.open)
     return z3.Implies(
         c.phase == sym.HOLDING,
@@ -159,7 +160,7 @@ def held(w: World) -> Term:
             c.held_amount >= Q,
             c.held_amount <= AMOUNT_MAX_MJ * Q,
             z3.Implies(current, c.held_amount == w.s.reserved),
-            z3.Implies(z3.Not(current), H(one(w.held)) == H(w.held) + c.held_amount),
+            z3.Implies(z3.Not(current), H(e, one(w.held)) == H(e, w.held) + c.held_amount),
         ),
     )
 
@@ -187,10 +188,10 @@ def credit_bound(w: World) -> Term:
     """The client was credited at most H after its last transaction; for the open one, H before
     it, plus Ts if the client committed it. (Its Rc may be higher: an intention refused for
     overflow still teaches it Gs; a higher Rc only pays back less.)"""
-    x = w.received
+    x, e = w.received, epoch_of(w)
     current = z3.And(w.last == w.tx, w.open)
     bound = z3.If(
-        current, H(w.tx) + z3.If(w.c.outcome == COMMITTED, w.s.reserved, 0), H(one(w.last))
+        current, H(e, w.tx) + z3.If(w.c.outcome == COMMITTED, w.s.reserved, 0), H(e, one(w.last))
     )
     return z3.Implies(w.booked, x <= bound)
 
@@ -251,33 +252,38 @@ def _tx_msg(m: Msg, w: World) -> Term:
     return z3.And(ule(m.k, w.tx), m.w == low16(m.k))
 
 
+def _current(m: Msg, w: World) -> Term:
+    """``m`` names the open transaction (of the world's epoch of ``H``)."""
+    return z3.And(m.k == w.tx, w.open, msg_epoch(m, w) == epoch_of(w))
+
+
 def p_intention(m: Msg, w: World) -> Term:
-    current = z3.And(m.k == w.tx, w.open)
+    current, e = _current(m, w), msg_epoch(m, w)
     return z3.And(
         _tx_msg(m, w),
         amount_mj(m.amount),
-        H(m.k) % Q == 0,
-        m.gs == (H(m.k) / Q) % (1 << DELIVERED_BITS),
+        H(e, m.k) % Q == 0,
+        m.gs == (H(e, m.k) / Q) % (1 << DELIVERED_BITS),
         z3.Implies(current, m.amount * Q == w.s.reserved),
         z3.Implies(
             z3.And(z3.Not(current), _client_may_take(m.k, w)),
-            H(one(m.k)) == H(m.k) + m.amount * Q,
+            H(e, one(m.k)) == H(e, m.k) + m.amount * Q,
         ),
     )
 
 
 def p_commit(m: Msg, w: World) -> Term:
-    current = z3.And(m.k == w.tx, w.open)
+    current, e = _current(m, w), msg_epoch(m, w)
     return z3.And(
         _tx_msg(m, w),
         amount_mj(m.amount),
         z3.Implies(current, z3.And(m.amount * Q == w.s.reserved, w.s.decision == D_COMMIT)),
-        z3.Implies(z3.Not(current), H(one(m.k)) == H(m.k) + m.amount * Q),
+        z3.Implies(z3.Not(current), H(e, one(m.k)) == H(e, m.k) + m.amount * Q),
     )
 
 
 def p_abort(m: Msg, w: World) -> Term:
-    current = z3.And(m.k == w.tx, w.open)
+    current = _current(m, w)
     return z3.And(_tx_msg(m, w), z3.Implies(current, w.s.decision == D_ABORT))
 
 
@@ -299,7 +305,7 @@ def p_admit(m: Msg, w: World) -> Term:
             z3.And(
                 w.admitted,
                 ule(w.admitted_at, m.k),
-                w.received <= H(one(m.k)),
+                w.received <= H(msg_epoch(m, w), one(m.k)),
                 z3.Implies(m.k == w.tx, z3.Not(w.open)),
             ),
         ),
@@ -400,12 +406,14 @@ def p_image(r: sym.Client, w: World) -> Term:
     )
 
 
-def p_session_image(r: sym.Session, w: World) -> Term:
+def p_session_image(r: sym.Session, w: World, prophesied: bool = True) -> Term:
     """What is known of an image the supervisor's record of the session may be put back to: a
     record it wrote earlier in the current numbering (no counter of it ahead, its Gs and what
     it credited back not either, ACKED stored as WAIT_ACK), of which the invariant's clauses on
     the supervisor's books hold (``supervisor books``, ``decision``, ``Gs = H``, ``counter
-    lifts``). Encoded as ``p_image`` is for the node's record."""
+    lifts``). Encoded as ``p_image`` is for the node's record. ``prophesied``: its Gs is ``H`` of
+    the current epoch (under the witnessed rules an image may be of an earlier epoch, and a
+    start that ends from it begins the next)."""
     then = replace(w, s=r)
     return z3.And(
         r.phase != sym.ACKED,
@@ -417,7 +425,7 @@ def p_session_image(r: sym.Session, w: World) -> Term:
         r.returned <= w.s.returned,
         supervisor_books(then),
         decision(then),
-        prophecy(then),
+        prophecy(then) if prophesied else z3.BoolVal(True),
         lifts(then),
     )
 
@@ -433,7 +441,7 @@ def deliverable(m: Msg, w: World) -> Term:
     if k in (Kind.INTENTION, Kind.COMMIT, Kind.ABORT):
         age = z3.Implies(w.booked, near(m.k, w.last))
         if k is Kind.INTENTION:
-            gap = H(m.k) / Q - w.rc_true / Q
+            gap = H(msg_epoch(m, w), m.k) / Q - w.rc_true / Q
             gs_age = z3.And(gap < (1 << (DELIVERED_BITS - 1)), gap > -(1 << (DELIVERED_BITS - 1)))
             age = z3.And(age, z3.Implies(z3.And(w.booked, z3.Not(w.c.credited_unknown)), gs_age))
         return age

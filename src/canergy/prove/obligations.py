@@ -20,6 +20,8 @@ from canergy.prove.invariant import ule
 from canergy.prove.rules import HARDENED, RULES, Rules
 from canergy.prove.symbolic import Term, z3
 from canergy.prove.world import (
+    BASE_GS,
+    BASE_TX,
     TO_CLIENT,
     H,
     Kind,
@@ -29,6 +31,7 @@ from canergy.prove.world import (
     any_msg,
     any_session_image,
     any_world,
+    epoch_of,
     initial_world,
 )
 
@@ -42,10 +45,10 @@ class Outcome:
     counterexample: str = ""
 
 
-def _h_args(terms: Iterable[Term]) -> list[Term]:
-    """Every argument ``H`` is applied to in ``terms``."""
+def _h_apps(terms: Iterable[Term]) -> list[tuple[Term, Term]]:
+    """Every (epoch, number) ``H`` is applied to in ``terms``."""
     seen: set[int] = set()
-    found: dict[int, Term] = {}
+    found: dict[tuple[int, int], tuple[Term, Term]] = {}
     stack = list(terms)
     while stack:
         e = stack.pop()
@@ -53,15 +56,28 @@ def _h_args(terms: Iterable[Term]) -> list[Term]:
             continue
         seen.add(e.get_id())
         if z3.is_app(e) and e.decl().eq(H):
-            found[e.arg(0).get_id()] = e.arg(0)
+            found[(e.arg(0).get_id(), e.arg(1).get_id())] = (e.arg(0), e.arg(1))
         stack.extend(e.children())
     return list(found.values())
 
 
 def monotone(terms: Iterable[Term]) -> list[Term]:
-    """``H`` is monotone, instantiated at every pair of arguments it is applied to."""
-    args = _h_args(terms)
-    return [z3.Implies(ule(a, b), H(a) <= H(b)) for a in args for b in args if a is not b]
+    """``H`` is monotone within an epoch, instantiated at every pair of its applications, and
+    its epoch's base Gs up to one past the base tx (each application whose epoch is not 0's
+    literal: the hardened rules have no other)."""
+    apps = _h_apps(terms)
+    pairs = [
+        z3.Implies(z3.And(e == f, ule(a, b)), H(e, a) <= H(f, b))
+        for e, a in apps
+        for f, b in apps
+        if (e, a) != (f, b)
+    ]
+    based = [
+        z3.Implies(ule(a, inv.one(BASE_TX(e))), H(e, a) == BASE_GS(e))
+        for e, a in apps
+        if not (z3.is_int_value(e) and e.as_long() == 0)
+    ]
+    return pairs + based
 
 
 def drawn(w: World) -> Term:
@@ -72,7 +88,7 @@ def drawn(w: World) -> Term:
 def resolved_consistently(before: World, after: World) -> Term:
     """The prophecy agrees with the run: when a transaction closes, Gs is H of the next."""
     closes = z3.And(before.open, z3.Not(after.open))
-    return z3.Implies(closes, after.s.delivered == H(inv.one(after.tx)))
+    return z3.Implies(closes, after.s.delivered == H(epoch_of(after), inv.one(after.tx)))
 
 
 def _terms(w: World) -> list[Term]:
@@ -367,10 +383,13 @@ def _check(
 
 
 def check_initial(proof: Proof = HARDENED_PROOF) -> Iterator[Outcome]:
-    """The invariant holds for two new nodes (H starts at 0: nothing delivered before)."""
+    """The invariant holds for two new nodes (H starts at 0: nothing delivered before; the
+    first epoch begins at transaction 0 with Gs 0)."""
     w = initial_world()
+    zero = z3.IntVal(0)
+    facts = [H(zero, inv.one(w.tx)) == 0, BASE_TX(zero) == 0, BASE_GS(zero) == 0]
     for name, clause in proof.state:
-        yield _prove("initial state", name, [H(inv.one(w.tx)) == 0], clause(w))
+        yield _prove("initial state", name, facts, clause(w))
 
 
 def check_conclusion(rules: Rules = HARDENED) -> Iterator[Outcome]:

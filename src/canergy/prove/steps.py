@@ -26,6 +26,8 @@ from canergy.prove.world import (
     Kind,
     Msg,
     World,
+    epoch_of,
+    msg_epoch,
 )
 
 
@@ -56,6 +58,7 @@ def _msg(kind: Kind, **given: Term) -> Msg:
         "flags": _ZERO[INT],
         "start": z3.IntVal(-1),
         "sstart": z3.IntVal(-1),
+        "epoch": _ZERO[INT],
     }
     return Msg(kind, **{**zero, **given})
 
@@ -79,10 +82,10 @@ def client_sent(w: World, sent: sym.Sent) -> tuple[tuple[Term, Msg], ...]:
 
 def supervisor_sent(w: World, sent: sym.Sent, life: Term) -> tuple[tuple[Term, Msg], ...]:
     """What a supervisor step sent, with its ghosts (``life``: of the JOIN an ADMIT answers)."""
-    s = w.s
+    s, e = w.s, epoch_of(w)
     k = sym.unwrap(sent.a, s.tx, 16) - w.shift_tx
     out: list[tuple[Term, Msg]] = [
-        (_is(sent, kind), _msg(kind, w=sent.a, amount=sent.b, gs=sent.c, k=k))
+        (_is(sent, kind), _msg(kind, w=sent.a, amount=sent.b, gs=sent.c, k=k, epoch=e))
         for kind in (Kind.INTENTION, Kind.COMMIT, Kind.ABORT)
     ]
     q = sym.unwrap(sent.a, s.returns_credited, 16) - w.shift_seq
@@ -95,6 +98,7 @@ def supervisor_sent(w: World, sent: sym.Sent, life: Term) -> tuple[tuple[Term, M
         k=w.tx,
         q=w.rc,
         life=life,
+        epoch=e,
     )
     out.append((_is(sent, Kind.ADMIT), admit))
     return tuple(out)
@@ -134,11 +138,11 @@ def _client_step(w: World, result: tuple[sym.Client, sym.Sent], **ghost: Term) -
 def on_intention(w: World, m: Msg) -> Step:
     c, sent = sym.on_intention(w.c, m.w, m.amount, m.gs)
     learned = z3.And(w.c.credited_unknown, z3.Not(c.credited_unknown))
-    roff = z3.If(learned, H(m.k) - c.credited, w.roff)
+    roff = z3.If(learned, H(msg_epoch(m, w), m.k) - c.credited, w.roff)
     step = _client_step(w, (c, sent), roff=roff)
     known = z3.And(w.booked, z3.Not(w.c.credited_unknown))
     paid_to = sym.unwrap_int(m.gs, w.c.credited / QUANTUM_UJ, DELIVERED_BITS) * QUANTUM_UJ
-    names_h = z3.Implies(known, paid_to + w.roff == H(m.k))
+    names_h = z3.Implies(known, paid_to + w.roff == H(msg_epoch(m, w), m.k))
     return replace(step, lemmas=(("lemma: the wire's Gs names H(k)", names_h),))
 
 

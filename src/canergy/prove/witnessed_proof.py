@@ -57,9 +57,16 @@ it come from such a start, with an ltx within 2**15 of tx (assumption 3) that no
 life has gone below since. W is signed, as in both cores (counts whose ltx reads below 0 set it
 there and close the window).
 
+Counts that end a supervisor's start begin an epoch of ``H`` (``World.epoch``): the session
+may go on from an older image with a Gs below the one the discarded history fixed for the
+numbers it takes again, so each epoch has its own ``H``, equal to the Gs it began at up to one
+past the tx it began at (``world.BASE_TX``, ``BASE_GS``); a frame of an earlier epoch names a
+transaction at most the current epoch's base (``sent_in``), and a node with books outside a
+start holds an ltx at or above it (``epochs``), so it takes none.
+
 Not proved: it fails at the supervisor's DEBIT, mostly where a SYNC's counts end the
-supervisor's start and the invariant speaks of the record started from again (its tx, C and
-Gs are not yet shown to dominate the session at the start's); z3 gives up (300 s) on
+supervisor's start and the invariant speaks of the record started from again (what the node
+received is not yet shown within the Gs the start ends with); z3 gives up (300 s) on
 ``remembered answer`` at late and a re-sync's counts and on ``P`` of the ADMIT late counts
 send; a re-sync's books fail ``supervisor books`` (their
 Rc not bounded by Gs): docs/protocol.md ("Passivity as a theorem", assumption 2, items (a) to
@@ -82,7 +89,18 @@ from canergy.prove import symbolic as sym
 from canergy.prove import witnessed as wit
 from canergy.prove.invariant import COMMITTED, Q, low16, one, ule, whole
 from canergy.prove.symbolic import Term, z3
-from canergy.prove.world import TO_CLIENT, W_TO_SUPERVISOR, H, Kind, Msg, World
+from canergy.prove.world import (
+    BASE_GS,
+    BASE_TX,
+    TO_CLIENT,
+    W_TO_SUPERVISOR,
+    H,
+    Kind,
+    Msg,
+    World,
+    epoch_of,
+    msg_epoch,
+)
 
 T = TypeVar("T")
 
@@ -423,8 +441,9 @@ def numbering(w: World) -> Term:
     return z3.If(settled_ahead, inv.numbering(ahead), inv.numbering(v))
 
 
-def remembered(s: sym.Session, k: Term, q: Term, life: Term) -> Msg:
-    """The ADMIT of the last JOIN admitted (``Session.join_*``) with its ghosts."""
+def remembered(s: sym.Session, k: Term, q: Term, life: Term, epoch: Term) -> Msg:
+    """The ADMIT of the last JOIN admitted (``Session.join_*``) with its ghosts, as sent again
+    in ``epoch``."""
     zero = z3.IntVal(0)
     return Msg(
         Kind.ADMIT,
@@ -440,19 +459,21 @@ def remembered(s: sym.Session, k: Term, q: Term, life: Term) -> Msg:
         flags=zero,
         start=z3.IntVal(-1),
         sstart=z3.IntVal(-1),
+        epoch=epoch,
     )
 
 
 def joined(w: World) -> Msg:
     """The ADMIT a copy of the last JOIN admitted gets again, with its ghosts (``World.jk``)."""
     assert w.jk is not None and w.jq is not None and w.jlife is not None
-    return remembered(w.s, w.jk, w.jq, w.jlife)
+    return remembered(w.s, w.jk, w.jq, w.jlife, epoch_of(w))
 
 
-def answer_of(s: sym.Session, rk: Term, rstart: Term, shift_seq: Term) -> Msg:
+def answer_of(s: sym.Session, rk: Term, rstart: Term, shift_seq: Term, epoch: Term) -> Msg:
     """The supervisor's last answer to a start (``Session.resume_*``) with its ghosts: the
     nonce answered (flipped for a SYNC's counts), k the last transaction closed then (``rk``),
-    Q the C it set (``resume_to``), the node's start it answered (``rstart``)."""
+    Q the C it set (``resume_to``), the node's start it answered (``rstart``); as sent again
+    in ``epoch``."""
     zero = z3.IntVal(0)
     counts = z3.Extract(sym.KEY_BITS - 1, 16, s.resume_nonce) != 0
     nonce = z3.Extract(15, 0, s.resume_nonce)
@@ -470,6 +491,7 @@ def answer_of(s: sym.Session, rk: Term, rstart: Term, shift_seq: Term) -> Msg:
         flags=zero,
         start=rstart,
         sstart=z3.IntVal(-1),
+        epoch=epoch,
     )
 
 
@@ -483,7 +505,7 @@ def rstart(w: World) -> Term:
 
 def last_answer(w: World) -> Msg:
     """The supervisor's last answer to a start, with its ghosts (``World.rk``)."""
-    return answer_of(w.s, rk(w), rstart(w), w.shift_seq)
+    return answer_of(w.s, rk(w), rstart(w), w.shift_seq, epoch_of(w))
 
 
 def answer_remembered(w: World) -> Term:
@@ -642,8 +664,24 @@ def window_at_start(w: World) -> Term:
     return z3.And(z3.Not(far_behind(w)), z3.Not(far_behind_c(w)), answered)
 
 
+def epochs(w: World) -> Term:
+    """(c) The session's epoch of ``H`` began at or below its tx (of ``view``), below an open
+    transaction; a node with books outside a start holds an ltx at or above that base (it was
+    in a start when the epoch began, and every confirmation and admission since is at or
+    above it), so no frame of an earlier epoch (``sent_in``) is one it takes."""
+    e = epoch_of(w)
+    outside = z3.And(w.c.phase != sym.JOINING, z3.Not(starting(w.c)))
+    return z3.And(
+        e >= 0,
+        ule(BASE_TX(e), view(w).tx),
+        z3.Implies(w.open, z3.ULT(BASE_TX(e), w.tx)),
+        z3.Implies(outside, ule(BASE_TX(e), w.last)),
+    )
+
+
 STATE: tuple[tuple[str, inv.Clause], ...] = (
     *((name, _REPLACED.get(name, _on_view(clause))) for name, clause in inv.STATE),
+    ("epochs", epochs),
     ("remembered JOIN", join_remembered),
     ("remembered answer", answer_remembered),
     ("records of the start", start_records),
@@ -693,16 +731,17 @@ def p_session_image(r: sym.Session, w: World) -> Term:
     """An older image of the supervisor's record: the hardened ``p_session_image`` against
     ``view``, its last start answered above its number, and the ADMITs of its last JOIN
     admitted and its last start answered ones that were sent (``P`` holds of them now, as of
-    every ADMIT sent)."""
+    every ADMIT sent). Its Gs is not said to meet ``H``: it may be of an earlier epoch."""
     then = replace(w, s=r)
     joined_life = IMAGE_JOIN[2] >= 0
     own = z3.And(ule(IMAGE_JOIN[0], then.tx), ule(IMAGE_JOIN[1], then.rc))
-    remembered_join = p_admit(remembered(r, *IMAGE_JOIN), w)
+    remembered_join = p_admit(remembered(r, *IMAGE_JOIN, epoch_of(w)), w)
     sent = z3.Implies(r.join_seq != 0, z3.And(joined_life, own, remembered_join))
-    answer = answer_of(r, *IMAGE_ANSWER, w.shift_seq)
+    answer = answer_of(r, *IMAGE_ANSWER, w.shift_seq, epoch_of(w))
     answer_own = z3.And(ule(IMAGE_ANSWER[0], then.tx), IMAGE_ANSWER[1] >= 0)
     answer_sent = z3.Implies(wit.may_repeat(r), z3.And(answer_own, p_admit(answer, w)))
-    return z3.And(inv.p_session_image(r, view(w)), answered(r), sent, answer_sent)
+    image = inv.p_session_image(r, view(w), prophesied=False)
+    return z3.And(image, answered(r), sent, answer_sent)
 
 
 def _msg_on_view(clause: inv.MsgClause) -> inv.MsgClause:
@@ -855,7 +894,9 @@ def p_admit(m: Msg, w: World) -> Term:
                 ule(top(w), v.rc),
                 ule(taken(w), m.k),  # below the record at the start's ltx only settled ahead
                 z3.Implies(w.admitted, ule(w.admitted_at, m.k)),
-                w.received <= H(one(m.k)),
+                m.epoch == epoch_of(w),  # sent in this epoch, at or above its base
+                ule(BASE_TX(m.epoch), m.k),
+                w.received <= H(m.epoch, one(m.k)),
                 v.s.witness <= m.k + w.shift_tx,  # the window: nothing witnessed (signed)
                 ule(begun(w), m.k + B),  # since it was sent, nor begun past it
                 z3.Implies(w.c.phase == sym.SYNCING, ule(w.last, m.k)),
@@ -866,7 +907,7 @@ def p_admit(m: Msg, w: World) -> Term:
             z3.And(
                 confirmable(w),
                 m.q == one(image_seq(w)),
-                w.received - (pre(w).credited - w.c.credited) <= H(one(m.k)),
+                w.received - (pre(w).credited - w.c.credited) <= H(m.epoch, one(m.k)),
                 z3.Implies(
                     z3.And(voided(w) > 0, z3.Not(pre(w).pending_draw)),
                     v.s.returned + voided(w) <= w.given,
@@ -885,6 +926,7 @@ def p_admit(m: Msg, w: World) -> Term:
         m.start == -1,
         m.sstart == -1,
         z3.Implies(answers_this_life, z3.And(ule(top(w), m.q), ule(taken(w), m.k))),
+        z3.Implies(answers_this_life, z3.And(m.epoch == epoch_of(w), ule(BASE_TX(m.epoch), m.k))),
     )
     return z3.If(m.life == -1, ours, join)
 
@@ -898,12 +940,21 @@ def p_intention(m: Msg, w: World) -> Term:
     since = umax(taken(w), z3.If(w.admitted, w.admitted_at, sym.counter(0)))
     least = z3.If(ule(since, v.last), since, v.last)
     by_taken = replace(v, c=replace(v.c, last_tx=least - v.off_tx))
-    return z3.And(inv.p_intention(m, by_taken), ule(m.k, begun(w)))
+    return z3.And(inv.p_intention(m, by_taken), ule(m.k, begun(w)), sent_in(m, w))
 
 
 def _begun(clause: inv.MsgClause) -> inv.MsgClause:
     """An INTENTION, COMMIT or ABORT names a transaction begun (``World.begun``)."""
-    return lambda m, w: z3.And(clause(m, view(w)), ule(m.k, begun(w)))
+    return lambda m, w: z3.And(clause(m, view(w)), ule(m.k, begun(w)), sent_in(m, w))
+
+
+def sent_in(m: Msg, w: World) -> Term:
+    """A supervisor's frame was sent in this epoch or an earlier one; of an earlier one, its
+    transaction at most this epoch's base (counts that end a start take tx to the highest
+    begun at least)."""
+    e = epoch_of(w)
+    earlier = z3.Implies(m.epoch != e, ule(m.k, BASE_TX(e)))
+    return z3.And(m.epoch >= 0, m.epoch <= e, earlier)
 
 
 MESSAGE: dict[Kind, inv.MsgClause] = {
@@ -981,10 +1032,10 @@ def resolved(before: World, after: World) -> Term:
     before, after = view(before), view(after)
     skips = z3.And(z3.Not(after.open), z3.ULT(before.tx, after.tx))
     closes = z3.And(before.open, z3.Not(after.open))
-    gs = after.s.delivered
+    gs, e = after.s.delivered, epoch_of(after)
     return z3.And(
-        z3.Implies(closes, gs == H(one(after.tx))),
-        z3.Implies(skips, z3.And(gs == H(one(after.tx)), gs == H(one(before.tx)))),
+        z3.Implies(closes, gs == H(e, one(after.tx))),
+        z3.Implies(skips, z3.And(gs == H(e, one(after.tx)), gs == H(e, one(before.tx)))),
     )
 
 
@@ -1097,7 +1148,7 @@ def _client(
 def on_intention(w: World, m: Msg) -> st.Step:
     c, frames = wit.on_intention(w.c, m.w, m.amount, m.gs)
     learned = z3.And(w.c.credited_unknown, z3.Not(c.credited_unknown))
-    roff = z3.If(learned, H(m.k) - c.credited, w.roff)
+    roff = z3.If(learned, H(msg_epoch(m, w), m.k) - c.credited, w.roff)
     step = _client(w, (c, frames), roff=roff)
     lemmas = [(n, z3.Implies(z3.Not(starting(w.c)), x)) for n, x in st.on_intention(w, m).lemmas]
     return replace(step, lemmas=tuple(lemmas))
@@ -1274,6 +1325,11 @@ def on_join(w: World, m: Msg) -> st.Step:
     return replace(out, sent=sent)
 
 
+def next_epoch(w: World, ends_a_start: Term) -> Term:
+    """Counts that end a supervisor's start begin the next epoch of ``H``."""
+    return epoch_of(w) + z3.If(ends_a_start, 1, 0)
+
+
 def on_debit(w: World, m: Msg) -> st.Step:
     """A DEBIT: a draw held, a RESUME or a SYNC's counts confirmed (lifted as for a JOIN when
     the node is behind), a SYNC's books taken."""
@@ -1292,14 +1348,20 @@ def on_debit(w: World, m: Msg) -> st.Step:
     lifted = z3.And(z3.Or(resumes, counted_), seq - s.returns_credited < 0, z3.Not(repeat))
     lift_tx, lift_seq = _lift(s)
     zero = sym.counter(0)
+    epoch = next_epoch(w, counted_)
     taken = _session(
         w,
         step,
         start=m.start,
         shift_tx=w.shift_tx + z3.If(lifted, lift_tx, zero),
         shift_seq=w.shift_seq + z3.If(lifted, lift_seq, zero),
+        epoch=epoch,
     )
     after = taken.after
+    # the new epoch's H is the Gs the counts leave, up to one past the tx they leave
+    based = z3.And(BASE_TX(epoch) == after.tx, BASE_GS(epoch) == after.s.delivered)
+    began = epoch != epoch_of(w)
+    taken = replace(taken, enabled=z3.And(taken.enabled, z3.Implies(began, based)))
     fresh_answer = z3.And(z3.Or(resumes, counted_), z3.Not(repeat))
     # counts that end a start from an older image may set tx below this life's admission (both
     # records from before it): the life counts as admitted at the confirmation's k then
@@ -1311,9 +1373,12 @@ def on_debit(w: World, m: Msg) -> st.Step:
         admitted_at=z3.If(lowered, after.tx, w.admitted_at),
     )
     taken = replace(taken, after=after)
+    leave_begun = z3.Implies(counted_, ule(begun(w), after.tx))
     lemmas = (
         ("lemma: C does not go back", ule(w.rc, after.rc)),
         ("lemma: tx does not go back", ule(w.tx, after.tx)),
+        # so a frame of the epoch the counts end names a transaction at most the next's base
+        ("lemma: counts that end a start leave tx at or above begun", leave_begun),
     )
     return replace(taken, lemmas=lemmas)
 

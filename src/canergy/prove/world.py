@@ -12,9 +12,14 @@ The ghost state is what an observer outside the protocol could keep and no node 
 - **lives**: ``life`` counts the client's losses of its books; ``admitted``/``admitted_at`` say
   whether, and at which transaction, the supervisor has admitted the current life;
 - ``cc``: the client has committed the supervisor's open transaction;
-- ``H`` (a function, shared by every world of one run): ``H(k)`` is the supervisor's Gs when
-  transaction ``k`` began, for the whole run (a prophecy: fixed once the run is, monotone since Gs
-  only grows). Messages carry no Gs of their own; an INTENTION's Gs is ``H`` of its transaction.
+- ``H`` (a function, shared by every world of one run): ``H(e, k)`` is the supervisor's Gs when
+  transaction ``k`` began in its epoch ``e``, for the whole run (a prophecy: fixed once the run
+  is, monotone within an epoch since Gs only grows there). Messages carry no Gs of their own; an
+  INTENTION's Gs is ``H`` of its epoch and transaction. The hardened rules have one epoch, 0.
+  Under the witnessed rules counts that end a supervisor's start begin a new epoch
+  (``World.epoch``): the session may go on from an older image, below the Gs the discarded
+  history fixed for the numbers it takes again, so each epoch has its own ``H``, equal below
+  its base (``BASE_TX``, ``BASE_GS``: the tx and Gs it began at).
 """
 
 from __future__ import annotations
@@ -28,8 +33,11 @@ from canergy.messages import MsgType
 from canergy.prove import symbolic as sym
 from canergy.prove.symbolic import COUNTER, Term, z3
 
-H = z3.Function("H", z3.BitVecSort(COUNTER), z3.IntSort())
-"""Gs at the start of each transaction (canonical numbering), the run's prophecy."""
+H = z3.Function("H", z3.IntSort(), z3.BitVecSort(COUNTER), z3.IntSort())
+"""Gs at the start of each transaction (epoch, canonical number), the run's prophecy."""
+BASE_TX = z3.Function("base_tx", z3.IntSort(), z3.BitVecSort(COUNTER))
+"""The tx an epoch began at (canonical): ``H`` of the epoch is its ``BASE_GS`` up to one past it."""
+BASE_GS = z3.Function("base_gs", z3.IntSort(), z3.IntSort())
 
 _names = count()
 
@@ -119,6 +127,9 @@ class World:
     """Witnessed rules: the first of the node's starts (``starts``) that began after the
     supervisor's current start (or re-sync) did: a start answering its SYNC is one of them,
     and no confirmation of one is sent while it waits. Hardened: unused."""
+    epoch: Term | None = None
+    """Witnessed rules: the epoch of ``H`` the session is in (counts that end a start begin the
+    next). Hardened: None, epoch 0 throughout."""
 
     # canonical views
     @property
@@ -232,10 +243,11 @@ def any_world(name: str = "w", with_pre: bool = True) -> World:
     taken = _fresh(f"{name}.taken.", BV32) if with_pre else None
     took = _fresh(f"{name}.took.", INT) if with_pre else None
     sbegan = _fresh(f"{name}.sbegan.", INT) if with_pre else None
+    epoch = _fresh(f"{name}.epoch.", INT) if with_pre else None
     return World(
         s, c, **ghost, pre=pre, starts=starts, top=top, spre=spre, sstarts=sstarts,
         answering=answering, jk=jk, jq=jq, jlife=jlife, lhi=lhi, rk=rk, rstart=rstart,
-        begun=begun, taken=taken, took=took, sbegan=sbegan,
+        begun=begun, taken=taken, took=took, sbegan=sbegan, epoch=epoch,
     )  # fmt: skip
 
 
@@ -278,7 +290,7 @@ def initial_world() -> World:
     return World(
         s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,
         z3.BoolVal(True), zero32, c, zero, zero32, s, zero, z3.IntVal(-1), zero32, zero32, zero,
-        zero32, zero32, z3.IntVal(-1), zero32, zero32, zero, zero,
+        zero32, zero32, z3.IntVal(-1), zero32, zero32, zero, zero, zero,
     )  # fmt: skip
 
 
@@ -332,6 +344,9 @@ class Msg:
     sstart: Term
     """Ghost (witnessed rules): the supervisor's start a SYNC was sent in, or whose SYNC a
     DEBIT (books or counts) answers (``World.sstarts``; -1: none)."""
+    epoch: Term
+    """Ghost (witnessed rules): the epoch of ``H`` a supervisor's frame was sent in
+    (``World.epoch``); hardened: unused (epoch 0)."""
 
 
 _MSG = {
@@ -347,6 +362,7 @@ _MSG = {
     "flags": INT,
     "start": INT,
     "sstart": INT,
+    "epoch": INT,
 }
 
 
@@ -357,3 +373,13 @@ def any_msg(kind: Kind, name: str = "m") -> Msg:
 
 def msg_fields(m: Msg) -> dict[str, Term]:
     return {f.name: getattr(m, f.name) for f in fields(m) if f.name != "kind"}
+
+
+def epoch_of(w: World) -> Term:
+    """The world's epoch of ``H`` (0 under the hardened rules)."""
+    return z3.IntVal(0) if w.epoch is None else w.epoch
+
+
+def msg_epoch(m: Msg, w: World) -> Term:
+    """The epoch of ``H`` a message was sent in (0 under the hardened rules: ``w`` has none)."""
+    return z3.IntVal(0) if w.epoch is None else m.epoch

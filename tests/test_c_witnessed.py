@@ -70,6 +70,7 @@ from test_witnessed import (
     CLIENT_STATES,
     DRAWING,
     FRESH,
+    RC_AT_2_32,
     RESUMED,
     S_OPEN,
     SCENE,
@@ -85,6 +86,7 @@ from test_witnessed import (
     late_resume_found_behind_then_the_first_image,
     resume,
     resume_after_a_lost_sync_answer,
+    s8_supervisor,
     stale_admits_end_quiet,
     stale_sync_after_taken_counts_and_a_begin,
     stale_sync_taken_then_supervisor_image,
@@ -876,6 +878,37 @@ def test_an_admit_far_from_zero_confirms_or_finds_behind_alike(seq: int, ahead: 
     assert_same_step(start, admit, 500)
 
 
+@pytest.mark.parametrize(
+    ("rc_mj", "unknown", "floor_mj"),
+    [
+        (0, False, 1 << 24),  # a known 0: kept as 2^24 mJ, the same 24 bits
+        (1 << 32, False, (1 << 32) + (1 << 24)),  # 0 in the C record's u32
+        (5, False, 5),
+        (0, True, None),  # after a JOIN: no floor
+        (7, True, 7),  # found behind again: the floor it kept
+    ],
+)
+def test_a_record_found_behind_keeps_a_floor_its_books_report_in_c_as_in_python(
+    rc_mj: int, unknown: bool, floor_mj: int | None
+) -> None:
+    """A confirmation that finds the books behind keeps the record's Rc as the floor the books
+    report; only a record that had none (admitted after a JOIN, no fresh intention since) reports
+    Rc unknown. Before, a known Rc of 0 mJ (in C: 0 modulo 2^32) read as unknown, and a
+    supervisor started from an older image kept a Gs below what the node had received."""
+    start = replace(RESUMED, credited=rc_mj * 1000, credited_unknown=unknown)
+    admit = Admit(start.node, start.nonce, start.last_tx & 0xFFFF, (start.return_seq + 2) & 0xFFFF)
+    assert_same_step(start, admit, 500)
+    behind = TABLE.step(T, start, admit, 500).client
+    assert behind.credited_unknown and behind.usable == 0
+    sync = Admit(start.node, 0x0123, 0, 0)
+    assert_same_step(behind, sync, 600)
+    books = TABLE.step(T, behind, sync, 600).actions[0]
+    assert isinstance(books, Send) and isinstance(books.message, Debit)
+    assert books.message.rc_unknown == (floor_mj is None)
+    if floor_mj is not None:
+        assert books.message.credited_mj == floor_mj % (1 << 24)
+
+
 def test_a_record_flagged_with_a_draw_of_nothing_is_no_books() -> None:
     """No client writes the draw flag without a pending amount: such a record is not books."""
     image = bytearray()
@@ -938,10 +971,13 @@ def test_an_admitted_c_node_answering_a_sync_leaves_the_c_supervisors_gs_alone()
     admitted_node_answers_a_sync(sup, node)
 
 
-def test_a_late_resume_found_behind_then_the_first_c_image_creates_nothing() -> None:
-    """S8 with the C node and the C supervisor: the node found behind reports its Rc as a floor."""
-    sup = compiled_core([1], 10**6, variant="witnessed", timing=SCENE)
-    node = _CClientNode(ClientState(1))
+@pytest.mark.parametrize("rc", [0, RC_AT_2_32], ids=["rc-0", "rc-to-2^32"])
+def test_a_late_resume_found_behind_then_the_first_c_image_creates_nothing(rc: int) -> None:
+    """S8 with the C node and the C supervisor: the node found behind reports its Rc as a floor,
+    also where its record's u32 of mJ has come round to 0 (before: read as no floor, the
+    restored supervisor's Gs left 1 J below what the node received)."""
+    sup = s8_supervisor(compiled_core, rc)
+    node = _CClientNode(ClientState(1, credited=rc))
     usable, held = late_resume_found_behind_then_the_first_image(compiled_core, sup, node)
     assert usable + held <= 10**6, f"Us {usable} + held and spent by the node {held} uJ > 1 J"
 

@@ -1004,7 +1004,9 @@ def admitted_node_answers_a_sync(sup: Supervisor, node: Any) -> None:
 
 def test_an_admitted_node_answering_a_sync_leaves_gs_alone() -> None:
     sup = unknown_rc_supervisor(Supervisor)
-    admitted_node_answers_a_sync(sup, Client(1, variant="witnessed", timing=SCENE))
+    node = Client(1, variant="witnessed", timing=SCENE)
+    node.state = ClientState(1, phase=Phase.JOINING, nonce=7)  # its JOIN: (1, 7)
+    admitted_node_answers_a_sync(sup, node)
 
 
 def window_supervisor(core: type[Supervisor]) -> Supervisor:
@@ -1317,18 +1319,18 @@ def late_resume_found_behind_then_the_first_image(
     core: type[Supervisor], sup: Supervisor, node: Any
 ) -> tuple[int, int]:
     """The checker's S8 (``tests/test_check_supervisor_backups.py``), ``sup`` a supervisor of
-    node 1 with Us 1 J and nothing else: 1 J granted and committed; the node loses power, its
-    RESUME is answered (C 1) and it draws the 1 J (C 2); a late copy of the RESUME is found
-    behind (C 3), its ADMIT reaches the node as a SYNC and the confirmation of the node's
-    counts (C 4) finds its books behind: admitted afresh. The supervisor is put back to its
-    first state file (Us 1 J, Gs 0) and starts: the node's books report the Rc it kept as a
-    floor (1 J) and Gs moves up to it. (Before: Rc unknown, Gs left at 0, and Us counted the
-    1 J the node had spent again.) ``node`` also has ``spend(x, now)``. Returns the restored
-    supervisor's Us and what the node holds and spent, in uJ."""
-    image = sup.state  # the first state file
+    node 1 with Us 1 J and nothing else (``s8_supervisor``): 1 J granted and committed; the node
+    loses power, its RESUME is answered (C 1) and it draws the 1 J (C 2); a late copy of the
+    RESUME is found behind (C 3), its ADMIT reaches the node as a SYNC and the confirmation of
+    the node's counts (C 4) finds its books behind: admitted afresh. The supervisor is put back
+    to its first state file (Us 1 J, Gs 1 J lower) and starts: the node's books report the Rc
+    it kept as a floor and Gs moves up to it. (Before: Rc unknown, Gs left where it was, and Us
+    counted the 1 J the node had spent again.) ``node`` also has ``spend(x, now)``. Returns the
+    restored supervisor's Us and what the node holds and spent, in uJ."""
+    image, gs = sup.state, sup.session(1).delivered  # the first state file
     _exchange(sup.begin(1, 10**6, 0), sup, node, 0)
     _exchange(sup.commit(1, 0), sup, node, 0)
-    assert node.state.usable == node.state.credited == 10**6
+    assert node.state.usable == 10**6 and sup.session(1).delivered == gs + 10**6
     (resume,) = _sends(node.power_loss(0, nonce=0x101))
     _exchange(sup.receive(resume, 0), sup, node, 0)
     _exchange(node.spend(10**6, 0), sup, node, 0)
@@ -1339,16 +1341,32 @@ def late_resume_found_behind_then_the_first_image(
     restored.power_loss(1, nonce=0x55)
     _exchange(restored.handle_timer(1), restored, node, 1)
     assert restored.unconfirmed() == () and node.state.phase is Phase.IDLE
-    assert restored.session(1).delivered == 10**6
+    assert restored.session(1).delivered == gs + 10**6
     return restored.state.usable, node.state.usable + node.state.spent
 
 
+RC_AT_2_32 = (1 << 32) * 1000 - 10**6
+"""A node's Rc 1 J below 2^32 mJ (its record's u32 of mJ): the 1 J grant takes it to 0 there."""
+
+
+def s8_supervisor(core: type[Supervisor], rc: int) -> Supervisor:
+    """S8's supervisor: node 1, Us 1 J; its Gs that of a node whose Rc is ``rc`` (the same modulo
+    2^24 mJ, as after the node's admission where the supervisor had delivered it)."""
+    if not rc:
+        return core([1], 10**6, variant="witnessed", timing=SCENE)
+    gs = rc % ((1 << 24) * 1000)
+    state = SupervisorState(10**6, 10**6, sessions=(Session(1, delivered=gs),))
+    return core([1], 0, variant="witnessed", timing=SCENE, state=state)
+
+
+@pytest.mark.parametrize("rc", [0, RC_AT_2_32], ids=["rc-0", "rc-to-2^32"])
 @pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])
 def test_a_late_resume_found_behind_then_the_first_image_creates_nothing(
-    core: type[Supervisor],
+    core: type[Supervisor], rc: int
 ) -> None:
-    sup = core([1], 10**6, variant="witnessed", timing=SCENE)
     node = Client(1, variant="witnessed", timing=SCENE)
+    node.state = ClientState(1, credited=rc)
+    sup = s8_supervisor(core, rc)
     usable, held = late_resume_found_behind_then_the_first_image(core, sup, node)
     assert usable + held <= 10**6, f"Us {usable} + held and spent by the node {held} uJ > 1 J"
 

@@ -304,8 +304,8 @@ static void send_debit(const struct canergy_client *c, bool start, struct canerg
 }
 
 /* The answer to SYNC(n) (witnessed.answer_of): the books (n, Rc: 24 bits; after an admission
- * until a fresh intention, the floor kept when found behind; without one (0) Rc unknown:
- * flagged, both fields 0), then the counts (n, q, ltx). */
+ * until a fresh intention, the floor kept when found behind, a known 0 kept as 2^24 mJ; without
+ * one (0) Rc unknown: flagged, both fields 0), then the counts (n, q, ltx). */
 static void send_sync_answer(const struct canergy_client *c, struct canergy_out *out)
 {
     const bool unknown =
@@ -367,6 +367,9 @@ static void on_confirm(struct canergy_client *c, const struct canergy_msg *m, ui
         }
         c->rec.flags &= (uint8_t)~CANERGY_RECORD_PENDING_DRAW;
     } else { /* a record as after JOIN, but spent kept and Rc kept as the books' floor */
+        if (c->rec.credited_mj == 0U && (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) == 0U) {
+            c->rec.credited_mj = CANERGY_ZERO_FLOOR_MJ; /* witnessed.floor_of: not "unknown" */
+        }
         c->rec.usable_uj = 0U;
         c->rec.last_tx = m->tx;
         c->rec.outcome = CANERGY_OUTCOME_SETTLED;

@@ -53,6 +53,10 @@ extern "C" {
  * under both rule sets. Other bits are ignored, as firmware_model's store ignores them. */
 #define CANERGY_RECORD_PENDING_DRAW 0x02U
 #define CANERGY_RECORD_FLAGS (CANERGY_RECORD_CREDITED_UNKNOWN | CANERGY_RECORD_PENDING_DRAW)
+/* A record found behind keeps its Rc as its books' floor with CREDITED_UNKNOWN set, and
+ * credited_mj 0 then means no floor: a known Rc of 0 is kept as this (the same 24 bits on the
+ * wire), Python's witnessed.ZERO_FLOOR_UJ. */
+#define CANERGY_ZERO_FLOOR_MJ 0x01000000U
 
 /* How the last resolved transaction ended (Python's Outcome; WRITTEN_OFF is the supervisor's
  * but a record holding it is still a valid record, as in Python). */

@@ -516,14 +516,31 @@ def resume_again(t: Timing, c: ClientState, msg: Intention, now: int) -> ClientS
     return ClientStep(c, (Send(resume_of(c)),))
 
 
+RECORD_MJ = 1 << 32
+"""A record keeps Rc in mJ modulo this (the C client's u32): its books read it so."""
+ZERO_FLOOR_UJ = (1 << DELIVERED_BITS) * QUANTUM_UJ
+"""A known Rc of 0 mJ modulo ``RECORD_MJ`` kept as a floor: 2^24 mJ, the same 24 bits on the
+wire, where 0 would read as no floor (``floor_of``)."""
+
+
 def books_of(c: ClientState) -> int | None:
     """The Rc a node's books report, in mJ: its Rc; after an admission afresh and until a fresh
     intention, the Rc its record held when it was found behind (a floor: only what it took), or
-    unknown (``None``) without one (after a JOIN: 0 would be unwrapped near Gs, above it when
-    Gs mod 2^24 mJ >= 2^23 mJ)."""
-    if c.credited_unknown and not c.credited:
+    unknown (``None``) without one (after a JOIN, 0 mJ: it would be unwrapped near Gs, above it
+    when Gs mod 2^24 mJ >= 2^23 mJ)."""
+    if c.credited_unknown and (c.credited // QUANTUM_UJ) % RECORD_MJ == 0:
         return None
     return c.credited // QUANTUM_UJ
+
+
+def floor_of(c: ClientState) -> int:
+    """The Rc a record found behind keeps for its books (``books_of``): its Rc or its floor. A
+    known Rc of 0 mJ (modulo ``RECORD_MJ``: a node admitted where Gs was a multiple of 2^24 mJ,
+    or one that received 2^32 mJ) is kept as ``ZERO_FLOOR_UJ`` more, or its books would say
+    unknown and leave a restored supervisor's Gs below what the node received."""
+    if c.credited_unknown or (c.credited // QUANTUM_UJ) % RECORD_MJ:
+        return c.credited
+    return c.credited + ZERO_FLOOR_UJ
 
 
 def answer_of(c: ClientState) -> tuple[Send, Send]:
@@ -614,7 +631,7 @@ def on_confirm(t: Timing, c: ClientState, msg: Admit, now: int) -> ClientStep:
         return ClientStep(c)
     fresh = ClientState(
         c.node,
-        credited=c.credited,  # a floor for the books only (``books_of``): nothing paid back
+        credited=floor_of(c),  # a floor for the books only (``books_of``): nothing paid back
         spent=c.spent,
         last_tx=msg.tx,
         outcome=Outcome.SETTLED,

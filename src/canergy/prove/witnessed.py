@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from canergy.core.witnessed import RECORD_MJ, ZERO_FLOOR_UJ
 from canergy.messages import (
     AMOUNT_MAX_MJ,
     COUNTER_BOUND,
@@ -49,6 +50,12 @@ def booked(c: Client) -> Term:
 
 def _zero16() -> Term:
     return z3.BitVecVal(0, 16)
+
+
+def floor_of(c: Client) -> Term:
+    """``witnessed.floor_of``: a known Rc of 0 mJ modulo 2^32 kept as 2^24 mJ more."""
+    zero = z3.And(z3.Not(c.credited_unknown), (c.credited / QUANTUM_UJ) % RECORD_MJ == 0)
+    return z3.If(zero, c.credited + ZERO_FLOOR_UJ, c.credited)
 
 
 def one(sent: Sent) -> Frames:
@@ -93,7 +100,7 @@ def answer_of(c: Client) -> Frames:
     """The answer to SYNC(n): the books (n, Rc; unknown, flagged with both fields 0, only
     after an admission afresh without a floor: ``witnessed.books_of``), then the counts
     (n, q, ltx)."""
-    unknown = z3.And(c.credited_unknown, c.credited == 0)
+    unknown = z3.And(c.credited_unknown, (c.credited / QUANTUM_UJ) % RECORD_MJ == 0)
     rc_mj = z3.If(unknown, 0, c.credited / QUANTUM_UJ)
     books = Sent.of(
         MsgType.DEBIT,
@@ -251,7 +258,7 @@ def on_confirm(c: Client, tx16: Term, seq16: Term) -> tuple[Client, Frames]:
     zero = z3.IntVal(0)
     fresh = Client(
         usable=zero,
-        credited=c.credited,  # a floor for its books only (``witnessed.on_confirm``)
+        credited=floor_of(c),  # a floor for its books only (``witnessed.on_confirm``)
         spent=c.spent,
         last_tx=z3.ZeroExt(sym.COUNTER - TX_BITS, tx16),
         outcome=sym.SETTLED,

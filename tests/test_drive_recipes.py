@@ -119,7 +119,11 @@ def _check(
     assert device["bound_uj"] >= least_mj * 1000
     assert device["guarantee"] == "drawn <= granted + stretches * bound_uj"
     assert device["stretches"] == 1  # no write behind the guard: its own stop only
-    assert budget_stop(device["stop_reason"])
+    # an application that powers the device again after its budget stop (its position command
+    # every 20 ms, one of them after the stop) is stopped again; at the supervisor's halt, that
+    # stop is the halt's (a CI run: budget stop, a restop, then "supervisor stopping")
+    reason = device["stop_reason"]
+    assert budget_stop(reason) or (reason == "supervisor stopping" and device["restops"] >= 1)
     assert 0 < drawn <= granted + device["bound_uj"], (drawn, granted, device["bound_uj"])
 
 

@@ -959,6 +959,39 @@ def test_a_node_started_from_its_copy_before_a_spend(rules: str) -> None:
         assert node.state.credited_unknown and created == -500_000
 
 
+def _bench(grant: int, draws: int, each: int) -> tuple[Supervisor, Client]:
+    """A supervisor and its node 2: ``grant`` committed, then ``draws`` draws of ``each``."""
+    timing = Timing(response_timeout_us=10, command_timeout_us=10, return_retry_us=10)
+    sup = Supervisor([2], 100_000_000, variant="witnessed", timing=timing)
+    node = Client(2, variant="witnessed", timing=timing)
+    _exchange(sup.begin(2, grant, 0), sup, node, 0)
+    _exchange(sup.commit(2, 0), sup, node, 0)
+    for _ in range(draws):
+        _exchange(node.spend(each), sup, node, 0)
+    return sup, node
+
+
+@pytest.mark.parametrize(("draws_a", "created"), [(6, 4_400_000), (4, -5_000_000)])
+def test_a_node_moved_to_another_supervisor_under_the_same_id(draws_a: int, created: int) -> None:
+    """The residual docs/protocol.md states ("Books moved between supervisors"): a node's books
+    name no supervisor record. Bench B granted its node 2 10 J, which drew 5 J in 5 draws and
+    was replaced by node 2 of bench A (1 J granted, ``draws_a`` draws of 0.1 J). With more draws
+    than B's record holds, it is confirmed: it keeps A's 0.4 J and B's next intention pays back
+    B's Gs minus A's Rc (9 J), so bench B spends 4.4 J more than it granted (5 J drawn by B's own
+    node, 0.6 J by the moved one on A). With fewer, it is found behind and starts afresh: the
+    0.4 J it held are lost, and the 5 J B's node took away with it."""
+    sup_b, node_b = _bench(10_000_000, 5, 1_000_000)
+    _, node_a = _bench(1_000_000, draws_a, 100_000)
+    moved = Client(2, variant="witnessed", timing=node_a.timing, state=node_a.state)
+    _exchange(moved.power_loss(1, nonce=0xBEEF), sup_b, moved, 1)
+    assert moved.state.credited_unknown is (created < 0)  # found behind: admitted afresh
+    _exchange(sup_b.begin(2, 1_000_000, 2), sup_b, moved, 2)
+    _exchange(sup_b.commit(2, 2), sup_b, moved, 2)
+    granted_by_b = sup_b.session(2).delivered - sup_b.session(2).returned
+    spent_on_b = node_b.state.spent + moved.state.usable
+    assert spent_on_b - granted_by_b == created
+
+
 def test_a_draw_through_the_client_is_re_sent_from_the_time_given() -> None:
     """``Client.spend(x, now)``: the DRAW's re-send deadline counts from ``now``, not from 0."""
     timing = Timing(return_retry_us=50)

@@ -933,16 +933,27 @@ def _exchange(actions: list[object], sup: Supervisor, node: Client, now: int) ->
             queue += node.receive(a.message, now) if to_node else sup.receive(a.message, now)  # type: ignore[arg-type]
 
 
+def _bench(
+    grant: int, draws: int, each: int, rules: str = "witnessed"
+) -> tuple[Supervisor, Client]:
+    """A supervisor (100 J) and its node 2: ``grant`` committed, then ``draws`` draws of
+    ``each``."""
+    timing = Timing(response_timeout_us=10, command_timeout_us=10, return_retry_us=10)
+    sup = Supervisor([2], 100_000_000, variant=rules, timing=timing)
+    node = Client(2, variant=rules, timing=timing)
+    _exchange(sup.begin(2, grant, 0), sup, node, 0)
+    _exchange(sup.commit(2, 0), sup, node, 0)
+    for _ in range(draws):
+        _exchange(node.spend(each), sup, node, 0)
+    return sup, node
+
+
 @pytest.mark.parametrize("rules", ["hardened", "witnessed"])
 def test_a_node_started_from_its_copy_before_a_spend(rules: str) -> None:
     """Issue 40, item 6: 2 J granted, 1.5 J spent, the node's record put back to the copy
     written before the spend: the hardened node spends the 1.5 J again; the witnessed node is
     found behind at its start and spends nothing it was not granted."""
-    timing = Timing(response_timeout_us=10, command_timeout_us=10, return_retry_us=10)
-    sup = Supervisor([2], 2_000_000, variant=rules, timing=timing)
-    node = Client(2, variant=rules, timing=timing)
-    _exchange(sup.begin(2, 2_000_000, 0), sup, node, 0)
-    _exchange(sup.commit(2, 0), sup, node, 0)
+    sup, node = _bench(2_000_000, 0, 0, rules)
     copy = node.state  # the record as written after the commit
     _exchange(node.spend(1_500_000), sup, node, 0)
     assert node.state.spent == 1_500_000
@@ -957,18 +968,6 @@ def test_a_node_started_from_its_copy_before_a_spend(rules: str) -> None:
         assert created == 1_500_000
     else:  # found behind: the 0.5 J the copy still held is lost with its books, nothing created
         assert node.state.credited_unknown and created == -500_000
-
-
-def _bench(grant: int, draws: int, each: int) -> tuple[Supervisor, Client]:
-    """A supervisor and its node 2: ``grant`` committed, then ``draws`` draws of ``each``."""
-    timing = Timing(response_timeout_us=10, command_timeout_us=10, return_retry_us=10)
-    sup = Supervisor([2], 100_000_000, variant="witnessed", timing=timing)
-    node = Client(2, variant="witnessed", timing=timing)
-    _exchange(sup.begin(2, grant, 0), sup, node, 0)
-    _exchange(sup.commit(2, 0), sup, node, 0)
-    for _ in range(draws):
-        _exchange(node.spend(each), sup, node, 0)
-    return sup, node
 
 
 @pytest.mark.parametrize(("draws_a", "created"), [(6, 4_400_000), (4, -5_000_000)])

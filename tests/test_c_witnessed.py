@@ -1072,3 +1072,26 @@ def test_a_resync_in_c_as_in_python(s: Session, nonce: int) -> None:
     assert rc == OK and c_session.fields_of(c) == c_session.fields_of(py.session)
     expected = c_session.sent_of(py.actions)
     assert expected is not None and c_session.c_sent(step, expected) == expected
+
+
+@pytest.mark.parametrize("resync", [True, False], ids=["re-sync", "start"])
+def test_books_answering_a_resync_leave_gs_where_a_starts_raise_it(resync: bool) -> None:
+    """Books with an Rc above Gs raise Gs at a start (the difference out of Us), and leave it at
+    a re-sync: nothing was restored, Gs holds what the node received already, and a JOIN that
+    ends the re-sync would otherwise leave Gs raised with no transaction number moved past the
+    one whose ``H`` was fixed below it (``canergy prove --rules witnessed``, the supervisor's
+    JOIN). Both end at the counts alike. The C session as Python's."""
+    s = Session(
+        1, tx=12, witness=12, returns_credited=7, delivered=3_000_000, phase=Phase.SYNCING,
+        sync_nonce=0x0707, resync=resync, deadline=9,
+    )  # fmt: skip
+    books = Debit.books(1, 0x0707, 4_000)  # Rc 4 J
+    step = W.SUPERVISOR.step(ST, s, books, 5)
+    same(s, ST, books, 5, table=W.SUPERVISOR)
+    assert step.session.phase is Phase.SYNC_BOOKS
+    raised = 0 if resync else 1_000_000
+    assert (step.session.delivered, step.credit) == (3_000_000 + raised, -raised)
+    counts = Debit.counts(1, 0x0707, 7, 12)
+    same(step.session, ST, counts, 6, table=W.SUPERVISOR)
+    done = W.SUPERVISOR.step(ST, step.session, counts, 6).session
+    assert (done.phase, done.delivered) == (Phase.IDLE, 3_000_000 + raised)

@@ -372,15 +372,16 @@ static bool is_books(uint8_t flags)
 
 /* The SYNC's books (n, Rc) (witnessed.take_books): Gs moves up to Rc, the difference out of Us
  * (which may go below zero: a debt); then the counts are awaited. Books with Rc unknown leave
- * Gs as it is (that node holds nothing and takes its next fresh intention's Gs as its Rc).
- * Anything else is ignored. */
+ * Gs as it is (that node holds nothing and takes its next fresh intention's Gs as its Rc), as
+ * do books answering a re-sync (nothing restored: Gs holds what the node received). Anything
+ * else is ignored. */
 static void take_books(struct canergy_session *s, const struct canergy_msg *m,
                        struct canergy_session_step *step)
 {
     if (m->nonce != s->sync_nonce || !is_books(m->flags)) {
         return;
     }
-    if (m->flags != CANERGY_DEBIT_BOOKS) {
+    if (m->flags != CANERGY_DEBIT_BOOKS || s->resync != 0U) { /* Rc unknown, or a re-sync */
         s->phase = CANERGY_S_SYNC_BOOKS;
         return;
     }

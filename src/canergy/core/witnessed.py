@@ -363,10 +363,15 @@ def take_books(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
     Rc unknown leave Gs as it is: that node holds nothing and takes its next fresh intention's
     Gs as its Rc, paying nothing back.
 
+    Books answering a re-sync leave Gs as it is too: nothing was restored, so Gs holds what
+    the node received already (a higher Rc only pays the node back less), and a JOIN that ends
+    the re-sync takes no transaction number past the one whose ``H`` was fixed at that Gs
+    (``canergy prove --rules witnessed``, the supervisor's JOIN).
+
     The counts before the books are ignored (the node re-sends both), other frames too."""
     if msg.nonce != s.sync_nonce or not msg.is_books:
         return SessionStep(s)
-    if msg.rc_unknown:
+    if msg.rc_unknown or s.resync:
         return SessionStep(evolve(s, phase=SYNC_BOOKS))
     credited = unwrap(msg.credited_mj, s.delivered // QUANTUM_UJ, DELIVERED_BITS) * QUANTUM_UJ
     gain = max(0, credited - s.delivered)

@@ -52,6 +52,11 @@ def _zero16() -> Term:
     return z3.BitVecVal(0, 16)
 
 
+def no_floor(c: Client) -> Term:
+    """``witnessed.books_of`` is unknown: Rc unknown and no floor (0 mJ modulo 2^32)."""
+    return z3.And(c.credited_unknown, (c.credited / QUANTUM_UJ) % RECORD_MJ == 0)
+
+
 def floor_of(c: Client) -> Term:
     """``witnessed.floor_of``: a known Rc of 0 mJ modulo 2^32 kept as 2^24 mJ more."""
     zero = z3.And(z3.Not(c.credited_unknown), (c.credited / QUANTUM_UJ) % RECORD_MJ == 0)
@@ -100,12 +105,13 @@ def answer_of(c: Client) -> Frames:
     """The answer to SYNC(n): the books (n, Rc; unknown, flagged with both fields 0, only
     after an admission afresh without a floor: ``witnessed.books_of``), then the counts
     (n, q, ltx)."""
-    unknown = z3.And(c.credited_unknown, (c.credited / QUANTUM_UJ) % RECORD_MJ == 0)
-    rc_mj = z3.If(unknown, 0, c.credited / QUANTUM_UJ)
+    unknown = no_floor(c)
+    # the low 24 bits of Rc in mJ: 16 in the number's field, 8 in the amount's (both 0 unknown)
+    rc_low = (c.credited / QUANTUM_UJ) % (1 << DELIVERED_BITS)
     books = Sent.of(
         MsgType.DEBIT,
-        z3.Int2BV(rc_mj, 16),
-        (rc_mj / (1 << 16)) % (1 << 8),
+        z3.If(unknown, z3.BitVecVal(0, 16), z3.Int2BV(rc_low, 16)),
+        z3.If(unknown, 0, rc_low / (1 << 16)),
         z3.If(unknown, UNKNOWN_BOOKS, BOOKS),
         c.nonce,
     )
@@ -423,7 +429,7 @@ def is_books(flags: Term) -> Term:
 
 def take_books(s: Session, nonce16: Term, flags: Term, seq16: Term, amount_mj: Term) -> SessionStep:
     """The SYNC's books (n, Rc): Gs moves up to Rc (never back), the difference out of Us;
-    books with Rc unknown leave Gs alone."""
+    books with Rc unknown, or answering a re-sync, leave Gs alone."""
     credited_mj = z3.BV2Int(seq16) + amount_mj * (1 << 16)
     credited = sym.unwrap_int(credited_mj, s.delivered / QUANTUM_UJ, DELIVERED_BITS) * QUANTUM_UJ
     gain = z3.If(credited > s.delivered, credited - s.delivered, 0)
@@ -433,9 +439,9 @@ def take_books(s: Session, nonce16: Term, flags: Term, seq16: Term, amount_mj: T
     unknown = SessionStep(replace(s, phase=sym.SYNC_BOOKS), Sent.none(), z3.IntVal(0))
     ours = nonce16 == s.sync_nonce
     return sym.choose(
-        z3.And(ours, flags == BOOKS),
+        z3.And(ours, flags == BOOKS, z3.Not(s.resync)),
         taken,
-        sym.choose(z3.And(ours, flags == UNKNOWN_BOOKS), unknown, sym._unchanged(s)),
+        sym.choose(z3.And(ours, is_books(flags)), unknown, sym._unchanged(s)),
     )
 
 

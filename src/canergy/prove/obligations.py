@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Collection, Iterable, Iterator
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 from canergy.prove import invariant as inv
 from canergy.prove import steps as st
@@ -43,22 +43,40 @@ class Outcome:
     proved: bool
     seconds: float
     counterexample: str = ""
+    undecided: bool = False
+    """z3 reached its limit (or gave up): failed, with no counterexample."""
 
 
-def _h_apps(terms: Iterable[Term]) -> list[tuple[Term, Term]]:
-    """Every (epoch, number) ``H`` is applied to in ``terms``."""
+def _apps(terms: Iterable[Term], wanted: Callable[[Term], bool]) -> list[Term]:
+    """Every application in ``terms`` that ``wanted`` picks, each once."""
     seen: set[int] = set()
-    found: dict[tuple[int, int], tuple[Term, Term]] = {}
+    found: list[Term] = []
     stack = list(terms)
     while stack:
         e = stack.pop()
         if e.get_id() in seen:
             continue
         seen.add(e.get_id())
-        if z3.is_app(e) and e.decl().eq(H):
-            found[(e.arg(0).get_id(), e.arg(1).get_id())] = (e.arg(0), e.arg(1))
+        if z3.is_app(e) and wanted(e):
+            found.append(e)
         stack.extend(e.children())
-    return list(found.values())
+    return found
+
+
+def _h_apps(terms: Iterable[Term]) -> list[tuple[Term, Term]]:
+    """Every (epoch, number) ``H`` is applied to in ``terms``."""
+    return [(e.arg(0), e.arg(1)) for e in _apps(terms, lambda e: bool(e.decl().eq(H)))]
+
+
+def _int2bv_apps(terms: Iterable[Term]) -> list[Term]:
+    """Every ``Int2BV`` application in ``terms``."""
+    return _apps(terms, lambda e: bool(z3.is_app_of(e, z3.Z3_OP_INT2BV)))
+
+
+def bridges(terms: Iterable[Term]) -> list[Term]:
+    """What an ``Int2BV`` in ``terms`` reads as an integer: its argument modulo 2^n (z3's own
+    definition, stated for each application so that the solver need not find it)."""
+    return [z3.BV2Int(b) == b.arg(0) % (1 << b.size()) for b in _int2bv_apps(terms)]
 
 
 def monotone(terms: Iterable[Term]) -> list[Term]:
@@ -211,13 +229,18 @@ def _witnessed_cases() -> list[StepCase]:
     def restore(w: World) -> Built:
         image = any_image("image")
         step = wp.restore(w, image, nonce)
-        behind = z3.Or(wp.far_behind(step.after), wp.far_behind_c(step.after))
+        after = step.after
+        behind = z3.Or(wp.far_behind(after), wp.far_behind_c(after), wp.far_behind_rc(after))
         return step, [wp.p_image(image, w), z3.Not(behind)], None
 
     def restore_supervisor(w: World) -> Built:
         image = any_session_image("session_image")
         step = wp.restore_supervisor(w, image, nonce, wp.IMAGE_JOIN, wp.IMAGE_ANSWER)
-        hyps = [wp.p_session_image(image, w), wp.not_from_an_image(w)]
+        hyps = [
+            wp.p_session_image(image, w),
+            wp.not_from_an_image(w),
+            wp.reported(image, w),
+        ]
         return step, hyps, None
 
     out = [StepCase(RESTORE, restore), StepCase(RESTORE_SUPERVISOR, restore_supervisor)]
@@ -329,10 +352,58 @@ def check_step(
     for name, lemma in step.lemmas:
         yield _check(solver, case.name, name, lemma, None, before, step, delivered)
         solver.add(lemma)  # a failed lemma fails the proof; the rest are still checked
-    for goal in todo:
+    if step.branches:
+        cover = z3.Or(*(cond for _, cond in step.branches))
         yield _check(
-            solver, case.name, goal.clause, goal.holds, goal.assuming, before, step, delivered
+            solver, case.name, "its branches cover it", cover, None, before, step, delivered
         )
+    for goal in todo:
+        yield _by_branch(solver, case.name, goal, before, step, delivered, timeout_ms)
+
+
+WHOLE_FIRST_MS = 10_000
+"""How long z3 is given ``goal`` on a step with branches as a whole before it is taken branch
+by branch (most goals prove whole in a second; the branches multiply the time)."""
+
+
+def _by_branch(
+    solver: z3.Solver,
+    step_name: str,
+    goal: Goal,
+    before: World,
+    step: st.Step,
+    delivered: Msg | None,
+    timeout_ms: int,
+) -> Outcome:
+    """``goal`` after the step: as a whole, and where z3 does not decide it so within
+    ``WHOLE_FIRST_MS`` (a step that names no branches: within ``timeout_ms``), in each branch in
+    turn, proved when every branch is, the first that fails named in its counterexample."""
+    started = time.perf_counter()
+    whole = (goal.clause, goal.holds, goal.assuming, before, step, delivered)
+    if step.branches:
+        solver.set("timeout", min(WHOLE_FIRST_MS, timeout_ms))
+    outcome = _check(solver, step_name, *whole)
+    solver.set("timeout", timeout_ms)
+    if outcome.proved or not step.branches or not outcome.undecided:
+        return replace(outcome, seconds=time.perf_counter() - started)
+    for name, cond in step.branches:
+        solver.push()
+        solver.add(cond)
+        outcome = _check(solver, step_name, *whole)
+        solver.pop()
+        if outcome.undecided:
+            # again in a solver of its own: what z3 learnt on the step's other goals can slow
+            # it (a branch that proves in 30 s alone reached 120 s after them), or speed it
+            alone = z3.Solver()
+            alone.set("timeout", timeout_ms)
+            alone.set("random_seed", 1)
+            alone.add(*solver.assertions(), cond)
+            outcome = _check(alone, step_name, *whole)
+        if not outcome.proved:
+            where = f"  in its branch {name!r}\n"
+            seconds = time.perf_counter() - started
+            return replace(outcome, seconds=seconds, counterexample=where + outcome.counterexample)
+    return Outcome(step_name, goal.clause, True, time.perf_counter() - started)
 
 
 def _witness(
@@ -361,13 +432,61 @@ def _check(
     step: st.Step,
     delivered: Msg | None,
 ) -> Outcome:
-    """One obligation: ``holds`` after the step (``assuming`` of a message in flight before)."""
+    """One obligation: ``holds`` after the step (``assuming`` of a message in flight before).
+    ``P`` of a frame sent or remembered is checked conjunct by conjunct (z3 takes each in
+    seconds where it gives up on their conjunction), the obligation proved when every one is."""
+    started = time.perf_counter()
+    facts = [holds] if assuming is None else [holds, assuming]
+    known = [*monotone([*solver.assertions(), *facts]), *bridges(facts)]
+    split = clause.endswith(" sent") or clause in FRAMES_REMEMBERED
+    parts = _conjuncts(holds) if split else [holds]
+    for i, part in enumerate(parts):
+        outcome = _check_part(
+            solver, step_name, clause, part, [*known, *facts[1:]], before, step, delivered
+        )
+        if not outcome.proved:
+            if len(parts) > 1:
+                where = f"  its conjunct {i + 1} of {len(parts)}: {str(part)[-400:]}\n"
+                outcome = replace(outcome, counterexample=where + outcome.counterexample)
+            break
+    return replace(outcome, seconds=time.perf_counter() - started)
+
+
+FRAMES_REMEMBERED = ("remembered JOIN", "remembered answer")
+"""Clauses that state ``P`` of a frame the supervisor may send again: split as ``P`` of a frame
+sent is."""
+
+
+def _conjuncts(holds: Term) -> list[Term]:
+    """``c => a1 & ... & an`` as ``c => a1``, ..., ``c => an``, and so each ``ai`` in turn;
+    ``If(c, a, b)`` as ``c => a`` and ``not c => b`` (any other form: itself)."""
+    if z3.is_and(holds):
+        return [part for a in holds.children() for part in _conjuncts(a)]
+    if z3.is_app_of(holds, z3.Z3_OP_IMPLIES):
+        cond, body = holds.arg(0), holds.arg(1)
+        return [z3.Implies(cond, part) for part in _conjuncts(body)]
+    if z3.is_app_of(holds, z3.Z3_OP_ITE):  # If(c, a, b): c => a and not c => b
+        cond, yes, no = holds.arg(0), holds.arg(1), holds.arg(2)
+        both = (z3.Implies(cond, yes), z3.Implies(z3.Not(cond), no))
+        return [part for half in both for part in _conjuncts(half)]
+    return [holds]
+
+
+def _check_part(
+    solver: z3.Solver,
+    step_name: str,
+    clause: str,
+    holds: Term,
+    known: list[Term],
+    before: World,
+    step: st.Step,
+    delivered: Msg | None,
+) -> Outcome:
+    """``holds`` after the step, given the facts ``known`` (the instances of ``H``'s monotony
+    and of ``Int2BV``, the message in flight's ``P``)."""
     started = time.perf_counter()
     solver.push()
-    facts = [holds] if assuming is None else [holds, assuming]
-    solver.add(*monotone([*solver.assertions(), *facts]))
-    if assuming is not None:
-        solver.add(assuming)
+    solver.add(*known)
     solver.add(z3.Not(holds))
     result = solver.check()
     seconds = time.perf_counter() - started
@@ -377,7 +496,8 @@ def _check(
         text = counterexample(solver.model(), before, step, delivered)
         outcome = Outcome(step_name, clause, False, seconds, text)
     else:
-        outcome = Outcome(step_name, clause, False, seconds, f"  z3: {solver.reason_unknown()}")
+        text = f"  z3: {solver.reason_unknown()}"
+        outcome = Outcome(step_name, clause, False, seconds, text, undecided=True)
     solver.pop()
     return outcome
 

@@ -39,6 +39,10 @@ class Step:
     credit: Term
     lemmas: tuple[tuple[str, Term], ...] = ()
     """Facts about the step proved first (each an obligation), then assumed for the rest."""
+    branches: tuple[tuple[str, Term], ...] = ()
+    """The step's branches, named conditions on the state before and the frame delivered: that
+    one of them holds is an obligation, and each goal is then proved branch by branch (z3 takes
+    each branch in seconds where it gives up on the whole step)."""
 
 
 _ZERO = {BV16: z3.BitVecVal(0, 16), BV32: z3.BitVecVal(0, 32), INT: z3.IntVal(0)}
@@ -59,6 +63,8 @@ def _msg(kind: Kind, **given: Term) -> Msg:
         "start": z3.IntVal(-1),
         "sstart": z3.IntVal(-1),
         "epoch": _ZERO[INT],
+        "rc": _ZERO[INT],
+        "rcl": _ZERO[INT],
     }
     return Msg(kind, **{**zero, **given})
 

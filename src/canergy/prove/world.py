@@ -347,6 +347,12 @@ class Msg:
     epoch: Term
     """Ghost (witnessed rules): the epoch of ``H`` a supervisor's frame was sent in
     (``World.epoch``); hardened: unused (epoch 0)."""
+    rc: Term
+    """Ghost (witnessed rules): a SYNC's books, the sender's Rc on the supervisor's scale
+    (``World.rc_true`` of the record that sent them). Hardened: unused."""
+    rcl: Term
+    """Ghost (witnessed rules): a SYNC's books, the low 24 bits of the sender's Rc in mJ as it
+    put them on the wire. Hardened: unused."""
 
 
 _MSG = {
@@ -363,6 +369,8 @@ _MSG = {
     "start": INT,
     "sstart": INT,
     "epoch": INT,
+    "rc": INT,
+    "rcl": INT,
 }
 
 

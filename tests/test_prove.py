@@ -277,6 +277,40 @@ def test_a_report_that_cannot_be_written_fails_at_once(
     assert err.startswith("canergy prove: error: ") and "proved" not in out
 
 
+def _with_branches(step_name: str, branches: Any) -> Any:
+    """A hardened step's case with the named ``branches`` (conditions on the world before)."""
+    from canergy.prove.obligations import StepCase
+
+    (case,) = [c for c in cases() if c.name == step_name]
+
+    def build(w: Any) -> Any:
+        step, hyps, delivered = case.build(w)
+        return replace(step, branches=branches(w)), hyps, delivered
+
+    return StepCase(case.name, build)
+
+
+def test_a_step_proved_branch_by_branch_needs_branches_that_cover_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A step that names branches proves each goal in each branch in turn once z3 does not
+    decide it whole (here at once: 1 ms), and "its branches cover it" is an obligation: the
+    phases of the session cover the supervisor's ACK; one phase alone does not."""
+    from canergy.prove import obligations
+
+    monkeypatch.setattr(obligations, "WHOLE_FIRST_MS", 1)
+    step = "supervisor receives ACK"
+    idle = lambda w: w.s.phase == sym.S_IDLE  # noqa: E731
+    cover = lambda w: (("idle", idle(w)), ("not idle", z3.Not(idle(w))))  # noqa: E731
+    outcomes = list(check_step(_with_branches(step, cover), 120_000))
+    failed = [f"{o.clause}\n{o.counterexample}" for o in outcomes if not o.proved]
+    assert not failed, failed[0]
+    assert "its branches cover it" in {o.clause for o in outcomes}
+    alone = lambda w: (("idle", idle(w)),)  # noqa: E731
+    outcomes = list(check_step(_with_branches(step, alone), 120_000))
+    assert {o.clause for o in outcomes if not o.proved} == {"its branches cover it"}
+
+
 def test_step_checks_only_the_steps_named(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -594,6 +628,10 @@ def test_the_supervisors_debit_proves_that_its_counters_never_go_back() -> None:
         "lemma: C does not go back",
         "lemma: tx does not go back",
         "lemma: counts that end a start leave tx at or above begun",
+        "lemma: the books' fields read as their low bits",
+        "lemma: the books' Rc unwrapped",
+        "lemma: a repeat sends the last answer's Q",
+        "lemma: the last answer confirms as it did",
     }
     assert all(o.proved for o in lemmas), [o.counterexample for o in lemmas if not o.proved]
 
@@ -601,7 +639,7 @@ def test_the_supervisors_debit_proves_that_its_counters_never_go_back() -> None:
 def _debit_clause(clause: str, timeout_ms: int = 60_000) -> Any:
     """One obligation of the supervisor's DEBIT (the step's checks stop once it is reached)."""
     (case,) = [c for c in cases(WITNESSED) if c.name == "supervisor receives DEBIT"]
-    for outcome in check_step(case, timeout_ms, WITNESSED):
+    for outcome in check_step(case, timeout_ms, WITNESSED, (clause,)):
         if outcome.clause == clause:
             return outcome
     raise AssertionError(f"no obligation {clause!r}")
@@ -693,3 +731,28 @@ def test_counts_ending_a_supervisor_start_begin_an_epoch_of_h(
     monkeypatch.setattr(wp, "next_epoch", lambda w, ends: epoch_of(w))
     one_h = _debit_clause("Gs = H", LOADED_MS)
     assert not one_h.proved and "counterexample" in one_h.counterexample
+
+
+def test_a_repeat_of_late_counts_sends_the_last_answer_again() -> None:
+    """Late counts answered again (the same key and number, C where the last answer left it)
+    send that answer's Q again to the start it answered: ``P`` of the ADMIT sent holds in that
+    branch of the supervisor's DEBIT, from the remembered answer (two lemmas carry its Q and
+    how it confirms)."""
+    from canergy.prove import obligations
+
+    (case,) = [c for c in cases(WITNESSED) if c.name == "supervisor receives DEBIT"]
+
+    def build(w: Any) -> Any:
+        step, hyps, delivered = case.build(w)
+        branches = tuple(b for b in step.branches if b[0] == "late counts, again")
+        assert len(branches) == 1
+        return replace(step, branches=branches), hyps, delivered
+
+    restricted = obligations.StepCase(case.name, build)
+    outcomes = list(check_step(restricted, 600_000, WITNESSED, ("P(ADMIT) sent",)))
+    failed = [f"{o.clause}\n{o.counterexample}" for o in outcomes if not o.proved]
+    # the branches cover the step no longer: that one obligation fails, as it must
+    assert [f.split("\n")[0] for f in failed] == ["its branches cover it"], failed
+    assert {"lemma: a repeat sends the last answer's Q", "P(ADMIT) sent"} <= {
+        o.clause for o in outcomes if o.proved
+    }

@@ -12,7 +12,7 @@ from typing import Any
 
 from canergy.argtypes import bounded_int
 from canergy.cli.summaries import SUMMARIES
-from canergy.prove import CONFIRMED_BY, RULE_NAMES, TRACE_IN_TESTS, UNPROVED
+from canergy.prove import CONFIRMED_BY, NARROWED, RULE_NAMES, TRACE_IN_TESTS, UNPROVED
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -101,6 +101,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if not failed:
         print(f"{len(done)} obligations proved in {elapsed:.1f} s: no step creates energy")
+        if args.rules in NARROWED:
+            print(f"under {NARROWED[args.rules]}")
         return 0
     print(
         f"{len(failed)} of {len(done)} obligations checked failed in {elapsed:.1f} s: "
@@ -109,8 +111,9 @@ def run(args: argparse.Namespace) -> int:
     )
     if args.rules in UNPROVED:
         print(
-            f"the {args.rules} rules are not proved yet: their invariant is incomplete "
-            "(docs/protocol.md, 'Passivity as a theorem', assumption 2)",
+            f"the {args.rules} rules are not proved yet: obligations z3 does not decide "
+            "or a gap of the invariant (docs/protocol.md, 'Passivity as a theorem', "
+            "assumption 2)",
             file=sys.stderr,
         )
     commands = CONFIRMED_BY.get(args.rules, ())

@@ -7,8 +7,9 @@ of transactions.
 - ``invariant``: the clauses, ``P(m, world)`` of messages in flight, the assumptions;
 - ``steps``: every cell as a step of a world; ``rules``: the hardened set and unsound ones;
 - ``witnessed``, ``witnessed_proof``: the witnessed cells as terms, then as steps with both
-  restore steps, and the invariant tried on them (not inductive yet: the SYNC's counts that
-  end a supervisor's start fail);
+  restore steps, and the invariant tried on them (not proved yet: every step but the
+  supervisor's DEBIT keeps every clause in one run; the DEBIT's obligations are proved branch
+  by branch, and z3 does not decide some within the limit);
 - ``obligations``: each (step, clause) checked by z3, with counterexamples to induction.
 
 ``canergy prove`` runs it. The names below need no z3.
@@ -25,9 +26,18 @@ RULE_NAMES = (
 )
 """The rule sets ``canergy prove --rules`` takes; only ``hardened`` proves (``witnessed``, with
 both restore steps, is meant to and does not yet: docs/protocol.md, assumption 2)."""
+NARROWED = {
+    "witnessed": (
+        "assumption 2 narrowed, not dropped: a record put back is an older image of the kind "
+        "the restore steps take (p_image, p_session_image), not yet shown to hold of every "
+        "record a side writes, and not both records rolled back past the same event "
+        "(docs/protocol.md, 'Passivity as a theorem', assumption 2)"
+    ),
+}
+"""Sound rule sets whose proof takes a narrower form of an assumption, said with a pass."""
 UNPROVED = ("witnessed",)
-"""Sound rule sets whose invariant is not yet inductive: their failures are the proof's, not
-hazards (the bounded checker finds no trace)."""
+"""Sound rule sets not proved yet: their failures are the proof's (an obligation z3 does not
+decide, or a gap of the invariant), not hazards (the bounded checker finds no trace)."""
 
 CONFIRMED_BY: dict[str, tuple[str, ...]] = {
     "paper": ("canergy check --variant paper",),

@@ -34,7 +34,7 @@ start of this one session without restore and without write-off, and the clauses
 mean the same of it: ``World.spre`` is the session as it stood (idle, nothing open),
 ``World.sstarts`` counts it (its nonce is drawn fresh, as a start's: assumption 5), its SYNC
 phases are a start's. While it waits the session is the one at its start but for its phase
-and nonce, Gs included (``resyncing``; not proved at its books); a JOIN ends it and is
+and nonce, Gs included (``resyncing``: its books move no Gs); a JOIN ends it and is
 admitted as in IDLE (``join_while_syncing``), its counts end it as a start's.
 
 The window (a) is four clauses (``witnessed``, ``window``, ``window at a start``, ``records of
@@ -62,18 +62,25 @@ may go on from an older image with a Gs below the one the discarded history fixe
 numbers it takes again, so each epoch has its own ``H``, equal to the Gs it began at up to one
 past the tx it began at (``world.BASE_TX``, ``BASE_GS``); a frame of an earlier epoch names a
 transaction at most the current epoch's base (``sent_in``), and a node with books outside a
-start holds an ltx at or above it (``epochs``), so it takes none.
+start holds an ltx at or above it (``epochs``), so it takes none. What the session holds then
+is at least what the node received: the books answering the start carry its Rc (a ghost,
+``Msg.rc``), and Gs after them is at least it (``books taken``); books with Rc unknown come
+from a life admitted afresh that has received at most the Gs of its admission
+(``World.ags``, ``unknown books``), which the image holds (residual: no image from before that
+admission, in ``reported``); the node is not put back below its record at the
+start in Rc while a start behind in Gs waits (residual (d) in Rc, ``far_behind_rc``).
 
-Not proved: it fails at the supervisor's DEBIT, mostly where a SYNC's counts end the
-supervisor's start and the invariant speaks of the record started from again (what the node
-received is not yet shown within the Gs the start ends with); z3 gives up (300 s) on
-``remembered answer`` at late and a re-sync's counts and on ``P`` of the ADMIT late counts
-send; a re-sync's books fail ``supervisor books`` (their
-Rc not bounded by Gs): docs/protocol.md ("Passivity as a theorem", assumption 2, items (a) to
-(d)); ``canergy prove --rules witnessed --keep-going`` lists the obligations, ``--step NAME``
-checks one step. Counts that end a start are read against the record started from, so
-``deliverable`` asks their q within 2**15 of its C (assumption 3 of the receiver's counter),
-and ``bounded`` its tx below the cap where their ltx is held (assumption 4).
+Not proved yet in one run: every step but the supervisor's DEBIT keeps every clause, and the
+DEBIT, proved branch by branch (``_debit_branches``) after lemmas on its counters, the books'
+fields and the repeat of the last answer, proves all but ``P`` of the ADMIT it sends in the
+branch "a RESUME, found behind", which z3 does not decide within 120 s in a whole run
+(docs/protocol.md, assumption 2). A pass is under assumption 2 narrowed
+(``canergy.prove.NARROWED``): the restore steps take an image of the stated kind
+(``p_image``, ``p_session_image``: not shown to hold of every record a side wrote) and the
+residual (d) as hypotheses. Counts that
+end a start are read against the record started from, so ``deliverable`` asks their q within
+2**15 of its C (assumption 3 of the receiver's counter), and ``bounded`` its tx below the cap
+where their ltx is held (assumption 4).
 """
 
 from __future__ import annotations
@@ -82,7 +89,14 @@ from dataclasses import replace
 from typing import Any, TypeVar
 
 from canergy.core.state import Outcome
-from canergy.messages import AMOUNT_MAX_MJ, COUNTER_BOUND, QUANTUM_UJ, SEQ_BITS, SYNC_CONFIRMED
+from canergy.messages import (
+    AMOUNT_MAX_MJ,
+    COUNTER_BOUND,
+    DELIVERED_BITS,
+    QUANTUM_UJ,
+    SEQ_BITS,
+    SYNC_CONFIRMED,
+)
 from canergy.prove import invariant as inv
 from canergy.prove import steps as st
 from canergy.prove import symbolic as sym
@@ -300,9 +314,8 @@ def resyncing(w: World) -> Term:
     """A re-sync waits (``Session.resync``): a start of this session without restore, so the
     session at its start (``World.spre``) is the session itself but for the start's phase and
     nonce. Gs too: the books answering the re-sync's SYNC carry the node's Rc, at most Gs
-    with nothing restored, and move no Gs (not proved: the supervisor's DEBIT, where ``P`` of
-    the books does not bound their Rc by Gs; with Gs allowed up instead, the JOIN that ends a
-    re-sync after its books fails ``Gs = H``)."""
+    with nothing restored, and move no Gs (a rule of both cores: raised by them, the JOIN that
+    ends a re-sync after its books left Gs above ``H``)."""
     s, r = w.s, spre(w)
     return z3.And(
         wit.in_start(s),
@@ -425,9 +438,16 @@ def energy(w: World) -> Term:
 
 
 def pending_return(w: World) -> Term:
-    """A pending return (not a draw) not yet credited was debited first."""
+    """A pending return (not a draw) not yet credited was debited first; and given back, of
+    any record of the node (credited or voided since, it stays given)."""
     v = view(w)
-    return z3.Implies(z3.Not(v.c.pending_draw), inv.pending_return(v))
+    given = [
+        z3.Implies(
+            z3.And(c.phase != sym.JOINING, z3.Not(c.pending_draw)), c.return_pending <= w.given
+        )
+        for c in (w.c, v.c)
+    ]
+    return z3.And(z3.Implies(z3.Not(v.c.pending_draw), inv.pending_return(v)), *given)
 
 
 def numbering(w: World) -> Term:
@@ -460,6 +480,8 @@ def remembered(s: sym.Session, k: Term, q: Term, life: Term, epoch: Term) -> Msg
         start=z3.IntVal(-1),
         sstart=z3.IntVal(-1),
         epoch=epoch,
+        rc=zero,
+        rcl=zero,
     )
 
 
@@ -492,6 +514,8 @@ def answer_of(s: sym.Session, rk: Term, rstart: Term, shift_seq: Term, epoch: Te
         start=rstart,
         sstart=z3.IntVal(-1),
         epoch=epoch,
+        rc=zero,
+        rcl=zero,
     )
 
 
@@ -563,8 +587,10 @@ def behind_c(w: World) -> Term:
 def far_behind_c(w: World) -> Term:
     """Residual (d) in return numbers: a start of the supervisor's from an image behind in C
     waits while the node's record is more than one number below the highest any record of it
-    held (``World.top``): both rolled back past the same debit."""
-    return z3.And(behind_c(w), w.c.phase != sym.JOINING, z3.Not(ule(top(w), one(w.seq))))
+    held (``World.top``), or, in a start, one below a record at the start whose debit was
+    acknowledged (not ``confirmable``): both rolled back past the same debit."""
+    near = z3.And(ule(top(w), one(w.seq)), z3.Implies(starting(w.c), confirmable(w)))
+    return z3.And(behind_c(w), w.c.phase != sym.JOINING, z3.Not(near))
 
 
 def far_behind(w: World) -> Term:
@@ -574,6 +600,14 @@ def far_behind(w: World) -> Term:
     return z3.And(behind(w), w.c.phase != sym.JOINING, z3.Not(ule(begun(w), w.last + B)))
 
 
+def far_behind_rc(w: World) -> Term:
+    """Residual (d) in Rc: a start of the supervisor's from an image behind in Gs waits while
+    the node, in a start, holds a record behind the record at its start in Rc: both rolled
+    back past the same credit."""
+    rolled_back = z3.And(starting(w.c), w.c.credited < pre(w).credited)
+    return z3.And(behind_gs(w), rolled_back)
+
+
 def answers_this_start(w: World) -> Term:
     """The node has answered the SYNC of the supervisor's current start (settled B ahead)."""
     return z3.And(w.c.phase == sym.SYNCING, answering(w) == sstarts(w))
@@ -581,8 +615,11 @@ def answers_this_start(w: World) -> Term:
 
 def not_from_an_image(w: World) -> Term:
     """Residual (d), as the supervisor's restore takes it: the node is not in a start from an
-    older image behind the records of that start (in ltx)."""
-    return z3.Implies(starting(w.c), z3.And(ule(lhi(w), w.last), ule(top(w), one(w.seq))))
+    older image behind the records of that start (in ltx, in return numbers: more than one
+    below ``top`` or lacking an acknowledged debit, in Rc)."""
+    in_c = z3.And(ule(top(w), one(w.seq)), confirmable(w))
+    in_rc = pre(w).credited <= w.c.credited
+    return z3.Implies(starting(w.c), z3.And(ule(lhi(w), w.last), in_c, in_rc))
 
 
 def taken_records(w: World) -> Term:
@@ -594,7 +631,19 @@ def taken_records(w: World) -> Term:
         z3.Implies(holding(w.c), ule(w.held, taken(w))),
         resolved_taken(w.c, w.last, w),
         z3.Implies(starting(w.c), resolved_taken(pre(w), v.last, w)),
+        decided_on_an_ack(w.s, w),
+        # a record with Rc unknown took nothing past its ltx: it learns its Rc with the first
+        # intention it takes, and a record restored from before that starts (its confirmation
+        # at or above every transaction taken)
+        z3.Implies(z3.And(wit.booked(w.c), w.c.credited_unknown), ule(taken(w), w.last)),
     )
+
+
+def decided_on_an_ack(r: sym.Session, w: World) -> Term:
+    """A session record ``r`` that holds an ACK or a decision holds it of a transaction the
+    node took (the supervisor decides only after an ACK): a COMMIT names one."""
+    acked = z3.Or(r.phase == sym.ACKED, r.decision != inv.D_NONE)
+    return z3.Implies(acked, ule(replace(w, s=r).tx, taken(w)))
 
 
 def holding(c: sym.Client) -> Term:
@@ -661,7 +710,8 @@ def window_at_start(w: World) -> Term:
     at most B behind the session at the start (residual (d) for the rest), and at or above it
     once the node answered that start's SYNC."""
     answered = z3.Implies(z3.And(behind(w), answers_this_start(w)), ule(begun(w), w.last))
-    return z3.And(z3.Not(far_behind(w)), z3.Not(far_behind_c(w)), answered)
+    rolled_back = z3.Or(far_behind(w), far_behind_c(w), far_behind_rc(w))
+    return z3.And(z3.Not(rolled_back), answered)
 
 
 def epochs(w: World) -> Term:
@@ -679,9 +729,111 @@ def epochs(w: World) -> Term:
     )
 
 
+def unknown_rc(c: sym.Client) -> Term:
+    """A record with books whose Rc is unknown and has no floor (its books say so)."""
+    return z3.And(c.phase != sym.JOINING, wit.no_floor(c))
+
+
+def reports(w: World) -> Term:
+    """The node's record has books that report what it received: an Rc known (or kept as a
+    floor) at least that (on the supervisor's scale, the wire's 24 bits its low bits)."""
+    c = w.c
+    known = z3.And(c.phase != sym.JOINING, z3.Not(unknown_rc(c)))
+    rc_true = c.credited + w.roff
+    return z3.And(known, w.received <= rc_true, w.roff % inv.GS_WRAP == 0)
+
+
+def learned(w: World) -> Term:
+    """While a start waits, what the node received is at most the Gs of the record the start
+    resumes from, or its books report it (``reports``): the image is not from before grants
+    the books cannot report (residual, ``reported``), and the books only raise Gs. A node that
+    lost its books sends none in this start (the start ignores its JOIN)."""
+    waits = z3.And(wit.in_start(w.s), w.c.phase != sym.JOINING)
+    return z3.Implies(waits, z3.Or(covered(w, w.s.delivered), reports(w)))
+
+
+def covered(w: World, gs: Term) -> Term:
+    """A Gs ``gs`` holds what the node received, and what any transaction begun may still
+    deliver to it (``H`` past the highest begun): a COMMIT of the discarded history the node
+    may still take raises what it received no higher."""
+    return z3.And(w.received <= gs, H(epoch_of(w), one(begun(w))) <= gs)
+
+
+def reported(r: sym.Session, w: World) -> Term:
+    """Residual (d) for what the node's books cannot report, as the supervisor's restore takes
+    it: the image's Gs is at least what the node received, or the node's books report it (a
+    copy from before its admission afresh, or from before grants a copy of its own record
+    found behind lacks, is not covered), and then also what any transaction begun may still
+    deliver (``covered``)."""
+    return z3.Or(covered(w, r.delivered), reports(w))
+
+
+def no_intention_unknown(w: World) -> Term:
+    """A record learns its Rc with the first intention it takes: one that has not holds none."""
+    return z3.And(
+        *(
+            z3.Implies(r.credited_unknown, z3.And(r.held_tx == 0, r.phase != sym.HOLDING))
+            for r in (w.c, view(w).c)
+        )
+    )
+
+
+def behind_gs(w: World) -> Term:
+    """A supervisor's start waits from a record below the session at its start in Gs."""
+    return z3.And(wit.in_start(w.s), w.s.delivered < spre(w).delivered)
+
+
+def rc_scale(w: World) -> Term:
+    """The node's Rc maps to the supervisor's Gs by whole wraps of the wire's 24 bits (an
+    admission sets the offset from an intention's Gs, a floor adds one wrap): the books' low
+    bits read the same on either scale (stated for z3, which does not find it in the proof of
+    the books sent)."""
+    wire = 1 << DELIVERED_BITS
+    return z3.And(
+        w.roff % inv.GS_WRAP == 0,
+        (w.rc_true / Q) % wire == (w.c.credited / Q) % wire,
+    )
+
+
+def books_taken(w: World) -> Term:
+    """A start that took the books answering its SYNC holds a Gs at least what the node
+    received."""
+    return z3.Implies(w.s.phase == sym.SYNC_BOOKS, w.received <= w.s.delivered)
+
+
+def books_from_a_start(w: World) -> Term:
+    """The books a start took came from the node's life now, still in a start that began since
+    the supervisor's (no confirmation of it is sent until the counts are taken; it takes no
+    intention meanwhile), or from an earlier one: this life is not admitted (the start ignores
+    its JOIN)."""
+    since = z3.And(starting(w.c), sbegan(w) <= starts(w))
+    return z3.Implies(w.s.phase == sym.SYNC_BOOKS, z3.Or(since, z3.Not(w.admitted)))
+
+
+def given_past(r: sym.Session, w: World) -> Term:
+    """A session record ``r`` (an image, or the one a start resumes from) that has not passed
+    the number of the node's pending return (not a draw, of ``view``) credited back only
+    debits numbered below it, each given back, and that return was given besides."""
+    c = view(w).c
+    returning = z3.And(c.phase != sym.JOINING, c.return_pending > 0, z3.Not(c.pending_draw))
+    below = z3.ULT(r.returns_credited - w.shift_seq, c.return_seq + w.off_seq)
+    return z3.Implies(z3.And(returning, below), r.returned + c.return_pending <= w.given)
+
+
+def image_given(w: World) -> Term:
+    """While a start waits, the record it resumes from meets ``given_past``."""
+    return z3.Implies(wit.in_start(w.s), given_past(w.s, w))
+
+
 STATE: tuple[tuple[str, inv.Clause], ...] = (
     *((name, _REPLACED.get(name, _on_view(clause))) for name, clause in inv.STATE),
     ("epochs", epochs),
+    ("Rc on the supervisor's scale", rc_scale),
+    ("what the node received is learned", learned),
+    ("no intention with Rc unknown", no_intention_unknown),
+    ("books taken", books_taken),
+    ("books from a start", books_from_a_start),
+    ("returns given past an image", image_given),
     ("remembered JOIN", join_remembered),
     ("remembered answer", answer_remembered),
     ("records of the start", start_records),
@@ -707,6 +859,7 @@ def p_image(r: sym.Client, w: World) -> Term:
         _lacks(r, then.seq, v.c, v.seq),
         resolved_taken(r, then.last, w),
         ule(then.seq, top(w)),  # a number a record of the node held
+        z3.Implies(z3.Not(r.pending_draw), r.return_pending <= w.given),  # given back then
     )
 
 
@@ -731,7 +884,9 @@ def p_session_image(r: sym.Session, w: World) -> Term:
     """An older image of the supervisor's record: the hardened ``p_session_image`` against
     ``view``, its last start answered above its number, and the ADMITs of its last JOIN
     admitted and its last start answered ones that were sent (``P`` holds of them now, as of
-    every ADMIT sent). Its Gs is not said to meet ``H``: it may be of an earlier epoch."""
+    every ADMIT sent); and a pending return of the node's numbered past its C was given back
+    beside what it credited back (``given_past``). Its Gs is not said to meet ``H``: it may be
+    of an earlier epoch."""
     then = replace(w, s=r)
     joined_life = IMAGE_JOIN[2] >= 0
     own = z3.And(ule(IMAGE_JOIN[0], then.tx), ule(IMAGE_JOIN[1], then.rc))
@@ -741,7 +896,7 @@ def p_session_image(r: sym.Session, w: World) -> Term:
     answer_own = z3.And(ule(IMAGE_ANSWER[0], then.tx), IMAGE_ANSWER[1] >= 0)
     answer_sent = z3.Implies(wit.may_repeat(r), z3.And(answer_own, p_admit(answer, w)))
     image = inv.p_session_image(r, view(w), prophesied=False)
-    return z3.And(image, answered(r), sent, answer_sent)
+    return z3.And(image, answered(r), sent, answer_sent, given_past(r, w), decided_on_an_ack(r, w))
 
 
 def _msg_on_view(clause: inv.MsgClause) -> inv.MsgClause:
@@ -758,6 +913,18 @@ def p_debit(m: Msg, w: World) -> Term:
     draw, resume, resume_draw = f == wit.DRAW, f == wit.START, f == wit.START | wit.DRAW
     counts, books, unknown = f == wit.COUNTS, f == wit.BOOKS, f == wit.UNKNOWN_BOOKS
     numbered = z3.Or(draw, resume, resume_draw, counts)
+    books_ = z3.Or(books, unknown)
+    answer = z3.Or(counts, books_)  # a SYNC's answer
+    # the low 24 bits of the Rc the books carry, as the node puts them on the wire (16 in the
+    # number's field, 8 in the amount's): read in bits, not as integers (z3 gives up on that)
+    low = m.rcl
+    wire = z3.And(
+        low == (m.rc / Q) % (1 << DELIVERED_BITS),
+        m.w == z3.Int2BV(low, 16),
+        m.amount == low / (1 << 16),
+    )
+    # (where the start's Gs is below what the node received; the checker splits the clause)
+    books_rc = z3.And(w.received <= m.rc, m.rc % Q == 0, *wire.children())
     return z3.And(
         m.life >= 0,
         m.life <= w.life,
@@ -796,7 +963,7 @@ def p_debit(m: Msg, w: World) -> Term:
         # a start of this life began after every frame of an earlier life
         z3.Implies(z3.And(m.life < w.life, starting(w.c)), m.start < starts(w)),
         # a life that began after its answer began in this start, whose JOIN waits for its end
-        z3.Implies(z3.And(current_sync(m, w), counts, m.life < w.life), z3.Not(w.admitted)),
+        z3.Implies(z3.And(current_sync(m, w), answer, m.life < w.life), z3.Not(w.admitted)),
         z3.Implies(z3.And(current_sync(m, w), counts, behind(w)), ule(begun(w), m.q)),
         z3.Implies(z3.And(current_sync(m, w), counts, behind_c(w)), ule(top(w), one(m.k))),
         # counts of this life answering the supervisor's current start: the node is still in
@@ -807,6 +974,12 @@ def p_debit(m: Msg, w: World) -> Term:
         # counts answering the supervisor's current start: no record of this life has since
         # gone below their ltx (a confirmation waits for them; a restart keeps World.lhi)
         z3.Implies(z3.And(current_sync(m, w), counts, m.life == w.life), ule(m.q, reach(w))),
+        # books answering the supervisor's current start: the node still in a start; while
+        # that start is behind in Gs, the Rc they carry (or the Gs of the admission, unknown)
+        # at least what the node received
+        z3.Implies(z3.And(current_sync(m, w), books_, m.life == w.life), starting(w.c)),
+        z3.Implies(z3.And(current_sync(m, w), books, w.s.delivered < w.received), books_rc),
+        z3.Implies(z3.And(current_sync(m, w), unknown), w.received <= w.s.delivered),
     )
 
 
@@ -927,6 +1100,10 @@ def p_admit(m: Msg, w: World) -> Term:
         m.sstart == -1,
         z3.Implies(answers_this_life, z3.And(ule(top(w), m.q), ule(taken(w), m.k))),
         z3.Implies(answers_this_life, z3.And(m.epoch == epoch_of(w), ule(BASE_TX(m.epoch), m.k))),
+        # taken while a start waits, it leaves the node with books that report nothing: the
+        # start's Gs holds what the node received (sent before the start: the supervisor's
+        # restore takes it, residual ``reported``; none is sent during one)
+        z3.Implies(z3.And(answers_this_life, wit.in_start(w.s)), covered(w, w.s.delivered)),
     )
     return z3.If(m.life == -1, ours, join)
 
@@ -948,6 +1125,12 @@ def _begun(clause: inv.MsgClause) -> inv.MsgClause:
     return lambda m, w: z3.And(clause(m, view(w)), ule(m.k, begun(w)), sent_in(m, w))
 
 
+def p_commit(m: Msg, w: World) -> Term:
+    """A COMMIT names a transaction begun and one the node took (the decision followed its
+    ACK)."""
+    return z3.And(_begun(inv.MESSAGE[Kind.COMMIT])(m, w), ule(m.k, taken(w)))
+
+
 def sent_in(m: Msg, w: World) -> Term:
     """A supervisor's frame was sent in this epoch or an earlier one; of an earlier one, its
     transaction at most this epoch's base (counts that end a start take tx to the highest
@@ -959,7 +1142,8 @@ def sent_in(m: Msg, w: World) -> Term:
 
 MESSAGE: dict[Kind, inv.MsgClause] = {
     **{kind: _msg_on_view(p) for kind, p in inv.MESSAGE.items()},
-    **{kind: _begun(inv.MESSAGE[kind]) for kind in (Kind.COMMIT, Kind.ABORT)},
+    Kind.COMMIT: p_commit,
+    Kind.ABORT: _begun(inv.MESSAGE[Kind.ABORT]),
     Kind.INTENTION: p_intention,
     Kind.ADMIT: p_admit,
     Kind.RETURN: p_return,
@@ -995,7 +1179,16 @@ def deliverable(m: Msg, w: World) -> Term:
         resume = z3.Or(m.flags == wit.START, m.flags == wit.START | wit.DRAW)
         seq = sym.unwrap(m.w, w.s.returns_credited, SEQ_BITS)
         again = z3.And(resume, wit.repeats(w.s, wit.key_of(m.nonce, z3.BoolVal(False)), seq))
+        # the Rc the books carry within 2**23 mJ of the supervisor's Gs (assumption 3, as an
+        # INTENTION's Gs of the node's Rc)
+        gap = m.rc / Q - w.s.delivered / Q
+        half = 1 << (DELIVERED_BITS - 1)
+        taken_books = z3.And(wit.in_start(w.s), m.nonce == w.s.sync_nonce, m.flags == wit.BOOKS)
+        # (only where the start's Gs is below what the node received: the books then carry it)
+        needed = z3.And(taken_books, w.s.delivered < w.received)
+        rc_age = z3.Implies(needed, z3.And(gap < half, gap > -half))
         return z3.And(
+            rc_age,
             z3.Implies(again, m.start == rstart(w)),
             age,
             z3.Implies(counts, inv.near(w.last, w.tx)),
@@ -1061,6 +1254,8 @@ def client_sent(w: World, frames: wit.Frames) -> tuple[tuple[Term, Msg], ...]:
             k=k,
             life=w.life,
             q=w.last,  # counts: the ltx they carry, canonical
+            rc=w.rc_true,  # books: the Rc they carry, on the supervisor's scale
+            rcl=(w.c.credited / Q) % (1 << DELIVERED_BITS),  # and its low bits on the wire
             start=starts(w),
             sstart=z3.If(w.c.phase == sym.SYNCING, answering(w), -1),
         )
@@ -1172,7 +1367,8 @@ def on_admit(w: World, m: Msg) -> st.Step:
     fresh = z3.Or(joined, behind)
     off_tx = z3.If(fresh, m.k - z3.ZeroExt(16, m.admit_tx), w.off_tx)
     off_seq = z3.If(joined, m.q - z3.ZeroExt(16, m.admit_seq), z3.If(behind, m.q - q, w.off_seq))
-    roff = z3.If(fresh, z3.IntVal(0), w.roff)
+    # found behind: the floor (``witnessed.floor_of``) on the supervisor's scale as the Rc was
+    roff = z3.If(joined, z3.IntVal(0), z3.If(behind, w.roff - (c2.credited - c.credited), w.roff))
     kept = z3.And(
         starting(c),
         m.nonce == expected,
@@ -1259,21 +1455,13 @@ def _session(
     sent = st.supervisor_sent(after, step.sent, answers)
     sync = z3.If(wit.in_start(after.s), sstarts(after), -1)  # a SYNC: the start it is sent in
     sent = tuple((cond, replace(m, sstart=sync) if m.kind is Kind.ADMIT else m) for cond, m in sent)
-    if start is not None:  # a confirmation: k the last transaction closed, Q as sent (a
-        # repeat of counts voids C + 1 after its answer)
+    if start is not None:  # a confirmation: k the last transaction closed (Q: ``on_debit``)
         closed = z3.If(after.s.phase == sym.S_IDLE, after.tx, after.tx - 1)
         sent = tuple(
-            (cond, replace(m, start=start, k=closed, q=_sent_q(m, after)))
-            if m.kind is Kind.ADMIT
-            else (cond, m)
+            (cond, replace(m, start=start, k=closed)) if m.kind is Kind.ADMIT else (cond, m)
             for cond, m in sent
         )
     return st.Step(after, sent, z3.BoolVal(True), step.credit)
-
-
-def _sent_q(m: Msg, w: World) -> Term:
-    """The C an ADMIT carries (canonical): within 2**15 below the session's."""
-    return sym.unwrap(m.admit_seq, w.s.returns_credited, SEQ_BITS) - w.shift_seq
 
 
 def _lift(s: sym.Session) -> tuple[Term, Term]:
@@ -1352,7 +1540,9 @@ def on_debit(w: World, m: Msg) -> st.Step:
     taken = _session(
         w,
         step,
-        start=m.start,
+        # a repeat sends the last answer again: of the start it answered (a start of the node's
+        # with the same nonce is another only against assumption 5)
+        start=z3.If(repeat, rstart(w), m.start),
         shift_tx=w.shift_tx + z3.If(lifted, lift_tx, zero),
         shift_seq=w.shift_seq + z3.If(lifted, lift_seq, zero),
         epoch=epoch,
@@ -1372,15 +1562,81 @@ def on_debit(w: World, m: Msg) -> st.Step:
         rstart=z3.If(fresh_answer, m.start, rstart(w)),
         admitted_at=z3.If(lowered, after.tx, w.admitted_at),
     )
-    taken = replace(taken, after=after)
+
+    # the C a confirmation carries (canonical): C after it, or a repeat's, the C before it
+    # (the last answer's: a repeat of counts voids C + 1 after its answer)
+    def q_of(x: Msg) -> Term:
+        return z3.If(repeat, w.rc, after.rc)
+
+    sent = tuple((c, replace(x, q=q_of(x)) if x.kind is Kind.ADMIT else x) for c, x in taken.sent)
+    taken = replace(taken, after=after, sent=sent)
     leave_begun = z3.Implies(counted_, ule(begun(w), after.tx))
+    last = last_answer(w)
+    same_q = z3.And(
+        *(z3.Implies(c, x.admit_seq == last.admit_seq) for c, x in sent if x.kind is Kind.ADMIT)
+    )
+    as_it_did = z3.Implies(
+        z3.And(this_start(last, w), confirms(last, w.c)),
+        z3.And(confirmable(w), last.q == one(image_seq(w))),
+    )
+    # books taken where the start's Gs is below what the node received: their two fields read
+    # as the low bits the node put (P of the DEBIT), which unwrap to its Rc (assumption 3)
+    needed = z3.And(
+        s.phase == sym.SYNCING,
+        m.nonce == s.sync_nonce,
+        m.flags == wit.BOOKS,
+        s.delivered < w.received,
+    )
+    read_mj = z3.BV2Int(m.w) + m.amount * (1 << 16)
+    unwrapped = sym.unwrap_int(read_mj, s.delivered / Q, DELIVERED_BITS) * Q
     lemmas = (
         ("lemma: C does not go back", ule(w.rc, after.rc)),
         ("lemma: tx does not go back", ule(w.tx, after.tx)),
         # so a frame of the epoch the counts end names a transaction at most the next's base
         ("lemma: counts that end a start leave tx at or above begun", leave_begun),
+        ("lemma: the books' fields read as their low bits", z3.Implies(needed, read_mj == m.rcl)),
+        ("lemma: the books' Rc unwrapped", z3.Implies(needed, unwrapped == m.rc)),
+        # a repeat is the last answer again (k aside): Q as it read, to the start it answered
+        ("lemma: a repeat sends the last answer's Q", z3.Implies(repeat, same_q)),
+        ("lemma: the last answer confirms as it did", z3.Implies(repeat, as_it_did)),
     )
-    return replace(taken, lemmas=lemmas)
+    return replace(taken, lemmas=lemmas, branches=_debit_branches(w, m))
+
+
+def _debit_branches(w: World, m: Msg) -> tuple[tuple[str, Term], ...]:
+    """The DEBIT's branches: outside a start a draw, books, and a RESUME or late counts; in a
+    start the books awaited, the books again, the counts that end a re-sync, a start from an
+    older image or another start, and anything else after the books. A RESUME and counts are
+    each answered again (a repeat), found behind (lifted) or afresh."""
+    s, f = w.s, m.flags
+    outside, books = z3.Not(wit.in_start(s)), wit.is_books(f)
+    counts, resumes = f == wit.COUNTS, (f / wit.START) % 2 == 1
+    after_books = s.phase == sym.SYNC_BOOKS
+    ending = z3.And(after_books, m.nonce == s.sync_nonce, counts)
+    seq = sym.unwrap(m.w, s.returns_credited, SEQ_BITS)
+    repeat = wit.repeats(s, wit.key_of(m.nonce, counts), seq)
+    lifts = seq - s.returns_credited < 0
+    answers = (
+        ("again", repeat),
+        ("found behind", z3.And(z3.Not(repeat), lifts)),
+        ("afresh", z3.And(z3.Not(repeat), z3.Not(lifts))),
+    )
+    image = behind(w)
+    answered = (
+        ("a RESUME", z3.And(outside, z3.Not(books), resumes, z3.Not(counts))),
+        ("late counts", z3.And(outside, counts)),
+        ("counts that end a re-sync", z3.And(ending, s.resync)),
+        ("counts that end a start from an older image", z3.And(ending, z3.Not(s.resync), image)),
+        ("counts that end another start", z3.And(ending, z3.Not(s.resync), z3.Not(image))),
+    )
+    return (
+        ("a draw", z3.And(outside, z3.Not(books), z3.Not(resumes))),
+        *((f"{what}, {how}", z3.And(cond, a)) for what, cond in answered for how, a in answers),
+        ("books outside a start", z3.And(outside, books)),
+        ("a frame while the books are awaited", s.phase == sym.SYNCING),
+        ("the books again", z3.And(after_books, books)),
+        ("anything else after the books", z3.And(after_books, z3.Not(ending), z3.Not(books))),
+    )
 
 
 def begin(w: World, amount: Term) -> st.Step:

@@ -299,6 +299,14 @@ def test_a_step_proved_branch_by_branch_needs_branches_that_cover_it(
     from canergy.prove import obligations
 
     monkeypatch.setattr(obligations, "WHOLE_FIRST_MS", 1)
+    checked: list[str] = []
+    real = obligations._check
+
+    def spy(solver: Any, step_name: str, clause: str, *rest: Any) -> Any:
+        checked.append(clause)
+        return real(solver, step_name, clause, *rest)
+
+    monkeypatch.setattr(obligations, "_check", spy)
     step = "supervisor receives ACK"
     idle = lambda w: w.s.phase == sym.S_IDLE  # noqa: E731
     cover = lambda w: (("idle", idle(w)), ("not idle", z3.Not(idle(w))))  # noqa: E731
@@ -306,6 +314,8 @@ def test_a_step_proved_branch_by_branch_needs_branches_that_cover_it(
     failed = [f"{o.clause}\n{o.counterexample}" for o in outcomes if not o.proved]
     assert not failed, failed[0]
     assert "its branches cover it" in {o.clause for o in outcomes}
+    # some goal z3 did not decide whole in 1 ms was checked again in each of the two branches
+    assert max(checked.count(c) for c in set(checked)) >= 3
     alone = lambda w: (("idle", idle(w)),)  # noqa: E731
     outcomes = list(check_step(_with_branches(step, alone), 120_000))
     assert {o.clause for o in outcomes if not o.proved} == {"its branches cover it"}

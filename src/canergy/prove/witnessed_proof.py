@@ -1565,10 +1565,8 @@ def on_debit(w: World, m: Msg) -> st.Step:
 
     # the C a confirmation carries (canonical): C after it, or a repeat's, the C before it
     # (the last answer's: a repeat of counts voids C + 1 after its answer)
-    def q_of(x: Msg) -> Term:
-        return z3.If(repeat, w.rc, after.rc)
-
-    sent = tuple((c, replace(x, q=q_of(x)) if x.kind is Kind.ADMIT else x) for c, x in taken.sent)
+    q = z3.If(repeat, w.rc, after.rc)
+    sent = tuple((c, replace(x, q=q) if x.kind is Kind.ADMIT else x) for c, x in taken.sent)
     taken = replace(taken, after=after, sent=sent)
     leave_begun = z3.Implies(counted_, ule(begun(w), after.tx))
     last = last_answer(w)
@@ -1600,22 +1598,20 @@ def on_debit(w: World, m: Msg) -> st.Step:
         ("lemma: a repeat sends the last answer's Q", z3.Implies(repeat, same_q)),
         ("lemma: the last answer confirms as it did", z3.Implies(repeat, as_it_did)),
     )
-    return replace(taken, lemmas=lemmas, branches=_debit_branches(w, m))
+    lifts = seq - s.returns_credited < 0
+    return replace(taken, lemmas=lemmas, branches=_debit_branches(w, m, repeat, lifts))
 
 
-def _debit_branches(w: World, m: Msg) -> tuple[tuple[str, Term], ...]:
+def _debit_branches(w: World, m: Msg, repeat: Term, lifts: Term) -> tuple[tuple[str, Term], ...]:
     """The DEBIT's branches: outside a start a draw, books, and a RESUME or late counts; in a
     start the books awaited, the books again, the counts that end a re-sync, a start from an
     older image or another start, and anything else after the books. A RESUME and counts are
-    each answered again (a repeat), found behind (lifted) or afresh."""
+    each answered again (``repeat``), found behind (``lifts``: numbered below C) or afresh."""
     s, f = w.s, m.flags
     outside, books = z3.Not(wit.in_start(s)), wit.is_books(f)
     counts, resumes = f == wit.COUNTS, (f / wit.START) % 2 == 1
     after_books = s.phase == sym.SYNC_BOOKS
     ending = z3.And(after_books, m.nonce == s.sync_nonce, counts)
-    seq = sym.unwrap(m.w, s.returns_credited, SEQ_BITS)
-    repeat = wit.repeats(s, wit.key_of(m.nonce, counts), seq)
-    lifts = seq - s.returns_credited < 0
     answers = (
         ("again", repeat),
         ("found behind", z3.And(z3.Not(repeat), lifts)),

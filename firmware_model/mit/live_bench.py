@@ -160,7 +160,8 @@ def burst(
     timeout_s: float = 60,
 ) -> int:
     """ENTER, then ``frames`` in turn every ``period_s`` (each to every one of ``motors``) until
-    ``until()`` or ``timeout_s``; rounds sent."""
+    ``until()``; rounds sent. AssertionError if ``until()`` is still false after
+    ``timeout_s``: a condition never met is a failure, not a shorter run."""
     sent = 0
     for motor in motors:
         bus.send(can.Message(arbitration_id=motor, data=ENTER, is_extended_id=False))
@@ -171,6 +172,8 @@ def burst(
             bus.send(can.Message(arbitration_id=motor, data=data, is_extended_id=False))
         sent += 1
         time.sleep(period_s)
+    if not until():
+        raise AssertionError(f"burst: not done after {timeout_s:g} s ({sent} rounds sent)")
     return sent
 
 

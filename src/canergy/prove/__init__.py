@@ -15,6 +15,13 @@ of transactions.
 ``canergy prove`` runs it. The names below need no z3.
 """
 
+EFFORT = 1_500_000_000
+"""z3's resource limit per check (its ``rlimit``, a count of its own steps): where a check stops
+does not depend on the machine's speed or load, so a proof that passes here passes on a loaded
+machine, only slower (a wall-clock limit alone once let a goal proved in 73 s here fail after
+600 s on a loaded CI machine). The hardest check of the witnessed proof takes about 500 million
+(73 s here); z3 does about 1-7 million a second on this kind of machine."""
+
 RULE_NAMES = (
     "hardened",
     "paper",

@@ -14,6 +14,7 @@ import time
 from collections.abc import Callable, Collection, Iterable, Iterator
 from dataclasses import dataclass, fields, replace
 
+from canergy.prove import EFFORT
 from canergy.prove import invariant as inv
 from canergy.prove import steps as st
 from canergy.prove.invariant import ule
@@ -313,12 +314,15 @@ def counterexample(model: z3.ModelRef, before: World, step: st.Step, delivered: 
 
 def check_step(
     case: StepCase,
-    timeout_ms: int = 120_000,
+    timeout_ms: int | None = None,
     rules: Rules = HARDENED,
     clauses: Collection[str] = (),
+    effort: int = EFFORT,
 ) -> Iterator[Outcome]:
     """Every obligation of one step (given ``clauses``, only the goals named: the step's
-    lemmas are still proved first and taken as facts)."""
+    lemmas are still proved first and taken as facts). Each z3 check stops at ``effort`` (z3's
+    ``rlimit``: the same on every machine) or after ``timeout_ms`` if given, whichever comes
+    first."""
     proof = proof_of(rules)
     before = any_world("before", rules.witnessed)
     step, hyps, delivered = case.build(before)
@@ -331,8 +335,7 @@ def check_step(
         *hyps,
     ]
     todo = [g for g in goals(before, step, proof) if not clauses or g.clause in clauses]
-    solver = z3.Solver()
-    solver.set("timeout", timeout_ms)
+    solver = _solver(timeout_ms, effort)
     solver.add(*base)
     started = time.perf_counter()
     solver.push()
@@ -358,12 +361,22 @@ def check_step(
             solver, case.name, "its branches cover it", cover, None, before, step, delivered
         )
     for goal in todo:
-        yield _by_branch(solver, case.name, goal, before, step, delivered, timeout_ms)
+        yield _by_branch(solver, case.name, goal, before, step, delivered, (timeout_ms, effort))
 
 
-WHOLE_FIRST_MS = 10_000
-"""How long z3 is given ``goal`` on a step with branches as a whole before it is taken branch
-by branch (most goals prove whole in a second; the branches multiply the time)."""
+WHOLE_FIRST = 30_000_000
+"""The effort z3 is given for ``goal`` on a step with branches as a whole before it is taken
+branch by branch (most goals prove whole in a second; the branches multiply the time)."""
+
+
+def _solver(timeout_ms: int | None, effort: int) -> z3.Solver:
+    """A solver whose checks stop at ``effort`` or after ``timeout_ms`` (None: no wall-clock
+    limit)."""
+    solver = z3.Solver()
+    if timeout_ms is not None:
+        solver.set("timeout", timeout_ms)
+    solver.set("rlimit", effort)
+    return solver
 
 
 def _by_branch(
@@ -373,32 +386,27 @@ def _by_branch(
     before: World,
     step: st.Step,
     delivered: Msg | None,
-    timeout_ms: int,
+    limits: tuple[int | None, int],
 ) -> Outcome:
     """``goal`` after the step: as a whole, and where z3 does not decide it so within
-    ``WHOLE_FIRST_MS`` (a step that names no branches: within ``timeout_ms``), in each branch in
-    turn, proved when every branch is, the first that fails named in its counterexample."""
+    ``WHOLE_FIRST`` (a step that names no branches: within ``limits``), in each branch in
+    turn (each check in a new solver), proved when every branch is, the first that fails
+    named in its counterexample."""
     started = time.perf_counter()
+    effort = limits[1]
     whole = (goal.clause, goal.holds, goal.assuming, before, step, delivered)
     if step.branches:
-        solver.set("timeout", min(WHOLE_FIRST_MS, timeout_ms))
+        solver.set("rlimit", min(WHOLE_FIRST, effort))
     outcome = _check(solver, step_name, *whole)
-    solver.set("timeout", timeout_ms)
+    solver.set("rlimit", effort)
     if outcome.proved or not step.branches or not outcome.undecided:
         return replace(outcome, seconds=time.perf_counter() - started)
     for name, cond in step.branches:
-        solver.push()
-        solver.add(cond)
-        outcome = _check(solver, step_name, *whole)
-        solver.pop()
-        if outcome.undecided:
-            # again in a solver of its own: what z3 learnt on the step's other goals can slow
-            # it (a branch that proves in 30 s alone reached 120 s after them), or speed it
-            alone = z3.Solver()
-            alone.set("timeout", timeout_ms)
-            alone.set("random_seed", 1)
-            alone.add(*solver.assertions(), cond)
-            outcome = _check(alone, step_name, *whole)
+        # each conjunct in a solver of its own checked once: z3 then simplifies and bit-blasts
+        # the whole problem (a solver pushed and popped cannot), and forgets what it learnt on
+        # the step's other goals ('a RESUME, found behind': P of the ADMIT sent, undecided
+        # after 1,500 million steps in the step's solver, 48 million for its 51 conjuncts so)
+        outcome = _check(solver, step_name, *whole, alone=(limits, cond))
         if not outcome.proved:
             where = f"  in its branch {name!r}\n"
             seconds = time.perf_counter() - started
@@ -431,18 +439,33 @@ def _check(
     before: World,
     step: st.Step,
     delivered: Msg | None,
+    alone: tuple[tuple[int | None, int], Term] | None = None,
 ) -> Outcome:
     """One obligation: ``holds`` after the step (``assuming`` of a message in flight before).
     ``P`` of a frame sent or remembered is checked conjunct by conjunct (z3 takes each in
-    seconds where it gives up on their conjunction), the obligation proved when every one is."""
+    seconds where it gives up on their conjunction), the obligation proved when every one is.
+    Given ``alone`` (limits and a condition), each check is made in a new solver holding
+    ``solver``'s assertions and the condition."""
     started = time.perf_counter()
     facts = [holds] if assuming is None else [holds, assuming]
-    known = [*monotone([*solver.assertions(), *facts]), *bridges(facts)]
+    held = [*solver.assertions(), *([] if alone is None else [alone[1]])]
+    known = [*monotone([*held, *facts]), *bridges(facts)]
     split = clause.endswith(" sent") or clause in FRAMES_REMEMBERED
     parts = _conjuncts(holds) if split else [holds]
     for i, part in enumerate(parts):
+        checker = solver
+        if alone is not None:
+            checker = _solver(*alone[0])
+            checker.set("random_seed", 1)
+            checker.add(*held)
         outcome = _check_part(
-            solver, step_name, clause, part, [*known, *facts[1:]], before, step, delivered
+            checker,
+            step_name,
+            clause,
+            part,
+            [*known, *facts[1:]],
+            (before, step, delivered),
+            once=alone is not None,
         )
         if not outcome.proved:
             if len(parts) > 1:
@@ -478,14 +501,16 @@ def _check_part(
     clause: str,
     holds: Term,
     known: list[Term],
-    before: World,
-    step: st.Step,
-    delivered: Msg | None,
+    where: tuple[World, st.Step, Msg | None],
+    once: bool = False,
 ) -> Outcome:
     """``holds`` after the step, given the facts ``known`` (the instances of ``H``'s monotony
-    and of ``Int2BV``, the message in flight's ``P``)."""
+    and of ``Int2BV``, the message in flight's ``P``). ``once``: ``solver`` is new and checked
+    once, never pushed, and left so (z3 then takes the whole problem at once)."""
+    before, step, delivered = where
     started = time.perf_counter()
-    solver.push()
+    if not once:
+        solver.push()
     solver.add(*known)
     solver.add(z3.Not(holds))
     result = solver.check()
@@ -498,7 +523,8 @@ def _check_part(
     else:
         text = f"  z3: {solver.reason_unknown()}"
         outcome = Outcome(step_name, clause, False, seconds, text, undecided=True)
-    solver.pop()
+    if not once:
+        solver.pop()
     return outcome
 
 
@@ -553,10 +579,13 @@ def _prove(step: str, clause: str, hyps: list[Term], goal: Term) -> Outcome:
 
 
 def check_all(
-    rules: Rules = HARDENED, timeout_ms: int = 120_000, steps: Iterable[str] = ()
+    rules: Rules = HARDENED,
+    timeout_ms: int | None = None,
+    steps: Iterable[str] = (),
+    effort: int = EFFORT,
 ) -> Iterator[Outcome]:
     """Every obligation, in order: the initial state, each step, the conclusion; or, given
-    ``steps`` (names of ``cases``), only those steps' obligations."""
+    ``steps`` (names of ``cases``), only those steps' obligations (limits: ``check_step``)."""
     only = set(steps)
     unknown = only - {case.name for case in cases(rules)}
     if unknown:
@@ -565,6 +594,6 @@ def check_all(
         yield from check_initial(proof_of(rules))
     for case in cases(rules):
         if not only or case.name in only:
-            yield from check_step(case, timeout_ms, rules)
+            yield from check_step(case, timeout_ms, rules, effort=effort)
     if not only:
         yield from check_conclusion(rules)

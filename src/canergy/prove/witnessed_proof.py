@@ -73,7 +73,7 @@ start in Rc while a start behind in Gs waits (residual (d) in Rc, ``far_behind_r
 Not proved yet in one run: every step but the supervisor's DEBIT keeps every clause, and the
 DEBIT, proved branch by branch (``_debit_branches``) after lemmas on its counters, the books'
 fields and the repeat of the last answer, proves all but ``P`` of the ADMIT it sends in the
-branch "a RESUME, found behind", which z3 does not decide within 120 s in a whole run
+branch "a RESUME, found behind", which z3 does not decide within ``EFFORT`` in a whole run
 (docs/protocol.md, assumption 2). A pass is under assumption 2 narrowed
 (``canergy.prove.NARROWED``): the restore steps take an image of the stated kind
 (``p_image``, ``p_session_image``: not shown to hold of every record a side wrote) and the

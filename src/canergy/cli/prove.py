@@ -119,11 +119,19 @@ def run(args: argparse.Namespace) -> int:
         if args.rules in NARROWED:
             print(f"under {NARROWED[args.rules]}")
         return 0
-    print(
-        f"{len(failed)} of {len(done)} obligations checked failed in {elapsed:.1f} s: "
-        "the invariant is not inductive under these rules",
-        file=sys.stderr,
-    )
+    undecided = [o for o in failed if o.undecided]
+    if undecided:
+        print(
+            f"{len(undecided)} of {len(done)} obligations checked were not decided within "
+            f"{_limits(args)} in {elapsed:.1f} s: neither proved nor refuted (raise the limit)",
+            file=sys.stderr,
+        )
+    if len(undecided) < len(failed):
+        print(
+            f"{len(failed) - len(undecided)} of {len(done)} obligations checked failed in "
+            f"{elapsed:.1f} s: the invariant is not inductive under these rules",
+            file=sys.stderr,
+        )
     if args.rules in UNPROVED:
         print(
             f"the {args.rules} rules are not proved yet: obligations z3 does not decide "
@@ -139,13 +147,19 @@ def run(args: argparse.Namespace) -> int:
     return 1
 
 
+def _limits(args: argparse.Namespace) -> str:
+    """The limits a check ran under, as flags."""
+    timeout = "" if args.timeout is None else f" or --timeout {args.timeout}"
+    return f"--effort {args.effort:,}{timeout}"
+
+
 def _check(outcomes: Iterable[Any], args: argparse.Namespace) -> tuple[list[Any], list[Any]]:
     """Print each obligation as it is checked; stop at the first failure unless told not to."""
     done: list[Any] = []
     failed: list[Any] = []
     for outcome in outcomes:
         done.append(outcome)
-        mark = "proved" if outcome.proved else "FAILED"
+        mark = "proved" if outcome.proved else "UNDECIDED" if outcome.undecided else "FAILED"
         if not (args.quiet and outcome.proved):
             print(f"  {mark}  {outcome.seconds:7.2f} s  {outcome.step}: {outcome.clause}")
         if not outcome.proved:

@@ -7,9 +7,8 @@ of transactions.
 - ``invariant``: the clauses, ``P(m, world)`` of messages in flight, the assumptions;
 - ``steps``: every cell as a step of a world; ``rules``: the hardened set and unsound ones;
 - ``witnessed``, ``witnessed_proof``: the witnessed cells as terms, then as steps with both
-  restore steps, and the invariant tried on them (not proved yet: every step but the
-  supervisor's DEBIT keeps every clause in one run; the DEBIT's obligations are proved branch
-  by branch, and z3 does not decide some within the limit);
+  restore steps, and the invariant tried on them (not proved reliably yet: one whole run
+  proved every obligation, another left one of the supervisor's DEBIT undecided);
 - ``obligations``: each (step, clause) checked by z3, with counterexamples to induction.
 
 ``canergy prove`` runs it. The names below need no z3.
@@ -17,10 +16,11 @@ of transactions.
 
 EFFORT = 1_500_000_000
 """z3's resource limit per check (its ``rlimit``, a count of its own steps): where a check stops
-does not depend on the machine's speed or load, so a proof that passes here passes on a loaded
-machine, only slower (a wall-clock limit alone once let a goal proved in 73 s here fail after
-600 s on a loaded CI machine). The hardest check of the witnessed proof takes about 500 million
-(73 s here); z3 does about 1-7 million a second on this kind of machine."""
+does not depend on the machine's speed or load, so a run that passes here passes the same way
+on a loaded machine, only slower (a wall-clock limit alone once let a goal proved in 73 s here
+fail after 600 s on a loaded CI machine). Most checks of the witnessed proof take under 100 million;
+z3 does about 1-7 million a second on this kind of machine. What z3 does within it still
+depends on the terms the process built before (docs/protocol.md, assumption 2)."""
 
 RULE_NAMES = (
     "hardened",

@@ -70,17 +70,17 @@ from a life admitted afresh that has received at most the Gs of its admission
 admission, in ``reported``); the node is not put back below its record at the
 start in Rc while a start behind in Gs waits (residual (d) in Rc, ``far_behind_rc``).
 
-Not proved yet in one run: every step but the supervisor's DEBIT keeps every clause, and the
-DEBIT, proved branch by branch (``_debit_branches``) after lemmas on its counters, the books'
-fields and the repeat of the last answer, proves all but ``P`` of the ADMIT it sends in the
-branch "a RESUME, found behind", which z3 does not decide within ``EFFORT`` in a whole run
-(docs/protocol.md, assumption 2). A pass is under assumption 2 narrowed
-(``canergy.prove.NARROWED``): the restore steps take an image of the stated kind
-(``p_image``, ``p_session_image``: not shown to hold of every record a side wrote) and the
-residual (d) as hypotheses. Counts that
-end a start are read against the record started from, so ``deliverable`` asks their q within
-2**15 of its C (assumption 3 of the receiver's counter), and ``bounded`` its tx below the cap
-where their ltx is held (assumption 4).
+Not proved reliably yet: every step keeps every clause, the supervisor's DEBIT proved branch
+by branch (``_debit_branches``) after lemmas on its counters, the books' fields and the repeat
+of the last answer; a whole run proved all 1,357 obligations, another (after the hardened
+proof in the same process) left the DEBIT's "remembered answer" in the branch "counts that end
+a re-sync, found behind" undecided within ``EFFORT`` (docs/protocol.md, assumption 2). A pass
+is under assumption 2 narrowed (``canergy.prove.NARROWED``): the restore steps take an image
+of the stated kind (``p_image``, ``p_session_image``: not shown to hold of every record a side
+wrote) and the residual (d) as hypotheses. Counts that end a start are read against the
+record started from, so ``deliverable`` asks their q within 2**15 of its C (assumption 3 of the
+receiver's counter), and ``bounded`` its tx below the cap where their ltx is held (assumption
+4).
 """
 
 from __future__ import annotations

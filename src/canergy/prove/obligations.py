@@ -349,6 +349,7 @@ def check_step(
         possible == z3.sat,
         seconds,
         "" if possible == z3.sat else "  the invariant and assumptions rule this step out entirely",
+        possible == z3.unknown,
     )
     for energy in proof.moves.get(case.name, ()):
         yield _witness(solver, case.name, energy, before, step)
@@ -427,7 +428,10 @@ def _witness(
     solver.pop()
     seconds = time.perf_counter() - started
     text = "" if result == z3.sat else "  no state where the invariant holds lets this step move it"
-    return Outcome(step_name, f"can move {energy}", result == z3.sat, seconds, text)
+    undecided = result == z3.unknown
+    if undecided:
+        text = f"  z3: {solver.reason_unknown()}"
+    return Outcome(step_name, f"can move {energy}", result == z3.sat, seconds, text, undecided)
 
 
 def _check(

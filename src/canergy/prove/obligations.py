@@ -348,7 +348,9 @@ def check_step(
         "can happen (changes the world or sends)",
         possible == z3.sat,
         seconds,
-        "" if possible == z3.sat else "  the invariant and assumptions rule this step out entirely",
+        {z3.sat: "", z3.unsat: "  the invariant and assumptions rule this step out entirely"}.get(
+            possible, f"  z3: {solver.reason_unknown()}"
+        ),
         possible == z3.unknown,
     )
     for energy in proof.moves.get(case.name, ()):

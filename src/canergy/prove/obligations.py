@@ -341,6 +341,11 @@ def check_step(
     solver.push()
     solver.add(*monotone(base), changes(before, step))
     possible = solver.check()
+    reason = "  the invariant and assumptions rule this step out entirely"
+    if possible == z3.sat:
+        reason = ""
+    if possible == z3.unknown:
+        reason = f"  z3: {solver.reason_unknown()}"
     solver.pop()
     seconds = time.perf_counter() - started
     yield Outcome(
@@ -348,9 +353,7 @@ def check_step(
         "can happen (changes the world or sends)",
         possible == z3.sat,
         seconds,
-        {z3.sat: "", z3.unsat: "  the invariant and assumptions rule this step out entirely"}.get(
-            possible, f"  z3: {solver.reason_unknown()}"
-        ),
+        reason,
         possible == z3.unknown,
     )
     for energy in proof.moves.get(case.name, ()):

@@ -32,8 +32,8 @@ CAP = 0.5
 BUDGET = ("--initial", "300J", "--target", "120J")
 """120 J kept in each gate: the MIT gate holds its motor, saying so, until what it has in hand
 covers its bound, which grows with the latest its host woke (a fresh-clone CI run with 20 J
-kept saw the gate hold the motor for 60 s, 25.5 J needed); 120 J covers stalls up to the 2 s
-after which the motor's feedback counts as stopped (as tests/test_drive_recipes.py's ROOMY)."""
+kept saw the gate hold the motor for 60 s, 25.5 J needed); the margin the MIT recipe tests
+keep for a host stall (tests/test_drive_recipes.py, ROOMY)."""
 
 
 def test_mit_motors_beside_an_odrive_axis_are_each_guarded_under_their_profile(

@@ -317,6 +317,24 @@ def test_a_step_proved_branch_by_branch_needs_branches_that_cover_it(
     assert {o.clause for o in outcomes if not o.proved} == {"its branches cover it"}
 
 
+def test_a_check_cut_short_is_undecided_never_refuted() -> None:
+    """Every kind of check of a step stopped by ``effort`` (one of z3's steps here) is
+    undecided, with z3's reason, and none reads as refuted: not whether the step can happen,
+    not what it can move, not its lemmas or goals (CI once saw a cut-short 'can move' reported
+    as a failure of the rules)."""
+    (case,) = [c for c in cases() if c.name == "client receives INTENTION"]
+    outcomes = list(check_step(case, effort=1))
+    assert [o.clause for o in outcomes[:3]] == [
+        "can happen (changes the world or sends)",
+        "can move Uc",
+        "can move received",
+    ]
+    assert all(o.undecided and "z3: " in o.counterexample for o in outcomes[:3])
+    assert all(o.proved != o.undecided for o in outcomes), [
+        o.clause for o in outcomes if o.proved == o.undecided
+    ]
+
+
 def test_step_checks_only_the_steps_named(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -50,9 +50,9 @@ def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
         default=EFFORT,
         metavar="STEPS",
         help=(
-            "z3's resource limit per check (its rlimit, the same on every machine: a proof "
-            f"that passes on one passes on any, only slower); reaching it fails the obligation "
-            f"(default {EFFORT:,}, 3-25 min here)"
+            "z3's resource limit per check (its rlimit: where a check stops does not depend "
+            "on the machine's speed or load); reaching it leaves the obligation undecided, "
+            f"which fails the run (default {EFFORT:,})"
         ),
     )
     p.add_argument(

@@ -337,24 +337,11 @@ def check_step(
     todo = [g for g in goals(before, step, proof) if not clauses or g.clause in clauses]
     solver = _solver(timeout_ms, effort)
     solver.add(*base)
-    started = time.perf_counter()
-    solver.push()
-    solver.add(*monotone(base), changes(before, step))
-    possible = solver.check()
-    reason = "  the invariant and assumptions rule this step out entirely"
-    if possible == z3.sat:
-        reason = ""
-    if possible == z3.unknown:
-        reason = f"  z3: {solver.reason_unknown()}"
-    solver.pop()
-    seconds = time.perf_counter() - started
-    yield Outcome(
-        case.name,
-        "can happen (changes the world or sends)",
-        possible == z3.sat,
-        seconds,
-        reason,
-        possible == z3.unknown,
+    yield _possible(
+        solver,
+        (case.name, "can happen (changes the world or sends)"),
+        [*monotone(base), changes(before, step)],
+        "  the invariant and assumptions rule this step out entirely",
     )
     for energy in proof.moves.get(case.name, ()):
         yield _witness(solver, case.name, energy, before, step)
@@ -425,18 +412,29 @@ def _witness(
 ) -> Outcome:
     """The step can move ``energy`` from a state where the invariant holds."""
     value = st.ENERGY[energy]
+    moved = value(before) != value(step.after)
+    return _possible(
+        solver,
+        (step_name, f"can move {energy}"),
+        [*monotone([*solver.assertions(), moved]), moved],
+        "  no state where the invariant holds lets this step move it",
+    )
+
+
+def _possible(
+    solver: z3.Solver, name: tuple[str, str], facts: list[Term], impossible: str
+) -> Outcome:
+    """``facts`` can hold together with ``solver``'s (``name``: the step and the clause):
+    proved by a model; failed, saying ``impossible``, when z3 shows none; undecided, with z3's
+    reason, when it reaches its limit."""
     started = time.perf_counter()
     solver.push()
-    moved = value(before) != value(step.after)
-    solver.add(*monotone([*solver.assertions(), moved]), moved)
+    solver.add(*facts)
     result = solver.check()
+    text = {"sat": "", "unsat": impossible}.get(str(result), f"  z3: {solver.reason_unknown()}")
     solver.pop()
     seconds = time.perf_counter() - started
-    text = "" if result == z3.sat else "  no state where the invariant holds lets this step move it"
-    undecided = result == z3.unknown
-    if undecided:
-        text = f"  z3: {solver.reason_unknown()}"
-    return Outcome(step_name, f"can move {energy}", result == z3.sat, seconds, text, undecided)
+    return Outcome(*name, result == z3.sat, seconds, text, result == z3.unknown)
 
 
 def _check(

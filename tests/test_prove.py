@@ -4,6 +4,7 @@ with a counterexample, and the bounded checker finds a real trace for each unsou
 from __future__ import annotations
 
 import shlex
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -315,6 +316,61 @@ def test_a_step_proved_branch_by_branch_needs_branches_that_cover_it(
     alone = lambda w: (("idle", idle(w)),)  # noqa: E731
     outcomes = list(check_step(_with_branches(step, alone)))
     assert {o.clause for o in outcomes if not o.proved} == {"its branches cover it"}
+
+
+def _attempts(monkeypatch: pytest.MonkeyPatch, undecided: Callable[[int], bool]) -> list[Any]:
+    """The supervisor's ACK proved branch by branch, each check alone made undecided for the
+    seeds ``undecided`` picks: its outcomes and the limits of each solver made alone."""
+    from canergy.prove import obligations
+
+    monkeypatch.setattr(obligations, "WHOLE_FIRST", 1)
+    made: list[tuple[int | None, int, int | None]] = []
+    real_solver, real_part = obligations._solver, obligations._check_part
+
+    def solver(timeout_ms: int | None, effort: int, seed: int | None = None) -> Any:
+        made.append((timeout_ms, effort, seed))
+        return real_solver(timeout_ms, effort, seed)
+
+    def part(checker: Any, step_name: str, clause: str, *rest: Any, once: bool = False) -> Any:
+        seed = made[-1][2]
+        if once and seed is not None and undecided(seed):
+            return obligations.Outcome(step_name, clause, False, 0.0, "  z3: cut", undecided=True)
+        return real_part(checker, step_name, clause, *rest, once=once)
+
+    monkeypatch.setattr(obligations, "_solver", solver)
+    monkeypatch.setattr(obligations, "_check_part", part)
+    idle = lambda w: w.s.phase == sym.S_IDLE  # noqa: E731
+    cover = lambda w: (("idle", idle(w)), ("not idle", z3.Not(idle(w))))  # noqa: E731
+    outcomes = list(check_step(_with_branches("supervisor receives ACK", cover)))
+    return [outcomes, [m for m in made if m[2] is not None]]
+
+
+def test_a_check_z3_does_not_decide_alone_is_begun_again_with_other_seeds(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A check made in a solver of its own that z3 does not decide is begun again with the next
+    seed and a larger share of the effort (an eighth, an eighth, a quarter, a half: at most the
+    effort in all), and decided by the first attempt that decides it: undecided with seed 1
+    everywhere, every goal is still proved, each with seed 2; undecided with every seed, the
+    goal is undecided after four attempts, never refuted."""
+    from canergy.prove import EFFORT
+
+    outcomes, made = _attempts(monkeypatch, lambda seed: seed == 1)
+    failed = [f"{o.clause}\n{o.counterexample}" for o in outcomes if not o.proved]
+    assert not failed, failed[0]
+    assert made and {m[2] for m in made} == {1, 2}
+    assert made[:2] == [(None, EFFORT // 8, 1), (None, EFFORT // 8, 2)]
+    outcomes, made = _attempts(monkeypatch, lambda seed: True)
+    stuck = [o for o in outcomes if not o.proved]
+    assert stuck and all(o.undecided for o in stuck)
+    assert [m[1:] for m in made[:5]] == [
+        (EFFORT // 8, 1),
+        (EFFORT // 8, 2),
+        (EFFORT // 4, 3),
+        (EFFORT // 2, 4),
+        (EFFORT // 8, 1),
+    ]
+    assert sum(m[1] for m in made[:4]) <= EFFORT
 
 
 def test_a_check_cut_short_is_undecided_never_refuted() -> None:

@@ -7,8 +7,9 @@ of transactions.
 - ``invariant``: the clauses, ``P(m, world)`` of messages in flight, the assumptions;
 - ``steps``: every cell as a step of a world; ``rules``: the hardened set and unsound ones;
 - ``witnessed``, ``witnessed_proof``: the witnessed cells as terms, then as steps with both
-  restore steps, and the invariant tried on them (not proved reliably yet: one whole run
-  proved every obligation, another left one of the supervisor's DEBIT undecided);
+  restore steps, and the invariant tried on them (not proved reliably yet: a whole run on its
+  own proves every obligation, one after the hardened proof in the same process left one of
+  the supervisor's DEBIT undecided);
 - ``obligations``: each (step, clause) checked by z3, with counterexamples to induction.
 
 ``canergy prove`` runs it. The names below need no z3.
@@ -18,10 +19,11 @@ EFFORT = 1_500_000_000
 """z3's resource limit per check (its ``rlimit``, a count of its own steps): where a check stops
 does not depend on the machine's speed or load (a wall-clock limit alone once let a goal proved
 in 73 s here fail after 600 s on a loaded CI machine). What z3 does within it still depends on
-the terms the process built before: one check of the witnessed proof took 74 million steps in
-a run of its own and was undecided at this limit after the hardened proof in the same process
-(docs/protocol.md, assumption 2). z3 did about 7 million steps a second here (74 million in
-10.7 s, 500 million in 73 s)."""
+its seed and on the terms the process built before: one check of the witnessed proof took 74
+million steps in a run of its own and was undecided at this limit after the hardened proof in
+the same process, with each of the four seeds a check made alone is begun again with
+(``obligations.RESTARTS``; docs/protocol.md, assumption 2). z3 did about 7 million steps a
+second here (74 million in 10.7 s, 500 million in 73 s)."""
 
 RULE_NAMES = (
     "hardened",

@@ -362,13 +362,15 @@ WHOLE_FIRST = 30_000_000
 branch by branch (most goals prove whole in a second; the branches multiply the time)."""
 
 
-def _solver(timeout_ms: int | None, effort: int) -> z3.Solver:
+def _solver(timeout_ms: int | None, effort: int, seed: int | None = None) -> z3.Solver:
     """A solver whose checks stop at ``effort`` or after ``timeout_ms`` (None: no wall-clock
-    limit)."""
+    limit), its search drawn from ``seed`` when one is given."""
     solver = z3.Solver()
     if timeout_ms is not None:
         solver.set("timeout", timeout_ms)
     solver.set("rlimit", effort)
+    if seed is not None:
+        solver.set("random_seed", seed)
     return solver
 
 
@@ -383,7 +385,8 @@ def _by_branch(
 ) -> Outcome:
     """``goal`` after the step: as a whole, and where z3 does not decide it so within
     ``WHOLE_FIRST`` (a step that names no branches: within ``limits``), in each branch in
-    turn (each check in a new solver), proved when every branch is, the first that fails
+    turn (a step without branches: as one, "the step"), each check in a new solver begun
+    again with other seeds (``RESTARTS``), proved when every branch is, the first that fails
     named in its counterexample."""
     started = time.perf_counter()
     effort = limits[1]
@@ -392,16 +395,16 @@ def _by_branch(
         solver.set("rlimit", min(WHOLE_FIRST, effort))
     outcome = _check(solver, step_name, *whole)
     solver.set("rlimit", effort)
-    if outcome.proved or not step.branches or not outcome.undecided:
+    if outcome.proved or not outcome.undecided:
         return replace(outcome, seconds=time.perf_counter() - started)
-    for name, cond in step.branches:
+    for name, cond in step.branches or (("the step", z3.BoolVal(True)),):
         # each conjunct in a solver of its own checked once: z3 then simplifies and bit-blasts
         # the whole problem (a solver pushed and popped cannot), and forgets what it learnt on
         # the step's other goals ('a RESUME, found behind': P of the ADMIT sent, undecided
         # after 1,500 million steps in the step's solver, 48 million for its 51 conjuncts so)
         outcome = _check(solver, step_name, *whole, alone=(limits, cond))
         if not outcome.proved:
-            where = f"  in its branch {name!r}\n"
+            where = f"  in its branch {name!r}\n" if step.branches else ""
             seconds = time.perf_counter() - started
             return replace(outcome, seconds=seconds, counterexample=where + outcome.counterexample)
     return Outcome(step_name, goal.clause, True, time.perf_counter() - started)
@@ -459,27 +462,52 @@ def _check(
     known = [*monotone([*held, *facts]), *bridges(facts)]
     split = clause.endswith(" sent") or clause in FRAMES_REMEMBERED
     parts = _conjuncts(holds) if split else [holds]
+    at = (before, step, delivered)
+    facts_known = [*known, *facts[1:]]
     for i, part in enumerate(parts):
-        checker = solver
-        if alone is not None:
-            checker = _solver(*alone[0])
-            checker.set("random_seed", 1)
-            checker.add(*held)
-        outcome = _check_part(
-            checker,
-            step_name,
-            clause,
-            part,
-            [*known, *facts[1:]],
-            (before, step, delivered),
-            once=alone is not None,
-        )
+        if alone is None:
+            outcome = _check_part(solver, step_name, clause, part, facts_known, at)
+        else:
+            outcome = _restarts(alone[0], held, (step_name, clause, part, facts_known, at))
         if not outcome.proved:
             if len(parts) > 1:
                 where = f"  its conjunct {i + 1} of {len(parts)}: {str(part)[-400:]}\n"
                 outcome = replace(outcome, counterexample=where + outcome.counterexample)
             break
     return replace(outcome, seconds=time.perf_counter() - started)
+
+
+RESTARTS = (8, 8, 4, 2)
+"""A check made in a solver of its own is tried with random seeds 1, 2, ... in turn, the n-th
+given ``effort // RESTARTS[n]`` of z3's steps (an eighth, an eighth, a quarter, a half: at most
+``effort`` in all) until one decides it. How long z3 takes on one problem varies widely with the
+seed and with what the process built before (the witnessed DEBIT's "remembered answer",
+conjunct 27 of 53 in the branch "counts that end a re-sync, found behind": 61 to 123 million
+steps with seeds 1 to 4 in a process of its own; after the hardened proof in the same process
+160 to 250 million with five seeds of eight, over 300 million with three, over 1,500 million
+with seed 1 in a whole run): a search cut short and begun again with another seed decides
+where one long search may not."""
+
+
+def _restarts(
+    limits: tuple[int | None, int],
+    held: list[Term],
+    check: tuple[str, str, Term, list[Term], tuple[World, st.Step, Msg | None]],
+) -> Outcome:
+    """``check`` (the step, the clause, the goal, facts and where) in a new solver holding
+    ``held``, once per share of ``RESTARTS`` until one decides it (each attempt its own
+    ``timeout_ms`` when one is given); undecided when none does."""
+    timeout_ms, effort = limits
+    step_name, clause, holds, known, where = check
+    seconds = 0.0
+    for seed, share in enumerate(RESTARTS, 1):
+        checker = _solver(timeout_ms, max(1, effort // share), seed)
+        checker.add(*held)
+        outcome = _check_part(checker, step_name, clause, holds, known, where, once=True)
+        seconds += outcome.seconds
+        if not outcome.undecided:
+            break
+    return replace(outcome, seconds=seconds)
 
 
 FRAMES_REMEMBERED = ("remembered JOIN", "remembered answer")

@@ -72,9 +72,11 @@ start in Rc while a start behind in Gs waits (residual (d) in Rc, ``far_behind_r
 
 Not proved reliably yet: every step keeps every clause, the supervisor's DEBIT proved branch
 by branch (``_debit_branches``) after lemmas on its counters, the books' fields and the repeat
-of the last answer; a whole run proved all 1,357 obligations, another (after the hardened
-proof in the same process) left the DEBIT's "remembered answer" in the branch "counts that end
-a re-sync, found behind" undecided within ``EFFORT`` (docs/protocol.md, assumption 2). A pass
+of the last answer; a whole run on its own proves all 1,357 obligations, a check made alone
+begun again with other seeds where one does not decide it (``obligations.RESTARTS``); after the
+hardened proof in the same process the DEBIT's "remembered answer" in the branch "counts that
+end a re-sync, found behind" (conjunct 27) was undecided within ``EFFORT`` with every seed
+(docs/protocol.md, assumption 2). A pass
 is under assumption 2 narrowed (``canergy.prove.NARROWED``): the restore steps take an image
 of the stated kind (``p_image``, ``p_session_image``: not shown to hold of every record a side
 wrote) and the residual (d) as hypotheses. Counts that end a start are read against the

@@ -7,9 +7,7 @@ of transactions.
 - ``invariant``: the clauses, ``P(m, world)`` of messages in flight, the assumptions;
 - ``steps``: every cell as a step of a world; ``rules``: the hardened set and unsound ones;
 - ``witnessed``, ``witnessed_proof``: the witnessed cells as terms, then as steps with both
-  restore steps, and the invariant tried on them (not proved reliably yet: a whole run on its
-  own proves every obligation, one after the hardened proof in the same process left one of
-  the supervisor's DEBIT undecided);
+  restore steps, and the invariant proved of them under assumption 2 narrowed (``NARROWED``);
 - ``obligations``: each (step, clause) checked by z3, with counterexamples to induction.
 
 ``canergy prove`` runs it. The names below need no z3.
@@ -19,10 +17,9 @@ EFFORT = 1_500_000_000
 """z3's resource limit per check (its ``rlimit``, a count of its own steps): where a check stops
 does not depend on the machine's speed or load (a wall-clock limit alone once let a goal proved
 in 73 s here fail after 600 s on a loaded CI machine). What z3 does within it still depends on
-its seed and on the terms the process built before: one check of the witnessed proof took 74
-million steps in a run of its own and was undecided at this limit after the hardened proof in
-the same process, with each of the four seeds a check made alone is begun again with
-(``obligations.RESTARTS``; docs/protocol.md, assumption 2). z3 did about 7 million steps a
+its seed and on the terms the process built before (one check of the witnessed proof took 61
+million to over 1,500 million steps so, until a lemma made it a check of seconds): a check made
+alone is begun again with other seeds (``obligations.RESTARTS``). z3 did about 7 million steps a
 second here (74 million in 10.7 s, 500 million in 73 s)."""
 
 RULE_NAMES = (
@@ -34,8 +31,10 @@ RULE_NAMES = (
     "old-image",
     "witnessed",
 )
-"""The rule sets ``canergy prove --rules`` takes; only ``hardened`` proves (``witnessed``, with
-both restore steps, is meant to and does not yet: docs/protocol.md, assumption 2)."""
+"""The rule sets ``canergy prove --rules`` takes; ``SOUND`` ones prove, the others fail."""
+SOUND = ("hardened", "witnessed")
+"""The rule sets that prove: ``hardened`` under every assumption, ``witnessed`` (both restore
+steps) under assumption 2 narrowed (``NARROWED``; docs/protocol.md, assumption 2)."""
 NARROWED = {
     "witnessed": (
         "assumption 2 narrowed, not dropped: a record put back is an older image of the kind "
@@ -45,9 +44,6 @@ NARROWED = {
     ),
 }
 """Sound rule sets whose proof takes a narrower form of an assumption, said with a pass."""
-UNPROVED = ("witnessed",)
-"""Sound rule sets not proved yet: their failures are the proof's (an obligation z3 does not
-decide, or a gap of the invariant), not hazards (the bounded checker finds no trace)."""
 
 CONFIRMED_BY: dict[str, tuple[str, ...]] = {
     "paper": ("canergy check --variant paper",),

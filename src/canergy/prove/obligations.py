@@ -345,8 +345,10 @@ def check_step(
     )
     for energy in proof.moves.get(case.name, ()):
         yield _witness(solver, case.name, energy, before, step)
+    limits = (timeout_ms, effort)
     for name, lemma in step.lemmas:
-        yield _check(solver, case.name, name, lemma, None, before, step, delivered)
+        # in the step's solver with the whole effort; undecided, branch by branch alone
+        yield _by_branch(solver, case.name, Goal(name, lemma), before, step, delivered, limits, 0)
         solver.add(lemma)  # a failed lemma fails the proof; the rest are still checked
     if step.branches:
         cover = z3.Or(*(cond for _, cond in step.branches))
@@ -354,7 +356,7 @@ def check_step(
             solver, case.name, "its branches cover it", cover, None, before, step, delivered
         )
     for goal in todo:
-        yield _by_branch(solver, case.name, goal, before, step, delivered, (timeout_ms, effort))
+        yield _by_branch(solver, case.name, goal, before, step, delivered, limits)
 
 
 WHOLE_FIRST = 30_000_000
@@ -382,17 +384,20 @@ def _by_branch(
     step: st.Step,
     delivered: Msg | None,
     limits: tuple[int | None, int],
+    whole_first: int | None = None,
 ) -> Outcome:
     """``goal`` after the step: as a whole, and where z3 does not decide it so within
-    ``WHOLE_FIRST`` (a step that names no branches: within ``limits``), in each branch in
+    ``whole_first`` (by default ``WHOLE_FIRST``; 0: the whole effort; a step that names no
+    branches: within ``limits``), in each branch in
     turn (a step without branches: as one, "the step"), each check in a new solver begun
     again with other seeds (``RESTARTS``), proved when every branch is, the first that fails
     named in its counterexample."""
     started = time.perf_counter()
     effort = limits[1]
     whole = (goal.clause, goal.holds, goal.assuming, before, step, delivered)
+    first = WHOLE_FIRST if whole_first is None else whole_first or effort
     if step.branches:
-        solver.set("rlimit", min(WHOLE_FIRST, effort))
+        solver.set("rlimit", min(first, effort))
     outcome = _check(solver, step_name, *whole)
     solver.set("rlimit", effort)
     if outcome.proved or not outcome.undecided:

@@ -70,13 +70,11 @@ from a life admitted afresh that has received at most the Gs of its admission
 admission, in ``reported``); the node is not put back below its record at the
 start in Rc while a start behind in Gs waits (residual (d) in Rc, ``far_behind_rc``).
 
-Not proved reliably yet: every step keeps every clause, the supervisor's DEBIT proved branch
-by branch (``_debit_branches``) after lemmas on its counters, the books' fields and the repeat
-of the last answer; a whole run on its own proves all 1,357 obligations, a check made alone
-begun again with other seeds where one does not decide it (``obligations.RESTARTS``); after the
-hardened proof in the same process the DEBIT's "remembered answer" in the branch "counts that
-end a re-sync, found behind" (conjunct 27) was undecided within ``EFFORT`` with every seed
-(docs/protocol.md, assumption 2). A pass
+Proved: every step keeps every clause, the supervisor's DEBIT proved branch by branch
+(``_debit_branches``) after lemmas on its counters (among them that counts ending a start leave
+tx at or above a syncing node's last: without it the remembered answer's ``P`` in the branch
+"counts that end a re-sync, found behind" took 61 to over 1,500 million of z3's steps by seed
+and process), the books' fields and the repeat of the last answer. The proof
 is under assumption 2 narrowed (``canergy.prove.NARROWED``): the restore steps take an image
 of the stated kind (``p_image``, ``p_session_image``: not shown to hold of every record a side
 wrote) and the residual (d) as hypotheses. Counts that end a start are read against the
@@ -1571,6 +1569,11 @@ def on_debit(w: World, m: Msg) -> st.Step:
     sent = tuple((c, replace(x, q=q) if x.kind is Kind.ADMIT else x) for c, x in taken.sent)
     taken = replace(taken, after=after, sent=sent)
     leave_begun = z3.Implies(counted_, ule(begun(w), after.tx))
+    # and at or above the last of a node that waits for this start's SYNC (a fact z3 takes in
+    # seconds, where the remembered answer's P stated with it took 61 to over 1,500 million of
+    # its steps by seed and process; docs/protocol.md, assumption 2)
+    syncing = z3.And(counted_, this_start(m, w), w.c.phase == sym.SYNCING)
+    leave_last = z3.Implies(syncing, ule(w.last, after.tx))
     last = last_answer(w)
     same_q = z3.And(
         *(z3.Implies(c, x.admit_seq == last.admit_seq) for c, x in sent if x.kind is Kind.ADMIT)
@@ -1594,6 +1597,7 @@ def on_debit(w: World, m: Msg) -> st.Step:
         ("lemma: tx does not go back", ule(w.tx, after.tx)),
         # so a frame of the epoch the counts end names a transaction at most the next's base
         ("lemma: counts that end a start leave tx at or above begun", leave_begun),
+        ("lemma: counts that end a start leave tx at or above a syncing node's last", leave_last),
         ("lemma: the books' fields read as their low bits", z3.Implies(needed, read_mj == m.rcl)),
         ("lemma: the books' Rc unwrapped", z3.Implies(needed, unwrapped == m.rc)),
         # a repeat is the last answer again (k aside): Q as it read, to the start it answered

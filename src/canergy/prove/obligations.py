@@ -348,7 +348,8 @@ def check_step(
     limits = (timeout_ms, effort)
     for name, lemma in step.lemmas:
         # in the step's solver with the whole effort; undecided, branch by branch alone
-        yield _by_branch(solver, case.name, Goal(name, lemma), before, step, delivered, limits, 0)
+        goal = Goal(name, lemma)
+        yield _by_branch(solver, case.name, goal, before, step, delivered, limits, effort)
         solver.add(lemma)  # a failed lemma fails the proof; the rest are still checked
     if step.branches:
         cover = z3.Or(*(cond for _, cond in step.branches))
@@ -387,15 +388,14 @@ def _by_branch(
     whole_first: int | None = None,
 ) -> Outcome:
     """``goal`` after the step: as a whole, and where z3 does not decide it so within
-    ``whole_first`` (by default ``WHOLE_FIRST``; 0: the whole effort; a step that names no
-    branches: within ``limits``), in each branch in
-    turn (a step without branches: as one, "the step"), each check in a new solver begun
-    again with other seeds (``RESTARTS``), proved when every branch is, the first that fails
-    named in its counterexample."""
+    ``whole_first`` (None: ``WHOLE_FIRST``; a step that names no branches: within ``limits``),
+    in each branch in turn (a step without branches: as one, "the step"), each check in a new
+    solver begun again with other seeds (``RESTARTS``), proved when every branch is, the first
+    that fails named in its counterexample."""
     started = time.perf_counter()
     effort = limits[1]
     whole = (goal.clause, goal.holds, goal.assuming, before, step, delivered)
-    first = WHOLE_FIRST if whole_first is None else whole_first or effort
+    first = WHOLE_FIRST if whole_first is None else whole_first
     if step.branches:
         solver.set("rlimit", min(first, effort))
     outcome = _check(solver, step_name, *whole)
@@ -489,9 +489,9 @@ given ``effort // RESTARTS[n]`` of z3's steps (an eighth, an eighth, a quarter, 
 seed and with what the process built before (the witnessed DEBIT's "remembered answer",
 conjunct 27 of 53 in the branch "counts that end a re-sync, found behind": 61 to 123 million
 steps with seeds 1 to 4 in a process of its own; after the hardened proof in the same process
-160 to 250 million with five seeds of eight, over 300 million with three, over 1,500 million
-with seed 1 in a whole run): a search cut short and begun again with another seed decides
-where one long search may not."""
+158 to 250 million with four seeds of eight, within 300 million with a fifth, over 300 million
+with three, over 1,500 million with seed 1 in a whole run): a search cut short and begun again
+with another seed decides where one long search may not."""
 
 
 def _restarts(

@@ -346,7 +346,7 @@ def test_the_supervisors_debit_proves_that_its_counters_never_go_back() -> None:
     assert all(o.proved for o in lemmas), [o.counterexample for o in lemmas if not o.proved]
 
 
-def test_the_answer_remembered_at_counts_that_end_a_resync_found_behind_proves_with_a_margin(
+def test_the_answer_remembered_at_counts_that_end_a_resync_found_behind_proves(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """The supervisor's DEBIT, in its branch "counts that end a re-sync, found behind": the

@@ -496,3 +496,83 @@ def test_a_repeat_of_late_counts_sends_the_last_answer_again() -> None:
     assert {"lemma: a repeat sends the last answer's Q", "P(ADMIT) sent"} <= {
         o.clause for o in outcomes if o.proved
     }
+
+
+COPY_CLAUSES = ("copies the node wrote", "copies the supervisor wrote", "a record fits")
+
+
+def _copy_outcomes(step: str) -> dict[str, Any]:
+    """The outcomes of ``step`` for the clauses on copies only (its lemmas still proved)."""
+    (case,) = [c for c in cases(WITNESSED) if c.name == step]
+    return {o.clause: o for o in check_step(case, None, WITNESSED, COPY_CLAUSES)}
+
+
+@pytest.mark.parametrize("step", [c.name for c in cases(WITNESSED)])
+def test_every_step_keeps_the_copies_each_side_wrote_older_images_of_the_kind_restored(
+    step: str,
+) -> None:
+    """Assumption 2 narrowed less: a copy of the node's record, or of the supervisor's state
+    file, written while no start of that side waits and since its record last went back is,
+    at every later step, an older image of the kind the restore steps take (``p_image``,
+    ``p_session_image``). Every step keeps the two clauses that say so, the steps that write
+    a copy among them, and what a record holds fits a record."""
+    outcomes = _copy_outcomes(step)
+    failed = [f"{o.clause}\n{o.counterexample}" for o in outcomes.values() if not o.proved]
+    assert not failed, failed[0]
+    assert set(COPY_CLAUSES) <= set(outcomes)
+
+
+def test_copies_the_node_wrote_before_its_record_went_back_are_outside_the_theorem(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Copies of the node's record end when it goes back: kept over a new life alone, a copy
+    from before a confirmation that kept an older image's books (ADMIT), or from before the
+    node learned its Rc (INTENTION), is no image of the kind the restore step takes."""
+    from canergy.prove import witnessed_proof as wp
+
+    for step in ("client receives ADMIT", "client receives INTENTION"):
+        assert _copy_outcomes(step)["copies the node wrote"].proved
+    monkeypatch.setattr(wp, "went_back", lambda before, after: before.life != after.life)
+    for step in ("client receives ADMIT", "client receives INTENTION"):
+        outcome = _copy_outcomes(step)["copies the node wrote"]
+        assert not outcome.proved and "counterexample" in outcome.counterexample, step
+
+
+def test_a_copy_of_the_node_written_while_its_start_waits_is_outside_the_theorem(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """While a start waits the node's record may be an older image it started from: a copy
+    written then is no image of the kind the restore step takes, which is why the step that
+    writes a copy waits for no start."""
+    from canergy.prove import witnessed_proof as wp
+
+    step = wp.WRITE_COPY
+    assert _copy_outcomes(step)["copies the node wrote"].proved
+    written = wp.write_copy
+
+    def any_time(w: Any) -> Any:
+        return replace(written(w), enabled=w.booked)
+
+    monkeypatch.setattr(wp, "write_copy", any_time)
+    outcome = _copy_outcomes(step)["copies the node wrote"]
+    assert not outcome.proved and "counterexample" in outcome.counterexample
+
+
+def test_a_copy_of_the_supervisor_written_while_its_start_waits_is_outside_the_theorem(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """While the supervisor's start waits its record may be an older image it went on from:
+    a copy written then is no image of the kind its restore step takes, which is why the step
+    that writes one waits for no start."""
+    from canergy.prove import witnessed_proof as wp
+
+    step = wp.WRITE_SESSION_COPY
+    assert _copy_outcomes(step)["copies the supervisor wrote"].proved
+    written = wp.write_session_copy
+
+    def any_time(w: Any) -> Any:
+        return replace(written(w), enabled=z3.BoolVal(True))
+
+    monkeypatch.setattr(wp, "write_session_copy", any_time)
+    outcome = _copy_outcomes(step)["copies the supervisor wrote"]
+    assert not outcome.proved and "counterexample" in outcome.counterexample

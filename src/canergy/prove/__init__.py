@@ -37,10 +37,10 @@ SOUND = ("hardened", "witnessed")
 steps) under assumption 2 narrowed (``NARROWED``; docs/protocol.md, assumption 2)."""
 NARROWED = {
     "witnessed": (
-        "assumption 2 narrowed, not dropped: a record put back is an older image of the kind "
-        "the restore steps take (p_image, p_session_image), not yet shown to hold of every "
-        "record a side writes, and not both records rolled back past the same event "
-        "(docs/protocol.md, 'Passivity as a theorem', assumption 2)"
+        "assumption 2 narrowed, not dropped: a record put back is a copy that side wrote "
+        "while no start of its waited and since its record last went back (shown to be an "
+        "older image of the kind the restore steps take), and not both records rolled back "
+        "past the same event (docs/protocol.md, 'Passivity as a theorem', assumption 2)"
     ),
 }
 """Sound rule sets whose proof takes a narrower form of an assumption, said with a pass."""

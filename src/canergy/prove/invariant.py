@@ -369,7 +369,7 @@ def invariant(w: World) -> Term:
 # -- an older image of the node's record --------------------------------------------------------
 
 
-def p_image(r: sym.Client, w: World) -> Term:
+def p_image(r: sym.Client, w: World, pending: Clause | None = None) -> Term:
     """What is known of an image the node's record may be put back to: a record the current
     life wrote (with books, in its numbering, after its admission) at an earlier point, so no
     number of it is ahead of the current record's, nor its Rc, nor what its actuator had used;
@@ -383,7 +383,7 @@ def p_image(r: sym.Client, w: World) -> Term:
     every write, kept by every step, as ``P`` of a message is); the hardened rules fail already
     at the step itself, on an image a real trace reaches (an image from before a spend has Uc
     larger by what the actuator used: ``canergy check --old-copies 1``), so no stronger form
-    can save them."""
+    can save them. ``pending``: the clause on its pending return (None: ``pending_return``)."""
     c, then = w.c, replace(w, c=r)
     return z3.And(
         w.booked,
@@ -402,7 +402,7 @@ def p_image(r: sym.Client, w: World) -> Term:
         ule(then.seq, w.seq),
         numbering(then),
         client_books(then),
-        pending_return(then),
+        (pending or pending_return)(then),
     )
 
 

@@ -111,14 +111,14 @@ def resolved_consistently(before: World, after: World) -> Term:
 
 
 def _terms(w: World) -> list[Term]:
-    records = [w.s, w.c, w, *([] if w.pre is None else [w.pre])]
-    records += [] if w.spre is None else [w.spre]
+    records: list[object] = [w.s, w.c, w]
+    records += [r for r in (w.pre, w.spre, w.copy, w.scopy) if r is not None]
     return [
         getattr(r, f.name)
         for r in records
         for f in fields(r)  # type: ignore[arg-type]
         if z3.is_expr(getattr(r, f.name))
-    ]
+    ] + [*(w.scopy_join or ()), *(w.scopy_answer or ())]
 
 
 def changes(before: World, step: st.Step) -> Term:
@@ -250,7 +250,18 @@ def _witnessed_cases() -> list[StepCase]:
         out.append(StepCase(f"{receiver} receives {kind.name}", _delivery(kind, deliver, proof)))
     for name, local in wp.local().items():
         out.append(StepCase(name, _local(local)))
-    return out
+    return [StepCase(case.name, _keeping_copies(case.build)) for case in out]
+
+
+def _keeping_copies(build: Callable[[World], Built]) -> Callable[[World], Built]:
+    """``build`` with the node's copies kept while its record does not go back."""
+    from canergy.prove import witnessed_proof as wp
+
+    def kept(w: World) -> Built:
+        step, hyps, delivered = build(w)
+        return wp.keep_copies(w, step), hyps, delivered
+
+    return kept
 
 
 def cases(rules: Rules = HARDENED) -> list[StepCase]:
@@ -294,7 +305,11 @@ def counterexample(model: z3.ModelRef, before: World, step: st.Step, delivered: 
             lines.append(_describe(model, f"{label}: record at the start", w.pre))
         if w.spre is not None:
             lines.append(_describe(model, f"{label}: session at its start", w.spre))
-        skip = ("s", "c", "pre", "spre")
+        if w.copy is not None:
+            lines.append(_describe(model, f"{label}: the node's copy", w.copy))
+        if w.scopy is not None:
+            lines.append(_describe(model, f"{label}: the supervisor's copy", w.scopy))
+        skip = ("s", "c", "pre", "spre", "copy", "scopy", "scopy_join", "scopy_answer")
         ghost = {
             f.name: getattr(w, f.name)
             for f in fields(w)
@@ -465,7 +480,7 @@ def _check(
     facts = [holds] if assuming is None else [holds, assuming]
     held = [*solver.assertions(), *([] if alone is None else [alone[1]])]
     known = [*monotone([*held, *facts]), *bridges(facts)]
-    split = clause.endswith(" sent") or clause in FRAMES_REMEMBERED
+    split = clause.endswith(" sent") or clause in SPLIT
     parts = _conjuncts(holds) if split else [holds]
     at = (before, step, delivered)
     facts_known = [*known, *facts[1:]]
@@ -515,9 +530,9 @@ def _restarts(
     return replace(outcome, seconds=seconds)
 
 
-FRAMES_REMEMBERED = ("remembered JOIN", "remembered answer")
-"""Clauses that state ``P`` of a frame the supervisor may send again: split as ``P`` of a frame
-sent is."""
+SPLIT = ("remembered JOIN", "remembered answer", "copies the node wrote")
+"""Clauses checked conjunct by conjunct as ``P`` of a frame sent is: ``P`` of a frame the
+supervisor may send again, and the node's copies as older images (``p_image``)."""
 
 
 def _conjuncts(holds: Term) -> list[Term]:

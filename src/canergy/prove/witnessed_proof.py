@@ -76,11 +76,16 @@ tx at or above a syncing node's last: without it the remembered answer's ``P`` i
 "counts that end a re-sync, found behind" took 61 to over 1,500 million of z3's steps by seed
 and process), the books' fields and the repeat of the last answer. The proof
 is under assumption 2 narrowed (``canergy.prove.NARROWED``): the restore steps take an image
-of the stated kind (``p_image``, ``p_session_image``: not shown to hold of every record a side
-wrote) and the residual (d) as hypotheses. Counts that end a start are read against the
-record started from, so ``deliverable`` asks their q within 2**15 of its C (assumption 3 of the
-receiver's counter), and ``bounded`` its tx below the cap where their ltx is held (assumption
-4).
+of the stated kind (``p_image``, ``p_session_image``) and the residual (d) as hypotheses. The
+images are shown to be of that kind for the copies each side writes (a step of each side
+writes one, ``write_copy``, ``write_session_copy``, kept as the ghosts ``World.copy`` and
+``World.scopy``): a copy written while no start of that side waits is of that kind at every
+later step until that side's record goes back (``went_back``, ``session_went_back``; the
+clauses ``copies the node wrote``, ``copies the supervisor wrote``).
+
+Counts that end a start are read against the record started from, so ``deliverable`` asks
+their q within 2**15 of its C (assumption 3 of the receiver's counter), and ``bounded`` its tx
+below the cap where their ltx is held (assumption 4).
 """
 
 from __future__ import annotations
@@ -96,6 +101,7 @@ from canergy.messages import (
     QUANTUM_UJ,
     SEQ_BITS,
     SYNC_CONFIRMED,
+    USABLE_MAX_UJ,
 )
 from canergy.prove import invariant as inv
 from canergy.prove import steps as st
@@ -825,6 +831,38 @@ def image_given(w: World) -> Term:
     return z3.Implies(wit.in_start(w.s), given_past(w.s, w))
 
 
+COPIES = "copies the node wrote"
+SESSION_COPIES = "copies the supervisor wrote"
+
+
+def fits(w: World) -> Term:
+    """What the node's record holds with its held intention fits a record (the rules refuse an
+    intention beyond ``USABLE_MAX_UJ``), of the record and of the one at its start."""
+    records = (w.c, pre(w))
+    return z3.And(
+        *(z3.And(c.held_amount >= 0, c.usable + c.held_amount <= USABLE_MAX_UJ) for c in records)
+    )
+
+
+def copies(w: World) -> Term:
+    """A copy the node wrote since its record last went back (``World.copied``) is an older
+    image of the kind the restore step takes (``p_image``), and a start in progress began from
+    the record at its start (one from another record ended the copies: ``went_back``)."""
+    image = p_image(_ghost(w.copy, "copy"), w)
+    plain = z3.Implies(starting(w.c), _same_books(w.c, pre(w)))
+    return z3.Implies(_ghost(w.copied, "copied"), z3.And(image, plain))
+
+
+def session_copies(w: World) -> Term:
+    """A copy the supervisor wrote since its record of the node last went back
+    (``World.scopied``) is an older image of the kind its restore step takes
+    (``p_session_image``, with the answers that copy remembers)."""
+    image = p_session_image(
+        _ghost(w.scopy, "scopy"), w, _ghost(w.scopy_join, "join"), _ghost(w.scopy_answer, "answer")
+    )
+    return z3.Implies(_ghost(w.scopied, "scopied"), image)
+
+
 STATE: tuple[tuple[str, inv.Clause], ...] = (
     *((name, _REPLACED.get(name, _on_view(clause))) for name, clause in inv.STATE),
     ("epochs", epochs),
@@ -841,7 +879,26 @@ STATE: tuple[tuple[str, inv.Clause], ...] = (
     ("witness", witnessed),
     ("window", window),
     ("window at a start", window_at_start),
+    ("a record fits", fits),
+    (COPIES, copies),
+    (SESSION_COPIES, session_copies),
 )
+
+
+def _returning(then: World) -> Term:
+    """An image's pending return that is not a draw was debited first (a draw is not given
+    back: ``pending_return``)."""
+    return z3.Implies(z3.Not(then.c.pending_draw), inv.pending_return(then))
+
+
+def _same_return(image: sym.Client, image_seq: Term, later: sym.Client, later_seq: Term) -> Term:
+    """An image at the ``later`` record's return number had the same return pending there (or
+    none, and the later record none either): the later one has at most had it acknowledged."""
+    pending = later.return_pending > 0
+    same = z3.And(
+        image.return_pending == later.return_pending, image.pending_draw == later.pending_draw
+    )
+    return z3.Implies(image_seq == later_seq, z3.Implies(pending, same))
 
 
 def p_image(r: sym.Client, w: World) -> Term:
@@ -852,13 +909,14 @@ def p_image(r: sym.Client, w: World) -> Term:
     v = view(w)
     then = replace(v, c=r)
     return z3.And(
-        inv.p_image(r, v),
+        inv.p_image(r, v, _returning),
         _record(r, z3.BoolVal(True)),
         z3.Implies(then.last == v.last, r.outcome == v.c.outcome),
         z3.Implies(z3.ULT(v.tx, then.last), r.outcome == sym.SETTLED),
         _lacks(r, then.seq, v.c, v.seq),
         resolved_taken(r, then.last, w),
         ule(then.seq, top(w)),  # a number a record of the node held
+        _same_return(r, then.seq, v.c, v.seq),
         z3.Implies(z3.Not(r.pending_draw), r.return_pending <= w.given),  # given back then
     )
 
@@ -880,7 +938,12 @@ IMAGE_ANSWER = (
 remembers (``World.rk``): any, of an ADMIT it sent."""
 
 
-def p_session_image(r: sym.Session, w: World) -> Term:
+def p_session_image(
+    r: sym.Session,
+    w: World,
+    join: tuple[Term, Term, Term] = IMAGE_JOIN,
+    answer: tuple[Term, Term] = IMAGE_ANSWER,
+) -> Term:
     """An older image of the supervisor's record: the hardened ``p_session_image`` against
     ``view``, its last start answered above its number, and the ADMITs of its last JOIN
     admitted and its last start answered ones that were sent (``P`` holds of them now, as of
@@ -888,13 +951,13 @@ def p_session_image(r: sym.Session, w: World) -> Term:
     beside what it credited back (``given_past``). Its Gs is not said to meet ``H``: it may be
     of an earlier epoch."""
     then = replace(w, s=r)
-    joined_life = IMAGE_JOIN[2] >= 0
-    own = z3.And(ule(IMAGE_JOIN[0], then.tx), ule(IMAGE_JOIN[1], then.rc))
-    remembered_join = p_admit(remembered(r, *IMAGE_JOIN, epoch_of(w)), w)
+    joined_life = join[2] >= 0
+    own = z3.And(ule(join[0], then.tx), ule(join[1], then.rc))
+    remembered_join = p_admit(remembered(r, *join, epoch_of(w)), w)
     sent = z3.Implies(r.join_seq != 0, z3.And(joined_life, own, remembered_join))
-    answer = answer_of(r, *IMAGE_ANSWER, w.shift_seq, epoch_of(w))
-    answer_own = z3.And(ule(IMAGE_ANSWER[0], then.tx), IMAGE_ANSWER[1] >= 0)
-    answer_sent = z3.Implies(wit.may_repeat(r), z3.And(answer_own, p_admit(answer, w)))
+    last = answer_of(r, *answer, w.shift_seq, epoch_of(w))
+    answer_own = z3.And(ule(answer[0], then.tx), answer[1] >= 0)
+    answer_sent = z3.Implies(wit.may_repeat(r), z3.And(answer_own, p_admit(last, w)))
     image = inv.p_session_image(r, view(w), prophesied=False)
     return z3.And(image, answered(r), sent, answer_sent, given_past(r, w), decided_on_an_ack(r, w))
 
@@ -1438,6 +1501,71 @@ def restore(w: World, image: sym.Client, nonce: Term) -> st.Step:
     return _client(w, wit.power_loss(image, nonce), replaced=True, restarted=z3.BoolVal(True))
 
 
+def copy_of(c: sym.Client) -> sym.Client:
+    """The node's record as a restore starts from it: its held intention dropped (a start drops
+    it, ``witnessed.power_loss``), so a copy written while it holds one is this one."""
+    return replace(c, phase=sym.IDLE, held_tx=sym.counter(0), held_amount=z3.IntVal(0))
+
+
+WRITE_COPY = "client: a copy of its record written (a backup)"
+
+
+def write_copy(w: World) -> st.Step:
+    """Someone copies the node's record (a backup, an NV read-out): any time it has books and
+    no start waits. It changes nothing else; a restore may start from it later."""
+    after = replace(w, copy=copy_of(w.c), copied=z3.BoolVal(True))
+    enabled = z3.And(w.booked, z3.Not(starting(w.c)))
+    return st.Step(after, (), enabled, z3.IntVal(0))
+
+
+def went_back(before: World, after: World) -> Term:
+    """The node's record went back: a new life, its Rc learned, its numbering or the
+    supervisor's moved (a start of the supervisor's found it behind); the
+    record the invariant speaks of is behind the one before in Rc, a debit, what its actuator
+    used, ltx or return number, or its last transaction was settled anew (by the counts of a
+    start); or a start begins or goes on from a record other than the one the invariant speaks
+    of (an older image, a SYNC's settling). Copies written before are no longer of the kind
+    the restore step takes (``World.copied``)."""
+    b, a = view(before), view(after)
+    return z3.Or(
+        before.life != after.life,
+        before.admitted_at != after.admitted_at,
+        before.off_tx != after.off_tx,
+        before.off_seq != after.off_seq,
+        before.roff != after.roff,
+        before.shift_tx != after.shift_tx,  # the supervisor's numbering moved
+        before.shift_seq != after.shift_seq,
+        epoch_of(before) != epoch_of(after),  # counts ended a start of the supervisor's
+        b.c.credited_unknown != a.c.credited_unknown,
+        a.c.credited < b.c.credited,
+        a.c.usable - a.c.credited > b.c.usable - b.c.credited,  # a debit undone
+        a.c.spent < b.c.spent,
+        z3.ULT(a.last, b.last),
+        z3.And(a.last == b.last, a.c.outcome != b.c.outcome),  # settled anew by counts
+        z3.ULT(a.seq, b.seq),
+        z3.And(starting(after.c), z3.Not(_same_books(after.c, b.c))),  # a start from another
+    )
+
+
+_BOOKS = (
+    "usable", "credited", "spent", "last_tx", "outcome", "return_seq", "return_pending",
+    "pending_draw", "credited_unknown",
+)  # fmt: skip
+"""The fields of a node's record a start keeps (not its phase, nonce or held intention)."""
+
+
+def _same_books(a: sym.Client, b: sym.Client) -> Term:
+    return z3.And(*(getattr(a, f) == getattr(b, f) for f in _BOOKS))
+
+
+def keep_copies(before: World, step: st.Step) -> st.Step:
+    """``step`` with the copies the node wrote kept as long as its record did not go back."""
+    after = step.after
+    kept = z3.And(_ghost(after.copied, "copied"), z3.Not(went_back(before, after)))
+    step = replace(step, after=replace(after, copied=kept))
+    return keep_session_copies(before, step)
+
+
 # -- the supervisor's steps ----------------------------------------------------------------------
 
 
@@ -1691,6 +1819,45 @@ def restore_supervisor(
     return st.Step(after, sent, z3.BoolVal(True), now - books + step.credit)
 
 
+WRITE_SESSION_COPY = "supervisor: a copy of its state file written (a backup)"
+
+
+def write_session_copy(w: World) -> st.Step:
+    """Someone copies the supervisor's state file (a backup, a VM snapshot): any time no start
+    of its waits (ACKED is stored as WAIT_ACK), with the answers it remembers. It changes
+    nothing else; a restore may start from it later."""
+    acked = w.s.phase == sym.ACKED
+    copy = replace(w.s, phase=z3.If(acked, sym.WAIT_ACK, w.s.phase))
+    join = (_ghost(w.jk, "jk"), _ghost(w.jq, "jq"), _ghost(w.jlife, "jlife"))
+    answer = (_ghost(w.rk, "rk"), _ghost(w.rstart, "rstart"))
+    after = replace(w, scopy=copy, scopied=z3.BoolVal(True), scopy_join=join, scopy_answer=answer)
+    return st.Step(after, (), z3.Not(wit.in_start(w.s)), z3.IntVal(0))
+
+
+def session_went_back(before: World, after: World) -> Term:
+    """The supervisor's record of the node went back or was re-based: a start of its begins
+    (from its own record or an older image), a start's counts begin an epoch, its numbering
+    moved, or its tx or C is behind. Copies written before are no longer of the kind its
+    restore step takes (``World.scopied``): without the first two, a copy newer than the image
+    a start went on from is ahead of the books its counts confirm."""
+    b, a = view(before), view(after)
+    return z3.Or(
+        before.shift_tx != after.shift_tx,
+        before.shift_seq != after.shift_seq,
+        epoch_of(before) != epoch_of(after),
+        z3.And(wit.in_start(after.s), z3.Not(wit.in_start(before.s))),
+        z3.ULT(a.tx, b.tx),
+        z3.ULT(a.rc, b.rc),
+    )
+
+
+def keep_session_copies(before: World, step: st.Step) -> st.Step:
+    """``step`` with the supervisor's copies kept as long as its record did not go back."""
+    after = step.after
+    kept = z3.And(_ghost(after.scopied, "scopied"), z3.Not(session_went_back(before, after)))
+    return replace(step, after=replace(after, scopied=kept))
+
+
 RESYNC = "supervisor re-syncs a node"
 
 
@@ -1746,6 +1913,8 @@ def local() -> dict[str, st.Local]:
             w, wit.power_loss(w.c, nonce), restarted=z3.BoolVal(True)
         ),
         "client: books lost (JOIN)": lambda w: books_lost(w, z3.BitVec("books_lost.nonce", 16)),
+        WRITE_COPY: write_copy,
+        WRITE_SESSION_COPY: write_session_copy,
         "supervisor: begin": lambda w: begin(w, z3.Int("begin.amount")),
         "supervisor: decide commit": decide(True),
         "supervisor: decide abort": decide(False),

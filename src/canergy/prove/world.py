@@ -130,6 +130,24 @@ class World:
     epoch: Term | None = None
     """Witnessed rules: the epoch of ``H`` the session is in (counts that end a start begin the
     next). Hardened: None, epoch 0 throughout."""
+    copy: sym.Client | None = None
+    """Witnessed rules: a copy of its record the node wrote (a backup), as a restore would
+    start from it (the held intention dropped), any one of those it wrote, kept while
+    ``copied``. Hardened: unused."""
+    copied: Term | None = None
+    """Witnessed rules: ``copy`` was written since the node's record last went back (its life,
+    its Rc's scale or its numbering changed, or a confirmation kept books behind the record at
+    the start): the copies the theorem's restore step takes. Hardened: unused."""
+    scopy: sym.Session | None = None
+    """Witnessed rules: a copy of its state file the supervisor wrote (a backup), any one of
+    those it wrote, kept while ``scopied``, with the ghosts of the answers it remembers
+    (``scopy_join``: ``jk``, ``jq``, ``jlife``; ``scopy_answer``: ``rk``, ``rstart``).
+    Hardened: unused."""
+    scopied: Term | None = None
+    """Witnessed rules: ``scopy`` was written since the supervisor's record of the node last
+    went back (``witnessed_proof.session_went_back``). Hardened: unused."""
+    scopy_join: tuple[Term, Term, Term] | None = None
+    scopy_answer: tuple[Term, Term] | None = None
 
     # canonical views
     @property
@@ -244,10 +262,20 @@ def any_world(name: str = "w", with_pre: bool = True) -> World:
     took = _fresh(f"{name}.took.", INT) if with_pre else None
     sbegan = _fresh(f"{name}.sbegan.", INT) if with_pre else None
     epoch = _fresh(f"{name}.epoch.", INT) if with_pre else None
+    copy = any_image(f"{name}.copy") if with_pre else None
+    copied = _fresh(f"{name}.copied.", BOOL) if with_pre else None
+    scopy = any_session_image(f"{name}.scopy") if with_pre else None
+    scopied = _fresh(f"{name}.scopied.", BOOL) if with_pre else None
+    sj = (_fresh(f"{name}.scopy.jk.", BV32), _fresh(f"{name}.scopy.jq.", BV32))
+    scopy_join = (*sj, _fresh(f"{name}.scopy.jlife.", INT)) if with_pre else None
+    sa = (_fresh(f"{name}.scopy.rk.", BV32), _fresh(f"{name}.scopy.rstart.", INT))
+    scopy_answer = sa if with_pre else None
     return World(
         s, c, **ghost, pre=pre, starts=starts, top=top, spre=spre, sstarts=sstarts,
         answering=answering, jk=jk, jq=jq, jlife=jlife, lhi=lhi, rk=rk, rstart=rstart,
-        begun=begun, taken=taken, took=took, sbegan=sbegan, epoch=epoch,
+        begun=begun, taken=taken, took=took, sbegan=sbegan, epoch=epoch, copy=copy,
+        copied=copied, scopy=scopy, scopied=scopied, scopy_join=scopy_join,
+        scopy_answer=scopy_answer,
     )  # fmt: skip
 
 
@@ -290,7 +318,8 @@ def initial_world() -> World:
     return World(
         s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,
         z3.BoolVal(True), zero32, c, zero, zero32, s, zero, z3.IntVal(-1), zero32, zero32, zero,
-        zero32, zero32, z3.IntVal(-1), zero32, zero32, zero, zero, zero,
+        zero32, zero32, z3.IntVal(-1), zero32, zero32, zero, zero, zero, c, no, s, no,
+        (zero32, zero32, zero), (zero32, zero),
     )  # fmt: skip
 
 

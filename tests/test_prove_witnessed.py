@@ -180,7 +180,7 @@ def test_the_witnessed_proof_cut_short_is_undecided_and_says_so(
 def test_a_whole_witnessed_pass_says_the_assumption_it_took(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """A pass of ``--rules witnessed`` (every obligation proved: the whole run takes about 28
+    """A pass of ``--rules witnessed`` (every obligation proved: the whole run takes about 40
     minutes here, so its outcomes are given) exits 0 and says it is under assumption 2
     narrowed, not dropped; a pass of the hardened rules says no such thing."""
     from canergy.prove import obligations

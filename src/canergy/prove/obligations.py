@@ -254,7 +254,7 @@ def _witnessed_cases() -> list[StepCase]:
 
 
 def _keeping_copies(build: Callable[[World], Built]) -> Callable[[World], Built]:
-    """``build`` with the node's copies kept while its record does not go back."""
+    """``build`` with each side's copies kept while its record does not go back."""
     from canergy.prove import witnessed_proof as wp
 
     def kept(w: World) -> Built:

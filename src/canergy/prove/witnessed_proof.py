@@ -1504,7 +1504,7 @@ def restore(w: World, image: sym.Client, nonce: Term) -> st.Step:
 def copy_of(c: sym.Client) -> sym.Client:
     """The node's record as a restore starts from it: its held intention dropped (a start drops
     it, ``witnessed.power_loss``), so a copy written while it holds one is this one."""
-    return replace(c, phase=sym.IDLE, held_tx=sym.counter(0), held_amount=z3.IntVal(0))
+    return sym._drop_hold(c)
 
 
 WRITE_COPY = "client: a copy of its record written (a backup)"
@@ -1559,11 +1559,13 @@ def _same_books(a: sym.Client, b: sym.Client) -> Term:
 
 
 def keep_copies(before: World, step: st.Step) -> st.Step:
-    """``step`` with the copies the node wrote kept as long as its record did not go back."""
+    """``step`` with each side's copies kept as long as that side's record did not go back
+    (``went_back``, ``session_went_back``)."""
     after = step.after
-    kept = z3.And(_ghost(after.copied, "copied"), z3.Not(went_back(before, after)))
-    step = replace(step, after=replace(after, copied=kept))
-    return keep_session_copies(before, step)
+    node = z3.And(_ghost(after.copied, "copied"), z3.Not(went_back(before, after)))
+    supervisor = z3.Not(session_went_back(before, after))
+    kept = replace(after, copied=node, scopied=z3.And(_ghost(after.scopied, "scopied"), supervisor))
+    return replace(step, after=kept)
 
 
 # -- the supervisor's steps ----------------------------------------------------------------------
@@ -1849,13 +1851,6 @@ def session_went_back(before: World, after: World) -> Term:
         z3.ULT(a.tx, b.tx),
         z3.ULT(a.rc, b.rc),
     )
-
-
-def keep_session_copies(before: World, step: st.Step) -> st.Step:
-    """``step`` with the supervisor's copies kept as long as its record did not go back."""
-    after = step.after
-    kept = z3.And(_ghost(after.scopied, "scopied"), z3.Not(session_went_back(before, after)))
-    return replace(step, after=replace(after, scopied=kept))
 
 
 RESYNC = "supervisor re-syncs a node"

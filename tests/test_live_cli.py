@@ -14,6 +14,7 @@ import pytest
 from support.live_rig import Loop
 
 from canergy.cli import main
+from canergy.cli.grant import MAX_STATUS
 from canergy.codec import Codec
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.supervisor.control import request
@@ -252,7 +253,7 @@ def test_listen_only_never_sends(tmp_path: Path) -> None:
     try:
         _wait_for(control)
         time.sleep(1.5)  # telemetry arrives; a supervisor that sends would grant now
-        status = request(control, {"status": True}, 30)
+        status = request(control, {"status": True}, 30, max_answer=MAX_STATUS)
         refused = request(control, {"grant": {"node": 3, "amount_uj": 1000}}, 30)
         assert "listen-only" in refused["error"]
         request(control, {"stop": True}, 30)

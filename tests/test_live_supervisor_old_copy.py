@@ -217,6 +217,33 @@ def test_a_debt_the_books_bring_refuses_every_grant_and_is_kept_across_a_restart
 
 
 @pytest.mark.parametrize("core", CORES)
+def test_counts_afresh_ahead_of_the_state_file_are_paid_for_in_the_status_and_on_stderr(
+    tmp_path: Path, core: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The state file (C 0, Us 1 J) is older than the node's admission afresh: its counts say
+    it holds nothing since (``afresh``) and show debit 3, two the file never held. 2 x 65.535 J
+    move from Us to the node's Gs: the status shows the debt and ``ahead_of_image_uj``, stderr
+    names the node and the amount, and no grant follows."""
+    timing = Timing(response_timeout_us=100_000)
+    restored = make_supervisor(core, [NODE], UJ_PER_J, variant="witnessed", timing=timing)
+    restored.power_loss(0, 0x1234)
+    s = build_service(restored, ServiceConfig(state_path=tmp_path / "s.json", fsync=False), 0)
+    s.on_message(Telemetry(NODE, 0, Telemetry.WITNESSED, 0, 0), 1)
+    s.on_wakeup(1)
+    s.on_message(Debit.books(NODE, 0x1234, None), 20)
+    (admit,) = s.on_message(Debit.counts(NODE, 0x1234, 3, 0, afresh=True), 21)
+    assert isinstance(admit, Admit) and admit.seq == 4
+    debt = UJ_PER_J - 2 * 65_535_000
+    assert s.status()["usable_uj"] == debt
+    assert s.status()["nodes"][str(NODE)]["ahead_of_image_uj"] == 2 * 65_535_000
+    assert "node 1 is 3 debits ahead of this state file" in caplog.text
+    assert "131.070000 J moved from the usable budget" in caplog.text
+    replies: list[dict[str, object]] = []
+    s.request_grant(NODE, UJ_PER_J // 10, replies.append)
+    assert not [m for m in s.on_wakeup(30) if isinstance(m, Intention)]
+
+
+@pytest.mark.parametrize("core", CORES)
 def test_sync_is_sent_at_the_start_and_re_sent_until_answered(core: str) -> None:
     s = _restarted(core=core)
     syncs = [m for m in s.on_wakeup(1) if isinstance(m, Admit)]

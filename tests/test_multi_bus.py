@@ -20,6 +20,7 @@ from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import Key, load_key
 from canergy.ccore.supervisor import missing
 from canergy.cli import main
+from canergy.cli.grant import MAX_STATUS
 from canergy.cli.shared.buses import bus_spec
 from canergy.codec import Codec
 from canergy.core import Supervisor
@@ -196,7 +197,11 @@ def test_the_compiled_core_runs_over_several_buses(tmp_path: Path, core: str) ->
             taken = []
             for node, amount in (("chanA/2", 700_000), ("chanB/2", 300_000)):
                 assert _grant(control, node, amount)["outcome"] == "COMMITTED"
-                taken.append(request(control, {"status": True}, 30)["frame_path_frames"])
+                taken.append(
+                    request(control, {"status": True}, 30, max_answer=MAX_STATUS)[
+                        "frame_path_frames"
+                    ]
+                )
     finally:
         buses.halt()
     final = json.loads(status.read_text())
@@ -246,7 +251,9 @@ def test_authenticated_buses_check_each_node_with_its_own_counters(
         with _supervisor(tmp_path, [*argv, "--status-file", str(status), "--no-fsync"]) as ctl:
             for node, amount in (("a/1", 700_000), ("b/2", 300_000)):
                 assert _grant(ctl, node, amount)["outcome"] == "COMMITTED"
-                taken.append(request(ctl, {"status": True}, 30)["frame_path_frames"])
+                taken.append(
+                    request(ctl, {"status": True}, 30, max_answer=MAX_STATUS)["frame_path_frames"]
+                )
     finally:
         for _, loop in hosts.values():
             loop.halt()

@@ -498,6 +498,7 @@ DEBIT_FLAGS = [
     Debit.START,
     Debit.START | Debit.DRAW,
     sym_w.COUNTS,
+    sym_w.AFRESH_COUNTS,
     Debit.BOOKS,
     sym_w.UNKNOWN_BOOKS,
 ]
@@ -511,7 +512,7 @@ def test_witnessed_supervisor_answers_debits(data: st.DataObject) -> None:
     nonce = data.draw(st.one_of(st.integers(0, 3), st.just(s.sync_nonce)))
     flags = data.draw(st.sampled_from(DEBIT_FLAGS))
     amount = 0 if flags == Debit.START and data.draw(st.booleans()) else data.draw(amounts)
-    if flags == sym_w.COUNTS:  # ltx on the wire
+    if flags in (sym_w.COUNTS, sym_w.AFRESH_COUNTS):  # ltx on the wire
         amount = data.draw(wire_near(s.tx))
     if flags == Debit.BOOKS:  # Rc: its high 8 bits in the amount field
         rc = data.draw(
@@ -530,6 +531,24 @@ def test_witnessed_supervisor_answers_debits(data: st.DataObject) -> None:
         W_SUPERVISOR.step(T, s, Return(1, seq, max(1, amount)), 0),
         sym_w.credit_return(sym_session(s), args[2], z3.IntVal(max(1, amount))),
     )
+
+
+@settings(max_examples=200)
+@given(witnessed_sessions(), st.integers(-3, 6), st.booleans(), st.data())
+def test_witnessed_counts_afresh_near_c(
+    s: Session, ahead: int, afresh: bool, data: st.DataObject
+) -> None:
+    """A start's counts near C, afresh or not: what q above C + 1 moves from Us to Gs
+    (``witnessed.ahead_of_image``) is the same in both."""
+    s = replace(s, phase=Phase.SYNC_BOOKS, sync_nonce=2)
+    seq = (s.returns_credited + ahead) % (1 << 16)
+    ltx = data.draw(wire_near(s.tx))
+    msg = Debit.counts(1, 2, seq, ltx, afresh)
+    args = (z3.BitVecVal(2, 16), z3.IntVal(msg.flags), z3.BitVecVal(seq, 16), z3.IntVal(ltx))
+    py = W_SUPERVISOR.step(T, s, msg, 0)
+    same_session_w(py, sym_w.on_debit(sym_session(s), *args))
+    moved = py.session.delivered - s.delivered
+    assert moved == (afresh and ahead > 1) * (ahead - 1) * 65_535_000
 
 
 @settings(max_examples=300)

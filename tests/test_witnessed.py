@@ -58,7 +58,9 @@ from canergy.core.state import (
 from canergy.core.table import ANY, STAY, RuleTable, SupervisorTable, cell
 from canergy.core.variants import Variant
 from canergy.messages import (
+    AMOUNT_MAX_MJ,
     COUNTER_END,
+    QUANTUM_UJ,
     SYNC_CONFIRMED,
     Abort,
     Aborted,
@@ -726,7 +728,7 @@ CLIENT_CASES += [
         UNKNOWN,
         Admit(2, 0x51, 3, 9),
         replace(ANSWERING, usable=0, credited=0, credited_unknown=True),
-        (Send(Debit.books(2, 0x51, None)), Send(Debit.counts(2, 0x51, 0, 5 + B))),
+        (Send(Debit.books(2, 0x51, None)), Send(Debit.counts(2, 0x51, 0, 5 + B, afresh=True))),
     ),
     Case(
         "a RESUME confirmed below ltx (a SYNC's counts lost): confirmed, then the counts",
@@ -1357,7 +1359,10 @@ def late_resume_found_behind_then_the_first_image(
     the node's counts (C 4) finds its books behind: admitted afresh. The supervisor is put back
     to its first state file (Us 1 J, Gs 1 J lower) and starts: the node's books report the Rc
     it kept as a floor and Gs moves up to it. (Before: Rc unknown, Gs left where it was, and Us
-    counted the 1 J the node had spent again.) ``node`` also has ``spend(x, now)``. Returns the
+    counted the 1 J the node had spent again.) Its counts say it was admitted afresh, at q 4
+    against the image's C 0: the most three debits could draw moves from Us to Gs too, a loss
+    (the supervisor cannot tell this genuine floor from an older copy's,
+    tests/test_witnessed_ahead_of_image.py). ``node`` also has ``spend(x, now)``. Returns the
     restored supervisor's Us and what the node holds and spent, in uJ."""
     image, gs = sup.state, sup.session(1).delivered  # the first state file
     _exchange(sup.begin(1, 10**6, 0), sup, node, 0)
@@ -1373,7 +1378,7 @@ def late_resume_found_behind_then_the_first_image(
     restored.power_loss(1, nonce=0x55)
     _exchange(restored.handle_timer(1), restored, node, 1)
     assert restored.unconfirmed() == () and node.state.phase is Phase.IDLE
-    assert restored.session(1).delivered == gs + 10**6
+    assert restored.session(1).delivered == gs + 10**6 + 3 * AMOUNT_MAX_MJ * QUANTUM_UJ
     return restored.state.usable, node.state.usable + node.state.spent
 
 

@@ -59,7 +59,15 @@ def _frame(flags: int, seq: int = 1, amount: int = 1, nonce: int = 7) -> tuple[i
     return CODEC.encode(msg)
 
 
-ACCEPTED = {Debit.DRAW, Debit.START, Debit.START | Debit.DRAW, Debit.START | Debit.SYNC, 0x08, 0x18}
+ACCEPTED = {
+    Debit.DRAW,
+    Debit.START,
+    Debit.START | Debit.DRAW,
+    Debit.START | Debit.SYNC,
+    Debit.START | Debit.SYNC | Debit.RC_UNKNOWN,
+    0x08,
+    0x18,
+}
 
 
 @pytest.mark.parametrize("flags", [f for f in range(256) if f not in ACCEPTED])

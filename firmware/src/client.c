@@ -305,7 +305,8 @@ static void send_debit(const struct canergy_client *c, bool start, struct canerg
 
 /* The answer to SYNC(n) (witnessed.answer_of): the books (n, Rc: 24 bits; after an admission
  * until a fresh intention, the floor kept when found behind, a known 0 kept as 2^24 mJ; without
- * one (0) Rc unknown: flagged, both fields 0), then the counts (n, q, ltx). */
+ * one (0) Rc unknown: flagged, both fields 0), then the counts (n, q, ltx; afresh until that
+ * fresh intention). */
 static void send_sync_answer(const struct canergy_client *c, struct canergy_out *out)
 {
     const bool unknown =
@@ -317,7 +318,8 @@ static void send_sync_answer(const struct canergy_client *c, struct canergy_out 
         unknown ? 0U : (c->rec.credited_mj >> 16) & 0xFFU,
     }; /* DEBIT: nonce, flags, seq, amount */
     canergy_internal_send(c, CANERGY_DEBIT, fields, out);
-    fields[1] = CANERGY_DEBIT_COUNTS;
+    /* afresh while Rc is unknown or a floor: CREDITED_UNKNOWN (0x01) moved to RC_UNKNOWN (0x10) */
+    fields[1] = CANERGY_DEBIT_COUNTS | (c->rec.flags & CANERGY_RECORD_CREDITED_UNKNOWN) << 4U;
     fields[2] = (uint16_t)c->rec.return_seq;
     fields[3] = (uint16_t)c->rec.last_tx;
     canergy_internal_send(c, CANERGY_DEBIT, fields, out);

@@ -73,7 +73,7 @@ static bool has_amount(uint32_t code)
 }
 
 /* DEBIT is a draw (DRAW alone, an amount, no nonce), a resume (START, DRAW optional), or a
- * SYNC's answer: its counts (START | SYNC) or its books (BOOKS alone, 24 bits of Rc: the
+ * SYNC's answer: its counts (START | SYNC, RC_UNKNOWN optional) or its books (BOOKS alone, 24 bits of Rc: the
  * amount's high byte clear; with RC_UNKNOWN, none: both fields 0); no other flags. codec.py's _debit_build. */
 static bool debit_valid(const struct canergy_msg *m)
 {
@@ -88,6 +88,8 @@ static bool debit_valid(const struct canergy_msg *m)
         return m->amount_mj <= 0xFFU;
     case CANERGY_DEBIT_BOOKS | CANERGY_DEBIT_RC_UNKNOWN:
         return m->seq == 0U && m->amount_mj == 0U;
+    case CANERGY_DEBIT_COUNTS_AFRESH:
+        return true;
     default:
         return m->flags < 8U && (starts >> m->flags & 1U) != 0U;
     }

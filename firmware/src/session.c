@@ -18,6 +18,14 @@ static void step_clear(struct canergy_session_step *step)
     memset(step, 0, sizeof *step);
 }
 
+#ifdef CANERGY_WITNESSED
+/* Counts answering a SYNC, afresh or not (Debit.is_counts). */
+static bool is_counts(uint8_t flags)
+{
+    return (flags & (uint8_t)~CANERGY_DEBIT_RC_UNKNOWN) == CANERGY_DEBIT_COUNTS;
+}
+#endif
+
 static bool open_phase(const struct canergy_session *s)
 {
     return s->phase == CANERGY_S_WAIT_ACK || s->phase == CANERGY_S_ACKED ||
@@ -283,7 +291,7 @@ static void admit_voiding(struct canergy_session *s, const struct canergy_msg *m
 static void confirm(struct canergy_session *s, const struct canergy_msg *m,
                     struct canergy_session_step *step)
 {
-    const bool counts = m->flags == CANERGY_DEBIT_COUNTS;
+    const bool counts = is_counts(m->flags);
     const uint32_t key = m->nonce | (counts ? 0x10000UL : 0UL);
     const uint16_t nonce =
         (uint16_t)(counts ? (uint32_t)m->nonce ^ CANERGY_SYNC_CONFIRMED : m->nonce);
@@ -395,7 +403,11 @@ static void take_books(struct canergy_session *s, const struct canergy_msg *m,
 }
 
 /* The SYNC's counts (n, q, ltx) after its books (witnessed.take_counts): the start is over
- * (W = ltx), then as a RESUME; the books again are taken again; anything else is ignored. */
+ * (W = ltx), then as a RESUME; the books again are taken again; anything else is ignored.
+ * Counts afresh (a node admitted afresh, no fresh intention since) with q above C + 1 show an
+ * image older than that admission: the most its q - C - 1 debits since could draw
+ * (CANERGY_AMOUNT_MAX_MJ each) moves from Us to Gs (witnessed.ahead_of_image), a loss where
+ * the image would grant again what the node used. */
 static void take_counts(struct canergy_session *s, const struct canergy_msg *m,
                         struct canergy_session_step *step)
 {
@@ -406,8 +418,15 @@ static void take_counts(struct canergy_session *s, const struct canergy_msg *m,
         take_books(s, m, step);
         return;
     }
-    if (m->flags != CANERGY_DEBIT_COUNTS) {
+    if (!is_counts(m->flags)) {
         return;
+    }
+    const int32_t ahead = serial16(m->seq, s->returns_credited) - 1;
+    if (m->flags == CANERGY_DEBIT_COUNTS_AFRESH && ahead > 0) {
+        const uint64_t amount = (uint64_t)(uint32_t)ahead * CANERGY_AMOUNT_MAX_MJ * MJ;
+        s->delivered_uj += amount;
+        step->credit_uj -= (int64_t)amount;
+        step->ahead_draws = (uint16_t)ahead;
     }
     s->phase = CANERGY_S_IDLE;
     s->sync_nonce = 0U;
@@ -503,7 +522,7 @@ void canergy_session_on_msg(struct canergy_session *s, const struct canergy_sess
         if (is_books(m->flags)) {
             break; /* books outside a start: ignored */
         }
-        if (m->flags == CANERGY_DEBIT_COUNTS && !counts_taken(s, t, m)) {
+        if (is_counts(m->flags) && !counts_taken(s, t, m)) {
             break; /* an earlier start's counts (a replay verifies with a key): ignored */
         }
         if ((m->flags & CANERGY_DEBIT_START) != 0U) {

@@ -76,6 +76,10 @@ static void record_event(const struct canergy_session *s, const struct canergy_s
     if (step->admitted != 0U) { /* a JOIN, or a RESUME found behind */
         e->flags |= CANERGY_SUP_ADMITTED;
     }
+    e->ahead_draws = step->ahead_draws;
+    if (step->ahead_draws != 0U) {
+        e->flags |= CANERGY_SUP_AHEAD;
+    }
 }
 
 /* Apply a session step worked out on a copy: its credit to Us, a persist when the record or Us
@@ -84,8 +88,10 @@ static void apply(struct canergy_supervisor *sup, struct canergy_session *s,
                   const struct canergy_session *after, const struct canergy_session_step *step,
                   const struct canergy_msg *in, struct canergy_supervisor_out *out)
 {
-    /* a grant is checked against Us first; only a start's books take Us below 0 (a debt) */
-    CANERGY_ASSERT(step->credit_uj >= 0 || step->send == 0U || -step->credit_uj <= sup->usable_uj);
+    /* a grant is checked against Us first; only a start's books, and its counts after books
+     * without Rc, take Us below 0 (a debt) */
+    CANERGY_ASSERT(step->credit_uj >= 0 || step->send == 0U || step->ahead_draws != 0U ||
+                   -step->credit_uj <= sup->usable_uj);
     sup->usable_uj += step->credit_uj;
     if (step->credit_uj != 0 || record_changed(s, after)) {
         out->persist = 1U;

@@ -65,7 +65,8 @@ _COMMENTS = {
     ),
     "DEBIT_FLAGS": (
         "0x01: a draw for the actuator; 0x02: the node's start (RESUME; 0x03: its pending "
-        "debit is a draw); 0x06: a SYNC's counts (SEQ, and ltx in AMOUNT's bits); 0x08: a "
+        "debit is a draw); 0x06: a SYNC's counts (SEQ, and ltx in AMOUNT's bits); 0x16: "
+        "the counts of a node admitted afresh that has taken no fresh intention since; 0x08: a "
         "SYNC's books (Rc in mJ: low 16 bits in SEQ, high 8 in AMOUNT's bits); 0x18: a SYNC's "
         "books when the node knows no Rc (admitted, no fresh intention since; SEQ and AMOUNT "
         "0); nothing else"

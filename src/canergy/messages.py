@@ -234,7 +234,9 @@ class Debit:
       ``amount_mj`` (with ``RC_UNKNOWN`` and both 0: the node was admitted without books and has
       taken no fresh intention since, so it holds nothing and knows no Rc); and *counts*
       (``START | SYNC``): the node's last debit number ``seq`` and, in ``amount_mj``, the last
-      transaction it has settled (ltx, 16 bits on the wire).
+      transaction it has settled (ltx, 16 bits on the wire); with ``RC_UNKNOWN`` too
+      (``afresh``), the node was admitted afresh and has taken no fresh intention since, so its
+      books cannot say what it received before (Rc unknown, or a floor its record kept).
     """
 
     TYPE: ClassVar[MsgType] = MsgType.DEBIT
@@ -253,7 +255,9 @@ class Debit:
     BOOKS: ClassVar[int] = 0x08
     """Flag, alone: the books answering a supervisor's SYNC (Rc in ``seq`` and ``amount_mj``)."""
     RC_UNKNOWN: ClassVar[int] = 0x10
-    """Flag, with ``BOOKS``: the node's Rc is unknown (admitted, no fresh intention since)."""
+    """Flag, with ``BOOKS``: the node's Rc is unknown (admitted, no fresh intention since); with
+    ``START | SYNC``: the counts of a node admitted afresh that has taken no fresh intention
+    since (its books are unknown or a floor)."""
 
     @property
     def is_resume(self) -> bool:
@@ -262,7 +266,13 @@ class Debit:
 
     @property
     def is_counts(self) -> bool:
-        return self.flags == Debit.START | Debit.SYNC
+        return self.flags & ~Debit.RC_UNKNOWN == Debit.START | Debit.SYNC
+
+    @property
+    def afresh(self) -> bool:
+        """Counts of a node admitted afresh that has taken no fresh intention since: its books
+        cannot say what it received before its admission."""
+        return self.flags == Debit.START | Debit.SYNC | Debit.RC_UNKNOWN
 
     @property
     def is_books(self) -> bool:
@@ -291,9 +301,11 @@ class Debit:
         return Debit(node, nonce, Debit.BOOKS, credited_mj & 0xFFFF, credited_mj >> 16 & 0xFF)
 
     @staticmethod
-    def counts(node: int, nonce: int, seq: int, last_tx: int) -> Debit:
-        """The counts frame answering SYNC(``nonce``): debit number and ltx (wire values)."""
-        return Debit(node, nonce, Debit.START | Debit.SYNC, seq, last_tx)
+    def counts(node: int, nonce: int, seq: int, last_tx: int, afresh: bool = False) -> Debit:
+        """The counts frame answering SYNC(``nonce``): debit number and ltx (wire values);
+        ``afresh``: admitted afresh, no fresh intention since (``Debit.afresh``)."""
+        flags = Debit.START | Debit.SYNC | (Debit.RC_UNKNOWN if afresh else 0)
+        return Debit(node, nonce, flags, seq, last_tx)
 
 
 @fast_init

@@ -67,7 +67,8 @@ enum canergy_type {
 
 /* DEBIT flags: DRAW alone is a draw (an amount, nonce 0); START is a resume (RESUME), DRAW set
  * when its pending amount is a draw rather than a return; START | SYNC is the counts answering a
- * supervisor's SYNC (seq the node's last debit number, amount_mj its ltx); BOOKS alone is the
+ * supervisor's SYNC (seq the node's last debit number, amount_mj its ltx; RC_UNKNOWN set:
+ * CANERGY_DEBIT_COUNTS_AFRESH); BOOKS alone is the
  * books answering it (Rc in mJ: its low 16 bits in seq, its high 8 in amount_mj). Decoding
  * refuses any other mix, and books above 24 bits, as CANERGY_DECODE_OUT_OF_RANGE; encoding
  * writes what it is given, as codec.py does. */
@@ -78,6 +79,9 @@ enum canergy_type {
 /* With BOOKS: the node's Rc is unknown (admitted, no fresh intention since; holds nothing). */
 #define CANERGY_DEBIT_RC_UNKNOWN 0x10U
 #define CANERGY_DEBIT_COUNTS (CANERGY_DEBIT_START | CANERGY_DEBIT_SYNC)
+/* The counts of a node admitted afresh that has taken no fresh intention since (its books
+ * unknown or a floor its record kept): messages.py's Debit.afresh. */
+#define CANERGY_DEBIT_COUNTS_AFRESH (CANERGY_DEBIT_COUNTS | CANERGY_DEBIT_RC_UNKNOWN)
 
 /* The ADMIT confirming the answer to SYNC(n) carries n with this bit flipped (messages.py's
  * SYNC_CONFIRMED). */

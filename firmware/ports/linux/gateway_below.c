@@ -101,6 +101,16 @@ void gw_down_out(struct gateway_port *g, const struct canergy_supervisor_out *ou
             b->aborted += e->resolved == CANERGY_RESOLVED_ABORTED ? 1U : 0U;
             b->written_off += e->resolved == CANERGY_RESOLVED_WRITTEN_OFF ? 1U : 0U;
         }
+        if ((e->flags & CANERGY_SUP_AHEAD) != 0U) { /* witnessed.AheadOfImage */
+            const unsigned long long moved =
+                (unsigned long long)e->ahead_draws * CANERGY_AMOUNT_MAX_MJ * CANERGY_QUANTUM_UJ;
+            (void)fprintf(stderr,
+                          "%s: node %u below is %u debits ahead of this record with books that "
+                          "cannot say what it received: the record is older than its admission "
+                          "afresh; %llu uJ moved from the usable budget to its grants (the most "
+                          "those debits could draw), a loss\n",
+                          PROG, (unsigned)e->node, (unsigned)e->ahead_draws + 1U, moved);
+        }
         if ((e->flags & CANERGY_SUP_ADMITTED) != 0U) {
             b->admitted++;
             b->fresh = 0;

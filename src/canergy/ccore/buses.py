@@ -33,6 +33,7 @@ from canergy.core.actions import (
     Acknowledged,
     Action,
     Admitted,
+    AheadOfImage,
     Resolved,
     ReturnCredited,
     Send,
@@ -352,11 +353,15 @@ class CompiledBuses:
             if isinstance(action, Send):
                 message = action.message
                 keyed.append(Send(replace(message, node=session_key(bus, message.node))))
-            elif isinstance(action, Acknowledged | Resolved | ReturnCredited | Admitted):
+            elif isinstance(action, NODE_ACTIONS):
                 keyed.append(replace(action, node=session_key(bus, action.node)))
             else:
                 keyed.append(action)
         return keyed
+
+
+NODE_ACTIONS = (Acknowledged, Resolved, ReturnCredited, Admitted, AheadOfImage)
+"""A supervisor's actions that name a node (re-keyed per bus)."""
 
 
 def _split(state: SupervisorState, keys: list[int], count: int) -> list[SupervisorState | None]:

@@ -27,6 +27,7 @@ from canergy.core.actions import (
     Acknowledged,
     Action,
     Admitted,
+    AheadOfImage,
     Persist,
     Resolved,
     ReturnCredited,
@@ -43,6 +44,7 @@ from canergy.core.variants import Variant, get_variant
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.messages import (
+    AMOUNT_MAX_MJ,
     MAX_NODE,
     MIN_NODE,
     QUANTUM_UJ,
@@ -106,7 +108,9 @@ class _Binding:
              "join_nonce", "sync_nonce", "node", "phase", "decision", "tries", "resync"),
         )  # fmt: skip
         self.event, _ = _reader(
-            ffi, "struct canergy_supervisor_event", ("tx", "amount_uj", "node", "resolved", "flags")
+            ffi,
+            "struct canergy_supervisor_event",
+            ("tx", "amount_uj", "ahead_draws", "node", "resolved", "flags"),
         )
         self.frame, _ = _reader(ffi, "struct canergy_frame", ("id", "dlc", "data"))
         self.auth_frame, _ = _reader(ffi, "struct canergy_auth_frame", ("id", "len", "data"))
@@ -144,6 +148,7 @@ class _Binding:
         self.acknowledged = lib.CANERGY_SUP_ACKNOWLEDGED
         self.return_credited = lib.CANERGY_SUP_RETURN_CREDITED
         self.admitted = lib.CANERGY_SUP_ADMITTED
+        self.ahead = lib.CANERGY_SUP_AHEAD
         self.outcomes = {
             lib.CANERGY_RESOLVED_COMMITTED: Outcome.COMMITTED,
             lib.CANERGY_RESOLVED_ABORTED: Outcome.ABORTED,
@@ -816,7 +821,7 @@ class CompiledSupervisor:
         sent = 0
         sessions = self._sup.sessions
         for k in range(events):
-            tx, amount, node, resolved, flags = b.event.unpack_from(
+            tx, amount, ahead, node, resolved, flags = b.event.unpack_from(
                 raw, b.events_at + k * b.event_size
             )
             i = self._index[node]
@@ -832,6 +837,8 @@ class CompiledSupervisor:
                     assert returned is not None, "a RESUME's credit needs returned before it"
                     credited = int(c.returned_uj) - returned
                 actions.append(ReturnCredited(node, c.returns_credited - resumed, credited))
+            if flags & b.ahead:  # before the ADMIT it precedes, as Python's take_counts
+                actions.append(AheadOfImage(node, ahead, ahead * AMOUNT_MAX_MJ * QUANTUM_UJ))
             if flags & b.admitted:
                 c = sessions[i]
                 actions.append(Admitted(node, c.tx, c.returns_credited))

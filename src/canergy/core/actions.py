@@ -66,6 +66,19 @@ class Admitted:
 
 @fast_init
 @dataclass(frozen=True, slots=True)
+class AheadOfImage:
+    """Supervisor: a start found the counts of node ``node``, admitted afresh and holding nothing
+    since, ``draws`` debits past C + 1: it started from an image older than that admission, and
+    what the node drew since cannot be told; ``amount`` µJ (the most ``draws`` draws can take)
+    moved from Us to Gs, a loss (``witnessed.take_counts``)."""
+
+    node: int
+    draws: int
+    amount: int
+
+
+@fast_init
+@dataclass(frozen=True, slots=True)
 class IntentionRefused:
     """Client: did not acknowledge intention ``tx``: it would take the usable budget past what
     the record holds (``USABLE_MAX_UJ``)."""
@@ -127,6 +140,7 @@ Action = (
     | Persist
     | Acknowledged
     | Admitted
+    | AheadOfImage
     | Resolved
     | ReturnCredited
     | ClientCommitted

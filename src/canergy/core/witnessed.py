@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from canergy.core import common
 from canergy.core import hardened as h
-from canergy.core.actions import Admitted, ReturnCredited, Send
+from canergy.core.actions import Admitted, AheadOfImage, ReturnCredited, Send
 from canergy.core.common import (
     at_end,
     capped,
@@ -43,6 +43,7 @@ from canergy.core.table import ANY, STAY, ClientTable, SupervisorTable, cell
 from canergy.core.timing import Timing
 from canergy.frozen import evolve
 from canergy.messages import (
+    AMOUNT_MAX_MJ,
     COUNTER_BOUND,
     COUNTER_END,
     DELIVERED_BITS,
@@ -382,16 +383,41 @@ def take_books(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
 def take_counts(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
     """The SYNC's counts (n, q, ltx) after its books: tx = max(tx, ltx), W = ltx (every
     transaction of a discarded history is at or below it: the node settled B ahead), then as a
-    RESUME: C = max(C, q) + 1 voids any debit in flight, ADMIT(n, tx, C) answers."""
+    RESUME: C = max(C, q) + 1 voids any debit in flight, ADMIT(n, tx, C) answers.
+
+    Counts of a node admitted afresh that has taken no fresh intention since (``Debit.afresh``:
+    it holds nothing, and its books are unknown or a floor its record kept, maybe an older
+    copy's) with q above C + 1 show a start from an image older than that admission: no debit
+    runs past C + 1 without the supervisor holding it, so it held q - C - 1 debits and the
+    admission after this image, and the node may have drawn from grants this image still
+    counts in Us (received after it, then its books lost or found behind). Those draws are at
+    most q - C - 1, each at most ``AMOUNT_MAX_MJ``: so much moves from Us to Gs
+    (``ahead_of_image``), a loss (a debt until returns cover it) where the image would
+    otherwise grant again what the node used. With q at most C + 1 the node drew nothing since
+    the image, and Gs is left as it is."""
     if msg.nonce != s.sync_nonce:
         return SessionStep(s)
     if msg.is_books:
         return take_books(t, s, msg, now)
     if not msg.is_counts:
         return SessionStep(s)
+    ahead = ahead_of_image(s, msg)
     settled = ltx_of(s, msg)
     s = evolve(s, phase=IDLE, sync_nonce=0, deadline=None, witness=settled, resync=False)
-    return confirm(t, s, msg, now)
+    s = evolve(s, delivered=s.delivered + ahead.credit)
+    step = confirm(t, s, msg, now)
+    return SessionStep(step.session, (*ahead.actions, *step.actions), step.credit - ahead.credit)
+
+
+def ahead_of_image(s: Session, msg: Debit) -> SessionStep:
+    """What the counts ``msg`` move from Us to Gs (``take_counts``): its credit field holds the
+    amount (positive), its actions the report; nothing unless they are ``afresh`` with q above
+    C + 1."""
+    draws = unwrap(msg.seq, s.returns_credited, SEQ_BITS) - s.returns_credited - 1
+    if not msg.afresh or draws <= 0:
+        return SessionStep(s)
+    amount = draws * AMOUNT_MAX_MJ * QUANTUM_UJ
+    return SessionStep(s, (AheadOfImage(s.node, draws, amount),), amount)
 
 
 def supervisor_record(s: Session) -> tuple[object, ...]:
@@ -551,7 +577,9 @@ def floor_of(c: ClientState) -> int:
 def answer_of(c: ClientState) -> tuple[Send, Send]:
     """The answer to SYNC(n): the books (n, Rc: ``books_of``), then the counts (n, q, ltx)."""
     books = Debit.books(c.node, c.nonce, books_of(c))
-    counts = Debit.counts(c.node, c.nonce, wrap(c.return_seq, SEQ_BITS), wire_tx(c.last_tx))
+    counts = Debit.counts(
+        c.node, c.nonce, wrap(c.return_seq, SEQ_BITS), wire_tx(c.last_tx), c.credited_unknown
+    )
     return Send(books), Send(counts)
 
 

@@ -36,6 +36,9 @@ from canergy.prove.symbolic import Client, Sent, Session, SessionStep, Term, z3
 BOOKED_PHASES = (sym.IDLE, sym.HOLDING)
 DRAW, START, SYNC, BOOKS = Debit.DRAW, Debit.START, Debit.SYNC, Debit.BOOKS
 COUNTS = START | SYNC
+AFRESH_COUNTS = COUNTS | Debit.RC_UNKNOWN
+"""The counts of a node admitted afresh that has taken no fresh intention since
+(``Debit.afresh``)."""
 UNKNOWN_BOOKS = BOOKS | Debit.RC_UNKNOWN
 WINDOW = 64
 """B (``Timing.window``): the handlers take it as a parameter, this default as the core's."""
@@ -104,7 +107,7 @@ def resume_of(c: Client) -> Sent:
 def answer_of(c: Client) -> Frames:
     """The answer to SYNC(n): the books (n, Rc; unknown, flagged with both fields 0, only
     after an admission afresh without a floor: ``witnessed.books_of``), then the counts
-    (n, q, ltx)."""
+    (n, q, ltx; flagged ``AFRESH_COUNTS`` while Rc is unknown or a floor)."""
     unknown = no_floor(c)
     # the low 24 bits of Rc in mJ: 16 in the number's field, 8 in the amount's (both 0 unknown)
     rc_low = (c.credited / QUANTUM_UJ) % (1 << DELIVERED_BITS)
@@ -119,7 +122,7 @@ def answer_of(c: Client) -> Frames:
         MsgType.DEBIT,
         sym.low(c.return_seq, SEQ_BITS),
         z3.BV2Int(sym.low(c.last_tx, TX_BITS)),
-        z3.IntVal(COUNTS),
+        z3.If(c.credited_unknown, AFRESH_COUNTS, COUNTS),
         c.nonce,
     )
     return books, counts
@@ -449,17 +452,36 @@ def take_counts(
     s: Session, nonce16: Term, flags: Term, seq16: Term, amount_mj: Term
 ) -> SessionStep:
     """The SYNC's counts (n, q, ltx) after its books: W = ltx, then as a RESUME (tx up to ltx,
-    C = max(C, q) + 1, ADMIT(n ^ SYNC_CONFIRMED, tx, C)); its books again are taken again."""
+    C = max(C, q) + 1, ADMIT(n ^ SYNC_CONFIRMED, tx, C)); its books again are taken again.
+    After books without Rc, q above C + 1 moves the most q - C - 1 draws can take from Us to Gs
+    (``ahead_of_image``)."""
     settled = _ltx_of(amount_mj, s.tx)
+    ahead = ahead_of_image(s, flags, seq16)
     idle = replace(s, phase=sym.S_IDLE, sync_nonce=_zero16(), witness=settled)
     idle = replace(idle, resync=z3.BoolVal(False))
-    counted = confirm(idle, nonce16, z3.BoolVal(False), seq16, amount_mj, z3.BoolVal(True))
+    idle = replace(idle, delivered=idle.delivered + ahead)
+    confirmed = confirm(idle, nonce16, z3.BoolVal(False), seq16, amount_mj, z3.BoolVal(True))
+    counted = SessionStep(confirmed.session, confirmed.sent, confirmed.credit - ahead)
     step = sym.choose(
         is_books(flags),
         take_books(s, nonce16, flags, seq16, amount_mj),
-        sym.choose(flags == COUNTS, counted, sym._unchanged(s)),
+        sym.choose(is_counts(flags), counted, sym._unchanged(s)),
     )
     return sym.choose(nonce16 == s.sync_nonce, step, sym._unchanged(s))
+
+
+def is_counts(flags: Term) -> Term:
+    """A SYNC's counts, afresh or not (``Debit.is_counts``)."""
+    return z3.Or(flags == COUNTS, flags == AFRESH_COUNTS)
+
+
+def ahead_of_image(s: Session, flags: Term, seq16: Term) -> Term:
+    """``witnessed.ahead_of_image``: counts afresh with q above C + 1 (q unwrapped near C):
+    (q - C - 1) * ``AMOUNT_MAX_MJ`` in µJ, else 0."""
+    ahead = sym.unwrap(seq16, s.returns_credited, SEQ_BITS) - s.returns_credited
+    draws = z3.BV2Int(ahead, is_signed=True) - 1
+    afresh = flags == AFRESH_COUNTS
+    return z3.If(z3.And(afresh, draws > 0), draws * AMOUNT_MAX_MJ * QUANTUM_UJ, 0)
 
 
 def hold_draw(s: Session, seq16: Term) -> SessionStep:
@@ -632,8 +654,8 @@ def on_debit(s: Session, nonce16: Term, flags: Term, seq16: Term, amount_mj: Ter
     """DEBIT (``flags`` an integer term): outside a start, a RESUME (START) or a SYNC's counts
     arriving late (``counts_taken``) is confirmed, a draw held, books and other counts ignored;
     in a start, the SYNC's books, then its counts."""
-    resume = confirm(s, nonce16, flags % 2 == 1, seq16, amount_mj, flags == COUNTS)
-    earlier = z3.And(flags == COUNTS, z3.Not(counts_taken(s, nonce16, amount_mj)))
+    resume = confirm(s, nonce16, flags % 2 == 1, seq16, amount_mj, is_counts(flags))
+    earlier = z3.And(is_counts(flags), z3.Not(counts_taken(s, nonce16, amount_mj)))
     outside = sym.choose(
         z3.Or(is_books(flags), earlier),
         sym._unchanged(s),

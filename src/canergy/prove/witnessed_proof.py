@@ -67,8 +67,11 @@ is at least what the node received: the books answering the start carry its Rc (
 ``Msg.rc``), and Gs after them is at least it (``books taken``); books with Rc unknown come
 from a life admitted afresh that has received at most the Gs of its admission
 (``World.ags``, ``unknown books``), which the image holds (residual: no image from before that
-admission, in ``reported``); the node is not put back below its record at the
-start in Rc while a start behind in Gs waits (residual (d) in Rc, ``far_behind_rc``).
+admission, in ``reported``; the rules now pay for such an image with the counts afresh,
+``witnessed.ahead_of_image``, which this ledger of what the node received cannot use: what a
+node lost with its books counts in it, and the debits bound only what it drew); the node is
+not put back below its record at the start in Rc while a start behind in Gs waits (residual
+(d) in Rc, ``far_behind_rc``).
 
 Proved: every step keeps every clause, the supervisor's DEBIT proved branch by branch
 (``_debit_branches``) after lemmas on its counters (among them that counts ending a start leave
@@ -974,7 +977,7 @@ def p_debit(m: Msg, w: World) -> Term:
     (RESUMING, SYNCING), counts the ltx of the record that answers."""
     v, f = view(w), m.flags
     draw, resume, resume_draw = f == wit.DRAW, f == wit.START, f == wit.START | wit.DRAW
-    counts, books, unknown = f == wit.COUNTS, f == wit.BOOKS, f == wit.UNKNOWN_BOOKS
+    counts, books, unknown = wit.is_counts(f), f == wit.BOOKS, f == wit.UNKNOWN_BOOKS
     numbered = z3.Or(draw, resume, resume_draw, counts)
     books_ = z3.Or(books, unknown)
     answer = z3.Or(counts, books_)  # a SYNC's answer
@@ -1225,14 +1228,14 @@ def deliverable(m: Msg, w: World) -> Term:
     start carry within 2**15 of the supervisor's tx."""
     if m.kind is Kind.DEBIT:
         age = z3.Implies(z3.Not(wit.is_books(m.flags)), inv.near(m.k, view(w).rc))
-        counts = z3.And(this_start(m, w), m.flags == wit.COUNTS)  # its ltx, as for a RESUME's q
+        counts = z3.And(this_start(m, w), wit.is_counts(m.flags))  # its ltx, as for a RESUME's q
         # counts answering the supervisor's current start, of any start of the node: their
         # ltx within 2**15 of its tx (assumption 3; the SYNC was sent at that tx)
-        answering_now = z3.And(current_sync(m, w), m.flags == wit.COUNTS)
+        answering_now = z3.And(current_sync(m, w), wit.is_counts(m.flags))
         # counts that end a supervisor's start are read against the record it started from,
         # maybe an older image: their q within 2**15 of its C too (assumption 3 for an image)
         ending = z3.And(
-            w.s.phase == sym.SYNC_BOOKS, m.nonce == w.s.sync_nonce, m.flags == wit.COUNTS
+            w.s.phase == sym.SYNC_BOOKS, m.nonce == w.s.sync_nonce, wit.is_counts(m.flags)
         )
         # the books and counts a start takes answer its own SYNC: the nonces of the
         # supervisor's starts differ, and from the node's (as assumption 5 asks of JOINs)
@@ -1653,7 +1656,7 @@ def on_debit(w: World, m: Msg) -> st.Step:
     the node is behind), a SYNC's books taken."""
     s = w.s
     step = wit.on_debit(s, m.nonce, m.flags, m.w, m.amount)
-    counts = m.flags == wit.COUNTS
+    counts = wit.is_counts(m.flags)
     resumes = z3.And(
         z3.Not(wit.in_start(s)),
         z3.Not(wit.is_books(m.flags)),
@@ -1723,6 +1726,9 @@ def on_debit(w: World, m: Msg) -> st.Step:
     read_mj = z3.BV2Int(m.w) + m.amount * (1 << 16)
     unwrapped = sym.unwrap_int(read_mj, s.delivered / Q, DELIVERED_BITS) * Q
     lemmas = (
+        # what counts afresh move from Us to Gs (``witnessed.ahead_of_image``) is a whole number
+        # of quanta: without it z3 did not decide Gs whole after them (400 million steps)
+        ("lemma: counts afresh pay whole quanta", inv.whole(wit.ahead_of_image(s, m.flags, m.w))),
         ("lemma: C does not go back", ule(w.rc, after.rc)),
         ("lemma: tx does not go back", ule(w.tx, after.tx)),
         # so a frame of the epoch the counts end names a transaction at most the next's base
@@ -1745,7 +1751,7 @@ def _debit_branches(w: World, m: Msg, repeat: Term, lifts: Term) -> tuple[tuple[
     each answered again (``repeat``), found behind (``lifts``: numbered below C) or afresh."""
     s, f = w.s, m.flags
     outside, books = z3.Not(wit.in_start(s)), wit.is_books(f)
-    counts, resumes = f == wit.COUNTS, (f / wit.START) % 2 == 1
+    counts, resumes = wit.is_counts(f), (f / wit.START) % 2 == 1
     after_books = s.phase == sym.SYNC_BOOKS
     ending = z3.And(after_books, m.nonce == s.sync_nonce, counts)
     answers = (

@@ -42,6 +42,9 @@ class NodeInfo:
     was admitted afresh and what that record held was dropped."""
     synced: int = 0
     """Supervisor starts this node answered with its books and counts (witnessed rules)."""
+    ahead_of_image_uj: int = 0
+    """What starts moved from Us to Gs for this node's debits past the state file's (its counts
+    afresh: the file older than its admission afresh; ``core.AheadOfImage``), a loss."""
     rules: str | None = None
     """The client rules its last TELEMETRY said it runs (``Telemetry.WITNESSED``; None: none
     heard yet)."""

@@ -23,6 +23,7 @@ from canergy.core import (
     Acknowledged,
     Action,
     Admitted,
+    AheadOfImage,
     Persist,
     Resolved,
     ReturnCredited,
@@ -67,6 +68,7 @@ from canergy.messages import (
     ToSupervisor,
 )
 from canergy.seqnum import unwrap
+from canergy.units import format_energy
 
 log = logging.getLogger(__name__)
 
@@ -826,7 +828,20 @@ class SupervisorService:
                 self.heard.credited(action.node, action.amount, now)
             elif isinstance(action, Admitted):
                 self._admitted(action)
+            elif isinstance(action, AheadOfImage):
+                self._ahead(action)
         return out
+
+    def _ahead(self, action: AheadOfImage) -> None:
+        self.nodes[action.node].ahead_of_image_uj += action.amount
+        log.warning(
+            "node %s is %d debits ahead of this state file with books that cannot say what it "
+            "received: the file is older than its admission afresh; %s moved from the usable "
+            "budget to its grants (the most those debits could draw), a loss",
+            self.node_name(action.node),
+            action.draws + 1,
+            format_energy(action.amount),
+        )
 
     def _admitted(self, action: Admitted) -> None:
         info = self.nodes[action.node]

@@ -155,6 +155,7 @@ class StatusReport:
                 "resumes": info.resumes,
                 "found_behind": info.found_behind,
                 "synced": info.synced,
+                "ahead_of_image_uj": info.ahead_of_image_uj,
                 "counts_ignored": info.counts_ignored,
                 "resyncs": info.resyncs,
                 "rules": info.rules,

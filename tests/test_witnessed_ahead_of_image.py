@@ -1,0 +1,175 @@
+"""A supervisor started from a state file older than a node's admission afresh (issue 40, once a
+residual of docs/protocol.md): the node drew from grants the image still counts in Us, lost its
+books and was admitted afresh; its books cannot say what it received, but its counts show how
+many debits the supervisor held since the image. The most those draws can take moves from Us
+to Gs (``witnessed.ahead_of_image``), in both supervisor cores, and nothing moves when the books
+are known or the counts show no draw since the image."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import pytest
+
+from canergy.ccore.supervisor import CompiledSupervisor
+from canergy.check import Bounds, check
+from canergy.core import AheadOfImage, Client, Send, Supervisor, Timing
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Direction
+
+CORES = pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])
+TIMING = Timing(response_timeout_us=10, command_timeout_us=10, return_retry_us=10)
+DRAW_MAX = AMOUNT_MAX_MJ * QUANTUM_UJ
+INITIAL = 10_000_000
+
+
+def exchange(actions: list[Any], sup: Any, node: Client, now: int) -> list[Any]:
+    """Deliver every frame sent until nobody sends; every action of ``sup`` is returned."""
+    queue, said = list(actions), list(actions)
+    while queue:
+        a = queue.pop(0)
+        if isinstance(a, Send):
+            if a.message.TYPE.direction is Direction.TO_CLIENT:
+                queue += node.receive(a.message, now)  # type: ignore[arg-type]
+            else:
+                answer = sup.receive(a.message, now)
+                said += answer
+                queue += answer
+    return said
+
+
+def granted_drawn_then(core: Any, draws: int, lose_books: bool) -> tuple[Any, Client, Any]:
+    """A node granted 1 J after the supervisor's first state file, drawing ``draws`` times
+    250 mJ, then losing its books (JOIN, admitted afresh) or not; the supervisor put back to
+    that first file and started, its SYNC answered. Returns the restored supervisor, the node
+    and every action of the start."""
+    sup = core([1], INITIAL, variant="witnessed", timing=TIMING)
+    node = Client(1, variant="witnessed", timing=TIMING)
+    image = sup.state
+    exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)
+    exchange(sup.commit(1, 0), sup, node, 0)
+    for _ in range(draws):
+        exchange(node.spend(250_000, 0), sup, node, 0)
+    if lose_books:
+        exchange(node.books_lost(0x0303, 0), sup, node, 0)
+        assert node.state.credited_unknown and sup.session(1).returns_credited == draws + 1
+    restored = core([1], 0, variant="witnessed", timing=TIMING, state=image)
+    restored.power_loss(1, nonce=0x55)
+    said = exchange(restored.handle_timer(1), restored, node, 1)
+    assert restored.unconfirmed() == ()
+    return restored, node, said
+
+
+@CORES
+@pytest.mark.parametrize("draws", [1, 3])
+def test_an_image_older_than_an_admission_afresh_pays_for_every_draw_since(
+    core: Any, draws: int
+) -> None:
+    """Before, Us was 10 J again after the start while the node had used ``draws`` x 250 mJ of
+    the image's budget (the checker's NV bound: 16 steps)."""
+    restored, node, said = granted_drawn_then(core, draws, lose_books=True)
+    ahead = [a for a in said if isinstance(a, AheadOfImage)]
+    assert ahead == [AheadOfImage(1, draws, draws * DRAW_MAX)]
+    assert restored.session(1).delivered == draws * DRAW_MAX
+    assert restored.state.usable == INITIAL - draws * DRAW_MAX  # a debt: no grant until covered
+    assert restored.state.usable + node.state.spent <= INITIAL
+    with pytest.raises(Exception, match="usable"):
+        restored.begin(1, 1000, 2)
+
+
+@CORES
+def test_a_node_admitted_afresh_without_a_draw_since_the_image_costs_nothing(core: Any) -> None:
+    """Counts at C + 1: no debit held since the image but the admission, so nothing the image
+    counts in Us was used; Gs and Us stay, and the start grants again."""
+    restored, node, said = granted_drawn_then(core, 0, lose_books=True)
+    assert not [a for a in said if isinstance(a, AheadOfImage)]
+    assert restored.session(1).delivered == 0 and restored.state.usable == INITIAL
+    assert node.state.spent == 0
+
+
+@CORES
+def test_known_books_ahead_of_the_image_move_gs_to_them_and_no_further(core: Any) -> None:
+    """An ordinary restore: the node kept its books (Rc 1 J) and drew twice since the image;
+    its books move Gs up to 1 J, and nothing more leaves Us."""
+    restored, node, said = granted_drawn_then(core, 2, lose_books=False)
+    assert not [a for a in said if isinstance(a, AheadOfImage)]
+    assert restored.session(1).delivered == 1_000_000
+    assert restored.state.usable == INITIAL - 1_000_000
+    assert node.state.usable + node.state.spent == 1_000_000
+
+
+def python_node(state: Any) -> Client:
+    node = Client(1, variant="witnessed", timing=TIMING)
+    node.state = state
+    return node
+
+
+def c_node(state: Any) -> Any:
+    from test_c_witnessed import _CClientNode
+
+    return _CClientNode(state)
+
+
+NODES = pytest.mark.parametrize("make_node", [python_node, c_node], ids=["python-node", "c-node"])
+
+
+@CORES
+@NODES
+def test_a_node_put_back_and_found_behind_then_an_older_supervisor_image_creates_nothing(
+    core: Any, make_node: Any
+) -> None:
+    """Restores one after the other, each start confirmed before the next (once the exception
+    of protocol.md's residual): the node, granted 1 J, is copied (a backup), granted 1 J more
+    and draws 1.5 J; its record is put back to the copy (Rc 1 J, q 0) and its RESUME is found
+    behind (C 4): admitted afresh, the copy's Rc kept as its floor. The supervisor's state file
+    is then put back to a copy from before both grants (Us 10 J, C 0). Its start takes the
+    floor (Gs 1 J) and the counts afresh at q 4: three debits the image never held, so 3 x
+    65.535 J leave Us. Before, Us was 9 J while the node had used 1.5 J of it: 0.5 J created."""
+    sup = core([1], INITIAL, variant="witnessed", timing=TIMING)
+    node = make_node(Client(1, variant="witnessed", timing=TIMING).state)
+    image = sup.state
+    exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)
+    exchange(sup.commit(1, 0), sup, node, 0)
+    copy = node.state
+    exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)
+    exchange(sup.commit(1, 0), sup, node, 0)
+    for _ in range(3):
+        exchange(node.spend(500_000, 0), sup, node, 0)
+    spent = node.state.spent
+    assert spent == 1_500_000 and sup.session(1).returns_credited == 3
+    node = make_node(copy)  # the node's record put back to its copy
+    exchange(node.power_loss(1, nonce=0x0404), sup, node, 1)
+    assert node.state.credited_unknown and node.state.credited == 1_000_000  # the floor
+    assert node.state.return_seq == sup.session(1).returns_credited == 4  # confirmed
+    restored = core([1], 0, variant="witnessed", timing=TIMING, state=image)
+    restored.power_loss(2, nonce=0x55)
+    said = exchange(restored.handle_timer(2), restored, node, 2)
+    assert restored.unconfirmed() == ()
+    assert [a for a in said if isinstance(a, AheadOfImage)] == [AheadOfImage(1, 3, 3 * DRAW_MAX)]
+    assert restored.session(1).delivered == 1_000_000 + 3 * DRAW_MAX
+    assert restored.state.usable + spent + node.state.usable <= INITIAL
+
+
+def test_only_a_supervisor_image_older_than_an_admission_afresh_pays() -> None:
+    """The checker, one node that may lose power and its books: without a state file put back
+    no start ever pays for debits (every quiescent state loses at most the bound's 1 mJ: the
+    counts of a start are never more than C + 1, whatever the node's own faults); with the
+    file's backups put back the rule fires (a loss of 65.535 J or more) and nothing is
+    created."""
+    bounds = Bounds(
+        clients=1,
+        transactions=1,
+        losses=0,
+        duplicates=0,
+        power_losses=1,
+        nv_losses=1,
+        retries=0,
+        timeouts=3,
+        in_flight=2,
+    )
+    alone = check("witnessed", bounds)
+    assert alone.complete and alone.violations == 0
+    assert alone.worst_quiescent_dissipation < DRAW_MAX
+    backups = check("witnessed", replace(bounds, supervisor_old_copies=1, supervisor_backups=True))
+    assert backups.complete and backups.violations == 0, backups.counterexample
+    assert backups.worst_quiescent_dissipation >= DRAW_MAX

@@ -481,7 +481,8 @@ def ahead_of_image(s: Session, flags: Term, seq16: Term) -> Term:
     ahead = sym.unwrap(seq16, s.returns_credited, SEQ_BITS) - s.returns_credited
     draws = z3.BV2Int(ahead, is_signed=True) - 1
     afresh = flags == AFRESH_COUNTS
-    return z3.If(z3.And(afresh, draws > 0), draws * AMOUNT_MAX_MJ * QUANTUM_UJ, 0)
+    # in quanta times Q: Gs stays a whole number of quanta for z3 by rewriting alone
+    return QUANTUM_UJ * z3.If(z3.And(afresh, draws > 0), draws * AMOUNT_MAX_MJ, 0)
 
 
 def hold_draw(s: Session, seq16: Term) -> SessionStep:

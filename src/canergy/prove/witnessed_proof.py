@@ -1723,12 +1723,15 @@ def on_debit(w: World, m: Msg) -> st.Step:
         m.flags == wit.BOOKS,
         s.delivered < w.received,
     )
+    paid = wit.ahead_of_image(s, m.flags, m.w)
+    moved = after.s.delivered == s.delivered + paid
     read_mj = z3.BV2Int(m.w) + m.amount * (1 << 16)
     unwrapped = sym.unwrap_int(read_mj, s.delivered / Q, DELIVERED_BITS) * Q
     lemmas = (
         # what counts afresh move from Us to Gs (``witnessed.ahead_of_image``) is a whole number
         # of quanta: without it z3 did not decide Gs whole after them (400 million steps)
-        ("lemma: counts afresh pay whole quanta", inv.whole(wit.ahead_of_image(s, m.flags, m.w))),
+        ("lemma: counts afresh pay whole quanta", inv.whole(paid)),
+        ("lemma: counts a start takes move Gs by what they pay", z3.Implies(counted_, moved)),
         ("lemma: C does not go back", ule(w.rc, after.rc)),
         ("lemma: tx does not go back", ule(w.tx, after.tx)),
         # so a frame of the epoch the counts end names a transaction at most the next's base

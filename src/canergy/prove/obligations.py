@@ -366,6 +366,10 @@ def check_step(
         goal = Goal(name, lemma)
         yield _by_branch(solver, case.name, goal, before, step, delivered, limits, effort)
         solver.add(lemma)  # a failed lemma fails the proof; the rest are still checked
+    for valid in step.valid:
+        alone = _solver(timeout_ms, effort)
+        yield _check(alone, case.name, valid.name, valid.schema(), None, before, step, delivered)
+        solver.add(valid.instance())
     if step.branches:
         cover = z3.Or(*(cond for _, cond in step.branches))
         yield _check(

@@ -32,6 +32,23 @@ from canergy.prove.world import (
 
 
 @dataclass(frozen=True)
+class Valid:
+    """A schema ``fact`` over terms and the terms of one instance (``Step.valid``)."""
+
+    name: str
+    fact: Callable[..., Term]
+    terms: tuple[Term, ...]
+
+    def schema(self) -> Term:
+        """``fact`` on fresh constants of the terms' sorts."""
+        fresh = (z3.FreshConst(t.sort(), "v") for t in self.terms)
+        return self.fact(*fresh)
+
+    def instance(self) -> Term:
+        return self.fact(*self.terms)
+
+
+@dataclass(frozen=True)
 class Step:
     after: World
     sent: tuple[tuple[Term, Msg], ...]
@@ -39,6 +56,11 @@ class Step:
     credit: Term
     lemmas: tuple[tuple[str, Term], ...] = ()
     """Facts about the step proved first (each an obligation), then assumed for the rest."""
+    valid: tuple[Valid, ...] = ()
+    """Facts true whatever their terms (arithmetic, e.g. a sum of whole numbers of quanta is
+    whole): each proved once on fresh constants in a solver holding nothing else, then its
+    instance assumed with the lemmas (z3 takes in milliseconds alone what it does not decide
+    beside the whole world)."""
     branches: tuple[tuple[str, Term], ...] = ()
     """The step's branches, named conditions on the state before and the frame delivered: that
     one of them holds is an obligation, and each goal is then proved branch by branch (z3 takes

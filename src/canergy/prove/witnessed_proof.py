@@ -1744,7 +1744,17 @@ def on_debit(w: World, m: Msg) -> st.Step:
         ("lemma: the last answer confirms as it did", z3.Implies(repeat, as_it_did)),
     )
     lifts = seq - s.returns_credited < 0
-    return replace(taken, lemmas=lemmas, branches=_debit_branches(w, m, repeat, lifts))
+    valid = (
+        st.Valid(
+            "valid: Gs whole after a whole payment",
+            lambda d, p, e: z3.Implies(
+                z3.And(inv.whole(d), inv.whole(p), e == d + p), inv.whole(e)
+            ),
+            (s.delivered, paid, after.s.delivered),
+        ),
+    )
+    branches = _debit_branches(w, m, repeat, lifts)
+    return replace(taken, lemmas=lemmas, valid=valid, branches=branches)
 
 
 def _debit_branches(w: World, m: Msg, repeat: Term, lifts: Term) -> tuple[tuple[str, Term], ...]:

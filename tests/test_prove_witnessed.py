@@ -334,6 +334,8 @@ def test_the_supervisors_debit_proves_that_its_counters_never_go_back() -> None:
         elif lemmas:
             break  # the goals follow the lemmas
     assert {o.clause for o in lemmas} == {
+        "lemma: counts afresh pay whole quanta",
+        "lemma: counts a start takes move Gs by what they pay",
         "lemma: C does not go back",
         "lemma: tx does not go back",
         "lemma: counts that end a start leave tx at or above begun",

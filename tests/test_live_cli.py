@@ -14,10 +14,9 @@ import pytest
 from support.live_rig import Loop
 
 from canergy.cli import main
-from canergy.cli.grant import MAX_STATUS
 from canergy.codec import Codec
 from canergy.live.runtime import BusRuntime, monotonic_us
-from canergy.live.supervisor.control import request
+from canergy.live.supervisor.control import MAX_STATUS, request
 from canergy.messages import Direction
 from firmware_model.__main__ import main as firmware_main
 from firmware_model.node import FirmwareNode, NodeConfig, NodeHost

@@ -20,7 +20,6 @@ from canergy.auth.frames import FrameAuth, Layout
 from canergy.auth.keys import Key, load_key
 from canergy.ccore.supervisor import missing
 from canergy.cli import main
-from canergy.cli.grant import MAX_STATUS
 from canergy.cli.shared.buses import bus_spec
 from canergy.codec import Codec
 from canergy.core import Supervisor
@@ -28,7 +27,7 @@ from canergy.core.state import Session, SupervisorState
 from canergy.ledger import ledger_from_status
 from canergy.live.runtime import BusRuntime, monotonic_us
 from canergy.live.supervisor.build import build_service
-from canergy.live.supervisor.control import request
+from canergy.live.supervisor.control import MAX_STATUS, request
 from canergy.live.supervisor.multi_bus import BusPort, BusRouter
 from canergy.live.supervisor.service import ServiceConfig
 from canergy.live.supervisor.state_file import save_state

@@ -48,6 +48,9 @@ from canergy.messages import Debit, Join, Message, Return, Telemetry, ToSupervis
 M = TypeVar("M", bound=Message)
 _P = ParamSpec("_P")
 
+NODE_ACTIONS = (Acknowledged, Resolved, ReturnCredited, Admitted, AheadOfImage)
+"""A supervisor's actions that name a node (re-keyed per bus)."""
+
 
 class CompiledBuses:
     """``core.Supervisor`` over session keys of several buses, each bus's rules in C."""
@@ -358,10 +361,6 @@ class CompiledBuses:
             else:
                 keyed.append(action)
         return keyed
-
-
-NODE_ACTIONS = (Acknowledged, Resolved, ReturnCredited, Admitted, AheadOfImage)
-"""A supervisor's actions that name a node (re-keyed per bus)."""
 
 
 def _split(state: SupervisorState, keys: list[int], count: int) -> list[SupervisorState | None]:

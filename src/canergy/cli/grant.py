@@ -26,14 +26,13 @@ from canergy.live.atomic import warn_no_fsync
 from canergy.live.runtime import monotonic_us
 from canergy.live.serve import serve_supervisor
 from canergy.live.supervisor.build import SupervisorConfig, build_supervisor, open_core
-from canergy.live.supervisor.control import NoAnswer, NoSupervisor, request
+from canergy.live.supervisor.control import MAX_STATUS, NoAnswer, NoSupervisor, request
 from canergy.live.supervisor.service import ServiceConfig
 from canergy.live.supervisor.state_file import books_nodes
 from canergy.units import US_PER_S, format_energy
 
 STATUS_WAIT_S = 5.0
 """How long ``grant`` waits for the status it asks for once its grant went unanswered."""
-MAX_STATUS = 8 << 20
 
 
 def add(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:

@@ -16,10 +16,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from canergy.live.supervisor.control import request
-
-MAX_STATUS = 8 << 20
-"""Largest status accepted (127 nodes take about 60 kB)."""
+from canergy.live.supervisor.control import MAX_STATUS, request
 
 
 @dataclass(frozen=True, slots=True)

@@ -19,8 +19,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from canergy.cli.grant import MAX_STATUS
-from canergy.live.supervisor.control import MAX_SOCKET_PATH, NoSupervisor, request
+from canergy.live.supervisor.control import MAX_SOCKET_PATH, MAX_STATUS, NoSupervisor, request
 from canergy.testing.bus import Process, TestBus
 from canergy.testing.run import until
 from canergy.units import parse_energy

@@ -38,6 +38,8 @@ log = logging.getLogger(__name__)
 
 Reply = Callable[[dict[str, Any]], None]
 MAX_REQUEST = 4096
+MAX_STATUS = 8 << 20
+"""Largest status answer accepted (127 nodes take about 60 kB)."""
 MAX_SOCKET_PATH = 107
 """Longest UNIX socket path in bytes (Linux ``sun_path`` holds 108 with the final NUL)."""
 

@@ -33,6 +33,7 @@ DEBIT_KINDS = [
     Debit.START,
     Debit.START | Debit.DRAW,
     Debit.START | Debit.SYNC,
+    Debit.START | Debit.SYNC | Debit.RC_UNKNOWN,
     Debit.BOOKS,
     Debit.BOOKS | Debit.RC_UNKNOWN,
 ]

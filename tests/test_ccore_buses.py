@@ -36,7 +36,7 @@ STRAYS = (session_key(A, 9), session_key(B, 5), session_key(A, 4))
 """Nodes a frame may name on a bus that does not have them."""
 CODEC = Codec()
 T = Timing(response_timeout_us=1_000, retries=2)
-SYNC_ANSWER = (Debit.BOOKS, Debit.START | Debit.SYNC)
+SYNC_ANSWER = (Debit.BOOKS, Debit.START | Debit.SYNC, Debit.START | Debit.SYNC | Debit.RC_UNKNOWN)
 amounts = st.one_of(
     st.integers(1, 3_000).map(lambda mj: mj * QUANTUM_UJ),
     st.sampled_from([0, 500, 65_536_000]),
@@ -122,7 +122,7 @@ class BusesSideBySide(RuleBasedStateMachine):
         if flags == Debit.BOOKS:
             rc = (s.delivered // QUANTUM_UJ + data.draw(st.integers(-3, 3))) & 0xFFFFFF
             seq, amount = rc & 0xFFFF, rc >> 16
-        elif flags == Debit.START | Debit.SYNC:
+        elif flags & ~Debit.RC_UNKNOWN == Debit.START | Debit.SYNC:
             amount = (s.tx + data.draw(st.integers(-3, 3))) & 0xFFFF
         msg = Debit(node, nonce, flags, seq, amount)
         self._same(lambda: self.py.receive(msg, self.now), lambda: self.c.receive(msg, self.now))

@@ -236,7 +236,7 @@ def test_counts_afresh_ahead_of_the_state_file_are_paid_for_in_the_status_and_on
     debt = UJ_PER_J - 2 * 65_535_000
     assert s.status()["usable_uj"] == debt
     assert s.status()["nodes"][str(NODE)]["ahead_of_image_uj"] == 2 * 65_535_000
-    assert "node 1 is 3 debits ahead of this state file" in caplog.text
+    assert "node 1 holds 2 debit numbers this state file never saw" in caplog.text
     assert "131.070000 J moved from the usable budget" in caplog.text
     replies: list[dict[str, object]] = []
     s.request_grant(NODE, UJ_PER_J // 10, replies.append)

@@ -228,7 +228,7 @@ def test_a_debit_of_the_current_start_carries_its_nonce_phase_and_ltx() -> None:
     w, m = any_world("w"), any_msg(Kind.DEBIT, "m")
     this_start = [wp.starting(w.c), m.start == wp.starts(w)]
     resume = [m.flags == wit.START]
-    counts = [m.flags == wit.COUNTS]
+    counts = [wit.is_counts(m.flags)]  # afresh or not
     impossible = {
         "a RESUME of a start answering a SYNC": [*resume, w.c.phase == sym.SYNCING],
         "counts of a resuming start": [*counts, w.c.phase == sym.RESUMING],

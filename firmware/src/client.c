@@ -27,6 +27,11 @@
 #define MJ CANERGY_QUANTUM_UJ
 #define RETURN_MAX_UJ (CANERGY_AMOUNT_MAX_MJ * CANERGY_QUANTUM_UJ)
 
+/* counts afresh move the record's CREDITED_UNKNOWN 4 bits up onto the DEBIT's RC_UNKNOWN (C99:
+ * an array of -1 elements fails the build if they ever part) */
+typedef char canergy_credited_unknown_is_rc_unknown_shifted
+    [(CANERGY_RECORD_CREDITED_UNKNOWN << 4U) == CANERGY_DEBIT_RC_UNKNOWN ? 1 : -1];
+
 /* -- output ----------------------------------------------------------------------------- */
 
 void canergy_internal_out_clear(struct canergy_out *out)

@@ -73,8 +73,9 @@ static bool has_amount(uint32_t code)
 }
 
 /* DEBIT is a draw (DRAW alone, an amount, no nonce), a resume (START, DRAW optional), or a
- * SYNC's answer: its counts (START | SYNC, RC_UNKNOWN optional) or its books (BOOKS alone, 24 bits of Rc: the
- * amount's high byte clear; with RC_UNKNOWN, none: both fields 0); no other flags. codec.py's _debit_build. */
+ * SYNC's answer: its counts (START | SYNC, RC_UNKNOWN optional: afresh) or its books (BOOKS
+ * alone, 24 bits of Rc: the amount's high byte clear; with RC_UNKNOWN, none: both fields 0);
+ * no other flags. codec.py's _debit_build. */
 static bool debit_valid(const struct canergy_msg *m)
 {
     /* the resumes and the counts: flags START, START | DRAW, START | SYNC (below 8) */

@@ -88,8 +88,8 @@ static void apply(struct canergy_supervisor *sup, struct canergy_session *s,
                   const struct canergy_session *after, const struct canergy_session_step *step,
                   const struct canergy_msg *in, struct canergy_supervisor_out *out)
 {
-    /* a grant is checked against Us first; only a start's books, and its counts after books
-     * without Rc, take Us below 0 (a debt) */
+    /* a grant is checked against Us first; only a start's books, and its counts afresh,
+     * take Us below 0 (a debt) */
     CANERGY_ASSERT(step->credit_uj >= 0 || step->send == 0U || step->ahead_draws != 0U ||
                    -step->credit_uj <= sup->usable_uj);
     sup->usable_uj += step->credit_uj;

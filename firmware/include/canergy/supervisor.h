@@ -52,8 +52,8 @@ struct canergy_supervisor {
 #define CANERGY_SUP_ACKNOWLEDGED 0x01U   /* the open intention was acknowledged: decide it */
 #define CANERGY_SUP_RETURN_CREDITED 0x02U /* a fresh RETURN: amount_uj went into Us */
 #define CANERGY_SUP_ADMITTED 0x04U       /* a JOIN: the node starts again at the session's tx */
-/* a start's counts after books without Rc, ahead_draws debits past C + 1: as many
- * CANERGY_AMOUNT_MAX_MJ moved from Us to Gs (Python's AheadOfImage) */
+/* a start's counts afresh (books unknown or a floor), ahead_draws debit numbers past C + 1:
+ * as many CANERGY_AMOUNT_MAX_MJ moved from Us to Gs (Python's AheadOfImage) */
 #define CANERGY_SUP_AHEAD 0x08U
 
 struct canergy_supervisor_event {

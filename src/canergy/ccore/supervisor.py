@@ -4,7 +4,8 @@ interface, for ``canergy supervisor --core c``.
 One C call per frame, timer or request runs the hardened (or the witnessed) rules and Us, and
 reports what each
 session step did; this side turns that into the same actions the Python core returns (``Send``,
-``Persist``, ``Acknowledged``, ``Resolved``, ``ReturnCredited``, ``Admitted``) and keeps a Python
+``Persist``, ``Acknowledged``, ``Resolved``, ``ReturnCredited``, ``Admitted``,
+``AheadOfImage``) and keeps a Python
 copy of the sessions it touched. Books, files, policies and intrusions stay in the service.
 tests/test_ccore.py runs it side by side with ``core.Supervisor``, on the tests' sanitizer builds
 of the library (``CompiledSupervisor(module=...)``).

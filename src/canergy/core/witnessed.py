@@ -402,22 +402,22 @@ def take_counts(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
     if not msg.is_counts:
         return SessionStep(s)
     ahead = ahead_of_image(s, msg)
+    moved = ahead.amount if ahead is not None else 0
     settled = ltx_of(s, msg)
     s = evolve(s, phase=IDLE, sync_nonce=0, deadline=None, witness=settled, resync=False)
-    s = evolve(s, delivered=s.delivered + ahead.credit)
+    s = evolve(s, delivered=s.delivered + moved)
     step = confirm(t, s, msg, now)
-    return SessionStep(step.session, (*ahead.actions, *step.actions), step.credit - ahead.credit)
+    report = () if ahead is None else (ahead,)
+    return SessionStep(step.session, (*report, *step.actions), step.credit - moved)
 
 
-def ahead_of_image(s: Session, msg: Debit) -> SessionStep:
-    """What the counts ``msg`` move from Us to Gs (``take_counts``): its credit field holds the
-    amount (positive), its actions the report; nothing unless they are ``afresh`` with q above
-    C + 1."""
+def ahead_of_image(s: Session, msg: Debit) -> AheadOfImage | None:
+    """What the counts ``msg`` move from Us to Gs (``take_counts``), or None: nothing unless
+    they are ``afresh`` with q above C + 1."""
     draws = unwrap(msg.seq, s.returns_credited, SEQ_BITS) - s.returns_credited - 1
     if not msg.afresh or draws <= 0:
-        return SessionStep(s)
-    amount = draws * AMOUNT_MAX_MJ * QUANTUM_UJ
-    return SessionStep(s, (AheadOfImage(s.node, draws, amount),), amount)
+        return None
+    return AheadOfImage(s.node, draws, draws * AMOUNT_MAX_MJ * QUANTUM_UJ)
 
 
 def supervisor_record(s: Session) -> tuple[object, ...]:

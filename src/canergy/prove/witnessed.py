@@ -453,8 +453,8 @@ def take_counts(
 ) -> SessionStep:
     """The SYNC's counts (n, q, ltx) after its books: W = ltx, then as a RESUME (tx up to ltx,
     C = max(C, q) + 1, ADMIT(n ^ SYNC_CONFIRMED, tx, C)); its books again are taken again.
-    After books without Rc, q above C + 1 moves the most q - C - 1 draws can take from Us to Gs
-    (``ahead_of_image``)."""
+    Counts afresh (books unknown or a floor) with q above C + 1 move the most q - C - 1 debit
+    numbers can draw from Us to Gs (``ahead_of_image``)."""
     settled = _ltx_of(amount_mj, s.tx)
     ahead = ahead_of_image(s, flags, seq16)
     idle = replace(s, phase=sym.S_IDLE, sync_nonce=_zero16(), witness=settled)

@@ -835,11 +835,11 @@ class SupervisorService:
     def _ahead(self, action: AheadOfImage) -> None:
         self.nodes[action.node].ahead_of_image_uj += action.amount
         log.warning(
-            "node %s is %d debits ahead of this state file with books that cannot say what it "
-            "received: the file is older than its admission afresh; %s moved from the usable "
-            "budget to its grants (the most those debits could draw), a loss",
+            "node %s holds %d debit numbers this state file never saw, with books that cannot "
+            "say what it received: the file is older than its admission afresh; %s moved from "
+            "the usable budget to its grants (the most those numbers could draw), a loss",
             self.node_name(action.node),
-            action.draws + 1,
+            action.draws,
             format_energy(action.amount),
         )
 

@@ -4,15 +4,18 @@ harness for main() (tests/support/gateway_below_harness.c: the bus below on a so
 given here). What the vcan suite (tests/test_vcan_c_gateway*.py) cannot show on this machine:
 a JOIN below held until the node's TELEMETRY, a replayed or forged JOIN refused while the node
 reports its books (nothing written off), frames in the supervisor's own direction reported,
-refused frames told on stderr at most once a second, and a status file that is JSON.
+refused frames told on stderr at most once a second, a start from a record older than a node's
+admission afresh paid for and told, and a status file that is JSON.
 """
 
 from __future__ import annotations
 
 import json
+import queue
 import subprocess
 import sys
 import tempfile
+import threading
 import zlib
 from dataclasses import replace
 from pathlib import Path
@@ -25,7 +28,7 @@ from support.firmware_build import harness as built_harness
 from canergy.auth.keys import new_master, write_key
 from canergy.codec import Codec
 from canergy.live.supervisor.joins import JOIN_HOLD_US
-from canergy.messages import Commit, Join, Message, Return, Telemetry
+from canergy.messages import Admit, Commit, Debit, Join, Message, Return, Telemetry
 
 CODEC = Codec()
 
@@ -61,10 +64,7 @@ class Run:
         tmp = Path(tempfile.mkdtemp(dir=tmp))
         self.status_path = tmp / "gw.json"
         self.nv = tmp / "gw.nv" if nv is None else nv
-        args = [str(harness), "--node", "20", "--nodes", "1-2", "-c", "down"]
-        args += ["--upstream-channel", "up", "--nv", str(self.nv)]
-        args += ["--status-file", str(self.status_path), "--target", "0.5J"]
-        args += ["--response-timeout", "30", *extra]  # a grant stays in flight
+        args = _args(harness, self.nv, self.status_path, *extra)
         done = subprocess.run(
             args, input="\n".join([*script, "status"]) + "\n", capture_output=True, text=True
         )
@@ -82,6 +82,14 @@ class Run:
     def status(self) -> dict[str, Any]:
         loaded: dict[str, Any] = json.loads(self.status_path.read_text())
         return loaded
+
+
+def _args(harness: Path, nv: Path, status: Path, *extra: str) -> list[str]:
+    """The harness's command line: nodes 1 and 2 below, a 0.5 J target each."""
+    args = [str(harness), "--node", "20", "--nodes", "1-2", "-c", "down"]
+    args += ["--upstream-channel", "up", "--nv", str(nv)]
+    args += ["--status-file", str(status), "--target", "0.5J"]
+    return [*args, "--response-timeout", "30", *extra]  # a grant stays in flight
 
 
 ADMIT, INTENTION = 0x7, 0x1
@@ -343,3 +351,53 @@ def _frame(line: str) -> tuple[int, bytes]:
     """A harness output line ``tx IIIIIIII#DATA`` as an identifier and bytes."""
     ident, data = line[3:].split("#")
     return int(ident, 16), bytes.fromhex(data)
+
+
+def test_a_start_from_a_record_older_than_a_nodes_admission_afresh_pays_and_says_so(
+    harness: Path, tmp_path: Path
+) -> None:
+    """--rules witnessed: the gateway starts from a record of node 1 below (C as at its JOIN);
+    the node answers the start's SYNC with books it cannot tell (Rc unknown) and counts afresh
+    at q = C + 3, two debit numbers this record never held (admitted afresh after it): 2 x
+    65.535 J leave the budget below for the node's Gs, a debt, and stderr names the node, the
+    numbers and the amount. The SYNC's nonce is random: the harness is driven line by line."""
+    witnessed = ("--rules", "witnessed")
+    first = Run(harness, tmp_path, _started_saying(Telemetry.WITNESSED), *witnessed)
+    status = tmp_path / "restarted.json"
+    proc = subprocess.Popen(
+        _args(harness, first.nv, status, *witnessed),
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdin is not None and proc.stdout is not None and proc.stderr is not None
+    lines: queue.Queue[str] = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(x) for x in proc.stdout or ()], daemon=True).start()
+    try:
+        proc.stdin.write("at 2000\n")
+        proc.stdin.flush()
+        sync = None
+        while sync is None:  # the start's SYNC of node 1: an ADMIT with the start's nonce
+            line = lines.get(timeout=30)
+            msg = CODEC.decode(*_frame(line)) if line.startswith("tx ") else None
+            sync = msg if isinstance(msg, Admit) and msg.node == 1 else None
+        usable = json.loads(first.status_path.read_text())["usable_uj"]
+        answers = [
+            Debit.books(1, sync.nonce, None),
+            Debit.counts(1, sync.nonce, sync.seq + 3, 0, afresh=True),
+        ]
+        proc.stdin.write("\n".join(["at 3000", *(rx(m) for m in answers), "status"]) + "\n")
+        proc.stdin.close()
+        proc.wait(timeout=60)
+        err = proc.stderr.read()
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    moved = 2 * 65_535_000
+    assert (
+        "node 1 below holds 2 debit numbers this record never saw, with books that cannot say "
+        "what it received" in err
+    ), err
+    assert f"{moved} uJ moved from the usable budget" in err
+    assert json.loads(status.read_text())["usable_uj"] <= usable - moved, usable

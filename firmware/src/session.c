@@ -426,7 +426,7 @@ static void take_counts(struct canergy_session *s, const struct canergy_msg *m,
         const uint64_t amount = (uint64_t)(uint32_t)ahead * CANERGY_AMOUNT_MAX_MJ * MJ;
         s->delivered_uj += amount;
         step->credit_uj -= (int64_t)amount;
-        step->ahead_draws = (uint16_t)ahead;
+        step->ahead_numbers = (uint16_t)ahead;
     }
     s->phase = CANERGY_S_IDLE;
     s->sync_nonce = 0U;

@@ -76,8 +76,8 @@ static void record_event(const struct canergy_session *s, const struct canergy_s
     if (step->admitted != 0U) { /* a JOIN, or a RESUME found behind */
         e->flags |= CANERGY_SUP_ADMITTED;
     }
-    e->ahead_draws = step->ahead_draws;
-    if (step->ahead_draws != 0U) {
+    e->ahead_numbers = step->ahead_numbers;
+    if (step->ahead_numbers != 0U) {
         e->flags |= CANERGY_SUP_AHEAD;
     }
 }
@@ -90,7 +90,7 @@ static void apply(struct canergy_supervisor *sup, struct canergy_session *s,
 {
     /* a grant is checked against Us first; only a start's books, and its counts afresh,
      * take Us below 0 (a debt) */
-    CANERGY_ASSERT(step->credit_uj >= 0 || step->send == 0U || step->ahead_draws != 0U ||
+    CANERGY_ASSERT(step->credit_uj >= 0 || step->send == 0U || step->ahead_numbers != 0U ||
                    -step->credit_uj <= sup->usable_uj);
     sup->usable_uj += step->credit_uj;
     if (step->credit_uj != 0 || record_changed(s, after)) {

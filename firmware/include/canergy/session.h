@@ -90,7 +90,7 @@ struct canergy_session_step {
     uint8_t resolved;       /* enum canergy_resolution */
     uint8_t acknowledged;   /* 1: an ACK of the open intention (Python's Acknowledged) */
     uint8_t admitted;       /* 1: a JOIN, or a RESUME found behind (Python's Admitted) */
-    uint16_t ahead_draws;   /* witnessed: a start's counts afresh (books unknown or a floor),
+    uint16_t ahead_numbers; /* witnessed: a start's counts afresh (books unknown or a floor),
                              * q - C - 1 > 0 debit numbers the image never held (each a draw at
                              * most): as many AMOUNT_MAX_MJ moved from Us to Gs (AheadOfImage) */
 };

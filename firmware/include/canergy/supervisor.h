@@ -52,7 +52,7 @@ struct canergy_supervisor {
 #define CANERGY_SUP_ACKNOWLEDGED 0x01U   /* the open intention was acknowledged: decide it */
 #define CANERGY_SUP_RETURN_CREDITED 0x02U /* a fresh RETURN: amount_uj went into Us */
 #define CANERGY_SUP_ADMITTED 0x04U       /* a JOIN: the node starts again at the session's tx */
-/* a start's counts afresh (books unknown or a floor), ahead_draws debit numbers past C + 1:
+/* a start's counts afresh (books unknown or a floor), ahead_numbers debit numbers past C + 1:
  * as many CANERGY_AMOUNT_MAX_MJ moved from Us to Gs (Python's AheadOfImage) */
 #define CANERGY_SUP_AHEAD 0x08U
 
@@ -61,7 +61,7 @@ struct canergy_supervisor_event {
     uint32_t amount_uj; /* resolved: its Ts; else a RETURN credited: the amount (a witnessed
                          * RESUME that does both: its Ts; the session's returned_uj grew by
                          * the credit) */
-    uint16_t ahead_draws; /* CANERGY_SUP_AHEAD: the session step's ahead_draws */
+    uint16_t ahead_numbers; /* CANERGY_SUP_AHEAD: the session step's ahead_numbers */
     uint8_t node;
     uint8_t resolved;   /* enum canergy_resolution */
     uint8_t flags;      /* CANERGY_SUP_* */

@@ -103,13 +103,13 @@ void gw_down_out(struct gateway_port *g, const struct canergy_supervisor_out *ou
         }
         if ((e->flags & CANERGY_SUP_AHEAD) != 0U) { /* witnessed.AheadOfImage */
             const unsigned long long moved =
-                (unsigned long long)e->ahead_draws * CANERGY_AMOUNT_MAX_MJ * CANERGY_QUANTUM_UJ;
+                (unsigned long long)e->ahead_numbers * CANERGY_AMOUNT_MAX_MJ * CANERGY_QUANTUM_UJ;
             (void)fprintf(stderr,
                           "%s: node %u below holds %u debit numbers this record never saw, with "
                           "books that cannot say what it received: the record is older than its "
                           "admission afresh; %llu uJ moved from the usable budget to its grants "
                           "(the most those numbers could draw), a loss\n",
-                          PROG, (unsigned)e->node, (unsigned)e->ahead_draws, moved);
+                          PROG, (unsigned)e->node, (unsigned)e->ahead_numbers, moved);
         }
         if ((e->flags & CANERGY_SUP_ADMITTED) != 0U) {
             b->admitted++;

@@ -111,7 +111,7 @@ class _Binding:
         self.event, _ = _reader(
             ffi,
             "struct canergy_supervisor_event",
-            ("tx", "amount_uj", "ahead_draws", "node", "resolved", "flags"),
+            ("tx", "amount_uj", "ahead_numbers", "node", "resolved", "flags"),
         )
         self.frame, _ = _reader(ffi, "struct canergy_frame", ("id", "dlc", "data"))
         self.auth_frame, _ = _reader(ffi, "struct canergy_auth_frame", ("id", "len", "data"))

@@ -68,13 +68,13 @@ class Admitted:
 @dataclass(frozen=True, slots=True)
 class AheadOfImage:
     """Supervisor: a start found the counts of node ``node``, admitted afresh and holding nothing
-    since, ``draws`` debit numbers past C + 1: it started from an image older than that
-    admission, and what the node drew since cannot be told; ``amount`` µJ (the most ``draws``
+    since, ``numbers`` debit numbers past C + 1: it started from an image older than that
+    admission, and what the node drew since cannot be told; ``amount`` µJ (the most that many
     draws can take: a start uses a number too, so each is a draw at most) moved from Us to Gs,
     a loss (``witnessed.take_counts``)."""
 
     node: int
-    draws: int
+    numbers: int
     amount: int
 
 

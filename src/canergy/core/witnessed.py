@@ -414,10 +414,10 @@ def take_counts(t: Timing, s: Session, msg: Debit, now: int) -> SessionStep:
 def ahead_of_image(s: Session, msg: Debit) -> AheadOfImage | None:
     """What the counts ``msg`` move from Us to Gs (``take_counts``), or None: nothing unless
     they are ``afresh`` with q above C + 1."""
-    draws = unwrap(msg.seq, s.returns_credited, SEQ_BITS) - s.returns_credited - 1
-    if not msg.afresh or draws <= 0:
+    numbers = unwrap(msg.seq, s.returns_credited, SEQ_BITS) - s.returns_credited - 1
+    if not msg.afresh or numbers <= 0:
         return None
-    return AheadOfImage(s.node, draws, draws * AMOUNT_MAX_MJ * QUANTUM_UJ)
+    return AheadOfImage(s.node, numbers, numbers * AMOUNT_MAX_MJ * QUANTUM_UJ)
 
 
 def supervisor_record(s: Session) -> tuple[object, ...]:

@@ -839,7 +839,7 @@ class SupervisorService:
             "say what it received: the file is older than its admission afresh; %s moved from "
             "the usable budget to its grants (the most those numbers could draw), a loss",
             self.node_name(action.node),
-            action.draws,
+            action.numbers,
             format_energy(action.amount),
         )
 

@@ -205,9 +205,9 @@ def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
     assert debt <= guarded["bound_uj"], guarded
     why = ("guard", "stop_reason", "latched", "refused", "unverified", "stops", "tpdo_age_us")
     assert "OPERATION ENABLED" in [h["state"] for h in drive["history"]], (
-        {k: guarded.get(k) for k in why},
-        drive["history"],
-        place,
+        # a string: pytest shows it whole (a dict's repr is cut at 240 characters)
+        f"{ {k: guarded.get(k) for k in why} }\n{drive['history']}\n{place}\n"
+        f"supervisor:\n{procs.stderr('supervisor')[-4000:]}\ndrive:\n{procs.stderr('drive')[-2000:]}"
     )
     # all charged but what the drive drew after the guard's last reading, as the supervisor
     # stopped: a count, and the 2.75 W envelope over a TPDO period, a reaction and a latency

@@ -69,7 +69,7 @@ def test_an_image_older_than_an_admission_afresh_pays_for_every_draw_since(
     the image's budget (the checker's NV bound: 16 steps)."""
     restored, node, said = granted_drawn_then(core, draws, lose_books=True)
     ahead = [a for a in said if isinstance(a, AheadOfImage)]
-    assert ahead == [AheadOfImage(1, draws, draws * DRAW_MAX)]
+    assert ahead == [AheadOfImage(1, draws)] and ahead[0].amount == draws * DRAW_MAX
     assert restored.session(1).delivered == draws * DRAW_MAX
     assert restored.state.usable == INITIAL - draws * DRAW_MAX  # a debt: no grant until covered
     assert restored.state.usable + node.state.spent <= INITIAL
@@ -145,7 +145,8 @@ def test_a_node_put_back_and_found_behind_then_an_older_supervisor_image_creates
     restored.power_loss(2, nonce=0x55)
     said = exchange(restored.handle_timer(2), restored, node, 2)
     assert restored.unconfirmed() == ()
-    assert [a for a in said if isinstance(a, AheadOfImage)] == [AheadOfImage(1, 3, 3 * DRAW_MAX)]
+    (ahead,) = [a for a in said if isinstance(a, AheadOfImage)]
+    assert ahead == AheadOfImage(1, 3) and ahead.amount == 3 * DRAW_MAX
     assert restored.session(1).delivered == 1_000_000 + 3 * DRAW_MAX
     assert restored.state.usable + spent + node.state.usable <= INITIAL
 

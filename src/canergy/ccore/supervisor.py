@@ -45,7 +45,6 @@ from canergy.core.variants import Variant, get_variant
 from canergy.live.supervisor.intrusions import Intrusions, Refusals
 from canergy.live.supervisor.policy import Limits, TopUp
 from canergy.messages import (
-    AMOUNT_MAX_MJ,
     MAX_NODE,
     MIN_NODE,
     QUANTUM_UJ,
@@ -839,7 +838,7 @@ class CompiledSupervisor:
                     credited = int(c.returned_uj) - returned
                 actions.append(ReturnCredited(node, c.returns_credited - resumed, credited))
             if flags & b.ahead:  # before the ADMIT it precedes, as Python's take_counts
-                actions.append(AheadOfImage(node, ahead, ahead * AMOUNT_MAX_MJ * QUANTUM_UJ))
+                actions.append(AheadOfImage(node, ahead))
             if flags & b.admitted:
                 c = sessions[i]
                 actions.append(Admitted(node, c.tx, c.returns_credited))

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from canergy.core.state import Outcome
 from canergy.frozen import fast_init
-from canergy.messages import Message
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Message
 
 
 @fast_init
@@ -75,7 +75,10 @@ class AheadOfImage:
 
     node: int
     numbers: int
-    amount: int
+
+    @property
+    def amount(self) -> int:
+        return self.numbers * AMOUNT_MAX_MJ * QUANTUM_UJ
 
 
 @fast_init

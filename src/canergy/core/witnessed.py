@@ -43,7 +43,6 @@ from canergy.core.table import ANY, STAY, ClientTable, SupervisorTable, cell
 from canergy.core.timing import Timing
 from canergy.frozen import evolve
 from canergy.messages import (
-    AMOUNT_MAX_MJ,
     COUNTER_BOUND,
     COUNTER_END,
     DELIVERED_BITS,
@@ -417,7 +416,7 @@ def ahead_of_image(s: Session, msg: Debit) -> AheadOfImage | None:
     numbers = unwrap(msg.seq, s.returns_credited, SEQ_BITS) - s.returns_credited - 1
     if not msg.afresh or numbers <= 0:
         return None
-    return AheadOfImage(s.node, numbers, numbers * AMOUNT_MAX_MJ * QUANTUM_UJ)
+    return AheadOfImage(s.node, numbers)
 
 
 def supervisor_record(s: Session) -> tuple[object, ...]:

@@ -960,6 +960,9 @@ class _CClientNode:
         assert self.c.do_draw(amount, now) == OK
         return self._sends(self.c.out)
 
+    def handle_timer(self, now: int) -> list[Send]:
+        return self._sends(self.c.timers(now))
+
     @property
     def state(self) -> ClientState:
         return self.c.state

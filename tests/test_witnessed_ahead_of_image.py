@@ -15,7 +15,7 @@ import pytest
 from canergy.ccore.supervisor import CompiledSupervisor
 from canergy.check import Bounds, check
 from canergy.core import AheadOfImage, Client, Send, Supervisor, Timing
-from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Direction
+from canergy.messages import AMOUNT_MAX_MJ, QUANTUM_UJ, Debit, Direction
 
 CORES = pytest.mark.parametrize("core", [Supervisor, CompiledSupervisor], ids=["python", "c"])
 TIMING = Timing(response_timeout_us=10, command_timeout_us=10, return_retry_us=10)
@@ -174,3 +174,76 @@ def test_only_a_supervisor_image_older_than_an_admission_afresh_pays() -> None:
     backups = check("witnessed", replace(bounds, supervisor_old_copies=1, supervisor_backups=True))
     assert backups.complete and backups.violations == 0, backups.counterexample
     assert backups.worst_quiescent_dissipation >= DRAW_MAX
+
+
+def forged_counts_afresh(core: Any, make_node: Any, numbers: int) -> tuple[Any, Any, list[Any]]:
+    """A node granted 1 J that drew 250 mJ; the supervisor's start (no image put back), the
+    node's books taken, then counts afresh forged at q = C + 1 + ``numbers`` before the node's
+    genuine counts; both sides run until quiet. The supervisor, the node, every action."""
+    sup = core([1], INITIAL, variant="witnessed", timing=TIMING)
+    node = make_node(Client(1, variant="witnessed", timing=TIMING).state)
+    exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)
+    exchange(sup.commit(1, 0), sup, node, 0)
+    exchange(node.spend(250_000, 0), sup, node, 0)
+    sup.power_loss(1, nonce=0x55)
+    (sync,) = [a.message for a in sup.handle_timer(1) if isinstance(a, Send)]
+    answers = [a.message for a in node.receive(sync, 1) if isinstance(a, Send)]
+    (books,) = [m for m in answers if m.is_books]
+    (counts,) = [m for m in answers if m.is_counts]
+    said = exchange(sup.receive(books, 1), sup, node, 1)
+    c = sup.session(1).returns_credited
+    forged = Debit.counts(1, counts.nonce, (c + 1 + numbers) & 0xFFFF, counts.amount_mj, True)
+    said += exchange(sup.receive(forged, 1), sup, node, 1)
+    said += exchange(sup.receive(counts, 1), sup, node, 1)
+    for t in range(2, 2_000, 10):  # the C node re-sends its counts at 300 µs (SCENE)
+        said += exchange([*node.handle_timer(t), *sup.handle_timer(t)], sup, node, t)
+    return sup, node, said
+
+
+def paid_by_the_next_grant(sup: Any, node: Any, debt: int) -> int:
+    """The debt injected, 1 J granted: what the node received beyond the 1 J (nothing created:
+    checked here)."""
+    before = node.state.usable
+    sup.inject(debt)
+    exchange(sup.begin(1, 1_000_000, 2_000), sup, node, 2_000)
+    exchange(sup.commit(1, 2_000), sup, node, 2_000)
+    held = node.state.usable + node.state.spent
+    assert sup.state.usable + held <= INITIAL + debt
+    return int(node.state.usable - before - 1_000_000)
+
+
+@CORES
+@NODES
+@pytest.mark.parametrize("numbers", [128, 32_766], ids=["found-behind", "most-debt"])
+def test_forged_counts_afresh_without_a_key_cost_a_debt_and_create_nothing(
+    core: Any, make_node: Any, numbers: int
+) -> None:
+    """docs/security.md's residual without a key: a forger that read the SYNC's nonce on the
+    bus sends counts afresh (flags 0x16) after the node's books and before its genuine counts.
+    ``numbers`` x 65.535 J leave Us for Gs: a debt (at most 32,766 numbers, 2.15 MJ), no grant
+    to any node until an injection covers it. The supervisor's answer moves C past the node's
+    count: unless C comes round to the node's q + 1 on the 16-bit wire (the largest forgery),
+    the node is found behind and writes off what it held (0.75 J), admitted afresh. Either way
+    its next INTENTION pays it nothing of the Gs the forgery raised (a fresh intention sets
+    Rc = Gs; known books 2.15 MJ behind read as behind on the 24-bit wire)."""
+    sup, node, said = forged_counts_afresh(core, make_node, numbers)
+    assert [a for a in said if isinstance(a, AheadOfImage)] == [AheadOfImage(1, numbers)]
+    debt = numbers * DRAW_MAX
+    assert sup.state.usable == INITIAL - 1_000_000 - debt
+    assert sup.session(1).delivered == 1_000_000 + debt
+    with pytest.raises(Exception, match="usable"):
+        sup.begin(1, 1000, 2_000)
+    if numbers < 32_766:  # found behind: written off, admitted afresh
+        assert node.state.usable == 0 and node.state.credited_unknown
+    else:  # C came round to q + 1: confirmed
+        assert node.state.usable == 750_000 and node.state.credited == 1_000_000
+    assert paid_by_the_next_grant(sup, node, debt) == 0
+
+
+def test_no_forged_counts_afresh_pays_a_node_anything() -> None:
+    """Every 61st q the forgery can take (and the ends), on the Python supervisor and node:
+    each books its debt, none pays the node anything, none creates energy."""
+    for numbers in (*range(1, 32_767, 61), 32_765, 32_766):
+        sup, node, _ = forged_counts_afresh(Supervisor, python_node, numbers)
+        assert sup.session(1).delivered == 1_000_000 + numbers * DRAW_MAX, numbers
+        assert paid_by_the_next_grant(sup, node, numbers * DRAW_MAX) == 0, numbers

@@ -15,6 +15,7 @@ guarantee: drawn ≤ granted + the bound the guard showed, with every µJ drawn 
 from __future__ import annotations
 
 import contextlib
+import json
 import signal
 import threading
 import time
@@ -152,6 +153,10 @@ def _spent(procs: Procs) -> bool:
     )
 
 
+VIEW = ("guard", "stop_reason", "drive_state", "unverified", "usable_uj", "stop_at_uj")
+"""What the pulsed test records of the guard each time it changes (shown when it fails)."""
+
+
 def _pulse(network: canopen.Network, done: threading.Event) -> None:
     """Target velocity 50 rad/s and 0 in turn, as fast as SDO writes go."""
     sdo = network[DRIVE].sdo
@@ -184,11 +189,16 @@ def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
     done = threading.Event()
     pulser = threading.Thread(target=_pulse, args=(network, done), daemon=True)
     pulser.start()
+    views: list[tuple[Any, ...]] = []  # the guard's judgement as it changed, for a failure
     try:  # until the budget runs out, or 30 s: tapered limits too weak to move the load
         end = time.monotonic() + 30  # only draw copper losses, slowly
         while time.monotonic() < end:
             if _spent(procs):
                 break
+            g = _guarded(procs)
+            view = tuple(g.get(k) for k in VIEW)
+            if not views or views[-1][1:] != view:
+                views.append((round(time.monotonic() - end + 30, 1), *view))
             time.sleep(0.2)
     finally:
         done.set()
@@ -203,10 +213,12 @@ def test_a_guarded_drive_pulsed_on_vcan0_stays_inside_its_grant_plus_the_bound(
     books_closed = ledger_from_status(sup, [])
     assert books_closed.dissipated + debt >= 0, books_closed
     assert debt <= guarded["bound_uj"], guarded
-    why = ("guard", "stop_reason", "latched", "refused", "unverified", "stops", "tpdo_age_us")
     assert "OPERATION ENABLED" in [h["state"] for h in drive["history"]], (
         # a string: pytest shows it whole (a dict's repr is cut at 240 characters)
-        f"{ {k: guarded.get(k) for k in why} }\n{drive['history']}\n{place}\n"
+        f"{json.dumps(guarded, indent=1, default=str)}\n{drive['history']}\n{place}\n"
+        f"the guard's view as it changed (s, {', '.join(VIEW)}):\n"
+        + "\n".join(map(str, views))
+        + "\n"
         f"supervisor:\n{procs.stderr('supervisor')[-4000:]}\ndrive:\n{procs.stderr('drive')[-2000:]}"
     )
     # all charged but what the drive drew after the guard's last reading, as the supervisor

@@ -21,7 +21,15 @@ from canergy.devices.proxy import HELD
 from canergy.ledger import ledger_from_status
 from canergy.live.runtime import monotonic_us
 from canergy.live.supervisor.control import request
-from firmware_model.drive.live_bench import DRIVE, NODE, Bench, exhausted, guarded_bench, wait_for
+from firmware_model.drive.live_bench import (
+    DRIVE,
+    NODE,
+    Bench,
+    app_read,
+    exhausted,
+    guarded_bench,
+    wait_for,
+)
 
 
 @pytest.fixture
@@ -57,11 +65,11 @@ def test_the_budget_runs_out_and_the_drive_stops_inside_the_bound(
             return abs(b.model.velocity_rad_s) < 0.05
 
     wait_for(standing)
-    # an independent master reads the drive's objects alongside the guard (once the guard's
-    # own SDO transfers are over: the drive has one SDO server for both)
+    # an independent master reads the drive's objects alongside the guard (the drive has one
+    # SDO server for both, and the guard re-reads its configuration at any time: tried again)
     wait_for(lambda: (d := b.drive_status()) and d["limits_confirmed"])
-    assert b.app.sdo[0x6041].raw & 0x4F == 0x40  # SWITCH ON DISABLED
-    assert abs(int(b.app.sdo[0x606C].raw)) < 50
+    assert app_read(b.app, 0x6041) & 0x4F == 0x40  # SWITCH ON DISABLED
+    assert abs(app_read(b.app, 0x606C)) < 50
     final = b.stop()
     books = final["nodes"][str(DRIVE)]
     granted = books["delivered_uj"] - books["returns_credited_uj"]

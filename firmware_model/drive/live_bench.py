@@ -19,7 +19,7 @@ import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import can
 import canopen
@@ -39,6 +39,7 @@ from firmware_model.node import FirmwareNode, NodeConfig, NodeHost
 from firmware_model.nvstore import NvStore
 
 DRIVE, NODE = 10, 1
+T = TypeVar("T")
 LIMITS = ("--cia402-max-torque", "265", "--cia402-max-current", "265")
 """With ``--cia402-max-speed 100500``: the 15 W envelope of ``cosim.FIFTEEN_WATTS``."""
 
@@ -121,13 +122,21 @@ def app_write(node: canopen.RemoteNode, index: int, value: int) -> None:
     def transfer() -> None:
         node.sdo[index].raw = value
 
-    # The guard reads back too: once a second, and in bursts after each write it sees. On a
-    # loaded machine a burst can outlast ten tries; an application keeps trying, for a while.
+    _patiently(transfer)
+
+
+def app_read(node: canopen.RemoteNode, index: int) -> int:
+    """An application's SDO read, beside the guard's on the drive's one SDO server."""
+    return _patiently(lambda: int(node.sdo[index].raw))
+
+
+def _patiently(transfer: Callable[[], T]) -> T:
+    """The guard reads back too: once a second, and in bursts after each write it sees. On a
+    loaded machine a burst can outlast ten tries; an application keeps trying, for a while."""
     deadline = time.monotonic() + APP_SDO_PATIENCE_S
     while True:
         try:
-            shared_sdo(transfer, time.sleep, attempts=10)
-            return
+            return shared_sdo(transfer, time.sleep, attempts=10)
         except canopen.SdoCommunicationError:
             if time.monotonic() > deadline:
                 raise

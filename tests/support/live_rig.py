@@ -57,6 +57,8 @@ class Rig:
         self.sup_loop: Loop | None = None
         self.hosts: list[tuple[NodeHost, Loop]] = []
         self.retired: dict[int, FirmwareNode] = {}
+        self.started_from: dict[int, ClientState] = {}
+        """Each node's state as its last start took it from NV, before its loop ran."""
 
     # -- parts -------------------------------------------------------------------------------
     def _bus(self, filters: list[dict[str, int | bool]]) -> can.BusABC:
@@ -110,6 +112,7 @@ class Rig:
                 for n in ids
             ]
         )
+        self.started_from.update((n, node.client.state) for n, node in host.nodes.items())
         filters = [f for n in ids for f in self.codec.client_filters(n)]
         runtime = BusRuntime(
             self._bus(filters), host, codec=self.codec, receives=Direction.TO_CLIENT

@@ -353,14 +353,17 @@ def _frame(line: str) -> tuple[int, bytes]:
     return int(ident, 16), bytes.fromhex(data)
 
 
+@pytest.mark.parametrize("numbers", [2, 32_766], ids=["restored", "forged-most"])
 def test_a_start_from_a_record_older_than_a_nodes_admission_afresh_pays_and_says_so(
-    harness: Path, tmp_path: Path
+    harness: Path, tmp_path: Path, numbers: int
 ) -> None:
     """--rules witnessed: the gateway starts from a record of node 1 below (C as at its JOIN);
     the node answers the start's SYNC with books it cannot tell (Rc unknown) and counts afresh
-    at q = C + 3, two debit numbers this record never held (admitted afresh after it): 2 x
-    65.535 J leave the budget below for the node's Gs, a debt, and stderr names the node, the
-    numbers and the amount. The SYNC's nonce is random: the harness is driven line by line."""
+    at q = C + 1 + ``numbers``, debit numbers this record never held (admitted afresh after
+    it): ``numbers`` x 65.535 J leave the budget below for the node's Gs, a debt, and stderr
+    names the node, the numbers and the amount. 32,766: the most a forged frame without a key
+    can claim (2.15 MJ, past 32 bits of µJ). The SYNC's nonce is random: the harness is driven
+    line by line."""
     witnessed = ("--rules", "witnessed")
     first = Run(harness, tmp_path, _started_saying(Telemetry.WITNESSED), *witnessed)
     status = tmp_path / "restarted.json"
@@ -385,7 +388,7 @@ def test_a_start_from_a_record_older_than_a_nodes_admission_afresh_pays_and_says
         usable = json.loads(first.status_path.read_text())["usable_uj"]
         answers = [
             Debit.books(1, sync.nonce, None),
-            Debit.counts(1, sync.nonce, sync.seq + 3, 0, afresh=True),
+            Debit.counts(1, sync.nonce, (sync.seq + 1 + numbers) & 0xFFFF, 0, afresh=True),
         ]
         proc.stdin.write("\n".join(["at 3000", *(rx(m) for m in answers), "status"]) + "\n")
         proc.stdin.close()
@@ -394,10 +397,10 @@ def test_a_start_from_a_record_older_than_a_nodes_admission_afresh_pays_and_says
     finally:
         proc.kill()
     assert proc.returncode == 0, err
-    moved = 2 * 65_535_000
+    moved = numbers * 65_535_000
     assert (
-        "node 1 below holds 2 debit numbers this record never saw, with books that cannot say "
-        "what it received" in err
+        f"node 1 below holds {numbers} debit numbers this record never saw, with books that "
+        "cannot say what it received" in err
     ), err
     assert f"{moved} uJ moved from the usable budget" in err
     assert json.loads(status.read_text())["usable_uj"] <= usable - moved, usable

@@ -176,10 +176,13 @@ def test_only_a_supervisor_image_older_than_an_admission_afresh_pays() -> None:
     assert backups.worst_quiescent_dissipation >= DRAW_MAX
 
 
-def forged_counts_afresh(core: Any, make_node: Any, numbers: int) -> tuple[Any, Any, list[Any]]:
+def forged_counts_afresh(
+    core: Any, make_node: Any, numbers: int, forged_books: bool = False
+) -> tuple[Any, Any, list[Any]]:
     """A node granted 1 J that drew 250 mJ; the supervisor's start (no image put back), the
     node's books taken, then counts afresh forged at q = C + 1 + ``numbers`` before the node's
-    genuine counts; both sides run until quiet. The supervisor, the node, every action."""
+    genuine counts; both sides run until quiet. ``forged_books``: books of no Rc forged too,
+    both before the node's answer. The supervisor, the node, every action."""
     sup = core([1], INITIAL, variant="witnessed", timing=TIMING)
     node = make_node(Client(1, variant="witnessed", timing=TIMING).state)
     exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)
@@ -190,11 +193,14 @@ def forged_counts_afresh(core: Any, make_node: Any, numbers: int) -> tuple[Any, 
     answers = [a.message for a in node.receive(sync, 1) if isinstance(a, Send)]
     (books,) = [m for m in answers if m.is_books]
     (counts,) = [m for m in answers if m.is_counts]
-    said = exchange(sup.receive(books, 1), sup, node, 1)
     c = sup.session(1).returns_credited
     forged = Debit.counts(1, counts.nonce, (c + 1 + numbers) & 0xFFFF, counts.amount_mj, True)
-    said += exchange(sup.receive(forged, 1), sup, node, 1)
-    said += exchange(sup.receive(counts, 1), sup, node, 1)
+    arrive = [books, forged, counts]
+    if forged_books:
+        arrive = [Debit.books(1, counts.nonce, None), forged, books, counts]
+    said: list[Any] = []
+    for msg in arrive:
+        said += exchange(sup.receive(msg, 1), sup, node, 1)
     for t in range(2, 2_000, 10):  # the C node re-sends its counts at 300 µs (SCENE)
         said += exchange([*node.handle_timer(t), *sup.handle_timer(t)], sup, node, t)
     return sup, node, said
@@ -240,10 +246,13 @@ def test_forged_counts_afresh_without_a_key_cost_a_debt_and_create_nothing(
     assert paid_by_the_next_grant(sup, node, debt) == 0
 
 
-def test_no_forged_counts_afresh_pays_a_node_anything() -> None:
-    """Every 61st q the forgery can take (and the ends), on the Python supervisor and node:
-    each books its debt, none pays the node anything, none creates energy."""
+@CORES
+@pytest.mark.parametrize("forged_books", [False, True], ids=["after-its-books", "books-forged"])
+def test_no_forged_counts_afresh_pays_a_node_anything(core: Any, forged_books: bool) -> None:
+    """Every 61st q the forgery can take (and the ends), against the Python node, after the
+    node's genuine books or with books of no Rc forged before them: each books its debt, none
+    pays the node anything, none creates energy."""
     for numbers in (*range(1, 32_767, 61), 32_765, 32_766):
-        sup, node, _ = forged_counts_afresh(Supervisor, python_node, numbers)
+        sup, node, _ = forged_counts_afresh(core, python_node, numbers, forged_books)
         assert sup.session(1).delivered == 1_000_000 + numbers * DRAW_MAX, numbers
         assert paid_by_the_next_grant(sup, node, numbers * DRAW_MAX) == 0, numbers

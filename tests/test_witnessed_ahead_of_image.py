@@ -177,12 +177,14 @@ def test_only_a_supervisor_image_older_than_an_admission_afresh_pays() -> None:
 
 
 def forged_counts_afresh(
-    core: Any, make_node: Any, numbers: int, forged_books: bool = False
+    core: Any, make_node: Any, numbers: int, forged_books: bool = False, when: str = "between"
 ) -> tuple[Any, Any, list[Any]]:
     """A node granted 1 J that drew 250 mJ; the supervisor's start (no image put back), the
     node's books taken, then counts afresh forged at q = C + 1 + ``numbers`` before the node's
     genuine counts; both sides run until quiet. ``forged_books``: books of no Rc forged too,
-    both before the node's answer. The supervisor, the node, every action."""
+    both before the node's answer. ``when``: the forged counts ``"between"`` the node's books
+    and counts, ``"first"`` (before any books) or ``"after"`` (once the start has ended). The
+    supervisor, the node, every action."""
     sup = core([1], INITIAL, variant="witnessed", timing=TIMING)
     node = make_node(Client(1, variant="witnessed", timing=TIMING).state)
     exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)
@@ -195,7 +197,11 @@ def forged_counts_afresh(
     (counts,) = [m for m in answers if m.is_counts]
     c = sup.session(1).returns_credited
     forged = Debit.counts(1, counts.nonce, (c + 1 + numbers) & 0xFFFF, counts.amount_mj, True)
-    arrive = [books, forged, counts]
+    arrive = {
+        "between": [books, forged, counts],
+        "first": [forged, books, counts],
+        "after": [books, counts, forged],
+    }[when]
     if forged_books:
         arrive = [Debit.books(1, counts.nonce, None), forged, books, counts]
     said: list[Any] = []
@@ -210,7 +216,8 @@ def paid_by_the_next_grant(sup: Any, node: Any, debt: int) -> int:
     """The debt injected, 1 J granted: what the node received beyond the 1 J (nothing created:
     checked here)."""
     before = node.state.usable
-    sup.inject(debt)
+    if debt:
+        sup.inject(debt)
     exchange(sup.begin(1, 1_000_000, 2_000), sup, node, 2_000)
     exchange(sup.commit(1, 2_000), sup, node, 2_000)
     held = node.state.usable + node.state.spent
@@ -256,3 +263,24 @@ def test_no_forged_counts_afresh_pays_a_node_anything(core: Any, forged_books: b
         sup, node, _ = forged_counts_afresh(core, python_node, numbers, forged_books)
         assert sup.session(1).delivered == 1_000_000 + numbers * DRAW_MAX, numbers
         assert paid_by_the_next_grant(sup, node, numbers * DRAW_MAX) == 0, numbers
+
+
+@CORES
+@NODES
+@pytest.mark.parametrize("when", ["first", "after"])
+@pytest.mark.parametrize("numbers", [1, 128, 32_766])
+def test_forged_counts_afresh_before_any_books_or_after_the_start_move_nothing(
+    core: Any, make_node: Any, when: str, numbers: int
+) -> None:
+    """Counts afresh forged where no start awaits them, before the node's books reach the
+    supervisor (``first``) or once its counts have ended the start (``after``), are dropped:
+    no debt, no write-off, the node confirmed with its 0.75 J, and the next grant is an
+    ordinary one (a rule that took them as counts would book a debt or refuse the grant)."""
+    sup, node, said = forged_counts_afresh(core, make_node, numbers, when=when)
+    assert [a for a in said if isinstance(a, AheadOfImage)] == []
+    assert sup.state.usable == INITIAL - 1_000_000
+    assert sup.session(1).delivered == 1_000_000
+    assert node.state.usable == 750_000 and node.state.credited == 1_000_000
+    assert sup.unconfirmed() == ()
+    assert paid_by_the_next_grant(sup, node, 0) == 0
+    assert node.state.usable == 1_750_000

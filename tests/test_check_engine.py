@@ -10,6 +10,8 @@ canonical form, the subsumption or a rule's bookkeeping changes at least one of 
 from __future__ import annotations
 
 import json
+import os
+import signal
 from dataclasses import replace
 from typing import Any
 
@@ -238,3 +240,32 @@ def test_cli_engine_and_workers(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         main(["check", "--workers", "3"])
     assert "outside" in capsys.readouterr().err
+
+
+def test_an_expander_killed_mid_search_is_a_clear_error(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The kernel's out-of-memory killer takes the expander (seen on `--old-copies 2
+    --backups`, 7.2 million states, 20 GB): the command says so in one line, exit 2, no
+    traceback and no result that looks complete."""
+    monkeypatch.setattr(workers, "TWO_FROM", 40)
+    expand = workers._expand
+
+    def killed_after_one_batch(engine: Any, requests: Any, answers: Any) -> None:
+        real = requests.get
+
+        def once() -> Any:
+            if getattr(once, "done", False):
+                os.kill(os.getpid(), signal.SIGKILL)
+            once.done = True  # type: ignore[attr-defined]
+            return real()
+
+        requests.get = once
+        expand(engine, requests, answers)
+
+    monkeypatch.setattr(workers, "_expand", killed_after_one_batch)
+    code = main(["check", "--transactions", "1", "--clients", "2", "--workers", "2"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "killed by SIGKILL" in err and "out-of-memory" in err and "--max-states" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1

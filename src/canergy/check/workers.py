@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
 from collections import deque
 from collections.abc import Iterator
 from multiprocessing.process import BaseProcess
@@ -125,7 +126,20 @@ def _receive(answers: Queue[Any], expander: BaseProcess) -> Any:
             return answers.get(timeout=1)
         except Empty:
             if not expander.is_alive():
-                raise RuntimeError("the expander process stopped") from None
+                raise ChildProcessError(_stopped(expander.exitcode)) from None
+
+
+def _stopped(code: int | None) -> str:
+    """Why the search cannot go on, in the words a user needs (the CLI prints it, exit 2)."""
+    how = f"exit status {code}"
+    if code is not None and code < 0:
+        how = f"killed by {signal.Signals(-code).name}"
+        if code == -signal.SIGKILL:
+            how += ", as the kernel's out-of-memory killer does"
+    return (
+        f"the checker's expander process stopped ({how}); the states held so far are lost: "
+        "lower a bound or pass --max-states"
+    )
 
 
 def _expand(engine: Engine, requests: Queue[Any], answers: Queue[Any]) -> None:

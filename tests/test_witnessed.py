@@ -825,6 +825,20 @@ def test_no_backup_taken_at_any_moment_creates_energy() -> None:
     assert check("hardened", bounds, stop_at_first=True).counterexample is not None
 
 
+def test_two_backups_of_a_node_put_back_one_after_the_other_create_nothing() -> None:
+    """The first restore is a start from an older image (the node's record goes back, which
+    ends the copies the theorem's restore step takes); the second puts back a backup written
+    before it, or while its start waited (docs/protocol.md, 2' (i)): outside the theorem,
+    checked here with the supervisor's starts (SYNC) at a bound CI can run (307,633 states;
+    ``--in-flight 2 --retries 0 --timeouts 3``: 1,352,221 states, none)."""
+    bounds = Bounds(old_copies=2, backups=True, transactions=1, losses=0, duplicates=0)
+    bounds = replace(bounds, in_flight=2, retries=0, timeouts=1)
+    result = check("witnessed", bounds)
+    assert result.complete and result.violations == 0
+    assert result.states > check("witnessed", replace(bounds, old_copies=1)).states
+    assert check("hardened", bounds, stop_at_first=True).counterexample is not None
+
+
 def test_the_hardened_rules_create_energy_from_an_older_copy() -> None:
     result = check("hardened", OLD_COPY, stop_at_first=True)
     assert result.counterexample is not None

@@ -84,7 +84,10 @@ images are shown to be of that kind for the copies each side writes (a step of e
 writes one, ``write_copy``, ``write_session_copy``, kept as the ghosts ``World.copy`` and
 ``World.scopy``): a copy written while no start of that side waits is of that kind at every
 later step until that side's record goes back (``went_back``, ``session_went_back``; the
-clauses ``copies the node wrote``, ``copies the supervisor wrote``).
+clauses ``copies the node wrote``, ``copies the supervisor wrote``). A start of the
+supervisor's ends either side's copies only when it goes on from an older image
+(``World.sforked``), not when it goes on from its own record (a power loss, a re-sync), which
+holds every counter at least where it stood (``own_start``).
 
 Counts that end a start are read against the record started from, so ``deliverable`` asks
 their q within 2**15 of its C (assumption 3 of the receiver's counter), and ``bounded`` its tx
@@ -836,6 +839,7 @@ def image_given(w: World) -> Term:
 
 COPIES = "copies the node wrote"
 SESSION_COPIES = "copies the supervisor wrote"
+OWN_START = "a start from the supervisor's own record"
 
 
 def fits(w: World) -> Term:
@@ -859,11 +863,27 @@ def copies(w: World) -> Term:
 def session_copies(w: World) -> Term:
     """A copy the supervisor wrote since its record of the node last went back
     (``World.scopied``) is an older image of the kind its restore step takes
-    (``p_session_image``, with the answers that copy remembers)."""
+    (``p_session_image``, with the answers that copy remembers), and no start in progress
+    went on from an older image (``forked``: that ended them)."""
     image = p_session_image(
         _ghost(w.scopy, "scopy"), w, _ghost(w.scopy_join, "join"), _ghost(w.scopy_answer, "answer")
     )
-    return z3.Implies(_ghost(w.scopied, "scopied"), image)
+    unforked = z3.Implies(wit.in_start(w.s), z3.Not(forked(w)))
+    return z3.Implies(_ghost(w.scopied, "scopied"), z3.And(image, unforked))
+
+
+def own_start(w: World) -> Term:
+    """A start of the supervisor's that went on from its own record (a power loss, a re-sync:
+    not ``forked``) holds every counter of that record at least where it stood at the start:
+    what it confirms is then ahead of every copy written before."""
+    then = replace(w, s=spre(w))
+    ahead = z3.And(
+        ule(then.tx, w.tx),
+        ule(then.rc, w.rc),
+        spre(w).delivered <= w.s.delivered,
+        spre(w).returned <= w.s.returned,
+    )
+    return z3.Implies(z3.And(wit.in_start(w.s), z3.Not(forked(w))), ahead)
 
 
 STATE: tuple[tuple[str, inv.Clause], ...] = (
@@ -883,6 +903,7 @@ STATE: tuple[tuple[str, inv.Clause], ...] = (
     ("window", window),
     ("window at a start", window_at_start),
     ("a record fits", fits),
+    (OWN_START, own_start),
     (COPIES, copies),
     (SESSION_COPIES, session_copies),
 )
@@ -1523,12 +1544,14 @@ def write_copy(w: World) -> st.Step:
 
 def went_back(before: World, after: World) -> Term:
     """The node's record went back: a new life, its Rc learned, its numbering or the
-    supervisor's moved (a start of the supervisor's found it behind); the
-    record the invariant speaks of is behind the one before in Rc, a debit, what its actuator
-    used, ltx or return number, or its last transaction was settled anew (by the counts of a
-    start); or a start begins or goes on from a record other than the one the invariant speaks
-    of (an older image, a SYNC's settling). Copies written before are no longer of the kind
-    the restore step takes (``World.copied``)."""
+    supervisor's moved (a start of the supervisor's found it behind), the counts that end a
+    start of the supervisor's from an older image (``forked``: a new epoch of ``H`` from a
+    restore; one from its own record keeps them); the record the invariant speaks of is
+    behind the one before in Rc, a debit, what its actuator used, ltx or return number, or its
+    last transaction was settled anew (by the counts of a start); or a start begins or goes on
+    from a record other than the one the invariant speaks of (an older image, a SYNC's
+    settling). Copies written before are no longer of the kind the restore step takes
+    (``World.copied``)."""
     b, a = view(before), view(after)
     return z3.Or(
         before.life != after.life,
@@ -1538,7 +1561,7 @@ def went_back(before: World, after: World) -> Term:
         before.roff != after.roff,
         before.shift_tx != after.shift_tx,  # the supervisor's numbering moved
         before.shift_seq != after.shift_seq,
-        epoch_of(before) != epoch_of(after),  # counts ended a start of the supervisor's
+        z3.And(epoch_of(before) != epoch_of(after), forked(after)),  # counts ended a start
         b.c.credited_unknown != a.c.credited_unknown,
         a.c.credited < b.c.credited,
         a.c.usable - a.c.credited > b.c.usable - b.c.credited,  # a debit undone
@@ -1829,6 +1852,7 @@ def restore_supervisor(
         cc=z3.And(w.cc, step.session.tx == w.s.tx),
         sstarts=sstarts(w) + 1,
         sbegan=starts(w) + 1,
+        sforked=z3.Or(join is not None, z3.And(wit.in_start(w.s), forked(w))),
     )
     if join is not None:
         after = replace(after, jk=join[0], jq=join[1], jlife=join[2])
@@ -1855,18 +1879,25 @@ def write_session_copy(w: World) -> st.Step:
     return st.Step(after, (), z3.Not(wit.in_start(w.s)), z3.IntVal(0))
 
 
+def forked(w: World) -> Term:
+    return _ghost(w.sforked, "knows whether the supervisor's start went on from an image")
+
+
 def session_went_back(before: World, after: World) -> Term:
-    """The supervisor's record of the node went back or was re-based: a start of its begins
-    (from its own record or an older image), a start's counts begin an epoch, its numbering
-    moved, or its tx or C is behind. Copies written before are no longer of the kind its
-    restore step takes (``World.scopied``): without the first two, a copy newer than the image
-    a start went on from is ahead of the books its counts confirm."""
+    """The supervisor's record of the node went back or was re-based: a start of its goes on
+    from an older image (``forked``: it begins from one, a restore turns a start into one, or
+    the counts that end one begin an epoch), its numbering moved, or its tx or C is behind.
+    Copies written before are no longer of the kind its restore step takes
+    (``World.scopied``): a copy newer than the image a start went on from is ahead of the
+    books its counts confirm. A start from its own record (a power loss, a re-sync) keeps
+    them: it holds every counter at least where it stood (``own_start``)."""
     b, a = view(before), view(after)
+    begins = z3.And(wit.in_start(after.s), z3.Not(wit.in_start(before.s)))
+    epoch = epoch_of(before) != epoch_of(after)
     return z3.Or(
         before.shift_tx != after.shift_tx,
         before.shift_seq != after.shift_seq,
-        epoch_of(before) != epoch_of(after),
-        z3.And(wit.in_start(after.s), z3.Not(wit.in_start(before.s))),
+        z3.And(forked(after), z3.Or(begins, z3.Not(forked(before)), epoch)),
         z3.ULT(a.tx, b.tx),
         z3.ULT(a.rc, b.rc),
     )
@@ -1884,7 +1915,10 @@ def resync(w: World, nonce: Term) -> st.Step:
     nonce is drawn fresh, as a start's)."""
     step = wit.resync_session(w.s, nonce)
     at_start = replace(w.s, sync_nonce=z3.BitVecVal(0, 16), resync=z3.BoolVal(False))
-    out = _session(w, step, spre=at_start, sstarts=sstarts(w) + 1, sbegan=starts(w) + 1)
+    out = _session(
+        w, step, spre=at_start, sstarts=sstarts(w) + 1, sbegan=starts(w) + 1,
+        sforked=z3.BoolVal(False),
+    )  # fmt: skip
     return replace(out, enabled=wit.may_resync(w.s))
 
 

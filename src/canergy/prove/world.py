@@ -148,6 +148,10 @@ class World:
     went back (``witnessed_proof.session_went_back``). Hardened: unused."""
     scopy_join: tuple[Term, Term, Term] | None = None
     scopy_answer: tuple[Term, Term] | None = None
+    sforked: Term | None = None
+    """Witnessed rules: the supervisor's start in progress, or its last, went on from an older
+    image of its record (a restore) rather than its own (a power loss, a re-sync): its counts
+    then end the copies written before. Hardened: unused."""
 
     # canonical views
     @property
@@ -270,12 +274,13 @@ def any_world(name: str = "w", with_pre: bool = True) -> World:
     scopy_join = (*sj, _fresh(f"{name}.scopy.jlife.", INT)) if with_pre else None
     sa = (_fresh(f"{name}.scopy.rk.", BV32), _fresh(f"{name}.scopy.rstart.", INT))
     scopy_answer = sa if with_pre else None
+    sforked = _fresh(f"{name}.sforked.", BOOL) if with_pre else None
     return World(
         s, c, **ghost, pre=pre, starts=starts, top=top, spre=spre, sstarts=sstarts,
         answering=answering, jk=jk, jq=jq, jlife=jlife, lhi=lhi, rk=rk, rstart=rstart,
         begun=begun, taken=taken, took=took, sbegan=sbegan, epoch=epoch, copy=copy,
         copied=copied, scopy=scopy, scopied=scopied, scopy_join=scopy_join,
-        scopy_answer=scopy_answer,
+        scopy_answer=scopy_answer, sforked=sforked,
     )  # fmt: skip
 
 
@@ -319,7 +324,7 @@ def initial_world() -> World:
         s, c, zero32, zero32, zero32, zero32, zero, zero, zero, zero, zero, no, zero,
         z3.BoolVal(True), zero32, c, zero, zero32, s, zero, z3.IntVal(-1), zero32, zero32, zero,
         zero32, zero32, z3.IntVal(-1), zero32, zero32, zero, zero, zero, c, no, s, no,
-        (zero32, zero32, zero), (zero32, zero),
+        (zero32, zero32, zero), (zero32, zero), no,
     )  # fmt: skip
 
 

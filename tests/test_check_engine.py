@@ -252,12 +252,13 @@ def test_an_expander_killed_mid_search_is_a_clear_error(
     expand = workers._expand
 
     def killed_after_one_batch(engine: Any, requests: Any, answers: Any) -> None:
-        real = requests.get
+        real, batches = requests.get, 0
 
         def once() -> Any:
-            if getattr(once, "done", False):
+            nonlocal batches
+            if batches:
                 os.kill(os.getpid(), signal.SIGKILL)
-            once.done = True  # type: ignore[attr-defined]
+            batches += 1
             return real()
 
         requests.get = once

@@ -634,7 +634,7 @@ def test_a_restore_of_the_supervisor_ends_the_copies_it_wrote_before(
     from canergy.prove import witnessed_proof as wp
 
     w, s = _step_of("supervisor: restored from an older image")
-    unforked = z3.Not(z3.And(wp.wit.in_start(w.s), wp.forked(w)))  # the invariant's own_start
+    unforked = z3.Not(z3.And(wp.wit.in_start(w.s), wp.forked(w)))  # as session_copies says
     assert _always(z3.Implies(unforked, z3.Not(s.after.scopied)))
     assert _copy_outcomes("supervisor: restored from an older image")[wp.SESSION_COPIES].proved
     went_back = wp.session_went_back

@@ -177,14 +177,14 @@ def test_only_a_supervisor_image_older_than_an_admission_afresh_pays() -> None:
 
 
 def forged_counts_afresh(
-    core: Any, make_node: Any, numbers: int, forged_books: bool = False, when: str = "between"
+    core: Any, make_node: Any, numbers: int, when: str = "between"
 ) -> tuple[Any, Any, list[Any]]:
     """A node granted 1 J that drew 250 mJ; the supervisor's start (no image put back), the
     node's books taken, then counts afresh forged at q = C + 1 + ``numbers`` before the node's
-    genuine counts; both sides run until quiet. ``forged_books``: books of no Rc forged too,
-    both before the node's answer. ``when``: the forged counts ``"between"`` the node's books
-    and counts, ``"first"`` (before any books) or ``"after"`` (once the start has ended). The
-    supervisor, the node, every action."""
+    genuine counts; both sides run until quiet. ``when``: the forged counts ``"between"`` the
+    node's books and counts, ``"books-forged"`` (after books of no Rc forged too, both before
+    the node's answer), ``"first"`` (before any books) or ``"after"`` (once the start has
+    ended). The supervisor, the node, every action."""
     sup = core([1], INITIAL, variant="witnessed", timing=TIMING)
     node = make_node(Client(1, variant="witnessed", timing=TIMING).state)
     exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)
@@ -199,11 +199,10 @@ def forged_counts_afresh(
     forged = Debit.counts(1, counts.nonce, (c + 1 + numbers) & 0xFFFF, counts.amount_mj, True)
     arrive = {
         "between": [books, forged, counts],
+        "books-forged": [Debit.books(1, counts.nonce, None), forged, books, counts],
         "first": [forged, books, counts],
         "after": [books, counts, forged],
     }[when]
-    if forged_books:
-        arrive = [Debit.books(1, counts.nonce, None), forged, books, counts]
     said: list[Any] = []
     for msg in arrive:
         said += exchange(sup.receive(msg, 1), sup, node, 1)
@@ -254,13 +253,13 @@ def test_forged_counts_afresh_without_a_key_cost_a_debt_and_create_nothing(
 
 
 @CORES
-@pytest.mark.parametrize("forged_books", [False, True], ids=["after-its-books", "books-forged"])
-def test_no_forged_counts_afresh_pays_a_node_anything(core: Any, forged_books: bool) -> None:
+@pytest.mark.parametrize("when", ["between", "books-forged"])
+def test_no_forged_counts_afresh_pays_a_node_anything(core: Any, when: str) -> None:
     """Every 61st q the forgery can take (and the ends), against the Python node, after the
     node's genuine books or with books of no Rc forged before them: each books its debt, none
     pays the node anything, none creates energy."""
     for numbers in (*range(1, 32_767, 61), 32_765, 32_766):
-        sup, node, _ = forged_counts_afresh(core, python_node, numbers, forged_books)
+        sup, node, _ = forged_counts_afresh(core, python_node, numbers, when)
         assert sup.session(1).delivered == 1_000_000 + numbers * DRAW_MAX, numbers
         assert paid_by_the_next_grant(sup, node, numbers * DRAW_MAX) == 0, numbers
 
@@ -272,8 +271,8 @@ def test_no_forged_counts_afresh_pays_a_node_anything(core: Any, forged_books: b
 def test_forged_counts_afresh_before_any_books_or_after_the_start_move_nothing(
     core: Any, make_node: Any, when: str, numbers: int
 ) -> None:
-    """Counts afresh forged where no start awaits them, before the node's books reach the
-    supervisor (``first``) or once its counts have ended the start (``after``), are dropped:
+    """Counts afresh forged where the start awaits no counts, before the node's books reach
+    the supervisor (``first``) or once its counts have ended the start (``after``), are dropped:
     no debt, no write-off, the node confirmed with its 0.75 J, and the next grant is an
     ordinary one (a rule that took them as counts would book a debt or refuse the grant)."""
     sup, node, said = forged_counts_afresh(core, make_node, numbers, when=when)
@@ -284,3 +283,35 @@ def test_forged_counts_afresh_before_any_books_or_after_the_start_move_nothing(
     assert sup.unconfirmed() == ()
     assert paid_by_the_next_grant(sup, node, 0) == 0
     assert node.state.usable == 1_750_000
+
+
+@CORES
+@NODES
+def test_a_state_file_copied_before_a_reboot_and_put_back_after_it_creates_nothing(
+    core: Any, make_node: Any
+) -> None:
+    """protocol.md (2' (i)): a copy written before a start of the supervisor's from its own
+    record stays inside the theorem. Tried on the cores: 1 J granted, the state file copied
+    (a nightly backup), the supervisor reboots and its start is confirmed, 1 J more granted
+    and 1.5 J drawn, then the copy put back and started. Its start takes the node's books
+    (Rc 2 J) and counts: what the node holds and used is within what the image's Us gave."""
+    sup = core([1], INITIAL, variant="witnessed", timing=TIMING)
+    node = make_node(Client(1, variant="witnessed", timing=TIMING).state)
+    exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)
+    exchange(sup.commit(1, 0), sup, node, 0)
+    copy = sup.state
+    sup.power_loss(1, nonce=0x55)  # the reboot: a start from its own record
+    exchange(sup.handle_timer(1), sup, node, 1)
+    assert sup.unconfirmed() == ()
+    exchange(sup.begin(1, 1_000_000, 2), sup, node, 2)
+    exchange(sup.commit(1, 2), sup, node, 2)
+    for _ in range(3):
+        exchange(node.spend(500_000, 2), sup, node, 2)
+    assert node.state.spent == 1_500_000 and node.state.usable == 500_000
+    restored = core([1], 0, variant="witnessed", timing=TIMING, state=copy)
+    restored.power_loss(3, nonce=0x66)
+    exchange(restored.handle_timer(3), restored, node, 3)
+    assert restored.unconfirmed() == ()
+    assert restored.session(1).delivered >= 2_000_000  # the image's Gs raised to the node's Rc
+    held = node.state.usable + node.state.spent
+    assert restored.state.usable + held <= INITIAL

@@ -133,7 +133,8 @@ def _stopped(code: int | None) -> str:
     """Why the search cannot go on, in the words a user needs (the CLI prints it, exit 2)."""
     how = f"exit status {code}"
     if code is not None and code < 0:
-        how = f"killed by {signal.Signals(-code).name}"
+        known = -code in signal.Signals._value2member_map_
+        how = f"killed by {signal.Signals(-code).name if known else f'signal {-code}'}"
         if code == -signal.SIGKILL:
             how += ", as the kernel's out-of-memory killer does"
     return (

@@ -547,44 +547,64 @@ def test_copies_the_node_wrote_before_its_record_went_back_are_outside_the_theor
         assert not outcome.proved and "counterexample" in outcome.counterexample, step
 
 
-def test_a_copy_of_the_node_written_while_its_start_waits_is_outside_the_theorem(
+def _possible_after(step: str, waits: Any, covered: Any) -> bool:
+    """Whether the invariant allows ``step`` from a world where ``waits`` holds, leaving a
+    world where ``covered`` holds (the copies' clauses are not kept vacuously)."""
+    from canergy.prove.obligations import proof_of
+
+    proof = proof_of(WITNESSED)
+    w, s = _step_of(step)
+    solver = z3.Solver()
+    solver.add(proof.invariant(w), proof.bounded(w), s.enabled, waits(w), covered(s.after))
+    return bool(solver.check() == z3.sat)
+
+
+def test_a_copy_of_the_node_written_while_its_own_start_waits_is_inside_the_theorem(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """While a start waits the node's record may be an older image it started from: a copy
-    written then is no image of the kind the restore step takes, which is why the step that
-    writes a copy waits for no start."""
+    """A copy written while the node's own start after a power loss waits (RESUMING, the books
+    it began from, the supervisor not behind it) is an image of the kind the restore step
+    takes, and such a copy can be written. Covering any start, or a RESUMING one with the
+    supervisor behind the node (a restore of the supervisor's), fails the step: the copy may
+    then be an older image, or ahead of the supervisor's books."""
     from canergy.prove import witnessed_proof as wp
 
-    step = wp.WRITE_COPY
-    assert _copy_outcomes(step)["copies the node wrote"].proved
-    written = wp.write_copy
+    assert _copy_outcomes(wp.WRITE_COPY)[wp.COPIES].proved
+    resuming = lambda w: w.c.phase == sym.RESUMING  # noqa: E731
+    assert _possible_after(wp.WRITE_COPY, resuming, lambda w: w.copied)
+    covered = wp.copy_covered
 
-    def any_time(w: Any) -> Any:
-        return replace(written(w), enabled=w.booked)
+    def behind_too(w: Any) -> Any:
+        own = z3.And(w.c.phase == sym.RESUMING, wp._same_books(w.c, wp.pre(w)))
+        return z3.Or(covered(w), own)
 
-    monkeypatch.setattr(wp, "write_copy", any_time)
-    outcome = _copy_outcomes(step)["copies the node wrote"]
-    assert not outcome.proved and "counterexample" in outcome.counterexample
+    for wider in (lambda w: z3.BoolVal(True), behind_too):
+        monkeypatch.setattr(wp, "copy_covered", wider)
+        outcome = _copy_outcomes(wp.WRITE_COPY)[wp.COPIES]
+        assert not outcome.proved and "counterexample" in outcome.counterexample
 
 
-def test_a_copy_of_the_supervisor_written_while_its_start_waits_is_outside_the_theorem(
+def test_a_copy_of_the_supervisor_written_while_its_own_start_waits_is_inside_the_theorem(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """While the supervisor's start waits its record may be an older image it went on from:
-    a copy written then is no image of the kind its restore step takes, which is why the step
-    that writes one waits for no start."""
+    """A nightly copy of the state file while a start from the supervisor's own record waits
+    for a node that is off (its books not taken) is an image of the kind the restore step
+    takes, and such a copy can be written. Covering any start, or one whose books raised Gs
+    (the node's books taken), fails the step: the copy is then ahead of the session at the
+    start the invariant speaks of, or an older image the start went on from."""
     from canergy.prove import witnessed_proof as wp
 
-    step = wp.WRITE_SESSION_COPY
-    assert _copy_outcomes(step)["copies the supervisor wrote"].proved
-    written = wp.write_session_copy
+    assert _copy_outcomes(wp.WRITE_SESSION_COPY)[wp.SESSION_COPIES].proved
+    waits = lambda w: wp.wit.in_start(w.s)  # noqa: E731
+    assert _possible_after(wp.WRITE_SESSION_COPY, waits, lambda w: w.scopied)
 
-    def any_time(w: Any) -> Any:
-        return replace(written(w), enabled=z3.BoolVal(True))
+    def books_taken_too(w: Any) -> Any:
+        return z3.Or(z3.Not(waits(w)), z3.Not(wp.forked(w)))
 
-    monkeypatch.setattr(wp, "write_session_copy", any_time)
-    outcome = _copy_outcomes(step)["copies the supervisor wrote"]
-    assert not outcome.proved and "counterexample" in outcome.counterexample
+    for wider in (lambda w: z3.BoolVal(True), books_taken_too):
+        monkeypatch.setattr(wp, "session_copy_covered", wider)
+        outcome = _copy_outcomes(wp.WRITE_SESSION_COPY)[wp.SESSION_COPIES]
+        assert not outcome.proved and "counterexample" in outcome.counterexample
 
 
 def _step_of(name: str) -> tuple[Any, Any]:

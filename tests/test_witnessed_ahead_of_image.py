@@ -315,3 +315,76 @@ def test_a_state_file_copied_before_a_reboot_and_put_back_after_it_creates_nothi
     assert restored.session(1).delivered >= 2_000_000  # the image's Gs raised to the node's Rc
     held = node.state.usable + node.state.spent
     assert restored.state.usable + held <= INITIAL
+
+
+@CORES
+@NODES
+def test_a_state_file_copied_while_a_start_waits_for_a_silent_node_creates_nothing(
+    core: Any, make_node: Any, tmp_path: Any
+) -> None:
+    """protocol.md (2' (i)): a copy written while a start of the supervisor's from its own
+    record waits for the node's books is inside the theorem (the file holds the session as it
+    stood at the start). Tried on the cores through the state file: 1 J granted, the
+    supervisor reboots while the node is off (its SYNC unanswered), the file copied then (a
+    nightly backup), the node comes back and the start is confirmed, 1 J more granted and
+    1.5 J drawn; the copy put back and started: nothing created."""
+    from canergy.live.supervisor.state_file import load_state, save_state
+
+    sup = core([1], INITIAL, variant="witnessed", timing=TIMING)
+    node = make_node(Client(1, variant="witnessed", timing=TIMING).state)
+    exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)
+    exchange(sup.commit(1, 0), sup, node, 0)
+    sup.power_loss(1, nonce=0x55)  # the reboot: a start from its own record
+    unanswered = [a for a in sup.handle_timer(1) if isinstance(a, Send)]
+    assert unanswered and sup.unconfirmed() == (1,)  # the SYNC is lost: the node is off
+    save_state(tmp_path / "copy.json", sup.state, "witnessed", fsync=False)
+    exchange(sup.handle_timer(1_000), sup, node, 1_000)  # the SYNC again, answered
+    assert sup.unconfirmed() == ()
+    exchange(sup.begin(1, 1_000_000, 1_001), sup, node, 1_001)
+    exchange(sup.commit(1, 1_001), sup, node, 1_001)
+    for _ in range(3):
+        exchange(node.spend(500_000, 1_001), sup, node, 1_001)
+    assert node.state.spent == 1_500_000 and node.state.usable == 500_000
+    copy = load_state(tmp_path / "copy.json", "witnessed", (1,))
+    assert copy.usable == INITIAL - 1_000_000 and copy.sessions[0].delivered == 1_000_000
+    restored = core([1], 0, variant="witnessed", timing=TIMING, state=copy)
+    restored.power_loss(1_002, nonce=0x66)
+    exchange(restored.handle_timer(1_002), restored, node, 1_002)
+    assert restored.unconfirmed() == ()
+    assert restored.session(1).delivered >= 2_000_000  # the copy's Gs raised to the node's Rc
+    held = node.state.usable + node.state.spent
+    assert restored.state.usable + held <= INITIAL
+
+
+@CORES
+@NODES
+def test_a_node_copied_while_its_start_waits_for_the_supervisor_creates_nothing(
+    core: Any, make_node: Any
+) -> None:
+    """protocol.md (2' (i)): a copy of the node's record written while its own start after a
+    power loss waits (RESUMING, the supervisor not answering) is inside the theorem. Tried on
+    the cores: 1 J granted, the node loses power while the supervisor is down (its RESUME
+    lost), its record is copied then, the RESUME answered once the supervisor is back, 1 J more
+    granted and 1.5 J drawn; the record put back to the copy and started: found behind, the
+    node holds nothing it was not given and the supervisor's books pay for what it used."""
+    sup = core([1], INITIAL, variant="witnessed", timing=TIMING)
+    node = make_node(Client(1, variant="witnessed", timing=TIMING).state)
+    exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)
+    exchange(sup.commit(1, 0), sup, node, 0)
+    lost = [a for a in node.power_loss(1, nonce=0x0404) if isinstance(a, Send)]
+    assert lost and node.state.usable == 1_000_000  # the RESUME, lost: the supervisor is off
+    copy = node.state
+    exchange(node.handle_timer(1_000), sup, node, 1_000)  # the RESUME again, answered
+    assert node.state.usable == 1_000_000 and sup.unconfirmed() == ()
+    exchange(sup.begin(1, 1_000_000, 1_001), sup, node, 1_001)
+    exchange(sup.commit(1, 1_001), sup, node, 1_001)
+    for _ in range(3):
+        exchange(node.spend(500_000, 1_001), sup, node, 1_001)
+    spent = node.state.spent
+    assert spent == 1_500_000 and sup.state.usable == INITIAL - 2_000_000
+    node = make_node(copy)  # the node's record put back to the copy
+    exchange(node.power_loss(1_002, nonce=0x0505), sup, node, 1_002)
+    exchange(node.handle_timer(2_000), sup, node, 2_000)
+    assert node.state.phase.name == "IDLE" and sup.unconfirmed() == ()
+    assert sup.state.usable + spent + node.state.usable <= INITIAL
+    assert node.state.usable <= 500_000  # what it holds beside the 1.5 J it used

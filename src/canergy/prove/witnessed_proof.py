@@ -82,8 +82,9 @@ is under assumption 2 narrowed (``canergy.prove.NARROWED``): the restore steps t
 of the stated kind (``p_image``, ``p_session_image``) and the residual (d) as hypotheses. The
 images are shown to be of that kind for the copies each side writes (a step of each side
 writes one, ``write_copy``, ``write_session_copy``, kept as the ghosts ``World.copy`` and
-``World.scopy``): a copy written while no start of that side waits is of that kind at every
-later step until that side's record goes back (``went_back``, ``session_went_back``; the
+``World.scopy``): a copy written while no start of that side waits, or while a start of that
+side's from its own record waits (``copy_covered``, ``session_copy_covered``), is of that kind
+at every later step until that side's record goes back (``went_back``, ``session_went_back``; the
 clauses ``copies the node wrote``, ``copies the supervisor wrote``). A start of the
 supervisor's ends either side's copies only when it goes on from an older image
 (``World.sforked``), not when it goes on from its own record (a power loss, a re-sync), which
@@ -1535,11 +1536,22 @@ WRITE_COPY = "client: a copy of its record written (a backup)"
 
 
 def write_copy(w: World) -> st.Step:
-    """Someone copies the node's record (a backup, an NV read-out): any time it has books and
-    no start waits. It changes nothing else; a restore may start from it later."""
-    after = replace(w, copy=copy_of(w.c), copied=z3.BoolVal(True))
-    enabled = z3.And(w.booked, z3.Not(starting(w.c)))
-    return st.Step(after, (), enabled, z3.IntVal(0))
+    """Someone copies the node's record (a backup, an NV read-out): any time it has books. It
+    changes nothing else; a restore may start from it later. The copy is of the kind the
+    restore step takes when ``copy_covered``."""
+    after = replace(w, copy=copy_of(w.c), copied=copy_covered(w))
+    return st.Step(after, (), w.booked, z3.IntVal(0))
+
+
+def copy_covered(w: World) -> Term:
+    """A copy of the node's record is inside the theorem when written while no start of its
+    waits, or while its own start after a power loss waits (RESUMING) holding the books of
+    the record it began from, with the supervisor not behind it (its tx at or above the
+    node's ltx: no restore of the supervisor's). Not while a start from an older image waits,
+    nor while the node answers a SYNC (a start of the supervisor's)."""
+    v = view(w)
+    resuming = z3.And(w.c.phase == sym.RESUMING, _same_books(w.c, pre(w)), ule(v.last, v.tx))
+    return z3.Or(z3.Not(starting(w.c)), resuming)
 
 
 def went_back(before: World, after: World) -> Term:
@@ -1868,15 +1880,42 @@ WRITE_SESSION_COPY = "supervisor: a copy of its state file written (a backup)"
 
 
 def write_session_copy(w: World) -> st.Step:
-    """Someone copies the supervisor's state file (a backup, a VM snapshot): any time no start
-    of its waits (ACKED is stored as WAIT_ACK), with the answers it remembers. It changes
-    nothing else; a restore may start from it later."""
+    """Someone copies the supervisor's state file (a backup, a VM snapshot) at any time, with
+    the answers it remembers; ACKED is stored as WAIT_ACK and a start's phases as IDLE (its
+    nonce is volatile). It changes nothing else; a restore may start from it later. The copy
+    is of the kind the restore step takes when ``session_copy_covered``."""
+    waits = wit.in_start(w.s)
     acked = w.s.phase == sym.ACKED
-    copy = replace(w.s, phase=z3.If(acked, sym.WAIT_ACK, w.s.phase))
+    phase = z3.If(acked, sym.WAIT_ACK, z3.If(waits, sym.S_IDLE, w.s.phase))
+    nonce = z3.If(waits, z3.BitVecVal(0, 16), w.s.sync_nonce)
+    copy = replace(w.s, phase=phase, sync_nonce=nonce, resync=z3.And(z3.Not(waits), w.s.resync))
     join = (_ghost(w.jk, "jk"), _ghost(w.jq, "jq"), _ghost(w.jlife, "jlife"))
     answer = (_ghost(w.rk, "rk"), _ghost(w.rstart, "rstart"))
-    after = replace(w, scopy=copy, scopied=z3.BoolVal(True), scopy_join=join, scopy_answer=answer)
-    return st.Step(after, (), z3.Not(wit.in_start(w.s)), z3.IntVal(0))
+    covered = session_copy_covered(w)
+    after = replace(w, scopy=copy, scopied=covered, scopy_join=join, scopy_answer=answer)
+    return st.Step(after, (), z3.BoolVal(True), z3.IntVal(0))
+
+
+def session_copy_covered(w: World) -> Term:
+    """A copy of the supervisor's state file is inside the theorem when written while no start
+    of its waits for the node, or while a start from its own record waits (a power loss, a
+    re-sync: not ``forked``) with the session's books still as they stood when it began (the
+    node's books not taken, or taken without raising Gs). Not while a start from an older image
+    waits, nor once the node's books raised Gs in that start."""
+    own = z3.And(z3.Not(forked(w)), _as_it_stood(w.s, spre(w)))
+    return z3.Or(z3.Not(wit.in_start(w.s)), own)
+
+
+_SESSION_BOOKS = (
+    "tx", "reserved", "delivered", "decision", "returns_credited", "returned", "resume_nonce",
+    "resume_from", "resume_to", "witness", "join_nonce", "join_tx", "join_seq",
+)  # fmt: skip
+"""The fields of a session its state file keeps (not its phase in a start, its nonce or
+whether it is a re-sync)."""
+
+
+def _as_it_stood(s: sym.Session, at_start: sym.Session) -> Term:
+    return z3.And(*(getattr(s, f) == getattr(at_start, f) for f in _SESSION_BOOKS))
 
 
 def forked(w: World) -> Term:

@@ -8,6 +8,7 @@ wait is in the status and on stderr), and Gs moves up to the node's Rc: nothing 
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -402,3 +403,49 @@ def test_counts_a_start_ignores_leave_the_witness_alone(
     s.on_message(Debit.books(1, 0x1234, 0), 20)
     s.on_message(Debit.counts(1, 0x1234, 0, 0), 21)  # this start's: the baseline starts again
     assert reset == [Debit.counts(1, 0x1234, 0, 0)]
+
+
+@pytest.mark.parametrize("core", CORES)
+def test_a_copy_taken_while_the_start_waits_for_a_node_that_is_off_creates_nothing(
+    tmp_path: Path, core: str
+) -> None:
+    """protocol.md, 2' (i), on the live stack: the supervisor grants and stops with the node;
+    it starts again from its own state file while the node is off and waits for its books;
+    the file is copied then (a nightly backup: the session stored IDLE, as it stood); the node
+    comes on, its books are confirmed and grants go on; both stop; the copy is put back and the
+    supervisor started from it; the node comes on once more. Nothing is created."""
+    b = bench(tmp_path, "witnessed", None, core=core)
+    node, loop = b.start_node()
+    try:
+        wait(lambda: b.node_status().get("committed", 0) >= 2)
+    finally:
+        loop.halt()
+    b.stop_supervisor()
+    used = node.actuator.drawn_uj
+    (tmp_path / "status.json").unlink()
+    b = bench(tmp_path, "witnessed", None, b.channel, core)  # a reboot, the node off
+    wait(lambda: b.status().get("waiting_for_books") == [NODE])
+    copy = (tmp_path / "s.json").read_text()
+    assert json.loads(copy)["sessions"][str(NODE)]["phase"] == "IDLE"
+    node, loop = b.start_node()
+    try:
+        wait(lambda: b.node_status().get("synced") == 1)
+        wait(lambda: b.node_status()["committed"] >= 3)  # grants go on after the books
+    finally:
+        loop.halt()
+    b.stop_supervisor()
+    used += node.actuator.drawn_uj
+    (tmp_path / "s.json").write_text(copy)
+    (tmp_path / "status.json").unlink()
+    b = bench(tmp_path, "witnessed", None, b.channel, core)  # from the copy
+    wait(lambda: b.status().get("waiting_for_books") == [NODE])
+    assert b.status()["granted_this_run_uj"] == 0
+    node, loop = b.start_node()
+    try:
+        wait(lambda: b.node_status().get("synced") == 1)
+        wait(lambda: b.node_status()["committed"] >= 1)
+    finally:
+        loop.halt()
+    final = b.stop_supervisor()["nodes"][str(NODE)]
+    used += node.actuator.drawn_uj + held(node)
+    assert used <= released(final), (used, released(final))

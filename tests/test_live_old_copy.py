@@ -192,6 +192,46 @@ def test_an_older_copy_of_a_nodes_record_creates_nothing_under_witnessed(
     assert "started from a record older than the books" in said
 
 
+@pytest.mark.parametrize("core", ["python", "c"])
+def test_a_copy_taken_while_the_nodes_start_waits_for_the_supervisor_creates_nothing(
+    tmp_path: Path, core: str
+) -> None:
+    """protocol.md, 2' (i), on the live stack: the node spends, then both stop; the node comes
+    on first and its start waits for the supervisor (RESUME unanswered); its NV file is copied
+    then (the record it began from); the supervisor comes on, confirms it and grants go on; the
+    node loses power and the copy is put back: found behind, it runs on afresh and nothing is
+    created."""
+    b = bench(tmp_path, "witnessed", None, core=core)
+    first, loop = b.start_node()
+    try:
+        wait(lambda: b.node_status().get("committed", 0) >= 2)
+    finally:
+        loop.halt()
+    b.stop_supervisor()
+    second, loop = b.start_node()  # the supervisor off: its start waits
+    try:
+        wait(lambda: second.resuming and second.resumes == 1)
+        copy = (tmp_path / "node.nv").read_bytes()
+        (tmp_path / "status.json").unlink()
+        b = bench(tmp_path, "witnessed", None, b.channel, core)
+        wait(lambda: not second.resuming and b.node_status().get("committed", 0) >= 3)
+        wait(lambda: second.actuator.drawn_uj >= UJ_PER_J // 2)
+    finally:
+        loop.halt()  # power lost: only the NV file survives, put back to the copy
+    (tmp_path / "node.nv").write_bytes(copy)
+    third, loop = b.start_node()
+    try:
+        wait(lambda: third.found_behind == 1 and not third.resuming)
+        committed = b.node_status()["committed"]
+        wait(lambda: b.node_status()["committed"] >= committed + 2)  # it runs on, afresh
+    finally:
+        loop.halt()
+    final = b.stop_supervisor()["nodes"][str(NODE)]
+    used = sum(n.actuator.drawn_uj for n in (first, second, third)) + held(third)
+    assert used <= released(final), (used, released(final))
+    assert final["found_behind"] == 1 and third.dropped_uj > 0  # the copy's Uc dropped
+
+
 def test_the_same_restore_under_the_hardened_rules_creates_energy(tmp_path: Path) -> None:
     """The measurement the witnessed rules answer: the older record is paid back what the node
     received after the copy, and its actuator uses it a second time."""

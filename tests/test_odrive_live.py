@@ -44,9 +44,12 @@ def exhausted(bench: AxisBench) -> dict[str, Any] | None:
 
 
 def ready(bench: AxisBench) -> bool:
-    """Set up: the closed limits (no current) in force until the guard has budget."""
+    """Set up, and granted: the limits the guard opened once it had budget. (Until then the
+    closed limits, no current, are in force: an application that enters closed loop before
+    is stopped, and on a loaded machine a test that did so once ran out its budget with the
+    axis stopped, 0 J drawn.)"""
     d = bench.axis_status()
-    return d is not None and d["ready"] and d["limits_confirmed"]
+    return d is not None and d["ready"] and d["limits_confirmed"] and d["guard"] == "running"
 
 
 def granted_and_axis(final: dict[str, Any]) -> tuple[int, dict[str, Any]]:

@@ -522,10 +522,10 @@ def test_every_step_keeps_the_copies_each_side_wrote_older_images_of_the_kind_re
     file, written while no start of that side waits (or while a start from its own record
     waits, as ``copy_covered`` and ``session_copy_covered`` say) and since its record last
     went back is, at every later step, an older image of the kind the restore steps take
-    (``p_image``, ``p_session_image``). Every step keeps the two clauses that say so, the steps that write
-    a copy among them, what a record holds fits a record, and a start of the supervisor's
-    from its own record holds every counter at least where it stood (why such a start ends
-    neither side's copies)."""
+    (``p_image``, ``p_session_image``). Every step keeps the two clauses that say so, the
+    steps that write a copy among them, what a record holds fits a record, and a start of
+    the supervisor's from its own record holds every counter at least where it stood (why
+    such a start ends neither side's copies)."""
     outcomes = _copy_outcomes(step)
     failed = [f"{o.clause}\n{o.counterexample}" for o in outcomes.values() if not o.proved]
     assert not failed, failed[0]

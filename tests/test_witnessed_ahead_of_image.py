@@ -285,6 +285,24 @@ def test_forged_counts_afresh_before_any_books_or_after_the_start_move_nothing(
     assert node.state.usable == 1_750_000
 
 
+def granted_drawn_and_put_back(core: Any, sup: Any, node: Any, copy: Any, now: int) -> None:
+    """1 J more granted and 1.5 J drawn, then the supervisor's books put back to ``copy()`` and
+    started: its start takes the node's books (Gs raised to its Rc 2 J) and nothing is
+    created."""
+    exchange(sup.begin(1, 1_000_000, now), sup, node, now)
+    exchange(sup.commit(1, now), sup, node, now)
+    for _ in range(3):
+        exchange(node.spend(500_000, now), sup, node, now)
+    assert node.state.spent == 1_500_000 and node.state.usable == 500_000
+    restored = core([1], 0, variant="witnessed", timing=TIMING, state=copy())
+    restored.power_loss(now + 1, nonce=0x66)
+    exchange(restored.handle_timer(now + 1), restored, node, now + 1)
+    assert restored.unconfirmed() == ()
+    assert restored.session(1).delivered >= 2_000_000  # the copy's Gs raised to the node's Rc
+    held = node.state.usable + node.state.spent
+    assert restored.state.usable + held <= INITIAL
+
+
 @CORES
 @NODES
 def test_a_state_file_copied_before_a_reboot_and_put_back_after_it_creates_nothing(
@@ -303,18 +321,7 @@ def test_a_state_file_copied_before_a_reboot_and_put_back_after_it_creates_nothi
     sup.power_loss(1, nonce=0x55)  # the reboot: a start from its own record
     exchange(sup.handle_timer(1), sup, node, 1)
     assert sup.unconfirmed() == ()
-    exchange(sup.begin(1, 1_000_000, 2), sup, node, 2)
-    exchange(sup.commit(1, 2), sup, node, 2)
-    for _ in range(3):
-        exchange(node.spend(500_000, 2), sup, node, 2)
-    assert node.state.spent == 1_500_000 and node.state.usable == 500_000
-    restored = core([1], 0, variant="witnessed", timing=TIMING, state=copy)
-    restored.power_loss(3, nonce=0x66)
-    exchange(restored.handle_timer(3), restored, node, 3)
-    assert restored.unconfirmed() == ()
-    assert restored.session(1).delivered >= 2_000_000  # the image's Gs raised to the node's Rc
-    held = node.state.usable + node.state.spent
-    assert restored.state.usable + held <= INITIAL
+    granted_drawn_and_put_back(core, sup, node, lambda: copy, 2)
 
 
 @CORES
@@ -340,20 +347,13 @@ def test_a_state_file_copied_while_a_start_waits_for_a_silent_node_creates_nothi
     save_state(tmp_path / "copy.json", sup.state, "witnessed", fsync=False)
     exchange(sup.handle_timer(1_000), sup, node, 1_000)  # the SYNC again, answered
     assert sup.unconfirmed() == ()
-    exchange(sup.begin(1, 1_000_000, 1_001), sup, node, 1_001)
-    exchange(sup.commit(1, 1_001), sup, node, 1_001)
-    for _ in range(3):
-        exchange(node.spend(500_000, 1_001), sup, node, 1_001)
-    assert node.state.spent == 1_500_000 and node.state.usable == 500_000
-    copy = load_state(tmp_path / "copy.json", "witnessed", (1,))
-    assert copy.usable == INITIAL - 1_000_000 and copy.sessions[0].delivered == 1_000_000
-    restored = core([1], 0, variant="witnessed", timing=TIMING, state=copy)
-    restored.power_loss(1_002, nonce=0x66)
-    exchange(restored.handle_timer(1_002), restored, node, 1_002)
-    assert restored.unconfirmed() == ()
-    assert restored.session(1).delivered >= 2_000_000  # the copy's Gs raised to the node's Rc
-    held = node.state.usable + node.state.spent
-    assert restored.state.usable + held <= INITIAL
+
+    def copy() -> Any:
+        books = load_state(tmp_path / "copy.json", "witnessed", (1,))
+        assert books.usable == INITIAL - 1_000_000 and books.sessions[0].delivered == 1_000_000
+        return books
+
+    granted_drawn_and_put_back(core, sup, node, copy, 1_001)
 
 
 @CORES

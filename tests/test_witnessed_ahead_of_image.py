@@ -287,18 +287,20 @@ def test_forged_counts_afresh_before_any_books_or_after_the_start_move_nothing(
 
 def granted_drawn_and_put_back(core: Any, sup: Any, node: Any, copy: Any, now: int) -> None:
     """1 J more granted and 1.5 J drawn, then the supervisor's books put back to ``copy()`` and
-    started: its start takes the node's books (Gs raised to its Rc 2 J) and nothing is
-    created."""
+    started: its start takes the node's books (Gs raised to its Rc) and nothing is created."""
     exchange(sup.begin(1, 1_000_000, now), sup, node, now)
     exchange(sup.commit(1, now), sup, node, now)
     for _ in range(3):
         exchange(node.spend(500_000, now), sup, node, now)
-    assert node.state.spent == 1_500_000 and node.state.usable == 500_000
+    rc = node.state.credited
+    assert node.state.spent == 1_500_000 and node.state.usable == rc - 1_500_000
+    assert rc == sup.session(1).delivered  # the node holds all it was given
     restored = core([1], 0, variant="witnessed", timing=TIMING, state=copy())
+    assert restored.session(1).delivered < rc  # the copy is behind the node
     restored.power_loss(now + 1, nonce=0x66)
     exchange(restored.handle_timer(now + 1), restored, node, now + 1)
     assert restored.unconfirmed() == ()
-    assert restored.session(1).delivered >= 2_000_000  # the copy's Gs raised to the node's Rc
+    assert restored.session(1).delivered >= rc  # the copy's Gs raised to the node's Rc
     held = node.state.usable + node.state.spent
     assert restored.state.usable + held <= INITIAL
 
@@ -331,16 +333,21 @@ def test_a_state_file_copied_while_a_start_waits_for_a_silent_node_creates_nothi
 ) -> None:
     """protocol.md (2' (i)): a copy written while a start of the supervisor's from its own
     record waits for the node's books is inside the theorem (the file holds the session as it
-    stood at the start). Tried on the cores through the state file: 1 J granted, the
-    supervisor reboots while the node is off (its SYNC unanswered), the file copied then (a
-    nightly backup), the node comes back and the start is confirmed, 1 J more granted and
-    1.5 J drawn; the copy put back and started: nothing created."""
+    stood at the start, after the start's write-off). Tried on the cores through the state
+    file: 1 J granted and 1 J more in flight (acknowledged, not committed), the supervisor
+    reboots while the node is off (its SYNC unanswered: the start writes the 1 J in flight off,
+    so the file differs from any copy written before the reboot), the file copied then (a
+    nightly backup), the node comes back and the start is confirmed, 1 J more granted (the node
+    takes the 1 J written off with it: Rc 3 J) and 1.5 J drawn; the copy put back and started:
+    Us 7 J beside the node's 3 J, nothing created."""
     from canergy.live.supervisor.state_file import load_state, save_state
 
     sup = core([1], INITIAL, variant="witnessed", timing=TIMING)
     node = make_node(Client(1, variant="witnessed", timing=TIMING).state)
     exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)
     exchange(sup.commit(1, 0), sup, node, 0)
+    save_state(tmp_path / "before.json", sup.state, "witnessed", fsync=False)
+    exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)  # acknowledged; no commit before the reboot
     sup.power_loss(1, nonce=0x55)  # the reboot: a start from its own record
     unanswered = [a for a in sup.handle_timer(1) if isinstance(a, Send)]
     assert unanswered and sup.unconfirmed() == (1,)  # the SYNC is lost: the node is off
@@ -350,10 +357,13 @@ def test_a_state_file_copied_while_a_start_waits_for_a_silent_node_creates_nothi
 
     def copy() -> Any:
         books = load_state(tmp_path / "copy.json", "witnessed", (1,))
-        assert books.usable == INITIAL - 1_000_000 and books.sessions[0].delivered == 1_000_000
+        older = load_state(tmp_path / "before.json", "witnessed", (1,))
+        assert (books.usable, books.sessions[0].delivered) == (INITIAL - 2_000_000, 2_000_000)
+        assert (older.usable, older.sessions[0].delivered) == (INITIAL - 1_000_000, 1_000_000)
         return books
 
     granted_drawn_and_put_back(core, sup, node, copy, 1_001)
+    assert node.state.credited == 3_000_000 and node.state.usable == 1_500_000
 
 
 @CORES

@@ -1910,8 +1910,10 @@ _SESSION_BOOKS = (
     "tx", "reserved", "delivered", "decision", "returns_credited", "returned", "resume_nonce",
     "resume_from", "resume_to", "witness", "join_nonce", "join_tx", "join_seq",
 )  # fmt: skip
-"""The fields of a session its state file keeps (not its phase in a start, its nonce or
-whether it is a re-sync)."""
+"""The fields of a session a copy must hold as they stood at the start: those its state file
+keeps, not its phase in a start, its nonce or whether it is a re-sync; and the witness W, which
+the file does not keep: a copy reloads it as 0, at or below the W asked for here (a window
+only narrower), and the counts that end the start it begins set it (``witnessed``)."""
 
 
 def _as_it_stood(s: sym.Session, at_start: sym.Session) -> Term:

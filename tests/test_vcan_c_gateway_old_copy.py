@@ -4,17 +4,20 @@ below; the NV file is copied; in its next life the gateway returns 2 J upstream;
 back and the gateway started from it while the root is off, then the root again. Under the
 hardened rules above the gateway holds the 3 J below again (2 J created); with
 ``--upstream-rules witnessed`` it waits (status and stderr), the root finds it behind, and it drops
-the Us below: nothing created. No node runs below: what is measured is between the root and the
-gateway."""
+the Us below: nothing created. No node runs below in the first test: what is measured is between
+the root and the gateway. The second puts a C node below, drawing, so that one restore rolls
+back both links."""
 
 from __future__ import annotations
 
 import shutil
+import time
 from pathlib import Path
 from typing import Any
 
 import pytest
-from support.firmware_build import c_gateway as c_gateway  # the fixture: makes the gateway
+from support.firmware_build import c_gateway as c_gateway  # the fixtures: make the gateway
+from support.firmware_build import c_node as c_node  # and the node
 from support.procs import Procs, python, status, wait
 from support.procs import procs as procs  # the fixture
 from support.vcan import TIMEOUT
@@ -110,3 +113,86 @@ def test_a_c_gateway_restored_from_an_older_copy(procs: Procs, c_gateway: Path, 
         assert held() - released() == 2 * UJ_PER_J  # created
     assert procs.stop("gateway") == 0, procs.stderr("gateway")
     assert procs.stop("root") == 0, procs.stderr("root")
+
+
+@pytest.mark.parametrize("rules", ["hardened", "witnessed"])
+def test_one_restore_rolls_back_both_links_with_a_c_node_drawing_below(
+    procs: Procs, c_gateway: Path, c_node: Path, rules: str
+) -> None:
+    """The gateway's NV file holds its record above and its sessions below: one restore puts
+    both links back. The root grants 3 J; the gateway tops the C node on vcan1 up to 0.6 J
+    while it draws 0.3 W; the NV file is copied; in its next life the gateway returns all
+    but 1 J above and goes on topping the node up; the copy is put back and started (the
+    root and the node on). Hardened rules on both links: the copy holds again what went back
+    above and what the node was given since (both created). Witnessed rules on both links:
+    found behind above (its Us below dropped) and the node's books raise its session below to
+    what the node received (a debt): what the node used and holds and what the gateway
+    holds stay within what the root released."""
+    tmp = procs.tmp
+    nv, gw_status, root_status = tmp / "gw.nv", tmp / "gw-status.json", tmp / "root-status.json"
+    root = ["-m", "canergy", "supervisor", "-i", "socketcan", "-c", UP, "--nodes", str(GW)]
+    root += ["--variant", rules, "--initial", "30J", "--state", str(tmp / "root.json")]
+    root += ["--status-file", str(root_status), "--status-period", "0.2"]
+    root += ["--control", str(tmp / "root.sock"), "--lost-after", "10", *TIMEOUT]
+    procs.start("root", python(*root))
+    wait((tmp / "root.sock").exists, "the root's control socket")
+    wait(root_status.exists, "the root's status")
+    node = [str(c_node), "--node", "1", "-i", "socketcan", "-c", DOWN, "--nv", str(tmp / "n1.nv")]
+    node += ["--status-file", str(tmp / "n1.json"), "--status-period", "0.2", "--power", "0.3W"]
+    procs.start("node", [*node, "--telemetry-period", "0.3", "--rules", rules, *TIMEOUT])
+
+    def gateway(*extra: str) -> None:
+        gw_status.unlink(missing_ok=True)
+        argv = [str(c_gateway), "--node", str(GW), "--nodes", "1", "-c", DOWN, "--nv", str(nv)]
+        argv += ["--upstream-channel", UP, "--rules", rules, "--upstream-rules", rules]
+        argv += ["--status-file", str(gw_status), "--status-period", "0.2", "--target", "0.6J"]
+        argv += ["--upstream-response-timeout", "0.3", "--telemetry-period", "0.3", *extra]
+        procs.start("gateway", [*argv, *TIMEOUT])
+        wait(gw_status.exists, "the gateway's status")
+
+    def gw() -> dict[str, Any]:
+        return status(gw_status)
+
+    def below() -> dict[str, Any]:
+        found: dict[str, Any] = gw()["nodes"]["1"]
+        return found
+
+    gateway()
+    grant = {"grant": {"node": GW, "amount_uj": 3 * UJ_PER_J}}
+    assert request(tmp / "root.sock", grant, 60).get("outcome") == "COMMITTED"
+    wait(lambda: below()["committed"] >= 2, "two top-ups of the node", show=below)
+    assert procs.stop("gateway") == 0, procs.stderr("gateway")
+    shutil.copy(nv, tmp / "gw.nv.copy")
+    given = status(tmp / "gw-status.json")["delivered_uj"]  # to the node, as the copy holds it
+
+    gateway("--return-above", "1J")
+    wait(lambda: below()["committed"] >= 2, "two top-ups after the copy", show=below)
+    wait(lambda: status(root_status)["nodes"][str(GW)]["returns_credited_uj"] > 0, "a return")
+    assert procs.stop("gateway") == 0, procs.stderr("gateway")
+    assert gw()["delivered_uj"] > given  # the node was given more since the copy
+
+    shutil.copy(tmp / "gw.nv.copy", nv)  # the older copy put back: both links at once
+    gateway()
+    if rules == "witnessed":
+        wait(lambda: gw()["upstream"]["found_behind"] == 1, "found behind above", show=gw)
+        wait(lambda: gw()["unconfirmed"] == [], "the node's books below", show=gw)
+        assert gw()["delivered_uj"] > given  # its session raised to what the node received
+    else:
+        wait(lambda: gw()["upstream"]["usable_uj"] + gw()["usable_uj"] > 0, "the copy's budget")
+    time.sleep(2)  # the node draws on; the gateway tops it up if it can
+    assert procs.stop("gateway") == 0, procs.stderr("gateway")
+    assert procs.stop("node") == 0, procs.stderr("node")
+    assert procs.stop("root") == 0, procs.stderr("root")
+
+    root_session = status(root_status)["nodes"][str(GW)]
+    released = root_session["delivered_uj"] + root_session["reserved_uj"]
+    released -= root_session["returns_credited_uj"]
+    g, n = gw(), status(tmp / "n1.json")
+    at_gateway = max(g["usable_uj"], 0) + g["upstream"]["usable_uj"]
+    at_gateway += g["upstream"]["return_pending_uj"]
+    at_node = n["spent_uj"] + n["usable_uj"] + n["return_pending_uj"]
+    if rules == "witnessed":
+        assert at_gateway + at_node <= released, (at_gateway, at_node, released)
+        assert g["upstream"]["dropped_below_uj"] > 0 and g["link_gap_uj"] == 0
+    else:
+        assert at_gateway + at_node > released, (at_gateway, at_node, released)  # created

@@ -563,21 +563,22 @@ def _possible_after(step: str, waits: Any, covered: Any) -> bool:
 def test_a_copy_of_the_node_written_while_its_own_start_waits_is_inside_the_theorem(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """A copy written while the node's own start after a power loss waits (RESUMING, the books
-    it began from, the supervisor not behind it) is an image of the kind the restore step
-    takes, and such a copy can be written. Covering any start, or a RESUMING one with the
-    supervisor behind the node (a restore of the supervisor's), fails the step: the copy may
-    then be an older image, or ahead of the supervisor's books."""
+    """A copy written while a start of the node's waits holding the books it began from (its
+    own after a power loss, RESUMING, or its answer to a SYNC, SYNCING), the supervisor not
+    behind it, is an image of the kind the restore step takes, and such a copy can be written
+    in either. Covering any start, or one with the supervisor behind the node (a restore of
+    the supervisor's), fails the step: the copy may then be an older image, or ahead of the
+    supervisor's books."""
     from canergy.prove import witnessed_proof as wp
 
     assert _copy_outcomes(wp.WRITE_COPY)[wp.COPIES].proved
-    resuming = lambda w: w.c.phase == sym.RESUMING  # noqa: E731
-    assert _possible_after(wp.WRITE_COPY, resuming, lambda w: w.copied)
+    for phase in (sym.RESUMING, sym.SYNCING):
+        waits = lambda w, p=phase: w.c.phase == p  # noqa: E731
+        assert _possible_after(wp.WRITE_COPY, waits, lambda w: w.copied)
     covered = wp.copy_covered
 
     def behind_too(w: Any) -> Any:
-        own = z3.And(w.c.phase == sym.RESUMING, wp._same_books(w.c, wp.pre(w)))
-        return z3.Or(covered(w), own)
+        return z3.Or(covered(w), wp._same_books(w.c, wp.pre(w)))
 
     for wider in (lambda w: z3.BoolVal(True), behind_too):
         monkeypatch.setattr(wp, "copy_covered", wider)

@@ -39,7 +39,8 @@ NARROWED = {
     "witnessed": (
         "assumption 2 narrowed, not dropped: a record put back is a copy that side wrote "
         "while no start of its waited, or while a start from its own record waited (the "
-        "node's RESUME after a power loss, the supervisor not behind it; the supervisor's "
+        "node's RESUME after a power loss or its answer to a SYNC, the supervisor not behind "
+        "it; the supervisor's "
         "before the node's books raised Gs), and since its record last went back (shown to be an "
         "older image of the kind the restore steps take), and not both records rolled back "
         "past the same event (docs/protocol.md, 'Passivity as a theorem', assumption 2)"

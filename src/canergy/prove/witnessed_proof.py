@@ -83,7 +83,8 @@ of the stated kind (``p_image``, ``p_session_image``) and the residual (d) as hy
 images are shown to be of that kind for the copies each side writes (a step of each side
 writes one, ``write_copy``, ``write_session_copy``, kept as the ghosts ``World.copy`` and
 ``World.scopy``): a copy written while no start of that side waits, or while a start of that
-side's from its own record waits (``copy_covered``, ``session_copy_covered``), is of that kind
+side's from its own record waits (for the node its RESUME after a power loss or its answer to
+a SYNC: ``copy_covered``; ``session_copy_covered``), is of that kind
 at every later step until that side's record goes back (``went_back``, ``session_went_back``; the
 clauses ``copies the node wrote``, ``copies the supervisor wrote``). A start of the
 supervisor's ends either side's copies only when it goes on from an older image
@@ -1545,13 +1546,12 @@ def write_copy(w: World) -> st.Step:
 
 def copy_covered(w: World) -> Term:
     """A copy of the node's record is inside the theorem when written while no start of its
-    waits, or while its own start after a power loss waits (RESUMING) holding the books of
-    the record it began from, with the supervisor not behind it (its tx at or above the
-    node's ltx: no restore of the supervisor's). Not while a start from an older image waits,
-    nor while the node answers a SYNC (a start of the supervisor's)."""
+    waits, or while one waits holding the books of the record it began from (its own start
+    after a power loss, RESUMING, or its answer to a SYNC of the supervisor's, SYNCING) with
+    the supervisor not behind it (its tx at or above the node's ltx: no restore of the
+    supervisor's). Not while a start from an older image waits."""
     v = view(w)
-    resuming = z3.And(w.c.phase == sym.RESUMING, _same_books(w.c, pre(w)), ule(v.last, v.tx))
-    return z3.Or(z3.Not(starting(w.c)), resuming)
+    return z3.Or(z3.Not(starting(w.c)), z3.And(_same_books(w.c, pre(w)), ule(v.last, v.tx)))
 
 
 def went_back(before: World, after: World) -> Term:

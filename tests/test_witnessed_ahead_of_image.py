@@ -406,19 +406,24 @@ def test_a_node_copied_while_its_start_waits_for_the_supervisor_creates_nothing(
 def test_a_node_copied_while_it_answers_a_sync_creates_nothing(core: Any, make_node: Any) -> None:
     """protocol.md (2' (i)): a copy of the node's record written while it answers a SYNC
     (SYNCING: the supervisor rebooted from its own record, the confirmation not yet come) is
-    inside the theorem. Tried on the cores: 1 J granted, the supervisor reboots, the node
-    answers its SYNC and those answers are lost, the record is copied then, the SYNC again is
-    answered and confirmed, 1 J more granted and 1.5 J drawn; the record put back to the copy
-    and started: found behind, the node holds nothing, 0.5 J lost, nothing created."""
+    inside the theorem. Tried on the cores: 1 J granted and 1 J more acknowledged, not
+    committed, when the supervisor reboots; the node answers its SYNC (dropping the intention
+    it held and settling its window ahead: a record unlike any before the SYNC) and those
+    answers are lost; the record is copied then; the SYNC again is answered and confirmed,
+    1 J more granted (with the 1 J written off: Rc 3 J) and 1.5 J drawn; the record put back
+    to the copy and started: found behind, the node holds nothing, Us 7 J, 1.5 J lost."""
     sup = core([1], INITIAL, variant="witnessed", timing=TIMING)
     node = make_node(Client(1, variant="witnessed", timing=TIMING).state)
     exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)
     exchange(sup.commit(1, 0), sup, node, 0)
+    exchange(sup.begin(1, 1_000_000, 0), sup, node, 0)  # acknowledged; no commit before the reboot
+    held = node.state
     sup.power_loss(1, nonce=0x55)  # the reboot: a start from its own record
     syncs = [a.message for a in sup.handle_timer(1) if isinstance(a, Send)]
     answers = [a for m in syncs for a in node.receive(m, 1) if isinstance(a, Send)]
     assert answers and node.state.phase.name == "SYNCING"  # its books and counts, lost
     copy = node.state
+    assert (held.held_tx, copy.held_tx) == (2, 0) and copy.last_tx > held.last_tx
     exchange(sup.handle_timer(1_000), sup, node, 1_000)  # the SYNC again, answered
     assert node.state.phase.name == "IDLE" and sup.unconfirmed() == ()
     exchange(sup.begin(1, 1_000_000, 1_001), sup, node, 1_001)
@@ -426,10 +431,11 @@ def test_a_node_copied_while_it_answers_a_sync_creates_nothing(core: Any, make_n
     for _ in range(3):
         exchange(node.spend(500_000, 1_001), sup, node, 1_001)
     spent = node.state.spent
-    assert spent == 1_500_000 and sup.state.usable == INITIAL - 2_000_000
+    assert spent == 1_500_000 and node.state.credited == 3_000_000
+    assert sup.state.usable == INITIAL - 3_000_000
     node = make_node(copy)  # the node's record put back to the copy
     exchange(node.power_loss(1_002, nonce=0x0505), sup, node, 1_002)
     exchange(node.handle_timer(2_000), sup, node, 2_000)
     assert node.state.phase.name == "IDLE" and sup.unconfirmed() == ()
     assert node.state.usable == 0  # found behind: the copy's budget dropped
-    assert sup.state.usable == INITIAL - 2_000_000  # 0.5 J lost, nothing created
+    assert sup.state.usable == INITIAL - 3_000_000  # 1.5 J lost, nothing created
